@@ -1,0 +1,23 @@
+//! Compiles `haptics/v1/*.proto` with protox (pure Rust), so a fresh machine needs no `protoc`.
+//! The encoded descriptor set is also written to OUT_DIR for gRPC server reflection.
+
+use std::path::PathBuf;
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let files = ["haptics/v1/haptics.proto"];
+    for f in &files {
+        println!("cargo:rerun-if-changed={f}");
+    }
+    let fds = protox::compile(files, ["."])?;
+    let out = PathBuf::from(std::env::var("OUT_DIR")?);
+    let bytes = prost::Message::encode_to_vec(&fds);
+    std::fs::write(out.join("haptics_v1_descriptor.bin"), bytes)?;
+    tonic_prost_build::configure()
+        .build_server(true)
+        .build_client(true)
+        // The fixed RPC name `DeviceLink.Connect` would collide with the generated
+        // `XClient::connect(endpoint)` constructor; clients use `XClient::new(channel)` instead.
+        .build_transport(false)
+        .compile_fds(fds)?;
+    Ok(())
+}
