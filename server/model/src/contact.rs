@@ -1,4 +1,19 @@
-//! Haptic probe contact. Placeholder; filled in by the FEM core change.
+//! Haptic probe contact: a sphere at the device position (the haptic interaction point, HIP)
+//! touches the touchable surface through a god-object (proxy) joined to the device point by a
+//! virtual coupling.
+//!
+//! Each update finds the closest point `c` of the deformed touchable surface to the device point
+//! (a local walk over neighbouring triangles while in contact, a full search otherwise). With the
+//! outward normal `n` there and the signed distance `s` of the device point, the probe touches
+//! when `s < r`. The proxy is then held on the surface at `c + r n` (it cannot penetrate), and
+//! the virtual coupling gives the device force
+//! `F_dev = k (proxy - device) + b ((v_c - v_dev) . n) n`, clamped to `max_force_n`. Its reaction
+//! `-F_dev` acts on the body at `c`, spread over the triangle's nodes by barycentric weights, so
+//! linear momentum is conserved. Frictionless: the proxy slides freely along the surface.
+//!
+//! Neighbours: [`crate::sim`] calls [`Probe::update`] every sub-step and adds the reaction.
+
+use glam::DVec3;
 
 /// Haptic probe and virtual coupling parameters.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -7,7 +22,7 @@ pub struct ProbeParams {
     pub radius_m: f64,
     /// Virtual coupling stiffness between proxy and device point, N/m.
     pub coupling_stiffness_n_per_m: f64,
-    /// Virtual coupling damping, N s/m.
+    /// Virtual coupling damping along the contact normal, N s/m.
     pub coupling_damping_n_s_per_m: f64,
     /// Largest coupling force magnitude the model applies and returns, N.
     pub max_force_n: f64,
@@ -21,5 +36,287 @@ impl Default for ProbeParams {
             coupling_damping_n_s_per_m: 0.5,
             max_force_n: 10.0,
         }
+    }
+}
+
+/// A triangle surface over the body's nodes with vertex-to-triangle adjacency, for closest-point
+/// queries on the deformed configuration.
+#[derive(Debug, Clone)]
+pub struct ContactSurface {
+    /// Triangles (node indices), outward oriented.
+    pub triangles: Vec<[u32; 3]>,
+    /// CSR offsets: triangles around node `i` are `node_tris[node_offsets[i]..node_offsets[i+1]]`.
+    node_offsets: Vec<u32>,
+    node_tris: Vec<u32>,
+}
+
+/// The closest point of a surface to a query point.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SurfacePoint {
+    /// Triangle index into [`ContactSurface::triangles`].
+    pub triangle: u32,
+    /// Barycentric weights of the point on the triangle (sum 1, each >= 0).
+    pub bary: [f64; 3],
+    /// The point, m.
+    pub point: DVec3,
+    /// Squared distance to the query, m^2.
+    pub dist2: f64,
+}
+
+impl ContactSurface {
+    /// Builds the adjacency for `triangles` over `node_count` nodes.
+    pub fn new(triangles: Vec<[u32; 3]>, node_count: usize) -> Self {
+        let mut counts = vec![0u32; node_count + 1];
+        for t in &triangles {
+            for &i in t {
+                counts[i as usize + 1] += 1;
+            }
+        }
+        for i in 0..node_count {
+            counts[i + 1] += counts[i];
+        }
+        let mut fill = counts.clone();
+        let mut node_tris = vec![0u32; counts[node_count] as usize];
+        for (k, t) in triangles.iter().enumerate() {
+            for &i in t {
+                node_tris[fill[i as usize] as usize] = k as u32;
+                fill[i as usize] += 1;
+            }
+        }
+        Self { triangles, node_offsets: counts, node_tris }
+    }
+
+    /// Closest point of triangle `k` to `q` on positions `x`.
+    #[inline]
+    pub fn closest_on(&self, k: u32, x: &[DVec3], q: DVec3) -> SurfacePoint {
+        let [a, b, c] = self.triangles[k as usize].map(|i| x[i as usize]);
+        let (point, bary) = closest_point_on_triangle(q, a, b, c);
+        SurfacePoint { triangle: k, bary, point, dist2: (q - point).length_squared() }
+    }
+
+    /// Closest point over all triangles (O(T)). `None` for an empty surface.
+    pub fn closest_global(&self, x: &[DVec3], q: DVec3) -> Option<SurfacePoint> {
+        let mut best: Option<SurfacePoint> = None;
+        for k in 0..self.triangles.len() as u32 {
+            let c = self.closest_on(k, x, q);
+            if best.is_none_or(|b| c.dist2 < b.dist2) {
+                best = Some(c);
+            }
+        }
+        best
+    }
+
+    /// Closest point by a local walk from triangle `start` over vertex-adjacent triangles, until
+    /// no neighbour is closer (at most `max_hops` moves). Allocation-free.
+    pub fn closest_local(&self, x: &[DVec3], q: DVec3, start: u32, max_hops: usize) -> SurfacePoint {
+        let mut best = self.closest_on(start, x, q);
+        for _ in 0..max_hops {
+            let current = best.triangle;
+            for &node in &self.triangles[current as usize] {
+                let (lo, hi) = (self.node_offsets[node as usize], self.node_offsets[node as usize + 1]);
+                for &k in &self.node_tris[lo as usize..hi as usize] {
+                    let c = self.closest_on(k, x, q);
+                    if c.dist2 < best.dist2 {
+                        best = c;
+                    }
+                }
+            }
+            if best.triangle == current {
+                break;
+            }
+        }
+        best
+    }
+
+    /// Unit outward normal of triangle `k` on positions `x` (zero for a degenerate triangle).
+    #[inline]
+    pub fn normal(&self, k: u32, x: &[DVec3]) -> DVec3 {
+        let [a, b, c] = self.triangles[k as usize].map(|i| x[i as usize]);
+        (b - a).cross(c - a).normalize_or_zero()
+    }
+}
+
+/// Closest point to `p` on triangle `(a, b, c)` and its barycentric weights (Ericson,
+/// *Real-Time Collision Detection*, 5.1.5).
+pub fn closest_point_on_triangle(p: DVec3, a: DVec3, b: DVec3, c: DVec3) -> (DVec3, [f64; 3]) {
+    let ab = b - a;
+    let ac = c - a;
+    let ap = p - a;
+    let d1 = ab.dot(ap);
+    let d2 = ac.dot(ap);
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return (a, [1.0, 0.0, 0.0]);
+    }
+    let bp = p - b;
+    let d3 = ab.dot(bp);
+    let d4 = ac.dot(bp);
+    if d3 >= 0.0 && d4 <= d3 {
+        return (b, [0.0, 1.0, 0.0]);
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        let v = d1 / (d1 - d3);
+        return (a + ab * v, [1.0 - v, v, 0.0]);
+    }
+    let cp = p - c;
+    let d5 = ab.dot(cp);
+    let d6 = ac.dot(cp);
+    if d6 >= 0.0 && d5 <= d6 {
+        return (c, [0.0, 0.0, 1.0]);
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        let w = d2 / (d2 - d6);
+        return (a + ac * w, [1.0 - w, 0.0, w]);
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+        let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        return (b + (c - b) * w, [0.0, 1.0 - w, w]);
+    }
+    let denom = 1.0 / (va + vb + vc);
+    let v = vb * denom;
+    let w = vc * denom;
+    (a + ab * v + ac * w, [1.0 - v - w, v, w])
+}
+
+/// Result of a probe update.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ContactState {
+    /// Whether the probe touches the surface.
+    pub in_contact: bool,
+    /// Force the device must render (virtual coupling on the device), N.
+    pub force_on_device_n: DVec3,
+    /// Proxy (god-object) centre, m. Equals the device point out of contact.
+    pub proxy_m: DVec3,
+    /// Outward contact normal (zero out of contact).
+    pub normal: DVec3,
+    /// Contact triangle and barycentric weights (valid in contact).
+    pub triangle: u32,
+    /// Barycentric weights on `triangle`.
+    pub bary: [f64; 3],
+}
+
+/// The haptic probe: parameters, the touchable surface and the contact state.
+#[derive(Debug, Clone)]
+pub struct Probe {
+    /// Parameters.
+    pub params: ProbeParams,
+    /// Touchable surface.
+    pub surface: ContactSurface,
+    /// Rest-configuration bounding box of the surface, expanded by a margin, for a cheap
+    /// "far away" test that skips the search.
+    reach_min: DVec3,
+    reach_max: DVec3,
+    /// Last contact state.
+    pub state: ContactState,
+}
+
+impl Probe {
+    /// Builds a probe over `touchable` triangles of a body whose rest positions are `rest`.
+    pub fn new(params: ProbeParams, touchable: Vec<[u32; 3]>, rest: &[DVec3]) -> Self {
+        let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+        for t in &touchable {
+            for &i in t {
+                lo = lo.min(rest[i as usize]);
+                hi = hi.max(rest[i as usize]);
+            }
+        }
+        // Deformations larger than half the body size are far outside haptic use.
+        let margin = (hi - lo).max_element() * 0.5 + params.radius_m;
+        Self {
+            params,
+            surface: ContactSurface::new(touchable, rest.len()),
+            reach_min: lo - DVec3::splat(margin),
+            reach_max: hi + DVec3::splat(margin),
+            state: ContactState::default(),
+        }
+    }
+
+    /// Updates the contact for device point `device_m` (m) moving at `device_vel` (m/s) against
+    /// the body at positions `x`, velocities `v`. Allocation-free.
+    pub fn update(&mut self, x: &[DVec3], v: &[DVec3], device_m: DVec3, device_vel: DVec3) -> ContactState {
+        let none = ContactState { proxy_m: device_m, ..ContactState::default() };
+        if self.surface.triangles.is_empty()
+            || device_m.cmplt(self.reach_min).any()
+            || device_m.cmpgt(self.reach_max).any()
+        {
+            self.state = none;
+            return none;
+        }
+        let sp = if self.state.in_contact {
+            self.surface.closest_local(x, device_m, self.state.triangle, 16)
+        } else {
+            match self.surface.closest_global(x, device_m) {
+                Some(sp) => sp,
+                None => return none,
+            }
+        };
+        let face_n = self.surface.normal(sp.triangle, x);
+        let d = device_m - sp.point;
+        let dist = d.length();
+        let outside = d.dot(face_n) >= 0.0;
+        let signed = if outside { dist } else { -dist };
+        let r = self.params.radius_m;
+        if signed >= r || face_n == DVec3::ZERO {
+            self.state = none;
+            return none;
+        }
+        let n = if outside && dist > 1e-12 { d / dist } else { face_n };
+        let proxy = sp.point + n * r;
+        let [ia, ib, ic] = self.surface.triangles[sp.triangle as usize];
+        let v_c = v[ia as usize] * sp.bary[0] + v[ib as usize] * sp.bary[1] + v[ic as usize] * sp.bary[2];
+        let p = &self.params;
+        let mut f = (proxy - device_m) * p.coupling_stiffness_n_per_m
+            + n * ((v_c - device_vel).dot(n) * p.coupling_damping_n_s_per_m);
+        if f.dot(n) <= 0.0 {
+            // The coupling would pull the device into the body (the surface is moving away
+            // faster than the device): no adhesion.
+            f = DVec3::ZERO;
+        }
+        let mag = f.length();
+        if mag > p.max_force_n {
+            f *= p.max_force_n / mag;
+        }
+        self.state = ContactState {
+            in_contact: true,
+            force_on_device_n: f,
+            proxy_m: proxy,
+            normal: n,
+            triangle: sp.triangle,
+            bary: sp.bary,
+        };
+        self.state
+    }
+
+    /// Adds the reaction of the coupling force, `-F_dev`, to the nodal forces `f` (N) at the
+    /// contact point, by barycentric weights. Does nothing out of contact.
+    pub fn add_reaction(&self, f: &mut [DVec3]) {
+        if !self.state.in_contact {
+            return;
+        }
+        let tri = self.surface.triangles[self.state.triangle as usize];
+        for (k, &i) in tri.iter().enumerate() {
+            f[i as usize] -= self.state.force_on_device_n * self.state.bary[k];
+        }
+    }
+
+    /// Local contact stiffness felt at the device, 3x3 row-major N/m: `k n n^T` in contact
+    /// (the coupling stiffness along the normal; the tissue in series makes the true value
+    /// smaller), zero out of contact.
+    pub fn contact_stiffness(&self) -> [f64; 9] {
+        if !self.state.in_contact {
+            return [0.0; 9];
+        }
+        let n = self.state.normal;
+        let k = self.params.coupling_stiffness_n_per_m;
+        let a = n.to_array();
+        let mut out = [0.0; 9];
+        for r in 0..3 {
+            for c in 0..3 {
+                out[r * 3 + c] = k * a[r] * a[c];
+            }
+        }
+        out
     }
 }

@@ -1,1 +1,391 @@
-//! placeholder
+//! [`Simulation`]: one deformable body driven by a haptic probe and point loads, advanced one
+//! servo tick at a time.
+//!
+//! Layout follows state / scratch / parameters: [`SimState`] holds positions, velocities and
+//! time; the force buffer and the point-load table are scratch sized at construction; the
+//! [`FemModel`], [`StepPlan`] and probe parameters are fixed. [`Simulation::tick`] allocates
+//! nothing, takes no lock and does no I/O, so the server can call it on its servo thread.
+//!
+//! Neighbours: built from a [`crate::scene::Scene`]; uses [`crate::fem`],
+//! [`crate::integrator`], [`crate::contact`].
+
+use glam::{DMat3, DVec3};
+
+use crate::contact::{ContactState, ContactSurface, Probe};
+use crate::fem::{FemModel, CLAMPED};
+use crate::integrator::{self, IntegratorKind, StepPlan};
+use crate::scene::Scene;
+use crate::ModelError;
+
+/// Largest number of point loads active at once (the table is preallocated).
+pub const MAX_POINT_LOADS: usize = 32;
+/// Largest accepted point-load magnitude, N. Anything larger is rejected as absurd for a
+/// haptic scene (the strongest device we drive renders 100 N).
+pub const MAX_POINT_FORCE_N: f64 = 100.0;
+/// Largest accepted point-load duration, s.
+pub const MAX_POINT_LOAD_DURATION_S: f64 = 3600.0;
+/// Largest accepted distance between a device point and the rest bounding box, m: device
+/// points farther away than this are absurd (a unit error or a broken sensor).
+pub const MAX_DEVICE_DISTANCE_M: f64 = 10.0;
+/// A nodal speed above this (m/s) is treated as divergence.
+pub const DIVERGENCE_SPEED_M_PER_S: f64 = 100.0;
+
+/// Dynamic state of the body.
+#[derive(Debug, Clone)]
+pub struct SimState {
+    /// Node positions, m.
+    pub x: Vec<DVec3>,
+    /// Node velocities, m/s.
+    pub v: Vec<DVec3>,
+    /// Simulated time, s.
+    pub time_s: f64,
+}
+
+/// What the device reports for one servo tick.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct TickInput {
+    /// Haptic interaction point, m, scene frame; `None` when no device is connected.
+    pub device_position_m: Option<DVec3>,
+    /// Device velocity, m/s.
+    pub device_velocity_m_per_s: DVec3,
+}
+
+/// What one servo tick returns to the device.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct TickOutput {
+    /// Force the device must render, N (the virtual coupling force at the end of the tick).
+    pub force_on_device_n: DVec3,
+    /// Whether the probe touches the surface.
+    pub in_contact: bool,
+    /// Proxy (god-object) position, m.
+    pub proxy_position_m: DVec3,
+    /// Local contact stiffness, 3x3 row-major, N/m.
+    pub contact_stiffness_n_per_m: [f64; 9],
+    /// Simulated time after the tick, s.
+    pub sim_time_s: f64,
+}
+
+/// A point load: a force on a surface point, spread over its triangle by barycentric weights.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct PointLoad {
+    nodes: [u32; 3],
+    bary: [f64; 3],
+    force_n: DVec3,
+    remaining_s: f64,
+}
+
+/// A deformable body with its probe, loads, integrator and sub-stepping.
+#[derive(Debug, Clone)]
+pub struct Simulation {
+    fem: FemModel,
+    kind: IntegratorKind,
+    plan: StepPlan,
+    tick_s: f64,
+    /// Seed eq. 34 per-node matrices `A_i^-1` (semi-implicit only; empty otherwise).
+    a_inv: Vec<DMat3>,
+    state: SimState,
+    /// Scratch: total nodal forces of the current sub-step.
+    force: Vec<DVec3>,
+    probe: Probe,
+    /// Surface used to place point loads (all boundary triangles not entirely clamped).
+    load_surface: ContactSurface,
+    loads: Vec<PointLoad>,
+    /// Surface for viewers: distinct boundary nodes and triangles indexing into them.
+    surface_nodes: Vec<u32>,
+    surface_triangles: Vec<[u32; 3]>,
+    scene_name: String,
+    last_output: TickOutput,
+}
+
+impl Simulation {
+    /// Builds the simulation of `scene`: precomputes the FEM data, the critical time step and the
+    /// sub-step plan, and the semi-implicit per-node matrices.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidMesh`] / [`ModelError::SceneField`] for a bad mesh or material;
+    /// [`ModelError::Unstable`] when the integrator cannot be stable within `max_substeps`.
+    pub fn new(scene: &Scene) -> Result<Self, ModelError> {
+        let mut fem = FemModel::new(&scene.mesh, scene.material)?;
+        fem.clamp_nodes(&scene.clamped_nodes);
+        Self::from_fem(fem, scene)
+    }
+
+    /// Like [`Simulation::new`] but with a prepared [`FemModel`] (e.g. with roller constraints).
+    ///
+    /// # Errors
+    /// As [`Simulation::new`].
+    pub fn from_fem(fem: FemModel, scene: &Scene) -> Result<Self, ModelError> {
+        let p = scene.integrator;
+        if !(p.tick_s > 0.0 && p.tick_s.is_finite()) {
+            return Err(ModelError::field("integrator.tick_s", "must be a positive number"));
+        }
+        let critical = integrator::critical_time_step(&fem, p.kind);
+        let plan = integrator::plan_steps(&p, critical)?;
+        let a_inv = match p.kind {
+            IntegratorKind::SemiImplicit => integrator::semi_implicit_inverses(&fem, plan.sub_dt_s),
+            IntegratorKind::SymplecticEuler => Vec::new(),
+        };
+        let n = fem.node_count();
+        let boundary = scene.mesh.boundary_triangles();
+        let load_tris: Vec<[u32; 3]> = boundary
+            .iter()
+            .copied()
+            .filter(|t| t.iter().any(|&i| fem.constraint[i as usize] != CLAMPED))
+            .collect();
+        let mut surface_nodes: Vec<u32> = boundary.iter().flatten().copied().collect();
+        surface_nodes.sort_unstable();
+        surface_nodes.dedup();
+        let mut local = vec![u32::MAX; n];
+        for (k, &i) in surface_nodes.iter().enumerate() {
+            local[i as usize] = k as u32;
+        }
+        let surface_triangles = boundary.iter().map(|t| t.map(|i| local[i as usize])).collect();
+        let probe = Probe::new(scene.probe, scene.touchable.clone(), &fem.rest);
+        Ok(Self {
+            kind: p.kind,
+            plan,
+            tick_s: p.tick_s,
+            a_inv,
+            state: SimState { x: fem.rest.clone(), v: vec![DVec3::ZERO; n], time_s: 0.0 },
+            force: vec![DVec3::ZERO; n],
+            probe,
+            load_surface: ContactSurface::new(load_tris, n),
+            loads: Vec::with_capacity(MAX_POINT_LOADS),
+            surface_nodes,
+            surface_triangles,
+            scene_name: scene.name.clone(),
+            last_output: TickOutput::default(),
+            fem,
+        })
+    }
+
+    /// Advances one servo tick (`plan().substeps` model steps) with the device input, and
+    /// returns the force for the device.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] for a non-finite or absurd device input (the state is not
+    /// touched); [`ModelError::NoConvergence`] when the state became non-finite or diverged
+    /// (the caller must quarantine the session: the state is no longer meaningful).
+    pub fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
+        self.check_device(input)?;
+        let h = self.plan.sub_dt_s;
+        let mut contact = ContactState::default();
+        for _ in 0..self.plan.substeps {
+            self.force.iter_mut().for_each(|f| *f = DVec3::ZERO);
+            self.fem.add_internal_forces(&self.state.x, Some(&self.state.v), &mut self.force);
+            for l in &self.loads {
+                for k in 0..3 {
+                    self.force[l.nodes[k] as usize] += l.force_n * l.bary[k];
+                }
+            }
+            contact = match input.device_position_m {
+                Some(p) => {
+                    let c = self.probe.update(&self.state.x, &self.state.v, p, input.device_velocity_m_per_s);
+                    self.probe.add_reaction(&mut self.force);
+                    c
+                }
+                None => {
+                    self.probe.state = ContactState::default();
+                    ContactState::default()
+                }
+            };
+            let max_v2 = integrator::integrate_nodes(
+                self.kind,
+                &self.fem,
+                &self.a_inv,
+                h,
+                &self.force,
+                &mut self.state.x,
+                &mut self.state.v,
+            );
+            if !(max_v2 <= DIVERGENCE_SPEED_M_PER_S * DIVERGENCE_SPEED_M_PER_S) {
+                return Err(ModelError::NoConvergence(
+                    "the simulation diverged (a nodal speed became non-finite or above 100 m/s)".into(),
+                ));
+            }
+        }
+        self.state.time_s += self.tick_s;
+        let dt = self.tick_s;
+        self.loads.retain_mut(|l| {
+            l.remaining_s -= dt;
+            l.remaining_s > 1e-12
+        });
+        let out = TickOutput {
+            force_on_device_n: contact.force_on_device_n,
+            in_contact: contact.in_contact,
+            proxy_position_m: if contact.in_contact {
+                contact.proxy_m
+            } else {
+                input.device_position_m.unwrap_or(DVec3::ZERO)
+            },
+            contact_stiffness_n_per_m: self.probe.contact_stiffness(),
+            sim_time_s: self.state.time_s,
+        };
+        self.last_output = out;
+        Ok(out)
+    }
+
+    fn check_device(&self, input: &TickInput) -> Result<(), ModelError> {
+        if let Some(p) = input.device_position_m {
+            if !p.is_finite() || !input.device_velocity_m_per_s.is_finite() {
+                return Err(ModelError::InvalidInput("device position or velocity is not finite".into()));
+            }
+            if p.abs().max_element() > MAX_DEVICE_DISTANCE_M {
+                return Err(ModelError::InvalidInput(format!(
+                    "device position {p} m is farther than {MAX_DEVICE_DISTANCE_M} m from the origin"
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// Applies `force_n` (N) at the surface point closest to `point_m` (m) for `duration_s` of
+    /// simulated time, spread over the closest boundary triangle by barycentric weights.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] (state untouched) for non-finite values, a force above
+    /// [`MAX_POINT_FORCE_N`], a duration outside `(0, MAX_POINT_LOAD_DURATION_S]`, a point farther
+    /// than [`MAX_DEVICE_DISTANCE_M`], or when [`MAX_POINT_LOADS`] loads are already active.
+    pub fn add_point_load(&mut self, point_m: DVec3, force_n: DVec3, duration_s: f64) -> Result<(), ModelError> {
+        validate_point_load(point_m, force_n, duration_s)?;
+        if self.loads.len() >= MAX_POINT_LOADS {
+            return Err(ModelError::InvalidInput(format!(
+                "{MAX_POINT_LOADS} point loads are already active"
+            )));
+        }
+        let sp = self
+            .load_surface
+            .closest_global(&self.state.x, point_m)
+            .ok_or_else(|| ModelError::InvalidInput("the body has no free surface to load".into()))?;
+        self.loads.push(PointLoad {
+            nodes: self.load_surface.triangles[sp.triangle as usize],
+            bary: sp.bary,
+            force_n,
+            remaining_s: duration_s,
+        });
+        Ok(())
+    }
+
+    /// Number of point loads still active.
+    pub fn active_point_loads(&self) -> usize {
+        self.loads.len()
+    }
+
+    /// Writes the surface vertex positions (xyz interleaved, f32, m) into `out` (length
+    /// `3 * surface_node_indices().len()`) and returns the largest displacement from rest among
+    /// them, m.
+    ///
+    /// # Panics
+    /// If `out` has the wrong length.
+    pub fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
+        assert_eq!(out.len(), 3 * self.surface_nodes.len(), "surface buffer length");
+        let mut max_d2: f64 = 0.0;
+        for (k, &i) in self.surface_nodes.iter().enumerate() {
+            let p = self.state.x[i as usize];
+            out[3 * k] = p.x as f32;
+            out[3 * k + 1] = p.y as f32;
+            out[3 * k + 2] = p.z as f32;
+            max_d2 = max_d2.max((p - self.fem.rest[i as usize]).length_squared());
+        }
+        max_d2.sqrt()
+    }
+
+    /// Largest nodal displacement from rest over the whole body, m.
+    pub fn max_displacement_m(&self) -> f64 {
+        self.state
+            .x
+            .iter()
+            .zip(&self.fem.rest)
+            .map(|(x, r)| (*x - *r).length_squared())
+            .fold(0.0, f64::max)
+            .sqrt()
+    }
+
+    /// Kinetic energy `sum m v^2 / 2`, J.
+    pub fn kinetic_energy_j(&self) -> f64 {
+        self.state.v.iter().zip(&self.fem.lumped_mass_kg).map(|(v, m)| 0.5 * m * v.length_squared()).sum()
+    }
+
+    /// Boundary nodes shown to viewers (indices into the body's nodes), sorted.
+    pub fn surface_node_indices(&self) -> &[u32] {
+        &self.surface_nodes
+    }
+
+    /// Boundary triangles indexing into [`Simulation::surface_node_indices`], outward oriented.
+    pub fn surface_triangles(&self) -> &[[u32; 3]] {
+        &self.surface_triangles
+    }
+
+    /// The FEM data.
+    pub fn fem(&self) -> &FemModel {
+        &self.fem
+    }
+
+    /// The dynamic state.
+    pub fn state(&self) -> &SimState {
+        &self.state
+    }
+
+    /// Mutable state, for tests and set-ups (e.g. imposing an initial deformation).
+    pub fn state_mut(&mut self) -> &mut SimState {
+        &mut self.state
+    }
+
+    /// Sub-step plan.
+    pub fn plan(&self) -> StepPlan {
+        self.plan
+    }
+
+    /// Integrator in use.
+    pub fn integrator(&self) -> IntegratorKind {
+        self.kind
+    }
+
+    /// Servo tick, s.
+    pub fn tick_s(&self) -> f64 {
+        self.tick_s
+    }
+
+    /// Probe radius, m.
+    pub fn probe_radius_m(&self) -> f64 {
+        self.probe.params.radius_m
+    }
+
+    /// Scene name.
+    pub fn scene_name(&self) -> &str {
+        &self.scene_name
+    }
+
+    /// The output of the last successful tick.
+    pub fn last_output(&self) -> TickOutput {
+        self.last_output
+    }
+}
+
+/// Checks a point load's numbers (see [`Simulation::add_point_load`]).
+///
+/// # Errors
+/// [`ModelError::InvalidInput`] saying which value is wrong.
+pub fn validate_point_load(point_m: DVec3, force_n: DVec3, duration_s: f64) -> Result<(), ModelError> {
+    if !point_m.is_finite() {
+        return Err(ModelError::InvalidInput("point_m is not finite".into()));
+    }
+    if !force_n.is_finite() {
+        return Err(ModelError::InvalidInput("force_n is not finite".into()));
+    }
+    if !duration_s.is_finite() || duration_s <= 0.0 || duration_s > MAX_POINT_LOAD_DURATION_S {
+        return Err(ModelError::InvalidInput(format!(
+            "duration_s = {duration_s} must be in (0, {MAX_POINT_LOAD_DURATION_S}] s"
+        )));
+    }
+    if force_n.length() > MAX_POINT_FORCE_N {
+        return Err(ModelError::InvalidInput(format!(
+            "|force_n| = {:.3} N exceeds the {MAX_POINT_FORCE_N} N limit",
+            force_n.length()
+        )));
+    }
+    if point_m.abs().max_element() > MAX_DEVICE_DISTANCE_M {
+        return Err(ModelError::InvalidInput(format!("point_m {point_m} is absurdly far from the scene")));
+    }
+    Ok(())
+}
