@@ -63,6 +63,19 @@ pub enum ModelError {
     /// A run-time input was rejected (NaN, infinity, absurd magnitude); the state is untouched.
     #[error("invalid input: {0}")]
     InvalidInput(String),
+    /// A device input was rejected by the servo tick (static message: the tick never allocates).
+    #[error("invalid device input: {0}")]
+    InvalidDevice(&'static str),
+    /// The dynamic simulation diverged (non-finite state or a nodal speed above the limit);
+    /// the state is no longer meaningful and the session must be quarantined.
+    #[error("the simulation diverged at t = {time_s:.4} s (a nodal speed became non-finite or exceeded the limit)")]
+    Diverged {
+        /// Simulated time of the failing tick, s.
+        time_s: f64,
+    },
+    /// The preallocated point-load table is full.
+    #[error("{0} point loads are already active")]
+    LoadTableFull(usize),
     /// A solver did not converge.
     #[error("solver did not converge: {0}")]
     NoConvergence(String),

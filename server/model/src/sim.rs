@@ -163,9 +163,10 @@ impl Simulation {
     /// returns the force for the device.
     ///
     /// # Errors
-    /// [`ModelError::InvalidInput`] for a non-finite or absurd device input (the state is not
-    /// touched); [`ModelError::NoConvergence`] when the state became non-finite or diverged
-    /// (the caller must quarantine the session: the state is no longer meaningful).
+    /// [`ModelError::InvalidDevice`] for a non-finite or absurd device input (the state is not
+    /// touched); [`ModelError::Diverged`] when the state became non-finite or diverged (the
+    /// caller must quarantine the session: the state is no longer meaningful). Neither
+    /// allocates.
     pub fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
         self.check_device(input)?;
         let h = self.plan.sub_dt_s;
@@ -199,9 +200,7 @@ impl Simulation {
                 &mut self.state.v,
             );
             if !(max_v2 <= DIVERGENCE_SPEED_M_PER_S * DIVERGENCE_SPEED_M_PER_S) {
-                return Err(ModelError::NoConvergence(
-                    "the simulation diverged (a nodal speed became non-finite or above 100 m/s)".into(),
-                ));
+                return Err(ModelError::Diverged { time_s: self.state.time_s });
             }
         }
         self.state.time_s += self.tick_s;
@@ -228,12 +227,10 @@ impl Simulation {
     fn check_device(&self, input: &TickInput) -> Result<(), ModelError> {
         if let Some(p) = input.device_position_m {
             if !p.is_finite() || !input.device_velocity_m_per_s.is_finite() {
-                return Err(ModelError::InvalidInput("device position or velocity is not finite".into()));
+                return Err(ModelError::InvalidDevice("device position or velocity is not finite"));
             }
             if p.abs().max_element() > MAX_DEVICE_DISTANCE_M {
-                return Err(ModelError::InvalidInput(format!(
-                    "device position {p} m is farther than {MAX_DEVICE_DISTANCE_M} m from the origin"
-                )));
+                return Err(ModelError::InvalidDevice("device position is farther than 10 m from the origin"));
             }
         }
         Ok(())
@@ -245,18 +242,17 @@ impl Simulation {
     /// # Errors
     /// [`ModelError::InvalidInput`] (state untouched) for non-finite values, a force above
     /// [`MAX_POINT_FORCE_N`], a duration outside `(0, MAX_POINT_LOAD_DURATION_S]`, a point farther
-    /// than [`MAX_DEVICE_DISTANCE_M`], or when [`MAX_POINT_LOADS`] loads are already active.
+    /// than [`MAX_DEVICE_DISTANCE_M`]; [`ModelError::LoadTableFull`] when [`MAX_POINT_LOADS`] loads
+    /// are already active (this path does not allocate, so the servo tick may call it).
     pub fn add_point_load(&mut self, point_m: DVec3, force_n: DVec3, duration_s: f64) -> Result<(), ModelError> {
         validate_point_load(point_m, force_n, duration_s)?;
         if self.loads.len() >= MAX_POINT_LOADS {
-            return Err(ModelError::InvalidInput(format!(
-                "{MAX_POINT_LOADS} point loads are already active"
-            )));
+            return Err(ModelError::LoadTableFull(MAX_POINT_LOADS));
         }
         let sp = self
             .load_surface
             .closest_global(&self.state.x, point_m)
-            .ok_or_else(|| ModelError::InvalidInput("the body has no free surface to load".into()))?;
+            .ok_or(ModelError::InvalidDevice("the body has no free surface to load"))?;
         self.loads.push(PointLoad {
             nodes: self.load_surface.triangles[sp.triangle as usize],
             bary: sp.bary,
