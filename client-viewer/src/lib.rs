@@ -1,1 +1,57 @@
-//! placeholder
+//! `haptic-client`: the viewer library and scripted client of the haptic server.
+//!
+//! Three concepts, each in its own module, glued by two thin binaries:
+//!
+//! - [`raster`]: a small deterministic software rasterizer (z-buffer, Lambert shading) that turns
+//!   a deformed surface, the probe and its contact force into an RGB picture and a PNG file,
+//!   without a GPU or a display.
+//! - [`viewer`]: subscribes to `SurfaceStream.Watch`, keeps the keyframe topology, applies the
+//!   position frames, measures rate and frame age, and writes pictures with [`raster`]
+//!   (binary `haptic-viewer`).
+//! - [`ctl`]: calls `SessionControl` (scenes, start, stop, sessions, force, stats) and formats
+//!   the answers as tables or JSON (binary `hapticctl`).
+//!
+//! Neighbours: the wire contract is `haptics_proto::v1`; the server (`haptic-server`) implements
+//! it. This crate never depends on the physics model: everything it knows about a session comes
+//! over gRPC.
+
+pub mod ctl;
+pub mod error;
+pub mod raster;
+pub mod viewer;
+
+pub use error::ClientError;
+
+use tonic::transport::{Channel, Endpoint};
+
+/// Default server address when neither `--server` nor `HAPTICD_ADDR` is given.
+pub const DEFAULT_SERVER: &str = "http://127.0.0.1:50051";
+
+/// Opens a gRPC channel to `url` (`http://host:port`; a bare `host:port` gets `http://`).
+///
+/// The connection attempt gives up after 5 s, so a wrong address fails quickly in scripts.
+///
+/// # Errors
+/// [`ClientError::Connect`] when the URL is malformed or nothing answers at the address.
+pub async fn connect(url: &str) -> Result<Channel, ClientError> {
+    let url = normalize_url(url);
+    let endpoint = Endpoint::from_shared(url.clone())
+        .map_err(|source| ClientError::Connect {
+            url: url.clone(),
+            source,
+        })?
+        .connect_timeout(std::time::Duration::from_secs(5));
+    endpoint
+        .connect()
+        .await
+        .map_err(|source| ClientError::Connect { url, source })
+}
+
+/// Adds the `http://` scheme to a bare `host:port` address; other strings pass unchanged.
+pub fn normalize_url(url: &str) -> String {
+    if url.contains("://") {
+        url.to_string()
+    } else {
+        format!("http://{url}")
+    }
+}

@@ -1,0 +1,530 @@
+//! `ctl`: the scripted client of `SessionControl` behind `hapticctl`.
+//!
+//! [`Ctl`] wraps the generated client with one method per RPC; the formatting functions
+//! ([`scenes_table`], [`stats_table`], [`stats_json`]) are pure so they are tested without a
+//! server; [`CtlCommand`] is the command line and [`execute`] runs one command, writing results
+//! to `out` (script-friendly: `start` prints only the session id) and details to `err`.
+//!
+//! Neighbours: [`crate::connect`] opens the channel; the server implements the service.
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use haptics_proto::v1::session_control_client::SessionControlClient;
+use haptics_proto::v1::{
+    ApplyForceRequest, GetStatsRequest, ListScenesRequest, ListSessionsRequest, SceneInfo,
+    SessionStats, StartSessionRequest, StartSessionResponse, StopSessionRequest, Vec3,
+};
+use tonic::transport::Channel;
+
+use crate::ClientError;
+
+/// Parses `X,Y,Z` into three finite numbers (SI units as the caller says). Whitespace around a
+/// component is allowed; anything else (missing or extra components, empty ones, words, NaN,
+/// infinity) is refused.
+///
+/// # Errors
+/// [`ClientError::InvalidVector`] saying which component is wrong and why.
+pub fn parse_vec3(input: &str) -> Result<[f64; 3], ClientError> {
+    let err = |reason: String| ClientError::InvalidVector {
+        input: input.to_string(),
+        reason,
+    };
+    let parts: Vec<&str> = input.split(',').map(str::trim).collect();
+    if parts.len() != 3 {
+        return Err(err(format!(
+            "expected 3 comma-separated numbers X,Y,Z, got {} component(s)",
+            parts.len()
+        )));
+    }
+    let mut v = [0.0; 3];
+    for (k, (part, out)) in parts.iter().zip(v.iter_mut()).enumerate() {
+        let axis = ["X", "Y", "Z"][k];
+        if part.is_empty() {
+            return Err(err(format!("{axis} is empty")));
+        }
+        let x: f64 = part
+            .parse()
+            .map_err(|_| err(format!("{axis} ({part:?}) is not a number")))?;
+        if !x.is_finite() {
+            return Err(err(format!("{axis} ({part:?}) is not finite")));
+        }
+        *out = x;
+    }
+    Ok(v)
+}
+
+/// Where a new session's scene comes from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum SceneSource {
+    /// A built-in scene name (see [`Ctl::scenes`]).
+    Name(String),
+    /// The full text of a scene TOML file.
+    Toml(String),
+}
+
+/// A connected `SessionControl` client.
+#[derive(Debug, Clone)]
+pub struct Ctl {
+    client: SessionControlClient<Channel>,
+}
+
+impl Ctl {
+    /// Wraps an open channel.
+    pub fn new(channel: Channel) -> Self {
+        Self {
+            client: SessionControlClient::new(channel),
+        }
+    }
+
+    /// Connects to `url` (see [`crate::connect`]).
+    ///
+    /// # Errors
+    /// [`ClientError::Connect`].
+    pub async fn connect(url: &str) -> Result<Self, ClientError> {
+        Ok(Self::new(crate::connect(url).await?))
+    }
+
+    /// The built-in scenes.
+    ///
+    /// # Errors
+    /// [`ClientError::Rpc`] with the server's status.
+    pub async fn scenes(&mut self) -> Result<Vec<SceneInfo>, ClientError> {
+        Ok(self
+            .client
+            .list_scenes(ListScenesRequest {})
+            .await?
+            .into_inner()
+            .scenes)
+    }
+
+    /// Starts a session from a built-in scene or scene text.
+    ///
+    /// # Errors
+    /// [`ClientError::Rpc`], e.g. `NOT_FOUND` for an unknown scene or `INVALID_ARGUMENT` for
+    /// malformed scene text.
+    pub async fn start(&mut self, scene: SceneSource) -> Result<StartSessionResponse, ClientError> {
+        let req = match scene {
+            SceneSource::Name(scene) => StartSessionRequest {
+                scene,
+                scene_toml: String::new(),
+            },
+            SceneSource::Toml(scene_toml) => StartSessionRequest {
+                scene: String::new(),
+                scene_toml,
+            },
+        };
+        Ok(self.client.start_session(req).await?.into_inner())
+    }
+
+    /// Stops a session.
+    ///
+    /// # Errors
+    /// [`ClientError::Rpc`], e.g. `NOT_FOUND` for an unknown session.
+    pub async fn stop(&mut self, session_id: &str) -> Result<(), ClientError> {
+        self.client
+            .stop_session(StopSessionRequest {
+                session_id: session_id.to_string(),
+            })
+            .await?;
+        Ok(())
+    }
+
+    /// Ids of the running sessions.
+    ///
+    /// # Errors
+    /// [`ClientError::Rpc`].
+    pub async fn sessions(&mut self) -> Result<Vec<String>, ClientError> {
+        Ok(self
+            .client
+            .list_sessions(ListSessionsRequest {})
+            .await?
+            .into_inner()
+            .session_ids)
+    }
+
+    /// Applies `force_n` (newtons) at `point_m` (metres, scene frame) for `duration_s` seconds of
+    /// simulated time.
+    ///
+    /// # Errors
+    /// [`ClientError::InvalidConfig`] for a non-finite or negative duration or non-finite vectors
+    /// (checked before sending); [`ClientError::Rpc`] for the server's refusal.
+    pub async fn force(
+        &mut self,
+        session_id: &str,
+        point_m: [f64; 3],
+        force_n: [f64; 3],
+        duration_s: f64,
+    ) -> Result<(), ClientError> {
+        if !(duration_s.is_finite() && duration_s >= 0.0) {
+            return Err(ClientError::InvalidConfig(
+                "duration must be a non-negative number of seconds".into(),
+            ));
+        }
+        if !point_m.iter().chain(&force_n).all(|v| v.is_finite()) {
+            return Err(ClientError::InvalidConfig(
+                "point and force must be finite".into(),
+            ));
+        }
+        self.client
+            .apply_force(ApplyForceRequest {
+                session_id: session_id.to_string(),
+                point_m: Some(Vec3::from(point_m)),
+                force_n: Some(Vec3::from(force_n)),
+                duration_s,
+            })
+            .await?;
+        Ok(())
+    }
+
+    /// Statistics of a session.
+    ///
+    /// # Errors
+    /// [`ClientError::Rpc`], e.g. `NOT_FOUND` for an unknown session.
+    pub async fn stats(&mut self, session_id: &str) -> Result<SessionStats, ClientError> {
+        Ok(self
+            .client
+            .get_stats(GetStatsRequest {
+                session_id: session_id.to_string(),
+            })
+            .await?
+            .into_inner())
+    }
+}
+
+/// Formats rows as left-aligned columns separated by two spaces (header first).
+fn table(header: &[&str], rows: &[Vec<String>]) -> String {
+    let mut widths: Vec<usize> = header.iter().map(|h| h.chars().count()).collect();
+    for r in rows {
+        for (w, c) in widths.iter_mut().zip(r) {
+            *w = (*w).max(c.chars().count());
+        }
+    }
+    let mut out = String::new();
+    let header: Vec<String> = header.iter().map(|h| h.to_string()).collect();
+    for r in std::iter::once(&header).chain(rows) {
+        let mut line = String::new();
+        for (k, (c, w)) in r.iter().zip(&widths).enumerate() {
+            if k + 1 == r.len() {
+                line.push_str(c);
+            } else {
+                line.push_str(&format!("{c:<w$}  "));
+            }
+        }
+        out.push_str(line.trim_end());
+        out.push('\n');
+    }
+    out
+}
+
+/// The scenes as a table: `NAME  NODES  TETS  DESCRIPTION`, one line per scene.
+pub fn scenes_table(scenes: &[SceneInfo]) -> String {
+    let rows: Vec<Vec<String>> = scenes
+        .iter()
+        .map(|s| {
+            vec![
+                s.name.clone(),
+                s.nodes.to_string(),
+                s.tetrahedra.to_string(),
+                s.description.clone(),
+            ]
+        })
+        .collect();
+    table(&["NAME", "NODES", "TETS", "DESCRIPTION"], &rows)
+}
+
+/// A value of one [`SessionStats`] field.
+#[derive(Debug, Clone, PartialEq)]
+pub enum StatValue {
+    /// A floating-point quantity, printed with `decimals` digits after the point.
+    F64 {
+        /// The value.
+        value: f64,
+        /// Digits after the decimal point in the table.
+        decimals: usize,
+    },
+    /// A counter.
+    U64(u64),
+    /// A flag.
+    Bool(bool),
+    /// Text.
+    Str(String),
+}
+
+/// One [`SessionStats`] field: its proto name, value and unit (`""` when unitless).
+#[derive(Debug, Clone, PartialEq)]
+pub struct StatRow {
+    /// The proto field name, e.g. `step_p99_us`.
+    pub name: &'static str,
+    /// The value.
+    pub value: StatValue,
+    /// The unit as printed, e.g. `us`, `Hz`, `N`, `m`, `count`.
+    pub unit: &'static str,
+}
+
+/// Every field of [`SessionStats`], in proto field order, with its unit. The single source for
+/// [`stats_table`] and [`stats_json`], so both always list the same fields.
+pub fn stats_rows(s: &SessionStats) -> Vec<StatRow> {
+    use StatValue::*;
+    let f = |value: f64, decimals: usize| F64 { value, decimals };
+    let row = |name, value, unit| StatRow { name, value, unit };
+    vec![
+        row("session_id", Str(s.session_id.clone()), ""),
+        row("loop_rate_hz", f(s.loop_rate_hz, 1), "Hz"),
+        row("step_p50_us", f(s.step_p50_us, 1), "us"),
+        row("step_p99_us", f(s.step_p99_us, 1), "us"),
+        row("step_max_us", f(s.step_max_us, 1), "us"),
+        row("overruns", U64(s.overruns), "count"),
+        row("steps", U64(s.steps), "count"),
+        row("pose_to_force_p50_us", f(s.pose_to_force_p50_us, 1), "us"),
+        row("pose_to_force_p99_us", f(s.pose_to_force_p99_us, 1), "us"),
+        row("rejected_samples", U64(s.rejected_samples), "count"),
+        row("sim_time_s", f(s.sim_time_s, 3), "s"),
+        row("substeps", U64(s.substeps.into()), "per tick"),
+        row("in_contact", Bool(s.in_contact), ""),
+        row("peak_force_n", f(s.peak_force_n, 3), "N"),
+        row("max_displacement_m", f(s.max_displacement_m, 6), "m"),
+        row("faulted", Bool(s.faulted), ""),
+        row("fault", Str(s.fault.clone()), ""),
+        row("device_samples", U64(s.device_samples), "count"),
+        row("scene", Str(s.scene.clone()), ""),
+        row("nodes", U64(s.nodes.into()), "count"),
+        row("tetrahedra", U64(s.tetrahedra.into()), "count"),
+    ]
+}
+
+/// The statistics as a `FIELD  VALUE  UNIT` table, one line per [`SessionStats`] field.
+pub fn stats_table(s: &SessionStats) -> String {
+    let rows: Vec<Vec<String>> = stats_rows(s)
+        .into_iter()
+        .map(|r| {
+            let v = match r.value {
+                StatValue::F64 { value, decimals } => format!("{value:.decimals$}"),
+                StatValue::U64(v) => v.to_string(),
+                StatValue::Bool(b) => b.to_string(),
+                StatValue::Str(s) if s.is_empty() => "-".to_string(),
+                StatValue::Str(s) => s,
+            };
+            vec![r.name.to_string(), v, r.unit.to_string()]
+        })
+        .collect();
+    table(&["FIELD", "VALUE", "UNIT"], &rows)
+}
+
+/// The statistics as one JSON object keyed by the proto field names (numbers as JSON numbers,
+/// 64-bit counters included; a non-finite float becomes `null`).
+pub fn stats_json(s: &SessionStats) -> serde_json::Value {
+    let map = stats_rows(s)
+        .into_iter()
+        .map(|r| {
+            let v = match r.value {
+                StatValue::F64 { value, .. } => serde_json::json!(value),
+                StatValue::U64(v) => serde_json::json!(v),
+                StatValue::Bool(b) => serde_json::json!(b),
+                StatValue::Str(s) => serde_json::json!(s),
+            };
+            (r.name.to_string(), v)
+        })
+        .collect();
+    serde_json::Value::Object(map)
+}
+
+/// A `hapticctl` command.
+#[derive(Debug, Clone, PartialEq, clap::Subcommand)]
+pub enum CtlCommand {
+    /// List the built-in scenes (name, nodes, tets, description).
+    Scenes,
+    /// Start a session; prints only its id on stdout, details on stderr.
+    Start {
+        /// Built-in scene name.
+        #[arg(required_unless_present = "scene_file", conflicts_with = "scene_file")]
+        scene: Option<String>,
+        /// Scene TOML file, sent as text.
+        #[arg(long)]
+        scene_file: Option<PathBuf>,
+    },
+    /// Stop a session.
+    Stop {
+        /// Session id.
+        id: String,
+    },
+    /// List the running session ids, one per line.
+    Sessions,
+    /// Apply a force to a session's surface.
+    Force {
+        /// Session id.
+        id: String,
+        /// Application point X,Y,Z in metres (scene frame).
+        #[arg(long, allow_hyphen_values = true)]
+        point: String,
+        /// Force X,Y,Z in newtons.
+        #[arg(long, allow_hyphen_values = true)]
+        force: String,
+        /// How long the force acts, seconds of simulated time.
+        #[arg(long, default_value_t = 0.5)]
+        duration_s: f64,
+    },
+    /// Show a session's statistics.
+    Stats {
+        /// Session id.
+        id: String,
+        /// One JSON object keyed by proto field names instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Print statistics repeatedly (one JSON line each with --json).
+    WatchStats {
+        /// Session id.
+        id: String,
+        /// Seconds between reports.
+        #[arg(long, default_value_t = 1.0)]
+        interval_s: f64,
+        /// Number of reports (0 = until interrupted).
+        #[arg(long, default_value_t = 0)]
+        count: u64,
+        /// JSON lines instead of tables.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn io_err(path: &str) -> impl FnOnce(std::io::Error) -> ClientError + '_ {
+    move |source| ClientError::Io {
+        path: PathBuf::from(path),
+        source,
+    }
+}
+
+/// Runs one command against `ctl`: results go to `out` (stdout), details to `err` (stderr).
+///
+/// # Errors
+/// [`ClientError::Rpc`] for server refusals; [`ClientError::InvalidVector`] /
+/// [`ClientError::InvalidConfig`] for bad arguments (checked before sending);
+/// [`ClientError::Io`] when a scene file cannot be read or output cannot be written.
+pub async fn execute(
+    ctl: &mut Ctl,
+    cmd: CtlCommand,
+    out: &mut dyn Write,
+    err: &mut dyn Write,
+) -> Result<(), ClientError> {
+    let o = io_err("<stdout>");
+    match cmd {
+        CtlCommand::Scenes => write!(out, "{}", scenes_table(&ctl.scenes().await?)).map_err(o)?,
+        CtlCommand::Start { scene, scene_file } => {
+            let source = match (scene, scene_file) {
+                (_, Some(path)) => {
+                    SceneSource::Toml(std::fs::read_to_string(&path).map_err(|source| {
+                        ClientError::Io {
+                            path: path.clone(),
+                            source,
+                        }
+                    })?)
+                }
+                (Some(name), None) => SceneSource::Name(name),
+                (None, None) => {
+                    return Err(ClientError::InvalidConfig(
+                        "give a scene name or --scene-file".into(),
+                    ));
+                }
+            };
+            let r = ctl.start(source).await?;
+            writeln!(out, "{}", r.session_id).map_err(o)?;
+            writeln!(
+                err,
+                "started session {}: {} nodes, {} tetrahedra, {} substeps per tick, critical dt {:.3e} s",
+                r.session_id, r.nodes, r.tetrahedra, r.substeps, r.critical_dt_s
+            )
+            .map_err(io_err("<stderr>"))?;
+        }
+        CtlCommand::Stop { id } => {
+            ctl.stop(&id).await?;
+            writeln!(err, "stopped session {id}").map_err(io_err("<stderr>"))?;
+        }
+        CtlCommand::Sessions => {
+            for id in ctl.sessions().await? {
+                writeln!(out, "{id}").map_err(io_err("<stdout>"))?;
+            }
+        }
+        CtlCommand::Force {
+            id,
+            point,
+            force,
+            duration_s,
+        } => {
+            let (p, f) = (parse_vec3(&point)?, parse_vec3(&force)?);
+            ctl.force(&id, p, f, duration_s).await?;
+            writeln!(
+                err,
+                "applied force {f:?} N at {p:?} m for {duration_s} s to session {id}"
+            )
+            .map_err(io_err("<stderr>"))?;
+        }
+        CtlCommand::Stats { id, json } => {
+            let s = ctl.stats(&id).await?;
+            if json {
+                writeln!(out, "{}", stats_json(&s)).map_err(o)?;
+            } else {
+                write!(out, "{}", stats_table(&s)).map_err(o)?;
+            }
+        }
+        CtlCommand::WatchStats {
+            id,
+            interval_s,
+            count,
+            json,
+        } => {
+            if !(interval_s.is_finite() && interval_s > 0.0) {
+                return Err(ClientError::InvalidConfig(
+                    "interval must be a positive number of seconds".into(),
+                ));
+            }
+            let mut tick = tokio::time::interval(Duration::from_secs_f64(interval_s));
+            let mut n = 0;
+            while count == 0 || n < count {
+                tick.tick().await;
+                let s = ctl.stats(&id).await?;
+                if json {
+                    writeln!(out, "{}", stats_json(&s)).map_err(io_err("<stdout>"))?;
+                } else {
+                    writeln!(out, "{}", stats_table(&s)).map_err(io_err("<stdout>"))?;
+                }
+                out.flush().map_err(io_err("<stdout>"))?;
+                n += 1;
+            }
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn vectors_parse_strictly() {
+        assert_eq!(parse_vec3("1,-2.5, 3e-3").unwrap(), [1.0, -2.5, 0.003]);
+        for bad in [
+            "", "1,2", "1,2,3,4", "1,,3", "a,2,3", "1,2,NaN", "1,2,inf", "1;2;3",
+        ] {
+            let e = parse_vec3(bad).unwrap_err();
+            assert!(matches!(e, ClientError::InvalidVector { .. }), "{bad}: {e}");
+        }
+        let e = parse_vec3("1,x,3").unwrap_err().to_string();
+        assert!(e.contains("Y") && e.contains("not a number"), "{e}");
+    }
+
+    #[test]
+    fn scenes_table_lists_every_scene() {
+        let t = scenes_table(&[SceneInfo {
+            name: "lv".into(),
+            description: "left ventricle".into(),
+            nodes: 412,
+            tetrahedra: 1352,
+        }]);
+        let lines: Vec<&str> = t.lines().collect();
+        assert_eq!(lines.len(), 2);
+        assert!(lines[0].starts_with("NAME"));
+        assert!(lines[1].contains("1352") && lines[1].ends_with("left ventricle"));
+    }
+}

@@ -1,0 +1,740 @@
+//! `viewer`: watches a session's deformed surface and writes pictures of it.
+//!
+//! [`run`] connects to the server, calls `SurfaceStream.Watch` and hands the stream to
+//! [`run_stream`], which does the work (tests feed it any stream of frames):
+//!
+//! - a [`SurfaceState`] keeps the latest keyframe's triangles and rest positions (the keyframe's
+//!   positions; the wire contract has no separate rest field) and applies each position frame,
+//!   rejecting frames whose sizes or numbers do not fit (counted, reported, skipped);
+//! - pictures are rendered with [`crate::raster`] on a blocking worker thread fed by a one-slot
+//!   channel, so a slow render never stalls the stream (a periodic picture is skipped and retried
+//!   on the next frame instead); the first state after a keyframe is always written as
+//!   `frame_00001.png`, then one picture every `interval_s` of wall time, and a final
+//!   `latest.png`;
+//! - it measures the received frame rate and the frame age (local wall clock minus
+//!   `SurfaceFrame.server_time_us`, both microseconds since the UNIX epoch) and prints a progress
+//!   line every second.
+//!
+//! It stops after `duration_s`, when the server ends the stream (the session was stopped: not an
+//! error), when the stream fails after it started (reported in [`ViewerSummary::stop_reason`]),
+//! or when the `shutdown` future completes.
+
+use std::fmt;
+use std::future::Future;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use haptics_proto::v1::surface_stream_client::SurfaceStreamClient;
+use haptics_proto::v1::{SurfaceFrame, WatchRequest};
+use serde::Serialize;
+use tokio::sync::mpsc;
+use tokio_stream::{Stream, StreamExt};
+
+use crate::ClientError;
+use crate::raster::{Camera, ProbeView, RenderParams, SurfaceView, bounding_box, render_surface};
+
+/// What the viewer does, checked by [`ViewerConfig::validate`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewerConfig {
+    /// Server URL, e.g. `http://127.0.0.1:50051`.
+    pub server: String,
+    /// Session to watch.
+    pub session_id: String,
+    /// Directory for the pictures (created when missing).
+    pub out_dir: PathBuf,
+    /// Wall-clock time between numbered pictures, seconds (> 0).
+    pub interval_s: f64,
+    /// Stop after this much wall-clock time, seconds; `None` runs until the stream ends.
+    pub duration_s: Option<f64>,
+    /// Frame rate asked of the server, hertz (0 = server default).
+    pub max_rate_hz: f64,
+    /// Picture size, camera and colours.
+    pub render: RenderParams,
+    /// Print a progress line to stderr every second.
+    pub progress: bool,
+}
+
+impl ViewerConfig {
+    /// A configuration with the CLI defaults: `./viewer-out`, a picture every 0.5 s, 30 Hz,
+    /// 640 x 480, no duration limit, progress lines on.
+    pub fn new(server: impl Into<String>, session_id: impl Into<String>) -> Self {
+        Self {
+            server: server.into(),
+            session_id: session_id.into(),
+            out_dir: PathBuf::from("viewer-out"),
+            interval_s: 0.5,
+            duration_s: None,
+            max_rate_hz: 30.0,
+            render: RenderParams::default(),
+            progress: true,
+        }
+    }
+
+    /// Checks every value before anything starts.
+    ///
+    /// # Errors
+    /// [`ClientError::InvalidConfig`] naming the first bad value.
+    pub fn validate(&self) -> Result<(), ClientError> {
+        let bad = |m: &str| Err(ClientError::InvalidConfig(m.to_string()));
+        if self.session_id.is_empty() {
+            return bad("session id must not be empty");
+        }
+        if !(self.interval_s.is_finite() && self.interval_s > 0.0) {
+            return bad("interval must be a positive number of seconds");
+        }
+        if let Some(d) = self.duration_s
+            && !(d.is_finite() && d >= 0.0)
+        {
+            return bad("duration must be a non-negative number of seconds");
+        }
+        if !(self.max_rate_hz.is_finite() && self.max_rate_hz >= 0.0) {
+            return bad("max rate must be a non-negative number of hertz");
+        }
+        self.render.validate()
+    }
+}
+
+/// Command-line arguments of `haptic-viewer`, turned into a [`ViewerConfig`] by
+/// [`ViewerArgs::into_config`].
+#[derive(Debug, Clone, clap::Parser)]
+#[command(
+    name = "haptic-viewer",
+    version,
+    about = "Watch a haptic session's deformed surface and write PNG pictures of it."
+)]
+pub struct ViewerArgs {
+    /// Server URL.
+    #[arg(long, env = "HAPTICD_ADDR", default_value = crate::DEFAULT_SERVER)]
+    pub server: String,
+    /// Session id to watch.
+    #[arg(long)]
+    pub session: String,
+    /// Output directory for frame_NNNNN.png and latest.png.
+    #[arg(long, default_value = "viewer-out")]
+    pub out: PathBuf,
+    /// Seconds of wall time between numbered pictures.
+    #[arg(long, default_value_t = 0.5)]
+    pub interval_s: f64,
+    /// Stop after this many seconds (default: until the session ends or Ctrl-C).
+    #[arg(long)]
+    pub duration_s: Option<f64>,
+    /// Frame rate asked of the server, Hz (0 = server default).
+    #[arg(long, default_value_t = 30.0)]
+    pub max_rate_hz: f64,
+    /// Picture width, pixels.
+    #[arg(long, default_value_t = 640)]
+    pub width: u32,
+    /// Picture height, pixels.
+    #[arg(long, default_value_t = 480)]
+    pub height: u32,
+    /// Camera direction from the model centre, X,Y,Z (default 1,1,0.4: from +x+y, above).
+    #[arg(long, allow_hyphen_values = true)]
+    pub view_from: Option<String>,
+    /// Displacement shown as full red, metres (default: the frame's largest).
+    #[arg(long)]
+    pub displacement_scale_m: Option<f64>,
+    /// Force arrow length per newton, metres.
+    #[arg(long, default_value_t = 0.010)]
+    pub force_scale_m_per_n: f64,
+    /// Do not draw the colour bar.
+    #[arg(long)]
+    pub no_legend: bool,
+    /// No progress lines on stderr.
+    #[arg(long)]
+    pub quiet: bool,
+    /// Print the summary as one JSON line on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+impl ViewerArgs {
+    /// Builds and validates the configuration.
+    ///
+    /// # Errors
+    /// [`ClientError::InvalidVector`] for a malformed `--view-from`;
+    /// [`ClientError::InvalidConfig`] for out-of-range values.
+    pub fn into_config(self) -> Result<ViewerConfig, ClientError> {
+        let mut render = RenderParams {
+            width: self.width,
+            height: self.height,
+            force_scale_m_per_n: self.force_scale_m_per_n,
+            legend: !self.no_legend,
+            ..RenderParams::default()
+        };
+        if let Some(v) = &self.view_from {
+            render.view_from = crate::ctl::parse_vec3(v)?;
+        }
+        if let Some(m) = self.displacement_scale_m {
+            render.displacement_scale = crate::raster::DisplacementScale::FixedM(m);
+        }
+        let cfg = ViewerConfig {
+            server: self.server,
+            session_id: self.session,
+            out_dir: self.out,
+            interval_s: self.interval_s,
+            duration_s: self.duration_s,
+            max_rate_hz: self.max_rate_hz,
+            render,
+            progress: !self.quiet,
+        };
+        cfg.validate()?;
+        Ok(cfg)
+    }
+}
+
+/// Why the viewer stopped.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StopReason {
+    /// `duration_s` elapsed.
+    Duration,
+    /// The server ended the stream (normally: the session was stopped).
+    StreamEnded,
+    /// The shutdown future completed (Ctrl-C).
+    Shutdown,
+    /// The stream failed after it had started; see [`ViewerSummary::last_error`].
+    StreamError,
+}
+
+/// What a viewer run saw. Serialises to one JSON object.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ViewerSummary {
+    /// The watched session.
+    pub session_id: String,
+    /// Valid frames received, keyframes included.
+    pub frames: u64,
+    /// Valid keyframes received (the first one, then one per topology change).
+    pub keyframes: u64,
+    /// Frames rejected because their sizes or numbers did not fit (skipped, not fatal).
+    pub bad_frames: u64,
+    /// Wall-clock time from the start of the stream to the stop, seconds.
+    pub elapsed_s: f64,
+    /// Received frame rate `frames / elapsed_s`, hertz.
+    pub fps: f64,
+    /// Median frame age (local clock minus server send time), milliseconds; `None` without
+    /// timestamped frames.
+    pub age_p50_ms: Option<f64>,
+    /// 99th-percentile frame age, milliseconds.
+    pub age_p99_ms: Option<f64>,
+    /// PNG files written, `latest.png` included.
+    pub pictures_written: u64,
+    /// Pictures that could not be written (disk full, permissions).
+    pub picture_errors: u64,
+    /// Where the pictures are.
+    pub out_dir: PathBuf,
+    /// Largest `SurfaceFrame.max_displacement_m` seen, metres.
+    pub max_displacement_m: f64,
+    /// Simulated time of the last valid frame, seconds.
+    pub last_sim_time_s: f64,
+    /// Why the viewer stopped.
+    pub stop_reason: StopReason,
+    /// The last bad-frame, picture or stream error message, if any.
+    pub last_error: Option<String>,
+}
+
+impl fmt::Display for ViewerSummary {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let ms = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.1}"));
+        writeln!(
+            f,
+            "session {}: {} frames ({} keyframes, {} bad) in {:.1} s = {:.1} fps",
+            self.session_id, self.frames, self.keyframes, self.bad_frames, self.elapsed_s, self.fps
+        )?;
+        writeln!(
+            f,
+            "frame age p50 {} ms, p99 {} ms; max displacement {:.3} mm",
+            ms(self.age_p50_ms),
+            ms(self.age_p99_ms),
+            self.max_displacement_m * 1e3
+        )?;
+        write!(
+            f,
+            "{} pictures written to {} ({} errors); stopped: {:?}",
+            self.pictures_written,
+            self.out_dir.display(),
+            self.picture_errors,
+            self.stop_reason
+        )?;
+        if let Some(e) = &self.last_error {
+            write!(f, "; last error: {e}")?;
+        }
+        Ok(())
+    }
+}
+
+/// What [`SurfaceState::apply`] accepted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FrameKind {
+    /// A keyframe: new topology and rest positions.
+    Keyframe,
+    /// New positions for the current topology.
+    Positions,
+}
+
+/// The surface as the viewer knows it: the latest keyframe's topology and rest positions, the
+/// latest positions, probe and camera.
+#[derive(Debug, Clone, Default)]
+pub struct SurfaceState {
+    rest_m: Arc<Vec<f32>>,
+    triangles: Arc<Vec<u32>>,
+    positions_m: Vec<f32>,
+    probe: Option<ProbeView>,
+    camera: Option<Camera>,
+}
+
+impl SurfaceState {
+    /// An empty state waiting for its first keyframe.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// True once a keyframe has been accepted.
+    pub fn has_keyframe(&self) -> bool {
+        self.camera.is_some()
+    }
+
+    /// Number of surface vertices of the current keyframe.
+    pub fn vertex_count(&self) -> usize {
+        self.rest_m.len() / 3
+    }
+
+    /// Current positions, metres, xyz interleaved.
+    pub fn positions_m(&self) -> &[f32] {
+        &self.positions_m
+    }
+
+    /// Applies a frame. A keyframe replaces topology, rest positions (its own positions) and the
+    /// camera (framed on its bounding box with `params`); another frame replaces the positions.
+    /// The probe is taken from every valid frame.
+    ///
+    /// # Errors
+    /// [`ClientError::BadFrame`], leaving the state unchanged, when: no keyframe was seen yet; the
+    /// positions are not `3 x` the keyframe vertex count (or, in a keyframe, not a multiple of 3);
+    /// the triangle list is not a multiple of 3 or references a missing vertex; a position is NaN
+    /// or infinite.
+    pub fn apply(
+        &mut self,
+        f: &SurfaceFrame,
+        params: &RenderParams,
+    ) -> Result<FrameKind, ClientError> {
+        let bad = |reason: String| ClientError::BadFrame {
+            frame: f.frame,
+            reason,
+        };
+        let p = &f.positions_m;
+        if f.keyframe {
+            if !p.len().is_multiple_of(3) {
+                return Err(bad(format!(
+                    "keyframe has {} position values, not a multiple of 3",
+                    p.len()
+                )));
+            }
+            if !f.triangles.len().is_multiple_of(3) {
+                return Err(bad(format!(
+                    "keyframe has {} triangle indices, not a multiple of 3",
+                    f.triangles.len()
+                )));
+            }
+            let n = p.len() / 3;
+            if let Some(&i) = f.triangles.iter().find(|&&i| i as usize >= n) {
+                return Err(bad(format!(
+                    "triangle references vertex {i} but the keyframe has {n} vertices"
+                )));
+            }
+        } else {
+            if !self.has_keyframe() {
+                return Err(bad("positions before the first keyframe".to_string()));
+            }
+            if p.len() != self.rest_m.len() {
+                return Err(bad(format!(
+                    "{} position values, expected 3 x {} vertices = {}",
+                    p.len(),
+                    self.vertex_count(),
+                    self.rest_m.len()
+                )));
+            }
+        }
+        if let Some(i) = p.iter().position(|v| !v.is_finite()) {
+            return Err(bad(format!("position value {i} is not finite")));
+        }
+        let kind = if f.keyframe {
+            self.rest_m = Arc::new(p.clone());
+            self.triangles = Arc::new(f.triangles.clone());
+            let (min, max) = bounding_box(p).unwrap_or(([-0.05; 3], [0.05; 3]));
+            self.camera = Some(Camera::auto_frame(min, max, params));
+            FrameKind::Keyframe
+        } else {
+            FrameKind::Positions
+        };
+        self.positions_m.clear();
+        self.positions_m.extend_from_slice(p);
+        self.probe = f.probe_position_m.as_ref().map(|pos| ProbeView {
+            position_m: pos.to_array(),
+            radius_m: f.probe_radius_m,
+            force_n: f
+                .contact_force_n
+                .as_ref()
+                .map_or([0.0; 3], |v| v.to_array()),
+            in_contact: f.in_contact,
+        });
+        Ok(kind)
+    }
+
+    /// Renders the current state, `None` before the first keyframe.
+    pub fn render(&self, params: &RenderParams) -> Option<crate::raster::Image> {
+        self.job(PathBuf::new()).map(|j| j.render(params))
+    }
+
+    fn job(&self, path: PathBuf) -> Option<RenderJob> {
+        Some(RenderJob {
+            path,
+            rest_m: self.rest_m.clone(),
+            triangles: self.triangles.clone(),
+            positions_m: self.positions_m.clone(),
+            probe: self.probe,
+            camera: self.camera?,
+        })
+    }
+}
+
+/// A self-contained snapshot for the picture worker.
+struct RenderJob {
+    path: PathBuf,
+    rest_m: Arc<Vec<f32>>,
+    triangles: Arc<Vec<u32>>,
+    positions_m: Vec<f32>,
+    probe: Option<ProbeView>,
+    camera: Camera,
+}
+
+impl RenderJob {
+    fn render(&self, params: &RenderParams) -> crate::raster::Image {
+        let view = SurfaceView {
+            rest_m: &self.rest_m,
+            positions_m: &self.positions_m,
+            triangles: &self.triangles,
+            probe: self.probe,
+        };
+        render_surface(&view, &self.camera, params)
+    }
+}
+
+/// Result of the picture worker: files written, failures, last failure message.
+#[derive(Default)]
+struct WorkerReport {
+    written: u64,
+    errors: u64,
+    last_error: Option<String>,
+}
+
+fn spawn_worker(
+    params: RenderParams,
+) -> (
+    mpsc::Sender<RenderJob>,
+    tokio::task::JoinHandle<WorkerReport>,
+) {
+    // One slot: at most one picture waits while another is rendered.
+    let (tx, mut rx) = mpsc::channel::<RenderJob>(1);
+    let handle = tokio::task::spawn_blocking(move || {
+        let mut report = WorkerReport::default();
+        while let Some(job) = rx.blocking_recv() {
+            match job.render(&params).write_png(&job.path) {
+                Ok(()) => report.written += 1,
+                Err(e) => {
+                    tracing::error!("cannot write picture: {e}");
+                    report.errors += 1;
+                    report.last_error = Some(e.to_string());
+                }
+            }
+        }
+        report
+    });
+    (tx, handle)
+}
+
+/// Nearest-rank percentile `q` in `[0, 1]` of unsorted samples; `None` when empty.
+pub fn percentile(samples: &[f64], q: f64) -> Option<f64> {
+    if samples.is_empty() {
+        return None;
+    }
+    let mut s = samples.to_vec();
+    s.sort_by(f64::total_cmp);
+    let rank = (q.clamp(0.0, 1.0) * s.len() as f64).ceil() as usize;
+    Some(s[rank.clamp(1, s.len()) - 1])
+}
+
+/// Microseconds since the UNIX epoch on the local wall clock.
+fn now_unix_us() -> i128 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_micros() as i128)
+}
+
+/// Path of numbered picture `index` (1-based): `<dir>/frame_00001.png`.
+pub fn picture_path(dir: &Path, index: u64) -> PathBuf {
+    dir.join(format!("frame_{index:05}.png"))
+}
+
+/// Connects to `cfg.server`, watches `cfg.session_id` and writes pictures until a stop condition
+/// (see the module docs); `shutdown` ends the run early (e.g. Ctrl-C).
+///
+/// # Errors
+/// [`ClientError::InvalidConfig`] for a bad configuration; [`ClientError::Connect`] when the
+/// server cannot be reached; [`ClientError::Rpc`] when `Watch` is refused (e.g. `NOT_FOUND` for an
+/// unknown session) or the stream fails before its first frame; [`ClientError::Io`] when the
+/// output directory cannot be created.
+pub async fn run(
+    cfg: ViewerConfig,
+    shutdown: impl Future<Output = ()>,
+) -> Result<ViewerSummary, ClientError> {
+    cfg.validate()?;
+    let channel = crate::connect(&cfg.server).await?;
+    let mut client = SurfaceStreamClient::new(channel).max_decoding_message_size(256 << 20);
+    let stream = client
+        .watch(WatchRequest {
+            session_id: cfg.session_id.clone(),
+            max_rate_hz: cfg.max_rate_hz,
+        })
+        .await?
+        .into_inner();
+    run_stream(stream, &cfg, shutdown).await
+}
+
+/// Running counters of [`run_stream`].
+struct Counters {
+    frames: u64,
+    keyframes: u64,
+    bad_frames: u64,
+    ages_ms: Vec<f64>,
+    max_displacement_m: f64,
+    last_sim_time_s: f64,
+    last_error: Option<String>,
+}
+
+/// Consumes a stream of surface frames as [`run`] does (everything but connecting), so it can be
+/// fed by any source. `cfg.server` is not used.
+///
+/// # Errors
+/// [`ClientError::InvalidConfig`], [`ClientError::Io`] (output directory), and
+/// [`ClientError::Rpc`] when the stream fails before delivering any frame. A failure after frames
+/// arrived ends the run with [`StopReason::StreamError`] instead, so the summary is not lost.
+pub async fn run_stream<S>(
+    mut stream: S,
+    cfg: &ViewerConfig,
+    shutdown: impl Future<Output = ()>,
+) -> Result<ViewerSummary, ClientError>
+where
+    S: Stream<Item = Result<SurfaceFrame, tonic::Status>> + Unpin,
+{
+    cfg.validate()?;
+    std::fs::create_dir_all(&cfg.out_dir).map_err(|source| ClientError::Io {
+        path: cfg.out_dir.clone(),
+        source,
+    })?;
+    let (tx, worker) = spawn_worker(cfg.render.clone());
+    let mut state = SurfaceState::new();
+    let mut c = Counters {
+        frames: 0,
+        keyframes: 0,
+        bad_frames: 0,
+        ages_ms: Vec::new(),
+        max_displacement_m: 0.0,
+        last_sim_time_s: 0.0,
+        last_error: None,
+    };
+    let interval = Duration::from_secs_f64(cfg.interval_s);
+    let mut pictures_queued = 0u64;
+    let mut next_picture: Option<Instant> = None;
+
+    let start = Instant::now();
+    let deadline = cfg
+        .duration_s
+        .map(|d| tokio::time::Instant::from_std(start + Duration::from_secs_f64(d)));
+    let sleep = tokio::time::sleep_until(
+        deadline.unwrap_or_else(|| tokio::time::Instant::now() + Duration::from_secs(86_400 * 365)),
+    );
+    tokio::pin!(sleep);
+    tokio::pin!(shutdown);
+    let mut tick = tokio::time::interval_at(
+        tokio::time::Instant::now() + Duration::from_secs(1),
+        Duration::from_secs(1),
+    );
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let (mut window_frames, mut window_ages, mut window_start) = (0u64, Vec::new(), Instant::now());
+
+    let stop_reason = loop {
+        tokio::select! {
+            biased;
+            () = &mut shutdown => break StopReason::Shutdown,
+            () = &mut sleep, if deadline.is_some() => break StopReason::Duration,
+            _ = tick.tick(), if cfg.progress => {
+                let dt = window_start.elapsed().as_secs_f64().max(1e-9);
+                let ms = |q| percentile(&window_ages, q).map_or("-".into(), |v| format!("{v:.1}"));
+                eprintln!(
+                    "viewer: t={:.0}s frames={} ({:.1} fps) age p50 {} ms p99 {} ms, \
+                     pictures {}, bad {}, max disp {:.3} mm",
+                    start.elapsed().as_secs_f64(), c.frames, window_frames as f64 / dt,
+                    ms(0.5), ms(0.99), pictures_queued, c.bad_frames, c.max_displacement_m * 1e3
+                );
+                (window_frames, window_start) = (0, Instant::now());
+                window_ages.clear();
+            }
+            msg = stream.next() => match msg {
+                None => break StopReason::StreamEnded,
+                Some(Err(status)) => {
+                    if c.frames == 0 && c.bad_frames == 0 {
+                        drop(tx);
+                        let _ = worker.await;
+                        return Err(status.into());
+                    }
+                    let e = ClientError::from(status);
+                    tracing::error!("stream failed: {e}");
+                    c.last_error = Some(e.to_string());
+                    break StopReason::StreamError;
+                }
+                Some(Ok(frame)) => {
+                    let recv_us = now_unix_us();
+                    match state.apply(&frame, &cfg.render) {
+                        Err(e) => {
+                            tracing::error!("{e}");
+                            c.bad_frames += 1;
+                            c.last_error = Some(e.to_string());
+                            continue;
+                        }
+                        Ok(kind) => {
+                            c.frames += 1;
+                            window_frames += 1;
+                            if kind == FrameKind::Keyframe {
+                                c.keyframes += 1;
+                            }
+                        }
+                    }
+                    if frame.server_time_us > 0 {
+                        let age_ms = (recv_us - frame.server_time_us as i128) as f64 / 1e3;
+                        c.ages_ms.push(age_ms);
+                        window_ages.push(age_ms);
+                    }
+                    if frame.max_displacement_m.is_finite() {
+                        c.max_displacement_m = c.max_displacement_m.max(frame.max_displacement_m);
+                    }
+                    c.last_sim_time_s = frame.sim_time_s;
+                    let now = Instant::now();
+                    if next_picture.is_none() {
+                        // The first state after the first keyframe is always written.
+                        let path = picture_path(&cfg.out_dir, pictures_queued + 1);
+                        if let Some(job) = state.job(path)
+                            && tx.send(job).await.is_ok()
+                        {
+                            pictures_queued += 1;
+                            next_picture = Some(now + interval);
+                        }
+                    } else if next_picture.is_some_and(|t| now >= t) {
+                        let path = picture_path(&cfg.out_dir, pictures_queued + 1);
+                        // Busy worker: skip, try again on the next frame.
+                        if let Some(job) = state.job(path)
+                            && tx.try_send(job).is_ok()
+                        {
+                            pictures_queued += 1;
+                            next_picture = Some(now + interval);
+                        }
+                    }
+                }
+            }
+        }
+    };
+    let elapsed_s = start.elapsed().as_secs_f64();
+    if let Some(job) = state.job(cfg.out_dir.join("latest.png")) {
+        let _ = tx.send(job).await;
+    }
+    drop(tx);
+    let report = worker.await.map_err(|e| ClientError::Task(e.to_string()))?;
+    Ok(ViewerSummary {
+        session_id: cfg.session_id.clone(),
+        frames: c.frames,
+        keyframes: c.keyframes,
+        bad_frames: c.bad_frames,
+        elapsed_s,
+        fps: c.frames as f64 / elapsed_s.max(1e-9),
+        age_p50_ms: percentile(&c.ages_ms, 0.5),
+        age_p99_ms: percentile(&c.ages_ms, 0.99),
+        pictures_written: report.written,
+        picture_errors: report.errors,
+        out_dir: cfg.out_dir.clone(),
+        max_displacement_m: c.max_displacement_m,
+        last_sim_time_s: c.last_sim_time_s,
+        stop_reason,
+        last_error: report.last_error.or(c.last_error),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percentiles_nearest_rank() {
+        let s = [5.0, 1.0, 3.0, 2.0, 4.0];
+        assert_eq!(percentile(&s, 0.5), Some(3.0));
+        assert_eq!(percentile(&s, 0.99), Some(5.0));
+        assert_eq!(percentile(&s, 0.0), Some(1.0));
+        assert_eq!(percentile(&[], 0.5), None);
+    }
+
+    #[test]
+    fn picture_names_are_numbered() {
+        assert_eq!(
+            picture_path(Path::new("out"), 1),
+            PathBuf::from("out/frame_00001.png")
+        );
+    }
+
+    fn key() -> SurfaceFrame {
+        SurfaceFrame {
+            keyframe: true,
+            positions_m: vec![0., 0., 0., 1., 0., 0., 0., 1., 0.],
+            triangles: vec![0, 1, 2],
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn state_rejects_bad_frames_and_keeps_going() {
+        let p = RenderParams::default();
+        let mut s = SurfaceState::new();
+        let pos = SurfaceFrame {
+            positions_m: vec![0.0; 9],
+            ..Default::default()
+        };
+        assert!(s.apply(&pos, &p).is_err(), "no keyframe yet");
+        assert_eq!(s.apply(&key(), &p).unwrap(), FrameKind::Keyframe);
+        let short = SurfaceFrame {
+            frame: 7,
+            positions_m: vec![0.0; 6],
+            ..Default::default()
+        };
+        let e = s.apply(&short, &p).unwrap_err().to_string();
+        assert!(
+            e.contains("bad frame 7") && e.contains("expected 3 x 3"),
+            "{e}"
+        );
+        let nan = SurfaceFrame {
+            positions_m: vec![f32::NAN; 9],
+            ..Default::default()
+        };
+        assert!(s.apply(&nan, &p).is_err());
+        let mut missing = key();
+        missing.triangles = vec![0, 1, 3];
+        assert!(s.apply(&missing, &p).is_err());
+        assert_eq!(s.apply(&pos, &p).unwrap(), FrameKind::Positions);
+        assert_eq!(s.positions_m(), &[0.0; 9]);
+    }
+
+    #[test]
+    fn config_validation() {
+        let mut c = ViewerConfig::new("http://x", "s");
+        assert!(c.validate().is_ok());
+        c.interval_s = 0.0;
+        assert!(c.validate().is_err());
+    }
+}
