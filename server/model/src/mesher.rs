@@ -1,1 +1,650 @@
-//! placeholder
+//! Structured tetrahedral meshes built in code, in metres: the idealized left ventricle
+//! ([`lv_shell`]), closed ellipsoidal shells ([`ellipsoid_shell`]), the thick-walled sphere of
+//! the Lamé problem ([`sphere_shell`]) and boxes ([`box_mesh`]).
+//!
+//! Shells of revolution are built in three steps:
+//!
+//! 1. a triangulated *reference surface* made of rings of constant meridian arc-length fraction
+//!    `sigma` in `[0, 1]` (a ring is a closed loop of `n_i` vertices at polar angles
+//!    `2 pi (j + o_i) / n_i`; poles are single vertices). `n_i` follows the ring circumference so
+//!    that triangles are close to equilateral everywhere: there is no polar-angle singularity,
+//!    the pole vertex has about six neighbours like any other vertex. Consecutive rings are
+//!    joined by a "zipper" that always advances along the ring whose next vertex has the smaller
+//!    angle;
+//! 2. the surface is extruded through `L` transmural layers: layer `k` lies on the ellipsoid
+//!    whose semi-axes interpolate linearly between the inner (`t = 0`) and outer (`t = 1`)
+//!    ones, `t = k / L`, each vertex at the same arc-length fraction of its layer's meridian, so
+//!    inner and outer nodes are exactly on the analytic surfaces;
+//! 3. every prism is split into three tetrahedra with the rule that each quadrilateral face is
+//!    cut by the diagonal starting at its lowest global node index. Neighbouring prisms then
+//!    agree on every shared face (the mesh is conforming) and no prism is left unsplittable
+//!    (Dompierre, Labbé, Vallet, Camarero, *How to subdivide pyramids, prisms and hexahedra into
+//!    tetrahedra*, 8th International Meshing Roundtable, 1999).
+//!
+//! Boundary faces are then classified into named, outward-oriented surfaces.
+//!
+//! Neighbours: produces [`TetMesh`] (see [`crate::mesh`]); used by [`crate::scene`] for the
+//! built-in scenes and by tests as analytic references.
+
+use std::f64::consts::{PI, TAU};
+
+use glam::DVec3;
+
+use crate::mesh::{NodeGroup, SurfaceGroup, TetMesh, tet_signed_volume};
+
+/// Idealized left ventricle of the Land et al. 2015 cardiac mechanics benchmark (Proc. R. Soc.
+/// A 471:20150641), in metres: a truncated ellipsoidal shell with endocardium semi-axes
+/// (7, 7, 17) mm and epicardium (10, 10, 20) mm, apex on -z, cut by the base plane z = 5 mm.
+/// Transmural layers interpolate the semi-axes linearly (`a(t) = 7 + 3t`, `c(t) = 17 + 3t` mm),
+/// each cut at z = 5 mm, so base nodes have z = 0.005 m exactly.
+///
+/// Surfaces (outward oriented): `ENDO`, `EPI`, `BASE`. Node groups: `ENDOPT`, `EPIPT` (the
+/// endocardial and epicardial apex nodes, (0, 0, -0.017) and (0, 0, -0.020) m).
+///
+/// `target_tets`: wanted number of tetrahedra; the result is within about 30 % of it for
+/// 1000..=30000 (smaller targets give the coarsest mesh the construction allows, about 100 tets).
+/// The exact myocardial volume is 3234.73 mm^3; the mesh volume converges to it.
+pub fn lv_shell(target_tets: usize) -> TetMesh {
+    let mm = 1e-3;
+    let profile = Profile {
+        inner: DVec3::new(7.0, 7.0, 17.0) * mm,
+        outer: DVec3::new(10.0, 10.0, 20.0) * mm,
+        z_cut: Some(5.0 * mm),
+    };
+    let shell = revolution_shell(&profile, target_tets);
+    let mut mesh = shell.classify("ENDO", "EPI", Some("BASE"));
+    mesh.node_groups = vec![
+        NodeGroup {
+            name: "ENDOPT".into(),
+            nodes: vec![shell.node(0, 0, 0)],
+        },
+        NodeGroup {
+            name: "EPIPT".into(),
+            nodes: vec![shell.node(shell.layers, 0, 0)],
+        },
+    ];
+    mesh
+}
+
+/// Closed concentric ellipsoidal shell (no cut), centred at the origin, in metres.
+///
+/// `inner`, `outer`: semi-axes (x, y, z) of the inner and outer ellipsoids, m; intermediate
+/// layers interpolate them linearly. `target_tets`: wanted number of tetrahedra (the coarsest
+/// construction has about 120; about 188 gives the seed's coarse "Ellipsoids Model").
+///
+/// Surfaces (outward oriented): `INNER`, `OUTER`, and `POLE`, the subset of `OUTER` triangles
+/// around the bottom pole (centroid below `-0.8 outer.z`, or touching the pole node), meant to be
+/// clamped so that the body cannot drift. Node groups: `INNER_NZ`, `INNER_PZ`, `OUTER_NZ`,
+/// `OUTER_PZ` (pole nodes on the z axis).
+///
+/// # Panics
+/// If a semi-axis is not finite and positive or `inner` is not smaller than `outer` in every
+/// component.
+pub fn ellipsoid_shell(inner: DVec3, outer: DVec3, target_tets: usize) -> TetMesh {
+    assert!(
+        inner.is_finite() && inner.min_element() > 0.0 && inner.cmplt(outer).all(),
+        "ellipsoid_shell: need 0 < inner < outer, got {inner} and {outer}"
+    );
+    let profile = Profile {
+        inner,
+        outer,
+        z_cut: None,
+    };
+    let shell = revolution_shell(&profile, target_tets);
+    let mut mesh = shell.classify("INNER", "OUTER", None);
+    let pole = shell.node(shell.layers, 0, 0);
+    let cap = -0.8 * outer.z;
+    let pole_tris: Vec<[u32; 3]> = mesh
+        .surface("OUTER")
+        .map(|s| {
+            s.triangles
+                .iter()
+                .filter(|t| {
+                    let z = t.iter().map(|&i| mesh.nodes[i as usize].z).sum::<f64>() / 3.0;
+                    z < cap || t.contains(&pole)
+                })
+                .copied()
+                .collect()
+        })
+        .unwrap_or_default();
+    mesh.surfaces.push(SurfaceGroup {
+        name: "POLE".into(),
+        triangles: pole_tris,
+    });
+    mesh.node_groups = shell.pole_groups();
+    mesh
+}
+
+/// Thick-walled hollow sphere centred at the origin (the Lamé problem), in metres.
+///
+/// `inner_radius_m` < `outer_radius_m`, m. `target_tets`: wanted number of tetrahedra (within
+/// about 30 % for 1000..=50000).
+///
+/// Surfaces (outward oriented): `INNER` (normals toward the centre), `OUTER`. Node groups, each a
+/// single node exactly on a coordinate axis: `INNER_PZ` (0, 0, r), `INNER_NZ` (0, 0, -r),
+/// `INNER_PX` (r, 0, 0) with r the inner radius, and `OUTER_PZ`, `OUTER_NZ`, `OUTER_PX` likewise
+/// on the outer surface. Fixing x and y at the z-axis nodes and y at the x-axis node removes the
+/// six rigid modes without restraining the radial expansion.
+///
+/// # Panics
+/// If the radii are not finite with `0 < inner_radius_m < outer_radius_m`.
+pub fn sphere_shell(inner_radius_m: f64, outer_radius_m: f64, target_tets: usize) -> TetMesh {
+    assert!(
+        inner_radius_m.is_finite()
+            && inner_radius_m > 0.0
+            && outer_radius_m.is_finite()
+            && inner_radius_m < outer_radius_m,
+        "sphere_shell: need 0 < inner < outer, got {inner_radius_m} and {outer_radius_m}"
+    );
+    let profile = Profile {
+        inner: DVec3::splat(inner_radius_m),
+        outer: DVec3::splat(outer_radius_m),
+        z_cut: None,
+    };
+    let shell = revolution_shell(&profile, target_tets);
+    let mut mesh = shell.classify("INNER", "OUTER", None);
+    let mut groups = shell.pole_groups();
+    let eq = shell.rings.len() / 2;
+    debug_assert!(shell.rings[eq].offset == 0.0 && 2 * eq + 1 == shell.rings.len());
+    groups.push(NodeGroup {
+        name: "INNER_PX".into(),
+        nodes: vec![shell.node(0, eq, 0)],
+    });
+    groups.push(NodeGroup {
+        name: "OUTER_PX".into(),
+        nodes: vec![shell.node(shell.layers, eq, 0)],
+    });
+    mesh.node_groups = groups;
+    mesh
+}
+
+/// Axis-aligned box `[0, size.x] x [0, size.y] x [0, size.z]` (m) of `cells[0] x cells[1] x
+/// cells[2]` hexahedra, each split into 6 tetrahedra along its main diagonal (Kuhn / Freudenthal
+/// subdivision, conforming on the grid): `6 * nx * ny * nz` tets, `(nx+1)(ny+1)(nz+1)` nodes,
+/// node `(i, j, k)` at index `i + (nx+1) (j + (ny+1) k)`.
+///
+/// Surfaces (outward oriented): `XMIN`, `XMAX`, `YMIN`, `YMAX`, `ZMIN`, `ZMAX`.
+///
+/// # Panics
+/// If a size is not finite and positive or a cell count is zero.
+pub fn box_mesh(size_m: DVec3, cells: [usize; 3]) -> TetMesh {
+    assert!(
+        size_m.is_finite() && size_m.min_element() > 0.0 && cells.iter().all(|&c| c > 0),
+        "box_mesh: need positive sizes and cell counts, got {size_m} and {cells:?}"
+    );
+    let [nx, ny, nz] = cells;
+    let id = |i: usize, j: usize, k: usize| (i + (nx + 1) * (j + (ny + 1) * k)) as u32;
+    let coord = |i: usize, n: usize, s: f64| if i == n { s } else { s * (i as f64 / n as f64) };
+    let mut nodes = Vec::with_capacity((nx + 1) * (ny + 1) * (nz + 1));
+    for k in 0..=nz {
+        for j in 0..=ny {
+            for i in 0..=nx {
+                nodes.push(DVec3::new(
+                    coord(i, nx, size_m.x),
+                    coord(j, ny, size_m.y),
+                    coord(k, nz, size_m.z),
+                ));
+            }
+        }
+    }
+    const PERMS: [[usize; 3]; 6] = [
+        [0, 1, 2],
+        [0, 2, 1],
+        [1, 0, 2],
+        [1, 2, 0],
+        [2, 0, 1],
+        [2, 1, 0],
+    ];
+    let mut tets = Vec::with_capacity(6 * nx * ny * nz);
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                for p in PERMS {
+                    let mut c = [i, j, k];
+                    let mut t = [id(c[0], c[1], c[2]), 0, 0, 0];
+                    for (s, &axis) in p.iter().enumerate() {
+                        c[axis] += 1;
+                        t[s + 1] = id(c[0], c[1], c[2]);
+                    }
+                    tets.push(t);
+                }
+            }
+        }
+    }
+    let mut mesh = TetMesh {
+        nodes,
+        tets,
+        surfaces: Vec::new(),
+        node_groups: Vec::new(),
+    };
+    orient(&mut mesh);
+    let boundary = mesh.boundary_triangles();
+    let names = ["XMIN", "XMAX", "YMIN", "YMAX", "ZMIN", "ZMAX"];
+    let mut surfaces: Vec<SurfaceGroup> = names
+        .iter()
+        .map(|n| SurfaceGroup {
+            name: (*n).into(),
+            triangles: Vec::new(),
+        })
+        .collect();
+    for t in boundary {
+        let p = t.map(|i| mesh.nodes[i as usize]);
+        for axis in 0..3 {
+            if p.iter().all(|q| q[axis] == 0.0) {
+                surfaces[2 * axis].triangles.push(t);
+            } else if p.iter().all(|q| q[axis] == size_m[axis]) {
+                surfaces[2 * axis + 1].triangles.push(t);
+            }
+        }
+    }
+    mesh.surfaces = surfaces;
+    mesh
+}
+
+/// Smallest dihedral angle over all tetrahedra of `mesh`, degrees (a quality measure: slivers
+/// have angles near 0; the regular tetrahedron has 70.5). Returns 180 for an empty mesh.
+pub fn min_dihedral_angle_deg(mesh: &TetMesh) -> f64 {
+    let mut min = PI;
+    for t in &mesh.tets {
+        let x = t.map(|i| mesh.nodes[i as usize]);
+        // Outward unit normal of the face opposite each vertex.
+        let normals: [DVec3; 4] = std::array::from_fn(|k| {
+            let f: Vec<DVec3> = (0..4).filter(|&i| i != k).map(|i| x[i]).collect();
+            let n = (f[1] - f[0]).cross(f[2] - f[0]).normalize_or_zero();
+            if n.dot(x[k] - f[0]) > 0.0 { -n } else { n }
+        });
+        for a in 0..4 {
+            for b in a + 1..4 {
+                let angle = PI - normals[a].dot(normals[b]).clamp(-1.0, 1.0).acos();
+                min = min.min(angle);
+            }
+        }
+    }
+    min.to_degrees()
+}
+
+/// A shell of revolution between two concentric ellipsoids (semi-axes x, y, z), optionally
+/// truncated by the plane `z = z_cut` (keeping `z <= z_cut`).
+struct Profile {
+    inner: DVec3,
+    outer: DVec3,
+    z_cut: Option<f64>,
+}
+
+impl Profile {
+    /// Semi-axes of the layer at transmural coordinate `t` in [0, 1].
+    fn axes(&self, t: f64) -> DVec3 {
+        if t == 0.0 {
+            self.inner
+        } else if t == 1.0 {
+            self.outer
+        } else {
+            self.inner + (self.outer - self.inner) * t
+        }
+    }
+
+    /// Eccentric-anomaly angle (from the -z apex) where the meridian ends.
+    fn phi_end(&self, c: f64) -> f64 {
+        match self.z_cut {
+            Some(z) => (-z / c).acos(),
+            None => PI,
+        }
+    }
+
+    /// Mean wall thickness, m.
+    fn thickness(&self) -> f64 {
+        let d = self.outer - self.inner;
+        (d.x + d.y + d.z) / 3.0
+    }
+}
+
+/// Cumulative arc length of a meridian ellipse `(a sin phi, -c cos phi)` on a uniform phi grid.
+struct Meridian {
+    phi_end: f64,
+    s: Vec<f64>,
+}
+
+impl Meridian {
+    const SAMPLES: usize = 4096;
+
+    fn new(a: f64, c: f64, phi_end: f64) -> Self {
+        let m = Self::SAMPLES;
+        let speed = |phi: f64| (a * a * phi.cos().powi(2) + c * c * phi.sin().powi(2)).sqrt();
+        let dphi = phi_end / m as f64;
+        let mut s = Vec::with_capacity(m + 1);
+        s.push(0.0);
+        for k in 0..m {
+            let p0 = k as f64 * dphi;
+            // Simpson on each interval.
+            let ds = dphi / 6.0 * (speed(p0) + 4.0 * speed(p0 + 0.5 * dphi) + speed(p0 + dphi));
+            s.push(s[k] + ds);
+        }
+        Self { phi_end, s }
+    }
+
+    fn length(&self) -> f64 {
+        self.s[Self::SAMPLES]
+    }
+
+    /// The angle phi at arc-length fraction `sigma` in [0, 1].
+    fn phi(&self, sigma: f64) -> f64 {
+        if sigma <= 0.0 {
+            return 0.0;
+        }
+        if sigma >= 1.0 {
+            return self.phi_end;
+        }
+        let target = sigma * self.length();
+        let k = self
+            .s
+            .partition_point(|&v| v <= target)
+            .clamp(1, Self::SAMPLES)
+            - 1;
+        let f = (target - self.s[k]) / (self.s[k + 1] - self.s[k]);
+        (k as f64 + f) * self.phi_end / Self::SAMPLES as f64
+    }
+}
+
+/// One ring of the reference surface.
+#[derive(Debug, Clone, Copy)]
+struct Ring {
+    /// Meridian arc-length fraction.
+    sigma: f64,
+    /// Number of vertices (1 for a pole).
+    n: usize,
+    /// Angular offset of vertex 0 as a fraction of the vertex spacing.
+    offset: f64,
+}
+
+/// A built shell before its boundary is classified.
+struct Shell {
+    mesh: TetMesh,
+    rings: Vec<Ring>,
+    /// First surface-vertex index of each ring.
+    ring_start: Vec<usize>,
+    /// Vertices per layer.
+    nv: usize,
+    /// Number of layers of prisms (L); node layers are 0..=L.
+    layers: usize,
+    truncated: bool,
+}
+
+impl Shell {
+    /// Global node index of vertex `j` of ring `i` in node layer `k`.
+    fn node(&self, k: usize, i: usize, j: usize) -> u32 {
+        (k * self.nv + self.ring_start[i] + j) as u32
+    }
+
+    /// Splits the boundary into inner, outer and (truncated shells) base surfaces.
+    fn classify(&self, inner: &str, outer: &str, base: Option<&str>) -> TetMesh {
+        let mut mesh = self.mesh.clone();
+        let last_ring_start = self.ring_start[self.rings.len() - 1];
+        let mut groups = [inner, outer, base.unwrap_or("BASE")].map(|n| SurfaceGroup {
+            name: n.to_string(),
+            triangles: Vec::new(),
+        });
+        for t in mesh.boundary_triangles() {
+            let layer = t.map(|i| i as usize / self.nv);
+            let vertex = t.map(|i| i as usize % self.nv);
+            if layer.iter().all(|&k| k == 0) {
+                groups[0].triangles.push(t);
+            } else if layer.iter().all(|&k| k == self.layers) {
+                groups[1].triangles.push(t);
+            } else if self.truncated && vertex.iter().all(|&v| v >= last_ring_start) {
+                groups[2].triangles.push(t);
+            } else {
+                unreachable!("boundary face {t:?} is on no named surface");
+            }
+        }
+        let [g0, g1, g2] = groups;
+        mesh.surfaces = if base.is_some() {
+            vec![g0, g1, g2]
+        } else {
+            vec![g0, g1]
+        };
+        mesh
+    }
+
+    /// `INNER_NZ`, `INNER_PZ`, `OUTER_NZ`, `OUTER_PZ` for a closed shell.
+    fn pole_groups(&self) -> Vec<NodeGroup> {
+        let top = self.rings.len() - 1;
+        let g = |name: &str, node: u32| NodeGroup {
+            name: name.into(),
+            nodes: vec![node],
+        };
+        vec![
+            g("INNER_NZ", self.node(0, 0, 0)),
+            g("INNER_PZ", self.node(0, top, 0)),
+            g("OUTER_NZ", self.node(self.layers, 0, 0)),
+            g("OUTER_PZ", self.node(self.layers, top, 0)),
+        ]
+    }
+}
+
+/// Ring layout for a target edge length `h` on the mid-wall layer.
+fn design_rings(p: &Profile, h: f64) -> Vec<Ring> {
+    let mid = p.axes(0.5);
+    let a = 0.5 * (mid.x + mid.y);
+    let meridian = Meridian::new(a, mid.z, p.phi_end(mid.z));
+    let closed = p.z_cut.is_none();
+    let mut r = ((meridian.length() / h).round() as usize).max(2);
+    if closed && r & 1 == 1 {
+        r += 1;
+    }
+    let half = r / 2;
+    // Mean radius of the ring's ellipse (x, y semi-axes).
+    let radius = ((mid.x * mid.x + mid.y * mid.y) / 2.0).sqrt();
+    (0..=r)
+        .map(|i| {
+            let sigma = i as f64 / r as f64;
+            let pole = i == 0 || (closed && i == r);
+            let n = if pole {
+                1
+            } else {
+                let phi = if closed && 2 * i == r {
+                    PI / 2.0
+                } else {
+                    meridian.phi(sigma)
+                };
+                ((TAU * radius * phi.sin() / h).round() as usize).max(3)
+            };
+            // Alternate half-spacing offsets; the equator ring of a closed shell has offset 0 so
+            // that it holds nodes on the +x axis.
+            let offset = if (i + half) & 1 == 0 { 0.0 } else { 0.5 };
+            Ring { sigma, n, offset }
+        })
+        .collect()
+}
+
+/// Triangles of the reference surface joining consecutive rings (surface-vertex indices).
+fn zipper(rings: &[Ring], start: &[usize]) -> Vec<[usize; 3]> {
+    let mut tris = Vec::new();
+    for i in 0..rings.len() - 1 {
+        let (lo, up) = (rings[i], rings[i + 1]);
+        let l = |p: usize| start[i] + p % lo.n;
+        let u = |q: usize| start[i + 1] + q % up.n;
+        if lo.n == 1 {
+            tris.extend((0..up.n).map(|q| [l(0), u(q), u(q + 1)]));
+        } else if up.n == 1 {
+            tris.extend((0..lo.n).map(|p| [l(p), l(p + 1), u(0)]));
+        } else {
+            let alpha = |p: usize| (p as f64 + lo.offset) / lo.n as f64;
+            let beta = |q: usize| (q as f64 + up.offset) / up.n as f64;
+            let (mut p, mut q) = (0, 0);
+            while p < lo.n || q < up.n {
+                if q == up.n || (p < lo.n && alpha(p + 1) < beta(q + 1)) {
+                    tris.push([l(p), l(p + 1), u(q)]);
+                    p += 1;
+                } else {
+                    tris.push([l(p), u(q + 1), u(q)]);
+                    q += 1;
+                }
+            }
+        }
+    }
+    tris
+}
+
+/// Number of surface triangles of a ring layout.
+fn triangle_count(rings: &[Ring]) -> usize {
+    rings
+        .windows(2)
+        .map(|w| match (w[0].n, w[1].n) {
+            (1, m) => m,
+            (n, 1) => n,
+            (n, m) => n + m,
+        })
+        .sum()
+}
+
+/// Number of prism layers for an edge length `h`.
+fn layer_count(p: &Profile, h: f64) -> usize {
+    ((p.thickness() / h).round() as usize).max(1)
+}
+
+/// Builds the tetrahedral shell closest to `target_tets`.
+fn revolution_shell(p: &Profile, target_tets: usize) -> Shell {
+    // Tets = 3 L T; pick h by scanning around the estimate from the volume.
+    let mid = p.axes(0.5);
+    let area_estimate = 4.0 * PI * (mid.x * mid.y + mid.y * mid.z + mid.z * mid.x) / 3.0;
+    let volume_estimate = area_estimate * p.thickness();
+    let target = target_tets.max(1) as f64;
+    // Prism volume ~ (sqrt 3 / 4) h^3 when its height is h.
+    let h0 = (volume_estimate * 3.0 / (target * 3f64.sqrt() / 4.0)).cbrt();
+    // Score: distance to the target count (log scale) plus a small penalty on the prism aspect
+    // (layer height over edge length) departing from 1.
+    let mut best: Option<(f64, f64, usize)> = None;
+    for s in -60..=60 {
+        let h = h0 * 1.015f64.powi(s);
+        let tris = triangle_count(&design_rings(p, h));
+        let l0 = layer_count(p, h);
+        for layers in l0.saturating_sub(1).max(1)..=l0 + 1 {
+            let aspect = p.thickness() / layers as f64 / h;
+            if !(0.6..=1.7).contains(&aspect) && layers != l0 {
+                continue;
+            }
+            let count = 3 * layers * tris;
+            let score = (count as f64 / target).ln().abs() + 0.1 * aspect.ln().abs();
+            if best.is_none_or(|(e, _, _)| score < e) {
+                best = Some((score, h, layers));
+            }
+        }
+    }
+    let (_, h, layers) = best.unwrap_or((0.0, h0, layer_count(p, h0)));
+    build_shell(p, design_rings(p, h), layers)
+}
+
+/// Extrudes the ring surface through `layers` layers and splits the prisms into tetrahedra.
+fn build_shell(p: &Profile, rings: Vec<Ring>, layers: usize) -> Shell {
+    let mut start = Vec::with_capacity(rings.len());
+    let mut nv = 0;
+    for r in &rings {
+        start.push(nv);
+        nv += r.n;
+    }
+    let closed = p.z_cut.is_none();
+    let last = rings.len() - 1;
+    let mut nodes = Vec::with_capacity(nv * (layers + 1));
+    for k in 0..=layers {
+        let t = k as f64 / layers as f64;
+        let ax = p.axes(t);
+        let c = ax.z;
+        let meridian = Meridian::new(0.5 * (ax.x + ax.y), c, p.phi_end(c));
+        for (i, ring) in rings.iter().enumerate() {
+            // (sin phi, z) of the ring on this layer, with exact values at special rings.
+            let (sin_phi, z) = if i == 0 {
+                (0.0, -c)
+            } else if i == last && closed {
+                (0.0, c)
+            } else if i == last {
+                let z = p.z_cut.unwrap_or(c);
+                ((1.0 - (z / c) * (z / c)).sqrt(), z)
+            } else if closed && 2 * i == last {
+                (1.0, 0.0)
+            } else {
+                let phi = meridian.phi(ring.sigma);
+                (phi.sin(), -c * phi.cos())
+            };
+            for j in 0..ring.n {
+                let theta = TAU * (j as f64 + ring.offset) / ring.n as f64;
+                let (s, co) = if theta == 0.0 {
+                    (0.0, 1.0)
+                } else {
+                    theta.sin_cos()
+                };
+                nodes.push(DVec3::new(ax.x * sin_phi * co, ax.y * sin_phi * s, z));
+            }
+        }
+    }
+    let surface = zipper(&rings, &start);
+    let mut tets = Vec::with_capacity(3 * layers * surface.len());
+    for k in 0..layers {
+        for tri in &surface {
+            let b = tri.map(|v| (k * nv + v) as u32);
+            let prism = [
+                b[0],
+                b[1],
+                b[2],
+                b[0] + nv as u32,
+                b[1] + nv as u32,
+                b[2] + nv as u32,
+            ];
+            tets.extend(split_prism(prism));
+        }
+    }
+    let mut mesh = TetMesh {
+        nodes,
+        tets,
+        surfaces: Vec::new(),
+        node_groups: Vec::new(),
+    };
+    orient(&mut mesh);
+    Shell {
+        mesh,
+        rings,
+        ring_start: start,
+        nv,
+        layers,
+        truncated: !closed,
+    }
+}
+
+/// Splits the prism `[a, b, c, a', b', c']` (bottom triangle, then the top vertices above
+/// them) into 3 tetrahedra so that each quadrilateral face is cut by the diagonal from its
+/// lowest index (Dompierre et al. 1999, table 3). Orientation is fixed later.
+fn split_prism(v: [u32; 6]) -> [[u32; 4]; 3] {
+    // Vertex permutations that bring each vertex to position 0 while preserving the prism.
+    const ROT: [[usize; 6]; 6] = [
+        [0, 1, 2, 3, 4, 5],
+        [1, 2, 0, 4, 5, 3],
+        [2, 0, 1, 5, 3, 4],
+        [3, 5, 4, 0, 2, 1],
+        [4, 3, 5, 1, 0, 2],
+        [5, 4, 3, 2, 1, 0],
+    ];
+    let imin = (0..6).min_by_key(|&i| v[i]).unwrap_or(0);
+    let w = ROT[imin].map(|i| v[i]);
+    if w[1].min(w[5]) < w[2].min(w[4]) {
+        [
+            [w[0], w[1], w[2], w[5]],
+            [w[0], w[1], w[5], w[4]],
+            [w[0], w[4], w[5], w[3]],
+        ]
+    } else {
+        [
+            [w[0], w[1], w[2], w[4]],
+            [w[0], w[4], w[2], w[5]],
+            [w[0], w[4], w[5], w[3]],
+        ]
+    }
+}
+
+/// Makes every tetrahedron positively oriented.
+fn orient(mesh: &mut TetMesh) {
+    for t in &mut mesh.tets {
+        let [a, b, c, d] = t.map(|i| mesh.nodes[i as usize]);
+        if tet_signed_volume(a, b, c, d) < 0.0 {
+            t.swap(2, 3);
+        }
+    }
+}
