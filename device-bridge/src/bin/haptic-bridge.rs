@@ -1,1 +1,53 @@
-fn main() {}
+//! `haptic-bridge`: streams a haptic device's poses to a hapticd session over
+//! `DeviceLink.Connect` and renders the forces it answers. Glue only: the work is in the
+//! `haptic_bridge` library (`cli::Args::setup`, then `link::run`).
+
+use std::sync::Arc;
+
+use anyhow::{Context, bail};
+use clap::Parser;
+use haptic_bridge::{MonotonicClock, cli::Args, record, run};
+use tracing_subscriber::EnvFilter;
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(
+            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")),
+        )
+        .init();
+    let setup = args.setup()?;
+    let url = setup.config.server_url.clone();
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    tokio::spawn(async move {
+        if tokio::signal::ctrl_c().await.is_ok() {
+            let _ = stop_tx.send(true); // Ctrl-C: zero force, close the stream, summary.
+        }
+    });
+    let report = run(
+        setup.device,
+        Arc::new(MonotonicClock::new()),
+        setup.config,
+        stop_rx,
+    )
+    .await?;
+    if let Some(path) = &setup.record_path {
+        record::write_csv_file(path, &report.ticks)
+            .with_context(|| format!("writing the recording to {}", path.display()))?;
+    }
+    let s = &report.summary;
+    if setup.json {
+        println!("{}", serde_json::to_string(s)?);
+    } else {
+        println!("{s}");
+    }
+    if !s.connected() {
+        bail!(
+            "never connected to {url}: {}",
+            s.last_link_error.as_deref().unwrap_or("no attempt made")
+        );
+    }
+    Ok(())
+}

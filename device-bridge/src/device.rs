@@ -1,0 +1,251 @@
+//! The device abstraction: a [`HapticDevice`] trait with a declared [`DeviceSpec`] (limits the
+//! guard enforces) and the [`DeviceState`] it reports each tick.
+//!
+//! Neighbours: drivers live in [`crate::sim`] (scripted probe) and [`crate::replay`] (recorded
+//! trajectory); [`crate::link`] owns one device on its device thread; [`crate::guard`] reads the
+//! spec's force and stiffness limits (devices.md section 3.2 sketches this trait; section 4 S6/S7
+//! gives the per-model numbers).
+//!
+//! Frame and units: every driver converts to one right-handed frame in SI units (metres, m/s,
+//! newtons) at its boundary (devices.md section 3.1).
+
+use thiserror::Error;
+
+/// Static description of a device: its limits and nominal rate.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DeviceSpec {
+    /// Model name, for logs.
+    pub name: String,
+    /// Peak force the device may render, in N (devices.md S6; Touch 3.3 N, Premium 3.0 22 N).
+    pub max_force_n: f64,
+    /// Largest stable wall stiffness at the device rate, in N/m (devices.md table 1.2). The
+    /// guard's default slew limit is this stiffness times 1 m/s (S7).
+    pub max_stiffness_n_per_m: f64,
+    /// Lower corner of the usable workspace box, in m.
+    pub workspace_min_m: [f64; 3],
+    /// Upper corner of the usable workspace box, in m.
+    pub workspace_max_m: [f64; 3],
+    /// Nominal servo rate, in Hz (1000 for Phantoms).
+    pub rate_hz: f64,
+}
+
+impl DeviceSpec {
+    /// Spec of the simulated probe: 10 N, 1000 N/m (so a 1 N/ms slew limit), a +-0.2 m box,
+    /// 1 kHz. The numbers sit between a Phantom Desktop and a Premium 3.0 (devices.md table 1.2).
+    pub fn sim_default() -> Self {
+        Self {
+            name: "sim".to_owned(),
+            max_force_n: 10.0,
+            max_stiffness_n_per_m: 1000.0,
+            workspace_min_m: [-0.2; 3],
+            workspace_max_m: [0.2; 3],
+            rate_hz: 1000.0,
+        }
+    }
+
+    /// Checks that limits are positive and finite and the workspace box is not inverted.
+    ///
+    /// # Errors
+    /// [`DeviceError::InvalidSpec`] naming the offending field.
+    pub fn validate(&self) -> Result<(), DeviceError> {
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        if !positive(self.max_force_n) {
+            return Err(DeviceError::InvalidSpec(format!(
+                "max_force_n must be positive and finite, got {}",
+                self.max_force_n
+            )));
+        }
+        if !positive(self.max_stiffness_n_per_m) {
+            return Err(DeviceError::InvalidSpec(format!(
+                "max_stiffness_n_per_m must be positive and finite, got {}",
+                self.max_stiffness_n_per_m
+            )));
+        }
+        if !positive(self.rate_hz) {
+            return Err(DeviceError::InvalidSpec(format!(
+                "rate_hz must be positive and finite, got {}",
+                self.rate_hz
+            )));
+        }
+        for i in 0..3 {
+            let (lo, hi) = (self.workspace_min_m[i], self.workspace_max_m[i]);
+            if !(lo.is_finite() && hi.is_finite() && lo < hi) {
+                return Err(DeviceError::InvalidSpec(format!(
+                    "workspace axis {i}: need finite min < max, got {lo}..{hi}"
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// True when `position_m` lies inside the workspace box grown by `margin` times its extent
+    /// on every side (devices.md S11 uses a 10 % margin, `margin = 0.1`).
+    pub fn contains(&self, position_m: [f64; 3], margin: f64) -> bool {
+        (0..3).all(|i| {
+            let (lo, hi) = (self.workspace_min_m[i], self.workspace_max_m[i]);
+            let pad = (hi - lo) * margin;
+            position_m[i] >= lo - pad && position_m[i] <= hi + pad
+        })
+    }
+}
+
+/// One reading of the device, in the bridge frame.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct DeviceState {
+    /// Clock time of the reading, in microseconds (the [`crate::clock::Clock`] passed to `read`).
+    pub time_us: u64,
+    /// Haptic interaction point, in m.
+    pub position_m: [f64; 3],
+    /// Velocity of the interaction point, in m/s.
+    pub velocity_m_per_s: [f64; 3],
+}
+
+/// A straight reference axis of a scripted device: where it started and the unit direction it
+/// presses along. The bridge reports the largest distance travelled along it (`max_depth_m`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PressAxis {
+    /// Start point, in m.
+    pub start_m: [f64; 3],
+    /// Unit press direction (dimensionless).
+    pub direction: [f64; 3],
+}
+
+/// What can go wrong with a device or its driver.
+#[derive(Debug, Error)]
+pub enum DeviceError {
+    /// The spec has a non-positive or non-finite limit.
+    #[error("invalid device spec: {0}")]
+    InvalidSpec(String),
+    /// A script parameter is out of range (zero speed, zero-length direction ...).
+    #[error("invalid script: {0}")]
+    InvalidScript(String),
+    /// A replay file could not be read or parsed; `line` is 1-based, 0 when not applicable.
+    #[error("replay file, line {line}: {message}")]
+    Replay {
+        /// 1-based line number in the CSV file (0 when the error is not tied to a line).
+        line: u64,
+        /// What was wrong.
+        message: String,
+    },
+    /// The device was asked to render a non-finite force.
+    #[error("non-finite force {0:?} N")]
+    NonFiniteForce([f64; 3]),
+    /// Communication with the hardware failed.
+    #[error("device communication failed: {0}")]
+    Comm(String),
+}
+
+/// A haptic device behind the bridge: position in, force out, at the device rate.
+///
+/// Implementations are called only from the bridge's device thread. `read` and `write_force`
+/// must not block longer than one period.
+pub trait HapticDevice: Send {
+    /// The device's declared limits.
+    fn spec(&self) -> &DeviceSpec;
+
+    /// Reads the current state at clock time `now_us` (microseconds).
+    ///
+    /// # Errors
+    /// [`DeviceError::Comm`] when the device cannot be read; the bridge then commands zero force.
+    fn read(&mut self, now_us: u64) -> Result<DeviceState, DeviceError>;
+
+    /// Renders `force_n` (N, bridge frame) until the next call.
+    ///
+    /// # Errors
+    /// [`DeviceError::NonFiniteForce`] or [`DeviceError::Comm`].
+    fn write_force(&mut self, force_n: [f64; 3]) -> Result<(), DeviceError>;
+
+    /// True once a scripted or recorded driver has played to its end at `now_us`. Hardware
+    /// drivers return false.
+    fn finished(&self, now_us: u64) -> bool;
+
+    /// Best-effort zero force and output disable; must not panic.
+    fn safe_stop(&mut self);
+
+    /// The straight press axis of a scripted driver, if it has one.
+    fn press_axis(&self) -> Option<PressAxis> {
+        None
+    }
+}
+
+impl<D: HapticDevice + ?Sized> HapticDevice for Box<D> {
+    fn spec(&self) -> &DeviceSpec {
+        (**self).spec()
+    }
+    fn read(&mut self, now_us: u64) -> Result<DeviceState, DeviceError> {
+        (**self).read(now_us)
+    }
+    fn write_force(&mut self, force_n: [f64; 3]) -> Result<(), DeviceError> {
+        (**self).write_force(force_n)
+    }
+    fn finished(&self, now_us: u64) -> bool {
+        (**self).finished(now_us)
+    }
+    fn safe_stop(&mut self) {
+        (**self).safe_stop()
+    }
+    fn press_axis(&self) -> Option<PressAxis> {
+        (**self).press_axis()
+    }
+}
+
+/// Small vector helpers on `[f64; 3]` shared by drivers and the guard.
+pub mod vec3 {
+    /// Dot product.
+    pub fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+        a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+    }
+    /// Euclidean norm.
+    pub fn norm(a: [f64; 3]) -> f64 {
+        dot(a, a).sqrt()
+    }
+    /// `a + s * b`.
+    pub fn axpy(a: [f64; 3], s: f64, b: [f64; 3]) -> [f64; 3] {
+        [a[0] + s * b[0], a[1] + s * b[1], a[2] + s * b[2]]
+    }
+    /// `a - b`.
+    pub fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+        [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+    }
+    /// `s * a`.
+    pub fn scale(a: [f64; 3], s: f64) -> [f64; 3] {
+        [s * a[0], s * a[1], s * a[2]]
+    }
+    /// True when all components are finite.
+    pub fn is_finite(a: [f64; 3]) -> bool {
+        a.iter().all(|v| v.is_finite())
+    }
+    /// `a / |a|`, or `None` when `|a|` is zero or not finite.
+    pub fn normalized(a: [f64; 3]) -> Option<[f64; 3]> {
+        let n = norm(a);
+        (n.is_finite() && n > 0.0).then(|| scale(a, 1.0 / n))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn spec_validation_names_the_bad_field() {
+        assert!(DeviceSpec::sim_default().validate().is_ok());
+        let mut s = DeviceSpec::sim_default();
+        s.max_force_n = f64::NAN;
+        assert!(
+            s.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("max_force_n")
+        );
+        let mut s = DeviceSpec::sim_default();
+        s.workspace_min_m[1] = 1.0;
+        assert!(s.validate().unwrap_err().to_string().contains("axis 1"));
+    }
+
+    #[test]
+    fn workspace_margin_is_ten_percent_of_extent() {
+        let s = DeviceSpec::sim_default(); // extent 0.4 m, so 0.04 m margin
+        assert!(s.contains([0.2399, 0.0, 0.0], 0.1));
+        assert!(!s.contains([0.2401, 0.0, 0.0], 0.1));
+    }
+}

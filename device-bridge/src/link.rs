@@ -1,0 +1,795 @@
+//! The bridge loop: a device thread at the device rate and a network task holding one
+//! `DeviceLink.Connect` stream (devices.md section 3.1).
+//!
+//! ```text
+//! [device thread, std::thread, absolute deadlines, no catch-up]      [tokio network task]
+//!   read pose ----- try_send (bounded mpsc, never blocks) ----------> DeviceSample stream
+//!   latest ForceCommand <-- force slot (std Mutex, held for a copy) <-- ForceCommand stream
+//!   guard (watchdog, clamp, slew, NaN) -> write_force                   seq -> RTT histogram
+//!   (optional) append TickRecord to a pre-reserved Vec                  reconnect + backoff
+//! ```
+//!
+//! Choices:
+//! - **Force slot = `std::sync::Mutex<ForceSlot>`.** Both sides hold it only to copy ~80 bytes;
+//!   the network task never awaits or allocates while holding it, so the device thread waits at
+//!   most a few hundred nanoseconds (no priority inversion worth a wait-free structure in a
+//!   separate process whose only other thread is the network task). The server's servo loop
+//!   uses wait-free slots instead (DESIGN.md section 3).
+//! - **Samples go out through a bounded tokio mpsc with `try_send`.** A full queue drops the
+//!   sample and counts it; the device thread never blocks on the network.
+//! - **The round trip** is measured pose-to-force: from the device read (`device_time_us`) to
+//!   the arrival of the `ForceCommand` echoing that `seq`, on the same injected clock, recorded
+//!   in an hdrhistogram by the network task (microseconds).
+//! - **Link loss** (no server, stream error, server closed the stream) clears the force slot and
+//!   marks the link down, so the guard commands zero at once; the task reconnects with
+//!   exponential backoff (default 50 ms doubling to 1 s) until the script finishes or shutdown.
+//!
+//! Neighbours: [`crate::device`] (the device), [`crate::guard`] (per-tick safety),
+//! [`crate::record`] (per-tick rows), `haptics_proto::v1` (the wire contract).
+
+use std::fmt;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::Duration;
+
+use haptics_proto::v1::device_link_client::DeviceLinkClient;
+use haptics_proto::v1::{DeviceSample, ForceCommand};
+use hdrhistogram::Histogram;
+use serde::Serialize;
+use thiserror::Error;
+use tokio::sync::{mpsc, watch};
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::transport::Endpoint;
+use tracing::{info, warn};
+
+use crate::clock::Clock;
+use crate::device::{DeviceError, DeviceSpec, DeviceState, HapticDevice, vec3};
+use crate::guard::{ForceGuard, GuardCommand, GuardParams, GuardState, GuardStats};
+use crate::record::TickRecord;
+
+/// Number of sent `seq -> send time` entries kept for round-trip matching (4 s at 1 kHz).
+const RTT_RING: usize = 4096;
+/// Rows reserved up front when recording: 120 s at the device rate.
+const RECORD_RESERVE_S: f64 = 120.0;
+/// Consecutive failed device reads tolerated before the device is declared faulty, in us
+/// (devices.md S2: zero at once, fault after 20 ms).
+const DEVICE_FAULT_US: u64 = 20_000;
+/// How long to wait for the server to close its side after we close ours.
+const CLOSE_GRACE: Duration = Duration::from_millis(200);
+
+/// Checked run-time configuration of the bridge.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BridgeConfig {
+    /// Server URL, `http://host:port`.
+    pub server_url: String,
+    /// Session id sent on the first sample of every stream.
+    pub session_id: String,
+    /// Device loop rate, in Hz.
+    pub rate_hz: f64,
+    /// Guard limits.
+    pub guard: GuardParams,
+    /// First reconnect delay (doubles after each failure).
+    pub backoff_initial: Duration,
+    /// Largest reconnect delay.
+    pub backoff_max: Duration,
+    /// TCP connect timeout per attempt.
+    pub connect_timeout: Duration,
+    /// Hard stop after this long, if set.
+    pub max_duration: Option<Duration>,
+    /// Keep one [`TickRecord`] per device tick.
+    pub record: bool,
+    /// Capacity of the device -> network sample queue (and of the outbound stream queue).
+    pub sample_queue: usize,
+}
+
+impl BridgeConfig {
+    /// Defaults for `spec`: its rate and guard limits, 50 ms -> 1 s backoff, 500 ms connect
+    /// timeout, no hard stop, no recording, 256-sample queues.
+    pub fn new(
+        server_url: impl Into<String>,
+        session_id: impl Into<String>,
+        spec: &DeviceSpec,
+    ) -> Self {
+        Self {
+            server_url: server_url.into(),
+            session_id: session_id.into(),
+            rate_hz: spec.rate_hz,
+            guard: GuardParams::from_spec(spec),
+            backoff_initial: Duration::from_millis(50),
+            backoff_max: Duration::from_secs(1),
+            connect_timeout: Duration::from_millis(500),
+            max_duration: None,
+            record: false,
+            sample_queue: 256,
+        }
+    }
+
+    /// Checks the fields.
+    ///
+    /// # Errors
+    /// [`BridgeError::Config`] naming the field.
+    pub fn validate(&self) -> Result<(), BridgeError> {
+        let bad = |m: String| Err(BridgeError::Config(m));
+        if !(self.server_url.starts_with("http://") || self.server_url.starts_with("https://")) {
+            return bad(format!(
+                "server URL must start with http:// or https://, got `{}`",
+                self.server_url
+            ));
+        }
+        if self.session_id.is_empty() {
+            return bad("session id must not be empty".to_owned());
+        }
+        if !(self.rate_hz.is_finite() && self.rate_hz > 0.0 && self.rate_hz <= 100_000.0) {
+            return bad(format!(
+                "rate_hz must be in (0, 100000], got {}",
+                self.rate_hz
+            ));
+        }
+        let g = &self.guard;
+        if !(g.max_force_n.is_finite() && g.max_force_n >= 0.0) {
+            return bad(format!(
+                "max_force_n must be finite and >= 0, got {}",
+                g.max_force_n
+            ));
+        }
+        if g.max_rate_n_per_s.is_nan() || g.max_rate_n_per_s <= 0.0 {
+            return bad(format!(
+                "max_rate_n_per_s must be > 0, got {}",
+                g.max_rate_n_per_s
+            ));
+        }
+        if g.zero_us <= g.fresh_us {
+            return bad(format!(
+                "watchdog: zero_us ({}) must exceed fresh_us ({})",
+                g.zero_us, g.fresh_us
+            ));
+        }
+        if self.backoff_initial.is_zero() || self.backoff_max < self.backoff_initial {
+            return bad("backoff: need 0 < initial <= max".to_owned());
+        }
+        if self.sample_queue == 0 {
+            return bad("sample_queue must be >= 1".to_owned());
+        }
+        Ok(())
+    }
+}
+
+/// What can stop the bridge from running at all (link trouble is not an error: it is retried and
+/// reported in [`BridgeSummary`]).
+#[derive(Debug, Error)]
+pub enum BridgeError {
+    /// A configuration field is out of range.
+    #[error("invalid bridge configuration: {0}")]
+    Config(String),
+    /// The server URL does not parse.
+    #[error("invalid server URL `{url}`: {message}")]
+    InvalidUrl {
+        /// The URL as given.
+        url: String,
+        /// Why it was rejected.
+        message: String,
+    },
+    /// The device or its spec is unusable.
+    #[error(transparent)]
+    Device(#[from] DeviceError),
+    /// The device thread could not start or panicked.
+    #[error("device thread: {0}")]
+    Thread(String),
+}
+
+/// What happened during a run. Counts are totals over the run; times in microseconds.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct BridgeSummary {
+    /// Samples handed to the gRPC stream.
+    pub samples_sent: u64,
+    /// Samples dropped because a queue was full (device -> network, or the outbound stream).
+    pub samples_dropped: u64,
+    /// `ForceCommand`s received.
+    pub forces_received: u64,
+    /// Forces whose `seq` matched no recently sent sample.
+    pub unmatched_forces: u64,
+    /// Median pose-to-force round trip, in us (`None` without matched forces).
+    pub rtt_p50_us: Option<u64>,
+    /// 99th percentile round trip, in us.
+    pub rtt_p99_us: Option<u64>,
+    /// Largest round trip, in us.
+    pub rtt_max_us: Option<u64>,
+    /// Largest force magnitude written to the device, in N.
+    pub peak_force_n: f64,
+    /// Largest distance travelled from the start along the press direction, in m (scripted
+    /// drivers; 0 otherwise).
+    pub max_depth_m: f64,
+    /// Received forces flagged `in_contact`.
+    pub contact_samples: u64,
+    /// Commands clamped to the peak force (S6).
+    pub clamped: u64,
+    /// Ticks on which the slew limit acted (S7).
+    pub rate_limited: u64,
+    /// Non-finite commands rejected (S11).
+    pub rejected_nan: u64,
+    /// Entries into the stale-command ramp (S4).
+    pub watchdog_ramps: u64,
+    /// Entries into the expired state (command older than the ramp).
+    pub watchdog_expired: u64,
+    /// Ticks zeroed because the position was outside the workspace (S11).
+    pub workspace_violations: u64,
+    /// Streams that reached the server (response headers received).
+    pub streams_opened: u64,
+    /// Streams opened after an earlier attempt failed or a stream was lost.
+    pub reconnects: u64,
+    /// Connection attempts or streams that failed.
+    pub link_failures: u64,
+    /// The last link failure, if any.
+    pub last_link_error: Option<String>,
+    /// Device ticks run.
+    pub ticks: u64,
+    /// Ticks whose work overran the next deadline (missed deadlines are skipped, not caught up).
+    pub overruns: u64,
+    /// Failed device reads or writes.
+    pub device_errors: u64,
+    /// Why the device loop gave up, if it did.
+    pub device_fault: Option<String>,
+    /// Last force written to the device, in N (zero after a clean stop).
+    pub final_force_n: [f64; 3],
+    /// Wall time of the device loop, in s.
+    pub duration_s: f64,
+}
+
+impl BridgeSummary {
+    /// True when at least one stream reached the server.
+    pub fn connected(&self) -> bool {
+        self.streams_opened > 0
+    }
+}
+
+fn opt_us(v: Option<u64>) -> String {
+    v.map_or_else(|| "-".to_owned(), |v| v.to_string())
+}
+
+impl fmt::Display for BridgeSummary {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(
+            f,
+            "samples sent: {} (dropped {})",
+            self.samples_sent, self.samples_dropped
+        )?;
+        writeln!(
+            f,
+            "forces received: {} (unmatched {})",
+            self.forces_received, self.unmatched_forces
+        )?;
+        writeln!(
+            f,
+            "round trip p50/p99: {}/{} us",
+            opt_us(self.rtt_p50_us),
+            opt_us(self.rtt_p99_us)
+        )?;
+        writeln!(f, "round trip max: {} us", opt_us(self.rtt_max_us))?;
+        writeln!(f, "peak force: {:.3} N", self.peak_force_n)?;
+        writeln!(f, "max depth: {:.3} mm", self.max_depth_m * 1e3)?;
+        writeln!(f, "contact samples: {}", self.contact_samples)?;
+        writeln!(
+            f,
+            "guard: clamped {}, rate limited {}, rejected NaN {}, watchdog ramps {}, expired {}, outside workspace {}",
+            self.clamped,
+            self.rate_limited,
+            self.rejected_nan,
+            self.watchdog_ramps,
+            self.watchdog_expired,
+            self.workspace_violations
+        )?;
+        writeln!(
+            f,
+            "link: streams opened {}, reconnects {}, failures {}{}",
+            self.streams_opened,
+            self.reconnects,
+            self.link_failures,
+            self.last_link_error
+                .as_ref()
+                .map_or_else(String::new, |e| format!(" (last: {e})"))
+        )?;
+        writeln!(
+            f,
+            "device: ticks {}, overruns {}, errors {}, {:.3} s{}",
+            self.ticks,
+            self.overruns,
+            self.device_errors,
+            self.duration_s,
+            self.device_fault
+                .as_ref()
+                .map_or_else(String::new, |e| format!(", fault: {e}"))
+        )?;
+        let [x, y, z] = self.final_force_n;
+        write!(f, "final force: [{x:.3}, {y:.3}, {z:.3}] N")
+    }
+}
+
+/// The result of [`run`]: the summary and, when recording, one row per device tick.
+#[derive(Debug, Clone, Default)]
+pub struct BridgeReport {
+    /// Totals of the run.
+    pub summary: BridgeSummary,
+    /// Per-tick rows (empty unless [`BridgeConfig::record`]).
+    pub ticks: Vec<TickRecord>,
+}
+
+/// The latest force command, as handed from the network task to the device thread.
+#[derive(Debug, Clone, Copy)]
+struct ReceivedForce {
+    generation: u64,
+    force_n: [f64; 3],
+    in_contact: bool,
+    received_us: u64,
+    rtt_us: Option<u64>,
+}
+
+/// The latest-value slot between the network task (writer) and the device thread (reader).
+#[derive(Debug, Default)]
+struct ForceSlot {
+    /// A stream is open; false makes the guard output zero.
+    link_up: bool,
+    latest: Option<ReceivedForce>,
+}
+
+#[derive(Debug, Default)]
+struct Shared {
+    slot: Mutex<ForceSlot>,
+    /// Set by the network side to stop the device thread (shutdown).
+    stop: AtomicBool,
+}
+
+impl Shared {
+    fn slot(&self) -> std::sync::MutexGuard<'_, ForceSlot> {
+        // A panic elsewhere must not stop the device loop from commanding zero.
+        self.slot.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    fn set_link(&self, up: bool) {
+        let mut s = self.slot();
+        s.link_up = up;
+        s.latest = None;
+    }
+}
+
+/// One device sample on its way to the network task.
+#[derive(Debug, Clone, Copy)]
+struct OutSample {
+    seq: u64,
+    state: DeviceState,
+}
+
+#[derive(Debug, Default)]
+struct DeviceLoopStats {
+    ticks: u64,
+    overruns: u64,
+    samples_dropped: u64,
+    peak_force_n: f64,
+    max_depth_m: f64,
+    final_force_n: [f64; 3],
+    guard: GuardStats,
+    device_errors: u64,
+    device_fault: Option<String>,
+    duration_s: f64,
+    records: Vec<TickRecord>,
+}
+
+/// The device thread: one tick per period at absolute deadlines until the device finishes, the
+/// hard stop passes, or `shared.stop` is set. Writes zero and calls `safe_stop` on the way out.
+/// Nothing in the tick allocates (except growing a full recording buffer), logs or awaits.
+fn device_loop(
+    mut device: Box<dyn HapticDevice>,
+    clock: Arc<dyn Clock>,
+    shared: Arc<Shared>,
+    samples: mpsc::Sender<OutSample>,
+    config: &BridgeConfig,
+) -> DeviceLoopStats {
+    let spec = device.spec().clone();
+    let period_us = ((1e6 / config.rate_hz).round() as u64).max(1);
+    let mut guard = ForceGuard::new(config.guard);
+    let axis = device.press_axis();
+    let mut st = DeviceLoopStats::default();
+    if config.record {
+        st.records
+            .reserve((RECORD_RESERVE_S * config.rate_hz) as usize);
+    }
+    let start_us = clock.now_us();
+    let stop_at_us = config
+        .max_duration
+        .map(|d| start_us.saturating_add(u64::try_from(d.as_micros()).unwrap_or(u64::MAX)));
+    let mut deadline_us = start_us;
+    let mut seq = 0_u64;
+    let mut failing_since_us: Option<u64> = None;
+    loop {
+        let now = clock.now_us();
+        if shared.stop.load(Ordering::Acquire)
+            || device.finished(now)
+            || stop_at_us.is_some_and(|t| now >= t)
+        {
+            break;
+        }
+        st.ticks += 1;
+        match device.read(now) {
+            Ok(state) => {
+                failing_since_us = None;
+                seq += 1;
+                if let Err(mpsc::error::TrySendError::Full(_)) =
+                    samples.try_send(OutSample { seq, state })
+                {
+                    st.samples_dropped += 1;
+                }
+                let (link_up, latest) = {
+                    let s = shared.slot();
+                    (s.link_up, s.latest)
+                };
+                let cmd = latest.map(|r| GuardCommand {
+                    generation: r.generation,
+                    force_n: r.force_n,
+                    received_us: r.received_us,
+                });
+                let f = guard.filter(now, link_up, cmd.as_ref(), state.position_m, &spec);
+                if device.write_force(f).is_err() {
+                    st.device_errors += 1;
+                }
+                st.final_force_n = f;
+                st.peak_force_n = st.peak_force_n.max(vec3::norm(f));
+                if let Some(a) = axis {
+                    let d = vec3::dot(vec3::sub(state.position_m, a.start_m), a.direction);
+                    st.max_depth_m = st.max_depth_m.max(d);
+                }
+                if config.record {
+                    let in_use = matches!(guard.state(), GuardState::Fresh | GuardState::Ramp);
+                    let used = latest.filter(|_| in_use);
+                    st.records.push(TickRecord {
+                        t_s: now.saturating_sub(start_us) as f64 * 1e-6,
+                        position_m: state.position_m,
+                        force_n: f,
+                        in_contact: used.is_some_and(|r| r.in_contact),
+                        rtt_us: used.and_then(|r| r.rtt_us),
+                    });
+                }
+            }
+            Err(e) => {
+                // devices.md S2: never trust a stale pose; zero now, give up after 20 ms.
+                st.device_errors += 1;
+                guard.reset();
+                let _ = device.write_force([0.0; 3]);
+                st.final_force_n = [0.0; 3];
+                let since = *failing_since_us.get_or_insert(now);
+                if now.saturating_sub(since) >= DEVICE_FAULT_US {
+                    st.device_fault = Some(e.to_string());
+                    break;
+                }
+            }
+        }
+        deadline_us += period_us;
+        let after = clock.now_us();
+        if after > deadline_us {
+            // Overrun: skip the missed deadlines instead of bursting to catch up.
+            st.overruns += 1;
+            deadline_us += ((after - deadline_us) / period_us + 1) * period_us;
+        }
+        clock.sleep_until_us(deadline_us);
+    }
+    if device.write_force([0.0; 3]).is_err() {
+        st.device_errors += 1;
+    }
+    device.safe_stop();
+    st.final_force_n = [0.0; 3];
+    st.guard = guard.stats();
+    st.duration_s = clock.now_us().saturating_sub(start_us) as f64 * 1e-6;
+    st
+}
+
+/// Network-side state and counters.
+struct NetCtx {
+    clock: Arc<dyn Clock>,
+    shared: Arc<Shared>,
+    /// `seq -> device_time_us` of recently sent samples, indexed by `seq % RTT_RING`.
+    sent: Vec<(u64, u64)>,
+    rtt_us: Histogram<u64>,
+    generation: u64,
+    samples_sent: u64,
+    samples_dropped: u64,
+    forces_received: u64,
+    unmatched_forces: u64,
+    contact_samples: u64,
+    streams_opened: u64,
+    reconnects: u64,
+    link_failures: u64,
+    attempts: u64,
+    last_link_error: Option<String>,
+}
+
+fn to_proto(s: &OutSample) -> DeviceSample {
+    DeviceSample {
+        session_id: String::new(),
+        seq: s.seq,
+        device_time_us: s.state.time_us,
+        position_m: Some(s.state.position_m.into()),
+        velocity_m_per_s: Some(s.state.velocity_m_per_s.into()),
+    }
+}
+
+impl NetCtx {
+    fn forward(&mut self, out: &mpsc::Sender<DeviceSample>, msg: DeviceSample) {
+        self.sent[(msg.seq % RTT_RING as u64) as usize] = (msg.seq, msg.device_time_us);
+        match out.try_send(msg) {
+            Ok(()) => self.samples_sent += 1,
+            Err(_) => self.samples_dropped += 1,
+        }
+    }
+
+    fn on_force(&mut self, cmd: &ForceCommand) {
+        let now = self.clock.now_us();
+        self.forces_received += 1;
+        let (seq, sent_us) = self.sent[(cmd.seq % RTT_RING as u64) as usize];
+        let rtt_us = if seq == cmd.seq {
+            let rtt = now.saturating_sub(sent_us);
+            self.rtt_us.saturating_record(rtt.max(1));
+            Some(rtt)
+        } else {
+            self.unmatched_forces += 1;
+            None
+        };
+        self.contact_samples += u64::from(cmd.in_contact);
+        self.generation += 1;
+        // proto3: an absent vector is the zero vector. Non-finite values pass on to the guard,
+        // which rejects and counts them.
+        let force_n = cmd.force_n.as_ref().map_or([0.0; 3], |v| v.to_array());
+        let mut s = self.shared.slot();
+        if s.link_up {
+            s.latest = Some(ReceivedForce {
+                generation: self.generation,
+                force_n,
+                in_contact: cmd.in_contact,
+                received_us: now,
+                rtt_us,
+            });
+        }
+    }
+}
+
+/// How one stream ended.
+enum StreamEnd {
+    /// The device finished (its sample queue closed).
+    Finished,
+    /// The shutdown signal fired.
+    Shutdown,
+    /// Connecting or streaming failed; retry.
+    Failed(String),
+}
+
+/// Resolves once `true` is sent on `shutdown`; never if the sender is gone without sending it.
+async fn wait_shutdown(shutdown: &mut watch::Receiver<bool>) {
+    loop {
+        if *shutdown.borrow_and_update() {
+            return;
+        }
+        if shutdown.changed().await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    }
+}
+
+async fn run_stream(
+    endpoint: &Endpoint,
+    config: &BridgeConfig,
+    first: OutSample,
+    samples: &mut mpsc::Receiver<OutSample>,
+    shutdown: &mut watch::Receiver<bool>,
+    ctx: &mut NetCtx,
+) -> StreamEnd {
+    ctx.attempts += 1;
+    let channel = tokio::select! {
+        biased;
+        _ = wait_shutdown(shutdown) => return StreamEnd::Shutdown,
+        c = endpoint.connect() => match c {
+            Ok(c) => c,
+            Err(e) => return StreamEnd::Failed(format!("connect to {}: {e}", config.server_url)),
+        },
+    };
+    let mut client = DeviceLinkClient::new(channel);
+    let (out_tx, out_rx) = mpsc::channel::<DeviceSample>(config.sample_queue);
+    let mut first_msg = to_proto(&first);
+    first_msg.session_id.clone_from(&config.session_id);
+    ctx.forward(&out_tx, first_msg);
+    let call = client.connect(ReceiverStream::new(out_rx));
+    tokio::pin!(call);
+    // Keep feeding samples while waiting for response headers: a server may wait for the first
+    // message (it carries the session id) before answering.
+    let mut inbound = loop {
+        tokio::select! {
+            biased;
+            _ = wait_shutdown(shutdown) => return StreamEnd::Shutdown,
+            r = &mut call => match r {
+                Ok(resp) => break resp.into_inner(),
+                Err(status) => return StreamEnd::Failed(format!("Connect rejected: {status}")),
+            },
+            s = samples.recv() => match s {
+                Some(s) => ctx.forward(&out_tx, to_proto(&s)),
+                None => return StreamEnd::Finished,
+            },
+        }
+    };
+    ctx.streams_opened += 1;
+    if ctx.attempts > 1 {
+        ctx.reconnects += 1;
+    }
+    ctx.shared.set_link(true);
+    info!(url = %config.server_url, session = %config.session_id, "DeviceLink stream open");
+    let end = loop {
+        tokio::select! {
+            biased;
+            _ = wait_shutdown(shutdown) => break StreamEnd::Shutdown,
+            m = inbound.message() => match m {
+                Ok(Some(cmd)) => ctx.on_force(&cmd),
+                Ok(None) => break StreamEnd::Failed("server closed the stream".to_owned()),
+                Err(status) => break StreamEnd::Failed(format!("stream error: {status}")),
+            },
+            s = samples.recv() => match s {
+                Some(s) => ctx.forward(&out_tx, to_proto(&s)),
+                None => break StreamEnd::Finished,
+            },
+        }
+    };
+    ctx.shared.set_link(false);
+    if matches!(end, StreamEnd::Finished | StreamEnd::Shutdown) {
+        // Close our half and collect the answers still in flight, briefly.
+        drop(out_tx);
+        let _ = tokio::time::timeout(CLOSE_GRACE, async {
+            while let Ok(Some(cmd)) = inbound.message().await {
+                ctx.on_force(&cmd);
+            }
+        })
+        .await;
+    }
+    end
+}
+
+async fn network_loop(
+    endpoint: Endpoint,
+    config: &BridgeConfig,
+    mut samples: mpsc::Receiver<OutSample>,
+    mut shutdown: watch::Receiver<bool>,
+    ctx: &mut NetCtx,
+) {
+    let mut backoff = config.backoff_initial;
+    loop {
+        // Every stream starts with a fresh sample, which carries the session id.
+        let first = tokio::select! {
+            biased;
+            _ = wait_shutdown(&mut shutdown) => return,
+            s = samples.recv() => match s {
+                Some(s) => s,
+                None => return,
+            },
+        };
+        let opened_before = ctx.streams_opened;
+        match run_stream(&endpoint, config, first, &mut samples, &mut shutdown, ctx).await {
+            StreamEnd::Finished | StreamEnd::Shutdown => return,
+            StreamEnd::Failed(msg) => {
+                ctx.link_failures += 1;
+                if ctx.streams_opened > opened_before {
+                    backoff = config.backoff_initial;
+                }
+                warn!(error = %msg, retry_in_ms = backoff.as_millis() as u64, "DeviceLink down; zero force");
+                ctx.last_link_error = Some(msg);
+            }
+        }
+        // Back off, discarding samples (force is zero meanwhile) but noticing the end.
+        let sleep = tokio::time::sleep(backoff);
+        tokio::pin!(sleep);
+        loop {
+            tokio::select! {
+                biased;
+                _ = wait_shutdown(&mut shutdown) => return,
+                _ = &mut sleep => break,
+                s = samples.recv() => if s.is_none() { return },
+            }
+        }
+        backoff = (backoff * 2).min(config.backoff_max);
+    }
+}
+
+/// Runs the bridge until the device finishes, `config.max_duration` passes, or `true` is sent
+/// on `shutdown`: streams the device's samples to `DeviceLink.Connect` at `config.server_url`,
+/// renders the guarded forces it answers, reconnects with backoff when the link fails, and ends
+/// with zero force and `safe_stop`.
+///
+/// `clock` times the device loop, the guard and the round trips; pass a
+/// [`crate::clock::MonotonicClock`] for real runs. Never connecting is not an error: check
+/// [`BridgeSummary::connected`].
+///
+/// # Errors
+/// [`BridgeError::Config`] / [`BridgeError::InvalidUrl`] / [`BridgeError::Device`] before
+/// anything starts; [`BridgeError::Thread`] if the device thread cannot start or panics.
+pub async fn run(
+    device: Box<dyn HapticDevice>,
+    clock: Arc<dyn Clock>,
+    config: BridgeConfig,
+    shutdown: watch::Receiver<bool>,
+) -> Result<BridgeReport, BridgeError> {
+    config.validate()?;
+    device.spec().validate()?;
+    let endpoint = Endpoint::from_shared(config.server_url.clone())
+        .map_err(|e| BridgeError::InvalidUrl {
+            url: config.server_url.clone(),
+            message: e.to_string(),
+        })?
+        .tcp_nodelay(true)
+        .connect_timeout(config.connect_timeout);
+    let config = Arc::new(config);
+    let shared = Arc::new(Shared::default());
+    let (sample_tx, sample_rx) = mpsc::channel(config.sample_queue);
+    let handle = {
+        let (clock, shared, config) = (clock.clone(), shared.clone(), config.clone());
+        std::thread::Builder::new()
+            .name("bridge-device".to_owned())
+            .spawn(move || device_loop(device, clock, shared, sample_tx, &config))
+            .map_err(|e| BridgeError::Thread(format!("cannot start: {e}")))?
+    };
+    let mut ctx = NetCtx {
+        clock,
+        shared: shared.clone(),
+        sent: vec![(u64::MAX, 0); RTT_RING],
+        rtt_us: Histogram::new_with_bounds(1, 60_000_000, 3)
+            .map_err(|e| BridgeError::Config(format!("histogram: {e}")))?,
+        generation: 0,
+        samples_sent: 0,
+        samples_dropped: 0,
+        forces_received: 0,
+        unmatched_forces: 0,
+        contact_samples: 0,
+        streams_opened: 0,
+        reconnects: 0,
+        link_failures: 0,
+        attempts: 0,
+        last_link_error: None,
+    };
+    network_loop(endpoint, &config, sample_rx, shutdown, &mut ctx).await;
+    shared.stop.store(true, Ordering::Release);
+    shared.set_link(false);
+    let dev = tokio::task::spawn_blocking(move || handle.join())
+        .await
+        .map_err(|e| BridgeError::Thread(e.to_string()))?
+        .map_err(|_| BridgeError::Thread("device thread panicked".to_owned()))?;
+    let h = &ctx.rtt_us;
+    let rtt = |q: f64| (!h.is_empty()).then(|| h.value_at_quantile(q));
+    let summary = BridgeSummary {
+        samples_sent: ctx.samples_sent,
+        samples_dropped: ctx.samples_dropped + dev.samples_dropped,
+        forces_received: ctx.forces_received,
+        unmatched_forces: ctx.unmatched_forces,
+        rtt_p50_us: rtt(0.5),
+        rtt_p99_us: rtt(0.99),
+        rtt_max_us: (!h.is_empty()).then(|| h.max()),
+        peak_force_n: dev.peak_force_n,
+        max_depth_m: dev.max_depth_m,
+        contact_samples: ctx.contact_samples,
+        clamped: dev.guard.clamped,
+        rate_limited: dev.guard.rate_limited,
+        rejected_nan: dev.guard.rejected_nan,
+        watchdog_ramps: dev.guard.watchdog_ramps,
+        watchdog_expired: dev.guard.watchdog_expired,
+        workspace_violations: dev.guard.workspace_violations,
+        streams_opened: ctx.streams_opened,
+        reconnects: ctx.reconnects,
+        link_failures: ctx.link_failures,
+        last_link_error: ctx.last_link_error.clone(),
+        ticks: dev.ticks,
+        overruns: dev.overruns,
+        device_errors: dev.device_errors,
+        device_fault: dev.device_fault.clone(),
+        final_force_n: dev.final_force_n,
+        duration_s: dev.duration_s,
+    };
+    info!(
+        ticks = summary.ticks,
+        forces = summary.forces_received,
+        "bridge finished"
+    );
+    Ok(BridgeReport {
+        summary,
+        ticks: dev.records,
+    })
+}
