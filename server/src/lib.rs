@@ -1,1 +1,62 @@
-//! placeholder
+//! # haptic-server: the `hapticd` daemon as a library
+//!
+//! [`run`] serves the `haptics.v1` services (plus gRPC health and reflection) on a listener it
+//! is given, until a shutdown future resolves; then it stops every session (each servo thread
+//! commands zero force and is joined) and the streams end.
+//!
+//! Modules: [`config`] (layered configuration), [`error`] (the one mapping to `tonic::Status`),
+//! [`servo`] (the 1 kHz loop), [`session`] (threads and handoffs per session), [`service`]
+//! (gRPC handlers).
+
+pub mod config;
+pub mod error;
+pub mod service;
+pub mod servo;
+pub mod session;
+
+use std::future::Future;
+use std::sync::Arc;
+
+use haptics_proto::v1::device_link_server::DeviceLinkServer;
+use haptics_proto::v1::session_control_server::SessionControlServer;
+use haptics_proto::v1::surface_stream_server::SurfaceStreamServer;
+use tokio::net::TcpListener;
+use tokio_stream::wrappers::TcpListenerStream;
+
+pub use config::ServerConfig;
+pub use error::ServerError;
+
+/// Serves until `shutdown` resolves, then stops all sessions and returns.
+///
+/// # Errors
+/// When the transport fails or the reflection service cannot be built.
+pub async fn run(listener: TcpListener, config: ServerConfig, shutdown: impl Future<Output = ()> + Send) -> anyhow::Result<()> {
+    let manager = Arc::new(session::SessionManager::new(config));
+    let services = service::Services::new(manager.clone());
+    let (health, health_service) = tonic_health::server::health_reporter();
+    health.set_serving::<SessionControlServer<service::Services>>().await;
+    health.set_serving::<DeviceLinkServer<service::Services>>().await;
+    health.set_serving::<SurfaceStreamServer<service::Services>>().await;
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(haptics_proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()?;
+    let stop_manager = manager.clone();
+    let result = tonic::transport::Server::builder()
+        .tcp_nodelay(true)
+        .add_service(health_service)
+        .add_service(reflection)
+        .add_service(SessionControlServer::new(services.clone()))
+        .add_service(DeviceLinkServer::new(services.clone()))
+        .add_service(SurfaceStreamServer::new(services))
+        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async move {
+            shutdown.await;
+            tracing::info!("shutting down: stopping sessions");
+            let m = stop_manager.clone();
+            let _ = tokio::task::spawn_blocking(move || m.stop_all()).await;
+        })
+        .await;
+    manager.stop_all();
+    result?;
+    Ok(())
+}

@@ -1,0 +1,140 @@
+//! Daemon configuration, layered: built-in defaults < TOML file (`deploy/hapticd.toml`) < CLI
+//! flags. The file is parsed with `deny_unknown_fields`, then validated into [`ServerConfig`].
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use crate::error::ServerError;
+
+/// Servo-thread settings.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ServoConfig {
+    /// Ask for SCHED_FIFO for servo threads (falls back with a warning when not permitted).
+    pub realtime: bool,
+    /// SCHED_FIFO priority, 1..=99.
+    pub priority: u8,
+    /// Lock the process memory (`mlockall`) so page faults cannot stall the loop.
+    pub mlockall: bool,
+    /// Pin servo threads to this CPU index (none: let the OS choose).
+    pub cpu: Option<usize>,
+    /// Publish a surface snapshot for viewers every this many ticks (16 -> 62.5 Hz at 1 kHz).
+    pub snapshot_every_ticks: u32,
+    /// Publish statistics for `GetStats` every this many ticks.
+    pub stats_every_ticks: u32,
+}
+
+impl Default for ServoConfig {
+    fn default() -> Self {
+        Self { realtime: false, priority: 80, mlockall: false, cpu: None, snapshot_every_ticks: 16, stats_every_ticks: 100 }
+    }
+}
+
+/// The daemon's configuration file, as written.
+#[derive(Debug, Clone, PartialEq, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct ConfigFile {
+    /// Listen address, e.g. `127.0.0.1:50051`.
+    pub listen: Option<String>,
+    /// Largest number of concurrent sessions.
+    pub max_sessions: Option<usize>,
+    /// Directory that relative mesh paths in client-supplied scene text resolve against.
+    pub scene_dir: Option<PathBuf>,
+    /// Log format: `text` or `json`.
+    pub log_format: Option<String>,
+    /// Servo settings.
+    pub servo: ServoConfig,
+}
+
+/// Log output format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LogFormat {
+    /// Human-readable lines.
+    Text,
+    /// One JSON object per line.
+    Json,
+}
+
+/// Validated daemon configuration.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ServerConfig {
+    /// Listen address.
+    pub listen: SocketAddr,
+    /// Largest number of concurrent sessions.
+    pub max_sessions: usize,
+    /// Base directory for relative mesh paths in scene text.
+    pub scene_dir: PathBuf,
+    /// Log format.
+    pub log_format: LogFormat,
+    /// Servo settings.
+    pub servo: ServoConfig,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        Self {
+            listen: "127.0.0.1:50051".parse().expect("literal address"),
+            max_sessions: 8,
+            scene_dir: PathBuf::from("."),
+            log_format: LogFormat::Text,
+            servo: ServoConfig::default(),
+        }
+    }
+}
+
+impl ConfigFile {
+    /// Parses configuration text.
+    ///
+    /// # Errors
+    /// [`ServerError::Config`] with the TOML error (location and unknown field names).
+    pub fn parse(text: &str) -> Result<Self, ServerError> {
+        toml::from_str(text).map_err(|e| ServerError::Config(e.to_string()))
+    }
+
+    /// Reads and parses a configuration file.
+    ///
+    /// # Errors
+    /// [`ServerError::Config`] when the file cannot be read or parsed.
+    pub fn load(path: &Path) -> Result<Self, ServerError> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| ServerError::Config(format!("reading {}: {e}", path.display())))?;
+        Self::parse(&text).map_err(|e| ServerError::Config(format!("{}: {e}", path.display())))
+    }
+
+    /// Validates the file over the defaults.
+    ///
+    /// # Errors
+    /// [`ServerError::Config`] naming the bad field.
+    pub fn into_config(self) -> Result<ServerConfig, ServerError> {
+        let mut c = ServerConfig::default();
+        if let Some(l) = self.listen {
+            c.listen = l.parse().map_err(|e| ServerError::Config(format!("listen = {l:?}: {e}")))?;
+        }
+        if let Some(m) = self.max_sessions {
+            if m == 0 {
+                return Err(ServerError::Config("max_sessions must be at least 1".into()));
+            }
+            c.max_sessions = m;
+        }
+        if let Some(d) = self.scene_dir {
+            c.scene_dir = d;
+        }
+        if let Some(f) = self.log_format {
+            c.log_format = match f.as_str() {
+                "text" => LogFormat::Text,
+                "json" => LogFormat::Json,
+                other => return Err(ServerError::Config(format!("log_format = {other:?}: expected \"text\" or \"json\""))),
+            };
+        }
+        if !(1..=99).contains(&self.servo.priority) {
+            return Err(ServerError::Config(format!("servo.priority = {}: expected 1..=99", self.servo.priority)));
+        }
+        if self.servo.snapshot_every_ticks == 0 || self.servo.stats_every_ticks == 0 {
+            return Err(ServerError::Config("servo.snapshot_every_ticks and servo.stats_every_ticks must be >= 1".into()));
+        }
+        c.servo = self.servo;
+        Ok(c)
+    }
+}

@@ -1,0 +1,48 @@
+//! The server's error type and its one mapping to `tonic::Status`.
+
+use haptic_model::ModelError;
+use thiserror::Error;
+use tonic::Status;
+
+/// Everything a request or the daemon can fail with.
+#[derive(Debug, Error)]
+pub enum ServerError {
+    /// The configuration file or flags are wrong.
+    #[error("configuration: {0}")]
+    Config(String),
+    /// A request names a session that does not exist.
+    #[error("no session `{0}`")]
+    UnknownSession(String),
+    /// A request carries a bad value (NaN, out of range, missing field).
+    #[error("{0}")]
+    InvalidArgument(String),
+    /// The scene could not be loaded or simulated.
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    /// A limit was reached (sessions, queued commands).
+    #[error("{0}")]
+    Exhausted(String),
+    /// The session cannot take this request in its current state (faulted, device already
+    /// connected).
+    #[error("{0}")]
+    FailedPrecondition(String),
+    /// Unexpected internal failure.
+    #[error("internal: {0}")]
+    Internal(String),
+}
+
+impl From<ServerError> for Status {
+    fn from(e: ServerError) -> Self {
+        let msg = e.to_string();
+        match e {
+            ServerError::UnknownSession(_) => Status::not_found(msg),
+            ServerError::InvalidArgument(_) | ServerError::Config(_) => Status::invalid_argument(msg),
+            ServerError::Model(ModelError::NoConvergence(_)) => Status::internal(msg),
+            ServerError::Model(ModelError::Io { .. }) => Status::invalid_argument(msg),
+            ServerError::Model(_) => Status::invalid_argument(msg),
+            ServerError::Exhausted(_) => Status::resource_exhausted(msg),
+            ServerError::FailedPrecondition(_) => Status::failed_precondition(msg),
+            ServerError::Internal(_) => Status::internal(msg),
+        }
+    }
+}

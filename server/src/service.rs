@@ -1,0 +1,272 @@
+//! The gRPC services of `haptics.v1`: SessionControl, DeviceLink and SurfaceStream.
+//! Every handler validates its input first; errors go through the one
+//! `From<ServerError> for Status` mapping.
+
+use std::pin::Pin;
+use std::sync::Arc;
+use std::time::Duration;
+
+use haptic_model::sim::{self, MAX_DEVICE_DISTANCE_M};
+use haptic_model::DVec3;
+use haptics_proto::v1::device_link_server::DeviceLink;
+use haptics_proto::v1::session_control_server::SessionControl;
+use haptics_proto::v1::surface_stream_server::SurfaceStream;
+use haptics_proto::v1::*;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tokio_stream::{Stream, StreamExt};
+use tonic::{Request, Response, Status, Streaming};
+
+use crate::error::ServerError;
+use crate::servo::{Command, Pose};
+use crate::session::{unix_time_us, SessionManager};
+
+/// Largest accepted device speed, m/s (a haptic arm moves well below 5 m/s).
+pub const MAX_DEVICE_SPEED_M_PER_S: f64 = 20.0;
+/// Default and largest viewer frame rates, Hz.
+pub const DEFAULT_VIEWER_RATE_HZ: f64 = 30.0;
+/// Largest viewer frame rate, Hz.
+pub const MAX_VIEWER_RATE_HZ: f64 = 120.0;
+
+/// Shared handler state.
+#[derive(Clone)]
+pub struct Services {
+    manager: Arc<SessionManager>,
+}
+
+impl Services {
+    /// Handlers over `manager`.
+    pub fn new(manager: Arc<SessionManager>) -> Self {
+        Self { manager }
+    }
+}
+
+fn vec3(v: &Option<Vec3>, field: &str) -> Result<DVec3, ServerError> {
+    let v = v.as_ref().ok_or_else(|| ServerError::InvalidArgument(format!("{field} is missing")))?;
+    if !v.is_finite() {
+        return Err(ServerError::InvalidArgument(format!("{field} has a non-finite component ({}, {}, {})", v.x, v.y, v.z)));
+    }
+    Ok(DVec3::new(v.x, v.y, v.z))
+}
+
+/// Checks a device sample; `Ok(None)` when it carries no position.
+fn validate_sample(s: &DeviceSample) -> Result<(DVec3, DVec3), &'static str> {
+    let p = s.position_m.as_ref().ok_or("position_m missing")?;
+    if !p.is_finite() {
+        return Err("position_m not finite");
+    }
+    let p = DVec3::new(p.x, p.y, p.z);
+    if p.abs().max_element() > MAX_DEVICE_DISTANCE_M {
+        return Err("position_m absurdly far");
+    }
+    let v = match &s.velocity_m_per_s {
+        Some(v) if !v.is_finite() => return Err("velocity not finite"),
+        Some(v) => DVec3::new(v.x, v.y, v.z),
+        None => DVec3::ZERO,
+    };
+    if v.length() > MAX_DEVICE_SPEED_M_PER_S {
+        return Err("velocity absurd");
+    }
+    Ok((p, v))
+}
+
+#[tonic::async_trait]
+impl SessionControl for Services {
+    async fn list_scenes(&self, _: Request<ListScenesRequest>) -> Result<Response<ListScenesResponse>, Status> {
+        let scenes = tokio::task::spawn_blocking(|| {
+            haptic_model::scene::builtin_scene_names()
+                .iter()
+                .map(|(name, description)| {
+                    let (nodes, tets) = haptic_model::scene::load_builtin(name)
+                        .map(|s| (s.mesh.node_count() as u32, s.mesh.tet_count() as u32))
+                        .unwrap_or((0, 0));
+                    SceneInfo { name: name.to_string(), description: description.to_string(), nodes, tetrahedra: tets }
+                })
+                .collect::<Vec<_>>()
+        })
+        .await
+        .map_err(|e| Status::internal(e.to_string()))?;
+        Ok(Response::new(ListScenesResponse { scenes }))
+    }
+
+    async fn start_session(&self, req: Request<StartSessionRequest>) -> Result<Response<StartSessionResponse>, Status> {
+        let r = req.into_inner();
+        let manager = self.manager.clone();
+        let handle = tokio::runtime::Handle::current();
+        let session = tokio::task::spawn_blocking(move || {
+            let _guard = handle.enter();
+            let scene = manager.load_scene(&r.scene, &r.scene_toml)?;
+            manager.start(&scene)
+        })
+        .await
+        .map_err(|e| Status::internal(e.to_string()))??;
+        tracing::info!(session = %session.id, scene = %session.scene, nodes = session.nodes, tets = session.tetrahedra,
+            substeps = session.substeps, critical_dt_s = session.critical_dt_s, "session started");
+        Ok(Response::new(StartSessionResponse {
+            session_id: session.id.clone(),
+            nodes: session.nodes,
+            tetrahedra: session.tetrahedra,
+            substeps: session.substeps,
+            critical_dt_s: session.critical_dt_s,
+        }))
+    }
+
+    async fn stop_session(&self, req: Request<StopSessionRequest>) -> Result<Response<StopSessionResponse>, Status> {
+        let id = req.into_inner().session_id;
+        let manager = self.manager.clone();
+        let id2 = id.clone();
+        tokio::task::spawn_blocking(move || manager.stop(&id2)).await.map_err(|e| Status::internal(e.to_string()))??;
+        tracing::info!(session = %id, "session stopped");
+        Ok(Response::new(StopSessionResponse {}))
+    }
+
+    async fn apply_force(&self, req: Request<ApplyForceRequest>) -> Result<Response<ApplyForceResponse>, Status> {
+        let r = req.into_inner();
+        let point = vec3(&r.point_m, "point_m")?;
+        let force = vec3(&r.force_n, "force_n")?;
+        sim::validate_point_load(point, force, r.duration_s).map_err(ServerError::from)?;
+        let session = self.manager.get(&r.session_id)?;
+        if let Some(fault) = session.stats().fault {
+            return Err(ServerError::FailedPrecondition(format!("session is quarantined: {fault}")).into());
+        }
+        session.send(Command::ApplyForce { point_m: point, force_n: force, duration_s: r.duration_s })?;
+        Ok(Response::new(ApplyForceResponse {}))
+    }
+
+    async fn get_stats(&self, req: Request<GetStatsRequest>) -> Result<Response<SessionStats>, Status> {
+        let id = req.into_inner().session_id;
+        let s = self.manager.get(&id)?;
+        let st = s.stats();
+        Ok(Response::new(SessionStats {
+            session_id: id,
+            loop_rate_hz: st.loop_rate_hz,
+            step_p50_us: st.step_p50_us,
+            step_p99_us: st.step_p99_us,
+            step_max_us: st.step_max_us,
+            overruns: st.overruns,
+            steps: st.steps,
+            pose_to_force_p50_us: st.pose_to_force_p50_us,
+            pose_to_force_p99_us: st.pose_to_force_p99_us,
+            rejected_samples: s.shared.rejected_samples.load(std::sync::atomic::Ordering::Relaxed),
+            sim_time_s: st.sim_time_s,
+            substeps: s.substeps,
+            in_contact: st.in_contact,
+            peak_force_n: st.peak_force_n,
+            max_displacement_m: st.max_displacement_m,
+            faulted: st.fault.is_some(),
+            fault: st.fault.unwrap_or("").to_string(),
+            device_samples: st.device_samples,
+            scene: s.scene.clone(),
+            nodes: s.nodes,
+            tetrahedra: s.tetrahedra,
+        }))
+    }
+
+    async fn list_sessions(&self, _: Request<ListSessionsRequest>) -> Result<Response<ListSessionsResponse>, Status> {
+        Ok(Response::new(ListSessionsResponse { session_ids: self.manager.ids() }))
+    }
+}
+
+type ForceStream = Pin<Box<dyn Stream<Item = Result<ForceCommand, Status>> + Send>>;
+type FrameStream = Pin<Box<dyn Stream<Item = Result<SurfaceFrame, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl DeviceLink for Services {
+    type ConnectStream = ForceStream;
+
+    async fn connect(&self, req: Request<Streaming<DeviceSample>>) -> Result<Response<Self::ConnectStream>, Status> {
+        let mut inbound = req.into_inner();
+        let first = inbound
+            .message()
+            .await?
+            .ok_or_else(|| Status::invalid_argument("the device stream ended before its first sample"))?;
+        if first.session_id.is_empty() {
+            return Err(Status::invalid_argument("the first DeviceSample must carry session_id"));
+        }
+        let session = self.manager.get(&first.session_id)?;
+        let (tx, rx) = mpsc::channel(256);
+        let mut pose_in = session.attach_device(tx)?;
+        tracing::info!(session = %session.id, "device connected");
+        tokio::spawn(async move {
+            let mut next = Some(first);
+            loop {
+                let sample = match next.take() {
+                    Some(s) => s,
+                    None => match inbound.next().await {
+                        Some(Ok(s)) => s,
+                        _ => break,
+                    },
+                };
+                if !sample.session_id.is_empty() && sample.session_id != session.id {
+                    session.shared.rejected_samples.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    continue;
+                }
+                match validate_sample(&sample) {
+                    Ok((p, v)) => pose_in.write(Pose {
+                        seq: sample.seq,
+                        position_m: p,
+                        velocity_m_per_s: v,
+                        received_us: session.now_us(),
+                        connected: true,
+                    }),
+                    Err(_) => {
+                        session.shared.rejected_samples.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    }
+                }
+                if session.shared.stop.load(std::sync::atomic::Ordering::Acquire) {
+                    break;
+                }
+            }
+            tracing::info!(session = %session.id, "device disconnected");
+            session.detach_device(pose_in);
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(rx)) as ForceStream))
+    }
+}
+
+#[tonic::async_trait]
+impl SurfaceStream for Services {
+    type WatchStream = FrameStream;
+
+    async fn watch(&self, req: Request<WatchRequest>) -> Result<Response<Self::WatchStream>, Status> {
+        let r = req.into_inner();
+        if !r.max_rate_hz.is_finite() || r.max_rate_hz < 0.0 {
+            return Err(Status::invalid_argument(format!("max_rate_hz = {} must be a finite number >= 0", r.max_rate_hz)));
+        }
+        let rate = if r.max_rate_hz == 0.0 { DEFAULT_VIEWER_RATE_HZ } else { r.max_rate_hz.min(MAX_VIEWER_RATE_HZ) };
+        let session = self.manager.get(&r.session_id)?;
+        let (mut frames, guard) = session.watch();
+        let (tx, rx) = mpsc::channel(4);
+        tokio::spawn(async move {
+            let _guard = guard;
+            let period = Duration::from_secs_f64(1.0 / rate);
+            let mut count: u64 = 0;
+            loop {
+                if frames.changed().await.is_err() {
+                    break; // session ended
+                }
+                let Some(f) = frames.borrow_and_update().clone() else { continue };
+                let keyframe = count == 0;
+                let frame = SurfaceFrame {
+                    frame: count,
+                    sim_time_s: f.sim_time_s,
+                    keyframe,
+                    positions_m: f.positions_m.clone(),
+                    triangles: if keyframe { session.triangles.as_ref().clone() } else { Vec::new() },
+                    probe_position_m: Some(Vec3::from(f.probe_m)),
+                    contact_force_n: Some(Vec3::from(f.force_n)),
+                    in_contact: f.in_contact,
+                    probe_radius_m: session.probe_radius_m,
+                    server_time_us: unix_time_us(),
+                    max_displacement_m: f.max_displacement_m,
+                };
+                if tx.send(Ok(frame)).await.is_err() {
+                    break; // viewer went away
+                }
+                count += 1;
+                tokio::time::sleep(period).await;
+            }
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(rx)) as FrameStream))
+    }
+}

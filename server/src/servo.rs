@@ -1,0 +1,464 @@
+//! The servo loop: one OS thread per session running the model at the servo rate (1 kHz).
+//!
+//! A tick has a fixed shape (STYLE.md habit 6): wait for the absolute deadline, drain commands
+//! (SPSC ring, wait-free), read the latest device pose (triple buffer, wait-free), step the
+//! model, guard the force, push it to the force ring and wake the forwarder, publish a surface
+//! snapshot every k-th tick while someone watches, publish statistics every m-th tick, record
+//! timing in preallocated histograms. Nothing in [`ServoCore::tick`] allocates, locks, blocks or
+//! logs; `tests/servo_no_alloc.rs` proves it with a counting allocator.
+//!
+//! Late ticks are counted as overruns and the schedule is re-based on the current time: the loop
+//! never "catches up" with a burst of back-to-back ticks ([`Pacer`]).
+//!
+//! Neighbours: [`crate::session`] creates the rings/buffers and threads; the gRPC services in
+//! [`crate::service`] sit on the other side of every handoff.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::time::Instant;
+
+use haptic_model::sim::{Simulation, TickInput};
+use haptic_model::{DVec3, ModelError};
+use hdrhistogram::Histogram;
+
+/// A command from the gRPC side to the servo thread.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Command {
+    /// Apply a validated point load.
+    ApplyForce {
+        /// Surface point, m.
+        point_m: DVec3,
+        /// Force, N.
+        force_n: DVec3,
+        /// Duration, s.
+        duration_s: f64,
+    },
+}
+
+/// The latest device pose, written by the DeviceLink stream task, read by the servo.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Pose {
+    /// Sequence number of the DeviceSample.
+    pub seq: u64,
+    /// Haptic interaction point, m.
+    pub position_m: DVec3,
+    /// Device velocity, m/s.
+    pub velocity_m_per_s: DVec3,
+    /// When the stream task received it, µs on the session clock.
+    pub received_us: u64,
+    /// False once the device disconnected (the probe leaves the scene).
+    pub connected: bool,
+}
+
+/// A force for the device, from the servo to the forwarder thread.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ForceOut {
+    /// Seq of the pose this answers.
+    pub seq: u64,
+    /// Force to render, N.
+    pub force_n: DVec3,
+    /// Probe in contact.
+    pub in_contact: bool,
+    /// Contact stiffness, 3x3 row-major, N/m.
+    pub stiffness_n_per_m: [f64; 9],
+    /// Proxy position, m.
+    pub proxy_m: DVec3,
+}
+
+/// A surface snapshot for viewers (preallocated; overwritten in place).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Snapshot {
+    /// Tick counter when taken.
+    pub tick: u64,
+    /// Simulated time, s.
+    pub sim_time_s: f64,
+    /// Surface vertex positions, xyz interleaved, m.
+    pub positions_m: Vec<f32>,
+    /// Device (probe) position, m; NaN when no device is connected.
+    pub probe_m: DVec3,
+    /// Contact force on the device, N.
+    pub force_n: DVec3,
+    /// In contact.
+    pub in_contact: bool,
+    /// Largest surface displacement from rest, m.
+    pub max_displacement_m: f64,
+}
+
+/// Statistics published by the servo for `GetStats`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct StatsSnapshot {
+    /// Ticks run.
+    pub steps: u64,
+    /// Late ticks.
+    pub overruns: u64,
+    /// Ticks per second of wall time over the last publication window.
+    pub loop_rate_hz: f64,
+    /// Step compute time percentiles and maximum, µs.
+    pub step_p50_us: f64,
+    /// 99th percentile step time, µs.
+    pub step_p99_us: f64,
+    /// Largest step time, µs.
+    pub step_max_us: f64,
+    /// Pose received to force pushed, µs.
+    pub pose_to_force_p50_us: f64,
+    /// 99th percentile pose-to-force, µs.
+    pub pose_to_force_p99_us: f64,
+    /// Simulated time, s.
+    pub sim_time_s: f64,
+    /// In contact at the last tick.
+    pub in_contact: bool,
+    /// Largest device force magnitude so far, N.
+    pub peak_force_n: f64,
+    /// Largest nodal displacement from rest so far, m.
+    pub max_displacement_m: f64,
+    /// Device samples consumed.
+    pub device_samples: u64,
+    /// The fault that quarantined the session, if any.
+    pub fault: Option<&'static str>,
+}
+
+/// Atomics shared between the servo thread and the async side.
+#[derive(Debug, Default)]
+pub struct SessionShared {
+    /// Set to stop the servo loop (it sends a zero force and exits).
+    pub stop: AtomicBool,
+    /// Number of viewers watching; snapshots are only taken while it is positive.
+    pub watchers: AtomicUsize,
+    /// Device samples rejected by the stream task (NaN, absurd values).
+    pub rejected_samples: AtomicU64,
+    /// Set by the servo when it has sent its final zero force and exited.
+    pub finished: AtomicBool,
+}
+
+/// A monotonic microsecond clock. Tests use a manual one.
+pub trait Clock {
+    /// Microseconds since the clock's epoch.
+    fn now_us(&self) -> u64;
+}
+
+/// The real clock: microseconds since a session epoch.
+#[derive(Debug, Clone, Copy)]
+pub struct MonotonicClock {
+    epoch: Instant,
+}
+
+impl MonotonicClock {
+    /// A clock whose zero is `epoch`.
+    pub fn new(epoch: Instant) -> Self {
+        Self { epoch }
+    }
+
+    /// The epoch.
+    pub fn epoch(&self) -> Instant {
+        self.epoch
+    }
+}
+
+impl Clock for MonotonicClock {
+    fn now_us(&self) -> u64 {
+        self.epoch.elapsed().as_micros() as u64
+    }
+}
+
+/// Absolute-deadline pacing with overrun counting and no catch-up bursts.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pacer {
+    period_us: u64,
+    deadline_us: u64,
+    /// Late ticks so far.
+    pub overruns: u64,
+}
+
+impl Pacer {
+    /// First deadline at `start_us + period_us`.
+    pub fn new(start_us: u64, period_us: u64) -> Self {
+        Self { period_us, deadline_us: start_us + period_us, overruns: 0 }
+    }
+
+    /// The absolute time the next tick must start, µs.
+    pub fn deadline_us(&self) -> u64 {
+        self.deadline_us
+    }
+
+    /// Call after a tick that started at `started_us` finished at `now_us`: advances the
+    /// deadline by one period. If the tick started a full period late or finished after the next
+    /// deadline, it is an overrun and the schedule is re-based on `now_us` (the next tick runs
+    /// at once, then the rhythm resumes: never a burst of ticks to catch up).
+    pub fn finish(&mut self, started_us: u64, now_us: u64) {
+        let next = self.deadline_us + self.period_us;
+        let late_start = started_us >= self.deadline_us + self.period_us;
+        if late_start || now_us > next {
+            self.overruns += 1;
+            self.deadline_us = now_us;
+        } else {
+            self.deadline_us = next;
+        }
+    }
+}
+
+/// What the loop should do after a tick.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Flow {
+    /// Keep ticking.
+    Continue,
+    /// Stop requested: the final zero force has been pushed.
+    Stop,
+}
+
+/// The servo's state and both ends of its handoffs. Everything is sized at construction.
+pub struct ServoCore {
+    sim: Simulation,
+    commands: rtrb::Consumer<Command>,
+    pose: triple_buffer::Output<Pose>,
+    forces: rtrb::Producer<ForceOut>,
+    snapshot: triple_buffer::Input<Snapshot>,
+    stats: triple_buffer::Input<StatsSnapshot>,
+    shared: Arc<SessionShared>,
+    snapshot_every: u64,
+    stats_every: u64,
+    step_hist: Histogram<u64>,
+    p2f_hist: Histogram<u64>,
+    ticks: u64,
+    last_seq: Option<u64>,
+    current: TickInput,
+    fault: Option<&'static str>,
+    peak_force_n: f64,
+    max_displacement_m: f64,
+    device_samples: u64,
+    window_start_us: u64,
+    window_ticks: u64,
+    last_force: ForceOut,
+    /// Overruns, maintained by the loop's [`Pacer`].
+    pub overruns: u64,
+}
+
+/// The handoff ends a [`ServoCore`] owns.
+pub struct ServoEnds {
+    /// Commands in.
+    pub commands: rtrb::Consumer<Command>,
+    /// Latest pose in.
+    pub pose: triple_buffer::Output<Pose>,
+    /// Forces out.
+    pub forces: rtrb::Producer<ForceOut>,
+    /// Snapshots out.
+    pub snapshot: triple_buffer::Input<Snapshot>,
+    /// Statistics out.
+    pub stats: triple_buffer::Input<StatsSnapshot>,
+}
+
+fn histogram() -> Histogram<u64> {
+    // 1 µs .. 60 s at 3 significant digits; fixed size, so recording never allocates.
+    Histogram::new_with_bounds(1, 60_000_000, 3).expect("static histogram bounds")
+}
+
+impl ServoCore {
+    /// Builds the core. `snapshot_every` / `stats_every` are in ticks (>= 1).
+    pub fn new(sim: Simulation, ends: ServoEnds, shared: Arc<SessionShared>, snapshot_every: u32, stats_every: u32) -> Self {
+        Self {
+            sim,
+            commands: ends.commands,
+            pose: ends.pose,
+            forces: ends.forces,
+            snapshot: ends.snapshot,
+            stats: ends.stats,
+            shared,
+            snapshot_every: snapshot_every.max(1) as u64,
+            stats_every: stats_every.max(1) as u64,
+            step_hist: histogram(),
+            p2f_hist: histogram(),
+            ticks: 0,
+            last_seq: None,
+            current: TickInput::default(),
+            fault: None,
+            peak_force_n: 0.0,
+            max_displacement_m: 0.0,
+            device_samples: 0,
+            window_start_us: 0,
+            window_ticks: 0,
+            last_force: ForceOut::default(),
+            overruns: 0,
+        }
+    }
+
+    /// The simulation (for tests and set-up).
+    pub fn sim(&self) -> &Simulation {
+        &self.sim
+    }
+
+    /// The fault that quarantined the session, if any.
+    pub fn fault(&self) -> Option<&'static str> {
+        self.fault
+    }
+
+    /// Runs one tick at time `now_us` (clock read again after the step for timing).
+    /// Allocation-free, lock-free, no logging.
+    pub fn tick(&mut self, now_us: u64, clock: &impl Clock) -> Flow {
+        if self.shared.stop.load(Ordering::Acquire) {
+            let seq = self.last_seq.unwrap_or(0);
+            let _ = self.forces.push(ForceOut { seq, ..ForceOut::default() });
+            self.shared.finished.store(true, Ordering::Release);
+            return Flow::Stop;
+        }
+        if self.window_ticks == 0 && self.ticks == 0 {
+            self.window_start_us = now_us;
+        }
+        // 1. Commands.
+        while let Ok(cmd) = self.commands.pop() {
+            match cmd {
+                Command::ApplyForce { point_m, force_n, duration_s } => {
+                    // Validated by the handler; a full load table drops the command.
+                    let _ = self.sim.add_point_load(point_m, force_n, duration_s);
+                }
+            }
+        }
+        // 2. Latest pose.
+        self.pose.update();
+        let pose = *self.pose.output_buffer();
+        let fresh = pose.connected && self.last_seq != Some(pose.seq);
+        if pose.connected {
+            self.current = TickInput {
+                device_position_m: Some(pose.position_m),
+                device_velocity_m_per_s: pose.velocity_m_per_s,
+            };
+        } else {
+            self.current = TickInput::default();
+        }
+        if fresh {
+            self.last_seq = Some(pose.seq);
+            self.device_samples += 1;
+        }
+        // 3. Step.
+        let t0 = clock.now_us();
+        let out = if self.fault.is_none() {
+            match self.sim.tick(&self.current) {
+                Ok(o) => Some(o),
+                Err(e) => {
+                    self.fault = Some(match e {
+                        ModelError::Diverged { .. } => "the simulation diverged; session quarantined (zero force)",
+                        ModelError::InvalidDevice(m) => m,
+                        _ => "the model failed; session quarantined (zero force)",
+                    });
+                    None
+                }
+            }
+        } else {
+            None
+        };
+        let t1 = clock.now_us();
+        self.step_hist.saturating_record((t1 - t0).max(1));
+        // 4. Guard and hand out the force.
+        let mut force = ForceOut { seq: pose.seq, ..ForceOut::default() };
+        if let Some(o) = out {
+            if o.force_on_device_n.is_finite() {
+                force.force_n = o.force_on_device_n;
+                force.in_contact = o.in_contact;
+                force.stiffness_n_per_m = o.contact_stiffness_n_per_m;
+                force.proxy_m = o.proxy_position_m;
+            }
+        }
+        self.peak_force_n = self.peak_force_n.max(force.force_n.length());
+        self.last_force = force;
+        if fresh {
+            // A full ring means the forwarder is stalled; dropping is the safe choice (the
+            // bridge's watchdog ramps the force down).
+            let _ = self.forces.push(force);
+            let done = clock.now_us();
+            self.p2f_hist.saturating_record(done.saturating_sub(pose.received_us).max(1));
+        }
+        self.ticks += 1;
+        self.window_ticks += 1;
+        // 5. Snapshot for viewers.
+        if self.ticks % self.snapshot_every == 0 && self.shared.watchers.load(Ordering::Relaxed) > 0 {
+            let snap = self.snapshot.input_buffer_mut();
+            snap.tick = self.ticks;
+            snap.sim_time_s = self.sim.state().time_s;
+            let d = self.sim.write_surface_positions(&mut snap.positions_m);
+            snap.max_displacement_m = d;
+            snap.probe_m = match self.current.device_position_m {
+                Some(p) => p,
+                None => DVec3::NAN,
+            };
+            snap.force_n = force.force_n;
+            snap.in_contact = force.in_contact;
+            self.snapshot.publish();
+        }
+        // 6. Statistics.
+        if self.ticks % self.stats_every == 0 {
+            self.max_displacement_m = self.max_displacement_m.max(self.sim.max_displacement_m());
+            let elapsed_us = t1.saturating_sub(self.window_start_us).max(1);
+            let rate = self.window_ticks as f64 * 1e6 / elapsed_us as f64;
+            self.window_start_us = t1;
+            self.window_ticks = 0;
+            let s = self.stats.input_buffer_mut();
+            *s = StatsSnapshot {
+                steps: self.ticks,
+                overruns: self.overruns,
+                loop_rate_hz: rate,
+                step_p50_us: self.step_hist.value_at_quantile(0.5) as f64,
+                step_p99_us: self.step_hist.value_at_quantile(0.99) as f64,
+                step_max_us: self.step_hist.max() as f64,
+                pose_to_force_p50_us: if self.p2f_hist.is_empty() { 0.0 } else { self.p2f_hist.value_at_quantile(0.5) as f64 },
+                pose_to_force_p99_us: if self.p2f_hist.is_empty() { 0.0 } else { self.p2f_hist.value_at_quantile(0.99) as f64 },
+                sim_time_s: self.sim.state().time_s,
+                in_contact: force.in_contact,
+                peak_force_n: self.peak_force_n,
+                max_displacement_m: self.max_displacement_m,
+                device_samples: self.device_samples,
+                fault: self.fault,
+            };
+            self.stats.publish();
+        }
+        Flow::Continue
+    }
+}
+
+/// Real-time set-up outcome messages (logged by the caller, never from the tick).
+pub fn setup_realtime(cfg: &crate::config::ServoConfig) -> Vec<String> {
+    let mut warnings = Vec::new();
+    if let Some(cpu) = cfg.cpu {
+        let ok = core_affinity::get_core_ids()
+            .and_then(|ids| ids.into_iter().find(|c| c.id == cpu))
+            .map(core_affinity::set_for_current)
+            .unwrap_or(false);
+        if !ok {
+            warnings.push(format!("could not pin the servo thread to CPU {cpu}; running unpinned"));
+        }
+    }
+    if cfg.realtime {
+        use thread_priority::*;
+        let prio = ThreadPriority::Crossplatform(
+            ThreadPriorityValue::try_from(cfg.priority.min(99)).unwrap_or(ThreadPriorityValue::MAX),
+        );
+        let policy = ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo);
+        if let Err(e) = set_thread_priority_and_policy(thread_native_id(), prio, policy) {
+            warnings.push(format!("SCHED_FIFO priority {} refused ({e:?}); running with normal scheduling", cfg.priority));
+        }
+    }
+    if cfg.mlockall {
+        // SAFETY: mlockall has no memory-safety preconditions; it only changes paging.
+        let rc = unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) };
+        if rc != 0 {
+            warnings.push(format!("mlockall failed ({}); memory may be paged", std::io::Error::last_os_error()));
+        }
+    }
+    warnings
+}
+
+/// Runs the servo loop until stopped: paces ticks at `period_us` with absolute deadlines and
+/// wakes `forwarder` after each tick that produced a force.
+pub fn run_loop(mut core: ServoCore, clock: MonotonicClock, period_us: u64, forwarder: std::thread::Thread) {
+    let sleeper = spin_sleep::SpinSleeper::default();
+    let mut pacer = Pacer::new(clock.now_us(), period_us);
+    loop {
+        let deadline = clock.epoch() + std::time::Duration::from_micros(pacer.deadline_us());
+        sleeper.sleep_until(deadline);
+        let started = clock.now_us();
+        let flow = core.tick(started, &clock);
+        forwarder.unpark();
+        if flow == Flow::Stop {
+            break;
+        }
+        pacer.finish(started, clock.now_us());
+        core.overruns = pacer.overruns;
+    }
+}
