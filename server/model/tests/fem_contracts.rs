@@ -70,7 +70,7 @@ fn patch_test_reproduces_affine_field_inside() {
     // And the internal forces vanish at the interior nodes of the exact field.
     let mut f = vec![DVec3::ZERO; mesh.node_count()];
     fem.add_internal_forces(&exact, None, &mut f);
-    let scale = fem.material.youngs_modulus_pa * 0.01 * 0.01 * 0.02;
+    let scale = fem.material.youngs_modulus_pa() * 0.01 * 0.01 * 0.02;
     for i in 0..mesh.node_count() {
         if fem.constraint[i] != CLAMPED {
             assert!(f[i].length() < 1e-10 * scale, "node {i}: {:?}", f[i]);
