@@ -1,8 +1,56 @@
 //! Scenes: a mesh, a material, boundary conditions, an integrator and a probe.
-//! Placeholder: the parser and built-ins come with the mesh change.
+//!
+//! A scene is a TOML text (a file, or one of the built-in texts of [`builtin_scene_toml`])
+//! parsed with serde (unknown fields rejected), then validated into a [`Scene`] in SI units.
+//! Errors name the offending field by its dotted path (`material.poisson_ratio`). Format:
+//!
+//! ```toml
+//! name = "lv-h1"                 # optional; default: the file stem, or "custom"
+//! description = "..."            # optional
+//! [mesh]
+//! file = "../../../shared/data/lv/lv_h1.msh"  # Gmsh 2.2/4.1, relative to the scene's directory
+//! length_unit = "mm"             # "m" | "cm" | "mm" | "um"; default "m"
+//! # or builtin = "lv" (target_tets, default 2000), "ellipsoids" (inner_semi_axes,
+//! # outer_semi_axes in length_unit, default (6,6,12) and (10,10,16) mm; target_tets, default
+//! # 188), "sphere" (inner_radius, outer_radius in length_unit; target_tets, default 5000) or
+//! # "box" (size = [x, y, z] in length_unit, cells = [nx, ny, nz])
+//! [material]                     # youngs_modulus_pa + poisson_ratio, OR lambda_pa + mu_pa
+//! youngs_modulus_pa = 14500.0
+//! poisson_ratio = 0.45           # in (-1, 0.5)
+//! phi_pa_s = 0.05                # default 0
+//! psi_pa_s = 0.05                # default 0
+//! density_kg_per_m3 = 1060.0     # required
+//! mass_damping_per_s = 5.0       # default 0
+//! [boundary]
+//! clamped = ["BASE"]             # surface or node-group names; default none
+//! touchable = ["EPI"]            # surface names; default: boundary faces not entirely clamped
+//! [integrator]                   # optional, defaults shown
+//! kind = "semi-implicit"         # or "symplectic-euler"
+//! tick_s = 0.001                 # in (0, 0.1]
+//! substeps = "auto"              # or an integer in 1..=max_substeps
+//! max_substeps = 64
+//! safety_factor = 0.8            # in (0, 1]
+//! [probe]                        # optional, defaults shown
+//! radius_m = 0.002
+//! coupling_stiffness_n_per_m = 300.0
+//! coupling_damping_n_s_per_m = 0.5
+//! max_force_n = 10.0
+//! ```
+//!
+//! Built-in scenes are string constants in this module (the library reads no file outside
+//! itself); identical copies live in `deploy/scenes/` for users to edit.
+//!
+//! Neighbours: uses [`crate::gmsh`] and [`crate::mesher`] for meshes; the result builds a
+//! [`crate::sim::Simulation`].
 
+use std::path::Path;
+
+use glam::DVec3;
+use serde::Deserialize;
+
+use crate::ModelError;
 use crate::contact::ProbeParams;
-use crate::integrator::IntegratorParams;
+use crate::integrator::{IntegratorKind, IntegratorParams};
 use crate::material::MaterialParams;
 use crate::mesh::TetMesh;
 
@@ -27,4 +75,605 @@ pub struct Scene {
     pub touchable: Vec<[u32; 3]>,
     /// The scene file's length unit in metres (1e-3 for "mm"); outputs for users use it.
     pub length_unit_m: f64,
+}
+
+/// Built-in scene `lv`: the idealized left ventricle built in code.
+const LV_TOML: &str = r#"# Built-in scene "lv" (a copy of the constant in server/model/src/scene.rs).
+name = "lv"
+description = "Idealized left ventricle (geometry of the Land et al. 2015 cardiac mechanics benchmark, Proc. R. Soc. A 471:20150641: endocardium 7x7x17 mm, epicardium 10x10x20 mm, cut at z = 5 mm), meshed in code, base clamped, epicardium touchable. Material: mu = 5 kPa from the linearised Guccione law of benchmark problem 2 (C = 10 kPa, b_f = b_t = b_fs = 1, so mu = C/2), Poisson ratio 0.45 as a compressible stand-in for the benchmark's incompressibility, hence E = 14.5 kPa; rho = 1060 kg/m^3."
+
+[mesh]
+builtin = "lv"
+target_tets = 2000      # 1000..=30000 give a mesh within about 30 % of the target
+length_unit = "mm"      # unit for reports; the built-in geometry is fixed
+
+[material]
+youngs_modulus_pa = 14500.0
+poisson_ratio = 0.45
+phi_pa_s = 0.05
+psi_pa_s = 0.05
+density_kg_per_m3 = 1060.0
+mass_damping_per_s = 5.0
+
+[boundary]
+clamped = ["BASE"]
+touchable = ["EPI"]
+
+[integrator]
+kind = "semi-implicit"
+tick_s = 0.001
+substeps = "auto"
+max_substeps = 64
+safety_factor = 0.8
+
+[probe]
+radius_m = 0.002
+coupling_stiffness_n_per_m = 300.0
+coupling_damping_n_s_per_m = 0.5
+max_force_n = 10.0
+"#;
+
+/// Built-in scene `ellipsoids`: the seed's coarse Ellipsoids Model.
+const ELLIPSOIDS_TOML: &str = r#"# Built-in scene "ellipsoids" (a copy of the constant in server/model/src/scene.rs).
+name = "ellipsoids"
+description = "The seed's Ellipsoids Model (Mero & Susin 2006, Table 1): a coarse closed ellipsoidal shell of about 188 tets; the paper gives no sizes, we use inner semi-axes 6x6x12 mm and outer 10x10x16 mm. Table 1 prints lambda = 5.5, mu = 2.5, phi = psi = 9e-5 without units; our reading is kPa and kPa s: lambda = 5.5 kPa, mu = 2.5 kPa, phi = psi = 0.09 Pa s. Density 1060 kg/m^3 and mass damping 5/s are ours. The bottom pole cap is clamped so that the body cannot drift."
+
+[mesh]
+builtin = "ellipsoids"
+length_unit = "mm"
+inner_semi_axes = [6.0, 6.0, 12.0]
+outer_semi_axes = [10.0, 10.0, 16.0]
+target_tets = 188
+
+[material]
+lambda_pa = 5500.0
+mu_pa = 2500.0
+phi_pa_s = 0.09
+psi_pa_s = 0.09
+density_kg_per_m3 = 1060.0
+mass_damping_per_s = 5.0
+
+[boundary]
+clamped = ["POLE"]
+touchable = ["OUTER"]
+
+[integrator]
+kind = "semi-implicit"
+tick_s = 0.001
+substeps = "auto"
+max_substeps = 64
+safety_factor = 0.8
+
+[probe]
+radius_m = 0.002
+coupling_stiffness_n_per_m = 300.0
+coupling_damping_n_s_per_m = 0.5
+max_force_n = 10.0
+"#;
+
+/// Built-in scenes: (name, TOML text, one-line description).
+const BUILTINS: [(&str, &str, &str); 2] = [
+    (
+        "lv",
+        LV_TOML,
+        "idealized left ventricle (Land et al. 2015 benchmark geometry), ~2000 tets, base clamped",
+    ),
+    (
+        "ellipsoids",
+        ELLIPSOIDS_TOML,
+        "the seed's coarse Ellipsoids Model (~188 tets, Mero & Susin 2006 Table 1)",
+    ),
+];
+
+/// Names and one-line descriptions of the built-in scenes, e.g. `("lv", "idealized left ...")`.
+pub fn builtin_scene_names() -> &'static [(&'static str, &'static str)] {
+    const NAMES: [(&str, &str); 2] = [
+        (BUILTINS[0].0, BUILTINS[0].2),
+        (BUILTINS[1].0, BUILTINS[1].2),
+    ];
+    &NAMES
+}
+
+/// The TOML text of the built-in scene `name`, or `None` if there is no such built-in. The same
+/// texts are in `deploy/scenes/<name>.toml`.
+pub fn builtin_scene_toml(name: &str) -> Option<&'static str> {
+    BUILTINS.iter().find(|b| b.0 == name).map(|b| b.1)
+}
+
+/// Loads and validates the built-in scene `name` (see [`builtin_scene_names`]).
+///
+/// # Errors
+/// [`ModelError::UnknownScene`] listing the known names if `name` is not a built-in; otherwise
+/// the errors of [`parse_scene_toml`] (which would be a bug in the built-in text).
+pub fn load_builtin(name: &str) -> Result<Scene, ModelError> {
+    let Some(text) = builtin_scene_toml(name) else {
+        let known = BUILTINS.iter().map(|b| b.0).collect::<Vec<_>>().join(", ");
+        return Err(ModelError::UnknownScene(name.to_string(), known));
+    };
+    parse_scene(text, Path::new("."), name)
+}
+
+/// Reads and validates a scene file. Relative mesh paths are resolved against the file's
+/// directory; the scene name defaults to the file stem.
+///
+/// # Errors
+/// [`ModelError::Io`] if the scene or mesh file cannot be read; otherwise as
+/// [`parse_scene_toml`].
+pub fn load_scene_file(path: &Path) -> Result<Scene, ModelError> {
+    let text = std::fs::read_to_string(path).map_err(|source| ModelError::Io {
+        path: path.display().to_string(),
+        source,
+    })?;
+    let base_dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let stem = path
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .unwrap_or("custom");
+    parse_scene(&text, base_dir, stem)
+}
+
+/// Parses and validates a scene TOML text. `base_dir`: directory against which a relative
+/// `mesh.file` is resolved. The name defaults to `custom`.
+///
+/// # Errors
+/// [`ModelError::SceneSyntax`] (with the TOML error and its location) for invalid TOML, unknown
+/// fields or wrongly typed values; [`ModelError::SceneField`] naming the dotted field for
+/// missing, non-finite, out-of-range or contradictory values and unknown surface names;
+/// [`ModelError::Io`] (with the path) if the mesh file cannot be read, and the errors of
+/// [`crate::gmsh::load_msh`] if it cannot be parsed.
+pub fn parse_scene_toml(text: &str, base_dir: &Path) -> Result<Scene, ModelError> {
+    parse_scene(text, base_dir, "custom")
+}
+
+// ----- raw (serde) form -----
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawScene {
+    name: Option<String>,
+    description: Option<String>,
+    mesh: Option<RawMesh>,
+    material: Option<RawMaterial>,
+    boundary: Option<RawBoundary>,
+    integrator: Option<RawIntegrator>,
+    probe: Option<RawProbe>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawMesh {
+    file: Option<String>,
+    builtin: Option<String>,
+    length_unit: Option<String>,
+    target_tets: Option<i64>,
+    inner_radius: Option<f64>,
+    outer_radius: Option<f64>,
+    inner_semi_axes: Option<[f64; 3]>,
+    outer_semi_axes: Option<[f64; 3]>,
+    size: Option<[f64; 3]>,
+    cells: Option<[i64; 3]>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawMaterial {
+    youngs_modulus_pa: Option<f64>,
+    poisson_ratio: Option<f64>,
+    lambda_pa: Option<f64>,
+    mu_pa: Option<f64>,
+    phi_pa_s: Option<f64>,
+    psi_pa_s: Option<f64>,
+    density_kg_per_m3: Option<f64>,
+    mass_damping_per_s: Option<f64>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawBoundary {
+    clamped: Option<Vec<String>>,
+    touchable: Option<Vec<String>>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawIntegrator {
+    kind: Option<String>,
+    tick_s: Option<f64>,
+    substeps: Option<toml::Value>,
+    max_substeps: Option<i64>,
+    safety_factor: Option<f64>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawProbe {
+    radius_m: Option<f64>,
+    coupling_stiffness_n_per_m: Option<f64>,
+    coupling_damping_n_s_per_m: Option<f64>,
+    max_force_n: Option<f64>,
+}
+
+// ----- validation helpers -----
+
+/// A finite value satisfying `ok`, described by `expect` in the error.
+fn checked(field: &str, v: f64, ok: impl Fn(f64) -> bool, expect: &str) -> Result<f64, ModelError> {
+    if !v.is_finite() {
+        return Err(ModelError::field(
+            field,
+            format!("must be a finite number, got {v}"),
+        ));
+    }
+    if !ok(v) {
+        return Err(ModelError::field(
+            field,
+            format!("must be {expect}, got {v}"),
+        ));
+    }
+    Ok(v)
+}
+
+fn required<T>(field: &str, v: Option<T>) -> Result<T, ModelError> {
+    v.ok_or_else(|| ModelError::field(field, "is required but missing"))
+}
+
+fn positive(field: &str, v: f64) -> Result<f64, ModelError> {
+    checked(field, v, |x| x > 0.0, "> 0")
+}
+
+fn non_negative(field: &str, v: f64) -> Result<f64, ModelError> {
+    checked(field, v, |x| x >= 0.0, ">= 0")
+}
+
+fn positive_vec(field: &str, v: [f64; 3], unit: f64) -> Result<DVec3, ModelError> {
+    for x in v {
+        positive(field, x)?;
+    }
+    Ok(DVec3::from_array(v) * unit)
+}
+
+fn int_in(field: &str, v: i64, lo: i64, hi: i64) -> Result<usize, ModelError> {
+    if v < lo || v > hi {
+        return Err(ModelError::field(
+            field,
+            format!("must be an integer in {lo}..={hi}, got {v}"),
+        ));
+    }
+    Ok(v as usize)
+}
+
+fn parse_scene(text: &str, base_dir: &Path, default_name: &str) -> Result<Scene, ModelError> {
+    let raw: RawScene = toml::from_str(text).map_err(|e| ModelError::SceneSyntax(e.to_string()))?;
+    let mesh_raw = required("mesh", raw.mesh)?;
+    let (mesh, length_unit_m) = build_mesh(&mesh_raw, base_dir)?;
+    let material = build_material(&required("material", raw.material)?)?;
+    let boundary = raw.boundary.unwrap_or_default();
+    let clamped_nodes = match &boundary.clamped {
+        Some(names) => mesh.nodes_of_surfaces(names, "boundary.clamped")?,
+        None => Vec::new(),
+    };
+    let touchable = match &boundary.touchable {
+        Some(names) => {
+            let mut tris = Vec::new();
+            for name in names {
+                let Some(s) = mesh.surface(name) else {
+                    let known: Vec<&str> = mesh.surfaces.iter().map(|s| s.name.as_str()).collect();
+                    return Err(ModelError::field(
+                        "boundary.touchable",
+                        format!(
+                            "no surface named `{name}` (mesh surfaces: {})",
+                            known.join(", ")
+                        ),
+                    ));
+                };
+                tris.extend(s.triangles.iter().copied());
+            }
+            let mut seen = std::collections::HashSet::new();
+            tris.retain(|t| {
+                let mut k = *t;
+                k.sort_unstable();
+                seen.insert(k)
+            });
+            tris
+        }
+        None => mesh
+            .boundary_triangles()
+            .into_iter()
+            .filter(|t| !t.iter().all(|i| clamped_nodes.binary_search(i).is_ok()))
+            .collect(),
+    };
+    if touchable.is_empty() {
+        return Err(ModelError::field(
+            "boundary.touchable",
+            "no touchable triangle is left",
+        ));
+    }
+    let integrator = build_integrator(&raw.integrator.unwrap_or_default())?;
+    let probe = build_probe(&raw.probe.unwrap_or_default())?;
+    Ok(Scene {
+        name: raw.name.unwrap_or_else(|| default_name.to_string()),
+        description: raw.description.unwrap_or_default(),
+        mesh,
+        material,
+        integrator,
+        probe,
+        clamped_nodes,
+        touchable,
+        length_unit_m,
+    })
+}
+
+/// Length unit name to metres.
+fn unit_m(field: &str, name: &str) -> Result<f64, ModelError> {
+    match name {
+        "m" => Ok(1.0),
+        "cm" => Ok(1e-2),
+        "mm" => Ok(1e-3),
+        "um" => Ok(1e-6),
+        _ => Err(ModelError::field(
+            field,
+            format!("unknown unit `{name}` (expected m, cm, mm or um)"),
+        )),
+    }
+}
+
+fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError> {
+    let unit = unit_m("mesh.length_unit", m.length_unit.as_deref().unwrap_or("m"))?;
+    // Parameters that only some builtins accept.
+    let params: [(&str, bool, &[&str]); 7] = [
+        (
+            "mesh.target_tets",
+            m.target_tets.is_some(),
+            &["lv", "ellipsoids", "sphere"],
+        ),
+        ("mesh.inner_radius", m.inner_radius.is_some(), &["sphere"]),
+        ("mesh.outer_radius", m.outer_radius.is_some(), &["sphere"]),
+        (
+            "mesh.inner_semi_axes",
+            m.inner_semi_axes.is_some(),
+            &["ellipsoids"],
+        ),
+        (
+            "mesh.outer_semi_axes",
+            m.outer_semi_axes.is_some(),
+            &["ellipsoids"],
+        ),
+        ("mesh.size", m.size.is_some(), &["box"]),
+        ("mesh.cells", m.cells.is_some(), &["box"]),
+    ];
+    let builtin = m.builtin.as_deref().unwrap_or("");
+    for (field, given, allowed) in params {
+        if given && !allowed.contains(&builtin) {
+            return Err(ModelError::field(
+                field,
+                format!(
+                    "only applies to mesh.builtin = {}",
+                    allowed
+                        .iter()
+                        .map(|b| format!("\"{b}\""))
+                        .collect::<Vec<_>>()
+                        .join(" or ")
+                ),
+            ));
+        }
+    }
+    let target = |default: usize| -> Result<usize, ModelError> {
+        m.target_tets
+            .map_or(Ok(default), |t| int_in("mesh.target_tets", t, 100, 500_000))
+    };
+    let mesh = match (&m.file, &m.builtin) {
+        (Some(_), Some(_)) => {
+            return Err(ModelError::field(
+                "mesh.builtin",
+                "give either mesh.file or mesh.builtin, not both",
+            ));
+        }
+        (None, None) => {
+            return Err(ModelError::field(
+                "mesh.file",
+                "is required (or mesh.builtin)",
+            ));
+        }
+        (Some(file), None) => {
+            let mut mesh = crate::gmsh::load_msh(&base_dir.join(file))?;
+            mesh.scale(unit);
+            mesh
+        }
+        (None, Some(b)) => match b.as_str() {
+            "lv" => crate::mesher::lv_shell(target(2000)?),
+            "ellipsoids" => {
+                let inner = m
+                    .inner_semi_axes
+                    .map_or(Ok(DVec3::new(6e-3, 6e-3, 12e-3)), |v| {
+                        positive_vec("mesh.inner_semi_axes", v, unit)
+                    })?;
+                let outer = m
+                    .outer_semi_axes
+                    .map_or(Ok(DVec3::new(10e-3, 10e-3, 16e-3)), |v| {
+                        positive_vec("mesh.outer_semi_axes", v, unit)
+                    })?;
+                if !inner.cmplt(outer).all() {
+                    return Err(ModelError::field(
+                        "mesh.outer_semi_axes",
+                        "every outer semi-axis must exceed the inner one",
+                    ));
+                }
+                crate::mesher::ellipsoid_shell(inner, outer, target(188)?)
+            }
+            "sphere" => {
+                let ri = positive(
+                    "mesh.inner_radius",
+                    required("mesh.inner_radius", m.inner_radius)?,
+                )? * unit;
+                let ro = positive(
+                    "mesh.outer_radius",
+                    required("mesh.outer_radius", m.outer_radius)?,
+                )? * unit;
+                if ro <= ri {
+                    return Err(ModelError::field(
+                        "mesh.outer_radius",
+                        "must exceed mesh.inner_radius",
+                    ));
+                }
+                crate::mesher::sphere_shell(ri, ro, target(5000)?)
+            }
+            "box" => {
+                let size = positive_vec("mesh.size", required("mesh.size", m.size)?, unit)?;
+                let c = required("mesh.cells", m.cells)?;
+                let mut cells = [0usize; 3];
+                for k in 0..3 {
+                    cells[k] = int_in("mesh.cells", c[k], 1, 200)?;
+                }
+                if cells.iter().product::<usize>() > 100_000 {
+                    return Err(ModelError::field("mesh.cells", "more than 100000 cells"));
+                }
+                crate::mesher::box_mesh(size, cells)
+            }
+            other => {
+                return Err(ModelError::field(
+                    "mesh.builtin",
+                    format!(
+                        "unknown builtin mesh `{other}` (expected lv, ellipsoids, sphere or box)"
+                    ),
+                ));
+            }
+        },
+    };
+    Ok((mesh, unit))
+}
+
+fn build_material(m: &RawMaterial) -> Result<MaterialParams, ModelError> {
+    const E: &str = "material.youngs_modulus_pa";
+    const NU: &str = "material.poisson_ratio";
+    const LAMBDA: &str = "material.lambda_pa";
+    const MU: &str = "material.mu_pa";
+    let density = required("material.density_kg_per_m3", m.density_kg_per_m3)?;
+    let density = positive("material.density_kg_per_m3", density)?;
+    let engineering = m.youngs_modulus_pa.is_some() || m.poisson_ratio.is_some();
+    let lame = m.lambda_pa.is_some() || m.mu_pa.is_some();
+    let mut mat = match (engineering, lame) {
+        (true, true) => {
+            let field = if m.lambda_pa.is_some() { LAMBDA } else { MU };
+            return Err(ModelError::field(
+                field,
+                "give exactly one pair: youngs_modulus_pa + poisson_ratio, or lambda_pa + mu_pa",
+            ));
+        }
+        (false, false) => {
+            return Err(ModelError::field(
+                E,
+                "is required (with poisson_ratio), or give lambda_pa + mu_pa",
+            ));
+        }
+        (true, false) => {
+            let e = positive(E, required(E, m.youngs_modulus_pa)?)?;
+            let nu = checked(
+                NU,
+                required(NU, m.poisson_ratio)?,
+                |x| x > -1.0 && x < 0.5,
+                "in (-1, 0.5)",
+            )?;
+            let mat = MaterialParams::from_youngs(e, nu, density);
+            if mat.lambda_pa < 0.0 {
+                return Err(ModelError::field(
+                    NU,
+                    format!("{nu} gives lambda < 0, which the model does not support"),
+                ));
+            }
+            mat
+        }
+        (false, true) => {
+            let lambda = non_negative(LAMBDA, required(LAMBDA, m.lambda_pa)?)?;
+            let mu = positive(MU, required(MU, m.mu_pa)?)?;
+            MaterialParams {
+                lambda_pa: lambda,
+                mu_pa: mu,
+                phi_pa_s: 0.0,
+                psi_pa_s: 0.0,
+                density_kg_per_m3: density,
+                mass_damping_per_s: 0.0,
+            }
+        }
+    };
+    mat.phi_pa_s = non_negative("material.phi_pa_s", m.phi_pa_s.unwrap_or(0.0))?;
+    mat.psi_pa_s = non_negative("material.psi_pa_s", m.psi_pa_s.unwrap_or(0.0))?;
+    mat.mass_damping_per_s = non_negative(
+        "material.mass_damping_per_s",
+        m.mass_damping_per_s.unwrap_or(0.0),
+    )?;
+    mat.validate()?;
+    Ok(mat)
+}
+
+fn build_integrator(i: &RawIntegrator) -> Result<IntegratorParams, ModelError> {
+    let d = IntegratorParams::default();
+    let kind = match i.kind.as_deref() {
+        None => d.kind,
+        Some("semi-implicit") => IntegratorKind::SemiImplicit,
+        Some("symplectic-euler") => IntegratorKind::SymplecticEuler,
+        Some(other) => {
+            return Err(ModelError::field(
+                "integrator.kind",
+                format!(
+                    "unknown integrator `{other}` (expected \"semi-implicit\" or \"symplectic-euler\")"
+                ),
+            ));
+        }
+    };
+    let tick_s = checked(
+        "integrator.tick_s",
+        i.tick_s.unwrap_or(d.tick_s),
+        |x| x > 0.0 && x <= 0.1,
+        "in (0, 0.1]",
+    )?;
+    let max_substeps = match i.max_substeps {
+        None => d.max_substeps,
+        Some(v) => int_in("integrator.max_substeps", v, 1, 100_000)? as u32,
+    };
+    let substeps = match &i.substeps {
+        None => None,
+        Some(toml::Value::String(s)) if s == "auto" => None,
+        Some(toml::Value::Integer(n)) => {
+            Some(int_in("integrator.substeps", *n, 1, i64::from(max_substeps))? as u32)
+        }
+        Some(other) => {
+            return Err(ModelError::field(
+                "integrator.substeps",
+                format!("must be \"auto\" or an integer in 1..={max_substeps}, got {other}"),
+            ));
+        }
+    };
+    let safety_factor = checked(
+        "integrator.safety_factor",
+        i.safety_factor.unwrap_or(d.safety_factor),
+        |x| x > 0.0 && x <= 1.0,
+        "in (0, 1]",
+    )?;
+    Ok(IntegratorParams {
+        kind,
+        tick_s,
+        substeps,
+        max_substeps,
+        safety_factor,
+    })
+}
+
+fn build_probe(p: &RawProbe) -> Result<ProbeParams, ModelError> {
+    let d = ProbeParams::default();
+    Ok(ProbeParams {
+        radius_m: positive("probe.radius_m", p.radius_m.unwrap_or(d.radius_m))?,
+        coupling_stiffness_n_per_m: positive(
+            "probe.coupling_stiffness_n_per_m",
+            p.coupling_stiffness_n_per_m
+                .unwrap_or(d.coupling_stiffness_n_per_m),
+        )?,
+        coupling_damping_n_s_per_m: non_negative(
+            "probe.coupling_damping_n_s_per_m",
+            p.coupling_damping_n_s_per_m
+                .unwrap_or(d.coupling_damping_n_s_per_m),
+        )?,
+        max_force_n: positive("probe.max_force_n", p.max_force_n.unwrap_or(d.max_force_n))?,
+    })
 }

@@ -1,0 +1,340 @@
+//! Scene TOML parsing and validation: built-ins, deploy copies, and one error per field.
+
+use std::path::{Path, PathBuf};
+
+use haptic_model::ModelError;
+use haptic_model::integrator::IntegratorKind;
+use haptic_model::scene::{
+    Scene, builtin_scene_names, builtin_scene_toml, load_builtin, load_scene_file, parse_scene_toml,
+};
+
+fn deploy_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../deploy/scenes")
+}
+
+/// A valid minimal scene on a small box, to mutate in the error tests.
+const BASE: &str = r#"
+[mesh]
+builtin = "box"
+size = [10.0, 10.0, 20.0]
+cells = [2, 2, 4]
+length_unit = "mm"
+
+[material]
+youngs_modulus_pa = 14500.0
+poisson_ratio = 0.45
+density_kg_per_m3 = 1060.0
+
+[boundary]
+clamped = ["ZMIN"]
+"#;
+
+fn parse(text: &str) -> Result<Scene, ModelError> {
+    parse_scene_toml(text, Path::new("."))
+}
+
+/// The field named by a SceneField error (panics on any other error).
+fn field_of(r: Result<Scene, ModelError>) -> String {
+    match r {
+        Err(ModelError::SceneField { field, message }) => {
+            assert!(!message.is_empty());
+            field
+        }
+        Err(e) => panic!("expected a SceneField error, got {e}"),
+        Ok(_) => panic!("expected an error"),
+    }
+}
+
+#[test]
+fn every_builtin_loads() {
+    let names = builtin_scene_names();
+    assert!(names.iter().any(|n| n.0 == "lv") && names.iter().any(|n| n.0 == "ellipsoids"));
+    for (name, desc) in names {
+        assert!(!desc.is_empty());
+        let s = load_builtin(name).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(&s.name, name);
+        assert!(!s.description.is_empty());
+        assert!(
+            !s.clamped_nodes.is_empty() && !s.touchable.is_empty(),
+            "{name}"
+        );
+        assert!(s.clamped_nodes.windows(2).all(|w| w[0] < w[1]));
+        s.material.validate().unwrap();
+    }
+    let lv = load_builtin("lv").unwrap();
+    assert!((lv.material.mu_pa - 5000.0).abs() < 1e-9);
+    assert!((lv.material.youngs_modulus_pa() - 14500.0).abs() < 1e-9);
+    assert_eq!(lv.material.density_kg_per_m3, 1060.0);
+    assert_eq!(lv.integrator.kind, IntegratorKind::SemiImplicit);
+    assert_eq!(lv.length_unit_m, 1e-3);
+    assert!((1400..=2600).contains(&lv.mesh.tet_count()));
+    assert_eq!(
+        lv.touchable.len(),
+        lv.mesh.surface("EPI").unwrap().triangles.len()
+    );
+    // Base nodes (z = 5 mm) are exactly the clamped ones.
+    let base: Vec<u32> = (0..lv.mesh.node_count() as u32)
+        .filter(|&i| lv.mesh.nodes[i as usize].z == 0.005)
+        .collect();
+    assert_eq!(base, lv.clamped_nodes);
+
+    let el = load_builtin("ellipsoids").unwrap();
+    assert!(
+        (el.material.lambda_pa - 5500.0).abs() < 1e-9 && (el.material.mu_pa - 2500.0).abs() < 1e-9
+    );
+    assert!(
+        (el.material.phi_pa_s - 0.09).abs() < 1e-12 && (el.material.psi_pa_s - 0.09).abs() < 1e-12
+    );
+    assert!(
+        (130..=250).contains(&el.mesh.tet_count()),
+        "{}",
+        el.mesh.tet_count()
+    );
+}
+
+#[test]
+fn unknown_builtin_lists_the_known_ones() {
+    match load_builtin("heart") {
+        Err(ModelError::UnknownScene(n, known)) => {
+            assert_eq!(n, "heart");
+            assert!(known.contains("lv") && known.contains("ellipsoids"));
+        }
+        other => panic!("{other:?}"),
+    }
+    assert!(builtin_scene_toml("heart").is_none());
+}
+
+#[test]
+fn deploy_copies_equal_the_builtin_constants() {
+    for (name, _) in builtin_scene_names() {
+        let text = std::fs::read_to_string(deploy_dir().join(format!("{name}.toml"))).unwrap();
+        assert_eq!(
+            text,
+            builtin_scene_toml(name).unwrap(),
+            "deploy/scenes/{name}.toml differs"
+        );
+    }
+}
+
+#[test]
+fn every_deploy_scene_loads_with_the_right_mesh() {
+    let expected = [
+        ("lv_h3.toml", Some((363, 1047))),
+        ("lv_h3_v41.toml", Some((363, 1047))),
+        ("lv_h2.toml", Some((776, 2262))),
+        ("lv_h1.toml", Some((4398, 17924))),
+        ("lv.toml", None),
+        ("ellipsoids.toml", None),
+    ];
+    let mut files: Vec<String> = std::fs::read_dir(deploy_dir())
+        .unwrap()
+        .filter_map(|e| e.ok()?.file_name().into_string().ok())
+        .filter(|n| n.ends_with(".toml"))
+        .collect();
+    files.sort();
+    for f in &files {
+        let s = load_scene_file(&deploy_dir().join(f)).unwrap_or_else(|e| panic!("{f}: {e}"));
+        assert!(!s.clamped_nodes.is_empty() && !s.touchable.is_empty());
+        if let Some((_, Some((nodes, tets)))) = expected.iter().find(|e| e.0 == f) {
+            assert_eq!(
+                (s.mesh.node_count(), s.mesh.tet_count()),
+                (*nodes, *tets),
+                "{f}"
+            );
+            // Scaled from mm to m: the exact volume is 3234.73 mm^3.
+            assert!((s.mesh.volume() / 3234.73e-9 - 1.0).abs() < 0.015, "{f}");
+            assert_eq!(s.length_unit_m, 1e-3);
+            assert_eq!(
+                s.touchable.len(),
+                s.mesh.surface("EPI").unwrap().triangles.len()
+            );
+            assert!((s.material.mu_pa - 5000.0).abs() < 1e-9);
+        }
+    }
+    for (f, _) in expected {
+        assert!(files.iter().any(|x| x == f), "deploy/scenes/{f} missing");
+    }
+}
+
+#[test]
+fn minimal_scene_gets_defaults() {
+    let s = parse(BASE).unwrap();
+    assert_eq!(s.name, "custom");
+    assert_eq!(s.mesh.tet_count(), 6 * 16);
+    let (_, hi) = s.mesh.bounding_box();
+    assert!((hi.z - 0.02).abs() < 1e-15);
+    assert_eq!(s.material.phi_pa_s, 0.0);
+    assert_eq!(s.integrator.substeps, None);
+    assert_eq!(s.integrator.max_substeps, 64);
+    assert_eq!(s.probe.radius_m, 0.002);
+    // Default touchable: every boundary face except those entirely on the clamped ZMIN.
+    let zmin = s.mesh.surface("ZMIN").unwrap().triangles.len();
+    assert_eq!(s.touchable.len(), s.mesh.boundary_triangles().len() - zmin);
+}
+
+#[test]
+fn lame_and_engineering_forms_agree() {
+    let e = parse(BASE).unwrap().material;
+    let lame = BASE.replace(
+        "youngs_modulus_pa = 14500.0\npoisson_ratio = 0.45",
+        &format!("lambda_pa = {:?}\nmu_pa = {:?}", e.lambda_pa, e.mu_pa),
+    );
+    let l = parse(&lame).unwrap().material;
+    assert!((l.lambda_pa - e.lambda_pa).abs() < 1e-9 * e.lambda_pa);
+    assert!((l.mu_pa - e.mu_pa).abs() < 1e-9 * e.mu_pa);
+    assert!((l.youngs_modulus_pa() - 14500.0).abs() < 1e-6);
+    assert!((l.poisson_ratio() - 0.45).abs() < 1e-12);
+}
+
+#[test]
+fn each_error_names_its_field() {
+    let cases: [(&str, String); 14] = [
+        (
+            "material.density_kg_per_m3",
+            BASE.replace("density_kg_per_m3 = 1060.0", ""),
+        ),
+        (
+            "material.lambda_pa",
+            BASE.replace(
+                "poisson_ratio = 0.45",
+                "poisson_ratio = 0.45\nlambda_pa = 1000.0",
+            ),
+        ),
+        ("material.poisson_ratio", BASE.replace("0.45", "0.5")),
+        (
+            "material.poisson_ratio",
+            BASE.replace("poisson_ratio = 0.45", ""),
+        ),
+        ("material.youngs_modulus_pa", BASE.replace("14500.0", "nan")),
+        (
+            "material.phi_pa_s",
+            BASE.replace(
+                "poisson_ratio = 0.45",
+                "poisson_ratio = 0.45\nphi_pa_s = inf",
+            ),
+        ),
+        ("boundary.clamped", BASE.replace("[\"ZMIN\"]", "[\"BASE\"]")),
+        (
+            "boundary.touchable",
+            format!("{BASE}touchable = [\"EPI\"]\n"),
+        ),
+        (
+            "integrator.kind",
+            format!("{BASE}[integrator]\nkind = \"rk4\"\n"),
+        ),
+        (
+            "integrator.substeps",
+            format!("{BASE}[integrator]\nsubsteps = 0\n"),
+        ),
+        (
+            "integrator.substeps",
+            format!("{BASE}[integrator]\nsubsteps = \"many\"\n"),
+        ),
+        (
+            "integrator.tick_s",
+            format!("{BASE}[integrator]\ntick_s = 0.5\n"),
+        ),
+        ("mesh.length_unit", BASE.replace("\"mm\"", "\"inch\"")),
+        (
+            "mesh.size",
+            BASE.replace("builtin = \"box\"", "builtin = \"lv\""),
+        ),
+    ];
+    for (field, text) in cases {
+        assert_eq!(field_of(parse(&text)), field, "case for {field}:\n{text}");
+    }
+    let more: [(&str, String); 5] = [
+        ("mesh", "[material]\ndensity_kg_per_m3 = 1.0\n".to_string()),
+        (
+            "material",
+            BASE[..BASE.find("[material]").unwrap()].to_string(),
+        ),
+        (
+            "probe.radius_m",
+            format!("{BASE}[probe]\nradius_m = -1.0\n"),
+        ),
+        (
+            "mesh.file",
+            BASE.replace(
+                "builtin = \"box\"\nsize = [10.0, 10.0, 20.0]\ncells = [2, 2, 4]",
+                "",
+            ),
+        ),
+        (
+            "integrator.safety_factor",
+            format!("{BASE}[integrator]\nsafety_factor = 0.0\n"),
+        ),
+    ];
+    for (field, text) in more {
+        assert_eq!(field_of(parse(&text)), field, "case for {field}:\n{text}");
+    }
+    // Valid substeps forms.
+    let s = parse(&format!(
+        "{BASE}[integrator]\nsubsteps = 4\nkind = \"symplectic-euler\"\n"
+    ))
+    .unwrap();
+    assert_eq!(s.integrator.substeps, Some(4));
+    assert_eq!(s.integrator.kind, IntegratorKind::SymplecticEuler);
+}
+
+#[test]
+fn syntax_errors_and_unknown_fields_are_scene_syntax_with_location() {
+    for text in [
+        BASE.replace("poisson_ratio = 0.45", "poisson_ratio = 0.45\nyoung = 3.0"),
+        format!("{BASE}[extra]\na = 1\n"),
+        BASE.replace(
+            "density_kg_per_m3 = 1060.0",
+            "density_kg_per_m3 = \"heavy\"",
+        ),
+        BASE.replace("[material]", "[material"),
+    ] {
+        match parse(&text) {
+            Err(ModelError::SceneSyntax(msg)) => assert!(msg.contains("line"), "{msg}"),
+            other => panic!("expected SceneSyntax, got {other:?}"),
+        }
+    }
+    match parse(&BASE.replace("poisson_ratio = 0.45", "poisson_ratio = 0.45\nyoung = 3.0")) {
+        Err(e) => assert!(e.to_string().contains("young"), "{e}"),
+        Ok(_) => unreachable!(),
+    }
+}
+
+#[test]
+fn missing_mesh_file_is_an_io_error_with_its_path() {
+    let text = BASE.replace(
+        "builtin = \"box\"\nsize = [10.0, 10.0, 20.0]\ncells = [2, 2, 4]",
+        "file = \"no/such/mesh.msh\"",
+    );
+    match parse_scene_toml(&text, Path::new("/tmp")) {
+        Err(ModelError::Io { path, .. }) => assert!(path.contains("no/such/mesh.msh"), "{path}"),
+        other => panic!("{other:?}"),
+    }
+    match load_scene_file(Path::new("/nonexistent/scene.toml")) {
+        Err(ModelError::Io { path, .. }) => assert!(path.contains("scene.toml")),
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn user_scenes_can_pick_builtin_meshes() {
+    let lv = BASE.replace(
+        "builtin = \"box\"\nsize = [10.0, 10.0, 20.0]\ncells = [2, 2, 4]",
+        "builtin = \"lv\"\ntarget_tets = 10000",
+    );
+    let s = parse(&lv.replace("[\"ZMIN\"]", "[\"BASE\", \"EPIPT\"]")).unwrap();
+    assert!((7000..=13000).contains(&s.mesh.tet_count()));
+    let sphere = BASE.replace(
+        "builtin = \"box\"\nsize = [10.0, 10.0, 20.0]\ncells = [2, 2, 4]",
+        "builtin = \"sphere\"\ninner_radius = 10.0\nouter_radius = 20.0\ntarget_tets = 2000",
+    );
+    let s = parse(&sphere.replace("[\"ZMIN\"]", "[\"INNER_NZ\"]")).unwrap();
+    assert_eq!(s.clamped_nodes.len(), 1);
+    let (lo, hi) = s.mesh.bounding_box();
+    assert!((hi.x - 0.02).abs() < 1e-12 && (lo.z + 0.02).abs() < 1e-12);
+    assert_eq!(
+        field_of(parse(
+            &sphere.replace("outer_radius = 20.0", "outer_radius = 5.0")
+        )),
+        "mesh.outer_radius"
+    );
+}
