@@ -559,6 +559,18 @@ enum StreamEnd {
     Failed(String),
 }
 
+/// `error: cause: cause ...`, since tonic's transport errors hide the useful part in sources.
+fn chain(e: &dyn std::error::Error) -> String {
+    let mut s = e.to_string();
+    let mut cur = e.source();
+    while let Some(c) = cur {
+        s.push_str(": ");
+        s.push_str(&c.to_string());
+        cur = c.source();
+    }
+    s
+}
+
 /// Resolves once `true` is sent on `shutdown`; never if the sender is gone without sending it.
 async fn wait_shutdown(shutdown: &mut watch::Receiver<bool>) {
     loop {
@@ -585,7 +597,9 @@ async fn run_stream(
         _ = wait_shutdown(shutdown) => return StreamEnd::Shutdown,
         c = endpoint.connect() => match c {
             Ok(c) => c,
-            Err(e) => return StreamEnd::Failed(format!("connect to {}: {e}", config.server_url)),
+            Err(e) => {
+                return StreamEnd::Failed(format!("connect to {}: {}", config.server_url, chain(&e)));
+            }
         },
     };
     let mut client = DeviceLinkClient::new(channel);

@@ -2,21 +2,21 @@
 //! `DeviceLink.Connect` and renders the forces it answers. Glue only: the work is in the
 //! `haptic_bridge` library (`cli::Args::setup`, then `link::run`).
 
+use std::process::ExitCode;
 use std::sync::Arc;
 
-use anyhow::{Context, bail};
+use anyhow::Context;
 use clap::Parser;
 use haptic_bridge::{MonotonicClock, cli::Args, record, run};
 use tracing_subscriber::EnvFilter;
 
 #[tokio::main]
-async fn main() -> anyhow::Result<()> {
+async fn main() -> anyhow::Result<ExitCode> {
     let args = Args::parse();
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
-        .with_env_filter(
-            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")),
-        )
+        .with_env_filter(filter)
         .init();
     let setup = args.setup()?;
     let url = setup.config.server_url.clone();
@@ -44,10 +44,9 @@ async fn main() -> anyhow::Result<()> {
         println!("{s}");
     }
     if !s.connected() {
-        bail!(
-            "never connected to {url}: {}",
-            s.last_link_error.as_deref().unwrap_or("no attempt made")
-        );
+        let why = s.last_link_error.as_deref().unwrap_or("no attempt made");
+        eprintln!("error: never connected to {url}: {why}");
+        return Ok(ExitCode::from(2));
     }
-    Ok(())
+    Ok(ExitCode::SUCCESS)
 }
