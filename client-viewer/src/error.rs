@@ -9,7 +9,7 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 pub enum ClientError {
     /// The server URL is malformed or the connection could not be made.
-    #[error("cannot connect to {url}: {source}")]
+    #[error("cannot connect to {url}: {}", chain(.source))]
     Connect {
         /// The URL that was tried.
         url: String,
@@ -102,4 +102,21 @@ pub fn code_name(code: tonic::Code) -> &'static str {
         DataLoss => "DATA_LOSS",
         Unauthenticated => "UNAUTHENTICATED",
     }
+}
+
+/// `e` and its sources joined by `": "` (tonic's transport errors hide the cause in `source()`).
+fn chain(e: &dyn std::error::Error) -> String {
+    let mut s = e.to_string();
+    let mut cur = e.source();
+    let mut last = s.clone();
+    while let Some(c) = cur {
+        let m = c.to_string();
+        if m != last {
+            s.push_str(": ");
+            s.push_str(&m);
+        }
+        last = m;
+        cur = c.source();
+    }
+    s
 }

@@ -2,34 +2,48 @@
 //! PNG pictures (`frame_00001.png`, ..., `latest.png`) without a GPU or display.
 //!
 //! Glue only: parse arguments, start logging, call `haptic_client::viewer::run`, print the
-//! summary (stderr; one JSON line on stdout with `--json`). Exit code 1 on errors, including a
-//! stream that failed mid-way.
+//! summary (stderr; one JSON line on stdout with `--json`). Exit code 0 when the run ended
+//! normally (duration, session stopped, Ctrl-C), 2 for gRPC errors, 1 for anything else
+//! (including a stream that failed mid-way, after printing the summary).
 
-use anyhow::Context;
+use std::process::ExitCode;
+
 use clap::Parser;
 use haptic_client::viewer::{self, StopReason, ViewerArgs};
 
+async fn run(args: ViewerArgs) -> anyhow::Result<ExitCode> {
+    let json = args.json;
+    let cfg = args.into_config()?;
+    let shutdown = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    let summary = viewer::run(cfg, shutdown).await?;
+    eprintln!("{summary}");
+    if json {
+        println!("{}", serde_json::to_string(&summary)?);
+    }
+    let failed = summary.stop_reason == StopReason::StreamError;
+    Ok(if failed {
+        ExitCode::FAILURE
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
 #[tokio::main]
-async fn main() -> anyhow::Result<()> {
+async fn main() -> ExitCode {
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
         )
         .init();
-    let args = ViewerArgs::parse();
-    let json = args.json;
-    let cfg = args.into_config()?;
-    let shutdown = async {
-        let _ = tokio::signal::ctrl_c().await;
-    };
-    let summary = viewer::run(cfg, shutdown).await.context("viewer failed")?;
-    eprintln!("{summary}");
-    if json {
-        println!("{}", serde_json::to_string(&summary)?);
-    }
-    if summary.stop_reason == StopReason::StreamError {
-        anyhow::bail!("the surface stream failed");
-    }
-    Ok(())
+    run(ViewerArgs::parse()).await.unwrap_or_else(|e| {
+        // ClientError messages already carry their cause; `{e}` avoids printing it twice.
+        eprintln!("error: {e}");
+        let rpc = e
+            .downcast_ref::<haptic_client::ClientError>()
+            .is_some_and(|c| c.is_rpc());
+        ExitCode::from(if rpc { 2 } else { 1 })
+    })
 }
