@@ -2,14 +2,25 @@
 //! touches the touchable surface through a god-object (proxy) joined to the device point by a
 //! virtual coupling.
 //!
-//! Each update finds the closest point `c` of the deformed touchable surface to the device point
-//! (a local walk over neighbouring triangles while in contact, a full search otherwise). With the
-//! outward normal `n` there and the signed distance `s` of the device point, the probe touches
-//! when `s < r`. The proxy is then held on the surface at `c + r n` (it cannot penetrate), and
+//! Each update finds the closest triangle of the deformed touchable surface to the device point
+//! (a local walk over neighbouring triangles while in contact, a full search otherwise), then
+//! a smoothed local surface around the device: the touchable nodes within `2 r` of it with
+//! kernel weights `w_i ∝ (1 - d_i^2 / (2r)^2)^2` (sum 1) define the plane through
+//! `c = sum w_i x_i` with normal `n` the weighted vertex normals. Because the weights vanish at
+//! the rim, `c` and `n` move continuously as the surface dimples under the probe (a plain
+//! closest point jumps between the walls of the dimple and makes the force chatter). With the
+//! signed distance `s = (device - c) . n`, the probe touches when `s < r`. The proxy is then
+//! held outside the surface at `device + (r - s) n` (it cannot penetrate), and
 //! the virtual coupling gives the device force
-//! `F_dev = k (proxy - device) + b ((v_c - v_dev) . n) n`, clamped to `max_force_n`. Its reaction
-//! `-F_dev` acts on the body at `c`, spread over the triangle's nodes by barycentric weights, so
-//! linear momentum is conserved. Frictionless: the proxy slides freely along the surface.
+//! `F_dev = k (proxy - device) + b ((v_c - v_dev) . n) n`, clamped to `[0, max_force_n]` along
+//! `n`, with the proxy and the surface velocity `v_c` taken at the end of the step (implicit:
+//! [`Probe::finish_implicit`]). Its reaction
+//! `-F_dev` acts on the body over the same patch with the same weights, so linear momentum is
+//! conserved. Spreading over the patch
+//! (a 2 mm sphere does not push on one triangle) also raises the effective mass the coupling
+//! acts on, `m_eff = 1 / sum(w_i^2 / m_i)`, which keeps the explicit coupling stable: it needs
+//! `dt^2 k / m_eff + 2 dt b / m_eff < 4` (a damped spring under symplectic Euler).
+//! Frictionless: the proxy slides freely along the surface.
 //!
 //! Neighbours: [`crate::sim`] calls [`Probe::update`] every sub-step and adds the reaction.
 
@@ -33,7 +44,7 @@ impl Default for ProbeParams {
         Self {
             radius_m: 2e-3,
             coupling_stiffness_n_per_m: 300.0,
-            coupling_damping_n_s_per_m: 0.5,
+            coupling_damping_n_s_per_m: 0.05,
             max_force_n: 10.0,
         }
     }
@@ -83,7 +94,11 @@ impl ContactSurface {
                 fill[i as usize] += 1;
             }
         }
-        Self { triangles, node_offsets: counts, node_tris }
+        Self {
+            triangles,
+            node_offsets: counts,
+            node_tris,
+        }
     }
 
     /// Closest point of triangle `k` to `q` on positions `x`.
@@ -91,7 +106,12 @@ impl ContactSurface {
     pub fn closest_on(&self, k: u32, x: &[DVec3], q: DVec3) -> SurfacePoint {
         let [a, b, c] = self.triangles[k as usize].map(|i| x[i as usize]);
         let (point, bary) = closest_point_on_triangle(q, a, b, c);
-        SurfacePoint { triangle: k, bary, point, dist2: (q - point).length_squared() }
+        SurfacePoint {
+            triangle: k,
+            bary,
+            point,
+            dist2: (q - point).length_squared(),
+        }
     }
 
     /// Closest point over all triangles (O(T)). `None` for an empty surface.
@@ -108,12 +128,21 @@ impl ContactSurface {
 
     /// Closest point by a local walk from triangle `start` over vertex-adjacent triangles, until
     /// no neighbour is closer (at most `max_hops` moves). Allocation-free.
-    pub fn closest_local(&self, x: &[DVec3], q: DVec3, start: u32, max_hops: usize) -> SurfacePoint {
+    pub fn closest_local(
+        &self,
+        x: &[DVec3],
+        q: DVec3,
+        start: u32,
+        max_hops: usize,
+    ) -> SurfacePoint {
         let mut best = self.closest_on(start, x, q);
         for _ in 0..max_hops {
             let current = best.triangle;
             for &node in &self.triangles[current as usize] {
-                let (lo, hi) = (self.node_offsets[node as usize], self.node_offsets[node as usize + 1]);
+                let (lo, hi) = (
+                    self.node_offsets[node as usize],
+                    self.node_offsets[node as usize + 1],
+                );
                 for &k in &self.node_tris[lo as usize..hi as usize] {
                     let c = self.closest_on(k, x, q);
                     if c.dist2 < best.dist2 {
@@ -126,6 +155,21 @@ impl ContactSurface {
             }
         }
         best
+    }
+
+    /// Area-weighted outward normal at node `i` (sum of the cross products of its triangles;
+    /// not normalised; zero for a node not on this surface).
+    pub fn vertex_normal(&self, i: u32, x: &[DVec3]) -> DVec3 {
+        let (lo, hi) = (
+            self.node_offsets[i as usize],
+            self.node_offsets[i as usize + 1],
+        );
+        self.node_tris[lo as usize..hi as usize]
+            .iter()
+            .fold(DVec3::ZERO, |acc, &t| {
+                let [a, b, c] = self.triangles[t as usize].map(|k| x[k as usize]);
+                acc + (b - a).cross(c - a)
+            })
     }
 
     /// Unit outward normal of triangle `k` on positions `x` (zero for a degenerate triangle).
@@ -210,7 +254,17 @@ pub struct Probe {
     reach_max: DVec3,
     /// Last contact state.
     pub state: ContactState,
+    /// Contact patch nodes and weights (capacity [`MAX_PATCH_NODES`], never reallocated).
+    patch_nodes: Vec<u32>,
+    patch_weights: Vec<f64>,
+    /// Explicit part of the normal coupling force of the current step, N.
+    phi0_n: f64,
 }
+
+/// Largest number of nodes in a contact patch.
+pub const MAX_PATCH_NODES: usize = 64;
+/// Radius of the contact patch around the device point, in probe radii.
+pub const PATCH_RADIUS_FACTOR: f64 = 2.0;
 
 impl Probe {
     /// Builds a probe over `touchable` triangles of a body whose rest positions are `rest`.
@@ -230,13 +284,20 @@ impl Probe {
             reach_min: lo - DVec3::splat(margin),
             reach_max: hi + DVec3::splat(margin),
             state: ContactState::default(),
+            patch_nodes: Vec::with_capacity(MAX_PATCH_NODES),
+            patch_weights: Vec::with_capacity(MAX_PATCH_NODES),
+            phi0_n: 0.0,
         }
     }
 
     /// Updates the contact for device point `device_m` (m) moving at `device_vel` (m/s) against
-    /// the body at positions `x`, velocities `v`. Allocation-free.
-    pub fn update(&mut self, x: &[DVec3], v: &[DVec3], device_m: DVec3, device_vel: DVec3) -> ContactState {
-        let none = ContactState { proxy_m: device_m, ..ContactState::default() };
+    /// the body at positions `x`. The surface-velocity part of the coupling is implicit
+    /// ([`Probe::finish_implicit`]). Allocation-free.
+    pub fn update(&mut self, x: &[DVec3], device_m: DVec3, device_vel: DVec3) -> ContactState {
+        let none = ContactState {
+            proxy_m: device_m,
+            ..ContactState::default()
+        };
         if self.surface.triangles.is_empty()
             || device_m.cmplt(self.reach_min).any()
             || device_m.cmpgt(self.reach_max).any()
@@ -245,42 +306,51 @@ impl Probe {
             return none;
         }
         let sp = if self.state.in_contact {
-            self.surface.closest_local(x, device_m, self.state.triangle, 16)
+            self.surface
+                .closest_local(x, device_m, self.state.triangle, 16)
         } else {
             match self.surface.closest_global(x, device_m) {
                 Some(sp) => sp,
                 None => return none,
             }
         };
-        let face_n = self.surface.normal(sp.triangle, x);
-        let d = device_m - sp.point;
-        let dist = d.length();
-        let outside = d.dot(face_n) >= 0.0;
-        let signed = if outside { dist } else { -dist };
         let r = self.params.radius_m;
-        if signed >= r || face_n == DVec3::ZERO {
+        let reach = PATCH_RADIUS_FACTOR * r;
+        if sp.dist2 >= reach * reach {
             self.state = none;
             return none;
         }
-        let n = if outside && dist > 1e-12 { d / dist } else { face_n };
-        let proxy = sp.point + n * r;
-        let [ia, ib, ic] = self.surface.triangles[sp.triangle as usize];
-        let v_c = v[ia as usize] * sp.bary[0] + v[ib as usize] * sp.bary[1] + v[ic as usize] * sp.bary[2];
+        // Smoothed local surface: kernel-weighted plane through the patch around the device.
+        self.gather_patch(x, device_m, sp.triangle);
+        if self.patch_nodes.is_empty() {
+            self.state = none;
+            return none;
+        }
+        let mut centre = DVec3::ZERO;
+        let mut normal_sum = DVec3::ZERO;
+        for (&i, &w) in self.patch_nodes.iter().zip(&self.patch_weights) {
+            centre += x[i as usize] * w;
+            normal_sum += self.surface.vertex_normal(i, x) * w;
+        }
+        let n = normal_sum.normalize_or_zero();
+        let signed = (device_m - centre).dot(n);
+        if signed >= r || n == DVec3::ZERO {
+            self.state = none;
+            return none;
+        }
+        let proxy = device_m + n * (r - signed);
+        let sp = SurfacePoint {
+            point: centre,
+            ..sp
+        };
         let p = &self.params;
-        let mut f = (proxy - device_m) * p.coupling_stiffness_n_per_m
-            + n * ((v_c - device_vel).dot(n) * p.coupling_damping_n_s_per_m);
-        if f.dot(n) <= 0.0 {
-            // The coupling would pull the device into the body (the surface is moving away
-            // faster than the device): no adhesion.
-            f = DVec3::ZERO;
-        }
-        let mag = f.length();
-        if mag > p.max_force_n {
-            f *= p.max_force_n / mag;
-        }
+        // Explicit part of the normal coupling force (the surface-velocity term is implicit).
+        let phi0 = p.coupling_stiffness_n_per_m * (r - signed)
+            - p.coupling_damping_n_s_per_m * device_vel.dot(n);
+        self.phi0_n = phi0;
         self.state = ContactState {
             in_contact: true,
-            force_on_device_n: f,
+            force_on_device_n: n * phi0.clamp(0.0, p.max_force_n),
             proxy_m: proxy,
             normal: n,
             triangle: sp.triangle,
@@ -289,15 +359,116 @@ impl Probe {
         self.state
     }
 
-    /// Adds the reaction of the coupling force, `-F_dev`, to the nodal forces `f` (N) at the
-    /// contact point, by barycentric weights. Does nothing out of contact.
+    /// Completes a step with the coupling treated implicitly. After the integrator advanced
+    /// every node with the explicit coupling part (see [`Probe::add_reaction`]), giving
+    /// velocities `y`, the coupling term `gamma U U^T v'` with `U = (w_i n)` over the patch and
+    /// `gamma = dt (k dt + b)` is solved exactly by Sherman-Morrison:
+    /// `v' = y - z (gamma U^T y) / (1 + gamma U^T z)`, `z_i = w_i B_i^-1 n` where
+    /// `B_i^-1 v = inv(i, v)` is the integrator's per-node inverse divided by the mass.
+    /// Positions are corrected by `dt (v' - y)`. The device force becomes
+    /// `phi n`, `phi = phi0 + (k dt + b) U^T v'`, clamped to `[0, max_force_n]`.
+    /// This makes the virtual coupling unconditionally stable for any `k`, `b`. Allocation-free.
+    pub fn finish_implicit(
+        &mut self,
+        dt_s: f64,
+        x: &mut [DVec3],
+        v: &mut [DVec3],
+        inv: impl Fn(usize, DVec3) -> DVec3,
+    ) {
+        if !self.state.in_contact {
+            return;
+        }
+        let n = self.state.normal;
+        let p = self.params;
+        let gamma = dt_s * (p.coupling_stiffness_n_per_m * dt_s + p.coupling_damping_n_s_per_m);
+        let (mut uty, mut utz) = (0.0, 0.0);
+        for (&i, &w) in self.patch_nodes.iter().zip(&self.patch_weights) {
+            uty += w * n.dot(v[i as usize]);
+            utz += w * n.dot(inv(i as usize, n * w));
+        }
+        let delta = gamma * uty / (1.0 + gamma * utz);
+        let mut utv = 0.0;
+        for (&i, &w) in self.patch_nodes.iter().zip(&self.patch_weights) {
+            let dv = inv(i as usize, n * w) * delta;
+            v[i as usize] -= dv;
+            x[i as usize] -= dv * dt_s;
+            utv += w * n.dot(v[i as usize]);
+        }
+        let phi = self.phi0_n
+            + (p.coupling_stiffness_n_per_m * dt_s + p.coupling_damping_n_s_per_m) * utv;
+        self.state.force_on_device_n = n * phi.clamp(0.0, p.max_force_n);
+    }
+
+    /// Collects the contact patch around the device point `q`: the touchable nodes within
+    /// `PATCH_RADIUS_FACTOR * r` of `q` reachable from triangle `seed`, with the kernel weights
+    /// `(1 - d^2 / R^2)^2` normalised to sum 1 (empty when all weights vanish). The weights go to
+    /// zero at the rim, so the patch plane moves continuously as nodes enter and leave.
+    /// Allocation-free (fixed capacity [`MAX_PATCH_NODES`]).
+    fn gather_patch(&mut self, x: &[DVec3], q: DVec3, seed: u32) {
+        let reach = PATCH_RADIUS_FACTOR * self.params.radius_m;
+        let r2 = reach * reach;
+        self.patch_nodes.clear();
+        self.patch_weights.clear();
+        for &i in &self.surface.triangles[seed as usize] {
+            if (x[i as usize] - q).length_squared() < r2 && !self.patch_nodes.contains(&i) {
+                self.patch_nodes.push(i);
+            }
+        }
+        let mut head = 0;
+        while head < self.patch_nodes.len() {
+            let node = self.patch_nodes[head] as usize;
+            head += 1;
+            let (lo, hi) = (
+                self.surface.node_offsets[node],
+                self.surface.node_offsets[node + 1],
+            );
+            for &t in &self.surface.node_tris[lo as usize..hi as usize] {
+                for &j in &self.surface.triangles[t as usize] {
+                    if self.patch_nodes.len() < MAX_PATCH_NODES
+                        && !self.patch_nodes.contains(&j)
+                        && (x[j as usize] - q).length_squared() < r2
+                    {
+                        self.patch_nodes.push(j);
+                    }
+                }
+            }
+        }
+        let mut sum = 0.0;
+        for &i in &self.patch_nodes {
+            let u = 1.0 - (x[i as usize] - q).length_squared() / r2;
+            let w = u * u;
+            self.patch_weights.push(w);
+            sum += w;
+        }
+        if !(sum > 0.0) {
+            self.patch_nodes.clear();
+            self.patch_weights.clear();
+            return;
+        }
+        for w in &mut self.patch_weights {
+            *w /= sum;
+        }
+    }
+
+    /// Nodes and weights (sum 1) of the current contact patch (empty out of contact).
+    pub fn patch(&self) -> (&[u32], &[f64]) {
+        if self.state.in_contact {
+            (&self.patch_nodes, &self.patch_weights)
+        } else {
+            (&[], &[])
+        }
+    }
+
+    /// Adds the explicit part of the coupling reaction, `-phi0 n`, to the nodal forces `f` (N)
+    /// over the contact patch (the implicit part follows in [`Probe::finish_implicit`]).
+    /// Does nothing out of contact.
     pub fn add_reaction(&self, f: &mut [DVec3]) {
         if !self.state.in_contact {
             return;
         }
-        let tri = self.surface.triangles[self.state.triangle as usize];
-        for (k, &i) in tri.iter().enumerate() {
-            f[i as usize] -= self.state.force_on_device_n * self.state.bary[k];
+        let fr = self.state.normal * self.phi0_n;
+        for (&i, &w) in self.patch_nodes.iter().zip(&self.patch_weights) {
+            f[i as usize] -= fr * w;
         }
     }
 

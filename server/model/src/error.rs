@@ -68,7 +68,9 @@ pub enum ModelError {
     InvalidDevice(&'static str),
     /// The dynamic simulation diverged (non-finite state or a nodal speed above the limit);
     /// the state is no longer meaningful and the session must be quarantined.
-    #[error("the simulation diverged at t = {time_s:.4} s (a nodal speed became non-finite or exceeded the limit)")]
+    #[error(
+        "the simulation diverged at t = {time_s:.4} s (a nodal speed became non-finite or exceeded the limit)"
+    )]
     Diverged {
         /// Simulated time of the failing tick, s.
         time_s: f64,
@@ -84,6 +86,9 @@ pub enum ModelError {
 impl ModelError {
     /// Shorthand for [`ModelError::SceneField`].
     pub fn field(field: impl Into<String>, message: impl Into<String>) -> Self {
-        Self::SceneField { field: field.into(), message: message.into() }
+        Self::SceneField {
+            field: field.into(),
+            message: message.into(),
+        }
     }
 }

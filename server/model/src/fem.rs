@@ -19,9 +19,9 @@
 
 use glam::{DMat3, DVec3};
 
+use crate::ModelError;
 use crate::material::{self, MaterialParams};
 use crate::mesh::TetMesh;
-use crate::ModelError;
 
 /// Bit mask of constrained displacement components of a node: bit 0 = x, 1 = y, 2 = z.
 pub type ConstraintMask = u8;
@@ -78,7 +78,9 @@ impl FemModel {
         let mut lumped_mass_kg = vec![0.0; n];
         for (k, t) in mesh.tets.iter().enumerate() {
             if t.iter().any(|&i| i as usize >= n) {
-                return Err(ModelError::InvalidMesh(format!("tetrahedron {k} has an out-of-range node")));
+                return Err(ModelError::InvalidMesh(format!(
+                    "tetrahedron {k} has an out-of-range node"
+                )));
             }
             let [x0, x1, x2, x3] = t.map(|i| mesh.nodes[i as usize]);
             let dm = DMat3::from_cols(x1 - x0, x2 - x0, x3 - x0);
@@ -136,7 +138,8 @@ impl FemModel {
     pub fn deformation_gradient(&self, e: usize, x: &[DVec3]) -> DMat3 {
         let [a, b, c, d] = self.tets[e];
         let x0 = x[a as usize];
-        DMat3::from_cols(x[b as usize] - x0, x[c as usize] - x0, x[d as usize] - x0) * self.dm_inv[e]
+        DMat3::from_cols(x[b as usize] - x0, x[c as usize] - x0, x[d as usize] - x0)
+            * self.dm_inv[e]
     }
 
     /// Adds the internal (elastic + viscous) nodal forces to `f` (N, length N): for each element
@@ -251,7 +254,9 @@ impl FemModel {
         let mut z: Vec<DVec3> = (0..n)
             .map(|i| {
                 // Deterministic pseudo-random start vector.
-                let h = |s: u64| ((i as u64).wrapping_mul(6364136223846793005).wrapping_add(s) >> 33) as f64;
+                let h = |s: u64| {
+                    ((i as u64).wrapping_mul(6364136223846793005).wrapping_add(s) >> 33) as f64
+                };
                 DVec3::new(h(1), h(2), h(3)) / (u32::MAX as f64) - 0.25
             })
             .collect();
@@ -274,7 +279,8 @@ impl FemModel {
             out.iter_mut().for_each(|o| *o = DVec3::ZERO);
             self.stiffness_action(&self.rest, &tmp, &mut out);
             for i in 0..n {
-                let mut y = (out[i] - (kd[i] * tmp[i]) * diag_weight) * inv_sqrt_m[i] + z[i] * shift;
+                let mut y =
+                    (out[i] - (kd[i] * tmp[i]) * diag_weight) * inv_sqrt_m[i] + z[i] * shift;
                 apply_constraint(self.constraint[i], &mut y);
                 out[i] = y;
             }
@@ -287,5 +293,7 @@ impl FemModel {
 
 /// Gershgorin bound on the largest eigenvalue of a 3x3 matrix.
 fn gershgorin_bound(m: &DMat3) -> f64 {
-    (0..3).map(|r| m.row(r).abs().element_sum()).fold(0.0, f64::max)
+    (0..3)
+        .map(|r| m.row(r).abs().element_sum())
+        .fold(0.0, f64::max)
 }

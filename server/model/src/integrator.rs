@@ -6,9 +6,9 @@
 
 use glam::{DMat3, DVec3};
 
-use crate::fem::{apply_constraint, FemModel, CLAMPED};
-use crate::material::MaterialParams;
 use crate::ModelError;
+use crate::fem::{CLAMPED, FemModel, apply_constraint};
+use crate::material::MaterialParams;
 
 /// Which time integrator advances the FEM nodes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -74,7 +74,11 @@ pub struct StepPlan {
 /// rest: the viscous damping matrix is the stiffness matrix with `(lambda, mu)` replaced by
 /// `(2 phi, 2 psi)`, so `D <= beta K` with `beta = max(2 phi / lambda, 2 psi / mu)`.
 pub fn viscous_beta_s(m: &MaterialParams) -> f64 {
-    let a = if m.lambda_pa > 0.0 { 2.0 * m.phi_pa_s / m.lambda_pa } else { 0.0 };
+    let a = if m.lambda_pa > 0.0 {
+        2.0 * m.phi_pa_s / m.lambda_pa
+    } else {
+        0.0
+    };
     a.max(2.0 * m.psi_pa_s / m.mu_pa)
 }
 
@@ -126,14 +130,20 @@ pub fn plan_steps(p: &IntegratorParams, critical_dt_s: f64) -> Result<StepPlan, 
             n
         }
         None => {
-            let need = (p.tick_s / (p.safety_factor * critical_dt_s)).ceil().max(1.0);
+            let need = (p.tick_s / (p.safety_factor * critical_dt_s))
+                .ceil()
+                .max(1.0);
             if need > p.max_substeps as f64 {
                 return Err(unstable(p.max_substeps));
             }
             need as u32
         }
     };
-    Ok(StepPlan { substeps, sub_dt_s: p.tick_s / substeps as f64, critical_dt_s })
+    Ok(StepPlan {
+        substeps,
+        sub_dt_s: p.tick_s / substeps as f64,
+        critical_dt_s,
+    })
 }
 
 /// Per-node inverse of the seed's eq. 34 matrix, extended with the implicit mass damping:
@@ -145,7 +155,8 @@ pub fn semi_implicit_inverses(fem: &FemModel, dt_s: f64) -> Vec<DMat3> {
         .iter()
         .zip(&fem.lumped_mass_kg)
         .map(|(k, m)| {
-            (DMat3::from_diagonal(DVec3::splat(1.0 + alpha * dt_s)) + *k * (dt_s * dt_s / m)).inverse()
+            (DMat3::from_diagonal(DVec3::splat(1.0 + alpha * dt_s)) + *k * (dt_s * dt_s / m))
+                .inverse()
         })
         .collect()
 }
@@ -190,4 +201,30 @@ pub fn integrate_nodes(
         }
     }
     max_v2
+}
+
+/// `B_i^-1 w` for node `i`: the integrator's per-node update matrix divided into `w` and by the
+/// lumped mass, with constrained components zeroed. For symplectic Euler `B_i = m_i (1 + alpha
+/// dt) I`; for the semi-implicit scheme `B_i = m_i A_i` (see [`semi_implicit_inverses`]).
+/// Used to solve the implicit probe coupling ([`crate::contact::Probe::finish_implicit`]).
+#[inline]
+pub fn apply_inverse(
+    kind: IntegratorKind,
+    fem: &FemModel,
+    a_inv: &[DMat3],
+    dt_s: f64,
+    i: usize,
+    w: DVec3,
+) -> DVec3 {
+    let mask = fem.constraint[i];
+    if mask == CLAMPED {
+        return DVec3::ZERO;
+    }
+    let m = fem.lumped_mass_kg[i];
+    let mut r = match kind {
+        IntegratorKind::SymplecticEuler => w / (m * (1.0 + fem.material.mass_damping_per_s * dt_s)),
+        IntegratorKind::SemiImplicit => a_inv[i] * w / m,
+    };
+    apply_constraint(mask, &mut r);
+    r
 }

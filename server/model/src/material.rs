@@ -80,8 +80,16 @@ impl MaterialParams {
             ("material.mu_pa", self.mu_pa, self.mu_pa > 0.0),
             ("material.phi_pa_s", self.phi_pa_s, self.phi_pa_s >= 0.0),
             ("material.psi_pa_s", self.psi_pa_s, self.psi_pa_s >= 0.0),
-            ("material.density_kg_per_m3", self.density_kg_per_m3, self.density_kg_per_m3 > 0.0),
-            ("material.mass_damping_per_s", self.mass_damping_per_s, self.mass_damping_per_s >= 0.0),
+            (
+                "material.density_kg_per_m3",
+                self.density_kg_per_m3,
+                self.density_kg_per_m3 > 0.0,
+            ),
+            (
+                "material.mass_damping_per_s",
+                self.mass_damping_per_s,
+                self.mass_damping_per_s >= 0.0,
+            ),
         ];
         for (field, v, ok) in checks {
             if !v.is_finite() || !ok {

@@ -137,11 +137,17 @@ impl TetMesh {
                 let tri = [t[f[0]], t[f[1]], t[f[2]]];
                 let mut key = tri;
                 key.sort_unstable();
-                count.entry(key).and_modify(|e| e.1 += 1).or_insert((tri, 1));
+                count
+                    .entry(key)
+                    .and_modify(|e| e.1 += 1)
+                    .or_insert((tri, 1));
             }
         }
-        let mut out: Vec<[u32; 3]> =
-            count.into_values().filter(|&(_, c)| c == 1).map(|(t, _)| t).collect();
+        let mut out: Vec<[u32; 3]> = count
+            .into_values()
+            .filter(|&(_, c)| c == 1)
+            .map(|(t, _)| t)
+            .collect();
         out.sort_unstable();
         out
     }
@@ -185,7 +191,10 @@ impl TetMesh {
             } else {
                 return Err(ModelError::field(
                     field,
-                    format!("no surface or node group named `{name}` (mesh has: {})", self.group_names()),
+                    format!(
+                        "no surface or node group named `{name}` (mesh has: {})",
+                        self.group_names()
+                    ),
                 ));
             }
         }

@@ -33,7 +33,7 @@
 //! [probe]                        # optional, defaults shown
 //! radius_m = 0.002
 //! coupling_stiffness_n_per_m = 300.0
-//! coupling_damping_n_s_per_m = 0.5
+//! coupling_damping_n_s_per_m = 0.05
 //! max_force_n = 10.0
 //! ```
 //!
@@ -109,7 +109,7 @@ safety_factor = 0.8
 [probe]
 radius_m = 0.002
 coupling_stiffness_n_per_m = 300.0
-coupling_damping_n_s_per_m = 0.5
+coupling_damping_n_s_per_m = 0.05
 max_force_n = 10.0
 "#;
 
@@ -147,7 +147,7 @@ safety_factor = 0.8
 [probe]
 radius_m = 0.002
 coupling_stiffness_n_per_m = 300.0
-coupling_damping_n_s_per_m = 0.5
+coupling_damping_n_s_per_m = 0.05
 max_force_n = 10.0
 "#;
 

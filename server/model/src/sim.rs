@@ -11,11 +11,11 @@
 
 use glam::{DMat3, DVec3};
 
+use crate::ModelError;
 use crate::contact::{ContactState, ContactSurface, Probe};
-use crate::fem::{FemModel, CLAMPED};
+use crate::fem::{CLAMPED, FemModel};
 use crate::integrator::{self, IntegratorKind, StepPlan};
 use crate::scene::Scene;
-use crate::ModelError;
 
 /// Largest number of point loads active at once (the table is preallocated).
 pub const MAX_POINT_LOADS: usize = 32;
@@ -117,7 +117,10 @@ impl Simulation {
     pub fn from_fem(fem: FemModel, scene: &Scene) -> Result<Self, ModelError> {
         let p = scene.integrator;
         if !(p.tick_s > 0.0 && p.tick_s.is_finite()) {
-            return Err(ModelError::field("integrator.tick_s", "must be a positive number"));
+            return Err(ModelError::field(
+                "integrator.tick_s",
+                "must be a positive number",
+            ));
         }
         let critical = integrator::critical_time_step(&fem, p.kind);
         let plan = integrator::plan_steps(&p, critical)?;
@@ -139,14 +142,21 @@ impl Simulation {
         for (k, &i) in surface_nodes.iter().enumerate() {
             local[i as usize] = k as u32;
         }
-        let surface_triangles = boundary.iter().map(|t| t.map(|i| local[i as usize])).collect();
+        let surface_triangles = boundary
+            .iter()
+            .map(|t| t.map(|i| local[i as usize]))
+            .collect();
         let probe = Probe::new(scene.probe, scene.touchable.clone(), &fem.rest);
         Ok(Self {
             kind: p.kind,
             plan,
             tick_s: p.tick_s,
             a_inv,
-            state: SimState { x: fem.rest.clone(), v: vec![DVec3::ZERO; n], time_s: 0.0 },
+            state: SimState {
+                x: fem.rest.clone(),
+                v: vec![DVec3::ZERO; n],
+                time_s: 0.0,
+            },
             force: vec![DVec3::ZERO; n],
             probe,
             load_surface: ContactSurface::new(load_tris, n),
@@ -173,7 +183,8 @@ impl Simulation {
         let mut contact = ContactState::default();
         for _ in 0..self.plan.substeps {
             self.force.iter_mut().for_each(|f| *f = DVec3::ZERO);
-            self.fem.add_internal_forces(&self.state.x, Some(&self.state.v), &mut self.force);
+            self.fem
+                .add_internal_forces(&self.state.x, Some(&self.state.v), &mut self.force);
             for l in &self.loads {
                 for k in 0..3 {
                     self.force[l.nodes[k] as usize] += l.force_n * l.bary[k];
@@ -181,7 +192,9 @@ impl Simulation {
             }
             contact = match input.device_position_m {
                 Some(p) => {
-                    let c = self.probe.update(&self.state.x, &self.state.v, p, input.device_velocity_m_per_s);
+                    let c = self
+                        .probe
+                        .update(&self.state.x, p, input.device_velocity_m_per_s);
                     self.probe.add_reaction(&mut self.force);
                     c
                 }
@@ -190,7 +203,7 @@ impl Simulation {
                     ContactState::default()
                 }
             };
-            let max_v2 = integrator::integrate_nodes(
+            let mut max_v2 = integrator::integrate_nodes(
                 self.kind,
                 &self.fem,
                 &self.a_inv,
@@ -199,8 +212,21 @@ impl Simulation {
                 &mut self.state.x,
                 &mut self.state.v,
             );
+            if contact.in_contact {
+                let (kind, fem, a_inv) = (self.kind, &self.fem, &self.a_inv);
+                self.probe
+                    .finish_implicit(h, &mut self.state.x, &mut self.state.v, |i, w| {
+                        integrator::apply_inverse(kind, fem, a_inv, h, i, w)
+                    });
+                contact = self.probe.state;
+                for &i in self.probe.patch().0 {
+                    max_v2 = max_v2.max(self.state.v[i as usize].length_squared());
+                }
+            }
             if !(max_v2 <= DIVERGENCE_SPEED_M_PER_S * DIVERGENCE_SPEED_M_PER_S) {
-                return Err(ModelError::Diverged { time_s: self.state.time_s });
+                return Err(ModelError::Diverged {
+                    time_s: self.state.time_s,
+                });
             }
         }
         self.state.time_s += self.tick_s;
@@ -227,10 +253,14 @@ impl Simulation {
     fn check_device(&self, input: &TickInput) -> Result<(), ModelError> {
         if let Some(p) = input.device_position_m {
             if !p.is_finite() || !input.device_velocity_m_per_s.is_finite() {
-                return Err(ModelError::InvalidDevice("device position or velocity is not finite"));
+                return Err(ModelError::InvalidDevice(
+                    "device position or velocity is not finite",
+                ));
             }
             if p.abs().max_element() > MAX_DEVICE_DISTANCE_M {
-                return Err(ModelError::InvalidDevice("device position is farther than 10 m from the origin"));
+                return Err(ModelError::InvalidDevice(
+                    "device position is farther than 10 m from the origin",
+                ));
             }
         }
         Ok(())
@@ -244,7 +274,12 @@ impl Simulation {
     /// [`MAX_POINT_FORCE_N`], a duration outside `(0, MAX_POINT_LOAD_DURATION_S]`, a point farther
     /// than [`MAX_DEVICE_DISTANCE_M`]; [`ModelError::LoadTableFull`] when [`MAX_POINT_LOADS`] loads
     /// are already active (this path does not allocate, so the servo tick may call it).
-    pub fn add_point_load(&mut self, point_m: DVec3, force_n: DVec3, duration_s: f64) -> Result<(), ModelError> {
+    pub fn add_point_load(
+        &mut self,
+        point_m: DVec3,
+        force_n: DVec3,
+        duration_s: f64,
+    ) -> Result<(), ModelError> {
         validate_point_load(point_m, force_n, duration_s)?;
         if self.loads.len() >= MAX_POINT_LOADS {
             return Err(ModelError::LoadTableFull(MAX_POINT_LOADS));
@@ -252,7 +287,9 @@ impl Simulation {
         let sp = self
             .load_surface
             .closest_global(&self.state.x, point_m)
-            .ok_or(ModelError::InvalidDevice("the body has no free surface to load"))?;
+            .ok_or(ModelError::InvalidDevice(
+                "the body has no free surface to load",
+            ))?;
         self.loads.push(PointLoad {
             nodes: self.load_surface.triangles[sp.triangle as usize],
             bary: sp.bary,
@@ -274,7 +311,11 @@ impl Simulation {
     /// # Panics
     /// If `out` has the wrong length.
     pub fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
-        assert_eq!(out.len(), 3 * self.surface_nodes.len(), "surface buffer length");
+        assert_eq!(
+            out.len(),
+            3 * self.surface_nodes.len(),
+            "surface buffer length"
+        );
         let mut max_d2: f64 = 0.0;
         for (k, &i) in self.surface_nodes.iter().enumerate() {
             let p = self.state.x[i as usize];
@@ -299,7 +340,12 @@ impl Simulation {
 
     /// Kinetic energy `sum m v^2 / 2`, J.
     pub fn kinetic_energy_j(&self) -> f64 {
-        self.state.v.iter().zip(&self.fem.lumped_mass_kg).map(|(v, m)| 0.5 * m * v.length_squared()).sum()
+        self.state
+            .v
+            .iter()
+            .zip(&self.fem.lumped_mass_kg)
+            .map(|(v, m)| 0.5 * m * v.length_squared())
+            .sum()
     }
 
     /// Boundary nodes shown to viewers (indices into the body's nodes), sorted.
@@ -362,7 +408,11 @@ impl Simulation {
 ///
 /// # Errors
 /// [`ModelError::InvalidInput`] saying which value is wrong.
-pub fn validate_point_load(point_m: DVec3, force_n: DVec3, duration_s: f64) -> Result<(), ModelError> {
+pub fn validate_point_load(
+    point_m: DVec3,
+    force_n: DVec3,
+    duration_s: f64,
+) -> Result<(), ModelError> {
     if !point_m.is_finite() {
         return Err(ModelError::InvalidInput("point_m is not finite".into()));
     }
@@ -381,7 +431,9 @@ pub fn validate_point_load(point_m: DVec3, force_n: DVec3, duration_s: f64) -> R
         )));
     }
     if point_m.abs().max_element() > MAX_DEVICE_DISTANCE_M {
-        return Err(ModelError::InvalidInput(format!("point_m {point_m} is absurdly far from the scene")));
+        return Err(ModelError::InvalidInput(format!(
+            "point_m {point_m} is absurdly far from the scene"
+        )));
     }
     Ok(())
 }

@@ -13,9 +13,9 @@ use faer::sparse::{SparseColMat, Triplet};
 use faer::{Mat, Side};
 use glam::{DMat3, DVec3};
 
+use crate::ModelError;
 use crate::fem::FemModel;
 use crate::material;
-use crate::ModelError;
 
 /// Newton solver settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -31,7 +31,11 @@ pub struct StaticParams {
 
 impl Default for StaticParams {
     fn default() -> Self {
-        Self { rel_tol: 1e-10, abs_tol_n: 1e-14, max_iterations: 50 }
+        Self {
+            rel_tol: 1e-10,
+            abs_tol_n: 1e-14,
+            max_iterations: 50,
+        }
     }
 }
 
@@ -119,7 +123,10 @@ pub fn solve_static(
         }
     }
     if nfree == 0 {
-        return Ok(StaticReport { iterations: 0, residual_n: 0.0 });
+        return Ok(StaticReport {
+            iterations: 0,
+            residual_n: 0.0,
+        });
     }
     let residual = |x: &[DVec3], r: &mut Vec<DVec3>| -> f64 {
         r.clear();
@@ -143,7 +150,10 @@ pub fn solve_static(
     let mut trial = x.to_vec();
     for it in 0..params.max_iterations {
         if rnorm <= tol {
-            return Ok(StaticReport { iterations: it, residual_n: rnorm });
+            return Ok(StaticReport {
+                iterations: it,
+                residual_n: rnorm,
+            });
         }
         triplets.clear();
         for (e, t) in fem.tets.iter().enumerate() {
@@ -206,11 +216,16 @@ pub fn solve_static(
             step *= 0.5;
         }
         if !rnorm.is_finite() {
-            return Err(ModelError::NoConvergence("the residual became non-finite".into()));
+            return Err(ModelError::NoConvergence(
+                "the residual became non-finite".into(),
+            ));
         }
     }
     if rnorm <= tol {
-        Ok(StaticReport { iterations: params.max_iterations, residual_n: rnorm })
+        Ok(StaticReport {
+            iterations: params.max_iterations,
+            residual_n: rnorm,
+        })
     } else {
         Err(ModelError::NoConvergence(format!(
             "Newton stopped after {} iterations with residual {rnorm:.3e} N (tolerance {tol:.3e} N)",

@@ -2,14 +2,14 @@
 //! invariance, force = -grad(energy) by finite differences, tangent by finite differences of the
 //! force, lumped masses, viscous stress of a rigid rotation, critical-step sharpness.
 
-use haptic_model::fem::{FemModel, CLAMPED};
+use glam::{DMat3, DQuat};
+use haptic_model::DVec3;
+use haptic_model::fem::{CLAMPED, FemModel};
 use haptic_model::integrator::{self, IntegratorKind};
 use haptic_model::material::MaterialParams;
 use haptic_model::mesh::TetMesh;
 use haptic_model::mesher::box_mesh;
-use haptic_model::statics::{solve_static, StaticParams};
-use haptic_model::DVec3;
-use glam::{DMat3, DQuat};
+use haptic_model::statics::{StaticParams, solve_static};
 
 /// Deterministic pseudo-random numbers in [-1, 1] (SplitMix64), so tests are reproducible.
 struct Rng(u64);
@@ -46,7 +46,10 @@ fn boundary_nodes(mesh: &TetMesh) -> Vec<u32> {
 fn patch_test_reproduces_affine_field_inside() {
     let mesh = cube();
     let boundary = boundary_nodes(&mesh);
-    assert!(boundary.len() < mesh.node_count(), "the patch needs interior nodes");
+    assert!(
+        boundary.len() < mesh.node_count(),
+        "the patch needs interior nodes"
+    );
     let mut fem = FemModel::new(&mesh, material()).unwrap();
     fem.clamp_nodes(&boundary);
     // An affine field with stretch, shear and rotation-like parts (moderate: 2 %).
@@ -64,9 +67,21 @@ fn patch_test_reproduces_affine_field_inside() {
     let f_ext = vec![DVec3::ZERO; mesh.node_count()];
     let report = solve_static(&fem, &f_ext, &mut x, &StaticParams::default()).unwrap();
     assert!(report.iterations >= 1);
-    let umax = exact.iter().zip(&mesh.nodes).map(|(e, r)| (*e - *r).length()).fold(0.0, f64::max);
-    let err = x.iter().zip(&exact).map(|(x, e)| (*x - *e).length()).fold(0.0, f64::max);
-    assert!(err / umax < 1e-10, "patch test relative error {:.3e}", err / umax);
+    let umax = exact
+        .iter()
+        .zip(&mesh.nodes)
+        .map(|(e, r)| (*e - *r).length())
+        .fold(0.0, f64::max);
+    let err = x
+        .iter()
+        .zip(&exact)
+        .map(|(x, e)| (*x - *e).length())
+        .fold(0.0, f64::max);
+    assert!(
+        err / umax < 1e-10,
+        "patch test relative error {:.3e}",
+        err / umax
+    );
     // And the internal forces vanish at the interior nodes of the exact field.
     let mut f = vec![DVec3::ZERO; mesh.node_count()];
     fem.add_internal_forces(&exact, None, &mut f);
@@ -94,7 +109,10 @@ fn rigid_rotation_and_translation_give_zero_elastic_force() {
     let fmax = f.iter().map(|v| v.length()).fold(0.0, f64::max);
     let fref = f_ref.iter().map(|v| v.length()).fold(0.0, f64::max);
     assert!(fref > 0.0);
-    assert!(fmax < 1e-12 * fref * 100.0, "rigid motion force {fmax:.3e} vs stretch force {fref:.3e}");
+    assert!(
+        fmax < 1e-12 * fref * 100.0,
+        "rigid motion force {fmax:.3e} vs stretch force {fref:.3e}"
+    );
     assert!(fem.elastic_energy(&x).abs() < 1e-15 * fem.elastic_energy(&stretched) * 1e3);
 }
 
@@ -116,7 +134,10 @@ fn rigid_rotation_velocity_gives_zero_viscous_force() {
     fem.add_internal_forces(&mesh.nodes, Some(&v2), &mut f2);
     let f2max = f2.iter().map(|v| v.length()).fold(0.0, f64::max);
     assert!(f2max > 0.0);
-    assert!(fmax < 1e-12 * f2max, "viscous force of a rigid rotation {fmax:.3e} vs {f2max:.3e}");
+    assert!(
+        fmax < 1e-12 * f2max,
+        "viscous force of a rigid rotation {fmax:.3e} vs {f2max:.3e}"
+    );
 }
 
 #[test]
@@ -157,7 +178,11 @@ fn tangent_stiffness_matches_force_differences() {
     let fem = FemModel::new(&mesh, material()).unwrap();
     let mut rng = Rng(11);
     let h = 0.01 / 3.0;
-    let x: Vec<DVec3> = mesh.nodes.iter().map(|p| *p * 1.05 + rng.vec() * (0.1 * h)).collect();
+    let x: Vec<DVec3> = mesh
+        .nodes
+        .iter()
+        .map(|p| *p * 1.05 + rng.vec() * (0.1 * h))
+        .collect();
     let dx: Vec<DVec3> = (0..mesh.node_count()).map(|_| rng.vec() * h).collect();
     let mut kdx = vec![DVec3::ZERO; mesh.node_count()];
     fem.stiffness_action(&x, &dx, &mut kdx);
@@ -173,7 +198,11 @@ fn tangent_stiffness_matches_force_differences() {
     let worst = (0..mesh.node_count())
         .map(|i| ((fm[i] - fp[i]) / (2.0 * eps) - kdx[i]).length())
         .fold(0.0, f64::max);
-    assert!(worst < 1e-6 * scale, "K dx vs -df relative error {:.3e}", worst / scale);
+    assert!(
+        worst < 1e-6 * scale,
+        "K dx vs -df relative error {:.3e}",
+        worst / scale
+    );
     // The assembled element tangent of the static solver agrees with the matrix-free action.
     let mut kdx2 = vec![DVec3::ZERO; mesh.node_count()];
     for (e, t) in fem.tets.iter().enumerate() {
@@ -184,8 +213,14 @@ fn tangent_stiffness_matches_force_differences() {
             }
         }
     }
-    let worst2 = (0..mesh.node_count()).map(|i| (kdx2[i] - kdx[i]).length()).fold(0.0, f64::max);
-    assert!(worst2 < 1e-10 * scale, "element tangent vs action {:.3e}", worst2 / scale);
+    let worst2 = (0..mesh.node_count())
+        .map(|i| (kdx2[i] - kdx[i]).length())
+        .fold(0.0, f64::max);
+    assert!(
+        worst2 < 1e-10 * scale,
+        "element tangent vs action {:.3e}",
+        worst2 / scale
+    );
 }
 
 #[test]
@@ -194,7 +229,10 @@ fn lumped_masses_sum_to_density_times_volume() {
     let fem = FemModel::new(&mesh, material()).unwrap();
     let total: f64 = fem.lumped_mass_kg.iter().sum();
     let expected = 1000.0 * 0.02 * 0.01 * 0.005;
-    assert!((total - expected).abs() < 1e-12 * expected, "{total} vs {expected}");
+    assert!(
+        (total - expected).abs() < 1e-12 * expected,
+        "{total} vs {expected}"
+    );
     assert!((fem.total_volume_m3() - 0.02 * 0.01 * 0.005).abs() < 1e-15);
     assert!(fem.lumped_mass_kg.iter().all(|&m| m > 0.0));
 }
@@ -206,17 +244,35 @@ fn energy_growth(fem: &FemModel, dt: f64, steps: usize) -> f64 {
     let mut rng = Rng(3);
     let mut x = fem.rest.clone();
     let mut v: Vec<DVec3> = (0..n)
-        .map(|i| if fem.constraint[i] == CLAMPED { DVec3::ZERO } else { rng.vec() * 1e-3 })
+        .map(|i| {
+            if fem.constraint[i] == CLAMPED {
+                DVec3::ZERO
+            } else {
+                rng.vec() * 1e-3
+            }
+        })
         .collect();
     let energy = |x: &[DVec3], v: &[DVec3]| {
-        fem.elastic_energy(x) + v.iter().zip(&fem.lumped_mass_kg).map(|(v, m)| 0.5 * m * v.length_squared()).sum::<f64>()
+        fem.elastic_energy(x)
+            + v.iter()
+                .zip(&fem.lumped_mass_kg)
+                .map(|(v, m)| 0.5 * m * v.length_squared())
+                .sum::<f64>()
     };
     let e0 = energy(&x, &v);
     let mut f = vec![DVec3::ZERO; n];
     for _ in 0..steps {
         f.iter_mut().for_each(|a| *a = DVec3::ZERO);
         fem.add_internal_forces(&x, None, &mut f);
-        let vmax2 = integrator::integrate_nodes(IntegratorKind::SymplecticEuler, fem, &[], dt, &f, &mut x, &mut v);
+        let vmax2 = integrator::integrate_nodes(
+            IntegratorKind::SymplecticEuler,
+            fem,
+            &[],
+            dt,
+            &f,
+            &mut x,
+            &mut v,
+        );
         if !(vmax2 < 1e6) {
             return f64::INFINITY;
         }
@@ -228,14 +284,24 @@ fn energy_growth(fem: &FemModel, dt: f64, steps: usize) -> f64 {
 fn computed_critical_step_separates_stable_from_unstable() {
     let mesh = box_mesh(DVec3::new(0.01, 0.01, 0.01), [3, 3, 3]);
     let mut fem = FemModel::new(&mesh, material()).unwrap();
-    let zmin: Vec<u32> = mesh.surface("ZMIN").unwrap().triangles.iter().flatten().copied().collect();
+    let zmin: Vec<u32> = mesh
+        .surface("ZMIN")
+        .unwrap()
+        .triangles
+        .iter()
+        .flatten()
+        .copied()
+        .collect();
     fem.clamp_nodes(&zmin);
     let dt = integrator::critical_time_step(&fem, IntegratorKind::SymplecticEuler);
     assert!(dt.is_finite() && dt > 0.0);
     // Sanity against the classic element Courant estimate h_min / c (same order of magnitude).
     let c = fem.material.dilatational_wave_speed_m_per_s();
     let courant = (0.01 / 3.0) / c;
-    assert!(dt < courant && dt > 0.05 * courant, "dt_crit {dt:.3e} vs h/c {courant:.3e}");
+    assert!(
+        dt < courant && dt > 0.05 * courant,
+        "dt_crit {dt:.3e} vs h/c {courant:.3e}"
+    );
     let stable = energy_growth(&fem, 0.9 * dt, 4000);
     let unstable = energy_growth(&fem, 1.1 * dt, 4000);
     assert!(stable < 2.0, "0.9 dt_crit: energy ratio {stable}");

@@ -3,14 +3,15 @@
 //! 5k tetrahedra; the inner radial displacement must be within 10 % of the analytic
 //! `u_r(a) = p a^3 / (E (b^3 - a^3)) [(1 - 2 nu) a + (1 + nu) b^3 / (2 a^2)] = 8.387e-2 mm`.
 
+use haptic_model::DVec3;
 use haptic_model::fem::FemModel;
 use haptic_model::material::MaterialParams;
 use haptic_model::mesher::sphere_shell;
-use haptic_model::statics::{add_pressure_forces, solve_static, StaticParams};
-use haptic_model::DVec3;
+use haptic_model::statics::{StaticParams, add_pressure_forces, solve_static};
 
 fn lame_u_r(r: f64, a: f64, b: f64, e: f64, nu: f64, p: f64) -> f64 {
-    p * a.powi(3) / (e * (b.powi(3) - a.powi(3))) * ((1.0 - 2.0 * nu) * r + (1.0 + nu) * b.powi(3) / (2.0 * r * r))
+    p * a.powi(3) / (e * (b.powi(3) - a.powi(3)))
+        * ((1.0 - 2.0 * nu) * r + (1.0 + nu) * b.powi(3) / (2.0 * r * r))
 }
 
 #[test]
@@ -50,8 +51,19 @@ fn inner_radial_displacement_within_ten_percent() {
     let mean = u_r.iter().sum::<f64>() / u_r.len() as f64;
     let exact = lame_u_r(a, a, b, e, nu, p);
     let rel = (mean - exact).abs() / exact;
-    assert!(rel < 0.10, "mean inner u_r = {mean:.4e} m, analytic {exact:.4e} m, error {:.1} %", rel * 100.0);
+    assert!(
+        rel < 0.10,
+        "mean inner u_r = {mean:.4e} m, analytic {exact:.4e} m, error {:.1} %",
+        rel * 100.0
+    );
     // Every inner node, not just the mean, is within 20 % (the solution is radially symmetric).
-    let worst = u_r.iter().map(|u| (u - exact).abs() / exact).fold(0.0, f64::max);
-    assert!(worst < 0.20, "worst inner node error {:.1} %", worst * 100.0);
+    let worst = u_r
+        .iter()
+        .map(|u| (u - exact).abs() / exact)
+        .fold(0.0, f64::max);
+    assert!(
+        worst < 0.20,
+        "worst inner node error {:.1} %",
+        worst * 100.0
+    );
 }

@@ -2,13 +2,13 @@
 //! simulated time at a 1 ms tick; the probe force is zero before contact, grows with press
 //! depth, opposes the press, and vanishes after release; the surface recovers.
 
+use haptic_model::DVec3;
 use haptic_model::integrator::IntegratorKind;
 use haptic_model::scene::load_builtin;
 use haptic_model::sim::{Simulation, TickInput};
-use haptic_model::DVec3;
 
 /// Probe path: start 14 mm from the axis at z = -5 mm (outside the 9.68 mm epicardium radius
-/// there), press along -x to `depth` beyond the start over 1 s, hold, release.
+/// there), move along -x by `depth` over 1 s, hold, release.
 fn device_at(t: f64, depth: f64) -> DVec3 {
     let start = DVec3::new(0.014, 0.0, -0.005);
     let travel = if t < 1.0 {
@@ -28,8 +28,12 @@ fn run(kind: IntegratorKind) {
     scene.integrator.kind = kind;
     let mut sim = Simulation::new(&scene).unwrap();
     let plan = sim.plan();
-    assert!(plan.substeps >= 1 && plan.sub_dt_s <= plan.critical_dt_s, "{plan:?}");
-    let depth = 0.0085; // 14 - 8.5 = 5.5 mm from the axis: about 4.2 mm + radius into the wall
+    assert!(
+        plan.substeps >= 1 && plan.sub_dt_s <= plan.critical_dt_s,
+        "{plan:?}"
+    );
+    // 14 - 6 = 8 mm from the axis: the 2 mm probe indents the wall (9.68 mm) by 3.7 mm.
+    let depth = 0.006;
     let mut forces = Vec::new();
     let mut max_disp: f64 = 0.0;
     let probe_node_rest = DVec3::new(0.00968, 0.0, -0.005);
@@ -38,7 +42,12 @@ fn run(kind: IntegratorKind) {
         let t = k as f64 * 1e-3;
         let p = device_at(t, depth);
         let v = (device_at(t + 1e-3, depth) - p) / 1e-3;
-        let out = sim.tick(&TickInput { device_position_m: Some(p), device_velocity_m_per_s: v }).unwrap();
+        let out = sim
+            .tick(&TickInput {
+                device_position_m: Some(p),
+                device_velocity_m_per_s: v,
+            })
+            .unwrap();
         assert!(out.force_on_device_n.is_finite());
         forces.push((t, out.force_on_device_n, out.in_contact));
         max_disp = max_disp.max(sim.max_displacement_m());
@@ -48,7 +57,9 @@ fn run(kind: IntegratorKind) {
             let rest = &sim.fem().rest;
             let nearest = (0..x.len())
                 .min_by(|&a, &b| {
-                    (rest[a] - probe_node_rest).length().total_cmp(&(rest[b] - probe_node_rest).length())
+                    (rest[a] - probe_node_rest)
+                        .length()
+                        .total_cmp(&(rest[b] - probe_node_rest).length())
                 })
                 .unwrap();
             inward_at_hold = rest[nearest].x - x[nearest].x;
@@ -57,20 +68,47 @@ fn run(kind: IntegratorKind) {
     // Bounded: the largest displacement stays of the order of the press depth.
     assert!(max_disp < 0.01, "{kind:?}: max displacement {max_disp} m");
     // Zero force before contact (the first 0.2 s the probe is > 4 mm from the surface).
-    assert!(forces[..200].iter().all(|(_, f, c)| *f == DVec3::ZERO && !c));
+    assert!(
+        forces[..200]
+            .iter()
+            .all(|(_, f, c)| *f == DVec3::ZERO && !c)
+    );
     // Force opposes the press (+x) and grows monotonically while pressing (sampled every 50 ms,
     // allowing 2 % ripple from the dynamics).
-    let pressing: Vec<f64> = forces[400..1000].iter().step_by(50).map(|(_, f, _)| f.x).collect();
-    assert!(pressing.last().unwrap() > &0.05, "{kind:?}: force at full depth {pressing:?}");
+    let pressing: Vec<f64> = forces[400..1000]
+        .iter()
+        .step_by(50)
+        .map(|(_, f, _)| f.x)
+        .collect();
+    assert!(
+        pressing.last().unwrap() > &0.05,
+        "{kind:?}: force at full depth {pressing:?}"
+    );
     for w in pressing.windows(2) {
-        assert!(w[1] >= w[0] * 0.98 - 1e-6, "{kind:?}: not monotone {pressing:?}");
+        assert!(
+            w[1] >= w[0] * 0.98 - 1e-6,
+            "{kind:?}: not monotone {pressing:?}"
+        );
     }
     let f_hold = forces[1999].1;
-    assert!(f_hold.x > 0.0 && f_hold.x.abs() > 5.0 * f_hold.y.abs().max(f_hold.z.abs()), "{f_hold:?}");
-    assert!(inward_at_hold > 5e-4, "{kind:?}: surface moved inward only {inward_at_hold} m");
+    // Opposes the press (+x), tilted only by the ellipsoid's surface normal (which is 7 degrees
+    // off the x axis at z = -5 mm): within 25 degrees of +x.
+    assert!(f_hold.x / f_hold.length() > 0.9, "{f_hold:?}");
+    assert!(
+        inward_at_hold > 5e-4,
+        "{kind:?}: surface moved inward only {inward_at_hold} m"
+    );
     // Released: zero force after 3 s, and the body returns to rest.
-    assert!(forces[3200..].iter().all(|(_, f, c)| *f == DVec3::ZERO && !c));
-    assert!(sim.max_displacement_m() < 1e-4, "{kind:?}: residual displacement {} m", sim.max_displacement_m());
+    assert!(
+        forces[3200..]
+            .iter()
+            .all(|(_, f, c)| *f == DVec3::ZERO && !c)
+    );
+    assert!(
+        sim.max_displacement_m() < 1e-4,
+        "{kind:?}: residual displacement {} m",
+        sim.max_displacement_m()
+    );
 }
 
 #[test]
@@ -88,20 +126,39 @@ fn point_load_moves_the_loaded_region_along_the_force() {
     let scene = load_builtin("lv").unwrap();
     let mut sim = Simulation::new(&scene).unwrap();
     let point = DVec3::new(0.0, 0.00968, -0.005);
-    sim.add_point_load(point, DVec3::new(0.0, -0.2, 0.0), 0.5).unwrap();
+    sim.add_point_load(point, DVec3::new(0.0, -0.05, 0.0), 0.5)
+        .unwrap();
     for _ in 0..300 {
         sim.tick(&TickInput::default()).unwrap();
     }
     let x = &sim.state().x;
     let rest = &sim.fem().rest;
-    let nearest = (0..x.len()).min_by(|&a, &b| (rest[a] - point).length().total_cmp(&(rest[b] - point).length())).unwrap();
+    let nearest = (0..x.len())
+        .min_by(|&a, &b| {
+            (rest[a] - point)
+                .length()
+                .total_cmp(&(rest[b] - point).length())
+        })
+        .unwrap();
     let d = x[nearest] - rest[nearest];
-    assert!(d.y < -2e-4 && d.y.abs() > 3.0 * d.x.abs().max(d.z.abs()), "{d:?}");
+    assert!(
+        d.y < -2e-4 && d.y.abs() > 3.0 * d.x.abs().max(d.z.abs()),
+        "{d:?}"
+    );
     // Bad loads are rejected and leave the state untouched.
     let before = sim.state().x.clone();
-    assert!(sim.add_point_load(DVec3::new(f64::NAN, 0.0, 0.0), DVec3::X, 1.0).is_err());
+    assert!(
+        sim.add_point_load(DVec3::new(f64::NAN, 0.0, 0.0), DVec3::X, 1.0)
+            .is_err()
+    );
     assert!(sim.add_point_load(point, DVec3::X * 1e6, 1.0).is_err());
     assert!(sim.add_point_load(point, DVec3::X, -1.0).is_err());
-    assert!(sim.tick(&TickInput { device_position_m: Some(DVec3::splat(f64::INFINITY)), ..Default::default() }).is_err());
+    assert!(
+        sim.tick(&TickInput {
+            device_position_m: Some(DVec3::splat(f64::INFINITY)),
+            ..Default::default()
+        })
+        .is_err()
+    );
     assert_eq!(before, sim.state().x);
 }
