@@ -4,7 +4,7 @@
 //! [`run_stream`], which does the work (tests feed it any stream of frames):
 //!
 //! - a [`SurfaceState`] keeps the latest keyframe's triangles and rest positions (the keyframe's
-//!   positions; the wire contract has no separate rest field) and applies each position frame,
+//!   `rest_positions_m`, or its positions when absent) and applies each position frame,
 //!   rejecting frames whose sizes or numbers do not fit (counted, reported, skipped);
 //! - pictures are rendered with [`crate::raster`] on a blocking worker thread fed by a one-slot
 //!   channel, so a slow render never stalls the stream (a periodic picture is skipped and retried
@@ -359,7 +359,11 @@ impl SurfaceState {
             return Err(bad(format!("position value {i} is not finite")));
         }
         let kind = if f.keyframe {
-            self.rest_m = Arc::new(p.clone());
+            // Rest positions come with the keyframe when the server sends them (field 12);
+            // otherwise the keyframe's own positions serve as rest.
+            let rest = &f.rest_positions_m;
+            let rest_ok = rest.len() == p.len() && rest.iter().all(|v| v.is_finite());
+            self.rest_m = Arc::new(if rest_ok { rest.clone() } else { p.clone() });
             self.triangles = Arc::new(f.triangles.clone());
             let (min, max) = bounding_box(p).unwrap_or(([-0.05; 3], [0.05; 3]));
             self.camera = Some(Camera::auto_frame(min, max, params));

@@ -28,7 +28,14 @@ pub struct ServoConfig {
 
 impl Default for ServoConfig {
     fn default() -> Self {
-        Self { realtime: false, priority: 80, mlockall: false, cpu: None, snapshot_every_ticks: 16, stats_every_ticks: 100 }
+        Self {
+            realtime: false,
+            priority: 80,
+            mlockall: false,
+            cpu: None,
+            snapshot_every_ticks: 16,
+            stats_every_ticks: 100,
+        }
     }
 }
 
@@ -110,11 +117,15 @@ impl ConfigFile {
     pub fn into_config(self) -> Result<ServerConfig, ServerError> {
         let mut c = ServerConfig::default();
         if let Some(l) = self.listen {
-            c.listen = l.parse().map_err(|e| ServerError::Config(format!("listen = {l:?}: {e}")))?;
+            c.listen = l
+                .parse()
+                .map_err(|e| ServerError::Config(format!("listen = {l:?}: {e}")))?;
         }
         if let Some(m) = self.max_sessions {
             if m == 0 {
-                return Err(ServerError::Config("max_sessions must be at least 1".into()));
+                return Err(ServerError::Config(
+                    "max_sessions must be at least 1".into(),
+                ));
             }
             c.max_sessions = m;
         }
@@ -125,14 +136,23 @@ impl ConfigFile {
             c.log_format = match f.as_str() {
                 "text" => LogFormat::Text,
                 "json" => LogFormat::Json,
-                other => return Err(ServerError::Config(format!("log_format = {other:?}: expected \"text\" or \"json\""))),
+                other => {
+                    return Err(ServerError::Config(format!(
+                        "log_format = {other:?}: expected \"text\" or \"json\""
+                    )));
+                }
             };
         }
         if !(1..=99).contains(&self.servo.priority) {
-            return Err(ServerError::Config(format!("servo.priority = {}: expected 1..=99", self.servo.priority)));
+            return Err(ServerError::Config(format!(
+                "servo.priority = {}: expected 1..=99",
+                self.servo.priority
+            )));
         }
         if self.servo.snapshot_every_ticks == 0 || self.servo.stats_every_ticks == 0 {
-            return Err(ServerError::Config("servo.snapshot_every_ticks and servo.stats_every_ticks must be >= 1".into()));
+            return Err(ServerError::Config(
+                "servo.snapshot_every_ticks and servo.stats_every_ticks must be >= 1".into(),
+            ));
         }
         c.servo = self.servo;
         Ok(c)

@@ -36,7 +36,9 @@ impl From<ServerError> for Status {
         let msg = e.to_string();
         match e {
             ServerError::UnknownSession(_) => Status::not_found(msg),
-            ServerError::InvalidArgument(_) | ServerError::Config(_) => Status::invalid_argument(msg),
+            ServerError::InvalidArgument(_) | ServerError::Config(_) => {
+                Status::invalid_argument(msg)
+            }
             ServerError::Model(ModelError::NoConvergence(_)) => Status::internal(msg),
             ServerError::Model(ModelError::Io { .. }) => Status::invalid_argument(msg),
             ServerError::Model(_) => Status::invalid_argument(msg),

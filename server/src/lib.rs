@@ -21,7 +21,6 @@ use haptics_proto::v1::device_link_server::DeviceLinkServer;
 use haptics_proto::v1::session_control_server::SessionControlServer;
 use haptics_proto::v1::surface_stream_server::SurfaceStreamServer;
 use tokio::net::TcpListener;
-use tokio_stream::wrappers::TcpListenerStream;
 
 pub use config::ServerConfig;
 pub use error::ServerError;
@@ -30,26 +29,38 @@ pub use error::ServerError;
 ///
 /// # Errors
 /// When the transport fails or the reflection service cannot be built.
-pub async fn run(listener: TcpListener, config: ServerConfig, shutdown: impl Future<Output = ()> + Send) -> anyhow::Result<()> {
+pub async fn run(
+    listener: TcpListener,
+    config: ServerConfig,
+    shutdown: impl Future<Output = ()> + Send,
+) -> anyhow::Result<()> {
     let manager = Arc::new(session::SessionManager::new(config));
     let services = service::Services::new(manager.clone());
     let (health, health_service) = tonic_health::server::health_reporter();
-    health.set_serving::<SessionControlServer<service::Services>>().await;
-    health.set_serving::<DeviceLinkServer<service::Services>>().await;
-    health.set_serving::<SurfaceStreamServer<service::Services>>().await;
+    health
+        .set_serving::<SessionControlServer<service::Services>>()
+        .await;
+    health
+        .set_serving::<DeviceLinkServer<service::Services>>()
+        .await;
+    health
+        .set_serving::<SurfaceStreamServer<service::Services>>()
+        .await;
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(haptics_proto::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1()?;
     let stop_manager = manager.clone();
+    // `Server::tcp_nodelay` is ignored with a custom incoming stream; set it on the incoming,
+    // or Nagle's algorithm holds each small ForceCommand for one device period.
+    let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
     let result = tonic::transport::Server::builder()
-        .tcp_nodelay(true)
         .add_service(health_service)
         .add_service(reflection)
         .add_service(SessionControlServer::new(services.clone()))
         .add_service(DeviceLinkServer::new(services.clone()))
         .add_service(SurfaceStreamServer::new(services))
-        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async move {
+        .serve_with_incoming_shutdown(incoming, async move {
             shutdown.await;
             tracing::info!("shutting down: stopping sessions");
             let m = stop_manager.clone();

@@ -6,8 +6,8 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
 
-use haptic_model::sim::{self, MAX_DEVICE_DISTANCE_M};
 use haptic_model::DVec3;
+use haptic_model::sim::{self, MAX_DEVICE_DISTANCE_M};
 use haptics_proto::v1::device_link_server::DeviceLink;
 use haptics_proto::v1::session_control_server::SessionControl;
 use haptics_proto::v1::surface_stream_server::SurfaceStream;
@@ -19,7 +19,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::error::ServerError;
 use crate::servo::{Command, Pose};
-use crate::session::{unix_time_us, SessionManager};
+use crate::session::{SessionManager, unix_time_us};
 
 /// Largest accepted device speed, m/s (a haptic arm moves well below 5 m/s).
 pub const MAX_DEVICE_SPEED_M_PER_S: f64 = 20.0;
@@ -42,9 +42,14 @@ impl Services {
 }
 
 fn vec3(v: &Option<Vec3>, field: &str) -> Result<DVec3, ServerError> {
-    let v = v.as_ref().ok_or_else(|| ServerError::InvalidArgument(format!("{field} is missing")))?;
+    let v = v
+        .as_ref()
+        .ok_or_else(|| ServerError::InvalidArgument(format!("{field} is missing")))?;
     if !v.is_finite() {
-        return Err(ServerError::InvalidArgument(format!("{field} has a non-finite component ({}, {}, {})", v.x, v.y, v.z)));
+        return Err(ServerError::InvalidArgument(format!(
+            "{field} has a non-finite component ({}, {}, {})",
+            v.x, v.y, v.z
+        )));
     }
     Ok(DVec3::new(v.x, v.y, v.z))
 }
@@ -72,7 +77,10 @@ fn validate_sample(s: &DeviceSample) -> Result<(DVec3, DVec3), &'static str> {
 
 #[tonic::async_trait]
 impl SessionControl for Services {
-    async fn list_scenes(&self, _: Request<ListScenesRequest>) -> Result<Response<ListScenesResponse>, Status> {
+    async fn list_scenes(
+        &self,
+        _: Request<ListScenesRequest>,
+    ) -> Result<Response<ListScenesResponse>, Status> {
         let scenes = tokio::task::spawn_blocking(|| {
             haptic_model::scene::builtin_scene_names()
                 .iter()
@@ -80,7 +88,12 @@ impl SessionControl for Services {
                     let (nodes, tets) = haptic_model::scene::load_builtin(name)
                         .map(|s| (s.mesh.node_count() as u32, s.mesh.tet_count() as u32))
                         .unwrap_or((0, 0));
-                    SceneInfo { name: name.to_string(), description: description.to_string(), nodes, tetrahedra: tets }
+                    SceneInfo {
+                        name: name.to_string(),
+                        description: description.to_string(),
+                        nodes,
+                        tetrahedra: tets,
+                    }
                 })
                 .collect::<Vec<_>>()
         })
@@ -89,7 +102,10 @@ impl SessionControl for Services {
         Ok(Response::new(ListScenesResponse { scenes }))
     }
 
-    async fn start_session(&self, req: Request<StartSessionRequest>) -> Result<Response<StartSessionResponse>, Status> {
+    async fn start_session(
+        &self,
+        req: Request<StartSessionRequest>,
+    ) -> Result<Response<StartSessionResponse>, Status> {
         let r = req.into_inner();
         let manager = self.manager.clone();
         let handle = tokio::runtime::Handle::current();
@@ -111,29 +127,47 @@ impl SessionControl for Services {
         }))
     }
 
-    async fn stop_session(&self, req: Request<StopSessionRequest>) -> Result<Response<StopSessionResponse>, Status> {
+    async fn stop_session(
+        &self,
+        req: Request<StopSessionRequest>,
+    ) -> Result<Response<StopSessionResponse>, Status> {
         let id = req.into_inner().session_id;
         let manager = self.manager.clone();
         let id2 = id.clone();
-        tokio::task::spawn_blocking(move || manager.stop(&id2)).await.map_err(|e| Status::internal(e.to_string()))??;
+        tokio::task::spawn_blocking(move || manager.stop(&id2))
+            .await
+            .map_err(|e| Status::internal(e.to_string()))??;
         tracing::info!(session = %id, "session stopped");
         Ok(Response::new(StopSessionResponse {}))
     }
 
-    async fn apply_force(&self, req: Request<ApplyForceRequest>) -> Result<Response<ApplyForceResponse>, Status> {
+    async fn apply_force(
+        &self,
+        req: Request<ApplyForceRequest>,
+    ) -> Result<Response<ApplyForceResponse>, Status> {
         let r = req.into_inner();
         let point = vec3(&r.point_m, "point_m")?;
         let force = vec3(&r.force_n, "force_n")?;
         sim::validate_point_load(point, force, r.duration_s).map_err(ServerError::from)?;
         let session = self.manager.get(&r.session_id)?;
         if let Some(fault) = session.stats().fault {
-            return Err(ServerError::FailedPrecondition(format!("session is quarantined: {fault}")).into());
+            return Err(ServerError::FailedPrecondition(format!(
+                "session is quarantined: {fault}"
+            ))
+            .into());
         }
-        session.send(Command::ApplyForce { point_m: point, force_n: force, duration_s: r.duration_s })?;
+        session.send(Command::ApplyForce {
+            point_m: point,
+            force_n: force,
+            duration_s: r.duration_s,
+        })?;
         Ok(Response::new(ApplyForceResponse {}))
     }
 
-    async fn get_stats(&self, req: Request<GetStatsRequest>) -> Result<Response<SessionStats>, Status> {
+    async fn get_stats(
+        &self,
+        req: Request<GetStatsRequest>,
+    ) -> Result<Response<SessionStats>, Status> {
         let id = req.into_inner().session_id;
         let s = self.manager.get(&id)?;
         let st = s.stats();
@@ -147,7 +181,10 @@ impl SessionControl for Services {
             steps: st.steps,
             pose_to_force_p50_us: st.pose_to_force_p50_us,
             pose_to_force_p99_us: st.pose_to_force_p99_us,
-            rejected_samples: s.shared.rejected_samples.load(std::sync::atomic::Ordering::Relaxed),
+            rejected_samples: s
+                .shared
+                .rejected_samples
+                .load(std::sync::atomic::Ordering::Relaxed),
             sim_time_s: st.sim_time_s,
             substeps: s.substeps,
             in_contact: st.in_contact,
@@ -162,8 +199,13 @@ impl SessionControl for Services {
         }))
     }
 
-    async fn list_sessions(&self, _: Request<ListSessionsRequest>) -> Result<Response<ListSessionsResponse>, Status> {
-        Ok(Response::new(ListSessionsResponse { session_ids: self.manager.ids() }))
+    async fn list_sessions(
+        &self,
+        _: Request<ListSessionsRequest>,
+    ) -> Result<Response<ListSessionsResponse>, Status> {
+        Ok(Response::new(ListSessionsResponse {
+            session_ids: self.manager.ids(),
+        }))
     }
 }
 
@@ -174,14 +216,18 @@ type FrameStream = Pin<Box<dyn Stream<Item = Result<SurfaceFrame, Status>> + Sen
 impl DeviceLink for Services {
     type ConnectStream = ForceStream;
 
-    async fn connect(&self, req: Request<Streaming<DeviceSample>>) -> Result<Response<Self::ConnectStream>, Status> {
+    async fn connect(
+        &self,
+        req: Request<Streaming<DeviceSample>>,
+    ) -> Result<Response<Self::ConnectStream>, Status> {
         let mut inbound = req.into_inner();
-        let first = inbound
-            .message()
-            .await?
-            .ok_or_else(|| Status::invalid_argument("the device stream ended before its first sample"))?;
+        let first = inbound.message().await?.ok_or_else(|| {
+            Status::invalid_argument("the device stream ended before its first sample")
+        })?;
         if first.session_id.is_empty() {
-            return Err(Status::invalid_argument("the first DeviceSample must carry session_id"));
+            return Err(Status::invalid_argument(
+                "the first DeviceSample must carry session_id",
+            ));
         }
         let session = self.manager.get(&first.session_id)?;
         let (tx, rx) = mpsc::channel(256);
@@ -198,7 +244,10 @@ impl DeviceLink for Services {
                     },
                 };
                 if !sample.session_id.is_empty() && sample.session_id != session.id {
-                    session.shared.rejected_samples.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    session
+                        .shared
+                        .rejected_samples
+                        .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                     continue;
                 }
                 match validate_sample(&sample) {
@@ -210,17 +259,26 @@ impl DeviceLink for Services {
                         connected: true,
                     }),
                     Err(_) => {
-                        session.shared.rejected_samples.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        session
+                            .shared
+                            .rejected_samples
+                            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                     }
                 }
-                if session.shared.stop.load(std::sync::atomic::Ordering::Acquire) {
+                if session
+                    .shared
+                    .stop
+                    .load(std::sync::atomic::Ordering::Acquire)
+                {
                     break;
                 }
             }
             tracing::info!(session = %session.id, "device disconnected");
             session.detach_device(pose_in);
         });
-        Ok(Response::new(Box::pin(ReceiverStream::new(rx)) as ForceStream))
+        Ok(Response::new(
+            Box::pin(ReceiverStream::new(rx)) as ForceStream
+        ))
     }
 }
 
@@ -228,12 +286,22 @@ impl DeviceLink for Services {
 impl SurfaceStream for Services {
     type WatchStream = FrameStream;
 
-    async fn watch(&self, req: Request<WatchRequest>) -> Result<Response<Self::WatchStream>, Status> {
+    async fn watch(
+        &self,
+        req: Request<WatchRequest>,
+    ) -> Result<Response<Self::WatchStream>, Status> {
         let r = req.into_inner();
         if !r.max_rate_hz.is_finite() || r.max_rate_hz < 0.0 {
-            return Err(Status::invalid_argument(format!("max_rate_hz = {} must be a finite number >= 0", r.max_rate_hz)));
+            return Err(Status::invalid_argument(format!(
+                "max_rate_hz = {} must be a finite number >= 0",
+                r.max_rate_hz
+            )));
         }
-        let rate = if r.max_rate_hz == 0.0 { DEFAULT_VIEWER_RATE_HZ } else { r.max_rate_hz.min(MAX_VIEWER_RATE_HZ) };
+        let rate = if r.max_rate_hz == 0.0 {
+            DEFAULT_VIEWER_RATE_HZ
+        } else {
+            r.max_rate_hz.min(MAX_VIEWER_RATE_HZ)
+        };
         let session = self.manager.get(&r.session_id)?;
         let (mut frames, guard) = session.watch();
         let (tx, rx) = mpsc::channel(4);
@@ -245,20 +313,31 @@ impl SurfaceStream for Services {
                 if frames.changed().await.is_err() {
                     break; // session ended
                 }
-                let Some(f) = frames.borrow_and_update().clone() else { continue };
+                let Some(f) = frames.borrow_and_update().clone() else {
+                    continue;
+                };
                 let keyframe = count == 0;
                 let frame = SurfaceFrame {
                     frame: count,
                     sim_time_s: f.sim_time_s,
                     keyframe,
                     positions_m: f.positions_m.clone(),
-                    triangles: if keyframe { session.triangles.as_ref().clone() } else { Vec::new() },
+                    triangles: if keyframe {
+                        session.triangles.as_ref().clone()
+                    } else {
+                        Vec::new()
+                    },
                     probe_position_m: Some(Vec3::from(f.probe_m)),
                     contact_force_n: Some(Vec3::from(f.force_n)),
                     in_contact: f.in_contact,
                     probe_radius_m: session.probe_radius_m,
                     server_time_us: unix_time_us(),
                     max_displacement_m: f.max_displacement_m,
+                    rest_positions_m: if keyframe {
+                        session.rest_positions.as_ref().clone()
+                    } else {
+                        Vec::new()
+                    },
                 };
                 if tx.send(Ok(frame)).await.is_err() {
                     break; // viewer went away
@@ -267,6 +346,8 @@ impl SurfaceStream for Services {
                 tokio::time::sleep(period).await;
             }
         });
-        Ok(Response::new(Box::pin(ReceiverStream::new(rx)) as FrameStream))
+        Ok(Response::new(
+            Box::pin(ReceiverStream::new(rx)) as FrameStream
+        ))
     }
 }

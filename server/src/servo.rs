@@ -172,7 +172,11 @@ pub struct Pacer {
 impl Pacer {
     /// First deadline at `start_us + period_us`.
     pub fn new(start_us: u64, period_us: u64) -> Self {
-        Self { period_us, deadline_us: start_us + period_us, overruns: 0 }
+        Self {
+            period_us,
+            deadline_us: start_us + period_us,
+            overruns: 0,
+        }
     }
 
     /// The absolute time the next tick must start, µs.
@@ -253,7 +257,13 @@ fn histogram() -> Histogram<u64> {
 
 impl ServoCore {
     /// Builds the core. `snapshot_every` / `stats_every` are in ticks (>= 1).
-    pub fn new(sim: Simulation, ends: ServoEnds, shared: Arc<SessionShared>, snapshot_every: u32, stats_every: u32) -> Self {
+    pub fn new(
+        sim: Simulation,
+        ends: ServoEnds,
+        shared: Arc<SessionShared>,
+        snapshot_every: u32,
+        stats_every: u32,
+    ) -> Self {
         Self {
             sim,
             commands: ends.commands,
@@ -295,7 +305,10 @@ impl ServoCore {
     pub fn tick(&mut self, now_us: u64, clock: &impl Clock) -> Flow {
         if self.shared.stop.load(Ordering::Acquire) {
             let seq = self.last_seq.unwrap_or(0);
-            let _ = self.forces.push(ForceOut { seq, ..ForceOut::default() });
+            let _ = self.forces.push(ForceOut {
+                seq,
+                ..ForceOut::default()
+            });
             self.shared.finished.store(true, Ordering::Release);
             return Flow::Stop;
         }
@@ -305,7 +318,11 @@ impl ServoCore {
         // 1. Commands.
         while let Ok(cmd) = self.commands.pop() {
             match cmd {
-                Command::ApplyForce { point_m, force_n, duration_s } => {
+                Command::ApplyForce {
+                    point_m,
+                    force_n,
+                    duration_s,
+                } => {
                     // Validated by the handler; a full load table drops the command.
                     let _ = self.sim.add_point_load(point_m, force_n, duration_s);
                 }
@@ -334,7 +351,9 @@ impl ServoCore {
                 Ok(o) => Some(o),
                 Err(e) => {
                     self.fault = Some(match e {
-                        ModelError::Diverged { .. } => "the simulation diverged; session quarantined (zero force)",
+                        ModelError::Diverged { .. } => {
+                            "the simulation diverged; session quarantined (zero force)"
+                        }
                         ModelError::InvalidDevice(m) => m,
                         _ => "the model failed; session quarantined (zero force)",
                     });
@@ -347,7 +366,10 @@ impl ServoCore {
         let t1 = clock.now_us();
         self.step_hist.saturating_record((t1 - t0).max(1));
         // 4. Guard and hand out the force.
-        let mut force = ForceOut { seq: pose.seq, ..ForceOut::default() };
+        let mut force = ForceOut {
+            seq: pose.seq,
+            ..ForceOut::default()
+        };
         if let Some(o) = out {
             if o.force_on_device_n.is_finite() {
                 force.force_n = o.force_on_device_n;
@@ -363,12 +385,14 @@ impl ServoCore {
             // bridge's watchdog ramps the force down).
             let _ = self.forces.push(force);
             let done = clock.now_us();
-            self.p2f_hist.saturating_record(done.saturating_sub(pose.received_us).max(1));
+            self.p2f_hist
+                .saturating_record(done.saturating_sub(pose.received_us).max(1));
         }
         self.ticks += 1;
         self.window_ticks += 1;
         // 5. Snapshot for viewers.
-        if self.ticks % self.snapshot_every == 0 && self.shared.watchers.load(Ordering::Relaxed) > 0 {
+        if self.ticks % self.snapshot_every == 0 && self.shared.watchers.load(Ordering::Relaxed) > 0
+        {
             let snap = self.snapshot.input_buffer_mut();
             snap.tick = self.ticks;
             snap.sim_time_s = self.sim.state().time_s;
@@ -397,8 +421,16 @@ impl ServoCore {
                 step_p50_us: self.step_hist.value_at_quantile(0.5) as f64,
                 step_p99_us: self.step_hist.value_at_quantile(0.99) as f64,
                 step_max_us: self.step_hist.max() as f64,
-                pose_to_force_p50_us: if self.p2f_hist.is_empty() { 0.0 } else { self.p2f_hist.value_at_quantile(0.5) as f64 },
-                pose_to_force_p99_us: if self.p2f_hist.is_empty() { 0.0 } else { self.p2f_hist.value_at_quantile(0.99) as f64 },
+                pose_to_force_p50_us: if self.p2f_hist.is_empty() {
+                    0.0
+                } else {
+                    self.p2f_hist.value_at_quantile(0.5) as f64
+                },
+                pose_to_force_p99_us: if self.p2f_hist.is_empty() {
+                    0.0
+                } else {
+                    self.p2f_hist.value_at_quantile(0.99) as f64
+                },
                 sim_time_s: self.sim.state().time_s,
                 in_contact: force.in_contact,
                 peak_force_n: self.peak_force_n,
@@ -421,7 +453,9 @@ pub fn setup_realtime(cfg: &crate::config::ServoConfig) -> Vec<String> {
             .map(core_affinity::set_for_current)
             .unwrap_or(false);
         if !ok {
-            warnings.push(format!("could not pin the servo thread to CPU {cpu}; running unpinned"));
+            warnings.push(format!(
+                "could not pin the servo thread to CPU {cpu}; running unpinned"
+            ));
         }
     }
     if cfg.realtime {
@@ -431,14 +465,20 @@ pub fn setup_realtime(cfg: &crate::config::ServoConfig) -> Vec<String> {
         );
         let policy = ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo);
         if let Err(e) = set_thread_priority_and_policy(thread_native_id(), prio, policy) {
-            warnings.push(format!("SCHED_FIFO priority {} refused ({e:?}); running with normal scheduling", cfg.priority));
+            warnings.push(format!(
+                "SCHED_FIFO priority {} refused ({e:?}); running with normal scheduling",
+                cfg.priority
+            ));
         }
     }
     if cfg.mlockall {
         // SAFETY: mlockall has no memory-safety preconditions; it only changes paging.
         let rc = unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) };
         if rc != 0 {
-            warnings.push(format!("mlockall failed ({}); memory may be paged", std::io::Error::last_os_error()));
+            warnings.push(format!(
+                "mlockall failed ({}); memory may be paged",
+                std::io::Error::last_os_error()
+            ));
         }
     }
     warnings
@@ -446,7 +486,12 @@ pub fn setup_realtime(cfg: &crate::config::ServoConfig) -> Vec<String> {
 
 /// Runs the servo loop until stopped: paces ticks at `period_us` with absolute deadlines and
 /// wakes `forwarder` after each tick that produced a force.
-pub fn run_loop(mut core: ServoCore, clock: MonotonicClock, period_us: u64, forwarder: std::thread::Thread) {
+pub fn run_loop(
+    mut core: ServoCore,
+    clock: MonotonicClock,
+    period_us: u64,
+    forwarder: std::thread::Thread,
+) {
     let sleeper = spin_sleep::SpinSleeper::default();
     let mut pacer = Pacer::new(clock.now_us(), period_us);
     loop {

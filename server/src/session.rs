@@ -19,7 +19,10 @@ use tonic::Status;
 
 use crate::config::ServerConfig;
 use crate::error::ServerError;
-use crate::servo::{self, Command, ForceOut, MonotonicClock, Pose, ServoCore, ServoEnds, SessionShared, Snapshot, StatsSnapshot};
+use crate::servo::{
+    self, Command, ForceOut, MonotonicClock, Pose, ServoCore, ServoEnds, SessionShared, Snapshot,
+    StatsSnapshot,
+};
 
 /// Capacity of the command ring (ApplyForce requests queued between two ticks).
 pub const COMMAND_CAPACITY: usize = 64;
@@ -68,6 +71,8 @@ pub struct Session {
     pub probe_radius_m: f64,
     /// Surface triangles for keyframes (three indices each).
     pub triangles: Arc<Vec<u32>>,
+    /// Rest positions of the surface vertices for keyframes, xyz, m.
+    pub rest_positions: Arc<Vec<f32>>,
     /// Shared atomics.
     pub shared: Arc<SessionShared>,
     /// Session clock zero.
@@ -82,7 +87,10 @@ pub struct Session {
 
 /// Microseconds since the UNIX epoch (cross-process timestamps for frame age and latency).
 pub fn unix_time_us() -> u64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_micros() as u64).unwrap_or(0)
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_micros() as u64)
+        .unwrap_or(0)
 }
 
 impl Session {
@@ -91,8 +99,12 @@ impl Session {
     /// # Errors
     /// [`ServerError::Exhausted`] when the ring is full.
     pub fn send(&self, cmd: Command) -> Result<(), ServerError> {
-        let mut p = self.commands.lock().map_err(|_| ServerError::Internal("command ring poisoned".into()))?;
-        p.push(cmd).map_err(|_| ServerError::Exhausted("too many commands queued for this session".into()))
+        let mut p = self
+            .commands
+            .lock()
+            .map_err(|_| ServerError::Internal("command ring poisoned".into()))?;
+        p.push(cmd)
+            .map_err(|_| ServerError::Exhausted("too many commands queued for this session".into()))
     }
 
     /// Latest published statistics.
@@ -107,20 +119,34 @@ impl Session {
     ///
     /// # Errors
     /// [`ServerError::FailedPrecondition`] when a device is already connected.
-    pub fn attach_device(&self, tx: ForceSender) -> Result<triple_buffer::Input<Pose>, ServerError> {
+    pub fn attach_device(
+        &self,
+        tx: ForceSender,
+    ) -> Result<triple_buffer::Input<Pose>, ServerError> {
         let input = self
             .pose_input
             .lock()
             .map_err(|_| ServerError::Internal("pose slot poisoned".into()))?
             .take()
-            .ok_or_else(|| ServerError::FailedPrecondition(format!("session {} already has a device connected", self.id)))?;
-        *self.link.lock().map_err(|_| ServerError::Internal("link poisoned".into()))? = Some(tx);
+            .ok_or_else(|| {
+                ServerError::FailedPrecondition(format!(
+                    "session {} already has a device connected",
+                    self.id
+                ))
+            })?;
+        *self
+            .link
+            .lock()
+            .map_err(|_| ServerError::Internal("link poisoned".into()))? = Some(tx);
         Ok(input)
     }
 
     /// Detaches the device stream and returns the pose input (publishing "disconnected").
     pub fn detach_device(&self, mut input: triple_buffer::Input<Pose>) {
-        input.write(Pose { connected: false, ..Pose::default() });
+        input.write(Pose {
+            connected: false,
+            ..Pose::default()
+        });
         if let Ok(mut l) = self.link.lock() {
             *l = None;
         }
@@ -138,7 +164,11 @@ impl Session {
     /// Stops the servo (it sends a zero force), joins its threads. Idempotent.
     pub fn stop(&self) {
         self.shared.stop.store(true, Ordering::Release);
-        let threads: Vec<_> = self.threads.lock().map(|mut t| t.drain(..).collect()).unwrap_or_default();
+        let threads: Vec<_> = self
+            .threads
+            .lock()
+            .map(|mut t| t.drain(..).collect())
+            .unwrap_or_default();
         for t in threads {
             let _ = t.join();
         }
@@ -171,7 +201,10 @@ pub struct SessionManager {
 impl SessionManager {
     /// An empty manager.
     pub fn new(config: ServerConfig) -> Self {
-        Self { config, sessions: Mutex::new(HashMap::new()) }
+        Self {
+            config,
+            sessions: Mutex::new(HashMap::new()),
+        }
     }
 
     /// The daemon configuration.
@@ -194,7 +227,11 @@ impl SessionManager {
 
     /// Ids of all sessions, sorted.
     pub fn ids(&self) -> Vec<String> {
-        let mut v: Vec<String> = self.sessions.lock().map(|s| s.keys().cloned().collect()).unwrap_or_default();
+        let mut v: Vec<String> = self
+            .sessions
+            .lock()
+            .map(|s| s.keys().cloned().collect())
+            .unwrap_or_default();
         v.sort();
         v
     }
@@ -216,7 +253,9 @@ impl SessionManager {
             return Ok(scene::parse_scene_toml(toml_text, &self.config.scene_dir)?);
         }
         if name.is_empty() {
-            return Err(ServerError::InvalidArgument("give a built-in scene name or scene_toml".into()));
+            return Err(ServerError::InvalidArgument(
+                "give a built-in scene name or scene_toml".into(),
+            ));
         }
         Ok(scene::load_builtin(name)?)
     }
@@ -229,7 +268,10 @@ impl SessionManager {
     /// simulation cannot be built (e.g. an unstable explicit configuration).
     pub fn start(&self, scene: &Scene) -> Result<Arc<Session>, ServerError> {
         if self.sessions.lock().map(|s| s.len()).unwrap_or(0) >= self.config.max_sessions {
-            return Err(ServerError::Exhausted(format!("the server runs its limit of {} sessions", self.config.max_sessions)));
+            return Err(ServerError::Exhausted(format!(
+                "the server runs its limit of {} sessions",
+                self.config.max_sessions
+            )));
         }
         let sim = Simulation::new(scene)?;
         let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
@@ -237,10 +279,15 @@ impl SessionManager {
         let (cmd_tx, cmd_rx) = rtrb::RingBuffer::new(COMMAND_CAPACITY);
         let (force_tx, mut force_rx) = rtrb::RingBuffer::<ForceOut>::new(FORCE_CAPACITY);
         let (pose_in, pose_out) = triple_buffer::triple_buffer(&Pose::default());
-        let snap0 = Snapshot { positions_m: vec![0.0; 3 * sim.surface_node_indices().len()], ..Snapshot::default() };
+        let snap0 = Snapshot {
+            positions_m: vec![0.0; 3 * sim.surface_node_indices().len()],
+            ..Snapshot::default()
+        };
         let (snap_in, mut snap_out) = triple_buffer::triple_buffer(&snap0);
         let (stats_in, stats_out) = triple_buffer::triple_buffer(&StatsSnapshot::default());
         let triangles: Vec<u32> = sim.surface_triangles().iter().flatten().copied().collect();
+        let mut rest_positions = vec![0.0f32; 3 * sim.surface_node_indices().len()];
+        sim.write_surface_positions(&mut rest_positions);
         let plan = sim.plan();
         let probe_radius_m = sim.probe_radius_m();
         let period_us = (sim.tick_s() * 1e6).round().max(1.0) as u64;
@@ -252,23 +299,31 @@ impl SessionManager {
         let fwd_link = link.clone();
         let forwarder = std::thread::Builder::new()
             .name(format!("fwd-{id}"))
-            .spawn(move || loop {
-                std::thread::park_timeout(Duration::from_millis(5));
-                while let Ok(f) = force_rx.pop() {
-                    let sender = fwd_link.lock().ok().and_then(|l| l.clone());
-                    if let Some(tx) = sender {
-                        let _ = tx.try_send(Ok(force_command(&f)));
+            .spawn(move || {
+                loop {
+                    std::thread::park_timeout(Duration::from_millis(5));
+                    while let Ok(f) = force_rx.pop() {
+                        let sender = fwd_link.lock().ok().and_then(|l| l.clone());
+                        if let Some(tx) = sender {
+                            let _ = tx.try_send(Ok(force_command(&f)));
+                        }
                     }
-                }
-                if fwd_shared.finished.load(Ordering::Acquire) && force_rx.is_empty() {
-                    break;
+                    if fwd_shared.finished.load(Ordering::Acquire) && force_rx.is_empty() {
+                        break;
+                    }
                 }
             })
             .map_err(|e| ServerError::Internal(format!("spawning the forwarder: {e}")))?;
         let servo_cfg = self.config.servo.clone();
         let core = ServoCore::new(
             sim,
-            ServoEnds { commands: cmd_rx, pose: pose_out, forces: force_tx, snapshot: snap_in, stats: stats_in },
+            ServoEnds {
+                commands: cmd_rx,
+                pose: pose_out,
+                forces: force_tx,
+                snapshot: snap_in,
+                stats: stats_in,
+            },
             shared.clone(),
             servo_cfg.snapshot_every_ticks,
             servo_cfg.stats_every_ticks,
@@ -293,7 +348,9 @@ impl SessionManager {
             tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
             loop {
                 tick.tick().await;
-                if frame_shared.finished.load(Ordering::Acquire) || frame_shared.stop.load(Ordering::Acquire) {
+                if frame_shared.finished.load(Ordering::Acquire)
+                    || frame_shared.stop.load(Ordering::Acquire)
+                {
                     break;
                 }
                 if frame_shared.watchers.load(Ordering::Acquire) == 0 || !snap_out.update() {
@@ -322,9 +379,14 @@ impl SessionManager {
             nodes: scene.mesh.node_count() as u32,
             tetrahedra: scene.mesh.tet_count() as u32,
             substeps: plan.substeps,
-            critical_dt_s: if plan.critical_dt_s.is_finite() { plan.critical_dt_s } else { 0.0 },
+            critical_dt_s: if plan.critical_dt_s.is_finite() {
+                plan.critical_dt_s
+            } else {
+                0.0
+            },
             probe_radius_m,
             triangles: Arc::new(triangles),
+            rest_positions: Arc::new(rest_positions),
             shared,
             epoch,
             commands: Mutex::new(cmd_tx),
@@ -358,7 +420,11 @@ impl SessionManager {
 
     /// Stops every session (shutdown path).
     pub fn stop_all(&self) {
-        let all: Vec<Arc<Session>> = self.sessions.lock().map(|mut s| s.drain().map(|(_, v)| v).collect()).unwrap_or_default();
+        let all: Vec<Arc<Session>> = self
+            .sessions
+            .lock()
+            .map(|mut s| s.drain().map(|(_, v)| v).collect())
+            .unwrap_or_default();
         for s in all {
             s.stop();
         }

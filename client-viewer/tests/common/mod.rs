@@ -105,6 +105,7 @@ pub fn pushed_frame(k: u64, keyframe: bool) -> SurfaceFrame {
         probe_radius_m: 0.004,
         server_time_us: now_us(),
         max_displacement_m: d as f64,
+        rest_positions_m: Vec::new(),
     }
 }
 
