@@ -77,8 +77,9 @@ pub struct Args {
     /// Press direction X,Y,Z (normalised).
     #[arg(long, default_value = "-1,0,0", value_parser = parse_vec3, allow_hyphen_values = true)]
     pub direction: [f64; 3],
-    /// Press depth in m (press, stroke).
-    #[arg(long, default_value_t = 0.004)]
+    /// Press depth in m (press, stroke): travel from the start point. The default takes the 2 mm
+    /// probe from 14 mm to 8 mm off the LV axis, 3.7 mm into the epicardium (9.68 mm at z = -5 mm).
+    #[arg(long, default_value_t = 0.006)]
     pub depth_m: f64,
     /// Probe speed in m/s (press, stroke).
     #[arg(long, default_value_t = 0.01)]
@@ -245,7 +246,7 @@ mod tests {
         .unwrap();
         assert_eq!(a.start_m, [0.014, 0.0, -0.005]);
         assert_eq!(a.direction, [-1.0, 0.0, 0.0]);
-        assert_eq!((a.depth_m, a.speed_m_per_s, a.hold_s), (0.004, 0.01, 1.0));
+        assert_eq!((a.depth_m, a.speed_m_per_s, a.hold_s), (0.006, 0.01, 1.0));
         let s = a.setup().unwrap();
         assert_eq!(s.config.guard.max_force_n, 10.0);
         assert!(s.device.press_axis().is_some());
