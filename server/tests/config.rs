@@ -1,0 +1,54 @@
+//! The shipped configuration parses and validates; layering and bad values are reported.
+
+use std::path::Path;
+
+use haptic_server::config::{ConfigFile, LogFormat, ServerConfig};
+
+#[test]
+fn deploy_config_parses_and_matches_the_defaults() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/hapticd.toml");
+    let cfg = ConfigFile::load(&path).unwrap().into_config().unwrap();
+    // The shipped file documents the defaults: parsing it must give exactly them.
+    assert_eq!(cfg, ServerConfig::default());
+    assert_eq!(cfg.log_format, LogFormat::Text);
+}
+
+#[test]
+fn bad_configuration_is_reported_by_field() {
+    let unknown = ConfigFile::parse("listen = \"127.0.0.1:1\"\nlisten_port = 3\n")
+        .unwrap_err()
+        .to_string();
+    assert!(unknown.contains("listen_port"), "{unknown}");
+    let bad_addr = ConfigFile::parse("listen = \"nowhere\"")
+        .unwrap()
+        .into_config()
+        .unwrap_err()
+        .to_string();
+    assert!(bad_addr.contains("listen"), "{bad_addr}");
+    let prio = ConfigFile::parse("[servo]\npriority = 0")
+        .unwrap()
+        .into_config()
+        .unwrap_err()
+        .to_string();
+    assert!(prio.contains("servo.priority"), "{prio}");
+    let fmt = ConfigFile::parse("log_format = \"xml\"")
+        .unwrap()
+        .into_config()
+        .unwrap_err()
+        .to_string();
+    assert!(fmt.contains("log_format"), "{fmt}");
+}
+
+#[test]
+fn file_values_override_defaults() {
+    let cfg = ConfigFile::parse(
+        "listen = \"127.0.0.1:0\"\nmax_sessions = 2\n[servo]\ncpu = 1\nrealtime = true",
+    )
+    .unwrap()
+    .into_config()
+    .unwrap();
+    assert_eq!(cfg.listen.port(), 0);
+    assert_eq!(cfg.max_sessions, 2);
+    assert_eq!(cfg.servo.cpu, Some(1));
+    assert!(cfg.servo.realtime);
+}

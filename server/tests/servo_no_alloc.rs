@@ -1,0 +1,135 @@
+//! The servo tick allocates nothing (STYLE.md habit 4): a counting global allocator, enabled only
+//! on this thread and only inside `ServoCore::tick`, must see zero allocations over thousands of
+//! ticks that exercise every path: device poses in and out of contact, point-load commands,
+//! snapshots for a watcher, statistics publication, and a device disconnect.
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use haptic_model::DVec3;
+use haptic_model::scene::load_builtin;
+use haptic_model::sim::Simulation;
+use haptic_server::servo::{
+    Clock, Command, ForceOut, Pose, ServoCore, ServoEnds, SessionShared, Snapshot, StatsSnapshot,
+};
+
+struct Counting;
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+thread_local! {
+    static COUNTING: Cell<bool> = const { Cell::new(false) };
+}
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        if COUNTING.with(|c| c.get()) {
+            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        }
+        // SAFETY: forwarded unchanged to the system allocator.
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: forwarded unchanged to the system allocator.
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        if COUNTING.with(|c| c.get()) {
+            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        }
+        // SAFETY: forwarded unchanged to the system allocator.
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+/// A clock the test advances by hand.
+struct ManualClock(Cell<u64>);
+impl Clock for ManualClock {
+    fn now_us(&self) -> u64 {
+        let t = self.0.get();
+        self.0.set(t + 7);
+        t
+    }
+}
+
+#[test]
+fn servo_tick_never_allocates() {
+    let scene = load_builtin("lv").unwrap();
+    let sim = Simulation::new(&scene).unwrap();
+    let surface = sim.surface_node_indices().len();
+    let shared = Arc::new(SessionShared::default());
+    let (mut cmd_tx, cmd_rx) = rtrb::RingBuffer::new(64);
+    let (force_tx, mut force_rx) = rtrb::RingBuffer::<ForceOut>::new(256);
+    let (mut pose_in, pose_out) = triple_buffer::triple_buffer(&Pose::default());
+    let snap0 = Snapshot {
+        positions_m: vec![0.0; 3 * surface],
+        ..Snapshot::default()
+    };
+    let (snap_in, mut snap_out) = triple_buffer::triple_buffer(&snap0);
+    let (stats_in, mut stats_out) = triple_buffer::triple_buffer(&StatsSnapshot::default());
+    let mut core = ServoCore::new(
+        sim,
+        ServoEnds {
+            commands: cmd_rx,
+            pose: pose_out,
+            forces: force_tx,
+            snapshot: snap_in,
+            stats: stats_in,
+        },
+        shared.clone(),
+        4,
+        50,
+    );
+    shared.watchers.store(1, Ordering::Relaxed);
+    let clock = ManualClock(Cell::new(0));
+    let mut worst = 0;
+    let mut contact_ticks = 0;
+    for k in 0..3000u64 {
+        // Press 6 mm along -x over 1.5 s, then leave; disconnect for the last 300 ticks.
+        let depth = 0.006 * (k as f64 / 1500.0).min(1.0);
+        let connected = k < 2700;
+        pose_in.write(Pose {
+            seq: k,
+            position_m: DVec3::new(0.014 - depth, 0.0, -0.005),
+            velocity_m_per_s: DVec3::new(-0.004, 0.0, 0.0),
+            received_us: clock.0.get(),
+            connected,
+        });
+        if k % 500 == 100 {
+            cmd_tx
+                .push(Command::ApplyForce {
+                    point_m: DVec3::new(0.0, 0.00968, -0.005),
+                    force_n: DVec3::new(0.0, -0.02, 0.0),
+                    duration_s: 0.05,
+                })
+                .unwrap();
+        }
+        let before = ALLOCATIONS.load(Ordering::Relaxed);
+        COUNTING.with(|c| c.set(true));
+        let now = clock.now_us();
+        core.tick(now, &clock);
+        COUNTING.with(|c| c.set(false));
+        worst = worst.max(ALLOCATIONS.load(Ordering::Relaxed) - before);
+        while let Ok(f) = force_rx.pop() {
+            if f.in_contact {
+                contact_ticks += 1;
+            }
+        }
+        snap_out.update();
+    }
+    assert_eq!(worst, 0, "a servo tick allocated");
+    assert_eq!(ALLOCATIONS.load(Ordering::Relaxed), 0);
+    // The paths were really exercised.
+    assert!(contact_ticks > 500, "contact ticks {contact_ticks}");
+    let stats = *stats_out.read();
+    assert_eq!(stats.steps, 3000);
+    assert!(
+        stats.peak_force_n > 0.01 && stats.fault.is_none(),
+        "{stats:?}"
+    );
+    assert!(snap_out.output_buffer().tick > 0);
+    assert!(core.sim().active_point_loads() <= 1);
+}
