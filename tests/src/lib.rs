@@ -1,1 +1,544 @@
-//! End-to-end test support crate (the tests live in `tests/tests/`).
+//! End-to-end harness: finds the workspace binaries (`hapticd`, `haptic-bridge`,
+//! `haptic-viewer`, `hapticctl`), starts `hapticd` on `127.0.0.1:0` as a child process
+//! ([`Daemon`]), runs the client binaries with timeouts ([`run_bin`], [`spawn_bin`],
+//! [`finish`]) and builds gRPC clients ([`session_control`], [`device_link`],
+//! [`surface_stream`]).
+//!
+//! Neighbours: the tests in `tests/tests/*.rs` use it, and so does the `haptic-demo` runner
+//! ([`demo`]). Nothing here asserts wall-clock timing: the machines are 2-core and shared, so
+//! every wait is a generous, bounded timeout.
+
+pub mod demo;
+
+use std::io::{BufRead, BufReader};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, ExitStatus, Stdio};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, mpsc};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, anyhow, bail};
+use haptics_proto::v1::device_link_client::DeviceLinkClient;
+use haptics_proto::v1::session_control_client::SessionControlClient;
+use haptics_proto::v1::surface_stream_client::SurfaceStreamClient;
+use tonic::transport::{Channel, Endpoint};
+
+/// The daemon binary.
+pub const HAPTICD: &str = "hapticd";
+/// The device bridge binary.
+pub const BRIDGE: &str = "haptic-bridge";
+/// The headless viewer binary.
+pub const VIEWER: &str = "haptic-viewer";
+/// The scripted client binary.
+pub const CTL: &str = "hapticctl";
+
+/// Generous default timeout for one step (start-up, an RPC, a short client run); never a
+/// performance assertion.
+pub const STEP_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// Largest daemon log kept in memory (the tail is printed when a test fails).
+const LOG_CAP_BYTES: usize = 64 * 1024;
+
+/// The directory holding the workspace binaries of the build profile this executable belongs to.
+///
+/// Order: `HAPTIC_BIN_DIR` if set; the directory of the current executable (one level up from
+/// `deps/` for test binaries, e.g. `target/debug`); then `$CARGO_TARGET_DIR/<profile>` and
+/// `$CARGO_TARGET_DIR/debug`. The first candidate that holds `hapticd` wins.
+///
+/// # Errors
+/// None of the candidates holds `hapticd`; the message says to build the binaries.
+pub fn bin_dir() -> Result<PathBuf> {
+    let mut candidates = Vec::new();
+    if let Some(d) = std::env::var_os("HAPTIC_BIN_DIR") {
+        candidates.push(PathBuf::from(d));
+    }
+    let mut profile = "debug".to_string();
+    let exe_dir = std::env::current_exe()
+        .ok()
+        .and_then(|exe| exe.parent().map(Path::to_path_buf));
+    if let Some(mut dir) = exe_dir {
+        if dir.file_name().is_some_and(|n| n == "deps") {
+            dir.pop();
+        }
+        if let Some(n) = dir.file_name() {
+            profile = n.to_string_lossy().into_owned();
+        }
+        candidates.push(dir);
+    }
+    if let Some(t) = std::env::var_os("CARGO_TARGET_DIR") {
+        let t = PathBuf::from(t);
+        candidates.push(t.join(&profile));
+        candidates.push(t.join("debug"));
+    }
+    candidates
+        .iter()
+        .find(|d| d.join(HAPTICD).is_file())
+        .cloned()
+        .ok_or_else(|| {
+            anyhow!(
+                "the workspace binaries ({HAPTICD}, {BRIDGE}, {VIEWER}, {CTL}) were not found in \
+                 {candidates:?}: run `cargo build --workspace --bins` first (or set HAPTIC_BIN_DIR)"
+            )
+        })
+}
+
+/// Path of the workspace binary `name` in [`bin_dir`].
+///
+/// # Errors
+/// The binary is missing; the message says to run `cargo build --workspace --bins`.
+pub fn binary(name: &str) -> Result<PathBuf> {
+    binary_in(&bin_dir()?, name)
+}
+
+/// Path of `name` in `dir`, checked to exist.
+///
+/// # Errors
+/// The file is missing; the message says to run `cargo build --workspace --bins`.
+pub fn binary_in(dir: &Path, name: &str) -> Result<PathBuf> {
+    let p = dir.join(name);
+    if p.is_file() {
+        Ok(p)
+    } else {
+        bail!(
+            "{} not found: run `cargo build --workspace --bins` first",
+            p.display()
+        )
+    }
+}
+
+/// A `hapticd` child process listening on a loopback port. SIGTERM, then SIGKILL, on drop.
+pub struct Daemon {
+    /// The address it printed (`listening on ADDR`).
+    pub addr: SocketAddr,
+    /// The process; `None` once [`Daemon::terminate`] reaped it.
+    pub child: Option<Child>,
+    log: Arc<Mutex<String>>,
+}
+
+impl Daemon {
+    /// Starts `hapticd` from [`bin_dir`] with `args`, adding `--listen 127.0.0.1:0` unless
+    /// `args` has `--listen`, and waits (up to [`STEP_TIMEOUT`]) for `listening on ADDR`.
+    ///
+    /// # Errors
+    /// The binary is missing, does not start, exits or stays silent before printing its address.
+    pub fn spawn(args: &[&str]) -> Result<Daemon> {
+        Self::spawn_from(&binary(HAPTICD)?, args)
+    }
+
+    /// As [`Daemon::spawn`], with an explicit binary path.
+    ///
+    /// # Errors
+    /// As [`Daemon::spawn`].
+    pub fn spawn_from(exe: &Path, args: &[&str]) -> Result<Daemon> {
+        let mut cmd = std::process::Command::new(exe);
+        if !args.contains(&"--listen") {
+            cmd.args(["--listen", "127.0.0.1:0"]);
+        }
+        let mut child = cmd
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .with_context(|| format!("starting {}", exe.display()))?;
+        let log = Arc::new(Mutex::new(String::new()));
+        // Both pipes are drained for the child's whole life so that it never blocks on a full
+        // pipe; stderr (the log) is kept for failure reports.
+        let stderr = child.stderr.take().expect("piped stderr");
+        let err_log = log.clone();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                append_log(&err_log, &line);
+            }
+        });
+        let stdout = child.stdout.take().expect("piped stdout");
+        let (tx, rx) = mpsc::channel();
+        let out_log = log.clone();
+        std::thread::spawn(move || {
+            let mut tx = Some(tx);
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                if let Some(rest) = line.trim().strip_prefix("listening on ") {
+                    if let Some(tx) = tx.take() {
+                        let _ = tx.send(rest.trim().to_string());
+                    }
+                } else {
+                    append_log(&out_log, &line);
+                }
+            }
+        });
+        let mut daemon = Daemon {
+            addr: SocketAddr::from(([127, 0, 0, 1], 0)),
+            child: Some(child),
+            log,
+        };
+        match rx.recv_timeout(STEP_TIMEOUT) {
+            Ok(a) => {
+                daemon.addr = a
+                    .parse()
+                    .with_context(|| format!("hapticd printed a bad address {a:?}"))?;
+                Ok(daemon)
+            }
+            Err(_) => {
+                let status = daemon
+                    .child
+                    .as_mut()
+                    .and_then(|c| c.try_wait().ok().flatten());
+                bail!(
+                    "hapticd did not print `listening on ADDR` within {STEP_TIMEOUT:?} \
+                     (exit status: {status:?}); log:\n{}",
+                    daemon.log_tail()
+                )
+            }
+        }
+    }
+
+    /// `http://ADDR`, for gRPC clients and the client binaries' `--server`.
+    pub fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    /// The process id (0 once reaped).
+    pub fn pid(&self) -> u32 {
+        self.child.as_ref().map_or(0, Child::id)
+    }
+
+    /// The last few KiB of the daemon's log (stderr and unexpected stdout).
+    pub fn log_tail(&self) -> String {
+        self.log.lock().map(|l| l.clone()).unwrap_or_default()
+    }
+
+    /// Sends SIGTERM and waits up to `timeout` for the exit.
+    ///
+    /// # Errors
+    /// The process did not exit in time (it is then killed) or could not be waited for.
+    pub fn terminate(&mut self, timeout: Duration) -> Result<ExitStatus> {
+        let mut child = self.child.take().context("hapticd was already reaped")?;
+        signal(&child, libc::SIGTERM);
+        match wait_timeout(&mut child, timeout)? {
+            Some(status) => Ok(status),
+            None => {
+                let _ = child.kill();
+                let _ = child.wait();
+                bail!(
+                    "hapticd did not exit within {timeout:?} of SIGTERM; log:\n{}",
+                    self.log_tail()
+                )
+            }
+        }
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            signal(&child, libc::SIGTERM);
+            if !matches!(
+                wait_timeout(&mut child, Duration::from_secs(10)),
+                Ok(Some(_))
+            ) {
+                let _ = child.kill();
+                let _ = child.wait();
+            }
+        }
+        if std::thread::panicking() {
+            eprintln!(
+                "---- hapticd {} log (tail) ----\n{}",
+                self.addr,
+                self.log_tail()
+            );
+        }
+    }
+}
+
+fn append_log(log: &Mutex<String>, line: &str) {
+    if let Ok(mut l) = log.lock() {
+        l.push_str(line);
+        l.push('\n');
+        if l.len() > LOG_CAP_BYTES {
+            let mut cut = l.len() - LOG_CAP_BYTES / 2;
+            while !l.is_char_boundary(cut) {
+                cut += 1;
+            }
+            l.drain(..cut);
+        }
+    }
+}
+
+/// Sends `sig` to a child that has not been reaped yet.
+pub fn signal(child: &Child, sig: libc::c_int) {
+    let Ok(pid) = libc::pid_t::try_from(child.id()) else {
+        return;
+    };
+    // SAFETY: plain FFI call; the child is not reaped yet (we own its `Child`), so the pid
+    // still names it.
+    unsafe {
+        libc::kill(pid, sig);
+    }
+}
+
+/// Polls `child` until it exits or `timeout` passes (`Ok(None)`).
+///
+/// # Errors
+/// `waitpid` failed.
+pub fn wait_timeout(child: &mut Child, timeout: Duration) -> Result<Option<ExitStatus>> {
+    let deadline = Instant::now() + timeout;
+    loop {
+        if let Some(s) = child.try_wait()? {
+            return Ok(Some(s));
+        }
+        if Instant::now() >= deadline {
+            return Ok(None);
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// A finished client process: its status and captured output.
+#[derive(Debug)]
+pub struct CmdOutput {
+    /// What was run (for messages).
+    pub command: String,
+    /// Exit status.
+    pub status: ExitStatus,
+    /// Standard output, lossily decoded.
+    pub stdout: String,
+    /// Standard error, lossily decoded.
+    pub stderr: String,
+}
+
+impl CmdOutput {
+    /// `self` when the exit status is success.
+    ///
+    /// # Errors
+    /// A non-zero exit, with the command, status and stderr in the message.
+    pub fn success(self) -> Result<CmdOutput> {
+        if self.status.success() {
+            Ok(self)
+        } else {
+            bail!(
+                "`{}` failed ({}):\nstdout: {}\nstderr: {}",
+                self.command,
+                self.status,
+                self.stdout.trim(),
+                self.stderr.trim()
+            )
+        }
+    }
+
+    /// The last non-empty stdout line parsed as JSON (the `--json` summaries).
+    ///
+    /// # Errors
+    /// No line, or not JSON.
+    pub fn json(&self) -> Result<serde_json::Value> {
+        let line = self
+            .stdout
+            .lines()
+            .rev()
+            .find(|l| !l.trim().is_empty())
+            .with_context(|| format!("`{}` printed nothing on stdout", self.command))?;
+        serde_json::from_str(line)
+            .with_context(|| format!("`{}` printed non-JSON {line:?}", self.command))
+    }
+}
+
+/// A client binary running in the background (stdout and stderr piped; killed on drop).
+pub struct Spawned {
+    /// What was run (for messages).
+    pub command: String,
+    /// The process.
+    pub child: tokio::process::Child,
+}
+
+/// Starts the workspace binary `name` from `dir` with `args` in the background.
+///
+/// # Errors
+/// Missing binary or spawn failure.
+pub fn spawn_bin_in(dir: &Path, name: &str, args: &[&str]) -> Result<Spawned> {
+    let exe = binary_in(dir, name)?;
+    let command = format!("{name} {}", args.join(" "));
+    let child = tokio::process::Command::new(&exe)
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .kill_on_drop(true)
+        .spawn()
+        .with_context(|| format!("starting `{command}`"))?;
+    Ok(Spawned { command, child })
+}
+
+/// Starts the workspace binary `name` (from [`bin_dir`]) with `args` in the background.
+///
+/// # Errors
+/// Missing binary or spawn failure.
+pub fn spawn_bin(name: &str, args: &[&str]) -> Result<Spawned> {
+    spawn_bin_in(&bin_dir()?, name, args)
+}
+
+/// Waits up to `timeout` for a background binary and collects its output (any exit status;
+/// see [`CmdOutput::success`]).
+///
+/// # Errors
+/// Timeout (the process is killed) or I/O failure.
+pub async fn finish(p: Spawned, timeout: Duration) -> Result<CmdOutput> {
+    let Spawned { command, mut child } = p;
+    let mut out = child.stdout.take().context("stdout not piped")?;
+    let mut err = child.stderr.take().context("stderr not piped")?;
+    let collect = async {
+        use tokio::io::AsyncReadExt;
+        let (mut o, mut e) = (Vec::new(), Vec::new());
+        let (ro, re, status) = tokio::join!(
+            out.read_to_end(&mut o),
+            err.read_to_end(&mut e),
+            child.wait()
+        );
+        ro?;
+        re?;
+        anyhow::Ok((status?, o, e))
+    };
+    match tokio::time::timeout(timeout, collect).await {
+        Ok(r) => {
+            let (status, o, e) = r.with_context(|| format!("waiting for `{command}`"))?;
+            Ok(CmdOutput {
+                command,
+                status,
+                stdout: String::from_utf8_lossy(&o).into_owned(),
+                stderr: String::from_utf8_lossy(&e).into_owned(),
+            })
+        }
+        Err(_) => {
+            let _ = child.start_kill();
+            bail!("`{command}` did not finish within {timeout:?} (killed)")
+        }
+    }
+}
+
+/// Runs the workspace binary `name` with `args` to completion (up to `timeout`).
+///
+/// # Errors
+/// Missing binary, spawn failure or timeout; a non-zero exit is *not* an error here.
+pub async fn run_bin(name: &str, args: &[&str], timeout: Duration) -> Result<CmdOutput> {
+    finish(spawn_bin(name, args)?, timeout).await
+}
+
+/// Same as [`run_bin`] for a binary in `dir`.
+///
+/// # Errors
+/// As [`run_bin`].
+pub async fn run_bin_in(
+    dir: &Path,
+    name: &str,
+    args: &[&str],
+    timeout: Duration,
+) -> Result<CmdOutput> {
+    finish(spawn_bin_in(dir, name, args)?, timeout).await
+}
+
+/// A gRPC channel to `url` (`http://ADDR`), connected within [`STEP_TIMEOUT`].
+///
+/// # Errors
+/// Bad URL or no connection.
+pub async fn channel(url: &str) -> Result<Channel> {
+    let ep = Endpoint::from_shared(url.to_string())
+        .with_context(|| format!("bad server URL {url:?}"))?
+        .connect_timeout(STEP_TIMEOUT)
+        .tcp_nodelay(true);
+    tokio::time::timeout(STEP_TIMEOUT, ep.connect())
+        .await
+        .with_context(|| format!("connecting to {url} timed out"))?
+        .with_context(|| format!("connecting to {url}"))
+}
+
+/// `SessionControl` client for `url`.
+///
+/// # Errors
+/// As [`channel`].
+pub async fn session_control(url: &str) -> Result<SessionControlClient<Channel>> {
+    Ok(SessionControlClient::new(channel(url).await?))
+}
+
+/// `DeviceLink` client for `url`.
+///
+/// # Errors
+/// As [`channel`].
+pub async fn device_link(url: &str) -> Result<DeviceLinkClient<Channel>> {
+    Ok(DeviceLinkClient::new(channel(url).await?))
+}
+
+/// `SurfaceStream` client for `url`.
+///
+/// # Errors
+/// As [`channel`].
+pub async fn surface_stream(url: &str) -> Result<SurfaceStreamClient<Channel>> {
+    Ok(SurfaceStreamClient::new(channel(url).await?))
+}
+
+/// A fresh, empty directory under the system temp dir, named after `prefix`, the process id
+/// and a counter, so parallel tests never share one.
+///
+/// # Errors
+/// The directory cannot be created.
+pub fn unique_temp_dir(prefix: &str) -> Result<PathBuf> {
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let n = COUNTER.fetch_add(1, Ordering::Relaxed);
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.subsec_nanos());
+    let dir = std::env::temp_dir().join(format!("{prefix}-{}-{n}-{nanos}", std::process::id()));
+    if dir.exists() {
+        std::fs::remove_dir_all(&dir)?;
+    }
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    Ok(dir)
+}
+
+/// Index of the vertex of `xyz` (interleaved `[x, y, z, ...]`, metres) nearest to `p`.
+///
+/// # Panics
+/// `xyz` is empty.
+pub fn nearest_vertex(xyz: &[f32], p: [f64; 3]) -> usize {
+    assert!(!xyz.is_empty(), "no vertices");
+    xyz.chunks_exact(3)
+        .enumerate()
+        .map(|(i, v)| {
+            let d: f64 = (0..3).map(|k| (f64::from(v[k]) - p[k]).powi(2)).sum();
+            (i, d)
+        })
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|(i, _)| i)
+        .expect("non-empty")
+}
+
+/// Vertex `i` of interleaved `xyz` as `f64` metres.
+pub fn vertex(xyz: &[f32], i: usize) -> [f64; 3] {
+    [
+        f64::from(xyz[3 * i]),
+        f64::from(xyz[3 * i + 1]),
+        f64::from(xyz[3 * i + 2]),
+    ]
+}
+
+/// Serializes the end-to-end tests of one test binary: each runs a daemon with a 1 kHz servo
+/// thread, and several at once on a shared 2-core machine only measure the machine. An async
+/// lock, since the guard is held across the whole test.
+pub async fn serial() -> tokio::sync::MutexGuard<'static, ()> {
+    static LOCK: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+    LOCK.lock().await
+}
+
+/// Starts the built-in scene `scene` over gRPC and returns the session id.
+///
+/// # Errors
+/// Connection or RPC failure.
+pub async fn start_session(url: &str, scene: &str) -> Result<String> {
+    let mut ctl = session_control(url).await?;
+    let r = ctl
+        .start_session(haptics_proto::v1::StartSessionRequest {
+            scene: scene.to_string(),
+            scene_toml: String::new(),
+        })
+        .await
+        .with_context(|| format!("StartSession {scene}"))?;
+    Ok(r.into_inner().session_id)
+}

@@ -1,0 +1,263 @@
+//! Bad input never corrupts a session (DESIGN.md section 4): every kind of malformed request
+//! gets a precise status and the session keeps stepping. Runs the server in process
+//! (`haptic_server::run` on a port-0 listener with a oneshot shutdown) and talks to it over
+//! loopback gRPC, with a hand-written DeviceLink client for exact sample-by-sample checks.
+
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use haptic_e2e::{STEP_TIMEOUT, device_link, serial, session_control, surface_stream};
+use haptics_proto::v1::{
+    ApplyForceRequest, DeviceSample, ForceCommand, GetStatsRequest, StartSessionRequest,
+    StopSessionRequest, Vec3, WatchRequest,
+};
+use tokio::sync::{mpsc, oneshot};
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::Code;
+
+/// The server library on 127.0.0.1:0; dropping the guard stops it.
+struct InProcess {
+    url: String,
+    stop: Option<oneshot::Sender<()>>,
+    task: Option<tokio::task::JoinHandle<anyhow::Result<()>>>,
+}
+
+impl InProcess {
+    async fn start() -> Result<Self> {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+        let url = format!("http://{}", listener.local_addr()?);
+        let (tx, rx) = oneshot::channel::<()>();
+        let config = haptic_server::ServerConfig {
+            listen: listener.local_addr()?,
+            ..Default::default()
+        };
+        let task = tokio::spawn(haptic_server::run(listener, config, async move {
+            let _ = rx.await;
+        }));
+        Ok(Self {
+            url,
+            stop: Some(tx),
+            task: Some(task),
+        })
+    }
+
+    async fn shutdown(mut self) -> Result<()> {
+        if let Some(tx) = self.stop.take() {
+            let _ = tx.send(());
+        }
+        if let Some(task) = self.task.take() {
+            tokio::time::timeout(STEP_TIMEOUT, task)
+                .await
+                .context("the in-process server did not stop")???;
+        }
+        Ok(())
+    }
+}
+
+impl Drop for InProcess {
+    fn drop(&mut self) {
+        if let Some(tx) = self.stop.take() {
+            let _ = tx.send(());
+        }
+    }
+}
+
+fn sample(session: &str, seq: u64, p: [f64; 3]) -> DeviceSample {
+    DeviceSample {
+        session_id: session.to_string(),
+        seq,
+        device_time_us: seq * 1000,
+        position_m: Some(Vec3::from(p)),
+        velocity_m_per_s: Some(Vec3::new(0.0, 0.0, 0.0)),
+    }
+}
+
+/// Waits (bounded) for a force answering `seq`; panics if one answers a rejected sequence.
+async fn force_for(
+    forces: &mut tonic::Streaming<ForceCommand>,
+    seq: u64,
+    rejected: &[u64],
+) -> Result<ForceCommand> {
+    let deadline = tokio::time::Instant::now() + STEP_TIMEOUT;
+    loop {
+        let f = tokio::time::timeout_at(deadline, forces.message())
+            .await
+            .with_context(|| format!("no ForceCommand with seq {seq}"))??
+            .context("the force stream ended")?;
+        assert!(
+            !rejected.contains(&f.seq),
+            "a rejected sample (seq {}) was answered: {f:?}",
+            f.seq
+        );
+        if f.seq == seq {
+            return Ok(f);
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_inputs_get_statuses_and_session_keeps_running() -> Result<()> {
+    let _serial = serial().await;
+    let server = InProcess::start().await?;
+    let url = server.url.clone();
+    let mut ctl = session_control(&url).await?;
+    let id = ctl
+        .start_session(StartSessionRequest {
+            scene: "lv".into(),
+            scene_toml: String::new(),
+        })
+        .await?
+        .into_inner()
+        .session_id;
+
+    // ApplyForce with bad numbers.
+    let point = [0.0, 0.00968, -0.005];
+    let apply = |p: [f64; 3], f: [f64; 3], d: f64| ApplyForceRequest {
+        session_id: id.clone(),
+        point_m: Some(Vec3::from(p)),
+        force_n: Some(Vec3::from(f)),
+        duration_s: d,
+    };
+    for (what, req) in [
+        (
+            "NaN point",
+            apply([f64::NAN, 0.0, 0.0], [0.0, -0.05, 0.0], 0.1),
+        ),
+        (
+            "infinite force",
+            apply(point, [0.0, f64::INFINITY, 0.0], 0.1),
+        ),
+        ("1e6 N force", apply(point, [0.0, -1e6, 0.0], 0.1)),
+        ("negative duration", apply(point, [0.0, -0.05, 0.0], -1.0)),
+    ] {
+        let e = ctl.apply_force(req).await.expect_err(what);
+        assert_eq!(e.code(), Code::InvalidArgument, "{what}: {e:?}");
+        assert!(!e.message().is_empty(), "{what}: empty message");
+    }
+
+    // Unknown sessions.
+    let nosuch = "0000nosuch00".to_string();
+    let e = ctl
+        .apply_force(ApplyForceRequest {
+            session_id: nosuch.clone(),
+            ..apply(point, [0.0, -0.05, 0.0], 0.1)
+        })
+        .await
+        .expect_err("ApplyForce on an unknown session");
+    assert_eq!(e.code(), Code::NotFound, "{e:?}");
+    let e = ctl
+        .get_stats(GetStatsRequest {
+            session_id: nosuch.clone(),
+        })
+        .await
+        .expect_err("GetStats on an unknown session");
+    assert_eq!(e.code(), Code::NotFound, "{e:?}");
+    let e = ctl
+        .stop_session(StopSessionRequest {
+            session_id: nosuch.clone(),
+        })
+        .await
+        .expect_err("StopSession on an unknown session");
+    assert_eq!(e.code(), Code::NotFound, "{e:?}");
+    let e = surface_stream(&url)
+        .await?
+        .watch(WatchRequest {
+            session_id: nosuch.clone(),
+            max_rate_hz: 0.0,
+        })
+        .await
+        .expect_err("Watch on an unknown session");
+    assert_eq!(e.code(), Code::NotFound, "{e:?}");
+
+    // Malformed scenes.
+    let start_toml = |toml: String| StartSessionRequest {
+        scene: String::new(),
+        scene_toml: toml,
+    };
+    let e = ctl
+        .start_session(start_toml("[mesh\nbuiltin=".into()))
+        .await
+        .expect_err("malformed TOML");
+    assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    assert!(!e.message().is_empty());
+    let e = ctl
+        .start_session(StartSessionRequest {
+            scene: "no_such_scene".into(),
+            scene_toml: String::new(),
+        })
+        .await
+        .expect_err("unknown built-in");
+    assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    assert!(e.message().contains("no_such_scene"), "{e:?}");
+    let lv_path = concat!(env!("CARGO_MANIFEST_DIR"), "/../deploy/scenes/lv.toml");
+    let lv = std::fs::read_to_string(lv_path).with_context(|| format!("reading {lv_path}"))?;
+    assert!(lv.contains("poisson_ratio = 0.45"), "{lv_path} changed");
+    let e = ctl
+        .start_session(start_toml(
+            lv.replace("poisson_ratio = 0.45", "poisson_ratio = 0.5"),
+        ))
+        .await
+        .expect_err("incompressible material");
+    assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    assert!(e.message().contains("material.poisson_ratio"), "{e:?}");
+
+    // A device stream naming an unknown session.
+    let mut link = device_link(&url).await?;
+    let e = link
+        .connect(tokio_stream::iter([sample(&nosuch, 1, [0.03, 0.0, 0.0])]))
+        .await
+        .expect_err("DeviceLink to an unknown session");
+    assert_eq!(e.code(), Code::NotFound, "{e:?}");
+
+    // A device stream with a NaN and an absurd sample among valid ones.
+    let (tx, rx) = mpsc::channel::<DeviceSample>(16);
+    let free = [0.03, 0.0, 0.0]; // well outside the body: no contact
+    tx.send(sample(&id, 1, free)).await?;
+    let mut forces = link.connect(ReceiverStream::new(rx)).await?.into_inner();
+    force_for(&mut forces, 1, &[]).await?;
+    tx.send(sample(&id, 2, [f64::NAN, 0.0, 0.0])).await?;
+    tx.send(sample(&id, 3, [1e9, 0.0, 0.0])).await?;
+    tx.send(sample(&id, 4, free)).await?;
+    let f4 = force_for(&mut forces, 4, &[2, 3]).await?;
+    tx.send(sample(&id, 5, [0.03, 0.001, 0.0])).await?;
+    let f5 = force_for(&mut forces, 5, &[2, 3]).await?;
+    for f in [&f4, &f5] {
+        let v = f.force_n.unwrap_or_default();
+        assert!(v.is_finite(), "{f:?}");
+        assert!(!f.in_contact, "free-space sample in contact: {f:?}");
+    }
+
+    // The session is alive and well after all that.
+    let s1 = ctl
+        .get_stats(GetStatsRequest {
+            session_id: id.clone(),
+        })
+        .await?
+        .into_inner();
+    assert_eq!(s1.rejected_samples, 2, "{s1:?}");
+    assert!(!s1.faulted, "{s1:?}");
+    let mut s2 = s1.clone();
+    for _ in 0..100 {
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        s2 = ctl
+            .get_stats(GetStatsRequest {
+                session_id: id.clone(),
+            })
+            .await?
+            .into_inner();
+        if s2.steps > s1.steps {
+            break;
+        }
+    }
+    assert!(
+        s2.steps > s1.steps,
+        "steps stalled: {} -> {}",
+        s1.steps,
+        s2.steps
+    );
+    assert!(s2.loop_rate_hz > 100.0, "{s2:?}");
+    assert_eq!(s2.rejected_samples, 2);
+    drop(tx);
+    drop(forces);
+    server.shutdown().await
+}
