@@ -148,7 +148,10 @@ impl Session {
             ..Pose::default()
         });
         if let Ok(mut l) = self.link.lock() {
-            *l = None;
+            // While stopping, keep the sender: `stop` clears it after the final zero force.
+            if !self.shared.stop.load(Ordering::Acquire) {
+                *l = None;
+            }
         }
         if let Ok(mut slot) = self.pose_input.lock() {
             *slot = Some(input);
