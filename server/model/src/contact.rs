@@ -262,7 +262,7 @@ pub struct Probe {
 }
 
 /// Largest number of nodes in a contact patch.
-pub const MAX_PATCH_NODES: usize = 64;
+pub const MAX_PATCH_NODES: usize = 256;
 /// Radius of the contact patch around the device point, in probe radii.
 pub const PATCH_RADIUS_FACTOR: f64 = 2.0;
 

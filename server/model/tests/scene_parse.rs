@@ -67,7 +67,7 @@ fn every_builtin_loads() {
     assert_eq!(lv.material.density_kg_per_m3, 1060.0);
     assert_eq!(lv.integrator.kind, IntegratorKind::SemiImplicit);
     assert_eq!(lv.length_unit_m, 1e-3);
-    assert!((1400..=2600).contains(&lv.mesh.tet_count()));
+    assert!((700..=1300).contains(&lv.mesh.tet_count()));
     assert_eq!(
         lv.touchable.len(),
         lv.mesh.surface("EPI").unwrap().triangles.len()
