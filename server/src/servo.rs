@@ -370,13 +370,13 @@ impl ServoCore {
             seq: pose.seq,
             ..ForceOut::default()
         };
-        if let Some(o) = out {
-            if o.force_on_device_n.is_finite() {
-                force.force_n = o.force_on_device_n;
-                force.in_contact = o.in_contact;
-                force.stiffness_n_per_m = o.contact_stiffness_n_per_m;
-                force.proxy_m = o.proxy_position_m;
-            }
+        if let Some(o) = out
+            && o.force_on_device_n.is_finite()
+        {
+            force.force_n = o.force_on_device_n;
+            force.in_contact = o.in_contact;
+            force.stiffness_n_per_m = o.contact_stiffness_n_per_m;
+            force.proxy_m = o.proxy_position_m;
         }
         self.peak_force_n = self.peak_force_n.max(force.force_n.length());
         self.last_force = force;
@@ -391,7 +391,8 @@ impl ServoCore {
         self.ticks += 1;
         self.window_ticks += 1;
         // 5. Snapshot for viewers.
-        if self.ticks % self.snapshot_every == 0 && self.shared.watchers.load(Ordering::Relaxed) > 0
+        if self.ticks.is_multiple_of(self.snapshot_every)
+            && self.shared.watchers.load(Ordering::Relaxed) > 0
         {
             let snap = self.snapshot.input_buffer_mut();
             snap.tick = self.ticks;
@@ -407,7 +408,7 @@ impl ServoCore {
             self.snapshot.publish();
         }
         // 6. Statistics.
-        if self.ticks % self.stats_every == 0 {
+        if self.ticks.is_multiple_of(self.stats_every) {
             self.max_displacement_m = self.max_displacement_m.max(self.sim.max_displacement_m());
             let elapsed_us = t1.saturating_sub(self.window_start_us).max(1);
             let rate = self.window_ticks as f64 * 1e6 / elapsed_us as f64;

@@ -62,9 +62,9 @@ pub fn element_tangent(fem: &FemModel, e: usize, x: &[DVec3]) -> [[DMat3; 4]; 4]
         for j in 0..3 {
             // dF = e_j (grad N_b)^T
             let mut dfm = DMat3::ZERO;
-            for c in 0..3 {
+            for (c, &gc) in g[b].to_array().iter().enumerate() {
                 let mut col = DVec3::ZERO;
-                col[j] = g[b][c];
+                col[j] = gc;
                 *dfm.col_mut(c) = col;
             }
             let ft_df = fm.transpose() * dfm;

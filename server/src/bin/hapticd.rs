@@ -29,6 +29,10 @@ struct Args {
     /// Largest number of concurrent sessions.
     #[arg(long)]
     max_sessions: Option<usize>,
+    /// Directory that relative mesh paths in client-sent scene text resolve against
+    /// (e.g. `deploy/scenes` for the shipped scene files).
+    #[arg(long)]
+    scene_dir: Option<PathBuf>,
     /// Log format: text or json.
     #[arg(long)]
     log_format: Option<String>,
@@ -44,6 +48,7 @@ async fn main() -> anyhow::Result<()> {
     file.listen = args.listen.or(file.listen);
     file.max_sessions = args.max_sessions.or(file.max_sessions);
     file.log_format = args.log_format.or(file.log_format);
+    file.scene_dir = args.scene_dir.or(file.scene_dir);
     file.servo.realtime |= args.realtime;
     file.servo.mlockall |= args.mlockall;
     file.servo.cpu = args.cpu.or(file.servo.cpu);
