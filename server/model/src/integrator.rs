@@ -186,6 +186,7 @@ pub fn integrate_nodes(
 ) -> f64 {
     let damp = 1.0 / (1.0 + fem.material.mass_damping_per_s * dt_s);
     let mut max_v2: f64 = 0.0;
+    let mut non_finite = false;
     for i in 0..x.len() {
         let mask = fem.constraint[i];
         if mask == CLAMPED {
@@ -200,12 +201,11 @@ pub fn integrate_nodes(
         v[i] = vi;
         x[i] += vi * dt_s;
         let s = vi.length_squared();
-        // `max` would drop a NaN; keep it visible.
-        if !(s <= max_v2) {
-            max_v2 = s;
-        }
+        non_finite |= !s.is_finite();
+        max_v2 = max_v2.max(s);
     }
-    max_v2
+    // `f64::max` drops NaN, so a non-finite speed is reported separately.
+    if non_finite { f64::NAN } else { max_v2 }
 }
 
 /// `B_i^-1 w` for node `i`: the integrator's per-node update matrix divided into `w` and by the

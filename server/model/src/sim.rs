@@ -220,7 +220,10 @@ impl Simulation {
                     });
                 contact = self.probe.state;
                 for &i in self.probe.patch().0 {
-                    max_v2 = max_v2.max(self.state.v[i as usize].length_squared());
+                    let s = self.state.v[i as usize].length_squared();
+                    if !s.is_finite() || s > max_v2 {
+                        max_v2 = if s.is_finite() { s } else { f64::NAN };
+                    }
                 }
             }
             if !(max_v2 <= DIVERGENCE_SPEED_M_PER_S * DIVERGENCE_SPEED_M_PER_S) {
