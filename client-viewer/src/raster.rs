@@ -76,7 +76,7 @@ pub struct RenderParams {
     pub fov_y_deg: f64,
     /// Colour scale of the displacement magnitude.
     pub displacement_scale: DisplacementScale,
-    /// Force arrow length per newton of contact force, metres per newton (default 10 mm/N).
+    /// Force arrow length per newton of contact force, metres per newton (default 100 mm/N: soft-tissue contact forces are about 0.1 N).
     pub force_scale_m_per_n: f64,
     /// Background colour, sRGB bytes.
     pub background: [u8; 3],
@@ -93,7 +93,7 @@ impl Default for RenderParams {
             up: [0.0, 0.0, 1.0],
             fov_y_deg: 30.0,
             displacement_scale: DisplacementScale::Auto,
-            force_scale_m_per_n: 0.010,
+            force_scale_m_per_n: 0.1,
             background: [24, 26, 32],
             legend: true,
         }

@@ -134,8 +134,8 @@ pub struct ViewerArgs {
     /// Displacement shown as full red, metres (default: the frame's largest).
     #[arg(long)]
     pub displacement_scale_m: Option<f64>,
-    /// Force arrow length per newton, metres.
-    #[arg(long, default_value_t = 0.010)]
+    /// Force arrow length per newton, metres (100 mm/N suits soft-tissue forces of about 0.1 N).
+    #[arg(long, default_value_t = 0.1)]
     pub force_scale_m_per_n: f64,
     /// Do not draw the colour bar.
     #[arg(long)]
