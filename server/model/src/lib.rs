@@ -15,6 +15,7 @@
 //! - [`sim`]: [`sim::Simulation`], state + scratch + parameters, one `tick` per servo period.
 //! - [`scene`]: scene files (TOML) and built-in scenes, validated into a [`scene::Scene`].
 //! - [`statics`]: static equilibrium (Newton on the StVK tangent, sparse Cholesky) for references.
+//! - [`export`]: node tables (CSV) and ParaView `.vtu` files of a configuration.
 //!
 //! Units are SI throughout (m, kg, s, N, Pa). Seeds are cited as "seed 000 eq. N":
 //! Mero & Susin, *Deformable Hybrid Approach*, Eurographics 2006.
@@ -24,6 +25,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod contact;
+pub mod export;
 pub mod error;
 pub mod fem;
 pub mod gmsh;
