@@ -250,6 +250,55 @@ pub struct ServoEnds {
     pub stats: triple_buffer::Input<StatsSnapshot>,
 }
 
+/// The other ends of a [`ServoCore`]'s handoffs, held by the async side.
+pub struct ServoHandles {
+    /// Commands out to the servo.
+    pub commands: rtrb::Producer<Command>,
+    /// Latest pose out to the servo.
+    pub pose: triple_buffer::Input<Pose>,
+    /// Forces from the servo.
+    pub forces: rtrb::Consumer<ForceOut>,
+    /// Snapshots from the servo.
+    pub snapshot: triple_buffer::Output<Snapshot>,
+    /// Statistics from the servo.
+    pub stats: triple_buffer::Output<StatsSnapshot>,
+}
+
+/// Capacity of the command ring (ApplyForce requests queued between two ticks).
+pub const COMMAND_CAPACITY: usize = 64;
+/// Capacity of the force ring (forces queued for the forwarder).
+pub const FORCE_CAPACITY: usize = 256;
+
+/// Creates every handoff of a servo for `sim`, sized once (the snapshot buffers hold one
+/// position triple per surface vertex): the servo's ends and the async side's ends.
+pub fn channels(sim: &Simulation) -> (ServoEnds, ServoHandles) {
+    let (cmd_tx, cmd_rx) = rtrb::RingBuffer::new(COMMAND_CAPACITY);
+    let (force_tx, force_rx) = rtrb::RingBuffer::new(FORCE_CAPACITY);
+    let (pose_in, pose_out) = triple_buffer::triple_buffer(&Pose::default());
+    let snap0 = Snapshot {
+        positions_m: vec![0.0; 3 * sim.surface_node_indices().len()],
+        ..Snapshot::default()
+    };
+    let (snap_in, snap_out) = triple_buffer::triple_buffer(&snap0);
+    let (stats_in, stats_out) = triple_buffer::triple_buffer(&StatsSnapshot::default());
+    (
+        ServoEnds {
+            commands: cmd_rx,
+            pose: pose_out,
+            forces: force_tx,
+            snapshot: snap_in,
+            stats: stats_in,
+        },
+        ServoHandles {
+            commands: cmd_tx,
+            pose: pose_in,
+            forces: force_rx,
+            snapshot: snap_out,
+            stats: stats_out,
+        },
+    )
+}
+
 fn histogram() -> Histogram<u64> {
     // 1 µs .. 60 s at 3 significant digits; fixed size, so recording never allocates.
     Histogram::new_with_bounds(1, 60_000_000, 3).expect("static histogram bounds")

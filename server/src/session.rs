@@ -20,14 +20,9 @@ use tonic::Status;
 use crate::config::ServerConfig;
 use crate::error::ServerError;
 use crate::servo::{
-    self, Command, ForceOut, MonotonicClock, Pose, ServoCore, ServoEnds, SessionShared, Snapshot,
-    StatsSnapshot,
+    self, Command, ForceOut, MonotonicClock, Pose, ServoCore, SessionShared, StatsSnapshot,
 };
 
-/// Capacity of the command ring (ApplyForce requests queued between two ticks).
-pub const COMMAND_CAPACITY: usize = 64;
-/// Capacity of the force ring (forces queued for the forwarder).
-pub const FORCE_CAPACITY: usize = 256;
 /// Largest scene text accepted, bytes.
 pub const MAX_SCENE_TOML_BYTES: usize = 1 << 20;
 
@@ -279,15 +274,14 @@ impl SessionManager {
         let sim = Simulation::new(scene)?;
         let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
         let shared = Arc::new(SessionShared::default());
-        let (cmd_tx, cmd_rx) = rtrb::RingBuffer::new(COMMAND_CAPACITY);
-        let (force_tx, mut force_rx) = rtrb::RingBuffer::<ForceOut>::new(FORCE_CAPACITY);
-        let (pose_in, pose_out) = triple_buffer::triple_buffer(&Pose::default());
-        let snap0 = Snapshot {
-            positions_m: vec![0.0; 3 * sim.surface_node_indices().len()],
-            ..Snapshot::default()
-        };
-        let (snap_in, mut snap_out) = triple_buffer::triple_buffer(&snap0);
-        let (stats_in, stats_out) = triple_buffer::triple_buffer(&StatsSnapshot::default());
+        let (ends, handles) = servo::channels(&sim);
+        let servo::ServoHandles {
+            commands: cmd_tx,
+            pose: pose_in,
+            forces: mut force_rx,
+            snapshot: mut snap_out,
+            stats: stats_out,
+        } = handles;
         let triangles: Vec<u32> = sim.surface_triangles().iter().flatten().copied().collect();
         let mut rest_positions = vec![0.0f32; 3 * sim.surface_node_indices().len()];
         sim.write_surface_positions(&mut rest_positions);
@@ -320,13 +314,7 @@ impl SessionManager {
         let servo_cfg = self.config.servo.clone();
         let core = ServoCore::new(
             sim,
-            ServoEnds {
-                commands: cmd_rx,
-                pose: pose_out,
-                forces: force_tx,
-                snapshot: snap_in,
-                stats: stats_in,
-            },
+            ends,
             shared.clone(),
             servo_cfg.snapshot_every_ticks,
             servo_cfg.stats_every_ticks,
