@@ -20,7 +20,7 @@
 use glam::{DMat3, DVec3};
 
 use crate::ModelError;
-use crate::material::{self, MaterialParams};
+use crate::material::{self, MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
 
 /// Bit mask of constrained displacement components of a node: bit 0 = x, 1 = y, 2 = z.
@@ -45,6 +45,194 @@ pub struct FemModel {
     pub constraint: Vec<ConstraintMask>,
     /// Material.
     pub material: MaterialParams,
+    /// The element data of `tets`, `dm_inv` and `volume_m3` again, in batches of [`LANES`]
+    /// elements laid out lane-innermost, for the vectorised StVK force kernel.
+    batches: Vec<ElementBatch>,
+}
+
+/// Elements per batch of the force kernel: 4 f64 lanes fill an AVX2 register.
+const LANES: usize = 4;
+
+/// [`LANES`] elements, structure-of-arrays: `dm_inv[3 r + c][lane]` is entry (r, c) of
+/// `Dm^-1`. Padding lanes (at the end of the mesh) repeat node 0 with zero `Dm^-1` and volume,
+/// so they add exactly zero force.
+#[derive(Debug, Clone)]
+struct ElementBatch {
+    nodes: [[u32; 4]; LANES],
+    dm_inv: [[f64; LANES]; 9],
+    volume_m3: [f64; LANES],
+}
+
+impl ElementBatch {
+    fn build(tets: &[[u32; 4]], dm_inv: &[DMat3], volume_m3: &[f64]) -> Vec<Self> {
+        tets.chunks(LANES)
+            .enumerate()
+            .map(|(k, chunk)| {
+                let mut b = Self {
+                    nodes: [[0; 4]; LANES],
+                    dm_inv: [[0.0; LANES]; 9],
+                    volume_m3: [0.0; LANES],
+                };
+                for (l, t) in chunk.iter().enumerate() {
+                    let e = k * LANES + l;
+                    b.nodes[l] = *t;
+                    let m = dm_inv[e];
+                    for r in 0..3 {
+                        for c in 0..3 {
+                            b.dm_inv[3 * r + c][l] = m.col(c)[r];
+                        }
+                    }
+                    b.volume_m3[l] = volume_m3[e];
+                }
+                b
+            })
+            .collect()
+    }
+}
+
+/// StVK (+ viscous) nodal forces of every batch, added to `f` (see
+/// [`FemModel::add_internal_forces`]). Per batch: a scalar gather of the edge vectors into
+/// lane-innermost arrays, the stress and `H = -V F S Dm^-T` computed lane by lane in a loop the
+/// compiler vectorises, then a scalar scatter (lanes may share nodes).
+#[inline(always)]
+fn stvk_forces_batched(
+    batches: &[ElementBatch],
+    mat: &MaterialParams,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
+    let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
+    for batch in batches {
+        // ds[3 k + i][l]: component i of edge k (x_{k+1} - x_0) of lane l; dv likewise.
+        let mut ds = [[0.0; LANES]; 9];
+        let mut dv = [[0.0; LANES]; 9];
+        for (l, t) in batch.nodes.iter().enumerate() {
+            let [a, b, c, d] = t.map(|i| i as usize);
+            let x0 = x[a];
+            for (k, n) in [b, c, d].into_iter().enumerate() {
+                let e = x[n] - x0;
+                ds[3 * k][l] = e.x;
+                ds[3 * k + 1][l] = e.y;
+                ds[3 * k + 2][l] = e.z;
+            }
+            if let Some(v) = v {
+                let v0 = v[a];
+                for (k, n) in [b, c, d].into_iter().enumerate() {
+                    let e = v[n] - v0;
+                    dv[3 * k][l] = e.x;
+                    dv[3 * k + 1][l] = e.y;
+                    dv[3 * k + 2][l] = e.z;
+                }
+            }
+        }
+        // h[3 k + i][l]: component i of the force on node k+1 of lane l.
+        let mut h = [[0.0; LANES]; 9];
+        let bm = &batch.dm_inv;
+        for l in 0..LANES {
+            // F_ij = sum_k Ds_ik Dm^-1_kj, Ds_ik = ds[3 k + i].
+            let mut fm = [0.0; 9]; // fm[3 i + j] = F_ij
+            for i in 0..3 {
+                for j in 0..3 {
+                    fm[3 * i + j] = ds[i][l] * bm[j][l]
+                        + ds[3 + i][l] * bm[3 + j][l]
+                        + ds[6 + i][l] * bm[6 + j][l];
+                }
+            }
+            // C = F^T F (symmetric), S = mu (C - I) + lambda/2 (tr C - 3) I.
+            let col = |j: usize| [fm[j], fm[3 + j], fm[6 + j]];
+            let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+            let (c0, c1, c2) = (col(0), col(1), col(2));
+            let (c00, c11, c22) = (dot(c0, c0), dot(c1, c1), dot(c2, c2));
+            let (c01, c02, c12) = (dot(c0, c1), dot(c0, c2), dot(c1, c2));
+            let diag = 0.5 * lambda * (c00 + c11 + c22 - 3.0) - mu;
+            let mut s = [
+                mu * c00 + diag,
+                mu * c01,
+                mu * c02,
+                mu * c01,
+                mu * c11 + diag,
+                mu * c12,
+                mu * c02,
+                mu * c12,
+                mu * c22 + diag,
+            ];
+            if v.is_some() {
+                let mut fd = [0.0; 9];
+                for i in 0..3 {
+                    for j in 0..3 {
+                        fd[3 * i + j] = dv[i][l] * bm[j][l]
+                            + dv[3 + i][l] * bm[3 + j][l]
+                            + dv[6 + i][l] * bm[6 + j][l];
+                    }
+                }
+                // A = F^T Fdot, nu = A + A^T, S_v = 2 psi nu + phi tr(nu) I (eq. 10-11).
+                let dcol = |j: usize| [fd[j], fd[3 + j], fd[6 + j]];
+                let (d0, d1, d2) = (dcol(0), dcol(1), dcol(2));
+                let a = |i: usize, j: usize| dot([c0, c1, c2][i], [d0, d1, d2][j]);
+                let n00 = 2.0 * a(0, 0);
+                let n11 = 2.0 * a(1, 1);
+                let n22 = 2.0 * a(2, 2);
+                let n01 = a(0, 1) + a(1, 0);
+                let n02 = a(0, 2) + a(2, 0);
+                let n12 = a(1, 2) + a(2, 1);
+                let vd = phi * (n00 + n11 + n22);
+                let p2 = 2.0 * psi;
+                s[0] += p2 * n00 + vd;
+                s[4] += p2 * n11 + vd;
+                s[8] += p2 * n22 + vd;
+                s[1] += p2 * n01;
+                s[3] += p2 * n01;
+                s[2] += p2 * n02;
+                s[6] += p2 * n02;
+                s[5] += p2 * n12;
+                s[7] += p2 * n12;
+            }
+            // P = F S; H = -V P Dm^-T: h_k (force on node k+1) = -V sum_j P_:j Dm^-1_kj.
+            let mut p = [0.0; 9];
+            for i in 0..3 {
+                for j in 0..3 {
+                    p[3 * i + j] =
+                        fm[3 * i] * s[j] + fm[3 * i + 1] * s[3 + j] + fm[3 * i + 2] * s[6 + j];
+                }
+            }
+            let w = -batch.volume_m3[l];
+            for k in 0..3 {
+                for i in 0..3 {
+                    h[3 * k + i][l] = w
+                        * (p[3 * i] * bm[3 * k][l]
+                            + p[3 * i + 1] * bm[3 * k + 1][l]
+                            + p[3 * i + 2] * bm[3 * k + 2][l]);
+                }
+            }
+        }
+        for (l, t) in batch.nodes.iter().enumerate() {
+            let [a, b, c, d] = t.map(|i| i as usize);
+            let hk = |k: usize| DVec3::new(h[3 * k][l], h[3 * k + 1][l], h[3 * k + 2][l]);
+            let (h1, h2, h3) = (hk(0), hk(1), hk(2));
+            f[b] += h1;
+            f[c] += h2;
+            f[d] += h3;
+            f[a] -= h1 + h2 + h3;
+        }
+    }
+}
+
+/// [`stvk_forces_batched`] compiled for AVX2 + FMA.
+///
+/// # Safety
+/// The CPU must support AVX2 and FMA.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn stvk_forces_avx2(
+    batches: &[ElementBatch],
+    mat: &MaterialParams,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    stvk_forces_batched(batches, mat, x, v, f);
 }
 
 /// Zeroes the constrained components of `v` (a per-node vector field) in place.
@@ -96,7 +284,9 @@ impl FemModel {
                 lumped_mass_kg[i as usize] += material.density_kg_per_m3 * vol / 4.0;
             }
         }
+        let batches = ElementBatch::build(&mesh.tets, &dm_inv, &volume_m3);
         Ok(Self {
+            batches,
             rest: mesh.nodes.clone(),
             tets: mesh.tets.clone(),
             dm_inv,
@@ -151,20 +341,30 @@ impl FemModel {
     pub fn add_internal_forces(&self, x: &[DVec3], v: Option<&[DVec3]>, f: &mut [DVec3]) {
         let mat = &self.material;
         let viscous = v.filter(|_| mat.phi_pa_s > 0.0 || mat.psi_pa_s > 0.0);
+        assert!(x.len() >= self.node_count() && f.len() >= self.node_count());
+        if mat.model == MaterialModel::StVenantKirchhoff {
+            #[cfg(target_arch = "x86_64")]
+            if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                // SAFETY: both features were detected on this CPU just above.
+                unsafe { stvk_forces_avx2(&self.batches, mat, x, viscous, f) };
+                return;
+            }
+            stvk_forces_batched(&self.batches, mat, x, viscous, f);
+            return;
+        }
         for (e, t) in self.tets.iter().enumerate() {
             let [a, b, c, d] = t.map(|i| i as usize);
             let dm_inv = self.dm_inv[e];
             let x0 = x[a];
             let fm = DMat3::from_cols(x[b] - x0, x[c] - x0, x[d] - x0) * dm_inv;
-            let strain = material::green_strain(&fm);
-            let mut s = material::stvk_stress(&strain, mat.lambda_pa, mat.mu_pa);
+            let mut p = material::first_piola(mat, &fm);
             if let Some(v) = viscous {
                 let v0 = v[a];
                 let f_dot = DMat3::from_cols(v[b] - v0, v[c] - v0, v[d] - v0) * dm_inv;
-                s += material::viscous_stress(&fm, &f_dot, mat.phi_pa_s, mat.psi_pa_s);
+                p += fm * material::viscous_stress(&fm, &f_dot, mat.phi_pa_s, mat.psi_pa_s);
             }
             // H = -V P Dm^-T: column k is the force on node k+1.
-            let h = (fm * s) * dm_inv.transpose() * (-self.volume_m3[e]);
+            let h = p * dm_inv.transpose() * (-self.volume_m3[e]);
             f[b] += h.x_axis;
             f[c] += h.y_axis;
             f[d] += h.z_axis;
@@ -172,21 +372,22 @@ impl FemModel {
         }
     }
 
-    /// Total StVK strain energy `sum_e V_e W(E_e)` for positions `x`, J.
+    /// Total elastic strain energy `sum_e V_e Psi(F_e)` of the material model for positions
+    /// `x`, J.
     pub fn elastic_energy(&self, x: &[DVec3]) -> f64 {
         let mat = &self.material;
         (0..self.tets.len())
             .map(|e| {
-                let strain = material::green_strain(&self.deformation_gradient(e, x));
-                self.volume_m3[e] * material::stvk_energy_density(&strain, mat.lambda_pa, mat.mu_pa)
+                self.volume_m3[e] * material::energy_density(mat, &self.deformation_gradient(e, x))
             })
             .sum()
     }
 
     /// Adds the action of the elastic tangent stiffness `K(x) = -d f_elastic / d x` on the
     /// displacement increment `dx` to `out` (N/m times m = N; all length N):
-    /// `dF = dDs Dm^-1`, `dE = sym(F^T dF)`, `dS = lambda tr(dE) I + 2 mu dE`,
-    /// `dP = dF S + F dS`, `out_a += V dP grad N_a`. At rest this is the linear-elastic stiffness.
+    /// `dF = dDs Dm^-1`, `dP` from [`material::first_piola_differential`] (for StVK
+    /// `dE = sym(F^T dF)`, `dS = lambda tr(dE) I + 2 mu dE`, `dP = dF S + F dS`),
+    /// `out_a += V dP grad N_a`. At rest this is the linear-elastic stiffness for every material.
     pub fn stiffness_action(&self, x: &[DVec3], dx: &[DVec3], out: &mut [DVec3]) {
         let mat = &self.material;
         for (e, t) in self.tets.iter().enumerate() {
@@ -196,12 +397,7 @@ impl FemModel {
             let fm = DMat3::from_cols(x[b] - x0, x[c] - x0, x[d] - x0) * dm_inv;
             let d0 = dx[a];
             let dfm = DMat3::from_cols(dx[b] - d0, dx[c] - d0, dx[d] - d0) * dm_inv;
-            let strain = material::green_strain(&fm);
-            let s = material::stvk_stress(&strain, mat.lambda_pa, mat.mu_pa);
-            let ft_df = fm.transpose() * dfm;
-            let d_strain = (ft_df + ft_df.transpose()) * 0.5;
-            let ds = material::stvk_stress(&d_strain, mat.lambda_pa, mat.mu_pa);
-            let dp = dfm * s + fm * ds;
+            let dp = material::first_piola_differential(mat, &fm, &dfm);
             let h = dp * dm_inv.transpose() * self.volume_m3[e];
             out[b] += h.x_axis;
             out[c] += h.y_axis;
@@ -212,6 +408,7 @@ impl FemModel {
 
     /// The 3x3 diagonal blocks `K_ii` of the linear-elastic stiffness at rest, N/m (one per
     /// node): `K_ii = sum_e V_e ((lambda + mu) g g^T + mu |g|^2 I)` with `g = grad N_i` in `e`.
+    /// The same for every [`material::MaterialModel`]: all linearise at rest to this.
     /// The seed's per-node Jacobian of eq. 34 is `J_i = -K_ii` ("precomputed at rest assuming
     /// that its neighbours are fixed").
     pub fn rest_diagonal_blocks(&self) -> Vec<DMat3> {

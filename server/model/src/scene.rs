@@ -15,6 +15,7 @@
 //! # 188), "sphere" (inner_radius, outer_radius in length_unit; target_tets, default 5000) or
 //! # "box" (size = [x, y, z] in length_unit, cells = [nx, ny, nz])
 //! [material]                     # youngs_modulus_pa + poisson_ratio, OR lambda_pa + mu_pa
+//! model = "stvk"                 # default; or "corotational", "stable-neo-hookean"
 //! youngs_modulus_pa = 14500.0
 //! poisson_ratio = 0.45           # in (-1, 0.5)
 //! phi_pa_s = 0.05                # default 0
@@ -25,11 +26,22 @@
 //! clamped = ["BASE"]             # surface or node-group names; default none
 //! touchable = ["EPI"]            # surface names; default: boundary faces not entirely clamped
 //! [integrator]                   # optional, defaults shown
-//! kind = "semi-implicit"         # or "symplectic-euler"
+//! kind = "semi-implicit"         # or "symplectic-euler", "backward-euler"
 //! tick_s = 0.001                 # in (0, 0.1]
 //! substeps = "auto"              # or an integer in 1..=max_substeps
 //! max_substeps = 64
 //! safety_factor = 0.5            # in (0, 1]
+//! cg_max_iterations = 20         # backward Euler: CG iterations per step, 1..=10000
+//! cg_tolerance = 0.001           # backward Euler: relative CG residual, in (0, 1)
+//! [loads]                        # optional; default: no load
+//! gravity_m_per_s2 = [0.0, 0.0, -9.81]
+//! [[loads.pressure]]             # any number; positive pushes into the body
+//! surfaces = ["ENDO"]
+//! pressure_pa = 1000.0
+//! follower = false               # true: recomputed from the current geometry each sub-step
+//! [[loads.point]]                # any number; permanent, on the closest free boundary triangle
+//! point_m = [0.0, 0.01, 0.0]
+//! force_n = [0.0, -0.05, 0.0]
 //! [probe]                        # optional, defaults shown
 //! radius_m = 0.002
 //! coupling_stiffness_n_per_m = 300.0
@@ -51,7 +63,7 @@ use serde::Deserialize;
 use crate::ModelError;
 use crate::contact::ProbeParams;
 use crate::integrator::{IntegratorKind, IntegratorParams};
-use crate::material::MaterialParams;
+use crate::material::{MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
 
 /// A validated scene, ready to build a [`crate::sim::Simulation`]. SI units.
@@ -75,7 +87,65 @@ pub struct Scene {
     pub touchable: Vec<[u32; 3]>,
     /// The scene file's length unit in metres (1e-3 for "mm"); outputs for users use it.
     pub length_unit_m: f64,
+    /// External loads: gravity, surface pressure, point forces (section `[loads]`).
+    pub loads: SceneLoads,
 }
+
+/// External loads of a scene (section `[loads]`), SI units; the default is no load. Applied by
+/// every integrator in [`crate::sim::Simulation::tick`] and, for static solves, by
+/// [`crate::sim::static_external_forces`].
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SceneLoads {
+    /// Gravitational acceleration, m/s^2 (nodal forces `m_i g`).
+    pub gravity_m_per_s2: DVec3,
+    /// Uniform pressures on tagged surfaces.
+    pub pressure: Vec<PressureLoad>,
+    /// Permanent point forces.
+    pub point: Vec<PointForce>,
+}
+
+impl SceneLoads {
+    /// Whether the scene has no load at all.
+    pub fn is_empty(&self) -> bool {
+        self.gravity_m_per_s2 == DVec3::ZERO && self.pressure.is_empty() && self.point.is_empty()
+    }
+}
+
+/// A uniform pressure on tagged surfaces: each triangle carries `-p A n` (n its outward
+/// normal), a third per vertex, so a positive pressure pushes the surface into the body.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PressureLoad {
+    /// Surface names the load acts on.
+    pub surfaces: Vec<String>,
+    /// Their triangles, outward oriented, distinct.
+    pub triangles: Vec<[u32; 3]>,
+    /// Pressure, Pa.
+    pub pressure_pa: f64,
+    /// Follower load (`true`: area and normal from the current geometry, recomputed every
+    /// sub-step) or dead load (`false`: from the rest geometry).
+    pub follower: bool,
+}
+
+/// A permanent (dead) point force on the surface point closest, at rest, to `point_m`, spread
+/// over that boundary triangle by barycentric weights.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PointForce {
+    /// Requested point, m.
+    pub point_m: DVec3,
+    /// Force, N.
+    pub force_n: DVec3,
+    /// The boundary triangle (node indices) holding the closest point.
+    pub nodes: [u32; 3],
+    /// Barycentric weights of the closest point on it (sum 1).
+    pub bary: [f64; 3],
+}
+
+/// Largest accepted gravitational acceleration magnitude in a scene, m/s^2.
+pub const MAX_GRAVITY_M_PER_S2: f64 = 1e4;
+/// Largest accepted surface pressure magnitude in a scene, Pa.
+pub const MAX_PRESSURE_PA: f64 = 1e9;
+/// Largest accepted scene point-force magnitude, N.
+pub const MAX_SCENE_POINT_FORCE_N: f64 = 1e9;
 
 /// Built-in scene `lv`: the idealized left ventricle built in code.
 const LV_TOML: &str = r#"# Built-in scene "lv" (a copy of the constant in server/model/src/scene.rs).
@@ -240,6 +310,30 @@ struct RawScene {
     boundary: Option<RawBoundary>,
     integrator: Option<RawIntegrator>,
     probe: Option<RawProbe>,
+    loads: Option<RawLoads>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawLoads {
+    gravity_m_per_s2: Option<[f64; 3]>,
+    pressure: Option<Vec<RawPressure>>,
+    point: Option<Vec<RawPoint>>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawPressure {
+    surfaces: Option<Vec<String>>,
+    pressure_pa: Option<f64>,
+    follower: Option<bool>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawPoint {
+    point_m: Option<[f64; 3]>,
+    force_n: Option<[f64; 3]>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -260,6 +354,7 @@ struct RawMesh {
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawMaterial {
+    model: Option<String>,
     youngs_modulus_pa: Option<f64>,
     poisson_ratio: Option<f64>,
     lambda_pa: Option<f64>,
@@ -285,6 +380,8 @@ struct RawIntegrator {
     substeps: Option<toml::Value>,
     max_substeps: Option<i64>,
     safety_factor: Option<f64>,
+    cg_max_iterations: Option<i64>,
+    cg_tolerance: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -392,6 +489,7 @@ fn parse_scene(text: &str, base_dir: &Path, default_name: &str) -> Result<Scene,
     }
     let integrator = build_integrator(&raw.integrator.unwrap_or_default())?;
     let probe = build_probe(&raw.probe.unwrap_or_default())?;
+    let loads = build_loads(&raw.loads.unwrap_or_default(), &mesh, &clamped_nodes)?;
     Ok(Scene {
         name: raw.name.unwrap_or_else(|| default_name.to_string()),
         description: raw.description.unwrap_or_default(),
@@ -402,6 +500,127 @@ fn parse_scene(text: &str, base_dir: &Path, default_name: &str) -> Result<Scene,
         clamped_nodes,
         touchable,
         length_unit_m,
+        loads,
+    })
+}
+
+// ----- loads section -----
+
+/// A finite vector with every component checked and a bounded magnitude.
+fn bounded_vec(field: &str, v: [f64; 3], max: f64) -> Result<DVec3, ModelError> {
+    for x in v {
+        checked(field, x, |_| true, "finite")?;
+    }
+    let d = DVec3::from_array(v);
+    if d.length() > max {
+        return Err(ModelError::field(
+            field,
+            format!("magnitude {:.3e} exceeds the {max:.0e} limit", d.length()),
+        ));
+    }
+    Ok(d)
+}
+
+fn build_loads(l: &RawLoads, mesh: &TetMesh, clamped: &[u32]) -> Result<SceneLoads, ModelError> {
+    let gravity_m_per_s2 = match l.gravity_m_per_s2 {
+        Some(g) => bounded_vec("loads.gravity_m_per_s2", g, MAX_GRAVITY_M_PER_S2)?,
+        None => DVec3::ZERO,
+    };
+    let mut pressure = Vec::new();
+    for (k, p) in l.pressure.iter().flatten().enumerate() {
+        let field = |name: &str| format!("loads.pressure[{k}].{name}");
+        let surfaces = required(&field("surfaces"), p.surfaces.clone())?;
+        if surfaces.is_empty() {
+            return Err(ModelError::field(field("surfaces"), "names no surface"));
+        }
+        let mut triangles: Vec<[u32; 3]> = Vec::new();
+        for name in &surfaces {
+            let Some(s) = mesh.surface(name) else {
+                let known: Vec<&str> = mesh.surfaces.iter().map(|s| s.name.as_str()).collect();
+                return Err(ModelError::field(
+                    field("surfaces"),
+                    format!(
+                        "no surface named `{name}` (mesh surfaces: {})",
+                        known.join(", ")
+                    ),
+                ));
+            };
+            triangles.extend(s.triangles.iter().copied());
+        }
+        let mut seen = std::collections::HashSet::new();
+        triangles.retain(|t| {
+            let mut key = *t;
+            key.sort_unstable();
+            seen.insert(key)
+        });
+        let pressure_pa = checked(
+            &field("pressure_pa"),
+            required(&field("pressure_pa"), p.pressure_pa)?,
+            |x| x.abs() <= MAX_PRESSURE_PA,
+            "at most 1e9 Pa in magnitude",
+        )?;
+        pressure.push(PressureLoad {
+            surfaces,
+            triangles,
+            pressure_pa,
+            follower: p.follower.unwrap_or(false),
+        });
+    }
+    let mut point = Vec::new();
+    if l.point.as_ref().is_some_and(|p| !p.is_empty()) {
+        let surface: Vec<[u32; 3]> = mesh
+            .boundary_triangles()
+            .into_iter()
+            .filter(|t| !t.iter().all(|i| clamped.binary_search(i).is_ok()))
+            .collect();
+        let (lo, hi) = mesh.bounding_box();
+        let size = (hi - lo).length();
+        for (k, p) in l.point.iter().flatten().enumerate() {
+            let field = |name: &str| format!("loads.point[{k}].{name}");
+            let at = required(&field("point_m"), p.point_m)?;
+            for x in at {
+                checked(&field("point_m"), x, |_| true, "finite")?;
+            }
+            let point_m = DVec3::from_array(at);
+            let force_n = bounded_vec(
+                &field("force_n"),
+                required(&field("force_n"), p.force_n)?,
+                MAX_SCENE_POINT_FORCE_N,
+            )?;
+            let best = surface
+                .iter()
+                .map(|t| {
+                    let [a, b, c] = t.map(|i| mesh.nodes[i as usize]);
+                    let (q, bary) = crate::contact::closest_point_on_triangle(point_m, a, b, c);
+                    (*t, bary, (q - point_m).length())
+                })
+                .min_by(|a, b| a.2.total_cmp(&b.2));
+            let Some((nodes, bary, dist)) = best else {
+                return Err(ModelError::field(
+                    field("point_m"),
+                    "the body has no free boundary surface to load",
+                ));
+            };
+            if dist > size {
+                return Err(ModelError::field(
+                    field("point_m"),
+                    format!(
+                        "is {dist:.3e} m from the body's surface, farther than the body's size {size:.3e} m"
+                    ),
+                ));
+            }
+            point.push(PointForce {
+                point_m,
+                force_n,
+                nodes,
+                bary,
+            });
+        }
+    }
+    Ok(SceneLoads {
+        gravity_m_per_s2,
+        pressure,
+        point,
     })
 }
 
@@ -588,6 +807,7 @@ fn build_material(m: &RawMaterial) -> Result<MaterialParams, ModelError> {
             let lambda = non_negative(LAMBDA, required(LAMBDA, m.lambda_pa)?)?;
             let mu = positive(MU, required(MU, m.mu_pa)?)?;
             MaterialParams {
+                model: Default::default(),
                 lambda_pa: lambda,
                 mu_pa: mu,
                 phi_pa_s: 0.0,
@@ -597,6 +817,16 @@ fn build_material(m: &RawMaterial) -> Result<MaterialParams, ModelError> {
             }
         }
     };
+    if let Some(name) = &m.model {
+        mat.model = MaterialModel::from_scene_name(name).ok_or_else(|| {
+            ModelError::field(
+                "material.model",
+                format!(
+                    "unknown material model `{name}` (expected \"stvk\", \"corotational\" or \"stable-neo-hookean\")"
+                ),
+            )
+        })?;
+    }
     mat.phi_pa_s = non_negative("material.phi_pa_s", m.phi_pa_s.unwrap_or(0.0))?;
     mat.psi_pa_s = non_negative("material.psi_pa_s", m.psi_pa_s.unwrap_or(0.0))?;
     mat.mass_damping_per_s = non_negative(
@@ -611,16 +841,14 @@ fn build_integrator(i: &RawIntegrator) -> Result<IntegratorParams, ModelError> {
     let d = IntegratorParams::default();
     let kind = match i.kind.as_deref() {
         None => d.kind,
-        Some("semi-implicit") => IntegratorKind::SemiImplicit,
-        Some("symplectic-euler") => IntegratorKind::SymplecticEuler,
-        Some(other) => {
-            return Err(ModelError::field(
+        Some(name) => IntegratorKind::from_name(name).ok_or_else(|| {
+            ModelError::field(
                 "integrator.kind",
                 format!(
-                    "unknown integrator `{other}` (expected \"semi-implicit\" or \"symplectic-euler\")"
+                    "unknown integrator `{name}` (expected \"semi-implicit\", \"symplectic-euler\" or \"backward-euler\")"
                 ),
-            ));
-        }
+            )
+        })?,
     };
     let tick_s = checked(
         "integrator.tick_s",
@@ -651,12 +879,25 @@ fn build_integrator(i: &RawIntegrator) -> Result<IntegratorParams, ModelError> {
         |x| x > 0.0 && x <= 1.0,
         "in (0, 1]",
     )?;
+    let cg_max_iterations = match i.cg_max_iterations {
+        None => d.cg_max_iterations,
+        Some(v) => int_in("integrator.cg_max_iterations", v, 1, 10_000)? as u32,
+    };
+    let cg_tolerance = checked(
+        "integrator.cg_tolerance",
+        i.cg_tolerance.unwrap_or(d.cg_tolerance),
+        |x| x > 0.0 && x < 1.0,
+        "in (0, 1)",
+    )?;
     Ok(IntegratorParams {
         kind,
         tick_s,
         substeps,
         max_substeps,
         safety_factor,
+        cg_max_iterations,
+        cg_tolerance,
+        check_critical_step: true,
     })
 }
 

@@ -1,5 +1,5 @@
 //! Static equilibrium `f_int(x) + f_ext = 0` for reference solutions (Lamé sphere, patch tests,
-//! converged probe references): Newton's method on the StVK tangent stiffness with a
+//! converged probe references): Newton's method on the tangent stiffness of the material model with a
 //! backtracking line search; each linear system is solved by faer's sparse Cholesky (sparse LU
 //! when the tangent is not positive definite, e.g. StVK under strong compression).
 //!
@@ -49,12 +49,12 @@ pub struct StaticReport {
 }
 
 /// Element tangent stiffness blocks `K_ab = -d f_a / d x_b` (3x3, N/m) of element `e` at
-/// positions `x`, from the directional derivative of `f_a = -V F S grad N_a`.
+/// positions `x`, from the directional derivative of `f_a = -V P(F) grad N_a`
+/// ([`material::first_piola_differential`] of the material model).
 pub fn element_tangent(fem: &FemModel, e: usize, x: &[DVec3]) -> [[DMat3; 4]; 4] {
     let mat = &fem.material;
     let g = fem.shape_gradients(e);
     let fm = fem.deformation_gradient(e, x);
-    let s = material::stvk_stress(&material::green_strain(&fm), mat.lambda_pa, mat.mu_pa);
     let vol = fem.volume_m3[e];
     let mut k = [[DMat3::ZERO; 4]; 4];
     for b in 0..4 {
@@ -67,10 +67,7 @@ pub fn element_tangent(fem: &FemModel, e: usize, x: &[DVec3]) -> [[DMat3; 4]; 4]
                 col[j] = gc;
                 *dfm.col_mut(c) = col;
             }
-            let ft_df = fm.transpose() * dfm;
-            let de = (ft_df + ft_df.transpose()) * 0.5;
-            let ds = material::stvk_stress(&de, mat.lambda_pa, mat.mu_pa);
-            let dp = dfm * s + fm * ds;
+            let dp = material::first_piola_differential(mat, &fm, &dfm);
             for a in 0..4 {
                 cols[a * 3 + j] = dp * g[a] * vol;
             }
