@@ -6,13 +6,14 @@
 //!
 //! Modules: [`config`] (layered configuration), [`error`] (the one mapping to `tonic::Status`),
 //! [`servo`] (the 1 kHz loop), [`session`] (threads and handoffs per session), [`service`]
-//! (gRPC handlers).
+//! (gRPC handlers), [`solve`] (static solutions of scene files, behind `haptic-solve`).
 
 pub mod config;
 pub mod error;
 pub mod service;
 pub mod servo;
 pub mod session;
+pub mod solve;
 
 use std::future::Future;
 use std::sync::Arc;
