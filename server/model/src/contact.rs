@@ -399,6 +399,49 @@ impl Probe {
         self.state.force_on_device_n = n * phi.clamp(0.0, p.max_force_n);
     }
 
+    /// `gamma = dt (k dt + b)` (kg): the weight of the coupling's implicit rank-one term
+    /// `gamma U U^T` over the patch (see [`Probe::finish_implicit`]).
+    pub fn coupling_gamma(&self, dt_s: f64) -> f64 {
+        let p = &self.params;
+        dt_s * (p.coupling_stiffness_n_per_m * dt_s + p.coupling_damping_n_s_per_m)
+    }
+
+    /// The coupling's implicit term as a rank-one matrix for a global implicit solve
+    /// ([`crate::integrator::ImplicitSolver`]); `None` out of contact. Pair with
+    /// [`Probe::finish_solved`].
+    pub fn rank_one(&self, dt_s: f64) -> Option<crate::integrator::RankOneCoupling<'_>> {
+        if !self.state.in_contact {
+            return None;
+        }
+        Some(crate::integrator::RankOneCoupling {
+            gamma_kg: self.coupling_gamma(dt_s),
+            normal: self.state.normal,
+            nodes: &self.patch_nodes,
+            weights: &self.patch_weights,
+        })
+    }
+
+    /// Completes a step whose solve already contained the coupling's rank-one term
+    /// ([`Probe::rank_one`]): the end-of-step velocities `v` (m/s) give the device force
+    /// `phi n`, `phi = phi0 + (k dt + b) U^T v'`, clamped to `[0, max_force_n]`, the same force
+    /// whose unclamped reaction the body received. Allocation-free.
+    pub fn finish_solved(&mut self, dt_s: f64, v: &[DVec3]) {
+        if !self.state.in_contact {
+            return;
+        }
+        let n = self.state.normal;
+        let p = self.params;
+        let utv: f64 = self
+            .patch_nodes
+            .iter()
+            .zip(&self.patch_weights)
+            .map(|(&i, &w)| w * n.dot(v[i as usize]))
+            .sum();
+        let phi = self.phi0_n
+            + (p.coupling_stiffness_n_per_m * dt_s + p.coupling_damping_n_s_per_m) * utv;
+        self.state.force_on_device_n = n * phi.clamp(0.0, p.max_force_n);
+    }
+
     /// Collects the contact patch around the device point `q`: the touchable nodes within
     /// `PATCH_RADIUS_FACTOR * r` of `q` reachable from triangle `seed`, with the kernel weights
     /// `(1 - d^2 / R^2)^2` normalised to sum 1 (empty when all weights vanish). The weights go to

@@ -1,14 +1,34 @@
-//! Time integrators: the seed's semi-implicit scheme (seed 000 eq. 34) and symplectic Euler,
-//! the critical (Courant) time step, and sub-stepping of a servo tick.
+//! Time integrators: the seed's semi-implicit scheme (seed 000 eq. 34), symplectic Euler and
+//! implicit backward Euler, the critical (Courant) time step, and sub-stepping of a servo tick.
 //!
-//! Neighbours: [`crate::fem`] provides forces, masses and the rest Jacobian blocks;
-//! [`crate::sim`] calls [`integrate_nodes`] once per sub-step.
+//! Backward Euler ([`ImplicitSolver`]) takes one Newton step of the implicit equations per
+//! sub-step (Baraff & Witkin 1998, "Large steps in cloth simulation", eq. 15-18): with
+//! `v' = v + dv`, `x' = x + h v'`, the linearisation `f(x', v') ~ f_el(x) - K(x) h v' - D(x) v'`
+//! (the viscous force of eq. 10-11 is linear in the velocity, `f_visc(x, v) = -D(x) v`) and the
+//! mass damping `-alpha M v'` treated implicitly gives
+//!
+//! `A dv = h (f_el(x) + f_visc(x, v) + f_ext - U phi0 - alpha M v) - h^2 K v - gamma U U^T v`,
+//! with `A = M (1 + alpha h) + h D(x) + h^2 K(x) + gamma U U^T`,
+//!
+//! which, because `f_visc = -D v`, is `A dv = M v + h (f_el + f_ext - U phi0) - A v`: the
+//! viscous force is never evaluated separately. `gamma U U^T` is the probe's virtual coupling (rank one over the contact patch,
+//! `gamma = h (k h + b)`, see [`crate::contact::Probe::coupling_gamma`]), so the coupling is
+//! exactly implicit inside the same solve. `A` is applied matrix-free (the material's
+//! [`FemModel::stiffness_action`] plus a viscous action on cached deformation gradients) and
+//! the system is solved by block-Jacobi preconditioned conjugate gradients, warm-started with
+//! the previous step's `dv`, capped at `cg_max_iterations` or a relative residual of
+//! `cg_tolerance`. The preconditioner blocks are those of `A` at rest (constant per sub-step
+//! size; the patch's coupling term is added per step). Follower pressure is explicit (its
+//! load stiffness is not symmetric). Constrained components are projected out of the system.
+//!
+//! Neighbours: [`crate::fem`] provides forces, masses, the tangent action and the rest blocks;
+//! [`crate::sim`] calls [`integrate_nodes`] or [`ImplicitSolver::step`] once per sub-step.
 
 use glam::{DMat3, DVec3};
 
 use crate::ModelError;
-use crate::fem::{CLAMPED, FemModel, apply_constraint};
-use crate::material::MaterialParams;
+use crate::fem::{CLAMPED, ConstraintMask, FemModel, apply_constraint};
+use crate::material::{self, MaterialParams};
 
 /// Which time integrator advances the FEM nodes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -18,15 +38,31 @@ pub enum IntegratorKind {
     SemiImplicit,
     /// Symplectic (semi-implicit) Euler: `v += dt F/m`, `x += dt v`. The explicit reference.
     SymplecticEuler,
+    /// Implicit backward Euler, one Newton step per sub-step solved by preconditioned CG
+    /// ([`ImplicitSolver`]). Unconditionally stable for the linearised system, so one sub-step
+    /// per tick by default.
+    BackwardEuler,
 }
 
 impl IntegratorKind {
-    /// The name used in scene files (`semi-implicit`, `symplectic-euler`).
+    /// The name used in scene files (`semi-implicit`, `symplectic-euler`, `backward-euler`).
     pub fn name(self) -> &'static str {
         match self {
             Self::SemiImplicit => "semi-implicit",
             Self::SymplecticEuler => "symplectic-euler",
+            Self::BackwardEuler => "backward-euler",
         }
+    }
+
+    /// Parses a scene-file name (see [`IntegratorKind::name`]); `None` if unknown.
+    pub fn from_name(name: &str) -> Option<Self> {
+        [
+            Self::SemiImplicit,
+            Self::SymplecticEuler,
+            Self::BackwardEuler,
+        ]
+        .into_iter()
+        .find(|k| k.name() == name)
     }
 }
 
@@ -49,6 +85,15 @@ pub struct IntegratorParams {
     /// stable under a 3.7 mm indentation with both integrators; 0.6 did not for the
     /// semi-implicit scheme on 18k tets.
     pub safety_factor: f64,
+    /// Backward Euler: largest number of conjugate-gradient iterations per Newton step.
+    /// Default 20.
+    pub cg_max_iterations: u32,
+    /// Backward Euler: relative residual `|r| / |rhs|` at which CG stops. Default 1e-3.
+    pub cg_tolerance: f64,
+    /// Whether [`plan_steps`] refuses a step above the critical one (default true). Off only in
+    /// stress tests and benchmarks that must run a known-unstable configuration to show that the
+    /// divergence monitor reports it ([`ModelError::Diverged`]) instead of producing NaN.
+    pub check_critical_step: bool,
 }
 
 impl Default for IntegratorParams {
@@ -59,6 +104,9 @@ impl Default for IntegratorParams {
             substeps: None,
             max_substeps: 64,
             safety_factor: 0.5,
+            cg_max_iterations: 20,
+            cg_tolerance: 1e-3,
+            check_critical_step: true,
         }
     }
 }
@@ -97,6 +145,7 @@ pub fn viscous_beta_s(m: &MaterialParams) -> f64 {
 ///   `d` is the Rayleigh quotient of the block diagonal `K_D`; so
 ///   `dt_crit = 2 / sqrt(lambda_max(M^-1 (K - 2 K_D)))`, infinite when that is not positive.
 ///   This is exact for commuting `K`, `K_D` and a good estimate otherwise (hence the safety factor).
+/// - Backward Euler: `f64::INFINITY` (unconditionally stable for the linearised system).
 pub fn critical_time_step(fem: &FemModel, kind: IntegratorKind) -> f64 {
     let beta = viscous_beta_s(&fem.material);
     let damped = |w2: f64| {
@@ -110,6 +159,7 @@ pub fn critical_time_step(fem: &FemModel, kind: IntegratorKind) -> f64 {
     match kind {
         IntegratorKind::SymplecticEuler => damped(fem.max_eigenvalue(0.0, 300)),
         IntegratorKind::SemiImplicit => damped(fem.max_eigenvalue(2.0, 300)),
+        IntegratorKind::BackwardEuler => f64::INFINITY,
     }
 }
 
@@ -117,7 +167,8 @@ pub fn critical_time_step(fem: &FemModel, kind: IntegratorKind) -> f64 {
 ///
 /// # Errors
 /// [`ModelError::Unstable`] when fixed `substeps` give a step above `critical_dt_s`, or when
-/// automatic sub-stepping would need more than `max_substeps`.
+/// automatic sub-stepping would need more than `max_substeps` (neither when
+/// `check_critical_step` is off: automatic sub-stepping then uses at most `max_substeps`).
 pub fn plan_steps(p: &IntegratorParams, critical_dt_s: f64) -> Result<StepPlan, ModelError> {
     let unstable = |n: u32| ModelError::Unstable {
         integrator: p.kind.name(),
@@ -129,7 +180,7 @@ pub fn plan_steps(p: &IntegratorParams, critical_dt_s: f64) -> Result<StepPlan, 
     let substeps = match p.substeps {
         Some(n) => {
             let n = n.max(1);
-            if p.tick_s / n as f64 > critical_dt_s {
+            if p.check_critical_step && p.tick_s / n as f64 > critical_dt_s {
                 return Err(unstable(n));
             }
             n
@@ -139,9 +190,13 @@ pub fn plan_steps(p: &IntegratorParams, critical_dt_s: f64) -> Result<StepPlan, 
                 .ceil()
                 .max(1.0);
             if need > p.max_substeps as f64 {
-                return Err(unstable(p.max_substeps));
+                if p.check_critical_step {
+                    return Err(unstable(p.max_substeps));
+                }
+                p.max_substeps
+            } else {
+                need as u32
             }
-            need as u32
         }
     };
     Ok(StepPlan {
@@ -173,6 +228,9 @@ pub fn semi_implicit_inverses(fem: &FemModel, dt_s: f64) -> Vec<DMat3> {
 /// - [`IntegratorKind::SymplecticEuler`]: `v = (v + dt f / m) / (1 + alpha dt)`, `x += dt v`.
 /// - [`IntegratorKind::SemiImplicit`]: `v~ = v + dt f / m`, `v = A_i^-1 v~`, `x += dt v`
 ///   (seed 000 eq. 34; `a_inv` from [`semi_implicit_inverses`]).
+/// - [`IntegratorKind::BackwardEuler`] needs the global solve of [`ImplicitSolver::step`]; here
+///   it degrades to its block-diagonal (per-node) approximation, which is the semi-implicit
+///   update, so `a_inv` must be given.
 ///
 /// Allocation-free.
 pub fn integrate_nodes(
@@ -195,7 +253,7 @@ pub fn integrate_nodes(
         let predicted = v[i] + f[i] * (dt_s / fem.lumped_mass_kg[i]);
         let mut vi = match kind {
             IntegratorKind::SymplecticEuler => predicted * damp,
-            IntegratorKind::SemiImplicit => a_inv[i] * predicted,
+            IntegratorKind::SemiImplicit | IntegratorKind::BackwardEuler => a_inv[i] * predicted,
         };
         apply_constraint(mask, &mut vi);
         v[i] = vi;
@@ -228,8 +286,328 @@ pub fn apply_inverse(
     let m = fem.lumped_mass_kg[i];
     let mut r = match kind {
         IntegratorKind::SymplecticEuler => w / (m * (1.0 + fem.material.mass_damping_per_s * dt_s)),
-        IntegratorKind::SemiImplicit => a_inv[i] * w / m,
+        IntegratorKind::SemiImplicit | IntegratorKind::BackwardEuler => a_inv[i] * w / m,
     };
     apply_constraint(mask, &mut r);
     r
+}
+
+/// The probe's virtual coupling as a rank-one term `gamma U U^T` of the backward Euler matrix,
+/// `U = (w_i n)` over the contact patch (see [`crate::contact::Probe::coupling_gamma`]).
+#[derive(Debug, Clone, Copy)]
+pub struct RankOneCoupling<'a> {
+    /// `gamma = h (k h + b)`, kg.
+    pub gamma_kg: f64,
+    /// Unit contact normal.
+    pub normal: DVec3,
+    /// Patch nodes.
+    pub nodes: &'a [u32],
+    /// Patch weights (sum 1), same length as `nodes`.
+    pub weights: &'a [f64],
+}
+
+impl RankOneCoupling<'_> {
+    /// `U^T p`.
+    fn ut(&self, p: &[DVec3]) -> f64 {
+        self.nodes
+            .iter()
+            .zip(self.weights)
+            .map(|(&i, &w)| w * self.normal.dot(p[i as usize]))
+            .sum()
+    }
+}
+
+/// Conjugate-gradient statistics of the last backward Euler step.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct CgStats {
+    /// Iterations used (each is one application of the system matrix).
+    pub iterations: u32,
+    /// Final `|r| / |rhs|` (0 when the right-hand side vanished).
+    pub relative_residual: f64,
+    /// Whether the tolerance was reached within the iteration cap.
+    pub converged: bool,
+}
+
+/// Backward Euler solver: the preconditioner and every CG vector, sized at construction so that
+/// [`ImplicitSolver::step`] allocates nothing. See the module documentation for the system.
+#[derive(Debug, Clone)]
+pub struct ImplicitSolver {
+    dt_s: f64,
+    max_iterations: u32,
+    tolerance: f64,
+    /// `m_i (1 + alpha h)`, kg.
+    mass_factor: Vec<f64>,
+    /// Rest blocks of `A`: `m_i (1 + alpha h) I + h D_ii + h^2 K_ii`, kg.
+    precond: Vec<DMat3>,
+    precond_inv: Vec<DMat3>,
+    /// Inverses of the patch nodes' blocks with the coupling's diagonal `gamma w_i^2 n n^T`.
+    patch_inv: Vec<DMat3>,
+    /// Deformation gradient per element at the start of the step (viscous action).
+    elem_f: Vec<DMat3>,
+    rhs: Vec<DVec3>,
+    dv: Vec<DVec3>,
+    r: Vec<DVec3>,
+    z: Vec<DVec3>,
+    p: Vec<DVec3>,
+    ap: Vec<DVec3>,
+    stats: CgStats,
+}
+
+impl ImplicitSolver {
+    /// Prepares the solver for `fem` and sub-step `dt_s` (s) with the CG settings of `params`.
+    pub fn new(fem: &FemModel, dt_s: f64, params: &IntegratorParams) -> Self {
+        let n = fem.node_count();
+        let mat = &fem.material;
+        let h = dt_s;
+        let mass_factor: Vec<f64> = fem
+            .lumped_mass_kg
+            .iter()
+            .map(|m| m * (1.0 + mat.mass_damping_per_s * h))
+            .collect();
+        // D_ii at rest: the stiffness blocks with (lambda, mu) -> (2 phi, 2 psi) (eq. 10-11).
+        let mut precond: Vec<DMat3> = fem
+            .rest_diagonal_blocks()
+            .iter()
+            .zip(&mass_factor)
+            .map(|(k, m)| DMat3::from_diagonal(DVec3::splat(*m)) + *k * (h * h))
+            .collect();
+        for (e, t) in fem.tets.iter().enumerate() {
+            let g = fem.shape_gradients(e);
+            for (a, &i) in t.iter().enumerate() {
+                let ga = g[a];
+                let outer = DMat3::from_cols(ga * ga.x, ga * ga.y, ga * ga.z);
+                precond[i as usize] += (outer * (2.0 * mat.phi_pa_s + 2.0 * mat.psi_pa_s)
+                    + DMat3::from_diagonal(DVec3::splat(2.0 * mat.psi_pa_s * ga.length_squared())))
+                    * (fem.volume_m3[e] * h);
+            }
+        }
+        let precond_inv = precond.iter().map(|b| b.inverse()).collect();
+        Self {
+            dt_s,
+            max_iterations: params.cg_max_iterations,
+            tolerance: params.cg_tolerance,
+            mass_factor,
+            precond,
+            precond_inv,
+            patch_inv: Vec::with_capacity(crate::contact::MAX_PATCH_NODES),
+            elem_f: vec![DMat3::IDENTITY; fem.tets.len()],
+            rhs: vec![DVec3::ZERO; n],
+            dv: vec![DVec3::ZERO; n],
+            r: vec![DVec3::ZERO; n],
+            z: vec![DVec3::ZERO; n],
+            p: vec![DVec3::ZERO; n],
+            ap: vec![DVec3::ZERO; n],
+            stats: CgStats::default(),
+        }
+    }
+
+    /// Sub-step the solver was prepared for, s.
+    pub fn dt_s(&self) -> f64 {
+        self.dt_s
+    }
+
+    /// Statistics of the last step.
+    pub fn stats(&self) -> CgStats {
+        self.stats
+    }
+
+    /// One backward Euler step of `dt_s`: solves `A dv = M v + h f - A v` (module documentation)
+    /// by preconditioned CG warm-started with the previous step's `dv`, then `v += dv`,
+    /// `x += h v`. `f` (N) holds every force except the viscous one and the implicit part of the
+    /// coupling: the elastic force at `x`, external loads, and the coupling's explicit part
+    /// (`-U phi0`). Returns the largest squared nodal speed after the step (m^2/s^2; NaN if any
+    /// value is not finite). Allocation-free.
+    ///
+    /// # Panics
+    /// If the slices are shorter than the node count of the model the solver was built for.
+    pub fn step(
+        &mut self,
+        fem: &FemModel,
+        f: &[DVec3],
+        coupling: Option<RankOneCoupling<'_>>,
+        x: &mut [DVec3],
+        v: &mut [DVec3],
+    ) -> f64 {
+        let h = self.dt_s;
+        let mat = &fem.material;
+        let viscous = mat.phi_pa_s > 0.0 || mat.psi_pa_s > 0.0;
+        if viscous {
+            for (e, fe) in self.elem_f.iter_mut().enumerate() {
+                *fe = fem.deformation_gradient(e, x);
+            }
+        }
+        let op = Operator {
+            fem,
+            h,
+            viscous,
+            mass_factor: &self.mass_factor,
+            elem_f: &self.elem_f,
+            x,
+            coupling,
+        };
+        // Preconditioner blocks of the patch nodes with the coupling's diagonal.
+        self.patch_inv.clear();
+        if let Some(c) = coupling {
+            let nn = DMat3::from_cols(
+                c.normal * c.normal.x,
+                c.normal * c.normal.y,
+                c.normal * c.normal.z,
+            );
+            for (&i, &w) in c.nodes.iter().zip(c.weights) {
+                self.patch_inv
+                    .push((self.precond[i as usize] + nn * (c.gamma_kg * w * w)).inverse());
+            }
+        }
+        let precondition = |r: &[DVec3], z: &mut [DVec3], patch_inv: &[DMat3]| {
+            for i in 0..r.len() {
+                z[i] = self.precond_inv[i] * r[i];
+            }
+            if let Some(c) = coupling {
+                for (&i, b) in c.nodes.iter().zip(patch_inv) {
+                    z[i as usize] = *b * r[i as usize];
+                }
+            }
+            for (zi, &m) in z.iter_mut().zip(&fem.constraint) {
+                apply_constraint(m, zi);
+            }
+        };
+        // rhs = M v + h f - A v.
+        op.apply(v, &mut self.ap);
+        for i in 0..v.len() {
+            let mut b = v[i] * fem.lumped_mass_kg[i] + f[i] * h - self.ap[i];
+            apply_constraint(fem.constraint[i], &mut b);
+            self.rhs[i] = b;
+        }
+        let rhs_norm = norm(&self.rhs);
+        // Warm start: the previous step's dv (already projected).
+        op.apply(&self.dv, &mut self.ap);
+        for i in 0..v.len() {
+            self.r[i] = self.rhs[i] - self.ap[i];
+        }
+        precondition(&self.r, &mut self.z, &self.patch_inv);
+        self.p.copy_from_slice(&self.z);
+        let mut rz = dot(&self.r, &self.z);
+        let target = self.tolerance * rhs_norm;
+        let mut iterations = 0;
+        let mut r_norm = norm(&self.r);
+        while r_norm > target && iterations < self.max_iterations {
+            op.apply(&self.p, &mut self.ap);
+            let pap = dot(&self.p, &self.ap);
+            // An indefinite tangent (strong compression) or a non-finite state ends CG here.
+            if !(pap > 0.0) || !(rz > 0.0) {
+                break;
+            }
+            iterations += 1;
+            let alpha = rz / pap;
+            for i in 0..v.len() {
+                self.dv[i] += self.p[i] * alpha;
+                self.r[i] -= self.ap[i] * alpha;
+            }
+            r_norm = norm(&self.r);
+            precondition(&self.r, &mut self.z, &self.patch_inv);
+            let rz_new = dot(&self.r, &self.z);
+            let beta = rz_new / rz;
+            rz = rz_new;
+            for i in 0..v.len() {
+                self.p[i] = self.z[i] + self.p[i] * beta;
+            }
+        }
+        self.stats = CgStats {
+            iterations,
+            relative_residual: if rhs_norm > 0.0 {
+                r_norm / rhs_norm
+            } else {
+                0.0
+            },
+            converged: r_norm <= target,
+        };
+        let mut max_v2: f64 = 0.0;
+        let mut non_finite = false;
+        for i in 0..v.len() {
+            let mut vi = v[i] + self.dv[i];
+            apply_constraint(fem.constraint[i], &mut vi);
+            v[i] = vi;
+            x[i] += vi * h;
+            let s = vi.length_squared();
+            non_finite |= !s.is_finite();
+            max_v2 = max_v2.max(s);
+        }
+        if non_finite {
+            // Never warm-start from garbage.
+            self.dv.iter_mut().for_each(|d| *d = DVec3::ZERO);
+            f64::NAN
+        } else {
+            max_v2
+        }
+    }
+
+    /// Forgets the warm start (after the state was replaced from outside).
+    pub fn reset_warm_start(&mut self) {
+        self.dv.iter_mut().for_each(|d| *d = DVec3::ZERO);
+    }
+}
+
+/// The backward Euler matrix `A` applied matrix-free (module documentation).
+struct Operator<'a> {
+    fem: &'a FemModel,
+    h: f64,
+    viscous: bool,
+    mass_factor: &'a [f64],
+    elem_f: &'a [DMat3],
+    x: &'a [DVec3],
+    coupling: Option<RankOneCoupling<'a>>,
+}
+
+impl Operator<'_> {
+    /// `out = A p` on the free components (constrained components of `out` are zero).
+    fn apply(&self, p: &[DVec3], out: &mut [DVec3]) {
+        let fem = self.fem;
+        let h = self.h;
+        out.iter_mut().for_each(|o| *o = DVec3::ZERO);
+        fem.stiffness_action(self.x, p, out);
+        let h2 = h * h;
+        out.iter_mut().for_each(|o| *o *= h2);
+        if self.viscous {
+            let mat = &fem.material;
+            // D p = V F S_v(F, dF) Dm^-T per element: minus the viscous force at velocity p.
+            for (e, t) in fem.tets.iter().enumerate() {
+                let [a, b, c, d] = t.map(|i| i as usize);
+                let dm_inv = fem.dm_inv[e];
+                let p0 = p[a];
+                let df = DMat3::from_cols(p[b] - p0, p[c] - p0, p[d] - p0) * dm_inv;
+                let fm = self.elem_f[e];
+                let sv = material::viscous_stress(&fm, &df, mat.phi_pa_s, mat.psi_pa_s);
+                let hm = (fm * sv) * dm_inv.transpose() * (fem.volume_m3[e] * h);
+                out[b] += hm.x_axis;
+                out[c] += hm.y_axis;
+                out[d] += hm.z_axis;
+                out[a] -= hm.x_axis + hm.y_axis + hm.z_axis;
+            }
+        }
+        for i in 0..p.len() {
+            out[i] += p[i] * self.mass_factor[i];
+        }
+        if let Some(c) = self.coupling {
+            let s = c.gamma_kg * c.ut(p);
+            for (&i, &w) in c.nodes.iter().zip(c.weights) {
+                out[i as usize] += c.normal * (w * s);
+            }
+        }
+        for (o, &m) in out.iter_mut().zip(&fem.constraint) {
+            project(m, o);
+        }
+    }
+}
+
+#[inline]
+fn project(mask: ConstraintMask, v: &mut DVec3) {
+    apply_constraint(mask, v);
+}
+
+fn dot(a: &[DVec3], b: &[DVec3]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x.dot(*y)).sum()
+}
+
+fn norm(a: &[DVec3]) -> f64 {
+    dot(a, a).sqrt()
 }

@@ -6,6 +6,11 @@
 //! [`FemModel`], [`StepPlan`] and probe parameters are fixed. [`Simulation::tick`] allocates
 //! nothing, takes no lock and does no I/O, so the server can call it on its servo thread.
 //!
+//! The scene's loads ([`crate::scene::SceneLoads`]) act in every sub-step of every integrator:
+//! gravity, dead pressure and point forces are summed once at construction into a constant
+//! nodal force; follower pressure is recomputed from the current positions each sub-step.
+//! [`static_external_forces`] gives the same forces for static solves.
+//!
 //! Neighbours: built from a [`crate::scene::Scene`]; uses [`crate::fem`],
 //! [`crate::integrator`], [`crate::contact`].
 
@@ -14,7 +19,7 @@ use glam::{DMat3, DVec3};
 use crate::ModelError;
 use crate::contact::{ContactState, ContactSurface, Probe};
 use crate::fem::{CLAMPED, FemModel};
-use crate::integrator::{self, IntegratorKind, StepPlan};
+use crate::integrator::{self, CgStats, ImplicitSolver, IntegratorKind, StepPlan};
 use crate::scene::Scene;
 
 /// Largest number of point loads active at once (the table is preallocated).
@@ -74,6 +79,32 @@ struct PointLoad {
     remaining_s: f64,
 }
 
+/// Whether a simulation is still meaningful, with the quantities that say so
+/// ([`Simulation::stability`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StabilityReport {
+    /// The state is finite and no tick diverged.
+    pub stable: bool,
+    /// Simulated time of the tick that diverged ([`ModelError::Diverged`]), s.
+    pub diverged_at_s: Option<f64>,
+    /// Every position and velocity is finite.
+    pub finite: bool,
+    /// Largest nodal speed, m/s.
+    pub max_speed_m_per_s: f64,
+    /// Kinetic energy, J.
+    pub kinetic_energy_j: f64,
+    /// Elastic energy of the material, J.
+    pub elastic_energy_j: f64,
+    /// Largest nodal displacement from rest, m.
+    pub max_displacement_m: f64,
+    /// Elements with `det F <= 0`.
+    pub inverted_elements: usize,
+    /// Relative change of the total (signed) volume, `(V - V0) / V0`.
+    pub volume_change: f64,
+    /// Conjugate-gradient statistics of the last backward Euler step (default otherwise).
+    pub cg: CgStats,
+}
+
 /// A deformable body with its probe, loads, integrator and sub-stepping.
 #[derive(Debug, Clone)]
 pub struct Simulation {
@@ -83,6 +114,15 @@ pub struct Simulation {
     tick_s: f64,
     /// Seed eq. 34 per-node matrices `A_i^-1` (semi-implicit only; empty otherwise).
     a_inv: Vec<DMat3>,
+    /// Backward Euler solver and its scratch (backward Euler only).
+    implicit: Option<ImplicitSolver>,
+    /// Scene loads that do not depend on the state (gravity, dead pressure, point forces), N
+    /// per node; empty when there are none.
+    constant_load: Vec<DVec3>,
+    /// Follower pressures: (triangles, Pa).
+    follower: Vec<(Vec<[u32; 3]>, f64)>,
+    /// Set when a tick diverged; later ticks refuse to run.
+    diverged_at_s: Option<f64>,
     state: SimState,
     /// Scratch: total nodal forces of the current sub-step.
     force: Vec<DVec3>,
@@ -126,8 +166,18 @@ impl Simulation {
         let plan = integrator::plan_steps(&p, critical)?;
         let a_inv = match p.kind {
             IntegratorKind::SemiImplicit => integrator::semi_implicit_inverses(&fem, plan.sub_dt_s),
-            IntegratorKind::SymplecticEuler => Vec::new(),
+            IntegratorKind::SymplecticEuler | IntegratorKind::BackwardEuler => Vec::new(),
         };
+        let implicit = (p.kind == IntegratorKind::BackwardEuler)
+            .then(|| ImplicitSolver::new(&fem, plan.sub_dt_s, &p));
+        let constant_load = constant_external_forces(scene, &fem.rest, &fem.lumped_mass_kg);
+        let follower = scene
+            .loads
+            .pressure
+            .iter()
+            .filter(|l| l.follower)
+            .map(|l| (l.triangles.clone(), l.pressure_pa))
+            .collect();
         let n = fem.node_count();
         let boundary = scene.mesh.boundary_triangles();
         let load_tris: Vec<[u32; 3]> = boundary
@@ -152,6 +202,10 @@ impl Simulation {
             plan,
             tick_s: p.tick_s,
             a_inv,
+            implicit,
+            constant_load,
+            follower,
+            diverged_at_s: None,
             state: SimState {
                 x: fem.rest.clone(),
                 v: vec![DVec3::ZERO; n],
@@ -179,17 +233,21 @@ impl Simulation {
     /// allocates.
     pub fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
         self.check_device(input)?;
+        if let Some(time_s) = self.diverged_at_s {
+            return Err(ModelError::Diverged { time_s });
+        }
         let h = self.plan.sub_dt_s;
         let mut contact = ContactState::default();
         for _ in 0..self.plan.substeps {
             self.force.iter_mut().for_each(|f| *f = DVec3::ZERO);
+            // Backward Euler treats the viscous force implicitly inside its solve.
+            let v_for_force = match self.kind {
+                IntegratorKind::BackwardEuler => None,
+                _ => Some(self.state.v.as_slice()),
+            };
             self.fem
-                .add_internal_forces(&self.state.x, Some(&self.state.v), &mut self.force);
-            for l in &self.loads {
-                for k in 0..3 {
-                    self.force[l.nodes[k] as usize] += l.force_n * l.bary[k];
-                }
-            }
+                .add_internal_forces(&self.state.x, v_for_force, &mut self.force);
+            self.add_external_forces();
             contact = match input.device_position_m {
                 Some(p) => {
                     let c = self
@@ -203,30 +261,48 @@ impl Simulation {
                     ContactState::default()
                 }
             };
-            let mut max_v2 = integrator::integrate_nodes(
-                self.kind,
-                &self.fem,
-                &self.a_inv,
-                h,
-                &self.force,
-                &mut self.state.x,
-                &mut self.state.v,
-            );
-            if contact.in_contact {
-                let (kind, fem, a_inv) = (self.kind, &self.fem, &self.a_inv);
-                self.probe
-                    .finish_implicit(h, &mut self.state.x, &mut self.state.v, |i, w| {
-                        integrator::apply_inverse(kind, fem, a_inv, h, i, w)
-                    });
-                contact = self.probe.state;
-                for &i in self.probe.patch().0 {
-                    let s = self.state.v[i as usize].length_squared();
-                    if !s.is_finite() || s > max_v2 {
-                        max_v2 = if s.is_finite() { s } else { f64::NAN };
+            let max_v2 = if let Some(solver) = &mut self.implicit {
+                let coupling = self.probe.rank_one(h);
+                let max_v2 = solver.step(
+                    &self.fem,
+                    &self.force,
+                    coupling,
+                    &mut self.state.x,
+                    &mut self.state.v,
+                );
+                if contact.in_contact {
+                    self.probe.finish_solved(h, &self.state.v);
+                    contact = self.probe.state;
+                }
+                max_v2
+            } else {
+                let mut max_v2 = integrator::integrate_nodes(
+                    self.kind,
+                    &self.fem,
+                    &self.a_inv,
+                    h,
+                    &self.force,
+                    &mut self.state.x,
+                    &mut self.state.v,
+                );
+                if contact.in_contact {
+                    let (kind, fem, a_inv) = (self.kind, &self.fem, &self.a_inv);
+                    self.probe
+                        .finish_implicit(h, &mut self.state.x, &mut self.state.v, |i, w| {
+                            integrator::apply_inverse(kind, fem, a_inv, h, i, w)
+                        });
+                    contact = self.probe.state;
+                    for &i in self.probe.patch().0 {
+                        let s = self.state.v[i as usize].length_squared();
+                        if !s.is_finite() || s > max_v2 {
+                            max_v2 = if s.is_finite() { s } else { f64::NAN };
+                        }
                     }
                 }
-            }
+                max_v2
+            };
             if !(max_v2 <= DIVERGENCE_SPEED_M_PER_S * DIVERGENCE_SPEED_M_PER_S) {
+                self.diverged_at_s = Some(self.state.time_s);
                 return Err(ModelError::Diverged {
                     time_s: self.state.time_s,
                 });
@@ -251,6 +327,80 @@ impl Simulation {
         };
         self.last_output = out;
         Ok(out)
+    }
+
+    /// Adds the scene loads and the active point loads to the force buffer. Allocation-free.
+    fn add_external_forces(&mut self) {
+        if !self.constant_load.is_empty() {
+            for (f, l) in self.force.iter_mut().zip(&self.constant_load) {
+                *f += *l;
+            }
+        }
+        for (tris, p) in &self.follower {
+            add_pressure(tris, &self.state.x, *p, &mut self.force);
+        }
+        for l in &self.loads {
+            for k in 0..3 {
+                self.force[l.nodes[k] as usize] += l.force_n * l.bary[k];
+            }
+        }
+    }
+
+    /// Stability of the current state: finite or not, divergence, energies, inverted elements,
+    /// volume change, last CG statistics. O(nodes + elements); allocation-free.
+    pub fn stability(&self) -> StabilityReport {
+        let x = &self.state.x;
+        let v = &self.state.v;
+        let finite = x.iter().chain(v).all(|a| a.is_finite());
+        let max_speed = v
+            .iter()
+            .map(|a| a.length_squared())
+            .fold(0.0, f64::max)
+            .sqrt();
+        let volume: f64 = self
+            .fem
+            .tets
+            .iter()
+            .map(|t| {
+                let [a, b, c, d] = t.map(|i| x[i as usize]);
+                (b - a).cross(c - a).dot(d - a) / 6.0
+            })
+            .sum();
+        let v0 = self.fem.total_volume_m3();
+        StabilityReport {
+            stable: finite && self.diverged_at_s.is_none(),
+            diverged_at_s: self.diverged_at_s,
+            finite,
+            max_speed_m_per_s: max_speed,
+            kinetic_energy_j: self.kinetic_energy_j(),
+            elastic_energy_j: self.fem.elastic_energy(x),
+            max_displacement_m: self.max_displacement_m(),
+            inverted_elements: self.inverted_elements(),
+            volume_change: (volume - v0) / v0,
+            cg: self.cg_stats(),
+        }
+    }
+
+    /// Number of elements whose deformation gradient has `det F <= 0` (inverted or flat).
+    pub fn inverted_elements(&self) -> usize {
+        (0..self.fem.tets.len())
+            .filter(|&e| {
+                !(self
+                    .fem
+                    .deformation_gradient(e, &self.state.x)
+                    .determinant()
+                    > 0.0)
+            })
+            .count()
+    }
+
+    /// Conjugate-gradient statistics of the last backward Euler step (default for the other
+    /// integrators).
+    pub fn cg_stats(&self) -> CgStats {
+        self.implicit
+            .as_ref()
+            .map(ImplicitSolver::stats)
+            .unwrap_or_default()
     }
 
     fn check_device(&self, input: &TickInput) -> Result<(), ModelError> {
@@ -371,8 +521,13 @@ impl Simulation {
         &self.state
     }
 
-    /// Mutable state, for tests and set-ups (e.g. imposing an initial deformation).
+    /// Mutable state, for tests and set-ups (e.g. imposing an initial deformation). Forgets
+    /// the backward Euler warm start and a recorded divergence.
     pub fn state_mut(&mut self) -> &mut SimState {
+        if let Some(s) = &mut self.implicit {
+            s.reset_warm_start();
+        }
+        self.diverged_at_s = None;
         &mut self.state
     }
 
@@ -439,4 +594,66 @@ pub fn validate_point_load(
         )));
     }
     Ok(())
+}
+
+/// Adds the nodal forces (N) of a uniform pressure `pressure_pa` (Pa) on `triangles` at
+/// positions `x`: `-p A n` per triangle, a third per vertex. Allocation-free.
+fn add_pressure(triangles: &[[u32; 3]], x: &[DVec3], pressure_pa: f64, f: &mut [DVec3]) {
+    for t in triangles {
+        let [a, b, c] = t.map(|i| x[i as usize]);
+        // (b - a) x (c - a) = 2 A n.
+        let fa = (b - a).cross(c - a) * (-pressure_pa / 6.0);
+        for &i in t {
+            f[i as usize] += fa;
+        }
+    }
+}
+
+/// The state-independent part of the scene loads on nodes with rest positions `rest` and
+/// lumped masses `mass_kg`: gravity, dead pressure (rest geometry) and point forces. Empty
+/// when the scene has none of them.
+fn constant_external_forces(scene: &Scene, rest: &[DVec3], mass_kg: &[f64]) -> Vec<DVec3> {
+    let l = &scene.loads;
+    if l.gravity_m_per_s2 == DVec3::ZERO
+        && l.point.is_empty()
+        && l.pressure.iter().all(|p| p.follower)
+    {
+        return Vec::new();
+    }
+    let mut f: Vec<DVec3> = mass_kg.iter().map(|m| l.gravity_m_per_s2 * *m).collect();
+    for p in l.pressure.iter().filter(|p| !p.follower) {
+        add_pressure(&p.triangles, rest, p.pressure_pa, &mut f);
+    }
+    for p in &l.point {
+        for k in 0..3 {
+            f[p.nodes[k] as usize] += p.force_n * p.bary[k];
+        }
+    }
+    f
+}
+
+/// External nodal forces (N, one per mesh node) of the scene's loads at positions `x` (m), for
+/// static solves: gravity on the lumped masses, dead pressure on the rest geometry, follower
+/// pressure on `x`, point forces. The same forces [`Simulation::tick`] applies.
+///
+/// # Panics
+/// If `x` is shorter than the mesh's node count.
+pub fn static_external_forces(scene: &Scene, x: &[DVec3]) -> Vec<DVec3> {
+    let mesh = &scene.mesh;
+    let mut mass = vec![0.0; mesh.nodes.len()];
+    for t in &mesh.tets {
+        let [a, b, c, d] = t.map(|i| mesh.nodes[i as usize]);
+        let m = scene.material.density_kg_per_m3 * ((b - a).cross(c - a).dot(d - a) / 6.0).abs();
+        for &i in t {
+            mass[i as usize] += m / 4.0;
+        }
+    }
+    let mut f = constant_external_forces(scene, &mesh.nodes, &mass);
+    if f.is_empty() {
+        f = vec![DVec3::ZERO; mesh.nodes.len()];
+    }
+    for p in scene.loads.pressure.iter().filter(|p| p.follower) {
+        add_pressure(&p.triangles, x, p.pressure_pa, &mut f);
+    }
+    f
 }

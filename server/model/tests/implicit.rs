@@ -1,0 +1,201 @@
+//! Implicit backward Euler (issue 3 section 1): one sub-step per 1 ms tick, bounded under the
+//! probe on the built-in LV with the same press / hold / release protocol as `sim_lv.rs`, a
+//! device force close to the semi-implicit scheme's, bounded CG work, and no allocation in the
+//! tick (a counting allocator on this thread).
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
+
+use haptic_model::DVec3;
+use haptic_model::integrator::IntegratorKind;
+use haptic_model::scene::{load_builtin, parse_scene_toml};
+use haptic_model::sim::{Simulation, TickInput};
+
+struct Counting;
+thread_local! {
+    static COUNTING: Cell<bool> = const { Cell::new(false) };
+    static ALLOCATIONS: Cell<usize> = const { Cell::new(0) };
+}
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        if COUNTING.with(|c| c.get()) {
+            ALLOCATIONS.with(|a| a.set(a.get() + 1));
+        }
+        // SAFETY: forwarded unchanged to the system allocator.
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: forwarded unchanged to the system allocator.
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        if COUNTING.with(|c| c.get()) {
+            ALLOCATIONS.with(|a| a.set(a.get() + 1));
+        }
+        // SAFETY: forwarded unchanged to the system allocator.
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+/// Probe path of `sim_lv.rs`: from 14 mm off the axis at z = -5 mm, along -x by `depth` over
+/// 1 s, hold 1 s, release over 1 s.
+fn device_at(t: f64, depth: f64) -> DVec3 {
+    let travel = if t < 1.0 {
+        depth * t
+    } else if t < 2.0 {
+        depth
+    } else if t < 3.0 {
+        depth * (3.0 - t)
+    } else {
+        0.0
+    };
+    DVec3::new(0.014, 0.0, -0.005) - DVec3::X * travel
+}
+
+fn input(k: usize) -> TickInput {
+    let t = k as f64 * 1e-3;
+    let p = device_at(t, 0.006);
+    TickInput {
+        device_position_m: Some(p),
+        device_velocity_m_per_s: (device_at(t + 1e-3, 0.006) - p) / 1e-3,
+    }
+}
+
+fn lv(kind: IntegratorKind) -> Simulation {
+    let mut scene = load_builtin("lv").unwrap();
+    scene.integrator.kind = kind;
+    Simulation::new(&scene).unwrap()
+}
+
+#[test]
+fn backward_euler_takes_one_substep_per_tick() {
+    let sim = lv(IntegratorKind::BackwardEuler);
+    let plan = sim.plan();
+    assert_eq!(plan.substeps, 1, "{plan:?}");
+    assert!(plan.critical_dt_s.is_infinite());
+    assert_eq!(sim.integrator().name(), "backward-euler");
+}
+
+#[test]
+fn backward_euler_presses_holds_and_recovers_on_lv() {
+    let mut be = lv(IntegratorKind::BackwardEuler);
+    let mut si = lv(IntegratorKind::SemiImplicit);
+    let (mut max_iters, mut sum_iters) = (0, 0u64);
+    let mut max_disp: f64 = 0.0;
+    let mut worst_rel: f64 = 0.0;
+    let mut f_hold = (DVec3::ZERO, DVec3::ZERO);
+    for k in 0..6000 {
+        let a = be.tick(&input(k)).unwrap();
+        let b = si.tick(&input(k)).unwrap();
+        assert!(a.force_on_device_n.is_finite());
+        let cg = be.cg_stats();
+        max_iters = max_iters.max(cg.iterations);
+        sum_iters += u64::from(cg.iterations);
+        max_disp = max_disp.max(be.max_displacement_m());
+        if (1500..2000).contains(&k) {
+            let rel =
+                (a.force_on_device_n - b.force_on_device_n).length() / b.force_on_device_n.length();
+            worst_rel = worst_rel.max(rel);
+        }
+        if k == 1999 {
+            f_hold = (a.force_on_device_n, b.force_on_device_n);
+        }
+        if k < 200 || k >= 3200 {
+            assert_eq!(a.force_on_device_n, DVec3::ZERO, "tick {k}");
+        }
+    }
+    println!(
+        "backward Euler on lv: hold force {:?} N vs semi-implicit {:?} N; worst relative \
+         difference over the last 0.5 s of hold {worst_rel:.4}; CG iterations max {max_iters}, \
+         mean {:.2}; max displacement {max_disp:.2e} m",
+        f_hold.0,
+        f_hold.1,
+        sum_iters as f64 / 6000.0
+    );
+    assert!(
+        f_hold.0.x > 0.05 && f_hold.0.x / f_hold.0.length() > 0.9,
+        "{f_hold:?}"
+    );
+    // Both schemes converge to the same quasi-static equilibrium while holding.
+    assert!(
+        worst_rel < 0.07,
+        "force differs from semi-implicit by {worst_rel}"
+    );
+    assert!(max_disp < 0.01);
+    assert!(max_iters <= 20);
+    assert!(
+        be.max_displacement_m() < 1e-4,
+        "residual {}",
+        be.max_displacement_m()
+    );
+}
+
+#[test]
+fn backward_euler_tick_does_not_allocate() {
+    let mut scene = load_builtin("lv").unwrap();
+    scene.integrator.kind = IntegratorKind::BackwardEuler;
+    let mut sim = Simulation::new(&scene).unwrap();
+    sim.add_point_load(
+        DVec3::new(0.0, 0.0097, -0.005),
+        DVec3::new(0.0, -0.02, 0.0),
+        0.5,
+    )
+    .unwrap();
+    ALLOCATIONS.with(|a| a.set(0));
+    for k in 0..2500 {
+        let inp = input(k);
+        COUNTING.with(|c| c.set(true));
+        let out = sim.tick(&inp);
+        COUNTING.with(|c| c.set(false));
+        out.unwrap();
+    }
+    assert_eq!(ALLOCATIONS.with(|a| a.get()), 0);
+}
+
+#[test]
+fn scene_loads_do_not_allocate_in_the_tick() {
+    let text = r#"
+[mesh]
+builtin = "box"
+size = [0.02, 0.01, 0.01]
+cells = [4, 2, 2]
+[material]
+youngs_modulus_pa = 20000.0
+poisson_ratio = 0.3
+density_kg_per_m3 = 1000.0
+mass_damping_per_s = 20.0
+[boundary]
+clamped = ["XMIN"]
+[integrator]
+kind = "backward-euler"
+[loads]
+gravity_m_per_s2 = [0.0, 0.0, -9.81]
+[[loads.pressure]]
+surfaces = ["ZMAX"]
+pressure_pa = 10.0
+follower = true
+[[loads.pressure]]
+surfaces = ["YMAX"]
+pressure_pa = 5.0
+[[loads.point]]
+point_m = [0.02, 0.005, 0.005]
+force_n = [0.0, 0.0, -0.001]
+"#;
+    for kind in ["backward-euler", "semi-implicit", "symplectic-euler"] {
+        let text = text.replace("\"backward-euler\"", &format!("\"{kind}\""));
+        let scene = parse_scene_toml(&text, std::path::Path::new(".")).unwrap();
+        let mut sim = Simulation::new(&scene).unwrap();
+        ALLOCATIONS.with(|a| a.set(0));
+        for _ in 0..200 {
+            COUNTING.with(|c| c.set(true));
+            let out = sim.tick(&TickInput::default());
+            COUNTING.with(|c| c.set(false));
+            out.unwrap();
+        }
+        assert_eq!(ALLOCATIONS.with(|a| a.get()), 0, "{kind}");
+    }
+}
