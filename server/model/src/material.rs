@@ -223,6 +223,10 @@ fn cofactor_differential(f: &DMat3, df: &DMat3) -> DMat3 {
 
 /// Symmetric eigen-decomposition by cyclic Jacobi rotations: returns `(V, d)` with
 /// `A = V diag(d) V^T`, V orthonormal, `d` sorted in decreasing order. `a` must be symmetric.
+#[allow(
+    clippy::needless_range_loop,
+    reason = "Jacobi rotations index rows and columns p, q together"
+)]
 pub fn symmetric_eigen(a: &DMat3) -> (DMat3, DVec3) {
     let mut m = a.to_cols_array_2d(); // m[col][row], symmetric so also m[row][col]
     let mut v = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]; // v[col][row]
