@@ -205,8 +205,8 @@ fn solve_patch(model: MaterialModel, scale: f64, steps: usize) -> (FemModel, Vec
     let f_ext = vec![DVec3::ZERO; 16];
     for s in 1..=steps {
         let gs = g * (s as f64 / steps as f64);
-        for i in 0..8 {
-            x[i] = mesh.nodes[i] + gs * mesh.nodes[i];
+        for (xi, p) in x.iter_mut().zip(&mesh.nodes).take(8) {
+            *xi = *p + gs * *p;
         }
         solve_static(&fem, &f_ext, &mut x, &params)
             .unwrap_or_else(|e| panic!("{model:?} scale {scale} step {s}: {e}"));
