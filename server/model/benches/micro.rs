@@ -1,0 +1,65 @@
+//! Micro-benchmarks (issue 3, section 4) with divan: one internal-force evaluation
+//! (`FemModel::add_internal_forces`, elastic + viscous) and one full `Simulation::tick` (all
+//! sub-steps, probe pressing 3 mm into the epicardium) on the structured LV at about 1k, 2k,
+//! 10k tets and on `lv_h1.msh` (17 924 tets).
+//!
+//! Run: `cargo bench -p haptic-model --bench micro` (single thread; divan prints median and
+//! spread per size).
+
+mod common;
+
+use common::{lv_h1_scene, lv_scene};
+use haptic_model::DVec3;
+use haptic_model::scene::Scene;
+use haptic_model::sim::{Simulation, TickInput};
+
+fn main() {
+    divan::main();
+}
+
+/// Mesh sizes: structured LV targets, and 18000 meaning `lv_h1.msh` (structured
+/// `lv_shell(18000)` when the shared data is absent).
+const SIZES: [usize; 4] = [1000, 2000, 10000, 18000];
+
+fn scene(size: usize) -> Scene {
+    if size == 18000 {
+        lv_h1_scene().unwrap_or_else(|| lv_scene(size))
+    } else {
+        lv_scene(size)
+    }
+}
+
+/// A simulation pressed 3 mm into the epicardium at the equator (200 ticks to get there), so
+/// that forces and ticks are measured on a deformed body in contact.
+fn pressed(size: usize) -> (Simulation, TickInput) {
+    let mut sim = Simulation::new(&scene(size)).expect("simulation");
+    let mut input = TickInput::default();
+    for k in 0..200 {
+        let depth = 0.003 * common::smoothstep(k as f64 / 150.0);
+        input = TickInput {
+            device_position_m: Some(DVec3::new(0.011_682 - depth, 0.0, -0.005)),
+            device_velocity_m_per_s: DVec3::ZERO,
+        };
+        sim.tick(&input).expect("tick");
+    }
+    (sim, input)
+}
+
+#[divan::bench(args = SIZES, sample_count = 30)]
+fn add_internal_forces(bencher: divan::Bencher, size: usize) {
+    let (sim, _) = pressed(size);
+    let n = sim.fem().node_count();
+    let mut f = vec![DVec3::ZERO; n];
+    bencher.counter(sim.fem().tets.len()).bench_local(|| {
+        f.iter_mut().for_each(|v| *v = DVec3::ZERO);
+        sim.fem()
+            .add_internal_forces(&sim.state().x, Some(&sim.state().v), &mut f);
+        divan::black_box(&f);
+    });
+}
+
+#[divan::bench(args = SIZES, sample_count = 20)]
+fn tick(bencher: divan::Bencher, size: usize) {
+    let (mut sim, input) = pressed(size);
+    bencher.bench_local(|| sim.tick(divan::black_box(&input)).expect("tick"));
+}

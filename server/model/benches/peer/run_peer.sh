@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Peer measurement (issue 3, section 4): our StVK force against pbatoolkit's StVK gradient on
+# lv_h1.msh (17 924 tets) with a smooth analytic deformation, both on one core, in one run.
+# Creates target/peer-venv (pip install pbatoolkit numpy scipy), exports the case with
+# `cargo run --release -p haptic-model --example export_peer_case`, runs the peer, and prints
+# and writes docs/bench/peer.json. Not part of `cargo test`.
+# Usage: server/model/benches/peer/run_peer.sh [REPEATS]
+set -euo pipefail
+cd "$(dirname "$0")/../../../.."
+repeats="${1:-50}"
+venv=target/peer-venv
+if [ ! -x "$venv/bin/python" ]; then
+  python3 -m venv "$venv"
+fi
+"$venv/bin/pip" install -q pbatoolkit numpy scipy
+case_dir=target/peer-case
+export OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
+taskset -c 0 cargo run --release -q -p haptic-model --example export_peer_case -- "$case_dir" 200 \
+  || cargo run --release -q -p haptic-model --example export_peer_case -- "$case_dir" 200
+if command -v taskset >/dev/null; then pin="taskset -c 0"; else pin=""; fi
+$pin "$venv/bin/python" server/model/benches/peer/peer_stvk.py "$case_dir" "$repeats"
+mkdir -p docs/bench
+cp "$case_dir/peer.json" docs/bench/peer.json
+echo "wrote docs/bench/peer.json"

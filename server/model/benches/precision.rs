@@ -1,0 +1,1063 @@
+//! Run time versus error (issue 3, section 4): scenarios x methods x resolutions x settings, one
+//! row per run in `docs/bench/precision.csv` and `.json`, and a work-precision plot per scenario
+//! (`docs/precision-<scenario>.png` / `.svg`): error against wall time per simulated
+//! millisecond, log-log, one curve per method, with the 1 ms haptic budget and the 7 % force
+//! just-noticeable difference drawn as lines.
+//!
+//! Scenarios:
+//! - `lame`: thick sphere a = 7 mm, b = 10 mm, E = 10 kPa, nu = 0.3, p = 0.1 kPa on the inner
+//!   surface (dead load from `statics::add_pressure_forces`), rollers on three inner axis nodes;
+//!   dynamic run to steady state (load ramped in over 20 ms, 100 ms simulated, mass damping
+//!   600 /s) with each integrator, and the static Newton solve as the method `static`; error of
+//!   the final displacement field against the analytic Lamé solution.
+//! - `cantilever`: beam 100 x 10 x 10 mm (E = 100 kPa, nu = 0.3, rho = 1000 kg/m^3), clamped
+//!   at x = 0, dead tip load with alpha = P L^2 / (E I) = 1 spread over the tip face by area;
+//!   observable: tip deflection v / L against Bisshopp-Drucker's 0.30172.
+//! - `lv-probe`: the built-in `lv` scene (material, probe, coupling) on the structured LV mesh;
+//!   the probe centre moves along -x at z = -5 mm from 11.98 mm (0.3 mm clear of contact) in
+//!   steps to depths 0.5, 1, ..., 3 mm (contact at 11.68 mm: the epicardium at 9.68 mm plus the
+//!   2 mm probe radius), each step a smoothstep ramp of 100 ms then a 100 ms hold; the force
+//!   reported per depth is the mean device force over the last 50 ms of the hold. Reference:
+//!   static equilibrium with the probe coupling (Newton per load, secant on the coupling force)
+//!   at each depth on the finest mesh (`lv_shell(18000)`, `lv_shell(10000)` with `--quick`, cached in
+//!   `target/bench/`). Errors:
+//!   probe-force error = the largest relative force error over the depths; surface displacement
+//!   error at 3 mm on the epicardial nodes, the reference interpolated barycentrically at the
+//!   closest point of its rest epicardium.
+//!
+//! Run: `cargo bench -p haptic-model --bench precision` (the LV reference static solve takes
+//! several minutes the first time, then it is cached; `-- --quick` for a subset of a few
+//! minutes; `-- --fresh-reference` to recompute the cached LV reference; `-- --scenario NAME`
+//! for one scenario, which then is the only one in the output files).
+
+mod common;
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use common::{INTEGRATORS, MATERIAL, git_commit, lv_scene, run_loaded, smoothstep, stats};
+use haptic_model::DVec3;
+use haptic_model::contact::{ContactSurface, Probe};
+use haptic_model::fem::FemModel;
+use haptic_model::material::MaterialParams;
+use haptic_model::mesh::TetMesh;
+use haptic_model::mesher::{box_mesh, sphere_shell};
+use haptic_model::scene::Scene;
+use haptic_model::sim::{Simulation, TickInput};
+use haptic_model::statics::{StaticParams, add_pressure_forces, solve_static};
+
+/// One benchmark run.
+#[derive(Debug, Clone)]
+struct Row {
+    scenario: &'static str,
+    /// Curve label in the plot: integrator plus the setting that distinguishes curves.
+    method: String,
+    integrator: String,
+    nodes: usize,
+    tets: usize,
+    settings: String,
+    p50_us: f64,
+    p99_us: f64,
+    max_us: f64,
+    realtime_factor: f64,
+    rel_l2: f64,
+    max_nodal_m: f64,
+    probe_force_error: f64,
+    observable_error: f64,
+    observable: String,
+    reference: String,
+    stable: bool,
+}
+
+impl Row {
+    fn new(scenario: &'static str, method: String, integrator: &str, mesh: &TetMesh) -> Self {
+        Self {
+            scenario,
+            method,
+            integrator: integrator.into(),
+            nodes: mesh.node_count(),
+            tets: mesh.tet_count(),
+            settings: String::new(),
+            p50_us: f64::NAN,
+            p99_us: f64::NAN,
+            max_us: f64::NAN,
+            realtime_factor: f64::NAN,
+            rel_l2: f64::NAN,
+            max_nodal_m: f64::NAN,
+            probe_force_error: f64::NAN,
+            observable_error: f64::NAN,
+            observable: String::new(),
+            reference: String::new(),
+            stable: false,
+        }
+    }
+
+    fn set_times(&mut self, ticks_us: &mut [f64], tick_s: f64) {
+        let (p50, p99, max) = stats(ticks_us);
+        self.p50_us = p50;
+        self.p99_us = p99;
+        self.max_us = max;
+        self.realtime_factor = tick_s * 1e6 / p50;
+    }
+
+    /// The error the scenario's plot shows.
+    fn plot_error(&self) -> f64 {
+        match self.scenario {
+            "lame" => self.rel_l2,
+            "cantilever" => self.observable_error,
+            _ => self.probe_force_error,
+        }
+    }
+
+    fn print(&self) {
+        println!(
+            "{:<10} {:<24} {:>6} {:>6} {:<30} p50 {:>9.1} us p99 {:>9.1} us RTx {:>7.2} L2 {:>9.3e} max {:>9.3e} m force {:>9.3e} obs {:>9.3e} {} | {} {}",
+            self.scenario,
+            self.method,
+            self.nodes,
+            self.tets,
+            self.settings,
+            self.p50_us,
+            self.p99_us,
+            self.realtime_factor,
+            self.rel_l2,
+            self.max_nodal_m,
+            self.probe_force_error,
+            self.observable_error,
+            self.observable,
+            self.reference,
+            if self.stable { "stable" } else { "UNSTABLE" }
+        );
+    }
+}
+
+fn num(v: f64) -> serde_json::Value {
+    if v.is_finite() {
+        serde_json::json!(v)
+    } else {
+        serde_json::Value::Null
+    }
+}
+
+fn csv_num(v: f64) -> String {
+    if v.is_finite() {
+        format!("{v:.6e}")
+    } else {
+        String::new()
+    }
+}
+
+fn csv_text(s: &str) -> String {
+    format!("\"{}\"", s.replace('"', "'"))
+}
+
+fn write_results(rows: &[Row], commit: &str, dir: &Path) {
+    let mut csv = String::from(
+        "scenario,model,material,integrator,method,nodes,tets,settings,step_p50_us,step_p99_us,step_max_us,realtime_factor,rel_l2_error,max_nodal_error_m,probe_force_error,observable_error,observable,reference,stable,commit\n",
+    );
+    let mut json = Vec::new();
+    for r in rows {
+        let _ = writeln!(
+            csv,
+            "{},fem,{MATERIAL},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{commit}",
+            r.scenario,
+            r.integrator,
+            csv_text(&r.method),
+            r.nodes,
+            r.tets,
+            csv_text(&r.settings),
+            csv_num(r.p50_us),
+            csv_num(r.p99_us),
+            csv_num(r.max_us),
+            csv_num(r.realtime_factor),
+            csv_num(r.rel_l2),
+            csv_num(r.max_nodal_m),
+            csv_num(r.probe_force_error),
+            csv_num(r.observable_error),
+            csv_text(&r.observable),
+            csv_text(&r.reference),
+            r.stable,
+        );
+        json.push(serde_json::json!({
+            "scenario": r.scenario,
+            "model": "fem",
+            "material": MATERIAL,
+            "integrator": r.integrator,
+            "method": r.method,
+            "nodes": r.nodes,
+            "tets": r.tets,
+            "settings": r.settings,
+            "step_p50_us": num(r.p50_us),
+            "step_p99_us": num(r.p99_us),
+            "step_max_us": num(r.max_us),
+            "realtime_factor": num(r.realtime_factor),
+            "rel_l2_error": num(r.rel_l2),
+            "max_nodal_error_m": num(r.max_nodal_m),
+            "probe_force_error": num(r.probe_force_error),
+            "observable_error": num(r.observable_error),
+            "observable": r.observable,
+            "reference": r.reference,
+            "stable": r.stable,
+            "commit": commit,
+        }));
+    }
+    std::fs::create_dir_all(dir).expect("creating docs/bench");
+    std::fs::write(dir.join("precision.csv"), csv).expect("writing precision.csv");
+    std::fs::write(
+        dir.join("precision.json"),
+        serde_json::to_string_pretty(&json).expect("json") + "\n",
+    )
+    .expect("writing precision.json");
+}
+
+// ---------------------------------------------------------------- Lamé sphere
+
+const LAME: (f64, f64, f64, f64, f64) = (7e-3, 10e-3, 10e3, 0.3, 100.0);
+
+fn lame_u_r(r: f64) -> f64 {
+    let (a, b, e, nu, p) = LAME;
+    p * a.powi(3) / (e * (b.powi(3) - a.powi(3)))
+        * ((1.0 - 2.0 * nu) * r + (1.0 + nu) * b.powi(3) / (2.0 * r * r))
+}
+
+/// Relative L2 and max nodal error of positions `x` against the analytic field, and the mean
+/// inner radial displacement.
+fn lame_errors(mesh: &TetMesh, x: &[DVec3]) -> (f64, f64, f64) {
+    let (mut num2, mut den2, mut max_e) = (0.0, 0.0, 0.0f64);
+    for (p, q) in mesh.nodes.iter().zip(x) {
+        let exact = p.normalize() * lame_u_r(p.length());
+        let e = (*q - *p - exact).length();
+        num2 += e * e;
+        den2 += exact.length_squared();
+        max_e = max_e.max(e);
+    }
+    let inner: Vec<u32> = {
+        let mut v: Vec<u32> = mesh
+            .surface("INNER")
+            .expect("INNER")
+            .triangles
+            .iter()
+            .flatten()
+            .copied()
+            .collect();
+        v.sort_unstable();
+        v.dedup();
+        v
+    };
+    let mean_ur = inner
+        .iter()
+        .map(|&i| (x[i as usize] - mesh.nodes[i as usize]).dot(mesh.nodes[i as usize].normalize()))
+        .sum::<f64>()
+        / inner.len() as f64;
+    ((num2 / den2).sqrt(), max_e, mean_ur)
+}
+
+fn scenario_lame(quick: bool, rows: &mut Vec<Row>) {
+    let (a, b, e, nu, p) = LAME;
+    let targets: &[usize] = if quick {
+        &[1000, 3000]
+    } else {
+        &[1000, 2000, 5000, 10000]
+    };
+    let safeties: &[f64] = if quick { &[0.5] } else { &[0.5, 0.25] };
+    let exact_inner = lame_u_r(a);
+    let reference = format!("analytic u_r(a) = {:.4} mm", exact_inner * 1e3);
+    for &target in targets {
+        let mesh = sphere_shell(a, b, target);
+        let mut mat = MaterialParams::from_youngs(e, nu, 1000.0);
+        mat.mass_damping_per_s = 300.0;
+        let mut fem = FemModel::new(&mesh, mat).expect("sphere FEM");
+        let node = |name: &str| mesh.node_group(name).expect("node group").nodes[0] as usize;
+        fem.constraint[node("INNER_PZ")] = 0b011;
+        fem.constraint[node("INNER_NZ")] = 0b011;
+        fem.constraint[node("INNER_PX")] = 0b110;
+        let mut f_ext = vec![DVec3::ZERO; mesh.node_count()];
+        add_pressure_forces(
+            &mesh.surface("INNER").expect("INNER").triangles,
+            &mesh.nodes,
+            p,
+            &mut f_ext,
+        );
+        // Static: the discretisation error alone.
+        let mut x = mesh.nodes.clone();
+        let t = Instant::now();
+        let rep = solve_static(&fem, &f_ext, &mut x, &StaticParams::default());
+        let solve_us = t.elapsed().as_secs_f64() * 1e6;
+        let mut row = Row::new("lame", "static".into(), "static", &mesh);
+        row.settings = "Newton + sparse Cholesky; time = whole solve".into();
+        row.p50_us = solve_us;
+        row.p99_us = solve_us;
+        row.max_us = solve_us;
+        row.reference = reference.clone();
+        let x_static = x.clone();
+        if let Ok(rep) = rep {
+            let (l2, max_e, mean) = lame_errors(&mesh, &x);
+            row.rel_l2 = l2;
+            row.max_nodal_m = max_e;
+            row.observable_error = (mean - exact_inner).abs() / exact_inner;
+            row.observable = format!(
+                "mean u_r(a) = {:.4} mm ({} Newton it.)",
+                mean * 1e3,
+                rep.iterations
+            );
+            row.stable = true;
+        }
+        row.print();
+        rows.push(row);
+        for &kind in INTEGRATORS {
+            for &sf in safeties {
+                let mut row = Row::new(
+                    "lame",
+                    format!("{} sf={sf}", kind.name()),
+                    kind.name(),
+                    &mesh,
+                );
+                row.reference = reference.clone();
+                match run_loaded(&fem, kind, sf, &f_ext, 0.02, 3.0) {
+                    Err(e) => row.settings = format!("refused: {e}"),
+                    Ok(mut run) => {
+                        row.settings = format!(
+                            "tick 1 ms, auto sub-steps at {sf} dt_crit ({}), alpha 300/s, {}",
+                            run.substeps,
+                            steady_text(run.time_s, 3.0)
+                        );
+                        row.set_times(&mut run.tick_us, 1e-3);
+                        row.stable = run.stable && run.x.iter().all(|v| v.is_finite());
+                        if row.stable {
+                            let (l2, max_e, mean) = lame_errors(&mesh, &run.x);
+                            row.rel_l2 = l2;
+                            row.max_nodal_m = max_e;
+                            row.observable_error = (mean - exact_inner).abs() / exact_inner;
+                            let settle = rel_diff(&mesh.nodes, &run.x, &x_static);
+                            row.observable = format!(
+                                "mean u_r(a) = {:.4} mm; vs same-mesh static {:.2e}",
+                                mean * 1e3,
+                                settle
+                            );
+                        }
+                    }
+                }
+                row.print();
+                rows.push(row);
+            }
+        }
+    }
+}
+
+/// "steady after T ms", or "not steady at the T ms cap".
+fn steady_text(time_s: f64, cap_s: f64) -> String {
+    if time_s >= cap_s - 1e-9 {
+        format!("not steady at the {:.0} ms cap", cap_s * 1e3)
+    } else {
+        format!("steady after {:.0} ms", time_s * 1e3)
+    }
+}
+
+/// `|x - y| / |y - rest|` over all nodes.
+fn rel_diff(rest: &[DVec3], x: &[DVec3], y: &[DVec3]) -> f64 {
+    let (mut n, mut d) = (0.0, 0.0);
+    for ((r, x), y) in rest.iter().zip(x).zip(y) {
+        n += (*x - *y).length_squared();
+        d += (*y - *r).length_squared();
+    }
+    (n / d).sqrt()
+}
+
+// ---------------------------------------------------------------- cantilever
+
+const BD_ALPHA1: f64 = 0.30172;
+
+fn scenario_cantilever(quick: bool, rows: &mut Vec<Row>) {
+    let (len, h, e, nu): (f64, f64, f64, f64) = (0.1, 0.01, 1e5, 0.3);
+    let inertia = h.powi(4) / 12.0;
+    let load = e * inertia / (len * len); // alpha = 1
+    let ns: &[usize] = if quick { &[2] } else { &[2, 3, 4] };
+    let reference = format!("Bisshopp-Drucker v/L = {BD_ALPHA1}");
+    for &n in ns {
+        let mesh = box_mesh(DVec3::new(len, h, h), [10 * n, n, n]);
+        let mut mat = MaterialParams::from_youngs(e, nu, 1000.0);
+        mat.mass_damping_per_s = 60.0;
+        let mut fem = FemModel::new(&mesh, mat).expect("beam FEM");
+        let clamped = mesh
+            .nodes_of_surfaces(&["XMIN".to_string()], "clamped")
+            .expect("XMIN");
+        fem.clamp_nodes(&clamped);
+        let tip = &mesh.surface("XMAX").expect("XMAX").triangles;
+        let area: f64 = tip.iter().map(|t| tri_area(&mesh.nodes, t)).sum();
+        let mut f_ext = vec![DVec3::ZERO; mesh.node_count()];
+        for t in tip {
+            let share = load * tri_area(&mesh.nodes, t) / area / 3.0;
+            for &i in t {
+                f_ext[i as usize].z -= share;
+            }
+        }
+        let tip_nodes = mesh
+            .nodes_of_surfaces(&["XMAX".to_string()], "tip")
+            .expect("XMAX");
+        let deflection = |x: &[DVec3]| {
+            -tip_nodes
+                .iter()
+                .map(|&i| x[i as usize].z - mesh.nodes[i as usize].z)
+                .sum::<f64>()
+                / tip_nodes.len() as f64
+                / len
+        };
+        // Static with 10 load increments.
+        let mut x = mesh.nodes.clone();
+        let t = Instant::now();
+        let mut ok = true;
+        for k in 1..=10 {
+            let fk: Vec<DVec3> = f_ext.iter().map(|f| *f * (k as f64 / 10.0)).collect();
+            if solve_static(
+                &fem,
+                &fk,
+                &mut x,
+                &StaticParams {
+                    rel_tol: 1e-9,
+                    ..StaticParams::default()
+                },
+            )
+            .is_err()
+            {
+                ok = false;
+                break;
+            }
+        }
+        let solve_us = t.elapsed().as_secs_f64() * 1e6;
+        let mut row = Row::new("cantilever", "static".into(), "static", &mesh);
+        row.settings = format!(
+            "{}x{n}x{n} cells, 10 load steps, Newton; time = whole solve",
+            10 * n
+        );
+        row.p50_us = solve_us;
+        row.p99_us = solve_us;
+        row.max_us = solve_us;
+        row.reference = reference.clone();
+        let static_v = deflection(&x);
+        if ok {
+            row.stable = true;
+            row.observable_error = (static_v - BD_ALPHA1).abs() / BD_ALPHA1;
+            row.observable = format!("v/L = {static_v:.5}");
+        }
+        row.print();
+        rows.push(row);
+        let cap = if quick { 1.0 } else { 3.0 };
+        for &kind in INTEGRATORS {
+            let sf = 0.5;
+            let mut row = Row::new(
+                "cantilever",
+                format!("{} sf={sf}", kind.name()),
+                kind.name(),
+                &mesh,
+            );
+            row.reference = reference.clone();
+            match run_loaded(&fem, kind, sf, &f_ext, 0.3, cap) {
+                Err(e) => row.settings = format!("refused: {e}"),
+                Ok(mut run) => {
+                    row.settings = format!(
+                        "{}x{n}x{n} cells, auto sub-steps at {sf} dt_crit ({}), alpha 60/s, {}",
+                        10 * n,
+                        run.substeps,
+                        steady_text(run.time_s, cap)
+                    );
+                    row.set_times(&mut run.tick_us, 1e-3);
+                    row.stable = run.stable && run.x.iter().all(|v| v.is_finite());
+                    if row.stable {
+                        let v = deflection(&run.x);
+                        row.observable_error = (v - BD_ALPHA1).abs() / BD_ALPHA1;
+                        row.observable =
+                            format!("v/L = {v:.5} (static on this mesh {static_v:.5})");
+                    }
+                }
+            }
+            row.print();
+            rows.push(row);
+        }
+    }
+}
+
+fn tri_area(x: &[DVec3], t: &[u32; 3]) -> f64 {
+    let [a, b, c] = t.map(|i| x[i as usize]);
+    0.5 * (b - a).cross(c - a).length()
+}
+
+// ---------------------------------------------------------------- LV probe
+
+/// Probe centre x at first contact: the epicardium at z = -5 mm is at 9.682 mm from the axis,
+/// plus the 2 mm probe radius.
+const CONTACT_X_M: f64 = 0.011_682;
+const PROBE_Z_M: f64 = -0.005;
+const DEPTHS_MM: [f64; 6] = [0.5, 1.0, 1.5, 2.0, 2.5, 3.0];
+
+fn device_at(depth_m: f64) -> DVec3 {
+    DVec3::new(CONTACT_X_M - depth_m, 0.0, PROBE_Z_M)
+}
+
+/// Quasi-static probe solution on one mesh: device force per depth and the positions at the
+/// last depth.
+#[derive(Debug, Clone)]
+struct ProbeCurve {
+    forces_n: Vec<f64>,
+    x_last: Vec<DVec3>,
+}
+
+/// Static equilibrium with the probe coupling at each depth of [`DEPTHS_MM`]: for a trial
+/// coupling force `F`, the patch load `-F w_i n` (patch, weights, normal of the probe at the
+/// current positions) is applied and the body solved statically; the probe then reports the
+/// coupling force `k (r - s)` at the new positions. A bracketed regula falsi (Illinois) on `F`
+/// makes the two agree. Returns `Err` if Newton or the iteration fails.
+fn probe_static(scene: &Scene) -> Result<ProbeCurve, String> {
+    let mut fem = FemModel::new(&scene.mesh, scene.material).map_err(|e| e.to_string())?;
+    fem.clamp_nodes(&scene.clamped_nodes);
+    let mut probe = Probe::new(scene.probe, scene.touchable.clone(), &fem.rest);
+    let n = fem.node_count();
+    let mut x = fem.rest.clone();
+    let params = StaticParams {
+        rel_tol: 1e-8,
+        ..StaticParams::default()
+    };
+    let mut forces = Vec::new();
+    let mut f_prev = 0.0;
+    // The last in-contact patch (nodes, weights) and normal: a trial force that pushes the
+    // surface beyond the probe still needs a patch to act on.
+    let mut patch: Vec<(u32, f64)> = Vec::new();
+    let mut normal = DVec3::ZERO;
+    let debug = std::env::var_os("PRECISION_DEBUG").is_some();
+    let (kc, r) = (scene.probe.coupling_stiffness_n_per_m, scene.probe.radius_m);
+    for (k, d) in DEPTHS_MM.iter().enumerate() {
+        let device = device_at(d * 1e-3);
+        let mut f = if k == 0 {
+            0.005
+        } else {
+            f_prev * (d / DEPTHS_MM[k - 1])
+        };
+        // Outer: freeze the probe patch (nodes, weights, normal) at the current positions; inner:
+        // find the force F whose patch load puts the body where the frozen patch plane gives
+        // k (r - s) = F. Repeat until the patch stops changing the force.
+        for outer in 0..=12 {
+            let st = probe.update(&x, device, DVec3::ZERO);
+            if st.in_contact {
+                let (nodes, w) = probe.patch();
+                patch.clear();
+                patch.extend(nodes.iter().copied().zip(w.iter().copied()));
+                normal = st.normal;
+            }
+            if patch.is_empty() {
+                return Err(format!("no contact at depth {d} mm"));
+            }
+            let mut f_ext = vec![DVec3::ZERO; n];
+            let mut g = |f: f64, x: &mut Vec<DVec3>| -> Result<f64, String> {
+                f_ext.iter_mut().for_each(|v| *v = DVec3::ZERO);
+                let mut centre = DVec3::ZERO;
+                for &(i, w) in &patch {
+                    f_ext[i as usize] = -normal * (f * w);
+                }
+                let backup = x.clone();
+                if solve_static(&fem, &f_ext, x, &params).is_err() {
+                    // No equilibrium under this patch load (the wall gives way under a dead
+                    // load): the trial force is too large.
+                    x.copy_from_slice(&backup);
+                    return Ok(f);
+                }
+                for &(i, w) in &patch {
+                    centre += x[i as usize] * w;
+                }
+                let phi = (kc * (r - (device - centre).dot(normal))).max(0.0);
+                Ok(f - phi)
+            };
+            // g(F) = F - k (r - s(F)) increases with F: bracket, then Illinois.
+            let (mut lo, mut hi) = (f / 1.1, f * 1.1);
+            let mut glo = g(lo, &mut x)?;
+            while glo > 0.0 {
+                hi = lo;
+                lo /= 1.25;
+                glo = g(lo, &mut x)?;
+            }
+            let mut ghi = g(hi, &mut x)?;
+            while ghi < 0.0 {
+                (lo, glo) = (hi, ghi);
+                hi *= 1.25;
+                ghi = g(hi, &mut x)?;
+                if hi > 100.0 {
+                    return Err(format!("no bracket at depth {d} mm"));
+                }
+            }
+            let mut side = 0i8;
+            let mut fi = hi;
+            for it in 0..=80 {
+                if it == 80 {
+                    return Err(format!("no convergence at depth {d} mm: F in [{lo}, {hi}]"));
+                }
+                fi = (lo * ghi - hi * glo) / (ghi - glo);
+                let gf = g(fi, &mut x)?;
+                if gf.abs() <= 1e-8 * fi.max(1e-3) || (hi - lo) <= 1e-10 * hi {
+                    break;
+                }
+                if gf < 0.0 {
+                    (lo, glo) = (fi, gf);
+                    if side == -1 {
+                        ghi *= 0.5;
+                    }
+                    side = -1;
+                } else {
+                    (hi, ghi) = (fi, gf);
+                    if side == 1 {
+                        glo *= 0.5;
+                    }
+                    side = 1;
+                }
+            }
+            let change = (fi - f).abs() / fi;
+            f = fi;
+            if debug {
+                eprintln!("depth {d} mm outer {outer}: F = {f:.6e} N, change {change:.2e}");
+            }
+            if outer > 0 && change < 3e-4 {
+                break;
+            }
+            if outer == 12 {
+                eprintln!(
+                    "lv-probe static: patch iteration at depth {d} mm stopped at change {change:.2e}"
+                );
+            }
+        }
+        f_prev = f;
+        forces.push(f);
+    }
+    Ok(ProbeCurve {
+        forces_n: forces,
+        x_last: x,
+    })
+}
+
+/// The dynamic press protocol with `Simulation::tick`. Returns the curve and tick times, or
+/// the error that stopped it (refused plan or divergence).
+fn probe_dynamic(scene: &Scene, quick: bool) -> Result<(ProbeCurve, Vec<f64>, u32), String> {
+    let mut sim = Simulation::new(scene).map_err(|e| e.to_string())?;
+    let (ramp, hold) = if quick { (0.08, 0.08) } else { (0.1, 0.1) };
+    let tick = sim.tick_s();
+    let seg_ticks = ((ramp + hold) / tick).round() as usize;
+    let mut ticks_us = Vec::with_capacity(seg_ticks * DEPTHS_MM.len());
+    let mut forces = Vec::new();
+    let mut prev = -0.3e-3;
+    for d in DEPTHS_MM {
+        let d = d * 1e-3;
+        let mut sum = 0.0;
+        let mut count = 0;
+        for k in 0..seg_ticks {
+            let t = (k + 1) as f64 * tick;
+            let s = t / ramp;
+            let depth = prev + (d - prev) * smoothstep(s);
+            let rate = (d - prev) / ramp * common::smoothstep_rate(s);
+            let input = TickInput {
+                device_position_m: Some(device_at(depth)),
+                device_velocity_m_per_s: DVec3::new(-rate, 0.0, 0.0),
+            };
+            let t0 = Instant::now();
+            let out = sim.tick(&input).map_err(|e| e.to_string())?;
+            ticks_us.push(t0.elapsed().as_secs_f64() * 1e6);
+            if t > ramp + hold / 2.0 {
+                sum += out.force_on_device_n.length();
+                count += 1;
+            }
+        }
+        forces.push(sum / count as f64);
+        prev = d;
+    }
+    let substeps = sim.plan().substeps;
+    Ok((
+        ProbeCurve {
+            forces_n: forces,
+            x_last: sim.state().x.clone(),
+        },
+        ticks_us,
+        substeps,
+    ))
+}
+
+fn epi_nodes(mesh: &TetMesh) -> Vec<u32> {
+    let mut v: Vec<u32> = mesh
+        .surface("EPI")
+        .expect("EPI")
+        .triangles
+        .iter()
+        .flatten()
+        .copied()
+        .collect();
+    v.sort_unstable();
+    v.dedup();
+    v
+}
+
+/// The converged reference: curve and the reference epicardium for interpolation.
+struct LvReference {
+    tets: usize,
+    curve: ProbeCurve,
+    rest: Vec<DVec3>,
+    epi: ContactSurface,
+}
+
+impl LvReference {
+    /// Relative L2 and max error (m) of the epicardial displacement at the last depth.
+    fn surface_errors(&self, mesh: &TetMesh, x: &[DVec3]) -> (f64, f64) {
+        let (mut n2, mut d2, mut max_e) = (0.0, 0.0, 0.0f64);
+        for i in epi_nodes(mesh) {
+            let p = mesh.nodes[i as usize];
+            let sp = self
+                .epi
+                .closest_global(&self.rest, p)
+                .expect("reference surface");
+            let tri = self.epi.triangles[sp.triangle as usize];
+            let u_ref: DVec3 = (0..3)
+                .map(|k| {
+                    (self.curve.x_last[tri[k] as usize] - self.rest[tri[k] as usize]) * sp.bary[k]
+                })
+                .sum();
+            let e = (x[i as usize] - p - u_ref).length();
+            n2 += e * e;
+            d2 += u_ref.length_squared();
+            max_e = max_e.max(e);
+        }
+        ((n2 / d2).sqrt(), max_e)
+    }
+
+    fn force_error(&self, forces: &[f64]) -> f64 {
+        forces
+            .iter()
+            .zip(&self.curve.forces_n)
+            .map(|(f, r)| (f - r).abs() / r)
+            .fold(0.0, f64::max)
+    }
+}
+
+fn lv_reference(tets: usize, fresh: bool, cache_dir: &Path) -> LvReference {
+    let scene = lv_scene(tets);
+    let key = format!(
+        "lv_shell({tets}) E={} nu={} k={} r={} depths={DEPTHS_MM:?} nodes={}",
+        scene.material.youngs_modulus_pa(),
+        scene.material.poisson_ratio(),
+        scene.probe.coupling_stiffness_n_per_m,
+        scene.probe.radius_m,
+        scene.mesh.node_count()
+    );
+    let path = cache_dir.join(format!("lv_probe_reference_{tets}.json"));
+    let cached = (!fresh)
+        .then(|| std::fs::read_to_string(&path).ok())
+        .flatten()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .filter(|v| v["key"] == key.as_str())
+        .map(|v| {
+            let forces: Vec<f64> = serde_json::from_value(v["forces_n"].clone()).expect("forces");
+            let xs: Vec<[f64; 3]> = serde_json::from_value(v["x_last"].clone()).expect("x");
+            ProbeCurve {
+                forces_n: forces,
+                x_last: xs.into_iter().map(DVec3::from_array).collect(),
+            }
+        });
+    let curve = match cached {
+        Some(c) => {
+            println!("lv-probe reference: cached {}", path.display());
+            c
+        }
+        None => {
+            let t = Instant::now();
+            let c = probe_static(&scene).expect("lv-probe reference static solve");
+            println!(
+                "lv-probe reference: static solve on {} tets took {:.1} s",
+                scene.mesh.tet_count(),
+                t.elapsed().as_secs_f64()
+            );
+            let v = serde_json::json!({
+                "key": key,
+                "forces_n": c.forces_n,
+                "x_last": c.x_last.iter().map(|p| p.to_array()).collect::<Vec<_>>(),
+            });
+            std::fs::create_dir_all(cache_dir).expect("cache dir");
+            std::fs::write(&path, v.to_string()).expect("writing reference cache");
+            c
+        }
+    };
+    println!(
+        "lv-probe reference forces (N) at {DEPTHS_MM:?} mm: {:?}",
+        curve
+            .forces_n
+            .iter()
+            .map(|f| (f * 1e4).round() / 1e4)
+            .collect::<Vec<_>>()
+    );
+    LvReference {
+        tets: scene.mesh.tet_count(),
+        epi: ContactSurface::new(
+            scene.mesh.surface("EPI").expect("EPI").triangles.clone(),
+            scene.mesh.node_count(),
+        ),
+        rest: scene.mesh.nodes,
+        curve,
+    }
+}
+
+fn scenario_lv(quick: bool, fresh: bool, cache_dir: &Path, rows: &mut Vec<Row>) {
+    let reference = lv_reference(if quick { 10000 } else { 18000 }, fresh, cache_dir);
+    let ref_text = format!(
+        "static with probe coupling on lv_shell ({} tets): F(3 mm) = {:.4} N",
+        reference.tets,
+        reference.curve.forces_n[DEPTHS_MM.len() - 1]
+    );
+    let targets: &[usize] = if quick {
+        &[1000, 2000]
+    } else {
+        &[1000, 2000, 5000]
+    };
+    // (safety factor, largest target it is run at: small steps on big meshes cost minutes).
+    let settings: &[(f64, usize)] = if quick {
+        &[(0.5, usize::MAX)]
+    } else {
+        &[(0.9, usize::MAX), (0.5, usize::MAX), (0.25, 5000)]
+    };
+    let last = DEPTHS_MM.len() - 1;
+    for &target in targets {
+        let scene = lv_scene(target);
+        // Static on this mesh: the discretisation error alone.
+        let mut row = Row::new("lv-probe", "static".into(), "static", &scene.mesh);
+        row.reference = ref_text.clone();
+        row.settings = "static with probe coupling per depth; time = whole curve".into();
+        let t = Instant::now();
+        match probe_static(&scene) {
+            Ok(c) => {
+                let us = t.elapsed().as_secs_f64() * 1e6;
+                (row.p50_us, row.p99_us, row.max_us) = (us, us, us);
+                fill_lv_errors(&mut row, &reference, &scene.mesh, &c, last);
+            }
+            Err(e) => row.settings = format!("failed: {e}"),
+        }
+        row.print();
+        rows.push(row);
+        for &kind in INTEGRATORS {
+            for &(sf, max_target) in settings {
+                if target > max_target {
+                    continue;
+                }
+                let mut sc = scene.clone();
+                sc.integrator.kind = kind;
+                sc.integrator.safety_factor = sf;
+                sc.integrator.max_substeps = 1000;
+                let mut row = Row::new(
+                    "lv-probe",
+                    format!("{} sf={sf}", kind.name()),
+                    kind.name(),
+                    &scene.mesh,
+                );
+                row.reference = ref_text.clone();
+                match probe_dynamic(&sc, quick) {
+                    Ok((c, mut ticks, sub)) => {
+                        row.settings = format!(
+                            "tick 1 ms, auto sub-steps at {sf} dt_crit ({sub}); staircase 0.5..3 mm"
+                        );
+                        row.set_times(&mut ticks, sc.integrator.tick_s);
+                        fill_lv_errors(&mut row, &reference, &scene.mesh, &c, last);
+                    }
+                    Err(e) => row.settings = format!("sf {sf}: {e}"),
+                }
+                row.print();
+                rows.push(row);
+            }
+        }
+    }
+}
+
+fn fill_lv_errors(
+    row: &mut Row,
+    reference: &LvReference,
+    mesh: &TetMesh,
+    c: &ProbeCurve,
+    last: usize,
+) {
+    let (l2, max_e) = reference.surface_errors(mesh, &c.x_last);
+    row.rel_l2 = l2;
+    row.max_nodal_m = max_e;
+    row.probe_force_error = reference.force_error(&c.forces_n);
+    let r = reference.curve.forces_n[last];
+    row.observable_error = (c.forces_n[last] - r).abs() / r;
+    row.observable = format!(
+        "F(mm) = [{}] N",
+        c.forces_n
+            .iter()
+            .map(|f| format!("{f:.4}"))
+            .collect::<Vec<_>>()
+            .join(" ")
+    );
+    row.stable = c.forces_n.iter().all(|f| f.is_finite()) && c.x_last.iter().all(|p| p.is_finite());
+}
+
+// ---------------------------------------------------------------- plots
+
+const FONT_PATHS: [&str; 2] = [
+    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
+    "/usr/share/fonts/TTF/DejaVuSans.ttf",
+];
+
+fn register_font() -> bool {
+    for p in FONT_PATHS {
+        if let Ok(bytes) = std::fs::read(p) {
+            let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
+            if plotters::style::register_font(
+                "sans-serif",
+                plotters::style::FontStyle::Normal,
+                bytes,
+            )
+            .is_ok()
+            {
+                return true;
+            }
+        }
+    }
+    false
+}
+
+fn plot_scenario(
+    rows: &[Row],
+    scenario: &str,
+    ylabel: &str,
+    base: &Path,
+) -> Result<(), Box<dyn std::error::Error>> {
+    let mut curves: BTreeMap<String, Vec<(f64, f64)>> = BTreeMap::new();
+    for r in rows.iter().filter(|r| r.scenario == scenario && r.stable) {
+        let (x, y) = (r.p50_us / 1000.0, r.plot_error());
+        if x.is_finite() && x > 0.0 && y.is_finite() && y > 0.0 {
+            curves.entry(r.method.clone()).or_default().push((x, y));
+        }
+    }
+    if curves.is_empty() {
+        return Ok(());
+    }
+    for pts in curves.values_mut() {
+        pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+    }
+    let all = curves.values().flatten();
+    let (mut x0, mut x1, mut y0, mut y1) = (1.0f64, 1.0f64, 0.07f64, 0.07f64);
+    for &(x, y) in all {
+        (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+    }
+    let (x0, x1, y0, y1) = (x0 / 1.5, x1 * 1.5, y0 / 1.5, y1 * 1.5);
+    let title = format!("{scenario}: error vs wall time per simulated ms");
+    let png = base.with_extension("png");
+    let svg = base.with_extension("svg");
+    {
+        use plotters::prelude::*;
+        let root = BitMapBackend::new(&png, (900, 600)).into_drawing_area();
+        draw_chart(root, &title, ylabel, &curves, (x0, x1, y0, y1))?;
+        let root = SVGBackend::new(&svg, (900, 600)).into_drawing_area();
+        draw_chart(root, &title, ylabel, &curves, (x0, x1, y0, y1))?;
+    }
+    Ok(())
+}
+
+fn draw_chart<DB: plotters::prelude::DrawingBackend>(
+    root: plotters::drawing::DrawingArea<DB, plotters::coord::Shift>,
+    title: &str,
+    ylabel: &str,
+    curves: &BTreeMap<String, Vec<(f64, f64)>>,
+    (x0, x1, y0, y1): (f64, f64, f64, f64),
+) -> Result<(), Box<dyn std::error::Error>>
+where
+    DB::ErrorType: 'static,
+{
+    use plotters::prelude::*;
+    root.fill(&WHITE)?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 22))
+        .margin(12)
+        .x_label_area_size(45)
+        .y_label_area_size(70)
+        .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())?;
+    chart
+        .configure_mesh()
+        .x_desc("wall time per simulated ms (ms); static: one whole solve")
+        .y_desc(ylabel)
+        .x_label_formatter(&|v| format!("{v:.3}"))
+        .y_label_formatter(&|v| format!("{:.2}%", v * 100.0))
+        .draw()?;
+    let grey = RGBColor(120, 120, 120);
+    chart
+        .draw_series(LineSeries::new(
+            [(1.0, y0), (1.0, y1)],
+            grey.stroke_width(2),
+        ))?
+        .label("1 ms haptic budget")
+        .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], grey.stroke_width(2)));
+    let red = RGBColor(200, 60, 60);
+    chart
+        .draw_series(LineSeries::new(
+            [(x0, 0.07), (x1, 0.07)],
+            red.stroke_width(2),
+        ))?
+        .label("7 % force JND")
+        .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], red.stroke_width(2)));
+    for (k, (name, pts)) in curves.iter().enumerate() {
+        let color = Palette99::pick(k).to_rgba();
+        chart
+            .draw_series(LineSeries::new(pts.iter().copied(), color.stroke_width(2)))?
+            .label(name.as_str())
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], color.stroke_width(2)));
+        chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled())))?;
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .position(SeriesLabelPosition::UpperRight)
+        .label_font(("sans-serif", 14))
+        .draw()?;
+    root.present()?;
+    Ok(())
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let quick = args.iter().any(|a| a == "--quick");
+    let fresh = args.iter().any(|a| a == "--fresh-reference");
+    let only: Option<&str> = args
+        .iter()
+        .position(|a| a == "--scenario")
+        .and_then(|i| args.get(i + 1))
+        .map(String::as_str);
+    let root: PathBuf = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let commit = git_commit();
+    let wall = Instant::now();
+    let mut rows = Vec::new();
+    let run = |name: &str| only.is_none_or(|o| o == name);
+    if run("lame") {
+        scenario_lame(quick, &mut rows);
+    }
+    if run("cantilever") {
+        scenario_cantilever(quick, &mut rows);
+    }
+    if run("lv-probe") {
+        scenario_lv(quick, fresh, &root.join("target/bench"), &mut rows);
+    }
+    let out_dir = root.join("docs/bench");
+    write_results(&rows, &commit, &out_dir);
+    println!(
+        "wrote {} rows to {}",
+        rows.len(),
+        out_dir.join("precision.{csv,json}").display()
+    );
+    if register_font() {
+        for (scenario, ylabel) in [
+            ("lame", "relative L2 displacement error"),
+            ("cantilever", "tip deflection error vs Bisshopp-Drucker"),
+            ("lv-probe", "probe force error (max over 0.5..3 mm)"),
+        ] {
+            let base = root.join(format!("docs/precision-{scenario}"));
+            match plot_scenario(&rows, scenario, ylabel, &base) {
+                Ok(()) => println!("plot {}.png/.svg", base.display()),
+                Err(e) => eprintln!("plot {scenario}: {e}"),
+            }
+        }
+    } else {
+        eprintln!("no DejaVuSans.ttf found (apt-get install fonts-dejavu-core): plots skipped");
+    }
+    println!("total {:.1} s", wall.elapsed().as_secs_f64());
+}

@@ -1,0 +1,87 @@
+//! Exports the case of the peer measurement (issue 3, section 4) and times our StVK force on it:
+//! `lv_h1.msh` read by our Gmsh reader (converted to m), a smooth analytic deformation, our
+//! elastic forces (no viscosity) and the median time of `FemModel::add_internal_forces` on one
+//! thread. `server/model/benches/peer/run_peer.sh` runs this, then the peer on the same data.
+//!
+//! Run: `cargo run --release -p haptic-model --example export_peer_case -- OUT_DIR [REPEATS]`.
+//! Writes `OUT_DIR/nodes.txt` (rest x y z per line, m), `tets.txt` (4 zero-based node indices),
+//! `deformed.txt` (x y z, m), `ours_force.txt` (fx fy fz, N) and `ours.json` (material, timing).
+
+use std::fmt::Write as _;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use haptic_model::DVec3;
+use haptic_model::fem::FemModel;
+use haptic_model::gmsh::load_msh;
+use haptic_model::material::MaterialParams;
+
+fn main() {
+    let mut args = std::env::args().skip(1);
+    let out = PathBuf::from(args.next().unwrap_or_else(|| "target/peer-case".into()));
+    let repeats: usize = args.next().and_then(|s| s.parse().ok()).unwrap_or(200);
+    let msh = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/lv/lv_h1.msh");
+    let mut mesh = load_msh(&msh).unwrap_or_else(|e| panic!("reading {}: {e}", msh.display()));
+    mesh.scale(1e-3);
+    // E = 14.5 kPa, nu = 0.45 (the lv scenes), elastic only.
+    let (e, nu) = (14.5e3, 0.45);
+    let fem = FemModel::new(&mesh, MaterialParams::from_youngs(e, nu, 1060.0)).expect("FEM");
+    // Smooth analytic deformation (m): a twist about z, a bulge and a shear, a few per cent of
+    // strain over the 20 mm body.
+    let x: Vec<DVec3> = mesh
+        .nodes
+        .iter()
+        .map(|p| {
+            let s = p / 0.01;
+            let twist = 0.15 * s.z;
+            let (c, sn) = (twist.cos(), twist.sin());
+            let q = DVec3::new(c * p.x - sn * p.y, sn * p.x + c * p.y, p.z);
+            q + DVec3::new(
+                0.0008 * (1.3 * s.y).sin() + 0.0005 * s.z * s.x,
+                0.0006 * (0.9 * s.z).cos() * s.x,
+                0.0007 * (s.x * s.y) + 0.0004 * (1.1 * s.z).sin(),
+            )
+        })
+        .collect();
+    let mut f = vec![DVec3::ZERO; x.len()];
+    let mut times = Vec::with_capacity(repeats);
+    for _ in 0..repeats {
+        f.iter_mut().for_each(|v| *v = DVec3::ZERO);
+        let t = Instant::now();
+        fem.add_internal_forces(&x, None, &mut f);
+        times.push(t.elapsed().as_secs_f64() * 1e6);
+        std::hint::black_box(&f);
+    }
+    times.sort_by(f64::total_cmp);
+    let median = times[times.len() / 2];
+    std::fs::create_dir_all(&out).expect("creating the output directory");
+    let lines = |v: &[DVec3]| {
+        v.iter().fold(String::new(), |mut s, p| {
+            let _ = writeln!(s, "{:.17e} {:.17e} {:.17e}", p.x, p.y, p.z);
+            s
+        })
+    };
+    std::fs::write(out.join("nodes.txt"), lines(&mesh.nodes)).expect("nodes");
+    std::fs::write(out.join("deformed.txt"), lines(&x)).expect("deformed");
+    std::fs::write(out.join("ours_force.txt"), lines(&f)).expect("forces");
+    let tets = mesh.tets.iter().fold(String::new(), |mut s, t| {
+        let _ = writeln!(s, "{} {} {} {}", t[0], t[1], t[2], t[3]);
+        s
+    });
+    std::fs::write(out.join("tets.txt"), tets).expect("tets");
+    let info = format!(
+        "{{\"youngs_modulus_pa\": {e}, \"poisson_ratio\": {nu}, \"lambda_pa\": {}, \"mu_pa\": {}, \"nodes\": {}, \"tets\": {}, \"repeats\": {repeats}, \"force_median_us\": {median:.2}, \"elastic_energy_j\": {:.17e}}}\n",
+        fem.material.lambda_pa,
+        fem.material.mu_pa,
+        mesh.node_count(),
+        mesh.tet_count(),
+        fem.elastic_energy(&x)
+    );
+    std::fs::write(out.join("ours.json"), &info).expect("ours.json");
+    println!(
+        "ours: {} nodes, {} tets, StVK force median {median:.1} us over {repeats} runs; wrote {}",
+        mesh.node_count(),
+        mesh.tet_count(),
+        out.display()
+    );
+}
