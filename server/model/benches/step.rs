@@ -34,10 +34,10 @@ fn main() {
         }
     }
     let mut csv = String::from(
-        "scene,integrator,nodes,tets,substeps,critical_dt_s,tick_p50_us,tick_p99_us,tick_max_us,force_eval_p50_us,realtime_factor,ticks\n",
+        "scene,integrator,nodes,tets,substeps,critical_dt_s,tick_p50_us,tick_p99_us,tick_max_us,force_eval_p50_us,realtime_factor,ticks,cg_iterations_mean\n",
     );
     println!(
-        "{:<15} {:<17} {:>6} {:>6} {:>4} {:>11} {:>10} {:>10} {:>10} {:>11} {:>8}",
+        "{:<15} {:<17} {:>6} {:>6} {:>4} {:>11} {:>10} {:>10} {:>10} {:>11} {:>8} {:>6}",
         "scene",
         "integrator",
         "nodes",
@@ -48,12 +48,14 @@ fn main() {
         "tick p99",
         "tick max",
         "force p50",
-        "RT x"
+        "RT x",
+        "CG"
     );
     for (name, scene) in &scenes {
         for kind in [
             IntegratorKind::SemiImplicit,
             IntegratorKind::SymplecticEuler,
+            IntegratorKind::BackwardEuler,
         ] {
             let mut sc = scene.clone();
             sc.integrator.kind = kind;
@@ -81,6 +83,7 @@ fn main() {
             let budget_s = if quick { 3.0 } else { 15.0 };
             let max_ticks = if quick { 500 } else { 2000 };
             let mut times = Vec::with_capacity(max_ticks);
+            let mut cg_iterations = 0u64;
             let wall = Instant::now();
             for k in 0..max_ticks {
                 let depth = 0.006 * (k as f64 / 1000.0).min(1.0);
@@ -91,6 +94,7 @@ fn main() {
                 let t = Instant::now();
                 sim.tick(&input).expect("tick");
                 times.push(t.elapsed().as_secs_f64() * 1e6);
+                cg_iterations += u64::from(sim.cg_stats().iterations);
                 if wall.elapsed().as_secs_f64() > budget_s {
                     break;
                 }
@@ -99,8 +103,9 @@ fn main() {
             let plan = sim.plan();
             let p50 = percentile(&times, 0.5);
             let rt = 1000.0 / p50;
+            let cg_mean = cg_iterations as f64 / times.len() as f64;
             println!(
-                "{:<15} {:<17} {:>6} {:>6} {:>4} {:>11.3e} {:>8.0}us {:>8.0}us {:>8.0}us {:>9.0}us {:>8.2}",
+                "{:<15} {:<17} {:>6} {:>6} {:>4} {:>11.3e} {:>8.0}us {:>8.0}us {:>8.0}us {:>9.0}us {:>8.2} {:>6.1}",
                 name,
                 kind.name(),
                 n,
@@ -111,10 +116,11 @@ fn main() {
                 percentile(&times, 0.99),
                 times[times.len() - 1],
                 percentile(&fe, 0.5),
-                rt
+                rt,
+                cg_mean
             );
             csv.push_str(&format!(
-                "{name},{},{n},{},{},{:.6e},{p50:.1},{:.1},{:.1},{:.1},{rt:.3},{}\n",
+                "{name},{},{n},{},{},{:.6e},{p50:.1},{:.1},{:.1},{:.1},{rt:.3},{},{cg_mean:.2}\n",
                 kind.name(),
                 sim.fem().tets.len(),
                 plan.substeps,

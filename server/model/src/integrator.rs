@@ -28,7 +28,7 @@ use glam::{DMat3, DVec3};
 
 use crate::ModelError;
 use crate::fem::{CLAMPED, ConstraintMask, FemModel, apply_constraint};
-use crate::material::{self, MaterialParams};
+use crate::material::{self, MaterialModel, MaterialParams};
 
 /// Which time integrator advances the FEM nodes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -342,8 +342,11 @@ pub struct ImplicitSolver {
     precond_inv: Vec<DMat3>,
     /// Inverses of the patch nodes' blocks with the coupling's diagonal `gamma w_i^2 n n^T`.
     patch_inv: Vec<DMat3>,
-    /// Deformation gradient per element at the start of the step (viscous action).
+    /// Deformation gradient per element at the start of the step.
     elem_f: Vec<DMat3>,
+    /// Per element at the start of the step: the StVK second Piola-Kirchhoff stress (StVK) or
+    /// the rotation of the polar decomposition (corotational, stable Neo-Hookean).
+    elem_s: Vec<DMat3>,
     rhs: Vec<DVec3>,
     dv: Vec<DVec3>,
     r: Vec<DVec3>,
@@ -391,6 +394,7 @@ impl ImplicitSolver {
             precond_inv,
             patch_inv: Vec::with_capacity(crate::contact::MAX_PATCH_NODES),
             elem_f: vec![DMat3::IDENTITY; fem.tets.len()],
+            elem_s: vec![DMat3::ZERO; fem.tets.len()],
             rhs: vec![DVec3::ZERO; n],
             dv: vec![DVec3::ZERO; n],
             r: vec![DVec3::ZERO; n],
@@ -431,10 +435,16 @@ impl ImplicitSolver {
         let h = self.dt_s;
         let mat = &fem.material;
         let viscous = mat.phi_pa_s > 0.0 || mat.psi_pa_s > 0.0;
-        if viscous {
-            for (e, fe) in self.elem_f.iter_mut().enumerate() {
-                *fe = fem.deformation_gradient(e, x);
-            }
+        for (e, fe) in self.elem_f.iter_mut().enumerate() {
+            *fe = fem.deformation_gradient(e, x);
+        }
+        for (se, fe) in self.elem_s.iter_mut().zip(&self.elem_f) {
+            *se = match mat.model {
+                MaterialModel::StVenantKirchhoff => {
+                    material::stvk_stress(&material::green_strain(fe), mat.lambda_pa, mat.mu_pa)
+                }
+                _ => material::polar_decomposition(fe).0,
+            };
         }
         let op = Operator {
             fem,
@@ -442,7 +452,7 @@ impl ImplicitSolver {
             viscous,
             mass_factor: &self.mass_factor,
             elem_f: &self.elem_f,
-            x,
+            elem_s: &self.elem_s,
             coupling,
         };
         // Preconditioner blocks of the patch nodes with the coupling's diagonal.
@@ -493,8 +503,16 @@ impl ImplicitSolver {
         while r_norm > target && iterations < self.max_iterations {
             op.apply(&self.p, &mut self.ap);
             let pap = dot(&self.p, &self.ap);
-            // An indefinite tangent (strong compression) or a non-finite state ends CG here.
+            // An indefinite tangent (strong compression, inverted elements) or a non-finite
+            // state ends CG here. At the first iteration the step falls back to the
+            // preconditioned residual `dv0 + P^-1 r0` (a block-Jacobi step on the SPD rest
+            // blocks, like the seed's per-node scheme), so the body still moves.
             if !(pap > 0.0) || !(rz > 0.0) {
+                if iterations == 0 && rz > 0.0 {
+                    for i in 0..v.len() {
+                        self.dv[i] += self.z[i];
+                    }
+                }
                 break;
             }
             iterations += 1;
@@ -554,35 +572,66 @@ struct Operator<'a> {
     viscous: bool,
     mass_factor: &'a [f64],
     elem_f: &'a [DMat3],
-    x: &'a [DVec3],
+    /// StVK stresses per element (empty for the other materials).
+    elem_s: &'a [DMat3],
     coupling: Option<RankOneCoupling<'a>>,
 }
 
 impl Operator<'_> {
     /// `out = A p` on the free components (constrained components of `out` are zero).
+    ///
+    /// One element loop on the deformation gradients cached at the start of the step:
+    /// `h^2 K p + h D p` is `V (h^2 dP + h F S_v(F, dF)) Dm^-T` per element with
+    /// `dF = dDs(p) Dm^-1`, `dP` the material's [`material::first_piola_differential`] and
+    /// `S_v` the viscous stress of eq. 11, which for `nu = 2 sym(F^T dF)` is the StVK law with
+    /// `(2 phi, 2 psi)`. For StVK both share `dE = sym(F^T dF)`:
+    /// `h^2 dF S + F S_stvk(dE; h^2 lambda + 2 h phi, h^2 mu + 2 h psi)`.
+    ///
+    /// Corotational and stable Neo-Hookean use the warped linear-elastic stiffness with the
+    /// rotation `R` of the polar decomposition frozen over the step (Müller et al. 2002):
+    /// `dP = R (mu (G + G^T) + lambda tr(G) I)`, `G = R^T dF`. It is exact at rest (both
+    /// materials linearise there to linear elasticity), annihilates infinitesimal rotations,
+    /// and stays positive semi-definite for inverted elements, where the exact tangents are
+    /// indefinite and the one-step Newton / CG solve diverged in the stability suite (an
+    /// inverted cube). The forces stay exact, so equilibria are unchanged.
     fn apply(&self, p: &[DVec3], out: &mut [DVec3]) {
         let fem = self.fem;
         let h = self.h;
-        out.iter_mut().for_each(|o| *o = DVec3::ZERO);
-        fem.stiffness_action(self.x, p, out);
         let h2 = h * h;
-        out.iter_mut().for_each(|o| *o *= h2);
-        if self.viscous {
-            let mat = &fem.material;
-            // D p = V F S_v(F, dF) Dm^-T per element: minus the viscous force at velocity p.
-            for (e, t) in fem.tets.iter().enumerate() {
-                let [a, b, c, d] = t.map(|i| i as usize);
-                let dm_inv = fem.dm_inv[e];
-                let p0 = p[a];
-                let df = DMat3::from_cols(p[b] - p0, p[c] - p0, p[d] - p0) * dm_inv;
-                let fm = self.elem_f[e];
-                let sv = material::viscous_stress(&fm, &df, mat.phi_pa_s, mat.psi_pa_s);
-                let hm = (fm * sv) * dm_inv.transpose() * (fem.volume_m3[e] * h);
-                out[b] += hm.x_axis;
-                out[c] += hm.y_axis;
-                out[d] += hm.z_axis;
-                out[a] -= hm.x_axis + hm.y_axis + hm.z_axis;
-            }
+        let mat = &fem.material;
+        let (lam, mu) = (
+            h2 * mat.lambda_pa + 2.0 * h * mat.phi_pa_s,
+            h2 * mat.mu_pa + 2.0 * h * mat.psi_pa_s,
+        );
+        let (vphi, vpsi) = (2.0 * h * mat.phi_pa_s, 2.0 * h * mat.psi_pa_s);
+        out.iter_mut().for_each(|o| *o = DVec3::ZERO);
+        for (e, t) in fem.tets.iter().enumerate() {
+            let [a, b, c, d] = t.map(|i| i as usize);
+            let dm_inv = fem.dm_inv[e];
+            let p0 = p[a];
+            let df = DMat3::from_cols(p[b] - p0, p[c] - p0, p[d] - p0) * dm_inv;
+            let fm = self.elem_f[e];
+            let ft_df = fm.transpose() * df;
+            let de = (ft_df + ft_df.transpose()) * 0.5;
+            let s = self.elem_s[e];
+            let dp = if mat.model == MaterialModel::StVenantKirchhoff {
+                df * (s * h2) + fm * material::stvk_stress(&de, lam, mu)
+            } else {
+                let g = s.transpose() * df;
+                let tr = g.x_axis.x + g.y_axis.y + g.z_axis.z;
+                let lin = (g + g.transpose()) * mat.mu_pa
+                    + DMat3::from_diagonal(DVec3::splat(mat.lambda_pa * tr));
+                let mut dp = s * lin * h2;
+                if self.viscous {
+                    dp += fm * material::stvk_stress(&de, vphi, vpsi);
+                }
+                dp
+            };
+            let hm = dp * dm_inv.transpose() * fem.volume_m3[e];
+            out[b] += hm.x_axis;
+            out[c] += hm.y_axis;
+            out[d] += hm.z_axis;
+            out[a] -= hm.x_axis + hm.y_axis + hm.z_axis;
         }
         for i in 0..p.len() {
             out[i] += p[i] * self.mass_factor[i];

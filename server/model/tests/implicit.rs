@@ -104,7 +104,7 @@ fn backward_euler_presses_holds_and_recovers_on_lv() {
         if k == 1999 {
             f_hold = (a.force_on_device_n, b.force_on_device_n);
         }
-        if k < 200 || k >= 3200 {
+        if !(200..3200).contains(&k) {
             assert_eq!(a.force_on_device_n, DVec3::ZERO, "tick {k}");
         }
     }
