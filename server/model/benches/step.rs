@@ -1,7 +1,8 @@
 //! Step-time benchmark (issue 2, section 10): median / p99 / max wall time of a full servo tick
 //! (all sub-steps) and of one internal-force evaluation, on one thread, for the LV meshes of
-//! `../shared/data/lv/` and the built-in `lv`, with both integrators, while the probe presses
-//! the epicardium (the haptic case: contact, patch and implicit coupling active).
+//! `../shared/data/lv/` and the built-in `lv`, with the three integrators (backward Euler also
+//! reports its mean CG iterations per tick), while the probe presses the epicardium (the haptic
+//! case: contact, patch and implicit coupling active).
 //!
 //! Run: `cargo bench -p haptic-model --bench step` (add `-- --quick` for fewer ticks).
 //! Writes `target/bench/step.csv` and prints a table. Medians and ratios measured in one run are
