@@ -11,15 +11,17 @@
 //! with `A = M (1 + alpha h) + h D(x) + h^2 K(x) + gamma U U^T`,
 //!
 //! which, because `f_visc = -D v`, is `A dv = M v + h (f_el + f_ext - U phi0) - A v`: the
-//! viscous force is never evaluated separately. `gamma U U^T` is the probe's virtual coupling (rank one over the contact patch,
-//! `gamma = h (k h + b)`, see [`crate::contact::Probe::coupling_gamma`]), so the coupling is
-//! exactly implicit inside the same solve. `A` is applied matrix-free (the material's
-//! [`FemModel::stiffness_action`] plus a viscous action on cached deformation gradients) and
-//! the system is solved by block-Jacobi preconditioned conjugate gradients, warm-started with
+//! viscous force is never evaluated separately. `gamma U U^T` is the probe's virtual coupling
+//! (rank one over the contact patch, `gamma = h (k h + b)`, see
+//! [`crate::contact::Probe::coupling_gamma`]), so the coupling is exactly implicit inside the
+//! same solve. `A` is applied matrix-free in one element loop on deformation gradients cached at
+//! the start of the step (the material's tangent, see `Operator::apply`, plus the viscous
+//! action) and the system is solved by preconditioned conjugate gradients, warm-started with
 //! the previous step's `dv`, capped at `cg_max_iterations` or a relative residual of
-//! `cg_tolerance`. The preconditioner blocks are those of `A` at rest (constant per sub-step
-//! size; the patch's coupling term is added per step). Follower pressure is explicit (its
-//! load stiffness is not symmetric). Constrained components are projected out of the system.
+//! `cg_tolerance`. The preconditioner is block-Jacobi on the 3x3 blocks of `A` at rest
+//! (constant per sub-step size) plus the coupling's rank-one term, inverted exactly by
+//! Sherman-Morrison. Follower pressure is explicit (its load stiffness is not symmetric).
+//! Constrained components are projected out of the system.
 //!
 //! Neighbours: [`crate::fem`] provides forces, masses, the tangent action and the rest blocks;
 //! [`crate::sim`] calls [`integrate_nodes`] or [`ImplicitSolver::step`] once per sub-step.
@@ -337,11 +339,11 @@ pub struct ImplicitSolver {
     tolerance: f64,
     /// `m_i (1 + alpha h)`, kg.
     mass_factor: Vec<f64>,
-    /// Rest blocks of `A`: `m_i (1 + alpha h) I + h D_ii + h^2 K_ii`, kg.
-    precond: Vec<DMat3>,
+    /// Inverses of the rest blocks of `A`, `m_i (1 + alpha h) I + h D_ii + h^2 K_ii`, 1/kg.
     precond_inv: Vec<DMat3>,
-    /// Inverses of the patch nodes' blocks with the coupling's diagonal `gamma w_i^2 n n^T`.
-    patch_inv: Vec<DMat3>,
+    /// `B_i^-1 (w_i n)` per patch node (projected): the coupling's rank-one term is inverted
+    /// exactly in the preconditioner by Sherman-Morrison.
+    patch_bu: Vec<DVec3>,
     /// Deformation gradient per element at the start of the step.
     elem_f: Vec<DMat3>,
     /// Per element at the start of the step: the StVK second Piola-Kirchhoff stress (StVK) or
@@ -390,9 +392,8 @@ impl ImplicitSolver {
             max_iterations: params.cg_max_iterations,
             tolerance: params.cg_tolerance,
             mass_factor,
-            precond,
             precond_inv,
-            patch_inv: Vec::with_capacity(crate::contact::MAX_PATCH_NODES),
+            patch_bu: Vec::with_capacity(crate::contact::MAX_PATCH_NODES),
             elem_f: vec![DMat3::IDENTITY; fem.tets.len()],
             elem_s: vec![DMat3::ZERO; fem.tets.len()],
             rhs: vec![DVec3::ZERO; n],
@@ -455,30 +456,33 @@ impl ImplicitSolver {
             elem_s: &self.elem_s,
             coupling,
         };
-        // Preconditioner blocks of the patch nodes with the coupling's diagonal.
-        self.patch_inv.clear();
+        // Preconditioner `P = B + gamma U U^T` (B the block diagonal at rest), inverted
+        // exactly: `P^-1 r = B^-1 r - B^-1 U gamma (U^T B^-1 r) / (1 + gamma U^T B^-1 U)`.
+        // Without the rank-one part CG needed many more iterations (the coupling weight
+        // gamma is far above the patch nodes' masses on fine meshes) and a capped solve could
+        // diverge.
+        self.patch_bu.clear();
+        let mut sm_denominator = 1.0;
         if let Some(c) = coupling {
-            let nn = DMat3::from_cols(
-                c.normal * c.normal.x,
-                c.normal * c.normal.y,
-                c.normal * c.normal.z,
-            );
             for (&i, &w) in c.nodes.iter().zip(c.weights) {
-                self.patch_inv
-                    .push((self.precond[i as usize] + nn * (c.gamma_kg * w * w)).inverse());
+                let mut bu = self.precond_inv[i as usize] * (c.normal * w);
+                apply_constraint(fem.constraint[i as usize], &mut bu);
+                sm_denominator += c.gamma_kg * w * c.normal.dot(bu);
+                self.patch_bu.push(bu);
             }
         }
-        let precondition = |r: &[DVec3], z: &mut [DVec3], patch_inv: &[DMat3]| {
+        let precondition = |r: &[DVec3], z: &mut [DVec3], patch_bu: &[DVec3]| {
             for i in 0..r.len() {
                 z[i] = self.precond_inv[i] * r[i];
             }
-            if let Some(c) = coupling {
-                for (&i, b) in c.nodes.iter().zip(patch_inv) {
-                    z[i as usize] = *b * r[i as usize];
-                }
-            }
             for (zi, &m) in z.iter_mut().zip(&fem.constraint) {
                 apply_constraint(m, zi);
+            }
+            if let Some(c) = coupling {
+                let s = c.gamma_kg * c.ut(z) / sm_denominator;
+                for (&i, bu) in c.nodes.iter().zip(patch_bu) {
+                    z[i as usize] -= *bu * s;
+                }
             }
         };
         // rhs = M v + h f - A v.
@@ -494,7 +498,7 @@ impl ImplicitSolver {
         for i in 0..v.len() {
             self.r[i] = self.rhs[i] - self.ap[i];
         }
-        precondition(&self.r, &mut self.z, &self.patch_inv);
+        precondition(&self.r, &mut self.z, &self.patch_bu);
         self.p.copy_from_slice(&self.z);
         let mut rz = dot(&self.r, &self.z);
         let target = self.tolerance * rhs_norm;
@@ -522,7 +526,7 @@ impl ImplicitSolver {
                 self.r[i] -= self.ap[i] * alpha;
             }
             r_norm = norm(&self.r);
-            precondition(&self.r, &mut self.z, &self.patch_inv);
+            precondition(&self.r, &mut self.z, &self.patch_bu);
             let rz_new = dot(&self.r, &self.z);
             let beta = rz_new / rz;
             rz = rz_new;
