@@ -5,6 +5,7 @@
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
+use std::path::Path;
 
 use haptic_model::DVec3;
 use haptic_model::integrator::IntegratorKind;
@@ -187,7 +188,7 @@ force_n = [0.0, 0.0, -0.001]
 "#;
     for kind in ["backward-euler", "semi-implicit", "symplectic-euler"] {
         let text = text.replace("\"backward-euler\"", &format!("\"{kind}\""));
-        let scene = parse_scene_toml(&text, std::path::Path::new(".")).unwrap();
+        let scene = parse_scene_toml(&text, Path::new(".")).unwrap();
         let mut sim = Simulation::new(&scene).unwrap();
         ALLOCATIONS.with(|a| a.set(0));
         for _ in 0..200 {
@@ -198,4 +199,32 @@ force_n = [0.0, 0.0, -0.001]
         }
         assert_eq!(ALLOCATIONS.with(|a| a.get()), 0, "{kind}");
     }
+}
+
+/// Regression: with the previous `dv` reused unscaled as the CG start, a capped solve (5 or 10
+/// iterations) diverged on `lv_h1.msh` (17 924 tets) at 0.34 s / 0.54 s of this press; the
+/// start is now scaled by the minimiser of the step energy along it.
+#[test]
+fn capped_cg_stays_stable_on_lv_h1() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../deploy/scenes/lv_h1.toml");
+    let Ok(mut scene) = haptic_model::scene::load_scene_file(&path) else {
+        eprintln!("skipping: {} not readable", path.display());
+        return;
+    };
+    scene.integrator.kind = IntegratorKind::BackwardEuler;
+    scene.integrator.cg_max_iterations = 5;
+    let mut sim = Simulation::new(&scene).unwrap();
+    let dev = |k: usize| DVec3::new(0.014 - 0.006 * (k as f64 / 600.0).min(1.0), 0.0, -0.005);
+    let mut force = DVec3::ZERO;
+    for k in 0..650 {
+        force = sim
+            .tick(&TickInput {
+                device_position_m: Some(dev(k)),
+                device_velocity_m_per_s: (dev(k + 1) - dev(k)) / 1e-3,
+            })
+            .unwrap()
+            .force_on_device_n;
+    }
+    assert!(force.x > 0.03, "{force}");
+    assert!(sim.stability().stable);
 }
