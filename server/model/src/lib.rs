@@ -25,8 +25,8 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod contact;
-pub mod export;
 pub mod error;
+pub mod export;
 pub mod fem;
 pub mod gmsh;
 pub mod integrator;
