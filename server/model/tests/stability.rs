@@ -252,14 +252,17 @@ fn inversion_and_flattened_start_recover_with_robust_materials() {
                     x.z = if start == "inverted" { -r.z } else { 0.0 };
                 }
                 let before = sim.inverted_elements();
-                let r = settle(&mut sim, 3000);
+                let t0 = std::time::Instant::now();
+                let r = settle(&mut sim, 1500);
+                let wall = t0.elapsed().as_secs_f64();
                 println!(
-                    "{model:<18} {:<14} {start:<9}: inverted {before} -> {}, max displacement {:.3e} m, finite {}, stable {}",
+                    "{model:<18} {:<14} {start:<9}: inverted {before} -> {}, max displacement {:.3e} m, finite {}, stable {} ({wall:.2} s, {} sub-steps)",
                     kind.name(),
                     r.inverted_elements,
                     r.max_displacement_m,
                     r.finite,
-                    r.stable
+                    r.stable,
+                    sim.plan().substeps
                 );
                 // Never NaN: either finite or reported as diverged.
                 assert!(r.finite || r.diverged_at_s.is_some());
@@ -348,10 +351,31 @@ fn free_body_spinning_keeps_momentum_and_stays_rigid() {
 }
 
 #[test]
-fn ten_fold_impulse_at_the_probe_settles_without_inversion() {
+fn ten_fold_impulse_settles_without_inversion_corotational_semi_implicit() {
+    ten_fold_impulse(&["corotational"], &[IntegratorKind::SemiImplicit]);
+}
+
+#[test]
+fn ten_fold_impulse_settles_without_inversion_corotational_symplectic_euler() {
+    ten_fold_impulse(&["corotational"], &[IntegratorKind::SymplecticEuler]);
+}
+
+#[test]
+fn ten_fold_impulse_settles_without_inversion_corotational_backward_euler() {
+    ten_fold_impulse(&["corotational"], &[IntegratorKind::BackwardEuler]);
+}
+
+#[test]
+fn ten_fold_impulse_is_reported_for_stvk_and_stable_neo_hookean() {
+    ten_fold_impulse(&["stvk", "stable-neo-hookean"], &ALL);
+}
+
+/// Presses the LV epicardium 6 mm over 0.6 s, adds ten times the probe force at the probe for
+/// 5 ms at 0.8 s, releases over 0.9-1.5 s and lets the body settle until 2.5 s.
+fn ten_fold_impulse(models: &[&str], kinds: &[IntegratorKind]) {
     let mut failures = Vec::new();
-    for model in ["stvk", "corotational", "stable-neo-hookean"] {
-        for kind in ALL {
+    for &model in models {
+        for &kind in kinds {
             // StVK's outcome is the same under every scheme (inverted elements remain): one run.
             if model == "stvk" && kind != IntegratorKind::SemiImplicit {
                 continue;
@@ -363,13 +387,13 @@ fn ten_fold_impulse_at_the_probe_settles_without_inversion() {
             let mut sim = Simulation::new(&scene).unwrap();
             let device = |k: usize| {
                 let t = k as f64 * 1e-3;
-                let depth = 0.006 * (t.min(1.0) - (t - 1.3).clamp(0.0, 1.0));
+                let depth = 0.006 * ((t / 0.6).min(1.0) - ((t - 0.9) / 0.6).clamp(0.0, 1.0));
                 DVec3::new(0.014 - depth, 0.0, -0.005)
             };
             let mut hold = DVec3::ZERO;
             let mut max_disp: f64 = 0.0;
             let mut failed = None;
-            for k in 0..3000 {
+            for k in 0..2500 {
                 let out = sim.tick(&TickInput {
                     device_position_m: Some(device(k)),
                     device_velocity_m_per_s: (device(k + 1) - device(k)) / 1e-3,
@@ -381,7 +405,7 @@ fn ten_fold_impulse_at_the_probe_settles_without_inversion() {
                         break;
                     }
                 };
-                if k == 1199 {
+                if k == 799 {
                     hold = out.force_on_device_n;
                     // Ten times the probe force, at the probe, for 5 ms.
                     sim.add_point_load(DVec3::new(0.0097, 0.0, -0.005), -hold * 10.0, 0.005)
