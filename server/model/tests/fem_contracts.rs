@@ -2,6 +2,9 @@
 //! invariance, force = -grad(energy) by finite differences, tangent by finite differences of the
 //! force, lumped masses, viscous stress of a rigid rotation, critical-step sharpness.
 
+mod common;
+use common::Rng;
+
 use glam::{DMat3, DQuat};
 use haptic_model::DVec3;
 use haptic_model::fem::{CLAMPED, FemModel};
@@ -10,22 +13,6 @@ use haptic_model::material::MaterialParams;
 use haptic_model::mesh::TetMesh;
 use haptic_model::mesher::box_mesh;
 use haptic_model::statics::{StaticParams, solve_static};
-
-/// Deterministic pseudo-random numbers in [-1, 1] (SplitMix64), so tests are reproducible.
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E3779B97F4A7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58476D1CE4E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D049BB133111EB);
-        z ^= z >> 31;
-        (z >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
-    }
-    fn vec(&mut self) -> DVec3 {
-        DVec3::new(self.next(), self.next(), self.next())
-    }
-}
 
 fn material() -> MaterialParams {
     MaterialParams::from_youngs(10e3, 0.3, 1000.0)

@@ -11,16 +11,14 @@
 //! the pressure is applied on the flat faces (consistent nodal loads), and the solution is
 //! compared at the node positions.
 
+mod common;
+use common::lame_u_r;
+
 use haptic_model::DVec3;
 use haptic_model::fem::FemModel;
 use haptic_model::material::MaterialParams;
 use haptic_model::mesher::sphere_shell;
 use haptic_model::statics::{StaticParams, add_pressure_forces, solve_static};
-
-fn lame_u_r(r: f64, a: f64, b: f64, e: f64, nu: f64, p: f64) -> f64 {
-    p * a.powi(3) / (e * (b.powi(3) - a.powi(3)))
-        * ((1.0 - 2.0 * nu) * r + (1.0 + nu) * b.powi(3) / (2.0 * r * r))
-}
 
 /// (tets, relative L2 error of u_r over all nodes).
 fn solve(target_tets: usize) -> (usize, f64) {

@@ -3,16 +3,14 @@
 //! 5k tetrahedra; the inner radial displacement must be within 10 % of the analytic
 //! `u_r(a) = p a^3 / (E (b^3 - a^3)) [(1 - 2 nu) a + (1 + nu) b^3 / (2 a^2)] = 8.387e-2 mm`.
 
+mod common;
+use common::lame_u_r;
+
 use haptic_model::DVec3;
 use haptic_model::fem::FemModel;
 use haptic_model::material::MaterialParams;
 use haptic_model::mesher::sphere_shell;
 use haptic_model::statics::{StaticParams, add_pressure_forces, solve_static};
-
-fn lame_u_r(r: f64, a: f64, b: f64, e: f64, nu: f64, p: f64) -> f64 {
-    p * a.powi(3) / (e * (b.powi(3) - a.powi(3)))
-        * ((1.0 - 2.0 * nu) * r + (1.0 + nu) * b.powi(3) / (2.0 * r * r))
-}
 
 #[test]
 fn analytic_value_matches_the_issue() {

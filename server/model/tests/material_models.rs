@@ -5,6 +5,9 @@
 //! an inverted element; the polar decomposition; the common linearisation at rest; the scene
 //! field `material.model`.
 
+mod common;
+use common::Rng;
+
 use std::path::Path;
 
 use glam::{DMat3, DQuat};
@@ -24,25 +27,6 @@ const MODELS: [MaterialModel; 3] = [
     MaterialModel::Corotational,
     MaterialModel::StableNeoHookean,
 ];
-
-/// Deterministic pseudo-random numbers in [-1, 1] (SplitMix64).
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E3779B97F4A7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58476D1CE4E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D049BB133111EB);
-        z ^= z >> 31;
-        (z >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
-    }
-    fn vec(&mut self) -> DVec3 {
-        DVec3::new(self.next(), self.next(), self.next())
-    }
-    fn mat(&mut self) -> DMat3 {
-        DMat3::from_cols(self.vec(), self.vec(), self.vec())
-    }
-}
 
 fn params(model: MaterialModel) -> MaterialParams {
     let mut m = MaterialParams::from_youngs(10e3, 0.3, 1000.0);

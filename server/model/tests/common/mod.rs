@@ -1,0 +1,38 @@
+//! Shared helpers of the model's integration tests: a deterministic random source and the
+//! analytic references. Each test file that uses it declares `mod common;`.
+#![allow(dead_code)]
+
+use glam::{DMat3, DVec3};
+
+/// Deterministic pseudo-random numbers in [-1, 1] (SplitMix64), so tests are reproducible.
+pub struct Rng(pub u64);
+
+impl Rng {
+    /// The next number in [-1, 1].
+    pub fn next(&mut self) -> f64 {
+        self.0 = self.0.wrapping_add(0x9E3779B97F4A7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58476D1CE4E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D049BB133111EB);
+        z ^= z >> 31;
+        (z >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    }
+
+    /// A vector with components in [-1, 1].
+    pub fn vec(&mut self) -> DVec3 {
+        DVec3::new(self.next(), self.next(), self.next())
+    }
+
+    /// A matrix with entries in [-1, 1].
+    pub fn mat(&mut self) -> DMat3 {
+        DMat3::from_cols(self.vec(), self.vec(), self.vec())
+    }
+}
+
+/// Radial displacement of the Lamé thick-walled sphere (inner radius `a`, outer `b`, m) under
+/// internal pressure `p` (Pa), Young's modulus `e` (Pa), Poisson ratio `nu`, at radius `r` (m):
+/// `u_r(r) = p a^3 / (E (b^3 - a^3)) [(1 - 2 nu) r + (1 + nu) b^3 / (2 r^2)]`.
+pub fn lame_u_r(r: f64, a: f64, b: f64, e: f64, nu: f64, p: f64) -> f64 {
+    p * a.powi(3) / (e * (b.powi(3) - a.powi(3)))
+        * ((1.0 - 2.0 * nu) * r + (1.0 + nu) * b.powi(3) / (2.0 * r * r))
+}
