@@ -9,7 +9,8 @@ use std::time::Instant;
 
 use haptic_model::DVec3;
 use haptic_model::fem::FemModel;
-use haptic_model::integrator::{self, IntegratorKind, IntegratorParams};
+use haptic_model::integrator::{self, ImplicitSolver, IntegratorKind, IntegratorParams};
+use haptic_model::material::MaterialModel;
 use haptic_model::mesh::TetMesh;
 use haptic_model::mesher;
 use haptic_model::scene::{Scene, load_builtin};
@@ -19,11 +20,18 @@ use haptic_model::scene::{Scene, load_builtin};
 pub const INTEGRATORS: &[IntegratorKind] = &[
     IntegratorKind::SemiImplicit,
     IntegratorKind::SymplecticEuler,
+    IntegratorKind::BackwardEuler,
 ];
 
-/// Material model label written in the result rows (one material exists so far: the seed's
-/// St. Venant-Kirchhoff).
-pub const MATERIAL: &str = "stvk";
+/// Backward Euler: the CG iteration caps swept (`IntegratorParams::cg_max_iterations`).
+pub const CG_ITERATIONS: &[u32] = &[5, 10, 20];
+
+/// The material models the benchmarks compare (label from [`MaterialModel::scene_name`]).
+pub const MATERIALS: &[MaterialModel] = &[
+    MaterialModel::StVenantKirchhoff,
+    MaterialModel::Corotational,
+    MaterialModel::StableNeoHookean,
+];
 
 /// `git rev-parse --short HEAD`, or "unknown".
 pub fn git_commit() -> String {
@@ -102,13 +110,7 @@ pub struct LoadedRun {
     pub time_s: f64,
 }
 
-/// Runs `fem` dynamically for `total_s` under the dead nodal load `f_ext` (N), ramped in with
-/// a smoothstep over `ramp_s`, with the servo tick `tick_s` divided into the sub-steps that keep
-/// each step below `safety` times the critical step of `kind`. The same per-sub-step work as
-/// `Simulation::tick` without a probe: internal forces (elastic + viscous), external load,
-/// `integrator::integrate_nodes`. After the ramp the run stops early once it is at steady
-/// state: the largest nodal speed times 0.1 s is below 1e-4 of the largest displacement.
-/// Returns `Err` when the plan is refused.
+/// [`run_loaded_with`] with the default CG settings.
 pub fn run_loaded(
     fem: &FemModel,
     kind: IntegratorKind,
@@ -123,14 +125,35 @@ pub fn run_loaded(
         max_substeps: 2000,
         ..IntegratorParams::default()
     };
+    run_loaded_with(fem, &params, f_ext, ramp_s, total_s)
+}
+
+/// Runs `fem` dynamically for `total_s` under the dead nodal load `f_ext` (N), ramped in with
+/// a smoothstep over `ramp_s`, with the servo tick of `params` divided into the sub-steps that
+/// keep each step below its safety factor times the critical step of its integrator. The same
+/// per-sub-step work as `Simulation::tick` without a probe: internal forces (elastic, plus
+/// viscous for the explicit schemes), external load, then `integrator::integrate_nodes` or
+/// `ImplicitSolver::step` (backward Euler, CG capped at `params.cg_max_iterations`). After the
+/// ramp the run stops early once it is at steady state: the largest nodal speed times 0.1 s is
+/// below 1e-4 of the largest displacement. Returns `Err` when the plan is refused.
+pub fn run_loaded_with(
+    fem: &FemModel,
+    params: &IntegratorParams,
+    f_ext: &[DVec3],
+    ramp_s: f64,
+    total_s: f64,
+) -> Result<LoadedRun, String> {
+    let kind = params.kind;
     let crit = integrator::critical_time_step(fem, kind);
-    let plan = integrator::plan_steps(&params, crit).map_err(|e| e.to_string())?;
+    let plan = integrator::plan_steps(params, crit).map_err(|e| e.to_string())?;
     let h = plan.sub_dt_s;
     let a_inv = if kind == IntegratorKind::SemiImplicit {
         integrator::semi_implicit_inverses(fem, h)
     } else {
         Vec::new()
     };
+    let mut implicit =
+        (kind == IntegratorKind::BackwardEuler).then(|| ImplicitSolver::new(fem, h, params));
     let n = fem.node_count();
     let mut x = fem.rest.clone();
     let mut v = vec![DVec3::ZERO; n];
@@ -145,8 +168,17 @@ pub fn run_loaded(
             let t = k as f64 * params.tick_s + s as f64 * h;
             let scale = smoothstep(t / ramp_s);
             f.iter_mut().zip(f_ext).for_each(|(f, e)| *f = *e * scale);
-            fem.add_internal_forces(&x, Some(&v), &mut f);
-            let max_v2 = integrator::integrate_nodes(kind, fem, &a_inv, h, &f, &mut x, &mut v);
+            let max_v2 = match &mut implicit {
+                // Backward Euler treats the viscous force implicitly inside its solve.
+                Some(solver) => {
+                    fem.add_internal_forces(&x, None, &mut f);
+                    solver.step(fem, &f, None, &mut x, &mut v)
+                }
+                None => {
+                    fem.add_internal_forces(&x, Some(&v), &mut f);
+                    integrator::integrate_nodes(kind, fem, &a_inv, h, &f, &mut x, &mut v)
+                }
+            };
             if max_v2.is_nan() || max_v2 > 1e4 {
                 stable = false;
                 break 'outer;
