@@ -51,7 +51,7 @@ pub struct FemModel {
 }
 
 /// Elements per batch of the force kernel: 4 f64 lanes fill an AVX2 register.
-const LANES: usize = 4;
+const LANES: usize = 8;
 
 /// [`LANES`] elements, structure-of-arrays: `dm_inv[3 r + c][lane]` is entry (r, c) of
 /// `Dm^-1`. Padding lanes (at the end of the mesh) repeat node 0 with zero `Dm^-1` and volume,
@@ -59,23 +59,71 @@ const LANES: usize = 4;
 #[derive(Debug, Clone)]
 struct ElementBatch {
     nodes: [[u32; 4]; LANES],
+    /// `3 * nodes[l][k]` at `node3[k][l]`: f64 offsets of the node coordinates, for gathers.
+    node3: [[i32; LANES]; 4],
     dm_inv: [[f64; LANES]; 9],
     volume_m3: [f64; LANES],
 }
 
+/// Element order for the force kernel: by the Morton (Z-order) code of the centroid, so that
+/// consecutive elements touch nearby, mostly cache-resident nodes. Ties keep the mesh order.
+fn locality_order(nodes: &[DVec3], tets: &[[u32; 4]]) -> Vec<u32> {
+    let centroid = |t: &[u32; 4]| t.iter().map(|&i| nodes[i as usize]).sum::<DVec3>() * 0.25;
+    let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+    for t in tets {
+        let c = centroid(t);
+        lo = lo.min(c);
+        hi = hi.max(c);
+    }
+    let scale = (hi - lo).max_element();
+    let scale = if scale > 0.0 { 1023.0 / scale } else { 0.0 };
+    // Spreads the 10 low bits of `v` to every third bit.
+    let spread = |v: u64| {
+        let mut x = v & 0x3ff;
+        x = (x | (x << 16)) & 0x0300_00ff;
+        x = (x | (x << 8)) & 0x0300_f00f;
+        x = (x | (x << 4)) & 0x030c_30c3;
+        (x | (x << 2)) & 0x0924_9249
+    };
+    let mut keyed: Vec<(u64, u32)> = tets
+        .iter()
+        .enumerate()
+        .map(|(e, t)| {
+            let q = ((centroid(t) - lo) * scale).round();
+            let code = spread(q.x as u64) | (spread(q.y as u64) << 1) | (spread(q.z as u64) << 2);
+            (code, e as u32)
+        })
+        .collect();
+    keyed.sort_unstable();
+    // Interleave LANES runs of the curve, so that the lanes of a batch lie far apart and
+    // rarely share a node (a shared node serialises the scatter of the forces).
+    let n = keyed.len();
+    let run = n.div_ceil(LANES);
+    (0..run)
+        .flat_map(|k| (0..LANES).map(move |l| l * run + k))
+        .filter(|&i| i < n)
+        .map(|i| keyed[i].1)
+        .collect()
+}
+
 impl ElementBatch {
-    fn build(tets: &[[u32; 4]], dm_inv: &[DMat3], volume_m3: &[f64]) -> Vec<Self> {
-        tets.chunks(LANES)
-            .enumerate()
-            .map(|(k, chunk)| {
+    /// Batches of the elements in the given `order` (a permutation of the element indices).
+    fn build(order: &[u32], tets: &[[u32; 4]], dm_inv: &[DMat3], volume_m3: &[f64]) -> Vec<Self> {
+        order
+            .chunks(LANES)
+            .map(|chunk| {
                 let mut b = Self {
                     nodes: [[0; 4]; LANES],
+                    node3: [[0; LANES]; 4],
                     dm_inv: [[0.0; LANES]; 9],
                     volume_m3: [0.0; LANES],
                 };
-                for (l, t) in chunk.iter().enumerate() {
-                    let e = k * LANES + l;
-                    b.nodes[l] = *t;
+                for (l, &e) in chunk.iter().enumerate() {
+                    let e = e as usize;
+                    b.nodes[l] = tets[e];
+                    for (row, &node) in b.node3.iter_mut().zip(&tets[e]) {
+                        row[l] = 3 * node as i32;
+                    }
                     let m = dm_inv[e];
                     for r in 0..3 {
                         for c in 0..3 {
@@ -101,6 +149,7 @@ fn stvk_forces_batched(
     x: &[DVec3],
     v: Option<&[DVec3]>,
     f: &mut [DVec3],
+    gather: impl Fn(&ElementBatch, &[DVec3], &mut [[f64; LANES]; 9]),
 ) {
     let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
     let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
@@ -108,24 +157,9 @@ fn stvk_forces_batched(
         // ds[3 k + i][l]: component i of edge k (x_{k+1} - x_0) of lane l; dv likewise.
         let mut ds = [[0.0; LANES]; 9];
         let mut dv = [[0.0; LANES]; 9];
-        for (l, t) in batch.nodes.iter().enumerate() {
-            let [a, b, c, d] = t.map(|i| i as usize);
-            let x0 = x[a];
-            for (k, n) in [b, c, d].into_iter().enumerate() {
-                let e = x[n] - x0;
-                ds[3 * k][l] = e.x;
-                ds[3 * k + 1][l] = e.y;
-                ds[3 * k + 2][l] = e.z;
-            }
-            if let Some(v) = v {
-                let v0 = v[a];
-                for (k, n) in [b, c, d].into_iter().enumerate() {
-                    let e = v[n] - v0;
-                    dv[3 * k][l] = e.x;
-                    dv[3 * k + 1][l] = e.y;
-                    dv[3 * k + 2][l] = e.z;
-                }
-            }
+        gather(batch, x, &mut ds);
+        if let Some(v) = v {
+            gather(batch, v, &mut dv);
         }
         // h[3 k + i][l]: component i of the force on node k+1 of lane l.
         let mut h = [[0.0; LANES]; 9];
@@ -219,10 +253,78 @@ fn stvk_forces_batched(
     }
 }
 
+/// Edge vectors of a batch, lane-innermost: `out[3 k + i][l]` is component i of
+/// `y_{k+1} - y_0` of lane l (`y` = positions or velocities). Scalar loads.
+#[inline(always)]
+fn gather_edges_scalar(batch: &ElementBatch, y: &[DVec3], out: &mut [[f64; LANES]; 9]) {
+    for (l, t) in batch.nodes.iter().enumerate() {
+        let [a, b, c, d] = t.map(|i| i as usize);
+        let y0 = y[a];
+        for (k, n) in [b, c, d].into_iter().enumerate() {
+            let e = y[n] - y0;
+            out[3 * k][l] = e.x;
+            out[3 * k + 1][l] = e.y;
+            out[3 * k + 2][l] = e.z;
+        }
+    }
+}
+
+/// [`gather_edges_scalar`] with AVX2 gathers, four lanes per instruction.
+///
+/// # Safety
+/// The CPU must support AVX2; every node index of `batch` must be below `y.len()`.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn gather_edges_avx2(batch: &ElementBatch, y: &[DVec3], out: &mut [[f64; LANES]; 9]) {
+    use std::arch::x86_64::{
+        __m128i, _mm_loadu_si128, _mm256_i32gather_pd, _mm256_storeu_pd, _mm256_sub_pd,
+    };
+    // DVec3 is three packed f64 (repr(C)), so component c of node n is at 3 n + c.
+    let base = y.as_ptr().cast::<f64>();
+    for q in (0..LANES).step_by(4) {
+        // SAFETY: node3 holds 3 * node index for LANES lanes; q + 4 <= LANES; the indices
+        // address components of nodes below y.len() (caller's contract); AVX2 is enabled.
+        unsafe {
+            let idx = |k: usize| _mm_loadu_si128(batch.node3[k][q..].as_ptr().cast::<__m128i>());
+            let (i0, i1, i2, i3) = (idx(0), idx(1), idx(2), idx(3));
+            for c in 0..3 {
+                let p = base.add(c);
+                let y0 = _mm256_i32gather_pd::<8>(p, i0);
+                for (k, ik) in [i1, i2, i3].into_iter().enumerate() {
+                    let e = _mm256_sub_pd(_mm256_i32gather_pd::<8>(p, ik), y0);
+                    _mm256_storeu_pd(out[3 * k + c][q..].as_mut_ptr(), e);
+                }
+            }
+        }
+    }
+}
+
+/// [`stvk_forces_batched`] compiled for AVX-512 (F + VL) and FMA: one batch fills a zmm
+/// register per quantity.
+///
+/// # Safety
+/// The CPU must support AVX-512F, AVX-512VL, AVX2 and FMA; every node index of `batches`
+/// must be below `x.len()` and `v.len()`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+unsafe fn stvk_forces_avx512(
+    batches: &[ElementBatch],
+    mat: &MaterialParams,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    // SAFETY: AVX2 is enabled; node indices are below x.len() and v.len() (caller's contract).
+    stvk_forces_batched(batches, mat, x, v, f, |b, y, o| unsafe {
+        gather_edges_avx2(b, y, o)
+    });
+}
+
 /// [`stvk_forces_batched`] compiled for AVX2 + FMA.
 ///
 /// # Safety
-/// The CPU must support AVX2 and FMA.
+/// The CPU must support AVX2 and FMA; every node index of `batches` must be below `x.len()`
+/// and `v.len()`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn stvk_forces_avx2(
@@ -232,7 +334,10 @@ unsafe fn stvk_forces_avx2(
     v: Option<&[DVec3]>,
     f: &mut [DVec3],
 ) {
-    stvk_forces_batched(batches, mat, x, v, f);
+    // SAFETY: AVX2 is enabled; node indices are below x.len() and v.len() (caller's contract).
+    stvk_forces_batched(batches, mat, x, v, f, |b, y, o| unsafe {
+        gather_edges_avx2(b, y, o)
+    });
 }
 
 /// Zeroes the constrained components of `v` (a per-node vector field) in place.
@@ -261,6 +366,9 @@ impl FemModel {
             return Err(ModelError::InvalidMesh("the mesh has no tetrahedra".into()));
         }
         let n = mesh.nodes.len();
+        if n > i32::MAX as usize / 3 {
+            return Err(ModelError::InvalidMesh(format!("{n} nodes are too many")));
+        }
         let mut dm_inv = Vec::with_capacity(mesh.tets.len());
         let mut volume_m3 = Vec::with_capacity(mesh.tets.len());
         let mut lumped_mass_kg = vec![0.0; n];
@@ -284,7 +392,8 @@ impl FemModel {
                 lumped_mass_kg[i as usize] += material.density_kg_per_m3 * vol / 4.0;
             }
         }
-        let batches = ElementBatch::build(&mesh.tets, &dm_inv, &volume_m3);
+        let order = locality_order(&mesh.nodes, &mesh.tets);
+        let batches = ElementBatch::build(&order, &mesh.tets, &dm_inv, &volume_m3);
         Ok(Self {
             batches,
             rest: mesh.nodes.clone(),
@@ -341,15 +450,30 @@ impl FemModel {
     pub fn add_internal_forces(&self, x: &[DVec3], v: Option<&[DVec3]>, f: &mut [DVec3]) {
         let mat = &self.material;
         let viscous = v.filter(|_| mat.phi_pa_s > 0.0 || mat.psi_pa_s > 0.0);
-        assert!(x.len() >= self.node_count() && f.len() >= self.node_count());
+        let n = self.node_count();
+        // Also the safety precondition of the gathers of the vectorised kernels: every node
+        // index is below n (checked in `new`).
+        assert!(x.len() >= n && f.len() >= n && viscous.is_none_or(|v| v.len() >= n));
         if mat.model == MaterialModel::StVenantKirchhoff {
             #[cfg(target_arch = "x86_64")]
+            if std::is_x86_feature_detected!("avx512f")
+                && std::is_x86_feature_detected!("avx512vl")
+                && std::is_x86_feature_detected!("avx2")
+                && std::is_x86_feature_detected!("fma")
+            {
+                // SAFETY: all four features were detected on this CPU just above; node indices
+                // are below n (checked in `new`), and x, v are at least n long (asserted).
+                unsafe { stvk_forces_avx512(&self.batches, mat, x, viscous, f) };
+                return;
+            }
+            #[cfg(target_arch = "x86_64")]
             if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-                // SAFETY: both features were detected on this CPU just above.
+                // SAFETY: both features were detected on this CPU just above; node indices are
+                // below n (checked in `new`), and x, v are at least n long (asserted).
                 unsafe { stvk_forces_avx2(&self.batches, mat, x, viscous, f) };
                 return;
             }
-            stvk_forces_batched(&self.batches, mat, x, viscous, f);
+            stvk_forces_batched(&self.batches, mat, x, viscous, f, gather_edges_scalar);
             return;
         }
         for (e, t) in self.tets.iter().enumerate() {
