@@ -340,6 +340,20 @@ unsafe fn stvk_forces_avx2(
     });
 }
 
+/// Lumped nodal masses `m_i = sum_e rho |V_e| / 4`, kg, one per node of `mesh` (m) with density
+/// `density_kg_per_m3`. [`FemModel::new`] stores the same values in `lumped_mass_kg`.
+pub fn lumped_masses(mesh: &TetMesh, density_kg_per_m3: f64) -> Vec<f64> {
+    let mut m = vec![0.0; mesh.nodes.len()];
+    for t in &mesh.tets {
+        let [a, b, c, d] = t.map(|i| mesh.nodes[i as usize]);
+        let share = density_kg_per_m3 * crate::mesh::tet_signed_volume(a, b, c, d).abs() / 4.0;
+        for &i in t {
+            m[i as usize] += share;
+        }
+    }
+    m
+}
+
 /// Zeroes the constrained components of `v` (a per-node vector field) in place.
 #[inline]
 pub fn apply_constraint(mask: ConstraintMask, v: &mut DVec3) {
@@ -371,7 +385,6 @@ impl FemModel {
         }
         let mut dm_inv = Vec::with_capacity(mesh.tets.len());
         let mut volume_m3 = Vec::with_capacity(mesh.tets.len());
-        let mut lumped_mass_kg = vec![0.0; n];
         for (k, t) in mesh.tets.iter().enumerate() {
             if t.iter().any(|&i| i as usize >= n) {
                 return Err(ModelError::InvalidMesh(format!(
@@ -388,9 +401,6 @@ impl FemModel {
             }
             dm_inv.push(dm.inverse());
             volume_m3.push(vol);
-            for &i in t {
-                lumped_mass_kg[i as usize] += material.density_kg_per_m3 * vol / 4.0;
-            }
         }
         let order = locality_order(&mesh.nodes, &mesh.tets);
         let batches = ElementBatch::build(&order, &mesh.tets, &dm_inv, &volume_m3);
@@ -400,7 +410,7 @@ impl FemModel {
             tets: mesh.tets.clone(),
             dm_inv,
             volume_m3,
-            lumped_mass_kg,
+            lumped_mass_kg: lumped_masses(mesh, material.density_kg_per_m3),
             constraint: vec![0; n],
             material,
         })

@@ -337,7 +337,7 @@ impl Simulation {
             }
         }
         for (tris, p) in &self.follower {
-            add_pressure(tris, &self.state.x, *p, &mut self.force);
+            crate::statics::add_pressure_forces(tris, &self.state.x, *p, &mut self.force);
         }
         for l in &self.loads {
             for k in 0..3 {
@@ -596,19 +596,6 @@ pub fn validate_point_load(
     Ok(())
 }
 
-/// Adds the nodal forces (N) of a uniform pressure `pressure_pa` (Pa) on `triangles` at
-/// positions `x`: `-p A n` per triangle, a third per vertex. Allocation-free.
-fn add_pressure(triangles: &[[u32; 3]], x: &[DVec3], pressure_pa: f64, f: &mut [DVec3]) {
-    for t in triangles {
-        let [a, b, c] = t.map(|i| x[i as usize]);
-        // (b - a) x (c - a) = 2 A n.
-        let fa = (b - a).cross(c - a) * (-pressure_pa / 6.0);
-        for &i in t {
-            f[i as usize] += fa;
-        }
-    }
-}
-
 /// The state-independent part of the scene loads on nodes with rest positions `rest` and
 /// lumped masses `mass_kg`: gravity, dead pressure (rest geometry) and point forces. Empty
 /// when the scene has none of them.
@@ -622,7 +609,7 @@ fn constant_external_forces(scene: &Scene, rest: &[DVec3], mass_kg: &[f64]) -> V
     }
     let mut f: Vec<DVec3> = mass_kg.iter().map(|m| l.gravity_m_per_s2 * *m).collect();
     for p in l.pressure.iter().filter(|p| !p.follower) {
-        add_pressure(&p.triangles, rest, p.pressure_pa, &mut f);
+        crate::statics::add_pressure_forces(&p.triangles, rest, p.pressure_pa, &mut f);
     }
     for p in &l.point {
         for k in 0..3 {
@@ -640,20 +627,13 @@ fn constant_external_forces(scene: &Scene, rest: &[DVec3], mass_kg: &[f64]) -> V
 /// If `x` is shorter than the mesh's node count.
 pub fn static_external_forces(scene: &Scene, x: &[DVec3]) -> Vec<DVec3> {
     let mesh = &scene.mesh;
-    let mut mass = vec![0.0; mesh.nodes.len()];
-    for t in &mesh.tets {
-        let [a, b, c, d] = t.map(|i| mesh.nodes[i as usize]);
-        let m = scene.material.density_kg_per_m3 * ((b - a).cross(c - a).dot(d - a) / 6.0).abs();
-        for &i in t {
-            mass[i as usize] += m / 4.0;
-        }
-    }
+    let mass = crate::fem::lumped_masses(mesh, scene.material.density_kg_per_m3);
     let mut f = constant_external_forces(scene, &mesh.nodes, &mass);
     if f.is_empty() {
         f = vec![DVec3::ZERO; mesh.nodes.len()];
     }
     for p in scene.loads.pressure.iter().filter(|p| p.follower) {
-        add_pressure(&p.triangles, x, p.pressure_pa, &mut f);
+        crate::statics::add_pressure_forces(&p.triangles, x, p.pressure_pa, &mut f);
     }
     f
 }
