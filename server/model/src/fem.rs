@@ -14,6 +14,19 @@
 //! 1/2; we implement the energy-consistent force, and a test checks it against finite
 //! differences of the energy.
 //!
+//! **Quadratic tetrahedra.** A mesh with mid-edge nodes ([`TetMesh::tet_edge_nodes`]) gets
+//! isoparametric 10-node elements (Zienkiewicz & Taylor, *The Finite Element Method*, vol. 1,
+//! section 6.8; the C3D10 of Abaqus): shape functions `N_i = L_i (2 L_i - 1)` at the corners and
+//! `N_ij = 4 L_i L_j` at the mid-edge nodes in the barycentric coordinates `L`, integrated with
+//! the 4-point Gauss rule of degree 2 (barycentric `(a, b, b, b)` and permutations, `a =
+//! 0.5854101966249685`, `b = 0.1381966011250105`, weights `V/4`). Each integration point is
+//! treated like a linear element: `F = sum_a x_a (grad N_a)^T` over its 10 nodes, `f_a -= w P
+//! grad N_a`. The strain varies linearly inside the element, so bending is represented and
+//! the shear locking of linear tetrahedra in thin walls and beams goes away. Masses are lumped
+//! by the HRZ rule (Hinton, Rock & Zienkiewicz 1976): `rho V / 36` per corner and `4 rho V /
+//! 27` per mid-edge node (the row sums of the consistent T10 mass are negative at the
+//! corners).
+//!
 //! Neighbours: [`crate::material`] (stress laws), [`crate::integrator`] (uses forces, masses and
 //! the per-node rest Jacobian), [`crate::statics`] (uses [`FemModel::stiffness_action`]).
 
@@ -46,8 +59,45 @@ pub struct FemModel {
     /// Material.
     pub material: MaterialParams,
     /// The element data of `tets`, `dm_inv` and `volume_m3` again, in batches of [`LANES`]
-    /// elements laid out lane-innermost, for the vectorised StVK force kernel.
+    /// elements laid out lane-innermost, for the vectorised StVK force kernel (linear elements
+    /// only).
     batches: Vec<ElementBatch>,
+    /// Integration points of every element, for the generic (quadratic) paths.
+    points: IntegrationPoints,
+}
+
+/// Integration-point data in flat arrays: element `e` has nodes
+/// `nodes[e * npe..(e + 1) * npe]`; its integration points are `q = e * ipe .. (e + 1) * ipe`,
+/// each with rest shape-function gradients `grad[q * npe..(q + 1) * npe]` (1/m, in the node
+/// order of the element) and weight `weight_m3[q]` (m^3; they sum to the element volume).
+#[derive(Debug, Clone)]
+struct IntegrationPoints {
+    /// Nodes per element: 4 or 10.
+    npe: usize,
+    /// Integration points per element: 1 or 4.
+    ipe: usize,
+    nodes: Vec<u32>,
+    grad: Vec<DVec3>,
+    weight_m3: Vec<f64>,
+}
+
+/// Barycentric coordinates of the points of the 4-point degree-2 Gauss rule on a tetrahedron.
+const GAUSS4_A: f64 = 0.585_410_196_624_968_5;
+const GAUSS4_B: f64 = 0.138_196_601_125_010_5;
+
+/// Derivatives of the 10 quadratic shape functions with respect to the reference coordinates
+/// `(xi_1, xi_2, xi_3) = (L_1, L_2, L_3)` at barycentric point `l` (node order: corners, then
+/// the mid-edge nodes of [`crate::mesh::TET_EDGES`]).
+fn quadratic_reference_gradients(l: [f64; 4]) -> [DVec3; 10] {
+    let dl = [DVec3::splat(-1.0), DVec3::X, DVec3::Y, DVec3::Z];
+    let mut g = [DVec3::ZERO; 10];
+    for i in 0..4 {
+        g[i] = dl[i] * (4.0 * l[i] - 1.0);
+    }
+    for (k, [i, j]) in crate::mesh::TET_EDGES.iter().enumerate() {
+        g[4 + k] = (dl[*j] * l[*i] + dl[*i] * l[*j]) * 4.0;
+    }
+    g
 }
 
 /// Elements per batch of the force kernel: 4 f64 lanes fill an AVX2 register.
@@ -340,18 +390,80 @@ unsafe fn stvk_forces_avx2(
     });
 }
 
-/// Lumped nodal masses `m_i = sum_e rho |V_e| / 4`, kg, one per node of `mesh` (m) with density
-/// `density_kg_per_m3`. [`FemModel::new`] stores the same values in `lumped_mass_kg`.
+/// Lumped nodal masses, kg, one per node of `mesh` (m) with density `density_kg_per_m3`:
+/// `m_i = sum_e rho |V_e| / 4` for linear elements; for quadratic ones the HRZ lumping
+/// `rho |V_e| / 36` per corner and `4 rho |V_e| / 27` per mid-edge node (module docs).
+/// [`FemModel::new`] stores the same values in `lumped_mass_kg`.
 pub fn lumped_masses(mesh: &TetMesh, density_kg_per_m3: f64) -> Vec<f64> {
     let mut m = vec![0.0; mesh.nodes.len()];
-    for t in &mesh.tets {
+    let (corner, edge) = if mesh.is_quadratic() {
+        (1.0 / 36.0, 4.0 / 27.0)
+    } else {
+        (0.25, 0.0)
+    };
+    for (e, t) in mesh.tets.iter().enumerate() {
         let [a, b, c, d] = t.map(|i| mesh.nodes[i as usize]);
-        let share = density_kg_per_m3 * crate::mesh::tet_signed_volume(a, b, c, d).abs() / 4.0;
+        let mass = density_kg_per_m3 * crate::mesh::tet_signed_volume(a, b, c, d).abs();
         for &i in t {
-            m[i as usize] += share;
+            m[i as usize] += mass * corner;
+        }
+        if let Some(mid) = mesh.tet_edge_nodes.get(e) {
+            for &i in mid {
+                m[i as usize] += mass * edge;
+            }
         }
     }
     m
+}
+
+/// Integration points of the quadratic elements of `mesh` (module docs), with the isoparametric
+/// map of the rest positions (so curved elements are handled).
+fn quadratic_points(mesh: &TetMesh) -> Result<IntegrationPoints, ModelError> {
+    let n = mesh.nodes.len();
+    let e_count = mesh.tets.len();
+    if mesh.tet_edge_nodes.len() != e_count {
+        return Err(ModelError::InvalidMesh(format!(
+            "{} rows of mid-edge nodes for {e_count} tetrahedra",
+            mesh.tet_edge_nodes.len()
+        )));
+    }
+    let mut p = IntegrationPoints {
+        npe: 10,
+        ipe: 4,
+        nodes: Vec::with_capacity(10 * e_count),
+        grad: Vec::with_capacity(40 * e_count),
+        weight_m3: Vec::with_capacity(4 * e_count),
+    };
+    for (k, (t, mid)) in mesh.tets.iter().zip(&mesh.tet_edge_nodes).enumerate() {
+        let en: Vec<u32> = t.iter().chain(mid).copied().collect();
+        if let Some(bad) = en.iter().find(|&&i| i as usize >= n) {
+            return Err(ModelError::InvalidMesh(format!(
+                "quadratic tetrahedron {k} has an out-of-range node {bad}"
+            )));
+        }
+        for q in 0..4 {
+            let mut l = [GAUSS4_B; 4];
+            l[q] = GAUSS4_A;
+            let dn = quadratic_reference_gradients(l);
+            // J = dX/dxi = sum_a X_a (dN_a/dxi)^T
+            let jac = en.iter().zip(&dn).fold(DMat3::ZERO, |acc, (&i, g)| {
+                let x = mesh.nodes[i as usize];
+                acc + DMat3::from_cols(x * g.x, x * g.y, x * g.z)
+            });
+            let det = jac.determinant();
+            if !(det > 0.0) || !det.is_finite() {
+                return Err(ModelError::InvalidMesh(format!(
+                    "quadratic tetrahedron {k} has a non-positive Jacobian {det:.3e} at \
+                     integration point {q}"
+                )));
+            }
+            let jit = jac.inverse().transpose();
+            p.grad.extend(dn.iter().map(|g| jit * *g));
+            p.weight_m3.push(det / 24.0);
+        }
+        p.nodes.extend_from_slice(&en);
+    }
+    Ok(p)
 }
 
 /// Zeroes the constrained components of `v` (a per-node vector field) in place.
@@ -402,10 +514,31 @@ impl FemModel {
             dm_inv.push(dm.inverse());
             volume_m3.push(vol);
         }
-        let order = locality_order(&mesh.nodes, &mesh.tets);
-        let batches = ElementBatch::build(&order, &mesh.tets, &dm_inv, &volume_m3);
+        let points = if mesh.is_quadratic() {
+            quadratic_points(mesh)?
+        } else {
+            let mut grad = Vec::with_capacity(4 * mesh.tets.len());
+            for m in &dm_inv {
+                let (g1, g2, g3) = (m.row(0), m.row(1), m.row(2));
+                grad.extend_from_slice(&[-(g1 + g2 + g3), g1, g2, g3]);
+            }
+            IntegrationPoints {
+                npe: 4,
+                ipe: 1,
+                nodes: mesh.tets.iter().flatten().copied().collect(),
+                grad,
+                weight_m3: volume_m3.clone(),
+            }
+        };
+        let batches = if mesh.is_quadratic() {
+            Vec::new()
+        } else {
+            let order = locality_order(&mesh.nodes, &mesh.tets);
+            ElementBatch::build(&order, &mesh.tets, &dm_inv, &volume_m3)
+        };
         Ok(Self {
             batches,
+            points,
             rest: mesh.nodes.clone(),
             tets: mesh.tets.clone(),
             dm_inv,
@@ -464,6 +597,18 @@ impl FemModel {
         // Also the safety precondition of the gathers of the vectorised kernels: every node
         // index is below n (checked in `new`).
         assert!(x.len() >= n && f.len() >= n && viscous.is_none_or(|v| v.len() >= n));
+        if self.is_quadratic() {
+            for q in 0..self.integration_point_count() {
+                let fm = self.ip_field_gradient(q, x);
+                let mut p = material::first_piola(mat, &fm);
+                if let Some(v) = viscous {
+                    let f_dot = self.ip_field_gradient(q, v);
+                    p += fm * material::viscous_stress(&fm, &f_dot, mat.phi_pa_s, mat.psi_pa_s);
+                }
+                self.ip_scatter(q, &(p * -self.points.weight_m3[q]), f);
+            }
+            return;
+        }
         if mat.model == MaterialModel::StVenantKirchhoff {
             #[cfg(target_arch = "x86_64")]
             if std::is_x86_feature_detected!("avx512f")
@@ -510,9 +655,10 @@ impl FemModel {
     /// `x`, J.
     pub fn elastic_energy(&self, x: &[DVec3]) -> f64 {
         let mat = &self.material;
-        (0..self.tets.len())
-            .map(|e| {
-                self.volume_m3[e] * material::energy_density(mat, &self.deformation_gradient(e, x))
+        (0..self.integration_point_count())
+            .map(|q| {
+                self.points.weight_m3[q]
+                    * material::energy_density(mat, &self.ip_field_gradient(q, x))
             })
             .sum()
     }
@@ -524,6 +670,15 @@ impl FemModel {
     /// `out_a += V dP grad N_a`. At rest this is the linear-elastic stiffness for every material.
     pub fn stiffness_action(&self, x: &[DVec3], dx: &[DVec3], out: &mut [DVec3]) {
         let mat = &self.material;
+        if self.is_quadratic() {
+            for q in 0..self.integration_point_count() {
+                let fm = self.ip_field_gradient(q, x);
+                let dfm = self.ip_field_gradient(q, dx);
+                let dp = material::first_piola_differential(mat, &fm, &dfm);
+                self.ip_scatter(q, &(dp * self.points.weight_m3[q]), out);
+            }
+            return;
+        }
         for (e, t) in self.tets.iter().enumerate() {
             let [a, b, c, d] = t.map(|i| i as usize);
             let dm_inv = self.dm_inv[e];
@@ -547,18 +702,125 @@ impl FemModel {
     /// that its neighbours are fixed").
     pub fn rest_diagonal_blocks(&self) -> Vec<DMat3> {
         let mat = &self.material;
+        self.isotropic_diagonal_blocks(mat.lambda_pa, mat.mu_pa)
+    }
+
+    /// The 3x3 diagonal blocks of the isotropic operator with Lamé-like coefficients
+    /// `(lambda, mu)` at rest: `sum_q w_q ((lambda + mu) g g^T + mu |g|^2 I)`, `g = grad N_i` at
+    /// integration point `q` (units of `lambda` times m). [`Self::rest_diagonal_blocks`] is
+    /// this with the material's Lamé parameters; with `(2 phi, 2 psi)` it is the viscous one.
+    pub fn isotropic_diagonal_blocks(&self, lambda: f64, mu: f64) -> Vec<DMat3> {
         let mut k = vec![DMat3::ZERO; self.node_count()];
-        for (e, t) in self.tets.iter().enumerate() {
-            let g = self.shape_gradients(e);
-            for (a, &i) in t.iter().enumerate() {
-                let ga = g[a];
+        for q in 0..self.integration_point_count() {
+            let w = self.points.weight_m3[q];
+            for (&i, &ga) in self.ip_nodes(q).iter().zip(self.ip_gradients(q)) {
                 let outer = DMat3::from_cols(ga * ga.x, ga * ga.y, ga * ga.z);
-                k[i as usize] += (outer * (mat.lambda_pa + mat.mu_pa)
-                    + DMat3::from_diagonal(DVec3::splat(mat.mu_pa * ga.length_squared())))
-                    * self.volume_m3[e];
+                k[i as usize] += (outer * (lambda + mu)
+                    + DMat3::from_diagonal(DVec3::splat(mu * ga.length_squared())))
+                    * w;
             }
         }
         k
+    }
+
+    /// Deformed volume `sum_q w_q det F_q` for positions `x`, m^3 (exact for linear elements
+    /// and for straight-sided quadratic ones up to the quadrature error).
+    pub fn deformed_volume_m3(&self, x: &[DVec3]) -> f64 {
+        (0..self.integration_point_count())
+            .map(|q| self.points.weight_m3[q] * self.ip_field_gradient(q, x).determinant())
+            .sum()
+    }
+
+    /// Number of elements with `det F <= 0` (inverted or flat) at some integration point, for
+    /// positions `x`. Allocation-free.
+    pub fn inverted_elements(&self, x: &[DVec3]) -> usize {
+        (0..self.element_count())
+            .filter(|&e| {
+                self.integration_points_of(e)
+                    .any(|q| !(self.ip_field_gradient(q, x).determinant() > 0.0))
+            })
+            .count()
+    }
+
+    /// Whether the elements are quadratic (10-node) tetrahedra.
+    #[inline]
+    pub fn is_quadratic(&self) -> bool {
+        self.points.npe == 10
+    }
+
+    /// Number of elements.
+    #[inline]
+    pub fn element_count(&self) -> usize {
+        self.tets.len()
+    }
+
+    /// Nodes of element `e`: 4 corners, then for a quadratic element the 6 mid-edge nodes in
+    /// the order of [`crate::mesh::TET_EDGES`].
+    #[inline]
+    pub fn element_nodes(&self, e: usize) -> &[u32] {
+        let npe = self.points.npe;
+        &self.points.nodes[e * npe..(e + 1) * npe]
+    }
+
+    /// Total number of integration points: one per linear element, four per quadratic one.
+    /// Point `q` belongs to element `q / ipe` ([`Self::integration_points_of`]).
+    #[inline]
+    pub fn integration_point_count(&self) -> usize {
+        self.points.weight_m3.len()
+    }
+
+    /// The integration points of element `e`.
+    #[inline]
+    pub fn integration_points_of(&self, e: usize) -> std::ops::Range<usize> {
+        e * self.points.ipe..(e + 1) * self.points.ipe
+    }
+
+    /// Nodes whose shape functions are non-zero at integration point `q` (those of its element).
+    #[inline]
+    pub fn ip_nodes(&self, q: usize) -> &[u32] {
+        self.element_nodes(q / self.points.ipe)
+    }
+
+    /// Rest shape-function gradients `grad N_a` at integration point `q`, 1/m, in the order
+    /// of [`Self::ip_nodes`].
+    #[inline]
+    pub fn ip_gradients(&self, q: usize) -> &[DVec3] {
+        let npe = self.points.npe;
+        &self.points.grad[q * npe..(q + 1) * npe]
+    }
+
+    /// Integration weight of point `q` (its share of the rest volume), m^3.
+    #[inline]
+    pub fn ip_weight_m3(&self, q: usize) -> f64 {
+        self.points.weight_m3[q]
+    }
+
+    /// Material gradient `sum_a u_a (grad N_a)^T` of the nodal field `u` at integration point
+    /// `q`: the deformation gradient `F` for positions, `dF` for increments, `dF/dt` for
+    /// velocities.
+    #[inline]
+    pub fn ip_field_gradient(&self, q: usize, u: &[DVec3]) -> DMat3 {
+        let mut m = DMat3::ZERO;
+        let nodes = self.ip_nodes(q);
+        // The gradients sum to zero: subtracting the first node's value changes nothing but
+        // the round-off (positions far from the origin would otherwise cancel).
+        let u0 = u[nodes[0] as usize];
+        for (&i, g) in nodes.iter().zip(self.ip_gradients(q)).skip(1) {
+            let ui = u[i as usize] - u0;
+            m.x_axis += ui * g.x;
+            m.y_axis += ui * g.y;
+            m.z_axis += ui * g.z;
+        }
+        m
+    }
+
+    /// Adds `m grad N_a` to `out[a]` for every node `a` of integration point `q` (with `m =
+    /// -w P` this adds the point's internal forces).
+    #[inline]
+    pub fn ip_scatter(&self, q: usize, m: &DMat3, out: &mut [DVec3]) {
+        for (&i, g) in self.ip_nodes(q).iter().zip(self.ip_gradients(q)) {
+            out[i as usize] += *m * *g;
+        }
     }
 
     /// Largest eigenvalue of the symmetric operator `M^-1/2 (K - c K_D) M^-1/2` on the free

@@ -653,6 +653,7 @@ fn assemble(
             .iter()
             .map(|e| [0, 1, 2, 3].map(|k| index[&e.nodes[k]]))
             .collect(),
+        tet_edge_nodes: Vec::new(),
         surfaces: Vec::new(),
         node_groups: Vec::new(),
     };

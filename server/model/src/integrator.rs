@@ -376,15 +376,11 @@ impl ImplicitSolver {
             .zip(&mass_factor)
             .map(|(k, m)| DMat3::from_diagonal(DVec3::splat(*m)) + *k * (h * h))
             .collect();
-        for (e, t) in fem.tets.iter().enumerate() {
-            let g = fem.shape_gradients(e);
-            for (a, &i) in t.iter().enumerate() {
-                let ga = g[a];
-                let outer = DMat3::from_cols(ga * ga.x, ga * ga.y, ga * ga.z);
-                precond[i as usize] += (outer * (2.0 * mat.phi_pa_s + 2.0 * mat.psi_pa_s)
-                    + DMat3::from_diagonal(DVec3::splat(2.0 * mat.psi_pa_s * ga.length_squared())))
-                    * (fem.volume_m3[e] * h);
-            }
+        for (p, d) in precond
+            .iter_mut()
+            .zip(fem.isotropic_diagonal_blocks(2.0 * mat.phi_pa_s, 2.0 * mat.psi_pa_s))
+        {
+            *p += d * h;
         }
         let precond_inv = precond.iter().map(|b| b.inverse()).collect();
         Self {
@@ -394,8 +390,8 @@ impl ImplicitSolver {
             mass_factor,
             precond_inv,
             patch_bu: Vec::with_capacity(crate::contact::MAX_PATCH_NODES),
-            elem_f: vec![DMat3::IDENTITY; fem.tets.len()],
-            elem_s: vec![DMat3::ZERO; fem.tets.len()],
+            elem_f: vec![DMat3::IDENTITY; fem.integration_point_count()],
+            elem_s: vec![DMat3::ZERO; fem.integration_point_count()],
             rhs: vec![DVec3::ZERO; n],
             dv: vec![DVec3::ZERO; n],
             r: vec![DVec3::ZERO; n],
@@ -436,8 +432,8 @@ impl ImplicitSolver {
         let h = self.dt_s;
         let mat = &fem.material;
         let viscous = mat.phi_pa_s > 0.0 || mat.psi_pa_s > 0.0;
-        for (e, fe) in self.elem_f.iter_mut().enumerate() {
-            *fe = fem.deformation_gradient(e, x);
+        for (q, fe) in self.elem_f.iter_mut().enumerate() {
+            *fe = fem.ip_field_gradient(q, x);
         }
         for (se, fe) in self.elem_s.iter_mut().zip(&self.elem_f) {
             *se = match mat.model {
@@ -620,16 +616,11 @@ impl Operator<'_> {
         );
         let (vphi, vpsi) = (2.0 * h * mat.phi_pa_s, 2.0 * h * mat.psi_pa_s);
         out.iter_mut().for_each(|o| *o = DVec3::ZERO);
-        for (e, t) in fem.tets.iter().enumerate() {
-            let [a, b, c, d] = t.map(|i| i as usize);
-            let dm_inv = fem.dm_inv[e];
-            let p0 = p[a];
-            let df = DMat3::from_cols(p[b] - p0, p[c] - p0, p[d] - p0) * dm_inv;
-            let fm = self.elem_f[e];
+        // `h^2 dP + h F S_v` at one element or integration point with cached `F`, `S` (or `R`).
+        let dp_of = |fm: DMat3, s: DMat3, df: DMat3| -> DMat3 {
             let ft_df = fm.transpose() * df;
             let de = (ft_df + ft_df.transpose()) * 0.5;
-            let s = self.elem_s[e];
-            let dp = if mat.model == MaterialModel::StVenantKirchhoff {
+            if mat.model == MaterialModel::StVenantKirchhoff {
                 df * (s * h2) + fm * material::stvk_stress(&de, lam, mu)
             } else {
                 let g = s.transpose() * df;
@@ -641,12 +632,27 @@ impl Operator<'_> {
                     dp += fm * material::stvk_stress(&de, vphi, vpsi);
                 }
                 dp
-            };
-            let hm = dp * dm_inv.transpose() * fem.volume_m3[e];
-            out[b] += hm.x_axis;
-            out[c] += hm.y_axis;
-            out[d] += hm.z_axis;
-            out[a] -= hm.x_axis + hm.y_axis + hm.z_axis;
+            }
+        };
+        if fem.is_quadratic() {
+            for q in 0..fem.integration_point_count() {
+                let df = fem.ip_field_gradient(q, p);
+                let dp = dp_of(self.elem_f[q], self.elem_s[q], df);
+                fem.ip_scatter(q, &(dp * fem.ip_weight_m3(q)), out);
+            }
+        } else {
+            for (e, t) in fem.tets.iter().enumerate() {
+                let [a, b, c, d] = t.map(|i| i as usize);
+                let dm_inv = fem.dm_inv[e];
+                let p0 = p[a];
+                let df = DMat3::from_cols(p[b] - p0, p[c] - p0, p[d] - p0) * dm_inv;
+                let dp = dp_of(self.elem_f[e], self.elem_s[e], df);
+                let hm = dp * dm_inv.transpose() * fem.volume_m3[e];
+                out[b] += hm.x_axis;
+                out[c] += hm.y_axis;
+                out[d] += hm.z_axis;
+                out[a] -= hm.x_axis + hm.y_axis + hm.z_axis;
+            }
         }
         for i in 0..p.len() {
             out[i] += p[i] * self.mass_factor[i];

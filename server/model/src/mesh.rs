@@ -1,4 +1,5 @@
-//! Linear tetrahedral meshes with named boundary surfaces and node groups.
+//! Tetrahedral meshes (linear 4-node, or quadratic 10-node with mid-edge nodes) with named
+//! boundary surfaces and node groups.
 //!
 //! Neighbours: [`crate::gmsh`] and [`crate::mesher`] produce a [`TetMesh`]; [`crate::fem`]
 //! precomputes element data from it; [`crate::scene`] picks clamped and touchable surfaces by name.
@@ -26,17 +27,40 @@ pub struct NodeGroup {
     pub nodes: Vec<u32>,
 }
 
-/// A linear tetrahedral mesh in SI units (metres).
-#[derive(Debug, Clone, PartialEq)]
+/// A tetrahedral mesh in SI units (metres): linear (4-node) tetrahedra, or quadratic (10-node)
+/// ones when [`TetMesh::tet_edge_nodes`] is not empty.
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct TetMesh {
     /// Rest positions of the nodes, m. Length N.
     pub nodes: Vec<DVec3>,
-    /// Tetrahedra as node indices, positively oriented: `(x1-x0) . ((x2-x0) x (x3-x0)) > 0`.
+    /// Tetrahedra as node indices (the corners), positively oriented:
+    /// `(x1-x0) . ((x2-x0) x (x3-x0)) > 0`.
     pub tets: Vec<[u32; 4]>,
+    /// Mid-edge nodes of quadratic (10-node) tetrahedra, one row per entry of `tets`, in the VTK
+    /// order of edges `(0,1), (1,2), (2,0), (0,3), (1,3), (2,3)` of the corners. Empty for a
+    /// linear mesh. The surface groups of a quadratic mesh are split into four triangles per
+    /// face (corners and mid-edge nodes), so contact, pressure and display see every node.
+    pub tet_edge_nodes: Vec<[u32; 6]>,
     /// Named boundary surfaces.
     pub surfaces: Vec<SurfaceGroup>,
     /// Named node sets.
     pub node_groups: Vec<NodeGroup>,
+}
+
+/// Corner pairs of the six edges of a tetrahedron, in the VTK order of the mid-edge nodes of
+/// [`TetMesh::tet_edge_nodes`].
+pub const TET_EDGES: [[usize; 2]; 6] = [[0, 1], [1, 2], [2, 0], [0, 3], [1, 3], [2, 3]];
+
+/// The four triangles of triangle `(a, b, c)` split at its mid-edge nodes `m_ab, m_bc, m_ca`,
+/// with the orientation of `(a, b, c)`.
+pub fn split_triangle(t: [u32; 3], m_ab: u32, m_bc: u32, m_ca: u32) -> [[u32; 3]; 4] {
+    let [a, b, c] = t;
+    [
+        [a, m_ab, m_ca],
+        [m_ab, b, m_bc],
+        [m_ca, m_bc, c],
+        [m_ab, m_bc, m_ca],
+    ]
 }
 
 /// Signed volume of the tetrahedron `(a, b, c, d)`, m^3 (seed 000 eq. 17). Positive when
@@ -55,6 +79,62 @@ impl TetMesh {
     /// Number of tetrahedra.
     pub fn tet_count(&self) -> usize {
         self.tets.len()
+    }
+
+    /// Whether the tetrahedra are quadratic (10-node).
+    pub fn is_quadratic(&self) -> bool {
+        !self.tet_edge_nodes.is_empty()
+    }
+
+    /// The quadratic (10-node) version of a linear mesh: one new node at the midpoint of every
+    /// edge (straight-sided elements, so the rest geometry is unchanged), the surface groups
+    /// split into four triangles per face, node groups kept. A quadratic mesh is returned as it
+    /// is.
+    pub fn to_quadratic(&self) -> TetMesh {
+        use std::collections::HashMap;
+        if self.is_quadratic() {
+            return self.clone();
+        }
+        let mut nodes = self.nodes.clone();
+        let mut edge_node: HashMap<(u32, u32), u32> = HashMap::new();
+        let mut mid = |a: u32, b: u32, nodes: &mut Vec<DVec3>| -> u32 {
+            let key = (a.min(b), a.max(b));
+            *edge_node.entry(key).or_insert_with(|| {
+                nodes.push((nodes[a as usize] + nodes[b as usize]) * 0.5);
+                (nodes.len() - 1) as u32
+            })
+        };
+        let tet_edge_nodes: Vec<[u32; 6]> = self
+            .tets
+            .iter()
+            .map(|t| TET_EDGES.map(|[i, j]| mid(t[i], t[j], &mut nodes)))
+            .collect();
+        let surfaces = self
+            .surfaces
+            .iter()
+            .map(|s| SurfaceGroup {
+                name: s.name.clone(),
+                triangles: s
+                    .triangles
+                    .iter()
+                    .flat_map(|&[a, b, c]| {
+                        let (ab, bc, ca) = (
+                            mid(a, b, &mut nodes),
+                            mid(b, c, &mut nodes),
+                            mid(c, a, &mut nodes),
+                        );
+                        split_triangle([a, b, c], ab, bc, ca)
+                    })
+                    .collect(),
+            })
+            .collect();
+        TetMesh {
+            nodes,
+            tets: self.tets.clone(),
+            tet_edge_nodes,
+            surfaces,
+            node_groups: self.node_groups.clone(),
+        }
     }
 
     /// The surface group called `name`, if any.
@@ -112,6 +192,25 @@ impl TetMesh {
             }
             if v < 0.0 {
                 t.swap(2, 3);
+                // Swapping corners 2 and 3 maps the edges (1,2) <-> (1,3) and (2,0) <-> (0,3).
+                if let Some(e) = self.tet_edge_nodes.get_mut(k) {
+                    e.swap(1, 4);
+                    e.swap(2, 3);
+                }
+            }
+        }
+        if !self.tet_edge_nodes.is_empty() {
+            if self.tet_edge_nodes.len() != self.tets.len() {
+                return Err(ModelError::InvalidMesh(format!(
+                    "{} rows of mid-edge nodes for {} tetrahedra",
+                    self.tet_edge_nodes.len(),
+                    self.tets.len()
+                )));
+            }
+            if let Some(bad) = self.tet_edge_nodes.iter().flatten().find(|&&i| i >= n) {
+                return Err(ModelError::InvalidMesh(format!(
+                    "a mid-edge node {bad} is out of range (the mesh has {n} nodes)"
+                )));
             }
         }
         Ok(())
@@ -126,27 +225,45 @@ impl TetMesh {
     }
 
     /// All boundary faces of the tetrahedral mesh (faces used by exactly one tetrahedron),
-    /// oriented with outward normals. Requires positively oriented tetrahedra.
+    /// oriented with outward normals. Requires positively oriented tetrahedra. For a quadratic
+    /// mesh each face is split into four triangles at its mid-edge nodes.
     pub fn boundary_triangles(&self) -> Vec<[u32; 3]> {
         use std::collections::HashMap;
         // Faces of a positive tet (a,b,c,d) with outward normals.
         const FACES: [[usize; 3]; 4] = [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]];
-        let mut count: HashMap<[u32; 3], ([u32; 3], u32)> = HashMap::new();
-        for t in &self.tets {
+        // Index of the mid-edge node of corners (i, j) in `TET_EDGES`.
+        let edge_slot = |i: usize, j: usize| {
+            TET_EDGES
+                .iter()
+                .position(|&[a, b]| (a, b) == (i, j) || (a, b) == (j, i))
+                .expect("tet edge")
+        };
+        // Sorted face -> (oriented face, element, local corners, use count).
+        type FaceUse = ([u32; 3], usize, [usize; 3], u32);
+        let mut count: HashMap<[u32; 3], FaceUse> = HashMap::new();
+        for (e, t) in self.tets.iter().enumerate() {
             for f in FACES {
                 let tri = [t[f[0]], t[f[1]], t[f[2]]];
                 let mut key = tri;
                 key.sort_unstable();
                 count
                     .entry(key)
-                    .and_modify(|e| e.1 += 1)
-                    .or_insert((tri, 1));
+                    .and_modify(|c| c.3 += 1)
+                    .or_insert((tri, e, f, 1));
             }
         }
         let mut out: Vec<[u32; 3]> = count
             .into_values()
-            .filter(|&(_, c)| c == 1)
-            .map(|(t, _)| t)
+            .filter(|c| c.3 == 1)
+            .flat_map(|(tri, e, f, _)| {
+                if self.tet_edge_nodes.is_empty() {
+                    vec![tri]
+                } else {
+                    let m = &self.tet_edge_nodes[e];
+                    let mid = |i: usize, j: usize| m[edge_slot(f[i], f[j])];
+                    split_triangle(tri, mid(0, 1), mid(1, 2), mid(2, 0)).to_vec()
+                }
+            })
             .collect();
         out.sort_unstable();
         out

@@ -214,6 +214,7 @@ pub fn box_mesh(size_m: DVec3, cells: [usize; 3]) -> TetMesh {
     let mut mesh = TetMesh {
         nodes,
         tets,
+        tet_edge_nodes: Vec::new(),
         surfaces: Vec::new(),
         node_groups: Vec::new(),
     };
@@ -595,6 +596,7 @@ fn build_shell(p: &Profile, rings: Vec<Ring>, layers: usize) -> Shell {
     let mut mesh = TetMesh {
         nodes,
         tets,
+        tet_edge_nodes: Vec::new(),
         surfaces: Vec::new(),
         node_groups: Vec::new(),
     };

@@ -14,6 +14,8 @@
 //! # outer_semi_axes in length_unit, default (6,6,12) and (10,10,16) mm; target_tets, default
 //! # 188), "sphere" (inner_radius, outer_radius in length_unit; target_tets, default 5000) or
 //! # "box" (size = [x, y, z] in length_unit, cells = [nx, ny, nz])
+//! order = 1                      # element order: 1 = linear tets (default), 2 = quadratic
+//!                                # 10-node tets made by adding a node at every edge midpoint
 //! [material]                     # youngs_modulus_pa + poisson_ratio, OR lambda_pa + mu_pa
 //! model = "stvk"                 # default; or "corotational", "stable-neo-hookean"
 //! youngs_modulus_pa = 14500.0
@@ -349,6 +351,7 @@ struct RawMesh {
     outer_semi_axes: Option<[f64; 3]>,
     size: Option<[f64; 3]>,
     cells: Option<[i64; 3]>,
+    order: Option<i64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -759,6 +762,16 @@ fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError
                 ));
             }
         },
+    };
+    let mesh = match m.order.unwrap_or(1) {
+        1 => mesh,
+        2 => mesh.to_quadratic(),
+        other => {
+            return Err(ModelError::field(
+                "mesh.order",
+                format!("must be 1 (linear) or 2 (quadratic), got {other}"),
+            ));
+        }
     };
     Ok((mesh, unit))
 }

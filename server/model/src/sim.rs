@@ -357,15 +357,7 @@ impl Simulation {
             .map(|a| a.length_squared())
             .fold(0.0, f64::max)
             .sqrt();
-        let volume: f64 = self
-            .fem
-            .tets
-            .iter()
-            .map(|t| {
-                let [a, b, c, d] = t.map(|i| x[i as usize]);
-                (b - a).cross(c - a).dot(d - a) / 6.0
-            })
-            .sum();
+        let volume = self.fem.deformed_volume_m3(x);
         let v0 = self.fem.total_volume_m3();
         StabilityReport {
             stable: finite && self.diverged_at_s.is_none(),
@@ -381,17 +373,10 @@ impl Simulation {
         }
     }
 
-    /// Number of elements whose deformation gradient has `det F <= 0` (inverted or flat).
+    /// Number of elements whose deformation gradient has `det F <= 0` (inverted or flat) at
+    /// some integration point.
     pub fn inverted_elements(&self) -> usize {
-        (0..self.fem.tets.len())
-            .filter(|&e| {
-                !(self
-                    .fem
-                    .deformation_gradient(e, &self.state.x)
-                    .determinant()
-                    > 0.0)
-            })
-            .count()
+        self.fem.inverted_elements(&self.state.x)
     }
 
     /// Conjugate-gradient statistics of the last backward Euler step (default for the other

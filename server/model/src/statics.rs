@@ -1,6 +1,10 @@
 //! Static equilibrium `f_int(x) + f_ext = 0` for reference solutions (Lamé sphere, patch tests,
 //! converged probe references): Newton's method on the tangent stiffness of the material model with a
-//! backtracking line search; each linear system is solved by faer's sparse Cholesky (sparse LU
+//! backtracking line search that accepts a step when it lowers the total potential energy
+//! `W(x) - f_ext . x` or the residual norm (the energy criterion matters for slender bodies:
+//! the linearised step of a bending beam leaves a large axial residual from the quadratic
+//! Green strain even though it is an excellent step, and a residual-norm search alone
+//! stalled); each linear system is solved by faer's sparse Cholesky (sparse LU
 //! when the tangent is not positive definite, e.g. StVK under strong compression).
 //!
 //! Constrained components (see [`crate::fem::ConstraintMask`]) keep the values they have in the
@@ -79,6 +83,35 @@ pub fn element_tangent(fem: &FemModel, e: usize, x: &[DVec3]) -> [[DMat3; 4]; 4]
     k
 }
 
+/// Tangent stiffness blocks of element `e` of any order at positions `x`, N/m: `out` is
+/// filled with `npe x npe` blocks, block `(a, b)` at `out[a * npe + b]` being
+/// `K_ab = -d f_a / d x_b` for the element nodes `a, b` of [`FemModel::element_nodes`]
+/// (`npe` = 4 or 10), summed over the element's integration points.
+pub fn element_tangent_blocks(fem: &FemModel, e: usize, x: &[DVec3], out: &mut Vec<DMat3>) {
+    let mat = &fem.material;
+    let npe = fem.element_nodes(e).len();
+    out.clear();
+    out.resize(npe * npe, DMat3::ZERO);
+    for q in fem.integration_points_of(e) {
+        let g = fem.ip_gradients(q);
+        let w = fem.ip_weight_m3(q);
+        let fm = fem.ip_field_gradient(q, x);
+        for b in 0..npe {
+            for j in 0..3 {
+                // dF = e_j (grad N_b)^T
+                let mut dfm = DMat3::ZERO;
+                for (c, gc) in g[b].to_array().into_iter().enumerate() {
+                    dfm.col_mut(c)[j] = gc;
+                }
+                let dp = material::first_piola_differential(mat, &fm, &dfm);
+                for a in 0..npe {
+                    *out[a * npe + b].col_mut(j) += dp * g[a] * w;
+                }
+            }
+        }
+    }
+}
+
 /// Nodal forces (N) of a uniform pressure `pressure_pa` (Pa) on `triangles` at positions `x`:
 /// each triangle carries `-p A n` (n its outward unit normal, A its area), one third per vertex.
 /// A positive pressure pushes the surface inwards along its outward normal (for the inner
@@ -143,7 +176,9 @@ pub fn solve_static(
     let tol = (params.rel_tol * load_norm).max(params.abs_tol_n);
     let mut r = Vec::with_capacity(n);
     let mut rnorm = residual(x, &mut r);
-    let mut triplets = Vec::with_capacity(fem.tets.len() * 144);
+    let npe = fem.element_nodes(0).len();
+    let mut triplets = Vec::with_capacity(fem.element_count() * 9 * npe * npe);
+    let mut blocks = Vec::with_capacity(npe * npe);
     let mut trial = x.to_vec();
     for it in 0..params.max_iterations {
         if rnorm <= tol {
@@ -153,10 +188,13 @@ pub fn solve_static(
             });
         }
         triplets.clear();
-        for (e, t) in fem.tets.iter().enumerate() {
-            let k = element_tangent(fem, e, x);
-            for a in 0..4 {
-                for b in 0..4 {
+        for e in 0..fem.element_count() {
+            element_tangent_blocks(fem, e, x, &mut blocks);
+            let t = fem.element_nodes(e);
+            let npe = t.len();
+            for a in 0..npe {
+                for b in 0..npe {
+                    let k = &blocks[a * npe + b];
                     for ca in 0..3 {
                         let ra = dof[3 * t[a] as usize + ca];
                         if ra == usize::MAX {
@@ -166,7 +204,7 @@ pub fn solve_static(
                             let rb = dof[3 * t[b] as usize + cb];
                             if rb != usize::MAX {
                                 // column cb, row ca of the block
-                                triplets.push(Triplet::new(ra, rb, k[a][b].col(cb)[ca]));
+                                triplets.push(Triplet::new(ra, rb, k.col(cb)[ca]));
                             }
                         }
                     }
@@ -192,7 +230,11 @@ pub fn solve_static(
                 .map_err(|e| ModelError::NoConvergence(format!("factorising the tangent: {e:?}")))?
                 .solve_in_place(rhs.as_mut()),
         }
-        // Backtracking line search on the residual norm.
+        // Backtracking line search on the total potential or the residual norm (module docs).
+        let potential = |y: &[DVec3]| {
+            fem.elastic_energy(y) - y.iter().zip(f_ext).map(|(a, b)| a.dot(*b)).sum::<f64>()
+        };
+        let pi0 = potential(x);
         let mut step = 1.0;
         loop {
             trial.copy_from_slice(x);
@@ -205,7 +247,7 @@ pub fn solve_static(
                 }
             }
             let tn = residual(&trial, &mut r);
-            if tn < rnorm || step < 1e-3 {
+            if tn < rnorm || (tn.is_finite() && potential(&trial) < pi0) || step < 1e-3 {
                 x.copy_from_slice(&trial);
                 rnorm = tn;
                 break;

@@ -169,6 +169,7 @@ fn patch_mesh() -> TetMesh {
             return TetMesh {
                 nodes,
                 tets,
+                tet_edge_nodes: Vec::new(),
                 surfaces: Vec::new(),
                 node_groups: Vec::new(),
             };
