@@ -76,7 +76,7 @@ const SETTLED_ENERGY_LIMIT_J: f64 = 1e-8;
 /// Settled energies below this count as at rest for the trend (J): the energy of a residual
 /// dent of about 4 um (`k u^2 / 2` with `k` = 15 N/m), far below anything a hand or an eye
 /// could notice. The exponential tail of the last press left after the settle varies over many
-/// decades with how and when the probe left (1e-30 to 1e-12 J in trial runs); fitting a trend
+/// decades with how and when the probe left (1e-30 to 1e-11 J in trial runs); fitting a trend
 /// to that tail would measure the random path, not the integrator.
 const AT_REST_ENERGY_J: f64 = 1e-10;
 /// Energies below this are round-off (J): the decay check does not judge them. Round-off of
