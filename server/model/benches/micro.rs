@@ -1,7 +1,8 @@
 //! Micro-benchmarks (issue 3, section 4) with divan: one internal-force evaluation
 //! (`FemModel::add_internal_forces`, elastic + viscous) and one full `Simulation::tick` (all
 //! sub-steps, probe pressing 3 mm into the epicardium) on the structured LV at about 1k, 2k,
-//! 10k tets and on `lv_h1.msh` (17 924 tets).
+//! 10k tets, on `lv_h1.msh` (17 924 tets), and with quadratic (10-node) tetrahedra on the
+//! structured LV at about 500 and 1k elements (`q` suffix).
 //!
 //! Run: `cargo bench -p haptic-model --bench micro` (single thread; divan prints median and
 //! spread per size).
@@ -17,21 +18,28 @@ fn main() {
     divan::main();
 }
 
-/// Mesh sizes: structured LV targets, and 18000 meaning `lv_h1.msh` (structured
-/// `lv_shell(18000)` when the shared data is absent).
-const SIZES: [usize; 4] = [1000, 2000, 10000, 18000];
+/// Meshes: structured LV at about N tets (`lvN`), `lv_h1` (`lv_h1.msh`, or the structured
+/// `lv_shell(18000)` when the shared data is absent), and quadratic elements (`lvNq`).
+const SIZES: [&str; 6] = ["lv1000", "lv2000", "lv10000", "lv_h1", "lv500q", "lv1000q"];
 
-fn scene(size: usize) -> Scene {
-    if size == 18000 {
-        lv_h1_scene().unwrap_or_else(|| lv_scene(size))
+fn scene(name: &str) -> Scene {
+    if name == "lv_h1" {
+        return lv_h1_scene().unwrap_or_else(|| lv_scene(18000));
+    }
+    let spec = name.trim_start_matches("lv");
+    let quadratic = spec.ends_with('q');
+    let tets: usize = spec.trim_end_matches('q').parse().expect("mesh size");
+    let scene = lv_scene(tets);
+    if quadratic {
+        common::lv_scene_on(scene.mesh.to_quadratic())
     } else {
-        lv_scene(size)
+        scene
     }
 }
 
 /// A simulation pressed 3 mm into the epicardium at the equator (200 ticks to get there), so
 /// that forces and ticks are measured on a deformed body in contact.
-fn pressed(size: usize) -> (Simulation, TickInput) {
+fn pressed(size: &str) -> (Simulation, TickInput) {
     let mut sim = Simulation::new(&scene(size)).expect("simulation");
     let mut input = TickInput::default();
     for k in 0..200 {
@@ -46,7 +54,7 @@ fn pressed(size: usize) -> (Simulation, TickInput) {
 }
 
 #[divan::bench(args = SIZES, sample_count = 30)]
-fn add_internal_forces(bencher: divan::Bencher, size: usize) {
+fn add_internal_forces(bencher: divan::Bencher, size: &str) {
     let (sim, _) = pressed(size);
     let n = sim.fem().node_count();
     let mut f = vec![DVec3::ZERO; n];
@@ -59,7 +67,7 @@ fn add_internal_forces(bencher: divan::Bencher, size: usize) {
 }
 
 #[divan::bench(args = SIZES, sample_count = 20)]
-fn tick(bencher: divan::Bencher, size: usize) {
+fn tick(bencher: divan::Bencher, size: &str) {
     let (mut sim, input) = pressed(size);
     bencher.bench_local(|| sim.tick(divan::black_box(&input)).expect("tick"));
 }

@@ -50,7 +50,7 @@ pub fn write_nodes_csv(
 }
 
 /// Writes a VTK XML unstructured grid (`.vtu`, ASCII) of the tetrahedra at the current positions
-/// `x`, with point data `displacement` (x - rest) and cell data `volume_ratio` (current over
+/// `x`, with point data `displacement` (x - rest) and cell data `volume_ratio` (of the corner tetrahedron for quadratic elements: current over
 /// rest volume, negative for inverted elements). Coordinates are divided by `length_unit_m`.
 ///
 /// # Errors
@@ -114,23 +114,32 @@ pub fn write_vtu(
         v,
         r#"<DataArray type="Int64" Name="connectivity" format="ascii">"#
     );
-    for t in &mesh.tets {
-        let _ = writeln!(v, "{} {} {} {}", t[0], t[1], t[2], t[3]);
+    // Quadratic elements: VTK_QUADRATIC_TETRA (24), whose mid-edge node order is ours.
+    let npe = if mesh.is_quadratic() { 10 } else { 4 };
+    for (k, t) in mesh.tets.iter().enumerate() {
+        let _ = write!(v, "{} {} {} {}", t[0], t[1], t[2], t[3]);
+        if let Some(m) = mesh.tet_edge_nodes.get(k) {
+            for i in m {
+                let _ = write!(v, " {i}");
+            }
+        }
+        v.push('\n');
     }
     let _ = writeln!(
         v,
         "</DataArray>\n<DataArray type=\"Int64\" Name=\"offsets\" format=\"ascii\">"
     );
     for k in 1..=e {
-        let _ = writeln!(v, "{}", 4 * k);
+        let _ = writeln!(v, "{}", npe * k);
     }
-    // VTK_TETRA = 10
+    // VTK_TETRA = 10, VTK_QUADRATIC_TETRA = 24
     let _ = writeln!(
         v,
         "</DataArray>\n<DataArray type=\"UInt8\" Name=\"types\" format=\"ascii\">"
     );
+    let cell_type = if mesh.is_quadratic() { "24\n" } else { "10\n" };
     for _ in 0..e {
-        v.push_str("10\n");
+        v.push_str(cell_type);
     }
     let _ = writeln!(
         v,

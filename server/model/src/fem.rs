@@ -64,6 +64,12 @@ pub struct FemModel {
     batches: Vec<ElementBatch>,
     /// Integration points of every element, for the generic (quadratic) paths.
     points: IntegrationPoints,
+    /// Quadratic elements in batches of [`LANES`], for the vectorised StVK kernel (empty for
+    /// linear elements).
+    quad_batches: Vec<QuadraticBatch>,
+    /// The element order of the batches (lane `l` of batch `b` is element
+    /// `quad_order[b * LANES + l]`).
+    quad_order: Vec<u32>,
 }
 
 /// Integration-point data in flat arrays: element `e` has nodes
@@ -188,6 +194,70 @@ impl ElementBatch {
     }
 }
 
+/// StVK first Piola-Kirchhoff stress `P = F (S_elastic + S_viscous)` of one lane, row-major
+/// (`fm[3 i + j] = F_ij`, `fd` = `dF/dt` likewise, or `None` without viscosity), Pa:
+/// `C = F^T F`, `S = mu (C - I) + lambda/2 (tr C - 3) I` (seed 000 eq. 9) plus
+/// `S_v = 2 psi nu + phi tr(nu) I`, `nu = F^T Fdot + Fdot^T F` (eq. 10-11). Written with
+/// fixed-size arrays so that the callers' loops over lanes vectorise.
+#[inline(always)]
+fn stvk_first_piola_lane(
+    fm: &[f64; 9],
+    fd: Option<&[f64; 9]>,
+    lambda: f64,
+    mu: f64,
+    phi: f64,
+    psi: f64,
+) -> [f64; 9] {
+    // C = F^T F (symmetric), S = mu (C - I) + lambda/2 (tr C - 3) I.
+    let col = |j: usize| [fm[j], fm[3 + j], fm[6 + j]];
+    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let (c0, c1, c2) = (col(0), col(1), col(2));
+    let (c00, c11, c22) = (dot(c0, c0), dot(c1, c1), dot(c2, c2));
+    let (c01, c02, c12) = (dot(c0, c1), dot(c0, c2), dot(c1, c2));
+    let diag = 0.5 * lambda * (c00 + c11 + c22 - 3.0) - mu;
+    let mut s = [
+        mu * c00 + diag,
+        mu * c01,
+        mu * c02,
+        mu * c01,
+        mu * c11 + diag,
+        mu * c12,
+        mu * c02,
+        mu * c12,
+        mu * c22 + diag,
+    ];
+    if let Some(fd) = fd {
+        // A = F^T Fdot, nu = A + A^T, S_v = 2 psi nu + phi tr(nu) I (eq. 10-11).
+        let dcol = |j: usize| [fd[j], fd[3 + j], fd[6 + j]];
+        let (d0, d1, d2) = (dcol(0), dcol(1), dcol(2));
+        let a = |i: usize, j: usize| dot([c0, c1, c2][i], [d0, d1, d2][j]);
+        let n00 = 2.0 * a(0, 0);
+        let n11 = 2.0 * a(1, 1);
+        let n22 = 2.0 * a(2, 2);
+        let n01 = a(0, 1) + a(1, 0);
+        let n02 = a(0, 2) + a(2, 0);
+        let n12 = a(1, 2) + a(2, 1);
+        let vd = phi * (n00 + n11 + n22);
+        let p2 = 2.0 * psi;
+        s[0] += p2 * n00 + vd;
+        s[4] += p2 * n11 + vd;
+        s[8] += p2 * n22 + vd;
+        s[1] += p2 * n01;
+        s[3] += p2 * n01;
+        s[2] += p2 * n02;
+        s[6] += p2 * n02;
+        s[5] += p2 * n12;
+        s[7] += p2 * n12;
+    }
+    let mut p = [0.0; 9];
+    for i in 0..3 {
+        for j in 0..3 {
+            p[3 * i + j] = fm[3 * i] * s[j] + fm[3 * i + 1] * s[3 + j] + fm[3 * i + 2] * s[6 + j];
+        }
+    }
+    p
+}
+
 /// StVK (+ viscous) nodal forces of every batch, added to `f` (see
 /// [`FemModel::add_internal_forces`]). Per batch: a scalar gather of the edge vectors into
 /// lane-innermost arrays, the stress and `H = -V F S Dm^-T` computed lane by lane in a loop the
@@ -224,25 +294,7 @@ fn stvk_forces_batched(
                         + ds[6 + i][l] * bm[6 + j][l];
                 }
             }
-            // C = F^T F (symmetric), S = mu (C - I) + lambda/2 (tr C - 3) I.
-            let col = |j: usize| [fm[j], fm[3 + j], fm[6 + j]];
-            let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-            let (c0, c1, c2) = (col(0), col(1), col(2));
-            let (c00, c11, c22) = (dot(c0, c0), dot(c1, c1), dot(c2, c2));
-            let (c01, c02, c12) = (dot(c0, c1), dot(c0, c2), dot(c1, c2));
-            let diag = 0.5 * lambda * (c00 + c11 + c22 - 3.0) - mu;
-            let mut s = [
-                mu * c00 + diag,
-                mu * c01,
-                mu * c02,
-                mu * c01,
-                mu * c11 + diag,
-                mu * c12,
-                mu * c02,
-                mu * c12,
-                mu * c22 + diag,
-            ];
-            if v.is_some() {
+            let fd = v.is_some().then(|| {
                 let mut fd = [0.0; 9];
                 for i in 0..3 {
                     for j in 0..3 {
@@ -251,36 +303,9 @@ fn stvk_forces_batched(
                             + dv[6 + i][l] * bm[6 + j][l];
                     }
                 }
-                // A = F^T Fdot, nu = A + A^T, S_v = 2 psi nu + phi tr(nu) I (eq. 10-11).
-                let dcol = |j: usize| [fd[j], fd[3 + j], fd[6 + j]];
-                let (d0, d1, d2) = (dcol(0), dcol(1), dcol(2));
-                let a = |i: usize, j: usize| dot([c0, c1, c2][i], [d0, d1, d2][j]);
-                let n00 = 2.0 * a(0, 0);
-                let n11 = 2.0 * a(1, 1);
-                let n22 = 2.0 * a(2, 2);
-                let n01 = a(0, 1) + a(1, 0);
-                let n02 = a(0, 2) + a(2, 0);
-                let n12 = a(1, 2) + a(2, 1);
-                let vd = phi * (n00 + n11 + n22);
-                let p2 = 2.0 * psi;
-                s[0] += p2 * n00 + vd;
-                s[4] += p2 * n11 + vd;
-                s[8] += p2 * n22 + vd;
-                s[1] += p2 * n01;
-                s[3] += p2 * n01;
-                s[2] += p2 * n02;
-                s[6] += p2 * n02;
-                s[5] += p2 * n12;
-                s[7] += p2 * n12;
-            }
-            // P = F S; H = -V P Dm^-T: h_k (force on node k+1) = -V sum_j P_:j Dm^-1_kj.
-            let mut p = [0.0; 9];
-            for i in 0..3 {
-                for j in 0..3 {
-                    p[3 * i + j] =
-                        fm[3 * i] * s[j] + fm[3 * i + 1] * s[3 + j] + fm[3 * i + 2] * s[6 + j];
-                }
-            }
+                fd
+            });
+            let p = stvk_first_piola_lane(&fm, fd.as_ref(), lambda, mu, phi, psi);
             let w = -batch.volume_m3[l];
             for k in 0..3 {
                 for i in 0..3 {
@@ -388,6 +413,325 @@ unsafe fn stvk_forces_avx2(
     stvk_forces_batched(batches, mat, x, v, f, |b, y, o| unsafe {
         gather_edges_avx2(b, y, o)
     });
+}
+
+/// [`LANES`] quadratic elements, structure-of-arrays, for the vectorised StVK kernel of
+/// 10-node tetrahedra: `grad[q][3 (a - 1) + c][l]` is component c of `grad N_a` (a = 1..9;
+/// `grad N_0` is minus their sum and is not needed, since forces use differences to node 0)
+/// at integration point q of lane l, `weight_m3[q][l]` its weight. Padding lanes repeat node
+/// 0 with zero gradients and weights.
+#[derive(Debug, Clone)]
+struct QuadraticBatch {
+    nodes: [[u32; 10]; LANES],
+    grad: [[[f64; LANES]; 27]; 4],
+    weight_m3: [[f64; LANES]; 4],
+}
+
+impl QuadraticBatch {
+    fn build(order: &[u32], points: &IntegrationPoints) -> Vec<Self> {
+        order
+            .chunks(LANES)
+            .map(|chunk| {
+                let mut b = Self {
+                    nodes: [[0; 10]; LANES],
+                    grad: [[[0.0; LANES]; 27]; 4],
+                    weight_m3: [[0.0; LANES]; 4],
+                };
+                for (l, &e) in chunk.iter().enumerate() {
+                    let e = e as usize;
+                    b.nodes[l].copy_from_slice(&points.nodes[10 * e..10 * e + 10]);
+                    for q in 0..4 {
+                        let ip = 4 * e + q;
+                        b.weight_m3[q][l] = points.weight_m3[ip];
+                        for a in 1..10 {
+                            let g = points.grad[10 * ip + a];
+                            for c in 0..3 {
+                                b.grad[q][3 * (a - 1) + c][l] = g[c];
+                            }
+                        }
+                    }
+                }
+                b
+            })
+            .collect()
+    }
+}
+
+/// StVK (+ viscous) nodal forces of quadratic elements, added to `f` (see
+/// [`FemModel::add_internal_forces`]): per batch a scalar gather of `x_a - x_0` (a = 1..9),
+/// then per integration point `F = sum_a (x_a - x_0) (grad N_a)^T`, `P` by
+/// [`stvk_first_piola_lane`] and `h_a -= w P grad N_a` lane by lane (vectorised), then one
+/// scalar scatter per element (`f_0 -= sum_a h_a`).
+#[inline(always)]
+fn stvk_forces_quadratic(
+    batches: &[QuadraticBatch],
+    mat: &MaterialParams,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
+    let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
+    let gather = |b: &QuadraticBatch, y: &[DVec3], out: &mut [[f64; LANES]; 27]| {
+        for (l, t) in b.nodes.iter().enumerate() {
+            let y0 = y[t[0] as usize];
+            for a in 1..10 {
+                let d = y[t[a] as usize] - y0;
+                out[3 * (a - 1)][l] = d.x;
+                out[3 * (a - 1) + 1][l] = d.y;
+                out[3 * (a - 1) + 2][l] = d.z;
+            }
+        }
+    };
+    for batch in batches {
+        let mut ds = [[0.0; LANES]; 27];
+        let mut dv = [[0.0; LANES]; 27];
+        gather(batch, x, &mut ds);
+        if let Some(v) = v {
+            gather(batch, v, &mut dv);
+        }
+        let mut h = [[0.0; LANES]; 27];
+        for q in 0..4 {
+            let g = &batch.grad[q];
+            // Every loop below has the lanes innermost, so that it vectorises.
+            let mut fm = [[0.0; LANES]; 9];
+            let mut fd = [[0.0; LANES]; 9];
+            for a in 0..9 {
+                for i in 0..3 {
+                    for j in 0..3 {
+                        let (d, gj) = (&ds[3 * a + i], &g[3 * a + j]);
+                        let o = &mut fm[3 * i + j];
+                        for l in 0..LANES {
+                            o[l] += d[l] * gj[l];
+                        }
+                        if v.is_some() {
+                            let (d, o) = (&dv[3 * a + i], &mut fd[3 * i + j]);
+                            for l in 0..LANES {
+                                o[l] += d[l] * gj[l];
+                            }
+                        }
+                    }
+                }
+            }
+            // p[k][l] = -w P_k of lane l (row-major P).
+            let mut p = [[0.0; LANES]; 9];
+            for l in 0..LANES {
+                let f_l: [f64; 9] = std::array::from_fn(|k| fm[k][l]);
+                let fd_l: [f64; 9] = std::array::from_fn(|k| fd[k][l]);
+                let pl =
+                    stvk_first_piola_lane(&f_l, v.is_some().then_some(&fd_l), lambda, mu, phi, psi);
+                let w = -batch.weight_m3[q][l];
+                for k in 0..9 {
+                    p[k][l] = w * pl[k];
+                }
+            }
+            for a in 0..9 {
+                for i in 0..3 {
+                    let o = &mut h[3 * a + i];
+                    for j in 0..3 {
+                        let (pk, gj) = (&p[3 * i + j], &g[3 * a + j]);
+                        for l in 0..LANES {
+                            o[l] += pk[l] * gj[l];
+                        }
+                    }
+                }
+            }
+        }
+        for (l, t) in batch.nodes.iter().enumerate() {
+            let mut sum = DVec3::ZERO;
+            for a in 1..10 {
+                let ha = DVec3::new(
+                    h[3 * (a - 1)][l],
+                    h[3 * (a - 1) + 1][l],
+                    h[3 * (a - 1) + 2][l],
+                );
+                f[t[a] as usize] += ha;
+                sum += ha;
+            }
+            f[t[0] as usize] -= sum;
+        }
+    }
+}
+
+/// [`stvk_forces_quadratic`] compiled for AVX-512.
+///
+/// # Safety
+/// The CPU must support AVX-512F, AVX-512VL, AVX2 and FMA.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+unsafe fn stvk_forces_quadratic_avx512(
+    batches: &[QuadraticBatch],
+    mat: &MaterialParams,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    stvk_forces_quadratic(batches, mat, x, v, f);
+}
+
+/// [`stvk_forces_quadratic`] compiled for AVX2 + FMA.
+///
+/// # Safety
+/// The CPU must support AVX2 and FMA.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn stvk_forces_quadratic_avx2(
+    batches: &[QuadraticBatch],
+    mat: &MaterialParams,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    stvk_forces_quadratic(batches, mat, x, v, f);
+}
+
+/// Action of the backward Euler operator's element part on `p` for quadratic StVK elements,
+/// added to `out` (see [`FemModel::quadratic_stvk_operator_action`]). Lanes innermost.
+#[inline(always)]
+fn stvk_operator_quadratic(
+    batches: &[QuadraticBatch],
+    order: &[u32],
+    ip_f: &[DMat3],
+    ip_s: &[DMat3],
+    (h2, lam, mu): (f64, f64, f64),
+    p: &[DVec3],
+    out: &mut [DVec3],
+) {
+    for (b, batch) in batches.iter().enumerate() {
+        let mut dp = [[0.0; LANES]; 27];
+        for (l, t) in batch.nodes.iter().enumerate() {
+            let p0 = p[t[0] as usize];
+            for a in 1..10 {
+                let d = p[t[a] as usize] - p0;
+                dp[3 * (a - 1)][l] = d.x;
+                dp[3 * (a - 1) + 1][l] = d.y;
+                dp[3 * (a - 1) + 2][l] = d.z;
+            }
+        }
+        let elements = &order[b * LANES..((b + 1) * LANES).min(order.len())];
+        let mut h = [[0.0; LANES]; 27];
+        for q in 0..4 {
+            let g = &batch.grad[q];
+            let mut df = [[0.0; LANES]; 9];
+            for a in 0..9 {
+                for i in 0..3 {
+                    for j in 0..3 {
+                        let (d, gj) = (&dp[3 * a + i], &g[3 * a + j]);
+                        let o = &mut df[3 * i + j];
+                        for l in 0..LANES {
+                            o[l] += d[l] * gj[l];
+                        }
+                    }
+                }
+            }
+            // Cached F and S of each lane's integration point, lane-innermost.
+            let mut fm = [[0.0; LANES]; 9];
+            let mut sm = [[0.0; LANES]; 9];
+            for (l, &e) in elements.iter().enumerate() {
+                let ip = 4 * e as usize + q;
+                let (f, s) = (ip_f[ip], ip_s[ip]);
+                for i in 0..3 {
+                    for j in 0..3 {
+                        fm[3 * i + j][l] = f.col(j)[i];
+                        sm[3 * i + j][l] = s.col(j)[i];
+                    }
+                }
+            }
+            let mut pk = [[0.0; LANES]; 9];
+            for l in 0..LANES {
+                let f = |i: usize, j: usize| fm[3 * i + j][l];
+                let d = |i: usize, j: usize| df[3 * i + j][l];
+                let sv = |i: usize, j: usize| sm[3 * i + j][l];
+                // dE = sym(F^T dF)
+                let mut de = [0.0; 9];
+                for i in 0..3 {
+                    for j in 0..3 {
+                        let a = f(0, i) * d(0, j) + f(1, i) * d(1, j) + f(2, i) * d(2, j);
+                        let b = f(0, j) * d(0, i) + f(1, j) * d(1, i) + f(2, j) * d(2, i);
+                        de[3 * i + j] = 0.5 * (a + b);
+                    }
+                }
+                let tr = de[0] + de[4] + de[8];
+                let mut ds = [0.0; 9];
+                for k in 0..9 {
+                    ds[k] = 2.0 * mu * de[k];
+                }
+                ds[0] += lam * tr;
+                ds[4] += lam * tr;
+                ds[8] += lam * tr;
+                let w = batch.weight_m3[q][l];
+                for i in 0..3 {
+                    for j in 0..3 {
+                        let v = h2 * (d(i, 0) * sv(0, j) + d(i, 1) * sv(1, j) + d(i, 2) * sv(2, j))
+                            + f(i, 0) * ds[j]
+                            + f(i, 1) * ds[3 + j]
+                            + f(i, 2) * ds[6 + j];
+                        pk[3 * i + j][l] = w * v;
+                    }
+                }
+            }
+            for a in 0..9 {
+                for i in 0..3 {
+                    let o = &mut h[3 * a + i];
+                    for j in 0..3 {
+                        let (pij, gj) = (&pk[3 * i + j], &g[3 * a + j]);
+                        for l in 0..LANES {
+                            o[l] += pij[l] * gj[l];
+                        }
+                    }
+                }
+            }
+        }
+        for (l, t) in batch.nodes.iter().enumerate().take(elements.len()) {
+            let mut sum = DVec3::ZERO;
+            for a in 1..10 {
+                let ha = DVec3::new(
+                    h[3 * (a - 1)][l],
+                    h[3 * (a - 1) + 1][l],
+                    h[3 * (a - 1) + 2][l],
+                );
+                out[t[a] as usize] += ha;
+                sum += ha;
+            }
+            out[t[0] as usize] -= sum;
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+/// [`stvk_operator_quadratic`] compiled for AVX-512.
+///
+/// # Safety
+/// The CPU must support AVX-512F, AVX-512VL, AVX2 and FMA.
+unsafe fn stvk_operator_quadratic_avx512(
+    batches: &[QuadraticBatch],
+    order: &[u32],
+    ip_f: &[DMat3],
+    ip_s: &[DMat3],
+    c: (f64, f64, f64),
+    p: &[DVec3],
+    out: &mut [DVec3],
+) {
+    stvk_operator_quadratic(batches, order, ip_f, ip_s, c, p, out);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+/// [`stvk_operator_quadratic`] compiled for AVX2 + FMA.
+///
+/// # Safety
+/// The CPU must support AVX2 and FMA.
+unsafe fn stvk_operator_quadratic_avx2(
+    batches: &[QuadraticBatch],
+    order: &[u32],
+    ip_f: &[DMat3],
+    ip_s: &[DMat3],
+    c: (f64, f64, f64),
+    p: &[DVec3],
+    out: &mut [DVec3],
+) {
+    stvk_operator_quadratic(batches, order, ip_f, ip_s, c, p, out);
 }
 
 /// Lumped nodal masses, kg, one per node of `mesh` (m) with density `density_kg_per_m3`:
@@ -530,14 +874,23 @@ impl FemModel {
                 weight_m3: volume_m3.clone(),
             }
         };
-        let batches = if mesh.is_quadratic() {
-            Vec::new()
+        let order = locality_order(&mesh.nodes, &mesh.tets);
+        let (batches, quad_batches) = if mesh.is_quadratic() {
+            (Vec::new(), QuadraticBatch::build(&order, &points))
         } else {
-            let order = locality_order(&mesh.nodes, &mesh.tets);
-            ElementBatch::build(&order, &mesh.tets, &dm_inv, &volume_m3)
+            (
+                ElementBatch::build(&order, &mesh.tets, &dm_inv, &volume_m3),
+                Vec::new(),
+            )
         };
         Ok(Self {
             batches,
+            quad_batches,
+            quad_order: if mesh.is_quadratic() {
+                order
+            } else {
+                Vec::new()
+            },
             points,
             rest: mesh.nodes.clone(),
             tets: mesh.tets.clone(),
@@ -597,6 +950,26 @@ impl FemModel {
         // Also the safety precondition of the gathers of the vectorised kernels: every node
         // index is below n (checked in `new`).
         assert!(x.len() >= n && f.len() >= n && viscous.is_none_or(|v| v.len() >= n));
+        if self.is_quadratic() && mat.model == MaterialModel::StVenantKirchhoff {
+            #[cfg(target_arch = "x86_64")]
+            if std::is_x86_feature_detected!("avx512f")
+                && std::is_x86_feature_detected!("avx512vl")
+                && std::is_x86_feature_detected!("avx2")
+                && std::is_x86_feature_detected!("fma")
+            {
+                // SAFETY: all four features were detected on this CPU just above.
+                unsafe { stvk_forces_quadratic_avx512(&self.quad_batches, mat, x, viscous, f) };
+                return;
+            }
+            #[cfg(target_arch = "x86_64")]
+            if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                // SAFETY: both features were detected on this CPU just above.
+                unsafe { stvk_forces_quadratic_avx2(&self.quad_batches, mat, x, viscous, f) };
+                return;
+            }
+            stvk_forces_quadratic(&self.quad_batches, mat, x, viscous, f);
+            return;
+        }
         if self.is_quadratic() {
             for q in 0..self.integration_point_count() {
                 let fm = self.ip_field_gradient(q, x);
@@ -740,6 +1113,52 @@ impl FemModel {
                     .any(|q| !(self.ip_field_gradient(q, x).determinant() > 0.0))
             })
             .count()
+    }
+
+    /// For quadratic St. Venant-Kirchhoff elements: adds to `out` (N, length N) the element part
+    /// of the backward Euler operator applied to `p`,
+    /// `sum_q w_q (h2 dF S_q + F_q S_stvk(dE; lambda, mu)) grad N_a` with `dF` the gradient of
+    /// `p`, `dE = sym(F_q^T dF)`, and `F_q`, `S_q` the deformation gradient and StVK stress
+    /// cached per integration point (`ip_f`, `ip_s`, length [`Self::integration_point_count`]).
+    /// Vectorised like the force kernel. Returns `false` (and does nothing) for linear
+    /// elements, where the caller's own loop is used.
+    ///
+    /// # Panics
+    /// If the slices are shorter than the node or integration-point count.
+    pub fn quadratic_stvk_operator_action(
+        &self,
+        ip_f: &[DMat3],
+        ip_s: &[DMat3],
+        (h2, lambda, mu): (f64, f64, f64),
+        p: &[DVec3],
+        out: &mut [DVec3],
+    ) -> bool {
+        if !self.is_quadratic() {
+            return false;
+        }
+        let n = self.node_count();
+        let nq = self.integration_point_count();
+        assert!(p.len() >= n && out.len() >= n && ip_f.len() >= nq && ip_s.len() >= nq);
+        let c = (h2, lambda, mu);
+        let (b, o) = (&self.quad_batches, &self.quad_order);
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx512f")
+            && std::is_x86_feature_detected!("avx512vl")
+            && std::is_x86_feature_detected!("avx2")
+            && std::is_x86_feature_detected!("fma")
+        {
+            // SAFETY: all four features were detected on this CPU just above.
+            unsafe { stvk_operator_quadratic_avx512(b, o, ip_f, ip_s, c, p, out) };
+            return true;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+            // SAFETY: both features were detected on this CPU just above.
+            unsafe { stvk_operator_quadratic_avx2(b, o, ip_f, ip_s, c, p, out) };
+            return true;
+        }
+        stvk_operator_quadratic(b, o, ip_f, ip_s, c, p, out);
+        true
     }
 
     /// Whether the elements are quadratic (10-node) tetrahedra.
