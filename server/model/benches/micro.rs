@@ -29,11 +29,10 @@ fn scene(name: &str) -> Scene {
     let spec = name.trim_start_matches("lv");
     let quadratic = spec.ends_with('q');
     let tets: usize = spec.trim_end_matches('q').parse().expect("mesh size");
-    let scene = lv_scene(tets);
     if quadratic {
-        common::lv_scene_on(scene.mesh.to_quadratic())
+        common::lv_scene_on(haptic_model::mesher::lv_shell_quadratic(tets))
     } else {
-        scene
+        lv_scene(tets)
     }
 }
 

@@ -398,10 +398,11 @@ fn scenario_lame(quick: bool, rows: &mut Vec<Row>) {
     let exact_inner = lame_u_r(a);
     let reference = format!("analytic u_r(a) = {:.4} mm", exact_inner * 1e3);
     for &(target, quadratic) in targets {
-        let mut mesh = sphere_shell(a, b, target);
-        if quadratic {
-            mesh = mesh.to_quadratic();
-        }
+        let mesh = if quadratic {
+            haptic_model::mesher::sphere_shell_quadratic(a, b, target)
+        } else {
+            sphere_shell(a, b, target)
+        };
         for &model in MATERIALS {
             let mut mat = MaterialParams::from_youngs(e, nu, 1000.0);
             mat.mass_damping_per_s = 300.0;
@@ -899,11 +900,10 @@ impl LvReference {
 
 /// The built-in `lv` scene on `lv_shell(tets)`, with quadratic elements if `quadratic`.
 fn lv_scene_order(tets: usize, quadratic: bool) -> Scene {
-    let scene = lv_scene(tets);
     if quadratic {
-        common::lv_scene_on(scene.mesh.to_quadratic())
+        common::lv_scene_on(haptic_model::mesher::lv_shell_quadratic(tets))
     } else {
-        scene
+        lv_scene(tets)
     }
 }
 
@@ -1286,10 +1286,7 @@ fn main() {
             })
             .collect();
         for (tets, quad) in sizes {
-            let mut scene = lv_scene(tets);
-            if quad {
-                scene = common::lv_scene_on(scene.mesh.to_quadratic());
-            }
+            let scene = lv_scene_order(tets, quad);
             let t = Instant::now();
             let c = probe_static(&scene);
             println!(

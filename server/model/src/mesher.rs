@@ -66,6 +66,98 @@ pub fn lv_shell(target_tets: usize) -> TetMesh {
     mesh
 }
 
+/// [`lv_shell`] with quadratic (10-node) elements whose mid-edge nodes on `ENDO` and `EPI` lie on
+/// the analytic ellipsoids (curved, isoparametric boundary; the rim edges of the base stay in
+/// the plane z = 5 mm). Geometric error O(h^3) instead of the O(h^2) sag of flat facets, which
+/// on the coarse meshes is a sizeable part of a shallow probe depth (0.1 to 0.2 mm).
+pub fn lv_shell_quadratic(target_tets: usize) -> TetMesh {
+    let mm = 1e-3;
+    let mut mesh = lv_shell(target_tets).to_quadratic();
+    curve_shell_edges(
+        &mut mesh,
+        &[
+            ("ENDO", DVec3::new(7.0, 7.0, 17.0) * mm),
+            ("EPI", DVec3::new(10.0, 10.0, 20.0) * mm),
+        ],
+        Some(5.0 * mm),
+    );
+    mesh
+}
+
+/// [`ellipsoid_shell`] with curved quadratic elements (see [`lv_shell_quadratic`]).
+///
+/// # Panics
+/// As [`ellipsoid_shell`].
+pub fn ellipsoid_shell_quadratic(inner: DVec3, outer: DVec3, target_tets: usize) -> TetMesh {
+    let mut mesh = ellipsoid_shell(inner, outer, target_tets).to_quadratic();
+    curve_shell_edges(&mut mesh, &[("INNER", inner), ("OUTER", outer)], None);
+    mesh
+}
+
+/// [`sphere_shell`] with curved quadratic elements (see [`lv_shell_quadratic`]).
+///
+/// # Panics
+/// As [`sphere_shell`].
+pub fn sphere_shell_quadratic(
+    inner_radius_m: f64,
+    outer_radius_m: f64,
+    target_tets: usize,
+) -> TetMesh {
+    let mut mesh = sphere_shell(inner_radius_m, outer_radius_m, target_tets).to_quadratic();
+    curve_shell_edges(
+        &mut mesh,
+        &[
+            ("INNER", DVec3::splat(inner_radius_m)),
+            ("OUTER", DVec3::splat(outer_radius_m)),
+        ],
+        None,
+    );
+    mesh
+}
+
+/// Moves the mid-edge nodes of the named surfaces of a quadratic shell (centred at the origin)
+/// onto their ellipsoids `(x^2 + y^2) / a^2 + z^2 / c^2 = 1` (semi-axes `(a, a, c)`), by
+/// scaling from the origin; an edge on the cut plane `z = z_cut` is scaled in that plane.
+fn curve_shell_edges(mesh: &mut TetMesh, surfaces: &[(&str, DVec3)], z_cut: Option<f64>) {
+    use std::collections::HashMap;
+    let mut ends: HashMap<u32, [u32; 2]> = HashMap::new();
+    for (t, mid) in mesh.tets.iter().zip(&mesh.tet_edge_nodes) {
+        for (k, [i, j]) in crate::mesh::TET_EDGES.iter().enumerate() {
+            ends.insert(mid[k], [t[*i], t[*j]]);
+        }
+    }
+    for &(name, axes) in surfaces {
+        let Some(group) = mesh.surface(name) else {
+            continue;
+        };
+        let mut mids: Vec<u32> = group
+            .triangles
+            .iter()
+            .flatten()
+            .copied()
+            .filter(|i| ends.contains_key(i))
+            .collect();
+        mids.sort_unstable();
+        mids.dedup();
+        for m in mids {
+            let [a, b] = ends[&m];
+            let (pa, pb) = (mesh.nodes[a as usize], mesh.nodes[b as usize]);
+            let p = mesh.nodes[m as usize];
+            let on_cut =
+                z_cut.is_some_and(|z| (pa.z - z).abs() < 1e-12 && (pb.z - z).abs() < 1e-12);
+            mesh.nodes[m as usize] = if on_cut {
+                // In the plane: the ring of radius a sqrt(1 - z^2 / c^2).
+                let rho = axes.x * (1.0 - p.z * p.z / (axes.z * axes.z)).max(0.0).sqrt();
+                let r = (p.x * p.x + p.y * p.y).sqrt();
+                DVec3::new(p.x * rho / r, p.y * rho / r, p.z)
+            } else {
+                let q = (p.x * p.x + p.y * p.y) / (axes.x * axes.x) + p.z * p.z / (axes.z * axes.z);
+                p / q.sqrt()
+            };
+        }
+    }
+}
+
 /// Closed concentric ellipsoidal shell (no cut), centred at the origin, in metres.
 ///
 /// `inner`, `outer`: semi-axes (x, y, z) of the inner and outer ellipsoids, m; intermediate

@@ -16,6 +16,7 @@
 //! # "box" (size = [x, y, z] in length_unit, cells = [nx, ny, nz])
 //! order = 1                      # element order: 1 = linear tets (default), 2 = quadratic
 //!                                # 10-node tets made by adding a node at every edge midpoint
+//!                                # (built-in shells: boundary mid-edge nodes on the surfaces)
 //! [material]                     # youngs_modulus_pa + poisson_ratio, OR lambda_pa + mu_pa
 //! model = "stvk"                 # default; or "corotational", "stable-neo-hookean"
 //! youngs_modulus_pa = 14500.0
@@ -685,6 +686,16 @@ fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError
         m.target_tets
             .map_or(Ok(default), |t| int_in("mesh.target_tets", t, 100, 500_000))
     };
+    let quadratic = match m.order.unwrap_or(1) {
+        1 => false,
+        2 => true,
+        other => {
+            return Err(ModelError::field(
+                "mesh.order",
+                format!("must be 1 (linear) or 2 (quadratic), got {other}"),
+            ));
+        }
+    };
     let mesh = match (&m.file, &m.builtin) {
         (Some(_), Some(_)) => {
             return Err(ModelError::field(
@@ -704,6 +715,8 @@ fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError
             mesh
         }
         (None, Some(b)) => match b.as_str() {
+            // Built-in shells get curved quadratic elements (mid-edge nodes on the surfaces).
+            "lv" if quadratic => crate::mesher::lv_shell_quadratic(target(2000)?),
             "lv" => crate::mesher::lv_shell(target(2000)?),
             "ellipsoids" => {
                 let inner = m
@@ -722,7 +735,11 @@ fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError
                         "every outer semi-axis must exceed the inner one",
                     ));
                 }
-                crate::mesher::ellipsoid_shell(inner, outer, target(188)?)
+                if quadratic {
+                    crate::mesher::ellipsoid_shell_quadratic(inner, outer, target(188)?)
+                } else {
+                    crate::mesher::ellipsoid_shell(inner, outer, target(188)?)
+                }
             }
             "sphere" => {
                 let ri = positive(
@@ -739,7 +756,11 @@ fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError
                         "must exceed mesh.inner_radius",
                     ));
                 }
-                crate::mesher::sphere_shell(ri, ro, target(5000)?)
+                if quadratic {
+                    crate::mesher::sphere_shell_quadratic(ri, ro, target(5000)?)
+                } else {
+                    crate::mesher::sphere_shell(ri, ro, target(5000)?)
+                }
             }
             "box" => {
                 let size = positive_vec("mesh.size", required("mesh.size", m.size)?, unit)?;
@@ -763,15 +784,10 @@ fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError
             }
         },
     };
-    let mesh = match m.order.unwrap_or(1) {
-        1 => mesh,
-        2 => mesh.to_quadratic(),
-        other => {
-            return Err(ModelError::field(
-                "mesh.order",
-                format!("must be 1 (linear) or 2 (quadratic), got {other}"),
-            ));
-        }
+    let mesh = if quadratic && !mesh.is_quadratic() {
+        mesh.to_quadratic()
+    } else {
+        mesh
     };
     Ok((mesh, unit))
 }

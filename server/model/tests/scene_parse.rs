@@ -338,3 +338,25 @@ fn user_scenes_can_pick_builtin_meshes() {
         "mesh.outer_radius"
     );
 }
+
+#[test]
+fn mesh_order_two_gives_quadratic_elements_and_other_orders_are_refused() {
+    let base = "[mesh]\nbuiltin = \"box\"\nsize = [0.01, 0.01, 0.01]\ncells = [2, 2, 2]\n\
+                [material]\nyoungs_modulus_pa = 1e4\npoisson_ratio = 0.3\ndensity_kg_per_m3 = 1000.0\n";
+    let quad = parse(&base.replace("[material]", "order = 2\n[material]")).unwrap();
+    assert!(quad.mesh.is_quadratic());
+    assert_eq!(quad.mesh.tet_edge_nodes.len(), quad.mesh.tet_count());
+    // 27 corner nodes + one per edge of the 3x3x3 grid of the Kuhn subdivision.
+    assert!(quad.mesh.node_count() > 27);
+    assert!(!parse(base).unwrap().mesh.is_quadratic());
+    assert_eq!(
+        field_of(parse(&base.replace("[material]", "order = 3\n[material]"))),
+        "mesh.order"
+    );
+    let lv = parse(
+        "[mesh]\nbuiltin = \"lv\"\ntarget_tets = 300\norder = 2\n[material]\n\
+         youngs_modulus_pa = 1e4\npoisson_ratio = 0.3\ndensity_kg_per_m3 = 1000.0\n",
+    )
+    .unwrap();
+    assert!(lv.mesh.is_quadratic());
+}
