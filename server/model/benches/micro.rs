@@ -20,7 +20,9 @@ fn main() {
 
 /// Meshes: structured LV at about N tets (`lvN`), `lv_h1` (`lv_h1.msh`, or the structured
 /// `lv_shell(18000)` when the shared data is absent), and quadratic elements (`lvNq`).
-const SIZES: [&str; 6] = ["lv1000", "lv2000", "lv10000", "lv_h1", "lv500q", "lv1000q"];
+const SIZES: [&str; 7] = [
+    "lv1000", "lv2000", "lv10000", "lv_h1", "lv300q", "lv500q", "lv1000q",
+];
 
 fn scene(name: &str) -> Scene {
     if name == "lv_h1" {
@@ -39,7 +41,11 @@ fn scene(name: &str) -> Scene {
 /// A simulation pressed 3 mm into the epicardium at the equator (200 ticks to get there), so
 /// that forces and ticks are measured on a deformed body in contact.
 fn pressed(size: &str) -> (Simulation, TickInput) {
-    let mut sim = Simulation::new(&scene(size)).expect("simulation");
+    pressed_scene(&scene(size))
+}
+
+fn pressed_scene(scene: &Scene) -> (Simulation, TickInput) {
+    let mut sim = Simulation::new(scene).expect("simulation");
     let mut input = TickInput::default();
     for k in 0..200 {
         let depth = 0.003 * common::smoothstep(k as f64 / 150.0);
@@ -68,5 +74,30 @@ fn add_internal_forces(bencher: divan::Bencher, size: &str) {
 #[divan::bench(args = SIZES, sample_count = 20)]
 fn tick(bencher: divan::Bencher, size: &str) {
     let (mut sim, input) = pressed(size);
+    bencher.bench_local(|| sim.tick(divan::black_box(&input)).expect("tick"));
+}
+
+/// Integrators on the curved quadratic LV meshes: `mesh integrator safety-factor-or-CG-cap`.
+const QUADRATIC_RUNS: [&str; 6] = [
+    "lv300q symplectic-euler 0.9",
+    "lv500q symplectic-euler 0.9",
+    "lv500q symplectic-euler 0.5",
+    "lv500q backward-euler 5",
+    "lv500q backward-euler 8",
+    "lv500q semi-implicit 0.5",
+];
+
+#[divan::bench(args = QUADRATIC_RUNS, sample_count = 20)]
+fn tick_quadratic(bencher: divan::Bencher, run: &str) {
+    use haptic_model::integrator::IntegratorKind;
+    let f: Vec<&str> = run.split(' ').collect();
+    let mut sc = scene(f[0]);
+    sc.integrator.kind = IntegratorKind::from_name(f[1]).expect("integrator");
+    if sc.integrator.kind == IntegratorKind::BackwardEuler {
+        sc.integrator.cg_max_iterations = f[2].parse().expect("CG cap");
+    } else {
+        sc.integrator.safety_factor = f[2].parse().expect("safety factor");
+    }
+    let (mut sim, input) = pressed_scene(&sc);
     bencher.bench_local(|| sim.tick(divan::black_box(&input)).expect("tick"));
 }

@@ -1299,6 +1299,32 @@ fn main() {
         }
         return;
     }
+    if only == Some("lv-dyn") {
+        // Dynamic probe curves of given meshes and integrators (prints only):
+        // LV_DYN="tets:order:integrator:safety,..."
+        let spec = std::env::var("LV_DYN").unwrap_or_else(|_| "300:2:semi-implicit:0.5".into());
+        for item in spec.split(',') {
+            let f: Vec<&str> = item.split(':').collect();
+            let mut scene = lv_scene_order(f[0].parse().expect("tets"), f[1] == "2");
+            scene.integrator.kind = IntegratorKind::from_name(f[2]).expect("integrator");
+            scene.integrator.safety_factor = f.get(3).map_or(0.5, |v| v.parse().expect("sf"));
+            scene.integrator.cg_max_iterations = f.get(4).map_or(20, |v| v.parse().expect("cg"));
+            scene.integrator.max_substeps = 1000;
+            match probe_dynamic(&scene, false) {
+                Ok((c, mut ticks, sub)) => {
+                    ticks.sort_by(f64::total_cmp);
+                    println!(
+                        "lv-dyn {item}: {} nodes, {sub} sub-steps, tick p50 {:.0} us: {:?}",
+                        scene.mesh.node_count(),
+                        ticks[ticks.len() / 2],
+                        c.forces_n
+                    );
+                }
+                Err(e) => println!("lv-dyn {item}: {e}"),
+            }
+        }
+        return;
+    }
     if run("lv-probe") {
         scenario_lv(quick, fresh, &root.join("target/bench"), &mut rows);
     }

@@ -65,9 +65,10 @@ fn every_builtin_loads() {
     assert!((lv.material.mu_pa - 5000.0).abs() < 1e-9);
     assert!((lv.material.youngs_modulus_pa() - 14500.0).abs() < 1e-9);
     assert_eq!(lv.material.density_kg_per_m3, 1060.0);
-    assert_eq!(lv.integrator.kind, IntegratorKind::SemiImplicit);
+    assert_eq!(lv.integrator.kind, IntegratorKind::SymplecticEuler);
     assert_eq!(lv.length_unit_m, 1e-3);
-    assert!((700..=1300).contains(&lv.mesh.tet_count()));
+    assert!(lv.mesh.is_quadratic());
+    assert!((350..=650).contains(&lv.mesh.tet_count()));
     assert_eq!(
         lv.touchable.len(),
         lv.mesh.surface("EPI").unwrap().triangles.len()

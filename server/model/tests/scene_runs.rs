@@ -45,7 +45,7 @@ fn every_lv_mesh_file_loads_and_runs() {
 fn an_explicit_configuration_that_cannot_be_stable_is_refused() {
     let mut scene = load_builtin("lv").unwrap();
     scene.integrator.kind = IntegratorKind::SymplecticEuler;
-    // One sub-step of 1 ms is far above the ~0.2 ms critical step.
+    // One sub-step of 1 ms is far above the ~0.1 ms critical step.
     scene.integrator.substeps = Some(1);
     let err = Simulation::new(&scene).unwrap_err();
     assert!(matches!(err, ModelError::Unstable { .. }), "{err}");
@@ -64,5 +64,7 @@ fn an_explicit_configuration_that_cannot_be_stable_is_refused() {
     // And the automatic plan is stable by construction.
     scene.integrator.max_substeps = 64;
     let sim = Simulation::new(&scene).unwrap();
-    assert!(sim.plan().sub_dt_s <= 0.5 * sim.plan().critical_dt_s + 1e-15);
+    let sf = scene.integrator.safety_factor;
+    assert!(sf <= 0.9);
+    assert!(sim.plan().sub_dt_s <= sf * sim.plan().critical_dt_s + 1e-15);
 }
