@@ -457,6 +457,41 @@ impl QuadraticBatch {
     }
 }
 
+/// `y_a - y_0` (a = 1..9) of every lane of a quadratic batch, lane-innermost:
+/// `out[3 (a - 1) + c][l]` is component c for lane l. Scalar loads.
+#[inline(always)]
+fn gather_quadratic(batch: &QuadraticBatch, y: &[DVec3], out: &mut [[f64; LANES]; 27]) {
+    for (l, t) in batch.nodes.iter().enumerate() {
+        let y0 = y[t[0] as usize];
+        for a in 1..10 {
+            let d = y[t[a] as usize] - y0;
+            out[3 * (a - 1)][l] = d.x;
+            out[3 * (a - 1) + 1][l] = d.y;
+            out[3 * (a - 1) + 2][l] = d.z;
+        }
+    }
+}
+
+/// Adds the per-node vectors `h` of a quadratic batch (layout of [`gather_quadratic`]) to
+/// `out`: `out[n_a] += h_a` for a = 1..9 and `out[n_0] -= sum_a h_a`. Padding lanes carry
+/// zeros (zero gradients and weights), so adding them changes nothing.
+#[inline(always)]
+fn scatter_quadratic(batch: &QuadraticBatch, h: &[[f64; LANES]; 27], out: &mut [DVec3]) {
+    for (l, t) in batch.nodes.iter().enumerate() {
+        let mut sum = DVec3::ZERO;
+        for a in 1..10 {
+            let ha = DVec3::new(
+                h[3 * (a - 1)][l],
+                h[3 * (a - 1) + 1][l],
+                h[3 * (a - 1) + 2][l],
+            );
+            out[t[a] as usize] += ha;
+            sum += ha;
+        }
+        out[t[0] as usize] -= sum;
+    }
+}
+
 /// StVK (+ viscous) nodal forces of quadratic elements, added to `f` (see
 /// [`FemModel::add_internal_forces`]): per batch a scalar gather of `x_a - x_0` (a = 1..9),
 /// then per integration point `F = sum_a (x_a - x_0) (grad N_a)^T`, `P` by
@@ -472,23 +507,12 @@ fn stvk_forces_quadratic(
 ) {
     let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
     let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
-    let gather = |b: &QuadraticBatch, y: &[DVec3], out: &mut [[f64; LANES]; 27]| {
-        for (l, t) in b.nodes.iter().enumerate() {
-            let y0 = y[t[0] as usize];
-            for a in 1..10 {
-                let d = y[t[a] as usize] - y0;
-                out[3 * (a - 1)][l] = d.x;
-                out[3 * (a - 1) + 1][l] = d.y;
-                out[3 * (a - 1) + 2][l] = d.z;
-            }
-        }
-    };
     for batch in batches {
         let mut ds = [[0.0; LANES]; 27];
         let mut dv = [[0.0; LANES]; 27];
-        gather(batch, x, &mut ds);
+        gather_quadratic(batch, x, &mut ds);
         if let Some(v) = v {
-            gather(batch, v, &mut dv);
+            gather_quadratic(batch, v, &mut dv);
         }
         let mut h = [[0.0; LANES]; 27];
         for q in 0..4 {
@@ -537,19 +561,7 @@ fn stvk_forces_quadratic(
                 }
             }
         }
-        for (l, t) in batch.nodes.iter().enumerate() {
-            let mut sum = DVec3::ZERO;
-            for a in 1..10 {
-                let ha = DVec3::new(
-                    h[3 * (a - 1)][l],
-                    h[3 * (a - 1) + 1][l],
-                    h[3 * (a - 1) + 2][l],
-                );
-                f[t[a] as usize] += ha;
-                sum += ha;
-            }
-            f[t[0] as usize] -= sum;
-        }
+        scatter_quadratic(batch, &h, f);
     }
 }
 
@@ -599,15 +611,7 @@ fn stvk_operator_quadratic(
 ) {
     for (b, batch) in batches.iter().enumerate() {
         let mut dp = [[0.0; LANES]; 27];
-        for (l, t) in batch.nodes.iter().enumerate() {
-            let p0 = p[t[0] as usize];
-            for a in 1..10 {
-                let d = p[t[a] as usize] - p0;
-                dp[3 * (a - 1)][l] = d.x;
-                dp[3 * (a - 1) + 1][l] = d.y;
-                dp[3 * (a - 1) + 2][l] = d.z;
-            }
-        }
+        gather_quadratic(batch, p, &mut dp);
         let elements = &order[b * LANES..((b + 1) * LANES).min(order.len())];
         let mut h = [[0.0; LANES]; 27];
         for q in 0..4 {
@@ -682,19 +686,7 @@ fn stvk_operator_quadratic(
                 }
             }
         }
-        for (l, t) in batch.nodes.iter().enumerate().take(elements.len()) {
-            let mut sum = DVec3::ZERO;
-            for a in 1..10 {
-                let ha = DVec3::new(
-                    h[3 * (a - 1)][l],
-                    h[3 * (a - 1) + 1][l],
-                    h[3 * (a - 1) + 2][l],
-                );
-                out[t[a] as usize] += ha;
-                sum += ha;
-            }
-            out[t[0] as usize] -= sum;
-        }
+        scatter_quadratic(batch, &h, out);
     }
 }
 
