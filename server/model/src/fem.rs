@@ -492,6 +492,41 @@ fn scatter_quadratic(batch: &QuadraticBatch, h: &[[f64; LANES]; 27], out: &mut [
     }
 }
 
+/// Adds `sum_a d_a (grad N_a)^T` to `out` lane by lane (row-major 3x3, lanes innermost so
+/// that it vectorises): `d` from [`gather_quadratic`], `g` a batch's gradients at one
+/// integration point.
+#[inline(always)]
+fn lane_gradient(d: &[[f64; LANES]; 27], g: &[[f64; LANES]; 27], out: &mut [[f64; LANES]; 9]) {
+    for a in 0..9 {
+        for i in 0..3 {
+            for j in 0..3 {
+                let (da, gj) = (&d[3 * a + i], &g[3 * a + j]);
+                let o = &mut out[3 * i + j];
+                for l in 0..LANES {
+                    o[l] += da[l] * gj[l];
+                }
+            }
+        }
+    }
+}
+
+/// Adds `M grad N_a` to `h_a` (a = 1..9) lane by lane, `M` row-major per lane (already
+/// scaled by the integration weight): the scatter-side counterpart of [`lane_gradient`].
+#[inline(always)]
+fn lane_divergence(m: &[[f64; LANES]; 9], g: &[[f64; LANES]; 27], h: &mut [[f64; LANES]; 27]) {
+    for a in 0..9 {
+        for i in 0..3 {
+            let o = &mut h[3 * a + i];
+            for j in 0..3 {
+                let (mij, gj) = (&m[3 * i + j], &g[3 * a + j]);
+                for l in 0..LANES {
+                    o[l] += mij[l] * gj[l];
+                }
+            }
+        }
+    }
+}
+
 /// StVK (+ viscous) nodal forces of quadratic elements, added to `f` (see
 /// [`FemModel::add_internal_forces`]): per batch a scalar gather of `x_a - x_0` (a = 1..9),
 /// then per integration point `F = sum_a (x_a - x_0) (grad N_a)^T`, `P` by
@@ -520,22 +555,9 @@ fn stvk_forces_quadratic(
             // Every loop below has the lanes innermost, so that it vectorises.
             let mut fm = [[0.0; LANES]; 9];
             let mut fd = [[0.0; LANES]; 9];
-            for a in 0..9 {
-                for i in 0..3 {
-                    for j in 0..3 {
-                        let (d, gj) = (&ds[3 * a + i], &g[3 * a + j]);
-                        let o = &mut fm[3 * i + j];
-                        for l in 0..LANES {
-                            o[l] += d[l] * gj[l];
-                        }
-                        if v.is_some() {
-                            let (d, o) = (&dv[3 * a + i], &mut fd[3 * i + j]);
-                            for l in 0..LANES {
-                                o[l] += d[l] * gj[l];
-                            }
-                        }
-                    }
-                }
+            lane_gradient(&ds, g, &mut fm);
+            if v.is_some() {
+                lane_gradient(&dv, g, &mut fd);
             }
             // p[k][l] = -w P_k of lane l (row-major P).
             let mut p = [[0.0; LANES]; 9];
@@ -549,17 +571,7 @@ fn stvk_forces_quadratic(
                     p[k][l] = w * pl[k];
                 }
             }
-            for a in 0..9 {
-                for i in 0..3 {
-                    let o = &mut h[3 * a + i];
-                    for j in 0..3 {
-                        let (pk, gj) = (&p[3 * i + j], &g[3 * a + j]);
-                        for l in 0..LANES {
-                            o[l] += pk[l] * gj[l];
-                        }
-                    }
-                }
-            }
+            lane_divergence(&p, g, &mut h);
         }
         scatter_quadratic(batch, &h, f);
     }
@@ -617,17 +629,7 @@ fn stvk_operator_quadratic(
         for q in 0..4 {
             let g = &batch.grad[q];
             let mut df = [[0.0; LANES]; 9];
-            for a in 0..9 {
-                for i in 0..3 {
-                    for j in 0..3 {
-                        let (d, gj) = (&dp[3 * a + i], &g[3 * a + j]);
-                        let o = &mut df[3 * i + j];
-                        for l in 0..LANES {
-                            o[l] += d[l] * gj[l];
-                        }
-                    }
-                }
-            }
+            lane_gradient(&dp, g, &mut df);
             // Cached F and S of each lane's integration point, lane-innermost.
             let mut fm = [[0.0; LANES]; 9];
             let mut sm = [[0.0; LANES]; 9];
@@ -674,17 +676,7 @@ fn stvk_operator_quadratic(
                     }
                 }
             }
-            for a in 0..9 {
-                for i in 0..3 {
-                    let o = &mut h[3 * a + i];
-                    for j in 0..3 {
-                        let (pij, gj) = (&pk[3 * i + j], &g[3 * a + j]);
-                        for l in 0..LANES {
-                            o[l] += pij[l] * gj[l];
-                        }
-                    }
-                }
-            }
+            lane_divergence(&pk, g, &mut h);
         }
         scatter_quadratic(batch, &h, out);
     }
