@@ -130,6 +130,10 @@ pub struct Simulation {
     /// Surface used to place point loads (all boundary triangles not entirely clamped).
     load_surface: ContactSurface,
     loads: Vec<PointLoad>,
+    /// Extra force on the probe's contact patch (N) and its remaining time (s), see
+    /// [`Simulation::add_probe_load`].
+    probe_load_n: DVec3,
+    probe_load_remaining_s: f64,
     /// Surface for viewers: distinct boundary nodes and triangles indexing into them.
     surface_nodes: Vec<u32>,
     surface_triangles: Vec<[u32; 3]>,
@@ -215,6 +219,8 @@ impl Simulation {
             probe,
             load_surface: ContactSurface::new(load_tris, n),
             loads: Vec::with_capacity(MAX_POINT_LOADS),
+            probe_load_n: DVec3::ZERO,
+            probe_load_remaining_s: 0.0,
             surface_nodes,
             surface_triangles,
             scene_name: scene.name.clone(),
@@ -254,6 +260,12 @@ impl Simulation {
                         .probe
                         .update(&self.state.x, p, input.device_velocity_m_per_s);
                     self.probe.add_reaction(&mut self.force);
+                    if self.probe_load_remaining_s > 0.0 {
+                        let (nodes, weights) = self.probe.patch();
+                        for (&i, &w) in nodes.iter().zip(weights) {
+                            self.force[i as usize] += self.probe_load_n * w;
+                        }
+                    }
                     c
                 }
                 None => {
@@ -314,6 +326,12 @@ impl Simulation {
             l.remaining_s -= dt;
             l.remaining_s > 1e-12
         });
+        if self.probe_load_remaining_s > 0.0 {
+            self.probe_load_remaining_s -= dt;
+            if self.probe_load_remaining_s <= 1e-12 {
+                self.probe_load_remaining_s = 0.0;
+            }
+        }
         let out = TickOutput {
             force_on_device_n: contact.force_on_device_n,
             in_contact: contact.in_contact,
@@ -435,6 +453,34 @@ impl Simulation {
             remaining_s: duration_s,
         });
         Ok(())
+    }
+
+    /// Applies `force_n` (N) to the body at the probe for `duration_s` of simulated time: in every
+    /// sub-step in contact it is spread over the probe's contact patch with the same kernel
+    /// weights as the coupling reaction (the nodes within 2 r of the device point, see
+    /// [`crate::contact`]), so it follows the probe and never concentrates on one triangle. Out of
+    /// contact it does not act (its time still runs). The device is not told about it: this is an
+    /// external disturbance at the probe (the stability suite's 10-fold impulse), not a change of
+    /// the coupling. A new call replaces an active probe load. Allocation-free.
+    ///
+    /// Unlike [`Simulation::add_point_load`] (one surface triangle), the load is spread over the
+    /// probe's footprint: a force concentrated on the three nodes of a small triangle is a point
+    /// load in the continuum sense, whose local displacement grows without bound as the mesh is
+    /// refined.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] (state untouched) for a non-finite force, a force above
+    /// [`MAX_POINT_FORCE_N`] or a duration outside `(0, MAX_POINT_LOAD_DURATION_S]`.
+    pub fn add_probe_load(&mut self, force_n: DVec3, duration_s: f64) -> Result<(), ModelError> {
+        validate_point_load(DVec3::ZERO, force_n, duration_s)?;
+        self.probe_load_n = force_n;
+        self.probe_load_remaining_s = duration_s;
+        Ok(())
+    }
+
+    /// Remaining time of the probe load of [`Simulation::add_probe_load`], s (0 when none).
+    pub fn probe_load_remaining_s(&self) -> f64 {
+        self.probe_load_remaining_s
     }
 
     /// Number of point loads still active.

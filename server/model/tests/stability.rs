@@ -351,37 +351,28 @@ fn free_body_spinning_keeps_momentum_and_stays_rigid() {
 }
 
 #[test]
-fn ten_fold_impulse_settles_without_inversion_corotational_semi_implicit() {
-    ten_fold_impulse(&["corotational"], &[IntegratorKind::SemiImplicit]);
+fn ten_fold_impulse_settles_without_inversion_stvk() {
+    ten_fold_impulse("stvk");
 }
 
 #[test]
-fn ten_fold_impulse_settles_without_inversion_corotational_symplectic_euler() {
-    ten_fold_impulse(&["corotational"], &[IntegratorKind::SymplecticEuler]);
+fn ten_fold_impulse_settles_without_inversion_corotational() {
+    ten_fold_impulse("corotational");
 }
 
 #[test]
-fn ten_fold_impulse_settles_without_inversion_corotational_backward_euler() {
-    ten_fold_impulse(&["corotational"], &[IntegratorKind::BackwardEuler]);
-}
-
-#[test]
-fn ten_fold_impulse_is_reported_for_stvk_and_stable_neo_hookean() {
-    ten_fold_impulse(&["stvk", "stable-neo-hookean"], &ALL);
+fn ten_fold_impulse_settles_without_inversion_stable_neo_hookean() {
+    ten_fold_impulse("stable-neo-hookean");
 }
 
 /// Presses the LV epicardium 6 mm over 0.6 s, adds ten times the probe force at the probe for
 /// 5 ms at 0.8 s, releases over 0.9-1.5 s and lets the body settle until 3.5 s (the seed's
 /// semi-implicit scheme creeps back slowly: 1.9e-4 m were left at 2.5 s on the default
 /// quadratic mesh).
-fn ten_fold_impulse(models: &[&str], kinds: &[IntegratorKind]) {
+fn ten_fold_impulse(model: &str) {
     let mut failures = Vec::new();
-    for &model in models {
-        for &kind in kinds {
-            // StVK's outcome is the same under every scheme (inverted elements remain): one run.
-            if model == "stvk" && kind != IntegratorKind::SemiImplicit {
-                continue;
-            }
+    for kind in ALL {
+        {
             let mut scene = load_builtin("lv").unwrap();
             scene.material.model =
                 haptic_model::material::MaterialModel::from_scene_name(model).unwrap();
@@ -394,6 +385,8 @@ fn ten_fold_impulse(models: &[&str], kinds: &[IntegratorKind]) {
             };
             let mut hold = DVec3::ZERO;
             let mut max_disp: f64 = 0.0;
+            // Largest displacement when the impulse starts, and during it and the 20 ms after.
+            let (mut disp_at_hold, mut disp_impulse): (f64, f64) = (0.0, 0.0);
             let mut failed = None;
             for k in 0..3500 {
                 let out = sim.tick(&TickInput {
@@ -409,34 +402,43 @@ fn ten_fold_impulse(models: &[&str], kinds: &[IntegratorKind]) {
                 };
                 if k == 799 {
                     hold = out.force_on_device_n;
-                    // Ten times the probe force, at the probe, for 5 ms.
-                    sim.add_point_load(DVec3::new(0.0097, 0.0, -0.005), -hold * 10.0, 0.005)
-                        .unwrap();
+                    // Ten times the probe force, at the probe (over its contact patch), for 5 ms.
+                    sim.add_probe_load(-hold * 10.0, 0.005).unwrap();
+                    disp_at_hold = sim.max_displacement_m();
+                }
+                if (800..825).contains(&k) {
+                    disp_impulse = disp_impulse.max(sim.max_displacement_m());
                 }
                 max_disp = max_disp.max(sim.max_displacement_m());
             }
             let r = sim.stability();
             println!(
-                "10-fold impulse ({:.3} N for 5 ms) on lv, {model:<18} {:<16}: max displacement {max_disp:.3e} m, residual {:.3e} m, inverted {}, error {failed:?}",
+                "10-fold impulse ({:.3} N for 5 ms) on lv, {model:<18} {:<16}: displacement {disp_at_hold:.3e} m before, {disp_impulse:.3e} m during, max {max_disp:.3e} m, residual {:.3e} m, inverted {}, error {failed:?}",
                 10.0 * hold.length(),
                 kind.name(),
                 r.max_displacement_m,
                 r.inverted_elements
             );
             assert!(hold.length() > 0.03);
+            // The impulse acted: the body moved further (measured 8-50 % beyond the held
+            // indentation, least under eq. 34, which damps).
+            assert!(
+                disp_impulse > 1.05 * disp_at_hold,
+                "{disp_impulse} vs {disp_at_hold}"
+            );
             // Never NaN: finite, or the divergence is reported.
             assert!(r.finite || r.diverged_at_s.is_some());
-            // Corotational settles under every integrator. On the default quadratic mesh the
-            // 10-fold load acts on the three nodes of one small surface sub-triangle, and StVK
-            // and stable Neo-Hookean exceed the 100 m/s divergence limit there under every
-            // integrator (reported as Diverged, never NaN; on the former linear mesh StVK
-            // stayed bounded with inverted elements): printed, not asserted.
-            if model == "corotational"
-                && !(failed.is_none()
-                    && r.stable
-                    && max_disp < 0.03
-                    && r.inverted_elements == 0
-                    && r.max_displacement_m < 1e-4)
+            // Every material settles under every integrator (measured on the default quadratic
+            // mesh: at most 5.7 mm peak displacement, residual 5e-5 m for eq. 34 and 1.2e-7 m
+            // or less for the others, no inverted element). When the same load sat on the
+            // three nodes of one surface sub-triangle (`add_point_load`), StVK and stable
+            // Neo-Hookean exceeded the 100 m/s divergence limit: a point load is singular in
+            // the continuum, a probe is not.
+            if !(failed.is_none()
+                && r.stable
+                && max_disp < 0.03
+                && r.inverted_elements == 0
+                && r.max_displacement_m < 1e-4)
             {
                 failures.push(format!("{model} {}", kind.name()));
             }
@@ -567,12 +569,20 @@ fn absurd_inputs_are_rejected_without_touching_the_state() {
                 ),
                 "{p:?} {f:?} {d}"
             );
+            // The probe load has no point: every bad force or duration is refused too.
+            if p == DVec3::ZERO {
+                assert!(
+                    matches!(sim.add_probe_load(f, d), Err(ModelError::InvalidInput(_))),
+                    "{f:?} {d}"
+                );
+            }
         }
         let after = sim.state();
         assert_eq!(after.x, before.x);
         assert_eq!(after.v, before.v);
         assert_eq!(after.time_s, before.time_s);
         assert_eq!(sim.active_point_loads(), loads);
+        assert_eq!(sim.probe_load_remaining_s(), 0.0);
         assert!(sim.stability().stable);
         // The simulation still runs.
         sim.tick(&TickInput::default()).unwrap();
