@@ -1277,16 +1277,22 @@ fn main() {
     if only == Some("lv-study") {
         // Static probe curves of linear and quadratic elements on the LV meshes (a study of
         // the discretisation error; prints only).
-        let sizes: Vec<(usize, bool)> = std::env::var("LV_STUDY")
+        // `h1:1` is `lv_h1.msh` (17 924 linear tets) with the built-in lv material and probe.
+        let sizes: Vec<(String, bool)> = std::env::var("LV_STUDY")
             .unwrap_or_else(|_| "1000:1,1000:2,2000:2".into())
             .split(',')
             .map(|t| {
                 let (n, o) = t.split_once(':').expect("tets:order");
-                (n.parse().expect("tets"), o == "2")
+                (n.to_string(), o == "2")
             })
             .collect();
         for (tets, quad) in sizes {
-            let scene = lv_scene_order(tets, quad);
+            let scene = if tets == "h1" {
+                let mesh = common::lv_h1_scene().expect("lv_h1.msh").mesh;
+                common::lv_scene_on(if quad { mesh.to_quadratic() } else { mesh })
+            } else {
+                lv_scene_order(tets.parse().expect("tets"), quad)
+            };
             let t = Instant::now();
             let c = probe_static(&scene);
             println!(
