@@ -101,6 +101,62 @@ impl ContactSurface {
         }
     }
 
+    /// Collects the surface nodes within `reach_m` of `q` (m) reachable from triangle `seed`
+    /// over the vertex-to-triangle adjacency, with the kernel weights `(1 - d^2 / reach^2)^2`
+    /// normalised to sum 1, into `nodes` and `weights` (cleared first; empty when all weights
+    /// vanish). The weights go to zero at the rim, so a patch centre that moves makes the patch
+    /// change continuously. At most [`MAX_PATCH_NODES`] nodes; allocation-free when both
+    /// vectors have that capacity. Used for the probe's contact patch and for point loads.
+    pub fn gather_kernel_patch(
+        &self,
+        x: &[DVec3],
+        q: DVec3,
+        seed: u32,
+        reach_m: f64,
+        nodes: &mut Vec<u32>,
+        weights: &mut Vec<f64>,
+    ) {
+        let r2 = reach_m * reach_m;
+        nodes.clear();
+        weights.clear();
+        for &i in &self.triangles[seed as usize] {
+            if (x[i as usize] - q).length_squared() < r2 && !nodes.contains(&i) {
+                nodes.push(i);
+            }
+        }
+        let mut head = 0;
+        while head < nodes.len() {
+            let node = nodes[head] as usize;
+            head += 1;
+            let (lo, hi) = (self.node_offsets[node], self.node_offsets[node + 1]);
+            for &t in &self.node_tris[lo as usize..hi as usize] {
+                for &j in &self.triangles[t as usize] {
+                    if nodes.len() < MAX_PATCH_NODES
+                        && !nodes.contains(&j)
+                        && (x[j as usize] - q).length_squared() < r2
+                    {
+                        nodes.push(j);
+                    }
+                }
+            }
+        }
+        let mut sum = 0.0;
+        for &i in nodes.iter() {
+            let u = 1.0 - (x[i as usize] - q).length_squared() / r2;
+            let w = u * u;
+            weights.push(w);
+            sum += w;
+        }
+        if !(sum > 0.0) {
+            nodes.clear();
+            weights.clear();
+            return;
+        }
+        for w in weights.iter_mut() {
+            *w /= sum;
+        }
+    }
+
     /// Closest point of triangle `k` to `q` on positions `x`.
     #[inline]
     pub fn closest_on(&self, k: u32, x: &[DVec3], q: DVec3) -> SurfacePoint {
@@ -442,55 +498,17 @@ impl Probe {
         self.state.force_on_device_n = n * phi.clamp(0.0, p.max_force_n);
     }
 
-    /// Collects the contact patch around the device point `q`: the touchable nodes within
-    /// `PATCH_RADIUS_FACTOR * r` of `q` reachable from triangle `seed`, with the kernel weights
-    /// `(1 - d^2 / R^2)^2` normalised to sum 1 (empty when all weights vanish). The weights go to
-    /// zero at the rim, so the patch plane moves continuously as nodes enter and leave.
-    /// Allocation-free (fixed capacity [`MAX_PATCH_NODES`]).
+    /// Collects the contact patch around the device point `q` (see
+    /// [`ContactSurface::gather_kernel_patch`], radius `PATCH_RADIUS_FACTOR * r`).
     fn gather_patch(&mut self, x: &[DVec3], q: DVec3, seed: u32) {
-        let reach = PATCH_RADIUS_FACTOR * self.params.radius_m;
-        let r2 = reach * reach;
-        self.patch_nodes.clear();
-        self.patch_weights.clear();
-        for &i in &self.surface.triangles[seed as usize] {
-            if (x[i as usize] - q).length_squared() < r2 && !self.patch_nodes.contains(&i) {
-                self.patch_nodes.push(i);
-            }
-        }
-        let mut head = 0;
-        while head < self.patch_nodes.len() {
-            let node = self.patch_nodes[head] as usize;
-            head += 1;
-            let (lo, hi) = (
-                self.surface.node_offsets[node],
-                self.surface.node_offsets[node + 1],
-            );
-            for &t in &self.surface.node_tris[lo as usize..hi as usize] {
-                for &j in &self.surface.triangles[t as usize] {
-                    if self.patch_nodes.len() < MAX_PATCH_NODES
-                        && !self.patch_nodes.contains(&j)
-                        && (x[j as usize] - q).length_squared() < r2
-                    {
-                        self.patch_nodes.push(j);
-                    }
-                }
-            }
-        }
-        let mut sum = 0.0;
-        for &i in &self.patch_nodes {
-            let u = 1.0 - (x[i as usize] - q).length_squared() / r2;
-            let w = u * u;
-            self.patch_weights.push(w);
-            sum += w;
-        }
-        if !(sum > 0.0) {
-            self.patch_nodes.clear();
-            self.patch_weights.clear();
-            return;
-        }
-        for w in &mut self.patch_weights {
-            *w /= sum;
-        }
+        self.surface.gather_kernel_patch(
+            x,
+            q,
+            seed,
+            PATCH_RADIUS_FACTOR * self.params.radius_m,
+            &mut self.patch_nodes,
+            &mut self.patch_weights,
+        );
     }
 
     /// Nodes and weights (sum 1) of the current contact patch (empty out of contact).
