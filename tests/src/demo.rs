@@ -274,5 +274,45 @@ pub fn format_summary(v: &Value, summary_path: &Path) -> String {
         format!("bridge recording       {}", text("bridge_csv")),
         format!("summary                {}", summary_path.display()),
     ]
+    .into_iter()
+    .chain(overrun_hint(v))
+    .collect::<Vec<_>>()
     .join("\n")
+}
+
+/// A note for the summary when the median servo tick exceeded the 1 ms period: the loop could
+/// not keep 1 kHz on this machine. `None` otherwise.
+fn overrun_hint(v: &Value) -> Option<String> {
+    let p50_us = v["step_p50_us"].as_f64()?;
+    (p50_us > 1000.0).then(|| {
+        format!(
+            "\nnote: the median servo tick ({:.2} ms) exceeds the 1 ms period on this machine, so the\n\
+             loop ran at {} Hz instead of 1 kHz. The README's \"When the servo cannot keep 1 kHz\"\n\
+             lists cheaper scene settings and the accuracy they cost.",
+            p50_us / 1e3,
+            v["loop_rate_hz"]
+                .as_f64()
+                .map_or("-".to_string(), |r| format!("{r:.0}"))
+        )
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn the_summary_explains_a_servo_that_cannot_keep_1_khz() {
+        let path = Path::new("demo-out/summary.json");
+        let slow = json!({"step_p50_us": 1417.0, "loop_rate_hz": 760.7, "overruns": 4999});
+        let text = format_summary(&slow, path);
+        assert!(
+            text.contains("median servo tick (1.42 ms) exceeds"),
+            "{text}"
+        );
+        assert!(text.contains("loop ran at 761 Hz"), "{text}");
+        let fast = json!({"step_p50_us": 172.0, "loop_rate_hz": 999.1, "overruns": 4});
+        assert!(!format_summary(&fast, path).contains("note:"));
+    }
 }
