@@ -58,31 +58,30 @@ fn pressed_scene(scene: &Scene) -> (Simulation, TickInput) {
     (sim, input)
 }
 
-#[divan::bench(args = SIZES, sample_count = 30)]
-fn add_internal_forces(bencher: divan::Bencher, size: &str) {
+/// One force evaluation on the pressed body, with the viscous stress when `viscous`.
+fn bench_forces(bencher: divan::Bencher, size: &str, viscous: bool) {
     let (sim, _) = pressed(size);
     let n = sim.fem().node_count();
     let mut f = vec![DVec3::ZERO; n];
+    let velocities = viscous.then_some(sim.state().v.as_slice());
     bencher.counter(sim.fem().tets.len()).bench_local(|| {
         f.iter_mut().for_each(|v| *v = DVec3::ZERO);
         sim.fem()
-            .add_internal_forces(&sim.state().x, Some(&sim.state().v), &mut f);
+            .add_internal_forces(&sim.state().x, velocities, &mut f);
         divan::black_box(&f);
     });
+}
+
+#[divan::bench(args = SIZES, sample_count = 30)]
+fn add_internal_forces(bencher: divan::Bencher, size: &str) {
+    bench_forces(bencher, size, true);
 }
 
 /// The elastic force alone (no viscous stress), the quantity the peer comparison and the
 /// issue's 0.3 ms target on `lv_h1` name.
 #[divan::bench(args = SIZES, sample_count = 30)]
 fn add_elastic_forces(bencher: divan::Bencher, size: &str) {
-    let (sim, _) = pressed(size);
-    let n = sim.fem().node_count();
-    let mut f = vec![DVec3::ZERO; n];
-    bencher.counter(sim.fem().tets.len()).bench_local(|| {
-        f.iter_mut().for_each(|v| *v = DVec3::ZERO);
-        sim.fem().add_internal_forces(&sim.state().x, None, &mut f);
-        divan::black_box(&f);
-    });
+    bench_forces(bencher, size, false);
 }
 
 #[divan::bench(args = SIZES, sample_count = 20)]

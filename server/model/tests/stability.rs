@@ -372,76 +372,74 @@ fn ten_fold_impulse_settles_without_inversion_stable_neo_hookean() {
 fn ten_fold_impulse(model: &str) {
     let mut failures = Vec::new();
     for kind in ALL {
-        {
-            let mut scene = load_builtin("lv").unwrap();
-            scene.material.model =
-                haptic_model::material::MaterialModel::from_scene_name(model).unwrap();
-            scene.integrator.kind = kind;
-            let mut sim = Simulation::new(&scene).unwrap();
-            let device = |k: usize| {
-                let t = k as f64 * 1e-3;
-                let depth = 0.006 * ((t / 0.6).min(1.0) - ((t - 0.9) / 0.6).clamp(0.0, 1.0));
-                DVec3::new(0.014 - depth, 0.0, -0.005)
+        let mut scene = load_builtin("lv").unwrap();
+        scene.material.model =
+            haptic_model::material::MaterialModel::from_scene_name(model).unwrap();
+        scene.integrator.kind = kind;
+        let mut sim = Simulation::new(&scene).unwrap();
+        let device = |k: usize| {
+            let t = k as f64 * 1e-3;
+            let depth = 0.006 * ((t / 0.6).min(1.0) - ((t - 0.9) / 0.6).clamp(0.0, 1.0));
+            DVec3::new(0.014 - depth, 0.0, -0.005)
+        };
+        let mut hold = DVec3::ZERO;
+        let mut max_disp: f64 = 0.0;
+        // Largest displacement when the impulse starts, and during it and the 20 ms after.
+        let (mut disp_at_hold, mut disp_impulse): (f64, f64) = (0.0, 0.0);
+        let mut failed = None;
+        for k in 0..3500 {
+            let out = sim.tick(&TickInput {
+                device_position_m: Some(device(k)),
+                device_velocity_m_per_s: (device(k + 1) - device(k)) / 1e-3,
+            });
+            let out = match out {
+                Ok(o) => o,
+                Err(e) => {
+                    failed = Some(e);
+                    break;
+                }
             };
-            let mut hold = DVec3::ZERO;
-            let mut max_disp: f64 = 0.0;
-            // Largest displacement when the impulse starts, and during it and the 20 ms after.
-            let (mut disp_at_hold, mut disp_impulse): (f64, f64) = (0.0, 0.0);
-            let mut failed = None;
-            for k in 0..3500 {
-                let out = sim.tick(&TickInput {
-                    device_position_m: Some(device(k)),
-                    device_velocity_m_per_s: (device(k + 1) - device(k)) / 1e-3,
-                });
-                let out = match out {
-                    Ok(o) => o,
-                    Err(e) => {
-                        failed = Some(e);
-                        break;
-                    }
-                };
-                if k == 799 {
-                    hold = out.force_on_device_n;
-                    // Ten times the probe force, at the probe (over its contact patch), for 5 ms.
-                    sim.add_probe_load(-hold * 10.0, 0.005).unwrap();
-                    disp_at_hold = sim.max_displacement_m();
-                }
-                if (800..825).contains(&k) {
-                    disp_impulse = disp_impulse.max(sim.max_displacement_m());
-                }
-                max_disp = max_disp.max(sim.max_displacement_m());
+            if k == 799 {
+                hold = out.force_on_device_n;
+                // Ten times the probe force, at the probe (over its contact patch), for 5 ms.
+                sim.add_probe_load(-hold * 10.0, 0.005).unwrap();
+                disp_at_hold = sim.max_displacement_m();
             }
-            let r = sim.stability();
-            println!(
-                "10-fold impulse ({:.3} N for 5 ms) on lv, {model:<18} {:<16}: displacement {disp_at_hold:.3e} m before, {disp_impulse:.3e} m during, max {max_disp:.3e} m, residual {:.3e} m, inverted {}, error {failed:?}",
-                10.0 * hold.length(),
-                kind.name(),
-                r.max_displacement_m,
-                r.inverted_elements
-            );
-            assert!(hold.length() > 0.03);
-            // The impulse acted: the body moved further (measured 8-50 % beyond the held
-            // indentation, least under eq. 34, which damps).
-            assert!(
-                disp_impulse > 1.05 * disp_at_hold,
-                "{disp_impulse} vs {disp_at_hold}"
-            );
-            // Never NaN: finite, or the divergence is reported.
-            assert!(r.finite || r.diverged_at_s.is_some());
-            // Every material settles under every integrator (measured on the default quadratic
-            // mesh: at most 5.7 mm peak displacement, residual 5e-5 m for eq. 34 and 1.2e-7 m
-            // or less for the others, no inverted element). When the same load sat on the
-            // three nodes of one surface sub-triangle (`add_point_load`), StVK and stable
-            // Neo-Hookean exceeded the 100 m/s divergence limit: a point load is singular in
-            // the continuum, a probe is not.
-            if !(failed.is_none()
-                && r.stable
-                && max_disp < 0.03
-                && r.inverted_elements == 0
-                && r.max_displacement_m < 1e-4)
-            {
-                failures.push(format!("{model} {}", kind.name()));
+            if (800..825).contains(&k) {
+                disp_impulse = disp_impulse.max(sim.max_displacement_m());
             }
+            max_disp = max_disp.max(sim.max_displacement_m());
+        }
+        let r = sim.stability();
+        println!(
+            "10-fold impulse ({:.3} N for 5 ms) on lv, {model:<18} {:<16}: displacement {disp_at_hold:.3e} m before, {disp_impulse:.3e} m during, max {max_disp:.3e} m, residual {:.3e} m, inverted {}, error {failed:?}",
+            10.0 * hold.length(),
+            kind.name(),
+            r.max_displacement_m,
+            r.inverted_elements
+        );
+        assert!(hold.length() > 0.03);
+        // The impulse acted: the body moved further (measured 8-50 % beyond the held
+        // indentation, least under eq. 34, which damps).
+        assert!(
+            disp_impulse > 1.05 * disp_at_hold,
+            "{disp_impulse} vs {disp_at_hold}"
+        );
+        // Never NaN: finite, or the divergence is reported.
+        assert!(r.finite || r.diverged_at_s.is_some());
+        // Every material settles under every integrator (measured on the default quadratic
+        // mesh: at most 5.7 mm peak displacement, residual 5e-5 m for eq. 34 and 1.2e-7 m
+        // or less for the others, no inverted element). When the same load sat on the
+        // three nodes of one surface sub-triangle (`add_point_load`), StVK and stable
+        // Neo-Hookean exceeded the 100 m/s divergence limit: a point load is singular in
+        // the continuum, a probe is not.
+        if !(failed.is_none()
+            && r.stable
+            && max_disp < 0.03
+            && r.inverted_elements == 0
+            && r.max_displacement_m < 1e-4)
+        {
+            failures.push(format!("{model} {}", kind.name()));
         }
     }
     assert!(failures.is_empty(), "did not settle: {failures:?}");
