@@ -675,6 +675,11 @@ struct ProbeCurve {
 /// coupling force `k (r - s)` at the new positions. A bracketed regula falsi (Illinois) on `F`
 /// makes the two agree. Returns `Err` if Newton or the iteration fails.
 fn probe_static(scene: &Scene) -> Result<ProbeCurve, String> {
+    probe_static_at(scene, &DEPTHS_MM)
+}
+
+/// [`probe_static`] at the given depths, mm (increasing).
+fn probe_static_at(scene: &Scene, depths_mm: &[f64]) -> Result<ProbeCurve, String> {
     let mut fem = FemModel::new(&scene.mesh, scene.material).map_err(|e| e.to_string())?;
     fem.clamp_nodes(&scene.clamped_nodes);
     let mut probe = Probe::new(scene.probe, scene.touchable.clone(), &fem.rest);
@@ -692,12 +697,12 @@ fn probe_static(scene: &Scene) -> Result<ProbeCurve, String> {
     let mut normal = DVec3::ZERO;
     let debug = std::env::var_os("PRECISION_DEBUG").is_some();
     let (kc, r) = (scene.probe.coupling_stiffness_n_per_m, scene.probe.radius_m);
-    for (k, d) in DEPTHS_MM.iter().enumerate() {
+    for (k, d) in depths_mm.iter().enumerate() {
         let device = device_at(d * 1e-3);
         let mut f = if k == 0 {
-            0.005
+            0.005 * d / DEPTHS_MM[0]
         } else {
-            f_prev * (d / DEPTHS_MM[k - 1])
+            f_prev * (d / depths_mm[k - 1])
         };
         // Outer: freeze the probe patch (nodes, weights, normal) at the current positions; inner:
         // find the force F whose patch load puts the body where the frozen patch plane gives
@@ -1286,15 +1291,28 @@ fn main() {
                 (n.to_string(), o == "2")
             })
             .collect();
+        // LV_STUDY_NU overrides the Poisson ratio (E fixed); LV_STUDY_DEPTHS="0.5,1.5" the depths.
+        let nu: Option<f64> = std::env::var("LV_STUDY_NU")
+            .ok()
+            .map(|v| v.parse().expect("nu"));
+        let depths: Vec<f64> = std::env::var("LV_STUDY_DEPTHS").map_or(DEPTHS_MM.to_vec(), |v| {
+            v.split(',').map(|d| d.parse().expect("depth mm")).collect()
+        });
         for (tets, quad) in sizes {
-            let scene = if tets == "h1" {
+            let mut scene = if tets == "h1" {
                 let mesh = common::lv_h1_scene().expect("lv_h1.msh").mesh;
                 common::lv_scene_on(if quad { mesh.to_quadratic() } else { mesh })
             } else {
                 lv_scene_order(tets.parse().expect("tets"), quad)
             };
+            if let Some(nu) = nu {
+                let m = &mut scene.material;
+                let e = m.youngs_modulus_pa();
+                m.lambda_pa = e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu));
+                m.mu_pa = e / (2.0 * (1.0 + nu));
+            }
             let t = Instant::now();
-            let c = probe_static(&scene);
+            let c = probe_static_at(&scene, &depths);
             println!(
                 "lv-study {tets} tets order {}: {} nodes, {:.1} s: {:?}",
                 if quad { 2 } else { 1 },
