@@ -60,7 +60,10 @@ fn pressed_scene(scene: &Scene) -> (Simulation, TickInput) {
 
 /// One force evaluation on the pressed body, with the viscous stress when `viscous`.
 fn bench_forces(bencher: divan::Bencher, size: &str, viscous: bool) {
-    let (sim, _) = pressed(size);
+    bench_forces_of(bencher, pressed(size).0, viscous);
+}
+
+fn bench_forces_of(bencher: divan::Bencher, sim: Simulation, viscous: bool) {
     let n = sim.fem().node_count();
     let mut f = vec![DVec3::ZERO; n];
     let velocities = viscous.then_some(sim.state().v.as_slice());
@@ -82,6 +85,25 @@ fn add_internal_forces(bencher: divan::Bencher, size: &str) {
 #[divan::bench(args = SIZES, sample_count = 30)]
 fn add_elastic_forces(bencher: divan::Bencher, size: &str) {
     bench_forces(bencher, size, false);
+}
+
+/// Force evaluation (elastic + viscous) per material model: `mesh material`.
+const MATERIAL_RUNS: [&str; 6] = [
+    "lv500q stvk",
+    "lv500q stable-neo-hookean",
+    "lv500q corotational",
+    "lv_h1 stvk",
+    "lv_h1 stable-neo-hookean",
+    "lv_h1 corotational",
+];
+
+#[divan::bench(args = MATERIAL_RUNS, sample_count = 20)]
+fn add_internal_forces_material(bencher: divan::Bencher, run: &str) {
+    let (mesh, model) = run.split_once(' ').expect("mesh material");
+    let mut sc = scene(mesh);
+    sc.material.model =
+        haptic_model::material::MaterialModel::from_scene_name(model).expect("material");
+    bench_forces_of(bencher, pressed_scene(&sc).0, true);
 }
 
 #[divan::bench(args = SIZES, sample_count = 20)]

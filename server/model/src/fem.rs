@@ -210,13 +210,30 @@ impl ElementBatch {
     }
 }
 
-/// StVK first Piola-Kirchhoff stress `P = F (S_elastic + S_viscous)` of one lane, row-major
-/// (`fm[3 i + j] = F_ij`, `fd` = `dF/dt` likewise, or `None` without viscosity), Pa:
-/// `C = F^T F`, `S = mu (C - I) + lambda/2 (tr C - 3) I` (seed 000 eq. 9) plus
-/// `S_v = 2 psi nu + phi tr(nu) I`, `nu = F^T Fdot + Fdot^T F` (eq. 10-11). Written with
-/// fixed-size arrays so that the callers' loops over lanes vectorise.
+/// Material models with a vectorised lane kernel, the `MODEL` parameter of the batch kernels.
+const LANE_STVK: u8 = 0;
+/// See [`LANE_STVK`].
+const LANE_STABLE_NEO_HOOKEAN: u8 = 1;
+
+/// The `MODEL` of the lane kernels for `model`, or `None` (corotational: scalar path).
+fn lane_model(model: MaterialModel) -> Option<u8> {
+    match model {
+        MaterialModel::StVenantKirchhoff => Some(LANE_STVK),
+        MaterialModel::StableNeoHookean => Some(LANE_STABLE_NEO_HOOKEAN),
+        MaterialModel::Corotational => None,
+    }
+}
+
+/// First Piola-Kirchhoff stress `P = P_elastic + F S_viscous` of one lane, row-major
+/// (`fm[3 i + j] = F_ij`, `fd` = `dF/dt` likewise, or `None` without viscosity), Pa. Elastic
+/// part by `MODEL`: StVK `F S` with `C = F^T F`, `S = mu (C - I) + lambda/2 (tr C - 3) I`
+/// (seed 000 eq. 9); stable Neo-Hookean `mu F + lambda_s (J - alpha) cof F` (see
+/// [`MaterialModel::StableNeoHookean`]). Viscous `S_v = 2 psi nu + phi tr(nu) I`,
+/// `nu = F^T Fdot + Fdot^T F` (eq. 10-11). The same formulas as [`material::first_piola`] and
+/// [`material::viscous_stress`], written with fixed-size arrays so that the callers' loops over
+/// lanes vectorise.
 #[inline(always)]
-fn stvk_first_piola_lane<const FMA: bool>(
+fn first_piola_lane<const FMA: bool, const MODEL: u8>(
     fm: &[f64; 9],
     fd: Option<&[f64; 9]>,
     lambda: f64,
@@ -224,24 +241,29 @@ fn stvk_first_piola_lane<const FMA: bool>(
     phi: f64,
     psi: f64,
 ) -> [f64; 9] {
-    // C = F^T F (symmetric), S = mu (C - I) + lambda/2 (tr C - 3) I.
     let col = |j: usize| [fm[j], fm[3 + j], fm[6 + j]];
     let dot = dot3::<FMA>;
     let (c0, c1, c2) = (col(0), col(1), col(2));
-    let (c00, c11, c22) = (dot(c0, c0), dot(c1, c1), dot(c2, c2));
-    let (c01, c02, c12) = (dot(c0, c1), dot(c0, c2), dot(c1, c2));
-    let diag = 0.5 * lambda * (c00 + c11 + c22 - 3.0) - mu;
-    let mut s = [
-        mu * c00 + diag,
-        mu * c01,
-        mu * c02,
-        mu * c01,
-        mu * c11 + diag,
-        mu * c12,
-        mu * c02,
-        mu * c12,
-        mu * c22 + diag,
-    ];
+    // s: the symmetric stress multiplied by F from the left (StVK: S_elastic + S_v; stable
+    // Neo-Hookean: S_v only).
+    let mut s = [0.0; 9];
+    if MODEL == LANE_STVK {
+        // C = F^T F (symmetric), S = mu (C - I) + lambda/2 (tr C - 3) I.
+        let (c00, c11, c22) = (dot(c0, c0), dot(c1, c1), dot(c2, c2));
+        let (c01, c02, c12) = (dot(c0, c1), dot(c0, c2), dot(c1, c2));
+        let diag = 0.5 * lambda * (c00 + c11 + c22 - 3.0) - mu;
+        s = [
+            mu * c00 + diag,
+            mu * c01,
+            mu * c02,
+            mu * c01,
+            mu * c11 + diag,
+            mu * c12,
+            mu * c02,
+            mu * c12,
+            mu * c22 + diag,
+        ];
+    }
     if let Some(fd) = fd {
         // A = F^T Fdot, nu = A + A^T, S_v = 2 psi nu + phi tr(nu) I (eq. 10-11).
         let dcol = |j: usize| [fd[j], fd[3 + j], fd[6 + j]];
@@ -274,6 +296,26 @@ fn stvk_first_piola_lane<const FMA: bool>(
             );
         }
     }
+    if MODEL == LANE_STABLE_NEO_HOOKEAN {
+        // cof F: columns c1 x c2, c2 x c0, c0 x c1 (= J F^-T); J = c0 . (c1 x c2).
+        let cross = |a: [f64; 3], b: [f64; 3]| {
+            [
+                madd::<FMA>(a[1], b[2], -(a[2] * b[1])),
+                madd::<FMA>(a[2], b[0], -(a[0] * b[2])),
+                madd::<FMA>(a[0], b[1], -(a[1] * b[0])),
+            ]
+        };
+        let cof = [cross(c1, c2), cross(c2, c0), cross(c0, c1)];
+        let j = dot(c0, cof[0]);
+        let ls = lambda + mu;
+        let alpha = 1.0 + mu / ls;
+        let k = ls * (j - alpha);
+        for i in 0..3 {
+            for jj in 0..3 {
+                p[3 * i + jj] += madd::<FMA>(mu, fm[3 * i + jj], k * cof[jj][i]);
+            }
+        }
+    }
     p
 }
 
@@ -282,7 +324,7 @@ fn stvk_first_piola_lane<const FMA: bool>(
 /// lane-innermost arrays, the stress and `H = -V F S Dm^-T` computed lane by lane in a loop the
 /// compiler vectorises, then a scalar scatter (lanes may share nodes).
 #[inline(always)]
-fn stvk_forces_batched<const FMA: bool>(
+fn forces_batched<const FMA: bool, const MODEL: u8>(
     batches: &[ElementBatch],
     mat: &MaterialParams,
     x: &[DVec3],
@@ -317,7 +359,7 @@ fn stvk_forces_batched<const FMA: bool>(
             let f_l: [f64; 9] = std::array::from_fn(|k| fm[k][l]);
             let fd_l: [f64; 9] = std::array::from_fn(|k| fd[k][l]);
             let fd_l = v.is_some().then_some(&fd_l);
-            let pl = stvk_first_piola_lane::<FMA>(&f_l, fd_l, lambda, mu, phi, psi);
+            let pl = first_piola_lane::<FMA, MODEL>(&f_l, fd_l, lambda, mu, phi, psi);
             let w = -batch.volume_m3[l];
             for k in 0..9 {
                 p[k][l] = w * pl[k];
@@ -414,7 +456,7 @@ unsafe fn gather_edges_avx2(batch: &ElementBatch, y: &[DVec3], out: &mut [[f64; 
     }
 }
 
-/// [`stvk_forces_batched`] compiled for AVX-512 (F + VL) and FMA: one batch fills a zmm
+/// [`forces_batched`] compiled for AVX-512 (F + VL) and FMA: one batch fills a zmm
 /// register per quantity.
 ///
 /// # Safety
@@ -422,7 +464,7 @@ unsafe fn gather_edges_avx2(batch: &ElementBatch, y: &[DVec3], out: &mut [[f64; 
 /// must be below `x.len()` and `v.len()`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
-unsafe fn stvk_forces_avx512(
+unsafe fn forces_avx512<const MODEL: u8>(
     batches: &[ElementBatch],
     mat: &MaterialParams,
     x: &[DVec3],
@@ -430,19 +472,19 @@ unsafe fn stvk_forces_avx512(
     f: &mut [DVec3],
 ) {
     // SAFETY: AVX2 is enabled; node indices are below x.len() and v.len() (caller's contract).
-    stvk_forces_batched::<true>(batches, mat, x, v, f, |b, y, o| unsafe {
+    forces_batched::<true, MODEL>(batches, mat, x, v, f, |b, y, o| unsafe {
         gather_edges_avx2(b, y, o)
     });
 }
 
-/// [`stvk_forces_batched`] compiled for AVX2 + FMA.
+/// [`forces_batched`] compiled for AVX2 + FMA.
 ///
 /// # Safety
 /// The CPU must support AVX2 and FMA; every node index of `batches` must be below `x.len()`
 /// and `v.len()`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn stvk_forces_avx2(
+unsafe fn forces_avx2<const MODEL: u8>(
     batches: &[ElementBatch],
     mat: &MaterialParams,
     x: &[DVec3],
@@ -450,7 +492,7 @@ unsafe fn stvk_forces_avx2(
     f: &mut [DVec3],
 ) {
     // SAFETY: AVX2 is enabled; node indices are below x.len() and v.len() (caller's contract).
-    stvk_forces_batched::<true>(batches, mat, x, v, f, |b, y, o| unsafe {
+    forces_batched::<true, MODEL>(batches, mat, x, v, f, |b, y, o| unsafe {
         gather_edges_avx2(b, y, o)
     });
 }
@@ -578,10 +620,10 @@ fn lane_divergence<const FMA: bool>(
 /// StVK (+ viscous) nodal forces of quadratic elements, added to `f` (see
 /// [`FemModel::add_internal_forces`]): per batch a scalar gather of `x_a - x_0` (a = 1..9),
 /// then per integration point `F = sum_a (x_a - x_0) (grad N_a)^T`, `P` by
-/// [`stvk_first_piola_lane`] and `h_a -= w P grad N_a` lane by lane (vectorised), then one
+/// [`first_piola_lane`] and `h_a -= w P grad N_a` lane by lane (vectorised), then one
 /// scalar scatter per element (`f_0 -= sum_a h_a`).
 #[inline(always)]
-fn stvk_forces_quadratic<const FMA: bool>(
+fn forces_quadratic<const FMA: bool, const MODEL: u8>(
     batches: &[QuadraticBatch],
     mat: &MaterialParams,
     x: &[DVec3],
@@ -613,7 +655,7 @@ fn stvk_forces_quadratic<const FMA: bool>(
                 let f_l: [f64; 9] = std::array::from_fn(|k| fm[k][l]);
                 let fd_l: [f64; 9] = std::array::from_fn(|k| fd[k][l]);
                 let fd_l = v.is_some().then_some(&fd_l);
-                let pl = stvk_first_piola_lane::<FMA>(&f_l, fd_l, lambda, mu, phi, psi);
+                let pl = first_piola_lane::<FMA, MODEL>(&f_l, fd_l, lambda, mu, phi, psi);
                 let w = -batch.weight_m3[q][l];
                 for k in 0..9 {
                     p[k][l] = w * pl[k];
@@ -625,36 +667,36 @@ fn stvk_forces_quadratic<const FMA: bool>(
     }
 }
 
-/// [`stvk_forces_quadratic`] compiled for AVX-512.
+/// [`forces_quadratic`] compiled for AVX-512.
 ///
 /// # Safety
 /// The CPU must support AVX-512F, AVX-512VL, AVX2 and FMA.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
-unsafe fn stvk_forces_quadratic_avx512(
+unsafe fn forces_quadratic_avx512<const MODEL: u8>(
     batches: &[QuadraticBatch],
     mat: &MaterialParams,
     x: &[DVec3],
     v: Option<&[DVec3]>,
     f: &mut [DVec3],
 ) {
-    stvk_forces_quadratic::<true>(batches, mat, x, v, f);
+    forces_quadratic::<true, MODEL>(batches, mat, x, v, f);
 }
 
-/// [`stvk_forces_quadratic`] compiled for AVX2 + FMA.
+/// [`forces_quadratic`] compiled for AVX2 + FMA.
 ///
 /// # Safety
 /// The CPU must support AVX2 and FMA.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn stvk_forces_quadratic_avx2(
+unsafe fn forces_quadratic_avx2<const MODEL: u8>(
     batches: &[QuadraticBatch],
     mat: &MaterialParams,
     x: &[DVec3],
     v: Option<&[DVec3]>,
     f: &mut [DVec3],
 ) {
-    stvk_forces_quadratic::<true>(batches, mat, x, v, f);
+    forces_quadratic::<true, MODEL>(batches, mat, x, v, f);
 }
 
 /// Action of the backward Euler operator's element part on `p` for quadratic StVK elements,
@@ -987,7 +1029,20 @@ impl FemModel {
         // Also the safety precondition of the gathers of the vectorised kernels: every node
         // index is below n (checked in `new`).
         assert!(x.len() >= n && f.len() >= n && viscous.is_none_or(|v| v.len() >= n));
-        if self.is_quadratic() && mat.model == MaterialModel::StVenantKirchhoff {
+        match lane_model(mat.model) {
+            Some(LANE_STVK) => self.lane_forces::<LANE_STVK>(x, viscous, f),
+            Some(LANE_STABLE_NEO_HOOKEAN) => {
+                self.lane_forces::<LANE_STABLE_NEO_HOOKEAN>(x, viscous, f);
+            }
+            _ => self.generic_forces(x, viscous, f),
+        }
+    }
+
+    /// [`Self::add_internal_forces`] by the vectorised batch kernels of material `MODEL`
+    /// (linear or quadratic elements), the instruction set chosen at run time.
+    fn lane_forces<const MODEL: u8>(&self, x: &[DVec3], v: Option<&[DVec3]>, f: &mut [DVec3]) {
+        let mat = &self.material;
+        if self.is_quadratic() {
             #[cfg(target_arch = "x86_64")]
             if std::is_x86_feature_detected!("avx512f")
                 && std::is_x86_feature_detected!("avx512vl")
@@ -995,18 +1050,44 @@ impl FemModel {
                 && std::is_x86_feature_detected!("fma")
             {
                 // SAFETY: all four features were detected on this CPU just above.
-                unsafe { stvk_forces_quadratic_avx512(&self.quad_batches, mat, x, viscous, f) };
+                unsafe { forces_quadratic_avx512::<MODEL>(&self.quad_batches, mat, x, v, f) };
                 return;
             }
             #[cfg(target_arch = "x86_64")]
             if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
                 // SAFETY: both features were detected on this CPU just above.
-                unsafe { stvk_forces_quadratic_avx2(&self.quad_batches, mat, x, viscous, f) };
+                unsafe { forces_quadratic_avx2::<MODEL>(&self.quad_batches, mat, x, v, f) };
                 return;
             }
-            stvk_forces_quadratic::<false>(&self.quad_batches, mat, x, viscous, f);
+            forces_quadratic::<false, MODEL>(&self.quad_batches, mat, x, v, f);
             return;
         }
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx512f")
+            && std::is_x86_feature_detected!("avx512vl")
+            && std::is_x86_feature_detected!("avx2")
+            && std::is_x86_feature_detected!("fma")
+        {
+            // SAFETY: all four features were detected on this CPU just above; node indices
+            // are below n (checked in `new`), and x, v are at least n long (asserted by the
+            // caller).
+            unsafe { forces_avx512::<MODEL>(&self.batches, mat, x, v, f) };
+            return;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+            // SAFETY: both features were detected on this CPU just above; node indices are
+            // below n (checked in `new`), and x, v are at least n long (asserted by the caller).
+            unsafe { forces_avx2::<MODEL>(&self.batches, mat, x, v, f) };
+            return;
+        }
+        forces_batched::<false, MODEL>(&self.batches, mat, x, v, f, gather_edges_scalar);
+    }
+
+    /// [`Self::add_internal_forces`] element by element (integration point by integration point
+    /// for quadratic elements) with [`material::first_piola`]: the corotational material.
+    fn generic_forces(&self, x: &[DVec3], viscous: Option<&[DVec3]>, f: &mut [DVec3]) {
+        let mat = &self.material;
         if self.is_quadratic() {
             for q in 0..self.integration_point_count() {
                 let fm = self.ip_field_gradient(q, x);
@@ -1017,28 +1098,6 @@ impl FemModel {
                 }
                 self.ip_scatter(q, &(p * -self.points.weight_m3[q]), f);
             }
-            return;
-        }
-        if mat.model == MaterialModel::StVenantKirchhoff {
-            #[cfg(target_arch = "x86_64")]
-            if std::is_x86_feature_detected!("avx512f")
-                && std::is_x86_feature_detected!("avx512vl")
-                && std::is_x86_feature_detected!("avx2")
-                && std::is_x86_feature_detected!("fma")
-            {
-                // SAFETY: all four features were detected on this CPU just above; node indices
-                // are below n (checked in `new`), and x, v are at least n long (asserted).
-                unsafe { stvk_forces_avx512(&self.batches, mat, x, viscous, f) };
-                return;
-            }
-            #[cfg(target_arch = "x86_64")]
-            if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-                // SAFETY: both features were detected on this CPU just above; node indices are
-                // below n (checked in `new`), and x, v are at least n long (asserted).
-                unsafe { stvk_forces_avx2(&self.batches, mat, x, viscous, f) };
-                return;
-            }
-            stvk_forces_batched::<false>(&self.batches, mat, x, viscous, f, gather_edges_scalar);
             return;
         }
         for (e, t) in self.tets.iter().enumerate() {

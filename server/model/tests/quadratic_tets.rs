@@ -215,35 +215,55 @@ fn hrz_lumped_masses_sum_to_the_body_mass() {
     assert!((fem.deformed_volume_m3(&fem.rest) - 1e-6).abs() < 1e-18);
 }
 
-/// The vectorised StVK kernel of quadratic elements (elastic + viscous) against the
-/// integration-point formula written out with the public per-point API.
+/// The vectorised force kernels (StVK and stable Neo-Hookean, elastic + viscous, linear and
+/// quadratic elements; the corotational material has none) against the integration-point
+/// formula `f_a -= w (P(F) + F S_v(F, Fdot)) grad N_a` of the scalar material functions, on a
+/// large non-affine deformation with random velocities.
 #[test]
-fn vectorised_stvk_kernel_matches_the_integration_point_formula() {
+fn vectorised_kernels_match_the_integration_point_formula() {
     use haptic_model::material::{first_piola, viscous_stress};
     let mut rng = Rng(5);
-    let mesh = box_mesh(DVec3::splat(0.01), [2, 2, 3]).to_quadratic();
-    let mut mat = MaterialParams::from_youngs(1e4, 0.45, 1000.0);
-    mat.phi_pa_s = 0.3;
-    mat.psi_pa_s = 0.2;
-    let fem = FemModel::new(&mesh, mat).unwrap();
-    let x = deformed(&fem, &mut rng, 3e-4);
-    let v: Vec<DVec3> = (0..fem.node_count()).map(|_| rng.vec() * 0.1).collect();
-    let mut f = vec![DVec3::ZERO; fem.node_count()];
-    fem.add_internal_forces(&x, Some(&v), &mut f);
-    let mut expected = vec![DVec3::ZERO; fem.node_count()];
-    for q in 0..fem.integration_point_count() {
-        let fm = fem.ip_field_gradient(q, &x);
-        let fd = fem.ip_field_gradient(q, &v);
-        let p = first_piola(&mat, &fm) + fm * viscous_stress(&fm, &fd, mat.phi_pa_s, mat.psi_pa_s);
-        fem.ip_scatter(q, &(p * -fem.ip_weight_m3(q)), &mut expected);
+    for model in [
+        MaterialModel::StVenantKirchhoff,
+        MaterialModel::StableNeoHookean,
+    ] {
+        for quadratic in [false, true] {
+            let mesh = box_mesh(DVec3::splat(0.01), [2, 2, 3]);
+            let mesh = if quadratic { mesh.to_quadratic() } else { mesh };
+            let mut mat = MaterialParams::from_youngs(1e4, 0.45, 1000.0);
+            mat.model = model;
+            mat.phi_pa_s = 0.3;
+            mat.psi_pa_s = 0.2;
+            let fem = FemModel::new(&mesh, mat).unwrap();
+            let x = deformed(&fem, &mut rng, 3e-4);
+            let v: Vec<DVec3> = (0..fem.node_count()).map(|_| rng.vec() * 0.1).collect();
+            for velocities in [None, Some(v.as_slice())] {
+                let mut f = vec![DVec3::ZERO; fem.node_count()];
+                fem.add_internal_forces(&x, velocities, &mut f);
+                let mut expected = vec![DVec3::ZERO; fem.node_count()];
+                for q in 0..fem.integration_point_count() {
+                    let fm = fem.ip_field_gradient(q, &x);
+                    let mut p = first_piola(&mat, &fm);
+                    if let Some(v) = velocities {
+                        let fd = fem.ip_field_gradient(q, v);
+                        p += fm * viscous_stress(&fm, &fd, mat.phi_pa_s, mat.psi_pa_s);
+                    }
+                    fem.ip_scatter(q, &(p * -fem.ip_weight_m3(q)), &mut expected);
+                }
+                let scale = expected.iter().map(|a| a.length()).fold(0.0, f64::max);
+                let err = f
+                    .iter()
+                    .zip(&expected)
+                    .map(|(a, b)| (*a - *b).length())
+                    .fold(0.0, f64::max);
+                assert!(
+                    scale > 0.0 && err < 1e-12 * scale,
+                    "{model:?} quadratic={quadratic} viscous={}: {err:e} of {scale:e}",
+                    velocities.is_some()
+                );
+            }
+        }
     }
-    let scale = expected.iter().map(|a| a.length()).fold(0.0, f64::max);
-    let err = f
-        .iter()
-        .zip(&expected)
-        .map(|(a, b)| (*a - *b).length())
-        .fold(0.0, f64::max);
-    assert!(scale > 0.0 && err < 1e-12 * scale, "{err:e} of {scale:e}");
 }
 
 /// The vectorised backward Euler operator of quadratic StVK elements against the
