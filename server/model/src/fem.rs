@@ -319,6 +319,20 @@ fn first_piola_lane<const FMA: bool, const MODEL: u8>(
     p
 }
 
+/// Whether this CPU runs the AVX-512 kernels (AVX-512F + VL, AVX2, FMA); cached by std.
+#[cfg(target_arch = "x86_64")]
+fn has_avx512() -> bool {
+    std::is_x86_feature_detected!("avx512f")
+        && std::is_x86_feature_detected!("avx512vl")
+        && has_avx2_fma()
+}
+
+/// Whether this CPU runs the AVX2 + FMA kernels; cached by std.
+#[cfg(target_arch = "x86_64")]
+fn has_avx2_fma() -> bool {
+    std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
+}
+
 /// StVK (+ viscous) nodal forces of every batch, added to `f` (see
 /// [`FemModel::add_internal_forces`]). Per batch: a scalar gather of the edge vectors into
 /// lane-innermost arrays, the stress and `H = -V F S Dm^-T` computed lane by lane in a loop the
@@ -1044,17 +1058,13 @@ impl FemModel {
         let mat = &self.material;
         if self.is_quadratic() {
             #[cfg(target_arch = "x86_64")]
-            if std::is_x86_feature_detected!("avx512f")
-                && std::is_x86_feature_detected!("avx512vl")
-                && std::is_x86_feature_detected!("avx2")
-                && std::is_x86_feature_detected!("fma")
-            {
+            if has_avx512() {
                 // SAFETY: all four features were detected on this CPU just above.
                 unsafe { forces_quadratic_avx512::<MODEL>(&self.quad_batches, mat, x, v, f) };
                 return;
             }
             #[cfg(target_arch = "x86_64")]
-            if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+            if has_avx2_fma() {
                 // SAFETY: both features were detected on this CPU just above.
                 unsafe { forces_quadratic_avx2::<MODEL>(&self.quad_batches, mat, x, v, f) };
                 return;
@@ -1063,11 +1073,7 @@ impl FemModel {
             return;
         }
         #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx512f")
-            && std::is_x86_feature_detected!("avx512vl")
-            && std::is_x86_feature_detected!("avx2")
-            && std::is_x86_feature_detected!("fma")
-        {
+        if has_avx512() {
             // SAFETY: all four features were detected on this CPU just above; node indices
             // are below n (checked in `new`), and x, v are at least n long (asserted by the
             // caller).
@@ -1075,7 +1081,7 @@ impl FemModel {
             return;
         }
         #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+        if has_avx2_fma() {
             // SAFETY: both features were detected on this CPU just above; node indices are
             // below n (checked in `new`), and x, v are at least n long (asserted by the caller).
             unsafe { forces_avx2::<MODEL>(&self.batches, mat, x, v, f) };
@@ -1238,17 +1244,13 @@ impl FemModel {
         let c = (h2, lambda, mu);
         let (b, o) = (&self.quad_batches, &self.quad_order);
         #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx512f")
-            && std::is_x86_feature_detected!("avx512vl")
-            && std::is_x86_feature_detected!("avx2")
-            && std::is_x86_feature_detected!("fma")
-        {
+        if has_avx512() {
             // SAFETY: all four features were detected on this CPU just above.
             unsafe { stvk_operator_quadratic_avx512(b, o, ip_f, ip_s, c, p, out) };
             return true;
         }
         #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+        if has_avx2_fma() {
             // SAFETY: both features were detected on this CPU just above.
             unsafe { stvk_operator_quadratic_avx2(b, o, ip_f, ip_s, c, p, out) };
             return true;
