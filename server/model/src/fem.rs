@@ -288,12 +288,14 @@ fn first_piola_lane<const FMA: bool, const MODEL: u8>(
         s[7] += p2 * n12;
     }
     let mut p = [0.0; 9];
-    for i in 0..3 {
-        for j in 0..3 {
-            p[3 * i + j] = dot(
-                [fm[3 * i], fm[3 * i + 1], fm[3 * i + 2]],
-                [s[j], s[3 + j], s[6 + j]],
-            );
+    if MODEL == LANE_STVK || fd.is_some() {
+        for i in 0..3 {
+            for j in 0..3 {
+                p[3 * i + j] = dot(
+                    [fm[3 * i], fm[3 * i + 1], fm[3 * i + 2]],
+                    [s[j], s[3 + j], s[6 + j]],
+                );
+            }
         }
     }
     if MODEL == LANE_STABLE_NEO_HOOKEAN {
@@ -307,8 +309,7 @@ fn first_piola_lane<const FMA: bool, const MODEL: u8>(
         };
         let cof = [cross(c1, c2), cross(c2, c0), cross(c0, c1)];
         let j = dot(c0, cof[0]);
-        let ls = lambda + mu;
-        let alpha = 1.0 + mu / ls;
+        let (ls, alpha) = material::neo_hookean_params(lambda, mu);
         let k = ls * (j - alpha);
         for i in 0..3 {
             for jj in 0..3 {

@@ -392,7 +392,7 @@ pub fn first_piola(mat: &MaterialParams, f: &DMat3) -> DMat3 {
 
 /// `(lambda_s, alpha)` of the stable Neo-Hookean material, see [`MaterialModel::StableNeoHookean`].
 #[inline]
-fn neo_hookean_params(lambda: f64, mu: f64) -> (f64, f64) {
+pub(crate) fn neo_hookean_params(lambda: f64, mu: f64) -> (f64, f64) {
     let ls = lambda + mu;
     (ls, 1.0 + mu / ls)
 }
