@@ -320,6 +320,30 @@ fn first_piola_lane<const FMA: bool, const MODEL: u8>(
     p
 }
 
+/// `-w P` of every lane, `P` from [`first_piola_lane`]: `fm[3 i + j][l]` = `F_ij` of lane l,
+/// `fd` likewise `dF/dt` (or `None` without viscosity), `w[l]` the lane's volume or
+/// integration weight (m^3); `out[3 i + j][l]` = `-w P_ij` (N/m^2 times m^3).
+#[inline(always)]
+fn lane_first_piola<const FMA: bool, const MODEL: u8>(
+    fm: &[[f64; LANES]; 9],
+    fd: Option<&[[f64; LANES]; 9]>,
+    w: &[f64; LANES],
+    mat: &MaterialParams,
+    out: &mut [[f64; LANES]; 9],
+) {
+    let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
+    let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
+    for l in 0..LANES {
+        let f_l: [f64; 9] = std::array::from_fn(|k| fm[k][l]);
+        let fd_l: [f64; 9] = std::array::from_fn(|k| fd.map_or(0.0, |d| d[k][l]));
+        let fd_l = fd.is_some().then_some(&fd_l);
+        let pl = first_piola_lane::<FMA, MODEL>(&f_l, fd_l, lambda, mu, phi, psi);
+        for k in 0..9 {
+            out[k][l] = -w[l] * pl[k];
+        }
+    }
+}
+
 /// Whether this CPU runs the AVX-512 kernels (AVX-512F + VL, AVX2, FMA); cached by std.
 #[cfg(target_arch = "x86_64")]
 fn has_avx512() -> bool {
@@ -347,8 +371,6 @@ fn forces_batched<const FMA: bool, const MODEL: u8>(
     f: &mut [DVec3],
     gather: impl Fn(&ElementBatch, &[DVec3], &mut [[f64; LANES]; 9]),
 ) {
-    let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
-    let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
     for batch in batches {
         // ds[3 k + i][l]: component i of edge k (x_{k+1} - x_0) of lane l; dv likewise.
         let mut ds = [[0.0; LANES]; 9];
@@ -370,16 +392,7 @@ fn forces_batched<const FMA: bool, const MODEL: u8>(
         }
         // p[3 i + j][l] = -V P_ij of lane l.
         let mut p = [[0.0; LANES]; 9];
-        for l in 0..LANES {
-            let f_l: [f64; 9] = std::array::from_fn(|k| fm[k][l]);
-            let fd_l: [f64; 9] = std::array::from_fn(|k| fd[k][l]);
-            let fd_l = v.is_some().then_some(&fd_l);
-            let pl = first_piola_lane::<FMA, MODEL>(&f_l, fd_l, lambda, mu, phi, psi);
-            let w = -batch.volume_m3[l];
-            for k in 0..9 {
-                p[k][l] = w * pl[k];
-            }
-        }
+        lane_first_piola::<FMA, MODEL>(&fm, v.map(|_| &fd), &batch.volume_m3, mat, &mut p);
         // h[3 k + i][l] = sum_j p_ij (Dm^-1)_kj: the force on node k+1 of lane l.
         for k in 0..3 {
             for i in 0..3 {
@@ -645,8 +658,6 @@ fn forces_quadratic<const FMA: bool, const MODEL: u8>(
     v: Option<&[DVec3]>,
     f: &mut [DVec3],
 ) {
-    let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
-    let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
     for batch in batches {
         let mut ds = [[0.0; LANES]; 27];
         let mut dv = [[0.0; LANES]; 27];
@@ -666,16 +677,7 @@ fn forces_quadratic<const FMA: bool, const MODEL: u8>(
             }
             // p[k][l] = -w P_k of lane l (row-major P).
             let mut p = [[0.0; LANES]; 9];
-            for l in 0..LANES {
-                let f_l: [f64; 9] = std::array::from_fn(|k| fm[k][l]);
-                let fd_l: [f64; 9] = std::array::from_fn(|k| fd[k][l]);
-                let fd_l = v.is_some().then_some(&fd_l);
-                let pl = first_piola_lane::<FMA, MODEL>(&f_l, fd_l, lambda, mu, phi, psi);
-                let w = -batch.weight_m3[q][l];
-                for k in 0..9 {
-                    p[k][l] = w * pl[k];
-                }
-            }
+            lane_first_piola::<FMA, MODEL>(&fm, v.map(|_| &fd), &batch.weight_m3[q], mat, &mut p);
             lane_divergence::<FMA>(&p, g, &mut h);
         }
         scatter_quadratic(batch, &h, f);
