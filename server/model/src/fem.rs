@@ -35,6 +35,9 @@ use glam::{DMat3, DVec3};
 use crate::ModelError;
 use crate::material::{self, MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
+use crate::simd::Lane;
+#[cfg(target_arch = "x86_64")]
+use crate::simd::Zmm;
 
 /// Bit mask of constrained displacement components of a node: bit 0 = x, 1 = y, 2 = z.
 pub type ConstraintMask = u8;
@@ -110,19 +113,17 @@ fn quadratic_reference_gradients(l: [f64; 4]) -> [DVec3; 10] {
 /// registers).
 const LANES: usize = 8;
 
-/// `a * b + c`; fused (one rounding, one instruction) when `FMA`. The vectorised kernels are
-/// instantiated with `FMA = true` only inside functions compiled with the `fma` target
-/// feature: Rust never contracts `a * b + c` by itself, and elsewhere `f64::mul_add` would be a
-/// library call. Fusing cut the instruction count of the kernels by about a third.
+/// `a * b + c`; fused (one rounding, one instruction) when `FMA`, see [`Lane::madd`]. Fusing
+/// cut the instruction count of the kernels by about a third.
 #[inline(always)]
 fn madd<const FMA: bool>(a: f64, b: f64, c: f64) -> f64 {
-    if FMA { a.mul_add(b, c) } else { a * b + c }
+    f64::madd::<FMA>(a, b, c)
 }
 
-/// `a . b` of two 3-vectors with [`madd`].
+/// `a . b` of two 3-vectors with [`Lane::madd`].
 #[inline(always)]
-fn dot3<const FMA: bool>(a: [f64; 3], b: [f64; 3]) -> f64 {
-    madd::<FMA>(a[2], b[2], madd::<FMA>(a[1], b[1], a[0] * b[0]))
+fn dot3<const FMA: bool, T: Lane>(a: [T; 3], b: [T; 3]) -> T {
+    T::madd::<FMA>(a[2], b[2], T::madd::<FMA>(a[1], b[1], a[0] * b[0]))
 }
 
 /// [`LANES`] elements, structure-of-arrays: `dm_inv[3 r + c][lane]` is entry (r, c) of
@@ -233,35 +234,37 @@ fn lane_model(model: MaterialModel) -> Option<u8> {
 /// [`material::viscous_stress`], written with fixed-size arrays so that the callers' loops over
 /// lanes vectorise.
 #[inline(always)]
-fn first_piola_lane<const FMA: bool, const MODEL: u8>(
-    fm: &[f64; 9],
-    fd: Option<&[f64; 9]>,
+fn first_piola_lane<const FMA: bool, const MODEL: u8, T: Lane>(
+    fm: &[T; 9],
+    fd: Option<&[T; 9]>,
     lambda: f64,
     mu: f64,
     phi: f64,
     psi: f64,
-) -> [f64; 9] {
+) -> [T; 9] {
     let col = |j: usize| [fm[j], fm[3 + j], fm[6 + j]];
-    let dot = dot3::<FMA>;
+    let dot = dot3::<FMA, T>;
     let (c0, c1, c2) = (col(0), col(1), col(2));
+    let zero = T::splat(0.0);
+    let mu_v = T::splat(mu);
     // s: the symmetric stress multiplied by F from the left (StVK: S_elastic + S_v; stable
     // Neo-Hookean: S_v only).
-    let mut s = [0.0; 9];
+    let mut s = [zero; 9];
     if MODEL == LANE_STVK {
         // C = F^T F (symmetric), S = mu (C - I) + lambda/2 (tr C - 3) I.
         let (c00, c11, c22) = (dot(c0, c0), dot(c1, c1), dot(c2, c2));
         let (c01, c02, c12) = (dot(c0, c1), dot(c0, c2), dot(c1, c2));
-        let diag = 0.5 * lambda * (c00 + c11 + c22 - 3.0) - mu;
+        let diag = T::splat(0.5 * lambda) * (c00 + c11 + c22 - T::splat(3.0)) - mu_v;
         s = [
-            mu * c00 + diag,
-            mu * c01,
-            mu * c02,
-            mu * c01,
-            mu * c11 + diag,
-            mu * c12,
-            mu * c02,
-            mu * c12,
-            mu * c22 + diag,
+            T::madd::<FMA>(mu_v, c00, diag),
+            mu_v * c01,
+            mu_v * c02,
+            mu_v * c01,
+            T::madd::<FMA>(mu_v, c11, diag),
+            mu_v * c12,
+            mu_v * c02,
+            mu_v * c12,
+            T::madd::<FMA>(mu_v, c22, diag),
         ];
     }
     if let Some(fd) = fd {
@@ -269,25 +272,26 @@ fn first_piola_lane<const FMA: bool, const MODEL: u8>(
         let dcol = |j: usize| [fd[j], fd[3 + j], fd[6 + j]];
         let (d0, d1, d2) = (dcol(0), dcol(1), dcol(2));
         let a = |i: usize, j: usize| dot([c0, c1, c2][i], [d0, d1, d2][j]);
-        let n00 = 2.0 * a(0, 0);
-        let n11 = 2.0 * a(1, 1);
-        let n22 = 2.0 * a(2, 2);
+        let two = T::splat(2.0);
+        let n00 = two * a(0, 0);
+        let n11 = two * a(1, 1);
+        let n22 = two * a(2, 2);
         let n01 = a(0, 1) + a(1, 0);
         let n02 = a(0, 2) + a(2, 0);
         let n12 = a(1, 2) + a(2, 1);
-        let vd = phi * (n00 + n11 + n22);
-        let p2 = 2.0 * psi;
-        s[0] += p2 * n00 + vd;
-        s[4] += p2 * n11 + vd;
-        s[8] += p2 * n22 + vd;
-        s[1] += p2 * n01;
-        s[3] += p2 * n01;
-        s[2] += p2 * n02;
-        s[6] += p2 * n02;
-        s[5] += p2 * n12;
-        s[7] += p2 * n12;
+        let vd = T::splat(phi) * (n00 + n11 + n22);
+        let p2 = T::splat(2.0 * psi);
+        s[0] = s[0] + (T::madd::<FMA>(p2, n00, vd));
+        s[4] = s[4] + (T::madd::<FMA>(p2, n11, vd));
+        s[8] = s[8] + (T::madd::<FMA>(p2, n22, vd));
+        s[1] = s[1] + p2 * n01;
+        s[3] = s[3] + p2 * n01;
+        s[2] = s[2] + p2 * n02;
+        s[6] = s[6] + p2 * n02;
+        s[5] = s[5] + p2 * n12;
+        s[7] = s[7] + p2 * n12;
     }
-    let mut p = [0.0; 9];
+    let mut p = [zero; 9];
     if MODEL == LANE_STVK || fd.is_some() {
         for i in 0..3 {
             for j in 0..3 {
@@ -300,20 +304,21 @@ fn first_piola_lane<const FMA: bool, const MODEL: u8>(
     }
     if MODEL == LANE_STABLE_NEO_HOOKEAN {
         // cof F: columns c1 x c2, c2 x c0, c0 x c1 (= J F^-T); J = c0 . (c1 x c2).
-        let cross = |a: [f64; 3], b: [f64; 3]| {
+        let cross = |a: [T; 3], b: [T; 3]| {
             [
-                madd::<FMA>(a[1], b[2], -(a[2] * b[1])),
-                madd::<FMA>(a[2], b[0], -(a[0] * b[2])),
-                madd::<FMA>(a[0], b[1], -(a[1] * b[0])),
+                T::msub::<FMA>(a[1], b[2], a[2] * b[1]),
+                T::msub::<FMA>(a[2], b[0], a[0] * b[2]),
+                T::msub::<FMA>(a[0], b[1], a[1] * b[0]),
             ]
         };
         let cof = [cross(c1, c2), cross(c2, c0), cross(c0, c1)];
         let j = dot(c0, cof[0]);
         let (ls, alpha) = material::neo_hookean_params(lambda, mu);
-        let k = ls * (j - alpha);
+        let k = T::splat(ls) * (j - T::splat(alpha));
         for i in 0..3 {
             for jj in 0..3 {
-                p[3 * i + jj] += madd::<FMA>(mu, fm[3 * i + jj], k * cof[jj][i]);
+                p[3 * i + jj] =
+                    p[3 * i + jj] + T::madd::<FMA>(mu_v, fm[3 * i + jj], k * cof[jj][i]);
             }
         }
     }
@@ -337,7 +342,7 @@ fn lane_first_piola<const FMA: bool, const MODEL: u8>(
         let f_l: [f64; 9] = std::array::from_fn(|k| fm[k][l]);
         let fd_l: [f64; 9] = std::array::from_fn(|k| fd.map_or(0.0, |d| d[k][l]));
         let fd_l = fd.is_some().then_some(&fd_l);
-        let pl = first_piola_lane::<FMA, MODEL>(&f_l, fd_l, lambda, mu, phi, psi);
+        let pl = first_piola_lane::<FMA, MODEL, f64>(&f_l, fd_l, lambda, mu, phi, psi);
         for k in 0..9 {
             out[k][l] = -w[l] * pl[k];
         }
@@ -397,23 +402,129 @@ fn forces_batched<const FMA: bool, const MODEL: u8>(
         for k in 0..3 {
             for i in 0..3 {
                 for l in 0..LANES {
-                    h[3 * k + i][l] = dot3::<FMA>(
+                    h[3 * k + i][l] = dot3::<FMA, _>(
                         [p[3 * i][l], p[3 * i + 1][l], p[3 * i + 2][l]],
                         [bm[3 * k][l], bm[3 * k + 1][l], bm[3 * k + 2][l]],
                     );
                 }
             }
         }
-        for (l, t) in batch.nodes.iter().enumerate() {
-            let [a, b, c, d] = t.map(|i| i as usize);
-            let hk = |k: usize| DVec3::new(h[3 * k][l], h[3 * k + 1][l], h[3 * k + 2][l]);
-            let (h1, h2, h3) = (hk(0), hk(1), hk(2));
-            f[b] += h1;
-            f[c] += h2;
-            f[d] += h3;
-            f[a] -= h1 + h2 + h3;
+        scatter_linear(batch, &h, f);
+    }
+}
+
+/// Adds the nodal forces of a batch to `f`: `h[3 k + i][l]` is component i of the force on
+/// node k+1 of lane l; node 0 gets minus their sum. Scalar, since lanes may share nodes.
+#[inline(always)]
+fn scatter_linear(batch: &ElementBatch, h: &[[f64; LANES]; 9], f: &mut [DVec3]) {
+    for (l, t) in batch.nodes.iter().enumerate() {
+        let [a, b, c, d] = t.map(|i| i as usize);
+        let hk = |k: usize| DVec3::new(h[3 * k][l], h[3 * k + 1][l], h[3 * k + 2][l]);
+        let (h1, h2, h3) = (hk(0), hk(1), hk(2));
+        f[b] += h1;
+        f[c] += h2;
+        f[d] += h3;
+        f[a] -= h1 + h2 + h3;
+    }
+}
+
+/// [`forces_batched`] with every batch quantity in AVX-512 registers ([`Zmm`], one lane per
+/// element): AVX-512 gathers of the edge vectors, `F = Ds Dm^-1` (seed 000 eq. 21), the
+/// stress by [`first_piola_lane`] and `H = -V P Dm^-T` without leaving registers, then
+/// [`scatter_linear`].
+///
+/// # Safety
+/// The CPU must support AVX-512F, AVX-512VL, AVX2 and FMA; every node index of `batches`
+/// must be below `x.len()` and `v.len()`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+unsafe fn forces_zmm<const MODEL: u8>(
+    batches: &[ElementBatch],
+    mat: &MaterialParams,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    use std::arch::x86_64::{__m256i, _mm256_loadu_si256, _mm256_setzero_si256};
+    let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
+    let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
+    let zero = Zmm::splat(0.0);
+    for batch in batches {
+        let mut idx = [_mm256_setzero_si256(); 4];
+        for (i, row) in idx.iter_mut().zip(&batch.node3) {
+            // SAFETY: a row of node3 is LANES = 8 i32, one 256-bit load.
+            *i = unsafe { _mm256_loadu_si256(row.as_ptr().cast::<__m256i>()) };
+        }
+        let mut bm = [zero; 9];
+        for (b, row) in bm.iter_mut().zip(&batch.dm_inv) {
+            *b = Zmm::load(row);
+        }
+        // SAFETY: node indices are below x.len() (caller's contract).
+        let fm = edge_gradient_zmm(&unsafe { gather_edges_zmm(&idx, x) }, &bm);
+        // No closure (`v.map`): closures are not inlined into `target_feature` functions.
+        #[allow(clippy::manual_map)]
+        let fd = match v {
+            // SAFETY: node indices are below v.len() (caller's contract).
+            Some(v) => Some(edge_gradient_zmm(
+                &unsafe { gather_edges_zmm(&idx, v) },
+                &bm,
+            )),
+            None => None,
+        };
+        let p = first_piola_lane::<true, MODEL, Zmm>(&fm, fd.as_ref(), lambda, mu, phi, psi);
+        let w = zero - Zmm::load(&batch.volume_m3);
+        let mut h = [[0.0; LANES]; 9];
+        for k in 0..3 {
+            for i in 0..3 {
+                let hk = w * dot3::<true, Zmm>(
+                    [p[3 * i], p[3 * i + 1], p[3 * i + 2]],
+                    [bm[3 * k], bm[3 * k + 1], bm[3 * k + 2]],
+                );
+                hk.store(&mut h[3 * k + i]);
+            }
+        }
+        scatter_linear(batch, &h, f);
+    }
+}
+
+/// Edge vectors `y_{k+1} - y_0` of a batch by AVX-512 gathers: `out[3 k + i]` holds
+/// component i of edge k, one lane per element; `idx[k]` the f64 offsets `3 n` of node k.
+///
+/// # Safety
+/// AVX-512F must be available; every offset must address a node below `y.len()`.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn gather_edges_zmm(idx: &[std::arch::x86_64::__m256i; 4], y: &[DVec3]) -> [Zmm; 9] {
+    use std::arch::x86_64::_mm512_i32gather_pd;
+    // DVec3 is three packed f64 (repr(C)), so component c of node n is at 3 n + c.
+    let base = y.as_ptr().cast::<f64>();
+    let mut out = [Zmm::splat(0.0); 9];
+    for c in 0..3 {
+        // SAFETY: offsets + c stay inside y (caller's contract); AVX-512F is enabled.
+        unsafe {
+            let p = base.add(c);
+            let y0 = Zmm(_mm512_i32gather_pd::<8>(idx[0], p));
+            for k in 0..3 {
+                out[3 * k + c] = Zmm(_mm512_i32gather_pd::<8>(idx[k + 1], p)) - y0;
+            }
         }
     }
+    out
+}
+
+/// `F = Ds Dm^-1` in registers: `d` from [`gather_edges_zmm`], `bm[3 r + c]` entry (r, c)
+/// of `Dm^-1`; `F_ij = sum_k d[3 k + i] bm[3 k + j]`, row-major.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn edge_gradient_zmm(d: &[Zmm; 9], bm: &[Zmm; 9]) -> [Zmm; 9] {
+    let mut out = [Zmm::splat(0.0); 9];
+    for i in 0..3 {
+        for j in 0..3 {
+            out[3 * i + j] =
+                dot3::<true, Zmm>([d[i], d[3 + i], d[6 + i]], [bm[j], bm[3 + j], bm[6 + j]]);
+        }
+    }
+    out
 }
 
 /// `F = Ds Dm^-1` lane by lane (lanes innermost, so that it vectorises): `d[3 k + i][l]` is
@@ -429,7 +540,7 @@ fn lane_edge_gradient<const FMA: bool>(
     for i in 0..3 {
         for j in 0..3 {
             for l in 0..LANES {
-                out[3 * i + j][l] = dot3::<FMA>(
+                out[3 * i + j][l] = dot3::<FMA, _>(
                     [d[i][l], d[3 + i][l], d[6 + i][l]],
                     [bm[j][l], bm[3 + j][l], bm[6 + j][l]],
                 );
@@ -484,27 +595,6 @@ unsafe fn gather_edges_avx2(batch: &ElementBatch, y: &[DVec3], out: &mut [[f64; 
     }
 }
 
-/// [`forces_batched`] compiled for AVX-512 (F + VL) and FMA: one batch fills a zmm
-/// register per quantity.
-///
-/// # Safety
-/// The CPU must support AVX-512F, AVX-512VL, AVX2 and FMA; every node index of `batches`
-/// must be below `x.len()` and `v.len()`.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
-unsafe fn forces_avx512<const MODEL: u8>(
-    batches: &[ElementBatch],
-    mat: &MaterialParams,
-    x: &[DVec3],
-    v: Option<&[DVec3]>,
-    f: &mut [DVec3],
-) {
-    // SAFETY: AVX2 is enabled; node indices are below x.len() and v.len() (caller's contract).
-    forces_batched::<true, MODEL>(batches, mat, x, v, f, |b, y, o| unsafe {
-        gather_edges_avx2(b, y, o)
-    });
-}
-
 /// [`forces_batched`] compiled for AVX2 + FMA.
 ///
 /// # Safety
@@ -533,6 +623,8 @@ unsafe fn forces_avx2<const MODEL: u8>(
 #[derive(Debug, Clone)]
 struct QuadraticBatch {
     nodes: [[u32; 10]; LANES],
+    /// `3 * nodes[l][a]` at `node3[a][l]`: f64 offsets of the node coordinates, for gathers.
+    node3: [[i32; LANES]; 10],
     grad: [[[f64; LANES]; 27]; 4],
     weight_m3: [[f64; LANES]; 4],
 }
@@ -544,12 +636,16 @@ impl QuadraticBatch {
             .map(|chunk| {
                 let mut b = Self {
                     nodes: [[0; 10]; LANES],
+                    node3: [[0; LANES]; 10],
                     grad: [[[0.0; LANES]; 27]; 4],
                     weight_m3: [[0.0; LANES]; 4],
                 };
                 for (l, &e) in chunk.iter().enumerate() {
                     let e = e as usize;
                     b.nodes[l].copy_from_slice(&points.nodes[10 * e..10 * e + 10]);
+                    for (row, &node) in b.node3.iter_mut().zip(&b.nodes[l]) {
+                        row[l] = 3 * node as i32;
+                    }
                     for q in 0..4 {
                         let ip = 4 * e + q;
                         b.weight_m3[q][l] = points.weight_m3[ip];
@@ -684,20 +780,129 @@ fn forces_quadratic<const FMA: bool, const MODEL: u8>(
     }
 }
 
-/// [`forces_quadratic`] compiled for AVX-512.
+/// [`forces_quadratic`] with every batch quantity in AVX-512 registers ([`Zmm`], one lane
+/// per element): AVX-512 gathers of `x_a - x_0`, then per integration point
+/// `F = sum_a (x_a - x_0) (grad N_a)^T`, the stress by [`first_piola_lane`] and
+/// `h_a -= w P grad N_a`, then [`scatter_quadratic`].
 ///
 /// # Safety
-/// The CPU must support AVX-512F, AVX-512VL, AVX2 and FMA.
+/// The CPU must support AVX-512F, AVX-512VL, AVX2 and FMA; every node index of `batches`
+/// must be below `x.len()` and `v.len()`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
-unsafe fn forces_quadratic_avx512<const MODEL: u8>(
+unsafe fn forces_quadratic_zmm<const MODEL: u8>(
     batches: &[QuadraticBatch],
     mat: &MaterialParams,
     x: &[DVec3],
     v: Option<&[DVec3]>,
     f: &mut [DVec3],
 ) {
-    forces_quadratic::<true, MODEL>(batches, mat, x, v, f);
+    use std::arch::x86_64::{__m256i, _mm256_loadu_si256, _mm256_setzero_si256};
+    let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
+    let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
+    let zero = Zmm::splat(0.0);
+    for batch in batches {
+        let mut idx = [_mm256_setzero_si256(); 10];
+        for (i, row) in idx.iter_mut().zip(&batch.node3) {
+            // SAFETY: a row of node3 is LANES = 8 i32, one 256-bit load.
+            *i = unsafe { _mm256_loadu_si256(row.as_ptr().cast::<__m256i>()) };
+        }
+        // SAFETY: node indices are below x.len() and v.len() (caller's contract).
+        let d = unsafe { gather_quadratic_zmm(&idx, x) };
+        // No closure (`v.map`): closures are not inlined into `target_feature` functions.
+        #[allow(clippy::manual_map)]
+        let dv = match v {
+            // SAFETY: as above.
+            Some(v) => Some(unsafe { gather_quadratic_zmm(&idx, v) }),
+            None => None,
+        };
+        let mut h = [zero; 27];
+        for q in 0..4 {
+            let g = &batch.grad[q];
+            let fm = quadratic_gradient_zmm(&d, g);
+            #[allow(clippy::manual_map)]
+            let fd = match &dv {
+                Some(dv) => Some(quadratic_gradient_zmm(dv, g)),
+                None => None,
+            };
+            let p = first_piola_lane::<true, MODEL, Zmm>(&fm, fd.as_ref(), lambda, mu, phi, psi);
+            let w = zero - Zmm::load(&batch.weight_m3[q]);
+            let mut m = [zero; 9];
+            for k in 0..9 {
+                m[k] = w * p[k];
+            }
+            // h_a += M grad N_a.
+            for a in 0..9 {
+                let ga = [
+                    Zmm::load(&g[3 * a]),
+                    Zmm::load(&g[3 * a + 1]),
+                    Zmm::load(&g[3 * a + 2]),
+                ];
+                for i in 0..3 {
+                    h[3 * a + i] = Zmm::madd::<true>(
+                        m[3 * i + 2],
+                        ga[2],
+                        Zmm::madd::<true>(
+                            m[3 * i + 1],
+                            ga[1],
+                            Zmm::madd::<true>(m[3 * i], ga[0], h[3 * a + i]),
+                        ),
+                    );
+                }
+            }
+        }
+        let mut hs = [[0.0; LANES]; 27];
+        for k in 0..27 {
+            h[k].store(&mut hs[k]);
+        }
+        scatter_quadratic(batch, &hs, f);
+    }
+}
+
+/// `y_a - y_0` (a = 1..9) of a quadratic batch by AVX-512 gathers: `out[3 (a - 1) + c]`
+/// holds component c, one lane per element; `idx[a]` the f64 offsets `3 n` of node a.
+///
+/// # Safety
+/// AVX-512F must be available; every offset must address a node below `y.len()`.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn gather_quadratic_zmm(idx: &[std::arch::x86_64::__m256i; 10], y: &[DVec3]) -> [Zmm; 27] {
+    use std::arch::x86_64::_mm512_i32gather_pd;
+    // DVec3 is three packed f64 (repr(C)), so component c of node n is at 3 n + c.
+    let base = y.as_ptr().cast::<f64>();
+    let mut out = [Zmm::splat(0.0); 27];
+    for c in 0..3 {
+        // SAFETY: offsets + c stay inside y (caller's contract); AVX-512F is enabled.
+        unsafe {
+            let p = base.add(c);
+            let y0 = Zmm(_mm512_i32gather_pd::<8>(idx[0], p));
+            for a in 1..10 {
+                out[3 * (a - 1) + c] = Zmm(_mm512_i32gather_pd::<8>(idx[a], p)) - y0;
+            }
+        }
+    }
+    out
+}
+
+/// `F = sum_a d_a (grad N_a)^T` in registers, row-major: `d` from [`gather_quadratic_zmm`],
+/// `g` a batch's gradients at one integration point.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn quadratic_gradient_zmm(d: &[Zmm; 27], g: &[[f64; LANES]; 27]) -> [Zmm; 9] {
+    let mut out = [Zmm::splat(0.0); 9];
+    for a in 0..9 {
+        let ga = [
+            Zmm::load(&g[3 * a]),
+            Zmm::load(&g[3 * a + 1]),
+            Zmm::load(&g[3 * a + 2]),
+        ];
+        for i in 0..3 {
+            for j in 0..3 {
+                out[3 * i + j] = Zmm::madd::<true>(d[3 * a + i], ga[j], out[3 * i + j]);
+            }
+        }
+    }
+    out
 }
 
 /// [`forces_quadratic`] compiled for AVX2 + FMA.
@@ -759,10 +964,14 @@ fn stvk_operator_quadratic<const FMA: bool>(
                 let mut de = [0.0; 9];
                 for i in 0..3 {
                     for j in 0..3 {
-                        let a =
-                            dot3::<FMA>([f(0, i), f(1, i), f(2, i)], [d(0, j), d(1, j), d(2, j)]);
-                        let b =
-                            dot3::<FMA>([f(0, j), f(1, j), f(2, j)], [d(0, i), d(1, i), d(2, i)]);
+                        let a = dot3::<FMA, _>(
+                            [f(0, i), f(1, i), f(2, i)],
+                            [d(0, j), d(1, j), d(2, j)],
+                        );
+                        let b = dot3::<FMA, _>(
+                            [f(0, j), f(1, j), f(2, j)],
+                            [d(0, i), d(1, i), d(2, i)],
+                        );
                         de[3 * i + j] = 0.5 * (a + b);
                     }
                 }
@@ -777,12 +986,14 @@ fn stvk_operator_quadratic<const FMA: bool>(
                 let w = batch.weight_m3[q][l];
                 for i in 0..3 {
                     for j in 0..3 {
-                        let geo = dot3::<FMA>(
+                        let geo = dot3::<FMA, _>(
                             [d(i, 0), d(i, 1), d(i, 2)],
                             [sv(0, j), sv(1, j), sv(2, j)],
                         );
-                        let mat =
-                            dot3::<FMA>([f(i, 0), f(i, 1), f(i, 2)], [ds[j], ds[3 + j], ds[6 + j]]);
+                        let mat = dot3::<FMA, _>(
+                            [f(i, 0), f(i, 1), f(i, 2)],
+                            [ds[j], ds[3 + j], ds[6 + j]],
+                        );
                         let v = madd::<FMA>(h2, geo, mat);
                         pk[3 * i + j][l] = w * v;
                     }
@@ -1063,7 +1274,7 @@ impl FemModel {
             #[cfg(target_arch = "x86_64")]
             if has_avx512() {
                 // SAFETY: all four features were detected on this CPU just above.
-                unsafe { forces_quadratic_avx512::<MODEL>(&self.quad_batches, mat, x, v, f) };
+                unsafe { forces_quadratic_zmm::<MODEL>(&self.quad_batches, mat, x, v, f) };
                 return;
             }
             #[cfg(target_arch = "x86_64")]
@@ -1080,7 +1291,7 @@ impl FemModel {
             // SAFETY: all four features were detected on this CPU just above; node indices
             // are below n (checked in `new`), and x, v are at least n long (asserted by the
             // caller).
-            unsafe { forces_avx512::<MODEL>(&self.batches, mat, x, v, f) };
+            unsafe { forces_zmm::<MODEL>(&self.batches, mat, x, v, f) };
             return;
         }
         #[cfg(target_arch = "x86_64")]
@@ -1409,4 +1620,147 @@ fn gershgorin_bound(m: &DMat3) -> f64 {
     (0..3)
         .map(|r| m.row(r).abs().element_sum())
         .fold(0.0, f64::max)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesher::box_mesh;
+
+    /// A large non-affine deformation of the rest shape and pseudo-random velocities.
+    fn deformed_state(fem: &FemModel) -> (Vec<DVec3>, Vec<DVec3>) {
+        let mut seed = 7_u64;
+        let mut next = move || {
+            seed = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+            (seed >> 11) as f64 / (1_u64 << 53) as f64 - 0.5
+        };
+        let x = fem
+            .rest
+            .iter()
+            .map(|p| {
+                DVec3::new(
+                    p.x + 0.2 * p.y + 30.0 * p.z * p.z + 3e-4 * next(),
+                    0.9 * p.y - 0.1 * p.x + 3e-4 * next(),
+                    1.1 * p.z + 20.0 * p.x * p.y + 3e-4 * next(),
+                )
+            })
+            .collect();
+        let v = (0..fem.node_count())
+            .map(|_| DVec3::new(next(), next(), next()) * 0.2)
+            .collect();
+        (x, v)
+    }
+
+    /// Every instruction-set variant of the batch kernels that this CPU can run (AVX-512
+    /// registers, AVX2 + FMA, plain code) against the scalar element loop `generic_forces`
+    /// (`material::first_piola` per element or integration point), for StVK and stable
+    /// Neo-Hookean, linear and quadratic elements, with and without viscosity. The public
+    /// `add_internal_forces` runs only the best variant, so the others are checked here.
+    #[test]
+    fn every_kernel_variant_matches_the_scalar_element_loop() {
+        type Kernel = fn(&FemModel, &[DVec3], Option<&[DVec3]>, &mut [DVec3]);
+        fn plain<const MODEL: u8>(m: &FemModel, x: &[DVec3], v: Option<&[DVec3]>, f: &mut [DVec3]) {
+            if m.is_quadratic() {
+                forces_quadratic::<false, MODEL>(&m.quad_batches, &m.material, x, v, f);
+            } else {
+                forces_batched::<false, MODEL>(
+                    &m.batches,
+                    &m.material,
+                    x,
+                    v,
+                    f,
+                    gather_edges_scalar,
+                );
+            }
+        }
+        #[cfg(target_arch = "x86_64")]
+        fn avx2<const MODEL: u8>(m: &FemModel, x: &[DVec3], v: Option<&[DVec3]>, f: &mut [DVec3]) {
+            assert!(has_avx2_fma());
+            // SAFETY: features checked above; node indices checked by `FemModel::new`.
+            unsafe {
+                if m.is_quadratic() {
+                    forces_quadratic_avx2::<MODEL>(&m.quad_batches, &m.material, x, v, f);
+                } else {
+                    forces_avx2::<MODEL>(&m.batches, &m.material, x, v, f);
+                }
+            }
+        }
+        #[cfg(target_arch = "x86_64")]
+        fn zmm<const MODEL: u8>(m: &FemModel, x: &[DVec3], v: Option<&[DVec3]>, f: &mut [DVec3]) {
+            assert!(has_avx512());
+            // SAFETY: features checked above; node indices checked by `FemModel::new`.
+            unsafe {
+                if m.is_quadratic() {
+                    forces_quadratic_zmm::<MODEL>(&m.quad_batches, &m.material, x, v, f);
+                } else {
+                    forces_zmm::<MODEL>(&m.batches, &m.material, x, v, f);
+                }
+            }
+        }
+        let mut checked = 0;
+        for (model, kernels) in [
+            (MaterialModel::StVenantKirchhoff, {
+                let mut k: Vec<(&str, Kernel)> = vec![("plain", plain::<LANE_STVK>)];
+                #[cfg(target_arch = "x86_64")]
+                {
+                    if has_avx2_fma() {
+                        k.push(("avx2", avx2::<LANE_STVK>));
+                    }
+                    if has_avx512() {
+                        k.push(("avx512", zmm::<LANE_STVK>));
+                    }
+                }
+                k
+            }),
+            (MaterialModel::StableNeoHookean, {
+                let mut k: Vec<(&str, Kernel)> = vec![("plain", plain::<LANE_STABLE_NEO_HOOKEAN>)];
+                #[cfg(target_arch = "x86_64")]
+                {
+                    if has_avx2_fma() {
+                        k.push(("avx2", avx2::<LANE_STABLE_NEO_HOOKEAN>));
+                    }
+                    if has_avx512() {
+                        k.push(("avx512", zmm::<LANE_STABLE_NEO_HOOKEAN>));
+                    }
+                }
+                k
+            }),
+        ] {
+            for quadratic in [false, true] {
+                // 3 x 2 x 3 cells: 90 tets, so the last batch has padding lanes.
+                let mesh = box_mesh(DVec3::splat(0.01), [3, 2, 3]);
+                let mesh = if quadratic { mesh.to_quadratic() } else { mesh };
+                let mut mat = MaterialParams::from_youngs(1e4, 0.45, 1000.0);
+                mat.model = model;
+                mat.phi_pa_s = 0.3;
+                mat.psi_pa_s = 0.2;
+                let fem = FemModel::new(&mesh, mat).unwrap();
+                assert_ne!(fem.element_count() % LANES, 0, "want padding lanes");
+                let (x, v) = deformed_state(&fem);
+                for velocities in [None, Some(v.as_slice())] {
+                    let mut expected = vec![DVec3::ZERO; fem.node_count()];
+                    fem.generic_forces(&x, velocities, &mut expected);
+                    let scale = expected.iter().map(|a| a.length()).fold(0.0, f64::max);
+                    assert!(scale > 0.0);
+                    for (name, kernel) in &kernels {
+                        let mut f = vec![DVec3::ZERO; fem.node_count()];
+                        kernel(&fem, &x, velocities, &mut f);
+                        let err = f
+                            .iter()
+                            .zip(&expected)
+                            .map(|(a, b)| (*a - *b).length())
+                            .fold(0.0, f64::max);
+                        assert!(
+                            err < 1e-12 * scale,
+                            "{name} {model:?} quadratic={quadratic} viscous={}: {err:e} of {scale:e}",
+                            velocities.is_some()
+                        );
+                        checked += 1;
+                    }
+                }
+            }
+        }
+        // At least the plain variant of each of the 8 combinations.
+        assert!(checked >= 8);
+    }
 }

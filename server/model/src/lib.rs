@@ -35,6 +35,7 @@ pub mod mesh;
 pub mod mesher;
 pub mod scene;
 pub mod sim;
+mod simd;
 pub mod statics;
 
 pub use error::ModelError;
