@@ -35,9 +35,9 @@ use glam::{DMat3, DVec3};
 use crate::ModelError;
 use crate::material::{self, MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
-use crate::simd::Lane;
+use crate::simd::{Lane, Lanes8, Plain8};
 #[cfg(target_arch = "x86_64")]
-use crate::simd::Zmm;
+use crate::simd::{Ymm2, Zmm};
 
 /// Bit mask of constrained displacement components of a node: bit 0 = x, 1 = y, 2 = z.
 pub type ConstraintMask = u8;
@@ -113,17 +113,27 @@ fn quadratic_reference_gradients(l: [f64; 4]) -> [DVec3; 10] {
 /// registers).
 const LANES: usize = 8;
 
-/// `a * b + c`; fused (one rounding, one instruction) when `FMA`, see [`Lane::madd`]. Fusing
-/// cut the instruction count of the kernels by about a third.
-#[inline(always)]
-fn madd<const FMA: bool>(a: f64, b: f64, c: f64) -> f64 {
-    f64::madd::<FMA>(a, b, c)
-}
-
-/// `a . b` of two 3-vectors with [`Lane::madd`].
+/// `a . b` of two 3-vectors with [`Lane::madd`] (fused multiply-adds when `FMA`; Rust never
+/// contracts `a * b + c` by itself, and fusing cut the kernels' instruction count by a third).
 #[inline(always)]
 fn dot3<const FMA: bool, T: Lane>(a: [T; 3], b: [T; 3]) -> T {
     T::madd::<FMA>(a[2], b[2], T::madd::<FMA>(a[1], b[1], a[0] * b[0]))
+}
+
+/// Column `j` of a row-major 3x3 matrix.
+#[inline(always)]
+fn column<T: Copy>(m: &[T; 9], j: usize) -> [T; 3] {
+    [m[j], m[3 + j], m[6 + j]]
+}
+
+/// `a x b` with [`Lane::msub`].
+#[inline(always)]
+fn cross3<const FMA: bool, T: Lane>(a: [T; 3], b: [T; 3]) -> [T; 3] {
+    [
+        T::msub::<FMA>(a[1], b[2], a[2] * b[1]),
+        T::msub::<FMA>(a[2], b[0], a[0] * b[2]),
+        T::msub::<FMA>(a[0], b[1], a[1] * b[0]),
+    ]
 }
 
 /// [`LANES`] elements, structure-of-arrays: `dm_inv[3 r + c][lane]` is entry (r, c) of
@@ -242,9 +252,9 @@ fn first_piola_lane<const FMA: bool, const MODEL: u8, T: Lane>(
     phi: f64,
     psi: f64,
 ) -> [T; 9] {
-    let col = |j: usize| [fm[j], fm[3 + j], fm[6 + j]];
+    // No closures here: they are not inlined into the `target_feature` kernels.
     let dot = dot3::<FMA, T>;
-    let (c0, c1, c2) = (col(0), col(1), col(2));
+    let (c0, c1, c2) = (column(fm, 0), column(fm, 1), column(fm, 2));
     let zero = T::splat(0.0);
     let mu_v = T::splat(mu);
     // s: the symmetric stress multiplied by F from the left (StVK: S_elastic + S_v; stable
@@ -269,16 +279,14 @@ fn first_piola_lane<const FMA: bool, const MODEL: u8, T: Lane>(
     }
     if let Some(fd) = fd {
         // A = F^T Fdot, nu = A + A^T, S_v = 2 psi nu + phi tr(nu) I (eq. 10-11).
-        let dcol = |j: usize| [fd[j], fd[3 + j], fd[6 + j]];
-        let (d0, d1, d2) = (dcol(0), dcol(1), dcol(2));
-        let a = |i: usize, j: usize| dot([c0, c1, c2][i], [d0, d1, d2][j]);
+        let (d0, d1, d2) = (column(fd, 0), column(fd, 1), column(fd, 2));
         let two = T::splat(2.0);
-        let n00 = two * a(0, 0);
-        let n11 = two * a(1, 1);
-        let n22 = two * a(2, 2);
-        let n01 = a(0, 1) + a(1, 0);
-        let n02 = a(0, 2) + a(2, 0);
-        let n12 = a(1, 2) + a(2, 1);
+        let n00 = two * dot(c0, d0);
+        let n11 = two * dot(c1, d1);
+        let n22 = two * dot(c2, d2);
+        let n01 = dot(c0, d1) + dot(c1, d0);
+        let n02 = dot(c0, d2) + dot(c2, d0);
+        let n12 = dot(c1, d2) + dot(c2, d1);
         let vd = T::splat(phi) * (n00 + n11 + n22);
         let p2 = T::splat(2.0 * psi);
         s[0] = s[0] + (T::madd::<FMA>(p2, n00, vd));
@@ -304,13 +312,7 @@ fn first_piola_lane<const FMA: bool, const MODEL: u8, T: Lane>(
     }
     if MODEL == LANE_STABLE_NEO_HOOKEAN {
         // cof F: columns c1 x c2, c2 x c0, c0 x c1 (= J F^-T); J = c0 . (c1 x c2).
-        let cross = |a: [T; 3], b: [T; 3]| {
-            [
-                T::msub::<FMA>(a[1], b[2], a[2] * b[1]),
-                T::msub::<FMA>(a[2], b[0], a[0] * b[2]),
-                T::msub::<FMA>(a[0], b[1], a[1] * b[0]),
-            ]
-        };
+        let cross = cross3::<FMA, T>;
         let cof = [cross(c1, c2), cross(c2, c0), cross(c0, c1)];
         let j = dot(c0, cof[0]);
         let (ls, alpha) = material::neo_hookean_params(lambda, mu);
@@ -323,30 +325,6 @@ fn first_piola_lane<const FMA: bool, const MODEL: u8, T: Lane>(
         }
     }
     p
-}
-
-/// `-w P` of every lane, `P` from [`first_piola_lane`]: `fm[3 i + j][l]` = `F_ij` of lane l,
-/// `fd` likewise `dF/dt` (or `None` without viscosity), `w[l]` the lane's volume or
-/// integration weight (m^3); `out[3 i + j][l]` = `-w P_ij` (N/m^2 times m^3).
-#[inline(always)]
-fn lane_first_piola<const FMA: bool, const MODEL: u8>(
-    fm: &[[f64; LANES]; 9],
-    fd: Option<&[[f64; LANES]; 9]>,
-    w: &[f64; LANES],
-    mat: &MaterialParams,
-    out: &mut [[f64; LANES]; 9],
-) {
-    let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
-    let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
-    for l in 0..LANES {
-        let f_l: [f64; 9] = std::array::from_fn(|k| fm[k][l]);
-        let fd_l: [f64; 9] = std::array::from_fn(|k| fd.map_or(0.0, |d| d[k][l]));
-        let fd_l = fd.is_some().then_some(&fd_l);
-        let pl = first_piola_lane::<FMA, MODEL, f64>(&f_l, fd_l, lambda, mu, phi, psi);
-        for k in 0..9 {
-            out[k][l] = -w[l] * pl[k];
-        }
-    }
 }
 
 /// Whether this CPU runs the AVX-512 kernels (AVX-512F + VL, AVX2, FMA); cached by std.
@@ -363,50 +341,54 @@ fn has_avx2_fma() -> bool {
     std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
 }
 
-/// StVK (+ viscous) nodal forces of every batch, added to `f` (see
-/// [`FemModel::add_internal_forces`]). Per batch: a scalar gather of the edge vectors into
-/// lane-innermost arrays, the stress and `H = -V F S Dm^-T` computed lane by lane in a loop the
-/// compiler vectorises, then a scalar scatter (lanes may share nodes).
+/// StVK or stable Neo-Hookean (+ viscous) nodal forces of every batch of linear elements,
+/// added to `f` (see [`FemModel::add_internal_forces`]), with every batch quantity held in
+/// lane type `V` (one lane per element): gathers of the edge vectors, `F = Ds Dm^-1` (seed 000
+/// eq. 21), the stress by [`first_piola_lane`] and `H = -V P Dm^-T` (eq. 22) without leaving
+/// registers, then [`scatter_linear`].
+///
+/// # Safety
+/// The CPU must support the instructions of `V` (enabled in the caller); every node index of
+/// `batches` must be below `x.len()` and `v.len()`.
 #[inline(always)]
-fn forces_batched<const FMA: bool, const MODEL: u8>(
+unsafe fn forces_linear<const FMA: bool, const MODEL: u8, V: Lanes8>(
     batches: &[ElementBatch],
     mat: &MaterialParams,
     x: &[DVec3],
     v: Option<&[DVec3]>,
     f: &mut [DVec3],
-    gather: impl Fn(&ElementBatch, &[DVec3], &mut [[f64; LANES]; 9]),
 ) {
+    let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
+    let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
+    let zero = V::splat(0.0);
     for batch in batches {
-        // ds[3 k + i][l]: component i of edge k (x_{k+1} - x_0) of lane l; dv likewise.
-        let mut ds = [[0.0; LANES]; 9];
-        let mut dv = [[0.0; LANES]; 9];
-        gather(batch, x, &mut ds);
-        if let Some(v) = v {
-            gather(batch, v, &mut dv);
+        let mut bm = [zero; 9];
+        for (b, row) in bm.iter_mut().zip(&batch.dm_inv) {
+            *b = V::load(row);
         }
+        // SAFETY: node indices are below x.len() (caller's contract).
+        let fm = edge_gradient::<FMA, V>(&unsafe { gather_edges::<V>(batch, x) }, &bm);
+        // No closure (`v.map`): closures are not inlined into `target_feature` functions.
+        #[allow(clippy::manual_map)]
+        let fd = match v {
+            // SAFETY: node indices are below v.len() (caller's contract).
+            Some(v) => Some(edge_gradient::<FMA, V>(
+                &unsafe { gather_edges::<V>(batch, v) },
+                &bm,
+            )),
+            None => None,
+        };
+        let p = first_piola_lane::<FMA, MODEL, V>(&fm, fd.as_ref(), lambda, mu, phi, psi);
+        let w = zero - V::load(&batch.volume_m3);
         // h[3 k + i][l]: component i of the force on node k+1 of lane l.
         let mut h = [[0.0; LANES]; 9];
-        let bm = &batch.dm_inv;
-        // Every loop below has the lanes innermost, so that it vectorises (a lane loop around
-        // whole 3x3 products compiled to scalar code).
-        let mut fm = [[0.0; LANES]; 9];
-        let mut fd = [[0.0; LANES]; 9];
-        lane_edge_gradient::<FMA>(&ds, bm, &mut fm);
-        if v.is_some() {
-            lane_edge_gradient::<FMA>(&dv, bm, &mut fd);
-        }
-        // p[3 i + j][l] = -V P_ij of lane l.
-        let mut p = [[0.0; LANES]; 9];
-        lane_first_piola::<FMA, MODEL>(&fm, v.map(|_| &fd), &batch.volume_m3, mat, &mut p);
-        // h[3 k + i][l] = sum_j p_ij (Dm^-1)_kj: the force on node k+1 of lane l.
         for k in 0..3 {
             for i in 0..3 {
-                for l in 0..LANES {
-                    h[3 * k + i][l] = dot3::<FMA, _>(
-                        [p[3 * i][l], p[3 * i + 1][l], p[3 * i + 2][l]],
-                        [bm[3 * k][l], bm[3 * k + 1][l], bm[3 * k + 2][l]],
-                    );
-                }
+                let hk = w * dot3::<FMA, V>(
+                    [p[3 * i], p[3 * i + 1], p[3 * i + 2]],
+                    [bm[3 * k], bm[3 * k + 1], bm[3 * k + 2]],
+                );
+                hk.store(&mut h[3 * k + i]);
             }
         }
         scatter_linear(batch, &h, f);
@@ -428,191 +410,42 @@ fn scatter_linear(batch: &ElementBatch, h: &[[f64; LANES]; 9], f: &mut [DVec3]) 
     }
 }
 
-/// [`forces_batched`] with every batch quantity in AVX-512 registers ([`Zmm`], one lane per
-/// element): AVX-512 gathers of the edge vectors, `F = Ds Dm^-1` (seed 000 eq. 21), the
-/// stress by [`first_piola_lane`] and `H = -V P Dm^-T` without leaving registers, then
-/// [`scatter_linear`].
+/// Edge vectors `y_{k+1} - y_0` of a batch (`y` = positions or velocities) by gathers:
+/// `out[3 k + i]` holds component i of edge k, one lane per element.
 ///
 /// # Safety
-/// The CPU must support AVX-512F, AVX-512VL, AVX2 and FMA; every node index of `batches`
-/// must be below `x.len()` and `v.len()`.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
-unsafe fn forces_zmm<const MODEL: u8>(
-    batches: &[ElementBatch],
-    mat: &MaterialParams,
-    x: &[DVec3],
-    v: Option<&[DVec3]>,
-    f: &mut [DVec3],
-) {
-    use std::arch::x86_64::{__m256i, _mm256_loadu_si256, _mm256_setzero_si256};
-    let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
-    let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
-    let zero = Zmm::splat(0.0);
-    for batch in batches {
-        let mut idx = [_mm256_setzero_si256(); 4];
-        for (i, row) in idx.iter_mut().zip(&batch.node3) {
-            // SAFETY: a row of node3 is LANES = 8 i32, one 256-bit load.
-            *i = unsafe { _mm256_loadu_si256(row.as_ptr().cast::<__m256i>()) };
-        }
-        let mut bm = [zero; 9];
-        for (b, row) in bm.iter_mut().zip(&batch.dm_inv) {
-            *b = Zmm::load(row);
-        }
-        // SAFETY: node indices are below x.len() (caller's contract).
-        let fm = edge_gradient_zmm(&unsafe { gather_edges_zmm(&idx, x) }, &bm);
-        // No closure (`v.map`): closures are not inlined into `target_feature` functions.
-        #[allow(clippy::manual_map)]
-        let fd = match v {
-            // SAFETY: node indices are below v.len() (caller's contract).
-            Some(v) => Some(edge_gradient_zmm(
-                &unsafe { gather_edges_zmm(&idx, v) },
-                &bm,
-            )),
-            None => None,
-        };
-        let p = first_piola_lane::<true, MODEL, Zmm>(&fm, fd.as_ref(), lambda, mu, phi, psi);
-        let w = zero - Zmm::load(&batch.volume_m3);
-        let mut h = [[0.0; LANES]; 9];
-        for k in 0..3 {
-            for i in 0..3 {
-                let hk = w * dot3::<true, Zmm>(
-                    [p[3 * i], p[3 * i + 1], p[3 * i + 2]],
-                    [bm[3 * k], bm[3 * k + 1], bm[3 * k + 2]],
-                );
-                hk.store(&mut h[3 * k + i]);
-            }
-        }
-        scatter_linear(batch, &h, f);
-    }
-}
-
-/// Edge vectors `y_{k+1} - y_0` of a batch by AVX-512 gathers: `out[3 k + i]` holds
-/// component i of edge k, one lane per element; `idx[k]` the f64 offsets `3 n` of node k.
-///
-/// # Safety
-/// AVX-512F must be available; every offset must address a node below `y.len()`.
-#[cfg(target_arch = "x86_64")]
+/// As [`forces_linear`]: `V`'s instructions enabled, node indices below `y.len()`.
 #[inline(always)]
-unsafe fn gather_edges_zmm(idx: &[std::arch::x86_64::__m256i; 4], y: &[DVec3]) -> [Zmm; 9] {
-    use std::arch::x86_64::_mm512_i32gather_pd;
+unsafe fn gather_edges<V: Lanes8>(batch: &ElementBatch, y: &[DVec3]) -> [V; 9] {
     // DVec3 is three packed f64 (repr(C)), so component c of node n is at 3 n + c.
     let base = y.as_ptr().cast::<f64>();
-    let mut out = [Zmm::splat(0.0); 9];
+    let mut out = [V::splat(0.0); 9];
     for c in 0..3 {
-        // SAFETY: offsets + c stay inside y (caller's contract); AVX-512F is enabled.
+        // SAFETY: node3 holds 3 * (node index), so offset + c addresses a component of a node
+        // below y.len() (caller's contract).
         unsafe {
             let p = base.add(c);
-            let y0 = Zmm(_mm512_i32gather_pd::<8>(idx[0], p));
+            let y0 = V::gather(p, &batch.node3[0]);
             for k in 0..3 {
-                out[3 * k + c] = Zmm(_mm512_i32gather_pd::<8>(idx[k + 1], p)) - y0;
+                out[3 * k + c] = V::gather(p, &batch.node3[k + 1]) - y0;
             }
         }
     }
     out
 }
 
-/// `F = Ds Dm^-1` in registers: `d` from [`gather_edges_zmm`], `bm[3 r + c]` entry (r, c)
-/// of `Dm^-1`; `F_ij = sum_k d[3 k + i] bm[3 k + j]`, row-major.
-#[cfg(target_arch = "x86_64")]
+/// `F = Ds Dm^-1`: `d` from [`gather_edges`], `bm[3 r + c]` entry (r, c) of `Dm^-1`;
+/// `F_ij = sum_k d[3 k + i] bm[3 k + j]`, row-major (seed 000 eq. 21).
 #[inline(always)]
-fn edge_gradient_zmm(d: &[Zmm; 9], bm: &[Zmm; 9]) -> [Zmm; 9] {
-    let mut out = [Zmm::splat(0.0); 9];
+fn edge_gradient<const FMA: bool, V: Lanes8>(d: &[V; 9], bm: &[V; 9]) -> [V; 9] {
+    let mut out = [V::splat(0.0); 9];
     for i in 0..3 {
         for j in 0..3 {
             out[3 * i + j] =
-                dot3::<true, Zmm>([d[i], d[3 + i], d[6 + i]], [bm[j], bm[3 + j], bm[6 + j]]);
+                dot3::<FMA, V>([d[i], d[3 + i], d[6 + i]], [bm[j], bm[3 + j], bm[6 + j]]);
         }
     }
     out
-}
-
-/// `F = Ds Dm^-1` lane by lane (lanes innermost, so that it vectorises): `d[3 k + i][l]` is
-/// component i of edge k of lane l (from [`gather_edges_scalar`]), `bm[3 r + c][l]` entry
-/// (r, c) of `Dm^-1`; `out[3 i + j][l]` = `F_ij` (seed 000 eq. 21). A function, not a
-/// closure: closures are not inlined into the `target_feature` callers.
-#[inline(always)]
-fn lane_edge_gradient<const FMA: bool>(
-    d: &[[f64; LANES]; 9],
-    bm: &[[f64; LANES]; 9],
-    out: &mut [[f64; LANES]; 9],
-) {
-    for i in 0..3 {
-        for j in 0..3 {
-            for l in 0..LANES {
-                out[3 * i + j][l] = dot3::<FMA, _>(
-                    [d[i][l], d[3 + i][l], d[6 + i][l]],
-                    [bm[j][l], bm[3 + j][l], bm[6 + j][l]],
-                );
-            }
-        }
-    }
-}
-
-/// Edge vectors of a batch, lane-innermost: `out[3 k + i][l]` is component i of
-/// `y_{k+1} - y_0` of lane l (`y` = positions or velocities). Scalar loads.
-#[inline(always)]
-fn gather_edges_scalar(batch: &ElementBatch, y: &[DVec3], out: &mut [[f64; LANES]; 9]) {
-    for (l, t) in batch.nodes.iter().enumerate() {
-        let [a, b, c, d] = t.map(|i| i as usize);
-        let y0 = y[a];
-        for (k, n) in [b, c, d].into_iter().enumerate() {
-            let e = y[n] - y0;
-            out[3 * k][l] = e.x;
-            out[3 * k + 1][l] = e.y;
-            out[3 * k + 2][l] = e.z;
-        }
-    }
-}
-
-/// [`gather_edges_scalar`] with AVX2 gathers, four lanes per instruction.
-///
-/// # Safety
-/// The CPU must support AVX2; every node index of `batch` must be below `y.len()`.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-unsafe fn gather_edges_avx2(batch: &ElementBatch, y: &[DVec3], out: &mut [[f64; LANES]; 9]) {
-    use std::arch::x86_64::{
-        __m128i, _mm_loadu_si128, _mm256_i32gather_pd, _mm256_storeu_pd, _mm256_sub_pd,
-    };
-    // DVec3 is three packed f64 (repr(C)), so component c of node n is at 3 n + c.
-    let base = y.as_ptr().cast::<f64>();
-    for q in (0..LANES).step_by(4) {
-        // SAFETY: node3 holds 3 * node index for LANES lanes; q + 4 <= LANES; the indices
-        // address components of nodes below y.len() (caller's contract); AVX2 is enabled.
-        unsafe {
-            let idx = |k: usize| _mm_loadu_si128(batch.node3[k][q..].as_ptr().cast::<__m128i>());
-            let (i0, i1, i2, i3) = (idx(0), idx(1), idx(2), idx(3));
-            for c in 0..3 {
-                let p = base.add(c);
-                let y0 = _mm256_i32gather_pd::<8>(p, i0);
-                for (k, ik) in [i1, i2, i3].into_iter().enumerate() {
-                    let e = _mm256_sub_pd(_mm256_i32gather_pd::<8>(p, ik), y0);
-                    _mm256_storeu_pd(out[3 * k + c][q..].as_mut_ptr(), e);
-                }
-            }
-        }
-    }
-}
-
-/// [`forces_batched`] compiled for AVX2 + FMA.
-///
-/// # Safety
-/// The CPU must support AVX2 and FMA; every node index of `batches` must be below `x.len()`
-/// and `v.len()`.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn forces_avx2<const MODEL: u8>(
-    batches: &[ElementBatch],
-    mat: &MaterialParams,
-    x: &[DVec3],
-    v: Option<&[DVec3]>,
-    f: &mut [DVec3],
-) {
-    // SAFETY: AVX2 is enabled; node indices are below x.len() and v.len() (caller's contract).
-    forces_batched::<true, MODEL>(batches, mat, x, v, f, |b, y, o| unsafe {
-        gather_edges_avx2(b, y, o)
-    });
 }
 
 /// [`LANES`] quadratic elements, structure-of-arrays, for the vectorised StVK kernel of
@@ -663,22 +496,109 @@ impl QuadraticBatch {
     }
 }
 
-/// `y_a - y_0` (a = 1..9) of every lane of a quadratic batch, lane-innermost:
-/// `out[3 (a - 1) + c][l]` is component c for lane l. Scalar loads.
+/// StVK or stable Neo-Hookean (+ viscous) nodal forces of quadratic elements, added to `f`
+/// (see [`FemModel::add_internal_forces`]), every batch quantity held in lane type `V` (one
+/// lane per element): gathers of `x_a - x_0` (a = 1..9), then per integration point
+/// `F = sum_a (x_a - x_0) (grad N_a)^T`, the stress by [`first_piola_lane`] and
+/// `h_a -= w P grad N_a`, then [`scatter_quadratic`] (`f_0 -= sum_a h_a`).
+///
+/// # Safety
+/// As [`forces_linear`].
 #[inline(always)]
-fn gather_quadratic(batch: &QuadraticBatch, y: &[DVec3], out: &mut [[f64; LANES]; 27]) {
-    for (l, t) in batch.nodes.iter().enumerate() {
-        let y0 = y[t[0] as usize];
-        for a in 1..10 {
-            let d = y[t[a] as usize] - y0;
-            out[3 * (a - 1)][l] = d.x;
-            out[3 * (a - 1) + 1][l] = d.y;
-            out[3 * (a - 1) + 2][l] = d.z;
+unsafe fn forces_quadratic<const FMA: bool, const MODEL: u8, V: Lanes8>(
+    batches: &[QuadraticBatch],
+    mat: &MaterialParams,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
+    let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
+    let zero = V::splat(0.0);
+    for batch in batches {
+        // SAFETY: node indices are below x.len() and v.len() (caller's contract).
+        let d = unsafe { gather_quadratic::<V>(batch, x) };
+        // No closure (`v.map`): closures are not inlined into `target_feature` functions.
+        #[allow(clippy::manual_map)]
+        let dv = match v {
+            // SAFETY: as above.
+            Some(v) => Some(unsafe { gather_quadratic::<V>(batch, v) }),
+            None => None,
+        };
+        let mut h = [zero; 27];
+        for q in 0..4 {
+            let g = &batch.grad[q];
+            let fm = quadratic_gradient::<FMA, V>(&d, g);
+            #[allow(clippy::manual_map)]
+            let fd = match &dv {
+                Some(dv) => Some(quadratic_gradient::<FMA, V>(dv, g)),
+                None => None,
+            };
+            let p = first_piola_lane::<FMA, MODEL, V>(&fm, fd.as_ref(), lambda, mu, phi, psi);
+            let w = zero - V::load(&batch.weight_m3[q]);
+            let mut m = [zero; 9];
+            for (mk, pk) in m.iter_mut().zip(p) {
+                *mk = w * pk;
+            }
+            add_divergence::<FMA, V>(&m, g, &mut h);
+        }
+        store_scatter_quadratic(batch, &h, f);
+    }
+}
+
+/// `h_a += M grad N_a` (a = 1..9), `M` row-major (already scaled by the integration weight),
+/// `g` a batch's gradients at one integration point: the scatter-side counterpart of
+/// [`quadratic_gradient`].
+#[inline(always)]
+fn add_divergence<const FMA: bool, V: Lanes8>(m: &[V; 9], g: &[[f64; LANES]; 27], h: &mut [V; 27]) {
+    for a in 0..9 {
+        let ga = [
+            V::load(&g[3 * a]),
+            V::load(&g[3 * a + 1]),
+            V::load(&g[3 * a + 2]),
+        ];
+        for i in 0..3 {
+            let acc = V::madd::<FMA>(m[3 * i], ga[0], h[3 * a + i]);
+            let acc = V::madd::<FMA>(m[3 * i + 1], ga[1], acc);
+            h[3 * a + i] = V::madd::<FMA>(m[3 * i + 2], ga[2], acc);
         }
     }
 }
 
-/// Adds the per-node vectors `h` of a quadratic batch (layout of [`gather_quadratic`]) to
+/// [`scatter_quadratic`] of per-node vectors held in lanes (`h[3 (a - 1) + c]`).
+#[inline(always)]
+fn store_scatter_quadratic<V: Lanes8>(batch: &QuadraticBatch, h: &[V; 27], out: &mut [DVec3]) {
+    let mut hs = [[0.0; LANES]; 27];
+    for (row, hk) in hs.iter_mut().zip(h) {
+        hk.store(row);
+    }
+    scatter_quadratic(batch, &hs, out);
+}
+
+/// `y_a - y_0` (a = 1..9) of a quadratic batch by gathers: `out[3 (a - 1) + c]` holds
+/// component c, one lane per element.
+///
+/// # Safety
+/// As [`gather_edges`].
+#[inline(always)]
+unsafe fn gather_quadratic<V: Lanes8>(batch: &QuadraticBatch, y: &[DVec3]) -> [V; 27] {
+    // DVec3 is three packed f64 (repr(C)), so component c of node n is at 3 n + c.
+    let base = y.as_ptr().cast::<f64>();
+    let mut out = [V::splat(0.0); 27];
+    for c in 0..3 {
+        // SAFETY: as in `gather_edges`.
+        unsafe {
+            let p = base.add(c);
+            let y0 = V::gather(p, &batch.node3[0]);
+            for a in 1..10 {
+                out[3 * (a - 1) + c] = V::gather(p, &batch.node3[a]) - y0;
+            }
+        }
+    }
+    out
+}
+
+/// Adds the per-node vectors `h` of a quadratic batch (`h[3 (a - 1) + c][l]`: component c for lane l) to
 /// `out`: `out[n_a] += h_a` for a = 1..9 and `out[n_0] -= sum_a h_a`. Padding lanes carry
 /// zeros (zero gradients and weights), so adding them changes nothing.
 #[inline(always)]
@@ -698,233 +618,103 @@ fn scatter_quadratic(batch: &QuadraticBatch, h: &[[f64; LANES]; 27], out: &mut [
     }
 }
 
-/// Adds `sum_a d_a (grad N_a)^T` to `out` lane by lane (row-major 3x3, lanes innermost so
-/// that it vectorises): `d` from [`gather_quadratic`], `g` a batch's gradients at one
-/// integration point.
+/// `F = sum_a d_a (grad N_a)^T`, row-major: `d` from [`gather_quadratic`], `g` a batch's
+/// gradients at one integration point.
 #[inline(always)]
-fn lane_gradient<const FMA: bool>(
-    d: &[[f64; LANES]; 27],
-    g: &[[f64; LANES]; 27],
-    out: &mut [[f64; LANES]; 9],
-) {
-    for a in 0..9 {
-        for i in 0..3 {
-            for j in 0..3 {
-                let (da, gj) = (&d[3 * a + i], &g[3 * a + j]);
-                let o = &mut out[3 * i + j];
-                for l in 0..LANES {
-                    o[l] = madd::<FMA>(da[l], gj[l], o[l]);
-                }
-            }
-        }
-    }
-}
-
-/// Adds `M grad N_a` to `h_a` (a = 1..9) lane by lane, `M` row-major per lane (already
-/// scaled by the integration weight): the scatter-side counterpart of [`lane_gradient`].
-#[inline(always)]
-fn lane_divergence<const FMA: bool>(
-    m: &[[f64; LANES]; 9],
-    g: &[[f64; LANES]; 27],
-    h: &mut [[f64; LANES]; 27],
-) {
-    for a in 0..9 {
-        for i in 0..3 {
-            let o = &mut h[3 * a + i];
-            for j in 0..3 {
-                let (mij, gj) = (&m[3 * i + j], &g[3 * a + j]);
-                for l in 0..LANES {
-                    o[l] = madd::<FMA>(mij[l], gj[l], o[l]);
-                }
-            }
-        }
-    }
-}
-
-/// StVK (+ viscous) nodal forces of quadratic elements, added to `f` (see
-/// [`FemModel::add_internal_forces`]): per batch a scalar gather of `x_a - x_0` (a = 1..9),
-/// then per integration point `F = sum_a (x_a - x_0) (grad N_a)^T`, `P` by
-/// [`first_piola_lane`] and `h_a -= w P grad N_a` lane by lane (vectorised), then one
-/// scalar scatter per element (`f_0 -= sum_a h_a`).
-#[inline(always)]
-fn forces_quadratic<const FMA: bool, const MODEL: u8>(
-    batches: &[QuadraticBatch],
-    mat: &MaterialParams,
-    x: &[DVec3],
-    v: Option<&[DVec3]>,
-    f: &mut [DVec3],
-) {
-    for batch in batches {
-        let mut ds = [[0.0; LANES]; 27];
-        let mut dv = [[0.0; LANES]; 27];
-        gather_quadratic(batch, x, &mut ds);
-        if let Some(v) = v {
-            gather_quadratic(batch, v, &mut dv);
-        }
-        let mut h = [[0.0; LANES]; 27];
-        for q in 0..4 {
-            let g = &batch.grad[q];
-            // Every loop below has the lanes innermost, so that it vectorises.
-            let mut fm = [[0.0; LANES]; 9];
-            let mut fd = [[0.0; LANES]; 9];
-            lane_gradient::<FMA>(&ds, g, &mut fm);
-            if v.is_some() {
-                lane_gradient::<FMA>(&dv, g, &mut fd);
-            }
-            // p[k][l] = -w P_k of lane l (row-major P).
-            let mut p = [[0.0; LANES]; 9];
-            lane_first_piola::<FMA, MODEL>(&fm, v.map(|_| &fd), &batch.weight_m3[q], mat, &mut p);
-            lane_divergence::<FMA>(&p, g, &mut h);
-        }
-        scatter_quadratic(batch, &h, f);
-    }
-}
-
-/// [`forces_quadratic`] with every batch quantity in AVX-512 registers ([`Zmm`], one lane
-/// per element): AVX-512 gathers of `x_a - x_0`, then per integration point
-/// `F = sum_a (x_a - x_0) (grad N_a)^T`, the stress by [`first_piola_lane`] and
-/// `h_a -= w P grad N_a`, then [`scatter_quadratic`].
-///
-/// # Safety
-/// The CPU must support AVX-512F, AVX-512VL, AVX2 and FMA; every node index of `batches`
-/// must be below `x.len()` and `v.len()`.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
-unsafe fn forces_quadratic_zmm<const MODEL: u8>(
-    batches: &[QuadraticBatch],
-    mat: &MaterialParams,
-    x: &[DVec3],
-    v: Option<&[DVec3]>,
-    f: &mut [DVec3],
-) {
-    use std::arch::x86_64::{__m256i, _mm256_loadu_si256, _mm256_setzero_si256};
-    let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
-    let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
-    let zero = Zmm::splat(0.0);
-    for batch in batches {
-        let mut idx = [_mm256_setzero_si256(); 10];
-        for (i, row) in idx.iter_mut().zip(&batch.node3) {
-            // SAFETY: a row of node3 is LANES = 8 i32, one 256-bit load.
-            *i = unsafe { _mm256_loadu_si256(row.as_ptr().cast::<__m256i>()) };
-        }
-        // SAFETY: node indices are below x.len() and v.len() (caller's contract).
-        let d = unsafe { gather_quadratic_zmm(&idx, x) };
-        // No closure (`v.map`): closures are not inlined into `target_feature` functions.
-        #[allow(clippy::manual_map)]
-        let dv = match v {
-            // SAFETY: as above.
-            Some(v) => Some(unsafe { gather_quadratic_zmm(&idx, v) }),
-            None => None,
-        };
-        let mut h = [zero; 27];
-        for q in 0..4 {
-            let g = &batch.grad[q];
-            let fm = quadratic_gradient_zmm(&d, g);
-            #[allow(clippy::manual_map)]
-            let fd = match &dv {
-                Some(dv) => Some(quadratic_gradient_zmm(dv, g)),
-                None => None,
-            };
-            let p = first_piola_lane::<true, MODEL, Zmm>(&fm, fd.as_ref(), lambda, mu, phi, psi);
-            let w = zero - Zmm::load(&batch.weight_m3[q]);
-            let mut m = [zero; 9];
-            for k in 0..9 {
-                m[k] = w * p[k];
-            }
-            // h_a += M grad N_a.
-            for a in 0..9 {
-                let ga = [
-                    Zmm::load(&g[3 * a]),
-                    Zmm::load(&g[3 * a + 1]),
-                    Zmm::load(&g[3 * a + 2]),
-                ];
-                for i in 0..3 {
-                    h[3 * a + i] = Zmm::madd::<true>(
-                        m[3 * i + 2],
-                        ga[2],
-                        Zmm::madd::<true>(
-                            m[3 * i + 1],
-                            ga[1],
-                            Zmm::madd::<true>(m[3 * i], ga[0], h[3 * a + i]),
-                        ),
-                    );
-                }
-            }
-        }
-        let mut hs = [[0.0; LANES]; 27];
-        for k in 0..27 {
-            h[k].store(&mut hs[k]);
-        }
-        scatter_quadratic(batch, &hs, f);
-    }
-}
-
-/// `y_a - y_0` (a = 1..9) of a quadratic batch by AVX-512 gathers: `out[3 (a - 1) + c]`
-/// holds component c, one lane per element; `idx[a]` the f64 offsets `3 n` of node a.
-///
-/// # Safety
-/// AVX-512F must be available; every offset must address a node below `y.len()`.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-unsafe fn gather_quadratic_zmm(idx: &[std::arch::x86_64::__m256i; 10], y: &[DVec3]) -> [Zmm; 27] {
-    use std::arch::x86_64::_mm512_i32gather_pd;
-    // DVec3 is three packed f64 (repr(C)), so component c of node n is at 3 n + c.
-    let base = y.as_ptr().cast::<f64>();
-    let mut out = [Zmm::splat(0.0); 27];
-    for c in 0..3 {
-        // SAFETY: offsets + c stay inside y (caller's contract); AVX-512F is enabled.
-        unsafe {
-            let p = base.add(c);
-            let y0 = Zmm(_mm512_i32gather_pd::<8>(idx[0], p));
-            for a in 1..10 {
-                out[3 * (a - 1) + c] = Zmm(_mm512_i32gather_pd::<8>(idx[a], p)) - y0;
-            }
-        }
-    }
-    out
-}
-
-/// `F = sum_a d_a (grad N_a)^T` in registers, row-major: `d` from [`gather_quadratic_zmm`],
-/// `g` a batch's gradients at one integration point.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-fn quadratic_gradient_zmm(d: &[Zmm; 27], g: &[[f64; LANES]; 27]) -> [Zmm; 9] {
-    let mut out = [Zmm::splat(0.0); 9];
+fn quadratic_gradient<const FMA: bool, V: Lanes8>(d: &[V; 27], g: &[[f64; LANES]; 27]) -> [V; 9] {
+    let mut out = [V::splat(0.0); 9];
     for a in 0..9 {
         let ga = [
-            Zmm::load(&g[3 * a]),
-            Zmm::load(&g[3 * a + 1]),
-            Zmm::load(&g[3 * a + 2]),
+            V::load(&g[3 * a]),
+            V::load(&g[3 * a + 1]),
+            V::load(&g[3 * a + 2]),
         ];
         for i in 0..3 {
             for j in 0..3 {
-                out[3 * i + j] = Zmm::madd::<true>(d[3 * a + i], ga[j], out[3 * i + j]);
+                out[3 * i + j] = V::madd::<FMA>(d[3 * a + i], ga[j], out[3 * i + j]);
             }
         }
     }
     out
 }
 
-/// [`forces_quadratic`] compiled for AVX2 + FMA.
+/// The force kernel of `fem`'s element order with lane type `V`.
 ///
 /// # Safety
-/// The CPU must support AVX2 and FMA.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn forces_quadratic_avx2<const MODEL: u8>(
-    batches: &[QuadraticBatch],
-    mat: &MaterialParams,
+/// As [`forces_linear`].
+#[inline(always)]
+unsafe fn forces_with<const FMA: bool, const MODEL: u8, V: Lanes8>(
+    fem: &FemModel,
     x: &[DVec3],
     v: Option<&[DVec3]>,
     f: &mut [DVec3],
 ) {
-    forces_quadratic::<true, MODEL>(batches, mat, x, v, f);
+    let mat = &fem.material;
+    // SAFETY: the caller's contract.
+    unsafe {
+        if fem.is_quadratic() {
+            forces_quadratic::<FMA, MODEL, V>(&fem.quad_batches, mat, x, v, f);
+        } else {
+            forces_linear::<FMA, MODEL, V>(&fem.batches, mat, x, v, f);
+        }
+    }
+}
+
+/// [`forces_with`] in AVX-512 registers ([`Zmm`]).
+///
+/// # Safety
+/// The CPU must support AVX-512F, AVX-512VL, AVX2 and FMA; node indices as [`forces_linear`].
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+unsafe fn forces_avx512<const MODEL: u8>(
+    fem: &FemModel,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    // SAFETY: the caller's contract; AVX-512 is enabled here.
+    unsafe { forces_with::<true, MODEL, Zmm>(fem, x, v, f) }
+}
+
+/// [`forces_with`] in pairs of AVX2 registers ([`Ymm2`]).
+///
+/// # Safety
+/// The CPU must support AVX2 and FMA; node indices as [`forces_linear`].
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn forces_avx2<const MODEL: u8>(
+    fem: &FemModel,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    // SAFETY: the caller's contract; AVX2 and FMA are enabled here.
+    unsafe { forces_with::<true, MODEL, Ymm2>(fem, x, v, f) }
+}
+
+/// [`forces_with`] in plain code ([`Plain8`], unfused multiply-adds).
+///
+/// # Safety
+/// Node indices as [`forces_linear`].
+unsafe fn forces_plain<const MODEL: u8>(
+    fem: &FemModel,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    // SAFETY: the caller's contract; Plain8 needs no CPU feature.
+    unsafe { forces_with::<false, MODEL, Plain8>(fem, x, v, f) }
 }
 
 /// Action of the backward Euler operator's element part on `p` for quadratic StVK elements,
-/// added to `out` (see [`FemModel::quadratic_stvk_operator_action`]). Lanes innermost.
+/// added to `out` (see [`FemModel::quadratic_stvk_operator_action`]), every batch quantity in
+/// lane type `V`: per integration point `dF = sum_a p_a (grad N_a)^T`,
+/// `w (h2 dF S + F S_stvk(sym(F^T dF); lam, mu)) grad N_a` with the cached `F` and `S`.
+///
+/// # Safety
+/// As [`forces_linear`] (node indices below `p.len()`).
 #[inline(always)]
-fn stvk_operator_quadratic<const FMA: bool>(
+unsafe fn stvk_operator_quadratic<const FMA: bool, V: Lanes8>(
     batches: &[QuadraticBatch],
     order: &[u32],
     ip_f: &[DMat3],
@@ -933,84 +723,85 @@ fn stvk_operator_quadratic<const FMA: bool>(
     p: &[DVec3],
     out: &mut [DVec3],
 ) {
+    let zero = V::splat(0.0);
+    let (h2, lam, mu2, half) = (
+        V::splat(h2),
+        V::splat(lam),
+        V::splat(2.0 * mu),
+        V::splat(0.5),
+    );
     for (b, batch) in batches.iter().enumerate() {
-        let mut dp = [[0.0; LANES]; 27];
-        gather_quadratic(batch, p, &mut dp);
+        // SAFETY: node indices are below p.len() (caller's contract).
+        let dp = unsafe { gather_quadratic::<V>(batch, p) };
         let elements = &order[b * LANES..((b + 1) * LANES).min(order.len())];
-        let mut h = [[0.0; LANES]; 27];
+        let mut h = [zero; 27];
         for q in 0..4 {
             let g = &batch.grad[q];
-            let mut df = [[0.0; LANES]; 9];
-            lane_gradient::<FMA>(&dp, g, &mut df);
-            // Cached F and S of each lane's integration point, lane-innermost.
-            let mut fm = [[0.0; LANES]; 9];
-            let mut sm = [[0.0; LANES]; 9];
+            let df = quadratic_gradient::<FMA, V>(&dp, g);
+            // Cached F and S of each lane's integration point, lane-innermost, row-major.
+            let mut fl = [[0.0; LANES]; 9];
+            let mut sl = [[0.0; LANES]; 9];
             for (l, &e) in elements.iter().enumerate() {
                 let ip = 4 * e as usize + q;
                 let (f, s) = (ip_f[ip], ip_s[ip]);
                 for i in 0..3 {
                     for j in 0..3 {
-                        fm[3 * i + j][l] = f.col(j)[i];
-                        sm[3 * i + j][l] = s.col(j)[i];
+                        fl[3 * i + j][l] = f.col(j)[i];
+                        sl[3 * i + j][l] = s.col(j)[i];
                     }
                 }
             }
-            let mut pk = [[0.0; LANES]; 9];
-            for l in 0..LANES {
-                let f = |i: usize, j: usize| fm[3 * i + j][l];
-                let d = |i: usize, j: usize| df[3 * i + j][l];
-                let sv = |i: usize, j: usize| sm[3 * i + j][l];
-                // dE = sym(F^T dF)
-                let mut de = [0.0; 9];
-                for i in 0..3 {
-                    for j in 0..3 {
-                        let a = dot3::<FMA, _>(
-                            [f(0, i), f(1, i), f(2, i)],
-                            [d(0, j), d(1, j), d(2, j)],
-                        );
-                        let b = dot3::<FMA, _>(
-                            [f(0, j), f(1, j), f(2, j)],
-                            [d(0, i), d(1, i), d(2, i)],
-                        );
-                        de[3 * i + j] = 0.5 * (a + b);
-                    }
-                }
-                let tr = de[0] + de[4] + de[8];
-                let mut ds = [0.0; 9];
-                for k in 0..9 {
-                    ds[k] = 2.0 * mu * de[k];
-                }
-                ds[0] += lam * tr;
-                ds[4] += lam * tr;
-                ds[8] += lam * tr;
-                let w = batch.weight_m3[q][l];
-                for i in 0..3 {
-                    for j in 0..3 {
-                        let geo = dot3::<FMA, _>(
-                            [d(i, 0), d(i, 1), d(i, 2)],
-                            [sv(0, j), sv(1, j), sv(2, j)],
-                        );
-                        let mat = dot3::<FMA, _>(
-                            [f(i, 0), f(i, 1), f(i, 2)],
-                            [ds[j], ds[3 + j], ds[6 + j]],
-                        );
-                        let v = madd::<FMA>(h2, geo, mat);
-                        pk[3 * i + j][l] = w * v;
-                    }
+            let (mut f, mut s) = ([zero; 9], [zero; 9]);
+            for k in 0..9 {
+                f[k] = V::load(&fl[k]);
+                s[k] = V::load(&sl[k]);
+            }
+            // dE = sym(F^T dF), dS = 2 mu dE + lam tr(dE) I.
+            let mut de = [zero; 9];
+            for i in 0..3 {
+                for j in 0..3 {
+                    let a =
+                        dot3::<FMA, V>([f[i], f[3 + i], f[6 + i]], [df[j], df[3 + j], df[6 + j]]);
+                    let b =
+                        dot3::<FMA, V>([f[j], f[3 + j], f[6 + j]], [df[i], df[3 + i], df[6 + i]]);
+                    de[3 * i + j] = half * (a + b);
                 }
             }
-            lane_divergence::<FMA>(&pk, g, &mut h);
+            let tr = de[0] + de[4] + de[8];
+            let mut ds = [zero; 9];
+            for (d, e) in ds.iter_mut().zip(de) {
+                *d = mu2 * e;
+            }
+            for k in [0, 4, 8] {
+                ds[k] = V::madd::<FMA>(lam, tr, ds[k]);
+            }
+            let w = V::load(&batch.weight_m3[q]);
+            let mut pk = [zero; 9];
+            for i in 0..3 {
+                for j in 0..3 {
+                    let geo = dot3::<FMA, V>(
+                        [df[3 * i], df[3 * i + 1], df[3 * i + 2]],
+                        [s[j], s[3 + j], s[6 + j]],
+                    );
+                    let mat = dot3::<FMA, V>(
+                        [f[3 * i], f[3 * i + 1], f[3 * i + 2]],
+                        [ds[j], ds[3 + j], ds[6 + j]],
+                    );
+                    pk[3 * i + j] = w * V::madd::<FMA>(h2, geo, mat);
+                }
+            }
+            add_divergence::<FMA, V>(&pk, g, &mut h);
         }
-        scatter_quadratic(batch, &h, out);
+        store_scatter_quadratic(batch, &h, out);
     }
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
-/// [`stvk_operator_quadratic`] compiled for AVX-512.
+/// [`stvk_operator_quadratic`] in AVX-512 registers.
 ///
 /// # Safety
-/// The CPU must support AVX-512F, AVX-512VL, AVX2 and FMA.
+/// The CPU must support AVX-512F, AVX-512VL, AVX2 and FMA; node indices below `p.len()`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
 unsafe fn stvk_operator_quadratic_avx512(
     batches: &[QuadraticBatch],
     order: &[u32],
@@ -1020,15 +811,16 @@ unsafe fn stvk_operator_quadratic_avx512(
     p: &[DVec3],
     out: &mut [DVec3],
 ) {
-    stvk_operator_quadratic::<true>(batches, order, ip_f, ip_s, c, p, out);
+    // SAFETY: the caller's contract; AVX-512 is enabled here.
+    unsafe { stvk_operator_quadratic::<true, Zmm>(batches, order, ip_f, ip_s, c, p, out) }
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-/// [`stvk_operator_quadratic`] compiled for AVX2 + FMA.
+/// [`stvk_operator_quadratic`] in pairs of AVX2 registers.
 ///
 /// # Safety
-/// The CPU must support AVX2 and FMA.
+/// The CPU must support AVX2 and FMA; node indices below `p.len()`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
 unsafe fn stvk_operator_quadratic_avx2(
     batches: &[QuadraticBatch],
     order: &[u32],
@@ -1038,7 +830,8 @@ unsafe fn stvk_operator_quadratic_avx2(
     p: &[DVec3],
     out: &mut [DVec3],
 ) {
-    stvk_operator_quadratic::<true>(batches, order, ip_f, ip_s, c, p, out);
+    // SAFETY: the caller's contract; AVX2 and FMA are enabled here.
+    unsafe { stvk_operator_quadratic::<true, Ymm2>(batches, order, ip_f, ip_s, c, p, out) }
 }
 
 /// Lumped nodal masses, kg, one per node of `mesh` (m) with density `density_kg_per_m3`:
@@ -1269,39 +1062,20 @@ impl FemModel {
     /// [`Self::add_internal_forces`] by the vectorised batch kernels of material `MODEL`
     /// (linear or quadratic elements), the instruction set chosen at run time.
     fn lane_forces<const MODEL: u8>(&self, x: &[DVec3], v: Option<&[DVec3]>, f: &mut [DVec3]) {
-        let mat = &self.material;
-        if self.is_quadratic() {
-            #[cfg(target_arch = "x86_64")]
-            if has_avx512() {
-                // SAFETY: all four features were detected on this CPU just above.
-                unsafe { forces_quadratic_zmm::<MODEL>(&self.quad_batches, mat, x, v, f) };
-                return;
-            }
-            #[cfg(target_arch = "x86_64")]
-            if has_avx2_fma() {
-                // SAFETY: both features were detected on this CPU just above.
-                unsafe { forces_quadratic_avx2::<MODEL>(&self.quad_batches, mat, x, v, f) };
-                return;
-            }
-            forces_quadratic::<false, MODEL>(&self.quad_batches, mat, x, v, f);
-            return;
-        }
+        // SAFETY (all three): node indices are below n (checked in `new`), and x, v are at
+        // least n long (asserted by the caller); each instruction set was detected on this
+        // CPU just before its kernel.
         #[cfg(target_arch = "x86_64")]
         if has_avx512() {
-            // SAFETY: all four features were detected on this CPU just above; node indices
-            // are below n (checked in `new`), and x, v are at least n long (asserted by the
-            // caller).
-            unsafe { forces_zmm::<MODEL>(&self.batches, mat, x, v, f) };
+            unsafe { forces_avx512::<MODEL>(self, x, v, f) };
             return;
         }
         #[cfg(target_arch = "x86_64")]
         if has_avx2_fma() {
-            // SAFETY: both features were detected on this CPU just above; node indices are
-            // below n (checked in `new`), and x, v are at least n long (asserted by the caller).
-            unsafe { forces_avx2::<MODEL>(&self.batches, mat, x, v, f) };
+            unsafe { forces_avx2::<MODEL>(self, x, v, f) };
             return;
         }
-        forces_batched::<false, MODEL>(&self.batches, mat, x, v, f, gather_edges_scalar);
+        unsafe { forces_plain::<MODEL>(self, x, v, f) };
     }
 
     /// [`Self::add_internal_forces`] element by element (integration point by integration point
@@ -1459,17 +1233,20 @@ impl FemModel {
         let (b, o) = (&self.quad_batches, &self.quad_order);
         #[cfg(target_arch = "x86_64")]
         if has_avx512() {
-            // SAFETY: all four features were detected on this CPU just above.
+            // SAFETY: all four features were detected on this CPU just above; node indices
+            // are below n (checked in `new`) and p.len() >= n (asserted above).
             unsafe { stvk_operator_quadratic_avx512(b, o, ip_f, ip_s, c, p, out) };
             return true;
         }
         #[cfg(target_arch = "x86_64")]
         if has_avx2_fma() {
-            // SAFETY: both features were detected on this CPU just above.
+            // SAFETY: both features were detected on this CPU just above; node indices as
+            // above.
             unsafe { stvk_operator_quadratic_avx2(b, o, ip_f, ip_s, c, p, out) };
             return true;
         }
-        stvk_operator_quadratic::<false>(b, o, ip_f, ip_s, c, p, out);
+        // SAFETY: node indices as above; Plain8 needs no CPU feature.
+        unsafe { stvk_operator_quadratic::<false, Plain8>(b, o, ip_f, ip_s, c, p, out) };
         true
     }
 
@@ -1659,43 +1436,23 @@ mod tests {
     #[test]
     fn every_kernel_variant_matches_the_scalar_element_loop() {
         type Kernel = fn(&FemModel, &[DVec3], Option<&[DVec3]>, &mut [DVec3]);
+        // The inputs are the test's own (node indices checked by `FemModel::new`, x and v
+        // n long); each instruction set is asserted before its kernel runs.
         fn plain<const MODEL: u8>(m: &FemModel, x: &[DVec3], v: Option<&[DVec3]>, f: &mut [DVec3]) {
-            if m.is_quadratic() {
-                forces_quadratic::<false, MODEL>(&m.quad_batches, &m.material, x, v, f);
-            } else {
-                forces_batched::<false, MODEL>(
-                    &m.batches,
-                    &m.material,
-                    x,
-                    v,
-                    f,
-                    gather_edges_scalar,
-                );
-            }
+            // SAFETY: see above.
+            unsafe { forces_plain::<MODEL>(m, x, v, f) }
         }
         #[cfg(target_arch = "x86_64")]
         fn avx2<const MODEL: u8>(m: &FemModel, x: &[DVec3], v: Option<&[DVec3]>, f: &mut [DVec3]) {
             assert!(has_avx2_fma());
-            // SAFETY: features checked above; node indices checked by `FemModel::new`.
-            unsafe {
-                if m.is_quadratic() {
-                    forces_quadratic_avx2::<MODEL>(&m.quad_batches, &m.material, x, v, f);
-                } else {
-                    forces_avx2::<MODEL>(&m.batches, &m.material, x, v, f);
-                }
-            }
+            // SAFETY: see above.
+            unsafe { forces_avx2::<MODEL>(m, x, v, f) }
         }
         #[cfg(target_arch = "x86_64")]
         fn zmm<const MODEL: u8>(m: &FemModel, x: &[DVec3], v: Option<&[DVec3]>, f: &mut [DVec3]) {
             assert!(has_avx512());
-            // SAFETY: features checked above; node indices checked by `FemModel::new`.
-            unsafe {
-                if m.is_quadratic() {
-                    forces_quadratic_zmm::<MODEL>(&m.quad_batches, &m.material, x, v, f);
-                } else {
-                    forces_zmm::<MODEL>(&m.batches, &m.material, x, v, f);
-                }
-            }
+            // SAFETY: see above.
+            unsafe { forces_avx512::<MODEL>(m, x, v, f) }
         }
         let mut checked = 0;
         for (model, kernels) in [
@@ -1762,5 +1519,56 @@ mod tests {
         }
         // At least the plain variant of each of the 8 combinations.
         assert!(checked >= 8);
+    }
+
+    /// Every instruction-set variant of the quadratic backward Euler operator kernel against
+    /// the plain one (the integration test `vectorised_operator_matches_the_integration_point_formula`
+    /// checks the variant this CPU runs against the formula).
+    #[test]
+    fn every_operator_variant_matches_the_plain_one() {
+        let mesh = box_mesh(DVec3::splat(0.01), [3, 2, 3]).to_quadratic();
+        let fem = FemModel::new(&mesh, MaterialParams::from_youngs(1e4, 0.45, 1000.0)).unwrap();
+        let (x, p) = deformed_state(&fem);
+        let nq = fem.integration_point_count();
+        let ip_f: Vec<_> = (0..nq).map(|q| fem.ip_field_gradient(q, &x)).collect();
+        let ip_s: Vec<_> = ip_f
+            .iter()
+            .map(|f| material::stvk_stress(&material::green_strain(f), 4e3, 1e3))
+            .collect();
+        let c = (1e-6, 3.0e3, 2.0e3);
+        let (b, o) = (&fem.quad_batches, &fem.quad_order);
+        let mut expected = vec![DVec3::ZERO; fem.node_count()];
+        // SAFETY: node indices checked by `FemModel::new`; p is n long.
+        unsafe {
+            stvk_operator_quadratic::<false, Plain8>(b, o, &ip_f, &ip_s, c, &p, &mut expected)
+        };
+        let scale = expected.iter().map(|a| a.length()).fold(0.0, f64::max);
+        assert!(scale > 0.0);
+        let check = |name: &str, got: &[DVec3]| {
+            let err = got
+                .iter()
+                .zip(&expected)
+                .map(|(a, b)| (*a - *b).length())
+                .fold(0.0, f64::max);
+            assert!(err < 1e-12 * scale, "{name}: {err:e} of {scale:e}");
+        };
+        #[cfg(target_arch = "x86_64")]
+        {
+            if has_avx2_fma() {
+                let mut out = vec![DVec3::ZERO; fem.node_count()];
+                // SAFETY: AVX2 and FMA detected; indices as above.
+                unsafe { stvk_operator_quadratic_avx2(b, o, &ip_f, &ip_s, c, &p, &mut out) };
+                check("avx2", &out);
+            }
+            if has_avx512() {
+                let mut out = vec![DVec3::ZERO; fem.node_count()];
+                // SAFETY: AVX-512 detected; indices as above.
+                unsafe { stvk_operator_quadratic_avx512(b, o, &ip_f, &ip_s, c, &p, &mut out) };
+                check("avx512", &out);
+            }
+        }
+        let mut out = vec![DVec3::ZERO; fem.node_count()];
+        assert!(fem.quadratic_stvk_operator_action(&ip_f, &ip_s, c, &p, &mut out));
+        check("public", &out);
     }
 }
