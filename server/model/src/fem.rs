@@ -241,17 +241,15 @@ fn lane_model(model: MaterialModel) -> Option<u8> {
 /// (seed 000 eq. 9); stable Neo-Hookean `mu F + lambda_s (J - alpha) cof F` (see
 /// [`MaterialModel::StableNeoHookean`]). Viscous `S_v = 2 psi nu + phi tr(nu) I`,
 /// `nu = F^T Fdot + Fdot^T F` (eq. 10-11). The same formulas as [`material::first_piola`] and
-/// [`material::viscous_stress`], written with fixed-size arrays so that the callers' loops over
-/// lanes vectorise.
+/// [`material::viscous_stress`], generic over the lane type `T` (one `f64` or a [`Lanes8`]).
 #[inline(always)]
 fn first_piola_lane<const FMA: bool, const MODEL: u8, T: Lane>(
     fm: &[T; 9],
     fd: Option<&[T; 9]>,
-    lambda: f64,
-    mu: f64,
-    phi: f64,
-    psi: f64,
+    mat: &MaterialParams,
 ) -> [T; 9] {
+    let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
+    let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
     // No closures here: they are not inlined into the `target_feature` kernels.
     let dot = dot3::<FMA, T>;
     let (c0, c1, c2) = (column(fm, 0), column(fm, 1), column(fm, 2));
@@ -358,8 +356,6 @@ unsafe fn forces_linear<const FMA: bool, const MODEL: u8, V: Lanes8>(
     v: Option<&[DVec3]>,
     f: &mut [DVec3],
 ) {
-    let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
-    let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
     let zero = V::splat(0.0);
     for batch in batches {
         let mut bm = [zero; 9];
@@ -378,7 +374,7 @@ unsafe fn forces_linear<const FMA: bool, const MODEL: u8, V: Lanes8>(
             )),
             None => None,
         };
-        let p = first_piola_lane::<FMA, MODEL, V>(&fm, fd.as_ref(), lambda, mu, phi, psi);
+        let p = first_piola_lane::<FMA, MODEL, V>(&fm, fd.as_ref(), mat);
         let w = zero - V::load(&batch.volume_m3);
         // h[3 k + i][l]: component i of the force on node k+1 of lane l.
         let mut h = [[0.0; LANES]; 9];
@@ -512,8 +508,6 @@ unsafe fn forces_quadratic<const FMA: bool, const MODEL: u8, V: Lanes8>(
     v: Option<&[DVec3]>,
     f: &mut [DVec3],
 ) {
-    let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
-    let (phi, psi) = (mat.phi_pa_s, mat.psi_pa_s);
     let zero = V::splat(0.0);
     for batch in batches {
         // SAFETY: node indices are below x.len() and v.len() (caller's contract).
@@ -534,7 +528,7 @@ unsafe fn forces_quadratic<const FMA: bool, const MODEL: u8, V: Lanes8>(
                 Some(dv) => Some(quadratic_gradient::<FMA, V>(dv, g)),
                 None => None,
             };
-            let p = first_piola_lane::<FMA, MODEL, V>(&fm, fd.as_ref(), lambda, mu, phi, psi);
+            let p = first_piola_lane::<FMA, MODEL, V>(&fm, fd.as_ref(), mat);
             let w = zero - V::load(&batch.weight_m3[q]);
             let mut m = [zero; 9];
             for (mk, pk) in m.iter_mut().zip(p) {
