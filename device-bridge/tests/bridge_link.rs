@@ -257,7 +257,9 @@ async fn a_stream_dropped_by_the_server_zeroes_force_and_reconnects() {
     let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let url = format!("http://{}", listener.local_addr().unwrap());
     let mut wall = Wall::new(500.0, 0.012);
-    wall.close_first_after = Some(500); // mid-press (0.5 s in)
+    // 0.25 s in: in contact (the wall is reached after 0.1 s). Early enough that a loaded
+    // machine, which sends fewer than 1000 samples a second, still gets there mid-press.
+    wall.close_first_after = Some(250);
     let seen = wall.seen.clone();
     let _server = serve(listener, wall);
     let (_tx, rx) = watch::channel(false);

@@ -40,7 +40,7 @@ pub fn solve_scene(
             "the scene has no [loads] (gravity, pressure or point forces): nothing to solve".into(),
         ));
     }
-    let mut fem = FemModel::new(&scene.mesh, scene.material)?;
+    let mut fem = FemModel::with_smoothing(&scene.mesh, scene.material, scene.strain_smoothing)?;
     fem.clamp_nodes(&scene.clamped_nodes);
     let follower = scene.loads.pressure.iter().any(|p| p.follower);
     let steps = load_steps.max(1);

@@ -20,13 +20,19 @@ fn main() {
 
 /// Meshes: structured LV at about N tets (`lvN`), `lv_h1` (`lv_h1.msh`, or the structured
 /// `lv_shell(18000)` when the shared data is absent), and quadratic elements (`lvNq`).
-const SIZES: [&str; 7] = [
-    "lv1000", "lv2000", "lv10000", "lv_h1", "lv300q", "lv500q", "lv1000q",
+const SIZES: [&str; 8] = [
+    "lv1000", "lv2000", "lv10000", "lv_h1", "lv_h1es", "lv300q", "lv500q", "lv1000q",
 ];
 
 fn scene(name: &str) -> Scene {
     if name == "lv_h1" {
         return lv_h1_scene().unwrap_or_else(|| lv_scene(18000));
+    }
+    if name == "lv_h1es" {
+        // The same mesh with edge-based strain smoothing (ES-FEM-T4).
+        let mut sc = scene("lv_h1");
+        sc.strain_smoothing = haptic_model::fem::StrainSmoothing::Edge;
+        return sc;
     }
     let spec = name.trim_start_matches("lv");
     let quadratic = spec.ends_with('q');

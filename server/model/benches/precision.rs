@@ -45,11 +45,12 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use common::{
-    CG_ITERATIONS, INTEGRATORS, MATERIALS, git_commit, lv_scene, run_loaded_with, smoothstep, stats,
+    CG_ITERATIONS, INTEGRATORS, MATERIALS, device_at, git_commit, lv_scene, run_loaded_with,
+    smoothstep, stats,
 };
 use haptic_model::DVec3;
 use haptic_model::contact::{ContactSurface, Probe};
-use haptic_model::fem::FemModel;
+use haptic_model::fem::{FemModel, StrainSmoothing};
 use haptic_model::integrator::{IntegratorKind, IntegratorParams};
 use haptic_model::material::{MaterialModel, MaterialParams};
 use haptic_model::mesh::TetMesh;
@@ -275,7 +276,8 @@ fn methods(safeties: &[f64]) -> Vec<Method> {
     out
 }
 
-fn write_results(rows: &[Row], commit: &str, dir: &Path) {
+/// Writes `rows` to `dir/<stem>.csv` and `.json`.
+fn write_results(rows: &[Row], commit: &str, dir: &Path, stem: &str) {
     let mut csv = String::from(
         "scenario,model,material,integrator,method,nodes,tets,settings,step_p50_us,step_p99_us,step_max_us,realtime_factor,rel_l2_error,max_nodal_error_m,probe_force_error,observable_error,observable,reference,stable,commit\n",
     );
@@ -328,12 +330,12 @@ fn write_results(rows: &[Row], commit: &str, dir: &Path) {
         }));
     }
     std::fs::create_dir_all(dir).expect("creating docs/bench");
-    std::fs::write(dir.join("precision.csv"), csv).expect("writing precision.csv");
+    std::fs::write(dir.join(format!("{stem}.csv")), csv).expect("writing the CSV");
     std::fs::write(
-        dir.join("precision.json"),
+        dir.join(format!("{stem}.json")),
         serde_json::to_string_pretty(&json).expect("json") + "\n",
     )
-    .expect("writing precision.json");
+    .expect("writing the JSON");
 }
 
 // ---------------------------------------------------------------- Lamé sphere
@@ -651,15 +653,7 @@ fn tri_area(x: &[DVec3], t: &[u32; 3]) -> f64 {
 
 // ---------------------------------------------------------------- LV probe
 
-/// Probe centre x at first contact: the epicardium at z = -5 mm is at 9.682 mm from the axis,
-/// plus the 2 mm probe radius.
-const CONTACT_X_M: f64 = 0.011_682;
-const PROBE_Z_M: f64 = -0.005;
 const DEPTHS_MM: [f64; 6] = [0.5, 1.0, 1.5, 2.0, 2.5, 3.0];
-
-fn device_at(depth_m: f64) -> DVec3 {
-    DVec3::new(CONTACT_X_M - depth_m, 0.0, PROBE_Z_M)
-}
 
 /// Quasi-static probe solution on one mesh: device force per depth and the positions at the
 /// last depth.
@@ -680,7 +674,8 @@ fn probe_static(scene: &Scene) -> Result<ProbeCurve, String> {
 
 /// [`probe_static`] at the given depths, mm (increasing).
 fn probe_static_at(scene: &Scene, depths_mm: &[f64]) -> Result<ProbeCurve, String> {
-    let mut fem = FemModel::new(&scene.mesh, scene.material).map_err(|e| e.to_string())?;
+    let mut fem = FemModel::with_smoothing(&scene.mesh, scene.material, scene.strain_smoothing)
+        .map_err(|e| e.to_string())?;
     fem.clamp_nodes(&scene.clamped_nodes);
     let mut probe = Probe::new(scene.probe, scene.touchable.clone(), &fem.rest);
     let n = fem.node_count();
@@ -1106,6 +1101,70 @@ fn scenario_lv(quick: bool, fresh: bool, cache_dir: &Path, rows: &mut Vec<Row>) 
     }
 }
 
+/// `lv-probe` on `lv_h1.msh` (17 924 linear tets; `--scenario lv-h1`, not part of the full
+/// run, own output `docs/bench/precision-lv-h1.{csv,json}`): standard and edge-smoothed
+/// (ES-FEM-T4) elements, each with semi-implicit and symplectic Euler at 0.9 of the critical
+/// step and backward Euler with CG capped at 5, against the same converged reference as
+/// `lv-probe`. Static curves on this mesh take minutes each (`--scenario lv-study`, README).
+fn scenario_lv_h1(fresh: bool, cache_dir: &Path, rows: &mut Vec<Row>) {
+    let Some(h1) = common::lv_h1_scene() else {
+        eprintln!("lv_h1.msh not found: scenario lv-h1 skipped");
+        return;
+    };
+    let model = MaterialModel::StVenantKirchhoff;
+    let reference = lv_reference(LV_REFERENCE, model, fresh, cache_dir);
+    let ref_text = format!(
+        "static with probe coupling on lv_shell ({} quadratic tets, stvk): F(3 mm) = {:.4} N",
+        reference.tets,
+        reference.curve.forces_n[DEPTHS_MM.len() - 1]
+    );
+    let base = common::lv_scene_on(h1.mesh);
+    let runs = [
+        (IntegratorKind::SemiImplicit, 0.9, 20),
+        (IntegratorKind::SymplecticEuler, 0.9, 20),
+        (IntegratorKind::BackwardEuler, 1.0, 5),
+    ];
+    for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
+        for (kind, sf, cg) in runs {
+            let m = Method {
+                kind,
+                sf,
+                cg,
+                material: model,
+            };
+            let mut sc = base.clone();
+            sc.strain_smoothing = smoothing;
+            sc.integrator.kind = kind;
+            sc.integrator.safety_factor = sf;
+            sc.integrator.cg_max_iterations = cg;
+            sc.integrator.max_substeps = 1000;
+            let label = match smoothing {
+                StrainSmoothing::None => m.label(),
+                _ => format!("{} ES", m.label()),
+            };
+            let mut row = Row::new("lv-probe", label, kind.name(), &sc.mesh);
+            if smoothing == StrainSmoothing::Edge {
+                row.model = "fem-es";
+            }
+            row.reference = ref_text.clone();
+            match probe_dynamic(&sc, false) {
+                Ok((c, mut ticks, sub)) => {
+                    row.settings = format!(
+                        "lv_h1.msh, strain smoothing {}; tick 1 ms, {}; staircase 0.5..3 mm",
+                        smoothing.name(),
+                        m.step_text(sub)
+                    );
+                    row.set_times(&mut ticks, sc.integrator.tick_s);
+                    fill_lv_errors(&mut row, &reference, &sc.mesh, &c, DEPTHS_MM.len() - 1);
+                }
+                Err(e) => row.settings = format!("{}: {e}", row.method),
+            }
+            row.print();
+            rows.push(row);
+        }
+    }
+}
+
 /// Materials of the full `lv-probe` run. Each needs its own reference solve on the 10k-tet
 /// mesh, which for the corotational material took longer than the whole run's budget, so
 /// the other materials are compared on the Lamé and cantilever scenarios only (whose
@@ -1279,6 +1338,19 @@ fn main() {
     if run("cantilever") {
         scenario_cantilever(quick, &mut rows);
     }
+    if only == Some("lv-h1") {
+        let mut rows = Vec::new();
+        scenario_lv_h1(fresh, &root.join("target/bench"), &mut rows);
+        let out_dir = root.join("docs/bench");
+        write_results(&rows, &commit, &out_dir, "precision-lv-h1");
+        println!(
+            "wrote {} rows to {} ({:.1} s)",
+            rows.len(),
+            out_dir.join("precision-lv-h1.{csv,json}").display(),
+            wall.elapsed().as_secs_f64()
+        );
+        return;
+    }
     if only == Some("lv-study") {
         // Static probe curves of linear and quadratic elements on the LV meshes (a study of
         // the discretisation error; prints only).
@@ -1305,6 +1377,9 @@ fn main() {
             } else {
                 lv_scene_order(tets.parse().expect("tets"), quad)
             };
+            if let Ok(name) = std::env::var("LV_STUDY_SMOOTHING") {
+                scene.strain_smoothing = StrainSmoothing::from_name(&name).expect("smoothing");
+            }
             if let Some(nu) = nu {
                 let m = &mut scene.material;
                 let e = m.youngs_modulus_pa();
@@ -1353,7 +1428,7 @@ fn main() {
         scenario_lv(quick, fresh, &root.join("target/bench"), &mut rows);
     }
     let out_dir = root.join("docs/bench");
-    write_results(&rows, &commit, &out_dir);
+    write_results(&rows, &commit, &out_dir, "precision");
     println!(
         "wrote {} rows to {}",
         rows.len(),

@@ -636,7 +636,7 @@ impl Operator<'_> {
         };
         if fem.is_quadratic() && mat.model == MaterialModel::StVenantKirchhoff {
             fem.quadratic_stvk_operator_action(self.elem_f, self.elem_s, (h2, lam, mu), p, out);
-        } else if fem.is_quadratic() {
+        } else if !fem.is_plain_linear() {
             for q in 0..fem.integration_point_count() {
                 let df = fem.ip_field_gradient(q, p);
                 let dp = dp_of(self.elem_f[q], self.elem_s[q], df);

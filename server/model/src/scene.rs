@@ -17,6 +17,8 @@
 //! order = 1                      # element order: 1 = linear tets (default), 2 = quadratic
 //!                                # 10-node tets made by adding a node at every edge midpoint
 //!                                # (built-in shells: boundary mid-edge nodes on the surfaces)
+//! strain_smoothing = "none"      # linear tets only: "edge" = edge-based smoothed FEM
+//!                                # (ES-FEM-T4: softer, far less bending/shear locking)
 //! [material]                     # youngs_modulus_pa + poisson_ratio, OR lambda_pa + mu_pa
 //! model = "stvk"                 # default; or "corotational", "stable-neo-hookean"
 //! youngs_modulus_pa = 14500.0
@@ -65,6 +67,7 @@ use serde::Deserialize;
 
 use crate::ModelError;
 use crate::contact::ProbeParams;
+use crate::fem::StrainSmoothing;
 use crate::integrator::{IntegratorKind, IntegratorParams};
 use crate::material::{MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
@@ -78,6 +81,8 @@ pub struct Scene {
     pub description: String,
     /// The mesh in metres.
     pub mesh: TetMesh,
+    /// Strain smoothing of linear elements (`[mesh] strain_smoothing`).
+    pub strain_smoothing: StrainSmoothing,
     /// Material.
     pub material: MaterialParams,
     /// Integrator settings.
@@ -354,6 +359,7 @@ struct RawMesh {
     size: Option<[f64; 3]>,
     cells: Option<[i64; 3]>,
     order: Option<i64>,
+    strain_smoothing: Option<String>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -450,6 +456,21 @@ fn parse_scene(text: &str, base_dir: &Path, default_name: &str) -> Result<Scene,
     let raw: RawScene = toml::from_str(text).map_err(|e| ModelError::SceneSyntax(e.to_string()))?;
     let mesh_raw = required("mesh", raw.mesh)?;
     let (mesh, length_unit_m) = build_mesh(&mesh_raw, base_dir)?;
+    let strain_smoothing = match mesh_raw.strain_smoothing.as_deref() {
+        None => StrainSmoothing::None,
+        Some(name) => StrainSmoothing::from_name(name).ok_or_else(|| {
+            ModelError::field(
+                "mesh.strain_smoothing",
+                format!("unknown strain smoothing `{name}` (expected none or edge)"),
+            )
+        })?,
+    };
+    if strain_smoothing != StrainSmoothing::None && mesh.is_quadratic() {
+        return Err(ModelError::field(
+            "mesh.strain_smoothing",
+            "strain smoothing is for linear tetrahedra (order = 1)",
+        ));
+    }
     let material = build_material(&required("material", raw.material)?)?;
     let boundary = raw.boundary.unwrap_or_default();
     let clamped_nodes = match &boundary.clamped {
@@ -499,6 +520,7 @@ fn parse_scene(text: &str, base_dir: &Path, default_name: &str) -> Result<Scene,
         name: raw.name.unwrap_or_else(|| default_name.to_string()),
         description: raw.description.unwrap_or_default(),
         mesh,
+        strain_smoothing,
         material,
         integrator,
         probe,

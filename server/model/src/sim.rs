@@ -155,7 +155,8 @@ impl Simulation {
     /// [`ModelError::InvalidMesh`] / [`ModelError::SceneField`] for a bad mesh or material;
     /// [`ModelError::Unstable`] when the integrator cannot be stable within `max_substeps`.
     pub fn new(scene: &Scene) -> Result<Self, ModelError> {
-        let mut fem = FemModel::new(&scene.mesh, scene.material)?;
+        let mut fem =
+            FemModel::with_smoothing(&scene.mesh, scene.material, scene.strain_smoothing)?;
         fem.clamp_nodes(&scene.clamped_nodes);
         Self::from_fem(fem, scene)
     }

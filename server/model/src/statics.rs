@@ -83,16 +83,17 @@ pub fn element_tangent(fem: &FemModel, e: usize, x: &[DVec3]) -> [[DMat3; 4]; 4]
     k
 }
 
-/// Tangent stiffness blocks of element `e` of any order at positions `x`, N/m: `out` is
-/// filled with `npe x npe` blocks, block `(a, b)` at `out[a * npe + b]` being
-/// `K_ab = -d f_a / d x_b` for the element nodes `a, b` of [`FemModel::element_nodes`]
-/// (`npe` = 4 or 10), summed over the element's integration points.
-pub fn element_tangent_blocks(fem: &FemModel, e: usize, x: &[DVec3], out: &mut Vec<DMat3>) {
+/// Tangent stiffness blocks of cell `c` (an element of any order, or a smoothing domain) at
+/// positions `x`, N/m: `out` is filled with `npe x npe` blocks, block `(a, b)` at
+/// `out[a * npe + b]` being `K_ab = -d f_a / d x_b` for the cell nodes `a, b` of
+/// [`FemModel::cell_nodes`] (`npe` = 4 or 10 for elements, about 7 for edge domains), summed
+/// over the cell's integration points.
+pub fn cell_tangent_blocks(fem: &FemModel, c: usize, x: &[DVec3], out: &mut Vec<DMat3>) {
     let mat = &fem.material;
-    let npe = fem.element_nodes(e).len();
+    let npe = fem.cell_nodes(c).len();
     out.clear();
     out.resize(npe * npe, DMat3::ZERO);
-    for q in fem.integration_points_of(e) {
+    for q in fem.cell_points(c) {
         let g = fem.ip_gradients(q);
         let w = fem.ip_weight_m3(q);
         let fm = fem.ip_field_gradient(q, x);
@@ -176,8 +177,14 @@ pub fn solve_static(
     let tol = (params.rel_tol * load_norm).max(params.abs_tol_n);
     let mut r = Vec::with_capacity(n);
     let mut rnorm = residual(x, &mut r);
-    let npe = fem.element_nodes(0).len();
-    let mut triplets = Vec::with_capacity(fem.element_count() * 9 * npe * npe);
+    let triplets_needed: usize = (0..fem.cell_count())
+        .map(|c| 9 * fem.cell_nodes(c).len().pow(2))
+        .sum();
+    let mut triplets = Vec::with_capacity(triplets_needed);
+    let npe = (0..fem.cell_count())
+        .map(|c| fem.cell_nodes(c).len())
+        .max()
+        .unwrap_or(4);
     let mut blocks = Vec::with_capacity(npe * npe);
     let mut trial = x.to_vec();
     for it in 0..params.max_iterations {
@@ -188,9 +195,9 @@ pub fn solve_static(
             });
         }
         triplets.clear();
-        for e in 0..fem.element_count() {
-            element_tangent_blocks(fem, e, x, &mut blocks);
-            let t = fem.element_nodes(e);
+        for c in 0..fem.cell_count() {
+            cell_tangent_blocks(fem, c, x, &mut blocks);
+            let t = fem.cell_nodes(c);
             let npe = t.len();
             for a in 0..npe {
                 for b in 0..npe {

@@ -12,7 +12,7 @@
 
 use glam::DMat3;
 use haptic_model::DVec3;
-use haptic_model::fem::{CLAMPED, FemModel};
+use haptic_model::fem::{CLAMPED, FemModel, StrainSmoothing};
 use haptic_model::material::{self, MaterialModel, MaterialParams};
 use haptic_model::mesh::{TetMesh, tet_signed_volume};
 use haptic_model::statics::{StaticParams, solve_static};
@@ -187,14 +187,23 @@ fn grad_u(scale: f64) -> DMat3 {
     ) * (1e-3 * scale)
 }
 
+/// Both element technologies: standard FEM and the edge-based smoothed FEM (the average of a
+/// constant deformation gradient is that gradient, so it must pass the patch test as well).
+const SMOOTHINGS: [StrainSmoothing; 2] = [StrainSmoothing::None, StrainSmoothing::Edge];
+
 /// Solves the patch with the corners on the affine field, in `steps` load increments; returns
 /// the positions and the largest interior nodal error relative to the largest displacement.
-fn solve_patch(model: MaterialModel, scale: f64, steps: usize) -> (FemModel, Vec<DVec3>, f64) {
+fn solve_patch(
+    model: MaterialModel,
+    smoothing: StrainSmoothing,
+    scale: f64,
+    steps: usize,
+) -> (FemModel, Vec<DVec3>, f64) {
     let mesh = patch_mesh();
     assert_eq!(mesh.node_count(), 16);
     let mut mat = MaterialParams::from_youngs(1e6, 0.25, 1.0);
     mat.model = model;
-    let mut fem = FemModel::new(&mesh, mat).unwrap();
+    let mut fem = FemModel::with_smoothing(&mesh, mat, smoothing).unwrap();
     fem.clamp_nodes(&(0..8).collect::<Vec<u32>>());
     let g = grad_u(scale);
     let mut x = mesh.nodes.clone();
@@ -247,9 +256,15 @@ fn small_displacement_reproduces_the_affine_field_and_the_stress_for_every_mater
         MaterialModel::Corotational,
         MaterialModel::StableNeoHookean,
     ] {
-        let (fem, x, err) = solve_patch(model, 1.0, 1);
-        println!("{model:?}: interior displacement error {err:.2e} (relative)");
-        assert!(err < 1e-10, "{model:?}: interior nodal error {err:e}");
+        for smoothing in SMOOTHINGS {
+            let (_, _, err) = solve_patch(model, smoothing, 1.0, 1);
+            println!("{model:?} {smoothing:?}: interior displacement error {err:.2e} (relative)");
+            assert!(
+                err < 1e-10,
+                "{model:?} {smoothing:?}: interior nodal error {err:e}"
+            );
+        }
+        let (fem, x, _) = solve_patch(model, StrainSmoothing::None, 1.0, 1);
         let mat = fem.material;
         let mut worst_lin: f64 = 0.0;
         for e in 0..fem.tets.len() {
@@ -299,11 +314,15 @@ fn large_displacement_still_reproduces_the_homogeneous_deformation() {
         MaterialModel::Corotational,
         MaterialModel::StableNeoHookean,
     ] {
-        let (_, _, err) = solve_patch(model, 1000.0, 10);
-        println!("{model:?} at 1000x: interior displacement error {err:.2e} (relative)");
-        assert!(
-            err < 1e-10,
-            "{model:?}: interior nodal error {err:e} at 1000x"
-        );
+        for smoothing in SMOOTHINGS {
+            let (_, _, err) = solve_patch(model, smoothing, 1000.0, 10);
+            println!(
+                "{model:?} {smoothing:?} at 1000x: interior displacement error {err:.2e} (relative)"
+            );
+            assert!(
+                err < 1e-10,
+                "{model:?} {smoothing:?}: interior nodal error {err:e} at 1000x"
+            );
+        }
     }
 }

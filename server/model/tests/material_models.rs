@@ -13,7 +13,7 @@ use std::path::Path;
 use glam::{DMat3, DQuat};
 use haptic_model::DVec3;
 use haptic_model::ModelError;
-use haptic_model::fem::FemModel;
+use haptic_model::fem::{FemModel, StrainSmoothing};
 use haptic_model::material::{
     self, MaterialModel, MaterialParams, energy_density, first_piola, first_piola_differential,
     polar_decomposition,
@@ -229,13 +229,16 @@ fn count_inverted(fem: &FemModel, x: &[DVec3]) -> usize {
 /// deformation (and one with inverted elements for the robust materials).
 #[test]
 fn forces_and_stiffness_action_match_finite_differences_for_every_material() {
-    for model in MODELS {
+    for (model, smoothing) in MODELS
+        .into_iter()
+        .flat_map(|m| [(m, StrainSmoothing::None), (m, StrainSmoothing::Edge)])
+    {
         for invert in [false, true] {
             if invert && model == MaterialModel::StVenantKirchhoff {
                 continue;
             }
             let (mesh, x) = deformed_mesh(21, invert);
-            let fem = FemModel::new(&mesh, params(model)).unwrap();
+            let fem = FemModel::with_smoothing(&mesh, params(model), smoothing).unwrap();
             if invert {
                 assert!(
                     count_inverted(&fem, &x) > 0,
@@ -260,7 +263,7 @@ fn forces_and_stiffness_action_match_finite_differences_for_every_material() {
             }
             assert!(
                 worst < 1e-6,
-                "{model:?} inverted={invert}: force vs energy {worst:e}"
+                "{model:?} {smoothing:?} inverted={invert}: force vs energy {worst:e}"
             );
             // Stiffness action against a central difference of the forces.
             let mut rng = Rng(99);
@@ -282,23 +285,45 @@ fn forces_and_stiffness_action_match_finite_differences_for_every_material() {
                 / kscale;
             assert!(
                 err < 1e-6,
-                "{model:?} inverted={invert}: K dx vs FD {err:e}"
+                "{model:?} {smoothing:?} inverted={invert}: K dx vs FD {err:e}"
             );
-            // And the assembled element tangent of the static solver agrees with the action.
-            let mut k_el = vec![DVec3::ZERO; n];
-            for (e, t) in fem.tets.iter().enumerate() {
-                let k = haptic_model::statics::element_tangent(&fem, e, &x);
-                for a in 0..4 {
-                    for b in 0..4 {
-                        k_el[t[a] as usize] += k[a][b] * dx[t[b] as usize];
+            // And the assembled cell tangents of the static solver agree with the action (and
+            // for plain elements the 4x4 element tangent too).
+            let mut k_cells = vec![DVec3::ZERO; n];
+            let mut blocks = Vec::new();
+            for c in 0..fem.cell_count() {
+                haptic_model::statics::cell_tangent_blocks(&fem, c, &x, &mut blocks);
+                let t = fem.cell_nodes(c);
+                for a in 0..t.len() {
+                    for b in 0..t.len() {
+                        k_cells[t[a] as usize] += blocks[a * t.len() + b] * dx[t[b] as usize];
                     }
                 }
             }
             let err = (0..n)
-                .map(|i| (k_el[i] - k_dx[i]).length())
+                .map(|i| (k_cells[i] - k_dx[i]).length())
                 .fold(0.0, f64::max)
                 / kscale;
-            assert!(err < 1e-10, "{model:?}: element_tangent vs action {err:e}");
+            assert!(
+                err < 1e-10,
+                "{model:?} {smoothing:?}: cell tangents vs action {err:e}"
+            );
+            if smoothing == StrainSmoothing::None {
+                let mut k_el = vec![DVec3::ZERO; n];
+                for (e, t) in fem.tets.iter().enumerate() {
+                    let k = haptic_model::statics::element_tangent(&fem, e, &x);
+                    for a in 0..4 {
+                        for b in 0..4 {
+                            k_el[t[a] as usize] += k[a][b] * dx[t[b] as usize];
+                        }
+                    }
+                }
+                let err = (0..n)
+                    .map(|i| (k_el[i] - k_dx[i]).length())
+                    .fold(0.0, f64::max)
+                    / kscale;
+                assert!(err < 1e-10, "{model:?}: element_tangent vs action {err:e}");
+            }
         }
     }
 }
@@ -307,19 +332,25 @@ fn forces_and_stiffness_action_match_finite_differences_for_every_material() {
 /// gives no viscous force, a stretching rate does.
 #[test]
 fn viscous_stress_applies_to_every_material() {
-    for model in MODELS {
+    for (model, smoothing) in MODELS
+        .into_iter()
+        .flat_map(|m| [(m, StrainSmoothing::None), (m, StrainSmoothing::Edge)])
+    {
         let mut mat = params(model);
         mat.phi_pa_s = 0.5;
         mat.psi_pa_s = 0.5;
-        let mesh = box_mesh(DVec3::splat(0.01), [1, 1, 1]);
-        let fem = FemModel::new(&mesh, mat).unwrap();
+        let mesh = box_mesh(DVec3::splat(0.01), [2, 1, 1]);
+        let fem = FemModel::with_smoothing(&mesh, mat, smoothing).unwrap();
         let n = mesh.node_count();
         let x = mesh.nodes.clone();
         let w = DVec3::new(0.3, -1.0, 2.0);
         let v_rot: Vec<DVec3> = x.iter().map(|p| w.cross(*p)).collect();
         let mut f = vec![DVec3::ZERO; n];
         fem.add_internal_forces(&x, Some(&v_rot), &mut f);
-        assert!(f.iter().all(|v| v.length() < 1e-12), "{model:?}: {f:?}");
+        assert!(
+            f.iter().all(|v| v.length() < 1e-12),
+            "{model:?} {smoothing:?}: {f:?}"
+        );
         let v_str: Vec<DVec3> = x.iter().map(|p| DVec3::new(p.x, 0.0, 0.0)).collect();
         fem.add_internal_forces(&x, Some(&v_str), &mut f);
         assert!(f.iter().any(|v| v.length() > 1e-8), "{model:?}");

@@ -9,7 +9,7 @@ use haptic_model::DVec3;
 use haptic_model::fem::FemModel;
 use haptic_model::material::{MaterialModel, MaterialParams};
 use haptic_model::mesher::box_mesh;
-use haptic_model::statics::{StaticParams, element_tangent_blocks, solve_static};
+use haptic_model::statics::{StaticParams, cell_tangent_blocks, solve_static};
 
 const MODELS: [MaterialModel; 3] = [
     MaterialModel::StVenantKirchhoff,
@@ -90,9 +90,9 @@ fn stiffness_action_and_element_blocks_match_force_differences() {
         // The same product from the assembled element blocks.
         let mut k_blocks = vec![DVec3::ZERO; n];
         let mut blocks = Vec::new();
-        for e in 0..fem.element_count() {
-            element_tangent_blocks(&fem, e, &x, &mut blocks);
-            let nodes = fem.element_nodes(e);
+        for e in 0..fem.cell_count() {
+            cell_tangent_blocks(&fem, e, &x, &mut blocks);
+            let nodes = fem.cell_nodes(e);
             let npe = nodes.len();
             assert_eq!(npe, 10);
             for a in 0..npe {

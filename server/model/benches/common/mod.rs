@@ -33,6 +33,17 @@ pub const MATERIALS: &[MaterialModel] = &[
     MaterialModel::StableNeoHookean,
 ];
 
+/// Probe centre x at first contact in the LV scenes: the epicardium at z = -5 mm is at 9.682 mm
+/// from the axis, plus the 2 mm probe radius.
+pub const CONTACT_X_M: f64 = 0.011_682;
+/// Probe centre z in the LV scenes, m.
+pub const PROBE_Z_M: f64 = -0.005;
+
+/// The LV probe's device position at indentation `depth_m` (m) along -x.
+pub fn device_at(depth_m: f64) -> DVec3 {
+    DVec3::new(CONTACT_X_M - depth_m, 0.0, PROBE_Z_M)
+}
+
 /// `git rev-parse --short HEAD`, or "unknown".
 pub fn git_commit() -> String {
     std::process::Command::new("git")
