@@ -73,6 +73,9 @@ pub struct FemModel {
     /// The element order of the batches (lane `l` of batch `b` is element
     /// `quad_order[b * LANES + l]`).
     quad_order: Vec<u32>,
+    /// The smoothing domains in batches of [`LANES`], for the vectorised kernel (empty without
+    /// strain smoothing).
+    domain_batches: DomainBatches,
     /// Whether the elements are 10-node tetrahedra.
     quadratic: bool,
     /// Strain smoothing of linear elements.
@@ -790,6 +793,144 @@ fn quadratic_gradient<const FMA: bool, V: Lanes8>(d: &[V; 27], g: &[[f64; LANES]
     out
 }
 
+/// Single-point cells with a variable number of nodes (the smoothing domains of
+/// [`StrainSmoothing::Edge`]) in batches of [`LANES`], for the vectorised force kernel. Batch
+/// `b` has node slots `start[b]..start[b + 1]`; slot `s` holds, per lane, the node
+/// (`nodes[s]`, and `3 *` it in `node3[s]`) and its smoothed gradient (`grad[s][c]`,
+/// component c). Cells are sorted by node count so a batch pads few slots; a padding slot
+/// repeats the lane's first node with a zero gradient, a padding lane has weight zero.
+#[derive(Debug, Clone, Default)]
+struct DomainBatches {
+    start: Vec<usize>,
+    nodes: Vec<[u32; LANES]>,
+    node3: Vec<[i32; LANES]>,
+    grad: Vec<[[f64; LANES]; 3]>,
+    weight_m3: Vec<[f64; LANES]>,
+}
+
+impl DomainBatches {
+    fn build(points: &IntegrationPoints) -> Self {
+        let cells = points.node_start.len() - 1;
+        debug_assert_eq!(points.weight_m3.len(), cells, "one point per cell");
+        let count = |c: usize| points.node_start[c + 1] - points.node_start[c];
+        let mut order: Vec<usize> = (0..cells).collect();
+        order.sort_by_key(|&c| count(c));
+        let mut out = Self {
+            start: vec![0],
+            ..Self::default()
+        };
+        for chunk in order.chunks(LANES) {
+            let slots = chunk.iter().map(|&c| count(c)).max().unwrap_or(0);
+            let first = out.nodes.len();
+            out.nodes.resize(first + slots, [0; LANES]);
+            out.node3.resize(first + slots, [0; LANES]);
+            out.grad.resize(first + slots, [[0.0; LANES]; 3]);
+            let mut w = [0.0; LANES];
+            for (l, &c) in chunk.iter().enumerate() {
+                let nodes = &points.nodes[points.node_start[c]..points.node_start[c + 1]];
+                let grads = &points.grad[points.grad_start[c]..points.grad_start[c + 1]];
+                w[l] = points.weight_m3[c];
+                // Padding slots: the lane's first node with a zero gradient.
+                let padded = nodes
+                    .iter()
+                    .copied()
+                    .zip(grads.iter().copied())
+                    .chain(std::iter::repeat((nodes[0], DVec3::ZERO)));
+                for (s, (node, g)) in padded.take(slots).enumerate() {
+                    out.nodes[first + s][l] = node;
+                    out.node3[first + s][l] = 3 * node as i32;
+                    for c in 0..3 {
+                        out.grad[first + s][c][l] = g[c];
+                    }
+                }
+            }
+            out.weight_m3.push(w);
+            out.start.push(out.nodes.len());
+        }
+        out
+    }
+}
+
+/// Internal forces of single-point cells with variable node counts ([`DomainBatches`]):
+/// `F = sum_s (y_s - y_0) G_s^T` (positions, and velocities for the viscous stress) streamed
+/// slot by slot, the stress of material `MODEL`, then `f_s -= w P G_s` scattered per lane.
+///
+/// # Safety
+/// As [`forces_linear`].
+#[inline(always)]
+unsafe fn forces_domains<const FMA: bool, const MODEL: u8, V: Lanes8>(
+    d: &DomainBatches,
+    mat: &MaterialParams,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    let zero = V::splat(0.0);
+    for (b, w) in d.weight_m3.iter().enumerate() {
+        let (node3, grad) = (
+            &d.node3[d.start[b]..d.start[b + 1]],
+            &d.grad[d.start[b]..d.start[b + 1]],
+        );
+        // SAFETY (both): node indices are below x.len() and v.len() (caller's contract).
+        let fm = unsafe { domain_gradient::<FMA, V>(node3, grad, x) };
+        #[allow(clippy::manual_map)]
+        let fd = match v {
+            Some(v) => Some(unsafe { domain_gradient::<FMA, V>(node3, grad, v) }),
+            None => None,
+        };
+        let p = first_piola_lane::<FMA, MODEL, V>(&fm, fd.as_ref(), mat);
+        let wn = zero - V::load(w);
+        let mut m = [zero; 9];
+        for (mk, pk) in m.iter_mut().zip(p) {
+            *mk = wn * pk;
+        }
+        for (s, g) in grad.iter().enumerate() {
+            let g = [V::load(&g[0]), V::load(&g[1]), V::load(&g[2])];
+            let mut h = [[0.0; LANES]; 3];
+            for (i, hi) in h.iter_mut().enumerate() {
+                let acc = V::madd::<FMA>(m[3 * i + 1], g[1], m[3 * i] * g[0]);
+                V::madd::<FMA>(m[3 * i + 2], g[2], acc).store(hi);
+            }
+            for (l, &node) in d.nodes[d.start[b] + s].iter().enumerate() {
+                f[node as usize] += DVec3::new(h[0][l], h[1][l], h[2][l]);
+            }
+        }
+    }
+}
+
+/// `sum_s (y_s - y_0) G_s^T` (row-major) of one batch of [`DomainBatches`].
+///
+/// # Safety
+/// As [`gather_edges`].
+#[inline(always)]
+unsafe fn domain_gradient<const FMA: bool, V: Lanes8>(
+    node3: &[[i32; LANES]],
+    grad: &[[[f64; LANES]; 3]],
+    y: &[DVec3],
+) -> [V; 9] {
+    let base = y.as_ptr().cast::<f64>();
+    let mut out = [V::splat(0.0); 9];
+    // SAFETY: as in `gather_edges`.
+    let y0 = unsafe {
+        [
+            V::gather(base, &node3[0]),
+            V::gather(base.add(1), &node3[0]),
+            V::gather(base.add(2), &node3[0]),
+        ]
+    };
+    for (n3, g) in node3.iter().zip(grad).skip(1) {
+        let g = [V::load(&g[0]), V::load(&g[1]), V::load(&g[2])];
+        for i in 0..3 {
+            // SAFETY: as above.
+            let di = unsafe { V::gather(base.add(i), n3) } - y0[i];
+            for j in 0..3 {
+                out[3 * i + j] = V::madd::<FMA>(di, g[j], out[3 * i + j]);
+            }
+        }
+    }
+    out
+}
+
 /// The force kernel of `fem`'s element order with lane type `V`.
 ///
 /// # Safety
@@ -806,6 +947,8 @@ unsafe fn forces_with<const FMA: bool, const MODEL: u8, V: Lanes8>(
     unsafe {
         if fem.is_quadratic() {
             forces_quadratic::<FMA, MODEL, V>(&fem.quad_batches, mat, x, v, f);
+        } else if fem.smoothing != StrainSmoothing::None {
+            forces_domains::<FMA, MODEL, V>(&fem.domain_batches, mat, x, v, f);
         } else {
             forces_linear::<FMA, MODEL, V>(&fem.batches, mat, x, v, f);
         }
@@ -1129,6 +1272,11 @@ impl FemModel {
             (false, StrainSmoothing::None) => linear_points(&mesh.tets, &dm_inv, &volume_m3),
             (false, StrainSmoothing::Edge) => edge_smoothed_points(&mesh.tets, &dm_inv, &volume_m3),
         };
+        let domain_batches = if smoothing == StrainSmoothing::None {
+            DomainBatches::default()
+        } else {
+            DomainBatches::build(&points)
+        };
         let order = locality_order(&mesh.nodes, &mesh.tets);
         let (batches, quad_batches) = if mesh.is_quadratic() {
             (Vec::new(), QuadraticBatch::build(&order, &points))
@@ -1158,6 +1306,7 @@ impl FemModel {
             material,
             quadratic: mesh.is_quadratic(),
             smoothing,
+            domain_batches,
         })
     }
 
@@ -1209,7 +1358,7 @@ impl FemModel {
         // Also the safety precondition of the gathers of the vectorised kernels: every node
         // index is below n (checked in `new`).
         assert!(x.len() >= n && f.len() >= n && viscous.is_none_or(|v| v.len() >= n));
-        match lane_model(mat.model).filter(|_| self.smoothing == StrainSmoothing::None) {
+        match lane_model(mat.model) {
             Some(LANE_STVK) => self.lane_forces::<LANE_STVK>(x, viscous, f),
             Some(LANE_STABLE_NEO_HOOKEAN) => {
                 self.lane_forces::<LANE_STABLE_NEO_HOOKEAN>(x, viscous, f);
@@ -1624,7 +1773,8 @@ mod tests {
     /// Every instruction-set variant of the batch kernels that this CPU can run (AVX-512
     /// registers, AVX2 + FMA, plain code) against the scalar element loop `generic_forces`
     /// (`material::first_piola` per element or integration point), for StVK and stable
-    /// Neo-Hookean, linear and quadratic elements, with and without viscosity. The public
+    /// Neo-Hookean, linear, quadratic and edge-smoothed linear elements, with and without
+    /// viscosity. The public
     /// `add_internal_forces` runs only the best variant, so the others are checked here.
     #[test]
     fn every_kernel_variant_matches_the_scalar_element_loop() {
@@ -1676,16 +1826,29 @@ mod tests {
                 k
             }),
         ] {
-            for quadratic in [false, true] {
-                // 3 x 2 x 3 cells: 90 tets, so the last batch has padding lanes.
+            for (quadratic, smoothing) in [
+                (false, StrainSmoothing::None),
+                (true, StrainSmoothing::None),
+                (false, StrainSmoothing::Edge),
+            ] {
+                // 3 x 2 x 3 cells: 90 tets (and 169 edge domains), so the last batch has
+                // padding lanes.
                 let mesh = box_mesh(DVec3::splat(0.01), [3, 2, 3]);
                 let mesh = if quadratic { mesh.to_quadratic() } else { mesh };
                 let mut mat = MaterialParams::from_youngs(1e4, 0.45, 1000.0);
                 mat.model = model;
                 mat.phi_pa_s = 0.3;
                 mat.psi_pa_s = 0.2;
-                let fem = FemModel::new(&mesh, mat).unwrap();
+                let fem = FemModel::with_smoothing(&mesh, mat, smoothing).unwrap();
                 assert_ne!(fem.element_count() % LANES, 0, "want padding lanes");
+                assert_ne!(fem.cell_count() % LANES, 0, "want padding lanes");
+                if smoothing == StrainSmoothing::Edge {
+                    // Domains of several node counts: batches with padding slots.
+                    let counts: std::collections::BTreeSet<usize> = (0..fem.cell_count())
+                        .map(|c| fem.cell_nodes(c).len())
+                        .collect();
+                    assert!(counts.len() >= 3, "{counts:?}");
+                }
                 let (x, v) = deformed_state(&fem);
                 for velocities in [None, Some(v.as_slice())] {
                     let mut expected = vec![DVec3::ZERO; fem.node_count()];
@@ -1702,7 +1865,7 @@ mod tests {
                             .fold(0.0, f64::max);
                         assert!(
                             err < 1e-12 * scale,
-                            "{name} {model:?} quadratic={quadratic} viscous={}: {err:e} of {scale:e}",
+                            "{name} {model:?} quadratic={quadratic} {smoothing:?} viscous={}: {err:e} of {scale:e}",
                             velocities.is_some()
                         );
                         checked += 1;
@@ -1710,8 +1873,8 @@ mod tests {
                 }
             }
         }
-        // At least the plain variant of each of the 8 combinations.
-        assert!(checked >= 8);
+        // At least the plain variant of each of the 12 combinations.
+        assert!(checked >= 12);
     }
 
     /// Every instruction-set variant of the quadratic backward Euler operator kernel against
