@@ -27,6 +27,12 @@
 //! 27` per mid-edge node (the row sums of the consistent T10 mass are negative at the
 //! corners).
 //!
+//! **Strain smoothing.** Linear tetrahedra can instead carry the edge-based smoothed
+//! deformation gradient of ES-FEM-T4 ([`StrainSmoothing::Edge`]): one integration point per mesh
+//! edge whose gradients are the volume-weighted average of the surrounding elements'. Points
+//! are grouped in *cells* (an element, or a smoothing domain with its own node list), so every
+//! generic path and the static solver work on either.
+//!
 //! Neighbours: [`crate::material`] (stress laws), [`crate::integrator`] (uses forces, masses and
 //! the per-node rest Jacobian), [`crate::statics`] (uses [`FemModel::stiffness_action`]).
 
