@@ -82,7 +82,7 @@ struct Row {
     observable: String,
     reference: String,
     stable: bool,
-    /// `fem` (linear tetrahedra) or `fem-t10` (quadratic).
+    /// `fem` (linear tetrahedra), `fem-t10` (quadratic) or `fem-es` (linear, edge-smoothed).
     model: &'static str,
 }
 
@@ -98,18 +98,33 @@ impl Row {
     }
 
     fn new(scenario: &'static str, method: String, integrator: &str, mesh: &TetMesh) -> Self {
+        // Quadratic elements get their own curves in the plots.
+        let method = if mesh.is_quadratic() {
+            format!("{method} T10")
+        } else {
+            method
+        };
+        Self {
+            nodes: mesh.node_count(),
+            tets: mesh.tet_count(),
+            model: if mesh.is_quadratic() {
+                "fem-t10"
+            } else {
+                "fem"
+            },
+            ..Self::blank(scenario, method, integrator)
+        }
+    }
+
+    /// A row with no mesh and no results yet.
+    fn blank(scenario: &'static str, method: String, integrator: &str) -> Self {
         Self {
             scenario,
             material: MaterialModel::StVenantKirchhoff.scene_name(),
-            // Quadratic elements get their own curves in the plots.
-            method: if mesh.is_quadratic() {
-                format!("{method} T10")
-            } else {
-                method
-            },
+            method,
             integrator: integrator.into(),
-            nodes: mesh.node_count(),
-            tets: mesh.tet_count(),
+            nodes: 0,
+            tets: 0,
             settings: String::new(),
             p50_us: f64::NAN,
             p99_us: f64::NAN,
@@ -122,12 +137,33 @@ impl Row {
             observable: String::new(),
             reference: String::new(),
             stable: false,
-            model: if mesh.is_quadratic() {
-                "fem-t10"
-            } else {
-                "fem"
-            },
+            model: "fem",
         }
+    }
+
+    /// The plotted fields of the rows in a `precision.json` written by [`write_results`].
+    fn read_for_plot(path: &Path) -> Result<Vec<Self>, Box<dyn std::error::Error>> {
+        let rows: Vec<serde_json::Value> = serde_json::from_str(&std::fs::read_to_string(path)?)?;
+        let num = |r: &serde_json::Value, k: &str| r[k].as_f64().unwrap_or(f64::NAN);
+        Ok(rows
+            .iter()
+            .filter_map(|r| {
+                let scenario = ["lame", "cantilever", "lv-probe"]
+                    .into_iter()
+                    .find(|s| r["scenario"] == *s)?;
+                let mut row = Self::blank(
+                    scenario,
+                    r["method"].as_str()?.to_string(),
+                    r["integrator"].as_str()?,
+                );
+                row.p50_us = num(r, "step_p50_us");
+                row.rel_l2 = num(r, "rel_l2_error");
+                row.probe_force_error = num(r, "probe_force_error");
+                row.observable_error = num(r, "observable_error");
+                row.stable = r["stable"].as_bool()?;
+                Some(row)
+            })
+            .collect())
     }
 
     fn set_times(&mut self, ticks_us: &mut [f64], tick_s: f64) {
@@ -1097,8 +1133,8 @@ fn scenario_lv(quick: bool, fresh: bool, cache_dir: &Path, rows: &mut Vec<Row>) 
                 sc.integrator.safety_factor = m.sf;
                 sc.integrator.cg_max_iterations = m.cg;
                 sc.integrator.max_substeps = 1000;
-                let mut row = Row::new("lv-probe", m.label(), m.kind.name(), &scene.mesh)
-                    .smoothed(smoothing);
+                let mut row =
+                    Row::new("lv-probe", m.label(), m.kind.name(), &scene.mesh).smoothed(smoothing);
                 row.material = model.scene_name();
                 row.reference = ref_text.clone();
                 match probe_dynamic(&sc, quick) {
@@ -1156,7 +1192,8 @@ fn scenario_lv_h1(fresh: bool, cache_dir: &Path, rows: &mut Vec<Row>) {
             sc.integrator.safety_factor = sf;
             sc.integrator.cg_max_iterations = cg;
             sc.integrator.max_substeps = 1000;
-            let mut row = Row::new("lv-probe", m.label(), kind.name(), &sc.mesh).smoothed(smoothing);
+            let mut row =
+                Row::new("lv-probe", m.label(), kind.name(), &sc.mesh).smoothed(smoothing);
             row.reference = ref_text.clone();
             match probe_dynamic(&sc, false) {
                 Ok((c, mut ticks, sub)) => {
@@ -1261,14 +1298,29 @@ fn plot_scenario(
     let svg = base.with_extension("svg");
     {
         use plotters::prelude::*;
-        let root = BitMapBackend::new(&png, (900, 600)).into_drawing_area();
+        let root = BitMapBackend::new(&png, (1250, 650)).into_drawing_area();
         draw_chart(root, &title, ylabel, &curves, (x0, x1, y0, y1))?;
-        let root = SVGBackend::new(&svg, (900, 600)).into_drawing_area();
+        let root = SVGBackend::new(&svg, (1250, 650)).into_drawing_area();
         draw_chart(root, &title, ylabel, &curves, (x0, x1, y0, y1))?;
     }
     Ok(())
 }
 
+/// Element family of a method label: its base method (the label without the suffix) and
+/// 0 = linear tets, 1 = quadratic (" T10"), 2 = edge-smoothed linear (" ES").
+fn method_family(label: &str) -> (&str, usize) {
+    if let Some(b) = label.strip_suffix(" T10") {
+        (b, 1)
+    } else if let Some(b) = label.strip_suffix(" ES") {
+        (b, 2)
+    } else {
+        (label, 0)
+    }
+}
+
+/// Draws one work-precision chart: the plot on the left, a legend panel on the right. Colour
+/// = method (integrator and setting), marker = element family, so about 30 curves stay
+/// readable with a dozen legend entries.
 fn draw_chart<DB: plotters::prelude::DrawingBackend>(
     root: plotters::drawing::DrawingArea<DB, plotters::coord::Shift>,
     title: &str,
@@ -1280,8 +1332,25 @@ where
     DB::ErrorType: 'static,
 {
     use plotters::prelude::*;
+    // Tableau 10, then greys.
+    const COLORS: [RGBColor; 12] = [
+        RGBColor(31, 119, 180),
+        RGBColor(255, 127, 14),
+        RGBColor(44, 160, 44),
+        RGBColor(214, 39, 40),
+        RGBColor(148, 103, 189),
+        RGBColor(140, 86, 75),
+        RGBColor(227, 119, 194),
+        RGBColor(127, 127, 127),
+        RGBColor(188, 189, 34),
+        RGBColor(23, 190, 207),
+        RGBColor(60, 60, 60),
+        RGBColor(170, 170, 170),
+    ];
     root.fill(&WHITE)?;
-    let mut chart = ChartBuilder::on(&root)
+    let (w, _) = root.dim_in_pixel();
+    let (plot, legend) = root.split_horizontally(w.saturating_sub(350));
+    let mut chart = ChartBuilder::on(&plot)
         .caption(title, ("sans-serif", 22))
         .margin(12)
         .x_label_area_size(45)
@@ -1295,38 +1364,97 @@ where
         .y_label_formatter(&|v| format!("{:.2}%", v * 100.0))
         .draw()?;
     let grey = RGBColor(120, 120, 120);
-    chart
-        .draw_series(LineSeries::new(
-            [(1.0, y0), (1.0, y1)],
-            grey.stroke_width(2),
-        ))?
-        .label("1 ms haptic budget")
-        .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], grey.stroke_width(2)));
     let red = RGBColor(200, 60, 60);
-    chart
-        .draw_series(LineSeries::new(
-            [(x0, 0.07), (x1, 0.07)],
-            red.stroke_width(2),
-        ))?
-        .label("7 % force JND")
-        .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], red.stroke_width(2)));
-    for (k, (name, pts)) in curves.iter().enumerate() {
-        let color = Palette99::pick(k).to_rgba();
-        chart
-            .draw_series(LineSeries::new(pts.iter().copied(), color.stroke_width(2)))?
-            .label(name.as_str())
-            .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], color.stroke_width(2)));
-        chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled())))?;
+    chart.draw_series(LineSeries::new(
+        [(1.0, y0), (1.0, y1)],
+        grey.stroke_width(2),
+    ))?;
+    chart.draw_series(LineSeries::new(
+        [(x0, 0.07), (x1, 0.07)],
+        red.stroke_width(2),
+    ))?;
+    let mut bases: Vec<&str> = curves.keys().map(|k| method_family(k).0).collect();
+    bases.dedup();
+    bases.sort_unstable();
+    bases.dedup();
+    let color_of = |base: &str| {
+        let k = bases.iter().position(|b| *b == base).unwrap_or(0);
+        COLORS[k % COLORS.len()]
+    };
+    for (name, pts) in curves {
+        let (base, family) = method_family(name);
+        let color = color_of(base);
+        chart.draw_series(LineSeries::new(pts.iter().copied(), color.stroke_width(2)))?;
+        match family {
+            0 => chart.draw_series(pts.iter().map(|&p| Cross::new(p, 5, color.stroke_width(2))))?,
+            1 => chart.draw_series(pts.iter().map(|&p| Circle::new(p, 5, color.filled())))?,
+            _ => chart.draw_series(
+                pts.iter()
+                    .map(|&p| TriangleMarker::new(p, 6, color.filled())),
+            )?,
+        };
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .position(SeriesLabelPosition::UpperRight)
-        .label_font(("sans-serif", 14))
-        .draw()?;
+    // Legend panel (pixel coordinates).
+    let font = ("sans-serif", 14).into_font();
+    let black = BLACK.stroke_width(2);
+    let mut y = 40;
+    let line = |legend: &DrawingArea<DB, plotters::coord::Shift>,
+                text: &str,
+                style: ShapeStyle,
+                y: &mut i32|
+     -> Result<(), Box<dyn std::error::Error>> {
+        legend.draw(&PathElement::new([(10, *y), (40, *y)], style))?;
+        legend.draw(&Text::new(text.to_string(), (48, *y - 8), font.clone()))?;
+        *y += 22;
+        Ok(())
+    };
+    line(&legend, "1 ms haptic budget", grey.stroke_width(2), &mut y)?;
+    line(&legend, "7 % force JND", red.stroke_width(2), &mut y)?;
+    y += 10;
+    let present: Vec<usize> = curves.keys().map(|k| method_family(k).1).collect();
+    for (k, text) in [
+        "linear tets",
+        "quadratic tets (T10)",
+        "linear tets, edge smoothing (ES)",
+    ]
+    .iter()
+    .enumerate()
+    .filter(|(k, _)| present.contains(k))
+    {
+        let c = (25, y);
+        match k {
+            0 => legend.draw(&Cross::new(c, 5, black))?,
+            1 => legend.draw(&Circle::new(c, 5, BLACK.filled()))?,
+            _ => legend.draw(&TriangleMarker::new(c, 6, BLACK.filled()))?,
+        }
+        legend.draw(&Text::new(text.to_string(), (48, y - 8), font.clone()))?;
+        y += 22;
+    }
+    y += 10;
+    for base in &bases {
+        line(&legend, base, color_of(base).stroke_width(3), &mut y)?;
+    }
     root.present()?;
     Ok(())
+}
+
+/// The work-precision plot of every scenario, `docs/precision-<scenario>.png/.svg`.
+fn plot_all(rows: &[Row], root: &Path) {
+    if register_font() {
+        for (scenario, ylabel) in [
+            ("lame", "relative L2 displacement error"),
+            ("cantilever", "tip deflection error vs Bisshopp-Drucker"),
+            ("lv-probe", "probe force error (max over 0.5..3 mm)"),
+        ] {
+            let base = root.join(format!("docs/precision-{scenario}"));
+            match plot_scenario(rows, scenario, ylabel, &base) {
+                Ok(()) => println!("plot {}.png/.svg", base.display()),
+                Err(e) => eprintln!("plot {scenario}: {e}"),
+            }
+        }
+    } else {
+        eprintln!("no DejaVuSans.ttf found (apt-get install fonts-dejavu-core): plots skipped");
+    }
 }
 
 fn main() {
@@ -1348,6 +1476,13 @@ fn main() {
     }
     if run("cantilever") {
         scenario_cantilever(quick, &mut rows);
+    }
+    let replot = args.iter().any(|a| a == "--replot");
+    if replot {
+        let rows = Row::read_for_plot(&root.join("docs/bench/precision.json"))
+            .expect("reading docs/bench/precision.json");
+        plot_all(&rows, &root);
+        return;
     }
     if only == Some("lv-h1") {
         let mut rows = Vec::new();
@@ -1445,20 +1580,6 @@ fn main() {
         rows.len(),
         out_dir.join("precision.{csv,json}").display()
     );
-    if register_font() {
-        for (scenario, ylabel) in [
-            ("lame", "relative L2 displacement error"),
-            ("cantilever", "tip deflection error vs Bisshopp-Drucker"),
-            ("lv-probe", "probe force error (max over 0.5..3 mm)"),
-        ] {
-            let base = root.join(format!("docs/precision-{scenario}"));
-            match plot_scenario(&rows, scenario, ylabel, &base) {
-                Ok(()) => println!("plot {}.png/.svg", base.display()),
-                Err(e) => eprintln!("plot {scenario}: {e}"),
-            }
-        }
-    } else {
-        eprintln!("no DejaVuSans.ttf found (apt-get install fonts-dejavu-core): plots skipped");
-    }
+    plot_all(&rows, &root);
     println!("total {:.1} s", wall.elapsed().as_secs_f64());
 }

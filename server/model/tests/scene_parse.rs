@@ -3,6 +3,7 @@
 use std::path::{Path, PathBuf};
 
 use haptic_model::ModelError;
+use haptic_model::fem::StrainSmoothing;
 use haptic_model::integrator::IntegratorKind;
 use haptic_model::scene::{
     Scene, builtin_scene_names, builtin_scene_toml, load_builtin, load_scene_file, parse_scene_toml,
@@ -124,6 +125,7 @@ fn every_deploy_scene_loads_with_the_right_mesh() {
         ("lv_h3_v41.toml", Some((363, 1047))),
         ("lv_h2.toml", Some((776, 2262))),
         ("lv_h1.toml", Some((4398, 17924))),
+        ("lv_h1_es.toml", Some((4398, 17924))),
         ("lv.toml", None),
         ("ellipsoids.toml", None),
     ];
@@ -151,6 +153,12 @@ fn every_deploy_scene_loads_with_the_right_mesh() {
             );
             assert!((s.material.mu_pa - 5000.0).abs() < 1e-9);
         }
+        let smoothing = if f.ends_with("_es.toml") {
+            StrainSmoothing::Edge
+        } else {
+            StrainSmoothing::None
+        };
+        assert_eq!(s.strain_smoothing, smoothing, "{f}");
     }
     for (f, _) in expected {
         assert!(files.iter().any(|x| x == f), "deploy/scenes/{f} missing");
