@@ -33,6 +33,11 @@
 //!   error at 3 mm on the epicardial nodes, the reference interpolated barycentrically at the
 //!   closest point of its rest epicardium.
 //!
+//! `lv-probe` also runs edge-smoothed linear elements (`StrainSmoothing::Edge`, method suffix
+//! " ES") on the 2 000 and 5 000 target meshes. `--scenario lv-h1` runs `lv_h1.msh` with standard
+//! and edge-smoothed elements into its own files ([`scenario_lv_h1`]); `--replot` redraws the
+//! plots from `docs/bench/precision.json`.
+//!
 //! Run: `cargo bench -p haptic-model --bench precision` (the LV reference static solve takes
 //! minutes the first time, then it is cached; `-- --quick` for a subset of about a minute; `-- --fresh-reference` to recompute the cached LV reference; `-- --scenario NAME`
 //! for one scenario, which then is the only one in the output files).

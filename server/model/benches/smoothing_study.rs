@@ -31,7 +31,7 @@ use haptic_model::contact::Probe;
 use haptic_model::fem::{FemModel, StrainSmoothing, apply_constraint};
 use haptic_model::mesh::TET_EDGES;
 use haptic_model::scene::Scene;
-use haptic_model::statics::{StaticParams, cell_tangent_blocks, solve_static};
+use haptic_model::statics::{StaticParams, cell_tangent_blocks, free_dofs, solve_static};
 
 /// Smoothing domains of the study's operator.
 #[derive(Clone, Copy, Debug)]
@@ -315,17 +315,7 @@ fn main() {
     }
 
     println!("2. prefactored backward Euler matrix M/h^2 + K_rest on lv_h1.msh, h = 1 ms");
-    let n = fem.node_count();
-    let mut dof = vec![usize::MAX; 3 * n];
-    let mut free = 0;
-    for i in 0..n {
-        for c in 0..3 {
-            if fem.constraint[i] & (1 << c) == 0 {
-                dof[3 * i + c] = free;
-                free += 1;
-            }
-        }
-    }
+    let (dof, free) = free_dofs(&fem);
     let h = 1e-3;
     let mut triplets = Vec::new();
     let mut blocks = Vec::new();

@@ -86,7 +86,7 @@ pub fn element_tangent(fem: &FemModel, e: usize, x: &[DVec3]) -> [[DMat3; 4]; 4]
 /// Tangent stiffness blocks of cell `c` (an element of any order, or a smoothing domain) at
 /// positions `x`, N/m: `out` is filled with `npe x npe` blocks, block `(a, b)` at
 /// `out[a * npe + b]` being `K_ab = -d f_a / d x_b` for the cell nodes `a, b` of
-/// [`FemModel::cell_nodes`] (`npe` = 4 or 10 for elements, about 7 for edge domains), summed
+/// [`FemModel::cell_nodes`] (`npe` = 4 or 10 for elements, 4 to 11 for edge domains), summed
 /// over the cell's integration points.
 pub fn cell_tangent_blocks(fem: &FemModel, c: usize, x: &[DVec3], out: &mut Vec<DMat3>) {
     let mat = &fem.material;
@@ -129,6 +129,22 @@ pub fn add_pressure_forces(triangles: &[[u32; 3]], x: &[DVec3], pressure_pa: f64
     }
 }
 
+/// Numbering of the free (unconstrained) degrees of freedom: `dof[3 i + c]` is the equation
+/// number of component `c` of node `i`, or `usize::MAX` when it is constrained; and the count.
+pub fn free_dofs(fem: &FemModel) -> (Vec<usize>, usize) {
+    let mut dof = vec![usize::MAX; 3 * fem.node_count()];
+    let mut free = 0;
+    for (i, &mask) in fem.constraint.iter().enumerate() {
+        for c in 0..3 {
+            if mask & (1 << c) == 0 {
+                dof[3 * i + c] = free;
+                free += 1;
+            }
+        }
+    }
+    (dof, free)
+}
+
 /// Solves `f_int(x) + f_ext = 0` for the free components of `x` (m), starting from `x`, with
 /// dead external nodal forces `f_ext` (N). Constrained components keep their values in `x`.
 ///
@@ -142,17 +158,7 @@ pub fn solve_static(
     params: &StaticParams,
 ) -> Result<StaticReport, ModelError> {
     let n = fem.node_count();
-    // Free degree-of-freedom numbering.
-    let mut dof = vec![usize::MAX; 3 * n];
-    let mut nfree = 0;
-    for i in 0..n {
-        for c in 0..3 {
-            if fem.constraint[i] & (1 << c) == 0 {
-                dof[3 * i + c] = nfree;
-                nfree += 1;
-            }
-        }
-    }
+    let (dof, nfree) = free_dofs(fem);
     if nfree == 0 {
         return Ok(StaticReport {
             iterations: 0,
