@@ -1338,9 +1338,7 @@ impl FemModel {
     /// (seed 000 eq. 13-14).
     #[inline]
     pub fn shape_gradients(&self, e: usize) -> [DVec3; 4] {
-        let m = &self.dm_inv[e];
-        let (g1, g2, g3) = (m.row(0), m.row(1), m.row(2));
-        [-(g1 + g2 + g3), g1, g2, g3]
+        linear_gradients(&self.dm_inv[e])
     }
 
     /// Deformation gradient `F = Ds Dm^-1` of element `e` for positions `x` (eq. 21).
