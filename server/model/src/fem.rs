@@ -530,13 +530,14 @@ unsafe fn forces_linear<const FMA: bool, const MODEL: u8, V: Lanes8>(
             *b = V::load(row);
         }
         // SAFETY: node indices are below x.len() (caller's contract).
-        let fm = edge_gradient::<FMA, V>(&unsafe { gather_edges::<V>(batch, x) }, &bm);
+        let fm =
+            edge_gradient::<FMA, V>(&unsafe { gather_differences::<V, 9>(&batch.node3, x) }, &bm);
         // No closure (`v.map`): closures are not inlined into `target_feature` functions.
         #[allow(clippy::manual_map)]
         let fd = match v {
             // SAFETY: node indices are below v.len() (caller's contract).
             Some(v) => Some(edge_gradient::<FMA, V>(
-                &unsafe { gather_edges::<V>(batch, v) },
+                &unsafe { gather_differences::<V, 9>(&batch.node3, v) },
                 &bm,
             )),
             None => None,
@@ -573,31 +574,37 @@ fn scatter_linear(batch: &ElementBatch, h: &[[f64; LANES]; 9], f: &mut [DVec3]) 
     }
 }
 
-/// Edge vectors `y_{k+1} - y_0` of a batch (`y` = positions or velocities) by gathers:
-/// `out[3 k + i]` holds component i of edge k, one lane per element.
+/// Differences `y_a - y_0` (a = 1..N/3) of the nodes of a batch whose gather offsets are
+/// `node3` (row a: `3 *` node a of each lane), `y` positions or velocities: `out[3 (a - 1) + c]`
+/// holds component c, one lane per element. For a linear batch (N = 9) these are the edge
+/// vectors `Ds`; for a quadratic one (N = 27) the differences to the first corner.
 ///
 /// # Safety
 /// As [`forces_linear`]: `V`'s instructions enabled, node indices below `y.len()`.
 #[inline(always)]
-unsafe fn gather_edges<V: Lanes8>(batch: &ElementBatch, y: &[DVec3]) -> [V; 9] {
+unsafe fn gather_differences<V: Lanes8, const N: usize>(
+    node3: &[[i32; LANES]],
+    y: &[DVec3],
+) -> [V; N] {
+    debug_assert_eq!(node3.len(), N / 3 + 1);
     // DVec3 is three packed f64 (repr(C)), so component c of node n is at 3 n + c.
     let base = y.as_ptr().cast::<f64>();
-    let mut out = [V::splat(0.0); 9];
+    let mut out = [V::splat(0.0); N];
     for c in 0..3 {
         // SAFETY: node3 holds 3 * (node index), so offset + c addresses a component of a node
         // below y.len() (caller's contract).
         unsafe {
             let p = base.add(c);
-            let y0 = V::gather(p, &batch.node3[0]);
-            for k in 0..3 {
-                out[3 * k + c] = V::gather(p, &batch.node3[k + 1]) - y0;
+            let y0 = V::gather(p, &node3[0]);
+            for a in 1..=N / 3 {
+                out[3 * (a - 1) + c] = V::gather(p, &node3[a]) - y0;
             }
         }
     }
     out
 }
 
-/// `F = Ds Dm^-1`: `d` from [`gather_edges`], `bm[3 r + c]` entry (r, c) of `Dm^-1`;
+/// `F = Ds Dm^-1`: `d` from [`gather_differences`], `bm[3 r + c]` entry (r, c) of `Dm^-1`;
 /// `F_ij = sum_k d[3 k + i] bm[3 k + j]`, row-major (seed 000 eq. 21).
 #[inline(always)]
 fn edge_gradient<const FMA: bool, V: Lanes8>(d: &[V; 9], bm: &[V; 9]) -> [V; 9] {
@@ -679,12 +686,12 @@ unsafe fn forces_quadratic<const FMA: bool, const MODEL: u8, V: Lanes8>(
     let zero = V::splat(0.0);
     for batch in batches {
         // SAFETY: node indices are below x.len() and v.len() (caller's contract).
-        let d = unsafe { gather_quadratic::<V>(batch, x) };
+        let d = unsafe { gather_differences::<V, 27>(&batch.node3, x) };
         // No closure (`v.map`): closures are not inlined into `target_feature` functions.
         #[allow(clippy::manual_map)]
         let dv = match v {
             // SAFETY: as above.
-            Some(v) => Some(unsafe { gather_quadratic::<V>(batch, v) }),
+            Some(v) => Some(unsafe { gather_differences::<V, 27>(&batch.node3, v) }),
             None => None,
         };
         let mut h = [zero; 27];
@@ -737,29 +744,6 @@ fn store_scatter_quadratic<V: Lanes8>(batch: &QuadraticBatch, h: &[V; 27], out: 
     scatter_quadratic(batch, &hs, out);
 }
 
-/// `y_a - y_0` (a = 1..9) of a quadratic batch by gathers: `out[3 (a - 1) + c]` holds
-/// component c, one lane per element.
-///
-/// # Safety
-/// As [`gather_edges`].
-#[inline(always)]
-unsafe fn gather_quadratic<V: Lanes8>(batch: &QuadraticBatch, y: &[DVec3]) -> [V; 27] {
-    // DVec3 is three packed f64 (repr(C)), so component c of node n is at 3 n + c.
-    let base = y.as_ptr().cast::<f64>();
-    let mut out = [V::splat(0.0); 27];
-    for c in 0..3 {
-        // SAFETY: as in `gather_edges`.
-        unsafe {
-            let p = base.add(c);
-            let y0 = V::gather(p, &batch.node3[0]);
-            for a in 1..10 {
-                out[3 * (a - 1) + c] = V::gather(p, &batch.node3[a]) - y0;
-            }
-        }
-    }
-    out
-}
-
 /// Adds the per-node vectors `h` of a quadratic batch (`h[3 (a - 1) + c][l]`: component c for lane l) to
 /// `out`: `out[n_a] += h_a` for a = 1..9 and `out[n_0] -= sum_a h_a`. Padding lanes carry
 /// zeros (zero gradients and weights), so adding them changes nothing.
@@ -780,7 +764,7 @@ fn scatter_quadratic(batch: &QuadraticBatch, h: &[[f64; LANES]; 27], out: &mut [
     }
 }
 
-/// `F = sum_a d_a (grad N_a)^T`, row-major: `d` from [`gather_quadratic`], `g` a batch's
+/// `F = sum_a d_a (grad N_a)^T`, row-major: `d` from [`gather_differences`], `g` a batch's
 /// gradients at one integration point.
 #[inline(always)]
 fn quadratic_gradient<const FMA: bool, V: Lanes8>(d: &[V; 27], g: &[[f64; LANES]; 27]) -> [V; 9] {
@@ -908,7 +892,7 @@ unsafe fn forces_domains<const FMA: bool, const MODEL: u8, V: Lanes8>(
 /// `sum_s (y_s - y_0) G_s^T` (row-major) of one batch of [`DomainBatches`].
 ///
 /// # Safety
-/// As [`gather_edges`].
+/// As [`gather_differences`].
 #[inline(always)]
 unsafe fn domain_gradient<const FMA: bool, V: Lanes8>(
     node3: &[[i32; LANES]],
@@ -917,7 +901,7 @@ unsafe fn domain_gradient<const FMA: bool, V: Lanes8>(
 ) -> [V; 9] {
     let base = y.as_ptr().cast::<f64>();
     let mut out = [V::splat(0.0); 9];
-    // SAFETY: as in `gather_edges`.
+    // SAFETY: as in `gather_differences`.
     let y0 = unsafe {
         [
             V::gather(base, &node3[0]),
@@ -1034,7 +1018,7 @@ unsafe fn stvk_operator_quadratic<const FMA: bool, V: Lanes8>(
     );
     for (b, batch) in batches.iter().enumerate() {
         // SAFETY: node indices are below p.len() (caller's contract).
-        let dp = unsafe { gather_quadratic::<V>(batch, p) };
+        let dp = unsafe { gather_differences::<V, 27>(&batch.node3, p) };
         let elements = &order[b * LANES..((b + 1) * LANES).min(order.len())];
         let mut h = [zero; 27];
         for q in 0..4 {
