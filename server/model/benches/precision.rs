@@ -54,6 +54,7 @@ use common::{
     smoothstep, stats,
 };
 use haptic_model::DVec3;
+use haptic_model::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
 use haptic_model::contact::{ContactSurface, Probe};
 use haptic_model::fem::{FemModel, StrainSmoothing};
 use haptic_model::integrator::{IntegratorKind, IntegratorParams};
@@ -884,6 +885,7 @@ fn probe_dynamic(scene: &Scene, quick: bool) -> Result<(ProbeCurve, Vec<f64>, u3
         prev = d;
     }
     let substeps = sim.plan().substeps;
+    sim.recover_far_field();
     Ok((
         ProbeCurve {
             forces_n: forces,
@@ -1158,11 +1160,23 @@ fn scenario_lv(quick: bool, fresh: bool, cache_dir: &Path, rows: &mut Vec<Row>) 
     }
 }
 
+/// Condensed rows of [`scenario_lv_h1`]: (strain smoothing, radius of the active region in
+/// mm).
+const CONDENSED_RUNS: &[(StrainSmoothing, f64)] = &[
+    (StrainSmoothing::Edge, 5.0),
+    (StrainSmoothing::Edge, 6.0),
+    (StrainSmoothing::Edge, 7.0),
+    (StrainSmoothing::Edge, 8.0),
+    (StrainSmoothing::None, 7.0),
+];
+
 /// `lv-probe` on `lv_h1.msh` (17 924 linear tets; `--scenario lv-h1`, not part of the full
-/// run, own output `docs/bench/precision-lv-h1.{csv,json}`): standard and edge-smoothed
+/// run, own output `docs/bench/precision-lv-h1.{csv,json,png,svg}`): standard and edge-smoothed
 /// (ES-FEM-T4) elements, each with semi-implicit at 0.5 and symplectic Euler at 0.9 of the critical
-/// step and backward Euler with CG capped at 5, against the same converged reference as
-/// `lv-probe`. Static curves on this mesh take minutes each (`--scenario lv-study`, README).
+/// step and backward Euler with CG capped at 5, and backward Euler on a contact-local active
+/// region with the rest condensed ([`CONDENSED_RUNS`], `haptic_model::condensed`), against the
+/// same converged reference as `lv-probe`. `LV_H1_ROWS=condensed` runs the condensed rows only.
+/// Static curves on this mesh take minutes each (`--scenario lv-study`, README).
 fn scenario_lv_h1(fresh: bool, cache_dir: &Path, rows: &mut Vec<Row>) {
     let Some(h1) = common::lv_h1_scene() else {
         eprintln!("lv_h1.msh not found: scenario lv-h1 skipped");
@@ -1183,6 +1197,58 @@ fn scenario_lv_h1(fresh: bool, cache_dir: &Path, rows: &mut Vec<Row>) {
         (IntegratorKind::SymplecticEuler, 0.9, 20),
         (IntegratorKind::BackwardEuler, 1.0, 5),
     ];
+    for &(smoothing, radius_mm) in CONDENSED_RUNS {
+        let mut sc = base.clone();
+        sc.strain_smoothing = smoothing;
+        sc.integrator.kind = IntegratorKind::BackwardEuler;
+        sc.integrator.substeps = Some(1);
+        // The contact point of the press: the probe centre at first contact minus its radius.
+        sc.active_region = Some(ActiveRegion {
+            centre_m: DVec3::new(
+                common::CONTACT_X_M - sc.probe.radius_m,
+                0.0,
+                common::PROBE_Z_M,
+            ),
+            radius_m: radius_mm * 1e-3,
+            stiffness_margin: DEFAULT_STIFFNESS_MARGIN,
+        });
+        let method = format!("condensed BE r={radius_mm} mm");
+        let mut row =
+            Row::new("lv-probe", method.clone(), "backward-euler", &sc.mesh).smoothed(smoothing);
+        row.reference = ref_text.clone();
+        let t0 = Instant::now();
+        let sizes = match Simulation::new(&sc) {
+            Ok(sim) => sim.condensed().map(|c| c.sizes()).unwrap_or_default(),
+            Err(e) => {
+                row.settings = format!("{method}: {e}");
+                row.print();
+                rows.push(row);
+                continue;
+            }
+        };
+        let setup_s = t0.elapsed().as_secs_f64();
+        match probe_dynamic(&sc, false) {
+            Ok((c, mut ticks, _)) => {
+                row.settings = format!(
+                    "lv_h1.msh, strain smoothing {}; tick 1 ms, one backward Euler step on the {} tets within {radius_mm} mm of the contact ({} equations, {} interface nodes, {} factor entries), the other {} condensed; set-up {setup_s:.1} s",
+                    smoothing.name(),
+                    sizes.active_tets,
+                    sizes.equations,
+                    sizes.interface_nodes,
+                    sizes.factor_entries,
+                    sc.mesh.tets.len() - sizes.active_tets,
+                );
+                row.set_times(&mut ticks, sc.integrator.tick_s);
+                fill_lv_errors(&mut row, &reference, &sc.mesh, &c, DEPTHS_MM.len() - 1);
+            }
+            Err(e) => row.settings = format!("{method}: {e}"),
+        }
+        row.print();
+        rows.push(row);
+    }
+    if std::env::var("LV_H1_ROWS").is_ok_and(|v| v == "condensed") {
+        return;
+    }
     for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
         for (kind, sf, cg) in runs {
             let m = Method {

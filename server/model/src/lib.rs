@@ -24,6 +24,7 @@
 // `partial_cmp` rewrite would hide exactly that intent.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+pub mod condensed;
 pub mod contact;
 pub mod error;
 pub mod export;

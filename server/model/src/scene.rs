@@ -47,6 +47,10 @@
 //! [[loads.point]]                # any number; permanent, on the closest free boundary triangle
 //! point_m = [0.0, 0.01, 0.0]
 //! force_n = [0.0, -0.05, 0.0]
+//! [active_region]                # optional; backward Euler only: simulate the tetrahedra
+//! centre_m = [0.0097, 0.0, -0.005] # with a node within radius_m of centre_m (rest, metres)
+//! radius_m = 0.008               # and condense the rest statically (crate::condensed)
+//! stiffness_margin = 2.0         # factor on the rest stiffness of the frozen tick matrix
 //! [probe]                        # optional, defaults shown
 //! radius_m = 0.002
 //! coupling_stiffness_n_per_m = 300.0
@@ -66,6 +70,7 @@ use glam::DVec3;
 use serde::Deserialize;
 
 use crate::ModelError;
+use crate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
 use crate::contact::ProbeParams;
 use crate::fem::StrainSmoothing;
 use crate::integrator::{IntegratorKind, IntegratorParams};
@@ -97,6 +102,9 @@ pub struct Scene {
     pub length_unit_m: f64,
     /// External loads: gravity, surface pressure, point forces (section `[loads]`).
     pub loads: SceneLoads,
+    /// Contact-local active region (section `[active_region]`): backward Euler on its elements
+    /// with the rest of the body condensed ([`crate::condensed`]); `None` simulates everything.
+    pub active_region: Option<ActiveRegion>,
 }
 
 /// External loads of a scene (section `[loads]`), SI units; the default is no load. Applied by
@@ -320,6 +328,15 @@ struct RawScene {
     integrator: Option<RawIntegrator>,
     probe: Option<RawProbe>,
     loads: Option<RawLoads>,
+    active_region: Option<RawActiveRegion>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawActiveRegion {
+    centre_m: Option<[f64; 3]>,
+    radius_m: Option<f64>,
+    stiffness_margin: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -516,6 +533,31 @@ fn parse_scene(text: &str, base_dir: &Path, default_name: &str) -> Result<Scene,
     let integrator = build_integrator(&raw.integrator.unwrap_or_default())?;
     let probe = build_probe(&raw.probe.unwrap_or_default())?;
     let loads = build_loads(&raw.loads.unwrap_or_default(), &mesh, &clamped_nodes)?;
+    let active_region = match &raw.active_region {
+        None => None,
+        Some(a) => {
+            if integrator.kind != IntegratorKind::BackwardEuler {
+                return Err(ModelError::field(
+                    "active_region",
+                    "needs integrator.kind = \"backward-euler\"",
+                ));
+            }
+            let centre = required("active_region.centre_m", a.centre_m)?;
+            Some(ActiveRegion {
+                centre_m: bounded_vec("active_region.centre_m", centre, 1e3)?,
+                radius_m: positive(
+                    "active_region.radius_m",
+                    required("active_region.radius_m", a.radius_m)?,
+                )?,
+                stiffness_margin: checked(
+                    "active_region.stiffness_margin",
+                    a.stiffness_margin.unwrap_or(DEFAULT_STIFFNESS_MARGIN),
+                    |c| (1.0..=100.0).contains(&c),
+                    "in [1, 100]",
+                )?,
+            })
+        }
+    };
     Ok(Scene {
         name: raw.name.unwrap_or_else(|| default_name.to_string()),
         description: raw.description.unwrap_or_default(),
@@ -528,6 +570,7 @@ fn parse_scene(text: &str, base_dir: &Path, default_name: &str) -> Result<Scene,
         touchable,
         length_unit_m,
         loads,
+        active_region,
     })
 }
 

@@ -17,6 +17,7 @@
 use glam::{DMat3, DVec3};
 
 use crate::ModelError;
+use crate::condensed::CondensedSolver;
 use crate::contact::{ContactState, ContactSurface, MAX_PATCH_NODES, PATCH_RADIUS_FACTOR, Probe};
 use crate::fem::{CLAMPED, FemModel};
 use crate::integrator::{self, CgStats, ImplicitSolver, IntegratorKind, StepPlan};
@@ -119,6 +120,9 @@ pub struct Simulation {
     a_inv: Vec<DMat3>,
     /// Backward Euler solver and its scratch (backward Euler only).
     implicit: Option<ImplicitSolver>,
+    /// Backward Euler on the scene's active region with the rest condensed (scenes with
+    /// `[active_region]`; then `implicit` is `None`).
+    condensed: Option<CondensedSolver>,
     /// Scene loads that do not depend on the state (gravity, dead pressure, point forces), N
     /// per node; empty when there are none.
     constant_load: Vec<DVec3>,
@@ -179,9 +183,46 @@ impl Simulation {
             IntegratorKind::SemiImplicit => integrator::semi_implicit_inverses(&fem, plan.sub_dt_s),
             IntegratorKind::SymplecticEuler | IntegratorKind::BackwardEuler => Vec::new(),
         };
-        let implicit = (p.kind == IntegratorKind::BackwardEuler)
+        let condensed = match scene.active_region {
+            Some(region) => Some(CondensedSolver::new(
+                &fem,
+                &scene.mesh,
+                region,
+                plan.sub_dt_s,
+            )?),
+            None => None,
+        };
+        let implicit = (p.kind == IntegratorKind::BackwardEuler && condensed.is_none())
             .then(|| ImplicitSolver::new(&fem, plan.sub_dt_s, &p));
         let constant_load = constant_external_forces(scene, &fem.rest, &fem.lumped_mass_kg);
+        // A condensed model sees loads and contact on its active nodes only.
+        let active = |t: &[u32; 3]| condensed.as_ref().is_none_or(|c| c.is_active_triangle(t));
+        if let Some(c) = &condensed {
+            let far_load = constant_load
+                .iter()
+                .enumerate()
+                .any(|(i, f)| *f != DVec3::ZERO && !c.is_active_node(i as u32));
+            let far_follower = scene
+                .loads
+                .pressure
+                .iter()
+                .filter(|l| l.follower)
+                .any(|l| !l.triangles.iter().all(|t| c.is_active_triangle(t)));
+            if far_load || far_follower {
+                return Err(ModelError::field(
+                    "active_region",
+                    "a scene load acts outside the active region (condensed elements are unloaded): enlarge the region or remove the load",
+                ));
+            }
+        }
+        let touchable: Vec<[u32; 3]> = scene.touchable.iter().copied().filter(active).collect();
+        let contact_nodes: Vec<u32> = touchable.iter().flatten().copied().collect();
+        if touchable.is_empty() {
+            return Err(ModelError::field(
+                "active_region",
+                "no touchable triangle lies inside the active region",
+            ));
+        }
         let follower = scene
             .loads
             .pressure
@@ -195,6 +236,7 @@ impl Simulation {
             .iter()
             .copied()
             .filter(|t| t.iter().any(|&i| fem.constraint[i as usize] != CLAMPED))
+            .filter(active)
             .collect();
         let mut surface_nodes: Vec<u32> = boundary.iter().flatten().copied().collect();
         surface_nodes.sort_unstable();
@@ -207,13 +249,18 @@ impl Simulation {
             .iter()
             .map(|t| t.map(|i| local[i as usize]))
             .collect();
-        let probe = Probe::new(scene.probe, scene.touchable.clone(), &fem.rest);
+        let probe = Probe::new(scene.probe, touchable, &fem.rest);
+        let mut condensed = condensed;
+        if let Some(c) = &mut condensed {
+            c.prepare_contact(&contact_nodes);
+        }
         Ok(Self {
             kind: p.kind,
             plan,
             tick_s: p.tick_s,
             a_inv,
             implicit,
+            condensed,
             constant_load,
             follower,
             diverged_at_s: None,
@@ -260,7 +307,9 @@ impl Simulation {
                 IntegratorKind::BackwardEuler => None,
                 _ => Some(self.state.v.as_slice()),
             };
-            self.fem
+            self.condensed
+                .as_ref()
+                .map_or(&self.fem, CondensedSolver::active_model)
                 .add_internal_forces(&self.state.x, v_for_force, &mut self.force);
             self.add_external_forces();
             contact = match input.device_position_m {
@@ -282,7 +331,16 @@ impl Simulation {
                     ContactState::default()
                 }
             };
-            let max_v2 = if let Some(solver) = &mut self.implicit {
+            let max_v2 = if let Some(solver) = &mut self.condensed {
+                let coupling = self.probe.rank_one(h);
+                let max_v2 =
+                    solver.step(&self.force, coupling, &mut self.state.x, &mut self.state.v);
+                if contact.in_contact {
+                    self.probe.finish_solved(h, &self.state.v);
+                    contact = self.probe.state;
+                }
+                max_v2
+            } else if let Some(solver) = &mut self.implicit {
                 let coupling = self.probe.rank_one(h);
                 let max_v2 = solver.step(
                     &self.fem,
@@ -384,26 +442,47 @@ impl Simulation {
             .map(|a| a.length_squared())
             .fold(0.0, f64::max)
             .sqrt();
-        let volume = self.fem.deformed_volume_m3(x);
-        let v0 = self.fem.total_volume_m3();
+        // Condensed: the far elements' nodes are not all current (the tick moves the far
+        // boundary only), so energy and volume come from the active elements plus the far
+        // part's exact linear energy `u_G^T S u_G / 2`, and its volume change is not tracked.
+        let (elastic_energy_j, volume_change) = match &self.condensed {
+            Some(c) => {
+                let a = c.active_model();
+                (
+                    a.elastic_energy(x) + c.far_energy_j(x),
+                    (a.deformed_volume_m3(x) - a.total_volume_m3()) / self.fem.total_volume_m3(),
+                )
+            }
+            None => {
+                let v0 = self.fem.total_volume_m3();
+                (
+                    self.fem.elastic_energy(x),
+                    (self.fem.deformed_volume_m3(x) - v0) / v0,
+                )
+            }
+        };
         StabilityReport {
             stable: finite && self.diverged_at_s.is_none(),
             diverged_at_s: self.diverged_at_s,
             finite,
             max_speed_m_per_s: max_speed,
             kinetic_energy_j: self.kinetic_energy_j(),
-            elastic_energy_j: self.fem.elastic_energy(x),
+            elastic_energy_j,
             max_displacement_m: self.max_displacement_m(),
             inverted_elements: self.inverted_elements(),
-            volume_change: (volume - v0) / v0,
+            volume_change,
             cg: self.cg_stats(),
         }
     }
 
     /// Number of elements whose deformation gradient has `det F <= 0` (inverted or flat) at
     /// some integration point.
+    /// With an active region, of the active elements (the far ones are linear).
     pub fn inverted_elements(&self) -> usize {
-        self.fem.inverted_elements(&self.state.x)
+        self.condensed
+            .as_ref()
+            .map_or(&self.fem, CondensedSolver::active_model)
+            .inverted_elements(&self.state.x)
     }
 
     /// Conjugate-gradient statistics of the last backward Euler step (default for the other
@@ -592,6 +671,20 @@ impl Simulation {
     /// The FEM data.
     pub fn fem(&self) -> &FemModel {
         &self.fem
+    }
+
+    /// The condensed solver of a scene with `[active_region]`.
+    pub fn condensed(&self) -> Option<&CondensedSolver> {
+        self.condensed.as_ref()
+    }
+
+    /// With an active region: moves the condensed (far) nodes to the static response of the
+    /// far body to the interface, which the tick leaves at their last recovered positions (one
+    /// sparse solve, allocates: not for the servo tick). No-op otherwise.
+    pub fn recover_far_field(&mut self) {
+        if let Some(c) = &self.condensed {
+            c.recover_far_field(&mut self.state.x);
+        }
     }
 
     /// The dynamic state.
