@@ -2,7 +2,8 @@
 //! (`FemModel::add_internal_forces`, elastic + viscous, and elastic alone) and one full `Simulation::tick` (all
 //! sub-steps, probe pressing 3 mm into the epicardium) on the structured LV at about 1k, 2k,
 //! 10k tets, on `lv_h1.msh` (17 924 tets), and with quadratic (10-node) tetrahedra on the
-//! structured LV at about 500 and 1k elements (`q` suffix).
+//! structured LV at about 500 and 1k elements (`q` suffix); and the condensed tick of
+//! `deploy/scenes/lv_h1_condensed.toml` at three active-region radii (`tick_condensed`).
 //!
 //! Run: `cargo bench -p haptic-model --bench micro` (single thread; divan prints median and
 //! spread per size).
@@ -115,6 +116,25 @@ fn add_internal_forces_material(bencher: divan::Bencher, run: &str) {
 #[divan::bench(args = SIZES, sample_count = 20)]
 fn tick(bencher: divan::Bencher, size: &str) {
     let (mut sim, input) = pressed(size);
+    bencher.bench_local(|| sim.tick(divan::black_box(&input)).expect("tick"));
+}
+
+/// `lv_h1.msh` with edge smoothing and backward Euler on the tetrahedra within R mm of the
+/// probe, the rest condensed (`deploy/scenes/lv_h1_condensed.toml`, radius overridden).
+const CONDENSED_RADII_MM: [f64; 3] = [6.0, 7.0, 8.0];
+
+#[divan::bench(args = CONDENSED_RADII_MM, sample_count = 20)]
+fn tick_condensed(bencher: divan::Bencher, radius_mm: f64) {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../deploy/scenes/lv_h1_condensed.toml");
+    let Ok(mut sc) = haptic_model::scene::load_scene_file(&path) else {
+        eprintln!("lv_h1.msh not found: tick_condensed skipped");
+        return;
+    };
+    if let Some(r) = &mut sc.active_region {
+        r.radius_m = radius_mm * 1e-3;
+    }
+    let (mut sim, input) = pressed_scene(&sc);
     bencher.bench_local(|| sim.tick(divan::black_box(&input)).expect("tick"));
 }
 

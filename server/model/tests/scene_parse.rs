@@ -126,6 +126,7 @@ fn every_deploy_scene_loads_with_the_right_mesh() {
         ("lv_h2.toml", Some((776, 2262))),
         ("lv_h1.toml", Some((4398, 17924))),
         ("lv_h1_es.toml", Some((4398, 17924))),
+        ("lv_h1_condensed.toml", Some((4398, 17924))),
         ("lv.toml", None),
         ("ellipsoids.toml", None),
     ];
@@ -153,7 +154,7 @@ fn every_deploy_scene_loads_with_the_right_mesh() {
             );
             assert!((s.material.mu_pa - 5000.0).abs() < 1e-9);
         }
-        let smoothing = if f.ends_with("_es.toml") {
+        let smoothing = if f.ends_with("_es.toml") || f.ends_with("_condensed.toml") {
             StrainSmoothing::Edge
         } else {
             StrainSmoothing::None
