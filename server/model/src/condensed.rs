@@ -15,26 +15,34 @@
 //!
 //! This is the hybrid of Cotin, Delingette & Ayache (The Visual Computer 16 (2000) 437): a
 //! nonlinear model where the tool acts, a precomputed linear one elsewhere; in the spirit of
-//! seed 001's contact-local activation (Mero & Susin), the work follows the contact. Each servo
-//! tick takes one backward Euler step (see [`crate::integrator`] for the system) with the
-//! matrix frozen at rest and factorised once:
+//! seed 001's two-layer model (a detailed model only where the tool acts) and seed 003's haptic
+//! subdivision (level of detail at the contact), the work follows the contact. Each servo tick
+//! takes one backward Euler step (see [`crate::integrator`] for the linearisation) with the
+//! matrix frozen at rest and factorised once, solved for the new velocity `v'` directly:
 //!
-//! `A dv = M v + h (f_el(x) + f_ext - S u_G - U phi0) - A v`,
-//! `A = M (1 + alpha h) + h D_0 + h^2 (K_0 + S)`,
+//! `(A + gamma U U^T) v' = M v + h (f_el(x) + f_ext - S u_G - U phi0)`,
+//! `A = M (1 + alpha h) + h D_0 + h^2 (c K_0 + S)`, `x' = x + h v'`,
 //!
 //! `K_0`, `D_0` the rest stiffness and viscous matrices of the active elements (for the
 //! viscous stress of seed 000 eq. 10-11, the stiffness with `(lambda, mu) -> (2 phi, 2 psi)`),
-//! `f_el` their exact nonlinear elastic forces, so equilibria are exact for the split model; the
-//! lagged matrix only changes the path to them (a modified Newton step per tick). The probe's
-//! virtual coupling `gamma U U^T` is added exactly by Sherman-Morrison with a second
-//! right-hand side. The solve is faer's sparse Cholesky (supernodal, AMD ordering) with its
-//! workspace allocated at construction, so [`CondensedSolver::step`] allocates nothing.
+//! `c` the [`ActiveRegion::stiffness_margin`], `f_el` the active elements' exact nonlinear
+//! elastic forces. At rest (`v = v' = 0`) the equation is `f = 0` whatever the matrix, so
+//! equilibria are exact for the split model and the frozen matrix only changes the path to
+//! them (a modified Newton step per tick). Because `v'` is solved for directly (not `dv` from
+//! `b - A v`), an inexact solve cannot shift an equilibrium either, which is why the factor is
+//! stored in single precision (half the memory streamed per tick). The probe's virtual coupling
+//! `gamma U U^T` is added exactly by Sherman-Morrison, with `A^-1 U` from columns precomputed
+//! for the active touchable nodes ([`CondensedSolver::prepare_contact`]). The solve is faer's
+//! sparse Cholesky (supernodal, AMD ordering) with its workspace allocated at construction, so
+//! [`CondensedSolver::step`] allocates nothing.
 //!
 //! Limits: the ball is fixed when the model is built (a contact outside it is not seen: the
 //! caller restricts the touchable surface, [`CondensedSolver::is_active_triangle`]); far
 //! elements are linear (small rotations), so the ball must contain every element that strains
-//! or rotates appreciably; external loads act on active nodes only. Far positions are
-//! recovered on request ([`CondensedSolver::recover_far_field`], one sparse solve).
+//! or rotates appreciably; external loads act on active nodes only. The far part's boundary
+//! nodes (what viewers draw) are refreshed from the interface a slice per tick
+//! ([`SURFACE_REFRESH_TICKS`]); all far positions are recovered on request
+//! ([`CondensedSolver::recover_far_field`], one sparse solve).
 //! With strain smoothing, each part builds its smoothing domains from its own elements, so an
 //! edge on the interface has one domain per side.
 
@@ -322,11 +330,12 @@ impl CondensedSolver {
     /// Splits `body` (the whole body's model, with its constraints; `mesh` its mesh) by
     /// `region`, condenses the far part and factorises the tick matrix for the step `dt_s` (s).
     /// Costs one sparse factorisation of the far stiffness and `3|G|` solves with it (about a
-    /// second on `lv_h1.msh`).
+    /// second on `lv_h1.msh`). A region holding every element condenses nothing: then this is
+    /// backward Euler with a prefactored rest matrix on the whole body.
     ///
     /// # Errors
-    /// [`ModelError::SceneField`] (`active_region`) for a non-positive radius, a region with no
-    /// element or with every element (nothing to condense), or quadratic elements;
+    /// [`ModelError::SceneField`] (`active_region`) for a non-positive radius, a stiffness
+    /// margin outside `[1, 100]`, a region with no element, or quadratic elements;
     /// [`ModelError::InvalidMesh`] when a factorisation fails (a far part that is not held by
     /// clamps, or an indefinite matrix).
     pub fn new(
@@ -687,8 +696,9 @@ impl CondensedSolver {
     /// One backward Euler step (module documentation). `f` (N, one per body node) holds the
     /// active elements' elastic force at `x` (from [`Self::active_model`]), external loads on
     /// active nodes and the coupling's explicit part; the far field's `-S u_G` is added here.
-    /// Updates `x`, `v` of the active nodes; far nodes keep their values (see
-    /// [`Self::recover_far_field`]). Returns the largest squared nodal speed (m^2/s^2; NaN if
+    /// Updates `x`, `v` of the active nodes and the positions of a slice of the far boundary
+    /// nodes (all of them every [`SURFACE_REFRESH_TICKS`] ticks); other far nodes keep their
+    /// values (see [`Self::recover_far_field`]). Returns the largest squared nodal speed (m^2/s^2; NaN if
     /// any value is not finite). Allocation-free.
     ///
     /// # Panics

@@ -9,7 +9,9 @@
 //! - [`material`]: Lamé parameters, St. Venant-Kirchhoff and viscous stress (seed 000, eq. 4, 9-11).
 //! - [`fem`]: precomputed shape-function gradients (eq. 13-21), nodal forces (eq. 22), lumped
 //!   masses, tangent stiffness action, critical (Courant) time step.
-//! - [`integrator`]: the seed's semi-implicit scheme (eq. 34) and symplectic Euler.
+//! - [`integrator`]: the seed's semi-implicit scheme (eq. 34), symplectic Euler and backward
+//!   Euler; [`condensed`]: backward Euler on a contact-local active region with the rest of the
+//!   body condensed statically.
 //! - [`contact`]: the haptic probe: god-object proxy on the touchable surface joined to the device
 //!   point by a virtual coupling.
 //! - [`sim`]: [`sim::Simulation`], state + scratch + parameters, one `tick` per servo period.
