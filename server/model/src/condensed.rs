@@ -295,9 +295,9 @@ fn sub_mesh(mesh: &TetMesh, keep: &[bool]) -> TetMesh {
     }
 }
 
-/// Adds the rest tangent of every cell of `fem` to `out` as `(row dof, col dof, value)` over
-/// global components (`3 i + c`), skipping constrained components and keeping only entries
-/// `keep(row, col)`.
+/// Calls `push(row, col, value)` for every entry of the rest tangent stiffness of every cell of
+/// `fem` (N/m), rows and columns as global components `3 i + c`, constrained components
+/// skipped (duplicates are summed by the caller's assembly).
 fn rest_tangent(fem: &FemModel, mut push: impl FnMut(usize, usize, f64)) {
     let mut blocks = Vec::new();
     for c in 0..fem.cell_count() {
@@ -461,10 +461,6 @@ impl CondensedSolver {
             }
         }
         let surface_far: Vec<usize> = (0..f).filter(|&k| on_boundary[far_dofs[k] / 3]).collect();
-        let mut surface_row = vec![usize::MAX; f];
-        for (r, &k) in surface_far.iter().enumerate() {
-            surface_row[k] = r;
-        }
         let mut surface_map = vec![0.0f32; surface_far.len() * g];
         let llt = if f > 0 {
             let llt = sparse(f, &kff)?.sp_cholesky(Side::Lower).map_err(|e| {
@@ -512,7 +508,8 @@ impl CondensedSolver {
                 schur[b * g + a] = s;
             }
         }
-        // A = M (1 + alpha h) + h D0 + h^2 (K0 + S).
+        // A = M (1 + alpha h) + h D0 + h^2 (c K0 + S); the lumped masses are the whole body's
+        // (an interface node keeps the share of its far elements).
         let h = dt_s;
         let mat = body.material;
         let mut combined = active.clone();
