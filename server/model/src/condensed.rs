@@ -278,6 +278,18 @@ fn sparse(
         .map_err(|e| ModelError::InvalidMesh(format!("sparse assembly failed: {e:?}")))
 }
 
+/// The model of the tetrahedra `keep` of `body` (mesh `mesh`): every node kept, so numbering
+/// is shared; the body's material, strain smoothing and constraints.
+fn part_model(body: &FemModel, mesh: &TetMesh, keep: &[bool]) -> Result<FemModel, ModelError> {
+    let mut m = FemModel::with_smoothing(
+        &sub_mesh(mesh, keep),
+        body.material,
+        body.strain_smoothing(),
+    )?;
+    m.constraint.clone_from(&body.constraint);
+    Ok(m)
+}
+
 /// The sub-mesh with the tetrahedra `keep` (every node kept, so numbering is shared).
 fn sub_mesh(mesh: &TetMesh, keep: &[bool]) -> TetMesh {
     TetMesh {
@@ -373,23 +385,12 @@ impl CondensedSolver {
         if active_tets == 0 {
             return Err(field("contains no element"));
         }
-        let mut active = FemModel::with_smoothing(
-            &sub_mesh(mesh, &keep),
-            body.material,
-            body.strain_smoothing(),
-        )?;
-        active.constraint.clone_from(&body.constraint);
+        let active = part_model(body, mesh, &keep)?;
         let far_keep: Vec<bool> = keep.iter().map(|k| !k).collect();
         // None when the region holds every element: then this is backward Euler with a
         // prefactored rest matrix on the whole body.
         let far_model = if far_keep.contains(&true) {
-            let mut m = FemModel::with_smoothing(
-                &sub_mesh(mesh, &far_keep),
-                body.material,
-                body.strain_smoothing(),
-            )?;
-            m.constraint.clone_from(&body.constraint);
-            Some(m)
+            Some(part_model(body, mesh, &far_keep)?)
         } else {
             None
         };

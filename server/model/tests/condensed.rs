@@ -7,77 +7,55 @@
 //! - the tick allocates nothing (a counting allocator on this thread);
 //! - scene errors for a bad `[active_region]`.
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
 use std::path::Path;
 
 use haptic_model::DVec3;
 use haptic_model::condensed::{ActiveRegion, CondensedSolver};
 use haptic_model::fem::{FemModel, StrainSmoothing};
+use haptic_model::integrator::IntegratorKind;
 use haptic_model::mesher;
 use haptic_model::scene::{load_builtin, parse_scene_toml};
 use haptic_model::sim::{Simulation, TickInput};
 use haptic_model::statics::{StaticParams, solve_static};
 
-struct Counting;
-thread_local! {
-    static COUNTING: Cell<bool> = const { Cell::new(false) };
-    static ALLOCATIONS: Cell<usize> = const { Cell::new(0) };
+#[path = "common/counting_alloc.rs"]
+mod counting_alloc;
+use counting_alloc::counted;
+
+/// The built-in `lv` scene (material, probe, base clamped, epicardium touchable) on about
+/// 2 000 linear tets with strain smoothing `smoothing`, integrator `kind` (explicit schemes at
+/// 0.9 of the critical step) and the active region `region`.
+fn lv_scene(
+    smoothing: StrainSmoothing,
+    kind: IntegratorKind,
+    region: Option<ActiveRegion>,
+) -> haptic_model::scene::Scene {
+    let mut scene = load_builtin("lv").expect("lv");
+    let mesh = mesher::lv_shell(2000);
+    scene.clamped_nodes = mesh
+        .nodes_of_surfaces(&["BASE".to_string()], "clamped")
+        .expect("base");
+    scene.touchable = mesh.surface("EPI").expect("EPI").triangles.clone();
+    scene.mesh = mesh;
+    scene.strain_smoothing = smoothing;
+    scene.integrator.kind = kind;
+    scene.integrator.safety_factor = 0.9;
+    scene.integrator.max_substeps = 500;
+    scene.active_region = region;
+    scene
 }
 
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCATIONS.with(|a| a.set(a.get() + 1));
-        }
-        // SAFETY: forwarded unchanged to the system allocator.
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        // SAFETY: forwarded unchanged to the system allocator.
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCATIONS.with(|a| a.set(a.get() + 1));
-        }
-        // SAFETY: forwarded unchanged to the system allocator.
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
+/// The region of these tests: 8 mm around the epicardium at the equator, on +x.
+const ACTIVE: ActiveRegion = ActiveRegion {
+    centre_m: DVec3::new(0.00968, 0.0, -0.005),
+    radius_m: 0.008,
+    stiffness_margin: haptic_model::condensed::DEFAULT_STIFFNESS_MARGIN,
+};
+
+/// [`lv_scene`] condensed on [`ACTIVE`] (backward Euler).
+fn condensed_lv(smoothing: StrainSmoothing) -> haptic_model::scene::Scene {
+    lv_scene(smoothing, IntegratorKind::BackwardEuler, Some(ACTIVE))
 }
-
-#[global_allocator]
-static GLOBAL: Counting = Counting;
-
-/// The built-in LV on about 2 000 linear tets with `extra` TOML (integrator, active region).
-fn lv_scene(smoothing: &str, integrator: &str, extra: &str) -> haptic_model::scene::Scene {
-    let text = format!(
-        r#"
-[mesh]
-builtin = "lv"
-target_tets = 2000
-order = 1
-strain_smoothing = "{smoothing}"
-length_unit = "mm"
-[material]
-youngs_modulus_pa = 14500.0
-poisson_ratio = 0.45
-phi_pa_s = 0.05
-psi_pa_s = 0.05
-density_kg_per_m3 = 1060.0
-mass_damping_per_s = 5.0
-[boundary]
-clamped = ["BASE"]
-touchable = ["EPI"]
-[integrator]
-{integrator}
-{extra}
-"#
-    );
-    parse_scene_toml(&text, Path::new(".")).expect("scene")
-}
-
-const ACTIVE: &str = "[active_region]\ncentre_m = [0.00968, 0.0, -0.005]\nradius_m = 0.008\n";
 
 /// The probe press: first contact at x = 11.68 mm (epicardium at 9.68 mm plus the 2 mm
 /// radius), 2 mm past it over 0.3 s, then held.
@@ -104,21 +82,16 @@ fn hold_force(sim: &mut Simulation) -> f64 {
 
 #[test]
 fn a_condensed_press_settles_at_the_whole_body_force() {
-    for smoothing in ["none", "edge"] {
-        let mut whole = Simulation::new(&lv_scene(
-            smoothing,
-            "kind = \"symplectic-euler\"\nsafety_factor = 0.9\nmax_substeps = 500",
-            "",
-        ))
-        .expect("whole");
-        let mut condensed =
-            Simulation::new(&lv_scene(smoothing, "kind = \"backward-euler\"", ACTIVE))
-                .expect("condensed");
+    for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
+        let mut whole =
+            Simulation::new(&lv_scene(smoothing, IntegratorKind::SymplecticEuler, None))
+                .expect("whole");
+        let mut condensed = Simulation::new(&condensed_lv(smoothing)).expect("condensed");
         let sizes = condensed.condensed().expect("condensed solver").sizes();
         let (fw, fc) = (hold_force(&mut whole), hold_force(&mut condensed));
         let rel = (fc - fw).abs() / fw;
         eprintln!(
-            "{smoothing}: {sizes:?}; hold force whole body {fw:.5} N, condensed {fc:.5} N ({rel:.4})"
+            "{smoothing:?}: {sizes:?}; hold force whole body {fw:.5} N, condensed {fc:.5} N ({rel:.4})"
         );
         assert!(fw > 0.02, "{fw}");
         // The far part is linear: under a 2 mm press the ventricle ovalises and its far wall
@@ -128,7 +101,7 @@ fn a_condensed_press_settles_at_the_whole_body_force() {
         // at 10 mm).
         assert!(
             rel < 0.035,
-            "{smoothing}: condensed {fc} N vs whole body {fw} N"
+            "{smoothing:?}: condensed {fc} N vs whole body {fw} N"
         );
         let st = condensed.stability();
         assert!(st.stable && st.inverted_elements == 0, "{st:?}");
@@ -138,13 +111,12 @@ fn a_condensed_press_settles_at_the_whole_body_force() {
 
 #[test]
 fn the_far_boundary_follows_the_interface_and_the_tick_allocates_nothing() {
-    let mut sim =
-        Simulation::new(&lv_scene("edge", "kind = \"backward-euler\"", ACTIVE)).expect("sim");
+    let mut sim = Simulation::new(&condensed_lv(StrainSmoothing::Edge)).expect("sim");
     let solver = sim.condensed().expect("condensed solver").clone();
     let n = sim.state().x.len();
     // Far boundary nodes: on the surface, outside the active region.
     let boundary: Vec<u32> = {
-        let scene = lv_scene("edge", "kind = \"backward-euler\"", ACTIVE);
+        let scene = condensed_lv(StrainSmoothing::Edge);
         let mut b: Vec<u32> = scene
             .mesh
             .boundary_triangles()
@@ -162,13 +134,11 @@ fn the_far_boundary_follows_the_interface_and_the_tick_allocates_nothing() {
         sim.tick(&press(k)).expect("tick");
     }
     // Hold still long enough for one full refresh of the far boundary, counting allocations.
-    let before = ALLOCATIONS.with(|a| a.get());
-    COUNTING.with(|c| c.set(true));
-    for k in 300..300 + 2 * haptic_model::condensed::SURFACE_REFRESH_TICKS {
-        sim.tick(&press(k)).expect("tick");
-    }
-    COUNTING.with(|c| c.set(false));
-    let allocations = ALLOCATIONS.with(|a| a.get()) - before;
+    let (_, allocations) = counted(|| {
+        for k in 300..300 + 2 * haptic_model::condensed::SURFACE_REFRESH_TICKS {
+            sim.tick(&press(k)).expect("tick");
+        }
+    });
     assert_eq!(allocations, 0, "the condensed tick allocated");
     let shown = sim.state().x.clone();
     let mut exact = shown.clone();
@@ -194,21 +164,22 @@ fn the_far_boundary_follows_the_interface_and_the_tick_allocates_nothing() {
 
 #[test]
 fn bad_active_regions_are_rejected_with_the_field_named() {
+    const REGION: &str = "[active_region]\ncentre_m = [0.00968, 0.0, -0.005]\nradius_m = 0.008\n";
     let base = "kind = \"backward-euler\"";
     let cases = [
         (
             "kind = \"symplectic-euler\"",
-            ACTIVE.to_string(),
+            REGION.to_string(),
             "backward-euler",
         ),
         (
             base,
-            ACTIVE.replace("radius_m = ", "radius_m = -"),
+            REGION.replace("radius_m = ", "radius_m = -"),
             "radius_m",
         ),
         (
             base,
-            ACTIVE.to_string() + "stiffness_margin = 0.5\n",
+            REGION.to_string() + "stiffness_margin = 0.5\n",
             "stiffness_margin",
         ),
         (
@@ -228,16 +199,20 @@ fn bad_active_regions_are_rejected_with_the_field_named() {
     }
     // A region far from the touchable surface (inside the cavity, away from the wall).
     let scene = lv_scene(
-        "none",
-        base,
-        "[active_region]\ncentre_m = [0.0, 0.0, -0.005]\nradius_m = 0.001\n",
+        StrainSmoothing::None,
+        IntegratorKind::BackwardEuler,
+        Some(ActiveRegion {
+            centre_m: DVec3::new(0.0, 0.0, -0.005),
+            radius_m: 0.001,
+            ..ACTIVE
+        }),
     );
     let err = Simulation::new(&scene)
         .expect_err("empty region")
         .to_string();
     assert!(err.contains("active_region"), "{err}");
     // Quadratic elements are refused.
-    let mut scene = lv_scene("none", base, ACTIVE);
+    let mut scene = condensed_lv(StrainSmoothing::None);
     scene.mesh = mesher::lv_shell_quadratic(500);
     scene.clamped_nodes = scene
         .mesh
@@ -355,7 +330,7 @@ fn condensed_equilibrium_matches_the_whole_body_static_solution() {
 #[test]
 fn impulse_and_scrambled_start_stay_bounded() {
     for model in ["stvk", "corotational", "stable-neo-hookean"] {
-        let mut scene = lv_scene("edge", "kind = \"backward-euler\"", ACTIVE);
+        let mut scene = condensed_lv(StrainSmoothing::Edge);
         scene.material.model =
             haptic_model::material::MaterialModel::from_scene_name(model).expect("model");
         let mut sim = Simulation::new(&scene).expect("sim");
@@ -453,7 +428,7 @@ fn poisson_sweep_stays_finite_and_reports_volume_change() {
         (0.499, 2.0, false),
         (0.499, 10.0, true),
     ] {
-        let mut scene = lv_scene("none", "kind = \"backward-euler\"", ACTIVE);
+        let mut scene = condensed_lv(StrainSmoothing::None);
         let m = haptic_model::material::MaterialParams::from_youngs(14_500.0, nu, 1060.0);
         scene.material.lambda_pa = m.lambda_pa;
         scene.material.mu_pa = m.mu_pa;

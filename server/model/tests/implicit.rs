@@ -3,8 +3,6 @@
 //! device force close to the semi-implicit scheme's, bounded CG work, and no allocation in the
 //! tick (a counting allocator on this thread).
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
 use std::path::Path;
 
 use haptic_model::DVec3;
@@ -12,35 +10,9 @@ use haptic_model::integrator::IntegratorKind;
 use haptic_model::scene::{load_builtin, parse_scene_toml};
 use haptic_model::sim::{Simulation, TickInput};
 
-struct Counting;
-thread_local! {
-    static COUNTING: Cell<bool> = const { Cell::new(false) };
-    static ALLOCATIONS: Cell<usize> = const { Cell::new(0) };
-}
-
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCATIONS.with(|a| a.set(a.get() + 1));
-        }
-        // SAFETY: forwarded unchanged to the system allocator.
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        // SAFETY: forwarded unchanged to the system allocator.
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCATIONS.with(|a| a.set(a.get() + 1));
-        }
-        // SAFETY: forwarded unchanged to the system allocator.
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
-
-#[global_allocator]
-static GLOBAL: Counting = Counting;
+#[path = "common/counting_alloc.rs"]
+mod counting_alloc;
+use counting_alloc::counted;
 
 /// Probe path of `sim_lv.rs`: from 14 mm off the axis at z = -5 mm, along -x by `depth` over
 /// 1 s, hold 1 s, release over 1 s.
@@ -155,15 +127,14 @@ fn quadratic_element_ticks_do_not_allocate() {
         scene.mesh = mesh;
         scene.integrator.kind = kind;
         let mut sim = Simulation::new(&scene).unwrap();
-        ALLOCATIONS.with(|a| a.set(0));
+        let mut allocations = 0;
         for k in 0..1500 {
             let inp = input(k);
-            COUNTING.with(|c| c.set(true));
-            let out = sim.tick(&inp);
-            COUNTING.with(|c| c.set(false));
+            let (out, n) = counted(|| sim.tick(&inp));
+            allocations += n;
             out.unwrap();
         }
-        assert_eq!(ALLOCATIONS.with(|a| a.get()), 0, "{kind:?}");
+        assert_eq!(allocations, 0, "{kind:?}");
         assert!(sim.stability().stable, "{kind:?}");
         assert!(
             sim.max_displacement_m() > 1e-3,
@@ -183,15 +154,14 @@ fn backward_euler_tick_does_not_allocate() {
         0.5,
     )
     .unwrap();
-    ALLOCATIONS.with(|a| a.set(0));
+    let mut allocations = 0;
     for k in 0..2500 {
         let inp = input(k);
-        COUNTING.with(|c| c.set(true));
-        let out = sim.tick(&inp);
-        COUNTING.with(|c| c.set(false));
+        let (out, n) = counted(|| sim.tick(&inp));
+        allocations += n;
         out.unwrap();
     }
-    assert_eq!(ALLOCATIONS.with(|a| a.get()), 0);
+    assert_eq!(allocations, 0);
 }
 
 #[test]
@@ -227,14 +197,13 @@ force_n = [0.0, 0.0, -0.001]
         let text = text.replace("\"backward-euler\"", &format!("\"{kind}\""));
         let scene = parse_scene_toml(&text, Path::new(".")).unwrap();
         let mut sim = Simulation::new(&scene).unwrap();
-        ALLOCATIONS.with(|a| a.set(0));
+        let mut allocations = 0;
         for _ in 0..200 {
-            COUNTING.with(|c| c.set(true));
-            let out = sim.tick(&TickInput::default());
-            COUNTING.with(|c| c.set(false));
+            let (out, n) = counted(|| sim.tick(&TickInput::default()));
+            allocations += n;
             out.unwrap();
         }
-        assert_eq!(ALLOCATIONS.with(|a| a.get()), 0, "{kind}");
+        assert_eq!(allocations, 0, "{kind}");
     }
 }
 
