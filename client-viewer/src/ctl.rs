@@ -291,6 +291,12 @@ pub fn stats_rows(s: &SessionStats) -> Vec<StatRow> {
         row("scene", Str(s.scene.clone()), ""),
         row("nodes", U64(s.nodes.into()), "count"),
         row("tetrahedra", U64(s.tetrahedra.into()), "count"),
+        row("model_family", Str(s.model_family.clone()), ""),
+        row("active_elements", U64(s.active_elements.into()), "count"),
+        row("total_particles", U64(s.total_particles.into()), "count"),
+        row("active_particles", U64(s.active_particles.into()), "count"),
+        row("surface_vertices", U64(s.surface_vertices.into()), "count"),
+        row("topology_version", U64(s.topology_version), ""),
     ]
 }
 

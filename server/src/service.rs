@@ -7,7 +7,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use haptic_model::DVec3;
-use haptic_model::sim::{self, MAX_DEVICE_DISTANCE_M};
+use haptic_model::body::{self, MAX_DEVICE_DISTANCE_M};
 use haptics_proto::v1::device_link_server::DeviceLink;
 use haptics_proto::v1::session_control_server::SessionControl;
 use haptics_proto::v1::surface_stream_server::SurfaceStream;
@@ -54,7 +54,8 @@ fn vec3(v: &Option<Vec3>, field: &str) -> Result<DVec3, ServerError> {
     Ok(DVec3::new(v.x, v.y, v.z))
 }
 
-/// Checks a device sample; `Ok(None)` when it carries no position.
+/// Checks a device sample: its position and velocity (m, m/s), or what is wrong with it (a
+/// sample without a position is rejected).
 fn validate_sample(s: &DeviceSample) -> Result<(DVec3, DVec3), &'static str> {
     let p = s.position_m.as_ref().ok_or("position_m missing")?;
     if !p.is_finite() {
@@ -148,7 +149,7 @@ impl SessionControl for Services {
         let r = req.into_inner();
         let point = vec3(&r.point_m, "point_m")?;
         let force = vec3(&r.force_n, "force_n")?;
-        sim::validate_point_load(point, force, r.duration_s).map_err(ServerError::from)?;
+        body::validate_point_load(point, force, r.duration_s).map_err(ServerError::from)?;
         let session = self.manager.get(&r.session_id)?;
         if let Some(fault) = session.stats().fault {
             return Err(ServerError::FailedPrecondition(format!(
@@ -196,6 +197,12 @@ impl SessionControl for Services {
             scene: s.scene.clone(),
             nodes: s.nodes,
             tetrahedra: s.tetrahedra,
+            model_family: s.family.to_string(),
+            active_elements: st.body.active_elements as u32,
+            total_particles: st.body.particles as u32,
+            active_particles: st.body.active_particles as u32,
+            surface_vertices: st.body.surface_vertices as u32,
+            topology_version: st.body.topology_version,
         }))
     }
 
@@ -309,6 +316,7 @@ impl SurfaceStream for Services {
             let _guard = guard;
             let period = Duration::from_secs_f64(1.0 / rate);
             let mut count: u64 = 0;
+            let mut shown_topology: Option<u64> = None;
             loop {
                 if frames.changed().await.is_err() {
                     break; // session ended
@@ -316,14 +324,16 @@ impl SurfaceStream for Services {
                 let Some(f) = frames.borrow_and_update().clone() else {
                     continue;
                 };
-                let keyframe = count == 0;
+                // A keyframe first, and whenever the surface's connectivity changed.
+                let keyframe = shown_topology != Some(f.topology.version);
+                shown_topology = Some(f.topology.version);
                 let frame = SurfaceFrame {
                     frame: count,
                     sim_time_s: f.sim_time_s,
                     keyframe,
                     positions_m: f.positions_m.clone(),
                     triangles: if keyframe {
-                        session.triangles.as_ref().clone()
+                        f.topology.triangles.clone()
                     } else {
                         Vec::new()
                     },
@@ -334,7 +344,7 @@ impl SurfaceStream for Services {
                     server_time_us: unix_time_us(),
                     max_displacement_m: f.max_displacement_m,
                     rest_positions_m: if keyframe {
-                        session.rest_positions.as_ref().clone()
+                        f.topology.rest_positions_m.clone()
                     } else {
                         Vec::new()
                     },

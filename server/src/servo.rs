@@ -17,7 +17,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::time::Instant;
 
-use haptic_model::sim::{Simulation, TickInput};
+use haptic_model::body::{BodyStats, SoftBody, TickInput};
 use haptic_model::{DVec3, ModelError};
 use hdrhistogram::Histogram;
 
@@ -65,13 +65,21 @@ pub struct ForceOut {
     pub proxy_m: DVec3,
 }
 
-/// A surface snapshot for viewers (preallocated; overwritten in place).
+/// A surface snapshot for viewers (preallocated for the body's largest surface; overwritten in
+/// place, so taking one never allocates).
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Snapshot {
     /// Tick counter when taken.
     pub tick: u64,
     /// Simulated time, s.
     pub sim_time_s: f64,
+    /// Surface topology version of `triangles` and `rest_positions_m`
+    /// ([`haptic_model::body::SurfaceTopology::version`]); `u64::MAX` before the first snapshot.
+    pub topology_version: u64,
+    /// Surface triangles, three vertex indices each (rewritten only when the version changes).
+    pub triangles: Vec<u32>,
+    /// Rest positions of the surface vertices, xyz interleaved, m (rewritten with `triangles`).
+    pub rest_positions_m: Vec<f32>,
     /// Surface vertex positions, xyz interleaved, m.
     pub positions_m: Vec<f32>,
     /// Device (probe) position, m; NaN when no device is connected.
@@ -115,6 +123,8 @@ pub struct StatsSnapshot {
     pub device_samples: u64,
     /// The fault that quarantined the session, if any.
     pub fault: Option<&'static str>,
+    /// The body's size and state at the last publication.
+    pub body: BodyStats,
 }
 
 /// Atomics shared between the servo thread and the async side.
@@ -211,7 +221,7 @@ pub enum Flow {
 
 /// The servo's state and both ends of its handoffs. Everything is sized at construction.
 pub struct ServoCore {
-    sim: Simulation,
+    body: Box<dyn SoftBody>,
     commands: rtrb::Consumer<Command>,
     pose: triple_buffer::Output<Pose>,
     forces: rtrb::Producer<ForceOut>,
@@ -232,6 +242,8 @@ pub struct ServoCore {
     window_start_us: u64,
     window_ticks: u64,
     last_force: ForceOut,
+    /// Simulated time after the last successful tick, s.
+    sim_time_s: f64,
     /// Overruns, maintained by the loop's [`Pacer`].
     pub overruns: u64,
 }
@@ -269,14 +281,21 @@ pub const COMMAND_CAPACITY: usize = 64;
 /// Capacity of the force ring (forces queued for the forwarder).
 pub const FORCE_CAPACITY: usize = 256;
 
-/// Creates every handoff of a servo for `sim`, sized once (the snapshot buffers hold one
-/// position triple per surface vertex): the servo's ends and the async side's ends.
-pub fn channels(sim: &Simulation) -> (ServoEnds, ServoHandles) {
+/// Creates every handoff of a servo for `body`, sized once (the snapshot buffers hold the
+/// body's largest surface, [`SoftBody::surface_capacity`]): the servo's ends and the async
+/// side's ends.
+pub fn channels(body: &dyn SoftBody) -> (ServoEnds, ServoHandles) {
     let (cmd_tx, cmd_rx) = rtrb::RingBuffer::new(COMMAND_CAPACITY);
     let (force_tx, force_rx) = rtrb::RingBuffer::new(FORCE_CAPACITY);
     let (pose_in, pose_out) = triple_buffer::triple_buffer(&Pose::default());
+    // Full-length buffers: a clone (the triple buffer makes three) keeps only the length as
+    // capacity, and the servo later shrinks and regrows them within it.
+    let cap = body.surface_capacity();
     let snap0 = Snapshot {
-        positions_m: vec![0.0; 3 * sim.surface_node_indices().len()],
+        topology_version: u64::MAX,
+        triangles: vec![0; 3 * cap.triangles],
+        rest_positions_m: vec![0.0; 3 * cap.vertices],
+        positions_m: vec![0.0; 3 * cap.vertices],
         ..Snapshot::default()
     };
     let (snap_in, snap_out) = triple_buffer::triple_buffer(&snap0);
@@ -305,16 +324,17 @@ fn histogram() -> Histogram<u64> {
 }
 
 impl ServoCore {
-    /// Builds the core. `snapshot_every` / `stats_every` are in ticks (>= 1).
+    /// Builds the core. `snapshot_every` / `stats_every` are in ticks (>= 1). `ends` must come
+    /// from [`channels`] for this body (the snapshot buffers are sized for its surface).
     pub fn new(
-        sim: Simulation,
+        body: Box<dyn SoftBody>,
         ends: ServoEnds,
         shared: Arc<SessionShared>,
         snapshot_every: u32,
         stats_every: u32,
     ) -> Self {
         Self {
-            sim,
+            body,
             commands: ends.commands,
             pose: ends.pose,
             forces: ends.forces,
@@ -335,13 +355,14 @@ impl ServoCore {
             window_start_us: 0,
             window_ticks: 0,
             last_force: ForceOut::default(),
+            sim_time_s: 0.0,
             overruns: 0,
         }
     }
 
-    /// The simulation (for tests and set-up).
-    pub fn sim(&self) -> &Simulation {
-        &self.sim
+    /// The body (for tests and set-up).
+    pub fn body(&self) -> &dyn SoftBody {
+        self.body.as_ref()
     }
 
     /// The fault that quarantined the session, if any.
@@ -373,7 +394,7 @@ impl ServoCore {
                     duration_s,
                 } => {
                     // Validated by the handler; a full load table drops the command.
-                    let _ = self.sim.add_point_load(point_m, force_n, duration_s);
+                    let _ = self.body.add_point_load(point_m, force_n, duration_s);
                 }
             }
         }
@@ -396,8 +417,11 @@ impl ServoCore {
         // 3. Step.
         let t0 = clock.now_us();
         let out = if self.fault.is_none() {
-            match self.sim.tick(&self.current) {
-                Ok(o) => Some(o),
+            match self.body.tick(&self.current) {
+                Ok(o) => {
+                    self.sim_time_s = o.sim_time_s;
+                    Some(o)
+                }
                 Err(e) => {
                     self.fault = Some(match e {
                         ModelError::Diverged { .. } => {
@@ -444,9 +468,22 @@ impl ServoCore {
             && self.shared.watchers.load(Ordering::Relaxed) > 0
         {
             let snap = self.snapshot.input_buffer_mut();
+            let topology = self.body.surface_topology();
+            let n = 3 * topology.vertex_count;
+            // Within the capacity sized by `channels`: no allocation.
+            if snap.topology_version != topology.version {
+                snap.triangles.clear();
+                snap.triangles
+                    .extend(topology.triangles.iter().flatten().copied());
+                snap.rest_positions_m.resize(n, 0.0);
+                self.body
+                    .write_surface_rest_positions(&mut snap.rest_positions_m);
+                snap.topology_version = topology.version;
+            }
+            snap.positions_m.resize(n, 0.0);
             snap.tick = self.ticks;
-            snap.sim_time_s = self.sim.state().time_s;
-            let d = self.sim.write_surface_positions(&mut snap.positions_m);
+            snap.sim_time_s = self.sim_time_s;
+            let d = self.body.write_surface_positions(&mut snap.positions_m);
             snap.max_displacement_m = d;
             snap.probe_m = match self.current.device_position_m {
                 Some(p) => p,
@@ -458,7 +495,8 @@ impl ServoCore {
         }
         // 6. Statistics.
         if self.ticks.is_multiple_of(self.stats_every) {
-            self.max_displacement_m = self.max_displacement_m.max(self.sim.max_displacement_m());
+            let body = self.body.stats();
+            self.max_displacement_m = self.max_displacement_m.max(body.max_displacement_m);
             let elapsed_us = t1.saturating_sub(self.window_start_us).max(1);
             let rate = self.window_ticks as f64 * 1e6 / elapsed_us as f64;
             self.window_start_us = t1;
@@ -481,12 +519,13 @@ impl ServoCore {
                 } else {
                     self.p2f_hist.value_at_quantile(0.99) as f64
                 },
-                sim_time_s: self.sim.state().time_s,
+                sim_time_s: self.sim_time_s,
                 in_contact: force.in_contact,
                 peak_force_n: self.peak_force_n,
                 max_displacement_m: self.max_displacement_m,
                 device_samples: self.device_samples,
                 fault: self.fault,
+                body,
             };
             self.stats.publish();
         }

@@ -12,7 +12,6 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use haptic_model::scene::{self, Scene};
-use haptic_model::sim::Simulation;
 use haptics_proto::v1::{ForceCommand, Vec3};
 use tokio::sync::{mpsc, watch};
 use tonic::Status;
@@ -26,6 +25,18 @@ use crate::servo::{
 /// Largest scene text accepted, bytes.
 pub const MAX_SCENE_TOML_BYTES: usize = 1 << 20;
 
+/// The surface connectivity of a session at one topology version (shared by every frame until
+/// the version changes; a viewer gets a keyframe with it then).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Topology {
+    /// [`haptic_model::body::SurfaceTopology::version`].
+    pub version: u64,
+    /// Surface triangles, three vertex indices each.
+    pub triangles: Vec<u32>,
+    /// Rest positions of the surface vertices, xyz, m.
+    pub rest_positions_m: Vec<f32>,
+}
+
 /// A viewer frame built from a servo snapshot (shared by all viewers of a session).
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrameData {
@@ -33,6 +44,8 @@ pub struct FrameData {
     pub tick: u64,
     /// Simulated time, s.
     pub sim_time_s: f64,
+    /// The surface connectivity these positions belong to.
+    pub topology: Arc<Topology>,
     /// Surface positions, xyz, m.
     pub positions_m: Vec<f32>,
     /// Probe position, m (NaN when no device).
@@ -54,9 +67,11 @@ pub struct Session {
     pub id: String,
     /// Scene name.
     pub scene: String,
+    /// Model family of the body (`"fem"`, ...).
+    pub family: &'static str,
     /// Node count.
     pub nodes: u32,
-    /// Tetrahedron count.
+    /// Element count (tetrahedra for the FEM).
     pub tetrahedra: u32,
     /// Sub-steps per tick.
     pub substeps: u32,
@@ -64,10 +79,6 @@ pub struct Session {
     pub critical_dt_s: f64,
     /// Probe radius, m.
     pub probe_radius_m: f64,
-    /// Surface triangles for keyframes (three indices each).
-    pub triangles: Arc<Vec<u32>>,
-    /// Rest positions of the surface vertices for keyframes, xyz, m.
-    pub rest_positions: Arc<Vec<f32>>,
     /// Shared atomics.
     pub shared: Arc<SessionShared>,
     /// Session clock zero.
@@ -271,10 +282,12 @@ impl SessionManager {
                 self.config.max_sessions
             )));
         }
-        let sim = Simulation::new(scene)?;
+        let body = haptic_model::build_body(scene)?;
+        let info = body.info();
+        let size = body.stats();
         let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
         let shared = Arc::new(SessionShared::default());
-        let (ends, handles) = servo::channels(&sim);
+        let (ends, handles) = servo::channels(body.as_ref());
         let servo::ServoHandles {
             commands: cmd_tx,
             pose: pose_in,
@@ -282,12 +295,7 @@ impl SessionManager {
             snapshot: mut snap_out,
             stats: stats_out,
         } = handles;
-        let triangles: Vec<u32> = sim.surface_triangles().iter().flatten().copied().collect();
-        let mut rest_positions = vec![0.0f32; 3 * sim.surface_node_indices().len()];
-        sim.write_surface_positions(&mut rest_positions);
-        let plan = sim.plan();
-        let probe_radius_m = sim.probe_radius_m();
-        let period_us = (sim.tick_s() * 1e6).round().max(1.0) as u64;
+        let period_us = (info.tick_s * 1e6).round().max(1.0) as u64;
         let epoch = Instant::now();
         let link: Arc<Mutex<Option<ForceSender>>> = Arc::new(Mutex::new(None));
 
@@ -313,7 +321,7 @@ impl SessionManager {
             .map_err(|e| ServerError::Internal(format!("spawning the forwarder: {e}")))?;
         let servo_cfg = self.config.servo.clone();
         let core = ServoCore::new(
-            sim,
+            body,
             ends,
             shared.clone(),
             servo_cfg.snapshot_every_ticks,
@@ -336,6 +344,7 @@ impl SessionManager {
         let frame_shared = shared.clone();
         tokio::spawn(async move {
             let mut tick = tokio::time::interval(Duration::from_millis(10));
+            let mut topology: Option<Arc<Topology>> = None;
             tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
             loop {
                 tick.tick().await;
@@ -348,9 +357,20 @@ impl SessionManager {
                     continue;
                 }
                 let s = snap_out.output_buffer();
+                let topology = match &topology {
+                    Some(t) if t.version == s.topology_version => t.clone(),
+                    _ => topology
+                        .insert(Arc::new(Topology {
+                            version: s.topology_version,
+                            triangles: s.triangles.clone(),
+                            rest_positions_m: s.rest_positions_m.clone(),
+                        }))
+                        .clone(),
+                };
                 let frame = FrameData {
                     tick: s.tick,
                     sim_time_s: s.sim_time_s,
+                    topology,
                     positions_m: s.positions_m.clone(),
                     probe_m: s.probe_m.to_array(),
                     force_n: s.force_n.to_array(),
@@ -366,18 +386,17 @@ impl SessionManager {
 
         let session = Arc::new(Session {
             id: id.clone(),
-            scene: scene.name.clone(),
-            nodes: scene.mesh.node_count() as u32,
-            tetrahedra: scene.mesh.tet_count() as u32,
-            substeps: plan.substeps,
-            critical_dt_s: if plan.critical_dt_s.is_finite() {
-                plan.critical_dt_s
+            scene: info.scene,
+            family: info.family,
+            nodes: size.nodes as u32,
+            tetrahedra: size.elements as u32,
+            substeps: info.substeps,
+            critical_dt_s: if info.critical_dt_s.is_finite() {
+                info.critical_dt_s
             } else {
                 0.0
             },
-            probe_radius_m,
-            triangles: Arc::new(triangles),
-            rest_positions: Arc::new(rest_positions),
+            probe_radius_m: info.probe_radius_m,
             shared,
             epoch,
             commands: Mutex::new(cmd_tx),

@@ -7,11 +7,11 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering;
 
 use haptic_model::DVec3;
+use haptic_model::body::SoftBody;
 use haptic_model::scene::load_builtin;
 use haptic_model::sim::Simulation;
 use haptic_server::servo::{
-    Clock, Flow, ForceOut, Pacer, Pose, ServoCore, ServoEnds, SessionShared, Snapshot,
-    StatsSnapshot,
+    self, Clock, Flow, ForceOut, Pacer, Pose, ServoCore, ServoHandles, SessionShared, StatsSnapshot,
 };
 
 #[test]
@@ -68,30 +68,16 @@ struct Rig {
     stats: triple_buffer::Output<StatsSnapshot>,
 }
 
-fn rig(sim: Simulation) -> Rig {
+fn rig(body: Box<dyn SoftBody>) -> Rig {
     let shared = Arc::new(SessionShared::default());
-    let (_cmd_tx, cmd_rx) = rtrb::RingBuffer::new(8);
-    let (force_tx, forces) = rtrb::RingBuffer::new(64);
-    let (pose_in, pose_out) = triple_buffer::triple_buffer(&Pose::default());
-    let snap0 = Snapshot {
-        positions_m: vec![0.0; 3 * sim.surface_node_indices().len()],
-        ..Snapshot::default()
-    };
-    let (snap_in, _snap_out) = triple_buffer::triple_buffer(&snap0);
-    let (stats_in, stats) = triple_buffer::triple_buffer(&StatsSnapshot::default());
-    let core = ServoCore::new(
-        sim,
-        ServoEnds {
-            commands: cmd_rx,
-            pose: pose_out,
-            forces: force_tx,
-            snapshot: snap_in,
-            stats: stats_in,
-        },
-        shared.clone(),
-        16,
-        10,
-    );
+    let (ends, handles) = servo::channels(body.as_ref());
+    let ServoHandles {
+        pose: pose_in,
+        forces,
+        stats,
+        ..
+    } = handles;
+    let core = ServoCore::new(body, ends, shared.clone(), 16, 10);
     Rig {
         core,
         shared,
@@ -103,7 +89,9 @@ fn rig(sim: Simulation) -> Rig {
 
 #[test]
 fn each_fresh_pose_gets_one_force_and_stop_sends_zero() {
-    let mut r = rig(Simulation::new(&load_builtin("lv").unwrap()).unwrap());
+    let mut r = rig(Box::new(
+        Simulation::new(&load_builtin("lv").unwrap()).unwrap(),
+    ));
     let clock = ManualClock(Cell::new(0));
     let mut answered = Vec::new();
     for k in 0..40u64 {
@@ -147,10 +135,10 @@ fn a_diverging_model_is_quarantined_with_zero_force() {
     let mut sim = Simulation::new(&load_builtin("lv").unwrap()).unwrap();
     // Corrupt the state: a NaN velocity on a free node makes the next step diverge.
     let free = (0..sim.fem().node_count())
-        .find(|&i| sim.fem().constraint[i] == 0)
+        .find(|&i| sim.fem().constraints()[i] == 0)
         .unwrap();
     sim.state_mut().v[free] = DVec3::NAN;
-    let mut r = rig(sim);
+    let mut r = rig(Box::new(sim));
     let clock = ManualClock(Cell::new(0));
     for k in 0..20u64 {
         r.pose_in.write(Pose {

@@ -10,10 +10,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use haptic_model::DVec3;
 use haptic_model::scene::load_builtin;
-use haptic_model::sim::Simulation;
-use haptic_server::servo::{
-    Clock, Command, ForceOut, Pose, ServoCore, ServoEnds, SessionShared, Snapshot, StatsSnapshot,
-};
+use haptic_server::servo::{self, Clock, Command, Pose, ServoCore, ServoHandles, SessionShared};
 
 struct Counting;
 static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
@@ -58,31 +55,17 @@ impl Clock for ManualClock {
 #[test]
 fn servo_tick_never_allocates() {
     let scene = load_builtin("lv").unwrap();
-    let sim = Simulation::new(&scene).unwrap();
-    let surface = sim.surface_node_indices().len();
+    let body = haptic_model::build_body(&scene).unwrap();
     let shared = Arc::new(SessionShared::default());
-    let (mut cmd_tx, cmd_rx) = rtrb::RingBuffer::new(64);
-    let (force_tx, mut force_rx) = rtrb::RingBuffer::<ForceOut>::new(256);
-    let (mut pose_in, pose_out) = triple_buffer::triple_buffer(&Pose::default());
-    let snap0 = Snapshot {
-        positions_m: vec![0.0; 3 * surface],
-        ..Snapshot::default()
-    };
-    let (snap_in, mut snap_out) = triple_buffer::triple_buffer(&snap0);
-    let (stats_in, mut stats_out) = triple_buffer::triple_buffer(&StatsSnapshot::default());
-    let mut core = ServoCore::new(
-        sim,
-        ServoEnds {
-            commands: cmd_rx,
-            pose: pose_out,
-            forces: force_tx,
-            snapshot: snap_in,
-            stats: stats_in,
-        },
-        shared.clone(),
-        4,
-        50,
-    );
+    let (ends, handles) = servo::channels(body.as_ref());
+    let ServoHandles {
+        commands: mut cmd_tx,
+        pose: mut pose_in,
+        forces: mut force_rx,
+        snapshot: mut snap_out,
+        stats: mut stats_out,
+    } = handles;
+    let mut core = ServoCore::new(body, ends, shared.clone(), 4, 50);
     shared.watchers.store(1, Ordering::Relaxed);
     let clock = ManualClock(Cell::new(0));
     let mut worst = 0;
@@ -130,6 +113,15 @@ fn servo_tick_never_allocates() {
         stats.peak_force_n > 0.01 && stats.fault.is_none(),
         "{stats:?}"
     );
-    assert!(snap_out.output_buffer().tick > 0);
-    assert!(core.sim().active_point_loads() <= 1);
+    let snap = snap_out.output_buffer();
+    assert!(snap.tick > 0);
+    // The first snapshot carried the surface's connectivity.
+    assert_eq!(snap.topology_version, 0);
+    assert_eq!(
+        snap.triangles.len(),
+        3 * core.body().surface_topology().triangles.len()
+    );
+    assert_eq!(snap.positions_m.len(), 3 * stats.body.surface_vertices);
+    // The ApplyForce commands reached the body (each acts 50 ms, 500 ticks apart).
+    assert!(stats.body.active_point_loads <= 1);
 }

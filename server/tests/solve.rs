@@ -2,8 +2,10 @@
 
 use std::path::Path;
 
+use haptic_model::element::FemModel;
 use haptic_model::scene::parse_scene_toml;
-use haptic_server::solve::{solve_scene, write_solution};
+use haptic_model::statics::free_residual_norm;
+use haptic_server::solve::{SolveParams, solve_scene, write_solution};
 
 const SCENE: &str = r#"
 name = "lv-inflation-test"
@@ -26,8 +28,26 @@ follower = true
 #[test]
 fn cavity_pressure_inflates_the_ventricle_and_files_are_written() {
     let scene = parse_scene_toml(SCENE, Path::new(".")).unwrap();
-    let (x, report) = solve_scene(&scene, 2).unwrap();
+    let params = SolveParams {
+        load_steps: 2,
+        ..SolveParams::default()
+    };
+    let (x, report) = solve_scene(&scene, &params).unwrap();
     assert!(report.residual_n < 1e-8, "{report:?}");
+    // The reported residual is the true one: the follower load re-evaluated at the final shape,
+    // computed here independently of the solver's bookkeeping.
+    let mut fem = FemModel::new(&scene.mesh, scene.material).unwrap();
+    fem.clamp_nodes(&scene.clamped_nodes);
+    let truth = free_residual_norm(&fem, &scene.external_forces(&x), &x);
+    assert!(
+        (truth - report.residual_n).abs() <= 1e-12 + 1e-6 * truth,
+        "reported {:e}, true {truth:e}",
+        report.residual_n
+    );
+    assert!(
+        report.load_passes > 2,
+        "a follower load needs passes: {report:?}"
+    );
     assert!(
         report.max_displacement_m > 1e-5 && report.max_displacement_m < 2e-3,
         "{report:?}"
@@ -81,6 +101,27 @@ fn cavity_pressure_inflates_the_ventricle_and_files_are_written() {
 fn a_scene_without_loads_is_refused() {
     let text = SCENE.split("[[loads.pressure]]").next().unwrap();
     let scene = parse_scene_toml(text, Path::new(".")).unwrap();
-    let err = solve_scene(&scene, 1).unwrap_err().to_string();
+    let err = solve_scene(&scene, &SolveParams::default())
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("no [loads]"), "{err}");
+}
+
+/// A follower load that has not settled is a failure with the true residual, never a
+/// "converged" with the residual of the last frozen-load solve.
+#[test]
+fn an_unsettled_follower_load_fails_loudly() {
+    let scene = parse_scene_toml(SCENE, Path::new(".")).unwrap();
+    let params = SolveParams {
+        load_steps: 1,
+        max_follower_passes: 2,
+        ..SolveParams::default()
+    };
+    let err = solve_scene(&scene, &params).unwrap_err().to_string();
+    assert!(
+        err.contains("load increment 1/1")
+            && err.contains("did not settle in 2 passes")
+            && err.contains("more load steps"),
+        "{err}"
+    );
 }

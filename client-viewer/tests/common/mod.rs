@@ -200,6 +200,12 @@ pub fn canned_stats(id: &str) -> SessionStats {
         scene: "lv".into(),
         nodes: 412,
         tetrahedra: 1352,
+        model_family: "fem".into(),
+        active_elements: 1200,
+        total_particles: 27_988,
+        active_particles: 600,
+        surface_vertices: 321,
+        topology_version: 7,
     }
 }
 

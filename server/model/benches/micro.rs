@@ -32,14 +32,14 @@ fn scene(name: &str) -> Scene {
     if name == "lv_h1es" {
         // The same mesh with edge-based strain smoothing (ES-FEM-T4).
         let mut sc = scene("lv_h1");
-        sc.strain_smoothing = haptic_model::fem::StrainSmoothing::Edge;
+        sc.strain_smoothing = haptic_model::element::StrainSmoothing::Edge;
         return sc;
     }
     let spec = name.trim_start_matches("lv");
     let quadratic = spec.ends_with('q');
     let tets: usize = spec.trim_end_matches('q').parse().expect("mesh size");
     if quadratic {
-        common::lv_scene_on(haptic_model::mesher::lv_shell_quadratic(tets))
+        common::lv_scene_on(haptic_model::mesh::generate::lv_shell_quadratic(tets))
     } else {
         lv_scene(tets)
     }
@@ -74,7 +74,7 @@ fn bench_forces_of(bencher: divan::Bencher, sim: Simulation, viscous: bool) {
     let n = sim.fem().node_count();
     let mut f = vec![DVec3::ZERO; n];
     let velocities = viscous.then_some(sim.state().v.as_slice());
-    bencher.counter(sim.fem().tets.len()).bench_local(|| {
+    bencher.counter(sim.fem().tets().len()).bench_local(|| {
         f.iter_mut().for_each(|v| *v = DVec3::ZERO);
         sim.fem()
             .add_internal_forces(&sim.state().x, velocities, &mut f);
@@ -150,7 +150,7 @@ const QUADRATIC_RUNS: [&str; 6] = [
 
 #[divan::bench(args = QUADRATIC_RUNS, sample_count = 20)]
 fn tick_quadratic(bencher: divan::Bencher, run: &str) {
-    use haptic_model::integrator::IntegratorKind;
+    use haptic_model::integrate::IntegratorKind;
     let f: Vec<&str> = run.split(' ').collect();
     let mut sc = scene(f[0]);
     sc.integrator.kind = IntegratorKind::from_name(f[1]).expect("integrator");

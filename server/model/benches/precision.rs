@@ -54,16 +54,17 @@ use common::{
     smoothstep, stats,
 };
 use haptic_model::DVec3;
-use haptic_model::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
 use haptic_model::contact::{ContactSurface, Probe};
-use haptic_model::fem::{FemModel, StrainSmoothing};
-use haptic_model::integrator::{IntegratorKind, IntegratorParams};
+use haptic_model::element::{FemModel, StrainSmoothing};
+use haptic_model::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
+use haptic_model::integrate::{IntegratorKind, IntegratorParams};
+use haptic_model::loads::add_pressure_forces;
 use haptic_model::material::{MaterialModel, MaterialParams};
 use haptic_model::mesh::TetMesh;
-use haptic_model::mesher::{box_mesh, sphere_shell};
+use haptic_model::mesh::generate::{box_mesh, sphere_shell};
 use haptic_model::scene::Scene;
 use haptic_model::sim::{Simulation, TickInput};
-use haptic_model::statics::{StaticParams, add_pressure_forces, solve_static};
+use haptic_model::statics::{StaticParams, solve_static};
 
 /// One benchmark run.
 #[derive(Debug, Clone)]
@@ -453,7 +454,7 @@ fn scenario_lame(quick: bool, rows: &mut Vec<Row>) {
     let reference = format!("analytic u_r(a) = {:.4} mm", exact_inner * 1e3);
     for &(target, quadratic) in targets {
         let mesh = if quadratic {
-            haptic_model::mesher::sphere_shell_quadratic(a, b, target)
+            haptic_model::mesh::generate::sphere_shell_quadratic(a, b, target)
         } else {
             sphere_shell(a, b, target)
         };
@@ -463,9 +464,9 @@ fn scenario_lame(quick: bool, rows: &mut Vec<Row>) {
             mat.model = model;
             let mut fem = FemModel::new(&mesh, mat).expect("sphere FEM");
             let node = |name: &str| mesh.node_group(name).expect("node group").nodes[0] as usize;
-            fem.constraint[node("INNER_PZ")] = 0b011;
-            fem.constraint[node("INNER_NZ")] = 0b011;
-            fem.constraint[node("INNER_PX")] = 0b110;
+            fem.set_constraint(node("INNER_PZ"), 0b011);
+            fem.set_constraint(node("INNER_NZ"), 0b011);
+            fem.set_constraint(node("INNER_PX"), 0b110);
             let mut f_ext = vec![DVec3::ZERO; mesh.node_count()];
             add_pressure_forces(
                 &mesh.surface("INNER").expect("INNER").triangles,
@@ -729,9 +730,9 @@ fn probe_static_at(scene: &Scene, depths_mm: &[f64]) -> Result<ProbeCurve, Strin
     let mut fem = FemModel::with_smoothing(&scene.mesh, scene.material, scene.strain_smoothing)
         .map_err(|e| e.to_string())?;
     fem.clamp_nodes(&scene.clamped_nodes);
-    let mut probe = Probe::new(scene.probe, scene.touchable.clone(), &fem.rest);
+    let mut probe = Probe::new(scene.probe, scene.touchable.clone(), fem.rest());
     let n = fem.node_count();
-    let mut x = fem.rest.clone();
+    let mut x = fem.rest().to_vec();
     let params = StaticParams {
         rel_tol: 1e-8,
         ..StaticParams::default()
@@ -954,7 +955,7 @@ impl LvReference {
 /// The built-in `lv` scene on `lv_shell(tets)`, with quadratic elements if `quadratic`.
 fn lv_scene_order(tets: usize, quadratic: bool) -> Scene {
     if quadratic {
-        common::lv_scene_on(haptic_model::mesher::lv_shell_quadratic(tets))
+        common::lv_scene_on(haptic_model::mesh::generate::lv_shell_quadratic(tets))
     } else {
         lv_scene(tets)
     }
@@ -1174,7 +1175,7 @@ const CONDENSED_RUNS: &[(StrainSmoothing, f64)] = &[
 /// run, own output `docs/bench/precision-lv-h1.{csv,json,png,svg}`): standard and edge-smoothed
 /// (ES-FEM-T4) elements, each with semi-implicit at 0.5 and symplectic Euler at 0.9 of the critical
 /// step and backward Euler with CG capped at 5, and backward Euler on a contact-local active
-/// region with the rest condensed ([`CONDENSED_RUNS`], `haptic_model::condensed`), against the
+/// region with the rest condensed ([`CONDENSED_RUNS`], `haptic_model::integrate::condensed`), against the
 /// same converged reference as `lv-probe`. `LV_H1_ROWS=condensed` runs the condensed rows only.
 /// Static curves on this mesh take minutes each (`--scenario lv-study`, README).
 fn scenario_lv_h1(fresh: bool, cache_dir: &Path, rows: &mut Vec<Row>) {

@@ -28,10 +28,11 @@ use faer::{Mat, Side};
 use glam::DMat3;
 use haptic_model::DVec3;
 use haptic_model::contact::Probe;
-use haptic_model::fem::{FemModel, StrainSmoothing, apply_constraint};
+use haptic_model::element::tangent::cell_tangent_blocks;
+use haptic_model::element::{FemModel, StrainSmoothing, apply_constraint};
 use haptic_model::mesh::TET_EDGES;
 use haptic_model::scene::Scene;
-use haptic_model::statics::{StaticParams, cell_tangent_blocks, free_dofs, solve_static};
+use haptic_model::statics::{StaticParams, free_dofs, solve_static};
 
 /// Smoothing domains of the study's operator.
 #[derive(Clone, Copy, Debug)]
@@ -60,8 +61,8 @@ struct SmoothedOperator {
 impl SmoothedOperator {
     fn new(fem: &FemModel, kind: Domains) -> Self {
         let mut ids: HashMap<Vec<u32>, usize> = HashMap::new();
-        let mut domains = Vec::with_capacity(fem.tets.len());
-        for (e, t) in fem.tets.iter().enumerate() {
+        let mut domains = Vec::with_capacity(fem.tets().len());
+        for (e, t) in fem.tets().iter().enumerate() {
             let keys: Vec<Vec<u32>> = match kind {
                 Domains::Element => vec![vec![e as u32]],
                 Domains::Node => t.iter().map(|&i| vec![i]).collect(),
@@ -90,7 +91,7 @@ impl SmoothedOperator {
         let mut volume = vec![0.0; ids.len()];
         for (e, row) in domains.iter().enumerate() {
             for &(d, share) in row {
-                volume[d] += fem.volume_m3[e] * share;
+                volume[d] += fem.volume_m3()[e] * share;
             }
         }
         Self {
@@ -103,13 +104,13 @@ impl SmoothedOperator {
 
     /// `out += K u`.
     fn apply(&mut self, fem: &FemModel, u: &[DVec3], out: &mut [DVec3]) {
-        let (lambda, mu) = (fem.material.lambda_pa, fem.material.mu_pa);
+        let (lambda, mu) = (fem.material().lambda_pa, fem.material().mu_pa);
         self.grad.iter_mut().for_each(|m| *m = DMat3::ZERO);
-        for (e, t) in fem.tets.iter().enumerate() {
+        for (e, t) in fem.tets().iter().enumerate() {
             let [a, b, c, d] = t.map(|i| i as usize);
-            let g = DMat3::from_cols(u[b] - u[a], u[c] - u[a], u[d] - u[a]) * fem.dm_inv[e];
+            let g = DMat3::from_cols(u[b] - u[a], u[c] - u[a], u[d] - u[a]) * fem.dm_inv()[e];
             for &(k, share) in &self.domains[e] {
-                self.grad[k] += g * (fem.volume_m3[e] * share);
+                self.grad[k] += g * (fem.volume_m3()[e] * share);
             }
         }
         for ((s, g), v) in self.stress.iter_mut().zip(&self.grad).zip(&self.volume) {
@@ -117,12 +118,12 @@ impl SmoothedOperator {
             let tr = h.x_axis.x + h.y_axis.y + h.z_axis.z;
             *s = DMat3::from_diagonal(DVec3::splat(lambda * tr)) + (h + h.transpose()) * mu;
         }
-        for (e, t) in fem.tets.iter().enumerate() {
+        for (e, t) in fem.tets().iter().enumerate() {
             let [a, b, c, d] = t.map(|i| i as usize);
             let s = self.domains[e]
                 .iter()
                 .fold(DMat3::ZERO, |acc, &(k, share)| acc + self.stress[k] * share);
-            let h = s * fem.dm_inv[e].transpose() * fem.volume_m3[e];
+            let h = s * fem.dm_inv()[e].transpose() * fem.volume_m3()[e];
             out[b] += h.x_axis;
             out[c] += h.y_axis;
             out[d] += h.z_axis;
@@ -145,7 +146,7 @@ fn pcg(fem: &FemModel, ops: &mut [(f64, SmoothedOperator)], f: &[DVec3]) -> (Vec
         .map(|m| m.inverse())
         .collect();
     let constrain = |v: &mut [DVec3]| {
-        for (vi, &c) in v.iter_mut().zip(&fem.constraint) {
+        for (vi, &c) in v.iter_mut().zip(fem.constraints()) {
             apply_constraint(c, vi);
         }
     };
@@ -199,8 +200,8 @@ fn pcg(fem: &FemModel, ops: &mut [(f64, SmoothedOperator)], f: &[DVec3]) -> (Vec
 /// The probe patch of `scene` at 0.5 mm on the rest shape: (node, weight) and the inward load
 /// direction.
 fn probe_patch(scene: &Scene, fem: &FemModel) -> (Vec<(u32, f64)>, DVec3) {
-    let mut probe = Probe::new(scene.probe, scene.touchable.clone(), &fem.rest);
-    let st = probe.update(&fem.rest, common::device_at(0.5e-3), DVec3::ZERO);
+    let mut probe = Probe::new(scene.probe, scene.touchable.clone(), fem.rest());
+    let st = probe.update(fem.rest(), common::device_at(0.5e-3), DVec3::ZERO);
     assert!(st.in_contact);
     let (nodes, w) = probe.patch();
     (
@@ -234,14 +235,14 @@ fn static_compliance(scene: &Scene, smoothing: StrainSmoothing) -> (f64, usize, 
     // A load small enough for the geometric nonlinearity to stay below 1e-6.
     let load = 1e-4;
     let f = patch_load(fem.node_count(), &patch, dir, load);
-    let mut x = fem.rest.clone();
+    let mut x = fem.rest().to_vec();
     let t = Instant::now();
     let params = StaticParams {
         rel_tol: 1e-10,
         ..StaticParams::default()
     };
     solve_static(&fem, &f, &mut x, &params).expect("static solve");
-    let u: Vec<DVec3> = x.iter().zip(&fem.rest).map(|(a, b)| *a - *b).collect();
+    let u: Vec<DVec3> = x.iter().zip(fem.rest()).map(|(a, b)| *a - *b).collect();
     (
         compliance(&patch, dir, &u, load),
         fem.node_count(),
@@ -320,7 +321,7 @@ fn main() {
     let mut triplets = Vec::new();
     let mut blocks = Vec::new();
     for c in 0..fem.cell_count() {
-        cell_tangent_blocks(&fem, c, &fem.rest, &mut blocks);
+        cell_tangent_blocks(&fem, c, fem.rest(), &mut blocks);
         let t = fem.cell_nodes(c);
         for (a, &na) in t.iter().enumerate() {
             for (b, &nb) in t.iter().enumerate() {
@@ -339,7 +340,7 @@ fn main() {
             }
         }
     }
-    for (i, m) in fem.lumped_mass_kg.iter().enumerate() {
+    for (i, m) in fem.lumped_mass_kg().iter().enumerate() {
         for c in 0..3 {
             if dof[3 * i + c] != usize::MAX {
                 triplets.push(Triplet::new(dof[3 * i + c], dof[3 * i + c], m / (h * h)));

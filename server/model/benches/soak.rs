@@ -587,7 +587,7 @@ fn main() {
     let scene = load_builtin("lv").expect("built-in lv scene");
     assert_eq!(scene.integrator.tick_s, TICK_S, "lv tick changed");
     let mut sim = Simulation::new(&scene).expect("lv simulation");
-    let (nodes, tets) = (sim.fem().node_count(), sim.fem().tets.len());
+    let (nodes, tets) = (sim.fem().node_count(), sim.fem().tets().len());
     let plan = sim.plan();
     let kc = scene.probe.coupling_stiffness_n_per_m;
     let total = cfg.total_ticks();

@@ -12,7 +12,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use haptic_model::DVec3;
-use haptic_model::integrator::IntegratorKind;
+use haptic_model::integrate::IntegratorKind;
 use haptic_model::scene::{Scene, load_builtin, load_scene_file};
 use haptic_model::sim::{Simulation, TickInput};
 
@@ -110,7 +110,7 @@ fn main() {
                 name,
                 kind.name(),
                 n,
-                sim.fem().tets.len(),
+                sim.fem().tets().len(),
                 plan.substeps,
                 plan.critical_dt_s,
                 p50,
@@ -123,7 +123,7 @@ fn main() {
             csv.push_str(&format!(
                 "{name},{},{n},{},{},{:.6e},{p50:.1},{:.1},{:.1},{:.1},{rt:.3},{},{cg_mean:.2}\n",
                 kind.name(),
-                sim.fem().tets.len(),
+                sim.fem().tets().len(),
                 plan.substeps,
                 plan.critical_dt_s,
                 percentile(&times, 0.99),

@@ -12,9 +12,9 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use haptic_model::DVec3;
-use haptic_model::fem::FemModel;
-use haptic_model::gmsh::load_msh;
+use haptic_model::element::FemModel;
 use haptic_model::material::MaterialParams;
+use haptic_model::mesh::gmsh::load_msh;
 
 fn main() {
     let mut args = std::env::args().skip(1);
@@ -71,8 +71,8 @@ fn main() {
     std::fs::write(out.join("tets.txt"), tets).expect("tets");
     let info = format!(
         "{{\"youngs_modulus_pa\": {e}, \"poisson_ratio\": {nu}, \"lambda_pa\": {}, \"mu_pa\": {}, \"nodes\": {}, \"tets\": {}, \"repeats\": {repeats}, \"force_median_us\": {median:.2}, \"elastic_energy_j\": {:.17e}}}\n",
-        fem.material.lambda_pa,
-        fem.material.mu_pa,
+        fem.material().lambda_pa,
+        fem.material().mu_pa,
         mesh.node_count(),
         mesh.tet_count(),
         fem.elastic_energy(&x)

@@ -1,23 +1,30 @@
 //! # haptic-model: soft-body physics for a 1 kHz haptic loop
 //!
 //! A pure, synchronous library (no async runtime, network or logging dependency) so that it can
-//! be tested and benchmarked alone. Module map:
+//! be tested and benchmarked alone. Module map, lowest layer first (a module uses only those
+//! above it; `tests/module_layers.rs` checks that no import goes the other way):
 //!
-//! - [`mesh`]: linear tetrahedral meshes with tagged boundary surfaces; [`gmsh`] reads Gmsh
-//!   `.msh` 2.2 / 4.1 ASCII; [`mesher`] builds structured shells (ellipsoids, the idealized left
-//!   ventricle, the Lamé sphere) and boxes in code.
-//! - [`material`]: Lamé parameters, St. Venant-Kirchhoff and viscous stress (seed 000, eq. 4, 9-11).
-//! - [`fem`]: precomputed shape-function gradients (eq. 13-21), nodal forces (eq. 22), lumped
-//!   masses, tangent stiffness action, critical (Courant) time step.
-//! - [`integrator`]: the seed's semi-implicit scheme (eq. 34), symplectic Euler and backward
-//!   Euler; [`condensed`]: backward Euler on a contact-local active region with the rest of the
-//!   body condensed statically.
-//! - [`contact`]: the haptic probe: god-object proxy on the touchable surface joined to the device
-//!   point by a virtual coupling.
-//! - [`sim`]: [`sim::Simulation`], state + scratch + parameters, one `tick` per servo period.
+//! - [`mesh`]: tetrahedral meshes, linear (4-node) or quadratic (10-node), with tagged boundary
+//!   surfaces; [`mesh::gmsh`] reads Gmsh `.msh` 2.2 / 4.1 ASCII; [`mesh::generate`] builds
+//!   structured shells (ellipsoids, the idealized left ventricle, the Lamé sphere) and boxes;
+//!   [`mesh::export`] writes CSV node tables and ParaView `.vtu` files.
+//! - [`material`]: Lamé parameters and constitutive laws: St. Venant-Kirchhoff (seed 000 eq. 4,
+//!   9), corotational, stable Neo-Hookean, and the seed's viscous stress (eq. 10-11).
+//! - [`element`]: [`element::FemModel`], precomputed element data: shape-function gradients
+//!   (eq. 13-21), nodal forces (eq. 22) by vectorised kernels, lumped masses, strain smoothing,
+//!   tangent stiffness, the largest eigenvalue for critical time steps.
+//! - [`contact`]: the haptic probe: god-object proxy on the touchable surface joined to the
+//!   device point by a virtual coupling; the coupling's rank-one term.
+//! - [`integrate`]: the seed's semi-implicit scheme (eq. 34), symplectic Euler, backward Euler,
+//!   contact-local condensation, the Courant step and sub-stepping, behind one
+//!   [`integrate::Stepper`].
+//! - [`loads`]: scene loads, point loads, the probe load, pressure forces.
 //! - [`scene`]: scene files (TOML) and built-in scenes, validated into a [`scene::Scene`].
-//! - [`statics`]: static equilibrium (Newton on the StVK tangent, sparse Cholesky) for references.
-//! - [`export`]: node tables (CSV) and ParaView `.vtu` files of a configuration.
+//! - [`sim`]: [`sim::Simulation`], the FEM body: state + scratch + parameters, one `tick` per
+//!   servo period.
+//! - [`body`]: [`body::SoftBody`], the interface the server drives every model family through;
+//!   [`build_body`] builds the family a scene names.
+//! - [`statics`]: static equilibrium (Newton on the tangent, sparse Cholesky) for references.
 //!
 //! Units are SI throughout (m, kg, s, N, Pa). Seeds are cited as "seed 000 eq. N":
 //! Mero & Susin, *Deformable Hybrid Approach*, Eurographics 2006.
@@ -26,20 +33,26 @@
 // `partial_cmp` rewrite would hide exactly that intent.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
-pub mod condensed;
+pub mod body;
 pub mod contact;
+pub mod element;
 pub mod error;
-pub mod export;
-pub mod fem;
-pub mod gmsh;
-pub mod integrator;
+pub mod integrate;
+pub mod loads;
 pub mod material;
 pub mod mesh;
-pub mod mesher;
 pub mod scene;
 pub mod sim;
-mod simd;
 pub mod statics;
 
 pub use error::ModelError;
 pub use glam::DVec3;
+
+/// Builds the body a scene describes: the model family it names, behind the
+/// [`body::SoftBody`] interface. Today every scene is a FEM scene ([`sim::Simulation`]).
+///
+/// # Errors
+/// The errors of the family's constructor ([`sim::Simulation::new`]).
+pub fn build_body(scene: &scene::Scene) -> Result<Box<dyn body::SoftBody>, ModelError> {
+    Ok(Box::new(sim::Simulation::new(scene)?))
+}

@@ -1,87 +1,36 @@
-//! [`Simulation`]: one deformable body driven by a haptic probe and point loads, advanced one
-//! servo tick at a time.
+//! [`Simulation`]: the FEM family of [`crate::body::SoftBody`]: one tetrahedral body driven
+//! by a haptic probe and loads, advanced one servo tick at a time.
 //!
 //! Layout follows state / scratch / parameters: [`SimState`] holds positions, velocities and
-//! time; the force buffer and the point-load table are scratch sized at construction; the
-//! [`FemModel`], [`StepPlan`] and probe parameters are fixed. [`Simulation::tick`] allocates
-//! nothing, takes no lock and does no I/O, so the server can call it on its servo thread.
+//! time; the force buffer is scratch sized at construction; the [`FemModel`], the
+//! [`Stepper`] (which owns its solver workspace), the [`BodyLoads`] and the probe parameters are
+//! fixed at construction. [`Simulation::tick`] allocates nothing, takes no lock and does no
+//! I/O, so the server can call it on its servo thread. A tick is, per sub-step: internal forces,
+//! loads, contact update (the probe's explicit reaction), one step of the [`Stepper`] (which
+//! completes the coupling), and a divergence check; then the output.
 //!
-//! The scene's loads ([`crate::scene::SceneLoads`]) act in every sub-step of every integrator:
-//! gravity, dead pressure and point forces are summed once at construction into a constant
-//! nodal force; follower pressure is recomputed from the current positions each sub-step.
-//! [`static_external_forces`] gives the same forces for static solves.
-//!
-//! Neighbours: built from a [`crate::scene::Scene`]; uses [`crate::fem`],
-//! [`crate::integrator`], [`crate::contact`].
+//! Owns: the FEM body. May use: [`crate::element`], [`crate::integrate`], [`crate::contact`],
+//! [`crate::loads`], [`crate::scene`] (to build from), [`crate::body`] (the interface it
+//! implements).
 
-use glam::{DMat3, DVec3};
+use glam::DVec3;
 
 use crate::ModelError;
-use crate::condensed::CondensedSolver;
-use crate::contact::{ContactState, ContactSurface, MAX_PATCH_NODES, PATCH_RADIUS_FACTOR, Probe};
-use crate::fem::{CLAMPED, FemModel};
-use crate::integrator::{self, CgStats, ImplicitSolver, IntegratorKind, StepPlan};
+use crate::body::{BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology};
+use crate::contact::Probe;
+use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
+use crate::element::{CLAMPED, FemModel};
+use crate::integrate::condensed::CondensedSolver;
+use crate::integrate::implicit::CgStats;
+use crate::integrate::{self, IntegratorKind, StepPlan, Stepper};
+use crate::loads::BodyLoads;
 use crate::scene::Scene;
 
-/// Largest number of point loads active at once (the table is preallocated).
-pub const MAX_POINT_LOADS: usize = 32;
-/// Largest accepted point-load magnitude, N. Anything larger is rejected as absurd for a
-/// haptic scene (the strongest device we drive renders 100 N).
-pub const MAX_POINT_FORCE_N: f64 = 100.0;
-/// Largest accepted point-load duration, s.
-pub const MAX_POINT_LOAD_DURATION_S: f64 = 3600.0;
-/// Largest accepted distance between a device point and the rest bounding box, m: device
-/// points farther away than this are absurd (a unit error or a broken sensor).
-pub const MAX_DEVICE_DISTANCE_M: f64 = 10.0;
+pub use crate::body::{TickInput, TickOutput};
+pub use crate::integrate::SimState;
+
 /// A nodal speed above this (m/s) is treated as divergence.
 pub const DIVERGENCE_SPEED_M_PER_S: f64 = 100.0;
-
-/// Dynamic state of the body.
-#[derive(Debug, Clone)]
-pub struct SimState {
-    /// Node positions, m.
-    pub x: Vec<DVec3>,
-    /// Node velocities, m/s.
-    pub v: Vec<DVec3>,
-    /// Simulated time, s.
-    pub time_s: f64,
-}
-
-/// What the device reports for one servo tick.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct TickInput {
-    /// Haptic interaction point, m, scene frame; `None` when no device is connected.
-    pub device_position_m: Option<DVec3>,
-    /// Device velocity, m/s.
-    pub device_velocity_m_per_s: DVec3,
-}
-
-/// What one servo tick returns to the device.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct TickOutput {
-    /// Force the device must render, N (the virtual coupling force at the end of the tick).
-    pub force_on_device_n: DVec3,
-    /// Whether the probe touches the surface.
-    pub in_contact: bool,
-    /// Proxy (god-object) position, m.
-    pub proxy_position_m: DVec3,
-    /// Local contact stiffness, 3x3 row-major, N/m.
-    pub contact_stiffness_n_per_m: [f64; 9],
-    /// Simulated time after the tick, s.
-    pub sim_time_s: f64,
-}
-
-/// A point load: a force on a surface point, spread over the surface nodes around it with the
-/// probe's kernel weights (`nodes[..len]`, `weights[..len]`, sum 1), see
-/// [`Simulation::add_point_load`].
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct PointLoad {
-    nodes: [u32; MAX_PATCH_NODES],
-    weights: [f64; MAX_PATCH_NODES],
-    len: usize,
-    force_n: DVec3,
-    remaining_s: f64,
-}
 
 /// Whether a simulation is still meaningful, with the quantities that say so
 /// ([`Simulation::stability`]).
@@ -109,41 +58,21 @@ pub struct StabilityReport {
     pub cg: CgStats,
 }
 
-/// A deformable body with its probe, loads, integrator and sub-stepping.
+/// A tetrahedral FEM body with its probe, loads, stepper and sub-stepping (module
+/// documentation).
 #[derive(Debug, Clone)]
 pub struct Simulation {
     fem: FemModel,
-    kind: IntegratorKind,
+    stepper: Stepper,
     plan: StepPlan,
     tick_s: f64,
-    /// Seed eq. 34 per-node matrices `A_i^-1` (semi-implicit only; empty otherwise).
-    a_inv: Vec<DMat3>,
-    /// Backward Euler solver and its scratch (backward Euler only).
-    implicit: Option<ImplicitSolver>,
-    /// Backward Euler on the scene's active region with the rest condensed (scenes with
-    /// `[active_region]`; then `implicit` is `None`).
-    condensed: Option<CondensedSolver>,
-    /// Scene loads that do not depend on the state (gravity, dead pressure, point forces), N
-    /// per node; empty when there are none.
-    constant_load: Vec<DVec3>,
-    /// Follower pressures: (triangles, Pa).
-    follower: Vec<(Vec<[u32; 3]>, f64)>,
+    loads: BodyLoads,
     /// Set when a tick diverged; later ticks refuse to run.
     diverged_at_s: Option<f64>,
     state: SimState,
     /// Scratch: total nodal forces of the current sub-step.
     force: Vec<DVec3>,
     probe: Probe,
-    /// Surface used to place point loads (all boundary triangles not entirely clamped).
-    load_surface: ContactSurface,
-    loads: Vec<PointLoad>,
-    /// Scratch for the patch of a new point load (capacity [`MAX_PATCH_NODES`]).
-    load_nodes: Vec<u32>,
-    load_weights: Vec<f64>,
-    /// Extra force on the probe's contact patch (N) and its remaining time (s), see
-    /// [`Simulation::add_probe_load`].
-    probe_load_n: DVec3,
-    probe_load_remaining_s: f64,
     /// Surface for viewers: distinct boundary nodes and triangles indexing into them.
     surface_nodes: Vec<u32>,
     surface_triangles: Vec<[u32; 3]>,
@@ -152,12 +81,14 @@ pub struct Simulation {
 }
 
 impl Simulation {
-    /// Builds the simulation of `scene`: precomputes the FEM data, the critical time step and the
-    /// sub-step plan, and the semi-implicit per-node matrices.
+    /// Builds the simulation of `scene`: precomputes the FEM data, the critical time step, the
+    /// sub-step plan and the stepper (the semi-implicit per-node matrices, the backward Euler
+    /// preconditioner, or the condensed factorisation).
     ///
     /// # Errors
-    /// [`ModelError::InvalidMesh`] / [`ModelError::SceneField`] for a bad mesh or material;
-    /// [`ModelError::Unstable`] when the integrator cannot be stable within `max_substeps`.
+    /// [`ModelError::InvalidMesh`] / [`ModelError::SceneField`] for a bad mesh, material or
+    /// active region; [`ModelError::Unstable`] when the integrator cannot be stable within
+    /// `max_substeps`.
     pub fn new(scene: &Scene) -> Result<Self, ModelError> {
         let mut fem =
             FemModel::with_smoothing(&scene.mesh, scene.material, scene.strain_smoothing)?;
@@ -177,67 +108,48 @@ impl Simulation {
                 "must be a positive number",
             ));
         }
-        let critical = integrator::critical_time_step(&fem, p.kind);
-        let plan = integrator::plan_steps(&p, critical)?;
-        let a_inv = match p.kind {
-            IntegratorKind::SemiImplicit => integrator::semi_implicit_inverses(&fem, plan.sub_dt_s),
-            IntegratorKind::SymplecticEuler | IntegratorKind::BackwardEuler => Vec::new(),
-        };
-        let condensed = match scene.active_region {
-            Some(region) => Some(CondensedSolver::new(
-                &fem,
-                &scene.mesh,
-                region,
-                plan.sub_dt_s,
-            )?),
-            None => None,
-        };
-        let implicit = (p.kind == IntegratorKind::BackwardEuler && condensed.is_none())
-            .then(|| ImplicitSolver::new(&fem, plan.sub_dt_s, &p));
-        let constant_load = constant_external_forces(scene, &fem.rest, &fem.lumped_mass_kg);
+        let critical = integrate::critical_time_step(&fem, p.kind);
+        let plan = integrate::plan_steps(&p, critical)?;
+        let mut stepper = Stepper::new(&fem, &scene.mesh, &p, &plan, scene.active_region)?;
+        let n = fem.node_count();
+        let boundary = scene.mesh.boundary_triangles();
+        let load_surface: Vec<[u32; 3]> = boundary
+            .iter()
+            .copied()
+            .filter(|t| t.iter().any(|&i| fem.constraints()[i as usize] != CLAMPED))
+            .collect();
+        let mut loads = BodyLoads::new(
+            &scene.loads,
+            fem.rest(),
+            fem.lumped_mass_kg(),
+            load_surface.clone(),
+        );
+        let mut touchable = scene.touchable.clone();
         // A condensed model sees loads and contact on its active nodes only.
-        let active = |t: &[u32; 3]| condensed.as_ref().is_none_or(|c| c.is_active_triangle(t));
-        if let Some(c) = &condensed {
-            let far_load = constant_load
-                .iter()
-                .enumerate()
-                .any(|(i, f)| *f != DVec3::ZERO && !c.is_active_node(i as u32));
-            let far_follower = scene
-                .loads
-                .pressure
-                .iter()
-                .filter(|l| l.follower)
-                .any(|l| !l.triangles.iter().all(|t| c.is_active_triangle(t)));
-            if far_load || far_follower {
+        if let Some(c) = stepper.condensed() {
+            if loads.acts_outside(|i| c.is_active_node(i)) {
                 return Err(ModelError::field(
                     "active_region",
                     "a scene load acts outside the active region (condensed elements are unloaded): enlarge the region or remove the load",
                 ));
             }
+            touchable.retain(|t| c.is_active_triangle(t));
+            if touchable.is_empty() {
+                return Err(ModelError::field(
+                    "active_region",
+                    "no touchable triangle lies inside the active region",
+                ));
+            }
+            let load_surface: Vec<[u32; 3]> = load_surface
+                .into_iter()
+                .filter(|t| c.is_active_triangle(t))
+                .collect();
+            loads = BodyLoads::new(&scene.loads, fem.rest(), fem.lumped_mass_kg(), load_surface);
         }
-        let touchable: Vec<[u32; 3]> = scene.touchable.iter().copied().filter(active).collect();
-        let contact_nodes: Vec<u32> = touchable.iter().flatten().copied().collect();
-        if touchable.is_empty() {
-            return Err(ModelError::field(
-                "active_region",
-                "no touchable triangle lies inside the active region",
-            ));
+        if let Stepper::Condensed(c) = &mut stepper {
+            let contact_nodes: Vec<u32> = touchable.iter().flatten().copied().collect();
+            c.prepare_contact(&contact_nodes);
         }
-        let follower = scene
-            .loads
-            .pressure
-            .iter()
-            .filter(|l| l.follower)
-            .map(|l| (l.triangles.clone(), l.pressure_pa))
-            .collect();
-        let n = fem.node_count();
-        let boundary = scene.mesh.boundary_triangles();
-        let load_tris: Vec<[u32; 3]> = boundary
-            .iter()
-            .copied()
-            .filter(|t| t.iter().any(|&i| fem.constraint[i as usize] != CLAMPED))
-            .filter(active)
-            .collect();
         let mut surface_nodes: Vec<u32> = boundary.iter().flatten().copied().collect();
         surface_nodes.sort_unstable();
         surface_nodes.dedup();
@@ -249,34 +161,20 @@ impl Simulation {
             .iter()
             .map(|t| t.map(|i| local[i as usize]))
             .collect();
-        let probe = Probe::new(scene.probe, touchable, &fem.rest);
-        let mut condensed = condensed;
-        if let Some(c) = &mut condensed {
-            c.prepare_contact(&contact_nodes);
-        }
+        let probe = Probe::new(scene.probe, touchable, fem.rest());
         Ok(Self {
-            kind: p.kind,
+            stepper,
             plan,
             tick_s: p.tick_s,
-            a_inv,
-            implicit,
-            condensed,
-            constant_load,
-            follower,
+            loads,
             diverged_at_s: None,
             state: SimState {
-                x: fem.rest.clone(),
+                x: fem.rest().to_vec(),
                 v: vec![DVec3::ZERO; n],
                 time_s: 0.0,
             },
             force: vec![DVec3::ZERO; n],
             probe,
-            load_surface: ContactSurface::new(load_tris, n),
-            loads: Vec::with_capacity(MAX_POINT_LOADS),
-            load_nodes: Vec::with_capacity(MAX_PATCH_NODES),
-            load_weights: Vec::with_capacity(MAX_PATCH_NODES),
-            probe_load_n: DVec3::ZERO,
-            probe_load_remaining_s: 0.0,
             surface_nodes,
             surface_triangles,
             scene_name: scene.name.clone(),
@@ -286,7 +184,8 @@ impl Simulation {
     }
 
     /// Advances one servo tick (`plan().substeps` model steps) with the device input, and
-    /// returns the force for the device.
+    /// returns the force for the device. Per sub-step: internal forces, loads, contact update,
+    /// one [`Stepper::step`], divergence check.
     ///
     /// # Errors
     /// [`ModelError::InvalidDevice`] for a non-finite or absurd device input (the state is not
@@ -294,92 +193,36 @@ impl Simulation {
     /// caller must quarantine the session: the state is no longer meaningful). Neither
     /// allocates.
     pub fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
-        self.check_device(input)?;
+        check_device(input)?;
         if let Some(time_s) = self.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
-        let h = self.plan.sub_dt_s;
-        let mut contact = ContactState::default();
         for _ in 0..self.plan.substeps {
+            // 1. Forces: internal and external.
             self.force.iter_mut().for_each(|f| *f = DVec3::ZERO);
-            // Backward Euler treats the viscous force implicitly inside its solve.
-            let v_for_force = match self.kind {
-                IntegratorKind::BackwardEuler => None,
-                _ => Some(self.state.v.as_slice()),
-            };
-            self.condensed
-                .as_ref()
-                .map_or(&self.fem, CondensedSolver::active_model)
-                .add_internal_forces(&self.state.x, v_for_force, &mut self.force);
-            self.add_external_forces();
-            contact = match input.device_position_m {
+            self.stepper.add_internal_forces(
+                &self.fem,
+                &self.state.x,
+                &self.state.v,
+                &mut self.force,
+            );
+            self.loads.add_to(&self.state.x, &mut self.force);
+            // 2. Contact: the probe's proxy and the explicit part of its reaction.
+            match input.device_position_m {
                 Some(p) => {
-                    let c = self
-                        .probe
+                    self.probe
                         .update(&self.state.x, p, input.device_velocity_m_per_s);
                     self.probe.add_reaction(&mut self.force);
-                    if self.probe_load_remaining_s > 0.0 {
-                        let (nodes, weights) = self.probe.patch();
-                        for (&i, &w) in nodes.iter().zip(weights) {
-                            self.force[i as usize] += self.probe_load_n * w;
-                        }
-                    }
-                    c
+                    self.loads
+                        .add_probe_load_to(self.probe.patch(), &mut self.force);
                 }
-                None => {
-                    self.probe.state = ContactState::default();
-                    ContactState::default()
-                }
-            };
-            let max_v2 = if let Some(solver) = &mut self.condensed {
-                let coupling = self.probe.rank_one(h);
-                let max_v2 =
-                    solver.step(&self.force, coupling, &mut self.state.x, &mut self.state.v);
-                if contact.in_contact {
-                    self.probe.finish_solved(h, &self.state.v);
-                    contact = self.probe.state;
-                }
-                max_v2
-            } else if let Some(solver) = &mut self.implicit {
-                let coupling = self.probe.rank_one(h);
-                let max_v2 = solver.step(
-                    &self.fem,
-                    &self.force,
-                    coupling,
-                    &mut self.state.x,
-                    &mut self.state.v,
-                );
-                if contact.in_contact {
-                    self.probe.finish_solved(h, &self.state.v);
-                    contact = self.probe.state;
-                }
-                max_v2
-            } else {
-                let mut max_v2 = integrator::integrate_nodes(
-                    self.kind,
-                    &self.fem,
-                    &self.a_inv,
-                    h,
-                    &self.force,
-                    &mut self.state.x,
-                    &mut self.state.v,
-                );
-                if contact.in_contact {
-                    let (kind, fem, a_inv) = (self.kind, &self.fem, &self.a_inv);
-                    self.probe
-                        .finish_implicit(h, &mut self.state.x, &mut self.state.v, |i, w| {
-                            integrator::apply_inverse(kind, fem, a_inv, h, i, w)
-                        });
-                    contact = self.probe.state;
-                    for &i in self.probe.patch().0 {
-                        let s = self.state.v[i as usize].length_squared();
-                        if !s.is_finite() || s > max_v2 {
-                            max_v2 = if s.is_finite() { s } else { f64::NAN };
-                        }
-                    }
-                }
-                max_v2
-            };
+                None => self.probe.release(),
+            }
+            // 3. Step, completing the coupling.
+            let report =
+                self.stepper
+                    .step(&self.fem, &self.force, &mut self.probe, &mut self.state);
+            let max_v2 = report.max_speed2_m2_per_s2;
             if !(max_v2 <= DIVERGENCE_SPEED_M_PER_S * DIVERGENCE_SPEED_M_PER_S) {
                 self.diverged_at_s = Some(self.state.time_s);
                 return Err(ModelError::Diverged {
@@ -388,17 +231,9 @@ impl Simulation {
             }
         }
         self.state.time_s += self.tick_s;
-        let dt = self.tick_s;
-        self.loads.retain_mut(|l| {
-            l.remaining_s -= dt;
-            l.remaining_s > 1e-12
-        });
-        if self.probe_load_remaining_s > 0.0 {
-            self.probe_load_remaining_s -= dt;
-            if self.probe_load_remaining_s <= 1e-12 {
-                self.probe_load_remaining_s = 0.0;
-            }
-        }
+        self.loads.advance(self.tick_s);
+        // 4. Output.
+        let contact = self.probe.state;
         let out = TickOutput {
             force_on_device_n: contact.force_on_device_n,
             in_contact: contact.in_contact,
@@ -412,23 +247,6 @@ impl Simulation {
         };
         self.last_output = out;
         Ok(out)
-    }
-
-    /// Adds the scene loads and the active point loads to the force buffer. Allocation-free.
-    fn add_external_forces(&mut self) {
-        if !self.constant_load.is_empty() {
-            for (f, l) in self.force.iter_mut().zip(&self.constant_load) {
-                *f += *l;
-            }
-        }
-        for (tris, p) in &self.follower {
-            crate::statics::add_pressure_forces(tris, &self.state.x, *p, &mut self.force);
-        }
-        for l in &self.loads {
-            for (&i, &w) in l.nodes[..l.len].iter().zip(&l.weights[..l.len]) {
-                self.force[i as usize] += l.force_n * w;
-            }
-        }
     }
 
     /// Stability of the current state: finite or not, divergence, energies, inverted elements,
@@ -445,7 +263,7 @@ impl Simulation {
         // Condensed: the far elements' nodes are not all current (the tick moves the far
         // boundary only), so energy and volume come from the active elements plus the far
         // part's exact linear energy `u_G^T S u_G / 2`, and its volume change is not tracked.
-        let (elastic_energy_j, volume_change) = match &self.condensed {
+        let (elastic_energy_j, volume_change) = match self.stepper.condensed() {
             Some(c) => {
                 let a = c.active_model();
                 (
@@ -476,142 +294,71 @@ impl Simulation {
     }
 
     /// Number of elements whose deformation gradient has `det F <= 0` (inverted or flat) at
-    /// some integration point.
-    /// With an active region, of the active elements (the far ones are linear).
+    /// some integration point. With an active region, of the active elements (the far ones are
+    /// linear).
     pub fn inverted_elements(&self) -> usize {
-        self.condensed
-            .as_ref()
-            .map_or(&self.fem, CondensedSolver::active_model)
+        self.stepper
+            .force_model(&self.fem)
             .inverted_elements(&self.state.x)
     }
 
     /// Conjugate-gradient statistics of the last backward Euler step (default for the other
     /// integrators).
     pub fn cg_stats(&self) -> CgStats {
-        self.implicit
-            .as_ref()
-            .map(ImplicitSolver::stats)
-            .unwrap_or_default()
-    }
-
-    fn check_device(&self, input: &TickInput) -> Result<(), ModelError> {
-        if let Some(p) = input.device_position_m {
-            if !p.is_finite() || !input.device_velocity_m_per_s.is_finite() {
-                return Err(ModelError::InvalidDevice(
-                    "device position or velocity is not finite",
-                ));
-            }
-            if p.abs().max_element() > MAX_DEVICE_DISTANCE_M {
-                return Err(ModelError::InvalidDevice(
-                    "device position is farther than 10 m from the origin",
-                ));
-            }
-        }
-        Ok(())
+        self.stepper.cg_stats()
     }
 
     /// Applies `force_n` (N) at the surface point closest to `point_m` (m) for `duration_s` of
-    /// simulated time, spread as a probe of the scene's radius `r` touching there spreads its
-    /// reaction: over the free boundary nodes within `2 r` of the point `r` outside the surface
-    /// (the probe's centre) with the contact kernel weights `(1 - d^2 / (2r)^2)^2` (sum 1, see
-    /// [`ContactSurface::gather_kernel_patch`]; a disc of radius `sqrt(3) r` on the surface),
-    /// fixed to those nodes when the load is added. When no node lies that close (a triangle
-    /// much larger than the probe) it falls back to the closest triangle's barycentric
-    /// weights.
-    ///
-    /// A force on the three nodes of one triangle is a point load in the continuum sense: its
-    /// local displacement grows without bound as the mesh is refined (0.05 N on one sub-triangle
-    /// of the default quadratic `lv` moved the surface 9.9 mm in the demo); spread over the
-    /// probe's footprint it converges with the mesh (7.6 mm on 474, 7.4 mm on 948 quadratic
-    /// elements). It is more than the 3 mm of a probe held against the surface with the same
-    /// force, because the probe's patch widens as the surface wraps around the sphere, while
-    /// this one stays on the nodes it was given.
+    /// simulated time, spread over the free boundary around it as a probe of the scene's radius
+    /// touching there would spread its reaction (see [`BodyLoads::add_point_load`]; with an
+    /// active region, on the active part of the boundary).
     ///
     /// # Errors
-    /// [`ModelError::InvalidInput`] (state untouched) for non-finite values, a force above
-    /// [`MAX_POINT_FORCE_N`], a duration outside `(0, MAX_POINT_LOAD_DURATION_S]`, a point farther
-    /// than [`MAX_DEVICE_DISTANCE_M`]; [`ModelError::LoadTableFull`] when [`MAX_POINT_LOADS`] loads
-    /// are already active (this path does not allocate, so the servo tick may call it).
+    /// As [`BodyLoads::add_point_load`]: [`ModelError::InvalidInput`] (state untouched) for
+    /// non-finite or absurd values, [`ModelError::LoadTableFull`] when the table is full.
+    /// Allocation-free, so the servo tick may call it.
     pub fn add_point_load(
         &mut self,
         point_m: DVec3,
         force_n: DVec3,
         duration_s: f64,
     ) -> Result<(), ModelError> {
-        validate_point_load(point_m, force_n, duration_s)?;
-        if self.loads.len() >= MAX_POINT_LOADS {
-            return Err(ModelError::LoadTableFull(MAX_POINT_LOADS));
-        }
-        let sp = self
-            .load_surface
-            .closest_global(&self.state.x, point_m)
-            .ok_or(ModelError::InvalidDevice(
-                "the body has no free surface to load",
-            ))?;
-        let mut load = PointLoad {
-            nodes: [0; MAX_PATCH_NODES],
-            weights: [0.0; MAX_PATCH_NODES],
-            len: 0,
-            force_n,
-            remaining_s: duration_s,
-        };
-        // The kernel centre sits one probe radius outside the surface, where a probe touching
-        // there has its centre, so the weights are the probe's.
-        let r = self.probe.params.radius_m;
-        let centre = sp.point + self.load_surface.normal(sp.triangle, &self.state.x) * r;
-        self.load_surface.gather_kernel_patch(
+        self.loads.add_point_load(
             &self.state.x,
-            centre,
-            sp.triangle,
-            PATCH_RADIUS_FACTOR * r,
-            &mut self.load_nodes,
-            &mut self.load_weights,
-        );
-        if self.load_nodes.is_empty() {
-            let tri = self.load_surface.triangles[sp.triangle as usize];
-            load.nodes[..3].copy_from_slice(&tri);
-            load.weights[..3].copy_from_slice(&sp.bary);
-            load.len = 3;
-        } else {
-            load.len = self.load_nodes.len();
-            load.nodes[..load.len].copy_from_slice(&self.load_nodes);
-            load.weights[..load.len].copy_from_slice(&self.load_weights);
-        }
-        self.loads.push(load);
-        Ok(())
+            self.probe.params.radius_m,
+            point_m,
+            force_n,
+            duration_s,
+        )
     }
 
     /// Applies `force_n` (N) to the body at the probe for `duration_s` of simulated time: in every
     /// sub-step in contact it is spread over the probe's contact patch with the same kernel
     /// weights as the coupling reaction (the nodes within 2 r of the device point, see
-    /// [`crate::contact`]), so it follows the probe and never concentrates on one triangle. Out of
-    /// contact it does not act (its time still runs). The device is not told about it: this is an
-    /// external disturbance at the probe (the stability suite's 10-fold impulse), not a change of
-    /// the coupling. A new call replaces an active probe load. Allocation-free.
+    /// [`crate::contact`]), so it follows the probe. Out of contact it does not act (its time
+    /// still runs). The device is not told about it: this is an external disturbance at the
+    /// probe (the stability suite's 10-fold impulse), not a change of the coupling. A new call
+    /// replaces an active probe load. Allocation-free.
     ///
-    /// Unlike [`Simulation::add_point_load`] (one surface triangle), the load is spread over the
-    /// probe's footprint: a force concentrated on the three nodes of a small triangle is a point
-    /// load in the continuum sense, whose local displacement grows without bound as the mesh is
-    /// refined.
+    /// Unlike [`Simulation::add_point_load`], whose patch is fixed to the nodes around the
+    /// point when the load is added, this load moves with the probe.
     ///
     /// # Errors
     /// [`ModelError::InvalidInput`] (state untouched) for a non-finite force, a force above
-    /// [`MAX_POINT_FORCE_N`] or a duration outside `(0, MAX_POINT_LOAD_DURATION_S]`.
+    /// [`crate::loads::MAX_POINT_FORCE_N`] or a duration outside
+    /// `(0, MAX_POINT_LOAD_DURATION_S]`.
     pub fn add_probe_load(&mut self, force_n: DVec3, duration_s: f64) -> Result<(), ModelError> {
-        validate_point_load(DVec3::ZERO, force_n, duration_s)?;
-        self.probe_load_n = force_n;
-        self.probe_load_remaining_s = duration_s;
-        Ok(())
+        self.loads.set_probe_load(force_n, duration_s)
     }
 
     /// Remaining time of the probe load of [`Simulation::add_probe_load`], s (0 when none).
     pub fn probe_load_remaining_s(&self) -> f64 {
-        self.probe_load_remaining_s
+        self.loads.probe_load_remaining_s()
     }
 
     /// Number of point loads still active.
     pub fn active_point_loads(&self) -> usize {
-        self.loads.len()
+        self.loads.active_point_loads()
     }
 
     /// Writes the surface vertex positions (xyz interleaved, f32, m) into `out` (length
@@ -621,20 +368,12 @@ impl Simulation {
     /// # Panics
     /// If `out` has the wrong length.
     pub fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
-        assert_eq!(
-            out.len(),
-            3 * self.surface_nodes.len(),
-            "surface buffer length"
-        );
-        let mut max_d2: f64 = 0.0;
-        for (k, &i) in self.surface_nodes.iter().enumerate() {
-            let p = self.state.x[i as usize];
-            out[3 * k] = p.x as f32;
-            out[3 * k + 1] = p.y as f32;
-            out[3 * k + 2] = p.z as f32;
-            max_d2 = max_d2.max((p - self.fem.rest[i as usize]).length_squared());
-        }
-        max_d2.sqrt()
+        write_positions(
+            &self.surface_nodes,
+            &self.state.x,
+            Some(self.fem.rest()),
+            out,
+        )
     }
 
     /// Largest nodal displacement from rest over the whole body, m.
@@ -642,7 +381,7 @@ impl Simulation {
         self.state
             .x
             .iter()
-            .zip(&self.fem.rest)
+            .zip(self.fem.rest())
             .map(|(x, r)| (*x - *r).length_squared())
             .fold(0.0, f64::max)
             .sqrt()
@@ -653,7 +392,7 @@ impl Simulation {
         self.state
             .v
             .iter()
-            .zip(&self.fem.lumped_mass_kg)
+            .zip(self.fem.lumped_mass_kg())
             .map(|(v, m)| 0.5 * m * v.length_squared())
             .sum()
     }
@@ -673,16 +412,21 @@ impl Simulation {
         &self.fem
     }
 
+    /// The time stepper.
+    pub fn stepper(&self) -> &Stepper {
+        &self.stepper
+    }
+
     /// The condensed solver of a scene with `[active_region]`.
     pub fn condensed(&self) -> Option<&CondensedSolver> {
-        self.condensed.as_ref()
+        self.stepper.condensed()
     }
 
     /// With an active region: moves the condensed (far) nodes to the static response of the
     /// far body to the interface, which the tick leaves at their last recovered positions (one
     /// sparse solve, allocates: not for the servo tick). No-op otherwise.
     pub fn recover_far_field(&mut self) {
-        if let Some(c) = &self.condensed {
+        if let Some(c) = self.stepper.condensed() {
             c.recover_far_field(&mut self.state.x);
         }
     }
@@ -695,9 +439,7 @@ impl Simulation {
     /// Mutable state, for tests and set-ups (e.g. imposing an initial deformation). Forgets
     /// the backward Euler warm start and a recorded divergence.
     pub fn state_mut(&mut self) -> &mut SimState {
-        if let Some(s) = &mut self.implicit {
-            s.reset_warm_start();
-        }
+        self.stepper.reset();
         self.diverged_at_s = None;
         &mut self.state
     }
@@ -709,7 +451,7 @@ impl Simulation {
 
     /// Integrator in use.
     pub fn integrator(&self) -> IntegratorKind {
-        self.kind
+        self.stepper.kind()
     }
 
     /// Servo tick, s.
@@ -733,78 +475,104 @@ impl Simulation {
     }
 }
 
-/// Checks a point load's numbers (see [`Simulation::add_point_load`]).
-///
-/// # Errors
-/// [`ModelError::InvalidInput`] saying which value is wrong.
-pub fn validate_point_load(
-    point_m: DVec3,
-    force_n: DVec3,
-    duration_s: f64,
-) -> Result<(), ModelError> {
-    if !point_m.is_finite() {
-        return Err(ModelError::InvalidInput("point_m is not finite".into()));
-    }
-    if !force_n.is_finite() {
-        return Err(ModelError::InvalidInput("force_n is not finite".into()));
-    }
-    if !duration_s.is_finite() || duration_s <= 0.0 || duration_s > MAX_POINT_LOAD_DURATION_S {
-        return Err(ModelError::InvalidInput(format!(
-            "duration_s = {duration_s} must be in (0, {MAX_POINT_LOAD_DURATION_S}] s"
-        )));
-    }
-    if force_n.length() > MAX_POINT_FORCE_N {
-        return Err(ModelError::InvalidInput(format!(
-            "|force_n| = {:.3} N exceeds the {MAX_POINT_FORCE_N} N limit",
-            force_n.length()
-        )));
-    }
-    if point_m.abs().max_element() > MAX_DEVICE_DISTANCE_M {
-        return Err(ModelError::InvalidInput(format!(
-            "point_m {point_m} is absurdly far from the scene"
-        )));
+/// Rejects a non-finite or absurd device input.
+fn check_device(input: &TickInput) -> Result<(), ModelError> {
+    if let Some(p) = input.device_position_m {
+        if !p.is_finite() || !input.device_velocity_m_per_s.is_finite() {
+            return Err(ModelError::InvalidDevice(
+                "device position or velocity is not finite",
+            ));
+        }
+        if p.abs().max_element() > MAX_DEVICE_DISTANCE_M {
+            return Err(ModelError::InvalidDevice(
+                "device position is farther than 10 m from the origin",
+            ));
+        }
     }
     Ok(())
 }
 
-/// The state-independent part of the scene loads on nodes with rest positions `rest` and
-/// lumped masses `mass_kg`: gravity, dead pressure (rest geometry) and point forces. Empty
-/// when the scene has none of them.
-fn constant_external_forces(scene: &Scene, rest: &[DVec3], mass_kg: &[f64]) -> Vec<DVec3> {
-    let l = &scene.loads;
-    if l.gravity_m_per_s2 == DVec3::ZERO
-        && l.point.is_empty()
-        && l.pressure.iter().all(|p| p.follower)
-    {
-        return Vec::new();
-    }
-    let mut f: Vec<DVec3> = mass_kg.iter().map(|m| l.gravity_m_per_s2 * *m).collect();
-    for p in l.pressure.iter().filter(|p| !p.follower) {
-        crate::statics::add_pressure_forces(&p.triangles, rest, p.pressure_pa, &mut f);
-    }
-    for p in &l.point {
-        for k in 0..3 {
-            f[p.nodes[k] as usize] += p.force_n * p.bary[k];
-        }
-    }
-    f
-}
-
-/// External nodal forces (N, one per mesh node) of the scene's loads at positions `x` (m), for
-/// static solves: gravity on the lumped masses, dead pressure on the rest geometry, follower
-/// pressure on `x`, point forces. The same forces [`Simulation::tick`] applies.
+/// Writes `x[nodes[k]]` (f32, xyz interleaved) into `out` and returns the largest distance to
+/// `rest[nodes[k]]` (0 without `rest`).
 ///
 /// # Panics
-/// If `x` is shorter than the mesh's node count.
-pub fn static_external_forces(scene: &Scene, x: &[DVec3]) -> Vec<DVec3> {
-    let mesh = &scene.mesh;
-    let mass = crate::fem::lumped_masses(mesh, scene.material.density_kg_per_m3);
-    let mut f = constant_external_forces(scene, &mesh.nodes, &mass);
-    if f.is_empty() {
-        f = vec![DVec3::ZERO; mesh.nodes.len()];
+/// If `out.len() != 3 * nodes.len()`.
+fn write_positions(nodes: &[u32], x: &[DVec3], rest: Option<&[DVec3]>, out: &mut [f32]) -> f64 {
+    assert_eq!(out.len(), 3 * nodes.len(), "surface buffer length");
+    let mut max_d2: f64 = 0.0;
+    for (k, &i) in nodes.iter().enumerate() {
+        let p = x[i as usize];
+        out[3 * k] = p.x as f32;
+        out[3 * k + 1] = p.y as f32;
+        out[3 * k + 2] = p.z as f32;
+        if let Some(r) = rest {
+            max_d2 = max_d2.max((p - r[i as usize]).length_squared());
+        }
     }
-    for p in scene.loads.pressure.iter().filter(|p| p.follower) {
-        crate::statics::add_pressure_forces(&p.triangles, x, p.pressure_pa, &mut f);
+    max_d2.sqrt()
+}
+
+impl SoftBody for Simulation {
+    fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
+        Simulation::tick(self, input)
     }
-    f
+
+    fn add_point_load(
+        &mut self,
+        point_m: DVec3,
+        force_n: DVec3,
+        duration_s: f64,
+    ) -> Result<(), ModelError> {
+        Simulation::add_point_load(self, point_m, force_n, duration_s)
+    }
+
+    /// The boundary of the mesh; it never changes (version 0).
+    fn surface_topology(&self) -> SurfaceTopology<'_> {
+        SurfaceTopology {
+            version: 0,
+            vertex_count: self.surface_nodes.len(),
+            triangles: &self.surface_triangles,
+        }
+    }
+
+    fn surface_capacity(&self) -> SurfaceCapacity {
+        SurfaceCapacity {
+            vertices: self.surface_nodes.len(),
+            triangles: self.surface_triangles.len(),
+        }
+    }
+
+    fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
+        Simulation::write_surface_positions(self, out)
+    }
+
+    fn write_surface_rest_positions(&self, out: &mut [f32]) {
+        write_positions(&self.surface_nodes, self.fem.rest(), None, out);
+    }
+
+    fn stats(&self) -> BodyStats {
+        BodyStats {
+            nodes: self.fem.node_count(),
+            elements: self.fem.element_count(),
+            active_elements: self.stepper.force_model(&self.fem).element_count(),
+            particles: 0,
+            active_particles: 0,
+            active_point_loads: self.loads.active_point_loads(),
+            surface_vertices: self.surface_nodes.len(),
+            topology_version: 0,
+            sim_time_s: self.state.time_s,
+            max_displacement_m: self.max_displacement_m(),
+        }
+    }
+
+    fn info(&self) -> BodyInfo {
+        BodyInfo {
+            family: "fem",
+            scene: self.scene_name.clone(),
+            tick_s: self.tick_s,
+            substeps: self.plan.substeps,
+            critical_dt_s: self.plan.critical_dt_s,
+            probe_radius_m: self.probe.params.radius_m,
+        }
+    }
 }

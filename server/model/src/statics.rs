@@ -7,19 +7,20 @@
 //! stalled); each linear system is solved by faer's sparse Cholesky (sparse LU
 //! when the tangent is not positive definite, e.g. StVK under strong compression).
 //!
-//! Constrained components (see [`crate::fem::ConstraintMask`]) keep the values they have in the
+//! Constrained components (see [`crate::element::ConstraintMask`]) keep the values they have in the
 //! initial positions, so prescribed displacements are imposed by setting them before the solve.
 //!
-//! Neighbours: [`crate::fem`] (forces, tangent blocks).
+//! Owns: the Newton solver and nothing else (loads come from [`crate::loads`], tangents from
+//! [`crate::element::tangent`]). Not used by the real-time path.
 
 use faer::linalg::solvers::Solve;
 use faer::sparse::{SparseColMat, Triplet};
 use faer::{Mat, Side};
-use glam::{DMat3, DVec3};
+use glam::DVec3;
 
 use crate::ModelError;
-use crate::fem::FemModel;
-use crate::material;
+use crate::element::tangent::cell_tangent_blocks;
+use crate::element::{ConstraintMask, FemModel};
 
 /// Newton solver settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -52,89 +53,12 @@ pub struct StaticReport {
     pub residual_n: f64,
 }
 
-/// Element tangent stiffness blocks `K_ab = -d f_a / d x_b` (3x3, N/m) of element `e` at
-/// positions `x`, from the directional derivative of `f_a = -V P(F) grad N_a`
-/// ([`material::first_piola_differential`] of the material model).
-pub fn element_tangent(fem: &FemModel, e: usize, x: &[DVec3]) -> [[DMat3; 4]; 4] {
-    let mat = &fem.material;
-    let g = fem.shape_gradients(e);
-    let fm = fem.deformation_gradient(e, x);
-    let vol = fem.volume_m3[e];
-    let mut k = [[DMat3::ZERO; 4]; 4];
-    for b in 0..4 {
-        let mut cols = [DVec3::ZERO; 4 * 3];
-        for j in 0..3 {
-            // dF = e_j (grad N_b)^T
-            let mut dfm = DMat3::ZERO;
-            for (c, &gc) in g[b].to_array().iter().enumerate() {
-                let mut col = DVec3::ZERO;
-                col[j] = gc;
-                *dfm.col_mut(c) = col;
-            }
-            let dp = material::first_piola_differential(mat, &fm, &dfm);
-            for a in 0..4 {
-                cols[a * 3 + j] = dp * g[a] * vol;
-            }
-        }
-        for a in 0..4 {
-            k[a][b] = DMat3::from_cols(cols[a * 3], cols[a * 3 + 1], cols[a * 3 + 2]);
-        }
-    }
-    k
-}
-
-/// Tangent stiffness blocks of cell `c` (an element of any order, or a smoothing domain) at
-/// positions `x`, N/m: `out` is filled with `npe x npe` blocks, block `(a, b)` at
-/// `out[a * npe + b]` being `K_ab = -d f_a / d x_b` for the cell nodes `a, b` of
-/// [`FemModel::cell_nodes`] (`npe` = 4 or 10 for elements, 4 to 11 for edge domains), summed
-/// over the cell's integration points.
-pub fn cell_tangent_blocks(fem: &FemModel, c: usize, x: &[DVec3], out: &mut Vec<DMat3>) {
-    let mat = &fem.material;
-    let npe = fem.cell_nodes(c).len();
-    out.clear();
-    out.resize(npe * npe, DMat3::ZERO);
-    for q in fem.cell_points(c) {
-        let g = fem.ip_gradients(q);
-        let w = fem.ip_weight_m3(q);
-        let fm = fem.ip_field_gradient(q, x);
-        for b in 0..npe {
-            for j in 0..3 {
-                // dF = e_j (grad N_b)^T
-                let mut dfm = DMat3::ZERO;
-                for (c, gc) in g[b].to_array().into_iter().enumerate() {
-                    dfm.col_mut(c)[j] = gc;
-                }
-                let dp = material::first_piola_differential(mat, &fm, &dfm);
-                for a in 0..npe {
-                    *out[a * npe + b].col_mut(j) += dp * g[a] * w;
-                }
-            }
-        }
-    }
-}
-
-/// Nodal forces (N) of a uniform pressure `pressure_pa` (Pa) on `triangles` at positions `x`:
-/// each triangle carries `-p A n` (n its outward unit normal, A its area), one third per vertex.
-/// A positive pressure pushes the surface inwards along its outward normal (for the inner
-/// surface of a hollow body, whose outward normal faces the cavity, it inflates the body).
-/// Evaluated at rest positions this is a dead load; re-evaluated each step, a follower load.
-pub fn add_pressure_forces(triangles: &[[u32; 3]], x: &[DVec3], pressure_pa: f64, f: &mut [DVec3]) {
-    for t in triangles {
-        let [a, b, c] = t.map(|i| x[i as usize]);
-        // (b-a) x (c-a) = 2 A n
-        let fa = (b - a).cross(c - a) * (-pressure_pa / 6.0);
-        for &i in t {
-            f[i as usize] += fa;
-        }
-    }
-}
-
 /// Numbering of the free (unconstrained) degrees of freedom: `dof[3 i + c]` is the equation
 /// number of component `c` of node `i`, or `usize::MAX` when it is constrained; and the count.
 pub fn free_dofs(fem: &FemModel) -> (Vec<usize>, usize) {
     let mut dof = vec![usize::MAX; 3 * fem.node_count()];
     let mut free = 0;
-    for (i, &mask) in fem.constraint.iter().enumerate() {
+    for (i, &mask) in fem.constraints().iter().enumerate() {
         for c in 0..3 {
             if mask & (1 << c) == 0 {
                 dof[3 * i + c] = free;
@@ -143,6 +67,30 @@ pub fn free_dofs(fem: &FemModel) -> (Vec<usize>, usize) {
         }
     }
     (dof, free)
+}
+
+/// Norm of the free components of the residual `f_int(x) + f_ext` (N): what
+/// [`solve_static`] drives to zero. Allocates one force vector.
+///
+/// # Panics
+/// If `f_ext` or `x` is shorter than the node count.
+pub fn free_residual_norm(fem: &FemModel, f_ext: &[DVec3], x: &[DVec3]) -> f64 {
+    let mut r = f_ext[..fem.node_count()].to_vec();
+    fem.add_internal_forces(x, None, &mut r);
+    free_norm(fem.constraints(), &r)
+}
+
+/// Norm of the unconstrained components of `r`.
+fn free_norm(constraint: &[ConstraintMask], r: &[DVec3]) -> f64 {
+    let mut s = 0.0;
+    for (ri, &mask) in r.iter().zip(constraint) {
+        for c in 0..3 {
+            if mask & (1 << c) == 0 {
+                s += ri[c] * ri[c];
+            }
+        }
+    }
+    s.sqrt()
 }
 
 /// Solves `f_int(x) + f_ext = 0` for the free components of `x` (m), starting from `x`, with
@@ -169,15 +117,7 @@ pub fn solve_static(
         r.clear();
         r.extend_from_slice(f_ext);
         fem.add_internal_forces(x, None, r);
-        let mut s = 0.0;
-        for i in 0..n {
-            for c in 0..3 {
-                if dof[3 * i + c] != usize::MAX {
-                    s += r[i][c] * r[i][c];
-                }
-            }
-        }
-        s.sqrt()
+        free_norm(fem.constraints(), r)
     };
     let load_norm = f_ext.iter().map(|v| v.length_squared()).sum::<f64>().sqrt();
     let tol = (params.rel_tol * load_norm).max(params.abs_tol_n);

@@ -12,9 +12,9 @@
 use std::time::Instant;
 
 use haptic_model::DVec3;
-use haptic_model::fem::{FemModel, StrainSmoothing};
+use haptic_model::element::{FemModel, StrainSmoothing};
 use haptic_model::material::{MaterialModel, MaterialParams};
-use haptic_model::mesher::box_mesh;
+use haptic_model::mesh::generate::box_mesh;
 use haptic_model::statics::{StaticParams, solve_static};
 
 const L: f64 = 10.0;

@@ -1,4 +1,4 @@
-//! Backward Euler on an active region with the rest condensed (`haptic_model::condensed`):
+//! Backward Euler on an active region with the rest condensed (`haptic_model::integrate::condensed`):
 //! - under a small load its equilibrium is the whole body's linear static solution (static
 //!   condensation is exact for the linear far part), computed independently by the library's
 //!   static Newton solve on the whole body;
@@ -10,10 +10,10 @@
 use std::path::Path;
 
 use haptic_model::DVec3;
-use haptic_model::condensed::{ActiveRegion, CondensedSolver};
-use haptic_model::fem::{FemModel, StrainSmoothing};
-use haptic_model::integrator::IntegratorKind;
-use haptic_model::mesher;
+use haptic_model::element::{FemModel, StrainSmoothing};
+use haptic_model::integrate::IntegratorKind;
+use haptic_model::integrate::condensed::{ActiveRegion, CondensedSolver};
+use haptic_model::mesh::generate;
 use haptic_model::scene::{load_builtin, parse_scene_toml};
 use haptic_model::sim::{Simulation, TickInput};
 use haptic_model::statics::{StaticParams, solve_static};
@@ -31,7 +31,7 @@ fn lv_scene(
     region: Option<ActiveRegion>,
 ) -> haptic_model::scene::Scene {
     let mut scene = load_builtin("lv").expect("lv");
-    let mesh = mesher::lv_shell(2000);
+    let mesh = generate::lv_shell(2000);
     scene.clamped_nodes = mesh
         .nodes_of_surfaces(&["BASE".to_string()], "clamped")
         .expect("base");
@@ -49,7 +49,7 @@ fn lv_scene(
 const ACTIVE: ActiveRegion = ActiveRegion {
     centre_m: DVec3::new(0.00968, 0.0, -0.005),
     radius_m: 0.008,
-    stiffness_margin: haptic_model::condensed::DEFAULT_STIFFNESS_MARGIN,
+    stiffness_margin: haptic_model::integrate::condensed::DEFAULT_STIFFNESS_MARGIN,
 };
 
 /// [`lv_scene`] condensed on [`ACTIVE`] (backward Euler).
@@ -135,7 +135,7 @@ fn the_far_boundary_follows_the_interface_and_the_tick_allocates_nothing() {
     }
     // Hold still long enough for one full refresh of the far boundary, counting allocations.
     let (_, allocations) = counted(|| {
-        for k in 300..300 + 2 * haptic_model::condensed::SURFACE_REFRESH_TICKS {
+        for k in 300..300 + 2 * haptic_model::integrate::condensed::SURFACE_REFRESH_TICKS {
             sim.tick(&press(k)).expect("tick");
         }
     });
@@ -147,7 +147,7 @@ fn the_far_boundary_follows_the_interface_and_the_tick_allocates_nothing() {
     for &i in &boundary {
         let i = i as usize;
         worst = worst.max((shown[i] - exact[i]).length());
-        umax = umax.max((exact[i] - sim.fem().rest[i]).length());
+        umax = umax.max((exact[i] - sim.fem().rest()[i]).length());
     }
     eprintln!(
         "far boundary: {} nodes of {n}, largest displacement {umax:.3e} m, largest difference from the exact far solve {worst:.3e} m",
@@ -213,7 +213,7 @@ fn bad_active_regions_are_rejected_with_the_field_named() {
     assert!(err.contains("active_region"), "{err}");
     // Quadratic elements are refused.
     let mut scene = condensed_lv(StrainSmoothing::None);
-    scene.mesh = mesher::lv_shell_quadratic(500);
+    scene.mesh = generate::lv_shell_quadratic(500);
     scene.clamped_nodes = scene
         .mesh
         .nodes_of_surfaces(&["BASE".to_string()], "clamped")
@@ -226,7 +226,7 @@ fn bad_active_regions_are_rejected_with_the_field_named() {
 /// The built-in LV (linear tets, base clamped), a load of `force_n` spread over the
 /// epicardial nodes within 2 mm of the equator point, and the region around it.
 fn setup(smoothing: StrainSmoothing) -> (FemModel, haptic_model::mesh::TetMesh, Vec<DVec3>, DVec3) {
-    let mesh = mesher::lv_shell(2000);
+    let mesh = generate::lv_shell(2000);
     let scene = load_builtin("lv").expect("lv");
     let mut fem = FemModel::with_smoothing(&mesh, scene.material, smoothing).expect("fem");
     let base = mesh
@@ -264,7 +264,7 @@ fn setup(smoothing: StrainSmoothing) -> (FemModel, haptic_model::mesh::TetMesh, 
 fn condensed_equilibrium_matches_the_whole_body_static_solution() {
     for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
         let (fem, mesh, f_ext, centre) = setup(smoothing);
-        let mut x_ref = fem.rest.clone();
+        let mut x_ref = fem.rest().to_vec();
         solve_static(
             &fem,
             &f_ext,
@@ -284,7 +284,7 @@ fn condensed_equilibrium_matches_the_whole_body_static_solution() {
         let sizes = solver.sizes();
         assert!(sizes.active_tets < mesh.tets.len() / 2, "{sizes:?}");
         let n = fem.node_count();
-        let mut x = fem.rest.clone();
+        let mut x = fem.rest().to_vec();
         let mut v = vec![DVec3::ZERO; n];
         let mut f = vec![DVec3::ZERO; n];
         for _ in 0..3000 {
@@ -296,14 +296,14 @@ fn condensed_equilibrium_matches_the_whole_body_static_solution() {
         solver.recover_far_field(&mut x);
         let (mut e2, mut r2) = (0.0, 0.0);
         for i in 0..n {
-            let u_ref = x_ref[i] - fem.rest[i];
+            let u_ref = x_ref[i] - fem.rest()[i];
             e2 += (x[i] - x_ref[i]).length_squared();
             r2 += u_ref.length_squared();
         }
         let rel = (e2 / r2).sqrt();
         let umax = x_ref
             .iter()
-            .zip(&fem.rest)
+            .zip(fem.rest())
             .map(|(a, b)| (*a - *b).length())
             .fold(0.0, f64::max);
         eprintln!(

@@ -7,11 +7,11 @@ use common::Rng;
 
 use glam::{DMat3, DQuat};
 use haptic_model::DVec3;
-use haptic_model::fem::{CLAMPED, FemModel};
-use haptic_model::integrator::{self, IntegratorKind};
+use haptic_model::element::{CLAMPED, FemModel};
+use haptic_model::integrate::{self, IntegratorKind, explicit};
 use haptic_model::material::MaterialParams;
 use haptic_model::mesh::TetMesh;
-use haptic_model::mesher::box_mesh;
+use haptic_model::mesh::generate::box_mesh;
 use haptic_model::statics::{StaticParams, solve_static};
 
 fn material() -> MaterialParams {
@@ -72,9 +72,9 @@ fn patch_test_reproduces_affine_field_inside() {
     // And the internal forces vanish at the interior nodes of the exact field.
     let mut f = vec![DVec3::ZERO; mesh.node_count()];
     fem.add_internal_forces(&exact, None, &mut f);
-    let scale = fem.material.youngs_modulus_pa() * 0.01 * 0.01 * 0.02;
+    let scale = fem.material().youngs_modulus_pa() * 0.01 * 0.01 * 0.02;
     for (i, fi) in f.iter().enumerate() {
-        if fem.constraint[i] != CLAMPED {
+        if fem.constraints()[i] != CLAMPED {
             assert!(fi.length() < 1e-10 * scale, "node {i}: {fi:?}");
         }
     }
@@ -192,8 +192,8 @@ fn tangent_stiffness_matches_force_differences() {
     );
     // The assembled element tangent of the static solver agrees with the matrix-free action.
     let mut kdx2 = vec![DVec3::ZERO; mesh.node_count()];
-    for (e, t) in fem.tets.iter().enumerate() {
-        let k = haptic_model::statics::element_tangent(&fem, e, &x);
+    for (e, t) in fem.tets().iter().enumerate() {
+        let k = haptic_model::element::tangent::element_tangent(&fem, e, &x);
         for a in 0..4 {
             for b in 0..4 {
                 kdx2[t[a] as usize] += k[a][b] * dx[t[b] as usize];
@@ -214,14 +214,14 @@ fn tangent_stiffness_matches_force_differences() {
 fn lumped_masses_sum_to_density_times_volume() {
     let mesh = box_mesh(DVec3::new(0.02, 0.01, 0.005), [4, 3, 2]);
     let fem = FemModel::new(&mesh, material()).unwrap();
-    let total: f64 = fem.lumped_mass_kg.iter().sum();
+    let total: f64 = fem.lumped_mass_kg().iter().sum();
     let expected = 1000.0 * 0.02 * 0.01 * 0.005;
     assert!(
         (total - expected).abs() < 1e-12 * expected,
         "{total} vs {expected}"
     );
     assert!((fem.total_volume_m3() - 0.02 * 0.01 * 0.005).abs() < 1e-15);
-    assert!(fem.lumped_mass_kg.iter().all(|&m| m > 0.0));
+    assert!(fem.lumped_mass_kg().iter().all(|&m| m > 0.0));
 }
 
 /// Runs symplectic Euler with no damping from a random initial velocity for `steps` steps of
@@ -229,10 +229,10 @@ fn lumped_masses_sum_to_density_times_volume() {
 fn energy_growth(fem: &FemModel, dt: f64, steps: usize) -> f64 {
     let n = fem.node_count();
     let mut rng = Rng(3);
-    let mut x = fem.rest.clone();
+    let mut x = fem.rest().to_vec();
     let mut v: Vec<DVec3> = (0..n)
         .map(|i| {
-            if fem.constraint[i] == CLAMPED {
+            if fem.constraints()[i] == CLAMPED {
                 DVec3::ZERO
             } else {
                 rng.vec() * 1e-3
@@ -242,7 +242,7 @@ fn energy_growth(fem: &FemModel, dt: f64, steps: usize) -> f64 {
     let energy = |x: &[DVec3], v: &[DVec3]| {
         fem.elastic_energy(x)
             + v.iter()
-                .zip(&fem.lumped_mass_kg)
+                .zip(fem.lumped_mass_kg())
                 .map(|(v, m)| 0.5 * m * v.length_squared())
                 .sum::<f64>()
     };
@@ -251,7 +251,7 @@ fn energy_growth(fem: &FemModel, dt: f64, steps: usize) -> f64 {
     for _ in 0..steps {
         f.iter_mut().for_each(|a| *a = DVec3::ZERO);
         fem.add_internal_forces(&x, None, &mut f);
-        let vmax2 = integrator::integrate_nodes(
+        let vmax2 = explicit::integrate_nodes(
             IntegratorKind::SymplecticEuler,
             fem,
             &[],
@@ -280,10 +280,10 @@ fn computed_critical_step_separates_stable_from_unstable() {
         .copied()
         .collect();
     fem.clamp_nodes(&zmin);
-    let dt = integrator::critical_time_step(&fem, IntegratorKind::SymplecticEuler);
+    let dt = integrate::critical_time_step(&fem, IntegratorKind::SymplecticEuler);
     assert!(dt.is_finite() && dt > 0.0);
     // Sanity against the classic element Courant estimate h_min / c (same order of magnitude).
-    let c = fem.material.dilatational_wave_speed_m_per_s();
+    let c = fem.material().dilatational_wave_speed_m_per_s();
     let courant = (0.01 / 3.0) / c;
     assert!(
         dt < courant && dt > 0.05 * courant,

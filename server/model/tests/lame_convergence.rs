@@ -15,10 +15,11 @@ mod common;
 use common::lame_u_r;
 
 use haptic_model::DVec3;
-use haptic_model::fem::FemModel;
+use haptic_model::element::FemModel;
+use haptic_model::loads::add_pressure_forces;
 use haptic_model::material::MaterialParams;
-use haptic_model::mesher::sphere_shell;
-use haptic_model::statics::{StaticParams, add_pressure_forces, solve_static};
+use haptic_model::mesh::generate::sphere_shell;
+use haptic_model::statics::{StaticParams, solve_static};
 
 /// (tets, relative L2 error of u_r over all nodes).
 fn solve(target_tets: usize) -> (usize, f64) {
@@ -26,9 +27,9 @@ fn solve(target_tets: usize) -> (usize, f64) {
     let mesh = sphere_shell(a, b, target_tets);
     let mut fem = FemModel::new(&mesh, MaterialParams::from_youngs(e, nu, 1000.0)).unwrap();
     let node = |name: &str| mesh.node_group(name).unwrap().nodes[0] as usize;
-    fem.constraint[node("INNER_PZ")] = 0b011;
-    fem.constraint[node("INNER_NZ")] = 0b011;
-    fem.constraint[node("INNER_PX")] = 0b110;
+    fem.set_constraint(node("INNER_PZ"), 0b011);
+    fem.set_constraint(node("INNER_NZ"), 0b011);
+    fem.set_constraint(node("INNER_PX"), 0b110);
     let inner = &mesh.surface("INNER").unwrap().triangles;
     let mut f_ext = vec![DVec3::ZERO; mesh.node_count()];
     add_pressure_forces(inner, &mesh.nodes, p, &mut f_ext);

@@ -7,10 +7,11 @@ mod common;
 use common::lame_u_r;
 
 use haptic_model::DVec3;
-use haptic_model::fem::FemModel;
+use haptic_model::element::FemModel;
+use haptic_model::loads::add_pressure_forces;
 use haptic_model::material::MaterialParams;
-use haptic_model::mesher::sphere_shell;
-use haptic_model::statics::{StaticParams, add_pressure_forces, solve_static};
+use haptic_model::mesh::generate::sphere_shell;
+use haptic_model::statics::{StaticParams, solve_static};
 
 #[test]
 fn analytic_value_matches_the_issue() {
@@ -27,9 +28,9 @@ fn inner_radial_displacement_within_ten_percent() {
     // Remove the six rigid modes with rollers consistent with the radial solution:
     // the +z and -z inner axis nodes move only along z, the +x node only along x.
     let node = |name: &str| mesh.node_group(name).unwrap().nodes[0] as usize;
-    fem.constraint[node("INNER_PZ")] = 0b011;
-    fem.constraint[node("INNER_NZ")] = 0b011;
-    fem.constraint[node("INNER_PX")] = 0b110;
+    fem.set_constraint(node("INNER_PZ"), 0b011);
+    fem.set_constraint(node("INNER_NZ"), 0b011);
+    fem.set_constraint(node("INNER_PX"), 0b110);
     let inner = &mesh.surface("INNER").unwrap().triangles;
     let mut f_ext = vec![DVec3::ZERO; mesh.node_count()];
     add_pressure_forces(inner, &mesh.nodes, p, &mut f_ext);

@@ -1,13 +1,13 @@
 //! Scene loads (issue 3 section 1): gravity, dead and follower pressure on tagged surfaces and
-//! point forces, parsed from `[loads]`, summed correctly by `static_external_forces`, applied by
+//! point forces, parsed from `[loads]`, summed correctly by `Scene::external_forces`, applied by
 //! every integrator in the tick (a damped dynamic run settles on the static solution), and
 //! rejected with the offending field named.
 
 use std::path::Path;
 
-use haptic_model::integrator::IntegratorKind;
+use haptic_model::integrate::IntegratorKind;
 use haptic_model::scene::{Scene, parse_scene_toml};
-use haptic_model::sim::{Simulation, TickInput, static_external_forces};
+use haptic_model::sim::{Simulation, TickInput};
 use haptic_model::statics::{StaticParams, solve_static};
 use haptic_model::{DVec3, ModelError};
 
@@ -48,7 +48,7 @@ fn external_forces_sum_to_the_applied_loads() {
     let p = scene.loads.point[0];
     assert!((p.bary.iter().sum::<f64>() - 1.0).abs() < 1e-12);
     let rest = scene.mesh.nodes.clone();
-    let f = static_external_forces(&scene, &rest);
+    let f = scene.external_forces(&rest);
     let total: DVec3 = f.iter().copied().sum();
     let mass = 1000.0 * 0.02 * 0.01 * 0.01;
     // gravity + 50 Pa on the 2e-4 m^2 top face (pushing down) + 20 Pa on the 2e-4 m^2 side
@@ -60,7 +60,7 @@ fn external_forces_sum_to_the_applied_loads() {
     // total goes from -y to -z), the dead loads do not.
     let rot = |v: DVec3| DVec3::new(v.x, -v.z, v.y);
     let turned: Vec<DVec3> = rest.iter().map(|x| rot(*x)).collect();
-    let g = static_external_forces(&scene, &turned);
+    let g = scene.external_forces(&turned);
     let total_turned: DVec3 = g.iter().copied().sum();
     let follower = DVec3::new(0.0, -20.0 * 2e-4, 0.0);
     let expected_turned = expected - follower + rot(follower);
@@ -79,17 +79,17 @@ fn damped_dynamics_settle_on_the_static_solution_for_every_integrator() {
     // Static reference: Newton on the dead part, fixed point on the follower part.
     let sim = Simulation::new(&scene).unwrap();
     let fem = sim.fem().clone();
-    let mut x = fem.rest.clone();
+    let mut x = fem.rest().to_vec();
     for _ in 0..30 {
-        let f = static_external_forces(&scene, &x);
+        let f = scene.external_forces(&x);
         solve_static(&fem, &f, &mut x, &StaticParams::default()).unwrap();
     }
     let tip = |x: &[DVec3]| {
         (0..x.len())
-            .filter(|&i| fem.rest[i].x > 0.0199)
-            .map(|i| x[i] - fem.rest[i])
+            .filter(|&i| fem.rest()[i].x > 0.0199)
+            .map(|i| x[i] - fem.rest()[i])
             .sum::<DVec3>()
-            / (0..x.len()).filter(|&i| fem.rest[i].x > 0.0199).count() as f64
+            / (0..x.len()).filter(|&i| fem.rest()[i].x > 0.0199).count() as f64
     };
     let reference = tip(&x);
     assert!(reference.z < -1e-4, "{reference}");

@@ -12,7 +12,7 @@
 
 use glam::DMat3;
 use haptic_model::DVec3;
-use haptic_model::fem::{CLAMPED, FemModel, StrainSmoothing};
+use haptic_model::element::{CLAMPED, FemModel, StrainSmoothing};
 use haptic_model::material::{self, MaterialModel, MaterialParams};
 use haptic_model::mesh::{TetMesh, tet_signed_volume};
 use haptic_model::statics::{StaticParams, solve_static};
@@ -230,7 +230,7 @@ fn solve_patch(
         .map(|i| (x[i] - (mesh.nodes[i] + g * mesh.nodes[i])).length())
         .fold(0.0, f64::max)
         / umax;
-    assert!(fem.constraint[..8].iter().all(|&c| c == CLAMPED));
+    assert!(fem.constraints()[..8].iter().all(|&c| c == CLAMPED));
     (fem, x, err)
 }
 
@@ -265,9 +265,9 @@ fn small_displacement_reproduces_the_affine_field_and_the_stress_for_every_mater
             );
         }
         let (fem, x, _) = solve_patch(model, StrainSmoothing::None, 1.0, 1);
-        let mat = fem.material;
+        let mat = fem.material();
         let mut worst_lin: f64 = 0.0;
-        for e in 0..fem.tets.len() {
+        for e in 0..fem.tets().len() {
             let f = fem.deformation_gradient(e, &x);
             // Linear (small-strain) stress from the element F.
             let h = f - DMat3::IDENTITY;
@@ -288,7 +288,7 @@ fn small_displacement_reproduces_the_affine_field_and_the_stress_for_every_mater
                     / 2000.0,
             );
             // The material's own Cauchy stress J^-1 P F^T differs only at second order (1e-3).
-            let cauchy = material::first_piola(&mat, &f) * f.transpose() / f.determinant();
+            let cauchy = material::first_piola(mat, &f) * f.transpose() / f.determinant();
             let dc = (cauchy - want)
                 .to_cols_array()
                 .iter()

@@ -13,13 +13,13 @@ use std::path::Path;
 use glam::{DMat3, DQuat};
 use haptic_model::DVec3;
 use haptic_model::ModelError;
-use haptic_model::fem::{FemModel, StrainSmoothing};
+use haptic_model::element::{FemModel, StrainSmoothing};
 use haptic_model::material::{
     self, MaterialModel, MaterialParams, energy_density, first_piola, first_piola_differential,
     polar_decomposition,
 };
 use haptic_model::mesh::TetMesh;
-use haptic_model::mesher::box_mesh;
+use haptic_model::mesh::generate::box_mesh;
 use haptic_model::scene::parse_scene_toml;
 
 const MODELS: [MaterialModel; 3] = [
@@ -219,7 +219,7 @@ fn deformed_mesh(seed: u64, invert_one: bool) -> (TetMesh, Vec<DVec3>) {
 }
 
 fn count_inverted(fem: &FemModel, x: &[DVec3]) -> usize {
-    (0..fem.tets.len())
+    (0..fem.tets().len())
         .filter(|&e| fem.deformation_gradient(e, x).determinant() < 0.0)
         .count()
 }
@@ -292,7 +292,7 @@ fn forces_and_stiffness_action_match_finite_differences_for_every_material() {
             let mut k_cells = vec![DVec3::ZERO; n];
             let mut blocks = Vec::new();
             for c in 0..fem.cell_count() {
-                haptic_model::statics::cell_tangent_blocks(&fem, c, &x, &mut blocks);
+                haptic_model::element::tangent::cell_tangent_blocks(&fem, c, &x, &mut blocks);
                 let t = fem.cell_nodes(c);
                 for a in 0..t.len() {
                     for b in 0..t.len() {
@@ -310,8 +310,8 @@ fn forces_and_stiffness_action_match_finite_differences_for_every_material() {
             );
             if smoothing == StrainSmoothing::None {
                 let mut k_el = vec![DVec3::ZERO; n];
-                for (e, t) in fem.tets.iter().enumerate() {
-                    let k = haptic_model::statics::element_tangent(&fem, e, &x);
+                for (e, t) in fem.tets().iter().enumerate() {
+                    let k = haptic_model::element::tangent::element_tangent(&fem, e, &x);
                     for a in 0..4 {
                         for b in 0..4 {
                             k_el[t[a] as usize] += k[a][b] * dx[t[b] as usize];

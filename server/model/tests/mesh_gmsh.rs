@@ -4,8 +4,8 @@ use std::collections::BTreeSet;
 use std::path::PathBuf;
 
 use haptic_model::ModelError;
-use haptic_model::gmsh::{load_msh, read_msh};
 use haptic_model::mesh::TetMesh;
+use haptic_model::mesh::gmsh::{load_msh, read_msh};
 
 fn lv_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/lv")

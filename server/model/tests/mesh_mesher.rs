@@ -3,10 +3,10 @@
 use std::collections::{BTreeSet, HashMap};
 
 use haptic_model::DVec3;
-use haptic_model::mesh::{TetMesh, tet_signed_volume};
-use haptic_model::mesher::{
+use haptic_model::mesh::generate::{
     box_mesh, ellipsoid_shell, lv_shell, min_dihedral_angle_deg, sphere_shell,
 };
+use haptic_model::mesh::{TetMesh, tet_signed_volume};
 
 /// Exact volume of the part `z <= z0` of the solid ellipsoid with semi-axes (a, b, c).
 fn ellipsoid_cap_volume(a: f64, b: f64, c: f64, z0: f64) -> f64 {
@@ -317,9 +317,9 @@ fn meshes_are_deterministic() {
 /// map) much closer to the exact one than the flat-faceted linear mesh of the same size.
 #[test]
 fn curved_quadratic_lv_is_on_the_surfaces_and_more_accurate_in_volume() {
-    use haptic_model::fem::FemModel;
+    use haptic_model::element::FemModel;
     use haptic_model::material::MaterialParams;
-    use haptic_model::mesher::lv_shell_quadratic;
+    use haptic_model::mesh::generate::lv_shell_quadratic;
     let mm = 1e-3;
     let exact = lv_exact_volume();
     let lin = lv_shell(1000);

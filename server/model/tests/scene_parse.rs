@@ -3,8 +3,8 @@
 use std::path::{Path, PathBuf};
 
 use haptic_model::ModelError;
-use haptic_model::fem::StrainSmoothing;
-use haptic_model::integrator::IntegratorKind;
+use haptic_model::element::StrainSmoothing;
+use haptic_model::integrate::IntegratorKind;
 use haptic_model::scene::{
     Scene, builtin_scene_names, builtin_scene_toml, load_builtin, load_scene_file, parse_scene_toml,
 };

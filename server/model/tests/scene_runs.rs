@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use haptic_model::integrator::IntegratorKind;
+use haptic_model::integrate::IntegratorKind;
 use haptic_model::scene::{load_builtin, load_scene_file};
 use haptic_model::sim::{Simulation, TickInput};
 use haptic_model::{DVec3, ModelError};

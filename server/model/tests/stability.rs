@@ -9,9 +9,9 @@
 
 use std::path::Path;
 
-use haptic_model::fem::StrainSmoothing;
-use haptic_model::integrator::{self, IntegratorKind};
-use haptic_model::mesher::{box_mesh, min_dihedral_angle_deg};
+use haptic_model::element::StrainSmoothing;
+use haptic_model::integrate::{self, IntegratorKind};
+use haptic_model::mesh::generate::{box_mesh, min_dihedral_angle_deg};
 use haptic_model::scene::{Scene, load_builtin, parse_scene_toml};
 use haptic_model::sim::{Simulation, TickInput};
 use haptic_model::{DVec3, ModelError};
@@ -56,7 +56,7 @@ impl Rng {
 
 fn kick(sim: &mut Simulation, speed: f64, seed: u64) {
     let mut rng = Rng(seed);
-    let clamped: Vec<bool> = sim.fem().constraint.iter().map(|&c| c != 0).collect();
+    let clamped: Vec<bool> = sim.fem().constraints().iter().map(|&c| c != 0).collect();
     for (v, c) in sim.state_mut().v.iter_mut().zip(clamped) {
         if !c {
             *v = rng.vec() * speed;
@@ -85,7 +85,7 @@ fn time_step_sweep_around_the_critical_step() {
 
 fn time_step_sweep(base: &Scene, smoothing: StrainSmoothing) {
     let probe = Simulation::new(base).unwrap();
-    let dt_crit = integrator::critical_time_step(probe.fem(), IntegratorKind::SymplecticEuler);
+    let dt_crit = integrate::critical_time_step(probe.fem(), IntegratorKind::SymplecticEuler);
     for factor in [0.25, 0.5, 0.9, 1.1, 2.0] {
         let mut scene = base.clone();
         scene.integrator.tick_s = factor * dt_crit;
@@ -165,7 +165,7 @@ fn backward_euler_stays_bounded_at_one_millisecond() {
     ] {
         let mut sim = Simulation::new(&scene).unwrap();
         assert_eq!(sim.plan().substeps, 1);
-        let explicit = integrator::critical_time_step(sim.fem(), IntegratorKind::SymplecticEuler);
+        let explicit = integrate::critical_time_step(sim.fem(), IntegratorKind::SymplecticEuler);
         kick(&mut sim, 0.05, 3);
         let e0 = energy(&sim);
         let mut max_ratio: f64 = 0.0;
@@ -256,7 +256,7 @@ fn inversion_and_flattened_start_recover_with_robust_materials() {
                 scene.integrator.kind = kind;
                 scene.integrator.max_substeps = 2000;
                 let mut sim = Simulation::new(&scene).unwrap();
-                let rest = sim.fem().rest.clone();
+                let rest = sim.fem().rest().to_vec();
                 for (x, r) in sim.state_mut().x.iter_mut().zip(&rest) {
                     // The clamped base is z = 0: mirror through it, or collapse onto it.
                     x.z = if start == "inverted" { -r.z } else { 0.0 };
@@ -289,7 +289,7 @@ fn inversion_and_flattened_start_recover_with_robust_materials() {
 }
 
 fn momenta(sim: &Simulation) -> (DVec3, DVec3) {
-    let m = &sim.fem().lumped_mass_kg;
+    let m = sim.fem().lumped_mass_kg();
     let s = sim.state();
     let p = s.v.iter().zip(m).map(|(v, m)| *v * *m).sum::<DVec3>();
     let l =

@@ -9,10 +9,10 @@ use std::collections::HashSet;
 use std::path::Path;
 
 use glam::DMat3;
-use haptic_model::fem::{FemModel, StrainSmoothing};
+use haptic_model::element::{FemModel, StrainSmoothing};
 use haptic_model::material::MaterialParams;
 use haptic_model::mesh::TET_EDGES;
-use haptic_model::mesher::box_mesh;
+use haptic_model::mesh::generate::box_mesh;
 use haptic_model::scene::parse_scene_toml;
 use haptic_model::sim::Simulation;
 use haptic_model::{DVec3, ModelError};
@@ -82,7 +82,7 @@ fn edge_domains_partition_the_body_and_reproduce_affine_fields() {
 #[test]
 fn mass_volume_and_inversion_count_are_those_of_the_tetrahedra() {
     let (mesh, fem, es) = models();
-    assert_eq!(es.lumped_mass_kg, fem.lumped_mass_kg);
+    assert_eq!(es.lumped_mass_kg(), fem.lumped_mass_kg());
     // A non-affine deformation that flips some elements.
     let x: Vec<DVec3> = mesh
         .nodes

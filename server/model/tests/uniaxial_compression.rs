@@ -13,10 +13,10 @@
 
 use glam::DMat3;
 use haptic_model::DVec3;
-use haptic_model::fem::{FemModel, apply_constraint};
+use haptic_model::element::{FemModel, apply_constraint};
 use haptic_model::material::{MaterialModel, MaterialParams};
 use haptic_model::mesh::TetMesh;
-use haptic_model::mesher::box_mesh;
+use haptic_model::mesh::generate::box_mesh;
 use haptic_model::statics::{StaticParams, solve_static};
 
 const E: f64 = 1e4;
@@ -37,11 +37,11 @@ fn setup(model: MaterialModel, nu: f64) -> (TetMesh, FemModel, Vec<usize>) {
 fn rigid_constraints(mesh: &TetMesh, fem: &mut FemModel) {
     for (i, p) in mesh.nodes.iter().enumerate() {
         if *p == DVec3::ZERO {
-            fem.constraint[i] = 0b111;
+            fem.set_constraint(i, 0b111);
         } else if *p == DVec3::Y {
-            fem.constraint[i] = 0b101;
+            fem.set_constraint(i, 0b101);
         } else if *p == DVec3::Z {
-            fem.constraint[i] = 0b011;
+            fem.set_constraint(i, 0b011);
         }
     }
 }
@@ -57,7 +57,7 @@ fn compress(
     rigid_constraints(mesh, fem);
     for (i, p) in mesh.nodes.iter().enumerate() {
         if p.x == 0.0 || p.x == 1.0 {
-            fem.constraint[i] |= 0b001;
+            fem.set_constraint(i, fem.constraints()[i] | 0b001);
         }
     }
     let n = mesh.node_count();
@@ -124,8 +124,8 @@ fn robust_materials_recover_the_rest_shape_after_compression_to_0_1() {
             f.iter_mut().for_each(|g| *g = DVec3::ZERO);
             fem.add_internal_forces(&x, None, &mut f);
             for i in 0..n {
-                let mut a = f[i] / fem.lumped_mass_kg[i] - v[i] * damping;
-                apply_constraint(fem.constraint[i], &mut a);
+                let mut a = f[i] / fem.lumped_mass_kg()[i] - v[i] * damping;
+                apply_constraint(fem.constraints()[i], &mut a);
                 v[i] += a * dt;
                 x[i] += v[i] * dt;
             }

@@ -19,6 +19,9 @@ struct Args {
     /// Load increments.
     #[arg(long, default_value_t = 1)]
     load_steps: usize,
+    /// Largest number of frozen-load Newton solves per increment with a follower pressure.
+    #[arg(long, default_value_t = haptic_server::solve::SolveParams::default().max_follower_passes)]
+    max_follower_passes: usize,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -33,12 +36,19 @@ fn main() -> anyhow::Result<()> {
         args.load_steps
     );
     let t = std::time::Instant::now();
-    let (x, r) = haptic_server::solve::solve_scene(&scene, args.load_steps)?;
+    let params = haptic_server::solve::SolveParams {
+        load_steps: args.load_steps,
+        max_follower_passes: args.max_follower_passes,
+        ..Default::default()
+    };
+    let (x, r) = haptic_server::solve::solve_scene(&scene, &params)?;
     haptic_server::solve::write_solution(&args.out, &scene, &x)?;
     println!(
-        "converged: {} Newton iterations, residual {:.3e} N, max displacement {:.6} (scene unit) in {:.2} s",
+        "converged: {} Newton iterations in {} load pass(es), residual {:.3e} N ({:.1e} of the load, loads at the final shape), max displacement {:.6} (scene unit) in {:.2} s",
         r.newton_iterations,
+        r.load_passes,
         r.residual_n,
+        r.relative_residual,
         r.max_displacement_m / scene.length_unit_m,
         t.elapsed().as_secs_f64()
     );

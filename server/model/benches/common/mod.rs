@@ -8,11 +8,12 @@
 use std::time::Instant;
 
 use haptic_model::DVec3;
-use haptic_model::fem::FemModel;
-use haptic_model::integrator::{self, ImplicitSolver, IntegratorKind, IntegratorParams};
+use haptic_model::element::FemModel;
+use haptic_model::integrate::implicit::ImplicitSolver;
+use haptic_model::integrate::{self, IntegratorKind, IntegratorParams, explicit};
 use haptic_model::material::MaterialModel;
 use haptic_model::mesh::TetMesh;
-use haptic_model::mesher;
+use haptic_model::mesh::generate;
 use haptic_model::scene::{Scene, load_builtin};
 
 /// The time integrators the benchmarks compare, in one place: a new integrator is one line here
@@ -97,7 +98,7 @@ pub fn lv_scene_on(mesh: TetMesh) -> Scene {
 
 /// The built-in `lv` scene with the structured LV mesh at about `target_tets` tetrahedra.
 pub fn lv_scene(target_tets: usize) -> Scene {
-    lv_scene_on(mesher::lv_shell(target_tets))
+    lv_scene_on(generate::lv_shell(target_tets))
 }
 
 /// The `lv_h1.msh` scene of `deploy/scenes/` (17 924 tets), if the shared data is present.
@@ -143,7 +144,7 @@ pub fn run_loaded(
 /// a smoothstep over `ramp_s`, with the servo tick of `params` divided into the sub-steps that
 /// keep each step below its safety factor times the critical step of its integrator. The same
 /// per-sub-step work as `Simulation::tick` without a probe: internal forces (elastic, plus
-/// viscous for the explicit schemes), external load, then `integrator::integrate_nodes` or
+/// viscous for the explicit schemes), external load, then `explicit::integrate_nodes` or
 /// `ImplicitSolver::step` (backward Euler, CG capped at `params.cg_max_iterations`). After the
 /// ramp the run stops early once it is at steady state: the largest nodal speed times 0.1 s is
 /// below 1e-4 of the largest displacement. Returns `Err` when the plan is refused.
@@ -155,18 +156,18 @@ pub fn run_loaded_with(
     total_s: f64,
 ) -> Result<LoadedRun, String> {
     let kind = params.kind;
-    let crit = integrator::critical_time_step(fem, kind);
-    let plan = integrator::plan_steps(params, crit).map_err(|e| e.to_string())?;
+    let crit = integrate::critical_time_step(fem, kind);
+    let plan = integrate::plan_steps(params, crit).map_err(|e| e.to_string())?;
     let h = plan.sub_dt_s;
     let a_inv = if kind == IntegratorKind::SemiImplicit {
-        integrator::semi_implicit_inverses(fem, h)
+        explicit::semi_implicit_inverses(fem, h)
     } else {
         Vec::new()
     };
     let mut implicit =
         (kind == IntegratorKind::BackwardEuler).then(|| ImplicitSolver::new(fem, h, params));
     let n = fem.node_count();
-    let mut x = fem.rest.clone();
+    let mut x = fem.rest().to_vec();
     let mut v = vec![DVec3::ZERO; n];
     let mut f = vec![DVec3::ZERO; n];
     let ticks = (total_s / params.tick_s).round() as usize;
@@ -187,7 +188,7 @@ pub fn run_loaded_with(
                 }
                 None => {
                     fem.add_internal_forces(&x, Some(&v), &mut f);
-                    integrator::integrate_nodes(kind, fem, &a_inv, h, &f, &mut x, &mut v)
+                    explicit::integrate_nodes(kind, fem, &a_inv, h, &f, &mut x, &mut v)
                 }
             };
             if max_v2.is_nan() || max_v2 > 1e4 {
@@ -201,7 +202,7 @@ pub fn run_loaded_with(
             let vmax = v.iter().map(|v| v.length()).fold(0.0, f64::max);
             let umax = x
                 .iter()
-                .zip(&fem.rest)
+                .zip(fem.rest())
                 .map(|(x, r)| (*x - *r).length())
                 .fold(0.0, f64::max);
             if vmax * 0.1 < 1e-4 * umax {

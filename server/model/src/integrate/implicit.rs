@@ -1,323 +1,17 @@
-//! Time integrators: the seed's semi-implicit scheme (seed 000 eq. 34), symplectic Euler and
-//! implicit backward Euler, the critical (Courant) time step, and sub-stepping of a servo tick.
+//! Backward Euler, one Newton step per sub-step solved by preconditioned conjugate gradients
+//! with the matrix applied matrix-free (see the module documentation of [`super`] for the
+//! system).
 //!
-//! Backward Euler ([`ImplicitSolver`]) takes one Newton step of the implicit equations per
-//! sub-step (Baraff & Witkin 1998, "Large steps in cloth simulation", eq. 15-18): with
-//! `v' = v + dv`, `x' = x + h v'`, the linearisation `f(x', v') ~ f_el(x) - K(x) h v' - D(x) v'`
-//! (the viscous force of eq. 10-11 is linear in the velocity, `f_visc(x, v) = -D(x) v`) and the
-//! mass damping `-alpha M v'` treated implicitly gives
-//!
-//! `A dv = h (f_el(x) + f_visc(x, v) + f_ext - U phi0 - alpha M v) - h^2 K v - gamma U U^T v`,
-//! with `A = M (1 + alpha h) + h D(x) + h^2 K(x) + gamma U U^T`,
-//!
-//! which, because `f_visc = -D v`, is `A dv = M v + h (f_el + f_ext - U phi0) - A v`: the
-//! viscous force is never evaluated separately. `gamma U U^T` is the probe's virtual coupling
-//! (rank one over the contact patch, `gamma = h (k h + b)`, see
-//! [`crate::contact::Probe::coupling_gamma`]), so the coupling is exactly implicit inside the
-//! same solve. `A` is applied matrix-free in one element loop on deformation gradients cached at
-//! the start of the step (the material's tangent, see `Operator::apply`, plus the viscous
-//! action) and the system is solved by preconditioned conjugate gradients, warm-started with
-//! the previous step's `dv`, capped at `cg_max_iterations` or a relative residual of
-//! `cg_tolerance`. The preconditioner is block-Jacobi on the 3x3 blocks of `A` at rest
-//! (constant per sub-step size) plus the coupling's rank-one term, inverted exactly by
-//! Sherman-Morrison. Follower pressure is explicit (its load stiffness is not symmetric).
-//! Constrained components are projected out of the system.
-//!
-//! Neighbours: [`crate::fem`] provides forces, masses, the tangent action and the rest blocks;
-//! [`crate::sim`] calls [`integrate_nodes`] or [`ImplicitSolver::step`] once per sub-step.
+//! Neighbours: [`crate::element`] (forces, tangent action, rest blocks),
+//! [`crate::contact::coupling`] (the probe's rank-one term, solved inside the same system).
 
 use glam::{DMat3, DVec3};
 
-use crate::ModelError;
-use crate::fem::{CLAMPED, ConstraintMask, FemModel, apply_constraint};
-use crate::material::{self, MaterialModel, MaterialParams};
+use crate::contact::{MAX_PATCH_NODES, RankOneCoupling};
+use crate::element::{ConstraintMask, FemModel, apply_constraint};
+use crate::material::{self, MaterialModel};
 
-/// Which time integrator advances the FEM nodes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum IntegratorKind {
-    /// Seed 000 eq. 34: explicit velocity predictor, then `v = (I - dt^2/m J_ii)^-1 v~` with the
-    /// per-node 3x3 Jacobian `J_ii = dF_i/dx_i` precomputed at rest, then `x += dt v`.
-    SemiImplicit,
-    /// Symplectic (semi-implicit) Euler: `v += dt F/m`, `x += dt v`. The explicit reference.
-    SymplecticEuler,
-    /// Implicit backward Euler, one Newton step per sub-step solved by preconditioned CG
-    /// ([`ImplicitSolver`]). Unconditionally stable for the linearised system, so one sub-step
-    /// per tick by default.
-    BackwardEuler,
-}
-
-impl IntegratorKind {
-    /// The name used in scene files (`semi-implicit`, `symplectic-euler`, `backward-euler`).
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::SemiImplicit => "semi-implicit",
-            Self::SymplecticEuler => "symplectic-euler",
-            Self::BackwardEuler => "backward-euler",
-        }
-    }
-
-    /// Parses a scene-file name (see [`IntegratorKind::name`]); `None` if unknown.
-    pub fn from_name(name: &str) -> Option<Self> {
-        [
-            Self::SemiImplicit,
-            Self::SymplecticEuler,
-            Self::BackwardEuler,
-        ]
-        .into_iter()
-        .find(|k| k.name() == name)
-    }
-}
-
-/// Integrator settings.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct IntegratorParams {
-    /// Which scheme.
-    pub kind: IntegratorKind,
-    /// Servo tick (one call of `Simulation::tick`), s. Default 1 ms.
-    pub tick_s: f64,
-    /// Fixed sub-steps per tick; `None` chooses the fewest that keep the sub-step below
-    /// `safety_factor` times the critical time step.
-    pub substeps: Option<u32>,
-    /// Largest sub-step count allowed; a configuration needing more is rejected as unstable.
-    pub max_substeps: u32,
-    /// Fraction of the critical time step used when sub-steps are automatic (0, 1]. The
-    /// critical step is computed at rest, but St. Venant-Kirchhoff stiffens under stretch (the
-    /// tangent grows by about `(3 lambda^2 - 1) / 2` at stretch `lambda`), so a probe pressing a
-    /// few millimetres into soft tissue needs margin: 0.5 kept every LV mesh (1k to 18k tets)
-    /// stable under a 3.7 mm indentation with both integrators; 0.6 did not for the
-    /// semi-implicit scheme on 18k tets.
-    pub safety_factor: f64,
-    /// Backward Euler: largest number of conjugate-gradient iterations per Newton step.
-    /// Default 20.
-    pub cg_max_iterations: u32,
-    /// Backward Euler: relative residual `|r| / |rhs|` at which CG stops. Default 1e-3.
-    pub cg_tolerance: f64,
-    /// Whether [`plan_steps`] refuses a step above the critical one (default true). Off only in
-    /// stress tests and benchmarks that must run a known-unstable configuration to show that the
-    /// divergence monitor reports it ([`ModelError::Diverged`]) instead of producing NaN.
-    pub check_critical_step: bool,
-}
-
-impl Default for IntegratorParams {
-    fn default() -> Self {
-        Self {
-            kind: IntegratorKind::SemiImplicit,
-            tick_s: 1e-3,
-            substeps: None,
-            max_substeps: 64,
-            safety_factor: 0.5,
-            cg_max_iterations: 20,
-            cg_tolerance: 1e-3,
-            check_critical_step: true,
-        }
-    }
-}
-
-/// How a servo tick is divided: `substeps` model steps of `sub_dt_s` each.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct StepPlan {
-    /// Model steps per servo tick.
-    pub substeps: u32,
-    /// Model step, s (`tick_s / substeps`).
-    pub sub_dt_s: f64,
-    /// Stability limit of the integrator on this mesh and material, s (`f64::INFINITY` when the
-    /// analysis finds none).
-    pub critical_dt_s: f64,
-}
-
-/// Stiffness-proportional damping factor `beta` (s) bounding the viscous stress of eq. 11 at
-/// rest: the viscous damping matrix is the stiffness matrix with `(lambda, mu)` replaced by
-/// `(2 phi, 2 psi)`, so `D <= beta K` with `beta = max(2 phi / lambda, 2 psi / mu)`.
-pub fn viscous_beta_s(m: &MaterialParams) -> f64 {
-    let a = if m.lambda_pa > 0.0 {
-        2.0 * m.phi_pa_s / m.lambda_pa
-    } else {
-        0.0
-    };
-    a.max(2.0 * m.psi_pa_s / m.mu_pa)
-}
-
-/// Critical (Courant) time step of `kind` on `fem`, s.
-///
-/// - Symplectic Euler: `dt_crit = (2 / omega_max) (sqrt(1 + xi^2) - xi)` with
-///   `omega_max^2 = lambda_max(M^-1 K)` from power iteration on the assembled-free stiffness
-///   action and `xi = beta omega_max / 2` for the viscous stress ([`viscous_beta_s`]).
-/// - Semi-implicit (seed 000 eq. 34): a modal analysis of the scheme,
-///   `M (v' - v) = -dt K x - dt^2 K_D v'`, is stable when `dt^2 (omega^2 - 2 d) <= 4` where
-///   `d` is the Rayleigh quotient of the block diagonal `K_D`; so
-///   `dt_crit = 2 / sqrt(lambda_max(M^-1 (K - 2 K_D)))`, infinite when that is not positive.
-///   This is exact for commuting `K`, `K_D` and a good estimate otherwise (hence the safety factor).
-/// - Backward Euler: `f64::INFINITY` (unconditionally stable for the linearised system).
-pub fn critical_time_step(fem: &FemModel, kind: IntegratorKind) -> f64 {
-    let beta = viscous_beta_s(&fem.material);
-    let damped = |w2: f64| {
-        if w2 <= 0.0 {
-            return f64::INFINITY;
-        }
-        let w = w2.sqrt();
-        let xi = beta * w / 2.0;
-        2.0 / w * ((1.0 + xi * xi).sqrt() - xi)
-    };
-    match kind {
-        IntegratorKind::SymplecticEuler => damped(fem.max_eigenvalue(0.0, 300)),
-        IntegratorKind::SemiImplicit => damped(fem.max_eigenvalue(2.0, 300)),
-        IntegratorKind::BackwardEuler => f64::INFINITY,
-    }
-}
-
-/// Chooses the sub-steps of a servo tick.
-///
-/// # Errors
-/// [`ModelError::Unstable`] when fixed `substeps` give a step above `critical_dt_s`, or when
-/// automatic sub-stepping would need more than `max_substeps` (neither when
-/// `check_critical_step` is off: automatic sub-stepping then uses at most `max_substeps`).
-pub fn plan_steps(p: &IntegratorParams, critical_dt_s: f64) -> Result<StepPlan, ModelError> {
-    let unstable = |n: u32| ModelError::Unstable {
-        integrator: p.kind.name(),
-        critical_dt_s,
-        tick_s: p.tick_s,
-        max_substeps: p.max_substeps,
-        sub_dt_s: p.tick_s / n as f64,
-    };
-    let substeps = match p.substeps {
-        Some(n) => {
-            let n = n.max(1);
-            if p.check_critical_step && p.tick_s / n as f64 > critical_dt_s {
-                return Err(unstable(n));
-            }
-            n
-        }
-        None => {
-            let need = (p.tick_s / (p.safety_factor * critical_dt_s))
-                .ceil()
-                .max(1.0);
-            if need > p.max_substeps as f64 {
-                if p.check_critical_step {
-                    return Err(unstable(p.max_substeps));
-                }
-                p.max_substeps
-            } else {
-                need as u32
-            }
-        }
-    };
-    Ok(StepPlan {
-        substeps,
-        sub_dt_s: p.tick_s / substeps as f64,
-        critical_dt_s,
-    })
-}
-
-/// Per-node inverse of the seed's eq. 34 matrix, extended with the implicit mass damping:
-/// `A_i = (1 + alpha dt) I - dt^2 / m_i J_i` with `J_i = -K_ii` at rest, so
-/// `A_i = (1 + alpha dt) I + dt^2 / m_i K_ii`. Returns `A_i^-1` per node.
-pub fn semi_implicit_inverses(fem: &FemModel, dt_s: f64) -> Vec<DMat3> {
-    let alpha = fem.material.mass_damping_per_s;
-    fem.rest_diagonal_blocks()
-        .iter()
-        .zip(&fem.lumped_mass_kg)
-        .map(|(k, m)| {
-            (DMat3::from_diagonal(DVec3::splat(1.0 + alpha * dt_s)) + *k * (dt_s * dt_s / m))
-                .inverse()
-        })
-        .collect()
-}
-
-/// Advances velocities and positions of every free node by one step `dt_s` from the total nodal
-/// forces `f` (N). Constrained components keep zero velocity. Returns the largest squared nodal
-/// speed after the step (m^2/s^2; NaN if any value became NaN), for divergence checks.
-///
-/// - [`IntegratorKind::SymplecticEuler`]: `v = (v + dt f / m) / (1 + alpha dt)`, `x += dt v`.
-/// - [`IntegratorKind::SemiImplicit`]: `v~ = v + dt f / m`, `v = A_i^-1 v~`, `x += dt v`
-///   (seed 000 eq. 34; `a_inv` from [`semi_implicit_inverses`]).
-/// - [`IntegratorKind::BackwardEuler`] needs the global solve of [`ImplicitSolver::step`]; here
-///   it degrades to its block-diagonal (per-node) approximation, which is the semi-implicit
-///   update, so `a_inv` must be given.
-///
-/// Allocation-free.
-pub fn integrate_nodes(
-    kind: IntegratorKind,
-    fem: &FemModel,
-    a_inv: &[DMat3],
-    dt_s: f64,
-    f: &[DVec3],
-    x: &mut [DVec3],
-    v: &mut [DVec3],
-) -> f64 {
-    let damp = 1.0 / (1.0 + fem.material.mass_damping_per_s * dt_s);
-    let mut max_v2: f64 = 0.0;
-    let mut non_finite = false;
-    for i in 0..x.len() {
-        let mask = fem.constraint[i];
-        if mask == CLAMPED {
-            continue;
-        }
-        let predicted = v[i] + f[i] * (dt_s / fem.lumped_mass_kg[i]);
-        let mut vi = match kind {
-            IntegratorKind::SymplecticEuler => predicted * damp,
-            IntegratorKind::SemiImplicit | IntegratorKind::BackwardEuler => a_inv[i] * predicted,
-        };
-        apply_constraint(mask, &mut vi);
-        v[i] = vi;
-        x[i] += vi * dt_s;
-        let s = vi.length_squared();
-        non_finite |= !s.is_finite();
-        max_v2 = max_v2.max(s);
-    }
-    // `f64::max` drops NaN, so a non-finite speed is reported separately.
-    if non_finite { f64::NAN } else { max_v2 }
-}
-
-/// `B_i^-1 w` for node `i`: the integrator's per-node update matrix divided into `w` and by the
-/// lumped mass, with constrained components zeroed. For symplectic Euler `B_i = m_i (1 + alpha
-/// dt) I`; for the semi-implicit scheme `B_i = m_i A_i` (see [`semi_implicit_inverses`]).
-/// Used to solve the implicit probe coupling ([`crate::contact::Probe::finish_implicit`]).
-#[inline]
-pub fn apply_inverse(
-    kind: IntegratorKind,
-    fem: &FemModel,
-    a_inv: &[DMat3],
-    dt_s: f64,
-    i: usize,
-    w: DVec3,
-) -> DVec3 {
-    let mask = fem.constraint[i];
-    if mask == CLAMPED {
-        return DVec3::ZERO;
-    }
-    let m = fem.lumped_mass_kg[i];
-    let mut r = match kind {
-        IntegratorKind::SymplecticEuler => w / (m * (1.0 + fem.material.mass_damping_per_s * dt_s)),
-        IntegratorKind::SemiImplicit | IntegratorKind::BackwardEuler => a_inv[i] * w / m,
-    };
-    apply_constraint(mask, &mut r);
-    r
-}
-
-/// The probe's virtual coupling as a rank-one term `gamma U U^T` of the backward Euler matrix,
-/// `U = (w_i n)` over the contact patch (see [`crate::contact::Probe::coupling_gamma`]).
-#[derive(Debug, Clone, Copy)]
-pub struct RankOneCoupling<'a> {
-    /// `gamma = h (k h + b)`, kg.
-    pub gamma_kg: f64,
-    /// Unit contact normal.
-    pub normal: DVec3,
-    /// Patch nodes.
-    pub nodes: &'a [u32],
-    /// Patch weights (sum 1), same length as `nodes`.
-    pub weights: &'a [f64],
-}
-
-impl RankOneCoupling<'_> {
-    /// `U^T p`.
-    fn ut(&self, p: &[DVec3]) -> f64 {
-        self.nodes
-            .iter()
-            .zip(self.weights)
-            .map(|(&i, &w)| w * self.normal.dot(p[i as usize]))
-            .sum()
-    }
-}
+use super::IntegratorParams;
 
 /// Conjugate-gradient statistics of the last backward Euler step.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -362,10 +56,10 @@ impl ImplicitSolver {
     /// Prepares the solver for `fem` and sub-step `dt_s` (s) with the CG settings of `params`.
     pub fn new(fem: &FemModel, dt_s: f64, params: &IntegratorParams) -> Self {
         let n = fem.node_count();
-        let mat = &fem.material;
+        let mat = fem.material();
         let h = dt_s;
         let mass_factor: Vec<f64> = fem
-            .lumped_mass_kg
+            .lumped_mass_kg()
             .iter()
             .map(|m| m * (1.0 + mat.mass_damping_per_s * h))
             .collect();
@@ -389,7 +83,7 @@ impl ImplicitSolver {
             tolerance: params.cg_tolerance,
             mass_factor,
             precond_inv,
-            patch_bu: Vec::with_capacity(crate::contact::MAX_PATCH_NODES),
+            patch_bu: Vec::with_capacity(MAX_PATCH_NODES),
             elem_f: vec![DMat3::IDENTITY; fem.integration_point_count()],
             elem_s: vec![DMat3::ZERO; fem.integration_point_count()],
             rhs: vec![DVec3::ZERO; n],
@@ -430,7 +124,7 @@ impl ImplicitSolver {
         v: &mut [DVec3],
     ) -> f64 {
         let h = self.dt_s;
-        let mat = &fem.material;
+        let mat = fem.material();
         let viscous = mat.phi_pa_s > 0.0 || mat.psi_pa_s > 0.0;
         for (q, fe) in self.elem_f.iter_mut().enumerate() {
             *fe = fem.ip_field_gradient(q, x);
@@ -462,7 +156,7 @@ impl ImplicitSolver {
         if let Some(c) = coupling {
             for (&i, &w) in c.nodes.iter().zip(c.weights) {
                 let mut bu = self.precond_inv[i as usize] * (c.normal * w);
-                apply_constraint(fem.constraint[i as usize], &mut bu);
+                apply_constraint(fem.constraints()[i as usize], &mut bu);
                 sm_denominator += c.gamma_kg * w * c.normal.dot(bu);
                 self.patch_bu.push(bu);
             }
@@ -471,7 +165,7 @@ impl ImplicitSolver {
             for i in 0..r.len() {
                 z[i] = self.precond_inv[i] * r[i];
             }
-            for (zi, &m) in z.iter_mut().zip(&fem.constraint) {
+            for (zi, &m) in z.iter_mut().zip(fem.constraints()) {
                 apply_constraint(m, zi);
             }
             if let Some(c) = coupling {
@@ -484,8 +178,8 @@ impl ImplicitSolver {
         // rhs = M v + h f - A v.
         op.apply(v, &mut self.ap);
         for i in 0..v.len() {
-            let mut b = v[i] * fem.lumped_mass_kg[i] + f[i] * h - self.ap[i];
-            apply_constraint(fem.constraint[i], &mut b);
+            let mut b = v[i] * fem.lumped_mass_kg()[i] + f[i] * h - self.ap[i];
+            apply_constraint(fem.constraints()[i], &mut b);
             self.rhs[i] = b;
         }
         let rhs_norm = norm(&self.rhs);
@@ -554,7 +248,7 @@ impl ImplicitSolver {
         let mut non_finite = false;
         for i in 0..v.len() {
             let mut vi = v[i] + self.dv[i];
-            apply_constraint(fem.constraint[i], &mut vi);
+            apply_constraint(fem.constraints()[i], &mut vi);
             v[i] = vi;
             x[i] += vi * h;
             let s = vi.length_squared();
@@ -609,7 +303,7 @@ impl Operator<'_> {
         let fem = self.fem;
         let h = self.h;
         let h2 = h * h;
-        let mat = &fem.material;
+        let mat = fem.material();
         let (lam, mu) = (
             h2 * mat.lambda_pa + 2.0 * h * mat.phi_pa_s,
             h2 * mat.mu_pa + 2.0 * h * mat.psi_pa_s,
@@ -643,13 +337,13 @@ impl Operator<'_> {
                 fem.ip_scatter(q, &(dp * fem.ip_weight_m3(q)), out);
             }
         } else {
-            for (e, t) in fem.tets.iter().enumerate() {
+            for (e, t) in fem.tets().iter().enumerate() {
                 let [a, b, c, d] = t.map(|i| i as usize);
-                let dm_inv = fem.dm_inv[e];
+                let dm_inv = fem.dm_inv()[e];
                 let p0 = p[a];
                 let df = DMat3::from_cols(p[b] - p0, p[c] - p0, p[d] - p0) * dm_inv;
                 let dp = dp_of(self.elem_f[e], self.elem_s[e], df);
-                let hm = dp * dm_inv.transpose() * fem.volume_m3[e];
+                let hm = dp * dm_inv.transpose() * fem.volume_m3()[e];
                 out[b] += hm.x_axis;
                 out[c] += hm.y_axis;
                 out[d] += hm.z_axis;
@@ -665,7 +359,7 @@ impl Operator<'_> {
                 out[i as usize] += c.normal * (w * s);
             }
         }
-        for (o, &m) in out.iter_mut().zip(&fem.constraint) {
+        for (o, &m) in out.iter_mut().zip(fem.constraints()) {
             project(m, o);
         }
     }

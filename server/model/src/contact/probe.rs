@@ -1,30 +1,18 @@
-//! Haptic probe contact: a sphere at the device position (the haptic interaction point, HIP)
-//! touches the touchable surface through a god-object (proxy) joined to the device point by a
-//! virtual coupling.
+//! The haptic probe: a sphere at the device point touching the touchable surface through a
+//! god-object (proxy) and a virtual coupling (see the module documentation of [`super`]).
 //!
-//! Each update finds the closest triangle of the deformed touchable surface to the device point
-//! (a local walk over neighbouring triangles while in contact, a full search otherwise), then
-//! a smoothed local surface around the device: the touchable nodes within `2 r` of it with
-//! kernel weights `w_i ∝ (1 - d_i^2 / (2r)^2)^2` (sum 1) define the plane through
-//! `c = sum w_i x_i` with normal `n` the weighted vertex normals. Because the weights vanish at
-//! the rim, `c` and `n` move continuously as the surface dimples under the probe (a plain
-//! closest point jumps between the walls of the dimple and makes the force chatter). With the
-//! signed distance `s = (device - c) . n`, the probe touches when `s < r`. The proxy is then
-//! held outside the surface at `device + (r - s) n` (it cannot penetrate), and
-//! the virtual coupling gives the device force
-//! `F_dev = k (proxy - device) + b ((v_c - v_dev) . n) n`, clamped to `[0, max_force_n]` along
-//! `n`, with the proxy and the surface velocity `v_c` taken at the end of the step (implicit:
-//! [`Probe::finish_implicit`]). Its reaction
-//! `-F_dev` acts on the body over the same patch with the same weights, so linear momentum is
-//! conserved. Spreading over the patch
-//! (a 2 mm sphere does not push on one triangle) also raises the effective mass the coupling
-//! acts on, `m_eff = 1 / sum(w_i^2 / m_i)`, which keeps the explicit coupling stable: it needs
-//! `dt^2 k / m_eff + 2 dt b / m_eff < 4` (a damped spring under symplectic Euler).
-//! Frictionless: the proxy slides freely along the surface.
-//!
-//! Neighbours: [`crate::sim`] calls [`Probe::update`] every sub-step and adds the reaction.
+//! Neighbours: [`super::surface`] for the geometry, [`super::coupling`] for the rank-one term
+//! the implicit integrators solve with; driven every sub-step by the FEM body's tick.
 
 use glam::DVec3;
+
+use super::coupling::RankOneCoupling;
+use super::surface::{ContactSurface, SurfacePoint};
+use super::{MAX_PATCH_NODES, PATCH_RADIUS_FACTOR};
+
+/// Largest accepted distance between a device point (or any point a client names) and the
+/// scene origin, m: farther points are absurd (a unit error or a broken sensor).
+pub const MAX_DEVICE_DISTANCE_M: f64 = 10.0;
 
 /// Haptic probe and virtual coupling parameters.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -48,236 +36,6 @@ impl Default for ProbeParams {
             max_force_n: 10.0,
         }
     }
-}
-
-/// A triangle surface over the body's nodes with vertex-to-triangle adjacency, for closest-point
-/// queries on the deformed configuration.
-#[derive(Debug, Clone)]
-pub struct ContactSurface {
-    /// Triangles (node indices), outward oriented.
-    pub triangles: Vec<[u32; 3]>,
-    /// CSR offsets: triangles around node `i` are `node_tris[node_offsets[i]..node_offsets[i+1]]`.
-    node_offsets: Vec<u32>,
-    node_tris: Vec<u32>,
-}
-
-/// The closest point of a surface to a query point.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SurfacePoint {
-    /// Triangle index into [`ContactSurface::triangles`].
-    pub triangle: u32,
-    /// Barycentric weights of the point on the triangle (sum 1, each >= 0).
-    pub bary: [f64; 3],
-    /// The point, m.
-    pub point: DVec3,
-    /// Squared distance to the query, m^2.
-    pub dist2: f64,
-}
-
-impl ContactSurface {
-    /// Builds the adjacency for `triangles` over `node_count` nodes.
-    pub fn new(triangles: Vec<[u32; 3]>, node_count: usize) -> Self {
-        let mut counts = vec![0u32; node_count + 1];
-        for t in &triangles {
-            for &i in t {
-                counts[i as usize + 1] += 1;
-            }
-        }
-        for i in 0..node_count {
-            counts[i + 1] += counts[i];
-        }
-        let mut fill = counts.clone();
-        let mut node_tris = vec![0u32; counts[node_count] as usize];
-        for (k, t) in triangles.iter().enumerate() {
-            for &i in t {
-                node_tris[fill[i as usize] as usize] = k as u32;
-                fill[i as usize] += 1;
-            }
-        }
-        Self {
-            triangles,
-            node_offsets: counts,
-            node_tris,
-        }
-    }
-
-    /// Collects the surface nodes within `reach_m` of `q` (m) reachable from triangle `seed`
-    /// over the vertex-to-triangle adjacency, with the kernel weights `(1 - d^2 / reach^2)^2`
-    /// normalised to sum 1, into `nodes` and `weights` (cleared first; empty when all weights
-    /// vanish). The weights go to zero at the rim, so a patch centre that moves makes the patch
-    /// change continuously. At most [`MAX_PATCH_NODES`] nodes; allocation-free when both
-    /// vectors have that capacity. Used for the probe's contact patch and for point loads.
-    pub fn gather_kernel_patch(
-        &self,
-        x: &[DVec3],
-        q: DVec3,
-        seed: u32,
-        reach_m: f64,
-        nodes: &mut Vec<u32>,
-        weights: &mut Vec<f64>,
-    ) {
-        let r2 = reach_m * reach_m;
-        nodes.clear();
-        weights.clear();
-        for &i in &self.triangles[seed as usize] {
-            if (x[i as usize] - q).length_squared() < r2 && !nodes.contains(&i) {
-                nodes.push(i);
-            }
-        }
-        let mut head = 0;
-        while head < nodes.len() {
-            let node = nodes[head] as usize;
-            head += 1;
-            let (lo, hi) = (self.node_offsets[node], self.node_offsets[node + 1]);
-            for &t in &self.node_tris[lo as usize..hi as usize] {
-                for &j in &self.triangles[t as usize] {
-                    if nodes.len() < MAX_PATCH_NODES
-                        && !nodes.contains(&j)
-                        && (x[j as usize] - q).length_squared() < r2
-                    {
-                        nodes.push(j);
-                    }
-                }
-            }
-        }
-        let mut sum = 0.0;
-        for &i in nodes.iter() {
-            let u = 1.0 - (x[i as usize] - q).length_squared() / r2;
-            let w = u * u;
-            weights.push(w);
-            sum += w;
-        }
-        if !(sum > 0.0) {
-            nodes.clear();
-            weights.clear();
-            return;
-        }
-        for w in weights.iter_mut() {
-            *w /= sum;
-        }
-    }
-
-    /// Closest point of triangle `k` to `q` on positions `x`.
-    #[inline]
-    pub fn closest_on(&self, k: u32, x: &[DVec3], q: DVec3) -> SurfacePoint {
-        let [a, b, c] = self.triangles[k as usize].map(|i| x[i as usize]);
-        let (point, bary) = closest_point_on_triangle(q, a, b, c);
-        SurfacePoint {
-            triangle: k,
-            bary,
-            point,
-            dist2: (q - point).length_squared(),
-        }
-    }
-
-    /// Closest point over all triangles (O(T)). `None` for an empty surface.
-    pub fn closest_global(&self, x: &[DVec3], q: DVec3) -> Option<SurfacePoint> {
-        let mut best: Option<SurfacePoint> = None;
-        for k in 0..self.triangles.len() as u32 {
-            let c = self.closest_on(k, x, q);
-            if best.is_none_or(|b| c.dist2 < b.dist2) {
-                best = Some(c);
-            }
-        }
-        best
-    }
-
-    /// Closest point by a local walk from triangle `start` over vertex-adjacent triangles, until
-    /// no neighbour is closer (at most `max_hops` moves). Allocation-free.
-    pub fn closest_local(
-        &self,
-        x: &[DVec3],
-        q: DVec3,
-        start: u32,
-        max_hops: usize,
-    ) -> SurfacePoint {
-        let mut best = self.closest_on(start, x, q);
-        for _ in 0..max_hops {
-            let current = best.triangle;
-            for &node in &self.triangles[current as usize] {
-                let (lo, hi) = (
-                    self.node_offsets[node as usize],
-                    self.node_offsets[node as usize + 1],
-                );
-                for &k in &self.node_tris[lo as usize..hi as usize] {
-                    let c = self.closest_on(k, x, q);
-                    if c.dist2 < best.dist2 {
-                        best = c;
-                    }
-                }
-            }
-            if best.triangle == current {
-                break;
-            }
-        }
-        best
-    }
-
-    /// Area-weighted outward normal at node `i` (sum of the cross products of its triangles;
-    /// not normalised; zero for a node not on this surface).
-    pub fn vertex_normal(&self, i: u32, x: &[DVec3]) -> DVec3 {
-        let (lo, hi) = (
-            self.node_offsets[i as usize],
-            self.node_offsets[i as usize + 1],
-        );
-        self.node_tris[lo as usize..hi as usize]
-            .iter()
-            .fold(DVec3::ZERO, |acc, &t| {
-                let [a, b, c] = self.triangles[t as usize].map(|k| x[k as usize]);
-                acc + (b - a).cross(c - a)
-            })
-    }
-
-    /// Unit outward normal of triangle `k` on positions `x` (zero for a degenerate triangle).
-    #[inline]
-    pub fn normal(&self, k: u32, x: &[DVec3]) -> DVec3 {
-        let [a, b, c] = self.triangles[k as usize].map(|i| x[i as usize]);
-        (b - a).cross(c - a).normalize_or_zero()
-    }
-}
-
-/// Closest point to `p` on triangle `(a, b, c)` and its barycentric weights (Ericson,
-/// *Real-Time Collision Detection*, 5.1.5).
-pub fn closest_point_on_triangle(p: DVec3, a: DVec3, b: DVec3, c: DVec3) -> (DVec3, [f64; 3]) {
-    let ab = b - a;
-    let ac = c - a;
-    let ap = p - a;
-    let d1 = ab.dot(ap);
-    let d2 = ac.dot(ap);
-    if d1 <= 0.0 && d2 <= 0.0 {
-        return (a, [1.0, 0.0, 0.0]);
-    }
-    let bp = p - b;
-    let d3 = ab.dot(bp);
-    let d4 = ac.dot(bp);
-    if d3 >= 0.0 && d4 <= d3 {
-        return (b, [0.0, 1.0, 0.0]);
-    }
-    let vc = d1 * d4 - d3 * d2;
-    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
-        let v = d1 / (d1 - d3);
-        return (a + ab * v, [1.0 - v, v, 0.0]);
-    }
-    let cp = p - c;
-    let d5 = ab.dot(cp);
-    let d6 = ac.dot(cp);
-    if d6 >= 0.0 && d5 <= d6 {
-        return (c, [0.0, 0.0, 1.0]);
-    }
-    let vb = d5 * d2 - d1 * d6;
-    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
-        let w = d2 / (d2 - d6);
-        return (a + ac * w, [1.0 - w, 0.0, w]);
-    }
-    let va = d3 * d6 - d5 * d4;
-    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
-        let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
-        return (b + (c - b) * w, [0.0, 1.0 - w, w]);
-    }
-    let denom = 1.0 / (va + vb + vc);
-    let v = vb * denom;
-    let w = vc * denom;
-    (a + ab * v + ac * w, [1.0 - v - w, v, w])
 }
 
 /// Result of a probe update.
@@ -316,11 +74,6 @@ pub struct Probe {
     /// Explicit part of the normal coupling force of the current step, N.
     phi0_n: f64,
 }
-
-/// Largest number of nodes in a contact patch.
-pub const MAX_PATCH_NODES: usize = 256;
-/// Radius of the contact patch around the device point, in probe radii.
-pub const PATCH_RADIUS_FACTOR: f64 = 2.0;
 
 impl Probe {
     /// Builds a probe over `touchable` triangles of a body whose rest positions are `rest`.
@@ -415,6 +168,11 @@ impl Probe {
         self.state
     }
 
+    /// The device left the scene: no contact (the proxy state is cleared).
+    pub fn release(&mut self) {
+        self.state = ContactState::default();
+    }
+
     /// Completes a step with the coupling treated implicitly. After the integrator advanced
     /// every node with the explicit coupling part (see [`Probe::add_reaction`]), giving
     /// velocities `y`, the coupling term `gamma U U^T v'` with `U = (w_i n)` over the patch and
@@ -463,13 +221,13 @@ impl Probe {
     }
 
     /// The coupling's implicit term as a rank-one matrix for a global implicit solve
-    /// ([`crate::integrator::ImplicitSolver`]); `None` out of contact. Pair with
+    /// ([`crate::integrate::implicit::ImplicitSolver`]); `None` out of contact. Pair with
     /// [`Probe::finish_solved`].
-    pub fn rank_one(&self, dt_s: f64) -> Option<crate::integrator::RankOneCoupling<'_>> {
+    pub fn rank_one(&self, dt_s: f64) -> Option<RankOneCoupling<'_>> {
         if !self.state.in_contact {
             return None;
         }
-        Some(crate::integrator::RankOneCoupling {
+        Some(RankOneCoupling {
             gamma_kg: self.coupling_gamma(dt_s),
             normal: self.state.normal,
             nodes: &self.patch_nodes,

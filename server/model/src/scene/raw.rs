@@ -1,160 +1,20 @@
-//! Scenes: a mesh, a material, boundary conditions, an integrator and a probe.
-//!
-//! A scene is a TOML text (a file, or one of the built-in texts of [`builtin_scene_toml`])
-//! parsed with serde (unknown fields rejected), then validated into a [`Scene`] in SI units.
-//! Errors name the offending field by its dotted path (`material.poisson_ratio`). Format:
-//!
-//! ```toml
-//! name = "lv-h1"                 # optional; default: the file stem, or "custom"
-//! description = "..."            # optional
-//! [mesh]
-//! file = "../../../shared/data/lv/lv_h1.msh"  # Gmsh 2.2/4.1, relative to the scene's directory
-//! length_unit = "mm"             # "m" | "cm" | "mm" | "um"; default "m"
-//! # or builtin = "lv" (target_tets, default 2000 when a user scene names it; the built-in "lv" scene sets 1000), "ellipsoids" (inner_semi_axes,
-//! # outer_semi_axes in length_unit, default (6,6,12) and (10,10,16) mm; target_tets, default
-//! # 188), "sphere" (inner_radius, outer_radius in length_unit; target_tets, default 5000) or
-//! # "box" (size = [x, y, z] in length_unit, cells = [nx, ny, nz])
-//! order = 1                      # element order: 1 = linear tets (default), 2 = quadratic
-//!                                # 10-node tets made by adding a node at every edge midpoint
-//!                                # (built-in shells: boundary mid-edge nodes on the surfaces)
-//! strain_smoothing = "none"      # linear tets only: "edge" = edge-based smoothed FEM
-//!                                # (ES-FEM-T4: softer, far less bending/shear locking)
-//! [material]                     # youngs_modulus_pa + poisson_ratio, OR lambda_pa + mu_pa
-//! model = "stvk"                 # default; or "corotational", "stable-neo-hookean"
-//! youngs_modulus_pa = 14500.0
-//! poisson_ratio = 0.45           # in (-1, 0.5)
-//! phi_pa_s = 0.05                # default 0
-//! psi_pa_s = 0.05                # default 0
-//! density_kg_per_m3 = 1060.0     # required
-//! mass_damping_per_s = 5.0       # default 0
-//! [boundary]
-//! clamped = ["BASE"]             # surface or node-group names; default none
-//! touchable = ["EPI"]            # surface names; default: boundary faces not entirely clamped
-//! [integrator]                   # optional, defaults shown
-//! kind = "semi-implicit"         # or "symplectic-euler", "backward-euler"
-//! tick_s = 0.001                 # in (0, 0.1]
-//! substeps = "auto"              # or an integer in 1..=max_substeps
-//! max_substeps = 64
-//! safety_factor = 0.5            # in (0, 1]
-//! cg_max_iterations = 20         # backward Euler: CG iterations per step, 1..=10000
-//! cg_tolerance = 0.001           # backward Euler: relative CG residual, in (0, 1)
-//! [loads]                        # optional; default: no load
-//! gravity_m_per_s2 = [0.0, 0.0, -9.81]
-//! [[loads.pressure]]             # any number; positive pushes into the body
-//! surfaces = ["ENDO"]
-//! pressure_pa = 1000.0
-//! follower = false               # true: recomputed from the current geometry each sub-step
-//! [[loads.point]]                # any number; permanent, on the closest free boundary triangle
-//! point_m = [0.0, 0.01, 0.0]
-//! force_n = [0.0, -0.05, 0.0]
-//! [active_region]                # optional; backward Euler only: simulate the tetrahedra
-//! centre_m = [0.0097, 0.0, -0.005] # with a node within radius_m of centre_m (rest, metres)
-//! radius_m = 0.008               # and condense the rest statically (crate::condensed)
-//! stiffness_margin = 2.0         # factor on the rest stiffness of the frozen tick matrix
-//! [probe]                        # optional, defaults shown
-//! radius_m = 0.002
-//! coupling_stiffness_n_per_m = 300.0
-//! coupling_damping_n_s_per_m = 0.05
-//! max_force_n = 10.0
-//! ```
-//!
-//! Built-in scenes are string constants in this module (the library reads no file outside
-//! itself); identical copies live in `deploy/scenes/` for users to edit.
-//!
-//! Neighbours: uses [`crate::gmsh`] and [`crate::mesher`] for meshes; the result builds a
-//! [`crate::sim::Simulation`].
+//! The raw (serde) form of a scene file and its validation into a [`Scene`]: every field is
+//! checked for presence, finiteness and range, and errors name it by its dotted path.
 
 use std::path::Path;
 
 use glam::DVec3;
 use serde::Deserialize;
 
+use super::Scene;
 use crate::ModelError;
-use crate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
 use crate::contact::ProbeParams;
-use crate::fem::StrainSmoothing;
-use crate::integrator::{IntegratorKind, IntegratorParams};
+use crate::element::StrainSmoothing;
+use crate::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
+use crate::integrate::{IntegratorKind, IntegratorParams};
+use crate::loads::{PointForce, PressureLoad, SceneLoads};
 use crate::material::{MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
-
-/// A validated scene, ready to build a [`crate::sim::Simulation`]. SI units.
-#[derive(Debug, Clone)]
-pub struct Scene {
-    /// Scene name (built-in name or the file's `name`).
-    pub name: String,
-    /// One-line description, with the source of the parameters.
-    pub description: String,
-    /// The mesh in metres.
-    pub mesh: TetMesh,
-    /// Strain smoothing of linear elements (`[mesh] strain_smoothing`).
-    pub strain_smoothing: StrainSmoothing,
-    /// Material.
-    pub material: MaterialParams,
-    /// Integrator settings.
-    pub integrator: IntegratorParams,
-    /// Haptic probe settings.
-    pub probe: ProbeParams,
-    /// Nodes fixed at their rest position (clamped), sorted, distinct.
-    pub clamped_nodes: Vec<u32>,
-    /// Triangles the probe can touch, outward oriented.
-    pub touchable: Vec<[u32; 3]>,
-    /// The scene file's length unit in metres (1e-3 for "mm"); outputs for users use it.
-    pub length_unit_m: f64,
-    /// External loads: gravity, surface pressure, point forces (section `[loads]`).
-    pub loads: SceneLoads,
-    /// Contact-local active region (section `[active_region]`): backward Euler on its elements
-    /// with the rest of the body condensed ([`crate::condensed`]); `None` simulates everything.
-    pub active_region: Option<ActiveRegion>,
-}
-
-/// External loads of a scene (section `[loads]`), SI units; the default is no load. Applied by
-/// every integrator in [`crate::sim::Simulation::tick`] and, for static solves, by
-/// [`crate::sim::static_external_forces`].
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct SceneLoads {
-    /// Gravitational acceleration, m/s^2 (nodal forces `m_i g`).
-    pub gravity_m_per_s2: DVec3,
-    /// Uniform pressures on tagged surfaces.
-    pub pressure: Vec<PressureLoad>,
-    /// Permanent point forces.
-    pub point: Vec<PointForce>,
-}
-
-impl SceneLoads {
-    /// Whether the scene has no load at all.
-    pub fn is_empty(&self) -> bool {
-        self.gravity_m_per_s2 == DVec3::ZERO && self.pressure.is_empty() && self.point.is_empty()
-    }
-}
-
-/// A uniform pressure on tagged surfaces: each triangle carries `-p A n` (n its outward
-/// normal), a third per vertex, so a positive pressure pushes the surface into the body.
-#[derive(Debug, Clone, PartialEq)]
-pub struct PressureLoad {
-    /// Surface names the load acts on.
-    pub surfaces: Vec<String>,
-    /// Their triangles, outward oriented, distinct.
-    pub triangles: Vec<[u32; 3]>,
-    /// Pressure, Pa.
-    pub pressure_pa: f64,
-    /// Follower load (`true`: area and normal from the current geometry, recomputed every
-    /// sub-step) or dead load (`false`: from the rest geometry).
-    pub follower: bool,
-}
-
-/// A permanent (dead) point force on the surface point closest, at rest, to `point_m`, spread
-/// over that boundary triangle by barycentric weights.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct PointForce {
-    /// Requested point, m.
-    pub point_m: DVec3,
-    /// Force, N.
-    pub force_n: DVec3,
-    /// The boundary triangle (node indices) holding the closest point.
-    pub nodes: [u32; 3],
-    /// Barycentric weights of the closest point on it (sum 1).
-    pub bary: [f64; 3],
-}
 
 /// Largest accepted gravitational acceleration magnitude in a scene, m/s^2.
 pub const MAX_GRAVITY_M_PER_S2: f64 = 1e4;
@@ -162,160 +22,6 @@ pub const MAX_GRAVITY_M_PER_S2: f64 = 1e4;
 pub const MAX_PRESSURE_PA: f64 = 1e9;
 /// Largest accepted scene point-force magnitude, N.
 pub const MAX_SCENE_POINT_FORCE_N: f64 = 1e9;
-
-/// Built-in scene `lv`: the idealized left ventricle built in code.
-const LV_TOML: &str = r#"# Built-in scene "lv" (a copy of the constant in server/model/src/scene.rs).
-name = "lv"
-description = "Idealized left ventricle (geometry of the Land et al. 2015 cardiac mechanics benchmark, Proc. R. Soc. A 471:20150641: endocardium 7x7x17 mm, epicardium 10x10x20 mm, cut at z = 5 mm), meshed in code, base clamped, epicardium touchable. Material: mu = 5 kPa from the linearised Guccione law of benchmark problem 2 (C = 10 kPa, b_f = b_t = b_fs = 1, so mu = C/2), Poisson ratio 0.45 as a compressible stand-in for the benchmark's incompressibility, hence E = 14.5 kPa; rho = 1060 kg/m^3."
-
-[mesh]
-builtin = "lv"
-target_tets = 500       # 474 tets (993 nodes with order 2); 1000..=30000 land within about 30 % of the target
-order = 2               # quadratic 10-node tets, mid-edge nodes on the ellipsoids (1: linear)
-length_unit = "mm"      # unit for reports; the built-in geometry is fixed
-
-[material]
-youngs_modulus_pa = 14500.0
-poisson_ratio = 0.45
-phi_pa_s = 0.05
-psi_pa_s = 0.05
-density_kg_per_m3 = 1060.0
-mass_damping_per_s = 5.0
-
-[boundary]
-clamped = ["BASE"]
-touchable = ["EPI"]
-
-[integrator]
-kind = "symplectic-euler"       # on this mesh the seed's semi-implicit scheme (eq. 34) reads forces up to 27 % high
-tick_s = 0.001
-substeps = "auto"
-max_substeps = 64
-safety_factor = 0.9             # 12 sub-steps; presses to 8 mm stay stable (StVK stiffens little: the wall bends)
-
-[probe]
-radius_m = 0.002
-coupling_stiffness_n_per_m = 300.0
-coupling_damping_n_s_per_m = 0.05
-max_force_n = 10.0
-"#;
-
-/// Built-in scene `ellipsoids`: the seed's coarse Ellipsoids Model.
-const ELLIPSOIDS_TOML: &str = r#"# Built-in scene "ellipsoids" (a copy of the constant in server/model/src/scene.rs).
-name = "ellipsoids"
-description = "The seed's Ellipsoids Model (Mero & Susin 2006, Table 1): a coarse closed ellipsoidal shell of about 188 tets; the paper gives no sizes, we use inner semi-axes 6x6x12 mm and outer 10x10x16 mm. Table 1 prints lambda = 5.5, mu = 2.5, phi = psi = 9e-5 without units; our reading is kPa and kPa s: lambda = 5.5 kPa, mu = 2.5 kPa, phi = psi = 0.09 Pa s. Density 1060 kg/m^3 and mass damping 5/s are ours. The bottom pole cap is clamped so that the body cannot drift."
-
-[mesh]
-builtin = "ellipsoids"
-length_unit = "mm"
-inner_semi_axes = [6.0, 6.0, 12.0]
-outer_semi_axes = [10.0, 10.0, 16.0]
-target_tets = 188
-
-[material]
-lambda_pa = 5500.0
-mu_pa = 2500.0
-phi_pa_s = 0.09
-psi_pa_s = 0.09
-density_kg_per_m3 = 1060.0
-mass_damping_per_s = 5.0
-
-[boundary]
-clamped = ["POLE"]
-touchable = ["OUTER"]
-
-[integrator]
-kind = "semi-implicit"
-tick_s = 0.001
-substeps = "auto"
-max_substeps = 64
-safety_factor = 0.5             # the critical step is computed at rest; StVK stiffens under large strain
-
-[probe]
-radius_m = 0.002
-coupling_stiffness_n_per_m = 300.0
-coupling_damping_n_s_per_m = 0.05
-max_force_n = 10.0
-"#;
-
-/// Built-in scenes: (name, TOML text, one-line description).
-const BUILTINS: [(&str, &str, &str); 2] = [
-    (
-        "lv",
-        LV_TOML,
-        "idealized left ventricle (Land et al. 2015 benchmark geometry), 474 quadratic tets (993 nodes; linear and up to 30k selectable), base clamped",
-    ),
-    (
-        "ellipsoids",
-        ELLIPSOIDS_TOML,
-        "the seed's coarse Ellipsoids Model (~188 tets, Mero & Susin 2006 Table 1)",
-    ),
-];
-
-/// Names and one-line descriptions of the built-in scenes, e.g. `("lv", "idealized left ...")`.
-pub fn builtin_scene_names() -> &'static [(&'static str, &'static str)] {
-    const NAMES: [(&str, &str); 2] = [
-        (BUILTINS[0].0, BUILTINS[0].2),
-        (BUILTINS[1].0, BUILTINS[1].2),
-    ];
-    &NAMES
-}
-
-/// The TOML text of the built-in scene `name`, or `None` if there is no such built-in. The same
-/// texts are in `deploy/scenes/<name>.toml`.
-pub fn builtin_scene_toml(name: &str) -> Option<&'static str> {
-    BUILTINS.iter().find(|b| b.0 == name).map(|b| b.1)
-}
-
-/// Loads and validates the built-in scene `name` (see [`builtin_scene_names`]).
-///
-/// # Errors
-/// [`ModelError::UnknownScene`] listing the known names if `name` is not a built-in; otherwise
-/// the errors of [`parse_scene_toml`] (which would be a bug in the built-in text).
-pub fn load_builtin(name: &str) -> Result<Scene, ModelError> {
-    let Some(text) = builtin_scene_toml(name) else {
-        let known = BUILTINS.iter().map(|b| b.0).collect::<Vec<_>>().join(", ");
-        return Err(ModelError::UnknownScene(name.to_string(), known));
-    };
-    parse_scene(text, Path::new("."), name)
-}
-
-/// Reads and validates a scene file. Relative mesh paths are resolved against the file's
-/// directory; the scene name defaults to the file stem.
-///
-/// # Errors
-/// [`ModelError::Io`] if the scene or mesh file cannot be read; otherwise as
-/// [`parse_scene_toml`].
-pub fn load_scene_file(path: &Path) -> Result<Scene, ModelError> {
-    let text = std::fs::read_to_string(path).map_err(|source| ModelError::Io {
-        path: path.display().to_string(),
-        source,
-    })?;
-    let base_dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let stem = path
-        .file_stem()
-        .and_then(|s| s.to_str())
-        .unwrap_or("custom");
-    parse_scene(&text, base_dir, stem)
-}
-
-/// Parses and validates a scene TOML text. `base_dir`: directory against which a relative
-/// `mesh.file` is resolved. The name defaults to `custom`.
-///
-/// # Errors
-/// [`ModelError::SceneSyntax`] (with the TOML error and its location) for invalid TOML, unknown
-/// fields or wrongly typed values; [`ModelError::SceneField`] naming the dotted field for
-/// missing, non-finite, out-of-range or contradictory values and unknown surface names;
-/// [`ModelError::Io`] (with the path) if the mesh file cannot be read, and the errors of
-/// [`crate::gmsh::load_msh`] if it cannot be parsed.
-pub fn parse_scene_toml(text: &str, base_dir: &Path) -> Result<Scene, ModelError> {
-    parse_scene(text, base_dir, "custom")
-}
-
-// ----- raw (serde) form -----
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -469,7 +175,11 @@ fn int_in(field: &str, v: i64, lo: i64, hi: i64) -> Result<usize, ModelError> {
     Ok(v as usize)
 }
 
-fn parse_scene(text: &str, base_dir: &Path, default_name: &str) -> Result<Scene, ModelError> {
+pub(super) fn parse_scene(
+    text: &str,
+    base_dir: &Path,
+    default_name: &str,
+) -> Result<Scene, ModelError> {
     let raw: RawScene = toml::from_str(text).map_err(|e| ModelError::SceneSyntax(e.to_string()))?;
     let mesh_raw = required("mesh", raw.mesh)?;
     let (mesh, length_unit_m) = build_mesh(&mesh_raw, base_dir)?;
@@ -776,14 +486,14 @@ fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError
             ));
         }
         (Some(file), None) => {
-            let mut mesh = crate::gmsh::load_msh(&base_dir.join(file))?;
+            let mut mesh = crate::mesh::gmsh::load_msh(&base_dir.join(file))?;
             mesh.scale(unit);
             mesh
         }
         (None, Some(b)) => match b.as_str() {
             // Built-in shells get curved quadratic elements (mid-edge nodes on the surfaces).
-            "lv" if quadratic => crate::mesher::lv_shell_quadratic(target(2000)?),
-            "lv" => crate::mesher::lv_shell(target(2000)?),
+            "lv" if quadratic => crate::mesh::generate::lv_shell_quadratic(target(2000)?),
+            "lv" => crate::mesh::generate::lv_shell(target(2000)?),
             "ellipsoids" => {
                 let inner = m
                     .inner_semi_axes
@@ -802,9 +512,9 @@ fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError
                     ));
                 }
                 if quadratic {
-                    crate::mesher::ellipsoid_shell_quadratic(inner, outer, target(188)?)
+                    crate::mesh::generate::ellipsoid_shell_quadratic(inner, outer, target(188)?)
                 } else {
-                    crate::mesher::ellipsoid_shell(inner, outer, target(188)?)
+                    crate::mesh::generate::ellipsoid_shell(inner, outer, target(188)?)
                 }
             }
             "sphere" => {
@@ -823,9 +533,9 @@ fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError
                     ));
                 }
                 if quadratic {
-                    crate::mesher::sphere_shell_quadratic(ri, ro, target(5000)?)
+                    crate::mesh::generate::sphere_shell_quadratic(ri, ro, target(5000)?)
                 } else {
-                    crate::mesher::sphere_shell(ri, ro, target(5000)?)
+                    crate::mesh::generate::sphere_shell(ri, ro, target(5000)?)
                 }
             }
             "box" => {
@@ -838,7 +548,7 @@ fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError
                 if cells.iter().product::<usize>() > 100_000 {
                     return Err(ModelError::field("mesh.cells", "more than 100000 cells"));
                 }
-                crate::mesher::box_mesh(size, cells)
+                crate::mesh::generate::box_mesh(size, cells)
             }
             other => {
                 return Err(ModelError::field(

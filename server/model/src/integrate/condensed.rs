@@ -17,7 +17,7 @@
 //! nonlinear model where the tool acts, a precomputed linear one elsewhere; in the spirit of
 //! seed 001's two-layer model (a detailed model only where the tool acts) and seed 003's haptic
 //! subdivision (level of detail at the contact), the work follows the contact. Each servo tick
-//! takes one backward Euler step (see [`crate::integrator`] for the linearisation) with the
+//! takes one backward Euler step (see [`crate::integrate`] for the linearisation) with the
 //! matrix frozen at rest and factorised once, solved for the new velocity `v'` directly:
 //!
 //! `(A + gamma U U^T) v' = M v + h (f_el(x) + f_ext - S u_G - U phi0)`,
@@ -59,11 +59,11 @@ use faer::{Conj, Mat, Par, Side};
 use glam::DVec3;
 
 use crate::ModelError;
-use crate::fem::FemModel;
-use crate::integrator::RankOneCoupling;
-use crate::material::MaterialModel;
+use crate::contact::RankOneCoupling;
+use crate::element::FemModel;
+use crate::element::tangent::cell_tangent_blocks_of;
+use crate::material::{MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
-use crate::statics::cell_tangent_blocks;
 
 /// The contact-local region of a condensed model: every tetrahedron with a node within
 /// `radius_m` of `centre_m` (rest positions) is active.
@@ -283,10 +283,10 @@ fn sparse(
 fn part_model(body: &FemModel, mesh: &TetMesh, keep: &[bool]) -> Result<FemModel, ModelError> {
     let mut m = FemModel::with_smoothing(
         &sub_mesh(mesh, keep),
-        body.material,
+        *body.material(),
         body.strain_smoothing(),
     )?;
-    m.constraint.clone_from(&body.constraint);
+    m.copy_constraints_from(body);
     Ok(m)
 }
 
@@ -307,23 +307,24 @@ fn sub_mesh(mesh: &TetMesh, keep: &[bool]) -> TetMesh {
     }
 }
 
-/// Calls `push(row, col, value)` for every entry of the rest tangent stiffness of every cell of
-/// `fem` (N/m), rows and columns as global components `3 i + c`, constrained components
-/// skipped (duplicates are summed by the caller's assembly).
-fn rest_tangent(fem: &FemModel, mut push: impl FnMut(usize, usize, f64)) {
+/// Calls `push(row, col, value)` for every entry of the rest tangent stiffness of material
+/// `mat` on every cell of `fem` (N/m), rows and columns as global components `3 i + c`,
+/// constrained components skipped (duplicates are summed by the caller's assembly).
+fn rest_tangent(fem: &FemModel, mat: &MaterialParams, mut push: impl FnMut(usize, usize, f64)) {
     let mut blocks = Vec::new();
+    let constraint = fem.constraints();
     for c in 0..fem.cell_count() {
-        cell_tangent_blocks(fem, c, &fem.rest, &mut blocks);
+        cell_tangent_blocks_of(fem, mat, c, fem.rest(), &mut blocks);
         let t = fem.cell_nodes(c);
         for (a, &na) in t.iter().enumerate() {
             for (b, &nb) in t.iter().enumerate() {
                 let k = blocks[a * t.len() + b];
                 for ca in 0..3 {
-                    if fem.constraint[na as usize] & (1 << ca) != 0 {
+                    if constraint[na as usize] & (1 << ca) != 0 {
                         continue;
                     }
                     for cb in 0..3 {
-                        if fem.constraint[nb as usize] & (1 << cb) != 0 {
+                        if constraint[nb as usize] & (1 << cb) != 0 {
                             continue;
                         }
                         push(3 * na as usize + ca, 3 * nb as usize + cb, k.col(cb)[ca]);
@@ -336,7 +337,7 @@ fn rest_tangent(fem: &FemModel, mut push: impl FnMut(usize, usize, f64)) {
 
 fn rest_tangent_opt(fem: Option<&FemModel>, push: impl FnMut(usize, usize, f64)) {
     if let Some(f) = fem {
-        rest_tangent(f, push);
+        rest_tangent(f, f.material(), push);
     }
 }
 
@@ -372,7 +373,7 @@ impl CondensedSolver {
         let n = body.node_count();
         let r2 = region.radius_m * region.radius_m;
         let inside: Vec<bool> = body
-            .rest
+            .rest()
             .iter()
             .map(|p| p.distance_squared(region.centre_m) <= r2)
             .collect();
@@ -405,7 +406,7 @@ impl CondensedSolver {
                 }
             }
         }
-        let free = |i: usize, c: usize| body.constraint[i] & (1 << c) == 0;
+        let free = |i: usize, c: usize| body.constraints()[i] & (1 << c) == 0;
         // Equations: free components of active nodes.
         let mut eq = vec![usize::MAX; 3 * n];
         let mut eq_dof = Vec::new();
@@ -512,14 +513,16 @@ impl CondensedSolver {
         // A = M (1 + alpha h) + h D0 + h^2 (c K0 + S); the lumped masses are the whole body's
         // (an interface node keeps the share of its far elements).
         let h = dt_s;
-        let mat = body.material;
-        let mut combined = active.clone();
-        combined.material.model = MaterialModel::StVenantKirchhoff;
+        let mat = *body.material();
         let c = region.stiffness_margin;
-        combined.material.lambda_pa = c * h * h * mat.lambda_pa + 2.0 * h * mat.phi_pa_s;
-        combined.material.mu_pa = c * h * h * mat.mu_pa + 2.0 * h * mat.psi_pa_s;
+        let combined = MaterialParams {
+            model: MaterialModel::StVenantKirchhoff,
+            lambda_pa: c * h * h * mat.lambda_pa + 2.0 * h * mat.phi_pa_s,
+            mu_pa: c * h * h * mat.mu_pa + 2.0 * h * mat.psi_pa_s,
+            ..mat
+        };
         let mut a_t = Vec::new();
-        rest_tangent(&combined, |r, c, v| {
+        rest_tangent(&active, &combined, |r, c, v| {
             a_t.push(Triplet::new(eq[r], eq[c], v));
         });
         for a in 0..g {
@@ -530,7 +533,10 @@ impl CondensedSolver {
                 }
             }
         }
-        let mass: Vec<f64> = eq_dof.iter().map(|d| body.lumped_mass_kg[d / 3]).collect();
+        let mass: Vec<f64> = eq_dof
+            .iter()
+            .map(|d| body.lumped_mass_kg()[d / 3])
+            .collect();
         let mass_factor: Vec<f64> = mass
             .iter()
             .map(|m| m * (1.0 + mat.mass_damping_per_s * h))
@@ -712,7 +718,7 @@ impl CondensedSolver {
     ) -> f64 {
         let h = self.h;
         let comp = |p: &[DVec3], d: usize| p[d / 3][d % 3];
-        let rest = &self.active.rest;
+        let rest = self.active.rest();
         let g = self.gamma_dof.len();
         for (u, &d) in self.u_gamma.iter_mut().zip(&self.gamma_dof) {
             *u = x[d / 3][d % 3] - rest[d / 3][d % 3];
@@ -837,7 +843,7 @@ impl CondensedSolver {
         let g = self.gamma_dof.len();
         let u = |a: usize| {
             let d = self.gamma_dof[a];
-            x[d / 3][d % 3] - self.active.rest[d / 3][d % 3]
+            x[d / 3][d % 3] - self.active.rest()[d / 3][d % 3]
         };
         (0..g)
             .map(|a| {
@@ -858,11 +864,11 @@ impl CondensedSolver {
         let mut b = Mat::<f64>::zeros(self.far.dofs.len(), 1);
         for &(fr, gc, v) in &self.far.kfg {
             let d = self.gamma_dof[gc];
-            b[(fr, 0)] -= v * (x[d / 3][d % 3] - self.active.rest[d / 3][d % 3]);
+            b[(fr, 0)] -= v * (x[d / 3][d % 3] - self.active.rest()[d / 3][d % 3]);
         }
         llt.solve_in_place(b.as_mut());
         for (k, &d) in self.far.dofs.iter().enumerate() {
-            x[d / 3][d % 3] = self.active.rest[d / 3][d % 3] + b[(k, 0)];
+            x[d / 3][d % 3] = self.active.rest()[d / 3][d % 3] + b[(k, 0)];
         }
     }
 }

@@ -1,7 +1,14 @@
-//! Lane arithmetic for the vectorised force kernels of [`crate::fem`]: one trait, [`Lane`],
-//! implemented by a single `f64` and by eight `f64` side by side ([`Lanes8`]: [`Plain8`] in
-//! plain code, on x86-64 [`Ymm2`] in two AVX2 registers and [`Zmm`] in one AVX-512 register),
-//! so that the stress formulas and the force kernels are written once and compiled for each.
+//! Lane arithmetic for the vectorised force kernels: one trait, [`Lane`], implemented by a
+//! single `f64` and by eight `f64` side by side ([`Lanes8`]: [`Plain8`] in plain code, on x86-64
+//! [`Ymm2`] in two AVX2 registers and [`Zmm`] in one AVX-512 register), so that the stress
+//! formulas and the force kernels are written once and compiled for each.
+//!
+//! **Soundness.** Every operation of [`Ymm2`] and [`Zmm`] is an AVX2/FMA or AVX-512
+//! instruction. A value of these types can only be made from an *instruction-set token*
+//! ([`Lane::Isa`]: [`Avx2Fma`], [`Avx512`]) and a token can only be obtained from run-time
+//! feature detection ([`Avx2Fma::detect`], [`Avx512::detect`]), so safe code cannot execute an
+//! instruction the CPU lacks. Operations on existing values need no token: the value proves
+//! that one was obtained.
 
 use std::ops::{Add, Mul, Sub};
 
@@ -9,8 +16,11 @@ use std::ops::{Add, Mul, Sub};
 pub(crate) trait Lane:
     Copy + Add<Output = Self> + Sub<Output = Self> + Mul<Output = Self>
 {
+    /// The instruction-set token that values of this type need to be made (`()` for plain
+    /// code).
+    type Isa: Copy;
     /// Every lane set to `v`.
-    fn splat(v: f64) -> Self;
+    fn splat(isa: Self::Isa, v: f64) -> Self;
     /// `a * b + c`; one rounding when `FMA` (a vector type always fuses).
     fn madd<const FMA: bool>(a: Self, b: Self, c: Self) -> Self;
     /// `a * b - c`; one rounding when `FMA` (a vector type always fuses).
@@ -18,8 +28,10 @@ pub(crate) trait Lane:
 }
 
 impl Lane for f64 {
+    type Isa = ();
+
     #[inline(always)]
-    fn splat(v: f64) -> Self {
+    fn splat(_: (), v: f64) -> Self {
         v
     }
 
@@ -41,14 +53,14 @@ impl Lane for f64 {
 /// lane per element of a batch).
 pub(crate) trait Lanes8: Lane {
     /// The eight lanes of `a`.
-    fn load(a: &[f64; 8]) -> Self;
+    fn load(isa: Self::Isa, a: &[f64; 8]) -> Self;
     /// Writes the eight lanes to `a`.
     fn store(self, a: &mut [f64; 8]);
     /// Lane l = `*base.offset(offsets[l])`.
     ///
     /// # Safety
     /// Every `base.offset(offsets[l])` must be a readable `f64`.
-    unsafe fn gather(base: *const f64, offsets: &[i32; 8]) -> Self;
+    unsafe fn gather(isa: Self::Isa, base: *const f64, offsets: &[i32; 8]) -> Self;
 }
 
 /// Eight `f64` lanes in plain code (the fallback without AVX2).
@@ -80,8 +92,10 @@ impl Mul for Plain8 {
 }
 
 impl Lane for Plain8 {
+    type Isa = ();
+
     #[inline(always)]
-    fn splat(v: f64) -> Plain8 {
+    fn splat(_: (), v: f64) -> Plain8 {
         Plain8([v; 8])
     }
 
@@ -102,7 +116,7 @@ impl Lane for Plain8 {
 
 impl Lanes8 for Plain8 {
     #[inline(always)]
-    fn load(a: &[f64; 8]) -> Plain8 {
+    fn load(_: (), a: &[f64; 8]) -> Plain8 {
         Plain8(*a)
     }
 
@@ -112,7 +126,7 @@ impl Lanes8 for Plain8 {
     }
 
     #[inline(always)]
-    unsafe fn gather(base: *const f64, offsets: &[i32; 8]) -> Plain8 {
+    unsafe fn gather(_: (), base: *const f64, offsets: &[i32; 8]) -> Plain8 {
         // SAFETY: every base.offset(offsets[l]) is readable (caller's contract).
         Plain8(std::array::from_fn(|l| unsafe {
             *base.offset(offsets[l] as isize)
@@ -121,7 +135,7 @@ impl Lanes8 for Plain8 {
 }
 
 #[cfg(target_arch = "x86_64")]
-pub(crate) use x86::{Ymm2, Zmm};
+pub(crate) use x86::{Avx2Fma, Avx512, Ymm2, Zmm};
 
 #[cfg(target_arch = "x86_64")]
 mod x86 {
@@ -135,32 +149,64 @@ mod x86 {
     };
     use std::ops::{Add, Mul, Sub};
 
+    /// Proof that this CPU runs AVX-512F, AVX-512VL, AVX2 and FMA: the only way to make
+    /// [`Zmm`] values. The private field keeps it from being made other than by
+    /// [`Avx512::detect`].
+    #[derive(Clone, Copy, Debug)]
+    pub(crate) struct Avx512(());
+
+    impl Avx512 {
+        /// The token, when the CPU has every feature (std caches the detection).
+        #[inline]
+        pub(crate) fn detect() -> Option<Self> {
+            (std::is_x86_feature_detected!("avx512f")
+                && std::is_x86_feature_detected!("avx512vl")
+                && Avx2Fma::detect().is_some())
+            .then_some(Self(()))
+        }
+    }
+
+    /// Proof that this CPU runs AVX2 and FMA: the only way to make [`Ymm2`] values (see
+    /// [`Avx512`]).
+    #[derive(Clone, Copy, Debug)]
+    pub(crate) struct Avx2Fma(());
+
+    impl Avx2Fma {
+        /// The token, when the CPU has both features (std caches the detection).
+        #[inline]
+        pub(crate) fn detect() -> Option<Self> {
+            (std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma"))
+                .then_some(Self(()))
+        }
+    }
+
     /// Eight `f64` lanes in one AVX-512 register.
     ///
-    /// Every operation is an AVX-512F instruction: create and use values only inside
-    /// functions compiled with `#[target_feature(enable = "avx512f")]` and reached after
-    /// checking the CPU (`fem::has_avx512`). The methods are `#[inline(always)]`, so that
-    /// they compile into those callers' bodies.
+    /// Every operation is an AVX-512F instruction. Values are made only with an [`Avx512`]
+    /// token, so they exist only on CPUs that have the instructions; the methods are
+    /// `#[inline(always)]` so that they compile into the `#[target_feature]` kernels that call
+    /// them (outside those, an operation is a call to an out-of-line instruction, still valid on
+    /// this CPU).
     #[derive(Clone, Copy)]
     pub(crate) struct Zmm(__m512d);
 
     impl Lanes8 for Zmm {
         #[inline(always)]
-        fn load(a: &[f64; 8]) -> Zmm {
-            // SAFETY: `a` is eight readable f64; AVX-512F per the type contract.
+        fn load(_: Avx512, a: &[f64; 8]) -> Zmm {
+            // SAFETY: `a` is eight readable f64; AVX-512F per the token.
             Zmm(unsafe { _mm512_loadu_pd(a.as_ptr()) })
         }
 
         #[inline(always)]
         fn store(self, a: &mut [f64; 8]) {
-            // SAFETY: `a` is eight writable f64; AVX-512F per the type contract.
+            // SAFETY: `a` is eight writable f64; `self` exists, so AVX-512F is available.
             unsafe { _mm512_storeu_pd(a.as_mut_ptr(), self.0) }
         }
 
         #[inline(always)]
-        unsafe fn gather(base: *const f64, offsets: &[i32; 8]) -> Zmm {
+        unsafe fn gather(_: Avx512, base: *const f64, offsets: &[i32; 8]) -> Zmm {
             // SAFETY: offsets is eight i32; the addressed f64 are readable (caller's
-            // contract); AVX-512F per the type contract.
+            // contract); AVX-512F per the token.
             unsafe {
                 let idx = _mm256_loadu_si256(offsets.as_ptr().cast::<__m256i>());
                 Zmm(_mm512_i32gather_pd::<8>(idx, base))
@@ -172,7 +218,7 @@ mod x86 {
         type Output = Zmm;
         #[inline(always)]
         fn add(self, o: Zmm) -> Zmm {
-            // SAFETY: Zmm values exist only on CPUs with AVX-512F (type contract).
+            // SAFETY: Zmm values are made only with an Avx512 token, so this CPU has AVX-512F.
             Zmm(unsafe { _mm512_add_pd(self.0, o.0) })
         }
     }
@@ -196,15 +242,17 @@ mod x86 {
     }
 
     impl Lane for Zmm {
+        type Isa = Avx512;
+
         #[inline(always)]
-        fn splat(v: f64) -> Zmm {
-            // SAFETY: only called inside AVX-512 kernels (type contract).
+        fn splat(_: Avx512, v: f64) -> Zmm {
+            // SAFETY: the Avx512 token proves the CPU has AVX-512F.
             Zmm(unsafe { _mm512_set1_pd(v) })
         }
 
         #[inline(always)]
         fn madd<const FMA: bool>(a: Zmm, b: Zmm, c: Zmm) -> Zmm {
-            // SAFETY: as in `splat`; AVX-512F includes the fused multiply-adds.
+            // SAFETY: as in `add`; AVX-512F includes the fused multiply-adds.
             Zmm(unsafe { _mm512_fmadd_pd(a.0, b.0, c.0) })
         }
 
@@ -217,9 +265,8 @@ mod x86 {
 
     /// Eight `f64` lanes in two AVX2 registers (lanes 0-3, 4-7).
     ///
-    /// Every operation is an AVX2 or FMA instruction: create and use values only inside
-    /// functions compiled with `#[target_feature(enable = "avx2,fma")]` and reached after
-    /// checking the CPU (`fem::has_avx2_fma`), as for [`Zmm`].
+    /// Every operation is an AVX2 or FMA instruction; values are made only with an [`Avx2Fma`]
+    /// token, as for [`Zmm`].
     #[derive(Clone, Copy)]
     pub(crate) struct Ymm2(__m256d, __m256d);
 
@@ -227,7 +274,7 @@ mod x86 {
         type Output = Ymm2;
         #[inline(always)]
         fn add(self, o: Ymm2) -> Ymm2 {
-            // SAFETY: Ymm2 values exist only on CPUs with AVX2 and FMA (type contract).
+            // SAFETY: Ymm2 values are made only with an Avx2Fma token, so this CPU has AVX2 and FMA.
             unsafe { Ymm2(_mm256_add_pd(self.0, o.0), _mm256_add_pd(self.1, o.1)) }
         }
     }
@@ -251,15 +298,17 @@ mod x86 {
     }
 
     impl Lane for Ymm2 {
+        type Isa = Avx2Fma;
+
         #[inline(always)]
-        fn splat(v: f64) -> Ymm2 {
-            // SAFETY: only called inside AVX2 kernels (type contract).
+        fn splat(_: Avx2Fma, v: f64) -> Ymm2 {
+            // SAFETY: the Avx2Fma token proves the CPU has AVX2.
             unsafe { Ymm2(_mm256_set1_pd(v), _mm256_set1_pd(v)) }
         }
 
         #[inline(always)]
         fn madd<const FMA: bool>(a: Ymm2, b: Ymm2, c: Ymm2) -> Ymm2 {
-            // SAFETY: as in `splat`; FMA per the type contract.
+            // SAFETY: as in `add`; the token that made the values proves FMA.
             unsafe {
                 Ymm2(
                     _mm256_fmadd_pd(a.0, b.0, c.0),
@@ -282,8 +331,8 @@ mod x86 {
 
     impl Lanes8 for Ymm2 {
         #[inline(always)]
-        fn load(a: &[f64; 8]) -> Ymm2 {
-            // SAFETY: `a` is eight readable f64; AVX per the type contract.
+        fn load(_: Avx2Fma, a: &[f64; 8]) -> Ymm2 {
+            // SAFETY: `a` is eight readable f64; AVX2 per the token.
             unsafe {
                 Ymm2(
                     _mm256_loadu_pd(a.as_ptr()),
@@ -294,7 +343,7 @@ mod x86 {
 
         #[inline(always)]
         fn store(self, a: &mut [f64; 8]) {
-            // SAFETY: `a` is eight writable f64; AVX per the type contract.
+            // SAFETY: `a` is eight writable f64; `self` exists, so AVX2 is available.
             unsafe {
                 _mm256_storeu_pd(a.as_mut_ptr(), self.0);
                 _mm256_storeu_pd(a[4..].as_mut_ptr(), self.1);
@@ -302,9 +351,9 @@ mod x86 {
         }
 
         #[inline(always)]
-        unsafe fn gather(base: *const f64, offsets: &[i32; 8]) -> Ymm2 {
+        unsafe fn gather(_: Avx2Fma, base: *const f64, offsets: &[i32; 8]) -> Ymm2 {
             // SAFETY: offsets is eight i32; the addressed f64 are readable (caller's
-            // contract); AVX2 per the type contract.
+            // contract); AVX2 per the token.
             unsafe {
                 let lo = _mm_loadu_si128(offsets.as_ptr().cast::<__m128i>());
                 let hi = _mm_loadu_si128(offsets[4..].as_ptr().cast::<__m128i>());

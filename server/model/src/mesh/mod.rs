@@ -1,12 +1,21 @@
 //! Tetrahedral meshes (linear 4-node, or quadratic 10-node with mid-edge nodes) with named
 //! boundary surfaces and node groups.
 //!
-//! Neighbours: [`crate::gmsh`] and [`crate::mesher`] produce a [`TetMesh`]; [`crate::fem`]
-//! precomputes element data from it; [`crate::scene`] picks clamped and touchable surfaces by name.
+//! Owns: mesh data and everything that reads or writes meshes: [`gmsh`] (Gmsh `.msh` 2.2 /
+//! 4.1 ASCII reader), [`generate`] (structured shells and boxes built in code), [`quadratic`]
+//! (10-node elements from a linear mesh), [`export`] (CSV node tables, ParaView `.vtu`).
+//! May use: nothing of the crate but [`crate::ModelError`]. Used by [`crate::element`]
+//! (precomputes element data) and [`crate::scene`] (picks clamped and touchable surfaces by
+//! name).
 
 use glam::DVec3;
 
 use crate::ModelError;
+
+pub mod export;
+pub mod generate;
+pub mod gmsh;
+mod quadratic;
 
 /// A named set of boundary triangles (a Gmsh 2-D physical group or a mesher-made surface).
 #[derive(Debug, Clone, PartialEq)]
@@ -84,57 +93,6 @@ impl TetMesh {
     /// Whether the tetrahedra are quadratic (10-node).
     pub fn is_quadratic(&self) -> bool {
         !self.tet_edge_nodes.is_empty()
-    }
-
-    /// The quadratic (10-node) version of a linear mesh: one new node at the midpoint of every
-    /// edge (straight-sided elements, so the rest geometry is unchanged), the surface groups
-    /// split into four triangles per face, node groups kept. A quadratic mesh is returned as it
-    /// is.
-    pub fn to_quadratic(&self) -> TetMesh {
-        use std::collections::HashMap;
-        if self.is_quadratic() {
-            return self.clone();
-        }
-        let mut nodes = self.nodes.clone();
-        let mut edge_node: HashMap<(u32, u32), u32> = HashMap::new();
-        let mut mid = |a: u32, b: u32, nodes: &mut Vec<DVec3>| -> u32 {
-            let key = (a.min(b), a.max(b));
-            *edge_node.entry(key).or_insert_with(|| {
-                nodes.push((nodes[a as usize] + nodes[b as usize]) * 0.5);
-                (nodes.len() - 1) as u32
-            })
-        };
-        let tet_edge_nodes: Vec<[u32; 6]> = self
-            .tets
-            .iter()
-            .map(|t| TET_EDGES.map(|[i, j]| mid(t[i], t[j], &mut nodes)))
-            .collect();
-        let surfaces = self
-            .surfaces
-            .iter()
-            .map(|s| SurfaceGroup {
-                name: s.name.clone(),
-                triangles: s
-                    .triangles
-                    .iter()
-                    .flat_map(|&[a, b, c]| {
-                        let (ab, bc, ca) = (
-                            mid(a, b, &mut nodes),
-                            mid(b, c, &mut nodes),
-                            mid(c, a, &mut nodes),
-                        );
-                        split_triangle([a, b, c], ab, bc, ca)
-                    })
-                    .collect(),
-            })
-            .collect();
-        TetMesh {
-            nodes,
-            tets: self.tets.clone(),
-            tet_edge_nodes,
-            surfaces,
-            node_groups: self.node_groups.clone(),
-        }
     }
 
     /// The surface group called `name`, if any.

@@ -1,0 +1,166 @@
+//! The soft-body seam: [`SoftBody`], the one interface through which the servo, the sessions
+//! and the services drive a deformable model, whatever its family (DESIGN.md section 5: the FEM,
+//! the seeds' hybrid FEM + particle model, the mass-spring surface with run-time subdivision).
+//!
+//! A body is ticked once per servo period with the device input and returns the device force
+//! with its local contact stiffness ([`SoftBody::tick`]); it writes its surface for viewers
+//! ([`SoftBody::write_surface_positions`]) and describes the surface's connectivity with a
+//! version number that changes whenever the connectivity does ([`SoftBody::surface_topology`]),
+//! so that viewers get a new keyframe then; it reports its size and cost drivers
+//! ([`SoftBody::stats`]). Everything a servo tick calls is allocation-free and lock-free.
+//!
+//! [`crate::build_body`] picks the family a scene asks for. Today every scene is a FEM scene
+//! ([`crate::sim::Simulation`]).
+//!
+//! Owns: the interface and its plain data types. May use: [`crate::contact`] and
+//! [`crate::loads`] (input limits). Implemented by the model families; used by the server
+//! (never the other way round: the model knows nothing of threads, sockets or logging).
+
+use glam::DVec3;
+
+use crate::ModelError;
+
+pub use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
+pub use crate::loads::{MAX_POINT_FORCE_N, MAX_POINT_LOAD_DURATION_S, validate_point_load};
+
+/// What the device reports for one servo tick.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct TickInput {
+    /// Haptic interaction point, m, scene frame; `None` when no device is connected.
+    pub device_position_m: Option<DVec3>,
+    /// Device velocity, m/s.
+    pub device_velocity_m_per_s: DVec3,
+}
+
+/// What one servo tick returns to the device.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct TickOutput {
+    /// Force the device must render, N (the virtual coupling force at the end of the tick).
+    pub force_on_device_n: DVec3,
+    /// Whether the probe touches the surface.
+    pub in_contact: bool,
+    /// Proxy (god-object) position, m; the device point out of contact.
+    pub proxy_position_m: DVec3,
+    /// Local contact stiffness `d F_device / d x_device`, 3x3 row-major, N/m (zero out of
+    /// contact), for force extrapolation between ticks on the device side.
+    pub contact_stiffness_n_per_m: [f64; 9],
+    /// Simulated time after the tick, s.
+    pub sim_time_s: f64,
+}
+
+/// The connectivity of the surface shown to viewers.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SurfaceTopology<'a> {
+    /// Changes whenever `triangles` or the vertex count change (never otherwise).
+    pub version: u64,
+    /// Number of surface vertices: [`SoftBody::write_surface_positions`] writes `3 *` this many
+    /// values.
+    pub vertex_count: usize,
+    /// Triangles as indices into the surface vertices, outward oriented
+    /// (counter-clockwise seen from outside).
+    pub triangles: &'a [[u32; 3]],
+}
+
+/// Upper bounds on the surface over the body's lifetime, so that callers can size buffers once.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SurfaceCapacity {
+    /// Largest vertex count.
+    pub vertices: usize,
+    /// Largest triangle count.
+    pub triangles: usize,
+}
+
+/// Fixed facts about a body, for session set-up and reports.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BodyInfo {
+    /// Model family, e.g. `"fem"`.
+    pub family: &'static str,
+    /// Scene name.
+    pub scene: String,
+    /// Servo period the body is ticked at, s.
+    pub tick_s: f64,
+    /// Model sub-steps per tick.
+    pub substeps: u32,
+    /// Stability limit of the time step, s (`f64::INFINITY` when there is none).
+    pub critical_dt_s: f64,
+    /// Probe sphere radius, m.
+    pub probe_radius_m: f64,
+}
+
+/// Size and state of a body, cheap to read (allocation-free, O(nodes) at most).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct BodyStats {
+    /// Simulation nodes.
+    pub nodes: usize,
+    /// Elements of the model (tetrahedra for the FEM).
+    pub elements: usize,
+    /// Elements simulated with full dynamics (all of them, or those of a contact-local active
+    /// region).
+    pub active_elements: usize,
+    /// Meshfree particles (0 for families without them).
+    pub particles: usize,
+    /// Particles currently simulated.
+    pub active_particles: usize,
+    /// Point loads still acting ([`SoftBody::add_point_load`]).
+    pub active_point_loads: usize,
+    /// Surface vertices shown to viewers now.
+    pub surface_vertices: usize,
+    /// Current surface topology version ([`SurfaceTopology::version`]).
+    pub topology_version: u64,
+    /// Simulated time, s.
+    pub sim_time_s: f64,
+    /// Largest nodal displacement from rest, m.
+    pub max_displacement_m: f64,
+}
+
+/// A deformable body the servo can drive (module documentation). Implementations must keep
+/// [`SoftBody::tick`], [`SoftBody::add_point_load`], [`SoftBody::write_surface_positions`],
+/// [`SoftBody::surface_topology`] and [`SoftBody::stats`] free of allocation, locks and I/O.
+pub trait SoftBody: Send {
+    /// Advances one servo tick with the device input and returns the force for the device.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidDevice`] for a non-finite or absurd device input (the state is not
+    /// touched); [`ModelError::Diverged`] when the state became non-finite or diverged (the
+    /// caller must quarantine the body: its state is no longer meaningful).
+    fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError>;
+
+    /// Applies `force_n` (N) at the surface point closest to `point_m` (m) for `duration_s` of
+    /// simulated time, spread as a probe touching there would spread it.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] for values [`validate_point_load`] rejects (nothing
+    /// changed); [`ModelError::LoadTableFull`] when the preallocated load table is full.
+    fn add_point_load(
+        &mut self,
+        point_m: DVec3,
+        force_n: DVec3,
+        duration_s: f64,
+    ) -> Result<(), ModelError>;
+
+    /// The surface's current connectivity and its version.
+    fn surface_topology(&self) -> SurfaceTopology<'_>;
+
+    /// Upper bounds on the surface's vertex and triangle counts over the body's lifetime.
+    fn surface_capacity(&self) -> SurfaceCapacity;
+
+    /// Writes the current surface vertex positions (xyz interleaved, f32, m) into `out` and
+    /// returns the largest displacement from rest among them, m.
+    ///
+    /// # Panics
+    /// If `out.len()` is not `3 * surface_topology().vertex_count`.
+    fn write_surface_positions(&self, out: &mut [f32]) -> f64;
+
+    /// Writes the rest positions of the current surface vertices (as
+    /// [`SoftBody::write_surface_positions`]), for viewers that colour by displacement.
+    ///
+    /// # Panics
+    /// As [`SoftBody::write_surface_positions`].
+    fn write_surface_rest_positions(&self, out: &mut [f32]);
+
+    /// Size and state.
+    fn stats(&self) -> BodyStats;
+
+    /// Fixed facts (family, timing, probe).
+    fn info(&self) -> BodyInfo;
+}

@@ -1,0 +1,158 @@
+//! Single-point cells with a variable node count (the ES-FEM smoothing domains of
+//! [`crate::element::smoothing`]) in batches of [`LANES`].
+
+use glam::DVec3;
+
+use super::LANES;
+use super::lanes::Lanes8;
+use super::stress::first_piola_lane;
+use crate::element::quadrature::IntegrationPoints;
+use crate::material::MaterialParams;
+
+/// Single-point cells with a variable number of nodes (the smoothing domains of
+/// [`StrainSmoothing::Edge`]) in batches of [`LANES`], for the vectorised force kernel. Batch
+/// `b` has node slots `start[b]..start[b + 1]`; slot `s` holds, per lane, the node
+/// (`nodes[s]`, and `3 *` it in `node3[s]`) and its smoothed gradient (`grad[s][c]`,
+/// component c). Cells are sorted by node count so a batch pads few slots; a padding slot
+/// repeats the lane's first node with a zero gradient, a padding lane has weight zero.
+#[derive(Debug, Clone, Default)]
+pub(super) struct DomainBatches {
+    start: Vec<usize>,
+    nodes: Vec<[u32; LANES]>,
+    node3: Vec<[i32; LANES]>,
+    grad: Vec<[[f64; LANES]; 3]>,
+    weight_m3: Vec<[f64; LANES]>,
+}
+
+impl DomainBatches {
+    pub(super) fn build(points: &IntegrationPoints) -> Self {
+        let cells = points.node_start.len() - 1;
+        debug_assert_eq!(points.weight_m3.len(), cells, "one point per cell");
+        let count = |c: usize| points.node_start[c + 1] - points.node_start[c];
+        let mut order: Vec<usize> = (0..cells).collect();
+        order.sort_by_key(|&c| count(c));
+        let mut out = Self {
+            start: vec![0],
+            ..Self::default()
+        };
+        for chunk in order.chunks(LANES) {
+            let slots = chunk.iter().map(|&c| count(c)).max().unwrap_or(0);
+            let first = out.nodes.len();
+            out.nodes.resize(first + slots, [0; LANES]);
+            out.node3.resize(first + slots, [0; LANES]);
+            out.grad.resize(first + slots, [[0.0; LANES]; 3]);
+            let mut w = [0.0; LANES];
+            for (l, &c) in chunk.iter().enumerate() {
+                let nodes = &points.nodes[points.node_start[c]..points.node_start[c + 1]];
+                let grads = &points.grad[points.grad_start[c]..points.grad_start[c + 1]];
+                w[l] = points.weight_m3[c];
+                // Padding slots: the lane's first node with a zero gradient.
+                let padded = nodes
+                    .iter()
+                    .copied()
+                    .zip(grads.iter().copied())
+                    .chain(std::iter::repeat((nodes[0], DVec3::ZERO)));
+                for (s, (node, g)) in padded.take(slots).enumerate() {
+                    out.nodes[first + s][l] = node;
+                    out.node3[first + s][l] = 3 * node as i32;
+                    for c in 0..3 {
+                        out.grad[first + s][c][l] = g[c];
+                    }
+                }
+            }
+            out.weight_m3.push(w);
+            out.start.push(out.nodes.len());
+        }
+        out
+    }
+}
+
+/// Internal forces of single-point cells with variable node counts ([`DomainBatches`]):
+/// `F = sum_s (y_s - y_0) G_s^T` (positions, and velocities for the viscous stress) streamed
+/// slot by slot, the stress of material `MODEL`, then `f_s -= w P G_s` scattered per lane.
+///
+/// # Safety
+/// Node indices below `x.len()` and `v.len()` (see [`super::Kernels`]).
+#[inline(always)]
+pub(super) unsafe fn forces_domains<const FMA: bool, const MODEL: u8, V: Lanes8>(
+    isa: V::Isa,
+    d: &DomainBatches,
+    mat: &MaterialParams,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    let zero = V::splat(isa, 0.0);
+    for (b, w) in d.weight_m3.iter().enumerate() {
+        let (node3, grad) = (
+            &d.node3[d.start[b]..d.start[b + 1]],
+            &d.grad[d.start[b]..d.start[b + 1]],
+        );
+        // SAFETY (both): node indices are below x.len() and v.len() (caller's contract).
+        let fm = unsafe { domain_gradient::<FMA, V>(isa, node3, grad, x) };
+        #[allow(clippy::manual_map)]
+        let fd = match v {
+            Some(v) => Some(unsafe { domain_gradient::<FMA, V>(isa, node3, grad, v) }),
+            None => None,
+        };
+        let p = first_piola_lane::<FMA, MODEL, V>(isa, &fm, fd.as_ref(), mat);
+        let wn = zero - V::load(isa, w);
+        let mut m = [zero; 9];
+        for (mk, pk) in m.iter_mut().zip(p) {
+            *mk = wn * pk;
+        }
+        for (s, g) in grad.iter().enumerate() {
+            let g = [
+                V::load(isa, &g[0]),
+                V::load(isa, &g[1]),
+                V::load(isa, &g[2]),
+            ];
+            let mut h = [[0.0; LANES]; 3];
+            for (i, hi) in h.iter_mut().enumerate() {
+                let acc = V::madd::<FMA>(m[3 * i + 1], g[1], m[3 * i] * g[0]);
+                V::madd::<FMA>(m[3 * i + 2], g[2], acc).store(hi);
+            }
+            for (l, &node) in d.nodes[d.start[b] + s].iter().enumerate() {
+                f[node as usize] += DVec3::new(h[0][l], h[1][l], h[2][l]);
+            }
+        }
+    }
+}
+
+/// `sum_s (y_s - y_0) G_s^T` (row-major) of one batch of [`DomainBatches`].
+///
+/// # Safety
+/// Node indices below `y.len()` (see [`super::Kernels`]).
+#[inline(always)]
+unsafe fn domain_gradient<const FMA: bool, V: Lanes8>(
+    isa: V::Isa,
+    node3: &[[i32; LANES]],
+    grad: &[[[f64; LANES]; 3]],
+    y: &[DVec3],
+) -> [V; 9] {
+    let base = y.as_ptr().cast::<f64>();
+    let mut out = [V::splat(isa, 0.0); 9];
+    // SAFETY: as in `gather_differences`.
+    let y0 = unsafe {
+        [
+            V::gather(isa, base, &node3[0]),
+            V::gather(isa, base.add(1), &node3[0]),
+            V::gather(isa, base.add(2), &node3[0]),
+        ]
+    };
+    for (n3, g) in node3.iter().zip(grad).skip(1) {
+        let g = [
+            V::load(isa, &g[0]),
+            V::load(isa, &g[1]),
+            V::load(isa, &g[2]),
+        ];
+        for i in 0..3 {
+            // SAFETY: as above.
+            let di = unsafe { V::gather(isa, base.add(i), n3) } - y0[i];
+            for j in 0..3 {
+                out[3 * i + j] = V::madd::<FMA>(di, g[j], out[3 * i + j]);
+            }
+        }
+    }
+    out
+}

@@ -1,0 +1,147 @@
+//! Linear tetrahedra in batches of [`LANES`]: gathers of the edge vectors, `F = Ds Dm^-1`
+//! (seed 000 eq. 21), the stress and `H = -V P Dm^-T` (eq. 22) in registers, then a scalar
+//! scatter.
+
+use glam::{DMat3, DVec3};
+
+use super::LANES;
+use super::lanes::Lanes8;
+use super::stress::{dot3, first_piola_lane, gather_differences};
+use crate::material::MaterialParams;
+
+/// [`LANES`] elements, structure-of-arrays: `dm_inv[3 r + c][lane]` is entry (r, c) of
+/// `Dm^-1`. Padding lanes (at the end of the mesh) repeat node 0 with zero `Dm^-1` and volume,
+/// so they add exactly zero force.
+#[derive(Debug, Clone)]
+pub(super) struct ElementBatch {
+    nodes: [[u32; 4]; LANES],
+    /// `3 * nodes[l][k]` at `node3[k][l]`: f64 offsets of the node coordinates, for gathers.
+    node3: [[i32; LANES]; 4],
+    dm_inv: [[f64; LANES]; 9],
+    volume_m3: [f64; LANES],
+}
+
+impl ElementBatch {
+    /// Batches of the elements in the given `order` (a permutation of the element indices).
+    pub(super) fn build(
+        order: &[u32],
+        tets: &[[u32; 4]],
+        dm_inv: &[DMat3],
+        volume_m3: &[f64],
+    ) -> Vec<Self> {
+        order
+            .chunks(LANES)
+            .map(|chunk| {
+                let mut b = Self {
+                    nodes: [[0; 4]; LANES],
+                    node3: [[0; LANES]; 4],
+                    dm_inv: [[0.0; LANES]; 9],
+                    volume_m3: [0.0; LANES],
+                };
+                for (l, &e) in chunk.iter().enumerate() {
+                    let e = e as usize;
+                    b.nodes[l] = tets[e];
+                    for (row, &node) in b.node3.iter_mut().zip(&tets[e]) {
+                        row[l] = 3 * node as i32;
+                    }
+                    let m = dm_inv[e];
+                    for r in 0..3 {
+                        for c in 0..3 {
+                            b.dm_inv[3 * r + c][l] = m.col(c)[r];
+                        }
+                    }
+                    b.volume_m3[l] = volume_m3[e];
+                }
+                b
+            })
+            .collect()
+    }
+}
+
+/// StVK or stable Neo-Hookean (+ viscous) nodal forces of every batch of linear elements,
+/// added to `f` (see [`crate::element::FemModel::add_internal_forces`]), with every batch
+/// quantity held in
+/// lane type `V` (one lane per element): gathers of the edge vectors, `F = Ds Dm^-1` (seed 000
+/// eq. 21), the stress by [`first_piola_lane`] and `H = -V P Dm^-T` (eq. 22) without leaving
+/// registers, then [`scatter_linear`].
+///
+/// # Safety
+/// Every node index of `batches` must be below `x.len()` and `v.len()` (see
+/// [`super::Kernels`]).
+#[inline(always)]
+pub(super) unsafe fn forces_linear<const FMA: bool, const MODEL: u8, V: Lanes8>(
+    isa: V::Isa,
+    batches: &[ElementBatch],
+    mat: &MaterialParams,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    let zero = V::splat(isa, 0.0);
+    for batch in batches {
+        let mut bm = [zero; 9];
+        for (b, row) in bm.iter_mut().zip(&batch.dm_inv) {
+            *b = V::load(isa, row);
+        }
+        // SAFETY: node indices are below x.len() (caller's contract).
+        let fm = edge_gradient::<FMA, V>(
+            isa,
+            &unsafe { gather_differences::<V, 9>(isa, &batch.node3, x) },
+            &bm,
+        );
+        // No closure (`v.map`): closures are not inlined into `target_feature` functions.
+        #[allow(clippy::manual_map)]
+        let fd = match v {
+            // SAFETY: node indices are below v.len() (caller's contract).
+            Some(v) => Some(edge_gradient::<FMA, V>(
+                isa,
+                &unsafe { gather_differences::<V, 9>(isa, &batch.node3, v) },
+                &bm,
+            )),
+            None => None,
+        };
+        let p = first_piola_lane::<FMA, MODEL, V>(isa, &fm, fd.as_ref(), mat);
+        let w = zero - V::load(isa, &batch.volume_m3);
+        // h[3 k + i][l]: component i of the force on node k+1 of lane l.
+        let mut h = [[0.0; LANES]; 9];
+        for k in 0..3 {
+            for i in 0..3 {
+                let hk = w * dot3::<FMA, V>(
+                    [p[3 * i], p[3 * i + 1], p[3 * i + 2]],
+                    [bm[3 * k], bm[3 * k + 1], bm[3 * k + 2]],
+                );
+                hk.store(&mut h[3 * k + i]);
+            }
+        }
+        scatter_linear(batch, &h, f);
+    }
+}
+
+/// Adds the nodal forces of a batch to `f`: `h[3 k + i][l]` is component i of the force on
+/// node k+1 of lane l; node 0 gets minus their sum. Scalar, since lanes may share nodes.
+#[inline(always)]
+fn scatter_linear(batch: &ElementBatch, h: &[[f64; LANES]; 9], f: &mut [DVec3]) {
+    for (l, t) in batch.nodes.iter().enumerate() {
+        let [a, b, c, d] = t.map(|i| i as usize);
+        let hk = |k: usize| DVec3::new(h[3 * k][l], h[3 * k + 1][l], h[3 * k + 2][l]);
+        let (h1, h2, h3) = (hk(0), hk(1), hk(2));
+        f[b] += h1;
+        f[c] += h2;
+        f[d] += h3;
+        f[a] -= h1 + h2 + h3;
+    }
+}
+
+/// `F = Ds Dm^-1`: `d` from [`gather_differences`], `bm[3 r + c]` entry (r, c) of `Dm^-1`;
+/// `F_ij = sum_k d[3 k + i] bm[3 k + j]`, row-major (seed 000 eq. 21).
+#[inline(always)]
+fn edge_gradient<const FMA: bool, V: Lanes8>(isa: V::Isa, d: &[V; 9], bm: &[V; 9]) -> [V; 9] {
+    let mut out = [V::splat(isa, 0.0); 9];
+    for i in 0..3 {
+        for j in 0..3 {
+            out[3 * i + j] =
+                dot3::<FMA, V>([d[i], d[3 + i], d[6 + i]], [bm[j], bm[3 + j], bm[6 + j]]);
+        }
+    }
+    out
+}

@@ -1,0 +1,586 @@
+//! The vectorised force kernels: internal forces of linear, quadratic and edge-smoothed
+//! elements in batches of [`LANES`] elements side by side, and the backward Euler operator
+//! action of quadratic StVK elements, each compiled for AVX-512, AVX2 + FMA and plain code and
+//! chosen at run time.
+//!
+//! Owns: the batch layouts ([`linear`], [`quadratic`], [`domains`]), the lane arithmetic
+//! ([`lanes`], [`stress`]) and every `unsafe` block of the element code. May use:
+//! [`crate::material`] (parameters; the stress formulas are repeated per lane in [`stress`] and
+//! checked against [`crate::material::first_piola`] by the tests below) and the integration
+//! points of [`super::quadrature`].
+//!
+//! **Soundness.** The kernels gather node coordinates through raw pointers. [`Kernels`] is the
+//! only way to run them: it checks at construction that every node index of its batches is below
+//! its `node_count`, keeps its batches private, and checks before each call that the slices hold
+//! at least `node_count` nodes; the CPU features come from tokens made only by run-time
+//! detection ([`lanes`]).
+
+use glam::{DMat3, DVec3};
+
+mod domains;
+mod lanes;
+mod linear;
+mod quadratic;
+mod stress;
+
+use domains::{DomainBatches, forces_domains};
+#[cfg(target_arch = "x86_64")]
+use lanes::{Avx2Fma, Avx512, Ymm2, Zmm};
+use lanes::{Lanes8, Plain8};
+use linear::{ElementBatch, forces_linear};
+use quadratic::{QuadraticBatch, forces_quadratic, stvk_operator_quadratic};
+use stress::{LANE_STABLE_NEO_HOOKEAN, LANE_STVK, lane_model};
+
+use super::quadrature::IntegrationPoints;
+use crate::material::MaterialParams;
+
+/// Elements per batch of the force kernel: 8 f64 lanes fill an AVX-512 register (two AVX2
+/// registers).
+const LANES: usize = 8;
+
+// The gathers read component c of node n at `(x.as_ptr() as *const f64).add(3 n + c)`: a
+// `DVec3` must be three packed f64 in x, y, z order.
+const _: () = {
+    assert!(std::mem::size_of::<DVec3>() == 24);
+    assert!(std::mem::align_of::<DVec3>() == 8);
+    assert!(std::mem::offset_of!(DVec3, x) == 0);
+    assert!(std::mem::offset_of!(DVec3, y) == 8);
+    assert!(std::mem::offset_of!(DVec3, z) == 16);
+};
+
+/// The batches of one element layout.
+#[derive(Debug, Clone)]
+enum Layout {
+    /// Linear tetrahedra, one integration point each.
+    Linear(Vec<ElementBatch>),
+    /// 10-node tetrahedra; lane `l` of batch `b` is element `order[b * LANES + l]`.
+    Quadratic {
+        batches: Vec<QuadraticBatch>,
+        order: Vec<u32>,
+    },
+    /// Single-point cells with variable node counts (smoothing domains).
+    Domains(DomainBatches),
+}
+
+/// The vectorised kernels of one model, with the invariant their gathers rely on (module
+/// documentation): every node index of the batches is below `node_count`.
+#[derive(Debug, Clone)]
+pub(crate) struct Kernels {
+    node_count: usize,
+    layout: Layout,
+}
+
+impl Kernels {
+    /// Linear tetrahedra `tets` (with their `Dm^-1` and volumes) over `nodes` rest positions
+    /// (m), batched in a cache-friendly order.
+    ///
+    /// # Panics
+    /// If a node index is out of range (the caller validated the mesh).
+    pub(crate) fn linear(
+        nodes: &[DVec3],
+        tets: &[[u32; 4]],
+        dm_inv: &[DMat3],
+        volume_m3: &[f64],
+    ) -> Self {
+        let order = locality_order(nodes, tets);
+        Self::checked(
+            nodes.len(),
+            tets.iter().flatten(),
+            Layout::Linear(ElementBatch::build(&order, tets, dm_inv, volume_m3)),
+        )
+    }
+
+    /// Quadratic tetrahedra (corners `tets`, integration points `points`) over `nodes`.
+    ///
+    /// # Panics
+    /// As [`Kernels::linear`].
+    pub(crate) fn quadratic(
+        nodes: &[DVec3],
+        tets: &[[u32; 4]],
+        points: &IntegrationPoints,
+    ) -> Self {
+        let order = locality_order(nodes, tets);
+        let batches = QuadraticBatch::build(&order, points);
+        Self::checked(
+            nodes.len(),
+            points.nodes.iter(),
+            Layout::Quadratic { batches, order },
+        )
+    }
+
+    /// Single-point cells of `points` (smoothing domains) over `node_count` nodes.
+    ///
+    /// # Panics
+    /// As [`Kernels::linear`].
+    pub(crate) fn domains(node_count: usize, points: &IntegrationPoints) -> Self {
+        Self::checked(
+            node_count,
+            points.nodes.iter(),
+            Layout::Domains(DomainBatches::build(points)),
+        )
+    }
+
+    /// The invariant of the gathers: every node index (padding lanes repeat real nodes) is
+    /// below `node_count`.
+    fn checked<'a>(
+        node_count: usize,
+        mut indices: impl Iterator<Item = &'a u32>,
+        layout: Layout,
+    ) -> Self {
+        assert!(
+            indices.all(|&i| (i as usize) < node_count),
+            "element node index out of range"
+        );
+        Self { node_count, layout }
+    }
+
+    /// Adds the internal forces of material `mat` (elastic, plus viscous when `v` is given) to
+    /// `f` (N), for positions `x` (m) and velocities `v` (m/s); see
+    /// [`super::FemModel::add_internal_forces`]. Returns `false` (and does nothing) when the
+    /// material has no lane kernel (corotational).
+    ///
+    /// # Panics
+    /// If `x`, `v` or `f` holds fewer than `node_count` nodes.
+    pub(crate) fn add_forces(
+        &self,
+        mat: &MaterialParams,
+        x: &[DVec3],
+        v: Option<&[DVec3]>,
+        f: &mut [DVec3],
+    ) -> bool {
+        let n = self.node_count;
+        assert!(x.len() >= n && f.len() >= n && v.is_none_or(|v| v.len() >= n));
+        match lane_model(mat.model) {
+            Some(LANE_STVK) => self.dispatch_forces::<LANE_STVK>(mat, x, v, f),
+            Some(LANE_STABLE_NEO_HOOKEAN) => {
+                self.dispatch_forces::<LANE_STABLE_NEO_HOOKEAN>(mat, x, v, f);
+            }
+            _ => return false,
+        }
+        true
+    }
+
+    /// [`Kernels::add_forces`] with the best instruction set of this CPU.
+    fn dispatch_forces<const MODEL: u8>(
+        &self,
+        mat: &MaterialParams,
+        x: &[DVec3],
+        v: Option<&[DVec3]>,
+        f: &mut [DVec3],
+    ) {
+        // SAFETY (all three): node indices are below node_count (checked at construction) and
+        // the slices hold node_count nodes (asserted by the caller); each token proves its
+        // instruction set on this CPU.
+        #[cfg(target_arch = "x86_64")]
+        if let Some(isa) = Avx512::detect() {
+            unsafe { forces_avx512::<MODEL>(isa, self, mat, x, v, f) };
+            return;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if let Some(isa) = Avx2Fma::detect() {
+            unsafe { forces_avx2::<MODEL>(isa, self, mat, x, v, f) };
+            return;
+        }
+        unsafe { forces_plain::<MODEL>(self, mat, x, v, f) };
+    }
+
+    /// For quadratic elements: adds the element part of the backward Euler operator of StVK
+    /// applied to `p` to `out` (see [`super::FemModel::quadratic_stvk_operator_action`]).
+    /// Returns `false` (and does nothing) for other layouts.
+    ///
+    /// # Panics
+    /// If `p` or `out` holds fewer than `node_count` nodes, or `ip_f`, `ip_s` fewer entries
+    /// than the elements' integration points.
+    pub(crate) fn quadratic_stvk_operator_action(
+        &self,
+        ip_f: &[DMat3],
+        ip_s: &[DMat3],
+        c: (f64, f64, f64),
+        p: &[DVec3],
+        out: &mut [DVec3],
+    ) -> bool {
+        let Layout::Quadratic { batches, order } = &self.layout else {
+            return false;
+        };
+        let (n, nq) = (self.node_count, 4 * order.len());
+        assert!(p.len() >= n && out.len() >= n && ip_f.len() >= nq && ip_s.len() >= nq);
+        // SAFETY (all three): as in `dispatch_forces`.
+        #[cfg(target_arch = "x86_64")]
+        if let Some(isa) = Avx512::detect() {
+            unsafe { stvk_operator_quadratic_avx512(isa, batches, order, ip_f, ip_s, c, p, out) };
+            return true;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if let Some(isa) = Avx2Fma::detect() {
+            unsafe { stvk_operator_quadratic_avx2(isa, batches, order, ip_f, ip_s, c, p, out) };
+            return true;
+        }
+        unsafe {
+            stvk_operator_quadratic::<false, Plain8>((), batches, order, ip_f, ip_s, c, p, out)
+        };
+        true
+    }
+}
+
+/// Element order for the force kernel: by the Morton (Z-order) code of the centroid, so that
+/// consecutive elements touch nearby, mostly cache-resident nodes. Ties keep the mesh order.
+fn locality_order(nodes: &[DVec3], tets: &[[u32; 4]]) -> Vec<u32> {
+    let centroid = |t: &[u32; 4]| t.iter().map(|&i| nodes[i as usize]).sum::<DVec3>() * 0.25;
+    let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+    for t in tets {
+        let c = centroid(t);
+        lo = lo.min(c);
+        hi = hi.max(c);
+    }
+    let scale = (hi - lo).max_element();
+    let scale = if scale > 0.0 { 1023.0 / scale } else { 0.0 };
+    // Spreads the 10 low bits of `v` to every third bit.
+    let spread = |v: u64| {
+        let mut x = v & 0x3ff;
+        x = (x | (x << 16)) & 0x0300_00ff;
+        x = (x | (x << 8)) & 0x0300_f00f;
+        x = (x | (x << 4)) & 0x030c_30c3;
+        (x | (x << 2)) & 0x0924_9249
+    };
+    let mut keyed: Vec<(u64, u32)> = tets
+        .iter()
+        .enumerate()
+        .map(|(e, t)| {
+            let q = ((centroid(t) - lo) * scale).round();
+            let code = spread(q.x as u64) | (spread(q.y as u64) << 1) | (spread(q.z as u64) << 2);
+            (code, e as u32)
+        })
+        .collect();
+    keyed.sort_unstable();
+    // Interleave LANES runs of the curve, so that the lanes of a batch lie far apart and
+    // rarely share a node (a shared node serialises the scatter of the forces).
+    let n = keyed.len();
+    let run = n.div_ceil(LANES);
+    (0..run)
+        .flat_map(|k| (0..LANES).map(move |l| l * run + k))
+        .filter(|&i| i < n)
+        .map(|i| keyed[i].1)
+        .collect()
+}
+
+/// The force kernel of `k`'s layout with lane type `V`.
+///
+/// # Safety
+/// Node indices below the lengths of `x`, `v` (see [`Kernels`]).
+#[inline(always)]
+unsafe fn forces_with<const FMA: bool, const MODEL: u8, V: Lanes8>(
+    isa: V::Isa,
+    k: &Kernels,
+    mat: &MaterialParams,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    // SAFETY: the caller's contract.
+    unsafe {
+        match &k.layout {
+            Layout::Quadratic { batches, .. } => {
+                forces_quadratic::<FMA, MODEL, V>(isa, batches, mat, x, v, f);
+            }
+            Layout::Domains(d) => forces_domains::<FMA, MODEL, V>(isa, d, mat, x, v, f),
+            Layout::Linear(batches) => forces_linear::<FMA, MODEL, V>(isa, batches, mat, x, v, f),
+        }
+    }
+}
+
+/// [`forces_with`] in AVX-512 registers ([`Zmm`]).
+///
+/// # Safety
+/// Node indices as [`forces_with`] (the token proves the instruction set).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+unsafe fn forces_avx512<const MODEL: u8>(
+    isa: Avx512,
+    k: &Kernels,
+    mat: &MaterialParams,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    // SAFETY: the caller's contract.
+    unsafe { forces_with::<true, MODEL, Zmm>(isa, k, mat, x, v, f) }
+}
+
+/// [`forces_with`] in pairs of AVX2 registers ([`Ymm2`]).
+///
+/// # Safety
+/// Node indices as [`forces_with`] (the token proves the instruction set).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn forces_avx2<const MODEL: u8>(
+    isa: Avx2Fma,
+    k: &Kernels,
+    mat: &MaterialParams,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    // SAFETY: the caller's contract.
+    unsafe { forces_with::<true, MODEL, Ymm2>(isa, k, mat, x, v, f) }
+}
+
+/// [`forces_with`] in plain code ([`Plain8`], unfused multiply-adds).
+///
+/// # Safety
+/// Node indices as [`forces_with`].
+unsafe fn forces_plain<const MODEL: u8>(
+    k: &Kernels,
+    mat: &MaterialParams,
+    x: &[DVec3],
+    v: Option<&[DVec3]>,
+    f: &mut [DVec3],
+) {
+    // SAFETY: the caller's contract; Plain8 needs no CPU feature.
+    unsafe { forces_with::<false, MODEL, Plain8>((), k, mat, x, v, f) }
+}
+
+/// [`stvk_operator_quadratic`] in AVX-512 registers.
+///
+/// # Safety
+/// Node indices below `p.len()` (the token proves the instruction set).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "the token, the batches and the cached F, S"
+)]
+unsafe fn stvk_operator_quadratic_avx512(
+    isa: Avx512,
+    batches: &[QuadraticBatch],
+    order: &[u32],
+    ip_f: &[DMat3],
+    ip_s: &[DMat3],
+    c: (f64, f64, f64),
+    p: &[DVec3],
+    out: &mut [DVec3],
+) {
+    // SAFETY: the caller's contract.
+    unsafe { stvk_operator_quadratic::<true, Zmm>(isa, batches, order, ip_f, ip_s, c, p, out) }
+}
+
+/// [`stvk_operator_quadratic`] in pairs of AVX2 registers.
+///
+/// # Safety
+/// Node indices below `p.len()` (the token proves the instruction set).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "the token, the batches and the cached F, S"
+)]
+unsafe fn stvk_operator_quadratic_avx2(
+    isa: Avx2Fma,
+    batches: &[QuadraticBatch],
+    order: &[u32],
+    ip_f: &[DMat3],
+    ip_s: &[DMat3],
+    c: (f64, f64, f64),
+    p: &[DVec3],
+    out: &mut [DVec3],
+) {
+    // SAFETY: the caller's contract.
+    unsafe { stvk_operator_quadratic::<true, Ymm2>(isa, batches, order, ip_f, ip_s, c, p, out) }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::element::{FemModel, StrainSmoothing};
+    use crate::material::{self, MaterialModel};
+    use crate::mesh::generate::box_mesh;
+
+    /// A large non-affine deformation of the rest shape and pseudo-random velocities.
+    fn deformed_state(fem: &FemModel) -> (Vec<DVec3>, Vec<DVec3>) {
+        let mut seed = 7_u64;
+        let mut next = move || {
+            seed = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+            (seed >> 11) as f64 / (1_u64 << 53) as f64 - 0.5
+        };
+        let x = fem
+            .rest
+            .iter()
+            .map(|p| {
+                DVec3::new(
+                    p.x + 0.2 * p.y + 30.0 * p.z * p.z + 3e-4 * next(),
+                    0.9 * p.y - 0.1 * p.x + 3e-4 * next(),
+                    1.1 * p.z + 20.0 * p.x * p.y + 3e-4 * next(),
+                )
+            })
+            .collect();
+        let v = (0..fem.node_count())
+            .map(|_| DVec3::new(next(), next(), next()) * 0.2)
+            .collect();
+        (x, v)
+    }
+
+    /// Every instruction-set variant of the batch kernels that this CPU can run (AVX-512
+    /// registers, AVX2 + FMA, plain code) against the scalar element loop `generic_forces`
+    /// (`material::first_piola` per element or integration point), for StVK and stable
+    /// Neo-Hookean, linear, quadratic and edge-smoothed linear elements, with and without
+    /// viscosity. The public
+    /// `add_internal_forces` runs only the best variant, so the others are checked here.
+    #[test]
+    fn every_kernel_variant_matches_the_scalar_element_loop() {
+        type Kernel = fn(&FemModel, &[DVec3], Option<&[DVec3]>, &mut [DVec3]);
+        // The inputs are the test's own (node indices checked by `FemModel::new`, x and v
+        // n long); each instruction set is asserted before its kernel runs.
+        fn plain<const MODEL: u8>(m: &FemModel, x: &[DVec3], v: Option<&[DVec3]>, f: &mut [DVec3]) {
+            // SAFETY: see above.
+            unsafe { forces_plain::<MODEL>(&m.kernels, &m.material, x, v, f) }
+        }
+        #[cfg(target_arch = "x86_64")]
+        fn avx2<const MODEL: u8>(m: &FemModel, x: &[DVec3], v: Option<&[DVec3]>, f: &mut [DVec3]) {
+            let isa = Avx2Fma::detect().expect("AVX2 and FMA");
+            // SAFETY: see above.
+            unsafe { forces_avx2::<MODEL>(isa, &m.kernels, &m.material, x, v, f) }
+        }
+        #[cfg(target_arch = "x86_64")]
+        fn zmm<const MODEL: u8>(m: &FemModel, x: &[DVec3], v: Option<&[DVec3]>, f: &mut [DVec3]) {
+            let isa = Avx512::detect().expect("AVX-512");
+            // SAFETY: see above.
+            unsafe { forces_avx512::<MODEL>(isa, &m.kernels, &m.material, x, v, f) }
+        }
+        let mut checked = 0;
+        for (model, kernels) in [
+            (MaterialModel::StVenantKirchhoff, {
+                let mut k: Vec<(&str, Kernel)> = vec![("plain", plain::<LANE_STVK>)];
+                #[cfg(target_arch = "x86_64")]
+                {
+                    if Avx2Fma::detect().is_some() {
+                        k.push(("avx2", avx2::<LANE_STVK>));
+                    }
+                    if Avx512::detect().is_some() {
+                        k.push(("avx512", zmm::<LANE_STVK>));
+                    }
+                }
+                k
+            }),
+            (MaterialModel::StableNeoHookean, {
+                let mut k: Vec<(&str, Kernel)> = vec![("plain", plain::<LANE_STABLE_NEO_HOOKEAN>)];
+                #[cfg(target_arch = "x86_64")]
+                {
+                    if Avx2Fma::detect().is_some() {
+                        k.push(("avx2", avx2::<LANE_STABLE_NEO_HOOKEAN>));
+                    }
+                    if Avx512::detect().is_some() {
+                        k.push(("avx512", zmm::<LANE_STABLE_NEO_HOOKEAN>));
+                    }
+                }
+                k
+            }),
+        ] {
+            for (quadratic, smoothing) in [
+                (false, StrainSmoothing::None),
+                (true, StrainSmoothing::None),
+                (false, StrainSmoothing::Edge),
+            ] {
+                // 3 x 2 x 3 cells: 90 tets (and 169 edge domains), so the last batch has
+                // padding lanes.
+                let mesh = box_mesh(DVec3::splat(0.01), [3, 2, 3]);
+                let mesh = if quadratic { mesh.to_quadratic() } else { mesh };
+                let mut mat = MaterialParams::from_youngs(1e4, 0.45, 1000.0);
+                mat.model = model;
+                mat.phi_pa_s = 0.3;
+                mat.psi_pa_s = 0.2;
+                let fem = FemModel::with_smoothing(&mesh, mat, smoothing).unwrap();
+                assert_ne!(fem.element_count() % LANES, 0, "want padding lanes");
+                assert_ne!(fem.cell_count() % LANES, 0, "want padding lanes");
+                if smoothing == StrainSmoothing::Edge {
+                    // Domains of several node counts: batches with padding slots.
+                    let counts: std::collections::BTreeSet<usize> = (0..fem.cell_count())
+                        .map(|c| fem.cell_nodes(c).len())
+                        .collect();
+                    assert!(counts.len() >= 3, "{counts:?}");
+                }
+                let (x, v) = deformed_state(&fem);
+                for velocities in [None, Some(v.as_slice())] {
+                    let mut expected = vec![DVec3::ZERO; fem.node_count()];
+                    fem.generic_forces(&x, velocities, &mut expected);
+                    let scale = expected.iter().map(|a| a.length()).fold(0.0, f64::max);
+                    assert!(scale > 0.0);
+                    for (name, kernel) in &kernels {
+                        let mut f = vec![DVec3::ZERO; fem.node_count()];
+                        kernel(&fem, &x, velocities, &mut f);
+                        let err = f
+                            .iter()
+                            .zip(&expected)
+                            .map(|(a, b)| (*a - *b).length())
+                            .fold(0.0, f64::max);
+                        assert!(
+                            err < 1e-12 * scale,
+                            "{name} {model:?} quadratic={quadratic} {smoothing:?} viscous={}: {err:e} of {scale:e}",
+                            velocities.is_some()
+                        );
+                        checked += 1;
+                    }
+                }
+            }
+        }
+        // At least the plain variant of each of the 12 combinations.
+        assert!(checked >= 12);
+    }
+
+    /// Every instruction-set variant of the quadratic backward Euler operator kernel against
+    /// the plain one (the integration test `vectorised_operator_matches_the_integration_point_formula`
+    /// checks the variant this CPU runs against the formula).
+    #[test]
+    fn every_operator_variant_matches_the_plain_one() {
+        let mesh = box_mesh(DVec3::splat(0.01), [3, 2, 3]).to_quadratic();
+        let fem = FemModel::new(&mesh, MaterialParams::from_youngs(1e4, 0.45, 1000.0)).unwrap();
+        let (x, p) = deformed_state(&fem);
+        let nq = fem.integration_point_count();
+        let ip_f: Vec<_> = (0..nq).map(|q| fem.ip_field_gradient(q, &x)).collect();
+        let ip_s: Vec<_> = ip_f
+            .iter()
+            .map(|f| material::stvk_stress(&material::green_strain(f), 4e3, 1e3))
+            .collect();
+        let c = (1e-6, 3.0e3, 2.0e3);
+        let Layout::Quadratic {
+            batches: b,
+            order: o,
+        } = &fem.kernels.layout
+        else {
+            panic!("quadratic layout");
+        };
+        let mut expected = vec![DVec3::ZERO; fem.node_count()];
+        // SAFETY: node indices checked by `FemModel::new`; p is n long.
+        unsafe {
+            stvk_operator_quadratic::<false, Plain8>((), b, o, &ip_f, &ip_s, c, &p, &mut expected)
+        };
+        let scale = expected.iter().map(|a| a.length()).fold(0.0, f64::max);
+        assert!(scale > 0.0);
+        let check = |name: &str, got: &[DVec3]| {
+            let err = got
+                .iter()
+                .zip(&expected)
+                .map(|(a, b)| (*a - *b).length())
+                .fold(0.0, f64::max);
+            assert!(err < 1e-12 * scale, "{name}: {err:e} of {scale:e}");
+        };
+        #[cfg(target_arch = "x86_64")]
+        {
+            if Avx2Fma::detect().is_some() {
+                let mut out = vec![DVec3::ZERO; fem.node_count()];
+                let isa = Avx2Fma::detect().expect("AVX2 and FMA");
+                // SAFETY: indices as above; the token proves the instruction set.
+                unsafe { stvk_operator_quadratic_avx2(isa, b, o, &ip_f, &ip_s, c, &p, &mut out) };
+                check("avx2", &out);
+            }
+            if Avx512::detect().is_some() {
+                let mut out = vec![DVec3::ZERO; fem.node_count()];
+                let isa = Avx512::detect().expect("AVX-512");
+                // SAFETY: indices as above; the token proves the instruction set.
+                unsafe { stvk_operator_quadratic_avx512(isa, b, o, &ip_f, &ip_s, c, &p, &mut out) };
+                check("avx512", &out);
+            }
+        }
+        let mut out = vec![DVec3::ZERO; fem.node_count()];
+        assert!(fem.quadratic_stvk_operator_action(&ip_f, &ip_s, c, &p, &mut out));
+        check("public", &out);
+    }
+}

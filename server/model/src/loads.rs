@@ -1,0 +1,387 @@
+//! Loads: what pushes a body besides the probe's reaction. Scene loads (gravity, dead and
+//! follower surface pressure, permanent point forces; section `[loads]`), point loads added at
+//! run time (`ApplyForce`), and the probe load (a disturbance at the probe's contact patch).
+//!
+//! [`BodyLoads`] holds them for a dynamic body, sized at construction so that adding them to
+//! the nodal forces each sub-step allocates nothing: the state-independent part (gravity, dead
+//! pressure, point forces) is summed once into a constant nodal force; follower pressure is
+//! recomputed from the current positions each sub-step. [`static_external_forces`] gives the
+//! same forces for static solves.
+//!
+//! Owns: load data and their nodal forces. May use: [`crate::contact`] (kernel patches place
+//! point loads as a probe touching there would spread its reaction), [`crate::element`]
+//! (masses), [`crate::mesh`]. Used by the bodies, [`crate::scene`] (builds [`SceneLoads`]) and
+//! static solves.
+
+use glam::DVec3;
+
+use crate::ModelError;
+use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
+use crate::contact::{ContactSurface, MAX_PATCH_NODES, PATCH_RADIUS_FACTOR};
+use crate::element::lumped_masses;
+use crate::mesh::TetMesh;
+
+/// Largest number of point loads active at once (the table is preallocated).
+pub const MAX_POINT_LOADS: usize = 32;
+/// Largest accepted point-load magnitude, N. Anything larger is rejected as absurd for a
+/// haptic scene (the strongest device we drive renders 100 N).
+pub const MAX_POINT_FORCE_N: f64 = 100.0;
+/// Largest accepted point-load duration, s.
+pub const MAX_POINT_LOAD_DURATION_S: f64 = 3600.0;
+
+/// External loads of a scene (section `[loads]`), SI units; the default is no load. Applied by
+/// every integrator in every sub-step ([`BodyLoads`]) and, for static solves, by
+/// [`static_external_forces`].
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SceneLoads {
+    /// Gravitational acceleration, m/s^2 (nodal forces `m_i g`).
+    pub gravity_m_per_s2: DVec3,
+    /// Uniform pressures on tagged surfaces.
+    pub pressure: Vec<PressureLoad>,
+    /// Permanent point forces.
+    pub point: Vec<PointForce>,
+}
+
+impl SceneLoads {
+    /// Whether the scene has no load at all.
+    pub fn is_empty(&self) -> bool {
+        self.gravity_m_per_s2 == DVec3::ZERO && self.pressure.is_empty() && self.point.is_empty()
+    }
+}
+
+/// A uniform pressure on tagged surfaces: each triangle carries `-p A n` (n its outward
+/// normal), a third per vertex, so a positive pressure pushes the surface into the body.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PressureLoad {
+    /// Surface names the load acts on.
+    pub surfaces: Vec<String>,
+    /// Their triangles, outward oriented, distinct.
+    pub triangles: Vec<[u32; 3]>,
+    /// Pressure, Pa.
+    pub pressure_pa: f64,
+    /// Follower load (`true`: area and normal from the current geometry, recomputed every
+    /// sub-step) or dead load (`false`: from the rest geometry).
+    pub follower: bool,
+}
+
+/// A permanent (dead) point force on the surface point closest, at rest, to `point_m`, spread
+/// over that boundary triangle by barycentric weights.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PointForce {
+    /// Requested point, m.
+    pub point_m: DVec3,
+    /// Force, N.
+    pub force_n: DVec3,
+    /// The boundary triangle (node indices) holding the closest point.
+    pub nodes: [u32; 3],
+    /// Barycentric weights of the closest point on it (sum 1).
+    pub bary: [f64; 3],
+}
+
+/// Nodal forces (N) of a uniform pressure `pressure_pa` (Pa) on `triangles` at positions `x`:
+/// each triangle carries `-p A n` (n its outward unit normal, A its area), one third per vertex.
+/// A positive pressure pushes the surface inwards along its outward normal (for the inner
+/// surface of a hollow body, whose outward normal faces the cavity, it inflates the body).
+/// Evaluated at rest positions this is a dead load; re-evaluated each step, a follower load.
+pub fn add_pressure_forces(triangles: &[[u32; 3]], x: &[DVec3], pressure_pa: f64, f: &mut [DVec3]) {
+    for t in triangles {
+        let [a, b, c] = t.map(|i| x[i as usize]);
+        // (b-a) x (c-a) = 2 A n
+        let fa = (b - a).cross(c - a) * (-pressure_pa / 6.0);
+        for &i in t {
+            f[i as usize] += fa;
+        }
+    }
+}
+
+/// Checks a point load's numbers (see [`BodyLoads::add_point_load`]).
+///
+/// # Errors
+/// [`ModelError::InvalidInput`] saying which value is wrong.
+pub fn validate_point_load(
+    point_m: DVec3,
+    force_n: DVec3,
+    duration_s: f64,
+) -> Result<(), ModelError> {
+    if !point_m.is_finite() {
+        return Err(ModelError::InvalidInput("point_m is not finite".into()));
+    }
+    if !force_n.is_finite() {
+        return Err(ModelError::InvalidInput("force_n is not finite".into()));
+    }
+    if !duration_s.is_finite() || duration_s <= 0.0 || duration_s > MAX_POINT_LOAD_DURATION_S {
+        return Err(ModelError::InvalidInput(format!(
+            "duration_s = {duration_s} must be in (0, {MAX_POINT_LOAD_DURATION_S}] s"
+        )));
+    }
+    if force_n.length() > MAX_POINT_FORCE_N {
+        return Err(ModelError::InvalidInput(format!(
+            "|force_n| = {:.3} N exceeds the {MAX_POINT_FORCE_N} N limit",
+            force_n.length()
+        )));
+    }
+    if point_m.abs().max_element() > MAX_DEVICE_DISTANCE_M {
+        return Err(ModelError::InvalidInput(format!(
+            "point_m {point_m} is absurdly far from the scene"
+        )));
+    }
+    Ok(())
+}
+
+/// The state-independent part of `loads` on nodes with rest positions `rest` and lumped masses
+/// `mass_kg`: gravity, dead pressure (rest geometry) and point forces. Empty when there is none
+/// of them.
+fn constant_external_forces(loads: &SceneLoads, rest: &[DVec3], mass_kg: &[f64]) -> Vec<DVec3> {
+    let l = loads;
+    if l.gravity_m_per_s2 == DVec3::ZERO
+        && l.point.is_empty()
+        && l.pressure.iter().all(|p| p.follower)
+    {
+        return Vec::new();
+    }
+    let mut f: Vec<DVec3> = mass_kg.iter().map(|m| l.gravity_m_per_s2 * *m).collect();
+    for p in l.pressure.iter().filter(|p| !p.follower) {
+        add_pressure_forces(&p.triangles, rest, p.pressure_pa, &mut f);
+    }
+    for p in &l.point {
+        for k in 0..3 {
+            f[p.nodes[k] as usize] += p.force_n * p.bary[k];
+        }
+    }
+    f
+}
+
+/// External nodal forces (N, one per node of `mesh`) of `loads` at positions `x` (m), for
+/// static solves: gravity on the lumped masses (density `density_kg_per_m3`), dead pressure on
+/// the rest geometry, follower pressure on `x`, point forces. The same forces [`BodyLoads`]
+/// applies in every sub-step.
+///
+/// # Panics
+/// If `x` is shorter than the mesh's node count.
+pub fn static_external_forces(
+    loads: &SceneLoads,
+    mesh: &TetMesh,
+    density_kg_per_m3: f64,
+    x: &[DVec3],
+) -> Vec<DVec3> {
+    let mass = lumped_masses(mesh, density_kg_per_m3);
+    let mut f = constant_external_forces(loads, &mesh.nodes, &mass);
+    if f.is_empty() {
+        f = vec![DVec3::ZERO; mesh.nodes.len()];
+    }
+    for p in loads.pressure.iter().filter(|p| p.follower) {
+        add_pressure_forces(&p.triangles, x, p.pressure_pa, &mut f);
+    }
+    f
+}
+
+/// A point load: a force on a surface point, spread over the surface nodes around it
+/// (`nodes[..len]`, `weights[..len]`, sum 1), see [`BodyLoads::add_point_load`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct PointLoad {
+    nodes: [u32; MAX_PATCH_NODES],
+    weights: [f64; MAX_PATCH_NODES],
+    len: usize,
+    force_n: DVec3,
+    remaining_s: f64,
+}
+
+/// The loads of a dynamic body (module documentation), sized at construction.
+#[derive(Debug, Clone)]
+pub struct BodyLoads {
+    /// Scene loads that do not depend on the state (gravity, dead pressure, point forces), N
+    /// per node; empty when there are none.
+    constant: Vec<DVec3>,
+    /// Follower pressures: (triangles, Pa).
+    follower: Vec<(Vec<[u32; 3]>, f64)>,
+    /// Surface on which point loads are placed.
+    surface: ContactSurface,
+    /// Active point loads (capacity [`MAX_POINT_LOADS`]).
+    points: Vec<PointLoad>,
+    /// Scratch for the patch of a new point load (capacity [`MAX_PATCH_NODES`]).
+    patch_nodes: Vec<u32>,
+    patch_weights: Vec<f64>,
+    /// Extra force on the probe's contact patch (N) and its remaining time (s).
+    probe_n: DVec3,
+    probe_remaining_s: f64,
+}
+
+impl BodyLoads {
+    /// The loads of a body with rest positions `rest` (m) and lumped masses `mass_kg`: the
+    /// scene's `loads`, and point loads placed on `load_surface` (triangles over the body's
+    /// nodes; for example the free boundary).
+    pub fn new(
+        loads: &SceneLoads,
+        rest: &[DVec3],
+        mass_kg: &[f64],
+        load_surface: Vec<[u32; 3]>,
+    ) -> Self {
+        Self {
+            constant: constant_external_forces(loads, rest, mass_kg),
+            follower: loads
+                .pressure
+                .iter()
+                .filter(|l| l.follower)
+                .map(|l| (l.triangles.clone(), l.pressure_pa))
+                .collect(),
+            surface: ContactSurface::new(load_surface, rest.len()),
+            points: Vec::with_capacity(MAX_POINT_LOADS),
+            patch_nodes: Vec::with_capacity(MAX_PATCH_NODES),
+            patch_weights: Vec::with_capacity(MAX_PATCH_NODES),
+            probe_n: DVec3::ZERO,
+            probe_remaining_s: 0.0,
+        }
+    }
+
+    /// Whether a scene load acts on a node for which `inside` is false (the condensed model
+    /// refuses loads on its condensed elements).
+    pub fn acts_outside(&self, inside: impl Fn(u32) -> bool) -> bool {
+        let constant = self
+            .constant
+            .iter()
+            .enumerate()
+            .any(|(i, f)| *f != DVec3::ZERO && !inside(i as u32));
+        let follower = self
+            .follower
+            .iter()
+            .any(|(tris, _)| !tris.iter().flatten().all(|&i| inside(i)));
+        constant || follower
+    }
+
+    /// Adds the scene loads (follower pressure at positions `x`, m) and the active point loads
+    /// to the nodal forces `f` (N). Allocation-free.
+    pub fn add_to(&self, x: &[DVec3], f: &mut [DVec3]) {
+        if !self.constant.is_empty() {
+            for (fi, l) in f.iter_mut().zip(&self.constant) {
+                *fi += *l;
+            }
+        }
+        for (tris, p) in &self.follower {
+            add_pressure_forces(tris, x, *p, f);
+        }
+        for l in &self.points {
+            for (&i, &w) in l.nodes[..l.len].iter().zip(&l.weights[..l.len]) {
+                f[i as usize] += l.force_n * w;
+            }
+        }
+    }
+
+    /// Adds the active probe load ([`BodyLoads::set_probe_load`]) over the probe's contact
+    /// patch (`nodes`, `weights`, sum 1) to `f` (N). Allocation-free.
+    pub fn add_probe_load_to(&self, (nodes, weights): (&[u32], &[f64]), f: &mut [DVec3]) {
+        if self.probe_remaining_s > 0.0 {
+            for (&i, &w) in nodes.iter().zip(weights) {
+                f[i as usize] += self.probe_n * w;
+            }
+        }
+    }
+
+    /// Applies `force_n` (N) at the surface point closest to `point_m` (m) on positions `x` for
+    /// `duration_s` of simulated time, spread as a probe of radius `r = probe_radius_m`
+    /// touching there spreads its reaction: over the surface nodes within `2 r` of the point
+    /// `r` outside the surface (the probe's centre) with the contact kernel weights
+    /// `(1 - d^2 / (2r)^2)^2` (sum 1, see [`ContactSurface::gather_kernel_patch`]; a disc of
+    /// radius `sqrt(3) r` on the surface), fixed to those nodes when the load is added. When
+    /// no node lies that close (a triangle much larger than the probe) it falls back to the
+    /// closest triangle's barycentric weights.
+    ///
+    /// A force on the three nodes of one triangle is a point load in the continuum sense: its
+    /// local displacement grows without bound as the mesh is refined; spread over the probe's
+    /// footprint it converges with the mesh. It moves the surface more than a probe held
+    /// against it with the same force, because the probe's patch widens as the surface wraps
+    /// around the sphere, while this one stays on the nodes it was given.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] (nothing changed) for the values [`validate_point_load`]
+    /// rejects; [`ModelError::LoadTableFull`] when [`MAX_POINT_LOADS`] loads are already
+    /// active; [`ModelError::InvalidDevice`] when the body has no free surface. Allocation-free,
+    /// so the servo tick may call it.
+    pub fn add_point_load(
+        &mut self,
+        x: &[DVec3],
+        probe_radius_m: f64,
+        point_m: DVec3,
+        force_n: DVec3,
+        duration_s: f64,
+    ) -> Result<(), ModelError> {
+        validate_point_load(point_m, force_n, duration_s)?;
+        if self.points.len() >= MAX_POINT_LOADS {
+            return Err(ModelError::LoadTableFull(MAX_POINT_LOADS));
+        }
+        let sp = self
+            .surface
+            .closest_global(x, point_m)
+            .ok_or(ModelError::InvalidDevice(
+                "the body has no free surface to load",
+            ))?;
+        let mut load = PointLoad {
+            nodes: [0; MAX_PATCH_NODES],
+            weights: [0.0; MAX_PATCH_NODES],
+            len: 0,
+            force_n,
+            remaining_s: duration_s,
+        };
+        // The kernel centre sits one probe radius outside the surface, where a probe touching
+        // there has its centre, so the weights are the probe's.
+        let r = probe_radius_m;
+        let centre = sp.point + self.surface.normal(sp.triangle, x) * r;
+        self.surface.gather_kernel_patch(
+            x,
+            centre,
+            sp.triangle,
+            PATCH_RADIUS_FACTOR * r,
+            &mut self.patch_nodes,
+            &mut self.patch_weights,
+        );
+        if self.patch_nodes.is_empty() {
+            let tri = self.surface.triangles[sp.triangle as usize];
+            load.nodes[..3].copy_from_slice(&tri);
+            load.weights[..3].copy_from_slice(&sp.bary);
+            load.len = 3;
+        } else {
+            load.len = self.patch_nodes.len();
+            load.nodes[..load.len].copy_from_slice(&self.patch_nodes);
+            load.weights[..load.len].copy_from_slice(&self.patch_weights);
+        }
+        self.points.push(load);
+        Ok(())
+    }
+
+    /// Sets the probe load: `force_n` (N) on the probe's contact patch for `duration_s` of
+    /// simulated time (replacing an active one); see [`BodyLoads::add_probe_load_to`].
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] (nothing changed) for the values [`validate_point_load`]
+    /// rejects.
+    pub fn set_probe_load(&mut self, force_n: DVec3, duration_s: f64) -> Result<(), ModelError> {
+        validate_point_load(DVec3::ZERO, force_n, duration_s)?;
+        self.probe_n = force_n;
+        self.probe_remaining_s = duration_s;
+        Ok(())
+    }
+
+    /// Advances the loads' clocks by `dt_s` (s): expired point loads are dropped, the probe
+    /// load's time runs (in contact or not). Allocation-free.
+    pub fn advance(&mut self, dt_s: f64) {
+        self.points.retain_mut(|l| {
+            l.remaining_s -= dt_s;
+            l.remaining_s > 1e-12
+        });
+        if self.probe_remaining_s > 0.0 {
+            self.probe_remaining_s -= dt_s;
+            if self.probe_remaining_s <= 1e-12 {
+                self.probe_remaining_s = 0.0;
+            }
+        }
+    }
+
+    /// Number of point loads still active.
+    pub fn active_point_loads(&self) -> usize {
+        self.points.len()
+    }
+
+    /// Remaining time of the probe load, s (0 when none).
+    pub fn probe_load_remaining_s(&self) -> f64 {
+        self.probe_remaining_s
+    }
+}

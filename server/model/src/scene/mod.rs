@@ -1,0 +1,183 @@
+//! Scenes: a mesh, a material, boundary conditions, an integrator and a probe.
+//!
+//! A scene is a TOML text (a file, or one of the built-in texts of [`builtin_scene_toml`])
+//! parsed with serde (unknown fields rejected), then validated into a [`Scene`] in SI units.
+//! Errors name the offending field by its dotted path (`material.poisson_ratio`). Format:
+//!
+//! ```toml
+//! name = "lv-h1"                 # optional; default: the file stem, or "custom"
+//! description = "..."            # optional
+//! [mesh]
+//! file = "../../../shared/data/lv/lv_h1.msh"  # Gmsh 2.2/4.1, relative to the scene's directory
+//! length_unit = "mm"             # "m" | "cm" | "mm" | "um"; default "m"
+//! # or builtin = "lv" (target_tets, default 2000 when a user scene names it; the built-in "lv" scene sets 1000), "ellipsoids" (inner_semi_axes,
+//! # outer_semi_axes in length_unit, default (6,6,12) and (10,10,16) mm; target_tets, default
+//! # 188), "sphere" (inner_radius, outer_radius in length_unit; target_tets, default 5000) or
+//! # "box" (size = [x, y, z] in length_unit, cells = [nx, ny, nz])
+//! order = 1                      # element order: 1 = linear tets (default), 2 = quadratic
+//!                                # 10-node tets made by adding a node at every edge midpoint
+//!                                # (built-in shells: boundary mid-edge nodes on the surfaces)
+//! strain_smoothing = "none"      # linear tets only: "edge" = edge-based smoothed FEM
+//!                                # (ES-FEM-T4: softer, far less bending/shear locking)
+//! [material]                     # youngs_modulus_pa + poisson_ratio, OR lambda_pa + mu_pa
+//! model = "stvk"                 # default; or "corotational", "stable-neo-hookean"
+//! youngs_modulus_pa = 14500.0
+//! poisson_ratio = 0.45           # in (-1, 0.5)
+//! phi_pa_s = 0.05                # default 0
+//! psi_pa_s = 0.05                # default 0
+//! density_kg_per_m3 = 1060.0     # required
+//! mass_damping_per_s = 5.0       # default 0
+//! [boundary]
+//! clamped = ["BASE"]             # surface or node-group names; default none
+//! touchable = ["EPI"]            # surface names; default: boundary faces not entirely clamped
+//! [integrator]                   # optional, defaults shown
+//! kind = "semi-implicit"         # or "symplectic-euler", "backward-euler"
+//! tick_s = 0.001                 # in (0, 0.1]
+//! substeps = "auto"              # or an integer in 1..=max_substeps
+//! max_substeps = 64
+//! safety_factor = 0.5            # in (0, 1]
+//! cg_max_iterations = 20         # backward Euler: CG iterations per step, 1..=10000
+//! cg_tolerance = 0.001           # backward Euler: relative CG residual, in (0, 1)
+//! [loads]                        # optional; default: no load
+//! gravity_m_per_s2 = [0.0, 0.0, -9.81]
+//! [[loads.pressure]]             # any number; positive pushes into the body
+//! surfaces = ["ENDO"]
+//! pressure_pa = 1000.0
+//! follower = false               # true: recomputed from the current geometry each sub-step
+//! [[loads.point]]                # any number; permanent, on the closest free boundary triangle
+//! point_m = [0.0, 0.01, 0.0]
+//! force_n = [0.0, -0.05, 0.0]
+//! [active_region]                # optional; backward Euler only: simulate the tetrahedra
+//! centre_m = [0.0097, 0.0, -0.005] # with a node within radius_m of centre_m (rest, metres)
+//! radius_m = 0.008               # and condense the rest statically (crate::integrate::condensed)
+//! stiffness_margin = 2.0         # factor on the rest stiffness of the frozen tick matrix
+//! [probe]                        # optional, defaults shown
+//! radius_m = 0.002
+//! coupling_stiffness_n_per_m = 300.0
+//! coupling_damping_n_s_per_m = 0.05
+//! max_force_n = 10.0
+//! ```
+//!
+//! Built-in scenes are string constants ([`builtin`]; the library reads no file outside
+//! itself); identical copies live in `deploy/scenes/` for users to edit. The full format with
+//! every default and limit is in `docs/scenes.md`.
+//!
+//! Owns: scene data, its TOML schema ([`raw`]) and the built-ins. May use: [`crate::mesh`]
+//! (readers and generators), and the parameter types of [`crate::material`],
+//! [`crate::element`], [`crate::integrate`], [`crate::contact`], [`crate::loads`]. Used by
+//! [`crate::build_body`], which builds a body from a [`Scene`].
+
+use std::path::Path;
+
+use glam::DVec3;
+
+use crate::ModelError;
+use crate::contact::ProbeParams;
+use crate::element::StrainSmoothing;
+use crate::integrate::IntegratorParams;
+use crate::integrate::condensed::ActiveRegion;
+use crate::loads::{SceneLoads, static_external_forces};
+use crate::material::MaterialParams;
+use crate::mesh::TetMesh;
+
+pub mod builtin;
+mod raw;
+
+pub use builtin::{builtin_scene_names, builtin_scene_toml};
+pub use raw::{MAX_GRAVITY_M_PER_S2, MAX_PRESSURE_PA, MAX_SCENE_POINT_FORCE_N};
+
+/// A validated scene, ready to build a body ([`crate::build_body`]). SI units.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    /// Scene name (built-in name or the file's `name`).
+    pub name: String,
+    /// One-line description, with the source of the parameters.
+    pub description: String,
+    /// The mesh in metres.
+    pub mesh: TetMesh,
+    /// Strain smoothing of linear elements (`[mesh] strain_smoothing`).
+    pub strain_smoothing: StrainSmoothing,
+    /// Material.
+    pub material: MaterialParams,
+    /// Integrator settings.
+    pub integrator: IntegratorParams,
+    /// Haptic probe settings.
+    pub probe: ProbeParams,
+    /// Nodes fixed at their rest position (clamped), sorted, distinct.
+    pub clamped_nodes: Vec<u32>,
+    /// Triangles the probe can touch, outward oriented.
+    pub touchable: Vec<[u32; 3]>,
+    /// The scene file's length unit in metres (1e-3 for "mm"); outputs for users use it.
+    pub length_unit_m: f64,
+    /// External loads: gravity, surface pressure, point forces (section `[loads]`).
+    pub loads: SceneLoads,
+    /// Contact-local active region (section `[active_region]`): backward Euler on its elements
+    /// with the rest of the body condensed ([`crate::integrate::condensed`]); `None` simulates everything.
+    pub active_region: Option<ActiveRegion>,
+}
+
+impl Scene {
+    /// External nodal forces (N, one per mesh node) of the scene's loads at positions `x` (m),
+    /// for static solves: see [`static_external_forces`]. The same forces a dynamic body
+    /// applies.
+    ///
+    /// # Panics
+    /// If `x` is shorter than the mesh's node count.
+    pub fn external_forces(&self, x: &[DVec3]) -> Vec<DVec3> {
+        static_external_forces(&self.loads, &self.mesh, self.material.density_kg_per_m3, x)
+    }
+}
+
+/// Loads and validates the built-in scene `name` (see [`builtin_scene_names`]).
+///
+/// # Errors
+/// [`ModelError::UnknownScene`] listing the known names if `name` is not a built-in; otherwise
+/// the errors of [`parse_scene_toml`] (which would be a bug in the built-in text).
+pub fn load_builtin(name: &str) -> Result<Scene, ModelError> {
+    let Some(text) = builtin_scene_toml(name) else {
+        let known = builtin_scene_names()
+            .iter()
+            .map(|b| b.0)
+            .collect::<Vec<_>>()
+            .join(", ");
+        return Err(ModelError::UnknownScene(name.to_string(), known));
+    };
+    raw::parse_scene(text, Path::new("."), name)
+}
+
+/// Reads and validates a scene file. Relative mesh paths are resolved against the file's
+/// directory; the scene name defaults to the file stem.
+///
+/// # Errors
+/// [`ModelError::Io`] if the scene or mesh file cannot be read; otherwise as
+/// [`parse_scene_toml`].
+pub fn load_scene_file(path: &Path) -> Result<Scene, ModelError> {
+    let text = std::fs::read_to_string(path).map_err(|source| ModelError::Io {
+        path: path.display().to_string(),
+        source,
+    })?;
+    let base_dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let stem = path
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .unwrap_or("custom");
+    raw::parse_scene(&text, base_dir, stem)
+}
+
+/// Parses and validates a scene TOML text. `base_dir`: directory against which a relative
+/// `mesh.file` is resolved. The name defaults to `custom`.
+///
+/// # Errors
+/// [`ModelError::SceneSyntax`] (with the TOML error and its location) for invalid TOML, unknown
+/// fields or wrongly typed values; [`ModelError::SceneField`] naming the dotted field for
+/// missing, non-finite, out-of-range or contradictory values and unknown surface names;
+/// [`ModelError::Io`] (with the path) if the mesh file cannot be read, and the errors of
+/// [`crate::mesh::gmsh::load_msh`] if it cannot be parsed.
+pub fn parse_scene_toml(text: &str, base_dir: &Path) -> Result<Scene, ModelError> {
+    raw::parse_scene(text, base_dir, "custom")
+}
+
+// ----- raw (serde) form -----
