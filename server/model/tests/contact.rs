@@ -1,0 +1,207 @@
+//! The haptic probe's contact model ([`haptic_model::contact`]) on its own: kernel patches are
+//! partitions of unity, the coupling conserves linear momentum exactly, the proxy stays outside
+//! the surface, and the contact force changes continuously while the probe slides over a curved
+//! surface (no jump when nodes enter or leave the patch).
+
+use haptic_model::DVec3;
+use haptic_model::contact::{ContactSurface, Probe, ProbeParams};
+use haptic_model::mesh::TetMesh;
+use haptic_model::mesh::generate::{box_mesh, sphere_shell};
+
+/// A 20 x 20 x 5 mm block with 1 mm cells and its top face (z = 5 mm).
+fn block() -> (TetMesh, Vec<[u32; 3]>) {
+    let mesh = box_mesh(DVec3::new(0.02, 0.02, 0.005), [20, 20, 5]);
+    let top = mesh.surface("ZMAX").expect("top face").triangles.clone();
+    (mesh, top)
+}
+
+fn params() -> ProbeParams {
+    ProbeParams {
+        radius_m: 2e-3,
+        coupling_stiffness_n_per_m: 300.0,
+        coupling_damping_n_s_per_m: 0.05,
+        max_force_n: 10.0,
+    }
+}
+
+#[test]
+fn kernel_patch_weights_are_a_partition_of_unity() {
+    let (mesh, top) = block();
+    let x = &mesh.nodes;
+    let surface = ContactSurface::new(top, x.len());
+    let (mut nodes, mut weights) = (Vec::new(), Vec::new());
+    for q in [
+        DVec3::new(0.010, 0.010, 0.0055),
+        DVec3::new(0.0103, 0.0071, 0.0062),
+        DVec3::new(0.0005, 0.0195, 0.0051), // near a corner: a truncated patch
+    ] {
+        let seed = surface.closest_global(x, q).unwrap().triangle;
+        let reach = 4e-3;
+        surface.gather_kernel_patch(x, q, seed, reach, &mut nodes, &mut weights);
+        assert!(nodes.len() >= 3, "{q}: {} nodes", nodes.len());
+        let sum: f64 = weights.iter().sum();
+        assert!((sum - 1.0).abs() < 1e-12, "{q}: weights sum to {sum}");
+        assert!(weights.iter().all(|w| *w > 0.0));
+        // Each weight is the kernel (1 - d^2/R^2)^2 times one normalising constant.
+        let scale = weights[0] / kernel(x[nodes[0] as usize], q, reach);
+        for (&i, w) in nodes.iter().zip(&weights) {
+            let d = (x[i as usize] - q).length();
+            assert!(d < reach, "node {i} at {d} m is outside the patch");
+            let ratio = w / kernel(x[i as usize], q, reach);
+            assert!(
+                (ratio - scale).abs() < 1e-9 * scale,
+                "node {i}: {ratio} against {scale}"
+            );
+        }
+        let mut sorted = nodes.clone();
+        sorted.sort_unstable();
+        sorted.dedup();
+        assert_eq!(sorted.len(), nodes.len(), "a node appears twice");
+    }
+    // Nothing within reach: an empty patch, not a division by zero.
+    let far = DVec3::new(0.010, 0.010, 0.02);
+    surface.gather_kernel_patch(x, far, 0, 4e-3, &mut nodes, &mut weights);
+    assert!(nodes.is_empty() && weights.is_empty());
+}
+
+fn kernel(p: DVec3, q: DVec3, reach: f64) -> f64 {
+    let u = 1.0 - (p - q).length_squared() / (reach * reach);
+    u * u
+}
+
+/// On a flat face the smoothed plane is the face itself: the proxy sits exactly one probe
+/// radius above it, the force is `k (r - s)` along the outward normal.
+#[test]
+fn the_proxy_stays_outside_a_flat_surface() {
+    let (mesh, top) = block();
+    let x = &mesh.nodes;
+    let p = params();
+    let mut probe = Probe::new(p, top, x);
+    for (depth, dx) in [(0.2e-3, 0.0), (1.0e-3, 0.3e-3), (2.5e-3, -0.7e-3)] {
+        // Device centre `depth` below the position where the sphere touches the face.
+        let device = DVec3::new(0.01 + dx, 0.01, 0.005 + p.radius_m - depth);
+        let c = probe.update(x, device, DVec3::ZERO);
+        assert!(c.in_contact, "depth {depth}");
+        assert!((c.normal - DVec3::Z).length() < 1e-12, "{}", c.normal);
+        assert!(
+            (c.proxy_m.z - (0.005 + p.radius_m)).abs() < 1e-12,
+            "proxy {} is not one radius above the face",
+            c.proxy_m
+        );
+        assert!((c.proxy_m.truncate() - device.truncate()).length() < 1e-12);
+        let expected = p.coupling_stiffness_n_per_m * depth;
+        assert!(
+            (c.force_on_device_n - DVec3::Z * expected).length() < 1e-12,
+            "{} against {expected}",
+            c.force_on_device_n
+        );
+    }
+    // Above the face: no contact, the proxy is the device point.
+    let device = DVec3::new(0.01, 0.01, 0.005 + p.radius_m + 1e-4);
+    let c = probe.update(x, device, DVec3::ZERO);
+    assert!(!c.in_contact && c.proxy_m == device && c.force_on_device_n == DVec3::ZERO);
+}
+
+/// The coupling's force on the body is minus the device force over the same patch: after a
+/// step completed implicitly (here with a lumped mass per node), the body's momentum change is
+/// exactly `-dt F_device`.
+#[test]
+fn the_coupling_reaction_conserves_linear_momentum() {
+    let (mesh, top) = block();
+    let x0 = mesh.nodes.clone();
+    let n = x0.len();
+    let mass_kg = 2e-4;
+    let dt = 1e-4;
+    let p = params();
+    let mut probe = Probe::new(p, top, &x0);
+    for (device, velocity) in [
+        (DVec3::new(0.01, 0.01, 0.0062), DVec3::ZERO),
+        (
+            DVec3::new(0.0123, 0.0081, 0.0058),
+            DVec3::new(0.01, -0.02, -0.05),
+        ),
+    ] {
+        let mut x = x0.clone();
+        let c = probe.update(&x, device, velocity);
+        assert!(c.in_contact);
+        // Explicit part: the reaction on the patch, then a symplectic Euler velocity.
+        let mut f = vec![DVec3::ZERO; n];
+        probe.add_reaction(&mut f);
+        let explicit_total: DVec3 = f.iter().sum();
+        assert!((explicit_total + c.force_on_device_n).length() < 1e-14);
+        let mut v: Vec<DVec3> = f.iter().map(|fi| *fi * (dt / mass_kg)).collect();
+        // Implicit completion of the coupling.
+        probe.finish_implicit(dt, &mut x, &mut v, |_, w| w / mass_kg);
+        let device_force = probe.state.force_on_device_n;
+        let momentum: DVec3 = v.iter().map(|vi| *vi * mass_kg).sum();
+        let expected = -device_force * dt;
+        assert!(
+            (momentum - expected).length() <= 1e-12 * expected.length(),
+            "body momentum {momentum} against -dt F_device {expected}"
+        );
+        // Only the patch moved.
+        let (patch, _) = probe.patch();
+        for (i, vi) in v.iter().enumerate() {
+            if !patch.contains(&(i as u32)) {
+                assert_eq!(*vi, DVec3::ZERO);
+            }
+        }
+    }
+}
+
+/// Sliding over a sphere at constant depth: the force is the same everywhere up to the
+/// faceting of the mesh, and changes continuously from one position to the next (nodes enter
+/// and leave the patch with zero weight), where a plain closest-point contact jumps at every
+/// triangle edge.
+#[test]
+fn the_contact_force_is_continuous_while_sliding() {
+    let (ri, ro) = (0.006, 0.010);
+    let mesh = sphere_shell(ri, ro, 3000);
+    let outer = mesh.surface("OUTER").expect("outer").triangles.clone();
+    let x = &mesh.nodes;
+    let p = params();
+    let surface = ContactSurface::new(outer.clone(), x.len());
+    let mut probe = Probe::new(p, outer, x);
+    // The proxy is one radius outside the smoothed plane through the patch's weighted centre,
+    // which on a convex surface lies below the surface by at most the sagitta of the patch
+    // (radius 2 r) on a sphere of radius R: (2 r)^2 / (2 R).
+    let sagitta = (2.0 * p.radius_m).powi(2) / (2.0 * ro);
+    let depth = 0.5e-3;
+    let centre_distance = ro + p.radius_m - depth;
+    let steps = 400;
+    let mut forces = Vec::with_capacity(steps);
+    for k in 0..steps {
+        // A quarter of a great circle in the x-z plane, 0.04 mm per step.
+        let a = 0.1 + 1.2 * k as f64 / steps as f64;
+        let device = DVec3::new(a.cos(), 0.0, a.sin()) * centre_distance;
+        let c = probe.update(x, device, DVec3::ZERO);
+        assert!(c.in_contact, "step {k}");
+        // Proxy outside the body, about one radius from its (faceted) surface.
+        let dist = surface.closest_global(x, c.proxy_m).unwrap().dist2.sqrt();
+        assert!(
+            c.proxy_m.length() > ro && dist > p.radius_m - sagitta,
+            "step {k}: proxy {dist} m from the surface"
+        );
+        forces.push(c.force_on_device_n);
+    }
+    let mean = forces.iter().map(|f| f.length()).sum::<f64>() / steps as f64;
+    // The force points away from the centre, within the faceting.
+    for (k, f) in forces.iter().enumerate() {
+        let a = 0.1 + 1.2 * k as f64 / steps as f64;
+        let radial = DVec3::new(a.cos(), 0.0, a.sin());
+        assert!(f.normalize().dot(radial) > 0.99, "step {k}: {f}");
+        assert!(
+            (f.length() - mean).abs() < 0.25 * mean,
+            "step {k}: {f} against {mean}"
+        );
+    }
+    let largest_jump: f64 = forces
+        .windows(2)
+        .map(|w| (w[1] - w[0]).length())
+        .fold(0.0, f64::max);
+    println!("mean {mean:.4e} N, largest jump {largest_jump:.3e} N");
+    assert!(
+        largest_jump < 0.02 * mean,
+        "force jumped by {largest_jump:.3e} N between neighbouring positions (mean {mean:.3e} N)"
+    );
+}
