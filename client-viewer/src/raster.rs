@@ -896,6 +896,109 @@ mod tests {
         )
     }
 
+    /// FNV-1a over bytes: a stable fingerprint of a picture (std's hashers may change between
+    /// Rust releases).
+    fn fnv1a(bytes: &[u8]) -> u64 {
+        bytes.iter().fold(0xcbf2_9ce4_8422_2325, |h, &b| {
+            (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
+        })
+    }
+
+    /// A closed, dented prolate ellipsoid (radii 25, 25, 45 mm; `nu x nv` quads split in two):
+    /// `(rest, positions, triangles)`.
+    fn dented_ellipsoid(nu: u32, nv: u32) -> (Vec<f32>, Vec<f32>, Vec<u32>) {
+        let (a, c) = (0.025f32, 0.045f32);
+        let mut rest = Vec::new();
+        for j in 0..=nv {
+            let th = std::f32::consts::PI * j as f32 / nv as f32;
+            for i in 0..nu {
+                let ph = std::f32::consts::TAU * i as f32 / nu as f32;
+                rest.extend([
+                    a * th.sin() * ph.cos(),
+                    a * th.sin() * ph.sin(),
+                    c * th.cos(),
+                ]);
+            }
+        }
+        let mut tris = Vec::new();
+        for j in 0..nv {
+            for i in 0..nu {
+                let i1 = (i + 1) % nu;
+                let (p, q, r, s) = (j * nu + i, j * nu + i1, (j + 1) * nu + i, (j + 1) * nu + i1);
+                tris.extend([p, q, s, p, s, r]);
+            }
+        }
+        let centre = [0.0177f32, 0.0177, -0.005];
+        let mut pos = rest.clone();
+        for v in pos.chunks_exact_mut(3) {
+            let d2 = (v[0] - centre[0]).powi(2)
+                + (v[1] - centre[1]).powi(2)
+                + (v[2] - centre[2]).powi(2);
+            let w = 0.004 * (-d2 / (2.0 * 0.008f32.powi(2))).exp();
+            let r = (v[0] * v[0] + v[1] * v[1]).sqrt().max(1e-9);
+            v[0] -= w * v[0] / r;
+            v[1] -= w * v[1] / r;
+        }
+        (rest, pos, tris)
+    }
+
+    /// Regression guard for refactors of the vector arithmetic: the exact pictures of three
+    /// scenes (shaded surface with per-vertex colours, probe sphere, oblique force arrow,
+    /// legend; a second camera looking along its up vector; a fixed colour scale) are pinned by
+    /// their RGB fingerprints. The values were taken from the rasterizer before it moved to
+    /// `glam::DVec3`. A mismatch means the picture changed: look at it before updating a value.
+    #[test]
+    fn pictures_match_the_pinned_fingerprints() {
+        let (rest, pos, tris) = dented_ellipsoid(40, 20);
+        let probe = ProbeView {
+            position_m: [0.0184, 0.0184, -0.005],
+            radius_m: 0.004,
+            force_n: [0.6, 0.45, 0.2],
+            in_contact: true,
+        };
+        let view = SurfaceView {
+            rest_m: &rest,
+            positions_m: &pos,
+            triangles: &tris,
+            probe: Some(probe),
+        };
+        let (a, b) = bounding_box(&rest).unwrap();
+        let side = RenderParams {
+            width: 200,
+            height: 150,
+            ..RenderParams::default()
+        };
+        let top = RenderParams {
+            width: 120,
+            height: 120,
+            view_from: [0.0, 0.0, 1.0],
+            up: [0.0, 0.0, 2.0],
+            displacement_scale: DisplacementScale::FixedM(0.01),
+            legend: false,
+            ..RenderParams::default()
+        };
+        let octahedron = render_octahedron(
+            0.004,
+            Some(ProbeView {
+                position_m: [0.005, -0.004, 0.03],
+                radius_m: 0.003,
+                force_n: [-0.2, 0.3, -1.0],
+                in_contact: false,
+            }),
+        );
+        let got = [
+            fnv1a(render_surface(&view, &Camera::auto_frame(a, b, &side), &side).rgb()),
+            fnv1a(render_surface(&view, &Camera::auto_frame(a, b, &top), &top).rgb()),
+            fnv1a(octahedron.rgb()),
+        ];
+        let pinned: [u64; 3] = [
+            0xf2ab_57ee_75d3_c26a,
+            0xea44_f76f_259a_3493,
+            0x709a_57ad_73bb_5761,
+        ];
+        assert_eq!(got, pinned, "got {got:#x?}");
+    }
+
     #[test]
     fn rendering_is_deterministic_and_reacts_to_motion() {
         let probe = ProbeView {
