@@ -3,6 +3,7 @@
 //!
 //! `cargo run -p haptic-client --example render_lv -- /tmp/lv_sample.png`
 
+use glam::DVec3;
 use haptic_client::raster::{
     Camera, ProbeView, RenderParams, SurfaceView, bounding_box, render_surface,
 };
@@ -50,9 +51,9 @@ fn main() -> anyhow::Result<()> {
     let (min, max) = bounding_box(&rest).expect("points");
     let cam = Camera::auto_frame(min, max, &params);
     let probe = ProbeView {
-        position_m: [0.0177 - 0.0028 + 0.0035, 0.0177 - 0.0028 + 0.0035, -0.005],
+        position_m: DVec3::new(0.0177 - 0.0028 + 0.0035, 0.0177 - 0.0028 + 0.0035, -0.005),
         radius_m: 0.004,
-        force_n: [0.9, 0.9, 0.0],
+        force_n: DVec3::new(0.9, 0.9, 0.0),
         in_contact: true,
     };
     let view = SurfaceView {

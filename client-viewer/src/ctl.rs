@@ -20,39 +20,17 @@ use tonic::transport::Channel;
 
 use crate::ClientError;
 
-/// Parses `X,Y,Z` into three finite numbers (SI units as the caller says). Whitespace around a
-/// component is allowed; anything else (missing or extra components, empty ones, words, NaN,
-/// infinity) is refused.
+/// Parses `X,Y,Z` into three finite numbers (SI units as the caller says) with
+/// [`haptics_proto::parse_vec3`]: whitespace around a component is allowed; anything else
+/// (missing or extra components, empty ones, words, NaN, infinity) is refused.
 ///
 /// # Errors
-/// [`ClientError::InvalidVector`] saying which component is wrong and why.
+/// [`ClientError::InvalidVector`] with the input, saying which component is wrong and why.
 pub fn parse_vec3(input: &str) -> Result<[f64; 3], ClientError> {
-    let err = |reason: String| ClientError::InvalidVector {
+    haptics_proto::parse_vec3(input).map_err(|source| ClientError::InvalidVector {
         input: input.to_string(),
-        reason,
-    };
-    let parts: Vec<&str> = input.split(',').map(str::trim).collect();
-    if parts.len() != 3 {
-        return Err(err(format!(
-            "expected 3 comma-separated numbers X,Y,Z, got {} component(s)",
-            parts.len()
-        )));
-    }
-    let mut v = [0.0; 3];
-    for (k, (part, out)) in parts.iter().zip(v.iter_mut()).enumerate() {
-        let axis = ["X", "Y", "Z"][k];
-        if part.is_empty() {
-            return Err(err(format!("{axis} is empty")));
-        }
-        let x: f64 = part
-            .parse()
-            .map_err(|_| err(format!("{axis} ({part:?}) is not a number")))?;
-        if !x.is_finite() {
-            return Err(err(format!("{axis} ({part:?}) is not finite")));
-        }
-        *out = x;
-    }
-    Ok(v)
+        source,
+    })
 }
 
 /// Where a new session's scene comes from.

@@ -22,12 +22,13 @@ pub enum ClientError {
     #[error("{}: {}", code_name(.0.code()), .0.message())]
     Rpc(Box<tonic::Status>),
     /// A `X,Y,Z` vector argument could not be parsed.
-    #[error("invalid vector {input:?}: {reason}")]
+    #[error("invalid vector {input:?}: {source}")]
     InvalidVector {
         /// The text as given.
         input: String,
-        /// What was wrong with it.
-        reason: String,
+        /// What was wrong with it (which component, and why).
+        #[source]
+        source: haptics_proto::ParseVec3Error,
     },
     /// A configuration value is out of range (checked before anything is started).
     #[error("invalid configuration: {0}")]

@@ -8,46 +8,17 @@
 //! 3-D arrow (shaft + cone) starting at the probe centre. An optional text-free colour bar shows
 //! the colormap.
 //!
-//! Everything is plain `f64` arithmetic in a fixed order on one thread, so the same input gives
-//! the same bytes on every run (the PNG encoder is deterministic too). Neighbours: [`crate::viewer`]
+//! Vectors are `glam::DVec3` (metres or newtons, scene frame); everything is plain `f64`
+//! arithmetic in a fixed order on one thread, so the same input gives the same bytes on every
+//! run (the PNG encoder is deterministic too). Neighbours: [`crate::viewer`]
 //! feeds it frames; nothing here knows about gRPC.
 
 use std::io::Write;
 use std::path::Path;
 
+use glam::DVec3;
+
 use crate::ClientError;
-
-type V3 = [f64; 3];
-
-fn add(a: V3, b: V3) -> V3 {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
-fn sub(a: V3, b: V3) -> V3 {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-fn scale(a: V3, s: f64) -> V3 {
-    [a[0] * s, a[1] * s, a[2] * s]
-}
-fn dot(a: V3, b: V3) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-fn cross(a: V3, b: V3) -> V3 {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-fn norm(a: V3) -> f64 {
-    dot(a, a).sqrt()
-}
-fn normalize(a: V3) -> Option<V3> {
-    let n = norm(a);
-    (n > 0.0 && n.is_finite()).then(|| scale(a, 1.0 / n))
-}
-fn finite(a: V3) -> bool {
-    a.iter().all(|c| c.is_finite())
-}
 
 /// How displacement magnitudes map onto the blue -> red colormap.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -69,9 +40,9 @@ pub struct RenderParams {
     pub height: u32,
     /// Direction from the model centre towards the camera (scene frame, any length).
     /// Default `(1, 1, 0.4)`: from +x+y, slightly above.
-    pub view_from: [f64; 3],
-    /// Scene direction that appears upwards in the picture. Default +z.
-    pub up: [f64; 3],
+    pub view_from: DVec3,
+    /// Scene direction that appears upwards in the picture (any length). Default +z.
+    pub up: DVec3,
     /// Vertical field of view in degrees.
     pub fov_y_deg: f64,
     /// Colour scale of the displacement magnitude.
@@ -89,8 +60,8 @@ impl Default for RenderParams {
         Self {
             width: 640,
             height: 480,
-            view_from: [1.0, 1.0, 0.4],
-            up: [0.0, 0.0, 1.0],
+            view_from: DVec3::new(1.0, 1.0, 0.4),
+            up: DVec3::Z,
             fov_y_deg: 30.0,
             displacement_scale: DisplacementScale::Auto,
             force_scale_m_per_n: 0.1,
@@ -111,7 +82,7 @@ impl RenderParams {
         if !(1..=8192).contains(&self.width) || !(1..=8192).contains(&self.height) {
             return bad("width and height must be 1..=8192 pixels");
         }
-        if normalize(self.view_from).is_none() || normalize(self.up).is_none() {
+        if self.view_from.try_normalize().is_none() || self.up.try_normalize().is_none() {
             return bad("view direction and up vector must be finite and non-zero");
         }
         if !(self.fov_y_deg > 1.0 && self.fov_y_deg < 170.0) {
@@ -133,13 +104,13 @@ impl RenderParams {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Camera {
     /// Eye position, metres (scene frame).
-    pub eye: [f64; 3],
+    pub eye: DVec3,
     /// Unit viewing direction (from the eye into the scene).
-    pub forward: [f64; 3],
+    pub forward: DVec3,
     /// Unit picture-right direction.
-    pub right: [f64; 3],
+    pub right: DVec3,
     /// Unit picture-up direction.
-    pub up: [f64; 3],
+    pub up: DVec3,
     /// Focal length in pixels (`height / 2 / tan(fov_y / 2)`).
     pub focal_px: f64,
     /// Picture width, pixels.
@@ -158,35 +129,38 @@ impl Camera {
     ///
     /// A degenerate or non-finite box falls back to a 0.1 m box at the origin, so a camera always
     /// exists. Call [`RenderParams::validate`] first; invalid directions fall back to defaults.
-    pub fn auto_frame(min_m: [f64; 3], max_m: [f64; 3], params: &RenderParams) -> Camera {
-        let (min_m, max_m) = if finite(min_m) && finite(max_m) {
+    pub fn auto_frame(min_m: DVec3, max_m: DVec3, params: &RenderParams) -> Camera {
+        let (min_m, max_m) = if min_m.is_finite() && max_m.is_finite() {
             (min_m, max_m)
         } else {
-            ([-0.05; 3], [0.05; 3])
+            (DVec3::splat(-0.05), DVec3::splat(0.05))
         };
-        let center = scale(add(min_m, max_m), 0.5);
-        let radius = (norm(sub(max_m, min_m)) * 0.5).max(1e-6);
+        let center = (min_m + max_m) * 0.5;
+        let radius = ((max_m - min_m).length() * 0.5).max(1e-6);
         let (w, h) = (params.width.max(1), params.height.max(1));
         let fov_y = params.fov_y_deg.clamp(1.0, 170.0).to_radians();
         let aspect = w as f64 / h as f64;
         let fov_x = 2.0 * ((fov_y * 0.5).tan() * aspect).atan();
         let fov = fov_y.min(fov_x);
         let distance = radius / (fov * 0.5).sin() * 1.1;
-        let from = normalize(params.view_from).unwrap_or([1.0, 1.0, 0.4]);
-        let forward = scale(from, -1.0);
-        let mut up_hint = normalize(params.up).unwrap_or([0.0, 0.0, 1.0]);
-        if norm(cross(forward, up_hint)) < 1e-6 {
+        let from = params
+            .view_from
+            .try_normalize()
+            .unwrap_or(DVec3::new(1.0, 1.0, 0.4));
+        let forward = -from;
+        let mut up_hint = params.up.try_normalize().unwrap_or(DVec3::Z);
+        if forward.cross(up_hint).length() < 1e-6 {
             // Looking along the up vector: any perpendicular will do.
-            up_hint = if forward[0].abs() < 0.9 {
-                [1.0, 0.0, 0.0]
+            up_hint = if forward.x.abs() < 0.9 {
+                DVec3::X
             } else {
-                [0.0, 1.0, 0.0]
+                DVec3::Y
             };
         }
-        let right = normalize(cross(forward, up_hint)).unwrap_or([1.0, 0.0, 0.0]);
-        let up = cross(right, forward);
+        let right = forward.cross(up_hint).try_normalize().unwrap_or(DVec3::X);
+        let up = right.cross(forward);
         Camera {
-            eye: add(center, scale(from, distance)),
+            eye: center + from * distance,
             forward,
             right,
             up,
@@ -199,23 +173,23 @@ impl Camera {
     /// Projects a scene point (metres) to `(x_px, y_px, depth_m)`: pixel coordinates with the
     /// origin at the top-left corner (y down), and the distance along the viewing direction.
     /// `None` when the point is behind the near plane or not finite.
-    pub fn project(&self, p: [f64; 3], near_m: f64) -> Option<(f64, f64, f64)> {
-        let d = sub(p, self.eye);
-        let z = dot(d, self.forward);
+    pub fn project(&self, p: DVec3, near_m: f64) -> Option<(f64, f64, f64)> {
+        let d = p - self.eye;
+        let z = d.dot(self.forward);
         if z.is_nan() || z <= near_m || !z.is_finite() {
             return None;
         }
-        let x = self.width as f64 * 0.5 + dot(d, self.right) / z * self.focal_px;
-        let y = self.height as f64 * 0.5 - dot(d, self.up) / z * self.focal_px;
+        let x = self.width as f64 * 0.5 + d.dot(self.right) / z * self.focal_px;
+        let y = self.height as f64 * 0.5 - d.dot(self.up) / z * self.focal_px;
         (x.is_finite() && y.is_finite()).then_some((x, y, z))
     }
 
     /// Unit direction of the ray from the eye through the pixel point `(x_px, y_px)`.
-    fn ray(&self, x: f64, y: f64) -> V3 {
+    fn ray(&self, x: f64, y: f64) -> DVec3 {
         let dx = (x - self.width as f64 * 0.5) / self.focal_px;
         let dy = -(y - self.height as f64 * 0.5) / self.focal_px;
-        let d = add(self.forward, add(scale(self.right, dx), scale(self.up, dy)));
-        normalize(d).unwrap_or(self.forward)
+        let d = self.forward + (self.right * dx + self.up * dy);
+        d.try_normalize().unwrap_or(self.forward)
     }
 }
 
@@ -440,11 +414,11 @@ pub fn colormap(t: f64) -> [f64; 3] {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ProbeView {
     /// Centre, metres (scene frame).
-    pub position_m: [f64; 3],
+    pub position_m: DVec3,
     /// Radius, metres; the sphere is drawn only when finite and > 0.
     pub radius_m: f64,
     /// Contact force acting at the probe, newtons; drawn as an arrow when non-zero and finite.
-    pub force_n: [f64; 3],
+    pub force_n: DVec3,
     /// Whether the probe touches the surface (changes its colour).
     pub in_contact: bool,
 }
@@ -464,47 +438,47 @@ pub struct SurfaceView<'a> {
 
 /// Axis-aligned bounding box `(min, max)` of xyz-interleaved positions (metres), ignoring
 /// non-finite values. `None` when there is no finite point.
-pub fn bounding_box(positions_m: &[f32]) -> Option<([f64; 3], [f64; 3])> {
-    let mut min = [f64::INFINITY; 3];
-    let mut max = [f64::NEG_INFINITY; 3];
+pub fn bounding_box(positions_m: &[f32]) -> Option<(DVec3, DVec3)> {
+    let mut min = DVec3::INFINITY;
+    let mut max = DVec3::NEG_INFINITY;
     let mut any = false;
     for p in positions_m.chunks_exact(3) {
-        let p = [p[0] as f64, p[1] as f64, p[2] as f64];
-        if !finite(p) {
+        let p = DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+        if !p.is_finite() {
             continue;
         }
         any = true;
-        for k in 0..3 {
-            min[k] = min[k].min(p[k]);
-            max[k] = max[k].max(p[k]);
-        }
+        min = min.min(p);
+        max = max.max(p);
     }
     any.then_some((min, max))
 }
 
 /// Directions towards the two lights in the scene frame: a headlight (from the eye) and a key
 /// light from the upper left, behind the camera.
-fn lights(cam: &Camera) -> (V3, V3) {
-    let head = scale(cam.forward, -1.0);
-    let key = add(
-        add(scale(cam.right, -0.45), scale(cam.up, 0.75)),
-        scale(cam.forward, -0.5),
-    );
-    (head, normalize(key).unwrap_or(head))
+fn lights(cam: &Camera) -> (DVec3, DVec3) {
+    let head = -cam.forward;
+    let key = cam.right * -0.45 + cam.up * 0.75 + cam.forward * -0.5;
+    (head, key.try_normalize().unwrap_or(head))
 }
 
 /// Lambert intensity for unit normal `n` (already turned towards the viewer): ambient 0.18,
 /// headlight 0.55, key light 0.45, at most 1.
-fn lambert(n: V3, head: V3, key: V3) -> f64 {
-    (0.18 + 0.55 * dot(n, head).max(0.0) + 0.45 * dot(n, key).max(0.0)).min(1.0)
+fn lambert(n: DVec3, head: DVec3, key: DVec3) -> f64 {
+    (0.18 + 0.55 * n.dot(head).max(0.0) + 0.45 * n.dot(key).max(0.0)).min(1.0)
 }
 
-fn vertex(positions: &[f32], i: usize) -> V3 {
-    [
+fn vertex(positions: &[f32], i: usize) -> DVec3 {
+    DVec3::new(
         positions[3 * i] as f64,
         positions[3 * i + 1] as f64,
         positions[3 * i + 2] as f64,
-    ]
+    )
+}
+
+/// `color` (linear RGB) times the light intensity `s`.
+fn shade(color: [f64; 3], s: f64) -> [f64; 3] {
+    color.map(|c| c * s)
 }
 
 /// Draws a triangle with flat per-vertex normals already chosen; turns normals towards the eye
@@ -513,8 +487,8 @@ fn draw_shaded(
     img: &mut Image,
     cam: &Camera,
     near: f64,
-    p: [V3; 3],
-    normals: [V3; 3],
+    p: [DVec3; 3],
+    normals: [DVec3; 3],
     colors: [[f64; 3]; 3],
 ) {
     let (head, key) = lights(cam);
@@ -524,25 +498,25 @@ fn draw_shaded(
         depth: 0.0,
         color: [0.0; 3],
     }; 3];
-    let face = cross(sub(p[1], p[0]), sub(p[2], p[0]));
-    let centroid = scale(add(add(p[0], p[1]), p[2]), 1.0 / 3.0);
-    let to_eye = sub(cam.eye, centroid);
-    let flip = dot(face, to_eye) < 0.0;
-    let face_n = if flip { scale(face, -1.0) } else { face };
+    let face = (p[1] - p[0]).cross(p[2] - p[0]);
+    let centroid = (p[0] + p[1] + p[2]) * (1.0 / 3.0);
+    let to_eye = cam.eye - centroid;
+    let flip = face.dot(to_eye) < 0.0;
+    let face_n = if flip { -face } else { face };
     for k in 0..3 {
         let Some((x, y, d)) = cam.project(p[k], near) else {
             return;
         };
         let mut n = normals[k];
-        if dot(n, face_n) < 0.0 {
-            n = scale(n, -1.0);
+        if n.dot(face_n) < 0.0 {
+            n = -n;
         }
         let s = lambert(n, head, key);
         sv[k] = ScreenVertex {
             x,
             y,
             depth: d,
-            color: scale(colors[k], s),
+            color: shade(colors[k], s),
         };
     }
     img.fill_triangle(&sv);
@@ -559,7 +533,7 @@ pub fn render_surface(view: &SurfaceView<'_>, cam: &Camera, params: &RenderParam
     let mut img = Image::new(cam.width, cam.height, params.background);
     let n = view.positions_m.len() / 3;
     let radius = bounding_box(view.rest_m)
-        .map(|(a, b)| norm(sub(b, a)) * 0.5)
+        .map(|(a, b)| (b - a).length() * 0.5)
         .unwrap_or(0.05)
         .max(1e-6);
     let near = radius * NEAR_FRACTION;
@@ -569,7 +543,7 @@ pub fn render_surface(view: &SurfaceView<'_>, cam: &Camera, params: &RenderParam
     let disp: Vec<f64> = (0..n)
         .map(|i| {
             if same_rest {
-                norm(sub(vertex(view.positions_m, i), vertex(view.rest_m, i)))
+                (vertex(view.positions_m, i) - vertex(view.rest_m, i)).length()
             } else {
                 0.0
             }
@@ -592,23 +566,26 @@ pub fn render_surface(view: &SurfaceView<'_>, cam: &Camera, params: &RenderParam
         .map(|t| [t[0] as usize, t[1] as usize, t[2] as usize])
         .filter(|t| t.iter().all(|&i| i < n))
         .collect();
-    let mut normals = vec![[0.0; 3]; n];
+    let mut normals = vec![DVec3::ZERO; n];
     for t in &tris {
         let p = t.map(|i| vertex(view.positions_m, i));
-        let f = cross(sub(p[1], p[0]), sub(p[2], p[0]));
-        if finite(f) {
+        let f = (p[1] - p[0]).cross(p[2] - p[0]);
+        if f.is_finite() {
             for &i in t {
-                normals[i] = add(normals[i], f);
+                normals[i] += f;
             }
         }
     }
     for t in &tris {
         let p = t.map(|i| vertex(view.positions_m, i));
-        if !p.iter().all(|&q| finite(q)) {
+        if !p.iter().all(|q| q.is_finite()) {
             continue;
         }
-        let face = normalize(cross(sub(p[1], p[0]), sub(p[2], p[0]))).unwrap_or(cam.forward);
-        let ns = t.map(|i| normalize(normals[i]).unwrap_or(face));
+        let face = (p[1] - p[0])
+            .cross(p[2] - p[0])
+            .try_normalize()
+            .unwrap_or(cam.forward);
+        let ns = t.map(|i| normals[i].try_normalize().unwrap_or(face));
         let cs = t.map(|i| colormap(disp[i] / scale_m));
         draw_shaded(&mut img, cam, near, p, ns, cs);
     }
@@ -632,7 +609,7 @@ fn draw_probe(
     params: &RenderParams,
 ) {
     let c = probe.position_m;
-    if !finite(c) {
+    if !c.is_finite() {
         return;
     }
     let r = probe.radius_m;
@@ -645,9 +622,9 @@ fn draw_probe(
         draw_sphere(img, cam, c, r, color);
     }
     let f = probe.force_n;
-    let f_mag = norm(f);
+    let f_mag = f.length();
     let len = f_mag * params.force_scale_m_per_n;
-    if finite(f) && f_mag > 0.0 && len.is_finite() && len > 0.0 {
+    if f.is_finite() && f_mag > 0.0 && len.is_finite() && len > 0.0 {
         let shaft_r = (model_radius_m * 0.012).max(len * 0.03);
         let head_r = shaft_r * 2.5;
         let head_len = (shaft_r * 7.0).min(len * 0.4);
@@ -656,7 +633,7 @@ fn draw_probe(
             cam,
             near,
             c,
-            scale(f, 1.0 / f_mag),
+            f * (1.0 / f_mag),
             len,
             shaft_r,
             head_r,
@@ -665,10 +642,10 @@ fn draw_probe(
     }
 }
 
-fn draw_sphere(img: &mut Image, cam: &Camera, c: V3, r: f64, color: [f64; 3]) {
+fn draw_sphere(img: &mut Image, cam: &Camera, c: DVec3, r: f64, color: [f64; 3]) {
     let (head, key) = lights(cam);
-    let oc = sub(cam.eye, c);
-    let zc = dot(sub(c, cam.eye), cam.forward);
+    let oc = cam.eye - c;
+    let zc = (c - cam.eye).dot(cam.forward);
     // Picture-space bounding square of the sphere (the whole picture when the eye is close).
     let (x0, x1, y0, y1) = match cam.project(c, r * 1.01) {
         Some((x, y, _)) if zc > r * 1.01 => {
@@ -682,8 +659,8 @@ fn draw_sphere(img: &mut Image, cam: &Camera, c: V3, r: f64, color: [f64; 3]) {
     for y in ys {
         for x in xs.clone() {
             let d = cam.ray(x as f64 + 0.5, y as f64 + 0.5);
-            let b = dot(oc, d);
-            let cc = dot(oc, oc) - r * r;
+            let b = oc.dot(d);
+            let cc = oc.dot(oc) - r * r;
             let disc = b * b - cc;
             if disc < 0.0 {
                 continue;
@@ -692,14 +669,14 @@ fn draw_sphere(img: &mut Image, cam: &Camera, c: V3, r: f64, color: [f64; 3]) {
             if t <= 0.0 {
                 continue;
             }
-            let hit = add(cam.eye, scale(d, t));
-            let n = scale(sub(hit, c), 1.0 / r);
+            let hit = cam.eye + d * t;
+            let n = (hit - c) * (1.0 / r);
             let s = lambert(n, head, key);
             img.plot(
                 x as usize,
                 y as usize,
-                t * dot(d, cam.forward),
-                scale(color, s),
+                t * d.dot(cam.forward),
+                shade(color, s),
             );
         }
     }
@@ -712,8 +689,8 @@ fn draw_arrow(
     img: &mut Image,
     cam: &Camera,
     near: f64,
-    start: V3,
-    dir: V3,
+    start: DVec3,
+    dir: DVec3,
     len: f64,
     shaft_r: f64,
     head_r: f64,
@@ -721,23 +698,26 @@ fn draw_arrow(
 ) {
     const SIDES: usize = 12;
     const COLOR: [f64; 3] = [0.98, 0.86, 0.20];
-    let helper = if dir[0].abs() < 0.9 {
-        [1.0, 0.0, 0.0]
+    let helper = if dir.x.abs() < 0.9 {
+        DVec3::X
     } else {
-        [0.0, 1.0, 0.0]
+        DVec3::Y
     };
-    let Some(u) = normalize(cross(dir, helper)) else {
+    let Some(u) = dir.cross(helper).try_normalize() else {
         return;
     };
-    let v = cross(dir, u);
-    let ring = |center: V3, r: f64, k: usize| {
+    let v = dir.cross(u);
+    let ring = |center: DVec3, r: f64, k: usize| {
         let a = std::f64::consts::TAU * k as f64 / SIDES as f64;
-        add(center, add(scale(u, r * a.cos()), scale(v, r * a.sin())))
+        center + (u * (r * a.cos()) + v * (r * a.sin()))
     };
-    let base = add(start, scale(dir, (len - head_len).max(0.0)));
-    let tip = add(start, scale(dir, len));
-    let mut tri = |p: [V3; 3]| {
-        let n = normalize(cross(sub(p[1], p[0]), sub(p[2], p[0]))).unwrap_or(dir);
+    let base = start + dir * (len - head_len).max(0.0);
+    let tip = start + dir * len;
+    let mut tri = |p: [DVec3; 3]| {
+        let n = (p[1] - p[0])
+            .cross(p[2] - p[0])
+            .try_normalize()
+            .unwrap_or(dir);
         draw_shaded(img, cam, near, p, [n; 3], [COLOR; 3]);
     };
     for k in 0..SIDES {
@@ -896,12 +876,115 @@ mod tests {
         )
     }
 
+    /// FNV-1a over bytes: a stable fingerprint of a picture (std's hashers may change between
+    /// Rust releases).
+    fn fnv1a(bytes: &[u8]) -> u64 {
+        bytes.iter().fold(0xcbf2_9ce4_8422_2325, |h, &b| {
+            (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
+        })
+    }
+
+    /// A closed, dented prolate ellipsoid (radii 25, 25, 45 mm; `nu x nv` quads split in two):
+    /// `(rest, positions, triangles)`.
+    fn dented_ellipsoid(nu: u32, nv: u32) -> (Vec<f32>, Vec<f32>, Vec<u32>) {
+        let (a, c) = (0.025f32, 0.045f32);
+        let mut rest = Vec::new();
+        for j in 0..=nv {
+            let th = std::f32::consts::PI * j as f32 / nv as f32;
+            for i in 0..nu {
+                let ph = std::f32::consts::TAU * i as f32 / nu as f32;
+                rest.extend([
+                    a * th.sin() * ph.cos(),
+                    a * th.sin() * ph.sin(),
+                    c * th.cos(),
+                ]);
+            }
+        }
+        let mut tris = Vec::new();
+        for j in 0..nv {
+            for i in 0..nu {
+                let i1 = (i + 1) % nu;
+                let (p, q, r, s) = (j * nu + i, j * nu + i1, (j + 1) * nu + i, (j + 1) * nu + i1);
+                tris.extend([p, q, s, p, s, r]);
+            }
+        }
+        let centre = [0.0177f32, 0.0177, -0.005];
+        let mut pos = rest.clone();
+        for v in pos.chunks_exact_mut(3) {
+            let d2 = (v[0] - centre[0]).powi(2)
+                + (v[1] - centre[1]).powi(2)
+                + (v[2] - centre[2]).powi(2);
+            let w = 0.004 * (-d2 / (2.0 * 0.008f32.powi(2))).exp();
+            let r = (v[0] * v[0] + v[1] * v[1]).sqrt().max(1e-9);
+            v[0] -= w * v[0] / r;
+            v[1] -= w * v[1] / r;
+        }
+        (rest, pos, tris)
+    }
+
+    /// Regression guard for refactors of the vector arithmetic: the exact pictures of three
+    /// scenes (shaded surface with per-vertex colours, probe sphere, oblique force arrow,
+    /// legend; a second camera looking along its up vector; a fixed colour scale) are pinned by
+    /// their RGB fingerprints. The values were taken from the rasterizer before it moved to
+    /// `glam::DVec3`. A mismatch means the picture changed: look at it before updating a value.
+    #[test]
+    fn pictures_match_the_pinned_fingerprints() {
+        let (rest, pos, tris) = dented_ellipsoid(40, 20);
+        let probe = ProbeView {
+            position_m: DVec3::new(0.0184, 0.0184, -0.005),
+            radius_m: 0.004,
+            force_n: DVec3::new(0.6, 0.45, 0.2),
+            in_contact: true,
+        };
+        let view = SurfaceView {
+            rest_m: &rest,
+            positions_m: &pos,
+            triangles: &tris,
+            probe: Some(probe),
+        };
+        let (a, b) = bounding_box(&rest).unwrap();
+        let side = RenderParams {
+            width: 200,
+            height: 150,
+            ..RenderParams::default()
+        };
+        let top = RenderParams {
+            width: 120,
+            height: 120,
+            view_from: DVec3::Z,
+            up: DVec3::new(0.0, 0.0, 2.0),
+            displacement_scale: DisplacementScale::FixedM(0.01),
+            legend: false,
+            ..RenderParams::default()
+        };
+        let octahedron = render_octahedron(
+            0.004,
+            Some(ProbeView {
+                position_m: DVec3::new(0.005, -0.004, 0.03),
+                radius_m: 0.003,
+                force_n: DVec3::new(-0.2, 0.3, -1.0),
+                in_contact: false,
+            }),
+        );
+        let got = [
+            fnv1a(render_surface(&view, &Camera::auto_frame(a, b, &side), &side).rgb()),
+            fnv1a(render_surface(&view, &Camera::auto_frame(a, b, &top), &top).rgb()),
+            fnv1a(octahedron.rgb()),
+        ];
+        let pinned: [u64; 3] = [
+            0xf2ab_57ee_75d3_c26a,
+            0xea44_f76f_259a_3493,
+            0x709a_57ad_73bb_5761,
+        ];
+        assert_eq!(got, pinned, "got {got:#x?}");
+    }
+
     #[test]
     fn rendering_is_deterministic_and_reacts_to_motion() {
         let probe = ProbeView {
-            position_m: [0.0, 0.0, 0.03],
+            position_m: DVec3::new(0.0, 0.0, 0.03),
             radius_m: 0.003,
-            force_n: [0.0, 0.0, 1.0],
+            force_n: DVec3::Z,
             in_contact: true,
         };
         let a = render_octahedron(0.0, Some(probe)).encode_png().unwrap();
@@ -918,9 +1001,9 @@ mod tests {
         assert!(img.depth(48, 36).is_finite());
         assert_eq!(img.pixel(0, 0), RenderParams::default().background);
         let probe = ProbeView {
-            position_m: [0.0, 0.0, 0.03],
+            position_m: DVec3::new(0.0, 0.0, 0.03),
             radius_m: 0.004,
-            force_n: [0.0; 3],
+            force_n: DVec3::ZERO,
             in_contact: false,
         };
         let with = render_octahedron(0.0, Some(probe));

@@ -25,6 +25,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
+use glam::DVec3;
 use haptics_proto::v1::surface_stream_client::SurfaceStreamClient;
 use haptics_proto::v1::{SurfaceFrame, WatchRequest};
 use serde::Serialize;
@@ -163,7 +164,7 @@ impl ViewerArgs {
             ..RenderParams::default()
         };
         if let Some(v) = &self.view_from {
-            render.view_from = crate::ctl::parse_vec3(v)?;
+            render.view_from = DVec3::from_array(crate::ctl::parse_vec3(v)?);
         }
         if let Some(m) = self.displacement_scale_m {
             render.displacement_scale = crate::raster::DisplacementScale::FixedM(m);
@@ -365,7 +366,7 @@ impl SurfaceState {
             let rest_ok = rest.len() == p.len() && rest.iter().all(|v| v.is_finite());
             self.rest_m = Arc::new(if rest_ok { rest.clone() } else { p.clone() });
             self.triangles = Arc::new(f.triangles.clone());
-            let (min, max) = bounding_box(p).unwrap_or(([-0.05; 3], [0.05; 3]));
+            let (min, max) = bounding_box(p).unwrap_or((DVec3::splat(-0.05), DVec3::splat(0.05)));
             self.camera = Some(Camera::auto_frame(min, max, params));
             FrameKind::Keyframe
         } else {
@@ -374,12 +375,12 @@ impl SurfaceState {
         self.positions_m.clear();
         self.positions_m.extend_from_slice(p);
         self.probe = f.probe_position_m.as_ref().map(|pos| ProbeView {
-            position_m: pos.to_array(),
+            position_m: DVec3::from_array(pos.to_array()),
             radius_m: f.probe_radius_m,
             force_n: f
                 .contact_force_n
                 .as_ref()
-                .map_or([0.0; 3], |v| v.to_array()),
+                .map_or(DVec3::ZERO, |v| DVec3::from_array(v.to_array())),
             in_contact: f.in_contact,
         });
         Ok(kind)

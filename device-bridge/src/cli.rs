@@ -8,6 +8,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use clap::{Parser, ValueEnum};
+use haptics_proto::parse_vec3;
 use thiserror::Error;
 
 use crate::device::{DeviceError, DeviceSpec, HapticDevice};
@@ -33,26 +34,6 @@ pub enum ScriptKind {
     Stroke,
     /// Sinusoidal pokes.
     Poke,
-}
-
-/// Parses `"X,Y,Z"` into three finite numbers.
-///
-/// # Errors
-/// A message naming the bad text.
-pub fn parse_vec3(s: &str) -> Result<[f64; 3], String> {
-    let parts: Vec<_> = s.split(',').map(str::trim).collect();
-    if parts.len() != 3 {
-        return Err(format!("expected X,Y,Z, got `{s}`"));
-    }
-    let mut v = [0.0; 3];
-    for (o, p) in v.iter_mut().zip(&parts) {
-        *o = p
-            .parse::<f64>()
-            .ok()
-            .filter(|x| x.is_finite())
-            .ok_or_else(|| format!("`{p}` in `{s}` is not a finite number"))?;
-    }
-    Ok(v)
 }
 
 /// Streams a haptic device's poses to a hapticd session and renders the forces it answers.
@@ -286,6 +267,16 @@ mod tests {
             Args::try_parse_from(["haptic-bridge", "--server", "localhost:1", "--session", "s"])
                 .unwrap();
         assert!(a.setup().err().unwrap().to_string().contains("http://"));
-        assert!(parse_vec3("1,nan,0").is_err());
+        let a = Args::try_parse_from([
+            "haptic-bridge",
+            "--server",
+            "http://x:1",
+            "--session",
+            "s",
+            "--start-m",
+            "1,nan,0",
+        ]);
+        let e = a.unwrap_err().to_string();
+        assert!(e.contains("1,nan,0") && e.contains("not finite"), "{e}");
     }
 }

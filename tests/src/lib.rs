@@ -1,8 +1,21 @@
-//! End-to-end harness: finds the workspace binaries (`hapticd`, `haptic-bridge`,
-//! `haptic-viewer`, `hapticctl`), starts `hapticd` on `127.0.0.1:0` as a child process
-//! ([`Daemon`]), runs the client binaries with timeouts ([`run_bin`], [`spawn_bin`],
-//! [`finish`]) and builds gRPC clients ([`session_control`], [`device_link`],
+//! End-to-end harness: builds the workspace binaries (`hapticd`, `haptic-bridge`,
+//! `haptic-viewer`, `hapticctl`) it runs ([`binary`]), starts `hapticd` on `127.0.0.1:0` as a
+//! child process ([`Daemon`]), runs the client binaries with timeouts ([`run_bin`],
+//! [`spawn_bin`], [`finish`]) and builds gRPC clients ([`session_control`], [`device_link`],
 //! [`surface_stream`]).
+//!
+//! Which binaries run: the tests never pick up whatever happens to sit in the target folder
+//! (with `cargo test -p haptic-e2e`, cargo builds none of the other packages' binaries, so those
+//! could be stale). The first [`binary`] call of a test process runs one `cargo build --locked`
+//! of the four binaries (with `escargot`), in the same profile as the test executable and in
+//! the same target directory (`CARGO_TARGET_DIR` or `build.target-dir` if set, else the
+//! workspace's `target/`; a `--target-dir` flag given to the outer cargo is not seen, use the
+//! variable instead); the paths are cached for the rest of the process. When nothing changed that costs one cargo
+//! no-op check. `HAPTIC_BIN_DIR=DIR` is the explicit override: the tests then run the binaries
+//! in `DIR` as they are and build nothing.
+//!
+//! The `haptic-demo` runner is not a test: it runs the binaries beside its own executable
+//! ([`sibling_bin_dir`], after `cargo build --release --workspace`) or from `--bin-dir`.
 //!
 //! Neighbours: the tests in `tests/tests/*.rs` use it, and so does the `haptic-demo` runner
 //! ([`demo`]). Nothing here asserts wall-clock timing: the machines are 2-core and shared, so
@@ -15,10 +28,10 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, ExitStatus, Stdio};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, mpsc};
+use std::sync::{Arc, Mutex, OnceLock, mpsc};
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, Result, anyhow, bail};
+use anyhow::{Context, Result, anyhow, bail, ensure};
 use haptics_proto::v1::device_link_client::DeviceLinkClient;
 use haptics_proto::v1::session_control_client::SessionControlClient;
 use haptics_proto::v1::surface_stream_client::SurfaceStreamClient;
@@ -40,7 +53,19 @@ pub const STEP_TIMEOUT: Duration = Duration::from_secs(30);
 /// Largest daemon log kept in memory (the tail is printed when a test fails).
 const LOG_CAP_BYTES: usize = 64 * 1024;
 
-/// The directory holding the workspace binaries of the build profile this executable belongs to.
+/// The environment variable naming a directory of prebuilt binaries to use instead of building.
+pub const BIN_DIR_ENV: &str = "HAPTIC_BIN_DIR";
+
+/// The workspace binaries the harness runs, with the package that builds each.
+const PACKAGES: [(&str, &str); 4] = [
+    (HAPTICD, "haptic-server"),
+    (BRIDGE, "haptic-bridge"),
+    (VIEWER, "haptic-client"),
+    (CTL, "haptic-client"),
+];
+
+/// The directory the binaries sit in next to the running executable (for `haptic-demo` after
+/// `cargo build --release --workspace`: `target/release`). Nothing is built.
 ///
 /// Order: `HAPTIC_BIN_DIR` if set; the directory of the current executable (one level up from
 /// `deps/` for test binaries, e.g. `target/debug`); then `$CARGO_TARGET_DIR/<profile>` and
@@ -48,9 +73,9 @@ const LOG_CAP_BYTES: usize = 64 * 1024;
 ///
 /// # Errors
 /// None of the candidates holds `hapticd`; the message says to build the binaries.
-pub fn bin_dir() -> Result<PathBuf> {
+pub fn sibling_bin_dir() -> Result<PathBuf> {
     let mut candidates = Vec::new();
-    if let Some(d) = std::env::var_os("HAPTIC_BIN_DIR") {
+    if let Some(d) = std::env::var_os(BIN_DIR_ENV) {
         candidates.push(PathBuf::from(d));
     }
     let mut profile = "debug".to_string();
@@ -78,17 +103,173 @@ pub fn bin_dir() -> Result<PathBuf> {
         .ok_or_else(|| {
             anyhow!(
                 "the workspace binaries ({HAPTICD}, {BRIDGE}, {VIEWER}, {CTL}) were not found in \
-                 {candidates:?}: run `cargo build --workspace --bins` first (or set HAPTIC_BIN_DIR)"
+                 {candidates:?}: run `cargo build --workspace --bins` first (or set {BIN_DIR_ENV})"
             )
         })
 }
 
-/// Path of the workspace binary `name` in [`bin_dir`].
+/// Path of the workspace binary `name` (one of [`HAPTICD`], [`BRIDGE`], [`VIEWER`], [`CTL`]),
+/// built fresh for this test process.
+///
+/// The first call builds all four binaries in one `cargo build --locked -p ... --bin ...`
+/// ([`build_profile_args`] selects the profile) and blocks until it is done (minutes on a cold
+/// target folder, a fraction of a second when nothing changed); later calls, from any thread,
+/// get the cached path or the cached failure. All four at once, rather than each when first
+/// needed, so that no build competes for the 2 cores with a daemon a test has already started
+/// (its 1 kHz servo would overrun), and one cargo check per process instead of four.
+/// With `HAPTIC_BIN_DIR` set, nothing is built: the binary is taken from that directory.
+///
+/// `--locked`: the nested build never rewrites `Cargo.lock`. The outer `cargo test` has
+/// already resolved the lock file (or refused to, under `--locked`), so this only fails where
+/// the outer command would have.
 ///
 /// # Errors
-/// The binary is missing; the message says to run `cargo build --workspace --bins`.
+/// `name` is not a workspace binary; the build fails (the compiler's and cargo's messages are
+/// in the error); or, with `HAPTIC_BIN_DIR`, the file is missing.
 pub fn binary(name: &str) -> Result<PathBuf> {
-    binary_in(&bin_dir()?, name)
+    static BUILT: OnceLock<Result<Vec<PathBuf>, String>> = OnceLock::new();
+    let i = PACKAGES
+        .iter()
+        .position(|(bin, _)| *bin == name)
+        .with_context(|| format!("{name} is not one of the workspace binaries {PACKAGES:?}"))?;
+    if let Some(dir) = std::env::var_os(BIN_DIR_ENV) {
+        return binary_in(Path::new(&dir), name)
+            .with_context(|| format!("{BIN_DIR_ENV} is set: nothing is built"));
+    }
+    match BUILT.get_or_init(|| build_all().map_err(|e| format!("{e:#}"))) {
+        Ok(paths) => Ok(paths[i].clone()),
+        Err(e) => Err(anyhow!("{e}")),
+    }
+}
+
+/// The directory holding all four workspace binaries, built as by [`binary`] (or
+/// `HAPTIC_BIN_DIR` as it is), for callers that take a directory (the demo runner).
+///
+/// # Errors
+/// As [`binary`]; or the binaries did not land in one directory.
+pub fn built_bin_dir() -> Result<PathBuf> {
+    let mut dir: Option<PathBuf> = None;
+    for (name, _) in PACKAGES {
+        let exe = binary(name)?;
+        let parent = exe
+            .parent()
+            .with_context(|| format!("{} has no parent directory", exe.display()))?;
+        match &dir {
+            None => dir = Some(parent.to_path_buf()),
+            Some(d) if d == parent => {}
+            Some(d) => bail!(
+                "the workspace binaries were built into different directories: {} and {}",
+                d.display(),
+                parent.display()
+            ),
+        }
+    }
+    dir.context("no workspace binaries")
+}
+
+/// Cargo arguments that select the profile (and target triple) this executable was built
+/// with, read from its location (see [`profile_args_for`]). An executable outside cargo's
+/// layout falls back to this crate's `debug_assertions` (dev profile or `--release`).
+pub fn build_profile_args() -> Vec<String> {
+    std::env::current_exe()
+        .ok()
+        .and_then(|exe| profile_args_for(&exe, escargot::CURRENT_TARGET))
+        .unwrap_or_else(|| {
+            if cfg!(debug_assertions) {
+                Vec::new()
+            } else {
+                vec!["--release".to_string()]
+            }
+        })
+}
+
+/// Cargo arguments for the profile of a test executable at
+/// `TARGET_DIR/[TRIPLE/]PROFILE_DIR/deps/NAME-HASH`: `debug` is the dev profile (what
+/// `cargo test` uses: no argument), `release` is `--release`, any other folder is a custom
+/// `--profile NAME`. A `TRIPLE` folder equal to `host` adds `--target TRIPLE`, since
+/// `cargo test --target TRIPLE` builds there and a build without it would start from scratch.
+/// `None` when `exe` is not in a `deps` folder.
+pub fn profile_args_for(exe: &Path, host: &str) -> Option<Vec<String>> {
+    let deps = exe.parent()?;
+    if deps.file_name()? != "deps" {
+        return None;
+    }
+    let profile_dir = deps.parent()?;
+    let mut args = match profile_dir.file_name()?.to_str()? {
+        "debug" => Vec::new(),
+        "release" => vec!["--release".to_string()],
+        other => vec!["--profile".to_string(), other.to_string()],
+    };
+    if profile_dir
+        .parent()
+        .and_then(Path::file_name)
+        .is_some_and(|t| t == host)
+    {
+        args.extend(["--target".to_string(), host.to_string()]);
+    }
+    Some(args)
+}
+
+/// One `cargo build --locked -p PACKAGE... --bin NAME...` of the four [`PACKAGES`] binaries
+/// plus [`build_profile_args`], for the workspace this crate belongs to; returns the
+/// executables in [`PACKAGES`] order. Compiler errors (which cargo prints as JSON on stdout
+/// with `--message-format=json`) are kept for the error message.
+fn build_all() -> Result<Vec<PathBuf>> {
+    use escargot::format::{Message, diagnostic::DiagnosticLevel};
+    let manifest = Path::new(env!("CARGO_MANIFEST_DIR")).join("../Cargo.toml");
+    let mut args = vec!["--locked".to_string()];
+    for (i, (_, package)) in PACKAGES.iter().enumerate() {
+        if !PACKAGES[..i].iter().any(|(_, p)| p == package) {
+            args.extend(["-p".to_string(), package.to_string()]);
+        }
+    }
+    for (bin, _) in PACKAGES {
+        args.extend(["--bin".to_string(), bin.to_string()]);
+    }
+    args.extend(build_profile_args());
+    let command = format!("cargo build {}", args.join(" "));
+    eprintln!("haptic-e2e: {command}");
+    let messages = escargot::CargoBuild::new()
+        .manifest_path(&manifest)
+        .args(&args)
+        .exec()
+        .with_context(|| format!("starting `{command}`"))?;
+    let mut exes: Vec<Option<PathBuf>> = vec![None; PACKAGES.len()];
+    let mut errors = String::new();
+    for m in messages {
+        // The last item is cargo's failure (its stderr) when the build failed.
+        let m = m.map_err(|e| anyhow!("`{command}` failed:\n{errors}{e}"))?;
+        match m.decode() {
+            Ok(Message::CompilerArtifact(a)) if a.target.kind.iter().any(|k| k == "bin") => {
+                if let Some(i) = PACKAGES.iter().position(|(bin, _)| a.target.name == *bin) {
+                    exes[i] = a.executable.map(|p| p.into_owned());
+                }
+            }
+            Ok(Message::CompilerMessage(c))
+                if matches!(
+                    c.message.level,
+                    DiagnosticLevel::Error | DiagnosticLevel::Ice
+                ) =>
+            {
+                errors.push_str(c.message.rendered.as_deref().unwrap_or(&c.message.message));
+                errors.push('\n');
+            }
+            _ => {}
+        }
+    }
+    PACKAGES
+        .iter()
+        .zip(exes)
+        .map(|((bin, _), exe)| {
+            let exe = exe.with_context(|| format!("`{command}` reported no executable {bin}"))?;
+            ensure!(
+                exe.is_file(),
+                "`{command}` reported {} but it is not a file",
+                exe.display()
+            );
+            Ok(exe)
+        })
+        .collect()
 }
 
 /// Path of `name` in `dir`, checked to exist.
@@ -117,7 +298,7 @@ pub struct Daemon {
 }
 
 impl Daemon {
-    /// Starts `hapticd` from [`bin_dir`] with `args`, adding `--listen 127.0.0.1:0` unless
+    /// Starts `hapticd` (built by [`binary`]) with `args`, adding `--listen 127.0.0.1:0` unless
     /// `args` has `--listen`, and waits (up to [`STEP_TIMEOUT`]) for `listening on ADDR`.
     ///
     /// # Errors
@@ -355,9 +536,13 @@ pub struct Spawned {
 /// # Errors
 /// Missing binary or spawn failure.
 pub fn spawn_bin_in(dir: &Path, name: &str, args: &[&str]) -> Result<Spawned> {
-    let exe = binary_in(dir, name)?;
+    spawn_exe(&binary_in(dir, name)?, name, args)
+}
+
+/// Starts the executable `exe` (called `name` in messages) with `args` in the background.
+fn spawn_exe(exe: &Path, name: &str, args: &[&str]) -> Result<Spawned> {
     let command = format!("{name} {}", args.join(" "));
-    let child = tokio::process::Command::new(&exe)
+    let child = tokio::process::Command::new(exe)
         .args(args)
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
@@ -368,12 +553,12 @@ pub fn spawn_bin_in(dir: &Path, name: &str, args: &[&str]) -> Result<Spawned> {
     Ok(Spawned { command, child })
 }
 
-/// Starts the workspace binary `name` (from [`bin_dir`]) with `args` in the background.
+/// Starts the workspace binary `name` (built by [`binary`]) with `args` in the background.
 ///
 /// # Errors
-/// Missing binary or spawn failure.
+/// Build failure, missing binary or spawn failure.
 pub fn spawn_bin(name: &str, args: &[&str]) -> Result<Spawned> {
-    spawn_bin_in(&bin_dir()?, name, args)
+    spawn_exe(&binary(name)?, name, args)
 }
 
 /// Waits up to `timeout` for a background binary and collects its output (any exit status;
@@ -541,4 +726,39 @@ pub async fn start_session(url: &str, scene: &str) -> Result<String> {
         .await
         .with_context(|| format!("StartSession {scene}"))?;
     Ok(r.into_inner().session_id)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nested_builds_use_the_profile_and_target_of_the_test_executable() {
+        let host = "x86_64-unknown-linux-gnu";
+        let args = |p: &str| profile_args_for(Path::new(p), host);
+        assert_eq!(args("/w/target/debug/deps/surface-0123"), Some(vec![]));
+        assert_eq!(
+            args("/w/target/release/deps/surface-0123"),
+            Some(vec!["--release".to_string()])
+        );
+        assert_eq!(
+            args("/w/target/ci/deps/surface-0123"),
+            Some(vec!["--profile".to_string(), "ci".to_string()])
+        );
+        assert_eq!(
+            args("/w/target/x86_64-unknown-linux-gnu/debug/deps/surface-0123"),
+            Some(vec!["--target".to_string(), host.to_string()])
+        );
+        assert_eq!(args("/w/target/release/haptic-demo"), None);
+        assert_eq!(args("surface"), None);
+    }
+
+    #[test]
+    fn every_harness_binary_has_a_package() {
+        for name in [HAPTICD, BRIDGE, VIEWER, CTL] {
+            assert!(PACKAGES.iter().any(|(bin, _)| *bin == name), "{name}");
+        }
+        let e = binary("cargo").unwrap_err().to_string();
+        assert!(e.contains("not one of the workspace binaries"), "{e}");
+    }
 }

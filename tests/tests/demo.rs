@@ -1,15 +1,15 @@
-//! The README's first command: the `haptic-demo` runner's library against the debug binaries
+//! The README's first command: the `haptic-demo` runner's library against freshly built binaries
 //! (shorter hold, output in a temp dir).
 
 use anyhow::Result;
 use haptic_e2e::demo::{self, DemoParams};
-use haptic_e2e::{bin_dir, serial, unique_temp_dir};
+use haptic_e2e::{built_bin_dir, serial, unique_temp_dir};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn demo_runs_end_to_end_and_writes_its_outputs() -> Result<()> {
     let _serial = serial().await;
     let out = unique_temp_dir("haptic-e2e-demo")?;
-    let mut p = DemoParams::new(bin_dir()?);
+    let mut p = DemoParams::new(built_bin_dir()?);
     p.out_dir = out.clone();
     p.hold_s = 1.5;
     p.force_after_s = 1.0;

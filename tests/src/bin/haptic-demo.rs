@@ -30,7 +30,7 @@ fn parse() -> Result<DemoParams> {
     }
     let bin_dir = match bin_dir {
         Some(d) => d,
-        None => haptic_e2e::bin_dir()?,
+        None => haptic_e2e::sibling_bin_dir()?,
     };
     let mut p = DemoParams::new(bin_dir);
     if let Some(o) = out {
