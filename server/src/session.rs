@@ -276,13 +276,32 @@ impl SessionManager {
     /// [`ServerError::Exhausted`] at the session limit; [`ServerError::Model`] when the
     /// simulation cannot be built (e.g. an unstable explicit configuration).
     pub fn start(&self, scene: &Scene) -> Result<Arc<Session>, ServerError> {
+        self.check_capacity()?;
+        self.start_body(haptic_model::build_body(scene)?)
+    }
+
+    /// Refuses a new session at the session limit.
+    fn check_capacity(&self) -> Result<(), ServerError> {
         if self.sessions.lock().map(|s| s.len()).unwrap_or(0) >= self.config.max_sessions {
             return Err(ServerError::Exhausted(format!(
                 "the server runs its limit of {} sessions",
                 self.config.max_sessions
             )));
         }
-        let body = haptic_model::build_body(scene)?;
+        Ok(())
+    }
+
+    /// Starts a session for a body already built (any model family, or a test body): its servo
+    /// thread, forwarder and frame task. Must be called inside a tokio runtime.
+    ///
+    /// # Errors
+    /// [`ServerError::Exhausted`] at the session limit; [`ServerError::Internal`] when a thread
+    /// cannot be spawned.
+    pub fn start_body(
+        &self,
+        body: Box<dyn haptic_model::body::SoftBody>,
+    ) -> Result<Arc<Session>, ServerError> {
+        self.check_capacity()?;
         let info = body.info();
         let size = body.stats();
         let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
