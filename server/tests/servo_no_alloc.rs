@@ -3,44 +3,17 @@
 //! ticks that exercise every path: device poses in and out of contact, point-load commands,
 //! snapshots for a watcher, statistics publication, and a device disconnect.
 
-use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::Ordering;
 
 use haptic_model::DVec3;
 use haptic_model::scene::load_builtin;
 use haptic_server::servo::{self, Clock, Command, Pose, ServoCore, ServoHandles, SessionShared};
 
-struct Counting;
-static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
-thread_local! {
-    static COUNTING: Cell<bool> = const { Cell::new(false) };
-}
-
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
-        }
-        // SAFETY: forwarded unchanged to the system allocator.
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        // SAFETY: forwarded unchanged to the system allocator.
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
-        }
-        // SAFETY: forwarded unchanged to the system allocator.
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
-
-#[global_allocator]
-static GLOBAL: Counting = Counting;
+#[path = "../model/tests/common/counting_alloc.rs"]
+mod counting_alloc;
+use counting_alloc::counted;
 
 /// A clock the test advances by hand.
 struct ManualClock(Cell<u64>);
@@ -90,12 +63,9 @@ fn servo_tick_never_allocates() {
                 })
                 .unwrap();
         }
-        let before = ALLOCATIONS.load(Ordering::Relaxed);
-        COUNTING.with(|c| c.set(true));
         let now = clock.now_us();
-        core.tick(now, &clock);
-        COUNTING.with(|c| c.set(false));
-        worst = worst.max(ALLOCATIONS.load(Ordering::Relaxed) - before);
+        let (_, allocations) = counted(|| core.tick(now, &clock));
+        worst = worst.max(allocations);
         while let Ok(f) = force_rx.pop() {
             if f.in_contact {
                 contact_ticks += 1;
@@ -104,7 +74,6 @@ fn servo_tick_never_allocates() {
         snap_out.update();
     }
     assert_eq!(worst, 0, "a servo tick allocated");
-    assert_eq!(ALLOCATIONS.load(Ordering::Relaxed), 0);
     // The paths were really exercised.
     assert!(contact_ticks > 500, "contact ticks {contact_ticks}");
     let stats = *stats_out.read();

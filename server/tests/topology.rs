@@ -3,10 +3,9 @@
 //! triangles only when the topology version changes and never allocates doing it, and a viewer
 //! watching the session gets a new keyframe with the new triangles.
 
-use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use haptic_model::body::{
@@ -21,35 +20,9 @@ use haptics_proto::v1::WatchRequest;
 use haptics_proto::v1::surface_stream_server::SurfaceStream;
 use tokio_stream::StreamExt;
 
-struct Counting;
-static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
-thread_local! {
-    static COUNTING: Cell<bool> = const { Cell::new(false) };
-}
-
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
-        }
-        // SAFETY: forwarded unchanged to the system allocator.
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        // SAFETY: forwarded unchanged to the system allocator.
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
-        }
-        // SAFETY: forwarded unchanged to the system allocator.
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
-
-#[global_allocator]
-static GLOBAL: Counting = Counting;
+#[path = "../model/tests/common/counting_alloc.rs"]
+mod counting_alloc;
+use counting_alloc::counted;
 
 /// A unit square of two triangles that, every `period` ticks, is split at its centre into four
 /// (version 1, 5 vertices) and merged back (version 2, 4 vertices), and so on.
@@ -185,11 +158,10 @@ fn snapshots_follow_the_topology_without_allocating() {
     });
     let clock = ManualClock(Cell::new(0));
     let mut seen = Vec::new();
+    let mut allocations = 0;
     for _ in 0..200 {
-        COUNTING.with(|c| c.set(true));
         let now = clock.now_us();
-        core.tick(now, &clock);
-        COUNTING.with(|c| c.set(false));
+        allocations += counted(|| core.tick(now, &clock)).1;
         snap_out.update();
         let s = snap_out.output_buffer();
         let triangles = if s.topology_version % 2 == 1 { 4 } else { 2 };
@@ -205,11 +177,7 @@ fn snapshots_follow_the_topology_without_allocating() {
             seen.push(s.topology_version);
         }
     }
-    assert_eq!(
-        ALLOCATIONS.load(Ordering::Relaxed),
-        0,
-        "a servo tick allocated"
-    );
+    assert_eq!(allocations, 0, "a servo tick allocated");
     // 200 ticks of 40: versions 0 to 5, each seen by the snapshot.
     assert_eq!(seen, [0, 1, 2, 3, 4, 5]);
 }

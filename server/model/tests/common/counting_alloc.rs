@@ -1,7 +1,8 @@
 //! A global allocator that counts the allocations (and reallocations) this thread makes while
-//! counting is on: the "no allocation in the tick" tests. A test file includes it with
-//! `#[path = "common/counting_alloc.rs"] mod counting_alloc;` (it installs the allocator of
-//! that test binary).
+//! counting is on: the "no allocation in the tick" tests of the model and of the server. A test
+//! file includes it with `#[path = "common/counting_alloc.rs"] mod counting_alloc;` (from
+//! `server/tests`: `"../model/tests/common/counting_alloc.rs"`); it installs the allocator of
+//! that test binary.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
