@@ -36,8 +36,7 @@ pub struct SolveParams {
     pub load_steps: usize,
     /// Largest number of frozen-load Newton solves per increment when a follower pressure
     /// moves the load with the body (default 100: the fixed point converges linearly, slowly
-    /// when the pressure is of the order of the stiffness; 10 kPa on `lv_h2` needs about 40 per
-    /// increment in 2 increments).
+    /// when the pressure is of the order of the stiffness; measured in `docs/decisions.md`).
     pub max_follower_passes: usize,
     /// Relative residual the solve must reach (against the external load norm).
     pub rel_tol: f64,

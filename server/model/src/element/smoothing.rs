@@ -22,13 +22,11 @@ use super::quadrature::{IntegrationPoints, linear_gradients};
 ///   `G_kj = (1 / V_k) sum_{e ∋ k, j} (V_e / 6) grad N_j^e`. The energy is
 ///   `sum_k V_k Psi(F_k)`; forces, stiffness and viscous stress follow from `F_k` exactly as from
 ///   an integration point with weight `V_k` and gradients `G_kj` (its nodes: those of the
-///   tetrahedra around the edge, 4 to 11, 6.6 on average on `lv_h1`). Linear tetrahedra are
-///   overly stiff in bending and shear; the smoothed strain softens them while keeping the
-///   linear patch test exact (a linear field has the same `F` in every element, so its average
-///   too), and unlike the node-based variant it has no spurious low-energy modes. On
-///   `lv_h1.msh` the small-strain probe compliance moves from 15 % below the quadratic
-///   solution on the same mesh to 3 % below (README, "Strain smoothing"). Linear meshes only;
-///   masses stay lumped per element.
+///   tetrahedra around the edge). Linear tetrahedra are overly stiff in bending and shear; the
+///   smoothed strain softens them while keeping the linear patch test exact (a linear field has
+///   the same `F` in every element, so its average too), and unlike the node-based variant it
+///   has no spurious low-energy modes (measured effect on the LV: `docs/accuracy.md`, "Strain
+///   smoothing"). Linear meshes only; masses stay lumped per element.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum StrainSmoothing {
     /// Standard FEM.

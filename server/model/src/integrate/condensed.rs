@@ -76,12 +76,10 @@ pub struct ActiveRegion {
     /// Factor `c >= 1` on the active elements' rest stiffness in the frozen tick matrix
     /// (`h^2 c K_0`; default [`DEFAULT_STIFFNESS_MARGIN`]). The matrix is frozen at rest while
     /// the tangent of a strained body grows (St. Venant-Kirchhoff: by `(3 lambda^2 - 1) / 2` at
-    /// stretch `lambda`); a step with a matrix softer than half the tangent overshoots, and on
-    /// `lv_h1.msh` under a 2.5 mm indentation `c = 1` settled into a two-tick oscillation
-    /// 15 % above the converged force. A margin only slows the approach to equilibrium in the
-    /// soft directions; the equilibrium itself does not depend on it. Near incompressibility
-    /// needs more: at Poisson ratio 0.499 a 2 mm press on the LV diverged (reported) with 2, 3
-    /// and 5 and was stable with 10.
+    /// stretch `lambda`); a step with a matrix softer than half the tangent overshoots into an
+    /// oscillation. A margin only slows the approach to equilibrium in the soft directions; the
+    /// equilibrium itself does not depend on it. Near incompressibility needs more (the
+    /// measured choices: `docs/decisions.md`, "Contact-local condensation").
     pub stiffness_margin: f64,
 }
 
@@ -344,8 +342,7 @@ fn rest_tangent_opt(fem: Option<&FemModel>, push: impl FnMut(usize, usize, f64))
 impl CondensedSolver {
     /// Splits `body` (the whole body's model, with its constraints; `mesh` its mesh) by
     /// `region`, condenses the far part and factorises the tick matrix for the step `dt_s` (s).
-    /// Costs one sparse factorisation of the far stiffness and `3|G|` solves with it (about a
-    /// second on `lv_h1.msh`). A region holding every element condenses nothing: then this is
+    /// Costs one sparse factorisation of the far stiffness and `3|G|` solves with it. A region holding every element condenses nothing: then this is
     /// backward Euler with a prefactored rest matrix on the whole body.
     ///
     /// # Errors

@@ -96,9 +96,8 @@ pub struct IntegratorParams {
     /// Fraction of the critical time step used when sub-steps are automatic (0, 1]. The
     /// critical step is computed at rest, but St. Venant-Kirchhoff stiffens under stretch (the
     /// tangent grows by about `(3 lambda^2 - 1) / 2` at stretch `lambda`), so a probe pressing a
-    /// few millimetres into soft tissue needs margin: 0.5 kept every LV mesh (1k to 18k tets)
-    /// stable under a 3.7 mm indentation with both integrators; 0.6 did not for the
-    /// semi-implicit scheme on 18k tets.
+    /// few millimetres into soft tissue needs margin (default 0.5; why: `docs/decisions.md`,
+    /// "Safety factor 0.5, not 0.8").
     pub safety_factor: f64,
     /// Backward Euler: largest number of conjugate-gradient iterations per Newton step.
     /// Default 20.
