@@ -5,24 +5,61 @@
 //! case: contact, patch and implicit coupling active).
 //!
 //! Run: `cargo bench -p haptic-model --bench step` (add `-- --quick` for fewer ticks).
-//! Writes `target/bench/step.csv` and prints a table. Medians and ratios measured in one run are
-//! what to quote: these 2-core machines are shared and noisy.
+//! Writes `target/bench/step.csv` (or `--out DIR`) and prints a table. Medians and ratios
+//! measured in one run are what to quote: these 2-core machines are shared and noisy.
 
-use std::path::Path;
+mod common;
+
+use std::path::PathBuf;
 use std::time::Instant;
 
+use anyhow::Context as _;
+use clap::Parser;
+use common::TickTimes;
 use haptic_model::DVec3;
 use haptic_model::integrate::IntegratorKind;
 use haptic_model::scene::{Scene, load_builtin, load_scene_file};
 use haptic_model::sim::{Simulation, TickInput};
+use serde::Serialize;
 
-fn percentile(sorted: &[f64], q: f64) -> f64 {
-    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
+/// Step-time benchmark: servo tick and force evaluation per LV mesh and integrator.
+#[derive(Debug, Parser)]
+#[command(name = "step")]
+struct Args {
+    /// Fewer ticks: 50 force evaluations and at most 500 ticks (3 s of wall time) per run,
+    /// instead of 300 and 2000 (15 s).
+    #[arg(long)]
+    quick: bool,
+    /// Folder of step.csv [default: target/bench of the workspace].
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Passed by `cargo bench` to every harness-less benchmark; ignored.
+    #[arg(long, hide = true)]
+    bench: bool,
 }
 
-fn main() {
-    let quick = std::env::args().any(|a| a == "--quick");
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+/// One row of `step.csv`.
+#[derive(Debug, Serialize)]
+struct StepRow<'a> {
+    scene: &'a str,
+    integrator: &'static str,
+    nodes: usize,
+    tets: usize,
+    substeps: u32,
+    critical_dt_s: f64,
+    tick_p50_us: f64,
+    tick_p99_us: f64,
+    tick_max_us: f64,
+    force_eval_p50_us: f64,
+    realtime_factor: f64,
+    ticks: u64,
+    cg_iterations_mean: f64,
+}
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    let quick = args.quick;
+    let root = common::workspace_root();
     let mut scenes: Vec<(String, Scene)> = vec![(
         "lv (built-in)".into(),
         load_builtin("lv").expect("built-in lv"),
@@ -34,9 +71,10 @@ fn main() {
             Err(e) => eprintln!("skipping {f}: {e}"),
         }
     }
-    let mut csv = String::from(
-        "scene,integrator,nodes,tets,substeps,critical_dt_s,tick_p50_us,tick_p99_us,tick_max_us,force_eval_p50_us,realtime_factor,ticks,cg_iterations_mean\n",
-    );
+    let out = args.out.unwrap_or_else(common::default_out_dir);
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    let path = out.join("step.csv");
+    let mut csv = csv::Writer::from_path(&path)?;
     println!(
         "{:<15} {:<17} {:>6} {:>6} {:>4} {:>11} {:>10} {:>10} {:>10} {:>11} {:>8} {:>6}",
         "scene",
@@ -71,19 +109,18 @@ fn main() {
             // Force evaluation alone.
             let n = sim.fem().node_count();
             let mut f = vec![DVec3::ZERO; n];
-            let mut fe = Vec::new();
+            let mut fe = TickTimes::new();
             for _ in 0..if quick { 50 } else { 300 } {
                 f.iter_mut().for_each(|v| *v = DVec3::ZERO);
                 let t = Instant::now();
                 sim.fem()
                     .add_internal_forces(&sim.state().x, Some(&sim.state().v), &mut f);
-                fe.push(t.elapsed().as_secs_f64() * 1e6);
+                fe.record(t.elapsed());
             }
-            fe.sort_by(f64::total_cmp);
             // Full ticks while pressing 6 mm along -x at the equator (z = -5 mm).
             let budget_s = if quick { 3.0 } else { 15.0 };
             let max_ticks = if quick { 500 } else { 2000 };
-            let mut times = Vec::with_capacity(max_ticks);
+            let mut times = TickTimes::new();
             let mut cg_iterations = 0u64;
             let wall = Instant::now();
             for k in 0..max_ticks {
@@ -94,47 +131,48 @@ fn main() {
                 };
                 let t = Instant::now();
                 sim.tick(&input).expect("tick");
-                times.push(t.elapsed().as_secs_f64() * 1e6);
+                times.record(t.elapsed());
                 cg_iterations += u64::from(sim.cg_stats().iterations);
                 if wall.elapsed().as_secs_f64() > budget_s {
                     break;
                 }
             }
-            times.sort_by(f64::total_cmp);
             let plan = sim.plan();
-            let p50 = percentile(&times, 0.5);
-            let rt = 1000.0 / p50;
-            let cg_mean = cg_iterations as f64 / times.len() as f64;
+            let tick = times.percentiles();
+            let row = StepRow {
+                scene: name,
+                integrator: kind.name(),
+                nodes: n,
+                tets: sim.fem().tets().len(),
+                substeps: plan.substeps,
+                critical_dt_s: plan.critical_dt_s,
+                tick_p50_us: tick.p50_us,
+                tick_p99_us: tick.p99_us,
+                tick_max_us: tick.max_us,
+                force_eval_p50_us: fe.percentiles().p50_us,
+                realtime_factor: 1000.0 / tick.p50_us,
+                ticks: times.len(),
+                cg_iterations_mean: cg_iterations as f64 / times.len() as f64,
+            };
             println!(
                 "{:<15} {:<17} {:>6} {:>6} {:>4} {:>11.3e} {:>8.0}us {:>8.0}us {:>8.0}us {:>9.0}us {:>8.2} {:>6.1}",
-                name,
-                kind.name(),
-                n,
-                sim.fem().tets().len(),
-                plan.substeps,
-                plan.critical_dt_s,
-                p50,
-                percentile(&times, 0.99),
-                times[times.len() - 1],
-                percentile(&fe, 0.5),
-                rt,
-                cg_mean
+                row.scene,
+                row.integrator,
+                row.nodes,
+                row.tets,
+                row.substeps,
+                row.critical_dt_s,
+                row.tick_p50_us,
+                row.tick_p99_us,
+                row.tick_max_us,
+                row.force_eval_p50_us,
+                row.realtime_factor,
+                row.cg_iterations_mean
             );
-            csv.push_str(&format!(
-                "{name},{},{n},{},{},{:.6e},{p50:.1},{:.1},{:.1},{:.1},{rt:.3},{},{cg_mean:.2}\n",
-                kind.name(),
-                sim.fem().tets().len(),
-                plan.substeps,
-                plan.critical_dt_s,
-                percentile(&times, 0.99),
-                times[times.len() - 1],
-                percentile(&fe, 0.5),
-                times.len()
-            ));
+            csv.serialize(&row)?;
         }
     }
-    let out = root.join("target/bench");
-    std::fs::create_dir_all(&out).expect("creating target/bench");
-    std::fs::write(out.join("step.csv"), csv).expect("writing step.csv");
-    println!("wrote {}", out.join("step.csv").display());
+    csv.flush()?;
+    println!("wrote {}", path.display());
+    Ok(())
 }

@@ -7,19 +7,35 @@
 //! Writes `OUT_DIR/nodes.txt` (rest x y z per line, m), `tets.txt` (4 zero-based node indices),
 //! `deformed.txt` (x y z, m), `ours_force.txt` (fx fy fz, N) and `ours.json` (material, timing).
 
+#[path = "../benches/common/mod.rs"]
+mod common;
+
 use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::time::Instant;
 
+use clap::Parser;
+use common::TickTimes;
 use haptic_model::DVec3;
 use haptic_model::element::FemModel;
 use haptic_model::material::MaterialParams;
 use haptic_model::mesh::gmsh::load_msh;
 
+/// Exports the peer measurement's case (lv_h1.msh, a smooth deformation, our StVK forces) and
+/// times our force evaluation on it.
+#[derive(Debug, Parser)]
+#[command(name = "export_peer_case")]
+struct Args {
+    /// Output folder.
+    #[arg(default_value = "target/peer-case")]
+    out: PathBuf,
+    /// Timed force evaluations.
+    #[arg(default_value_t = 200)]
+    repeats: u32,
+}
+
 fn main() {
-    let mut args = std::env::args().skip(1);
-    let out = PathBuf::from(args.next().unwrap_or_else(|| "target/peer-case".into()));
-    let repeats: usize = args.next().and_then(|s| s.parse().ok()).unwrap_or(200);
+    let Args { out, repeats } = Args::parse();
     let msh = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/lv/lv_h1.msh");
     let mut mesh = load_msh(&msh).unwrap_or_else(|e| panic!("reading {}: {e}", msh.display()));
     mesh.scale(1e-3);
@@ -44,16 +60,15 @@ fn main() {
         })
         .collect();
     let mut f = vec![DVec3::ZERO; x.len()];
-    let mut times = Vec::with_capacity(repeats);
+    let mut times = TickTimes::new();
     for _ in 0..repeats {
         f.iter_mut().for_each(|v| *v = DVec3::ZERO);
         let t = Instant::now();
         fem.add_internal_forces(&x, None, &mut f);
-        times.push(t.elapsed().as_secs_f64() * 1e6);
+        times.record(t.elapsed());
         std::hint::black_box(&f);
     }
-    times.sort_by(f64::total_cmp);
-    let median = times[times.len() / 2];
+    let median = times.percentiles().p50_us;
     std::fs::create_dir_all(&out).expect("creating the output directory");
     let lines = |v: &[DVec3]| {
         v.iter().fold(String::new(), |mut s, p| {
@@ -69,15 +84,18 @@ fn main() {
         s
     });
     std::fs::write(out.join("tets.txt"), tets).expect("tets");
-    let info = format!(
-        "{{\"youngs_modulus_pa\": {e}, \"poisson_ratio\": {nu}, \"lambda_pa\": {}, \"mu_pa\": {}, \"nodes\": {}, \"tets\": {}, \"repeats\": {repeats}, \"force_median_us\": {median:.2}, \"elastic_energy_j\": {:.17e}}}\n",
-        fem.material().lambda_pa,
-        fem.material().mu_pa,
-        mesh.node_count(),
-        mesh.tet_count(),
-        fem.elastic_energy(&x)
-    );
-    std::fs::write(out.join("ours.json"), &info).expect("ours.json");
+    let info = serde_json::json!({
+        "youngs_modulus_pa": e,
+        "poisson_ratio": nu,
+        "lambda_pa": fem.material().lambda_pa,
+        "mu_pa": fem.material().mu_pa,
+        "nodes": mesh.node_count(),
+        "tets": mesh.tet_count(),
+        "repeats": repeats,
+        "force_median_us": median,
+        "elastic_energy_j": fem.elastic_energy(&x),
+    });
+    std::fs::write(out.join("ours.json"), info.to_string() + "\n").expect("ours.json");
     println!(
         "ours: {} nodes, {} tets, StVK force median {median:.1} us over {repeats} runs; wrote {}",
         mesh.node_count(),

@@ -459,7 +459,7 @@ fn ten_fold_impulse(model: &str) {
 /// axis at 60 mm/s, and back. The robust materials keep every element upright (measured: none
 /// inverted, kinetic energy at most 5.7e-7 J); St. Venant-Kirchhoff, whose stress softens in
 /// strong compression, inverts some elements under the probe (measured: 5, kinetic energy
-/// spikes to 7e-6 J; all recover when the probe leaves, see the soak benchmark): printed, not
+/// spikes to 7e-6 J; all recover when the probe leaves, see the soak example): printed, not
 /// asserted.
 #[test]
 fn deep_sliding_probe_inverts_nothing_with_the_robust_materials() {

@@ -1,20 +1,27 @@
-//! Helpers shared by the `precision` and `micro` benchmarks: the method list, scene builders for
-//! the LV at a chosen resolution, a driver for dynamic runs under constant loads, timing
-//! statistics and the git commit.
+//! Helpers shared by the benchmarks (`precision`, `step`, `micro`) and the examples that
+//! measure (`soak`, `smoothing_study`, `lv_study`, `export_peer_case`): the method list, scene
+//! builders for the LV at a chosen resolution, the LV probe press ([`lv_press`]), a driver for
+//! dynamic runs under constant loads, wall-time percentiles ([`TickTimes`]), output folders and
+//! the git commit.
 //!
-//! Each bench binary includes this module with `mod common;` and uses only part of it.
+//! Each binary includes this module with `mod common;` (examples with
+//! `#[path = "../benches/common/mod.rs"]`) and uses only part of it.
 #![allow(dead_code)]
 
-use std::time::Instant;
+pub mod lv_press;
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 
 use haptic_model::DVec3;
+use haptic_model::contact::{Probe, ProbeParams};
 use haptic_model::element::FemModel;
-use haptic_model::integrate::implicit::ImplicitSolver;
-use haptic_model::integrate::{self, IntegratorKind, IntegratorParams, explicit};
+use haptic_model::integrate::{self, IntegratorKind, IntegratorParams, SimState, Stepper};
 use haptic_model::material::MaterialModel;
 use haptic_model::mesh::TetMesh;
 use haptic_model::mesh::generate;
 use haptic_model::scene::{Scene, load_builtin};
+use hdrhistogram::Histogram;
 
 /// The time integrators the benchmarks compare, in one place: a new integrator is one line here
 /// (its name comes from [`IntegratorKind::name`]).
@@ -59,14 +66,97 @@ pub fn git_commit() -> String {
         .unwrap_or_else(|| "unknown".into())
 }
 
-/// Median / p99 / max of a sample (sorted in place). NaN for an empty sample.
-pub fn stats(times: &mut [f64]) -> (f64, f64, f64) {
-    if times.is_empty() {
-        return (f64::NAN, f64::NAN, f64::NAN);
+/// The workspace root (two levels above this package).
+pub fn workspace_root() -> PathBuf {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    root.canonicalize().unwrap_or(root)
+}
+
+/// Where results go when nothing else is asked: `target/bench/` under the workspace root, so
+/// that a benchmark run leaves the work tree clean (`--publish` writes into `docs/` instead).
+pub fn default_out_dir() -> PathBuf {
+    workspace_root().join("target/bench")
+}
+
+/// Wall times of repeated operations (servo ticks, force evaluations, solves) in an HDR
+/// histogram with microsecond resolution: 1 us to 60 s at 3 significant digits, the bounds of
+/// the server's servo statistics. Recording does not allocate (values beyond 60 s saturate), so
+/// the soak can record every tick of an hour; percentiles are computed in one place.
+pub struct TickTimes {
+    hist: Histogram<u64>,
+}
+
+/// Median, 99th percentile and maximum of a [`TickTimes`], us (NaN when nothing was recorded).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Percentiles {
+    /// Median, us.
+    pub p50_us: f64,
+    /// 99th percentile, us.
+    pub p99_us: f64,
+    /// Largest value, us.
+    pub max_us: f64,
+}
+
+impl Default for TickTimes {
+    fn default() -> Self {
+        Self::new()
     }
-    times.sort_by(f64::total_cmp);
-    let p = |q: f64| times[((times.len() - 1) as f64 * q).round() as usize];
-    (p(0.5), p(0.99), times[times.len() - 1])
+}
+
+impl TickTimes {
+    /// An empty histogram.
+    pub fn new() -> Self {
+        Self {
+            hist: Histogram::new_with_bounds(1, 60_000_000, 3).expect("static histogram bounds"),
+        }
+    }
+
+    /// Records one wall time, rounded to the microsecond.
+    pub fn record(&mut self, elapsed: Duration) {
+        let us = (elapsed.as_nanos() + 500) / 1000;
+        self.hist
+            .saturating_record(u64::try_from(us).unwrap_or(u64::MAX));
+    }
+
+    /// Number of recorded times.
+    pub fn len(&self) -> u64 {
+        self.hist.len()
+    }
+
+    /// Whether nothing was recorded.
+    pub fn is_empty(&self) -> bool {
+        self.hist.is_empty()
+    }
+
+    /// p50 / p99 / max, us.
+    pub fn percentiles(&self) -> Percentiles {
+        if self.hist.is_empty() {
+            return Percentiles {
+                p50_us: f64::NAN,
+                p99_us: f64::NAN,
+                max_us: f64::NAN,
+            };
+        }
+        Percentiles {
+            p50_us: self.hist.value_at_quantile(0.5) as f64,
+            p99_us: self.hist.value_at_quantile(0.99) as f64,
+            max_us: self.hist.max() as f64,
+        }
+    }
+
+    /// Number of recorded times of at least `us` microseconds (exact below 2 048 us; above,
+    /// to the histogram's 3 significant digits).
+    pub fn count_at_least_us(&self, us: u64) -> u64 {
+        if self.hist.is_empty() || us > self.hist.max() {
+            return 0;
+        }
+        self.hist.count_between(us, self.hist.max())
+    }
+
+    /// Forgets every recorded time (keeps the allocation).
+    pub fn reset(&mut self) {
+        self.hist.reset();
+    }
 }
 
 /// `0` at `t <= 0`, `1` at `t >= 1`, smooth (C1) in between.
@@ -101,19 +191,27 @@ pub fn lv_scene(target_tets: usize) -> Scene {
     lv_scene_on(generate::lv_shell(target_tets))
 }
 
-/// The `lv_h1.msh` scene of `deploy/scenes/` (17 924 tets), if the shared data is present.
-pub fn lv_h1_scene() -> Option<Scene> {
-    let path =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../deploy/scenes/lv_h1.toml");
-    haptic_model::scene::load_scene_file(&path).ok()
+/// The built-in `lv` scene on `lv_shell(tets)`, with quadratic (10-node) elements if
+/// `quadratic`.
+pub fn lv_scene_order(tets: usize, quadratic: bool) -> Scene {
+    if quadratic {
+        lv_scene_on(generate::lv_shell_quadratic(tets))
+    } else {
+        lv_scene(tets)
+    }
 }
 
-/// Result of [`run_loaded`].
+/// The `lv_h1.msh` scene of `deploy/scenes/` (17 924 tets), if the shared data is present.
+pub fn lv_h1_scene() -> Option<Scene> {
+    haptic_model::scene::load_scene_file(&workspace_root().join("deploy/scenes/lv_h1.toml")).ok()
+}
+
+/// Result of [`run_loaded_with`].
 pub struct LoadedRun {
     /// Final positions, m.
     pub x: Vec<DVec3>,
-    /// Wall time of every servo tick, us.
-    pub tick_us: Vec<f64>,
+    /// Wall time of every servo tick.
+    pub ticks: TickTimes,
     /// Sub-steps per tick.
     pub substeps: u32,
     /// Whether the run stayed finite and below the divergence speed.
@@ -122,56 +220,38 @@ pub struct LoadedRun {
     pub time_s: f64,
 }
 
-/// [`run_loaded_with`] with the default CG settings.
-pub fn run_loaded(
-    fem: &FemModel,
-    kind: IntegratorKind,
-    safety: f64,
-    f_ext: &[DVec3],
-    ramp_s: f64,
-    total_s: f64,
-) -> Result<LoadedRun, String> {
-    let params = IntegratorParams {
-        kind,
-        safety_factor: safety,
-        max_substeps: 2000,
-        ..IntegratorParams::default()
-    };
-    run_loaded_with(fem, &params, f_ext, ramp_s, total_s)
-}
-
-/// Runs `fem` dynamically for `total_s` under the dead nodal load `f_ext` (N), ramped in with
-/// a smoothstep over `ramp_s`, with the servo tick of `params` divided into the sub-steps that
-/// keep each step below its safety factor times the critical step of its integrator. The same
-/// per-sub-step work as `Simulation::tick` without a probe: internal forces (elastic, plus
-/// viscous for the explicit schemes), external load, then `explicit::integrate_nodes` or
-/// `ImplicitSolver::step` (backward Euler, CG capped at `params.cg_max_iterations`). After the
-/// ramp the run stops early once it is at steady state: the largest nodal speed times 0.1 s is
-/// below 1e-4 of the largest displacement. Returns `Err` when the plan is refused.
+/// Runs `fem` (built on `mesh`) dynamically for `total_s` under the dead nodal load `f_ext`
+/// (N), ramped in with a smoothstep over `ramp_s`, with the servo tick of `params` divided into
+/// the sub-steps that keep each step below its safety factor times the critical step of its
+/// integrator. Each sub-step is the library's [`Stepper`], as in `Simulation::tick` without a
+/// probe: internal forces ([`Stepper::add_internal_forces`]: elastic, plus viscous for the
+/// explicit schemes), the external load, then [`Stepper::step`]. The probe the stepper asks
+/// for has no touchable surface, so it is never in contact and its coupling completion does
+/// nothing. After the ramp the run stops early once it is at steady state: the largest nodal
+/// speed times 0.1 s is below 1e-4 of the largest displacement. Returns `Err` when the plan is
+/// refused.
 pub fn run_loaded_with(
     fem: &FemModel,
+    mesh: &TetMesh,
     params: &IntegratorParams,
     f_ext: &[DVec3],
     ramp_s: f64,
     total_s: f64,
 ) -> Result<LoadedRun, String> {
-    let kind = params.kind;
-    let crit = integrate::critical_time_step(fem, kind);
+    let crit = integrate::critical_time_step(fem, params.kind);
     let plan = integrate::plan_steps(params, crit).map_err(|e| e.to_string())?;
     let h = plan.sub_dt_s;
-    let a_inv = if kind == IntegratorKind::SemiImplicit {
-        explicit::semi_implicit_inverses(fem, h)
-    } else {
-        Vec::new()
-    };
-    let mut implicit =
-        (kind == IntegratorKind::BackwardEuler).then(|| ImplicitSolver::new(fem, h, params));
+    let mut stepper = Stepper::new(fem, mesh, params, &plan, None).map_err(|e| e.to_string())?;
+    let mut probe = Probe::new(ProbeParams::default(), Vec::new(), fem.rest());
     let n = fem.node_count();
-    let mut x = fem.rest().to_vec();
-    let mut v = vec![DVec3::ZERO; n];
+    let mut state = SimState {
+        x: fem.rest().to_vec(),
+        v: vec![DVec3::ZERO; n],
+        time_s: 0.0,
+    };
     let mut f = vec![DVec3::ZERO; n];
     let ticks = (total_s / params.tick_s).round() as usize;
-    let mut tick_us = Vec::with_capacity(ticks);
+    let mut tick_times = TickTimes::new();
     let mut stable = true;
     let mut time_s = 0.0;
     'outer: for k in 0..ticks {
@@ -180,27 +260,21 @@ pub fn run_loaded_with(
             let t = k as f64 * params.tick_s + s as f64 * h;
             let scale = smoothstep(t / ramp_s);
             f.iter_mut().zip(f_ext).for_each(|(f, e)| *f = *e * scale);
-            let max_v2 = match &mut implicit {
-                // Backward Euler treats the viscous force implicitly inside its solve.
-                Some(solver) => {
-                    fem.add_internal_forces(&x, None, &mut f);
-                    solver.step(fem, &f, None, &mut x, &mut v)
-                }
-                None => {
-                    fem.add_internal_forces(&x, Some(&v), &mut f);
-                    explicit::integrate_nodes(kind, fem, &a_inv, h, &f, &mut x, &mut v)
-                }
-            };
+            stepper.add_internal_forces(fem, &state.x, &state.v, &mut f);
+            let max_v2 = stepper
+                .step(fem, &f, &mut probe, &mut state)
+                .max_speed2_m2_per_s2;
             if max_v2.is_nan() || max_v2 > 1e4 {
                 stable = false;
                 break 'outer;
             }
         }
-        tick_us.push(t0.elapsed().as_secs_f64() * 1e6);
+        tick_times.record(t0.elapsed());
         let t = (k + 1) as f64 * params.tick_s;
         if t > ramp_s && k % 10 == 0 {
-            let vmax = v.iter().map(|v| v.length()).fold(0.0, f64::max);
-            let umax = x
+            let vmax = state.v.iter().map(|v| v.length()).fold(0.0, f64::max);
+            let umax = state
+                .x
                 .iter()
                 .zip(fem.rest())
                 .map(|(x, r)| (*x - *r).length())
@@ -213,8 +287,8 @@ pub fn run_loaded_with(
         time_s = t;
     }
     Ok(LoadedRun {
-        x,
-        tick_us,
+        x: state.x,
+        ticks: tick_times,
         substeps: plan.substeps,
         stable,
         time_s,

@@ -3,10 +3,16 @@
 # lv_h1.msh (17 924 tets) with a smooth analytic deformation, both on one core, in one run.
 # Creates target/peer-venv (pip install pbatoolkit numpy scipy), exports the case with
 # `cargo run --release -p haptic-model --example export_peer_case`, runs the peer, and prints
-# and writes docs/bench/peer.json. Not part of `cargo test`.
-# Usage: server/model/benches/peer/run_peer.sh [REPEATS]
+# and writes target/bench/peer.json; with --publish, docs/bench/peer.json (the committed result)
+# instead. Not part of `cargo test`.
+# Usage: server/model/benches/peer/run_peer.sh [--publish] [REPEATS]
 set -euo pipefail
 cd "$(dirname "$0")/../../../.."
+out=target/bench
+if [ "${1:-}" = "--publish" ]; then
+  out=docs/bench
+  shift
+fi
 repeats="${1:-50}"
 venv=target/peer-venv
 if [ ! -x "$venv/bin/python" ]; then
@@ -19,6 +25,6 @@ taskset -c 0 cargo run --release -q -p haptic-model --example export_peer_case -
   || cargo run --release -q -p haptic-model --example export_peer_case -- "$case_dir" 200
 if command -v taskset >/dev/null; then pin="taskset -c 0"; else pin=""; fi
 $pin "$venv/bin/python" server/model/benches/peer/peer_stvk.py "$case_dir" "$repeats"
-mkdir -p docs/bench
-cp "$case_dir/peer.json" docs/bench/peer.json
-echo "wrote docs/bench/peer.json"
+mkdir -p "$out"
+cp "$case_dir/peer.json" "$out/peer.json"
+echo "wrote $out/peer.json"

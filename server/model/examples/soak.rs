@@ -24,24 +24,31 @@
 //! Before each settle check the probe withdraws along the normal to 3 mm clear and is held
 //! still.
 //!
-//! Measured per simulated minute: tick wall time p50 / p99 / max (1 us histogram, no per-tick
-//! allocation), peak kinetic energy, peak elastic energy and inverted elements (at the
-//! [`CADENCE_TICKS`] cadence: the elastic energy costs a force evaluation), peak displacement
-//! and device force, contact time.
+//! Measured per simulated minute: tick wall time p50 / p99 / max (an HDR histogram at 1 us
+//! resolution, no per-tick allocation), peak kinetic energy, peak elastic energy and inverted
+//! elements (at the [`CADENCE_TICKS`] cadence: the elastic energy costs a force evaluation),
+//! peak displacement and device force, contact time.
 //!
-//! Run: `cargo bench -p haptic-model --bench soak` (6 to 10 min on one core: 3.6 M ticks at
-//! the `lv` tick cost plus the checks). `-- --minutes N` for a shorter (or longer) run,
-//! `-- --quick` for 2 minutes, `-- --seed S` for another path. The full 60-minute run writes
-//! `docs/bench/soak.json`; other lengths write `target/bench/soak-<N>min.json` so that a smoke
-//! test does not replace the committed result. Exits with status 1 when a verdict fails.
+//! Run: `cargo run --release -p haptic-model --example soak` (6 to 10 min on one core: 3.6 M
+//! ticks at the `lv` tick cost plus the checks). `-- --minutes N` for a shorter (or longer)
+//! run, `-- --quick` for 2 minutes, `-- --seed S` for another path. Writes
+//! `target/bench/soak-<N>min.json` (or into `--out DIR`); `-- --publish` writes the committed
+//! `docs/bench/soak.json` instead, and only for a run of at least the full 60 minutes. Exits
+//! with status 1 when a verdict fails.
+//!
+//! An example rather than an ignored test: it takes options (length, seed, output), prints a
+//! line per simulated minute for up to an hour, and writes a result to publish; its verdicts are
+//! its exit status. The short stability suite runs with `cargo test` (`tests/stability.rs`).
 
+#[path = "../benches/common/mod.rs"]
 mod common;
 
 use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
-use common::{git_commit, smoothstep, smoothstep_rate};
+use clap::Parser;
+use common::{Percentiles, TickTimes, git_commit, smoothstep, smoothstep_rate};
 use haptic_model::DVec3;
 use haptic_model::scene::load_builtin;
 use haptic_model::sim::{Simulation, TickInput};
@@ -111,48 +118,64 @@ const PLAN_SPEED_M_PER_S: f64 = 0.095;
 /// Largest device speed accepted as a plausible hand motion, m/s (reported, not a verdict).
 const HAND_SPEED_M_PER_S: f64 = 0.1;
 
-/// Tick wall-time histogram: 1 us bins up to 100 ms (the last bin collects anything longer).
-const HIST_BINS: usize = 100_000;
+/// One-hour soak of the default interactive configuration (built-in `lv`) under a random,
+/// reproducible probe path; exits with status 1 when a verdict fails.
+#[derive(Debug, Parser)]
+#[command(name = "soak")]
+struct Args {
+    /// Simulated minutes.
+    #[arg(long, default_value_t = DEFAULT_MINUTES, value_parser = clap::value_parser!(u64).range(1..))]
+    minutes: u64,
+    /// A 2-minute smoke test (--minutes 2).
+    #[arg(long, conflicts_with = "minutes")]
+    quick: bool,
+    /// Seed of the probe path.
+    #[arg(long, default_value_t = DEFAULT_SEED)]
+    seed: u64,
+    /// Folder of soak-<N>min.json [default: target/bench of the workspace].
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Write docs/bench/soak.json, the committed result, instead (runs of at least 60 minutes).
+    #[arg(long, conflicts_with = "out")]
+    publish: bool,
+}
 
 /// Checked run configuration from the command line.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 struct SoakConfig {
     /// Simulated minutes.
     minutes: u64,
     /// Probe path seed.
     seed: u64,
+    /// The result file.
+    output: PathBuf,
 }
 
 impl SoakConfig {
-    /// Parses `--quick`, `--minutes N`, `--seed S`; ignores the `--bench` flag cargo adds.
-    fn from_args(args: &[String]) -> Result<Self, String> {
-        let mut cfg = Self {
-            minutes: DEFAULT_MINUTES,
-            seed: DEFAULT_SEED,
+    /// Validates the arguments.
+    fn new(args: Args) -> Result<Self, String> {
+        let minutes = if args.quick {
+            QUICK_MINUTES
+        } else {
+            args.minutes
         };
-        let mut it = args.iter();
-        while let Some(a) = it.next() {
-            match a.as_str() {
-                "--bench" => {}
-                "--quick" => cfg.minutes = QUICK_MINUTES,
-                "--minutes" | "--seed" => {
-                    let v: u64 = it
-                        .next()
-                        .and_then(|s| s.parse().ok())
-                        .ok_or_else(|| format!("{a} needs a non-negative integer"))?;
-                    if a == "--minutes" {
-                        cfg.minutes = v;
-                    } else {
-                        cfg.seed = v;
-                    }
-                }
-                other => return Err(format!("unknown argument {other:?}")),
+        let output = if args.publish {
+            if minutes < DEFAULT_MINUTES {
+                return Err(format!(
+                    "--publish replaces the committed {DEFAULT_MINUTES}-minute result: run at least {DEFAULT_MINUTES} minutes"
+                ));
             }
-        }
-        if cfg.minutes == 0 {
-            return Err("--minutes must be at least 1".into());
-        }
-        Ok(cfg)
+            common::workspace_root().join("docs/bench/soak.json")
+        } else {
+            args.out
+                .unwrap_or_else(common::default_out_dir)
+                .join(format!("soak-{minutes}min.json"))
+        };
+        Ok(Self {
+            minutes,
+            seed: args.seed,
+            output,
+        })
     }
 
     fn total_ticks(&self) -> u64 {
@@ -384,57 +407,6 @@ impl ProbePath {
 
 // ---------------------------------------------------------------- statistics
 
-/// Tick wall-time histogram in 1 us bins (allocated once).
-struct TickHistogram {
-    bins: Vec<u64>,
-    count: u64,
-    max_us: f64,
-}
-
-impl TickHistogram {
-    fn new() -> Self {
-        Self {
-            bins: vec![0; HIST_BINS],
-            count: 0,
-            max_us: 0.0,
-        }
-    }
-
-    fn record(&mut self, us: f64) {
-        let b = (us as usize).min(HIST_BINS - 1);
-        self.bins[b] += 1;
-        self.count += 1;
-        self.max_us = self.max_us.max(us);
-    }
-
-    fn reset(&mut self) {
-        self.bins.iter_mut().for_each(|b| *b = 0);
-        self.count = 0;
-        self.max_us = 0.0;
-    }
-
-    /// The `q` quantile, us (upper edge of its bin); NaN when empty.
-    fn quantile_us(&self, q: f64) -> f64 {
-        if self.count == 0 {
-            return f64::NAN;
-        }
-        let target = ((self.count as f64 * q).ceil() as u64).max(1);
-        let mut acc = 0;
-        for (b, &n) in self.bins.iter().enumerate() {
-            acc += n;
-            if acc >= target {
-                return ((b + 1) as f64).min(self.max_us);
-            }
-        }
-        self.max_us
-    }
-
-    /// Ticks of at least `us`.
-    fn count_at_least(&self, us: usize) -> u64 {
-        self.bins[us.min(HIST_BINS - 1)..].iter().sum()
-    }
-}
-
 /// Peaks over one simulated minute.
 #[derive(Debug, Clone, Copy, Default)]
 struct MinuteStats {
@@ -574,15 +546,13 @@ fn hms(s: f64) -> String {
 }
 
 fn main() {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let cfg = match SoakConfig::from_args(&args) {
+    let cfg = match SoakConfig::new(Args::parse()) {
         Ok(c) => c,
         Err(e) => {
-            eprintln!("soak: {e}\nusage: soak [--quick | --minutes N] [--seed S]");
+            eprintln!("soak: {e}");
             std::process::exit(2);
         }
     };
-    let root: PathBuf = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let commit = git_commit();
     let scene = load_builtin("lv").expect("built-in lv scene");
     assert_eq!(scene.integrator.tick_s, TICK_S, "lv tick changed");
@@ -603,8 +573,8 @@ fn main() {
 
     let settles = cfg.settle_ticks();
     let mut path = ProbePath::new(cfg.seed, sim.probe_radius_m(), settles.clone());
-    let mut hist_all = TickHistogram::new();
-    let mut hist_min = TickHistogram::new();
+    let mut hist_all = TickTimes::new();
+    let mut hist_min = TickTimes::new();
     let mut minute = MinuteStats::default();
     let mut overall = MinuteStats::default();
     let mut minutes: Vec<MinuteStats> = Vec::with_capacity(cfg.minutes as usize);
@@ -624,7 +594,7 @@ fn main() {
         max_speed = max_speed.max(input.device_velocity_m_per_s.length());
         let t0 = Instant::now();
         let result = sim.tick(&input);
-        let us = t0.elapsed().as_secs_f64() * 1e6;
+        let elapsed = t0.elapsed();
         let time_s = (k + 1) as f64 * TICK_S;
         let out = match result {
             Ok(o) => o,
@@ -637,8 +607,8 @@ fn main() {
             }
         };
         ticks_run = k + 1;
-        hist_all.record(us);
-        hist_min.record(us);
+        hist_all.record(elapsed);
+        hist_min.record(elapsed);
         let force = out.force_on_device_n.length();
         let ke = sim.kinetic_energy_j();
         if !force.is_finite() || !ke.is_finite() {
@@ -709,10 +679,11 @@ fn main() {
 
         if done % TICKS_PER_MINUTE == 0 {
             minute.minute = done / TICKS_PER_MINUTE;
-            minute.tick_p50_us = hist_min.quantile_us(0.5);
-            minute.tick_p99_us = hist_min.quantile_us(0.99);
-            minute.tick_max_us = hist_min.max_us;
-            minute.ticks_over_1ms = hist_min.count_at_least(1000);
+            let p = hist_min.percentiles();
+            minute.tick_p50_us = p.p50_us;
+            minute.tick_p99_us = p.p99_us;
+            minute.tick_max_us = p.max_us;
+            minute.ticks_over_1ms = hist_min.count_at_least_us(1000);
             minute.contact_fraction = contact_ticks as f64 / TICKS_PER_MINUTE as f64;
             let w = wall.elapsed().as_secs_f64();
             println!(
@@ -761,9 +732,12 @@ fn main() {
     let no_energy_growth =
         completed && !checks.is_empty() && energies_small && decaying && no_trend;
 
-    let p50 = hist_all.quantile_us(0.5);
-    let p99 = hist_all.quantile_us(0.99);
-    let over_budget = hist_all.count_at_least(1000);
+    let Percentiles {
+        p50_us: p50,
+        p99_us: p99,
+        max_us: tick_max,
+    } = hist_all.percentiles();
+    let over_budget = hist_all.count_at_least_us(1000);
     let mut table = String::new();
     let _ = writeln!(
         table,
@@ -775,8 +749,7 @@ fn main() {
     );
     let _ = writeln!(
         table,
-        "  tick p50 {p50:.0} us, p99 {p99:.0} us, max {:.0} us, {over_budget} ticks over 1 ms",
-        hist_all.max_us
+        "  tick p50 {p50:.0} us, p99 {p99:.0} us, max {tick_max:.0} us, {over_budget} ticks over 1 ms"
     );
     let _ = writeln!(
         table,
@@ -845,11 +818,10 @@ fn main() {
 
     let mut json = serde_json::json!({
         "benchmark": "soak",
-        "command": if cfg.minutes == DEFAULT_MINUTES {
-            "cargo bench -p haptic-model --bench soak".to_string()
-        } else {
-            format!("cargo bench -p haptic-model --bench soak -- --minutes {}", cfg.minutes)
-        },
+        "command": format!(
+            "cargo run --release -p haptic-model --example soak -- --minutes {} --seed {}",
+            cfg.minutes, cfg.seed
+        ),
         "commit": commit,
         "scene": "lv (built-in, load_builtin(\"lv\"): the daemon's default interactive configuration)",
         "nodes": nodes,
@@ -869,7 +841,7 @@ fn main() {
     let results = serde_json::json!({
         "tick_p50_us": num(p50),
         "tick_p99_us": num(p99),
-        "tick_max_us": num(hist_all.max_us),
+        "tick_max_us": num(tick_max),
         "ticks_over_1ms": over_budget,
         "max_force_n": num(overall.max_force_n),
         "max_depth_mm": num(max_depth_m * 1e3),
@@ -895,14 +867,10 @@ fn main() {
     if let (Some(all), serde_json::Value::Object(r)) = (json.as_object_mut(), results) {
         all.extend(r);
     }
-    let file = if cfg.minutes == DEFAULT_MINUTES {
-        root.join("docs/bench/soak.json")
-    } else {
-        root.join(format!("target/bench/soak-{}min.json", cfg.minutes))
-    };
+    let file = &cfg.output;
     std::fs::create_dir_all(file.parent().expect("parent")).expect("creating output dir");
     std::fs::write(
-        &file,
+        file,
         serde_json::to_string_pretty(&json).expect("json") + "\n",
     )
     .expect("writing soak json");

@@ -14,14 +14,17 @@
 //! 2. Factorisation and solve time of the backward Euler matrix `M / h^2 + K_rest`
 //!    (h = 1 ms) with faer's sparse Cholesky: the per-tick cost of a prefactored system.
 //!
-//! Run: `cargo bench -p haptic-model --bench smoothing_study` (about 1 minute;
-//! `SMOOTH_ALPHA=0.3,0.5` sets the alpha values).
+//! Run: `cargo run --release -p haptic-model --example smoothing_study` (about 1 minute;
+//! `-- --alpha 0.3,0.5` sets the alpha values, default 0.3, 0.5 and 0.7).
 
+#[path = "../benches/common/mod.rs"]
 mod common;
 
 use std::collections::HashMap;
 use std::time::Instant;
 
+use clap::Parser;
+use common::TickTimes;
 use faer::linalg::solvers::Solve;
 use faer::sparse::{SparseColMat, Triplet};
 use faer::{Mat, Side};
@@ -250,7 +253,18 @@ fn static_compliance(scene: &Scene, smoothing: StrainSmoothing) -> (f64, usize, 
     )
 }
 
+/// Element-technology study on lv_h1.msh: strain smoothing against quadratic elements, and
+/// the cost of a prefactored backward Euler matrix. Prints only.
+#[derive(Debug, Parser)]
+#[command(name = "smoothing_study")]
+struct Args {
+    /// Weights alpha of the alpha-FEM mixes alpha K_FEM + (1 - alpha) K_NS, comma-separated.
+    #[arg(long, value_delimiter = ',', default_values_t = [0.3, 0.5, 0.7])]
+    alpha: Vec<f64>,
+}
+
 fn main() {
+    let args = Args::parse();
     let Some(h1) = common::lv_h1_scene() else {
         eprintln!("lv_h1.msh not found (../shared/data/lv): nothing to study");
         return;
@@ -291,10 +305,7 @@ fn main() {
             ),
         );
     }
-    let alphas: Vec<f64> = std::env::var("SMOOTH_ALPHA").map_or(vec![0.3, 0.5, 0.7], |v| {
-        v.split(',').map(|a| a.parse().expect("alpha")).collect()
-    });
-    for a in alphas {
+    for a in args.alpha {
         let mut ops = vec![
             (a, SmoothedOperator::new(&fem, Domains::Element)),
             (1.0 - a, SmoothedOperator::new(&fem, Domains::Node)),
@@ -353,14 +364,13 @@ fn main() {
     let llt = k.sp_cholesky(Side::Lower).expect("Cholesky");
     let factor_s = t.elapsed().as_secs_f64();
     let mut rhs = Mat::<f64>::from_fn(free, 1, |i, _| (i as f64).sin());
-    let mut times: Vec<f64> = (0..200)
-        .map(|_| {
-            let t = Instant::now();
-            llt.solve_in_place(rhs.as_mut());
-            t.elapsed().as_secs_f64() * 1e6
-        })
-        .collect();
-    let (p50, _, _) = common::stats(&mut times);
+    let mut times = TickTimes::new();
+    for _ in 0..200 {
+        let t = Instant::now();
+        llt.solve_in_place(rhs.as_mut());
+        times.record(t.elapsed());
+    }
+    let p50 = times.percentiles().p50_us;
     println!(
         "{free} free dofs, {} stored entries of the lower triangle: factorisation {:.2} s, one solve (forward + back substitution) p50 {p50:.0} us over 200",
         k.compute_nnz(),

@@ -1,0 +1,217 @@
+//! The LV probe press, shared by the `precision` benchmark (`lv-probe`, `lv-h1`) and the
+//! `lv_study` example: the probe centre moves along -x at z = -5 mm into the epicardium of an
+//! LV scene ([`super::lv_scene_on`]) to the depths of [`DEPTHS_MM`], statically
+//! ([`probe_static`]: equilibrium with the probe coupling per depth) or dynamically
+//! ([`probe_dynamic`]: `Simulation::tick` through a staircase of ramps and holds).
+
+use std::time::Instant;
+
+use haptic_model::DVec3;
+use haptic_model::contact::Probe;
+use haptic_model::element::FemModel;
+use haptic_model::scene::Scene;
+use haptic_model::sim::{Simulation, TickInput};
+use haptic_model::statics::{StaticParams, solve_static};
+
+use super::{TickTimes, device_at, smoothstep, smoothstep_rate};
+
+/// Probe depths of the press, mm below first contact.
+pub const DEPTHS_MM: [f64; 6] = [0.5, 1.0, 1.5, 2.0, 2.5, 3.0];
+
+/// Quasi-static probe solution on one mesh: device force per depth and the positions at the
+/// last depth.
+#[derive(Debug, Clone)]
+pub struct ProbeCurve {
+    /// Device force per depth, N.
+    pub forces_n: Vec<f64>,
+    /// Positions at the last depth, m.
+    pub x_last: Vec<DVec3>,
+}
+
+/// Static equilibrium with the probe coupling at each depth of [`DEPTHS_MM`]: for a trial
+/// coupling force `F`, the patch load `-F w_i n` (patch, weights, normal of the probe at the
+/// current positions) is applied and the body solved statically; the probe then reports the
+/// coupling force `k (r - s)` at the new positions. A bracketed regula falsi (Illinois) on `F`
+/// makes the two agree. With `debug`, prints the force of every patch iteration. Returns `Err`
+/// if Newton or the iteration fails.
+pub fn probe_static(scene: &Scene, debug: bool) -> Result<ProbeCurve, String> {
+    probe_static_at(scene, &DEPTHS_MM, debug)
+}
+
+/// [`probe_static`] at the given depths, mm (increasing).
+pub fn probe_static_at(
+    scene: &Scene,
+    depths_mm: &[f64],
+    debug: bool,
+) -> Result<ProbeCurve, String> {
+    let mut fem = FemModel::with_smoothing(&scene.mesh, scene.material, scene.strain_smoothing)
+        .map_err(|e| e.to_string())?;
+    fem.clamp_nodes(&scene.clamped_nodes);
+    let mut probe = Probe::new(scene.probe, scene.touchable.clone(), fem.rest());
+    let n = fem.node_count();
+    let mut x = fem.rest().to_vec();
+    let params = StaticParams {
+        rel_tol: 1e-8,
+        ..StaticParams::default()
+    };
+    let mut forces = Vec::new();
+    let mut f_prev = 0.0;
+    // The last in-contact patch (nodes, weights) and normal: a trial force that pushes the
+    // surface beyond the probe still needs a patch to act on.
+    let mut patch: Vec<(u32, f64)> = Vec::new();
+    let mut normal = DVec3::ZERO;
+    let (kc, r) = (scene.probe.coupling_stiffness_n_per_m, scene.probe.radius_m);
+    for (k, d) in depths_mm.iter().enumerate() {
+        let device = device_at(d * 1e-3);
+        let mut f = if k == 0 {
+            0.005 * d / DEPTHS_MM[0]
+        } else {
+            f_prev * (d / depths_mm[k - 1])
+        };
+        // Outer: freeze the probe patch (nodes, weights, normal) at the current positions; inner:
+        // find the force F whose patch load puts the body where the frozen patch plane gives
+        // k (r - s) = F. Repeat until the patch stops changing the force.
+        for outer in 0..=12 {
+            let st = probe.update(&x, device, DVec3::ZERO);
+            if st.in_contact {
+                let (nodes, w) = probe.patch();
+                patch.clear();
+                patch.extend(nodes.iter().copied().zip(w.iter().copied()));
+                normal = st.normal;
+            }
+            if patch.is_empty() {
+                return Err(format!("no contact at depth {d} mm"));
+            }
+            let mut f_ext = vec![DVec3::ZERO; n];
+            let mut g = |f: f64, x: &mut Vec<DVec3>| -> Result<f64, String> {
+                f_ext.iter_mut().for_each(|v| *v = DVec3::ZERO);
+                let mut centre = DVec3::ZERO;
+                for &(i, w) in &patch {
+                    f_ext[i as usize] = -normal * (f * w);
+                }
+                let backup = x.clone();
+                if solve_static(&fem, &f_ext, x, &params).is_err() {
+                    // No equilibrium under this patch load (the wall gives way under a dead
+                    // load): the trial force is too large.
+                    x.copy_from_slice(&backup);
+                    return Ok(f);
+                }
+                for &(i, w) in &patch {
+                    centre += x[i as usize] * w;
+                }
+                let phi = (kc * (r - (device - centre).dot(normal))).max(0.0);
+                Ok(f - phi)
+            };
+            // g(F) = F - k (r - s(F)) increases with F: bracket, then Illinois.
+            let (mut lo, mut hi) = (f / 1.1, f * 1.1);
+            let mut glo = g(lo, &mut x)?;
+            while glo > 0.0 {
+                hi = lo;
+                lo /= 1.25;
+                glo = g(lo, &mut x)?;
+            }
+            let mut ghi = g(hi, &mut x)?;
+            while ghi < 0.0 {
+                (lo, glo) = (hi, ghi);
+                hi *= 1.25;
+                ghi = g(hi, &mut x)?;
+                if hi > 100.0 {
+                    return Err(format!("no bracket at depth {d} mm"));
+                }
+            }
+            let mut side = 0i8;
+            let mut fi = hi;
+            for it in 0..=80 {
+                if it == 80 {
+                    return Err(format!("no convergence at depth {d} mm: F in [{lo}, {hi}]"));
+                }
+                fi = (lo * ghi - hi * glo) / (ghi - glo);
+                let gf = g(fi, &mut x)?;
+                if gf.abs() <= 1e-8 * fi.max(1e-3) || (hi - lo) <= 1e-10 * hi {
+                    break;
+                }
+                if gf < 0.0 {
+                    (lo, glo) = (fi, gf);
+                    if side == -1 {
+                        ghi *= 0.5;
+                    }
+                    side = -1;
+                } else {
+                    (hi, ghi) = (fi, gf);
+                    if side == 1 {
+                        glo *= 0.5;
+                    }
+                    side = 1;
+                }
+            }
+            let change = (fi - f).abs() / fi;
+            f = fi;
+            if debug {
+                eprintln!("depth {d} mm outer {outer}: F = {f:.6e} N, change {change:.2e}");
+            }
+            if outer > 0 && change < 3e-4 {
+                break;
+            }
+            if outer == 12 {
+                eprintln!(
+                    "lv-probe static: patch iteration at depth {d} mm stopped at change {change:.2e}"
+                );
+            }
+        }
+        f_prev = f;
+        forces.push(f);
+    }
+    Ok(ProbeCurve {
+        forces_n: forces,
+        x_last: x,
+    })
+}
+
+/// The dynamic press protocol with `Simulation::tick`: the probe centre moves along -x from
+/// 0.3 mm clear of contact to each depth of [`DEPTHS_MM`], a smoothstep ramp then a hold
+/// (100 ms each, 80 ms with `quick`); the force per depth is the mean device force over the
+/// second half of the hold. Returns the curve, the tick times and the sub-steps per tick, or
+/// the error that stopped it (refused plan or divergence).
+pub fn probe_dynamic(scene: &Scene, quick: bool) -> Result<(ProbeCurve, TickTimes, u32), String> {
+    let mut sim = Simulation::new(scene).map_err(|e| e.to_string())?;
+    let (ramp, hold) = if quick { (0.08, 0.08) } else { (0.1, 0.1) };
+    let tick = sim.tick_s();
+    let seg_ticks = ((ramp + hold) / tick).round() as usize;
+    let mut ticks = TickTimes::new();
+    let mut forces = Vec::new();
+    let mut prev = -0.3e-3;
+    for d in DEPTHS_MM {
+        let d = d * 1e-3;
+        let mut sum = 0.0;
+        let mut count = 0;
+        for k in 0..seg_ticks {
+            let t = (k + 1) as f64 * tick;
+            let s = t / ramp;
+            let depth = prev + (d - prev) * smoothstep(s);
+            let rate = (d - prev) / ramp * smoothstep_rate(s);
+            let input = TickInput {
+                device_position_m: Some(device_at(depth)),
+                device_velocity_m_per_s: DVec3::new(-rate, 0.0, 0.0),
+            };
+            let t0 = Instant::now();
+            let out = sim.tick(&input).map_err(|e| e.to_string())?;
+            ticks.record(t0.elapsed());
+            if t > ramp + hold / 2.0 {
+                sum += out.force_on_device_n.length();
+                count += 1;
+            }
+        }
+        forces.push(sum / count as f64);
+        prev = d;
+    }
+    let substeps = sim.plan().substeps;
+    sim.recover_far_field();
+    Ok((
+        ProbeCurve {
+            forces_n: forces,
+            x_last: sim.state().x.clone(),
+        },
+        ticks,
+        substeps,
+    ))
+}

@@ -1,0 +1,146 @@
+//! `lv-h1` (`--scenario lv-h1`, not part of the full run; own output
+//! `precision-lv-h1.{csv,json,png,svg}`): the `lv-probe` press on `lv_h1.msh` (17 924 linear
+//! tets) with standard and edge-smoothed elements and with backward Euler on a contact-local
+//! active region, the rest condensed, against the same converged reference as `lv-probe`.
+
+use std::time::Instant;
+
+use haptic_model::DVec3;
+use haptic_model::element::StrainSmoothing;
+use haptic_model::integrate::IntegratorKind;
+use haptic_model::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
+use haptic_model::material::MaterialModel;
+use haptic_model::sim::Simulation;
+
+use crate::common::lv_press::{DEPTHS_MM, probe_dynamic};
+use crate::common::{CONTACT_X_M, PROBE_Z_M, lv_h1_scene, lv_scene_on};
+use crate::lv_probe::{LV_REFERENCE, fill_lv_errors, lv_reference};
+use crate::method::Method;
+use crate::report::{Row, Scenario};
+use crate::{Config, LvH1Rows};
+
+/// Condensed rows of [`run`]: (strain smoothing, radius of the active region in mm).
+const CONDENSED_RUNS: &[(StrainSmoothing, f64)] = &[
+    (StrainSmoothing::Edge, 5.0),
+    (StrainSmoothing::Edge, 6.0),
+    (StrainSmoothing::Edge, 7.0),
+    (StrainSmoothing::Edge, 8.0),
+    (StrainSmoothing::None, 7.0),
+];
+
+/// The rows of `lv-probe` on `lv_h1.msh`: backward Euler on a contact-local active region with
+/// the rest condensed ([`CONDENSED_RUNS`], `haptic_model::integrate::condensed`), then (unless
+/// `--lv-h1-rows condensed`) standard and edge-smoothed (ES-FEM-T4) elements, each with
+/// semi-implicit at 0.5 and symplectic Euler at 0.9 of the critical step and backward Euler with
+/// CG capped at 5. No rows when `lv_h1.msh` is absent. Static curves on this mesh take minutes
+/// each (the `lv_study` example).
+pub fn run(cfg: &Config) -> Vec<Row> {
+    let mut rows = Vec::new();
+    let Some(h1) = lv_h1_scene() else {
+        eprintln!("lv_h1.msh not found: scenario lv-h1 skipped");
+        return rows;
+    };
+    let model = MaterialModel::StVenantKirchhoff;
+    let reference = lv_reference(LV_REFERENCE, model, cfg);
+    let ref_text = format!(
+        "static with probe coupling on lv_shell ({} quadratic tets, stvk): F(3 mm) = {:.4} N",
+        reference.tets,
+        reference.curve.forces_n[DEPTHS_MM.len() - 1]
+    );
+    let base = lv_scene_on(h1.mesh);
+    // Semi-implicit at 0.5: at 0.9 it diverges on this mesh with standard elements (StVK
+    // stiffens under the probe; ARCHITECTURE.md, "Safety factor 0.5").
+    let runs = [
+        (IntegratorKind::SemiImplicit, 0.5, 20),
+        (IntegratorKind::SymplecticEuler, 0.9, 20),
+        (IntegratorKind::BackwardEuler, 1.0, 5),
+    ];
+    for &(smoothing, radius_mm) in CONDENSED_RUNS {
+        let mut sc = base.clone();
+        sc.strain_smoothing = smoothing;
+        sc.integrator.kind = IntegratorKind::BackwardEuler;
+        sc.integrator.substeps = Some(1);
+        // The contact point of the press: the probe centre at first contact minus its radius.
+        sc.active_region = Some(ActiveRegion {
+            centre_m: DVec3::new(CONTACT_X_M - sc.probe.radius_m, 0.0, PROBE_Z_M),
+            radius_m: radius_mm * 1e-3,
+            stiffness_margin: DEFAULT_STIFFNESS_MARGIN,
+        });
+        // One label for every radius, so the radii form one work-precision curve.
+        let method = "condensed backward-euler".to_string();
+        let mut row = Row::new(
+            Scenario::LvProbe,
+            method.clone(),
+            "backward-euler",
+            &sc.mesh,
+        )
+        .smoothed(smoothing);
+        row.reference = ref_text.clone();
+        let t0 = Instant::now();
+        let sizes = match Simulation::new(&sc) {
+            Ok(sim) => sim.condensed().map(|c| c.sizes()).unwrap_or_default(),
+            Err(e) => {
+                row.settings = format!("{method}: {e}");
+                row.print();
+                rows.push(row);
+                continue;
+            }
+        };
+        let setup_s = t0.elapsed().as_secs_f64();
+        match probe_dynamic(&sc, false) {
+            Ok((c, ticks, _)) => {
+                row.settings = format!(
+                    "lv_h1.msh, strain smoothing {}; tick 1 ms, active region r = {radius_mm} mm: one backward Euler step on the {} tets within it ({} equations, {} interface nodes, {} factor entries), the other {} condensed; set-up {setup_s:.1} s",
+                    smoothing.name(),
+                    sizes.active_tets,
+                    sizes.equations,
+                    sizes.interface_nodes,
+                    sizes.factor_entries,
+                    sc.mesh.tets.len() - sizes.active_tets,
+                );
+                row.set_times(&ticks, sc.integrator.tick_s);
+                fill_lv_errors(&mut row, &reference, &sc.mesh, &c, DEPTHS_MM.len() - 1);
+            }
+            Err(e) => row.settings = format!("{method}: {e}"),
+        }
+        row.print();
+        rows.push(row);
+    }
+    if cfg.lv_h1_rows == LvH1Rows::Condensed {
+        return rows;
+    }
+    for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
+        for (kind, sf, cg) in runs {
+            let m = Method {
+                kind,
+                sf,
+                cg,
+                material: model,
+            };
+            let mut sc = base.clone();
+            sc.strain_smoothing = smoothing;
+            sc.integrator.kind = kind;
+            sc.integrator.safety_factor = sf;
+            sc.integrator.cg_max_iterations = cg;
+            sc.integrator.max_substeps = 1000;
+            let mut row =
+                Row::new(Scenario::LvProbe, m.label(), kind.name(), &sc.mesh).smoothed(smoothing);
+            row.reference = ref_text.clone();
+            match probe_dynamic(&sc, false) {
+                Ok((c, ticks, sub)) => {
+                    row.settings = format!(
+                        "lv_h1.msh, strain smoothing {}; tick 1 ms, {}; staircase 0.5..3 mm",
+                        smoothing.name(),
+                        m.step_text(sub)
+                    );
+                    row.set_times(&ticks, sc.integrator.tick_s);
+                    fill_lv_errors(&mut row, &reference, &sc.mesh, &c, DEPTHS_MM.len() - 1);
+                }
+                Err(e) => row.settings = format!("{}: {e}", row.method),
+            }
+            row.print();
+            rows.push(row);
+        }
+    }
+    rows
+}

@@ -1,0 +1,223 @@
+//! Probe-force curves of the LV press on chosen meshes, printed only: the studies behind
+//! `docs/accuracy.md` ("Which LV mesh is converged", the dynamic check of the quadratic
+//! meshes), outside the work-precision benchmark. The press is the `precision` benchmark's
+//! (`benches/common/lv_press.rs`): the probe centre moves along -x at z = -5 mm to the depths
+//! 0.5 to 3 mm below first contact.
+//!
+//! - `static`: the static equilibrium with the probe coupling per depth on each `--mesh`
+//!   (linear or quadratic elements on the structured LV, or `lv_h1.msh`), optionally with
+//!   another Poisson ratio (E fixed), other depths or strain smoothing.
+//! - `dynamic`: the dynamic press (`Simulation::tick`, ramps and holds) with each `--run`'s
+//!   mesh and integrator, and its median tick.
+//!
+//! Run: `cargo run --release -p haptic-model --example lv_study -- static --mesh 1000:2,h1:1`
+//! or `... -- dynamic --run 500:2:symplectic-euler:0.9`; `--help` for the options.
+
+#[path = "../benches/common/mod.rs"]
+mod common;
+
+use std::str::FromStr;
+use std::time::Instant;
+
+use clap::{Parser, Subcommand};
+use common::lv_press::{DEPTHS_MM, probe_dynamic, probe_static_at};
+use haptic_model::element::StrainSmoothing;
+use haptic_model::integrate::IntegratorKind;
+use haptic_model::scene::Scene;
+
+/// Probe-force curves of the LV press on chosen meshes (prints only).
+#[derive(Debug, Parser)]
+#[command(name = "lv_study")]
+struct Args {
+    #[command(subcommand)]
+    study: Study,
+}
+
+#[derive(Debug, Subcommand)]
+enum Study {
+    /// Static probe curves: the discretisation error of linear and quadratic elements.
+    Static {
+        /// Meshes, comma-separated: TETS:ORDER with TETS the target element count of the
+        /// structured LV (or `h1` for lv_h1.msh, 17 924 tets) and ORDER 1 (linear) or 2
+        /// (quadratic).
+        #[arg(long, value_delimiter = ',', default_value = "1000:1,1000:2,2000:2")]
+        mesh: Vec<MeshSpec>,
+        /// Poisson ratio instead of the scene's (Young's modulus kept) [default: the lv
+        /// scene's].
+        #[arg(long)]
+        nu: Option<f64>,
+        /// Depths below first contact, mm, increasing, comma-separated [default: 0.5, 1, 1.5,
+        /// 2, 2.5, 3].
+        #[arg(long, value_delimiter = ',')]
+        depths: Vec<f64>,
+        /// Strain smoothing (none, edge, ...) instead of the scene's [default: the lv scene's].
+        #[arg(long, value_parser = parse_smoothing)]
+        smoothing: Option<StrainSmoothing>,
+        /// Print the force of every patch iteration.
+        #[arg(long)]
+        debug: bool,
+    },
+    /// Dynamic probe curves with chosen integrators.
+    Dynamic {
+        /// Runs, comma-separated: TETS:ORDER:INTEGRATOR[:SAFETY[:CG]] with the mesh as in
+        /// `static --mesh` (structured LV only), the integrator's scene name, the safety
+        /// factor on the critical step (default 0.5) and the CG cap (default 20).
+        #[arg(long, value_delimiter = ',', default_value = "300:2:semi-implicit:0.5")]
+        run: Vec<DynamicRun>,
+    },
+}
+
+/// A mesh of the study: the structured LV at about `tets` elements, or `lv_h1.msh`.
+#[derive(Debug, Clone)]
+struct MeshSpec {
+    /// Target element count; `None` for `lv_h1.msh`.
+    tets: Option<usize>,
+    quadratic: bool,
+}
+
+impl FromStr for MeshSpec {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        let (tets, order) = s
+            .split_once(':')
+            .ok_or_else(|| format!("{s:?}: expected TETS:ORDER"))?;
+        let tets = match tets {
+            "h1" => None,
+            n => Some(n.parse().map_err(|e| format!("{n:?}: {e}"))?),
+        };
+        let quadratic = match order {
+            "1" => false,
+            "2" => true,
+            o => return Err(format!("order {o:?}: expected 1 or 2")),
+        };
+        Ok(Self { tets, quadratic })
+    }
+}
+
+impl MeshSpec {
+    /// The built-in `lv` scene on this mesh.
+    fn scene(&self) -> Scene {
+        match self.tets {
+            Some(tets) => common::lv_scene_order(tets, self.quadratic),
+            None => {
+                let mesh = common::lv_h1_scene().expect("lv_h1.msh").mesh;
+                common::lv_scene_on(if self.quadratic {
+                    mesh.to_quadratic()
+                } else {
+                    mesh
+                })
+            }
+        }
+    }
+
+    fn label(&self) -> String {
+        let tets = self.tets.map_or("h1".into(), |t| t.to_string());
+        format!("{tets} tets order {}", if self.quadratic { 2 } else { 1 })
+    }
+}
+
+/// A dynamic run: mesh, integrator, safety factor and CG cap.
+#[derive(Debug, Clone)]
+struct DynamicRun {
+    spec: String,
+    tets: usize,
+    quadratic: bool,
+    kind: IntegratorKind,
+    safety_factor: f64,
+    cg_max_iterations: u32,
+}
+
+impl FromStr for DynamicRun {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        let f: Vec<&str> = s.split(':').collect();
+        if !(3..=5).contains(&f.len()) {
+            return Err(format!(
+                "{s:?}: expected TETS:ORDER:INTEGRATOR[:SAFETY[:CG]]"
+            ));
+        }
+        let mesh: MeshSpec = format!("{}:{}", f[0], f[1]).parse()?;
+        let tets = mesh
+            .tets
+            .ok_or_else(|| format!("{s:?}: dynamic runs take a structured LV size"))?;
+        let kind =
+            IntegratorKind::from_name(f[2]).ok_or_else(|| format!("integrator {:?}", f[2]))?;
+        let parse_err = |v: &str| format!("{s:?}: {v:?} is not a number");
+        Ok(Self {
+            spec: s.into(),
+            tets,
+            quadratic: mesh.quadratic,
+            kind,
+            safety_factor: f
+                .get(3)
+                .map_or(Ok(0.5), |v| v.parse().map_err(|_| parse_err(v)))?,
+            cg_max_iterations: f
+                .get(4)
+                .map_or(Ok(20), |v| v.parse().map_err(|_| parse_err(v)))?,
+        })
+    }
+}
+
+fn parse_smoothing(s: &str) -> Result<StrainSmoothing, String> {
+    StrainSmoothing::from_name(s).ok_or_else(|| format!("unknown strain smoothing {s:?}"))
+}
+
+fn main() {
+    match Args::parse().study {
+        Study::Static {
+            mesh,
+            nu,
+            depths,
+            smoothing,
+            debug,
+        } => {
+            let depths = if depths.is_empty() {
+                DEPTHS_MM.to_vec()
+            } else {
+                depths
+            };
+            for m in mesh {
+                let mut scene = m.scene();
+                if let Some(s) = smoothing {
+                    scene.strain_smoothing = s;
+                }
+                if let Some(nu) = nu {
+                    let mat = &mut scene.material;
+                    let e = mat.youngs_modulus_pa();
+                    mat.lambda_pa = e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu));
+                    mat.mu_pa = e / (2.0 * (1.0 + nu));
+                }
+                let t = Instant::now();
+                let c = probe_static_at(&scene, &depths, debug);
+                println!(
+                    "lv-study {}: {} nodes, {:.1} s: {:?}",
+                    m.label(),
+                    scene.mesh.node_count(),
+                    t.elapsed().as_secs_f64(),
+                    c.map(|c| c.forces_n)
+                );
+            }
+        }
+        Study::Dynamic { run } => {
+            for r in run {
+                let mut scene = common::lv_scene_order(r.tets, r.quadratic);
+                scene.integrator.kind = r.kind;
+                scene.integrator.safety_factor = r.safety_factor;
+                scene.integrator.cg_max_iterations = r.cg_max_iterations;
+                scene.integrator.max_substeps = 1000;
+                match probe_dynamic(&scene, false) {
+                    Ok((c, ticks, sub)) => println!(
+                        "lv-dyn {}: {} nodes, {sub} sub-steps, tick p50 {:.0} us: {:?}",
+                        r.spec,
+                        scene.mesh.node_count(),
+                        ticks.percentiles().p50_us,
+                        c.forces_n
+                    ),
+                    Err(e) => println!("lv-dyn {}: {e}", r.spec),
+                }
+            }
+        }
+    }
+}
