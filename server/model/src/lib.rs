@@ -48,11 +48,13 @@ pub mod statics;
 pub use error::ModelError;
 pub use glam::DVec3;
 
-/// Builds the body a scene describes: the model family it names, behind the
-/// [`body::SoftBody`] interface. Today every scene is a FEM scene ([`sim::Simulation`]).
+/// Builds the body a scene describes: the model family it names (`[model] family`,
+/// [`scene::ModelFamily`]), behind the [`body::SoftBody`] interface.
 ///
 /// # Errors
-/// The errors of the family's constructor ([`sim::Simulation::new`]).
+/// The errors of the family's constructor ([`sim::Simulation::new`] for the FEM).
 pub fn build_body(scene: &scene::Scene) -> Result<Box<dyn body::SoftBody>, ModelError> {
-    Ok(Box::new(sim::Simulation::new(scene)?))
+    match scene.family {
+        scene::ModelFamily::Fem => Ok(Box::new(sim::Simulation::new(scene)?)),
+    }
 }

@@ -370,3 +370,21 @@ fn mesh_order_two_gives_quadratic_elements_and_other_orders_are_refused() {
     .unwrap();
     assert!(lv.mesh.is_quadratic());
 }
+
+#[test]
+fn the_model_family_defaults_to_fem_and_unknown_ones_are_refused() {
+    let base = haptic_model::scene::builtin_scene_toml("lv").unwrap();
+    let scene = parse_scene_toml(base, std::path::Path::new(".")).unwrap();
+    assert_eq!(scene.family, haptic_model::scene::ModelFamily::Fem);
+    let named = format!("{base}\n[model]\nfamily = \"fem\"\n");
+    let scene = parse_scene_toml(&named, std::path::Path::new(".")).unwrap();
+    assert_eq!(scene.family, haptic_model::scene::ModelFamily::Fem);
+    let unknown = format!("{base}\n[model]\nfamily = \"cloth\"\n");
+    let err = parse_scene_toml(&unknown, std::path::Path::new("."))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("model.family") && err.contains("cloth") && err.contains("fem"),
+        "{err}"
+    );
+}

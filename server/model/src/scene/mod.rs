@@ -86,6 +86,32 @@ mod raw;
 pub use builtin::{builtin_scene_names, builtin_scene_toml};
 pub use raw::{MAX_GRAVITY_M_PER_S2, MAX_PRESSURE_PA, MAX_SCENE_POINT_FORCE_N};
 
+/// The model family a scene asks for (section `[model] family`): which [`crate::body::SoftBody`]
+/// implementation [`crate::build_body`] builds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ModelFamily {
+    /// The tetrahedral FEM body ([`crate::sim::Simulation`]; `"fem"`, the default).
+    #[default]
+    Fem,
+}
+
+impl ModelFamily {
+    /// Every family, for error messages and listings.
+    pub const ALL: &'static [ModelFamily] = &[ModelFamily::Fem];
+
+    /// The scene-file name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Fem => "fem",
+        }
+    }
+
+    /// Parses a scene-file name; `None` if unknown.
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.iter().copied().find(|f| f.name() == name)
+    }
+}
+
 /// A validated scene, ready to build a body ([`crate::build_body`]). SI units.
 #[derive(Debug, Clone)]
 pub struct Scene {
@@ -93,6 +119,8 @@ pub struct Scene {
     pub name: String,
     /// One-line description, with the source of the parameters.
     pub description: String,
+    /// The model family to build (`[model] family`).
+    pub family: ModelFamily,
     /// The mesh in metres.
     pub mesh: TetMesh,
     /// Strain smoothing of linear elements (`[mesh] strain_smoothing`).

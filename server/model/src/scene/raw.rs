@@ -6,7 +6,7 @@ use std::path::Path;
 use glam::DVec3;
 use serde::Deserialize;
 
-use super::Scene;
+use super::{ModelFamily, Scene};
 use crate::ModelError;
 use crate::contact::ProbeParams;
 use crate::element::StrainSmoothing;
@@ -28,6 +28,7 @@ pub const MAX_SCENE_POINT_FORCE_N: f64 = 1e9;
 struct RawScene {
     name: Option<String>,
     description: Option<String>,
+    model: Option<RawModel>,
     mesh: Option<RawMesh>,
     material: Option<RawMaterial>,
     boundary: Option<RawBoundary>,
@@ -35,6 +36,12 @@ struct RawScene {
     probe: Option<RawProbe>,
     loads: Option<RawLoads>,
     active_region: Option<RawActiveRegion>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawModel {
+    family: Option<String>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -181,6 +188,19 @@ pub(super) fn parse_scene(
     default_name: &str,
 ) -> Result<Scene, ModelError> {
     let raw: RawScene = toml::from_str(text).map_err(|e| ModelError::SceneSyntax(e.to_string()))?;
+    let family = match raw.model.unwrap_or_default().family.as_deref() {
+        None => ModelFamily::Fem,
+        Some(name) => ModelFamily::from_name(name).ok_or_else(|| {
+            let known: Vec<&str> = ModelFamily::ALL.iter().map(|f| f.name()).collect();
+            ModelError::field(
+                "model.family",
+                format!(
+                    "unknown model family `{name}` (known: {})",
+                    known.join(", ")
+                ),
+            )
+        })?,
+    };
     let mesh_raw = required("mesh", raw.mesh)?;
     let (mesh, length_unit_m) = build_mesh(&mesh_raw, base_dir)?;
     let strain_smoothing = match mesh_raw.strain_smoothing.as_deref() {
@@ -271,6 +291,7 @@ pub(super) fn parse_scene(
     Ok(Scene {
         name: raw.name.unwrap_or_else(|| default_name.to_string()),
         description: raw.description.unwrap_or_default(),
+        family,
         mesh,
         strain_smoothing,
         material,
