@@ -12,10 +12,14 @@ pub mod clock;
 pub mod device;
 pub mod guard;
 pub mod link;
+pub mod passivity;
 pub mod record;
 pub mod replay;
 pub mod sim;
 
 pub use clock::{Clock, ManualClock, MonotonicClock};
 pub use device::{DeviceError, DeviceSpec, DeviceState, HapticDevice};
-pub use link::{BridgeConfig, BridgeError, BridgeReport, BridgeSummary, run};
+pub use link::{
+    BridgeConfig, BridgeError, BridgeReport, BridgeSummary, FaultInjection, RearmButton, RearmMode,
+    run,
+};
