@@ -25,6 +25,46 @@ use crate::servo::{
 /// Largest scene text accepted, bytes.
 pub const MAX_SCENE_TOML_BYTES: usize = 1 << 20;
 
+/// Hand speed the scene's force-rate limit assumes, m/s (devices.md S7: a wall hit at 1 m/s).
+pub const REFERENCE_SPEED_M_PER_S: f64 = 1.0;
+
+/// Application-level limits of a session, sent to the device bridge at connect time (response
+/// headers of `DeviceLink.Connect`); the bridge applies the lower of these and its device's.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LinkLimits {
+    /// The scene's `probe.max_force_n`, N.
+    pub max_force_n: f64,
+    /// A force-rate limit on the scale of the scene's forces, N/s: the coupling stiffness
+    /// times [`REFERENCE_SPEED_M_PER_S`] (300 N/s for the LV scenes, so a 5 N fault needs
+    /// 17 ms to reach the hand instead of 5 ms at a device's 1 N/ms).
+    pub max_force_rate_n_per_s: f64,
+}
+
+impl LinkLimits {
+    /// The limits of `scene`.
+    pub fn of_scene(scene: &Scene) -> Self {
+        Self {
+            max_force_n: scene.probe.max_force_n,
+            max_force_rate_n_per_s: scene.probe.coupling_stiffness_n_per_m
+                * REFERENCE_SPEED_M_PER_S,
+        }
+    }
+}
+
+/// Where a session's scene came from, as recorded for a restart (`StartSession`'s fields).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SessionRecord {
+    /// Session id.
+    pub id: String,
+    /// Built-in scene name (empty when `scene_toml` is given).
+    #[serde(default)]
+    pub scene: String,
+    /// Scene file text (empty for a built-in scene).
+    #[serde(default)]
+    pub scene_toml: String,
+}
+
 /// The surface connectivity of a session at one topology version (shared by every frame until
 /// the version changes; a viewer gets a keyframe with it then).
 #[derive(Debug, Clone, PartialEq)]
@@ -83,6 +123,10 @@ pub struct Session {
     pub shared: Arc<SessionShared>,
     /// Session clock zero.
     pub epoch: Instant,
+    /// The scene's limits for the device bridge (`None` for a body started without a scene).
+    pub limits: Option<LinkLimits>,
+    /// The servo thread, unparked when a device sample arrives (device pacing).
+    servo_thread: std::thread::Thread,
     commands: Mutex<rtrb::Producer<Command>>,
     pose_input: Mutex<Option<triple_buffer::Input<Pose>>>,
     link: Arc<Mutex<Option<ForceSender>>>,
@@ -186,6 +230,11 @@ impl Session {
         }
     }
 
+    /// Wakes the servo thread (a device sample was published). Wait-free for the caller.
+    pub fn wake_servo(&self) {
+        self.servo_thread.unpark();
+    }
+
     /// Milliseconds-resolution session clock now, µs.
     pub fn now_us(&self) -> u64 {
         self.epoch.elapsed().as_micros() as u64
@@ -205,6 +254,8 @@ impl Drop for WatcherGuard {
 pub struct SessionManager {
     config: ServerConfig,
     sessions: Mutex<HashMap<String, Arc<Session>>>,
+    /// Random id of this daemon process, sent to device bridges so they notice a restart.
+    instance: String,
 }
 
 impl SessionManager {
@@ -213,7 +264,80 @@ impl SessionManager {
         Self {
             config,
             sessions: Mutex::new(HashMap::new()),
+            instance: uuid::Uuid::new_v4().simple().to_string()[..12].to_string(),
         }
+    }
+
+    /// This daemon process's instance id (new at every start).
+    pub fn instance(&self) -> &str {
+        &self.instance
+    }
+
+    /// Records how session `id` was started (`StartSession`'s `scene` / `scene_toml`) in the
+    /// state directory, so that a restarted daemon restores it. Nothing without a state dir.
+    ///
+    /// # Errors
+    /// [`ServerError::Internal`] when the record cannot be written.
+    pub fn record(&self, id: &str, scene: &str, scene_toml: &str) -> Result<(), ServerError> {
+        let Some(dir) = &self.config.state_dir else {
+            return Ok(());
+        };
+        let rec = SessionRecord {
+            id: id.to_owned(),
+            scene: scene.to_owned(),
+            scene_toml: scene_toml.to_owned(),
+        };
+        let text = toml::to_string(&rec)
+            .map_err(|e| ServerError::Internal(format!("session record: {e}")))?;
+        std::fs::create_dir_all(dir)
+            .and_then(|()| std::fs::write(dir.join(format!("{id}.toml")), text))
+            .map_err(|e| {
+                ServerError::Internal(format!("writing the session record in {}: {e}", dir.display()))
+            })
+    }
+
+    /// Restores the sessions recorded in the state directory (same ids, scenes rebuilt from
+    /// rest: the simulation state itself is not kept). Returns one line per record (restored or
+    /// why not); a record that cannot be restored is removed. Must be called inside a tokio
+    /// runtime (blocking: each scene is built).
+    pub fn restore(&self) -> Vec<String> {
+        let Some(dir) = self.config.state_dir.clone() else {
+            return Vec::new();
+        };
+        let Ok(entries) = std::fs::read_dir(&dir) else {
+            return Vec::new();
+        };
+        let mut paths: Vec<_> = entries
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|x| x == "toml"))
+            .collect();
+        paths.sort();
+        let mut out = Vec::new();
+        for path in paths {
+            let outcome = std::fs::read_to_string(&path)
+                .map_err(|e| e.to_string())
+                .and_then(|t| toml::from_str::<SessionRecord>(&t).map_err(|e| e.to_string()))
+                .and_then(|rec| {
+                    let scene = self
+                        .load_scene(&rec.scene, &rec.scene_toml)
+                        .map_err(|e| e.to_string())?;
+                    self.check_capacity().map_err(|e| e.to_string())?;
+                    let body = haptic_model::build_body(&scene).map_err(|e| e.to_string())?;
+                    self.start_body_as(&rec.id, body, Some(LinkLimits::of_scene(&scene)))
+                        .map_err(|e| e.to_string())?;
+                    Ok(rec)
+                });
+            match outcome {
+                Ok(rec) => out.push(format!("restored session {} (scene {:?})", rec.id, {
+                    if rec.scene.is_empty() { "from text" } else { rec.scene.as_str() }
+                })),
+                Err(e) => {
+                    let _ = std::fs::remove_file(&path);
+                    out.push(format!("could not restore {}: {e}; record removed", path.display()));
+                }
+            }
+        }
+        out
     }
 
     /// The daemon configuration.
@@ -277,7 +401,12 @@ impl SessionManager {
     /// simulation cannot be built (e.g. an unstable explicit configuration).
     pub fn start(&self, scene: &Scene) -> Result<Arc<Session>, ServerError> {
         self.check_capacity()?;
-        self.start_body(haptic_model::build_body(scene)?)
+        let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
+        self.start_body_as(
+            &id,
+            haptic_model::build_body(scene)?,
+            Some(LinkLimits::of_scene(scene)),
+        )
     }
 
     /// Refuses a new session at the session limit.
@@ -301,10 +430,31 @@ impl SessionManager {
         &self,
         body: Box<dyn haptic_model::body::SoftBody>,
     ) -> Result<Arc<Session>, ServerError> {
+        let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
+        self.start_body_as(&id, body, None)
+    }
+
+    /// [`SessionManager::start_body`] with a given session id (a restored session keeps its
+    /// id) and the limits sent to device bridges.
+    ///
+    /// # Errors
+    /// As [`SessionManager::start_body`]; [`ServerError::FailedPrecondition`] when the id is in
+    /// use.
+    pub fn start_body_as(
+        &self,
+        id: &str,
+        body: Box<dyn haptic_model::body::SoftBody>,
+        limits: Option<LinkLimits>,
+    ) -> Result<Arc<Session>, ServerError> {
         self.check_capacity()?;
+        if self.get(id).is_ok() {
+            return Err(ServerError::FailedPrecondition(format!(
+                "session {id} exists already"
+            )));
+        }
+        let id = id.to_owned();
         let info = body.info();
         let size = body.stats();
-        let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
         let shared = Arc::new(SessionShared::default());
         let (ends, handles) = servo::channels(body.as_ref());
         let servo::ServoHandles {
@@ -348,13 +498,22 @@ impl SessionManager {
         );
         let fwd_thread = forwarder.thread().clone();
         let servo_id = id.clone();
+        let pacing = servo_cfg.pacing;
         let servo = std::thread::Builder::new()
             .name(format!("servo-{id}"))
             .spawn(move || {
                 for w in servo::setup_realtime(&servo_cfg) {
                     tracing::warn!(session = %servo_id, "{w}");
                 }
-                servo::run_loop(core, MonotonicClock::new(epoch), period_us, fwd_thread);
+                let clock = MonotonicClock::new(epoch);
+                match pacing {
+                    crate::config::Pacing::Device => {
+                        servo::run_loop_device_paced(core, clock, period_us, fwd_thread)
+                    }
+                    crate::config::Pacing::Clock => {
+                        servo::run_loop(core, clock, period_us, fwd_thread)
+                    }
+                }
             })
             .map_err(|e| ServerError::Internal(format!("spawning the servo thread: {e}")))?;
 
@@ -418,6 +577,8 @@ impl SessionManager {
             probe_radius_m: info.probe_radius_m,
             shared,
             epoch,
+            limits,
+            servo_thread: servo.thread().clone(),
             commands: Mutex::new(cmd_tx),
             pose_input: Mutex::new(Some(pose_in)),
             link,
@@ -444,6 +605,10 @@ impl SessionManager {
             .remove(id)
             .ok_or_else(|| ServerError::UnknownSession(id.to_string()))?;
         s.stop();
+        if let Some(dir) = &self.config.state_dir {
+            // A stopped session is not restored (a missing record is fine).
+            let _ = std::fs::remove_file(dir.join(format!("{id}.toml")));
+        }
         Ok(())
     }
 
