@@ -14,6 +14,7 @@ pub mod guard;
 pub mod hapticmaster;
 pub mod hbp;
 pub mod link;
+pub mod openhaptics;
 pub mod passivity;
 pub mod record;
 pub mod replay;
