@@ -6,8 +6,8 @@
 //! limits and workspace make the device spec; then per tick: read every byte available (the
 //! port's timeout is zero, so a read never blocks), keep the newest `STATE`, and send one
 //! `FORCE` with the next sequence number and the enable flag. Host rules (the spec's "Host
-//! rules"): no valid `STATE` for 20 ms, more than 1 % CRC errors over a second (with at least
-//! 100 frames), a `FAULT` frame, or end of file are device errors (the bridge zeroes the force
+//! rules"): no valid `STATE` for 20 ms, more than 1 % corrupted frames (CRC or COBS) over a
+//! second (with at least 100 frames), a `FAULT` frame, or end of file are device errors (the bridge zeroes the force
 //! and gives up after 20 ms). A `CAPS` after the handshake means the device rebooted: its
 //! outputs are disabled, so the driver reports an error rather than pretend.
 //!
@@ -230,7 +230,8 @@ impl<P: Read + Write + Send> HapticDevice for SerialDevice<P> {
         // Host rule: > 1 % CRC errors over one second (at least 100 frames) is a fault.
         let after = self.decoder.stats();
         self.window_frames += after.frames - before.frames;
-        self.window_crc += after.crc_errors - before.crc_errors;
+        // A corrupted frame fails COBS or the CRC: both count against the 1 % rule.
+        self.window_crc += (after.crc_errors + after.malformed) - (before.crc_errors + before.malformed);
         if now_us.saturating_sub(self.window_start_us) >= 1_000_000 {
             let total = self.window_frames + self.window_crc;
             if total >= 100 && self.window_crc * 100 > total {
