@@ -11,10 +11,13 @@
 //!    not its arrival: a burst of commands answering old poses after a stall is old, so it
 //!    never makes the watchdog fresh again.
 //! 3. **Watchdog gain** `w(age)`: 1 up to **10 ms** (S3), linear to **0 at 60 ms** (S4).
-//! 4. **Latch** (S5): at **100 ms** the output is disabled. It comes back only when the link
-//!    has been healthy (fresh commands on an open stream) for **500 ms** *and* the operator
-//!    re-arms ([`ForceGuard::request_rearm`]; a request before then is discarded); then the
-//!    gain ramps from 0 to 1 over **200 ms** (S9).
+//! 4. **Latch** (S5): at **100 ms** the output is disabled (once the guard has seen a fresh
+//!    command: old answers at start-up are only ignored). It comes back only when the link has
+//!    been healthy for **500 ms** *and* the operator re-arms ([`ForceGuard::request_rearm`]; a
+//!    request before then is discarded); then the gain ramps from 0 to 1 over **200 ms** (S9).
+//!    Healthy means an open stream whose newest command is younger than the 60 ms ramp (the
+//!    watchdog would render it): stricter (every command under 10 ms for 500 ms) never
+//!    re-armed on a loaded 2-core machine whose round trips reach 10 ms at p99.
 //! 5. **Arm gain** `a = min(w, a + dt / 200 ms)`: after *any* ramp-down (a stall of 20 ms, a
 //!    re-arm, the start) the force comes back along a 200 ms ramp, never as a step.
 //! 6. **Local contact model** ([`extrapolate`]): `f = f0 + K (x - x0)` from the held command's
@@ -335,6 +338,8 @@ pub struct ForceGuard {
     held: Option<GuardCommand>,
     arm: Arm,
     arm_gain: f64,
+    /// A fresh command was seen since the last arming: only then can the output latch.
+    engaged: bool,
     rearm_requested: bool,
     last_now_us: Option<u64>,
     output_n: [f64; 3],
@@ -354,6 +359,7 @@ impl ForceGuard {
             held: None,
             arm: Arm::Armed,
             arm_gain: 0.0,
+            engaged: false,
             rearm_requested: false,
             last_now_us: None,
             output_n: [0.0; 3],
@@ -463,11 +469,14 @@ impl ForceGuard {
         let age = self.held.map(|h| now_us.saturating_sub(h.sample_time_us));
         let w = age.map_or(0.0, |a| watchdog_gain(a, p.fresh_us, p.zero_us));
         let fresh = link_up && age.is_some_and(|a| a <= p.fresh_us);
+        let healthy = link_up && age.is_some_and(|a| a < p.zero_us);
         // 4. Latch and re-arm.
         let requested = std::mem::take(&mut self.rearm_requested);
         match self.arm {
             Arm::Armed => {
-                if age.is_some_and(|a| a >= p.latch_us) {
+                self.engaged |= fresh;
+                if self.engaged && age.is_some_and(|a| a >= p.latch_us) {
+                    self.engaged = false;
                     self.arm = Arm::Latched {
                         healthy_since_us: None,
                     };
@@ -477,7 +486,7 @@ impl ForceGuard {
                 }
             }
             Arm::Latched { healthy_since_us } => {
-                let since = if fresh {
+                let since = if healthy {
                     Some(healthy_since_us.unwrap_or(now_us))
                 } else {
                     None
@@ -810,6 +819,18 @@ mod tests {
         }
         assert!(max_step <= f[0] / 200.0 + 1e-12, "step {max_step}");
         assert!((last - f[0]).abs() < 1e-12);
+        assert_eq!(g.stats().latches, 0);
+    }
+
+    #[test]
+    fn old_answers_at_start_up_are_ignored_without_latching() {
+        let (mut g, spec) = unlimited();
+        // The first command answers a pose read 150 ms earlier (a slow stream set-up).
+        g.filter(150_000, true, Some(&cmd(1, [1.0, 0.0, 0.0], 0)), &ORIGIN, &spec);
+        assert_eq!(g.state(), GuardState::Expired);
+        // Fresh ones follow: the force comes in without an operator.
+        let c = cmd(2, [1.0, 0.0, 0.0], 150_500);
+        assert_eq!(g.filter(151_000, true, Some(&c), &ORIGIN, &spec), [1.0, 0.0, 0.0]);
         assert_eq!(g.stats().latches, 0);
     }
 

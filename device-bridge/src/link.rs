@@ -76,6 +76,8 @@ const CLOSE_GRACE: Duration = Duration::from_millis(200);
 pub const HEADER_MAX_FORCE: &str = "haptics-max-force-n";
 /// Response header with the scene's force-rate limit, N/s (decimal text).
 pub const HEADER_MAX_FORCE_RATE: &str = "haptics-max-force-rate-n-per-s";
+/// Request header asking the server for a force-stream deadband (fraction, decimal text).
+pub const HEADER_FORCE_DEADBAND: &str = "haptics-force-deadband";
 /// Response header with the server's instance id (changes when the daemon restarts).
 pub const HEADER_SERVER_INSTANCE: &str = "haptics-server-instance";
 
@@ -963,7 +965,14 @@ async fn run_stream(
     let fault = ctx.fault.take();
     ctx.forward(&out_tx, first_msg);
     ctx.fault = fault;
-    let call = client.connect(ReceiverStream::new(out_rx));
+    let mut request = tonic::Request::new(ReceiverStream::new(out_rx));
+    if let Some(k) = config.deadband
+        && let Ok(v) = k.to_string().parse()
+    {
+        // The same deadband on the force stream, applied by the server.
+        request.metadata_mut().insert(HEADER_FORCE_DEADBAND, v);
+    }
+    let call = client.connect(request);
     tokio::pin!(call);
     // Keep feeding samples while waiting for response headers: a server may wait for the first
     // message (it carries the session id) before answering.

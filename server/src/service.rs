@@ -226,6 +226,9 @@ impl SessionControl for Services {
 pub const HEADER_MAX_FORCE: &str = "haptics-max-force-n";
 /// Response header: the scene's force-rate limit, N/s.
 pub const HEADER_MAX_FORCE_RATE: &str = "haptics-max-force-rate-n-per-s";
+/// Request header of `DeviceLink.Connect`: the perceptual deadband on the force stream, a
+/// fraction (e.g. `0.07`); absent or 0: every force command is sent.
+pub const HEADER_FORCE_DEADBAND: &str = "haptics-force-deadband";
 /// Response header: this daemon process's instance id.
 pub const HEADER_SERVER_INSTANCE: &str = "haptics-server-instance";
 
@@ -259,6 +262,12 @@ impl DeviceLink for Services {
         &self,
         req: Request<Streaming<DeviceSample>>,
     ) -> Result<Response<Self::ConnectStream>, Status> {
+        let deadband = req
+            .metadata()
+            .get(HEADER_FORCE_DEADBAND)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.trim().parse::<f64>().ok())
+            .unwrap_or(0.0);
         let mut inbound = req.into_inner();
         let first = inbound.message().await?.ok_or_else(|| {
             Status::invalid_argument("the device stream ended before its first sample")
@@ -272,6 +281,7 @@ impl DeviceLink for Services {
         let (tx, rx) = mpsc::channel(256);
         let mut pose_in = session.attach_device(tx)?;
         let (limits, instance) = (session.limits, self.manager.instance().to_owned());
+        session.set_force_deadband(deadband);
         tracing::info!(session = %session.id, "device connected");
         tokio::spawn(async move {
             let mut next = Some(first);

@@ -51,6 +51,47 @@ impl LinkLimits {
     }
 }
 
+/// Longest gap between two force commands under the force deadband, µs (keeps the bridge's
+/// command ages well under its 10 ms watchdog threshold).
+pub const DEADBAND_HEARTBEAT_US: u64 = 5_000;
+/// Smallest force change the deadband passes, N.
+pub const DEADBAND_FLOOR_N: f64 = 1e-3;
+
+/// The perceptual deadband on the force stream (Hinterseer and Steinbach, devices.md [S38]): a
+/// force command is sent when the force changed by more than `k` times the last sent one (and
+/// by more than [`DEADBAND_FLOOR_N`]), when the contact flag or the contact stiffness changed
+/// by more than `k`, or [`DEADBAND_HEARTBEAT_US`] after the last one sent. `k <= 0` sends all.
+pub fn force_deadband_passes(k: f64, last: Option<&ForceOut>, since_last_us: u64, f: &ForceOut) -> bool {
+    let Some(l) = last else { return true };
+    if k <= 0.0 || since_last_us >= DEADBAND_HEARTBEAT_US || l.in_contact != f.in_contact {
+        return true;
+    }
+    let d = (f.force_n - l.force_n).length();
+    if d > k * l.force_n.length() && d > DEADBAND_FLOOR_N {
+        return true;
+    }
+    let norm = |m: &[f64; 9]| m.iter().map(|v| v * v).sum::<f64>().sqrt();
+    let dk: f64 = f
+        .stiffness_n_per_m
+        .iter()
+        .zip(&l.stiffness_n_per_m)
+        .map(|(a, b)| (a - b) * (a - b))
+        .sum::<f64>()
+        .sqrt();
+    dk > k * norm(&l.stiffness_n_per_m)
+}
+
+/// The force deadband of the attached device stream and what it held back.
+#[derive(Debug, Default)]
+pub struct DeadbandShared {
+    /// Deadband fraction as `f64` bits (0: off), set when a device attaches.
+    pub fraction_bits: std::sync::atomic::AtomicU64,
+    /// Force commands held back so far.
+    pub suppressed: std::sync::atomic::AtomicU64,
+    /// Force commands sent so far.
+    pub sent: std::sync::atomic::AtomicU64,
+}
+
 /// Where a session's scene came from, as recorded for a restart (`StartSession`'s fields).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -127,6 +168,8 @@ pub struct Session {
     pub limits: Option<LinkLimits>,
     /// The servo thread, unparked when a device sample arrives (device pacing).
     servo_thread: std::thread::Thread,
+    /// The force-stream deadband and its counters.
+    pub deadband: Arc<DeadbandShared>,
     commands: Mutex<rtrb::Producer<Command>>,
     pose_input: Mutex<Option<triple_buffer::Input<Pose>>>,
     link: Arc<Mutex<Option<ForceSender>>>,
@@ -163,6 +206,15 @@ impl Session {
             Ok(mut o) => *o.read(),
             Err(_) => StatsSnapshot::default(),
         }
+    }
+
+    /// Sets the force deadband of the attached stream (fraction, 0 = off; from the bridge's
+    /// `haptics-force-deadband` request header).
+    pub fn set_force_deadband(&self, k: f64) {
+        let k = if k.is_finite() && (0.0..1.0).contains(&k) { k } else { 0.0 };
+        self.deadband
+            .fraction_bits
+            .store(k.to_bits(), Ordering::Relaxed);
     }
 
     /// Attaches a device stream: returns the pose input to publish into.
@@ -468,18 +520,33 @@ impl SessionManager {
         let epoch = Instant::now();
         let link: Arc<Mutex<Option<ForceSender>>> = Arc::new(Mutex::new(None));
 
-        // Forwarder: force ring -> the attached DeviceLink stream.
+        // Forwarder: force ring -> the attached DeviceLink stream (through the deadband).
         let fwd_shared = shared.clone();
         let fwd_link = link.clone();
+        let deadband = Arc::new(DeadbandShared::default());
+        let fwd_deadband = deadband.clone();
         let forwarder = std::thread::Builder::new()
             .name(format!("fwd-{id}"))
             .spawn(move || {
+                let mut last: Option<(ForceOut, Instant)> = None;
                 loop {
                     std::thread::park_timeout(Duration::from_millis(5));
                     while let Ok(f) = force_rx.pop() {
+                        let k = f64::from_bits(fwd_deadband.fraction_bits.load(Ordering::Relaxed));
+                        let finishing = fwd_shared.stop.load(Ordering::Acquire);
+                        let since = last.map_or(u64::MAX, |(_, t)| t.elapsed().as_micros() as u64);
+                        if !finishing && !force_deadband_passes(k, last.as_ref().map(|(l, _)| l), since, &f) {
+                            fwd_deadband.suppressed.fetch_add(1, Ordering::Relaxed);
+                            continue;
+                        }
                         let sender = fwd_link.lock().ok().and_then(|l| l.clone());
                         if let Some(tx) = sender {
-                            let _ = tx.try_send(Ok(force_command(&f)));
+                            if tx.try_send(Ok(force_command(&f))).is_ok() {
+                                fwd_deadband.sent.fetch_add(1, Ordering::Relaxed);
+                            }
+                            last = Some((f, Instant::now()));
+                        } else {
+                            last = None;
                         }
                     }
                     if fwd_shared.finished.load(Ordering::Acquire) && force_rx.is_empty() {
@@ -579,6 +646,7 @@ impl SessionManager {
             epoch,
             limits,
             servo_thread: servo.thread().clone(),
+            deadband,
             commands: Mutex::new(cmd_tx),
             pose_input: Mutex::new(Some(pose_in)),
             link,
@@ -633,5 +701,40 @@ fn force_command(f: &ForceOut) -> ForceCommand {
         in_contact: f.in_contact,
         stiffness_n_per_m: f.stiffness_n_per_m.to_vec(),
         proxy_position_m: Some(Vec3::from(f.proxy_m.to_array())),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use haptic_model::DVec3;
+
+    fn out(fx: f64, in_contact: bool) -> ForceOut {
+        ForceOut {
+            force_n: DVec3::new(fx, 0.0, 0.0),
+            in_contact,
+            ..ForceOut::default()
+        }
+    }
+
+    #[test]
+    fn the_force_deadband_passes_changes_above_seven_percent_and_a_heartbeat() {
+        let last = out(0.1, true);
+        // (k, force, since last us, sent?)
+        let table = [
+            (0.0, out(0.1, true), 0, true),       // off
+            (0.07, out(0.106, true), 1_000, false), // 6 % change
+            (0.07, out(0.108, true), 1_000, true),  // 8 % change
+            (0.07, out(0.1, true), 4_999, false),
+            (0.07, out(0.1, true), 5_000, true),    // heartbeat
+            (0.07, out(0.1, false), 1_000, true),   // contact flag changed
+        ];
+        for (k, f, since, want) in table {
+            assert_eq!(force_deadband_passes(k, Some(&last), since, &f), want, "{k} {f:?} {since}");
+        }
+        assert!(force_deadband_passes(0.07, None, 0, &last));
+        // Below the 1 mN floor nothing passes early, whatever the relative change.
+        let tiny = out(0.0002, true);
+        assert!(!force_deadband_passes(0.07, Some(&tiny), 1_000, &out(0.0009, true)));
     }
 }

@@ -43,7 +43,9 @@ fn read_recording(path: &std::path::Path) -> Result<Vec<Row>> {
             "fy_n",
             "fz_n",
             "in_contact",
-            "rtt_us"
+            "rtt_us",
+            "age_us",
+            "state"
         ]
     );
     let mut rows = Vec::new();
