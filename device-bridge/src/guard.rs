@@ -201,11 +201,7 @@ pub fn extrapolate(
         f0_n[1] + k[3] * dx[0] + k[4] * dx[1] + k[5] * dx[2],
         f0_n[2] + k[6] * dx[0] + k[7] * dx[1] + k[8] * dx[2],
     ];
-    if vec3::dot(f, n) <= 0.0 {
-        [0.0; 3]
-    } else {
-        f
-    }
+    if vec3::dot(f, n) <= 0.0 { [0.0; 3] } else { f }
 }
 
 /// Where the guard's output came from on the last tick.
@@ -633,7 +629,13 @@ mod tests {
         assert_eq!(p.max_rate_n_per_s, 1000.0); // 1000 N/m * 1 m/s
         assert!((p.max_step_n() - 1.0).abs() < 1e-12); // 1 N per 1 ms tick
         assert_eq!(
-            (p.fresh_us, p.zero_us, p.latch_us, p.healthy_us, p.rearm_ramp_us),
+            (
+                p.fresh_us,
+                p.zero_us,
+                p.latch_us,
+                p.healthy_us,
+                p.rearm_ramp_us
+            ),
             (10_000, 60_000, 100_000, 500_000, 200_000)
         );
     }
@@ -702,7 +704,13 @@ mod tests {
         // Fresh commands every ms up to t = 100 ms.
         while t <= 100_000 {
             generation += 1;
-            g.filter(t, true, Some(&cmd(generation, [1.0, 0.0, 0.0], t)), &ORIGIN, &spec);
+            g.filter(
+                t,
+                true,
+                Some(&cmd(generation, [1.0, 0.0, 0.0], t)),
+                &ORIGIN,
+                &spec,
+            );
             t += 1_000;
         }
         // A 300 ms stall: no command.
@@ -826,11 +834,20 @@ mod tests {
     fn old_answers_at_start_up_are_ignored_without_latching() {
         let (mut g, spec) = unlimited();
         // The first command answers a pose read 150 ms earlier (a slow stream set-up).
-        g.filter(150_000, true, Some(&cmd(1, [1.0, 0.0, 0.0], 0)), &ORIGIN, &spec);
+        g.filter(
+            150_000,
+            true,
+            Some(&cmd(1, [1.0, 0.0, 0.0], 0)),
+            &ORIGIN,
+            &spec,
+        );
         assert_eq!(g.state(), GuardState::Expired);
         // Fresh ones follow: the force comes in without an operator.
         let c = cmd(2, [1.0, 0.0, 0.0], 150_500);
-        assert_eq!(g.filter(151_000, true, Some(&c), &ORIGIN, &spec), [1.0, 0.0, 0.0]);
+        assert_eq!(
+            g.filter(151_000, true, Some(&c), &ORIGIN, &spec),
+            [1.0, 0.0, 0.0]
+        );
         assert_eq!(g.stats().latches, 0);
     }
 
@@ -838,10 +855,7 @@ mod tests {
     fn link_loss_ramps_down_like_a_stall() {
         let (mut g, spec) = unlimited();
         let c = cmd(1, [3.0, 0.0, 0.0], 0);
-        assert_eq!(
-            g.filter(0, true, Some(&c), &ORIGIN, &spec),
-            [3.0, 0.0, 0.0]
-        );
+        assert_eq!(g.filter(0, true, Some(&c), &ORIGIN, &spec), [3.0, 0.0, 0.0]);
         // Stream closed at 1 ms: the held command keeps ageing.
         let out = g.filter(35_000, false, Some(&c), &ORIGIN, &spec);
         assert!(close(out, [1.5, 0.0, 0.0]));
@@ -896,9 +910,20 @@ mod tests {
         let mut seen = Vec::new();
         for k in 0..3 {
             let t = 1_000 * k;
-            seen.push(g.filter(t, true, Some(&cmd(1 + k, [5.0, 0.0, 0.0], t)), &ORIGIN, &spec)[0]);
+            seen.push(
+                g.filter(
+                    t,
+                    true,
+                    Some(&cmd(1 + k, [5.0, 0.0, 0.0], t)),
+                    &ORIGIN,
+                    &spec,
+                )[0],
+            );
         }
-        assert!(close([seen[0], seen[1], seen[2]], [0.3, 0.6, 0.9]), "{seen:?}");
+        assert!(
+            close([seen[0], seen[1], seen[2]], [0.3, 0.6, 0.9]),
+            "{seen:?}"
+        );
     }
 
     #[test]
@@ -984,7 +1009,10 @@ mod tests {
             assert!(close(f, want), "{x:?}: {f:?}");
         }
         // No contact force: nothing to extrapolate.
-        assert_eq!(extrapolate([0.0; 3], &k, [0.0; 3], [-1e-3, 0.0, 0.0], 0.002), [0.0; 3]);
+        assert_eq!(
+            extrapolate([0.0; 3], &k, [0.0; 3], [-1e-3, 0.0, 0.0], 0.002),
+            [0.0; 3]
+        );
         // Through the guard: the rendered force follows the device between two commands.
         let (mut g, spec) = unlimited();
         let c = GuardCommand {

@@ -429,7 +429,9 @@ fn emulate(
             std::thread::sleep(Duration::from_millis(2));
             continue;
         };
-        log.lock().unwrap_or_else(PoisonError::into_inner).connections += 1;
+        log.lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .connections += 1;
         let _ = conn.set_nonblocking(false);
         let _ = conn.set_nodelay(true);
         let _ = conn.set_read_timeout(Some(Duration::from_millis(50)));

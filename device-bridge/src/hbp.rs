@@ -560,7 +560,9 @@ impl DeviceCore {
             }
             Message::Force(f) => {
                 let force = f.force_n.map(f64::from);
-                let newer = self.last_applied_seq.is_none_or(|s| seq_newer(frame.seq, s));
+                let newer = self
+                    .last_applied_seq
+                    .is_none_or(|s| seq_newer(frame.seq, s));
                 if !self.hello_seen || !newer || !vec3::is_finite(force) {
                     self.refused += 1;
                     return None;

@@ -41,8 +41,8 @@
 //! Neighbours: [`crate::device`] (the device), [`crate::guard`] (per-tick safety),
 //! [`crate::record`] (per-tick rows), `haptics_proto::v1` (the wire contract).
 
-use std::fmt;
 use std::collections::VecDeque;
+use std::fmt;
 use std::sync::atomic::{AtomicBool, AtomicU8, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
@@ -839,9 +839,7 @@ impl NetCtx {
 
     fn next_release(&self) -> Option<Duration> {
         let (t, _) = self.delayed.front()?;
-        Some(Duration::from_micros(
-            t.saturating_sub(self.clock.now_us()),
-        ))
+        Some(Duration::from_micros(t.saturating_sub(self.clock.now_us())))
     }
 
     fn on_force(&mut self, cmd: &ForceCommand) {
@@ -1254,7 +1252,9 @@ pub async fn run(
         passivity_energy_j: dev.guard.passivity.energy_j,
         passivity_dissipated_j: dev.guard.passivity.dissipated_j,
         passivity_active_ticks: dev.guard.passivity.active_ticks,
-        max_force_n: dev.limits.map_or(config.guard.max_force_n, |l| l.max_force_n),
+        max_force_n: dev
+            .limits
+            .map_or(config.guard.max_force_n, |l| l.max_force_n),
         max_force_rate_n_per_s: dev
             .limits
             .map_or(config.guard.max_rate_n_per_s, |l| l.max_rate_n_per_s),

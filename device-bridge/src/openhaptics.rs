@@ -555,7 +555,11 @@ mod tests {
             let _ = t.join();
         }
     }
-    unsafe extern "C" fn schedule_asynchronous(cb: HdCallback, d: *mut c_void, _: c_ushort) -> c_ulong {
+    unsafe extern "C" fn schedule_asynchronous(
+        cb: HdCallback,
+        d: *mut c_void,
+        _: c_ushort,
+    ) -> c_ulong {
         with(|f| f.callback = Some((cb, d as usize)));
         7
     }
@@ -716,6 +720,9 @@ mod tests {
             .err()
             .unwrap()
             .to_string();
-        assert!(e.contains("/nonexistent/libHD.so") && e.contains("OpenHaptics"), "{e}");
+        assert!(
+            e.contains("/nonexistent/libHD.so") && e.contains("OpenHaptics"),
+            "{e}"
+        );
     }
 }

@@ -53,7 +53,11 @@ pub fn spec_from_caps(caps: &Caps) -> DeviceSpec {
         .trim_end_matches('\0')
         .to_owned();
     DeviceSpec {
-        name: if name.is_empty() { "serial".into() } else { name },
+        name: if name.is_empty() {
+            "serial".into()
+        } else {
+            name
+        },
         max_force_n: f64::from(caps.peak_force_n),
         max_stiffness_n_per_m: f64::from(caps.max_stiffness_n_per_m),
         workspace_min_m: caps.workspace_min_m.map(f64::from),
@@ -231,7 +235,8 @@ impl<P: Read + Write + Send> HapticDevice for SerialDevice<P> {
         let after = self.decoder.stats();
         self.window_frames += after.frames - before.frames;
         // A corrupted frame fails COBS or the CRC: both count against the 1 % rule.
-        self.window_crc += (after.crc_errors + after.malformed) - (before.crc_errors + before.malformed);
+        self.window_crc +=
+            (after.crc_errors + after.malformed) - (before.crc_errors + before.malformed);
         if now_us.saturating_sub(self.window_start_us) >= 1_000_000 {
             let total = self.window_frames + self.window_crc;
             if total >= 100 && self.window_crc * 100 > total {
@@ -390,7 +395,9 @@ impl SerialEmulator {
                     }
                     let _ = port.flush();
                     if core.wd_tripped() && !was_tripped {
-                        l2.lock().unwrap_or_else(PoisonError::into_inner).watchdog_trips += 1;
+                        l2.lock()
+                            .unwrap_or_else(PoisonError::into_inner)
+                            .watchdog_trips += 1;
                     }
                     was_tripped = core.wd_tripped();
                     {

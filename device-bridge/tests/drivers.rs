@@ -125,7 +125,11 @@ fn hapticmaster_calibrates_renders_and_leaves_a_safe_state_on_every_exit_path() 
     .unwrap();
     let mut hm = HapticMaster::connect(hm_params(emu.addr())).unwrap();
     let log = emu.log();
-    assert_eq!(log.states, ["init", "force"], "calibrates, then force state");
+    assert_eq!(
+        log.states,
+        ["init", "force"],
+        "calibrates, then force state"
+    );
     assert_eq!(log.effects, ["bridgeForce"]);
     let s = hm.read(0).unwrap();
     assert!((s.position_m[0] - 0.45).abs() < 1e-6, "{s:?}");
@@ -223,7 +227,9 @@ fn pty_pair() -> (TTYPort, TTYPort) {
 
 #[test]
 fn serial_handshake_ticks_crc_errors_and_device_watchdog_over_a_pty() {
-    let _pty = PTY.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+    let _pty = PTY
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let (master, slave) = pty_pair();
     let path = slave.name().expect("slave path");
     let emu = SerialEmulator::spawn(
@@ -289,7 +295,9 @@ fn serial_handshake_ticks_crc_errors_and_device_watchdog_over_a_pty() {
 
 #[test]
 fn serial_handshake_times_out_on_a_silent_port() {
-    let _pty = PTY.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+    let _pty = PTY
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let (_master, slave) = pty_pair();
     let params = SerialParams {
         handshake_timeout: Duration::from_millis(100),
@@ -307,7 +315,9 @@ fn serial_handshake_times_out_on_a_silent_port() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_bridge_drives_a_serial_arm_against_a_wall() {
-    let _pty = PTY.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+    let _pty = PTY
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let (master, slave) = pty_pair();
     let emu = SerialEmulator::spawn(
         master,

@@ -61,7 +61,12 @@ pub const DEADBAND_FLOOR_N: f64 = 1e-3;
 /// force command is sent when the force changed by more than `k` times the last sent one (and
 /// by more than [`DEADBAND_FLOOR_N`]), when the contact flag or the contact stiffness changed
 /// by more than `k`, or [`DEADBAND_HEARTBEAT_US`] after the last one sent. `k <= 0` sends all.
-pub fn force_deadband_passes(k: f64, last: Option<&ForceOut>, since_last_us: u64, f: &ForceOut) -> bool {
+pub fn force_deadband_passes(
+    k: f64,
+    last: Option<&ForceOut>,
+    since_last_us: u64,
+    f: &ForceOut,
+) -> bool {
     let Some(l) = last else { return true };
     if k <= 0.0 || since_last_us >= DEADBAND_HEARTBEAT_US || l.in_contact != f.in_contact {
         return true;
@@ -211,7 +216,11 @@ impl Session {
     /// Sets the force deadband of the attached stream (fraction, 0 = off; from the bridge's
     /// `haptics-force-deadband` request header).
     pub fn set_force_deadband(&self, k: f64) {
-        let k = if k.is_finite() && (0.0..1.0).contains(&k) { k } else { 0.0 };
+        let k = if k.is_finite() && (0.0..1.0).contains(&k) {
+            k
+        } else {
+            0.0
+        };
         self.deadband
             .fraction_bits
             .store(k.to_bits(), Ordering::Relaxed);
@@ -344,7 +353,10 @@ impl SessionManager {
         std::fs::create_dir_all(dir)
             .and_then(|()| std::fs::write(dir.join(format!("{id}.toml")), text))
             .map_err(|e| {
-                ServerError::Internal(format!("writing the session record in {}: {e}", dir.display()))
+                ServerError::Internal(format!(
+                    "writing the session record in {}: {e}",
+                    dir.display()
+                ))
             })
     }
 
@@ -381,11 +393,18 @@ impl SessionManager {
                 });
             match outcome {
                 Ok(rec) => out.push(format!("restored session {} (scene {:?})", rec.id, {
-                    if rec.scene.is_empty() { "from text" } else { rec.scene.as_str() }
+                    if rec.scene.is_empty() {
+                        "from text"
+                    } else {
+                        rec.scene.as_str()
+                    }
                 })),
                 Err(e) => {
                     let _ = std::fs::remove_file(&path);
-                    out.push(format!("could not restore {}: {e}; record removed", path.display()));
+                    out.push(format!(
+                        "could not restore {}: {e}; record removed",
+                        path.display()
+                    ));
                 }
             }
         }
@@ -535,7 +554,9 @@ impl SessionManager {
                         let k = f64::from_bits(fwd_deadband.fraction_bits.load(Ordering::Relaxed));
                         let finishing = fwd_shared.stop.load(Ordering::Acquire);
                         let since = last.map_or(u64::MAX, |(_, t)| t.elapsed().as_micros() as u64);
-                        if !finishing && !force_deadband_passes(k, last.as_ref().map(|(l, _)| l), since, &f) {
+                        if !finishing
+                            && !force_deadband_passes(k, last.as_ref().map(|(l, _)| l), since, &f)
+                        {
                             fwd_deadband.suppressed.fetch_add(1, Ordering::Relaxed);
                             continue;
                         }
@@ -722,19 +743,28 @@ mod tests {
         let last = out(0.1, true);
         // (k, force, since last us, sent?)
         let table = [
-            (0.0, out(0.1, true), 0, true),       // off
+            (0.0, out(0.1, true), 0, true),         // off
             (0.07, out(0.106, true), 1_000, false), // 6 % change
             (0.07, out(0.108, true), 1_000, true),  // 8 % change
             (0.07, out(0.1, true), 4_999, false),
-            (0.07, out(0.1, true), 5_000, true),    // heartbeat
-            (0.07, out(0.1, false), 1_000, true),   // contact flag changed
+            (0.07, out(0.1, true), 5_000, true),  // heartbeat
+            (0.07, out(0.1, false), 1_000, true), // contact flag changed
         ];
         for (k, f, since, want) in table {
-            assert_eq!(force_deadband_passes(k, Some(&last), since, &f), want, "{k} {f:?} {since}");
+            assert_eq!(
+                force_deadband_passes(k, Some(&last), since, &f),
+                want,
+                "{k} {f:?} {since}"
+            );
         }
         assert!(force_deadband_passes(0.07, None, 0, &last));
         // Below the 1 mN floor nothing passes early, whatever the relative change.
         let tiny = out(0.0002, true);
-        assert!(!force_deadband_passes(0.07, Some(&tiny), 1_000, &out(0.0009, true)));
+        assert!(!force_deadband_passes(
+            0.07,
+            Some(&tiny),
+            1_000,
+            &out(0.0009, true)
+        ));
     }
 }

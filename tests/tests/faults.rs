@@ -16,7 +16,9 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::{Context, Result, ensure};
-use haptic_e2e::{BRIDGE, Daemon, finish, serial, signal, spawn_bin, start_session, unique_temp_dir};
+use haptic_e2e::{
+    BRIDGE, Daemon, finish, serial, signal, spawn_bin, start_session, unique_temp_dir,
+};
 
 /// The scene's force-rate limit times one device tick, N (LV: 300 N/m coupling x 1 m/s).
 const SLEW_STEP_N: f64 = 0.3;
@@ -97,7 +99,10 @@ fn analyse(rows: &[Row]) -> Result<Outcome> {
         if let Some(a) = r.age_us
             && a >= 60_000
         {
-            ensure!(r.f_n == 0.0, "a command 60 ms old or older still renders: {r:?}");
+            ensure!(
+                r.f_n == 0.0,
+                "a command 60 ms old or older still renders: {r:?}"
+            );
         }
         if r.state == "disabled" || r.state == "ready-to-rearm" {
             ensure!(r.f_n == 0.0, "force while disabled: {r:?}");
@@ -148,8 +153,21 @@ where
     let csv = dir.join("bridge.csv");
     let (csv_arg, hold) = (csv.display().to_string(), hold_s.to_string());
     let mut args = vec![
-        "--server", url, "--session", id, "--driver", "sim", "--script", "press", "--hold-s",
-        &hold, "--rearm", "auto", "--record", &csv_arg, "--json",
+        "--server",
+        url,
+        "--session",
+        id,
+        "--driver",
+        "sim",
+        "--script",
+        "press",
+        "--hold-s",
+        &hold,
+        "--rearm",
+        "auto",
+        "--record",
+        &csv_arg,
+        "--json",
     ];
     args.extend_from_slice(extra);
     let bridge = spawn_bin(BRIDGE, &args)?;
@@ -221,7 +239,11 @@ async fn sigstop_the_daemon_for_50_ms() -> Result<()> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sigstop_the_daemon_for_500_ms() -> Result<()> {
     let (o, run) = sigstop_daemon(500, 2.5, "SIGSTOP hapticd 500 ms").await?;
-    ensure!(run.summary["latches"].as_u64() >= Some(1), "{}", run.summary);
+    ensure!(
+        run.summary["latches"].as_u64() >= Some(1),
+        "{}",
+        run.summary
+    );
     ensure!(run.summary["rearms"].as_u64() >= Some(1), "{}", run.summary);
     ensure!(o.time_to_zero_ms.is_some_and(|t| t <= 70.0), "{o:?}");
     Ok(())
@@ -230,7 +252,11 @@ async fn sigstop_the_daemon_for_500_ms() -> Result<()> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sigstop_the_daemon_for_5_s() -> Result<()> {
     let (o, run) = sigstop_daemon(5_000, 7.0, "SIGSTOP hapticd 5 s").await?;
-    ensure!(run.summary["latches"].as_u64() >= Some(1), "{}", run.summary);
+    ensure!(
+        run.summary["latches"].as_u64() >= Some(1),
+        "{}",
+        run.summary
+    );
     ensure!(run.summary["rearms"].as_u64() >= Some(1), "{}", run.summary);
     ensure!(o.time_to_zero_ms.is_some_and(|t| t <= 70.0), "{o:?}");
     Ok(())
@@ -263,8 +289,15 @@ async fn sigstop_the_bridge_for_200_ms() -> Result<()> {
         .position(|w| w[1].t_s - w[0].t_s > 0.1)
         .context("no 100+ ms gap in the ticks")?;
     let resumed = &rows[gap + 1];
-    ensure!(resumed.f_n == 0.0, "force right after the stop: {resumed:?}");
-    ensure!(run.summary["latches"].as_u64() >= Some(1), "{}", run.summary);
+    ensure!(
+        resumed.f_n == 0.0,
+        "force right after the stop: {resumed:?}"
+    );
+    ensure!(
+        run.summary["latches"].as_u64() >= Some(1),
+        "{}",
+        run.summary
+    );
     let _ = std::fs::remove_dir_all(&dir);
     Ok(())
 }
@@ -327,7 +360,12 @@ async fn a_daemon_restarted_without_the_session_ends_the_bridge_clearly() -> Res
         Ok(())
     })
     .await?;
-    ensure!(run.status.code() == Some(3), "exit {:?}: {}", run.status, run.stderr);
+    ensure!(
+        run.status.code() == Some(3),
+        "exit {:?}: {}",
+        run.status,
+        run.stderr
+    );
     ensure!(
         run.stderr.contains("no longer has session") && run.stderr.contains("--state-dir"),
         "{}",
@@ -354,7 +392,11 @@ async fn injected(case: &str, extra: &[&str]) -> Result<(Outcome, Run)> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn drop_10_percent_of_the_messages() -> Result<()> {
     let (o, run) = injected("drop 10 %", &["--fault-drop", "0.1"]).await?;
-    ensure!(run.summary["injected_drops"].as_u64() > Some(50), "{}", run.summary);
+    ensure!(
+        run.summary["injected_drops"].as_u64() > Some(50),
+        "{}",
+        run.summary
+    );
     ensure!(o.peak_n > 0.03, "{o:?}");
     Ok(())
 }
@@ -363,6 +405,10 @@ async fn drop_10_percent_of_the_messages() -> Result<()> {
 async fn delay_commands_by_5_to_50_ms() -> Result<()> {
     let (o, run) = injected("delay 5-50 ms", &["--fault-delay-ms", "5,50"]).await?;
     ensure!(o.peak_n > 0.0, "{o:?}");
-    ensure!(run.summary["forces_received"].as_u64() > Some(500), "{}", run.summary);
+    ensure!(
+        run.summary["forces_received"].as_u64() > Some(500),
+        "{}",
+        run.summary
+    );
     Ok(())
 }
