@@ -3,7 +3,12 @@
 //! ```text
 //! cargo run --release -p haptic-bridge --example emulator -- hapticmaster [SECONDS]
 //! cargo run --release -p haptic-bridge --example emulator -- serial [SECONDS]
+//! cargo run --release -p haptic-bridge --example emulator -- serial-bridge URL SESSION
 //! ```
+//!
+//! `serial-bridge` runs the HBP/1 emulator and the bridge's serial driver in this one process
+//! over a pseudo-terminal pair (where another process cannot open the pair's slave, as in some
+//! sandboxes) and streams to the hapticd session at URL, printing the bridge summary as JSON.
 //!
 //! Each prints where it listens (a TCP address, or the pseudo-terminal path to pass as
 //! `--serial-port`) and the `haptic-bridge` flags that make its hand press the built-in `lv`
@@ -11,15 +16,22 @@
 
 use std::time::Duration;
 
+use std::sync::Arc;
+
 use haptic_bridge::hapticmaster::Emulator;
-use haptic_bridge::serial::{EmulatorFaults, SerialEmulator};
+use haptic_bridge::serial::{EmulatorFaults, SerialDevice, SerialEmulator, SerialParams};
 use haptic_bridge::sim::Script;
+use haptic_bridge::{BridgeConfig, HapticDevice, MonotonicClock};
 use serialport::{SerialPort, TTYPort};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
     let which = args.next().unwrap_or_default();
-    let seconds: f64 = args.next().map_or(Ok(60.0), |s| s.parse())?;
+    let seconds: f64 = if which == "serial-bridge" {
+        0.0
+    } else {
+        args.next().map_or(Ok(60.0), |s| s.parse())?
+    };
     let press = |start_m, direction| Script::Press {
         start_m,
         direction,
@@ -58,10 +70,47 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             println!("emulator log: {:?}", emu.stop().watchdog_trips);
             drop(slave);
         }
+        "serial-bridge" => {
+            let url = seconds_or_url(&which)?;
+            let mut rest = std::env::args().skip(3);
+            let session = rest.next().ok_or("serial-bridge URL SESSION")?;
+            let (mut master, mut slave) = TTYPort::pair()?;
+            master.set_timeout(Duration::ZERO)?;
+            slave.set_timeout(Duration::ZERO)?;
+            let emu = SerialEmulator::spawn(
+                master,
+                press([0.014, 0.0, -0.005], [-1.0, 0.0, 0.0]),
+                EmulatorFaults::default(),
+            )?;
+            let dev = SerialDevice::open(
+                Box::new(slave) as Box<dyn SerialPort>,
+                Arc::new(MonotonicClock::new()),
+                SerialParams::default(),
+            )?;
+            let spec = dev.spec().clone();
+            let mut config = BridgeConfig::new(url, session, &spec);
+            // The emulator's press lasts 4.8 s; hardware drivers never "finish" on their own.
+            config.max_duration = Some(Duration::from_secs(5));
+            let rt = tokio::runtime::Runtime::new()?;
+            let (_tx, rx) = tokio::sync::watch::channel(false);
+            let report = rt.block_on(haptic_bridge::run(
+                Box::new(dev),
+                Arc::new(MonotonicClock::new()),
+                config,
+                rx,
+            ))?;
+            drop(emu);
+            println!("{}", serde_json::to_string(&report.summary)?);
+        }
         _ => {
-            eprintln!("usage: emulator hapticmaster|serial [SECONDS]");
+            eprintln!("usage: emulator hapticmaster|serial [SECONDS] | serial-bridge URL SESSION");
             std::process::exit(2);
         }
     }
     Ok(())
+}
+
+/// The URL argument of `serial-bridge`.
+fn seconds_or_url(_which: &str) -> Result<String, Box<dyn std::error::Error>> {
+    Ok(std::env::args().nth(2).ok_or("serial-bridge URL SESSION")?)
 }

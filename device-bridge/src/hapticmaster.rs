@@ -25,7 +25,9 @@
 //! Per device tick: one `get modelpos; get modelvel` round trip ([`HapticDevice::read`]) and one
 //! `set NAME force [..]` ([`HapticDevice::write_force`]). Each waits at most
 //! [`HapticMasterParams::io_timeout`]; a timeout is a [`DeviceError::Comm`] (the bridge zeroes
-//! the force, then gives up after 20 ms of failures).
+//! the force, then gives up after 20 ms of failures). A reply that came too late would answer
+//! the next command, so after any I/O error the connection is dropped and the next command
+//! reconnects first (the device keeps its state and effects across connections).
 //!
 //! Neighbours: implements [`crate::device::HapticDevice`]; its poses are in the device frame,
 //! [`crate::transform`] maps them to the scene (`--axes y,z,x` as HAPI does).
@@ -164,6 +166,8 @@ pub fn spec(max_force_n: f64) -> DeviceSpec {
 /// A connected, calibrated HapticMaster in force state (module documentation).
 pub struct HapticMaster {
     stream: TcpStream,
+    /// An I/O error left the request/reply stream out of step: reconnect before the next command.
+    broken: bool,
     params: HapticMasterParams,
     spec: DeviceSpec,
     stopped: bool,
@@ -188,6 +192,7 @@ impl HapticMaster {
         let spec = spec(params.max_force_n);
         let mut hm = Self {
             stream,
+            broken: false,
             params,
             spec,
             stopped: false,
@@ -234,11 +239,34 @@ impl HapticMaster {
     /// # Errors
     /// [`DeviceError::Comm`] on I/O failure or an `--- ERROR` reply.
     pub fn command(&mut self, text: &str) -> Result<String, DeviceError> {
+        if self.broken {
+            let t = self.params.io_timeout;
+            let s = TcpStream::connect_timeout(&self.params.addr, t)
+                .and_then(|s| {
+                    s.set_nodelay(true)?;
+                    s.set_read_timeout(Some(t))?;
+                    s.set_write_timeout(Some(t))?;
+                    Ok(s)
+                })
+                .map_err(|e| {
+                    DeviceError::Comm(format!(
+                        "HapticMaster reconnect to {}: {e}",
+                        self.params.addr
+                    ))
+                })?;
+            self.stream = s;
+            self.broken = false;
+        }
         self.commands += 1;
-        self.stream
+        let io = self
+            .stream
             .write_all(&encode(text))
-            .and_then(|()| read_message(&mut self.stream))
-            .map_err(|e| DeviceError::Comm(format!("HapticMaster `{text}`: {e}")))
+            .and_then(|()| read_message(&mut self.stream));
+        if io.is_err() {
+            self.broken = true;
+            let _ = self.stream.shutdown(std::net::Shutdown::Both);
+        }
+        io.map_err(|e| DeviceError::Comm(format!("HapticMaster `{text}`: {e}")))
             .and_then(|reply| {
                 if reply.contains("--- ERROR") {
                     Err(DeviceError::Comm(format!(
@@ -295,6 +323,9 @@ impl HapticDevice for HapticMaster {
             return;
         }
         self.stopped = true;
+        // The exit sequence matters more than the loop's latency: wait longer for each reply.
+        self.params.io_timeout = self.params.io_timeout.max(Duration::from_millis(500));
+        let _ = self.stream.set_read_timeout(Some(self.params.io_timeout));
         let name = self.params.effect_name.clone();
         let exit = match self.params.exit_state {
             ExitState::Stop => "set state stop",
@@ -338,6 +369,7 @@ pub struct EmulatorLog {
 /// holding the end effector) from the moment the state becomes `force`.
 pub struct Emulator {
     addr: SocketAddr,
+    slow_reply_ms: Arc<AtomicU64>,
     log: Arc<Mutex<EmulatorLog>>,
     stop: Arc<AtomicBool>,
     commands: Arc<AtomicU64>,
@@ -366,12 +398,19 @@ impl Emulator {
         let log = Arc::new(Mutex::new(EmulatorLog::default()));
         let stop = Arc::new(AtomicBool::new(false));
         let commands = Arc::new(AtomicU64::new(0));
-        let (l2, s2, c2) = (log.clone(), stop.clone(), commands.clone());
+        let slow_reply_ms = Arc::new(AtomicU64::new(0));
+        let (l2, s2, c2, d2) = (
+            log.clone(),
+            stop.clone(),
+            commands.clone(),
+            slow_reply_ms.clone(),
+        );
         let thread = std::thread::Builder::new()
             .name("hm-emulator".into())
-            .spawn(move || emulate(listener, script, calibration, l2, s2, c2))?;
+            .spawn(move || emulate(listener, script, calibration, l2, s2, c2, d2))?;
         Ok(Self {
             addr,
+            slow_reply_ms,
             log,
             stop,
             commands,
@@ -390,6 +429,11 @@ impl Emulator {
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .clone()
+    }
+
+    /// Delays the reply to the next request by `ms` milliseconds (a stalled device or network).
+    pub fn delay_next_reply(&self, ms: u64) {
+        self.slow_reply_ms.store(ms, Ordering::Release);
     }
 
     /// Commands answered so far.
@@ -414,6 +458,7 @@ fn emulate(
     log: Arc<Mutex<EmulatorLog>>,
     stop: Arc<AtomicBool>,
     commands: Arc<AtomicU64>,
+    slow_reply_ms: Arc<AtomicU64>,
 ) {
     let started = Instant::now();
     let mut st = EmState {
@@ -459,6 +504,10 @@ fn emulate(
                 })
                 .collect::<Vec<_>>()
                 .join(";");
+            let delay = slow_reply_ms.swap(0, Ordering::AcqRel);
+            if delay > 0 {
+                std::thread::sleep(Duration::from_millis(delay));
+            }
             if conn.write_all(&encode(&reply)).is_err() {
                 break;
             }

@@ -163,6 +163,42 @@ fn hapticmaster_calibrates_renders_and_leaves_a_safe_state_on_every_exit_path() 
 }
 
 #[test]
+fn a_late_hapticmaster_reply_never_answers_the_next_command() {
+    let emu = hapticmaster::Emulator::spawn(
+        press([0.45, 0.0, 0.0], 0.004, 10.0),
+        Duration::from_millis(10),
+    )
+    .unwrap();
+    let mut p = hm_params(emu.addr());
+    p.io_timeout = Duration::from_millis(50);
+    let mut hm = HapticMaster::connect(p).unwrap();
+    hm.write_force([0.0, 0.0, 0.2]).unwrap();
+    emu.delay_next_reply(200);
+    assert!(
+        hm.read(0).is_err(),
+        "the reply came after the 50 ms timeout"
+    );
+    // The next commands reconnect (once the emulator, which serves one connection at a time,
+    // is done with the stalled one) and get their own replies: never "Effect's force set"
+    // read as a position.
+    let t = Instant::now();
+    let s = loop {
+        match hm.read(0) {
+            Ok(s) => break s,
+            Err(e) => {
+                assert!(!e.to_string().contains("expected [x,y,z]"), "{e}");
+                assert!(t.elapsed() < Duration::from_secs(5), "{e}");
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        }
+    };
+    assert!((s.position_m[0] - 0.45).abs() < 1e-6, "{s:?}");
+    hm.write_force([0.0, 0.0, 0.3]).unwrap();
+    assert_eq!(emu.log().rendered.last().unwrap().1, [0.0, 0.0, 0.3]);
+    assert!(emu.log().connections >= 2);
+}
+
+#[test]
 fn hapticmaster_command_rate_against_the_emulator() {
     let emu = hapticmaster::Emulator::spawn(
         press([0.45, 0.0, 0.0], 0.004, 10.0),
