@@ -544,7 +544,9 @@ impl ForceGuard {
                         device.position_m,
                         p.max_extrapolation_m,
                     );
-                    Some(vec3::scale(f, self.arm_gain))
+                    // A zero gain is a zero force: no passivity damping either (the watchdog
+                    // promises exactly zero from 60 ms on).
+                    (self.arm_gain > 0.0).then(|| vec3::scale(f, self.arm_gain))
                 }
                 _ => {
                     state = GuardState::NoCommand;
@@ -828,6 +830,23 @@ mod tests {
         assert!(max_step <= f[0] / 200.0 + 1e-12, "step {max_step}");
         assert!((last - f[0]).abs() < 1e-12);
         assert_eq!(g.stats().latches, 0);
+    }
+
+    #[test]
+    fn an_expired_command_renders_exactly_zero_even_while_the_hand_moves() {
+        let (mut g, spec) = unlimited();
+        let moving = DeviceState {
+            velocity_m_per_s: [0.1, 0.0, 0.0],
+            ..ORIGIN
+        };
+        // Pushing along the motion: the passivity controller is active while ramping ...
+        let c = cmd(1, [1.0, 0.0, 0.0], 0);
+        g.filter(0, true, Some(&c), &moving, &spec);
+        g.filter(30_000, true, Some(&c), &moving, &spec);
+        // ... but from 60 ms on the output is exactly zero.
+        for t in [60_000, 61_000, 80_000] {
+            assert_eq!(g.filter(t, true, Some(&c), &moving, &spec), [0.0; 3]);
+        }
     }
 
     #[test]
