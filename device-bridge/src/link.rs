@@ -1027,6 +1027,9 @@ async fn run_stream(
             "DeviceLink stream open (the server sent no scene limits: device limits only)"),
     }
     let end = loop {
+        // Deliver what is due first: a timer is only checked when the runtime turns, and a
+        // stream of samples every millisecond would keep a zero-length sleep from firing.
+        ctx.release_delayed();
         let release = ctx.next_release();
         tokio::select! {
             biased;

@@ -2,7 +2,8 @@
 //! (simulated probe, `--rearm auto`) presses the LV of a real `hapticd` and records every
 //! device tick; during the hold the test kills the daemon (`kill -9`, then restarts it with the
 //! same state dir and port), stops it (SIGSTOP for 50 ms, 500 ms, 5 s), stops the bridge for
-//! 200 ms, or makes the bridge drop 10 % of the messages or delay commands by 5-50 ms.
+//! 200 ms, or makes the bridge drop 10 % of the messages or delay commands by 5, 20, 50 ms or a
+//! random 5-50 ms.
 //!
 //! Every case checks, on the recording, the properties the guard promises whatever the timing
 //! on a loaded machine: the force never exceeds the limits, every tick whose command answers a
@@ -402,9 +403,22 @@ async fn drop_10_percent_of_the_messages() -> Result<()> {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn delay_commands_by_5_to_50_ms() -> Result<()> {
-    let (o, run) = injected("delay 5-50 ms", &["--fault-delay-ms", "5,50"]).await?;
-    ensure!(o.peak_n > 0.0, "{o:?}");
+async fn delay_commands_by_5_20_and_50_ms_and_by_a_random_5_to_50_ms() -> Result<()> {
+    // Fixed delays: the watchdog scales the force by its age (1, 0.8, 0.2).
+    for ms in ["5", "20", "50"] {
+        let (o, run) = injected(&format!("delay {ms} ms"), &["--fault-delay-ms", ms]).await?;
+        ensure!(
+            run.summary["forces_received"].as_u64() > Some(500),
+            "{}",
+            run.summary
+        );
+        if ms == "5" {
+            ensure!(o.peak_n > 0.0, "{o:?}");
+        }
+    }
+    // A random 5-50 ms per command, delivered in order (as TCP would): a late command holds
+    // back the ones behind it, so ages reach 100 ms and the guard may disable and re-arm.
+    let (_, run) = injected("delay 5-50 ms, in order", &["--fault-delay-ms", "5,50"]).await?;
     ensure!(
         run.summary["forces_received"].as_u64() > Some(500),
         "{}",
