@@ -84,7 +84,8 @@ impl PassivityController {
     pub fn apply(&mut self, force_n: [f64; 3], velocity_m_per_s: [f64; 3], dt_s: f64) -> [f64; 3] {
         if self.params.mode == PassivityMode::Off
             || !vec3::is_finite(velocity_m_per_s)
-            || !(dt_s > 0.0)
+            || !dt_s.is_finite()
+            || dt_s <= 0.0
         {
             return force_n;
         }

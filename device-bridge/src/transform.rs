@@ -110,7 +110,7 @@ impl DeviceTransform {
             for j in 0..3 {
                 let d = vec3::dot(r[i], r[j]);
                 let want = if i == j { 1.0 } else { 0.0 };
-                if !((d - want).abs() < 1e-6) {
+                if (d - want).abs() >= 1e-6 || !d.is_finite() {
                     return Err(DeviceError::InvalidSpec(format!(
                         "rotation is not orthonormal (rows {i}, {j}: {d})"
                     )));

@@ -351,10 +351,13 @@ fn serial_handshake_times_out_on_a_silent_port() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_bridge_drives_a_serial_arm_against_a_wall() {
-    let _pty = PTY
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner);
-    let (master, slave) = pty_pair();
+    // Only creating the pair needs the lock (and a std guard must not live across an await).
+    let (master, slave) = {
+        let _pty = PTY
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        pty_pair()
+    };
     let emu = SerialEmulator::spawn(
         master,
         press([0.014, 0.0, -0.005], 0.004, 0.2),

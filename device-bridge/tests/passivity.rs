@@ -43,7 +43,7 @@ fn generated_energy(delay_ms: u64, mode: PassivityMode) -> (f64, f64) {
     for tick in 0..3_600u64 {
         let now_us = tick * 1_000;
         let t = tick as f64 * dt;
-        let (x, v) = if t < 0.3 || t > 3.3 {
+        let (x, v) = if !(0.3..=3.3).contains(&t) {
             (START_M, 0.0)
         } else {
             probe(t - 0.3)

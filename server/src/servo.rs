@@ -622,71 +622,6 @@ impl ServoCore {
     }
 }
 
-#[cfg(test)]
-mod device_pacer_tests {
-    use super::*;
-
-    #[test]
-    fn a_sample_starts_a_tick_at_once_and_a_missing_one_falls_back() {
-        let mut p = DevicePacer::new(0, 1_000);
-        // No device: the plain 1 ms schedule.
-        assert_eq!(p.decide(0, false, false), Wake::Tick);
-        p.finish(400);
-        assert_eq!(p.decide(400, false, false), Wake::SleepUntil(1_000));
-        assert_eq!(p.decide(1_000, false, false), Wake::Tick);
-        p.finish(1_400);
-        // A device connects; its sample at 1 300 us (before the 2 000 us slot) ticks at once.
-        assert_eq!(p.decide(1_300, true, true), Wake::Tick);
-        p.finish(1_800);
-        // Connected, no sample yet: wait until half a period past the 3 000 us slot.
-        assert_eq!(p.decide(1_800, false, true), Wake::SleepUntil(3_500));
-        assert_eq!(p.decide(2_300, true, true), Wake::Tick);
-        p.finish(2_800);
-        // The next sample is lost: the body still ticks at 4 500 us.
-        assert_eq!(p.decide(4_499, false, true), Wake::SleepUntil(4_500));
-        assert_eq!(p.decide(4_500, false, true), Wake::Tick);
-        p.finish(5_000);
-        assert_eq!(p.overruns, 0);
-    }
-
-    #[test]
-    fn a_burst_of_samples_never_runs_the_model_faster_than_real_time() {
-        let mut p = DevicePacer::new(0, 1_000);
-        let mut ticks = 0;
-        let mut now = 0;
-        // Samples pending all the time for 100 ms, ticks taking 100 us each.
-        while now < 100_000 {
-            match p.decide(now, true, true) {
-                Wake::Tick => {
-                    ticks += 1;
-                    now += 100;
-                    p.finish(now);
-                }
-                Wake::SleepUntil(t) => now = t,
-            }
-        }
-        // At most one tick ahead of the 1 ms schedule.
-        assert!((100..=102).contains(&ticks), "{ticks}");
-    }
-
-    #[test]
-    fn a_stall_is_an_overrun_and_the_schedule_rebases_without_a_burst() {
-        let mut p = DevicePacer::new(0, 1_000);
-        assert_eq!(p.decide(0, true, true), Wake::Tick);
-        // The process was stopped for 500 ms during the tick.
-        p.finish(500_000);
-        assert_eq!(p.overruns, 1);
-        assert_eq!(p.due_us(), 500_000);
-        // One tick now (a sample is pending), then the rhythm: no back-to-back catch-up.
-        assert_eq!(p.decide(500_010, true, true), Wake::Tick);
-        p.finish(500_500);
-        assert_eq!(p.decide(500_510, false, true), Wake::SleepUntil(501_500));
-        assert_eq!(p.decide(500_510, true, true), Wake::Tick);
-        p.finish(500_600);
-        assert_eq!(p.decide(500_610, true, true), Wake::SleepUntil(501_000));
-    }
-}
-
 /// Real-time set-up outcome messages (logged by the caller, never from the tick).
 pub fn setup_realtime(cfg: &crate::config::ServoConfig) -> Vec<String> {
     let mut warnings = Vec::new();
@@ -777,5 +712,70 @@ pub fn run_loop(
         }
         pacer.finish(started, clock.now_us());
         core.overruns = pacer.overruns;
+    }
+}
+
+#[cfg(test)]
+mod device_pacer_tests {
+    use super::*;
+
+    #[test]
+    fn a_sample_starts_a_tick_at_once_and_a_missing_one_falls_back() {
+        let mut p = DevicePacer::new(0, 1_000);
+        // No device: the plain 1 ms schedule.
+        assert_eq!(p.decide(0, false, false), Wake::Tick);
+        p.finish(400);
+        assert_eq!(p.decide(400, false, false), Wake::SleepUntil(1_000));
+        assert_eq!(p.decide(1_000, false, false), Wake::Tick);
+        p.finish(1_400);
+        // A device connects; its sample at 1 300 us (before the 2 000 us slot) ticks at once.
+        assert_eq!(p.decide(1_300, true, true), Wake::Tick);
+        p.finish(1_800);
+        // Connected, no sample yet: wait until half a period past the 3 000 us slot.
+        assert_eq!(p.decide(1_800, false, true), Wake::SleepUntil(3_500));
+        assert_eq!(p.decide(2_300, true, true), Wake::Tick);
+        p.finish(2_800);
+        // The next sample is lost: the body still ticks at 4 500 us.
+        assert_eq!(p.decide(4_499, false, true), Wake::SleepUntil(4_500));
+        assert_eq!(p.decide(4_500, false, true), Wake::Tick);
+        p.finish(5_000);
+        assert_eq!(p.overruns, 0);
+    }
+
+    #[test]
+    fn a_burst_of_samples_never_runs_the_model_faster_than_real_time() {
+        let mut p = DevicePacer::new(0, 1_000);
+        let mut ticks = 0;
+        let mut now = 0;
+        // Samples pending all the time for 100 ms, ticks taking 100 us each.
+        while now < 100_000 {
+            match p.decide(now, true, true) {
+                Wake::Tick => {
+                    ticks += 1;
+                    now += 100;
+                    p.finish(now);
+                }
+                Wake::SleepUntil(t) => now = t,
+            }
+        }
+        // At most one tick ahead of the 1 ms schedule.
+        assert!((100..=102).contains(&ticks), "{ticks}");
+    }
+
+    #[test]
+    fn a_stall_is_an_overrun_and_the_schedule_rebases_without_a_burst() {
+        let mut p = DevicePacer::new(0, 1_000);
+        assert_eq!(p.decide(0, true, true), Wake::Tick);
+        // The process was stopped for 500 ms during the tick.
+        p.finish(500_000);
+        assert_eq!(p.overruns, 1);
+        assert_eq!(p.due_us(), 500_000);
+        // One tick now (a sample is pending), then the rhythm: no back-to-back catch-up.
+        assert_eq!(p.decide(500_010, true, true), Wake::Tick);
+        p.finish(500_500);
+        assert_eq!(p.decide(500_510, false, true), Wake::SleepUntil(501_500));
+        assert_eq!(p.decide(500_510, true, true), Wake::Tick);
+        p.finish(500_600);
+        assert_eq!(p.decide(500_610, true, true), Wake::SleepUntil(501_000));
     }
 }
