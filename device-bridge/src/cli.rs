@@ -1,7 +1,9 @@
 //! The `haptic-bridge` command line: raw [`Args`] (clap) validated into a [`Setup`] (a device
 //! and a checked [`BridgeConfig`]), so the binary stays glue.
 //!
-//! Neighbours: builds [`crate::sim::SimProbe`] or [`crate::replay::ReplayDevice`] and a
+//! Neighbours: builds a driver ([`crate::sim::SimProbe`], [`crate::replay::ReplayDevice`],
+//! [`crate::hapticmaster::HapticMaster`], [`crate::serial::SerialDevice`],
+//! [`crate::openhaptics::OpenHapticsDevice`]) seen through its [`crate::transform`], and a
 //! [`crate::link::BridgeConfig`]; `src/bin/haptic-bridge.rs` calls [`crate::link::run`].
 
 use std::path::PathBuf;
@@ -12,9 +14,13 @@ use haptics_proto::parse_vec3;
 use thiserror::Error;
 
 use crate::device::{DeviceError, DeviceSpec, HapticDevice};
-use crate::link::{BridgeConfig, BridgeError};
+use crate::hapticmaster::{ExitState, HapticMaster, HapticMasterParams};
+use crate::link::{BridgeConfig, BridgeError, FaultInjection, RearmButton, RearmMode};
+use crate::passivity::PassivityMode;
 use crate::replay::{ReplayDevice, Trajectory};
+use crate::serial::{SerialDevice, SerialParams};
 use crate::sim::{Script, SimProbe};
+use crate::transform::{DeviceTransform, Transformed};
 
 /// Which driver to run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -23,6 +29,41 @@ pub enum Driver {
     Sim,
     /// Recorded trajectory from `--replay FILE`.
     Replay,
+    /// Moog/FCS HapticMaster over its TCP text protocol (`--hm-addr`).
+    Hapticmaster,
+    /// An HBP/1 arm on a serial port (`--serial-port`; docs/serial-protocol.md).
+    Serial,
+    /// Phantom / Touch through OpenHaptics (build with `--features openhaptics`).
+    Openhaptics,
+}
+
+/// Who re-arms the forces after the guard disabled them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum RearmArg {
+    /// The operator presses Enter (after the link has been healthy for 0.5 s).
+    Key,
+    /// Automatically once the link has been healthy for 0.5 s (consent given up front).
+    Auto,
+}
+
+/// What the passivity layer does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum PassivityArg {
+    /// Nothing.
+    Off,
+    /// Track the energy and report it.
+    Observe,
+    /// Track and dissipate (default).
+    Control,
+}
+
+/// The HapticMaster's exit state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ExitStateArg {
+    /// `set state stop` (holds position; the lab code's sequence).
+    Stop,
+    /// `set state off`.
+    Off,
 }
 
 /// Which sim script to play.
@@ -89,12 +130,65 @@ pub struct Args {
     /// Write one CSV row per device tick to this file at the end.
     #[arg(long)]
     pub record: Option<PathBuf>,
-    /// Force clamp in N.
-    #[arg(long, default_value_t = 10.0)]
-    pub max_force_n: f64,
-    /// Device stiffness limit in N/m; the slew limit is this times 1 m/s.
+    /// Force clamp in N (sim and replay: the device's clamp, default 10; hardware drivers: a
+    /// lower cap on the limit the device reports).
+    #[arg(long)]
+    pub max_force_n: Option<f64>,
+    /// Device stiffness limit in N/m (sim and replay); the slew limit is this times 1 m/s.
     #[arg(long, default_value_t = 1000.0)]
     pub max_stiffness_n_per_m: f64,
+    /// HapticMaster address (--driver hapticmaster).
+    #[arg(long, default_value = "192.168.0.25:7654")]
+    pub hm_addr: std::net::SocketAddr,
+    /// HapticMaster state on exit.
+    #[arg(long, value_enum, default_value_t = ExitStateArg::Stop)]
+    pub hm_exit_state: ExitStateArg,
+    /// Serial port of an HBP/1 device (--driver serial), e.g. /dev/ttyACM0.
+    #[arg(long)]
+    pub serial_port: Option<String>,
+    /// Serial baud rate (0 for a pseudo-terminal; USB CDC-ACM ignores it).
+    #[arg(long, default_value_t = 2_000_000)]
+    pub baud: u32,
+    /// Device-side watchdog asked of an HBP/1 device, ms (2..=100).
+    #[arg(long, default_value_t = 20)]
+    pub device_watchdog_ms: u16,
+    /// The OpenHaptics HDAPI library to load (default: libHD.so on the library path).
+    #[arg(long)]
+    pub hd_library: Option<PathBuf>,
+    /// Device to scene axes: scene x,y,z as signed device axes (default: y,z,x for the
+    /// HapticMaster, as HAPI maps it; x,y,z otherwise).
+    #[arg(long)]
+    pub axes: Option<String>,
+    /// Device to scene rotation as 9 numbers, row-major (instead of --axes).
+    #[arg(long, allow_hyphen_values = true)]
+    pub rotation: Option<String>,
+    /// Motion scale, scene metres per device metre.
+    #[arg(long, default_value_t = 1.0)]
+    pub scale: f64,
+    /// Scene position of the device origin X,Y,Z in m.
+    #[arg(long, default_value = "0,0,0", value_parser = parse_vec3, allow_hyphen_values = true)]
+    pub offset_m: [f64; 3],
+    /// Scene force to device force factor (set it equal to --scale to conserve energy).
+    #[arg(long, default_value_t = 1.0)]
+    pub force_scale: f64,
+    /// Who re-arms the forces after a link loss disabled them.
+    #[arg(long, value_enum, default_value_t = RearmArg::Key)]
+    pub rearm: RearmArg,
+    /// Passivity observer/controller at the device port.
+    #[arg(long, value_enum, default_value_t = PassivityArg::Control)]
+    pub passivity: PassivityArg,
+    /// Perceptual deadband on the pose stream, as a fraction (e.g. 0.07); off by default.
+    #[arg(long)]
+    pub deadband: Option<f64>,
+    /// Fault injection (tests only): fraction of messages dropped each way.
+    #[arg(long, default_value_t = 0.0)]
+    pub fault_drop: f64,
+    /// Fault injection (tests only): force commands delayed by MIN,MAX ms (uniform, in order).
+    #[arg(long)]
+    pub fault_delay_ms: Option<String>,
+    /// Fault injection seed.
+    #[arg(long, default_value_t = 1)]
+    pub fault_seed: u64,
     /// Device loop rate in Hz.
     #[arg(long, default_value_t = 1000.0)]
     pub rate_hz: f64,
@@ -130,6 +224,8 @@ pub struct Setup {
     pub record_path: Option<PathBuf>,
     /// Print JSON instead of the table.
     pub json: bool,
+    /// The operator's re-arm button, when `--rearm key` (the binary presses it on Enter).
+    pub rearm_button: Option<RearmButton>,
 }
 
 impl Args {
@@ -137,7 +233,7 @@ impl Args {
     pub fn spec(&self) -> DeviceSpec {
         DeviceSpec {
             name: format!("{:?}", self.driver).to_lowercase(),
-            max_force_n: self.max_force_n,
+            max_force_n: self.max_force_n.unwrap_or(10.0),
             max_stiffness_n_per_m: self.max_stiffness_n_per_m,
             rate_hz: self.rate_hz,
             ..DeviceSpec::sim_default()
@@ -176,22 +272,176 @@ impl Args {
     ///
     /// # Errors
     /// [`CliError`] saying which flag is wrong.
-    pub fn setup(&self) -> Result<Setup, CliError> {
+    /// The device-to-scene transform these flags describe.
+    ///
+    /// # Errors
+    /// [`CliError::Device`] for bad axes, a bad rotation or non-positive scales.
+    pub fn transform(&self) -> Result<DeviceTransform, CliError> {
+        let rotation = match (&self.rotation, &self.axes) {
+            (Some(_), Some(_)) => {
+                return Err(CliError::Invalid(
+                    "give --axes or --rotation, not both".to_owned(),
+                ));
+            }
+            (Some(r), None) => {
+                let v: Vec<f64> = r
+                    .split(',')
+                    .map(|x| x.trim().parse::<f64>())
+                    .collect::<Result<_, _>>()
+                    .map_err(|e| CliError::Invalid(format!("--rotation {r:?}: {e}")))?;
+                if v.len() != 9 {
+                    return Err(CliError::Invalid(format!(
+                        "--rotation needs 9 numbers (row-major 3x3), got {}",
+                        v.len()
+                    )));
+                }
+                [[v[0], v[1], v[2]], [v[3], v[4], v[5]], [v[6], v[7], v[8]]]
+            }
+            (None, Some(a)) => DeviceTransform::parse_axes(a)?,
+            (None, None) if self.driver == Driver::Hapticmaster => {
+                DeviceTransform::parse_axes("y,z,x")?
+            }
+            (None, None) => DeviceTransform::IDENTITY.rotation,
+        };
+        let t = DeviceTransform {
+            rotation,
+            scale: self.scale,
+            offset_m: self.offset_m,
+            force_scale: self.force_scale,
+        };
+        t.validate()?;
+        Ok(t)
+    }
+
+    /// Builds the driver (connecting to hardware drivers), seen through the transform.
+    ///
+    /// # Errors
+    /// [`CliError`] when a flag is missing or the device cannot be reached.
+    pub fn device(&self) -> Result<Box<dyn HapticDevice>, CliError> {
         let spec = self.spec();
         spec.validate()?;
-        let device: Box<dyn HapticDevice> = match self.driver {
-            Driver::Sim => Box::new(SimProbe::new(self.sim_script(), spec.clone())?),
+        let t = self.transform()?;
+        let cap = |mut d: DeviceSpec| {
+            if let Some(m) = self.max_force_n {
+                d.max_force_n = d.max_force_n.min(m);
+            }
+            d
+        };
+        Ok(match self.driver {
+            Driver::Sim => Box::new(Transformed::new(
+                SimProbe::new(self.sim_script(), spec)?,
+                t,
+            )?),
             Driver::Replay => {
                 let path = self.replay.as_ref().ok_or_else(|| {
                     CliError::Invalid("--driver replay needs --replay FILE".to_owned())
                 })?;
-                Box::new(ReplayDevice::new(
-                    Trajectory::from_path(path)?,
-                    spec.clone(),
+                Box::new(Transformed::new(
+                    ReplayDevice::new(Trajectory::from_path(path)?, spec)?,
+                    t,
                 )?)
             }
-        };
+            Driver::Hapticmaster => {
+                let mut p = HapticMasterParams::new(self.hm_addr);
+                p.exit_state = match self.hm_exit_state {
+                    ExitStateArg::Stop => ExitState::Stop,
+                    ExitStateArg::Off => ExitState::Off,
+                };
+                p.max_force_n = cap(crate::hapticmaster::spec(p.max_force_n)).max_force_n;
+                Box::new(Transformed::new(HapticMaster::connect(p)?, t)?)
+            }
+            Driver::Serial => {
+                let path = self.serial_port.as_deref().ok_or_else(|| {
+                    CliError::Invalid("--driver serial needs --serial-port PATH".to_owned())
+                })?;
+                let params = SerialParams {
+                    watchdog_ms: self.device_watchdog_ms,
+                    rate_hz: self.rate_hz.round().clamp(1.0, 65_535.0) as u16,
+                    ..SerialParams::default()
+                };
+                Box::new(Transformed::new(
+                    Capped::new(SerialDevice::open_path(path, self.baud, params)?, cap),
+                    t,
+                )?)
+            }
+            Driver::Openhaptics => self.openhaptics(t, cap)?,
+        })
+    }
+
+    #[cfg(feature = "openhaptics")]
+    fn openhaptics(
+        &self,
+        t: DeviceTransform,
+        cap: impl Fn(DeviceSpec) -> DeviceSpec,
+    ) -> Result<Box<dyn HapticDevice>, CliError> {
+        use crate::openhaptics::{OpenHapticsDevice, load};
+        let (lib, api) = load(self.hd_library.as_deref())?;
+        let dev = OpenHapticsDevice::open(api, Some(Box::new(lib)))?;
+        Ok(Box::new(Transformed::new(Capped::new(dev, cap), t)?))
+    }
+
+    #[cfg(not(feature = "openhaptics"))]
+    fn openhaptics(
+        &self,
+        _t: DeviceTransform,
+        _cap: impl Fn(DeviceSpec) -> DeviceSpec,
+    ) -> Result<Box<dyn HapticDevice>, CliError> {
+        Err(CliError::Invalid(
+            "this haptic-bridge was built without OpenHaptics support: rebuild with \
+             `cargo build --release -p haptic-bridge --features openhaptics`"
+                .to_owned(),
+        ))
+    }
+
+    /// Validates the flags and builds the device and configuration.
+    ///
+    /// # Errors
+    /// [`CliError`] saying which flag is wrong.
+    pub fn setup(&self) -> Result<Setup, CliError> {
+        let device = self.device()?;
+        let spec = device.spec().clone();
         let mut config = BridgeConfig::new(&self.server, &self.session, &spec);
+        config.rate_hz = self.rate_hz;
+        config.guard.period_s = 1.0 / self.rate_hz;
+        config.guard.passivity.mode = match self.passivity {
+            PassivityArg::Off => PassivityMode::Off,
+            PassivityArg::Observe => PassivityMode::Observe,
+            PassivityArg::Control => PassivityMode::Control,
+        };
+        let rearm_button = (self.rearm == RearmArg::Key).then(RearmButton::new);
+        config.rearm = match &rearm_button {
+            Some(b) => RearmMode::Operator(b.clone()),
+            None => RearmMode::Auto,
+        };
+        config.deadband = self.deadband;
+        let delay = match &self.fault_delay_ms {
+            None => None,
+            Some(text) => {
+                let v: Vec<u64> = text
+                    .split(',')
+                    .map(|x| x.trim().parse::<u64>())
+                    .collect::<Result<_, _>>()
+                    .map_err(|e| CliError::Invalid(format!("--fault-delay-ms {text:?}: {e}")))?;
+                match v.as_slice() {
+                    [a, b] => Some((a * 1_000, b * 1_000)),
+                    [a] => Some((a * 1_000, a * 1_000)),
+                    _ => {
+                        return Err(CliError::Invalid(format!(
+                            "--fault-delay-ms takes MIN,MAX, got {text:?}"
+                        )));
+                    }
+                }
+            }
+        };
+        if self.fault_drop > 0.0 || delay.is_some() {
+            let (lo, hi) = delay.unwrap_or((0, 0));
+            config.fault = Some(FaultInjection {
+                drop_fraction: self.fault_drop,
+                delay_min_us: lo,
+                delay_max_us: hi,
+                seed: self.fault_seed,
+            });
+        }
         config.record = self.record.is_some();
         if let Some(d) = self.duration_s {
             if !(d.is_finite() && d > 0.0) {
@@ -207,7 +457,42 @@ impl Args {
             config,
             record_path: self.record.clone(),
             json: self.json,
+            rearm_button,
         })
+    }
+}
+
+/// A driver whose spec's force limit is lowered by the operator (`--max-force-n`).
+struct Capped<D> {
+    inner: D,
+    spec: DeviceSpec,
+}
+
+impl<D: HapticDevice> Capped<D> {
+    fn new(inner: D, cap: impl Fn(DeviceSpec) -> DeviceSpec) -> Self {
+        let spec = cap(inner.spec().clone());
+        Self { inner, spec }
+    }
+}
+
+impl<D: HapticDevice> HapticDevice for Capped<D> {
+    fn spec(&self) -> &DeviceSpec {
+        &self.spec
+    }
+    fn read(&mut self, now_us: u64) -> Result<crate::device::DeviceState, DeviceError> {
+        self.inner.read(now_us)
+    }
+    fn write_force(&mut self, force_n: [f64; 3]) -> Result<(), DeviceError> {
+        self.inner.write_force(force_n)
+    }
+    fn finished(&self, now_us: u64) -> bool {
+        self.inner.finished(now_us)
+    }
+    fn safe_stop(&mut self) {
+        self.inner.safe_stop();
+    }
+    fn set_output_enabled(&mut self, on: bool) -> Result<(), DeviceError> {
+        self.inner.set_output_enabled(on)
     }
 }
 
@@ -230,6 +515,8 @@ mod tests {
         assert_eq!((a.depth_m, a.speed_m_per_s, a.hold_s), (0.006, 0.01, 1.0));
         let s = a.setup().unwrap();
         assert_eq!(s.config.guard.max_force_n, 10.0);
+        assert!(matches!(s.config.rearm, RearmMode::Operator(_)) && s.rearm_button.is_some());
+        assert!(s.config.fault.is_none() && s.config.deadband.is_none());
         assert!(s.device.press_axis().is_some());
         assert!(s.config.max_duration.is_none() && !s.config.record && !s.json);
     }

@@ -27,11 +27,15 @@ pub struct DeviceSpec {
     pub workspace_max_m: [f64; 3],
     /// Nominal servo rate, in Hz (1000 for Phantoms).
     pub rate_hz: f64,
+    /// Largest damping the device renders stably, in N s/m (`HD_NOMINAL_MAX_DAMPING`); the cap
+    /// of the passivity controller's added damping.
+    pub max_damping_n_s_per_m: f64,
 }
 
 impl DeviceSpec {
     /// Spec of the simulated probe: 10 N, 1000 N/m (so a 1 N/ms slew limit), a +-0.2 m box,
-    /// 1 kHz. The numbers sit between a Phantom Desktop and a Premium 3.0 (devices.md table 1.2).
+    /// 1 kHz, 2 N s/m damping. The numbers sit between a Phantom Desktop and a Premium 3.0
+    /// (devices.md table 1.2).
     pub fn sim_default() -> Self {
         Self {
             name: "sim".to_owned(),
@@ -40,6 +44,7 @@ impl DeviceSpec {
             workspace_min_m: [-0.2; 3],
             workspace_max_m: [0.2; 3],
             rate_hz: 1000.0,
+            max_damping_n_s_per_m: 2.0,
         }
     }
 
@@ -59,6 +64,12 @@ impl DeviceSpec {
             return Err(DeviceError::InvalidSpec(format!(
                 "max_stiffness_n_per_m must be positive and finite, got {}",
                 self.max_stiffness_n_per_m
+            )));
+        }
+        if !(self.max_damping_n_s_per_m.is_finite() && self.max_damping_n_s_per_m >= 0.0) {
+            return Err(DeviceError::InvalidSpec(format!(
+                "max_damping_n_s_per_m must be finite and >= 0, got {}",
+                self.max_damping_n_s_per_m
             )));
         }
         if !positive(self.rate_hz) {
@@ -159,8 +170,20 @@ pub trait HapticDevice: Send {
     /// drivers return false.
     fn finished(&self, now_us: u64) -> bool;
 
-    /// Best-effort zero force and output disable; must not panic.
+    /// Best-effort zero force and output disable; must not panic. Called on every exit path
+    /// of the bridge (end of script, shutdown, device fault, link given up).
     fn safe_stop(&mut self);
+
+    /// Enables or disables the force output (HDAPI `hdEnable(HD_FORCE_OUTPUT)`, the HBP
+    /// `FORCE` enable flag, the HapticMaster bias force effect). The bridge disables it while
+    /// the guard is latched off (devices.md S5) and enables it again on re-arm. The default
+    /// does nothing (drivers without such a switch get zero force instead).
+    ///
+    /// # Errors
+    /// [`DeviceError::Comm`] when the device does not answer.
+    fn set_output_enabled(&mut self, _on: bool) -> Result<(), DeviceError> {
+        Ok(())
+    }
 
     /// The straight press axis of a scripted driver, if it has one.
     fn press_axis(&self) -> Option<PressAxis> {
@@ -183,6 +206,9 @@ impl<D: HapticDevice + ?Sized> HapticDevice for Box<D> {
     }
     fn safe_stop(&mut self) {
         (**self).safe_stop()
+    }
+    fn set_output_enabled(&mut self, on: bool) -> Result<(), DeviceError> {
+        (**self).set_output_enabled(on)
     }
     fn press_axis(&self) -> Option<PressAxis> {
         (**self).press_axis()

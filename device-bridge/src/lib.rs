@@ -11,11 +11,20 @@ pub mod cli;
 pub mod clock;
 pub mod device;
 pub mod guard;
+pub mod hapticmaster;
+pub mod hbp;
 pub mod link;
+pub mod openhaptics;
+pub mod passivity;
 pub mod record;
 pub mod replay;
+pub mod serial;
 pub mod sim;
+pub mod transform;
 
 pub use clock::{Clock, ManualClock, MonotonicClock};
 pub use device::{DeviceError, DeviceSpec, DeviceState, HapticDevice};
-pub use link::{BridgeConfig, BridgeError, BridgeReport, BridgeSummary, run};
+pub use link::{
+    BridgeConfig, BridgeError, BridgeReport, BridgeSummary, FaultInjection, RearmButton, RearmMode,
+    run,
+};

@@ -5,7 +5,8 @@
 //! [device thread, std::thread, absolute deadlines, no catch-up]      [tokio network task]
 //!   read pose ----- try_send (bounded mpsc, never blocks) ----------> DeviceSample stream
 //!   latest ForceCommand <-- force slot (std Mutex, held for a copy) <-- ForceCommand stream
-//!   guard (watchdog, clamp, slew, NaN) -> write_force                   seq -> RTT histogram
+//!   guard: age by seq, watchdog, latch/re-arm, local contact model,     seq -> pose time, x0;
+//!     passivity, clamp, slew -> write_force                             drop unknown/old seq
 //!   (optional) append TickRecord to a pre-reserved Vec                  reconnect + backoff
 //! ```
 //!
@@ -20,15 +21,29 @@
 //! - **The round trip** is measured pose-to-force: from the device read (`device_time_us`) to
 //!   the arrival of the `ForceCommand` echoing that `seq`, on the same injected clock, recorded
 //!   in an hdrhistogram by the network task (microseconds).
-//! - **Link loss** (no server, stream error, server closed the stream) clears the force slot and
-//!   marks the link down, so the guard commands zero at once; the task reconnects with
-//!   exponential backoff (default 50 ms doubling to 1 s) until the script finishes or shutdown.
+//! - **Every command is aged from the pose it answers.** The network task keeps `seq -> (read
+//!   time, position)` of the samples it sent; a command whose `seq` is unknown (not sent, or
+//!   too old for the ring) or not newer than the last accepted one is dropped and counted, the
+//!   others reach the guard with the read time and position of their pose.
+//! - **Limits at connect time.** The server's response headers carry the scene's force and
+//!   force-rate limits (`haptics-max-force-n`, `haptics-max-force-rate-n-per-s`, see the proto)
+//!   and its instance id (`haptics-server-instance`); the guard applies the lower of the
+//!   scene's and the device's limits.
+//! - **Link loss** (no server, stream error, server closed the stream) marks the link down; the
+//!   held command keeps ageing, so the force ramps to zero by 60 ms and is disabled at 100 ms
+//!   (re-armed as the guard says). The task reconnects with exponential backoff (default 50 ms
+//!   doubling to 1 s) until the script finishes or shutdown. A server that answers NOT_FOUND
+//!   for the session (it restarted without restoring it) ends the run with a clear message; a
+//!   new server instance that restored the session is reported and re-attached to.
+//! - **Fault injection** ([`FaultInjection`], for tests and demos only): drops a fraction of the
+//!   messages both ways and delays force commands by a random 5-50 ms (in order, as TCP would).
 //!
 //! Neighbours: [`crate::device`] (the device), [`crate::guard`] (per-tick safety),
 //! [`crate::record`] (per-tick rows), `haptics_proto::v1` (the wire contract).
 
+use std::collections::VecDeque;
 use std::fmt;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU8, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
@@ -40,11 +55,11 @@ use thiserror::Error;
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::Endpoint;
-use tracing::{info, warn};
+use tracing::{debug, info, warn};
 
 use crate::clock::Clock;
 use crate::device::{DeviceError, DeviceSpec, DeviceState, HapticDevice, vec3};
-use crate::guard::{ForceGuard, GuardCommand, GuardParams, GuardState, GuardStats};
+use crate::guard::{ForceGuard, GuardCommand, GuardParams, GuardState, GuardStats, Limits};
 use crate::record::TickRecord;
 
 /// Number of sent `seq -> send time` entries kept for round-trip matching (4 s at 1 kHz).
@@ -56,6 +71,66 @@ const RECORD_RESERVE_S: f64 = 120.0;
 const DEVICE_FAULT_US: u64 = 20_000;
 /// How long to wait for the server to close its side after we close ours.
 const CLOSE_GRACE: Duration = Duration::from_millis(200);
+
+/// Response header with the scene's force limit, N (decimal text).
+pub const HEADER_MAX_FORCE: &str = "haptics-max-force-n";
+/// Response header with the scene's force-rate limit, N/s (decimal text).
+pub const HEADER_MAX_FORCE_RATE: &str = "haptics-max-force-rate-n-per-s";
+/// Request header asking the server for a force-stream deadband (fraction, decimal text).
+pub const HEADER_FORCE_DEADBAND: &str = "haptics-force-deadband";
+/// Response header with the server's instance id (changes when the daemon restarts).
+pub const HEADER_SERVER_INSTANCE: &str = "haptics-server-instance";
+
+/// The operator's re-arm button: a counter of presses shared with the device thread (the
+/// binary presses it for every line read on standard input).
+#[derive(Debug, Clone, Default)]
+pub struct RearmButton(Arc<AtomicU64>);
+
+impl RearmButton {
+    /// A button never pressed.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Presses the button once.
+    pub fn press(&self) {
+        self.0.fetch_add(1, Ordering::AcqRel);
+    }
+
+    /// Presses so far.
+    pub fn presses(&self) -> u64 {
+        self.0.load(Ordering::Acquire)
+    }
+}
+
+impl PartialEq for RearmButton {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
+}
+
+/// Who re-arms the forces after the guard disabled them (devices.md S9).
+#[derive(Debug, Clone, PartialEq)]
+pub enum RearmMode {
+    /// Re-arm as soon as the link has been healthy for 500 ms (the operator consented up front
+    /// with `--rearm auto`).
+    Auto,
+    /// Re-arm when the operator presses the button after the link has been healthy for 500 ms.
+    Operator(RearmButton),
+}
+
+/// Injected network faults (tests and demos only; never in a lab session).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FaultInjection {
+    /// Fraction of messages dropped, each way (0..=1).
+    pub drop_fraction: f64,
+    /// Smallest added delay of a force command, us.
+    pub delay_min_us: u64,
+    /// Largest added delay of a force command, us (uniformly drawn; commands stay in order).
+    pub delay_max_us: u64,
+    /// Seed of the generator (the same seed drops the same messages).
+    pub seed: u64,
+}
 
 /// Checked run-time configuration of the bridge.
 #[derive(Debug, Clone, PartialEq)]
@@ -80,11 +155,18 @@ pub struct BridgeConfig {
     pub record: bool,
     /// Capacity of the device -> network sample queue (and of the outbound stream queue).
     pub sample_queue: usize,
+    /// Who re-arms after the guard disabled the forces.
+    pub rearm: RearmMode,
+    /// Injected network faults (`None` in normal use).
+    pub fault: Option<FaultInjection>,
+    /// Pose deadband (fraction of the predicted force, e.g. 0.07; `None`: every sample is sent).
+    pub deadband: Option<f64>,
 }
 
 impl BridgeConfig {
     /// Defaults for `spec`: its rate and guard limits, 50 ms -> 1 s backoff, 500 ms connect
-    /// timeout, no hard stop, no recording, 256-sample queues.
+    /// timeout, no hard stop, no recording, 256-sample queues, automatic re-arm, no fault
+    /// injection, no deadband.
     pub fn new(
         server_url: impl Into<String>,
         session_id: impl Into<String>,
@@ -101,6 +183,9 @@ impl BridgeConfig {
             max_duration: None,
             record: false,
             sample_queue: 256,
+            rearm: RearmMode::Auto,
+            fault: None,
+            deadband: None,
         }
     }
 
@@ -150,6 +235,24 @@ impl BridgeConfig {
         if self.sample_queue == 0 {
             return bad("sample_queue must be >= 1".to_owned());
         }
+        if !(g.fresh_us < g.zero_us && g.zero_us < g.latch_us) {
+            return bad(format!(
+                "watchdog: need fresh_us < zero_us < latch_us, got {} / {} / {}",
+                g.fresh_us, g.zero_us, g.latch_us
+            ));
+        }
+        if let Some(f) = &self.fault
+            && !((0.0..=1.0).contains(&f.drop_fraction) && f.delay_min_us <= f.delay_max_us)
+        {
+            return bad(format!(
+                "fault injection: need 0 <= drop <= 1 and min <= max delay, got {f:?}"
+            ));
+        }
+        if let Some(k) = self.deadband
+            && !(k.is_finite() && k > 0.0 && k < 1.0)
+        {
+            return bad(format!("deadband must be in (0, 1), got {k}"));
+        }
         Ok(())
     }
 }
@@ -186,8 +289,14 @@ pub struct BridgeSummary {
     pub samples_dropped: u64,
     /// `ForceCommand`s received.
     pub forces_received: u64,
-    /// Forces whose `seq` matched no recently sent sample.
+    /// Forces whose `seq` matched no recently sent sample (dropped).
     pub unmatched_forces: u64,
+    /// Forces whose `seq` was not newer than the last accepted one (dropped).
+    pub stale_forces: u64,
+    /// Samples the pose deadband kept back.
+    pub samples_suppressed: u64,
+    /// Messages dropped by fault injection (both ways).
+    pub injected_drops: u64,
     /// Median pose-to-force round trip, in us (`None` without matched forces).
     pub rtt_p50_us: Option<u64>,
     /// 99th percentile round trip, in us.
@@ -213,6 +322,26 @@ pub struct BridgeSummary {
     pub watchdog_expired: u64,
     /// Ticks zeroed because the position was outside the workspace (S11).
     pub workspace_violations: u64,
+    /// Times the output was disabled after 100 ms without a fresh command (S5).
+    pub latches: u64,
+    /// Re-arms (S9).
+    pub rearms: u64,
+    /// Re-arm requests refused because the link was not healthy for long enough yet.
+    pub rearm_refused: u64,
+    /// Energy the passivity observer saw absorbed by the environment at the end, J.
+    pub passivity_energy_j: f64,
+    /// Energy the passivity controller dissipated, J.
+    pub passivity_dissipated_j: f64,
+    /// Ticks on which the passivity controller acted.
+    pub passivity_active_ticks: u64,
+    /// Force limit in force at the end (the lower of the device's and the scene's), N.
+    pub max_force_n: f64,
+    /// Force-rate limit in force at the end, N/s.
+    pub max_force_rate_n_per_s: f64,
+    /// Daemon restarts seen (a new server instance on reconnect).
+    pub server_restarts: u64,
+    /// Why the session cannot be reached any more (the daemon answered NOT_FOUND), if so.
+    pub session_lost: Option<String>,
     /// Streams that reached the server (response headers received).
     pub streams_opened: u64,
     /// Streams opened after an earlier attempt failed or a stream was lost.
@@ -255,8 +384,8 @@ impl fmt::Display for BridgeSummary {
         )?;
         writeln!(
             f,
-            "forces received: {} (unmatched {})",
-            self.forces_received, self.unmatched_forces
+            "forces received: {} (dropped: unknown seq {}, old seq {})",
+            self.forces_received, self.unmatched_forces, self.stale_forces
         )?;
         writeln!(
             f,
@@ -280,10 +409,22 @@ impl fmt::Display for BridgeSummary {
         )?;
         writeln!(
             f,
-            "link: streams opened {}, reconnects {}, failures {}{}",
+            "safety: limits {:.3} N, {:.1} N/s; disabled {}, re-armed {} (refused {}); passivity dissipated {:.3e} J in {} ticks",
+            self.max_force_n,
+            self.max_force_rate_n_per_s,
+            self.latches,
+            self.rearms,
+            self.rearm_refused,
+            self.passivity_dissipated_j,
+            self.passivity_active_ticks
+        )?;
+        writeln!(
+            f,
+            "link: streams opened {}, reconnects {}, failures {}, daemon restarts {}{}",
             self.streams_opened,
             self.reconnects,
             self.link_failures,
+            self.server_restarts,
             self.last_link_error
                 .as_ref()
                 .map_or_else(String::new, |e| format!(" (last: {e})"))
@@ -317,18 +458,24 @@ pub struct BridgeReport {
 #[derive(Debug, Clone, Copy)]
 struct ReceivedForce {
     generation: u64,
+    seq: u64,
     force_n: [f64; 3],
+    stiffness_n_per_m: [f64; 9],
     in_contact: bool,
-    received_us: u64,
+    /// Read time and position of the pose this answers (from the sent ring).
+    sample_time_us: u64,
+    sample_position_m: [f64; 3],
     rtt_us: Option<u64>,
 }
 
 /// The latest-value slot between the network task (writer) and the device thread (reader).
 #[derive(Debug, Default)]
 struct ForceSlot {
-    /// A stream is open; false makes the guard output zero.
+    /// A stream is open (health needs it; the guard ages the held command either way).
     link_up: bool,
     latest: Option<ReceivedForce>,
+    /// The scene's limits sent by the server at connect time.
+    limits: Option<Limits>,
 }
 
 #[derive(Debug, Default)]
@@ -336,6 +483,8 @@ struct Shared {
     slot: Mutex<ForceSlot>,
     /// Set by the network side to stop the device thread (shutdown).
     stop: AtomicBool,
+    /// The guard's state code ([`GuardState::code`]), for the log monitor.
+    guard_state: AtomicU8,
 }
 
 impl Shared {
@@ -344,10 +493,12 @@ impl Shared {
         self.slot.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
-    fn set_link(&self, up: bool) {
+    fn set_link(&self, up: bool, limits: Option<Limits>) {
         let mut s = self.slot();
         s.link_up = up;
-        s.latest = None;
+        if up {
+            s.limits = limits;
+        }
     }
 }
 
@@ -363,14 +514,49 @@ struct DeviceLoopStats {
     ticks: u64,
     overruns: u64,
     samples_dropped: u64,
+    samples_suppressed: u64,
     peak_force_n: f64,
     max_depth_m: f64,
     final_force_n: [f64; 3],
     guard: GuardStats,
+    limits: Option<Limits>,
     device_errors: u64,
     device_fault: Option<String>,
     duration_s: f64,
     records: Vec<TickRecord>,
+}
+
+/// The pose deadband (Hinterseer and Steinbach's perceptual deadband, devices.md [S38], applied
+/// to the force the local contact model predicts): a sample goes out when the predicted force
+/// changed by more than `k` times its value at the last sent sample (and by more than
+/// [`DEADBAND_FLOOR_N`]), when the probe moved more than [`DEADBAND_MOVE_M`] (so contact onset
+/// is seen), or at the latest [`DEADBAND_HEARTBEAT_US`] after the last one (so the command ages
+/// stay below the 10 ms watchdog and silence still means a fault).
+#[derive(Debug, Clone, Copy)]
+struct Deadband {
+    k: f64,
+    last_sent_us: Option<u64>,
+    sent_position_m: [f64; 3],
+    sent_force_n: [f64; 3],
+}
+
+/// Smallest force change that triggers a sample under the deadband, N.
+pub const DEADBAND_FLOOR_N: f64 = 1e-3;
+/// Movement that triggers a sample under the deadband, m.
+pub const DEADBAND_MOVE_M: f64 = 2e-4;
+/// Longest gap between two samples under the deadband, us.
+pub const DEADBAND_HEARTBEAT_US: u64 = 5_000;
+
+impl Deadband {
+    fn should_send(&self, now_us: u64, position_m: [f64; 3], predicted_n: [f64; 3]) -> bool {
+        let Some(last) = self.last_sent_us else {
+            return true;
+        };
+        let df = vec3::norm(vec3::sub(predicted_n, self.sent_force_n));
+        now_us.saturating_sub(last) >= DEADBAND_HEARTBEAT_US
+            || vec3::norm(vec3::sub(position_m, self.sent_position_m)) > DEADBAND_MOVE_M
+            || (df > self.k * vec3::norm(self.sent_force_n) && df > DEADBAND_FLOOR_N)
+    }
 }
 
 /// The device thread: one tick per period at absolute deadlines until the device finishes, the
@@ -399,6 +585,17 @@ fn device_loop(
     let mut deadline_us = start_us;
     let mut seq = 0_u64;
     let mut failing_since_us: Option<u64> = None;
+    let mut presses_seen = match &config.rearm {
+        RearmMode::Operator(b) => b.presses(),
+        RearmMode::Auto => 0,
+    };
+    let mut output_disabled = false;
+    let mut deadband = config.deadband.map(|k| Deadband {
+        k,
+        last_sent_us: None,
+        sent_position_m: [0.0; 3],
+        sent_force_n: [0.0; 3],
+    });
     loop {
         let now = clock.now_us();
         if shared.stop.load(Ordering::Acquire)
@@ -411,22 +608,72 @@ fn device_loop(
         match device.read(now) {
             Ok(state) => {
                 failing_since_us = None;
-                seq += 1;
-                if let Err(mpsc::error::TrySendError::Full(_)) =
-                    samples.try_send(OutSample { seq, state })
-                {
-                    st.samples_dropped += 1;
-                }
-                let (link_up, latest) = {
+                let (link_up, latest, limits) = {
                     let s = shared.slot();
-                    (s.link_up, s.latest)
+                    (s.link_up, s.latest, s.limits)
                 };
+                let predicted = latest.map_or([0.0; 3], |r| {
+                    crate::guard::extrapolate(
+                        r.force_n,
+                        &r.stiffness_n_per_m,
+                        r.sample_position_m,
+                        state.position_m,
+                        config.guard.max_extrapolation_m,
+                    )
+                });
+                let send = deadband
+                    .as_ref()
+                    .is_none_or(|d| d.should_send(now, state.position_m, predicted));
+                if send {
+                    seq += 1;
+                    if let Some(d) = deadband.as_mut() {
+                        d.last_sent_us = Some(now);
+                        d.sent_position_m = state.position_m;
+                        d.sent_force_n = predicted;
+                    }
+                    if let Err(mpsc::error::TrySendError::Full(_)) =
+                        samples.try_send(OutSample { seq, state })
+                    {
+                        st.samples_dropped += 1;
+                    }
+                } else {
+                    st.samples_suppressed += 1;
+                }
+                guard.set_app_limits(limits);
+                match &config.rearm {
+                    RearmMode::Auto => {
+                        if guard.state() == GuardState::ReadyToRearm {
+                            guard.request_rearm();
+                        }
+                    }
+                    RearmMode::Operator(b) => {
+                        let p = b.presses();
+                        if p != presses_seen {
+                            presses_seen = p;
+                            guard.request_rearm();
+                        }
+                    }
+                }
                 let cmd = latest.map(|r| GuardCommand {
                     generation: r.generation,
+                    seq: r.seq,
                     force_n: r.force_n,
-                    received_us: r.received_us,
+                    stiffness_n_per_m: r.stiffness_n_per_m,
+                    position_m: r.sample_position_m,
+                    sample_time_us: r.sample_time_us,
                 });
-                let f = guard.filter(now, link_up, cmd.as_ref(), state.position_m, &spec);
+                let f = guard.filter(now, link_up, cmd.as_ref(), &state, &spec);
+                let disabled = guard.state().is_disabled();
+                if disabled != output_disabled {
+                    // devices.md S5: disabled in hardware too, while latched.
+                    output_disabled = disabled;
+                    if device.set_output_enabled(!disabled).is_err() {
+                        st.device_errors += 1;
+                    }
+                }
+                shared
+                    .guard_state
+                    .store(guard.state().code(), Ordering::Release);
                 if device.write_force(f).is_err() {
                     st.device_errors += 1;
                 }
@@ -437,7 +684,10 @@ fn device_loop(
                     st.max_depth_m = st.max_depth_m.max(d);
                 }
                 if config.record {
-                    let in_use = matches!(guard.state(), GuardState::Fresh | GuardState::Ramp);
+                    let in_use = matches!(
+                        guard.state(),
+                        GuardState::Fresh | GuardState::Rising | GuardState::Ramp
+                    );
                     let used = latest.filter(|_| in_use);
                     st.records.push(TickRecord {
                         t_s: now.saturating_sub(start_us) as f64 * 1e-6,
@@ -445,6 +695,8 @@ fn device_loop(
                         force_n: f,
                         in_contact: used.is_some_and(|r| r.in_contact),
                         rtt_us: used.and_then(|r| r.rtt_us),
+                        age_us: guard.held_age_us(),
+                        state: guard.state().name(),
                     });
                 }
             }
@@ -476,28 +728,55 @@ fn device_loop(
     device.safe_stop();
     st.final_force_n = [0.0; 3];
     st.guard = guard.stats();
+    st.limits = Some(guard.limits());
     st.duration_s = clock.now_us().saturating_sub(start_us) as f64 * 1e-6;
     st
+}
+
+/// A small xorshift generator for fault injection (deterministic per seed, no dependency).
+#[derive(Debug, Clone, Copy)]
+struct XorShift(u64);
+
+impl XorShift {
+    fn next_f64(&mut self) -> f64 {
+        let mut x = self.0;
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        self.0 = x;
+        (x >> 11) as f64 / (1u64 << 53) as f64
+    }
 }
 
 /// Network-side state and counters.
 struct NetCtx {
     clock: Arc<dyn Clock>,
     shared: Arc<Shared>,
-    /// `seq -> device_time_us` of recently sent samples, indexed by `seq % RTT_RING`.
-    sent: Vec<(u64, u64)>,
+    /// `seq -> (read time us, position m)` of recently sent samples, indexed by
+    /// `seq % RTT_RING`.
+    sent: Vec<(u64, u64, [f64; 3])>,
     rtt_us: Histogram<u64>,
     generation: u64,
+    last_accepted_seq: Option<u64>,
     samples_sent: u64,
     samples_dropped: u64,
     forces_received: u64,
     unmatched_forces: u64,
+    stale_forces: u64,
     contact_samples: u64,
     streams_opened: u64,
     reconnects: u64,
     link_failures: u64,
     attempts: u64,
     last_link_error: Option<String>,
+    server_instance: Option<String>,
+    server_restarts: u64,
+    session_lost: Option<String>,
+    fault: Option<FaultInjection>,
+    rng: XorShift,
+    injected_drops: u64,
+    /// Force commands held back by injected delay: (release time us, command).
+    delayed: VecDeque<(u64, ForceCommand)>,
 }
 
 fn to_proto(s: &OutSample) -> DeviceSample {
@@ -511,41 +790,95 @@ fn to_proto(s: &OutSample) -> DeviceSample {
 }
 
 impl NetCtx {
+    fn injected_drop(&mut self) -> bool {
+        let Some(f) = self.fault else { return false };
+        let drop = f.drop_fraction > 0.0 && self.rng.next_f64() < f.drop_fraction;
+        self.injected_drops += u64::from(drop);
+        drop
+    }
+
     fn forward(&mut self, out: &mpsc::Sender<DeviceSample>, msg: DeviceSample) {
-        self.sent[(msg.seq % RTT_RING as u64) as usize] = (msg.seq, msg.device_time_us);
+        let p = msg.position_m.as_ref().map_or([0.0; 3], |v| v.to_array());
+        self.sent[(msg.seq % RTT_RING as u64) as usize] = (msg.seq, msg.device_time_us, p);
+        if self.injected_drop() {
+            return;
+        }
         match out.try_send(msg) {
             Ok(()) => self.samples_sent += 1,
             Err(_) => self.samples_dropped += 1,
         }
     }
 
+    /// A command from the stream: through fault injection, then [`NetCtx::on_force`].
+    fn receive(&mut self, cmd: ForceCommand) {
+        if self.injected_drop() {
+            return;
+        }
+        match self.fault {
+            Some(f) if f.delay_max_us > 0 => {
+                let span = (f.delay_max_us - f.delay_min_us) as f64;
+                let delay = f.delay_min_us + (self.rng.next_f64() * span) as u64;
+                let now = self.clock.now_us();
+                let after_previous = self.delayed.back().map_or(0, |(t, _)| *t);
+                self.delayed
+                    .push_back(((now + delay).max(after_previous), cmd));
+            }
+            _ => self.on_force(&cmd),
+        }
+    }
+
+    /// Delivers the delayed commands that are due.
+    fn release_delayed(&mut self) {
+        let now = self.clock.now_us();
+        while self.delayed.front().is_some_and(|(t, _)| *t <= now) {
+            if let Some((_, cmd)) = self.delayed.pop_front() {
+                self.on_force(&cmd);
+            }
+        }
+    }
+
+    fn next_release(&self) -> Option<Duration> {
+        let (t, _) = self.delayed.front()?;
+        Some(Duration::from_micros(t.saturating_sub(self.clock.now_us())))
+    }
+
     fn on_force(&mut self, cmd: &ForceCommand) {
         let now = self.clock.now_us();
         self.forces_received += 1;
-        let (seq, sent_us) = self.sent[(cmd.seq % RTT_RING as u64) as usize];
-        let rtt_us = if seq == cmd.seq {
-            let rtt = now.saturating_sub(sent_us);
-            self.rtt_us.saturating_record(rtt.max(1));
-            Some(rtt)
-        } else {
+        let (seq, sample_time_us, sample_position_m) =
+            self.sent[(cmd.seq % RTT_RING as u64) as usize];
+        if seq != cmd.seq {
             self.unmatched_forces += 1;
-            None
-        };
+            return;
+        }
+        if self.last_accepted_seq.is_some_and(|s| cmd.seq <= s) {
+            self.stale_forces += 1;
+            return;
+        }
+        self.last_accepted_seq = Some(cmd.seq);
+        let rtt = now.saturating_sub(sample_time_us);
+        self.rtt_us.saturating_record(rtt.max(1));
         self.contact_samples += u64::from(cmd.in_contact);
         self.generation += 1;
-        // proto3: an absent vector is the zero vector. Non-finite values pass on to the guard,
-        // which rejects and counts them.
+        // proto3: an absent vector is the zero vector; a stiffness that is not 3x3 is unknown
+        // (no extrapolation). Non-finite values pass on to the guard, which rejects and counts
+        // them.
         let force_n = cmd.force_n.as_ref().map_or([0.0; 3], |v| v.to_array());
-        let mut s = self.shared.slot();
-        if s.link_up {
-            s.latest = Some(ReceivedForce {
-                generation: self.generation,
-                force_n,
-                in_contact: cmd.in_contact,
-                received_us: now,
-                rtt_us,
-            });
+        let mut stiffness_n_per_m = [0.0; 9];
+        if cmd.stiffness_n_per_m.len() == 9 {
+            stiffness_n_per_m.copy_from_slice(&cmd.stiffness_n_per_m);
         }
+        let mut s = self.shared.slot();
+        s.latest = Some(ReceivedForce {
+            generation: self.generation,
+            seq: cmd.seq,
+            force_n,
+            stiffness_n_per_m,
+            in_contact: cmd.in_contact,
+            sample_time_us,
+            sample_position_m,
+            rtt_us: Some(rtt),
+        });
     }
 }
 
@@ -557,6 +890,8 @@ enum StreamEnd {
     Shutdown,
     /// Connecting or streaming failed; retry.
     Failed(String),
+    /// The server does not know the session (NOT_FOUND): retrying cannot help.
+    SessionGone(String),
 }
 
 /// `error: cause: cause ...`, since tonic's transport errors hide the useful part in sources.
@@ -583,6 +918,24 @@ async fn wait_shutdown(shutdown: &mut watch::Receiver<bool>) {
     }
 }
 
+/// Sleeps for `d`, or forever when `None`.
+async fn sleep_or_pending(d: Option<Duration>) {
+    match d {
+        Some(d) => tokio::time::sleep(d).await,
+        None => std::future::pending::<()>().await,
+    }
+}
+
+/// The scene's limits from the response headers (`None` when absent or malformed).
+fn header_limits(md: &tonic::metadata::MetadataMap) -> Option<Limits> {
+    let num = |k: &str| -> Option<f64> { md.get(k)?.to_str().ok()?.trim().parse().ok() };
+    let l = Limits {
+        max_force_n: num(HEADER_MAX_FORCE)?,
+        max_rate_n_per_s: num(HEADER_MAX_FORCE_RATE)?,
+    };
+    l.is_valid().then_some(l)
+}
+
 async fn run_stream(
     endpoint: &Endpoint,
     config: &BridgeConfig,
@@ -606,17 +959,30 @@ async fn run_stream(
     let (out_tx, out_rx) = mpsc::channel::<DeviceSample>(config.sample_queue);
     let mut first_msg = to_proto(&first);
     first_msg.session_id.clone_from(&config.session_id);
+    // The first sample carries the session id: never drop it by injection.
+    let fault = ctx.fault.take();
     ctx.forward(&out_tx, first_msg);
-    let call = client.connect(ReceiverStream::new(out_rx));
+    ctx.fault = fault;
+    let mut request = tonic::Request::new(ReceiverStream::new(out_rx));
+    if let Some(k) = config.deadband
+        && let Ok(v) = k.to_string().parse()
+    {
+        // The same deadband on the force stream, applied by the server.
+        request.metadata_mut().insert(HEADER_FORCE_DEADBAND, v);
+    }
+    let call = client.connect(request);
     tokio::pin!(call);
     // Keep feeding samples while waiting for response headers: a server may wait for the first
     // message (it carries the session id) before answering.
-    let mut inbound = loop {
+    let response = loop {
         tokio::select! {
             biased;
             _ = wait_shutdown(shutdown) => return StreamEnd::Shutdown,
             r = &mut call => match r {
-                Ok(resp) => break resp.into_inner(),
+                Ok(resp) => break resp,
+                Err(status) if status.code() == tonic::Code::NotFound => {
+                    return StreamEnd::SessionGone(status.message().to_owned());
+                }
                 Err(status) => return StreamEnd::Failed(format!("Connect rejected: {status}")),
             },
             s = samples.recv() => match s {
@@ -625,18 +991,52 @@ async fn run_stream(
             },
         }
     };
+    let limits = header_limits(response.metadata());
+    let instance = response
+        .metadata()
+        .get(HEADER_SERVER_INSTANCE)
+        .and_then(|v| v.to_str().ok())
+        .map(str::to_owned);
+    let mut inbound = response.into_inner();
     ctx.streams_opened += 1;
     if ctx.attempts > 1 {
         ctx.reconnects += 1;
     }
-    ctx.shared.set_link(true);
-    info!(url = %config.server_url, session = %config.session_id, "DeviceLink stream open");
+    if let (Some(old), Some(new)) = (&ctx.server_instance, &instance)
+        && old != new
+    {
+        ctx.server_restarts += 1;
+        warn!(
+            session = %config.session_id,
+            "hapticd restarted (instance {old} -> {new}) and restored session {}: re-attached; \
+             forces stay off until the link is healthy and they are re-armed",
+            config.session_id
+        );
+    }
+    if instance.is_some() {
+        ctx.server_instance = instance;
+    }
+    ctx.shared.set_link(true, limits);
+    match limits {
+        Some(l) => info!(
+            url = %config.server_url, session = %config.session_id,
+            scene_max_force_n = l.max_force_n, scene_max_rate_n_per_s = l.max_rate_n_per_s,
+            "DeviceLink stream open"
+        ),
+        None => info!(url = %config.server_url, session = %config.session_id,
+            "DeviceLink stream open (the server sent no scene limits: device limits only)"),
+    }
     let end = loop {
+        // Deliver what is due first: a timer is only checked when the runtime turns, and a
+        // stream of samples every millisecond would keep a zero-length sleep from firing.
+        ctx.release_delayed();
+        let release = ctx.next_release();
         tokio::select! {
             biased;
             _ = wait_shutdown(shutdown) => break StreamEnd::Shutdown,
+            _ = sleep_or_pending(release) => ctx.release_delayed(),
             m = inbound.message() => match m {
-                Ok(Some(cmd)) => ctx.on_force(&cmd),
+                Ok(Some(cmd)) => ctx.receive(cmd),
                 Ok(None) => break StreamEnd::Failed("server closed the stream".to_owned()),
                 Err(status) => break StreamEnd::Failed(format!("stream error: {status}")),
             },
@@ -646,7 +1046,8 @@ async fn run_stream(
             },
         }
     };
-    ctx.shared.set_link(false);
+    ctx.shared.set_link(false, None);
+    ctx.delayed.clear();
     if matches!(end, StreamEnd::Finished | StreamEnd::Shutdown) {
         // Close our half and collect the answers still in flight, briefly.
         drop(out_tx);
@@ -658,6 +1059,37 @@ async fn run_stream(
         .await;
     }
     end
+}
+
+/// Logs the guard's transitions (the device thread cannot: it must not allocate or block).
+async fn monitor(shared: Arc<Shared>, rearm: RearmMode) {
+    let mut last = GuardState::NoCommand;
+    let mut tick = tokio::time::interval(Duration::from_millis(10));
+    while !shared.stop.load(Ordering::Acquire) {
+        tick.tick().await;
+        let now = GuardState::from_code(shared.guard_state.load(Ordering::Acquire));
+        if now == last {
+            continue;
+        }
+        match now {
+            GuardState::Disabled if !last.is_disabled() => warn!(
+                "forces DISABLED: no fresh force command for 100 ms; they stay off until the \
+                 link has been healthy for 0.5 s and they are re-armed"
+            ),
+            GuardState::ReadyToRearm => match rearm {
+                RearmMode::Operator(_) => warn!(
+                    "link healthy for 0.5 s: press Enter to re-arm the forces (they ramp up over 0.2 s)"
+                ),
+                RearmMode::Auto => info!("link healthy for 0.5 s: re-arming (--rearm auto)"),
+            },
+            GuardState::Rising if last.is_disabled() => {
+                info!("forces re-armed: ramping up over 0.2 s")
+            }
+            GuardState::Ramp => debug!("force commands older than 10 ms: ramping down"),
+            _ => {}
+        }
+        last = now;
+    }
 }
 
 async fn network_loop(
@@ -681,6 +1113,23 @@ async fn network_loop(
         let opened_before = ctx.streams_opened;
         match run_stream(&endpoint, config, first, &mut samples, &mut shutdown, ctx).await {
             StreamEnd::Finished | StreamEnd::Shutdown => return,
+            StreamEnd::SessionGone(msg) => {
+                let why = if ctx.streams_opened > 0 {
+                    format!(
+                        "hapticd at {} no longer has session {} ({msg}): it restarted without \
+                         restoring it (run hapticd with --state-dir to restore sessions); giving up",
+                        config.server_url, config.session_id
+                    )
+                } else {
+                    format!(
+                        "hapticd at {} has no session {} ({msg}): check --session",
+                        config.server_url, config.session_id
+                    )
+                };
+                warn!("{why}");
+                ctx.session_lost = Some(why);
+                return;
+            }
             StreamEnd::Failed(msg) => {
                 ctx.link_failures += 1;
                 if ctx.streams_opened > opened_before {
@@ -742,10 +1191,11 @@ pub async fn run(
             .spawn(move || device_loop(device, clock, shared, sample_tx, &config))
             .map_err(|e| BridgeError::Thread(format!("cannot start: {e}")))?
     };
+    let monitor_task = tokio::spawn(monitor(shared.clone(), config.rearm.clone()));
     let mut ctx = NetCtx {
         clock,
         shared: shared.clone(),
-        sent: vec![(u64::MAX, 0); RTT_RING],
+        sent: vec![(u64::MAX, 0, [0.0; 3]); RTT_RING],
         rtt_us: Histogram::new_with_bounds(1, 60_000_000, 3)
             .map_err(|e| BridgeError::Config(format!("histogram: {e}")))?,
         generation: 0,
@@ -759,10 +1209,20 @@ pub async fn run(
         link_failures: 0,
         attempts: 0,
         last_link_error: None,
+        last_accepted_seq: None,
+        stale_forces: 0,
+        server_instance: None,
+        server_restarts: 0,
+        session_lost: None,
+        fault: config.fault,
+        rng: XorShift(config.fault.map_or(1, |f| f.seed.max(1))),
+        injected_drops: 0,
+        delayed: VecDeque::new(),
     };
     network_loop(endpoint, &config, sample_rx, shutdown, &mut ctx).await;
     shared.stop.store(true, Ordering::Release);
-    shared.set_link(false);
+    shared.set_link(false, None);
+    let _ = monitor_task.await;
     let dev = tokio::task::spawn_blocking(move || handle.join())
         .await
         .map_err(|e| BridgeError::Thread(e.to_string()))?
@@ -774,6 +1234,9 @@ pub async fn run(
         samples_dropped: ctx.samples_dropped + dev.samples_dropped,
         forces_received: ctx.forces_received,
         unmatched_forces: ctx.unmatched_forces,
+        stale_forces: ctx.stale_forces + dev.guard.stale_dropped,
+        samples_suppressed: dev.samples_suppressed,
+        injected_drops: ctx.injected_drops,
         rtt_p50_us: rtt(0.5),
         rtt_p99_us: rtt(0.99),
         rtt_max_us: (!h.is_empty()).then(|| h.max()),
@@ -786,6 +1249,20 @@ pub async fn run(
         watchdog_ramps: dev.guard.watchdog_ramps,
         watchdog_expired: dev.guard.watchdog_expired,
         workspace_violations: dev.guard.workspace_violations,
+        latches: dev.guard.latches,
+        rearms: dev.guard.rearms,
+        rearm_refused: dev.guard.rearm_refused,
+        passivity_energy_j: dev.guard.passivity.energy_j,
+        passivity_dissipated_j: dev.guard.passivity.dissipated_j,
+        passivity_active_ticks: dev.guard.passivity.active_ticks,
+        max_force_n: dev
+            .limits
+            .map_or(config.guard.max_force_n, |l| l.max_force_n),
+        max_force_rate_n_per_s: dev
+            .limits
+            .map_or(config.guard.max_rate_n_per_s, |l| l.max_rate_n_per_s),
+        server_restarts: ctx.server_restarts,
+        session_lost: ctx.session_lost.clone(),
         streams_opened: ctx.streams_opened,
         reconnects: ctx.reconnects,
         link_failures: ctx.link_failures,

@@ -24,12 +24,17 @@ pub struct TickRecord {
     pub in_contact: bool,
     /// Pose-to-force round trip of the command in use, in us (`None` when none).
     pub rtt_us: Option<u64>,
+    /// Age of the held command (now minus the read time of the pose it answers), in us
+    /// (`None` when no command is held).
+    pub age_us: Option<u64>,
+    /// The guard's state this tick ([`crate::guard::GuardState`] as a short name).
+    pub state: &'static str,
 }
 
 /// CSV header written by [`write_csv`].
-pub const CSV_HEADER: &str = "t_s,x_m,y_m,z_m,fx_n,fy_n,fz_n,in_contact,rtt_us";
+pub const CSV_HEADER: &str = "t_s,x_m,y_m,z_m,fx_n,fy_n,fz_n,in_contact,rtt_us,age_us,state";
 
-/// Writes `rows` as CSV with [`CSV_HEADER`]; `rtt_us` is empty when absent.
+/// Writes `rows` as CSV with [`CSV_HEADER`]; `rtt_us` and `age_us` are empty when absent.
 ///
 /// # Errors
 /// Any I/O error of the writer.
@@ -43,10 +48,13 @@ pub fn write_csv<W: Write>(mut out: W, rows: &[TickRecord]) -> std::io::Result<(
             "{:.6},{x:.9},{y:.9},{z:.9},{fx:.6},{fy:.6},{fz:.6},{}",
             r.t_s, r.in_contact
         )?;
-        match r.rtt_us {
-            Some(v) => writeln!(out, ",{v}")?,
-            None => writeln!(out, ",")?,
+        for v in [r.rtt_us, r.age_us] {
+            match v {
+                Some(v) => write!(out, ",{v}")?,
+                None => write!(out, ",")?,
+            }
         }
+        writeln!(out, ",{}", r.state)?;
     }
     out.flush()
 }
@@ -66,7 +74,7 @@ mod tests {
     use crate::replay::Trajectory;
 
     #[test]
-    fn rows_have_nine_columns_and_empty_rtt_when_absent() {
+    fn rows_have_eleven_columns_and_empty_rtt_when_absent() {
         let rows = [
             TickRecord {
                 t_s: 0.0,
@@ -78,6 +86,8 @@ mod tests {
                 force_n: [1.5, 0.0, 0.0],
                 in_contact: true,
                 rtt_us: Some(87),
+                age_us: Some(120),
+                state: "fresh",
             },
         ];
         let mut buf = Vec::new();
@@ -85,9 +95,9 @@ mod tests {
         let text = String::from_utf8(buf).unwrap();
         let lines: Vec<_> = text.lines().collect();
         assert_eq!(lines[0], CSV_HEADER);
-        assert!(lines[1].ends_with(",false,"), "{}", lines[1]);
-        assert!(lines[2].ends_with(",true,87"), "{}", lines[2]);
-        assert!(lines.iter().all(|l| l.split(',').count() == 9));
+        assert!(lines[1].ends_with(",false,,,"), "{}", lines[1]);
+        assert!(lines[2].ends_with(",true,87,120,fresh"), "{}", lines[2]);
+        assert!(lines.iter().all(|l| l.split(',').count() == 11));
     }
 
     #[test]

@@ -30,6 +30,8 @@ struct Wall {
     wall_x_m: f64,
     /// Close the first stream after this many samples (link-loss test).
     close_first_after: Option<usize>,
+    /// After each answer, also send one for an unknown seq and one repeating an old seq.
+    junk: bool,
     seen: Arc<Mutex<Seen>>,
 }
 
@@ -39,6 +41,7 @@ impl Wall {
             k_n_per_m,
             wall_x_m,
             close_first_after: None,
+            junk: false,
             seen: Arc::default(),
         }
     }
@@ -61,6 +64,7 @@ impl DeviceLink for Wall {
             s.streams.len() - 1
         };
         let limit = self.close_first_after.filter(|_| stream_index == 0);
+        let junk = self.junk;
         tokio::spawn(async move {
             let mut n = 0;
             while let Ok(Some(sample)) = inbound.message().await {
@@ -81,8 +85,23 @@ impl DeviceLink for Wall {
                     in_contact: pen > 0.0,
                     ..Default::default()
                 };
-                if tx.send(Ok(cmd)).await.is_err() {
+                let seq = cmd.seq;
+                if tx.send(Ok(cmd.clone())).await.is_err() {
                     return;
+                }
+                if junk {
+                    let unknown = ForceCommand {
+                        seq: seq + 1_000_000,
+                        force_n: Some(Vec3::new(5.0, 0.0, 0.0)),
+                        ..Default::default()
+                    };
+                    let old = ForceCommand {
+                        force_n: Some(Vec3::new(5.0, 0.0, 0.0)),
+                        ..cmd
+                    };
+                    if tx.send(Ok(unknown)).await.is_err() || tx.send(Ok(old)).await.is_err() {
+                        return;
+                    }
                 }
             }
         });
@@ -314,5 +333,22 @@ async fn the_shutdown_signal_stops_a_long_script_with_zero_force() {
         "shutdown must end a 30 s hold"
     );
     assert!(report.summary.forces_received > 0 && report.summary.peak_force_n > 0.0);
+    assert_stopped_at_zero(&report, &monitor);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn commands_for_unknown_or_old_seq_are_dropped_and_counted() {
+    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    let mut wall = Wall::new(500.0, 0.012);
+    wall.junk = true;
+    let _server = serve(listener, wall);
+    let (_tx, rx) = watch::channel(false);
+    let (report, monitor) = run_probe(url, press(0.004, 0.2), spec(10.0), |_| {}, rx).await;
+    let s = &report.summary;
+    assert!(s.unmatched_forces > 100 && s.stale_forces > 100, "{s}");
+    // The junk asked for 5 N; only the wall's 1 N ever reached the device.
+    assert!(s.peak_force_n <= 1.0 + 1e-9 && s.peak_force_n > 0.9, "{s}");
+    assert!(monitor.peak_force_n() <= 1.0 + 1e-9);
     assert_stopped_at_zero(&report, &monitor);
 }

@@ -8,6 +8,19 @@ use serde::Deserialize;
 
 use crate::error::ServerError;
 
+/// When the servo ticks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Pacing {
+    /// One tick as soon as a device sample arrives, on a 1 ms schedule of slots that keeps
+    /// simulated time on wall-clock time; 1 ms ticks without a device
+    /// ([`crate::servo::DevicePacer`]).
+    #[default]
+    Device,
+    /// Fixed 1 ms absolute deadlines ([`crate::servo::Pacer`]); a sample waits for the next tick.
+    Clock,
+}
+
 /// Servo-thread settings.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -24,6 +37,8 @@ pub struct ServoConfig {
     pub snapshot_every_ticks: u32,
     /// Publish statistics for `GetStats` every this many ticks.
     pub stats_every_ticks: u32,
+    /// `"device"` (tick on each device sample; default) or `"clock"` (fixed 1 ms deadlines).
+    pub pacing: Pacing,
 }
 
 impl Default for ServoConfig {
@@ -35,6 +50,7 @@ impl Default for ServoConfig {
             cpu: None,
             snapshot_every_ticks: 16,
             stats_every_ticks: 100,
+            pacing: Pacing::Device,
         }
     }
 }
@@ -53,6 +69,9 @@ pub struct ConfigFile {
     pub log_format: Option<String>,
     /// Servo settings.
     pub servo: ServoConfig,
+    /// Directory where sessions are recorded (scene and id) so that a restarted daemon
+    /// restores them; unset: sessions die with the process.
+    pub state_dir: Option<PathBuf>,
 }
 
 /// Log output format.
@@ -77,6 +96,8 @@ pub struct ServerConfig {
     pub log_format: LogFormat,
     /// Servo settings.
     pub servo: ServoConfig,
+    /// Session records for restoring sessions after a restart (`None`: not recorded).
+    pub state_dir: Option<PathBuf>,
 }
 
 impl Default for ServerConfig {
@@ -87,6 +108,7 @@ impl Default for ServerConfig {
             scene_dir: PathBuf::from("."),
             log_format: LogFormat::Text,
             servo: ServoConfig::default(),
+            state_dir: None,
         }
     }
 }
@@ -155,6 +177,7 @@ impl ConfigFile {
             ));
         }
         c.servo = self.servo;
+        c.state_dir = self.state_dir;
         Ok(c)
     }
 }

@@ -36,6 +36,10 @@ pub async fn run(
     shutdown: impl Future<Output = ()> + Send,
 ) -> anyhow::Result<()> {
     let manager = Arc::new(session::SessionManager::new(config));
+    // Sessions recorded by an earlier process come back (same ids) before anyone can connect.
+    for line in manager.restore() {
+        tracing::info!("{line}");
+    }
     let services = service::Services::new(manager.clone());
     let (health, health_service) = tonic_health::server::health_reporter();
     health

@@ -113,7 +113,13 @@ impl SessionControl for Services {
         let session = tokio::task::spawn_blocking(move || {
             let _guard = handle.enter();
             let scene = manager.load_scene(&r.scene, &r.scene_toml)?;
-            manager.start(&scene)
+            let session = manager.start(&scene)?;
+            // Recorded for a restart (with a state dir); a failure to record is logged, the
+            // session runs anyway.
+            if let Err(e) = manager.record(&session.id, &r.scene, &r.scene_toml) {
+                tracing::warn!(session = %session.id, "{e}");
+            }
+            Ok::<_, ServerError>(session)
         })
         .await
         .map_err(|e| Status::internal(e.to_string()))??;
@@ -216,6 +222,35 @@ impl SessionControl for Services {
     }
 }
 
+/// Response header of `DeviceLink.Connect`: the scene's force limit, N.
+pub const HEADER_MAX_FORCE: &str = "haptics-max-force-n";
+/// Response header: the scene's force-rate limit, N/s.
+pub const HEADER_MAX_FORCE_RATE: &str = "haptics-max-force-rate-n-per-s";
+/// Request header of `DeviceLink.Connect`: the perceptual deadband on the force stream, a
+/// fraction (e.g. `0.07`); absent or 0: every force command is sent.
+pub const HEADER_FORCE_DEADBAND: &str = "haptics-force-deadband";
+/// Response header: this daemon process's instance id.
+pub const HEADER_SERVER_INSTANCE: &str = "haptics-server-instance";
+
+/// Writes the connect-time headers of a device stream: the session's limits (when it has a
+/// scene) and the daemon instance.
+fn link_headers(
+    md: &mut tonic::metadata::MetadataMap,
+    limits: Option<crate::session::LinkLimits>,
+    instance: &str,
+) {
+    let mut put = |k: &'static str, v: String| {
+        if let Ok(v) = v.parse() {
+            md.insert(k, v);
+        }
+    };
+    if let Some(l) = limits {
+        put(HEADER_MAX_FORCE, l.max_force_n.to_string());
+        put(HEADER_MAX_FORCE_RATE, l.max_force_rate_n_per_s.to_string());
+    }
+    put(HEADER_SERVER_INSTANCE, instance.to_owned());
+}
+
 type ForceStream = Pin<Box<dyn Stream<Item = Result<ForceCommand, Status>> + Send>>;
 type FrameStream = Pin<Box<dyn Stream<Item = Result<SurfaceFrame, Status>> + Send>>;
 
@@ -227,6 +262,12 @@ impl DeviceLink for Services {
         &self,
         req: Request<Streaming<DeviceSample>>,
     ) -> Result<Response<Self::ConnectStream>, Status> {
+        let deadband = req
+            .metadata()
+            .get(HEADER_FORCE_DEADBAND)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.trim().parse::<f64>().ok())
+            .unwrap_or(0.0);
         let mut inbound = req.into_inner();
         let first = inbound.message().await?.ok_or_else(|| {
             Status::invalid_argument("the device stream ended before its first sample")
@@ -239,6 +280,8 @@ impl DeviceLink for Services {
         let session = self.manager.get(&first.session_id)?;
         let (tx, rx) = mpsc::channel(256);
         let mut pose_in = session.attach_device(tx)?;
+        let (limits, instance) = (session.limits, self.manager.instance().to_owned());
+        session.set_force_deadband(deadband);
         tracing::info!(session = %session.id, "device connected");
         tokio::spawn(async move {
             let mut next = Some(first);
@@ -258,13 +301,17 @@ impl DeviceLink for Services {
                     continue;
                 }
                 match validate_sample(&sample) {
-                    Ok((p, v)) => pose_in.write(Pose {
-                        seq: sample.seq,
-                        position_m: p,
-                        velocity_m_per_s: v,
-                        received_us: session.now_us(),
-                        connected: true,
-                    }),
+                    Ok((p, v)) => {
+                        pose_in.write(Pose {
+                            seq: sample.seq,
+                            position_m: p,
+                            velocity_m_per_s: v,
+                            received_us: session.now_us(),
+                            connected: true,
+                        });
+                        // Device pacing: the servo ticks for this sample now.
+                        session.wake_servo();
+                    }
                     Err(_) => {
                         session
                             .shared
@@ -283,9 +330,9 @@ impl DeviceLink for Services {
             tracing::info!(session = %session.id, "device disconnected");
             session.detach_device(pose_in);
         });
-        Ok(Response::new(
-            Box::pin(ReceiverStream::new(rx)) as ForceStream
-        ))
+        let mut response = Response::new(Box::pin(ReceiverStream::new(rx)) as ForceStream);
+        link_headers(response.metadata_mut(), limits, &instance);
+        Ok(response)
     }
 }
 

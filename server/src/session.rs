@@ -25,6 +25,92 @@ use crate::servo::{
 /// Largest scene text accepted, bytes.
 pub const MAX_SCENE_TOML_BYTES: usize = 1 << 20;
 
+/// Hand speed the scene's force-rate limit assumes, m/s (devices.md S7: a wall hit at 1 m/s).
+pub const REFERENCE_SPEED_M_PER_S: f64 = 1.0;
+
+/// Application-level limits of a session, sent to the device bridge at connect time (response
+/// headers of `DeviceLink.Connect`); the bridge applies the lower of these and its device's.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LinkLimits {
+    /// The scene's `probe.max_force_n`, N.
+    pub max_force_n: f64,
+    /// A force-rate limit on the scale of the scene's forces, N/s: the coupling stiffness
+    /// times [`REFERENCE_SPEED_M_PER_S`] (300 N/s for the LV scenes, so a 5 N fault needs
+    /// 17 ms to reach the hand instead of 5 ms at a device's 1 N/ms).
+    pub max_force_rate_n_per_s: f64,
+}
+
+impl LinkLimits {
+    /// The limits of `scene`.
+    pub fn of_scene(scene: &Scene) -> Self {
+        Self {
+            max_force_n: scene.probe.max_force_n,
+            max_force_rate_n_per_s: scene.probe.coupling_stiffness_n_per_m
+                * REFERENCE_SPEED_M_PER_S,
+        }
+    }
+}
+
+/// Longest gap between two force commands under the force deadband, µs (keeps the bridge's
+/// command ages well under its 10 ms watchdog threshold).
+pub const DEADBAND_HEARTBEAT_US: u64 = 5_000;
+/// Smallest force change the deadband passes, N.
+pub const DEADBAND_FLOOR_N: f64 = 1e-3;
+
+/// The perceptual deadband on the force stream (Hinterseer and Steinbach, devices.md [S38]): a
+/// force command is sent when the force changed by more than `k` times the last sent one (and
+/// by more than [`DEADBAND_FLOOR_N`]), when the contact flag or the contact stiffness changed
+/// by more than `k`, or [`DEADBAND_HEARTBEAT_US`] after the last one sent. `k <= 0` sends all.
+pub fn force_deadband_passes(
+    k: f64,
+    last: Option<&ForceOut>,
+    since_last_us: u64,
+    f: &ForceOut,
+) -> bool {
+    let Some(l) = last else { return true };
+    if k <= 0.0 || since_last_us >= DEADBAND_HEARTBEAT_US || l.in_contact != f.in_contact {
+        return true;
+    }
+    let d = (f.force_n - l.force_n).length();
+    if d > k * l.force_n.length() && d > DEADBAND_FLOOR_N {
+        return true;
+    }
+    let norm = |m: &[f64; 9]| m.iter().map(|v| v * v).sum::<f64>().sqrt();
+    let dk: f64 = f
+        .stiffness_n_per_m
+        .iter()
+        .zip(&l.stiffness_n_per_m)
+        .map(|(a, b)| (a - b) * (a - b))
+        .sum::<f64>()
+        .sqrt();
+    dk > k * norm(&l.stiffness_n_per_m)
+}
+
+/// The force deadband of the attached device stream and what it held back.
+#[derive(Debug, Default)]
+pub struct DeadbandShared {
+    /// Deadband fraction as `f64` bits (0: off), set when a device attaches.
+    pub fraction_bits: std::sync::atomic::AtomicU64,
+    /// Force commands held back so far.
+    pub suppressed: std::sync::atomic::AtomicU64,
+    /// Force commands sent so far.
+    pub sent: std::sync::atomic::AtomicU64,
+}
+
+/// Where a session's scene came from, as recorded for a restart (`StartSession`'s fields).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SessionRecord {
+    /// Session id.
+    pub id: String,
+    /// Built-in scene name (empty when `scene_toml` is given).
+    #[serde(default)]
+    pub scene: String,
+    /// Scene file text (empty for a built-in scene).
+    #[serde(default)]
+    pub scene_toml: String,
+}
+
 /// The surface connectivity of a session at one topology version (shared by every frame until
 /// the version changes; a viewer gets a keyframe with it then).
 #[derive(Debug, Clone, PartialEq)]
@@ -83,6 +169,12 @@ pub struct Session {
     pub shared: Arc<SessionShared>,
     /// Session clock zero.
     pub epoch: Instant,
+    /// The scene's limits for the device bridge (`None` for a body started without a scene).
+    pub limits: Option<LinkLimits>,
+    /// The servo thread, unparked when a device sample arrives (device pacing).
+    servo_thread: std::thread::Thread,
+    /// The force-stream deadband and its counters.
+    pub deadband: Arc<DeadbandShared>,
     commands: Mutex<rtrb::Producer<Command>>,
     pose_input: Mutex<Option<triple_buffer::Input<Pose>>>,
     link: Arc<Mutex<Option<ForceSender>>>,
@@ -119,6 +211,19 @@ impl Session {
             Ok(mut o) => *o.read(),
             Err(_) => StatsSnapshot::default(),
         }
+    }
+
+    /// Sets the force deadband of the attached stream (fraction, 0 = off; from the bridge's
+    /// `haptics-force-deadband` request header).
+    pub fn set_force_deadband(&self, k: f64) {
+        let k = if k.is_finite() && (0.0..1.0).contains(&k) {
+            k
+        } else {
+            0.0
+        };
+        self.deadband
+            .fraction_bits
+            .store(k.to_bits(), Ordering::Relaxed);
     }
 
     /// Attaches a device stream: returns the pose input to publish into.
@@ -186,6 +291,11 @@ impl Session {
         }
     }
 
+    /// Wakes the servo thread (a device sample was published). Wait-free for the caller.
+    pub fn wake_servo(&self) {
+        self.servo_thread.unpark();
+    }
+
     /// Milliseconds-resolution session clock now, µs.
     pub fn now_us(&self) -> u64 {
         self.epoch.elapsed().as_micros() as u64
@@ -205,6 +315,8 @@ impl Drop for WatcherGuard {
 pub struct SessionManager {
     config: ServerConfig,
     sessions: Mutex<HashMap<String, Arc<Session>>>,
+    /// Random id of this daemon process, sent to device bridges so they notice a restart.
+    instance: String,
 }
 
 impl SessionManager {
@@ -213,7 +325,90 @@ impl SessionManager {
         Self {
             config,
             sessions: Mutex::new(HashMap::new()),
+            instance: uuid::Uuid::new_v4().simple().to_string()[..12].to_string(),
         }
+    }
+
+    /// This daemon process's instance id (new at every start).
+    pub fn instance(&self) -> &str {
+        &self.instance
+    }
+
+    /// Records how session `id` was started (`StartSession`'s `scene` / `scene_toml`) in the
+    /// state directory, so that a restarted daemon restores it. Nothing without a state dir.
+    ///
+    /// # Errors
+    /// [`ServerError::Internal`] when the record cannot be written.
+    pub fn record(&self, id: &str, scene: &str, scene_toml: &str) -> Result<(), ServerError> {
+        let Some(dir) = &self.config.state_dir else {
+            return Ok(());
+        };
+        let rec = SessionRecord {
+            id: id.to_owned(),
+            scene: scene.to_owned(),
+            scene_toml: scene_toml.to_owned(),
+        };
+        let text = toml::to_string(&rec)
+            .map_err(|e| ServerError::Internal(format!("session record: {e}")))?;
+        std::fs::create_dir_all(dir)
+            .and_then(|()| std::fs::write(dir.join(format!("{id}.toml")), text))
+            .map_err(|e| {
+                ServerError::Internal(format!(
+                    "writing the session record in {}: {e}",
+                    dir.display()
+                ))
+            })
+    }
+
+    /// Restores the sessions recorded in the state directory (same ids, scenes rebuilt from
+    /// rest: the simulation state itself is not kept). Returns one line per record (restored or
+    /// why not); a record that cannot be restored is removed. Must be called inside a tokio
+    /// runtime (blocking: each scene is built).
+    pub fn restore(&self) -> Vec<String> {
+        let Some(dir) = self.config.state_dir.clone() else {
+            return Vec::new();
+        };
+        let Ok(entries) = std::fs::read_dir(&dir) else {
+            return Vec::new();
+        };
+        let mut paths: Vec<_> = entries
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|x| x == "toml"))
+            .collect();
+        paths.sort();
+        let mut out = Vec::new();
+        for path in paths {
+            let outcome = std::fs::read_to_string(&path)
+                .map_err(|e| e.to_string())
+                .and_then(|t| toml::from_str::<SessionRecord>(&t).map_err(|e| e.to_string()))
+                .and_then(|rec| {
+                    let scene = self
+                        .load_scene(&rec.scene, &rec.scene_toml)
+                        .map_err(|e| e.to_string())?;
+                    self.check_capacity().map_err(|e| e.to_string())?;
+                    let body = haptic_model::build_body(&scene).map_err(|e| e.to_string())?;
+                    self.start_body_as(&rec.id, body, Some(LinkLimits::of_scene(&scene)))
+                        .map_err(|e| e.to_string())?;
+                    Ok(rec)
+                });
+            match outcome {
+                Ok(rec) => out.push(format!("restored session {} (scene {:?})", rec.id, {
+                    if rec.scene.is_empty() {
+                        "from text"
+                    } else {
+                        rec.scene.as_str()
+                    }
+                })),
+                Err(e) => {
+                    let _ = std::fs::remove_file(&path);
+                    out.push(format!(
+                        "could not restore {}: {e}; record removed",
+                        path.display()
+                    ));
+                }
+            }
+        }
+        out
     }
 
     /// The daemon configuration.
@@ -277,7 +472,12 @@ impl SessionManager {
     /// simulation cannot be built (e.g. an unstable explicit configuration).
     pub fn start(&self, scene: &Scene) -> Result<Arc<Session>, ServerError> {
         self.check_capacity()?;
-        self.start_body(haptic_model::build_body(scene)?)
+        let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
+        self.start_body_as(
+            &id,
+            haptic_model::build_body(scene)?,
+            Some(LinkLimits::of_scene(scene)),
+        )
     }
 
     /// Refuses a new session at the session limit.
@@ -301,10 +501,31 @@ impl SessionManager {
         &self,
         body: Box<dyn haptic_model::body::SoftBody>,
     ) -> Result<Arc<Session>, ServerError> {
+        let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
+        self.start_body_as(&id, body, None)
+    }
+
+    /// [`SessionManager::start_body`] with a given session id (a restored session keeps its
+    /// id) and the limits sent to device bridges.
+    ///
+    /// # Errors
+    /// As [`SessionManager::start_body`]; [`ServerError::FailedPrecondition`] when the id is in
+    /// use.
+    pub fn start_body_as(
+        &self,
+        id: &str,
+        body: Box<dyn haptic_model::body::SoftBody>,
+        limits: Option<LinkLimits>,
+    ) -> Result<Arc<Session>, ServerError> {
         self.check_capacity()?;
+        if self.get(id).is_ok() {
+            return Err(ServerError::FailedPrecondition(format!(
+                "session {id} exists already"
+            )));
+        }
+        let id = id.to_owned();
         let info = body.info();
         let size = body.stats();
-        let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
         let shared = Arc::new(SessionShared::default());
         let (ends, handles) = servo::channels(body.as_ref());
         let servo::ServoHandles {
@@ -318,18 +539,35 @@ impl SessionManager {
         let epoch = Instant::now();
         let link: Arc<Mutex<Option<ForceSender>>> = Arc::new(Mutex::new(None));
 
-        // Forwarder: force ring -> the attached DeviceLink stream.
+        // Forwarder: force ring -> the attached DeviceLink stream (through the deadband).
         let fwd_shared = shared.clone();
         let fwd_link = link.clone();
+        let deadband = Arc::new(DeadbandShared::default());
+        let fwd_deadband = deadband.clone();
         let forwarder = std::thread::Builder::new()
             .name(format!("fwd-{id}"))
             .spawn(move || {
+                let mut last: Option<(ForceOut, Instant)> = None;
                 loop {
                     std::thread::park_timeout(Duration::from_millis(5));
                     while let Ok(f) = force_rx.pop() {
+                        let k = f64::from_bits(fwd_deadband.fraction_bits.load(Ordering::Relaxed));
+                        let finishing = fwd_shared.stop.load(Ordering::Acquire);
+                        let since = last.map_or(u64::MAX, |(_, t)| t.elapsed().as_micros() as u64);
+                        if !finishing
+                            && !force_deadband_passes(k, last.as_ref().map(|(l, _)| l), since, &f)
+                        {
+                            fwd_deadband.suppressed.fetch_add(1, Ordering::Relaxed);
+                            continue;
+                        }
                         let sender = fwd_link.lock().ok().and_then(|l| l.clone());
                         if let Some(tx) = sender {
-                            let _ = tx.try_send(Ok(force_command(&f)));
+                            if tx.try_send(Ok(force_command(&f))).is_ok() {
+                                fwd_deadband.sent.fetch_add(1, Ordering::Relaxed);
+                            }
+                            last = Some((f, Instant::now()));
+                        } else {
+                            last = None;
                         }
                     }
                     if fwd_shared.finished.load(Ordering::Acquire) && force_rx.is_empty() {
@@ -348,13 +586,22 @@ impl SessionManager {
         );
         let fwd_thread = forwarder.thread().clone();
         let servo_id = id.clone();
+        let pacing = servo_cfg.pacing;
         let servo = std::thread::Builder::new()
             .name(format!("servo-{id}"))
             .spawn(move || {
                 for w in servo::setup_realtime(&servo_cfg) {
                     tracing::warn!(session = %servo_id, "{w}");
                 }
-                servo::run_loop(core, MonotonicClock::new(epoch), period_us, fwd_thread);
+                let clock = MonotonicClock::new(epoch);
+                match pacing {
+                    crate::config::Pacing::Device => {
+                        servo::run_loop_device_paced(core, clock, period_us, fwd_thread)
+                    }
+                    crate::config::Pacing::Clock => {
+                        servo::run_loop(core, clock, period_us, fwd_thread)
+                    }
+                }
             })
             .map_err(|e| ServerError::Internal(format!("spawning the servo thread: {e}")))?;
 
@@ -418,6 +665,9 @@ impl SessionManager {
             probe_radius_m: info.probe_radius_m,
             shared,
             epoch,
+            limits,
+            servo_thread: servo.thread().clone(),
+            deadband,
             commands: Mutex::new(cmd_tx),
             pose_input: Mutex::new(Some(pose_in)),
             link,
@@ -444,6 +694,10 @@ impl SessionManager {
             .remove(id)
             .ok_or_else(|| ServerError::UnknownSession(id.to_string()))?;
         s.stop();
+        if let Some(dir) = &self.config.state_dir {
+            // A stopped session is not restored (a missing record is fine).
+            let _ = std::fs::remove_file(dir.join(format!("{id}.toml")));
+        }
         Ok(())
     }
 
@@ -468,5 +722,49 @@ fn force_command(f: &ForceOut) -> ForceCommand {
         in_contact: f.in_contact,
         stiffness_n_per_m: f.stiffness_n_per_m.to_vec(),
         proxy_position_m: Some(Vec3::from(f.proxy_m.to_array())),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use haptic_model::DVec3;
+
+    fn out(fx: f64, in_contact: bool) -> ForceOut {
+        ForceOut {
+            force_n: DVec3::new(fx, 0.0, 0.0),
+            in_contact,
+            ..ForceOut::default()
+        }
+    }
+
+    #[test]
+    fn the_force_deadband_passes_changes_above_seven_percent_and_a_heartbeat() {
+        let last = out(0.1, true);
+        // (k, force, since last us, sent?)
+        let table = [
+            (0.0, out(0.1, true), 0, true),         // off
+            (0.07, out(0.106, true), 1_000, false), // 6 % change
+            (0.07, out(0.108, true), 1_000, true),  // 8 % change
+            (0.07, out(0.1, true), 4_999, false),
+            (0.07, out(0.1, true), 5_000, true),  // heartbeat
+            (0.07, out(0.1, false), 1_000, true), // contact flag changed
+        ];
+        for (k, f, since, want) in table {
+            assert_eq!(
+                force_deadband_passes(k, Some(&last), since, &f),
+                want,
+                "{k} {f:?} {since}"
+            );
+        }
+        assert!(force_deadband_passes(0.07, None, 0, &last));
+        // Below the 1 mN floor nothing passes early, whatever the relative change.
+        let tiny = out(0.0002, true);
+        assert!(!force_deadband_passes(
+            0.07,
+            Some(&tiny),
+            1_000,
+            &out(0.0009, true)
+        ));
     }
 }

@@ -43,7 +43,9 @@ fn read_recording(path: &std::path::Path) -> Result<Vec<Row>> {
             "fy_n",
             "fz_n",
             "in_contact",
-            "rtt_us"
+            "rtt_us",
+            "age_us",
+            "state"
         ]
     );
     let mut rows = Vec::new();
@@ -108,15 +110,28 @@ async fn probe_press_force_profile() -> Result<()> {
     let rows = read_recording(&csv)?;
     ensure!(rows.len() > 100, "only {} rows recorded", rows.len());
 
+    // The passivity controller may dissipate a leftover energy deficit as the probe leaves the
+    // surface: a drag against the motion of at most the sim device's 2 N s/m times 10 mm/s.
+    let moving_out = |i: usize| i > 0 && rows[i].x_m > rows[i - 1].x_m;
+    let drag = |i: usize| {
+        let r = &rows[i];
+        moving_out(i) && r.f_n[0] < 0.0 && r.norm() <= 0.02 + 1e-9
+    };
     // Free space: the probe (radius 2 mm) is clear of the epicardium (9.68 mm from the axis at
-    // z = -5 mm) while x > 11.8 mm, so no force there, on the way in or out.
-    for r in rows.iter().filter(|r| r.x_m > 0.0118) {
-        assert!(r.norm() < 1e-9, "force before contact: {r:?}");
+    // z = -5 mm) while x > 11.8 mm, so no force there on the way in, and at most that drag on
+    // the way out.
+    for (i, r) in rows.iter().enumerate().filter(|(_, r)| r.x_m > 0.0118) {
+        assert!(r.norm() < 1e-9 || drag(i), "force in free space: {r:?}");
     }
 
-    // The force pushes the probe back out (+x) whenever it is noticeable.
-    for r in rows.iter().filter(|r| r.norm() > 0.01) {
-        assert!(r.f_n[0] / r.norm() > 0.9, "force not along +x: {r:?}");
+    // The force pushes the probe back out (+x) whenever it is noticeable; on the way out the
+    // drag may take up to 0.02 N off it.
+    for (i, r) in rows.iter().enumerate().filter(|(_, r)| r.norm() > 0.01) {
+        let released = moving_out(i) && r.f_n[0] >= -0.02 - 1e-9;
+        assert!(
+            r.f_n[0] / r.norm() > 0.9 || released,
+            "force not along +x: {r:?}"
+        );
     }
 
     // Pressing phase: until the deepest point is first reached. Binned means of fx over 0.5 mm

@@ -20,6 +20,17 @@ async fn main() -> anyhow::Result<ExitCode> {
         .init();
     let setup = args.setup()?;
     let url = setup.config.server_url.clone();
+    if let Some(button) = setup.rearm_button.clone() {
+        // `--rearm key`: every line on standard input (Enter) is a re-arm request.
+        std::thread::spawn(move || {
+            for line in std::io::stdin().lines() {
+                if line.is_err() {
+                    break;
+                }
+                button.press();
+            }
+        });
+    }
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     tokio::spawn(async move {
         if tokio::signal::ctrl_c().await.is_ok() {
@@ -42,6 +53,10 @@ async fn main() -> anyhow::Result<ExitCode> {
         println!("{}", serde_json::to_string(s)?);
     } else {
         println!("{s}");
+    }
+    if let Some(why) = &s.session_lost {
+        eprintln!("error: {why}");
+        return Ok(ExitCode::from(3));
     }
     if !s.connected() {
         let why = s.last_link_error.as_deref().unwrap_or("no attempt made");

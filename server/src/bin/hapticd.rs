@@ -36,6 +36,10 @@ struct Args {
     /// Log format: text or json.
     #[arg(long)]
     log_format: Option<String>,
+    /// Record sessions (scene and id) here so that a restarted daemon restores them and device
+    /// bridges re-attach.
+    #[arg(long)]
+    state_dir: Option<PathBuf>,
 }
 
 #[tokio::main]
@@ -49,6 +53,7 @@ async fn main() -> anyhow::Result<()> {
     file.max_sessions = args.max_sessions.or(file.max_sessions);
     file.log_format = args.log_format.or(file.log_format);
     file.scene_dir = args.scene_dir.or(file.scene_dir);
+    file.state_dir = args.state_dir.or(file.state_dir);
     file.servo.realtime |= args.realtime;
     file.servo.mlockall |= args.mlockall;
     file.servo.cpu = args.cpu.or(file.servo.cpu);
