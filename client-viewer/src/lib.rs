@@ -8,6 +8,8 @@
 //! - [`viewer`]: subscribes to `SurfaceStream.Watch`, keeps the keyframe topology, applies the
 //!   position frames, measures rate and frame age, and writes pictures with [`raster`]
 //!   (binary `haptic-viewer`).
+//! - [`compact`]: the client side of compact streams (quantized deltas against a reference
+//!   keyframe), turning each frame into its full form.
 //! - [`ctl`]: calls `SessionControl` (scenes, start, stop, sessions, force, stats) and formats
 //!   the answers as tables or JSON (binary `hapticctl`).
 //!
@@ -15,6 +17,7 @@
 //! it. This crate never depends on the physics model: everything it knows about a session comes
 //! over gRPC.
 
+pub mod compact;
 pub mod ctl;
 pub mod error;
 pub mod raster;

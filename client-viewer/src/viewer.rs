@@ -27,7 +27,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use glam::DVec3;
 use haptics_proto::v1::surface_stream_client::SurfaceStreamClient;
-use haptics_proto::v1::{SurfaceFrame, WatchRequest};
+use haptics_proto::v1::{SurfaceEncoding, SurfaceFrame, WatchRequest};
 use serde::Serialize;
 use tokio::sync::mpsc;
 use tokio_stream::{Stream, StreamExt};
@@ -54,6 +54,9 @@ pub struct ViewerConfig {
     pub render: RenderParams,
     /// Print a progress line to stderr every second.
     pub progress: bool,
+    /// Ask for the compact stream (quantized deltas, `SURFACE_ENCODING_DELTA`) instead of full
+    /// float positions in every frame.
+    pub compact: bool,
 }
 
 impl ViewerConfig {
@@ -69,6 +72,7 @@ impl ViewerConfig {
             max_rate_hz: 30.0,
             render: RenderParams::default(),
             progress: true,
+            compact: true,
         }
     }
 
@@ -147,6 +151,9 @@ pub struct ViewerArgs {
     /// Print the summary as one JSON line on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Surface encoding asked of the server: `delta` (quantized deltas, 1 um) or `full`.
+    #[arg(long, default_value = "delta", value_parser = ["delta", "full"])]
+    pub encoding: String,
 }
 
 impl ViewerArgs {
@@ -178,6 +185,7 @@ impl ViewerArgs {
             max_rate_hz: self.max_rate_hz,
             render,
             progress: !self.quiet,
+            compact: self.encoding == "delta",
         };
         cfg.validate()?;
         Ok(cfg)
@@ -500,6 +508,12 @@ pub async fn run(
         .watch(WatchRequest {
             session_id: cfg.session_id.clone(),
             max_rate_hz: cfg.max_rate_hz,
+            encoding: if cfg.compact {
+                SurfaceEncoding::Delta as i32
+            } else {
+                SurfaceEncoding::Full as i32
+            },
+            quantum_m: 0.0,
         })
         .await?
         .into_inner();
@@ -539,6 +553,7 @@ where
     })?;
     let (tx, worker) = spawn_worker(cfg.render.clone());
     let mut state = SurfaceState::new();
+    let mut compact = crate::compact::CompactState::new();
     let mut c = Counters {
         frames: 0,
         keyframes: 0,
@@ -600,6 +615,16 @@ where
                 }
                 Some(Ok(frame)) => {
                     let recv_us = now_unix_us();
+                    // Compact frames become full ones (absolute positions) first.
+                    let frame = match compact.expand(frame) {
+                        Ok(f) => f,
+                        Err(e) => {
+                            tracing::error!("{e}");
+                            c.bad_frames += 1;
+                            c.last_error = Some(e.to_string());
+                            continue;
+                        }
+                    };
                     match state.apply(&frame, &cfg.render) {
                         Err(e) => {
                             tracing::error!("{e}");

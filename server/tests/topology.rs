@@ -193,6 +193,7 @@ async fn a_viewer_gets_a_keyframe_when_the_topology_changes() {
         .watch(tonic::Request::new(WatchRequest {
             session_id: session.id.clone(),
             max_rate_hz: 100.0,
+            ..WatchRequest::default()
         }))
         .await
         .unwrap();
