@@ -12,6 +12,9 @@
 //!   keyframe), turning each frame into its full form.
 //! - [`ctl`]: calls `SessionControl` (scenes, start, stop, sessions, force, stats) and formats
 //!   the answers as tables or JSON (binary `hapticctl`).
+//! - [`web`]: the browser viewer (`haptic-viewer --web ADDR`), a relay that subscribes once
+//!   per session and fans the compact stream out to browsers over WebSocket, with the page
+//!   and three.js compiled into the binary.
 //!
 //! Neighbours: the wire contract is `haptics_proto::v1`; the server (`haptic-server`) implements
 //! it. This crate never depends on the physics model: everything it knows about a session comes
@@ -22,6 +25,7 @@ pub mod ctl;
 pub mod error;
 pub mod raster;
 pub mod viewer;
+pub mod web;
 
 pub use error::ClientError;
 

@@ -112,9 +112,13 @@ pub struct ViewerArgs {
     /// Server URL.
     #[arg(long, env = "HAPTICD_ADDR", default_value = crate::DEFAULT_SERVER)]
     pub server: String,
-    /// Session id to watch.
-    #[arg(long)]
-    pub session: String,
+    /// Session id to watch (PNG mode; the web viewer lets the browser choose).
+    #[arg(long, required_unless_present = "web")]
+    pub session: Option<String>,
+    /// Serve the browser viewer on this address (e.g. 127.0.0.1:8080) instead of writing PNGs:
+    /// a relay that subscribes once per session and fans frames out to browsers over WebSocket.
+    #[arg(long, value_name = "ADDR")]
+    pub web: Option<String>,
     /// Output directory for frame_NNNNN.png and latest.png.
     #[arg(long, default_value = "viewer-out")]
     pub out: PathBuf,
@@ -157,6 +161,28 @@ pub struct ViewerArgs {
 }
 
 impl ViewerArgs {
+    /// The web viewer's configuration when `--web` was given: the bind address and a
+    /// [`crate::web::WebConfig`] (browsers get `--max-rate-hz` by default, clamped to 60 Hz).
+    ///
+    /// # Errors
+    /// [`ClientError::InvalidConfig`] for a malformed address or bad rates.
+    pub fn web_config(
+        &self,
+    ) -> Result<Option<(std::net::SocketAddr, crate::web::WebConfig)>, ClientError> {
+        let Some(addr) = &self.web else {
+            return Ok(None);
+        };
+        let addr = addr.parse().map_err(|e| {
+            ClientError::InvalidConfig(format!("--web {addr:?}: {e} (expected HOST:PORT)"))
+        })?;
+        let mut cfg = crate::web::WebConfig::new(self.server.clone());
+        if self.max_rate_hz > 0.0 {
+            cfg.default_rate_hz = self.max_rate_hz.min(crate::web::MAX_BROWSER_RATE_HZ);
+        }
+        cfg.validate()?;
+        Ok(Some((addr, cfg)))
+    }
+
     /// Builds and validates the configuration.
     ///
     /// # Errors
@@ -178,7 +204,7 @@ impl ViewerArgs {
         }
         let cfg = ViewerConfig {
             server: self.server,
-            session_id: self.session,
+            session_id: self.session.unwrap_or_default(),
             out_dir: self.out,
             interval_s: self.interval_s,
             duration_s: self.duration_s,
