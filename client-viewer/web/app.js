@@ -150,6 +150,7 @@ function decodeDelta(codec, reference, payload, quantum, out) {
 // ---------------------------------------------------------------------------------------------
 // Scene.
 // ---------------------------------------------------------------------------------------------
+let dirty = true; // something changed since the last draw
 const view = document.getElementById('view');
 const statusEl = document.getElementById('status');
 const messageEl = document.getElementById('message');
@@ -208,6 +209,7 @@ function frameCamera(positions) {
 }
 function resetView() {
   if (!home) return;
+  dirty = true;
   camera.position.copy(home.position);
   controls.target.copy(home.target);
   controls.update();
@@ -275,6 +277,7 @@ function applyFrame(f) {
   }
   updateMesh();
   updateProbe(f);
+  dirty = true;
   S.frames++; S.windowFrames++;
   if (f.serverTimeUs > 0) S.ageMs = Date.now() - f.serverTimeUs / 1000;
 }
@@ -346,8 +349,13 @@ function showStatus() {
   statusEl.dataset.frames = String(S.frames);
 }
 
+// Draw only when something changed (a frame, the camera, the size): an idle page costs nothing.
+controls.addEventListener('change', () => { dirty = true; });
+window.addEventListener('resize', () => { dirty = true; });
 function render() {
   requestAnimationFrame(render);
+  if (!dirty) return;
+  dirty = false;
   renderer.render(scene, camera);
 }
 render();

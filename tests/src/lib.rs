@@ -21,6 +21,7 @@
 //! ([`demo`]). Nothing here asserts wall-clock timing: the machines are 2-core and shared, so
 //! every wait is a generous, bounded timeout.
 
+pub mod browser;
 pub mod demo;
 
 use std::io::{BufRead, BufReader};
