@@ -20,6 +20,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .build_transport(false)
         // `SurfaceFrame.position_delta` as `bytes::Bytes`: one encoding shared by every watcher.
         .bytes(".haptics.v1.SurfaceFrame.position_delta")
+        .bytes(".haptics.v1.SurfaceFrame.reference_delta")
         .compile_fds(fds)?;
     Ok(())
 }

@@ -47,6 +47,9 @@ pub struct CompactState {
     pub topology: Option<CompactTopology>,
     /// The last reference keyframe received.
     pub reference: Option<CompactReference>,
+    /// How the last reference was chained from the one before: `(base id, reference_delta)`
+    /// (a relay forwards it to clients that have the base).
+    pub chain: Option<(u64, prost::bytes::Bytes)>,
 }
 
 impl CompactState {
@@ -73,6 +76,9 @@ impl CompactState {
         };
         if !Self::is_compact(f) || !f.keyframe {
             return Ok(false);
+        }
+        if f.positions_m.is_empty() && f.base_keyframe_id != 0 {
+            return self.chain_reference(f);
         }
         let n = f.positions_m.len() / 3;
         if f.positions_m.len() != 3 * n || f.positions_m.iter().any(|v| !v.is_finite()) {
@@ -111,7 +117,41 @@ impl CompactState {
             id: f.keyframe_id,
             positions_m: Arc::new(f.positions_m.clone()),
         });
+        self.chain = None;
         Ok(new_topology)
+    }
+
+    /// A chained keyframe: the new reference is the base reference plus `reference_delta`.
+    fn chain_reference(&mut self, f: &SurfaceFrame) -> Result<bool, ClientError> {
+        let bad = |reason: String| ClientError::BadFrame {
+            frame: f.frame,
+            reason,
+        };
+        let (Some(topology), Some(base)) = (&self.topology, &self.reference) else {
+            return Err(bad("chained keyframe before any keyframe".into()));
+        };
+        if base.id != f.base_keyframe_id || topology.version != f.topology_version {
+            return Err(bad(format!(
+                "keyframe {} chains from {} (topology {}), but the last keyframe was {}                  (topology {})",
+                f.keyframe_id, f.base_keyframe_id, f.topology_version, base.id, topology.version
+            )));
+        }
+        let mut positions = vec![0.0; base.positions_m.len()];
+        topology
+            .codec
+            .decode(
+                &base.positions_m,
+                &f.reference_delta,
+                f.quantum_m,
+                &mut positions,
+            )
+            .map_err(|e| bad(e.to_string()))?;
+        self.reference = Some(CompactReference {
+            id: f.keyframe_id,
+            positions_m: Arc::new(positions),
+        });
+        self.chain = Some((f.base_keyframe_id, f.reference_delta.clone()));
+        Ok(false)
     }
 
     /// The full form of `f`: a FULL-stream frame passes unchanged; a compact frame gets
@@ -158,6 +198,8 @@ impl CompactState {
             .map_err(|e| bad(f.frame, e.to_string()))?;
         f.positions_m = positions;
         f.position_delta = Default::default();
+        f.reference_delta = Default::default();
+        f.base_keyframe_id = 0;
         f.keyframe = new_topology;
         if new_topology {
             f.triangles = topology.triangles.to_vec();

@@ -142,7 +142,10 @@ struct RelayFrame {
     reference: Option<Arc<Vec<f32>>>,
     /// The topology (triangles, rest) of `frame`.
     topology: Option<(Arc<Vec<u32>>, Arc<Vec<f32>>)>,
-    /// Keyframe messages built on demand: without and with the topology.
+    /// How the reference of `frame` chains from the one before (`base id`, delta).
+    chain: Option<(u64, Bytes)>,
+    /// Keyframe messages built on demand: chained, full without and with the topology.
+    chained: OnceLock<Bytes>,
     keyframe: OnceLock<Bytes>,
     keyframe_with_topology: OnceLock<Bytes>,
 }
@@ -156,6 +159,27 @@ impl RelayFrame {
             return topology == Some(f.topology_version); // absolute positions
         }
         !f.keyframe && reference == Some(f.keyframe_id) && topology == Some(f.topology_version)
+    }
+
+    /// A chained keyframe message for a browser that has reference `base`: the step from it to
+    /// this frame's reference, and this frame's delta. `None` when the reference is not
+    /// chained from `base`.
+    fn chained(&self, base: Option<u64>) -> Option<Bytes> {
+        let (from, step) = self.chain.as_ref().filter(|c| Some(c.0) == base)?;
+        Some(
+            self.chained
+                .get_or_init(|| {
+                    let mut k = self.frame.clone();
+                    k.keyframe = true;
+                    k.positions_m.clear();
+                    k.triangles.clear();
+                    k.rest_positions_m.clear();
+                    k.base_keyframe_id = *from;
+                    k.reference_delta = step.clone();
+                    Bytes::from(k.encode_to_vec())
+                })
+                .clone(),
+        )
     }
 
     /// A keyframe message: the reference positions, this frame's delta, and the topology when
@@ -173,6 +197,8 @@ impl RelayFrame {
                 let mut k = self.frame.clone();
                 k.keyframe = true;
                 k.positions_m = reference.to_vec();
+                k.base_keyframe_id = 0;
+                k.reference_delta = Bytes::new();
                 if with_topology {
                     k.triangles = triangles.to_vec();
                     k.rest_positions_m = rest.to_vec();
@@ -340,8 +366,15 @@ async fn upstream(relay: Arc<Relay>, id: String, s: Arc<SessionRelay>) {
                 .as_ref()
                 .filter(|t| t.version == f.topology_version)
                 .map(|t| (t.triangles.clone(), t.rest_positions_m.clone())),
+            chain: compact.chain.clone().filter(|_| {
+                compact
+                    .reference
+                    .as_ref()
+                    .is_some_and(|r| r.id == f.keyframe_id)
+            }),
             frame: f,
             encoded,
+            chained: OnceLock::new(),
             keyframe: OnceLock::new(),
             keyframe_with_topology: OnceLock::new(),
         };
@@ -625,7 +658,12 @@ fn send_frame(
         (k, None, Some(f.frame.topology_version))
     } else {
         let with_topology = st.topology != Some(f.frame.topology_version);
-        let Some(k) = f.keyframe(with_topology) else {
+        let chained = if with_topology {
+            None
+        } else {
+            f.chained(st.reference)
+        };
+        let Some(k) = chained.or_else(|| f.keyframe(with_topology)) else {
             return;
         };
         (k, Some(f.frame.keyframe_id), Some(f.frame.topology_version))

@@ -57,7 +57,7 @@ function decodeFrame(buffer) {
   const f = { frame: 0, simTime: 0, keyframe: false, positions: null, triangles: null,
     probe: null, force: [0, 0, 0], inContact: false, probeRadius: 0, serverTimeUs: 0,
     maxDisplacement: 0, rest: null, watchId: 0, topologyVersion: 0, keyframeId: 0,
-    quantum: 0, delta: new Uint8Array(0) };
+    quantum: 0, delta: new Uint8Array(0), baseKeyframeId: 0, referenceDelta: new Uint8Array(0) };
   while (!r.done()) {
     const key = r.varint(), field = Math.floor(key / 8), wire = key & 7;
     switch (field) {
@@ -78,6 +78,8 @@ function decodeFrame(buffer) {
       case 15: f.keyframeId = r.varint(); break;
       case 16: f.quantum = r.double(); break;
       case 17: f.delta = r.bytes(); break;
+      case 18: f.baseKeyframeId = r.varint(); break;
+      case 19: f.referenceDelta = r.bytes(); break;
       default: r.skip(wire);
     }
   }
@@ -261,7 +263,15 @@ function applyFrame(f) {
     return requestKeyframe('topology ' + f.topologyVersion + ' is new');
   }
   const n3 = S.topology.rest.length;
-  if (f.keyframe) {
+  if (f.keyframe && !f.positions && f.baseKeyframeId) {
+    // Chained: the new reference is our reference plus reference_delta.
+    if (!S.reference || S.reference.id !== f.baseKeyframeId) return requestKeyframe('base keyframe ' + f.baseKeyframeId + ' missing');
+    const next = new Float32Array(n3);
+    decodeDelta(S.topology.codec, S.reference.positions, f.referenceDelta, f.quantum, next);
+    S.reference = { id: f.keyframeId, positions: next };
+    S.keyframes++;
+    S.keyframeRequested = false;
+  } else if (f.keyframe) {
     if (!f.positions || f.positions.length !== n3) return requestKeyframe('keyframe size');
     S.reference = { id: f.keyframeId, positions: f.positions };
     S.keyframes++;

@@ -9,7 +9,10 @@
 //! - **Reference keyframes** are renewed on a topology change, when a delta is not
 //!   representable, every [`KeyframePolicy::max_interval_s`], and when the surface has settled
 //!   in a new shape, so that a fresh keyframe pays for itself within
-//!   [`KeyframePolicy::payback_frames`] frames ([`KeyframePolicy::should_renew`]).
+//!   [`KeyframePolicy::payback_frames`] frames ([`KeyframePolicy::should_renew`]). A renewal
+//!   is chained where it can be: the new reference is the old one plus a delta, and a watcher
+//!   that has the old one gets only that delta (`base_keyframe_id`, `reference_delta`), not
+//!   float positions.
 //! - **Each watcher** ([`spawn_watch`]) has its own rate, its own id (for `RequestKeyframe`)
 //!   and a queue of [`WATCH_QUEUE_FRAMES`] frames: when the queue is full at a due frame, that
 //!   frame is dropped and counted (a slow watcher never queues without bound and never slows
@@ -137,8 +140,9 @@ pub struct KeyframePolicy {
     /// Always renew after this long, s (periodic keyframes).
     pub max_interval_s: f64,
     /// Renew when `(delta - step) * payback_frames > keyframe`, where `delta` is the encoded
-    /// size against the reference and `step` against the previous snapshot: the surface has
-    /// settled in a shape far from the reference.
+    /// size against the reference, `step` against the previous snapshot and `keyframe` what
+    /// the renewal costs (a chained one: about `delta`): the surface is in a shape far from
+    /// the reference.
     pub payback_frames: f64,
 }
 
@@ -181,6 +185,10 @@ pub struct Reference {
     pub positions_m: Vec<f32>,
     /// Simulated time of these positions, s.
     pub sim_time_s: f64,
+    /// How a client that has the previous reference gets this one: `(previous id, delta)` with
+    /// `positions_m = previous + delta` exactly as a client decodes it (1 um steps). `None` for
+    /// a first reference, a new topology, or a displacement a delta cannot express.
+    pub chain: Option<(u64, Bytes)>,
 }
 
 /// Spawns the frame task of a session: every 10 ms, while someone watches and the servo
@@ -249,24 +257,41 @@ pub fn spawn_frame_task(
                         } else {
                             usize::MAX
                         };
-                        policy.should_renew(
-                            (now - renewed_at).as_secs_f64(),
-                            len,
-                            step,
-                            4 * s.positions_m.len(),
-                        )
+                        // A chained renewal costs about one delta (`len`), not a float keyframe.
+                        policy.should_renew((now - renewed_at).as_secs_f64(), len, step, len)
                     }
                 };
                 if renew {
+                    // Chained when the old reference can express the new one: the new reference
+                    // is what a client decodes from the old one (within half a step of the
+                    // surface), so a renewal costs a delta instead of a float keyframe.
+                    let chained = match (&reference, encoded) {
+                        (Some(old), Some(_)) => {
+                            let mut p = vec![0.0; s.positions_m.len()];
+                            codec
+                                .decode(&old.positions_m, &buf, DEFAULT_QUANTUM_M, &mut p)
+                                .ok()
+                                .map(|()| (p, (old.id, Bytes::copy_from_slice(&buf))))
+                        }
+                        _ => None,
+                    };
+                    let (positions_m, chain) = match chained {
+                        Some((p, c)) => (p, Some(c)),
+                        None => (s.positions_m.clone(), None),
+                    };
+                    delta = codec
+                        .encode(&positions_m, &s.positions_m, DEFAULT_QUANTUM_M, &mut buf)
+                        .ok()
+                        .map(|()| Bytes::copy_from_slice(&buf));
                     reference = Some(Arc::new(Reference {
                         id: next_id,
                         topology: topology.clone(),
-                        positions_m: s.positions_m.clone(),
+                        positions_m,
                         sim_time_s: s.sim_time_s,
+                        chain,
                     }));
                     next_id += 1;
                     renewed_at = now;
-                    delta = Some(Bytes::new());
                 } else {
                     delta = Some(Bytes::copy_from_slice(&buf));
                 }
@@ -503,8 +528,19 @@ fn build_frame(
             frame.position_delta = bytes;
             if new_topology || state.reference != Some(reference.id) {
                 frame.keyframe = true;
-                frame.positions_m = reference.positions_m.clone();
                 next.reference = Some(reference.id);
+                match &reference.chain {
+                    // The client has the previous reference: send only the step to this one.
+                    Some((previous, step))
+                        if !new_topology
+                            && q == DEFAULT_QUANTUM_M
+                            && state.reference == Some(*previous) =>
+                    {
+                        frame.base_keyframe_id = *previous;
+                        frame.reference_delta = step.clone();
+                    }
+                    _ => frame.positions_m = reference.positions_m.clone(),
+                }
             }
         }
     }

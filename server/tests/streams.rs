@@ -91,13 +91,24 @@ async fn compact_frames_decode_to_the_full_positions() {
     let codec = DeltaCodec::new(n, &first.triangles).unwrap();
     let mut reference = (first.keyframe_id, first.positions_m.clone());
     let mut decoded = Vec::new();
-    let (mut deltas, mut keyframes, mut moving) = (0, 1, 0);
+    let (mut deltas, mut keyframes, mut moving, mut chained) = (0, 1, 0, 0);
     for _ in 0..60 {
         let f = next(&mut compact).await;
         if f.keyframe {
             keyframes += 1;
             assert!(f.triangles.is_empty(), "same topology: no triangles again");
-            reference = (f.keyframe_id, f.positions_m.clone());
+            if f.positions_m.is_empty() {
+                // Chained: our reference plus the step.
+                assert_eq!(f.base_keyframe_id, reference.0, "chained from what we have");
+                let mut p = vec![0.0; 3 * n];
+                codec
+                    .decode(&reference.1, &f.reference_delta, f.quantum_m, &mut p)
+                    .unwrap();
+                reference = (f.keyframe_id, p);
+                chained += 1;
+            } else {
+                reference = (f.keyframe_id, f.positions_m.clone());
+            }
         } else {
             assert!(f.positions_m.is_empty(), "delta frames carry no floats");
             assert_eq!(f.keyframe_id, reference.0);
@@ -131,7 +142,9 @@ async fn compact_frames_decode_to_the_full_positions() {
         deltas > 0 && moving > 0,
         "{deltas} deltas, {moving} with motion"
     );
-    eprintln!("{compared} frames compared; {keyframes} keyframes, {deltas} deltas");
+    eprintln!(
+        "{compared} frames compared; {keyframes} keyframes ({chained} chained), {deltas} deltas"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -142,7 +142,15 @@ async fn one_upstream_for_many_browsers_keyframes_first_and_bad_input_answered()
     let mut reference = (k.keyframe_id, k.positions_m.clone());
     for _ in 0..20 {
         let f = next_binary(ws).await?;
-        if f.keyframe {
+        if f.keyframe && f.positions_m.is_empty() {
+            ensure!(
+                f.base_keyframe_id == reference.0,
+                "chained from an unknown keyframe"
+            );
+            let mut p = vec![0.0; 3 * n];
+            codec.decode(&reference.1, &f.reference_delta, f.quantum_m, &mut p)?;
+            reference = (f.keyframe_id, p);
+        } else if f.keyframe {
             reference = (f.keyframe_id, f.positions_m.clone());
         }
         ensure!(
