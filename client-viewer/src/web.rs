@@ -282,6 +282,16 @@ impl Relay {
         }
     }
 
+    /// The upstream of `id` ended (error, or the session stopped): its browsers get the last
+    /// message and close; a later browser starts a new upstream.
+    fn forget(&self, id: &str, s: &Arc<SessionRelay>) {
+        let _ = s.stop.send(true);
+        let mut sessions = self.sessions.lock().unwrap_or_else(|e| e.into_inner());
+        if sessions.get(id).is_some_and(|x| Arc::ptr_eq(x, s)) {
+            sessions.remove(id);
+        }
+    }
+
     /// The relay's counters per session, as JSON.
     pub fn counters_json(&self) -> Value {
         let sessions = self.sessions.lock().unwrap_or_else(|e| e.into_inner());
@@ -327,6 +337,7 @@ async fn upstream(relay: Arc<Relay>, id: String, s: Arc<SessionRelay>) {
             let _ = s.status.send(Some(Arc::new(
                 json!({"type": "error", "message": e.to_string()}).to_string(),
             )));
+            relay.forget(&id, &s);
             return;
         }
     };
@@ -381,6 +392,7 @@ async fn upstream(relay: Arc<Relay>, id: String, s: Arc<SessionRelay>) {
         let _ = s.latest.send(Some(Arc::new(frame)));
     };
     let _ = s.status.send(Some(Arc::new(ended.to_string())));
+    relay.forget(&id, &s);
 }
 
 /// `GetStats` once a second while browsers watch, as `{"type":"status",...}` for them.
@@ -579,6 +591,8 @@ async fn browser(relay: Arc<Relay>, id: String, rate_hz: f64, socket: WebSocket)
     let s = relay.join(&id);
     let mut latest = s.latest.subscribe();
     let mut status = s.status.subscribe();
+    // The current message first (an error that came before this browser, or the last status).
+    status.mark_changed();
     let mut st = BrowserState {
         reference: None,
         topology: None,

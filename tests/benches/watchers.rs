@@ -12,11 +12,16 @@
 //! after 0.85 s), then measure for `WINDOW_S`: the servo's step p50/p99/max (`GetStats`, over
 //! the session's life), overruns during the window, CPU of the daemon, the relay and this
 //! process (the watchers) during the window, their resident memory at its end, and frames per
-//! watcher in the window. Loopback only, 17 runs of about 15 s.
+//! watcher in the window. Loopback only, 33 runs of about 14 s.
 //!
 //! Writes `docs/bench/watchers.json` and prints the table of `docs/benchmarks.md`.
 //!
-//! Run: `cargo bench -p haptic-e2e --bench watchers` (`-- --quick` for a 3 s window).
+//! The plan (11 set-ups) runs `--repeat N` times (default 3), interleaved; the table gives the
+//! median of each figure over the repetitions and the range of p99 and overruns.
+//!
+//! Run: `cargo bench -p haptic-e2e --bench watchers` (`-- --quick` for one 3 s window each;
+//! `-- --realtime` runs the servo as deployed, SCHED_FIFO pinned to CPU 1, and writes
+//! `docs/bench/watchers-realtime.json`).
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -183,9 +188,24 @@ fn cell(v: &Value, key: &str, decimals: usize) -> String {
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
 async fn main() -> Result<()> {
-    let quick = std::env::args().any(|a| a == "--quick");
+    let args: Vec<String> = std::env::args().collect();
+    let quick = args.iter().any(|a| a == "--quick");
     let window_s = if quick { 3.0 } else { 10.0 };
-    let daemon = Daemon::spawn(&[])?;
+    // Repetitions of the whole plan, interleaved, so that a slow minute of the shared machine
+    // does not land on one set-up; the table gives medians over them.
+    let repeat: usize = args
+        .iter()
+        .position(|a| a == "--repeat")
+        .and_then(|i| args.get(i + 1)?.parse().ok())
+        .unwrap_or(if quick { 1 } else { 3 });
+    // `--realtime`: the servo as deployed (SCHED_FIFO, pinned to CPU 1), so that what the
+    // watchers cost it is not hidden by the scheduler's noise.
+    let realtime = args.iter().any(|a| a == "--realtime");
+    let daemon = if realtime {
+        Daemon::spawn(&["--realtime", "--cpu", "1"])?
+    } else {
+        Daemon::spawn(&[])?
+    };
     let url = daemon.url();
     let daemon_pid = daemon.pid();
     let (relay_proc, relay_addr) = spawn_web_viewer(&url, &[]).await?;
@@ -197,28 +217,89 @@ async fn main() -> Result<()> {
         .chain([1, 10, 100, 300].iter().map(|&n| (Mode::Relay, n)))
         .chain([100, 300].iter().map(|&n| (Mode::GrpcFull, n)))
         .collect();
-    for (mode, n) in plan {
-        let relay = Some((relay_addr.as_str(), relay_pid));
-        rows.push(run(mode, n, window_s, &url, daemon_pid, relay).await?);
+    for rep in 0..repeat {
+        for &(mode, n) in &plan {
+            let relay = Some((relay_addr.as_str(), relay_pid));
+            let mut row = run(mode, n, window_s, &url, daemon_pid, relay).await?;
+            row["repetition"] = json!(rep);
+            rows.push(row);
+        }
     }
+    // Medians over the repetitions of each set-up.
+    let median = |mode: &str, n: u64, key: &str| -> Option<f64> {
+        let mut v: Vec<f64> = rows
+            .iter()
+            .filter(|r| r["mode"] == mode && r["watchers"] == n)
+            .filter_map(|r| r[key].as_f64())
+            .collect();
+        (!v.is_empty()).then(|| percentile(&mut v, 0.5))
+    };
+    let range = |mode: &str, n: u64, key: &str| -> String {
+        let v: Vec<f64> = rows
+            .iter()
+            .filter(|r| r["mode"] == mode && r["watchers"] == n)
+            .filter_map(|r| r[key].as_f64())
+            .collect();
+        let lo = v.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        format!("{lo:.0}-{hi:.0}")
+    };
+    let first = |mode: &str, n: u64, key: &str| -> Option<f64> {
+        rows.iter()
+            .find(|r| r["mode"] == mode && r["watchers"] == n)
+            .and_then(|r| r[key].as_f64())
+    };
+    let summary: Vec<Value> = plan
+        .iter()
+        .map(|&(mode, n)| {
+            let (m, n) = (mode.name(), n as u64);
+            let dropped: u64 = rows
+                .iter()
+                .filter(|r| r["mode"] == m && r["watchers"] == n)
+                .map(|r| {
+                    r["daemon_frames_dropped"].as_u64().unwrap_or(0)
+                        + r["relay"]["sessions"][0]["frames_dropped"]
+                            .as_u64()
+                            .unwrap_or(0)
+                })
+                .sum();
+            json!({
+                "mode": m,
+                "watchers": n,
+                "step_p50_us": median(m, n, "step_p50_us"),
+                "step_p99_us": median(m, n, "step_p99_us"),
+                "step_p99_us_range": range(m, n, "step_p99_us"),
+                "step_max_us": median(m, n, "step_max_us"),
+                "overruns_in_window": median(m, n, "overruns_in_window"),
+                "overruns_range": range(m, n, "overruns_in_window"),
+                "daemon_cpu_percent": median(m, n, "daemon_cpu_percent"),
+                "relay_cpu_percent": median(m, n, "relay_cpu_percent"),
+                "watchers_cpu_percent": median(m, n, "watchers_cpu_percent"),
+                // Memory of the first repetition: the processes serve every run and the
+                // allocator keeps what it freed, so later repetitions show the history.
+                "daemon_rss_mb": first(m, n, "daemon_rss_mb"),
+                "relay_rss_mb": first(m, n, "relay_rss_mb"),
+                "frames_per_watcher_min": median(m, n, "frames_per_watcher_min"),
+                "frames_per_watcher_p50": median(m, n, "frames_per_watcher_p50"),
+                "dropped": dropped,
+            })
+        })
+        .collect();
     println!(
-        "| set-up | watchers | step p50 / p99 / max (us) | overruns in {window_s:.0} s | daemon CPU | relay CPU | watchers' CPU | daemon / relay RSS (MB) | frames per watcher min / p50 (of {:.0}) | dropped |",
+        "| set-up | watchers | step p50 / p99 (us) | p99 range | overruns in {window_s:.0} s (range) | daemon CPU | relay CPU | watchers' CPU | daemon / relay RSS (MB) | frames per watcher min / p50 (of {:.0}) | dropped |",
         RATE_HZ * window_s
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|");
-    for r in &rows {
-        let dropped = r["daemon_frames_dropped"].as_u64().unwrap_or(0)
-            + r["relay"]["sessions"][0]["frames_dropped"]
-                .as_u64()
-                .unwrap_or(0);
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    for r in &summary {
         println!(
-            "| {} | {} | {} / {} / {} | {} | {} % | {} % | {} % | {} / {} | {} / {} | {} |",
+            "| {} | {} | {} / {} | {} | {} ({}) | {} % | {} % | {} % | {} / {} | {} / {} | {} |",
             r["mode"].as_str().unwrap_or(""),
             r["watchers"],
             cell(r, "step_p50_us", 0),
             cell(r, "step_p99_us", 0),
-            cell(r, "step_max_us", 0),
-            r["overruns_in_window"],
+            r["step_p99_us_range"].as_str().unwrap_or(""),
+            cell(r, "overruns_in_window", 0),
+            r["overruns_range"].as_str().unwrap_or(""),
             cell(r, "daemon_cpu_percent", 0),
             cell(r, "relay_cpu_percent", 0),
             cell(r, "watchers_cpu_percent", 0),
@@ -226,14 +307,32 @@ async fn main() -> Result<()> {
             cell(r, "relay_rss_mb", 0),
             cell(r, "frames_per_watcher_min", 0),
             cell(r, "frames_per_watcher_p50", 0),
-            dropped,
+            r["dropped"],
         );
     }
-    let out = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/bench/watchers.json");
+    let name = if realtime {
+        "watchers-realtime.json"
+    } else {
+        "watchers.json"
+    };
+    let out = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../docs/bench")
+        .join(name);
     let doc = json!({
         "what": "servo step time and overruns, CPU and memory against watchers at 30 Hz, default lv, bridge pressing",
-        "command": format!("cargo bench -p haptic-e2e --bench watchers{}", if quick { " -- --quick" } else { "" }),
+        "command": format!(
+            "cargo bench -p haptic-e2e --bench watchers{}",
+            match (quick, realtime) {
+                (false, false) => "",
+                (true, false) => " -- --quick",
+                (false, true) => " -- --realtime",
+                (true, true) => " -- --quick --realtime",
+            }
+        ),
         "window_s": window_s,
+        "repetitions": repeat,
+        "realtime": realtime,
+        "summary": summary,
         "runs": rows,
     });
     std::fs::write(&out, serde_json::to_string_pretty(&doc)? + "\n")?;
