@@ -130,6 +130,9 @@ pub struct RelayCounters {
     pub bytes_sent: AtomicU64,
 }
 
+/// Triangles and rest positions of a topology, shared by the frames that use it.
+type SharedTopology = (Arc<Vec<u32>>, Arc<Vec<f32>>);
+
 /// One upstream frame, encoded once for every browser.
 struct RelayFrame {
     /// Increasing per session relay (browsers send a frame once).
@@ -140,8 +143,8 @@ struct RelayFrame {
     encoded: Bytes,
     /// Reference positions of `frame` (its keyframe), for keyframe messages.
     reference: Option<Arc<Vec<f32>>>,
-    /// The topology (triangles, rest) of `frame`.
-    topology: Option<(Arc<Vec<u32>>, Arc<Vec<f32>>)>,
+    /// The topology of `frame`.
+    topology: Option<SharedTopology>,
     /// How the reference of `frame` chains from the one before (`base id`, delta).
     chain: Option<(u64, Bytes)>,
     /// Keyframe messages built on demand: chained, full without and with the topology.

@@ -27,7 +27,7 @@ fn reddish(p: [u8; 3]) -> bool {
 
 /// The lower end of the colour map (no displacement): clearly blue.
 fn bluish(p: [u8; 3]) -> bool {
-    let [r, g, b] = p.map(i32::from);
+    let [r, _, b] = p.map(i32::from);
     b > 90 && b > r + 40
 }
 
