@@ -784,6 +784,65 @@ mod tests {
         assert_eq!((st.reference, st.topology, st.last_seq), (None, None, 0));
     }
 
+    fn frame(seq: u64, keyframe_id: u64, keyframe: bool) -> RelayFrame {
+        let f = SurfaceFrame {
+            keyframe,
+            positions_m: if keyframe { vec![0.0; 9] } else { vec![] },
+            triangles: if keyframe { vec![0, 1, 2] } else { vec![] },
+            quantum_m: 1e-6,
+            keyframe_id,
+            ..Default::default()
+        };
+        RelayFrame {
+            seq,
+            encoded: Bytes::from(f.encode_to_vec()),
+            reference: Some(Arc::new(vec![0.0; 9])),
+            topology: Some((Arc::new(vec![0, 1, 2]), Arc::new(vec![0.0; 9]))),
+            chain: None,
+            frame: f,
+            chained: OnceLock::new(),
+            keyframe: OnceLock::new(),
+            keyframe_with_topology: OnceLock::new(),
+        }
+    }
+
+    #[test]
+    fn a_slow_browser_drops_frames_and_gets_its_keyframe_later() {
+        let (tx, mut rx) = mpsc::channel(1);
+        let c = RelayCounters::default();
+        let mut st = BrowserState {
+            reference: None,
+            topology: None,
+            last_seq: 0,
+            rate_hz: 30.0,
+        };
+        tx.try_send(Message::Text("busy".into())).unwrap();
+        // The queue is full: the keyframe this browser needs is dropped and counted, and its
+        // state still says it lacks the reference.
+        let f = frame(1, 1, false);
+        send_frame(&f, &mut st, &tx, &c);
+        assert_eq!(c.frames_dropped.load(Ordering::Relaxed), 1);
+        assert_eq!((st.reference, st.topology, st.last_seq), (None, None, 0));
+        // Room again: it gets a keyframe with the topology, then plain frames.
+        let _ = rx.try_recv();
+        send_frame(&f, &mut st, &tx, &c);
+        let Ok(Message::Binary(b)) = rx.try_recv() else {
+            panic!("no binary message");
+        };
+        let k = SurfaceFrame::decode(b).unwrap();
+        assert!(k.keyframe && k.triangles == [0, 1, 2] && k.positions_m.len() == 9);
+        assert_eq!(
+            (st.reference, st.topology, st.last_seq),
+            (Some(1), Some(0), 1)
+        );
+        send_frame(&frame(2, 1, false), &mut st, &tx, &c);
+        let Ok(Message::Binary(b)) = rx.try_recv() else {
+            panic!("no binary message");
+        };
+        assert!(!SurfaceFrame::decode(b).unwrap().keyframe);
+        assert_eq!(c.frames_sent.load(Ordering::Relaxed), 2);
+    }
+
     #[test]
     fn session_ids_and_rates_are_checked() {
         assert!(valid_session_id("8a765e80f817"));
