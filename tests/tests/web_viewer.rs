@@ -156,7 +156,23 @@ async fn web_viewer_shows_the_dent_and_the_force_during_a_bridge_press() -> Resu
         .eval(&page, "document.getElementById('status').textContent")
         .await?;
     let status = status.as_str().context("no status text")?.to_string();
+    // Every frame decoded (keyframes, chained keyframes and deltas) without asking again.
+    let decoded = browser
+        .eval(
+            &page,
+            "[window.hapticViewer.state.badFrames, window.hapticViewer.state.keyframes]",
+        )
+        .await?;
     drop(bridge);
+    ensure!(
+        decoded[0] == 0,
+        "the page failed to decode frames: {decoded}"
+    );
+    ensure!(
+        decoded[1].as_u64().unwrap_or(0) >= 1,
+        "no keyframe: {decoded}"
+    );
+    eprintln!("page: [bad frames, keyframes] = {decoded}");
 
     let dir = unique_temp_dir("web-viewer")?;
     std::fs::write(dir.join("rest.png"), &rest)?;
