@@ -275,6 +275,20 @@ pub fn stats_rows(s: &SessionStats) -> Vec<StatRow> {
         row("active_particles", U64(s.active_particles.into()), "count"),
         row("surface_vertices", U64(s.surface_vertices.into()), "count"),
         row("topology_version", U64(s.topology_version), ""),
+        row("watchers", U64(s.watchers.into()), "count"),
+        row("watcher_frames_sent", U64(s.watcher_frames_sent), "count"),
+        row(
+            "watcher_frames_dropped",
+            U64(s.watcher_frames_dropped),
+            "count",
+        ),
+        row("watcher_bytes_sent", U64(s.watcher_bytes_sent), "bytes"),
+        row("watcher_queued_bytes", U64(s.watcher_queued_bytes), "bytes"),
+        row(
+            "watcher_queue_limit_bytes",
+            U64(s.watcher_queue_limit_bytes),
+            "bytes",
+        ),
     ]
 }
 

@@ -8,17 +8,24 @@
 //! - [`viewer`]: subscribes to `SurfaceStream.Watch`, keeps the keyframe topology, applies the
 //!   position frames, measures rate and frame age, and writes pictures with [`raster`]
 //!   (binary `haptic-viewer`).
+//! - [`compact`]: the client side of compact streams (quantized deltas against a reference
+//!   keyframe), turning each frame into its full form.
 //! - [`ctl`]: calls `SessionControl` (scenes, start, stop, sessions, force, stats) and formats
 //!   the answers as tables or JSON (binary `hapticctl`).
+//! - [`web`]: the browser viewer (`haptic-viewer --web ADDR`), a relay that subscribes once
+//!   per session and fans the compact stream out to browsers over WebSocket, with the page
+//!   and three.js compiled into the binary.
 //!
 //! Neighbours: the wire contract is `haptics_proto::v1`; the server (`haptic-server`) implements
 //! it. This crate never depends on the physics model: everything it knows about a session comes
 //! over gRPC.
 
+pub mod compact;
 pub mod ctl;
 pub mod error;
 pub mod raster;
 pub mod viewer;
+pub mod web;
 
 pub use error::ClientError;
 

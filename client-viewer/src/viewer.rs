@@ -27,7 +27,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use glam::DVec3;
 use haptics_proto::v1::surface_stream_client::SurfaceStreamClient;
-use haptics_proto::v1::{SurfaceFrame, WatchRequest};
+use haptics_proto::v1::{SurfaceEncoding, SurfaceFrame, WatchRequest};
 use serde::Serialize;
 use tokio::sync::mpsc;
 use tokio_stream::{Stream, StreamExt};
@@ -54,6 +54,9 @@ pub struct ViewerConfig {
     pub render: RenderParams,
     /// Print a progress line to stderr every second.
     pub progress: bool,
+    /// Ask for the compact stream (quantized deltas, `SURFACE_ENCODING_DELTA`) instead of full
+    /// float positions in every frame.
+    pub compact: bool,
 }
 
 impl ViewerConfig {
@@ -69,6 +72,7 @@ impl ViewerConfig {
             max_rate_hz: 30.0,
             render: RenderParams::default(),
             progress: true,
+            compact: true,
         }
     }
 
@@ -108,9 +112,13 @@ pub struct ViewerArgs {
     /// Server URL.
     #[arg(long, env = "HAPTICD_ADDR", default_value = crate::DEFAULT_SERVER)]
     pub server: String,
-    /// Session id to watch.
-    #[arg(long)]
-    pub session: String,
+    /// Session id to watch (PNG mode; the web viewer lets the browser choose).
+    #[arg(long, required_unless_present = "web")]
+    pub session: Option<String>,
+    /// Serve the browser viewer on this address (e.g. 127.0.0.1:8080) instead of writing PNGs:
+    /// a relay that subscribes once per session and fans frames out to browsers over WebSocket.
+    #[arg(long, value_name = "ADDR")]
+    pub web: Option<String>,
     /// Output directory for frame_NNNNN.png and latest.png.
     #[arg(long, default_value = "viewer-out")]
     pub out: PathBuf,
@@ -147,9 +155,34 @@ pub struct ViewerArgs {
     /// Print the summary as one JSON line on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Surface encoding asked of the server: `delta` (quantized deltas, 1 um) or `full`.
+    #[arg(long, default_value = "delta", value_parser = ["delta", "full"])]
+    pub encoding: String,
 }
 
 impl ViewerArgs {
+    /// The web viewer's configuration when `--web` was given: the bind address and a
+    /// [`crate::web::WebConfig`] (browsers get `--max-rate-hz` by default, clamped to 60 Hz).
+    ///
+    /// # Errors
+    /// [`ClientError::InvalidConfig`] for a malformed address or bad rates.
+    pub fn web_config(
+        &self,
+    ) -> Result<Option<(std::net::SocketAddr, crate::web::WebConfig)>, ClientError> {
+        let Some(addr) = &self.web else {
+            return Ok(None);
+        };
+        let addr = addr.parse().map_err(|e| {
+            ClientError::InvalidConfig(format!("--web {addr:?}: {e} (expected HOST:PORT)"))
+        })?;
+        let mut cfg = crate::web::WebConfig::new(self.server.clone());
+        if self.max_rate_hz > 0.0 {
+            cfg.default_rate_hz = self.max_rate_hz.min(crate::web::MAX_BROWSER_RATE_HZ);
+        }
+        cfg.validate()?;
+        Ok(Some((addr, cfg)))
+    }
+
     /// Builds and validates the configuration.
     ///
     /// # Errors
@@ -171,13 +204,14 @@ impl ViewerArgs {
         }
         let cfg = ViewerConfig {
             server: self.server,
-            session_id: self.session,
+            session_id: self.session.unwrap_or_default(),
             out_dir: self.out,
             interval_s: self.interval_s,
             duration_s: self.duration_s,
             max_rate_hz: self.max_rate_hz,
             render,
             progress: !self.quiet,
+            compact: self.encoding == "delta",
         };
         cfg.validate()?;
         Ok(cfg)
@@ -500,6 +534,12 @@ pub async fn run(
         .watch(WatchRequest {
             session_id: cfg.session_id.clone(),
             max_rate_hz: cfg.max_rate_hz,
+            encoding: if cfg.compact {
+                SurfaceEncoding::Delta as i32
+            } else {
+                SurfaceEncoding::Full as i32
+            },
+            quantum_m: 0.0,
         })
         .await?
         .into_inner();
@@ -539,6 +579,7 @@ where
     })?;
     let (tx, worker) = spawn_worker(cfg.render.clone());
     let mut state = SurfaceState::new();
+    let mut compact = crate::compact::CompactState::new();
     let mut c = Counters {
         frames: 0,
         keyframes: 0,
@@ -600,6 +641,16 @@ where
                 }
                 Some(Ok(frame)) => {
                     let recv_us = now_unix_us();
+                    // Compact frames become full ones (absolute positions) first.
+                    let frame = match compact.expand(frame) {
+                        Ok(f) => f,
+                        Err(e) => {
+                            tracing::error!("{e}");
+                            c.bad_frames += 1;
+                            c.last_error = Some(e.to_string());
+                            continue;
+                        }
+                    };
                     match state.apply(&frame, &cfg.render) {
                         Err(e) => {
                             tracing::error!("{e}");

@@ -13,6 +13,9 @@ pub enum ServerError {
     /// A request names a session that does not exist.
     #[error("no session `{0}`")]
     UnknownSession(String),
+    /// A `RequestKeyframe` names a watch stream that is not open on the session.
+    #[error("no watch stream {0} on this session")]
+    UnknownWatch(u64),
     /// A request carries a bad value (NaN, out of range, missing field).
     #[error("{0}")]
     InvalidArgument(String),
@@ -35,7 +38,7 @@ impl From<ServerError> for Status {
     fn from(e: ServerError) -> Self {
         let msg = e.to_string();
         match e {
-            ServerError::UnknownSession(_) => Status::not_found(msg),
+            ServerError::UnknownSession(_) | ServerError::UnknownWatch(_) => Status::not_found(msg),
             ServerError::InvalidArgument(_) | ServerError::Config(_) => {
                 Status::invalid_argument(msg)
             }

@@ -6,7 +6,8 @@
 //!
 //! Modules: [`config`] (layered configuration), [`error`] (the one mapping to `tonic::Status`),
 //! [`servo`] (the 1 kHz loop), [`session`] (threads and handoffs per session), [`service`]
-//! (gRPC handlers), [`solve`] (static solutions of scene files, behind `haptic-solve`).
+//! (gRPC handlers), [`stream`] (surface streams: shared frames, compact encoding, watchers),
+//! [`solve`] (static solutions of scene files, behind `haptic-solve`).
 
 pub mod config;
 pub mod error;
@@ -14,6 +15,7 @@ pub mod service;
 pub mod servo;
 pub mod session;
 pub mod solve;
+pub mod stream;
 
 use std::future::Future;
 use std::sync::Arc;

@@ -4,7 +4,6 @@
 
 use std::pin::Pin;
 use std::sync::Arc;
-use std::time::Duration;
 
 use haptic_model::DVec3;
 use haptic_model::body::{self, MAX_DEVICE_DISTANCE_M};
@@ -19,14 +18,14 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::error::ServerError;
 use crate::servo::{Command, Pose};
-use crate::session::{SessionManager, unix_time_us};
+use crate::session::SessionManager;
 
 /// Largest accepted device speed, m/s (a haptic arm moves well below 5 m/s).
 pub const MAX_DEVICE_SPEED_M_PER_S: f64 = 20.0;
-/// Default and largest viewer frame rates, Hz.
-pub const DEFAULT_VIEWER_RATE_HZ: f64 = 30.0;
+/// Default viewer frame rate, Hz.
+pub const DEFAULT_VIEWER_RATE_HZ: f64 = crate::stream::DEFAULT_RATE_HZ;
 /// Largest viewer frame rate, Hz.
-pub const MAX_VIEWER_RATE_HZ: f64 = 120.0;
+pub const MAX_VIEWER_RATE_HZ: f64 = crate::stream::MAX_RATE_HZ;
 
 /// Shared handler state.
 #[derive(Clone)]
@@ -209,6 +208,7 @@ impl SessionControl for Services {
             active_particles: st.body.active_particles as u32,
             surface_vertices: st.body.surface_vertices as u32,
             topology_version: st.body.topology_version,
+            ..watcher_stats(&s.watcher_stats)
         }))
     }
 
@@ -251,8 +251,21 @@ fn link_headers(
     put(HEADER_SERVER_INSTANCE, instance.to_owned());
 }
 
+/// The watcher fields of `SessionStats` (40-45).
+fn watcher_stats(w: &crate::stream::WatcherStats) -> SessionStats {
+    use std::sync::atomic::Ordering::Relaxed;
+    SessionStats {
+        watchers: w.watchers.load(Relaxed) as u32,
+        watcher_frames_sent: w.frames_sent.load(Relaxed),
+        watcher_frames_dropped: w.frames_dropped.load(Relaxed),
+        watcher_bytes_sent: w.bytes_sent.load(Relaxed),
+        watcher_queued_bytes: w.queued_bytes.load(Relaxed),
+        watcher_queue_limit_bytes: w.queue_limit_bytes.load(Relaxed),
+        ..SessionStats::default()
+    }
+}
+
 type ForceStream = Pin<Box<dyn Stream<Item = Result<ForceCommand, Status>> + Send>>;
-type FrameStream = Pin<Box<dyn Stream<Item = Result<SurfaceFrame, Status>> + Send>>;
 
 #[tonic::async_trait]
 impl DeviceLink for Services {
@@ -338,73 +351,25 @@ impl DeviceLink for Services {
 
 #[tonic::async_trait]
 impl SurfaceStream for Services {
-    type WatchStream = FrameStream;
+    type WatchStream = crate::stream::FrameStream;
 
     async fn watch(
         &self,
         req: Request<WatchRequest>,
     ) -> Result<Response<Self::WatchStream>, Status> {
         let r = req.into_inner();
-        if !r.max_rate_hz.is_finite() || r.max_rate_hz < 0.0 {
-            return Err(Status::invalid_argument(format!(
-                "max_rate_hz = {} must be a finite number >= 0",
-                r.max_rate_hz
-            )));
-        }
-        let rate = if r.max_rate_hz == 0.0 {
-            DEFAULT_VIEWER_RATE_HZ
-        } else {
-            r.max_rate_hz.min(MAX_VIEWER_RATE_HZ)
-        };
+        let params = crate::stream::WatchParams::from_request(&r)?;
         let session = self.manager.get(&r.session_id)?;
-        let (mut frames, guard) = session.watch();
-        let (tx, rx) = mpsc::channel(4);
-        tokio::spawn(async move {
-            let _guard = guard;
-            let period = Duration::from_secs_f64(1.0 / rate);
-            let mut count: u64 = 0;
-            let mut shown_topology: Option<u64> = None;
-            loop {
-                if frames.changed().await.is_err() {
-                    break; // session ended
-                }
-                let Some(f) = frames.borrow_and_update().clone() else {
-                    continue;
-                };
-                // A keyframe first, and whenever the surface's connectivity changed.
-                let keyframe = shown_topology != Some(f.topology.version);
-                shown_topology = Some(f.topology.version);
-                let frame = SurfaceFrame {
-                    frame: count,
-                    sim_time_s: f.sim_time_s,
-                    keyframe,
-                    positions_m: f.positions_m.clone(),
-                    triangles: if keyframe {
-                        f.topology.triangles.clone()
-                    } else {
-                        Vec::new()
-                    },
-                    probe_position_m: Some(Vec3::from(f.probe_m)),
-                    contact_force_n: Some(Vec3::from(f.force_n)),
-                    in_contact: f.in_contact,
-                    probe_radius_m: session.probe_radius_m,
-                    server_time_us: unix_time_us(),
-                    max_displacement_m: f.max_displacement_m,
-                    rest_positions_m: if keyframe {
-                        f.topology.rest_positions_m.clone()
-                    } else {
-                        Vec::new()
-                    },
-                };
-                if tx.send(Ok(frame)).await.is_err() {
-                    break; // viewer went away
-                }
-                count += 1;
-                tokio::time::sleep(period).await;
-            }
-        });
-        Ok(Response::new(
-            Box::pin(ReceiverStream::new(rx)) as FrameStream
-        ))
+        Ok(Response::new(crate::stream::spawn_watch(session, params)))
+    }
+
+    async fn request_keyframe(
+        &self,
+        req: Request<KeyframeRequest>,
+    ) -> Result<Response<KeyframeResponse>, Status> {
+        let r = req.into_inner();
+        let session = self.manager.get(&r.session_id)?;
+        session.watcher_stats.request_keyframe(r.watch_id)?;
+        Ok(Response::new(KeyframeResponse {}))
     }
 }

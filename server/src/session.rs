@@ -121,10 +121,12 @@ pub struct Topology {
     pub triangles: Vec<u32>,
     /// Rest positions of the surface vertices, xyz, m.
     pub rest_positions_m: Vec<f32>,
+    /// Prediction order of compact streams for these triangles (`None` if they are invalid).
+    pub codec: Option<Arc<haptics_proto::delta::DeltaCodec>>,
 }
 
 /// A viewer frame built from a servo snapshot (shared by all viewers of a session).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug)]
 pub struct FrameData {
     /// Snapshot tick.
     pub tick: u64,
@@ -142,6 +144,13 @@ pub struct FrameData {
     pub in_contact: bool,
     /// Largest surface displacement, m.
     pub max_displacement_m: f64,
+    /// The reference keyframe of compact streams (`None` while no compact watcher exists).
+    pub reference: Option<Arc<crate::stream::Reference>>,
+    /// `positions_m` against `reference` at the default quantum (1 um), encoded; `None`
+    /// without a reference. Empty when the positions are the reference.
+    pub delta: Option<prost::bytes::Bytes>,
+    /// Deltas at other quanta, computed on demand ([`FrameData::delta_for`]).
+    pub other_deltas: Mutex<Vec<(u64, Option<prost::bytes::Bytes>)>>,
 }
 
 /// Sender half of a DeviceLink response stream.
@@ -167,6 +176,8 @@ pub struct Session {
     pub probe_radius_m: f64,
     /// Shared atomics.
     pub shared: Arc<SessionShared>,
+    /// Counters and keyframe requests of the session's watchers ([`crate::stream`]).
+    pub watcher_stats: Arc<crate::stream::WatcherStats>,
     /// Session clock zero.
     pub epoch: Instant,
     /// The scene's limits for the device bridge (`None` for a body started without a scene).
@@ -532,7 +543,7 @@ impl SessionManager {
             commands: cmd_tx,
             pose: pose_in,
             forces: mut force_rx,
-            snapshot: mut snap_out,
+            snapshot: snap_out,
             stats: stats_out,
         } = handles;
         let period_us = (info.tick_s * 1e6).round().max(1.0) as u64;
@@ -607,48 +618,14 @@ impl SessionManager {
 
         // Frame task: servo snapshots -> shared viewer frames, only while someone watches.
         let (frame_tx, frame_rx) = watch::channel(None);
-        let frame_shared = shared.clone();
-        tokio::spawn(async move {
-            let mut tick = tokio::time::interval(Duration::from_millis(10));
-            let mut topology: Option<Arc<Topology>> = None;
-            tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-            loop {
-                tick.tick().await;
-                if frame_shared.finished.load(Ordering::Acquire)
-                    || frame_shared.stop.load(Ordering::Acquire)
-                {
-                    break;
-                }
-                if frame_shared.watchers.load(Ordering::Acquire) == 0 || !snap_out.update() {
-                    continue;
-                }
-                let s = snap_out.output_buffer();
-                let topology = match &topology {
-                    Some(t) if t.version == s.topology_version => t.clone(),
-                    _ => topology
-                        .insert(Arc::new(Topology {
-                            version: s.topology_version,
-                            triangles: s.triangles.clone(),
-                            rest_positions_m: s.rest_positions_m.clone(),
-                        }))
-                        .clone(),
-                };
-                let frame = FrameData {
-                    tick: s.tick,
-                    sim_time_s: s.sim_time_s,
-                    topology,
-                    positions_m: s.positions_m.clone(),
-                    probe_m: s.probe_m.to_array(),
-                    force_n: s.force_n.to_array(),
-                    in_contact: s.in_contact,
-                    max_displacement_m: s.max_displacement_m,
-                };
-                if frame_tx.send(Some(Arc::new(frame))).is_err() {
-                    // No receiver left (the session was dropped).
-                    break;
-                }
-            }
-        });
+        let watcher_stats = Arc::new(crate::stream::WatcherStats::default());
+        crate::stream::spawn_frame_task(
+            snap_out,
+            frame_tx,
+            shared.clone(),
+            watcher_stats.clone(),
+            crate::stream::KeyframePolicy::default(),
+        );
 
         let session = Arc::new(Session {
             id: id.clone(),
@@ -664,6 +641,7 @@ impl SessionManager {
             },
             probe_radius_m: info.probe_radius_m,
             shared,
+            watcher_stats,
             epoch,
             limits,
             servo_thread: servo.thread().clone(),

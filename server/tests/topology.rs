@@ -1,7 +1,7 @@
 //! The soft-body seam with a surface whose connectivity changes at run time (as a subdivided
 //! mass-spring surface or activated particles will): the servo rewrites the snapshot's
 //! triangles only when the topology version changes and never allocates doing it, and a viewer
-//! watching the session gets a new keyframe with the new triangles.
+//! watching the session gets a new keyframe with the new triangles (full and compact streams).
 
 use std::cell::Cell;
 use std::sync::Arc;
@@ -193,6 +193,7 @@ async fn a_viewer_gets_a_keyframe_when_the_topology_changes() {
         .watch(tonic::Request::new(WatchRequest {
             session_id: session.id.clone(),
             max_rate_hz: 100.0,
+            ..WatchRequest::default()
         }))
         .await
         .unwrap();
@@ -219,4 +220,69 @@ async fn a_viewer_gets_a_keyframe_when_the_topology_changes() {
     // The first keyframe, then one per topology change: split (5 vertices, 4 triangles), merged.
     assert!(keyframes.len() >= 3, "keyframes {keyframes:?}");
     assert_eq!(&keyframes[..3], &[(4, 2), (5, 4), (4, 2)]);
+}
+
+#[tokio::test]
+async fn a_compact_viewer_gets_a_keyframe_with_triangles_when_the_topology_changes() {
+    use haptics_proto::delta::DeltaCodec;
+    use haptics_proto::v1::SurfaceEncoding;
+    let manager = Arc::new(SessionManager::new(ServerConfig::default()));
+    let session = manager
+        .start_body(Box::new(SplittingSquare::new(300)))
+        .unwrap();
+    let services = Services::new(manager.clone());
+    let mut frames = services
+        .watch(tonic::Request::new(WatchRequest {
+            session_id: session.id.clone(),
+            max_rate_hz: 100.0,
+            encoding: SurfaceEncoding::Delta as i32,
+            quantum_m: 0.0,
+        }))
+        .await
+        .unwrap()
+        .into_inner();
+    // (topology version, vertices, triangles) of every keyframe that brought triangles.
+    let mut keyframes = Vec::new();
+    let mut state: Option<(u64, DeltaCodec, Vec<f32>)> = None;
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+    while keyframes.len() < 3 && tokio::time::Instant::now() < deadline {
+        let Ok(Some(frame)) = tokio::time::timeout(Duration::from_secs(5), frames.next()).await
+        else {
+            break;
+        };
+        let f = frame.unwrap();
+        if f.keyframe && !f.triangles.is_empty() {
+            let n = f.positions_m.len() / 3;
+            keyframes.push((f.topology_version, n, f.triangles.len() / 3));
+            state = Some((
+                f.topology_version,
+                DeltaCodec::new(n, &f.triangles).unwrap(),
+                f.positions_m.clone(),
+            ));
+        } else if f.keyframe && !f.positions_m.is_empty() {
+            let s = state.as_mut().expect("a topology first");
+            s.2 = f.positions_m.clone();
+        } else if f.keyframe {
+            // Chained: the new reference is the old one plus the step.
+            let s = state.as_mut().expect("a topology first");
+            let mut p = vec![0.0; s.2.len()];
+            s.1.decode(&s.2, &f.reference_delta, f.quantum_m, &mut p)
+                .unwrap();
+            s.2 = p;
+        }
+        // Every frame is of the topology the last keyframe brought, and decodes against it.
+        let (version, codec, reference) = state.as_ref().expect("keyframe first");
+        assert_eq!(
+            f.topology_version, *version,
+            "a new topology without triangles"
+        );
+        let mut p = vec![0.0; reference.len()];
+        codec
+            .decode(reference, &f.position_delta, f.quantum_m, &mut p)
+            .unwrap();
+    }
+    manager.stop(&session.id).unwrap();
+    assert!(keyframes.len() >= 3, "keyframes {keyframes:?}");
+    let shapes: Vec<_> = keyframes[..3].iter().map(|k| (k.1, k.2)).collect();
+    assert_eq!(shapes, [(4, 2), (5, 4), (4, 2)]);
 }

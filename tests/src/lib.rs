@@ -21,7 +21,9 @@
 //! ([`demo`]). Nothing here asserts wall-clock timing: the machines are 2-core and shared, so
 //! every wait is a generous, bounded timeout.
 
+pub mod browser;
 pub mod demo;
+pub mod load;
 
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
@@ -559,6 +561,33 @@ fn spawn_exe(exe: &Path, name: &str, args: &[&str]) -> Result<Spawned> {
 /// Build failure, missing binary or spawn failure.
 pub fn spawn_bin(name: &str, args: &[&str]) -> Result<Spawned> {
     spawn_exe(&binary(name)?, name, args)
+}
+
+/// Starts `haptic-viewer --server URL --web 127.0.0.1:0 ARGS...` (built by [`binary`]) and
+/// waits (up to [`STEP_TIMEOUT`]) for its `listening on ADDR`; returns the process and `ADDR`.
+///
+/// # Errors
+/// Build or spawn failure, or no address printed in time.
+pub async fn spawn_web_viewer(url: &str, args: &[&str]) -> Result<(Spawned, String)> {
+    use tokio::io::AsyncBufReadExt;
+    let mut all = vec!["--server", url, "--web", "127.0.0.1:0"];
+    all.extend_from_slice(args);
+    let mut web = spawn_bin(VIEWER, &all)?;
+    let stdout = web.child.stdout.take().context("piped stdout")?;
+    let mut lines = tokio::io::BufReader::new(stdout).lines();
+    let addr = tokio::time::timeout(STEP_TIMEOUT, async {
+        while let Some(l) = lines.next_line().await? {
+            if let Some(a) = l.strip_prefix("listening on ") {
+                return anyhow::Ok(a.trim().to_string());
+            }
+        }
+        bail!("haptic-viewer --web ended without printing its address")
+    })
+    .await
+    .context("haptic-viewer --web did not print its address in time")??;
+    // Keep draining stdout so the relay never blocks on a full pipe.
+    tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
+    Ok((web, addr))
 }
 
 /// Waits up to `timeout` for a background binary and collects its output (any exit status;

@@ -164,6 +164,7 @@ async fn bad_inputs_get_statuses_and_session_keeps_running() -> Result<()> {
         .watch(WatchRequest {
             session_id: nosuch.clone(),
             max_rate_hz: 0.0,
+            ..WatchRequest::default()
         })
         .await
         .expect_err("Watch on an unknown session");

@@ -36,6 +36,7 @@ async fn watch_vertex(url: &str, session: &str, p: [f64; 3]) -> Result<Watched> 
         .watch(WatchRequest {
             session_id: session.to_string(),
             max_rate_hz: 60.0,
+            ..WatchRequest::default()
         })
         .await?
         .into_inner();

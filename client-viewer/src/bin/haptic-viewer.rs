@@ -1,5 +1,6 @@
 //! `haptic-viewer`: watches a session's deformed surface over `SurfaceStream.Watch` and writes
-//! PNG pictures (`frame_00001.png`, ..., `latest.png`) without a GPU or display.
+//! PNG pictures (`frame_00001.png`, ..., `latest.png`) without a GPU or display; with
+//! `--web ADDR` it serves the browser viewer instead (prints `listening on ADDR` on stdout).
 //!
 //! Glue only: parse arguments, start logging, call `haptic_client::viewer::run`, print the
 //! summary (stderr; one JSON line on stdout with `--json`). Exit code 0 when the run ended
@@ -12,6 +13,17 @@ use clap::Parser;
 use haptic_client::viewer::{self, StopReason, ViewerArgs};
 
 async fn run(args: ViewerArgs) -> anyhow::Result<ExitCode> {
+    if let Some((addr, cfg)) = args.web_config()? {
+        let listener = tokio::net::TcpListener::bind(addr).await?;
+        let addr = listener.local_addr()?;
+        println!("listening on {addr}");
+        eprintln!("web viewer on http://{addr}/ (daemon {})", cfg.server);
+        let shutdown = async {
+            let _ = tokio::signal::ctrl_c().await;
+        };
+        haptic_client::web::run(listener, cfg, shutdown).await?;
+        return Ok(ExitCode::SUCCESS);
+    }
     let json = args.json;
     let cfg = args.into_config()?;
     let shutdown = async {

@@ -106,6 +106,7 @@ pub fn pushed_frame(k: u64, keyframe: bool) -> SurfaceFrame {
         server_time_us: now_us(),
         max_displacement_m: d as f64,
         rest_positions_m: Vec::new(),
+        ..SurfaceFrame::default()
     }
 }
 
@@ -114,6 +115,13 @@ type FrameStream = Pin<Box<dyn Stream<Item = Result<SurfaceFrame, Status>> + Sen
 #[tonic::async_trait]
 impl SurfaceStream for Mock {
     type WatchStream = FrameStream;
+
+    async fn request_keyframe(
+        &self,
+        _: Request<KeyframeRequest>,
+    ) -> Result<Response<KeyframeResponse>, Status> {
+        Err(Status::unimplemented("the mock has no compact streams"))
+    }
 
     async fn watch(
         &self,
@@ -206,6 +214,12 @@ pub fn canned_stats(id: &str) -> SessionStats {
         active_particles: 600,
         surface_vertices: 321,
         topology_version: 7,
+        watchers: 3,
+        watcher_frames_sent: 1234,
+        watcher_frames_dropped: 5,
+        watcher_bytes_sent: 987_654,
+        watcher_queued_bytes: 4321,
+        watcher_queue_limit_bytes: 65_536,
     }
 }
 

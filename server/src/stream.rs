@@ -1,0 +1,552 @@
+//! Surface streams: the frame task that turns servo snapshots into shared viewer frames, and one
+//! task per `SurfaceStream.Watch` that samples them at the watcher's rate.
+//!
+//! - **Shared work, once per snapshot.** The frame task ([`spawn_frame_task`]) copies the
+//!   snapshot into an `Arc<FrameData>` (a `tokio::sync::watch` slot: latest only) and, while a
+//!   compact watcher exists, encodes the positions once as quantized deltas against the
+//!   session's current reference keyframe ([`haptics_proto::delta`], 1 um). Every compact
+//!   watcher sends those same bytes (`bytes::Bytes`, reference counted).
+//! - **Reference keyframes** are renewed on a topology change, when a delta is not
+//!   representable, every [`KeyframePolicy::max_interval_s`], and when the surface has settled
+//!   in a new shape, so that a fresh keyframe pays for itself within
+//!   [`KeyframePolicy::payback_frames`] frames ([`KeyframePolicy::should_renew`]). A renewal
+//!   is chained where it can be: the new reference is the old one plus a delta, and a watcher
+//!   that has the old one gets only that delta (`base_keyframe_id`, `reference_delta`), not
+//!   float positions.
+//! - **Each watcher** ([`spawn_watch`]) has its own rate, its own id (for `RequestKeyframe`)
+//!   and a queue of [`WATCH_QUEUE_FRAMES`] frames: when the queue is full at a due frame, that
+//!   frame is dropped and counted (a slow watcher never queues without bound and never slows
+//!   the others or the servo). A keyframe that could not be queued is retried at the next due
+//!   frame, and a late joiner's first frame is a keyframe. Counters live in [`WatcherStats`]
+//!   (`GetStats`: watchers, frames sent and dropped, bytes sent and queued).
+//!
+//! Neighbours: [`crate::session`] owns the handoffs and calls [`spawn_frame_task`];
+//! [`crate::service`] validates `WatchRequest`s with [`WatchParams::from_request`]. Nothing
+//! here runs on the servo thread.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use haptics_proto::delta::{self, DEFAULT_QUANTUM_M, DeltaCodec};
+use haptics_proto::v1::{SurfaceEncoding, SurfaceFrame, Vec3, WatchRequest};
+use prost::Message;
+use prost::bytes::Bytes;
+use tokio::sync::{mpsc, watch};
+use tokio_stream::Stream;
+use tokio_stream::wrappers::ReceiverStream;
+
+use crate::error::ServerError;
+use crate::servo::{SessionShared, Snapshot};
+use crate::session::{FrameData, Session, Topology, unix_time_us};
+
+/// Default watcher frame rate, Hz.
+pub const DEFAULT_RATE_HZ: f64 = 30.0;
+/// Smallest watcher frame rate, Hz (0 in a request means the default).
+pub const MIN_RATE_HZ: f64 = 0.1;
+/// Largest watcher frame rate, Hz (higher requests are clamped).
+pub const MAX_RATE_HZ: f64 = 120.0;
+/// Frames one watcher may have queued for its transport; a due frame beyond it is dropped.
+pub const WATCH_QUEUE_FRAMES: usize = 2;
+
+/// How one watcher wants its frames, validated.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WatchParams {
+    /// Frames per second, Hz, in `MIN_RATE_HZ..=MAX_RATE_HZ`.
+    pub rate_hz: f64,
+    /// `None`: full float positions in every frame; `Some(q)`: deltas in steps of `q` m.
+    pub quantum_m: Option<f64>,
+}
+
+impl WatchParams {
+    /// Validates a request: rate 0 (default, 30 Hz) or 0.1 Hz and more (clamped to 120 Hz),
+    /// a known encoding, and for DELTA a quantum of 0 (1 um) or 1e-8 ..= 1e-3 m.
+    ///
+    /// # Errors
+    /// [`ServerError::InvalidArgument`] naming the field.
+    pub fn from_request(r: &WatchRequest) -> Result<Self, ServerError> {
+        let rate = r.max_rate_hz;
+        if !rate.is_finite() || rate < 0.0 || (rate > 0.0 && rate < MIN_RATE_HZ) {
+            return Err(ServerError::InvalidArgument(format!(
+                "max_rate_hz = {rate}: give 0 (server default, {DEFAULT_RATE_HZ} Hz) or a rate \
+                 of at least {MIN_RATE_HZ} Hz"
+            )));
+        }
+        let rate_hz = if rate == 0.0 {
+            DEFAULT_RATE_HZ
+        } else {
+            rate.min(MAX_RATE_HZ)
+        };
+        let encoding = SurfaceEncoding::try_from(r.encoding).map_err(|_| {
+            ServerError::InvalidArgument(format!("encoding = {} is not known", r.encoding))
+        })?;
+        let quantum_m = match encoding {
+            SurfaceEncoding::Full => None,
+            SurfaceEncoding::Delta if r.quantum_m == 0.0 => Some(DEFAULT_QUANTUM_M),
+            SurfaceEncoding::Delta => Some(
+                delta::check_quantum(r.quantum_m)
+                    .map_err(|e| ServerError::InvalidArgument(format!("quantum_m: {e}")))?,
+            ),
+        };
+        Ok(Self { rate_hz, quantum_m })
+    }
+}
+
+/// Counters of a session's watchers (atomics: the watch tasks write, `GetStats` reads).
+#[derive(Debug, Default)]
+pub struct WatcherStats {
+    /// Watch streams open now.
+    pub watchers: AtomicUsize,
+    /// Watch streams open now that asked for DELTA (the frame task encodes only for them).
+    pub delta_watchers: AtomicUsize,
+    /// Frames queued to watchers so far.
+    pub frames_sent: AtomicU64,
+    /// Frames a watcher was due while its queue was full.
+    pub frames_dropped: AtomicU64,
+    /// Encoded bytes of the frames sent.
+    pub bytes_sent: AtomicU64,
+    /// Encoded bytes waiting in watcher queues now.
+    pub queued_bytes: AtomicU64,
+    /// The most one watcher's queue can hold for the current topology, bytes.
+    pub queue_limit_bytes: AtomicU64,
+    /// Keyframe requests of the open streams, by watch id.
+    requests: Mutex<HashMap<u64, Arc<AtomicBool>>>,
+}
+
+impl WatcherStats {
+    /// Asks stream `watch_id` for a keyframe with its topology as its next frame.
+    ///
+    /// # Errors
+    /// [`ServerError::UnknownWatch`] when no such stream is open on this session.
+    pub fn request_keyframe(&self, watch_id: u64) -> Result<(), ServerError> {
+        let requests = self
+            .requests
+            .lock()
+            .map_err(|_| ServerError::Internal("keyframe requests poisoned".into()))?;
+        let flag = requests
+            .get(&watch_id)
+            .ok_or(ServerError::UnknownWatch(watch_id))?;
+        flag.store(true, Ordering::Release);
+        Ok(())
+    }
+}
+
+/// When the frame task renews the reference keyframe of compact streams.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct KeyframePolicy {
+    /// Never renew more often than this, s (bounds keyframe bursts during continuous motion).
+    pub min_interval_s: f64,
+    /// Always renew after this long, s (periodic keyframes).
+    pub max_interval_s: f64,
+    /// Renew when `(delta - step) * payback_frames > keyframe`, where `delta` is the encoded
+    /// size against the reference, `step` against the previous snapshot and `keyframe` what
+    /// the renewal costs (a chained one: about `delta`): the surface is in a shape far from
+    /// the reference.
+    pub payback_frames: f64,
+}
+
+impl Default for KeyframePolicy {
+    fn default() -> Self {
+        Self {
+            min_interval_s: 0.5,
+            max_interval_s: 10.0,
+            payback_frames: 20.0,
+        }
+    }
+}
+
+impl KeyframePolicy {
+    /// Whether to renew the reference now. Sizes in bytes, `since_s` since the last renewal.
+    pub fn should_renew(
+        &self,
+        since_s: f64,
+        delta_bytes: usize,
+        step_bytes: usize,
+        keyframe_bytes: usize,
+    ) -> bool {
+        if since_s >= self.max_interval_s {
+            return true;
+        }
+        since_s >= self.min_interval_s
+            && (delta_bytes.saturating_sub(step_bytes)) as f64 * self.payback_frames
+                > keyframe_bytes as f64
+    }
+}
+
+/// A reference keyframe of the compact streams: delta frames encode positions against it.
+#[derive(Debug)]
+pub struct Reference {
+    /// Increasing per session from 1 (`SurfaceFrame.keyframe_id`).
+    pub id: u64,
+    /// The connectivity of these positions.
+    pub topology: Arc<Topology>,
+    /// Surface positions, xyz, m.
+    pub positions_m: Vec<f32>,
+    /// Simulated time of these positions, s.
+    pub sim_time_s: f64,
+    /// How a client that has the previous reference gets this one: `(previous id, delta)` with
+    /// `positions_m = previous + delta` exactly as a client decodes it (1 um steps). `None` for
+    /// a first reference, a new topology, or a displacement a delta cannot express.
+    pub chain: Option<(u64, Bytes)>,
+}
+
+/// Spawns the frame task of a session: every 10 ms, while someone watches and the servo
+/// published a new snapshot, publish a shared [`FrameData`] (with deltas while compact watchers
+/// exist). Ends when the session stops.
+pub fn spawn_frame_task(
+    mut snap_out: triple_buffer::Output<Snapshot>,
+    frame_tx: watch::Sender<Option<Arc<FrameData>>>,
+    shared: Arc<SessionShared>,
+    stats: Arc<WatcherStats>,
+    policy: KeyframePolicy,
+) {
+    tokio::spawn(async move {
+        let mut tick = tokio::time::interval(Duration::from_millis(10));
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+        let mut topology: Option<Arc<Topology>> = None;
+        let mut reference: Option<Arc<Reference>> = None;
+        let mut renewed_at = tokio::time::Instant::now();
+        let mut previous: Vec<f32> = Vec::new();
+        let mut next_id = 1u64;
+        let (mut buf, mut step_buf) = (Vec::new(), Vec::new());
+        loop {
+            tick.tick().await;
+            if shared.finished.load(Ordering::Acquire) || shared.stop.load(Ordering::Acquire) {
+                break;
+            }
+            if shared.watchers.load(Ordering::Acquire) == 0 || !snap_out.update() {
+                continue;
+            }
+            let s = snap_out.output_buffer();
+            let topology = match &topology {
+                Some(t) if t.version == s.topology_version => t.clone(),
+                _ => {
+                    let n = s.rest_positions_m.len() / 3;
+                    let t = Arc::new(Topology {
+                        version: s.topology_version,
+                        triangles: s.triangles.clone(),
+                        rest_positions_m: s.rest_positions_m.clone(),
+                        codec: DeltaCodec::new(n, &s.triangles).ok().map(Arc::new),
+                    });
+                    stats
+                        .queue_limit_bytes
+                        .store(queue_limit_bytes(&t), Ordering::Relaxed);
+                    topology.insert(t).clone()
+                }
+            };
+            let mut delta = None;
+            if stats.delta_watchers.load(Ordering::Acquire) == 0 {
+                reference = None;
+            } else if let Some(codec) = topology.codec.as_deref() {
+                let now = tokio::time::Instant::now();
+                let encoded = match &reference {
+                    Some(r) if r.topology.version == topology.version => codec
+                        .encode(&r.positions_m, &s.positions_m, DEFAULT_QUANTUM_M, &mut buf)
+                        .ok()
+                        .map(|()| buf.len()),
+                    _ => None,
+                };
+                let renew = match encoded {
+                    None => true,
+                    Some(len) => {
+                        let step = if previous.len() == s.positions_m.len() {
+                            codec
+                                .encode(&previous, &s.positions_m, DEFAULT_QUANTUM_M, &mut step_buf)
+                                .map_or(usize::MAX, |()| step_buf.len())
+                        } else {
+                            usize::MAX
+                        };
+                        // A chained renewal costs about one delta (`len`), not a float keyframe.
+                        policy.should_renew((now - renewed_at).as_secs_f64(), len, step, len)
+                    }
+                };
+                if renew {
+                    // Chained when the old reference can express the new one: the new reference
+                    // is what a client decodes from the old one (within half a step of the
+                    // surface), so a renewal costs a delta instead of a float keyframe.
+                    let chained = match (&reference, encoded) {
+                        (Some(old), Some(_)) => {
+                            let mut p = vec![0.0; s.positions_m.len()];
+                            codec
+                                .decode(&old.positions_m, &buf, DEFAULT_QUANTUM_M, &mut p)
+                                .ok()
+                                .map(|()| (p, (old.id, Bytes::copy_from_slice(&buf))))
+                        }
+                        _ => None,
+                    };
+                    let (positions_m, chain) = match chained {
+                        Some((p, c)) => (p, Some(c)),
+                        None => (s.positions_m.clone(), None),
+                    };
+                    delta = codec
+                        .encode(&positions_m, &s.positions_m, DEFAULT_QUANTUM_M, &mut buf)
+                        .ok()
+                        .map(|()| Bytes::copy_from_slice(&buf));
+                    reference = Some(Arc::new(Reference {
+                        id: next_id,
+                        topology: topology.clone(),
+                        positions_m,
+                        sim_time_s: s.sim_time_s,
+                        chain,
+                    }));
+                    next_id += 1;
+                    renewed_at = now;
+                } else {
+                    delta = Some(Bytes::copy_from_slice(&buf));
+                }
+                previous.clear();
+                previous.extend_from_slice(&s.positions_m);
+            }
+            let frame = FrameData {
+                tick: s.tick,
+                sim_time_s: s.sim_time_s,
+                topology,
+                positions_m: s.positions_m.clone(),
+                probe_m: s.probe_m.to_array(),
+                force_n: s.force_n.to_array(),
+                in_contact: s.in_contact,
+                max_displacement_m: s.max_displacement_m,
+                reference: reference.clone(),
+                delta,
+                other_deltas: Mutex::new(Vec::new()),
+            };
+            if frame_tx.send(Some(Arc::new(frame))).is_err() {
+                break; // no receiver left (the session was dropped)
+            }
+        }
+    });
+}
+
+/// The largest frame of a topology (keyframe with triangles, rest, positions and a full delta)
+/// times the queue length, bytes.
+fn queue_limit_bytes(t: &Topology) -> u64 {
+    let values = t.rest_positions_m.len();
+    let frame = 2 * (5 + 4 * values) // positions_m, rest_positions_m (packed floats)
+        + 5 + 5 * t.triangles.len() // packed varints
+        + t.codec.as_ref().map_or(0, |c| c.payload_len() + 5)
+        + 256; // scalars, vectors
+    (WATCH_QUEUE_FRAMES * frame) as u64
+}
+
+impl FrameData {
+    /// The encoded delta of this frame against [`FrameData::reference`] in steps of
+    /// `quantum_m` (computed once per quantum and shared); `None` without a reference or when
+    /// not representable.
+    pub fn delta_for(&self, quantum_m: f64) -> Option<Bytes> {
+        let reference = self.reference.as_ref()?;
+        if quantum_m == DEFAULT_QUANTUM_M {
+            return self.delta.clone();
+        }
+        let key = quantum_m.to_bits();
+        if let Ok(cache) = self.other_deltas.lock()
+            && let Some((_, d)) = cache.iter().find(|(k, _)| *k == key)
+        {
+            return d.clone();
+        }
+        let codec = reference.topology.codec.as_ref()?;
+        let mut buf = Vec::new();
+        let d = codec
+            .encode(
+                &reference.positions_m,
+                &self.positions_m,
+                quantum_m,
+                &mut buf,
+            )
+            .ok()
+            .map(|()| Bytes::from(buf));
+        if let Ok(mut cache) = self.other_deltas.lock()
+            && cache.len() < 8
+        {
+            cache.push((key, d.clone()));
+        }
+        d
+    }
+}
+
+/// What one watcher has received so far.
+#[derive(Debug, Default)]
+struct WatcherState {
+    /// Topology version the client has (triangles and rest positions).
+    topology: Option<u64>,
+    /// Reference keyframe id the client has (compact streams).
+    reference: Option<u64>,
+    frames: u64,
+}
+
+static NEXT_WATCH_ID: AtomicU64 = AtomicU64::new(1);
+
+/// The stream a Watch handler returns.
+pub type FrameStream =
+    std::pin::Pin<Box<dyn Stream<Item = Result<SurfaceFrame, tonic::Status>> + Send>>;
+
+/// Unregisters a watcher when its task ends.
+struct WatchGuard {
+    stats: Arc<WatcherStats>,
+    id: u64,
+    delta: bool,
+}
+
+impl Drop for WatchGuard {
+    fn drop(&mut self) {
+        self.stats.watchers.fetch_sub(1, Ordering::AcqRel);
+        if self.delta {
+            self.stats.delta_watchers.fetch_sub(1, Ordering::AcqRel);
+        }
+        if let Ok(mut r) = self.stats.requests.lock() {
+            r.remove(&self.id);
+        }
+    }
+}
+
+/// Starts a watcher of `session` with `params`: returns its stream of frames (keyframe first).
+pub fn spawn_watch(session: Arc<Session>, params: WatchParams) -> FrameStream {
+    let stats = session.watcher_stats.clone();
+    let id = NEXT_WATCH_ID.fetch_add(1, Ordering::Relaxed);
+    let requested = Arc::new(AtomicBool::new(false));
+    if let Ok(mut r) = stats.requests.lock() {
+        r.insert(id, requested.clone());
+    }
+    stats.watchers.fetch_add(1, Ordering::AcqRel);
+    if params.quantum_m.is_some() {
+        stats.delta_watchers.fetch_add(1, Ordering::AcqRel);
+    }
+    let guard = WatchGuard {
+        stats: stats.clone(),
+        id,
+        delta: params.quantum_m.is_some(),
+    };
+    let (mut frames, servo_guard) = session.watch();
+    let (tx, rx) = mpsc::channel::<(SurfaceFrame, u64)>(WATCH_QUEUE_FRAMES);
+    let queued = stats.clone();
+    tokio::spawn(async move {
+        let _guards = (guard, servo_guard);
+        let mut tick = tokio::time::interval(Duration::from_secs_f64(1.0 / params.rate_hz));
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+        let mut state = WatcherState::default();
+        loop {
+            tokio::select! {
+                _ = tick.tick() => {}
+                () = tx.closed() => break,
+            }
+            // A new frame since the last one sent; wait for it if there is none yet.
+            let changed = match frames.has_changed() {
+                Ok(true) => Ok(()),
+                Ok(false) => tokio::select! {
+                    r = frames.changed() => r,
+                    () = tx.closed() => break,
+                },
+                Err(e) => Err(e),
+            };
+            if changed.is_err() {
+                break; // the session ended
+            }
+            let Some(f) = frames.borrow_and_update().clone() else {
+                continue;
+            };
+            let force_topology = requested.swap(false, Ordering::AcqRel);
+            let Some((frame, kept)) =
+                build_frame(&f, &session, &params, &state, id, force_topology)
+            else {
+                continue; // compact stream, no reference yet: wait for the next frame
+            };
+            let len = frame.encoded_len() as u64;
+            match tx.try_send((frame, len)) {
+                Ok(()) => {
+                    state = kept;
+                    stats.frames_sent.fetch_add(1, Ordering::Relaxed);
+                    stats.bytes_sent.fetch_add(len, Ordering::Relaxed);
+                    stats.queued_bytes.fetch_add(len, Ordering::Relaxed);
+                }
+                Err(mpsc::error::TrySendError::Full(_)) => {
+                    stats.frames_dropped.fetch_add(1, Ordering::Relaxed);
+                    if force_topology {
+                        requested.store(true, Ordering::Release);
+                    }
+                }
+                Err(mpsc::error::TrySendError::Closed(_)) => break,
+            }
+        }
+    });
+    Box::pin(tokio_stream::StreamExt::map(
+        ReceiverStream::new(rx),
+        move |(frame, len)| {
+            queued.queued_bytes.fetch_sub(len, Ordering::Relaxed);
+            Ok(frame)
+        },
+    ))
+}
+
+/// The next frame for a watcher whose client has `state`, and the state after it is sent.
+/// `None` for a compact watcher while the session has no reference keyframe yet.
+fn build_frame(
+    f: &FrameData,
+    session: &Session,
+    params: &WatchParams,
+    state: &WatcherState,
+    watch_id: u64,
+    force_topology: bool,
+) -> Option<(SurfaceFrame, WatcherState)> {
+    let version = f.topology.version;
+    let new_topology = force_topology || state.topology != Some(version);
+    let mut frame = SurfaceFrame {
+        frame: state.frames,
+        sim_time_s: f.sim_time_s,
+        probe_position_m: Some(Vec3::from(f.probe_m)),
+        contact_force_n: Some(Vec3::from(f.force_n)),
+        in_contact: f.in_contact,
+        probe_radius_m: session.probe_radius_m,
+        server_time_us: unix_time_us(),
+        max_displacement_m: f.max_displacement_m,
+        watch_id,
+        topology_version: version,
+        ..SurfaceFrame::default()
+    };
+    let mut next = WatcherState {
+        topology: Some(version),
+        reference: state.reference,
+        frames: state.frames + 1,
+    };
+    let delta = match params.quantum_m {
+        None => None,
+        Some(q) => {
+            let reference = f.reference.as_ref()?;
+            Some((reference, f.delta_for(q), q))
+        }
+    };
+    match delta {
+        // Full positions: a keyframe when the client lacks the topology (FULL streams, and
+        // compact frames that are not representable against the reference).
+        None | Some((_, None, _)) => {
+            frame.keyframe = new_topology;
+            frame.positions_m = f.positions_m.clone();
+            next.reference = None;
+        }
+        Some((reference, Some(bytes), q)) => {
+            frame.quantum_m = q;
+            frame.keyframe_id = reference.id;
+            frame.position_delta = bytes;
+            if new_topology || state.reference != Some(reference.id) {
+                frame.keyframe = true;
+                next.reference = Some(reference.id);
+                match &reference.chain {
+                    // The client has the previous reference: send only the step to this one.
+                    Some((previous, step))
+                        if !new_topology
+                            && q == DEFAULT_QUANTUM_M
+                            && state.reference == Some(*previous) =>
+                    {
+                        frame.base_keyframe_id = *previous;
+                        frame.reference_delta = step.clone();
+                    }
+                    _ => frame.positions_m = reference.positions_m.clone(),
+                }
+            }
+        }
+    }
+    if frame.keyframe && new_topology {
+        frame.triangles = f.topology.triangles.clone();
+        frame.rest_positions_m = f.topology.rest_positions_m.clone();
+    }
+    Some((frame, next))
+}
