@@ -6,8 +6,10 @@
 //!
 //! Modules: [`config`] (layered configuration), [`error`] (the one mapping to `tonic::Status`),
 //! [`servo`] (the 1 kHz loop), [`session`] (threads and handoffs per session), [`service`]
-//! (gRPC handlers), [`solve`] (static solutions of scene files, behind `haptic-solve`).
+//! (gRPC handlers), [`solve`] (static solutions of scene files, behind `haptic-solve`),
+//! [`calibrate`] (mass-spring calibration tables, behind `haptic-calibrate`).
 
+pub mod calibrate;
 pub mod config;
 pub mod error;
 pub mod service;
