@@ -7,7 +7,8 @@
 //! subdivided area's spring constants looked up in the calibrated table at the current
 //! displacement of its contact node once per step (section 3.2.4). After the steps, the
 //! contact node (the coarse node nearest the contact point) becomes a *centre*; an area is
-//! kept subdivided while its centre was touched within `coarsen_delay_s`. When the set of
+//! kept subdivided while its centre was touched within `coarsen_delay_s`, and until it has
+//! come back to rest (within [`QUIET_DISPLACEMENT_OVER_L`]). When the set of
 //! centres changes, an **event** recomputes the refinement ([`super::refine`]) and carries the
 //! state over:
 //!
@@ -51,6 +52,12 @@ use crate::loads::{BodyLoads, SceneLoads};
 /// Most centres (subdivided areas) at a time: the contact node and former contact nodes still
 /// within their coarsening delay. A new centre beyond it replaces the oldest.
 pub const MAX_CENTRES: usize = 8;
+
+/// An area is coarsened only once every node of it is back within this fraction of the
+/// element size L of its rest position: coarsening restores the coarse constants, stiffer than
+/// the calibrated ones, so a displaced area would gain elastic energy (at most
+/// `N' K_h (1e-3 L)^2 / 2` this way, 1e-8 J on the hemisphere).
+pub const QUIET_DISPLACEMENT_OVER_L: f64 = 1e-3;
 
 /// A nodal speed above this (m/s) is treated as divergence (as for the FEM).
 pub const DIVERGENCE_SPEED_M_PER_S: f64 = 100.0;
@@ -131,6 +138,8 @@ pub struct MassSpringBody {
     old_split: Vec<bool>,
     old_rest: Vec<DVec3>,
     touched: Vec<bool>,
+    ring: Vec<(u32, u32)>,
+    ring_dist: Vec<u32>,
     scratch_a: Vec<f64>,
     scratch_b: Vec<f64>,
     scene_name: String,
@@ -289,6 +298,8 @@ impl MassSpringBody {
             old_split: vec![false; ne],
             old_rest: vec![DVec3::ZERO; nc],
             touched: vec![false; ns],
+            ring: Vec::with_capacity(nc),
+            ring_dist: vec![u32::MAX; nc],
             scratch_a: diag,
             scratch_b: off,
             scene_name: scene_name.to_string(),
@@ -595,7 +606,7 @@ impl MassSpringBody {
         let before = self.centre_count;
         let mut k = 0;
         while k < self.centre_count {
-            if now - self.centres[k].last_contact_s > delay {
+            if now - self.centres[k].last_contact_s > delay && self.area_is_quiet(k) {
                 self.centre_count -= 1;
                 self.centres[k] = self.centres[self.centre_count];
             } else {
@@ -606,6 +617,30 @@ impl MassSpringBody {
         if added || removed {
             self.event(added, removed);
         }
+    }
+
+    /// Whether every node of centre `k`'s area (its rings' coarse nodes and their type-2
+    /// nodes) is within [`QUIET_DISPLACEMENT_OVER_L`] of its rest position. O(area),
+    /// allocation-free.
+    fn area_is_quiet(&mut self, k: usize) -> bool {
+        let c = self.centres[k].node;
+        let limit = QUIET_DISPLACEMENT_OVER_L * self.surface.element_size_m(c);
+        let limit2 = limit * limit;
+        let rings = self.params.subdivision.rings;
+        let mut ring = std::mem::take(&mut self.ring);
+        self.surface.ring(c, rings, &mut self.ring_dist, &mut ring);
+        let nc = self.surface.node_count() as u32;
+        let moved = |s: u32| (self.x[s as usize] - self.rest[s as usize]).length_squared() > limit2;
+        let quiet = ring.iter().all(|&(i, _)| {
+            !moved(i)
+                && self
+                    .surface
+                    .incident_edges(i)
+                    .iter()
+                    .all(|&e| !self.refinement.is_edge_split(e) || !moved(nc + e))
+        });
+        self.ring = ring;
+        quiet
     }
 
     /// Subdivides around the coarse nodes `nodes` (replacing every current area; they stay

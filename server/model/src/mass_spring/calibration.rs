@@ -6,24 +6,29 @@
 //! `x / L` and interpolated at run time.
 //!
 //! The experiment behind it (section 3.2.2), for any mesh and each node C: a local patch of the
-//! coarse surface (the subdivided rings plus [`PATCH_EXTRA_RINGS`], its outer ring held at rest;
-//! the response decays within a few rings, see `docs/accuracy.md`) is pressed statically at C
-//! along C's rest normal to indentations `k L / 16`, k = 1..16 ([`SAMPLES`]), giving the
-//! coarse force F; the patch is then subdivided around C exactly as at run time and `a` is
-//! found (secant iterations on `log a`, to 1e-6 of F) such that the subdivided patch needs
-//! the same force at the same indentation. The table stores, per sample, `a` against the
-//! displacement of C in the subdivided patch over L (what the body observes at run time).
+//! coarse surface (the subdivided rings plus a margin of [`PATCH_EXTRA_RINGS`] rings and the
+//! probe's reach, its outer ring held at rest; the response decays within a few rings, the
+//! convergence check is in `docs/accuracy.md`) is pressed statically at C along C's rest normal
+//! to `L / 1000` (the small-displacement limit) and `k D / 15`, k = 1..15 ([`SAMPLES`],
+//! `D = 1.5 L`), giving the coarse force F; the
+//! patch is then subdivided around C exactly as at run time and `a` is found (secant
+//! iterations on `log a`, to 1e-5 of F) such that the subdivided patch needs the same force
+//! at the same depth. The table stores, per sample, `a` against the displacement of C in the
+//! subdivided patch over L: what the body observes at run time and interpolates in.
 //!
-//! The contact is the paper's point contact at C ([`ContactShape::Point`]) or, for the bodies
-//! the servo drives, the probe's own load distribution ([`ContactShape::Probe`]: the kernel
-//! weights of a probe of radius r touching C at rest, see [`crate::contact`]), because the
-//! probe spreads its force over every node within `2 r`, and a subdivided surface has more
-//! nodes there: a table made for a point contact would not keep the probe's force.
+//! The contact is the paper's point contact at C ([`ContactShape::Point`]: the depth is C's
+//! displacement) or, for the bodies the servo drives, the haptic probe itself
+//! ([`ContactShape::Probe`]: the depth is the travel of the probe's centre, and the force is
+//! the probe's at static equilibrium, its patch, weights and normal following the deformed
+//! surface). The probe spreads its force over every node within `2 r`, and a subdivided
+//! surface has more nodes there: a table made for a point contact would not keep the probe's
+//! force (measured: `docs/accuracy.md`).
 //!
-//! The table is computed for every free node ([`calibrate`], minutes for thousands of nodes,
-//! on all cores, with progress), cached as a text file beside the scene ([`CalibrationTable::
-//! to_text`], [`CalibrationTable::parse`]) under a key ([`calibration_key`]) that hashes
-//! everything it depends on, so that a stale file is detected.
+//! The table is computed for every free node ([`calibrate`], minutes for hundreds of nodes,
+//! on all cores, with progress), cached as a text file beside the scene
+//! ([`CalibrationTable::to_text`], [`CalibrationTable::parse`]) under a key
+//! ([`calibration_key`]) that hashes everything it depends on, so that a stale file is
+//! detected.
 //!
 //! Neighbours: uses [`super::surface`], [`super::refine`], [`super::loop_rules`],
 //! [`super::network`]; read by the body and by the scene loader.
@@ -42,14 +47,38 @@ use super::{MassSpringParams, VertexRule};
 use crate::ModelError;
 use crate::contact::{Probe, ProbeParams};
 
-/// Samples per node: indentations `k L / SAMPLES`, k = 1..=SAMPLES.
+/// Samples per node: the small-depth limit ([`FIRST_SAMPLE_OVER_L`]), then depths
+/// `k D / (SAMPLES - 1)`, k = 1..SAMPLES, up to `D =` [`DEPTH_RANGE_OVER_L`]` L`.
 pub const SAMPLES: usize = 16;
+
+/// Depth of the first sample over L: the small-displacement limit (the springs' geometric
+/// stiffness is negligible there: for a point contact `a -> 1`).
+pub const FIRST_SAMPLE_OVER_L: f64 = 1e-3;
+
+/// Depth of sample `k` (0-based) over the element size L.
+pub fn sample_depth_over_l(k: usize) -> f64 {
+    if k == 0 {
+        FIRST_SAMPLE_OVER_L
+    } else {
+        DEPTH_RANGE_OVER_L * k as f64 / (SAMPLES - 1) as f64
+    }
+}
+
+/// The deepest calibrated depth over the element size L. The paper assumes displacements up
+/// to L (section 3.2.2); probes press somewhat deeper on fine meshes (the LV: 3 mm on 2.2 mm
+/// elements), and beyond the table the last factor holds.
+pub const DEPTH_RANGE_OVER_L: f64 = 1.5;
 
 /// Rings of the local calibration patch beyond the subdivided ones (the outermost held at rest).
 pub const PATCH_EXTRA_RINGS: u32 = 3;
 
+/// The factors `a = K'_h / K_h` a sample may take; a match outside is treated as unmatched
+/// (an isolated deep sample whose probe patch lost nodes needed 45 on the hemisphere) and
+/// takes its neighbour's factor.
+pub const SCALE_RANGE: (f64, f64) = (0.01, 10.0);
+
 /// Version of the table's definition; part of the key.
-pub const CALIBRATION_VERSION: u32 = 1;
+pub const CALIBRATION_VERSION: u32 = 2;
 
 /// How the contact presses the surface in the calibration experiment.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -131,6 +160,12 @@ impl CalibrationTable {
             .flatten()
             .flat_map(|r| r.kh_scale)
             .fold(1.0, f64::max)
+    }
+
+    /// A table of the given rows (one per node, `None` for a node without calibration) under
+    /// `key`: tests and tools that calibrate a few nodes ([`calibrate_node`]).
+    pub fn from_rows(key: u64, rows: Vec<Option<NodeCalibration>>) -> Self {
+        Self { key, rows }
     }
 
     /// A table giving every node the calibration `row` (benchmarks on generated meshes whose
@@ -332,6 +367,9 @@ pub fn calibration_key(
     h.u64(u64::from(CALIBRATION_VERSION));
     h.u64(SAMPLES as u64);
     h.u64(u64::from(PATCH_EXTRA_RINGS));
+    h.f64(DEPTH_RANGE_OVER_L);
+    h.f64(SCALE_RANGE.0);
+    h.f64(SCALE_RANGE.1);
     h.u64(surface.node_count() as u64);
     for p in surface.rest() {
         h.f64(p.x);
@@ -399,14 +437,9 @@ impl LocalPatch {
         rings: u32,
         vertex_rule: VertexRule,
         shape: ContactShape,
-        (kh, km): (f64, f64),
+        constants: (f64, f64),
     ) -> Result<Self, ModelError> {
-        if rings == 0 || surface.is_fixed(centre) {
-            return Err(ModelError::InvalidInput(format!(
-                "node {centre} cannot be calibrated (fixed, or no ring to subdivide)"
-            )));
-        }
-        let extra = match shape {
+        let margin = match shape {
             ContactShape::Point => PATCH_EXTRA_RINGS,
             // The probe's patch reaches 2 r from the contact: keep that much inside.
             ContactShape::Probe(p) => {
@@ -414,6 +447,37 @@ impl LocalPatch {
                 PATCH_EXTRA_RINGS + (2.0 * p.radius_m / l).ceil() as u32
             }
         };
+        Self::with_margin(
+            surface,
+            centre,
+            rings,
+            margin,
+            vertex_rule,
+            shape,
+            constants,
+        )
+    }
+
+    /// [`LocalPatch::new`] with `margin` rings beyond the subdivided ones (the outermost held
+    /// at rest), for the patch-size convergence check.
+    ///
+    /// # Errors
+    /// As [`LocalPatch::new`].
+    pub fn with_margin(
+        surface: &SpringSurface,
+        centre: u32,
+        rings: u32,
+        margin: u32,
+        vertex_rule: VertexRule,
+        shape: ContactShape,
+        (kh, km): (f64, f64),
+    ) -> Result<Self, ModelError> {
+        if rings == 0 || margin == 0 || surface.is_fixed(centre) {
+            return Err(ModelError::InvalidInput(format!(
+                "node {centre} cannot be calibrated (fixed, or no ring to subdivide or margin)"
+            )));
+        }
+        let extra = margin;
         let outer = rings + extra;
         let mut dist = vec![u32::MAX; surface.node_count()];
         let mut ring = Vec::new();
@@ -577,7 +641,12 @@ impl LocalPatch {
         };
         let mut f_prev = f64::NAN;
         let mut x_prev = x.to_vec();
-        for outer in 0..60 {
+        // The patch follows the surface it moved: the solve is a fixed point (freeze the patch
+        // at x, solve). Plain iteration alternates (contraction about -0.8 on the hemisphere);
+        // half steps damp it to about 0.1, and the step halves again whenever the change grows
+        // (deep presses, where nodes enter and leave the patch).
+        let (mut omega, mut change_prev) = (0.5, f64::INFINITY);
+        for outer in 0..300 {
             let st = probe.update(x, device, DVec3::ZERO);
             if st.in_contact {
                 let (nodes, w) = probe.patch();
@@ -599,21 +668,27 @@ impl LocalPatch {
                 return Ok(0.0);
             }
             let f = press(net, &load, depth_eff, x, guess)?.force_n;
-            if (f - f_prev).abs() <= 1e-8 * f.abs().max(1e-9) {
+            let change = (f - f_prev).abs();
+            if change <= 1e-7 * f.abs().max(1e-9) {
                 return Ok(f);
             }
+            if change > change_prev {
+                omega = (omega * 0.5_f64).max(0.02);
+            }
+            change_prev = change;
             f_prev = f;
-            // The patch follows the surface it moved: the plain fixed point alternates
-            // (contraction about -0.8 on the hemisphere); half steps damp it to about 0.1.
             if outer > 0 {
                 for (xi, pi) in x.iter_mut().zip(&x_prev) {
-                    *xi = *pi + (*xi - *pi) * 0.5;
+                    *xi = *pi + (*xi - *pi) * omega;
                 }
             }
             x_prev.copy_from_slice(x);
         }
+        if change_prev <= 1e-4 * f_prev.abs() {
+            return Ok(f_prev);
+        }
         Err(ModelError::NoConvergence(format!(
-            "the probe's patch did not settle at depth {depth_m:.3e} m"
+            "the probe's patch did not settle at depth {depth_m:.3e} m (last change {change_prev:.2e} N)"
         )))
     }
 
@@ -654,7 +729,7 @@ impl LocalPatch {
     }
 
     /// Finds the factor `s` with `F'(constants(s), depth) = target_n` (eq. 4) by secant
-    /// iterations on `log s` (bracketed, to a relative force error of 1e-6), starting at
+    /// iterations on `log s` (bracketed, to a relative force error of 1e-5), starting at
     /// `s_guess`: `Some((s, contact node displacement m))`, or `None` when no `s` in
     /// `[1e-3, 1e3] s_guess` reaches the target (e.g. the subdivided surface is not touched
     /// yet at that depth). `x` is the subdivided solution (warm start). `constants(s)` gives
@@ -674,7 +749,7 @@ impl LocalPatch {
             let (f, u) = self.fine_press(constants(s), depth_m, x)?;
             Ok((f - target_n, u))
         };
-        let tol = 1e-6 * target_n.abs();
+        let tol = 1e-5 * target_n.abs();
         let (mut s0, (mut h0, u0)) = (s_guess, eval(s_guess, x)?);
         if h0.abs() <= tol {
             return Ok(Some((s0, u0)));
@@ -741,8 +816,9 @@ impl LocalPatch {
 
 /// Calibrates contact node `node` of `surface` (module documentation): the table row for
 /// `params` and `shape`. Samples at which the subdivided surface cannot give the coarse force
-/// (the probe does not touch it yet: its nodes sit a little lower on a convex surface) take
-/// the factor of the first sample that can.
+/// (the probe does not touch it yet: its nodes sit a little lower on a convex surface), whose
+/// static solve does not settle, or whose factor is outside [`SCALE_RANGE`], take the factor
+/// of the nearest matched sample before them (after them for the first).
 ///
 /// # Errors
 /// As [`LocalPatch::new`] and [`LocalPatch::match_force`]; [`ModelError::NoConvergence`]
@@ -768,20 +844,33 @@ pub fn calibrate_node(
     let ratio = s.km_over_kh_after;
     let mut a = 1.0;
     for k in 0..SAMPLES {
-        let depth = l * (k + 1) as f64 / SAMPLES as f64;
-        let f = patch.coarse_press(depth, &mut xc)?;
+        let depth = sample_depth_over_l(k) * l;
+        // A sample whose static solve does not settle (the probe's patch cycling between
+        // configurations, seen beyond L) is skipped like one that cannot be matched.
+        let backup_c = xc.clone();
+        let f = match patch.coarse_press(depth, &mut xc) {
+            Ok(f) => f,
+            Err(ModelError::NoConvergence(_)) => {
+                xc = backup_c;
+                f64::NAN
+            }
+            Err(e) => return Err(e),
+        };
         out.force_n[k] = f;
         if !(f > 0.0) {
+            out.force_n[k] = f.max(0.0);
             continue;
         }
         let backup = xf.clone();
-        match patch.match_force(f, depth, |a| (a * kh, ratio * a * kh), a, &mut xf)? {
-            Some((a_k, u)) => {
+        match patch.match_force(f, depth, |a| (a * kh, ratio * a * kh), a, &mut xf) {
+            Ok(Some((a_k, u))) if (SCALE_RANGE.0..=SCALE_RANGE.1).contains(&a_k) => {
                 a = a_k;
                 out.x_over_l[k] = u / l;
                 out.kh_scale[k] = a;
             }
-            None => xf = backup,
+            Ok(Some(_)) => xf = backup,
+            Ok(None) | Err(ModelError::NoConvergence(_)) => xf = backup,
+            Err(e) => return Err(e),
         }
     }
     let Some(first) = out.kh_scale.iter().position(|v| v.is_finite()) else {
