@@ -37,12 +37,23 @@ struct Args {
     /// Fewer repetitions (about a minute).
     #[arg(long)]
     quick: bool,
+    /// Run only the force steps of the vertex rules (`slide`) or only the timings (`timing`).
+    #[arg(long, value_enum, default_value_t = Only::All)]
+    only: Only,
     /// Folder of mass_spring.csv [default: target/bench of the workspace].
     #[arg(long)]
     out: Option<PathBuf>,
     /// Passed by `cargo bench` to every harness-less benchmark; ignored.
     #[arg(long, hide = true)]
     bench: bool,
+}
+
+/// Which parts to run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Only {
+    All,
+    Timing,
+    Slide,
 }
 
 /// One row of `mass_spring.csv`.
@@ -69,6 +80,12 @@ fn main() -> anyhow::Result<()> {
     let path = out.join("mass_spring.csv");
     let mut csv = csv::Writer::from_path(&path)?;
     let hemi = load_builtin("hemisphere-springs")?;
+    if args.only != Only::Timing {
+        slide(&hemi, &out)?;
+    }
+    if args.only == Only::Slide {
+        return Ok(());
+    }
     let lv = load_builtin("lv-surface-springs")?;
     let mut meshes: Vec<(String, Scene)> = vec![
         ("hemisphere-springs".into(), hemi.clone()),
@@ -204,6 +221,110 @@ fn main() -> anyhow::Result<()> {
     }
     csv.flush()?;
     println!("wrote {}", path.display());
+    Ok(())
+}
+
+/// The force steps of subdivision events under load, for each vertex rule: the probe slides
+/// at half an element deep from the hemisphere's apex over two elements in 1 s, so that the
+/// contact node changes and areas are subdivided under the probe. The table rows of the nodes
+/// on the path are calibrated for each rule. Prints the largest force change over one tick at
+/// the ticks that ran an event against the changes of the other ticks; writes
+/// `mass_spring_slide.csv`.
+fn slide(scene: &Scene, out: &std::path::Path) -> anyhow::Result<()> {
+    use haptic_model::mass_spring::VertexRule;
+    use haptic_model::mass_spring::calibration::calibrate_node;
+    let ms = scene.mass_spring.as_ref().context("mass-spring")?;
+    let s = &ms.surface;
+    let l = s.element_size_m(0);
+    let r = scene.probe.radius_m;
+    let n0 = s.rest_normal(0);
+    let top = s.rest()[0] + n0 * (r - 0.5 * l);
+    let path = |t: f64| {
+        // Along the sphere: rotate the pressed point about y.
+        let angle = (2.0 * l / 0.05) * t.clamp(0.0, 1.0);
+        let (sn, cs) = angle.sin_cos();
+        DVec3::new(top.z * sn, 0.0, top.z * cs)
+    };
+    let near: Vec<u32> = (0..s.node_count() as u32)
+        .filter(|&i| {
+            !s.is_fixed(i)
+                && (0..=20)
+                    .any(|k| (s.rest()[i as usize] - path(k as f64 / 20.0)).length() < 1.6 * l)
+        })
+        .collect();
+    let mut w = csv::Writer::from_path(out.join("mass_spring_slide.csv"))?;
+    w.write_record(["vertex_rule", "tick", "force_n", "event"])?;
+    println!("slide: {} nodes calibrated per vertex rule", near.len());
+    for rule in [VertexRule::Keep, VertexRule::Loop] {
+        let mut p = ms.params;
+        p.subdivision.vertex_rule = rule;
+        let mut rows = vec![None; s.node_count()];
+        for &i in &near {
+            rows[i as usize] = Some(calibrate_node(s, &p, ms.contact, i)?);
+        }
+        let table = CalibrationTable::from_rows(0, rows);
+        let mut body = MassSpringBody::new(
+            s.clone(),
+            &p,
+            Some(table),
+            scene.probe,
+            &scene.integrator,
+            "slide",
+        )?;
+        // Press at the apex, hold, slide, hold.
+        let mut forces = Vec::new();
+        let mut event_ticks = Vec::new();
+        for k in 0..1700 {
+            let pos = if k < 300 {
+                s.rest()[0] + n0 * (r - 0.5 * l * (k as f64 / 200.0).min(1.0))
+            } else {
+                path((k - 300) as f64 / 1000.0)
+            };
+            let before = body.event_stats().events;
+            let o = body.tick(&TickInput {
+                device_position_m: Some(pos),
+                device_velocity_m_per_s: DVec3::ZERO,
+            })?;
+            let event = body.event_stats().events > before;
+            forces.push(o.force_on_device_n.length());
+            if event {
+                event_ticks.push(k);
+            }
+            w.write_record([
+                rule.name().to_string(),
+                k.to_string(),
+                forces[k].to_string(),
+                event.to_string(),
+            ])?;
+        }
+        let steps: Vec<(usize, f64)> = (301..forces.len())
+            .map(|k| (k, (forces[k] - forces[k - 1]).abs()))
+            .collect();
+        let at_events = steps
+            .iter()
+            .filter(|(k, _)| event_ticks.contains(k) || event_ticks.contains(&(k - 1)))
+            .map(|s| s.1)
+            .fold(0.0, f64::max);
+        let mut others: Vec<f64> = steps
+            .iter()
+            .filter(|(k, _)| !event_ticks.contains(k) && !event_ticks.contains(&(k - 1)))
+            .map(|s| s.1)
+            .collect();
+        others.sort_by(f64::total_cmp);
+        let p99 = others[(others.len() * 99) / 100];
+        let mean_f = forces[300..].iter().sum::<f64>() / (forces.len() - 300) as f64;
+        println!(
+            "slide, vertex rule {:<5}: {} events; largest force step at an event tick {:.4} N ({:.1} % of the mean force {:.3} N); other ticks p99 {:.4} N, max {:.4} N",
+            rule.name(),
+            event_ticks.len(),
+            at_events,
+            at_events / mean_f * 100.0,
+            mean_f,
+            p99,
+            others.last().copied().unwrap_or(0.0)
+        );
+    }
+    w.flush()?;
     Ok(())
 }
 

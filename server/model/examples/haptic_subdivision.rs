@@ -203,6 +203,7 @@ fn paper(data: &Path, plots: &Path) -> anyhow::Result<()> {
             xs[kh_eq5.iter().position(|v| v.is_finite()).unwrap_or(0)],
             kh_eq5[kh_eq5.len() - 1],
         );
+        // Log scale: the eq. 5 curve runs to infinity at small x (drawn as log10).
         line_plot(
             &plots.join(format!("haptic-subdivision-fig{}", 5 + rings)),
             &format!(
@@ -210,15 +211,21 @@ fn paper(data: &Path, plots: &Path) -> anyhow::Result<()> {
                 5 + rings,
                 if rings == 1 { "one-ring" } else { "two-ring" }
             ),
-            "K'_m / K_m",
+            "log10(K'_m / K_m)",
             &[
                 (
                     "K'_h = K_h N / N' (eq. 5)".into(),
-                    xs.iter().copied().zip(kh_eq5.iter().copied()).collect(),
+                    xs.iter()
+                        .copied()
+                        .zip(kh_eq5.iter().map(|v| v.log10()))
+                        .collect(),
                 ),
                 (
                     "K'_h = K_h".into(),
-                    xs.iter().copied().zip(kh_fixed.iter().copied()).collect(),
+                    xs.iter()
+                        .copied()
+                        .zip(kh_fixed.iter().map(|v| v.log10()))
+                        .collect(),
                 ),
             ],
         )?;
@@ -311,7 +318,8 @@ fn line_plot(base: &Path, title: &str, ylabel: &str, curves: &[Curve]) -> anyhow
     let (lo, hi) = finite.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
         (lo.min(p.1), hi.max(p.1))
     });
-    let (lo, hi) = (lo.min(0.0), hi * 1.08);
+    let pad = 0.08 * (hi - lo.min(0.0)).max(1e-9);
+    let (lo, hi) = (lo.min(0.0) - if lo < 0.0 { pad } else { 0.0 }, hi + pad);
     let png = base.with_extension("png");
     let svg = base.with_extension("svg");
     draw(

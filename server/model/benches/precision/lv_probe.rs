@@ -28,6 +28,7 @@ use crate::method::{material_label, methods};
 use crate::report::Model;
 use crate::report::{Row, Scenario};
 use crate::{Config, LvProbeRows};
+use haptic_model::body::SoftBody;
 use haptic_model::mass_spring::{MassSpringBody, SpringRule};
 use haptic_model::scene::load_builtin;
 
