@@ -19,7 +19,7 @@ use haptic_server::servo::{self, Clock, Pose, ServoCore, ServoHandles, SessionSh
 use haptic_server::session::SessionManager;
 use haptics_proto::v1::session_control_server::SessionControl;
 use haptics_proto::v1::surface_stream_server::SurfaceStream;
-use haptics_proto::v1::{GetStatsRequest, WatchRequest};
+use haptics_proto::v1::{GetStatsRequest, ListScenesRequest, WatchRequest};
 use tokio_stream::StreamExt;
 
 #[path = "../model/tests/common/counting_alloc.rs"]
@@ -108,6 +108,17 @@ async fn a_viewer_gets_keyframes_when_the_probe_subdivides_the_surface() {
     let scene = manager.load_scene("hemisphere-springs", "").expect("scene");
     let session = manager.start(&scene).expect("session");
     let services = Services::new(manager.clone());
+    let listed = services
+        .list_scenes(tonic::Request::new(ListScenesRequest {}))
+        .await
+        .expect("list")
+        .into_inner();
+    for name in ["hemisphere-springs", "lv-surface-springs"] {
+        assert!(
+            listed.scenes.iter().any(|s| s.name == name),
+            "{name} not listed"
+        );
+    }
     let response = services
         .watch(tonic::Request::new(WatchRequest {
             session_id: session.id.clone(),

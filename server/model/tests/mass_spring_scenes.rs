@@ -248,3 +248,33 @@ fn missing_malformed_and_stale_tables_are_refused_with_the_command() {
     refused("probe radius");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn client_point_loads_push_the_surface() {
+    // `hapticctl force` / `ApplyForce`: a force at the apex of the hemisphere, spread as the
+    // probe would spread it, over the coarse nodes there.
+    let scene = load_builtin("hemisphere-springs").unwrap();
+    let mut body = build_body(&scene).unwrap();
+    let apex = scene.mass_spring.as_ref().unwrap().surface.rest()[0];
+    body.add_point_load(apex, haptic_model::DVec3::new(0.0, 0.0, -0.2), 0.5)
+        .expect("point load");
+    assert_eq!(body.stats().active_point_loads, 1);
+    let idle = haptic_model::body::TickInput::default();
+    for _ in 0..400 {
+        body.tick(&idle).unwrap();
+    }
+    let n = body.surface_topology().vertex_count;
+    let mut x = vec![0f32; 3 * n];
+    let mut rest = vec![0f32; 3 * n];
+    let moved = body.write_surface_positions(&mut x);
+    body.write_surface_rest_positions(&mut rest);
+    // The apex (vertex 0) moved down, by about F / K_h for one home spring (3.3 mm) or less
+    // when the mesh springs share the load.
+    let dz = f64::from(x[2] - rest[2]);
+    assert!(dz < -1e-3 && dz > -4e-3, "apex moved {dz} m");
+    assert!((moved - dz.abs()).abs() < 1e-3);
+    assert!(
+        body.add_point_load(apex, haptic_model::DVec3::new(f64::NAN, 0.0, 0.0), 1.0)
+            .is_err()
+    );
+}

@@ -259,15 +259,11 @@ pub fn mass_spring_rows(reference: &LvReference, quick: bool, rows: &mut Vec<Row
                     body.stats().nodes
                 );
                 row.set_times(&ticks, scene.integrator.tick_s);
-                // Displacements on the reference's epicardium: the surface's coarse nodes are
-                // nodes of lv_shell(2000).
-                let mut x_mesh = scene.mesh.nodes.clone();
-                for i in 0..ms.surface.node_count() as u32 {
-                    x_mesh[ms.surface.source_node(i) as usize] = body.positions()[i as usize];
-                }
+                // Displacements on the reference's epicardium: the scene's mesh is the surface
+                // (named `EPI`), its nodes the body's first slots.
                 let curve = ProbeCurve {
                     forces_n: forces,
-                    x_last: x_mesh,
+                    x_last: body.positions()[..ms.surface.node_count()].to_vec(),
                 };
                 fill_lv_errors(
                     &mut row,

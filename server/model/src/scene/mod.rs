@@ -13,7 +13,8 @@
 //! # or builtin = "lv" (target_tets, default 2000 when a user scene names it; the built-in "lv" scene sets 1000), "ellipsoids" (inner_semi_axes,
 //! # outer_semi_axes in length_unit, default (6,6,12) and (10,10,16) mm; target_tets, default
 //! # 188), "sphere" (inner_radius, outer_radius in length_unit; target_tets, default 5000) or
-//! # "box" (size = [x, y, z] in length_unit, cells = [nx, ny, nz])
+//! # "box" (size = [x, y, z] in length_unit, cells = [nx, ny, nz]), or "hemisphere" (a surface
+//! # for the mass-spring family: outer_radius, edge_length in length_unit)
 //! order = 1                      # element order: 1 = linear tets (default), 2 = quadratic
 //!                                # 10-node tets made by adding a node at every edge midpoint
 //!                                # (built-in shells: boundary mid-edge nodes on the surfaces)
@@ -51,6 +52,20 @@
 //! centre_m = [0.0097, 0.0, -0.005] # with a node within radius_m of centre_m (rest, metres)
 //! radius_m = 0.008               # and condense the rest statically (crate::integrate::condensed)
 //! stiffness_margin = 2.0         # factor on the rest stiffness of the frozen tick matrix
+//! [model]                        # optional
+//! family = "fem"                 # or "mass-spring": then [mass_spring] instead of [material],
+//!                                # no [loads] or [active_region] (docs/scenes.md)
+//! [mass_spring]                  # mass-spring only (crate::mass_spring)
+//! mesh_spring_n_per_m = 60.0     # K_m, eq. 2 of seed 003
+//! home_spring_n_per_m = 60.0     # K_h
+//! damping_n_s_per_m = 0.2        # K_d, default 0
+//! node_mass_kg = 0.001           # m
+//! rings = 1                      # n-ring subdivision at the contact node, 0..=6, default 1
+//! springs = "calibrated"         # or "unchanged"
+//! km_over_kh_after = 1.0         # K'_m / K'_h, default K_m / K_h
+//! vertex_rule = "keep"           # or "loop"
+//! coarsen_delay_s = 0.2
+//! calibration_file = "NAME.calibration.csv"  # beside the scene; computed by haptic-calibrate
 //! [probe]                        # optional, defaults shown
 //! radius_m = 0.002
 //! coupling_stiffness_n_per_m = 300.0
@@ -150,7 +165,9 @@ pub struct Scene {
     pub active_region: Option<ActiveRegion>,
     /// The mass-spring surface (section `[mass_spring]`): present exactly when `family` is
     /// [`ModelFamily::MassSpring`] (the parser guarantees it). A mass-spring scene has no
-    /// `[material]` (`material` is then the default, unused) and no `[loads]`.
+    /// `[material]` (`material` is then the default, unused) and no `[loads]`; its `mesh` is
+    /// the spring surface itself (the touchable triangles of the mesh the scene names, no
+    /// tetrahedra), `touchable` its triangles and `clamped_nodes` its fixed nodes.
     pub mass_spring: Option<MassSpringScene>,
 }
 

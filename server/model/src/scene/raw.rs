@@ -388,9 +388,10 @@ pub(super) fn parse_scene(
         }
     };
     let name = raw.name.unwrap_or_else(|| default_name.to_string());
+    let (mut mesh, mut touchable, mut clamped_nodes) = (mesh, touchable, clamped_nodes);
     let mass_spring = if springs {
         let section = required("mass_spring", raw.mass_spring)?;
-        Some(build_mass_spring(
+        let mut ms = build_mass_spring(
             &section,
             &mesh,
             &touchable,
@@ -399,7 +400,25 @@ pub(super) fn parse_scene(
             &name,
             base_dir,
             origin,
-        )?)
+        )?;
+        // The scene's mesh becomes the surface the body simulates (listings and outputs then
+        // count its nodes): the spring surface's nodes, no tetrahedra, the touchable triangles
+        // as one surface named after the touchable surfaces, node groups restricted to it.
+        let names = boundary
+            .touchable
+            .clone()
+            .unwrap_or_else(|| mesh.surfaces.iter().map(|s| s.name.clone()).collect());
+        mesh = surface_mesh(&mesh, &ms.surface, &names.join("+"));
+        touchable = ms.surface.triangles().to_vec();
+        clamped_nodes = (0..ms.surface.node_count() as u32)
+            .filter(|&i| ms.surface.is_fixed(i))
+            .collect();
+        // The same surface, numbered as the new mesh (its key is unchanged).
+        let fixed = (0..ms.surface.node_count() as u32)
+            .map(|i| ms.surface.is_fixed(i))
+            .collect();
+        ms.surface = SpringSurface::new(mesh.nodes.clone(), touchable.clone(), fixed)?;
+        Some(ms)
     } else {
         None
     };
@@ -422,6 +441,37 @@ pub(super) fn parse_scene(
 }
 
 // ----- mass-spring section -----
+
+/// The mesh of a spring surface cut from `mesh`: its nodes (in the surface's order), no
+/// tetrahedra, its triangles as the surface `name`, and `mesh`'s node groups restricted to it.
+fn surface_mesh(mesh: &TetMesh, surface: &SpringSurface, name: &str) -> TetMesh {
+    let mut local = vec![u32::MAX; mesh.node_count()];
+    for i in 0..surface.node_count() as u32 {
+        local[surface.source_node(i) as usize] = i;
+    }
+    TetMesh {
+        nodes: surface.rest().to_vec(),
+        tets: Vec::new(),
+        tet_edge_nodes: Vec::new(),
+        surfaces: vec![crate::mesh::SurfaceGroup {
+            name: name.to_string(),
+            triangles: surface.triangles().to_vec(),
+        }],
+        node_groups: mesh
+            .node_groups
+            .iter()
+            .map(|g| crate::mesh::NodeGroup {
+                name: g.name.clone(),
+                nodes: g
+                    .nodes
+                    .iter()
+                    .filter_map(|&i| local.get(i as usize).copied().filter(|&l| l != u32::MAX))
+                    .collect(),
+            })
+            .filter(|g| !g.nodes.is_empty())
+            .collect(),
+    }
+}
 
 #[allow(clippy::too_many_arguments)]
 fn build_mass_spring(
