@@ -7,8 +7,10 @@
 //! Modules: [`config`] (layered configuration), [`error`] (the one mapping to `tonic::Status`),
 //! [`servo`] (the 1 kHz loop), [`session`] (threads and handoffs per session), [`service`]
 //! (gRPC handlers), [`stream`] (surface streams: shared frames, compact encoding, watchers),
-//! [`solve`] (static solutions of scene files, behind `haptic-solve`).
+//! [`solve`] (static solutions of scene files, behind `haptic-solve`), [`calibrate`]
+//! (mass-spring calibration tables, behind `haptic-calibrate`).
 
+pub mod calibrate;
 pub mod config;
 pub mod error;
 pub mod service;

@@ -78,6 +78,15 @@ pub enum ModelError {
     /// The preallocated point-load table is full.
     #[error("{0} point loads are already active")]
     LoadTableFull(usize),
+    /// A mass-spring calibration table is missing, malformed or stale, or its computation
+    /// failed. `path` names the file (empty when none).
+    #[error("calibration table {path}: {message}")]
+    Calibration {
+        /// The table file.
+        path: String,
+        /// What is wrong, and what to run.
+        message: String,
+    },
     /// A solver did not converge.
     #[error("solver did not converge: {0}")]
     NoConvergence(String),

@@ -24,6 +24,9 @@
 //!   servo period.
 //! - [`body`]: [`body::SoftBody`], the interface the server drives every model family through;
 //!   [`build_body`] builds the family a scene names.
+//! - [`mass_spring`]: the mass-spring surface with run-time Loop subdivision (seed 003, Zhang,
+//!   Payandeh & Dill, *Haptic Subdivision*): eq. 1-3, the calibrated spring table (section
+//!   3.2.4), [`mass_spring::MassSpringBody`].
 //! - [`statics`]: static equilibrium (Newton on the tangent, sparse Cholesky) for references.
 //!
 //! Units are SI throughout (m, kg, s, N, Pa). Seeds are cited as "seed 000 eq. N":
@@ -39,6 +42,7 @@ pub mod element;
 pub mod error;
 pub mod integrate;
 pub mod loads;
+pub mod mass_spring;
 pub mod material;
 pub mod mesh;
 pub mod scene;
@@ -52,9 +56,27 @@ pub use glam::DVec3;
 /// [`scene::ModelFamily`]), behind the [`body::SoftBody`] interface.
 ///
 /// # Errors
-/// The errors of the family's constructor ([`sim::Simulation::new`] for the FEM).
+/// The errors of the family's constructor ([`sim::Simulation::new`] for the FEM,
+/// [`mass_spring::MassSpringBody::new`] for the mass-spring surface, after
+/// [`scene::MassSpringScene::table`]: a missing or stale calibration table).
 pub fn build_body(scene: &scene::Scene) -> Result<Box<dyn body::SoftBody>, ModelError> {
     match scene.family {
         scene::ModelFamily::Fem => Ok(Box::new(sim::Simulation::new(scene)?)),
+        scene::ModelFamily::MassSpring => {
+            let ms = scene.mass_spring.as_ref().ok_or_else(|| {
+                ModelError::field(
+                    "mass_spring",
+                    "is required for model.family = \"mass-spring\"",
+                )
+            })?;
+            Ok(Box::new(mass_spring::MassSpringBody::new(
+                ms.surface.clone(),
+                &ms.params,
+                ms.table()?,
+                scene.probe,
+                &scene.integrator,
+                &scene.name,
+            )?))
+        }
     }
 }

@@ -19,13 +19,22 @@ const LAYERS: &[&str] = &[
     "integrate",
     "loads",
     "body",
+    "mass_spring",
     "scene",
     "sim",
     "statics",
 ];
 
 /// Modules on the servo's path, which must not import the static solver.
-const REAL_TIME: &[&str] = &["element", "contact", "integrate", "loads", "body", "sim"];
+const REAL_TIME: &[&str] = &[
+    "element",
+    "contact",
+    "integrate",
+    "loads",
+    "body",
+    "mass_spring",
+    "sim",
+];
 
 fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
     for entry in std::fs::read_dir(dir).expect("read src") {

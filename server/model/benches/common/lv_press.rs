@@ -7,6 +7,7 @@
 use std::time::Instant;
 
 use haptic_model::DVec3;
+use haptic_model::body::SoftBody;
 use haptic_model::contact::Probe;
 use haptic_model::element::FemModel;
 use haptic_model::scene::Scene;
@@ -214,4 +215,43 @@ pub fn probe_dynamic(scene: &Scene, quick: bool) -> Result<(ProbeCurve, TickTime
         ticks,
         substeps,
     ))
+}
+
+/// The dynamic press protocol of [`probe_dynamic`] on any body (ticked at `tick_s`): the
+/// forces per depth and the tick times. The positions are the body's to read afterwards.
+pub fn probe_dynamic_body(
+    body: &mut dyn SoftBody,
+    tick_s: f64,
+    quick: bool,
+) -> Result<(Vec<f64>, TickTimes), String> {
+    let (ramp, hold) = if quick { (0.08, 0.08) } else { (0.1, 0.1) };
+    let seg_ticks = ((ramp + hold) / tick_s).round() as usize;
+    let mut ticks = TickTimes::new();
+    let mut forces = Vec::new();
+    let mut prev = -0.3e-3;
+    for d in DEPTHS_MM {
+        let d = d * 1e-3;
+        let mut sum = 0.0;
+        let mut count = 0;
+        for k in 0..seg_ticks {
+            let t = (k + 1) as f64 * tick_s;
+            let s = t / ramp;
+            let depth = prev + (d - prev) * smoothstep(s);
+            let rate = (d - prev) / ramp * smoothstep_rate(s);
+            let input = TickInput {
+                device_position_m: Some(device_at(depth)),
+                device_velocity_m_per_s: DVec3::new(-rate, 0.0, 0.0),
+            };
+            let t0 = Instant::now();
+            let out = body.tick(&input).map_err(|e| e.to_string())?;
+            ticks.record(t0.elapsed());
+            if t > ramp + hold / 2.0 {
+                sum += out.force_on_device_n.length();
+                count += 1;
+            }
+        }
+        forces.push(sum / count as f64);
+        prev = d;
+    }
+    Ok((forces, ticks))
 }

@@ -8,7 +8,8 @@
 //! largest relative force error over the depths; surface displacement error at 3 mm on the
 //! epicardial nodes, the reference interpolated barycentrically at the closest point of its
 //! rest epicardium. Linear, quadratic and edge-smoothed linear elements (method suffix " ES"
-//! on the 2 000 and 5 000 target meshes).
+//! on the 2 000 and 5 000 target meshes), and the mass-spring surface of the epicardium
+//! (`lv-surface-springs`, seed 003) with and without run-time subdivision.
 
 use std::time::Instant;
 
@@ -19,11 +20,17 @@ use haptic_model::material::MaterialModel;
 use haptic_model::mesh::TetMesh;
 use serde::{Deserialize, Serialize};
 
-use crate::Config;
-use crate::common::lv_press::{DEPTHS_MM, ProbeCurve, probe_dynamic, probe_static};
+use crate::common::lv_press::{
+    DEPTHS_MM, ProbeCurve, probe_dynamic, probe_dynamic_body, probe_static,
+};
 use crate::common::{MATERIALS, lv_scene, lv_scene_order};
 use crate::method::{material_label, methods};
+use crate::report::Model;
 use crate::report::{Row, Scenario};
+use crate::{Config, LvProbeRows};
+use haptic_model::body::SoftBody;
+use haptic_model::mass_spring::{MassSpringBody, SpringRule};
+use haptic_model::scene::load_builtin;
 
 /// The nodes of the epicardium (`EPI`), sorted.
 fn epi_nodes(mesh: &TetMesh) -> Vec<u32> {
@@ -181,8 +188,100 @@ pub fn lv_reference(
 /// the bending of the 3 mm wall (see the `static` rows and the README).
 pub const LV_REFERENCE: (usize, bool) = (2000, true);
 
-/// Runs the scenario: per mesh and material the static curve and every dynamic method.
+/// Runs the scenario: per mesh and material the static curve and every dynamic method, then
+/// the mass-spring rows ([`mass_spring_rows`]); with `--lv-probe-rows mass-spring` those only.
 pub fn run(cfg: &Config, rows: &mut Vec<Row>) {
+    if cfg.lv_probe_rows == LvProbeRows::MassSpring {
+        let reference = lv_reference(LV_REFERENCE, MaterialModel::StVenantKirchhoff, cfg);
+        mass_spring_rows(&reference, cfg.quick, rows);
+        return;
+    }
+    run_fem(cfg, rows);
+    let reference = lv_reference(LV_REFERENCE, MaterialModel::StVenantKirchhoff, cfg);
+    mass_spring_rows(&reference, cfg.quick, rows);
+}
+
+/// The mass-spring surface `lv-surface-springs` (the epicardium of `lv_shell(2000)` on home
+/// springs, seed 003) pressed like the FEM ([`probe_dynamic_body`]): coarse, one-ring subdivided
+/// with the calibrated springs (the scene's table) and with the springs unchanged. Errors
+/// against the same FEM reference; the displacement error on the epicardial nodes, which are
+/// the surface's nodes.
+pub fn mass_spring_rows(reference: &LvReference, quick: bool, rows: &mut Vec<Row>) {
+    let scene = load_builtin("lv-surface-springs").expect("built-in lv-surface-springs");
+    let ms = scene.mass_spring.clone().expect("a mass-spring scene");
+    let variants: [(&str, u32, SpringRule); 3] = [
+        ("mass-spring", 0, SpringRule::Calibrated),
+        ("mass-spring 1-ring", 1, SpringRule::Calibrated),
+        ("mass-spring 1-ring unchanged", 1, SpringRule::Unchanged),
+    ];
+    let ref_text = format!(
+        "static with probe coupling on lv_shell ({} quadratic tets, stvk): F(3 mm) = {:.4} N",
+        reference.tets,
+        reference.curve.forces_n[DEPTHS_MM.len() - 1]
+    );
+    for (label, rings, springs) in variants {
+        let mut params = ms.params;
+        params.subdivision.rings = rings;
+        params.subdivision.springs = springs;
+        let table = if rings > 0 && springs == SpringRule::Calibrated {
+            ms.table().expect("the built-in table")
+        } else {
+            None
+        };
+        let mut row = Row::blank(Scenario::LvProbe, label.into(), "symplectic-euler");
+        row.model = Model::MassSpring;
+        row.material = "mass-spring".into();
+        row.nodes = ms.surface.node_count();
+        row.reference = ref_text.clone();
+        let mut body = match MassSpringBody::new(
+            ms.surface.clone(),
+            &params,
+            table,
+            scene.probe,
+            &scene.integrator,
+            label,
+        ) {
+            Ok(b) => b,
+            Err(e) => {
+                row.settings = format!("{label}: {e}");
+                row.print();
+                rows.push(row);
+                continue;
+            }
+        };
+        match probe_dynamic_body(&mut body, scene.integrator.tick_s, quick) {
+            Ok((forces, ticks)) => {
+                row.settings = format!(
+                    "tick 1 ms, {} sub-steps (worst-case Gershgorin bound); K_h = K_m = {} N/m; {} subdivision event(s), up to {} nodes; staircase 0.5..3 mm",
+                    body.plan().substeps,
+                    params.home_spring_n_per_m,
+                    body.event_stats().events,
+                    body.stats().nodes
+                );
+                row.set_times(&ticks, scene.integrator.tick_s);
+                // Displacements on the reference's epicardium: the scene's mesh is the surface
+                // (named `EPI`), its nodes the body's first slots.
+                let curve = ProbeCurve {
+                    forces_n: forces,
+                    x_last: body.positions()[..ms.surface.node_count()].to_vec(),
+                };
+                fill_lv_errors(
+                    &mut row,
+                    reference,
+                    &scene.mesh,
+                    &curve,
+                    DEPTHS_MM.len() - 1,
+                );
+            }
+            Err(e) => row.settings = format!("{label}: {e}"),
+        }
+        row.print();
+        rows.push(row);
+    }
+}
+
+/// The FEM rows of the scenario.
+fn run_fem(cfg: &Config, rows: &mut Vec<Row>) {
     let quick = cfg.quick;
     let lv_materials: &[MaterialModel] = if quick { &MATERIALS[..1] } else { LV_MATERIALS };
     let references: Vec<(MaterialModel, LvReference, String)> = lv_materials

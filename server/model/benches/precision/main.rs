@@ -55,6 +55,10 @@ struct Args {
     /// lv-h1: which rows to run (all, or the condensed ones only).
     #[arg(long, value_enum, default_value_t = LvH1Rows::All)]
     lv_h1_rows: LvH1Rows,
+    /// lv-probe: which rows to run (all, or the mass-spring ones only: a few seconds once the
+    /// reference is cached; not with --publish, whose results must be the full run).
+    #[arg(long, value_enum, default_value_t = LvProbeRows::All, conflicts_with = "publish")]
+    lv_probe_rows: LvProbeRows,
     /// Print the force of every patch iteration of the static probe solves.
     #[arg(long)]
     debug: bool,
@@ -99,6 +103,15 @@ pub enum LvH1Rows {
     Condensed,
 }
 
+/// Which rows of `lv-probe` to run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum LvProbeRows {
+    /// The FEM rows and the mass-spring rows.
+    All,
+    /// The mass-spring rows only (`lv-surface-springs` with and without subdivision).
+    MassSpring,
+}
+
 /// Results format read by `--replot`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 enum Format {
@@ -116,6 +129,8 @@ pub struct Config {
     pub debug: bool,
     /// `--lv-h1-rows`.
     pub lv_h1_rows: LvH1Rows,
+    /// `--lv-probe-rows`.
+    pub lv_probe_rows: LvProbeRows,
     /// Where the LV references are cached (`target/bench/`, whatever `--out` says).
     pub cache_dir: PathBuf,
 }
@@ -139,6 +154,7 @@ fn main() -> anyhow::Result<()> {
         fresh_reference: args.fresh_reference,
         debug: args.debug,
         lv_h1_rows: args.lv_h1_rows,
+        lv_probe_rows: args.lv_probe_rows,
         cache_dir: common::default_out_dir(),
     };
     let commit = common::git_commit();

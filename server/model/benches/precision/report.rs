@@ -49,6 +49,8 @@ pub enum Model {
     FemT10,
     /// Linear tetrahedra with edge-based strain smoothing.
     FemEs,
+    /// The mass-spring surface (seed 003), `tets` = 0.
+    MassSpring,
 }
 
 /// One benchmark run: a column per field, in this order.

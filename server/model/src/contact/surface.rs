@@ -59,6 +59,55 @@ impl ContactSurface {
         }
     }
 
+    /// An empty surface over `node_count` nodes whose buffers hold up to `max_triangles`
+    /// triangles, for a body whose surface changes at run time (the subdivided mass-spring
+    /// surface): [`ContactSurface::set_triangles`] then replaces the triangles without
+    /// allocating.
+    pub fn with_capacity(max_triangles: usize, node_count: usize) -> Self {
+        Self {
+            triangles: Vec::with_capacity(max_triangles),
+            node_offsets: vec![0; node_count + 1],
+            node_tris: Vec::with_capacity(3 * max_triangles),
+        }
+    }
+
+    /// Replaces the triangles (node indices below the node count given at construction) and
+    /// rebuilds the vertex-to-triangle adjacency in place: O(triangles + nodes), and
+    /// allocation-free when `triangles.len()` is within the capacity of
+    /// [`ContactSurface::with_capacity`].
+    ///
+    /// # Panics
+    /// If a node index is not below the node count.
+    pub fn set_triangles(&mut self, triangles: &[[u32; 3]]) {
+        let node_count = self.node_offsets.len() - 1;
+        self.triangles.clear();
+        self.triangles.extend_from_slice(triangles);
+        self.node_offsets.iter_mut().for_each(|o| *o = 0);
+        for t in triangles {
+            for &i in t {
+                assert!((i as usize) < node_count, "triangle node {i} out of range");
+                self.node_offsets[i as usize + 1] += 1;
+            }
+        }
+        for i in 0..node_count {
+            self.node_offsets[i + 1] += self.node_offsets[i];
+        }
+        self.node_tris.clear();
+        self.node_tris.resize(3 * triangles.len(), 0);
+        // Fill with the offsets as cursors, then shift them back.
+        for (k, t) in triangles.iter().enumerate() {
+            for &i in t {
+                let slot = &mut self.node_offsets[i as usize];
+                self.node_tris[*slot as usize] = k as u32;
+                *slot += 1;
+            }
+        }
+        for i in (1..=node_count).rev() {
+            self.node_offsets[i] = self.node_offsets[i - 1];
+        }
+        self.node_offsets[0] = 0;
+    }
+
     /// Collects the surface nodes within `reach_m` of `q` (m) reachable from triangle `seed`
     /// over the vertex-to-triangle adjacency, with the kernel weights `(1 - d^2 / reach^2)^2`
     /// normalised to sum 1, into `nodes` and `weights` (cleared first; empty when all weights

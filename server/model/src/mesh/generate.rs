@@ -115,6 +115,95 @@ pub fn sphere_shell_quadratic(
     mesh
 }
 
+/// A triangulated hemisphere of radius `radius_m` (m) centred at the origin, dome towards +z,
+/// rim in the plane z = 0, with edges of about `edge_m` (m): a surface without tetrahedra for
+/// the mass-spring family (Zhang, Payandeh & Dill Figure 12). Rings of nodes at constant polar
+/// angle as for the shells above (near-equilateral triangles, about six neighbours at the
+/// apex). Surface `SURFACE` (outward oriented), node groups `RIM` (the nodes at z = 0) and
+/// `APEX` (the node at (0, 0, radius)).
+///
+/// # Panics
+/// If `radius_m` or `edge_m` is not positive, or `edge_m > radius_m`.
+pub fn hemisphere_surface(radius_m: f64, edge_m: f64) -> TetMesh {
+    assert!(
+        radius_m > 0.0 && edge_m > 0.0 && edge_m <= radius_m,
+        "hemisphere radius {radius_m} m, edge {edge_m} m"
+    );
+    let profile = Profile {
+        inner: DVec3::splat(radius_m),
+        outer: DVec3::splat(radius_m),
+        z_cut: Some(0.0),
+    };
+    let rings = design_rings(&profile, edge_m);
+    let mut start = Vec::with_capacity(rings.len());
+    let mut nv = 0;
+    for r in &rings {
+        start.push(nv);
+        nv += r.n;
+    }
+    let last = rings.len() - 1;
+    let meridian = Meridian::new(radius_m, radius_m, PI / 2.0);
+    let mut nodes = Vec::with_capacity(nv);
+    for (i, ring) in rings.iter().enumerate() {
+        // The helpers run from the apex at -z; the dome is mirrored to +z.
+        let phi = if i == last {
+            PI / 2.0
+        } else {
+            meridian.phi(ring.sigma)
+        };
+        let (sin_phi, z) = if i == 0 {
+            (0.0, radius_m)
+        } else if i == last {
+            (1.0, 0.0)
+        } else {
+            (phi.sin(), radius_m * phi.cos())
+        };
+        for j in 0..ring.n {
+            let theta = TAU * (j as f64 + ring.offset) / ring.n as f64;
+            let (s, c) = theta.sin_cos();
+            nodes.push(DVec3::new(
+                radius_m * sin_phi * c,
+                radius_m * sin_phi * s,
+                z,
+            ));
+        }
+    }
+    // Outward orientation: the normal points away from the centre (the zipper's triangles are
+    // not consistently oriented at the pole; the shells take theirs from the tetrahedra).
+    let triangles: Vec<[u32; 3]> = zipper(&rings, &start)
+        .into_iter()
+        .map(|[a, b, c]| {
+            let [pa, pb, pc] = [a, b, c].map(|i| nodes[i]);
+            let outward = (pb - pa).cross(pc - pa).dot(pa + pb + pc) > 0.0;
+            if outward {
+                [a as u32, b as u32, c as u32]
+            } else {
+                [a as u32, c as u32, b as u32]
+            }
+        })
+        .collect();
+    let rim = (start[last]..nv).map(|i| i as u32).collect();
+    TetMesh {
+        nodes,
+        tets: Vec::new(),
+        tet_edge_nodes: Vec::new(),
+        surfaces: vec![SurfaceGroup {
+            name: "SURFACE".into(),
+            triangles,
+        }],
+        node_groups: vec![
+            NodeGroup {
+                name: "RIM".into(),
+                nodes: rim,
+            },
+            NodeGroup {
+                name: "APEX".into(),
+                nodes: vec![0],
+            },
+        ],
+    }
+}
+
 /// Moves the mid-edge nodes of the named surfaces of a quadratic shell (centred at the origin)
 /// onto their ellipsoids `(x^2 + y^2) / a^2 + z^2 / c^2 = 1` (semi-axes `(a, a, c)`), by
 /// scaling from the origin; an edge on the cut plane `z = z_cut` is scaled in that plane.

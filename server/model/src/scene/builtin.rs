@@ -77,8 +77,114 @@ coupling_damping_n_s_per_m = 0.05
 max_force_n = 10.0
 "#;
 
+/// Built-in scene `hemisphere-springs`: the paper's Figure 12 hemisphere as a mass-spring
+/// surface with one-ring subdivision.
+const HEMISPHERE_SPRINGS_TOML: &str = r#"# Built-in scene "hemisphere-springs" (a copy of the constant in server/model/src/scene/builtin.rs).
+name = "hemisphere-springs"
+description = "A triangulated hemisphere (Zhang, Payandeh & Dill, Haptic Subdivision, Figure 12) as a mass-spring surface with home springs (eq. 1-2) and run-time one-ring Loop subdivision around the contact node, spring constants from the calibrated table (section 3.2.4). K_h = K_m = 0.06 N/mm as in the paper's experiment (section 3.2.2); radius 50 mm and edges of about 8 mm, node mass 1 g and damping 0.2 N s/m are ours (the paper gives none); rim clamped."
+
+[model]
+family = "mass-spring"
+
+[mesh]
+builtin = "hemisphere"
+length_unit = "mm"
+outer_radius = 50.0             # mm
+edge_length = 8.0               # mm, about (the paper's element size L)
+
+[boundary]
+clamped = ["RIM"]
+touchable = ["SURFACE"]
+
+[mass_spring]
+mesh_spring_n_per_m = 60.0      # K_m, eq. 2
+home_spring_n_per_m = 60.0      # K_h, eq. 2
+damping_n_s_per_m = 0.2         # K_d, eq. 2
+node_mass_kg = 0.001            # m, eq. 3
+rings = 1                       # one-ring subdivision around the contact node
+springs = "calibrated"          # K'_h, K'_m from the lookup table (section 3.2.4)
+km_over_kh_after = 1.0          # the fixed ratio K'_m / K'_h, kept at K_m / K_h
+vertex_rule = "keep"            # original nodes keep their rest position
+coarsen_delay_s = 0.2           # an area is coarsened 0.2 s after the probe left it
+calibration_file = "hemisphere-springs.calibration.csv"
+
+[integrator]
+kind = "symplectic-euler"
+tick_s = 0.001
+substeps = "auto"
+max_substeps = 64
+safety_factor = 0.5
+
+[probe]
+radius_m = 0.004                # touches a node of the 8 mm mesh alone (a third to half of L)
+coupling_stiffness_n_per_m = 300.0
+coupling_damping_n_s_per_m = 0.05
+max_force_n = 10.0
+"#;
+
+/// Built-in scene `lv-surface-springs`: the LV epicardium as a mass-spring surface.
+const LV_SURFACE_SPRINGS_TOML: &str = r#"# Built-in scene "lv-surface-springs" (a copy of the constant in server/model/src/scene/builtin.rs).
+name = "lv-surface-springs"
+description = "The epicardium of the idealized left ventricle (built-in lv geometry, the linear mesh of about 2000 tets: 350 surface nodes, edges of about 2.2 mm) as a mass-spring surface with home springs (Zhang, Payandeh & Dill eq. 1-2), base rim clamped, run-time one-ring Loop subdivision with calibrated springs. K_h = K_m fitted to the lv-probe force of the FEM reference (haptic_subdivision fit-lv; a surface on home springs stiffens as the probe's contact grows, so the fit is within 40 %, see docs/accuracy.md); node mass: the myocardium (3.43 g) over the epicardial nodes; damping about critical per node."
+
+[model]
+family = "mass-spring"
+
+[mesh]
+builtin = "lv"
+target_tets = 2000
+length_unit = "mm"
+
+[boundary]
+clamped = ["BASE"]
+touchable = ["EPI"]
+
+[mass_spring]
+mesh_spring_n_per_m = 2.013     # K_m = K_h (the paper's ratio)
+home_spring_n_per_m = 2.013     # fitted: the coarse surface's lv-probe curve closest to the FEM reference (largest error 40 %)
+damping_n_s_per_m = 0.01        # about critical for a node on its home spring
+node_mass_kg = 0.00001          # the myocardium's 3.43 g over the 350 epicardial nodes
+rings = 1
+springs = "calibrated"
+vertex_rule = "keep"
+coarsen_delay_s = 0.2
+calibration_file = "lv-surface-springs.calibration.csv"
+
+[integrator]
+kind = "symplectic-euler"
+tick_s = 0.001
+substeps = "auto"
+max_substeps = 64
+safety_factor = 0.5
+
+[probe]
+radius_m = 0.002
+coupling_stiffness_n_per_m = 300.0
+coupling_damping_n_s_per_m = 0.05
+max_force_n = 10.0
+"#;
+
+/// The calibration tables of the built-in scenes, by file name (identical copies beside the
+/// scenes in `deploy/scenes/`).
+const CALIBRATIONS: [(&str, &str); 2] = [
+    (
+        "hemisphere-springs.calibration.csv",
+        include_str!("calibrations/hemisphere-springs.calibration.csv"),
+    ),
+    (
+        "lv-surface-springs.calibration.csv",
+        include_str!("calibrations/lv-surface-springs.calibration.csv"),
+    ),
+];
+
+/// The calibration table text of a built-in scene, by the file name its scene gives
+/// (`mass_spring.calibration_file`), or `None`.
+pub fn builtin_calibration(file: &str) -> Option<&'static str> {
+    CALIBRATIONS.iter().find(|c| c.0 == file).map(|c| c.1)
+}
+
 /// Built-in scenes: (name, TOML text, one-line description).
-const BUILTINS: [(&str, &str, &str); 2] = [
+const BUILTINS: [(&str, &str, &str); 4] = [
     (
         "lv",
         LV_TOML,
@@ -89,13 +195,25 @@ const BUILTINS: [(&str, &str, &str); 2] = [
         ELLIPSOIDS_TOML,
         "the seed's coarse Ellipsoids Model (~188 tets, Mero & Susin 2006 Table 1)",
     ),
+    (
+        "hemisphere-springs",
+        HEMISPHERE_SPRINGS_TOML,
+        "mass-spring hemisphere (Zhang, Payandeh & Dill Figure 12), one-ring Loop subdivision at the contact, calibrated springs",
+    ),
+    (
+        "lv-surface-springs",
+        LV_SURFACE_SPRINGS_TOML,
+        "the LV epicardium as a mass-spring surface, one-ring Loop subdivision at the contact, calibrated springs",
+    ),
 ];
 
 /// Names and one-line descriptions of the built-in scenes, e.g. `("lv", "idealized left ...")`.
 pub fn builtin_scene_names() -> &'static [(&'static str, &'static str)] {
-    const NAMES: [(&str, &str); 2] = [
+    const NAMES: [(&str, &str); 4] = [
         (BUILTINS[0].0, BUILTINS[0].2),
         (BUILTINS[1].0, BUILTINS[1].2),
+        (BUILTINS[2].0, BUILTINS[2].2),
+        (BUILTINS[3].0, BUILTINS[3].2),
     ];
     &NAMES
 }

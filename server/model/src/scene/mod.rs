@@ -13,7 +13,8 @@
 //! # or builtin = "lv" (target_tets, default 2000 when a user scene names it; the built-in "lv" scene sets 1000), "ellipsoids" (inner_semi_axes,
 //! # outer_semi_axes in length_unit, default (6,6,12) and (10,10,16) mm; target_tets, default
 //! # 188), "sphere" (inner_radius, outer_radius in length_unit; target_tets, default 5000) or
-//! # "box" (size = [x, y, z] in length_unit, cells = [nx, ny, nz])
+//! # "box" (size = [x, y, z] in length_unit, cells = [nx, ny, nz]), or "hemisphere" (a surface
+//! # for the mass-spring family: outer_radius, edge_length in length_unit)
 //! order = 1                      # element order: 1 = linear tets (default), 2 = quadratic
 //!                                # 10-node tets made by adding a node at every edge midpoint
 //!                                # (built-in shells: boundary mid-edge nodes on the surfaces)
@@ -51,6 +52,20 @@
 //! centre_m = [0.0097, 0.0, -0.005] # with a node within radius_m of centre_m (rest, metres)
 //! radius_m = 0.008               # and condense the rest statically (crate::integrate::condensed)
 //! stiffness_margin = 2.0         # factor on the rest stiffness of the frozen tick matrix
+//! [model]                        # optional
+//! family = "fem"                 # or "mass-spring": then [mass_spring] instead of [material],
+//!                                # no [loads] or [active_region] (docs/scenes.md)
+//! [mass_spring]                  # mass-spring only (crate::mass_spring)
+//! mesh_spring_n_per_m = 60.0     # K_m, eq. 2 of seed 003
+//! home_spring_n_per_m = 60.0     # K_h
+//! damping_n_s_per_m = 0.2        # K_d, default 0
+//! node_mass_kg = 0.001           # m
+//! rings = 1                      # n-ring subdivision at the contact node, 0..=6, default 1
+//! springs = "calibrated"         # or "unchanged"
+//! km_over_kh_after = 1.0         # K'_m / K'_h, default K_m / K_h
+//! vertex_rule = "keep"           # or "loop"
+//! coarsen_delay_s = 0.2
+//! calibration_file = "NAME.calibration.csv"  # beside the scene; computed by haptic-calibrate
 //! [probe]                        # optional, defaults shown
 //! radius_m = 0.002
 //! coupling_stiffness_n_per_m = 300.0
@@ -67,7 +82,7 @@
 //! [`crate::element`], [`crate::integrate`], [`crate::contact`], [`crate::loads`]. Used by
 //! [`crate::build_body`], which builds a body from a [`Scene`].
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use glam::DVec3;
 
@@ -77,13 +92,15 @@ use crate::element::StrainSmoothing;
 use crate::integrate::IntegratorParams;
 use crate::integrate::condensed::ActiveRegion;
 use crate::loads::{SceneLoads, static_external_forces};
+use crate::mass_spring::calibration::{CalibrationTable, ContactShape};
+use crate::mass_spring::{MassSpringParams, SpringSurface};
 use crate::material::MaterialParams;
 use crate::mesh::TetMesh;
 
 pub mod builtin;
 mod raw;
 
-pub use builtin::{builtin_scene_names, builtin_scene_toml};
+pub use builtin::{builtin_calibration, builtin_scene_names, builtin_scene_toml};
 pub use raw::{MAX_GRAVITY_M_PER_S2, MAX_PRESSURE_PA, MAX_SCENE_POINT_FORCE_N};
 
 /// The model family a scene asks for (section `[model] family`): which [`crate::body::SoftBody`]
@@ -93,16 +110,20 @@ pub enum ModelFamily {
     /// The tetrahedral FEM body ([`crate::sim::Simulation`]; `"fem"`, the default).
     #[default]
     Fem,
+    /// The mass-spring surface with run-time Loop subdivision
+    /// ([`crate::mass_spring::MassSpringBody`]; `"mass-spring"`, section `[mass_spring]`).
+    MassSpring,
 }
 
 impl ModelFamily {
     /// Every family, for error messages and listings.
-    pub const ALL: &'static [ModelFamily] = &[ModelFamily::Fem];
+    pub const ALL: &'static [ModelFamily] = &[ModelFamily::Fem, ModelFamily::MassSpring];
 
     /// The scene-file name.
     pub fn name(self) -> &'static str {
         match self {
             Self::Fem => "fem",
+            Self::MassSpring => "mass-spring",
         }
     }
 
@@ -142,6 +163,68 @@ pub struct Scene {
     /// Contact-local active region (section `[active_region]`): backward Euler on its elements
     /// with the rest of the body condensed ([`crate::integrate::condensed`]); `None` simulates everything.
     pub active_region: Option<ActiveRegion>,
+    /// The mass-spring surface (section `[mass_spring]`): present exactly when `family` is
+    /// [`ModelFamily::MassSpring`] (the parser guarantees it). A mass-spring scene has no
+    /// `[material]` (`material` is then the default, unused) and no `[loads]`; its `mesh` is
+    /// the spring surface itself (the touchable triangles of the mesh the scene names, no
+    /// tetrahedra), `touchable` its triangles and `clamped_nodes` its fixed nodes.
+    pub mass_spring: Option<MassSpringScene>,
+}
+
+/// The mass-spring part of a scene: the spring surface (the touchable triangles, with the
+/// clamped nodes fixed), the parameters, and the calibrated table with its cache file.
+#[derive(Debug, Clone)]
+pub struct MassSpringScene {
+    /// Parameters (eq. 1-3, subdivision).
+    pub params: MassSpringParams,
+    /// The coarse surface.
+    pub surface: SpringSurface,
+    /// The contact the table is calibrated for: the scene's probe.
+    pub contact: ContactShape,
+    /// The key a valid table must carry ([`crate::mass_spring::calibration::calibration_key`]).
+    pub key: u64,
+    /// The table's file name as the scene gives it (`calibration_file`, default
+    /// `<scene name>.calibration.csv`).
+    pub calibration_file: String,
+    /// Where the table is read from and written to (relative to the scene's directory);
+    /// `None` for a built-in scene, whose table is compiled into the library.
+    pub calibration_path: Option<PathBuf>,
+    /// The table, or why there is none.
+    pub table: TableState,
+}
+
+/// The calibration table of a mass-spring scene.
+#[derive(Debug, Clone)]
+pub enum TableState {
+    /// The scene does not subdivide with calibrated springs.
+    NotNeeded,
+    /// Read and valid for this scene.
+    Ready(CalibrationTable),
+    /// Missing, unreadable, malformed or stale: why.
+    Unusable(String),
+}
+
+impl MassSpringScene {
+    /// The table the body needs (`None` when it needs none).
+    ///
+    /// # Errors
+    /// [`ModelError::Calibration`] naming the file, saying what is wrong and the command that
+    /// computes it, when the table is needed but unusable.
+    pub fn table(&self) -> Result<Option<CalibrationTable>, ModelError> {
+        match &self.table {
+            TableState::NotNeeded => Ok(None),
+            TableState::Ready(t) => Ok(Some(t.clone())),
+            TableState::Unusable(why) => Err(ModelError::Calibration {
+                path: self
+                    .calibration_path
+                    .as_ref()
+                    .map_or(self.calibration_file.clone(), |p| p.display().to_string()),
+                message: format!(
+                    "{why}; compute it with `haptic-calibrate SCENE_FILE` (writes it beside the scene), or set mass_spring.springs = \"unchanged\" or rings = 0"
+                ),
+            }),
+        }
+    }
 }
 
 impl Scene {
@@ -170,7 +253,7 @@ pub fn load_builtin(name: &str) -> Result<Scene, ModelError> {
             .join(", ");
         return Err(ModelError::UnknownScene(name.to_string(), known));
     };
-    raw::parse_scene(text, Path::new("."), name)
+    raw::parse_scene(text, Path::new("."), name, raw::Origin::Builtin)
 }
 
 /// Reads and validates a scene file. Relative mesh paths are resolved against the file's
@@ -192,7 +275,7 @@ pub fn load_scene_file(path: &Path) -> Result<Scene, ModelError> {
         .file_stem()
         .and_then(|s| s.to_str())
         .unwrap_or("custom");
-    raw::parse_scene(&text, base_dir, stem)
+    raw::parse_scene(&text, base_dir, stem, raw::Origin::File)
 }
 
 /// Parses and validates a scene TOML text. `base_dir`: directory against which a relative
@@ -205,7 +288,7 @@ pub fn load_scene_file(path: &Path) -> Result<Scene, ModelError> {
 /// [`ModelError::Io`] (with the path) if the mesh file cannot be read, and the errors of
 /// [`crate::mesh::gmsh::load_msh`] if it cannot be parsed.
 pub fn parse_scene_toml(text: &str, base_dir: &Path) -> Result<Scene, ModelError> {
-    raw::parse_scene(text, base_dir, "custom")
+    raw::parse_scene(text, base_dir, "custom", raw::Origin::File)
 }
 
 // ----- raw (serde) form -----

@@ -6,13 +6,18 @@ use std::path::Path;
 use glam::DVec3;
 use serde::Deserialize;
 
-use super::{ModelFamily, Scene};
+use super::builtin::builtin_calibration;
+use super::{MassSpringScene, ModelFamily, Scene, TableState};
 use crate::ModelError;
 use crate::contact::ProbeParams;
 use crate::element::StrainSmoothing;
 use crate::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
 use crate::integrate::{IntegratorKind, IntegratorParams};
 use crate::loads::{PointForce, PressureLoad, SceneLoads};
+use crate::mass_spring::calibration::{CalibrationTable, ContactShape, calibration_key};
+use crate::mass_spring::{
+    MAX_RINGS, MassSpringParams, SpringRule, SpringSurface, SubdivisionParams, VertexRule,
+};
 use crate::material::{MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
 
@@ -36,6 +41,22 @@ struct RawScene {
     probe: Option<RawProbe>,
     loads: Option<RawLoads>,
     active_region: Option<RawActiveRegion>,
+    mass_spring: Option<RawMassSpring>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawMassSpring {
+    mesh_spring_n_per_m: Option<f64>,
+    home_spring_n_per_m: Option<f64>,
+    damping_n_s_per_m: Option<f64>,
+    node_mass_kg: Option<f64>,
+    rings: Option<i64>,
+    springs: Option<String>,
+    km_over_kh_after: Option<f64>,
+    vertex_rule: Option<String>,
+    coarsen_delay_s: Option<f64>,
+    calibration_file: Option<String>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -88,6 +109,7 @@ struct RawMesh {
     outer_semi_axes: Option<[f64; 3]>,
     size: Option<[f64; 3]>,
     cells: Option<[i64; 3]>,
+    edge_length: Option<f64>,
     order: Option<i64>,
     strain_smoothing: Option<String>,
 }
@@ -182,10 +204,19 @@ fn int_in(field: &str, v: i64, lo: i64, hi: i64) -> Result<usize, ModelError> {
     Ok(v as usize)
 }
 
+/// Where a scene's text comes from: a built-in scene reads its calibration table from the
+/// library, any other from its directory.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Origin {
+    Builtin,
+    File,
+}
+
 pub(super) fn parse_scene(
     text: &str,
     base_dir: &Path,
     default_name: &str,
+    origin: Origin,
 ) -> Result<Scene, ModelError> {
     let raw: RawScene = toml::from_str(text).map_err(|e| ModelError::SceneSyntax(e.to_string()))?;
     let family = match raw.model.unwrap_or_default().family.as_deref() {
@@ -201,8 +232,20 @@ pub(super) fn parse_scene(
             )
         })?,
     };
+    let springs = family == ModelFamily::MassSpring;
     let mesh_raw = required("mesh", raw.mesh)?;
     let (mesh, length_unit_m) = build_mesh(&mesh_raw, base_dir)?;
+    if !springs && mesh.tets.is_empty() {
+        let field = if mesh_raw.builtin.is_some() {
+            "mesh.builtin"
+        } else {
+            "mesh.file"
+        };
+        return Err(ModelError::field(
+            field,
+            "the mesh has no tetrahedra: a surface mesh is for model.family = \"mass-spring\"",
+        ));
+    }
     let strain_smoothing = match mesh_raw.strain_smoothing.as_deref() {
         None => StrainSmoothing::None,
         Some(name) => StrainSmoothing::from_name(name).ok_or_else(|| {
@@ -218,7 +261,17 @@ pub(super) fn parse_scene(
             "strain smoothing is for linear tetrahedra (order = 1)",
         ));
     }
-    let material = build_material(&required("material", raw.material)?)?;
+    let material = if springs {
+        if raw.material.is_some() {
+            return Err(ModelError::field(
+                "material",
+                "the mass-spring family takes its constants from [mass_spring]: remove [material]",
+            ));
+        }
+        MaterialParams::default()
+    } else {
+        build_material(&required("material", raw.material)?)?
+    };
     let boundary = raw.boundary.unwrap_or_default();
     let clamped_nodes = match &boundary.clamped {
         Some(names) => mesh.nodes_of_surfaces(names, "boundary.clamped")?,
@@ -248,6 +301,20 @@ pub(super) fn parse_scene(
             });
             tris
         }
+        None if mesh.tets.is_empty() => {
+            let mut tris: Vec<[u32; 3]> = mesh
+                .surfaces
+                .iter()
+                .flat_map(|s| s.triangles.iter().copied())
+                .collect();
+            let mut seen = std::collections::HashSet::new();
+            tris.retain(|t| {
+                let mut k = *t;
+                k.sort_unstable();
+                seen.insert(k)
+            });
+            tris
+        }
         None => mesh
             .boundary_triangles()
             .into_iter()
@@ -260,7 +327,39 @@ pub(super) fn parse_scene(
             "no touchable triangle is left",
         ));
     }
-    let integrator = build_integrator(&raw.integrator.unwrap_or_default())?;
+    let raw_integrator = raw.integrator.unwrap_or_default();
+    let mut integrator = build_integrator(&raw_integrator)?;
+    if springs {
+        match raw_integrator.kind {
+            None => integrator.kind = IntegratorKind::SymplecticEuler,
+            Some(_) if integrator.kind == IntegratorKind::SymplecticEuler => {}
+            Some(k) => {
+                return Err(ModelError::field(
+                    "integrator.kind",
+                    format!(
+                        "the mass-spring family integrates with \"symplectic-euler\" only, got `{k}`"
+                    ),
+                ));
+            }
+        }
+        if raw.loads.is_some() {
+            return Err(ModelError::field(
+                "loads",
+                "scene loads are not supported by the mass-spring family (clients can still apply point forces)",
+            ));
+        }
+        if raw.active_region.is_some() {
+            return Err(ModelError::field(
+                "active_region",
+                "is for the FEM family with backward Euler",
+            ));
+        }
+    } else if raw.mass_spring.is_some() {
+        return Err(ModelError::field(
+            "mass_spring",
+            "is only for model.family = \"mass-spring\"",
+        ));
+    }
     let probe = build_probe(&raw.probe.unwrap_or_default())?;
     let loads = build_loads(&raw.loads.unwrap_or_default(), &mesh, &clamped_nodes)?;
     let active_region = match &raw.active_region {
@@ -288,8 +387,44 @@ pub(super) fn parse_scene(
             })
         }
     };
+    let name = raw.name.unwrap_or_else(|| default_name.to_string());
+    let (mut mesh, mut touchable, mut clamped_nodes) = (mesh, touchable, clamped_nodes);
+    let mass_spring = if springs {
+        let section = required("mass_spring", raw.mass_spring)?;
+        let mut ms = build_mass_spring(
+            &section,
+            &mesh,
+            &touchable,
+            &clamped_nodes,
+            probe,
+            &name,
+            base_dir,
+            origin,
+        )?;
+        // The scene's mesh becomes the surface the body simulates (listings and outputs then
+        // count its nodes): the spring surface's nodes, no tetrahedra, the touchable triangles
+        // as one surface named after the touchable surfaces, node groups restricted to it.
+        let names = boundary
+            .touchable
+            .clone()
+            .unwrap_or_else(|| mesh.surfaces.iter().map(|s| s.name.clone()).collect());
+        mesh = surface_mesh(&mesh, &ms.surface, &names.join("+"));
+        touchable = ms.surface.triangles().to_vec();
+        clamped_nodes = (0..ms.surface.node_count() as u32)
+            .filter(|&i| ms.surface.is_fixed(i))
+            .collect();
+        // The same surface, numbered as the new mesh (its key is unchanged).
+        let fixed = (0..ms.surface.node_count() as u32)
+            .map(|i| ms.surface.is_fixed(i))
+            .collect();
+        ms.surface = SpringSurface::new(mesh.nodes.clone(), touchable.clone(), fixed)?;
+        Some(ms)
+    } else {
+        None
+    };
     Ok(Scene {
-        name: raw.name.unwrap_or_else(|| default_name.to_string()),
+        name,
+        mass_spring,
         description: raw.description.unwrap_or_default(),
         family,
         mesh,
@@ -302,6 +437,143 @@ pub(super) fn parse_scene(
         length_unit_m,
         loads,
         active_region,
+    })
+}
+
+// ----- mass-spring section -----
+
+/// The mesh of a spring surface cut from `mesh`: its nodes (in the surface's order), no
+/// tetrahedra, its triangles as the surface `name`, and `mesh`'s node groups restricted to it.
+fn surface_mesh(mesh: &TetMesh, surface: &SpringSurface, name: &str) -> TetMesh {
+    let mut local = vec![u32::MAX; mesh.node_count()];
+    for i in 0..surface.node_count() as u32 {
+        local[surface.source_node(i) as usize] = i;
+    }
+    TetMesh {
+        nodes: surface.rest().to_vec(),
+        tets: Vec::new(),
+        tet_edge_nodes: Vec::new(),
+        surfaces: vec![crate::mesh::SurfaceGroup {
+            name: name.to_string(),
+            triangles: surface.triangles().to_vec(),
+        }],
+        node_groups: mesh
+            .node_groups
+            .iter()
+            .map(|g| crate::mesh::NodeGroup {
+                name: g.name.clone(),
+                nodes: g
+                    .nodes
+                    .iter()
+                    .filter_map(|&i| local.get(i as usize).copied().filter(|&l| l != u32::MAX))
+                    .collect(),
+            })
+            .filter(|g| !g.nodes.is_empty())
+            .collect(),
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn build_mass_spring(
+    m: &RawMassSpring,
+    mesh: &TetMesh,
+    touchable: &[[u32; 3]],
+    clamped: &[u32],
+    probe: ProbeParams,
+    scene_name: &str,
+    base_dir: &Path,
+    origin: Origin,
+) -> Result<MassSpringScene, ModelError> {
+    let req = |field: &str, v: Option<f64>| required(&format!("mass_spring.{field}"), v);
+    let km = req("mesh_spring_n_per_m", m.mesh_spring_n_per_m)?;
+    let kh = req("home_spring_n_per_m", m.home_spring_n_per_m)?;
+    let rings = match m.rings {
+        None => 1,
+        Some(r) => int_in("mass_spring.rings", r, 0, i64::from(MAX_RINGS))? as u32,
+    };
+    let springs = match m.springs.as_deref() {
+        None => SpringRule::Calibrated,
+        Some(n) => SpringRule::from_name(n).ok_or_else(|| {
+            ModelError::field(
+                "mass_spring.springs",
+                format!("unknown rule `{n}` (expected \"calibrated\" or \"unchanged\")"),
+            )
+        })?,
+    };
+    let vertex_rule = match m.vertex_rule.as_deref() {
+        None => VertexRule::Keep,
+        Some(n) => VertexRule::from_name(n).ok_or_else(|| {
+            ModelError::field(
+                "mass_spring.vertex_rule",
+                format!("unknown rule `{n}` (expected \"keep\" or \"loop\")"),
+            )
+        })?,
+    };
+    let params = MassSpringParams {
+        mesh_spring_n_per_m: km,
+        home_spring_n_per_m: kh,
+        damping_n_s_per_m: m.damping_n_s_per_m.unwrap_or(0.0),
+        node_mass_kg: req("node_mass_kg", m.node_mass_kg)?,
+        subdivision: SubdivisionParams {
+            rings,
+            springs,
+            km_over_kh_after: m.km_over_kh_after.unwrap_or(km / kh),
+            vertex_rule,
+            coarsen_delay_s: m.coarsen_delay_s.unwrap_or(0.2),
+        },
+    };
+    params.validate()?;
+    let surface = SpringSurface::from_mesh(&mesh.nodes, touchable, clamped).map_err(|e| {
+        ModelError::field(
+            "boundary.touchable",
+            format!("the touchable triangles are not a valid spring surface: {e}"),
+        )
+    })?;
+    let file = m
+        .calibration_file
+        .clone()
+        .unwrap_or_else(|| format!("{scene_name}.calibration.csv"));
+    let needed = rings > 0 && springs == SpringRule::Calibrated;
+    let shape = ContactShape::Probe(probe);
+    let key = calibration_key(&surface, &params, shape);
+    let path = match origin {
+        Origin::Builtin => None,
+        Origin::File => Some(base_dir.join(&file)),
+    };
+    let table = if !needed {
+        TableState::NotNeeded
+    } else {
+        let text = match &path {
+            None => builtin_calibration(&file)
+                .map(str::to_string)
+                .ok_or_else(|| format!("no built-in calibration table `{file}`")),
+            Some(p) => std::fs::read_to_string(p).map_err(|e| format!("cannot be read ({e})")),
+        };
+        let shown = path
+            .as_ref()
+            .map_or(file.clone(), |p| p.display().to_string());
+        match text.and_then(|t| CalibrationTable::parse(&t, &shown).map_err(|e| e.to_string())) {
+            Err(why) => TableState::Unusable(why),
+            Ok(t) if t.key() != key => TableState::Unusable(format!(
+                "is stale: computed for key {:016x}, this scene needs {key:016x} (the surface, springs, rings, vertex rule or probe radius changed)",
+                t.key()
+            )),
+            Ok(t) if t.node_count() != surface.node_count() => TableState::Unusable(format!(
+                "covers {} nodes, the surface has {}",
+                t.node_count(),
+                surface.node_count()
+            )),
+            Ok(t) => TableState::Ready(t),
+        }
+    };
+    Ok(MassSpringScene {
+        params,
+        surface,
+        contact: shape,
+        key,
+        calibration_file: file,
+        calibration_path: path,
+        table,
     })
 }
 
@@ -442,14 +714,19 @@ fn unit_m(field: &str, name: &str) -> Result<f64, ModelError> {
 fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError> {
     let unit = unit_m("mesh.length_unit", m.length_unit.as_deref().unwrap_or("m"))?;
     // Parameters that only some builtins accept.
-    let params: [(&str, bool, &[&str]); 7] = [
+    let params: [(&str, bool, &[&str]); 8] = [
         (
             "mesh.target_tets",
             m.target_tets.is_some(),
             &["lv", "ellipsoids", "sphere"],
         ),
         ("mesh.inner_radius", m.inner_radius.is_some(), &["sphere"]),
-        ("mesh.outer_radius", m.outer_radius.is_some(), &["sphere"]),
+        (
+            "mesh.outer_radius",
+            m.outer_radius.is_some(),
+            &["sphere", "hemisphere"],
+        ),
+        ("mesh.edge_length", m.edge_length.is_some(), &["hemisphere"]),
         (
             "mesh.inner_semi_axes",
             m.inner_semi_axes.is_some(),
@@ -559,6 +836,29 @@ fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError
                     crate::mesh::generate::sphere_shell(ri, ro, target(5000)?)
                 }
             }
+            "hemisphere" => {
+                let radius = positive(
+                    "mesh.outer_radius",
+                    required("mesh.outer_radius", m.outer_radius)?,
+                )? * unit;
+                let edge = positive(
+                    "mesh.edge_length",
+                    required("mesh.edge_length", m.edge_length)?,
+                )? * unit;
+                if edge > radius || edge < radius / 200.0 {
+                    return Err(ModelError::field(
+                        "mesh.edge_length",
+                        "must be between outer_radius / 200 and outer_radius",
+                    ));
+                }
+                if quadratic {
+                    return Err(ModelError::field(
+                        "mesh.order",
+                        "the hemisphere is a triangle surface: order = 1 only",
+                    ));
+                }
+                crate::mesh::generate::hemisphere_surface(radius, edge)
+            }
             "box" => {
                 let size = positive_vec("mesh.size", required("mesh.size", m.size)?, unit)?;
                 let c = required("mesh.cells", m.cells)?;
@@ -575,7 +875,7 @@ fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError
                 return Err(ModelError::field(
                     "mesh.builtin",
                     format!(
-                        "unknown builtin mesh `{other}` (expected lv, ellipsoids, sphere or box)"
+                        "unknown builtin mesh `{other}` (expected lv, ellipsoids, sphere, box or hemisphere)"
                     ),
                 ));
             }

@@ -1,0 +1,483 @@
+//! The experiment of Zhang, Payandeh & Dill, *Haptic Subdivision* (seed 003), section 3.2, on
+//! our model, and the fit of the `lv-surface-springs` constants.
+//!
+//! - `paper`: the paper's regular equilateral triangular mesh (element size L = 30 mm,
+//!   `K_h = K_m = 0.06 N/mm`), the central node C displaced by x along the normal (point
+//!   contact, static equilibrium, everything else free; the mesh eight rings wide, the local
+//!   problem the calibration's patch of the subdivided rings plus three, its outer ring held):
+//!   - Fig. 5: the contact force F_c against x / L before subdivision;
+//!   - Fig. 6 (one-ring) and 7 (two-ring): `K'_m / K_m` that restores F_c after subdivision
+//!     with `K'_h` unchanged, and with `K'_h = K_h N / N'` (eq. 5);
+//!   - Fig. 8-11: `K'_h / K_h` and `K'_m / K_m` at fixed ratios `K'_m / K'_h` = 4, 1, 0.25,
+//!     one- and two-ring (section 3.2.4);
+//!   - the stiffening without the table (`K' = K`), and the patch-size convergence (three
+//!     against six rings of margin).
+//!
+//!   CSV files and plots (PNG and SVG) go to `target/bench/` (or `--out DIR`); `--publish`
+//!   writes them over the committed ones in `docs/bench/` and `docs/`.
+//! - `fit-lv`: the home spring constant of `lv-surface-springs` (at a given `K_m / K_h`) whose
+//!   coarse surface comes closest to the FEM reference of the `lv-probe` press (the smallest
+//!   largest relative force error over the six depths, the benchmark's dynamic press).
+//!
+//! Run: `cargo run --release -p haptic-model --example haptic_subdivision -- paper`.
+
+#[path = "../benches/common/mod.rs"]
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use anyhow::{Context as _, anyhow};
+use clap::{Parser, Subcommand};
+use haptic_model::DVec3;
+use haptic_model::body::TickInput;
+use haptic_model::mass_spring::calibration::{ContactShape, LocalPatch, PATCH_EXTRA_RINGS};
+use haptic_model::mass_spring::{MassSpringBody, SpringSurface, VertexRule};
+use haptic_model::scene::load_builtin;
+use plotters::prelude::*;
+
+/// The haptic-subdivision experiment (seed 003, section 3.2) and the LV fit.
+#[derive(Debug, Parser)]
+#[command(name = "haptic_subdivision")]
+struct Args {
+    #[command(subcommand)]
+    run: Run,
+}
+
+#[derive(Debug, Subcommand)]
+enum Run {
+    /// Figures 5-11 of the paper: CSV and plots.
+    Paper {
+        /// Folder for the CSV files and plots [default: target/bench of the workspace].
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Write the CSV files into docs/bench/ and the plots into docs/.
+        #[arg(long, conflicts_with = "out")]
+        publish: bool,
+    },
+    /// The lv-surface-springs spring constants closest to the FEM reference of lv-probe.
+    FitLv {
+        /// K_m / K_h.
+        #[arg(long, default_value_t = 1.0)]
+        km_over_kh: f64,
+    },
+}
+
+/// Element size of the paper's mesh, m.
+const L_M: f64 = 0.03;
+/// `K_h = K_m = 0.06 N/mm`, in N/m.
+const K_N_PER_M: f64 = 60.0;
+/// x / L of the curves.
+fn xs() -> Vec<f64> {
+    (1..=40).map(|k| k as f64 * 0.025).collect()
+}
+
+fn main() -> anyhow::Result<()> {
+    match Args::parse().run {
+        Run::Paper { out, publish } => {
+            let root = common::workspace_root();
+            let (data, plots) = if publish {
+                (root.join("docs/bench"), root.join("docs"))
+            } else {
+                let o = out.unwrap_or_else(common::default_out_dir);
+                (o.clone(), o)
+            };
+            paper(&data, &plots)
+        }
+        Run::FitLv { km_over_kh } => fit_lv(km_over_kh),
+    }
+}
+
+/// One curve: label and (x / L, value) points (NaN where there is no value).
+type Curve = (String, Vec<(f64, f64)>);
+
+fn paper(data: &Path, plots: &Path) -> anyhow::Result<()> {
+    std::fs::create_dir_all(data)?;
+    std::fs::create_dir_all(plots)?;
+    let surface = SpringSurface::regular_hexagon(L_M, 8);
+    let k = (K_N_PER_M, K_N_PER_M);
+    let shape = ContactShape::Point;
+    let xs = xs();
+    // Fig. 5 and the convergence of the local problem.
+    let coarse = |margin: u32| -> anyhow::Result<Vec<f64>> {
+        let p = LocalPatch::with_margin(&surface, 0, 1, margin, VertexRule::Keep, shape, k)?;
+        let mut x = p.coarse_rest();
+        xs.iter()
+            .map(|r| Ok(p.coarse_press(r * L_M, &mut x)?))
+            .collect()
+    };
+    let f = coarse(PATCH_EXTRA_RINGS)?;
+    let f_wide = coarse(6)?;
+    let patch_error = f
+        .iter()
+        .zip(&f_wide)
+        .map(|(a, b)| ((a - b) / b).abs())
+        .fold(0.0, f64::max);
+    println!(
+        "Fig. 5: F_c(x = L) = {:.4} N; K_h x = {:.4} N; local problem {} vs 6 rings of margin: max relative difference {:.2e}",
+        f[f.len() - 1],
+        K_N_PER_M * L_M,
+        PATCH_EXTRA_RINGS + 1,
+        patch_error
+    );
+    let mut fig5 = csv::Writer::from_path(data.join("haptic-subdivision-fig5.csv"))?;
+    fig5.write_record(["x_over_l", "force_n", "force_n_wide_patch"])?;
+    for ((x, a), b) in xs.iter().zip(&f).zip(&f_wide) {
+        fig5.write_record([x.to_string(), a.to_string(), b.to_string()])?;
+    }
+    fig5.flush()?;
+    line_plot(
+        &plots.join("haptic-subdivision-fig5"),
+        "Fig. 5: contact force before subdivision (L = 30 mm, K_h = K_m = 0.06 N/mm)",
+        "F_c (N)",
+        &[(
+            "F_c".into(),
+            xs.iter().copied().zip(f.iter().copied()).collect(),
+        )],
+    )?;
+    // Fig. 6-7, the stiffening, Fig. 8-11.
+    let mut fig67 = csv::Writer::from_path(data.join("haptic-subdivision-fig6-7.csv"))?;
+    fig67.write_record([
+        "rings",
+        "x_over_l",
+        "km_ratio_kh_unchanged",
+        "km_ratio_kh_eq5",
+        "force_ratio_unchanged_springs",
+    ])?;
+    let mut fig811 = csv::Writer::from_path(data.join("haptic-subdivision-fig8-11.csv"))?;
+    fig811.write_record([
+        "rings",
+        "km_over_kh_after",
+        "x_over_l",
+        "kh_ratio",
+        "km_ratio",
+    ])?;
+    let mut kh_curves: [Vec<Curve>; 2] = Default::default();
+    let mut km_curves: [Vec<Curve>; 2] = Default::default();
+    for rings in [1u32, 2] {
+        let mut p = LocalPatch::new(&surface, 0, rings, VertexRule::Keep, shape, k)?;
+        let (n, n_after) = p.area_node_counts();
+        let eq5 = K_N_PER_M * n as f64 / n_after as f64;
+        let mut unchanged = Vec::new();
+        let mut kh_fixed = Vec::new();
+        let mut kh_eq5 = Vec::new();
+        let (mut s1, mut s2) = (1.0, 10.0);
+        let mut x1 = p.fine_rest();
+        let mut x2 = p.fine_rest();
+        let mut x3 = p.fine_rest();
+        for (i, &r) in xs.iter().enumerate() {
+            let depth = r * L_M;
+            let (f_same, _) = p.fine_press(k, depth, &mut x3)?;
+            unchanged.push(f_same / f[i]);
+            let a = p.match_force(f[i], depth, |s| (K_N_PER_M, s * K_N_PER_M), s1, &mut x1)?;
+            kh_fixed.push(a.map_or(f64::NAN, |v| v.0));
+            s1 = a.map_or(s1, |v| v.0);
+            let b = p.match_force(f[i], depth, |s| (eq5, s * K_N_PER_M), s2, &mut x2)?;
+            kh_eq5.push(b.map_or(f64::NAN, |v| v.0));
+            s2 = b.map_or(s2, |v| v.0);
+            fig67.write_record([
+                rings.to_string(),
+                r.to_string(),
+                kh_fixed[i].to_string(),
+                kh_eq5[i].to_string(),
+                unchanged[i].to_string(),
+            ])?;
+        }
+        println!(
+            "{rings}-ring (N = {n}, N' = {n_after}): K' = K stiffens F_c by {:.0} % at x = 0.1 L, {:.0} % at L (max {:.0} %); K'_m/K_m with K'_h unchanged {:.3} .. {:.3}; with eq. 5 {:.1} at x = {} L, {:.3} at L",
+            (unchanged[3] - 1.0) * 100.0,
+            (unchanged[unchanged.len() - 1] - 1.0) * 100.0,
+            unchanged
+                .iter()
+                .fold(0.0f64, |m, v| m.max(*v) - 0.0)
+                .max(1.0)
+                * 100.0
+                - 100.0,
+            kh_fixed.iter().copied().fold(f64::INFINITY, f64::min),
+            kh_fixed.iter().copied().fold(0.0, f64::max),
+            kh_eq5
+                .iter()
+                .copied()
+                .find(|v| v.is_finite())
+                .unwrap_or(f64::NAN),
+            xs[kh_eq5.iter().position(|v| v.is_finite()).unwrap_or(0)],
+            kh_eq5[kh_eq5.len() - 1],
+        );
+        // Log scale: the eq. 5 curve runs to infinity at small x (drawn as log10).
+        line_plot(
+            &plots.join(format!("haptic-subdivision-fig{}", 5 + rings)),
+            &format!(
+                "Fig. {}: K'_m / K_m restoring F_c, {} subdivision",
+                5 + rings,
+                if rings == 1 { "one-ring" } else { "two-ring" }
+            ),
+            "log10(K'_m / K_m)",
+            &[
+                (
+                    "K'_h = K_h N / N' (eq. 5)".into(),
+                    xs.iter()
+                        .copied()
+                        .zip(kh_eq5.iter().map(|v| v.log10()))
+                        .collect(),
+                ),
+                (
+                    "K'_h = K_h".into(),
+                    xs.iter()
+                        .copied()
+                        .zip(kh_fixed.iter().map(|v| v.log10()))
+                        .collect(),
+                ),
+            ],
+        )?;
+        for ratio in [4.0, 1.0, 0.25] {
+            let mut x = p.fine_rest();
+            let mut a = 1.0;
+            let mut kh = Vec::new();
+            let mut km = Vec::new();
+            for (i, &r) in xs.iter().enumerate() {
+                let m = p.match_force(
+                    f[i],
+                    r * L_M,
+                    |s| (s * K_N_PER_M, ratio * s * K_N_PER_M),
+                    a,
+                    &mut x,
+                )?;
+                let v = m.map_or(f64::NAN, |m| m.0);
+                a = m.map_or(a, |m| m.0);
+                kh.push((r, v));
+                km.push((r, v * ratio));
+                fig811.write_record([
+                    rings.to_string(),
+                    ratio.to_string(),
+                    r.to_string(),
+                    v.to_string(),
+                    (v * ratio).to_string(),
+                ])?;
+            }
+            let label = format!("K'_m / K'_h = {ratio}");
+            kh_curves[rings as usize - 1].push((label.clone(), kh));
+            km_curves[rings as usize - 1].push((label, km));
+        }
+    }
+    fig67.flush()?;
+    fig811.flush()?;
+    for rings in [1usize, 2] {
+        let which = if rings == 1 { "one-ring" } else { "two-ring" };
+        let (fh, fm) = if rings == 1 { (8, 9) } else { (10, 11) };
+        line_plot(
+            &plots.join(format!("haptic-subdivision-fig{fh}")),
+            &format!("Fig. {fh}: K'_h / K_h at fixed K'_m / K'_h, {which}"),
+            "K'_h / K_h",
+            &kh_curves[rings - 1],
+        )?;
+        line_plot(
+            &plots.join(format!("haptic-subdivision-fig{fm}")),
+            &format!("Fig. {fm}: K'_m / K_m at fixed K'_m / K'_h, {which}"),
+            "K'_m / K_m",
+            &km_curves[rings - 1],
+        )?;
+        for (label, c) in &kh_curves[rings - 1] {
+            let v: Vec<f64> = c.iter().map(|p| p.1).collect();
+            println!(
+                "{which} {label}: K'_h/K_h {:.3} at x = 0.025 L, min {:.3}, {:.3} at L",
+                v[0],
+                v.iter().copied().fold(f64::INFINITY, f64::min),
+                v[v.len() - 1]
+            );
+        }
+    }
+    println!(
+        "wrote {}/haptic-subdivision-fig*.csv and {}/haptic-subdivision-fig*.png/.svg",
+        data.display(),
+        plots.display()
+    );
+    Ok(())
+}
+
+/// DejaVu Sans (the precision benchmark's font, see `benches/precision/plot.rs`).
+static DEJAVU_SANS: &[u8] = include_bytes!("../benches/precision/fonts/DejaVuSans.ttf");
+
+fn register_font() -> anyhow::Result<()> {
+    static REGISTERED: OnceLock<Result<(), String>> = OnceLock::new();
+    REGISTERED
+        .get_or_init(|| {
+            plotters::style::register_font("sans-serif", FontStyle::Normal, DEJAVU_SANS)
+                .map_err(|_| "the font is not valid".to_string())
+        })
+        .clone()
+        .map_err(|e| anyhow!(e))
+}
+
+/// Curves against x / L, `base.png` and `base.svg`.
+fn line_plot(base: &Path, title: &str, ylabel: &str, curves: &[Curve]) -> anyhow::Result<()> {
+    register_font()?;
+    let finite = curves
+        .iter()
+        .flat_map(|c| c.1.iter())
+        .filter(|p| p.1.is_finite());
+    let (lo, hi) = finite.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+        (lo.min(p.1), hi.max(p.1))
+    });
+    let pad = 0.08 * (hi - lo.min(0.0)).max(1e-9);
+    let (lo, hi) = (lo.min(0.0) - if lo < 0.0 { pad } else { 0.0 }, hi + pad);
+    let png = base.with_extension("png");
+    let svg = base.with_extension("svg");
+    draw(
+        BitMapBackend::new(&png, (720, 480)).into_drawing_area(),
+        title,
+        ylabel,
+        curves,
+        (lo, hi),
+    )
+    .with_context(|| format!("drawing {}", png.display()))?;
+    draw(
+        SVGBackend::new(&svg, (720, 480)).into_drawing_area(),
+        title,
+        ylabel,
+        curves,
+        (lo, hi),
+    )
+    .with_context(|| format!("drawing {}", svg.display()))?;
+    Ok(())
+}
+
+fn draw<DB: DrawingBackend>(
+    area: DrawingArea<DB, plotters::coord::Shift>,
+    title: &str,
+    ylabel: &str,
+    curves: &[Curve],
+    (lo, hi): (f64, f64),
+) -> anyhow::Result<()>
+where
+    DB::ErrorType: 'static,
+{
+    let colours = [BLUE, RED, GREEN, MAGENTA, BLACK];
+    area.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
+    let mut chart = ChartBuilder::on(&area)
+        .caption(title, ("sans-serif", 17))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..1.0, lo..hi)
+        .map_err(|e| anyhow!("{e}"))?;
+    chart
+        .configure_mesh()
+        .x_desc("x / L (displacement of node C over the element size)")
+        .y_desc(ylabel)
+        .label_style(("sans-serif", 13))
+        .draw()
+        .map_err(|e| anyhow!("{e}"))?;
+    for (k, (label, points)) in curves.iter().enumerate() {
+        let colour = colours[k % colours.len()];
+        let pts: Vec<(f64, f64)> = points.iter().copied().filter(|p| p.1.is_finite()).collect();
+        chart
+            .draw_series(LineSeries::new(pts.clone(), colour.stroke_width(2)))
+            .map_err(|e| anyhow!("{e}"))?
+            .label(label.as_str())
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], colour.stroke_width(2)));
+        chart
+            .draw_series(pts.iter().map(|&p| Circle::new(p, 2, colour.filled())))
+            .map_err(|e| anyhow!("{e}"))?;
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 13))
+        .position(SeriesLabelPosition::UpperLeft)
+        .draw()
+        .map_err(|e| anyhow!("{e}"))?;
+    area.present().map_err(|e| anyhow!("{e}"))?;
+    Ok(())
+}
+
+/// The `lv-probe` reference: the static probe force of the FEM reference (`lv_shell(2000)`,
+/// curved quadratic tetrahedra, St. Venant-Kirchhoff) at [`common::lv_press::DEPTHS_MM`], N,
+/// from `cargo run --release -p haptic-model --example lv_study -- static --mesh 2000:2`.
+const LV_REFERENCE_N: [f64; 6] = [0.007449, 0.015645, 0.023259, 0.030192, 0.036416, 0.041941];
+
+/// The coarse LV surface's forces on the `lv-probe` press (the staircase of
+/// [`common::lv_press::probe_dynamic`]: to each depth a 100 ms smoothstep ramp and a 100 ms
+/// hold, the mean force over the last 50 ms) with `K_h = kh`, `K_m = ratio kh`.
+fn lv_curve(kh: f64, ratio: f64) -> anyhow::Result<Vec<f64>> {
+    let scene = load_builtin("lv-surface-springs")?;
+    let ms = scene.mass_spring.as_ref().context("a mass-spring scene")?;
+    let mut params = ms.params;
+    params.home_spring_n_per_m = kh;
+    params.mesh_spring_n_per_m = ratio * kh;
+    params.subdivision.rings = 0;
+    let mut body = MassSpringBody::new(
+        ms.surface.clone(),
+        &params,
+        None,
+        scene.probe,
+        &scene.integrator,
+        "fit",
+    )?;
+    let mut forces = Vec::new();
+    let mut prev = -0.3e-3;
+    for d in common::lv_press::DEPTHS_MM {
+        let d = d * 1e-3;
+        let mut sum = 0.0;
+        for k in 0..200 {
+            let depth = prev + (d - prev) * common::smoothstep((k + 1) as f64 / 100.0);
+            let out = body.tick(&TickInput {
+                device_position_m: Some(common::device_at(depth)),
+                device_velocity_m_per_s: DVec3::ZERO,
+            })?;
+            if k >= 150 {
+                sum += out.force_on_device_n.length();
+            }
+        }
+        forces.push(sum / 50.0);
+        prev = d;
+    }
+    Ok(forces)
+}
+
+/// The largest relative force error of a curve against [`LV_REFERENCE_N`].
+fn lv_error(curve: &[f64]) -> f64 {
+    curve
+        .iter()
+        .zip(LV_REFERENCE_N)
+        .map(|(f, r)| (f / r - 1.0).abs())
+        .fold(0.0, f64::max)
+}
+
+fn fit_lv(ratio: f64) -> anyhow::Result<()> {
+    // Golden-section search on log K_h for the smallest largest relative error.
+    let g = (5f64.sqrt() - 1.0) / 2.0;
+    let (mut a, mut b) = (0.01f64.ln(), 100f64.ln());
+    let err = |l: f64| -> anyhow::Result<f64> { Ok(lv_error(&lv_curve(l.exp(), ratio)?)) };
+    let (mut c, mut d) = (b - g * (b - a), a + g * (b - a));
+    let (mut fc, mut fd) = (err(c)?, err(d)?);
+    for _ in 0..40 {
+        if fc < fd {
+            (b, d, fd) = (d, c, fc);
+            c = b - g * (b - a);
+            fc = err(c)?;
+        } else {
+            (a, c, fc) = (c, d, fd);
+            d = a + g * (b - a);
+            fd = err(d)?;
+        }
+    }
+    let kh = ((a + b) / 2.0).exp();
+    let curve = lv_curve(kh, ratio)?;
+    println!(
+        "K_m / K_h = {ratio}: K_h = {kh:.4} N/m, K_m = {:.4} N/m; largest relative error {:.1} %",
+        ratio * kh,
+        lv_error(&curve) * 100.0
+    );
+    for ((d, f), r) in common::lv_press::DEPTHS_MM
+        .iter()
+        .zip(&curve)
+        .zip(LV_REFERENCE_N)
+    {
+        println!(
+            "  {d} mm: {f:.5} N (reference {r:.5} N, {:+.1} %)",
+            (f / r - 1.0) * 100.0
+        );
+    }
+    Ok(())
+}

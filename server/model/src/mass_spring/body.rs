@@ -1,0 +1,974 @@
+//! [`MassSpringBody`]: the mass-spring surface with run-time haptic subdivision, behind the
+//! [`SoftBody`] interface the servo drives.
+//!
+//! A tick is `substeps` steps of symplectic Euler on eq. 1-2 with the damping `K_d` implicit
+//! (`v' = (m v + dt f) / (m + dt K_d)`, `x' = x + dt v'`), the probe's virtual coupling
+//! completed implicitly ([`Probe::finish_implicit`], the same probe as the FEM's), and the
+//! subdivided area's spring constants looked up in the calibrated table at the current
+//! displacement of its contact node once per step (section 3.2.4). After the steps, the
+//! contact node (the coarse node nearest the contact point) becomes a *centre*; an area is
+//! kept subdivided while its centre was touched within `coarsen_delay_s`, and until it has
+//! come back to rest (within [`QUIET_DISPLACEMENT_OVER_L`]). When the set of
+//! centres changes, an **event** recomputes the refinement ([`super::refine`]) and carries the
+//! state over:
+//!
+//! - original nodes keep position and velocity (with [`VertexRule::Loop`] they keep their
+//!   displacement from their moved rest position); a node whose mass changes keeps its
+//!   velocity when it gets lighter and its momentum when it gets heavier, so no node gains
+//!   kinetic energy;
+//! - a new type-2 node takes Loop's edge rule for its rest position and the mean displacement
+//!   and velocity of its edge's end points (the deformed surface under the probe stays where
+//!   it was);
+//! - masses follow eq. 3 (`m' = m N / N'` over the subdivided area), damping `K_d m' / m`;
+//! - if the event still raised the total energy (the subdivided area can store more elastic
+//!   energy in the same shape), the velocities of the nodes it touched are scaled down by the
+//!   excess; what kinetic energy cannot cover is counted in [`EventStats::injected_energy_j`].
+//!
+//! Everything an event touches is sized at construction for the whole surface subdivided, so
+//! neither a tick nor an event allocates, locks or does I/O (events run on the servo thread:
+//! preparing them on another thread would need a hand-off the servo does not have, and an
+//! event costs O(triangles) with small constants; `docs/benchmarks.md` has the numbers). The
+//! sub-step is fixed at construction from a Gershgorin bound that covers every configuration
+//! the events can produce (lightest masses `m/4`, stiffest table entry, most springs per node),
+//! so an event never makes the integration unstable.
+
+use glam::DVec3;
+
+use super::calibration::CalibrationTable;
+use super::loop_rules::loop_rest_positions;
+use super::network::{critical_time_step_s, gershgorin_bound_per_s2};
+use super::refine::{NO_OWNER, Refinement};
+use super::surface::SpringSurface;
+use super::{MassSpringParams, SpringRule, VertexRule};
+use crate::ModelError;
+use crate::body::{
+    BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput, TickOutput,
+};
+use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
+use crate::contact::{ContactSurface, Probe, ProbeParams};
+use crate::integrate::{IntegratorKind, IntegratorParams, StepPlan, plan_steps};
+use crate::loads::{BodyLoads, SceneLoads};
+
+/// Most centres (subdivided areas) at a time: the contact node and former contact nodes still
+/// within their coarsening delay. A new centre beyond it replaces the oldest.
+pub const MAX_CENTRES: usize = 8;
+
+/// An area is coarsened only once every node of it is back within this fraction of the
+/// element size L of its rest position: coarsening restores the coarse constants, stiffer than
+/// the calibrated ones, so a displaced area would gain elastic energy (at most
+/// `N' K_h (1e-3 L)^2 / 2` this way, 1e-8 J on the hemisphere).
+pub const QUIET_DISPLACEMENT_OVER_L: f64 = 1e-3;
+
+/// A nodal speed above this (m/s) is treated as divergence (as for the FEM).
+pub const DIVERGENCE_SPEED_M_PER_S: f64 = 100.0;
+
+/// A subdivided area's contact node and when it was last touched.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Centre {
+    node: u32,
+    last_contact_s: f64,
+}
+
+/// Counters of the subdivision events of a body.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct EventStats {
+    /// Events (changes of the set of subdivided areas).
+    pub events: u64,
+    /// Events that added a subdivided area.
+    pub subdivisions: u64,
+    /// Events that removed one.
+    pub coarsenings: u64,
+    /// Kinetic energy removed to keep events from raising the total energy, J.
+    pub drained_energy_j: f64,
+    /// Energy events added that kinetic energy could not cover, J (see the module
+    /// documentation).
+    pub injected_energy_j: f64,
+    /// The largest single-event excess that was injected, J.
+    pub max_injected_energy_j: f64,
+}
+
+/// A mesh spring of the current mesh with its rest length.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct RtSpring {
+    i: u32,
+    j: u32,
+    rest_length_m: f64,
+    owner: u8,
+}
+
+/// The mass-spring body (module documentation).
+#[derive(Debug, Clone)]
+pub struct MassSpringBody {
+    surface: SpringSurface,
+    params: MassSpringParams,
+    table: Option<CalibrationTable>,
+    refinement: Refinement,
+    /// Loop rest positions: per coarse node (type-1) and per edge (type-2).
+    loop_vertex_rest: Vec<DVec3>,
+    edge_rest: Vec<DVec3>,
+    // Per slot (coarse nodes, then one per coarse edge).
+    rest: Vec<DVec3>,
+    x: Vec<DVec3>,
+    v: Vec<DVec3>,
+    f: Vec<DVec3>,
+    mass: Vec<f64>,
+    damping: Vec<f64>,
+    fixed: Vec<bool>,
+    /// Active slots: the coarse nodes, then the active type-2 nodes; the viewer's vertex order.
+    active: Vec<u32>,
+    slot_to_view: Vec<u32>,
+    view_triangles: Vec<[u32; 3]>,
+    springs: Vec<RtSpring>,
+    centres: [Centre; MAX_CENTRES],
+    centre_count: usize,
+    /// Per centre: `K'_h` and `K'_m` now, N/m.
+    kh_area: [f64; MAX_CENTRES],
+    km_area: [f64; MAX_CENTRES],
+    probe: Probe,
+    loads: BodyLoads,
+    plan: StepPlan,
+    coarse_critical_dt_s: f64,
+    tick_s: f64,
+    time_s: f64,
+    diverged_at_s: Option<f64>,
+    version: u64,
+    stats: EventStats,
+    // Event scratch.
+    old_mass: Vec<f64>,
+    old_split: Vec<bool>,
+    old_rest: Vec<DVec3>,
+    touched: Vec<bool>,
+    ring: Vec<(u32, u32)>,
+    ring_dist: Vec<u32>,
+    scratch_a: Vec<f64>,
+    scratch_b: Vec<f64>,
+    scene_name: String,
+}
+
+impl MassSpringBody {
+    /// Builds the body on `surface` with `params`; `table` is the calibrated lookup table
+    /// (required when `params.subdivision` subdivides with [`SpringRule::Calibrated`]); the
+    /// probe and the servo tick settings as for the FEM (`integrator.kind` must be
+    /// symplectic Euler, the only scheme of this family).
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] for invalid parameters (naming the field), a missing table
+    /// (`mass_spring.calibration_file`) or one for another node count, another integrator
+    /// kind; [`ModelError::Unstable`] when the sub-steps needed by the worst-case Gershgorin
+    /// bound exceed `integrator.max_substeps` (or a fixed `integrator.substeps` is too few).
+    pub fn new(
+        surface: SpringSurface,
+        params: &MassSpringParams,
+        table: Option<CalibrationTable>,
+        probe: ProbeParams,
+        integrator: &IntegratorParams,
+        scene_name: &str,
+    ) -> Result<Self, ModelError> {
+        params.validate()?;
+        if integrator.kind != IntegratorKind::SymplecticEuler {
+            return Err(ModelError::field(
+                "integrator.kind",
+                "the mass-spring family integrates with \"symplectic-euler\" only",
+            ));
+        }
+        let sub = params.subdivision;
+        let needs_table = sub.rings > 0 && sub.springs == SpringRule::Calibrated;
+        let table = if needs_table {
+            let t = table.ok_or_else(|| {
+                ModelError::field(
+                    "mass_spring.calibration_file",
+                    "subdividing with springs = \"calibrated\" needs the calibration table (run `haptic-calibrate SCENE`)",
+                )
+            })?;
+            if t.node_count() != surface.node_count() {
+                return Err(ModelError::field(
+                    "mass_spring.calibration_file",
+                    format!(
+                        "the table covers {} nodes, the surface has {}",
+                        t.node_count(),
+                        surface.node_count()
+                    ),
+                ));
+            }
+            Some(t)
+        } else {
+            None
+        };
+        let (nc, ne, nt) = (
+            surface.node_count(),
+            surface.edge_count(),
+            surface.triangle_count(),
+        );
+        let ns = nc + ne;
+        let (edge_rest, loop_vertex_rest) = loop_rest_positions(&surface);
+        let mut rest = surface.rest().to_vec();
+        rest.extend_from_slice(&edge_rest);
+        let m = params.node_mass_kg;
+        let mut fixed: Vec<bool> = (0..nc as u32).map(|i| surface.is_fixed(i)).collect();
+        fixed.extend(
+            surface
+                .edges()
+                .iter()
+                .map(|&[a, b]| surface.is_fixed(a) && surface.is_fixed(b)),
+        );
+        let refinement = Refinement::new(&surface);
+        let mut probe = Probe::new(probe, surface.triangles().to_vec(), &rest);
+        probe.surface = ContactSurface::with_capacity(4 * nt, ns);
+        probe.surface.set_triangles(refinement.triangles());
+        let load_surface: Vec<[u32; 3]> = surface
+            .triangles()
+            .iter()
+            .copied()
+            .filter(|t| !t.iter().all(|&i| surface.is_fixed(i)))
+            .collect();
+        let loads = BodyLoads::new(
+            &SceneLoads::default(),
+            surface.rest(),
+            &vec![m; nc],
+            load_surface,
+        );
+        // Stability: the coarse bound, and the worst case over every refinement.
+        let kh = params.home_spring_n_per_m;
+        let km = params.mesh_spring_n_per_m;
+        let mut diag = vec![0.0; ns];
+        let mut off = vec![0.0; ns];
+        let coarse_lambda = gershgorin_bound_per_s2(
+            &vec![kh; nc],
+            &vec![m; nc],
+            &fixed[..nc],
+            surface.edges().iter().map(|&[a, b]| (a, b, km)),
+            &mut diag,
+            &mut off,
+        );
+        let coarse_critical_dt_s = critical_time_step_s(coarse_lambda);
+        let worst_lambda = if sub.rings == 0 {
+            coarse_lambda
+        } else {
+            let a_max = table.as_ref().map_or(1.0, |t| t.max_scale());
+            let (kh_max, k_max) = match sub.springs {
+                SpringRule::Calibrated => (
+                    kh * a_max.max(1.0),
+                    km.max(sub.km_over_kh_after * a_max * kh),
+                ),
+                SpringRule::Unchanged => (kh, km),
+            };
+            // N' < 4 N for any area of a surface of genus 0, so m' > m / 4.
+            let m_min = m / 4.0;
+            let node_bound = |springs: f64| (kh_max + 2.0 * springs * k_max) / m_min;
+            let coarse_worst = (0..nc as u32)
+                .filter(|&i| !surface.is_fixed(i))
+                .map(|i| {
+                    node_bound(f64::from(surface.valence(i)) + surface.triangles_at(i).len() as f64)
+                })
+                .fold(0.0, f64::max);
+            coarse_worst.max(node_bound(6.0)).max(coarse_lambda)
+        };
+        let worst_dt = critical_time_step_s(worst_lambda);
+        let plan = plan_steps(integrator, worst_dt)?;
+        let mut body = Self {
+            loop_vertex_rest,
+            edge_rest,
+            x: rest.clone(),
+            v: vec![DVec3::ZERO; ns],
+            f: vec![DVec3::ZERO; ns],
+            mass: vec![m; ns],
+            damping: vec![params.damping_n_s_per_m; ns],
+            fixed,
+            active: Vec::with_capacity(ns),
+            slot_to_view: vec![u32::MAX; ns],
+            view_triangles: Vec::with_capacity(4 * nt),
+            springs: Vec::with_capacity(2 * ne + 3 * nt),
+            centres: [Centre {
+                node: 0,
+                last_contact_s: 0.0,
+            }; MAX_CENTRES],
+            centre_count: 0,
+            kh_area: [kh; MAX_CENTRES],
+            km_area: [km; MAX_CENTRES],
+            probe,
+            loads,
+            plan,
+            coarse_critical_dt_s,
+            tick_s: integrator.tick_s,
+            time_s: 0.0,
+            diverged_at_s: None,
+            version: 0,
+            stats: EventStats::default(),
+            old_mass: vec![m; ns],
+            old_split: vec![false; ne],
+            old_rest: vec![DVec3::ZERO; nc],
+            touched: vec![false; ns],
+            ring: Vec::with_capacity(nc),
+            ring_dist: vec![u32::MAX; nc],
+            scratch_a: diag,
+            scratch_b: off,
+            scene_name: scene_name.to_string(),
+            rest,
+            refinement,
+            table,
+            params: *params,
+            surface,
+        };
+        body.rebuild_topology();
+        body.version = 0;
+        Ok(body)
+    }
+
+    /// Rebuilds the springs, the active slots and the viewer's triangles from the refinement.
+    fn rebuild_topology(&mut self) {
+        let nc = self.surface.node_count() as u32;
+        self.springs.clear();
+        for s in self.refinement.springs() {
+            self.springs.push(RtSpring {
+                i: s.i,
+                j: s.j,
+                rest_length_m: (self.rest[s.j as usize] - self.rest[s.i as usize]).length(),
+                owner: s.owner,
+            });
+        }
+        for &s in &self.active {
+            self.slot_to_view[s as usize] = u32::MAX;
+        }
+        self.active.clear();
+        self.active.extend(0..nc);
+        for &e in self.refinement.active_edges() {
+            self.active.push(nc + e);
+        }
+        for (k, &s) in self.active.iter().enumerate() {
+            self.slot_to_view[s as usize] = k as u32;
+        }
+        self.view_triangles.clear();
+        for t in self.refinement.triangles() {
+            self.view_triangles
+                .push(t.map(|s| self.slot_to_view[s as usize]));
+        }
+        self.probe
+            .surface
+            .set_triangles(self.refinement.triangles());
+        self.version += 1;
+    }
+
+    /// `K'_h` and `K'_m` of each centre's area at the current state (section 3.2.4: the table
+    /// at the centre's displacement over L; the coarse constants with
+    /// [`SpringRule::Unchanged`]).
+    fn update_area_constants(&mut self) {
+        let kh = self.params.home_spring_n_per_m;
+        let ratio = match self.params.subdivision.springs {
+            SpringRule::Calibrated => self.params.subdivision.km_over_kh_after,
+            SpringRule::Unchanged => self.params.mesh_spring_n_per_m / kh,
+        };
+        for k in 0..self.centre_count {
+            let c = self.centres[k].node;
+            let a = match &self.table {
+                Some(t) => {
+                    let u = (self.x[c as usize] - self.rest[c as usize]).length();
+                    t.scale(c, u / self.surface.element_size_m(c))
+                }
+                None => 1.0,
+            };
+            self.kh_area[k] = a * kh;
+            self.km_area[k] = ratio * a * kh;
+        }
+    }
+
+    #[inline]
+    fn home_constant(&self, s: u32) -> f64 {
+        match self.refinement.node_owner(s) {
+            NO_OWNER => self.params.home_spring_n_per_m,
+            o => self.kh_area[o as usize],
+        }
+    }
+
+    #[inline]
+    fn spring_constant(&self, owner: u8) -> f64 {
+        match owner {
+            NO_OWNER => self.params.mesh_spring_n_per_m,
+            o => self.km_area[o as usize],
+        }
+    }
+
+    /// Total energy, J: kinetic `sum m v^2 / 2` plus elastic (home and mesh springs, eq. 2)
+    /// over the current mesh with the current constants. Allocation-free.
+    pub fn energy_j(&self) -> f64 {
+        let mut e = 0.0;
+        for &s in &self.active {
+            let i = s as usize;
+            e += 0.5 * self.mass[i] * self.v[i].length_squared();
+            e += 0.5 * self.home_constant(s) * (self.x[i] - self.rest[i]).length_squared();
+        }
+        for sp in &self.springs {
+            let stretch =
+                (self.x[sp.j as usize] - self.x[sp.i as usize]).length() - sp.rest_length_m;
+            e += 0.5 * self.spring_constant(sp.owner) * stretch * stretch;
+        }
+        e
+    }
+
+    /// Kinetic energy over the active nodes, J.
+    pub fn kinetic_energy_j(&self) -> f64 {
+        self.active
+            .iter()
+            .map(|&s| 0.5 * self.mass[s as usize] * self.v[s as usize].length_squared())
+            .sum()
+    }
+
+    /// Total mass of the active nodes, kg (eq. 3 keeps it constant).
+    pub fn total_mass_kg(&self) -> f64 {
+        self.active.iter().map(|&s| self.mass[s as usize]).sum()
+    }
+
+    /// Recomputes the refinement for the current centres and carries the state over (module
+    /// documentation). Allocation-free.
+    fn event(&mut self, added: bool, removed: bool) {
+        let energy_before = self.energy_j();
+        let nc = self.surface.node_count();
+        self.old_mass.copy_from_slice(&self.mass);
+        for (e, o) in self.old_split.iter_mut().enumerate() {
+            *o = self.refinement.is_edge_split(e as u32);
+        }
+        self.old_rest.copy_from_slice(&self.rest[..nc]);
+        self.refinement.begin();
+        let rings = self.params.subdivision.rings;
+        for k in 0..self.centre_count {
+            self.refinement
+                .request_ring(&self.surface, self.centres[k].node, rings, k as u8);
+        }
+        self.refinement.finish(&self.surface);
+        // Masses (eq. 3) and damping per unit mass.
+        let m = self.params.node_mass_kg;
+        let (n1, n2) = (self.refinement.type1_count(), self.refinement.type2_count());
+        let m_area = if n1 + n2 > 0 {
+            m * n1 as f64 / (n1 + n2) as f64
+        } else {
+            m
+        };
+        let kd_per_kg = self.params.damping_n_s_per_m / m;
+        for s in 0..self.mass.len() {
+            let area = self.refinement.node_owner(s as u32) != NO_OWNER;
+            self.mass[s] = if area { m_area } else { m };
+            self.damping[s] = kd_per_kg * self.mass[s];
+        }
+        self.touched.iter_mut().for_each(|t| *t = false);
+        // Original nodes: rest (vertex rule), velocity (mass change).
+        let loop_rule = self.params.subdivision.vertex_rule == VertexRule::Loop;
+        for i in 0..nc {
+            let area = self.refinement.node_owner(i as u32) != NO_OWNER;
+            let new_rest = if loop_rule && area && !self.fixed[i] {
+                self.loop_vertex_rest[i]
+            } else {
+                self.surface.rest()[i]
+            };
+            if new_rest != self.old_rest[i] {
+                self.x[i] += new_rest - self.old_rest[i];
+                self.rest[i] = new_rest;
+                self.touched[i] = true;
+            }
+            if self.mass[i] != self.old_mass[i] {
+                self.v[i] *= (self.old_mass[i] / self.mass[i]).min(1.0);
+                self.touched[i] = true;
+            }
+        }
+        // Type-2 nodes: new ones interpolated, persisting ones keep their state.
+        let edges = self.surface.edges();
+        for (e, &[a, b]) in edges.iter().enumerate() {
+            let s = nc + e;
+            let now = self.refinement.is_edge_split(e as u32);
+            if now && !self.old_split[e] {
+                let (a, b) = (a as usize, b as usize);
+                let u = 0.5 * ((self.x[a] - self.rest[a]) + (self.x[b] - self.rest[b]));
+                if self.fixed[s] {
+                    self.x[s] = self.edge_rest[e];
+                    self.v[s] = DVec3::ZERO;
+                } else {
+                    self.x[s] = self.edge_rest[e] + u;
+                    self.v[s] = 0.5 * (self.v[a] + self.v[b]);
+                }
+                self.touched[s] = true;
+            } else if now && self.mass[s] != self.old_mass[s] {
+                self.v[s] *= (self.old_mass[s] / self.mass[s]).min(1.0);
+                self.touched[s] = true;
+            } else if !now {
+                self.v[s] = DVec3::ZERO;
+            }
+        }
+        self.rebuild_topology();
+        self.update_area_constants();
+        // No energy from the event: drain the touched nodes' kinetic energy by the excess.
+        let energy_after = self.energy_j();
+        let excess = energy_after - energy_before;
+        if excess > 0.0 {
+            let ke: f64 = self
+                .active
+                .iter()
+                .filter(|&&s| self.touched[s as usize])
+                .map(|&s| 0.5 * self.mass[s as usize] * self.v[s as usize].length_squared())
+                .sum();
+            let drained = excess.min(ke);
+            if ke > 0.0 {
+                let scale = ((ke - drained) / ke).max(0.0).sqrt();
+                for k in 0..self.active.len() {
+                    let s = self.active[k] as usize;
+                    if self.touched[s] {
+                        self.v[s] *= scale;
+                    }
+                }
+            }
+            self.stats.drained_energy_j += drained;
+            let injected = excess - drained;
+            if injected > 0.0 {
+                self.stats.injected_energy_j += injected;
+                self.stats.max_injected_energy_j = self.stats.max_injected_energy_j.max(injected);
+            }
+        }
+        // The probe's contact triangle index refers to the old triangles.
+        if self.probe.state.in_contact {
+            let st = self.probe.state;
+            let point = st.proxy_m - st.normal * self.probe.params.radius_m;
+            if let Some(sp) = self.probe.surface.closest_global(&self.x, point) {
+                self.probe.state.triangle = sp.triangle;
+            }
+        }
+        self.stats.events += 1;
+        self.stats.subdivisions += u64::from(added);
+        self.stats.coarsenings += u64::from(removed);
+    }
+
+    /// The coarse node nearest the probe's contact point among the coarse vertices of the
+    /// triangle it touches (the contact node C of the paper), if it is free.
+    fn contact_node(&self) -> Option<u32> {
+        let st = self.probe.state;
+        if !st.in_contact {
+            return None;
+        }
+        let point = st.proxy_m - st.normal * self.probe.params.radius_m;
+        let nc = self.surface.node_count() as u32;
+        let tri = *self.refinement.triangles().get(st.triangle as usize)?;
+        let mut best: Option<(f64, u32)> = None;
+        for s in tri {
+            let parents = if s < nc {
+                [s, s]
+            } else {
+                self.surface.edges()[(s - nc) as usize]
+            };
+            for p in parents {
+                if self.fixed[p as usize] {
+                    continue;
+                }
+                let d = (self.x[p as usize] - point).length_squared();
+                if best.is_none_or(|(bd, _)| d < bd) {
+                    best = Some((d, p));
+                }
+            }
+        }
+        best.map(|b| b.1)
+    }
+
+    /// Updates the centres from the contact (touched now: refreshed or added; untouched for
+    /// longer than the delay: removed) and runs an event when they changed.
+    fn update_centres(&mut self) {
+        if self.params.subdivision.rings == 0 {
+            return;
+        }
+        let now = self.time_s;
+        let mut added = false;
+        if let Some(c) = self.contact_node() {
+            match self.centres[..self.centre_count]
+                .iter_mut()
+                .find(|k| k.node == c)
+            {
+                Some(k) => k.last_contact_s = k.last_contact_s.max(now),
+                None => {
+                    if self.centre_count == MAX_CENTRES {
+                        // Replace the one touched longest ago.
+                        let oldest = (0..MAX_CENTRES)
+                            .min_by(|&a, &b| {
+                                self.centres[a]
+                                    .last_contact_s
+                                    .total_cmp(&self.centres[b].last_contact_s)
+                            })
+                            .unwrap_or(0);
+                        self.centres[oldest] = Centre {
+                            node: c,
+                            last_contact_s: now,
+                        };
+                    } else {
+                        self.centres[self.centre_count] = Centre {
+                            node: c,
+                            last_contact_s: now,
+                        };
+                        self.centre_count += 1;
+                    }
+                    added = true;
+                }
+            }
+        }
+        let delay = self.params.subdivision.coarsen_delay_s;
+        let before = self.centre_count;
+        let mut k = 0;
+        while k < self.centre_count {
+            if now - self.centres[k].last_contact_s > delay && self.area_is_quiet(k) {
+                self.centre_count -= 1;
+                self.centres[k] = self.centres[self.centre_count];
+            } else {
+                k += 1;
+            }
+        }
+        let removed = self.centre_count < before;
+        if added || removed {
+            self.event(added, removed);
+        }
+    }
+
+    /// Whether every node of centre `k`'s area (its rings' coarse nodes and their type-2
+    /// nodes) is within [`QUIET_DISPLACEMENT_OVER_L`] of its rest position. O(area),
+    /// allocation-free.
+    fn area_is_quiet(&mut self, k: usize) -> bool {
+        let c = self.centres[k].node;
+        let limit = QUIET_DISPLACEMENT_OVER_L * self.surface.element_size_m(c);
+        let limit2 = limit * limit;
+        let rings = self.params.subdivision.rings;
+        let mut ring = std::mem::take(&mut self.ring);
+        self.surface.ring(c, rings, &mut self.ring_dist, &mut ring);
+        let nc = self.surface.node_count() as u32;
+        let moved = |s: u32| (self.x[s as usize] - self.rest[s as usize]).length_squared() > limit2;
+        let quiet = ring.iter().all(|&(i, _)| {
+            !moved(i)
+                && self
+                    .surface
+                    .incident_edges(i)
+                    .iter()
+                    .all(|&e| !self.refinement.is_edge_split(e) || !moved(nc + e))
+        });
+        self.ring = ring;
+        quiet
+    }
+
+    /// Subdivides around the coarse nodes `nodes` (replacing every current area; they stay
+    /// subdivided until [`MassSpringBody::coarsen`]): a subdivision event, for tests, tools and
+    /// the calibration experiment. At most [`MAX_CENTRES`] nodes are taken; fixed ones and
+    /// nodes out of range are skipped. Allocation-free.
+    pub fn subdivide_around(&mut self, nodes: &[u32]) {
+        self.centre_count = 0;
+        for &c in nodes.iter().take(MAX_CENTRES) {
+            if (c as usize) < self.surface.node_count() && !self.surface.is_fixed(c) {
+                self.centres[self.centre_count] = Centre {
+                    node: c,
+                    last_contact_s: f64::INFINITY,
+                };
+                self.centre_count += 1;
+            }
+        }
+        self.event(true, false);
+    }
+
+    /// Coarsens every subdivided area: back to the coarse mesh (an event). Allocation-free.
+    pub fn coarsen(&mut self) {
+        self.centre_count = 0;
+        self.event(false, true);
+    }
+
+    /// The coarse surface.
+    pub fn surface(&self) -> &SpringSurface {
+        &self.surface
+    }
+
+    /// The current refinement (levels, triangles and springs over slots).
+    pub fn refinement(&self) -> &Refinement {
+        &self.refinement
+    }
+
+    /// The parameters.
+    pub fn params(&self) -> &MassSpringParams {
+        &self.params
+    }
+
+    /// Active slots (the coarse nodes, then the active type-2 nodes): the viewer's vertices.
+    pub fn active_nodes(&self) -> &[u32] {
+        &self.active
+    }
+
+    /// Positions per slot, m (inactive slots hold stale values).
+    pub fn positions(&self) -> &[DVec3] {
+        &self.x
+    }
+
+    /// Velocities per slot, m/s.
+    pub fn velocities(&self) -> &[DVec3] {
+        &self.v
+    }
+
+    /// Rest positions per slot, m.
+    pub fn rest_positions(&self) -> &[DVec3] {
+        &self.rest
+    }
+
+    /// Masses per slot, kg.
+    pub fn masses(&self) -> &[f64] {
+        &self.mass
+    }
+
+    /// Positions and velocities per slot, to set a state (tests, experiments). Fixed nodes
+    /// must stay at rest with zero velocity.
+    pub fn state_mut(&mut self) -> (&mut [DVec3], &mut [DVec3]) {
+        self.diverged_at_s = None;
+        (&mut self.x, &mut self.v)
+    }
+
+    /// Event counters.
+    pub fn event_stats(&self) -> EventStats {
+        self.stats
+    }
+
+    /// The sub-step plan (from the worst-case Gershgorin bound).
+    pub fn plan(&self) -> StepPlan {
+        self.plan
+    }
+
+    /// Critical time step of the coarse mesh (Gershgorin bound), s.
+    pub fn coarse_critical_dt_s(&self) -> f64 {
+        self.coarse_critical_dt_s
+    }
+
+    /// The current `K'_h` of each centre's area (N/m), in centre order, with the centres'
+    /// nodes: for tests and tools.
+    pub fn area_home_constants(&self) -> impl Iterator<Item = (u32, f64)> + '_ {
+        (0..self.centre_count).map(|k| (self.centres[k].node, self.kh_area[k]))
+    }
+
+    /// The probe.
+    pub fn probe(&self) -> &Probe {
+        &self.probe
+    }
+
+    /// Advances one servo tick (module documentation).
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidDevice`] for a non-finite or absurd device input (state
+    /// untouched); [`ModelError::Diverged`] when the state diverged (then every later tick
+    /// too). Allocation-free, also when the tick runs a subdivision event.
+    pub fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
+        if let Some(p) = input.device_position_m {
+            if !p.is_finite() || !input.device_velocity_m_per_s.is_finite() {
+                return Err(ModelError::InvalidDevice(
+                    "device position or velocity is not finite",
+                ));
+            }
+            if p.abs().max_element() > MAX_DEVICE_DISTANCE_M {
+                return Err(ModelError::InvalidDevice(
+                    "device position is farther than 10 m from the origin",
+                ));
+            }
+        }
+        if let Some(time_s) = self.diverged_at_s {
+            return Err(ModelError::Diverged { time_s });
+        }
+        let dt = self.plan.sub_dt_s;
+        for _ in 0..self.plan.substeps {
+            self.update_area_constants();
+            // 1. Forces of eq. 2: home springs, mesh springs, point loads.
+            for &s in &self.active {
+                let i = s as usize;
+                self.f[i] = (self.rest[i] - self.x[i]) * self.home_constant(s);
+            }
+            for sp in &self.springs {
+                let d = self.x[sp.j as usize] - self.x[sp.i as usize];
+                let len = d.length();
+                if len > 0.0 {
+                    let k = match sp.owner {
+                        NO_OWNER => self.params.mesh_spring_n_per_m,
+                        o => self.km_area[o as usize],
+                    };
+                    let fs = d * (k * (len - sp.rest_length_m) / len);
+                    self.f[sp.i as usize] += fs;
+                    self.f[sp.j as usize] -= fs;
+                }
+            }
+            self.loads.add_to(&self.x, &mut self.f);
+            // 2. Contact: proxy and the explicit part of the coupling's reaction.
+            match input.device_position_m {
+                Some(p) => {
+                    self.probe.update(&self.x, p, input.device_velocity_m_per_s);
+                    self.probe.add_reaction(&mut self.f);
+                }
+                None => self.probe.release(),
+            }
+            // 3. Symplectic Euler with implicit damping, then the implicit coupling.
+            let mut max_v2: f64 = 0.0;
+            for &s in &self.active {
+                let i = s as usize;
+                if self.fixed[i] {
+                    continue;
+                }
+                let denom = self.mass[i] + dt * self.damping[i];
+                self.v[i] = (self.v[i] * self.mass[i] + self.f[i] * dt) / denom;
+                self.x[i] += self.v[i] * dt;
+                max_v2 = max_v2.max(self.v[i].length_squared());
+            }
+            if self.probe.state.in_contact {
+                let (mass, damping, fixed) = (&self.mass, &self.damping, &self.fixed);
+                self.probe
+                    .finish_implicit(dt, &mut self.x, &mut self.v, |i, w| {
+                        if fixed[i] {
+                            DVec3::ZERO
+                        } else {
+                            w / (mass[i] + dt * damping[i])
+                        }
+                    });
+                for &i in self.probe.patch().0 {
+                    max_v2 = max_v2.max(self.v[i as usize].length_squared());
+                }
+            }
+            if !(max_v2 <= DIVERGENCE_SPEED_M_PER_S * DIVERGENCE_SPEED_M_PER_S) {
+                self.diverged_at_s = Some(self.time_s);
+                return Err(ModelError::Diverged {
+                    time_s: self.time_s,
+                });
+            }
+        }
+        self.time_s += self.tick_s;
+        self.loads.advance(self.tick_s);
+        // 4. Subdivision around the contact node, coarsening of areas left.
+        self.update_centres();
+        // 5. Output.
+        let contact = self.probe.state;
+        Ok(TickOutput {
+            force_on_device_n: contact.force_on_device_n,
+            in_contact: contact.in_contact,
+            proxy_position_m: if contact.in_contact {
+                contact.proxy_m
+            } else {
+                input.device_position_m.unwrap_or(DVec3::ZERO)
+            },
+            contact_stiffness_n_per_m: self.probe.contact_stiffness(),
+            sim_time_s: self.time_s,
+        })
+    }
+
+    /// Largest displacement from rest over the active nodes, m.
+    pub fn max_displacement_m(&self) -> f64 {
+        self.active
+            .iter()
+            .map(|&s| (self.x[s as usize] - self.rest[s as usize]).length_squared())
+            .fold(0.0, f64::max)
+            .sqrt()
+    }
+
+    /// The Gershgorin bound on `M^-1 K` (1/s^2) of the current mesh with the current
+    /// constants (the tick's sub-step respects the worst case over all meshes, see
+    /// [`MassSpringBody::plan`]). Allocation-free.
+    pub fn current_stiffness_bound_per_s2(&mut self) -> f64 {
+        let n = self.mass.len();
+        let mut home = std::mem::take(&mut self.old_mass);
+        for (s, h) in home.iter_mut().enumerate().take(n) {
+            *h = if self.slot_to_view[s] == u32::MAX {
+                0.0
+            } else {
+                self.home_constant(s as u32)
+            };
+        }
+        let mut diag = std::mem::take(&mut self.scratch_a);
+        let mut off = std::mem::take(&mut self.scratch_b);
+        let lambda = gershgorin_bound_per_s2(
+            &home,
+            &self.mass,
+            &self.fixed,
+            self.springs
+                .iter()
+                .map(|sp| (sp.i, sp.j, self.spring_constant(sp.owner))),
+            &mut diag,
+            &mut off,
+        );
+        self.old_mass = home;
+        self.scratch_a = diag;
+        self.scratch_b = off;
+        lambda
+    }
+}
+
+impl SoftBody for MassSpringBody {
+    fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
+        MassSpringBody::tick(self, input)
+    }
+
+    /// Point loads act on the coarse nodes around the point (they survive every event).
+    fn add_point_load(
+        &mut self,
+        point_m: DVec3,
+        force_n: DVec3,
+        duration_s: f64,
+    ) -> Result<(), ModelError> {
+        self.loads.add_point_load(
+            &self.x,
+            self.probe.params.radius_m,
+            point_m,
+            force_n,
+            duration_s,
+        )
+    }
+
+    fn surface_topology(&self) -> SurfaceTopology<'_> {
+        SurfaceTopology {
+            version: self.version,
+            vertex_count: self.active.len(),
+            triangles: &self.view_triangles,
+        }
+    }
+
+    fn surface_capacity(&self) -> SurfaceCapacity {
+        SurfaceCapacity {
+            vertices: self.mass.len(),
+            triangles: 4 * self.surface.triangle_count(),
+        }
+    }
+
+    fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
+        assert_eq!(out.len(), 3 * self.active.len(), "surface buffer length");
+        let mut max_d2: f64 = 0.0;
+        for (k, &s) in self.active.iter().enumerate() {
+            let p = self.x[s as usize];
+            out[3 * k] = p.x as f32;
+            out[3 * k + 1] = p.y as f32;
+            out[3 * k + 2] = p.z as f32;
+            max_d2 = max_d2.max((p - self.rest[s as usize]).length_squared());
+        }
+        max_d2.sqrt()
+    }
+
+    fn write_surface_rest_positions(&self, out: &mut [f32]) {
+        assert_eq!(out.len(), 3 * self.active.len(), "surface buffer length");
+        for (k, &s) in self.active.iter().enumerate() {
+            let p = self.rest[s as usize];
+            out[3 * k] = p.x as f32;
+            out[3 * k + 1] = p.y as f32;
+            out[3 * k + 2] = p.z as f32;
+        }
+    }
+
+    /// Nodes and surface vertices are the current (subdivided) node count; elements are the
+    /// mesh springs, all of them simulated.
+    fn stats(&self) -> BodyStats {
+        BodyStats {
+            nodes: self.active.len(),
+            elements: self.springs.len(),
+            active_elements: self.springs.len(),
+            particles: 0,
+            active_particles: 0,
+            active_point_loads: self.loads.active_point_loads(),
+            surface_vertices: self.active.len(),
+            topology_version: self.version,
+            sim_time_s: self.time_s,
+            max_displacement_m: self.max_displacement_m(),
+        }
+    }
+
+    fn info(&self) -> BodyInfo {
+        BodyInfo {
+            family: "mass-spring",
+            scene: self.scene_name.clone(),
+            tick_s: self.tick_s,
+            substeps: self.plan.substeps,
+            critical_dt_s: self.plan.critical_dt_s,
+            probe_radius_m: self.probe.params.radius_m,
+        }
+    }
+}

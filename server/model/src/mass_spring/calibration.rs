@@ -1,0 +1,964 @@
+//! The spring-constant lookup table of haptic subdivision (Zhang, Payandeh & Dill section
+//! 3.2.4 and 3.3, step 1): for a contact node C, the home spring constant `K'_h = a K_h` of a
+//! subdivided area, with `K'_m = rho K'_h` at a fixed ratio `rho = K'_m / K'_h`, such that the
+//! same contact force presses the contact to the same depth before and after subdivision
+//! (eq. 4, `F'(K'_h, K'_m, x) = F(K_h, K_m, x)`), tabulated over the normalized displacement
+//! `x / L` and interpolated at run time.
+//!
+//! The experiment behind it (section 3.2.2), for any mesh and each node C: a local patch of the
+//! coarse surface (the subdivided rings plus a margin of [`PATCH_EXTRA_RINGS`] rings and the
+//! probe's reach, its outer ring held at rest; the response decays within a few rings, the
+//! convergence check is in `docs/accuracy.md`) is pressed statically at C along C's rest normal
+//! to `L / 1000` (the small-displacement limit) and `k D / 15`, k = 1..15 ([`SAMPLES`],
+//! `D = 1.5 L`), giving the coarse force F; the
+//! patch is then subdivided around C exactly as at run time and `a` is found (secant
+//! iterations on `log a`, to 1e-5 of F) such that the subdivided patch needs the same force
+//! at the same depth. The table stores, per sample, `a` against the displacement of C in the
+//! subdivided patch over L: what the body observes at run time and interpolates in.
+//!
+//! The contact is the paper's point contact at C ([`ContactShape::Point`]: the depth is C's
+//! displacement) or, for the bodies the servo drives, the haptic probe itself
+//! ([`ContactShape::Probe`]: the depth is the travel of the probe's centre, and the force is
+//! the probe's at static equilibrium, its patch, weights and normal following the deformed
+//! surface). The probe spreads its force over every node within `2 r`, and a subdivided
+//! surface has more nodes there: a table made for a point contact would not keep the probe's
+//! force (measured: `docs/accuracy.md`).
+//!
+//! The table is computed for every free node ([`calibrate`], minutes for hundreds of nodes,
+//! on all cores, with progress), cached as a text file beside the scene
+//! ([`CalibrationTable::to_text`], [`CalibrationTable::parse`]) under a key
+//! ([`calibration_key`]) that hashes everything it depends on, so that a stale file is
+//! detected.
+//!
+//! Neighbours: uses [`super::surface`], [`super::refine`], [`super::loop_rules`],
+//! [`super::network`]; read by the body and by the scene loader.
+
+use std::fmt::Write as _;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use glam::DVec3;
+
+use super::loop_rules::{apply, edge_stencil, vertex_stencil};
+use super::network::{ContactLoad, Network, Spring, press};
+use super::refine::{NO_OWNER, Refinement};
+use super::surface::{NONE, SpringSurface};
+use super::{MassSpringParams, VertexRule};
+use crate::ModelError;
+use crate::contact::{Probe, ProbeParams};
+
+/// Samples per node: the small-depth limit ([`FIRST_SAMPLE_OVER_L`]), then depths
+/// `k D / (SAMPLES - 1)`, k = 1..SAMPLES, up to `D =` [`DEPTH_RANGE_OVER_L`]` L`.
+pub const SAMPLES: usize = 16;
+
+/// Depth of the first sample over L: the small-displacement limit (the springs' geometric
+/// stiffness is negligible there: for a point contact `a -> 1`).
+pub const FIRST_SAMPLE_OVER_L: f64 = 1e-3;
+
+/// Depth of sample `k` (0-based) over the element size L.
+pub fn sample_depth_over_l(k: usize) -> f64 {
+    if k == 0 {
+        FIRST_SAMPLE_OVER_L
+    } else {
+        DEPTH_RANGE_OVER_L * k as f64 / (SAMPLES - 1) as f64
+    }
+}
+
+/// The deepest calibrated depth over the element size L. The paper assumes displacements up
+/// to L (section 3.2.2); probes press somewhat deeper on fine meshes (the LV: 3 mm on 2.2 mm
+/// elements), and beyond the table the last factor holds.
+pub const DEPTH_RANGE_OVER_L: f64 = 1.5;
+
+/// Rings of the local calibration patch beyond the subdivided ones (the outermost held at rest).
+pub const PATCH_EXTRA_RINGS: u32 = 3;
+
+/// The factors `a = K'_h / K_h` a sample may take; a match outside is treated as unmatched
+/// (an isolated deep sample whose probe patch lost nodes needed 45 on the hemisphere) and
+/// takes its neighbour's factor.
+pub const SCALE_RANGE: (f64, f64) = (0.01, 10.0);
+
+/// Version of the table's definition; part of the key.
+pub const CALIBRATION_VERSION: u32 = 2;
+
+/// How the contact presses the surface in the calibration experiment.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ContactShape {
+    /// A force on the contact node alone (the paper's experiment).
+    Point,
+    /// The haptic probe itself ([`crate::contact::Probe`]: a sphere whose proxy plane and
+    /// reaction spread over the nodes within `2 r` with kernel weights, joined to the device by
+    /// the virtual coupling), its centre travelling along the contact node's normal.
+    Probe(ProbeParams),
+}
+
+/// The calibration of one contact node: per sample, the displacement of the contact node in
+/// the subdivided surface over L, the home spring factor `a = K'_h / K_h`, and the force.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NodeCalibration {
+    /// Element size L at the node, m.
+    pub element_size_m: f64,
+    /// Displacement of the contact node after subdivision over L, increasing.
+    pub x_over_l: [f64; SAMPLES],
+    /// `K'_h / K_h` at each sample.
+    pub kh_scale: [f64; SAMPLES],
+    /// Contact force of the coarse surface at each sample (= the subdivided one's), N.
+    pub force_n: [f64; SAMPLES],
+}
+
+impl NodeCalibration {
+    /// `K'_h / K_h` at normalized displacement `x_over_l`: linear interpolation between the
+    /// samples, constant beyond the first and the last.
+    pub fn scale(&self, x_over_l: f64) -> f64 {
+        let xs = &self.x_over_l;
+        if !(x_over_l > xs[0]) {
+            return self.kh_scale[0];
+        }
+        for k in 1..SAMPLES {
+            if x_over_l <= xs[k] {
+                let t = (x_over_l - xs[k - 1]) / (xs[k] - xs[k - 1]);
+                return self.kh_scale[k - 1] + t * (self.kh_scale[k] - self.kh_scale[k - 1]);
+            }
+        }
+        self.kh_scale[SAMPLES - 1]
+    }
+}
+
+/// The lookup table of a surface: one [`NodeCalibration`] per free node (module
+/// documentation).
+#[derive(Debug, Clone, PartialEq)]
+pub struct CalibrationTable {
+    key: u64,
+    rows: Vec<Option<NodeCalibration>>,
+}
+
+impl CalibrationTable {
+    /// The table's key ([`calibration_key`] of what it was computed for).
+    pub fn key(&self) -> u64 {
+        self.key
+    }
+
+    /// Number of nodes it covers (calibrated or not).
+    pub fn node_count(&self) -> usize {
+        self.rows.len()
+    }
+
+    /// The calibration of node `i` (`None` for a fixed node).
+    pub fn node(&self, i: u32) -> Option<&NodeCalibration> {
+        self.rows.get(i as usize).and_then(|r| r.as_ref())
+    }
+
+    /// `K'_h / K_h` for contact node `i` at normalized displacement `x_over_l` (1 for a node
+    /// without calibration). Allocation-free.
+    pub fn scale(&self, i: u32, x_over_l: f64) -> f64 {
+        self.node(i).map_or(1.0, |c| c.scale(x_over_l))
+    }
+
+    /// The largest `K'_h / K_h` in the table (at least 1), for the stability bound.
+    pub fn max_scale(&self) -> f64 {
+        self.rows
+            .iter()
+            .flatten()
+            .flat_map(|r| r.kh_scale)
+            .fold(1.0, f64::max)
+    }
+
+    /// A table of the given rows (one per node, `None` for a node without calibration) under
+    /// `key`: tests and tools that calibrate a few nodes ([`calibrate_node`]).
+    pub fn from_rows(key: u64, rows: Vec<Option<NodeCalibration>>) -> Self {
+        Self { key, rows }
+    }
+
+    /// A table giving every node the calibration `row` (benchmarks on generated meshes whose
+    /// calibration would take hours; not a calibrated table).
+    pub fn uniform(node_count: usize, row: NodeCalibration, key: u64) -> Self {
+        Self {
+            key,
+            rows: vec![Some(row); node_count],
+        }
+    }
+
+    /// The cache file's text: a commented header with the key, then one CSV row per node and
+    /// sample: `node,element_size_m,sample,x_over_l,kh_scale,force_n`.
+    pub fn to_text(&self, description: &str) -> String {
+        let mut s = String::new();
+        let _ = writeln!(
+            s,
+            "# haptic-model mass-spring calibration table (Zhang, Payandeh & Dill section 3.2.4)"
+        );
+        for line in description.lines() {
+            let _ = writeln!(s, "# {line}");
+        }
+        let _ = writeln!(s, "# key {:016x}", self.key);
+        let _ = writeln!(s, "# nodes {}", self.rows.len());
+        let _ = writeln!(s, "node,element_size_m,sample,x_over_l,kh_scale,force_n");
+        for (i, row) in self.rows.iter().enumerate() {
+            if let Some(r) = row {
+                for k in 0..SAMPLES {
+                    let _ = writeln!(
+                        s,
+                        "{i},{:e},{},{:e},{:e},{:e}",
+                        r.element_size_m,
+                        k + 1,
+                        r.x_over_l[k],
+                        r.kh_scale[k],
+                        r.force_n[k]
+                    );
+                }
+            }
+        }
+        s
+    }
+
+    /// Parses a cache file's text (`path` names it in errors).
+    ///
+    /// # Errors
+    /// [`ModelError::Calibration`] naming the file and line for a missing key or node count,
+    /// a malformed or non-finite number, a node out of range, samples missing or out of order,
+    /// or displacements that do not increase.
+    pub fn parse(text: &str, path: &str) -> Result<Self, ModelError> {
+        let err = |line: usize, m: String| ModelError::Calibration {
+            path: path.to_string(),
+            message: if line > 0 {
+                format!("line {line}: {m}")
+            } else {
+                m
+            },
+        };
+        let mut key = None;
+        let mut nodes = None;
+        let mut rows: Vec<Option<NodeCalibration>> = Vec::new();
+        let mut header_seen = false;
+        for (k, line) in text.lines().enumerate() {
+            let ln = k + 1;
+            let line = line.trim();
+            if line.is_empty() {
+                continue;
+            }
+            if let Some(c) = line.strip_prefix('#') {
+                let c = c.trim();
+                if let Some(v) = c.strip_prefix("key ") {
+                    key = Some(
+                        u64::from_str_radix(v.trim(), 16)
+                            .map_err(|e| err(ln, format!("bad key `{v}`: {e}")))?,
+                    );
+                } else if let Some(v) = c.strip_prefix("nodes ") {
+                    let n: usize = v
+                        .trim()
+                        .parse()
+                        .map_err(|e| err(ln, format!("bad node count `{v}`: {e}")))?;
+                    if n > 10_000_000 {
+                        return Err(err(ln, format!("{n} nodes is beyond any surface")));
+                    }
+                    nodes = Some(n);
+                    rows = vec![None; n];
+                }
+                continue;
+            }
+            if !header_seen {
+                if line != "node,element_size_m,sample,x_over_l,kh_scale,force_n" {
+                    return Err(err(ln, format!("expected the column header, got `{line}`")));
+                }
+                header_seen = true;
+                continue;
+            }
+            let Some(n) = nodes else {
+                return Err(err(ln, "a row before the `# nodes` line".into()));
+            };
+            let f: Vec<&str> = line.split(',').collect();
+            if f.len() != 6 {
+                return Err(err(ln, format!("expected 6 fields, got {}", f.len())));
+            }
+            let int = |s: &str| -> Result<usize, ModelError> {
+                s.trim()
+                    .parse()
+                    .map_err(|e| err(ln, format!("bad integer `{s}`: {e}")))
+            };
+            let num = |s: &str| -> Result<f64, ModelError> {
+                let v: f64 = s
+                    .trim()
+                    .parse()
+                    .map_err(|e| err(ln, format!("bad number `{s}`: {e}")))?;
+                if !v.is_finite() {
+                    return Err(err(ln, format!("`{s}` is not finite")));
+                }
+                Ok(v)
+            };
+            let (node, sample) = (int(f[0])?, int(f[2])?);
+            if node >= n {
+                return Err(err(ln, format!("node {node} is beyond the {n} nodes")));
+            }
+            if !(1..=SAMPLES).contains(&sample) {
+                return Err(err(ln, format!("sample {sample} is not in 1..={SAMPLES}")));
+            }
+            let row = rows[node].get_or_insert(NodeCalibration {
+                element_size_m: num(f[1])?,
+                x_over_l: [f64::NAN; SAMPLES],
+                kh_scale: [f64::NAN; SAMPLES],
+                force_n: [f64::NAN; SAMPLES],
+            });
+            let s = sample - 1;
+            if s > 0 && row.x_over_l[s - 1].is_nan() {
+                return Err(err(
+                    ln,
+                    format!("node {node}: sample {sample} out of order"),
+                ));
+            }
+            row.x_over_l[s] = num(f[3])?;
+            row.kh_scale[s] = num(f[4])?;
+            row.force_n[s] = num(f[5])?;
+            if !(row.kh_scale[s] > 0.0) {
+                return Err(err(ln, format!("node {node}: kh_scale must be > 0")));
+            }
+            if s > 0 && !(row.x_over_l[s] > row.x_over_l[s - 1]) {
+                return Err(err(
+                    ln,
+                    format!("node {node}: x_over_l must increase with the sample"),
+                ));
+            }
+        }
+        let key = key.ok_or_else(|| err(0, "no `# key` line".into()))?;
+        if nodes.is_none() {
+            return Err(err(0, "no `# nodes` line".into()));
+        }
+        for (i, r) in rows.iter().enumerate() {
+            if let Some(r) = r
+                && r.x_over_l[SAMPLES - 1].is_nan()
+            {
+                return Err(err(0, format!("node {i} has fewer than {SAMPLES} samples")));
+            }
+        }
+        Ok(Self { key, rows })
+    }
+}
+
+/// FNV-1a, 64 bits: a stable hash for the cache key (no dependency, same on every platform).
+#[derive(Debug, Clone, Copy)]
+struct Fnv(u64);
+
+impl Fnv {
+    fn new() -> Self {
+        Self(0xcbf2_9ce4_8422_2325)
+    }
+    fn bytes(&mut self, b: &[u8]) {
+        for &x in b {
+            self.0 ^= u64::from(x);
+            self.0 = self.0.wrapping_mul(0x0000_0100_0000_01b3);
+        }
+    }
+    fn f64(&mut self, v: f64) {
+        self.bytes(&v.to_bits().to_le_bytes());
+    }
+    fn u64(&mut self, v: u64) {
+        self.bytes(&v.to_le_bytes());
+    }
+}
+
+/// The key of the table for `surface` with `params` and contact `shape`: a hash of the
+/// definition version, the sample count and patch size, every rest position, triangle and
+/// fixed flag, `K_h`, `K_m`, `K'_m / K'_h`, the rings, the vertex rule and the contact shape.
+/// Any change of these makes a cached table stale. (Mass, damping and the coarsening delay do
+/// not enter a static calibration.)
+pub fn calibration_key(
+    surface: &SpringSurface,
+    params: &MassSpringParams,
+    shape: ContactShape,
+) -> u64 {
+    let mut h = Fnv::new();
+    h.u64(u64::from(CALIBRATION_VERSION));
+    h.u64(SAMPLES as u64);
+    h.u64(u64::from(PATCH_EXTRA_RINGS));
+    h.f64(DEPTH_RANGE_OVER_L);
+    h.f64(SCALE_RANGE.0);
+    h.f64(SCALE_RANGE.1);
+    h.u64(surface.node_count() as u64);
+    for p in surface.rest() {
+        h.f64(p.x);
+        h.f64(p.y);
+        h.f64(p.z);
+    }
+    for t in surface.triangles() {
+        for &i in t {
+            h.u64(u64::from(i));
+        }
+    }
+    for i in 0..surface.node_count() as u32 {
+        h.bytes(&[u8::from(surface.is_fixed(i))]);
+    }
+    let s = &params.subdivision;
+    h.f64(params.home_spring_n_per_m);
+    h.f64(params.mesh_spring_n_per_m);
+    h.f64(s.km_over_kh_after);
+    h.u64(u64::from(s.rings));
+    h.bytes(s.vertex_rule.name().as_bytes());
+    match shape {
+        ContactShape::Point => h.bytes(b"point"),
+        ContactShape::Probe(p) => {
+            h.bytes(b"probe");
+            h.f64(p.radius_m);
+            h.f64(p.coupling_stiffness_n_per_m);
+        }
+    }
+    h.0
+}
+
+/// The local calibration problem of one contact node: a patch of the surface around it, coarse
+/// and subdivided, pressed at the node (module documentation).
+#[derive(Debug, Clone)]
+pub struct LocalPatch {
+    shape: ContactShape,
+    centre: u32,
+    element_size_m: f64,
+    contact_point: DVec3,
+    normal: DVec3,
+    coarse: Network,
+    coarse_triangles: Vec<[u32; 3]>,
+    fine: Network,
+    fine_triangles: Vec<[u32; 3]>,
+    /// Per fine node: in the subdivided area (home spring `K'_h`).
+    fine_area_node: Vec<bool>,
+    /// Per fine spring: in the subdivided area (`K'_m`).
+    fine_area_spring: Vec<bool>,
+    type1: usize,
+    type2: usize,
+    kh: f64,
+    km: f64,
+}
+
+impl LocalPatch {
+    /// The patch of `surface` around node `centre` for subdividing `rings` rings with
+    /// `vertex_rule`, coarse constants `K_h = kh`, `K_m = km` (N/m), pressed with `shape`.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] for a fixed centre or `rings == 0`; the errors of
+    /// [`SpringSurface`] for a patch that is not a valid surface.
+    pub fn new(
+        surface: &SpringSurface,
+        centre: u32,
+        rings: u32,
+        vertex_rule: VertexRule,
+        shape: ContactShape,
+        constants: (f64, f64),
+    ) -> Result<Self, ModelError> {
+        let margin = match shape {
+            ContactShape::Point => PATCH_EXTRA_RINGS,
+            // The probe's patch reaches 2 r from the contact: keep that much inside.
+            ContactShape::Probe(p) => {
+                let l = surface.element_size_m(centre);
+                PATCH_EXTRA_RINGS + (2.0 * p.radius_m / l).ceil() as u32
+            }
+        };
+        Self::with_margin(
+            surface,
+            centre,
+            rings,
+            margin,
+            vertex_rule,
+            shape,
+            constants,
+        )
+    }
+
+    /// [`LocalPatch::new`] with `margin` rings beyond the subdivided ones (the outermost held
+    /// at rest), for the patch-size convergence check.
+    ///
+    /// # Errors
+    /// As [`LocalPatch::new`].
+    pub fn with_margin(
+        surface: &SpringSurface,
+        centre: u32,
+        rings: u32,
+        margin: u32,
+        vertex_rule: VertexRule,
+        shape: ContactShape,
+        (kh, km): (f64, f64),
+    ) -> Result<Self, ModelError> {
+        if rings == 0 || margin == 0 || surface.is_fixed(centre) {
+            return Err(ModelError::InvalidInput(format!(
+                "node {centre} cannot be calibrated (fixed, or no ring to subdivide or margin)"
+            )));
+        }
+        let extra = margin;
+        let outer = rings + extra;
+        let mut dist = vec![u32::MAX; surface.node_count()];
+        let mut ring = Vec::new();
+        surface.ring(centre, outer, &mut dist, &mut ring);
+        let mut local = vec![NONE; surface.node_count()];
+        for (k, &(i, _)) in ring.iter().enumerate() {
+            local[i as usize] = k as u32;
+        }
+        let rest: Vec<DVec3> = ring
+            .iter()
+            .map(|&(i, _)| surface.rest()[i as usize])
+            .collect();
+        let fixed: Vec<bool> = ring
+            .iter()
+            .map(|&(i, d)| surface.is_fixed(i) || d == outer)
+            .collect();
+        let tris: Vec<[u32; 3]> = surface
+            .triangles()
+            .iter()
+            .filter(|t| t.iter().all(|&i| local[i as usize] != NONE))
+            .map(|t| t.map(|i| local[i as usize]))
+            .collect();
+        let patch = SpringSurface::patch(rest, tris, fixed)?;
+        let c = 0u32; // the ring starts with the centre
+        let nc = patch.node_count();
+        let coarse = Network {
+            rest: patch.rest().to_vec(),
+            fixed: (0..nc as u32).map(|i| patch.is_fixed(i)).collect(),
+            home_n_per_m: vec![kh; nc],
+            springs: patch
+                .edges()
+                .iter()
+                .map(|&[a, b]| Spring {
+                    i: a,
+                    j: b,
+                    rest_length_m: (patch.rest()[b as usize] - patch.rest()[a as usize]).length(),
+                    stiffness_n_per_m: km,
+                })
+                .collect(),
+        };
+        // Subdivided network over slots (coarse nodes, then one per edge), as at run time.
+        let mut refinement = Refinement::new(&patch);
+        refinement.begin();
+        refinement.request_ring(&patch, c, rings, 0);
+        refinement.finish(&patch);
+        let ns = nc + patch.edge_count();
+        let mut fine_rest = patch.rest().to_vec();
+        let mut stencil = Vec::new();
+        if vertex_rule == VertexRule::Loop {
+            for i in 0..nc as u32 {
+                if refinement.node_owner(i) != NO_OWNER && !patch.is_fixed(i) {
+                    vertex_stencil(&patch, i, &mut stencil);
+                    fine_rest[i as usize] = apply(&stencil, patch.rest());
+                }
+            }
+        }
+        for e in 0..patch.edge_count() as u32 {
+            fine_rest.push(apply(&edge_stencil(&patch, e), patch.rest()));
+        }
+        let mut fine_fixed: Vec<bool> = coarse.fixed.clone();
+        fine_fixed.resize(ns, true);
+        for &e in refinement.active_edges() {
+            let [a, b] = patch.edges()[e as usize];
+            fine_fixed[nc + e as usize] = patch.is_fixed(a) && patch.is_fixed(b);
+        }
+        let fine_area_node: Vec<bool> = (0..ns as u32)
+            .map(|s| refinement.node_owner(s) != NO_OWNER)
+            .collect();
+        let mut fine_area_spring = Vec::new();
+        let springs: Vec<Spring> = refinement
+            .springs()
+            .iter()
+            .map(|s| {
+                fine_area_spring.push(s.owner != NO_OWNER);
+                Spring {
+                    i: s.i,
+                    j: s.j,
+                    rest_length_m: (fine_rest[s.j as usize] - fine_rest[s.i as usize]).length(),
+                    stiffness_n_per_m: km,
+                }
+            })
+            .collect();
+        let fine = Network {
+            home_n_per_m: (0..ns)
+                .map(|s| if s < nc || fine_area_node[s] { kh } else { 0.0 })
+                .collect(),
+            rest: fine_rest,
+            fixed: fine_fixed,
+            springs,
+        };
+        Ok(Self {
+            shape,
+            centre: c,
+            element_size_m: surface.element_size_m(centre),
+            contact_point: surface.rest()[centre as usize],
+            normal: surface.rest_normal(centre),
+            coarse,
+            coarse_triangles: patch.triangles().to_vec(),
+            fine,
+            fine_triangles: refinement.triangles().to_vec(),
+            fine_area_node,
+            fine_area_spring,
+            type1: refinement.type1_count(),
+            type2: refinement.type2_count(),
+            kh,
+            km,
+        })
+    }
+
+    /// Element size L at the contact node, m.
+    pub fn element_size_m(&self) -> f64 {
+        self.element_size_m
+    }
+
+    /// N and N' of eq. 3 and 5: nodes of the subdivided area before and after subdivision.
+    pub fn area_node_counts(&self) -> (usize, usize) {
+        (self.type1, self.type1 + self.type2)
+    }
+
+    /// Rest positions of the coarse patch (the initial guess of [`LocalPatch::coarse_press`]).
+    pub fn coarse_rest(&self) -> Vec<DVec3> {
+        self.coarse.rest.clone()
+    }
+
+    /// Rest positions of the subdivided patch (the initial guess of [`LocalPatch::fine_press`]).
+    pub fn fine_rest(&self) -> Vec<DVec3> {
+        self.fine.rest.clone()
+    }
+
+    /// The contact force (N) on `net` (triangles `tris`) at depth `depth_m` (m): for
+    /// [`ContactShape::Point`] the contact node's displacement along its rest normal; for
+    /// [`ContactShape::Probe`] the travel of the probe centre along `-n` from `r` above the
+    /// contact node at rest, the force then being the probe's (its patch, weights and normal
+    /// at the deformed positions, the coupling in series), found by a fixed point on the
+    /// probe's patch around Newton solves of [`press`]. `x` is the solution (warm start).
+    fn force(
+        &self,
+        net: &Network,
+        tris: &[[u32; 3]],
+        depth_m: f64,
+        x: &mut [DVec3],
+    ) -> Result<f64, ModelError> {
+        let guess = self.kh * depth_m;
+        let p = match self.shape {
+            ContactShape::Point => {
+                let load = ContactLoad {
+                    nodes: vec![(self.centre, 1.0)],
+                    normal: self.normal,
+                    compliance_m_per_n: 0.0,
+                };
+                return Ok(press(net, &load, depth_m, x, guess)?.force_n);
+            }
+            ContactShape::Probe(p) => p,
+        };
+        let device = self.contact_point + self.normal * (p.radius_m - depth_m);
+        let mut probe = Probe::new(p, tris.to_vec(), &net.rest);
+        let mut load = ContactLoad {
+            nodes: Vec::new(),
+            normal: self.normal,
+            compliance_m_per_n: 1.0 / p.coupling_stiffness_n_per_m,
+        };
+        let mut f_prev = f64::NAN;
+        let mut x_prev = x.to_vec();
+        // The patch follows the surface it moved: the solve is a fixed point (freeze the patch
+        // at x, solve). Plain iteration alternates (contraction about -0.8 on the hemisphere);
+        // half steps damp it to about 0.1, and the step halves again whenever the change grows
+        // (deep presses, where nodes enter and leave the patch).
+        let (mut omega, mut change_prev) = (0.5, f64::INFINITY);
+        for outer in 0..300 {
+            let st = probe.update(x, device, DVec3::ZERO);
+            if st.in_contact {
+                let (nodes, w) = probe.patch();
+                load.nodes.clear();
+                load.nodes
+                    .extend(nodes.iter().copied().zip(w.iter().copied()));
+                load.normal = st.normal;
+            } else if load.nodes.is_empty() {
+                return Ok(0.0); // the probe does not reach the surface
+            }
+            let c_rest: DVec3 = load
+                .nodes
+                .iter()
+                .map(|&(i, w)| net.rest[i as usize] * w)
+                .sum();
+            let depth_eff = p.radius_m - (device - c_rest).dot(load.normal);
+            if depth_eff <= 0.0 {
+                x.copy_from_slice(&net.rest);
+                return Ok(0.0);
+            }
+            let f = press(net, &load, depth_eff, x, guess)?.force_n;
+            let change = (f - f_prev).abs();
+            if change <= 1e-7 * f.abs().max(1e-9) {
+                return Ok(f);
+            }
+            if change > change_prev {
+                omega = (omega * 0.5_f64).max(0.02);
+            }
+            change_prev = change;
+            f_prev = f;
+            if outer > 0 {
+                for (xi, pi) in x.iter_mut().zip(&x_prev) {
+                    *xi = *pi + (*xi - *pi) * omega;
+                }
+            }
+            x_prev.copy_from_slice(x);
+        }
+        if change_prev <= 1e-4 * f_prev.abs() {
+            return Ok(f_prev);
+        }
+        Err(ModelError::NoConvergence(format!(
+            "the probe's patch did not settle at depth {depth_m:.3e} m (last change {change_prev:.2e} N)"
+        )))
+    }
+
+    /// The coarse contact force at depth `depth_m` (m; see [`ContactShape`]), N; `x` (m) is
+    /// the solution, updated from its value (warm start).
+    ///
+    /// # Errors
+    /// As [`press`].
+    pub fn coarse_press(&self, depth_m: f64, x: &mut [DVec3]) -> Result<f64, ModelError> {
+        self.force(&self.coarse, &self.coarse_triangles, depth_m, x)
+    }
+
+    /// The subdivided contact force at depth `depth_m` with `K'_h = kh_area` and `K'_m =
+    /// km_area` (N/m) in the subdivided area: `(force N, displacement of the contact node m)`.
+    ///
+    /// # Errors
+    /// As [`press`].
+    pub fn fine_press(
+        &mut self,
+        (kh_area, km_area): (f64, f64),
+        depth_m: f64,
+        x: &mut [DVec3],
+    ) -> Result<(f64, f64), ModelError> {
+        let nc = self.coarse.node_count();
+        for (k, &area) in self.fine_area_node.iter().enumerate() {
+            if area {
+                self.fine.home_n_per_m[k] = kh_area;
+            } else if k < nc {
+                self.fine.home_n_per_m[k] = self.kh;
+            }
+        }
+        for (s, &area) in self.fine.springs.iter_mut().zip(&self.fine_area_spring) {
+            s.stiffness_n_per_m = if area { km_area } else { self.km };
+        }
+        let f = self.force(&self.fine, &self.fine_triangles, depth_m, x)?;
+        let c = self.centre as usize;
+        Ok((f, (x[c] - self.fine.rest[c]).length()))
+    }
+
+    /// Finds the factor `s` with `F'(constants(s), depth) = target_n` (eq. 4) by secant
+    /// iterations on `log s` (bracketed, to a relative force error of 1e-5), starting at
+    /// `s_guess`: `Some((s, contact node displacement m))`, or `None` when no `s` in
+    /// `[1e-3, 1e3] s_guess` reaches the target (e.g. the subdivided surface is not touched
+    /// yet at that depth). `x` is the subdivided solution (warm start). `constants(s)` gives
+    /// `(K'_h, K'_m)`; the force must not decrease with `s`.
+    ///
+    /// # Errors
+    /// The errors of [`press`].
+    pub fn match_force(
+        &mut self,
+        target_n: f64,
+        depth_m: f64,
+        constants: impl Fn(f64) -> (f64, f64),
+        s_guess: f64,
+        x: &mut [DVec3],
+    ) -> Result<Option<(f64, f64)>, ModelError> {
+        let mut eval = |s: f64, x: &mut [DVec3]| -> Result<(f64, f64), ModelError> {
+            let (f, u) = self.fine_press(constants(s), depth_m, x)?;
+            Ok((f - target_n, u))
+        };
+        let tol = 1e-5 * target_n.abs();
+        let (mut s0, (mut h0, u0)) = (s_guess, eval(s_guess, x)?);
+        if h0.abs() <= tol {
+            return Ok(Some((s0, u0)));
+        }
+        let mut lo: Option<(f64, f64)> = None;
+        let mut hi: Option<(f64, f64)> = None;
+        let note = |s: f64, h: f64, lo: &mut Option<(f64, f64)>, hi: &mut Option<(f64, f64)>| {
+            if h < 0.0 {
+                *lo = Some((s, h));
+            } else {
+                *hi = Some((s, h));
+            }
+        };
+        note(s0, h0, &mut lo, &mut hi);
+        // Second point: the scale that would match if the force were proportional to s.
+        let mut s1 = (s0 * (target_n / (target_n + h0))).clamp(s0 / 4.0, s0 * 4.0);
+        if !(s1.is_finite() && s1 > 0.0) || s1 == s0 {
+            s1 = if h0 < 0.0 { s0 * 1.5 } else { s0 / 1.5 };
+        }
+        for _ in 0..80 {
+            let (h1, u1) = eval(s1, x)?;
+            if h1.abs() <= tol {
+                return Ok(Some((s1, u1)));
+            }
+            note(s1, h1, &mut lo, &mut hi);
+            // Secant on log s, kept inside the bracket when there is one.
+            let (l0, l1) = (s0.ln(), s1.ln());
+            let mut next = if h1 != h0 {
+                l1 - h1 * (l1 - l0) / (h1 - h0)
+            } else {
+                f64::NAN
+            };
+            match (lo, hi) {
+                (Some((a, _)), Some((b, _))) => {
+                    let (la, lb) = (a.ln(), b.ln());
+                    if !(next > la.min(lb) && next < la.max(lb) && next.is_finite()) {
+                        next = 0.5 * (la + lb);
+                    }
+                    if (la - lb).abs() < 1e-12 {
+                        return Ok(Some((s1, u1)));
+                    }
+                }
+                (Some(_), None) => {
+                    if !(next > l1 && next.is_finite()) {
+                        next = l1 + 0.7;
+                    }
+                }
+                (None, Some(_)) => {
+                    if !(next < l1 && next.is_finite()) {
+                        next = l1 - 0.7;
+                    }
+                }
+                (None, None) => unreachable!("every evaluation is noted"),
+            }
+            (s0, h0) = (s1, h1);
+            s1 = next.exp();
+            if !(s1 > s_guess * 1e-3 && s1 < s_guess * 1e3) {
+                return Ok(None);
+            }
+        }
+        Ok(None)
+    }
+}
+
+/// Calibrates contact node `node` of `surface` (module documentation): the table row for
+/// `params` and `shape`. Samples at which the subdivided surface cannot give the coarse force
+/// (the probe does not touch it yet: its nodes sit a little lower on a convex surface), whose
+/// static solve does not settle, or whose factor is outside [`SCALE_RANGE`], take the factor
+/// of the nearest matched sample before them (after them for the first).
+///
+/// # Errors
+/// As [`LocalPatch::new`] and [`LocalPatch::match_force`]; [`ModelError::NoConvergence`]
+/// when no sample can be matched.
+pub fn calibrate_node(
+    surface: &SpringSurface,
+    params: &MassSpringParams,
+    shape: ContactShape,
+    node: u32,
+) -> Result<NodeCalibration, ModelError> {
+    let s = &params.subdivision;
+    let (kh, km) = (params.home_spring_n_per_m, params.mesh_spring_n_per_m);
+    let mut patch = LocalPatch::new(surface, node, s.rings, s.vertex_rule, shape, (kh, km))?;
+    let l = patch.element_size_m();
+    let mut xc = patch.coarse_rest();
+    let mut xf = patch.fine_rest();
+    let mut out = NodeCalibration {
+        element_size_m: l,
+        x_over_l: [0.0; SAMPLES],
+        kh_scale: [f64::NAN; SAMPLES],
+        force_n: [0.0; SAMPLES],
+    };
+    let ratio = s.km_over_kh_after;
+    let mut a = 1.0;
+    for k in 0..SAMPLES {
+        let depth = sample_depth_over_l(k) * l;
+        // A sample whose static solve does not settle (the probe's patch cycling between
+        // configurations, seen beyond L) is skipped like one that cannot be matched.
+        let backup_c = xc.clone();
+        let f = match patch.coarse_press(depth, &mut xc) {
+            Ok(f) => f,
+            Err(ModelError::NoConvergence(_)) => {
+                xc = backup_c;
+                f64::NAN
+            }
+            Err(e) => return Err(e),
+        };
+        out.force_n[k] = f;
+        if !(f > 0.0) {
+            out.force_n[k] = f.max(0.0);
+            continue;
+        }
+        let backup = xf.clone();
+        match patch.match_force(f, depth, |a| (a * kh, ratio * a * kh), a, &mut xf) {
+            Ok(Some((a_k, u))) if (SCALE_RANGE.0..=SCALE_RANGE.1).contains(&a_k) => {
+                a = a_k;
+                out.x_over_l[k] = u / l;
+                out.kh_scale[k] = a;
+            }
+            Ok(Some(_)) => xf = backup,
+            Ok(None) | Err(ModelError::NoConvergence(_)) => xf = backup,
+            Err(e) => return Err(e),
+        }
+    }
+    let Some(first) = out.kh_scale.iter().position(|v| v.is_finite()) else {
+        return Err(ModelError::NoConvergence(format!(
+            "node {node}: no depth up to L at which the subdivided force can match"
+        )));
+    };
+    for k in 0..SAMPLES {
+        if !out.kh_scale[k].is_finite() {
+            // Not matched (not touched yet, or out of range): the neighbouring factor.
+            let j = if k < first {
+                first
+            } else {
+                (0..k)
+                    .rev()
+                    .find(|&j| out.kh_scale[j].is_finite())
+                    .unwrap_or(first)
+            };
+            out.kh_scale[k] = out.kh_scale[j];
+            out.x_over_l[k] = 0.0;
+        }
+    }
+    for k in 1..SAMPLES {
+        if !(out.x_over_l[k] > out.x_over_l[k - 1]) {
+            // A displacement that does not grow with the depth would make the lookup
+            // ambiguous: keep the table a function of the displacement.
+            out.x_over_l[k] = out.x_over_l[k - 1] + 1e-9;
+        }
+    }
+    Ok(out)
+}
+
+/// Calibrates every free node of `surface` for `params` and `shape` on `threads` threads
+/// (at least 1), calling `progress(done, total)` after each node. Minutes for thousands of
+/// nodes.
+///
+/// # Errors
+/// The first error of [`calibrate_node`], naming the node.
+pub fn calibrate(
+    surface: &SpringSurface,
+    params: &MassSpringParams,
+    shape: ContactShape,
+    threads: usize,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<CalibrationTable, ModelError> {
+    let nodes: Vec<u32> = (0..surface.node_count() as u32)
+        .filter(|&i| !surface.is_fixed(i))
+        .collect();
+    let total = nodes.len();
+    let next = AtomicUsize::new(0);
+    let done = AtomicUsize::new(0);
+    let rows: Mutex<Vec<Option<NodeCalibration>>> = Mutex::new(vec![None; surface.node_count()]);
+    let failure: Mutex<Option<ModelError>> = Mutex::new(None);
+    std::thread::scope(|scope| {
+        for _ in 0..threads.max(1) {
+            scope.spawn(|| {
+                loop {
+                    let k = next.fetch_add(1, Ordering::Relaxed);
+                    if k >= total || failure.lock().map(|f| f.is_some()).unwrap_or(true) {
+                        break;
+                    }
+                    let node = nodes[k];
+                    match calibrate_node(surface, params, shape, node) {
+                        Ok(row) => {
+                            if let Ok(mut r) = rows.lock() {
+                                r[node as usize] = Some(row);
+                            }
+                            progress(done.fetch_add(1, Ordering::Relaxed) + 1, total);
+                        }
+                        Err(e) => {
+                            if let Ok(mut f) = failure.lock() {
+                                f.get_or_insert(ModelError::Calibration {
+                                    path: String::new(),
+                                    message: format!("node {node}: {e}"),
+                                });
+                            }
+                            break;
+                        }
+                    }
+                }
+            });
+        }
+    });
+    if let Some(e) = failure.into_inner().ok().flatten() {
+        return Err(e);
+    }
+    Ok(CalibrationTable {
+        key: calibration_key(surface, params, shape),
+        rows: rows.into_inner().unwrap_or_default(),
+    })
+}
