@@ -55,17 +55,23 @@ pub async fn run(
     health
         .set_serving::<SurfaceStreamServer<service::Services>>()
         .await;
-    let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(haptics_proto::FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-        .build_v1()?;
+    // Reflection in both versions: grpcurl and Evans speak `v1`, Python's `grpcio-reflection`
+    // and Postman still speak `v1alpha`.
+    let reflection = || {
+        tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(haptics_proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    let reflection_v1 = reflection().build_v1()?;
+    let reflection_v1alpha = reflection().build_v1alpha()?;
     let stop_manager = manager.clone();
     // `Server::tcp_nodelay` is ignored with a custom incoming stream; set it on the incoming,
     // or Nagle's algorithm holds each small ForceCommand for one device period.
     let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
     let result = tonic::transport::Server::builder()
         .add_service(health_service)
-        .add_service(reflection)
+        .add_service(reflection_v1)
+        .add_service(reflection_v1alpha)
         .add_service(SessionControlServer::new(services.clone()))
         .add_service(DeviceLinkServer::new(services.clone()))
         .add_service(SurfaceStreamServer::new(services))

@@ -283,7 +283,12 @@ impl Session {
     /// Subscribes to viewer frames (counts as a watcher until the guard drops).
     pub fn watch(self: &Arc<Self>) -> (watch::Receiver<Option<Arc<FrameData>>>, WatcherGuard) {
         self.shared.watchers.fetch_add(1, Ordering::AcqRel);
-        (self.frames.clone(), WatcherGuard(self.shared.clone()))
+        // The channel still holds the frame published when the last watcher left (the servo
+        // publishes only while someone watches): a new watcher waits for the next one, which
+        // the servo publishes now that the count is up, instead of seeing the stale surface.
+        let mut frames = self.frames.clone();
+        frames.mark_unchanged();
+        (frames, WatcherGuard(self.shared.clone()))
     }
 
     /// Stops the servo (it sends a zero force), joins its threads. Idempotent.

@@ -204,6 +204,38 @@ async fn late_joiners_and_requests_get_keyframes_and_slow_watchers_drop_frames()
     assert!(stats.watcher_queued_bytes <= 3 * stats.watcher_queue_limit_bytes);
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_watcher_after_a_gap_sees_the_current_surface_not_the_last_one_sent() {
+    // The servo publishes frames only while someone watches; the channel keeps the frame of
+    // the moment the last watcher left. A watcher that joins later must not be shown it.
+    let (manager, services, session) = start();
+    let mut first = watch(&services, &session.id, 60.0, false).await;
+    let rest = next(&mut first).await;
+    drop(first);
+    // Nobody watches while a load dents the surface.
+    push(&session, -0.05);
+    let t0 = rest.sim_time_s;
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    while session.stats().sim_time_s < t0 + 0.3 && std::time::Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    let mut second = watch(&services, &session.id, 60.0, false).await;
+    let f = next(&mut second).await;
+    manager.stop(&session.id).unwrap();
+    assert!(f.keyframe, "a new watcher's first frame is a keyframe");
+    assert!(
+        f.sim_time_s >= t0 + 0.3,
+        "stale first frame: sim time {} s, left at {} s",
+        f.sim_time_s,
+        t0
+    );
+    assert!(
+        f.max_displacement_m > 1e-4,
+        "the dent is not shown: {} m",
+        f.max_displacement_m
+    );
+}
+
 #[tokio::test]
 async fn bad_watch_requests_are_invalid_arguments() {
     let (manager, services, session) = start();

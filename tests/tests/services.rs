@@ -110,6 +110,38 @@ async fn daemon_prints_listening_and_serves_health_and_reflection() -> Result<()
         has("haptics.v1") && has("ForceCommand"),
         "descriptor lacks the package"
     );
+
+    // The older `v1alpha` protocol (Python's grpcio-reflection, Postman) lists the same services.
+    use tonic_reflection::pb::v1alpha as alpha;
+    let mut client =
+        alpha::server_reflection_client::ServerReflectionClient::new(channel(&url).await?);
+    let request = alpha::ServerReflectionRequest {
+        host: String::new(),
+        message_request: Some(
+            alpha::server_reflection_request::MessageRequest::ListServices(String::new()),
+        ),
+    };
+    let mut responses = client
+        .server_reflection_info(tokio_stream::iter([request]))
+        .await
+        .context("v1alpha reflection")?
+        .into_inner();
+    let first = tokio::time::timeout(STEP_TIMEOUT, responses.next())
+        .await
+        .context("v1alpha reflection answer timed out")?
+        .context("v1alpha reflection stream ended without an answer")??;
+    let Some(alpha::server_reflection_response::MessageResponse::ListServicesResponse(list)) =
+        first.message_response
+    else {
+        panic!("v1alpha ListServices answered with another message");
+    };
+    let alpha_names: Vec<&str> = list.service.iter().map(|s| s.name.as_str()).collect();
+    for want in ["haptics.v1.SessionControl", "haptics.v1.DeviceLink"] {
+        assert!(
+            alpha_names.contains(&want),
+            "{want} missing from v1alpha {alpha_names:?}"
+        );
+    }
     Ok(())
 }
 
