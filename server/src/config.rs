@@ -72,6 +72,8 @@ pub struct ConfigFile {
     /// Directory where sessions are recorded (scene and id) so that a restarted daemon
     /// restores them; unset: sessions die with the process.
     pub state_dir: Option<PathBuf>,
+    /// Prometheus metrics address (`GET /metrics`), e.g. `127.0.0.1:9464`; unset: no endpoint.
+    pub metrics_listen: Option<String>,
 }
 
 /// Log output format.
@@ -98,6 +100,8 @@ pub struct ServerConfig {
     pub servo: ServoConfig,
     /// Session records for restoring sessions after a restart (`None`: not recorded).
     pub state_dir: Option<PathBuf>,
+    /// Prometheus metrics endpoint address (`None`: not served).
+    pub metrics_listen: Option<SocketAddr>,
 }
 
 impl Default for ServerConfig {
@@ -109,6 +113,7 @@ impl Default for ServerConfig {
             log_format: LogFormat::Text,
             servo: ServoConfig::default(),
             state_dir: None,
+            metrics_listen: None,
         }
     }
 }
@@ -178,6 +183,12 @@ impl ConfigFile {
         }
         c.servo = self.servo;
         c.state_dir = self.state_dir;
+        if let Some(m) = self.metrics_listen {
+            c.metrics_listen = Some(
+                m.parse()
+                    .map_err(|e| ServerError::Config(format!("metrics_listen = {m:?}: {e}")))?,
+            );
+        }
         Ok(c)
     }
 }

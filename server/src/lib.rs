@@ -13,6 +13,7 @@
 pub mod calibrate;
 pub mod config;
 pub mod error;
+pub mod metrics;
 pub mod service;
 pub mod servo;
 pub mod session;
@@ -43,6 +44,14 @@ pub async fn run(
     // Sessions recorded by an earlier process come back (same ids) before anyone can connect.
     for line in manager.restore() {
         tracing::info!("{line}");
+    }
+    if let Some(addr) = manager.config().metrics_listen {
+        let listener = TcpListener::bind(addr)
+            .await
+            .map_err(|e| anyhow::anyhow!("binding the metrics endpoint {addr}: {e}"))?;
+        // Printed like the gRPC address, so scripts and tests can find a port-0 endpoint.
+        println!("metrics on {}", listener.local_addr()?);
+        tokio::spawn(metrics::serve(listener, manager.clone()));
     }
     let services = service::Services::new(manager.clone());
     let (health, health_service) = tonic_health::server::health_reporter();

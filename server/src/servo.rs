@@ -92,6 +92,40 @@ pub struct Snapshot {
     pub max_displacement_m: f64,
 }
 
+/// Upper bounds of the latency buckets, µs (the last bucket is everything above). Chosen around
+/// the 1 ms tick: the step budget, the device period and the watchdog's 10 ms.
+pub const LATENCY_BUCKET_BOUNDS_US: [u64; 11] = [
+    50, 100, 200, 300, 500, 750, 1_000, 1_500, 2_000, 5_000, 10_000,
+];
+
+/// Counts of durations per [`LATENCY_BUCKET_BOUNDS_US`] bucket (not cumulative; the last slot
+/// counts those above the largest bound) and their sum: a Prometheus histogram's data, kept by
+/// the servo at the cost of a short scan per record, copied out with the statistics.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct LatencyBuckets {
+    /// Per-bucket counts; `counts[i]` for `bounds[i-1] < d <= bounds[i]`.
+    pub counts: [u64; LATENCY_BUCKET_BOUNDS_US.len() + 1],
+    /// Sum of all recorded durations, µs.
+    pub sum_us: u64,
+}
+
+impl LatencyBuckets {
+    /// Records one duration, µs. No allocation, no lock.
+    pub fn record(&mut self, us: u64) {
+        let i = LATENCY_BUCKET_BOUNDS_US
+            .iter()
+            .position(|&b| us <= b)
+            .unwrap_or(LATENCY_BUCKET_BOUNDS_US.len());
+        self.counts[i] += 1;
+        self.sum_us = self.sum_us.saturating_add(us);
+    }
+
+    /// Number of recorded durations.
+    pub fn count(&self) -> u64 {
+        self.counts.iter().sum()
+    }
+}
+
 /// Statistics published by the servo for `GetStats`.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct StatsSnapshot {
@@ -125,6 +159,10 @@ pub struct StatsSnapshot {
     pub fault: Option<&'static str>,
     /// The body's size and state at the last publication.
     pub body: BodyStats,
+    /// Step compute times, all ticks so far (for the metrics endpoint).
+    pub step_buckets: LatencyBuckets,
+    /// Pose received to force pushed, all answered samples so far.
+    pub pose_to_force_buckets: LatencyBuckets,
 }
 
 /// Atomics shared between the servo thread and the async side.
@@ -311,6 +349,8 @@ pub struct ServoCore {
     stats_every: u64,
     step_hist: Histogram<u64>,
     p2f_hist: Histogram<u64>,
+    step_buckets: LatencyBuckets,
+    p2f_buckets: LatencyBuckets,
     ticks: u64,
     last_seq: Option<u64>,
     current: TickInput,
@@ -424,6 +464,8 @@ impl ServoCore {
             stats_every: stats_every.max(1) as u64,
             step_hist: histogram(),
             p2f_hist: histogram(),
+            step_buckets: LatencyBuckets::default(),
+            p2f_buckets: LatencyBuckets::default(),
             ticks: 0,
             last_seq: None,
             current: TickInput::default(),
@@ -527,6 +569,7 @@ impl ServoCore {
         };
         let t1 = clock.now_us();
         self.step_hist.saturating_record((t1 - t0).max(1));
+        self.step_buckets.record(t1 - t0);
         // 4. Guard and hand out the force.
         let mut force = ForceOut {
             seq: pose.seq,
@@ -547,8 +590,9 @@ impl ServoCore {
             // bridge's watchdog ramps the force down).
             let _ = self.forces.push(force);
             let done = clock.now_us();
-            self.p2f_hist
-                .saturating_record(done.saturating_sub(pose.received_us).max(1));
+            let p2f_us = done.saturating_sub(pose.received_us);
+            self.p2f_hist.saturating_record(p2f_us.max(1));
+            self.p2f_buckets.record(p2f_us);
         }
         self.ticks += 1;
         self.window_ticks += 1;
@@ -615,6 +659,8 @@ impl ServoCore {
                 device_samples: self.device_samples,
                 fault: self.fault,
                 body,
+                step_buckets: self.step_buckets,
+                pose_to_force_buckets: self.p2f_buckets,
             };
             self.stats.publish();
         }

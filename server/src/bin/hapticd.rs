@@ -40,6 +40,10 @@ struct Args {
     /// bridges re-attach.
     #[arg(long)]
     state_dir: Option<PathBuf>,
+    /// Serve Prometheus metrics (`GET /metrics`) on this address (port 0 picks a free port; the
+    /// daemon prints `metrics on <addr>`).
+    #[arg(long)]
+    metrics_listen: Option<String>,
 }
 
 #[tokio::main]
@@ -54,6 +58,7 @@ async fn main() -> anyhow::Result<()> {
     file.log_format = args.log_format.or(file.log_format);
     file.scene_dir = args.scene_dir.or(file.scene_dir);
     file.state_dir = args.state_dir.or(file.state_dir);
+    file.metrics_listen = args.metrics_listen.or(file.metrics_listen);
     file.servo.realtime |= args.realtime;
     file.servo.mlockall |= args.mlockall;
     file.servo.cpu = args.cpu.or(file.servo.cpu);
