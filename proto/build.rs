@@ -21,6 +21,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         // `SurfaceFrame.position_delta` as `bytes::Bytes`: one encoding shared by every watcher.
         .bytes(".haptics.v1.SurfaceFrame.position_delta")
         .bytes(".haptics.v1.SurfaceFrame.reference_delta")
-        .compile_fds(fds)?;
+        // `prost::Name` impls (full names such as `haptics.v1.SurfaceFrame`): the schema names
+        // of MCAP recordings (src/recording.rs).
+        .compile_fds_with_config(fds, {
+            let mut config = tonic_prost_build::Config::new();
+            config.enable_type_names();
+            config
+        })?;
     Ok(())
 }

@@ -46,14 +46,21 @@ pub enum SceneSource {
 #[derive(Debug, Clone)]
 pub struct Ctl {
     client: SessionControlClient<Channel>,
+    channel: Channel,
 }
 
 impl Ctl {
     /// Wraps an open channel.
     pub fn new(channel: Channel) -> Self {
         Self {
-            client: SessionControlClient::new(channel),
+            client: SessionControlClient::new(channel.clone()),
+            channel,
         }
+    }
+
+    /// The channel, for the other services (`SurfaceStream` in `record`).
+    pub fn channel(&self) -> Channel {
+        self.channel.clone()
     }
 
     /// Connects to `url` (see [`crate::connect`]).
@@ -385,6 +392,33 @@ pub enum CtlCommand {
         #[arg(long)]
         json: bool,
     },
+    /// Record a session's surface frames and statistics to MCAP (opens in Foxglove); ends after
+    /// --duration-s, when the session ends, or on Ctrl-C.
+    Record {
+        /// Session id.
+        id: String,
+        /// Output file (.mcap).
+        #[arg(long)]
+        out: PathBuf,
+        /// Seconds to record (default: until the session ends or Ctrl-C).
+        #[arg(long)]
+        duration_s: Option<f64>,
+        /// Surface frames per second (0.1..=120).
+        #[arg(long, default_value_t = 30.0)]
+        rate_hz: f64,
+        /// Seconds between statistics messages.
+        #[arg(long, default_value_t = 0.1)]
+        stats_interval_s: f64,
+    },
+    /// Write the surface frames of a recording as a ParaView time series (DIR/surface.pvd and
+    /// one .vtu per frame). Needs no server.
+    ExportVtu {
+        /// Recording (.mcap) from `hapticctl record`.
+        input: PathBuf,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+    },
 }
 
 fn io_err(path: &str) -> impl FnOnce(std::io::Error) -> ClientError + '_ {
@@ -490,6 +524,45 @@ pub async fn execute(
                 out.flush().map_err(io_err("<stdout>"))?;
                 n += 1;
             }
+        }
+        CtlCommand::Record {
+            id,
+            out: path,
+            duration_s,
+            rate_hz,
+            stats_interval_s,
+        } => {
+            let channel = ctl.channel();
+            let shutdown = async {
+                let _ = tokio::signal::ctrl_c().await;
+            };
+            let r = crate::record::record(
+                channel,
+                ctl,
+                &id,
+                &path,
+                crate::record::RecordParams {
+                    duration_s,
+                    rate_hz,
+                    stats_interval_s,
+                },
+                shutdown,
+            )
+            .await?;
+            writeln!(
+                out,
+                "{}: {} surface frames ({} keyframes), {} statistics, {} bytes",
+                path.display(),
+                r.frames,
+                r.keyframes,
+                r.stats,
+                r.bytes
+            )
+            .map_err(o)?;
+        }
+        CtlCommand::ExportVtu { input, out: dir } => {
+            let n = crate::record::export_vtu(&input, &dir)?;
+            writeln!(out, "{}: {n} frames", dir.join("surface.pvd").display()).map_err(o)?;
         }
     }
     Ok(())

@@ -24,6 +24,7 @@ pub mod compact;
 pub mod ctl;
 pub mod error;
 pub mod raster;
+pub mod record;
 pub mod viewer;
 pub mod web;
 

@@ -113,8 +113,12 @@ pub struct ViewerArgs {
     #[arg(long, env = "HAPTICD_ADDR", default_value = crate::DEFAULT_SERVER)]
     pub server: String,
     /// Session id to watch (PNG mode; the web viewer lets the browser choose).
-    #[arg(long, required_unless_present = "web")]
+    #[arg(long, required_unless_present_any = ["web", "replay"])]
     pub session: Option<String>,
+    /// Replay the `/surface` frames of a recording (`hapticctl record`, .mcap) instead of
+    /// watching a server, paced by their simulated time; pictures as in PNG mode.
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["web", "session"])]
+    pub replay: Option<PathBuf>,
     /// Serve the browser viewer on this address (e.g. 127.0.0.1:8080) instead of writing PNGs:
     /// a relay that subscribes once per session and fans frames out to browsers over WebSocket.
     #[arg(long, value_name = "ADDR")]
@@ -204,7 +208,10 @@ impl ViewerArgs {
         }
         let cfg = ViewerConfig {
             server: self.server,
-            session_id: self.session.unwrap_or_default(),
+            session_id: match (&self.replay, self.session) {
+                (Some(path), _) => format!("replay of {}", path.display()),
+                (None, s) => s.unwrap_or_default(),
+            },
             out_dir: self.out,
             interval_s: self.interval_s,
             duration_s: self.duration_s,
@@ -544,6 +551,31 @@ pub async fn run(
         .await?
         .into_inner();
     run_stream(stream, &cfg, shutdown).await
+}
+
+/// Replays the `/surface` frames of the recording `path` through [`run_stream`], paced by
+/// their simulated time (a frame is delivered when as much wall time has passed since the
+/// first as simulated time).
+///
+/// # Errors
+/// [`ClientError::Io`] when the recording cannot be read; then as [`run_stream`].
+pub async fn replay(
+    path: &Path,
+    cfg: &ViewerConfig,
+    shutdown: impl Future<Output = ()>,
+) -> Result<ViewerSummary, ClientError> {
+    let frames = crate::record::read_surface(path)?;
+    let t0 = frames.first().map_or(0.0, |(_, f)| f.sim_time_s);
+    let start = tokio::time::Instant::now();
+    let stream =
+        tokio_stream::StreamExt::then(tokio_stream::iter(frames), move |(_, f)| async move {
+            let due = (f.sim_time_s - t0).max(0.0);
+            if due.is_finite() {
+                tokio::time::sleep_until(start + Duration::from_secs_f64(due.min(1e6))).await;
+            }
+            Ok::<_, tonic::Status>(f)
+        });
+    run_stream(Box::pin(stream), cfg, shutdown).await
 }
 
 /// Running counters of [`run_stream`].

@@ -5,6 +5,11 @@
 //! recording is on, so a normal session never reallocates on the servo thread) and the rows are
 //! written to disk after the run, from the calling thread. No file I/O ever happens in a tick.
 //!
+//! With a `.mcap` path the rows go to MCAP instead ([`write_mcap_file`]): `/device/sample`
+//! (`DeviceSample`: position, velocity by finite difference) and `/device/force` (`ForceCommand`:
+//! the force written after the guard, contact flag), log time = time since the bridge started,
+//! so Foxglove plots them and `--driver replay` reads the samples back.
+//!
 //! Neighbours: filled by [`crate::link`]; the first four columns (`t_s,x_m,y_m,z_m`) are what
 //! [`crate::replay`] reads, so a recording can be replayed.
 
@@ -29,6 +34,54 @@ pub struct TickRecord {
     pub age_us: Option<u64>,
     /// The guard's state this tick ([`crate::guard::GuardState`] as a short name).
     pub state: &'static str,
+}
+
+/// True when `path` names an MCAP recording (extension `.mcap`, any case).
+pub fn is_mcap(path: &Path) -> bool {
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("mcap"))
+}
+
+/// Writes `rows` to `path` as MCAP (see the module docs): one `DeviceSample` (seq = row
+/// number from 1) and one `ForceCommand` answering it per row.
+///
+/// # Errors
+/// Any I/O or MCAP error, as `std::io::Error`.
+pub fn write_mcap_file(path: &Path, rows: &[TickRecord]) -> std::io::Result<()> {
+    use haptics_proto::recording::{Recorder, topic};
+    use haptics_proto::v1::{DeviceSample, ForceCommand, Vec3};
+    let other = |e: haptics_proto::recording::RecordingError| std::io::Error::other(e.to_string());
+    let f = std::fs::File::create(path)?;
+    let mut rec = Recorder::new(std::io::BufWriter::new(f)).map_err(other)?;
+    for (i, r) in rows.iter().enumerate() {
+        let t_ns = (r.t_s.max(0.0) * 1e9) as u64;
+        let velocity = match (i.checked_sub(1).map(|j| &rows[j]), rows.get(i + 1)) {
+            (Some(a), Some(b)) if b.t_s > a.t_s => {
+                let dt = b.t_s - a.t_s;
+                [0, 1, 2].map(|k| (b.position_m[k] - a.position_m[k]) / dt)
+            }
+            _ => [0.0; 3],
+        };
+        let seq = i as u64 + 1;
+        let sample = DeviceSample {
+            session_id: String::new(),
+            seq,
+            device_time_us: t_ns / 1000,
+            position_m: Some(Vec3::from(r.position_m)),
+            velocity_m_per_s: Some(Vec3::from(velocity)),
+        };
+        rec.write(topic::DEVICE_SAMPLE, t_ns, &sample)
+            .map_err(other)?;
+        let force = ForceCommand {
+            seq,
+            force_n: Some(Vec3::from(r.force_n)),
+            in_contact: r.in_contact,
+            ..ForceCommand::default()
+        };
+        rec.write(topic::DEVICE_FORCE, t_ns, &force)
+            .map_err(other)?;
+    }
+    rec.finish().map_err(other)
 }
 
 /// CSV header written by [`write_csv`].
@@ -113,5 +166,44 @@ mod tests {
         write_csv(&mut buf, &rows).unwrap();
         let tr = Trajectory::from_csv(buf.as_slice()).unwrap();
         assert!((tr.end_s() - 0.004).abs() < 1e-12);
+    }
+}
+
+#[cfg(test)]
+mod mcap_tests {
+    use super::*;
+
+    #[test]
+    fn an_mcap_recording_replays_the_same_trajectory() {
+        let rows: Vec<TickRecord> = (0..50)
+            .map(|i| TickRecord {
+                t_s: 0.001 * f64::from(i),
+                position_m: [0.014 - 1e-5 * f64::from(i), 0.0, -0.005],
+                force_n: [0.001 * f64::from(i), 0.0, 0.0],
+                in_contact: i > 10,
+                state: "fresh",
+                ..TickRecord::default()
+            })
+            .collect();
+        let dir = std::env::temp_dir().join(format!("bridge-mcap-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("r.MCAP");
+        assert!(is_mcap(&path) && !is_mcap(&dir.join("r.csv")));
+        write_mcap_file(&path, &rows).unwrap();
+        let t = crate::replay::Trajectory::from_path(&path).unwrap();
+        assert!((t.start_s() - 0.0).abs() < 1e-9 && (t.end_s() - 0.049).abs() < 1e-9);
+        let (p, v, _) = t.sample(0.0205, 0);
+        assert!((p[0] - (0.014 - 1e-5 * 20.5)).abs() < 1e-12, "{p:?}");
+        assert!((v[0] + 1e-2).abs() < 1e-9, "{v:?}");
+        let bytes = std::fs::read(&path).unwrap();
+        let forces = haptics_proto::recording::read_topic::<haptics_proto::v1::ForceCommand>(
+            &bytes,
+            haptics_proto::recording::topic::DEVICE_FORCE,
+        )
+        .unwrap();
+        assert_eq!(forces.len(), 50);
+        assert_eq!(forces[30].1.force_n.as_ref().unwrap().x, 0.03);
+        assert!(forces[30].1.in_contact && !forces[5].1.in_contact);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

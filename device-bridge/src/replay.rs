@@ -143,9 +143,37 @@ impl Trajectory {
     /// # Errors
     /// As `from_csv`, plus line 0 when the file cannot be opened.
     pub fn from_path(path: &Path) -> Result<Self, DeviceError> {
+        if crate::record::is_mcap(path) {
+            let bytes = std::fs::read(path)
+                .map_err(|e| err(0, format!("cannot open {}: {e}", path.display())))?;
+            return Self::from_mcap(&bytes);
+        }
         let f = std::fs::File::open(path)
             .map_err(|e| err(0, format!("cannot open {}: {e}", path.display())))?;
         Self::from_csv(std::io::BufReader::new(f))
+    }
+
+    /// Reads the `/device/sample` topic of an MCAP recording (`haptic-bridge --record
+    /// FILE.mcap`): times from the log times (s), positions from `position_m`.
+    ///
+    /// # Errors
+    /// [`DeviceError::Replay`] (line 0) for a malformed file, a sample without a position, or
+    /// the checks of [`Trajectory::new`].
+    pub fn from_mcap(bytes: &[u8]) -> Result<Self, DeviceError> {
+        use haptics_proto::recording::{read_topic, topic};
+        let samples = read_topic::<haptics_proto::v1::DeviceSample>(bytes, topic::DEVICE_SAMPLE)
+            .map_err(|e| err(0, e.to_string()))?;
+        let mut times_s = Vec::with_capacity(samples.len());
+        let mut positions_m = Vec::with_capacity(samples.len());
+        for (i, (t_ns, s)) in samples.iter().enumerate() {
+            let p = s
+                .position_m
+                .as_ref()
+                .ok_or_else(|| err(0, format!("sample {i} has no position")))?;
+            times_s.push(*t_ns as f64 * 1e-9);
+            positions_m.push(p.to_array());
+        }
+        Self::new(times_s, positions_m)
     }
 
     /// First recorded time, in s.

@@ -12,6 +12,7 @@
 //! end-to-end tests call them.
 
 pub mod delta;
+pub mod recording;
 
 /// Package `haptics.v1`.
 pub mod v1 {

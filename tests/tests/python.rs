@@ -3,7 +3,8 @@
 //! stubs are generated from `proto/` by the package's build), then `clients/python/tests/
 //! live_test.py` (scenes, a session from a name and from TOML text, an injected force seen in
 //! the frames, a scripted press, statistics, stop, errors, reflection `v1alpha` through
-//! `grpcio-reflection`, and a bridge recording read back).
+//! `grpcio-reflection`, a bridge recording read back, and a `hapticctl record` MCAP file
+//! decoded by Foxglove's `mcap-protobuf-support` from the schemas inside it).
 //!
 //! Needs `python3` with `venv` and the PyPI registry (both on these machines); a missing one
 //! fails the test with the reason, it is not skipped.
@@ -12,7 +13,9 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use anyhow::{Context, Result, ensure};
-use haptic_e2e::{BRIDGE, Daemon, run_bin, serial, start_session, unique_temp_dir};
+use haptic_e2e::{
+    BRIDGE, CTL, Daemon, finish, run_bin, serial, spawn_bin, start_session, unique_temp_dir,
+};
 
 fn run(cmd: &mut Command, what: &str) -> Result<String> {
     let out = cmd
@@ -78,6 +81,22 @@ async fn python_client_drives_a_live_daemon() -> Result<()> {
     let dir = unique_temp_dir("haptic-e2e-python")?;
     let csv = dir.join("press.csv");
     let csv_arg = csv.display().to_string();
+    // ... while `hapticctl record` records the session to MCAP.
+    let mcap = dir.join("session.mcap");
+    let mcap_arg = mcap.display().to_string();
+    let recorder = spawn_bin(
+        CTL,
+        &[
+            "--server",
+            &url,
+            "record",
+            &id,
+            "--out",
+            &mcap_arg,
+            "--duration-s",
+            "1.5",
+        ],
+    )?;
     run_bin(
         BRIDGE,
         &[
@@ -96,6 +115,9 @@ async fn python_client_drives_a_live_daemon() -> Result<()> {
     )
     .await?
     .success()?;
+    finish(recorder, haptic_e2e::STEP_TIMEOUT)
+        .await?
+        .success()?;
 
     let script = repo.join("clients/python/tests/live_test.py");
     let out = tokio::task::spawn_blocking(move || {
@@ -103,6 +125,7 @@ async fn python_client_drives_a_live_daemon() -> Result<()> {
             .arg(&script)
             .env("HAPTICS_SERVER", &url)
             .env("HAPTICS_RECORDING", &csv)
+            .env("HAPTICS_MCAP", &mcap)
             .output()
     })
     .await??;

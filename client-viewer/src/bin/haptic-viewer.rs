@@ -25,11 +25,15 @@ async fn run(args: ViewerArgs) -> anyhow::Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     let json = args.json;
+    let replay = args.replay.clone();
     let cfg = args.into_config()?;
     let shutdown = async {
         let _ = tokio::signal::ctrl_c().await;
     };
-    let summary = viewer::run(cfg, shutdown).await?;
+    let summary = match &replay {
+        Some(path) => viewer::replay(path, &cfg, shutdown).await?,
+        None => viewer::run(cfg, shutdown).await?,
+    };
     eprintln!("{summary}");
     if json {
         println!("{}", serde_json::to_string(&summary)?);

@@ -25,6 +25,12 @@ struct Cli {
 }
 
 async fn run(cli: Cli) -> Result<(), ClientError> {
+    // Converting a recording needs no server.
+    if let CtlCommand::ExportVtu { input, out } = &cli.command {
+        let n = haptic_client::record::export_vtu(input, out)?;
+        println!("{}: {n} frames", out.join("surface.pvd").display());
+        return Ok(());
+    }
     let mut ctl = Ctl::connect(&cli.server).await?;
     let (mut out, mut err) = (std::io::stdout().lock(), std::io::stderr());
     ctl::execute(&mut ctl, cli.command, &mut out, &mut err).await

@@ -1,7 +1,7 @@
 """The Python client against a real hapticd (run by tests/tests/python.rs in a fresh venv).
 
 Environment: HAPTICS_SERVER (host:port of a daemon on loopback), optionally HAPTICS_RECORDING
-(a bridge --record CSV to read back).
+(a bridge --record CSV to read back) and HAPTICS_MCAP (a `hapticctl record` file).
 """
 
 import os
@@ -118,6 +118,28 @@ touchable = ["EPI"]
             self.assertIn("haptics.v1.SessionControl", services)
             self.assertIn("haptics.v1.DeviceLink", services)
             self.assertIn("haptics.v1.SurfaceStream", services)
+
+    @unittest.skipUnless(os.environ.get("HAPTICS_MCAP"), "no MCAP recording given")
+    def test_mcap_recording_decodes_with_its_own_schemas(self):
+        # An independent reader (Foxglove's mcap + mcap-protobuf-support) decodes hapticctl's
+        # recording from the schemas inside the file, not from our stubs.
+        from mcap.reader import make_reader
+        from mcap_protobuf.decoder import DecoderFactory
+
+        counts, sim_times = {}, []
+        with open(os.environ["HAPTICS_MCAP"], "rb") as f:
+            reader = make_reader(f, decoder_factories=[DecoderFactory()])
+            for schema, channel, _message, proto in reader.iter_decoded_messages():
+                counts[channel.topic] = counts.get(channel.topic, 0) + 1
+                if channel.topic == "/surface":
+                    self.assertEqual(schema.name, "haptics.v1.SurfaceFrame")
+                    self.assertEqual(len(proto.positions_m) % 3, 0)
+                    sim_times.append(proto.sim_time_s)
+                elif channel.topic == "/stats":
+                    self.assertEqual(schema.name, "haptics.v1.SessionStats")
+        self.assertGreater(counts.get("/surface", 0), 5, counts)
+        self.assertGreater(counts.get("/stats", 0), 3, counts)
+        self.assertEqual(sim_times, sorted(sim_times))
 
     @unittest.skipUnless(os.environ.get("HAPTICS_RECORDING"), "no recording given")
     def test_recording_reads_back(self):

@@ -45,8 +45,12 @@ async fn main() -> anyhow::Result<ExitCode> {
     )
     .await?;
     if let Some(path) = &setup.record_path {
-        record::write_csv_file(path, &report.ticks)
-            .with_context(|| format!("writing the recording to {}", path.display()))?;
+        if record::is_mcap(path) {
+            record::write_mcap_file(path, &report.ticks)
+        } else {
+            record::write_csv_file(path, &report.ticks)
+        }
+        .with_context(|| format!("writing the recording to {}", path.display()))?;
     }
     let s = &report.summary;
     if setup.json {

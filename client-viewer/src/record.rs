@@ -1,0 +1,274 @@
+//! Recordings: `hapticctl record` writes a session's surface frames and statistics to MCAP
+//! ([`haptics_proto::recording`], opens in Foxglove), and `hapticctl export-vtu` turns the
+//! frames of a recording into a ParaView time series (`surface.pvd` + one `.vtu` per frame).
+//!
+//! The daemon does not broadcast device traffic or injected loads, so those are not in a
+//! `hapticctl` recording: the bridge records its own side (`haptic-bridge --record FILE.mcap`,
+//! topics `/device/sample` and `/device/force`); the two files share the schema set and open
+//! side by side in Foxglove.
+//!
+//! Neighbours: [`crate::ctl`] dispatches the commands; the viewer replays the `/surface` topic
+//! (`haptic-viewer --replay`).
+
+use std::fmt::Write as _;
+use std::future::Future;
+use std::io::{BufWriter, Write as _};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use haptics_proto::recording::{Recorder, read_topic, topic};
+use haptics_proto::v1::surface_stream_client::SurfaceStreamClient;
+use haptics_proto::v1::{SurfaceEncoding, SurfaceFrame, WatchRequest};
+use tokio_stream::StreamExt;
+use tonic::transport::Channel;
+
+use crate::ClientError;
+use crate::ctl::Ctl;
+
+/// What `record` wrote.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct RecordSummary {
+    /// Surface frames written.
+    pub frames: u64,
+    /// Of which keyframes.
+    pub keyframes: u64,
+    /// Statistics messages written.
+    pub stats: u64,
+    /// File size, bytes.
+    pub bytes: u64,
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> ClientError + '_ {
+    move |source| ClientError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+fn rec_err(path: &Path, e: haptics_proto::recording::RecordingError) -> ClientError {
+    ClientError::Io {
+        path: path.to_path_buf(),
+        source: std::io::Error::other(e.to_string()),
+    }
+}
+
+fn unix_time_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
+/// How `record` samples a session.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RecordParams {
+    /// Stop after this long, s (`None`: until the session ends or shutdown).
+    pub duration_s: Option<f64>,
+    /// Surface frames per second, 0.1..=120.
+    pub rate_hz: f64,
+    /// Seconds between statistics messages, at least 0.01.
+    pub stats_interval_s: f64,
+}
+
+/// Records `session_id` into `out` (MCAP): every surface frame of a full-encoding `Watch` at up
+/// to `params.rate_hz` on `/surface` (log time: the server's send time) and `GetStats` every
+/// `params.stats_interval_s` on `/stats` (log time: this machine's clock), until `params.duration_s` passes,
+/// the session ends, or `shutdown` resolves. The file is complete (summary and index) on every
+/// one of those exits.
+///
+/// # Errors
+/// [`ClientError::InvalidConfig`] for a bad rate or interval, [`ClientError::Rpc`] when the
+/// session is unknown at the start, [`ClientError::Io`] when the file cannot be written.
+pub async fn record(
+    channel: Channel,
+    ctl: &mut Ctl,
+    session_id: &str,
+    out: &Path,
+    params: RecordParams,
+    shutdown: impl Future<Output = ()>,
+) -> Result<RecordSummary, ClientError> {
+    let RecordParams {
+        duration_s,
+        rate_hz,
+        stats_interval_s,
+    } = params;
+    if !(rate_hz.is_finite() && (0.1..=120.0).contains(&rate_hz)) {
+        return Err(ClientError::InvalidConfig(format!(
+            "rate {rate_hz} Hz: expected 0.1..=120"
+        )));
+    }
+    if !(stats_interval_s.is_finite() && stats_interval_s >= 0.01) {
+        return Err(ClientError::InvalidConfig(format!(
+            "stats interval {stats_interval_s} s: expected at least 0.01"
+        )));
+    }
+    if let Some(d) = duration_s
+        && !(d.is_finite() && d > 0.0)
+    {
+        return Err(ClientError::InvalidConfig(format!(
+            "duration {d} s: expected a positive number"
+        )));
+    }
+    // The first statistics answer also checks that the session exists before a file is made.
+    let first_stats = ctl.stats(session_id).await?;
+    let mut frames = SurfaceStreamClient::new(channel)
+        .max_decoding_message_size(256 << 20)
+        .watch(WatchRequest {
+            session_id: session_id.to_string(),
+            max_rate_hz: rate_hz,
+            encoding: SurfaceEncoding::Full as i32,
+            quantum_m: 0.0,
+        })
+        .await?
+        .into_inner();
+    let file = std::fs::File::create(out).map_err(io(out))?;
+    let mut rec = Recorder::new(BufWriter::new(file)).map_err(|e| rec_err(out, e))?;
+    let mut summary = RecordSummary::default();
+    rec.write(topic::STATS, unix_time_ns(), &first_stats)
+        .map_err(|e| rec_err(out, e))?;
+    summary.stats += 1;
+
+    let mut stats_tick = tokio::time::interval(Duration::from_secs_f64(stats_interval_s));
+    stats_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let deadline =
+        tokio::time::sleep(duration_s.map_or(Duration::MAX / 4, Duration::from_secs_f64));
+    tokio::pin!(deadline);
+    tokio::pin!(shutdown);
+    loop {
+        tokio::select! {
+            () = &mut deadline => break,
+            () = &mut shutdown => break,
+            frame = frames.next() => match frame {
+                Some(Ok(f)) => {
+                    summary.frames += 1;
+                    summary.keyframes += u64::from(f.keyframe);
+                    rec.write(topic::SURFACE, f.server_time_us.saturating_mul(1000), &f)
+                        .map_err(|e| rec_err(out, e))?;
+                }
+                // The session ended (or the stream failed): keep what was recorded.
+                Some(Err(_)) | None => break,
+            },
+            _ = stats_tick.tick() => match ctl.stats(session_id).await {
+                Ok(s) => {
+                    summary.stats += 1;
+                    rec.write(topic::STATS, unix_time_ns(), &s).map_err(|e| rec_err(out, e))?;
+                }
+                Err(_) => break,
+            },
+        }
+    }
+    rec.finish().map_err(|e| rec_err(out, e))?;
+    summary.bytes = std::fs::metadata(out).map_err(io(out))?.len();
+    Ok(summary)
+}
+
+/// The `/surface` frames of a recording, in order.
+///
+/// # Errors
+/// [`ClientError::Io`] when the file cannot be read or is not a recording with that topic's
+/// type.
+pub fn read_surface(path: &Path) -> Result<Vec<(u64, SurfaceFrame)>, ClientError> {
+    let bytes = std::fs::read(path).map_err(io(path))?;
+    read_topic::<SurfaceFrame>(&bytes, topic::SURFACE).map_err(|e| rec_err(path, e))
+}
+
+/// Writes the `/surface` frames of the recording `input` as `dir/frame_NNNNN.vtu` (triangles,
+/// positions in m, point data `displacement_m` when rest positions are known) and
+/// `dir/surface.pvd` (timestep = simulated time, s). Returns the number of frames written.
+///
+/// # Errors
+/// [`ClientError::Io`] for unreadable input or unwritable output; [`ClientError::BadFrame`]
+/// when a frame's positions do not match its keyframe's topology, or no keyframe precedes it.
+pub fn export_vtu(input: &Path, dir: &Path) -> Result<usize, ClientError> {
+    let frames = read_surface(input)?;
+    std::fs::create_dir_all(dir).map_err(io(dir))?;
+    let mut triangles: Option<Vec<u32>> = None;
+    let mut rest: Option<Vec<f32>> = None;
+    let mut pvd = String::from(
+        "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\">\n  <Collection>\n",
+    );
+    let mut written = 0;
+    for (_, f) in &frames {
+        if f.keyframe && !f.triangles.is_empty() {
+            triangles = Some(f.triangles.clone());
+        }
+        if f.keyframe && !f.rest_positions_m.is_empty() {
+            rest = Some(f.rest_positions_m.clone());
+        }
+        let bad = |reason: &str| ClientError::BadFrame {
+            frame: f.frame,
+            reason: reason.to_string(),
+        };
+        let tris = triangles
+            .as_ref()
+            .ok_or_else(|| bad("no keyframe before it"))?;
+        let n = f.positions_m.len() / 3;
+        if f.positions_m.len() % 3 != 0 || tris.iter().any(|&i| i as usize >= n) {
+            return Err(bad("positions do not match the keyframe's triangles"));
+        }
+        let name = format!("frame_{written:05}.vtu");
+        let path = dir.join(&name);
+        let rest_here = rest.as_ref().filter(|r| r.len() == f.positions_m.len());
+        write_vtu(&path, &f.positions_m, tris, rest_here.map(Vec::as_slice))?;
+        let _ = writeln!(
+            pvd,
+            "    <DataSet timestep=\"{}\" part=\"0\" file=\"{name}\"/>",
+            f.sim_time_s
+        );
+        written += 1;
+    }
+    pvd.push_str("  </Collection>\n</VTKFile>\n");
+    let pvd_path = dir.join("surface.pvd");
+    std::fs::write(&pvd_path, pvd).map_err(io(&pvd_path))?;
+    Ok(written)
+}
+
+fn write_vtu(
+    path: &PathBuf,
+    positions_m: &[f32],
+    triangles: &[u32],
+    rest_m: Option<&[f32]>,
+) -> Result<(), ClientError> {
+    let n = positions_m.len() / 3;
+    let m = triangles.len() / 3;
+    let mut s = String::with_capacity(positions_m.len() * 12 + triangles.len() * 8 + 512);
+    let _ = write!(
+        s,
+        "<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"0.1\" \
+         byte_order=\"LittleEndian\">\n<UnstructuredGrid>\n<Piece NumberOfPoints=\"{n}\" \
+         NumberOfCells=\"{m}\">\n<Points>\n<DataArray type=\"Float32\" NumberOfComponents=\"3\" \
+         format=\"ascii\">\n"
+    );
+    for p in positions_m.chunks_exact(3) {
+        let _ = writeln!(s, "{} {} {}", p[0], p[1], p[2]);
+    }
+    s.push_str("</DataArray>\n</Points>\n<Cells>\n");
+    s.push_str("<DataArray type=\"UInt32\" Name=\"connectivity\" format=\"ascii\">\n");
+    for t in triangles.chunks_exact(3) {
+        let _ = writeln!(s, "{} {} {}", t[0], t[1], t[2]);
+    }
+    s.push_str("</DataArray>\n<DataArray type=\"UInt32\" Name=\"offsets\" format=\"ascii\">\n");
+    for i in 1..=m {
+        let _ = write!(s, "{} ", 3 * i);
+    }
+    s.push_str("\n</DataArray>\n<DataArray type=\"UInt8\" Name=\"types\" format=\"ascii\">\n");
+    for _ in 0..m {
+        s.push_str("5 "); // VTK_TRIANGLE
+    }
+    s.push_str("\n</DataArray>\n</Cells>\n");
+    if let Some(rest) = rest_m {
+        s.push_str(
+            "<PointData Scalars=\"displacement_m\">\n<DataArray type=\"Float32\" \
+             Name=\"displacement_m\" format=\"ascii\">\n",
+        );
+        for (p, r) in positions_m.chunks_exact(3).zip(rest.chunks_exact(3)) {
+            let d = ((p[0] - r[0]).powi(2) + (p[1] - r[1]).powi(2) + (p[2] - r[2]).powi(2)).sqrt();
+            let _ = write!(s, "{d} ");
+        }
+        s.push_str("\n</DataArray>\n</PointData>\n");
+    }
+    s.push_str("</Piece>\n</UnstructuredGrid>\n</VTKFile>\n");
+    let file = std::fs::File::create(path).map_err(io(path))?;
+    let mut w = BufWriter::new(file);
+    w.write_all(s.as_bytes()).map_err(io(path))?;
+    w.flush().map_err(io(path))
+}

@@ -1,0 +1,203 @@
+//! Recordings end to end (issue 19): while the real `haptic-bridge` presses the LV and records
+//! its side to MCAP, `hapticctl record` records the session's surface frames and statistics;
+//! both files decode with their schemas, the bridge's recording replays through
+//! `--driver replay` with the same peak force, `haptic-viewer --replay` draws pictures from the
+//! surface recording, and `hapticctl export-vtu` writes a ParaView series with one file per
+//! frame.
+
+use std::time::Duration;
+
+use anyhow::{Context, Result, ensure};
+use haptic_e2e::{
+    BRIDGE, CTL, Daemon, STEP_TIMEOUT, VIEWER, finish, run_bin, serial, spawn_bin, start_session,
+    unique_temp_dir,
+};
+use haptics_proto::recording::{read_topic, topic};
+use haptics_proto::v1::{DeviceSample, ForceCommand, SessionStats, SurfaceFrame};
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> {
+    let _serial = serial().await;
+    let daemon = Daemon::spawn(&[])?;
+    let url = daemon.url();
+    let id = start_session(&url, "lv").await?;
+    let dir = unique_temp_dir("haptic-e2e-recording")?;
+    let surface_mcap = dir.join("session.mcap");
+    let press_mcap = dir.join("press.mcap");
+    let (surface_arg, press_arg) = (
+        surface_mcap.display().to_string(),
+        press_mcap.display().to_string(),
+    );
+
+    let recorder = spawn_bin(
+        CTL,
+        &[
+            "--server",
+            &url,
+            "record",
+            &id,
+            "--out",
+            &surface_arg,
+            "--duration-s",
+            "2.5",
+        ],
+    )?;
+    let press = run_bin(
+        BRIDGE,
+        &[
+            "--server",
+            &url,
+            "--session",
+            &id,
+            "--script",
+            "press",
+            "--depth-m",
+            "0.005",
+            "--hold-s",
+            "0.2",
+            "--record",
+            &press_arg,
+            "--json",
+        ],
+        Duration::from_secs(60),
+    )
+    .await?
+    .success()?;
+    let peak = press.json()?["peak_force_n"]
+        .as_f64()
+        .context("peak_force_n")?;
+    let rec = finish(recorder, Duration::from_secs(60)).await?.success()?;
+    ensure!(rec.stdout.contains("surface frames"), "{}", rec.stdout);
+
+    // The session recording: surface frames (keyframe first) that show the dent, statistics.
+    let bytes = std::fs::read(&surface_mcap)?;
+    let frames = read_topic::<SurfaceFrame>(&bytes, topic::SURFACE)?;
+    ensure!(frames.len() > 20, "only {} surface frames", frames.len());
+    let first = &frames[0].1;
+    ensure!(
+        first.keyframe && !first.triangles.is_empty(),
+        "first frame is not a keyframe"
+    );
+    let vertices = first.positions_m.len() / 3;
+    ensure!(
+        frames
+            .iter()
+            .all(|(_, f)| f.positions_m.len() == 3 * vertices)
+    );
+    ensure!(
+        frames.windows(2).all(|w| w[1].0 >= w[0].0),
+        "log times go back"
+    );
+    let dent = frames
+        .iter()
+        .map(|(_, f)| f.max_displacement_m)
+        .fold(0.0, f64::max);
+    ensure!(dent > 5e-4, "no dent in the recorded frames: {dent} m");
+    let stats = read_topic::<SessionStats>(&bytes, topic::STATS)?;
+    ensure!(stats.len() >= 10, "only {} statistics", stats.len());
+    ensure!(stats.iter().all(|(_, s)| s.session_id == id));
+    ensure!(stats.windows(2).all(|w| w[1].1.steps >= w[0].1.steps));
+
+    // The bridge's recording: one sample and one force per device tick, the press visible.
+    let bytes = std::fs::read(&press_mcap)?;
+    let samples = read_topic::<DeviceSample>(&bytes, topic::DEVICE_SAMPLE)?;
+    let forces = read_topic::<ForceCommand>(&bytes, topic::DEVICE_FORCE)?;
+    ensure!(samples.len() > 500 && samples.len() == forces.len());
+    let x = |s: &DeviceSample| s.position_m.as_ref().map_or(f64::NAN, |p| p.x);
+    let x_min = samples
+        .iter()
+        .map(|(_, s)| x(s))
+        .fold(f64::INFINITY, f64::min);
+    ensure!(
+        (x_min - 0.009).abs() < 1e-4,
+        "deepest x {x_min} m, expected 9 mm"
+    );
+    let recorded_peak = forces
+        .iter()
+        .filter_map(|(_, f)| f.force_n.as_ref())
+        .map(|f| (f.x * f.x + f.y * f.y + f.z * f.z).sqrt())
+        .fold(0.0, f64::max);
+    ensure!(
+        (recorded_peak - peak).abs() <= 1e-6 + 1e-3 * peak,
+        "recorded peak {recorded_peak} N, bridge summary {peak} N"
+    );
+
+    // Replayed on a fresh session, the same trajectory gives about the same peak force.
+    let id2 = start_session(&url, "lv").await?;
+    let replay = run_bin(
+        BRIDGE,
+        &[
+            "--server",
+            &url,
+            "--session",
+            &id2,
+            "--driver",
+            "replay",
+            "--replay",
+            &press_arg,
+            "--json",
+        ],
+        Duration::from_secs(60),
+    )
+    .await?
+    .success()?;
+    let replay_peak = replay.json()?["peak_force_n"]
+        .as_f64()
+        .context("replay peak_force_n")?;
+    ensure!(
+        (replay_peak - peak).abs() < 0.15 * peak,
+        "replayed peak {replay_peak} N against {peak} N"
+    );
+
+    // The viewer replays the surface recording into pictures.
+    let pictures = dir.join("pictures");
+    let pictures_arg = pictures.display().to_string();
+    run_bin(
+        VIEWER,
+        &[
+            "--replay",
+            &surface_arg,
+            "--out",
+            &pictures_arg,
+            "--interval-s",
+            "0.5",
+            "--quiet",
+        ],
+        STEP_TIMEOUT,
+    )
+    .await?
+    .success()?;
+    let pngs = std::fs::read_dir(&pictures)?
+        .filter_map(Result::ok)
+        .filter(|e| e.file_name().to_string_lossy().starts_with("frame_"))
+        .count();
+    ensure!(pngs >= 2, "{pngs} pictures from the replay");
+
+    // ParaView series: one .vtu per frame, listed in surface.pvd in time order.
+    let vtu = dir.join("vtu");
+    let vtu_arg = vtu.display().to_string();
+    run_bin(
+        CTL,
+        &["export-vtu", &surface_arg, "--out", &vtu_arg],
+        STEP_TIMEOUT,
+    )
+    .await?
+    .success()?;
+    let pvd = std::fs::read_to_string(vtu.join("surface.pvd"))?;
+    let listed = pvd.matches("<DataSet ").count();
+    ensure!(
+        listed == frames.len(),
+        "{listed} datasets for {} frames",
+        frames.len()
+    );
+    let first_vtu = std::fs::read_to_string(vtu.join("frame_00000.vtu"))?;
+    ensure!(
+        first_vtu.contains(&format!(
+            "NumberOfPoints=\"{vertices}\" NumberOfCells=\"{}\"",
+            first.triangles.len() / 3
+        )),
+        "frame_00000.vtu header does not match the keyframe"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(())
+}
