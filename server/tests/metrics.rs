@@ -60,10 +60,17 @@ async fn sessions_are_scraped_with_consistent_counters_and_histograms() {
     assert_eq!(sample(&text, "hapticd_faulted", &labels), Some(0.0));
 
     let b = buckets(&text, "hapticd_step_time_seconds", &labels);
-    assert_eq!(b.len(), haptic_server::servo::LATENCY_BUCKET_BOUNDS_US.len() + 1, "{text}");
+    assert_eq!(
+        b.len(),
+        haptic_server::servo::LATENCY_BUCKET_BOUNDS_US.len() + 1,
+        "{text}"
+    );
     assert_eq!(b.last().unwrap().0, "+Inf");
     assert_eq!(b[6].0, "0.001", "bounds in seconds: {b:?}");
-    assert!(b.windows(2).all(|w| w[1].1 >= w[0].1), "not cumulative: {b:?}");
+    assert!(
+        b.windows(2).all(|w| w[1].1 >= w[0].1),
+        "not cumulative: {b:?}"
+    );
     let count = sample(&text, "hapticd_step_time_seconds_count", &labels).unwrap();
     assert_eq!(b.last().unwrap().1, count);
     // Step times and the steps counter come from the same snapshot: one record per tick.
@@ -120,7 +127,10 @@ async fn sessions_are_scraped_with_consistent_counters_and_histograms() {
             "the dashboard queries {name}, which /metrics does not serve"
         );
     }
-    assert!(queried >= 10, "only {queried} metric references in the dashboard");
+    assert!(
+        queried >= 10,
+        "only {queried} metric references in the dashboard"
+    );
 
     manager.stop(&session.id).unwrap();
     let after = metrics::render(&registry).unwrap();
