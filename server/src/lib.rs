@@ -19,6 +19,7 @@ pub mod servo;
 pub mod session;
 pub mod solve;
 pub mod stream;
+pub mod surface_mesh;
 
 use std::future::Future;
 use std::sync::Arc;

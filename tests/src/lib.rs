@@ -7,7 +7,7 @@
 //! Which binaries run: the tests never pick up whatever happens to sit in the target folder
 //! (with `cargo test -p haptic-e2e`, cargo builds none of the other packages' binaries, so those
 //! could be stale). The first [`binary`] call of a test process runs one `cargo build --locked`
-//! of the four binaries (with `escargot`), in the same profile as the test executable and in
+//! of the workspace binaries (with `escargot`), in the same profile as the test executable and in
 //! the same target directory (`CARGO_TARGET_DIR` or `build.target-dir` if set, else the
 //! workspace's `target/`; a `--target-dir` flag given to the outer cargo is not seen, use the
 //! variable instead); the paths are cached for the rest of the process. When nothing changed that costs one cargo
@@ -47,6 +47,8 @@ pub const BRIDGE: &str = "haptic-bridge";
 pub const VIEWER: &str = "haptic-viewer";
 /// The scripted client binary.
 pub const CTL: &str = "hapticctl";
+/// The surface-to-volume mesher (`haptic-mesh`, runs Gmsh).
+pub const MESH: &str = "haptic-mesh";
 
 /// Generous default timeout for one step (start-up, an RPC, a short client run); never a
 /// performance assertion.
@@ -59,11 +61,12 @@ const LOG_CAP_BYTES: usize = 64 * 1024;
 pub const BIN_DIR_ENV: &str = "HAPTIC_BIN_DIR";
 
 /// The workspace binaries the harness runs, with the package that builds each.
-const PACKAGES: [(&str, &str); 4] = [
+const PACKAGES: [(&str, &str); 5] = [
     (HAPTICD, "haptic-server"),
     (BRIDGE, "haptic-bridge"),
     (VIEWER, "haptic-client"),
     (CTL, "haptic-client"),
+    (MESH, "haptic-server"),
 ];
 
 /// The directory the binaries sit in next to the running executable (for `haptic-demo` after
@@ -113,12 +116,12 @@ pub fn sibling_bin_dir() -> Result<PathBuf> {
 /// Path of the workspace binary `name` (one of [`HAPTICD`], [`BRIDGE`], [`VIEWER`], [`CTL`]),
 /// built fresh for this test process.
 ///
-/// The first call builds all four binaries in one `cargo build --locked -p ... --bin ...`
+/// The first call builds all the binaries in one `cargo build --locked -p ... --bin ...`
 /// ([`build_profile_args`] selects the profile) and blocks until it is done (minutes on a cold
 /// target folder, a fraction of a second when nothing changed); later calls, from any thread,
-/// get the cached path or the cached failure. All four at once, rather than each when first
+/// get the cached path or the cached failure. All at once, rather than each when first
 /// needed, so that no build competes for the 2 cores with a daemon a test has already started
-/// (its 1 kHz servo would overrun), and one cargo check per process instead of four.
+/// (its 1 kHz servo would overrun), and one cargo check per process instead of one per binary.
 /// With `HAPTIC_BIN_DIR` set, nothing is built: the binary is taken from that directory.
 ///
 /// `--locked`: the nested build never rewrites `Cargo.lock`. The outer `cargo test` has
@@ -144,7 +147,7 @@ pub fn binary(name: &str) -> Result<PathBuf> {
     }
 }
 
-/// The directory holding all four workspace binaries, built as by [`binary`] (or
+/// The directory holding the workspace binaries, built as by [`binary`] (or
 /// `HAPTIC_BIN_DIR` as it is), for callers that take a directory (the demo runner).
 ///
 /// # Errors
@@ -212,7 +215,7 @@ pub fn profile_args_for(exe: &Path, host: &str) -> Option<Vec<String>> {
     Some(args)
 }
 
-/// One `cargo build --locked -p PACKAGE... --bin NAME...` of the four [`PACKAGES`] binaries
+/// One `cargo build --locked -p PACKAGE... --bin NAME...` of the [`PACKAGES`] binaries
 /// plus [`build_profile_args`], for the workspace this crate belongs to; returns the
 /// executables in [`PACKAGES`] order. Compiler errors (which cargo prints as JSON on stdout
 /// with `--message-format=json`) are kept for the error message.
