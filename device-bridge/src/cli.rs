@@ -234,6 +234,11 @@ impl Args {
         DeviceSpec {
             name: format!("{:?}", self.driver).to_lowercase(),
             max_force_n: self.max_force_n.unwrap_or(10.0),
+            max_continuous_force_n: self
+                .max_force_n
+                .map_or(DeviceSpec::sim_default().max_continuous_force_n, |m| {
+                    m.min(DeviceSpec::sim_default().max_continuous_force_n)
+                }),
             max_stiffness_n_per_m: self.max_stiffness_n_per_m,
             rate_hz: self.rate_hz,
             ..DeviceSpec::sim_default()

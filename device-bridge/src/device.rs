@@ -18,6 +18,10 @@ pub struct DeviceSpec {
     pub name: String,
     /// Peak force the device may render, in N (devices.md S6; Touch 3.3 N, Premium 3.0 22 N).
     pub max_force_n: f64,
+    /// Force the motors can hold, in N (devices.md S8, `HD_NOMINAL_MAX_CONTINUOUS_FORCE`; Touch
+    /// 0.88 N). The guard's thermal limit lowers its clamp toward it when the motors run hot;
+    /// equal to `max_force_n` when the device does not say (never limited).
+    pub max_continuous_force_n: f64,
     /// Largest stable wall stiffness at the device rate, in N/m (devices.md table 1.2). The
     /// guard's default slew limit is this stiffness times 1 m/s (S7).
     pub max_stiffness_n_per_m: f64,
@@ -33,13 +37,14 @@ pub struct DeviceSpec {
 }
 
 impl DeviceSpec {
-    /// Spec of the simulated probe: 10 N, 1000 N/m (so a 1 N/ms slew limit), a +-0.2 m box,
-    /// 1 kHz, 2 N s/m damping. The numbers sit between a Phantom Desktop and a Premium 3.0
-    /// (devices.md table 1.2).
+    /// Spec of the simulated probe: 10 N peak, 3 N continuous, 1000 N/m (so a 1 N/ms slew
+    /// limit), a +-0.2 m box, 1 kHz, 2 N s/m damping. The numbers sit between a Phantom Desktop
+    /// and a Premium 3.0 (devices.md table 1.2; the continuous rating is an assumption).
     pub fn sim_default() -> Self {
         Self {
             name: "sim".to_owned(),
             max_force_n: 10.0,
+            max_continuous_force_n: 3.0,
             max_stiffness_n_per_m: 1000.0,
             workspace_min_m: [-0.2; 3],
             workspace_max_m: [0.2; 3],
@@ -58,6 +63,12 @@ impl DeviceSpec {
             return Err(DeviceError::InvalidSpec(format!(
                 "max_force_n must be positive and finite, got {}",
                 self.max_force_n
+            )));
+        }
+        if !positive(self.max_continuous_force_n) {
+            return Err(DeviceError::InvalidSpec(format!(
+                "max_continuous_force_n must be positive and finite, got {}",
+                self.max_continuous_force_n
             )));
         }
         if !positive(self.max_stiffness_n_per_m) {
@@ -109,6 +120,10 @@ pub struct DeviceState {
     pub position_m: [f64; 3],
     /// Velocity of the interaction point, in m/s.
     pub velocity_m_per_s: [f64; 3],
+    /// Normalised motor temperature of the hottest motor (0 cold .. 1 at the vendor's limit)
+    /// when the driver reports one (OpenHaptics `HD_MOTOR_TEMPERATURE`); `None` otherwise, and
+    /// the thermal limit estimates heat from the RMS force (devices.md S8).
+    pub motor_temperature: Option<f64>,
 }
 
 /// A straight reference axis of a scripted device: where it started and the unit direction it

@@ -24,13 +24,15 @@
 //!    force `f0`, its 3x3 contact stiffness `K` and the position `x0` of the pose it answers, at
 //!    the device rate, so the force follows the hand between server updates.
 //! 7. **Passivity** ([`crate::passivity`], S12): damping that dissipates injected energy.
-//! 8. **Clamp** (S6) to the lower of the device's and the scene's `max_force_n`, keeping the
-//!    direction, then **slew** (S7) to the lower of the two force-rate limits.
+//! 8. **Clamp** (S6) to the lower of the device's and the scene's `max_force_n` and the thermal
+//!    limit's clamp (S8, [`crate::thermal`]: lowered toward the continuous rating while the
+//!    motors run hot), keeping the direction, then **slew** (S7) to the lower of the two
+//!    force-rate limits.
 //!
 //! A position outside the workspace grown by 10 % (S11) or a failed device read zero the force
 //! at once: dropping to zero is always safe, so those bypass the slew limit.
 //!
-//! Not here: S8 thermal limit, S10 dead-man (drivers that have a switch report it as a device
+//! Not here: S10 dead-man (drivers that have a switch report it as a device
 //! error or keep their output disabled).
 //!
 //! Neighbours: [`crate::link`] calls [`ForceGuard::filter`] once per device tick;
@@ -39,6 +41,7 @@
 
 use crate::device::{DeviceSpec, DeviceState, vec3};
 use crate::passivity::{PassivityController, PassivityMode, PassivityParams, PassivityStats};
+use crate::thermal::ThermalLimit;
 
 /// A force limit and a force-rate limit. The lower of two wins ([`Limits::lower`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -70,6 +73,9 @@ impl Limits {
 pub struct GuardParams {
     /// Largest force magnitude sent to the device, in N (S6).
     pub max_force_n: f64,
+    /// Continuous rating, in N: the thermal limit (S8, [`crate::thermal`]) lowers the clamp
+    /// toward it while the motors run hot. At or above `max_force_n`: never limited.
+    pub max_continuous_force_n: f64,
     /// Largest change of the force vector per second, in N/s (S7).
     pub max_rate_n_per_s: f64,
     /// Nominal device tick, in s; the slew step is `max_rate_n_per_s * period_s`.
@@ -102,6 +108,7 @@ impl GuardParams {
     pub fn from_spec(spec: &DeviceSpec) -> Self {
         Self {
             max_force_n: spec.max_force_n,
+            max_continuous_force_n: spec.max_continuous_force_n,
             max_rate_n_per_s: spec.max_stiffness_n_per_m * 1.0,
             period_s: 1.0 / spec.rate_hz,
             fresh_us: 10_000,
@@ -310,6 +317,8 @@ pub struct GuardStats {
     pub rearm_refused: u64,
     /// Ticks zeroed because the position was outside the workspace.
     pub workspace_violations: u64,
+    /// Ticks on which the thermal limit (S8) held the clamp below the peak force.
+    pub thermal_limited: u64,
     /// The passivity observer and controller.
     pub passivity: PassivityStats,
 }
@@ -342,6 +351,7 @@ pub struct ForceGuard {
     state: GuardState,
     stats: GuardStats,
     passivity: PassivityController,
+    thermal: ThermalLimit,
 }
 
 impl ForceGuard {
@@ -362,6 +372,7 @@ impl ForceGuard {
             state: GuardState::NoCommand,
             stats: GuardStats::default(),
             passivity: PassivityController::new(params.passivity),
+            thermal: ThermalLimit::new(params.max_force_n, params.max_continuous_force_n),
         }
     }
 
@@ -395,6 +406,11 @@ impl ForceGuard {
     /// Age of the held command at the last tick, in us (`None` without one).
     pub fn held_age_us(&self) -> Option<u64> {
         Some(self.last_now_us?.saturating_sub(self.held?.sample_time_us))
+    }
+
+    /// The thermal limit's clamp of the last tick, in N (S8; the peak while cool).
+    pub fn thermal_clamp_n(&self) -> f64 {
+        self.thermal.clamp_n()
     }
 
     /// The arm gain of the last tick (0..=1).
@@ -443,6 +459,13 @@ impl ForceGuard {
             .last_now_us
             .map_or((p.period_s * 1e6) as u64, |t| now_us.saturating_sub(t));
         self.last_now_us = Some(now_us);
+        // The thermal limit (S8) sees what was rendered since the last tick.
+        let thermal_clamp_n = self.thermal.update(
+            vec3::norm(self.output_n),
+            dt_us as f64 * 1e-6,
+            device.motor_temperature,
+        );
+        self.stats.thermal_limited += u64::from(self.thermal.limiting());
         // 1. Accept.
         if let Some(c) = command
             && self.last_generation != Some(c.generation)
@@ -570,7 +593,7 @@ impl ForceGuard {
                 let t = self
                     .passivity
                     .apply(t, device.velocity_m_per_s, dt_us as f64 * 1e-6);
-                let (t, _) = clamp_magnitude(t, limits.max_force_n);
+                let (t, _) = clamp_magnitude(t, limits.max_force_n.min(thermal_clamp_n));
                 let (f, limited) =
                     rate_limit(self.output_n, t, limits.max_rate_n_per_s * p.period_s);
                 self.stats.rate_limited += u64::from(limited);
@@ -601,6 +624,7 @@ mod tests {
         time_us: 0,
         position_m: [0.0; 3],
         velocity_m_per_s: [0.0; 3],
+        motor_temperature: None,
     };
 
     fn cmd(generation: u64, force_n: [f64; 3], sample_time_us: u64) -> GuardCommand {
@@ -640,6 +664,36 @@ mod tests {
             ),
             (10_000, 60_000, 100_000, 500_000, 200_000)
         );
+    }
+
+    #[test]
+    fn a_held_force_above_the_continuous_rating_is_brought_down_to_it_s8() {
+        // Sim spec: 10 N peak, 3 N continuous. The server asks for 5 N, fresh, for 10 s.
+        let (mut g, spec) = unlimited();
+        g.params.passivity.mode = crate::passivity::PassivityMode::Off;
+        g.passivity = PassivityController::new(g.params.passivity);
+        let mut out = [0.0; 3];
+        for i in 1..=10_000u64 {
+            let t = i * 1000;
+            out = g.filter(t, true, Some(&cmd(i, [5.0, 0.0, 0.0], t)), &ORIGIN, &spec);
+            if i == 300 {
+                // RMS over 1 s passes 3 N after -ln(1 - 9/25) s = 446 ms: not limited yet.
+                assert!(close(out, [5.0, 0.0, 0.0]), "{out:?}");
+            }
+        }
+        assert!(close(out, [3.0, 0.0, 0.0]), "held at the rating: {out:?}");
+        assert!(g.stats().thermal_limited > 5_000);
+        // A device that reports a hot motor is limited whatever the force.
+        let (mut g, spec) = unlimited();
+        let hot = DeviceState {
+            motor_temperature: Some(0.9),
+            ..ORIGIN
+        };
+        for i in 1..=1_000u64 {
+            let t = i * 1000;
+            g.filter(t, true, Some(&cmd(i, [0.1, 0.0, 0.0], t)), &hot, &spec);
+        }
+        assert!((g.thermal_clamp_n() - 10.0 * 0.999f64.powi(1_000)).abs() < 1e-9);
     }
 
     #[test]

@@ -155,6 +155,8 @@ pub fn spec(max_force_n: f64) -> DeviceSpec {
     DeviceSpec {
         name: "hapticmaster".to_owned(),
         max_force_n,
+        // No rating is public (devices.md section 6): the clamp is not lowered by S8.
+        max_continuous_force_n: max_force_n,
         max_stiffness_n_per_m: 5_000.0,
         workspace_min_m: [0.28 * 0.5f64.cos(), -0.64 * 0.5f64.sin(), -0.2],
         workspace_max_m: [0.64, 0.64 * 0.5f64.sin(), 0.2],
@@ -293,6 +295,7 @@ impl HapticDevice for HapticMaster {
             time_us: now_us,
             position_m: p,
             velocity_m_per_s: v,
+            motor_temperature: None,
         })
     }
 

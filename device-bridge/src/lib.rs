@@ -20,6 +20,7 @@ pub mod record;
 pub mod replay;
 pub mod serial;
 pub mod sim;
+pub mod thermal;
 pub mod transform;
 
 pub use clock::{Clock, ManualClock, MonotonicClock};

@@ -22,8 +22,9 @@
 //!
 //! Units: mm -> m and mm/s -> m/s on the way in, N both ways; the frame is OpenHaptics' (x
 //! right, y up, z toward the user), already right-handed: [`crate::transform`] maps it to the
-//! scene. The force clamp is the continuous force (`HD_NOMINAL_MAX_CONTINUOUS_FORCE`, 0.88 N on
-//! a Touch): without a thermal model (S8) the peak (3.3 N) is not sustainable.
+//! scene. The force clamp is the peak force (`HD_NOMINAL_MAX_FORCE`, 3.3 N on a Touch), lowered
+//! by the guard's thermal limit (S8, [`crate::thermal`]) toward the continuous force
+//! (`HD_NOMINAL_MAX_CONTINUOUS_FORCE`, 0.88 N) while the RMS force says the motors run hot.
 //!
 //! Neighbours: implements [`crate::device::HapticDevice`].
 
@@ -330,7 +331,10 @@ impl OpenHapticsDevice {
         let has_safety_switch = check(&api, "safety switch").is_ok();
         let spec = DeviceSpec {
             name: "openhaptics".into(),
-            max_force_n: if continuous > 0.0 { continuous } else { peak },
+            // The peak, held only as long as the thermal limit (S8) allows, toward the
+            // continuous rating.
+            max_force_n: peak,
+            max_continuous_force_n: if continuous > 0.0 { continuous } else { peak },
             max_stiffness_n_per_m: k_n_per_mm * 1e3,
             workspace_min_m: [ws[0] * 1e-3, ws[1] * 1e-3, ws[2] * 1e-3],
             workspace_max_m: [ws[3] * 1e-3, ws[4] * 1e-3, ws[5] * 1e-3],
@@ -418,6 +422,7 @@ impl HapticDevice for OpenHapticsDevice {
             time_us: now_us,
             position_m: vec3::scale(s.position_mm, 1e-3),
             velocity_m_per_s: vec3::scale(s.velocity_mm_s, 1e-3),
+            motor_temperature: None,
         })
     }
 
@@ -652,8 +657,10 @@ mod tests {
         });
         let mut d = OpenHapticsDevice::open(fake_api(), None).unwrap();
         let s = d.spec().clone();
-        // Limits read from the device: continuous force clamp, N/mm -> N/m, mm -> m.
-        assert_eq!(s.max_force_n, 0.88);
+        // Limits read from the device: the peak as clamp, the continuous force for the thermal
+        // limit (S8), N/mm -> N/m, mm -> m.
+        assert_eq!(s.max_force_n, 3.3);
+        assert_eq!(s.max_continuous_force_n, 0.88);
         assert_eq!(d.peak_force_n(), 3.3);
         assert!((s.max_stiffness_n_per_m - 500.0).abs() < 1e-9);
         assert!((s.max_damping_n_s_per_m - 2.0).abs() < 1e-9);

@@ -261,6 +261,7 @@ impl HapticDevice for ReplayDevice {
             time_us: now_us,
             position_m,
             velocity_m_per_s,
+            motor_temperature: None,
         })
     }
 

@@ -59,6 +59,7 @@ pub fn spec_from_caps(caps: &Caps) -> DeviceSpec {
             name
         },
         max_force_n: f64::from(caps.peak_force_n),
+        max_continuous_force_n: f64::from(caps.continuous_force_n),
         max_stiffness_n_per_m: f64::from(caps.max_stiffness_n_per_m),
         workspace_min_m: caps.workspace_min_m.map(f64::from),
         workspace_max_m: caps.workspace_max_m.map(f64::from),
@@ -258,6 +259,7 @@ impl<P: Read + Write + Send> HapticDevice for SerialDevice<P> {
                 time_us: now_us,
                 position_m: s.position_m.map(f64::from),
                 velocity_m_per_s: s.velocity_m_per_s.map(f64::from),
+                motor_temperature: None,
             }),
             _ => Err(DeviceError::Comm(
                 "serial device: no valid STATE for 20 ms".into(),

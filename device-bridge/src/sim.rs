@@ -390,6 +390,7 @@ impl HapticDevice for SimProbe {
             time_us: now_us,
             position_m,
             velocity_m_per_s,
+            motor_temperature: None,
         })
     }
 

@@ -179,6 +179,7 @@ impl DeviceTransform {
         DeviceSpec {
             name: spec.name.clone(),
             max_force_n: spec.max_force_n / self.force_scale,
+            max_continuous_force_n: spec.max_continuous_force_n / self.force_scale,
             max_stiffness_n_per_m: spec.max_stiffness_n_per_m / (self.force_scale * self.scale),
             workspace_min_m: min,
             workspace_max_m: max,
@@ -227,6 +228,7 @@ impl<D: HapticDevice> HapticDevice for Transformed<D> {
             time_us: s.time_us,
             position_m: self.transform.position_to_scene(s.position_m),
             velocity_m_per_s: self.transform.velocity_to_scene(s.velocity_m_per_s),
+            motor_temperature: s.motor_temperature,
         })
     }
     fn write_force(&mut self, force_n: [f64; 3]) -> Result<(), DeviceError> {

@@ -72,6 +72,7 @@ fn generated_energy(delay_ms: u64, mode: PassivityMode) -> (f64, f64) {
             time_us: now_us,
             position_m: [x, 0.0, 0.0],
             velocity_m_per_s: [v, 0.0, 0.0],
+            motor_temperature: None,
         };
         let f = g.filter(now_us, true, latest.as_ref(), &state, &spec);
         energy += f[0] * v * dt;
