@@ -60,7 +60,9 @@ fn main() -> anyhow::Result<()> {
         for k in 1..=ticks {
             let deadline = start + period * k as u32;
             sleeper.sleep_until(deadline);
-            let late_us = Instant::now().saturating_duration_since(deadline).as_micros() as u64;
+            let late_us = Instant::now()
+                .saturating_duration_since(deadline)
+                .as_micros() as u64;
             hist.saturating_record(late_us.max(1));
             if late_us >= args.period_us {
                 missed += 1;
