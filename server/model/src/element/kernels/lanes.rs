@@ -10,11 +10,11 @@
 //! instruction the CPU lacks. Operations on existing values need no token: the value proves
 //! that one was obtained.
 
-use std::ops::{Add, Mul, Sub};
+use std::ops::{Add, Div, Mul, Sub};
 
 /// A value the stress formulas compute with: one `f64`, or several side by side.
 pub(crate) trait Lane:
-    Copy + Add<Output = Self> + Sub<Output = Self> + Mul<Output = Self>
+    Copy + Add<Output = Self> + Sub<Output = Self> + Mul<Output = Self> + Div<Output = Self>
 {
     /// The instruction-set token that values of this type need to be made (`()` for plain
     /// code).
@@ -25,6 +25,61 @@ pub(crate) trait Lane:
     fn madd<const FMA: bool>(a: Self, b: Self, c: Self) -> Self;
     /// `a * b - c`; one rounding when `FMA` (a vector type always fuses).
     fn msub<const FMA: bool>(a: Self, b: Self, c: Self) -> Self;
+    /// The largest lane (NaN lanes make it NaN or are skipped; callers compare with `<`, so a
+    /// NaN never passes a check).
+    fn max_lane(self) -> f64;
+    /// The smallest lane (as [`Lane::max_lane`]).
+    fn min_lane(self) -> f64;
+    /// Applies `f` to each lane's row-major 3x3 matrix `m` (the rare scalar fallback of a
+    /// vectorised formula).
+    fn map_matrix_lanes(
+        isa: Self::Isa,
+        m: &[Self; 9],
+        f: impl Fn([f64; 9]) -> [f64; 9],
+    ) -> [Self; 9];
+}
+
+/// [`Lane::map_matrix_lanes`] for eight lanes through stores and loads.
+#[inline(always)]
+fn map_matrix_lanes8<V: Lanes8>(
+    isa: V::Isa,
+    m: &[V; 9],
+    f: impl Fn([f64; 9]) -> [f64; 9],
+) -> [V; 9] {
+    let mut a = [[0.0; 8]; 9];
+    for (k, v) in m.iter().enumerate() {
+        v.store(&mut a[k]);
+    }
+    let mut out = [[0.0; 8]; 9];
+    for l in 0..8 {
+        let r = f(std::array::from_fn(|k| a[k][l]));
+        for k in 0..9 {
+            out[k][l] = r[k];
+        }
+    }
+    std::array::from_fn(|k| V::load(isa, &out[k]))
+}
+
+/// [`Lane::max_lane`] for eight lanes.
+#[inline(always)]
+fn max_lane8<V: Lanes8>(v: V) -> f64 {
+    let mut a = [0.0; 8];
+    v.store(&mut a);
+    a.iter().copied().fold(
+        f64::NEG_INFINITY,
+        |m, x| if x > m || x.is_nan() { x } else { m },
+    )
+}
+
+/// [`Lane::min_lane`] for eight lanes.
+#[inline(always)]
+fn min_lane8<V: Lanes8>(v: V) -> f64 {
+    let mut a = [0.0; 8];
+    v.store(&mut a);
+    a.iter().copied().fold(
+        f64::INFINITY,
+        |m, x| if x < m || x.is_nan() { x } else { m },
+    )
 }
 
 impl Lane for f64 {
@@ -46,6 +101,21 @@ impl Lane for f64 {
     #[inline(always)]
     fn msub<const FMA: bool>(a: f64, b: f64, c: f64) -> f64 {
         if FMA { a.mul_add(b, -c) } else { a * b - c }
+    }
+
+    #[inline(always)]
+    fn max_lane(self) -> f64 {
+        self
+    }
+
+    #[inline(always)]
+    fn min_lane(self) -> f64 {
+        self
+    }
+
+    #[inline(always)]
+    fn map_matrix_lanes(_: (), m: &[f64; 9], f: impl Fn([f64; 9]) -> [f64; 9]) -> [f64; 9] {
+        f(*m)
     }
 }
 
@@ -91,6 +161,14 @@ impl Mul for Plain8 {
     }
 }
 
+impl Div for Plain8 {
+    type Output = Plain8;
+    #[inline(always)]
+    fn div(self, o: Plain8) -> Plain8 {
+        Plain8(std::array::from_fn(|l| self.0[l] / o.0[l]))
+    }
+}
+
 impl Lane for Plain8 {
     type Isa = ();
 
@@ -111,6 +189,21 @@ impl Lane for Plain8 {
         Plain8(std::array::from_fn(|l| {
             f64::msub::<FMA>(a.0[l], b.0[l], c.0[l])
         }))
+    }
+
+    #[inline(always)]
+    fn max_lane(self) -> f64 {
+        max_lane8(self)
+    }
+
+    #[inline(always)]
+    fn min_lane(self) -> f64 {
+        min_lane8(self)
+    }
+
+    #[inline(always)]
+    fn map_matrix_lanes(isa: (), m: &[Plain8; 9], f: impl Fn([f64; 9]) -> [f64; 9]) -> [Plain8; 9] {
+        map_matrix_lanes8(isa, m, f)
     }
 }
 
@@ -139,15 +232,15 @@ pub(crate) use x86::{Avx2Fma, Avx512, Ymm2, Zmm};
 
 #[cfg(target_arch = "x86_64")]
 mod x86 {
-    use super::{Lane, Lanes8};
+    use super::{Lane, Lanes8, map_matrix_lanes8, max_lane8, min_lane8};
     use std::arch::x86_64::{
-        __m128i, __m256d, __m256i, __m512d, _mm_loadu_si128, _mm256_add_pd, _mm256_fmadd_pd,
-        _mm256_fmsub_pd, _mm256_i32gather_pd, _mm256_loadu_pd, _mm256_loadu_si256, _mm256_mul_pd,
-        _mm256_set1_pd, _mm256_storeu_pd, _mm256_sub_pd, _mm512_add_pd, _mm512_fmadd_pd,
-        _mm512_fmsub_pd, _mm512_i32gather_pd, _mm512_loadu_pd, _mm512_mul_pd, _mm512_set1_pd,
-        _mm512_storeu_pd, _mm512_sub_pd,
+        __m128i, __m256d, __m256i, __m512d, _mm_loadu_si128, _mm256_add_pd, _mm256_div_pd,
+        _mm256_fmadd_pd, _mm256_fmsub_pd, _mm256_i32gather_pd, _mm256_loadu_pd, _mm256_loadu_si256,
+        _mm256_mul_pd, _mm256_set1_pd, _mm256_storeu_pd, _mm256_sub_pd, _mm512_add_pd,
+        _mm512_div_pd, _mm512_fmadd_pd, _mm512_fmsub_pd, _mm512_i32gather_pd, _mm512_loadu_pd,
+        _mm512_mul_pd, _mm512_set1_pd, _mm512_storeu_pd, _mm512_sub_pd,
     };
-    use std::ops::{Add, Mul, Sub};
+    use std::ops::{Add, Div, Mul, Sub};
 
     /// Proof that this CPU runs AVX-512F, AVX-512VL, AVX2 and FMA: the only way to make
     /// [`Zmm`] values. The private field keeps it from being made other than by
@@ -241,6 +334,15 @@ mod x86 {
         }
     }
 
+    impl Div for Zmm {
+        type Output = Zmm;
+        #[inline(always)]
+        fn div(self, o: Zmm) -> Zmm {
+            // SAFETY: as in `add`.
+            Zmm(unsafe { _mm512_div_pd(self.0, o.0) })
+        }
+    }
+
     impl Lane for Zmm {
         type Isa = Avx512;
 
@@ -260,6 +362,25 @@ mod x86 {
         fn msub<const FMA: bool>(a: Zmm, b: Zmm, c: Zmm) -> Zmm {
             // SAFETY: as in `madd`.
             Zmm(unsafe { _mm512_fmsub_pd(a.0, b.0, c.0) })
+        }
+
+        #[inline(always)]
+        fn max_lane(self) -> f64 {
+            max_lane8(self)
+        }
+
+        #[inline(always)]
+        fn min_lane(self) -> f64 {
+            min_lane8(self)
+        }
+
+        #[inline(always)]
+        fn map_matrix_lanes(
+            isa: Avx512,
+            m: &[Zmm; 9],
+            f: impl Fn([f64; 9]) -> [f64; 9],
+        ) -> [Zmm; 9] {
+            map_matrix_lanes8(isa, m, f)
         }
     }
 
@@ -297,6 +418,15 @@ mod x86 {
         }
     }
 
+    impl Div for Ymm2 {
+        type Output = Ymm2;
+        #[inline(always)]
+        fn div(self, o: Ymm2) -> Ymm2 {
+            // SAFETY: as in `add`.
+            unsafe { Ymm2(_mm256_div_pd(self.0, o.0), _mm256_div_pd(self.1, o.1)) }
+        }
+    }
+
     impl Lane for Ymm2 {
         type Isa = Avx2Fma;
 
@@ -326,6 +456,25 @@ mod x86 {
                     _mm256_fmsub_pd(a.1, b.1, c.1),
                 )
             }
+        }
+
+        #[inline(always)]
+        fn max_lane(self) -> f64 {
+            max_lane8(self)
+        }
+
+        #[inline(always)]
+        fn min_lane(self) -> f64 {
+            min_lane8(self)
+        }
+
+        #[inline(always)]
+        fn map_matrix_lanes(
+            isa: Avx2Fma,
+            m: &[Ymm2; 9],
+            f: impl Fn([f64; 9]) -> [f64; 9],
+        ) -> [Ymm2; 9] {
+            map_matrix_lanes8(isa, m, f)
         }
     }
 

@@ -29,7 +29,7 @@ use lanes::{Avx2Fma, Avx512, Ymm2, Zmm};
 use lanes::{Lanes8, Plain8};
 use linear::{ElementBatch, forces_linear};
 use quadratic::{QuadraticBatch, forces_quadratic, stvk_operator_quadratic};
-use stress::{LANE_STABLE_NEO_HOOKEAN, LANE_STVK, lane_model};
+use stress::{LANE_COROTATIONAL, LANE_STABLE_NEO_HOOKEAN, LANE_STVK, lane_model};
 
 use super::quadrature::IntegrationPoints;
 use crate::material::MaterialParams;
@@ -155,6 +155,7 @@ impl Kernels {
             Some(LANE_STABLE_NEO_HOOKEAN) => {
                 self.dispatch_forces::<LANE_STABLE_NEO_HOOKEAN>(mat, x, v, f);
             }
+            Some(LANE_COROTATIONAL) => self.dispatch_forces::<LANE_COROTATIONAL>(mat, x, v, f),
             _ => return false,
         }
         true
@@ -460,6 +461,19 @@ mod tests {
                 }
                 k
             }),
+            (MaterialModel::Corotational, {
+                let mut k: Vec<(&str, Kernel)> = vec![("plain", plain::<LANE_COROTATIONAL>)];
+                #[cfg(target_arch = "x86_64")]
+                {
+                    if Avx2Fma::detect().is_some() {
+                        k.push(("avx2", avx2::<LANE_COROTATIONAL>));
+                    }
+                    if Avx512::detect().is_some() {
+                        k.push(("avx512", zmm::<LANE_COROTATIONAL>));
+                    }
+                }
+                k
+            }),
             (MaterialModel::StableNeoHookean, {
                 let mut k: Vec<(&str, Kernel)> = vec![("plain", plain::<LANE_STABLE_NEO_HOOKEAN>)];
                 #[cfg(target_arch = "x86_64")]
@@ -498,7 +512,24 @@ mod tests {
                     assert!(counts.len() >= 3, "{counts:?}");
                 }
                 let (x, v) = deformed_state(&fem);
-                for velocities in [None, Some(v.as_slice())] {
+                // Also half-inverted: the states an inverted start passes through.
+                let x_inv: Vec<DVec3> = x
+                    .iter()
+                    .enumerate()
+                    .map(|(i, p)| {
+                        if i % 3 == 0 {
+                            DVec3::new(p.x, p.y, -p.z)
+                        } else {
+                            *p
+                        }
+                    })
+                    .collect();
+                for (x, velocities) in [
+                    (&x, None),
+                    (&x, Some(v.as_slice())),
+                    (&x_inv, None),
+                    (&x_inv, Some(v.as_slice())),
+                ] {
                     let mut expected = vec![DVec3::ZERO; fem.node_count()];
                     fem.generic_forces(&x, velocities, &mut expected);
                     let scale = expected.iter().map(|a| a.length()).fold(0.0, f64::max);

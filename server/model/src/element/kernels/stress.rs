@@ -37,20 +37,94 @@ pub(super) const LANE_STVK: u8 = 0;
 /// See [`LANE_STVK`].
 pub(super) const LANE_STABLE_NEO_HOOKEAN: u8 = 1;
 
-/// The `MODEL` of the lane kernels for `model`, or `None` (corotational: scalar path).
+/// See [`LANE_STVK`].
+pub(super) const LANE_COROTATIONAL: u8 = 2;
+
+/// The `MODEL` of the lane kernels for `model` (`None` is kept for laws without one).
 pub(super) fn lane_model(model: MaterialModel) -> Option<u8> {
     match model {
         MaterialModel::StVenantKirchhoff => Some(LANE_STVK),
         MaterialModel::StableNeoHookean => Some(LANE_STABLE_NEO_HOOKEAN),
-        MaterialModel::Corotational => None,
+        MaterialModel::Corotational => Some(LANE_COROTATIONAL),
     }
+}
+
+/// Newton iterations of [`polar_rotation_lane`]: from a singular value in [0.1, 10] the
+/// iteration `sigma <- (sigma + 1/sigma) / 2` reaches 1 to round-off in 8 steps.
+const POLAR_ITERATIONS: usize = 8;
+
+/// The rotation `R` of the polar decomposition `F = R S` of each lane (row-major), by Newton's
+/// iteration `X <- (X + X^-T) / 2` from `X = F` (Higham 1986, "Computing the polar
+/// decomposition - with applications", eq. 3.1; `X^-T = cof X / det X`). Where a lane is
+/// inverted or flat (`det F <= 0`, where the corotational law wants the rotation of
+/// Irving et al. 2004 rather than the reflection Newton converges to) or has not converged
+/// (the last step moved X by more than 1e-9 in Frobenius norm: singular values outside about
+/// [0.1, 10]), the whole batch takes the scalar
+/// [`crate::material::corotational::polar_decomposition`] lane by lane; both give the same R
+/// to round-off where both apply.
+#[inline(always)]
+pub(super) fn polar_rotation_lane<const FMA: bool, T: Lane>(isa: T::Isa, fm: &[T; 9]) -> [T; 9] {
+    match newton_polar_lane::<FMA, T>(isa, fm) {
+        Some(r) => r,
+        None => T::map_matrix_lanes(isa, fm, |f| {
+            let m = glam::DMat3::from_cols_array(&f).transpose();
+            let (r, _) = material::corotational::polar_decomposition(&m);
+            r.transpose().to_cols_array()
+        }),
+    }
+}
+
+/// The Newton part of [`polar_rotation_lane`]: `None` when a lane has `det F <= 0` (or NaN)
+/// or has not converged.
+#[inline(always)]
+pub(super) fn newton_polar_lane<const FMA: bool, T: Lane>(
+    isa: T::Isa,
+    fm: &[T; 9],
+) -> Option<[T; 9]> {
+    let cross = cross3::<FMA, T>;
+    let dot = dot3::<FMA, T>;
+    let half = T::splat(isa, 0.5);
+    let row = |m: &[T; 9], i: usize| [m[3 * i], m[3 * i + 1], m[3 * i + 2]];
+    let det_f = dot(row(fm, 0), cross(row(fm, 1), row(fm, 2)));
+    // `!(a > b)` so that NaN lanes fail the checks too.
+    #[allow(clippy::neg_cmp_op_on_partial_ord, reason = "NaN must fail the check")]
+    if !(det_f.min_lane() > 0.0) {
+        return None;
+    }
+    let mut x = *fm;
+    let mut moved = T::splat(isa, 0.0);
+    for it in 0..POLAR_ITERATIONS {
+        let (r0, r1, r2) = (row(&x, 0), row(&x, 1), row(&x, 2));
+        // Rows of cof X: r1 x r2, r2 x r0, r0 x r1; det X = r0 . (r1 x r2).
+        let c = [cross(r1, r2), cross(r2, r0), cross(r0, r1)];
+        let inv_det = T::splat(isa, 1.0) / dot(r0, c[0]);
+        let mut next = x;
+        for i in 0..3 {
+            for j in 0..3 {
+                next[3 * i + j] = half * T::madd::<FMA>(c[i][j], inv_det, x[3 * i + j]);
+            }
+        }
+        if it + 1 == POLAR_ITERATIONS {
+            let d: [T; 9] = std::array::from_fn(|k| next[k] - x[k]);
+            moved = dot([d[0], d[1], d[2]], [d[0], d[1], d[2]])
+                + dot([d[3], d[4], d[5]], [d[3], d[4], d[5]])
+                + dot([d[6], d[7], d[8]], [d[6], d[7], d[8]]);
+        }
+        x = next;
+    }
+    #[allow(clippy::neg_cmp_op_on_partial_ord, reason = "NaN must fail the check")]
+    if !(moved.max_lane() < 1e-18) {
+        return None;
+    }
+    Some(x)
 }
 
 /// First Piola-Kirchhoff stress `P = P_elastic + F S_viscous` of one lane, row-major
 /// (`fm[3 i + j] = F_ij`, `fd` = `dF/dt` likewise, or `None` without viscosity), Pa. Elastic
 /// part by `MODEL`: StVK `F S` with `C = F^T F`, `S = mu (C - I) + lambda/2 (tr C - 3) I`
 /// (seed 000 eq. 9); stable Neo-Hookean `mu F + lambda_s (J - alpha) cof F` (see
-/// [`MaterialModel::StableNeoHookean`]). Viscous `S_v = 2 psi nu + phi tr(nu) I`,
+/// [`MaterialModel::StableNeoHookean`]); corotational `2 mu (F - R) + lambda (tr(R^T F) - 3) R`
+/// with R from [`polar_rotation_lane`]. Viscous `S_v = 2 psi nu + phi tr(nu) I`,
 /// `nu = F^T Fdot + Fdot^T F` (eq. 10-11). The same formulas as [`material::first_piola`] and
 /// [`material::viscous_stress`], generic over the lane type `T` (one `f64` or a [`Lanes8`]).
 #[inline(always)]
@@ -120,6 +194,18 @@ pub(super) fn first_piola_lane<const FMA: bool, const MODEL: u8, T: Lane>(
             }
         }
     }
+    if MODEL == LANE_COROTATIONAL {
+        let r = polar_rotation_lane::<FMA, T>(isa, fm);
+        // tr(R^T F) = sum R_ij F_ij (= tr S).
+        let tr = dot([r[0], r[1], r[2]], [fm[0], fm[1], fm[2]])
+            + dot([r[3], r[4], r[5]], [fm[3], fm[4], fm[5]])
+            + dot([r[6], r[7], r[8]], [fm[6], fm[7], fm[8]]);
+        let k = T::splat(isa, lambda) * (tr - T::splat(isa, 3.0));
+        let two_mu = T::splat(isa, 2.0 * mu);
+        for i in 0..9 {
+            p[i] = p[i] + T::madd::<FMA>(two_mu, fm[i] - r[i], k * r[i]);
+        }
+    }
     if MODEL == LANE_STABLE_NEO_HOOKEAN {
         // cof F: columns c1 x c2, c2 x c0, c0 x c1 (= J F^-T); J = c0 . (c1 x c2).
         let cross = cross3::<FMA, T>;
@@ -167,4 +253,95 @@ pub(super) unsafe fn gather_differences<V: Lanes8, const N: usize>(
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::element::kernels::lanes::Plain8;
+    use glam::{DMat3, DQuat};
+
+    /// Eight deformation gradients `Q diag(s) P^T` (rotations Q, P) with singular values `s`.
+    fn batch(singular: [[f64; 3]; 8]) -> ([Plain8; 9], [DMat3; 8]) {
+        let mats: [DMat3; 8] = std::array::from_fn(|l| {
+            let q = DQuat::from_axis_angle(
+                glam::DVec3::new(1.0, 2.0, 0.5 + l as f64).normalize(),
+                0.3 * l as f64 + 0.1,
+            );
+            let p = DQuat::from_axis_angle(
+                glam::DVec3::new(-0.3, 1.0, l as f64).normalize(),
+                1.1 - 0.2 * l as f64,
+            );
+            DMat3::from_quat(q)
+                * DMat3::from_diagonal(glam::DVec3::from_array(singular[l]))
+                * DMat3::from_quat(p).transpose()
+        });
+        let rows: [[f64; 9]; 8] = std::array::from_fn(|l| mats[l].transpose().to_cols_array());
+        let lanes = std::array::from_fn(|k| Plain8::load((), &std::array::from_fn(|l| rows[l][k])));
+        (lanes, mats)
+    }
+
+    fn lane_matrix(m: &[Plain8; 9], l: usize) -> DMat3 {
+        let rows: [f64; 9] = std::array::from_fn(|k| {
+            let mut a = [0.0; 8];
+            m[k].store(&mut a);
+            a[l]
+        });
+        DMat3::from_cols_array(&rows).transpose()
+    }
+
+    #[test]
+    fn newton_polar_matches_the_svd_rotation_for_stretches_from_a_tenth_to_ten() {
+        let s = [
+            [1.0, 1.0, 1.0],
+            [1.2, 0.9, 0.8],
+            [2.0, 0.5, 1.0],
+            [0.1, 1.0, 3.0],
+            [10.0, 0.2, 0.5],
+            [1.0 + 1e-9, 1.0, 1.0 - 1e-9],
+            [0.3, 0.3, 0.3],
+            [5.0, 5.0, 0.15],
+        ];
+        let (lanes, mats) = batch(s);
+        let r = newton_polar_lane::<false, Plain8>((), &lanes).expect("converges in 8 steps");
+        for (l, f) in mats.iter().enumerate() {
+            let (expected, _) = material::corotational::polar_decomposition(f);
+            let err = (lane_matrix(&r, l) - expected)
+                .to_cols_array()
+                .iter()
+                .map(|e| e.abs())
+                .fold(0.0, f64::max);
+            assert!(
+                err < 1e-13,
+                "lane {l} (singular values {:?}): {err:e}",
+                s[l]
+            );
+        }
+    }
+
+    #[test]
+    fn inverted_and_extreme_lanes_take_the_scalar_rotation() {
+        for bad in [[1.0, 1.0, -0.5], [1e3, 1.0, 1e-3], [1.0, 1.0, 0.0]] {
+            let mut s = [[1.1, 0.9, 1.0]; 8];
+            s[3] = bad;
+            let (lanes, mats) = batch(s);
+            assert!(
+                newton_polar_lane::<false, Plain8>((), &lanes).is_none(),
+                "{bad:?}"
+            );
+            let r = polar_rotation_lane::<false, Plain8>((), &lanes);
+            for (l, f) in mats.iter().enumerate() {
+                let (expected, _) = material::corotational::polar_decomposition(f);
+                let got = lane_matrix(&r, l);
+                let err = (got - expected)
+                    .to_cols_array()
+                    .iter()
+                    .map(|e| e.abs())
+                    .fold(0.0, f64::max);
+                assert!(err < 1e-12, "lane {l} with {bad:?}: {err:e}");
+                // A proper rotation even for the inverted lane (Irving et al. 2004).
+                assert!((got.determinant() - 1.0).abs() < 1e-12);
+            }
+        }
+    }
 }
