@@ -531,12 +531,12 @@ mod tests {
                     (&x_inv, Some(v.as_slice())),
                 ] {
                     let mut expected = vec![DVec3::ZERO; fem.node_count()];
-                    fem.generic_forces(&x, velocities, &mut expected);
+                    fem.generic_forces(x, velocities, &mut expected);
                     let scale = expected.iter().map(|a| a.length()).fold(0.0, f64::max);
                     assert!(scale > 0.0);
                     for (name, kernel) in &kernels {
                         let mut f = vec![DVec3::ZERO; fem.node_count()];
-                        kernel(&fem, &x, velocities, &mut f);
+                        kernel(&fem, x, velocities, &mut f);
                         let err = f
                             .iter()
                             .zip(&expected)
