@@ -74,6 +74,11 @@ pub struct ConfigFile {
     pub state_dir: Option<PathBuf>,
     /// Prometheus metrics address (`GET /metrics`), e.g. `127.0.0.1:9464`; unset: no endpoint.
     pub metrics_listen: Option<String>,
+    /// Directories besides `scene_dir` that client-sent scenes may read mesh and table files
+    /// from (e.g. the shared LV meshes).
+    pub data_dirs: Vec<PathBuf>,
+    /// Largest file a client-sent scene may make the daemon read, bytes.
+    pub max_file_bytes: Option<u64>,
 }
 
 /// Log output format.
@@ -102,7 +107,15 @@ pub struct ServerConfig {
     pub state_dir: Option<PathBuf>,
     /// Prometheus metrics endpoint address (`None`: not served).
     pub metrics_listen: Option<SocketAddr>,
+    /// Data directories client-sent scenes may read from (besides `scene_dir`).
+    pub data_dirs: Vec<PathBuf>,
+    /// Largest file a client-sent scene may make the daemon read, bytes.
+    pub max_file_bytes: u64,
 }
+
+/// Default [`ServerConfig::max_file_bytes`]: 64 MiB (a Gmsh ASCII mesh of about 600 000
+/// tetrahedra; the shipped LV meshes are 0.05-1 MB).
+pub const DEFAULT_MAX_FILE_BYTES: u64 = 64 << 20;
 
 impl Default for ServerConfig {
     fn default() -> Self {
@@ -114,6 +127,8 @@ impl Default for ServerConfig {
             servo: ServoConfig::default(),
             state_dir: None,
             metrics_listen: None,
+            data_dirs: Vec::new(),
+            max_file_bytes: DEFAULT_MAX_FILE_BYTES,
         }
     }
 }
@@ -183,6 +198,15 @@ impl ConfigFile {
         }
         c.servo = self.servo;
         c.state_dir = self.state_dir;
+        c.data_dirs = self.data_dirs;
+        if let Some(b) = self.max_file_bytes {
+            if b == 0 {
+                return Err(ServerError::Config(
+                    "max_file_bytes must be at least 1".into(),
+                ));
+            }
+            c.max_file_bytes = b;
+        }
         if let Some(m) = self.metrics_listen {
             c.metrics_listen = Some(
                 m.parse()

@@ -19,6 +19,10 @@ pub enum ServerError {
     /// A request carries a bad value (NaN, out of range, missing field).
     #[error("{0}")]
     InvalidArgument(String),
+    /// A request asks for something the daemon's rules forbid (a file outside the allowed
+    /// directories); the message names the rule, never what lies outside.
+    #[error("{0}")]
+    PermissionDenied(String),
     /// The scene could not be loaded or simulated.
     #[error(transparent)]
     Model(#[from] ModelError),
@@ -34,10 +38,27 @@ pub enum ServerError {
     Internal(String),
 }
 
+/// Longest status message sent to a client, bytes: a parse error quoting a huge line of the
+/// client's own text is cut here (with a note), never sent whole.
+pub const MAX_STATUS_MESSAGE_BYTES: usize = 1024;
+
+/// `msg` cut to [`MAX_STATUS_MESSAGE_BYTES`] at a character boundary.
+pub fn bounded_message(msg: String) -> String {
+    if msg.len() <= MAX_STATUS_MESSAGE_BYTES {
+        return msg;
+    }
+    let mut end = MAX_STATUS_MESSAGE_BYTES - 40;
+    while !msg.is_char_boundary(end) {
+        end -= 1;
+    }
+    format!("{} ... [{} bytes cut]", &msg[..end], msg.len() - end)
+}
+
 impl From<ServerError> for Status {
     fn from(e: ServerError) -> Self {
-        let msg = e.to_string();
+        let msg = bounded_message(e.to_string());
         match e {
+            ServerError::PermissionDenied(_) => Status::permission_denied(msg),
             ServerError::UnknownSession(_) | ServerError::UnknownWatch(_) => Status::not_found(msg),
             ServerError::InvalidArgument(_) | ServerError::Config(_) => {
                 Status::invalid_argument(msg)

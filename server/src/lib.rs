@@ -12,6 +12,7 @@
 
 pub mod calibrate;
 pub mod config;
+pub mod confine;
 pub mod error;
 pub mod metrics;
 pub mod service;

@@ -156,6 +156,21 @@ pub struct FrameData {
 /// Sender half of a DeviceLink response stream.
 pub type ForceSender = mpsc::Sender<Result<ForceCommand, Status>>;
 
+/// A reserved session slot ([`SessionManager::reserve_slot`]); released on drop unless a
+/// session took it.
+struct SlotReservation<'a> {
+    manager: &'a SessionManager,
+    taken: bool,
+}
+
+impl Drop for SlotReservation<'_> {
+    fn drop(&mut self) {
+        if !self.taken {
+            self.manager.pending.fetch_sub(1, Ordering::AcqRel);
+        }
+    }
+}
+
 /// One running session.
 pub struct Session {
     /// Session id.
@@ -331,6 +346,9 @@ impl Drop for WatcherGuard {
 pub struct SessionManager {
     config: ServerConfig,
     sessions: Mutex<HashMap<String, Arc<Session>>>,
+    /// Sessions being built (their slot reserved under the `sessions` lock, so concurrent
+    /// starts never exceed the limit).
+    pending: std::sync::atomic::AtomicUsize,
     /// Random id of this daemon process, sent to device bridges so they notice a restart.
     instance: String,
 }
@@ -341,6 +359,7 @@ impl SessionManager {
         Self {
             config,
             sessions: Mutex::new(HashMap::new()),
+            pending: std::sync::atomic::AtomicUsize::new(0),
             instance: uuid::Uuid::new_v4().simple().to_string()[..12].to_string(),
         }
     }
@@ -401,9 +420,9 @@ impl SessionManager {
                     let scene = self
                         .load_scene(&rec.scene, &rec.scene_toml)
                         .map_err(|e| e.to_string())?;
-                    self.check_capacity().map_err(|e| e.to_string())?;
+                    let slot = self.reserve_slot().map_err(|e| e.to_string())?;
                     let body = haptic_model::build_body(&scene).map_err(|e| e.to_string())?;
-                    self.start_body_as(&rec.id, body, Some(LinkLimits::of_scene(&scene)))
+                    self.start_in_slot(slot, &rec.id, body, Some(LinkLimits::of_scene(&scene)))
                         .map_err(|e| e.to_string())?;
                     Ok(rec)
                 });
@@ -470,6 +489,13 @@ impl SessionManager {
                     toml_text.len()
                 )));
             }
+            // Files the text names must be allowed ones (issue 16) before the model opens any.
+            crate::confine::FileRoots::new(
+                &self.config.scene_dir,
+                &self.config.data_dirs,
+                self.config.max_file_bytes,
+            )
+            .check_scene(toml_text)?;
             return Ok(scene::parse_scene_toml(toml_text, &self.config.scene_dir)?);
         }
         if name.is_empty() {
@@ -487,24 +513,36 @@ impl SessionManager {
     /// [`ServerError::Exhausted`] at the session limit; [`ServerError::Model`] when the
     /// simulation cannot be built (e.g. an unstable explicit configuration).
     pub fn start(&self, scene: &Scene) -> Result<Arc<Session>, ServerError> {
-        self.check_capacity()?;
+        // The slot is taken before the (possibly long) build, so concurrent starts cannot all
+        // pass a check and then exceed the limit.
+        let slot = self.reserve_slot()?;
         let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
-        self.start_body_as(
-            &id,
-            haptic_model::build_body(scene)?,
-            Some(LinkLimits::of_scene(scene)),
-        )
+        let body = haptic_model::build_body(scene)?;
+        self.start_in_slot(slot, &id, body, Some(LinkLimits::of_scene(scene)))
     }
 
-    /// Refuses a new session at the session limit.
-    fn check_capacity(&self) -> Result<(), ServerError> {
-        if self.sessions.lock().map(|s| s.len()).unwrap_or(0) >= self.config.max_sessions {
+    /// Reserves a session slot: running plus pending sessions stay at most `max_sessions`
+    /// (checked and counted under the session table's lock). The slot is released when the
+    /// returned guard drops unless a session took it.
+    ///
+    /// # Errors
+    /// [`ServerError::Exhausted`] at the limit.
+    fn reserve_slot(&self) -> Result<SlotReservation<'_>, ServerError> {
+        let sessions = self
+            .sessions
+            .lock()
+            .map_err(|_| ServerError::Internal("session table poisoned".into()))?;
+        if sessions.len() + self.pending.load(Ordering::Acquire) >= self.config.max_sessions {
             return Err(ServerError::Exhausted(format!(
                 "the server runs its limit of {} sessions",
                 self.config.max_sessions
             )));
         }
-        Ok(())
+        self.pending.fetch_add(1, Ordering::AcqRel);
+        Ok(SlotReservation {
+            manager: self,
+            taken: false,
+        })
     }
 
     /// Starts a session for a body already built (any model family, or a test body): its servo
@@ -533,7 +571,18 @@ impl SessionManager {
         body: Box<dyn haptic_model::body::SoftBody>,
         limits: Option<LinkLimits>,
     ) -> Result<Arc<Session>, ServerError> {
-        self.check_capacity()?;
+        let slot = self.reserve_slot()?;
+        self.start_in_slot(slot, id, body, limits)
+    }
+
+    /// [`SessionManager::start_body_as`] in a reserved slot.
+    fn start_in_slot(
+        &self,
+        mut slot: SlotReservation<'_>,
+        id: &str,
+        body: Box<dyn haptic_model::body::SoftBody>,
+        limits: Option<LinkLimits>,
+    ) -> Result<Arc<Session>, ServerError> {
         if self.get(id).is_ok() {
             return Err(ServerError::FailedPrecondition(format!(
                 "session {id} exists already"
@@ -658,10 +707,16 @@ impl SessionManager {
             frames: frame_rx,
             threads: Mutex::new(vec![servo, forwarder]),
         });
-        self.sessions
-            .lock()
-            .map_err(|_| ServerError::Internal("session table poisoned".into()))?
-            .insert(id, session.clone());
+        {
+            let mut sessions = self
+                .sessions
+                .lock()
+                .map_err(|_| ServerError::Internal("session table poisoned".into()))?;
+            sessions.insert(id, session.clone());
+            // The session now counts in the table: its reservation ends under the same lock.
+            slot.taken = true;
+            self.pending.fetch_sub(1, Ordering::AcqRel);
+        }
         Ok(session)
     }
 

@@ -40,6 +40,10 @@ struct Args {
     /// bridges re-attach.
     #[arg(long)]
     state_dir: Option<PathBuf>,
+    /// A directory client-sent scenes may read mesh files from besides --scene-dir (repeat the
+    /// flag for several; e.g. the shared LV meshes).
+    #[arg(long = "data-dir")]
+    data_dirs: Vec<PathBuf>,
     /// Serve Prometheus metrics (`GET /metrics`) on this address (port 0 picks a free port; the
     /// daemon prints `metrics on <addr>`).
     #[arg(long)]
@@ -59,6 +63,7 @@ async fn main() -> anyhow::Result<()> {
     file.scene_dir = args.scene_dir.or(file.scene_dir);
     file.state_dir = args.state_dir.or(file.state_dir);
     file.metrics_listen = args.metrics_listen.or(file.metrics_listen);
+    file.data_dirs.extend(args.data_dirs);
     file.servo.realtime |= args.realtime;
     file.servo.mlockall |= args.mlockall;
     file.servo.cpu = args.cpu.or(file.servo.cpu);

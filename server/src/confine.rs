@@ -1,0 +1,207 @@
+//! Which files a client-sent scene may make the daemon read (issue 16): only regular files
+//! inside the scene directory or a data directory the operator configured, after resolving
+//! `..` and symlinks, and no larger than a size limit.
+//!
+//! The check runs on the scene text before anything is opened: every field that names a file
+//! (`mesh.file`, `mass_spring.calibration_file`, and the calibration table a mass-spring scene
+//! reads by default, `NAME.calibration.csv`) is resolved against the scene directory. A path
+//! that is outside every allowed directory *lexically* (after `..` is applied, before the file
+//! system is asked) is refused with PERMISSION_DENIED without touching the file system, so the
+//! answer is the same whether such a file exists or not. A path inside is then canonicalized
+//! as the OS resolves it when the model opens it (a symlink pointing out, or a symlinked
+//! directory followed by `..`, is refused with the same message), and must be a regular file (not
+//! a pipe, device or directory: those are refused before any open, so a FIFO cannot block a
+//! thread and `/dev/zero` cannot be read whole) within the size limit. Messages name the field
+//! and the rule, never file contents.
+//!
+//! Neighbours: [`crate::session::SessionManager::load_scene`] calls [`FileRoots::check_scene`]
+//! before the model parses the text; the directories come from [`crate::config`].
+
+use std::path::{Component, Path, PathBuf};
+
+use crate::error::ServerError;
+
+/// The allowed directories (canonical) and the size limit.
+#[derive(Debug, Clone)]
+pub struct FileRoots {
+    scene_dir: Option<PathBuf>,
+    roots: Vec<PathBuf>,
+    max_bytes: u64,
+}
+
+/// `base.join(rel)` with `.` and `..` applied lexically (no file-system access); `..` above
+/// the root stays at the root.
+pub fn lexical_join(base: &Path, rel: &Path) -> PathBuf {
+    let mut out = PathBuf::new();
+    let joined = if rel.is_absolute() {
+        rel.to_path_buf()
+    } else {
+        base.join(rel)
+    };
+    for c in joined.components() {
+        match c {
+            Component::ParentDir => {
+                out.pop();
+            }
+            Component::CurDir => {}
+            other => out.push(other.as_os_str()),
+        }
+    }
+    out
+}
+
+impl FileRoots {
+    /// Roots from the scene directory and the data directories (each canonicalized; one that
+    /// does not exist allows nothing), with `max_bytes` per file.
+    pub fn new(scene_dir: &Path, data_dirs: &[PathBuf], max_bytes: u64) -> Self {
+        let scene_dir = std::fs::canonicalize(scene_dir).ok();
+        let roots = scene_dir
+            .iter()
+            .cloned()
+            .chain(
+                data_dirs
+                    .iter()
+                    .filter_map(|d| std::fs::canonicalize(d).ok()),
+            )
+            .collect();
+        Self {
+            scene_dir,
+            roots,
+            max_bytes,
+        }
+    }
+
+    fn denied(field: &str) -> ServerError {
+        ServerError::PermissionDenied(format!(
+            "`{field}`: a scene sent by a client may only name files inside the daemon's scene \
+             directory or its data directories (scene_dir, data_dirs)"
+        ))
+    }
+
+    /// Checks that `file` (a scene field's value) names an allowed regular file.
+    ///
+    /// # Errors
+    /// [`ServerError::PermissionDenied`] outside the allowed directories (lexically or through
+    /// a symlink); [`ServerError::InvalidArgument`] for a missing file inside them, a file that
+    /// is not a regular file, or one above the size limit.
+    pub fn check_file(&self, field: &str, file: &str) -> Result<PathBuf, ServerError> {
+        let Some(scene_dir) = &self.scene_dir else {
+            return Err(Self::denied(field));
+        };
+        if file.contains('\0') {
+            return Err(ServerError::InvalidArgument(format!(
+                "`{field}`: a path may not contain NUL"
+            )));
+        }
+        let path = lexical_join(scene_dir, Path::new(file));
+        if !self.roots.iter().any(|r| path.starts_with(r)) {
+            return Err(Self::denied(field));
+        }
+        // What the model will open is the plain join, resolved by the OS (a symlinked
+        // directory followed by `..` goes elsewhere than the lexical path): check that one.
+        let canonical = std::fs::canonicalize(scene_dir.join(file)).map_err(|e| {
+            ServerError::InvalidArgument(if e.kind() == std::io::ErrorKind::NotFound {
+                format!("`{field}`: no such file in the allowed directories")
+            } else {
+                format!("`{field}`: cannot be resolved ({})", e.kind())
+            })
+        })?;
+        if !self.roots.iter().any(|r| canonical.starts_with(r)) {
+            return Err(Self::denied(field));
+        }
+        let meta = std::fs::metadata(&canonical).map_err(|e| {
+            ServerError::InvalidArgument(format!("`{field}`: cannot be read ({})", e.kind()))
+        })?;
+        if !meta.is_file() {
+            return Err(ServerError::InvalidArgument(format!(
+                "`{field}`: not a regular file (pipes, devices and directories are refused)"
+            )));
+        }
+        if meta.len() > self.max_bytes {
+            return Err(ServerError::InvalidArgument(format!(
+                "`{field}`: the file is {} bytes; the limit is {} (max_file_bytes)",
+                meta.len(),
+                self.max_bytes
+            )));
+        }
+        Ok(canonical)
+    }
+
+    /// Checks every file a scene text would make the model read (see the module docs). Text
+    /// that is not valid TOML passes: the model's parser reports it.
+    ///
+    /// # Errors
+    /// As [`FileRoots::check_file`], naming the field.
+    pub fn check_scene(&self, text: &str) -> Result<(), ServerError> {
+        let Ok(value) = text.parse::<toml::Table>() else {
+            return Ok(());
+        };
+        let get = |section: &str, key: &str| -> Option<&toml::Value> {
+            value.get(section)?.as_table()?.get(key)
+        };
+        let as_path = |field: &str, v: &toml::Value| -> Result<String, ServerError> {
+            v.as_str().map(str::to_owned).ok_or_else(|| {
+                ServerError::InvalidArgument(format!("`{field}` must be a string path"))
+            })
+        };
+        if let Some(v) = get("mesh", "file") {
+            self.check_file("mesh.file", &as_path("mesh.file", v)?)?;
+        }
+        let springs = value
+            .get("model")
+            .and_then(|m| m.get("family"))
+            .and_then(toml::Value::as_str)
+            == Some("mass-spring");
+        match get("mass_spring", "calibration_file") {
+            Some(v) => {
+                let f = as_path("mass_spring.calibration_file", v)?;
+                self.check_calibration("mass_spring.calibration_file", &f)?;
+            }
+            None if springs => {
+                // The default table name follows the scene name.
+                let name = value
+                    .get("name")
+                    .and_then(toml::Value::as_str)
+                    .unwrap_or("custom");
+                self.check_calibration("name", &format!("{name}.calibration.csv"))?;
+            }
+            None => {}
+        }
+        Ok(())
+    }
+
+    /// A calibration table may be missing (the scene then explains how to compute it), but
+    /// never outside the allowed directories or a special file.
+    fn check_calibration(&self, field: &str, file: &str) -> Result<(), ServerError> {
+        match self.check_file(field, file) {
+            Err(ServerError::InvalidArgument(m)) if m.contains("no such file") => Ok(()),
+            other => other.map(|_| ()),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lexical_join_applies_dots_without_the_file_system() {
+        let b = Path::new("/srv/scenes");
+        assert_eq!(
+            lexical_join(b, Path::new("a/../b.msh")),
+            PathBuf::from("/srv/scenes/b.msh")
+        );
+        assert_eq!(
+            lexical_join(b, Path::new("../../../etc/passwd")),
+            PathBuf::from("/etc/passwd")
+        );
+        assert_eq!(
+            lexical_join(b, Path::new("/etc/shadow")),
+            PathBuf::from("/etc/shadow")
+        );
+        assert_eq!(
+            lexical_join(b, Path::new("./x/./y")),
+            PathBuf::from("/srv/scenes/x/y")
+        );
+    }
+}
