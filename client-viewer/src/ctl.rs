@@ -282,6 +282,9 @@ pub fn stats_rows(s: &SessionStats) -> Vec<StatRow> {
         row("active_particles", U64(s.active_particles.into()), "count"),
         row("surface_vertices", U64(s.surface_vertices.into()), "count"),
         row("topology_version", U64(s.topology_version), ""),
+        row("out_of_order_samples", U64(s.out_of_order_samples), "count"),
+        row("device_silent", Bool(s.device_silent), ""),
+        row("device_silences", U64(s.device_silences), "count"),
         row("watchers", U64(s.watchers.into()), "count"),
         row("watcher_frames_sent", U64(s.watcher_frames_sent), "count"),
         row(

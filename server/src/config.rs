@@ -39,6 +39,8 @@ pub struct ServoConfig {
     pub stats_every_ticks: u32,
     /// `"device"` (tick on each device sample; default) or `"clock"` (fixed 1 ms deadlines).
     pub pacing: Pacing,
+    /// A connected device silent for longer than this is treated as gone (zero force), ms.
+    pub device_silence_ms: u32,
 }
 
 impl Default for ServoConfig {
@@ -51,6 +53,7 @@ impl Default for ServoConfig {
             snapshot_every_ticks: 16,
             stats_every_ticks: 100,
             pacing: Pacing::Device,
+            device_silence_ms: 50,
         }
     }
 }
@@ -194,6 +197,11 @@ impl ConfigFile {
         if self.servo.snapshot_every_ticks == 0 || self.servo.stats_every_ticks == 0 {
             return Err(ServerError::Config(
                 "servo.snapshot_every_ticks and servo.stats_every_ticks must be >= 1".into(),
+            ));
+        }
+        if self.servo.device_silence_ms == 0 {
+            return Err(ServerError::Config(
+                "servo.device_silence_ms must be at least 1".into(),
             ));
         }
         c.servo = self.servo;

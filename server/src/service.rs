@@ -208,6 +208,12 @@ impl SessionControl for Services {
             active_particles: st.body.active_particles as u32,
             surface_vertices: st.body.surface_vertices as u32,
             topology_version: st.body.topology_version,
+            out_of_order_samples: s
+                .shared
+                .out_of_order_samples
+                .load(std::sync::atomic::Ordering::Relaxed),
+            device_silent: st.device_silent,
+            device_silences: st.device_silences,
             ..watcher_stats(&s.watcher_stats)
         }))
     }
@@ -298,6 +304,7 @@ impl DeviceLink for Services {
         tracing::info!(session = %session.id, "device connected");
         tokio::spawn(async move {
             let mut next = Some(first);
+            let mut last_seq: Option<u64> = None;
             loop {
                 let sample = match next.take() {
                     Some(s) => s,
@@ -313,8 +320,18 @@ impl DeviceLink for Services {
                         .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                     continue;
                 }
+                // Sequence numbers only go up: an older or repeated one (a replay, a duplicate
+                // with a new position) is dropped and counted, never applied unanswered.
+                if last_seq.is_some_and(|l| sample.seq <= l) {
+                    session
+                        .shared
+                        .out_of_order_samples
+                        .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    continue;
+                }
                 match validate_sample(&sample) {
                     Ok((p, v)) => {
+                        last_seq = Some(sample.seq);
                         pose_in.write(Pose {
                             seq: sample.seq,
                             position_m: p,

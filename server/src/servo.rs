@@ -157,6 +157,11 @@ pub struct StatsSnapshot {
     pub device_samples: u64,
     /// The fault that quarantined the session, if any.
     pub fault: Option<&'static str>,
+    /// A connected device has sent nothing for longer than the silence limit: treated as gone
+    /// (no probe in the scene, zero force) until its next sample.
+    pub device_silent: bool,
+    /// Times a connected device fell silent.
+    pub device_silences: u64,
     /// The body's size and state at the last publication.
     pub body: BodyStats,
     /// Step compute times, all ticks so far (for the metrics endpoint).
@@ -174,6 +179,8 @@ pub struct SessionShared {
     pub watchers: AtomicUsize,
     /// Device samples rejected by the stream task (NaN, absurd values).
     pub rejected_samples: AtomicU64,
+    /// Device samples dropped because their `seq` was not newer than the last one accepted.
+    pub out_of_order_samples: AtomicU64,
     /// Set by the servo when it has sent its final zero force and exited.
     pub finished: AtomicBool,
 }
@@ -353,6 +360,10 @@ pub struct ServoCore {
     p2f_buckets: LatencyBuckets,
     ticks: u64,
     last_seq: Option<u64>,
+    /// A connected device silent for longer than this is treated as gone, µs.
+    device_silence_us: u64,
+    device_silent: bool,
+    device_silences: u64,
     current: TickInput,
     fault: Option<&'static str>,
     peak_force_n: f64,
@@ -366,6 +377,10 @@ pub struct ServoCore {
     /// Overruns, maintained by the loop's [`Pacer`].
     pub overruns: u64,
 }
+
+/// Default silence limit of a connected device, µs (50 ms: five times the bridge watchdog's
+/// fresh window; issue 16).
+pub const DEFAULT_DEVICE_SILENCE_US: u64 = 50_000;
 
 /// The handoff ends a [`ServoCore`] owns.
 pub struct ServoEnds {
@@ -443,6 +458,12 @@ fn histogram() -> Histogram<u64> {
 }
 
 impl ServoCore {
+    /// The silence limit of a connected device, µs (default [`DEFAULT_DEVICE_SILENCE_US`]).
+    pub fn with_device_silence_us(mut self, us: u64) -> Self {
+        self.device_silence_us = us.max(1);
+        self
+    }
+
     /// Builds the core. `snapshot_every` / `stats_every` are in ticks (>= 1). `ends` must come
     /// from [`channels`] for this body (the snapshot buffers are sized for its surface).
     pub fn new(
@@ -468,6 +489,9 @@ impl ServoCore {
             p2f_buckets: LatencyBuckets::default(),
             ticks: 0,
             last_seq: None,
+            device_silence_us: DEFAULT_DEVICE_SILENCE_US,
+            device_silent: false,
+            device_silences: 0,
             current: TickInput::default(),
             fault: None,
             peak_force_n: 0.0,
@@ -533,7 +557,16 @@ impl ServoCore {
         self.pose.update();
         let pose = *self.pose.output_buffer();
         let fresh = pose.connected && self.last_seq != Some(pose.seq);
-        if pose.connected {
+        // A device that stopped sending (a stalled bridge) must not keep pressing with its
+        // last pose: past the silence limit it leaves the scene until its next sample.
+        let silent = pose.connected
+            && !fresh
+            && now_us.saturating_sub(pose.received_us) > self.device_silence_us;
+        if silent && !self.device_silent {
+            self.device_silences += 1;
+        }
+        self.device_silent = silent;
+        if pose.connected && !silent {
             self.current = TickInput {
                 device_position_m: Some(pose.position_m),
                 device_velocity_m_per_s: pose.velocity_m_per_s,
@@ -658,6 +691,8 @@ impl ServoCore {
                 max_displacement_m: self.max_displacement_m,
                 device_samples: self.device_samples,
                 fault: self.fault,
+                device_silent: self.device_silent,
+                device_silences: self.device_silences,
                 body,
                 step_buckets: self.step_buckets,
                 pose_to_force_buckets: self.p2f_buckets,

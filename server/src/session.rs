@@ -648,7 +648,8 @@ impl SessionManager {
             shared.clone(),
             servo_cfg.snapshot_every_ticks,
             servo_cfg.stats_every_ticks,
-        );
+        )
+        .with_device_silence_us(u64::from(servo_cfg.device_silence_ms) * 1000);
         let fwd_thread = forwarder.thread().clone();
         let servo_id = id.clone();
         let pacing = servo_cfg.pacing;

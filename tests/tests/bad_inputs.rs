@@ -262,3 +262,88 @@ async fn bad_inputs_get_statuses_and_session_keeps_running() -> Result<()> {
     drop(forces);
     server.shutdown().await
 }
+
+/// Issue 16, section 3: older or repeated `seq` are dropped and counted (never applied, never
+/// answered), and a device silent for longer than the limit (50 ms) leaves the scene (no
+/// contact) until its next sample, which brings it back cleanly.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn device_seq_only_goes_up_and_a_silent_device_leaves_the_scene() -> Result<()> {
+    let _serial = serial().await;
+    let server = InProcess::start().await?;
+    let url = server.url.clone();
+    let mut ctl = session_control(&url).await?;
+    let id = ctl
+        .start_session(StartSessionRequest {
+            scene: "lv".into(),
+            scene_toml: String::new(),
+        })
+        .await?
+        .into_inner()
+        .session_id;
+    let stats = |ctl: &mut haptics_proto::v1::session_control_client::SessionControlClient<
+        tonic::transport::Channel,
+    >| {
+        let id = id.clone();
+        let mut ctl = ctl.clone();
+        async move {
+            anyhow::Ok(
+                ctl.get_stats(GetStatsRequest { session_id: id })
+                    .await?
+                    .into_inner(),
+            )
+        }
+    };
+    // 1 mm into the epicardium (9.68 mm from the axis at z = -5 mm; probe radius 2 mm).
+    let pressed = [0.0107, 0.0, -0.005];
+    let (tx, rx) = mpsc::channel::<DeviceSample>(16);
+    let mut link = device_link(&url).await?;
+    tx.send(sample(&id, 10, pressed)).await?;
+    let mut forces = link.connect(ReceiverStream::new(rx)).await?.into_inner();
+    force_for(&mut forces, 10, &[]).await?;
+    // Older and repeated sequence numbers, the repeat with a new position: dropped.
+    tx.send(sample(&id, 9, [0.03, 0.0, 0.0])).await?;
+    tx.send(sample(&id, 10, [0.03, 0.0, 0.0])).await?;
+    tx.send(sample(&id, 11, pressed)).await?;
+    force_for(&mut forces, 11, &[9]).await?;
+    // Keep pressing until the contact is established.
+    let mut seq = 11;
+    let deadline = tokio::time::Instant::now() + STEP_TIMEOUT;
+    loop {
+        seq += 1;
+        tx.send(sample(&id, seq, pressed)).await?;
+        let f = force_for(&mut forces, seq, &[]).await?;
+        if f.in_contact {
+            break;
+        }
+        anyhow::ensure!(tokio::time::Instant::now() < deadline, "no contact at 1 mm");
+        tokio::time::sleep(Duration::from_millis(1)).await;
+    }
+    let s = stats(&mut ctl).await?;
+    assert_eq!(s.out_of_order_samples, 2, "{s:?}");
+    assert!(!s.device_silent);
+
+    // Silence: the stream stays open, nothing is sent for 400 ms.
+    tokio::time::sleep(Duration::from_millis(400)).await;
+    let s = stats(&mut ctl).await?;
+    assert!(s.device_silent, "{s:?}");
+    assert!(!s.in_contact, "a silent device still presses: {s:?}");
+    assert_eq!(s.device_silences, 1);
+
+    // The next sample brings it back.
+    let back = seq + 1;
+    tx.send(sample(&id, back, pressed)).await?;
+    let f = force_for(&mut forces, back, &[]).await?;
+    assert!(f.force_n.is_some());
+    let mut s = stats(&mut ctl).await?;
+    for k in 0..50 {
+        if !s.device_silent {
+            break;
+        }
+        tx.send(sample(&id, back + 1 + k, pressed)).await?;
+        tokio::time::sleep(Duration::from_millis(5)).await;
+        s = stats(&mut ctl).await?;
+    }
+    assert!(!s.device_silent, "{s:?}");
+    drop(tx);
+    server.shutdown().await
+}
