@@ -170,6 +170,44 @@ impl FileRoots {
         Ok(())
     }
 
+    /// Refuses a generated mesh whose parameters promise far more than `max_elements`
+    /// elements before it is generated (a box of `mesh.cells` makes 6 tetrahedra per cell; the
+    /// LV generator lands within about 30 % of `mesh.target_tets`). The exact counts are
+    /// checked again after the mesh is built ([`check_counts`]).
+    ///
+    /// # Errors
+    /// [`ServerError::InvalidArgument`] naming the field and the limit.
+    pub fn check_generated_size(text: &str, max_elements: usize) -> Result<(), ServerError> {
+        let Ok(value) = text.parse::<toml::Table>() else {
+            return Ok(());
+        };
+        let Some(mesh) = value.get("mesh").and_then(toml::Value::as_table) else {
+            return Ok(());
+        };
+        let estimate = if let Some(cells) = mesh.get("cells").and_then(toml::Value::as_array) {
+            Some((
+                "mesh.cells",
+                cells
+                    .iter()
+                    .map(|c| c.as_integer().unwrap_or(1).max(1) as u128)
+                    .product::<u128>()
+                    * 6,
+            ))
+        } else {
+            mesh.get("target_tets")
+                .and_then(toml::Value::as_integer)
+                .map(|t| ("mesh.target_tets", t.max(0) as u128))
+        };
+        match estimate {
+            Some((field, n)) if n > (max_elements as u128).saturating_mul(13) / 10 => {
+                Err(ServerError::InvalidArgument(format!(
+                    "`{field}` asks for about {n} elements; this daemon takes at most                      {max_elements} per client scene (max_elements)"
+                )))
+            }
+            _ => Ok(()),
+        }
+    }
+
     /// A calibration table may be missing (the scene then explains how to compute it), but
     /// never outside the allowed directories or a special file.
     fn check_calibration(&self, field: &str, file: &str) -> Result<(), ServerError> {
@@ -178,6 +216,24 @@ impl FileRoots {
             other => other.map(|_| ()),
         }
     }
+}
+
+/// Refuses a built scene above the element or node limit (before its simulation is built).
+///
+/// # Errors
+/// [`ServerError::InvalidArgument`] with the counts and the limit.
+pub fn check_counts(
+    nodes: usize,
+    elements: usize,
+    max_nodes: usize,
+    max_elements: usize,
+) -> Result<(), ServerError> {
+    if elements > max_elements || nodes > max_nodes {
+        return Err(ServerError::InvalidArgument(format!(
+            "the scene has {nodes} nodes and {elements} elements; this daemon takes at most              {max_nodes} nodes and {max_elements} elements per client scene (max_nodes,              max_elements)"
+        )));
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -496,7 +496,18 @@ impl SessionManager {
                 self.config.max_file_bytes,
             )
             .check_scene(toml_text)?;
-            return Ok(scene::parse_scene_toml(toml_text, &self.config.scene_dir)?);
+            crate::confine::FileRoots::check_generated_size(toml_text, self.config.max_elements)?;
+            let scene = scene::parse_scene_toml(toml_text, &self.config.scene_dir)?;
+            // Tetrahedra, or the triangles of a mass-spring surface.
+            let triangles: usize = scene.mesh.surfaces.iter().map(|g| g.triangles.len()).sum();
+            let elements = scene.mesh.tet_count().max(triangles);
+            crate::confine::check_counts(
+                scene.mesh.node_count(),
+                elements,
+                self.config.max_nodes,
+                self.config.max_elements,
+            )?;
+            return Ok(scene);
         }
         if name.is_empty() {
             return Err(ServerError::InvalidArgument(

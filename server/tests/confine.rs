@@ -153,6 +153,60 @@ fn a_huge_line_is_not_quoted_back_whole() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+#[test]
+fn oversized_client_scenes_are_refused_before_they_are_built() {
+    let dir = temp_dir("size");
+    let m = SessionManager::new(ServerConfig {
+        scene_dir: dir.clone(),
+        max_elements: 20_000,
+        ..ServerConfig::default()
+    });
+    let base = "[material]\nyoungs_modulus_pa = 1e4\npoisson_ratio = 0.3\ndensity_kg_per_m3 = 1000.0\n\
+                [boundary]\nclamped = [\"ZMIN\"]\ntouchable = [\"ZMAX\"]\n";
+    // 100 000 cells = 600 000 tetrahedra: refused from the parameters, in well under a second
+    // (generating it takes seconds and hundreds of MB).
+    let t0 = std::time::Instant::now();
+    let e = status(
+        m.load_scene(
+            "",
+            &format!("[mesh]\nbuiltin = \"box\"\nsize = [0.1, 0.1, 0.1]\ncells = [100, 100, 10]\n{base}"),
+        )
+        .unwrap_err(),
+    );
+    assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    assert!(
+        e.message().contains("max_elements") && e.message().contains("mesh.cells"),
+        "{e:?}"
+    );
+    assert!(
+        t0.elapsed() < Duration::from_millis(500),
+        "{:?}",
+        t0.elapsed()
+    );
+    // Just above the limit once built (4 000 cells = 24 000 tetrahedra): refused after the
+    // mesh, before the simulation.
+    let e = status(
+        m.load_scene(
+            "",
+            &format!(
+                "[mesh]\nbuiltin = \"box\"\nsize = [0.1, 0.1, 0.1]\ncells = [20, 20, 10]\n{base}"
+            ),
+        )
+        .unwrap_err(),
+    );
+    assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    assert!(e.message().contains("24000 elements"), "{e:?}");
+    // Below it: fine.
+    let ok = m.load_scene(
+        "",
+        &format!(
+            "[mesh]\nbuiltin = \"box\"\nsize = [0.1, 0.1, 0.1]\ncells = [10, 10, 10]\n{base}"
+        ),
+    );
+    assert!(ok.is_ok(), "{:?}", ok.err());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn concurrent_starts_never_exceed_the_session_limit() {
     let manager = Arc::new(SessionManager::new(ServerConfig {
