@@ -169,7 +169,9 @@ fn oversized_client_scenes_are_refused_before_they_are_built() {
     let e = status(
         m.load_scene(
             "",
-            &format!("[mesh]\nbuiltin = \"box\"\nsize = [0.1, 0.1, 0.1]\ncells = [100, 100, 10]\n{base}"),
+            &format!(
+                "[mesh]\nbuiltin = \"box\"\nsize = [0.1, 0.1, 0.1]\ncells = [100, 100, 10]\n{base}"
+            ),
         )
         .unwrap_err(),
     );
@@ -199,9 +201,7 @@ fn oversized_client_scenes_are_refused_before_they_are_built() {
     // Below it: fine.
     let ok = m.load_scene(
         "",
-        &format!(
-            "[mesh]\nbuiltin = \"box\"\nsize = [0.1, 0.1, 0.1]\ncells = [10, 10, 10]\n{base}"
-        ),
+        &format!("[mesh]\nbuiltin = \"box\"\nsize = [0.1, 0.1, 0.1]\ncells = [10, 10, 10]\n{base}"),
     );
     assert!(ok.is_ok(), "{:?}", ok.err());
     let _ = std::fs::remove_dir_all(&dir);
