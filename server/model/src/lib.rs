@@ -10,6 +10,8 @@
 //!   [`mesh::export`] writes CSV node tables and ParaView `.vtu` files.
 //! - [`material`]: Lamé parameters and constitutive laws: St. Venant-Kirchhoff (seed 000 eq. 4,
 //!   9), corotational, stable Neo-Hookean, and the seed's viscous stress (eq. 10-11).
+//! - [`meshfree`]: the seeds' meshfree (SPH) elasticity (seed 000 eq. 23-29) in
+//!   total-Lagrangian form, `seed` and `corrected` (Bonet-Lok + hourglass control) variants.
 //! - [`element`]: [`element::FemModel`], precomputed element data: shape-function gradients
 //!   (eq. 13-21), nodal forces (eq. 22) by vectorised kernels, lumped masses, strain smoothing,
 //!   tangent stiffness, the largest eigenvalue for critical time steps.
@@ -45,6 +47,7 @@ pub mod loads;
 pub mod mass_spring;
 pub mod material;
 pub mod mesh;
+pub mod meshfree;
 pub mod scene;
 pub mod sim;
 pub mod statics;

@@ -14,6 +14,7 @@ const LAYERS: &[&str] = &[
     "error",
     "mesh",
     "material",
+    "meshfree",
     "element",
     "contact",
     "integrate",
