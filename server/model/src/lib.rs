@@ -29,6 +29,8 @@
 //! - [`mass_spring`]: the mass-spring surface with run-time Loop subdivision (seed 003, Zhang,
 //!   Payandeh & Dill, *Haptic Subdivision*): eq. 1-3, the calibrated spring table (section
 //!   3.2.4), [`mass_spring::MassSpringBody`].
+//! - [`hybrid`]: the seeds' hybrid model (seed 000 sections 4-6): FEM core + meshfree particle
+//!   layer simulated only where the probe touches, [`hybrid::HybridBody`].
 //! - [`statics`]: static equilibrium (Newton on the tangent, sparse Cholesky) for references.
 //!
 //! Units are SI throughout (m, kg, s, N, Pa). Seeds are cited as "seed 000 eq. N":
@@ -42,6 +44,7 @@ pub mod body;
 pub mod contact;
 pub mod element;
 pub mod error;
+pub mod hybrid;
 pub mod integrate;
 pub mod loads;
 pub mod mass_spring;

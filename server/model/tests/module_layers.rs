@@ -21,6 +21,7 @@ const LAYERS: &[&str] = &[
     "loads",
     "body",
     "mass_spring",
+    "hybrid",
     "scene",
     "sim",
     "statics",
@@ -34,6 +35,7 @@ const REAL_TIME: &[&str] = &[
     "loads",
     "body",
     "mass_spring",
+    "hybrid",
     "sim",
 ];
 
