@@ -66,7 +66,40 @@ pub use glam::DVec3;
 /// [`mass_spring::MassSpringBody::new`] for the mass-spring surface, after
 /// [`scene::MassSpringScene::table`]: a missing or stale calibration table).
 pub fn build_body(scene: &scene::Scene) -> Result<Box<dyn body::SoftBody>, ModelError> {
+    build_body_with_progress(scene, &mut |_, _| {})
+}
+
+/// [`build_body`] reporting the preprocessing's progress (`stage`, fraction in `[0, 1]`) for
+/// families that preprocess (the hybrid model, [`hybrid::prepare`]).
+///
+/// # Errors
+/// As [`build_body`]; for the hybrid family the errors of [`hybrid::prepare`] and
+/// [`hybrid::HybridBody::new`].
+pub fn build_body_with_progress(
+    scene: &scene::Scene,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Box<dyn body::SoftBody>, ModelError> {
     match scene.family {
+        scene::ModelFamily::Hybrid => {
+            let h = scene.hybrid.as_ref().ok_or_else(|| {
+                ModelError::field("hybrid", "is required for model.family = \"hybrid\"")
+            })?;
+            let model = hybrid::prepare(
+                h.geometry,
+                &h.params,
+                &scene.material,
+                h.core_target_tets,
+                progress,
+            )?;
+            let clamped = model.clamped_core_nodes();
+            Ok(Box::new(hybrid::HybridBody::new(
+                model,
+                &clamped,
+                scene.probe,
+                scene.integrator.tick_s,
+                &scene.name,
+            )?))
+        }
         scene::ModelFamily::Fem => Ok(Box::new(sim::Simulation::new(scene)?)),
         scene::ModelFamily::MassSpring => {
             let ms = scene.mass_spring.as_ref().ok_or_else(|| {

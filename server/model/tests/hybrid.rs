@@ -11,7 +11,7 @@ use haptic_model::body::{SoftBody, TickInput};
 use haptic_model::contact::probe::ProbeParams;
 use haptic_model::hybrid::{HybridBody, HybridParams, ShellGeometry, prepare};
 use haptic_model::material::MaterialParams;
-use haptic_model::meshfree::{MeshfreeParams, MeshfreeVariant};
+use haptic_model::meshfree::{KernelKind, MeshfreeParams, MeshfreeVariant};
 
 const MM: f64 = 1e-3;
 
@@ -42,6 +42,7 @@ fn params(variant: MeshfreeVariant) -> HybridParams {
     HybridParams {
         meshfree: MeshfreeParams {
             variant,
+            kernel: KernelKind::default_for(variant),
             spacing_m: 0.8 * MM,
             ..MeshfreeParams::default()
         },

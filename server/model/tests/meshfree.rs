@@ -9,7 +9,8 @@ use common::Rng;
 use glam::{DMat3, DQuat, DVec3};
 use haptic_model::material::{MaterialModel, MaterialParams};
 use haptic_model::meshfree::{
-    Lattice, MeshfreeParams, MeshfreeVariant, ParticleCloud, TermBlock, critical_time_step,
+    KernelKind, Lattice, MeshfreeParams, MeshfreeVariant, ParticleCloud, TermBlock,
+    critical_time_step,
 };
 
 const SPACING_M: f64 = 1e-3;
@@ -18,6 +19,7 @@ const SPACING_M: f64 = 1e-3;
 fn cube(n: usize, variant: MeshfreeVariant, model: MaterialModel) -> (ParticleCloud, TermBlock) {
     let params = MeshfreeParams {
         variant,
+        kernel: KernelKind::default_for(variant),
         spacing_m: SPACING_M,
         smoothing_ratio: 1.0,
         hourglass_coefficient: 0.5,

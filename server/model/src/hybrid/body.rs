@@ -189,6 +189,11 @@ impl HybridBody {
         self.refused_activations
     }
 
+    /// Energy terms and tied particles of the current active set (the per-sub-step work).
+    pub fn work_counts(&self) -> (usize, usize) {
+        (self.block.len(), self.tied_list.len())
+    }
+
     /// Currently active particles.
     pub fn active_particles(&self) -> &[u32] {
         &self.active_list

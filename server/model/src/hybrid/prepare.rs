@@ -83,6 +83,24 @@ pub struct HybridModel {
 }
 
 impl HybridModel {
+    /// The core nodes a scene clamps: those on the base plane of a truncated wall (the LV's
+    /// base), or those below `-0.8` times the core's outer z semi-axis of a closed one (the
+    /// bottom pole cap, as the `ellipsoids` scene clamps), sorted.
+    pub fn clamped_core_nodes(&self) -> Vec<u32> {
+        let nodes = &self.core_mesh.nodes;
+        match self.geometry.z_cut_m {
+            Some(z) => (0..nodes.len() as u32)
+                .filter(|&i| nodes[i as usize].z >= z - 1e-9)
+                .collect(),
+            None => {
+                let cap = -0.8 * self.geometry.axes(self.params.core_fraction).z;
+                (0..nodes.len() as u32)
+                    .filter(|&i| nodes[i as usize].z < cap)
+                    .collect()
+            }
+        }
+    }
+
     /// Heap memory of the preprocessed model, bytes (approximate: vectors' capacities).
     pub fn memory_bytes(&self) -> usize {
         self.cloud.memory_bytes()

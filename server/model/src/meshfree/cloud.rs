@@ -32,7 +32,7 @@
 
 use glam::{DMat3, DVec3};
 
-use super::kernel::{Kernel, KernelKind};
+use super::kernel::Kernel;
 use super::lattice::Lattice;
 use super::{MeshfreeParams, MeshfreeVariant};
 use crate::ModelError;
@@ -340,14 +340,10 @@ pub fn condition(a: &DMat3) -> f64 {
 }
 
 impl MeshfreeParams {
-    /// The kernel of the variant: the seed's linear kernel or Wendland C2, with smoothing length
-    /// `smoothing_ratio * spacing_m`.
+    /// The kernel, with smoothing length `smoothing_ratio * spacing_m`.
     pub fn kernel(&self) -> Kernel {
         Kernel {
-            kind: match self.variant {
-                MeshfreeVariant::Seed => KernelKind::SeedLinear,
-                MeshfreeVariant::Corrected => KernelKind::WendlandC2,
-            },
+            kind: self.kernel,
             smoothing_length_m: self.smoothing_ratio * self.spacing_m,
         }
     }

@@ -21,6 +21,31 @@ pub enum KernelKind {
     WendlandC2,
 }
 
+impl KernelKind {
+    /// The scene-file name: `"seed-linear"` or `"wendland-c2"`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::SeedLinear => "seed-linear",
+            Self::WendlandC2 => "wendland-c2",
+        }
+    }
+
+    /// Parses a scene-file name; `None` if unknown.
+    pub fn from_name(name: &str) -> Option<Self> {
+        [Self::SeedLinear, Self::WendlandC2]
+            .into_iter()
+            .find(|k| k.name() == name)
+    }
+
+    /// The variant's default kernel: the seed's cone for `seed`, Wendland C2 for `corrected`.
+    pub fn default_for(variant: super::MeshfreeVariant) -> Self {
+        match variant {
+            super::MeshfreeVariant::Seed => Self::SeedLinear,
+            super::MeshfreeVariant::Corrected => Self::WendlandC2,
+        }
+    }
+}
+
 /// A kernel of one kind and smoothing length.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Kernel {

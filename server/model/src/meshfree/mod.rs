@@ -64,6 +64,8 @@ impl MeshfreeVariant {
 pub struct MeshfreeParams {
     /// Formulation.
     pub variant: MeshfreeVariant,
+    /// Kernel function (the seed's cone for `seed`, Wendland C2 for `corrected` by default).
+    pub kernel: KernelKind,
     /// Lattice spacing `s` of the particles, m.
     pub spacing_m: f64,
     /// Smoothing length over spacing, `h / s` (support radius `2 h`); 1.0 gives the 26
@@ -78,6 +80,7 @@ impl Default for MeshfreeParams {
     fn default() -> Self {
         Self {
             variant: MeshfreeVariant::Corrected,
+            kernel: KernelKind::WendlandC2,
             spacing_m: 1e-3,
             smoothing_ratio: 1.0,
             hourglass_coefficient: 0.5,
