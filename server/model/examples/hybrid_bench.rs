@@ -82,7 +82,7 @@ fn main() -> anyhow::Result<()> {
         model.core_dt_s
     );
     let clamped = model.clamped_core_nodes();
-    println!("scene,variant,particles,active,substeps,ticks,median_us,p99_us,prep_s");
+    println!("scene,variant,particles,active,substeps,core_substeps,ticks,median_us,p99_us,prep_s");
     for &target in &args.active {
         let mut p = model.params;
         p.max_active_particles = target;
@@ -129,12 +129,13 @@ fn main() -> anyhow::Result<()> {
         let med = times[times.len() / 2];
         let p99 = times[(times.len() * 99) / 100];
         println!(
-            "{},{},{},{},{},{},{:.1},{:.1},{:.3}",
+            "{},{},{},{},{},{},{},{:.1},{:.1},{:.3}",
             args.scene,
             h.params.meshfree.variant.name(),
             model.layer_count,
             active,
             body.substeps().0,
+            body.substeps().2,
             args.ticks,
             med,
             p99,

@@ -9,10 +9,12 @@
 //! `release_radius_m` and whose particles are back within `release_tolerance_m` of the core's
 //! interpolation is switched off (its particles follow the core again, at no cost). When the
 //! active set changed, the energy terms are refilled (active particles and their tied
-//! neighbours, allocation-free). (2) Sub-steps at the smaller of the core's and the particles'
-//! critical steps: tied particles take the core's interpolated positions, term forces, probe
-//! penalty on active particles, tied particles' forces back to the core with the tie weights,
-//! core forces, update. (3) The device force is minus the probe's penalty forces of the last
+//! neighbours, allocation-free). (2) Particle steps at the particles' critical step: tied
+//! particles take the core's interpolated positions, term forces, probe penalty on active
+//! particles, tied particles' forces back to the core with the tie weights; then the core
+//! and the active particles update (one rate: the smaller critical step; the core-step loop
+//! inside a particle step is there for a multi-rate scheme, which diverged on lv-hybrid
+//! because the tied particles' terms stiffen the core nodes). (3) The device force is minus the probe's penalty forces of the last
 //! sub-step, with their stiffness `sum k n n^T`.
 //!
 //! **Surface.** Each outer vertex shows the core's interpolation at the vertex plus the
@@ -58,7 +60,11 @@ pub struct HybridBody {
     probe: ProbeParams,
     tick_s: f64,
     substeps: u32,
+    core_substeps: u32,
     dt_s: f64,
+    /// Forces of the tied particles and point loads on the core nodes, held over a particle
+    /// step, N.
+    fcoup: Vec<DVec3>,
     critical_dt_s: f64,
     particle_mass_kg: f64,
     xc: Vec<DVec3>,
@@ -109,23 +115,33 @@ impl HybridBody {
         name: &str,
     ) -> Result<Self, ModelError> {
         let params = model.params;
-        let material = *model.cloud.material();
+        // `mass_scale` multiplies every mass, the core's too (a uniform slow-down of the
+        // dynamics by its square root; statics unchanged): the tied particles' terms stiffen
+        // the core nodes, which must then be as heavy as the particles are.
+        let mut material = *model.cloud.material();
+        material.density_kg_per_m3 *= params.mass_scale;
         let mut fem = FemModel::new(&model.core_mesh, material)?;
+        let core_dt_s = model.core_dt_s * params.mass_scale.sqrt();
         fem.clamp_nodes(clamped);
         let particle_mass_kg = model.cloud.mass_kg() * params.mass_scale;
         // Elastic part scales with 1/mass; the probe penalty adds k / m to the eigenvalue bound.
         let lambda_el = (2.0 / model.particle_dt_s).powi(2) / params.mass_scale;
         let lambda = lambda_el + params.contact_stiffness_n_per_m / particle_mass_kg;
         let particle_dt = 2.0 / lambda.sqrt();
-        let critical_dt_s = particle_dt.min(model.core_dt_s);
-        let dt_target = params.safety_factor * critical_dt_s;
-        let substeps = (tick_s / dt_target).ceil().max(1.0) as u32;
-        if substeps > params.max_substeps {
+        let critical_dt_s = particle_dt.min(core_dt_s);
+        // One rate for both: the particle terms of tied particles stiffen the core nodes, which
+        // carry no mass scale, so a core held through a longer particle step (multi-rate, tried)
+        // diverges on lv-hybrid. `core_substeps` stays 1.
+        let substeps = (tick_s / (params.safety_factor * critical_dt_s))
+            .ceil()
+            .max(1.0) as u32;
+        let core_substeps = 1u32;
+        if substeps.max(core_substeps) > params.max_substeps {
             return Err(ModelError::field(
                 "hybrid.max_substeps",
                 format!(
-                    "the critical step {critical_dt_s:.3e} s (particles {particle_dt:.3e} s, core {:.3e} s) needs {substeps} sub-steps per {tick_s} s tick; raise max_substeps or mass_scale, or use a larger spacing_m",
-                    model.core_dt_s
+                    "the critical steps (particles {particle_dt:.3e} s, core {:.3e} s) need {substeps} particle sub-steps per {tick_s} s tick and {core_substeps} core steps per particle step; raise max_substeps or mass_scale, or use a larger spacing_m",
+                    core_dt_s
                 ),
             ));
         }
@@ -140,7 +156,9 @@ impl HybridBody {
             probe,
             tick_s,
             substeps,
+            core_substeps,
             dt_s: tick_s / substeps as f64,
+            fcoup: vec![DVec3::ZERO; nc],
             critical_dt_s,
             particle_mass_kg,
             xc: model.core_mesh.nodes.clone(),
@@ -173,9 +191,9 @@ impl HybridBody {
         &self.model
     }
 
-    /// Sub-steps per tick and the sub-step, s.
-    pub fn substeps(&self) -> (u32, f64) {
-        (self.substeps, self.dt_s)
+    /// Particle sub-steps per tick, the particle step (s) and core steps per particle step.
+    pub fn substeps(&self) -> (u32, f64, u32) {
+        (self.substeps, self.dt_s, self.core_substeps)
     }
 
     /// Keeps every active region active (no release) while `hold` is true: for tests and
@@ -382,10 +400,11 @@ impl HybridBody {
         self.changed = false;
     }
 
-    /// Forces of the current state into the force buffers (no update): tied positions from
-    /// the core, terms, the probe at `probe_m` (returns the force on the device, N, and its
-    /// stiffness `sum k n n^T`, N/m), point loads, core forces.
-    fn forces(&mut self, probe_m: Option<DVec3>) -> (DVec3, [f64; 9]) {
+    /// Particle forces of the current state (no update): tied positions from the core, terms,
+    /// the probe at `probe_m` (returns the force on the device, N, and its stiffness
+    /// `sum k n n^T`, N/m); the tied particles' forces and the point loads go to the core
+    /// nodes' coupling buffer with the tie weights.
+    fn particle_forces(&mut self, probe_m: Option<DVec3>) -> (DVec3, [f64; 9]) {
         if self.changed {
             self.rebuild_terms();
         }
@@ -417,50 +436,64 @@ impl HybridBody {
                 }
             }
         }
-        self.fc.iter_mut().for_each(|f| *f = DVec3::ZERO);
-        self.fem
-            .add_internal_forces(&self.xc, Some(&self.vc), &mut self.fc);
+        self.fcoup.iter_mut().for_each(|f| *f = DVec3::ZERO);
         for &q in &self.tied_list {
             let tie = &m.particle_tie[q as usize];
             let t = tets[tie.tet as usize];
             let f = self.fp[q as usize];
             for k in 0..4 {
-                self.fc[t[k] as usize] += f * tie.w[k];
+                self.fcoup[t[k] as usize] += f * tie.w[k];
             }
         }
         for l in &self.loads[..self.load_count] {
             let t = tets[l.tie.tet as usize];
             for k in 0..4 {
-                self.fc[t[k] as usize] += l.force_n * l.tie.w[k];
+                self.fcoup[t[k] as usize] += l.force_n * l.tie.w[k];
             }
         }
         (device, stiffness)
+    }
+
+    /// Core forces: the coupling buffer plus the FEM's internal (elastic and viscous) forces.
+    fn core_forces(&mut self) {
+        self.fc.copy_from_slice(&self.fcoup);
+        self.fem
+            .add_internal_forces(&self.xc, Some(&self.vc), &mut self.fc);
     }
 
     /// Computes the forces of the current state without advancing it and returns the core
     /// nodes' forces and the particles' forces (N; particle entries are meaningful for active
     /// and tied particles). For tests: constant strain, momentum.
     pub fn evaluate_forces(&mut self) -> (&[DVec3], &[DVec3]) {
-        self.forces(None);
+        self.particle_forces(None);
+        self.core_forces();
         (&self.fc, &self.fp)
     }
 
-    /// One sub-step of length `dt` from the forces in the buffers; returns the largest squared
-    /// speed (NaN when non-finite).
+    /// One particle step of length `dt` from the forces in the buffers, during which the core
+    /// takes `core_substeps` steps with the coupling forces held (multi-rate: the impulses
+    /// exchanged through the ties are equal and opposite, so momentum stays exact); returns the
+    /// largest squared speed (NaN when non-finite).
     fn update(&mut self, dt: f64) -> f64 {
-        let max_core = integrate_nodes(
-            IntegratorKind::SymplecticEuler,
-            &self.fem,
-            &[],
-            dt,
-            &self.fc,
-            &mut self.xc,
-            &mut self.vc,
-        );
+        let dt_c = dt / self.core_substeps as f64;
+        let mut max_v2: f64 = 0.0;
+        let mut non_finite = false;
+        for _ in 0..self.core_substeps {
+            self.core_forces();
+            let v2 = integrate_nodes(
+                IntegratorKind::SymplecticEuler,
+                &self.fem,
+                &[],
+                dt_c,
+                &self.fc,
+                &mut self.xc,
+                &mut self.vc,
+            );
+            non_finite |= !v2.is_finite();
+            max_v2 = max_v2.max(v2);
+        }
         let damp = 1.0 / (1.0 + self.fem.material().mass_damping_per_s * dt);
         let inv_m = dt / self.particle_mass_kg;
-        let mut max_v2 = max_core;
-        let mut non_finite = !max_core.is_finite();
         for &p in &self.active_list {
             let p = p as usize;
             let v = (self.vp[p] + self.fp[p] * inv_m) * damp;
@@ -513,7 +546,7 @@ impl SoftBody for HybridBody {
         // 2. Sub-steps.
         let mut out = (DVec3::ZERO, [0.0; 9]);
         for _ in 0..self.substeps {
-            out = self.forces(probe);
+            out = self.particle_forces(probe);
             let v2 = self.update(self.dt_s);
             if !(v2 <= MAX_SPEED_M_PER_S * MAX_SPEED_M_PER_S) {
                 self.diverged_at_s = Some(self.time_s);

@@ -93,8 +93,9 @@ pub struct HybridParams {
     pub max_active_particles: usize,
     /// Penalty stiffness between the probe sphere and one particle, N/m.
     pub contact_stiffness_n_per_m: f64,
-    /// Particle mass multiplier (1: `rho s^3`, the seed's). Not in the seed: above 1 it raises
-    /// the particles' critical step by its square root; static forces do not change.
+    /// Multiplier of every mass, core and particles (1: the material's density, the seed's).
+    /// Not in the seed: above 1 it slows the whole dynamics down by its square root and raises
+    /// the critical steps as much; static forces do not change.
     pub mass_scale: f64,
     /// Fraction of the critical step used, in (0, 1].
     pub safety_factor: f64,
