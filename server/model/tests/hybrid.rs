@@ -159,3 +159,160 @@ fn constant_strain_across_the_interface_gives_no_spurious_force() {
     assert!(checked > 20 && typical > 0.0);
     assert!(spurious < 1e-10 * typical, "{spurious:e} vs {typical:e}");
 }
+
+/// Probe centre on a path in the equatorial plane (the equator is a circle of radius 10 mm):
+/// approach from 5 mm outside, press 1 mm in, hold, slide 0.4 rad (4 mm of arc), hold,
+/// retract to 8 mm outside. Returns (time s, centre m) per 1 ms tick.
+fn press_hold_slide_path() -> Vec<DVec3> {
+    let r_probe = 2.0 * MM;
+    let surface = 10.0 * MM;
+    let far = surface + r_probe + 5.0 * MM;
+    let pressed = surface + r_probe - 1.0 * MM;
+    let speed = 10.0 * MM; // per second
+    let mut path = Vec::new();
+    let at = |radius: f64, angle: f64| DVec3::new(angle.cos(), angle.sin(), 0.0) * radius;
+    let mut r = far;
+    while r > pressed {
+        path.push(at(r, 0.0));
+        r -= speed * 1e-3;
+    }
+    path.extend(std::iter::repeat_n(at(pressed, 0.0), 200));
+    let mut a = 0.0;
+    while a < 0.4 {
+        path.push(at(pressed, a));
+        a += speed * 1e-3 / pressed;
+    }
+    path.extend(std::iter::repeat_n(at(pressed, 0.4), 200));
+    let mut r = pressed;
+    while r < surface + r_probe + 8.0 * MM {
+        path.push(at(r, 0.4));
+        r += speed * 1e-3;
+    }
+    path
+}
+
+#[test]
+fn press_hold_slide_release_has_no_force_jump_and_injects_no_energy() {
+    for variant in [MeshfreeVariant::Corrected, MeshfreeVariant::Seed] {
+        let mut p = params(variant);
+        p.mass_scale = 100.0;
+        let mut mat = material(true);
+        if variant == MeshfreeVariant::Corrected {
+            mat.model = haptic_model::material::MaterialModel::StableNeoHookean;
+        }
+        let model = prepare(geometry(), &p, &mat, 188, &mut |_, _| {}).expect("prepare");
+        // The lower third of the core clamped (the pole cap alone leaves a soft tilting mode
+        // that decays over tens of seconds with mass damping).
+        let zc = -0.3 * model.geometry.axes(model.params.core_fraction).z;
+        let clamped: Vec<u32> = (0..model.core_mesh.nodes.len() as u32)
+            .filter(|&i| model.core_mesh.nodes[i as usize].z < zc)
+            .collect();
+        let mut b =
+            HybridBody::new(model, &clamped, ProbeParams::default(), 1e-3, "test").expect("body");
+        let mut prev = DVec3::ZERO;
+        let mut prev_active = 0usize;
+        let mut worst_jump = 0.0f64;
+        let mut changes = 0;
+        let mut max_force = 0.0f64;
+        let mut max_smooth_step = 0.0f64;
+        for c in press_hold_slide_path() {
+            let out = b
+                .tick(&TickInput {
+                    device_position_m: Some(c),
+                    device_velocity_m_per_s: DVec3::ZERO,
+                })
+                .expect("tick");
+            let f = out.force_on_device_n;
+            max_force = max_force.max(f.length());
+            let active = b.active_particles().len();
+            let step = (f - prev).length();
+            if active != prev_active {
+                changes += 1;
+                let scale = f.length().max(prev.length());
+                if scale > 0.0 {
+                    worst_jump = worst_jump.max(step / scale);
+                }
+            } else {
+                max_smooth_step = max_smooth_step.max(step);
+            }
+            prev = f;
+            prev_active = active;
+        }
+        eprintln!(
+            "{variant:?}: {changes} activation/release ticks, largest relative force jump there {:.4} %, largest force {max_force:.4} N, largest per-tick change elsewhere {max_smooth_step:.3e} N",
+            100.0 * worst_jump
+        );
+        assert!(
+            changes >= 2 && max_force > 1e-3,
+            "{changes} changes, {max_force} N"
+        );
+        assert!(
+            worst_jump <= 0.07,
+            "{variant:?}: jump {:.2} %",
+            100.0 * worst_jump
+        );
+        // Free body after the probe left: the active regions are released as they settle and
+        // the energy decays.
+        let (k0, e0) = b.energy();
+        let mut last = k0 + e0;
+        let mut rises = 0.0f64;
+        for _ in 0..3000 {
+            b.tick(&TickInput::default()).expect("tick");
+            let (k, e) = b.energy();
+            let total = k + e;
+            rises = rises.max(total - last);
+            last = total;
+        }
+        eprintln!(
+            "{variant:?}: energy {:.3e} J -> {last:.3e} J, largest rise per tick {rises:.3e} J, {} particles still active",
+            k0 + e0,
+            b.active_particles().len()
+        );
+        assert!(b.active_particles().is_empty(), "regions not released");
+        assert!(
+            rises <= 1e-9 * (k0 + e0).max(1e-15),
+            "{variant:?}: energy rose by {rises:e} J"
+        );
+        assert!(
+            last <= 1e-3 * (k0 + e0) + 1e-15,
+            "{variant:?}: not at rest: {last:e} J"
+        );
+    }
+}
+
+#[path = "common/counting_alloc.rs"]
+mod counting_alloc;
+
+#[test]
+fn tick_does_not_allocate_through_activation_and_release() {
+    let mut b = body(MeshfreeVariant::Corrected, true, true);
+    // Warm-up tick out of contact.
+    b.tick(&TickInput::default()).expect("tick");
+    let path = press_hold_slide_path();
+    let (result, allocations) = counting_alloc::counted(|| {
+        let mut changes = 0;
+        let mut prev = 0;
+        for c in path.iter().step_by(3) {
+            b.tick(&TickInput {
+                device_position_m: Some(*c),
+                device_velocity_m_per_s: DVec3::ZERO,
+            })?;
+            let a = b.active_particles().len();
+            changes += usize::from(a != prev);
+            prev = a;
+        }
+        for _ in 0..2000 {
+            b.tick(&TickInput::default())?;
+        }
+        b.add_point_load(
+            DVec3::new(0.0, 10.0, 0.0) * MM,
+            DVec3::new(0.0, -0.01, 0.0),
+            0.01,
+        )?;
+        b.tick(&TickInput::default())?;
+        Ok::<_, haptic_model::ModelError>(changes)
+    });
+    let changes = result.expect("ticks");
+    assert!(changes >= 2, "{changes} active-set changes");
+    assert_eq!(allocations, 0, "the tick allocated");
+}

@@ -7,7 +7,7 @@
 //! `activation_radius_m` of the probe centre is switched on (its particles start on the core's
 //! interpolation, with the core's interpolated velocity); a region whose vertex is farther than
 //! `release_radius_m` and whose particles are back within `release_tolerance_m` of the core's
-//! interpolation is switched off (its particles follow the core again, at no cost). When the
+//! interpolation (or at rest: speeds below that tolerance per 0.1 s) is switched off (its particles follow the core again, at no cost). When the
 //! active set changed, the energy terms are refilled (active particles and their tied
 //! neighbours, allocation-free). (2) Particle steps at the particles' critical step: tied
 //! particles take the core's interpolated positions, term forces, probe penalty on active
@@ -317,16 +317,21 @@ impl HybridBody {
             let near = probe_m.is_some_and(|c| {
                 (interpolate(&m.vertex_tie[v], tets, &self.xc) - c).length_squared() < r2
             });
+            let region =
+                &m.region_particles[m.region_start[v] as usize..m.region_start[v + 1] as usize];
+            // Settled: back on the core's interpolation, or at rest (speeds below the tolerance
+            // per 0.1 s) in a state the layer cannot leave by itself (a fold pressed in by the
+            // probe), which the release then removes.
             let settled = !near
-                && m.region_particles[m.region_start[v] as usize..m.region_start[v + 1] as usize]
-                    .iter()
-                    .all(|&p| {
-                        let p = p as usize;
-                        !self.active[p]
-                            || (self.xp[p] - interpolate(&m.particle_tie[p], tets, &self.xc))
-                                .length_squared()
-                                < tol2
-                    });
+                && (region.iter().all(|&p| {
+                    let p = p as usize;
+                    !self.active[p]
+                        || (self.xp[p] - interpolate(&m.particle_tie[p], tets, &self.xc))
+                            .length_squared()
+                            < tol2
+                }) || region.iter().all(|&p| {
+                    !self.active[p as usize] || self.vp[p as usize].length_squared() * 0.01 < tol2
+                }));
             if settled {
                 for &p in
                     &m.region_particles[m.region_start[v] as usize..m.region_start[v + 1] as usize]
