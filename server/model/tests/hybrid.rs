@@ -316,3 +316,88 @@ fn tick_does_not_allocate_through_activation_and_release() {
     assert!(changes >= 2, "{changes} active-set changes");
     assert_eq!(allocations, 0, "the tick allocated");
 }
+
+#[test]
+fn builtin_hybrid_scenes_build_and_press() {
+    for name in ["ellipsoids-hybrid", "lv-hybrid"] {
+        let scene = haptic_model::scene::load_builtin(name).expect("scene");
+        let mut stages = 0;
+        let mut body =
+            haptic_model::build_body_with_progress(&scene, &mut |_, _| stages += 1).expect("body");
+        assert!(stages >= 5, "{name}: progress reported {stages} times");
+        let stats = body.stats();
+        assert_eq!(body.info().family, "hybrid");
+        if name == "lv-hybrid" {
+            assert!(
+                stats.particles >= 100_000,
+                "{name}: {} particles",
+                stats.particles
+            );
+        }
+        // Press the outer surface at its largest-x vertex, 0.5 mm deep.
+        let n = body.surface_topology().vertex_count;
+        let mut rest = vec![0f32; 3 * n];
+        body.write_surface_rest_positions(&mut rest);
+        let v = (0..n)
+            .max_by(|&a, &b| rest[3 * a].total_cmp(&rest[3 * b]))
+            .unwrap();
+        let p = DVec3::new(
+            rest[3 * v] as f64,
+            rest[3 * v + 1] as f64,
+            rest[3 * v + 2] as f64,
+        );
+        let device = p + DVec3::X * (scene.probe.radius_m - 0.5 * MM);
+        let mut force = DVec3::ZERO;
+        for _ in 0..100 {
+            force = body
+                .tick(&TickInput {
+                    device_position_m: Some(device),
+                    device_velocity_m_per_s: DVec3::ZERO,
+                })
+                .expect("tick")
+                .force_on_device_n;
+        }
+        let stats = body.stats();
+        let mut surf = vec![0f32; 3 * n];
+        let dent = body.write_surface_positions(&mut surf);
+        eprintln!(
+            "{name}: {} particles, {} active, force {force:.4} N, surface displacement {dent:.3e} m",
+            stats.particles, stats.active_particles
+        );
+        assert!(
+            stats.active_particles > 0 && force.x > 0.0 && dent > 1e-5,
+            "{name}"
+        );
+    }
+}
+
+#[test]
+fn hybrid_scene_errors_name_their_field() {
+    let base = haptic_model::scene::builtin_scene_toml("ellipsoids-hybrid").unwrap();
+    for (from, to, field) in [
+        ("spacing_m = 0.0005", "spacing_m = -1.0", "hybrid.spacing_m"),
+        (
+            "variant = \"seed\"",
+            "variant = \"magic\"",
+            "hybrid.variant",
+        ),
+        (
+            "core_fraction = 0.4",
+            "core_fraction = 1.5",
+            "hybrid.core_fraction",
+        ),
+        (
+            "release_radius_m = 0.005",
+            "release_radius_m = 0.001",
+            "hybrid.release_radius_m",
+        ),
+        ("family = \"hybrid\"", "family = \"fem\"", "hybrid"),
+    ] {
+        let text = base.replace(from, to);
+        assert_ne!(text, base, "{from}");
+        match haptic_model::scene::parse_scene_toml(&text, std::path::Path::new(".")) {
+            Err(haptic_model::ModelError::SceneField { field: f, .. }) => assert_eq!(f, field),
+            other => panic!("{from} -> {to}: {other:?}"),
+        }
+    }
+}

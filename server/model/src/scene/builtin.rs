@@ -216,7 +216,7 @@ max_force_n = 10.0
 /// Built-in scene `ellipsoids-hybrid`: the seeds' Hybrid Model setting (Table 1).
 const ELLIPSOIDS_HYBRID_TOML: &str = r#"# Built-in scene "ellipsoids-hybrid" (a copy of the constant in server/model/src/scene/builtin.rs).
 name = "ellipsoids-hybrid"
-description = "The seeds' Hybrid Model setting (Mero & Susin 2006, Table 1): lambda = 5.0, mu = 2.0, phi = psi = 9e-5 (read as kPa and kPa s, as in the ellipsoids scene), a 188-tet FEM core (the inner 40 % of the ellipsoidal wall 6x6x12 to 10x10x16 mm, bottom pole clamped) and about 19 000 particles at 0.5 mm (seed variant: the paper's cone kernel, uncorrected gradient, Verlet), of which the regions under the probe are simulated. mass_scale = 100 is ours (not in the seed)."
+description = "The seeds' Hybrid Model setting (Mero & Susin 2006, Table 1): lambda = 5.0, mu = 2.0, phi = psi = 9e-5 (read as kPa and kPa s, as in the ellipsoids scene), a 188-tet FEM core (the inner 40 % of the ellipsoidal wall 6x6x12 to 10x10x16 mm, bottom pole clamped) and about 27 000 particles at 0.5 mm (seed variant: the paper's cone kernel, uncorrected gradient, Verlet), of which the regions under the probe are simulated. mass_scale = 100 is ours (not in the seed)."
 
 [model]
 family = "hybrid"
@@ -237,7 +237,8 @@ density_kg_per_m3 = 1060.0
 mass_damping_per_s = 20.0
 
 [boundary]
-touchable = ["OUTER"]
+clamped = ["POLE"]      # the hybrid body clamps its core's bottom pole cap
+touchable = ["OUTER"]   # the hybrid body's outer surface is the outer ellipsoid
 
 [integrator]
 tick_s = 0.001
