@@ -446,14 +446,14 @@ impl HybridBody {
             let tie = &m.particle_tie[q as usize];
             let t = tets[tie.tet as usize];
             let f = self.fp[q as usize];
-            for k in 0..4 {
-                self.fcoup[t[k] as usize] += f * tie.w[k];
+            for (node, w) in t.iter().zip(tie.w) {
+                self.fcoup[*node as usize] += f * w;
             }
         }
         for l in &self.loads[..self.load_count] {
             let t = tets[l.tie.tet as usize];
-            for k in 0..4 {
-                self.fcoup[t[k] as usize] += l.force_n * l.tie.w[k];
+            for (node, w) in t.iter().zip(l.tie.w) {
+                self.fcoup[*node as usize] += l.force_n * w;
             }
         }
         (device, stiffness)

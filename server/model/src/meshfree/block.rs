@@ -264,15 +264,15 @@ pub fn critical_time_step(cloud: &ParticleCloud) -> Result<f64, ModelError> {
             }
             let mut owner = 0.0;
             let mut abs_sum = 0.0;
-            for m in 0..k {
-                let b = rest.g[m].dot(rest.offset_m[q]) - if m == q { 1.0 } else { 0.0 };
-                coef[m] = b;
+            for (m, (g, out)) in rest.g[..k].iter().zip(&mut coef[..k]).enumerate() {
+                let b = g.dot(rest.offset_m[q]) - if m == q { 1.0 } else { 0.0 };
+                *out = b;
                 owner -= b;
                 abs_sum += b.abs();
             }
             abs_sum += owner.abs();
-            for m in 0..k {
-                row[nbr[m] as usize] += cq * coef[m].abs() * abs_sum;
+            for (q, c) in nbr[..k].iter().zip(&coef[..k]) {
+                row[*q as usize] += cq * c.abs() * abs_sum;
             }
             row[p as usize] += cq * owner.abs() * abs_sum;
         }
