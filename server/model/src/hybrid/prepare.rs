@@ -27,10 +27,10 @@ use super::{HybridParams, ShellGeometry};
 use crate::ModelError;
 use crate::element::FemModel;
 use crate::integrate::{IntegratorKind, critical_time_step as fem_critical_time_step};
-use crate::material::MaterialParams;
+use crate::material::{MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
 use crate::mesh::generate::truncated_ellipsoid_shell;
-use crate::meshfree::{Lattice, ParticleCloud, TermBlock, critical_time_step};
+use crate::meshfree::{Lattice, MeshfreeVariant, ParticleCloud, TermBlock, critical_time_step};
 
 /// A particle's or vertex's tie to the core: tetrahedron and barycentric weights (sum 1).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -121,7 +121,8 @@ impl HybridModel {
 /// the core; `progress(stage, fraction)` is called at each step.
 ///
 /// # Errors
-/// [`ModelError::SceneField`] for bad parameters (the `hybrid.*` field), too few or too many
+/// [`ModelError::SceneField`] for bad parameters (the `hybrid.*` field; `hybrid.variant` for
+/// the seed variant with another law than StVK), too few or too many
 /// particles (`hybrid.spacing_m`), or a stencil the meshfree terms cannot hold
 /// (`hybrid.smoothing_ratio`); the errors of [`FemModel::new`] for the core.
 pub fn prepare(
@@ -132,6 +133,14 @@ pub fn prepare(
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<HybridModel, ModelError> {
     params.validate()?;
+    if params.meshfree.variant == MeshfreeVariant::Seed
+        && material.model != MaterialModel::StVenantKirchhoff
+    {
+        return Err(ModelError::field(
+            "hybrid.variant",
+            "\"seed\" is the paper's St. Venant-Kirchhoff formulation: set material.model = \"stvk\" or use \"corrected\"",
+        ));
+    }
     let f = params.core_fraction;
     let s = params.meshfree.spacing_m;
     // 1. Core.

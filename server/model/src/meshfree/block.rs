@@ -173,20 +173,19 @@ impl TermBlock {
             // m = V P + H (the matrix applied to g_ij), minus c e for the hourglass part.
             let mut m = p * v;
             if !self.seed {
+                // Pair errors e_ij once, then H and the gradients.
+                let mut e = [DVec3::ZERO; MAX_STENCIL];
                 let mut h = DMat3::ZERO;
-                for k in 0..n {
-                    let c = self.hourglass[base + k];
+                for (k, ek) in e[..n].iter_mut().enumerate() {
                     let xk = self.offset[base + k];
-                    let e = fg * xk - (x[self.nbr[base + k] as usize] - xi);
-                    h += outer(e * c, xk);
+                    *ek = fg * xk - (x[self.nbr[base + k] as usize] - xi);
+                    h += outer(*ek * self.hourglass[base + k], xk);
                 }
                 m += h;
                 let mut owner = DVec3::ZERO;
-                for k in 0..n {
+                for (k, ek) in e[..n].iter().enumerate() {
                     let j = self.nbr[base + k] as usize;
-                    let xk = self.offset[base + k];
-                    let e = fg * xk - (x[j] - xi);
-                    let grad = m * self.g[base + k] - e * self.hourglass[base + k];
+                    let grad = m * self.g[base + k] - *ek * self.hourglass[base + k];
                     f[j] -= grad;
                     owner += grad;
                 }
