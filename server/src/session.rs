@@ -484,11 +484,14 @@ impl SessionManager {
     pub fn start(&self, scene: &Scene) -> Result<Arc<Session>, ServerError> {
         self.check_capacity()?;
         let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
-        self.start_body_as(
-            &id,
-            haptic_model::build_body(scene)?,
-            Some(LinkLimits::of_scene(scene)),
-        )
+        // Families that preprocess (the hybrid model) report their stages; logged here, off
+        // the servo thread.
+        let name = scene.name.clone();
+        let body = haptic_model::build_body_with_progress(
+            scene,
+            &mut |stage, fraction| tracing::info!(scene = %name, "preprocessing {:3.0} %: {stage}", 100.0 * fraction),
+        )?;
+        self.start_body_as(&id, body, Some(LinkLimits::of_scene(scene)))
     }
 
     /// Refuses a new session at the session limit.
