@@ -528,7 +528,13 @@ impl SessionManager {
         // pass a check and then exceed the limit.
         let slot = self.reserve_slot()?;
         let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
-        let body = haptic_model::build_body(scene)?;
+        // Families that preprocess (the hybrid model) report their stages; logged here, off
+        // the servo thread.
+        let name = scene.name.clone();
+        let body = haptic_model::build_body_with_progress(
+            scene,
+            &mut |stage, fraction| tracing::info!(scene = %name, "preprocessing {:3.0} %: {stage}", 100.0 * fraction),
+        )?;
         self.start_in_slot(slot, &id, body, Some(LinkLimits::of_scene(scene)))
     }
 

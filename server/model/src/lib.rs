@@ -10,6 +10,8 @@
 //!   [`mesh::export`] writes CSV node tables and ParaView `.vtu` files.
 //! - [`material`]: Lamé parameters and constitutive laws: St. Venant-Kirchhoff (seed 000 eq. 4,
 //!   9), corotational, stable Neo-Hookean, and the seed's viscous stress (eq. 10-11).
+//! - [`meshfree`]: the seeds' meshfree (SPH) elasticity (seed 000 eq. 23-29) in
+//!   total-Lagrangian form, `seed` and `corrected` (Bonet-Lok + hourglass control) variants.
 //! - [`element`]: [`element::FemModel`], precomputed element data: shape-function gradients
 //!   (eq. 13-21), nodal forces (eq. 22) by vectorised kernels, lumped masses, strain smoothing,
 //!   tangent stiffness, the largest eigenvalue for critical time steps.
@@ -27,6 +29,8 @@
 //! - [`mass_spring`]: the mass-spring surface with run-time Loop subdivision (seed 003, Zhang,
 //!   Payandeh & Dill, *Haptic Subdivision*): eq. 1-3, the calibrated spring table (section
 //!   3.2.4), [`mass_spring::MassSpringBody`].
+//! - [`hybrid`]: the seeds' hybrid model (seed 000 sections 4-6): FEM core + meshfree particle
+//!   layer simulated only where the probe touches, [`hybrid::HybridBody`].
 //! - [`statics`]: static equilibrium (Newton on the tangent, sparse Cholesky) for references.
 //!
 //! Units are SI throughout (m, kg, s, N, Pa). Seeds are cited as "seed 000 eq. N":
@@ -40,11 +44,13 @@ pub mod body;
 pub mod contact;
 pub mod element;
 pub mod error;
+pub mod hybrid;
 pub mod integrate;
 pub mod loads;
 pub mod mass_spring;
 pub mod material;
 pub mod mesh;
+pub mod meshfree;
 pub mod scene;
 pub mod sim;
 pub mod statics;
@@ -60,7 +66,40 @@ pub use glam::DVec3;
 /// [`mass_spring::MassSpringBody::new`] for the mass-spring surface, after
 /// [`scene::MassSpringScene::table`]: a missing or stale calibration table).
 pub fn build_body(scene: &scene::Scene) -> Result<Box<dyn body::SoftBody>, ModelError> {
+    build_body_with_progress(scene, &mut |_, _| {})
+}
+
+/// [`build_body`] reporting the preprocessing's progress (`stage`, fraction in `[0, 1]`) for
+/// families that preprocess (the hybrid model, [`hybrid::prepare`]).
+///
+/// # Errors
+/// As [`build_body`]; for the hybrid family the errors of [`hybrid::prepare`] and
+/// [`hybrid::HybridBody::new`].
+pub fn build_body_with_progress(
+    scene: &scene::Scene,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Box<dyn body::SoftBody>, ModelError> {
     match scene.family {
+        scene::ModelFamily::Hybrid => {
+            let h = scene.hybrid.as_ref().ok_or_else(|| {
+                ModelError::field("hybrid", "is required for model.family = \"hybrid\"")
+            })?;
+            let model = hybrid::prepare(
+                h.geometry,
+                &h.params,
+                &scene.material,
+                h.core_target_tets,
+                progress,
+            )?;
+            let clamped = model.clamped_core_nodes();
+            Ok(Box::new(hybrid::HybridBody::new(
+                model,
+                &clamped,
+                scene.probe,
+                scene.integrator.tick_s,
+                &scene.name,
+            )?))
+        }
         scene::ModelFamily::Fem => Ok(Box::new(sim::Simulation::new(scene)?)),
         scene::ModelFamily::MassSpring => {
             let ms = scene.mass_spring.as_ref().ok_or_else(|| {

@@ -14,12 +14,14 @@ const LAYERS: &[&str] = &[
     "error",
     "mesh",
     "material",
+    "meshfree",
     "element",
     "contact",
     "integrate",
     "loads",
     "body",
     "mass_spring",
+    "hybrid",
     "scene",
     "sim",
     "statics",
@@ -33,6 +35,7 @@ const REAL_TIME: &[&str] = &[
     "loads",
     "body",
     "mass_spring",
+    "hybrid",
     "sim",
 ];
 

@@ -296,6 +296,34 @@ pub fn ellipsoid_shell(inner: DVec3, outer: DVec3, target_tets: usize) -> TetMes
     mesh
 }
 
+/// A shell of revolution between the ellipsoids of semi-axes `inner` and `outer` (x, y, z, m),
+/// kept below the plane `z = z_cut` when given (the construction of [`lv_shell`] with free
+/// axes): the hybrid model's FEM core and outer surface are built with it.
+///
+/// Surfaces (outward oriented): `INNER`, `OUTER`, and `BASE` when truncated.
+///
+/// # Panics
+/// If a semi-axis is not finite and positive or `inner` is not smaller than `outer` in every
+/// component.
+pub fn truncated_ellipsoid_shell(
+    inner: DVec3,
+    outer: DVec3,
+    z_cut: Option<f64>,
+    target_tets: usize,
+) -> TetMesh {
+    assert!(
+        inner.is_finite() && inner.min_element() > 0.0 && inner.cmplt(outer).all(),
+        "truncated_ellipsoid_shell: need 0 < inner < outer, got {inner} and {outer}"
+    );
+    let profile = Profile {
+        inner,
+        outer,
+        z_cut,
+    };
+    let shell = revolution_shell(&profile, target_tets);
+    shell.classify("INNER", "OUTER", z_cut.map(|_| "BASE"))
+}
+
 /// Thick-walled hollow sphere centred at the origin (the Lamé problem), in metres.
 ///
 /// `inner_radius_m` < `outer_radius_m`, m. `target_tets`: wanted number of tetrahedra (within

@@ -164,6 +164,105 @@ coupling_damping_n_s_per_m = 0.05
 max_force_n = 10.0
 "#;
 
+/// Built-in scene `lv-hybrid`: the seeds' hybrid model on the LV geometry.
+const LV_HYBRID_TOML: &str = r#"# Built-in scene "lv-hybrid" (a copy of the constant in server/model/src/scene/builtin.rs).
+name = "lv-hybrid"
+description = "The seeds' hybrid model (Mero & Susin 2006, sections 4-6) on the idealized LV of the built-in lv scene: a coarse FEM core (inner 35 % of the wall, about 500 linear tets, base clamped) and a layer of about 110 000 meshfree particles (corrected variant) between the core and the epicardium, simulated only in the regions under the probe. Material of the lv scene (E = 14.5 kPa, nu = 0.45). mass_scale = 1000 is ours (not in the seed): it keeps the explicit particle step at a few sub-steps per 1 ms tick."
+
+[model]
+family = "hybrid"
+
+[mesh]
+builtin = "lv"
+target_tets = 500       # the FEM core
+length_unit = "mm"      # unit for reports; the built-in geometry is fixed
+
+[material]
+youngs_modulus_pa = 14500.0
+poisson_ratio = 0.45
+phi_pa_s = 0.05
+psi_pa_s = 0.05
+density_kg_per_m3 = 1060.0
+mass_damping_per_s = 20.0
+
+[boundary]
+clamped = ["BASE"]      # the hybrid body clamps its core's base
+touchable = ["EPI"]     # the hybrid body's outer surface is the epicardium
+
+[integrator]
+tick_s = 0.001          # sub-steps come from the hybrid body's own critical step
+
+[hybrid]
+variant = "corrected"           # or "seed" (the paper's kernel and gradient)
+spacing_m = 0.00026             # lattice spacing of the particles
+smoothing_ratio = 1.0           # h / spacing: 26 neighbours
+hourglass_coefficient = 0.5
+core_fraction = 0.35            # share of the wall thickness in the FEM core
+surface_target_tets = 12000     # resolution of the outer surface (per-vertex particle regions)
+activation_radius_m = 0.0035
+release_radius_m = 0.005
+release_tolerance_m = 0.00002
+max_active_particles = 2000
+contact_stiffness_n_per_m = 2.0 # probe-particle penalty, per particle
+mass_scale = 1000.0
+safety_factor = 0.9
+max_substeps = 64
+
+[probe]
+radius_m = 0.002
+max_force_n = 10.0
+"#;
+
+/// Built-in scene `ellipsoids-hybrid`: the seeds' Hybrid Model setting (Table 1).
+const ELLIPSOIDS_HYBRID_TOML: &str = r#"# Built-in scene "ellipsoids-hybrid" (a copy of the constant in server/model/src/scene/builtin.rs).
+name = "ellipsoids-hybrid"
+description = "The seeds' Hybrid Model setting (Mero & Susin 2006, Table 1): lambda = 5.0, mu = 2.0, phi = psi = 9e-5 (read as kPa and kPa s, as in the ellipsoids scene), a 188-tet FEM core (the inner 40 % of the ellipsoidal wall 6x6x12 to 10x10x16 mm, bottom pole clamped) and about 27 000 particles at 0.5 mm (seed variant: the paper's cone kernel, uncorrected gradient, Verlet), of which the regions under the probe are simulated. mass_scale = 100 is ours (not in the seed)."
+
+[model]
+family = "hybrid"
+
+[mesh]
+builtin = "ellipsoids"
+length_unit = "mm"
+inner_semi_axes = [6.0, 6.0, 12.0]
+outer_semi_axes = [10.0, 10.0, 16.0]
+target_tets = 188
+
+[material]
+lambda_pa = 5000.0
+mu_pa = 2000.0
+phi_pa_s = 0.09
+psi_pa_s = 0.09
+density_kg_per_m3 = 1060.0
+mass_damping_per_s = 20.0
+
+[boundary]
+clamped = ["POLE"]      # the hybrid body clamps its core's bottom pole cap
+touchable = ["OUTER"]   # the hybrid body's outer surface is the outer ellipsoid
+
+[integrator]
+tick_s = 0.001
+
+[hybrid]
+variant = "seed"
+spacing_m = 0.0005
+smoothing_ratio = 1.0
+core_fraction = 0.4
+surface_target_tets = 8000
+activation_radius_m = 0.0035
+release_radius_m = 0.005
+release_tolerance_m = 0.00002
+max_active_particles = 1000
+contact_stiffness_n_per_m = 2.0
+mass_scale = 100.0
+safety_factor = 0.9
+max_substeps = 64
+
+[probe]
+radius_m = 0.002
+max_force_n = 10.0
+"#;
+
 /// The calibration tables of the built-in scenes, by file name (identical copies beside the
 /// scenes in `deploy/scenes/`).
 const CALIBRATIONS: [(&str, &str); 2] = [
@@ -184,7 +283,7 @@ pub fn builtin_calibration(file: &str) -> Option<&'static str> {
 }
 
 /// Built-in scenes: (name, TOML text, one-line description).
-const BUILTINS: [(&str, &str, &str); 4] = [
+const BUILTINS: [(&str, &str, &str); 6] = [
     (
         "lv",
         LV_TOML,
@@ -205,15 +304,27 @@ const BUILTINS: [(&str, &str, &str); 4] = [
         LV_SURFACE_SPRINGS_TOML,
         "the LV epicardium as a mass-spring surface, one-ring Loop subdivision at the contact, calibrated springs",
     ),
+    (
+        "lv-hybrid",
+        LV_HYBRID_TOML,
+        "the seeds' hybrid model on the LV: coarse FEM core + ~110k meshfree particles simulated only under the probe",
+    ),
+    (
+        "ellipsoids-hybrid",
+        ELLIPSOIDS_HYBRID_TOML,
+        "the seeds' Hybrid Model setting (Table 1): 188-tet FEM core + meshfree particle layer (seed variant)",
+    ),
 ];
 
 /// Names and one-line descriptions of the built-in scenes, e.g. `("lv", "idealized left ...")`.
 pub fn builtin_scene_names() -> &'static [(&'static str, &'static str)] {
-    const NAMES: [(&str, &str); 4] = [
+    const NAMES: [(&str, &str); 6] = [
         (BUILTINS[0].0, BUILTINS[0].2),
         (BUILTINS[1].0, BUILTINS[1].2),
         (BUILTINS[2].0, BUILTINS[2].2),
         (BUILTINS[3].0, BUILTINS[3].2),
+        (BUILTINS[4].0, BUILTINS[4].2),
+        (BUILTINS[5].0, BUILTINS[5].2),
     ];
     &NAMES
 }

@@ -113,17 +113,25 @@ pub enum ModelFamily {
     /// The mass-spring surface with run-time Loop subdivision
     /// ([`crate::mass_spring::MassSpringBody`]; `"mass-spring"`, section `[mass_spring]`).
     MassSpring,
+    /// The seeds' hybrid FEM core + meshfree particle layer ([`crate::hybrid::HybridBody`];
+    /// `"hybrid"`, section `[hybrid]`).
+    Hybrid,
 }
 
 impl ModelFamily {
     /// Every family, for error messages and listings.
-    pub const ALL: &'static [ModelFamily] = &[ModelFamily::Fem, ModelFamily::MassSpring];
+    pub const ALL: &'static [ModelFamily] = &[
+        ModelFamily::Fem,
+        ModelFamily::MassSpring,
+        ModelFamily::Hybrid,
+    ];
 
     /// The scene-file name.
     pub fn name(self) -> &'static str {
         match self {
             Self::Fem => "fem",
             Self::MassSpring => "mass-spring",
+            Self::Hybrid => "hybrid",
         }
     }
 
@@ -169,6 +177,21 @@ pub struct Scene {
     /// the spring surface itself (the touchable triangles of the mesh the scene names, no
     /// tetrahedra), `touchable` its triangles and `clamped_nodes` its fixed nodes.
     pub mass_spring: Option<MassSpringScene>,
+    /// The hybrid model (section `[hybrid]`): present exactly when `family` is
+    /// [`ModelFamily::Hybrid`]. `mesh` is then the whole wall (for listings); the body builds
+    /// its own core and particle layer from the geometry.
+    pub hybrid: Option<HybridScene>,
+}
+
+/// The hybrid part of a scene (`[hybrid]`, with the wall geometry of the built-in mesh).
+#[derive(Debug, Clone)]
+pub struct HybridScene {
+    /// The wall between two ellipsoids (`mesh.builtin` = `"lv"` or `"ellipsoids"`).
+    pub geometry: crate::hybrid::ShellGeometry,
+    /// Parameters.
+    pub params: crate::hybrid::HybridParams,
+    /// Wanted tetrahedra of the FEM core (`mesh.target_tets`).
+    pub core_target_tets: usize,
 }
 
 /// The mass-spring part of a scene: the spring surface (the touchable triangles, with the

@@ -7,10 +7,11 @@ use glam::DVec3;
 use serde::Deserialize;
 
 use super::builtin::builtin_calibration;
-use super::{MassSpringScene, ModelFamily, Scene, TableState};
+use super::{HybridScene, MassSpringScene, ModelFamily, Scene, TableState};
 use crate::ModelError;
 use crate::contact::ProbeParams;
 use crate::element::StrainSmoothing;
+use crate::hybrid::{HybridParams, ShellGeometry};
 use crate::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
 use crate::integrate::{IntegratorKind, IntegratorParams};
 use crate::loads::{PointForce, PressureLoad, SceneLoads};
@@ -20,6 +21,7 @@ use crate::mass_spring::{
 };
 use crate::material::{MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
+use crate::meshfree::{KernelKind, MeshfreeParams, MeshfreeVariant};
 
 /// Largest accepted gravitational acceleration magnitude in a scene, m/s^2.
 pub const MAX_GRAVITY_M_PER_S2: f64 = 1e4;
@@ -42,6 +44,27 @@ struct RawScene {
     loads: Option<RawLoads>,
     active_region: Option<RawActiveRegion>,
     mass_spring: Option<RawMassSpring>,
+    hybrid: Option<RawHybrid>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawHybrid {
+    variant: Option<String>,
+    kernel: Option<String>,
+    spacing_m: Option<f64>,
+    smoothing_ratio: Option<f64>,
+    hourglass_coefficient: Option<f64>,
+    core_fraction: Option<f64>,
+    surface_target_tets: Option<i64>,
+    activation_radius_m: Option<f64>,
+    release_radius_m: Option<f64>,
+    release_tolerance_m: Option<f64>,
+    max_active_particles: Option<i64>,
+    contact_stiffness_n_per_m: Option<f64>,
+    mass_scale: Option<f64>,
+    safety_factor: Option<f64>,
+    max_substeps: Option<i64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -360,6 +383,17 @@ pub(super) fn parse_scene(
             "is only for model.family = \"mass-spring\"",
         ));
     }
+    let hybrid = if family == ModelFamily::Hybrid {
+        let section = required("hybrid", raw.hybrid.as_ref())?;
+        Some(build_hybrid(section, &mesh_raw, length_unit_m)?)
+    } else if raw.hybrid.is_some() {
+        return Err(ModelError::field(
+            "hybrid",
+            "is only for model.family = \"hybrid\"",
+        ));
+    } else {
+        None
+    };
     let probe = build_probe(&raw.probe.unwrap_or_default())?;
     let loads = build_loads(&raw.loads.unwrap_or_default(), &mesh, &clamped_nodes)?;
     let active_region = match &raw.active_region {
@@ -425,6 +459,7 @@ pub(super) fn parse_scene(
     Ok(Scene {
         name,
         mass_spring,
+        hybrid,
         description: raw.description.unwrap_or_default(),
         family,
         mesh,
@@ -437,6 +472,120 @@ pub(super) fn parse_scene(
         length_unit_m,
         loads,
         active_region,
+    })
+}
+
+// ----- hybrid section -----
+
+fn build_hybrid(h: &RawHybrid, mesh: &RawMesh, unit_m: f64) -> Result<HybridScene, ModelError> {
+    let mm = 1e-3;
+    let geometry = match mesh.builtin.as_deref() {
+        Some("lv") => ShellGeometry {
+            inner_m: DVec3::new(7.0, 7.0, 17.0) * mm,
+            outer_m: DVec3::new(10.0, 10.0, 20.0) * mm,
+            z_cut_m: Some(5.0 * mm),
+        },
+        Some("ellipsoids") => ShellGeometry {
+            inner_m: mesh
+                .inner_semi_axes
+                .map_or(Ok(DVec3::new(6e-3, 6e-3, 12e-3)), |v| {
+                    positive_vec("mesh.inner_semi_axes", v, unit_m)
+                })?,
+            outer_m: mesh
+                .outer_semi_axes
+                .map_or(Ok(DVec3::new(10e-3, 10e-3, 16e-3)), |v| {
+                    positive_vec("mesh.outer_semi_axes", v, unit_m)
+                })?,
+            z_cut_m: None,
+        },
+        _ => {
+            return Err(ModelError::field(
+                "mesh.builtin",
+                "model.family = \"hybrid\" needs mesh.builtin = \"lv\" or \"ellipsoids\" (a wall between two ellipsoids)",
+            ));
+        }
+    };
+    if mesh.order.unwrap_or(1) != 1 {
+        return Err(ModelError::field(
+            "mesh.order",
+            "the hybrid core uses linear tetrahedra (order = 1)",
+        ));
+    }
+    let d = HybridParams::default();
+    let variant = match h.variant.as_deref() {
+        None => MeshfreeVariant::default(),
+        Some(v) => MeshfreeVariant::from_name(v).ok_or_else(|| {
+            ModelError::field(
+                "hybrid.variant",
+                format!("unknown variant `{v}` (expected seed or corrected)"),
+            )
+        })?,
+    };
+    let kernel = match h.kernel.as_deref() {
+        None => KernelKind::default_for(variant),
+        Some(k) => KernelKind::from_name(k).ok_or_else(|| {
+            ModelError::field(
+                "hybrid.kernel",
+                format!("unknown kernel `{k}` (expected seed-linear or wendland-c2)"),
+            )
+        })?,
+    };
+    let spacing_m = positive(
+        "hybrid.spacing_m",
+        required("hybrid.spacing_m", h.spacing_m)?,
+    )?;
+    let opt_int = |field: &str, v: Option<i64>, default: usize, lo: i64, hi: i64| {
+        v.map_or(Ok(default), |v| int_in(field, v, lo, hi))
+    };
+    let params = HybridParams {
+        meshfree: MeshfreeParams {
+            variant,
+            kernel,
+            spacing_m,
+            smoothing_ratio: h.smoothing_ratio.unwrap_or(d.meshfree.smoothing_ratio),
+            hourglass_coefficient: h
+                .hourglass_coefficient
+                .unwrap_or(d.meshfree.hourglass_coefficient),
+        },
+        core_fraction: h.core_fraction.unwrap_or(d.core_fraction),
+        surface_target_tets: opt_int(
+            "hybrid.surface_target_tets",
+            h.surface_target_tets,
+            d.surface_target_tets,
+            100,
+            200_000,
+        )?,
+        activation_radius_m: h.activation_radius_m.unwrap_or(d.activation_radius_m),
+        release_radius_m: h.release_radius_m.unwrap_or(d.release_radius_m),
+        release_tolerance_m: h.release_tolerance_m.unwrap_or(d.release_tolerance_m),
+        max_active_particles: opt_int(
+            "hybrid.max_active_particles",
+            h.max_active_particles,
+            d.max_active_particles,
+            1,
+            1_000_000,
+        )?,
+        contact_stiffness_n_per_m: h
+            .contact_stiffness_n_per_m
+            .unwrap_or(d.contact_stiffness_n_per_m),
+        mass_scale: h.mass_scale.unwrap_or(d.mass_scale),
+        safety_factor: h.safety_factor.unwrap_or(d.safety_factor),
+        max_substeps: opt_int(
+            "hybrid.max_substeps",
+            h.max_substeps,
+            d.max_substeps as usize,
+            1,
+            10_000,
+        )? as u32,
+    };
+    params.validate()?;
+    let core_target_tets = mesh
+        .target_tets
+        .map_or(Ok(200), |t| int_in("mesh.target_tets", t, 100, 500_000))?;
+    Ok(HybridScene {
+        geometry,
+        params,
+        core_target_tets,
     })
 }
 

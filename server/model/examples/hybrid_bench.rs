@@ -1,0 +1,146 @@
+//! Hybrid model measurements (issue 13): preprocessing time and memory of a hybrid scene, and
+//! the tick time with a given number of active particles (probe pressed into the outer
+//! surface, regions activated until the count is reached, tick timed while holding).
+//!
+//! `cargo run --release -p haptic-model --example hybrid_bench -- --scene lv-hybrid --active 200,600,2000`
+//!
+//! Prints one CSV row per active count: scene, variant, particles, active, substeps, ticks,
+//! median_us, p99_us. The machine is shared: quote medians.
+
+use std::time::Instant;
+
+use clap::Parser;
+use haptic_model::body::{SoftBody, TickInput};
+use haptic_model::hybrid::{HybridBody, prepare};
+use haptic_model::meshfree::MeshfreeVariant;
+use haptic_model::scene::load_builtin;
+
+#[derive(Parser)]
+struct Args {
+    /// Built-in hybrid scene.
+    #[arg(long, default_value = "lv-hybrid")]
+    scene: String,
+    /// Active particle counts to time, comma separated.
+    #[arg(long, default_value = "200,600,2000", value_delimiter = ',')]
+    active: Vec<usize>,
+    /// Variant override: seed or corrected.
+    #[arg(long)]
+    variant: Option<String>,
+    /// Ticks timed per count.
+    #[arg(long, default_value_t = 400)]
+    ticks: usize,
+}
+
+fn rss_kib() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmRSS:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse().ok())
+        })
+        .unwrap_or(0)
+}
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    let scene = load_builtin(&args.scene)?;
+    let mut h = scene.hybrid.clone().expect("a hybrid scene");
+    if let Some(v) = &args.variant {
+        h.params.meshfree.variant = MeshfreeVariant::from_name(v).expect("seed or corrected");
+        h.params.meshfree.kernel =
+            haptic_model::meshfree::KernelKind::default_for(h.params.meshfree.variant);
+    }
+    let rss0 = rss_kib();
+    let t0 = Instant::now();
+    let model = prepare(
+        h.geometry,
+        &h.params,
+        &scene.material,
+        h.core_target_tets,
+        &mut |s, f| {
+            eprintln!(
+                "  preprocessing {:5.1} % {s} ({:.2} s)",
+                100.0 * f,
+                t0.elapsed().as_secs_f64()
+            )
+        },
+    )?;
+    let prep_s = t0.elapsed().as_secs_f64();
+    let rss1 = rss_kib();
+    eprintln!(
+        "{}: {} layer particles + {} anchors, {} core tets, {} outer vertices; preprocessing {:.3} s; model {:.1} MiB (RSS +{:.1} MiB); particle dt {:.3e} s, core dt {:.3e} s",
+        args.scene,
+        model.layer_count,
+        model.cloud.len() - model.layer_count,
+        model.core_mesh.tets.len(),
+        model.outer_rest_m.len(),
+        prep_s,
+        model.memory_bytes() as f64 / (1 << 20) as f64,
+        (rss1 - rss0) as f64 / 1024.0,
+        model.particle_dt_s,
+        model.core_dt_s
+    );
+    let clamped = model.clamped_core_nodes();
+    println!("scene,variant,particles,active,substeps,core_substeps,ticks,median_us,p99_us,prep_s");
+    for &target in &args.active {
+        let mut p = model.params;
+        p.max_active_particles = target;
+        let mut m2 = model.clone();
+        m2.params = p;
+        let mut body = HybridBody::new(
+            m2,
+            &clamped,
+            scene.probe,
+            scene.integrator.tick_s,
+            &scene.name,
+        )?;
+        // Touch point: the outer vertex at the largest x (the free wall), pressed 1 mm in.
+        let m = body.model();
+        let v = (0..m.outer_rest_m.len())
+            .max_by(|&a, &b| m.outer_rest_m[a].x.total_cmp(&m.outer_rest_m[b].x))
+            .expect("vertices");
+        let surf = m.outer_rest_m[v];
+        let normal = (surf - m.centre_m).normalize();
+        let radius = scene.probe.radius_m;
+        body.hold_regions(true);
+        let mut r = 0.5e-3;
+        while body.active_particles().len() < target && r < 0.05 {
+            body.activate_near(surf, r);
+            r += 0.1e-3;
+        }
+        let active = body.active_particles().len();
+        let device = surf + normal * (radius - 1e-3);
+        let input = TickInput {
+            device_position_m: Some(device),
+            device_velocity_m_per_s: Default::default(),
+        };
+        for _ in 0..50 {
+            body.tick(&input)?;
+        }
+        let mut times = Vec::with_capacity(args.ticks);
+        for _ in 0..args.ticks {
+            let t = Instant::now();
+            body.tick(&input)?;
+            times.push(t.elapsed().as_secs_f64() * 1e6);
+        }
+        times.sort_by(f64::total_cmp);
+        eprintln!("  terms and tied particles: {:?}", body.work_counts());
+        let med = times[times.len() / 2];
+        let p99 = times[(times.len() * 99) / 100];
+        println!(
+            "{},{},{},{},{},{},{},{:.1},{:.1},{:.3}",
+            args.scene,
+            h.params.meshfree.variant.name(),
+            model.layer_count,
+            active,
+            body.substeps().0,
+            body.substeps().2,
+            args.ticks,
+            med,
+            p99,
+            prep_s
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,697 @@
+//! [`HybridBody`]: the hybrid family's [`SoftBody`] (seed 000 sections 5-6): the FEM core
+//! (symplectic Euler with mass damping), the active particles (Verlet, seed eq. 33, in its
+//! velocity form `v += F/m dt; x += v dt`, which gives the same positions), the ties of
+//! everything else to the core, contact-local activation and release, and the probe.
+//!
+//! **A tick.** (1) Activation: the particle region of every outer vertex within
+//! `activation_radius_m` of the probe centre is switched on (its particles start on the core's
+//! interpolation, with the core's interpolated velocity); a region whose vertex is farther than
+//! `release_radius_m` and whose particles are back within `release_tolerance_m` of the core's
+//! interpolation (or at rest: speeds below that tolerance per 0.1 s) is switched off (its particles follow the core again, at no cost). When the
+//! active set changed, the energy terms are refilled (active particles and their tied
+//! neighbours, allocation-free). (2) Particle steps at the particles' critical step: tied
+//! particles take the core's interpolated positions, term forces, probe penalty on active
+//! particles, tied particles' forces back to the core with the tie weights; then the core
+//! and the active particles update (one rate: the smaller critical step; the core-step loop
+//! inside a particle step is there for a multi-rate scheme, which diverged on lv-hybrid
+//! because the tied particles' terms stiffen the core nodes). (3) The device force is minus the probe's penalty forces of the last
+//! sub-step, with their stiffness `sum k n n^T`.
+//!
+//! **Surface.** Each outer vertex shows the core's interpolation at the vertex plus the
+//! deviation of its nearest particle from the core's interpolation at that particle (zero for
+//! inactive particles), so the surface is continuous at activation and release.
+//!
+//! Neighbours: data from [`super::prepare`]; forces from [`crate::meshfree::block`] and
+//! [`crate::element::FemModel`].
+
+use glam::DVec3;
+
+use super::prepare::{HybridModel, Tie};
+use crate::ModelError;
+use crate::body::{
+    BodyInfo, BodyStats, MAX_DEVICE_DISTANCE_M, SoftBody, SurfaceCapacity, SurfaceTopology,
+    TickInput, TickOutput, validate_point_load,
+};
+use crate::contact::probe::ProbeParams;
+use crate::element::FemModel;
+use crate::integrate::IntegratorKind;
+use crate::integrate::explicit::integrate_nodes;
+use crate::meshfree::TermBlock;
+
+/// Point loads a body holds at once.
+pub const MAX_POINT_LOADS: usize = 16;
+
+/// Speed above which the body counts as diverged, m/s.
+const MAX_SPEED_M_PER_S: f64 = 100.0;
+
+#[derive(Debug, Clone, Copy, Default)]
+struct PointLoad {
+    tie: Tie,
+    force_n: DVec3,
+    remaining_s: f64,
+}
+
+/// The hybrid body (module documentation).
+#[derive(Debug)]
+pub struct HybridBody {
+    model: Box<HybridModel>,
+    fem: FemModel,
+    name: String,
+    probe: ProbeParams,
+    tick_s: f64,
+    substeps: u32,
+    core_substeps: u32,
+    dt_s: f64,
+    /// Forces of the tied particles and point loads on the core nodes, held over a particle
+    /// step, N.
+    fcoup: Vec<DVec3>,
+    critical_dt_s: f64,
+    particle_mass_kg: f64,
+    xc: Vec<DVec3>,
+    vc: Vec<DVec3>,
+    fc: Vec<DVec3>,
+    xp: Vec<DVec3>,
+    vp: Vec<DVec3>,
+    fp: Vec<DVec3>,
+    active: Vec<bool>,
+    in_block: Vec<bool>,
+    active_list: Vec<u32>,
+    tied_list: Vec<u32>,
+    block: TermBlock,
+    region_active: Vec<bool>,
+    active_regions: Vec<u32>,
+    changed: bool,
+    hold: bool,
+    refused_activations: u64,
+    loads: [PointLoad; MAX_POINT_LOADS],
+    load_count: usize,
+    time_s: f64,
+    diverged_at_s: Option<f64>,
+    last_force_n: DVec3,
+}
+
+/// `sum_k w_k x_k` over a tie.
+#[inline]
+fn interpolate(tie: &Tie, tets: &[[u32; 4]], x: &[DVec3]) -> DVec3 {
+    let t = tets[tie.tet as usize];
+    x[t[0] as usize] * tie.w[0]
+        + x[t[1] as usize] * tie.w[1]
+        + x[t[2] as usize] * tie.w[2]
+        + x[t[3] as usize] * tie.w[3]
+}
+
+impl HybridBody {
+    /// A body at rest from a preprocessed model. `clamped`: core nodes fixed at rest;
+    /// `tick_s`: servo period, s.
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] naming `hybrid.max_substeps` when the critical step needs
+    /// more sub-steps per tick; the errors of [`FemModel::new`].
+    pub fn new(
+        model: HybridModel,
+        clamped: &[u32],
+        probe: ProbeParams,
+        tick_s: f64,
+        name: &str,
+    ) -> Result<Self, ModelError> {
+        let params = model.params;
+        // `mass_scale` multiplies every mass, the core's too (a uniform slow-down of the
+        // dynamics by its square root; statics unchanged): the tied particles' terms stiffen
+        // the core nodes, which must then be as heavy as the particles are.
+        let mut material = *model.cloud.material();
+        material.density_kg_per_m3 *= params.mass_scale;
+        let mut fem = FemModel::new(&model.core_mesh, material)?;
+        let core_dt_s = model.core_dt_s * params.mass_scale.sqrt();
+        fem.clamp_nodes(clamped);
+        let particle_mass_kg = model.cloud.mass_kg() * params.mass_scale;
+        // Elastic part scales with 1/mass; the probe penalty adds k / m to the eigenvalue bound.
+        let lambda_el = (2.0 / model.particle_dt_s).powi(2) / params.mass_scale;
+        let lambda = lambda_el + params.contact_stiffness_n_per_m / particle_mass_kg;
+        let particle_dt = 2.0 / lambda.sqrt();
+        let critical_dt_s = particle_dt.min(core_dt_s);
+        // One rate for both: the particle terms of tied particles stiffen the core nodes, which
+        // carry no mass scale, so a core held through a longer particle step (multi-rate, tried)
+        // diverges on lv-hybrid. `core_substeps` stays 1.
+        let substeps = (tick_s / (params.safety_factor * critical_dt_s))
+            .ceil()
+            .max(1.0) as u32;
+        let core_substeps = 1u32;
+        if substeps.max(core_substeps) > params.max_substeps {
+            return Err(ModelError::field(
+                "hybrid.max_substeps",
+                format!(
+                    "the critical steps (particles {particle_dt:.3e} s, core {:.3e} s) need {substeps} particle sub-steps per {tick_s} s tick and {core_substeps} core steps per particle step; raise max_substeps or mass_scale, or use a larger spacing_m",
+                    core_dt_s
+                ),
+            ));
+        }
+        let n = model.cloud.len();
+        let nc = model.core_mesh.nodes.len();
+        let capacity = 4 * params.max_active_particles + 4 * model.largest_region + 64;
+        let block = TermBlock::new(&model.cloud, capacity);
+        let nv = model.outer_rest_m.len();
+        Ok(Self {
+            fem,
+            name: name.to_string(),
+            probe,
+            tick_s,
+            substeps,
+            core_substeps,
+            dt_s: tick_s / substeps as f64,
+            fcoup: vec![DVec3::ZERO; nc],
+            critical_dt_s,
+            particle_mass_kg,
+            xc: model.core_mesh.nodes.clone(),
+            vc: vec![DVec3::ZERO; nc],
+            fc: vec![DVec3::ZERO; nc],
+            xp: model.cloud.rest_m().to_vec(),
+            vp: vec![DVec3::ZERO; n],
+            fp: vec![DVec3::ZERO; n],
+            active: vec![false; n],
+            in_block: vec![false; n],
+            active_list: Vec::with_capacity(params.max_active_particles + model.largest_region),
+            tied_list: Vec::with_capacity(3 * capacity),
+            block,
+            region_active: vec![false; nv],
+            active_regions: Vec::with_capacity(nv),
+            changed: false,
+            hold: false,
+            refused_activations: 0,
+            loads: [PointLoad::default(); MAX_POINT_LOADS],
+            load_count: 0,
+            time_s: 0.0,
+            diverged_at_s: None,
+            last_force_n: DVec3::ZERO,
+            model: Box::new(model),
+        })
+    }
+
+    /// The preprocessed model.
+    pub fn model(&self) -> &HybridModel {
+        &self.model
+    }
+
+    /// Particle sub-steps per tick, the particle step (s) and core steps per particle step.
+    pub fn substeps(&self) -> (u32, f64, u32) {
+        (self.substeps, self.dt_s, self.core_substeps)
+    }
+
+    /// Keeps every active region active (no release) while `hold` is true: for tests and
+    /// studies of a fixed active set.
+    pub fn hold_regions(&mut self, hold: bool) {
+        self.hold = hold;
+    }
+
+    /// Activations refused because `max_active_particles` (or the term capacity) was reached.
+    pub fn refused_activations(&self) -> u64 {
+        self.refused_activations
+    }
+
+    /// Energy terms and tied particles of the current active set (the per-sub-step work).
+    pub fn work_counts(&self) -> (usize, usize) {
+        (self.block.len(), self.tied_list.len())
+    }
+
+    /// Currently active particles.
+    pub fn active_particles(&self) -> &[u32] {
+        &self.active_list
+    }
+
+    /// Core positions and velocities (m, m/s), for tests and studies.
+    pub fn core_state_mut(&mut self) -> (&mut [DVec3], &mut [DVec3]) {
+        (&mut self.xc, &mut self.vc)
+    }
+
+    /// Particle positions and velocities (m, m/s, indexed by particle; only active particles'
+    /// entries are state, the others are overwritten from the core), for tests and studies.
+    pub fn particle_state_mut(&mut self) -> (&mut [DVec3], &mut [DVec3]) {
+        (&mut self.xp, &mut self.vp)
+    }
+
+    /// Mass of one particle, kg.
+    pub fn particle_mass_kg(&self) -> f64 {
+        self.particle_mass_kg
+    }
+
+    /// Total linear momentum of the simulated degrees of freedom (core nodes and active
+    /// particles), kg m/s.
+    pub fn linear_momentum(&self) -> DVec3 {
+        let mut p = DVec3::ZERO;
+        for (v, m) in self.vc.iter().zip(self.fem.lumped_mass_kg()) {
+            p += *v * *m;
+        }
+        for &q in &self.active_list {
+            p += self.vp[q as usize] * self.particle_mass_kg;
+        }
+        p
+    }
+
+    /// Kinetic and elastic energy (J) of the simulated degrees of freedom (the terms of the
+    /// active set at the current tied positions).
+    pub fn energy(&self) -> (f64, f64) {
+        let mut kin = 0.0;
+        for (v, m) in self.vc.iter().zip(self.fem.lumped_mass_kg()) {
+            kin += 0.5 * m * v.length_squared();
+        }
+        for &q in &self.active_list {
+            kin += 0.5 * self.particle_mass_kg * self.vp[q as usize].length_squared();
+        }
+        let elastic =
+            self.fem.elastic_energy(&self.xc) + self.block.energy(&self.model.cloud, &self.xp);
+        (kin, elastic)
+    }
+
+    /// Activates the regions of the outer vertices within `radius_m` of `point_m` (m, at
+    /// their current positions). Allocation-free; the terms are refilled at the next tick or
+    /// [`Self::evaluate_forces`].
+    pub fn activate_near(&mut self, point_m: DVec3, radius_m: f64) {
+        let r2 = radius_m * radius_m;
+        for v in 0..self.model.outer_rest_m.len() {
+            if self.region_active[v] {
+                continue;
+            }
+            let x = interpolate(
+                &self.model.vertex_tie[v],
+                &self.model.core_mesh.tets,
+                &self.xc,
+            );
+            if (x - point_m).length_squared() < r2 {
+                self.activate_region(v);
+            }
+        }
+    }
+
+    fn activate_region(&mut self, v: usize) {
+        let m = &self.model;
+        let range = m.region_start[v] as usize..m.region_start[v + 1] as usize;
+        if self.active_list.len() + range.len() > m.params.max_active_particles {
+            self.refused_activations += 1;
+            return;
+        }
+        for k in range {
+            let p = m.region_particles[k] as usize;
+            if m.degenerate[p] {
+                continue;
+            }
+            let tie = &m.particle_tie[p];
+            self.xp[p] = interpolate(tie, &m.core_mesh.tets, &self.xc);
+            self.vp[p] = interpolate(tie, &m.core_mesh.tets, &self.vc);
+            self.active[p] = true;
+            self.active_list.push(p as u32);
+        }
+        self.region_active[v] = true;
+        self.active_regions.push(v as u32);
+        self.changed = true;
+    }
+
+    /// Releases the settled regions whose vertex is farther than `release_radius_m` from the
+    /// probe (`None`: no probe, every settled region).
+    fn release_far(&mut self, probe_m: Option<DVec3>) {
+        let m = &self.model;
+        let tets = &m.core_mesh.tets;
+        let r2 = m.params.release_radius_m * m.params.release_radius_m;
+        let tol2 = m.params.release_tolerance_m * m.params.release_tolerance_m;
+        let mut k = 0;
+        while k < self.active_regions.len() {
+            let v = self.active_regions[k] as usize;
+            let near = probe_m.is_some_and(|c| {
+                (interpolate(&m.vertex_tie[v], tets, &self.xc) - c).length_squared() < r2
+            });
+            let region =
+                &m.region_particles[m.region_start[v] as usize..m.region_start[v + 1] as usize];
+            // Settled: back on the core's interpolation, or at rest (speeds below the tolerance
+            // per 0.1 s) in a state the layer cannot leave by itself (a fold pressed in by the
+            // probe), which the release then removes.
+            let settled = !near
+                && (region.iter().all(|&p| {
+                    let p = p as usize;
+                    !self.active[p]
+                        || (self.xp[p] - interpolate(&m.particle_tie[p], tets, &self.xc))
+                            .length_squared()
+                            < tol2
+                }) || region.iter().all(|&p| {
+                    !self.active[p as usize] || self.vp[p as usize].length_squared() * 0.01 < tol2
+                }));
+            if settled {
+                for &p in
+                    &m.region_particles[m.region_start[v] as usize..m.region_start[v + 1] as usize]
+                {
+                    self.active[p as usize] = false;
+                }
+                self.region_active[v] = false;
+                self.active_regions.swap_remove(k);
+                self.changed = true;
+            } else {
+                k += 1;
+            }
+        }
+        if self.changed {
+            let active = &self.active;
+            self.active_list.retain(|&p| active[p as usize]);
+        }
+    }
+
+    /// Refills the energy terms for the current active set (allocation-free): terms of the
+    /// active particles and of their inactive neighbours (ring 1); the tied list holds ring 1
+    /// and the inactive neighbours of ring 1 (ring 2), whose positions those terms read and
+    /// whose forces go to the core.
+    fn rebuild_terms(&mut self) {
+        for &q in &self.tied_list {
+            self.in_block[q as usize] = false;
+        }
+        for &q in &self.active_list {
+            self.in_block[q as usize] = false;
+        }
+        self.tied_list.clear();
+        self.block.clear();
+        let cloud = &self.model.cloud;
+        let mut nbr = [0u32; crate::meshfree::cloud::MAX_STENCIL];
+        for &p in &self.active_list {
+            self.in_block[p as usize] = true;
+            if !matches!(self.block.push(cloud, p), Ok(true)) {
+                self.refused_activations += 1;
+            }
+        }
+        for ring in 0..2 {
+            let to = if ring == 0 {
+                self.active_list.len()
+            } else {
+                self.tied_list.len()
+            };
+            for a in 0..to {
+                let p = if ring == 0 {
+                    self.active_list[a]
+                } else {
+                    self.tied_list[a]
+                };
+                let k = cloud.neighbours(p, &mut nbr);
+                for &q in &nbr[..k] {
+                    if self.in_block[q as usize]
+                        || self.tied_list.len() == self.tied_list.capacity()
+                    {
+                        continue;
+                    }
+                    self.in_block[q as usize] = true;
+                    self.tied_list.push(q);
+                    if ring == 0
+                        && !self.model.degenerate[q as usize]
+                        && !matches!(self.block.push(cloud, q), Ok(true))
+                    {
+                        self.refused_activations += 1;
+                    }
+                }
+            }
+        }
+        self.changed = false;
+    }
+
+    /// Particle forces of the current state (no update): tied positions from the core, terms,
+    /// the probe at `probe_m` (returns the force on the device, N, and its stiffness
+    /// `sum k n n^T`, N/m); the tied particles' forces and the point loads go to the core
+    /// nodes' coupling buffer with the tie weights.
+    fn particle_forces(&mut self, probe_m: Option<DVec3>) -> (DVec3, [f64; 9]) {
+        if self.changed {
+            self.rebuild_terms();
+        }
+        let m = &self.model;
+        let tets = &m.core_mesh.tets;
+        for &q in &self.tied_list {
+            self.xp[q as usize] = interpolate(&m.particle_tie[q as usize], tets, &self.xc);
+        }
+        self.block.zero_forces(&mut self.fp);
+        self.block.add_forces(&m.cloud, &self.xp, &mut self.fp);
+        let mut device = DVec3::ZERO;
+        let mut stiffness = [0.0; 9];
+        if let Some(c) = probe_m {
+            let reach = self.probe.radius_m + 0.5 * m.params.meshfree.spacing_m;
+            let k = m.params.contact_stiffness_n_per_m;
+            for &p in &self.active_list {
+                let d = self.xp[p as usize] - c;
+                let dist = d.length();
+                if dist < reach && dist > 0.0 {
+                    let n = d / dist;
+                    let f = n * (k * (reach - dist));
+                    self.fp[p as usize] += f;
+                    device -= f;
+                    for r in 0..3 {
+                        for s in 0..3 {
+                            stiffness[3 * r + s] += k * n[r] * n[s];
+                        }
+                    }
+                }
+            }
+        }
+        self.fcoup.iter_mut().for_each(|f| *f = DVec3::ZERO);
+        for &q in &self.tied_list {
+            let tie = &m.particle_tie[q as usize];
+            let t = tets[tie.tet as usize];
+            let f = self.fp[q as usize];
+            for (node, w) in t.iter().zip(tie.w) {
+                self.fcoup[*node as usize] += f * w;
+            }
+        }
+        for l in &self.loads[..self.load_count] {
+            let t = tets[l.tie.tet as usize];
+            for (node, w) in t.iter().zip(l.tie.w) {
+                self.fcoup[*node as usize] += l.force_n * w;
+            }
+        }
+        (device, stiffness)
+    }
+
+    /// Core forces: the coupling buffer plus the FEM's internal (elastic and viscous) forces.
+    fn core_forces(&mut self) {
+        self.fc.copy_from_slice(&self.fcoup);
+        self.fem
+            .add_internal_forces(&self.xc, Some(&self.vc), &mut self.fc);
+    }
+
+    /// Computes the forces of the current state without advancing it and returns the core
+    /// nodes' forces and the particles' forces (N; particle entries are meaningful for active
+    /// and tied particles). For tests: constant strain, momentum.
+    pub fn evaluate_forces(&mut self) -> (&[DVec3], &[DVec3]) {
+        self.particle_forces(None);
+        self.core_forces();
+        (&self.fc, &self.fp)
+    }
+
+    /// One particle step of length `dt` from the forces in the buffers, during which the core
+    /// takes `core_substeps` steps with the coupling forces held (multi-rate: the impulses
+    /// exchanged through the ties are equal and opposite, so momentum stays exact); returns the
+    /// largest squared speed (NaN when non-finite).
+    fn update(&mut self, dt: f64) -> f64 {
+        let dt_c = dt / self.core_substeps as f64;
+        let mut max_v2: f64 = 0.0;
+        let mut non_finite = false;
+        for _ in 0..self.core_substeps {
+            self.core_forces();
+            let v2 = integrate_nodes(
+                IntegratorKind::SymplecticEuler,
+                &self.fem,
+                &[],
+                dt_c,
+                &self.fc,
+                &mut self.xc,
+                &mut self.vc,
+            );
+            non_finite |= !v2.is_finite();
+            max_v2 = max_v2.max(v2);
+        }
+        let damp = 1.0 / (1.0 + self.fem.material().mass_damping_per_s * dt);
+        let inv_m = dt / self.particle_mass_kg;
+        for &p in &self.active_list {
+            let p = p as usize;
+            let v = (self.vp[p] + self.fp[p] * inv_m) * damp;
+            self.vp[p] = v;
+            self.xp[p] += v * dt;
+            let s = v.length_squared();
+            non_finite |= !s.is_finite();
+            max_v2 = max_v2.max(s);
+        }
+        if non_finite { f64::NAN } else { max_v2 }
+    }
+
+    /// Advances `ticks` servo periods without a device (for tests and studies).
+    ///
+    /// # Errors
+    /// As [`SoftBody::tick`].
+    pub fn run_free(&mut self, ticks: usize) -> Result<(), ModelError> {
+        for _ in 0..ticks {
+            self.tick(&TickInput::default())?;
+        }
+        Ok(())
+    }
+}
+
+impl SoftBody for HybridBody {
+    fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
+        if let Some(p) = input.device_position_m {
+            if !p.is_finite() || !input.device_velocity_m_per_s.is_finite() {
+                return Err(ModelError::InvalidDevice(
+                    "device position or velocity is not finite",
+                ));
+            }
+            if p.abs().max_element() > MAX_DEVICE_DISTANCE_M {
+                return Err(ModelError::InvalidDevice(
+                    "device position is farther than 10 m from the origin",
+                ));
+            }
+        }
+        if let Some(time_s) = self.diverged_at_s {
+            return Err(ModelError::Diverged { time_s });
+        }
+        // 1. Activation and release.
+        let probe = input.device_position_m;
+        if let Some(c) = probe {
+            self.activate_near(c, self.model.params.activation_radius_m);
+        }
+        if !self.hold {
+            self.release_far(probe);
+        }
+        // 2. Sub-steps.
+        let mut out = (DVec3::ZERO, [0.0; 9]);
+        for _ in 0..self.substeps {
+            out = self.particle_forces(probe);
+            let v2 = self.update(self.dt_s);
+            if !(v2 <= MAX_SPEED_M_PER_S * MAX_SPEED_M_PER_S) {
+                self.diverged_at_s = Some(self.time_s);
+                return Err(ModelError::Diverged {
+                    time_s: self.time_s,
+                });
+            }
+        }
+        self.time_s += self.tick_s;
+        // Point loads age by the tick.
+        let mut k = 0;
+        while k < self.load_count {
+            self.loads[k].remaining_s -= self.tick_s;
+            if self.loads[k].remaining_s <= 0.0 {
+                self.loads[k] = self.loads[self.load_count - 1];
+                self.load_count -= 1;
+            } else {
+                k += 1;
+            }
+        }
+        // 3. Device force, clamped.
+        let (mut force, mut stiffness) = out;
+        let mag = force.length();
+        if mag > self.probe.max_force_n {
+            let s = self.probe.max_force_n / mag;
+            force *= s;
+            stiffness.iter_mut().for_each(|v| *v *= s);
+        }
+        self.last_force_n = force;
+        let in_contact = mag > 0.0;
+        Ok(TickOutput {
+            force_on_device_n: force,
+            in_contact,
+            proxy_position_m: probe.unwrap_or(DVec3::ZERO),
+            contact_stiffness_n_per_m: stiffness,
+            sim_time_s: self.time_s,
+        })
+    }
+
+    fn add_point_load(
+        &mut self,
+        point_m: DVec3,
+        force_n: DVec3,
+        duration_s: f64,
+    ) -> Result<(), ModelError> {
+        validate_point_load(point_m, force_n, duration_s)?;
+        if self.load_count == MAX_POINT_LOADS {
+            return Err(ModelError::LoadTableFull(MAX_POINT_LOADS));
+        }
+        let m = &self.model;
+        let mut best = (f64::INFINITY, 0usize);
+        for v in 0..m.outer_rest_m.len() {
+            let x = interpolate(&m.vertex_tie[v], &m.core_mesh.tets, &self.xc);
+            let d = (x - point_m).length_squared();
+            if d < best.0 {
+                best = (d, v);
+            }
+        }
+        self.loads[self.load_count] = PointLoad {
+            tie: m.vertex_tie[best.1],
+            force_n,
+            remaining_s: duration_s,
+        };
+        self.load_count += 1;
+        Ok(())
+    }
+
+    fn surface_topology(&self) -> SurfaceTopology<'_> {
+        SurfaceTopology {
+            version: 1,
+            vertex_count: self.model.outer_rest_m.len(),
+            triangles: &self.model.outer_triangles,
+        }
+    }
+
+    fn surface_capacity(&self) -> SurfaceCapacity {
+        SurfaceCapacity {
+            vertices: self.model.outer_rest_m.len(),
+            triangles: self.model.outer_triangles.len(),
+        }
+    }
+
+    fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
+        let m = &self.model;
+        assert_eq!(out.len(), 3 * m.outer_rest_m.len(), "surface buffer length");
+        let tets = &m.core_mesh.tets;
+        let mut max_d2: f64 = 0.0;
+        for v in 0..m.outer_rest_m.len() {
+            let mut x = interpolate(&m.vertex_tie[v], tets, &self.xc);
+            let p = m.vertex_particle[v];
+            if p != u32::MAX && self.active[p as usize] {
+                let p = p as usize;
+                x += self.xp[p] - interpolate(&m.particle_tie[p], tets, &self.xc);
+            }
+            out[3 * v] = x.x as f32;
+            out[3 * v + 1] = x.y as f32;
+            out[3 * v + 2] = x.z as f32;
+            max_d2 = max_d2.max((x - m.outer_rest_m[v]).length_squared());
+        }
+        max_d2.sqrt()
+    }
+
+    fn write_surface_rest_positions(&self, out: &mut [f32]) {
+        let m = &self.model;
+        assert_eq!(out.len(), 3 * m.outer_rest_m.len(), "surface buffer length");
+        for (v, x) in m.outer_rest_m.iter().enumerate() {
+            out[3 * v] = x.x as f32;
+            out[3 * v + 1] = x.y as f32;
+            out[3 * v + 2] = x.z as f32;
+        }
+    }
+
+    fn stats(&self) -> BodyStats {
+        let max_displacement_m = self
+            .xc
+            .iter()
+            .zip(&self.model.core_mesh.nodes)
+            .fold(0.0f64, |a, (x, r)| a.max((*x - *r).length()));
+        BodyStats {
+            nodes: self.xc.len(),
+            elements: self.model.core_mesh.tets.len(),
+            active_elements: self.model.core_mesh.tets.len(),
+            particles: self.model.layer_count,
+            active_particles: self.active_list.len(),
+            active_point_loads: self.load_count,
+            surface_vertices: self.model.outer_rest_m.len(),
+            topology_version: 1,
+            sim_time_s: self.time_s,
+            max_displacement_m,
+        }
+    }
+
+    fn info(&self) -> BodyInfo {
+        BodyInfo {
+            family: "hybrid",
+            scene: self.name.clone(),
+            tick_s: self.tick_s,
+            substeps: self.substeps,
+            critical_dt_s: self.critical_dt_s,
+            probe_radius_m: self.probe.radius_m,
+        }
+    }
+}

@@ -1,0 +1,203 @@
+//! The seeds' hybrid model (seed 000 sections 4-6, seed 001): a tetrahedral FEM core `Omega_e`
+//! and, between the core's outer boundary and the body's outer surface, a layer `Omega_p` of
+//! meshfree particles ([`crate::meshfree`]) sampled on a regular lattice, of which only the
+//! regions under the probe are simulated.
+//!
+//! - [`prepare`]: preprocessing: the core mesh, the outer surface, the particle lattice, the
+//!   ties of every particle and outer vertex to the core, the per-vertex particle regions.
+//! - [`body`]: [`HybridBody`], the family's [`crate::body::SoftBody`]: activation, coupling,
+//!   the probe, time stepping.
+//!
+//! **Geometry.** The built-in hybrid scenes are shells of revolution between two ellipsoids
+//! (the seeds' "region between two concentric ellipsoids", section 6), optionally truncated at a
+//! base plane (the LV): [`ShellGeometry`]. The core is the inner part of the wall
+//! (`core_fraction` of its thickness, meshed with
+//! [`crate::mesh::generate::truncated_ellipsoid_shell`]); the particles fill the rest.
+//!
+//! **Coupling (section 6.1).** Every particle and every outer-surface vertex is tied to one core
+//! tetrahedron by its barycentric coordinates at rest, `x_p = sum_k w_pk x_k` (`sum_k w_pk = 1`;
+//! coordinates outside `[0, 1]` extrapolate the tetrahedron's affine map to points outside the
+//! core). Inactive particles follow this map; the particles inside the core (the *anchors*,
+//! a band two kernel supports thick below the core's outer boundary) always do. The forces
+//! that active particles' terms put on tied particles go back to the core nodes with the same
+//! weights, so the total force, hence linear momentum, is conserved exactly, and an affine
+//! motion of the core moves tied particles affinely (the patch test across the interface).
+//! This replaces the seed's "gradient vector field" boundary forces and averaged boundary
+//! displacements by a kinematic tie that is exact for constant strain.
+//!
+//! Neighbours: uses [`crate::meshfree`], [`crate::element`], [`crate::integrate`],
+//! [`crate::mesh`], [`crate::body`]; used by [`crate::scene`] (parameters) and
+//! [`crate::build_body`].
+
+pub mod body;
+pub mod prepare;
+
+use glam::DVec3;
+
+pub use body::HybridBody;
+pub use prepare::{HybridModel, prepare};
+
+use crate::ModelError;
+use crate::meshfree::MeshfreeParams;
+
+/// A shell of revolution between the ellipsoids `inner` and `outer` (semi-axes, m), kept below
+/// `z = z_cut` when given. Layer `t` in `[0, 1]` is the ellipsoid of semi-axes
+/// `inner + t (outer - inner)`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ShellGeometry {
+    /// Inner semi-axes, m.
+    pub inner_m: DVec3,
+    /// Outer semi-axes, m.
+    pub outer_m: DVec3,
+    /// Base plane, m (`None`: closed shell).
+    pub z_cut_m: Option<f64>,
+}
+
+impl ShellGeometry {
+    /// Semi-axes of layer `t`, m.
+    pub fn axes(&self, t: f64) -> DVec3 {
+        self.inner_m + (self.outer_m - self.inner_m) * t
+    }
+
+    /// `|x / axes(t)|^2 - 1`: negative inside layer `t`'s ellipsoid.
+    pub fn level(&self, x: DVec3, t: f64) -> f64 {
+        (x / self.axes(t)).length_squared() - 1.0
+    }
+
+    /// Whether `x` (m) lies in the wall between layers `t0` and `t1` (and below the base).
+    pub fn contains(&self, x: DVec3, t0: f64, t1: f64) -> bool {
+        self.z_cut_m.is_none_or(|z| x.z <= z) && self.level(x, t0) >= 0.0 && self.level(x, t1) < 0.0
+    }
+}
+
+/// Parameters of the hybrid model (`[hybrid]` in a scene), SI units.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HybridParams {
+    /// Meshfree discretisation of the particle layer (variant, spacing, kernel width, hourglass).
+    pub meshfree: MeshfreeParams,
+    /// Fraction of the wall thickness given to the FEM core, in (0, 1).
+    pub core_fraction: f64,
+    /// Wanted tetrahedra of the outer-surface shell mesh (sets the outer surface's resolution
+    /// and so the size of the per-vertex particle regions).
+    pub surface_target_tets: usize,
+    /// Outer vertices closer than this to the probe centre get their particle regions
+    /// activated, m.
+    pub activation_radius_m: f64,
+    /// Active regions whose vertex is farther than this from the probe are released once their
+    /// particles follow the core again (within `release_tolerance_m`), m.
+    pub release_radius_m: f64,
+    /// Largest deviation of a region's particles from the core's interpolation (m) at which
+    /// the region may be released.
+    pub release_tolerance_m: f64,
+    /// Most particles simulated at once.
+    pub max_active_particles: usize,
+    /// Penalty stiffness between the probe sphere and one particle, N/m.
+    pub contact_stiffness_n_per_m: f64,
+    /// Multiplier of every mass, core and particles (1: the material's density, the seed's).
+    /// Not in the seed: above 1 it slows the whole dynamics down by its square root and raises
+    /// the critical steps as much; static forces do not change.
+    pub mass_scale: f64,
+    /// Fraction of the critical step used, in (0, 1].
+    pub safety_factor: f64,
+    /// Most sub-steps per servo tick.
+    pub max_substeps: u32,
+}
+
+impl Default for HybridParams {
+    fn default() -> Self {
+        Self {
+            meshfree: MeshfreeParams::default(),
+            core_fraction: 0.4,
+            surface_target_tets: 4000,
+            activation_radius_m: 4e-3,
+            release_radius_m: 6e-3,
+            release_tolerance_m: 2e-5,
+            max_active_particles: 2000,
+            contact_stiffness_n_per_m: 5.0,
+            mass_scale: 1.0,
+            safety_factor: 0.9,
+            max_substeps: 200,
+        }
+    }
+}
+
+impl HybridParams {
+    /// Checks every value.
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] naming the `hybrid.*` field that is out of range.
+    pub fn validate(&self) -> Result<(), ModelError> {
+        let pos = |name: &str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(ModelError::field(
+                    format!("hybrid.{name}"),
+                    format!("must be finite and positive, got {v}"),
+                ))
+            }
+        };
+        pos("spacing_m", self.meshfree.spacing_m)?;
+        pos("activation_radius_m", self.activation_radius_m)?;
+        pos("release_radius_m", self.release_radius_m)?;
+        pos("release_tolerance_m", self.release_tolerance_m)?;
+        pos("contact_stiffness_n_per_m", self.contact_stiffness_n_per_m)?;
+        if !(self.meshfree.smoothing_ratio >= 0.9 && self.meshfree.smoothing_ratio <= 2.0) {
+            return Err(ModelError::field(
+                "hybrid.smoothing_ratio",
+                format!("must be in [0.9, 2], got {}", self.meshfree.smoothing_ratio),
+            ));
+        }
+        if !(self.meshfree.hourglass_coefficient >= 0.0
+            && self.meshfree.hourglass_coefficient <= 100.0)
+        {
+            return Err(ModelError::field(
+                "hybrid.hourglass_coefficient",
+                "must be in [0, 100]",
+            ));
+        }
+        if !(self.core_fraction > 0.05 && self.core_fraction < 0.95) {
+            return Err(ModelError::field(
+                "hybrid.core_fraction",
+                format!("must be in (0.05, 0.95), got {}", self.core_fraction),
+            ));
+        }
+        if self.release_radius_m < self.activation_radius_m {
+            return Err(ModelError::field(
+                "hybrid.release_radius_m",
+                "must not be smaller than hybrid.activation_radius_m",
+            ));
+        }
+        if !(self.mass_scale >= 1.0 && self.mass_scale <= 1e6) {
+            return Err(ModelError::field(
+                "hybrid.mass_scale",
+                "must be in [1, 1e6]",
+            ));
+        }
+        if !(self.safety_factor > 0.0 && self.safety_factor <= 1.0) {
+            return Err(ModelError::field(
+                "hybrid.safety_factor",
+                "must be in (0, 1]",
+            ));
+        }
+        if self.max_active_particles == 0 || self.max_active_particles > 1_000_000 {
+            return Err(ModelError::field(
+                "hybrid.max_active_particles",
+                "must be in 1..=1000000",
+            ));
+        }
+        if self.max_substeps == 0 || self.max_substeps > 10_000 {
+            return Err(ModelError::field(
+                "hybrid.max_substeps",
+                "must be in 1..=10000",
+            ));
+        }
+        if !(100..=200_000).contains(&self.surface_target_tets) {
+            return Err(ModelError::field(
+                "hybrid.surface_target_tets",
+                "must be in 100..=200000",
+            ));
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,542 @@
+//! Preprocessing of the hybrid model (seed 000 section 6): [`prepare`] builds a
+//! [`HybridModel`] (immutable at run time) from a [`ShellGeometry`], the parameters and the
+//! material.
+//!
+//! Steps, with progress reported through a callback:
+//! 1. the FEM core: the inner `core_fraction` of the wall, meshed as a shell of revolution;
+//! 2. the outer surface: the outer boundary of a shell mesh of the whole wall;
+//! 3. the lattice: every lattice point of the wall outside the core is a *layer particle*;
+//!    lattice points inside the core within two kernel supports of a layer particle are
+//!    *anchors* (always tied to the core, so that layer particles next to the core have full
+//!    neighbourhoods);
+//! 4. ties: each particle and outer vertex to the core tetrahedron whose barycentric
+//!    coordinates are "most inside" (largest minimum coordinate), found through a coarse grid
+//!    of the core's tetrahedra;
+//! 5. regions: each layer particle belongs to the outer vertex nearest to it in direction from
+//!    the centre of mass (the seed's radial projection towards the mass centre); `RV(ps)` of a
+//!    vertex is its set of particles;
+//! 6. the critical time steps of the particles (both variants, [`crate::meshfree`]) and of the
+//!    core.
+//!
+//! Cost: O(lattice cells + particles x stencil); about 1 s per 100 000 particles (see
+//! `docs/benchmarks.md`).
+
+use glam::{DMat3, DVec3};
+
+use super::{HybridParams, ShellGeometry};
+use crate::ModelError;
+use crate::element::FemModel;
+use crate::integrate::{IntegratorKind, critical_time_step as fem_critical_time_step};
+use crate::material::{MaterialModel, MaterialParams};
+use crate::mesh::TetMesh;
+use crate::mesh::generate::truncated_ellipsoid_shell;
+use crate::meshfree::{Lattice, MeshfreeVariant, ParticleCloud, TermBlock, critical_time_step};
+
+/// A particle's or vertex's tie to the core: tetrahedron and barycentric weights (sum 1).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Tie {
+    /// Core tetrahedron.
+    pub tet: u32,
+    /// Weights of its four nodes.
+    pub w: [f64; 4],
+}
+
+/// The preprocessed hybrid model (module documentation). Particles `0..layer_count` are layer
+/// particles (may be activated), the rest anchors.
+#[derive(Debug, Clone)]
+pub struct HybridModel {
+    /// Parameters.
+    pub params: HybridParams,
+    /// Geometry of the wall.
+    pub geometry: ShellGeometry,
+    /// The core mesh (surfaces `INNER`, `OUTER`, `BASE` when truncated).
+    pub core_mesh: TetMesh,
+    /// The particles.
+    pub cloud: ParticleCloud,
+    /// Number of layer particles.
+    pub layer_count: usize,
+    /// Tie of each particle.
+    pub particle_tie: Vec<Tie>,
+    /// Particles whose neighbourhood is too degenerate for the corrected gradient: never
+    /// activated (they follow the core).
+    pub degenerate: Vec<bool>,
+    /// Outer surface rest positions, m.
+    pub outer_rest_m: Vec<DVec3>,
+    /// Outer surface triangles (outward).
+    pub outer_triangles: Vec<[u32; 3]>,
+    /// Tie of each outer vertex.
+    pub vertex_tie: Vec<Tie>,
+    /// Nearest layer particle of each outer vertex (`u32::MAX` if none within two cells).
+    pub vertex_particle: Vec<u32>,
+    /// Region of vertex `v`: `region_particles[region_start[v]..region_start[v + 1]]`.
+    pub region_start: Vec<u32>,
+    /// Layer particles by region.
+    pub region_particles: Vec<u32>,
+    /// Centre of mass of the layer at rest, m.
+    pub centre_m: DVec3,
+    /// Particles' explicit stability limit (elastic, Gershgorin bound, unit mass scale), s.
+    pub particle_dt_s: f64,
+    /// Core's explicit (symplectic Euler) stability limit, s.
+    pub core_dt_s: f64,
+    /// Largest number of terms of one region (its particles and their tied neighbours).
+    pub largest_region: usize,
+}
+
+impl HybridModel {
+    /// The core nodes a scene clamps: those on the base plane of a truncated wall (the LV's
+    /// base), or those below `-0.8` times the core's outer z semi-axis of a closed one (the
+    /// bottom pole cap, as the `ellipsoids` scene clamps), sorted.
+    pub fn clamped_core_nodes(&self) -> Vec<u32> {
+        let nodes = &self.core_mesh.nodes;
+        match self.geometry.z_cut_m {
+            Some(z) => (0..nodes.len() as u32)
+                .filter(|&i| nodes[i as usize].z >= z - 1e-9)
+                .collect(),
+            None => {
+                let cap = -0.8 * self.geometry.axes(self.params.core_fraction).z;
+                (0..nodes.len() as u32)
+                    .filter(|&i| nodes[i as usize].z < cap)
+                    .collect()
+            }
+        }
+    }
+
+    /// Heap memory of the preprocessed model, bytes (approximate: vectors' capacities).
+    pub fn memory_bytes(&self) -> usize {
+        self.cloud.memory_bytes()
+            + self.particle_tie.capacity() * std::mem::size_of::<Tie>()
+            + self.degenerate.capacity()
+            + self.outer_rest_m.capacity() * 24
+            + self.outer_triangles.capacity() * 12
+            + self.vertex_tie.capacity() * std::mem::size_of::<Tie>()
+            + self.vertex_particle.capacity() * 4
+            + self.region_start.capacity() * 4
+            + self.region_particles.capacity() * 4
+            + self.core_mesh.nodes.capacity() * 24
+            + self.core_mesh.tets.capacity() * 16
+    }
+}
+
+/// Builds the hybrid model (module documentation). `core_target_tets`: wanted tetrahedra of
+/// the core; `progress(stage, fraction)` is called at each step.
+///
+/// # Errors
+/// [`ModelError::SceneField`] for bad parameters (the `hybrid.*` field; `hybrid.variant` for
+/// the seed variant with another law than StVK), too few or too many
+/// particles (`hybrid.spacing_m`), or a stencil the meshfree terms cannot hold
+/// (`hybrid.smoothing_ratio`); the errors of [`FemModel::new`] for the core.
+pub fn prepare(
+    geometry: ShellGeometry,
+    params: &HybridParams,
+    material: &MaterialParams,
+    core_target_tets: usize,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<HybridModel, ModelError> {
+    params.validate()?;
+    if params.meshfree.variant == MeshfreeVariant::Seed
+        && material.model != MaterialModel::StVenantKirchhoff
+    {
+        return Err(ModelError::field(
+            "hybrid.variant",
+            "\"seed\" is the paper's St. Venant-Kirchhoff formulation: set material.model = \"stvk\" or use \"corrected\"",
+        ));
+    }
+    let f = params.core_fraction;
+    let s = params.meshfree.spacing_m;
+    // 1. Core.
+    progress("core mesh", 0.0);
+    let mut core_mesh = truncated_ellipsoid_shell(
+        geometry.inner_m,
+        geometry.axes(f),
+        geometry.z_cut_m,
+        core_target_tets,
+    );
+    core_mesh.orient_and_check()?;
+    // 2. Outer surface.
+    progress("outer surface", 0.05);
+    let shell = truncated_ellipsoid_shell(
+        geometry.inner_m,
+        geometry.outer_m,
+        geometry.z_cut_m,
+        params.surface_target_tets,
+    );
+    let outer = shell
+        .surface("OUTER")
+        .map(|g| g.triangles.clone())
+        .unwrap_or_default();
+    let mut map = vec![u32::MAX; shell.nodes.len()];
+    let mut outer_rest_m = Vec::new();
+    let outer_triangles: Vec<[u32; 3]> = outer
+        .iter()
+        .map(|t| {
+            t.map(|i| {
+                if map[i as usize] == u32::MAX {
+                    map[i as usize] = outer_rest_m.len() as u32;
+                    outer_rest_m.push(shell.nodes[i as usize]);
+                }
+                map[i as usize]
+            })
+        })
+        .collect();
+    // 3. Lattice and particles.
+    progress("lattice", 0.1);
+    let support = params.meshfree.support_m();
+    let half = geometry.outer_m + DVec3::splat(2.0 * support);
+    let lo = -half;
+    let hi = DVec3::new(
+        half.x,
+        half.y,
+        geometry.z_cut_m.map_or(half.z, |z| z + 2.0 * support),
+    );
+    let dims_f = ((hi - lo) / s).ceil() + DVec3::ONE;
+    let dims = [dims_f.x as usize, dims_f.y as usize, dims_f.z as usize];
+    let cells_total = dims[0] as f64 * dims[1] as f64 * dims[2] as f64;
+    if cells_total > 2e9 {
+        return Err(ModelError::field(
+            "hybrid.spacing_m",
+            format!("{s} m needs {cells_total:.3e} lattice cells; use a larger spacing"),
+        ));
+    }
+    let lattice = Lattice::new(lo, s, dims, support);
+    let count = dims[0] * dims[1] * dims[2];
+    let mut layer_cells = Vec::new();
+    for c in 0..count {
+        let p = lattice.position(lattice.cell(c));
+        if geometry.contains(p, f, 1.0) {
+            layer_cells.push(c as u32);
+        }
+    }
+    let layer_count = layer_cells.len();
+    if layer_count < 8 {
+        return Err(ModelError::field(
+            "hybrid.spacing_m",
+            format!("{s} m gives {layer_count} particles in the layer; use a smaller spacing"),
+        ));
+    }
+    if layer_count > 20_000_000 {
+        return Err(ModelError::field(
+            "hybrid.spacing_m",
+            format!("{s} m gives {layer_count} particles; at most 20 000 000"),
+        ));
+    }
+    // Anchors: two stencil rings into the core, so that every anchor whose term reaches a
+    // layer particle has a full neighbourhood.
+    let mut is_anchor = vec![false; count];
+    let mut anchor_cells: Vec<u32> = Vec::new();
+    for pass in 0..2 {
+        let sources: Vec<u32> = if pass == 0 {
+            layer_cells.clone()
+        } else {
+            anchor_cells.clone()
+        };
+        for &c in &sources {
+            let ijk = lattice.cell(c as usize);
+            for d in lattice.stencil() {
+                let q = [
+                    ijk[0] as i64 + d[0] as i64,
+                    ijk[1] as i64 + d[1] as i64,
+                    ijk[2] as i64 + d[2] as i64,
+                ];
+                if q.iter().zip(dims).any(|(&v, n)| v < 0 || v >= n as i64) {
+                    continue;
+                }
+                let qi = lattice.index([q[0] as usize, q[1] as usize, q[2] as usize]);
+                if is_anchor[qi] {
+                    continue;
+                }
+                let p = lattice.position(lattice.cell(qi));
+                if geometry.contains(p, 0.0, f) {
+                    is_anchor[qi] = true;
+                    anchor_cells.push(qi as u32);
+                }
+            }
+        }
+    }
+    drop(is_anchor);
+    anchor_cells.sort_unstable();
+    let mut cells = layer_cells;
+    cells.extend_from_slice(&anchor_cells);
+    let cloud = ParticleCloud::new(lattice, cells, params.meshfree, *material)?;
+    progress("particles", 0.3);
+    // 4. Ties.
+    let fem_rest = &core_mesh.nodes;
+    let locator = TetLocator::new(
+        &core_mesh,
+        (geometry.outer_m - geometry.inner_m).max_element(),
+    );
+    let particle_tie: Vec<Tie> = cloud
+        .rest_m()
+        .iter()
+        .map(|&p| locator.tie(fem_rest, &core_mesh.tets, p))
+        .collect();
+    let vertex_tie: Vec<Tie> = outer_rest_m
+        .iter()
+        .map(|&p| locator.tie(fem_rest, &core_mesh.tets, p))
+        .collect();
+    progress("ties", 0.55);
+    // Degenerate neighbourhoods (corrected variant only).
+    let mut degenerate = vec![false; cloud.len()];
+    {
+        let mut block = TermBlock::new(&cloud, 1);
+        for (p, d) in degenerate.iter_mut().enumerate() {
+            block.clear();
+            *d = block.push(&cloud, p as u32).is_err();
+        }
+    }
+    let vertex_particle: Vec<u32> = outer_rest_m
+        .iter()
+        .map(|&v| {
+            let ijk = cloud.lattice().nearest_cell(v);
+            let mut best = (f64::INFINITY, u32::MAX);
+            for k in -2i32..=2 {
+                for j in -2i32..=2 {
+                    for i in -2i32..=2 {
+                        if let Some(q) = cloud.lattice().get_offset(ijk, [i, j, k])
+                            && (q as usize) < layer_count
+                        {
+                            let d = (cloud.rest_m()[q as usize] - v).length_squared();
+                            if d < best.0 {
+                                best = (d, q);
+                            }
+                        }
+                    }
+                }
+            }
+            best.1
+        })
+        .collect();
+    // 5. Regions by direction from the centre of mass.
+    progress("regions", 0.65);
+    let centre_m = cloud.rest_m()[..layer_count].iter().sum::<DVec3>() / layer_count as f64;
+    let directions = DirectionGrid::new(
+        &outer_rest_m
+            .iter()
+            .map(|&v| (v - centre_m).normalize_or_zero())
+            .collect::<Vec<_>>(),
+    );
+    let owner: Vec<u32> = cloud.rest_m()[..layer_count]
+        .iter()
+        .map(|&p| directions.nearest((p - centre_m).normalize_or_zero()))
+        .collect();
+    let nv = outer_rest_m.len();
+    let mut region_start = vec![0u32; nv + 1];
+    for &o in &owner {
+        region_start[o as usize + 1] += 1;
+    }
+    for v in 0..nv {
+        region_start[v + 1] += region_start[v];
+    }
+    let mut fill = region_start.clone();
+    let mut region_particles = vec![0u32; layer_count];
+    for (p, &o) in owner.iter().enumerate() {
+        region_particles[fill[o as usize] as usize] = p as u32;
+        fill[o as usize] += 1;
+    }
+    let largest_region = (0..nv)
+        .map(|v| (region_start[v + 1] - region_start[v]) as usize)
+        .max()
+        .unwrap_or(0);
+    // 6. Critical steps.
+    progress("critical time steps", 0.75);
+    let particle_dt_s = critical_time_step(&cloud)?;
+    let fem = FemModel::new(&core_mesh, *material)?;
+    let core_dt_s = fem_critical_time_step(&fem, IntegratorKind::SymplecticEuler);
+    progress("done", 1.0);
+    Ok(HybridModel {
+        params: *params,
+        geometry,
+        core_mesh,
+        cloud,
+        layer_count,
+        particle_tie,
+        degenerate,
+        outer_rest_m,
+        outer_triangles,
+        vertex_tie,
+        vertex_particle,
+        region_start,
+        region_particles,
+        centre_m,
+        particle_dt_s,
+        core_dt_s,
+        largest_region,
+    })
+}
+
+/// Barycentric weights of `p` in the tetrahedron `t` (rest positions `x`).
+pub fn barycentric(x: &[DVec3], t: [u32; 4], p: DVec3) -> [f64; 4] {
+    let a = x[t[0] as usize];
+    let m = DMat3::from_cols(
+        x[t[1] as usize] - a,
+        x[t[2] as usize] - a,
+        x[t[3] as usize] - a,
+    );
+    let b = m.inverse() * (p - a);
+    [1.0 - b.x - b.y - b.z, b.x, b.y, b.z]
+}
+
+/// A coarse uniform grid over the core's tetrahedra (each listed in the cells its bounding box,
+/// grown by `reach`, overlaps), for ties.
+struct TetLocator {
+    origin: DVec3,
+    cell: f64,
+    dims: [usize; 3],
+    start: Vec<u32>,
+    tets: Vec<u32>,
+}
+
+impl TetLocator {
+    fn new(mesh: &TetMesh, reach: f64) -> Self {
+        let (lo, hi) = mesh.bounding_box();
+        let lo = lo - DVec3::splat(reach);
+        let hi = hi + DVec3::splat(reach);
+        let mean_edge = (mesh.volume() / mesh.tets.len().max(1) as f64).cbrt() * 1.5;
+        let cell = mean_edge.max((hi - lo).max_element() / 64.0);
+        let d = ((hi - lo) / cell).ceil();
+        let dims = [d.x as usize + 1, d.y as usize + 1, d.z as usize + 1];
+        let n = dims[0] * dims[1] * dims[2];
+        let range = |t: &[u32; 4]| {
+            let mut a = DVec3::splat(f64::INFINITY);
+            let mut b = DVec3::splat(f64::NEG_INFINITY);
+            for &i in t {
+                a = a.min(mesh.nodes[i as usize]);
+                b = b.max(mesh.nodes[i as usize]);
+            }
+            let a = ((a - DVec3::splat(reach) - lo) / cell)
+                .floor()
+                .max(DVec3::ZERO);
+            let b = ((b + DVec3::splat(reach) - lo) / cell).floor();
+            (a, b)
+        };
+        let mut counts = vec![0u32; n + 1];
+        let pass = |fill: &mut dyn FnMut(usize, u32)| {
+            for (e, t) in mesh.tets.iter().enumerate() {
+                let (a, b) = range(t);
+                for k in a.z as usize..=(b.z as usize).min(dims[2] - 1) {
+                    for j in a.y as usize..=(b.y as usize).min(dims[1] - 1) {
+                        for i in a.x as usize..=(b.x as usize).min(dims[0] - 1) {
+                            fill(i + dims[0] * (j + dims[1] * k), e as u32);
+                        }
+                    }
+                }
+            }
+        };
+        pass(&mut |c, _| counts[c + 1] += 1);
+        for c in 0..n {
+            counts[c + 1] += counts[c];
+        }
+        let mut tets = vec![0u32; counts[n] as usize];
+        let mut next = counts.clone();
+        pass(&mut |c, e| {
+            tets[next[c] as usize] = e;
+            next[c] += 1;
+        });
+        Self {
+            origin: lo,
+            cell,
+            dims,
+            start: counts,
+            tets,
+        }
+    }
+
+    /// The tie of `p`: the tetrahedron with the largest minimum barycentric coordinate among
+    /// those listed in `p`'s cell (all tetrahedra if the cell is empty).
+    fn tie(&self, x: &[DVec3], tets: &[[u32; 4]], p: DVec3) -> Tie {
+        let q = ((p - self.origin) / self.cell).floor();
+        let c = |v: f64, n: usize| (v.max(0.0) as usize).min(n - 1);
+        let ci = c(q.x, self.dims[0])
+            + self.dims[0] * (c(q.y, self.dims[1]) + self.dims[1] * c(q.z, self.dims[2]));
+        let list = &self.tets[self.start[ci] as usize..self.start[ci + 1] as usize];
+        let mut best = Tie::default();
+        let mut best_min = f64::NEG_INFINITY;
+        let mut consider = |e: u32| {
+            let w = barycentric(x, tets[e as usize], p);
+            let m = w.iter().fold(f64::INFINITY, |a, &b| a.min(b));
+            if m > best_min {
+                best_min = m;
+                best = Tie { tet: e, w };
+            }
+        };
+        if list.is_empty() {
+            (0..tets.len() as u32).for_each(&mut consider);
+        } else {
+            list.iter().copied().for_each(&mut consider);
+        }
+        best
+    }
+}
+
+/// Unit directions bucketed in a 3D grid over `[-1, 1]^3`, for nearest-direction queries.
+struct DirectionGrid {
+    dirs: Vec<DVec3>,
+    n: usize,
+    start: Vec<u32>,
+    items: Vec<u32>,
+}
+
+impl DirectionGrid {
+    fn new(dirs: &[DVec3]) -> Self {
+        let n = 24;
+        let cell_of = |d: DVec3| {
+            let q = ((d + DVec3::ONE) * 0.5 * n as f64).floor();
+            let c = |v: f64| (v.max(0.0) as usize).min(n - 1);
+            c(q.x) + n * (c(q.y) + n * c(q.z))
+        };
+        let mut start = vec![0u32; n * n * n + 1];
+        for &d in dirs {
+            start[cell_of(d) + 1] += 1;
+        }
+        for c in 0..n * n * n {
+            start[c + 1] += start[c];
+        }
+        let mut next = start.clone();
+        let mut items = vec![0u32; dirs.len()];
+        for (i, &d) in dirs.iter().enumerate() {
+            let c = cell_of(d);
+            items[next[c] as usize] = i as u32;
+            next[c] += 1;
+        }
+        Self {
+            dirs: dirs.to_vec(),
+            n,
+            start,
+            items,
+        }
+    }
+
+    /// Index of the direction nearest to `d` (shell search outwards from `d`'s cell).
+    fn nearest(&self, d: DVec3) -> u32 {
+        let n = self.n as i64;
+        let q = ((d + DVec3::ONE) * 0.5 * self.n as f64).floor();
+        let c0 = [q.x as i64, q.y as i64, q.z as i64].map(|v| v.clamp(0, n - 1));
+        let width = 2.0 / self.n as f64;
+        let mut best = (f64::INFINITY, 0u32);
+        for r in 0..n {
+            for k in (c0[2] - r).max(0)..=(c0[2] + r).min(n - 1) {
+                for j in (c0[1] - r).max(0)..=(c0[1] + r).min(n - 1) {
+                    for i in (c0[0] - r).max(0)..=(c0[0] + r).min(n - 1) {
+                        let on_shell = (i - c0[0]).abs() == r
+                            || (j - c0[1]).abs() == r
+                            || (k - c0[2]).abs() == r;
+                        if !on_shell {
+                            continue;
+                        }
+                        let c = (i + n * (j + n * k)) as usize;
+                        for &it in &self.items[self.start[c] as usize..self.start[c + 1] as usize] {
+                            let e = (self.dirs[it as usize] - d).length_squared();
+                            if e < best.0 {
+                                best = (e, it);
+                            }
+                        }
+                    }
+                }
+            }
+            // Every point of a cell at shell distance r + 1 is farther than r cell widths.
+            if best.0.is_finite() && best.0.sqrt() <= r as f64 * width {
+                break;
+            }
+        }
+        best.1
+    }
+}

@@ -1,0 +1,403 @@
+//! Contracts of the hybrid body (seed 000 sections 4-6, `haptic_model::hybrid`): the coupling
+//! conserves linear momentum to round-off, a constant strain across the interface gives no
+//! spurious force, press/hold/slide/release gives no force jump above 7 % at activation and
+//! release and injects no energy, and the tick does not allocate.
+
+mod common;
+
+use common::Rng;
+use glam::{DMat3, DVec3};
+use haptic_model::body::{SoftBody, TickInput};
+use haptic_model::contact::probe::ProbeParams;
+use haptic_model::hybrid::{HybridBody, HybridParams, ShellGeometry, prepare};
+use haptic_model::material::MaterialParams;
+use haptic_model::meshfree::{KernelKind, MeshfreeParams, MeshfreeVariant};
+
+const MM: f64 = 1e-3;
+
+fn geometry() -> ShellGeometry {
+    ShellGeometry {
+        inner_m: DVec3::new(6.0, 6.0, 12.0) * MM,
+        outer_m: DVec3::new(10.0, 10.0, 16.0) * MM,
+        z_cut_m: None,
+    }
+}
+
+fn material(damping: bool) -> MaterialParams {
+    // Seed 000 Table 1, Hybrid Model: lambda = 5.0, mu = 2.0 (read as kPa).
+    let mut m = MaterialParams {
+        lambda_pa: 5000.0,
+        mu_pa: 2000.0,
+        ..MaterialParams::from_youngs(1.0, 0.3, 1060.0)
+    };
+    if damping {
+        m.phi_pa_s = 0.09;
+        m.psi_pa_s = 0.09;
+        m.mass_damping_per_s = 20.0;
+    }
+    m
+}
+
+fn params(variant: MeshfreeVariant) -> HybridParams {
+    HybridParams {
+        meshfree: MeshfreeParams {
+            variant,
+            kernel: KernelKind::default_for(variant),
+            spacing_m: 0.8 * MM,
+            ..MeshfreeParams::default()
+        },
+        surface_target_tets: 8000,
+        max_active_particles: 3000,
+        ..HybridParams::default()
+    }
+}
+
+fn body(variant: MeshfreeVariant, damping: bool, clamp: bool) -> HybridBody {
+    body_with(params(variant), damping, clamp)
+}
+
+fn body_with(params: HybridParams, damping: bool, clamp: bool) -> HybridBody {
+    let model =
+        prepare(geometry(), &params, &material(damping), 188, &mut |_, _| {}).expect("prepare");
+    let clamped: Vec<u32> = if clamp {
+        let zc = -0.8 * model.geometry.axes(model.params.core_fraction).z;
+        (0..model.core_mesh.nodes.len() as u32)
+            .filter(|&i| model.core_mesh.nodes[i as usize].z < zc)
+            .collect()
+    } else {
+        Vec::new()
+    };
+    HybridBody::new(model, &clamped, ProbeParams::default(), 1e-3, "test").expect("body")
+}
+
+#[test]
+fn coupling_conserves_linear_momentum() {
+    for variant in [MeshfreeVariant::Seed, MeshfreeVariant::Corrected] {
+        let mut b = body(variant, false, false);
+        b.hold_regions(true);
+        b.activate_near(DVec3::new(10.0, 0.0, 0.0) * MM, 4.0 * MM);
+        let n_active = b.active_particles().len();
+        assert!(n_active > 50, "{n_active} active");
+        let active: Vec<u32> = b.active_particles().to_vec();
+        let mut rng = Rng(11);
+        {
+            let (_, vc) = b.core_state_mut();
+            vc.iter_mut().for_each(|v| *v = rng.vec() * 1e-3);
+        }
+        {
+            let (_, vp) = b.particle_state_mut();
+            for &p in &active {
+                vp[p as usize] = rng.vec() * 1e-3;
+            }
+        }
+        let p0 = b.linear_momentum();
+        let scale: f64 = {
+            let (_, vc) = b.core_state_mut();
+            vc.iter().map(|v| v.length()).sum::<f64>()
+        };
+        b.run_free(20).expect("run");
+        let p1 = b.linear_momentum();
+        let (_, vc) = b.core_state_mut();
+        let moved = vc.iter().map(|v| v.length()).sum::<f64>();
+        assert!(moved > 0.0 && scale > 0.0);
+        let mass = b.particle_mass_kg() * 1e4;
+        eprintln!(
+            "{variant:?}: {n_active} active, |dP| = {:e}",
+            (p1 - p0).length()
+        );
+        assert!(
+            (p1 - p0).length() < 1e-12 * mass * 1e-3,
+            "{variant:?}: momentum changed by {}",
+            p1 - p0
+        );
+    }
+}
+
+#[test]
+fn constant_strain_across_the_interface_gives_no_spurious_force() {
+    // Spacing 0.4 mm: particles within 0.8 mm of the core are two supports away from the
+    // free outer surface, so only the interface can disturb them.
+    let mut p = params(MeshfreeVariant::Corrected);
+    p.meshfree.spacing_m = 0.4 * MM;
+    p.max_active_particles = 20_000;
+    let mut b = body_with(p, false, false);
+    b.hold_regions(true);
+    let a = DMat3::from_cols(
+        DVec3::new(1.02, 0.01, 0.0),
+        DVec3::new(0.01, 0.99, 0.005),
+        DVec3::new(0.0, 0.005, 1.01),
+    );
+    {
+        let rest = b.model().core_mesh.nodes.clone();
+        let (xc, _) = b.core_state_mut();
+        for (x, r) in xc.iter_mut().zip(&rest) {
+            *x = a * *r;
+        }
+    }
+    b.activate_near(DVec3::new(10.0, 0.0, 0.0) * MM, 5.0 * MM);
+    let active: Vec<u32> = b.active_particles().to_vec();
+    let rest = b.model().cloud.rest_m().to_vec();
+    let geo = b.model().geometry;
+    let support = b.model().params.meshfree.support_m();
+    let thickness = 4.0 * MM;
+    let t_inner_max = 1.0 - 2.0 * support / thickness;
+    let (_, fp) = b.evaluate_forces();
+    let mut typical = 0.0f64;
+    let mut spurious = 0.0f64;
+    let mut checked = 0;
+    for &p in &active {
+        let f = fp[p as usize].length();
+        typical = typical.max(f);
+        if geo.contains(rest[p as usize], 0.0, t_inner_max) {
+            spurious = spurious.max(f);
+            checked += 1;
+        }
+    }
+    eprintln!(
+        "{checked} interior particles (next to the core), largest force {spurious:e} N, typical (outer surface) {typical:e} N"
+    );
+    assert!(checked > 20 && typical > 0.0);
+    assert!(spurious < 1e-10 * typical, "{spurious:e} vs {typical:e}");
+}
+
+/// Probe centre on a path in the equatorial plane (the equator is a circle of radius 10 mm):
+/// approach from 5 mm outside, press 1 mm in, hold, slide 0.4 rad (4 mm of arc), hold,
+/// retract to 8 mm outside. Returns (time s, centre m) per 1 ms tick.
+fn press_hold_slide_path() -> Vec<DVec3> {
+    let r_probe = 2.0 * MM;
+    let surface = 10.0 * MM;
+    let far = surface + r_probe + 5.0 * MM;
+    let pressed = surface + r_probe - 1.0 * MM;
+    let speed = 10.0 * MM; // per second
+    let mut path = Vec::new();
+    let at = |radius: f64, angle: f64| DVec3::new(angle.cos(), angle.sin(), 0.0) * radius;
+    let mut r = far;
+    while r > pressed {
+        path.push(at(r, 0.0));
+        r -= speed * 1e-3;
+    }
+    path.extend(std::iter::repeat_n(at(pressed, 0.0), 200));
+    let mut a = 0.0;
+    while a < 0.4 {
+        path.push(at(pressed, a));
+        a += speed * 1e-3 / pressed;
+    }
+    path.extend(std::iter::repeat_n(at(pressed, 0.4), 200));
+    let mut r = pressed;
+    while r < surface + r_probe + 8.0 * MM {
+        path.push(at(r, 0.4));
+        r += speed * 1e-3;
+    }
+    path
+}
+
+#[test]
+fn press_hold_slide_release_has_no_force_jump_and_injects_no_energy() {
+    for variant in [MeshfreeVariant::Corrected, MeshfreeVariant::Seed] {
+        let mut p = params(variant);
+        p.mass_scale = 100.0;
+        let mut mat = material(true);
+        if variant == MeshfreeVariant::Corrected {
+            mat.model = haptic_model::material::MaterialModel::StableNeoHookean;
+        }
+        let model = prepare(geometry(), &p, &mat, 188, &mut |_, _| {}).expect("prepare");
+        // The lower third of the core clamped (the pole cap alone leaves a soft tilting mode
+        // that decays over tens of seconds with mass damping).
+        let zc = -0.3 * model.geometry.axes(model.params.core_fraction).z;
+        let clamped: Vec<u32> = (0..model.core_mesh.nodes.len() as u32)
+            .filter(|&i| model.core_mesh.nodes[i as usize].z < zc)
+            .collect();
+        let mut b =
+            HybridBody::new(model, &clamped, ProbeParams::default(), 1e-3, "test").expect("body");
+        let mut prev = DVec3::ZERO;
+        let mut prev_active = 0usize;
+        let mut worst_jump = 0.0f64;
+        let mut changes = 0;
+        let mut max_force = 0.0f64;
+        let mut max_smooth_step = 0.0f64;
+        for c in press_hold_slide_path() {
+            let out = b
+                .tick(&TickInput {
+                    device_position_m: Some(c),
+                    device_velocity_m_per_s: DVec3::ZERO,
+                })
+                .expect("tick");
+            let f = out.force_on_device_n;
+            max_force = max_force.max(f.length());
+            let active = b.active_particles().len();
+            let step = (f - prev).length();
+            if active != prev_active {
+                changes += 1;
+                let scale = f.length().max(prev.length());
+                if scale > 0.0 {
+                    worst_jump = worst_jump.max(step / scale);
+                }
+            } else {
+                max_smooth_step = max_smooth_step.max(step);
+            }
+            prev = f;
+            prev_active = active;
+        }
+        eprintln!(
+            "{variant:?}: {changes} activation/release ticks, largest relative force jump there {:.4} %, largest force {max_force:.4} N, largest per-tick change elsewhere {max_smooth_step:.3e} N",
+            100.0 * worst_jump
+        );
+        assert!(
+            changes >= 2 && max_force > 1e-3,
+            "{changes} changes, {max_force} N"
+        );
+        assert!(
+            worst_jump <= 0.07,
+            "{variant:?}: jump {:.2} %",
+            100.0 * worst_jump
+        );
+        // Free body after the probe left: the active regions are released as they settle and
+        // the energy decays.
+        let (k0, e0) = b.energy();
+        let mut last = k0 + e0;
+        let mut rises = 0.0f64;
+        for _ in 0..3000 {
+            b.tick(&TickInput::default()).expect("tick");
+            let (k, e) = b.energy();
+            let total = k + e;
+            rises = rises.max(total - last);
+            last = total;
+        }
+        eprintln!(
+            "{variant:?}: energy {:.3e} J -> {last:.3e} J, largest rise per tick {rises:.3e} J, {} particles still active",
+            k0 + e0,
+            b.active_particles().len()
+        );
+        assert!(b.active_particles().is_empty(), "regions not released");
+        assert!(
+            rises <= 1e-9 * (k0 + e0).max(1e-15),
+            "{variant:?}: energy rose by {rises:e} J"
+        );
+        assert!(
+            last <= 1e-3 * (k0 + e0) + 1e-15,
+            "{variant:?}: not at rest: {last:e} J"
+        );
+    }
+}
+
+#[path = "common/counting_alloc.rs"]
+mod counting_alloc;
+
+#[test]
+fn tick_does_not_allocate_through_activation_and_release() {
+    let mut b = body(MeshfreeVariant::Corrected, true, true);
+    // Warm-up tick out of contact.
+    b.tick(&TickInput::default()).expect("tick");
+    let path = press_hold_slide_path();
+    let (result, allocations) = counting_alloc::counted(|| {
+        let mut changes = 0;
+        let mut prev = 0;
+        for c in path.iter().step_by(3) {
+            b.tick(&TickInput {
+                device_position_m: Some(*c),
+                device_velocity_m_per_s: DVec3::ZERO,
+            })?;
+            let a = b.active_particles().len();
+            changes += usize::from(a != prev);
+            prev = a;
+        }
+        for _ in 0..2000 {
+            b.tick(&TickInput::default())?;
+        }
+        b.add_point_load(
+            DVec3::new(0.0, 10.0, 0.0) * MM,
+            DVec3::new(0.0, -0.01, 0.0),
+            0.01,
+        )?;
+        b.tick(&TickInput::default())?;
+        Ok::<_, haptic_model::ModelError>(changes)
+    });
+    let changes = result.expect("ticks");
+    assert!(changes >= 2, "{changes} active-set changes");
+    assert_eq!(allocations, 0, "the tick allocated");
+}
+
+#[test]
+fn builtin_hybrid_scenes_build_and_press() {
+    for name in ["ellipsoids-hybrid", "lv-hybrid"] {
+        let scene = haptic_model::scene::load_builtin(name).expect("scene");
+        let mut stages = 0;
+        let mut body =
+            haptic_model::build_body_with_progress(&scene, &mut |_, _| stages += 1).expect("body");
+        assert!(stages >= 5, "{name}: progress reported {stages} times");
+        let stats = body.stats();
+        assert_eq!(body.info().family, "hybrid");
+        if name == "lv-hybrid" {
+            assert!(
+                stats.particles >= 100_000,
+                "{name}: {} particles",
+                stats.particles
+            );
+        }
+        // Press the outer surface at its largest-x vertex, 0.5 mm deep.
+        let n = body.surface_topology().vertex_count;
+        let mut rest = vec![0f32; 3 * n];
+        body.write_surface_rest_positions(&mut rest);
+        let v = (0..n)
+            .max_by(|&a, &b| rest[3 * a].total_cmp(&rest[3 * b]))
+            .unwrap();
+        let p = DVec3::new(
+            rest[3 * v] as f64,
+            rest[3 * v + 1] as f64,
+            rest[3 * v + 2] as f64,
+        );
+        let device = p + DVec3::X * (scene.probe.radius_m - 0.5 * MM);
+        let mut force = DVec3::ZERO;
+        for _ in 0..100 {
+            force = body
+                .tick(&TickInput {
+                    device_position_m: Some(device),
+                    device_velocity_m_per_s: DVec3::ZERO,
+                })
+                .expect("tick")
+                .force_on_device_n;
+        }
+        let stats = body.stats();
+        let mut surf = vec![0f32; 3 * n];
+        let dent = body.write_surface_positions(&mut surf);
+        eprintln!(
+            "{name}: {} particles, {} active, force {force:.4} N, surface displacement {dent:.3e} m",
+            stats.particles, stats.active_particles
+        );
+        assert!(
+            stats.active_particles > 0 && force.x > 0.0 && dent > 1e-5,
+            "{name}"
+        );
+    }
+}
+
+#[test]
+fn hybrid_scene_errors_name_their_field() {
+    let base = haptic_model::scene::builtin_scene_toml("ellipsoids-hybrid").unwrap();
+    for (from, to, field) in [
+        ("spacing_m = 0.0005", "spacing_m = -1.0", "hybrid.spacing_m"),
+        (
+            "variant = \"seed\"",
+            "variant = \"magic\"",
+            "hybrid.variant",
+        ),
+        (
+            "core_fraction = 0.4",
+            "core_fraction = 1.5",
+            "hybrid.core_fraction",
+        ),
+        (
+            "release_radius_m = 0.005",
+            "release_radius_m = 0.001",
+            "hybrid.release_radius_m",
+        ),
+        ("family = \"hybrid\"", "family = \"fem\"", "hybrid"),
+    ] {
+        let text = base.replace(from, to);
+        assert_ne!(text, base, "{from}");
+        match haptic_model::scene::parse_scene_toml(&text, std::path::Path::new(".")) {
+            Err(haptic_model::ModelError::SceneField { field: f, .. }) => assert_eq!(f, field),
+            other => panic!("{from} -> {to}: {other:?}"),
+        }
+    }
+}
