@@ -64,7 +64,8 @@ pub use glam::DVec3;
 /// # Errors
 /// The errors of the family's constructor ([`sim::Simulation::new`] for the FEM,
 /// [`mass_spring::MassSpringBody::new`] for the mass-spring surface, after
-/// [`scene::MassSpringScene::table`]: a missing or stale calibration table).
+/// [`scene::MassSpringScene::table`]: a missing or stale calibration table;
+/// [`hybrid::prepare`] and [`hybrid::HybridBody::new`] for the hybrid model).
 pub fn build_body(scene: &scene::Scene) -> Result<Box<dyn body::SoftBody>, ModelError> {
     build_body_with_progress(scene, &mut |_, _| {})
 }

@@ -265,7 +265,7 @@ fn hourglass_mode_does_not_grow_over_100_periods() {
 #[test]
 fn critical_time_step_is_conservative() {
     // Stepping at 0.9 of the bound keeps a random perturbation bounded (no blow-up) for both
-    // variants; at 3 times the bound (measured: stable at 2, divergent at 3) the corrected variant diverges, so the bound is within
+    // variants; at 3 times the bound the corrected variant diverges, so the bound is within
     // a small factor of the true limit.
     for variant in [MeshfreeVariant::Corrected, MeshfreeVariant::Seed] {
         let (cloud, block) = cube(6, variant, MaterialModel::StVenantKirchhoff);

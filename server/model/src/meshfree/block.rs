@@ -228,9 +228,11 @@ impl TermBlock {
 
 /// Explicit stability limit of the whole cloud, s: `2 / sqrt(lambda_max)` of `M^-1 K` at rest,
 /// with `lambda_max` bounded above by Gershgorin's theorem on the linearised stiffness of every
-/// term (elastic block norms `V_i c |g_ij| |g_ik|` with `c = 3 lambda + 2 mu`, the largest
-/// eigenvalue of the isotropic elasticity tensor, plus the hourglass blocks). Conservative: the
-/// true limit is larger. Used for the Verlet step of seed eq. 33 and its velocity form.
+/// term (elastic block norms `V_i c |g_ij| |g_ik|` plus the hourglass blocks). At rest every law
+/// linearises to isotropic elasticity, whose block `K_jk u = V (lambda g_j (g_k . u) + mu (u
+/// (g_k . g_j) + g_k (u . g_j)))` has norm at most `V (lambda + 2 mu) |g_j| |g_k|`, so
+/// `c = lambda + 2 mu`. Conservative: the true limit is larger (tests/meshfree.rs: stable at
+/// 0.9 times the bound, divergent at 3 times). Used for the Verlet step of seed eq. 33 and its velocity form.
 ///
 /// Cost: one pass over every particle's neighbourhood (no storage beyond one `f64` per
 /// particle).
@@ -240,7 +242,7 @@ impl TermBlock {
 pub fn critical_time_step(cloud: &ParticleCloud) -> Result<f64, ModelError> {
     let n = cloud.len();
     let mat = cloud.material();
-    let c = 3.0 * mat.lambda_pa.max(0.0) + 2.0 * mat.mu_pa;
+    let c = mat.lambda_pa.max(0.0) + 2.0 * mat.mu_pa;
     let v = cloud.volume_m3();
     let mut row = vec![0.0f64; n];
     let mut nbr = [0u32; MAX_STENCIL];

@@ -167,7 +167,7 @@ max_force_n = 10.0
 /// Built-in scene `lv-hybrid`: the seeds' hybrid model on the LV geometry.
 const LV_HYBRID_TOML: &str = r#"# Built-in scene "lv-hybrid" (a copy of the constant in server/model/src/scene/builtin.rs).
 name = "lv-hybrid"
-description = "The seeds' hybrid model (Mero & Susin 2006, sections 4-6) on the idealized LV of the built-in lv scene: a coarse FEM core (inner 35 % of the wall, about 500 linear tets, base clamped) and a layer of about 110 000 meshfree particles (corrected variant) between the core and the epicardium, simulated only in the regions under the probe. Material of the lv scene (E = 14.5 kPa, nu = 0.45). mass_scale = 1000 is ours (not in the seed): it keeps the explicit particle step at a few sub-steps per 1 ms tick."
+description = "The seeds' hybrid model (Mero & Susin 2006, sections 4-6) on the idealized LV of the built-in lv scene: a coarse FEM core (inner 35 % of the wall, about 500 linear tets, base clamped) and a layer of about 130 000 meshfree particles (corrected variant) between the core and the epicardium, simulated only in the regions under the probe. Material of the lv scene (E = 14.5 kPa, nu = 0.45). mass_scale = 1000 is ours (not in the seed): it keeps the explicit particle step at a few sub-steps per 1 ms tick."
 
 [model]
 family = "hybrid"
@@ -307,7 +307,7 @@ const BUILTINS: [(&str, &str, &str); 6] = [
     (
         "lv-hybrid",
         LV_HYBRID_TOML,
-        "the seeds' hybrid model on the LV: coarse FEM core + ~110k meshfree particles simulated only under the probe",
+        "the seeds' hybrid model on the LV: coarse FEM core + ~130k meshfree particles simulated only under the probe",
     ),
     (
         "ellipsoids-hybrid",
