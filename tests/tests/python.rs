@@ -1,6 +1,6 @@
-//! The Python client (`clients/python`, issue 19) against the real `hapticd` on 127.0.0.1:0: a
-//! virtual environment under the target folder, `pip install ./clients/python[test]` (the gRPC
-//! stubs are generated from `proto/` by the package's build), then `clients/python/tests/
+//! The Python client (`client-viewer/python`, issue 19) against the real `hapticd` on 127.0.0.1:0: a
+//! virtual environment under the target folder, `pip install ./client-viewer/python[test]` (the gRPC
+//! stubs are generated from `proto/` by the package's build), then `client-viewer/python/tests/
 //! live_test.py` (scenes, a session from a name and from TOML text, an injected force seen in
 //! the frames, a scripted press, statistics, stop, errors, reflection `v1alpha` through
 //! `grpcio-reflection`, a bridge recording read back, and a `hapticctl record` MCAP file
@@ -55,8 +55,11 @@ fn venv(repo: &Path) -> Result<PathBuf> {
                 "--disable-pip-version-check",
                 "--upgrade",
             ])
-            .arg(format!("{}[test]", repo.join("clients/python").display())),
-        "pip install ./clients/python[test]",
+            .arg(format!(
+                "{}[test]",
+                repo.join("client-viewer/python").display()
+            )),
+        "pip install ./client-viewer/python[test]",
     )?;
     Ok(python)
 }
@@ -119,7 +122,7 @@ async fn python_client_drives_a_live_daemon() -> Result<()> {
         .await?
         .success()?;
 
-    let script = repo.join("clients/python/tests/live_test.py");
+    let script = repo.join("client-viewer/python/tests/live_test.py");
     let out = tokio::task::spawn_blocking(move || {
         Command::new(&python)
             .arg(&script)

@@ -1,6 +1,6 @@
 """Build hook: generate the haptics.v1 stubs from the repository's proto/ at build time.
 
-`pip install ./clients/python` builds in the source tree, so ../../proto is the contract the
+`pip install ./client-viewer/python` builds in the source tree, so ../../proto is the contract the
 daemon was built from. The generated modules land in the wheel as haptics/v1/*.py (the proto
 package haptics.v1 maps onto this package's subpackage), never in the source tree.
 """
@@ -23,7 +23,7 @@ class BuildWithStubs(build_py):
         if not source.is_file():
             raise SystemExit(
                 f"haptics-client: {source} not found; install from the repository "
-                "(pip install ./clients/python) or set HAPTICS_PROTO_ROOT to its proto/ folder"
+                "(pip install ./client-viewer/python) or set HAPTICS_PROTO_ROOT to its proto/ folder"
             )
         from grpc_tools import protoc
         import grpc_tools
