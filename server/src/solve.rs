@@ -71,8 +71,7 @@ pub fn solve_scene(
             "the scene has no [loads] (gravity, pressure or point forces): nothing to solve".into(),
         ));
     }
-    let mut fem = FemModel::with_smoothing(&scene.mesh, scene.material, scene.strain_smoothing)?;
-    fem.clamp_nodes(&scene.clamped_nodes);
+    let fem = scene.fem_model()?;
     let follower = scene.loads.pressure.iter().any(|p| p.follower);
     let steps = params.load_steps.max(1);
     let mut x = scene.mesh.nodes.clone();

@@ -37,12 +37,12 @@ pub(super) const LANE_STVK: u8 = 0;
 /// See [`LANE_STVK`].
 pub(super) const LANE_STABLE_NEO_HOOKEAN: u8 = 1;
 
-/// The `MODEL` of the lane kernels for `model`, or `None` (corotational: scalar path).
+/// The `MODEL` of the lane kernels for `model`, or `None` (corotational, Guccione: scalar path).
 pub(super) fn lane_model(model: MaterialModel) -> Option<u8> {
     match model {
         MaterialModel::StVenantKirchhoff => Some(LANE_STVK),
         MaterialModel::StableNeoHookean => Some(LANE_STABLE_NEO_HOOKEAN),
-        MaterialModel::Corotational => None,
+        MaterialModel::Corotational | MaterialModel::Guccione => None,
     }
 }
 
