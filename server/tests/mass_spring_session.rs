@@ -123,6 +123,7 @@ async fn a_viewer_gets_keyframes_when_the_probe_subdivides_the_surface() {
         .watch(tonic::Request::new(WatchRequest {
             session_id: session.id.clone(),
             max_rate_hz: 100.0,
+            ..WatchRequest::default()
         }))
         .await
         .expect("watch");

@@ -10,7 +10,8 @@
 //!
 //! Each frame is counted in the phase during which it arrived; bytes are the encoded protobuf
 //! message sizes (what gRPC carries, before HTTP/2 framing). Writes
-//! `docs/bench/stream_bytes.json` and prints the table of `docs/benchmarks.md`.
+//! `target/bench/stream_bytes.json` (`-- --publish`: `docs/bench/`) and prints the table of
+//! `docs/benchmarks.md`.
 //!
 //! Run: `cargo bench -p haptic-e2e --bench stream_bytes`.
 
@@ -110,8 +111,7 @@ async fn main() -> Result<()> {
             r["ratio"].as_f64().unwrap_or(0.0),
         );
     }
-    let out =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/bench/stream_bytes.json");
+    let out = results_dir()?.join("stream_bytes.json");
     let doc = json!({
         "what": "encoded SurfaceFrame bytes, FULL vs DELTA (1 um), default lv, 30 Hz watchers",
         "command": "cargo bench -p haptic-e2e --bench stream_bytes",
@@ -120,4 +120,20 @@ async fn main() -> Result<()> {
     std::fs::write(&out, serde_json::to_string_pretty(&doc)? + "\n")?;
     eprintln!("wrote {}", out.display());
     Ok(())
+}
+
+/// Where results go: `target/bench/` (or `$CARGO_TARGET_DIR/bench/`), or `docs/bench/` with
+/// `--publish`, so that a benchmark run leaves the work tree clean unless asked.
+fn results_dir() -> std::io::Result<std::path::PathBuf> {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let dir = if std::env::args().any(|a| a == "--publish") {
+        root.join("docs/bench")
+    } else {
+        std::env::var_os("CARGO_TARGET_DIR")
+            .map(std::path::PathBuf::from)
+            .unwrap_or_else(|| root.join("target"))
+            .join("bench")
+    };
+    std::fs::create_dir_all(&dir)?;
+    Ok(dir)
 }

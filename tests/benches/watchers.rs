@@ -14,14 +14,14 @@
 //! process (the watchers) during the window, their resident memory at its end, and frames per
 //! watcher in the window. Loopback only, 33 runs of about 14 s.
 //!
-//! Writes `docs/bench/watchers.json` and prints the table of `docs/benchmarks.md`.
+//! Writes `target/bench/watchers.json` (`-- --publish`: `docs/bench/`) and prints the table of `docs/benchmarks.md`.
 //!
 //! The plan (11 set-ups) runs `--repeat N` times (default 3), interleaved; the table gives the
 //! median of each figure over the repetitions and the range of p99 and overruns.
 //!
 //! Run: `cargo bench -p haptic-e2e --bench watchers` (`-- --quick` for one 3 s window each;
 //! `-- --realtime` runs the servo as deployed, SCHED_FIFO pinned to CPU 1, and writes
-//! `docs/bench/watchers-realtime.json`).
+//! `watchers-realtime.json` instead; `-- --publish` writes into `docs/bench/`).
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -315,9 +315,7 @@ async fn main() -> Result<()> {
     } else {
         "watchers.json"
     };
-    let out = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../docs/bench")
-        .join(name);
+    let out = results_dir()?.join(name);
     let doc = json!({
         "what": "servo step time and overruns, CPU and memory against watchers at 30 Hz, default lv, bridge pressing",
         "command": format!(
@@ -339,4 +337,20 @@ async fn main() -> Result<()> {
     eprintln!("wrote {}", out.display());
     drop(relay_proc);
     Ok(())
+}
+
+/// Where results go: `target/bench/` (or `$CARGO_TARGET_DIR/bench/`), or `docs/bench/` with
+/// `--publish`, so that a benchmark run leaves the work tree clean unless asked.
+fn results_dir() -> std::io::Result<std::path::PathBuf> {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let dir = if std::env::args().any(|a| a == "--publish") {
+        root.join("docs/bench")
+    } else {
+        std::env::var_os("CARGO_TARGET_DIR")
+            .map(std::path::PathBuf::from)
+            .unwrap_or_else(|| root.join("target"))
+            .join("bench")
+    };
+    std::fs::create_dir_all(&dir)?;
+    Ok(dir)
 }
