@@ -205,7 +205,11 @@ impl FemModel {
     /// # Panics
     /// If `field.transmural` does not have one value per node.
     pub fn set_fibres(&mut self, field: FibreField) {
-        assert_eq!(field.transmural.len(), self.node_count(), "one value per node");
+        assert_eq!(
+            field.transmural.len(),
+            self.node_count(),
+            "one value per node"
+        );
         let mut frames = vec![DMat3::IDENTITY; self.integration_point_count()];
         let mut shape = Vec::new();
         for c in 0..self.cell_count() {

@@ -90,7 +90,11 @@ impl GuccioneParams {
 /// Entrywise product `A o B`.
 #[inline]
 fn hadamard(a: &DMat3, b: &DMat3) -> DMat3 {
-    DMat3::from_cols(a.x_axis * b.x_axis, a.y_axis * b.y_axis, a.z_axis * b.z_axis)
+    DMat3::from_cols(
+        a.x_axis * b.x_axis,
+        a.y_axis * b.y_axis,
+        a.z_axis * b.z_axis,
+    )
 }
 
 /// `sum_ij B_ij A_ij^2`.

@@ -293,9 +293,7 @@ pub fn first_piola_differential_oriented(
         MaterialModel::StVenantKirchhoff => stvk::first_piola_differential(f, df, lambda, mu),
         MaterialModel::Corotational => corotational::first_piola_differential(f, df, lambda, mu),
         MaterialModel::StableNeoHookean => neo_hookean::first_piola_differential(f, df, lambda, mu),
-        MaterialModel::Guccione => {
-            guccione::first_piola_differential(&mat.guccione, f, frame, df)
-        }
+        MaterialModel::Guccione => guccione::first_piola_differential(&mat.guccione, f, frame, df),
     }
 }
 

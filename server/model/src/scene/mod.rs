@@ -254,10 +254,8 @@ impl Scene {
         let mut fem = FemModel::with_smoothing(&self.mesh, self.material, self.strain_smoothing)?;
         fem.clamp_nodes(&self.clamped_nodes);
         if let Some(spec) = &self.fibres {
-            let nodes = |name: &str, field: &str| {
-                self.mesh
-                    .nodes_of_surfaces(&[name.to_string()], field)
-            };
+            let nodes =
+                |name: &str, field: &str| self.mesh.nodes_of_surfaces(&[name.to_string()], field);
             let endo = nodes(&spec.endo_surface, "material.fibres.endo")?;
             let epi = nodes(&spec.epi_surface, "material.fibres.epi")?;
             let field = FibreField::laplace(&fem, &endo, &epi, spec.rule)?;

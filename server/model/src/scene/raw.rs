@@ -928,7 +928,10 @@ fn build_guccione(m: &RawMaterial, density: f64) -> Result<MaterialParams, Model
                 "only applies to material.model = \"guccione\"",
             ));
         }
-        return Err(ModelError::field("material.model", "internal: not guccione"));
+        return Err(ModelError::field(
+            "material.model",
+            "internal: not guccione",
+        ));
     }
     for (field, present) in [
         ("material.youngs_modulus_pa", m.youngs_modulus_pa.is_some()),
@@ -954,7 +957,9 @@ fn build_guccione(m: &RawMaterial, density: f64) -> Result<MaterialParams, Model
         Some(other) => {
             return Err(ModelError::field(
                 "material.volumetric",
-                format!("unknown volumetric treatment `{other}` (expected \"mean-dilatation\" or \"point\")"),
+                format!(
+                    "unknown volumetric treatment `{other}` (expected \"mean-dilatation\" or \"point\")"
+                ),
             ));
         }
     };
@@ -989,9 +994,16 @@ fn build_fibres(
         return Ok(None);
     }
     let f = m.fibres.as_ref();
-    let endo = f.and_then(|f| f.endo.clone()).unwrap_or_else(|| "ENDO".into());
-    let epi = f.and_then(|f| f.epi.clone()).unwrap_or_else(|| "EPI".into());
-    for (field, name) in [("material.fibres.endo", &endo), ("material.fibres.epi", &epi)] {
+    let endo = f
+        .and_then(|f| f.endo.clone())
+        .unwrap_or_else(|| "ENDO".into());
+    let epi = f
+        .and_then(|f| f.epi.clone())
+        .unwrap_or_else(|| "EPI".into());
+    for (field, name) in [
+        ("material.fibres.endo", &endo),
+        ("material.fibres.epi", &epi),
+    ] {
         if mesh.surface(name).is_none() {
             let known: Vec<&str> = mesh.surfaces.iter().map(|s| s.name.as_str()).collect();
             return Err(ModelError::field(
@@ -1005,7 +1017,12 @@ fn build_fibres(
     }
     let d = crate::element::FibreRule::default();
     let angle = |field: &str, v: Option<f64>, default: f64| {
-        checked(field, v.unwrap_or(default), |x| x.abs() <= 180.0, "in [-180, 180] degrees")
+        checked(
+            field,
+            v.unwrap_or(default),
+            |x| x.abs() <= 180.0,
+            "in [-180, 180] degrees",
+        )
     };
     let axis = match f.and_then(|f| f.long_axis) {
         Some(a) => {
