@@ -5,7 +5,6 @@
 
 use std::path::Path;
 
-use haptic_model::element::FemModel;
 use haptic_model::scene::Scene;
 use haptic_model::statics::{StaticParams, free_residual_norm, solve_static};
 use haptic_model::{DVec3, ModelError};
