@@ -5,7 +5,6 @@
 
 use std::path::Path;
 
-use haptic_model::element::FemModel;
 use haptic_model::scene::Scene;
 use haptic_model::statics::{StaticParams, free_residual_norm, solve_static};
 use haptic_model::{DVec3, ModelError};
@@ -71,8 +70,7 @@ pub fn solve_scene(
             "the scene has no [loads] (gravity, pressure or point forces): nothing to solve".into(),
         ));
     }
-    let mut fem = FemModel::with_smoothing(&scene.mesh, scene.material, scene.strain_smoothing)?;
-    fem.clamp_nodes(&scene.clamped_nodes);
+    let fem = scene.fem_model()?;
     let follower = scene.loads.pressure.iter().any(|p| p.follower);
     let steps = params.load_steps.max(1);
     let mut x = scene.mesh.nodes.clone();

@@ -90,10 +90,7 @@ impl Simulation {
     /// active region; [`ModelError::Unstable`] when the integrator cannot be stable within
     /// `max_substeps`.
     pub fn new(scene: &Scene) -> Result<Self, ModelError> {
-        let mut fem =
-            FemModel::with_smoothing(&scene.mesh, scene.material, scene.strain_smoothing)?;
-        fem.clamp_nodes(&scene.clamped_nodes);
-        Self::from_fem(fem, scene)
+        Self::from_fem(scene.fem_model()?, scene)
     }
 
     /// Like [`Simulation::new`] but with a prepared [`FemModel`] (e.g. with roller constraints).

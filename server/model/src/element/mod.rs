@@ -46,17 +46,22 @@ use crate::ModelError;
 use crate::material::{self, MaterialParams};
 use crate::mesh::TetMesh;
 
+pub mod fibres;
 mod kernels;
 pub mod mass;
 mod quadrature;
 pub mod smoothing;
 pub mod tangent;
 
+pub use fibres::{FibreField, FibreRule};
 use kernels::Kernels;
 pub use mass::lumped_masses;
 use quadrature::{IntegrationPoints, linear_gradients, linear_points, quadratic_points};
 pub use smoothing::StrainSmoothing;
 use smoothing::edge_smoothed_points;
+
+/// Largest number of integration points of a cell (the 4-point rule of quadratic elements).
+pub const MAX_CELL_POINTS: usize = 4;
 
 /// Bit mask of constrained displacement components of a node: bit 0 = x, 1 = y, 2 = z.
 pub type ConstraintMask = u8;
@@ -106,6 +111,11 @@ pub struct FemModel {
     quadratic: bool,
     /// Strain smoothing of linear elements.
     smoothing: StrainSmoothing,
+    /// The material frame (fibre, sheet, sheet-normal columns) of every integration point for
+    /// an anisotropic material; empty: the identity everywhere.
+    frames: Vec<DMat3>,
+    /// The fibre field the frames come from (kept for models built from part of this one).
+    fibres: Option<FibreField>,
 }
 
 impl FemModel {
@@ -184,7 +194,64 @@ impl FemModel {
             material,
             quadratic: mesh.is_quadratic(),
             smoothing,
+            frames: Vec::new(),
+            fibres: None,
         })
+    }
+
+    /// Sets the fibre field: the material frame of every integration point from `field`
+    /// ([`FibreField::frame`] at the point's transmural coordinate and its gradient).
+    ///
+    /// # Panics
+    /// If `field.transmural` does not have one value per node.
+    pub fn set_fibres(&mut self, field: FibreField) {
+        assert_eq!(
+            field.transmural.len(),
+            self.node_count(),
+            "one value per node"
+        );
+        let mut frames = vec![DMat3::IDENTITY; self.integration_point_count()];
+        let mut shape = Vec::new();
+        for c in 0..self.cell_count() {
+            let nodes = self.cell_nodes(c);
+            let points = self.cell_points(c);
+            let np = points.len();
+            for (k, q) in points.enumerate() {
+                fibres::point_shape_values(nodes.len(), np, k, &mut shape);
+                let t: f64 = nodes
+                    .iter()
+                    .zip(&shape)
+                    .map(|(&i, n)| field.transmural[i as usize] * n)
+                    .sum();
+                let grad: DVec3 = nodes
+                    .iter()
+                    .zip(self.ip_gradients(q))
+                    .map(|(&i, g)| *g * field.transmural[i as usize])
+                    .sum();
+                frames[q] = field.frame(t, grad);
+            }
+        }
+        self.frames = frames;
+        self.fibres = Some(field);
+    }
+
+    /// Copies the fibre field of `other` (a model over the same nodes), recomputing the frames
+    /// of this model's integration points. No-op when `other` has none.
+    pub fn copy_fibres_from(&mut self, other: &FemModel) {
+        if let Some(f) = &other.fibres {
+            self.set_fibres(f.clone());
+        }
+    }
+
+    /// The fibre field, if any.
+    pub fn fibres(&self) -> Option<&FibreField> {
+        self.fibres.as_ref()
+    }
+
+    /// The material frame of integration point `q` (identity without a fibre field).
+    #[inline]
+    pub fn ip_frame(&self, q: usize) -> DMat3 {
+        self.frames.get(q).copied().unwrap_or(DMat3::IDENTITY)
     }
 
     /// Number of nodes N.
@@ -295,14 +362,18 @@ impl FemModel {
     }
 
     /// [`Self::add_internal_forces`] element by element (integration point by integration point
-    /// for quadratic elements) with [`material::first_piola`]: the corotational material, and
-    /// the reference the kernels are tested against.
+    /// for quadratic elements) with [`material::first_piola_oriented`]: the corotational and
+    /// Guccione materials, and the reference the kernels are tested against.
     pub(crate) fn generic_forces(&self, x: &[DVec3], viscous: Option<&[DVec3]>, f: &mut [DVec3]) {
         let mat = &self.material;
+        if mat.mean_dilatation() {
+            self.mean_dilatation_forces(x, viscous, f);
+            return;
+        }
         if !self.is_plain_linear() {
             for q in 0..self.integration_point_count() {
                 let fm = self.ip_field_gradient(q, x);
-                let mut p = material::first_piola(mat, &fm);
+                let mut p = material::first_piola_oriented(mat, &fm, &self.ip_frame(q));
                 if let Some(v) = viscous {
                     let f_dot = self.ip_field_gradient(q, v);
                     p += fm * material::viscous_stress(&fm, &f_dot, mat.phi_pa_s, mat.psi_pa_s);
@@ -316,7 +387,7 @@ impl FemModel {
             let dm_inv = self.dm_inv[e];
             let x0 = x[a];
             let fm = DMat3::from_cols(x[b] - x0, x[c] - x0, x[d] - x0) * dm_inv;
-            let mut p = material::first_piola(mat, &fm);
+            let mut p = material::first_piola_oriented(mat, &fm, &self.ip_frame(e));
             if let Some(v) = viscous {
                 let v0 = v[a];
                 let f_dot = DMat3::from_cols(v[b] - v0, v[c] - v0, v[d] - v0) * dm_inv;
@@ -331,16 +402,89 @@ impl FemModel {
         }
     }
 
+    /// The mean dilatation of cell `c`: its deformation gradients at the integration points
+    /// (at most [`MAX_CELL_POINTS`]) and `J_c = sum_q w_q det F_q / sum_q w_q`, the ratio of its
+    /// deformed to its rest volume (exact for straight-sided elements).
+    #[inline]
+    fn cell_dilatation(&self, c: usize, x: &[DVec3]) -> ([DMat3; MAX_CELL_POINTS], f64, f64) {
+        let mut fms = [DMat3::IDENTITY; MAX_CELL_POINTS];
+        let (mut vol, mut def) = (0.0, 0.0);
+        for (k, q) in self.cell_points(c).enumerate() {
+            let fm = self.ip_field_gradient(q, x);
+            let w = self.points.weight_m3[q];
+            vol += w;
+            def += w * fm.determinant();
+            fms[k] = fm;
+        }
+        (fms, def / vol, vol)
+    }
+
+    /// Internal forces with the volumetric term on the element-mean dilatation
+    /// ([`material::GuccioneParams::mean_dilatation`]): with `p_c = U'(J_c)`, each point adds
+    /// `-w_q (P_dev(F_q) + p_c cof F_q) grad N_a`, the gradient of
+    /// `sum_q w_q Psi_dev(F_q) + V_c U(J_c)`.
+    fn mean_dilatation_forces(&self, x: &[DVec3], viscous: Option<&[DVec3]>, f: &mut [DVec3]) {
+        let mat = &self.material;
+        let g = &mat.guccione;
+        for c in 0..self.cell_count() {
+            let (fms, jc, _) = self.cell_dilatation(c, x);
+            let (_, pc, _) = material::guccione::volumetric(g, jc);
+            for (k, q) in self.cell_points(c).enumerate() {
+                let fm = fms[k];
+                let mut p = material::guccione::first_piola_deviatoric(g, &fm, &self.ip_frame(q))
+                    + material::cofactor(&fm) * pc;
+                if let Some(v) = viscous {
+                    let f_dot = self.ip_field_gradient(q, v);
+                    p += fm * material::viscous_stress(&fm, &f_dot, mat.phi_pa_s, mat.psi_pa_s);
+                }
+                self.ip_scatter(q, &(p * -self.points.weight_m3[q]), f);
+            }
+        }
+    }
+
     /// Total elastic strain energy `sum_e V_e Psi(F_e)` of the material model for positions
     /// `x`, J.
     pub fn elastic_energy(&self, x: &[DVec3]) -> f64 {
         let mat = &self.material;
+        if mat.mean_dilatation() {
+            let g = &mat.guccione;
+            return (0..self.cell_count())
+                .map(|c| {
+                    let (fms, jc, vol) = self.cell_dilatation(c, x);
+                    let dev: f64 = self
+                        .cell_points(c)
+                        .enumerate()
+                        .map(|(k, q)| {
+                            self.points.weight_m3[q]
+                                * material::guccione::energy_density_deviatoric(
+                                    g,
+                                    &fms[k],
+                                    &self.ip_frame(q),
+                                )
+                        })
+                        .sum();
+                    dev + vol * material::guccione::volumetric(g, jc).0
+                })
+                .sum();
+        }
         (0..self.integration_point_count())
             .map(|q| {
                 self.points.weight_m3[q]
-                    * material::energy_density(mat, &self.ip_field_gradient(q, x))
+                    * material::energy_density_oriented(
+                        mat,
+                        &self.ip_field_gradient(q, x),
+                        &self.ip_frame(q),
+                    )
             })
             .sum()
+    }
+
+    /// Volume ratio `J_c` (deformed / rest volume) of every cell for positions `x`, appended to
+    /// `out` (cleared first): the element-mean dilatation of
+    /// [`material::GuccioneParams::mean_dilatation`].
+    pub fn cell_volume_ratios(&self, x: &[DVec3], out: &mut Vec<f64>) {
+        out.clear();
+        out.extend((0..self.cell_count()).map(|c| self.cell_dilatation(c, x).1));
     }
 
     /// Deformed volume, m^3, for positions `x`: `sum_e V_e det F_e` over linear tetrahedra

@@ -79,9 +79,9 @@ pub(super) fn linear_gradients(dm_inv: &DMat3) -> [DVec3; 4] {
 }
 
 /// Barycentric coordinates of the points of the 4-point degree-2 Gauss rule on a tetrahedron.
-const GAUSS4_A: f64 = 0.585_410_196_624_968_5;
+pub(super) const GAUSS4_A: f64 = 0.585_410_196_624_968_5;
 
-const GAUSS4_B: f64 = 0.138_196_601_125_010_5;
+pub(super) const GAUSS4_B: f64 = 0.138_196_601_125_010_5;
 
 /// Derivatives of the 10 quadratic shape functions with respect to the reference coordinates
 /// `(xi_1, xi_2, xi_3) = (L_1, L_2, L_3)` at barycentric point `l` (node order: corners, then

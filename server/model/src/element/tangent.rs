@@ -7,12 +7,13 @@
 
 use glam::{DMat3, DVec3};
 
-use super::{FemModel, apply_constraint};
+use super::{FemModel, MAX_CELL_POINTS, apply_constraint};
 use crate::material::{self, MaterialParams};
 
-/// Element tangent stiffness blocks `K_ab = -d f_a / d x_b` (3x3, N/m) of element `e` at
+/// Element tangent stiffness blocks `K_ab = -d f_a / d x_b` (3x3, N/m) of linear element `e` at
 /// positions `x`, from the directional derivative of `f_a = -V P(F) grad N_a`
-/// ([`material::first_piola_differential`] of the material model).
+/// ([`material::first_piola_differential_oriented`] of the material model in the element's
+/// frame).
 pub fn element_tangent(fem: &FemModel, e: usize, x: &[DVec3]) -> [[DMat3; 4]; 4] {
     let mat = fem.material();
     let g = fem.shape_gradients(e);
@@ -29,7 +30,7 @@ pub fn element_tangent(fem: &FemModel, e: usize, x: &[DVec3]) -> [[DMat3; 4]; 4]
                 col[j] = gc;
                 *dfm.col_mut(c) = col;
             }
-            let dp = material::first_piola_differential(mat, &fm, &dfm);
+            let dp = material::first_piola_differential_oriented(mat, &fm, &fem.ip_frame(e), &dfm);
             for a in 0..4 {
                 cols[a * 3 + j] = dp * g[a] * vol;
             }
@@ -62,10 +63,34 @@ pub fn cell_tangent_blocks_of(
     let npe = fem.cell_nodes(c).len();
     out.clear();
     out.resize(npe * npe, DMat3::ZERO);
+    // Mean dilatation: the points see the cell's pressure p_c = U'(J_c); the cell adds the
+    // rank-one term U''(J_c) / V_c a a^T with a_a = sum_q w_q cof(F_q) grad N_a.
+    let mean = mat.mean_dilatation();
+    let mut pc = 0.0;
+    let mut ddu_over_v = 0.0;
+    let mut avec = [DVec3::ZERO; 16];
+    if mean {
+        assert!(npe <= avec.len() && fem.cell_points(c).len() <= MAX_CELL_POINTS);
+        let (mut vol, mut def) = (0.0, 0.0);
+        for q in fem.cell_points(c) {
+            let fm = fem.ip_field_gradient(q, x);
+            let w = fem.ip_weight_m3(q);
+            let cof = material::cofactor(&fm);
+            vol += w;
+            def += w * fm.determinant();
+            for (a, g) in fem.ip_gradients(q).iter().enumerate() {
+                avec[a] += cof * *g * w;
+            }
+        }
+        let (_, du, ddu) = material::guccione::volumetric(&mat.guccione, def / vol);
+        pc = du;
+        ddu_over_v = ddu / vol;
+    }
     for q in fem.cell_points(c) {
         let g = fem.ip_gradients(q);
         let w = fem.ip_weight_m3(q);
         let fm = fem.ip_field_gradient(q, x);
+        let frame = fem.ip_frame(q);
         for b in 0..npe {
             for j in 0..3 {
                 // dF = e_j (grad N_b)^T
@@ -73,10 +98,27 @@ pub fn cell_tangent_blocks_of(
                 for (c, gc) in g[b].to_array().into_iter().enumerate() {
                     dfm.col_mut(c)[j] = gc;
                 }
-                let dp = material::first_piola_differential(mat, &fm, &dfm);
+                let dp = if mean {
+                    material::guccione::first_piola_deviatoric_differential(
+                        &mat.guccione,
+                        &fm,
+                        &frame,
+                        &dfm,
+                    ) + material::cofactor_differential(&fm, &dfm) * pc
+                } else {
+                    material::first_piola_differential_oriented(mat, &fm, &frame, &dfm)
+                };
                 for a in 0..npe {
                     *out[a * npe + b].col_mut(j) += dp * g[a] * w;
                 }
+            }
+        }
+    }
+    if mean {
+        for a in 0..npe {
+            for b in 0..npe {
+                let (va, vb) = (avec[a], avec[b]);
+                out[a * npe + b] += DMat3::from_cols(va * vb.x, va * vb.y, va * vb.z) * ddu_over_v;
             }
         }
     }
@@ -90,11 +132,45 @@ impl FemModel {
     /// `out_a += V dP grad N_a`. At rest this is the linear-elastic stiffness for every material.
     pub fn stiffness_action(&self, x: &[DVec3], dx: &[DVec3], out: &mut [DVec3]) {
         let mat = &self.material;
+        if mat.mean_dilatation() {
+            // Per cell: dP_q = dP_dev + p_c d cof F_q + dp_c cof F_q, with p_c = U'(J_c) and
+            // dp_c = U''(J_c) sum_q w_q cof F_q : dF_q / V_c.
+            let g = &mat.guccione;
+            for c in 0..self.cell_count() {
+                let (mut vol, mut def, mut dj) = (0.0, 0.0, 0.0);
+                for q in self.cell_points(c) {
+                    let fm = self.ip_field_gradient(q, x);
+                    let w = self.ip_weight_m3(q);
+                    vol += w;
+                    def += w * fm.determinant();
+                    dj += w * material::ddot(
+                        &material::cofactor(&fm),
+                        &self.ip_field_gradient(q, dx),
+                    );
+                }
+                let (_, du, ddu) = material::guccione::volumetric(g, def / vol);
+                let dp_c = ddu * dj / vol;
+                for q in self.cell_points(c) {
+                    let fm = self.ip_field_gradient(q, x);
+                    let dfm = self.ip_field_gradient(q, dx);
+                    let dp = material::guccione::first_piola_deviatoric_differential(
+                        g,
+                        &fm,
+                        &self.ip_frame(q),
+                        &dfm,
+                    ) + material::cofactor_differential(&fm, &dfm) * du
+                        + material::cofactor(&fm) * dp_c;
+                    self.ip_scatter(q, &(dp * self.ip_weight_m3(q)), out);
+                }
+            }
+            return;
+        }
         if !self.is_plain_linear() {
             for q in 0..self.integration_point_count() {
                 let fm = self.ip_field_gradient(q, x);
                 let dfm = self.ip_field_gradient(q, dx);
-                let dp = material::first_piola_differential(mat, &fm, &dfm);
+                let dp =
+                    material::first_piola_differential_oriented(mat, &fm, &self.ip_frame(q), &dfm);
                 self.ip_scatter(q, &(dp * self.points.weight_m3[q]), out);
             }
             return;
@@ -106,7 +182,7 @@ impl FemModel {
             let fm = DMat3::from_cols(x[b] - x0, x[c] - x0, x[d] - x0) * dm_inv;
             let d0 = dx[a];
             let dfm = DMat3::from_cols(dx[b] - d0, dx[c] - d0, dx[d] - d0) * dm_inv;
-            let dp = material::first_piola_differential(mat, &fm, &dfm);
+            let dp = material::first_piola_differential_oriented(mat, &fm, &self.ip_frame(e), &dfm);
             let h = dp * dm_inv.transpose() * self.volume_m3[e];
             out[b] += h.x_axis;
             out[c] += h.y_axis;

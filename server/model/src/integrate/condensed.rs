@@ -285,6 +285,7 @@ fn part_model(body: &FemModel, mesh: &TetMesh, keep: &[bool]) -> Result<FemModel
         body.strain_smoothing(),
     )?;
     m.copy_constraints_from(body);
+    m.copy_fibres_from(body);
     Ok(m)
 }
 

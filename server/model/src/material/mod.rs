@@ -12,8 +12,13 @@
 //!   Simulation", ACM TOG 37(2):12). All three linearise at rest to the same linear elasticity
 //!   with the given Lamé parameters.
 //!
-//! One file per law: [`stvk`], [`corotational`], [`neo_hookean`], [`viscous`]; this module
-//! holds the parameters and the dispatch on [`MaterialModel`].
+//! - Guccione's transversely isotropic law of passive myocardium with a volumetric penalty
+//!   ([`guccione`]; Guccione, McCulloch & Waldman 1991, in the form of Land et al. 2015), whose
+//!   stress depends on a local fibre frame: [`first_piola_oriented`] and friends take it (the
+//!   other laws ignore it).
+//!
+//! One file per law: [`stvk`], [`corotational`], [`neo_hookean`], [`guccione`], [`viscous`];
+//! this module holds the parameters and the dispatch on [`MaterialModel`].
 //!
 //! Owns: constitutive laws of one material point (no mesh, no nodes). May use: nothing of the
 //! crate but [`crate::ModelError`]. Used by [`crate::element`] (per integration point),
@@ -45,27 +50,36 @@ pub enum MaterialModel {
     /// `d^2 J = tr(dF)^2 - tr(dF^2)` and `J - alpha = -mu/lambda_s`), which is linear
     /// elasticity exactly when `lambda_s = lambda + mu`.
     StableNeoHookean,
+    /// Guccione's transversely isotropic law of passive myocardium with a volumetric penalty
+    /// (`"guccione"`, [`guccione`]): `Psi = C/2 (e^Q - 1) + kappa/2 (J - 1)^2`, parameters in
+    /// [`MaterialParams::guccione`]. Exponential, fibre-dependent stiffness; nearly
+    /// incompressible for a large `kappa / C`.
+    Guccione,
 }
 
 impl MaterialModel {
-    /// The scene-file name: `"stvk"`, `"corotational"` or `"stable-neo-hookean"`.
+    /// Every model, in the order of the scene-file documentation.
+    pub const ALL: [MaterialModel; 4] = [
+        Self::StVenantKirchhoff,
+        Self::Corotational,
+        Self::StableNeoHookean,
+        Self::Guccione,
+    ];
+
+    /// The scene-file name: `"stvk"`, `"corotational"`, `"stable-neo-hookean"` or
+    /// `"guccione"`.
     pub fn scene_name(self) -> &'static str {
         match self {
             Self::StVenantKirchhoff => "stvk",
             Self::Corotational => "corotational",
             Self::StableNeoHookean => "stable-neo-hookean",
+            Self::Guccione => "guccione",
         }
     }
 
     /// Parses a scene-file name (see [`MaterialModel::scene_name`]); `None` if unknown.
     pub fn from_scene_name(name: &str) -> Option<Self> {
-        [
-            Self::StVenantKirchhoff,
-            Self::Corotational,
-            Self::StableNeoHookean,
-        ]
-        .into_iter()
-        .find(|m| m.scene_name() == name)
+        Self::ALL.into_iter().find(|m| m.scene_name() == name)
     }
 }
 
@@ -87,6 +101,11 @@ pub struct MaterialParams {
     /// Mass-proportional (Rayleigh alpha) damping, 1/s. Not in the seed; 0 disables it. Applied
     /// implicitly, so it never limits the stable time step.
     pub mass_damping_per_s: f64,
+    /// Parameters of [`MaterialModel::Guccione`] (ignored by the other models). With that
+    /// model `lambda_pa` is its bulk modulus and `mu_pa` its largest small-strain shear modulus
+    /// ([`MaterialParams::with_guccione`]), so that time-step estimates and isotropic
+    /// preconditioners see the right scale.
+    pub guccione: GuccioneParams,
 }
 
 impl Default for MaterialParams {
@@ -112,7 +131,36 @@ impl MaterialParams {
             psi_pa_s: 0.0,
             density_kg_per_m3,
             mass_damping_per_s: 0.0,
+            guccione: GuccioneParams::isotropic(2.0 * e_pa / (2.0 * (1.0 + nu)), 1.0, 0.0),
         }
+    }
+
+    /// The Guccione material `g` (model [`MaterialModel::Guccione`]) with density
+    /// `density_kg_per_m3`: `lambda_pa = g.bulk_modulus_pa`, `mu_pa = C max(b) / 2` (exact
+    /// small-strain values in the isotropic limit). No viscosity or damping.
+    pub fn with_guccione(g: GuccioneParams, density_kg_per_m3: f64) -> Self {
+        Self {
+            model: MaterialModel::Guccione,
+            lambda_pa: g.bulk_modulus_pa,
+            mu_pa: g.max_shear_modulus_pa(),
+            phi_pa_s: 0.0,
+            psi_pa_s: 0.0,
+            density_kg_per_m3,
+            mass_damping_per_s: 0.0,
+            guccione: g,
+        }
+    }
+
+    /// Whether the model's stress depends on a local frame (Guccione with distinct
+    /// coefficients).
+    pub fn is_anisotropic(&self) -> bool {
+        self.model == MaterialModel::Guccione && !self.guccione.is_isotropic()
+    }
+
+    /// Whether the volumetric term is evaluated per element with the mean dilatation
+    /// ([`GuccioneParams::mean_dilatation`]).
+    pub fn mean_dilatation(&self) -> bool {
+        self.model == MaterialModel::Guccione && self.guccione.mean_dilatation
     }
 
     /// Young's modulus `E = mu (3 lambda + 2 mu) / (lambda + mu)`, Pa.
@@ -156,17 +204,38 @@ impl MaterialParams {
                 return Err(ModelError::field(field, format!("{v} is not admissible")));
             }
         }
+        if self.model == MaterialModel::Guccione {
+            let g = &self.guccione;
+            let checks: [(&str, f64, bool); 5] = [
+                ("material.guccione_c_pa", g.c_pa, g.c_pa > 0.0),
+                ("material.b_f", g.b_f, g.b_f > 0.0),
+                ("material.b_t", g.b_t, g.b_t > 0.0),
+                ("material.b_fs", g.b_fs, g.b_fs > 0.0),
+                (
+                    "material.bulk_modulus_pa",
+                    g.bulk_modulus_pa,
+                    g.bulk_modulus_pa >= 0.0,
+                ),
+            ];
+            for (field, v, ok) in checks {
+                if !v.is_finite() || !ok {
+                    return Err(ModelError::field(field, format!("{v} is not admissible")));
+                }
+            }
+        }
         Ok(())
     }
 }
 
 pub mod corotational;
+pub mod guccione;
 pub mod neo_hookean;
 pub mod stvk;
 pub mod viscous;
 
 pub use corotational::{polar_decomposition, rotation_variant_svd, symmetric_eigen};
-pub use neo_hookean::{cofactor, neo_hookean_params};
+pub use guccione::GuccioneParams;
+pub use neo_hookean::{cofactor, cofactor_differential, neo_hookean_params};
 pub use stvk::{green_strain, stvk_energy_density, stvk_stress};
 pub use viscous::viscous_stress;
 
@@ -182,38 +251,67 @@ pub(crate) fn ddot(a: &DMat3, b: &DMat3) -> f64 {
     a.x_axis.dot(b.x_axis) + a.y_axis.dot(b.y_axis) + a.z_axis.dot(b.z_axis)
 }
 
-/// Elastic first Piola-Kirchhoff stress `P(F) = dPsi/dF` of `mat.model`, Pa.
-/// StVK: `P = F S(E)`; corotational: `P = 2 mu (F - R) + lambda tr(R^T F - I) R`; stable
-/// Neo-Hookean: `P = mu F + lambda_s (J - alpha) cof(F)`.
+/// Elastic first Piola-Kirchhoff stress `P(F) = dPsi/dF` of `mat.model`, Pa, in the identity
+/// frame ([`first_piola_oriented`]). StVK: `P = F S(E)`; corotational:
+/// `P = 2 mu (F - R) + lambda tr(R^T F - I) R`; stable Neo-Hookean:
+/// `P = mu F + lambda_s (J - alpha) cof(F)`; Guccione: `F S + kappa (J - 1) cof F`.
 #[inline]
 pub fn first_piola(mat: &MaterialParams, f: &DMat3) -> DMat3 {
+    first_piola_oriented(mat, f, &DMat3::IDENTITY)
+}
+
+/// [`first_piola`] with the local material frame `frame` (orthonormal columns fibre, sheet,
+/// sheet-normal in the rest configuration; only [`MaterialModel::Guccione`] uses it), Pa.
+#[inline]
+pub fn first_piola_oriented(mat: &MaterialParams, f: &DMat3, frame: &DMat3) -> DMat3 {
     let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
     match mat.model {
         MaterialModel::StVenantKirchhoff => stvk::first_piola(f, lambda, mu),
         MaterialModel::Corotational => corotational::first_piola(f, lambda, mu),
         MaterialModel::StableNeoHookean => neo_hookean::first_piola(f, lambda, mu),
+        MaterialModel::Guccione => guccione::first_piola(&mat.guccione, f, frame),
     }
 }
 
 /// Exact directional derivative `dP = (dP/dF) : dF` of [`first_piola`] at `f` along `df`, Pa
-/// (each law's module gives its formula).
+/// (each law's module gives its formula), in the identity frame.
 #[inline]
 pub fn first_piola_differential(mat: &MaterialParams, f: &DMat3, df: &DMat3) -> DMat3 {
+    first_piola_differential_oriented(mat, f, &DMat3::IDENTITY, df)
+}
+
+/// [`first_piola_differential`] in the local frame `frame` (see [`first_piola_oriented`]), Pa.
+#[inline]
+pub fn first_piola_differential_oriented(
+    mat: &MaterialParams,
+    f: &DMat3,
+    frame: &DMat3,
+    df: &DMat3,
+) -> DMat3 {
     let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
     match mat.model {
         MaterialModel::StVenantKirchhoff => stvk::first_piola_differential(f, df, lambda, mu),
         MaterialModel::Corotational => corotational::first_piola_differential(f, df, lambda, mu),
         MaterialModel::StableNeoHookean => neo_hookean::first_piola_differential(f, df, lambda, mu),
+        MaterialModel::Guccione => guccione::first_piola_differential(&mat.guccione, f, frame, df),
     }
 }
 
-/// Elastic strain energy density `Psi(F)` of `mat.model`, J/m^3 (zero at `F = I`).
+/// Elastic strain energy density `Psi(F)` of `mat.model`, J/m^3 (zero at `F = I`), in the
+/// identity frame.
 #[inline]
 pub fn energy_density(mat: &MaterialParams, f: &DMat3) -> f64 {
+    energy_density_oriented(mat, f, &DMat3::IDENTITY)
+}
+
+/// [`energy_density`] in the local frame `frame` (see [`first_piola_oriented`]), J/m^3.
+#[inline]
+pub fn energy_density_oriented(mat: &MaterialParams, f: &DMat3, frame: &DMat3) -> f64 {
     let (lambda, mu) = (mat.lambda_pa, mat.mu_pa);
     match mat.model {
         MaterialModel::StVenantKirchhoff => stvk_energy_density(&green_strain(f), lambda, mu),
         MaterialModel::Corotational => corotational::energy_density(f, lambda, mu),
         MaterialModel::StableNeoHookean => neo_hookean::energy_density(f, lambda, mu),
+        MaterialModel::Guccione => guccione::energy_density(&mat.guccione, f, frame),
     }
 }

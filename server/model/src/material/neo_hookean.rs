@@ -21,9 +21,9 @@ pub fn cofactor(f: &DMat3) -> DMat3 {
     )
 }
 
-/// Directional derivative of [`cofactor`] at `f` along `df`.
+/// Directional derivative of [`cofactor`] at `f` along `df` (the derivative of `cof F = J F^-T`).
 #[inline]
-fn cofactor_differential(f: &DMat3, df: &DMat3) -> DMat3 {
+pub fn cofactor_differential(f: &DMat3, df: &DMat3) -> DMat3 {
     DMat3::from_cols(
         df.y_axis.cross(f.z_axis) + f.y_axis.cross(df.z_axis),
         df.z_axis.cross(f.x_axis) + f.z_axis.cross(df.x_axis),

@@ -88,7 +88,7 @@ use glam::DVec3;
 
 use crate::ModelError;
 use crate::contact::ProbeParams;
-use crate::element::StrainSmoothing;
+use crate::element::{FemModel, FibreField, FibreRule, StrainSmoothing};
 use crate::integrate::IntegratorParams;
 use crate::integrate::condensed::ActiveRegion;
 use crate::loads::{SceneLoads, static_external_forces};
@@ -141,6 +141,18 @@ impl ModelFamily {
     }
 }
 
+/// The rule-based fibre field of a scene (`[material.fibres]`): the surfaces where the
+/// transmural coordinate is 0 and 1, and the helix rule ([`crate::element::fibres`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FibreSpec {
+    /// Surface with transmural coordinate 0 (default `ENDO`).
+    pub endo_surface: String,
+    /// Surface with transmural coordinate 1 (default `EPI`).
+    pub epi_surface: String,
+    /// Helix angles and long axis.
+    pub rule: FibreRule,
+}
+
 /// A validated scene, ready to build a body ([`crate::build_body`]). SI units.
 #[derive(Debug, Clone)]
 pub struct Scene {
@@ -171,6 +183,9 @@ pub struct Scene {
     /// Contact-local active region (section `[active_region]`): backward Euler on its elements
     /// with the rest of the body condensed ([`crate::integrate::condensed`]); `None` simulates everything.
     pub active_region: Option<ActiveRegion>,
+    /// The fibre field of an anisotropic material (`[material.fibres]`), built on the mesh by
+    /// [`Scene::fem_model`].
+    pub fibres: Option<FibreSpec>,
     /// The mass-spring surface (section `[mass_spring]`): present exactly when `family` is
     /// [`ModelFamily::MassSpring`] (the parser guarantees it). A mass-spring scene has no
     /// `[material]` (`material` is then the default, unused) and no `[loads]`; its `mesh` is
@@ -251,6 +266,27 @@ impl MassSpringScene {
 }
 
 impl Scene {
+    /// The FEM model of the scene: elements of its mesh with its material and strain
+    /// smoothing, clamped nodes, and the fibre field of an anisotropic material (the Laplace
+    /// rule of [`FibreField::laplace`] between the scene's endocardial and epicardial
+    /// surfaces).
+    ///
+    /// # Errors
+    /// As [`FemModel::with_smoothing`] and [`FibreField::laplace`].
+    pub fn fem_model(&self) -> Result<FemModel, ModelError> {
+        let mut fem = FemModel::with_smoothing(&self.mesh, self.material, self.strain_smoothing)?;
+        fem.clamp_nodes(&self.clamped_nodes);
+        if let Some(spec) = &self.fibres {
+            let nodes =
+                |name: &str, field: &str| self.mesh.nodes_of_surfaces(&[name.to_string()], field);
+            let endo = nodes(&spec.endo_surface, "material.fibres.endo")?;
+            let epi = nodes(&spec.epi_surface, "material.fibres.epi")?;
+            let field = FibreField::laplace(&fem, &endo, &epi, spec.rule)?;
+            fem.set_fibres(field);
+        }
+        Ok(fem)
+    }
+
     /// External nodal forces (N, one per mesh node) of the scene's loads at positions `x` (m),
     /// for static solves: see [`static_external_forces`]. The same forces a dynamic body
     /// applies.

@@ -149,6 +149,23 @@ struct RawMaterial {
     psi_pa_s: Option<f64>,
     density_kg_per_m3: Option<f64>,
     mass_damping_per_s: Option<f64>,
+    guccione_c_pa: Option<f64>,
+    b_f: Option<f64>,
+    b_t: Option<f64>,
+    b_fs: Option<f64>,
+    bulk_modulus_pa: Option<f64>,
+    volumetric: Option<String>,
+    fibres: Option<RawFibres>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawFibres {
+    endo: Option<String>,
+    epi: Option<String>,
+    helix_endo_deg: Option<f64>,
+    helix_epi_deg: Option<f64>,
+    long_axis: Option<[f64; 3]>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -284,16 +301,19 @@ pub(super) fn parse_scene(
             "strain smoothing is for linear tetrahedra (order = 1)",
         ));
     }
-    let material = if springs {
+    let (material, fibres) = if springs {
         if raw.material.is_some() {
             return Err(ModelError::field(
                 "material",
                 "the mass-spring family takes its constants from [mass_spring]: remove [material]",
             ));
         }
-        MaterialParams::default()
+        (MaterialParams::default(), None)
     } else {
-        build_material(&required("material", raw.material)?)?
+        let raw_material = required("material", raw.material)?;
+        let material = build_material(&raw_material)?;
+        let fibres = build_fibres(&raw_material, &material, &mesh)?;
+        (material, fibres)
     };
     let boundary = raw.boundary.unwrap_or_default();
     let clamped_nodes = match &boundary.clamped {
@@ -458,6 +478,7 @@ pub(super) fn parse_scene(
     };
     Ok(Scene {
         name,
+        fibres,
         mass_spring,
         hybrid,
         description: raw.description.unwrap_or_default(),
@@ -1038,6 +1059,152 @@ fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError
     Ok((mesh, unit))
 }
 
+/// The Guccione keys of `[material]` (`model = "guccione"`); refused with other models.
+fn build_guccione(m: &RawMaterial, density: f64) -> Result<MaterialParams, ModelError> {
+    let guccione = m.model.as_deref() == Some("guccione");
+    let given: [(&str, bool); 6] = [
+        ("material.guccione_c_pa", m.guccione_c_pa.is_some()),
+        ("material.b_f", m.b_f.is_some()),
+        ("material.b_t", m.b_t.is_some()),
+        ("material.b_fs", m.b_fs.is_some()),
+        ("material.bulk_modulus_pa", m.bulk_modulus_pa.is_some()),
+        ("material.volumetric", m.volumetric.is_some()),
+    ];
+    if !guccione {
+        if let Some((field, _)) = given.iter().find(|g| g.1) {
+            return Err(ModelError::field(
+                *field,
+                "only applies to material.model = \"guccione\"",
+            ));
+        }
+        return Err(ModelError::field(
+            "material.model",
+            "internal: not guccione",
+        ));
+    }
+    for (field, present) in [
+        ("material.youngs_modulus_pa", m.youngs_modulus_pa.is_some()),
+        ("material.poisson_ratio", m.poisson_ratio.is_some()),
+        ("material.lambda_pa", m.lambda_pa.is_some()),
+        ("material.mu_pa", m.mu_pa.is_some()),
+    ] {
+        if present {
+            return Err(ModelError::field(
+                field,
+                "does not apply to material.model = \"guccione\" (give guccione_c_pa, b_f, b_t, b_fs, bulk_modulus_pa)",
+            ));
+        }
+    }
+    let c = positive(
+        "material.guccione_c_pa",
+        required("material.guccione_c_pa", m.guccione_c_pa)?,
+    )?;
+    let b = |field: &str, v: Option<f64>| positive(field, required(field, v)?);
+    let mean_dilatation = match m.volumetric.as_deref() {
+        None | Some("mean-dilatation") => true,
+        Some("point") => false,
+        Some(other) => {
+            return Err(ModelError::field(
+                "material.volumetric",
+                format!(
+                    "unknown volumetric treatment `{other}` (expected \"mean-dilatation\" or \"point\")"
+                ),
+            ));
+        }
+    };
+    let g = crate::material::GuccioneParams {
+        c_pa: c,
+        b_f: b("material.b_f", m.b_f)?,
+        b_t: b("material.b_t", m.b_t)?,
+        b_fs: b("material.b_fs", m.b_fs)?,
+        bulk_modulus_pa: positive(
+            "material.bulk_modulus_pa",
+            required("material.bulk_modulus_pa", m.bulk_modulus_pa)?,
+        )?,
+        mean_dilatation,
+    };
+    Ok(MaterialParams::with_guccione(g, density))
+}
+
+/// The fibre rule of `[material.fibres]`: `(endo surface, epi surface, rule)`; `None` when the
+/// material needs no frame (not an anisotropic Guccione law) and the section is absent.
+fn build_fibres(
+    m: &RawMaterial,
+    mat: &MaterialParams,
+    mesh: &TetMesh,
+) -> Result<Option<super::FibreSpec>, ModelError> {
+    if m.fibres.is_some() && mat.model != MaterialModel::Guccione {
+        return Err(ModelError::field(
+            "material.fibres",
+            "only applies to material.model = \"guccione\"",
+        ));
+    }
+    if m.fibres.is_none() && !mat.is_anisotropic() {
+        return Ok(None);
+    }
+    let f = m.fibres.as_ref();
+    let endo = f
+        .and_then(|f| f.endo.clone())
+        .unwrap_or_else(|| "ENDO".into());
+    let epi = f
+        .and_then(|f| f.epi.clone())
+        .unwrap_or_else(|| "EPI".into());
+    for (field, name) in [
+        ("material.fibres.endo", &endo),
+        ("material.fibres.epi", &epi),
+    ] {
+        if mesh.surface(name).is_none() {
+            let known: Vec<&str> = mesh.surfaces.iter().map(|s| s.name.as_str()).collect();
+            return Err(ModelError::field(
+                field,
+                format!(
+                    "no surface named `{name}` for the fibre rule (mesh surfaces: {})",
+                    known.join(", ")
+                ),
+            ));
+        }
+    }
+    let d = crate::element::FibreRule::default();
+    let angle = |field: &str, v: Option<f64>, default: f64| {
+        checked(
+            field,
+            v.unwrap_or(default),
+            |x| x.abs() <= 180.0,
+            "in [-180, 180] degrees",
+        )
+    };
+    let axis = match f.and_then(|f| f.long_axis) {
+        Some(a) => {
+            let v = bounded_vec("material.fibres.long_axis", a, 1e9)?;
+            if v.length() == 0.0 {
+                return Err(ModelError::field(
+                    "material.fibres.long_axis",
+                    "must not be zero",
+                ));
+            }
+            v.normalize()
+        }
+        None => d.long_axis,
+    };
+    Ok(Some(super::FibreSpec {
+        endo_surface: endo,
+        epi_surface: epi,
+        rule: crate::element::FibreRule {
+            helix_endo_deg: angle(
+                "material.fibres.helix_endo_deg",
+                f.and_then(|f| f.helix_endo_deg),
+                d.helix_endo_deg,
+            )?,
+            helix_epi_deg: angle(
+                "material.fibres.helix_epi_deg",
+                f.and_then(|f| f.helix_epi_deg),
+                d.helix_epi_deg,
+            )?,
+            long_axis: axis,
+        },
+    }))
+}
+
 fn build_material(m: &RawMaterial) -> Result<MaterialParams, ModelError> {
     const E: &str = "material.youngs_modulus_pa";
     const NU: &str = "material.poisson_ratio";
@@ -1045,6 +1212,24 @@ fn build_material(m: &RawMaterial) -> Result<MaterialParams, ModelError> {
     const MU: &str = "material.mu_pa";
     let density = required("material.density_kg_per_m3", m.density_kg_per_m3)?;
     let density = positive("material.density_kg_per_m3", density)?;
+    if m.model.as_deref() == Some("guccione")
+        || m.guccione_c_pa.is_some()
+        || m.b_f.is_some()
+        || m.b_t.is_some()
+        || m.b_fs.is_some()
+        || m.bulk_modulus_pa.is_some()
+        || m.volumetric.is_some()
+    {
+        let mut mat = build_guccione(m, density)?;
+        mat.phi_pa_s = non_negative("material.phi_pa_s", m.phi_pa_s.unwrap_or(0.0))?;
+        mat.psi_pa_s = non_negative("material.psi_pa_s", m.psi_pa_s.unwrap_or(0.0))?;
+        mat.mass_damping_per_s = non_negative(
+            "material.mass_damping_per_s",
+            m.mass_damping_per_s.unwrap_or(0.0),
+        )?;
+        mat.validate()?;
+        return Ok(mat);
+    }
     let engineering = m.youngs_modulus_pa.is_some() || m.poisson_ratio.is_some();
     let lame = m.lambda_pa.is_some() || m.mu_pa.is_some();
     let mut mat = match (engineering, lame) {
@@ -1085,10 +1270,8 @@ fn build_material(m: &RawMaterial) -> Result<MaterialParams, ModelError> {
                 model: Default::default(),
                 lambda_pa: lambda,
                 mu_pa: mu,
-                phi_pa_s: 0.0,
-                psi_pa_s: 0.0,
                 density_kg_per_m3: density,
-                mass_damping_per_s: 0.0,
+                ..MaterialParams::from_youngs(1.0, 0.0, 1.0)
             }
         }
     };
@@ -1097,7 +1280,7 @@ fn build_material(m: &RawMaterial) -> Result<MaterialParams, ModelError> {
             ModelError::field(
                 "material.model",
                 format!(
-                    "unknown material model `{name}` (expected \"stvk\", \"corotational\" or \"stable-neo-hookean\")"
+                    "unknown material model `{name}` (expected \"stvk\", \"corotational\", \"stable-neo-hookean\" or \"guccione\")"
                 ),
             )
         })?;

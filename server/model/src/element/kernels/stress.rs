@@ -40,12 +40,14 @@ pub(super) const LANE_STABLE_NEO_HOOKEAN: u8 = 1;
 /// See [`LANE_STVK`].
 pub(super) const LANE_COROTATIONAL: u8 = 2;
 
-/// The `MODEL` of the lane kernels for `model` (`None` is kept for laws without one).
+/// The `MODEL` of the lane kernels for `model`, or `None` (Guccione: scalar path, its fibre
+/// frame varies per element).
 pub(super) fn lane_model(model: MaterialModel) -> Option<u8> {
     match model {
         MaterialModel::StVenantKirchhoff => Some(LANE_STVK),
         MaterialModel::StableNeoHookean => Some(LANE_STABLE_NEO_HOOKEAN),
         MaterialModel::Corotational => Some(LANE_COROTATIONAL),
+        MaterialModel::Guccione => None,
     }
 }
 
