@@ -271,20 +271,10 @@ async fn device_seq_only_goes_up_and_a_silent_device_leaves_the_scene() -> Resul
     let _serial = serial().await;
     let server = InProcess::start().await?;
     let url = server.url.clone();
-    let mut ctl = session_control(&url).await?;
-    let id = ctl
-        .start_session(StartSessionRequest {
-            scene: "lv".into(),
-            scene_toml: String::new(),
-        })
-        .await?
-        .into_inner()
-        .session_id;
-    let stats = |ctl: &mut haptics_proto::v1::session_control_client::SessionControlClient<
-        tonic::transport::Channel,
-    >| {
-        let id = id.clone();
-        let mut ctl = ctl.clone();
+    let id = haptic_e2e::start_session(&url, "lv").await?;
+    let ctl = session_control(&url).await?;
+    let stats = || {
+        let (mut ctl, id) = (ctl.clone(), id.clone());
         async move {
             anyhow::Ok(
                 ctl.get_stats(GetStatsRequest { session_id: id })
@@ -318,13 +308,13 @@ async fn device_seq_only_goes_up_and_a_silent_device_leaves_the_scene() -> Resul
         anyhow::ensure!(tokio::time::Instant::now() < deadline, "no contact at 1 mm");
         tokio::time::sleep(Duration::from_millis(1)).await;
     }
-    let s = stats(&mut ctl).await?;
+    let s = stats().await?;
     assert_eq!(s.out_of_order_samples, 2, "{s:?}");
     assert!(!s.device_silent);
 
     // Silence: the stream stays open, nothing is sent for 400 ms.
     tokio::time::sleep(Duration::from_millis(400)).await;
-    let s = stats(&mut ctl).await?;
+    let s = stats().await?;
     assert!(s.device_silent, "{s:?}");
     assert!(!s.in_contact, "a silent device still presses: {s:?}");
     assert_eq!(s.device_silences, 1);
@@ -334,14 +324,14 @@ async fn device_seq_only_goes_up_and_a_silent_device_leaves_the_scene() -> Resul
     tx.send(sample(&id, back, pressed)).await?;
     let f = force_for(&mut forces, back, &[]).await?;
     assert!(f.force_n.is_some());
-    let mut s = stats(&mut ctl).await?;
+    let mut s = stats().await?;
     for k in 0..50 {
         if !s.device_silent {
             break;
         }
         tx.send(sample(&id, back + 1 + k, pressed)).await?;
         tokio::time::sleep(Duration::from_millis(5)).await;
-        s = stats(&mut ctl).await?;
+        s = stats().await?;
     }
     assert!(!s.device_silent, "{s:?}");
     drop(tx);
