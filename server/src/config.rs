@@ -41,6 +41,23 @@ pub struct ServoConfig {
     pub pacing: Pacing,
     /// A connected device silent for longer than this is treated as gone (zero force), ms.
     pub device_silence_ms: u32,
+    /// What to do with a session whose servo cannot keep its rate: `"report"` (statistics
+    /// only, the default) or `"degrade"` (quarantine it: zero force, `SessionStats.fault`).
+    pub overrun_policy: OverrunPolicy,
+    /// A servo below this fraction of its nominal rate for a whole second is overrunning.
+    pub min_rate_fraction: f64,
+}
+
+/// [`ServoConfig::overrun_policy`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum OverrunPolicy {
+    /// Report in `GetStats` (loop rate, overruns) only.
+    #[default]
+    Report,
+    /// Quarantine the session (zero force from then on) so that a model too heavy for this
+    /// machine never renders forces late.
+    Degrade,
 }
 
 impl Default for ServoConfig {
@@ -54,6 +71,8 @@ impl Default for ServoConfig {
             stats_every_ticks: 100,
             pacing: Pacing::Device,
             device_silence_ms: 50,
+            overrun_policy: OverrunPolicy::Report,
+            min_rate_fraction: 0.9,
         }
     }
 }
@@ -218,6 +237,14 @@ impl ConfigFile {
             return Err(ServerError::Config(
                 "servo.snapshot_every_ticks and servo.stats_every_ticks must be >= 1".into(),
             ));
+        }
+        if !(self.servo.min_rate_fraction.is_finite()
+            && (0.0..=1.0).contains(&self.servo.min_rate_fraction))
+        {
+            return Err(ServerError::Config(format!(
+                "servo.min_rate_fraction = {}: expected 0..=1",
+                self.servo.min_rate_fraction
+            )));
         }
         if self.servo.device_silence_ms == 0 {
             return Err(ServerError::Config(

@@ -362,6 +362,11 @@ pub struct ServoCore {
     last_seq: Option<u64>,
     /// A connected device silent for longer than this is treated as gone, µs.
     device_silence_us: u64,
+    /// Quarantine when the loop rate stays below `min_rate_hz` for this long, µs of wall time
+    /// (`None`: report only).
+    overrun_degrade: Option<(f64, u64)>,
+    /// Start of the current stretch of slow statistics windows, µs.
+    slow_since_us: Option<u64>,
     device_silent: bool,
     device_silences: u64,
     current: TickInput,
@@ -458,6 +463,14 @@ fn histogram() -> Histogram<u64> {
 }
 
 impl ServoCore {
+    /// Quarantines the session (zero force, `fault` set) once the loop rate of every
+    /// statistics window (`stats_every` ticks) has stayed below `min_rate_hz` for `for_us` of
+    /// wall time. Without this call the rate is only reported.
+    pub fn with_overrun_degrade(mut self, min_rate_hz: f64, for_us: u64) -> Self {
+        self.overrun_degrade = Some((min_rate_hz, for_us));
+        self
+    }
+
     /// The silence limit of a connected device, µs (default [`DEFAULT_DEVICE_SILENCE_US`]).
     pub fn with_device_silence_us(mut self, us: u64) -> Self {
         self.device_silence_us = us.max(1);
@@ -490,6 +503,8 @@ impl ServoCore {
             ticks: 0,
             last_seq: None,
             device_silence_us: DEFAULT_DEVICE_SILENCE_US,
+            overrun_degrade: None,
+            slow_since_us: None,
             device_silent: false,
             device_silences: 0,
             current: TickInput::default(),
@@ -667,6 +682,23 @@ impl ServoCore {
             let rate = self.window_ticks as f64 * 1e6 / elapsed_us as f64;
             self.window_start_us = t1;
             self.window_ticks = 0;
+            // The first window includes start-up: not judged.
+            if let Some((min_rate_hz, for_us)) = self.overrun_degrade
+                && self.ticks > self.stats_every
+            {
+                let window_start = t1.saturating_sub(elapsed_us);
+                self.slow_since_us = if rate < min_rate_hz {
+                    Some(self.slow_since_us.unwrap_or(window_start))
+                } else {
+                    None
+                };
+                let slow_for = self.slow_since_us.map_or(0, |s| t1.saturating_sub(s));
+                if slow_for >= for_us && self.fault.is_none() {
+                    self.fault = Some(
+                        "the servo cannot keep its rate on this machine (overrun policy \"degrade\"): session quarantined (zero force)",
+                    );
+                }
+            }
             let s = self.stats.input_buffer_mut();
             *s = StatsSnapshot {
                 steps: self.ticks,

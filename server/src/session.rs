@@ -667,6 +667,14 @@ impl SessionManager {
             servo_cfg.stats_every_ticks,
         )
         .with_device_silence_us(u64::from(servo_cfg.device_silence_ms) * 1000);
+        let core = match servo_cfg.overrun_policy {
+            crate::config::OverrunPolicy::Report => core,
+            // A whole second below the fraction of the nominal rate.
+            crate::config::OverrunPolicy::Degrade => core.with_overrun_degrade(
+                servo_cfg.min_rate_fraction * 1e6 / period_us as f64,
+                1_000_000,
+            ),
+        };
         let fwd_thread = forwarder.thread().clone();
         let servo_id = id.clone();
         let pacing = servo_cfg.pacing;
