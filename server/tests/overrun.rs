@@ -99,8 +99,9 @@ async fn a_session_that_cannot_keep_its_rate_is_quarantined_under_degrade_only()
 async fn a_session_that_keeps_up_is_not_quarantined() {
     let mut config = ServerConfig::default();
     config.servo.overrun_policy = OverrunPolicy::Degrade;
-    // Judged against half the nominal rate so that a loaded test machine does not trip it.
-    config.servo.min_rate_fraction = 0.5;
+    // Judged against a fifth of the nominal rate so that a loaded 2-core test machine (the
+    // LV tick is about 0.4 ms) does not trip it.
+    config.servo.min_rate_fraction = 0.2;
     let manager = SessionManager::new(config);
     let s = manager.start_body(lv_body()).unwrap();
     assert!(wait_for(|| s.stats().steps > 2500, Duration::from_secs(30)).await);
