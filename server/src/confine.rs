@@ -85,6 +85,16 @@ impl FileRoots {
     /// a symlink); [`ServerError::InvalidArgument`] for a missing file inside them, a file that
     /// is not a regular file, or one above the size limit.
     pub fn check_file(&self, field: &str, file: &str) -> Result<PathBuf, ServerError> {
+        self.resolve(field, file)?.ok_or_else(|| {
+            ServerError::InvalidArgument(format!(
+                "`{field}`: no such file in the allowed directories"
+            ))
+        })
+    }
+
+    /// [`FileRoots::check_file`] with a missing file inside the allowed directories as
+    /// `Ok(None)`.
+    fn resolve(&self, field: &str, file: &str) -> Result<Option<PathBuf>, ServerError> {
         let Some(scene_dir) = &self.scene_dir else {
             return Err(Self::denied(field));
         };
@@ -99,13 +109,16 @@ impl FileRoots {
         }
         // What the model will open is the plain join, resolved by the OS (a symlinked
         // directory followed by `..` goes elsewhere than the lexical path): check that one.
-        let canonical = std::fs::canonicalize(scene_dir.join(file)).map_err(|e| {
-            ServerError::InvalidArgument(if e.kind() == std::io::ErrorKind::NotFound {
-                format!("`{field}`: no such file in the allowed directories")
-            } else {
-                format!("`{field}`: cannot be resolved ({})", e.kind())
-            })
-        })?;
+        let canonical = match std::fs::canonicalize(scene_dir.join(file)) {
+            Ok(c) => c,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => {
+                return Err(ServerError::InvalidArgument(format!(
+                    "`{field}`: cannot be resolved ({})",
+                    e.kind()
+                )));
+            }
+        };
         if !self.roots.iter().any(|r| canonical.starts_with(r)) {
             return Err(Self::denied(field));
         }
@@ -124,7 +137,7 @@ impl FileRoots {
                 self.max_bytes
             )));
         }
-        Ok(canonical)
+        Ok(Some(canonical))
     }
 
     /// Checks every file a scene text would make the model read (see the module docs). Text
@@ -211,10 +224,7 @@ impl FileRoots {
     /// A calibration table may be missing (the scene then explains how to compute it), but
     /// never outside the allowed directories or a special file.
     fn check_calibration(&self, field: &str, file: &str) -> Result<(), ServerError> {
-        match self.check_file(field, file) {
-            Err(ServerError::InvalidArgument(m)) if m.contains("no such file") => Ok(()),
-            other => other.map(|_| ()),
-        }
+        self.resolve(field, file).map(|_| ())
     }
 }
 

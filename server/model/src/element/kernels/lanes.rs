@@ -25,61 +25,6 @@ pub(crate) trait Lane:
     fn madd<const FMA: bool>(a: Self, b: Self, c: Self) -> Self;
     /// `a * b - c`; one rounding when `FMA` (a vector type always fuses).
     fn msub<const FMA: bool>(a: Self, b: Self, c: Self) -> Self;
-    /// The largest lane (NaN lanes make it NaN or are skipped; callers compare with `<`, so a
-    /// NaN never passes a check).
-    fn max_lane(self) -> f64;
-    /// The smallest lane (as [`Lane::max_lane`]).
-    fn min_lane(self) -> f64;
-    /// Applies `f` to each lane's row-major 3x3 matrix `m` (the rare scalar fallback of a
-    /// vectorised formula).
-    fn map_matrix_lanes(
-        isa: Self::Isa,
-        m: &[Self; 9],
-        f: impl Fn([f64; 9]) -> [f64; 9],
-    ) -> [Self; 9];
-}
-
-/// [`Lane::map_matrix_lanes`] for eight lanes through stores and loads.
-#[inline(always)]
-fn map_matrix_lanes8<V: Lanes8>(
-    isa: V::Isa,
-    m: &[V; 9],
-    f: impl Fn([f64; 9]) -> [f64; 9],
-) -> [V; 9] {
-    let mut a = [[0.0; 8]; 9];
-    for (k, v) in m.iter().enumerate() {
-        v.store(&mut a[k]);
-    }
-    let mut out = [[0.0; 8]; 9];
-    for l in 0..8 {
-        let r = f(std::array::from_fn(|k| a[k][l]));
-        for k in 0..9 {
-            out[k][l] = r[k];
-        }
-    }
-    std::array::from_fn(|k| V::load(isa, &out[k]))
-}
-
-/// [`Lane::max_lane`] for eight lanes.
-#[inline(always)]
-fn max_lane8<V: Lanes8>(v: V) -> f64 {
-    let mut a = [0.0; 8];
-    v.store(&mut a);
-    a.iter().copied().fold(
-        f64::NEG_INFINITY,
-        |m, x| if x > m || x.is_nan() { x } else { m },
-    )
-}
-
-/// [`Lane::min_lane`] for eight lanes.
-#[inline(always)]
-fn min_lane8<V: Lanes8>(v: V) -> f64 {
-    let mut a = [0.0; 8];
-    v.store(&mut a);
-    a.iter().copied().fold(
-        f64::INFINITY,
-        |m, x| if x < m || x.is_nan() { x } else { m },
-    )
 }
 
 impl Lane for f64 {
@@ -102,21 +47,6 @@ impl Lane for f64 {
     fn msub<const FMA: bool>(a: f64, b: f64, c: f64) -> f64 {
         if FMA { a.mul_add(b, -c) } else { a * b - c }
     }
-
-    #[inline(always)]
-    fn max_lane(self) -> f64 {
-        self
-    }
-
-    #[inline(always)]
-    fn min_lane(self) -> f64 {
-        self
-    }
-
-    #[inline(always)]
-    fn map_matrix_lanes(_: (), m: &[f64; 9], f: impl Fn([f64; 9]) -> [f64; 9]) -> [f64; 9] {
-        f(*m)
-    }
 }
 
 /// Eight `f64` lanes with loads, stores and gathers: the batch type of the force kernels (one
@@ -131,6 +61,51 @@ pub(crate) trait Lanes8: Lane {
     /// # Safety
     /// Every `base.offset(offsets[l])` must be a readable `f64`.
     unsafe fn gather(isa: Self::Isa, base: *const f64, offsets: &[i32; 8]) -> Self;
+
+    /// The largest lane (a NaN lane makes it NaN; callers compare with `<`, so a NaN never
+    /// passes a check).
+    #[inline(always)]
+    fn max_lane(self) -> f64 {
+        let mut a = [0.0; 8];
+        self.store(&mut a);
+        a.iter().copied().fold(
+            f64::NEG_INFINITY,
+            |m, x| if x > m || x.is_nan() { x } else { m },
+        )
+    }
+
+    /// The smallest lane (as [`Lanes8::max_lane`]).
+    #[inline(always)]
+    fn min_lane(self) -> f64 {
+        let mut a = [0.0; 8];
+        self.store(&mut a);
+        a.iter().copied().fold(
+            f64::INFINITY,
+            |m, x| if x < m || x.is_nan() { x } else { m },
+        )
+    }
+
+    /// Applies `f` to each lane's row-major 3x3 matrix `m` (the rare scalar fallback of a
+    /// vectorised formula), through stores and loads.
+    #[inline(always)]
+    fn map_matrix_lanes(
+        isa: Self::Isa,
+        m: &[Self; 9],
+        f: impl Fn([f64; 9]) -> [f64; 9],
+    ) -> [Self; 9] {
+        let mut a = [[0.0; 8]; 9];
+        for (k, v) in m.iter().enumerate() {
+            v.store(&mut a[k]);
+        }
+        let mut out = [[0.0; 8]; 9];
+        for l in 0..8 {
+            let r = f(std::array::from_fn(|k| a[k][l]));
+            for k in 0..9 {
+                out[k][l] = r[k];
+            }
+        }
+        std::array::from_fn(|k| Self::load(isa, &out[k]))
+    }
 }
 
 /// Eight `f64` lanes in plain code (the fallback without AVX2).
@@ -190,21 +165,6 @@ impl Lane for Plain8 {
             f64::msub::<FMA>(a.0[l], b.0[l], c.0[l])
         }))
     }
-
-    #[inline(always)]
-    fn max_lane(self) -> f64 {
-        max_lane8(self)
-    }
-
-    #[inline(always)]
-    fn min_lane(self) -> f64 {
-        min_lane8(self)
-    }
-
-    #[inline(always)]
-    fn map_matrix_lanes(isa: (), m: &[Plain8; 9], f: impl Fn([f64; 9]) -> [f64; 9]) -> [Plain8; 9] {
-        map_matrix_lanes8(isa, m, f)
-    }
 }
 
 impl Lanes8 for Plain8 {
@@ -232,7 +192,7 @@ pub(crate) use x86::{Avx2Fma, Avx512, Ymm2, Zmm};
 
 #[cfg(target_arch = "x86_64")]
 mod x86 {
-    use super::{Lane, Lanes8, map_matrix_lanes8, max_lane8, min_lane8};
+    use super::{Lane, Lanes8};
     use std::arch::x86_64::{
         __m128i, __m256d, __m256i, __m512d, _mm_loadu_si128, _mm256_add_pd, _mm256_div_pd,
         _mm256_fmadd_pd, _mm256_fmsub_pd, _mm256_i32gather_pd, _mm256_loadu_pd, _mm256_loadu_si256,
@@ -363,25 +323,6 @@ mod x86 {
             // SAFETY: as in `madd`.
             Zmm(unsafe { _mm512_fmsub_pd(a.0, b.0, c.0) })
         }
-
-        #[inline(always)]
-        fn max_lane(self) -> f64 {
-            max_lane8(self)
-        }
-
-        #[inline(always)]
-        fn min_lane(self) -> f64 {
-            min_lane8(self)
-        }
-
-        #[inline(always)]
-        fn map_matrix_lanes(
-            isa: Avx512,
-            m: &[Zmm; 9],
-            f: impl Fn([f64; 9]) -> [f64; 9],
-        ) -> [Zmm; 9] {
-            map_matrix_lanes8(isa, m, f)
-        }
     }
 
     /// Eight `f64` lanes in two AVX2 registers (lanes 0-3, 4-7).
@@ -456,25 +397,6 @@ mod x86 {
                     _mm256_fmsub_pd(a.1, b.1, c.1),
                 )
             }
-        }
-
-        #[inline(always)]
-        fn max_lane(self) -> f64 {
-            max_lane8(self)
-        }
-
-        #[inline(always)]
-        fn min_lane(self) -> f64 {
-            min_lane8(self)
-        }
-
-        #[inline(always)]
-        fn map_matrix_lanes(
-            isa: Avx2Fma,
-            m: &[Ymm2; 9],
-            f: impl Fn([f64; 9]) -> [f64; 9],
-        ) -> [Ymm2; 9] {
-            map_matrix_lanes8(isa, m, f)
         }
     }
 

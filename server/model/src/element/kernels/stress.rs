@@ -65,7 +65,7 @@ const POLAR_ITERATIONS: usize = 8;
 /// [`crate::material::corotational::polar_decomposition`] lane by lane; both give the same R
 /// to round-off where both apply.
 #[inline(always)]
-pub(super) fn polar_rotation_lane<const FMA: bool, T: Lane>(isa: T::Isa, fm: &[T; 9]) -> [T; 9] {
+pub(super) fn polar_rotation_lane<const FMA: bool, T: Lanes8>(isa: T::Isa, fm: &[T; 9]) -> [T; 9] {
     match newton_polar_lane::<FMA, T>(isa, fm) {
         Some(r) => r,
         None => T::map_matrix_lanes(isa, fm, |f| {
@@ -79,7 +79,7 @@ pub(super) fn polar_rotation_lane<const FMA: bool, T: Lane>(isa: T::Isa, fm: &[T
 /// The Newton part of [`polar_rotation_lane`]: `None` when a lane has `det F <= 0` (or NaN)
 /// or has not converged.
 #[inline(always)]
-pub(super) fn newton_polar_lane<const FMA: bool, T: Lane>(
+pub(super) fn newton_polar_lane<const FMA: bool, T: Lanes8>(
     isa: T::Isa,
     fm: &[T; 9],
 ) -> Option<[T; 9]> {
@@ -128,9 +128,9 @@ pub(super) fn newton_polar_lane<const FMA: bool, T: Lane>(
 /// [`MaterialModel::StableNeoHookean`]); corotational `2 mu (F - R) + lambda (tr(R^T F) - 3) R`
 /// with R from [`polar_rotation_lane`]. Viscous `S_v = 2 psi nu + phi tr(nu) I`,
 /// `nu = F^T Fdot + Fdot^T F` (eq. 10-11). The same formulas as [`material::first_piola`] and
-/// [`material::viscous_stress`], generic over the lane type `T` (one `f64` or a [`Lanes8`]).
+/// [`material::viscous_stress`], generic over the lane type `T` (a [`Lanes8`]).
 #[inline(always)]
-pub(super) fn first_piola_lane<const FMA: bool, const MODEL: u8, T: Lane>(
+pub(super) fn first_piola_lane<const FMA: bool, const MODEL: u8, T: Lanes8>(
     isa: T::Isa,
     fm: &[T; 9],
     fd: Option<&[T; 9]>,
