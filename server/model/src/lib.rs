@@ -32,6 +32,8 @@
 //! - [`hybrid`]: the seeds' hybrid model (seed 000 sections 4-6): FEM core + meshfree particle
 //!   layer simulated only where the probe touches, [`hybrid::HybridBody`].
 //! - [`statics`]: static equilibrium (Newton on the tangent, sparse Cholesky) for references.
+//! - [`indent`]: static indentation by a rigid frictionless sphere (augmented Lagrangian over
+//!   [`statics`]): the probe-force reference and `haptic-solve --indent`.
 //!
 //! Units are SI throughout (m, kg, s, N, Pa). Seeds are cited as "seed 000 eq. N":
 //! Mero & Susin, *Deformable Hybrid Approach*, Eurographics 2006.
@@ -45,6 +47,7 @@ pub mod contact;
 pub mod element;
 pub mod error;
 pub mod hybrid;
+pub mod indent;
 pub mod integrate;
 pub mod loads;
 pub mod mass_spring;

@@ -10,13 +10,17 @@
 //! Constrained components (see [`crate::element::ConstraintMask`]) keep the values they have in the
 //! initial positions, so prescribed displacements are imposed by setting them before the solve.
 //!
+//! Besides dead loads, a solve may carry one extra potential term ([`StaticTerm`]: its energy,
+//! forces and stiffness), which is how the sphere indentation of [`crate::indent`] adds its
+//! augmented-Lagrangian contact energy without the solver knowing about contact.
+//!
 //! Owns: the Newton solver and nothing else (loads come from [`crate::loads`], tangents from
 //! [`crate::element::tangent`]). Not used by the real-time path.
 
 use faer::linalg::solvers::Solve;
 use faer::sparse::{SparseColMat, Triplet};
 use faer::{Mat, Side};
-use glam::DVec3;
+use glam::{DMat3, DVec3};
 
 use crate::ModelError;
 use crate::element::tangent::cell_tangent_blocks;
@@ -93,6 +97,19 @@ fn free_norm(constraint: &[ConstraintMask], r: &[DVec3]) -> f64 {
     s.sqrt()
 }
 
+/// An extra potential energy `E(x)` a static solve minimises together with the elastic energy
+/// (a contact term, a spring to a target). Its forces are `-dE/dx`, its stiffness
+/// `d^2E/dx^2`; both must be consistent with `energy` (the line search uses it).
+pub trait StaticTerm {
+    /// `E(x)`, J.
+    fn energy(&self, x: &[DVec3]) -> f64;
+    /// Adds `-dE/dx` (N, one vector per node) to `f`.
+    fn add_forces(&self, x: &[DVec3], f: &mut [DVec3]);
+    /// Calls `add(i, j, K_ij)` for every nonzero 3x3 block `d^2E / dx_i dx_j` (N/m) of the
+    /// stiffness at `x` (blocks may repeat; they are summed).
+    fn for_each_stiffness_block(&self, x: &[DVec3], add: &mut dyn FnMut(u32, u32, DMat3));
+}
+
 /// Solves `f_int(x) + f_ext = 0` for the free components of `x` (m), starting from `x`, with
 /// dead external nodal forces `f_ext` (N). Constrained components keep their values in `x`.
 ///
@@ -105,6 +122,23 @@ pub fn solve_static(
     x: &mut [DVec3],
     params: &StaticParams,
 ) -> Result<StaticReport, ModelError> {
+    solve_static_with(fem, f_ext, None, x, params)
+}
+
+/// [`solve_static`] with an extra potential term: solves `f_int(x) + f_ext + f_term(x) = 0`.
+/// The tolerance is `params.rel_tol` times `|f_ext| + |f_term(x)|` (the term's forces count as
+/// load: a displacement-driven contact has no external load at all). An empty `f_ext` means
+/// no external load.
+///
+/// # Errors
+/// As [`solve_static`].
+pub fn solve_static_with(
+    fem: &FemModel,
+    f_ext: &[DVec3],
+    term: Option<&dyn StaticTerm>,
+    x: &mut [DVec3],
+    params: &StaticParams,
+) -> Result<StaticReport, ModelError> {
     let n = fem.node_count();
     let (dof, nfree) = free_dofs(fem);
     if nfree == 0 {
@@ -113,16 +147,38 @@ pub fn solve_static(
             residual_n: 0.0,
         });
     }
-    let residual = |x: &[DVec3], r: &mut Vec<DVec3>| -> f64 {
+    let no_load;
+    let f_ext = if f_ext.is_empty() {
+        no_load = vec![DVec3::ZERO; n];
+        &no_load[..]
+    } else {
+        f_ext
+    };
+    let load_norm = f_ext.iter().map(|v| v.length_squared()).sum::<f64>().sqrt();
+    let mut term_f = vec![DVec3::ZERO; if term.is_some() { n } else { 0 }];
+    // Residual r = f_ext + f_int + f_term at x, its free norm and the tolerance there.
+    let mut residual = |x: &[DVec3], r: &mut Vec<DVec3>| -> (f64, f64) {
         r.clear();
         r.extend_from_slice(f_ext);
         fem.add_internal_forces(x, None, r);
-        free_norm(fem.constraints(), r)
+        let mut scale = load_norm;
+        if let Some(term) = term {
+            term_f.iter_mut().for_each(|v| *v = DVec3::ZERO);
+            term.add_forces(x, &mut term_f);
+            let mut s2 = 0.0;
+            for (ri, fi) in r.iter_mut().zip(&term_f) {
+                *ri += *fi;
+                s2 += fi.length_squared();
+            }
+            scale += s2.sqrt();
+        }
+        (
+            free_norm(fem.constraints(), r),
+            (params.rel_tol * scale).max(params.abs_tol_n),
+        )
     };
-    let load_norm = f_ext.iter().map(|v| v.length_squared()).sum::<f64>().sqrt();
-    let tol = (params.rel_tol * load_norm).max(params.abs_tol_n);
     let mut r = Vec::with_capacity(n);
-    let mut rnorm = residual(x, &mut r);
+    let (mut rnorm, mut tol) = residual(x, &mut r);
     let triplets_needed: usize = (0..fem.cell_count())
         .map(|c| 9 * fem.cell_nodes(c).len().pow(2))
         .sum();
@@ -164,6 +220,22 @@ pub fn solve_static(
                 }
             }
         }
+        if let Some(term) = term {
+            term.for_each_stiffness_block(x, &mut |i, j, k| {
+                for ca in 0..3 {
+                    let ra = dof[3 * i as usize + ca];
+                    if ra == usize::MAX {
+                        continue;
+                    }
+                    for cb in 0..3 {
+                        let rb = dof[3 * j as usize + cb];
+                        if rb != usize::MAX {
+                            triplets.push(Triplet::new(ra, rb, k.col(cb)[ca]));
+                        }
+                    }
+                }
+            });
+        }
         let kmat = SparseColMat::<usize, f64>::try_new_from_triplets(nfree, nfree, &triplets)
             .map_err(|e| ModelError::NoConvergence(format!("assembling the tangent: {e:?}")))?;
         let mut rhs = Mat::<f64>::zeros(nfree, 1);
@@ -186,6 +258,7 @@ pub fn solve_static(
         // Backtracking line search on the total potential or the residual norm (module docs).
         let potential = |y: &[DVec3]| {
             fem.elastic_energy(y) - y.iter().zip(f_ext).map(|(a, b)| a.dot(*b)).sum::<f64>()
+                + term.map_or(0.0, |t| t.energy(y))
         };
         let pi0 = potential(x);
         let mut step = 1.0;
@@ -199,10 +272,10 @@ pub fn solve_static(
                     }
                 }
             }
-            let tn = residual(&trial, &mut r);
+            let (tn, ttol) = residual(&trial, &mut r);
             if tn < rnorm || (tn.is_finite() && potential(&trial) < pi0) || step < 1e-3 {
                 x.copy_from_slice(&trial);
-                rnorm = tn;
+                (rnorm, tol) = (tn, ttol);
                 break;
             }
             step *= 0.5;

@@ -25,6 +25,7 @@ const LAYERS: &[&str] = &[
     "scene",
     "sim",
     "statics",
+    "indent",
 ];
 
 /// Modules on the servo's path, which must not import the static solver.

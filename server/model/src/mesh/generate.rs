@@ -381,18 +381,70 @@ pub fn box_mesh(size_m: DVec3, cells: [usize; 3]) -> TetMesh {
         size_m.is_finite() && size_m.min_element() > 0.0 && cells.iter().all(|&c| c > 0),
         "box_mesh: need positive sizes and cell counts, got {size_m} and {cells:?}"
     );
-    let [nx, ny, nz] = cells;
+    let axis = |n: usize, s: f64| -> Vec<f64> {
+        (0..=n)
+            .map(|i| if i == n { s } else { s * (i as f64 / n as f64) })
+            .collect()
+    };
+    box_mesh_graded(
+        &axis(cells[0], size_m.x),
+        &axis(cells[1], size_m.y),
+        &axis(cells[2], size_m.z),
+    )
+}
+
+/// Grid coordinates from 0 to `length_m`: cells of `fine_m` up to `fine_extent_m`, then cells
+/// growing geometrically by `ratio` (a last cell shorter than its predecessor is merged into
+/// it). For locally refined boxes ([`box_mesh_graded`]): a contact zone resolved finely, a far
+/// field coarse.
+///
+/// # Panics
+/// If the lengths are not finite and positive with `fine_m <= length_m`, or `ratio < 1`.
+pub fn graded_coordinates(fine_m: f64, fine_extent_m: f64, ratio: f64, length_m: f64) -> Vec<f64> {
+    assert!(
+        fine_m > 0.0 && fine_m <= length_m && length_m.is_finite() && ratio >= 1.0,
+        "graded_coordinates: need 0 < fine <= length and ratio >= 1"
+    );
+    let mut xs = vec![0.0];
+    let mut h = fine_m;
+    let mut x = 0.0;
+    loop {
+        if x + h >= length_m - 1e-9 * length_m {
+            break;
+        }
+        x += h;
+        xs.push(x);
+        if x >= fine_extent_m {
+            h *= ratio;
+        }
+    }
+    if xs.len() > 1 && length_m - x < 0.5 * h / ratio {
+        xs.pop();
+    }
+    xs.push(length_m);
+    xs
+}
+
+/// The box of [`box_mesh`] on a tensor grid with the given node coordinates per axis
+/// (ascending, at least two each, m): the box spans `[xs[0], xs.last()]` and so on, and the
+/// surfaces are named as in [`box_mesh`].
+///
+/// # Panics
+/// If an axis has fewer than two coordinates or is not strictly increasing and finite.
+pub fn box_mesh_graded(xs: &[f64], ys: &[f64], zs: &[f64]) -> TetMesh {
+    for a in [xs, ys, zs] {
+        assert!(
+            a.len() >= 2 && a.windows(2).all(|w| w[1] > w[0]) && a.iter().all(|v| v.is_finite()),
+            "box_mesh_graded: each axis needs two or more increasing finite coordinates"
+        );
+    }
+    let [nx, ny, nz] = [xs.len() - 1, ys.len() - 1, zs.len() - 1];
     let id = |i: usize, j: usize, k: usize| (i + (nx + 1) * (j + (ny + 1) * k)) as u32;
-    let coord = |i: usize, n: usize, s: f64| if i == n { s } else { s * (i as f64 / n as f64) };
     let mut nodes = Vec::with_capacity((nx + 1) * (ny + 1) * (nz + 1));
-    for k in 0..=nz {
-        for j in 0..=ny {
-            for i in 0..=nx {
-                nodes.push(DVec3::new(
-                    coord(i, nx, size_m.x),
-                    coord(j, ny, size_m.y),
-                    coord(k, nz, size_m.z),
-                ));
+    for &z in zs {
+        for &y in ys {
+            for &x in xs {
+                nodes.push(DVec3::new(x, y, z));
             }
         }
     }
@@ -437,12 +489,14 @@ pub fn box_mesh(size_m: DVec3, cells: [usize; 3]) -> TetMesh {
             triangles: Vec::new(),
         })
         .collect();
+    let lo = DVec3::new(xs[0], ys[0], zs[0]);
+    let hi = DVec3::new(xs[nx], ys[ny], zs[nz]);
     for t in boundary {
         let p = t.map(|i| mesh.nodes[i as usize]);
         for axis in 0..3 {
-            if p.iter().all(|q| q[axis] == 0.0) {
+            if p.iter().all(|q| q[axis] == lo[axis]) {
                 surfaces[2 * axis].triangles.push(t);
-            } else if p.iter().all(|q| q[axis] == size_m[axis]) {
+            } else if p.iter().all(|q| q[axis] == hi[axis]) {
                 surfaces[2 * axis + 1].triangles.push(t);
             }
         }

@@ -1,0 +1,114 @@
+//! Hertz contact: a rigid sphere of radius R pressed into a large elastic block (a half-space
+//! to within the block's size) gives `F = 4/3 E/(1 - nu^2) R^(1/2) d^(3/2)` and the contact
+//! radius `a = (R d)^(1/2)` (K. L. Johnson, *Contact Mechanics*, 1985, eq. 4.22-4.23) at small
+//! strain. The static indentation ([`haptic_model::indent`]) must follow both for d/R from 0.02
+//! to 0.1: force within 10 %, contact radius within 15 %.
+//!
+//! The block is a quarter (symmetry planes x = 0 and y = 0 on rollers, base clamped) of
+//! 7 R x 7 R x 7 R, at least 20 times the largest contact radius (0.32 R), on a tensor grid
+//! refined to R / 30 under the sphere and growing by 1.3 per cell away from it; StVK with
+//! nu = 0.3 (small strains: the largest is about 0.2 a / R = 6 %).
+
+use haptic_model::DVec3;
+use haptic_model::element::FemModel;
+use haptic_model::indent::{IndentParams, Indenter, indent};
+use haptic_model::material::MaterialParams;
+use haptic_model::mesh::generate::{box_mesh_graded, graded_coordinates};
+
+const R: f64 = 2e-3;
+const E: f64 = 10e3;
+const NU: f64 = 0.3;
+
+#[test]
+fn sphere_on_half_space_follows_hertz() {
+    let size = 7.0 * R;
+    let fine = R / 30.0;
+    let lateral = graded_coordinates(fine, 0.36 * R, 1.3, size);
+    let depth: Vec<f64> = graded_coordinates(fine, 0.15 * R, 1.3, size)
+        .iter()
+        .rev()
+        .map(|z| -z)
+        .collect();
+    let mesh = box_mesh_graded(&lateral, &lateral, &depth);
+    let mut fem = FemModel::new(&mesh, MaterialParams::from_youngs(E, NU, 1000.0)).unwrap();
+    for (i, p) in mesh.nodes.iter().enumerate() {
+        let mut mask = 0u8;
+        if p.x == 0.0 {
+            mask |= 1;
+        }
+        if p.y == 0.0 {
+            mask |= 2;
+        }
+        if p.z == -size {
+            mask = 7;
+        }
+        if mask != 0 {
+            fem.set_constraint(i, mask);
+        }
+    }
+    let top = mesh.surface("ZMAX").unwrap().triangles.clone();
+    eprintln!(
+        "Hertz block: {} nodes, {} tets, {} top triangles",
+        mesh.nodes.len(),
+        mesh.tets.len(),
+        top.len()
+    );
+    let ratios = [0.02, 0.04, 0.06, 0.08, 0.1];
+    let depths: Vec<f64> = ratios.iter().map(|r| r * R).collect();
+    let indenter = Indenter {
+        radius_m: R,
+        from_m: DVec3::new(0.0, 0.0, 1.5 * R),
+        direction: DVec3::new(0.0, 0.0, -1.0),
+    };
+    let t = std::time::Instant::now();
+    let points = indent(
+        &fem,
+        &top,
+        &indenter,
+        &depths,
+        &IndentParams::default(),
+        &mut |p| {
+            eprintln!(
+                "d/R {:.3}: F {:.5e} N, a {:.4e} m, {} nodes in contact, {} updates, {} Newton",
+                p.depth_m / R,
+                4.0 * p.force_on_sphere_n.z,
+                p.contact_radius_m,
+                p.nodes_in_contact,
+                p.augmentations,
+                p.newton_iterations
+            )
+        },
+    )
+    .unwrap();
+    eprintln!("solved in {:.1} s", t.elapsed().as_secs_f64());
+    let e_star = E / (1.0 - NU * NU);
+    let mut worst = (0.0f64, 0.0f64);
+    for p in &points {
+        let d = p.depth_m;
+        // Four quarters; the body pushes the sphere up (+z).
+        let f = 4.0 * p.force_on_sphere_n.z;
+        let f_hertz = 4.0 / 3.0 * e_star * R.sqrt() * d.powf(1.5);
+        let a_hertz = (R * d).sqrt();
+        let (ef, ea) = (f / f_hertz - 1.0, p.contact_radius_m / a_hertz - 1.0);
+        eprintln!(
+            "d/R {:.2}: F {f:.4e} N vs Hertz {f_hertz:.4e} N ({:+.1} %), a {:.4e} m vs {a_hertz:.4e} m ({:+.1} %), penetration {:.1e} m",
+            d / R,
+            100.0 * ef,
+            p.contact_radius_m,
+            100.0 * ea,
+            p.max_penetration_m
+        );
+        assert!(p.max_penetration_m <= 1e-4 * d + 1e-12, "gap tolerance");
+        worst = (worst.0.max(ef.abs()), worst.1.max(ea.abs()));
+    }
+    assert!(
+        worst.0 < 0.10,
+        "force off Hertz by {:.1} %",
+        100.0 * worst.0
+    );
+    assert!(
+        worst.1 < 0.15,
+        "contact radius off Hertz by {:.1} %",
+        100.0 * worst.1
+    );
+}
