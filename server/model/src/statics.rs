@@ -84,6 +84,30 @@ pub fn free_residual_norm(fem: &FemModel, f_ext: &[DVec3], x: &[DVec3]) -> f64 {
     free_norm(fem.constraints(), &r)
 }
 
+/// Appends the free entries of the 3x3 block `k` coupling nodes `i` (rows) and `j` (columns)
+/// to `triplets`, in the equation numbering `dof` of [`free_dofs`].
+fn push_block(
+    triplets: &mut Vec<Triplet<usize, usize, f64>>,
+    dof: &[usize],
+    i: u32,
+    j: u32,
+    k: &DMat3,
+) {
+    for ca in 0..3 {
+        let ra = dof[3 * i as usize + ca];
+        if ra == usize::MAX {
+            continue;
+        }
+        for cb in 0..3 {
+            let rb = dof[3 * j as usize + cb];
+            if rb != usize::MAX {
+                // column cb, row ca of the block
+                triplets.push(Triplet::new(ra, rb, k.col(cb)[ca]));
+            }
+        }
+    }
+}
+
 /// Norm of the unconstrained components of `r`.
 fn free_norm(constraint: &[ConstraintMask], r: &[DVec3]) -> f64 {
     let mut s = 0.0;
@@ -203,37 +227,13 @@ pub fn solve_static_with(
             let npe = t.len();
             for a in 0..npe {
                 for b in 0..npe {
-                    let k = &blocks[a * npe + b];
-                    for ca in 0..3 {
-                        let ra = dof[3 * t[a] as usize + ca];
-                        if ra == usize::MAX {
-                            continue;
-                        }
-                        for cb in 0..3 {
-                            let rb = dof[3 * t[b] as usize + cb];
-                            if rb != usize::MAX {
-                                // column cb, row ca of the block
-                                triplets.push(Triplet::new(ra, rb, k.col(cb)[ca]));
-                            }
-                        }
-                    }
+                    push_block(&mut triplets, &dof, t[a], t[b], &blocks[a * npe + b]);
                 }
             }
         }
         if let Some(term) = term {
             term.for_each_stiffness_block(x, &mut |i, j, k| {
-                for ca in 0..3 {
-                    let ra = dof[3 * i as usize + ca];
-                    if ra == usize::MAX {
-                        continue;
-                    }
-                    for cb in 0..3 {
-                        let rb = dof[3 * j as usize + cb];
-                        if rb != usize::MAX {
-                            triplets.push(Triplet::new(ra, rb, k.col(cb)[ca]));
-                        }
-                    }
-                }
+                push_block(&mut triplets, &dof, i, j, &k);
             });
         }
         let kmat = SparseColMat::<usize, f64>::try_new_from_triplets(nfree, nfree, &triplets)
