@@ -1,11 +1,14 @@
 //! Static solutions of scene files for reference and inspection (`haptic-solve`): the scene's
 //! loads applied in increments, Newton at each increment ([`haptic_model::statics`]), follower
-//! pressures by a fixed point on the load checked against the true residual, results written as `nodes.csv` and a ParaView `.vtu`
-//! in the scene's length unit.
+//! pressures by a fixed point on the load checked against the true residual, results written
+//! as `nodes.csv` and a ParaView `.vtu` in the scene's length unit; and static indentations by
+//! the scene's probe sphere ([`indent_scene`], [`haptic_model::indent`]) written as
+//! `indent.csv` and one `.vtu` per depth.
 
 use std::path::Path;
 
-use haptic_model::scene::Scene;
+use haptic_model::indent::{IndentParams, IndentPoint, Indenter, indent};
+use haptic_model::scene::{ModelFamily, Scene};
 use haptic_model::statics::{StaticParams, free_residual_norm, solve_static};
 use haptic_model::{DVec3, ModelError};
 
@@ -152,6 +155,132 @@ pub fn write_solution(dir: &Path, scene: &Scene, x: &[DVec3]) -> Result<(), Mode
         &dir.join("solution.vtu"),
         &scene.mesh,
         x,
+        scene.length_unit_m,
+    )
+}
+
+/// A static sphere indentation of a scene (`haptic-solve --indent`), in metres.
+#[derive(Debug, Clone, PartialEq)]
+pub struct IndentRequest {
+    /// Start centre of the probe sphere, clear of the body, m.
+    pub from_m: DVec3,
+    /// Indentation direction (any length but zero).
+    pub direction: DVec3,
+    /// Depths below first contact, increasing, m.
+    pub depths_m: Vec<f64>,
+}
+
+/// The static indentation of `scene` by a rigid frictionless sphere of the scene's probe radius
+/// (`[probe] radius_m`) over its touchable surface, at every depth of `request`
+/// ([`haptic_model::indent::indent`], augmented Lagrangian node-to-sphere contact, the scene's
+/// material, fibres and clamps; `[loads]` are ignored). `progress` sees each converged depth.
+///
+/// # Errors
+/// [`ModelError::InvalidInput`] for a scene that is not of the FEM family, a scene without a
+/// touchable surface, or a bad request (see [`haptic_model::indent::indent`]);
+/// [`ModelError::NoConvergence`] naming the depth that failed and why.
+pub fn indent_scene(
+    scene: &Scene,
+    request: &IndentRequest,
+    progress: &mut dyn FnMut(&IndentPoint),
+) -> Result<Vec<IndentPoint>, ModelError> {
+    if scene.family != ModelFamily::Fem {
+        return Err(ModelError::InvalidInput(format!(
+            "indentation solves the FEM family; scene {:?} is of the {} family",
+            scene.name,
+            scene.family.name()
+        )));
+    }
+    if scene.touchable.is_empty() {
+        return Err(ModelError::InvalidInput(format!(
+            "scene {:?} has no touchable surface for the sphere to press on",
+            scene.name
+        )));
+    }
+    let fem = scene.fem_model()?;
+    let indenter = Indenter {
+        radius_m: scene.probe.radius_m,
+        from_m: request.from_m,
+        direction: request.direction,
+    };
+    indent(
+        &fem,
+        &scene.touchable,
+        &indenter,
+        &request.depths_m,
+        &IndentParams::default(),
+        progress,
+    )
+}
+
+/// Name of the `.vtu` file of the `k`-th depth (0-based) of an indentation.
+pub fn indent_vtu_name(k: usize) -> String {
+    format!("indent_{:03}.vtu", k + 1)
+}
+
+/// Writes `dir/indent.csv` (`depth,fx,fy,fz,contact_radius`: depth and contact radius in the
+/// scene's length unit, the force of the body on the sphere in N, one row per point) and, for
+/// each point, `dir/indent_NNN.vtu` ([`indent_vtu_name`], in depth order). `dir` is created if
+/// needed.
+///
+/// # Errors
+/// [`ModelError::Io`] when a file cannot be written.
+pub fn write_indent(dir: &Path, scene: &Scene, points: &[IndentPoint]) -> Result<(), ModelError> {
+    write_indent_csv(dir, scene, points)?;
+    for (k, p) in points.iter().enumerate() {
+        write_indent_vtu(dir, scene, k, p)?;
+    }
+    Ok(())
+}
+
+fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> ModelError {
+    let path = path.display().to_string();
+    move |e| ModelError::Io { path, source: e }
+}
+
+/// Writes `dir/indent.csv` alone (see [`write_indent`]), creating `dir` if needed.
+///
+/// # Errors
+/// [`ModelError::Io`] when the file cannot be written.
+pub fn write_indent_csv(
+    dir: &Path,
+    scene: &Scene,
+    points: &[IndentPoint],
+) -> Result<(), ModelError> {
+    use std::fmt::Write as _;
+    std::fs::create_dir_all(dir).map_err(io_error(dir))?;
+    let s = 1.0 / scene.length_unit_m;
+    let mut csv = String::from("depth,fx,fy,fz,contact_radius\n");
+    for p in points {
+        let f = p.force_on_sphere_n;
+        let _ = writeln!(
+            csv,
+            "{:.9e},{:.9e},{:.9e},{:.9e},{:.9e}",
+            p.depth_m * s,
+            f.x,
+            f.y,
+            f.z,
+            p.contact_radius_m * s
+        );
+    }
+    let path = dir.join("indent.csv");
+    std::fs::write(&path, csv).map_err(io_error(&path))
+}
+
+/// Writes the deformed mesh of the `k`-th point (0-based) as `dir/`[`indent_vtu_name`]`(k)`.
+///
+/// # Errors
+/// [`ModelError::Io`] when the file cannot be written.
+pub fn write_indent_vtu(
+    dir: &Path,
+    scene: &Scene,
+    k: usize,
+    point: &IndentPoint,
+) -> Result<(), ModelError> {
+    haptic_model::mesh::export::write_vtu(
+        &dir.join(indent_vtu_name(k)),
+        &scene.mesh,
+        &point.x_m,
         scene.length_unit_m,
     )
 }

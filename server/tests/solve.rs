@@ -2,6 +2,7 @@
 
 use std::path::Path;
 
+use haptic_model::DVec3;
 use haptic_model::element::FemModel;
 use haptic_model::scene::parse_scene_toml;
 use haptic_model::statics::free_residual_norm;
@@ -124,4 +125,214 @@ fn an_unsettled_follower_load_fails_loudly() {
             && err.contains("more load steps"),
         "{err}"
     );
+}
+
+/// A 2 mm cube of soft solid, bottom clamped, every other face touchable, under a 2 mm probe.
+const CUBE: &str = r#"
+name = "indent-cube"
+[mesh]
+builtin = "box"
+size = [2.0, 2.0, 2.0]
+cells = [4, 4, 4]
+length_unit = "mm"
+[material]
+youngs_modulus_pa = 10000.0
+poisson_ratio = 0.3
+density_kg_per_m3 = 1000.0
+[boundary]
+clamped = ["ZMIN"]
+touchable = ["ZMAX", "XMIN", "XMAX", "YMIN", "YMAX"]
+[probe]
+radius_m = 0.002
+"#;
+
+/// Runs `haptic-solve` with `args` (after the scene file) and returns (success, stderr).
+fn haptic_solve(scene_file: &Path, args: &[&str]) -> (bool, String) {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_haptic-solve"))
+        .arg(scene_file)
+        .args(args)
+        .env("RUST_BACKTRACE", "0")
+        .output()
+        .unwrap();
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// The node displacements of a `.vtu` written by `haptic-solve`, in its length unit.
+fn vtu_displacements(path: &Path) -> Vec<DVec3> {
+    let vtu = std::fs::read_to_string(path).unwrap();
+    let start = vtu.find(r#"Name="displacement""#).unwrap();
+    let body = &vtu[start..];
+    let body = &body[body.find('\n').unwrap() + 1..body.find("</DataArray>").unwrap()];
+    body.lines()
+        .map(|l| {
+            let v: Vec<f64> = l.split_whitespace().map(|s| s.parse().unwrap()).collect();
+            DVec3::new(v[0], v[1], v[2])
+        })
+        .collect()
+}
+
+/// `haptic-solve --indent` on a cube: `indent.csv` has a row per depth in the scene's unit,
+/// and the force it reports is the support reaction that the written `.vtu` displacements
+/// imply (internal forces evaluated independently of the solver, summed over the clamped
+/// nodes), so the two files agree with each other and with equilibrium.
+#[test]
+fn indent_writes_a_force_curve_that_the_deformed_meshes_confirm() {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("indent-cli-ok");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let scene_file = dir.join("cube.toml");
+    std::fs::write(&scene_file, CUBE).unwrap();
+    let out = dir.join("out");
+    let (ok, stderr) = haptic_solve(
+        &scene_file,
+        &[
+            "--indent",
+            "--from",
+            "1,1,5",
+            "--direction",
+            "0,0,-2",
+            "--depths",
+            "0.05,0.1,0.2",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+    );
+    assert!(ok, "{stderr}");
+    assert!(
+        stderr.contains("depth 0.2000"),
+        "progress per depth: {stderr}"
+    );
+    let csv = std::fs::read_to_string(out.join("indent.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(lines.next(), Some("depth,fx,fy,fz,contact_radius"));
+    let rows: Vec<Vec<f64>> = lines
+        .map(|l| l.split(',').map(|v| v.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 3);
+    for (row, depth) in rows.iter().zip([0.05, 0.1, 0.2]) {
+        assert!((row[0] - depth).abs() < 1e-12, "depth in mm: {row:?}");
+        // The body pushes the sphere back up (+z), about symmetrically.
+        assert!(
+            row[3] > 0.0 && row[1].abs() + row[2].abs() < 0.01 * row[3],
+            "{row:?}"
+        );
+        // Contact radius in mm, inside the probe's radius.
+        assert!(row[4] > 0.0 && row[4] < 2.0, "{row:?}");
+    }
+    // Stiffening contact: more than linear in depth (Hertz: d^1.5, a thin layer more).
+    assert!(
+        rows[1][3] > 2.0 * rows[0][3] && rows[2][3] > 2.0 * rows[1][3],
+        "{rows:?}"
+    );
+
+    let scene = parse_scene_toml(CUBE, Path::new(".")).unwrap();
+    let free = FemModel::new(&scene.mesh, scene.material).unwrap(); // no clamps: all forces
+    for (k, row) in rows.iter().enumerate() {
+        let u = vtu_displacements(&out.join(format!("indent_{:03}.vtu", k + 1)));
+        assert_eq!(u.len(), scene.mesh.node_count());
+        let x: Vec<DVec3> = scene
+            .mesh
+            .nodes
+            .iter()
+            .zip(&u)
+            .map(|(r, u)| *r + *u * 1e-3)
+            .collect();
+        let mut f_int = vec![DVec3::ZERO; x.len()];
+        free.add_internal_forces(&x, None, &mut f_int);
+        let reaction: DVec3 = -scene
+            .clamped_nodes
+            .iter()
+            .map(|&i| f_int[i as usize])
+            .sum::<DVec3>();
+        let reported = DVec3::new(row[1], row[2], row[3]);
+        assert!(
+            (reaction - reported).length() < 1e-6 * reported.length() + 1e-12,
+            "depth {}: reaction {reaction} N, reported {reported} N",
+            row[0]
+        );
+    }
+}
+
+/// A depth the body cannot reach (the sphere would pass the clamped base) exits non-zero with
+/// a message naming it; the depths that converged stay on disk.
+#[test]
+fn indent_names_the_depth_that_fails_and_keeps_the_rest() {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("indent-cli-fail");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let scene_file = dir.join("cube.toml");
+    std::fs::write(&scene_file, CUBE).unwrap();
+    let out = dir.join("out");
+    let out_arg = out.to_str().unwrap();
+    let (ok, stderr) = haptic_solve(
+        &scene_file,
+        &[
+            "--indent",
+            "--from",
+            "1,1,5",
+            "--direction",
+            "0,0,-1",
+            "--depths",
+            "0.1,3",
+            "--out",
+            out_arg,
+        ],
+    );
+    assert!(!ok, "{stderr}");
+    assert!(
+        stderr.contains("indentation depth 3.0000e-3 m failed")
+            && stderr.contains("last converged depth")
+            && stderr.contains("smallest principal stretch"),
+        "{stderr}"
+    );
+    let csv = std::fs::read_to_string(out.join("indent.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 2, "header and the 0.1 mm row: {csv}");
+    assert!(out.join("indent_001.vtu").exists() && !out.join("indent_002.vtu").exists());
+
+    // Bad requests are refused before any solve.
+    for (args, needle) in [
+        (
+            vec!["--from", "1,1", "--direction", "0,0,-1", "--depths", "0.1"],
+            "three finite numbers",
+        ),
+        (
+            vec![
+                "--from",
+                "1,1,1.5",
+                "--direction",
+                "0,0,-1",
+                "--depths",
+                "0.1",
+            ],
+            "already overlaps",
+        ),
+        (
+            vec!["--from", "9,9,5", "--direction", "0,0,1", "--depths", "0.1"],
+            "misses",
+        ),
+        (
+            vec!["--from", "1,1,5", "--direction", "0,0,0", "--depths", "0.1"],
+            "nonzero vector",
+        ),
+        (
+            vec![
+                "--from",
+                "1,1,5",
+                "--direction",
+                "0,0,-1",
+                "--depths",
+                "0.2,0.1",
+            ],
+            "increasing",
+        ),
+    ] {
+        let mut all = vec!["--indent"];
+        all.extend(args);
+        all.extend(["--out", out_arg]);
+        let (ok, stderr) = haptic_solve(&scene_file, &all);
+        assert!(!ok && stderr.contains(needle), "{all:?}: {stderr}");
+    }
 }

@@ -1,18 +1,29 @@
-//! `haptic-solve SCENE.toml --out DIR`: static equilibrium of a scene under its `[loads]`,
-//! written as `DIR/nodes.csv` (`id,x0,y0,z0,x,y,z`) and `DIR/solution.vtu`, in the scene's
-//! length unit.
+//! `haptic-solve SCENE --out DIR`: static equilibrium of a scene under its `[loads]`, written
+//! as `DIR/nodes.csv` (`id,x0,y0,z0,x,y,z`) and `DIR/solution.vtu`, in the scene's length unit.
+//!
+//! `haptic-solve SCENE --indent --from X,Y,Z --direction DX,DY,DZ --depths D1,D2,... --out
+//! DIR`: the static indentation of the scene by its probe sphere (rigid, frictionless), written
+//! as `DIR/indent.csv` (`depth,fx,fy,fz,contact_radius`) and `DIR/indent_NNN.vtu` per depth.
+//! Positions and depths are in the scene's length unit, forces in N (on the sphere).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
-use anyhow::Context;
+use anyhow::{Context, bail};
 use clap::Parser;
+use haptic_model::DVec3;
+use haptic_model::scene::Scene;
+use haptic_server::solve::{
+    IndentRequest, SolveParams, indent_scene, indent_vtu_name, solve_scene, write_indent_csv,
+    write_indent_vtu, write_solution,
+};
 
-/// Static equilibrium of a scene file (Newton, sparse Cholesky, load stepping).
+/// Static equilibrium of a scene (Newton, sparse Cholesky, load stepping), or its static
+/// indentation by the probe sphere.
 #[derive(Parser, Debug)]
 #[command(version, about)]
 struct Args {
-    /// Scene file (TOML) with a [loads] section.
-    scene: PathBuf,
+    /// Scene file (TOML), or the name of a built-in scene (`lv`, ...).
+    scene: String,
     /// Output directory.
     #[arg(long, default_value = "solve-out")]
     out: PathBuf,
@@ -20,14 +31,51 @@ struct Args {
     #[arg(long, default_value_t = 1)]
     load_steps: usize,
     /// Largest number of frozen-load Newton solves per increment with a follower pressure.
-    #[arg(long, default_value_t = haptic_server::solve::SolveParams::default().max_follower_passes)]
+    #[arg(long, default_value_t = SolveParams::default().max_follower_passes)]
     max_follower_passes: usize,
+    /// Indent the body with the scene's probe sphere instead of applying its [loads].
+    #[arg(long, requires_all = ["from", "direction", "depths"])]
+    indent: bool,
+    /// Start centre of the sphere, clear of the body: X,Y,Z in the scene's length unit.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        num_args = 1,
+        allow_hyphen_values = true,
+        requires = "indent"
+    )]
+    from: Option<Vec<f64>>,
+    /// Indentation direction DX,DY,DZ (normalised).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        num_args = 1,
+        allow_hyphen_values = true,
+        requires = "indent"
+    )]
+    direction: Option<Vec<f64>>,
+    /// Depths below first contact, increasing, in the scene's length unit: D1,D2,...
+    #[arg(long, value_delimiter = ',', num_args = 1, requires = "indent")]
+    depths: Option<Vec<f64>>,
 }
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let scene = haptic_model::scene::load_scene_file(&args.scene)
-        .with_context(|| format!("loading {}", args.scene.display()))?;
+    let path = Path::new(&args.scene);
+    let scene = if path.exists() || args.scene.ends_with(".toml") {
+        haptic_model::scene::load_scene_file(path)
+    } else {
+        haptic_model::scene::load_builtin(&args.scene)
+    }
+    .with_context(|| format!("loading {}", args.scene))?;
+    if args.indent {
+        run_indent(&args, &scene)
+    } else {
+        run_loads(&args, &scene)
+    }
+}
+
+fn run_loads(args: &Args, scene: &Scene) -> anyhow::Result<()> {
     eprintln!(
         "solving {} ({} nodes, {} tets) in {} load step(s) ...",
         scene.name,
@@ -36,13 +84,13 @@ fn main() -> anyhow::Result<()> {
         args.load_steps
     );
     let t = std::time::Instant::now();
-    let params = haptic_server::solve::SolveParams {
+    let params = SolveParams {
         load_steps: args.load_steps,
         max_follower_passes: args.max_follower_passes,
         ..Default::default()
     };
-    let (x, r) = haptic_server::solve::solve_scene(&scene, &params)?;
-    haptic_server::solve::write_solution(&args.out, &scene, &x)?;
+    let (x, r) = solve_scene(scene, &params)?;
+    write_solution(&args.out, scene, &x)?;
     println!(
         "converged: {} Newton iterations in {} load pass(es), residual {:.3e} N ({:.1e} of the load, loads at the final shape), max displacement {:.6} (scene unit) in {:.2} s",
         r.newton_iterations,
@@ -58,4 +106,90 @@ fn main() -> anyhow::Result<()> {
         args.out.join("solution.vtu").display()
     );
     Ok(())
+}
+
+/// A 3-vector option in the scene's length unit.
+fn vec3(name: &str, v: Option<&Vec<f64>>) -> anyhow::Result<DVec3> {
+    match v.map(Vec::as_slice) {
+        Some(&[x, y, z]) if x.is_finite() && y.is_finite() && z.is_finite() => {
+            Ok(DVec3::new(x, y, z))
+        }
+        Some(v) => bail!("--{name} takes three finite numbers X,Y,Z; got {v:?}"),
+        None => bail!("--indent needs --{name}"),
+    }
+}
+
+fn run_indent(args: &Args, scene: &Scene) -> anyhow::Result<()> {
+    let unit = scene.length_unit_m;
+    let depths = args.depths.clone().unwrap_or_default();
+    if depths.is_empty() {
+        bail!("--indent needs at least one depth in --depths");
+    }
+    let request = IndentRequest {
+        from_m: vec3("from", args.from.as_ref())? * unit,
+        direction: vec3("direction", args.direction.as_ref())?,
+        depths_m: depths.iter().map(|d| d * unit).collect(),
+    };
+    eprintln!(
+        "indenting {} ({} nodes, {} tets, {} touchable triangles) with a rigid sphere of radius {} (scene unit) at {} depth(s) ...",
+        scene.name,
+        scene.mesh.node_count(),
+        scene.mesh.tet_count(),
+        scene.touchable.len(),
+        scene.probe.radius_m / unit,
+        depths.len()
+    );
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let t = std::time::Instant::now();
+    let mut done = Vec::new();
+    let mut write_error = None;
+    let result = indent_scene(scene, &request, &mut |p| {
+        let f = p.force_on_sphere_n;
+        eprintln!(
+            "  depth {:.4}: force ({:.4e}, {:.4e}, {:.4e}) N, |F| {:.4e} N, contact radius {:.4}, {} nodes in contact, {} multiplier updates, {} Newton iterations, {:.1} s",
+            p.depth_m / unit,
+            f.x,
+            f.y,
+            f.z,
+            f.length(),
+            p.contact_radius_m / unit,
+            p.nodes_in_contact,
+            p.augmentations,
+            p.newton_iterations,
+            t.elapsed().as_secs_f64()
+        );
+        // Each depth's files as soon as it converges: a later failure keeps them.
+        let written = write_indent_vtu(&args.out, scene, done.len(), p);
+        done.push(p.clone());
+        if let Err(e) = written.and_then(|()| write_indent_csv(&args.out, scene, &done)) {
+            write_error.get_or_insert(e);
+        }
+    });
+    if let Some(e) = write_error {
+        return Err(e).context("writing the indentation output");
+    }
+    match result {
+        Ok(points) => {
+            println!(
+                "converged at all {} depths in {:.2} s; wrote {} and {} .. {}",
+                points.len(),
+                t.elapsed().as_secs_f64(),
+                args.out.join("indent.csv").display(),
+                indent_vtu_name(0),
+                indent_vtu_name(points.len() - 1)
+            );
+            Ok(())
+        }
+        Err(e) => {
+            if !done.is_empty() {
+                eprintln!(
+                    "the {} converged depth(s) are in {}",
+                    done.len(),
+                    args.out.join("indent.csv").display()
+                );
+            }
+            Err(e).context("indentation failed")
+        }
+    }
 }
