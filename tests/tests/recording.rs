@@ -1,7 +1,7 @@
 //! Recordings end to end (issue 19): while the real `haptic-bridge` presses the LV and records
 //! its side to MCAP, `hapticctl record` records the session's surface frames and statistics;
 //! both files decode with their schemas, the bridge's recording replays through
-//! `--driver replay` with the same peak force, `haptic-viewer --replay` draws pictures from the
+//! `--driver replay` with the same held force, `haptic-viewer --replay` draws pictures from the
 //! surface recording, and `hapticctl export-vtu` writes a ParaView series with one file per
 //! frame.
 
@@ -122,9 +122,13 @@ async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> 
         "recorded peak {recorded_peak} N, bridge summary {peak} N"
     );
 
-    // Replayed on a fresh session, the same trajectory gives about the same peak force.
+    // Replayed on a fresh session, the same trajectory gives about the same force where it
+    // holds at the deepest point. (The peak is not compared: under a loaded machine a stalled
+    // bridge tick makes a short transient that one run has and the other not.)
     let id2 = start_session(&url, "lv").await?;
-    let replay = run_bin(
+    let replay_mcap = dir.join("replay.mcap");
+    let replay_arg = replay_mcap.display().to_string();
+    run_bin(
         BRIDGE,
         &[
             "--server",
@@ -135,18 +139,19 @@ async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> 
             "replay",
             "--replay",
             &press_arg,
+            "--record",
+            &replay_arg,
             "--json",
         ],
         Duration::from_secs(60),
     )
     .await?
     .success()?;
-    let replay_peak = replay.json()?["peak_force_n"]
-        .as_f64()
-        .context("replay peak_force_n")?;
+    let recorded_hold = held_force_n(&bytes)?;
+    let replay_hold = held_force_n(&std::fs::read(&replay_mcap)?)?;
     ensure!(
-        (replay_peak - peak).abs() < 0.15 * peak,
-        "replayed peak {replay_peak} N against {peak} N"
+        (replay_hold - recorded_hold).abs() < 0.1 * recorded_hold,
+        "replayed hold force {replay_hold} N against {recorded_hold} N"
     );
 
     // The viewer replays the surface recording into pictures.
@@ -200,4 +205,31 @@ async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> 
     );
     let _ = std::fs::remove_dir_all(&dir);
     Ok(())
+}
+
+/// The median force magnitude of a bridge recording over the samples within 0.1 mm of its
+/// deepest point along x (the press's hold), N.
+fn held_force_n(bytes: &[u8]) -> Result<f64> {
+    let samples = read_topic::<DeviceSample>(bytes, topic::DEVICE_SAMPLE)?;
+    let forces = read_topic::<ForceCommand>(bytes, topic::DEVICE_FORCE)?;
+    ensure!(!samples.is_empty() && samples.len() == forces.len());
+    let x = |s: &DeviceSample| s.position_m.as_ref().map_or(f64::NAN, |p| p.x);
+    let x_min = samples
+        .iter()
+        .map(|(_, s)| x(s))
+        .fold(f64::INFINITY, f64::min);
+    let mut held: Vec<f64> = samples
+        .iter()
+        .zip(&forces)
+        .filter(|((_, s), _)| x(s) < x_min + 1e-4)
+        .filter_map(|(_, (_, f))| f.force_n.as_ref())
+        .map(|f| (f.x * f.x + f.y * f.y + f.z * f.z).sqrt())
+        .collect();
+    ensure!(
+        held.len() >= 50,
+        "only {} samples at the deepest point",
+        held.len()
+    );
+    held.sort_by(f64::total_cmp);
+    Ok(held[held.len() / 2])
 }
