@@ -214,9 +214,10 @@ fn indent_writes_a_force_curve_that_the_deformed_meshes_confirm() {
     assert_eq!(rows.len(), 3);
     for (row, depth) in rows.iter().zip([0.05, 0.1, 0.2]) {
         assert!((row[0] - depth).abs() < 1e-12, "depth in mm: {row:?}");
-        // The body pushes the sphere back up (+z), about symmetrically.
+        // The body pushes the sphere back up (+z), about symmetrically (the six-tetrahedron
+        // split of the cells is not symmetric).
         assert!(
-            row[3] > 0.0 && row[1].abs() + row[2].abs() < 0.01 * row[3],
+            row[3] > 0.0 && row[1].abs() + row[2].abs() < 0.02 * row[3],
             "{row:?}"
         );
         // Contact radius in mm, inside the probe's radius.

@@ -7,6 +7,8 @@
 //! - `static`: the static equilibrium with the probe coupling per depth on each `--mesh`
 //!   (linear or quadratic elements on the structured LV, or `lv_h1.msh`), optionally with
 //!   another Poisson ratio (E fixed), other depths or strain smoothing.
+//! - `sphere`: the press with a rigid sphere (exact contact) on three or more meshes with the
+//!   Richardson extrapolation and its uncertainty per depth, per material.
 //! - `dynamic`: the dynamic press (`Simulation::tick`, ramps and holds) with each `--run`'s
 //!   mesh and integrator, and its median tick.
 //!
@@ -20,9 +22,10 @@ use std::str::FromStr;
 use std::time::Instant;
 
 use clap::{Parser, Subcommand};
-use common::lv_press::{DEPTHS_MM, probe_dynamic, probe_static_at};
+use common::lv_press::{DEPTHS_MM, probe_dynamic, probe_sphere_at, probe_static_at, richardson};
 use haptic_model::element::StrainSmoothing;
 use haptic_model::integrate::IntegratorKind;
+use haptic_model::material::MaterialModel;
 use haptic_model::scene::Scene;
 
 /// Probe-force curves of the LV press on chosen meshes (prints only).
@@ -56,6 +59,21 @@ enum Study {
         /// Print the force of every patch iteration.
         #[arg(long)]
         debug: bool,
+    },
+    /// The press with a rigid sphere (exact contact, static, converged per depth) on three or
+    /// more meshes, coarse to fine, with the Richardson extrapolation of the last three and
+    /// its uncertainty per depth, for each material; with `--patch`, the kernel-patch static
+    /// curve on the finest mesh for comparison.
+    Sphere {
+        /// Meshes, coarse to fine, as in `static --mesh` (structured LV only).
+        #[arg(long, value_delimiter = ',', default_value = "500:2,1000:2,2000:2")]
+        mesh: Vec<MeshSpec>,
+        /// Materials by scene name [default: stvk, corotational, stable-neo-hookean].
+        #[arg(long, value_delimiter = ',')]
+        material: Vec<String>,
+        /// Also solve the kernel-patch static press on the finest mesh.
+        #[arg(long)]
+        patch: bool,
     },
     /// Dynamic probe curves with chosen integrators.
     Dynamic {
@@ -200,6 +218,11 @@ fn main() {
                 );
             }
         }
+        Study::Sphere {
+            mesh,
+            material,
+            patch,
+        } => sphere_study(&mesh, &material, patch),
         Study::Dynamic { run } => {
             for r in run {
                 let mut scene = common::lv_scene_order(r.tets, r.quadratic);
@@ -218,6 +241,94 @@ fn main() {
                     Err(e) => println!("lv-dyn {}: {e}", r.spec),
                 }
             }
+        }
+    }
+}
+
+/// The `sphere` study (see [`Study::Sphere`]).
+fn sphere_study(meshes: &[MeshSpec], materials: &[String], patch: bool) {
+    assert!(
+        meshes.len() >= 3,
+        "the sphere study needs three or more meshes"
+    );
+    assert!(
+        meshes.iter().all(|m| m.tets.is_some()),
+        "the sphere study runs on the structured LV"
+    );
+    let materials: Vec<MaterialModel> = if materials.is_empty() {
+        common::MATERIALS.to_vec()
+    } else {
+        materials
+            .iter()
+            .map(|m| MaterialModel::from_scene_name(m).unwrap_or_else(|| panic!("material {m:?}")))
+            .collect()
+    };
+    for model in materials {
+        let mut curves = Vec::new();
+        let mut sizes = Vec::new();
+        for m in meshes {
+            let mut scene = m.scene();
+            scene.material.model = model;
+            let t = Instant::now();
+            match probe_sphere_at(&scene, &DEPTHS_MM) {
+                Ok(c) => {
+                    println!(
+                        "lv-sphere {} {}: {} tets, {} nodes, {:.1} s: {:?} N",
+                        model.scene_name(),
+                        m.label(),
+                        scene.mesh.tet_count(),
+                        scene.mesh.node_count(),
+                        t.elapsed().as_secs_f64(),
+                        c.forces_n
+                    );
+                    // Mesh size: the cube root of the mean element volume (same body).
+                    sizes.push((scene.mesh.tet_count() as f64).powf(-1.0 / 3.0));
+                    curves.push(c.forces_n);
+                }
+                Err(e) => {
+                    println!(
+                        "lv-sphere {} {}: FAILED: {e}",
+                        model.scene_name(),
+                        m.label()
+                    );
+                    break;
+                }
+            }
+        }
+        if curves.len() >= 3 {
+            let k = curves.len();
+            let h = [sizes[k - 3], sizes[k - 2], sizes[k - 1]];
+            println!(
+                "lv-sphere {} extrapolated (last three meshes, h relative to the finest {:.3}/{:.3}/1):",
+                model.scene_name(),
+                h[0] / h[2],
+                h[1] / h[2]
+            );
+            println!("  depth mm | finest N | extrapolated N | uncertainty N (%) | order");
+            for (j, d) in DEPTHS_MM.iter().enumerate() {
+                let f = [curves[k - 3][j], curves[k - 2][j], curves[k - 1][j]];
+                let e = richardson(h, f);
+                println!(
+                    "  {d:.1} | {:.5} | {:.5} | {:.5} ({:.1} %) | {}",
+                    f[2],
+                    e.value,
+                    e.uncertainty,
+                    100.0 * e.uncertainty / e.value,
+                    e.order.map_or("not monotone".into(), |p| format!("{p:.2}"))
+                );
+            }
+        }
+        if patch {
+            let m = meshes.last().expect("meshes");
+            let mut scene = m.scene();
+            scene.material.model = model;
+            let c = probe_static_at(&scene, &DEPTHS_MM, false);
+            println!(
+                "lv-patch {} {}: {:?}",
+                model.scene_name(),
+                m.label(),
+                c.map(|c| c.forces_n)
+            );
         }
     }
 }

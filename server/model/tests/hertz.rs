@@ -2,7 +2,7 @@
 //! to within the block's size) gives `F = 4/3 E/(1 - nu^2) R^(1/2) d^(3/2)` and the contact
 //! radius `a = (R d)^(1/2)` (K. L. Johnson, *Contact Mechanics*, 1985, eq. 4.22-4.23) at small
 //! strain. The static indentation ([`haptic_model::indent`]) must follow both for d/R from 0.02
-//! to 0.1: force within 10 %, contact radius within 15 %.
+//! to 0.1 (checked at 0.02, 0.06 and 0.1): force within 10 %, contact radius within 15 %.
 //!
 //! The block is a quarter (symmetry planes x = 0 and y = 0 on rollers, base clamped) of
 //! 7 R x 7 R x 7 R, at least 20 times the largest contact radius (0.32 R), on a tensor grid
@@ -53,7 +53,7 @@ fn sphere_on_half_space_follows_hertz() {
         mesh.tets.len(),
         top.len()
     );
-    let ratios = [0.02, 0.04, 0.06, 0.08, 0.1];
+    let ratios = [0.02, 0.06, 0.1];
     let depths: Vec<f64> = ratios.iter().map(|r| r * R).collect();
     let indenter = Indenter {
         radius_m: R,
@@ -69,11 +69,11 @@ fn sphere_on_half_space_follows_hertz() {
         &IndentParams::default(),
         &mut |p| {
             eprintln!(
-                "d/R {:.3}: F {:.5e} N, a {:.4e} m, {} nodes in contact, {} updates, {} Newton",
+                "d/R {:.3}: F {:.5e} N, a {:.4e} m, {} points in contact, {} updates, {} Newton",
                 p.depth_m / R,
                 4.0 * p.force_on_sphere_n.z,
-                p.contact_radius_m,
-                p.nodes_in_contact,
+                2.0 * p.contact_radius_m,
+                p.points_in_contact,
                 p.augmentations,
                 p.newton_iterations
             )
@@ -89,12 +89,13 @@ fn sphere_on_half_space_follows_hertz() {
         let f = 4.0 * p.force_on_sphere_n.z;
         let f_hertz = 4.0 / 3.0 * e_star * R.sqrt() * d.powf(1.5);
         let a_hertz = (R * d).sqrt();
-        let (ef, ea) = (f / f_hertz - 1.0, p.contact_radius_m / a_hertz - 1.0);
+        // The quarter's contact area is a quarter of the circle's: a = sqrt(4 A / pi).
+        let a = (4.0 * p.contact_area_m2 / std::f64::consts::PI).sqrt();
+        let (ef, ea) = (f / f_hertz - 1.0, a / a_hertz - 1.0);
         eprintln!(
-            "d/R {:.2}: F {f:.4e} N vs Hertz {f_hertz:.4e} N ({:+.1} %), a {:.4e} m vs {a_hertz:.4e} m ({:+.1} %), penetration {:.1e} m",
+            "d/R {:.2}: F {f:.4e} N vs Hertz {f_hertz:.4e} N ({:+.1} %), a {a:.4e} m vs {a_hertz:.4e} m ({:+.1} %), penetration {:.1e} m",
             d / R,
             100.0 * ef,
-            p.contact_radius_m,
             100.0 * ea,
             p.max_penetration_m
         );

@@ -168,6 +168,143 @@ pub fn probe_static_at(
     })
 }
 
+/// Half-width of the bracket of sphere depths [`probe_sphere_at`] solves at below each device
+/// depth, m: the device sits `F / k` beyond the sphere, at most 0.2 mm for forces to 60 mN
+/// with the lv coupling (300 N/m).
+pub const SPHERE_BRACKET_M: f64 = 2e-4;
+
+/// The probe press with a rigid sphere in place of the kernel patch: static indentation
+/// ([`haptic_model::indent`], augmented Lagrangian, converged at every depth or an error) of
+/// the scene's touchable surface by its probe sphere moving along -x at z = -5 mm, reported at
+/// each device depth `D` of `depths_mm` (mm below [`super::CONTACT_X_M`], the same frame as
+/// [`probe_dynamic`]). The device pulls the sphere through the virtual coupling, so the sphere
+/// centre sits at the depth `s` with `s + F(s) / k = D`: the sphere is solved at `D -`
+/// [`SPHERE_BRACKET_M`] and at `D`, and `s` and the force found by linear interpolation in that
+/// bracket (the curve's curvature over 0.2 mm changes the force by well under 0.1 %); the
+/// positions at the last depth are interpolated the same way. Returns `Err` when a depth does
+/// not converge or the coupling puts the sphere outside its bracket.
+pub fn probe_sphere_at(scene: &Scene, depths_mm: &[f64]) -> Result<ProbeCurve, String> {
+    use haptic_model::indent::{IndentParams, Indenter, contact_distance, indent};
+    let fem = scene.fem_model().map_err(|e| e.to_string())?;
+    let params = IndentParams::default();
+    let indenter = Indenter {
+        radius_m: scene.probe.radius_m,
+        from_m: device_at(-1e-3),
+        direction: DVec3::new(-1.0, 0.0, 0.0),
+    };
+    let t0 =
+        contact_distance(&fem, &scene.touchable, &indenter, &params).map_err(|e| e.to_string())?;
+    // Sphere depth s (below CONTACT_X_M) = indent depth - offset.
+    let offset = 1e-3 - t0;
+    let mut sphere_depths = Vec::new();
+    for &d in depths_mm {
+        let d = d * 1e-3;
+        for s in [d - SPHERE_BRACKET_M, d] {
+            sphere_depths.push((s + offset).max(0.0));
+        }
+    }
+    let points = indent(
+        &fem,
+        &scene.touchable,
+        &indenter,
+        &sphere_depths,
+        &params,
+        &mut |_| {},
+    )
+    .map_err(|e| e.to_string())?;
+    let kc = scene.probe.coupling_stiffness_n_per_m;
+    let mut forces = Vec::new();
+    let mut x_last = Vec::new();
+    for (k, &d) in depths_mm.iter().enumerate() {
+        let d = d * 1e-3;
+        let (lo, hi) = (&points[2 * k], &points[2 * k + 1]);
+        // The force along the press (+x on the sphere) and the device depth at each end.
+        let (f_lo, f_hi) = (lo.force_on_sphere_n.x, hi.force_on_sphere_n.x);
+        let (s_lo, s_hi) = (lo.depth_m - offset, hi.depth_m - offset);
+        let (dev_lo, dev_hi) = (s_lo + f_lo / kc, s_hi + f_hi / kc);
+        if !(dev_lo <= d && d <= dev_hi) {
+            return Err(format!(
+                "device depth {:.3} mm: the coupled sphere is outside the bracket [{:.3}, {:.3}] \
+                 mm of sphere depths (device depths {:.3} to {:.3} mm)",
+                d * 1e3,
+                s_lo * 1e3,
+                s_hi * 1e3,
+                dev_lo * 1e3,
+                dev_hi * 1e3
+            ));
+        }
+        let t = (d - dev_lo) / (dev_hi - dev_lo);
+        // Reported like the dynamic runs: the magnitude of the device force.
+        let (m_lo, m_hi) = (lo.force_on_sphere_n.length(), hi.force_on_sphere_n.length());
+        forces.push(m_lo + t * (m_hi - m_lo));
+        if k + 1 == depths_mm.len() {
+            x_last = lo
+                .x_m
+                .iter()
+                .zip(&hi.x_m)
+                .map(|(a, b)| *a + (*b - *a) * t)
+                .collect();
+        }
+    }
+    Ok(ProbeCurve {
+        forces_n: forces,
+        x_last,
+    })
+}
+
+/// A value extrapolated from three meshes by Richardson.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Extrapolated {
+    /// The extrapolated value (the finest mesh's when the convergence is not monotone).
+    pub value: f64,
+    /// Error estimate of `value`: Roache's grid convergence index, 1.25 `|value - finest|`,
+    /// with monotone convergence; otherwise the largest distance of a mesh's value from the
+    /// finest one's.
+    pub uncertainty: f64,
+    /// Observed order of convergence in the mesh size, if monotone.
+    pub order: Option<f64>,
+}
+
+/// Richardson extrapolation of `f = f* + C h^p` through three meshes of sizes `h` (decreasing:
+/// coarse to fine, any ratios) with values `f`: the order `p` solves `(f3 - f2) / (f2 - f1) =
+/// (h3^p - h2^p) / (h2^p - h1^p)` by bisection on [0.3, 8]. Convergence that is not monotone
+/// (the differences change sign or grow) or an order outside that range gives the finest
+/// value with the spread of the three as its uncertainty.
+pub fn richardson(h: [f64; 3], f: [f64; 3]) -> Extrapolated {
+    let spread = f.iter().map(|v| (v - f[2]).abs()).fold(0.0, f64::max);
+    let fallback = Extrapolated {
+        value: f[2],
+        uncertainty: spread,
+        order: None,
+    };
+    let (e21, e32) = (f[1] - f[0], f[2] - f[1]);
+    if e21 == 0.0 || e32 / e21 <= 0.0 || e32.abs() >= e21.abs() {
+        return fallback;
+    }
+    let target = e32 / e21;
+    let g = |p: f64| (h[2].powf(p) - h[1].powf(p)) / (h[1].powf(p) - h[0].powf(p)) - target;
+    let (mut lo, mut hi) = (0.3, 8.0);
+    if g(lo).signum() == g(hi).signum() {
+        return fallback;
+    }
+    for _ in 0..100 {
+        let mid = 0.5 * (lo + hi);
+        if g(mid).signum() == g(lo).signum() {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    let p = 0.5 * (lo + hi);
+    let c = e32 / (h[2].powf(p) - h[1].powf(p));
+    let value = f[2] - c * h[2].powf(p);
+    Extrapolated {
+        value,
+        uncertainty: 1.25 * (value - f[2]).abs(),
+        order: Some(p),
+    }
+}
+
 /// The dynamic press protocol with `Simulation::tick`: the probe centre moves along -x from
 /// 0.3 mm clear of contact to each depth of [`DEPTHS_MM`], a smoothstep ramp then a hold
 /// (100 ms each, 80 ms with `quick`); the force per depth is the mean device force over the
