@@ -74,6 +74,9 @@ enum Study {
         /// Also solve the kernel-patch static press on the finest mesh.
         #[arg(long)]
         patch: bool,
+        /// Device depths below first contact, mm, increasing [default: 0.5, 1, ..., 3].
+        #[arg(long, value_delimiter = ',')]
+        depths: Vec<f64>,
     },
     /// Dynamic probe curves with chosen integrators.
     Dynamic {
@@ -222,7 +225,15 @@ fn main() {
             mesh,
             material,
             patch,
-        } => sphere_study(&mesh, &material, patch),
+            depths,
+        } => {
+            let depths = if depths.is_empty() {
+                DEPTHS_MM.to_vec()
+            } else {
+                depths
+            };
+            sphere_study(&mesh, &material, patch, &depths)
+        }
         Study::Dynamic { run } => {
             for r in run {
                 let mut scene = common::lv_scene_order(r.tets, r.quadratic);
@@ -246,7 +257,7 @@ fn main() {
 }
 
 /// The `sphere` study (see [`Study::Sphere`]).
-fn sphere_study(meshes: &[MeshSpec], materials: &[String], patch: bool) {
+fn sphere_study(meshes: &[MeshSpec], materials: &[String], patch: bool, depths: &[f64]) {
     assert!(
         meshes.len() >= 3,
         "the sphere study needs three or more meshes"
@@ -270,7 +281,7 @@ fn sphere_study(meshes: &[MeshSpec], materials: &[String], patch: bool) {
             let mut scene = m.scene();
             scene.material.model = model;
             let t = Instant::now();
-            match probe_sphere_at(&scene, &DEPTHS_MM) {
+            match probe_sphere_at(&scene, depths) {
                 Ok(c) => {
                     println!(
                         "lv-sphere {} {}: {} tets, {} nodes, {:.1} s: {:?} N",
@@ -305,7 +316,7 @@ fn sphere_study(meshes: &[MeshSpec], materials: &[String], patch: bool) {
                 h[1] / h[2]
             );
             println!("  depth mm | finest N | extrapolated N | uncertainty N (%) | order");
-            for (j, d) in DEPTHS_MM.iter().enumerate() {
+            for (j, d) in depths.iter().enumerate() {
                 let f = [curves[k - 3][j], curves[k - 2][j], curves[k - 1][j]];
                 let e = richardson(h, f);
                 println!(
@@ -322,7 +333,7 @@ fn sphere_study(meshes: &[MeshSpec], materials: &[String], patch: bool) {
             let m = meshes.last().expect("meshes");
             let mut scene = m.scene();
             scene.material.model = model;
-            let c = probe_static_at(&scene, &DEPTHS_MM, false);
+            let c = probe_static_at(&scene, depths, false);
             println!(
                 "lv-patch {} {}: {:?}",
                 model.scene_name(),

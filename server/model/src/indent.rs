@@ -196,8 +196,8 @@ pub struct IndentParams {
     /// Penalty per contact point as a multiple of `mu l_q`, with `mu` the material's shear
     /// modulus and `l_q` the square root of the point's rest area (default 100: the gap
     /// shrinks about a hundredfold per multiplier update). A multiplier update that shrinks
-    /// the worst gap less than fourfold multiplies the penalties by 4, up to 1e4 times their
-    /// start values.
+    /// the worst gap less than fourfold multiplies the penalties by 4, up to 16 times their
+    /// start values (stiffer penalties make Newton cycle across the contact's kink).
     pub penalty_factor: f64,
     /// Largest spacing of the contact points as a fraction of the sphere radius (default
     /// 0.25; see [`contact_points`]).
@@ -517,7 +517,7 @@ fn augment(
 }
 
 /// How far [`augment`] may stiffen the penalties above their start values.
-const MAX_PENALTY_GROWTH: f64 = 1e4;
+const MAX_PENALTY_GROWTH: f64 = 16.0;
 
 /// The reported quantities at one converged depth.
 fn measure(

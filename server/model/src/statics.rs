@@ -180,6 +180,10 @@ pub fn solve_static_with(
     };
     let load_norm = f_ext.iter().map(|v| v.length_squared()).sum::<f64>().sqrt();
     let mut term_f = vec![DVec3::ZERO; if term.is_some() { n } else { 0 }];
+    // The extra term's share of the load scale: the largest norm of its forces seen so far, so
+    // an iterate where the term lets go (a contact released) does not shrink the tolerance to
+    // `abs_tol_n`.
+    let mut term_scale = 0.0f64;
     // Residual r = f_ext + f_int + f_term at x, its free norm and the tolerance there.
     let mut residual = |x: &[DVec3], r: &mut Vec<DVec3>| -> (f64, f64) {
         r.clear();
@@ -194,7 +198,8 @@ pub fn solve_static_with(
                 *ri += *fi;
                 s2 += fi.length_squared();
             }
-            scale += s2.sqrt();
+            term_scale = term_scale.max(s2.sqrt());
+            scale += term_scale;
         }
         (
             free_norm(fem.constraints(), r),
