@@ -8,7 +8,11 @@
 //!   (linear or quadratic elements on the structured LV, or `lv_h1.msh`), optionally with
 //!   another Poisson ratio (E fixed), other depths or strain smoothing.
 //! - `sphere`: the press with a rigid sphere (exact contact) on three or more meshes with the
-//!   Richardson extrapolation and its uncertainty per depth, per material.
+//!   Richardson extrapolation and its uncertainty per depth, per material. Meshes may be Gmsh
+//!   files (`FILE.msh:ORDER`, in mm, groups BASE and EPI), for example the LV refined around
+//!   the contact point by `examples/lv_probe_refined.geo`:
+//!   `gmsh server/model/examples/lv_probe_refined.geo -3 -format msh22 -setnumber hmin 0.6
+//!   -setnumber hmax 3 -o lvr_0.6.msh`.
 //! - `dynamic`: the dynamic press (`Simulation::tick`, ramps and holds) with each `--run`'s
 //!   mesh and integrator, and its median tick.
 //!
@@ -65,7 +69,8 @@ enum Study {
     /// its uncertainty per depth, for each material; with `--patch`, the kernel-patch static
     /// curve on the finest mesh for comparison.
     Sphere {
-        /// Meshes, coarse to fine, as in `static --mesh` (structured LV only).
+        /// Meshes, coarse to fine, as in `static --mesh`, or Gmsh files of the LV in mm with
+        /// groups BASE and EPI as FILE.msh:ORDER.
         #[arg(long, value_delimiter = ',', default_value = "500:2,1000:2,2000:2")]
         mesh: Vec<MeshSpec>,
         /// Materials by scene name [default: stvk, corotational, stable-neo-hookean].
@@ -94,6 +99,8 @@ struct MeshSpec {
     /// Target element count; `None` for `lv_h1.msh`.
     tets: Option<usize>,
     quadratic: bool,
+    /// A Gmsh file of the LV in mm (physical groups BASE and EPI) instead.
+    file: Option<std::path::PathBuf>,
 }
 
 impl FromStr for MeshSpec {
@@ -101,24 +108,45 @@ impl FromStr for MeshSpec {
 
     fn from_str(s: &str) -> Result<Self, String> {
         let (tets, order) = s
-            .split_once(':')
-            .ok_or_else(|| format!("{s:?}: expected TETS:ORDER"))?;
-        let tets = match tets {
-            "h1" => None,
-            n => Some(n.parse().map_err(|e| format!("{n:?}: {e}"))?),
-        };
+            .rsplit_once(':')
+            .ok_or_else(|| format!("{s:?}: expected TETS:ORDER or FILE.msh:ORDER"))?;
         let quadratic = match order {
             "1" => false,
             "2" => true,
             o => return Err(format!("order {o:?}: expected 1 or 2")),
         };
-        Ok(Self { tets, quadratic })
+        if tets.ends_with(".msh") {
+            return Ok(Self {
+                tets: None,
+                quadratic,
+                file: Some(tets.into()),
+            });
+        }
+        let tets = match tets {
+            "h1" => None,
+            n => Some(n.parse().map_err(|e| format!("{n:?}: {e}"))?),
+        };
+        Ok(Self {
+            tets,
+            quadratic,
+            file: None,
+        })
     }
 }
 
 impl MeshSpec {
     /// The built-in `lv` scene on this mesh.
     fn scene(&self) -> Scene {
+        if let Some(file) = &self.file {
+            let text = format!(
+                "name = \"lv-file\"\n[mesh]\nfile = {:?}\nlength_unit = \"mm\"\norder = {}\n[material]\nyoungs_modulus_pa = 14500.0\npoisson_ratio = 0.45\ndensity_kg_per_m3 = 1060.0\n[boundary]\nclamped = [\"BASE\"]\ntouchable = [\"EPI\"]\n",
+                file.display().to_string(),
+                if self.quadratic { 2 } else { 1 }
+            );
+            let scene = haptic_model::scene::parse_scene_toml(&text, std::path::Path::new("."))
+                .unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+            return common::lv_scene_on(scene.mesh);
+        }
         match self.tets {
             Some(tets) => common::lv_scene_order(tets, self.quadratic),
             None => {
@@ -133,6 +161,13 @@ impl MeshSpec {
     }
 
     fn label(&self) -> String {
+        if let Some(file) = &self.file {
+            return format!(
+                "{} order {}",
+                file.display(),
+                if self.quadratic { 2 } else { 1 }
+            );
+        }
         let tets = self.tets.map_or("h1".into(), |t| t.to_string());
         format!("{tets} tets order {}", if self.quadratic { 2 } else { 1 })
     }
@@ -263,8 +298,8 @@ fn sphere_study(meshes: &[MeshSpec], materials: &[String], patch: bool, depths: 
         "the sphere study needs three or more meshes"
     );
     assert!(
-        meshes.iter().all(|m| m.tets.is_some()),
-        "the sphere study runs on the structured LV"
+        meshes.iter().all(|m| m.tets.is_some() || m.file.is_some()),
+        "the sphere study runs on the structured LV or Gmsh files"
     );
     let materials: Vec<MaterialModel> = if materials.is_empty() {
         common::MATERIALS.to_vec()
