@@ -68,15 +68,37 @@ impl ContactPoint {
     }
 }
 
+/// Largest number of contact points [`contact_points`] makes (about 200 MB of them).
+pub const MAX_CONTACT_POINTS: usize = 4_000_000;
+
 /// Contact points of a triangle surface (see the module documentation): each triangle split
 /// into `L^2` sub-triangles, `L` the smallest integer with `longest edge / L <= spacing_m`
 /// (at least 1, at most 16), a point at each sub-triangle's centroid.
-pub fn contact_points(triangles: &[[u32; 3]], x: &[DVec3], spacing_m: f64) -> Vec<ContactPoint> {
-    let mut out = Vec::new();
-    for &t in triangles {
+///
+/// # Errors
+/// [`ModelError::InvalidInput`] when that makes more than [`MAX_CONTACT_POINTS`] points (a
+/// sphere far smaller than the surface's triangles).
+pub fn contact_points(
+    triangles: &[[u32; 3]],
+    x: &[DVec3],
+    spacing_m: f64,
+) -> Result<Vec<ContactPoint>, ModelError> {
+    let split = |t: &[u32; 3]| {
         let [a, b, c] = t.map(|i| x[i as usize]);
         let longest = (b - a).length().max((c - b).length()).max((a - c).length());
-        let l = ((longest / spacing_m).ceil() as usize).clamp(1, 16);
+        ((longest / spacing_m).ceil() as usize).clamp(1, 16)
+    };
+    let needed: usize = triangles.iter().map(|t| split(t).pow(2)).sum();
+    if needed > MAX_CONTACT_POINTS {
+        return Err(ModelError::InvalidInput(format!(
+            "sampling {} touchable triangles at {spacing_m:.3e} m needs {needed} contact points \
+             (at most {MAX_CONTACT_POINTS}): the sphere is far smaller than the triangles",
+            triangles.len()
+        )));
+    }
+    let mut out = Vec::with_capacity(needed);
+    for &t in triangles {
+        let l = split(&t);
         let lf = l as f64;
         let area_fraction = 1.0 / (lf * lf);
         // Sub-triangles of the lattice with steps (i, j): "up" ones with vertices (i, j),
@@ -98,7 +120,7 @@ pub fn contact_points(triangles: &[[u32; 3]], x: &[DVec3], spacing_m: f64) -> Ve
             }
         }
     }
-    out
+    Ok(out)
 }
 
 /// The augmented-Lagrangian contact term of a rigid sphere over contact points (see the
@@ -316,7 +338,7 @@ pub fn contact_distance(
     params: &IndentParams,
 ) -> Result<f64, ModelError> {
     let r = indenter.radius_m;
-    let points = contact_points(triangles, fem.rest(), params.point_spacing * r);
+    let points = contact_points(triangles, fem.rest(), params.point_spacing * r)?;
     let dir = indenter.direction.normalize_or_zero();
     contact_distance_of(triangles, &points, fem.rest(), indenter.from_m, dir, r)
 }
@@ -398,7 +420,7 @@ pub fn indent(
         prev = d;
     }
     let rest = fem.rest();
-    let points = contact_points(triangles, rest, params.point_spacing * r);
+    let points = contact_points(triangles, rest, params.point_spacing * r)?;
     let t0 = contact_distance_of(triangles, &points, rest, indenter.from_m, dir, r)?;
     let mu = fem.material().mu_pa;
     let mut contact = SphereContact {
@@ -568,7 +590,7 @@ mod tests {
             DVec3::new(1e-3, 1e-3, -0.2e-3),
         ];
         let tris = vec![[0, 1, 2], [1, 3, 2]];
-        let points = contact_points(&tris, &x, 0.3e-3);
+        let points = contact_points(&tris, &x, 0.3e-3).unwrap();
         let n = points.len();
         let contact = SphereContact {
             centre_m: DVec3::new(0.45e-3, 0.5e-3, 1.9e-3),
@@ -600,6 +622,19 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// A sphere far smaller than the triangles is refused before any point is made.
+    #[test]
+    fn too_many_contact_points_are_refused() {
+        let (tris, x, _) = fixture();
+        let many = vec![tris[0]; 16_000]; // 16 000 x 16^2 = 4.1 million points
+        let err = contact_points(&many, &x, 1e-6).unwrap_err().to_string();
+        assert!(err.contains("4096000 contact points"), "{err}");
+        assert_eq!(
+            contact_points(&many[..100], &x, 1e-6).unwrap().len(),
+            100 * 256
+        );
     }
 
     /// Forces are minus the gradient of the energy and the stiffness blocks the derivative of
