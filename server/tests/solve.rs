@@ -1,6 +1,6 @@
 //! `haptic-solve`'s library: static solutions of scene files and their output files.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use haptic_model::DVec3;
 use haptic_model::element::FemModel;
@@ -146,6 +146,17 @@ touchable = ["ZMAX", "XMIN", "XMAX", "YMIN", "YMAX"]
 radius_m = 0.002
 "#;
 
+/// A fresh folder `name` under the test target folder holding `cube.toml` ([`CUBE`]): the
+/// scene file and the output folder to use.
+fn cube_case(name: &str) -> (PathBuf, PathBuf) {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(name);
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let scene_file = dir.join("cube.toml");
+    std::fs::write(&scene_file, CUBE).unwrap();
+    (scene_file, dir.join("out"))
+}
+
 /// Runs `haptic-solve` with `args` (after the scene file) and returns (success, stderr).
 fn haptic_solve(scene_file: &Path, args: &[&str]) -> (bool, String) {
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_haptic-solve"))
@@ -180,12 +191,7 @@ fn vtu_displacements(path: &Path) -> Vec<DVec3> {
 /// nodes), so the two files agree with each other and with equilibrium.
 #[test]
 fn indent_writes_a_force_curve_that_the_deformed_meshes_confirm() {
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("indent-cli-ok");
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    let scene_file = dir.join("cube.toml");
-    std::fs::write(&scene_file, CUBE).unwrap();
-    let out = dir.join("out");
+    let (scene_file, out) = cube_case("indent-cli-ok");
     let (ok, stderr) = haptic_solve(
         &scene_file,
         &[
@@ -261,12 +267,7 @@ fn indent_writes_a_force_curve_that_the_deformed_meshes_confirm() {
 /// a message naming it; the depths that converged stay on disk.
 #[test]
 fn indent_names_the_depth_that_fails_and_keeps_the_rest() {
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("indent-cli-fail");
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    let scene_file = dir.join("cube.toml");
-    std::fs::write(&scene_file, CUBE).unwrap();
-    let out = dir.join("out");
+    let (scene_file, out) = cube_case("indent-cli-fail");
     let out_arg = out.to_str().unwrap();
     let (ok, stderr) = haptic_solve(
         &scene_file,
