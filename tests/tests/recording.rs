@@ -122,9 +122,11 @@ async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> 
         "recorded peak {recorded_peak} N, bridge summary {peak} N"
     );
 
-    // Replayed on a fresh session, the same trajectory gives about the same force where it
-    // holds at the deepest point. (The peak is not compared: under a loaded machine a stalled
-    // bridge tick makes a short transient that one run has and the other not.)
+    // Replayed on a fresh session: the device goes through the recorded trajectory (same
+    // deepest point), and the body answers with about the same force where the press holds.
+    // The force is compared loosely: the LV relaxes during the 0.2 s hold (viscosity, mass
+    // damping) and on a loaded machine the servo's lag behind wall time differs between the
+    // two runs (14 % apart in one CI run under load); the peak is not compared at all.
     let id2 = start_session(&url, "lv").await?;
     let replay_mcap = dir.join("replay.mcap");
     let replay_arg = replay_mcap.display().to_string();
@@ -147,10 +149,15 @@ async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> 
     )
     .await?
     .success()?;
-    let recorded_hold = held_force_n(&bytes)?;
-    let replay_hold = held_force_n(&std::fs::read(&replay_mcap)?)?;
+    let replay_bytes = std::fs::read(&replay_mcap)?;
+    let (recorded_x, recorded_hold) = held_force_n(&bytes)?;
+    let (replay_x, replay_hold) = held_force_n(&replay_bytes)?;
     ensure!(
-        (replay_hold - recorded_hold).abs() < 0.1 * recorded_hold,
+        (replay_x - recorded_x).abs() < 1e-5,
+        "replayed deepest x {replay_x} m against {recorded_x} m"
+    );
+    ensure!(
+        (replay_hold - recorded_hold).abs() < 0.25 * recorded_hold,
         "replayed hold force {replay_hold} N against {recorded_hold} N"
     );
 
@@ -207,9 +214,9 @@ async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> 
     Ok(())
 }
 
-/// The median force magnitude of a bridge recording over the samples within 0.1 mm of its
-/// deepest point along x (the press's hold), N.
-fn held_force_n(bytes: &[u8]) -> Result<f64> {
+/// The deepest device x of a bridge recording (m) and the median force magnitude over the
+/// samples within 0.1 mm of it (the press's hold), N.
+fn held_force_n(bytes: &[u8]) -> Result<(f64, f64)> {
     let samples = read_topic::<DeviceSample>(bytes, topic::DEVICE_SAMPLE)?;
     let forces = read_topic::<ForceCommand>(bytes, topic::DEVICE_FORCE)?;
     ensure!(!samples.is_empty() && samples.len() == forces.len());
@@ -231,5 +238,5 @@ fn held_force_n(bytes: &[u8]) -> Result<f64> {
         held.len()
     );
     held.sort_by(f64::total_cmp);
-    Ok(held[held.len() / 2])
+    Ok((x_min, held[held.len() / 2]))
 }
