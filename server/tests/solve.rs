@@ -298,7 +298,7 @@ fn indent_names_the_depth_that_fails_and_keeps_the_rest() {
     for (args, needle) in [
         (
             vec!["--from", "1,1", "--direction", "0,0,-1", "--depths", "0.1"],
-            "three finite numbers",
+            "expected X,Y,Z",
         ),
         (
             vec![

@@ -16,6 +16,7 @@ use haptic_server::solve::{
     IndentRequest, SolveParams, indent_scene, indent_vtu_name, solve_scene, write_indent_csv,
     write_indent_vtu, write_solution,
 };
+use haptics_proto::parse_vec3;
 
 /// Static equilibrium of a scene (Newton, sparse Cholesky, load stepping), or its static
 /// indentation by the probe sphere.
@@ -37,23 +38,11 @@ struct Args {
     #[arg(long, requires_all = ["from", "direction", "depths"])]
     indent: bool,
     /// Start centre of the sphere, clear of the body: X,Y,Z in the scene's length unit.
-    #[arg(
-        long,
-        value_delimiter = ',',
-        num_args = 1,
-        allow_hyphen_values = true,
-        requires = "indent"
-    )]
-    from: Option<Vec<f64>>,
+    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true, requires = "indent")]
+    from: Option<[f64; 3]>,
     /// Indentation direction DX,DY,DZ (normalised).
-    #[arg(
-        long,
-        value_delimiter = ',',
-        num_args = 1,
-        allow_hyphen_values = true,
-        requires = "indent"
-    )]
-    direction: Option<Vec<f64>>,
+    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true, requires = "indent")]
+    direction: Option<[f64; 3]>,
     /// Depths below first contact, increasing, in the scene's length unit: D1,D2,...
     #[arg(long, value_delimiter = ',', num_args = 1, requires = "indent")]
     depths: Option<Vec<f64>>,
@@ -108,17 +97,6 @@ fn run_loads(args: &Args, scene: &Scene) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// A 3-vector option in the scene's length unit.
-fn vec3(name: &str, v: Option<&Vec<f64>>) -> anyhow::Result<DVec3> {
-    match v.map(Vec::as_slice) {
-        Some(&[x, y, z]) if x.is_finite() && y.is_finite() && z.is_finite() => {
-            Ok(DVec3::new(x, y, z))
-        }
-        Some(v) => bail!("--{name} takes three finite numbers X,Y,Z; got {v:?}"),
-        None => bail!("--indent needs --{name}"),
-    }
-}
-
 fn run_indent(args: &Args, scene: &Scene) -> anyhow::Result<()> {
     let unit = scene.length_unit_m;
     let depths = args.depths.clone().unwrap_or_default();
@@ -126,8 +104,8 @@ fn run_indent(args: &Args, scene: &Scene) -> anyhow::Result<()> {
         bail!("--indent needs at least one depth in --depths");
     }
     let request = IndentRequest {
-        from_m: vec3("from", args.from.as_ref())? * unit,
-        direction: vec3("direction", args.direction.as_ref())?,
+        from_m: DVec3::from_array(args.from.context("--indent needs --from")?) * unit,
+        direction: DVec3::from_array(args.direction.context("--indent needs --direction")?),
         depths_m: depths.iter().map(|d| d * unit).collect(),
     };
     eprintln!(
