@@ -218,27 +218,14 @@ pub fn indent_vtu_name(k: usize) -> String {
     format!("indent_{:03}.vtu", k + 1)
 }
 
-/// Writes `dir/indent.csv` (`depth,fx,fy,fz,contact_radius`: depth and contact radius in the
-/// scene's length unit, the force of the body on the sphere in N, one row per point) and, for
-/// each point, `dir/indent_NNN.vtu` ([`indent_vtu_name`], in depth order). `dir` is created if
-/// needed.
-///
-/// # Errors
-/// [`ModelError::Io`] when a file cannot be written.
-pub fn write_indent(dir: &Path, scene: &Scene, points: &[IndentPoint]) -> Result<(), ModelError> {
-    write_indent_csv(dir, scene, points)?;
-    for (k, p) in points.iter().enumerate() {
-        write_indent_vtu(dir, scene, k, p)?;
-    }
-    Ok(())
-}
-
 fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> ModelError {
     let path = path.display().to_string();
     move |e| ModelError::Io { path, source: e }
 }
 
-/// Writes `dir/indent.csv` alone (see [`write_indent`]), creating `dir` if needed.
+/// Writes `dir/indent.csv` (`depth,fx,fy,fz,contact_radius`: depth and contact radius in the
+/// scene's length unit, the force of the body on the sphere in N, one row per point), creating
+/// `dir` if needed; [`write_indent_vtu`] writes each point's mesh.
 ///
 /// # Errors
 /// [`ModelError::Io`] when the file cannot be written.
