@@ -1,10 +1,11 @@
-//! The haptic probe's contact model ([`haptic_model::contact`]) on its own: kernel patches are
-//! partitions of unity, the coupling conserves linear momentum exactly, the proxy stays outside
-//! the surface, and the contact force changes continuously while the probe slides over a curved
-//! surface (no jump when nodes enter or leave the patch).
+//! The haptic probe's contact models ([`haptic_model::contact`]) on their own: kernel patches
+//! are partitions of unity, the sphere's proxy penetrates no triangle and its load sits on the
+//! faces it touches, the coupling conserves linear momentum exactly, the proxy stays outside the
+//! surface, and the contact force changes continuously while the probe slides over a curved
+//! surface (no jump when nodes or faces enter or leave the contact).
 
 use haptic_model::DVec3;
-use haptic_model::contact::{ContactSurface, Probe, ProbeParams};
+use haptic_model::contact::{ContactModel, ContactSurface, Probe, ProbeParams};
 use haptic_model::mesh::TetMesh;
 use haptic_model::mesh::generate::{box_mesh, sphere_shell};
 
@@ -15,8 +16,9 @@ fn block() -> (TetMesh, Vec<[u32; 3]>) {
     (mesh, top)
 }
 
-fn params() -> ProbeParams {
+fn params(contact: ContactModel) -> ProbeParams {
     ProbeParams {
+        contact,
         radius_m: 2e-3,
         coupling_stiffness_n_per_m: 300.0,
         coupling_damping_n_s_per_m: 0.05,
@@ -73,9 +75,18 @@ fn kernel(p: DVec3, q: DVec3, reach: f64) -> f64 {
 /// radius above it, the force is `k (r - s)` along the outward normal.
 #[test]
 fn the_proxy_stays_outside_a_flat_surface() {
+    for contact in [ContactModel::Patch, ContactModel::Sphere] {
+        proxy_on_a_flat_surface(contact);
+    }
+}
+
+/// On a flat face both models put the proxy exactly one radius above the face; the sphere's
+/// load sits on the faces within its contact band (gap below the coupling's stretch `t`), whose
+/// nodes lie within `sqrt(2 r t + t^2)` of the axis plus one cell.
+fn proxy_on_a_flat_surface(contact: ContactModel) {
     let (mesh, top) = block();
     let x = &mesh.nodes;
-    let p = params();
+    let p = params(contact);
     let mut probe = Probe::new(p, top, x);
     for (depth, dx) in [(0.2e-3, 0.0), (1.0e-3, 0.3e-3), (2.5e-3, -0.7e-3)] {
         // Device centre `depth` below the position where the sphere touches the face.
@@ -95,6 +106,17 @@ fn the_proxy_stays_outside_a_flat_surface() {
             "{} against {expected}",
             c.force_on_device_n
         );
+        if contact == ContactModel::Sphere {
+            let (nodes, weights) = probe.patch();
+            let t = depth;
+            let footprint = (2.0 * p.radius_m * t + t * t).sqrt() + 1e-3 * 2f64.sqrt();
+            for &i in nodes {
+                let lateral = (x[i as usize] - device).truncate().length();
+                assert!(lateral < footprint, "depth {depth}: node at {lateral} m");
+            }
+            assert!((weights.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+            assert!(!nodes.is_empty());
+        }
     }
     // Above the face: no contact, the proxy is the device point.
     let device = DVec3::new(0.01, 0.01, 0.005 + p.radius_m + 1e-4);
@@ -107,12 +129,18 @@ fn the_proxy_stays_outside_a_flat_surface() {
 /// exactly `-dt F_device`.
 #[test]
 fn the_coupling_reaction_conserves_linear_momentum() {
+    for contact in [ContactModel::Patch, ContactModel::Sphere] {
+        momentum_is_conserved(contact);
+    }
+}
+
+fn momentum_is_conserved(contact: ContactModel) {
     let (mesh, top) = block();
     let x0 = mesh.nodes.clone();
     let n = x0.len();
     let mass_kg = 2e-4;
     let dt = 1e-4;
-    let p = params();
+    let p = params(contact);
     let mut probe = Probe::new(p, top, &x0);
     for (device, velocity) in [
         (DVec3::new(0.01, 0.01, 0.0062), DVec3::ZERO),
@@ -154,12 +182,12 @@ fn the_coupling_reaction_conserves_linear_momentum() {
 /// and leave the patch with zero weight), where a plain closest-point contact jumps at every
 /// triangle edge.
 #[test]
-fn the_contact_force_is_continuous_while_sliding() {
+fn the_patch_force_is_continuous_while_sliding() {
     let (ri, ro) = (0.006, 0.010);
     let mesh = sphere_shell(ri, ro, 3000);
     let outer = mesh.surface("OUTER").expect("outer").triangles.clone();
     let x = &mesh.nodes;
-    let p = params();
+    let p = params(ContactModel::Patch);
     let surface = ContactSurface::new(outer.clone(), x.len());
     let mut probe = Probe::new(p, outer, x);
     // The proxy is one radius outside the smoothed plane through the patch's weighted centre,
@@ -186,6 +214,58 @@ fn the_contact_force_is_continuous_while_sliding() {
     }
     let mean = forces.iter().map(|f| f.length()).sum::<f64>() / steps as f64;
     // The force points away from the centre, within the faceting.
+    for (k, f) in forces.iter().enumerate() {
+        let a = 0.1 + 1.2 * k as f64 / steps as f64;
+        let radial = DVec3::new(a.cos(), 0.0, a.sin());
+        assert!(f.normalize().dot(radial) > 0.99, "step {k}: {f}");
+        assert!(
+            (f.length() - mean).abs() < 0.25 * mean,
+            "step {k}: {f} against {mean}"
+        );
+    }
+    let largest_jump: f64 = forces
+        .windows(2)
+        .map(|w| (w[1] - w[0]).length())
+        .fold(0.0, f64::max);
+    println!("mean {mean:.4e} N, largest jump {largest_jump:.3e} N");
+    assert!(
+        largest_jump < 0.02 * mean,
+        "force jumped by {largest_jump:.3e} N between neighbouring positions (mean {mean:.3e} N)"
+    );
+}
+
+/// The sphere slid over a faceted sphere at constant depth: its proxy penetrates no triangle
+/// (every triangle at least `r` away, to round-off) and touches at least one (within the
+/// contact band), the force points away from the centre and changes continuously from one
+/// position to the next (faces enter and leave the band with zero weight).
+#[test]
+fn the_sphere_force_is_continuous_while_sliding_and_never_penetrates() {
+    let (ri, ro) = (0.006, 0.010);
+    let mesh = sphere_shell(ri, ro, 3000);
+    let outer = mesh.surface("OUTER").expect("outer").triangles.clone();
+    let x = &mesh.nodes;
+    let p = params(ContactModel::Sphere);
+    let surface = ContactSurface::new(outer.clone(), x.len());
+    let mut probe = Probe::new(p, outer, x);
+    let depth = 0.5e-3;
+    let centre_distance = ro + p.radius_m - depth;
+    let steps = 400;
+    let mut forces = Vec::with_capacity(steps);
+    for k in 0..steps {
+        let a = 0.1 + 1.2 * k as f64 / steps as f64;
+        let device = DVec3::new(a.cos(), 0.0, a.sin()) * centre_distance;
+        let c = probe.update(x, device, DVec3::ZERO);
+        assert!(c.in_contact, "step {k}");
+        let gap = surface.closest_global(x, c.proxy_m).unwrap().dist2.sqrt() - p.radius_m;
+        let stretch = (c.proxy_m - device).length();
+        assert!(
+            gap > -1e-12 && gap < 0.01 * p.radius_m,
+            "step {k}: the proxy sphere is {gap:e} m from the surface"
+        );
+        assert!((c.force_on_device_n.length() - p.coupling_stiffness_n_per_m * stretch).abs() < 1e-12);
+        forces.push(c.force_on_device_n);
+    }
+    let mean = forces.iter().map(|f| f.length()).sum::<f64>() / steps as f64;
     for (k, f) in forces.iter().enumerate() {
         let a = 0.1 + 1.2 * k as f64 / steps as f64;
         let radial = DVec3::new(a.cos(), 0.0, a.sin());

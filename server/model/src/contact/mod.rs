@@ -31,14 +31,18 @@
 
 pub mod coupling;
 pub mod probe;
+pub mod sphere;
 pub mod surface;
 
 pub use coupling::RankOneCoupling;
-pub use probe::{ContactState, Probe, ProbeParams};
+pub use probe::{ContactModel, ContactState, Probe, ProbeParams};
 pub use surface::{ContactSurface, SurfacePoint, closest_point_on_triangle};
 
 /// Largest number of nodes in a contact patch.
 pub const MAX_PATCH_NODES: usize = 256;
+
+/// Largest number of surface triangles the sphere contact examines around the device.
+pub const MAX_CONTACT_TRIANGLES: usize = 1024;
 
 /// Radius of the contact patch around the device point, in probe radii.
 pub const PATCH_RADIUS_FACTOR: f64 = 2.0;

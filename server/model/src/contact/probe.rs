@@ -7,16 +7,41 @@
 use glam::DVec3;
 
 use super::coupling::RankOneCoupling;
+use super::sphere::sphere_exit;
 use super::surface::{ContactSurface, SurfacePoint};
-use super::{MAX_PATCH_NODES, PATCH_RADIUS_FACTOR};
+use super::{MAX_CONTACT_TRIANGLES, MAX_PATCH_NODES, PATCH_RADIUS_FACTOR};
 
 /// Largest accepted distance between a device point (or any point a client names) and the
 /// scene origin, m: farther points are absurd (a unit error or a broken sensor).
 pub const MAX_DEVICE_DISTANCE_M: f64 = 10.0;
 
+/// How the probe meets the surface (scene key `probe.contact`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ContactModel {
+    /// The rigid sphere: the proxy is the sphere's non-penetrating position and the reaction
+    /// acts on the faces the sphere actually touches (module documentation of [`super`]).
+    #[default]
+    Sphere,
+    /// The kernel patch: a smoothed plane through the touchable nodes within `2 r` of the
+    /// device, the reaction spread over them with kernel weights, whatever the depth.
+    Patch,
+}
+
+impl ContactModel {
+    /// The scene-file name (`"sphere"`, `"patch"`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Sphere => "sphere",
+            Self::Patch => "patch",
+        }
+    }
+}
+
 /// Haptic probe and virtual coupling parameters.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ProbeParams {
+    /// Contact model.
+    pub contact: ContactModel,
     /// Probe sphere radius, m.
     pub radius_m: f64,
     /// Virtual coupling stiffness between proxy and device point, N/m.
@@ -30,6 +55,7 @@ pub struct ProbeParams {
 impl Default for ProbeParams {
     fn default() -> Self {
         Self {
+            contact: ContactModel::default(),
             radius_m: 2e-3,
             coupling_stiffness_n_per_m: 300.0,
             coupling_damping_n_s_per_m: 0.05,
@@ -73,6 +99,29 @@ pub struct Probe {
     patch_weights: Vec<f64>,
     /// Explicit part of the normal coupling force of the current step, N.
     phi0_n: f64,
+    /// Sphere contact scratch: candidate triangles (capacity [`MAX_CONTACT_TRIANGLES`]), their
+    /// visit stamps (one per surface triangle) and each node's slot in the patch (one per
+    /// node, `u32::MAX` when not in it).
+    tris: Vec<u32>,
+    tri_stamps: Vec<u32>,
+    stamp: u32,
+    node_slot: Vec<u32>,
+}
+
+/// Smallest contact band of the sphere contact, in probe radii: at first touch (proxy offset
+/// `t` near zero) the faces within `r / 100` of the sphere carry the load.
+const SPHERE_BAND_MIN: f64 = 0.01;
+
+/// Weight of a face in the sphere's contact band: `A_T (1 - g / band)^2` for the gap
+/// `g = sqrt(dist2) - r` below `band` (a face the sphere penetrates counts as touching), zero
+/// beyond.
+fn face_weight(dist2: f64, r: f64, band: f64, a: DVec3, b: DVec3, c: DVec3) -> f64 {
+    let gap = (dist2.sqrt() - r).max(0.0);
+    if gap >= band {
+        return 0.0;
+    }
+    let u = 1.0 - gap / band;
+    0.5 * (b - a).cross(c - a).length() * u * u
 }
 
 impl Probe {
@@ -87,7 +136,7 @@ impl Probe {
         }
         // Deformations larger than half the body size are far outside haptic use.
         let margin = (hi - lo).max_element() * 0.5 + params.radius_m;
-        Self {
+        let mut probe = Self {
             params,
             surface: ContactSurface::new(touchable, rest.len()),
             reach_min: lo - DVec3::splat(margin),
@@ -96,23 +145,40 @@ impl Probe {
             patch_nodes: Vec::with_capacity(MAX_PATCH_NODES),
             patch_weights: Vec::with_capacity(MAX_PATCH_NODES),
             phi0_n: 0.0,
-        }
+            tris: Vec::with_capacity(MAX_CONTACT_TRIANGLES),
+            tri_stamps: Vec::new(),
+            stamp: 0,
+            node_slot: Vec::new(),
+        };
+        probe.size_scratch();
+        probe
+    }
+
+    /// Replaces the touchable surface (a body whose surface changes at run time builds it with
+    /// [`ContactSurface::with_capacity`]) and sizes the contact scratch for its triangle
+    /// capacity and node count. Not for the servo tick (allocates).
+    pub fn replace_surface(&mut self, surface: ContactSurface) {
+        self.surface = surface;
+        self.state = ContactState::default();
+        self.size_scratch();
+    }
+
+    fn size_scratch(&mut self) {
+        let capacity = self.surface.triangles.capacity().max(self.surface.triangles.len());
+        self.tri_stamps = vec![0; capacity];
+        self.stamp = 0;
+        self.node_slot = vec![u32::MAX; self.surface.node_count()];
     }
 
     /// Updates the contact for device point `device_m` (m) moving at `device_vel` (m/s) against
     /// the body at positions `x`. The surface-velocity part of the coupling is implicit
     /// ([`Probe::finish_implicit`]). Allocation-free.
     pub fn update(&mut self, x: &[DVec3], device_m: DVec3, device_vel: DVec3) -> ContactState {
-        let none = ContactState {
-            proxy_m: device_m,
-            ..ContactState::default()
-        };
         if self.surface.triangles.is_empty()
             || device_m.cmplt(self.reach_min).any()
             || device_m.cmpgt(self.reach_max).any()
         {
-            self.state = none;
-            return none;
+            return self.disengage(device_m);
         }
         let sp = if self.state.in_contact {
             self.surface
@@ -120,20 +186,33 @@ impl Probe {
         } else {
             match self.surface.closest_global(x, device_m) {
                 Some(sp) => sp,
-                None => return none,
+                None => return self.disengage(device_m),
             }
         };
+        match self.params.contact {
+            ContactModel::Patch => self.update_patch(x, device_m, device_vel, sp),
+            ContactModel::Sphere => self.update_sphere(x, device_m, device_vel, sp),
+        }
+    }
+
+    /// The kernel patch (module documentation of [`super`]); `sp` is the closest surface point
+    /// to the device.
+    fn update_patch(
+        &mut self,
+        x: &[DVec3],
+        device_m: DVec3,
+        device_vel: DVec3,
+        sp: SurfacePoint,
+    ) -> ContactState {
         let r = self.params.radius_m;
         let reach = PATCH_RADIUS_FACTOR * r;
         if sp.dist2 >= reach * reach {
-            self.state = none;
-            return none;
+            return self.disengage(device_m);
         }
         // Smoothed local surface: kernel-weighted plane through the patch around the device.
         self.gather_patch(x, device_m, sp.triangle);
         if self.patch_nodes.is_empty() {
-            self.state = none;
-            return none;
+            return self.disengage(device_m);
         }
         let mut centre = DVec3::ZERO;
         let mut normal_sum = DVec3::ZERO;
@@ -144,23 +223,173 @@ impl Probe {
         let n = normal_sum.normalize_or_zero();
         let signed = (device_m - centre).dot(n);
         if signed >= r || n == DVec3::ZERO {
-            self.state = none;
-            return none;
+            return self.disengage(device_m);
         }
-        let proxy = device_m + n * (r - signed);
         let sp = SurfacePoint {
             point: centre,
             ..sp
         };
+        self.engage(device_m, device_vel, n, r - signed, sp)
+    }
+
+    /// The rigid sphere. Starting from the last contact normal `n0` (on first touch, the
+    /// direction from the closest surface point `sp` to the device), the sphere is cast along
+    /// `n0` out of the deformed triangles near the device ([`sphere_exit`]): the proxy
+    /// `device + t n0` is the nearest centre on that line at which the sphere penetrates no
+    /// triangle. The faces within a band of the proxy sphere, gap
+    /// `g_T = dist(proxy, T) - r < delta` with `delta = max(t, r / 100)`, are in contact;
+    /// each carries the weight `A_T (1 - g_T / delta)^2` (area times a kernel that vanishes at
+    /// the band's edge, so the contact set changes continuously), and the normal becomes their
+    /// weighted face normal `n`; the sphere is cast again along `n` for the final proxy. The
+    /// face weights go to the nodes by the barycentric coordinates of each face's closest point
+    /// to the proxy (normalised to sum 1): the reaction acts on the faces the sphere touches,
+    /// on an area that grows with the depth, as a Hertz contact's does.
+    fn update_sphere(
+        &mut self,
+        x: &[DVec3],
+        device_m: DVec3,
+        device_vel: DVec3,
+        sp: SurfacePoint,
+    ) -> ContactState {
+        let r = self.params.radius_m;
+        let (n0, t_guess) = if self.state.in_contact {
+            let n = self.state.normal;
+            (n, (self.state.proxy_m - device_m).dot(n).max(0.0))
+        } else {
+            if sp.dist2 >= r * r {
+                return self.disengage(device_m);
+            }
+            let face_n = self.surface.normal(sp.triangle, x);
+            let out = device_m - sp.point;
+            let n = if out.dot(face_n) > 1e-6 * r {
+                out.normalize()
+            } else {
+                face_n
+            };
+            (n, 0.0)
+        };
+        if n0 == DVec3::ZERO {
+            return self.disengage(device_m);
+        }
+        // Faces that can stop the cast or lie in the band: within r + 2 t of the device, with
+        // room for the device's motion since the last update.
+        self.stamp = self.stamp.wrapping_add(1);
+        if self.stamp == 0 {
+            self.tri_stamps.fill(0);
+            self.stamp = 1;
+        }
+        self.surface.gather_triangles(
+            x,
+            device_m,
+            sp.triangle,
+            3.0 * r + 2.0 * t_guess,
+            (&mut self.tri_stamps, self.stamp),
+            &mut self.tris,
+        );
+        let Some((t0, _)) = self.cast(x, device_m, n0) else {
+            return self.disengage(device_m);
+        };
+        let band = t0.max(SPHERE_BAND_MIN * r);
+        let proxy0 = device_m + n0 * t0;
+        let mut normal_sum = DVec3::ZERO;
+        for &k in &self.tris {
+            let c = self.surface.closest_on(k, x, proxy0);
+            let [a, b, cc] = self.surface.triangles[k as usize].map(|i| x[i as usize]);
+            let w = face_weight(c.dist2, r, band, a, b, cc);
+            normal_sum += (b - a).cross(cc - a).normalize_or_zero() * w;
+        }
+        let n = normal_sum.try_normalize().unwrap_or(n0);
+        let Some((t, exit_face)) = self.cast(x, device_m, n) else {
+            return self.disengage(device_m);
+        };
+        let proxy = device_m + n * t;
+        // Node weights of the faces in contact at the final proxy.
+        self.patch_nodes.clear();
+        self.patch_weights.clear();
+        let band = t.max(SPHERE_BAND_MIN * r);
+        let mut sum = 0.0;
+        for &k in &self.tris {
+            let c = self.surface.closest_on(k, x, proxy);
+            let tri = self.surface.triangles[k as usize];
+            let [a, b, cc] = tri.map(|i| x[i as usize]);
+            let w = face_weight(c.dist2, r, band, a, b, cc);
+            if w <= 0.0 {
+                continue;
+            }
+            for (&node, &bary) in tri.iter().zip(&c.bary) {
+                let wn = w * bary;
+                if wn <= 0.0 {
+                    continue;
+                }
+                let slot = self.node_slot[node as usize];
+                if slot != u32::MAX {
+                    self.patch_weights[slot as usize] += wn;
+                } else if self.patch_nodes.len() < MAX_PATCH_NODES {
+                    self.node_slot[node as usize] = self.patch_nodes.len() as u32;
+                    self.patch_nodes.push(node);
+                    self.patch_weights.push(wn);
+                } else {
+                    continue;
+                }
+                sum += wn;
+            }
+        }
+        for &i in &self.patch_nodes {
+            self.node_slot[i as usize] = u32::MAX;
+        }
+        if !(sum > 0.0) {
+            return self.disengage(device_m);
+        }
+        self.patch_weights.iter_mut().for_each(|w| *w /= sum);
+        let contact = self.surface.closest_on(exit_face, x, proxy);
+        self.engage(device_m, device_vel, n, t, contact)
+    }
+
+    /// The largest exit distance ([`sphere_exit`]) of the probe sphere cast from `device_m`
+    /// along `n` over the gathered triangles, with the triangle that sets it; `None` when the
+    /// sphere at the device touches none of them (exit at or behind the device).
+    fn cast(&self, x: &[DVec3], device_m: DVec3, n: DVec3) -> Option<(f64, u32)> {
+        let r = self.params.radius_m;
+        let mut best: Option<(f64, u32)> = None;
+        for &k in &self.tris {
+            let [a, b, c] = self.surface.triangles[k as usize].map(|i| x[i as usize]);
+            if let Some(t) = sphere_exit(device_m, n, r, a, b, c)
+                && best.is_none_or(|(bt, _)| t > bt)
+            {
+                best = Some((t, k));
+            }
+        }
+        best.filter(|&(t, _)| t > 0.0)
+    }
+
+    /// Out of contact.
+    fn disengage(&mut self, device_m: DVec3) -> ContactState {
+        self.state = ContactState {
+            proxy_m: device_m,
+            ..ContactState::default()
+        };
+        self.state
+    }
+
+    /// In contact along the unit normal `n` with the proxy `depth_m` beyond the device
+    /// (the coupling's stretch), touching at `sp`: sets the explicit coupling force.
+    fn engage(
+        &mut self,
+        device_m: DVec3,
+        device_vel: DVec3,
+        n: DVec3,
+        depth_m: f64,
+        sp: SurfacePoint,
+    ) -> ContactState {
         let p = &self.params;
         // Explicit part of the normal coupling force (the surface-velocity term is implicit).
-        let phi0 = p.coupling_stiffness_n_per_m * (r - signed)
+        let phi0 = p.coupling_stiffness_n_per_m * depth_m
             - p.coupling_damping_n_s_per_m * device_vel.dot(n);
         self.phi0_n = phi0;
         self.state = ContactState {
             in_contact: true,
             force_on_device_n: n * phi0.clamp(0.0, p.max_force_n),
-            proxy_m: proxy,
+            proxy_m: device_m + n * depth_m,
             normal: n,
             triangle: sp.triangle,
             bary: sp.bary,

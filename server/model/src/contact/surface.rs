@@ -164,6 +164,54 @@ impl ContactSurface {
         }
     }
 
+    /// Number of nodes the surface indexes into.
+    pub fn node_count(&self) -> usize {
+        self.node_offsets.len() - 1
+    }
+
+    /// Collects into `tris` (cleared first) the triangles closer than `reach_m` to `q` (m) that
+    /// are reachable from triangle `seed` over the vertex-to-triangle adjacency through such
+    /// triangles, at most `tris.capacity()` of them (allocation-free). `stamps` (one entry per
+    /// triangle) and `stamp` mark visited triangles: the caller bumps `stamp` per call and
+    /// resets `stamps` when it wraps.
+    pub fn gather_triangles(
+        &self,
+        x: &[DVec3],
+        q: DVec3,
+        seed: u32,
+        reach_m: f64,
+        (stamps, stamp): (&mut [u32], u32),
+        tris: &mut Vec<u32>,
+    ) {
+        tris.clear();
+        let r2 = reach_m * reach_m;
+        if self.closest_on(seed, x, q).dist2 >= r2 {
+            return;
+        }
+        stamps[seed as usize] = stamp;
+        tris.push(seed);
+        let mut head = 0;
+        while head < tris.len() {
+            let k = tris[head] as usize;
+            head += 1;
+            for &node in &self.triangles[k] {
+                let (lo, hi) = (
+                    self.node_offsets[node as usize],
+                    self.node_offsets[node as usize + 1],
+                );
+                for &j in &self.node_tris[lo as usize..hi as usize] {
+                    if stamps[j as usize] == stamp || tris.len() == tris.capacity() {
+                        continue;
+                    }
+                    stamps[j as usize] = stamp;
+                    if self.closest_on(j, x, q).dist2 < r2 {
+                        tris.push(j);
+                    }
+                }
+            }
+        }
+    }
+
     /// Closest point of triangle `k` to `q` on positions `x`.
     #[inline]
     pub fn closest_on(&self, k: u32, x: &[DVec3], q: DVec3) -> SurfacePoint {

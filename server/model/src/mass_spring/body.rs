@@ -213,8 +213,9 @@ impl MassSpringBody {
         );
         let refinement = Refinement::new(&surface);
         let mut probe = Probe::new(probe, surface.triangles().to_vec(), &rest);
-        probe.surface = ContactSurface::with_capacity(4 * nt, ns);
-        probe.surface.set_triangles(refinement.triangles());
+        let mut contact_surface = ContactSurface::with_capacity(4 * nt, ns);
+        contact_surface.set_triangles(refinement.triangles());
+        probe.replace_surface(contact_surface);
         let load_surface: Vec<[u32; 3]> = surface
             .triangles()
             .iter()

@@ -9,7 +9,7 @@ use serde::Deserialize;
 use super::builtin::builtin_calibration;
 use super::{HybridScene, MassSpringScene, ModelFamily, Scene, TableState};
 use crate::ModelError;
-use crate::contact::ProbeParams;
+use crate::contact::{ContactModel, ProbeParams};
 use crate::element::StrainSmoothing;
 use crate::hybrid::{HybridParams, ShellGeometry};
 use crate::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
@@ -190,6 +190,7 @@ struct RawIntegrator {
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawProbe {
+    contact: Option<String>,
     radius_m: Option<f64>,
     coupling_stiffness_n_per_m: Option<f64>,
     coupling_damping_n_s_per_m: Option<f64>,
@@ -1361,7 +1362,22 @@ fn build_integrator(i: &RawIntegrator) -> Result<IntegratorParams, ModelError> {
 
 fn build_probe(p: &RawProbe) -> Result<ProbeParams, ModelError> {
     let d = ProbeParams::default();
+    let contact = match p.contact.as_deref() {
+        None => d.contact,
+        Some("sphere") => ContactModel::Sphere,
+        Some("patch") => ContactModel::Patch,
+        Some(other) => {
+            return Err(ModelError::field(
+                "probe.contact",
+                format!(
+                    "unknown contact model {:?}: expected \"sphere\" or \"patch\"",
+                    other.chars().take(40).collect::<String>()
+                ),
+            ));
+        }
+    };
     Ok(ProbeParams {
+        contact,
         radius_m: positive("probe.radius_m", p.radius_m.unwrap_or(d.radius_m))?,
         coupling_stiffness_n_per_m: positive(
             "probe.coupling_stiffness_n_per_m",
