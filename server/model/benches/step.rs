@@ -2,7 +2,8 @@
 //! (all sub-steps) and of one internal-force evaluation, on one thread, for the LV meshes of
 //! `../shared/data/lv/` and the built-in `lv`, with the three integrators (backward Euler also
 //! reports its mean CG iterations per tick), while the probe presses the epicardium (the haptic
-//! case: contact, patch and implicit coupling active).
+//! case: contact and implicit coupling active), with each contact model the integrator carries
+//! (sphere and patch under the explicit and semi-implicit ones, the patch under backward Euler).
 //!
 //! Run: `cargo bench -p haptic-model --bench step` (add `-- --quick` for fewer ticks).
 //! Writes `target/bench/step.csv` (or `--out DIR`) and prints a table. Medians and ratios
@@ -17,7 +18,8 @@ use anyhow::Context as _;
 use clap::Parser;
 use common::TickTimes;
 use haptic_model::DVec3;
-use haptic_model::integrate::IntegratorKind;
+use haptic_model::contact::ContactModel;
+use haptic_model::integrate::{self, IntegratorKind};
 use haptic_model::scene::{Scene, load_builtin, load_scene_file};
 use haptic_model::sim::{Simulation, TickInput};
 use serde::Serialize;
@@ -43,6 +45,7 @@ struct Args {
 struct StepRow<'a> {
     scene: &'a str,
     integrator: &'static str,
+    contact: &'static str,
     nodes: usize,
     tets: usize,
     substeps: u32,
@@ -76,9 +79,10 @@ fn main() -> anyhow::Result<()> {
     let path = out.join("step.csv");
     let mut csv = csv::Writer::from_path(&path)?;
     println!(
-        "{:<15} {:<17} {:>6} {:>6} {:>4} {:>11} {:>10} {:>10} {:>10} {:>11} {:>8} {:>6}",
+        "{:<15} {:<17} {:<7} {:>6} {:>6} {:>4} {:>11} {:>10} {:>10} {:>10} {:>11} {:>8} {:>6}",
         "scene",
         "integrator",
+        "contact",
         "nodes",
         "tets",
         "sub",
@@ -96,80 +100,88 @@ fn main() -> anyhow::Result<()> {
             IntegratorKind::SymplecticEuler,
             IntegratorKind::BackwardEuler,
         ] {
-            let mut sc = scene.clone();
-            sc.integrator.kind = kind;
-            sc.integrator.max_substeps = 1000;
-            let mut sim = match Simulation::new(&sc) {
-                Ok(s) => s,
-                Err(e) => {
-                    eprintln!("{name} {kind:?}: {e}");
+            for contact in [ContactModel::Sphere, ContactModel::Patch] {
+                if integrate::resolve_contact_model(kind, contact).is_err() {
                     continue;
                 }
-            };
-            // Force evaluation alone.
-            let n = sim.fem().node_count();
-            let mut f = vec![DVec3::ZERO; n];
-            let mut fe = TickTimes::new();
-            for _ in 0..if quick { 50 } else { 300 } {
-                f.iter_mut().for_each(|v| *v = DVec3::ZERO);
-                let t = Instant::now();
-                sim.fem()
-                    .add_internal_forces(&sim.state().x, Some(&sim.state().v), &mut f);
-                fe.record(t.elapsed());
-            }
-            // Full ticks while pressing 6 mm along -x at the equator (z = -5 mm).
-            let budget_s = if quick { 3.0 } else { 15.0 };
-            let max_ticks = if quick { 500 } else { 2000 };
-            let mut times = TickTimes::new();
-            let mut cg_iterations = 0u64;
-            let wall = Instant::now();
-            for k in 0..max_ticks {
-                let depth = 0.006 * (k as f64 / 1000.0).min(1.0);
-                let input = TickInput {
-                    device_position_m: Some(DVec3::new(0.014 - depth, 0.0, -0.005)),
-                    device_velocity_m_per_s: DVec3::new(-0.006, 0.0, 0.0),
+                let mut sc = scene.clone();
+                sc.integrator.kind = kind;
+                sc.probe.contact = contact;
+                sc.integrator.max_substeps = 1000;
+                let mut sim = match Simulation::new(&sc) {
+                    Ok(s) => s,
+                    Err(e) => {
+                        eprintln!("{name} {kind:?}: {e}");
+                        continue;
+                    }
                 };
-                let t = Instant::now();
-                sim.tick(&input).expect("tick");
-                times.record(t.elapsed());
-                cg_iterations += u64::from(sim.cg_stats().iterations);
-                if wall.elapsed().as_secs_f64() > budget_s {
-                    break;
+                // Force evaluation alone.
+                let n = sim.fem().node_count();
+                let mut f = vec![DVec3::ZERO; n];
+                let mut fe = TickTimes::new();
+                for _ in 0..if quick { 50 } else { 300 } {
+                    f.iter_mut().for_each(|v| *v = DVec3::ZERO);
+                    let t = Instant::now();
+                    sim.fem()
+                        .add_internal_forces(&sim.state().x, Some(&sim.state().v), &mut f);
+                    fe.record(t.elapsed());
                 }
+                // Full ticks while pressing 6 mm along -x at the equator (z = -5 mm).
+                let budget_s = if quick { 3.0 } else { 15.0 };
+                let max_ticks = if quick { 500 } else { 2000 };
+                let mut times = TickTimes::new();
+                let mut cg_iterations = 0u64;
+                let wall = Instant::now();
+                for k in 0..max_ticks {
+                    let depth = 0.006 * (k as f64 / 1000.0).min(1.0);
+                    let input = TickInput {
+                        device_position_m: Some(DVec3::new(0.014 - depth, 0.0, -0.005)),
+                        device_velocity_m_per_s: DVec3::new(-0.006, 0.0, 0.0),
+                    };
+                    let t = Instant::now();
+                    sim.tick(&input).expect("tick");
+                    times.record(t.elapsed());
+                    cg_iterations += u64::from(sim.cg_stats().iterations);
+                    if wall.elapsed().as_secs_f64() > budget_s {
+                        break;
+                    }
+                }
+                let plan = sim.plan();
+                let tick = times.percentiles();
+                let row = StepRow {
+                    scene: name,
+                    integrator: kind.name(),
+                    contact: contact.name(),
+                    nodes: n,
+                    tets: sim.fem().tets().len(),
+                    substeps: plan.substeps,
+                    critical_dt_s: plan.critical_dt_s,
+                    tick_p50_us: tick.p50_us,
+                    tick_p99_us: tick.p99_us,
+                    tick_max_us: tick.max_us,
+                    force_eval_p50_us: fe.percentiles().p50_us,
+                    realtime_factor: 1000.0 / tick.p50_us,
+                    ticks: times.len(),
+                    cg_iterations_mean: cg_iterations as f64 / times.len() as f64,
+                };
+                println!(
+                    "{:<15} {:<17} {:<7} {:>6} {:>6} {:>4} {:>11.3e} {:>8.0}us {:>8.0}us {:>8.0}us {:>9.0}us {:>8.2} {:>6.1}",
+                    row.scene,
+                    row.integrator,
+                    row.contact,
+                    row.nodes,
+                    row.tets,
+                    row.substeps,
+                    row.critical_dt_s,
+                    row.tick_p50_us,
+                    row.tick_p99_us,
+                    row.tick_max_us,
+                    row.force_eval_p50_us,
+                    row.realtime_factor,
+                    row.cg_iterations_mean
+                );
+                csv.serialize(&row)?;
             }
-            let plan = sim.plan();
-            let tick = times.percentiles();
-            let row = StepRow {
-                scene: name,
-                integrator: kind.name(),
-                nodes: n,
-                tets: sim.fem().tets().len(),
-                substeps: plan.substeps,
-                critical_dt_s: plan.critical_dt_s,
-                tick_p50_us: tick.p50_us,
-                tick_p99_us: tick.p99_us,
-                tick_max_us: tick.max_us,
-                force_eval_p50_us: fe.percentiles().p50_us,
-                realtime_factor: 1000.0 / tick.p50_us,
-                ticks: times.len(),
-                cg_iterations_mean: cg_iterations as f64 / times.len() as f64,
-            };
-            println!(
-                "{:<15} {:<17} {:>6} {:>6} {:>4} {:>11.3e} {:>8.0}us {:>8.0}us {:>8.0}us {:>9.0}us {:>8.2} {:>6.1}",
-                row.scene,
-                row.integrator,
-                row.nodes,
-                row.tets,
-                row.substeps,
-                row.critical_dt_s,
-                row.tick_p50_us,
-                row.tick_p99_us,
-                row.tick_max_us,
-                row.force_eval_p50_us,
-                row.realtime_factor,
-                row.cg_iterations_mean
-            );
-            csv.serialize(&row)?;
         }
     }
     csv.flush()?;

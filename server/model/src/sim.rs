@@ -105,6 +105,8 @@ impl Simulation {
                 "must be a positive number",
             ));
         }
+        let mut probe_params = scene.probe;
+        probe_params.contact = integrate::resolve_contact_model(p.kind, scene.probe.contact)?;
         let critical = integrate::critical_time_step(&fem, p.kind);
         let plan = integrate::plan_steps(&p, critical)?;
         let mut stepper = Stepper::new(&fem, &scene.mesh, &p, &plan, scene.active_region)?;
@@ -158,7 +160,7 @@ impl Simulation {
             .iter()
             .map(|t| t.map(|i| local[i as usize]))
             .collect();
-        let probe = Probe::new(scene.probe, touchable, fem.rest());
+        let probe = Probe::new(probe_params, touchable, fem.rest());
         Ok(Self {
             stepper,
             plan,
@@ -210,8 +212,10 @@ impl Simulation {
                     self.probe
                         .update(&self.state.x, p, input.device_velocity_m_per_s);
                     self.probe.add_reaction(&mut self.force);
-                    self.loads
-                        .add_probe_load_to(self.probe.patch(), &mut self.force);
+                    if self.loads.probe_load_remaining_s() > 0.0 {
+                        let patch = self.probe.load_patch(&self.state.x);
+                        self.loads.add_probe_load_to(patch, &mut self.force);
+                    }
                 }
                 None => self.probe.release(),
             }

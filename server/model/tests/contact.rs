@@ -262,7 +262,9 @@ fn the_sphere_force_is_continuous_while_sliding_and_never_penetrates() {
             gap > -1e-12 && gap < 0.01 * p.radius_m,
             "step {k}: the proxy sphere is {gap:e} m from the surface"
         );
-        assert!((c.force_on_device_n.length() - p.coupling_stiffness_n_per_m * stretch).abs() < 1e-12);
+        assert!(
+            (c.force_on_device_n.length() - p.coupling_stiffness_n_per_m * stretch).abs() < 1e-12
+        );
         forces.push(c.force_on_device_n);
     }
     let mean = forces.iter().map(|f| f.length()).sum::<f64>() / steps as f64;

@@ -388,3 +388,48 @@ fn the_model_family_defaults_to_fem_and_unknown_ones_are_refused() {
         "{err}"
     );
 }
+
+/// `probe.contact`: `auto` by default, resolved per integrator by the simulation (the sphere
+/// under symplectic Euler, the patch under backward Euler); the sphere under backward Euler and
+/// unknown names are refused with the field named.
+#[test]
+fn the_contact_model_defaults_to_auto_and_backward_euler_refuses_the_sphere() {
+    use haptic_model::contact::ContactModel;
+    use haptic_model::integrate::{IntegratorKind, resolve_contact_model};
+    let s = parse(BASE).unwrap();
+    assert_eq!(s.probe.contact, ContactModel::Auto);
+    assert_eq!(
+        resolve_contact_model(IntegratorKind::SymplecticEuler, ContactModel::Auto).unwrap(),
+        ContactModel::Sphere
+    );
+    assert_eq!(
+        resolve_contact_model(IntegratorKind::BackwardEuler, ContactModel::Auto).unwrap(),
+        ContactModel::Patch
+    );
+    let with = |contact: &str, kind: &str| {
+        format!("{BASE}\n[probe]\ncontact = \"{contact}\"\n").replacen(
+            "[material]",
+            &format!("[integrator]\nkind = \"{kind}\"\n[material]"),
+            1,
+        )
+    };
+    let s = parse(&with("patch", "symplectic-euler")).unwrap();
+    assert_eq!(s.probe.contact, ContactModel::Patch);
+    let s = parse(&with("sphere", "semi-implicit")).unwrap();
+    assert_eq!(s.probe.contact, ContactModel::Sphere);
+    assert_eq!(
+        field_of(parse(&with("sphere", "backward-euler"))),
+        "probe.contact"
+    );
+    assert_eq!(
+        field_of(parse(&with("ball", "symplectic-euler"))),
+        "probe.contact"
+    );
+    // A scene changed in code is checked again when the simulation is built.
+    let mut s = parse(&with("sphere", "symplectic-euler")).unwrap();
+    s.integrator.kind = IntegratorKind::BackwardEuler;
+    assert!(matches!(
+        haptic_model::sim::Simulation::new(&s),
+        Err(ModelError::SceneField { field, .. }) if field == "probe.contact"
+    ));
+}

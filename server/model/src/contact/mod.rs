@@ -1,29 +1,39 @@
 //! Haptic probe contact: a sphere at the device position (the haptic interaction point, HIP)
 //! touches the touchable surface through a god-object (proxy) joined to the device point by a
-//! virtual coupling.
+//! virtual coupling. Two contact models ([`ContactModel`], scene key `probe.contact`):
 //!
-//! Each update finds the closest triangle of the deformed touchable surface to the device point
-//! (a local walk over neighbouring triangles while in contact, a full search otherwise), then
-//! a smoothed local surface around the device: the touchable nodes within `2 r` of it with
-//! kernel weights `w_i ∝ (1 - d_i^2 / (2r)^2)^2` (sum 1) define the plane through
-//! `c = sum w_i x_i` with normal `n` the weighted vertex normals. Because the weights vanish at
-//! the rim, `c` and `n` move continuously as the surface dimples under the probe (a plain
-//! closest point jumps between the walls of the dimple and makes the force chatter). With the
-//! signed distance `s = (device - c) . n`, the probe touches when `s < r`. The proxy is then
-//! held outside the surface at `device + (r - s) n` (it cannot penetrate), and
-//! the virtual coupling gives the device force
-//! `F_dev = k (proxy - device) + b ((v_c - v_dev) . n) n`, clamped to `[0, max_force_n]` along
-//! `n`, with the proxy and the surface velocity `v_c` taken at the end of the step (implicit:
-//! [`Probe::finish_implicit`]). Its reaction
-//! `-F_dev` acts on the body over the same patch with the same weights, so linear momentum is
-//! conserved. Spreading over the patch
-//! (a 2 mm sphere does not push on one triangle) also raises the effective mass the coupling
-//! acts on, `m_eff = 1 / sum(w_i^2 / m_i)`, which keeps the explicit coupling stable: it needs
-//! `dt^2 k / m_eff + 2 dt b / m_eff < 4` (a damped spring under symplectic Euler).
-//! Frictionless: the proxy slides freely along the surface.
+//! - **Sphere** (the default under the explicit and semi-implicit integrators): the probe is a
+//!   rigid sphere of radius `r`. Each update casts it out of the deformed triangles near the
+//!   device along the contact normal `n` ([`sphere::sphere_exit`], exact): the proxy
+//!   `device + t n` is the nearest centre on that line where the sphere penetrates no
+//!   triangle. The faces within a band `delta = max(t, r/100)` of the proxy sphere are in
+//!   contact, weighted `A_T (1 - gap/delta)^2`; their weighted face normal is the next `n`, and
+//!   their weights, spread to their nodes by the barycentric coordinates of each face's point
+//!   closest to the proxy, carry the reaction. The contact area grows with the depth as a
+//!   Hertz contact's does, and the weights vanish at the band's edge so the contact set changes
+//!   continuously while sliding. On the default LV the servo's force equals an independent
+//!   static solve with exact sphere contact (`crate::indent`) to 0.5 % (`tests/sim_lv.rs`).
+//! - **Patch**: a smoothed local surface around the device, the touchable nodes within `2 r`
+//!   with kernel weights `w_i ∝ (1 - d_i^2 / (2r)^2)^2` (sum 1) define the plane through
+//!   `c = sum w_i x_i` with normal `n` the weighted vertex normals; with
+//!   `s = (device - c) . n`, the probe touches when `s < r` and the proxy is
+//!   `device + (r - s) n`. It spreads the load over 4 mm whatever the depth (35-40 % stiffer
+//!   than the sphere on the LV), but its distribution depends on the device position only, so
+//!   backward Euler (one 1 ms step per tick) carries it, which it does not the sphere's
+//!   ([`crate::integrate::resolve_contact_model`]); the mass-spring surface's calibration and
+//!   the seed's point contact are built on it too.
 //!
-//! Owns: [`surface`] (closest points, kernel patches), [`probe`] (the proxy and the coupling
-//! force), [`coupling`] (the coupling's rank-one term for implicit solves). May use:
+//! Both give the device force `F_dev = k (proxy - device) + b ((v_c - v_dev) . n) n`, clamped
+//! to `[0, max_force_n]` along `n`, with the proxy and the surface velocity `v_c` taken at the
+//! end of the step (implicit: [`Probe::finish_implicit`]). Its reaction `-F_dev` acts on the
+//! body over the contact nodes with their weights (sum 1), so linear momentum is conserved;
+//! the coupling's implicit term is the rank-one `gamma U U^T`, `U = (w_i n)`, which every
+//! integrator solves (the explicit ones per node by Sherman-Morrison, backward Euler in its CG,
+//! the condensed model by Sherman-Morrison on its factor). Frictionless: the proxy slides
+//! freely along the surface.
+//!
+//! Owns: [`surface`] (closest points, kernel patches, triangle neighbourhoods), [`sphere`]
+//! (sphere casts against triangles), [`probe`] (the proxy and the coupling force), [`coupling`] (the coupling's rank-one term for implicit solves). May use:
 //! nothing else of the crate (positions come as slices); in particular nothing of
 //! [`crate::integrate`]: the integrators use this module, not the other way round. The FEM
 //! body ([`crate::sim`]) calls [`Probe::update`] every sub-step, adds the reaction, and lets its

@@ -18,9 +18,13 @@ pub const MAX_DEVICE_DISTANCE_M: f64 = 10.0;
 /// How the probe meets the surface (scene key `probe.contact`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ContactModel {
+    /// The best model the body's integrator carries: the sphere under the explicit and
+    /// semi-implicit integrators, the patch under backward Euler and on mass-spring surfaces
+    /// ([`crate::integrate::resolve_contact_model`]). A [`Probe`] given `Auto` uses the patch.
+    #[default]
+    Auto,
     /// The rigid sphere: the proxy is the sphere's non-penetrating position and the reaction
     /// acts on the faces the sphere actually touches (module documentation of [`super`]).
-    #[default]
     Sphere,
     /// The kernel patch: a smoothed plane through the touchable nodes within `2 r` of the
     /// device, the reaction spread over them with kernel weights, whatever the depth.
@@ -28,12 +32,20 @@ pub enum ContactModel {
 }
 
 impl ContactModel {
-    /// The scene-file name (`"sphere"`, `"patch"`).
+    /// The scene-file name (`"auto"`, `"sphere"`, `"patch"`).
     pub fn name(self) -> &'static str {
         match self {
+            Self::Auto => "auto",
             Self::Sphere => "sphere",
             Self::Patch => "patch",
         }
+    }
+
+    /// The model of a scene-file name.
+    pub fn from_name(name: &str) -> Option<Self> {
+        [Self::Auto, Self::Sphere, Self::Patch]
+            .into_iter()
+            .find(|m| m.name() == name)
     }
 }
 
@@ -104,6 +116,14 @@ pub struct Probe {
     /// node, `u32::MAX` when not in it).
     tris: Vec<u32>,
     tri_stamps: Vec<u32>,
+    /// Device point of the last update, m.
+    device_m: DVec3,
+    /// Running estimate of the contact stiffness at the device ([`Probe::contact_stiffness`]).
+    stiffness: StiffnessEstimate,
+    /// Footprint of an injected probe load ([`Probe::load_patch`]), capacity
+    /// [`MAX_PATCH_NODES`].
+    load_nodes: Vec<u32>,
+    load_weights: Vec<f64>,
     stamp: u32,
     node_slot: Vec<u32>,
 }
@@ -147,6 +167,10 @@ impl Probe {
             phi0_n: 0.0,
             tris: Vec::with_capacity(MAX_CONTACT_TRIANGLES),
             tri_stamps: Vec::new(),
+            device_m: DVec3::ZERO,
+            stiffness: StiffnessEstimate::default(),
+            load_nodes: Vec::with_capacity(MAX_PATCH_NODES),
+            load_weights: Vec::with_capacity(MAX_PATCH_NODES),
             stamp: 0,
             node_slot: Vec::new(),
         };
@@ -164,7 +188,11 @@ impl Probe {
     }
 
     fn size_scratch(&mut self) {
-        let capacity = self.surface.triangles.capacity().max(self.surface.triangles.len());
+        let capacity = self
+            .surface
+            .triangles
+            .capacity()
+            .max(self.surface.triangles.len());
         self.tri_stamps = vec![0; capacity];
         self.stamp = 0;
         self.node_slot = vec![u32::MAX; self.surface.node_count()];
@@ -174,6 +202,7 @@ impl Probe {
     /// the body at positions `x`. The surface-velocity part of the coupling is implicit
     /// ([`Probe::finish_implicit`]). Allocation-free.
     pub fn update(&mut self, x: &[DVec3], device_m: DVec3, device_vel: DVec3) -> ContactState {
+        self.device_m = device_m;
         if self.surface.triangles.is_empty()
             || device_m.cmplt(self.reach_min).any()
             || device_m.cmpgt(self.reach_max).any()
@@ -190,8 +219,10 @@ impl Probe {
             }
         };
         match self.params.contact {
-            ContactModel::Patch => self.update_patch(x, device_m, device_vel, sp),
             ContactModel::Sphere => self.update_sphere(x, device_m, device_vel, sp),
+            ContactModel::Patch | ContactModel::Auto => {
+                self.update_patch(x, device_m, device_vel, sp)
+            }
         }
     }
 
@@ -364,6 +395,7 @@ impl Probe {
 
     /// Out of contact.
     fn disengage(&mut self, device_m: DVec3) -> ContactState {
+        self.stiffness = StiffnessEstimate::default();
         self.state = ContactState {
             proxy_m: device_m,
             ..ContactState::default()
@@ -399,6 +431,7 @@ impl Probe {
 
     /// The device left the scene: no contact (the proxy state is cleared).
     pub fn release(&mut self) {
+        self.stiffness = StiffnessEstimate::default();
         self.state = ContactState::default();
     }
 
@@ -440,6 +473,12 @@ impl Probe {
         let phi = self.phi0_n
             + (p.coupling_stiffness_n_per_m * dt_s + p.coupling_damping_n_s_per_m) * utv;
         self.state.force_on_device_n = n * phi.clamp(0.0, p.max_force_n);
+        self.stiffness.observe(
+            dt_s,
+            self.device_m.dot(n),
+            phi.clamp(0.0, p.max_force_n),
+            p.coupling_stiffness_n_per_m,
+        );
     }
 
     /// `gamma = dt (k dt + b)` (kg): the weight of the coupling's implicit rank-one term
@@ -483,6 +522,12 @@ impl Probe {
         let phi = self.phi0_n
             + (p.coupling_stiffness_n_per_m * dt_s + p.coupling_damping_n_s_per_m) * utv;
         self.state.force_on_device_n = n * phi.clamp(0.0, p.max_force_n);
+        self.stiffness.observe(
+            dt_s,
+            self.device_m.dot(n),
+            phi.clamp(0.0, p.max_force_n),
+            p.coupling_stiffness_n_per_m,
+        );
     }
 
     /// Collects the contact patch around the device point `q` (see
@@ -496,6 +541,32 @@ impl Probe {
             &mut self.patch_nodes,
             &mut self.patch_weights,
         );
+    }
+
+    /// Nodes and weights (sum 1) over which a force injected at the probe acts (empty out of
+    /// contact): the kernel patch of radius `2 r` around the contact point `proxy - r n`
+    /// (for the patch model, the contact patch itself), a footprint that does not
+    /// shrink with the depth. An injected force may be ten times the contact force, and on the
+    /// few faces a shallow sphere contact touches a load of that size inverts StVK elements
+    /// (the condensed LV's 10-fold impulse diverged there). Allocation-free.
+    pub fn load_patch(&mut self, x: &[DVec3]) -> (&[u32], &[f64]) {
+        if !self.state.in_contact {
+            return (&[], &[]);
+        }
+        if self.params.contact == ContactModel::Sphere {
+            let r = self.params.radius_m;
+            let point = self.state.proxy_m - self.state.normal * r;
+            self.surface.gather_kernel_patch(
+                x,
+                point,
+                self.state.triangle,
+                PATCH_RADIUS_FACTOR * r,
+                &mut self.load_nodes,
+                &mut self.load_weights,
+            );
+            return (&self.load_nodes, &self.load_weights);
+        }
+        (&self.patch_nodes, &self.patch_weights)
     }
 
     /// Nodes and weights (sum 1) of the current contact patch (empty out of contact).
@@ -520,22 +591,74 @@ impl Probe {
         }
     }
 
-    /// Local contact stiffness felt at the device, 3x3 row-major N/m: `k n n^T` in contact
-    /// (the coupling stiffness along the normal; the tissue in series makes the true value
-    /// smaller), zero out of contact.
+    /// Local contact stiffness felt at the device, 3x3 row-major N/m: `k_c n n^T` in contact,
+    /// zero out of contact. `k_c` is the slope of the contact force against the device's
+    /// travel along `n` over the last [`STIFFNESS_WINDOW_S`] of contact (least squares with
+    /// exponential forgetting, [`StiffnessEstimate`]): the virtual coupling `k` in series with
+    /// the tissue under the probe, `k_c = k K / (k + K)`, as the model responds. Until the device
+    /// has travelled enough to measure it (just after first touch, or held still since), `k_c`
+    /// is the last measured value, or unknown and then `k`, the stiffest the device can feel.
     pub fn contact_stiffness(&self) -> [f64; 9] {
         if !self.state.in_contact {
             return [0.0; 9];
         }
         let n = self.state.normal;
-        let k = self.params.coupling_stiffness_n_per_m;
+        let k_c = self
+            .stiffness
+            .slope_n_per_m
+            .unwrap_or(self.params.coupling_stiffness_n_per_m);
         let a = n.to_array();
         let mut out = [0.0; 9];
         for r in 0..3 {
             for c in 0..3 {
-                out[r * 3 + c] = k * a[r] * a[c];
+                out[r * 3 + c] = k_c * a[r] * a[c];
             }
         }
         out
+    }
+}
+
+/// Time over which [`Probe::contact_stiffness`] fits the force against the device's travel, s.
+pub const STIFFNESS_WINDOW_S: f64 = 0.05;
+
+/// Least spread of the device's positions in the window (standard deviation) for a new
+/// stiffness measurement, m.
+const STIFFNESS_MIN_TRAVEL_M: f64 = 1e-6;
+
+/// Least-squares slope of the device force along the normal `phi` against the device's
+/// position along the normal `s` over the last [`STIFFNESS_WINDOW_S`] (samples weighted by
+/// their duration with exponential forgetting): `k_c = -cov(s, phi) / var(s)` (the force grows
+/// as the device moves into the tissue), clamped to `[0, k]`. Positions are taken relative to
+/// the first contact's, so the sums keep their precision. A fit of levels over tens of
+/// milliseconds sees the quasi-static response; increments from one tick to the next would
+/// see the coupling spring alone (the tissue has not moved yet).
+#[derive(Debug, Clone, Copy, Default)]
+struct StiffnessEstimate {
+    origin_m: Option<f64>,
+    /// Forgetting-weighted sums: weight (s), `s`, `phi`, `s^2`, `s phi`.
+    w: f64,
+    s: f64,
+    phi: f64,
+    ss: f64,
+    sphi: f64,
+    slope_n_per_m: Option<f64>,
+}
+
+impl StiffnessEstimate {
+    fn observe(&mut self, dt_s: f64, s_m: f64, phi_n: f64, k_max: f64) {
+        let origin = *self.origin_m.get_or_insert(s_m);
+        let s = s_m - origin;
+        let forget = (-dt_s / STIFFNESS_WINDOW_S).exp();
+        self.w = forget * self.w + dt_s;
+        self.s = forget * self.s + dt_s * s;
+        self.phi = forget * self.phi + dt_s * phi_n;
+        self.ss = forget * self.ss + dt_s * s * s;
+        self.sphi = forget * self.sphi + dt_s * s * phi_n;
+        let (mean_s, mean_phi) = (self.s / self.w, self.phi / self.w);
+        let var = self.ss / self.w - mean_s * mean_s;
+        if var > STIFFNESS_MIN_TRAVEL_M * STIFFNESS_MIN_TRAVEL_M {
+            let cov = self.sphi / self.w - mean_s * mean_phi;
+            self.slope_n_per_m = Some((-cov / var).clamp(0.0, k_max));
+        }
     }
 }

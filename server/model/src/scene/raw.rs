@@ -13,7 +13,7 @@ use crate::contact::{ContactModel, ProbeParams};
 use crate::element::StrainSmoothing;
 use crate::hybrid::{HybridParams, ShellGeometry};
 use crate::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
-use crate::integrate::{IntegratorKind, IntegratorParams};
+use crate::integrate::{self, IntegratorKind, IntegratorParams};
 use crate::loads::{PointForce, PressureLoad, SceneLoads};
 use crate::mass_spring::calibration::{CalibrationTable, ContactShape, calibration_key};
 use crate::mass_spring::{
@@ -415,7 +415,7 @@ pub(super) fn parse_scene(
     } else {
         None
     };
-    let probe = build_probe(&raw.probe.unwrap_or_default())?;
+    let probe = build_probe(&raw.probe.unwrap_or_default(), integrator.kind)?;
     let loads = build_loads(&raw.loads.unwrap_or_default(), &mesh, &clamped_nodes)?;
     let active_region = match &raw.active_region {
         None => None,
@@ -1360,22 +1360,23 @@ fn build_integrator(i: &RawIntegrator) -> Result<IntegratorParams, ModelError> {
     })
 }
 
-fn build_probe(p: &RawProbe) -> Result<ProbeParams, ModelError> {
+/// The probe section; the contact model is checked against the integrator
+/// ([`integrate::resolve_contact_model`]).
+fn build_probe(p: &RawProbe, integrator: IntegratorKind) -> Result<ProbeParams, ModelError> {
     let d = ProbeParams::default();
     let contact = match p.contact.as_deref() {
         None => d.contact,
-        Some("sphere") => ContactModel::Sphere,
-        Some("patch") => ContactModel::Patch,
-        Some(other) => {
-            return Err(ModelError::field(
+        Some(name) => ContactModel::from_name(name).ok_or_else(|| {
+            ModelError::field(
                 "probe.contact",
                 format!(
-                    "unknown contact model {:?}: expected \"sphere\" or \"patch\"",
-                    other.chars().take(40).collect::<String>()
+                    "unknown contact model {:?}: expected \"auto\", \"sphere\" or \"patch\"",
+                    name.chars().take(40).collect::<String>()
                 ),
-            ));
-        }
+            )
+        })?,
     };
+    integrate::resolve_contact_model(integrator, contact)?;
     Ok(ProbeParams {
         contact,
         radius_m: positive("probe.radius_m", p.radius_m.unwrap_or(d.radius_m))?,
