@@ -23,6 +23,7 @@ fn params(contact: ContactModel) -> ProbeParams {
         coupling_stiffness_n_per_m: 300.0,
         coupling_damping_n_s_per_m: 0.05,
         max_force_n: 10.0,
+        friction_coefficient: 0.0,
     }
 }
 
@@ -130,17 +131,21 @@ fn proxy_on_a_flat_surface(contact: ContactModel) {
 #[test]
 fn the_coupling_reaction_conserves_linear_momentum() {
     for contact in [ContactModel::Patch, ContactModel::Sphere] {
-        momentum_is_conserved(contact);
+        for friction_coefficient in [0.0, 0.4] {
+            momentum_is_conserved(ProbeParams {
+                friction_coefficient,
+                ..params(contact)
+            });
+        }
     }
 }
 
-fn momentum_is_conserved(contact: ContactModel) {
+fn momentum_is_conserved(p: ProbeParams) {
     let (mesh, top) = block();
     let x0 = mesh.nodes.clone();
     let n = x0.len();
     let mass_kg = 2e-4;
     let dt = 1e-4;
-    let p = params(contact);
     let mut probe = Probe::new(p, top, &x0);
     for (device, velocity) in [
         (DVec3::new(0.01, 0.01, 0.0062), DVec3::ZERO),
@@ -286,4 +291,50 @@ fn the_sphere_force_is_continuous_while_sliding_and_never_penetrates() {
         largest_jump < 0.02 * mean,
         "force jumped by {largest_jump:.3e} N between neighbouring positions (mean {mean:.3e} N)"
     );
+}
+
+/// Coulomb friction on a flat face (the surface held fixed): the proxy sticks where it touched,
+/// so a small tangential move of the device gives the tangential force `k delta` against it;
+/// a larger one slides the proxy at the cone's edge (`|F_t| = mu F_n`, the proxy trailing the
+/// device by `mu F_n / k`); moving back sticks again. Frictionless, no tangential force at all.
+#[test]
+fn friction_sticks_within_the_cone_and_slides_at_its_edge() {
+    let (mesh, top) = block();
+    let x = &mesh.nodes;
+    for contact in [ContactModel::Patch, ContactModel::Sphere] {
+        let mu = 0.5;
+        let p = ProbeParams {
+            friction_coefficient: mu,
+            ..params(contact)
+        };
+        let k = p.coupling_stiffness_n_per_m;
+        let mut probe = Probe::new(p, top.clone(), x);
+        let depth = 1e-3;
+        let device = |dx: f64| DVec3::new(0.01 + dx, 0.01, 0.005 + p.radius_m - depth);
+        let normal_n = k * depth;
+        let c = probe.update(x, device(0.0), DVec3::ZERO);
+        assert!((c.force_on_device_n - DVec3::Z * normal_n).length() < 1e-12);
+        // (device travel along x, expected tangential force along x).
+        for (dx, expected) in [
+            (0.1e-3, -k * 0.1e-3),                 // stick
+            (1.2e-3, -mu * normal_n),              // slide: trailing by mu F_n / k = 0.5 mm
+            (1.0e-3, -mu * normal_n + k * 0.2e-3), // back 0.2 mm: stick again
+        ] {
+            let c = probe.update(x, device(dx), DVec3::ZERO);
+            let f = c.force_on_device_n;
+            assert!((f.z - normal_n).abs() < 1e-12, "{contact:?} {dx}: {f}");
+            assert!(
+                (f.x - expected).abs() < 1e-9 && f.y.abs() < 1e-12,
+                "{contact:?} travel {dx}: tangential {f} against {expected}"
+            );
+            assert!(f.x.abs() <= mu * f.z + 1e-12, "outside the cone: {f}");
+            assert!(((c.proxy_m - device(dx)).x * k - f.x).abs() < 1e-9);
+        }
+        let mut frictionless = Probe::new(params(contact), top.clone(), x);
+        frictionless.update(x, device(0.0), DVec3::ZERO);
+        let f = frictionless
+            .update(x, device(1e-3), DVec3::ZERO)
+            .force_on_device_n;
+        assert!(f.x.abs() < 1e-12 && f.y.abs() < 1e-12, "{f}");
+    }
 }

@@ -364,3 +364,75 @@ fn the_sphere_slides_across_the_lv_without_chatter() {
         );
     }
 }
+
+/// The same stroke with Coulomb friction (mu = 0.3): the tangential force opposes the stroke
+/// and stays inside the friction cone, and the body stays bounded.
+#[test]
+fn friction_drags_against_the_stroke_within_the_cone() {
+    let (a, c, r, depth, mu) = (0.010, 0.020, 0.002, 0.001, 0.3);
+    let surface_at = |z: f64| {
+        let rho = a * (1.0 - (z / c).powi(2)).sqrt();
+        (
+            DVec3::new(rho, 0.0, z),
+            DVec3::new(rho / (a * a), 0.0, z / (c * c)).normalize(),
+        )
+    };
+    let device_at = |t: f64| {
+        let (press, z) = if t < 0.2 {
+            (t / 0.2, -0.012)
+        } else {
+            (1.0, (-0.012 + 0.02 * (t - 0.2)).min(0.0))
+        };
+        let (point, normal) = surface_at(z);
+        point + normal * (r + 0.5e-3 - (depth + 0.5e-3) * press)
+    };
+    let mut scene = load_builtin("lv").unwrap();
+    scene.probe.friction_coefficient = mu;
+    let mut sim = Simulation::new(&scene).unwrap();
+    let tick = sim.tick_s();
+    let mut largest_ratio: f64 = 0.0;
+    for k in 0..700 {
+        let t = k as f64 * tick;
+        let out = sim
+            .tick(&TickInput {
+                device_position_m: Some(device_at(t)),
+                device_velocity_m_per_s: (device_at(t + tick) - device_at(t)) / tick,
+            })
+            .unwrap();
+        if t >= 0.3 {
+            let z = -0.012 + 0.02 * (t - 0.2);
+            let along = (device_at(t + tick) - device_at(t)).normalize();
+            let f = out.force_on_device_n;
+            // The contact normal n from the stiffness k_c n n^T sent with the force (its
+            // largest column), about which the cone holds.
+            let k = out.contact_stiffness_n_per_m;
+            let j = (0..3)
+                .max_by(|&a, &b| k[4 * a].total_cmp(&k[4 * b]))
+                .unwrap();
+            if k[4 * j] <= 0.0 {
+                continue;
+            }
+            let n = DVec3::new(k[j], k[3 + j], k[6 + j]).normalize();
+            let n = if n.dot(surface_at(z.min(0.0)).1) < 0.0 {
+                -n
+            } else {
+                n
+            };
+            let f_n = f.dot(n);
+            let f_t = f - n * f_n;
+            assert!(
+                f_t.dot(along) < 0.0,
+                "t = {t:.3}: friction {f_t} does not oppose {along}"
+            );
+            largest_ratio = largest_ratio.max(f_t.length() / f_n);
+        }
+    }
+    println!("largest |F_t| / F_n {largest_ratio:.3}");
+    // Sliding all along: on the cone's edge (the cone holds for the explicit normal force of
+    // the step; the implicit completion moves the final one by a few per cent).
+    assert!(
+        largest_ratio < 1.05 * mu && largest_ratio > 0.9 * mu,
+        "{largest_ratio}"
+    );
+    assert!(sim.stability().stable);
+}

@@ -62,6 +62,8 @@ pub struct ProbeParams {
     pub coupling_damping_n_s_per_m: f64,
     /// Largest coupling force magnitude the model applies and returns, N.
     pub max_force_n: f64,
+    /// Coulomb friction coefficient between the probe and the surface (0: frictionless).
+    pub friction_coefficient: f64,
 }
 
 impl Default for ProbeParams {
@@ -72,6 +74,7 @@ impl Default for ProbeParams {
             coupling_stiffness_n_per_m: 300.0,
             coupling_damping_n_s_per_m: 0.05,
             max_force_n: 10.0,
+            friction_coefficient: 0.0,
         }
     }
 }
@@ -118,6 +121,10 @@ pub struct Probe {
     tri_stamps: Vec<u32>,
     /// Device point of the last update, m.
     device_m: DVec3,
+    /// Friction: where the proxy sticks (valid in contact), m, and the tangential coupling
+    /// force on the device of the current step, N.
+    anchor_m: DVec3,
+    friction_n: DVec3,
     /// Running estimate of the contact stiffness at the device ([`Probe::contact_stiffness`]).
     stiffness: StiffnessEstimate,
     /// Footprint of an injected probe load ([`Probe::load_patch`]), capacity
@@ -168,6 +175,8 @@ impl Probe {
             tris: Vec::with_capacity(MAX_CONTACT_TRIANGLES),
             tri_stamps: Vec::new(),
             device_m: DVec3::ZERO,
+            anchor_m: DVec3::ZERO,
+            friction_n: DVec3::ZERO,
             stiffness: StiffnessEstimate::default(),
             load_nodes: Vec::with_capacity(MAX_PATCH_NODES),
             load_weights: Vec::with_capacity(MAX_PATCH_NODES),
@@ -405,6 +414,14 @@ impl Probe {
 
     /// In contact along the unit normal `n` with the proxy `depth_m` beyond the device
     /// (the coupling's stretch), touching at `sp`: sets the explicit coupling force.
+    ///
+    /// With Coulomb friction `mu > 0` the proxy sticks where it touched (a god-object with a
+    /// friction cone): its tangential offset `o_t` from the frictionless position
+    /// `device + depth n` gives the device the tangential force `k o_t`, as long as
+    /// `|k o_t| <= mu phi0`; beyond it the proxy slides, dragged to the cone's edge. The
+    /// anchor is a point in space (not on the surface) and the tangential reaction is applied
+    /// explicitly over the contact weights: it does not depend on the body's positions, so it
+    /// adds no stiffness to the step.
     fn engage(
         &mut self,
         device_m: DVec3,
@@ -418,10 +435,32 @@ impl Probe {
         let phi0 = p.coupling_stiffness_n_per_m * depth_m
             - p.coupling_damping_n_s_per_m * device_vel.dot(n);
         self.phi0_n = phi0;
+        let frictionless = device_m + n * depth_m;
+        let mut proxy = frictionless;
+        self.friction_n = DVec3::ZERO;
+        if p.friction_coefficient > 0.0 {
+            let offset = if self.state.in_contact {
+                let o = self.anchor_m - frictionless;
+                o - n * o.dot(n)
+            } else {
+                DVec3::ZERO
+            };
+            let k = p.coupling_stiffness_n_per_m;
+            let limit = p.friction_coefficient * phi0.clamp(0.0, p.max_force_n) / k;
+            let len = offset.length();
+            let offset = if len > limit {
+                offset * (limit / len)
+            } else {
+                offset
+            };
+            proxy = frictionless + offset;
+            self.friction_n = offset * k;
+        }
+        self.anchor_m = proxy;
         self.state = ContactState {
             in_contact: true,
-            force_on_device_n: n * phi0.clamp(0.0, p.max_force_n),
-            proxy_m: device_m + n * depth_m,
+            force_on_device_n: n * phi0.clamp(0.0, p.max_force_n) + self.friction_n,
+            proxy_m: proxy,
             normal: n,
             triangle: sp.triangle,
             bary: sp.bary,
@@ -472,7 +511,7 @@ impl Probe {
         }
         let phi = self.phi0_n
             + (p.coupling_stiffness_n_per_m * dt_s + p.coupling_damping_n_s_per_m) * utv;
-        self.state.force_on_device_n = n * phi.clamp(0.0, p.max_force_n);
+        self.state.force_on_device_n = n * phi.clamp(0.0, p.max_force_n) + self.friction_n;
         self.stiffness.observe(
             dt_s,
             self.device_m.dot(n),
@@ -521,7 +560,7 @@ impl Probe {
             .sum();
         let phi = self.phi0_n
             + (p.coupling_stiffness_n_per_m * dt_s + p.coupling_damping_n_s_per_m) * utv;
-        self.state.force_on_device_n = n * phi.clamp(0.0, p.max_force_n);
+        self.state.force_on_device_n = n * phi.clamp(0.0, p.max_force_n) + self.friction_n;
         self.stiffness.observe(
             dt_s,
             self.device_m.dot(n),
@@ -578,14 +617,15 @@ impl Probe {
         }
     }
 
-    /// Adds the explicit part of the coupling reaction, `-phi0 n`, to the nodal forces `f` (N)
-    /// over the contact patch (the implicit part follows in [`Probe::finish_implicit`]).
+    /// Adds the explicit part of the coupling reaction, `-phi0 n` and minus the friction force,
+    /// to the nodal forces `f` (N) over the contact nodes with their weights (the implicit part
+    /// follows in [`Probe::finish_implicit`]).
     /// Does nothing out of contact.
     pub fn add_reaction(&self, f: &mut [DVec3]) {
         if !self.state.in_contact {
             return;
         }
-        let fr = self.state.normal * self.phi0_n;
+        let fr = self.state.normal * self.phi0_n + self.friction_n;
         for (&i, &w) in self.patch_nodes.iter().zip(&self.patch_weights) {
             f[i as usize] -= fr * w;
         }

@@ -195,6 +195,7 @@ struct RawProbe {
     coupling_stiffness_n_per_m: Option<f64>,
     coupling_damping_n_s_per_m: Option<f64>,
     max_force_n: Option<f64>,
+    friction_coefficient: Option<f64>,
 }
 
 // ----- validation helpers -----
@@ -1391,5 +1392,11 @@ fn build_probe(p: &RawProbe, integrator: IntegratorKind) -> Result<ProbeParams, 
                 .unwrap_or(d.coupling_damping_n_s_per_m),
         )?,
         max_force_n: positive("probe.max_force_n", p.max_force_n.unwrap_or(d.max_force_n))?,
+        friction_coefficient: checked(
+            "probe.friction_coefficient",
+            p.friction_coefficient.unwrap_or(d.friction_coefficient),
+            |mu| (0.0..=10.0).contains(&mu),
+            "in [0, 10]",
+        )?,
     })
 }
