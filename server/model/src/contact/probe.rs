@@ -139,18 +139,6 @@ pub struct Probe {
 /// `t` near zero) the faces within `r / 100` of the sphere carry the load.
 const SPHERE_BAND_MIN: f64 = 0.01;
 
-/// Weight of a face in the sphere's contact band: `A_T (1 - g / band)^2` for the gap
-/// `g = sqrt(dist2) - r` below `band` (a face the sphere penetrates counts as touching), zero
-/// beyond.
-fn face_weight(dist2: f64, r: f64, band: f64, a: DVec3, b: DVec3, c: DVec3) -> f64 {
-    let gap = (dist2.sqrt() - r).max(0.0);
-    if gap >= band {
-        return 0.0;
-    }
-    let u = 1.0 - gap / band;
-    0.5 * (b - a).cross(c - a).length() * u * u
-}
-
 impl Probe {
     /// Builds a probe over `touchable` triangles of a body whose rest positions are `rest`.
     pub fn new(params: ProbeParams, touchable: Vec<[u32; 3]>, rest: &[DVec3]) -> Self {
@@ -333,10 +321,9 @@ impl Probe {
         let proxy0 = device_m + n0 * t0;
         let mut normal_sum = DVec3::ZERO;
         for &k in &self.tris {
-            let c = self.surface.closest_on(k, x, proxy0);
-            let [a, b, cc] = self.surface.triangles[k as usize].map(|i| x[i as usize]);
-            let w = face_weight(c.dist2, r, band, a, b, cc);
-            normal_sum += (b - a).cross(cc - a).normalize_or_zero() * w;
+            if let Some((w, _, normal)) = self.band_face(k, x, proxy0, band) {
+                normal_sum += normal * w;
+            }
         }
         let n = normal_sum.try_normalize().unwrap_or(n0);
         let Some((t, exit_face)) = self.cast(x, device_m, n) else {
@@ -349,13 +336,10 @@ impl Probe {
         let band = t.max(SPHERE_BAND_MIN * r);
         let mut sum = 0.0;
         for &k in &self.tris {
-            let c = self.surface.closest_on(k, x, proxy);
-            let tri = self.surface.triangles[k as usize];
-            let [a, b, cc] = tri.map(|i| x[i as usize]);
-            let w = face_weight(c.dist2, r, band, a, b, cc);
-            if w <= 0.0 {
+            let Some((w, c, _)) = self.band_face(k, x, proxy, band) else {
                 continue;
-            }
+            };
+            let tri = self.surface.triangles[k as usize];
             for (&node, &bary) in tri.iter().zip(&c.bary) {
                 let wn = w * bary;
                 if wn <= 0.0 {
@@ -383,6 +367,29 @@ impl Probe {
         self.patch_weights.iter_mut().for_each(|w| *w /= sum);
         let contact = self.surface.closest_on(exit_face, x, proxy);
         self.engage(device_m, device_vel, n, t, contact)
+    }
+
+    /// Triangle `k` in the contact band of the sphere centred at `proxy_m`: its weight
+    /// `A_T (1 - g / band)^2` for the gap `g = dist - r` below `band` (a penetrating face
+    /// counts as touching), its point closest to the centre and its unit normal; `None` beyond
+    /// the band or for a degenerate face.
+    fn band_face(
+        &self,
+        k: u32,
+        x: &[DVec3],
+        proxy_m: DVec3,
+        band_m: f64,
+    ) -> Option<(f64, SurfacePoint, DVec3)> {
+        let c = self.surface.closest_on(k, x, proxy_m);
+        let gap = (c.dist2.sqrt() - self.params.radius_m).max(0.0);
+        if gap >= band_m {
+            return None;
+        }
+        let [a, b, cc] = self.surface.triangles[k as usize].map(|i| x[i as usize]);
+        let cross = (b - a).cross(cc - a);
+        let u = 1.0 - gap / band_m;
+        let w = 0.5 * cross.length() * u * u;
+        (w > 0.0).then(|| (w, c, cross.normalize()))
     }
 
     /// The largest exit distance ([`sphere_exit`]) of the probe sphere cast from `device_m`
