@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use haptic_model::DVec3;
 use haptic_model::body::SoftBody;
-use haptic_model::contact::Probe;
+use haptic_model::contact::{ContactModel, Probe};
 use haptic_model::element::FemModel;
 use haptic_model::scene::Scene;
 use haptic_model::sim::{Simulation, TickInput};
@@ -310,8 +310,15 @@ pub fn richardson(h: [f64; 3], f: [f64; 3]) -> Extrapolated {
 /// (100 ms each, 80 ms with `quick`); the force per depth is the mean device force over the
 /// second half of the hold. Returns the curve, the tick times and the sub-steps per tick, or
 /// the error that stopped it (refused plan or divergence).
+///
+/// The probe uses the kernel patch whatever the scene says: the `lv-probe` reference
+/// ([`probe_static`]) is the patch model's static equilibrium, so the errors compare like with
+/// like. The servo's default sphere contact is checked against the exact static sphere solve
+/// instead (`tests/sim_lv.rs`, docs/accuracy.md "Sphere contact in the servo").
 pub fn probe_dynamic(scene: &Scene, quick: bool) -> Result<(ProbeCurve, TickTimes, u32), String> {
-    let mut sim = Simulation::new(scene).map_err(|e| e.to_string())?;
+    let mut scene = scene.clone();
+    scene.probe.contact = ContactModel::Patch;
+    let mut sim = Simulation::new(&scene).map_err(|e| e.to_string())?;
     let (ramp, hold) = if quick { (0.08, 0.08) } else { (0.1, 0.1) };
     let tick = sim.tick_s();
     let seg_ticks = ((ramp + hold) / tick).round() as usize;
