@@ -29,12 +29,21 @@ pub struct ProbeCurve {
     pub x_last: Vec<DVec3>,
 }
 
+/// Largest number of patch passes of [`probe_static`] per depth; more is an error.
+const MAX_PATCH_ITERATIONS: usize = 30;
+
+/// Relative force change between patch passes at which [`probe_static`] has converged.
+const PATCH_ITERATION_TOLERANCE: f64 = 3e-4;
+
 /// Static equilibrium with the probe coupling at each depth of [`DEPTHS_MM`]: for a trial
 /// coupling force `F`, the patch load `-F w_i n` (patch, weights, normal of the probe at the
 /// current positions) is applied and the body solved statically; the probe then reports the
 /// coupling force `k (r - s)` at the new positions. A bracketed regula falsi (Illinois) on `F`
-/// makes the two agree. With `debug`, prints the force of every patch iteration. Returns `Err`
-/// if Newton or the iteration fails.
+/// makes the two agree; the patch is then refreshed until the force changes by less than
+/// [`PATCH_ITERATION_TOLERANCE`]. With `debug`, prints the force of every patch iteration.
+/// Returns `Err` if the bracket or the patch iteration fails (at most
+/// [`MAX_PATCH_ITERATIONS`] passes: no silent cap). A trial force under which Newton finds no
+/// equilibrium counts as too large (a dead load past the wall's limit point).
 pub fn probe_static(scene: &Scene, debug: bool) -> Result<ProbeCurve, String> {
     probe_static_at(scene, &DEPTHS_MM, debug)
 }
@@ -72,7 +81,7 @@ pub fn probe_static_at(
         // Outer: freeze the probe patch (nodes, weights, normal) at the current positions; inner:
         // find the force F whose patch load puts the body where the frozen patch plane gives
         // k (r - s) = F. Repeat until the patch stops changing the force.
-        for outer in 0..=12 {
+        for outer in 0..=MAX_PATCH_ITERATIONS {
             let st = probe.update(&x, device, DVec3::ZERO);
             if st.in_contact {
                 let (nodes, w) = probe.patch();
@@ -150,13 +159,13 @@ pub fn probe_static_at(
             if debug {
                 eprintln!("depth {d} mm outer {outer}: F = {f:.6e} N, change {change:.2e}");
             }
-            if outer > 0 && change < 3e-4 {
+            if outer > 0 && change < PATCH_ITERATION_TOLERANCE {
                 break;
             }
-            if outer == 12 {
-                eprintln!(
-                    "lv-probe static: patch iteration at depth {d} mm stopped at change {change:.2e}"
-                );
+            if outer == MAX_PATCH_ITERATIONS {
+                return Err(format!(
+                    "lv-probe static: the patch iteration at depth {d} mm did not converge in {MAX_PATCH_ITERATIONS} passes (last change {change:.2e}, tolerance {PATCH_ITERATION_TOLERANCE:.0e})"
+                ));
             }
         }
         f_prev = f;
