@@ -395,7 +395,7 @@ pub enum CtlCommand {
         #[arg(long)]
         json: bool,
     },
-    /// Record a session's surface frames and statistics to MCAP (opens in Foxglove); ends after
+    /// Record a session's surface frames, injected loads and statistics to MCAP (Foxglove); ends after
     /// --duration-s, when the session ends, or on Ctrl-C.
     Record {
         /// Session id.
@@ -554,11 +554,17 @@ pub async fn execute(
             .await?;
             writeln!(
                 out,
-                "{}: {} surface frames ({} keyframes), {} statistics, {} bytes",
+                "{}: {} surface frames ({} keyframes), {} statistics, {} injected loads{}, {} bytes",
                 path.display(),
                 r.frames,
                 r.keyframes,
                 r.stats,
+                r.loads,
+                if r.loads_missed > 0 {
+                    format!(" ({} missed: raise --rate-hz)", r.loads_missed)
+                } else {
+                    String::new()
+                },
                 r.bytes
             )
             .map_err(o)?;

@@ -2,10 +2,12 @@
 //! ([`haptics_proto::recording`], opens in Foxglove), and `hapticctl export-vtu` turns the
 //! frames of a recording into a ParaView time series (`surface.pvd` + one `.vtu` per frame).
 //!
-//! The daemon does not broadcast device traffic or injected loads, so those are not in a
-//! `hapticctl` recording: the bridge records its own side (`haptic-bridge --record FILE.mcap`,
-//! topics `/device/sample` and `/device/force`); the two files share the schema set and open
-//! side by side in Foxglove.
+//! Injected loads (`ApplyForce`, from any client) reach the recording through the frames, which
+//! list the loads acting or just ended: each is written once on `/loads`. The daemon does not
+//! broadcast device traffic at the device rate, so the bridge records its own side
+//! (`haptic-bridge --record FILE.mcap`, topics `/device/sample` and `/device/force`); the two
+//! files share the schema set and open side by side in Foxglove. The frames carry the probe
+//! position and its force at the frame rate.
 //!
 //! Neighbours: [`crate::ctl`] dispatches the commands; the viewer replays the `/surface` topic
 //! (`haptic-viewer --replay`).
@@ -34,6 +36,11 @@ pub struct RecordSummary {
     pub keyframes: u64,
     /// Statistics messages written.
     pub stats: u64,
+    /// Injected loads written on `/loads`.
+    pub loads: u64,
+    /// Loads the session accepted during the recording that no received frame listed (a frame
+    /// dropped by a slow link, or a rate below the servo's snapshots): known from the indices.
+    pub loads_missed: u64,
     /// File size, bytes.
     pub bytes: u64,
 }
@@ -127,6 +134,9 @@ pub async fn record(
         .map_err(|e| rec_err(out, e))?;
     summary.stats += 1;
 
+    // Index of the last load written; loads accepted before the recording started are not
+    // counted as missed.
+    let mut last_load: Option<u64> = None;
     let mut stats_tick = tokio::time::interval(Duration::from_secs_f64(stats_interval_s));
     stats_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     let deadline =
@@ -141,7 +151,29 @@ pub async fn record(
                 Some(Ok(f)) => {
                     summary.frames += 1;
                     summary.keyframes += u64::from(f.keyframe);
-                    rec.write(topic::SURFACE, f.server_time_us.saturating_mul(1000), &f)
+                    let t_ns = f.server_time_us.saturating_mul(1000);
+                    for load in &f.applied_forces {
+                        if last_load.is_some_and(|last| load.index <= last) {
+                            continue;
+                        }
+                        if let Some(last) = last_load {
+                            summary.loads_missed += load.index - last - 1;
+                        }
+                        rec.write(topic::LOADS, t_ns, load).map_err(|e| rec_err(out, e))?;
+                        summary.loads += 1;
+                        last_load = Some(load.index);
+                    }
+                    match last_load {
+                        // Nothing listed yet: the session's loads so far came before us.
+                        None => last_load = Some(f.applied_forces_total),
+                        // Accepted and ended between the frames this watcher received.
+                        Some(last) if f.applied_forces_total > last => {
+                            summary.loads_missed += f.applied_forces_total - last;
+                            last_load = Some(f.applied_forces_total);
+                        }
+                        Some(_) => {}
+                    }
+                    rec.write(topic::SURFACE, t_ns, &f)
                         .map_err(|e| rec_err(out, e))?;
                 }
                 // The session ended (or the stream failed): keep what was recorded.

@@ -26,6 +26,9 @@ pub mod topic {
     pub const DEVICE_SAMPLE: &str = "/device/sample";
     /// `haptics.v1.ForceCommand`: the force the bridge wrote to the device, after its guard.
     pub const DEVICE_FORCE: &str = "/device/force";
+    /// `haptics.v1.AppliedForce`: each load injected by `ApplyForce`, once, at the server time
+    /// of the first frame that listed it.
+    pub const LOADS: &str = "/loads";
 }
 
 /// What went wrong with a recording.

@@ -65,6 +65,25 @@ pub struct ForceOut {
     pub proxy_m: DVec3,
 }
 
+/// A load injected by `ApplyForce` as the servo applied it, for viewers and recordings.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct AppliedLoad {
+    /// 1-based count of the session's accepted loads: gaps show loads a snapshot missed.
+    pub index: u64,
+    /// Point the load was aimed at, m.
+    pub point_m: DVec3,
+    /// Total force, N.
+    pub force_n: DVec3,
+    /// Simulated time of the tick that applied it, s.
+    pub start_sim_time_s: f64,
+    /// How long it acts, simulated s.
+    pub duration_s: f64,
+}
+
+/// Loads a snapshot can list: the most a body holds at once
+/// ([`haptic_model::loads::MAX_POINT_LOADS`]).
+pub const APPLIED_LOAD_CAPACITY: usize = haptic_model::loads::MAX_POINT_LOADS;
+
 /// A surface snapshot for viewers (preallocated for the body's largest surface; overwritten in
 /// place, so taking one never allocates).
 #[derive(Debug, Clone, PartialEq, Default)]
@@ -90,6 +109,13 @@ pub struct Snapshot {
     pub in_contact: bool,
     /// Largest surface displacement from rest, m.
     pub max_displacement_m: f64,
+    /// Injected loads acting now or ended since the previous snapshot (the first
+    /// `applied_len`), so every accepted load appears in at least one snapshot.
+    pub applied: [AppliedLoad; APPLIED_LOAD_CAPACITY],
+    /// Entries of `applied` in use.
+    pub applied_len: usize,
+    /// Loads accepted by the session so far.
+    pub applied_total: u64,
 }
 
 /// Upper bounds of the latency buckets, µs (the last bucket is everything above). Chosen around
@@ -379,6 +405,10 @@ pub struct ServoCore {
     last_force: ForceOut,
     /// Simulated time after the last successful tick, s.
     sim_time_s: f64,
+    /// Accepted loads not yet reported as ended (first `applied_len`), for snapshots.
+    applied: [AppliedLoad; APPLIED_LOAD_CAPACITY],
+    applied_len: usize,
+    applied_total: u64,
     /// Overruns, maintained by the loop's [`Pacer`].
     pub overruns: u64,
 }
@@ -516,8 +546,46 @@ impl ServoCore {
             window_ticks: 0,
             last_force: ForceOut::default(),
             sim_time_s: 0.0,
+            applied: [AppliedLoad::default(); APPLIED_LOAD_CAPACITY],
+            applied_len: 0,
+            applied_total: 0,
             overruns: 0,
         }
+    }
+
+    /// Keeps an accepted load for the next snapshot. Without watchers nothing reports them, so
+    /// loads that have ended are dropped first; a table still full (more accepted loads than a
+    /// body holds, all unreported) loses its oldest entry, which the index gap shows.
+    fn note_applied(&mut self, point_m: DVec3, force_n: DVec3, duration_s: f64) {
+        self.applied_total += 1;
+        if self.shared.watchers.load(Ordering::Relaxed) == 0 {
+            self.prune_applied(self.sim_time_s);
+        }
+        if self.applied_len == APPLIED_LOAD_CAPACITY {
+            self.applied.copy_within(1.., 0);
+            self.applied_len -= 1;
+        }
+        self.applied[self.applied_len] = AppliedLoad {
+            index: self.applied_total,
+            point_m,
+            force_n,
+            start_sim_time_s: self.sim_time_s,
+            duration_s,
+        };
+        self.applied_len += 1;
+    }
+
+    /// Drops the loads that ended at or before `t_s` (order kept; no allocation).
+    fn prune_applied(&mut self, t_s: f64) {
+        let mut kept = 0;
+        for i in 0..self.applied_len {
+            let a = self.applied[i];
+            if a.start_sim_time_s + a.duration_s > t_s {
+                self.applied[kept] = a;
+                kept += 1;
+            }
+        }
+        self.applied_len = kept;
     }
 
     /// The body (for tests and set-up).
@@ -564,7 +632,13 @@ impl ServoCore {
                     duration_s,
                 } => {
                     // Validated by the handler; a full load table drops the command.
-                    let _ = self.body.add_point_load(point_m, force_n, duration_s);
+                    if self
+                        .body
+                        .add_point_load(point_m, force_n, duration_s)
+                        .is_ok()
+                    {
+                        self.note_applied(point_m, force_n, duration_s);
+                    }
                 }
             }
         }
@@ -672,7 +746,12 @@ impl ServoCore {
             };
             snap.force_n = force.force_n;
             snap.in_contact = force.in_contact;
+            snap.applied = self.applied;
+            snap.applied_len = self.applied_len;
+            snap.applied_total = self.applied_total;
             self.snapshot.publish();
+            // Reported once after they ended: drop them.
+            self.prune_applied(self.sim_time_s);
         }
         // 6. Statistics.
         if self.ticks.is_multiple_of(self.stats_every) {

@@ -144,6 +144,10 @@ pub struct FrameData {
     pub in_contact: bool,
     /// Largest surface displacement, m.
     pub max_displacement_m: f64,
+    /// Injected loads acting at this frame or ended since the previous snapshot.
+    pub applied_forces: Vec<haptics_proto::v1::AppliedForce>,
+    /// Loads the session has accepted so far.
+    pub applied_forces_total: u64,
     /// The reference keyframe of compact streams (`None` while no compact watcher exists).
     pub reference: Option<Arc<crate::stream::Reference>>,
     /// `positions_m` against `reference` at the default quantum (1 um), encoded; `None`

@@ -30,7 +30,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use haptics_proto::delta::{self, DEFAULT_QUANTUM_M, DeltaCodec};
-use haptics_proto::v1::{SurfaceEncoding, SurfaceFrame, Vec3, WatchRequest};
+use haptics_proto::v1::{AppliedForce, SurfaceEncoding, SurfaceFrame, Vec3, WatchRequest};
 use prost::Message;
 use prost::bytes::Bytes;
 use tokio::sync::{mpsc, watch};
@@ -307,6 +307,17 @@ pub fn spawn_frame_task(
                 force_n: s.force_n.to_array(),
                 in_contact: s.in_contact,
                 max_displacement_m: s.max_displacement_m,
+                applied_forces: s.applied[..s.applied_len.min(s.applied.len())]
+                    .iter()
+                    .map(|a| AppliedForce {
+                        index: a.index,
+                        point_m: Some(Vec3::from(a.point_m.to_array())),
+                        force_n: Some(Vec3::from(a.force_n.to_array())),
+                        start_sim_time_s: a.start_sim_time_s,
+                        duration_s: a.duration_s,
+                    })
+                    .collect(),
+                applied_forces_total: s.applied_total,
                 reference: reference.clone(),
                 delta,
                 other_deltas: Mutex::new(Vec::new()),
@@ -325,7 +336,8 @@ fn queue_limit_bytes(t: &Topology) -> u64 {
     let frame = 2 * (5 + 4 * values) // positions_m, rest_positions_m (packed floats)
         + 5 + 5 * t.triangles.len() // packed varints
         + t.codec.as_ref().map_or(0, |c| c.payload_len() + 5)
-        + 256; // scalars, vectors
+        + 256 // scalars, vectors
+        + 96 * crate::servo::APPLIED_LOAD_CAPACITY; // applied forces
     (WATCH_QUEUE_FRAMES * frame) as u64
 }
 
@@ -498,6 +510,8 @@ fn build_frame(
         probe_radius_m: session.probe_radius_m,
         server_time_us: unix_time_us(),
         max_displacement_m: f.max_displacement_m,
+        applied_forces: f.applied_forces.clone(),
+        applied_forces_total: f.applied_forces_total,
         watch_id,
         topology_version: version,
         ..SurfaceFrame::default()

@@ -43,6 +43,7 @@ fn servo_tick_never_allocates() {
     let clock = ManualClock(Cell::new(0));
     let mut worst = 0;
     let mut contact_ticks = 0;
+    let mut seen_loads = Vec::new();
     for k in 0..3000u64 {
         // Press 6 mm along -x over 1.5 s, then leave; disconnect for the last 300 ticks.
         let depth = 0.006 * (k as f64 / 1500.0).min(1.0);
@@ -72,6 +73,18 @@ fn servo_tick_never_allocates() {
             }
         }
         snap_out.update();
+        let snap = snap_out.output_buffer();
+        for a in &snap.applied[..snap.applied_len] {
+            // Listed while acting or in the first snapshot after it ended (every 4 ticks).
+            assert!(
+                snap.sim_time_s <= a.start_sim_time_s + a.duration_s + 0.004 + 1e-9,
+                "load {a:?} still listed at {} s",
+                snap.sim_time_s
+            );
+            if !seen_loads.contains(&a.index) {
+                seen_loads.push(a.index);
+            }
+        }
     }
     assert_eq!(worst, 0, "a servo tick allocated");
     // The paths were really exercised.
@@ -93,4 +106,7 @@ fn servo_tick_never_allocates() {
     assert_eq!(snap.positions_m.len(), 3 * stats.body.surface_vertices);
     // The ApplyForce commands reached the body (each acts 50 ms, 500 ticks apart).
     assert!(stats.body.active_point_loads <= 1);
+    // And every one of them was listed by the snapshots, in order.
+    assert_eq!(seen_loads, [1, 2, 3, 4, 5, 6]);
+    assert_eq!(snap.applied_total, 6);
 }

@@ -1,5 +1,6 @@
 //! Recordings end to end (issue 19): while the real `haptic-bridge` presses the LV and records
-//! its side to MCAP, `hapticctl record` records the session's surface frames and statistics;
+//! its side to MCAP and `hapticctl force` injects two loads, `hapticctl record` records the
+//! session's surface frames, the injected loads and statistics;
 //! both files decode with their schemas, the bridge's recording replays through
 //! `--driver replay` with the same held force, `haptic-viewer --replay` draws pictures from the
 //! surface recording, and `hapticctl export-vtu` writes a ParaView series with one file per
@@ -13,7 +14,7 @@ use haptic_e2e::{
     unique_temp_dir,
 };
 use haptics_proto::recording::{read_topic, topic};
-use haptics_proto::v1::{DeviceSample, ForceCommand, SessionStats, SurfaceFrame};
+use haptics_proto::v1::{AppliedForce, DeviceSample, ForceCommand, SessionStats, SurfaceFrame};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> {
@@ -42,6 +43,32 @@ async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> 
             "2.5",
         ],
     )?;
+    // Two injected loads on the side away from the probe, the second overlapping the first.
+    let loads = [
+        ("0,0.00968,-0.005", "0,-0.05,0", "1.0"),
+        ("0,-0.00968,-0.008", "0,0.03,0.01", "0.3"),
+    ];
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    for (point, force, duration) in loads {
+        run_bin(
+            CTL,
+            &[
+                "--server",
+                &url,
+                "force",
+                &id,
+                "--point",
+                point,
+                "--force",
+                force,
+                "--duration-s",
+                duration,
+            ],
+            STEP_TIMEOUT,
+        )
+        .await?
+        .success()?;
+    }
     let press = run_bin(
         BRIDGE,
         &[
@@ -68,6 +95,7 @@ async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> 
         .context("peak_force_n")?;
     let rec = finish(recorder, Duration::from_secs(60)).await?.success()?;
     ensure!(rec.stdout.contains("surface frames"), "{}", rec.stdout);
+    ensure!(rec.stdout.contains("2 injected loads"), "{}", rec.stdout);
 
     // The session recording: surface frames (keyframe first) that show the dent, statistics.
     let bytes = std::fs::read(&surface_mcap)?;
@@ -93,6 +121,42 @@ async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> 
         .map(|(_, f)| f.max_displacement_m)
         .fold(0.0, f64::max);
     ensure!(dent > 5e-4, "no dent in the recorded frames: {dent} m");
+    // Each injected load once on /loads, as sent, in order, and listed by the frames of the
+    // simulated time it acted (snapshots every 16 ms: a frame may list it up to then after).
+    let applied = read_topic::<AppliedForce>(&bytes, topic::LOADS)?;
+    ensure!(
+        applied.len() == 2,
+        "{} loads recorded: {applied:?}",
+        applied.len()
+    );
+    let v =
+        |v: &Option<haptics_proto::v1::Vec3>| v.as_ref().map_or([f64::NAN; 3], |v| [v.x, v.y, v.z]);
+    for ((_, a), (i, want)) in applied.iter().zip([
+        (1, ([0.0, 0.00968, -0.005], [0.0, -0.05, 0.0], 1.0)),
+        (2, ([0.0, -0.00968, -0.008], [0.0, 0.03, 0.01], 0.3)),
+    ]) {
+        ensure!(
+            a.index == i
+                && v(&a.point_m) == want.0
+                && v(&a.force_n) == want.1
+                && a.duration_s == want.2,
+            "recorded load {a:?}, sent {want:?}"
+        );
+        let listing: Vec<f64> = frames
+            .iter()
+            .filter(|(_, f)| f.applied_forces.iter().any(|b| b.index == a.index))
+            .map(|(_, f)| f.sim_time_s)
+            .collect();
+        ensure!(!listing.is_empty(), "no frame lists load {i}");
+        ensure!(
+            listing.iter().all(|&t| t >= a.start_sim_time_s - 1e-9
+                && t <= a.start_sim_time_s + a.duration_s + 0.02),
+            "load {i} from {} s for {} s listed at {listing:?}",
+            a.start_sim_time_s,
+            a.duration_s
+        );
+    }
+    ensure!(applied[1].1.start_sim_time_s >= applied[0].1.start_sim_time_s);
     let stats = read_topic::<SessionStats>(&bytes, topic::STATS)?;
     ensure!(stats.len() >= 10, "only {} statistics", stats.len());
     ensure!(stats.iter().all(|(_, s)| s.session_id == id));
