@@ -18,6 +18,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         // The fixed RPC name `DeviceLink.Connect` would collide with the generated
         // `XClient::connect(endpoint)` constructor; clients use `XClient::new(channel)` instead.
         .build_transport(false)
+        // Undecodable messages (bad protobuf, non-UTF-8 strings) are INVALID_ARGUMENT, not
+        // INTERNAL (src/codec.rs).
+        .codec_path("crate::codec::ProtoCodec")
         // `SurfaceFrame.position_delta` as `bytes::Bytes`: one encoding shared by every watcher.
         .bytes(".haptics.v1.SurfaceFrame.position_delta")
         .bytes(".haptics.v1.SurfaceFrame.reference_delta")

@@ -11,6 +11,7 @@
 //! Neighbours: `haptic-server` implements the services; `haptic-bridge`, `haptic-client` and the
 //! end-to-end tests call them.
 
+pub mod codec;
 pub mod delta;
 pub mod recording;
 

@@ -15,6 +15,38 @@ use tokio::sync::{mpsc, oneshot};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Code;
 
+/// `StartSessionRequest` with `scene_toml` as bytes: the same wire format, any bytes.
+#[derive(Clone, PartialEq, prost::Message)]
+struct RawStartSession {
+    #[prost(string, tag = "1")]
+    scene: String,
+    #[prost(bytes = "vec", tag = "2")]
+    scene_toml: Vec<u8>,
+}
+
+/// Sends `StartSession` with raw scene bytes; the status of the refusal.
+async fn start_raw(url: &str, scene_toml: Vec<u8>) -> Result<tonic::Status> {
+    let mut grpc = tonic::client::Grpc::new(haptic_e2e::channel(url).await?);
+    grpc.ready().await?;
+    let path = tonic::codegen::http::uri::PathAndQuery::from_static(
+        "/haptics.v1.SessionControl/StartSession",
+    );
+    let answer: Result<tonic::Response<haptics_proto::v1::StartSessionResponse>, _> = grpc
+        .unary(
+            tonic::Request::new(RawStartSession {
+                scene: String::new(),
+                scene_toml,
+            }),
+            path,
+            haptics_proto::codec::ProtoCodec::default(),
+        )
+        .await;
+    match answer {
+        Ok(r) => anyhow::bail!("accepted: {:?}", r.into_inner()),
+        Err(status) => Ok(status),
+    }
+}
+
 /// The server library on 127.0.0.1:0; dropping the guard stops it.
 struct InProcess {
     url: String,
@@ -109,6 +141,19 @@ async fn bad_inputs_get_statuses_and_session_keeps_running() -> Result<()> {
         .await?
         .into_inner()
         .session_id;
+
+    // Scene text that is not UTF-8 (a client can put any bytes in a string field): the
+    // message does not decode, which is the client's error, not the server's.
+    let status = start_raw(&url, b"[mesh]\nbuiltin = \"lv\xff\xfe\"\n".to_vec()).await?;
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+    assert!(
+        status.message().contains("UTF-8") && status.message().len() <= 1024,
+        "{status:?}"
+    );
+    // The same bytes as valid UTF-8 are read as a scene (and refused as one: no [material]).
+    let status = start_raw(&url, b"[mesh]\nbuiltin = 3\n".to_vec()).await?;
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+    assert!(status.message().contains("scene"), "{status:?}");
 
     // ApplyForce with bad numbers.
     let point = [0.0, 0.00968, -0.005];
