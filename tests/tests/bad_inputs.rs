@@ -11,9 +11,12 @@ use haptics_proto::v1::{
     ApplyForceRequest, DeviceSample, ForceCommand, GetStatsRequest, StartSessionRequest,
     StopSessionRequest, Vec3, WatchRequest,
 };
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Code;
+
+mod common;
+use common::InProcess;
 
 /// `StartSessionRequest` with `scene_toml` as bytes: the same wire format, any bytes.
 #[derive(Clone, PartialEq, prost::Message)]
@@ -44,53 +47,6 @@ async fn start_raw(url: &str, scene_toml: Vec<u8>) -> Result<tonic::Status> {
     match answer {
         Ok(r) => anyhow::bail!("accepted: {:?}", r.into_inner()),
         Err(status) => Ok(status),
-    }
-}
-
-/// The server library on 127.0.0.1:0; dropping the guard stops it.
-struct InProcess {
-    url: String,
-    stop: Option<oneshot::Sender<()>>,
-    task: Option<tokio::task::JoinHandle<anyhow::Result<()>>>,
-}
-
-impl InProcess {
-    async fn start() -> Result<Self> {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
-        let url = format!("http://{}", listener.local_addr()?);
-        let (tx, rx) = oneshot::channel::<()>();
-        let config = haptic_server::ServerConfig {
-            listen: listener.local_addr()?,
-            ..Default::default()
-        };
-        let task = tokio::spawn(haptic_server::run(listener, config, async move {
-            let _ = rx.await;
-        }));
-        Ok(Self {
-            url,
-            stop: Some(tx),
-            task: Some(task),
-        })
-    }
-
-    async fn shutdown(mut self) -> Result<()> {
-        if let Some(tx) = self.stop.take() {
-            let _ = tx.send(());
-        }
-        if let Some(task) = self.task.take() {
-            tokio::time::timeout(STEP_TIMEOUT, task)
-                .await
-                .context("the in-process server did not stop")???;
-        }
-        Ok(())
-    }
-}
-
-impl Drop for InProcess {
-    fn drop(&mut self) {
-        if let Some(tx) = self.stop.take() {
-            let _ = tx.send(());
-        }
     }
 }
 
