@@ -105,6 +105,14 @@ pub struct ConfigFile {
     pub max_elements: Option<usize>,
     /// Largest number of nodes of a client-sent scene.
     pub max_nodes: Option<usize>,
+    /// Scene builds running at once; further `StartSession` calls wait for a turn.
+    pub max_concurrent_builds: Option<usize>,
+    /// `StartSession` calls of one client address waiting or building at once.
+    pub max_builds_per_client: Option<usize>,
+    /// Sessions one client address may have running.
+    pub max_sessions_per_client: Option<usize>,
+    /// Deadline of a `StartSession` call (waiting and building), s.
+    pub build_timeout_s: Option<f64>,
 }
 
 /// Log output format.
@@ -141,6 +149,16 @@ pub struct ServerConfig {
     pub max_elements: usize,
     /// Largest number of nodes of a client-sent scene ([`DEFAULT_MAX_NODES`]).
     pub max_nodes: usize,
+    /// Scene builds running at once (default 2, one per core of the target machine).
+    pub max_concurrent_builds: usize,
+    /// `StartSession` calls of one client address waiting or building at once (default 2).
+    pub max_builds_per_client: usize,
+    /// Sessions one client address may have running (default 4).
+    pub max_sessions_per_client: usize,
+    /// Deadline of a `StartSession` call, waiting for a build turn included (default 30 s).
+    /// A build still running at the deadline finishes in the background and its session is
+    /// stopped at once: the client was told it failed.
+    pub build_timeout: std::time::Duration,
 }
 
 /// Default [`ServerConfig::max_elements`]: 50 000 tetrahedra. A whole-body explicit LV tick
@@ -171,6 +189,10 @@ impl Default for ServerConfig {
             max_file_bytes: DEFAULT_MAX_FILE_BYTES,
             max_elements: DEFAULT_MAX_ELEMENTS,
             max_nodes: DEFAULT_MAX_NODES,
+            max_concurrent_builds: 2,
+            max_builds_per_client: 2,
+            max_sessions_per_client: 4,
+            build_timeout: std::time::Duration::from_secs(30),
         }
     }
 }
@@ -267,6 +289,38 @@ impl ConfigFile {
                 ));
             }
             c.max_file_bytes = b;
+        }
+        for (name, value, field) in [
+            (
+                "max_concurrent_builds",
+                self.max_concurrent_builds,
+                &mut c.max_concurrent_builds,
+            ),
+            (
+                "max_builds_per_client",
+                self.max_builds_per_client,
+                &mut c.max_builds_per_client,
+            ),
+            (
+                "max_sessions_per_client",
+                self.max_sessions_per_client,
+                &mut c.max_sessions_per_client,
+            ),
+        ] {
+            if let Some(n) = value {
+                if n == 0 {
+                    return Err(ServerError::Config(format!("{name} must be at least 1")));
+                }
+                *field = n;
+            }
+        }
+        if let Some(t) = self.build_timeout_s {
+            if !(t.is_finite() && (0.001..=3600.0).contains(&t)) {
+                return Err(ServerError::Config(format!(
+                    "build_timeout_s = {t}: expected 0.001..=3600"
+                )));
+            }
+            c.build_timeout = std::time::Duration::from_secs_f64(t);
         }
         if let Some(m) = self.metrics_listen {
             c.metrics_listen = Some(

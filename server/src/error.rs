@@ -33,6 +33,9 @@ pub enum ServerError {
     /// connected).
     #[error("{0}")]
     FailedPrecondition(String),
+    /// A call's deadline passed (a scene build that did not finish in time).
+    #[error("{0}")]
+    DeadlineExceeded(String),
     /// Unexpected internal failure.
     #[error("internal: {0}")]
     Internal(String),
@@ -68,6 +71,7 @@ impl From<ServerError> for Status {
             ServerError::Model(_) => Status::invalid_argument(msg),
             ServerError::Exhausted(_) => Status::resource_exhausted(msg),
             ServerError::FailedPrecondition(_) => Status::failed_precondition(msg),
+            ServerError::DeadlineExceeded(_) => Status::deadline_exceeded(msg),
             ServerError::Internal(_) => Status::internal(msg),
         }
     }

@@ -10,6 +10,7 @@
 //! [`solve`] (static solutions of scene files, behind `haptic-solve`), [`calibrate`]
 //! (mass-spring calibration tables, behind `haptic-calibrate`).
 
+pub mod builds;
 pub mod calibrate;
 pub mod config;
 pub mod confine;

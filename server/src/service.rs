@@ -16,6 +16,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 
+use crate::builds::{BuildGate, BuildLimits};
 use crate::error::ServerError;
 use crate::servo::{Command, Pose};
 use crate::session::SessionManager;
@@ -31,12 +32,20 @@ pub const MAX_VIEWER_RATE_HZ: f64 = crate::stream::MAX_RATE_HZ;
 #[derive(Clone)]
 pub struct Services {
     manager: Arc<SessionManager>,
+    builds: Arc<BuildGate>,
 }
 
 impl Services {
-    /// Handlers over `manager`.
+    /// Handlers over `manager` (scene builds bounded by its configuration's limits).
     pub fn new(manager: Arc<SessionManager>) -> Self {
-        Self { manager }
+        let c = manager.config();
+        let builds = Arc::new(BuildGate::new(BuildLimits {
+            max_concurrent_builds: c.max_concurrent_builds,
+            max_builds_per_client: c.max_builds_per_client,
+            max_sessions_per_client: c.max_sessions_per_client,
+            build_timeout: c.build_timeout,
+        }));
+        Self { manager, builds }
     }
 }
 
@@ -106,22 +115,22 @@ impl SessionControl for Services {
         &self,
         req: Request<StartSessionRequest>,
     ) -> Result<Response<StartSessionResponse>, Status> {
+        let client = req.remote_addr().map(|a| a.ip());
         let r = req.into_inner();
         let manager = self.manager.clone();
-        let handle = tokio::runtime::Handle::current();
-        let session = tokio::task::spawn_blocking(move || {
-            let _guard = handle.enter();
-            let scene = manager.load_scene(&r.scene, &r.scene_toml)?;
-            let session = manager.start(&scene)?;
-            // Recorded for a restart (with a state dir); a failure to record is logged, the
-            // session runs anyway.
-            if let Err(e) = manager.record(&session.id, &r.scene, &r.scene_toml) {
-                tracing::warn!(session = %session.id, "{e}");
-            }
-            Ok::<_, ServerError>(session)
-        })
-        .await
-        .map_err(|e| Status::internal(e.to_string()))??;
+        let session = self
+            .builds
+            .run(client, &self.manager, move || {
+                let scene = manager.load_scene(&r.scene, &r.scene_toml)?;
+                let session = manager.start(&scene)?;
+                // Recorded for a restart (with a state dir); a failure to record is logged,
+                // the session runs anyway.
+                if let Err(e) = manager.record(&session.id, &r.scene, &r.scene_toml) {
+                    tracing::warn!(session = %session.id, "{e}");
+                }
+                Ok(session)
+            })
+            .await?;
         tracing::info!(session = %session.id, scene = %session.scene, nodes = session.nodes, tets = session.tetrahedra,
             substeps = session.substeps, critical_dt_s = session.critical_dt_s, "session started");
         Ok(Response::new(StartSessionResponse {

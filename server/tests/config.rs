@@ -52,3 +52,36 @@ fn file_values_override_defaults() {
     assert_eq!(cfg.servo.cpu, Some(1));
     assert!(cfg.servo.realtime);
 }
+
+#[test]
+fn build_limits_are_read_and_checked() {
+    let cfg = ConfigFile::parse(
+        "max_concurrent_builds = 1\nmax_builds_per_client = 3\nmax_sessions_per_client = 5\nbuild_timeout_s = 2.5",
+    )
+    .unwrap()
+    .into_config()
+    .unwrap();
+    assert_eq!(
+        (
+            cfg.max_concurrent_builds,
+            cfg.max_builds_per_client,
+            cfg.max_sessions_per_client
+        ),
+        (1, 3, 5)
+    );
+    assert_eq!(cfg.build_timeout, std::time::Duration::from_millis(2500));
+    for (text, field) in [
+        ("max_concurrent_builds = 0", "max_concurrent_builds"),
+        ("max_builds_per_client = 0", "max_builds_per_client"),
+        ("max_sessions_per_client = 0", "max_sessions_per_client"),
+        ("build_timeout_s = -1.0", "build_timeout_s"),
+        ("build_timeout_s = nan", "build_timeout_s"),
+    ] {
+        let e = ConfigFile::parse(text)
+            .unwrap()
+            .into_config()
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(field), "{text}: {e}");
+    }
+}
