@@ -29,6 +29,9 @@ struct Args {
     /// Ticks timed per count.
     #[arg(long, default_value_t = 400)]
     ticks: usize,
+    /// Lattice spacing override, m (half the default spacing: about eight times the particles).
+    #[arg(long)]
+    spacing_m: Option<f64>,
 }
 
 fn rss_kib() -> u64 {
@@ -50,6 +53,9 @@ fn main() -> anyhow::Result<()> {
         h.params.meshfree.variant = MeshfreeVariant::from_name(v).expect("seed or corrected");
         h.params.meshfree.kernel =
             haptic_model::meshfree::KernelKind::default_for(h.params.meshfree.variant);
+    }
+    if let Some(sp) = args.spacing_m {
+        h.params.meshfree.spacing_m = sp;
     }
     let rss0 = rss_kib();
     let t0 = Instant::now();
