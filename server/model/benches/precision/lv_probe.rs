@@ -29,7 +29,9 @@ use crate::report::Model;
 use crate::report::{Row, Scenario};
 use crate::{Config, LvProbeRows};
 use haptic_model::body::SoftBody;
+use haptic_model::build_body;
 use haptic_model::mass_spring::{MassSpringBody, SpringRule};
+use haptic_model::meshfree::{KernelKind, MeshfreeVariant};
 use haptic_model::scene::load_builtin;
 
 /// The nodes of the epicardium (`EPI`), sorted.
@@ -60,9 +62,18 @@ pub struct LvReference {
 impl LvReference {
     /// Relative L2 and max error (m) of the epicardial displacement at the last depth.
     fn surface_errors(&self, mesh: &TetMesh, x: &[DVec3]) -> (f64, f64) {
+        self.surface_errors_at(
+            epi_nodes(mesh)
+                .into_iter()
+                .map(|i| (mesh.nodes[i as usize], x[i as usize])),
+        )
+    }
+
+    /// Relative L2 and max error (m) of the displacement of surface points given as
+    /// (rest, current) pairs against the reference's at their rest position.
+    fn surface_errors_at(&self, points: impl Iterator<Item = (DVec3, DVec3)>) -> (f64, f64) {
         let (mut n2, mut d2, mut max_e) = (0.0, 0.0, 0.0f64);
-        for i in epi_nodes(mesh) {
-            let p = mesh.nodes[i as usize];
+        for (p, x) in points {
             let sp = self
                 .epi
                 .closest_global(&self.rest, p)
@@ -73,7 +84,7 @@ impl LvReference {
                     (self.curve.x_last[tri[k] as usize] - self.rest[tri[k] as usize]) * sp.bary[k]
                 })
                 .sum();
-            let e = (x[i as usize] - p - u_ref).length();
+            let e = (x - p - u_ref).length();
             n2 += e * e;
             d2 += u_ref.length_squared();
             max_e = max_e.max(e);
@@ -191,14 +202,88 @@ pub const LV_REFERENCE: (usize, bool) = (2000, true);
 /// Runs the scenario: per mesh and material the static curve and every dynamic method, then
 /// the mass-spring rows ([`mass_spring_rows`]); with `--lv-probe-rows mass-spring` those only.
 pub fn run(cfg: &Config, rows: &mut Vec<Row>) {
-    if cfg.lv_probe_rows == LvProbeRows::MassSpring {
+    if cfg.lv_probe_rows != LvProbeRows::All {
         let reference = lv_reference(LV_REFERENCE, MaterialModel::StVenantKirchhoff, cfg);
-        mass_spring_rows(&reference, cfg.quick, rows);
+        match cfg.lv_probe_rows {
+            LvProbeRows::MassSpring => mass_spring_rows(&reference, cfg.quick, rows),
+            _ => hybrid_rows(&reference, cfg.quick, rows),
+        }
         return;
     }
     run_fem(cfg, rows);
     let reference = lv_reference(LV_REFERENCE, MaterialModel::StVenantKirchhoff, cfg);
     mass_spring_rows(&reference, cfg.quick, rows);
+    hybrid_rows(&reference, cfg.quick, rows);
+}
+
+/// The seeds' hybrid model `lv-hybrid` (a coarse LV core and about 130 000 meshfree particles
+/// up to the epicardium, activated under the probe) pressed like the FEM
+/// ([`probe_dynamic_body`]), both meshfree variants. Errors against the same FEM reference; the
+/// displacement error on the outer surface's vertices (the epicardium).
+pub fn hybrid_rows(reference: &LvReference, quick: bool, rows: &mut Vec<Row>) {
+    let base = load_builtin("lv-hybrid").expect("built-in lv-hybrid");
+    let ref_text = format!(
+        "static with probe coupling on lv_shell ({} quadratic tets, stvk): F(3 mm) = {:.4} N",
+        reference.tets,
+        reference.curve.forces_n[DEPTHS_MM.len() - 1]
+    );
+    for variant in [MeshfreeVariant::Seed, MeshfreeVariant::Corrected] {
+        let mut scene = base.clone();
+        let h = scene.hybrid.as_mut().expect("a hybrid scene");
+        h.params.meshfree.variant = variant;
+        h.params.meshfree.kernel = KernelKind::default_for(variant);
+        let label = format!("hybrid {}", variant.name());
+        let mut row = Row::blank(Scenario::LvProbe, label.clone(), "symplectic-euler");
+        row.model = Model::Hybrid;
+        row.material = scene.material.model.scene_name().into();
+        row.reference = ref_text.clone();
+        let mut body = match build_body(&scene) {
+            Ok(b) => b,
+            Err(e) => {
+                row.settings = format!("{label}: {e}");
+                row.print();
+                rows.push(row);
+                continue;
+            }
+        };
+        let stats0 = body.stats();
+        row.nodes = stats0.nodes;
+        row.tets = stats0.elements;
+        match probe_dynamic_body(body.as_mut(), scene.integrator.tick_s, quick) {
+            Ok((forces, ticks)) => {
+                let info = body.info();
+                let stats = body.stats();
+                row.settings = format!(
+                    "tick 1 ms, {} sub-steps; {} particles, {} active at 3 mm; mass_scale {}; staircase 0.5..3 mm",
+                    info.substeps,
+                    stats.particles,
+                    stats.active_particles,
+                    scene.hybrid.as_ref().map_or(1.0, |h| h.params.mass_scale)
+                );
+                row.set_times(&ticks, scene.integrator.tick_s);
+                let n = body.surface_topology().vertex_count;
+                let (mut rest, mut now) = (vec![0f32; 3 * n], vec![0f32; 3 * n]);
+                body.write_surface_rest_positions(&mut rest);
+                body.write_surface_positions(&mut now);
+                let v = |a: &[f32]| DVec3::new(a[0] as f64, a[1] as f64, a[2] as f64);
+                let (l2, max_e) = reference.surface_errors_at(
+                    rest.chunks_exact(3)
+                        .zip(now.chunks_exact(3))
+                        .map(|(r, x)| (v(r), v(x))),
+                );
+                let curve = ProbeCurve {
+                    forces_n: forces,
+                    x_last: Vec::new(),
+                };
+                fill_lv_force_errors(&mut row, reference, &curve, DEPTHS_MM.len() - 1);
+                row.rel_l2_error = l2;
+                row.max_nodal_error_m = max_e;
+            }
+            Err(e) => row.settings = format!("{label}: {e}"),
+        }
+        row.print();
+        rows.push(row);
+    }
 }
 
 /// The mass-spring surface `lv-surface-springs` (the epicardium of `lv_shell(2000)` on home
@@ -405,6 +490,12 @@ pub fn fill_lv_errors(
     let (l2, max_e) = reference.surface_errors(mesh, &c.x_last);
     row.rel_l2_error = l2;
     row.max_nodal_error_m = max_e;
+    fill_lv_force_errors(row, reference, c, last);
+    row.stable = row.stable && c.x_last.iter().all(|p| p.is_finite());
+}
+
+/// The force columns of [`fill_lv_errors`] (any body: no nodal positions needed).
+pub fn fill_lv_force_errors(row: &mut Row, reference: &LvReference, c: &ProbeCurve, last: usize) {
     row.probe_force_error = reference.force_error(&c.forces_n);
     let r = reference.curve.forces_n[last];
     row.observable_error = (c.forces_n[last] - r).abs() / r;
@@ -416,5 +507,5 @@ pub fn fill_lv_errors(
             .collect::<Vec<_>>()
             .join(" ")
     );
-    row.stable = c.forces_n.iter().all(|f| f.is_finite()) && c.x_last.iter().all(|p| p.is_finite());
+    row.stable = c.forces_n.iter().all(|f| f.is_finite());
 }

@@ -110,6 +110,8 @@ pub enum LvProbeRows {
     All,
     /// The mass-spring rows only (`lv-surface-springs` with and without subdivision).
     MassSpring,
+    /// The hybrid rows only (`lv-hybrid`, seed and corrected variants).
+    Hybrid,
 }
 
 /// Results format read by `--replot`.

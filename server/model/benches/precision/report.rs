@@ -51,6 +51,8 @@ pub enum Model {
     FemEs,
     /// The mass-spring surface (seed 003), `tets` = 0.
     MassSpring,
+    /// The seeds' hybrid model (FEM core + meshfree particle layer), `tets` = the core's.
+    Hybrid,
 }
 
 /// One benchmark run: a column per field, in this order.
