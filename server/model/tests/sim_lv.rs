@@ -294,6 +294,35 @@ fn default_lv_probe_force_matches_the_benchmark() {
     }
 }
 
+/// The stroke of the sliding tests: the default `lv`'s epicardium as the ellipsoid with
+/// semi-axes `STROKE_A_M` x `STROKE_A_M` x `STROKE_C_M`, the probe (radius `STROKE_R_M`)
+/// pressed `STROKE_DEPTH_M` in at z = -12 mm over 0.2 s, then slid to z = 0 at 20 mm/s.
+const STROKE_A_M: f64 = 0.010;
+const STROKE_C_M: f64 = 0.020;
+const STROKE_R_M: f64 = 0.002;
+const STROKE_DEPTH_M: f64 = 0.001;
+
+/// Point and outward normal of the stroke's ellipsoid at height `z` (m) in the x-z plane.
+fn stroke_surface_at(z: f64) -> (DVec3, DVec3) {
+    let (a, c) = (STROKE_A_M, STROKE_C_M);
+    let rho = a * (1.0 - (z / c).powi(2)).sqrt();
+    (
+        DVec3::new(rho, 0.0, z),
+        DVec3::new(rho / (a * a), 0.0, z / (c * c)).normalize(),
+    )
+}
+
+/// Device position of the stroke at time `t` (s).
+fn stroke_device_at(t: f64) -> DVec3 {
+    let (press, z) = if t < 0.2 {
+        (t / 0.2, -0.012)
+    } else {
+        (1.0, (-0.012 + 0.02 * (t - 0.2)).min(0.0))
+    };
+    let (point, normal) = stroke_surface_at(z);
+    point + normal * (STROKE_R_M + 0.5e-3 - (STROKE_DEPTH_M + 0.5e-3) * press)
+}
+
 /// The sphere stroked across the default `lv` at 20 mm/s (issue 14): pressed 1 mm into the
 /// epicardium at z = -12 mm over 0.2 s, then slid along the long axis to z = 0 at constant
 /// depth along the ellipsoid's normal (semi-axes 10 x 10 x 20 mm). The force follows the
@@ -302,22 +331,7 @@ fn default_lv_probe_force_matches_the_benchmark() {
 /// that carry the sphere.
 #[test]
 fn the_sphere_slides_across_the_lv_without_chatter() {
-    let (a, c, r, depth) = (0.010, 0.020, 0.002, 0.001);
-    let surface_at = |z: f64| {
-        let rho = a * (1.0 - (z / c).powi(2)).sqrt();
-        let point = DVec3::new(rho, 0.0, z);
-        let normal = DVec3::new(rho / (a * a), 0.0, z / (c * c)).normalize();
-        (point, normal)
-    };
-    let device_at = |t: f64| {
-        let (press, z) = if t < 0.2 {
-            (t / 0.2, -0.012)
-        } else {
-            (1.0, (-0.012 + 0.02 * (t - 0.2)).min(0.0))
-        };
-        let (point, normal) = surface_at(z);
-        point + normal * (r + 0.5e-3 - (depth + 0.5e-3) * press)
-    };
+    let (surface_at, device_at) = (stroke_surface_at, stroke_device_at);
     for kind in [
         IntegratorKind::SymplecticEuler,
         IntegratorKind::SemiImplicit,
@@ -369,23 +383,8 @@ fn the_sphere_slides_across_the_lv_without_chatter() {
 /// and stays inside the friction cone, and the body stays bounded.
 #[test]
 fn friction_drags_against_the_stroke_within_the_cone() {
-    let (a, c, r, depth, mu) = (0.010, 0.020, 0.002, 0.001, 0.3);
-    let surface_at = |z: f64| {
-        let rho = a * (1.0 - (z / c).powi(2)).sqrt();
-        (
-            DVec3::new(rho, 0.0, z),
-            DVec3::new(rho / (a * a), 0.0, z / (c * c)).normalize(),
-        )
-    };
-    let device_at = |t: f64| {
-        let (press, z) = if t < 0.2 {
-            (t / 0.2, -0.012)
-        } else {
-            (1.0, (-0.012 + 0.02 * (t - 0.2)).min(0.0))
-        };
-        let (point, normal) = surface_at(z);
-        point + normal * (r + 0.5e-3 - (depth + 0.5e-3) * press)
-    };
+    let mu = 0.3;
+    let (surface_at, device_at) = (stroke_surface_at, stroke_device_at);
     let mut scene = load_builtin("lv").unwrap();
     scene.probe.friction_coefficient = mu;
     let mut sim = Simulation::new(&scene).unwrap();

@@ -516,15 +516,7 @@ impl Probe {
             x[i as usize] -= dv * dt_s;
             utv += w * n.dot(v[i as usize]);
         }
-        let phi = self.phi0_n
-            + (p.coupling_stiffness_n_per_m * dt_s + p.coupling_damping_n_s_per_m) * utv;
-        self.state.force_on_device_n = n * phi.clamp(0.0, p.max_force_n) + self.friction_n;
-        self.stiffness.observe(
-            dt_s,
-            self.device_m.dot(n),
-            phi.clamp(0.0, p.max_force_n),
-            p.coupling_stiffness_n_per_m,
-        );
+        self.set_device_force(dt_s, utv);
     }
 
     /// `gamma = dt (k dt + b)` (kg): the weight of the coupling's implicit rank-one term
@@ -549,6 +541,23 @@ impl Probe {
         })
     }
 
+    /// The device force from the coupling's end-of-step normal velocity `utv = U^T v'` (m/s):
+    /// `phi n + friction`, `phi = phi0 + (k dt + b) utv` clamped to `[0, max_force_n]`; feeds
+    /// the contact stiffness estimate.
+    fn set_device_force(&mut self, dt_s: f64, utv: f64) {
+        let (n, p) = (self.state.normal, self.params);
+        let phi = (self.phi0_n
+            + (p.coupling_stiffness_n_per_m * dt_s + p.coupling_damping_n_s_per_m) * utv)
+            .clamp(0.0, p.max_force_n);
+        self.state.force_on_device_n = n * phi + self.friction_n;
+        self.stiffness.observe(
+            dt_s,
+            self.device_m.dot(n),
+            phi,
+            p.coupling_stiffness_n_per_m,
+        );
+    }
+
     /// Completes a step whose solve already contained the coupling's rank-one term
     /// ([`Probe::rank_one`]): the end-of-step velocities `v` (m/s) give the device force
     /// `phi n`, `phi = phi0 + (k dt + b) U^T v'`, clamped to `[0, max_force_n]`, the same force
@@ -558,22 +567,13 @@ impl Probe {
             return;
         }
         let n = self.state.normal;
-        let p = self.params;
         let utv: f64 = self
             .patch_nodes
             .iter()
             .zip(&self.patch_weights)
             .map(|(&i, &w)| w * n.dot(v[i as usize]))
             .sum();
-        let phi = self.phi0_n
-            + (p.coupling_stiffness_n_per_m * dt_s + p.coupling_damping_n_s_per_m) * utv;
-        self.state.force_on_device_n = n * phi.clamp(0.0, p.max_force_n) + self.friction_n;
-        self.stiffness.observe(
-            dt_s,
-            self.device_m.dot(n),
-            phi.clamp(0.0, p.max_force_n),
-            p.coupling_stiffness_n_per_m,
-        );
+        self.set_device_force(dt_s, utv);
     }
 
     /// Collects the contact patch around the device point `q` (see
