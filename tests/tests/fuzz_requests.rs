@@ -174,13 +174,19 @@ fn mutated(base: Vec<u8>) -> impl Strategy<Value = Vec<u8>> {
     prop_oneof![3 => edits, 1 => proptest::collection::vec(any::<u8>(), 0..200)]
 }
 
+/// The status of a stream's first answer, or OK when the stream stays open for 200 ms.
+async fn first_answer(mut s: tonic::Streaming<()>) -> Code {
+    tokio::time::timeout(Duration::from_millis(200), s.message())
+        .await
+        .map_or(Code::Ok, |r| r.map_or_else(|s| s.code(), |_| Code::Ok))
+}
+
 /// The status of one call with `body` (a stream answer: of its first message, or OK when the
 /// stream stays open for 200 ms).
 async fn call(url: &str, path: &'static str, kind: Kind, body: Vec<u8>) -> Result<Code> {
     let mut grpc = tonic::client::Grpc::new(channel(url).await?);
     grpc.ready().await?;
     let path = PathAndQuery::from_static(path);
-    let first = |r: Result<Option<()>, Status>| r.map_or_else(|s| s.code(), |_| Code::Ok);
     let code = match kind {
         Kind::Unary => match grpc.unary(Request::new(body), path, RawCodec).await {
             Ok(_) => Code::Ok,
@@ -191,24 +197,14 @@ async fn call(url: &str, path: &'static str, kind: Kind, body: Vec<u8>) -> Resul
                 .server_streaming(Request::new(body), path, RawCodec)
                 .await
             {
-                Ok(r) => {
-                    let mut s = r.into_inner();
-                    tokio::time::timeout(Duration::from_millis(200), s.message())
-                        .await
-                        .map_or(Code::Ok, first)
-                }
+                Ok(r) => first_answer(r.into_inner()).await,
                 Err(s) => s.code(),
             }
         }
         Kind::Bidi => {
             let out = tokio_stream::iter(vec![body.clone(), body]);
             match grpc.streaming(Request::new(out), path, RawCodec).await {
-                Ok(r) => {
-                    let mut s = r.into_inner();
-                    tokio::time::timeout(Duration::from_millis(200), s.message())
-                        .await
-                        .map_or(Code::Ok, first)
-                }
+                Ok(r) => first_answer(r.into_inner()).await,
                 Err(s) => s.code(),
             }
         }
