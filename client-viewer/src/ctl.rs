@@ -11,12 +11,12 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::time::Duration;
 
+use crate::{AuthChannel, ClientCredentials};
 use haptics_proto::v1::session_control_client::SessionControlClient;
 use haptics_proto::v1::{
     ApplyForceRequest, GetStatsRequest, ListScenesRequest, ListSessionsRequest, SceneInfo,
     SessionStats, StartSessionRequest, StartSessionResponse, StopSessionRequest, Vec3,
 };
-use tonic::transport::Channel;
 
 use crate::ClientError;
 
@@ -45,13 +45,13 @@ pub enum SceneSource {
 /// A connected `SessionControl` client.
 #[derive(Debug, Clone)]
 pub struct Ctl {
-    client: SessionControlClient<Channel>,
-    channel: Channel,
+    client: SessionControlClient<AuthChannel>,
+    channel: AuthChannel,
 }
 
 impl Ctl {
     /// Wraps an open channel.
-    pub fn new(channel: Channel) -> Self {
+    pub fn new(channel: AuthChannel) -> Self {
         Self {
             client: SessionControlClient::new(channel.clone()),
             channel,
@@ -59,16 +59,16 @@ impl Ctl {
     }
 
     /// The channel, for the other services (`SurfaceStream` in `record`).
-    pub fn channel(&self) -> Channel {
+    pub fn channel(&self) -> AuthChannel {
         self.channel.clone()
     }
 
-    /// Connects to `url` (see [`crate::connect`]).
+    /// Connects to `url` with `credentials` (see [`crate::connect`]).
     ///
     /// # Errors
-    /// [`ClientError::Connect`].
-    pub async fn connect(url: &str) -> Result<Self, ClientError> {
-        Ok(Self::new(crate::connect(url).await?))
+    /// [`ClientError::Connect`], [`ClientError::Credentials`].
+    pub async fn connect(url: &str, credentials: &ClientCredentials) -> Result<Self, ClientError> {
+        Ok(Self::new(crate::connect(url, credentials).await?))
     }
 
     /// The built-in scenes.

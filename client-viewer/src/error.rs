@@ -17,6 +17,9 @@ pub enum ClientError {
         #[source]
         source: tonic::transport::Error,
     },
+    /// A token, certificate or key could not be read, or the TLS set-up is inconsistent.
+    #[error("credentials: {0}")]
+    Credentials(#[from] haptics_proto::client::CredentialsError),
     /// The server answered with a non-OK gRPC status. Displayed as `CODE: message`,
     /// e.g. `NOT_FOUND: no session abc`.
     #[error("{}: {}", code_name(.0.code()), .0.message())]

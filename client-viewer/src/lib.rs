@@ -30,29 +30,34 @@ pub mod web;
 
 pub use error::ClientError;
 
-use tonic::transport::{Channel, Endpoint};
+pub use haptics_proto::client::{AuthChannel, ClientCredentials};
 
 /// Default server address when neither `--server` nor `HAPTICD_ADDR` is given.
 pub const DEFAULT_SERVER: &str = "http://127.0.0.1:50051";
 
-/// Opens a gRPC channel to `url` (`http://host:port`; a bare `host:port` gets `http://`).
+/// Opens a gRPC channel to `url` (`http://host:port` or `https://host:port`; a bare
+/// `host:port` gets `http://`) whose every call carries the token of `credentials`, over TLS
+/// for `https://` ([`haptics_proto::client`]).
 ///
 /// The connection attempt gives up after 5 s, so a wrong address fails quickly in scripts.
 ///
 /// # Errors
+/// [`ClientError::Credentials`] for an unreadable token or TLS file;
 /// [`ClientError::Connect`] when the URL is malformed or nothing answers at the address.
-pub async fn connect(url: &str) -> Result<Channel, ClientError> {
+pub async fn connect(
+    url: &str,
+    credentials: &ClientCredentials,
+) -> Result<AuthChannel, ClientError> {
     let url = normalize_url(url);
-    let endpoint = Endpoint::from_shared(url.clone())
-        .map_err(|source| ClientError::Connect {
-            url: url.clone(),
-            source,
-        })?
+    let token = credentials.interceptor()?;
+    let endpoint = credentials
+        .endpoint(&url)?
         .connect_timeout(std::time::Duration::from_secs(5));
-    endpoint
+    let channel = endpoint
         .connect()
         .await
-        .map_err(|source| ClientError::Connect { url, source })
+        .map_err(|source| ClientError::Connect { url, source })?;
+    Ok(token.wrap(channel))
 }
 
 /// Adds the `http://` scheme to a bare `host:port` address; other strings pass unchanged.

@@ -18,11 +18,11 @@ use std::io::{BufWriter, Write as _};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use crate::AuthChannel;
 use haptics_proto::recording::{Recorder, read_topic, topic};
 use haptics_proto::v1::surface_stream_client::SurfaceStreamClient;
 use haptics_proto::v1::{SurfaceEncoding, SurfaceFrame, WatchRequest};
 use tokio_stream::StreamExt;
-use tonic::transport::Channel;
 
 use crate::ClientError;
 use crate::ctl::Ctl;
@@ -86,7 +86,7 @@ pub struct RecordParams {
 /// [`ClientError::InvalidConfig`] for a bad rate or interval, [`ClientError::Rpc`] when the
 /// session is unknown at the start, [`ClientError::Io`] when the file cannot be written.
 pub async fn record(
-    channel: Channel,
+    channel: AuthChannel,
     ctl: &mut Ctl,
     session_id: &str,
     out: &Path,

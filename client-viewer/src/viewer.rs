@@ -40,6 +40,8 @@ use crate::raster::{Camera, ProbeView, RenderParams, SurfaceView, bounding_box, 
 pub struct ViewerConfig {
     /// Server URL, e.g. `http://127.0.0.1:50051`.
     pub server: String,
+    /// Token and TLS files for the server.
+    pub credentials: crate::ClientCredentials,
     /// Session to watch.
     pub session_id: String,
     /// Directory for the pictures (created when missing).
@@ -65,6 +67,7 @@ impl ViewerConfig {
     pub fn new(server: impl Into<String>, session_id: impl Into<String>) -> Self {
         Self {
             server: server.into(),
+            credentials: crate::ClientCredentials::default(),
             session_id: session_id.into(),
             out_dir: PathBuf::from("viewer-out"),
             interval_s: 0.5,
@@ -112,6 +115,9 @@ pub struct ViewerArgs {
     /// Server URL.
     #[arg(long, env = "HAPTICD_ADDR", default_value = crate::DEFAULT_SERVER)]
     pub server: String,
+    /// Token and TLS files (a `viewer` token is enough).
+    #[command(flatten)]
+    pub credentials: crate::ClientCredentials,
     /// Session id to watch (PNG mode; the web viewer lets the browser choose).
     #[arg(long, required_unless_present_any = ["web", "replay"])]
     pub session: Option<String>,
@@ -180,6 +186,7 @@ impl ViewerArgs {
             ClientError::InvalidConfig(format!("--web {addr:?}: {e} (expected HOST:PORT)"))
         })?;
         let mut cfg = crate::web::WebConfig::new(self.server.clone());
+        cfg.credentials = self.credentials.clone();
         if self.max_rate_hz > 0.0 {
             cfg.default_rate_hz = self.max_rate_hz.min(crate::web::MAX_BROWSER_RATE_HZ);
         }
@@ -208,6 +215,7 @@ impl ViewerArgs {
         }
         let cfg = ViewerConfig {
             server: self.server,
+            credentials: self.credentials,
             session_id: match (&self.replay, self.session) {
                 (Some(path), _) => format!("replay of {}", path.display()),
                 (None, s) => s.unwrap_or_default(),
@@ -535,7 +543,7 @@ pub async fn run(
     shutdown: impl Future<Output = ()>,
 ) -> Result<ViewerSummary, ClientError> {
     cfg.validate()?;
-    let channel = crate::connect(&cfg.server).await?;
+    let channel = crate::connect(&cfg.server, &cfg.credentials).await?;
     let mut client = SurfaceStreamClient::new(channel).max_decoding_message_size(256 << 20);
     let stream = client
         .watch(WatchRequest {

@@ -54,7 +54,6 @@ use prost::bytes::Bytes;
 use serde_json::{Value, json};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
-use tonic::transport::Channel;
 
 use crate::ClientError;
 use crate::compact::CompactState;
@@ -78,6 +77,8 @@ const THREE_LICENSE: &[u8] = include_bytes!("../web/vendor/LICENSE");
 pub struct WebConfig {
     /// Daemon URL, e.g. `http://127.0.0.1:50051`.
     pub server: String,
+    /// Token and TLS files for the daemon (a `viewer` token is enough).
+    pub credentials: crate::ClientCredentials,
     /// Rate the relay asks of the daemon per session, Hz (browsers can ask up to this).
     pub upstream_rate_hz: f64,
     /// Browser rate when the page does not ask, Hz.
@@ -89,6 +90,7 @@ impl WebConfig {
     pub fn new(server: impl Into<String>) -> Self {
         Self {
             server: server.into(),
+            credentials: crate::ClientCredentials::default(),
             upstream_rate_hz: 60.0,
             default_rate_hz: 30.0,
         }
@@ -229,7 +231,7 @@ struct SessionRelay {
 /// The relay: upstream connections and the browsers of every session.
 pub struct Relay {
     cfg: WebConfig,
-    channel: Channel,
+    channel: crate::AuthChannel,
     sessions: Mutex<HashMap<String, Arc<SessionRelay>>>,
 }
 
@@ -241,11 +243,14 @@ impl Relay {
     pub fn new(cfg: WebConfig) -> Result<Arc<Self>, ClientError> {
         cfg.validate()?;
         let url = crate::normalize_url(&cfg.server);
-        let channel = tonic::transport::Endpoint::from_shared(url.clone())
-            .map_err(|source| ClientError::Connect { url, source })?
-            .connect_timeout(Duration::from_secs(5))
-            .tcp_nodelay(true)
-            .connect_lazy();
+        let token = cfg.credentials.interceptor()?;
+        let channel = token.wrap(
+            cfg.credentials
+                .endpoint(&url)?
+                .connect_timeout(Duration::from_secs(5))
+                .tcp_nodelay(true)
+                .connect_lazy(),
+        );
         Ok(Arc::new(Self {
             cfg,
             channel,

@@ -93,7 +93,9 @@ async fn run(ctl: &mut Ctl, cmd: CtlCommand) -> (Result<(), ClientError>, String
 #[tokio::test]
 async fn commands_against_a_mock_server() {
     let server = common::serve().await;
-    let mut ctl = Ctl::connect(&server.url).await.unwrap();
+    let mut ctl = Ctl::connect(&server.url, &Default::default())
+        .await
+        .unwrap();
 
     let (r, out, _) = run(&mut ctl, CtlCommand::Scenes).await;
     r.unwrap();
@@ -156,7 +158,9 @@ async fn commands_against_a_mock_server() {
 #[tokio::test]
 async fn scene_file_is_sent_as_text() {
     let server = common::serve().await;
-    let mut ctl = Ctl::connect(&server.url).await.unwrap();
+    let mut ctl = Ctl::connect(&server.url, &Default::default())
+        .await
+        .unwrap();
     let dir = common::out_dir("scene-file");
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("scene.toml");
@@ -179,7 +183,9 @@ async fn scene_file_is_sent_as_text() {
 #[tokio::test]
 async fn not_found_reports_code_and_message() {
     let server = common::serve().await;
-    let mut ctl = Ctl::connect(&server.url).await.unwrap();
+    let mut ctl = Ctl::connect(&server.url, &Default::default())
+        .await
+        .unwrap();
     let e = ctl.stats("nope").await.unwrap_err();
     assert!(e.is_rpc());
     assert_eq!(e.status().unwrap().code(), tonic::Code::NotFound);
@@ -197,7 +203,9 @@ async fn not_found_reports_code_and_message() {
 #[tokio::test]
 async fn bad_vectors_are_refused_before_sending() {
     let server = common::serve().await;
-    let mut ctl = Ctl::connect(&server.url).await.unwrap();
+    let mut ctl = Ctl::connect(&server.url, &Default::default())
+        .await
+        .unwrap();
     let cmd = CtlCommand::Force {
         id: "s-1".into(),
         point: "1,2".into(),

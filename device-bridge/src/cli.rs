@@ -84,6 +84,9 @@ pub struct Args {
     /// Server URL, e.g. http://127.0.0.1:50051.
     #[arg(long)]
     pub server: String,
+    /// Token and TLS files (a `device` token is enough).
+    #[command(flatten)]
+    pub credentials: haptics_proto::client::ClientCredentials,
     /// Session id (from SessionControl.StartSession).
     #[arg(long)]
     pub session: String,
@@ -406,6 +409,7 @@ impl Args {
         let device = self.device()?;
         let spec = device.spec().clone();
         let mut config = BridgeConfig::new(&self.server, &self.session, &spec);
+        config.credentials = self.credentials.clone();
         config.rate_hz = self.rate_hz;
         config.guard.period_s = 1.0 / self.rate_hz;
         config.guard.passivity.mode = match self.passivity {

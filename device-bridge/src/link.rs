@@ -135,8 +135,10 @@ pub struct FaultInjection {
 /// Checked run-time configuration of the bridge.
 #[derive(Debug, Clone, PartialEq)]
 pub struct BridgeConfig {
-    /// Server URL, `http://host:port`.
+    /// Server URL, `http://host:port` (or `https://` with a CA in `credentials`).
     pub server_url: String,
+    /// Token and TLS files (a `device` token is enough; [`haptics_proto::client`]).
+    pub credentials: haptics_proto::client::ClientCredentials,
     /// Session id sent on the first sample of every stream.
     pub session_id: String,
     /// Device loop rate, in Hz.
@@ -174,6 +176,7 @@ impl BridgeConfig {
     ) -> Self {
         Self {
             server_url: server_url.into(),
+            credentials: Default::default(),
             session_id: session_id.into(),
             rate_hz: spec.rate_hz,
             guard: GuardParams::from_spec(spec),
@@ -751,6 +754,8 @@ impl XorShift {
 /// Network-side state and counters.
 struct NetCtx {
     clock: Arc<dyn Clock>,
+    /// Puts the bridge's token on the device stream.
+    token: haptics_proto::client::BearerToken,
     shared: Arc<Shared>,
     /// `seq -> (read time us, position m)` of recently sent samples, indexed by
     /// `seq % RTT_RING`.
@@ -955,7 +960,7 @@ async fn run_stream(
             }
         },
     };
-    let mut client = DeviceLinkClient::new(channel);
+    let mut client = DeviceLinkClient::with_interceptor(channel, ctx.token.clone());
     let (out_tx, out_rx) = mpsc::channel::<DeviceSample>(config.sample_queue);
     let mut first_msg = to_proto(&first);
     first_msg.session_id.clone_from(&config.session_id);
@@ -1174,7 +1179,13 @@ pub async fn run(
 ) -> Result<BridgeReport, BridgeError> {
     config.validate()?;
     device.spec().validate()?;
-    let endpoint = Endpoint::from_shared(config.server_url.clone())
+    let token = config
+        .credentials
+        .interceptor()
+        .map_err(|e| BridgeError::Config(e.to_string()))?;
+    let endpoint = config
+        .credentials
+        .endpoint(&config.server_url)
         .map_err(|e| BridgeError::InvalidUrl {
             url: config.server_url.clone(),
             message: e.to_string(),
@@ -1215,6 +1226,7 @@ pub async fn run(
         server_restarts: 0,
         session_lost: None,
         fault: config.fault,
+        token,
         rng: XorShift(config.fault.map_or(1, |f| f.seed.max(1))),
         injected_drops: 0,
         delayed: VecDeque::new(),

@@ -5,12 +5,15 @@
 //! The crate also owns the command-line form of a [`v1::Vec3`], `X,Y,Z` ([`parse_vec3`], or
 //! `str::parse::<v1::Vec3>`), so every binary refuses malformed vectors the same way.
 //!
+//! [`client`] is the client side of access control: the token every call carries and TLS.
+//!
 //! [`delta`] is the compact position encoding of `SURFACE_ENCODING_DELTA` streams, shared by
 //! the server that encodes and the clients that decode.
 //!
 //! Neighbours: `haptic-server` implements the services; `haptic-bridge`, `haptic-client` and the
 //! end-to-end tests call them.
 
+pub mod client;
 pub mod codec;
 pub mod delta;
 pub mod recording;

@@ -113,6 +113,38 @@ pub struct ConfigFile {
     pub max_sessions_per_client: Option<usize>,
     /// Deadline of a `StartSession` call (waiting and building), s.
     pub build_timeout_s: Option<f64>,
+    /// Token authentication (`[auth]`).
+    pub auth: AuthFile,
+    /// TLS (`[tls]`); unset: plain HTTP/2.
+    pub tls: Option<TlsFiles>,
+    /// Listen beyond loopback without TLS and tokens (refused otherwise).
+    pub allow_insecure_remote: bool,
+}
+
+/// The `[auth]` section: tokens and failed attempts ([`crate::auth`]).
+#[derive(Debug, Clone, PartialEq, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct AuthFile {
+    /// The tokens file (created with one token per role at first start when absent); unset:
+    /// no tokens, every call allowed.
+    pub tokens_file: Option<PathBuf>,
+    /// Failed calls one client address may make per window before it is refused (default 10).
+    pub max_failures: Option<u32>,
+    /// The failure window, s (default 10).
+    pub failure_window_s: Option<f64>,
+}
+
+/// The `[tls]` section: the daemon's certificate and key, and optionally the CA whose client
+/// certificates it requires (PEM files).
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TlsFiles {
+    /// Certificate chain (PEM).
+    pub cert_file: PathBuf,
+    /// Private key (PEM).
+    pub key_file: PathBuf,
+    /// CA certificate (PEM); when set, every client must present a certificate it signed.
+    pub client_ca_file: Option<PathBuf>,
 }
 
 /// Log output format.
@@ -159,6 +191,14 @@ pub struct ServerConfig {
     /// A build still running at the deadline finishes in the background and its session is
     /// stopped at once: the client was told it failed.
     pub build_timeout: std::time::Duration,
+    /// The tokens file ([`crate::auth`]); `None`: no tokens, every call allowed.
+    pub tokens_file: Option<PathBuf>,
+    /// Limits on failed authentication attempts.
+    pub auth_limits: crate::auth::FailureLimits,
+    /// TLS files; `None`: plain HTTP/2.
+    pub tls: Option<TlsFiles>,
+    /// Listening beyond loopback without TLS and tokens was explicitly allowed.
+    pub allow_insecure_remote: bool,
 }
 
 /// Default [`ServerConfig::max_elements`]: 50 000 tetrahedra. A whole-body explicit LV tick
@@ -193,6 +233,10 @@ impl Default for ServerConfig {
             max_builds_per_client: 2,
             max_sessions_per_client: 4,
             build_timeout: std::time::Duration::from_secs(30),
+            tokens_file: None,
+            auth_limits: crate::auth::FailureLimits::default(),
+            tls: None,
+            allow_insecure_remote: false,
         }
     }
 }
@@ -321,6 +365,36 @@ impl ConfigFile {
                 )));
             }
             c.build_timeout = std::time::Duration::from_secs_f64(t);
+        }
+        c.tokens_file = self.auth.tokens_file;
+        if let Some(n) = self.auth.max_failures {
+            if n == 0 {
+                return Err(ServerError::Config(
+                    "auth.max_failures must be at least 1".into(),
+                ));
+            }
+            c.auth_limits.max_failures = n;
+        }
+        if let Some(t) = self.auth.failure_window_s {
+            if !(t.is_finite() && (0.001..=86_400.0).contains(&t)) {
+                return Err(ServerError::Config(format!(
+                    "auth.failure_window_s = {t}: expected 0.001..=86400"
+                )));
+            }
+            c.auth_limits.window = std::time::Duration::from_secs_f64(t);
+        }
+        c.tls = self.tls;
+        c.allow_insecure_remote = self.allow_insecure_remote;
+        if !c.listen.ip().is_loopback()
+            && (c.tls.is_none() || c.tokens_file.is_none())
+            && !c.allow_insecure_remote
+        {
+            return Err(ServerError::Config(format!(
+                "refusing to listen on {} without TLS and tokens: anyone on the network could \
+                 drive the arm. Set [tls] and [auth] tokens_file (docs/security.md), or \
+                 allow_insecure_remote = true (--allow-insecure-remote) on a trusted network",
+                c.listen
+            )));
         }
         if let Some(m) = self.metrics_listen {
             c.metrics_listen = Some(

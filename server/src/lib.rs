@@ -4,12 +4,13 @@
 //! is given, until a shutdown future resolves; then it stops every session (each servo thread
 //! commands zero force and is joined) and the streams end.
 //!
-//! Modules: [`config`] (layered configuration), [`error`] (the one mapping to `tonic::Status`),
+//! Modules: [`auth`] (tokens, roles, failed attempts), [`config`] (layered configuration), [`error`] (the one mapping to `tonic::Status`),
 //! [`servo`] (the 1 kHz loop), [`session`] (threads and handoffs per session), [`service`]
 //! (gRPC handlers), [`stream`] (surface streams: shared frames, compact encoding, watchers),
 //! [`solve`] (static solutions of scene files, behind `haptic-solve`), [`calibrate`]
 //! (mass-spring calibration tables, behind `haptic-calibrate`).
 
+pub mod auth;
 pub mod builds;
 pub mod calibrate;
 pub mod config;
@@ -34,7 +35,8 @@ use tokio::net::TcpListener;
 pub use config::ServerConfig;
 pub use error::ServerError;
 
-/// Serves until `shutdown` resolves, then stops all sessions and returns.
+/// Serves until `shutdown` resolves, then stops all sessions and returns. Prints
+/// `listening on ADDR` on stdout once access control (tokens, TLS) is set up.
 ///
 /// # Errors
 /// When the transport fails or the reflection service cannot be built.
@@ -56,7 +58,16 @@ pub async fn run(
         println!("metrics on {}", listener.local_addr()?);
         tokio::spawn(metrics::serve(listener, manager.clone()));
     }
-    let services = service::Services::new(manager.clone());
+    let auth = Arc::new(auth::Auth::from_config(
+        manager.config().tokens_file.as_deref(),
+        manager.config().auth_limits,
+    )?);
+    let tls = manager.config().tls.as_ref().map(tls_config).transpose()?;
+    let services = service::Services::with_auth(manager.clone(), auth.clone());
+    let guard = auth::AuthInterceptor(auth);
+    // Printed once the tokens exist and TLS is loaded, so that a script that waits for this
+    // line can read the token files; a bad tokens file or certificate fails before it.
+    println!("listening on {}", listener.local_addr()?);
     let (health, health_service) = tonic_health::server::health_reporter();
     health
         .set_serving::<SessionControlServer<service::Services>>()
@@ -80,13 +91,26 @@ pub async fn run(
     // `Server::tcp_nodelay` is ignored with a custom incoming stream; set it on the incoming,
     // or Nagle's algorithm holds each small ForceCommand for one device period.
     let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
-    let result = tonic::transport::Server::builder()
+    let mut builder = tonic::transport::Server::builder();
+    if let Some(tls) = tls {
+        builder = builder.tls_config(tls)?;
+        tracing::info!("TLS on");
+    }
+    // Health and reflection answer without a token (they reveal only the public contract);
+    // the three haptics services authenticate every call.
+    let result = builder
         .add_service(health_service)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)
-        .add_service(SessionControlServer::new(services.clone()))
-        .add_service(DeviceLinkServer::new(services.clone()))
-        .add_service(SurfaceStreamServer::new(services))
+        .add_service(SessionControlServer::with_interceptor(
+            services.clone(),
+            guard.clone(),
+        ))
+        .add_service(DeviceLinkServer::with_interceptor(
+            services.clone(),
+            guard.clone(),
+        ))
+        .add_service(SurfaceStreamServer::with_interceptor(services, guard))
         .serve_with_incoming_shutdown(incoming, async move {
             shutdown.await;
             tracing::info!("shutting down: stopping sessions");
@@ -97,4 +121,28 @@ pub async fn run(
     manager.stop_all();
     result?;
     Ok(())
+}
+
+/// The server's TLS configuration from its PEM files (each at most 1 MiB).
+fn tls_config(files: &config::TlsFiles) -> anyhow::Result<tonic::transport::ServerTlsConfig> {
+    use tonic::transport::{Certificate, Identity, ServerTlsConfig};
+    let read = |p: &std::path::Path| -> anyhow::Result<Vec<u8>> {
+        let meta =
+            std::fs::metadata(p).map_err(|e| anyhow::anyhow!("TLS file {}: {e}", p.display()))?;
+        if !meta.is_file() || meta.len() > 1 << 20 {
+            anyhow::bail!(
+                "TLS file {}: not a regular file of at most 1 MiB",
+                p.display()
+            );
+        }
+        std::fs::read(p).map_err(|e| anyhow::anyhow!("TLS file {}: {e}", p.display()))
+    };
+    let mut tls = ServerTlsConfig::new().identity(Identity::from_pem(
+        read(&files.cert_file)?,
+        read(&files.key_file)?,
+    ));
+    if let Some(ca) = &files.client_ca_file {
+        tls = tls.client_ca_root(Certificate::from_pem(read(ca)?));
+    }
+    Ok(tls)
 }

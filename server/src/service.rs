@@ -16,6 +16,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 
+use crate::auth::{Action, Auth};
 use crate::builds::{BuildGate, BuildLimits};
 use crate::error::ServerError;
 use crate::servo::{Command, Pose};
@@ -33,11 +34,19 @@ pub const MAX_VIEWER_RATE_HZ: f64 = crate::stream::MAX_RATE_HZ;
 pub struct Services {
     manager: Arc<SessionManager>,
     builds: Arc<BuildGate>,
+    auth: Arc<Auth>,
 }
 
 impl Services {
-    /// Handlers over `manager` (scene builds bounded by its configuration's limits).
+    /// Handlers over `manager` (scene builds bounded by its configuration's limits) that
+    /// allow every call (no tokens; as in-process tests use them).
     pub fn new(manager: Arc<SessionManager>) -> Self {
+        Self::with_auth(manager, Arc::new(Auth::open()))
+    }
+
+    /// Handlers that check each call's [`crate::auth::Caller`] against `auth` (the
+    /// interceptor in front of them authenticates it).
+    pub fn with_auth(manager: Arc<SessionManager>, auth: Arc<Auth>) -> Self {
         let c = manager.config();
         let builds = Arc::new(BuildGate::new(BuildLimits {
             max_concurrent_builds: c.max_concurrent_builds,
@@ -45,7 +54,11 @@ impl Services {
             max_sessions_per_client: c.max_sessions_per_client,
             build_timeout: c.build_timeout,
         }));
-        Self { manager, builds }
+        Self {
+            manager,
+            builds,
+            auth,
+        }
     }
 }
 
@@ -88,8 +101,9 @@ fn validate_sample(s: &DeviceSample) -> Result<(DVec3, DVec3), &'static str> {
 impl SessionControl for Services {
     async fn list_scenes(
         &self,
-        _: Request<ListScenesRequest>,
+        req: Request<ListScenesRequest>,
     ) -> Result<Response<ListScenesResponse>, Status> {
+        self.auth.authorize(&req, Action::ListScenes, None)?;
         let scenes = tokio::task::spawn_blocking(|| {
             haptic_model::scene::builtin_scene_names()
                 .iter()
@@ -115,6 +129,7 @@ impl SessionControl for Services {
         &self,
         req: Request<StartSessionRequest>,
     ) -> Result<Response<StartSessionResponse>, Status> {
+        let caller = self.auth.authorize(&req, Action::StartSession, None)?;
         let client = req.remote_addr().map(|a| a.ip());
         let r = req.into_inner();
         let manager = self.manager.clone();
@@ -131,7 +146,8 @@ impl SessionControl for Services {
                 Ok(session)
             })
             .await?;
-        tracing::info!(session = %session.id, scene = %session.scene, nodes = session.nodes, tets = session.tetrahedra,
+        self.auth.set_owner(&session.id, &caller);
+        tracing::info!(session = %session.id, owner = %caller.name, scene = %session.scene, nodes = session.nodes, tets = session.tetrahedra,
             substeps = session.substeps, critical_dt_s = session.critical_dt_s, "session started");
         Ok(Response::new(StartSessionResponse {
             session_id: session.id.clone(),
@@ -146,12 +162,15 @@ impl SessionControl for Services {
         &self,
         req: Request<StopSessionRequest>,
     ) -> Result<Response<StopSessionResponse>, Status> {
+        self.auth
+            .authorize(&req, Action::StopSession, Some(&req.get_ref().session_id))?;
         let id = req.into_inner().session_id;
         let manager = self.manager.clone();
         let id2 = id.clone();
         tokio::task::spawn_blocking(move || manager.stop(&id2))
             .await
             .map_err(|e| Status::internal(e.to_string()))??;
+        self.auth.forget(&id);
         tracing::info!(session = %id, "session stopped");
         Ok(Response::new(StopSessionResponse {}))
     }
@@ -160,6 +179,8 @@ impl SessionControl for Services {
         &self,
         req: Request<ApplyForceRequest>,
     ) -> Result<Response<ApplyForceResponse>, Status> {
+        self.auth
+            .authorize(&req, Action::ApplyForce, Some(&req.get_ref().session_id))?;
         let r = req.into_inner();
         let point = vec3(&r.point_m, "point_m")?;
         let force = vec3(&r.force_n, "force_n")?;
@@ -183,6 +204,8 @@ impl SessionControl for Services {
         &self,
         req: Request<GetStatsRequest>,
     ) -> Result<Response<SessionStats>, Status> {
+        self.auth
+            .authorize(&req, Action::GetStats, Some(&req.get_ref().session_id))?;
         let id = req.into_inner().session_id;
         let s = self.manager.get(&id)?;
         let st = s.stats();
@@ -229,10 +252,11 @@ impl SessionControl for Services {
 
     async fn list_sessions(
         &self,
-        _: Request<ListSessionsRequest>,
+        req: Request<ListSessionsRequest>,
     ) -> Result<Response<ListSessionsResponse>, Status> {
+        let caller = self.auth.authorize(&req, Action::ListSessions, None)?;
         Ok(Response::new(ListSessionsResponse {
-            session_ids: self.manager.ids(),
+            session_ids: self.auth.visible(&caller, self.manager.ids()),
         }))
     }
 }
@@ -290,6 +314,8 @@ impl DeviceLink for Services {
         &self,
         req: Request<Streaming<DeviceSample>>,
     ) -> Result<Response<Self::ConnectStream>, Status> {
+        // Any session: the session id comes with the first sample.
+        self.auth.authorize(&req, Action::DeviceLink, None)?;
         let deadband = req
             .metadata()
             .get(HEADER_FORCE_DEADBAND)
@@ -383,6 +409,8 @@ impl SurfaceStream for Services {
         &self,
         req: Request<WatchRequest>,
     ) -> Result<Response<Self::WatchStream>, Status> {
+        self.auth
+            .authorize(&req, Action::Watch, Some(&req.get_ref().session_id))?;
         let r = req.into_inner();
         let params = crate::stream::WatchParams::from_request(&r)?;
         let session = self.manager.get(&r.session_id)?;
@@ -393,6 +421,8 @@ impl SurfaceStream for Services {
         &self,
         req: Request<KeyframeRequest>,
     ) -> Result<Response<KeyframeResponse>, Status> {
+        self.auth
+            .authorize(&req, Action::Watch, Some(&req.get_ref().session_id))?;
         let r = req.into_inner();
         let session = self.manager.get(&r.session_id)?;
         session.watcher_stats.request_keyframe(r.watch_id)?;

@@ -85,3 +85,36 @@ fn build_limits_are_read_and_checked() {
         assert!(e.contains(field), "{text}: {e}");
     }
 }
+
+#[test]
+fn listening_beyond_loopback_needs_tls_and_tokens_or_an_explicit_override() {
+    let config = |text: &str| ConfigFile::parse(text).unwrap().into_config();
+    let tls = "[tls]\ncert_file = \"c.pem\"\nkey_file = \"k.pem\"\n";
+    let tokens = "[auth]\ntokens_file = \"tokens.toml\"\n";
+    for text in [
+        "listen = \"0.0.0.0:50051\"\n".to_owned(),
+        format!("listen = \"0.0.0.0:50051\"\n{tls}"),
+        format!("listen = \"[::]:50051\"\n{tokens}"),
+    ] {
+        let e = config(&text).unwrap_err().to_string();
+        assert!(
+            e.contains("refusing to listen") && e.contains("allow_insecure_remote"),
+            "{e}"
+        );
+    }
+    let both = config(&format!("listen = \"0.0.0.0:50051\"\n{tokens}{tls}")).unwrap();
+    assert_eq!(both.tokens_file.as_deref(), Some(Path::new("tokens.toml")));
+    assert!(both.tls.is_some());
+    let overridden = config("listen = \"0.0.0.0:50051\"\nallow_insecure_remote = true\n").unwrap();
+    assert!(overridden.allow_insecure_remote && overridden.tls.is_none());
+    // Loopback needs neither.
+    assert!(config("listen = \"127.0.0.1:50051\"\n").is_ok());
+    let e = config("[auth]\nmax_failures = 0\n")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("auth.max_failures"), "{e}");
+    let e = config("[auth]\nfailure_window_s = -1\n")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("auth.failure_window_s"), "{e}");
+}

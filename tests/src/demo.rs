@@ -1,8 +1,9 @@
 //! The demo runner behind `haptic-demo` (README's first command): one scripted session of the
 //! whole product with the real binaries, then a summary.
 //!
-//! Sequence: `hapticd --listen 127.0.0.1:0`; `hapticctl start lv`; `haptic-viewer` writing PNGs;
-//! `haptic-bridge` pressing the left ventricle with the simulated probe (recording a CSV);
+//! Sequence: `hapticd --listen 127.0.0.1:0 --tokens-file OUT/auth/tokens.toml` (tokens made at
+//! first start, one file per role); `hapticctl start lv` with the control token;
+//! `haptic-viewer` (viewer token) writing PNGs; `haptic-bridge` (device token) pressing the left ventricle with the simulated probe (recording a CSV);
 //! meanwhile `hapticctl force` pushes the epicardium elsewhere; then `hapticctl stats`, `stop`,
 //! SIGTERM to the daemon. Every child is killed if a step fails (the handles kill on drop).
 //! Neighbours: the harness in the crate root ([`crate::Daemon`], [`crate::run_bin_in`]).
@@ -61,16 +62,40 @@ pub async fn run(p: &DemoParams, progress: &mut dyn FnMut(&str)) -> Result<Value
         .with_context(|| format!("creating {}", pictures.display()))?;
     let csv = out.join("bridge.csv");
     let (dir, s) = (&p.bin_dir, |p: &Path| p.display().to_string());
+    // Fresh tokens each run: the daemon creates the tokens file and one `<role>.token` per
+    // role (mode 0600) at first start; each client passes the file of its role.
+    let auth = out.join("auth");
+    if auth.exists() {
+        std::fs::remove_dir_all(&auth).with_context(|| format!("clearing {}", auth.display()))?;
+    }
+    std::fs::create_dir_all(&auth).with_context(|| format!("creating {}", auth.display()))?;
+    let tokens = s(&auth.join("tokens.toml"));
+    let token = |role: &str| s(&auth.join(format!("{role}.token")));
+    let (control, device, viewer_token) = (token("control"), token("device"), token("viewer"));
 
-    progress(&format!("starting {HAPTICD} --listen 127.0.0.1:0 ..."));
-    let mut daemon = Daemon::spawn_from(&crate::binary_in(dir, HAPTICD)?, &[])?;
+    progress(&format!(
+        "starting {HAPTICD} --listen 127.0.0.1:0 --tokens-file {tokens} ..."
+    ));
+    let mut daemon = Daemon::spawn_from(
+        &crate::binary_in(dir, HAPTICD)?,
+        &["--tokens-file", &tokens],
+    )?;
     let url = daemon.url();
-    progress(&format!("{HAPTICD} listening on {}", daemon.addr));
+    progress(&format!(
+        "{HAPTICD} listening on {}; tokens in {}",
+        daemon.addr,
+        auth.display()
+    ));
 
-    progress("starting session: hapticctl start lv ...");
-    let started = run_bin_in(dir, CTL, &["--server", &url, "start", "lv"], STEP_TIMEOUT)
-        .await?
-        .success()?;
+    progress("starting session: hapticctl --token-file control.token start lv ...");
+    let started = run_bin_in(
+        dir,
+        CTL,
+        &["--server", &url, "--token-file", &control, "start", "lv"],
+        STEP_TIMEOUT,
+    )
+    .await?
+    .success()?;
     let id = started
         .stdout
         .lines()
@@ -92,6 +117,8 @@ pub async fn run(p: &DemoParams, progress: &mut dyn FnMut(&str)) -> Result<Value
         &[
             "--server",
             &url,
+            "--token-file",
+            &viewer_token,
             "--session",
             &id,
             "--out",
@@ -117,6 +144,8 @@ pub async fn run(p: &DemoParams, progress: &mut dyn FnMut(&str)) -> Result<Value
         &[
             "--server",
             &url,
+            "--token-file",
+            &device,
             "--session",
             &id,
             "--driver",
@@ -139,6 +168,8 @@ pub async fn run(p: &DemoParams, progress: &mut dyn FnMut(&str)) -> Result<Value
         &[
             "--server",
             &url,
+            "--token-file",
+            &control,
             "force",
             &id,
             "--point",
@@ -168,16 +199,29 @@ pub async fn run(p: &DemoParams, progress: &mut dyn FnMut(&str)) -> Result<Value
     let stats = run_bin_in(
         dir,
         CTL,
-        &["--server", &url, "stats", &id, "--json"],
+        &[
+            "--server",
+            &url,
+            "--token-file",
+            &control,
+            "stats",
+            &id,
+            "--json",
+        ],
         STEP_TIMEOUT,
     )
     .await?
     .success()?
     .json()?;
     progress("stopping the session: hapticctl stop ...");
-    run_bin_in(dir, CTL, &["--server", &url, "stop", &id], STEP_TIMEOUT)
-        .await?
-        .success()?;
+    run_bin_in(
+        dir,
+        CTL,
+        &["--server", &url, "--token-file", &control, "stop", &id],
+        STEP_TIMEOUT,
+    )
+    .await?
+    .success()?;
     progress(&format!("stopping {HAPTICD} (SIGTERM) ..."));
     let status = daemon.terminate(Duration::from_secs(15))?;
     if !status.success() {

@@ -20,6 +20,9 @@ struct Cli {
     /// Server URL.
     #[arg(long, global = true, env = "HAPTICD_ADDR", default_value = haptic_client::DEFAULT_SERVER)]
     server: String,
+    /// Token and TLS files (`control` starts and drives its own sessions; `viewer` reads).
+    #[command(flatten)]
+    credentials: haptic_client::ClientCredentials,
     #[command(subcommand)]
     command: CtlCommand,
 }
@@ -31,7 +34,7 @@ async fn run(cli: Cli) -> Result<(), ClientError> {
         println!("{}: {n} frames", out.join("surface.pvd").display());
         return Ok(());
     }
-    let mut ctl = Ctl::connect(&cli.server).await?;
+    let mut ctl = Ctl::connect(&cli.server, &cli.credentials).await?;
     let (mut out, mut err) = (std::io::stdout().lock(), std::io::stderr());
     ctl::execute(&mut ctl, cli.command, &mut out, &mut err).await
 }

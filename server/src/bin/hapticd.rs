@@ -1,5 +1,5 @@
 //! `hapticd`: the haptic server daemon. Parses flags over the config file, starts logging,
-//! binds, prints `listening on <addr>`, and calls [`haptic_server::run`] until SIGINT/SIGTERM.
+//! binds, and calls [`haptic_server::run`] (which prints `listening on <addr>`) until SIGINT/SIGTERM.
 
 use std::path::PathBuf;
 
@@ -48,6 +48,22 @@ struct Args {
     /// daemon prints `metrics on <addr>`).
     #[arg(long)]
     metrics_listen: Option<String>,
+    /// Tokens file: calls must carry one of its tokens (created with one token per role, and
+    /// a `<role>.token` file each beside it, mode 0600, when absent). Never a token itself.
+    #[arg(long, env = "HAPTICD_TOKENS_FILE", value_name = "FILE")]
+    tokens_file: Option<PathBuf>,
+    /// TLS certificate chain (PEM); with --tls-key, the daemon speaks only TLS.
+    #[arg(long, value_name = "PEM", requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// TLS private key (PEM) of --tls-cert.
+    #[arg(long, value_name = "PEM", requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
+    /// Require client certificates signed by this CA (PEM); needs --tls-cert.
+    #[arg(long, value_name = "PEM", requires = "tls_cert")]
+    tls_client_ca: Option<PathBuf>,
+    /// Listen beyond loopback without TLS and tokens (a trusted, isolated network only).
+    #[arg(long)]
+    allow_insecure_remote: bool,
 }
 
 #[tokio::main]
@@ -64,6 +80,15 @@ async fn main() -> anyhow::Result<()> {
     file.state_dir = args.state_dir.or(file.state_dir);
     file.metrics_listen = args.metrics_listen.or(file.metrics_listen);
     file.data_dirs.extend(args.data_dirs);
+    file.auth.tokens_file = args.tokens_file.or(file.auth.tokens_file);
+    if let (Some(cert_file), Some(key_file)) = (args.tls_cert, args.tls_key) {
+        file.tls = Some(haptic_server::config::TlsFiles {
+            cert_file,
+            key_file,
+            client_ca_file: args.tls_client_ca,
+        });
+    }
+    file.allow_insecure_remote |= args.allow_insecure_remote;
     file.servo.realtime |= args.realtime;
     file.servo.mlockall |= args.mlockall;
     file.servo.cpu = args.cpu.or(file.servo.cpu);
@@ -80,7 +105,7 @@ async fn main() -> anyhow::Result<()> {
     let listener = tokio::net::TcpListener::bind(config.listen)
         .await
         .with_context(|| format!("binding {}", config.listen))?;
-    println!("listening on {}", listener.local_addr()?);
+    // `run` prints `listening on ADDR` once tokens and TLS are set up.
     haptic_server::run(listener, config, shutdown_signal()).await
 }
 

@@ -14,13 +14,24 @@ pub struct InProcess {
 
 impl InProcess {
     /// Starts the server on a port-0 listener.
+    #[allow(dead_code)] // not every test binary starts with the defaults
     pub async fn start() -> Result<Self> {
+        Self::start_with(haptic_server::ServerConfig::default()).await
+    }
+
+    /// Starts the server with `config` on a port-0 listener (its `listen` is replaced; the
+    /// URL is `https://localhost:PORT` when `config.tls` is set).
+    pub async fn start_with(config: haptic_server::ServerConfig) -> Result<Self> {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
-        let url = format!("http://{}", listener.local_addr()?);
+        let addr = listener.local_addr()?;
+        let url = match config.tls {
+            Some(_) => format!("https://localhost:{}", addr.port()),
+            None => format!("http://{addr}"),
+        };
         let (tx, rx) = oneshot::channel::<()>();
         let config = haptic_server::ServerConfig {
-            listen: listener.local_addr()?,
-            ..Default::default()
+            listen: addr,
+            ..config
         };
         let task = tokio::spawn(haptic_server::run(listener, config, async move {
             let _ = rx.await;
