@@ -285,6 +285,8 @@ pub fn stats_rows(s: &SessionStats) -> Vec<StatRow> {
         row("out_of_order_samples", U64(s.out_of_order_samples), "count"),
         row("device_silent", Bool(s.device_silent), ""),
         row("device_silences", U64(s.device_silences), "count"),
+        row("overrunning", Bool(s.overrunning), ""),
+        row("demoted", Bool(s.demoted), ""),
         row("watchers", U64(s.watchers.into()), "count"),
         row("watcher_frames_sent", U64(s.watcher_frames_sent), "count"),
         row(

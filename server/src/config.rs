@@ -46,6 +46,9 @@ pub struct ServoConfig {
     pub overrun_policy: OverrunPolicy,
     /// A servo below this fraction of its nominal rate for a whole second is overrunning.
     pub min_rate_fraction: f64,
+    /// An overrunning session's servo thread yields to the sessions that keep up
+    /// (`SCHED_IDLE` while it overruns and another session runs; [`crate::servo::Yielding`]).
+    pub yield_when_overrunning: bool,
 }
 
 /// [`ServoConfig::overrun_policy`].
@@ -73,6 +76,7 @@ impl Default for ServoConfig {
             device_silence_ms: 50,
             overrun_policy: OverrunPolicy::Report,
             min_rate_fraction: 0.9,
+            yield_when_overrunning: true,
         }
     }
 }

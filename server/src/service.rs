@@ -246,6 +246,8 @@ impl SessionControl for Services {
                 .load(std::sync::atomic::Ordering::Relaxed),
             device_silent: st.device_silent,
             device_silences: st.device_silences,
+            overrunning: st.overrunning,
+            demoted: st.demoted,
             ..watcher_stats(&s.watcher_stats)
         }))
     }

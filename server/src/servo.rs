@@ -188,6 +188,11 @@ pub struct StatsSnapshot {
     pub device_silent: bool,
     /// Times a connected device fell silent.
     pub device_silences: u64,
+    /// The loop rate has stayed below the minimum (`servo.min_rate_fraction` of the nominal
+    /// rate) for a second: the session cannot keep its rate on this machine.
+    pub overrunning: bool,
+    /// The servo thread yields to the sessions that keep up (`SCHED_IDLE`; [`Yielding`]).
+    pub demoted: bool,
     /// The body's size and state at the last publication.
     pub body: BodyStats,
     /// Step compute times, all ticks so far (for the metrics endpoint).
@@ -388,9 +393,15 @@ pub struct ServoCore {
     last_seq: Option<u64>,
     /// A connected device silent for longer than this is treated as gone, µs.
     device_silence_us: u64,
-    /// Quarantine when the loop rate stays below `min_rate_hz` for this long, µs of wall time
-    /// (`None`: report only).
-    overrun_degrade: Option<(f64, u64)>,
+    /// The session is overrunning when the loop rate stays below `min_rate_hz` for this
+    /// long, µs of wall time (`None`: never judged).
+    overrun_limit: Option<(f64, u64)>,
+    /// Quarantine an overrunning session (overrun policy `degrade`).
+    degrade_on_overrun: bool,
+    /// See [`StatsSnapshot::overrunning`].
+    overrunning: bool,
+    /// See [`StatsSnapshot::demoted`]; set by the loop.
+    demoted: bool,
     /// Start of the current stretch of slow statistics windows, µs.
     slow_since_us: Option<u64>,
     device_silent: bool,
@@ -493,11 +504,21 @@ fn histogram() -> Histogram<u64> {
 }
 
 impl ServoCore {
-    /// Quarantines the session (zero force, `fault` set) once the loop rate of every
+    /// Judges the session overrunning ([`ServoCore::overrunning`]) once the loop rate of every
+    /// statistics window (`stats_every` ticks) has stayed below `min_rate_hz` for `for_us` of
+    /// wall time; it stops being so after one window at or above the rate.
+    pub fn with_overrun_limit(mut self, min_rate_hz: f64, for_us: u64) -> Self {
+        self.overrun_limit = Some((min_rate_hz, for_us));
+        self
+    }
+
+    /// As [`Self::with_overrun_limit`], and quarantines the session (zero force, `fault` set,
+    /// the body no longer stepped) once it is overrunning: the loop rate of every
     /// statistics window (`stats_every` ticks) has stayed below `min_rate_hz` for `for_us` of
     /// wall time. Without this call the rate is only reported.
     pub fn with_overrun_degrade(mut self, min_rate_hz: f64, for_us: u64) -> Self {
-        self.overrun_degrade = Some((min_rate_hz, for_us));
+        self.overrun_limit = Some((min_rate_hz, for_us));
+        self.degrade_on_overrun = true;
         self
     }
 
@@ -533,7 +554,10 @@ impl ServoCore {
             ticks: 0,
             last_seq: None,
             device_silence_us: DEFAULT_DEVICE_SILENCE_US,
-            overrun_degrade: None,
+            overrun_limit: None,
+            degrade_on_overrun: false,
+            overrunning: false,
+            demoted: false,
             slow_since_us: None,
             device_silent: false,
             device_silences: 0,
@@ -601,6 +625,17 @@ impl ServoCore {
     /// True when the device stream published a pose the servo has not read yet (wait-free).
     pub fn sample_pending(&self) -> bool {
         self.pose.updated()
+    }
+
+    /// True when the session has stayed below its minimum loop rate for the judged time
+    /// ([`Self::with_overrun_limit`]).
+    pub fn overrunning(&self) -> bool {
+        self.overrunning
+    }
+
+    /// Records whether the loop has demoted this servo thread (published with the statistics).
+    pub fn set_demoted(&mut self, demoted: bool) {
+        self.demoted = demoted;
     }
 
     /// True when the last pose read came from a connected device.
@@ -762,7 +797,7 @@ impl ServoCore {
             self.window_start_us = t1;
             self.window_ticks = 0;
             // The first window includes start-up: not judged.
-            if let Some((min_rate_hz, for_us)) = self.overrun_degrade
+            if let Some((min_rate_hz, for_us)) = self.overrun_limit
                 && self.ticks > self.stats_every
             {
                 let window_start = t1.saturating_sub(elapsed_us);
@@ -772,7 +807,8 @@ impl ServoCore {
                     None
                 };
                 let slow_for = self.slow_since_us.map_or(0, |s| t1.saturating_sub(s));
-                if slow_for >= for_us && self.fault.is_none() {
+                self.overrunning = slow_for >= for_us;
+                if self.overrunning && self.degrade_on_overrun && self.fault.is_none() {
                     self.fault = Some(
                         "the servo cannot keep its rate on this machine (overrun policy \"degrade\"): session quarantined (zero force)",
                     );
@@ -804,6 +840,8 @@ impl ServoCore {
                 fault: self.fault,
                 device_silent: self.device_silent,
                 device_silences: self.device_silences,
+                overrunning: self.overrunning,
+                demoted: self.demoted,
                 body,
                 step_buckets: self.step_buckets,
                 pose_to_force_buckets: self.p2f_buckets,
@@ -854,6 +892,75 @@ pub fn setup_realtime(cfg: &crate::config::ServoConfig) -> Vec<String> {
     warnings
 }
 
+/// Lets an overrunning session's servo thread yield to the sessions that keep up (issue 16,
+/// section 2). While the session is overrunning ([`ServoCore::overrunning`]) and another
+/// session runs, its thread is moved to `SCHED_IDLE`: it then gets only the CPU time the
+/// others leave, so a model too heavy for the machine cannot slow a session that fits. When
+/// it keeps its rate again, or is alone, the thread's original policy (normal or
+/// `SCHED_FIFO`) comes back. Linux lets a thread leave `SCHED_IDLE` only with
+/// `CAP_SYS_NICE` (the systemd unit grants it); without it a demoted thread stays demoted,
+/// which `GetStats` shows (`demoted`).
+///
+/// Called from the loop after each tick, never inside it: a demotion is one system call.
+#[derive(Debug)]
+pub struct Yielding {
+    enabled: bool,
+    running_sessions: Arc<std::sync::atomic::AtomicUsize>,
+    /// The thread's policy and priority when the loop started.
+    original: (libc::c_int, libc::c_int),
+    demoted: bool,
+    /// A policy change was refused: stop trying.
+    stuck: bool,
+}
+
+impl Yielding {
+    /// Reads the calling (servo) thread's policy, after [`setup_realtime`]. `running_sessions`
+    /// counts the daemon's sessions; `enabled: false` never demotes.
+    pub fn new(enabled: bool, running_sessions: Arc<std::sync::atomic::AtomicUsize>) -> Self {
+        // SAFETY: both calls only read the calling thread's scheduling attributes into a
+        // local, properly sized struct.
+        let original = unsafe {
+            let mut param = libc::sched_param { sched_priority: 0 };
+            let policy = libc::sched_getscheduler(0);
+            libc::sched_getparam(0, &mut param);
+            (policy.max(0), param.sched_priority)
+        };
+        Self {
+            enabled,
+            running_sessions,
+            original,
+            demoted: false,
+            stuck: false,
+        }
+    }
+
+    /// Demotes or restores the thread as the session's state asks (see the type).
+    pub fn after_tick(&mut self, core: &mut ServoCore) {
+        if !self.enabled || self.stuck {
+            return;
+        }
+        let want = core.overrunning() && self.running_sessions.load(Ordering::Relaxed) > 1;
+        if want == self.demoted {
+            return;
+        }
+        let (policy, priority) = if want {
+            (libc::SCHED_IDLE, 0)
+        } else {
+            self.original
+        };
+        let param = libc::sched_param {
+            sched_priority: priority,
+        };
+        // SAFETY: changes the calling thread's own policy; `param` outlives the call.
+        if unsafe { libc::sched_setscheduler(0, policy, &param) } == 0 {
+            self.demoted = want;
+            core.set_demoted(want);
+        } else {
+            self.stuck = true;
+        }
+    }
+}
+
 /// Runs the servo loop until stopped, device-paced ([`DevicePacer`]): a tick as soon as a
 /// device sample arrives (the stream task unparks this thread after publishing it), a tick per
 /// `period_us` slot otherwise. Wakes `forwarder` after each tick.
@@ -862,6 +969,7 @@ pub fn run_loop_device_paced(
     clock: MonotonicClock,
     period_us: u64,
     forwarder: std::thread::Thread,
+    mut yielding: Yielding,
 ) {
     let mut pacer = DevicePacer::new(clock.now_us(), period_us);
     loop {
@@ -880,6 +988,7 @@ pub fn run_loop_device_paced(
         }
         pacer.finish(clock.now_us());
         core.overruns = pacer.overruns;
+        yielding.after_tick(&mut core);
     }
 }
 
@@ -890,6 +999,7 @@ pub fn run_loop(
     clock: MonotonicClock,
     period_us: u64,
     forwarder: std::thread::Thread,
+    mut yielding: Yielding,
 ) {
     let sleeper = spin_sleep::SpinSleeper::default();
     let mut pacer = Pacer::new(clock.now_us(), period_us);
@@ -904,6 +1014,7 @@ pub fn run_loop(
         }
         pacer.finish(started, clock.now_us());
         core.overruns = pacer.overruns;
+        yielding.after_tick(&mut core);
     }
 }
 

@@ -355,6 +355,8 @@ pub struct SessionManager {
     pending: std::sync::atomic::AtomicUsize,
     /// Random id of this daemon process, sent to device bridges so they notice a restart.
     instance: String,
+    /// Sessions in the table, for the servo threads' [`servo::Yielding`].
+    running: Arc<std::sync::atomic::AtomicUsize>,
 }
 
 impl SessionManager {
@@ -365,6 +367,7 @@ impl SessionManager {
             sessions: Mutex::new(HashMap::new()),
             pending: std::sync::atomic::AtomicUsize::new(0),
             instance: uuid::Uuid::new_v4().simple().to_string()[..12].to_string(),
+            running: Arc::new(std::sync::atomic::AtomicUsize::new(0)),
         }
     }
 
@@ -671,14 +674,15 @@ impl SessionManager {
             servo_cfg.stats_every_ticks,
         )
         .with_device_silence_us(u64::from(servo_cfg.device_silence_ms) * 1000);
+        // Overrunning: a whole second below the fraction of the nominal rate.
+        let min_rate_hz = servo_cfg.min_rate_fraction * 1e6 / period_us as f64;
         let core = match servo_cfg.overrun_policy {
-            crate::config::OverrunPolicy::Report => core,
-            // A whole second below the fraction of the nominal rate.
-            crate::config::OverrunPolicy::Degrade => core.with_overrun_degrade(
-                servo_cfg.min_rate_fraction * 1e6 / period_us as f64,
-                1_000_000,
-            ),
+            crate::config::OverrunPolicy::Report => core.with_overrun_limit(min_rate_hz, 1_000_000),
+            crate::config::OverrunPolicy::Degrade => {
+                core.with_overrun_degrade(min_rate_hz, 1_000_000)
+            }
         };
+        let running = self.running.clone();
         let fwd_thread = forwarder.thread().clone();
         let servo_id = id.clone();
         let pacing = servo_cfg.pacing;
@@ -689,12 +693,13 @@ impl SessionManager {
                     tracing::warn!(session = %servo_id, "{w}");
                 }
                 let clock = MonotonicClock::new(epoch);
+                let yielding = servo::Yielding::new(servo_cfg.yield_when_overrunning, running);
                 match pacing {
                     crate::config::Pacing::Device => {
-                        servo::run_loop_device_paced(core, clock, period_us, fwd_thread)
+                        servo::run_loop_device_paced(core, clock, period_us, fwd_thread, yielding)
                     }
                     crate::config::Pacing::Clock => {
-                        servo::run_loop(core, clock, period_us, fwd_thread)
+                        servo::run_loop(core, clock, period_us, fwd_thread, yielding)
                     }
                 }
             })
@@ -743,6 +748,7 @@ impl SessionManager {
                 .lock()
                 .map_err(|_| ServerError::Internal("session table poisoned".into()))?;
             sessions.insert(id, session.clone());
+            self.running.store(sessions.len(), Ordering::Relaxed);
             // The session now counts in the table: its reservation ends under the same lock.
             slot.taken = true;
             self.pending.fetch_sub(1, Ordering::AcqRel);
@@ -755,12 +761,17 @@ impl SessionManager {
     /// # Errors
     /// [`ServerError::UnknownSession`].
     pub fn stop(&self, id: &str) -> Result<(), ServerError> {
-        let s = self
-            .sessions
-            .lock()
-            .map_err(|_| ServerError::Internal("session table poisoned".into()))?
-            .remove(id)
-            .ok_or_else(|| ServerError::UnknownSession(id.to_string()))?;
+        let s = {
+            let mut sessions = self
+                .sessions
+                .lock()
+                .map_err(|_| ServerError::Internal("session table poisoned".into()))?;
+            let s = sessions
+                .remove(id)
+                .ok_or_else(|| ServerError::UnknownSession(id.to_string()))?;
+            self.running.store(sessions.len(), Ordering::Relaxed);
+            s
+        };
         s.stop();
         if let Some(dir) = &self.config.state_dir {
             // A stopped session is not restored (a missing record is fine).
@@ -776,6 +787,7 @@ impl SessionManager {
             .lock()
             .map(|mut s| s.drain().map(|(_, v)| v).collect())
             .unwrap_or_default();
+        self.running.store(0, Ordering::Relaxed);
         for s in all {
             s.stop();
         }

@@ -2,73 +2,37 @@
 //! reported, and with `overrun_policy = "degrade"` quarantined (zero force, a fault naming the
 //! policy) after a second below 90 % of its rate, while a session that keeps up is left alone.
 //! The slow session is the built-in LV with 3 ms of extra work per tick (a model too heavy for
-//! the machine, made deterministic).
+//! the machine, made deterministic). And the protection of the sessions that keep up: six
+//! heavy sessions that also spin the CPU yield (`SCHED_IDLE`) to an LV that fits, whose loop
+//! rate stays within 10 % of its own alone.
+
+mod common;
 
 use std::time::{Duration, Instant};
 
-use haptic_model::body::{
-    BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput, TickOutput,
-};
-use haptic_model::{DVec3, ModelError};
+use common::{Burdened, genuine_run, lv_body, wait_for};
 use haptic_server::ServerConfig;
 use haptic_server::config::OverrunPolicy;
 use haptic_server::session::SessionManager;
 
-/// A real body whose tick takes 3 ms longer.
-struct Slow(Box<dyn SoftBody>);
-
-impl SoftBody for Slow {
-    fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
-        std::thread::sleep(Duration::from_millis(3));
-        self.0.tick(input)
-    }
-    fn add_point_load(&mut self, p: DVec3, f: DVec3, d: f64) -> Result<(), ModelError> {
-        self.0.add_point_load(p, f, d)
-    }
-    fn surface_topology(&self) -> SurfaceTopology<'_> {
-        self.0.surface_topology()
-    }
-    fn surface_capacity(&self) -> SurfaceCapacity {
-        self.0.surface_capacity()
-    }
-    fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
-        self.0.write_surface_positions(out)
-    }
-    fn write_surface_rest_positions(&self, out: &mut [f32]) {
-        self.0.write_surface_rest_positions(out)
-    }
-    fn stats(&self) -> BodyStats {
-        self.0.stats()
-    }
-    fn info(&self) -> BodyInfo {
-        self.0.info()
-    }
-}
-
-fn lv_body() -> Box<dyn SoftBody> {
-    let scene = haptic_model::scene::load_builtin("lv").unwrap();
-    haptic_model::build_body(&scene).unwrap()
-}
-
-async fn wait_for(mut done: impl FnMut() -> bool, limit: Duration) -> bool {
-    let t0 = Instant::now();
-    while t0.elapsed() < limit {
-        if done() {
-            return true;
-        }
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-    done()
-}
+/// The tests of this file run one at a time: the yielding test compares loop rates and step
+/// times, which the others' sessions would disturb.
+static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_session_that_cannot_keep_its_rate_is_quarantined_under_degrade_only() {
+    let _serial = SERIAL.lock().await;
     for policy in [OverrunPolicy::Report, OverrunPolicy::Degrade] {
         let mut config = ServerConfig::default();
         config.servo.overrun_policy = policy;
         config.servo.stats_every_ticks = 20;
         let manager = SessionManager::new(config);
-        let slow = manager.start_body(Box::new(Slow(lv_body()))).unwrap();
+        let slow = manager
+            .start_body(Box::new(Burdened::sleeping(
+                lv_body(),
+                Duration::from_millis(3),
+            )))
+            .unwrap();
         // About 250 ticks per second: judged after a second below 900 Hz.
         match policy {
             OverrunPolicy::Report => {
@@ -97,6 +61,7 @@ async fn a_session_that_cannot_keep_its_rate_is_quarantined_under_degrade_only()
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_session_that_keeps_up_is_not_quarantined() {
+    let _serial = SERIAL.lock().await;
     let mut config = ServerConfig::default();
     config.servo.overrun_policy = OverrunPolicy::Degrade;
     // Judged against a fifth of the nominal rate so that a loaded 2-core test machine (the
@@ -106,5 +71,70 @@ async fn a_session_that_keeps_up_is_not_quarantined() {
     let s = manager.start_body(lv_body()).unwrap();
     assert!(wait_for(|| s.stats().steps > 2500, Duration::from_secs(30)).await);
     assert!(s.stats().fault.is_none(), "{:?}", s.stats().fault);
+    manager.stop_all();
+}
+
+/// Issue 16, section 2: heavy sessions next to the LV yield, and leave the LV's loop rate
+/// within 10 % of its own alone. "Alone" is measured before and after (the machine's noise in
+/// the same minute), and the LV beside the heavy sessions is compared with the worse of the
+/// two. The step p99 (about 0.1 ms) varies by up to a third between two runs alone on these
+/// shared 2-core machines, so this test only bounds it at 1.5 times; the 10 % target is met as
+/// a median over interleaved repetitions in `cargo bench -p haptic-server --bench yielding`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn heavy_sessions_yield_to_the_lv_that_keeps_up() {
+    let _serial = SERIAL.lock().await;
+    let run = Duration::from_secs(3);
+    let mut config = ServerConfig::default();
+    config.servo.stats_every_ticks = 20;
+    let manager = SessionManager::new(config);
+    let before = genuine_run(&manager, run).await;
+    // Six heavy sessions (the LV plus 3 ms of CPU work a tick, about 220 Hz) on two cores:
+    // each is judged overrunning after a second and its servo thread yields (SCHED_IDLE).
+    let heavy: Vec<_> = (0..6)
+        .map(|_| {
+            manager
+                .start_body(Box::new(Burdened {
+                    body: lv_body(),
+                    extra: Duration::from_millis(3),
+                    spin: true,
+                }))
+                .unwrap()
+        })
+        .collect();
+    assert!(
+        wait_for(
+            || heavy.iter().all(|h| h.stats().demoted),
+            Duration::from_secs(30)
+        )
+        .await,
+        "heavy sessions not demoted: {:?}",
+        heavy.iter().map(|h| h.stats().demoted).collect::<Vec<_>>()
+    );
+    assert!(heavy.iter().all(|h| h.stats().overrunning));
+    let (rate_beside, p99_beside) = genuine_run(&manager, run).await;
+    // Alone again, a heavy session is restored: there is nobody to yield to.
+    for h in &heavy[1..] {
+        manager.stop(&h.id).unwrap();
+    }
+    assert!(
+        wait_for(|| !heavy[0].stats().demoted, Duration::from_secs(10)).await,
+        "the last heavy session stayed demoted (restoring needs CAP_SYS_NICE)"
+    );
+    manager.stop(&heavy[0].id).unwrap();
+    let after = genuine_run(&manager, run).await;
+    println!(
+        "the LV alone: {:.0} / {:.0} Hz, step p99 {} / {} us (before / after); beside six \
+         heavy sessions: {rate_beside:.0} Hz, step p99 {p99_beside} us",
+        before.0, after.0, before.1, after.1
+    );
+    let (rate_alone, p99_alone) = (before.0.min(after.0), before.1.max(after.1));
+    assert!(
+        rate_beside >= 0.9 * rate_alone,
+        "loop rate {rate_beside:.0} Hz beside the heavy sessions, {rate_alone:.0} Hz alone"
+    );
+    assert!(
+        p99_beside <= 1.5 * p99_alone,
+        "step p99 {p99_beside} us beside the heavy sessions, {p99_alone} us alone"
+    );
     manager.stop_all();
 }

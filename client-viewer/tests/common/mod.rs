@@ -217,6 +217,8 @@ pub fn canned_stats(id: &str) -> SessionStats {
         out_of_order_samples: 6,
         device_silent: true,
         device_silences: 8,
+        overrunning: true,
+        demoted: false,
         watchers: 3,
         watcher_frames_sent: 1234,
         watcher_frames_dropped: 5,

@@ -1,0 +1,108 @@
+//! Shared by the overrun tests and the `yielding` benchmark (`#[path]`-included there): a body
+//! too heavy for the machine, built-in bodies, waiting, and one measured run of a genuine LV.
+
+#![allow(dead_code)] // each includer uses its part
+
+use std::time::{Duration, Instant};
+
+use haptic_model::body::{
+    BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput, TickOutput,
+};
+use haptic_model::{DVec3, ModelError};
+use haptic_server::session::SessionManager;
+
+/// A real body whose tick takes `extra` longer: asleep (a model too slow for the machine,
+/// made deterministic) or spinning (one that also takes the CPU from everyone else).
+pub struct Burdened {
+    /// The real body.
+    pub body: Box<dyn SoftBody>,
+    /// Extra time per tick.
+    pub extra: Duration,
+    /// Spin the CPU for it (true) or sleep.
+    pub spin: bool,
+}
+
+impl Burdened {
+    /// Sleeps `extra` per tick.
+    pub fn sleeping(body: Box<dyn SoftBody>, extra: Duration) -> Self {
+        Self {
+            body,
+            extra,
+            spin: false,
+        }
+    }
+}
+
+impl SoftBody for Burdened {
+    fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
+        if self.spin {
+            let t0 = Instant::now();
+            while t0.elapsed() < self.extra {
+                std::hint::spin_loop();
+            }
+        } else {
+            std::thread::sleep(self.extra);
+        }
+        self.body.tick(input)
+    }
+    fn add_point_load(&mut self, p: DVec3, f: DVec3, d: f64) -> Result<(), ModelError> {
+        self.body.add_point_load(p, f, d)
+    }
+    fn surface_topology(&self) -> SurfaceTopology<'_> {
+        self.body.surface_topology()
+    }
+    fn surface_capacity(&self) -> SurfaceCapacity {
+        self.body.surface_capacity()
+    }
+    fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
+        self.body.write_surface_positions(out)
+    }
+    fn write_surface_rest_positions(&self, out: &mut [f32]) {
+        self.body.write_surface_rest_positions(out)
+    }
+    fn stats(&self) -> BodyStats {
+        self.body.stats()
+    }
+    fn info(&self) -> BodyInfo {
+        self.body.info()
+    }
+}
+
+/// A built-in scene's body.
+pub fn builtin_body(name: &str) -> Box<dyn SoftBody> {
+    let scene = haptic_model::scene::load_builtin(name).unwrap();
+    haptic_model::build_body(&scene).unwrap()
+}
+
+/// The default LV's body.
+pub fn lv_body() -> Box<dyn SoftBody> {
+    builtin_body("lv")
+}
+
+/// Polls `done` every 20 ms until it holds or `limit` passes; its last answer.
+pub async fn wait_for(mut done: impl FnMut() -> bool, limit: Duration) -> bool {
+    let t0 = Instant::now();
+    while t0.elapsed() < limit {
+        if done() {
+            return true;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    done()
+}
+
+/// Loop rate (ticks per second of wall time over the run) and step p99 (µs) of a genuine
+/// session run alone in `manager` for `run`, then stopped.
+pub async fn genuine_run(manager: &SessionManager, run: Duration) -> (f64, f64) {
+    // The LV epicardium as a mass-spring surface: about 0.1 ms a tick, it fits in 1 ms here.
+    let s = manager
+        .start_body(builtin_body("lv-surface-springs"))
+        .unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let (t0, steps0) = (Instant::now(), s.stats().steps);
+    tokio::time::sleep(run).await;
+    let st = s.stats();
+    let rate = (st.steps - steps0) as f64 / t0.elapsed().as_secs_f64();
+    manager.stop(&s.id).unwrap();
+    (rate, st.step_p99_us)
+}
