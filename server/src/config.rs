@@ -109,6 +109,8 @@ pub struct ConfigFile {
     pub max_elements: Option<usize>,
     /// Largest number of nodes of a client-sent scene.
     pub max_nodes: Option<usize>,
+    /// Largest estimated number of meshfree particles of a client-sent hybrid scene.
+    pub max_particles: Option<usize>,
     /// Scene builds running at once; further `StartSession` calls wait for a turn.
     pub max_concurrent_builds: Option<usize>,
     /// `StartSession` calls of one client address waiting or building at once.
@@ -185,6 +187,9 @@ pub struct ServerConfig {
     pub max_elements: usize,
     /// Largest number of nodes of a client-sent scene ([`DEFAULT_MAX_NODES`]).
     pub max_nodes: usize,
+    /// Largest estimated number of particles of a client-sent hybrid scene
+    /// ([`DEFAULT_MAX_PARTICLES`]).
+    pub max_particles: usize,
     /// Scene builds running at once (default 2, one per core of the target machine).
     pub max_concurrent_builds: usize,
     /// `StartSession` calls of one client address waiting or building at once (default 2).
@@ -215,6 +220,13 @@ pub const DEFAULT_MAX_ELEMENTS: usize = 50_000;
 /// element).
 pub const DEFAULT_MAX_NODES: usize = 100_000;
 
+/// Default [`ServerConfig::max_particles`]: 500 000. The estimate is the mesh's volume over
+/// the cube of `hybrid.spacing_m` (an upper bound: the layer is part of the wall; 176 000 for
+/// the shipped `lv-hybrid`, which samples 130 423). Measured on the 2-core machine: a million
+/// particles take 4.1 s to preprocess and 107 MiB (`hybrid_bench --spacing-m 0.00013`), so the
+/// limit bounds a client's hybrid set-up at about 2 s and 55 MiB.
+pub const DEFAULT_MAX_PARTICLES: usize = 500_000;
+
 /// Default [`ServerConfig::max_file_bytes`]: 64 MiB (a Gmsh ASCII mesh of about 600 000
 /// tetrahedra; the shipped LV meshes are 0.05-1 MB).
 pub const DEFAULT_MAX_FILE_BYTES: u64 = 64 << 20;
@@ -233,6 +245,7 @@ impl Default for ServerConfig {
             max_file_bytes: DEFAULT_MAX_FILE_BYTES,
             max_elements: DEFAULT_MAX_ELEMENTS,
             max_nodes: DEFAULT_MAX_NODES,
+            max_particles: DEFAULT_MAX_PARTICLES,
             max_concurrent_builds: 2,
             max_builds_per_client: 2,
             max_sessions_per_client: 4,
@@ -329,6 +342,9 @@ impl ConfigFile {
         }
         if let Some(n) = self.max_nodes {
             c.max_nodes = n.max(1);
+        }
+        if let Some(n) = self.max_particles {
+            c.max_particles = n.max(1);
         }
         if let Some(b) = self.max_file_bytes {
             if b == 0 {

@@ -246,6 +246,28 @@ pub fn check_counts(
     Ok(())
 }
 
+/// Refuses a hybrid scene whose particle layer would be too large, before it is sampled:
+/// the estimate is `volume_m3 / spacing_m^3` (the mesh's whole volume, an upper bound of the
+/// layer's), checked against `max_particles`.
+///
+/// # Errors
+/// [`ServerError::InvalidArgument`] naming `hybrid.spacing_m`, the estimate and the limit.
+pub fn check_particles(
+    volume_m3: f64,
+    spacing_m: f64,
+    max_particles: usize,
+) -> Result<(), ServerError> {
+    let estimate = volume_m3 / spacing_m.powi(3);
+    if estimate.is_nan() || estimate > max_particles as f64 {
+        return Err(ServerError::InvalidArgument(format!(
+            "`hybrid.spacing_m` = {spacing_m} m gives about {estimate:.0} particles in this \
+             mesh's volume; this daemon takes at most {max_particles} per client scene \
+             (max_particles)"
+        )));
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -514,6 +514,13 @@ impl SessionManager {
                 self.config.max_nodes,
                 self.config.max_elements,
             )?;
+            if let Some(h) = &scene.hybrid {
+                crate::confine::check_particles(
+                    scene.mesh.volume(),
+                    h.params.meshfree.spacing_m,
+                    self.config.max_particles,
+                )?;
+            }
             return Ok(scene);
         }
         if name.is_empty() {

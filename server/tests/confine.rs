@@ -198,6 +198,31 @@ fn oversized_client_scenes_are_refused_before_they_are_built() {
     );
     assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
     assert!(e.message().contains("24000 elements"), "{e:?}");
+    // A hybrid scene at half the shipped spacing (about 1.4 million particles, 4 s and 150 MB
+    // to preprocess): refused from its estimate before any particle is sampled; the shipped
+    // spacing passes the same check.
+    let shipped = include_str!("../../deploy/scenes/lv-hybrid.toml");
+    assert!(shipped.contains("spacing_m = 0.00026 "));
+    let m = SessionManager::new(ServerConfig::default());
+    let t0 = std::time::Instant::now();
+    let e = status(
+        m.load_scene(
+            "",
+            &shipped.replace("spacing_m = 0.00026 ", "spacing_m = 0.00013 "),
+        )
+        .unwrap_err(),
+    );
+    assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    assert!(
+        e.message().contains("max_particles") && e.message().contains("hybrid.spacing_m"),
+        "{e:?}"
+    );
+    assert!(
+        t0.elapsed() < Duration::from_millis(500),
+        "{:?}",
+        t0.elapsed()
+    );
+    assert!(m.load_scene("", shipped).is_ok());
     // Below it: fine.
     let ok = m.load_scene(
         "",
