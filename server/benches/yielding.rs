@@ -96,8 +96,14 @@ async fn repetition(yielding: bool, a: &Args) -> ([(f64, f64); 2], bool) {
         Duration::from_secs(30),
     )
     .await;
-    tokio::time::sleep(Duration::from_millis(200)).await;
-    let demoted = judged && heavy.iter().all(|h| h.stats().demoted);
+    // A demotion shows in the statistics published after it (20 ticks of a slow session).
+    let demoted = judged
+        && yielding
+        && wait_for(
+            || heavy.iter().all(|h| h.stats().demoted),
+            Duration::from_secs(10),
+        )
+        .await;
     let beside = genuine_run(&manager, a.run).await;
     manager.stop_all();
     ([alone, beside], demoted)
