@@ -1,6 +1,9 @@
 //! The touchable surface as a triangle mesh over the body's nodes: closest-point queries on the
 //! deformed configuration (a global search, or a local walk while in contact), vertex normals,
 //! and the kernel-weighted patch of nodes around a point that spreads a contact or a point load.
+//! A surface whose triangles change at run time (the subdivided mass-spring surface) is edited
+//! one triangle at a time within room reserved per node ([`ContactSurface::with_node_room`]), so
+//! that a local change costs O(1) instead of a rebuild.
 //!
 //! Neighbours: used by [`super::probe`] and by [`crate::loads`] (point loads).
 
@@ -14,9 +17,14 @@ use super::MAX_PATCH_NODES;
 pub struct ContactSurface {
     /// Triangles (node indices), outward oriented.
     pub triangles: Vec<[u32; 3]>,
-    /// CSR offsets: triangles around node `i` are `node_tris[node_offsets[i]..node_offsets[i+1]]`.
+    /// CSR offsets: triangles around node `i` are `node_tris[node_offsets[i]..node_ends[i]]`;
+    /// `node_ends[i] == node_offsets[i + 1]` unless the surface has room per node.
     node_offsets: Vec<u32>,
+    node_ends: Vec<u32>,
     node_tris: Vec<u32>,
+    /// Whether `node_offsets` is room reserved per node ([`ContactSurface::with_node_room`]),
+    /// kept by every edit, rather than packed by [`ContactSurface::set_triangles`].
+    has_room: bool,
 }
 
 /// The closest point of a surface to a query point.
@@ -54,8 +62,10 @@ impl ContactSurface {
         }
         Self {
             triangles,
+            node_ends: counts[1..].to_vec(),
             node_offsets: counts,
             node_tris,
+            has_room: false,
         }
     }
 
@@ -67,21 +77,133 @@ impl ContactSurface {
         Self {
             triangles: Vec::with_capacity(max_triangles),
             node_offsets: vec![0; node_count + 1],
+            node_ends: vec![0; node_count],
             node_tris: Vec::with_capacity(3 * max_triangles),
+            has_room: false,
         }
+    }
+
+    /// An empty surface over `room.len()` nodes for triangles edited one at a time
+    /// ([`ContactSurface::push_triangle`], [`ContactSurface::set_triangle`],
+    /// [`ContactSurface::swap_remove_triangle`]; each O(1) and allocation-free): up to
+    /// `max_triangles` triangles, node `i` in at most `room[i]` of them at a time.
+    pub fn with_node_room(max_triangles: usize, room: &[u32]) -> Self {
+        let n = room.len();
+        let mut node_offsets = vec![0u32; n + 1];
+        for (i, &r) in room.iter().enumerate() {
+            node_offsets[i + 1] = node_offsets[i] + r;
+        }
+        Self {
+            triangles: Vec::with_capacity(max_triangles),
+            node_ends: node_offsets[..n].to_vec(),
+            node_tris: vec![0; node_offsets[n] as usize],
+            node_offsets,
+            has_room: true,
+        }
+    }
+
+    /// Appends triangle `t` (index [`ContactSurface::triangles`]`.len()`).
+    ///
+    /// # Panics
+    /// If the surface was not built by [`ContactSurface::with_node_room`], a node index is out
+    /// of range or a node of `t` has no room left.
+    pub fn push_triangle(&mut self, t: [u32; 3]) {
+        let k = self.triangles.len() as u32;
+        self.triangles.push(t);
+        self.link(k, t);
+    }
+
+    /// Replaces triangle `k` by `t`.
+    ///
+    /// # Panics
+    /// As [`ContactSurface::push_triangle`], or if `k` is out of range.
+    pub fn set_triangle(&mut self, k: u32, t: [u32; 3]) {
+        let old = self.triangles[k as usize];
+        self.unlink(k, old);
+        self.triangles[k as usize] = t;
+        self.link(k, t);
+    }
+
+    /// Removes triangle `k`; the last triangle takes its index (as [`Vec::swap_remove`]).
+    ///
+    /// # Panics
+    /// If `k` is out of range.
+    pub fn swap_remove_triangle(&mut self, k: u32) {
+        let last = self.triangles.len() as u32 - 1;
+        let old = self.triangles[k as usize];
+        self.unlink(k, old);
+        if k != last {
+            let moved = self.triangles[last as usize];
+            for &i in &moved {
+                let (lo, hi) = self.node_range(i);
+                for entry in &mut self.node_tris[lo..hi] {
+                    if *entry == last {
+                        *entry = k;
+                    }
+                }
+            }
+        }
+        self.triangles.swap_remove(k as usize);
+    }
+
+    fn node_range(&self, i: u32) -> (usize, usize) {
+        (
+            self.node_offsets[i as usize] as usize,
+            self.node_ends[i as usize] as usize,
+        )
+    }
+
+    /// Adds triangle index `k` to the lists of the nodes of `t`.
+    fn link(&mut self, k: u32, t: [u32; 3]) {
+        for i in t {
+            let end = self.node_ends[i as usize];
+            assert!(
+                self.has_room && end < self.node_offsets[i as usize + 1],
+                "node {i} has no room for another triangle"
+            );
+            self.node_tris[end as usize] = k;
+            self.node_ends[i as usize] = end + 1;
+        }
+    }
+
+    /// Removes triangle index `k` from the lists of the nodes of `t`.
+    fn unlink(&mut self, k: u32, t: [u32; 3]) {
+        for i in t {
+            let (lo, hi) = self.node_range(i);
+            if let Some(p) = self.node_tris[lo..hi].iter().position(|&e| e == k) {
+                self.node_tris[lo + p] = self.node_tris[hi - 1];
+                self.node_ends[i as usize] -= 1;
+            }
+        }
+    }
+
+    /// Triangles around node `i`.
+    #[inline]
+    fn triangles_at(&self, i: u32) -> &[u32] {
+        let (lo, hi) = self.node_range(i);
+        &self.node_tris[lo..hi]
     }
 
     /// Replaces the triangles (node indices below the node count given at construction) and
     /// rebuilds the vertex-to-triangle adjacency in place: O(triangles + nodes), and
     /// allocation-free when `triangles.len()` is within the capacity of
-    /// [`ContactSurface::with_capacity`].
+    /// [`ContactSurface::with_capacity`] (or [`ContactSurface::with_node_room`], whose room per
+    /// node it keeps).
     ///
     /// # Panics
-    /// If a node index is not below the node count.
+    /// If a node index is not below the node count, or a node has no room left.
     pub fn set_triangles(&mut self, triangles: &[[u32; 3]]) {
         let node_count = self.node_offsets.len() - 1;
         self.triangles.clear();
         self.triangles.extend_from_slice(triangles);
+        if self.has_room {
+            self.node_ends
+                .copy_from_slice(&self.node_offsets[..node_count]);
+            for (k, &t) in triangles.iter().enumerate() {
+                self.link(k as u32, t);
+            }
+            return;
+        }
         self.node_offsets.iter_mut().for_each(|o| *o = 0);
         for t in triangles {
             for &i in t {
@@ -106,6 +228,7 @@ impl ContactSurface {
             self.node_offsets[i] = self.node_offsets[i - 1];
         }
         self.node_offsets[0] = 0;
+        self.node_ends.copy_from_slice(&self.node_offsets[1..]);
     }
 
     /// Collects the surface nodes within `reach_m` of `q` (m) reachable from triangle `seed`
@@ -135,8 +258,7 @@ impl ContactSurface {
         while head < nodes.len() {
             let node = nodes[head] as usize;
             head += 1;
-            let (lo, hi) = (self.node_offsets[node], self.node_offsets[node + 1]);
-            for &t in &self.node_tris[lo as usize..hi as usize] {
+            for &t in self.triangles_at(node as u32) {
                 for &j in &self.triangles[t as usize] {
                     if nodes.len() < MAX_PATCH_NODES
                         && !nodes.contains(&j)
@@ -195,11 +317,7 @@ impl ContactSurface {
             let k = tris[head] as usize;
             head += 1;
             for &node in &self.triangles[k] {
-                let (lo, hi) = (
-                    self.node_offsets[node as usize],
-                    self.node_offsets[node as usize + 1],
-                );
-                for &j in &self.node_tris[lo as usize..hi as usize] {
+                for &j in self.triangles_at(node) {
                     if stamps[j as usize] == stamp || tris.len() == tris.capacity() {
                         continue;
                     }
@@ -250,11 +368,7 @@ impl ContactSurface {
         for _ in 0..max_hops {
             let current = best.triangle;
             for &node in &self.triangles[current as usize] {
-                let (lo, hi) = (
-                    self.node_offsets[node as usize],
-                    self.node_offsets[node as usize + 1],
-                );
-                for &k in &self.node_tris[lo as usize..hi as usize] {
+                for &k in self.triangles_at(node) {
                     let c = self.closest_on(k, x, q);
                     if c.dist2 < best.dist2 {
                         best = c;
@@ -271,16 +385,10 @@ impl ContactSurface {
     /// Area-weighted outward normal at node `i` (sum of the cross products of its triangles;
     /// not normalised; zero for a node not on this surface).
     pub fn vertex_normal(&self, i: u32, x: &[DVec3]) -> DVec3 {
-        let (lo, hi) = (
-            self.node_offsets[i as usize],
-            self.node_offsets[i as usize + 1],
-        );
-        self.node_tris[lo as usize..hi as usize]
-            .iter()
-            .fold(DVec3::ZERO, |acc, &t| {
-                let [a, b, c] = self.triangles[t as usize].map(|k| x[k as usize]);
-                acc + (b - a).cross(c - a)
-            })
+        self.triangles_at(i).iter().fold(DVec3::ZERO, |acc, &t| {
+            let [a, b, c] = self.triangles[t as usize].map(|k| x[k as usize]);
+            acc + (b - a).cross(c - a)
+        })
     }
 
     /// Unit outward normal of triangle `k` on positions `x` (zero for a degenerate triangle).
