@@ -17,13 +17,13 @@ use super::MAX_PATCH_NODES;
 pub struct ContactSurface {
     /// Triangles (node indices), outward oriented.
     pub triangles: Vec<[u32; 3]>,
-    /// CSR offsets: triangles around node `i` are `node_tris[node_offsets[i]..node_ends[i]]`;
-    /// `node_ends[i] == node_offsets[i + 1]` unless the surface has room per node.
-    node_offsets: Vec<u32>,
-    node_ends: Vec<u32>,
+    /// CSR: the triangles around node `i` are `node_tris[start..end]` with `[start, end] =
+    /// node_lists[i]` (one entry per node and a last one, `start` of the next node bounding
+    /// the room of this one); `end` is the next `start` unless the surface has room per node.
+    node_lists: Vec<[u32; 2]>,
     node_tris: Vec<u32>,
-    /// Whether `node_offsets` is room reserved per node ([`ContactSurface::with_node_room`]),
-    /// kept by every edit, rather than packed by [`ContactSurface::set_triangles`].
+    /// Whether the lists have room reserved per node ([`ContactSurface::with_node_room`]), kept
+    /// by every edit, rather than packed by [`ContactSurface::set_triangles`].
     has_room: bool,
 }
 
@@ -60,10 +60,11 @@ impl ContactSurface {
                 fill[i as usize] += 1;
             }
         }
+        let mut node_lists: Vec<[u32; 2]> = counts.windows(2).map(|w| [w[0], w[1]]).collect();
+        node_lists.push([counts[node_count]; 2]);
         Self {
             triangles,
-            node_ends: counts[1..].to_vec(),
-            node_offsets: counts,
+            node_lists,
             node_tris,
             has_room: false,
         }
@@ -76,8 +77,7 @@ impl ContactSurface {
     pub fn with_capacity(max_triangles: usize, node_count: usize) -> Self {
         Self {
             triangles: Vec::with_capacity(max_triangles),
-            node_offsets: vec![0; node_count + 1],
-            node_ends: vec![0; node_count],
+            node_lists: vec![[0; 2]; node_count + 1],
             node_tris: Vec::with_capacity(3 * max_triangles),
             has_room: false,
         }
@@ -86,18 +86,22 @@ impl ContactSurface {
     /// An empty surface over `room.len()` nodes for triangles edited one at a time
     /// ([`ContactSurface::push_triangle`], [`ContactSurface::set_triangle`],
     /// [`ContactSurface::swap_remove_triangle`]; each O(1) and allocation-free): up to
-    /// `max_triangles` triangles, node `i` in at most `room[i]` of them at a time.
+    /// `max_triangles` triangles, node `i` in at most `room[i]` of them at a time. Its memory
+    /// is written at once, so that no edit takes a page fault on a page never used before.
     pub fn with_node_room(max_triangles: usize, room: &[u32]) -> Self {
-        let n = room.len();
-        let mut node_offsets = vec![0u32; n + 1];
-        for (i, &r) in room.iter().enumerate() {
-            node_offsets[i + 1] = node_offsets[i] + r;
+        let mut node_lists = Vec::with_capacity(room.len() + 1);
+        let mut start = 0u32;
+        for &r in room {
+            node_lists.push([start; 2]);
+            start += r;
         }
+        node_lists.push([start; 2]);
+        let mut triangles = vec![[u32::MAX; 3]; max_triangles];
+        triangles.clear();
         Self {
-            triangles: Vec::with_capacity(max_triangles),
-            node_ends: node_offsets[..n].to_vec(),
-            node_tris: vec![0; node_offsets[n] as usize],
-            node_offsets,
+            triangles,
+            node_lists,
+            node_tris: vec![u32::MAX; start as usize],
             has_room: true,
         }
     }
@@ -146,23 +150,22 @@ impl ContactSurface {
         self.triangles.swap_remove(k as usize);
     }
 
+    #[inline]
     fn node_range(&self, i: u32) -> (usize, usize) {
-        (
-            self.node_offsets[i as usize] as usize,
-            self.node_ends[i as usize] as usize,
-        )
+        let [lo, hi] = self.node_lists[i as usize];
+        (lo as usize, hi as usize)
     }
 
     /// Adds triangle index `k` to the lists of the nodes of `t`.
     fn link(&mut self, k: u32, t: [u32; 3]) {
         for i in t {
-            let end = self.node_ends[i as usize];
+            let end = self.node_lists[i as usize][1];
             assert!(
-                self.has_room && end < self.node_offsets[i as usize + 1],
+                self.has_room && end < self.node_lists[i as usize + 1][0],
                 "node {i} has no room for another triangle"
             );
             self.node_tris[end as usize] = k;
-            self.node_ends[i as usize] = end + 1;
+            self.node_lists[i as usize][1] = end + 1;
         }
     }
 
@@ -172,7 +175,7 @@ impl ContactSurface {
             let (lo, hi) = self.node_range(i);
             if let Some(p) = self.node_tris[lo..hi].iter().position(|&e| e == k) {
                 self.node_tris[lo + p] = self.node_tris[hi - 1];
-                self.node_ends[i as usize] -= 1;
+                self.node_lists[i as usize][1] -= 1;
             }
         }
     }
@@ -193,42 +196,41 @@ impl ContactSurface {
     /// # Panics
     /// If a node index is not below the node count, or a node has no room left.
     pub fn set_triangles(&mut self, triangles: &[[u32; 3]]) {
-        let node_count = self.node_offsets.len() - 1;
+        let node_count = self.node_lists.len() - 1;
         self.triangles.clear();
         self.triangles.extend_from_slice(triangles);
         if self.has_room {
-            self.node_ends
-                .copy_from_slice(&self.node_offsets[..node_count]);
+            for list in &mut self.node_lists {
+                list[1] = list[0];
+            }
             for (k, &t) in triangles.iter().enumerate() {
                 self.link(k as u32, t);
             }
             return;
         }
-        self.node_offsets.iter_mut().for_each(|o| *o = 0);
+        self.node_lists.iter_mut().for_each(|l| *l = [0; 2]);
         for t in triangles {
             for &i in t {
                 assert!((i as usize) < node_count, "triangle node {i} out of range");
-                self.node_offsets[i as usize + 1] += 1;
+                self.node_lists[i as usize + 1][0] += 1;
             }
         }
         for i in 0..node_count {
-            self.node_offsets[i + 1] += self.node_offsets[i];
+            self.node_lists[i + 1][0] += self.node_lists[i][0];
         }
         self.node_tris.clear();
         self.node_tris.resize(3 * triangles.len(), 0);
-        // Fill with the offsets as cursors, then shift them back.
+        // Fill with the ends as cursors.
+        for list in &mut self.node_lists {
+            list[1] = list[0];
+        }
         for (k, t) in triangles.iter().enumerate() {
             for &i in t {
-                let slot = &mut self.node_offsets[i as usize];
-                self.node_tris[*slot as usize] = k as u32;
-                *slot += 1;
+                let end = &mut self.node_lists[i as usize][1];
+                self.node_tris[*end as usize] = k as u32;
+                *end += 1;
             }
         }
-        for i in (1..=node_count).rev() {
-            self.node_offsets[i] = self.node_offsets[i - 1];
-        }
-        self.node_offsets[0] = 0;
-        self.node_ends.copy_from_slice(&self.node_offsets[1..]);
     }
 
     /// Collects the surface nodes within `reach_m` of `q` (m) reachable from triangle `seed`
@@ -288,7 +290,7 @@ impl ContactSurface {
 
     /// Number of nodes the surface indexes into.
     pub fn node_count(&self) -> usize {
-        self.node_offsets.len() - 1
+        self.node_lists.len() - 1
     }
 
     /// Collects into `tris` (cleared first) the triangles closer than `reach_m` to `q` (m) that
