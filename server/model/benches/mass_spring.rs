@@ -10,7 +10,8 @@
 //!   and 50k surface nodes (the hemisphere scene's springs, mass and probe, with its table
 //!   applied to every node: the costs do not depend on the factors).
 //!
-//! Run: `cargo bench -p haptic-model --bench mass_spring` (`-- --quick`: fewer repetitions).
+//! Run: `cargo bench -p haptic-model --bench mass_spring` (`-- --quick`: fewer repetitions;
+//! `-- --only timing --mesh 50k`: the timings of the meshes whose label contains `50k`).
 //! Writes `target/bench/mass_spring.csv` (or `--out DIR`) and prints a table. Medians and
 //! percentiles of one run on a shared 2-core machine: compare within the table.
 
@@ -37,9 +38,17 @@ struct Args {
     /// Fewer repetitions (about a minute).
     #[arg(long)]
     quick: bool,
-    /// Run only the force steps of the vertex rules (`slide`) or only the timings (`timing`).
+    /// Run only the force steps of the vertex rules (`slide`), only the timings (`timing`) or
+    /// only the timings of the events (`events`).
     #[arg(long, value_enum, default_value_t = Only::All)]
     only: Only,
+    /// Subdivision events per mesh and ring count [default: 400, 50 with `--quick`, at most 4
+    /// per node].
+    #[arg(long)]
+    reps: Option<usize>,
+    /// Time only the meshes whose label contains this (e.g. `10k`, `lv`) [default: all].
+    #[arg(long)]
+    mesh: Option<String>,
     /// Folder of mass_spring.csv [default: target/bench of the workspace].
     #[arg(long)]
     out: Option<PathBuf>,
@@ -53,6 +62,7 @@ struct Args {
 enum Only {
     All,
     Timing,
+    Events,
     Slide,
 }
 
@@ -80,7 +90,7 @@ fn main() -> anyhow::Result<()> {
     let path = out.join("mass_spring.csv");
     let mut csv = csv::Writer::from_path(&path)?;
     let hemi = load_builtin("hemisphere-springs")?;
-    if args.only != Only::Timing {
+    if args.only == Only::All || args.only == Only::Slide {
         slide(&hemi, &out)?;
     }
     if args.only == Only::Slide {
@@ -96,7 +106,12 @@ fn main() -> anyhow::Result<()> {
         ("hemisphere 10k", 1.36),
         ("hemisphere 50k", 0.61),
     ] {
-        meshes.push((label.into(), generated(&hemi, edge_mm * 1e-3)?));
+        if args.mesh.as_deref().is_none_or(|m| label.contains(m)) {
+            meshes.push((label.into(), generated(&hemi, edge_mm * 1e-3)?));
+        }
+    }
+    if let Some(m) = &args.mesh {
+        meshes.retain(|(label, _)| label.contains(m.as_str()));
     }
     println!(
         "{:<20} {:>6} {:>6} {:<16} {:>4} {:>7} {:>9} {:>9} {:>9} {:>8}",
@@ -105,7 +120,10 @@ fn main() -> anyhow::Result<()> {
     for (label, scene) in &meshes {
         let ms = scene.mass_spring.as_ref().context("mass-spring scene")?;
         let n = ms.surface.node_count();
-        let reps = if args.quick { 50 } else { 400 }.min(4 * n);
+        let reps = args
+            .reps
+            .unwrap_or(if args.quick { 50 } else { 400 })
+            .min(4 * n);
         let mut emit =
             |what: &str, substeps: u32, t: &TickTimes, overruns: u64| -> anyhow::Result<()> {
                 let p = t.percentiles();
@@ -164,6 +182,9 @@ fn main() -> anyhow::Result<()> {
                 &coarse,
                 0,
             )?;
+        }
+        if args.only == Only::Events {
+            continue;
         }
         // Ticks with events: press the apex, slide to a rim-ward node, leave, press again.
         let mut body = body_with_rings(scene, 1)?;

@@ -14,7 +14,7 @@ use common::Rng;
 use counting_alloc::counted;
 use haptic_model::DVec3;
 use haptic_model::body::{SoftBody, TickInput};
-use haptic_model::contact::ProbeParams;
+use haptic_model::contact::{ContactSurface, ProbeParams};
 use haptic_model::integrate::{IntegratorKind, IntegratorParams};
 use haptic_model::mass_spring::calibration::{
     CalibrationTable, ContactShape, SAMPLES, calibration_key,
@@ -176,7 +176,8 @@ fn subdivided_meshes_are_watertight_manifold_and_never_over_subdivided() {
         let n = sphere.neighbours(centres[0])[0];
         r.request_ring(&sphere, n, rings as u32, 7);
         r.finish(&sphere);
-        let tris = r.triangles();
+        let mesh = r.mesh(&sphere);
+        let tris = &mesh.triangles;
         let (v, e, b) = check_manifold(tris);
         assert_eq!(
             b, 0,
@@ -245,7 +246,7 @@ fn subdivided_meshes_are_watertight_manifold_and_never_over_subdivided() {
         r.request_ring(&hemi, c, 2, 0);
     }
     r.finish(&hemi);
-    let (_, _, b) = check_manifold(r.triangles());
+    let (_, _, b) = check_manifold(&r.mesh(&hemi).triangles);
     let split_rim = (0..hemi.edge_count() as u32)
         .filter(|&e| hemi.is_boundary_edge(e) && r.is_edge_split(e))
         .count();
@@ -306,6 +307,161 @@ fn coarsening_restores_the_topology_and_mass_is_conserved() {
         versions.windows(2).all(|w| w[1] > w[0]),
         "every topology change gets a new version: {versions:?}"
     );
+}
+
+/// A triangle with its smallest index first, orientation kept.
+fn canonical(t: [u32; 3]) -> [u32; 3] {
+    let k = (0..3).min_by_key(|&k| t[k]).unwrap_or(0);
+    [t[k], t[(k + 1) % 3], t[(k + 2) % 3]]
+}
+
+/// Checks that the body's locally edited mesh is the refinement's (as sets), that the viewer
+/// triangles are the same triangles over the active nodes, and that the contact surface's
+/// adjacency answers as one built from scratch.
+fn check_mesh_matches_refinement(body: &MassSpringBody, case: &str) {
+    let surface = body.surface();
+    let nc = surface.node_count() as u32;
+    let r = body.refinement();
+    let mesh = r.mesh(surface);
+    let mut got: Vec<[u32; 3]> = body.triangles().iter().map(|&t| canonical(t)).collect();
+    let mut want: Vec<[u32; 3]> = mesh.triangles.iter().map(|&t| canonical(t)).collect();
+    got.sort_unstable();
+    want.sort_unstable();
+    assert_eq!(got, want, "{case}: triangles");
+    // Springs: ends, rest length and constant (the owner's).
+    let rest = body.rest_positions();
+    let p = body.params();
+    let kh: Vec<f64> = body.area_home_constants().map(|(_, k)| k).collect();
+    let ratio = match p.subdivision.springs {
+        SpringRule::Calibrated => p.subdivision.km_over_kh_after,
+        SpringRule::Unchanged => p.mesh_spring_n_per_m / p.home_spring_n_per_m,
+    };
+    let key = |i: u32, j: u32, l: f64, k: f64| (i.min(j), i.max(j), l.to_bits(), k.to_bits());
+    let mut got: Vec<_> = body
+        .springs()
+        .map(|s| key(s.i, s.j, s.rest_length_m, s.stiffness_n_per_m))
+        .collect();
+    let mut want: Vec<_> = mesh
+        .springs
+        .iter()
+        .map(|s| {
+            let k = match s.owner {
+                haptic_model::mass_spring::refine::NO_OWNER => p.mesh_spring_n_per_m,
+                o => ratio * kh[o as usize],
+            };
+            let l = (rest[s.j as usize] - rest[s.i as usize]).length();
+            key(s.i, s.j, l, k)
+        })
+        .collect();
+    got.sort_unstable();
+    want.sort_unstable();
+    assert_eq!(got, want, "{case}: springs");
+    // Active nodes: the coarse ones in order, then the type-2 nodes of the split edges.
+    let active = body.active_nodes();
+    assert!(active[..nc as usize].iter().copied().eq(0..nc), "{case}");
+    let mut type2: Vec<u32> = active[nc as usize..].to_vec();
+    type2.sort_unstable();
+    let split: Vec<u32> = r.active_edges().iter().map(|&e| nc + e).collect();
+    assert_eq!(type2, split, "{case}: active type-2 nodes");
+    // The viewer's triangles are the same triangles over the active nodes.
+    let topology = body.surface_topology();
+    assert_eq!(topology.vertex_count, active.len(), "{case}");
+    assert_eq!(topology.triangles.len(), body.triangles().len(), "{case}");
+    for (v, t) in topology.triangles.iter().zip(body.triangles()) {
+        assert_eq!(v.map(|k| active[k as usize]), *t, "{case}: viewer triangle");
+    }
+    // The contact surface edited in place answers as one built afresh.
+    let x = body.positions();
+    let fresh = ContactSurface::new(body.triangles().to_vec(), x.len());
+    let contact = &body.probe().surface;
+    for s in 0..x.len() as u32 {
+        let (a, b) = (contact.vertex_normal(s, x), fresh.vertex_normal(s, x));
+        assert!(
+            (a - b).length() <= 1e-12 * b.length(),
+            "{case}: normal at slot {s}: {a} vs {b}"
+        );
+    }
+    let mut rng = Rng(body.event_stats().events);
+    for _ in 0..20 {
+        let q = x[(rng.next().abs() * (nc - 1) as f64) as usize] + rng.vec() * 1e-3;
+        let start = (rng.next().abs() * (body.triangles().len() - 1) as f64) as u32;
+        let (a, b) = (
+            contact.closest_local(x, q, start, 64),
+            fresh.closest_local(x, q, start, 64),
+        );
+        assert!(
+            (a.dist2 - b.dist2).abs() <= 1e-15 * b.dist2.max(1e-12),
+            "{case}: closest"
+        );
+    }
+}
+
+#[test]
+fn events_edit_the_mesh_locally_into_the_refinements_mesh() {
+    let (_, params, ..) = hemisphere();
+    let sphere = closed_sphere();
+    for rings in 1..=3u32 {
+        // The hemisphere with its calibrated table (the areas' constants differ by centre in a
+        // displaced state), and a closed surface.
+        let mut p = params;
+        p.subdivision.rings = rings;
+        p.subdivision.vertex_rule = if rings == 2 {
+            VertexRule::Loop
+        } else {
+            VertexRule::Keep
+        };
+        let mut hemi = hemisphere_body(&p);
+        let (_, _, _, probe, integrator) = hemisphere();
+        let mut q = MassSpringParams::paper();
+        q.subdivision.rings = rings;
+        q.subdivision.springs = SpringRule::Unchanged;
+        let mut closed =
+            MassSpringBody::new(sphere.clone(), &q, None, probe, &integrator, "sphere")
+                .expect("body");
+        for (name, body) in [("hemisphere", &mut hemi), ("sphere", &mut closed)] {
+            let original: Vec<[u32; 3]> = body.triangles().to_vec();
+            let original_springs: Vec<(u32, u32)> = body.springs().map(|s| (s.i, s.j)).collect();
+            random_state(body, 5 + rings as u64, 2e-3, 0.0);
+            let nc = body.surface().node_count();
+            let free: Vec<u32> = (0..nc as u32)
+                .filter(|&i| !body.surface().is_fixed(i))
+                .collect();
+            let mut rng = Rng(rings as u64 * 31);
+            let mut centres: Vec<u32> = Vec::new();
+            for step in 0..30 {
+                // Keep some centres, drop some, add some (often a neighbour: overlapping
+                // areas).
+                centres.retain(|_| rng.next() > 0.0);
+                for _ in 0..1 + (rng.next().abs() * 2.5) as usize {
+                    let c = free[(rng.next().abs() * (free.len() - 1) as f64) as usize];
+                    let c = if rng.next() > 0.3 || centres.is_empty() {
+                        c
+                    } else {
+                        body.surface().neighbours(centres[0])[0]
+                    };
+                    if !centres.contains(&c) && centres.len() < 5 {
+                        centres.push(c);
+                    }
+                }
+                body.subdivide_around(&centres);
+                check_mesh_matches_refinement(body, &format!("{name} {rings}-ring step {step}"));
+            }
+            body.coarsen();
+            check_mesh_matches_refinement(body, &format!("{name} {rings}-ring coarsened"));
+            assert_eq!(
+                body.triangles(),
+                &original[..],
+                "{name}: the coarse order again"
+            );
+            assert_eq!(body.surface_topology().triangles, &original[..]);
+            assert!(
+                body.springs()
+                    .map(|s| (s.i, s.j))
+                    .eq(original_springs.iter().copied()),
+                "{name}: the coarse springs in order again"
+            );
+        }
+    }
 }
 
 /// A smooth random state on the hemisphere: displacements and velocities that vanish at the
@@ -555,12 +711,7 @@ fn the_network_matches_analytic_forces_and_the_stability_bound_holds() {
         }
     };
     let free: Vec<u32> = active.iter().copied().filter(|&s| is_free(s)).collect();
-    let springs: Vec<(u32, u32)> = body
-        .refinement()
-        .springs()
-        .iter()
-        .map(|s| (s.i, s.j))
-        .collect();
+    let springs: Vec<(u32, u32)> = body.springs().map(|s| (s.i, s.j)).collect();
     let mut rng = Rng(3);
     let mut v: Vec<DVec3> = rest.iter().map(|_| rng.vec()).collect();
     let mut lambda = 0.0;

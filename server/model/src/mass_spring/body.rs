@@ -9,8 +9,8 @@
 //! contact node (the coarse node nearest the contact point) becomes a *centre*; an area is
 //! kept subdivided while its centre was touched within `coarsen_delay_s`, and until it has
 //! come back to rest (within [`QUIET_DISPLACEMENT_OVER_L`]). When the set of
-//! centres changes, an **event** recomputes the refinement ([`super::refine`]) and carries the
-//! state over:
+//! centres changes, an **event** recomputes the refinement's labels ([`super::refine`]), edits
+//! the mixed-level mesh where they changed ([`super::mixed`]) and carries the state over:
 //!
 //! - original nodes keep position and velocity (with [`VertexRule::Loop`] they keep their
 //!   displacement from their moved rest position); a node whose mass changes keeps its
@@ -25,9 +25,12 @@
 //!   excess; what kinetic energy cannot cover is counted in [`EventStats::injected_energy_j`].
 //!
 //! Everything an event touches is sized at construction for the whole surface subdivided, so
-//! neither a tick nor an event allocates, locks or does I/O (events run on the servo thread:
-//! preparing them on another thread would need a hand-off the servo does not have, and an
-//! event costs O(triangles) with small constants; `docs/benchmarks.md` has the numbers). The
+//! neither a tick nor an event allocates, locks or does I/O. Events run on the servo thread
+//! (preparing them on another thread would need a hand-off the servo does not have): an event
+//! visits only the subdivided areas before and after it and the coarse triangles around them
+//! (labels, mesh edits, the energy balance over that region, the contact triangle found again
+//! by a local walk), so it costs O(areas), independent of the surface size;
+//! `docs/benchmarks.md` has the numbers. The
 //! sub-step is fixed at construction from a Gershgorin bound that covers every configuration
 //! the events can produce (lightest masses `m/4`, stiffest table entry, most springs per node),
 //! so an event never makes the integration unstable.
@@ -36,16 +39,17 @@ use glam::DVec3;
 
 use super::calibration::CalibrationTable;
 use super::loop_rules::loop_rest_positions;
-use super::network::{critical_time_step_s, gershgorin_bound_per_s2};
+use super::mixed::MixedMesh;
+use super::network::{Spring, critical_time_step_s, gershgorin_bound_per_s2};
 use super::refine::{NO_OWNER, Refinement};
 use super::surface::SpringSurface;
-use super::{MassSpringParams, SpringRule, VertexRule};
+use super::{MassSpringParams, SpringRule, VertexRule, prefaulted};
 use crate::ModelError;
 use crate::body::{
     BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput, TickOutput,
 };
 use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
-use crate::contact::{ContactSurface, Probe, ProbeParams};
+use crate::contact::{Probe, ProbeParams};
 use crate::integrate::{IntegratorKind, IntegratorParams, StepPlan, plan_steps};
 use crate::loads::{BodyLoads, SceneLoads};
 
@@ -87,25 +91,20 @@ pub struct EventStats {
     pub max_injected_energy_j: f64,
 }
 
-/// A mesh spring of the current mesh with its rest length.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct RtSpring {
-    i: u32,
-    j: u32,
-    rest_length_m: f64,
-    owner: u8,
-}
-
 /// The mass-spring body (module documentation).
 #[derive(Debug, Clone)]
 pub struct MassSpringBody {
     surface: SpringSurface,
     params: MassSpringParams,
     table: Option<CalibrationTable>,
+    /// The labels (levels, owners) for the current centres.
     refinement: Refinement,
-    /// Loop rest positions: per coarse node (type-1) and per edge (type-2).
+    /// The springs, triangles and active nodes for those labels (the probe's contact surface
+    /// holds the triangles over slots).
+    mesh: MixedMesh,
+    /// Loop rest positions per coarse node (type-1; a type-2 node's, Loop's edge rule, is its
+    /// slot's entry of `rest`).
     loop_vertex_rest: Vec<DVec3>,
-    edge_rest: Vec<DVec3>,
     // Per slot (coarse nodes, then one per coarse edge).
     rest: Vec<DVec3>,
     x: Vec<DVec3>,
@@ -114,11 +113,9 @@ pub struct MassSpringBody {
     mass: Vec<f64>,
     damping: Vec<f64>,
     fixed: Vec<bool>,
-    /// Active slots: the coarse nodes, then the active type-2 nodes; the viewer's vertex order.
-    active: Vec<u32>,
-    slot_to_view: Vec<u32>,
-    view_triangles: Vec<[u32; 3]>,
-    springs: Vec<RtSpring>,
+    /// The centre slot whose area each slot belongs to ([`NO_OWNER`]: none), as built: equal
+    /// to the refinement's labels except inside an event.
+    owner: Vec<u8>,
     centres: [Centre; MAX_CENTRES],
     centre_count: usize,
     /// Per centre: `K'_h` and `K'_m` now, N/m.
@@ -133,11 +130,21 @@ pub struct MassSpringBody {
     diverged_at_s: Option<f64>,
     version: u64,
     stats: EventStats,
-    // Event scratch.
-    old_mass: Vec<f64>,
-    old_split: Vec<bool>,
-    old_rest: Vec<DVec3>,
+    // Event scratch: the labels before the event, the region it can change (coarse nodes,
+    // triangles and edges, with stamps against repeats), the nodes whose state it changed.
+    old_region: Vec<u32>,
+    old_edges: Vec<u32>,
+    old_type1: Vec<u32>,
+    region_nodes: Vec<u32>,
+    region_tris: Vec<u32>,
+    region_edges: Vec<u32>,
+    node_stamp: Vec<u32>,
+    tri_stamp: Vec<u32>,
+    edge_stamp: Vec<u32>,
+    stamp: u32,
     touched: Vec<bool>,
+    touched_list: Vec<u32>,
+    scratch_home: Vec<f64>,
     ring: Vec<(u32, u32)>,
     ring_dist: Vec<u32>,
     scratch_a: Vec<f64>,
@@ -213,8 +220,7 @@ impl MassSpringBody {
         );
         let refinement = Refinement::new(&surface);
         let mut probe = Probe::new(probe, surface.triangles().to_vec(), &rest);
-        let mut contact_surface = ContactSurface::with_capacity(4 * nt, ns);
-        contact_surface.set_triangles(refinement.triangles());
+        let (mesh, contact_surface) = MixedMesh::new(&surface, &rest);
         probe.replace_surface(contact_surface);
         let load_surface: Vec<[u32; 3]> = surface
             .triangles()
@@ -266,19 +272,15 @@ impl MassSpringBody {
         };
         let worst_dt = critical_time_step_s(worst_lambda);
         let plan = plan_steps(integrator, worst_dt)?;
-        let mut body = Self {
+        Ok(Self {
             loop_vertex_rest,
-            edge_rest,
             x: rest.clone(),
             v: vec![DVec3::ZERO; ns],
             f: vec![DVec3::ZERO; ns],
             mass: vec![m; ns],
-            damping: vec![params.damping_n_s_per_m; ns],
+            damping: prefaulted(params.damping_n_s_per_m, ns),
             fixed,
-            active: Vec::with_capacity(ns),
-            slot_to_view: vec![u32::MAX; ns],
-            view_triangles: Vec::with_capacity(4 * nt),
-            springs: Vec::with_capacity(2 * ne + 3 * nt),
+            owner: vec![NO_OWNER; ns],
             centres: [Centre {
                 node: 0,
                 last_contact_s: 0.0,
@@ -295,10 +297,19 @@ impl MassSpringBody {
             diverged_at_s: None,
             version: 0,
             stats: EventStats::default(),
-            old_mass: vec![m; ns],
-            old_split: vec![false; ne],
-            old_rest: vec![DVec3::ZERO; nc],
-            touched: vec![false; ns],
+            old_region: Vec::with_capacity(nt),
+            old_edges: Vec::with_capacity(ne),
+            old_type1: Vec::with_capacity(nc),
+            region_nodes: Vec::with_capacity(nc),
+            region_tris: Vec::with_capacity(nt),
+            region_edges: Vec::with_capacity(ne),
+            node_stamp: prefaulted(0, nc),
+            tri_stamp: prefaulted(0, nt),
+            edge_stamp: prefaulted(0, ne),
+            stamp: 0,
+            touched: prefaulted(false, ns),
+            touched_list: Vec::with_capacity(ns),
+            scratch_home: vec![0.0; ns],
             ring: Vec::with_capacity(nc),
             ring_dist: vec![u32::MAX; nc],
             scratch_a: diag,
@@ -306,47 +317,11 @@ impl MassSpringBody {
             scene_name: scene_name.to_string(),
             rest,
             refinement,
+            mesh,
             table,
             params: *params,
             surface,
-        };
-        body.rebuild_topology();
-        body.version = 0;
-        Ok(body)
-    }
-
-    /// Rebuilds the springs, the active slots and the viewer's triangles from the refinement.
-    fn rebuild_topology(&mut self) {
-        let nc = self.surface.node_count() as u32;
-        self.springs.clear();
-        for s in self.refinement.springs() {
-            self.springs.push(RtSpring {
-                i: s.i,
-                j: s.j,
-                rest_length_m: (self.rest[s.j as usize] - self.rest[s.i as usize]).length(),
-                owner: s.owner,
-            });
-        }
-        for &s in &self.active {
-            self.slot_to_view[s as usize] = u32::MAX;
-        }
-        self.active.clear();
-        self.active.extend(0..nc);
-        for &e in self.refinement.active_edges() {
-            self.active.push(nc + e);
-        }
-        for (k, &s) in self.active.iter().enumerate() {
-            self.slot_to_view[s as usize] = k as u32;
-        }
-        self.view_triangles.clear();
-        for t in self.refinement.triangles() {
-            self.view_triangles
-                .push(t.map(|s| self.slot_to_view[s as usize]));
-        }
-        self.probe
-            .surface
-            .set_triangles(self.refinement.triangles());
-        self.version += 1;
+        })
     }
 
     /// `K'_h` and `K'_m` of each centre's area at the current state (section 3.2.4: the table
@@ -374,7 +349,7 @@ impl MassSpringBody {
 
     #[inline]
     fn home_constant(&self, s: u32) -> f64 {
-        match self.refinement.node_owner(s) {
+        match self.owner[s as usize] {
             NO_OWNER => self.params.home_spring_n_per_m,
             o => self.kh_area[o as usize],
         }
@@ -392,22 +367,35 @@ impl MassSpringBody {
     /// over the current mesh with the current constants. Allocation-free.
     pub fn energy_j(&self) -> f64 {
         let mut e = 0.0;
-        for &s in &self.active {
-            let i = s as usize;
-            e += 0.5 * self.mass[i] * self.v[i].length_squared();
-            e += 0.5 * self.home_constant(s) * (self.x[i] - self.rest[i]).length_squared();
+        for &s in self.mesh.active() {
+            e += self.node_energy_j(s);
         }
-        for sp in &self.springs {
-            let stretch =
-                (self.x[sp.j as usize] - self.x[sp.i as usize]).length() - sp.rest_length_m;
-            e += 0.5 * self.spring_constant(sp.owner) * stretch * stretch;
+        for k in 0..self.mesh.springs().len() {
+            e += self.spring_energy_j(k);
         }
         e
     }
 
+    /// Kinetic and home-spring energy of slot `s`, J.
+    #[inline]
+    fn node_energy_j(&self, s: u32) -> f64 {
+        let i = s as usize;
+        0.5 * self.mass[i] * self.v[i].length_squared()
+            + 0.5 * self.home_constant(s) * (self.x[i] - self.rest[i]).length_squared()
+    }
+
+    /// Elastic energy of mesh spring `k`, J.
+    #[inline]
+    fn spring_energy_j(&self, k: usize) -> f64 {
+        let sp = &self.mesh.springs()[k];
+        let stretch = (self.x[sp.j as usize] - self.x[sp.i as usize]).length() - sp.rest_length_m;
+        0.5 * self.spring_constant(sp.owner) * stretch * stretch
+    }
+
     /// Kinetic energy over the active nodes, J.
     pub fn kinetic_energy_j(&self) -> f64 {
-        self.active
+        self.mesh
+            .active()
             .iter()
             .map(|&s| 0.5 * self.mass[s as usize] * self.v[s as usize].length_squared())
             .sum()
@@ -415,19 +403,26 @@ impl MassSpringBody {
 
     /// Total mass of the active nodes, kg (eq. 3 keeps it constant).
     pub fn total_mass_kg(&self) -> f64 {
-        self.active.iter().map(|&s| self.mass[s as usize]).sum()
+        self.mesh
+            .active()
+            .iter()
+            .map(|&s| self.mass[s as usize])
+            .sum()
     }
 
-    /// Recomputes the refinement for the current centres and carries the state over (module
-    /// documentation). Allocation-free.
+    /// Recomputes the refinement's labels for the current centres, edits the mesh where they
+    /// changed and carries the state over (module documentation). O(areas before and after),
+    /// allocation-free.
     fn event(&mut self, added: bool, removed: bool) {
-        let energy_before = self.energy_j();
-        let nc = self.surface.node_count();
-        self.old_mass.copy_from_slice(&self.mass);
-        for (e, o) in self.old_split.iter_mut().enumerate() {
-            *o = self.refinement.is_edge_split(e as u32);
-        }
-        self.old_rest.copy_from_slice(&self.rest[..nc]);
+        // 1. The labels before, then the new ones.
+        self.old_region.clear();
+        self.old_region.extend_from_slice(self.refinement.region());
+        self.old_edges.clear();
+        self.old_edges
+            .extend_from_slice(self.refinement.active_edges());
+        self.old_type1.clear();
+        self.old_type1
+            .extend_from_slice(self.refinement.type1_nodes());
         self.refinement.begin();
         let rings = self.params.subdivision.rings;
         for k in 0..self.centre_count {
@@ -435,83 +430,55 @@ impl MassSpringBody {
                 .request_ring(&self.surface, self.centres[k].node, rings, k as u8);
         }
         self.refinement.finish(&self.surface);
-        // Masses (eq. 3) and damping per unit mass.
-        let m = self.params.node_mass_kg;
-        let (n1, n2) = (self.refinement.type1_count(), self.refinement.type2_count());
-        let m_area = if n1 + n2 > 0 {
-            m * n1 as f64 / (n1 + n2) as f64
-        } else {
-            m
-        };
-        let kd_per_kg = self.params.damping_n_s_per_m / m;
-        for s in 0..self.mass.len() {
-            let area = self.refinement.node_owner(s as u32) != NO_OWNER;
-            self.mass[s] = if area { m_area } else { m };
-            self.damping[s] = kd_per_kg * self.mass[s];
+        // 2. Where the event can change the energy, and the energy there before.
+        self.collect_region();
+        let energy_before = self.region_energy_j();
+        let contact_triangle = self
+            .probe
+            .state
+            .in_contact
+            .then(|| self.mesh.coarse_triangle_of(self.probe.state.triangle));
+        // 3. The nodes of the areas before and after: masses, rest positions, velocities.
+        self.carry_state();
+        // 4. The mesh: triangles and edges whose state changed, then the rest lengths and owners
+        // of every spring in the region (the Loop rule moves rest positions). What the last
+        // event appended (triangles, then edges) is visited in reverse first, so that removing
+        // an area removes from the ends of the lists (nothing to move into the holes).
+        self.mesh.begin();
+        for &e in self.old_edges.iter().rev() {
+            self.mesh.update_edge(&self.surface, &self.refinement, e);
         }
-        self.touched.iter_mut().for_each(|t| *t = false);
-        // Original nodes: rest (vertex rule), velocity (mass change).
-        let loop_rule = self.params.subdivision.vertex_rule == VertexRule::Loop;
-        for i in 0..nc {
-            let area = self.refinement.node_owner(i as u32) != NO_OWNER;
-            let new_rest = if loop_rule && area && !self.fixed[i] {
-                self.loop_vertex_rest[i]
-            } else {
-                self.surface.rest()[i]
-            };
-            if new_rest != self.old_rest[i] {
-                self.x[i] += new_rest - self.old_rest[i];
-                self.rest[i] = new_rest;
-                self.touched[i] = true;
-            }
-            if self.mass[i] != self.old_mass[i] {
-                self.v[i] *= (self.old_mass[i] / self.mass[i]).min(1.0);
-                self.touched[i] = true;
-            }
+        for &t in self.old_region.iter().rev().chain(self.refinement.region()) {
+            self.mesh
+                .update_triangle(&self.surface, &self.refinement, &mut self.probe.surface, t);
         }
-        // Type-2 nodes: new ones interpolated, persisting ones keep their state.
-        let edges = self.surface.edges();
-        for (e, &[a, b]) in edges.iter().enumerate() {
-            let s = nc + e;
-            let now = self.refinement.is_edge_split(e as u32);
-            if now && !self.old_split[e] {
-                let (a, b) = (a as usize, b as usize);
-                let u = 0.5 * ((self.x[a] - self.rest[a]) + (self.x[b] - self.rest[b]));
-                if self.fixed[s] {
-                    self.x[s] = self.edge_rest[e];
-                    self.v[s] = DVec3::ZERO;
-                } else {
-                    self.x[s] = self.edge_rest[e] + u;
-                    self.v[s] = 0.5 * (self.v[a] + self.v[b]);
-                }
-                self.touched[s] = true;
-            } else if now && self.mass[s] != self.old_mass[s] {
-                self.v[s] *= (self.old_mass[s] / self.mass[s]).min(1.0);
-                self.touched[s] = true;
-            } else if !now {
-                self.v[s] = DVec3::ZERO;
-            }
+        for &e in self.refinement.active_edges() {
+            self.mesh.update_edge(&self.surface, &self.refinement, e);
         }
-        self.rebuild_topology();
+        for &t in &self.region_tris {
+            self.mesh
+                .refresh_triangle(&self.refinement, t, &self.rest, &self.owner);
+        }
+        for &e in &self.region_edges {
+            self.mesh.refresh_edge(e, &self.rest, &self.owner);
+        }
+        self.mesh.finish(&self.surface, &self.probe.surface);
+        self.version += 1;
         self.update_area_constants();
-        // No energy from the event: drain the touched nodes' kinetic energy by the excess.
-        let energy_after = self.energy_j();
+        // 5. No energy from the event: drain the touched nodes' kinetic energy by the excess.
+        let energy_after = self.region_energy_j();
         let excess = energy_after - energy_before;
         if excess > 0.0 {
             let ke: f64 = self
-                .active
+                .touched_list
                 .iter()
-                .filter(|&&s| self.touched[s as usize])
                 .map(|&s| 0.5 * self.mass[s as usize] * self.v[s as usize].length_squared())
                 .sum();
             let drained = excess.min(ke);
             if ke > 0.0 {
                 let scale = ((ke - drained) / ke).max(0.0).sqrt();
-                for k in 0..self.active.len() {
-                    let s = self.active[k] as usize;
-                    if self.touched[s] {
-                        self.v[s] *= scale;
-                    }
+                for &s in &self.touched_list {
+                    self.v[s as usize] *= scale;
                 }
             }
             self.stats.drained_energy_j += drained;
@@ -521,17 +488,178 @@ impl MassSpringBody {
                 self.stats.max_injected_energy_j = self.stats.max_injected_energy_j.max(injected);
             }
         }
-        // The probe's contact triangle index refers to the old triangles.
-        if self.probe.state.in_contact {
+        for &s in &self.touched_list {
+            self.touched[s as usize] = false;
+        }
+        self.touched_list.clear();
+        // 6. The probe's contact triangle index refers to the old triangles: walk from a piece
+        // of the coarse triangle it was in.
+        if let Some(t) = contact_triangle {
             let st = self.probe.state;
             let point = st.proxy_m - st.normal * self.probe.params.radius_m;
-            if let Some(sp) = self.probe.surface.closest_global(&self.x, point) {
-                self.probe.state.triangle = sp.triangle;
-            }
+            let sp = self.probe.surface.closest_local(&self.x, point, t, 16);
+            self.probe.state.triangle = sp.triangle;
         }
         self.stats.events += 1;
         self.stats.subdivisions += u64::from(added);
         self.stats.coarsenings += u64::from(removed);
+    }
+
+    /// The region an event can change: the split and cut triangles before and after it, their
+    /// coarse nodes (type-1 nodes, crack-filling ends) and edges; with [`VertexRule::Loop`]
+    /// (which moves the rest positions of type-1 nodes) also every coarse triangle around those
+    /// nodes. Every mesh spring and node whose energy the event changes is in it.
+    fn collect_region(&mut self) {
+        self.stamp = self.stamp.wrapping_add(1);
+        if self.stamp == 0 {
+            self.node_stamp.fill(0);
+            self.tri_stamp.fill(0);
+            self.edge_stamp.fill(0);
+            self.stamp = 1;
+        }
+        let stamp = self.stamp;
+        self.region_nodes.clear();
+        self.region_tris.clear();
+        self.region_edges.clear();
+        let surface = &self.surface;
+        for &t in self.old_region.iter().chain(self.refinement.region()) {
+            if self.tri_stamp[t as usize] == stamp {
+                continue;
+            }
+            self.tri_stamp[t as usize] = stamp;
+            self.region_tris.push(t);
+            for &i in &surface.triangles()[t as usize] {
+                if self.node_stamp[i as usize] != stamp {
+                    self.node_stamp[i as usize] = stamp;
+                    self.region_nodes.push(i);
+                }
+            }
+        }
+        if self.params.subdivision.vertex_rule == VertexRule::Loop {
+            for &i in &self.region_nodes {
+                for &t in surface.triangles_at(i) {
+                    if self.tri_stamp[t as usize] != stamp {
+                        self.tri_stamp[t as usize] = stamp;
+                        self.region_tris.push(t);
+                    }
+                }
+            }
+        }
+        for &t in &self.region_tris {
+            for e in surface.triangle_edges(t) {
+                if self.edge_stamp[e as usize] != stamp {
+                    self.edge_stamp[e as usize] = stamp;
+                    self.region_edges.push(e);
+                }
+            }
+        }
+    }
+
+    /// Total energy (as [`MassSpringBody::energy_j`]) of the region's nodes and springs, J:
+    /// what an event changes of the total.
+    fn region_energy_j(&self) -> f64 {
+        let nc = self.surface.node_count() as u32;
+        let mut e = 0.0;
+        for &i in &self.region_nodes {
+            e += self.node_energy_j(i);
+        }
+        for &edge in &self.region_edges {
+            if self.mesh.is_edge_split(edge) {
+                e += self.node_energy_j(nc + edge);
+            }
+            self.mesh
+                .edge_springs(edge, |k| e += self.spring_energy_j(k));
+        }
+        for &t in &self.region_tris {
+            self.mesh
+                .triangle_springs(t, |k| e += self.spring_energy_j(k));
+        }
+        e
+    }
+
+    /// Carries the state of the nodes of the areas before and after the event over to the new
+    /// labels (module documentation): masses (eq. 3), damping, rest positions of the original
+    /// nodes, velocities; new type-2 nodes interpolated; the owners. Marks what it changed in
+    /// `touched`.
+    fn carry_state(&mut self) {
+        let nc = self.surface.node_count() as u32;
+        let m = self.params.node_mass_kg;
+        let (n1, n2) = (self.refinement.type1_count(), self.refinement.type2_count());
+        let m_area = if n1 + n2 > 0 {
+            m * n1 as f64 / (n1 + n2) as f64
+        } else {
+            m
+        };
+        let kd_per_kg = self.params.damping_n_s_per_m / m;
+        let loop_rule = self.params.subdivision.vertex_rule == VertexRule::Loop;
+        // Original nodes first (a new type-2 node interpolates its ends' new state). A node in
+        // both lists is carried once: the second visit finds nothing to change.
+        for &i in self.old_type1.iter().chain(self.refinement.type1_nodes()) {
+            let i = i as usize;
+            let area = self.refinement.node_owner(i as u32) != NO_OWNER;
+            let mass = if area { m_area } else { m };
+            let mut touched = false;
+            if loop_rule {
+                let new_rest = if area && !self.fixed[i] {
+                    self.loop_vertex_rest[i]
+                } else {
+                    self.surface.rest()[i]
+                };
+                if new_rest != self.rest[i] {
+                    self.x[i] += new_rest - self.rest[i];
+                    self.rest[i] = new_rest;
+                    touched = true;
+                }
+            }
+            if mass != self.mass[i] {
+                self.v[i] *= (self.mass[i] / mass).min(1.0);
+                self.mass[i] = mass;
+                self.damping[i] = kd_per_kg * mass;
+                touched = true;
+            }
+            if touched && !self.touched[i] {
+                self.touched[i] = true;
+                self.touched_list.push(i as u32);
+            }
+        }
+        // Type-2 nodes: new ones interpolated, persisting ones keep their state.
+        for &e in self.old_edges.iter().chain(self.refinement.active_edges()) {
+            let s = (nc + e) as usize;
+            let now = self.refinement.is_edge_split(e);
+            let was = self.mesh.is_edge_split(e);
+            let mass = if now { m_area } else { m };
+            let mut touched = false;
+            if now && !was && !self.touched[s] {
+                let [a, b] = self.surface.edges()[e as usize].map(|i| i as usize);
+                let u = 0.5 * ((self.x[a] - self.rest[a]) + (self.x[b] - self.rest[b]));
+                if self.fixed[s] {
+                    self.x[s] = self.rest[s];
+                    self.v[s] = DVec3::ZERO;
+                } else {
+                    self.x[s] = self.rest[s] + u;
+                    self.v[s] = 0.5 * (self.v[a] + self.v[b]);
+                }
+                touched = true;
+            } else if now && was && mass != self.mass[s] {
+                self.v[s] *= (self.mass[s] / mass).min(1.0);
+                touched = true;
+            } else if !now {
+                self.v[s] = DVec3::ZERO;
+            }
+            self.mass[s] = mass;
+            self.damping[s] = kd_per_kg * mass;
+            if touched && !self.touched[s] {
+                self.touched[s] = true;
+                self.touched_list.push(s as u32);
+            }
+        }
+        // Owners, as labelled.
+        for &i in self.old_type1.iter().chain(self.refinement.type1_nodes()) {
+            self.owner[i as usize] = self.refinement.node_owner(i);
+        }
+        for &e in self.old_edges.iter().chain(self.refinement.active_edges()) {
+            self.owner[(nc + e) as usize] = self.refinement.node_owner(nc + e);
+        }
     }
 
     /// The coarse node nearest the probe's contact point among the coarse vertices of the
@@ -543,7 +671,7 @@ impl MassSpringBody {
         }
         let point = st.proxy_m - st.normal * self.probe.params.radius_m;
         let nc = self.surface.node_count() as u32;
-        let tri = *self.refinement.triangles().get(st.triangle as usize)?;
+        let tri = *self.probe.surface.triangles.get(st.triangle as usize)?;
         let mut best: Option<(f64, u32)> = None;
         for s in tri {
             let parents = if s < nc {
@@ -673,7 +801,8 @@ impl MassSpringBody {
         &self.surface
     }
 
-    /// The current refinement (levels, triangles and springs over slots).
+    /// The current refinement: levels and owners (its [`Refinement::mesh`] lists what
+    /// [`MassSpringBody::triangles`] and [`MassSpringBody::springs`] hold).
     pub fn refinement(&self) -> &Refinement {
         &self.refinement
     }
@@ -683,9 +812,28 @@ impl MassSpringBody {
         &self.params
     }
 
-    /// Active slots (the coarse nodes, then the active type-2 nodes): the viewer's vertices.
+    /// Active slots (the coarse nodes, then the active type-2 nodes in the order they
+    /// appeared): the viewer's vertices.
     pub fn active_nodes(&self) -> &[u32] {
-        &self.active
+        self.mesh.active()
+    }
+
+    /// Triangles of the current mesh over slots, outward oriented: the probe's contact
+    /// surface (the pieces of a coarse triangle are not consecutive; as a set they are
+    /// [`Refinement::mesh`]'s).
+    pub fn triangles(&self) -> &[[u32; 3]] {
+        &self.probe.surface.triangles
+    }
+
+    /// Mesh springs of the current mesh with their rest lengths and current constants (as a
+    /// set, [`Refinement::mesh`]'s springs).
+    pub fn springs(&self) -> impl Iterator<Item = Spring> + '_ {
+        self.mesh.springs().iter().map(|sp| Spring {
+            i: sp.i,
+            j: sp.j,
+            rest_length_m: sp.rest_length_m,
+            stiffness_n_per_m: self.spring_constant(sp.owner),
+        })
     }
 
     /// Positions per slot, m (inactive slots hold stale values).
@@ -767,11 +915,11 @@ impl MassSpringBody {
         for _ in 0..self.plan.substeps {
             self.update_area_constants();
             // 1. Forces of eq. 2: home springs, mesh springs, point loads.
-            for &s in &self.active {
+            for &s in self.mesh.active() {
                 let i = s as usize;
                 self.f[i] = (self.rest[i] - self.x[i]) * self.home_constant(s);
             }
-            for sp in &self.springs {
+            for sp in self.mesh.springs() {
                 let d = self.x[sp.j as usize] - self.x[sp.i as usize];
                 let len = d.length();
                 if len > 0.0 {
@@ -795,7 +943,7 @@ impl MassSpringBody {
             }
             // 3. Symplectic Euler with implicit damping, then the implicit coupling.
             let mut max_v2: f64 = 0.0;
-            for &s in &self.active {
+            for &s in self.mesh.active() {
                 let i = s as usize;
                 if self.fixed[i] {
                     continue;
@@ -847,7 +995,8 @@ impl MassSpringBody {
 
     /// Largest displacement from rest over the active nodes, m.
     pub fn max_displacement_m(&self) -> f64 {
-        self.active
+        self.mesh
+            .active()
             .iter()
             .map(|&s| (self.x[s as usize] - self.rest[s as usize]).length_squared())
             .fold(0.0, f64::max)
@@ -859,9 +1008,9 @@ impl MassSpringBody {
     /// [`MassSpringBody::plan`]). Allocation-free.
     pub fn current_stiffness_bound_per_s2(&mut self) -> f64 {
         let n = self.mass.len();
-        let mut home = std::mem::take(&mut self.old_mass);
+        let mut home = std::mem::take(&mut self.scratch_home);
         for (s, h) in home.iter_mut().enumerate().take(n) {
-            *h = if self.slot_to_view[s] == u32::MAX {
+            *h = if !self.mesh.is_active(s as u32) {
                 0.0
             } else {
                 self.home_constant(s as u32)
@@ -873,13 +1022,14 @@ impl MassSpringBody {
             &home,
             &self.mass,
             &self.fixed,
-            self.springs
+            self.mesh
+                .springs()
                 .iter()
                 .map(|sp| (sp.i, sp.j, self.spring_constant(sp.owner))),
             &mut diag,
             &mut off,
         );
-        self.old_mass = home;
+        self.scratch_home = home;
         self.scratch_a = diag;
         self.scratch_b = off;
         lambda
@@ -910,8 +1060,8 @@ impl SoftBody for MassSpringBody {
     fn surface_topology(&self) -> SurfaceTopology<'_> {
         SurfaceTopology {
             version: self.version,
-            vertex_count: self.active.len(),
-            triangles: &self.view_triangles,
+            vertex_count: self.mesh.active().len(),
+            triangles: self.mesh.view_triangles(),
         }
     }
 
@@ -923,9 +1073,13 @@ impl SoftBody for MassSpringBody {
     }
 
     fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
-        assert_eq!(out.len(), 3 * self.active.len(), "surface buffer length");
+        assert_eq!(
+            out.len(),
+            3 * self.mesh.active().len(),
+            "surface buffer length"
+        );
         let mut max_d2: f64 = 0.0;
-        for (k, &s) in self.active.iter().enumerate() {
+        for (k, &s) in self.mesh.active().iter().enumerate() {
             let p = self.x[s as usize];
             out[3 * k] = p.x as f32;
             out[3 * k + 1] = p.y as f32;
@@ -936,8 +1090,12 @@ impl SoftBody for MassSpringBody {
     }
 
     fn write_surface_rest_positions(&self, out: &mut [f32]) {
-        assert_eq!(out.len(), 3 * self.active.len(), "surface buffer length");
-        for (k, &s) in self.active.iter().enumerate() {
+        assert_eq!(
+            out.len(),
+            3 * self.mesh.active().len(),
+            "surface buffer length"
+        );
+        for (k, &s) in self.mesh.active().iter().enumerate() {
             let p = self.rest[s as usize];
             out[3 * k] = p.x as f32;
             out[3 * k + 1] = p.y as f32;
@@ -949,13 +1107,13 @@ impl SoftBody for MassSpringBody {
     /// mesh springs, all of them simulated.
     fn stats(&self) -> BodyStats {
         BodyStats {
-            nodes: self.active.len(),
-            elements: self.springs.len(),
-            active_elements: self.springs.len(),
+            nodes: self.mesh.active().len(),
+            elements: self.mesh.springs().len(),
+            active_elements: self.mesh.springs().len(),
             particles: 0,
             active_particles: 0,
             active_point_loads: self.loads.active_point_loads(),
-            surface_vertices: self.active.len(),
+            surface_vertices: self.mesh.active().len(),
             topology_version: self.version,
             sim_time_s: self.time_s,
             max_displacement_m: self.max_displacement_m(),

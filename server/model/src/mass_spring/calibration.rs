@@ -523,6 +523,7 @@ impl LocalPatch {
         refinement.begin();
         refinement.request_ring(&patch, c, rings, 0);
         refinement.finish(&patch);
+        let fine_mesh = refinement.mesh(&patch);
         let ns = nc + patch.edge_count();
         let mut fine_rest = patch.rest().to_vec();
         let mut stencil = Vec::new();
@@ -547,8 +548,8 @@ impl LocalPatch {
             .map(|s| refinement.node_owner(s) != NO_OWNER)
             .collect();
         let mut fine_area_spring = Vec::new();
-        let springs: Vec<Spring> = refinement
-            .springs()
+        let springs: Vec<Spring> = fine_mesh
+            .springs
             .iter()
             .map(|s| {
                 fine_area_spring.push(s.owner != NO_OWNER);
@@ -577,7 +578,7 @@ impl LocalPatch {
             coarse,
             coarse_triangles: patch.triangles().to_vec(),
             fine,
-            fine_triangles: refinement.triangles().to_vec(),
+            fine_triangles: fine_mesh.triangles,
             fine_area_node,
             fine_area_spring,
             type1: refinement.type1_count(),

@@ -11,6 +11,8 @@
 //! - [`loop_rules`]: Loop's weights: type-1 (vertex, `beta(K)`) and type-2 (edge) stencils.
 //! - [`refine`]: which coarse triangles are split, crack-free closure, levels, the mixed-level
 //!   triangles and springs, over stable node slots.
+//! - `mixed`: the body's mixed-level mesh (springs, triangles, active nodes), edited locally
+//!   at each event.
 //! - [`network`]: eq. 2's elastic part, energies, the Gershgorin bound for the stable step,
 //!   the static press (the paper's experiment).
 //! - [`calibration`]: the lookup table of `K'_h / K_h` over normalized contact displacement
@@ -25,6 +27,7 @@
 pub mod body;
 pub mod calibration;
 pub mod loop_rules;
+mod mixed;
 pub mod network;
 pub mod refine;
 pub mod surface;
@@ -199,3 +202,21 @@ impl MassSpringParams {
 
 /// Largest number of rings a scene may subdivide around a contact node.
 pub const MAX_RINGS: u32 = 6;
+
+/// A vector of `n` copies of `value` whose memory is written now. A zeroed allocation is
+/// mapped lazily by the OS, so the first event that reaches a page of it (on the servo thread)
+/// would take a page fault; the benchmark's events at random nodes of large surfaces did.
+pub(crate) fn prefaulted<T: Copy>(value: T, n: usize) -> Vec<T> {
+    let mut v = Vec::with_capacity(n);
+    // Keeps the allocation and the fill from being merged into one lazily zeroed allocation.
+    std::hint::black_box(&mut v);
+    v.resize(n, value);
+    v
+}
+
+/// An empty vector with room for `n` elements, its memory written now (as [`prefaulted`]).
+pub(crate) fn prefaulted_capacity<T: Copy>(filler: T, n: usize) -> Vec<T> {
+    let mut v = prefaulted(filler, n);
+    v.clear();
+    v
+}
