@@ -17,7 +17,7 @@ mod common;
 
 use std::time::Duration;
 
-use common::{Burdened, genuine_run, lv_body, wait_for};
+use common::{genuine_run, start_heavy, wait_for};
 use haptic_server::ServerConfig;
 use haptic_server::session::SessionManager;
 
@@ -79,17 +79,7 @@ async fn repetition(yielding: bool, a: &Args) -> ([(f64, f64); 2], bool) {
     config.max_sessions = a.heavy + 1;
     let manager = SessionManager::new(config);
     let alone = genuine_run(&manager, a.run).await;
-    let heavy: Vec<_> = (0..a.heavy)
-        .map(|_| {
-            manager
-                .start_body(Box::new(Burdened {
-                    body: lv_body(),
-                    extra: Duration::from_millis(3),
-                    spin: true,
-                }))
-                .expect("a heavy session")
-        })
-        .collect();
+    let heavy = start_heavy(&manager, a.heavy);
     // Judged after a second below 90 % of the rate (and demoted, when yielding).
     let judged = wait_for(
         || heavy.iter().all(|h| h.stats().overrunning),

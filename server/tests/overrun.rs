@@ -10,7 +10,7 @@ mod common;
 
 use std::time::{Duration, Instant};
 
-use common::{Burdened, genuine_run, lv_body, wait_for};
+use common::{Burdened, genuine_run, lv_body, start_heavy, wait_for};
 use haptic_server::ServerConfig;
 use haptic_server::config::OverrunPolicy;
 use haptic_server::session::SessionManager;
@@ -90,17 +90,7 @@ async fn heavy_sessions_yield_to_the_lv_that_keeps_up() {
     let before = genuine_run(&manager, run).await;
     // Six heavy sessions (the LV plus 3 ms of CPU work a tick, about 220 Hz) on two cores:
     // each is judged overrunning after a second and its servo thread yields (SCHED_IDLE).
-    let heavy: Vec<_> = (0..6)
-        .map(|_| {
-            manager
-                .start_body(Box::new(Burdened {
-                    body: lv_body(),
-                    extra: Duration::from_millis(3),
-                    spin: true,
-                }))
-                .unwrap()
-        })
-        .collect();
+    let heavy = start_heavy(&manager, 6);
     assert!(
         wait_for(
             || heavy.iter().all(|h| h.stats().demoted),

@@ -890,19 +890,22 @@ async fn soak() -> Result<bool> {
     })
 }
 
+/// The quiet windows of `this` and those the heavy session touched.
+fn quiet_and_heavy(this: &[&Window]) -> (Option<Group>, Option<Group>) {
+    let of = |quiet: bool| {
+        Group::of(
+            this.iter()
+                .copied()
+                .filter(move |w| (w.presence == Presence::Quiet) == quiet),
+        )
+    };
+    (of(true), of(false))
+}
+
 /// One progress line on stderr for minute `m`.
 fn progress(windows: &[Window], m: u64, minutes: u64, cycles: &[Value], forces: &AtomicU64) {
     let this: Vec<&Window> = windows.iter().filter(|w| w.minute() == m).collect();
-    let q = Group::of(
-        this.iter()
-            .copied()
-            .filter(|w| w.presence == Presence::Quiet),
-    );
-    let h = Group::of(
-        this.iter()
-            .copied()
-            .filter(|w| w.presence != Presence::Quiet),
-    );
+    let (q, h) = quiet_and_heavy(&this);
     let Some(end) = this.last() else { return };
     let heavy = cycles
         .iter()
@@ -965,16 +968,7 @@ fn report(r: Report<'_>) -> Result<bool> {
         let this: Vec<&Window> = windows.iter().filter(|w| w.minute() == m).collect();
         let Some(end) = this.last() else { continue };
         let all = Group::of(this.iter().copied());
-        let q = Group::of(
-            this.iter()
-                .copied()
-                .filter(|w| w.presence == Presence::Quiet),
-        );
-        let h = Group::of(
-            this.iter()
-                .copied()
-                .filter(|w| w.presence != Presence::Quiet),
-        );
+        let (q, h) = quiet_and_heavy(&this);
         let mut fps: Vec<f64> = this.iter().map(|w| w.frames_per_watcher_per_s).collect();
         let fps = percentile(&mut fps, 0.5);
         println!(

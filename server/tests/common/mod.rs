@@ -9,7 +9,7 @@ use haptic_model::body::{
     BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput, TickOutput,
 };
 use haptic_model::{DVec3, ModelError};
-use haptic_server::session::SessionManager;
+use haptic_server::session::{Session, SessionManager};
 
 /// A real body whose tick takes `extra` longer: asleep (a model too slow for the machine,
 /// made deterministic) or spinning (one that also takes the CPU from everyone else).
@@ -66,6 +66,22 @@ impl SoftBody for Burdened {
     fn info(&self) -> BodyInfo {
         self.body.info()
     }
+}
+
+/// Starts `n` heavy sessions in `manager`: the default LV plus 3 ms of CPU spinning a tick
+/// (about 220 Hz on two cores, never keeping up).
+pub fn start_heavy(manager: &SessionManager, n: usize) -> Vec<std::sync::Arc<Session>> {
+    (0..n)
+        .map(|_| {
+            manager
+                .start_body(Box::new(Burdened {
+                    body: lv_body(),
+                    extra: Duration::from_millis(3),
+                    spin: true,
+                }))
+                .expect("a heavy session")
+        })
+        .collect()
 }
 
 /// A built-in scene's body.
