@@ -79,15 +79,20 @@ struct Tangent {
     extra: Vec<Pair<usize, usize>>,
     /// The symbolic matrix of `pairs` and `extra`, the order of their values and the symbolic
     /// Cholesky (if the analysis succeeded).
-    pattern: Option<(
-        SymbolicSparseColMat<usize>,
-        Argsort<usize>,
-        Option<SymbolicLlt<usize>>,
-    )>,
+    pattern: Option<Pattern>,
     /// `vals` followed by a zero per `extra` entry.
     padded: Vec<f64>,
     /// The symbolic LU of the pattern, made the first time Cholesky fails.
     lu_symbolic: Option<SymbolicLu<usize>>,
+}
+
+/// The kept analysis of a [`Tangent`]'s pattern.
+struct Pattern {
+    symbolic: SymbolicSparseColMat<usize>,
+    /// The order of the values in `symbolic` for the entries as assembled.
+    argsort: Argsort<usize>,
+    /// `None` when the symbolic Cholesky failed (then LU answers).
+    llt: Option<SymbolicLlt<usize>>,
 }
 
 impl Tangent {
@@ -135,9 +140,16 @@ impl Tangent {
                     SymbolicSparseColMat::try_new_from_indices(nfree, nfree, &all)
                         .map_err(|e| assembly(&e))?;
                 let llt = SymbolicLlt::try_new(symbolic.as_ref(), Side::Lower).ok();
-                self.pattern = Some((symbolic, argsort, llt));
+                self.pattern = Some(Pattern {
+                    symbolic,
+                    argsort,
+                    llt,
+                });
             }
-            let Some((symbolic, argsort, _)) = &self.pattern else {
+            let Some(Pattern {
+                symbolic, argsort, ..
+            }) = &self.pattern
+            else {
                 unreachable!("the pattern was built above")
             };
             self.padded.clear();
@@ -182,7 +194,10 @@ impl Tangent {
     /// Hertz test three times slower.
     fn solve(&mut self, nfree: usize, rhs: faer::MatMut<'_, f64>) -> Result<(), ModelError> {
         let kmat = self.assemble(nfree)?;
-        let Some((_, _, llt_symbolic)) = &self.pattern else {
+        let Some(Pattern {
+            llt: llt_symbolic, ..
+        }) = &self.pattern
+        else {
             unreachable!("assemble built the pattern")
         };
         if let Some(llt_symbolic) = llt_symbolic
@@ -196,7 +211,7 @@ impl Tangent {
             ModelError::NoConvergence(format!("factorising the tangent: {e:?}"))
         };
         if self.lu_symbolic.is_none() {
-            let Some((symbolic, _, _)) = &self.pattern else {
+            let Some(Pattern { symbolic, .. }) = &self.pattern else {
                 unreachable!("assemble built the pattern")
             };
             self.lu_symbolic =
