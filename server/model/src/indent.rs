@@ -388,7 +388,8 @@ pub fn min_principal_stretch(fem: &FemModel, x: &[DVec3]) -> f64 {
 /// [`ModelError::InvalidInput`] for a non-finite or non-increasing depth list, a zero
 /// direction, a start point overlapping the body or a ray that misses it;
 /// [`ModelError::NoConvergence`] naming the depth that failed, the last converged depth, why
-/// (Newton's message or the multiplier updates' gap) and the smallest principal stretch of the
+/// (Newton's message, the multiplier updates' gap or an inverted element in the converged
+/// state) and the smallest principal stretch of the
 /// last converged state (St. Venant-Kirchhoff loses stability below `1/sqrt(3)`).
 pub fn indent(
     fem: &FemModel,
@@ -485,8 +486,8 @@ pub fn indent(
 }
 
 /// Multiplier updates with Newton solves until the gap criterion holds: returns the updates
-/// and Newton iterations used, or why it failed. On success the multipliers are those the
-/// final positions are in equilibrium with.
+/// and Newton iterations used, or why it failed (a state with an inverted element fails). On
+/// success the multipliers are those the final positions are in equilibrium with.
 fn augment(
     fem: &FemModel,
     contact: &mut SphereContact,
@@ -518,6 +519,14 @@ fn augment(
             contact.multiplier_n[k] = contact.pressure_force(k, rho);
         }
         if worst <= gap_tol {
+            // St. Venant-Kirchhoff has zero-energy reflected states, so Newton can converge
+            // to a crushed body; that is no equilibrium of tissue.
+            let inverted = fem.inverted_elements(x);
+            if inverted > 0 {
+                return Err(format!(
+                    "the converged state inverts {inverted} element(s): no physical equilibrium"
+                ));
+            }
             return Ok((a, newton));
         }
         // A gap that closes slowly (the active set changing at the rim of the contact on a
