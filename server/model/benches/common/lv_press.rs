@@ -212,13 +212,24 @@ pub fn probe_sphere_at(scene: &Scene, depths_mm: &[f64]) -> Result<ProbeCurve, S
             sphere_depths.push((s + offset).max(0.0));
         }
     }
+    let started = std::time::Instant::now();
     let points = indent(
         &fem,
         &scene.touchable,
         &indenter,
         &sphere_depths,
         &params,
-        &mut |_| {},
+        // Progress: a refined mesh takes minutes per depth.
+        &mut |p| {
+            eprintln!(
+                "    sphere depth {:.3} mm: |F| {:.4e} N, {} multiplier updates, {} Newton iterations, {:.1} s",
+                (p.depth_m - offset) * 1e3,
+                p.force_on_sphere_n.length(),
+                p.augmentations,
+                p.newton_iterations,
+                started.elapsed().as_secs_f64()
+            )
+        },
     )
     .map_err(|e| e.to_string())?;
     let kc = scene.probe.coupling_stiffness_n_per_m;
