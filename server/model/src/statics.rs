@@ -82,8 +82,6 @@ struct Tangent {
     pattern: Option<Pattern>,
     /// `vals` followed by a zero per `extra` entry.
     padded: Vec<f64>,
-    /// The symbolic LU of the pattern, made the first time Cholesky fails.
-    lu_symbolic: Option<SymbolicLu<usize>>,
 }
 
 /// The kept analysis of a [`Tangent`]'s pattern.
@@ -93,6 +91,8 @@ struct Pattern {
     argsort: Argsort<usize>,
     /// `None` when the symbolic Cholesky failed (then LU answers).
     llt: Option<SymbolicLlt<usize>>,
+    /// The symbolic LU, made the first time Cholesky fails.
+    lu: Option<SymbolicLu<usize>>,
 }
 
 impl Tangent {
@@ -144,6 +144,7 @@ impl Tangent {
                     symbolic,
                     argsort,
                     llt,
+                    lu: None,
                 });
             }
             let Some(Pattern {
@@ -179,28 +180,19 @@ impl Tangent {
                 return Ok(kmat);
             }
             self.pattern = None;
-            self.lu_symbolic = None;
         }
     }
 
     /// Solves `K dx = r` in place of `rhs` (`nfree` equations): sparse Cholesky on the kept
     /// symbolic factorisation, sparse LU when `K` is not positive definite (StVK under strong
-    /// compression, the curvature term of a sphere contact).
-    ///
-    /// A diagonal shift `K + s I` instead of LU was tried (2026-11-23): it cut the default LV's
-    /// 3 mm indentation from 204 to 40 Newton iterations, but on the Hertz block a shifted
-    /// descent step jumped StVK's barrier at `det F = 0` into a spurious minimum 47 % below
-    /// Hertz, and with a guard against inversion the repeated failed Cholesky attempts made the
-    /// Hertz test three times slower.
+    /// compression, the curvature term of a sphere contact). Why not a diagonal shift instead
+    /// of LU: docs/decisions.md ("Newton's linear systems keep their pattern").
     fn solve(&mut self, nfree: usize, rhs: faer::MatMut<'_, f64>) -> Result<(), ModelError> {
         let kmat = self.assemble(nfree)?;
-        let Some(Pattern {
-            llt: llt_symbolic, ..
-        }) = &self.pattern
-        else {
+        let Some(pattern) = &mut self.pattern else {
             unreachable!("assemble built the pattern")
         };
-        if let Some(llt_symbolic) = llt_symbolic
+        if let Some(llt_symbolic) = &pattern.llt
             && let Ok(llt) =
                 Llt::try_new_with_symbolic(llt_symbolic.clone(), kmat.as_ref(), Side::Lower)
         {
@@ -210,17 +202,16 @@ impl Tangent {
         let factorising = |e: &dyn std::fmt::Debug| {
             ModelError::NoConvergence(format!("factorising the tangent: {e:?}"))
         };
-        if self.lu_symbolic.is_none() {
-            let Some(Pattern { symbolic, .. }) = &self.pattern else {
-                unreachable!("assemble built the pattern")
-            };
-            self.lu_symbolic =
-                Some(SymbolicLu::try_new(symbolic.as_ref()).map_err(|e| factorising(&e))?);
-        }
-        let Some(lu_symbolic) = &self.lu_symbolic else {
-            unreachable!("made above")
+        let lu_symbolic = match &pattern.lu {
+            Some(lu) => lu.clone(),
+            None => {
+                let lu =
+                    SymbolicLu::try_new(pattern.symbolic.as_ref()).map_err(|e| factorising(&e))?;
+                pattern.lu = Some(lu.clone());
+                lu
+            }
         };
-        Lu::try_new_with_symbolic(lu_symbolic.clone(), kmat.as_ref())
+        Lu::try_new_with_symbolic(lu_symbolic, kmat.as_ref())
             .map_err(|e| factorising(&e))?
             .solve_in_place(rhs);
         Ok(())
