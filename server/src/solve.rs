@@ -1,6 +1,6 @@
 //! Static solutions of scene files for reference and inspection (`haptic-solve`): the scene's
-//! loads applied in increments, Newton at each increment ([`haptic_model::statics`]), follower
-//! pressures by a fixed point on the load checked against the true residual, results written
+//! loads applied in increments, Newton at each increment ([`haptic_model::statics`]) with the
+//! follower pressures' load stiffness, results written
 //! as `nodes.csv` and a ParaView `.vtu` in the scene's length unit; and static indentations by
 //! the scene's probe sphere ([`indent_scene`], [`haptic_model::indent`]) written as
 //! `indent.csv` and one `.vtu` per depth.
@@ -9,7 +9,9 @@ use std::path::Path;
 
 use haptic_model::indent::{IndentParams, IndentPoint, Indenter, indent};
 use haptic_model::scene::{ModelFamily, Scene};
-use haptic_model::statics::{StaticParams, free_residual_norm, solve_static};
+use haptic_model::statics::{
+    FollowerPressure, StaticParams, StaticTerm, free_residual_norm, solve_static_with,
+};
 use haptic_model::{DVec3, ModelError};
 
 /// What a static solve did.
@@ -19,9 +21,6 @@ pub struct SolveReport {
     pub load_steps: usize,
     /// Newton iterations over all increments.
     pub newton_iterations: usize,
-    /// Newton solves with a frozen load over all increments (one per increment without
-    /// follower pressure).
-    pub load_passes: usize,
     /// Final free residual `|f_int(x) + f_ext(x)|` with the loads evaluated at the final
     /// configuration (follower pressure included), N.
     pub residual_n: f64,
@@ -36,34 +35,31 @@ pub struct SolveReport {
 pub struct SolveParams {
     /// Load increments (>= 1).
     pub load_steps: usize,
-    /// Largest number of frozen-load Newton solves per increment when a follower pressure
-    /// moves the load with the body (default 100: the fixed point converges linearly, slowly
-    /// when the pressure is of the order of the stiffness; measured in `docs/decisions.md`).
-    pub max_follower_passes: usize,
     /// Relative residual the solve must reach (against the external load norm).
     pub rel_tol: f64,
+    /// Largest Newton iteration count per increment.
+    pub max_iterations: usize,
 }
 
 impl Default for SolveParams {
     fn default() -> Self {
         Self {
             load_steps: 1,
-            max_follower_passes: 100,
             rel_tol: 1e-9,
+            max_iterations: 50,
         }
     }
 }
 
 /// Solves the scene's static equilibrium under its `[loads]`, applied in `params.load_steps`
-/// equal increments. In each increment Newton solves with the load frozen at the current
-/// shape; with a follower pressure the load is then re-evaluated at the new shape and the
-/// solve repeated (a fixed point on the load) until the true residual, with the load at the
-/// final shape, is below `params.rel_tol` of the load. Returns the node positions, m.
+/// equal increments, Newton at each ([`haptic_model::statics::solve_static_with`]). Follower
+/// pressures enter Newton with their load stiffness ([`FollowerPressure`]), so every increment
+/// converges quadratically near the solution; the residual it reaches is the true one, with
+/// the load at the final shape. Returns the node positions, m.
 ///
 /// # Errors
 /// [`ModelError::InvalidInput`] when the scene has no loads; [`ModelError::NoConvergence`]
-/// when Newton fails at some increment, or when the follower load has not settled after
-/// `max_follower_passes` passes (the message names the increment and the true residual).
+/// naming the increment at which Newton failed and why.
 pub fn solve_scene(
     scene: &Scene,
     params: &SolveParams,
@@ -74,59 +70,38 @@ pub fn solve_scene(
         ));
     }
     let fem = scene.fem_model()?;
-    let follower = scene.loads.pressure.iter().any(|p| p.follower);
     let steps = params.load_steps.max(1);
     let mut x = scene.mesh.nodes.clone();
     let mut report = SolveReport {
         load_steps: steps,
         newton_iterations: 0,
-        load_passes: 0,
         residual_n: 0.0,
         relative_residual: 0.0,
         max_displacement_m: 0.0,
     };
     let newton = StaticParams {
         rel_tol: params.rel_tol,
+        max_iterations: params.max_iterations,
         ..StaticParams::default()
     };
-    let load_at = |x: &[DVec3], scale: f64| -> Vec<DVec3> {
-        scene
-            .external_forces(x)
-            .into_iter()
-            .map(|v| v * scale)
-            .collect()
-    };
+    let dead = scene.dead_forces();
     let norm = |f: &[DVec3]| f.iter().map(|a| a.length_squared()).sum::<f64>().sqrt();
     for k in 1..=steps {
         let scale = k as f64 / steps as f64;
-        let mut f = load_at(&x, scale);
-        for pass in 1.. {
-            let r = solve_static(&fem, &f, &mut x, &newton).map_err(|e| {
-                ModelError::NoConvergence(format!("load increment {k}/{steps}: {e}"))
-            })?;
-            report.newton_iterations += r.iterations;
-            report.load_passes += 1;
-            if follower {
-                f = load_at(&x, scale);
-            }
-            // The true residual: the load at the shape just found.
-            let residual = free_residual_norm(&fem, &f, &x);
-            let tol = (params.rel_tol * norm(&f)).max(newton.abs_tol_n);
-            report.residual_n = residual;
-            report.relative_residual = residual / norm(&f).max(f64::MIN_POSITIVE);
-            if residual <= tol {
-                break;
-            }
-            if pass >= params.max_follower_passes {
-                return Err(ModelError::NoConvergence(format!(
-                    "load increment {k}/{steps}: the follower pressure did not settle in {pass} \
-                     passes (residual {residual:.3e} N with the load at the final shape, {:.1e} \
-                     of the load; tolerance {tol:.3e} N): use more load steps",
-                    report.relative_residual
-                )));
-            }
-        }
+        let f: Vec<DVec3> = dead.iter().map(|v| *v * scale).collect();
+        let follower = FollowerPressure::new(&scene.loads, scale);
+        let term = (!follower.is_empty()).then_some(&follower as &dyn StaticTerm);
+        let r = solve_static_with(&fem, &f, term, &mut x, &newton).map_err(|e| {
+            ModelError::NoConvergence(format!(
+                "load increment {k}/{steps}: {e} (more load steps may help)"
+            ))
+        })?;
+        report.newton_iterations += r.iterations;
     }
+    // The true residual, every load evaluated at the final shape.
+    let f = scene.external_forces(&x);
+    report.residual_n = free_residual_norm(&fem, &f, &x);
+    report.relative_residual = report.residual_n / norm(&f).max(f64::MIN_POSITIVE);
     report.max_displacement_m = x
         .iter()
         .zip(&scene.mesh.nodes)

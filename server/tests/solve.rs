@@ -45,9 +45,11 @@ fn cavity_pressure_inflates_the_ventricle_and_files_are_written() {
         "reported {:e}, true {truth:e}",
         report.residual_n
     );
+    // Newton with the pressure's load stiffness converges quadratically: a handful of
+    // iterations per increment (the fixed point on the load it replaced took 39 passes).
     assert!(
-        report.load_passes > 2,
-        "a follower load needs passes: {report:?}"
+        report.newton_iterations <= 6 * report.load_steps,
+        "{report:?}"
     );
     assert!(
         report.max_displacement_m > 1e-5 && report.max_displacement_m < 2e-3,
@@ -108,20 +110,19 @@ fn a_scene_without_loads_is_refused() {
     assert!(err.contains("no [loads]"), "{err}");
 }
 
-/// A follower load that has not settled is a failure with the true residual, never a
-/// "converged" with the residual of the last frozen-load solve.
+/// An increment Newton cannot finish is a failure naming the increment, never a "converged".
 #[test]
-fn an_unsettled_follower_load_fails_loudly() {
+fn an_unfinished_increment_fails_loudly() {
     let scene = parse_scene_toml(SCENE, Path::new(".")).unwrap();
     let params = SolveParams {
-        load_steps: 1,
-        max_follower_passes: 2,
+        load_steps: 2,
+        max_iterations: 1,
         ..SolveParams::default()
     };
     let err = solve_scene(&scene, &params).unwrap_err().to_string();
     assert!(
-        err.contains("load increment 1/1")
-            && err.contains("did not settle in 2 passes")
+        err.contains("load increment 1/2")
+            && err.contains("Newton stopped after 1 iterations")
             && err.contains("more load steps"),
         "{err}"
     );

@@ -164,15 +164,28 @@ pub fn static_external_forces(
     density_kg_per_m3: f64,
     x: &[DVec3],
 ) -> Vec<DVec3> {
-    let mass = lumped_masses(mesh, density_kg_per_m3);
-    let mut f = constant_external_forces(loads, &mesh.nodes, &mass);
-    if f.is_empty() {
-        f = vec![DVec3::ZERO; mesh.nodes.len()];
-    }
+    let mut f = static_dead_forces(loads, mesh, density_kg_per_m3);
     for p in loads.pressure.iter().filter(|p| p.follower) {
         add_pressure_forces(&p.triangles, x, p.pressure_pa, &mut f);
     }
     f
+}
+
+/// The part of [`static_external_forces`] that does not move with the body (N, one per node of
+/// `mesh`): gravity, dead pressure, point forces; no follower pressure (a static solve adds
+/// that as a term with its load stiffness, `statics::FollowerPressure`).
+pub fn static_dead_forces(
+    loads: &SceneLoads,
+    mesh: &TetMesh,
+    density_kg_per_m3: f64,
+) -> Vec<DVec3> {
+    let mass = lumped_masses(mesh, density_kg_per_m3);
+    let f = constant_external_forces(loads, &mesh.nodes, &mass);
+    if f.is_empty() {
+        vec![DVec3::ZERO; mesh.nodes.len()]
+    } else {
+        f
+    }
 }
 
 /// A point load: a force on a surface point, spread over the surface nodes around it

@@ -31,9 +31,9 @@ struct Args {
     /// Load increments.
     #[arg(long, default_value_t = 1)]
     load_steps: usize,
-    /// Largest number of frozen-load Newton solves per increment with a follower pressure.
-    #[arg(long, default_value_t = SolveParams::default().max_follower_passes)]
-    max_follower_passes: usize,
+    /// Largest number of Newton iterations per load increment.
+    #[arg(long, default_value_t = SolveParams::default().max_iterations)]
+    max_iterations: usize,
     /// Indent the body with the scene's probe sphere instead of applying its [loads].
     #[arg(long, requires_all = ["from", "direction", "depths"])]
     indent: bool,
@@ -75,15 +75,15 @@ fn run_loads(args: &Args, scene: &Scene) -> anyhow::Result<()> {
     let t = std::time::Instant::now();
     let params = SolveParams {
         load_steps: args.load_steps,
-        max_follower_passes: args.max_follower_passes,
+        max_iterations: args.max_iterations,
         ..Default::default()
     };
     let (x, r) = solve_scene(scene, &params)?;
     write_solution(&args.out, scene, &x)?;
     println!(
-        "converged: {} Newton iterations in {} load pass(es), residual {:.3e} N ({:.1e} of the load, loads at the final shape), max displacement {:.6} (scene unit) in {:.2} s",
+        "converged: {} Newton iterations in {} load step(s), residual {:.3e} N ({:.1e} of the load, loads at the final shape), max displacement {:.6} (scene unit) in {:.2} s",
         r.newton_iterations,
-        r.load_passes,
+        r.load_steps,
         r.residual_n,
         r.relative_residual,
         r.max_displacement_m / scene.length_unit_m,

@@ -91,7 +91,7 @@ use crate::contact::ProbeParams;
 use crate::element::{FemModel, FibreField, FibreRule, StrainSmoothing};
 use crate::integrate::IntegratorParams;
 use crate::integrate::condensed::ActiveRegion;
-use crate::loads::{SceneLoads, static_external_forces};
+use crate::loads::{SceneLoads, static_dead_forces, static_external_forces};
 use crate::mass_spring::calibration::{CalibrationTable, ContactShape};
 use crate::mass_spring::{MassSpringParams, SpringSurface};
 use crate::material::MaterialParams;
@@ -295,6 +295,12 @@ impl Scene {
     /// If `x` is shorter than the mesh's node count.
     pub fn external_forces(&self, x: &[DVec3]) -> Vec<DVec3> {
         static_external_forces(&self.loads, &self.mesh, self.material.density_kg_per_m3, x)
+    }
+
+    /// The scene's loads that do not follow the body (N, one per mesh node): see
+    /// [`static_dead_forces`].
+    pub fn dead_forces(&self) -> Vec<DVec3> {
+        static_dead_forces(&self.loads, &self.mesh, self.material.density_kg_per_m3)
     }
 }
 
