@@ -9,9 +9,7 @@ use std::path::Path;
 
 use haptic_model::indent::{IndentParams, IndentPoint, Indenter, indent};
 use haptic_model::scene::{ModelFamily, Scene};
-use haptic_model::statics::{
-    FollowerPressure, StaticParams, StaticTerm, free_residual_norm, solve_static_with,
-};
+use haptic_model::statics::{StaticParams, solve_scene_loads};
 use haptic_model::{DVec3, ModelError};
 
 /// What a static solve did.
@@ -19,8 +17,14 @@ use haptic_model::{DVec3, ModelError};
 pub struct SolveReport {
     /// Load increments.
     pub load_steps: usize,
-    /// Newton iterations over all increments.
+    /// Newton iterations over all increments and penalty stages.
     pub newton_iterations: usize,
+    /// Solves at full load after the increments (penalty stages or volume passes, see
+    /// [`haptic_model::statics::solve_scene_loads`]).
+    pub constraint_passes: usize,
+    /// Largest element volume change `|J_c - 1|` at the end (mean-dilatation Guccione; 0
+    /// otherwise).
+    pub worst_volume_change: f64,
     /// Final free residual `|f_int(x) + f_ext(x)|` with the loads evaluated at the final
     /// configuration (follower pressure included), N.
     pub residual_n: f64,
@@ -52,55 +56,43 @@ impl Default for SolveParams {
 }
 
 /// Solves the scene's static equilibrium under its `[loads]`, applied in `params.load_steps`
-/// equal increments, Newton at each ([`haptic_model::statics::solve_static_with`]). Follower
-/// pressures enter Newton with their load stiffness ([`FollowerPressure`]), so every increment
-/// converges quadratically near the solution; the residual it reaches is the true one, with
-/// the load at the final shape. Returns the node positions, m.
+/// equal increments, Newton at each ([`solve_scene_loads`]: follower pressures with their load
+/// stiffness, the volume constraint of a nearly incompressible material); `progress` sees each
+/// increment or stage with its Newton iterations. The reported residual is recomputed with
+/// every load at the final shape. Returns the node positions, m.
 ///
 /// # Errors
 /// [`ModelError::InvalidInput`] when the scene has no loads; [`ModelError::NoConvergence`]
-/// naming the increment at which Newton failed and why.
+/// naming the increment or penalty stage at which Newton failed and why.
 pub fn solve_scene(
     scene: &Scene,
     params: &SolveParams,
+    progress: &mut dyn FnMut(&str, usize),
 ) -> Result<(Vec<DVec3>, SolveReport), ModelError> {
     if scene.loads.is_empty() {
         return Err(ModelError::InvalidInput(
             "the scene has no [loads] (gravity, pressure or point forces): nothing to solve".into(),
         ));
     }
-    let fem = scene.fem_model()?;
-    let steps = params.load_steps.max(1);
-    let mut x = scene.mesh.nodes.clone();
-    let mut report = SolveReport {
-        load_steps: steps,
-        newton_iterations: 0,
-        residual_n: 0.0,
-        relative_residual: 0.0,
-        max_displacement_m: 0.0,
-    };
     let newton = StaticParams {
         rel_tol: params.rel_tol,
         max_iterations: params.max_iterations,
         ..StaticParams::default()
     };
-    let dead = scene.dead_forces();
+    let (x, path) = solve_scene_loads(scene, params.load_steps, &newton, progress)?;
     let norm = |f: &[DVec3]| f.iter().map(|a| a.length_squared()).sum::<f64>().sqrt();
-    for k in 1..=steps {
-        let scale = k as f64 / steps as f64;
-        let f: Vec<DVec3> = dead.iter().map(|v| *v * scale).collect();
-        let follower = FollowerPressure::new(&scene.loads, scale);
-        let term = (!follower.is_empty()).then_some(&follower as &dyn StaticTerm);
-        let r = solve_static_with(&fem, &f, term, &mut x, &newton).map_err(|e| {
-            ModelError::NoConvergence(format!(
-                "load increment {k}/{steps}: {e} (more load steps may help)"
-            ))
-        })?;
-        report.newton_iterations += r.iterations;
-    }
+    let mut report = SolveReport {
+        load_steps: params.load_steps.max(1),
+        newton_iterations: path.newton_iterations,
+        constraint_passes: path.constraint_passes,
+        worst_volume_change: path.worst_volume_change,
+        residual_n: 0.0,
+        relative_residual: 0.0,
+        max_displacement_m: 0.0,
+    };
     // The true residual, every load evaluated at the final shape.
     let f = scene.external_forces(&x);
-    report.residual_n = free_residual_norm(&fem, &f, &x);
+    report.residual_n = path.residual_n;
     report.relative_residual = report.residual_n / norm(&f).max(f64::MIN_POSITIVE);
     report.max_displacement_m = x
         .iter()

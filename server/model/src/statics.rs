@@ -27,7 +27,8 @@ use glam::{DMat3, DVec3};
 use crate::ModelError;
 use crate::element::tangent::cell_tangent_blocks;
 use crate::element::{ConstraintMask, FemModel};
-use crate::loads::{SceneLoads, add_pressure_forces};
+use crate::loads::{SceneLoads, add_pressure_load, face_points, face_tangents, quadratic_face};
+use crate::material::{MaterialModel, MaterialParams};
 
 /// Newton solver settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -272,24 +273,29 @@ pub trait StaticTerm {
     fn for_each_stiffness_block(&self, x: &[DVec3], add: &mut dyn FnMut(u32, u32, DMat3));
 }
 
-/// Follower pressures as a [`StaticTerm`], so that Newton sees their load stiffness: each
-/// triangle `(a, b, c)` (outward oriented) of a pressure `p` carries the force
-/// `-p/6 (b - a) x (c - a)` on each of its three nodes, as [`add_pressure_forces`] computes it
-/// (the dynamic bodies apply the same), and contributes the stiffness blocks
-/// `K_ka = p/6 [c - b]x`, `K_kb = p/6 [a - c]x`, `K_kc = p/6 [b - a]x` for `k` in `a, b, c`
-/// (`[v]x` the cross-product matrix), the exact derivative of those forces.
+/// Follower pressures as a [`StaticTerm`], so that Newton sees their load stiffness.
 ///
-/// The energy is `E = p V`, `V = sum (1/6) a . (b x c)` the volume under the surface, so
-/// `-dE/dx` equals the forces at every node whose triangles close around it; on an open
-/// surface the rim nodes differ, and the assembled stiffness is then symmetric only when the
-/// rim is clamped (as the LV's endocardium at the base). On a free rim the Cholesky
-/// factorisation reads the lower half of a slightly unsymmetric tangent: Newton converges more
-/// slowly there, never to a wrong answer (the residual it checks is exact).
+/// - Flat triangles `(a, b, c)` (outward oriented; linear meshes) of a pressure `p` carry the
+///   force `-p/6 (b - a) x (c - a)` on each of their nodes ([`crate::loads::add_pressure_forces`]) and the
+///   stiffness blocks `K_ka = p/6 [c - b]x`, `K_kb = p/6 [a - c]x`, `K_kc = p/6 [b - a]x` for
+///   `k` in `a, b, c` (`[v]x` the cross-product matrix).
+/// - Curved 6-node faces (quadratic meshes, [`PressureLoad::quadratic`]) carry the consistent
+///   forces `f_k = -p int N_k (x_xi x x_eta)` ([`add_quadratic_pressure_forces`]) and the
+///   stiffness `K_kb = p int N_k (N_b,eta [x_xi]x - N_b,xi [x_eta]x)`, by the same exact rule.
+///
+/// The dynamic bodies apply the same forces. The energy is `E = p V`, `V` the volume of the
+/// cone from the origin over the surface (`sum (1/6) a . (b x c)`, or `(1/3) int x . n dA`),
+/// so `-dE/dx` equals the forces at every node whose faces close around it; on an open surface
+/// the rim nodes differ, and the assembled stiffness is then symmetric only when the rim is
+/// clamped (as the LV's endocardium at the base). On a free rim the Cholesky factorisation
+/// reads the lower half of a slightly unsymmetric tangent: Newton converges more slowly there,
+/// never to a wrong answer (the residual it checks is exact).
 ///
 /// Source: the load stiffness of a follower pressure (e.g. Bonet & Wood, Nonlinear Continuum
-/// Mechanics for Finite Element Analysis, 2nd ed., section 8.5), on flat triangles.
+/// Mechanics for Finite Element Analysis, 2nd ed., section 8.5).
 pub struct FollowerPressure<'a> {
-    loads: Vec<(&'a [[u32; 3]], f64)>,
+    /// (triangles, Pa, quadratic faces).
+    loads: Vec<(&'a [[u32; 3]], f64, bool)>,
 }
 
 impl<'a> FollowerPressure<'a> {
@@ -301,7 +307,7 @@ impl<'a> FollowerPressure<'a> {
                 .pressure
                 .iter()
                 .filter(|p| p.follower)
-                .map(|p| (&p.triangles[..], p.pressure_pa * scale))
+                .map(|p| (&p.triangles[..], p.pressure_pa * scale, p.quadratic))
                 .collect(),
         }
     }
@@ -323,28 +329,71 @@ fn cross_matrix(v: DVec3) -> DMat3 {
 
 impl StaticTerm for FollowerPressure<'_> {
     fn energy(&self, x: &[DVec3]) -> f64 {
+        let points = face_points();
         let mut e = 0.0;
-        for (tris, p) in &self.loads {
-            let v: f64 = tris
-                .iter()
-                .map(|t| {
-                    let [a, b, c] = t.map(|i| x[i as usize]);
-                    a.dot(b.cross(c))
-                })
-                .sum();
-            e += p * v / 6.0;
+        for &(tris, p, quadratic) in &self.loads {
+            let v: f64 = if quadratic {
+                tris.chunks(4)
+                    .map(|g| {
+                        let face = quadratic_face(g).expect("four-way split of a 6-node face");
+                        points
+                            .iter()
+                            .map(|q| {
+                                let (t_xi, t_eta) = face_tangents(q, &face, x);
+                                let at: DVec3 = face
+                                    .iter()
+                                    .zip(&q.n)
+                                    .map(|(&i, n)| x[i as usize] * *n)
+                                    .sum();
+                                q.w * at.dot(t_xi.cross(t_eta)) / 3.0
+                            })
+                            .sum::<f64>()
+                    })
+                    .sum()
+            } else {
+                tris.iter()
+                    .map(|t| {
+                        let [a, b, c] = t.map(|i| x[i as usize]);
+                        a.dot(b.cross(c)) / 6.0
+                    })
+                    .sum()
+            };
+            e += p * v;
         }
         e
     }
 
     fn add_forces(&self, x: &[DVec3], f: &mut [DVec3]) {
-        for (tris, p) in &self.loads {
-            add_pressure_forces(tris, x, *p, f);
+        for &(tris, p, quadratic) in &self.loads {
+            add_pressure_load(tris, quadratic, x, p, f);
         }
     }
 
     fn for_each_stiffness_block(&self, x: &[DVec3], add: &mut dyn FnMut(u32, u32, DMat3)) {
-        for (tris, p) in &self.loads {
+        let points = face_points();
+        for &(tris, p, quadratic) in &self.loads {
+            if quadratic {
+                for g in tris.chunks(4) {
+                    let face = quadratic_face(g).expect("four-way split of a 6-node face");
+                    let mut blocks = [DMat3::ZERO; 36];
+                    for q in &points {
+                        let (t_xi, t_eta) = face_tangents(q, &face, x);
+                        let (c_xi, c_eta) = (cross_matrix(t_xi), cross_matrix(t_eta));
+                        for b in 0..6 {
+                            let d = (c_xi * q.deta[b] - c_eta * q.dxi[b]) * (p * q.w);
+                            for k in 0..6 {
+                                blocks[6 * k + b] += d * q.n[k];
+                            }
+                        }
+                    }
+                    for k in 0..6 {
+                        for b in 0..6 {
+                            add(face[k], face[b], blocks[6 * k + b]);
+                        }
+                    }
+                }
+                continue;
+            }
             for t in tris.iter() {
                 let [a, b, c] = t.map(|i| x[i as usize]);
                 let cols = [
@@ -360,6 +409,195 @@ impl StaticTerm for FollowerPressure<'_> {
             }
         }
     }
+}
+
+/// Bulk moduli of the volumetric penalty a static solve passes through for `material`
+/// (penalty continuation), Pa, ending with the material's own; a single entry when no
+/// continuation is needed.
+///
+/// Newton on a displacement-only penalty formulation converges only within a radius that
+/// shrinks as the bulk modulus `kappa` grows: a step that is right to first order leaves a
+/// second-order volume error which `kappa` turns into a stress far above the load. On the LV
+/// inflation (`deploy/scenes/lv_guccione_inflation.toml`, 474 quadratic elements) Newton
+/// converges with `kappa` = 20 times the shear modulus in 45 iterations, needs 115 at 200
+/// times, and diverges from the first step at 2 000 times. So the load is applied with
+/// `kappa_0 = 20 mu`, and [`solve_scene_loads`] then either raises `kappa` tenfold per stage at
+/// full load (each stage starts within `p / kappa` of its solution; this still stalls at
+/// 2 000 times on finer LV meshes) or, with the element-mean dilatation, keeps `kappa_0` and
+/// adds augmented-Lagrangian element pressures. The equilibrium of a hyperelastic body under
+/// the final load does not depend on the path.
+///
+/// Only the Guccione material has a separate bulk modulus; for the others this returns its
+/// `lambda` alone.
+pub fn penalty_continuation(material: &MaterialParams) -> Vec<f64> {
+    let kappa = material.lambda_pa;
+    if material.model != MaterialModel::Guccione {
+        return vec![kappa];
+    }
+    let start = 20.0 * material.mu_pa;
+    let mut stages = Vec::new();
+    let mut k = start;
+    while k < kappa {
+        stages.push(k);
+        k *= 10.0;
+    }
+    stages.push(kappa);
+    stages
+}
+
+/// `material` with the volumetric penalty `bulk_modulus_pa` (Pa): see
+/// [`penalty_continuation`].
+pub fn with_bulk_modulus(material: &MaterialParams, bulk_modulus_pa: f64) -> MaterialParams {
+    let mut m = *material;
+    m.lambda_pa = bulk_modulus_pa;
+    m.guccione.bulk_modulus_pa = bulk_modulus_pa;
+    m
+}
+
+/// What [`solve_scene_loads`] did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LoadPathReport {
+    /// Newton iterations over all increments and passes.
+    pub newton_iterations: usize,
+    /// Solves at full load after the increments: penalty stages ([`penalty_continuation`]) or
+    /// augmented-Lagrangian updates of the element pressures (0 when none).
+    pub constraint_passes: usize,
+    /// Largest `|J_c - 1|` over the cells at the end, for the mean-dilatation Guccione material
+    /// (0 otherwise).
+    pub worst_volume_change: f64,
+    /// Final free residual of the model of the last solve (with its element pressures), every
+    /// load evaluated at the final shape, N.
+    pub residual_n: f64,
+}
+
+/// Largest `|J_c - 1|` the augmented-Lagrangian passes of [`solve_scene_loads`] leave.
+pub const VOLUME_TOLERANCE: f64 = 1e-6;
+/// Largest number of those passes.
+pub const MAX_VOLUME_PASSES: usize = 60;
+
+/// Static equilibrium of `scene` under its `[loads]` from the rest shape: the load in
+/// `load_steps` equal increments (dead loads scaled, follower pressures as
+/// [`FollowerPressure`] with their load stiffness), Newton at each with `params`. `progress`
+/// sees each increment or pass as `(label, Newton iterations)`. Returns the node positions, m.
+///
+/// A Guccione material whose bulk modulus exceeds 20 times its shear modulus stands for an
+/// incompressible one, and a large penalty stalls Newton ([`penalty_continuation`]): the
+/// increments run with the penalty `kappa_0 = 20 mu`; then, with the element-mean dilatation
+/// (`volumetric = "mean-dilatation"`), augmented-Lagrangian passes at full load
+/// (`lambda_c += kappa_0 (J_c - 1)`, [`FemModel::set_cell_pressures`]) drive every element's
+/// volume ratio to 1 within [`VOLUME_TOLERANCE`]: the incompressible solution, whatever the
+/// scene's bulk modulus; with the per-point penalty the penalty is raised tenfold per pass to
+/// the scene's.
+///
+/// # Errors
+/// The scene's model errors ([`crate::scene::Scene::fem_model`]);
+/// [`ModelError::NoConvergence`] naming the increment or pass that failed and why, or when
+/// the volume constraint is not met after [`MAX_VOLUME_PASSES`] passes.
+pub fn solve_scene_loads(
+    scene: &crate::scene::Scene,
+    load_steps: usize,
+    params: &StaticParams,
+    progress: &mut dyn FnMut(&str, usize),
+) -> Result<(Vec<DVec3>, LoadPathReport), ModelError> {
+    let stages = penalty_continuation(&scene.material);
+    let model_with = |kappa: f64| {
+        let mut s = scene.clone();
+        s.material = with_bulk_modulus(&scene.material, kappa);
+        s.fem_model()
+    };
+    let mut fem = if stages.len() > 1 {
+        model_with(stages[0])?
+    } else {
+        scene.fem_model()?
+    };
+    let dead = scene.dead_forces();
+    let steps = load_steps.max(1);
+    let mut x = scene.mesh.nodes.clone();
+    let mut report = LoadPathReport {
+        newton_iterations: 0,
+        constraint_passes: 0,
+        worst_volume_change: 0.0,
+        residual_n: 0.0,
+    };
+    let mut solve = |fem: &FemModel, scale: f64, label: String, x: &mut [DVec3]| {
+        let f: Vec<DVec3> = dead.iter().map(|v| *v * scale).collect();
+        let follower = FollowerPressure::new(&scene.loads, scale);
+        let term = (!follower.is_empty()).then_some(&follower as &dyn StaticTerm);
+        let r = solve_static_with(fem, &f, term, x, params)
+            .map_err(|e| ModelError::NoConvergence(format!("{label}: {e}")))?;
+        progress(&label, r.iterations);
+        Ok::<usize, ModelError>(r.iterations)
+    };
+    for k in 1..=steps {
+        let label = if stages.len() > 1 {
+            format!(
+                "load increment {k}/{steps} (penalty {:.1e} Pa; more load steps may help)",
+                stages[0]
+            )
+        } else {
+            format!("load increment {k}/{steps} (more load steps may help)")
+        };
+        report.newton_iterations += solve(&fem, k as f64 / steps as f64, label, &mut x)?;
+    }
+    let mean_dilatation = scene.material.mean_dilatation();
+    let mut ratios = Vec::new();
+    let worst = |fem: &FemModel, x: &[DVec3], ratios: &mut Vec<f64>| {
+        fem.cell_volume_ratios(x, ratios);
+        ratios.iter().map(|j| (j - 1.0).abs()).fold(0.0, f64::max)
+    };
+    let true_residual = |fem: &FemModel, x: &[DVec3]| {
+        free_residual_norm(
+            fem,
+            &crate::loads::static_external_forces(
+                &scene.loads,
+                &scene.mesh,
+                scene.material.density_kg_per_m3,
+                x,
+            ),
+            x,
+        )
+    };
+    if mean_dilatation && stages.len() > 1 {
+        let kappa0 = stages[0];
+        let mut lambda = vec![0.0; fem.cell_count()];
+        for pass in 1.. {
+            let w = worst(&fem, &x, &mut ratios);
+            report.worst_volume_change = w;
+            if w <= VOLUME_TOLERANCE {
+                break;
+            }
+            if pass > MAX_VOLUME_PASSES {
+                return Err(ModelError::NoConvergence(format!(
+                    "the volume constraint: an element still changes its volume by {w:.2e} \
+                     after {MAX_VOLUME_PASSES} augmented-Lagrangian passes (tolerance \
+                     {VOLUME_TOLERANCE:.0e})"
+                )));
+            }
+            for (l, j) in lambda.iter_mut().zip(&ratios) {
+                *l += kappa0 * (j - 1.0);
+            }
+            fem.set_cell_pressures(lambda.clone());
+            let label = format!("volume pass {pass} (worst element volume change {w:.2e})");
+            report.newton_iterations += solve(&fem, 1.0, label, &mut x)?;
+            report.constraint_passes += 1;
+        }
+        report.residual_n = true_residual(&fem, &x);
+    } else {
+        for (j, &kappa) in stages.iter().enumerate().skip(1) {
+            fem = model_with(kappa)?;
+            let label = format!(
+                "penalty stage {j}/{} (bulk modulus {kappa:.1e} Pa)",
+                stages.len() - 1
+            );
+            report.newton_iterations += solve(&fem, 1.0, label, &mut x)?;
+            report.constraint_passes += 1;
+        }
+        if mean_dilatation {
+            report.worst_volume_change = worst(&fem, &x, &mut ratios);
+        }
+        report.residual_n = true_residual(&fem, &x);
+    }
+    Ok((x, report))
 }
 
 /// Solves `f_int(x) + f_ext = 0` for the free components of `x` (m), starting from `x`, with
@@ -611,16 +849,23 @@ mod tests {
         assert!(residual.norm_l2() < 1e-12 * r.norm_l2());
     }
 
-    /// The inner surface of a thick sphere, its nodes moved off the sphere, with a pressure.
-    fn pressed_surface() -> (SceneLoads, Vec<DVec3>) {
-        let mesh = crate::mesh::generate::sphere_shell(7e-3, 10e-3, 400);
+    /// The inner surface of a thick sphere (linear or quadratic), its nodes moved off the
+    /// sphere, with a pressure.
+    fn pressed_surface(quadratic: bool) -> (SceneLoads, Vec<DVec3>) {
+        let mesh = if quadratic {
+            crate::mesh::generate::sphere_shell_quadratic(7e-3, 10e-3, 150)
+        } else {
+            crate::mesh::generate::sphere_shell(7e-3, 10e-3, 400)
+        };
         let tris = mesh.surface("INNER").unwrap().triangles.clone();
+        assert_eq!(crate::loads::is_quadratic_split(&tris), quadratic);
         let loads = SceneLoads {
             pressure: vec![crate::loads::PressureLoad {
                 surfaces: vec!["INNER".into()],
                 triangles: tris,
                 pressure_pa: 1.0e4,
                 follower: true,
+                quadratic,
             }],
             ..SceneLoads::default()
         };
@@ -638,7 +883,13 @@ mod tests {
 
     #[test]
     fn follower_pressure_forces_are_the_energy_gradient_on_a_closed_surface() {
-        let (loads, x) = pressed_surface();
+        for quadratic in [false, true] {
+            forces_are_the_energy_gradient(quadratic);
+        }
+    }
+
+    fn forces_are_the_energy_gradient(quadratic: bool) {
+        let (loads, x) = pressed_surface(quadratic);
         let term = FollowerPressure::new(&loads, 0.8);
         let mut f = vec![DVec3::ZERO; x.len()];
         term.add_forces(&x, &mut f);
@@ -669,7 +920,13 @@ mod tests {
 
     #[test]
     fn follower_pressure_stiffness_is_the_derivative_of_its_forces() {
-        let (loads, x) = pressed_surface();
+        for quadratic in [false, true] {
+            stiffness_is_the_derivative(quadratic);
+        }
+    }
+
+    fn stiffness_is_the_derivative(quadratic: bool) {
+        let (loads, x) = pressed_surface(quadratic);
         let term = FollowerPressure::new(&loads, 1.0);
         let n = x.len();
         let mut k = Mat::<f64>::zeros(3 * n, 3 * n);
@@ -719,6 +976,32 @@ mod tests {
                 asym = asym.max((k[(i, j)] - k[(j, i)]).abs());
             }
         }
-        assert!(asym < 1e-12 * largest, "asymmetry {asym:e}");
+        assert!(
+            asym < 1e-12 * largest,
+            "quadratic {quadratic}: asymmetry {asym:e}"
+        );
+    }
+
+    #[test]
+    fn the_penalty_rises_tenfold_from_twenty_shear_moduli() {
+        let g = crate::material::GuccioneParams {
+            c_pa: 1e4,
+            b_f: 1.0,
+            b_t: 1.0,
+            b_fs: 1.0,
+            bulk_modulus_pa: 1e7,
+            mean_dilatation: true,
+        };
+        let m = MaterialParams::with_guccione(g, 1000.0);
+        let stages = penalty_continuation(&m);
+        assert_eq!(stages.len(), 3, "{stages:?}");
+        for (s, e) in stages.iter().zip([1e5, 1e6, 1e7]) {
+            assert!((s / e - 1.0).abs() < 1e-12, "{stages:?}");
+        }
+        let soft = with_bulk_modulus(&m, 5e4);
+        assert_eq!(penalty_continuation(&soft), vec![5e4]);
+        assert_eq!(soft.guccione.bulk_modulus_pa, 5e4);
+        let stvk = MaterialParams::from_youngs(1e4, 0.49, 1000.0);
+        assert_eq!(penalty_continuation(&stvk), vec![stvk.lambda_pa]);
     }
 }

@@ -78,12 +78,25 @@ fn run_loads(args: &Args, scene: &Scene) -> anyhow::Result<()> {
         max_iterations: args.max_iterations,
         ..Default::default()
     };
-    let (x, r) = solve_scene(scene, &params)?;
+    let (x, r) = solve_scene(scene, &params, &mut |label, iterations| {
+        eprintln!(
+            "  {label}: converged in {iterations} Newton iterations, {:.1} s",
+            t.elapsed().as_secs_f64()
+        );
+    })?;
     write_solution(&args.out, scene, &x)?;
     println!(
-        "converged: {} Newton iterations in {} load step(s), residual {:.3e} N ({:.1e} of the load, loads at the final shape), max displacement {:.6} (scene unit) in {:.2} s",
+        "converged: {} Newton iterations in {} load step(s){}, residual {:.3e} N ({:.1e} of the load, loads at the final shape), max displacement {:.6} (scene unit) in {:.2} s",
         r.newton_iterations,
         r.load_steps,
+        if r.constraint_passes > 0 {
+            format!(
+                " and {} volume pass(es) (largest element volume change {:.1e})",
+                r.constraint_passes, r.worst_volume_change
+            )
+        } else {
+            String::new()
+        },
         r.residual_n,
         r.relative_residual,
         r.max_displacement_m / scene.length_unit_m,

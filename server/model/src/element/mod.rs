@@ -116,6 +116,9 @@ pub struct FemModel {
     frames: Vec<DMat3>,
     /// The fibre field the frames come from (kept for models built from part of this one).
     fibres: Option<FibreField>,
+    /// Augmented-Lagrangian pressure of every cell, Pa, added to `U'(J_c)` of the
+    /// mean-dilatation penalty (empty: zero). See [`FemModel::set_cell_pressures`].
+    cell_pressure_pa: Vec<f64>,
 }
 
 impl FemModel {
@@ -196,6 +199,7 @@ impl FemModel {
             smoothing,
             frames: Vec::new(),
             fibres: None,
+            cell_pressure_pa: Vec::new(),
         })
     }
 
@@ -428,7 +432,7 @@ impl FemModel {
         let g = &mat.guccione;
         for c in 0..self.cell_count() {
             let (fms, jc, _) = self.cell_dilatation(c, x);
-            let (_, pc, _) = material::guccione::volumetric(g, jc);
+            let pc = material::guccione::volumetric(g, jc).1 + self.cell_pressure(c);
             for (k, q) in self.cell_points(c).enumerate() {
                 let fm = fms[k];
                 let mut p = material::guccione::first_piola_deviatoric(g, &fm, &self.ip_frame(q))
@@ -440,6 +444,26 @@ impl FemModel {
                 self.ip_scatter(q, &(p * -self.points.weight_m3[q]), f);
             }
         }
+    }
+
+    /// Sets an augmented-Lagrangian pressure `lambda_c` (Pa) per cell for the mean-dilatation
+    /// penalty ([`material::GuccioneParams::mean_dilatation`]): the cell's volumetric energy
+    /// becomes `V_c (lambda_c (J_c - 1) + U(J_c))` and its pressure `lambda_c + U'(J_c)`. Updating
+    /// `lambda_c += U'(J_c)` after each converged solve (Uzawa) drives every `J_c` to 1 with a
+    /// moderate penalty, where a large penalty alone stalls Newton (the static solves,
+    /// [`crate::statics::solve_scene_loads`]). Zero (the default) for the dynamic bodies.
+    ///
+    /// # Panics
+    /// If `pressures_pa` is not empty and its length is not the cell count.
+    pub fn set_cell_pressures(&mut self, pressures_pa: Vec<f64>) {
+        assert!(pressures_pa.is_empty() || pressures_pa.len() == self.cell_count());
+        self.cell_pressure_pa = pressures_pa;
+    }
+
+    /// The augmented-Lagrangian pressure of cell `c`, Pa (see [`Self::set_cell_pressures`]).
+    #[inline]
+    pub fn cell_pressure(&self, c: usize) -> f64 {
+        self.cell_pressure_pa.get(c).copied().unwrap_or(0.0)
     }
 
     /// Total elastic strain energy `sum_e V_e Psi(F_e)` of the material model for positions
@@ -463,7 +487,9 @@ impl FemModel {
                                 )
                         })
                         .sum();
-                    dev + vol * material::guccione::volumetric(g, jc).0
+                    dev + vol
+                        * (material::guccione::volumetric(g, jc).0
+                            + self.cell_pressure(c) * (jc - 1.0))
                 })
                 .sum();
         }

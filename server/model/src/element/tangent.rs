@@ -83,7 +83,7 @@ pub fn cell_tangent_blocks_of(
             }
         }
         let (_, du, ddu) = material::guccione::volumetric(&mat.guccione, def / vol);
-        pc = du;
+        pc = du + fem.cell_pressure(c);
         ddu_over_v = ddu / vol;
     }
     for q in fem.cell_points(c) {
@@ -149,6 +149,7 @@ impl FemModel {
                     );
                 }
                 let (_, du, ddu) = material::guccione::volumetric(g, def / vol);
+                let du = du + self.cell_pressure(c);
                 let dp_c = ddu * dj / vol;
                 for q in self.cell_points(c) {
                     let fm = self.ip_field_gradient(q, x);

@@ -804,11 +804,13 @@ fn build_loads(l: &RawLoads, mesh: &TetMesh, clamped: &[u32]) -> Result<SceneLoa
             |x| x.abs() <= MAX_PRESSURE_PA,
             "at most 1e9 Pa in magnitude",
         )?;
+        let quadratic = mesh.is_quadratic() && crate::loads::is_quadratic_split(&triangles);
         pressure.push(PressureLoad {
             surfaces,
             triangles,
             pressure_pa,
             follower: p.follower.unwrap_or(false),
+            quadratic,
         });
     }
     let mut point = Vec::new();
