@@ -483,11 +483,13 @@ pub const MAX_VOLUME_PASSES: usize = 60;
 /// A Guccione material whose bulk modulus exceeds 20 times its shear modulus stands for an
 /// incompressible one, and a large penalty stalls Newton ([`penalty_continuation`]): the
 /// increments run with the penalty `kappa_0 = 20 mu`; then, with the element-mean dilatation
-/// (`volumetric = "mean-dilatation"`), augmented-Lagrangian passes at full load
-/// (`lambda_c += kappa_0 (J_c - 1)`, [`FemModel::set_cell_pressures`]) drive every element's
-/// volume ratio to 1 within [`VOLUME_TOLERANCE`]: the incompressible solution, whatever the
-/// scene's bulk modulus; with the per-point penalty the penalty is raised tenfold per pass to
-/// the scene's.
+/// (`volumetric = "mean-dilatation"`) on quadratic elements, augmented-Lagrangian passes at full load (method of
+/// multipliers: `lambda_c += kappa (J_c - 1)`, [`FemModel::set_cell_pressures`], the penalty
+/// raised fourfold towards the scene's after each pass Newton finishes in at most three
+/// iterations) drive every element's volume ratio to 1 within [`VOLUME_TOLERANCE`]: the
+/// incompressible solution, whatever the scene's bulk modulus; otherwise (per-point penalty, or
+/// linear elements, which lock under one constraint each) the penalty is raised tenfold per
+/// pass to the scene's.
 ///
 /// # Errors
 /// The scene's model errors ([`crate::scene::Scene::fem_model`]);
@@ -557,8 +559,14 @@ pub fn solve_scene_loads(
             x,
         )
     };
-    if mean_dilatation && stages.len() > 1 {
-        let kappa0 = stages[0];
+    // The multipliers need an element that can keep its volume: on linear tetrahedra one
+    // constraint per element locks (and the passes diverge), so they take the penalty stages.
+    if mean_dilatation && scene.mesh.is_quadratic() && stages.len() > 1 {
+        // Method of multipliers: lambda_c += kappa (J_c - 1) after each solve; the penalty
+        // grows fourfold (up to the scene's) after a pass Newton finished in a few iterations,
+        // which keeps it where Newton converges while the constraint error shrinks.
+        let kappa_max = stages[stages.len() - 1];
+        let mut kappa = stages[0];
         let mut lambda = vec![0.0; fem.cell_count()];
         for pass in 1.. {
             let w = worst(&fem, &x, &mut ratios);
@@ -574,12 +582,20 @@ pub fn solve_scene_loads(
                 )));
             }
             for (l, j) in lambda.iter_mut().zip(&ratios) {
-                *l += kappa0 * (j - 1.0);
+                *l += kappa * (j - 1.0);
             }
             fem.set_cell_pressures(lambda.clone());
-            let label = format!("volume pass {pass} (worst element volume change {w:.2e})");
-            report.newton_iterations += solve(&fem, 1.0, label, &mut x)?;
+            let label = format!(
+                "volume pass {pass} (worst element volume change {w:.2e}, penalty {kappa:.1e} Pa)"
+            );
+            let its = solve(&fem, 1.0, label, &mut x)?;
+            report.newton_iterations += its;
             report.constraint_passes += 1;
+            if its <= 3 && kappa < kappa_max {
+                kappa = (kappa * 4.0).min(kappa_max);
+                fem = model_with(kappa)?;
+                fem.set_cell_pressures(lambda.clone());
+            }
         }
         report.residual_n = true_residual(&fem, &x);
     } else {

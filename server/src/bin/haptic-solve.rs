@@ -91,7 +91,7 @@ fn run_loads(args: &Args, scene: &Scene) -> anyhow::Result<()> {
         r.load_steps,
         if r.constraint_passes > 0 {
             format!(
-                " and {} volume pass(es) (largest element volume change {:.1e})",
+                " and {} full-load pass(es) for the volume (largest element volume change {:.1e})",
                 r.constraint_passes, r.worst_volume_change
             )
         } else {
