@@ -1,5 +1,5 @@
 //! `lame`: thick sphere a = 7 mm, b = 10 mm, E = 10 kPa, nu = 0.3, p = 0.1 kPa on the inner
-//! surface (dead load from `loads::add_pressure_forces`), rollers on three inner axis nodes;
+//! surface (dead load from `loads::add_pressure_load`, consistent on quadratic faces), rollers on three inner axis nodes;
 //! dynamic run to steady state (load ramped in over 20 ms, at most 3 s simulated, mass damping
 //! 300 /s) with each integrator, and the static Newton solve as the method `static`; error of
 //! the final displacement field against the analytic Lamé solution.
@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use haptic_model::DVec3;
 use haptic_model::element::FemModel;
-use haptic_model::loads::add_pressure_forces;
+use haptic_model::loads::add_pressure_load;
 use haptic_model::material::{MaterialModel, MaterialParams};
 use haptic_model::mesh::TetMesh;
 use haptic_model::mesh::generate::{sphere_shell, sphere_shell_quadratic};
@@ -96,8 +96,10 @@ pub fn run(quick: bool, rows: &mut Vec<Row>) {
             fem.set_constraint(node("INNER_NZ"), 0b011);
             fem.set_constraint(node("INNER_PX"), 0b110);
             let mut f_ext = vec![DVec3::ZERO; mesh.node_count()];
-            add_pressure_forces(
+            // Consistent loads on the curved faces of quadratic elements.
+            add_pressure_load(
                 &mesh.surface("INNER").expect("INNER").triangles,
+                quadratic,
                 &mesh.nodes,
                 p,
                 &mut f_ext,
