@@ -204,12 +204,38 @@ pub fn add_quadratic_pressure_forces(
     let points = face_points();
     for group in triangles.chunks(4) {
         let face = quadratic_face(group).expect("four-way split of a 6-node face");
-        for q in &points {
-            let (t_xi, t_eta) = face_tangents(q, &face, x);
-            let load = t_xi.cross(t_eta) * (-pressure_pa * q.w);
-            for (k, &i) in face.iter().enumerate() {
-                f[i as usize] += load * q.n[k];
-            }
+        add_face_forces(&points, &face, x, pressure_pa, f);
+    }
+}
+
+/// [`add_quadratic_pressure_forces`] on 6-node faces already gathered (`[a, b, c, m_ab, m_bc,
+/// m_ca]`, see [`quadratic_face`]): what a dynamic body calls every sub-step.
+pub fn add_face_pressure_forces(
+    faces: &[[u32; 6]],
+    x: &[DVec3],
+    pressure_pa: f64,
+    f: &mut [DVec3],
+) {
+    let points = face_points();
+    for face in faces {
+        add_face_forces(&points, face, x, pressure_pa, f);
+    }
+}
+
+/// The consistent pressure forces of one 6-node face.
+#[inline]
+fn add_face_forces(
+    points: &[FacePoint; 6],
+    face: &[u32; 6],
+    x: &[DVec3],
+    pressure_pa: f64,
+    f: &mut [DVec3],
+) {
+    for q in points {
+        let (t_xi, t_eta) = face_tangents(q, face, x);
+        let load = t_xi.cross(t_eta) * (-pressure_pa * q.w);
+        for (k, &i) in face.iter().enumerate() {
+            f[i as usize] += load * q.n[k];
         }
     }
 }
@@ -336,14 +362,24 @@ struct PointLoad {
     remaining_s: f64,
 }
 
+/// A follower pressure of a dynamic body.
+#[derive(Debug, Clone)]
+struct FollowerLoad {
+    triangles: Vec<[u32; 3]>,
+    /// The 6-node faces of `triangles` on a quadratic mesh (empty on a linear one), gathered
+    /// once here rather than every sub-step.
+    faces: Vec<[u32; 6]>,
+    pressure_pa: f64,
+}
+
 /// The loads of a dynamic body (module documentation), sized at construction.
 #[derive(Debug, Clone)]
 pub struct BodyLoads {
     /// Scene loads that do not depend on the state (gravity, dead pressure, point forces), N
     /// per node; empty when there are none.
     constant: Vec<DVec3>,
-    /// Follower pressures: (triangles, Pa, quadratic faces).
-    follower: Vec<(Vec<[u32; 3]>, f64, bool)>,
+    /// Follower pressures.
+    follower: Vec<FollowerLoad>,
     /// Surface on which point loads are placed.
     surface: ContactSurface,
     /// Active point loads (capacity [`MAX_POINT_LOADS`]).
@@ -372,7 +408,21 @@ impl BodyLoads {
                 .pressure
                 .iter()
                 .filter(|l| l.follower)
-                .map(|l| (l.triangles.clone(), l.pressure_pa, l.quadratic))
+                .map(|l| {
+                    let faces = if l.quadratic {
+                        l.triangles
+                            .chunks(4)
+                            .map(|g| quadratic_face(g).expect("four-way split of a 6-node face"))
+                            .collect()
+                    } else {
+                        Vec::new()
+                    };
+                    FollowerLoad {
+                        triangles: l.triangles.clone(),
+                        faces,
+                        pressure_pa: l.pressure_pa,
+                    }
+                })
                 .collect(),
             surface: ContactSurface::new(load_surface, rest.len()),
             points: Vec::with_capacity(MAX_POINT_LOADS),
@@ -394,7 +444,7 @@ impl BodyLoads {
         let follower = self
             .follower
             .iter()
-            .any(|(tris, _, _)| !tris.iter().flatten().all(|&i| inside(i)));
+            .any(|l| !l.triangles.iter().flatten().all(|&i| inside(i)));
         constant || follower
     }
 
@@ -406,8 +456,12 @@ impl BodyLoads {
                 *fi += *l;
             }
         }
-        for (tris, p, quadratic) in &self.follower {
-            add_pressure_load(tris, *quadratic, x, *p, f);
+        for l in &self.follower {
+            if l.faces.is_empty() {
+                add_pressure_forces(&l.triangles, x, l.pressure_pa, f);
+            } else {
+                add_face_pressure_forces(&l.faces, x, l.pressure_pa, f);
+            }
         }
         for l in &self.points {
             for (&i, &w) in l.nodes[..l.len].iter().zip(&l.weights[..l.len]) {
@@ -586,5 +640,43 @@ mod tests {
         // no area.
         let area = 2.0 - 2.0 / 3.0 * 2.0 * 0.2;
         assert!((total.z + p * area).abs() < 1e-12, "{total}");
+    }
+
+    #[test]
+    fn a_body_applies_the_static_forces_of_a_quadratic_follower_pressure() {
+        let mesh = crate::mesh::generate::sphere_shell_quadratic(7e-3, 10e-3, 150);
+        let triangles = mesh.surface("INNER").unwrap().triangles.clone();
+        let loads = SceneLoads {
+            pressure: vec![PressureLoad {
+                surfaces: vec!["INNER".into()],
+                quadratic: is_quadratic_split(&triangles),
+                triangles,
+                pressure_pa: 500.0,
+                follower: true,
+            }],
+            ..SceneLoads::default()
+        };
+        assert!(loads.pressure[0].quadratic);
+        let x: Vec<DVec3> = mesh
+            .nodes
+            .iter()
+            .enumerate()
+            .map(|(i, p)| *p * (1.0 + 0.01 * (i as f64).sin()))
+            .collect();
+        let mass = lumped_masses(&mesh, 1000.0);
+        let body = BodyLoads::new(&loads, &mesh.nodes, &mass, mesh.boundary_triangles());
+        let mut f = vec![DVec3::ZERO; x.len()];
+        body.add_to(&x, &mut f);
+        let expected = static_external_forces(&loads, &mesh, 1000.0, &x);
+        let worst = f
+            .iter()
+            .zip(&expected)
+            .map(|(a, b)| (*a - *b).length())
+            .fold(0.0, f64::max);
+        let largest = expected.iter().map(|v| v.length()).fold(0.0, f64::max);
+        assert!(
+            largest > 0.0 && worst <= 1e-12 * largest,
+            "{worst:e} of {largest:e}"
+        );
     }
 }
