@@ -4,6 +4,8 @@
 //! be tested and benchmarked alone. Module map, lowest layer first (a module uses only those
 //! above it; `tests/module_layers.rs` checks that no import goes the other way):
 //!
+//! - [`ordering`]: fill-reducing orderings (METIS nested dissection) and a sparse Cholesky
+//!   factor for the static solver and contact-local condensation.
 //! - [`mesh`]: tetrahedral meshes, linear (4-node) or quadratic (10-node), with tagged boundary
 //!   surfaces; [`mesh::gmsh`] reads Gmsh `.msh` 2.2 / 4.1 ASCII; [`mesh::generate`] builds
 //!   structured shells (ellipsoids, the idealized left ventricle, the Lamé sphere) and boxes;
@@ -54,6 +56,7 @@ pub mod mass_spring;
 pub mod material;
 pub mod mesh;
 pub mod meshfree;
+pub mod ordering;
 pub mod scene;
 pub mod sim;
 pub mod statics;

@@ -4,9 +4,11 @@
 //! `W(x) - f_ext . x` or the residual norm (the energy criterion matters for slender bodies:
 //! the linearised step of a bending beam leaves a large axial residual from the quadratic
 //! Green strain even though it is an excellent step, and a residual-norm search alone
-//! stalled); each linear system is solved by faer's sparse Cholesky (sparse LU when the tangent
-//! is not positive definite, e.g. StVK under strong compression), the pattern's ordering and
-//! symbolic factorisation computed once per solve.
+//! stalled); each linear system is solved by faer's sparse Cholesky under a nested-dissection
+//! ordering ([`crate::ordering`]; when the tangent is not positive definite, e.g. StVK under
+//! strong compression or a sphere contact's curvature term, an unpivoted `L D L^T` on the same
+//! analysis checked by its residual, else sparse LU), the pattern's ordering and symbolic
+//! factorisation computed once per solve.
 //!
 //! Constrained components (see [`crate::element::ConstraintMask`]) keep the values they have in the
 //! initial positions, so prescribed displacements are imposed by setting them before the solve.
@@ -18,10 +20,12 @@
 //! Owns: the Newton solver and nothing else (loads come from [`crate::loads`], tangents from
 //! [`crate::element::tangent`]). Not used by the real-time path.
 
+use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::solvers::Solve;
-use faer::sparse::linalg::solvers::{Llt, Lu, SymbolicLlt, SymbolicLu};
+use faer::sparse::linalg::cholesky::{LdltRef, LltRef, SymbolicCholesky};
+use faer::sparse::linalg::solvers::{Lu, SymbolicLu};
 use faer::sparse::{Argsort, Pair, SparseColMat, SymbolicSparseColMat, Triplet};
-use faer::{Mat, Side};
+use faer::{Conj, Mat, Par, Side};
 use glam::{DMat3, DVec3};
 
 use crate::ModelError;
@@ -61,6 +65,11 @@ pub struct StaticReport {
     pub residual_n: f64,
 }
 
+/// Largest relative residual `|K dx - r| / |r|` of an unpivoted `L D L^T` solve of an
+/// indefinite tangent that Newton takes (else sparse LU solves it): an inexact Newton step
+/// this accurate keeps the iteration's quadratic convergence to the solver's tolerances.
+const LDLT_RESIDUAL: f64 = 1e-8;
+
 /// The Newton tangent `K` in the free equation numbering, assembled for one
 /// [`solve_static_with`] call: the cells' entries, whose pattern is the same at every
 /// iteration, and a [`StaticTerm`]'s, whose coupled nodes change with the iterate (a contact's
@@ -84,6 +93,24 @@ struct Tangent {
     pattern: Option<Pattern>,
     /// `vals` followed by a zero per `extra` entry.
     padded: Vec<f64>,
+    /// The node of each free equation: the supervariables of the ordering.
+    group: Vec<usize>,
+    /// Values of the Cholesky (or `L D L^T`) factor.
+    factor: Vec<f64>,
+    /// Which factorisation solved the last system.
+    last: Factorisation,
+}
+
+/// The factorisation that solved a Newton system ([`Tangent::solve`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+enum Factorisation {
+    /// Sparse Cholesky (the tangent is positive definite).
+    #[default]
+    Llt,
+    /// Unpivoted `L D L^T` on the Cholesky's analysis (indefinite, accepted by its residual).
+    Ldlt,
+    /// Sparse LU.
+    Lu,
 }
 
 /// The kept analysis of a [`Tangent`]'s pattern.
@@ -91,8 +118,9 @@ struct Pattern {
     symbolic: SymbolicSparseColMat<usize>,
     /// The order of the values in `symbolic` for the entries as assembled.
     argsort: Argsort<usize>,
-    /// `None` when the symbolic Cholesky failed (then LU answers).
-    llt: Option<SymbolicLlt<usize>>,
+    /// The symbolic Cholesky under a nested-dissection ordering ([`crate::ordering`]), also
+    /// the analysis of the `L D L^T` fallback.
+    llt: SymbolicCholesky<usize>,
     /// The symbolic LU, made the first time Cholesky fails.
     lu: Option<SymbolicLu<usize>>,
 }
@@ -141,7 +169,9 @@ impl Tangent {
                 let (symbolic, argsort) =
                     SymbolicSparseColMat::try_new_from_indices(nfree, nfree, &all)
                         .map_err(|e| assembly(&e))?;
-                let llt = SymbolicLlt::try_new(symbolic.as_ref(), Side::Lower).ok();
+                let llt =
+                    crate::ordering::symbolic_cholesky(symbolic.as_ref(), Side::Lower, &self.group)
+                        .map_err(|e| assembly(&e))?;
                 self.pattern = Some(Pattern {
                     symbolic,
                     argsort,
@@ -186,20 +216,67 @@ impl Tangent {
     }
 
     /// Solves `K dx = r` in place of `rhs` (`nfree` equations): sparse Cholesky on the kept
-    /// symbolic factorisation, sparse LU when `K` is not positive definite (StVK under strong
-    /// compression, the curvature term of a sphere contact). Why not a diagonal shift instead
-    /// of LU: docs/decisions.md ("Newton's linear systems keep their pattern").
-    fn solve(&mut self, nfree: usize, rhs: faer::MatMut<'_, f64>) -> Result<(), ModelError> {
+    /// symbolic factorisation (nested-dissection ordering, [`crate::ordering`]); when `K` is not
+    /// positive definite (StVK under strong compression, the curvature term of a sphere
+    /// contact), `L D L^T` without pivoting on the same analysis, kept when its solution's
+    /// residual is below [`LDLT_RESIDUAL`] of `|r|`; sparse LU otherwise. Why not a diagonal
+    /// shift: docs/decisions.md ("Newton's linear systems keep their pattern").
+    fn solve(&mut self, nfree: usize, mut rhs: faer::MatMut<'_, f64>) -> Result<(), ModelError> {
         let kmat = self.assemble(nfree)?;
         let Some(pattern) = &mut self.pattern else {
             unreachable!("assemble built the pattern")
         };
-        if let Some(llt_symbolic) = &pattern.llt
-            && let Ok(llt) =
-                Llt::try_new_with_symbolic(llt_symbolic.clone(), kmat.as_ref(), Side::Lower)
         {
-            llt.solve_in_place(rhs);
-            return Ok(());
+            let llt = &pattern.llt;
+            self.factor.resize(llt.len_val(), 0.0);
+            let mut mem = MemBuffer::new(
+                llt.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default())
+                    .or(llt.factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default()))
+                    .or(llt.solve_in_place_scratch::<f64>(1, Par::Seq)),
+            );
+            let factored = llt.factorize_numeric_llt::<f64>(
+                &mut self.factor,
+                kmat.as_ref(),
+                Side::Lower,
+                Default::default(),
+                Par::Seq,
+                MemStack::new(&mut mem),
+                Default::default(),
+            );
+            if factored.is_ok() {
+                LltRef::<usize, f64>::new(llt, &self.factor).solve_in_place_with_conj(
+                    Conj::No,
+                    rhs,
+                    Par::Seq,
+                    MemStack::new(&mut mem),
+                );
+                self.last = Factorisation::Llt;
+                return Ok(());
+            }
+            let factored = llt.factorize_numeric_ldlt::<f64>(
+                &mut self.factor,
+                kmat.as_ref(),
+                Side::Lower,
+                Default::default(),
+                Par::Seq,
+                MemStack::new(&mut mem),
+                Default::default(),
+            );
+            if factored.is_ok() {
+                let mut x = rhs.to_owned();
+                LdltRef::<usize, f64>::new(llt, &self.factor).solve_in_place_with_conj(
+                    Conj::No,
+                    x.as_mut(),
+                    Par::Seq,
+                    MemStack::new(&mut mem),
+                );
+                let residual = (kmat.as_ref() * x.as_ref() - rhs.as_ref()).norm_l2();
+                if residual <= LDLT_RESIDUAL * rhs.norm_l2() {
+                    rhs.copy_from(&x);
+                    self.last = Factorisation::Ldlt;
+                    return Ok(());
+                }
+            }
         }
         let factorising = |e: &dyn std::fmt::Debug| {
             ModelError::NoConvergence(format!("factorising the tangent: {e:?}"))
@@ -216,8 +293,20 @@ impl Tangent {
         Lu::try_new_with_symbolic(lu_symbolic, kmat.as_ref())
             .map_err(|e| factorising(&e))?
             .solve_in_place(rhs);
+        self.last = Factorisation::Lu;
         Ok(())
     }
+}
+
+/// The node of each free equation of the numbering `dof` of [`free_dofs`] (`nfree` of them).
+fn free_dof_nodes(dof: &[usize], nfree: usize) -> Vec<usize> {
+    let mut group = vec![0; nfree];
+    for (k, &d) in dof.iter().enumerate() {
+        if d != usize::MAX {
+            group[d] = k / 3;
+        }
+    }
+    group
 }
 
 /// Numbering of the free (unconstrained) degrees of freedom: `dof[3 i + c]` is the equation
@@ -690,7 +779,10 @@ pub fn solve_static_with(
     };
     let mut r = Vec::with_capacity(n);
     let (mut rnorm, mut tol) = residual(x, &mut r);
-    let mut tangent = Tangent::default();
+    let mut tangent = Tangent {
+        group: free_dof_nodes(&dof, nfree),
+        ..Tangent::default()
+    };
     let npe = (0..fem.cell_count())
         .map(|c| fem.cell_nodes(c).len())
         .max()
@@ -806,7 +898,8 @@ mod tests {
 
     #[test]
     fn tangent_solves_match_dense_and_extend_the_pattern() {
-        let nodes = 6u32;
+        // Enough nodes for the nested-dissection ordering (crate::ordering::MIN_VERTICES).
+        let nodes = 80u32;
         // Node 0 constrained: dof numbering skips it.
         let mut dof = vec![usize::MAX; 3 * nodes as usize];
         for (k, d) in dof.iter_mut().skip(3).enumerate() {
@@ -815,7 +908,7 @@ mod tests {
         let n = 3 * (nodes as usize - 1);
         let a = DMat3::from_cols_array(&[4.0, 0.5, 0.0, 0.5, 5.0, 0.2, 0.0, 0.2, 6.0]);
         let b = DMat3::from_cols_array(&[-1.0, 0.1, 0.0, 0.0, -1.2, 0.1, 0.3, 0.0, -0.9]);
-        let mut t = Tangent::default();
+        let mut t = tangent_for(&dof);
         let rhs_of = |n: usize| Mat::<f64>::from_fn(n, 1, |i, _| 1.0 + i as f64 * 0.25);
         for iteration in 0..3 {
             chain(&mut t, &dof, nodes, a * (1.0 + 0.1 * iteration as f64), b);
@@ -834,6 +927,7 @@ mod tests {
                 residual.norm_l2() < 1e-12 * r.norm_l2(),
                 "iteration {iteration}"
             );
+            assert_eq!(t.last, Factorisation::Llt);
             assert_eq!(
                 t.extra.len(),
                 2 * 9,
@@ -842,27 +936,44 @@ mod tests {
         }
     }
 
+    /// A tangent whose free equations are numbered as `dof` (three per node).
+    fn tangent_for(dof: &[usize]) -> Tangent {
+        let nfree = dof.iter().filter(|&&d| d != usize::MAX).count();
+        Tangent {
+            group: free_dof_nodes(dof, nfree),
+            ..Tangent::default()
+        }
+    }
+
     #[test]
     fn an_indefinite_tangent_is_solved_exactly() {
         let nodes = 4u32;
         let dof: Vec<usize> = (0..3 * nodes as usize).collect();
         let n = dof.len();
-        // Diagonal blocks with one negative eigenvalue each: K is indefinite, Cholesky fails
-        // and LU answers.
-        let a = DMat3::from_diagonal(DVec3::new(3.0, 2.0, -0.5));
-        let b = DMat3::from_diagonal(DVec3::splat(-0.4));
-        let mut t = Tangent::default();
-        chain(&mut t, &dof, nodes, a, b);
         let r = Mat::<f64>::from_fn(n, 1, |i, _| if i % 3 == 2 { 1.0 } else { 0.3 });
-        let mut x = r.clone();
-        t.solve(n, x.as_mut()).unwrap();
-        let k = dense(&t, n);
-        assert!(
-            k.llt(Side::Lower).is_err(),
-            "the test matrix must be indefinite"
-        );
-        let residual = &k * &x - &r;
-        assert!(residual.norm_l2() < 1e-12 * r.norm_l2());
+        // Diagonal blocks with one negative eigenvalue each: K is indefinite, Cholesky fails
+        // and L D L^T answers. Then blocks with a zero leading entry: the unpivoted L D L^T
+        // meets a zero pivot, and LU answers.
+        let indefinite = DMat3::from_diagonal(DVec3::new(3.0, 2.0, -0.5));
+        let zero_pivot = DMat3::from_cols_array(&[0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]);
+        for (a, expected) in [
+            (indefinite, Factorisation::Ldlt),
+            (zero_pivot, Factorisation::Lu),
+        ] {
+            let b = DMat3::from_diagonal(DVec3::splat(-0.4));
+            let mut t = tangent_for(&dof);
+            chain(&mut t, &dof, nodes, a, b);
+            let mut x = r.clone();
+            t.solve(n, x.as_mut()).unwrap();
+            assert_eq!(t.last, expected);
+            let k = dense(&t, n);
+            assert!(
+                k.llt(Side::Lower).is_err(),
+                "the test matrix must be indefinite"
+            );
+            let residual = &k * &x - &r;
+            assert!(residual.norm_l2() < 1e-12 * r.norm_l2(), "{expected:?}");
+        }
     }
 
     /// The inner surface of a thick sphere (linear or quadratic), its nodes moved off the

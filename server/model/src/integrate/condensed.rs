@@ -49,14 +49,12 @@
 use std::sync::Arc;
 
 use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
-use faer::linalg::solvers::Solve;
-use faer::sparse::linalg::cholesky::{
-    CholeskySymbolicParams, LltRef, SymbolicCholesky, SymmetricOrdering,
-    factorize_symbolic_cholesky,
-};
+use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky};
 use faer::sparse::{SparseColMat, Triplet};
 use faer::{Conj, Mat, Par, Side};
 use glam::DVec3;
+
+use crate::ordering::{SparseCholesky, symbolic_cholesky};
 
 use crate::ModelError;
 use crate::contact::RankOneCoupling;
@@ -137,7 +135,7 @@ impl std::fmt::Debug for Workspace {
 struct FarField {
     /// Global component index `3 i + c` of each far equation.
     dofs: Vec<usize>,
-    llt: Option<faer::sparse::linalg::solvers::Llt<usize, f64>>,
+    llt: Option<crate::ordering::SparseCholesky>,
     /// `K_FG` as (far equation, interface component, value).
     kfg: Vec<(usize, usize, f64)>,
 }
@@ -463,11 +461,13 @@ impl CondensedSolver {
         let surface_far: Vec<usize> = (0..f).filter(|&k| on_boundary[far_dofs[k] / 3]).collect();
         let mut surface_map = vec![0.0f32; surface_far.len() * g];
         let llt = if f > 0 {
-            let llt = sparse(f, &kff)?.sp_cholesky(Side::Lower).map_err(|e| {
-                ModelError::InvalidMesh(format!(
-                    "the far part is not held (add clamps or enlarge the active region): {e:?}"
-                ))
-            })?;
+            let far_nodes: Vec<usize> = far_dofs.iter().map(|&d| d / 3).collect();
+            let llt = SparseCholesky::factor(sparse(f, &kff)?.as_ref(), Side::Lower, &far_nodes)
+                .map_err(|e| {
+                    ModelError::InvalidMesh(format!(
+                        "the far part is not held (add clamps or enlarge the active region): {e}"
+                    ))
+                })?;
             // X = K_FF^-1 K_FG, in blocks of columns; S -= K_GF X.
             let mut by_col: Vec<Vec<(usize, f64)>> = vec![Vec::new(); g];
             for &(fr, gc, v) in &kfg {
@@ -552,13 +552,8 @@ impl CondensedSolver {
             .collect();
         let a_lower = SparseColMat::<usize, f32>::try_new_from_triplets(m_eq, m_eq, &lower)
             .map_err(|e| ModelError::InvalidMesh(format!("sparse assembly failed: {e:?}")))?;
-        let symbolic = factorize_symbolic_cholesky(
-            a_lower.symbolic(),
-            Side::Lower,
-            SymmetricOrdering::Amd,
-            CholeskySymbolicParams::default(),
-        )
-        .map_err(|e| ModelError::InvalidMesh(format!("symbolic factorisation failed: {e:?}")))?;
+        let eq_nodes: Vec<usize> = eq_dof.iter().map(|&d| d / 3).collect();
+        let symbolic = symbolic_cholesky(a_lower.symbolic(), Side::Lower, &eq_nodes)?;
         let mut factor = vec![0.0f32; symbolic.len_val()];
         {
             let mut mem = MemBuffer::new(
