@@ -83,6 +83,28 @@ enum Study {
         #[arg(long, value_delimiter = ',')]
         depths: Vec<f64>,
     },
+    /// The converged sphere reference from `haptic-solve --indent` runs on three or more
+    /// meshes (coarse to fine) of the LV pressed along the lv-probe line (`--from 15,0,-5
+    /// --direction -1,0,0`): each run's `indent.csv` (sphere depths below first contact, no
+    /// coupling) becomes a curve of device depths below the lv-probe contact point (the
+    /// sphere pulled by the lv coupling, as in `sphere`), interpolated at `--depths`, and
+    /// Richardson's extrapolation of the last three meshes gives the reference force and its
+    /// uncertainty per depth.
+    Reference {
+        /// The meshes of the runs, coarse to fine, as in `sphere --mesh` (FILE.msh:ORDER).
+        #[arg(long, value_delimiter = ',', required = true)]
+        mesh: Vec<MeshSpec>,
+        /// Each mesh's `indent.csv`, same order.
+        #[arg(long, value_delimiter = ',', required = true)]
+        csv: Vec<std::path::PathBuf>,
+        /// Each mesh's size under the probe (any unit: only ratios matter), same order
+        /// [default: the cube root of the mean element volume].
+        #[arg(long, value_delimiter = ',')]
+        h: Vec<f64>,
+        /// Device depths below first contact, mm [default: 0.5, 1, 1.5].
+        #[arg(long, value_delimiter = ',')]
+        depths: Vec<f64>,
+    },
     /// Dynamic probe curves with chosen integrators.
     Dynamic {
         /// Runs, comma-separated: TETS:ORDER:INTEGRATOR[:SAFETY[:CG]] with the mesh as in
@@ -269,6 +291,22 @@ fn main() {
             };
             sphere_study(&mesh, &material, patch, &depths)
         }
+        Study::Reference {
+            mesh,
+            csv,
+            h,
+            depths,
+        } => {
+            let depths = if depths.is_empty() {
+                vec![0.5, 1.0, 1.5]
+            } else {
+                depths
+            };
+            if let Err(e) = reference_study(&mesh, &csv, &h, &depths) {
+                eprintln!("lv_study reference: {e}");
+                std::process::exit(1);
+            }
+        }
         Study::Dynamic { run } => {
             for r in run {
                 let mut scene = common::lv_scene_order(r.tets, r.quadratic);
@@ -376,5 +414,191 @@ fn sphere_study(meshes: &[MeshSpec], materials: &[String], patch: bool, depths: 
                 c.map(|c| c.forces_n)
             );
         }
+    }
+}
+
+/// The rows of an `indent.csv`: sphere depth below first contact (mm), the force on the sphere
+/// along the press (+x, N) and its magnitude (N).
+fn read_indent_csv(path: &std::path::Path) -> Result<Vec<(f64, f64, f64)>, String> {
+    let mut reader =
+        csv::Reader::from_path(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let mut rows = Vec::new();
+    for record in reader.records() {
+        let r = record.map_err(|e| format!("{}: {e}", path.display()))?;
+        let field = |k: usize| -> Result<f64, String> {
+            r.get(k)
+                .and_then(|v| v.trim().parse::<f64>().ok())
+                .ok_or_else(|| {
+                    format!("{}: row {:?}: field {k} is not a number", path.display(), r)
+                })
+        };
+        let f = glam::DVec3::new(field(1)?, field(2)?, field(3)?);
+        rows.push((field(0)?, f.x, f.length()));
+    }
+    if rows.len() < 2 || rows.windows(2).any(|w| w[1].0 <= w[0].0) {
+        return Err(format!(
+            "{}: needs two or more rows of increasing depth",
+            path.display()
+        ));
+    }
+    Ok(rows)
+}
+
+/// The value at `x` of the quadratic through the three points of `pts` (sorted by `x`, two or
+/// more) nearest to it (linear with two); `None` outside their range.
+fn interpolate(pts: &[(f64, f64)], x: f64) -> Option<f64> {
+    let (first, last) = (pts.first()?.0, pts.last()?.0);
+    if !(first <= x && x <= last) {
+        return None;
+    }
+    if pts.len() == 2 {
+        let ((x0, y0), (x1, y1)) = (pts[0], pts[1]);
+        return Some(y0 + (y1 - y0) * (x - x0) / (x1 - x0));
+    }
+    let i = pts.partition_point(|p| p.0 < x).clamp(1, pts.len() - 1);
+    // The three points around the bracket [i - 1, i], the nearer third.
+    let start = if i == 1 {
+        0
+    } else if i + 1 == pts.len() || (x - pts[i - 2].0) < (pts[i + 1].0 - x) {
+        i - 2
+    } else {
+        i - 1
+    };
+    let p = &pts[start..start + 3];
+    Some(
+        (0..3)
+            .map(|a| {
+                let l: f64 = (0..3)
+                    .filter(|&b| b != a)
+                    .map(|b| (x - p[b].0) / (p[a].0 - p[b].0))
+                    .product();
+                l * p[a].1
+            })
+            .sum(),
+    )
+}
+
+/// The `reference` study (see [`Study::Reference`]).
+fn reference_study(
+    meshes: &[MeshSpec],
+    csvs: &[std::path::PathBuf],
+    h: &[f64],
+    depths: &[f64],
+) -> Result<(), String> {
+    use common::{CONTACT_X_M, device_at};
+    use haptic_model::indent::{IndentParams, Indenter, contact_distance};
+    if meshes.len() < 3 || meshes.len() != csvs.len() || !(h.is_empty() || h.len() == meshes.len())
+    {
+        return Err(format!(
+            "three or more meshes, one indent.csv each (and one size each, or none): got {} meshes, {} files, {} sizes",
+            meshes.len(),
+            csvs.len(),
+            h.len()
+        ));
+    }
+    let mut curves = Vec::new();
+    let mut sizes = Vec::new();
+    for (k, (m, path)) in meshes.iter().zip(csvs).enumerate() {
+        let scene = m.scene();
+        let fem = scene.fem_model().map_err(|e| e.to_string())?;
+        let from = device_at(-1e-3);
+        let indenter = Indenter {
+            radius_m: scene.probe.radius_m,
+            from_m: from,
+            direction: glam::DVec3::new(-1.0, 0.0, 0.0),
+        };
+        let t0 = contact_distance(&fem, &scene.touchable, &indenter, &IndentParams::default())
+            .map_err(|e| e.to_string())?;
+        // indent.csv's depth zero is this mesh's first contact, `1 mm - t0` before the
+        // lv-probe contact point CONTACT_X_M.
+        let offset_mm = (1e-3 - t0) * 1e3;
+        let kc = scene.probe.coupling_stiffness_n_per_m;
+        let rows = read_indent_csv(path)?;
+        // The device sits `F_x / k` beyond the sphere along the press; the force is reported
+        // as the dynamic runs report it, by its magnitude.
+        let device: Vec<(f64, f64)> = rows
+            .iter()
+            .map(|&(s, fx, f)| (s - offset_mm + fx / kc * 1e3, f))
+            .collect();
+        println!(
+            "mesh {} ({} tets, {} nodes): first contact {:+.4} mm from x = {:.3} mm; sphere depth mm -> force N: {}",
+            m.label(),
+            scene.mesh.tet_count(),
+            scene.mesh.node_count(),
+            -offset_mm,
+            CONTACT_X_M * 1e3,
+            rows.iter()
+                .map(|(s, _, f)| format!("{s}: {f:.5e}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+        let at: Vec<f64> = depths
+            .iter()
+            .map(|&d| {
+                interpolate(&device, d).ok_or_else(|| {
+                    format!(
+                        "{}: device depth {d} mm is outside the solved range {:.3} to {:.3} mm",
+                        path.display(),
+                        device[0].0,
+                        device[device.len() - 1].0
+                    )
+                })
+            })
+            .collect::<Result<_, _>>()?;
+        sizes.push(
+            h.get(k)
+                .copied()
+                .unwrap_or((scene.mesh.tet_count() as f64).powf(-1.0 / 3.0)),
+        );
+        curves.push(at);
+    }
+    let k = curves.len();
+    let hh = [sizes[k - 3], sizes[k - 2], sizes[k - 1]];
+    println!(
+        "reference (Richardson through the last three meshes, h ratios {:.3} : {:.3} : 1):",
+        hh[0] / hh[2],
+        hh[1] / hh[2]
+    );
+    println!(
+        "| device depth, mm | {} | extrapolated, mN | uncertainty, mN (%) | observed order |",
+        (0..k)
+            .map(|i| format!("mesh {}, mN", i + 1))
+            .collect::<Vec<_>>()
+            .join(" | ")
+    );
+    for (j, d) in depths.iter().enumerate() {
+        let f = [curves[k - 3][j], curves[k - 2][j], curves[k - 1][j]];
+        let e = richardson(hh, f);
+        println!(
+            "| {d} | {} | {:.4} | {:.4} ({:.1} %) | {} |",
+            (0..k)
+                .map(|i| format!("{:.4}", curves[i][j] * 1e3))
+                .collect::<Vec<_>>()
+                .join(" | "),
+            e.value * 1e3,
+            e.uncertainty * 1e3,
+            100.0 * e.uncertainty / e.value,
+            e.order.map_or("not monotone".into(), |p| format!("{p:.2}"))
+        );
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::interpolate;
+
+    #[test]
+    fn interpolation_is_exact_for_quadratics_and_refuses_outside() {
+        let pts: Vec<(f64, f64)> = [0.0, 0.25, 0.5, 1.0, 1.5]
+            .iter()
+            .map(|&x| (x, 2.0 + 3.0 * x - x * x))
+            .collect();
+        for x in [0.0, 0.1, 0.3, 0.7, 1.2, 1.5] {
+            let y = interpolate(&pts, x).expect("inside");
+            assert!((y - (2.0 + 3.0 * x - x * x)).abs() < 1e-12, "{x}: {y}");
+        }
+        assert_eq!(interpolate(&pts, 1.6), None);
+        assert_eq!(interpolate(&pts, -0.1), None);
     }
 }

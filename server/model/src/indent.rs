@@ -137,6 +137,16 @@ pub struct SphereContact {
     pub penalty_n_per_m: Vec<f64>,
     /// Multiplier per point (the contact force it carries), N.
     pub multiplier_n: Vec<f64>,
+    /// Whether [`StaticTerm::for_each_stiffness_block`] includes the sphere's curvature term
+    /// `-(p_q / |x_q - c|) (I - n n^T)` (the exact second derivative) or only the penalty's
+    /// `kappa_q n n^T`. [`indent`] leaves it out by default
+    /// ([`IndentParams::curvature_stiffness`]): under the deep penetrations of a new depth's
+    /// first iterations it makes the tangent indefinite and Newton wanders (measured on the LV
+    /// refined under the probe: 50 iterations without convergence at increments down to
+    /// 0.015 mm), while at the solution it is `p / R` against `kappa`, under 1 % of the
+    /// penalty's stiffness, so the iteration still converges fast, to the same state (the
+    /// residual and the energy are exact either way).
+    pub curvature_stiffness: bool,
 }
 
 impl SphereContact {
@@ -196,8 +206,10 @@ impl StaticTerm for SphereContact {
             let p = self.pressure_force(q, rho);
             if p > 0.0 {
                 let nn = DMat3::from_cols(n * n.x, n * n.y, n * n.z);
-                let k_point =
-                    nn * self.penalty_n_per_m[q] - (DMat3::IDENTITY - nn) * (p / rho.max(1e-300));
+                let mut k_point = nn * self.penalty_n_per_m[q];
+                if self.curvature_stiffness {
+                    k_point -= (DMat3::IDENTITY - nn) * (p / rho.max(1e-300));
+                }
                 for a in 0..3 {
                     for b in 0..3 {
                         add(
@@ -235,6 +247,9 @@ pub struct IndentParams {
     pub max_bisections: usize,
     /// Newton settings of each solve with frozen multipliers.
     pub newton: StaticParams,
+    /// Whether Newton's tangent carries the sphere's curvature term (default false; see
+    /// [`SphereContact::curvature_stiffness`]). The converged state is the same either way.
+    pub curvature_stiffness: bool,
 }
 
 impl Default for IndentParams {
@@ -245,6 +260,7 @@ impl Default for IndentParams {
             gap_tol: 1e-4,
             max_augmentations: 40,
             max_bisections: 6,
+            curvature_stiffness: false,
             newton: StaticParams {
                 rel_tol: 1e-9,
                 ..StaticParams::default()
@@ -433,6 +449,7 @@ pub fn indent(
             .collect(),
         multiplier_n: vec![0.0; points.len()],
         points,
+        curvature_stiffness: params.curvature_stiffness,
     };
     let mut x = fem.rest().to_vec();
     let mut reached = 0.0;
@@ -607,6 +624,7 @@ mod tests {
             penalty_n_per_m: (0..n).map(|q| 50.0 + q as f64).collect(),
             multiplier_n: (0..n).map(|q| 1e-4 * (q % 3) as f64).collect(),
             points,
+            curvature_stiffness: true,
         };
         (tris, x, contact)
     }

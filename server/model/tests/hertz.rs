@@ -8,6 +8,9 @@
 //! 7 R x 7 R x 7 R, at least 20 times the largest contact radius (0.32 R), on a tensor grid
 //! refined to R / 30 under the sphere and growing by 1.3 per cell away from it; StVK with
 //! nu = 0.3 (small strains: the largest is about 0.2 a / R = 6 %).
+//!
+//! A second test checks that the contact tangent Newton uses (with or without the sphere's
+//! curvature term) changes the iteration and not the converged force, on the built-in LV.
 
 use haptic_model::DVec3;
 use haptic_model::element::FemModel;
@@ -112,4 +115,49 @@ fn sphere_on_half_space_follows_hertz() {
         "contact radius off Hertz by {:.1} %",
         100.0 * worst.1
     );
+}
+
+/// Newton's tangent leaves out the sphere's curvature term by default
+/// (`IndentParams::curvature_stiffness`): that changes the iteration, not the equilibrium. On
+/// the built-in `lv` (474 curved quadratic elements) pressed along the `lv-probe` line, the
+/// forces with and without the term agree within the gap tolerance's share of the force.
+#[test]
+fn the_contact_tangent_changes_the_path_not_the_answer() {
+    let scene = haptic_model::scene::load_builtin("lv").unwrap();
+    let fem = scene.fem_model().unwrap();
+    let indenter = Indenter {
+        radius_m: scene.probe.radius_m,
+        from_m: DVec3::new(0.0127, 0.0, -0.005),
+        direction: DVec3::new(-1.0, 0.0, 0.0),
+    };
+    let depths = [0.5e-3, 1.0e-3];
+    let run = |curvature_stiffness: bool| {
+        let params = IndentParams {
+            curvature_stiffness,
+            ..IndentParams::default()
+        };
+        indent(
+            &fem,
+            &scene.touchable,
+            &indenter,
+            &depths,
+            &params,
+            &mut |_| {},
+        )
+        .unwrap()
+    };
+    let (exact, penalty_only) = (run(true), run(false));
+    for (a, b) in exact.iter().zip(&penalty_only) {
+        let (fa, fb) = (a.force_on_sphere_n, b.force_on_sphere_n);
+        eprintln!(
+            "depth {:.2} mm: {:.6e} N ({} Newton iterations) with the curvature term, {:.6e} N ({}) without",
+            a.depth_m * 1e3,
+            fa.length(),
+            a.newton_iterations,
+            fb.length(),
+            b.newton_iterations
+        );
+        assert!(fa.length() > 1e-3, "the sphere must press: {fa}");
+        assert!((fa - fb).length() < 5e-4 * fa.length(), "{fa} against {fb}");
+    }
 }
