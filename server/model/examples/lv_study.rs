@@ -13,6 +13,10 @@
 //!   the contact point by `examples/lv_probe_refined.geo`:
 //!   `gmsh server/model/examples/lv_probe_refined.geo -3 -format msh22 -setnumber hmin 0.6
 //!   -setnumber hmax 3 -o lvr_0.6.msh`.
+//! - `reference`: the converged sphere reference from `haptic-solve --indent` runs on three
+//!   or more meshes refined under the probe (their `indent.csv`), at the `lv-probe` device
+//!   depths, by Richardson extrapolation with its uncertainty; with `--servo`, the default
+//!   scene's servo error against it (docs/accuracy.md, "A converged sphere reference").
 //! - `dynamic`: the dynamic press (`Simulation::tick`, ramps and holds) with each `--run`'s
 //!   mesh and integrator, and its median tick.
 //!
@@ -104,6 +108,16 @@ enum Study {
         /// Device depths below first contact, mm [default: 0.5, 1, 1.5].
         #[arg(long, value_delimiter = ',')]
         depths: Vec<f64>,
+        /// Also run the servo on the built-in `lv` scene (the default configuration) through
+        /// the `lv-probe` staircase and report its force error against the reference at each
+        /// depth, or "below uncertainty" where the difference is within the reference's
+        /// uncertainty.
+        #[arg(long)]
+        servo: bool,
+        /// The material of the meshes (and of the servo run) by scene name [default: the lv
+        /// scene's, stvk].
+        #[arg(long)]
+        material: Option<String>,
     },
     /// Dynamic probe curves with chosen integrators.
     Dynamic {
@@ -296,13 +310,23 @@ fn main() {
             csv,
             h,
             depths,
+            servo,
+            material,
         } => {
             let depths = if depths.is_empty() {
                 vec![0.5, 1.0, 1.5]
             } else {
                 depths
             };
-            if let Err(e) = reference_study(&mesh, &csv, &h, &depths) {
+            let material = match material.as_deref().map(MaterialModel::from_scene_name) {
+                None => None,
+                Some(Some(m)) => Some(m),
+                Some(None) => {
+                    eprintln!("lv_study reference: unknown material {material:?}");
+                    std::process::exit(2);
+                }
+            };
+            if let Err(e) = reference_study(&mesh, &csv, &h, &depths, servo, material) {
                 eprintln!("lv_study reference: {e}");
                 std::process::exit(1);
             }
@@ -484,6 +508,8 @@ fn reference_study(
     csvs: &[std::path::PathBuf],
     h: &[f64],
     depths: &[f64],
+    servo: bool,
+    material: Option<MaterialModel>,
 ) -> Result<(), String> {
     use common::{CONTACT_X_M, device_at};
     use haptic_model::indent::{IndentParams, Indenter, contact_distance};
@@ -499,7 +525,10 @@ fn reference_study(
     let mut curves = Vec::new();
     let mut sizes = Vec::new();
     for (k, (m, path)) in meshes.iter().zip(csvs).enumerate() {
-        let scene = m.scene();
+        let mut scene = m.scene();
+        if let Some(model) = material {
+            scene.material.model = model;
+        }
         let fem = scene.fem_model().map_err(|e| e.to_string())?;
         let from = device_at(-1e-3);
         let indenter = Indenter {
@@ -566,9 +595,11 @@ fn reference_study(
             .collect::<Vec<_>>()
             .join(" | ")
     );
+    let mut reference = Vec::new();
     for (j, d) in depths.iter().enumerate() {
         let f = [curves[k - 3][j], curves[k - 2][j], curves[k - 1][j]];
         let e = richardson(hh, f);
+        reference.push(e);
         println!(
             "| {d} | {} | {:.4} | {:.4} ({:.1} %) | {} |",
             (0..k)
@@ -579,6 +610,60 @@ fn reference_study(
             e.uncertainty * 1e3,
             100.0 * e.uncertainty / e.value,
             e.order.map_or("not monotone".into(), |p| format!("{p:.2}"))
+        );
+    }
+    if servo {
+        servo_against_reference(depths, &reference, material)?;
+    }
+    Ok(())
+}
+
+/// The default scene's servo through the `lv-probe` staircase against the reference at the
+/// depths both have.
+fn servo_against_reference(
+    depths: &[f64],
+    reference: &[common::lv_press::Extrapolated],
+    material: Option<MaterialModel>,
+) -> Result<(), String> {
+    let mut scene = haptic_model::scene::load_builtin("lv").map_err(|e| e.to_string())?;
+    if let Some(model) = material {
+        scene.material.model = model;
+    }
+    let mut sim = haptic_model::sim::Simulation::new(&scene).map_err(|e| e.to_string())?;
+    let tick = sim.tick_s();
+    let (forces, ticks) = common::lv_press::probe_dynamic_body(&mut sim, tick, false)?;
+    println!(
+        "servo: built-in lv ({} elements, {}, {} contact), tick p50 {:.0} us on this machine",
+        scene.mesh.tet_count(),
+        scene.material.model.scene_name(),
+        haptic_model::integrate::resolve_contact_model(scene.integrator.kind, scene.probe.contact)
+            .map_err(|e| e.to_string())?
+            .name(),
+        ticks.percentiles().p50_us
+    );
+    println!("| device depth, mm | servo, mN | reference, mN | servo error |");
+    for (d, e) in depths.iter().zip(reference) {
+        let Some(j) = DEPTHS_MM.iter().position(|x| (x - d).abs() < 1e-9) else {
+            continue;
+        };
+        let f = forces[j];
+        let error = if (f - e.value).abs() <= e.uncertainty {
+            format!(
+                "below uncertainty (+-{:.1} %)",
+                100.0 * e.uncertainty / e.value
+            )
+        } else {
+            format!(
+                "{:+.1} % (+-{:.1} %)",
+                100.0 * (f - e.value) / e.value,
+                100.0 * e.uncertainty / e.value
+            )
+        };
+        println!(
+            "| {d} | {:.3} | {:.3} +- {:.3} | {error} |",
+            f * 1e3,
+            e.value * 1e3,
+            e.uncertainty * 1e3
         );
     }
     Ok(())
