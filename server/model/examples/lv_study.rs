@@ -422,7 +422,8 @@ fn sphere_study(meshes: &[MeshSpec], materials: &[String], patch: bool, depths: 
                     e.value,
                     e.uncertainty,
                     100.0 * e.uncertainty / e.value,
-                    e.order.map_or("not monotone".into(), |p| format!("{p:.2}"))
+                    e.order
+                        .map_or("none (not asymptotic)".into(), |p| format!("{p:.2}"))
                 );
             }
         }
@@ -609,7 +610,8 @@ fn reference_study(
             e.value * 1e3,
             e.uncertainty * 1e3,
             100.0 * e.uncertainty / e.value,
-            e.order.map_or("not monotone".into(), |p| format!("{p:.2}"))
+            e.order
+                .map_or("none (not asymptotic)".into(), |p| format!("{p:.2}"))
         );
     }
     if servo {
