@@ -16,7 +16,7 @@ use std::sync::Arc;
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::perm::PermRef;
 use faer::sparse::linalg::cholesky::{
-    CholeskySymbolicParams, LltRef, SymbolicCholesky, SymmetricOrdering,
+    CholeskySymbolicParams, LdltRef, LltRef, SymbolicCholesky, SymmetricOrdering,
     factorize_symbolic_cholesky,
 };
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
@@ -204,34 +204,70 @@ pub fn symbolic_cholesky(
     }
 }
 
-/// A sparse Cholesky factor `A = L L^T` of a symmetric positive definite matrix under the
-/// [`symbolic_cholesky`] ordering (double precision).
+/// A sparse symmetric factorisation under the [`symbolic_cholesky`] ordering (double
+/// precision): the analysis is made once for a pattern, then refactored for any values on it,
+/// as `L L^T` ([`SparseCholesky::factor_llt`], positive definite) or as the unpivoted
+/// `L D L^T` ([`SparseCholesky::factor_ldlt`], some indefinite matrices), and solved with the
+/// last factorisation.
 #[derive(Debug, Clone)]
 pub struct SparseCholesky {
     symbolic: Arc<SymbolicCholesky<usize>>,
     values: Vec<f64>,
+    /// Which factorisation `values` holds: `None` before the first, `Some(true)` for `L D L^T`.
+    ldlt: Option<bool>,
 }
 
 impl SparseCholesky {
-    /// Factors `a` (the `side` triangle is read) with equation groups `group` (see
-    /// [`nested_dissection`]).
+    /// The analysis of a symmetric pattern (`side` the triangle given, or both) with equation
+    /// groups `group` (see [`nested_dissection`]); no values yet.
     ///
     /// # Errors
-    /// As [`symbolic_cholesky`]; [`ModelError::InvalidInput`] naming faer's error when `a` is
-    /// not positive definite.
+    /// As [`symbolic_cholesky`].
+    pub fn analyse(
+        pattern: SymbolicSparseColMatRef<'_, usize>,
+        side: Side,
+        group: &[usize],
+    ) -> Result<Self, ModelError> {
+        let symbolic = symbolic_cholesky(pattern, side, group)?;
+        Ok(Self {
+            values: vec![0.0; symbolic.len_val()],
+            symbolic: Arc::new(symbolic),
+            ldlt: None,
+        })
+    }
+
+    /// Analyses and factors `a` as `L L^T` in one call.
+    ///
+    /// # Errors
+    /// As [`SparseCholesky::analyse`] and [`SparseCholesky::factor_llt`].
     pub fn factor(
         a: SparseColMatRef<'_, usize, f64>,
         side: Side,
         group: &[usize],
     ) -> Result<Self, ModelError> {
-        let symbolic = symbolic_cholesky(a.symbolic(), side, group)?;
-        let mut values = vec![0.0; symbolic.len_val()];
+        let mut c = Self::analyse(a.symbolic(), side, group)?;
+        c.factor_llt(a, side)?;
+        Ok(c)
+    }
+
+    /// Factors `a` (the analysed pattern; the `side` triangle is read) as `L L^T`.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] naming faer's error when `a` is not positive definite
+    /// (the previous factorisation is then lost).
+    pub fn factor_llt(
+        &mut self,
+        a: SparseColMatRef<'_, usize, f64>,
+        side: Side,
+    ) -> Result<(), ModelError> {
         let mut mem = MemBuffer::new(
-            symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
+            self.symbolic
+                .factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
         );
-        symbolic
+        self.ldlt = None;
+        self.symbolic
             .factorize_numeric_llt::<f64>(
-                &mut values,
+                &mut self.values,
                 a,
                 side,
                 Default::default(),
@@ -242,24 +278,59 @@ impl SparseCholesky {
             .map_err(|e| {
                 ModelError::InvalidInput(format!("the matrix is not positive definite: {e:?}"))
             })?;
-        Ok(Self {
-            symbolic: Arc::new(symbolic),
-            values,
-        })
+        self.ldlt = Some(false);
+        Ok(())
     }
 
-    /// Solves `A X = B` in place of `rhs` (`n x k`; allocates the solve's workspace).
+    /// Factors `a` as `L D L^T` without pivoting (symmetric indefinite matrices whose
+    /// leading minors do not vanish in this ordering). Check the solution's residual: without
+    /// pivoting a small pivot may make it inaccurate.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] naming faer's error on a zero pivot.
+    pub fn factor_ldlt(
+        &mut self,
+        a: SparseColMatRef<'_, usize, f64>,
+        side: Side,
+    ) -> Result<(), ModelError> {
+        let mut mem = MemBuffer::new(
+            self.symbolic
+                .factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default()),
+        );
+        self.ldlt = None;
+        self.symbolic
+            .factorize_numeric_ldlt::<f64>(
+                &mut self.values,
+                a,
+                side,
+                Default::default(),
+                Par::Seq,
+                MemStack::new(&mut mem),
+                Default::default(),
+            )
+            .map_err(|e| ModelError::InvalidInput(format!("L D L^T factorisation: {e:?}")))?;
+        self.ldlt = Some(true);
+        Ok(())
+    }
+
+    /// Solves `A X = B` in place of `rhs` (`n x k`) with the last factorisation (allocates
+    /// the solve's workspace).
+    ///
+    /// # Panics
+    /// Before a successful factorisation.
     pub fn solve_in_place(&self, rhs: MatMut<'_, f64>) {
         let mut mem = MemBuffer::new(
             self.symbolic
                 .solve_in_place_scratch::<f64>(rhs.ncols(), Par::Seq),
         );
-        LltRef::<usize, f64>::new(&self.symbolic, &self.values).solve_in_place_with_conj(
-            Conj::No,
-            rhs,
-            Par::Seq,
-            MemStack::new(&mut mem),
-        );
+        let stack = MemStack::new(&mut mem);
+        match self.ldlt {
+            Some(false) => LltRef::<usize, f64>::new(&self.symbolic, &self.values)
+                .solve_in_place_with_conj(Conj::No, rhs, Par::Seq, stack),
+            Some(true) => LdltRef::<usize, f64>::new(&self.symbolic, &self.values)
+                .solve_in_place_with_conj(Conj::No, rhs, Par::Seq, stack),
+            None => panic!("SparseCholesky::solve_in_place before a successful factorisation"),
+        }
     }
 
     /// Entries of `L`.

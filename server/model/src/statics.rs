@@ -20,12 +20,10 @@
 //! Owns: the Newton solver and nothing else (loads come from [`crate::loads`], tangents from
 //! [`crate::element::tangent`]). Not used by the real-time path.
 
-use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::solvers::Solve;
-use faer::sparse::linalg::cholesky::{LdltRef, LltRef, SymbolicCholesky};
 use faer::sparse::linalg::solvers::{Lu, SymbolicLu};
 use faer::sparse::{Argsort, Pair, SparseColMat, SymbolicSparseColMat, Triplet};
-use faer::{Conj, Mat, Par, Side};
+use faer::{Mat, Side};
 use glam::{DMat3, DVec3};
 
 use crate::ModelError;
@@ -33,6 +31,7 @@ use crate::element::tangent::cell_tangent_blocks;
 use crate::element::{ConstraintMask, FemModel};
 use crate::loads::{SceneLoads, add_pressure_load, face_points, face_tangents, quadratic_face};
 use crate::material::{MaterialModel, MaterialParams};
+use crate::ordering::SparseCholesky;
 
 /// Newton solver settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -95,8 +94,6 @@ struct Tangent {
     padded: Vec<f64>,
     /// The node of each free equation: the supervariables of the ordering.
     group: Vec<usize>,
-    /// Values of the Cholesky (or `L D L^T`) factor.
-    factor: Vec<f64>,
     /// Which factorisation solved the last system.
     last: Factorisation,
 }
@@ -118,9 +115,9 @@ struct Pattern {
     symbolic: SymbolicSparseColMat<usize>,
     /// The order of the values in `symbolic` for the entries as assembled.
     argsort: Argsort<usize>,
-    /// The symbolic Cholesky under a nested-dissection ordering ([`crate::ordering`]), also
-    /// the analysis of the `L D L^T` fallback.
-    llt: SymbolicCholesky<usize>,
+    /// The Cholesky (or `L D L^T`) factor under a nested-dissection ordering
+    /// ([`crate::ordering`]), analysed once per pattern.
+    llt: SparseCholesky,
     /// The symbolic LU, made the first time Cholesky fails.
     lu: Option<SymbolicLu<usize>>,
 }
@@ -169,9 +166,8 @@ impl Tangent {
                 let (symbolic, argsort) =
                     SymbolicSparseColMat::try_new_from_indices(nfree, nfree, &all)
                         .map_err(|e| assembly(&e))?;
-                let llt =
-                    crate::ordering::symbolic_cholesky(symbolic.as_ref(), Side::Lower, &self.group)
-                        .map_err(|e| assembly(&e))?;
+                let llt = SparseCholesky::analyse(symbolic.as_ref(), Side::Lower, &self.group)
+                    .map_err(|e| assembly(&e))?;
                 self.pattern = Some(Pattern {
                     symbolic,
                     argsort,
@@ -226,56 +222,20 @@ impl Tangent {
         let Some(pattern) = &mut self.pattern else {
             unreachable!("assemble built the pattern")
         };
-        {
-            let llt = &pattern.llt;
-            self.factor.resize(llt.len_val(), 0.0);
-            let mut mem = MemBuffer::new(
-                llt.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default())
-                    .or(llt.factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default()))
-                    .or(llt.solve_in_place_scratch::<f64>(1, Par::Seq)),
-            );
-            let factored = llt.factorize_numeric_llt::<f64>(
-                &mut self.factor,
-                kmat.as_ref(),
-                Side::Lower,
-                Default::default(),
-                Par::Seq,
-                MemStack::new(&mut mem),
-                Default::default(),
-            );
-            if factored.is_ok() {
-                LltRef::<usize, f64>::new(llt, &self.factor).solve_in_place_with_conj(
-                    Conj::No,
-                    rhs,
-                    Par::Seq,
-                    MemStack::new(&mut mem),
-                );
-                self.last = Factorisation::Llt;
+        let llt = &mut pattern.llt;
+        if llt.factor_llt(kmat.as_ref(), Side::Lower).is_ok() {
+            llt.solve_in_place(rhs);
+            self.last = Factorisation::Llt;
+            return Ok(());
+        }
+        if llt.factor_ldlt(kmat.as_ref(), Side::Lower).is_ok() {
+            let mut x = rhs.to_owned();
+            llt.solve_in_place(x.as_mut());
+            let residual = (kmat.as_ref() * x.as_ref() - rhs.as_ref()).norm_l2();
+            if residual <= LDLT_RESIDUAL * rhs.norm_l2() {
+                rhs.copy_from(&x);
+                self.last = Factorisation::Ldlt;
                 return Ok(());
-            }
-            let factored = llt.factorize_numeric_ldlt::<f64>(
-                &mut self.factor,
-                kmat.as_ref(),
-                Side::Lower,
-                Default::default(),
-                Par::Seq,
-                MemStack::new(&mut mem),
-                Default::default(),
-            );
-            if factored.is_ok() {
-                let mut x = rhs.to_owned();
-                LdltRef::<usize, f64>::new(llt, &self.factor).solve_in_place_with_conj(
-                    Conj::No,
-                    x.as_mut(),
-                    Par::Seq,
-                    MemStack::new(&mut mem),
-                );
-                let residual = (kmat.as_ref() * x.as_ref() - rhs.as_ref()).norm_l2();
-                if residual <= LDLT_RESIDUAL * rhs.norm_l2() {
-                    rhs.copy_from(&x);
-                    self.last = Factorisation::Ldlt;
-                    return Ok(());
-                }
             }
         }
         let factorising = |e: &dyn std::fmt::Debug| {
