@@ -5,7 +5,10 @@
 # pressed along the lv-probe line by `haptic-solve --indent` on each, then Richardson's
 # extrapolation at the lv-probe device depths and the default servo's error against it.
 #
-#   server/model/examples/lv_sphere_reference.sh [OUT_DIR] [MATERIAL] [DEPTHS]
+#   server/model/examples/lv_sphere_reference.sh [OUT_DIR] [MATERIAL] [DEPTHS] [DEVICE_DEPTHS]
+#
+# DEPTHS: the sphere depths solved on each mesh, mm; DEVICE_DEPTHS: the lv-probe device depths
+# reported (0.5 mm steps; each needs solved sphere depths around it).
 #
 # MATERIAL: stvk (default; St. Venant-Kirchhoff has no equilibrium much past 1.25 mm sphere
 # depth on the finest mesh, so its default depths stop there) or stable-neo-hookean or
@@ -52,7 +55,7 @@ TOML
   meshes+=("$msh:2") csvs+=("$out/indent_${hmin}_$material/indent.csv")
 done
 join() { local IFS=,; echo "$*"; }
-servo_depths=$([[ $material == stvk ]] && echo 0.5,1 || echo 0.5,1,1.5,2,2.5,3)
+servo_depths=${4:-$([[ $material == stvk ]] && echo 0.5,1 || echo 0.5,1,1.5,2,2.5,3)}
 target/release/examples/lv_study reference --mesh "$(join "${meshes[@]}")" \
   --csv "$(join "${csvs[@]}")" --h 0.6,0.42,0.3 --material "$material" \
   --depths "$servo_depths" --servo
