@@ -114,6 +114,10 @@ enum Study {
         /// uncertainty.
         #[arg(long)]
         servo: bool,
+        /// With `--servo`: run this scene file instead of the built-in `lv` (its probe must
+        /// press along the `lv-probe` line, e.g. `deploy/scenes/lv_h1_es.toml`).
+        #[arg(long, requires = "servo")]
+        servo_scene: Option<std::path::PathBuf>,
         /// The material of the meshes (and of the servo run) by scene name [default: the lv
         /// scene's, stvk].
         #[arg(long)]
@@ -311,6 +315,7 @@ fn main() {
             h,
             depths,
             servo,
+            servo_scene,
             material,
         } => {
             let depths = if depths.is_empty() {
@@ -326,7 +331,14 @@ fn main() {
                     std::process::exit(2);
                 }
             };
-            if let Err(e) = reference_study(&mesh, &csv, &h, &depths, servo, material) {
+            if let Err(e) = reference_study(
+                &mesh,
+                &csv,
+                &h,
+                &depths,
+                servo.then_some(servo_scene.as_deref()),
+                material,
+            ) {
                 eprintln!("lv_study reference: {e}");
                 std::process::exit(1);
             }
@@ -509,7 +521,7 @@ fn reference_study(
     csvs: &[std::path::PathBuf],
     h: &[f64],
     depths: &[f64],
-    servo: bool,
+    servo: Option<Option<&std::path::Path>>,
     material: Option<MaterialModel>,
 ) -> Result<(), String> {
     use common::{CONTACT_X_M, device_at};
@@ -614,20 +626,25 @@ fn reference_study(
                 .map_or("none (not asymptotic)".into(), |p| format!("{p:.2}"))
         );
     }
-    if servo {
-        servo_against_reference(depths, &reference, material)?;
+    if let Some(scene) = servo {
+        servo_against_reference(depths, &reference, scene, material)?;
     }
     Ok(())
 }
 
-/// The default scene's servo through the `lv-probe` staircase against the reference at the
-/// depths both have.
+/// The servo of `scene_file` (default: the built-in `lv` scene) through the `lv-probe`
+/// staircase against the reference at the depths both have.
 fn servo_against_reference(
     depths: &[f64],
     reference: &[common::lv_press::Extrapolated],
+    scene_file: Option<&std::path::Path>,
     material: Option<MaterialModel>,
 ) -> Result<(), String> {
-    let mut scene = haptic_model::scene::load_builtin("lv").map_err(|e| e.to_string())?;
+    let mut scene = match scene_file {
+        Some(path) => haptic_model::scene::load_scene_file(path),
+        None => haptic_model::scene::load_builtin("lv"),
+    }
+    .map_err(|e| e.to_string())?;
     if let Some(model) = material {
         scene.material.model = model;
     }
@@ -635,7 +652,8 @@ fn servo_against_reference(
     let tick = sim.tick_s();
     let (forces, ticks) = common::lv_press::probe_dynamic_body(&mut sim, tick, false)?;
     println!(
-        "servo: built-in lv ({} elements, {}, {} contact), tick p50 {:.0} us on this machine",
+        "servo: {} ({} elements, {}, {} contact), tick p50 {:.0} us on this machine",
+        scene.name,
         scene.mesh.tet_count(),
         scene.material.model.scene_name(),
         haptic_model::integrate::resolve_contact_model(scene.integrator.kind, scene.probe.contact)

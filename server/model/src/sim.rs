@@ -107,6 +107,11 @@ impl Simulation {
         }
         let mut probe_params = scene.probe;
         probe_params.contact = integrate::resolve_contact_model(p.kind, scene.probe.contact)?;
+        let (e, nu) = (
+            scene.material.youngs_modulus_pa(),
+            scene.material.poisson_ratio(),
+        );
+        probe_params.hertz_modulus_pa = e / (1.0 - nu * nu);
         let critical = integrate::critical_time_step(&fem, p.kind);
         let plan = integrate::plan_steps(&p, critical)?;
         let mut stepper = Stepper::new(&fem, &scene.mesh, &p, &plan, scene.active_region)?;

@@ -24,6 +24,7 @@ fn params(contact: ContactModel) -> ProbeParams {
         coupling_damping_n_s_per_m: 0.05,
         max_force_n: 10.0,
         friction_coefficient: 0.0,
+        hertz_modulus_pa: 0.0,
     }
 }
 
@@ -125,15 +126,91 @@ fn proxy_on_a_flat_surface(contact: ContactModel) {
     assert!(!c.in_contact && c.proxy_m == device && c.force_on_device_n == DVec3::ZERO);
 }
 
+/// The patch with the Hertz compliance in series on a rigid flat face: for the device `D`
+/// below the touching position, the force `F` satisfies the series law written the other way
+/// round, `D = F / k + (F / K)^(2/3)` with `K = 4/3 E* r^(1/2)` (Johnson 1985, eq. 4.23), the
+/// proxy sinks `(F / K)^(2/3)` into the face, and the stiffness the implicit coupling uses
+/// (from `coupling_gamma`) is the slope of `F(D)` by central differences.
+#[test]
+fn the_hertz_patch_puts_a_hertz_spring_in_series_with_the_coupling() {
+    let (mesh, top) = block();
+    let x = &mesh.nodes;
+    let e_star = 14_500.0 / (1.0 - 0.45 * 0.45);
+    let p = ProbeParams {
+        hertz_modulus_pa: e_star,
+        ..params(ContactModel::PatchHertz)
+    };
+    let (k, r) = (p.coupling_stiffness_n_per_m, p.radius_m);
+    let hertz_k = 4.0 / 3.0 * e_star * r.sqrt();
+    let mut probe = Probe::new(p, top, x);
+    let mut force_at = |depth: f64| {
+        let device = DVec3::new(0.01, 0.01, 0.005 + r - depth);
+        let c = probe.update(x, device, DVec3::ZERO);
+        assert!(c.in_contact, "depth {depth}");
+        (c, probe.coupling_gamma(1e-3))
+    };
+    for depth in [1e-6, 0.1e-3, 0.5e-3, 1e-3, 3e-3] {
+        let (c, gamma) = force_at(depth);
+        let f = c.force_on_device_n.z;
+        assert!((c.force_on_device_n - DVec3::Z * f).length() < 1e-15 && f > 0.0);
+        let delta = (f / hertz_k).powf(2.0 / 3.0);
+        let back = f / k + delta;
+        assert!(
+            (back - depth).abs() < 1e-9 * depth,
+            "depth {depth}: the force {f} N gives back {back} m"
+        );
+        let sink = 0.005 + r - c.proxy_m.z;
+        assert!(
+            (sink - delta).abs() < 1e-9 * depth,
+            "{sink} against {delta}"
+        );
+        // The coupling's stiffness in the implicit term: gamma = dt (k_s dt + b).
+        let k_series = (gamma / 1e-3 - p.coupling_damping_n_s_per_m) / 1e-3;
+        let h = 1e-3 * depth;
+        let slope = (force_at(depth + h).0.force_on_device_n.z
+            - force_at(depth - h).0.force_on_device_n.z)
+            / (2.0 * h);
+        assert!(
+            (k_series - slope).abs() < 1e-5 * slope,
+            "depth {depth}: series stiffness {k_series} against the slope {slope} N/m"
+        );
+        assert!(k_series < k);
+    }
+    // Far softer tissue than the coupling: nearly all the depth is Hertz indentation; a
+    // stiff one: nearly all of it is the coupling's stretch.
+    for (e, share) in [(1.0, 0.99), (1e9, 0.01)] {
+        let mut probe = Probe::new(
+            ProbeParams {
+                hertz_modulus_pa: e,
+                ..p
+            },
+            mesh.surface("ZMAX").unwrap().triangles.clone(),
+            x,
+        );
+        let c = probe.update(x, DVec3::new(0.01, 0.01, 0.005 + r - 1e-3), DVec3::ZERO);
+        let sink = 0.005 + r - c.proxy_m.z;
+        if share > 0.5 {
+            assert!(sink > share * 1e-3, "E* = {e}: sink {sink}");
+        } else {
+            assert!(sink < share * 1e-3, "E* = {e}: sink {sink}");
+        }
+    }
+}
+
 /// The coupling's force on the body is minus the device force over the same patch: after a
 /// step completed implicitly (here with a lumped mass per node), the body's momentum change is
 /// exactly `-dt F_device`.
 #[test]
 fn the_coupling_reaction_conserves_linear_momentum() {
-    for contact in [ContactModel::Patch, ContactModel::Sphere] {
+    for contact in [
+        ContactModel::Patch,
+        ContactModel::Sphere,
+        ContactModel::PatchHertz,
+    ] {
         for friction_coefficient in [0.0, 0.4] {
             momentum_is_conserved(ProbeParams {
                 friction_coefficient,
+                hertz_modulus_pa: 18_000.0,
                 ..params(contact)
             });
         }

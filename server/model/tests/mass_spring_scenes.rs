@@ -105,6 +105,17 @@ fn bad_values_are_refused_naming_the_field() {
         TableState::NotNeeded
     ));
     build_body(&scene).expect("unchanged springs need no table");
+    // The Hertz patch needs a material modulus, which a spring surface does not have.
+    let hertz = parse_scene_toml(
+        &format!("{BASE}\n[probe]\ncontact = \"patch-hertz\"\n"),
+        Path::new("."),
+    )
+    .expect("parses");
+    match build_body(&hertz) {
+        Err(ModelError::SceneField { field, .. }) => assert_eq!(field, "probe.contact"),
+        Err(e) => panic!("expected a field error, got {e}"),
+        Ok(_) => panic!("a mass-spring surface accepted patch-hertz"),
+    }
     let cases = [
         (
             "node_mass_kg = 0.001",

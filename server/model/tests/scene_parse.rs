@@ -389,23 +389,25 @@ fn the_model_family_defaults_to_fem_and_unknown_ones_are_refused() {
     );
 }
 
-/// `probe.contact`: `auto` by default, resolved per integrator by the simulation (the sphere
-/// under symplectic Euler, the patch under backward Euler); the sphere under backward Euler and
-/// unknown names are refused with the field named.
+/// `probe.contact`: `auto` by default, resolved by the simulation to the patch with Hertz
+/// compliance under every integrator; the sphere under backward Euler, unknown names and the
+/// Hertz patch on a mass-spring surface (no material modulus) are refused with the field named.
 #[test]
 fn the_contact_model_defaults_to_auto_and_backward_euler_refuses_the_sphere() {
     use haptic_model::contact::ContactModel;
     use haptic_model::integrate::{IntegratorKind, resolve_contact_model};
     let s = parse(BASE).unwrap();
     assert_eq!(s.probe.contact, ContactModel::Auto);
-    assert_eq!(
-        resolve_contact_model(IntegratorKind::SymplecticEuler, ContactModel::Auto).unwrap(),
-        ContactModel::Sphere
-    );
-    assert_eq!(
-        resolve_contact_model(IntegratorKind::BackwardEuler, ContactModel::Auto).unwrap(),
-        ContactModel::Patch
-    );
+    for kind in [
+        IntegratorKind::SymplecticEuler,
+        IntegratorKind::SemiImplicit,
+        IntegratorKind::BackwardEuler,
+    ] {
+        assert_eq!(
+            resolve_contact_model(kind, ContactModel::Auto).unwrap(),
+            ContactModel::PatchHertz
+        );
+    }
     let with = |contact: &str, kind: &str| {
         format!("{BASE}\n[probe]\ncontact = \"{contact}\"\n").replacen(
             "[material]",
@@ -415,6 +417,8 @@ fn the_contact_model_defaults_to_auto_and_backward_euler_refuses_the_sphere() {
     };
     let s = parse(&with("patch", "symplectic-euler")).unwrap();
     assert_eq!(s.probe.contact, ContactModel::Patch);
+    let s = parse(&with("patch-hertz", "backward-euler")).unwrap();
+    assert_eq!(s.probe.contact, ContactModel::PatchHertz);
     let s = parse(&with("sphere", "semi-implicit")).unwrap();
     assert_eq!(s.probe.contact, ContactModel::Sphere);
     assert_eq!(

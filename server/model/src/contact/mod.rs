@@ -1,8 +1,8 @@
 //! Haptic probe contact: a sphere at the device position (the haptic interaction point, HIP)
 //! touches the touchable surface through a god-object (proxy) joined to the device point by a
-//! virtual coupling. Two contact models ([`ContactModel`], scene key `probe.contact`):
+//! virtual coupling. Three contact models ([`ContactModel`], scene key `probe.contact`):
 //!
-//! - **Sphere** (the default under the explicit and semi-implicit integrators): the probe is a
+//! - **Sphere**: the probe is a
 //!   rigid sphere of radius `r`. Each update casts it out of the deformed triangles near the
 //!   device along the contact normal `n` ([`sphere::sphere_exit`], exact): the proxy
 //!   `device + t n` is the nearest centre on that line where the sphere penetrates no
@@ -12,22 +12,33 @@
 //!   closest to the proxy, carry the reaction. The contact area grows with the depth as a
 //!   Hertz contact's does, and the weights vanish at the band's edge so the contact set changes
 //!   continuously while sliding. On the default LV the servo's force equals an independent
-//!   static solve with exact sphere contact (`crate::indent`) to 0.5 % (`tests/sim_lv.rs`).
+//!   static solve with exact sphere contact (`crate::indent`) to 0.5 % (`tests/sim_lv.rs`);
+//!   but the real-time meshes' facets (2-4 mm) are coarser than the contact (about 1 mm), so
+//!   that equilibrium is 60-90 % stiffer than the mesh-converged one. Backward Euler refuses it
+//!   ([`crate::integrate::resolve_contact_model`]).
 //! - **Patch**: a smoothed local surface around the device, the touchable nodes within `2 r`
 //!   with kernel weights `w_i ∝ (1 - d_i^2 / (2r)^2)^2` (sum 1) define the plane through
 //!   `c = sum w_i x_i` with normal `n` the weighted vertex normals; with
 //!   `s = (device - c) . n`, the probe touches when `s < r` and the proxy is
 //!   `device + (r - s) n`. It spreads the load over 4 mm whatever the depth (35-40 % stiffer
 //!   than the sphere on the LV), but its distribution depends on the device position only, so
-//!   backward Euler (one 1 ms step per tick) carries it, which it does not the sphere's
-//!   ([`crate::integrate::resolve_contact_model`]); the mass-spring surface's calibration and
-//!   the seed's point contact are built on it too.
+//!   every integrator carries it; the mass-spring surface's calibration and the seed's point
+//!   contact are built on it too.
+//! - **PatchHertz** (the default on FEM bodies): the patch, with the sphere's local Hertz
+//!   indentation `delta` in series between the patch's surface and the proxy, a sub-grid
+//!   model of what coarse facets cannot resolve: the mesh carries the body's structural
+//!   response to the patch's smooth load, the Hertz spring `F = 4/3 E* r^(1/2) delta^(3/2)`
+//!   ([`probe::hertz_stiffness`], `E* = E / (1 - nu^2)` of the material) the local one, and the
+//!   coupling stretches by `(r - s) - delta` ([`probe::hertz_series_indentation`]). On the
+//!   default LV it reads within the converged sphere reference's uncertainty for St.
+//!   Venant-Kirchhoff (`docs/accuracy.md`, "Sub-grid Hertz contact").
 //!
-//! Both give the device force `F_dev = k (proxy - device) + b ((v_c - v_dev) . n) n`, clamped
+//! All give the device force `F_dev = k (proxy - device) + b ((v_c - v_dev) . n) n`, clamped
 //! to `[0, max_force_n]` along `n`, with the proxy and the surface velocity `v_c` taken at the
 //! end of the step (implicit: [`Probe::finish_implicit`]). Its reaction `-F_dev` acts on the
 //! body over the contact nodes with their weights (sum 1), so linear momentum is conserved;
-//! the coupling's implicit term is the rank-one `gamma U U^T`, `U = (w_i n)`, which every
+//! the coupling's implicit term is the rank-one `gamma U U^T`, `U = (w_i n)` (with `k` in
+//! series with the Hertz spring's tangent under PatchHertz), which every
 //! integrator solves (the explicit ones per node by Sherman-Morrison, backward Euler in its CG,
 //! the condensed model by Sherman-Morrison on its factor). Frictionless: the proxy slides
 //! freely along the surface.

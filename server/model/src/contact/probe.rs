@@ -18,9 +18,9 @@ pub const MAX_DEVICE_DISTANCE_M: f64 = 10.0;
 /// How the probe meets the surface (scene key `probe.contact`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ContactModel {
-    /// The best model the body's integrator carries: the sphere under the explicit and
-    /// semi-implicit integrators, the patch under backward Euler and on mass-spring surfaces
-    /// ([`crate::integrate::resolve_contact_model`]). A [`Probe`] given `Auto` uses the patch.
+    /// The most accurate model on the body: [`ContactModel::PatchHertz`] on FEM bodies under
+    /// every integrator ([`crate::integrate::resolve_contact_model`]), the patch on
+    /// mass-spring surfaces. A [`Probe`] given `Auto` uses the patch.
     #[default]
     Auto,
     /// The rigid sphere: the proxy is the sphere's non-penetrating position and the reaction
@@ -29,6 +29,13 @@ pub enum ContactModel {
     /// The kernel patch: a smoothed plane through the touchable nodes within `2 r` of the
     /// device, the reaction spread over them with kernel weights, whatever the depth.
     Patch,
+    /// The kernel patch with the sphere's local Hertz compliance in series (a sub-grid contact
+    /// model): the mesh carries the body's response to the patch's smooth load, and the local
+    /// indentation of the tissue around a sphere of radius `r`, which facets coarser than the
+    /// contact cannot resolve, is added as the Hertz spring `F = 4/3 E* r^(1/2) delta^(3/2)`
+    /// between the patch's surface and the proxy ([`ProbeParams::hertz_modulus_pa`]). Its
+    /// load distribution is the patch's, so every integrator carries it.
+    PatchHertz,
 }
 
 impl ContactModel {
@@ -38,12 +45,13 @@ impl ContactModel {
             Self::Auto => "auto",
             Self::Sphere => "sphere",
             Self::Patch => "patch",
+            Self::PatchHertz => "patch-hertz",
         }
     }
 
     /// The model of a scene-file name.
     pub fn from_name(name: &str) -> Option<Self> {
-        [Self::Auto, Self::Sphere, Self::Patch]
+        [Self::Auto, Self::Sphere, Self::Patch, Self::PatchHertz]
             .into_iter()
             .find(|m| m.name() == name)
     }
@@ -64,6 +72,10 @@ pub struct ProbeParams {
     pub max_force_n: f64,
     /// Coulomb friction coefficient between the probe and the surface (0: frictionless).
     pub friction_coefficient: f64,
+    /// Effective (plane-strain) modulus `E* = E / (1 - nu^2)` of the touched tissue at small
+    /// strain, Pa, for [`ContactModel::PatchHertz`]: set by the FEM body from its material
+    /// (scene files do not set it); zero when unknown.
+    pub hertz_modulus_pa: f64,
 }
 
 impl Default for ProbeParams {
@@ -75,6 +87,7 @@ impl Default for ProbeParams {
             coupling_damping_n_s_per_m: 0.05,
             max_force_n: 10.0,
             friction_coefficient: 0.0,
+            hertz_modulus_pa: 0.0,
         }
     }
 }
@@ -114,6 +127,10 @@ pub struct Probe {
     patch_weights: Vec<f64>,
     /// Explicit part of the normal coupling force of the current step, N.
     phi0_n: f64,
+    /// Stiffness of the normal coupling against the surface's motion along `n` in the current
+    /// step, N/m: the coupling `k`, or with the Hertz compliance in series
+    /// ([`ContactModel::PatchHertz`]) `k K' / (k + K')` with `K'` the Hertz spring's tangent.
+    coupling_k_n_per_m: f64,
     /// Sphere contact scratch: candidate triangles (capacity [`MAX_CONTACT_TRIANGLES`]), their
     /// visit stamps (one per surface triangle) and each node's slot in the patch (one per
     /// node, `u32::MAX` when not in it).
@@ -160,6 +177,7 @@ impl Probe {
             patch_nodes: Vec::with_capacity(MAX_PATCH_NODES),
             patch_weights: Vec::with_capacity(MAX_PATCH_NODES),
             phi0_n: 0.0,
+            coupling_k_n_per_m: params.coupling_stiffness_n_per_m,
             tris: Vec::with_capacity(MAX_CONTACT_TRIANGLES),
             tri_stamps: Vec::new(),
             device_m: DVec3::ZERO,
@@ -217,7 +235,7 @@ impl Probe {
         };
         match self.params.contact {
             ContactModel::Sphere => self.update_sphere(x, device_m, device_vel, sp),
-            ContactModel::Patch | ContactModel::Auto => {
+            ContactModel::Patch | ContactModel::PatchHertz | ContactModel::Auto => {
                 self.update_patch(x, device_m, device_vel, sp)
             }
         }
@@ -238,6 +256,10 @@ impl Probe {
             return self.disengage(device_m);
         }
         // Smoothed local surface: kernel-weighted plane through the patch around the device.
+        // (Also with the Hertz spring in series: a patch centred where the plain patch's probe
+        // would be, `delta` further out along the last normal, made backward Euler diverge
+        // under a ten-fold injected load, the patch then following the deformation a step
+        // late.)
         self.gather_patch(x, device_m, sp.triangle);
         if self.patch_nodes.is_empty() {
             return self.disengage(device_m);
@@ -438,6 +460,21 @@ impl Probe {
         sp: SurfacePoint,
     ) -> ContactState {
         let p = &self.params;
+        // With the Hertz compliance in series the proxy sinks `delta` into the patch's surface
+        // and the coupling stretches by the rest of the depth.
+        let (depth_m, k_series) = if p.contact == ContactModel::PatchHertz {
+            let delta = hertz_series_indentation(
+                depth_m,
+                p.coupling_stiffness_n_per_m,
+                hertz_stiffness(p.hertz_modulus_pa, p.radius_m),
+            );
+            let k = p.coupling_stiffness_n_per_m;
+            let k_hertz = 1.5 * hertz_stiffness(p.hertz_modulus_pa, p.radius_m) * delta.sqrt();
+            (depth_m - delta, k * k_hertz / (k + k_hertz))
+        } else {
+            (depth_m, p.coupling_stiffness_n_per_m)
+        };
+        self.coupling_k_n_per_m = k_series;
         // Explicit part of the normal coupling force (the surface-velocity term is implicit).
         let phi0 = p.coupling_stiffness_n_per_m * depth_m
             - p.coupling_damping_n_s_per_m * device_vel.dot(n);
@@ -501,8 +538,7 @@ impl Probe {
             return;
         }
         let n = self.state.normal;
-        let p = self.params;
-        let gamma = dt_s * (p.coupling_stiffness_n_per_m * dt_s + p.coupling_damping_n_s_per_m);
+        let gamma = self.coupling_gamma(dt_s);
         let (mut uty, mut utz) = (0.0, 0.0);
         for (&i, &w) in self.patch_nodes.iter().zip(&self.patch_weights) {
             uty += w * n.dot(v[i as usize]);
@@ -520,10 +556,11 @@ impl Probe {
     }
 
     /// `gamma = dt (k dt + b)` (kg): the weight of the coupling's implicit rank-one term
-    /// `gamma U U^T` over the patch (see [`Probe::finish_implicit`]).
+    /// `gamma U U^T` over the patch (see [`Probe::finish_implicit`]); `k` is the coupling's
+    /// stiffness against the surface's motion, in series with the Hertz spring under
+    /// [`ContactModel::PatchHertz`].
     pub fn coupling_gamma(&self, dt_s: f64) -> f64 {
-        let p = &self.params;
-        dt_s * (p.coupling_stiffness_n_per_m * dt_s + p.coupling_damping_n_s_per_m)
+        dt_s * (self.coupling_k_n_per_m * dt_s + self.params.coupling_damping_n_s_per_m)
     }
 
     /// The coupling's implicit term as a rank-one matrix for a global implicit solve
@@ -547,7 +584,7 @@ impl Probe {
     fn set_device_force(&mut self, dt_s: f64, utv: f64) {
         let (n, p) = (self.state.normal, self.params);
         let phi = (self.phi0_n
-            + (p.coupling_stiffness_n_per_m * dt_s + p.coupling_damping_n_s_per_m) * utv)
+            + (self.coupling_k_n_per_m * dt_s + p.coupling_damping_n_s_per_m) * utv)
             .clamp(0.0, p.max_force_n);
         self.state.force_on_device_n = n * phi + self.friction_n;
         self.stiffness.observe(
@@ -663,6 +700,42 @@ impl Probe {
         }
         out
     }
+}
+
+/// `K = 4/3 E* R^(1/2)` (N/m^(3/2)) of the Hertz contact of a sphere of radius `radius_m` on a
+/// half-space of effective modulus `modulus_pa`: `F = K delta^(3/2)` (Johnson, Contact
+/// Mechanics, 1985, eq. 4.23).
+pub fn hertz_stiffness(modulus_pa: f64, radius_m: f64) -> f64 {
+    4.0 / 3.0 * modulus_pa * radius_m.sqrt()
+}
+
+/// The Hertz indentation `delta` (m) of a spring `F = K delta^(3/2)` in series with a linear
+/// spring `k` (N/m) stretched together by `depth_m`: the root of `k (depth - delta) =
+/// K delta^(3/2)` in `[0, depth]`, by Newton on `s = delta^(1/2)` (`K s^3 + k s^2 - k depth`
+/// is convex and increasing for `s > 0`, so Newton from an upper bound decreases monotonically
+/// onto the root). `K <= 0` (an unknown modulus) gives `depth`: no force. Allocation-free.
+pub fn hertz_series_indentation(depth_m: f64, k_n_per_m: f64, hertz_k: f64) -> f64 {
+    if !(depth_m > 0.0) {
+        return 0.0;
+    }
+    if !(hertz_k > 0.0) {
+        return depth_m;
+    }
+    let target = k_n_per_m * depth_m;
+    let mut s = depth_m.sqrt().min((target / hertz_k).cbrt());
+    for _ in 0..60 {
+        let g = hertz_k * s * s * s + k_n_per_m * s * s - target;
+        let dg = 3.0 * hertz_k * s * s + 2.0 * k_n_per_m * s;
+        if !(dg > 0.0) {
+            break;
+        }
+        let step = g / dg;
+        s -= step;
+        if step.abs() <= 1e-14 * s.abs() {
+            break;
+        }
+    }
+    (s * s).clamp(0.0, depth_m)
 }
 
 /// Time over which [`Probe::contact_stiffness`] fits the force against the device's travel, s.

@@ -60,14 +60,20 @@ pub enum IntegratorKind {
 }
 
 /// The contact model a body advanced by `kind` uses for the scene's `requested` one:
-/// [`ContactModel::Auto`] becomes the sphere under the explicit and semi-implicit integrators
-/// and the patch under backward Euler (and the condensed model built on it), which refuses
-/// the sphere. With one 1 ms step per tick, backward Euler nearly reaches the quasi-static
-/// response to the sphere's load distribution, which is explicit in the step (it follows the
-/// gaps of the previous configuration), and the distribution then swings from tick to tick
-/// (measured on the default LV: smooth at 1.3 mm indentation, a period-2 oscillation of the
-/// contact normal past about 2.5 mm, the force swinging between 34 and 58 mN around 45 mN at
-/// 3.7 mm). The smaller response per step of the other integrators damps it.
+/// [`ContactModel::Auto`] becomes the kernel patch with the sphere's Hertz compliance in series
+/// ([`ContactModel::PatchHertz`]) under every integrator. On the real-time LV meshes it is the
+/// most accurate model against the converged sphere reference (three meshes refined under the
+/// probe, Richardson extrapolation; `docs/accuracy.md`, "Sub-grid Hertz contact"): the exact
+/// sphere reaches its mesh's own equilibrium but that mesh's facets, 2-4 mm, are coarser than the
+/// contact, and it reads 60-90 % high; the plain patch spreads the load over 4 mm and reads
+/// 35-40 % high. The exact sphere stays available under the explicit and semi-implicit
+/// integrators. Backward Euler refuses it: with one 1 ms step per tick it nearly reaches the
+/// quasi-static response to the sphere's load distribution, which is explicit in the step (it
+/// follows the gaps of the previous configuration), and the distribution then swings from tick
+/// to tick (measured on the default LV: smooth at 1.3 mm indentation, a period-2 oscillation of
+/// the contact normal past about 2.5 mm, the force swinging between 34 and 58 mN around 45 mN at
+/// 3.7 mm). The smaller response per step of the other integrators damps it; the patch's
+/// distribution depends on the device position only.
 ///
 /// # Errors
 /// [`ModelError::SceneField`] on `probe.contact` for the sphere under backward Euler.
@@ -77,11 +83,10 @@ pub fn resolve_contact_model(
 ) -> Result<ContactModel, ModelError> {
     let implicit = kind == IntegratorKind::BackwardEuler;
     match requested {
-        ContactModel::Auto if implicit => Ok(ContactModel::Patch),
-        ContactModel::Auto => Ok(ContactModel::Sphere),
+        ContactModel::Auto => Ok(ContactModel::PatchHertz),
         ContactModel::Sphere if implicit => Err(ModelError::field(
             "probe.contact",
-            "\"sphere\" needs integrator.kind = \"semi-implicit\" or \"symplectic-euler\": under backward Euler's 1 ms steps its load distribution oscillates past about 2.5 mm indentation; use \"patch\" or \"auto\"",
+            "\"sphere\" needs integrator.kind = \"semi-implicit\" or \"symplectic-euler\": under backward Euler's 1 ms steps its load distribution oscillates past about 2.5 mm indentation; use \"auto\" (\"patch-hertz\") or \"patch\"",
         )),
         other => Ok(other),
     }

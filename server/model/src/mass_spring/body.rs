@@ -49,7 +49,7 @@ use crate::body::{
     BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput, TickOutput,
 };
 use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
-use crate::contact::{Probe, ProbeParams};
+use crate::contact::{ContactModel, Probe, ProbeParams};
 use crate::integrate::{IntegratorKind, IntegratorParams, StepPlan, plan_steps};
 use crate::loads::{BodyLoads, SceneLoads};
 
@@ -172,6 +172,12 @@ impl MassSpringBody {
         scene_name: &str,
     ) -> Result<Self, ModelError> {
         params.validate()?;
+        if probe.contact == ContactModel::PatchHertz {
+            return Err(ModelError::field(
+                "probe.contact",
+                "\"patch-hertz\" takes the Hertz modulus of an FEM material; a mass-spring surface has none (use \"auto\" or \"patch\")",
+            ));
+        }
         if integrator.kind != IntegratorKind::SymplecticEuler {
             return Err(ModelError::field(
                 "integrator.kind",

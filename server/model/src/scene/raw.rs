@@ -1373,7 +1373,7 @@ fn build_probe(p: &RawProbe, integrator: IntegratorKind) -> Result<ProbeParams, 
             ModelError::field(
                 "probe.contact",
                 format!(
-                    "unknown contact model {:?}: expected \"auto\", \"sphere\" or \"patch\"",
+                    "unknown contact model {:?}: expected \"auto\", \"sphere\", \"patch\" or \"patch-hertz\"",
                     name.chars().take(40).collect::<String>()
                 ),
             )
@@ -1400,5 +1400,6 @@ fn build_probe(p: &RawProbe, integrator: IntegratorKind) -> Result<ProbeParams, 
             |mu| (0.0..=10.0).contains(&mu),
             "in [0, 10]",
         )?,
+        hertz_modulus_pa: d.hertz_modulus_pa,
     })
 }
