@@ -57,7 +57,13 @@ pub fn probe_static_at(
     let mut fem = FemModel::with_smoothing(&scene.mesh, scene.material, scene.strain_smoothing)
         .map_err(|e| e.to_string())?;
     fem.clamp_nodes(&scene.clamped_nodes);
-    let mut probe = Probe::new(scene.probe, scene.touchable.clone(), fem.rest());
+    // The patch model's equilibrium (the surface-displacement reference), whatever the scene
+    // says.
+    let params = haptic_model::contact::ProbeParams {
+        contact: ContactModel::Patch,
+        ..scene.probe
+    };
+    let mut probe = Probe::new(params, scene.touchable.clone(), fem.rest());
     let n = fem.node_count();
     let mut x = fem.rest().to_vec();
     let params = StaticParams {
@@ -331,14 +337,11 @@ pub fn richardson(h: [f64; 3], f: [f64; 3]) -> Extrapolated {
 /// second half of the hold. Returns the curve, the tick times and the sub-steps per tick, or
 /// the error that stopped it (refused plan or divergence).
 ///
-/// The probe uses the kernel patch whatever the scene says: the `lv-probe` reference
-/// ([`probe_static`]) is the patch model's static equilibrium, so the errors compare like with
-/// like. The servo's default sphere contact is checked against the exact static sphere solve
-/// instead (`tests/sim_lv.rs`, docs/accuracy.md "Sphere contact in the servo").
+/// The probe uses the scene's contact model (`auto`: the patch with the sphere's Hertz
+/// compliance); the forces are compared with the converged sphere reference
+/// (`lv_probe::sphere_reference`).
 pub fn probe_dynamic(scene: &Scene, quick: bool) -> Result<(ProbeCurve, TickTimes, u32), String> {
-    let mut scene = scene.clone();
-    scene.probe.contact = ContactModel::Patch;
-    let mut sim = Simulation::new(&scene).map_err(|e| e.to_string())?;
+    let mut sim = Simulation::new(scene).map_err(|e| e.to_string())?;
     let (ramp, hold) = if quick { (0.08, 0.08) } else { (0.1, 0.1) };
     let tick = sim.tick_s();
     let seg_ticks = ((ramp + hold) / tick).round() as usize;

@@ -12,9 +12,9 @@ use haptic_model::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN}
 use haptic_model::material::MaterialModel;
 use haptic_model::sim::Simulation;
 
-use crate::common::lv_press::{DEPTHS_MM, probe_dynamic};
+use crate::common::lv_press::probe_dynamic;
 use crate::common::{CONTACT_X_M, PROBE_Z_M, lv_h1_scene, lv_scene_on};
-use crate::lv_probe::{LV_REFERENCE, fill_lv_errors, lv_reference};
+use crate::lv_probe::fill_lv_force_errors;
 use crate::method::Method;
 use crate::report::{Row, Scenario};
 use crate::{Config, LvH1Rows};
@@ -41,12 +41,7 @@ pub fn run(cfg: &Config) -> Vec<Row> {
         return rows;
     };
     let model = MaterialModel::StVenantKirchhoff;
-    let reference = lv_reference(LV_REFERENCE, model, cfg);
-    let ref_text = format!(
-        "static with probe coupling on lv_shell ({} quadratic tets, stvk): F(3 mm) = {:.4} N",
-        reference.tets,
-        reference.curve.forces_n[DEPTHS_MM.len() - 1]
-    );
+    let ref_text = crate::lv_probe::sphere_reference_text(model);
     let base = lv_scene_on(h1.mesh);
     // Semi-implicit at 0.5: at 0.9 it diverges on this mesh with standard elements (StVK
     // stiffens under the probe; ARCHITECTURE.md, "Safety factor 0.5").
@@ -99,7 +94,7 @@ pub fn run(cfg: &Config) -> Vec<Row> {
                     sc.mesh.tets.len() - sizes.active_tets,
                 );
                 row.set_times(&ticks, sc.integrator.tick_s);
-                fill_lv_errors(&mut row, &reference, &sc.mesh, &c, DEPTHS_MM.len() - 1);
+                fill_lv_force_errors(&mut row, model, &c);
             }
             Err(e) => row.settings = format!("{method}: {e}"),
         }
@@ -134,7 +129,7 @@ pub fn run(cfg: &Config) -> Vec<Row> {
                         m.step_text(sub)
                     );
                     row.set_times(&ticks, sc.integrator.tick_s);
-                    fill_lv_errors(&mut row, &reference, &sc.mesh, &c, DEPTHS_MM.len() - 1);
+                    fill_lv_force_errors(&mut row, model, &c);
                 }
                 Err(e) => row.settings = format!("{}: {e}", row.method),
             }

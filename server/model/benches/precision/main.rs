@@ -9,7 +9,8 @@
 //! factors on the critical step; backward Euler with CG capped at 5, 10 and 20 iterations; all
 //! on St. Venant-Kirchhoff, and the corotational and stable Neo-Hookean materials with the
 //! static solve, semi-implicit at 0.5 and backward Euler with 20 CG iterations (Lamé and
-//! cantilever; `lv-probe` is St. Venant-Kirchhoff only, see [`lv_probe::LV_MATERIALS`]).
+//! cantilever; `lv-probe` runs the materials with a converged sphere reference, see
+//! [`lv_probe::LV_MATERIALS`]).
 //!
 //! Results and plots go to `target/bench/` (or `--out DIR`); `--publish` writes them over the
 //! committed ones (`docs/bench/` and `docs/`). `--replot` redraws the plots from results
@@ -49,9 +50,6 @@ struct Args {
     /// materials, shorter runs.
     #[arg(long)]
     quick: bool,
-    /// Recompute the cached LV reference (target/bench/lv_probe_reference_*.json).
-    #[arg(long)]
-    fresh_reference: bool,
     /// lv-h1: which rows to run (all, or the condensed ones only).
     #[arg(long, value_enum, default_value_t = LvH1Rows::All)]
     lv_h1_rows: LvH1Rows,
@@ -59,12 +57,9 @@ struct Args {
     /// reference is cached; not with --publish, whose results must be the full run).
     #[arg(long, value_enum, default_value_t = LvProbeRows::All, conflicts_with = "publish")]
     lv_probe_rows: LvProbeRows,
-    /// Print the force of every patch iteration of the static probe solves.
-    #[arg(long)]
-    debug: bool,
     /// Redraw the plots from results already written and run no scenario: precision.<ext> and
     /// precision-lv-h1.<ext> of --from.
-    #[arg(long, conflicts_with_all = ["scenario", "quick", "fresh_reference"])]
+    #[arg(long, conflicts_with_all = ["scenario", "quick"])]
     replot: bool,
     /// --replot: the folder of the results to read [default: docs/bench, the committed ones].
     #[arg(long, requires = "replot")]
@@ -125,16 +120,10 @@ enum Format {
 pub struct Config {
     /// `--quick`: the subset.
     pub quick: bool,
-    /// `--fresh-reference`: recompute the cached LV references.
-    pub fresh_reference: bool,
-    /// `--debug`: print the patch iterations of the static probe solves.
-    pub debug: bool,
     /// `--lv-h1-rows`.
     pub lv_h1_rows: LvH1Rows,
     /// `--lv-probe-rows`.
     pub lv_probe_rows: LvProbeRows,
-    /// Where the LV references are cached (`target/bench/`, whatever `--out` says).
-    pub cache_dir: PathBuf,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -153,11 +142,8 @@ fn main() -> anyhow::Result<()> {
     }
     let cfg = Config {
         quick: args.quick,
-        fresh_reference: args.fresh_reference,
-        debug: args.debug,
         lv_h1_rows: args.lv_h1_rows,
         lv_probe_rows: args.lv_probe_rows,
-        cache_dir: common::default_out_dir(),
     };
     let commit = common::git_commit();
     let wall = Instant::now();
@@ -184,7 +170,24 @@ fn main() -> anyhow::Result<()> {
     } else {
         "precision"
     };
-    let (csv, json) = report::write(&rows, &commit, &data_dir, stem)?;
+    // Publishing one scenario of the main file replaces that scenario's rows and keeps the
+    // others' (with the commits they were measured at); the plots are drawn from all of them.
+    let mut rows = rows;
+    if args.publish && !h1_only && args.scenario.is_some() {
+        let path = data_dir.join("precision.json");
+        let kept: Vec<report::Row> = report::read(&path)
+            .with_context(|| format!("keeping the other scenarios' rows of {}", path.display()))?
+            .into_iter()
+            .filter(|old| rows.iter().all(|r| r.scenario != old.scenario))
+            .collect();
+        println!(
+            "publishing: {} rows of the other scenarios kept from {}",
+            kept.len(),
+            path.display()
+        );
+        rows.splice(0..0, kept);
+    }
+    let (csv, json) = report::write_rows(&rows, &commit, &data_dir, stem)?;
     println!(
         "wrote {} rows to {} and {} ({:.1} s)",
         rows.len(),

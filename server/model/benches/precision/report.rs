@@ -83,13 +83,26 @@ pub struct Row {
     pub max_nodal_error_m: f64,
     #[serde(with = "missing")]
     pub probe_force_error: f64,
+    /// `lv-probe`: the force reference's relative uncertainty (largest over its depths); missing
+    /// in older files.
+    #[serde(with = "missing", default = "not_measured")]
+    pub force_reference_uncertainty: f64,
+    /// `lv-probe`: the force is within the reference's uncertainty at every depth, so the error
+    /// is shown as "below uncertainty" (and plotted at the uncertainty), not as a number.
+    #[serde(default)]
+    pub force_below_uncertainty: bool,
     #[serde(with = "missing")]
     pub observable_error: f64,
     pub observable: String,
     pub reference: String,
     pub stable: bool,
-    /// Commit of the run; set by [`write`].
+    /// Commit of the run; set by [`write_rows`] unless kept from an earlier file.
     pub commit: String,
+}
+
+/// The value of a column that older files lack: not measured.
+fn not_measured() -> f64 {
+    f64::NAN
 }
 
 /// NaN (not measured) as `None`: an empty CSV field, a JSON `null`; and back.
@@ -144,6 +157,8 @@ impl Row {
             rel_l2_error: f64::NAN,
             max_nodal_error_m: f64::NAN,
             probe_force_error: f64::NAN,
+            force_reference_uncertainty: f64::NAN,
+            force_below_uncertainty: false,
             observable_error: f64::NAN,
             observable: String::new(),
             reference: String::new(),
@@ -182,19 +197,38 @@ impl Row {
         (self.step_p50_us, self.step_p99_us, self.step_max_us) = (us, us, us);
     }
 
-    /// The error the scenario's plot shows.
+    /// The error the scenario's plot shows; an `lv-probe` force below the reference's
+    /// uncertainty at every depth is drawn at the uncertainty.
     pub fn plot_error(&self) -> f64 {
         match self.scenario {
             Scenario::Lame => self.rel_l2_error,
             Scenario::Cantilever => self.observable_error,
+            Scenario::LvProbe if self.force_below_uncertainty => self.force_reference_uncertainty,
             Scenario::LvProbe => self.probe_force_error,
+        }
+    }
+
+    /// The probe-force error as text: `"below uncertainty (+-U %)"` or `"E % (+-U %)"`, or the
+    /// plain percentage where the reference has no uncertainty.
+    pub fn force_error_text(&self) -> String {
+        let u = self.force_reference_uncertainty;
+        if self.force_below_uncertainty {
+            format!("below uncertainty (+-{:.1} %)", 100.0 * u)
+        } else if u.is_finite() {
+            format!(
+                "{:.1} % (+-{:.1} %)",
+                100.0 * self.probe_force_error,
+                100.0 * u
+            )
+        } else {
+            format!("{:.1} %", 100.0 * self.probe_force_error)
         }
     }
 
     /// One line of the console table.
     pub fn print(&self) {
         println!(
-            "{:<10} {:<40} {:>6} {:>6} {:<30} p50 {:>9.1} us p99 {:>9.1} us RTx {:>7.2} L2 {:>9.3e} max {:>9.3e} m force {:>9.3e} obs {:>9.3e} {} | {} {}",
+            "{:<10} {:<40} {:>6} {:>6} {:<30} p50 {:>9.1} us p99 {:>9.1} us RTx {:>7.2} L2 {:>9.3e} max {:>9.3e} m force {} obs {:>9.3e} {} | {} {}",
             self.scenario.name(),
             self.method,
             self.nodes,
@@ -205,7 +239,7 @@ impl Row {
             self.realtime_factor,
             self.rel_l2_error,
             self.max_nodal_error_m,
-            self.probe_force_error,
+            self.force_error_text(),
             self.observable_error,
             self.observable,
             self.reference,
@@ -214,12 +248,12 @@ impl Row {
     }
 }
 
-/// Writes `rows`, each with `commit`, to `dir/<stem>.csv` and `dir/<stem>.json`; returns the
-/// two paths.
+/// Writes `rows` to `dir/<stem>.csv` and `dir/<stem>.json`, each row without a commit marked
+/// with `commit` (rows kept from an earlier file keep theirs); returns the two paths.
 ///
 /// # Errors
 /// Creating the folder or writing either file.
-pub fn write(
+pub fn write_rows(
     rows: &[Row],
     commit: &str,
     dir: &Path,
@@ -229,7 +263,11 @@ pub fn write(
     let rows: Vec<Row> = rows
         .iter()
         .map(|r| Row {
-            commit: commit.into(),
+            commit: if r.commit.is_empty() {
+                commit.into()
+            } else {
+                r.commit.clone()
+            },
             ..r.clone()
         })
         .collect();
@@ -250,7 +288,7 @@ pub fn write(
     Ok((csv_path, json_path))
 }
 
-/// Reads the rows of a results file written by [`write`] (or committed in `docs/bench/`): JSON
+/// Reads the rows of a results file written by [`write_rows`] (or committed in `docs/bench/`): JSON
 /// or CSV by the file's extension.
 ///
 /// # Errors
