@@ -45,7 +45,10 @@ const PLOTS: [(Scenario, &str); 3] = [
         Scenario::Cantilever,
         "tip deflection error vs Bisshopp-Drucker",
     ),
-    (Scenario::LvProbe, "probe force error (max over 0.5..3 mm)"),
+    (
+        Scenario::LvProbe,
+        "probe force error vs converged sphere reference (at its uncertainty when below it)",
+    ),
 ];
 
 /// The work-precision plot of every scenario with rows to draw, `dir/precision-<scenario>.png`
@@ -80,7 +83,7 @@ pub fn lv_h1(rows: &[Row], dir: &Path) -> anyhow::Result<Option<PathBuf>> {
     let drawn = plot_scenario(
         rows,
         Scenario::LvProbe,
-        "probe force error on lv_h1.msh (max over 0.5..3 mm)",
+        "probe force error on lv_h1.msh vs converged sphere reference (at its uncertainty when below it)",
         &base,
     )
     .map_err(|e| anyhow!("plot {}: {e}", base.display()))?;
