@@ -3,7 +3,8 @@
 //! `../shared/data/lv/` and the built-in `lv`, with the three integrators (backward Euler also
 //! reports its mean CG iterations per tick), while the probe presses the epicardium (the haptic
 //! case: contact and implicit coupling active), with each contact model the integrator carries
-//! (sphere and patch under the explicit and semi-implicit ones, the patch under backward Euler).
+//! (the Hertz patch, the sphere and the patch under the explicit and semi-implicit ones, the
+//! Hertz patch and the patch under backward Euler).
 //!
 //! Run: `cargo bench -p haptic-model --bench step` (add `-- --quick` for fewer ticks).
 //! Writes `target/bench/step.csv` (or `--out DIR`) and prints a table. Medians and ratios
@@ -100,7 +101,11 @@ fn main() -> anyhow::Result<()> {
             IntegratorKind::SymplecticEuler,
             IntegratorKind::BackwardEuler,
         ] {
-            for contact in [ContactModel::Sphere, ContactModel::Patch] {
+            for contact in [
+                ContactModel::PatchHertz,
+                ContactModel::Sphere,
+                ContactModel::Patch,
+            ] {
                 if integrate::resolve_contact_model(kind, contact).is_err() {
                     continue;
                 }
