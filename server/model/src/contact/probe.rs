@@ -463,13 +463,13 @@ impl Probe {
         // With the Hertz compliance in series the proxy sinks `delta` into the patch's surface
         // and the coupling stretches by the rest of the depth.
         let (depth_m, k_series) = if p.contact == ContactModel::PatchHertz {
-            let delta = hertz_series_indentation(
-                depth_m,
+            let (k, hertz_k) = (
                 p.coupling_stiffness_n_per_m,
                 hertz_stiffness(p.hertz_modulus_pa, p.radius_m),
             );
-            let k = p.coupling_stiffness_n_per_m;
-            let k_hertz = 1.5 * hertz_stiffness(p.hertz_modulus_pa, p.radius_m) * delta.sqrt();
+            let delta = hertz_series_indentation(depth_m, k, hertz_k);
+            // The Hertz spring's tangent dF/d(delta) in series with the coupling.
+            let k_hertz = 1.5 * hertz_k * delta.sqrt();
             (depth_m - delta, k * k_hertz / (k + k_hertz))
         } else {
             (depth_m, p.coupling_stiffness_n_per_m)

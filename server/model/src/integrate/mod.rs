@@ -64,9 +64,9 @@ pub enum IntegratorKind {
 /// ([`ContactModel::PatchHertz`]) under every integrator. On the real-time LV meshes it is the
 /// most accurate model against the converged sphere reference (three meshes refined under the
 /// probe, Richardson extrapolation; `docs/accuracy.md`, "Sub-grid Hertz contact"): the exact
-/// sphere reaches its mesh's own equilibrium but that mesh's facets, 2-4 mm, are coarser than the
-/// contact, and it reads 60-90 % high; the plain patch spreads the load over 4 mm and reads
-/// 35-40 % high. The exact sphere stays available under the explicit and semi-implicit
+/// sphere reaches its mesh's own equilibrium, but the default mesh's facets, 2-4 mm, are coarser
+/// than the contact, and it reads 60-90 % high there; the plain patch spreads the load over
+/// 4 mm and reads 75-90 % high. The exact sphere stays available under the explicit and semi-implicit
 /// integrators. Backward Euler refuses it: with one 1 ms step per tick it nearly reaches the
 /// quasi-static response to the sphere's load distribution, which is explicit in the step (it
 /// follows the gaps of the previous configuration), and the distribution then swings from tick
