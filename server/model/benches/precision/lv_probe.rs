@@ -8,7 +8,8 @@
 //!
 //! Reference: the converged sphere reference ([`sphere_reference`]: the exact 2 mm sphere on
 //! three Gmsh meshes refined under the probe, Richardson extrapolation, with its uncertainty),
-//! at the depths it has (St. Venant-Kirchhoff 0.5 and 1 mm, stable neo-Hookean 0.5 to 3 mm).
+//! at the depths it has (St. Venant-Kirchhoff 0.5 and 1 mm, corotational and stable
+//! neo-Hookean 0.5 to 3 mm).
 //! Probe-force error = the largest relative error over those depths, or "below uncertainty"
 //! when every depth is within the reference's uncertainty. (The surface-displacement error
 //! against the kernel patch's static equilibrium is gone with that reference: the patch is no
@@ -50,8 +51,8 @@ const fn point(depth_mm: f64, force_mn: f64, uncertainty_mn: f64) -> SpherePoint
     }
 }
 
-/// The converged sphere reference of the `lv-probe` press for `model` (`None`: not computed,
-/// the corotational material). From `server/model/examples/lv_sphere_reference.sh`
+/// The converged sphere reference of the `lv-probe` press for `model` (`None`: not computed).
+/// From `server/model/examples/lv_sphere_reference.sh`
 /// (`haptic-solve --indent` with the exact 2 mm sphere on three Gmsh meshes refined under the
 /// probe, `hmin` 0.6 / 0.42 / 0.3 mm, quadratic elements; `lv_study reference`: device depths
 /// through the 300 N/m coupling, Richardson extrapolation, Roache's grid convergence index as
@@ -69,9 +70,18 @@ pub fn sphere_reference(model: MaterialModel) -> Option<&'static [SpherePoint]> 
         point(2.5, 24.2440, 3.7145),
         point(3.0, 32.4002, 1.1746),
     ];
+    const COROTATIONAL: [SpherePoint; 6] = [
+        point(0.5, 4.5224, 0.1346),
+        point(1.0, 9.6137, 0.4167),
+        point(1.5, 15.5060, 0.4369),
+        point(2.0, 18.7675, 2.8059),
+        point(2.5, 24.1831, 2.6765),
+        point(3.0, 31.4036, 1.0755),
+    ];
     match model {
         MaterialModel::StVenantKirchhoff => Some(&STVK),
         MaterialModel::StableNeoHookean => Some(&SNH),
+        MaterialModel::Corotational => Some(&COROTATIONAL),
         _ => None,
     }
 }
@@ -295,10 +305,10 @@ fn run_fem(cfg: &Config, rows: &mut Vec<Row>) {
 }
 
 /// Materials of the full `lv-probe` run: those with a converged sphere reference
-/// ([`sphere_reference`]). The corotational material has none (its static solves were too slow
-/// for the reference study); it is compared on the Lamé and cantilever scenarios only.
+/// ([`sphere_reference`]), all three.
 pub const LV_MATERIALS: &[MaterialModel] = &[
     MaterialModel::StVenantKirchhoff,
+    MaterialModel::Corotational,
     MaterialModel::StableNeoHookean,
 ];
 
