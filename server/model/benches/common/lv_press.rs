@@ -1,7 +1,7 @@
 //! The LV probe press, shared by the `precision` benchmark (`lv-probe`, `lv-h1`) and the
 //! `lv_study` example: the probe centre moves along -x at z = -5 mm into the epicardium of an
 //! LV scene ([`super::lv_scene_on`]) to the depths of [`DEPTHS_MM`], statically
-//! ([`probe_static`]: equilibrium with the probe coupling per depth) or dynamically
+//! ([`probe_static_at`]: equilibrium with the probe coupling per depth) or dynamically
 //! ([`probe_dynamic`]: `Simulation::tick` through a staircase of ramps and holds).
 
 use std::time::Instant;
@@ -29,14 +29,14 @@ pub struct ProbeCurve {
     pub x_last: Vec<DVec3>,
 }
 
-/// Largest number of patch passes of [`probe_static`] per depth; more is an error.
+/// Largest number of patch passes of [`probe_static_at`] per depth; more is an error.
 const MAX_PATCH_ITERATIONS: usize = 30;
 
-/// Relative force change between patch passes at which [`probe_static`] has converged.
+/// Relative force change between patch passes at which [`probe_static_at`] has converged.
 const PATCH_ITERATION_TOLERANCE: f64 = 3e-4;
 
-/// Static equilibrium with the probe coupling at each depth of [`DEPTHS_MM`]: for a trial
-/// coupling force `F`, the patch load `-F w_i n` (patch, weights, normal of the probe at the
+/// Static equilibrium with the kernel patch's probe coupling at each depth of `depths_mm`
+/// (mm, increasing; `lv_study static`): for a trial coupling force `F`, the patch load `-F w_i n` (patch, weights, normal of the probe at the
 /// current positions) is applied and the body solved statically; the probe then reports the
 /// coupling force `k (r - s)` at the new positions. A bracketed regula falsi (Illinois) on `F`
 /// makes the two agree; the patch is then refreshed until the force changes by less than
@@ -44,11 +44,6 @@ const PATCH_ITERATION_TOLERANCE: f64 = 3e-4;
 /// Returns `Err` if the bracket or the patch iteration fails (at most
 /// [`MAX_PATCH_ITERATIONS`] passes: no silent cap). A trial force under which Newton finds no
 /// equilibrium counts as too large (a dead load past the wall's limit point).
-pub fn probe_static(scene: &Scene, debug: bool) -> Result<ProbeCurve, String> {
-    probe_static_at(scene, &DEPTHS_MM, debug)
-}
-
-/// [`probe_static`] at the given depths, mm (increasing).
 pub fn probe_static_at(
     scene: &Scene,
     depths_mm: &[f64],
