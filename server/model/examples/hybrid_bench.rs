@@ -29,6 +29,14 @@ struct Args {
     /// Ticks timed per count.
     #[arg(long, default_value_t = 400)]
     ticks: usize,
+    /// Sub-steps per tick override (a study of the explicit step: the critical step bound is
+    /// ignored; the run stops with an error if it diverges).
+    #[arg(long)]
+    substeps: Option<u32>,
+    /// Also estimate the true critical step of each active system (power iteration on
+    /// `M^-1 K`, `HybridBody::max_eigenvalue_estimate`) and print it beside the bound.
+    #[arg(long)]
+    estimate_critical_step: bool,
     /// Lattice spacing override, m (half the default spacing: about eight times the particles).
     #[arg(long)]
     spacing_m: Option<f64>,
@@ -43,6 +51,26 @@ fn rss_kib() -> u64 {
                 .and_then(|l| l.split_whitespace().nth(1)?.parse().ok())
         })
         .unwrap_or(0)
+}
+
+/// Prints the power-iteration estimate of the critical step of `body`'s current active system
+/// beside the bound the body steps with (`state`: "at rest" or "pressed").
+fn print_estimate(body: &mut HybridBody, state: &str) -> anyhow::Result<()> {
+    let active = body.active_particles().len();
+    let e = body.max_eigenvalue_estimate(5000, 1e-5)?;
+    // The probe penalty adds at most k / m per particle in contact.
+    let k_over_m = body.model().params.contact_stiffness_n_per_m / body.particle_mass_kg();
+    let with_probe = 2.0 / (e.lambda_per_s2 + k_over_m).sqrt();
+    eprintln!(
+        "  {active} active, {state}: critical step bound {:.3e} s; power-iteration estimate {:.3e} s ({} iterations, change {:.1e}), {:.3e} s with the probe penalty: {:.2} times the bound",
+        body.critical_step_bound_s(),
+        e.critical_step_s,
+        e.iterations,
+        e.relative_change,
+        with_probe,
+        with_probe / body.critical_step_bound_s()
+    );
+    Ok(())
 }
 
 fn main() -> anyhow::Result<()> {
@@ -116,6 +144,12 @@ fn main() -> anyhow::Result<()> {
             r += 0.1e-3;
         }
         let active = body.active_particles().len();
+        if args.estimate_critical_step {
+            print_estimate(&mut body, "at rest")?;
+        }
+        if let Some(n) = args.substeps {
+            body.override_substeps(n)?;
+        }
         let device = surf + normal * (radius - 1e-3);
         let input = TickInput {
             device_position_m: Some(device),
@@ -123,6 +157,9 @@ fn main() -> anyhow::Result<()> {
         };
         for _ in 0..50 {
             body.tick(&input)?;
+        }
+        if args.estimate_critical_step {
+            print_estimate(&mut body, "pressed 1 mm")?;
         }
         let mut times = Vec::with_capacity(args.ticks);
         for _ in 0..args.ticks {

@@ -36,7 +36,7 @@ fn cube(n: usize, variant: MeshfreeVariant, model: MaterialModel) -> (ParticleCl
     (cloud, block)
 }
 
-fn forces(cloud: &ParticleCloud, block: &TermBlock, x: &[DVec3]) -> Vec<DVec3> {
+fn forces(cloud: &ParticleCloud, block: &mut TermBlock, x: &[DVec3]) -> Vec<DVec3> {
     let mut f = vec![DVec3::ZERO; cloud.len()];
     block.add_forces(cloud, x, &mut f);
     f
@@ -47,7 +47,7 @@ fn max_norm(f: &[DVec3]) -> f64 {
 }
 
 /// A typical force: the largest nodal force under a 1 % uniaxial stretch.
-fn typical_force(cloud: &ParticleCloud, block: &TermBlock) -> f64 {
+fn typical_force(cloud: &ParticleCloud, block: &mut TermBlock) -> f64 {
     let x: Vec<DVec3> = cloud
         .rest_m()
         .iter()
@@ -58,7 +58,7 @@ fn typical_force(cloud: &ParticleCloud, block: &TermBlock) -> f64 {
 
 #[test]
 fn corrected_variant_reproduces_affine_fields() {
-    let (cloud, block) = cube(
+    let (cloud, mut block) = cube(
         6,
         MeshfreeVariant::Corrected,
         MaterialModel::StVenantKirchhoff,
@@ -85,8 +85,8 @@ fn corrected_variant_reproduces_affine_fields() {
     let e = block.energy(&cloud, &x);
     assert!((e - expect).abs() < 1e-10 * expect, "{e} vs {expect}");
     // Interior particles (full stencils on all sides) feel no force under constant stress.
-    let f = forces(&cloud, &block, &x);
-    let scale = typical_force(&cloud, &block);
+    let f = forces(&cloud, &mut block, &x);
+    let scale = typical_force(&cloud, &mut block);
     for (p, r) in cloud.rest_m().iter().enumerate() {
         let inner = r.min_element() > 1.5e-3 && r.max_element() < 3.5e-3;
         if inner {
@@ -116,15 +116,15 @@ fn rigid_motion_gives_zero_elastic_force() {
             if variant == MeshfreeVariant::Seed && model != MaterialModel::StVenantKirchhoff {
                 continue;
             }
-            let (cloud, block) = cube(5, variant, model);
-            let scale = typical_force(&cloud, &block);
+            let (cloud, mut block) = cube(5, variant, model);
+            let scale = typical_force(&cloud, &mut block);
             let r = DQuat::from_axis_angle(DVec3::new(1.0, 2.0, -0.5).normalize(), 0.9);
             let x: Vec<DVec3> = cloud
                 .rest_m()
                 .iter()
                 .map(|&p| r * p + DVec3::new(0.01, -0.02, 0.005))
                 .collect();
-            let f = forces(&cloud, &block, &x);
+            let f = forces(&cloud, &mut block, &x);
             let worst = max_norm(&f);
             assert!(
                 worst < 1e-10 * scale,
@@ -142,14 +142,14 @@ fn force_is_minus_energy_gradient() {
         (MeshfreeVariant::Corrected, MaterialModel::StVenantKirchhoff),
         (MeshfreeVariant::Corrected, MaterialModel::StableNeoHookean),
     ] {
-        let (cloud, block) = cube(4, variant, model);
+        let (cloud, mut block) = cube(4, variant, model);
         let mut rng = Rng(7);
         let x: Vec<DVec3> = cloud
             .rest_m()
             .iter()
             .map(|&p| p + rng.vec() * 0.1 * SPACING_M)
             .collect();
-        let f = forces(&cloud, &block, &x);
+        let f = forces(&cloud, &mut block, &x);
         let total: DVec3 = f.iter().sum();
         let scale = max_norm(&f);
         assert!(
@@ -198,7 +198,7 @@ fn checkerboard(cloud: &ParticleCloud, n: usize) -> Vec<f64> {
 fn hourglass_mode_does_not_grow_over_100_periods() {
     let n = 8;
     for variant in [MeshfreeVariant::Corrected, MeshfreeVariant::Seed] {
-        let (cloud, block) = cube(n, variant, MaterialModel::StVenantKirchhoff);
+        let (cloud, mut block) = cube(n, variant, MaterialModel::StVenantKirchhoff);
         let dt_crit = critical_time_step(&cloud).expect("dt");
         let dt = 0.9 * dt_crit;
         let pattern = checkerboard(&cloud, n);
@@ -222,7 +222,7 @@ fn hourglass_mode_does_not_grow_over_100_periods() {
         };
         // Period of the mode from its Rayleigh quotient (the corrected variant's; the seed's
         // mode has (nearly) zero energy, so its period is taken from a dilatational wave).
-        let f0 = forces(&cloud, &block, &x);
+        let f0 = forces(&cloud, &mut block, &x);
         let mut num = 0.0;
         let mut den = 0.0;
         for (p, c) in pattern.iter().enumerate() {
@@ -268,9 +268,9 @@ fn critical_time_step_is_conservative() {
     // variants; at 3 times the bound the corrected variant diverges, so the bound is within
     // a small factor of the true limit.
     for variant in [MeshfreeVariant::Corrected, MeshfreeVariant::Seed] {
-        let (cloud, block) = cube(6, variant, MaterialModel::StVenantKirchhoff);
+        let (cloud, mut block) = cube(6, variant, MaterialModel::StVenantKirchhoff);
         let dt_crit = critical_time_step(&cloud).expect("dt");
-        let run = |dt: f64| -> f64 {
+        let mut run = |dt: f64| -> f64 {
             let mut rng = Rng(3);
             let mut x: Vec<DVec3> = cloud
                 .rest_m()

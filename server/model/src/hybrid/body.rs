@@ -196,6 +196,30 @@ impl HybridBody {
         (self.substeps, self.dt_s, self.core_substeps)
     }
 
+    /// Sets the particle sub-steps per tick, overriding the count derived from the critical
+    /// step bound (for studies of the explicit step, with
+    /// [`Self::max_eigenvalue_estimate`]; stability is then the caller's responsibility).
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] when `substeps` is zero or above `hybrid.max_substeps`.
+    pub fn override_substeps(&mut self, substeps: u32) -> Result<(), ModelError> {
+        if substeps == 0 || substeps > self.model.params.max_substeps {
+            return Err(ModelError::InvalidInput(format!(
+                "{substeps} sub-steps per tick: must be 1 to {}",
+                self.model.params.max_substeps
+            )));
+        }
+        self.substeps = substeps;
+        self.dt_s = self.tick_s / substeps as f64;
+        Ok(())
+    }
+
+    /// The critical step the sub-steps come from, s: the smaller of the particles' (Gershgorin
+    /// bound, mass-scaled, with the probe penalty) and the core's.
+    pub fn critical_step_bound_s(&self) -> f64 {
+        self.critical_dt_s
+    }
+
     /// Keeps every active region active (no release) while `hold` is true: for tests and
     /// studies of a fixed active set.
     pub fn hold_regions(&mut self, hold: bool) {
@@ -418,8 +442,7 @@ impl HybridBody {
         for &q in &self.tied_list {
             self.xp[q as usize] = interpolate(&m.particle_tie[q as usize], tets, &self.xc);
         }
-        self.block.zero_forces(&mut self.fp);
-        self.block.add_forces(&m.cloud, &self.xp, &mut self.fp);
+        self.block.write_forces(&m.cloud, &self.xp, &mut self.fp);
         let mut device = DVec3::ZERO;
         let mut stiffness = [0.0; 9];
         if let Some(c) = probe_m {
@@ -693,5 +716,138 @@ impl SoftBody for HybridBody {
             critical_dt_s: self.critical_dt_s,
             probe_radius_m: self.probe.radius_m,
         }
+    }
+}
+
+/// Result of [`HybridBody::max_eigenvalue_estimate`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EigenEstimate {
+    /// Rayleigh quotient of the last iterate, 1/s^2 (a lower bound of `lambda_max`).
+    pub lambda_per_s2: f64,
+    /// Relative change of the quotient over the last ten iterations.
+    pub relative_change: f64,
+    /// Iterations run.
+    pub iterations: usize,
+    /// The critical step `2 / sqrt(lambda)`, s, of the central-difference scheme.
+    pub critical_step_s: f64,
+}
+
+impl HybridBody {
+    /// Estimates the largest eigenvalue of `M^-1 K` of the current simulated system (free core
+    /// nodes and active particles, tied particles following the core; `K` linearised at the
+    /// current positions by forward differences of the forces, velocities held at zero, no
+    /// probe) by power iteration on `M^-1/2 K M^-1/2`, stopping when the Rayleigh quotient
+    /// changes by less than `tolerance` (relative) over ten iterations or after
+    /// `max_iterations`. A diagnostic for studies of the explicit step (the body's own
+    /// sub-steps use the Gershgorin bound of [`crate::meshfree::critical_time_step`]); the
+    /// state is restored afterwards. Allocates.
+    ///
+    /// # Errors
+    /// [`ModelError::NoConvergence`] when the quotient has not settled to `tolerance` after
+    /// `max_iterations` (the message gives the last change).
+    pub fn max_eigenvalue_estimate(
+        &mut self,
+        max_iterations: usize,
+        tolerance: f64,
+    ) -> Result<EigenEstimate, ModelError> {
+        let x0c = self.xc.clone();
+        let x0p = self.xp.clone();
+        let v0c = std::mem::replace(&mut self.vc, vec![DVec3::ZERO; x0c.len()]);
+        let free: Vec<bool> = self.fem.constraints().iter().map(|c| *c == 0).collect();
+        let inv_sqrt_mc: Vec<f64> = self
+            .fem
+            .lumped_mass_kg()
+            .iter()
+            .map(|m| 1.0 / m.sqrt())
+            .collect();
+        let inv_sqrt_mp = 1.0 / self.particle_mass_kg.sqrt();
+        let active = self.active_list.clone();
+        self.particle_forces(None);
+        self.core_forces();
+        let (f0c, f0p) = (self.fc.clone(), self.fp.clone());
+        // Step length: 1e-7 of the particle spacing for a unit mass-weighted vector.
+        let eps = 1e-7 * self.model.params.meshfree.spacing_m / inv_sqrt_mp;
+        // A deterministic start with every component present.
+        let start = |i: usize| {
+            let h = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+            DVec3::new(
+                (h >> 40) as f64 / (1u64 << 24) as f64 - 0.5,
+                ((h >> 20) & 0xF_FFFF) as f64 / (1u64 << 20) as f64 - 0.5,
+                (h & 0xF_FFFF) as f64 / (1u64 << 20) as f64 - 0.5,
+            )
+        };
+        let mut uc: Vec<DVec3> = (0..x0c.len())
+            .map(|i| if free[i] { start(i) } else { DVec3::ZERO })
+            .collect();
+        let mut up = vec![DVec3::ZERO; x0p.len()];
+        for &p in &active {
+            up[p as usize] = start(x0c.len() + p as usize);
+        }
+        let mut history = Vec::with_capacity(max_iterations);
+        let mut result = None;
+        for it in 0..max_iterations {
+            let norm = (uc.iter().map(|u| u.length_squared()).sum::<f64>()
+                + active
+                    .iter()
+                    .map(|&p| up[p as usize].length_squared())
+                    .sum::<f64>())
+            .sqrt();
+            for (i, u) in uc.iter_mut().enumerate() {
+                *u /= norm;
+                self.xc[i] = x0c[i] + *u * (eps * inv_sqrt_mc[i]);
+            }
+            for &p in &active {
+                let p = p as usize;
+                up[p] /= norm;
+                self.xp[p] = x0p[p] + up[p] * (eps * inv_sqrt_mp);
+            }
+            self.particle_forces(None);
+            self.core_forces();
+            // w = M^-1/2 K M^-1/2 u, with K u ~ -(f(x0 + eps M^-1/2 u) - f(x0)) / eps.
+            let mut rayleigh = 0.0;
+            for (i, u) in uc.iter_mut().enumerate() {
+                let w = if free[i] {
+                    -(self.fc[i] - f0c[i]) * (inv_sqrt_mc[i] / eps)
+                } else {
+                    DVec3::ZERO
+                };
+                rayleigh += w.dot(*u);
+                *u = w;
+            }
+            for &p in &active {
+                let p = p as usize;
+                let w = -(self.fp[p] - f0p[p]) * (inv_sqrt_mp / eps);
+                rayleigh += w.dot(up[p]);
+                up[p] = w;
+            }
+            history.push(rayleigh);
+            if it >= 10 {
+                let change = (rayleigh - history[it - 10]).abs() / rayleigh.abs();
+                if change < tolerance {
+                    result = Some(EigenEstimate {
+                        lambda_per_s2: rayleigh,
+                        relative_change: change,
+                        iterations: it + 1,
+                        critical_step_s: 2.0 / rayleigh.sqrt(),
+                    });
+                    break;
+                }
+            }
+        }
+        self.xc.copy_from_slice(&x0c);
+        self.xp.copy_from_slice(&x0p);
+        self.vc = v0c;
+        self.particle_forces(None);
+        result.ok_or_else(|| {
+            let n = history.len();
+            let change = if n > 10 {
+                (history[n - 1] - history[n - 11]).abs() / history[n - 1].abs()
+            } else {
+                f64::NAN
+            };
+            ModelError::NoConvergence(format!(
+                "power iteration for lambda_max: relative change {change:.2e} after {n} iterations (tolerance {tolerance:.1e})"
+            ))
+        })
     }
 }

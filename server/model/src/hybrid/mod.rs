@@ -34,7 +34,7 @@ pub mod prepare;
 
 use glam::DVec3;
 
-pub use body::HybridBody;
+pub use body::{EigenEstimate, HybridBody};
 pub use prepare::{HybridModel, prepare};
 
 use crate::ModelError;

@@ -26,41 +26,89 @@ use crate::material::stvk::{green_strain, stvk_energy_density, stvk_stress};
 use crate::material::{energy_density, first_piola};
 
 /// The energy terms of a set of particles (module documentation), sized once.
+///
+/// **Layout.** The particles the terms touch (owners and neighbours) get local indices in the
+/// order they are first met; each term stores its neighbours' local indices and its rest data
+/// in structure-of-arrays form, padded with zero weights to a stride that is a multiple of
+/// four (`g = 0`, `X = 0`, `c = 0` on the owner's own slot), so the loops over a neighbourhood
+/// have a fixed length and vectorise. A force evaluation gathers the touched particles'
+/// positions into a compact local array, runs the terms there and writes the forces back:
+/// the working set stays in the core's cache whatever the size of the whole cloud.
 #[derive(Debug, Clone)]
 pub struct TermBlock {
     stride: usize,
     capacity: usize,
     len: usize,
     seed: bool,
+    /// Global particle of each term (its owner).
     owner: Vec<u32>,
-    count: Vec<u32>,
+    /// Local index of each term's owner.
+    owner_local: Vec<u32>,
+    /// Local indices of each term's neighbours, `stride` per term (padding: the owner).
     nbr: Vec<u32>,
-    g: Vec<DVec3>,
-    offset: Vec<DVec3>,
+    gx: Vec<f64>,
+    gy: Vec<f64>,
+    gz: Vec<f64>,
+    ox: Vec<f64>,
+    oy: Vec<f64>,
+    oz: Vec<f64>,
     hourglass: Vec<f64>,
-    g_sum: Vec<DVec3>,
     rest_strain: Vec<DMat3>,
+    /// Global particle of each local index.
+    particles: Vec<u32>,
+    /// Local index of each global particle (`u32::MAX`: not in the block).
+    local_of: Vec<u32>,
+    /// Positions and forces of the touched particles, by local index.
+    x_local: Vec<DVec3>,
+    f_local: Vec<DVec3>,
+    /// The CPU has AVX2 and FMA (the force loop's fast build).
+    avx2: bool,
     scratch: Box<TermRest>,
     nbr_scratch: [u32; MAX_STENCIL],
+}
+
+#[cfg(target_arch = "x86_64")]
+fn has_avx2_fma() -> bool {
+    std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+fn has_avx2_fma() -> bool {
+    false
+}
+
+/// `n` rounded up to a multiple of four.
+fn padded(n: usize) -> usize {
+    n.div_ceil(4) * 4
 }
 
 impl TermBlock {
     /// An empty block for up to `capacity` terms of particles of `cloud`.
     pub fn new(cloud: &ParticleCloud, capacity: usize) -> Self {
-        let stride = cloud.stencil_len();
+        let stride = padded(cloud.stencil_len());
+        let slots = capacity * stride;
+        let touched = cloud.len().min(capacity * (cloud.stencil_len() + 1));
         Self {
             stride,
             capacity,
             len: 0,
             seed: cloud.params().variant == MeshfreeVariant::Seed,
             owner: vec![0; capacity],
-            count: vec![0; capacity],
-            nbr: vec![0; capacity * stride],
-            g: vec![DVec3::ZERO; capacity * stride],
-            offset: vec![DVec3::ZERO; capacity * stride],
-            hourglass: vec![0.0; capacity * stride],
-            g_sum: vec![DVec3::ZERO; capacity],
+            owner_local: vec![0; capacity],
+            nbr: vec![0; slots],
+            gx: vec![0.0; slots],
+            gy: vec![0.0; slots],
+            gz: vec![0.0; slots],
+            ox: vec![0.0; slots],
+            oy: vec![0.0; slots],
+            oz: vec![0.0; slots],
+            hourglass: vec![0.0; slots],
             rest_strain: vec![DMat3::ZERO; capacity],
+            particles: Vec::with_capacity(touched),
+            local_of: vec![u32::MAX; cloud.len()],
+            x_local: vec![DVec3::ZERO; touched],
+            f_local: vec![DVec3::ZERO; touched],
+            avx2: has_avx2_fma(),
             scratch: Box::default(),
             nbr_scratch: [0; MAX_STENCIL],
         }
@@ -90,16 +138,29 @@ impl TermBlock {
         &self.owner[..self.len]
     }
 
-    /// Neighbours of term `t`.
+    /// Every particle a term touches (owners and neighbours), each once.
     #[inline]
-    pub fn neighbours(&self, t: usize) -> &[u32] {
-        let base = t * self.stride;
-        &self.nbr[base..base + self.count[t] as usize]
+    pub fn particles(&self) -> &[u32] {
+        &self.particles
     }
 
     /// Removes every term (allocation-free).
     pub fn clear(&mut self) {
+        for &p in &self.particles {
+            self.local_of[p as usize] = u32::MAX;
+        }
+        self.particles.clear();
         self.len = 0;
+    }
+
+    /// The local index of global particle `p`, assigned if new.
+    fn local(&mut self, p: u32) -> u32 {
+        let l = &mut self.local_of[p as usize];
+        if *l == u32::MAX {
+            *l = self.particles.len() as u32;
+            self.particles.push(p);
+        }
+        *l
     }
 
     /// Adds the term of particle `p` (its rest data, [`ParticleCloud::term_rest`]).
@@ -112,90 +173,215 @@ impl TermBlock {
             return Ok(false);
         }
         let n = cloud.neighbours(p, &mut self.nbr_scratch);
+        let new = std::iter::once(p)
+            .chain(self.nbr_scratch[..n].iter().copied())
+            .filter(|&q| self.local_of[q as usize] == u32::MAX)
+            .count();
+        if self.particles.len() + new > self.x_local.len() {
+            return Ok(false);
+        }
         cloud.term_rest(p, &self.nbr_scratch[..n], &mut self.scratch)?;
         let t = self.len;
         let base = t * self.stride;
+        let own = self.local(p);
         self.owner[t] = p;
-        self.count[t] = n as u32;
-        self.nbr[base..base + n].copy_from_slice(&self.nbr_scratch[..n]);
-        self.g[base..base + n].copy_from_slice(&self.scratch.g[..n]);
-        self.offset[base..base + n].copy_from_slice(&self.scratch.offset_m[..n]);
-        self.hourglass[base..base + n].copy_from_slice(&self.scratch.hourglass_n_per_m[..n]);
-        self.g_sum[t] = self.scratch.g_sum;
+        self.owner_local[t] = own;
+        for k in 0..self.stride {
+            let s = base + k;
+            if k < n {
+                self.nbr[s] = self.local(self.nbr_scratch[k]);
+                let (g, o) = (self.scratch.g[k], self.scratch.offset_m[k]);
+                (self.gx[s], self.gy[s], self.gz[s]) = (g.x, g.y, g.z);
+                (self.ox[s], self.oy[s], self.oz[s]) = (o.x, o.y, o.z);
+                self.hourglass[s] = self.scratch.hourglass_n_per_m[k];
+            } else {
+                self.nbr[s] = own;
+                (self.gx[s], self.gy[s], self.gz[s]) = (0.0, 0.0, 0.0);
+                (self.ox[s], self.oy[s], self.oz[s]) = (0.0, 0.0, 0.0);
+                self.hourglass[s] = 0.0;
+            }
+        }
         self.rest_strain[t] = self.scratch.rest_strain;
         self.len += 1;
         Ok(true)
     }
 
     /// Deformation gradient `F_t` of term `t` at positions `x` (m, indexed by particle).
-    #[inline]
     pub fn deformation_gradient(&self, t: usize, x: &[DVec3]) -> DMat3 {
         let base = t * self.stride;
         let xi = x[self.owner[t] as usize];
         let mut f = DMat3::ZERO;
-        for k in 0..self.count[t] as usize {
-            f += outer(x[self.nbr[base + k] as usize] - xi, self.g[base + k]);
+        for s in base..base + self.stride {
+            let d = x[self.particles[self.nbr[s] as usize] as usize] - xi;
+            f += outer(d, DVec3::new(self.gx[s], self.gy[s], self.gz[s]));
         }
         f
     }
 
     /// Sets `f[p] = 0` for every particle `p` a term touches (owners and neighbours).
     pub fn zero_forces(&self, f: &mut [DVec3]) {
-        for t in 0..self.len {
-            f[self.owner[t] as usize] = DVec3::ZERO;
-            for &q in self.neighbours(t) {
-                f[q as usize] = DVec3::ZERO;
-            }
+        for &p in &self.particles {
+            f[p as usize] = DVec3::ZERO;
         }
     }
 
     /// Adds the elastic (and hourglass) forces of every term (N) at positions `x` (m) into
     /// `f`, both indexed by particle (length at least the cloud's particle count).
     /// Allocation-free.
-    pub fn add_forces(&self, cloud: &ParticleCloud, x: &[DVec3], f: &mut [DVec3]) {
+    pub fn add_forces(&mut self, cloud: &ParticleCloud, x: &[DVec3], f: &mut [DVec3]) {
+        self.local_forces(cloud, x);
+        for (&p, fl) in self.particles.iter().zip(&self.f_local) {
+            f[p as usize] += *fl;
+        }
+    }
+
+    /// Writes the elastic (and hourglass) forces of the terms (N) at positions `x` (m) into
+    /// `f` for every particle a term touches, overwriting what was there (the other entries
+    /// are left alone): [`Self::zero_forces`] and [`Self::add_forces`] in one pass.
+    /// Allocation-free.
+    pub fn write_forces(&mut self, cloud: &ParticleCloud, x: &[DVec3], f: &mut [DVec3]) {
+        self.local_forces(cloud, x);
+        for (&p, fl) in self.particles.iter().zip(&self.f_local) {
+            f[p as usize] = *fl;
+        }
+    }
+
+    /// The terms' forces into `f_local` (module documentation for the formulas), with the
+    /// AVX2 + FMA build of the loop where the CPU has it.
+    fn local_forces(&mut self, cloud: &ParticleCloud, x: &[DVec3]) {
+        let n_local = self.particles.len();
+        for (xl, &p) in self.x_local.iter_mut().zip(&self.particles) {
+            *xl = x[p as usize];
+        }
+        self.f_local[..n_local].fill(DVec3::ZERO);
+        #[cfg(target_arch = "x86_64")]
+        if self.avx2 {
+            // SAFETY: `avx2` is set only when the CPU has AVX2 and FMA (`TermBlock::new`).
+            unsafe { self.term_loop_avx2(cloud) };
+            return;
+        }
+        self.term_loop(cloud);
+    }
+
+    /// [`Self::term_loop`] compiled for AVX2 + FMA.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2 and FMA.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn term_loop_avx2(&mut self, cloud: &ParticleCloud) {
+        self.term_loop(cloud);
+    }
+
+    /// Every term's forces from `x_local` into `f_local`. Reductions over a neighbourhood
+    /// keep four partial sums per entry (the stride is a multiple of four) so that they
+    /// vectorise; no closures, so that it inlines into [`Self::term_loop_avx2`].
+    #[inline(always)]
+    #[allow(clippy::needless_range_loop)] // one index into several parallel arrays
+    fn term_loop(&mut self, cloud: &ParticleCloud) {
         let v = cloud.volume_m3();
         let mat = cloud.material();
+        let s = self.stride;
+        assert!(s.is_multiple_of(4) && s <= MAX_STENCIL);
+        let mut dx = [0.0f64; MAX_STENCIL];
+        let mut dy = [0.0f64; MAX_STENCIL];
+        let mut dz = [0.0f64; MAX_STENCIL];
+        let mut ex = [0.0f64; MAX_STENCIL];
+        let mut ey = [0.0f64; MAX_STENCIL];
+        let mut ez = [0.0f64; MAX_STENCIL];
         for t in 0..self.len {
-            let base = t * self.stride;
-            let n = self.count[t] as usize;
-            let i = self.owner[t] as usize;
-            let xi = x[i];
-            let mut fg = DMat3::ZERO;
-            for k in 0..n {
-                fg += outer(x[self.nbr[base + k] as usize] - xi, self.g[base + k]);
+            let base = t * s;
+            let nbr = &self.nbr[base..base + s];
+            let gx = &self.gx[base..base + s];
+            let gy = &self.gy[base..base + s];
+            let gz = &self.gz[base..base + s];
+            let own = self.owner_local[t] as usize;
+            let xi = self.x_local[own];
+            for k in 0..s {
+                let d = self.x_local[nbr[k] as usize] - xi;
+                dx[k] = d.x;
+                dy[k] = d.y;
+                dz[k] = d.z;
             }
+            // F = sum_k d_k (x) g_k, column-major: a[3 c + r] = sum d_r g_c.
+            let mut acc = [[0.0f64; 4]; 9];
+            for c in (0..s).step_by(4) {
+                for l in 0..4 {
+                    let k = c + l;
+                    acc[0][l] += dx[k] * gx[k];
+                    acc[1][l] += dy[k] * gx[k];
+                    acc[2][l] += dz[k] * gx[k];
+                    acc[3][l] += dx[k] * gy[k];
+                    acc[4][l] += dy[k] * gy[k];
+                    acc[5][l] += dz[k] * gy[k];
+                    acc[6][l] += dx[k] * gz[k];
+                    acc[7][l] += dy[k] * gz[k];
+                    acc[8][l] += dz[k] * gz[k];
+                }
+            }
+            let mut a = [0.0f64; 9];
+            for (ai, row) in a.iter_mut().zip(&acc) {
+                *ai = (row[0] + row[1]) + (row[2] + row[3]);
+            }
+            let fg = DMat3::from_cols_array(&a);
             let p = if self.seed {
                 let e = green_strain(&fg) - self.rest_strain[t];
                 fg * stvk_stress(&e, mat.lambda_pa, mat.mu_pa)
             } else {
                 first_piola(mat, &fg)
             };
-            // m = V P + H (the matrix applied to g_ij), minus c e for the hourglass part.
-            let mut m = p * v;
+            // m = V P + H, the matrix applied to g_k.
+            let mut m = (p * v).to_cols_array();
             if !self.seed {
-                // Pair errors e_ij once, then H and the gradients.
-                let mut e = [DVec3::ZERO; MAX_STENCIL];
-                let mut h = DMat3::ZERO;
-                for (k, ek) in e[..n].iter_mut().enumerate() {
-                    let xk = self.offset[base + k];
-                    *ek = fg * xk - (x[self.nbr[base + k] as usize] - xi);
-                    h += outer(*ek * self.hourglass[base + k], xk);
+                // Pair errors c_k e_k = c_k (F X_k - d_k), then H = sum c_k e_k (x) X_k.
+                let ox = &self.ox[base..base + s];
+                let oy = &self.oy[base..base + s];
+                let oz = &self.oz[base..base + s];
+                let ck = &self.hourglass[base..base + s];
+                for k in 0..s {
+                    ex[k] = (a[0] * ox[k] + a[3] * oy[k] + a[6] * oz[k] - dx[k]) * ck[k];
+                    ey[k] = (a[1] * ox[k] + a[4] * oy[k] + a[7] * oz[k] - dy[k]) * ck[k];
+                    ez[k] = (a[2] * ox[k] + a[5] * oy[k] + a[8] * oz[k] - dz[k]) * ck[k];
                 }
-                m += h;
-                let mut owner = DVec3::ZERO;
-                for (k, ek) in e[..n].iter().enumerate() {
-                    let j = self.nbr[base + k] as usize;
-                    let grad = m * self.g[base + k] - *ek * self.hourglass[base + k];
-                    f[j] -= grad;
-                    owner += grad;
+                let mut acc = [[0.0f64; 4]; 9];
+                for c in (0..s).step_by(4) {
+                    for l in 0..4 {
+                        let k = c + l;
+                        acc[0][l] += ex[k] * ox[k];
+                        acc[1][l] += ey[k] * ox[k];
+                        acc[2][l] += ez[k] * ox[k];
+                        acc[3][l] += ex[k] * oy[k];
+                        acc[4][l] += ey[k] * oy[k];
+                        acc[5][l] += ez[k] * oy[k];
+                        acc[6][l] += ex[k] * oz[k];
+                        acc[7][l] += ey[k] * oz[k];
+                        acc[8][l] += ez[k] * oz[k];
+                    }
                 }
-                f[i] += owner;
-            } else {
-                for k in 0..n {
-                    f[self.nbr[base + k] as usize] -= m * self.g[base + k];
+                for (mi, row) in m.iter_mut().zip(&acc) {
+                    *mi += (row[0] + row[1]) + (row[2] + row[3]);
                 }
-                f[i] += m * self.g_sum[t];
             }
+            // grad_k = m g_k - c_k e_k (no hourglass part in the seed variant).
+            for k in 0..s {
+                dx[k] = m[0] * gx[k] + m[3] * gy[k] + m[6] * gz[k];
+                dy[k] = m[1] * gx[k] + m[4] * gy[k] + m[7] * gz[k];
+                dz[k] = m[2] * gx[k] + m[5] * gy[k] + m[8] * gz[k];
+            }
+            if !self.seed {
+                for k in 0..s {
+                    dx[k] -= ex[k];
+                    dy[k] -= ey[k];
+                    dz[k] -= ez[k];
+                }
+            }
+            let mut owner = DVec3::ZERO;
+            for k in 0..s {
+                let grad = DVec3::new(dx[k], dy[k], dz[k]);
+                self.f_local[nbr[k] as usize] -= grad;
+                owner += grad;
+            }
+            self.f_local[own] += owner;
         }
     }
 
@@ -215,10 +401,11 @@ impl TermBlock {
             };
             if !self.seed {
                 let xi = x[self.owner[t] as usize];
-                for k in 0..self.count[t] as usize {
-                    let j = self.nbr[base + k] as usize;
-                    let e = fg * self.offset[base + k] - (x[j] - xi);
-                    total += 0.5 * self.hourglass[base + k] * e.length_squared();
+                for s in base..base + self.stride {
+                    let xj = x[self.particles[self.nbr[s] as usize] as usize];
+                    let o = DVec3::new(self.ox[s], self.oy[s], self.oz[s]);
+                    let e = fg * o - (xj - xi);
+                    total += 0.5 * self.hourglass[s] * e.length_squared();
                 }
             }
         }
