@@ -31,6 +31,9 @@ struct Args {
     /// `hybrid.mass_scale` override.
     #[arg(long)]
     mass_scale: Option<f64>,
+    /// `hybrid.contact_stiffness_n_per_m` override (probe penalty per particle).
+    #[arg(long)]
+    contact_stiffness_n_per_m: Option<f64>,
     /// Depths, mm.
     #[arg(long, default_value = "0.5,1", value_delimiter = ',')]
     depths_mm: Vec<f64>,
@@ -60,13 +63,18 @@ fn main() -> anyhow::Result<()> {
     if let Some(m) = args.mass_scale {
         h.params.mass_scale = m;
     }
+    if let Some(k) = args.contact_stiffness_n_per_m {
+        h.params.contact_stiffness_n_per_m = k;
+    }
     let (variant, mass_scale) = (h.params.meshfree.variant, h.params.mass_scale);
+
     let mut body = haptic_model::build_body(&scene)?;
     let tick = scene.integrator.tick_s;
     println!(
-        "{} {} mass_scale {mass_scale}, ramp {} s, hold {} s, {} sub-steps per tick",
+        "{} {} mass_scale {mass_scale}, contact stiffness {} N/m per particle, ramp {} s, hold {} s, {} sub-steps per tick",
         args.scene,
         variant.name(),
+        scene.hybrid.as_ref().map_or(0.0, |h| h.params.contact_stiffness_n_per_m),
         args.ramp_s,
         args.hold_s,
         body.info().substeps
