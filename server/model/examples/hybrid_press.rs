@@ -74,7 +74,10 @@ fn main() -> anyhow::Result<()> {
         "{} {} mass_scale {mass_scale}, contact stiffness {} N/m per particle, ramp {} s, hold {} s, {} sub-steps per tick",
         args.scene,
         variant.name(),
-        scene.hybrid.as_ref().map_or(0.0, |h| h.params.contact_stiffness_n_per_m),
+        scene
+            .hybrid
+            .as_ref()
+            .map_or(0.0, |h| h.params.contact_stiffness_n_per_m),
         args.ramp_s,
         args.hold_s,
         body.info().substeps
