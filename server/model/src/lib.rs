@@ -46,6 +46,7 @@
 
 pub mod body;
 pub mod contact;
+pub(crate) mod cpu;
 pub mod element;
 pub mod error;
 pub mod hybrid;
@@ -125,17 +126,4 @@ pub fn build_body_with_progress(
             )?))
         }
     }
-}
-
-/// Whether this CPU runs AVX2 and FMA (the fast builds of the hot loops that are written as
-/// plain Rust and compiled a second time with `#[target_feature(enable = "avx2,fma")]`).
-#[cfg(target_arch = "x86_64")]
-pub(crate) fn has_avx2_fma() -> bool {
-    std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
-}
-
-/// Whether this CPU runs AVX2 and FMA: never off x86-64.
-#[cfg(not(target_arch = "x86_64"))]
-pub(crate) fn has_avx2_fma() -> bool {
-    false
 }

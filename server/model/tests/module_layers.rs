@@ -12,6 +12,7 @@ use std::path::{Path, PathBuf};
 /// every module and uses none.
 const LAYERS: &[&str] = &[
     "error",
+    "cpu",
     "ordering",
     "mesh",
     "material",

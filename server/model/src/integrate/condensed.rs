@@ -238,7 +238,7 @@ unsafe fn axpy3_avx2(z: &mut [f64], a: [f64; 3], y: &[f32]) {
 fn dot(avx2: bool, a: &[f32], b: &[f64]) -> f64 {
     #[cfg(target_arch = "x86_64")]
     if avx2 {
-        // SAFETY: `avx2` comes from `crate::has_avx2_fma` on this CPU.
+        // SAFETY: `avx2` comes from `crate::cpu::has_avx2_fma` on this CPU.
         return unsafe { dot_avx2(a, b) };
     }
     let _ = avx2;
@@ -248,7 +248,7 @@ fn dot(avx2: bool, a: &[f32], b: &[f64]) -> f64 {
 fn axpy3(avx2: bool, z: &mut [f64], a: [f64; 3], y: &[f32]) {
     #[cfg(target_arch = "x86_64")]
     if avx2 {
-        // SAFETY: `avx2` comes from `crate::has_avx2_fma` on this CPU.
+        // SAFETY: `avx2` comes from `crate::cpu::has_avx2_fma` on this CPU.
         return unsafe { axpy3_avx2(z, a, y) };
     }
     let _ = avx2;
@@ -581,7 +581,7 @@ impl CondensedSolver {
             mass,
             gamma_dof,
             schur: schur.iter().map(|&v| v as f32).collect(),
-            avx2: crate::has_avx2_fma(),
+            avx2: crate::cpu::has_avx2_fma(),
             symbolic: Arc::new(symbolic),
             factor,
             stack,

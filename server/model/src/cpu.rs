@@ -1,0 +1,17 @@
+//! What the CPU can run: the fast builds of the hot loops that are written as plain Rust and
+//! compiled a second time with `#[target_feature(enable = "avx2,fma")]` are chosen here.
+//!
+//! Neighbours: none (the bottom layer); used by [`crate::meshfree::block`] and
+//! [`crate::integrate::condensed`].
+
+/// Whether this CPU runs AVX2 and FMA (std caches the detection).
+#[cfg(target_arch = "x86_64")]
+pub(crate) fn has_avx2_fma() -> bool {
+    std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
+}
+
+/// Whether this CPU runs AVX2 and FMA: never off x86-64.
+#[cfg(not(target_arch = "x86_64"))]
+pub(crate) fn has_avx2_fma() -> bool {
+    false
+}
