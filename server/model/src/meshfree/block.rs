@@ -160,12 +160,6 @@ impl TermBlock {
         &self.owner[..self.len]
     }
 
-    /// Every particle a term touches (owners and neighbours), each once.
-    #[inline]
-    pub fn particles(&self) -> &[u32] {
-        &self.particles
-    }
-
     /// Removes every term (allocation-free).
     pub fn clear(&mut self) {
         for &p in &self.particles {
@@ -240,13 +234,6 @@ impl TermBlock {
         f
     }
 
-    /// Sets `f[p] = 0` for every particle `p` a term touches (owners and neighbours).
-    pub fn zero_forces(&self, f: &mut [DVec3]) {
-        for &p in &self.particles {
-            f[p as usize] = DVec3::ZERO;
-        }
-    }
-
     /// Adds the elastic (and hourglass) forces of every term (N) at positions `x` (m) into
     /// `f`, both indexed by particle (length at least the cloud's particle count).
     /// Allocation-free.
@@ -259,7 +246,7 @@ impl TermBlock {
 
     /// Writes the elastic (and hourglass) forces of the terms (N) at positions `x` (m) into
     /// `f` for every particle a term touches, overwriting what was there (the other entries
-    /// are left alone): [`Self::zero_forces`] and [`Self::add_forces`] in one pass.
+    /// are left alone): zeroing those entries and [`Self::add_forces`] in one pass.
     /// Allocation-free.
     pub fn write_forces(&mut self, cloud: &ParticleCloud, x: &[DVec3], f: &mut [DVec3]) {
         self.local_forces(cloud, x);
