@@ -21,6 +21,7 @@ use crate::contact::Probe;
 use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
 use crate::element::{CLAMPED, FemModel};
 use crate::integrate::condensed::CondensedSolver;
+use crate::integrate::follow::{FollowStats, RegionFollower};
 use crate::integrate::implicit::CgStats;
 use crate::integrate::{self, IntegratorKind, StepPlan, Stepper};
 use crate::loads::BodyLoads;
@@ -78,6 +79,19 @@ pub struct Simulation {
     surface_triangles: Vec<[u32; 3]>,
     scene_name: String,
     last_output: TickOutput,
+    /// A following active region's worker ([`RegionFollower`]).
+    follow: FollowSlot,
+}
+
+/// Holds the [`RegionFollower`] of a following active region. A clone of the simulation does
+/// not follow: it keeps the region it has (the worker thread is not cloned).
+#[derive(Debug, Default)]
+struct FollowSlot(Option<RegionFollower>);
+
+impl Clone for FollowSlot {
+    fn clone(&self) -> Self {
+        Self(None)
+    }
 }
 
 impl Simulation {
@@ -129,8 +143,17 @@ impl Simulation {
             load_surface.clone(),
         );
         let mut touchable = scene.touchable.clone();
-        // A condensed model sees loads and contact on its active nodes only.
-        if let Some(c) = stepper.condensed() {
+        let follows = scene.active_region.is_some_and(|r| r.follow);
+        if follows && loads.acts_outside(|_| false) {
+            return Err(ModelError::field(
+                "active_region.follow",
+                "a following region takes no scene loads (they would act on condensed elements as the region moves): remove [loads] or fix the region",
+            ));
+        }
+        // A condensed model sees loads and contact on its active nodes only; a following one
+        // keeps the whole touchable surface (a touch outside the region rests on the far
+        // surface until the region arrives: `integrate::follow`).
+        if let Some(c) = stepper.condensed().filter(|_| !follows) {
             if loads.acts_outside(|i| c.is_active_node(i)) {
                 return Err(ModelError::field(
                     "active_region",
@@ -150,9 +173,13 @@ impl Simulation {
                 .collect();
             loads = BodyLoads::new(&scene.loads, fem.rest(), fem.lumped_mass_kg(), load_surface);
         }
+        let mut follow = FollowSlot(None);
         if let Stepper::Condensed(c) = &mut stepper {
             let contact_nodes: Vec<u32> = touchable.iter().flatten().copied().collect();
             c.prepare_contact(&contact_nodes);
+            if follows {
+                follow.0 = Some(RegionFollower::spawn(&fem, &scene.mesh, &contact_nodes, c)?);
+            }
         }
         let mut surface_nodes: Vec<u32> = boundary.iter().flatten().copied().collect();
         surface_nodes.sort_unstable();
@@ -183,6 +210,7 @@ impl Simulation {
             surface_triangles,
             scene_name: scene.name.clone(),
             last_output: TickOutput::default(),
+            follow,
             fem,
         })
     }
@@ -200,6 +228,18 @@ impl Simulation {
         check_device(input)?;
         if let Some(time_s) = self.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
+        }
+        if let (Some(f), Stepper::Condensed(solver)) = (&mut self.follow.0, &mut self.stepper) {
+            let device = input
+                .device_position_m
+                .map(|p| (p, input.device_velocity_m_per_s));
+            f.before_tick(
+                solver,
+                device,
+                self.probe.patch().0,
+                &mut self.state.x,
+                &mut self.state.v,
+            );
         }
         for _ in 0..self.plan.substeps {
             // 1. Forces: internal and external.
@@ -421,6 +461,19 @@ impl Simulation {
     /// The time stepper.
     pub fn stepper(&self) -> &Stepper {
         &self.stepper
+    }
+
+    /// Counters of a following active region (`active_region.follow`), `None` otherwise.
+    pub fn follow_stats(&self) -> Option<FollowStats> {
+        self.follow.0.as_ref().map(RegionFollower::stats)
+    }
+
+    /// Makes a following region's ticks wait for each region they request (deterministic
+    /// swaps, for tests and studies; a servo must not). No effect without one.
+    pub fn set_blocking_region_preparation(&mut self, on: bool) {
+        if let Some(f) = &mut self.follow.0 {
+            f.set_blocking(on);
+        }
     }
 
     /// The condensed solver of a scene with `[active_region]`.

@@ -5,7 +5,10 @@
 //! - a probe press settles at the force of the whole nonlinear body (explicit reference);
 //! - the far boundary shown to viewers follows the interface (against the exact far solve);
 //! - the tick allocates nothing (a counting allocator on this thread);
-//! - scene errors for a bad `[active_region]`.
+//! - scene errors for a bad `[active_region]`;
+//! - a following region (`active_region.follow`) carries a stroke around the ventricle: the
+//!   probe never falls through, the force and the energy are continuous at the swaps, and the
+//!   force held after the slide matches the one before it (the ventricle's symmetry).
 
 use std::path::Path;
 
@@ -54,6 +57,7 @@ const ACTIVE: ActiveRegion = ActiveRegion {
     centre_m: DVec3::new(0.00968, 0.0, -0.005),
     radius_m: 0.008,
     stiffness_margin: haptic_model::integrate::condensed::DEFAULT_STIFFNESS_MARGIN,
+    follow: false,
 };
 
 /// [`lv_scene`] condensed on [`ACTIVE`] (backward Euler).
@@ -191,6 +195,7 @@ fn bad_active_regions_are_rejected_with_the_field_named() {
             "[active_region]\nradius_m = 0.006\n".to_string(),
             "centre_m",
         ),
+        (base, REGION.to_string() + "follow = 1\n", "follow"),
     ];
     for (integrator, extra, field) in cases {
         let text = format!(
@@ -225,6 +230,13 @@ fn bad_active_regions_are_rejected_with_the_field_named() {
     scene.touchable = scene.mesh.surface("EPI").expect("EPI").triangles.clone();
     let err = Simulation::new(&scene).expect_err("quadratic").to_string();
     assert!(err.contains("linear"), "{err}");
+    // A following region takes no scene loads.
+    let text = format!(
+        "[mesh]\nbuiltin = \"lv\"\ntarget_tets = 1000\norder = 1\n[material]\nyoungs_modulus_pa = 14500.0\npoisson_ratio = 0.45\ndensity_kg_per_m3 = 1060.0\n[boundary]\nclamped = [\"BASE\"]\ntouchable = [\"EPI\"]\n[integrator]\n{base}\n{REGION}follow = true\n[loads]\ngravity_m_per_s2 = [0.0, 0.0, -9.81]\n"
+    );
+    let scene = parse_scene_toml(&text, Path::new(".")).expect("parses");
+    let err = Simulation::new(&scene).expect_err("loads").to_string();
+    assert!(err.contains("active_region.follow"), "{err}");
 }
 
 /// The built-in LV (linear tets, base clamped), a load of `force_n` spread over the
@@ -283,6 +295,7 @@ fn condensed_equilibrium_matches_the_whole_body_static_solution() {
             centre_m: centre,
             radius_m: 5e-3,
             stiffness_margin: 2.0,
+            follow: false,
         };
         let mut solver = CondensedSolver::new(&fem, &mesh, region, 1e-3).expect("condensed");
         let sizes = solver.sizes();
@@ -471,4 +484,161 @@ fn poisson_sweep_stays_finite_and_reports_volume_change() {
             );
         }
     }
+}
+
+/// The stroke of the following-region test: pressed `depth` (m) at the equator on +x over
+/// 0.3 s, held 0.2 s, slid around the long axis to -x at 20 mm/s, held 0.4 s. Returns the
+/// device input of tick `k` and whether the probe is sliding or holding after the press.
+fn stroke(k: usize, depth: f64) -> (TickInput, bool) {
+    const R_EPI: f64 = 0.00968;
+    const SPEED: f64 = 0.02;
+    let t = k as f64 * 1e-3;
+    let omega = SPEED / R_EPI;
+    let arc_s = std::f64::consts::PI / omega;
+    let ring = R_EPI + 0.002 - depth;
+    let (theta, radius, speed) = if t < 0.3 {
+        let s = t / 0.3;
+        (0.0, R_EPI + 0.0025 - s * (0.0005 + depth), 0.0)
+    } else if t < 0.5 {
+        (0.0, ring, 0.0)
+    } else if t < 0.5 + arc_s {
+        (omega * (t - 0.5), ring, SPEED)
+    } else {
+        (std::f64::consts::PI, ring, 0.0)
+    };
+    let input = TickInput {
+        device_position_m: Some(DVec3::new(
+            radius * theta.cos(),
+            radius * theta.sin(),
+            -0.005,
+        )),
+        device_velocity_m_per_s: DVec3::new(-theta.sin(), theta.cos(), 0.0) * speed,
+    };
+    (input, t >= 0.3)
+}
+
+/// Ticks of [`stroke`]: 0.5 s press and hold, 1.52 s slide, 0.4 s hold.
+const STROKE_TICKS: usize = 2420;
+
+#[test]
+fn a_following_region_carries_a_stroke_around_the_ventricle() {
+    let depth = 0.001;
+    let region = ActiveRegion {
+        radius_m: 0.006,
+        follow: true,
+        ..ACTIVE
+    };
+    let scene = lv_scene(
+        StrainSmoothing::None,
+        IntegratorKind::BackwardEuler,
+        Some(region),
+    );
+    // Control: the fixed region loses the probe once it slides out (the test can fail).
+    let mut fixed_scene = scene.clone();
+    fixed_scene.active_region = Some(ActiveRegion {
+        follow: false,
+        ..region
+    });
+    let mut fixed = Simulation::new(&fixed_scene).expect("fixed");
+    let lost_fixed = (0..STROKE_TICKS)
+        .filter(|&k| {
+            let (input, pressed) = stroke(k, depth);
+            !fixed.tick(&input).expect("tick").in_contact && pressed
+        })
+        .count();
+    assert!(
+        lost_fixed > 500,
+        "the fixed region lost contact on {lost_fixed} ticks only"
+    );
+
+    let mut sim = Simulation::new(&scene).expect("following");
+    sim.set_blocking_region_preparation(true);
+    let mut forces = Vec::with_capacity(STROKE_TICKS);
+    let mut energy = Vec::with_capacity(STROKE_TICKS);
+    let mut swap_ticks = Vec::with_capacity(64);
+    let mut lost = 0;
+    let mut swaps = 0;
+    let (_, allocations) = counted(|| {
+        for k in 0..STROKE_TICKS {
+            let (input, pressed) = stroke(k, depth);
+            let out = sim.tick(&input).expect("tick");
+            forces.push(out.force_on_device_n);
+            let st = sim.stability();
+            energy.push(st.kinetic_energy_j + st.elastic_energy_j);
+            lost += usize::from(pressed && !out.in_contact);
+            let s = sim.follow_stats().expect("follows").swaps;
+            if s != swaps {
+                swap_ticks.push(k);
+                swaps = s;
+            }
+        }
+    });
+    let stats = sim.follow_stats().expect("follows");
+    eprintln!("{stats:?}; swaps at ticks {swap_ticks:?}");
+    assert_eq!(
+        allocations, 0,
+        "the servo thread allocated (swaps included)"
+    );
+    assert_eq!(stats.failed, 0);
+    // 30 mm of arc with a region of radius 6 mm re-centred every 1.5-3 mm.
+    assert!(stats.swaps >= 8, "{stats:?}");
+    assert!(
+        stats.centre_m.x < -0.008,
+        "the region ended at {:?}",
+        stats.centre_m
+    );
+    assert_eq!(
+        lost, 0,
+        "the following region lost the probe on {lost} ticks"
+    );
+    // Force continuity at the swaps (the 7 % just-noticeable difference), against the
+    // largest change between other ticks of the slide.
+    let change = |k: usize| (forces[k] - forces[k - 1]).length() / forces[k - 1].length();
+    let at_swaps = swap_ticks.iter().map(|&k| change(k)).fold(0.0, f64::max);
+    let elsewhere = (500..STROKE_TICKS)
+        .filter(|k| !swap_ticks.contains(k))
+        .map(change)
+        .fold(0.0, f64::max);
+    eprintln!(
+        "largest tick-to-tick force change: {at_swaps:.4} at swaps, {elsewhere:.4} elsewhere"
+    );
+    assert!(at_swaps < 0.07, "force jump {at_swaps} at a swap");
+    // No energy injection: the body's energy (kinetic, active elements, far part) changes at
+    // a swap by no more than the probe's work changes it in other ticks of the slide.
+    let step = |k: usize| (energy[k] - energy[k - 1]) / energy[k - 1];
+    let e_swaps = swap_ticks.iter().map(|&k| step(k)).fold(f64::MIN, f64::max);
+    let e_elsewhere = (600..STROKE_TICKS - 400)
+        .filter(|k| !swap_ticks.contains(k))
+        .map(step)
+        .fold(f64::MIN, f64::max);
+    eprintln!(
+        "largest relative energy rise in one tick: {e_swaps:.2e} at swaps, {e_elsewhere:.2e} elsewhere"
+    );
+    assert!(
+        e_swaps <= 2.0 * e_elsewhere.max(1e-6),
+        "energy rose by {e_swaps} at a swap ({e_elsewhere} elsewhere)"
+    );
+    // The probe rests on tissue everywhere: a touch of the (unyielding) far surface would
+    // show the coupling's 300 N/m, ten times the tissue's force at 1 mm.
+    let mean = |r: std::ops::Range<usize>| {
+        forces[r.clone()].iter().map(|f| f.length()).sum::<f64>() / r.len() as f64
+    };
+    let (start, end) = (mean(400..500), mean(STROKE_TICKS - 100..STROKE_TICKS));
+    let largest = forces[500..].iter().map(|f| f.length()).fold(0.0, f64::max);
+    eprintln!(
+        "hold force at +x {start:.5} N, at -x after the slide {end:.5} N, largest {largest:.5} N"
+    );
+    assert!(start > 0.005, "{start}");
+    assert!(
+        largest < 1.5 * start,
+        "{largest} N during the slide, {start} N at rest"
+    );
+    // The ventricle is symmetric about its long axis: after the slide the force held at -x is
+    // the one held at +x (the mesh is not exactly symmetric; measured difference below).
+    assert!(
+        (end - start).abs() < 0.07 * start,
+        "hold force {end} N at -x against {start} N at +x"
+    );
+    let st = sim.stability();
+    assert!(st.stable && st.inverted_elements == 0, "{st:?}");
 }

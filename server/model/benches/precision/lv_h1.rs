@@ -60,6 +60,7 @@ pub fn run(cfg: &Config) -> Vec<Row> {
             centre_m: DVec3::new(CONTACT_X_M - sc.probe.radius_m, 0.0, PROBE_Z_M),
             radius_m: radius_mm * 1e-3,
             stiffness_margin: DEFAULT_STIFFNESS_MARGIN,
+            follow: false,
         });
         // One label for every radius, so the radii form one work-precision curve.
         let method = "condensed backward-euler".to_string();

@@ -79,7 +79,20 @@ pub struct ActiveRegion {
     /// equilibrium itself does not depend on it. Near incompressibility needs more (the
     /// measured choices: `docs/decisions.md`, "Contact-local condensation").
     pub stiffness_margin: f64,
+    /// Whether the region follows the probe ([`crate::integrate::follow`]): regions are then
+    /// re-centred on the touchable surface near the device, prepared off the servo thread
+    /// and swapped in at tick boundaries, and each keeps the far-field rows its successors
+    /// need ([`CondensedSolver::hand_over`]).
+    pub follow: bool,
 }
+
+/// A following region keeps the far-field map of the far nodes within this many radii of its
+/// centre (plus the longest edge), so that a successor centred up to
+/// [`MAX_FOLLOW_SHIFT_RADII`] radii away finds the displacement of every node it activates.
+pub const HALO_RADII: f64 = 1.6;
+
+/// Largest distance between the centres of two successive following regions, in radii.
+pub const MAX_FOLLOW_SHIFT_RADII: f64 = 0.5;
 
 /// The condensed boundary nodes (what viewers see of the far part) are refreshed from the
 /// interface over this many ticks, a slice per tick ([`CondensedSolver::step`]).
@@ -145,6 +158,7 @@ struct FarField {
 #[derive(Debug, Clone)]
 pub struct CondensedSolver {
     h: f64,
+    region: ActiveRegion,
     /// The active elements (all nodes of the body, numbered as in the body; far nodes have no
     /// element here). Its forces are the active region's.
     active: FemModel,
@@ -182,6 +196,11 @@ pub struct CondensedSolver {
     /// Their displacement per interface displacement, `-(K_FF^-1 K_FG)` rows, row-major
     /// `|surface_dofs| x g`, single precision.
     surface_map: Vec<f32>,
+    /// Following regions: the far components near the region (within [`HALO_RADII`]) and
+    /// their rows of `-(K_FF^-1 K_FG)` (row-major `|halo| x g`, single precision), per global
+    /// component its row or `u32::MAX` ([`Self::hand_over`]).
+    halo_row: Vec<u32>,
+    halo_map: Vec<f32>,
     /// Next row of `surface_map` to refresh.
     surface_cursor: usize,
     u_gamma: Vec<f64>,
@@ -450,6 +469,28 @@ impl CondensedSolver {
         }
         let surface_far: Vec<usize> = (0..f).filter(|&k| on_boundary[far_dofs[k] / 3]).collect();
         let mut surface_map = vec![0.0f32; surface_far.len() * g];
+        let halo_far: Vec<usize> = if region.follow {
+            let longest = mesh
+                .tets
+                .iter()
+                .flat_map(|t| {
+                    let p = t.map(|i| body.rest()[i as usize]);
+                    [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+                        .map(|(a, b)| p[a].distance(p[b]))
+                })
+                .fold(0.0, f64::max);
+            let reach = HALO_RADII * region.radius_m + longest;
+            (0..f)
+                .filter(|&k| body.rest()[far_dofs[k] / 3].distance(region.centre_m) <= reach)
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let mut halo_map = vec![0.0f32; halo_far.len() * g];
+        let mut halo_row = vec![u32::MAX; if region.follow { 3 * n } else { 0 }];
+        for (r, &k) in halo_far.iter().enumerate() {
+            halo_row[far_dofs[k]] = r as u32;
+        }
         let llt = if f > 0 {
             let far_nodes: Vec<usize> = far_dofs.iter().map(|&d| d / 3).collect();
             let llt = SparseCholesky::factor(sparse(f, &kff)?.as_ref(), Side::Lower, &far_nodes)
@@ -478,6 +519,11 @@ impl CondensedSolver {
                         surface_map[r * g + j0 + j] = -x[(k, j)] as f32;
                     }
                 }
+                for (r, &k) in halo_far.iter().enumerate() {
+                    for j in 0..w {
+                        halo_map[r * g + j0 + j] = -x[(k, j)] as f32;
+                    }
+                }
                 // S[gi, j0 + j] -= sum_fr K_FG[fr, gi] X[fr, j]
                 for &(fr, gi, v) in &kfg {
                     let row = &mut schur[gi * g + j0..gi * g + j0 + w];
@@ -486,7 +532,9 @@ impl CondensedSolver {
                     }
                 }
             }
-            Some(llt)
+            // A following region recovers its far field from its maps only (the factor is
+            // most of its memory: 42 of 80 MB on `lv_h1` at r = 7 mm).
+            (!region.follow).then_some(llt)
         } else {
             None
         };
@@ -575,6 +623,7 @@ impl CondensedSolver {
         };
         Ok(Self {
             h,
+            region,
             active,
             eq,
             eq_dof,
@@ -593,6 +642,8 @@ impl CondensedSolver {
             u_gamma: vec![0.0; g],
             surface_dofs: surface_far.iter().map(|&k| far_dofs[k]).collect(),
             surface_map,
+            halo_row,
+            halo_map,
             surface_cursor: 0,
             far: FarField {
                 dofs: far_dofs,
@@ -659,6 +710,11 @@ impl CondensedSolver {
     /// [`FemModel::add_internal_forces`] gives the active region's forces.
     pub fn active_model(&self) -> &FemModel {
         &self.active
+    }
+
+    /// The region this solver simulates.
+    pub fn region(&self) -> ActiveRegion {
+        self.region
     }
 
     /// Sizes of the split, for reports.
@@ -820,6 +876,65 @@ impl CondensedSolver {
         if non_finite { f64::NAN } else { max_v2 }
     }
 
+    /// Hands the state over from `self` (the region in use) to `next` at a tick boundary:
+    /// every node `next` simulates that `self` condenses gets the displacement the far field
+    /// of `self` gives it for the current interface displacement (`u = -K_FF^-1 K_FG u_G`,
+    /// from the halo rows kept when `self` was built with [`ActiveRegion::follow`]) and zero
+    /// velocity (the far field is quasi-static); nodes both simulate keep their state, and
+    /// nodes only `self` simulates keep their positions (`next` refreshes its far surface
+    /// from its own map) with zero velocity.
+    /// Returns `false`, touching nothing, when `next` activates a node outside the halo of
+    /// `self` (a centre too far away). Costs `3 g` multiply-adds per such node (`g` interface
+    /// components of `self`); allocation-free.
+    ///
+    /// # Panics
+    /// If `x`, `v` are shorter than the body's node count or `next` is of another body.
+    pub fn hand_over(&mut self, next: &CondensedSolver, x: &mut [DVec3], v: &mut [DVec3]) -> bool {
+        let node_active = &self.node_active;
+        let taken = |d: usize| !node_active[d / 3];
+        let missing = next
+            .eq_dof
+            .iter()
+            .any(|&d| taken(d) && self.halo_row.get(d).is_none_or(|&r| r == u32::MAX));
+        if missing {
+            return false;
+        }
+        let rest = self.active.rest();
+        for (u, &d) in self.u_gamma.iter_mut().zip(&self.gamma_dof) {
+            *u = x[d / 3][d % 3] - rest[d / 3][d % 3];
+        }
+        let g = self.gamma_dof.len();
+        for &d in &next.eq_dof {
+            if taken(d) {
+                let r = self.halo_row[d] as usize;
+                let u = dot(self.avx2, &self.halo_map[r * g..(r + 1) * g], &self.u_gamma);
+                x[d / 3][d % 3] = rest[d / 3][d % 3] + u;
+                v[d / 3][d % 3] = 0.0;
+            }
+        }
+        // Nodes `next` condenses become quasi-static: their kinetic energy is dropped (never
+        // injected), and the probe's coupling sees them at rest.
+        for &d in &self.eq_dof {
+            if !next.node_active[d / 3] {
+                v[d / 3][d % 3] = 0.0;
+            }
+        }
+        true
+    }
+
+    /// Bytes held by the region's numeric arrays (tick factor, maps, coupling columns, far
+    /// factor), for reports; index arrays and the active elements' model are not counted.
+    pub fn memory_bytes(&self) -> usize {
+        let far = self.far.llt.as_ref().map_or(0, |l| 8 * l.factor_entries());
+        4 * (self.factor.len()
+            + self.schur.len()
+            + self.contact_z.len()
+            + self.surface_map.len()
+            + self.halo_map.len())
+            + 24 * self.far.kfg.len()
+            + far
+    }
+
     /// Elastic energy of the condensed far part for the interface displacement in `x`,
     /// `u_G^T S u_G / 2`, J (exact for its linear elements).
     pub fn far_energy_j(&self, x: &[DVec3]) -> f64 {
@@ -840,8 +955,28 @@ impl CondensedSolver {
     /// Sets the far-only nodes of `x` to the static linear response of the far body to the
     /// interface displacement, `u_F = -K_FF^-1 K_FG u_G` (one sparse solve; allocates). Far
     /// velocities are left as they are (zero for a quasi-static far field).
+    /// A following region ([`ActiveRegion::follow`]) keeps no far factor: it sets the far
+    /// boundary and halo nodes from their maps instead.
     pub fn recover_far_field(&self, x: &mut [DVec3]) {
         let Some(llt) = &self.far.llt else {
+            let g = self.gamma_dof.len();
+            let rest = self.active.rest();
+            let u_gamma: Vec<f64> = self
+                .gamma_dof
+                .iter()
+                .map(|&d| x[d / 3][d % 3] - rest[d / 3][d % 3])
+                .collect();
+            for (r, &d) in self.surface_dofs.iter().enumerate() {
+                x[d / 3][d % 3] = rest[d / 3][d % 3]
+                    + dot(self.avx2, &self.surface_map[r * g..(r + 1) * g], &u_gamma);
+            }
+            for (d, &r) in self.halo_row.iter().enumerate() {
+                if r != u32::MAX {
+                    let r = r as usize;
+                    x[d / 3][d % 3] = rest[d / 3][d % 3]
+                        + dot(self.avx2, &self.halo_map[r * g..(r + 1) * g], &u_gamma);
+                }
+            }
             return;
         };
         let mut b = Mat::<f64>::zeros(self.far.dofs.len(), 1);

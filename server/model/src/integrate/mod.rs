@@ -40,6 +40,7 @@ use crate::mesh::TetMesh;
 
 pub mod condensed;
 pub mod explicit;
+pub mod follow;
 pub mod implicit;
 
 use condensed::{ActiveRegion, CondensedSolver};

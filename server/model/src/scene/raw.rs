@@ -94,6 +94,7 @@ struct RawActiveRegion {
     centre_m: Option<[f64; 3]>,
     radius_m: Option<f64>,
     stiffness_margin: Option<f64>,
+    follow: Option<bool>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -440,6 +441,7 @@ pub(super) fn parse_scene(
                     |c| (1.0..=100.0).contains(&c),
                     "in [1, 100]",
                 )?,
+                follow: a.follow.unwrap_or(false),
             })
         }
     };

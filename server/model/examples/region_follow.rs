@@ -1,0 +1,175 @@
+//! Strokes the probe across the epicardium of a following condensed scene (issue 20): from the
+//! equator point on +x (z = -5 mm) around the ventricle to -x, pressed `--depth-mm` deep at
+//! `--speed-mm-s`, and reports the region swaps, preparation times, tick times and the force's
+//! continuity at the swaps.
+//!
+//! `cargo run --release -p haptic-model --example region_follow -- --speed-mm-s 2 --paced`
+//!
+//! `--paced` runs the ticks on 1 ms deadlines, as the servo does, so the worker prepares
+//! regions in real time; without it the ticks run back to back (faster than real time: a
+//! harder test of the worker); `--blocking` makes every tick that requests a region wait for
+//! it (deterministic, as in the tests).
+
+use std::time::{Duration, Instant};
+
+use clap::Parser;
+use haptic_model::DVec3;
+use haptic_model::body::TickInput;
+use haptic_model::scene::load_scene_file;
+use haptic_model::sim::Simulation;
+
+#[derive(Parser)]
+struct Args {
+    /// Scene file with `[active_region] follow = true`.
+    #[arg(long, default_value = "deploy/scenes/lv_h1_condensed.toml")]
+    scene: String,
+    /// Sliding speed along the surface, mm/s.
+    #[arg(long, default_value_t = 2.0)]
+    speed_mm_s: f64,
+    /// Indentation of the device point below the rest surface, mm.
+    #[arg(long, default_value_t = 1.0)]
+    depth_mm: f64,
+    /// Arc to stroke, degrees around the long axis (180: to the other side).
+    #[arg(long, default_value_t = 180.0)]
+    arc_deg: f64,
+    /// Tick on 1 ms deadlines (real time).
+    #[arg(long)]
+    paced: bool,
+    /// Wait for every requested region (deterministic).
+    #[arg(long)]
+    blocking: bool,
+}
+
+/// Epicardium radius at z = -5 mm of the LV (10 x 10 x 20 mm ellipsoid), m.
+const EPI_R_M: f64 = 0.009_682;
+const Z_M: f64 = -0.005;
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    let mut scene = load_scene_file(std::path::Path::new(&args.scene))?;
+    let region = scene
+        .active_region
+        .as_mut()
+        .ok_or_else(|| anyhow::anyhow!("{} has no [active_region]", args.scene))?;
+    region.follow = true;
+    let t = Instant::now();
+    let mut sim = Simulation::new(&scene)?;
+    eprintln!(
+        "set-up {:.2} s; first region {:?}, {:.1} MB",
+        t.elapsed().as_secs_f64(),
+        sim.condensed().map(|c| c.sizes()),
+        sim.follow_stats()
+            .map_or(0.0, |s| s.region_bytes as f64 / 1e6)
+    );
+    sim.set_blocking_region_preparation(args.blocking);
+    let probe_r = scene.probe.radius_m;
+    let ring = EPI_R_M + probe_r - args.depth_mm * 1e-3;
+    let omega = args.speed_mm_s * 1e-3 / EPI_R_M;
+    let arc = args.arc_deg.to_radians();
+    let (press_s, settle_s) = (0.3, 0.3);
+    let stroke_s = arc / omega;
+    let total = ((press_s + settle_s + stroke_s + settle_s) * 1e3).ceil() as usize;
+    let mut ticks_us = Vec::with_capacity(total);
+    let mut forces = Vec::with_capacity(total);
+    let mut swap_ticks = Vec::new();
+    let mut lost_contact = 0usize;
+    let mut last_swaps = 0;
+    let start = Instant::now();
+    for k in 0..total {
+        let t_s = k as f64 * 1e-3;
+        let (theta, radius, speed) = if t_s < press_s {
+            let s = t_s / press_s;
+            (
+                0.0,
+                EPI_R_M + probe_r + 0.5e-3 - s * (0.5e-3 + args.depth_mm * 1e-3),
+                0.0,
+            )
+        } else if t_s < press_s + settle_s {
+            (0.0, ring, 0.0)
+        } else {
+            let ts = (t_s - press_s - settle_s).min(stroke_s);
+            let moving = t_s - press_s - settle_s < stroke_s;
+            (omega * ts, ring, if moving { omega * ring } else { 0.0 })
+        };
+        let p = DVec3::new(radius * theta.cos(), radius * theta.sin(), Z_M);
+        let vel = DVec3::new(-theta.sin(), theta.cos(), 0.0) * speed;
+        if args.paced {
+            let due = start + Duration::from_micros(1000 * k as u64);
+            while Instant::now() < due {
+                std::hint::spin_loop();
+            }
+        }
+        let t0 = Instant::now();
+        let out = sim.tick(&TickInput {
+            device_position_m: Some(p),
+            device_velocity_m_per_s: vel,
+        })?;
+        ticks_us.push(t0.elapsed().as_secs_f64() * 1e6);
+        forces.push(out.force_on_device_n);
+        if t_s >= press_s + settle_s && !out.in_contact {
+            lost_contact += 1;
+        }
+        let swaps = sim.follow_stats().map_or(0, |s| s.swaps);
+        if swaps != last_swaps {
+            swap_ticks.push(k);
+            last_swaps = swaps;
+        }
+    }
+    let stats = sim.follow_stats().unwrap_or_default();
+    let mut sorted = ticks_us.clone();
+    sorted.sort_by(f64::total_cmp);
+    let pct = |q: f64| sorted[((sorted.len() - 1) as f64 * q) as usize];
+    let jump = |k: usize| {
+        let (a, b) = (forces[k - 1], forces[k]);
+        (b - a).length() / a.length().max(1e-9)
+    };
+    let stroke = ((press_s + settle_s) * 1e3) as usize..total;
+    let max_jump_other = stroke
+        .clone()
+        .filter(|k| !swap_ticks.contains(k))
+        .map(jump)
+        .fold(0.0, f64::max);
+    let swap_jumps: Vec<f64> = swap_ticks.iter().map(|&k| jump(k)).collect();
+    let max_swap_jump = swap_jumps.iter().copied().fold(0.0, f64::max);
+    let swap_us: Vec<f64> = swap_ticks.iter().map(|&k| ticks_us[k]).collect();
+    let fmag: Vec<f64> = forces[stroke.clone()].iter().map(|f| f.length()).collect();
+    println!(
+        "speed {} mm/s, depth {} mm, {} ticks ({}): swaps {}, rejected {}, prepared {}, failed {}",
+        args.speed_mm_s,
+        args.depth_mm,
+        total,
+        if args.blocking {
+            "blocking"
+        } else if args.paced {
+            "paced 1 ms"
+        } else {
+            "back to back"
+        },
+        stats.swaps,
+        stats.rejected,
+        stats.prepared,
+        stats.failed
+    );
+    println!(
+        "preparation last {:.3} s, max {:.3} s; region {:.1} MB; final centre {:.2?} mm",
+        stats.last_prepare_s,
+        stats.max_prepare_s,
+        stats.region_bytes as f64 / 1e6,
+        (stats.centre_m * 1e3).to_array()
+    );
+    println!(
+        "tick p50 {:.0} us, p99 {:.0} us, max {:.0} us; swap ticks max {:.0} us",
+        pct(0.5),
+        pct(0.99),
+        pct(1.0),
+        swap_us.iter().copied().fold(0.0, f64::max)
+    );
+    println!(
+        "stroke: contact lost on {lost_contact} ticks; |F| {:.2}..{:.2} mN; largest tick-to-tick change {:.2} % at swaps, {:.2} % elsewhere",
+        fmag.iter().copied().fold(f64::INFINITY, f64::min) * 1e3,
+        fmag.iter().copied().fold(0.0, f64::max) * 1e3,
+        max_swap_jump * 100.0,
+        max_jump_other * 100.0
+    );
+    Ok(())
+}

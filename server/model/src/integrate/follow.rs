@@ -1,0 +1,410 @@
+//! The contact-local region follows the probe (issue 20): a worker thread prepares the next
+//! [`CondensedSolver`] around the touchable surface near the device while the servo ticks with
+//! the current one, and the servo swaps it in at a tick boundary.
+//!
+//! **Protocol.** Every [`POLL_TICKS`] ticks without a request in flight, the servo sends the
+//! device point (led by its velocity over the last preparation time, at most
+//! [`MAX_FOLLOW_SHIFT_RADII`] radii) and the current centre through a wait-free ring and
+//! unparks the worker. The worker picks the touchable node nearest that point (rest
+//! configuration) as the new centre, moved at most [`MAX_FOLLOW_SHIFT_RADII`] radii from the
+//! current one, and answers "nothing to do" when the device is farther than a radius from
+//! every touchable node or the centre would move less than [`RECENTRE_RADII`] radii; otherwise
+//! it condenses and factorises the new region ([`CondensedSolver::new`], then
+//! [`CondensedSolver::prepare_contact`]) and sends it back. At the next tick boundary the servo
+//! swaps it in when it is closer to the device than the current one and holds every node of
+//! the contact patch, handing the state over ([`CondensedSolver::hand_over`]: the nodes it
+//! newly simulates start from the old far field's static response); the region it replaces, or
+//! a rejected one, goes back to the worker to be freed. The servo side allocates nothing, takes
+//! no lock and never waits (except in [`RegionFollower::set_blocking`] mode, for tests and
+//! studies).
+//!
+//! **Until a region is ready** the current one answers: the probe's touchable surface is the
+//! whole body's, so a touch outside the region meets the far surface as the far field moves it
+//! (its nodes are not simulated: it does not yield to the probe, which rests on it instead of
+//! passing through). How fast the probe may slide is set by the preparation time:
+//! about [`MAX_FOLLOW_SHIFT_RADII`] radii per preparation (`docs/benchmarks.md`).
+//!
+//! Owns: the worker thread, the hand-off rings and the re-centring rule. May use:
+//! [`super::condensed`], [`crate::element`], [`crate::mesh`].
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::thread::Thread;
+use std::time::{Duration, Instant};
+
+use glam::DVec3;
+
+use super::condensed::{ActiveRegion, CondensedSolver, MAX_FOLLOW_SHIFT_RADII};
+use crate::ModelError;
+use crate::element::FemModel;
+use crate::mesh::TetMesh;
+
+/// Servo ticks between two requests when none is in flight.
+pub const POLL_TICKS: u64 = 20;
+
+/// The worker re-centres only when the centre would move at least this many radii.
+pub const RECENTRE_RADII: f64 = 0.25;
+
+/// A request from the servo: where the device is heading and where the region is.
+#[derive(Debug, Clone, Copy)]
+struct Request {
+    point_m: DVec3,
+    centre_m: DVec3,
+}
+
+/// The worker's answer.
+enum Prepared {
+    /// A new region, centred at `centre_m`, prepared in `seconds`.
+    Region {
+        solver: Box<CondensedSolver>,
+        centre_m: DVec3,
+    },
+    /// No re-centring needed (or the preparation failed: counted in [`Shared`]).
+    Nothing,
+}
+
+/// What the worker and the servo share: atomics only.
+#[derive(Debug, Default)]
+struct Shared {
+    stop: AtomicBool,
+    prepared: AtomicU64,
+    failed: AtomicU64,
+    /// Last and largest preparation time, s, as `f64` bits.
+    last_prepare_s: AtomicU64,
+    max_prepare_s: AtomicU64,
+}
+
+/// Counters of a following region, for reports.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct FollowStats {
+    /// Regions prepared by the worker.
+    pub prepared: u64,
+    /// Preparations that failed (a factorisation error; the current region stays).
+    pub failed: u64,
+    /// Regions swapped in.
+    pub swaps: u64,
+    /// Prepared regions not swapped in (the device had moved back, the contact patch left
+    /// the region, or a node it needs lay outside the current region's halo).
+    pub rejected: u64,
+    /// Last and largest preparation time, s.
+    pub last_prepare_s: f64,
+    /// Largest preparation time, s.
+    pub max_prepare_s: f64,
+    /// Centre of the region in use, m (rest configuration).
+    pub centre_m: DVec3,
+    /// Bytes held by the region in use ([`CondensedSolver::memory_bytes`]).
+    pub region_bytes: usize,
+}
+
+/// The servo's side of a following region (module documentation).
+pub struct RegionFollower {
+    requests: rtrb::Producer<Request>,
+    results: rtrb::Consumer<Prepared>,
+    returns: rtrb::Producer<Box<CondensedSolver>>,
+    /// A region waiting to go back to the worker (the return ring was full).
+    pending_return: Option<Box<CondensedSolver>>,
+    worker: Thread,
+    shared: Arc<Shared>,
+    radius_m: f64,
+    centre_m: DVec3,
+    in_flight: bool,
+    ticks: u64,
+    next_request_tick: u64,
+    blocking: bool,
+    swaps: u64,
+    rejected: u64,
+    region_bytes: usize,
+}
+
+impl std::fmt::Debug for RegionFollower {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RegionFollower")
+            .field("stats", &self.stats())
+            .finish()
+    }
+}
+
+impl RegionFollower {
+    /// Starts the worker for regions like `first` (its radius and margin) over `body` and
+    /// `mesh`, re-centred on `touchable_nodes` (rest positions of `body`), with tick `dt_s`.
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] (`active_region.follow`) when there is no touchable node or
+    /// the worker thread cannot be started.
+    pub fn spawn(
+        body: &FemModel,
+        mesh: &TetMesh,
+        touchable_nodes: &[u32],
+        first: &CondensedSolver,
+    ) -> Result<Self, ModelError> {
+        let mut nodes = touchable_nodes.to_vec();
+        nodes.sort_unstable();
+        nodes.dedup();
+        if nodes.is_empty() {
+            return Err(ModelError::field(
+                "active_region.follow",
+                "needs a touchable surface",
+            ));
+        }
+        let region = first.region();
+        let (requests, worker_requests) = rtrb::RingBuffer::new(1);
+        let (worker_results, results) = rtrb::RingBuffer::new(1);
+        let (returns, worker_returns) = rtrb::RingBuffer::new(4);
+        let shared = Arc::new(Shared::default());
+        let job = Worker {
+            body: body.clone(),
+            mesh: mesh.clone(),
+            nodes,
+            region,
+            dt_s: first.dt_s(),
+            requests: worker_requests,
+            results: worker_results,
+            returns: worker_returns,
+            shared: Arc::clone(&shared),
+        };
+        let handle = std::thread::Builder::new()
+            .name("region-prep".into())
+            .spawn(move || job.run())
+            .map_err(|e| {
+                ModelError::field(
+                    "active_region.follow",
+                    format!("cannot start the preparation thread: {e}"),
+                )
+            })?;
+        Ok(Self {
+            requests,
+            results,
+            returns,
+            pending_return: None,
+            worker: handle.thread().clone(),
+            shared,
+            radius_m: region.radius_m,
+            centre_m: region.centre_m,
+            in_flight: false,
+            ticks: 0,
+            next_request_tick: 0,
+            blocking: false,
+            swaps: 0,
+            rejected: 0,
+            region_bytes: first.memory_bytes(),
+        })
+    }
+
+    /// In blocking mode a tick that sends a request waits for the answer (and swaps at once):
+    /// deterministic, for tests and studies; never for a servo.
+    pub fn set_blocking(&mut self, on: bool) {
+        self.blocking = on;
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> FollowStats {
+        let f = |a: &AtomicU64| f64::from_bits(a.load(Ordering::Relaxed));
+        FollowStats {
+            prepared: self.shared.prepared.load(Ordering::Relaxed),
+            failed: self.shared.failed.load(Ordering::Relaxed),
+            swaps: self.swaps,
+            rejected: self.rejected,
+            last_prepare_s: f(&self.shared.last_prepare_s),
+            max_prepare_s: f(&self.shared.max_prepare_s),
+            centre_m: self.centre_m,
+            region_bytes: self.region_bytes,
+        }
+    }
+
+    /// Called by the body at the start of every tick, before any sub-step: swaps in a prepared
+    /// region (handing over `x`, `v`) and sends the next request. `device` is the device point
+    /// and velocity (m, m/s) when one is present, `patch` the nodes of the current contact
+    /// patch. Allocation-free, lock-free, never waits (unless blocking).
+    pub fn before_tick(
+        &mut self,
+        solver: &mut Box<CondensedSolver>,
+        device: Option<(DVec3, DVec3)>,
+        patch: &[u32],
+        x: &mut [DVec3],
+        v: &mut [DVec3],
+    ) {
+        self.ticks += 1;
+        if let Some(old) = self.pending_return.take() {
+            self.give_back(old);
+        }
+        self.take_result(solver, device, patch, x, v);
+        let Some((point, velocity)) = device else {
+            return;
+        };
+        if self.in_flight || self.ticks < self.next_request_tick {
+            return;
+        }
+        // Lead the device by its travel over one preparation (none when the tick waits).
+        let lead_s = if self.blocking {
+            0.0
+        } else {
+            f64::from_bits(self.shared.last_prepare_s.load(Ordering::Relaxed))
+        };
+        let lead = (velocity * lead_s).clamp_length_max(MAX_FOLLOW_SHIFT_RADII * self.radius_m);
+        let request = Request {
+            point_m: point + if lead.is_finite() { lead } else { DVec3::ZERO },
+            centre_m: self.centre_m,
+        };
+        if self.requests.push(request).is_ok() {
+            self.in_flight = true;
+            self.next_request_tick = self.ticks + POLL_TICKS;
+            self.worker.unpark();
+            if self.blocking {
+                while self.results.is_empty() {
+                    std::thread::sleep(Duration::from_micros(100));
+                }
+                self.take_result(solver, device, patch, x, v);
+            }
+        }
+    }
+
+    fn take_result(
+        &mut self,
+        solver: &mut Box<CondensedSolver>,
+        device: Option<(DVec3, DVec3)>,
+        patch: &[u32],
+        x: &mut [DVec3],
+        v: &mut [DVec3],
+    ) {
+        let Ok(prepared) = self.results.pop() else {
+            return;
+        };
+        self.in_flight = false;
+        let Prepared::Region {
+            solver: next,
+            centre_m,
+        } = prepared
+        else {
+            return;
+        };
+        // Near enough: closer to the device than the current centre, or (a region prepared
+        // ahead of a sliding probe) within the largest shift of it.
+        let near = device.is_none_or(|(p, _)| {
+            let d = p.distance(centre_m);
+            d < p.distance(self.centre_m) || d <= MAX_FOLLOW_SHIFT_RADII * self.radius_m
+        });
+        // The contact patch must be held at least as well as by the current region (a region
+        // outrun by the probe is replaced by one that holds more of its patch).
+        let held = |c: &CondensedSolver| patch.iter().filter(|&&i| c.is_active_node(i)).count();
+        let holds_patch = held(&next) >= held(solver);
+        if near && holds_patch && solver.hand_over(&next, x, v) {
+            let old = std::mem::replace(solver, next);
+            self.centre_m = centre_m;
+            self.region_bytes = solver.memory_bytes();
+            self.swaps += 1;
+            self.give_back(old);
+            // Ask again at once: the probe may have moved on while this one was prepared.
+            self.next_request_tick = self.ticks;
+        } else {
+            self.rejected += 1;
+            self.give_back(next);
+        }
+    }
+
+    /// Sends a region back to the worker to be freed there (never on the servo thread).
+    fn give_back(&mut self, region: Box<CondensedSolver>) {
+        match self.returns.push(region) {
+            Ok(()) => self.worker.unpark(),
+            Err(rtrb::PushError::Full(region)) => self.pending_return = Some(region),
+        }
+    }
+}
+
+impl Drop for RegionFollower {
+    fn drop(&mut self) {
+        // The worker exits after its current preparation; it is not joined (a drop on the
+        // servo's thread must not wait for a factorisation).
+        self.shared.stop.store(true, Ordering::Release);
+        self.worker.unpark();
+    }
+}
+
+/// The worker thread's state.
+struct Worker {
+    body: FemModel,
+    mesh: TetMesh,
+    nodes: Vec<u32>,
+    region: ActiveRegion,
+    dt_s: f64,
+    requests: rtrb::Consumer<Request>,
+    results: rtrb::Producer<Prepared>,
+    returns: rtrb::Consumer<Box<CondensedSolver>>,
+    shared: Arc<Shared>,
+}
+
+impl Worker {
+    fn run(mut self) {
+        loop {
+            while let Ok(old) = self.returns.pop() {
+                drop(old);
+            }
+            if self.shared.stop.load(Ordering::Acquire) {
+                return;
+            }
+            match self.requests.pop() {
+                Ok(request) => {
+                    let answer = self.prepare(request);
+                    // The servo sends one request at a time and reads the answer before the
+                    // next, so the ring has room.
+                    let _ = self.results.push(answer);
+                }
+                Err(_) => std::thread::park_timeout(Duration::from_millis(50)),
+            }
+        }
+    }
+
+    /// The touchable node nearest `p`, and its distance, m.
+    fn nearest(&self, p: DVec3) -> (DVec3, f64) {
+        let rest = self.body.rest();
+        self.nodes
+            .iter()
+            .map(|&i| rest[i as usize])
+            .map(|q| (q, q.distance(p)))
+            .fold((p, f64::INFINITY), |a, b| if b.1 < a.1 { b } else { a })
+    }
+
+    fn prepare(&self, request: Request) -> Prepared {
+        let radius = self.region.radius_m;
+        let (mut centre, d) = self.nearest(request.point_m);
+        if d > radius {
+            return Prepared::Nothing;
+        }
+        let shift = centre - request.centre_m;
+        let max_shift = MAX_FOLLOW_SHIFT_RADII * radius;
+        if shift.length() > max_shift {
+            centre = self
+                .nearest(request.centre_m + shift.clamp_length_max(0.9 * max_shift))
+                .0;
+        }
+        if centre.distance(request.centre_m) < RECENTRE_RADII * radius {
+            return Prepared::Nothing;
+        }
+        let start = Instant::now();
+        let region = ActiveRegion {
+            centre_m: centre,
+            ..self.region
+        };
+        match CondensedSolver::new(&self.body, &self.mesh, region, self.dt_s) {
+            Ok(mut solver) => {
+                solver.prepare_contact(&self.nodes);
+                let s = start.elapsed().as_secs_f64();
+                self.shared
+                    .last_prepare_s
+                    .store(s.to_bits(), Ordering::Relaxed);
+                let max = f64::from_bits(self.shared.max_prepare_s.load(Ordering::Relaxed));
+                self.shared
+                    .max_prepare_s
+                    .store(max.max(s).to_bits(), Ordering::Relaxed);
+                self.shared.prepared.fetch_add(1, Ordering::Relaxed);
+                Prepared::Region {
+                    solver: Box::new(solver),
+                    centre_m: centre,
+                }
+            }
+            Err(_) => {
+                self.shared.failed.fetch_add(1, Ordering::Relaxed);
+                Prepared::Nothing
+            }
+        }
+    }
+}
