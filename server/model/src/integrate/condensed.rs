@@ -37,7 +37,9 @@
 //! [`CondensedSolver::step`] allocates nothing.
 //!
 //! Limits: the ball is fixed when the model is built (a contact outside it is not seen: the
-//! caller restricts the touchable surface, [`CondensedSolver::is_active_triangle`]); far
+//! caller restricts the touchable surface, [`CondensedSolver::is_active_triangle`]), unless it
+//! follows the probe ([`ActiveRegion::follow`], [`crate::integrate::follow`]: successive
+//! solvers, the state handed over by [`CondensedSolver::hand_over`]); far
 //! elements are linear (small rotations), so the ball must contain every element that strains
 //! or rotates appreciably; external loads act on active nodes only. The far part's boundary
 //! nodes (what viewers draw) are refreshed from the interface a slice per tick
