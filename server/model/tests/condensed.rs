@@ -8,7 +8,8 @@
 //! - scene errors for a bad `[active_region]`;
 //! - a following region (`active_region.follow`) carries a stroke around the ventricle: the
 //!   probe never falls through, the force and the energy are continuous at the swaps, and the
-//!   force held after the slide matches the one before it (the ventricle's symmetry).
+//!   force held after the slide matches the one before it (the ventricle's symmetry); pressed at
+//!   ten random points of the touchable surface it gives the whole body's force.
 
 use std::path::Path;
 
@@ -641,4 +642,87 @@ fn a_following_region_carries_a_stroke_around_the_ventricle() {
     );
     let st = sim.stability();
     assert!(st.stable && st.inverted_elements == 0, "{st:?}");
+}
+
+/// The device force held after pressing `depth` (m) along the inward normal `-n` at the rest
+/// surface point `p`: from 0.5 mm outside the sphere's first contact, over 0.3 s (smoothstep),
+/// then held; the mean over ticks 1400..1500.
+fn press_at(sim: &mut Simulation, p: DVec3, n: DVec3, depth: f64) -> f64 {
+    let mut sum = 0.0;
+    for k in 0..1500 {
+        let t = (k as f64 * 1e-3 / 0.3).min(1.0);
+        let s = t * t * (3.0 - 2.0 * t);
+        let out = sim
+            .tick(&TickInput {
+                device_position_m: Some(p + n * (0.0025 - s * (0.0005 + depth))),
+                device_velocity_m_per_s: DVec3::ZERO,
+            })
+            .expect("tick");
+        if k >= 1400 {
+            sum += out.force_on_device_n.length();
+        }
+    }
+    sum / 100.0
+}
+
+#[test]
+fn a_following_region_presses_right_at_ten_random_points() {
+    let region = ActiveRegion {
+        radius_m: 0.007,
+        follow: true,
+        ..ACTIVE
+    };
+    let scene = lv_scene(
+        StrainSmoothing::None,
+        IntegratorKind::BackwardEuler,
+        Some(region),
+    );
+    let whole_scene = lv_scene(StrainSmoothing::None, IntegratorKind::SymplecticEuler, None);
+    let rest = scene.mesh.nodes.clone();
+    // Ten touchable triangles drawn with a fixed seed (a 64-bit LCG), away from the clamped
+    // base by at least the region's radius (where the press would hold clamped nodes only).
+    let mut state = 0x9e37_79b9_7f4a_7c15_u64;
+    let mut next = || {
+        state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        (state >> 33) as usize
+    };
+    let mut points = Vec::new();
+    while points.len() < 10 {
+        let t = scene.touchable[next() % scene.touchable.len()];
+        let [a, b, c] = t.map(|i| rest[i as usize]);
+        let centroid = (a + b + c) / 3.0;
+        if centroid.z > 0.005 - 0.007 {
+            continue;
+        }
+        points.push((centroid, (b - a).cross(c - a).normalize()));
+    }
+    let mut worst = 0.0f64;
+    for (k, &(p, n)) in points.iter().enumerate() {
+        let mut following = Simulation::new(&scene).expect("following");
+        following.set_blocking_region_preparation(true);
+        let fc = press_at(&mut following, p, n, 0.001);
+        let stats = following.follow_stats().expect("follows");
+        let mut whole = Simulation::new(&whole_scene).expect("whole");
+        let fw = press_at(&mut whole, p, n, 0.001);
+        let rel = (fc - fw) / fw;
+        eprintln!(
+            "point {k} at {:.2?} mm: following {fc:.5} N ({} swaps, centre {:.2?} mm), whole body {fw:.5} N, {:+.2} %",
+            (p * 1e3).to_array(),
+            stats.swaps,
+            (stats.centre_m * 1e3).to_array(),
+            rel * 100.0
+        );
+        assert!(fw > 0.003, "point {k}: whole-body force {fw} N");
+        assert!(
+            stats.centre_m.distance(p) < 0.5 * region.radius_m,
+            "point {k}: region at {:?}, press at {p:?}",
+            stats.centre_m
+        );
+        worst = worst.max(rel.abs());
+    }
+    // The 7 % force JND, against the whole body of the same mesh (the condensation's own
+    // error: far elements linear; 1-3 % at the equator point).
+    assert!(worst < 0.07, "largest difference {worst}");
 }

@@ -88,13 +88,13 @@ pub struct ActiveRegion {
     pub follow: bool,
 }
 
-/// A following region keeps the far-field map of the far nodes within this many radii of its
-/// centre (plus the longest edge), so that a successor centred up to
-/// [`MAX_FOLLOW_SHIFT_RADII`] radii away finds the displacement of every node it activates.
-pub const HALO_RADII: f64 = 1.6;
+/// A following region is swapped in when the device is within this many radii of its centre
+/// (or nearer to it than to the current one; [`crate::integrate::follow`]).
+pub const FOLLOW_NEAR_RADII: f64 = 0.5;
 
-/// Largest distance between the centres of two successive following regions, in radii.
-pub const MAX_FOLLOW_SHIFT_RADII: f64 = 0.5;
+/// A following region's next centre leads the device by its velocity times the preparation
+/// time, at most this many radii ([`crate::integrate::follow`]).
+pub const FOLLOW_LEAD_RADII: f64 = 1.0;
 
 /// The condensed boundary nodes (what viewers see of the far part) are refreshed from the
 /// interface over this many ticks, a slice per tick ([`CondensedSolver::step`]).
@@ -193,17 +193,18 @@ pub struct CondensedSolver {
     contact_z: Vec<f32>,
     /// Scratch: `A^-1 U`.
     z1: Vec<f64>,
-    /// Global components of the far boundary nodes (free ones).
-    surface_dofs: Vec<usize>,
+    /// Global component of each row of `map`: the far boundary's free components, or every
+    /// far free component for a following region.
+    map_dofs: Vec<usize>,
     /// Their displacement per interface displacement, `-(K_FF^-1 K_FG)` rows, row-major
-    /// `|surface_dofs| x g`, single precision.
-    surface_map: Vec<f32>,
-    /// Following regions: the far components near the region (within [`HALO_RADII`]) and
-    /// their rows of `-(K_FF^-1 K_FG)` (row-major `|halo| x g`, single precision), per global
-    /// component its row or `u32::MAX` ([`Self::hand_over`]).
-    halo_row: Vec<u32>,
-    halo_map: Vec<f32>,
-    /// Next row of `surface_map` to refresh.
+    /// `|map_dofs| x g`, single precision.
+    map: Vec<f32>,
+    /// Rows of `map` on the far boundary (what viewers see), refreshed a slice per tick.
+    surface_rows: Vec<u32>,
+    /// Following regions: per global component its row of `map` or `u32::MAX`
+    /// ([`Self::hand_over`]); empty otherwise.
+    map_row: Vec<u32>,
+    /// Next entry of `surface_rows` to refresh.
     surface_cursor: usize,
     u_gamma: Vec<f64>,
     far: FarField,
@@ -461,37 +462,28 @@ impl CondensedSolver {
             }
         });
         let mut schur = kgg;
-        // Far boundary components, whose rows of `-X` map `u_G` to their displacement (the
-        // surface viewers see, refreshed a slice per tick).
+        // Rows of `-X` kept: the far boundary components (the surface viewers see, refreshed a
+        // slice per tick), or for a following region every far component (a successor may
+        // activate any far node: `hand_over`).
         let mut on_boundary = vec![false; n];
         for t in mesh.boundary_triangles() {
             for i in t {
                 on_boundary[i as usize] = true;
             }
         }
-        let surface_far: Vec<usize> = (0..f).filter(|&k| on_boundary[far_dofs[k] / 3]).collect();
-        let mut surface_map = vec![0.0f32; surface_far.len() * g];
-        let halo_far: Vec<usize> = if region.follow {
-            let longest = mesh
-                .tets
-                .iter()
-                .flat_map(|t| {
-                    let p = t.map(|i| body.rest()[i as usize]);
-                    [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
-                        .map(|(a, b)| p[a].distance(p[b]))
-                })
-                .fold(0.0, f64::max);
-            let reach = HALO_RADII * region.radius_m + longest;
-            (0..f)
-                .filter(|&k| body.rest()[far_dofs[k] / 3].distance(region.centre_m) <= reach)
-                .collect()
-        } else {
-            Vec::new()
-        };
-        let mut halo_map = vec![0.0f32; halo_far.len() * g];
-        let mut halo_row = vec![u32::MAX; if region.follow { 3 * n } else { 0 }];
-        for (r, &k) in halo_far.iter().enumerate() {
-            halo_row[far_dofs[k]] = r as u32;
+        let map_far: Vec<usize> = (0..f)
+            .filter(|&k| region.follow || on_boundary[far_dofs[k] / 3])
+            .collect();
+        let surface_rows: Vec<u32> = (0..map_far.len())
+            .filter(|&r| on_boundary[far_dofs[map_far[r]] / 3])
+            .map(|r| r as u32)
+            .collect();
+        let mut map = vec![0.0f32; map_far.len() * g];
+        let mut map_row = vec![u32::MAX; if region.follow { 3 * n } else { 0 }];
+        if region.follow {
+            for (r, &k) in map_far.iter().enumerate() {
+                map_row[far_dofs[k]] = r as u32;
+            }
         }
         let llt = if f > 0 {
             let far_nodes: Vec<usize> = far_dofs.iter().map(|&d| d / 3).collect();
@@ -516,14 +508,9 @@ impl CondensedSolver {
                     }
                 }
                 llt.solve_in_place(x.as_mut());
-                for (r, &k) in surface_far.iter().enumerate() {
+                for (r, &k) in map_far.iter().enumerate() {
                     for j in 0..w {
-                        surface_map[r * g + j0 + j] = -x[(k, j)] as f32;
-                    }
-                }
-                for (r, &k) in halo_far.iter().enumerate() {
-                    for j in 0..w {
-                        halo_map[r * g + j0 + j] = -x[(k, j)] as f32;
+                        map[r * g + j0 + j] = -x[(k, j)] as f32;
                     }
                 }
                 // S[gi, j0 + j] -= sum_fr K_FG[fr, gi] X[fr, j]
@@ -642,10 +629,10 @@ impl CondensedSolver {
             contact_z: Vec::new(),
             z1: vec![0.0; m_eq],
             u_gamma: vec![0.0; g],
-            surface_dofs: surface_far.iter().map(|&k| far_dofs[k]).collect(),
-            surface_map,
-            halo_row,
-            halo_map,
+            map_dofs: map_far.iter().map(|&k| far_dofs[k]).collect(),
+            map,
+            surface_rows,
+            map_row,
             surface_cursor: 0,
             far: FarField {
                 dofs: far_dofs,
@@ -766,17 +753,14 @@ impl CondensedSolver {
         }
         // Far boundary nodes: a slice of rows per tick, so the surface is at most
         // `SURFACE_REFRESH_TICKS` ticks behind the interface.
-        let rows = self.surface_dofs.len();
+        let rows = self.surface_rows.len();
         if rows > 0 {
             let per_tick = rows.div_ceil(SURFACE_REFRESH_TICKS);
             let end = (self.surface_cursor + per_tick).min(rows);
-            for r in self.surface_cursor..end {
-                let d = self.surface_dofs[r];
-                let u = dot(
-                    self.avx2,
-                    &self.surface_map[r * g..(r + 1) * g],
-                    &self.u_gamma,
-                );
+            for &r in &self.surface_rows[self.surface_cursor..end] {
+                let r = r as usize;
+                let d = self.map_dofs[r];
+                let u = dot(self.avx2, &self.map[r * g..(r + 1) * g], &self.u_gamma);
                 x[d / 3][d % 3] = rest[d / 3][d % 3] + u;
             }
             self.surface_cursor = if end == rows { 0 } else { end };
@@ -881,12 +865,13 @@ impl CondensedSolver {
     /// Hands the state over from `self` (the region in use) to `next` at a tick boundary:
     /// every node `next` simulates that `self` condenses gets the displacement the far field
     /// of `self` gives it for the current interface displacement (`u = -K_FF^-1 K_FG u_G`,
-    /// from the halo rows kept when `self` was built with [`ActiveRegion::follow`]) and zero
+    /// from the map of every far component kept when `self` was built with
+    /// [`ActiveRegion::follow`]) and zero
     /// velocity (the far field is quasi-static); nodes both simulate keep their state, and
     /// nodes only `self` simulates keep their positions (`next` refreshes its far surface
     /// from its own map) with zero velocity.
-    /// Returns `false`, touching nothing, when `next` activates a node outside the halo of
-    /// `self` (a centre too far away). Costs `3 g` multiply-adds per such node (`g` interface
+    /// Returns `false`, touching nothing, when `self` has no such map (not built to follow).
+    /// Costs `3 g` multiply-adds per such node (`g` interface
     /// components of `self`); allocation-free.
     ///
     /// # Panics
@@ -897,7 +882,7 @@ impl CondensedSolver {
         let missing = next
             .eq_dof
             .iter()
-            .any(|&d| taken(d) && self.halo_row.get(d).is_none_or(|&r| r == u32::MAX));
+            .any(|&d| taken(d) && self.map_row.get(d).is_none_or(|&r| r == u32::MAX));
         if missing {
             return false;
         }
@@ -908,8 +893,8 @@ impl CondensedSolver {
         let g = self.gamma_dof.len();
         for &d in &next.eq_dof {
             if taken(d) {
-                let r = self.halo_row[d] as usize;
-                let u = dot(self.avx2, &self.halo_map[r * g..(r + 1) * g], &self.u_gamma);
+                let r = self.map_row[d] as usize;
+                let u = dot(self.avx2, &self.map[r * g..(r + 1) * g], &self.u_gamma);
                 x[d / 3][d % 3] = rest[d / 3][d % 3] + u;
                 v[d / 3][d % 3] = 0.0;
             }
@@ -928,11 +913,7 @@ impl CondensedSolver {
     /// factor), for reports; index arrays and the active elements' model are not counted.
     pub fn memory_bytes(&self) -> usize {
         let far = self.far.llt.as_ref().map_or(0, |l| 8 * l.factor_entries());
-        4 * (self.factor.len()
-            + self.schur.len()
-            + self.contact_z.len()
-            + self.surface_map.len()
-            + self.halo_map.len())
+        4 * (self.factor.len() + self.schur.len() + self.contact_z.len() + self.map.len())
             + 24 * self.far.kfg.len()
             + far
     }
@@ -958,7 +939,7 @@ impl CondensedSolver {
     /// interface displacement, `u_F = -K_FF^-1 K_FG u_G` (one sparse solve; allocates). Far
     /// velocities are left as they are (zero for a quasi-static far field).
     /// A following region ([`ActiveRegion::follow`]) keeps no far factor: it sets the far
-    /// boundary and halo nodes from their maps instead.
+    /// nodes from its map of every far component instead.
     pub fn recover_far_field(&self, x: &mut [DVec3]) {
         let Some(llt) = &self.far.llt else {
             let g = self.gamma_dof.len();
@@ -968,16 +949,9 @@ impl CondensedSolver {
                 .iter()
                 .map(|&d| x[d / 3][d % 3] - rest[d / 3][d % 3])
                 .collect();
-            for (r, &d) in self.surface_dofs.iter().enumerate() {
-                x[d / 3][d % 3] = rest[d / 3][d % 3]
-                    + dot(self.avx2, &self.surface_map[r * g..(r + 1) * g], &u_gamma);
-            }
-            for (d, &r) in self.halo_row.iter().enumerate() {
-                if r != u32::MAX {
-                    let r = r as usize;
-                    x[d / 3][d % 3] = rest[d / 3][d % 3]
-                        + dot(self.avx2, &self.halo_map[r * g..(r + 1) * g], &u_gamma);
-                }
+            for (r, &d) in self.map_dofs.iter().enumerate() {
+                x[d / 3][d % 3] =
+                    rest[d / 3][d % 3] + dot(self.avx2, &self.map[r * g..(r + 1) * g], &u_gamma);
             }
             return;
         };

@@ -4,16 +4,16 @@
 //!
 //! **Protocol.** Every [`POLL_TICKS`] ticks without a request in flight, the servo sends the
 //! device point (led by its velocity over the last preparation time, at most
-//! [`MAX_FOLLOW_SHIFT_RADII`] radii) and the current centre through a wait-free ring and
-//! unparks the worker. The worker picks the touchable node nearest that point (rest
-//! configuration) as the new centre, moved at most [`MAX_FOLLOW_SHIFT_RADII`] radii from the
-//! current one, and answers "nothing to do" when the device is farther than a radius from
+//! [`FOLLOW_LEAD_RADII`] radii) and the current centre through a wait-free ring and unparks
+//! the worker. The worker picks the touchable node nearest that point (rest configuration) as
+//! the new centre, and answers "nothing to do" when the device is farther than a radius from
 //! every touchable node or the centre would move less than [`RECENTRE_RADII`] radii; otherwise
 //! it condenses and factorises the new region ([`CondensedSolver::new`], then
 //! [`CondensedSolver::prepare_contact`]) and sends it back. At the next tick boundary the servo
-//! swaps it in when it is closer to the device than the current one and holds every node of
-//! the contact patch, handing the state over ([`CondensedSolver::hand_over`]: the nodes it
-//! newly simulates start from the old far field's static response); the region it replaces, or
+//! swaps it in when it is closer to the device than the current one (or within
+//! [`FOLLOW_NEAR_RADII`] radii of it) and holds at least as many nodes of the contact patch,
+//! handing the state over ([`CondensedSolver::hand_over`]: the nodes it newly simulates start
+//! from the old far field's static response); the region it replaces, or
 //! a rejected one, goes back to the worker to be freed. The servo side allocates nothing, takes
 //! no lock and never waits (except in [`RegionFollower::set_blocking`] mode, for tests and
 //! studies).
@@ -21,8 +21,9 @@
 //! **Until a region is ready** the current one answers: the probe's touchable surface is the
 //! whole body's, so a touch outside the region meets the far surface as the far field moves it
 //! (its nodes are not simulated: it does not yield to the probe, which rests on it instead of
-//! passing through). How fast the probe may slide is set by the preparation time:
-//! about [`MAX_FOLLOW_SHIFT_RADII`] radii per preparation (`docs/benchmarks.md`).
+//! passing through). How fast the probe may slide is set by the preparation time: the probe
+//! must stay well inside a region (its contact patch reaches two probe radii) until the next
+//! one is ready (`docs/benchmarks.md`).
 //!
 //! Owns: the worker thread, the hand-off rings and the re-centring rule. May use:
 //! [`super::condensed`], [`crate::element`], [`crate::mesh`].
@@ -34,7 +35,7 @@ use std::time::{Duration, Instant};
 
 use glam::DVec3;
 
-use super::condensed::{ActiveRegion, CondensedSolver, MAX_FOLLOW_SHIFT_RADII};
+use super::condensed::{ActiveRegion, CondensedSolver, FOLLOW_LEAD_RADII, FOLLOW_NEAR_RADII};
 use crate::ModelError;
 use crate::element::FemModel;
 use crate::mesh::TetMesh;
@@ -84,7 +85,7 @@ pub struct FollowStats {
     /// Regions swapped in.
     pub swaps: u64,
     /// Prepared regions not swapped in (the device had moved back, the contact patch left
-    /// the region, or a node it needs lay outside the current region's halo).
+    /// the region).
     pub rejected: u64,
     /// Last and largest preparation time, s.
     pub last_prepare_s: f64,
@@ -240,7 +241,7 @@ impl RegionFollower {
         } else {
             f64::from_bits(self.shared.last_prepare_s.load(Ordering::Relaxed))
         };
-        let lead = (velocity * lead_s).clamp_length_max(MAX_FOLLOW_SHIFT_RADII * self.radius_m);
+        let lead = (velocity * lead_s).clamp_length_max(FOLLOW_LEAD_RADII * self.radius_m);
         let request = Request {
             point_m: point + if lead.is_finite() { lead } else { DVec3::ZERO },
             centre_m: self.centre_m,
@@ -281,7 +282,7 @@ impl RegionFollower {
         // ahead of a sliding probe) within the largest shift of it.
         let near = device.is_none_or(|(p, _)| {
             let d = p.distance(centre_m);
-            d < p.distance(self.centre_m) || d <= MAX_FOLLOW_SHIFT_RADII * self.radius_m
+            d < p.distance(self.centre_m) || d <= FOLLOW_NEAR_RADII * self.radius_m
         });
         // The contact patch must be held at least as well as by the current region (a region
         // outrun by the probe is replaced by one that holds more of its patch).
@@ -365,16 +366,9 @@ impl Worker {
 
     fn prepare(&self, request: Request) -> Prepared {
         let radius = self.region.radius_m;
-        let (mut centre, d) = self.nearest(request.point_m);
+        let (centre, d) = self.nearest(request.point_m);
         if d > radius {
             return Prepared::Nothing;
-        }
-        let shift = centre - request.centre_m;
-        let max_shift = MAX_FOLLOW_SHIFT_RADII * radius;
-        if shift.length() > max_shift {
-            centre = self
-                .nearest(request.centre_m + shift.clamp_length_max(0.9 * max_shift))
-                .0;
         }
         if centre.distance(request.centre_m) < RECENTRE_RADII * radius {
             return Prepared::Nothing;
