@@ -301,6 +301,8 @@ pub fn stats_rows(s: &SessionStats) -> Vec<StatRow> {
             U64(s.watcher_queue_limit_bytes),
             "bytes",
         ),
+        row("region_swaps", U64(s.region_swaps), "count"),
+        row("region_preparation_s", f(s.region_preparation_s, 3), "s"),
     ]
 }
 

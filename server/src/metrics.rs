@@ -261,6 +261,14 @@ impl Collector for SessionCollector {
         per_session(
             e,
             &rows,
+            "hapticd_region_swaps_total",
+            "Active regions swapped in by a region that follows the probe",
+            Counter,
+            |r| Value::Counter(r.stats.body.region_swaps),
+        )?;
+        per_session(
+            e,
+            &rows,
             "hapticd_active_particles",
             "Meshfree particles simulated now",
             Gauge,

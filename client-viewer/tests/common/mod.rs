@@ -225,6 +225,8 @@ pub fn canned_stats(id: &str) -> SessionStats {
         watcher_bytes_sent: 987_654,
         watcher_queued_bytes: 4321,
         watcher_queue_limit_bytes: 65_536,
+        region_swaps: 12,
+        region_preparation_s: 1.234,
     }
 }
 

@@ -111,6 +111,10 @@ pub struct BodyStats {
     pub sim_time_s: f64,
     /// Largest nodal displacement from rest, m.
     pub max_displacement_m: f64,
+    /// Regions swapped in so far by a following active region (0 otherwise).
+    pub region_swaps: u64,
+    /// Preparation time of the last region a following active region prepared, s (0 if none).
+    pub region_preparation_s: f64,
 }
 
 /// A deformable body the servo can drive (module documentation). Implementations must keep

@@ -621,6 +621,8 @@ impl SoftBody for Simulation {
             topology_version: 0,
             sim_time_s: self.state.time_s,
             max_displacement_m: self.max_displacement_m(),
+            region_swaps: self.follow_stats().map_or(0, |f| f.swaps),
+            region_preparation_s: self.follow_stats().map_or(0.0, |f| f.last_prepare_s),
         }
     }
 

@@ -704,6 +704,7 @@ impl SoftBody for HybridBody {
             topology_version: 1,
             sim_time_s: self.time_s,
             max_displacement_m,
+            ..BodyStats::default()
         }
     }
 

@@ -1123,6 +1123,7 @@ impl SoftBody for MassSpringBody {
             topology_version: self.version,
             sim_time_s: self.time_s,
             max_displacement_m: self.max_displacement_m(),
+            ..BodyStats::default()
         }
     }
 
