@@ -46,14 +46,29 @@ const Z_M: f64 = -0.005;
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
+    let t = Instant::now();
     let mut scene = load_scene_file(std::path::Path::new(&args.scene))?;
+    eprintln!(
+        "scene loaded in {:.2} s: {} nodes, {} tets; peak memory {:.0} MB",
+        t.elapsed().as_secs_f64(),
+        scene.mesh.nodes.len(),
+        scene.mesh.tets.len(),
+        peak_memory_mb()
+    );
     let region = scene
         .active_region
         .as_mut()
         .ok_or_else(|| anyhow::anyhow!("{} has no [active_region]", args.scene))?;
     region.follow = true;
     let t = Instant::now();
-    let mut sim = Simulation::new(&scene)?;
+    let mut sim = Simulation::new_with_progress(&scene, &mut |stage, fraction| {
+        eprintln!(
+            "  {:6.2} s {:3.0} % {stage} (peak memory {:.0} MB)",
+            t.elapsed().as_secs_f64(),
+            100.0 * fraction,
+            peak_memory_mb()
+        );
+    })?;
     eprintln!(
         "set-up {:.2} s; first region {:?}, {:.1} MB",
         t.elapsed().as_secs_f64(),
@@ -172,4 +187,16 @@ fn main() -> anyhow::Result<()> {
         max_jump_other * 100.0
     );
     Ok(())
+}
+
+/// Peak resident memory of this process (VmHWM), MB; 0 where /proc is not readable.
+fn peak_memory_mb() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
+        })
+        .map_or(0.0, |kb| kb / 1e3)
 }

@@ -78,7 +78,8 @@ pub fn build_body(scene: &scene::Scene) -> Result<Box<dyn body::SoftBody>, Model
 }
 
 /// [`build_body`] reporting the preprocessing's progress (`stage`, fraction in `[0, 1]`) for
-/// families that preprocess (the hybrid model, [`hybrid::prepare`]).
+/// families that preprocess (the hybrid model, [`hybrid::prepare`]; the FEM with a
+/// contact-local active region, [`sim::Simulation::new_with_progress`]).
 ///
 /// # Errors
 /// As [`build_body`]; for the hybrid family the errors of [`hybrid::prepare`] and
@@ -108,7 +109,9 @@ pub fn build_body_with_progress(
                 &scene.name,
             )?))
         }
-        scene::ModelFamily::Fem => Ok(Box::new(sim::Simulation::new(scene)?)),
+        scene::ModelFamily::Fem => Ok(Box::new(sim::Simulation::new_with_progress(
+            scene, progress,
+        )?)),
         scene::ModelFamily::MassSpring => {
             let ms = scene.mass_spring.as_ref().ok_or_else(|| {
                 ModelError::field(

@@ -104,7 +104,23 @@ impl Simulation {
     /// active region; [`ModelError::Unstable`] when the integrator cannot be stable within
     /// `max_substeps`.
     pub fn new(scene: &Scene) -> Result<Self, ModelError> {
-        Self::from_fem(scene.fem_model()?, scene)
+        Self::new_with_progress(scene, &mut |_, _| {})
+    }
+
+    /// [`Simulation::new`] reporting its stages, `progress(stage, fraction)` with the fraction
+    /// done in `[0, 1]`: the FEM data, then (a contact-local active region) the condensation
+    /// ([`crate::integrate::CondensedSolver::new_with_progress`]), which takes seconds on large
+    /// meshes.
+    ///
+    /// # Errors
+    /// As [`Simulation::new`].
+    pub fn new_with_progress(
+        scene: &Scene,
+        progress: &mut dyn FnMut(&str, f64),
+    ) -> Result<Self, ModelError> {
+        progress("FEM data", 0.0);
+        let fem = scene.fem_model()?;
+        Self::from_fem_with_progress(fem, scene, &mut |stage, f| progress(stage, 0.1 + 0.9 * f))
     }
 
     /// Like [`Simulation::new`] but with a prepared [`FemModel`] (e.g. with roller constraints).
@@ -112,6 +128,14 @@ impl Simulation {
     /// # Errors
     /// As [`Simulation::new`].
     pub fn from_fem(fem: FemModel, scene: &Scene) -> Result<Self, ModelError> {
+        Self::from_fem_with_progress(fem, scene, &mut |_, _| {})
+    }
+
+    fn from_fem_with_progress(
+        fem: FemModel,
+        scene: &Scene,
+        progress: &mut dyn FnMut(&str, f64),
+    ) -> Result<Self, ModelError> {
         let p = scene.integrator;
         if !(p.tick_s > 0.0 && p.tick_s.is_finite()) {
             return Err(ModelError::field(
@@ -128,7 +152,14 @@ impl Simulation {
         probe_params.hertz_modulus_pa = e / (1.0 - nu * nu);
         let critical = integrate::critical_time_step(&fem, p.kind);
         let plan = integrate::plan_steps(&p, critical)?;
-        let mut stepper = Stepper::new(&fem, &scene.mesh, &p, &plan, scene.active_region)?;
+        let mut stepper = Stepper::new_with_progress(
+            &fem,
+            &scene.mesh,
+            &p,
+            &plan,
+            scene.active_region,
+            progress,
+        )?;
         let n = fem.node_count();
         let boundary = scene.mesh.boundary_triangles();
         let load_surface: Vec<[u32; 3]> = boundary

@@ -127,6 +127,7 @@ fn every_deploy_scene_loads_with_the_right_mesh() {
         ("lv_h1.toml", Some((4398, 17924))),
         ("lv_h1_es.toml", Some((4398, 17924))),
         ("lv_h1_condensed.toml", Some((4398, 17924))),
+        ("lv_100k_condensed.toml", Some((20328, 100260))),
         ("lv.toml", None),
         ("ellipsoids.toml", None),
     ];

@@ -51,8 +51,8 @@
 use std::sync::Arc;
 
 use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
+use faer::sparse::SparseColMat;
 use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky};
-use faer::sparse::{SparseColMat, Triplet};
 use faer::{Conj, Mat, Par, Side};
 use glam::DVec3;
 
@@ -277,6 +277,26 @@ fn axpy3(avx2: bool, z: &mut [f64], a: [f64; 3], y: &[f32]) {
     axpy3_plain(z, a, y);
 }
 
+/// One assembly entry: row, column (32-bit: the triplets of an edge-smoothed far part run to
+/// tens of millions, and a third less memory matters there) and value.
+#[derive(Clone, Copy)]
+struct Entry<T> {
+    row: u32,
+    col: u32,
+    val: T,
+}
+
+impl<T> Entry<T> {
+    fn new(row: usize, col: usize, val: T) -> Self {
+        // Indices are equation numbers, below 3 n (checked in `CondensedSolver::new`).
+        Self {
+            row: row as u32,
+            col: col as u32,
+            val,
+        }
+    }
+}
+
 /// Square `n x n` sparse matrix from triplets, duplicates summed. A counting sort by column
 /// and a dense row marker per column: linear in the triplets, where a general sort of the
 /// millions of triplets of an edge-smoothed far part took a fifth of a region's preparation.
@@ -285,9 +305,9 @@ fn axpy3(avx2: bool, z: &mut [f64], a: [f64; 3], y: &[f32]) {
 /// [`ModelError::InvalidMesh`] for an index out of range.
 fn sparse<T: Copy + Default + std::ops::AddAssign + faer::traits::ComplexField>(
     n: usize,
-    t: &[Triplet<usize, usize, T>],
+    t: &[Entry<T>],
 ) -> Result<SparseColMat<usize, T>, ModelError> {
-    if t.iter().any(|e| e.row >= n || e.col >= n) {
+    if t.iter().any(|e| e.row as usize >= n || e.col as usize >= n) {
         return Err(ModelError::InvalidMesh(
             "sparse assembly: an index is out of range".into(),
         ));
@@ -295,7 +315,7 @@ fn sparse<T: Copy + Default + std::ops::AddAssign + faer::traits::ComplexField>(
     // Bucket the triplets by column.
     let mut start = vec![0usize; n + 1];
     for e in t {
-        start[e.col + 1] += 1;
+        start[e.col as usize + 1] += 1;
     }
     for j in 0..n {
         start[j + 1] += start[j];
@@ -303,8 +323,8 @@ fn sparse<T: Copy + Default + std::ops::AddAssign + faer::traits::ComplexField>(
     let mut fill = start.clone();
     let mut order = vec![0u32; t.len()];
     for (k, e) in t.iter().enumerate() {
-        order[fill[e.col]] = k as u32;
-        fill[e.col] += 1;
+        order[fill[e.col as usize]] = k as u32;
+        fill[e.col as usize] += 1;
     }
     // Per column: merge duplicate rows through a marker, then sort the distinct rows.
     let mut slot = vec![usize::MAX; n];
@@ -317,10 +337,10 @@ fn sparse<T: Copy + Default + std::ops::AddAssign + faer::traits::ComplexField>(
         column.clear();
         for &k in &order[start[j]..start[j + 1]] {
             let e = &t[k as usize];
-            match slot[e.row] {
+            match slot[e.row as usize] {
                 usize::MAX => {
-                    slot[e.row] = column.len();
-                    column.push((e.row, e.val));
+                    slot[e.row as usize] = column.len();
+                    column.push((e.row as usize, e.val));
                 }
                 s => column[s].1 += e.val,
             }
@@ -418,6 +438,22 @@ impl CondensedSolver {
         region: ActiveRegion,
         dt_s: f64,
     ) -> Result<Self, ModelError> {
+        Self::new_with_progress(body, mesh, region, dt_s, &mut |_, _| {})
+    }
+
+    /// [`CondensedSolver::new`] reporting its stages: `progress(stage, fraction)` with the
+    /// fraction of the work done in `[0, 1]` (the far factorisation, the column solves in
+    /// blocks of 64, the tick factorisation); for set-up output on large meshes.
+    ///
+    /// # Errors
+    /// As [`CondensedSolver::new`].
+    pub fn new_with_progress(
+        body: &FemModel,
+        mesh: &TetMesh,
+        region: ActiveRegion,
+        dt_s: f64,
+        progress: &mut dyn FnMut(&str, f64),
+    ) -> Result<Self, ModelError> {
         let field = |m: &str| ModelError::field("active_region", m);
         if !(region.radius_m > 0.0) || !region.radius_m.is_finite() || !region.centre_m.is_finite()
         {
@@ -430,6 +466,11 @@ impl CondensedSolver {
             return Err(field("is for linear tetrahedra"));
         }
         let n = body.node_count();
+        if 3 * n > u32::MAX as usize {
+            return Err(field(
+                "the mesh has more nodes than 32-bit equation numbers allow",
+            ));
+        }
         let r2 = region.radius_m * region.radius_m;
         let inside: Vec<bool> = body
             .rest()
@@ -498,6 +539,7 @@ impl CondensedSolver {
         }
         let g = gamma_dof.len();
         let f = far_dofs.len();
+        progress("condensation: far stiffness", 0.0);
         // Far stiffness blocks.
         let mut kgg = vec![0.0; g * g];
         let mut kff = Vec::new();
@@ -507,7 +549,7 @@ impl CondensedSolver {
                 (gr, gc, _, _) if gr != usize::MAX && gc != usize::MAX => kgg[gr * g + gc] += v,
                 (_, gc, fr, _) if fr != usize::MAX && gc != usize::MAX => kfg.push((fr, gc, v)),
                 (_, _, fr, fc) if fr != usize::MAX && fc != usize::MAX && fc <= fr => {
-                    kff.push(Triplet::new(fr, fc, v));
+                    kff.push(Entry::new(fr, fc, v));
                 }
                 _ => {}
             }
@@ -537,13 +579,18 @@ impl CondensedSolver {
             }
         }
         let llt = if f > 0 {
+            progress("condensation: far factorisation", 0.15);
             let far_nodes: Vec<usize> = far_dofs.iter().map(|&d| d / 3).collect();
-            let llt = SparseCholesky::factor(sparse(f, &kff)?.as_ref(), Side::Lower, &far_nodes)
-                .map_err(|e| {
+            // The triplets go before the factorisation (on a 100 000-tet mesh they are about
+            // 0.4 GB, as much as the factor).
+            let kff_csc = sparse(f, &std::mem::take(&mut kff))?;
+            let llt =
+                SparseCholesky::factor(kff_csc.as_ref(), Side::Lower, &far_nodes).map_err(|e| {
                     ModelError::InvalidMesh(format!(
                         "the far part is not held (add clamps or enlarge the active region): {e}"
                     ))
                 })?;
+            drop(kff_csc);
             // X = K_FF^-1 K_FG, in blocks of columns; S -= K_GF X.
             let mut by_col: Vec<Vec<(usize, f64)>> = vec![Vec::new(); g];
             for &(fr, gc, v) in &kfg {
@@ -551,6 +598,10 @@ impl CondensedSolver {
             }
             const BLOCK: usize = 64;
             for j0 in (0..g).step_by(BLOCK) {
+                progress(
+                    "condensation: interface column solves",
+                    0.25 + 0.6 * j0 as f64 / g as f64,
+                );
                 let w = BLOCK.min(g - j0);
                 let mut x = Mat::<f64>::zeros(f, w);
                 for j in 0..w {
@@ -588,6 +639,7 @@ impl CondensedSolver {
         }
         // A = M (1 + alpha h) + h D0 + h^2 (c K0 + S); the lumped masses are the whole body's
         // (an interface node keeps the share of its far elements).
+        progress("condensation: tick matrix factorisation", 0.85);
         let h = dt_s;
         let mat = *body.material();
         let c = region.stiffness_margin;
@@ -599,13 +651,13 @@ impl CondensedSolver {
         };
         let mut a_t = Vec::new();
         rest_tangent(&active, &combined, |r, c, v| {
-            a_t.push(Triplet::new(eq[r], eq[c], v));
+            a_t.push(Entry::new(eq[r], eq[c], v));
         });
         for a in 0..g {
             for b in 0..g {
                 let v = h * h * schur[a * g + b];
                 if v != 0.0 {
-                    a_t.push(Triplet::new(eq[gamma_dof[a]], eq[gamma_dof[b]], v));
+                    a_t.push(Entry::new(eq[gamma_dof[a]], eq[gamma_dof[b]], v));
                 }
             }
         }
@@ -618,15 +670,19 @@ impl CondensedSolver {
             .map(|m| m * (1.0 + mat.mass_damping_per_s * h))
             .collect();
         for (k, m) in mass_factor.iter().enumerate() {
-            a_t.push(Triplet::new(k, k, *m));
+            a_t.push(Entry::new(k, k, *m));
         }
         // The factor is stored in single precision: the solve only sets the step, while the
         // residual (forces) stays in double precision, so equilibria are unaffected (see the
         // module documentation); it halves the memory the solve streams.
-        let lower: Vec<Triplet<usize, usize, f32>> = a_t
+        let lower: Vec<Entry<f32>> = a_t
             .iter()
             .filter(|t| t.col <= t.row)
-            .map(|t| Triplet::new(t.row, t.col, t.val as f32))
+            .map(|t| Entry {
+                row: t.row,
+                col: t.col,
+                val: t.val as f32,
+            })
             .collect();
         let a_lower = sparse(m_eq, &lower)?;
         let eq_nodes: Vec<usize> = eq_dof.iter().map(|&d| d / 3).collect();
@@ -653,6 +709,7 @@ impl CondensedSolver {
                 })?;
         }
         let stack = Workspace::new(symbolic.solve_in_place_scratch::<f32>(2, Par::Seq));
+        progress("condensation: done", 1.0);
         let sizes = CondensedSizes {
             active_tets,
             active_nodes: node_active.iter().filter(|a| **a).count(),

@@ -309,11 +309,27 @@ impl Stepper {
         plan: &StepPlan,
         region: Option<ActiveRegion>,
     ) -> Result<Self, ModelError> {
+        Self::new_with_progress(fem, mesh, params, plan, region, &mut |_, _| {})
+    }
+
+    /// [`Stepper::new`] reporting the condensation's stages
+    /// ([`CondensedSolver::new_with_progress`]); the other steppers report nothing.
+    ///
+    /// # Errors
+    /// As [`Stepper::new`].
+    pub fn new_with_progress(
+        fem: &FemModel,
+        mesh: &TetMesh,
+        params: &IntegratorParams,
+        plan: &StepPlan,
+        region: Option<ActiveRegion>,
+        progress: &mut dyn FnMut(&str, f64),
+    ) -> Result<Self, ModelError> {
         let h = plan.sub_dt_s;
         Ok(match (params.kind, region) {
-            (IntegratorKind::BackwardEuler, Some(r)) => {
-                Self::Condensed(Box::new(CondensedSolver::new(fem, mesh, r, h)?))
-            }
+            (IntegratorKind::BackwardEuler, Some(r)) => Self::Condensed(Box::new(
+                CondensedSolver::new_with_progress(fem, mesh, r, h, progress)?,
+            )),
             (_, Some(_)) => {
                 return Err(ModelError::field(
                     "active_region",
