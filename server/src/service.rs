@@ -192,6 +192,10 @@ impl SessionControl for Services {
             ))
             .into());
         }
+        session
+            .point_loads
+            .check(point)
+            .map_err(|e| ServerError::FailedPrecondition(e.to_string()))?;
         session.send(Command::ApplyForce {
             point_m: point,
             force_n: force,

@@ -193,6 +193,9 @@ pub struct Session {
     pub critical_dt_s: f64,
     /// Probe radius, m.
     pub probe_radius_m: f64,
+    /// Where the body takes point loads (`ApplyForce` outside it is refused before it is
+    /// queued: the servo drops a load the body refuses, silently).
+    pub point_loads: haptic_model::body::PointLoadZone,
     /// Shared atomics.
     pub shared: Arc<SessionShared>,
     /// Counters and keyframe requests of the session's watchers ([`crate::stream`]).
@@ -736,6 +739,7 @@ impl SessionManager {
                 0.0
             },
             probe_radius_m: info.probe_radius_m,
+            point_loads: info.point_loads,
             shared,
             watcher_stats,
             epoch,

@@ -1,7 +1,8 @@
 //! A condensed scene whose active region follows the probe, through the server (issue 20): a
 //! scene file with `active_region.follow` starts a session, a device slides around the
 //! ventricle in the servo, the region is swapped in as it goes (the worker thread runs beside
-//! the servo), and `GetStats` reports the swaps and the last preparation time.
+//! the servo), and `GetStats` reports the swaps and the last preparation time; `ApplyForce`
+//! is refused with a clear error (one contact per following region).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -11,8 +12,8 @@ use haptic_server::ServerConfig;
 use haptic_server::service::Services;
 use haptic_server::servo::Pose;
 use haptic_server::session::SessionManager;
-use haptics_proto::v1::GetStatsRequest;
 use haptics_proto::v1::session_control_server::SessionControl;
+use haptics_proto::v1::{ApplyForceRequest, GetStatsRequest, Vec3};
 
 /// The built-in LV on about 2 000 linear tets, backward Euler, a 6 mm region that follows.
 const SCENE: &str = r#"
@@ -87,6 +88,31 @@ async fn a_following_region_swaps_as_the_device_slides() {
             break;
         }
     }
+    // A point load (a second contact far from the probe) is refused with a clear error
+    // before it reaches the servo, which would drop it silently.
+    let refused = services
+        .apply_force(tonic::Request::new(ApplyForceRequest {
+            session_id: session.id.clone(),
+            point_m: Some(Vec3 {
+                x: -0.00968,
+                y: 0.0,
+                z: -0.005,
+            }),
+            force_n: Some(Vec3 {
+                x: 0.01,
+                y: 0.0,
+                z: 0.0,
+            }),
+            duration_s: 0.1,
+        }))
+        .await
+        .expect_err("a following region refuses point loads");
+    assert_eq!(refused.code(), tonic::Code::FailedPrecondition);
+    assert!(
+        refused.message().contains("follows the probe"),
+        "{}",
+        refused.message()
+    );
     driver.abort();
     manager.stop(&session.id).expect("stop");
     let stats = last.expect("stats");

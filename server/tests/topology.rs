@@ -127,6 +127,7 @@ impl SoftBody for SplittingSquare {
             substeps: 1,
             critical_dt_s: f64::INFINITY,
             probe_radius_m: 2e-3,
+            point_loads: haptic_model::body::PointLoadZone::Anywhere,
         }
     }
 }

@@ -85,6 +85,46 @@ pub struct BodyInfo {
     pub critical_dt_s: f64,
     /// Probe sphere radius, m.
     pub probe_radius_m: f64,
+    /// Where [`SoftBody::add_point_load`] may act.
+    pub point_loads: PointLoadZone,
+}
+
+/// Where a body takes point loads ([`SoftBody::add_point_load`]); fixed over its life, so a
+/// server can refuse a load with a clear error before queueing it for the servo.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum PointLoadZone {
+    /// Anywhere on the surface.
+    Anywhere,
+    /// Within `radius_m` (m) of `centre_m` (m): a fixed contact-local active region, whose
+    /// condensed elements take no load (a load elsewhere would otherwise be moved to the
+    /// nearest simulated surface).
+    Ball {
+        /// Centre, m.
+        centre_m: DVec3,
+        /// Radius, m.
+        radius_m: f64,
+    },
+    /// Nowhere, for the reason given.
+    Refused(&'static str),
+}
+
+impl PointLoadZone {
+    /// Whether a point load at `point_m` (m) may act.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] naming the zone when it may not.
+    pub fn check(&self, point_m: DVec3) -> Result<(), ModelError> {
+        match *self {
+            Self::Anywhere => Ok(()),
+            Self::Ball { centre_m, radius_m } if point_m.distance(centre_m) <= radius_m => Ok(()),
+            Self::Ball { centre_m, radius_m } => Err(ModelError::InvalidInput(format!(
+                "point_m {point_m} is {:.1} mm from the active region's centre {centre_m}, outside its {:.1} mm radius: condensed elements take no load (move the load, or enlarge or move active_region)",
+                point_m.distance(centre_m) * 1e3,
+                radius_m * 1e3
+            ))),
+            Self::Refused(why) => Err(ModelError::InvalidInput(why.to_string())),
+        }
+    }
 }
 
 /// Size and state of a body, cheap to read (allocation-free, O(nodes) at most).
@@ -133,8 +173,9 @@ pub trait SoftBody: Send {
     /// simulated time, spread as a probe touching there would spread it.
     ///
     /// # Errors
-    /// [`ModelError::InvalidInput`] for values [`validate_point_load`] rejects (nothing
-    /// changed); [`ModelError::LoadTableFull`] when the preallocated load table is full.
+    /// [`ModelError::InvalidInput`] for values [`validate_point_load`] rejects or a point
+    /// outside [`BodyInfo::point_loads`] (nothing changed); [`ModelError::LoadTableFull`] when
+    /// the preallocated load table is full.
     fn add_point_load(
         &mut self,
         point_m: DVec3,

@@ -16,7 +16,7 @@
 use glam::DVec3;
 
 use crate::ModelError;
-use crate::body::{BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology};
+use crate::body::{BodyInfo, BodyStats, PointLoadZone, SoftBody, SurfaceCapacity, SurfaceTopology};
 use crate::contact::Probe;
 use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
 use crate::element::{CLAMPED, FemModel};
@@ -392,7 +392,9 @@ impl Simulation {
     ///
     /// # Errors
     /// As [`BodyLoads::add_point_load`]: [`ModelError::InvalidInput`] (state untouched) for
-    /// non-finite or absurd values, [`ModelError::LoadTableFull`] when the table is full.
+    /// non-finite or absurd values, or a point outside [`Simulation::point_load_zone`] (a
+    /// fixed active region's ball; none for a following region);
+    /// [`ModelError::LoadTableFull`] when the table is full.
     /// Allocation-free, so the servo tick may call it.
     pub fn add_point_load(
         &mut self,
@@ -400,6 +402,7 @@ impl Simulation {
         force_n: DVec3,
         duration_s: f64,
     ) -> Result<(), ModelError> {
+        self.point_load_zone().check(point_m)?;
         self.loads.add_point_load(
             &self.state.x,
             self.probe.params.radius_m,
@@ -426,6 +429,26 @@ impl Simulation {
     /// `(0, MAX_POINT_LOAD_DURATION_S]`.
     pub fn add_probe_load(&mut self, force_n: DVec3, duration_s: f64) -> Result<(), ModelError> {
         self.loads.set_probe_load(force_n, duration_s)
+    }
+
+    /// Where point loads may act: anywhere on the whole body; within a fixed active region's
+    /// ball (its condensed elements take no load); nowhere with a following region (a load
+    /// would end up on condensed elements as the region moves on with the probe, and two
+    /// contacts far apart would need two regions: refused, issue 20).
+    pub fn point_load_zone(&self) -> PointLoadZone {
+        match (&self.stepper, self.follow.0.is_some()) {
+            (_, true) => PointLoadZone::Refused(
+                "this scene's active region follows the probe (active_region.follow) and takes no point loads: a load away from the probe would act on condensed elements; use the probe, or a scene with a fixed region or none",
+            ),
+            (Stepper::Condensed(c), false) => {
+                let r = c.region();
+                PointLoadZone::Ball {
+                    centre_m: r.centre_m,
+                    radius_m: r.radius_m,
+                }
+            }
+            _ => PointLoadZone::Anywhere,
+        }
     }
 
     /// Remaining time of the probe load of [`Simulation::add_probe_load`], s (0 when none).
@@ -665,6 +688,7 @@ impl SoftBody for Simulation {
             substeps: self.plan.substeps,
             critical_dt_s: self.plan.critical_dt_s,
             probe_radius_m: self.probe.params.radius_m,
+            point_loads: self.point_load_zone(),
         }
     }
 }

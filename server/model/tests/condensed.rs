@@ -9,11 +9,14 @@
 //! - a following region (`active_region.follow`) carries a stroke around the ventricle: the
 //!   probe never falls through, the force and the energy are continuous at the swaps, and the
 //!   force held after the slide matches the one before it (the ventricle's symmetry); pressed at
-//!   ten random points of the touchable surface it gives the whole body's force.
+//!   ten random points of the touchable surface it gives the whole body's force;
+//! - point loads are refused where condensed elements would take them.
 
 use std::path::Path;
 
 use haptic_model::DVec3;
+use haptic_model::ModelError;
+use haptic_model::body::SoftBody;
 use haptic_model::contact::ContactModel;
 use haptic_model::element::{FemModel, StrainSmoothing};
 use haptic_model::integrate::IntegratorKind;
@@ -485,6 +488,60 @@ fn poisson_sweep_stays_finite_and_reports_volume_change() {
             );
         }
     }
+}
+
+/// Point loads (`ApplyForce`): a fixed region takes them inside its ball and refuses them
+/// outside it (they used to be moved to the nearest simulated surface), a following region
+/// refuses them (a second contact far from the probe is not modelled: issue 20), the whole
+/// body takes them anywhere; a refused load changes nothing.
+#[test]
+fn point_loads_are_refused_where_condensed_elements_would_take_them() {
+    use haptic_model::body::PointLoadZone;
+    let inside = DVec3::new(0.00968, 0.0, -0.005);
+    let outside = DVec3::new(-0.00968, 0.0, -0.005);
+    let push = DVec3::new(-0.01, 0.0, 0.0);
+
+    let mut whole = Simulation::new(&lv_scene(
+        StrainSmoothing::None,
+        IntegratorKind::BackwardEuler,
+        None,
+    ))
+    .expect("whole body");
+    assert_eq!(whole.point_load_zone(), PointLoadZone::Anywhere);
+    whole.add_point_load(outside, push, 0.1).expect("anywhere");
+    assert_eq!(whole.active_point_loads(), 1);
+
+    let mut fixed = Simulation::new(&condensed_lv(StrainSmoothing::None)).expect("fixed");
+    assert!(matches!(
+        fixed.point_load_zone(),
+        PointLoadZone::Ball { radius_m, .. } if radius_m == ACTIVE.radius_m
+    ));
+    fixed
+        .add_point_load(inside, push, 0.1)
+        .expect("inside the region");
+    match fixed.add_point_load(outside, push, 0.1) {
+        Err(ModelError::InvalidInput(m)) => assert!(m.contains("active region"), "{m}"),
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(fixed.active_point_loads(), 1);
+
+    let mut scene = condensed_lv(StrainSmoothing::None);
+    scene.active_region = Some(ActiveRegion {
+        follow: true,
+        ..ACTIVE
+    });
+    let mut following = Simulation::new(&scene).expect("following");
+    for p in [inside, outside] {
+        match following.add_point_load(p, push, 0.1) {
+            Err(ModelError::InvalidInput(m)) => assert!(m.contains("follows the probe"), "{m}"),
+            other => panic!("{other:?}"),
+        }
+    }
+    assert_eq!(following.active_point_loads(), 0);
+    assert!(matches!(
+        following.info().point_loads,
+        PointLoadZone::Refused(_)
+    ));
 }
 
 /// The stroke of the following-region test: pressed `depth` (m) at the equator on +x over

@@ -716,6 +716,7 @@ impl SoftBody for HybridBody {
             substeps: self.substeps,
             critical_dt_s: self.critical_dt_s,
             probe_radius_m: self.probe.radius_m,
+            point_loads: crate::body::PointLoadZone::Anywhere,
         }
     }
 }

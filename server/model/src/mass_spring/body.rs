@@ -1135,6 +1135,7 @@ impl SoftBody for MassSpringBody {
             substeps: self.plan.substeps,
             critical_dt_s: self.plan.critical_dt_s,
             probe_radius_m: self.probe.params.radius_m,
+            point_loads: crate::body::PointLoadZone::Anywhere,
         }
     }
 }
