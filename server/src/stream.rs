@@ -106,7 +106,8 @@ pub struct WatcherStats {
     pub frames_dropped: AtomicU64,
     /// Encoded bytes of the frames sent.
     pub bytes_sent: AtomicU64,
-    /// Encoded bytes waiting in watcher queues now.
+    /// Encoded bytes waiting in watcher queues now (released when a frame leaves a queue,
+    /// including with the queue of a watcher that disconnected).
     pub queued_bytes: AtomicU64,
     /// The most one watcher's queue can hold for the current topology, bytes.
     pub queue_limit_bytes: AtomicU64,
@@ -411,6 +412,33 @@ impl Drop for WatchGuard {
     }
 }
 
+/// The encoded size of one frame in a watcher's queue, counted in
+/// [`WatcherStats::queued_bytes`] from before it is queued until it leaves the queue: taken by
+/// the transport, refused by a full queue, or dropped with the queue of a watcher that
+/// disconnected (the channel drops what it still holds, and so this guard).
+struct QueuedBytes {
+    stats: Arc<WatcherStats>,
+    len: u64,
+}
+
+impl QueuedBytes {
+    fn new(stats: &Arc<WatcherStats>, len: u64) -> Self {
+        stats.queued_bytes.fetch_add(len, Ordering::Relaxed);
+        Self {
+            stats: stats.clone(),
+            len,
+        }
+    }
+}
+
+impl Drop for QueuedBytes {
+    fn drop(&mut self) {
+        self.stats
+            .queued_bytes
+            .fetch_sub(self.len, Ordering::Relaxed);
+    }
+}
+
 /// Starts a watcher of `session` with `params`: returns its stream of frames (keyframe first).
 pub fn spawn_watch(session: Arc<Session>, params: WatchParams) -> FrameStream {
     let stats = session.watcher_stats.clone();
@@ -429,8 +457,7 @@ pub fn spawn_watch(session: Arc<Session>, params: WatchParams) -> FrameStream {
         delta: params.quantum_m.is_some(),
     };
     let (mut frames, servo_guard) = session.watch();
-    let (tx, rx) = mpsc::channel::<(SurfaceFrame, u64)>(WATCH_QUEUE_FRAMES);
-    let queued = stats.clone();
+    let (tx, rx) = mpsc::channel::<(SurfaceFrame, QueuedBytes)>(WATCH_QUEUE_FRAMES);
     tokio::spawn(async move {
         let _guards = (guard, servo_guard);
         let mut tick = tokio::time::interval(Duration::from_secs_f64(1.0 / params.rate_hz));
@@ -463,12 +490,12 @@ pub fn spawn_watch(session: Arc<Session>, params: WatchParams) -> FrameStream {
                 continue; // compact stream, no reference yet: wait for the next frame
             };
             let len = frame.encoded_len() as u64;
-            match tx.try_send((frame, len)) {
+            // Counted before the send, so the transport never subtracts bytes not yet added.
+            match tx.try_send((frame, QueuedBytes::new(&stats, len))) {
                 Ok(()) => {
                     state = kept;
                     stats.frames_sent.fetch_add(1, Ordering::Relaxed);
                     stats.bytes_sent.fetch_add(len, Ordering::Relaxed);
-                    stats.queued_bytes.fetch_add(len, Ordering::Relaxed);
                 }
                 Err(mpsc::error::TrySendError::Full(_)) => {
                     stats.frames_dropped.fetch_add(1, Ordering::Relaxed);
@@ -482,10 +509,7 @@ pub fn spawn_watch(session: Arc<Session>, params: WatchParams) -> FrameStream {
     });
     Box::pin(tokio_stream::StreamExt::map(
         ReceiverStream::new(rx),
-        move |(frame, len)| {
-            queued.queued_bytes.fetch_sub(len, Ordering::Relaxed);
-            Ok(frame)
-        },
+        |(frame, _queued): (SurfaceFrame, QueuedBytes)| Ok(frame),
     ))
 }
 

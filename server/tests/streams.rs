@@ -1,7 +1,8 @@
 //! Surface streams in process (issue 17): compact frames decode to the full frames' positions
 //! within half a quantum, a late joiner's first frame is a keyframe, `RequestKeyframe` gives a
 //! keyframe with the topology, a watcher that does not read drops frames with bounded queues and
-//! GetStats reports it, and bad Watch requests get INVALID_ARGUMENT. No assertion on timing.
+//! GetStats reports it (and no longer counts its queue once it leaves), and bad Watch requests
+//! get INVALID_ARGUMENT. No assertion on timing.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -266,4 +267,57 @@ async fn bad_watch_requests_are_invalid_arguments() {
     let mut ok = watch(&services, &session.id, 1e9, true).await;
     assert!(next(&mut ok).await.keyframe);
     manager.stop(&session.id).unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_disconnected_watcher_releases_its_queued_bytes() {
+    // Regression (issue 17 audit): queued bytes were subtracted only when the transport took a
+    // frame, so the frames still queued when a watcher left stayed counted for ever.
+    let (manager, services, session) = start();
+    let stats = || async {
+        services
+            .get_stats(tonic::Request::new(GetStatsRequest {
+                session_id: session.id.clone(),
+            }))
+            .await
+            .unwrap()
+            .into_inner()
+    };
+    // A watcher that never reads: wait until its queue is full (a due frame was dropped).
+    let slow = watch(&services, &session.id, 60.0, true).await;
+    push(&session, 0.05);
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    let full = loop {
+        let s = stats().await;
+        if s.watcher_frames_dropped > 0 || std::time::Instant::now() > deadline {
+            break s;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    assert!(
+        full.watcher_frames_dropped > 0,
+        "the queue never filled: {full:?}"
+    );
+    assert_eq!(full.watchers, 1);
+    assert!(
+        full.watcher_queued_bytes > 0,
+        "a full queue holds bytes: {full:?}"
+    );
+    drop(slow);
+    // The watch task notices the closed stream at its next due frame (60 Hz).
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    let after = loop {
+        let s = stats().await;
+        if s.watchers == 0 || std::time::Instant::now() > deadline {
+            break s;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    manager.stop(&session.id).unwrap();
+    assert_eq!(after.watchers, 0, "{after:?}");
+    assert_eq!(
+        after.watcher_queued_bytes, 0,
+        "bytes of the dropped queue still counted: {after:?}"
+    );
+    assert!(after.watcher_frames_sent >= 2, "{after:?}");
 }
