@@ -4,7 +4,7 @@
 use glam::DVec3;
 
 use super::LANES;
-use super::lanes::Lanes8;
+use super::lanes::LaneVec;
 use super::stress::first_piola_lane;
 use crate::element::quadrature::IntegrationPoints;
 use crate::material::MaterialParams;
@@ -74,7 +74,7 @@ impl DomainBatches {
 /// # Safety
 /// Node indices below `x.len()` and `v.len()` (see [`super::Kernels`]).
 #[inline(always)]
-pub(super) unsafe fn forces_domains<const FMA: bool, const MODEL: u8, V: Lanes8>(
+pub(super) unsafe fn forces_domains<const FMA: bool, const MODEL: u8, V: LaneVec>(
     isa: V::Isa,
     d: &DomainBatches,
     mat: &MaterialParams,
@@ -88,67 +88,68 @@ pub(super) unsafe fn forces_domains<const FMA: bool, const MODEL: u8, V: Lanes8>
             &d.node3[d.start[b]..d.start[b + 1]],
             &d.grad[d.start[b]..d.start[b + 1]],
         );
-        // SAFETY (both): node indices are below x.len() and v.len() (caller's contract).
-        let fm = unsafe { domain_gradient::<FMA, V>(isa, node3, grad, x) };
-        #[allow(clippy::manual_map)]
-        let fd = match v {
-            Some(v) => Some(unsafe { domain_gradient::<FMA, V>(isa, node3, grad, v) }),
-            None => None,
-        };
-        let p = first_piola_lane::<FMA, MODEL, V>(isa, &fm, fd.as_ref(), mat);
-        let wn = zero - V::load(isa, w);
-        let mut m = [zero; 9];
-        for (mk, pk) in m.iter_mut().zip(p) {
-            *mk = wn * pk;
-        }
-        for (s, g) in grad.iter().enumerate() {
-            let g = [
-                V::load(isa, &g[0]),
-                V::load(isa, &g[1]),
-                V::load(isa, &g[2]),
-            ];
-            let mut h = [[0.0; LANES]; 3];
-            for (i, hi) in h.iter_mut().enumerate() {
-                let acc = V::madd::<FMA>(m[3 * i + 1], g[1], m[3 * i] * g[0]);
-                V::madd::<FMA>(m[3 * i + 2], g[2], acc).store(hi);
+        // The batch in parts of V::WIDTH lanes (one part for eight-lane vectors).
+        for off in (0..LANES).step_by(V::WIDTH) {
+            // SAFETY (both): node indices are below x.len() and v.len() (caller's contract).
+            let fm = unsafe { domain_gradient::<FMA, V>(isa, node3, grad, off, x) };
+            #[allow(clippy::manual_map)]
+            let fd = match v {
+                Some(v) => Some(unsafe { domain_gradient::<FMA, V>(isa, node3, grad, off, v) }),
+                None => None,
+            };
+            let p = first_piola_lane::<FMA, MODEL, V>(isa, &fm, fd.as_ref(), mat);
+            let wn = zero - V::load(isa, &w[off..]);
+            let mut m = [zero; 9];
+            for (mk, pk) in m.iter_mut().zip(p) {
+                *mk = wn * pk;
             }
-            for (l, &node) in d.nodes[d.start[b] + s].iter().enumerate() {
-                f[node as usize] += DVec3::new(h[0][l], h[1][l], h[2][l]);
+            for (s, g) in grad.iter().enumerate() {
+                let g = [
+                    V::load(isa, &g[0][off..]),
+                    V::load(isa, &g[1][off..]),
+                    V::load(isa, &g[2][off..]),
+                ];
+                let mut h = [[0.0; LANES]; 3];
+                for (i, hi) in h.iter_mut().enumerate() {
+                    let acc = V::madd::<FMA>(m[3 * i + 1], g[1], m[3 * i] * g[0]);
+                    V::madd::<FMA>(m[3 * i + 2], g[2], acc).store(hi);
+                }
+                let nodes = &d.nodes[d.start[b] + s][off..off + V::WIDTH];
+                for (l, &node) in nodes.iter().enumerate() {
+                    f[node as usize] += DVec3::new(h[0][l], h[1][l], h[2][l]);
+                }
             }
         }
     }
 }
 
-/// `sum_s (y_s - y_0) G_s^T` (row-major) of one batch of [`DomainBatches`].
+/// `sum_s (y_s - y_0) G_s^T` (row-major) of one batch of [`DomainBatches`], lanes
+/// `off..off + V::WIDTH`.
 ///
 /// # Safety
 /// Node indices below `y.len()` (see [`super::Kernels`]).
 #[inline(always)]
-unsafe fn domain_gradient<const FMA: bool, V: Lanes8>(
+unsafe fn domain_gradient<const FMA: bool, V: LaneVec>(
     isa: V::Isa,
     node3: &[[i32; LANES]],
     grad: &[[[f64; LANES]; 3]],
+    off: usize,
     y: &[DVec3],
 ) -> [V; 9] {
     let base = y.as_ptr().cast::<f64>();
     let mut out = [V::splat(isa, 0.0); 9];
     // SAFETY: as in `gather_differences`.
-    let y0 = unsafe {
-        [
-            V::gather(isa, base, &node3[0]),
-            V::gather(isa, base.add(1), &node3[0]),
-            V::gather(isa, base.add(2), &node3[0]),
-        ]
-    };
+    let y0 = unsafe { V::gather3(isa, base, &node3[0][off..]) };
     for (n3, g) in node3.iter().zip(grad).skip(1) {
         let g = [
-            V::load(isa, &g[0]),
-            V::load(isa, &g[1]),
-            V::load(isa, &g[2]),
+            V::load(isa, &g[0][off..]),
+            V::load(isa, &g[1][off..]),
+            V::load(isa, &g[2][off..]),
         ];
+        // SAFETY: as above.
+        let ys = unsafe { V::gather3(isa, base, &n3[off..]) };
         for i in 0..3 {
-            // SAFETY: as above.
-            let di = unsafe { V::gather(isa, base.add(i), n3) } - y0[i];
+            let di = ys[i] - y0[i];
             for j in 0..3 {
                 out[3 * i + j] = V::madd::<FMA>(di, g[j], out[3 * i + j]);
             }

@@ -1,9 +1,11 @@
 //! Lane arithmetic for the vectorised force kernels: one trait, [`Lane`], implemented by a
-//! single `f64` and by eight `f64` side by side ([`Lanes8`]: [`Plain8`] in plain code, on x86-64
-//! [`Ymm2`] in two AVX2 registers and [`Zmm`] in one AVX-512 register), so that the stress
-//! formulas and the force kernels are written once and compiled for each.
+//! single `f64` and by several `f64` side by side ([`LaneVec`]: [`Plain8`], eight lanes in plain
+//! code; on x86-64 [`Ymm`], four lanes in one AVX2 register, and [`Zmm`], eight in one AVX-512
+//! register), so that the stress formulas and the force kernels are written once and compiled
+//! for each. The batches hold [`super::LANES`] (eight) elements; a vector of fewer lanes runs a
+//! batch in parts ([`LaneVec::WIDTH`] lanes at a time).
 //!
-//! **Soundness.** Every operation of [`Ymm2`] and [`Zmm`] is an AVX2/FMA or AVX-512
+//! **Soundness.** Every operation of [`Ymm`] and [`Zmm`] is an AVX2/FMA or AVX-512
 //! instruction. A value of these types can only be made from an *instruction-set token*
 //! ([`Lane::Isa`]: [`Avx2Fma`], [`Avx512`]) and a token can only be obtained from run-time
 //! feature detection ([`Avx2Fma::detect`], [`Avx512::detect`]), so safe code cannot execute an
@@ -49,18 +51,47 @@ impl Lane for f64 {
     }
 }
 
-/// Eight `f64` lanes with loads, stores and gathers: the batch type of the force kernels (one
-/// lane per element of a batch).
-pub(crate) trait Lanes8: Lane {
-    /// The eight lanes of `a`.
-    fn load(isa: Self::Isa, a: &[f64; 8]) -> Self;
-    /// Writes the eight lanes to `a`.
-    fn store(self, a: &mut [f64; 8]);
+/// [`LaneVec::WIDTH`] `f64` lanes with loads, stores and gathers: the vector type of the force
+/// kernels (one lane per element of a batch).
+pub(crate) trait LaneVec: Lane {
+    /// The number of lanes (at most 8, and a divisor of the kernels' batch size).
+    const WIDTH: usize;
+    /// The lanes from the first [`LaneVec::WIDTH`] entries of `a`.
+    ///
+    /// # Panics
+    /// If `a` is shorter than [`LaneVec::WIDTH`] (the kernels slice fixed-size arrays at
+    /// constant offsets, so the check is compiled away).
+    fn load(isa: Self::Isa, a: &[f64]) -> Self;
+    /// Writes the lanes to the first [`LaneVec::WIDTH`] entries of `a`.
+    ///
+    /// # Panics
+    /// As [`LaneVec::load`].
+    fn store(self, a: &mut [f64]);
     /// Lane l = `*base.offset(offsets[l])`.
     ///
     /// # Safety
-    /// Every `base.offset(offsets[l])` must be a readable `f64`.
-    unsafe fn gather(isa: Self::Isa, base: *const f64, offsets: &[i32; 8]) -> Self;
+    /// `offsets` holds at least [`LaneVec::WIDTH`] entries and every
+    /// `base.offset(offsets[l])` for l below it is a readable `f64`.
+    unsafe fn gather(isa: Self::Isa, base: *const f64, offsets: &[i32]) -> Self;
+
+    /// The three components of a point per lane: `[c][l] = *base.offset(offsets[l] + c)`
+    /// (`base` the first `f64` of a `[DVec3]`, `offsets[l]` three times a point index). Three
+    /// [`LaneVec::gather`]s unless a lane type has a faster way.
+    ///
+    /// # Safety
+    /// `offsets` holds at least [`LaneVec::WIDTH`] entries and the three `f64` from every
+    /// `base.offset(offsets[l])` for l below it are readable.
+    #[inline(always)]
+    unsafe fn gather3(isa: Self::Isa, base: *const f64, offsets: &[i32]) -> [Self; 3] {
+        // SAFETY: the caller's contract.
+        unsafe {
+            [
+                Self::gather(isa, base, offsets),
+                Self::gather(isa, base.add(1), offsets),
+                Self::gather(isa, base.add(2), offsets),
+            ]
+        }
+    }
 
     /// The largest lane (a NaN lane makes it NaN; callers compare with `<`, so a NaN never
     /// passes a check).
@@ -68,21 +99,27 @@ pub(crate) trait Lanes8: Lane {
     fn max_lane(self) -> f64 {
         let mut a = [0.0; 8];
         self.store(&mut a);
-        a.iter().copied().fold(
-            f64::NEG_INFINITY,
-            |m, x| if x > m || x.is_nan() { x } else { m },
-        )
+        a[..Self::WIDTH]
+            .iter()
+            .copied()
+            .fold(
+                f64::NEG_INFINITY,
+                |m, x| if x > m || x.is_nan() { x } else { m },
+            )
     }
 
-    /// The smallest lane (as [`Lanes8::max_lane`]).
+    /// The smallest lane (as [`LaneVec::max_lane`]).
     #[inline(always)]
     fn min_lane(self) -> f64 {
         let mut a = [0.0; 8];
         self.store(&mut a);
-        a.iter().copied().fold(
-            f64::INFINITY,
-            |m, x| if x < m || x.is_nan() { x } else { m },
-        )
+        a[..Self::WIDTH]
+            .iter()
+            .copied()
+            .fold(
+                f64::INFINITY,
+                |m, x| if x < m || x.is_nan() { x } else { m },
+            )
     }
 
     /// Applies `f` to each lane's row-major 3x3 matrix `m` (the rare scalar fallback of a
@@ -98,7 +135,7 @@ pub(crate) trait Lanes8: Lane {
             v.store(&mut a[k]);
         }
         let mut out = [[0.0; 8]; 9];
-        for l in 0..8 {
+        for l in 0..Self::WIDTH {
             let r = f(std::array::from_fn(|k| a[k][l]));
             for k in 0..9 {
                 out[k][l] = r[k];
@@ -167,19 +204,22 @@ impl Lane for Plain8 {
     }
 }
 
-impl Lanes8 for Plain8 {
+impl LaneVec for Plain8 {
+    const WIDTH: usize = 8;
+
     #[inline(always)]
-    fn load(_: (), a: &[f64; 8]) -> Plain8 {
-        Plain8(*a)
+    fn load(_: (), a: &[f64]) -> Plain8 {
+        Plain8(a[..8].try_into().expect("eight lanes"))
     }
 
     #[inline(always)]
-    fn store(self, a: &mut [f64; 8]) {
-        *a = self.0;
+    fn store(self, a: &mut [f64]) {
+        a[..8].copy_from_slice(&self.0);
     }
 
     #[inline(always)]
-    unsafe fn gather(_: (), base: *const f64, offsets: &[i32; 8]) -> Plain8 {
+    unsafe fn gather(_: (), base: *const f64, offsets: &[i32]) -> Plain8 {
+        let offsets = &offsets[..8];
         // SAFETY: every base.offset(offsets[l]) is readable (caller's contract).
         Plain8(std::array::from_fn(|l| unsafe {
             *base.offset(offsets[l] as isize)
@@ -188,17 +228,18 @@ impl Lanes8 for Plain8 {
 }
 
 #[cfg(target_arch = "x86_64")]
-pub(crate) use x86::{Avx2Fma, Avx512, Ymm2, Zmm};
+pub(crate) use x86::{Avx2Fma, Avx512, Ymm, Zmm};
 
 #[cfg(target_arch = "x86_64")]
 mod x86 {
-    use super::{Lane, Lanes8};
+    use super::{Lane, LaneVec};
     use std::arch::x86_64::{
         __m128i, __m256d, __m256i, __m512d, _mm_loadu_si128, _mm256_add_pd, _mm256_div_pd,
         _mm256_fmadd_pd, _mm256_fmsub_pd, _mm256_i32gather_pd, _mm256_loadu_pd, _mm256_loadu_si256,
-        _mm256_mul_pd, _mm256_set1_pd, _mm256_storeu_pd, _mm256_sub_pd, _mm512_add_pd,
-        _mm512_div_pd, _mm512_fmadd_pd, _mm512_fmsub_pd, _mm512_i32gather_pd, _mm512_loadu_pd,
-        _mm512_mul_pd, _mm512_set1_pd, _mm512_storeu_pd, _mm512_sub_pd,
+        _mm256_maskload_pd, _mm256_mul_pd, _mm256_permute2f128_pd, _mm256_set_epi64x,
+        _mm256_set1_pd, _mm256_storeu_pd, _mm256_sub_pd, _mm256_unpackhi_pd, _mm256_unpacklo_pd,
+        _mm512_add_pd, _mm512_div_pd, _mm512_fmadd_pd, _mm512_fmsub_pd, _mm512_i32gather_pd,
+        _mm512_loadu_pd, _mm512_mul_pd, _mm512_set1_pd, _mm512_storeu_pd, _mm512_sub_pd,
     };
     use std::ops::{Add, Div, Mul, Sub};
 
@@ -219,7 +260,7 @@ mod x86 {
         }
     }
 
-    /// Proof that this CPU runs AVX2 and FMA: the only way to make [`Ymm2`] values (see
+    /// Proof that this CPU runs AVX2 and FMA: the only way to make [`Ymm`] values (see
     /// [`Avx512`]).
     #[derive(Clone, Copy, Debug)]
     pub(crate) struct Avx2Fma(());
@@ -243,21 +284,26 @@ mod x86 {
     #[derive(Clone, Copy)]
     pub(crate) struct Zmm(__m512d);
 
-    impl Lanes8 for Zmm {
+    impl LaneVec for Zmm {
+        const WIDTH: usize = 8;
+
         #[inline(always)]
-        fn load(_: Avx512, a: &[f64; 8]) -> Zmm {
+        fn load(_: Avx512, a: &[f64]) -> Zmm {
+            let a = &a[..8];
             // SAFETY: `a` is eight readable f64; AVX-512F per the token.
             Zmm(unsafe { _mm512_loadu_pd(a.as_ptr()) })
         }
 
         #[inline(always)]
-        fn store(self, a: &mut [f64; 8]) {
+        fn store(self, a: &mut [f64]) {
+            let a = &mut a[..8];
             // SAFETY: `a` is eight writable f64; `self` exists, so AVX-512F is available.
             unsafe { _mm512_storeu_pd(a.as_mut_ptr(), self.0) }
         }
 
         #[inline(always)]
-        unsafe fn gather(_: Avx512, base: *const f64, offsets: &[i32; 8]) -> Zmm {
+        unsafe fn gather(_: Avx512, base: *const f64, offsets: &[i32]) -> Zmm {
+            let offsets = &offsets[..8];
             // SAFETY: offsets is eight i32; the addressed f64 are readable (caller's
             // contract); AVX-512F per the token.
             unsafe {
@@ -325,113 +371,127 @@ mod x86 {
         }
     }
 
-    /// Eight `f64` lanes in two AVX2 registers (lanes 0-3, 4-7).
+    /// Four `f64` lanes in one AVX2 register: a batch of eight elements runs in two parts.
+    /// (Eight lanes in a pair of registers, the earlier design, left the kernels' 3x3 matrices
+    /// in 18 of the 16 AVX2 registers and spilled: decisions.md, "StVK force kernel".)
     ///
     /// Every operation is an AVX2 or FMA instruction; values are made only with an [`Avx2Fma`]
     /// token, as for [`Zmm`].
     #[derive(Clone, Copy)]
-    pub(crate) struct Ymm2(__m256d, __m256d);
+    pub(crate) struct Ymm(__m256d);
 
-    impl Add for Ymm2 {
-        type Output = Ymm2;
+    impl Add for Ymm {
+        type Output = Ymm;
         #[inline(always)]
-        fn add(self, o: Ymm2) -> Ymm2 {
-            // SAFETY: Ymm2 values are made only with an Avx2Fma token, so this CPU has AVX2 and FMA.
-            unsafe { Ymm2(_mm256_add_pd(self.0, o.0), _mm256_add_pd(self.1, o.1)) }
+        fn add(self, o: Ymm) -> Ymm {
+            // SAFETY: Ymm values are made only with an Avx2Fma token, so this CPU has AVX2 and FMA.
+            Ymm(unsafe { _mm256_add_pd(self.0, o.0) })
         }
     }
 
-    impl Sub for Ymm2 {
-        type Output = Ymm2;
+    impl Sub for Ymm {
+        type Output = Ymm;
         #[inline(always)]
-        fn sub(self, o: Ymm2) -> Ymm2 {
+        fn sub(self, o: Ymm) -> Ymm {
             // SAFETY: as in `add`.
-            unsafe { Ymm2(_mm256_sub_pd(self.0, o.0), _mm256_sub_pd(self.1, o.1)) }
+            Ymm(unsafe { _mm256_sub_pd(self.0, o.0) })
         }
     }
 
-    impl Mul for Ymm2 {
-        type Output = Ymm2;
+    impl Mul for Ymm {
+        type Output = Ymm;
         #[inline(always)]
-        fn mul(self, o: Ymm2) -> Ymm2 {
+        fn mul(self, o: Ymm) -> Ymm {
             // SAFETY: as in `add`.
-            unsafe { Ymm2(_mm256_mul_pd(self.0, o.0), _mm256_mul_pd(self.1, o.1)) }
+            Ymm(unsafe { _mm256_mul_pd(self.0, o.0) })
         }
     }
 
-    impl Div for Ymm2 {
-        type Output = Ymm2;
+    impl Div for Ymm {
+        type Output = Ymm;
         #[inline(always)]
-        fn div(self, o: Ymm2) -> Ymm2 {
+        fn div(self, o: Ymm) -> Ymm {
             // SAFETY: as in `add`.
-            unsafe { Ymm2(_mm256_div_pd(self.0, o.0), _mm256_div_pd(self.1, o.1)) }
+            Ymm(unsafe { _mm256_div_pd(self.0, o.0) })
         }
     }
 
-    impl Lane for Ymm2 {
+    impl Lane for Ymm {
         type Isa = Avx2Fma;
 
         #[inline(always)]
-        fn splat(_: Avx2Fma, v: f64) -> Ymm2 {
+        fn splat(_: Avx2Fma, v: f64) -> Ymm {
             // SAFETY: the Avx2Fma token proves the CPU has AVX2.
-            unsafe { Ymm2(_mm256_set1_pd(v), _mm256_set1_pd(v)) }
+            Ymm(unsafe { _mm256_set1_pd(v) })
         }
 
         #[inline(always)]
-        fn madd<const FMA: bool>(a: Ymm2, b: Ymm2, c: Ymm2) -> Ymm2 {
+        fn madd<const FMA: bool>(a: Ymm, b: Ymm, c: Ymm) -> Ymm {
             // SAFETY: as in `add`; the token that made the values proves FMA.
-            unsafe {
-                Ymm2(
-                    _mm256_fmadd_pd(a.0, b.0, c.0),
-                    _mm256_fmadd_pd(a.1, b.1, c.1),
-                )
-            }
+            Ymm(unsafe { _mm256_fmadd_pd(a.0, b.0, c.0) })
         }
 
         #[inline(always)]
-        fn msub<const FMA: bool>(a: Ymm2, b: Ymm2, c: Ymm2) -> Ymm2 {
+        fn msub<const FMA: bool>(a: Ymm, b: Ymm, c: Ymm) -> Ymm {
             // SAFETY: as in `madd`.
-            unsafe {
-                Ymm2(
-                    _mm256_fmsub_pd(a.0, b.0, c.0),
-                    _mm256_fmsub_pd(a.1, b.1, c.1),
-                )
-            }
+            Ymm(unsafe { _mm256_fmsub_pd(a.0, b.0, c.0) })
         }
     }
 
-    impl Lanes8 for Ymm2 {
+    impl LaneVec for Ymm {
+        const WIDTH: usize = 4;
+
         #[inline(always)]
-        fn load(_: Avx2Fma, a: &[f64; 8]) -> Ymm2 {
-            // SAFETY: `a` is eight readable f64; AVX2 per the token.
-            unsafe {
-                Ymm2(
-                    _mm256_loadu_pd(a.as_ptr()),
-                    _mm256_loadu_pd(a[4..].as_ptr()),
-                )
-            }
+        fn load(_: Avx2Fma, a: &[f64]) -> Ymm {
+            let a = &a[..4];
+            // SAFETY: `a` is four readable f64; AVX2 per the token.
+            Ymm(unsafe { _mm256_loadu_pd(a.as_ptr()) })
         }
 
         #[inline(always)]
-        fn store(self, a: &mut [f64; 8]) {
-            // SAFETY: `a` is eight writable f64; `self` exists, so AVX2 is available.
-            unsafe {
-                _mm256_storeu_pd(a.as_mut_ptr(), self.0);
-                _mm256_storeu_pd(a[4..].as_mut_ptr(), self.1);
-            }
+        fn store(self, a: &mut [f64]) {
+            let a = &mut a[..4];
+            // SAFETY: `a` is four writable f64; `self` exists, so AVX2 is available.
+            unsafe { _mm256_storeu_pd(a.as_mut_ptr(), self.0) }
         }
 
         #[inline(always)]
-        unsafe fn gather(_: Avx2Fma, base: *const f64, offsets: &[i32; 8]) -> Ymm2 {
-            // SAFETY: offsets is eight i32; the addressed f64 are readable (caller's
+        unsafe fn gather(_: Avx2Fma, base: *const f64, offsets: &[i32]) -> Ymm {
+            let offsets = &offsets[..4];
+            // SAFETY: offsets is four i32; the addressed f64 are readable (caller's
             // contract); AVX2 per the token.
             unsafe {
-                let lo = _mm_loadu_si128(offsets.as_ptr().cast::<__m128i>());
-                let hi = _mm_loadu_si128(offsets[4..].as_ptr().cast::<__m128i>());
-                Ymm2(
-                    _mm256_i32gather_pd::<8>(base, lo),
-                    _mm256_i32gather_pd::<8>(base, hi),
-                )
+                let idx = _mm_loadu_si128(offsets.as_ptr().cast::<__m128i>());
+                Ymm(_mm256_i32gather_pd::<8>(base, idx))
+            }
+        }
+
+        /// Four masked loads of `x, y, z` (the fourth `f64` is masked off, so it is never read)
+        /// and a 4x4 transpose: on AMD Zen 3 three hardware gathers of four cost about twice
+        /// as much (the force kernels wait on them; docs/benchmarks.md).
+        #[inline(always)]
+        unsafe fn gather3(_: Avx2Fma, base: *const f64, offsets: &[i32]) -> [Ymm; 3] {
+            let offsets = &offsets[..4];
+            // SAFETY: AVX2 per the token; each masked load reads the three f64 at
+            // base + offsets[l], readable by the caller's contract, and never touches the
+            // masked-off fourth (masked-off elements of VMASKMOVPD neither read nor fault).
+            unsafe {
+                let mask = _mm256_set_epi64x(0, -1, -1, -1);
+                // No closure: closures are not inlined into `target_feature` functions.
+                let r0 = _mm256_maskload_pd(base.offset(offsets[0] as isize), mask);
+                let r1 = _mm256_maskload_pd(base.offset(offsets[1] as isize), mask);
+                let r2 = _mm256_maskload_pd(base.offset(offsets[2] as isize), mask);
+                let r3 = _mm256_maskload_pd(base.offset(offsets[3] as isize), mask);
+                // r_l = [x_l, y_l, z_l, 0].
+                let t0 = _mm256_unpacklo_pd(r0, r1); // x0 x1 z0 z1
+                let t1 = _mm256_unpackhi_pd(r0, r1); // y0 y1 0 0
+                let t2 = _mm256_unpacklo_pd(r2, r3); // x2 x3 z2 z3
+                let t3 = _mm256_unpackhi_pd(r2, r3); // y2 y3 0 0
+                [
+                    Ymm(_mm256_permute2f128_pd::<0x20>(t0, t2)),
+                    Ymm(_mm256_permute2f128_pd::<0x20>(t1, t3)),
+                    Ymm(_mm256_permute2f128_pd::<0x31>(t0, t2)),
+                ]
             }
         }
     }

@@ -5,7 +5,7 @@
 use glam::{DMat3, DVec3};
 
 use super::LANES;
-use super::lanes::Lanes8;
+use super::lanes::LaneVec;
 use super::stress::{dot3, first_piola_lane, gather_differences};
 use crate::material::MaterialParams;
 
@@ -69,7 +69,7 @@ impl ElementBatch {
 /// Every node index of `batches` must be below `x.len()` and `v.len()` (see
 /// [`super::Kernels`]).
 #[inline(always)]
-pub(super) unsafe fn forces_linear<const FMA: bool, const MODEL: u8, V: Lanes8>(
+pub(super) unsafe fn forces_linear<const FMA: bool, const MODEL: u8, V: LaneVec>(
     isa: V::Isa,
     batches: &[ElementBatch],
     mat: &MaterialParams,
@@ -79,38 +79,41 @@ pub(super) unsafe fn forces_linear<const FMA: bool, const MODEL: u8, V: Lanes8>(
 ) {
     let zero = V::splat(isa, 0.0);
     for batch in batches {
-        let mut bm = [zero; 9];
-        for (b, row) in bm.iter_mut().zip(&batch.dm_inv) {
-            *b = V::load(isa, row);
-        }
-        // SAFETY: node indices are below x.len() (caller's contract).
-        let fm = edge_gradient::<FMA, V>(
-            isa,
-            &unsafe { gather_differences::<V, 9>(isa, &batch.node3, x) },
-            &bm,
-        );
-        // No closure (`v.map`): closures are not inlined into `target_feature` functions.
-        #[allow(clippy::manual_map)]
-        let fd = match v {
-            // SAFETY: node indices are below v.len() (caller's contract).
-            Some(v) => Some(edge_gradient::<FMA, V>(
-                isa,
-                &unsafe { gather_differences::<V, 9>(isa, &batch.node3, v) },
-                &bm,
-            )),
-            None => None,
-        };
-        let p = first_piola_lane::<FMA, MODEL, V>(isa, &fm, fd.as_ref(), mat);
-        let w = zero - V::load(isa, &batch.volume_m3);
         // h[3 k + i][l]: component i of the force on node k+1 of lane l.
         let mut h = [[0.0; LANES]; 9];
-        for k in 0..3 {
-            for i in 0..3 {
-                let hk = w * dot3::<FMA, V>(
-                    [p[3 * i], p[3 * i + 1], p[3 * i + 2]],
-                    [bm[3 * k], bm[3 * k + 1], bm[3 * k + 2]],
-                );
-                hk.store(&mut h[3 * k + i]);
+        // The batch in parts of V::WIDTH lanes (one part for eight-lane vectors).
+        for off in (0..LANES).step_by(V::WIDTH) {
+            let mut bm = [zero; 9];
+            for (b, row) in bm.iter_mut().zip(&batch.dm_inv) {
+                *b = V::load(isa, &row[off..]);
+            }
+            // SAFETY: node indices are below x.len() (caller's contract).
+            let fm = edge_gradient::<FMA, V>(
+                isa,
+                &unsafe { gather_differences::<V, 9>(isa, &batch.node3, off, x) },
+                &bm,
+            );
+            // No closure (`v.map`): closures are not inlined into `target_feature` functions.
+            #[allow(clippy::manual_map)]
+            let fd = match v {
+                // SAFETY: node indices are below v.len() (caller's contract).
+                Some(v) => Some(edge_gradient::<FMA, V>(
+                    isa,
+                    &unsafe { gather_differences::<V, 9>(isa, &batch.node3, off, v) },
+                    &bm,
+                )),
+                None => None,
+            };
+            let p = first_piola_lane::<FMA, MODEL, V>(isa, &fm, fd.as_ref(), mat);
+            let w = zero - V::load(isa, &batch.volume_m3[off..]);
+            for k in 0..3 {
+                for i in 0..3 {
+                    let hk = w * dot3::<FMA, V>(
+                        [p[3 * i], p[3 * i + 1], p[3 * i + 2]],
+                        [bm[3 * k], bm[3 * k + 1], bm[3 * k + 2]],
+                    );
+                    hk.store(&mut h[3 * k + i][off..]);
+                }
             }
         }
         scatter_linear(batch, &h, f);
@@ -135,7 +138,7 @@ fn scatter_linear(batch: &ElementBatch, h: &[[f64; LANES]; 9], f: &mut [DVec3]) 
 /// `F = Ds Dm^-1`: `d` from [`gather_differences`], `bm[3 r + c]` entry (r, c) of `Dm^-1`;
 /// `F_ij = sum_k d[3 k + i] bm[3 k + j]`, row-major (seed 000 eq. 21).
 #[inline(always)]
-fn edge_gradient<const FMA: bool, V: Lanes8>(isa: V::Isa, d: &[V; 9], bm: &[V; 9]) -> [V; 9] {
+fn edge_gradient<const FMA: bool, V: LaneVec>(isa: V::Isa, d: &[V; 9], bm: &[V; 9]) -> [V; 9] {
     let mut out = [V::splat(isa, 0.0); 9];
     for i in 0..3 {
         for j in 0..3 {

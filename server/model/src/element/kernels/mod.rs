@@ -25,8 +25,8 @@ mod stress;
 
 use domains::{DomainBatches, forces_domains};
 #[cfg(target_arch = "x86_64")]
-use lanes::{Avx2Fma, Avx512, Ymm2, Zmm};
-use lanes::{Lanes8, Plain8};
+use lanes::{Avx2Fma, Avx512, Ymm, Zmm};
+use lanes::{LaneVec, Plain8};
 use linear::{ElementBatch, forces_linear};
 use quadratic::{QuadraticBatch, forces_quadratic, stvk_operator_quadratic};
 use stress::{LANE_COROTATIONAL, LANE_STABLE_NEO_HOOKEAN, LANE_STVK, lane_model};
@@ -34,8 +34,8 @@ use stress::{LANE_COROTATIONAL, LANE_STABLE_NEO_HOOKEAN, LANE_STVK, lane_model};
 use super::quadrature::IntegrationPoints;
 use crate::material::MaterialParams;
 
-/// Elements per batch of the force kernel: 8 f64 lanes fill an AVX-512 register (two AVX2
-/// registers).
+/// Elements per batch of the force kernel: 8 f64 lanes fill an AVX-512 register (an AVX2
+/// register holds four: the AVX2 kernels run a batch in two parts).
 const LANES: usize = 8;
 
 // The gathers read component c of node n at `(x.as_ptr() as *const f64).add(3 n + c)`: a
@@ -269,7 +269,7 @@ fn locality_order(nodes: &[DVec3], tets: &[[u32; 4]]) -> Vec<u32> {
 /// # Safety
 /// Node indices below the lengths of `x`, `v` (see [`Kernels`]).
 #[inline(always)]
-unsafe fn forces_with<const FMA: bool, const MODEL: u8, V: Lanes8>(
+unsafe fn forces_with<const FMA: bool, const MODEL: u8, V: LaneVec>(
     isa: V::Isa,
     k: &Kernels,
     mat: &MaterialParams,
@@ -307,7 +307,7 @@ unsafe fn forces_avx512<const MODEL: u8>(
     unsafe { forces_with::<true, MODEL, Zmm>(isa, k, mat, x, v, f) }
 }
 
-/// [`forces_with`] in pairs of AVX2 registers ([`Ymm2`]).
+/// [`forces_with`] in AVX2 registers ([`Ymm`], a batch in two parts of four lanes).
 ///
 /// # Safety
 /// Node indices as [`forces_with`] (the token proves the instruction set).
@@ -322,7 +322,7 @@ unsafe fn forces_avx2<const MODEL: u8>(
     f: &mut [DVec3],
 ) {
     // SAFETY: the caller's contract.
-    unsafe { forces_with::<true, MODEL, Ymm2>(isa, k, mat, x, v, f) }
+    unsafe { forces_with::<true, MODEL, Ymm>(isa, k, mat, x, v, f) }
 }
 
 /// [`forces_with`] in plain code ([`Plain8`], unfused multiply-adds).
@@ -364,7 +364,7 @@ unsafe fn stvk_operator_quadratic_avx512(
     unsafe { stvk_operator_quadratic::<true, Zmm>(isa, batches, order, ip_f, ip_s, c, p, out) }
 }
 
-/// [`stvk_operator_quadratic`] in pairs of AVX2 registers.
+/// [`stvk_operator_quadratic`] in AVX2 registers (two parts of four lanes per batch).
 ///
 /// # Safety
 /// Node indices below `p.len()` (the token proves the instruction set).
@@ -385,7 +385,7 @@ unsafe fn stvk_operator_quadratic_avx2(
     out: &mut [DVec3],
 ) {
     // SAFETY: the caller's contract.
-    unsafe { stvk_operator_quadratic::<true, Ymm2>(isa, batches, order, ip_f, ip_s, c, p, out) }
+    unsafe { stvk_operator_quadratic::<true, Ymm>(isa, batches, order, ip_f, ip_s, c, p, out) }
 }
 
 #[cfg(test)]

@@ -4,7 +4,7 @@
 use glam::{DMat3, DVec3};
 
 use super::LANES;
-use super::lanes::Lanes8;
+use super::lanes::LaneVec;
 use super::stress::{dot3, first_piola_lane, gather_differences};
 use crate::element::quadrature::IntegrationPoints;
 use crate::material::MaterialParams;
@@ -67,7 +67,7 @@ impl QuadraticBatch {
 /// # Safety
 /// Node indices below `x.len()` and `v.len()` (see [`super::Kernels`]).
 #[inline(always)]
-pub(super) unsafe fn forces_quadratic<const FMA: bool, const MODEL: u8, V: Lanes8>(
+pub(super) unsafe fn forces_quadratic<const FMA: bool, const MODEL: u8, V: LaneVec>(
     isa: V::Isa,
     batches: &[QuadraticBatch],
     mat: &MaterialParams,
@@ -77,51 +77,59 @@ pub(super) unsafe fn forces_quadratic<const FMA: bool, const MODEL: u8, V: Lanes
 ) {
     let zero = V::splat(isa, 0.0);
     for batch in batches {
-        // SAFETY: node indices are below x.len() and v.len() (caller's contract).
-        let d = unsafe { gather_differences::<V, 27>(isa, &batch.node3, x) };
-        // No closure (`v.map`): closures are not inlined into `target_feature` functions.
-        #[allow(clippy::manual_map)]
-        let dv = match v {
-            // SAFETY: as above.
-            Some(v) => Some(unsafe { gather_differences::<V, 27>(isa, &batch.node3, v) }),
-            None => None,
-        };
-        let mut h = [zero; 27];
-        for q in 0..4 {
-            let g = &batch.grad[q];
-            let fm = quadratic_gradient::<FMA, V>(isa, &d, g);
+        let mut hs = [[0.0; LANES]; 27];
+        // The batch in parts of V::WIDTH lanes (one part for eight-lane vectors).
+        for off in (0..LANES).step_by(V::WIDTH) {
+            // SAFETY: node indices are below x.len() and v.len() (caller's contract).
+            let d = unsafe { gather_differences::<V, 27>(isa, &batch.node3, off, x) };
+            // No closure (`v.map`): closures are not inlined into `target_feature` functions.
             #[allow(clippy::manual_map)]
-            let fd = match &dv {
-                Some(dv) => Some(quadratic_gradient::<FMA, V>(isa, dv, g)),
+            let dv = match v {
+                // SAFETY: as above.
+                Some(v) => Some(unsafe { gather_differences::<V, 27>(isa, &batch.node3, off, v) }),
                 None => None,
             };
-            let p = first_piola_lane::<FMA, MODEL, V>(isa, &fm, fd.as_ref(), mat);
-            let w = zero - V::load(isa, &batch.weight_m3[q]);
-            let mut m = [zero; 9];
-            for (mk, pk) in m.iter_mut().zip(p) {
-                *mk = w * pk;
+            let mut h = [zero; 27];
+            for q in 0..4 {
+                let g = &batch.grad[q];
+                let fm = quadratic_gradient::<FMA, V>(isa, &d, g, off);
+                #[allow(clippy::manual_map)]
+                let fd = match &dv {
+                    Some(dv) => Some(quadratic_gradient::<FMA, V>(isa, dv, g, off)),
+                    None => None,
+                };
+                let p = first_piola_lane::<FMA, MODEL, V>(isa, &fm, fd.as_ref(), mat);
+                let w = zero - V::load(isa, &batch.weight_m3[q][off..]);
+                let mut m = [zero; 9];
+                for (mk, pk) in m.iter_mut().zip(p) {
+                    *mk = w * pk;
+                }
+                add_divergence::<FMA, V>(isa, &m, g, off, &mut h);
             }
-            add_divergence::<FMA, V>(isa, &m, g, &mut h);
+            for (row, hk) in hs.iter_mut().zip(&h) {
+                hk.store(&mut row[off..]);
+            }
         }
-        store_scatter_quadratic(batch, &h, f);
+        scatter_quadratic(batch, &hs, f);
     }
 }
 
 /// `h_a += M grad N_a` (a = 1..9), `M` row-major (already scaled by the integration weight),
-/// `g` a batch's gradients at one integration point: the scatter-side counterpart of
-/// [`quadratic_gradient`].
+/// `g` a batch's gradients at one integration point (lanes from `off`): the scatter-side
+/// counterpart of [`quadratic_gradient`].
 #[inline(always)]
-fn add_divergence<const FMA: bool, V: Lanes8>(
+fn add_divergence<const FMA: bool, V: LaneVec>(
     isa: V::Isa,
     m: &[V; 9],
     g: &[[f64; LANES]; 27],
+    off: usize,
     h: &mut [V; 27],
 ) {
     for a in 0..9 {
         let ga = [
-            V::load(isa, &g[3 * a]),
-            V::load(isa, &g[3 * a + 1]),
-            V::load(isa, &g[3 * a + 2]),
+            V::load(isa, &g[3 * a][off..]),
+            V::load(isa, &g[3 * a + 1][off..]),
+            V::load(isa, &g[3 * a + 2][off..]),
         ];
         for i in 0..3 {
             let acc = V::madd::<FMA>(m[3 * i], ga[0], h[3 * a + i]);
@@ -129,16 +137,6 @@ fn add_divergence<const FMA: bool, V: Lanes8>(
             h[3 * a + i] = V::madd::<FMA>(m[3 * i + 2], ga[2], acc);
         }
     }
-}
-
-/// [`scatter_quadratic`] of per-node vectors held in lanes (`h[3 (a - 1) + c]`).
-#[inline(always)]
-fn store_scatter_quadratic<V: Lanes8>(batch: &QuadraticBatch, h: &[V; 27], out: &mut [DVec3]) {
-    let mut hs = [[0.0; LANES]; 27];
-    for (row, hk) in hs.iter_mut().zip(h) {
-        hk.store(row);
-    }
-    scatter_quadratic(batch, &hs, out);
 }
 
 /// Adds the per-node vectors `h` of a quadratic batch (`h[3 (a - 1) + c][l]`: component c for lane l) to
@@ -162,19 +160,20 @@ fn scatter_quadratic(batch: &QuadraticBatch, h: &[[f64; LANES]; 27], out: &mut [
 }
 
 /// `F = sum_a d_a (grad N_a)^T`, row-major: `d` from [`gather_differences`], `g` a batch's
-/// gradients at one integration point.
+/// gradients at one integration point (lanes from `off`).
 #[inline(always)]
-fn quadratic_gradient<const FMA: bool, V: Lanes8>(
+fn quadratic_gradient<const FMA: bool, V: LaneVec>(
     isa: V::Isa,
     d: &[V; 27],
     g: &[[f64; LANES]; 27],
+    off: usize,
 ) -> [V; 9] {
     let mut out = [V::splat(isa, 0.0); 9];
     for a in 0..9 {
         let ga = [
-            V::load(isa, &g[3 * a]),
-            V::load(isa, &g[3 * a + 1]),
-            V::load(isa, &g[3 * a + 2]),
+            V::load(isa, &g[3 * a][off..]),
+            V::load(isa, &g[3 * a + 1][off..]),
+            V::load(isa, &g[3 * a + 2][off..]),
         ];
         for i in 0..3 {
             for j in 0..3 {
@@ -197,7 +196,7 @@ fn quadratic_gradient<const FMA: bool, V: Lanes8>(
     clippy::too_many_arguments,
     reason = "the token, the batches and the cached F, S"
 )]
-pub(super) unsafe fn stvk_operator_quadratic<const FMA: bool, V: Lanes8>(
+pub(super) unsafe fn stvk_operator_quadratic<const FMA: bool, V: LaneVec>(
     isa: V::Isa,
     batches: &[QuadraticBatch],
     order: &[u32],
@@ -215,67 +214,78 @@ pub(super) unsafe fn stvk_operator_quadratic<const FMA: bool, V: Lanes8>(
         V::splat(isa, 0.5),
     );
     for (b, batch) in batches.iter().enumerate() {
-        // SAFETY: node indices are below p.len() (caller's contract).
-        let dp = unsafe { gather_differences::<V, 27>(isa, &batch.node3, p) };
         let elements = &order[b * LANES..((b + 1) * LANES).min(order.len())];
-        let mut h = [zero; 27];
-        for q in 0..4 {
-            let g = &batch.grad[q];
-            let df = quadratic_gradient::<FMA, V>(isa, &dp, g);
-            // Cached F and S of each lane's integration point, lane-innermost, row-major.
-            let mut fl = [[0.0; LANES]; 9];
-            let mut sl = [[0.0; LANES]; 9];
-            for (l, &e) in elements.iter().enumerate() {
-                let ip = 4 * e as usize + q;
-                let (f, s) = (ip_f[ip], ip_s[ip]);
-                for i in 0..3 {
-                    for j in 0..3 {
-                        fl[3 * i + j][l] = f.col(j)[i];
-                        sl[3 * i + j][l] = s.col(j)[i];
+        let mut hs = [[0.0; LANES]; 27];
+        // The batch in parts of V::WIDTH lanes (one part for eight-lane vectors).
+        for off in (0..LANES).step_by(V::WIDTH) {
+            // SAFETY: node indices are below p.len() (caller's contract).
+            let dp = unsafe { gather_differences::<V, 27>(isa, &batch.node3, off, p) };
+            let mut h = [zero; 27];
+            for q in 0..4 {
+                let g = &batch.grad[q];
+                let df = quadratic_gradient::<FMA, V>(isa, &dp, g, off);
+                // Cached F and S of each lane's integration point, lane-innermost, row-major.
+                let mut fl = [[0.0; LANES]; 9];
+                let mut sl = [[0.0; LANES]; 9];
+                for (l, &e) in elements.iter().enumerate().skip(off).take(V::WIDTH) {
+                    let ip = 4 * e as usize + q;
+                    let (f, s) = (ip_f[ip], ip_s[ip]);
+                    for i in 0..3 {
+                        for j in 0..3 {
+                            fl[3 * i + j][l] = f.col(j)[i];
+                            sl[3 * i + j][l] = s.col(j)[i];
+                        }
                     }
                 }
-            }
-            let (mut f, mut s) = ([zero; 9], [zero; 9]);
-            for k in 0..9 {
-                f[k] = V::load(isa, &fl[k]);
-                s[k] = V::load(isa, &sl[k]);
-            }
-            // dE = sym(F^T dF), dS = 2 mu dE + lam tr(dE) I.
-            let mut de = [zero; 9];
-            for i in 0..3 {
-                for j in 0..3 {
-                    let a =
-                        dot3::<FMA, V>([f[i], f[3 + i], f[6 + i]], [df[j], df[3 + j], df[6 + j]]);
-                    let b =
-                        dot3::<FMA, V>([f[j], f[3 + j], f[6 + j]], [df[i], df[3 + i], df[6 + i]]);
-                    de[3 * i + j] = half * (a + b);
+                let (mut f, mut s) = ([zero; 9], [zero; 9]);
+                for k in 0..9 {
+                    f[k] = V::load(isa, &fl[k][off..]);
+                    s[k] = V::load(isa, &sl[k][off..]);
                 }
-            }
-            let tr = de[0] + de[4] + de[8];
-            let mut ds = [zero; 9];
-            for (d, e) in ds.iter_mut().zip(de) {
-                *d = mu2 * e;
-            }
-            for k in [0, 4, 8] {
-                ds[k] = V::madd::<FMA>(lam, tr, ds[k]);
-            }
-            let w = V::load(isa, &batch.weight_m3[q]);
-            let mut pk = [zero; 9];
-            for i in 0..3 {
-                for j in 0..3 {
-                    let geo = dot3::<FMA, V>(
-                        [df[3 * i], df[3 * i + 1], df[3 * i + 2]],
-                        [s[j], s[3 + j], s[6 + j]],
-                    );
-                    let mat = dot3::<FMA, V>(
-                        [f[3 * i], f[3 * i + 1], f[3 * i + 2]],
-                        [ds[j], ds[3 + j], ds[6 + j]],
-                    );
-                    pk[3 * i + j] = w * V::madd::<FMA>(h2, geo, mat);
+                // dE = sym(F^T dF), dS = 2 mu dE + lam tr(dE) I.
+                let mut de = [zero; 9];
+                for i in 0..3 {
+                    for j in 0..3 {
+                        let a = dot3::<FMA, V>(
+                            [f[i], f[3 + i], f[6 + i]],
+                            [df[j], df[3 + j], df[6 + j]],
+                        );
+                        let b = dot3::<FMA, V>(
+                            [f[j], f[3 + j], f[6 + j]],
+                            [df[i], df[3 + i], df[6 + i]],
+                        );
+                        de[3 * i + j] = half * (a + b);
+                    }
                 }
+                let tr = de[0] + de[4] + de[8];
+                let mut ds = [zero; 9];
+                for (d, e) in ds.iter_mut().zip(de) {
+                    *d = mu2 * e;
+                }
+                for k in [0, 4, 8] {
+                    ds[k] = V::madd::<FMA>(lam, tr, ds[k]);
+                }
+                let w = V::load(isa, &batch.weight_m3[q][off..]);
+                let mut pk = [zero; 9];
+                for i in 0..3 {
+                    for j in 0..3 {
+                        let geo = dot3::<FMA, V>(
+                            [df[3 * i], df[3 * i + 1], df[3 * i + 2]],
+                            [s[j], s[3 + j], s[6 + j]],
+                        );
+                        let mat = dot3::<FMA, V>(
+                            [f[3 * i], f[3 * i + 1], f[3 * i + 2]],
+                            [ds[j], ds[3 + j], ds[6 + j]],
+                        );
+                        pk[3 * i + j] = w * V::madd::<FMA>(h2, geo, mat);
+                    }
+                }
+                add_divergence::<FMA, V>(isa, &pk, g, off, &mut h);
             }
-            add_divergence::<FMA, V>(isa, &pk, g, &mut h);
+            for (row, hk) in hs.iter_mut().zip(&h) {
+                hk.store(&mut row[off..]);
+            }
         }
-        store_scatter_quadratic(batch, &h, out);
+        scatter_quadratic(batch, &hs, out);
     }
 }

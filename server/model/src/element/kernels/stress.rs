@@ -5,7 +5,7 @@
 use glam::DVec3;
 
 use super::LANES;
-use super::lanes::{Lane, Lanes8};
+use super::lanes::{Lane, LaneVec};
 use crate::material::{self, MaterialModel, MaterialParams};
 
 /// `a . b` of two 3-vectors with [`Lane::madd`] (fused multiply-adds when `FMA`; Rust never
@@ -65,7 +65,7 @@ const POLAR_ITERATIONS: usize = 8;
 /// [`crate::material::corotational::polar_decomposition`] lane by lane; both give the same R
 /// to round-off where both apply.
 #[inline(always)]
-pub(super) fn polar_rotation_lane<const FMA: bool, T: Lanes8>(isa: T::Isa, fm: &[T; 9]) -> [T; 9] {
+pub(super) fn polar_rotation_lane<const FMA: bool, T: LaneVec>(isa: T::Isa, fm: &[T; 9]) -> [T; 9] {
     match newton_polar_lane::<FMA, T>(isa, fm) {
         Some(r) => r,
         None => T::map_matrix_lanes(isa, fm, |f| {
@@ -79,7 +79,7 @@ pub(super) fn polar_rotation_lane<const FMA: bool, T: Lanes8>(isa: T::Isa, fm: &
 /// The Newton part of [`polar_rotation_lane`]: `None` when a lane has `det F <= 0` (or NaN)
 /// or has not converged.
 #[inline(always)]
-pub(super) fn newton_polar_lane<const FMA: bool, T: Lanes8>(
+pub(super) fn newton_polar_lane<const FMA: bool, T: LaneVec>(
     isa: T::Isa,
     fm: &[T; 9],
 ) -> Option<[T; 9]> {
@@ -128,9 +128,9 @@ pub(super) fn newton_polar_lane<const FMA: bool, T: Lanes8>(
 /// [`MaterialModel::StableNeoHookean`]); corotational `2 mu (F - R) + lambda (tr(R^T F) - 3) R`
 /// with R from [`polar_rotation_lane`]. Viscous `S_v = 2 psi nu + phi tr(nu) I`,
 /// `nu = F^T Fdot + Fdot^T F` (eq. 10-11). The same formulas as [`material::first_piola`] and
-/// [`material::viscous_stress`], generic over the lane type `T` (a [`Lanes8`]).
+/// [`material::viscous_stress`], generic over the lane type `T` (a [`LaneVec`]).
 #[inline(always)]
-pub(super) fn first_piola_lane<const FMA: bool, const MODEL: u8, T: Lanes8>(
+pub(super) fn first_piola_lane<const FMA: bool, const MODEL: u8, T: LaneVec>(
     isa: T::Isa,
     fm: &[T; 9],
     fd: Option<&[T; 9]>,
@@ -226,16 +226,18 @@ pub(super) fn first_piola_lane<const FMA: bool, const MODEL: u8, T: Lanes8>(
 }
 
 /// Differences `y_a - y_0` (a = 1..N/3) of the nodes of a batch whose gather offsets are
-/// `node3` (row a: `3 *` node a of each lane), `y` positions or velocities: `out[3 (a - 1) + c]`
-/// holds component c, one lane per element. For a linear batch (N = 9) these are the edge
+/// `node3` (row a: `3 *` node a of each lane), `y` positions or velocities, for the lanes
+/// `off..off + V::WIDTH` of the batch: `out[3 (a - 1) + c]` holds component c, one lane per
+/// element. For a linear batch (N = 9) these are the edge
 /// vectors `Ds`; for a quadratic one (N = 27) the differences to the first corner.
 ///
 /// # Safety
 /// Node indices below `y.len()` (see [`super::Kernels`]).
 #[inline(always)]
-pub(super) unsafe fn gather_differences<V: Lanes8, const N: usize>(
+pub(super) unsafe fn gather_differences<V: LaneVec, const N: usize>(
     isa: V::Isa,
     node3: &[[i32; LANES]],
+    off: usize,
     y: &[DVec3],
 ) -> [V; N] {
     debug_assert_eq!(node3.len(), N / 3 + 1);
@@ -243,14 +245,14 @@ pub(super) unsafe fn gather_differences<V: Lanes8, const N: usize>(
     // is at 3 n + c.
     let base = y.as_ptr().cast::<f64>();
     let mut out = [V::splat(isa, 0.0); N];
-    for c in 0..3 {
-        // SAFETY: node3 holds 3 * (node index), so offset + c addresses a component of a node
-        // below y.len() (caller's contract).
-        unsafe {
-            let p = base.add(c);
-            let y0 = V::gather(isa, p, &node3[0]);
-            for a in 1..=N / 3 {
-                out[3 * (a - 1) + c] = V::gather(isa, p, &node3[a]) - y0;
+    // SAFETY: node3 holds 3 * (node index), so the three f64 from base + node3[a][l] are the
+    // components of a node below y.len() (caller's contract).
+    unsafe {
+        let y0 = V::gather3(isa, base, &node3[0][off..]);
+        for a in 1..=N / 3 {
+            let ya = V::gather3(isa, base, &node3[a][off..]);
+            for c in 0..3 {
+                out[3 * (a - 1) + c] = ya[c] - y0[c];
             }
         }
     }
@@ -260,7 +262,7 @@ pub(super) unsafe fn gather_differences<V: Lanes8, const N: usize>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::element::kernels::lanes::Plain8;
+    use crate::element::kernels::lanes::{LaneVec, Plain8};
     use glam::{DMat3, DQuat};
 
     /// Eight deformation gradients `Q diag(s) P^T` (rotations Q, P) with singular values `s`.
@@ -279,7 +281,9 @@ mod tests {
                 * DMat3::from_quat(p).transpose()
         });
         let rows: [[f64; 9]; 8] = std::array::from_fn(|l| mats[l].transpose().to_cols_array());
-        let lanes = std::array::from_fn(|k| Plain8::load((), &std::array::from_fn(|l| rows[l][k])));
+        let lanes = std::array::from_fn(|k| {
+            Plain8::load((), &std::array::from_fn::<f64, 8, _>(|l| rows[l][k]))
+        });
         (lanes, mats)
     }
 
