@@ -16,40 +16,19 @@ use futures_util::{SinkExt, StreamExt};
 use serde_json::{Value, json};
 use tokio_tungstenite::tungstenite::Message;
 
+use crate::install::{self, Missing};
+
 /// Finds `chromium` on PATH, or runs the project's install script (unless
 /// `HAPTIC_SKIP_BROWSER_INSTALL` is set) and looks again.
 ///
 /// # Errors
-/// Why there is no browser (the caller skips the test and prints it).
-pub fn find_or_install_chromium() -> Result<PathBuf> {
-    if let Some(p) = which("chromium") {
-        return Ok(p);
-    }
-    if std::env::var_os("HAPTIC_SKIP_BROWSER_INSTALL").is_some() {
-        bail!("chromium is not installed and HAPTIC_SKIP_BROWSER_INSTALL is set");
-    }
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("install-chromium.sh");
-    eprintln!("browser: running {}", script.display());
-    let out = Command::new("bash")
-        .arg(&script)
-        .output()
-        .with_context(|| format!("running {}", script.display()))?;
-    if !out.status.success() {
-        bail!(
-            "{} could not install chromium: {}",
-            script.display(),
-            String::from_utf8_lossy(&out.stderr).trim()
-        );
-    }
-    which("chromium").context("the install script succeeded but chromium is not on PATH")
-}
-
-fn which(name: &str) -> Option<PathBuf> {
-    std::env::var_os("PATH").and_then(|paths| {
-        std::env::split_paths(&paths)
-            .map(|d| d.join(name))
-            .find(|p| p.is_file())
-    })
+/// Why there is no browser; the caller passes it to [`crate::install::skip_or_fail`].
+pub fn find_or_install_chromium() -> Result<PathBuf, Missing> {
+    install::find_or_install(
+        "chromium",
+        "install-chromium.sh",
+        Some("HAPTIC_SKIP_BROWSER_INSTALL"),
+    )
 }
 
 /// A running headless Chromium (killed on drop) and its DevTools connection.

@@ -23,6 +23,7 @@
 
 pub mod browser;
 pub mod demo;
+pub mod install;
 pub mod load;
 
 use std::io::{BufRead, BufReader};
