@@ -439,9 +439,14 @@ document.getElementById('refresh').onclick = () => listSessions().catch((e) => {
 
 listSessions().then(connect).catch((e) => { messageEl.textContent = String(e); });
 
-// For tests and the curious: the state, and the probe's position on the screen (CSS pixels).
+// For tests and the curious: the state, the camera (copies: reading it changes nothing), and the
+// probe's position on the screen (CSS pixels).
 window.hapticViewer = {
   state: S,
+  camera() {
+    return { position: camera.position.toArray(), target: controls.target.toArray(),
+      home: home && { position: home.position.toArray(), target: home.target.toArray() } };
+  },
   probeScreen() {
     if (!probe.visible) return null;
     const v = probe.position.clone().project(camera), rect = renderer.domElement.getBoundingClientRect();

@@ -1,6 +1,6 @@
 //! A headless Chromium driven over the Chrome DevTools Protocol, for the browser test of the web
 //! viewer: start Debian's `chromium` (installing it with `tests/install-chromium.sh` when it is
-//! missing), open a page, evaluate JavaScript, take PNG screenshots.
+//! missing), open a page, evaluate JavaScript, move and click the mouse, take PNG screenshots.
 //!
 //! The flags are those that work on the project's machines (`../shared/DEPENDENCIES.md`):
 //! `--headless --no-sandbox --disable-gpu` with WebGL through SwiftShader
@@ -196,6 +196,65 @@ impl Browser {
             bail!("{expression} threw: {e}");
         }
         Ok(r["result"]["value"].clone())
+    }
+
+    /// One DevTools mouse event on `page` at CSS pixel `(x, y)`: `kind` is `mousePressed`,
+    /// `mouseMoved` or `mouseReleased`; `buttons` the pressed buttons' mask (1: left) while
+    /// the left button is the one acting.
+    ///
+    /// # Errors
+    /// As [`Browser::call`].
+    pub async fn mouse(
+        &mut self,
+        page: &Page,
+        kind: &str,
+        (x, y): (f64, f64),
+        buttons: u32,
+    ) -> Result<()> {
+        let button = if buttons & 1 == 1 || kind == "mouseReleased" {
+            "left"
+        } else {
+            "none"
+        };
+        self.call(
+            Some(&page.session),
+            "Input.dispatchMouseEvent",
+            json!({"type": kind, "x": x, "y": y, "button": button, "buttons": buttons,
+                   "clickCount": 1}),
+        )
+        .await?;
+        Ok(())
+    }
+
+    /// A left-button drag on `page` from `from` to `to` (CSS pixels) in `steps` moves.
+    ///
+    /// # Errors
+    /// As [`Browser::call`].
+    pub async fn drag(
+        &mut self,
+        page: &Page,
+        from: (f64, f64),
+        to: (f64, f64),
+        steps: u32,
+    ) -> Result<()> {
+        self.mouse(page, "mouseMoved", from, 0).await?;
+        self.mouse(page, "mousePressed", from, 1).await?;
+        for k in 1..=steps.max(1) {
+            let s = f64::from(k) / f64::from(steps.max(1));
+            let p = (from.0 + s * (to.0 - from.0), from.1 + s * (to.1 - from.1));
+            self.mouse(page, "mouseMoved", p, 1).await?;
+        }
+        self.mouse(page, "mouseReleased", to, 0).await
+    }
+
+    /// A left click on `page` at `at` (CSS pixels).
+    ///
+    /// # Errors
+    /// As [`Browser::call`].
+    pub async fn click(&mut self, page: &Page, at: (f64, f64)) -> Result<()> {
+        self.mouse(page, "mouseMoved", at, 0).await?;
+        self.mouse(page, "mousePressed", at, 1).await?;
+        self.mouse(page, "mouseReleased", at, 0).await
     }
 
     /// A PNG screenshot of `page`.

@@ -1,7 +1,8 @@
 //! The browser viewer in a real browser (issue 17): the real `hapticd`, `haptic-viewer --web`
 //! and `haptic-bridge`, and Debian's headless Chromium. The page lists the session, shows the
 //! surface at rest (displacement colours: all blue), and during a bridge press shows the dent in
-//! the displacement colours around the contact and a force in its status line.
+//! the displacement colours around the contact, a force and a small frame age in its status
+//! line; a mouse drag orbits the camera and the reset-view button brings it back.
 //!
 //! Chromium comes from `tests/install-chromium.sh` (Debian's package) when it is not on PATH;
 //! where it cannot be installed (no root, no apt, no network) the test prints why on the
@@ -46,6 +47,39 @@ fn count(img: &Rgb, cx: f64, cy: f64, half: i64, f: impl Fn([u8; 3]) -> bool) ->
         }
     }
     n
+}
+
+/// Pixels of `a` and `b` (same size) inside `x0..x1` x `y0..y1` whose RGB differ by more than 60
+/// in sum.
+fn changed_pixels(a: &Rgb, b: &Rgb, (x0, y0): (i64, i64), (x1, y1): (i64, i64)) -> usize {
+    let mut n = 0;
+    for y in y0..y1 {
+        for x in x0..x1 {
+            if let (Some(p), Some(q)) = (a.get(x, y), b.get(x, y)) {
+                let d: i32 = (0..3)
+                    .map(|k| (i32::from(p[k]) - i32::from(q[k])).abs())
+                    .sum();
+                if d > 60 {
+                    n += 1;
+                }
+            }
+        }
+    }
+    n
+}
+
+/// An `[x, y, z]` JSON array.
+fn vec3(v: &serde_json::Value) -> Result<[f64; 3]> {
+    let a = v
+        .as_array()
+        .filter(|a| a.len() == 3)
+        .context("not a 3-vector")?;
+    let f = |i: usize| a[i].as_f64().context("not a number");
+    Ok([f(0)?, f(1)?, f(2)?])
+}
+
+fn distance(a: [f64; 3], b: [f64; 3]) -> f64 {
+    (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>().sqrt()
 }
 
 /// Polls `expression` (a JavaScript boolean) every 200 ms until it is true, up to `timeout`.
@@ -163,7 +197,91 @@ async fn web_viewer_shows_the_dent_and_the_force_during_a_bridge_press() -> Resu
             "[window.hapticViewer.state.badFrames, window.hapticViewer.state.keyframes]",
         )
         .await?;
+
+    // The camera, while the bridge holds the press: a drag across the picture orbits it (the
+    // picture changes), the reset-view button brings back the framed view.
+    let before = browser.eval(&page, "window.hapticViewer.camera()").await?;
+    let (home, target) = (vec3(&before["position"])?, vec3(&before["target"])?);
+    let radius = distance(home, target);
+    // (OrbitControls recomputes the position from angles: equal up to rounding.)
+    let same = |a: [f64; 3], b: [f64; 3]| distance(a, b) <= 1e-6 * radius;
+    ensure!(
+        same(vec3(&before["home"]["position"])?, home),
+        "the page did not start at its framed view: {before}"
+    );
+    let centre = browser
+        .eval(
+            &page,
+            "(() => { const r = document.querySelector('#view canvas').getBoundingClientRect(); \
+             return [r.left + r.width / 2, r.top + r.height / 2]; })()",
+        )
+        .await?;
+    let (cx, cy) = (
+        centre[0].as_f64().context("centre x")?,
+        centre[1].as_f64().context("centre y")?,
+    );
+    browser
+        .drag(&page, (cx - 120.0, cy), (cx + 120.0, cy + 40.0), 6)
+        .await?;
+    let orbited_at = vec3(&browser.eval(&page, "window.hapticViewer.camera()").await?["position"])?;
+    let moved = distance(orbited_at, home);
+    ensure!(
+        moved > 0.2 * radius,
+        "the drag moved the camera {moved:.2e} m (distance to the target {radius:.2e} m)"
+    );
+    tokio::time::sleep(Duration::from_millis(300)).await; // the next animation frame draws
+    let orbited = browser.screenshot(&page).await?;
+    let reset_at = browser
+        .eval(
+            &page,
+            "(() => { const r = document.getElementById('reset').getBoundingClientRect(); \
+             return [r.left + r.width / 2, r.top + r.height / 2]; })()",
+        )
+        .await?;
+    browser
+        .click(
+            &page,
+            (
+                reset_at[0].as_f64().context("button x")?,
+                reset_at[1].as_f64().context("button y")?,
+            ),
+        )
+        .await?;
+    let after = browser.eval(&page, "window.hapticViewer.camera()").await?;
+    let (back, back_target) = (vec3(&after["position"])?, vec3(&after["target"])?);
+    ensure!(
+        same(back, home) && same(back_target, target),
+        "reset view: camera {after} instead of {before}"
+    );
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let reset = browser.screenshot(&page).await?;
     drop(bridge);
+    let (held, orbited, reset) = (
+        Rgb::from_png(&pressed)?,
+        Rgb::from_png(&orbited)?,
+        Rgb::from_png(&reset)?,
+    );
+    // The 3D view only: above the status line, below the tool bar.
+    let view = ((0, 40), (held.width as i64, held.height as i64 - 40));
+    let (by_drag, by_reset) = (
+        changed_pixels(&held, &orbited, view.0, view.1),
+        changed_pixels(&held, &reset, view.0, view.1),
+    );
+    eprintln!(
+        "camera: the drag moved it {:.1} mm ({:.1} mm from the target) and changed {by_drag} \
+         pixels; after reset {by_reset} differ from before the drag",
+        moved * 1e3,
+        radius * 1e3
+    );
+    ensure!(
+        by_drag > 5000,
+        "the drag hardly changed the picture: {by_drag} pixels"
+    );
+    ensure!(
+        by_reset * 10 < by_drag,
+        "after reset view {by_reset} pixels differ from the framed view (the drag: {by_drag})"
+    );
+
     ensure!(
         decoded[0] == 0,
         "the page failed to decode frames: {decoded}"
@@ -189,7 +307,22 @@ async fn web_viewer_shows_the_dent_and_the_force_during_a_bridge_press() -> Resu
         .find_map(|p| p.strip_prefix("force ")?.strip_suffix(" N")?.parse().ok())
         .with_context(|| format!("no force in the status line {status:?}"))?;
     ensure!(force > 0.01, "force {force} N in {status:?}");
-    for part in ["loop ", " Hz", "step p50 ", " p99 ", "frame age "] {
+    // The frame's age when the page got it (server clock to page clock, one machine): a number,
+    // and small (frames are not piling up behind the relay).
+    let age_ms: f64 = status
+        .split(" \u{b7} ")
+        .find_map(|p| {
+            p.strip_prefix("frame age ")?
+                .strip_suffix(" ms")?
+                .parse()
+                .ok()
+        })
+        .with_context(|| format!("no frame age in the status line {status:?}"))?;
+    ensure!(
+        age_ms.is_finite() && (-50.0..2000.0).contains(&age_ms),
+        "frame age {age_ms} ms in {status:?}"
+    );
+    for part in ["loop ", " Hz", "step p50 ", " p99 "] {
         ensure!(status.contains(part), "{part:?} missing in {status:?}");
     }
     ensure!(
@@ -211,21 +344,13 @@ async fn web_viewer_shows_the_dent_and_the_force_during_a_bridge_press() -> Resu
     let red_rest = count(&rest, px, py, half, reddish);
     let blue_rest = count(&rest, px, py, half, bluish);
     let changed = {
-        let mut n = 0;
         let (cx, cy) = (px.round() as i64, py.round() as i64);
-        for y in cy - half..=cy + half {
-            for x in cx - half..=cx + half {
-                if let (Some(a), Some(b)) = (rest.get(x, y), pressed.get(x, y)) {
-                    let d: i32 = (0..3)
-                        .map(|k| (i32::from(a[k]) - i32::from(b[k])).abs())
-                        .sum();
-                    if d > 60 {
-                        n += 1;
-                    }
-                }
-            }
-        }
-        n
+        changed_pixels(
+            &rest,
+            &pressed,
+            (cx - half, cy - half),
+            (cx + half + 1, cy + half + 1),
+        )
     };
     eprintln!(
         "around the contact ({px:.0}, {py:.0}) +-{half} px: red {red_rest} -> {red_press}, \
