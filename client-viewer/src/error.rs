@@ -36,6 +36,14 @@ pub enum ClientError {
     /// A configuration value is out of range (checked before anything is started).
     #[error("invalid configuration: {0}")]
     InvalidConfig(String),
+    /// The web viewer's listen address did not resolve, or none of its addresses could be bound.
+    #[error("cannot listen on {addr}: {reason}")]
+    Listen {
+        /// The address as given (`HOST:PORT`).
+        addr: String,
+        /// Why: the resolver's error, or the last address tried and its bind error.
+        reason: String,
+    },
     /// A surface frame does not match the current keyframe (wrong sizes, missing vertices,
     /// non-finite numbers, no keyframe yet).
     #[error("bad frame {frame}: {reason}")]

@@ -125,8 +125,10 @@ pub struct ViewerArgs {
     /// watching a server, paced by their simulated time; pictures as in PNG mode.
     #[arg(long, value_name = "FILE", conflicts_with_all = ["web", "session"])]
     pub replay: Option<PathBuf>,
-    /// Serve the browser viewer on this address (e.g. 127.0.0.1:8080) instead of writing PNGs:
-    /// a relay that subscribes once per session and fans frames out to browsers over WebSocket.
+    /// Serve the browser viewer on this address, HOST:PORT (e.g. 127.0.0.1:8080, localhost:8080,
+    /// [::1]:8080, 0.0.0.0:8080; a host name is bound on its first resolved address that can be
+    /// bound) instead of writing PNGs: a relay that subscribes once per session and fans frames
+    /// out to browsers over WebSocket.
     #[arg(long, value_name = "ADDR")]
     pub web: Option<String>,
     /// Output directory for frame_NNNNN.png and latest.png.
@@ -171,20 +173,28 @@ pub struct ViewerArgs {
 }
 
 impl ViewerArgs {
-    /// The web viewer's configuration when `--web` was given: the bind address and a
+    /// The web viewer's configuration when `--web` was given: the address to bind with
+    /// [`crate::web::bind`] (`HOST:PORT`, host names resolved there) and a
     /// [`crate::web::WebConfig`] (browsers get `--max-rate-hz` by default, clamped to 60 Hz).
     ///
     /// # Errors
-    /// [`ClientError::InvalidConfig`] for a malformed address or bad rates.
-    pub fn web_config(
-        &self,
-    ) -> Result<Option<(std::net::SocketAddr, crate::web::WebConfig)>, ClientError> {
+    /// [`ClientError::InvalidConfig`] for an address that is not `HOST:PORT` (a port from 0 to
+    /// 65535) or bad rates.
+    pub fn web_config(&self) -> Result<Option<(String, crate::web::WebConfig)>, ClientError> {
         let Some(addr) = &self.web else {
             return Ok(None);
         };
-        let addr = addr.parse().map_err(|e| {
-            ClientError::InvalidConfig(format!("--web {addr:?}: {e} (expected HOST:PORT)"))
-        })?;
+        let port = addr
+            .rsplit_once(':')
+            .filter(|(host, _)| !host.is_empty())
+            .map(|(_, port)| port.parse::<u16>());
+        if !matches!(port, Some(Ok(_))) {
+            return Err(ClientError::InvalidConfig(format!(
+                "--web {addr:?}: expected HOST:PORT (e.g. 127.0.0.1:8080, localhost:8080, \
+                 [::1]:8080)"
+            )));
+        }
+        let addr = addr.clone();
         let mut cfg = crate::web::WebConfig::new(self.server.clone());
         cfg.credentials = self.credentials.clone();
         if self.max_rate_hz > 0.0 {
@@ -775,6 +785,31 @@ mod tests {
         assert_eq!(percentile(&s, 0.99), Some(5.0));
         assert_eq!(percentile(&s, 0.0), Some(1.0));
         assert_eq!(percentile(&[], 0.5), None);
+    }
+
+    #[test]
+    fn web_addresses_are_host_and_port() {
+        use clap::Parser;
+        let cfg = |a: &str| {
+            ViewerArgs::try_parse_from(["haptic-viewer", "--web", a])
+                .unwrap()
+                .web_config()
+        };
+        for good in [
+            "localhost:0",
+            "0.0.0.0:8080",
+            "[::1]:0",
+            "viewer.example:80",
+        ] {
+            let (addr, _) = cfg(good).unwrap().unwrap();
+            assert_eq!(addr, good);
+        }
+        for bad in ["localhost", ":80", "localhost:", "localhost:65536", "[::1]"] {
+            assert!(
+                matches!(cfg(bad), Err(ClientError::InvalidConfig(m)) if m.contains("HOST:PORT")),
+                "{bad} accepted"
+            );
+        }
     }
 
     #[test]

@@ -733,6 +733,40 @@ fn control(text: &str, st: &mut BrowserState) -> Option<String> {
     }
 }
 
+/// Binds the web viewer's listener on `addr`, `HOST:PORT`: a numeric address (`127.0.0.1:8080`,
+/// `0.0.0.0:0`, `[::1]:0`) or a host name the system resolves (`localhost:8080`). Of several
+/// resolved addresses (`localhost` may give `::1` and `127.0.0.1`) the first one, in the
+/// resolver's order, that can be bound is used: one listener, whose address `local_addr` gives
+/// (with port 0 several listeners would each get a different port).
+///
+/// # Errors
+/// [`ClientError::Listen`] when `addr` is not `HOST:PORT`, does not resolve, resolves to no
+/// address, or no resolved address can be bound (the last one tried and its error).
+pub async fn bind(addr: &str) -> Result<TcpListener, ClientError> {
+    let listen = |reason: String| ClientError::Listen {
+        addr: addr.to_string(),
+        reason,
+    };
+    let resolved: Vec<std::net::SocketAddr> = tokio::net::lookup_host(addr)
+        .await
+        .map_err(|e| {
+            listen(format!(
+                "{e} (expected HOST:PORT, e.g. 127.0.0.1:8080, localhost:8080 or [::1]:8080)"
+            ))
+        })?
+        .collect();
+    let mut last = None;
+    for a in &resolved {
+        match TcpListener::bind(a).await {
+            Ok(l) => return Ok(l),
+            Err(e) => last = Some(format!("{a}: {e}")),
+        }
+    }
+    Err(listen(last.unwrap_or_else(|| {
+        "the name resolves to no address".into()
+    })))
+}
+
 /// Serves the web viewer on `listener` until `shutdown` completes.
 ///
 /// # Errors
@@ -761,6 +795,55 @@ pub async fn run(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[tokio::test]
+    async fn the_listen_address_may_be_a_host_name_or_a_numeric_address() {
+        let local = |l: TcpListener| l.local_addr().unwrap();
+        let a = local(bind("localhost:0").await.unwrap());
+        assert!(
+            a.ip().is_loopback() && a.port() != 0,
+            "localhost:0 bound {a}"
+        );
+        let a = local(bind("0.0.0.0:0").await.unwrap());
+        assert!(
+            a.ip().is_unspecified() && a.is_ipv4(),
+            "0.0.0.0:0 bound {a}"
+        );
+        let a = local(bind("127.0.0.1:0").await.unwrap());
+        assert_eq!(a.ip(), std::net::Ipv4Addr::LOCALHOST);
+        // IPv6 loopback, where the machine has one.
+        match std::net::TcpListener::bind("[::1]:0") {
+            Ok(_) => {
+                let a = local(bind("[::1]:0").await.unwrap());
+                assert_eq!(a.ip(), std::net::Ipv6Addr::LOCALHOST);
+            }
+            Err(e) => {
+                use std::io::Write;
+                let _ = std::io::stderr().write_all(
+                    format!("SKIPPED [::1]:0 in web::bind's test: no IPv6 loopback here: {e}\n")
+                        .as_bytes(),
+                );
+            }
+        }
+        for bad in [
+            "localhost",
+            "no-such-host.invalid:0",
+            "127.0.0.1:99999",
+            ":",
+        ] {
+            let e = bind(bad).await.expect_err(bad);
+            assert!(
+                matches!(&e, ClientError::Listen { addr, .. } if addr == bad),
+                "{bad}: {e:?}"
+            );
+            assert!(e.to_string().starts_with("cannot listen on "), "{e}");
+        }
+        // A port in use is reported with the address tried.
+        let taken = bind("127.0.0.1:0").await.unwrap();
+        let spec = taken.local_addr().unwrap().to_string();
+        let e = bind(&spec).await.expect_err("port in use");
+        assert!(e.to_string().contains(&spec), "{e}");
+    }
 
     #[test]
     fn control_messages_are_checked() {

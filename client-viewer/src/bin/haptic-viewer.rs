@@ -14,7 +14,7 @@ use haptic_client::viewer::{self, StopReason, ViewerArgs};
 
 async fn run(args: ViewerArgs) -> anyhow::Result<ExitCode> {
     if let Some((addr, cfg)) = args.web_config()? {
-        let listener = tokio::net::TcpListener::bind(addr).await?;
+        let listener = haptic_client::web::bind(&addr).await?;
         let addr = listener.local_addr()?;
         println!("listening on {addr}");
         eprintln!("web viewer on http://{addr}/ (daemon {})", cfg.server);
