@@ -1,15 +1,19 @@
 //! The web viewer's relay without a browser (issue 17): the real `hapticd` and `haptic-viewer
 //! --web`, WebSocket clients in the test. Three browsers cost the daemon one watcher; each gets
 //! a keyframe with the topology first and then compact frames that decode against it; the page
-//! and the JSON API answer; bad queries and bad messages get errors, never a crash.
+//! and the JSON API answer; bad queries and bad messages get errors, never a crash. When a probe
+//! press subdivides a mass-spring surface, a browser gets a keyframe with the new triangles.
 
 use std::time::Duration;
 
 use anyhow::{Context, Result, bail, ensure};
 use futures_util::{SinkExt, StreamExt};
-use haptic_e2e::{Daemon, VIEWER, serial, session_control, spawn_bin, start_session};
+use haptic_e2e::{
+    Daemon, VIEWER, device_link, serial, session_control, spawn_bin, spawn_web_viewer,
+    start_session,
+};
 use haptics_proto::delta::DeltaCodec;
-use haptics_proto::v1::{GetStatsRequest, SurfaceFrame};
+use haptics_proto::v1::{DeviceSample, GetStatsRequest, SurfaceFrame, Vec3};
 use prost::Message as _;
 use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
 use tokio_tungstenite::tungstenite::Message;
@@ -206,5 +210,119 @@ async fn one_upstream_for_many_browsers_keyframes_first_and_bad_input_answered()
         "{e}"
     );
     drop(browsers);
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_browser_gets_the_new_triangles_when_a_press_subdivides_the_surface() -> Result<()> {
+    let _serial = serial().await;
+    let daemon = Daemon::spawn(&[])?;
+    let url = daemon.url();
+    let id = start_session(&url, "hemisphere-springs").await?;
+    let (_web, addr) = spawn_web_viewer(&url, &[]).await?;
+    let (mut ws, _) =
+        tokio_tungstenite::connect_async(format!("ws://{addr}/ws?session={id}&rate=30")).await?;
+    ensure!(next_text(&mut ws).await?["type"] == "hello");
+    let coarse = next_binary(&mut ws).await?;
+    ensure!(
+        coarse.keyframe && !coarse.triangles.is_empty(),
+        "keyframe first"
+    );
+    let n0 = coarse.positions_m.len() / 3;
+    // The dome's apex (it points up, +z) and the probe's radius.
+    let apex = (0..n0)
+        .max_by(|&a, &b| coarse.positions_m[3 * a + 2].total_cmp(&coarse.positions_m[3 * b + 2]))
+        .context("no vertex")?;
+    let [x, y, z] = [0, 1, 2].map(|k| f64::from(coarse.positions_m[3 * apex + k]));
+    let r = coarse.probe_radius_m;
+    ensure!(r > 0.0, "probe radius {r}");
+
+    // A device at 1 kHz: 10 mm above the apex for 0.2 s, 4 mm into it over 0.2 s, then held
+    // (the model subdivides the one-ring around the contact node).
+    let (tx, rx) = tokio::sync::mpsc::channel::<DeviceSample>(64);
+    let session_id = id.clone();
+    let device = tokio::spawn(async move {
+        let mut tick = tokio::time::interval(Duration::from_millis(1));
+        let t0 = tokio::time::Instant::now();
+        for seq in 1..=60_000u64 {
+            tick.tick().await;
+            let t = t0.elapsed().as_secs_f64();
+            let depth = if t < 0.2 {
+                -0.01
+            } else {
+                4e-3 * ((t - 0.2) / 0.2).min(1.0)
+            };
+            let s = DeviceSample {
+                session_id: session_id.clone(),
+                seq,
+                device_time_us: (t * 1e6) as u64,
+                position_m: Some(Vec3::new(x, y, z + r - depth)),
+                velocity_m_per_s: Some(Vec3::new(0.0, 0.0, 0.0)),
+            };
+            if tx.send(s).await.is_err() {
+                break;
+            }
+        }
+    });
+    let mut forces = device_link(&url)
+        .await?
+        .connect(tokio_stream::wrappers::ReceiverStream::new(rx))
+        .await?
+        .into_inner();
+    tokio::spawn(async move { while let Ok(Some(_)) = forces.message().await {} });
+
+    // Frames of the coarse topology until a keyframe of a new one.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    let (fine, before) = loop {
+        ensure!(
+            tokio::time::Instant::now() < deadline,
+            "no new topology within 60 s"
+        );
+        let f = next_binary(&mut ws).await?;
+        if f.topology_version != coarse.topology_version {
+            break (f, coarse.topology_version);
+        }
+    };
+    device.abort();
+    ensure!(
+        fine.keyframe && !fine.triangles.is_empty() && !fine.rest_positions_m.is_empty(),
+        "the first frame of topology {} (was {before}) is not a keyframe with triangles",
+        fine.topology_version
+    );
+    let n = fine.rest_positions_m.len() / 3;
+    ensure!(
+        fine.positions_m.len() == 3 * n,
+        "the keyframe of a new topology carries its positions"
+    );
+    ensure!(
+        n > n0 && fine.triangles.len() > coarse.triangles.len(),
+        "subdivided: {n0} -> {n} vertices, {} -> {} triangles",
+        coarse.triangles.len() / 3,
+        fine.triangles.len() / 3
+    );
+    ensure!(
+        fine.triangles.iter().all(|&i| (i as usize) < n),
+        "triangles index the new vertices"
+    );
+    // The following frames decode against the new topology's keyframe.
+    let codec = DeltaCodec::new(n, &fine.triangles)?;
+    let mut decoded = 0;
+    for _ in 0..5 {
+        let f = next_binary(&mut ws).await?;
+        if f.topology_version != fine.topology_version {
+            break; // coarsened again already
+        }
+        if f.keyframe_id != fine.keyframe_id {
+            break; // a new reference: fine, but not what this loop decodes
+        }
+        let mut p = vec![0.0; 3 * n];
+        codec.decode(&fine.positions_m, &f.position_delta, f.quantum_m, &mut p)?;
+        ensure!(p.iter().all(|v| v.is_finite()));
+        decoded += 1;
+    }
+    eprintln!(
+        "topology {before} -> {}: {n0} -> {n} vertices; {decoded} later frames decoded",
+        fine.topology_version
+    );
     Ok(())
 }
