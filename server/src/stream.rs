@@ -588,3 +588,40 @@ fn build_frame(
     }
     Some((frame, next))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keyframes_are_renewed_periodically_and_when_they_pay_for_themselves() {
+        let p = KeyframePolicy::default();
+        assert_eq!(
+            (p.min_interval_s, p.max_interval_s, p.payback_frames),
+            (0.5, 10.0, 20.0)
+        );
+        // Periodic: at the maximum interval whatever the sizes, even with nothing to gain.
+        assert!(p.should_renew(10.0, 0, 0, 1 << 30));
+        assert!(p.should_renew(10.0, 5, usize::MAX, 1 << 30));
+        assert!(!p.should_renew(9.999, 0, 0, 1 << 30));
+        // Payback: (delta - step) * 20 frames must exceed the keyframe's cost, strictly.
+        assert!(!p.should_renew(1.0, 150, 100, 1000)); // 50 * 20 = 1000
+        assert!(p.should_renew(1.0, 151, 100, 1000)); // 51 * 20 = 1020
+        // ... and never before the minimum interval.
+        assert!(!p.should_renew(0.499, 151, 100, 1000));
+        assert!(p.should_renew(0.5, 151, 100, 1000));
+        // A surface still moving (a step as large as the delta) or with no previous frame to
+        // compare with (step unknown: usize::MAX) is not renewed before the maximum interval.
+        assert!(!p.should_renew(5.0, 800, 900, 1));
+        assert!(!p.should_renew(5.0, 800, usize::MAX, 1));
+        // The rule follows its parameters.
+        let eager = KeyframePolicy {
+            min_interval_s: 0.0,
+            max_interval_s: 1.0,
+            payback_frames: 1.0,
+        };
+        assert!(eager.should_renew(0.0, 1001, 0, 1000));
+        assert!(!eager.should_renew(0.0, 1000, 0, 1000));
+        assert!(eager.should_renew(1.0, 0, 0, 1000));
+    }
+}

@@ -1,8 +1,9 @@
 //! Surface streams in process (issue 17): compact frames decode to the full frames' positions
 //! within half a quantum, a late joiner's first frame is a keyframe, `RequestKeyframe` gives a
 //! keyframe with the topology, a watcher that does not read drops frames with bounded queues and
-//! GetStats reports it (and no longer counts its queue once it leaves), and bad Watch requests
-//! get INVALID_ARGUMENT. No assertion on timing.
+//! GetStats reports it (and no longer counts its queue once it leaves), compact frames with a
+//! non-default quantum decode within half of it, and bad Watch requests get INVALID_ARGUMENT. No
+//! assertion on timing.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -24,6 +25,17 @@ use tokio_stream::StreamExt;
 type Frames = haptic_server::stream::FrameStream;
 
 async fn watch(services: &Services, id: &str, rate: f64, compact: bool) -> Frames {
+    watch_q(services, id, rate, compact, 0.0).await
+}
+
+/// A watch with an explicit `quantum_m` (0: the default, 1 um).
+async fn watch_q(
+    services: &Services,
+    id: &str,
+    rate: f64,
+    compact: bool,
+    quantum_m: f64,
+) -> Frames {
     services
         .watch(tonic::Request::new(WatchRequest {
             session_id: id.to_string(),
@@ -33,7 +45,7 @@ async fn watch(services: &Services, id: &str, rate: f64, compact: bool) -> Frame
             } else {
                 SurfaceEncoding::Full as i32
             },
-            quantum_m: 0.0,
+            quantum_m,
         }))
         .await
         .unwrap()
@@ -146,6 +158,72 @@ async fn compact_frames_decode_to_the_full_positions() {
     eprintln!(
         "{compared} frames compared; {keyframes} keyframes ({chained} chained), {deltas} deltas"
     );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn compact_frames_with_a_coarser_quantum_decode_within_half_of_it() {
+    const Q: f64 = 1e-5;
+    let (manager, services, session) = start();
+    let mut full = watch(&services, &session.id, 60.0, false).await;
+    let mut compact = watch_q(&services, &session.id, 60.0, true, Q).await;
+    push(&session, -0.05);
+    let collect = tokio::spawn(async move {
+        let mut by_time = HashMap::new();
+        for _ in 0..60 {
+            let f = next(&mut full).await;
+            by_time.insert(f.sim_time_s.to_bits(), f.positions_m);
+        }
+        by_time
+    });
+    let first = next(&mut compact).await;
+    assert!(
+        first.keyframe && !first.triangles.is_empty(),
+        "keyframe first"
+    );
+    assert_eq!(first.quantum_m, Q);
+    let n = first.positions_m.len() / 3;
+    let codec = DeltaCodec::new(n, &first.triangles).unwrap();
+    let mut reference = (first.keyframe_id, first.positions_m.clone());
+    let mut decoded = Vec::new();
+    let mut moving = 0;
+    for _ in 0..60 {
+        let f = next(&mut compact).await;
+        assert_eq!(f.quantum_m, Q, "every frame in the asked quantum");
+        if f.keyframe {
+            // Chains are in 1 um steps only: a coarser stream gets float keyframes.
+            assert!(f.reference_delta.is_empty() && f.positions_m.len() == 3 * n);
+            reference = (f.keyframe_id, f.positions_m.clone());
+        }
+        assert_eq!(f.keyframe_id, reference.0);
+        if !f.position_delta.is_empty() {
+            moving += 1;
+        }
+        let mut p = vec![0.0; 3 * n];
+        codec
+            .decode(&reference.1, &f.position_delta, Q, &mut p)
+            .unwrap();
+        decoded.push((f.sim_time_s, p));
+    }
+    let by_time = collect.await.unwrap();
+    manager.stop(&session.id).unwrap();
+    let (mut compared, mut worst) = (0, 0.0f64);
+    for (t, p) in &decoded {
+        if let Some(q) = by_time.get(&t.to_bits()) {
+            for (a, b) in p.iter().zip(q) {
+                let e = f64::from((a - b).abs());
+                assert!(e <= Q / 2.0 + 1e-8, "{a} vs {b} at t = {t}: {e:e} m");
+                worst = worst.max(e);
+            }
+            compared += 1;
+        }
+    }
+    assert!(
+        compared >= 10,
+        "only {compared} frames seen by both streams"
+    );
+    assert!(moving > 0, "no frame moved");
+    // The quantum is really coarser: some error is above what a 1 um stream could have.
+    assert!(worst > 0.5e-6 + 1e-8, "largest error {worst:e} m");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
