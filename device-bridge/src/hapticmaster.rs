@@ -18,9 +18,11 @@
 //! S13) -> `create biasforce NAME`, force zero, enable -> `set state force`. Every exit path
 //! ([`HapticDevice::safe_stop`], also from `Drop`, so an error or a panic that unwinds still
 //! gets it) sends: bias force `[0,0,0]`, `set NAME disable`, `remove all`, then `set state
-//! stop` (the lab code's sequence, [S3]; `set state off` with [`ExitState::Off`]). A killed
-//! bridge cannot do this: the device then keeps the last bias force, which the guard's scene
-//! limits keep small (the HapticMaster has no host watchdog in its public protocol).
+//! stop` (the lab code's sequence, [S3]; `set state off` with [`ExitState::Off`]); the
+//! `haptic-bridge` binary takes this path on SIGINT, SIGTERM and SIGHUP too. A bridge killed
+//! outright (SIGKILL, power loss) cannot do this: the device then keeps the last bias force,
+//! which the guard's scene limits keep small (the HapticMaster has no host watchdog in its
+//! public protocol).
 //!
 //! Per device tick: one `get modelpos; get modelvel` round trip ([`HapticDevice::read`]) and one
 //! `set NAME force [..]` ([`HapticDevice::write_force`]). Each waits at most
@@ -45,6 +47,8 @@ use crate::sim::Script;
 pub const DEFAULT_PORT: u16 = 7654;
 /// Largest reply accepted, bytes (replies are short text lines).
 pub const MAX_MESSAGE_BYTES: usize = 64 * 1024;
+/// Commands the emulator keeps in [`EmulatorLog::recent_commands`].
+pub const EMULATOR_RECENT_COMMANDS: usize = 64;
 
 /// Encodes one message: 4-byte big-endian length, 4 zero bytes, the text.
 pub fn encode(text: &str) -> Vec<u8> {
@@ -365,6 +369,13 @@ pub struct EmulatorLog {
     pub effects: Vec<String>,
     /// Connections accepted.
     pub connections: u64,
+    /// The last [`EMULATOR_RECENT_COMMANDS`] commands received, oldest first (a batch such as
+    /// `get modelpos; get modelvel` counts as its commands).
+    pub recent_commands: std::collections::VecDeque<String>,
+    /// For each connection that ended (the host closed it or it broke), the number of commands
+    /// answered by then: a host's exit sequence came before its connection closed when the
+    /// last entry equals the total.
+    pub closed_after_commands: Vec<u64>,
 }
 
 /// A HapticMaster device side on `127.0.0.1` (module documentation): calibration takes
@@ -515,6 +526,10 @@ fn emulate(
                 break;
             }
         }
+        log.lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .closed_after_commands
+            .push(commands.load(Ordering::Acquire));
     }
 }
 
@@ -612,6 +627,10 @@ fn answer(
     }
     let after = rendered_force(st);
     let mut l = log.lock().unwrap_or_else(PoisonError::into_inner);
+    if l.recent_commands.len() == EMULATOR_RECENT_COMMANDS {
+        l.recent_commands.pop_front();
+    }
+    l.recent_commands.push_back(cmd.to_owned());
     if after != before {
         l.rendered.push((started.elapsed().as_secs_f64(), after));
     }

@@ -1,6 +1,7 @@
 //! `haptic-bridge`: streams a haptic device's poses to a hapticd session over
 //! `DeviceLink.Connect` and renders the forces it answers. Glue only: the work is in the
-//! `haptic_bridge` library (`cli::Args::setup`, then `link::run`).
+//! `haptic_bridge` library (`cli::Args::setup`, then `link::run`). SIGINT, SIGTERM and SIGHUP
+//! all stop it cleanly: zero force, the driver's safe stop, the summary, exit 0.
 
 use std::process::ExitCode;
 use std::sync::Arc;
@@ -18,6 +19,10 @@ async fn main() -> anyhow::Result<ExitCode> {
         .with_writer(std::io::stderr)
         .with_env_filter(filter)
         .init();
+    // Installed before the device is opened: a signal during a hardware driver's set-up (a
+    // HapticMaster calibrating, then put in force state) is held until the set-up returns and
+    // stops the run at its start, with the driver's safe stop, instead of killing the process.
+    let stop_signal = stop_signal()?;
     let setup = args.setup()?;
     let url = setup.config.server_url.clone();
     if let Some(button) = setup.rearm_button.clone() {
@@ -33,9 +38,9 @@ async fn main() -> anyhow::Result<ExitCode> {
     }
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     tokio::spawn(async move {
-        if tokio::signal::ctrl_c().await.is_ok() {
-            let _ = stop_tx.send(true); // Ctrl-C: zero force, close the stream, summary.
-        }
+        let name = stop_signal.await;
+        tracing::info!("{name}: zero force, device safe stop, closing the stream");
+        let _ = stop_tx.send(true);
     });
     let report = run(
         setup.device,
@@ -68,4 +73,25 @@ async fn main() -> anyhow::Result<ExitCode> {
         return Ok(ExitCode::from(2));
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Resolves with the signal's name on the first SIGINT (Ctrl-C), SIGTERM (`kill`, `systemctl
+/// stop`) or SIGHUP (the terminal closed): each stops the run the same way, zero force and the
+/// driver's safe stop (a HapticMaster keeps its last bias force otherwise). The handlers are
+/// installed when this is called, so the default action (exit at once) no longer applies.
+///
+/// # Errors
+/// A handler cannot be installed.
+fn stop_signal() -> anyhow::Result<impl std::future::Future<Output = &'static str>> {
+    use tokio::signal::unix::{SignalKind, signal};
+    let mut int = signal(SignalKind::interrupt()).context("installing the SIGINT handler")?;
+    let mut term = signal(SignalKind::terminate()).context("installing the SIGTERM handler")?;
+    let mut hup = signal(SignalKind::hangup()).context("installing the SIGHUP handler")?;
+    Ok(async move {
+        tokio::select! {
+            _ = int.recv() => "SIGINT",
+            _ = term.recv() => "SIGTERM",
+            _ = hup.recv() => "SIGHUP",
+        }
+    })
 }
