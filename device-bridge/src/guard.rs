@@ -348,6 +348,9 @@ pub struct ForceGuard {
     rearm_requested: bool,
     last_now_us: Option<u64>,
     output_n: [f64; 3],
+    /// Magnitude of the last tick's command at the device position (step 6, before the gain),
+    /// N: recorded so that tests can check the output against the ramp.
+    command_n: f64,
     state: GuardState,
     stats: GuardStats,
     passivity: PassivityController,
@@ -369,6 +372,7 @@ impl ForceGuard {
             rearm_requested: false,
             last_now_us: None,
             output_n: [0.0; 3],
+            command_n: 0.0,
             state: GuardState::NoCommand,
             stats: GuardStats::default(),
             passivity: PassivityController::new(params.passivity),
@@ -396,6 +400,13 @@ impl ForceGuard {
     /// The force returned by the last [`filter`](Self::filter), in N.
     pub fn output_n(&self) -> [f64; 3] {
         self.output_n
+    }
+
+    /// Magnitude of the held command's force at the last tick's device position (the local
+    /// contact model, step 6), before the gain, passivity, clamp and slew, in N; 0 on ticks
+    /// that did not evaluate a command (none held, latched, outside the workspace).
+    pub fn command_n(&self) -> f64 {
+        self.command_n
     }
 
     /// The state of the last tick.
@@ -532,6 +543,7 @@ impl ForceGuard {
         }
         let previous_state = self.state;
         let limits = self.limits();
+        self.command_n = 0.0;
         let state;
         let target = if !spec.contains(device.position_m, p.workspace_margin) {
             self.stats.workspace_violations += 1;
@@ -567,6 +579,7 @@ impl ForceGuard {
                         device.position_m,
                         p.max_extrapolation_m,
                     );
+                    self.command_n = vec3::norm(f);
                     // A zero gain is a zero force: no passivity damping either (the watchdog
                     // promises exactly zero from 60 ms on).
                     (self.arm_gain > 0.0).then(|| vec3::scale(f, self.arm_gain))
@@ -884,6 +897,31 @@ mod tests {
         assert!(max_step <= f[0] / 200.0 + 1e-12, "step {max_step}");
         assert!((last - f[0]).abs() < 1e-12);
         assert_eq!(g.stats().latches, 0);
+    }
+
+    #[test]
+    fn command_n_is_the_command_before_the_gain_and_zero_once_latched() {
+        let (mut g, spec) = unlimited();
+        let f = [0.0, 0.03, 0.04];
+        let mut t = 0;
+        for generation in 1..=10 {
+            g.filter(t, true, Some(&cmd(generation, f, t)), &ORIGIN, &spec);
+            t += 1_000;
+        }
+        assert!((g.command_n() - 0.05).abs() < 1e-12);
+        // A 35 ms old command: rendered at gain 0.5, recorded unscaled.
+        let last = t - 1_000;
+        g.filter(last + 35_000, true, None, &ORIGIN, &spec);
+        assert!(
+            close(g.output_n(), vec3::scale(f, 0.5)),
+            "{:?}",
+            g.output_n()
+        );
+        assert!((g.command_n() - 0.05).abs() < 1e-12);
+        // Latched at 100 ms: nothing evaluated.
+        g.filter(last + 100_000, true, None, &ORIGIN, &spec);
+        assert_eq!(g.state(), GuardState::Disabled);
+        assert_eq!(g.command_n(), 0.0);
     }
 
     #[test]

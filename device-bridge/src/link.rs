@@ -700,6 +700,7 @@ fn device_loop(
                         rtt_us: used.and_then(|r| r.rtt_us),
                         age_us: guard.held_age_us(),
                         state: guard.state().name(),
+                        command_n: guard.command_n(),
                     });
                 }
             }

@@ -1,5 +1,6 @@
 //! Per-tick recording (`--record FILE.csv`): one [`TickRecord`] per device tick with the pose,
-//! the force actually written, the contact flag and the round trip of the force in use.
+//! the force actually written, the contact flag, the round trip and age of the force in use,
+//! the guard's state and the command's magnitude before the guard scaled it.
 //!
 //! Choice: the device thread appends to a `Vec` reserved up front (120 s at the device rate when
 //! recording is on, so a normal session never reallocates on the servo thread) and the rows are
@@ -34,6 +35,9 @@ pub struct TickRecord {
     pub age_us: Option<u64>,
     /// The guard's state this tick ([`crate::guard::GuardState`] as a short name).
     pub state: &'static str,
+    /// Magnitude of the held command's force at this position before the guard's gain, clamp
+    /// and slew, in N ([`crate::guard::ForceGuard::command_n`]; 0 when none was evaluated).
+    pub command_n: f64,
 }
 
 /// True when `path` names an MCAP recording (extension `.mcap`, any case).
@@ -85,7 +89,8 @@ pub fn write_mcap_file(path: &Path, rows: &[TickRecord]) -> std::io::Result<()> 
 }
 
 /// CSV header written by [`write_csv`].
-pub const CSV_HEADER: &str = "t_s,x_m,y_m,z_m,fx_n,fy_n,fz_n,in_contact,rtt_us,age_us,state";
+pub const CSV_HEADER: &str =
+    "t_s,x_m,y_m,z_m,fx_n,fy_n,fz_n,in_contact,rtt_us,age_us,state,command_n";
 
 /// Writes `rows` as CSV with [`CSV_HEADER`]; `rtt_us` and `age_us` are empty when absent.
 ///
@@ -107,7 +112,7 @@ pub fn write_csv<W: Write>(mut out: W, rows: &[TickRecord]) -> std::io::Result<(
                 None => write!(out, ",")?,
             }
         }
-        writeln!(out, ",{}", r.state)?;
+        writeln!(out, ",{},{:.6}", r.state, r.command_n)?;
     }
     out.flush()
 }
@@ -127,7 +132,7 @@ mod tests {
     use crate::replay::Trajectory;
 
     #[test]
-    fn rows_have_eleven_columns_and_empty_rtt_when_absent() {
+    fn rows_have_twelve_columns_and_empty_rtt_when_absent() {
         let rows = [
             TickRecord {
                 t_s: 0.0,
@@ -141,6 +146,7 @@ mod tests {
                 rtt_us: Some(87),
                 age_us: Some(120),
                 state: "fresh",
+                command_n: 1.75,
             },
         ];
         let mut buf = Vec::new();
@@ -148,9 +154,13 @@ mod tests {
         let text = String::from_utf8(buf).unwrap();
         let lines: Vec<_> = text.lines().collect();
         assert_eq!(lines[0], CSV_HEADER);
-        assert!(lines[1].ends_with(",false,,,"), "{}", lines[1]);
-        assert!(lines[2].ends_with(",true,87,120,fresh"), "{}", lines[2]);
-        assert!(lines.iter().all(|l| l.split(',').count() == 11));
+        assert!(lines[1].ends_with(",false,,,,0.000000"), "{}", lines[1]);
+        assert!(
+            lines[2].ends_with(",true,87,120,fresh,1.750000"),
+            "{}",
+            lines[2]
+        );
+        assert!(lines.iter().all(|l| l.split(',').count() == 12));
     }
 
     #[test]
