@@ -8,7 +8,8 @@
 //! power (`f_scene . v_scene = f_device . v_device`), which keeps the passivity observer's
 //! bookkeeping valid across it; the default `force_scale = 1` renders scene forces unscaled.
 //!
-//! Examples (the README and `docs/decisions.md` repeat them):
+//! Examples (`docs/decisions.md`, "Drivers (issue 15)", gives each with a full command line and
+//! a worked point):
 //! - HapticMaster (z vertical, x fore-aft, y lateral; SI): `--axes y,z,x` is HAPI's mapping
 //!   `(pos[1], pos[2], pos[0])` (devices.md [S4]); add `--offset-m 0,0,-0.45` to bring the
 //!   middle of its cylindrical workspace (radius 0.28-0.64 m) near the scene origin.
