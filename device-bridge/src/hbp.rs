@@ -473,10 +473,13 @@ pub fn seq_newer(a: u16, b: u16) -> bool {
 }
 
 /// The device side of HBP/1 (the rules of the specification, section "Device rules"), pure:
-/// times are arguments. Outputs start disabled; a FORCE is applied only if it is newer than the
-/// last applied one, finite, has the enable flag and the dead-man is held; the force is clamped
-/// to the peak force keeping its direction; no valid FORCE within the watchdog zeroes the output
-/// and sets [`status::WD_TRIPPED`] until the next valid FORCE.
+/// times are arguments. Outputs start disabled; a HELLO whose `proto` is not [`VERSION`] is
+/// not answered and leaves the outputs disabled and no session open; a FORCE is applied only
+/// if a HELLO was accepted, it is newer than the last applied one, finite, has the enable flag
+/// and the dead-man is held; the force is clamped to the peak force keeping its direction; no
+/// valid FORCE within the watchdog zeroes the output and sets [`status::WD_TRIPPED`] until the
+/// next valid FORCE. HEARTBEAT (and any frame the device does not expect) changes nothing: in
+/// particular it does not feed the watchdog.
 #[derive(Debug, Clone)]
 pub struct DeviceCore {
     caps: Caps,
@@ -546,17 +549,23 @@ impl DeviceCore {
         }
     }
 
-    /// Handles a frame from the host at `now_us`; returns the reply, if any (CAPS for HELLO).
+    /// Handles a frame from the host at `now_us`; returns the reply, if any (CAPS for a HELLO
+    /// of protocol [`VERSION`]).
     pub fn on_frame(&mut self, now_us: u64, frame: &Frame) -> Option<Frame> {
         match frame.msg {
-            Message::Hello { watchdog_ms, .. } => {
-                self.hello_seen = true;
+            Message::Hello {
+                proto, watchdog_ms, ..
+            } => {
+                // Any HELLO ends the current session with the outputs off; only one of our
+                // version opens a new one (the host then times out waiting for CAPS).
+                self.hello_seen = proto == VERSION;
                 self.watchdog_us = u64::from(watchdog_ms.clamp(2, 100)) * 1_000;
                 self.enabled = false;
                 self.last_applied_seq = None;
                 self.last_valid_force_us = None;
                 self.set_output(now_us, [0.0; 3]);
-                Some(self.next(now_us, Message::Caps(self.caps)))
+                self.hello_seen
+                    .then(|| self.next(now_us, Message::Caps(self.caps)))
             }
             Message::Force(f) => {
                 let force = f.force_n.map(f64::from);
@@ -826,6 +835,89 @@ mod tests {
         assert_eq!(d.output_n(), [0.0; 3]);
         d.on_frame(15_000, &force(7, [1.0, 0.0, 0.0], FORCE_FLAG_ENABLE));
         assert_eq!(d.output_n(), [1.0, 0.0, 0.0]);
+    }
+
+    fn hello(proto: u8) -> Frame {
+        Frame {
+            seq: 1,
+            t_us: 0,
+            msg: Message::Hello {
+                proto,
+                rate_hz: 1000,
+                watchdog_ms: 10,
+            },
+        }
+    }
+
+    #[test]
+    fn a_hello_of_another_version_is_not_answered_and_ends_the_session() {
+        let mut d = DeviceCore::new(emulator_caps(), still(), 0);
+        assert!(d.on_frame(0, &hello(2)).is_none(), "no CAPS for HBP/2");
+        d.on_frame(1_000, &force(2, [1.0, 0.0, 0.0], FORCE_FLAG_ENABLE));
+        assert_eq!(d.output_n(), [0.0; 3], "no session: FORCE refused");
+        assert!(d.on_frame(2_000, &hello(VERSION)).is_some());
+        d.on_frame(3_000, &force(3, [1.0, 0.0, 0.0], FORCE_FLAG_ENABLE));
+        assert_eq!(d.output_n(), [1.0, 0.0, 0.0]);
+        // A HELLO of another version in a session: outputs off, FORCE refused until a HELLO
+        // of ours.
+        assert!(d.on_frame(4_000, &hello(0)).is_none());
+        assert_eq!(d.output_n(), [0.0; 3]);
+        d.on_frame(5_000, &force(4, [1.0, 0.0, 0.0], FORCE_FLAG_ENABLE));
+        assert_eq!(d.output_n(), [0.0; 3]);
+    }
+
+    #[test]
+    fn a_heartbeat_does_not_feed_the_device_watchdog() {
+        let mut d = DeviceCore::new(emulator_caps(), still(), 0);
+        d.on_frame(0, &hello(VERSION));
+        d.on_frame(1_000, &force(2, [1.0, 0.0, 0.0], FORCE_FLAG_ENABLE));
+        let beat = |seq| Frame {
+            seq,
+            t_us: 0,
+            msg: Message::Heartbeat,
+        };
+        for (i, t) in [5_000, 10_000].into_iter().enumerate() {
+            assert!(d.on_frame(t, &beat(3 + i as u16)).is_none());
+            d.tick(t);
+        }
+        assert_eq!(d.output_n(), [1.0, 0.0, 0.0]);
+        // 10 ms watchdog from the FORCE at 1 ms: tripped at 11.001 ms despite the heartbeats.
+        d.on_frame(11_000, &beat(5));
+        d.tick(11_001);
+        assert!(d.wd_tripped());
+        assert_eq!(d.output_n(), [0.0; 3]);
+    }
+
+    #[test]
+    fn wire_sizes_are_the_specified_ones() {
+        // docs/serial-protocol.md, section 4: COBS adds exactly one byte to a body under 254
+        // bytes, the terminator one more.
+        let sizes: Vec<(u8, usize)> = all_messages()
+            .into_iter()
+            .map(|msg| {
+                let mut wire = Vec::new();
+                encode(
+                    &Frame {
+                        seq: 0,
+                        t_us: 0,
+                        msg,
+                    },
+                    &mut wire,
+                );
+                (msg.kind(), wire.len())
+            })
+            .collect();
+        assert_eq!(
+            sizes,
+            [
+                (kind::HELLO, 17),
+                (kind::CAPS, 74),
+                (kind::STATE, 58),
+                (kind::FORCE, 38),
+                (kind::HEARTBEAT, 12),
+                (kind::FAULT, 16),
+            ]
+        );
     }
 
     fn arb_message() -> impl Strategy<Value = Message> {
