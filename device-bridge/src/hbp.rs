@@ -959,10 +959,96 @@ mod tests {
         })
     }
 
+    /// Bodies with a valid CRC and random version, type and payload length (mostly the
+    /// right ones, so that every check is reached), the CRC appended last.
+    fn arb_crc_valid_body() -> impl Strategy<Value = Vec<u8>> {
+        let known = vec![
+            kind::HELLO,
+            kind::CAPS,
+            kind::STATE,
+            kind::FORCE,
+            kind::HEARTBEAT,
+            kind::FAULT,
+        ];
+        let ver = prop_oneof![3 => Just(VERSION), 1 => any::<u8>()];
+        let k = prop_oneof![3 => prop::sample::select(known), 1 => any::<u8>()];
+        (ver, k)
+            .prop_flat_map(|(ver, k)| {
+                let want = Message::payload_len(k).unwrap_or(0);
+                let len = prop_oneof![
+                    3 => Just(want),
+                    1 => Just(want + 1),
+                    1 => Just(want.saturating_sub(1)),
+                    1 => 0..=MAX_BODY - HEADER_LEN - 2,
+                ];
+                (
+                    Just(ver),
+                    Just(k),
+                    any::<[u8; 6]>(),
+                    len.prop_flat_map(|n| prop::collection::vec(any::<u8>(), n)),
+                )
+            })
+            .prop_map(|(ver, k, seq_and_time, payload)| {
+                let mut b = vec![ver, k];
+                b.extend_from_slice(&seq_and_time);
+                b.extend_from_slice(&payload);
+                let crc = CRC16.checksum(&b);
+                b.extend_from_slice(&crc.to_le_bytes());
+                b
+            })
+    }
+
+    /// 256 cases per property in CI. `PROPTEST_CASES=N` raises it for a local soak: read here
+    /// because `with_cases` alone would override the variable.
+    fn proptest_config() -> ProptestConfig {
+        let cases = std::env::var("PROPTEST_CASES")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(256);
+        ProptestConfig::with_cases(cases)
+    }
+
     proptest! {
-        // Bounded for CI (the decoder also runs under `cargo fuzz`-style soak locally with
-        // PROPTEST_CASES=100000).
-        #![proptest_config(ProptestConfig::with_cases(256))]
+        #![proptest_config(proptest_config())]
+
+        #[test]
+        fn crc_valid_bodies_pass_only_with_our_version_a_known_type_and_its_length(
+            b in arb_crc_valid_body(),
+        ) {
+            let (ver, k, found) = (b[0], b[1], b.len() - HEADER_LEN - 2);
+            let expected = if ver != VERSION {
+                Err(DecodeError::Version(ver))
+            } else {
+                match Message::payload_len(k) {
+                    None => Err(DecodeError::UnknownType(k)),
+                    Some(n) if n != found => Err(DecodeError::Length { kind: k, found }),
+                    Some(_) => Ok(()),
+                }
+            };
+            let decoded = decode_body(&b);
+            match expected {
+                Err(e) => prop_assert_eq!(decoded, Err(e)),
+                Ok(()) => {
+                    let f = decoded.expect("a valid body decodes");
+                    prop_assert_eq!(f.msg.kind(), k);
+                    // Every field read back where it was: re-encoding gives the same bytes.
+                    prop_assert_eq!(body(&f), b.clone());
+                }
+            }
+            // The streaming decoder gives the same verdict and counts a rejection as
+            // malformed, never as a CRC error.
+            let mut wire = vec![0; cobs::max_encoding_length(b.len())];
+            let n = cobs::encode(&b, &mut wire);
+            wire.truncate(n);
+            wire.push(0);
+            let mut d = FrameDecoder::new();
+            let mut got = 0u64;
+            d.push(&wire, |_| got += 1);
+            let s = d.stats();
+            prop_assert_eq!(got, u64::from(expected.is_ok()));
+            prop_assert_eq!(s.malformed, u64::from(expected.is_err()));
+            prop_assert_eq!(s.crc_errors, 0);
+        }
 
         #[test]
         fn arbitrary_bytes_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..600)) {

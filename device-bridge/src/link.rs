@@ -1297,3 +1297,49 @@ pub async fn run(
         ticks: dev.records,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sent_at(us: u64, position_m: [f64; 3], force_n: [f64; 3], k: f64) -> Deadband {
+        Deadband {
+            k,
+            last_sent_us: Some(us),
+            sent_position_m: position_m,
+            sent_force_n: force_n,
+        }
+    }
+
+    #[test]
+    fn the_pose_deadband_sends_at_its_exact_thresholds() {
+        let zero = [0.0; 3];
+        // Nothing sent yet: send.
+        let first = Deadband {
+            last_sent_us: None,
+            ..sent_at(0, zero, zero, 0.1)
+        };
+        assert!(first.should_send(0, zero, zero));
+        // Heartbeat: 5 ms after the last sample, however still.
+        let d = sent_at(1_000, zero, [0.05, 0.0, 0.0], 0.1);
+        assert!(!d.should_send(1_000 + DEADBAND_HEARTBEAT_US - 1, zero, [0.05, 0.0, 0.0]));
+        assert!(d.should_send(1_000 + DEADBAND_HEARTBEAT_US, zero, [0.05, 0.0, 0.0]));
+        // Movement: more than 0.2 mm from the last sent position (exactly 0.2 mm is not).
+        let still_force = [0.05, 0.0, 0.0];
+        assert!(!d.should_send(2_000, [0.0, DEADBAND_MOVE_M, 0.0], still_force));
+        assert!(d.should_send(2_000, [0.0, DEADBAND_MOVE_M * 1.01, 0.0], still_force));
+        // Force: a change above k = 10 % of the sent 0.05 N (5 mN), in any direction.
+        assert!(!d.should_send(2_000, zero, [0.0549, 0.0, 0.0]));
+        assert!(d.should_send(2_000, zero, [0.0551, 0.0, 0.0]));
+        assert!(d.should_send(2_000, zero, [0.0449, 0.0, 0.0]));
+        assert!(d.should_send(2_000, zero, [0.05, 0.0051, 0.0]));
+        // The 1 mN floor: 10 % of 1 mN would be 0.1 mN, the floor wins.
+        let small = sent_at(1_000, zero, [0.001, 0.0, 0.0], 0.1);
+        assert!(!small.should_send(2_000, zero, [0.0019, 0.0, 0.0]));
+        assert!(small.should_send(2_000, zero, [0.00205, 0.0, 0.0]));
+        // Contact onset from zero force: any change above the floor.
+        let free = sent_at(1_000, zero, zero, 0.1);
+        assert!(!free.should_send(2_000, zero, [0.0009, 0.0, 0.0]));
+        assert!(free.should_send(2_000, zero, [0.0011, 0.0, 0.0]));
+    }
+}
