@@ -50,7 +50,8 @@ fn read_recording(path: &std::path::Path) -> Result<Vec<Row>> {
             "in_contact",
             "rtt_us",
             "age_us",
-            "state"
+            "state",
+            "command_n"
         ]
     );
     let mut rows = Vec::new();
