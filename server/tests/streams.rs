@@ -77,23 +77,28 @@ fn start() -> (Arc<SessionManager>, Services, Arc<Session>) {
     (manager.clone(), Services::new(manager), session)
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn compact_frames_decode_to_the_full_positions() {
-    let (manager, services, session) = start();
-    let mut full = watch(&services, &session.id, 60.0, false).await;
-    let mut compact = watch(&services, &session.id, 60.0, true).await;
-    push(&session, -0.05);
-    // Full positions by simulated time.
-    let collect = tokio::spawn(async move {
+/// The positions of the first `count` frames of a FULL stream by simulated time (the bits of
+/// `sim_time_s`), collected in a task; every frame must carry floats and no delta fields.
+fn collect_full(mut full: Frames, count: usize) -> tokio::task::JoinHandle<HashMap<u64, Vec<f32>>> {
+    tokio::spawn(async move {
         let mut by_time = HashMap::new();
-        for _ in 0..60 {
+        for _ in 0..count {
             let f = next(&mut full).await;
             assert_eq!(f.quantum_m, 0.0, "a FULL stream carries no delta fields");
             assert!(f.position_delta.is_empty());
             by_time.insert(f.sim_time_s.to_bits(), f.positions_m);
         }
         by_time
-    });
+    })
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn compact_frames_decode_to_the_full_positions() {
+    let (manager, services, session) = start();
+    let full = watch(&services, &session.id, 60.0, false).await;
+    let mut compact = watch(&services, &session.id, 60.0, true).await;
+    push(&session, -0.05);
+    let collect = collect_full(full, 60);
     let first = next(&mut compact).await;
     assert!(
         first.keyframe && !first.triangles.is_empty(),
@@ -164,17 +169,10 @@ async fn compact_frames_decode_to_the_full_positions() {
 async fn compact_frames_with_a_coarser_quantum_decode_within_half_of_it() {
     const Q: f64 = 1e-5;
     let (manager, services, session) = start();
-    let mut full = watch(&services, &session.id, 60.0, false).await;
+    let full = watch(&services, &session.id, 60.0, false).await;
     let mut compact = watch_q(&services, &session.id, 60.0, true, Q).await;
     push(&session, -0.05);
-    let collect = tokio::spawn(async move {
-        let mut by_time = HashMap::new();
-        for _ in 0..60 {
-            let f = next(&mut full).await;
-            by_time.insert(f.sim_time_s.to_bits(), f.positions_m);
-        }
-        by_time
-    });
+    let collect = collect_full(full, 60);
     let first = next(&mut compact).await;
     assert!(
         first.keyframe && !first.triangles.is_empty(),
