@@ -37,6 +37,9 @@ struct Args {
     /// `M^-1 K`, `HybridBody::max_eigenvalue_estimate`) and print it beside the bound.
     #[arg(long)]
     estimate_critical_step: bool,
+    /// Run the term block's general force loop instead of the stencil loop.
+    #[arg(long)]
+    general_loop: bool,
     /// Lattice spacing override, m (half the default spacing: about eight times the particles).
     #[arg(long)]
     spacing_m: Option<f64>,
@@ -147,6 +150,7 @@ fn main() -> anyhow::Result<()> {
         if args.estimate_critical_step {
             print_estimate(&mut body, "at rest")?;
         }
+        body.set_stencil_loop(!args.general_loop);
         if let Some(n) = args.substeps {
             body.override_substeps(n)?;
         }
@@ -168,7 +172,11 @@ fn main() -> anyhow::Result<()> {
             times.push(t.elapsed().as_secs_f64() * 1e6);
         }
         times.sort_by(f64::total_cmp);
-        eprintln!("  terms and tied particles: {:?}", body.work_counts());
+        eprintln!(
+            "  terms and tied particles: {:?}; stencil layout (grid cells, groups): {:?}",
+            body.work_counts(),
+            body.stencil_layout()
+        );
         let med = times[times.len() / 2];
         let p99 = times[(times.len() * 99) / 100];
         println!(

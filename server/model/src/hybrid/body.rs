@@ -236,6 +236,17 @@ impl HybridBody {
         (self.block.len(), self.tied_list.len())
     }
 
+    /// The term block's stencil layout in use (grid cells, groups of four owners), `None`
+    /// when its general loop runs ([`TermBlock::stencil_layout`]).
+    pub fn stencil_layout(&self) -> Option<(usize, usize)> {
+        self.block.stencil_layout()
+    }
+
+    /// Chooses the term block's force loop ([`TermBlock::set_stencil_loop`]), for benchmarks.
+    pub fn set_stencil_loop(&mut self, on: bool) {
+        self.block.set_stencil_loop(on);
+    }
+
     /// Currently active particles.
     pub fn active_particles(&self) -> &[u32] {
         &self.active_list

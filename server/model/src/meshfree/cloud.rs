@@ -296,11 +296,10 @@ impl ParticleCloud {
         let mut g_sum = DVec3::ZERO;
         for (k, &q) in nbr.iter().enumerate() {
             let d = self.rest_m[q as usize] - xp;
-            let r = d.length();
-            let w = d * (self.volume_m3 * -self.kernel.slope(r) / r * self.normalisation);
-            let g = l_t * w;
+            let g = l_t * self.pair_weight(d);
             out.g[k] = g;
             out.offset_m[k] = d;
+            let r = d.length();
             out.hourglass_n_per_m[k] =
                 kappa * e_young * self.volume_m3 * self.volume_m3 * self.kernel.value(r) / (r * r);
             g_sum += g;
@@ -312,6 +311,33 @@ impl ParticleCloud {
             (a.transpose() * a - DMat3::IDENTITY) * 0.5
         };
         Ok(())
+    }
+
+    /// The uncorrected (seed-normalised) kernel-gradient weight `w_ij = V (-W'(r) / r) X_ij`
+    /// of a pair at rest offset `offset_m = X_ij` (m), 1/m (module documentation). On the
+    /// lattice it depends on the stencil offset only, which the stencil loop
+    /// ([`super::stencil`]) uses.
+    #[inline]
+    pub fn pair_weight(&self, offset_m: DVec3) -> DVec3 {
+        let r = offset_m.length();
+        offset_m * (self.volume_m3 * -self.kernel.slope(r) / r * self.normalisation)
+    }
+
+    /// The hourglass stiffness `c_ij` of a pair at rest offset `offset_m` (m), N/m (zero in
+    /// the seed variant).
+    #[inline]
+    pub fn hourglass_stiffness(&self, offset_m: DVec3) -> f64 {
+        if self.params.variant == MeshfreeVariant::Corrected {
+            let r = offset_m.length();
+            self.params.hourglass_coefficient
+                * self.material.youngs_modulus_pa()
+                * self.volume_m3
+                * self.volume_m3
+                * self.kernel.value(r)
+                / (r * r)
+        } else {
+            0.0
+        }
     }
 
     /// Heap memory, bytes.

@@ -17,7 +17,8 @@
 //!
 //! Submodules: [`kernel`] (W and dW/dr), [`lattice`] (the regular sampling grid and neighbour
 //! stencil), [`cloud`] (rest data of all particles and of one particle's term), [`block`] (the
-//! run-time terms of a set of particles: forces, energy, critical time step).
+//! run-time terms of a set of particles: forces, energy, critical time step), `stencil` (the
+//! block's fast force loop on a dense local grid, four owners per vector).
 //!
 //! Neighbours: uses [`crate::material`]; used by [`crate::scene`] (parameters) and the hybrid
 //! body [`crate::hybrid`].
@@ -26,6 +27,7 @@ pub mod block;
 pub mod cloud;
 pub mod kernel;
 pub mod lattice;
+mod stencil;
 
 pub use block::{TermBlock, critical_time_step};
 pub use cloud::ParticleCloud;

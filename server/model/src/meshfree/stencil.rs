@@ -1,0 +1,829 @@
+//! [`StencilGrid`]: the stencil layout of a [`super::TermBlock`]'s force loop. The particles a
+//! block touches are copied onto a dense local grid (the bounding box of their lattice cells,
+//! structure of arrays), so that neighbour `k` of the particle in grid cell `i` is the cell
+//! `i + off_k` for a constant `off_k`, and four owners adjacent along x are one vector: their
+//! four neighbours `k` are four consecutive cells, loaded and stored without any index.
+//!
+//! **Why it is exact.** On the lattice every per-pair rest quantity depends on the stencil
+//! offset only: the uncorrected weight `w_k` ([`ParticleCloud::pair_weight`]), the rest
+//! offset `X_k` and the hourglass stiffness `c_k`. The corrected gradient is
+//! `g_ik = A_i^-T w_k` (Bonet-Lok, [`super::cloud`]), so with `F~_i = sum_k d_ik (x) w_k`
+//! (`d_ik = x_j - x_i`, over present neighbours):
+//! - `F_i = F~_i A_i^-1` (seed: `F_i = F~_i`, `A_i^-1 = I`);
+//! - the hourglass matrix `H_i = sum_k c_k e_ik (x) X_k`, `e_ik = F_i X_k - d_ik`, is
+//!   `F_i Q_i - D_i` with the rest constant `Q_i = sum_k c_k X_k X_k^T` and
+//!   `D_i = sum_k d_ik (x) c_k X_k`, summed in the same pass as `F~_i`;
+//! - the force on neighbour `k` is minus `grad_ik = N_i w_k - F_i u_k + c_k d_ik`, with
+//!   `N_i = (V P_i + H_i) A_i^-T` and `u_k = c_k X_k`, and the owner's is
+//!   `sum_k grad_ik = N_i S_i - F_i U_i + sum_k c_k d_ik` with the rest sums `S_i = sum_k w_k`,
+//!   `U_i = sum_k u_k` over present neighbours.
+//!
+//! These are the formulas of [`super::block`] regrouped, so the forces agree with the general
+//! loop to round-off (unit test in `block.rs`). Per term only a few 3x3 matrices are stored
+//! (no per-pair data at all); a missing neighbour is a zero in the occupancy array, which masks
+//! `d_ik` in the first pass; in the second pass its `grad_ik` is written into the empty cell,
+//! whose force nobody reads. Lanes of a group that own no term (tied particles, empty cells)
+//! have `N = F = 0` and masked `d`, so they add nothing.
+//!
+//! **When it is used.** When the bounding box of the touched particles fits the grid's
+//! capacity (sized at construction: no allocation at run time); otherwise (active regions far
+//! apart) the block falls back to its general loop.
+//!
+//! Neighbours: built and driven by [`super::block::TermBlock`]; rest data from
+//! [`super::cloud::ParticleCloud`].
+
+use glam::{DMat3, DVec3};
+
+use super::MeshfreeVariant;
+use super::cloud::{MAX_STENCIL, ParticleCloud, outer};
+use crate::material::stvk::{green_strain, stvk_stress};
+use crate::material::{MaterialParams, first_piola};
+
+/// Four f64 lanes: the plain build ([`L4`]) and the AVX2 + FMA one (`Y4`), behind one trait so
+/// that the group loop is written once.
+trait Lanes: Copy {
+    /// The proof that the CPU runs this lane type (a token for `Y4`).
+    type Isa: Copy;
+    fn zero(isa: Self::Isa) -> Self;
+    fn splat(isa: Self::Isa, v: f64) -> Self;
+    /// Lanes `a[i..i + 4]`.
+    ///
+    /// # Panics
+    /// If `a` is shorter than `i + 4`.
+    fn load(isa: Self::Isa, a: &[f64], i: usize) -> Self;
+    fn from_array(isa: Self::Isa, v: [f64; 4]) -> Self;
+    /// Into `a[i..i + 4]`.
+    ///
+    /// # Panics
+    /// If `a` is shorter than `i + 4`.
+    fn store(self, a: &mut [f64], i: usize);
+    fn to_array(self) -> [f64; 4];
+    fn add(self, o: Self) -> Self;
+    fn sub(self, o: Self) -> Self;
+    fn mul(self, o: Self) -> Self;
+    /// `a b + c`.
+    fn madd(a: Self, b: Self, c: Self) -> Self;
+    /// `c - a b`.
+    fn nmadd(a: Self, b: Self, c: Self) -> Self;
+    /// Moved one cell down (the forces of offset -1 along x): `([v1, v2, v3, 0], [0, 0, 0, v0])`,
+    /// the parts in the same chunk of four cells and in the chunk before.
+    fn shift_down(self) -> (Self, Self);
+    /// Moved one cell up (offset +1 along x): `([0, v0, v1, v2], [v3, 0, 0, 0])`, the parts in
+    /// the same chunk and in the chunk after.
+    fn shift_up(self) -> (Self, Self);
+}
+
+/// Four plain f64 lanes.
+#[derive(Debug, Clone, Copy)]
+struct L4([f64; 4]);
+
+impl Lanes for L4 {
+    type Isa = ();
+
+    #[inline(always)]
+    fn zero(_: ()) -> L4 {
+        L4([0.0; 4])
+    }
+
+    #[inline(always)]
+    fn splat(_: (), v: f64) -> L4 {
+        L4([v; 4])
+    }
+
+    #[inline(always)]
+    fn load(_: (), a: &[f64], i: usize) -> L4 {
+        let s = &a[i..i + 4];
+        L4([s[0], s[1], s[2], s[3]])
+    }
+
+    #[inline(always)]
+    fn from_array(_: (), v: [f64; 4]) -> L4 {
+        L4(v)
+    }
+
+    #[inline(always)]
+    fn store(self, a: &mut [f64], i: usize) {
+        a[i..i + 4].copy_from_slice(&self.0);
+    }
+
+    #[inline(always)]
+    fn to_array(self) -> [f64; 4] {
+        self.0
+    }
+
+    #[inline(always)]
+    fn add(self, o: L4) -> L4 {
+        let (a, b) = (self.0, o.0);
+        L4([a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3]])
+    }
+
+    #[inline(always)]
+    fn sub(self, o: L4) -> L4 {
+        let (a, b) = (self.0, o.0);
+        L4([a[0] - b[0], a[1] - b[1], a[2] - b[2], a[3] - b[3]])
+    }
+
+    #[inline(always)]
+    fn mul(self, o: L4) -> L4 {
+        let (a, b) = (self.0, o.0);
+        L4([a[0] * b[0], a[1] * b[1], a[2] * b[2], a[3] * b[3]])
+    }
+
+    #[inline(always)]
+    fn madd(a: L4, b: L4, c: L4) -> L4 {
+        a.mul(b).add(c)
+    }
+
+    #[inline(always)]
+    fn nmadd(a: L4, b: L4, c: L4) -> L4 {
+        c.sub(a.mul(b))
+    }
+
+    #[inline(always)]
+    fn shift_down(self) -> (L4, L4) {
+        let v = self.0;
+        (L4([v[1], v[2], v[3], 0.0]), L4([0.0, 0.0, 0.0, v[0]]))
+    }
+
+    #[inline(always)]
+    fn shift_up(self) -> (L4, L4) {
+        let v = self.0;
+        (L4([0.0, v[0], v[1], v[2]]), L4([v[3], 0.0, 0.0, 0.0]))
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    //! The AVX2 + FMA lanes. Every intrinsic call is sound because a `Y4` value exists only
+    //! after [`Avx2Fma::detect`] returned a token (the CPU has AVX2 and FMA), and loads and
+    //! stores check their slice bounds first.
+
+    use std::arch::x86_64::*;
+
+    use super::Lanes;
+
+    /// Proof that the CPU runs AVX2 and FMA.
+    #[derive(Debug, Clone, Copy)]
+    pub(super) struct Avx2Fma(());
+
+    impl Avx2Fma {
+        /// The token, if the CPU has AVX2 and FMA.
+        pub(super) fn detect() -> Option<Self> {
+            crate::cpu::has_avx2_fma().then_some(Self(()))
+        }
+    }
+
+    /// Four f64 lanes in one ymm register.
+    #[derive(Debug, Clone, Copy)]
+    pub(super) struct Y4(__m256d);
+
+    impl Lanes for Y4 {
+        type Isa = Avx2Fma;
+
+        #[inline(always)]
+        fn zero(_: Avx2Fma) -> Y4 {
+            // SAFETY: the token proves AVX (module documentation).
+            Y4(unsafe { _mm256_setzero_pd() })
+        }
+
+        #[inline(always)]
+        fn splat(_: Avx2Fma, v: f64) -> Y4 {
+            // SAFETY: as `zero`.
+            Y4(unsafe { _mm256_set1_pd(v) })
+        }
+
+        #[inline(always)]
+        fn load(_: Avx2Fma, a: &[f64], i: usize) -> Y4 {
+            let s = &a[i..i + 4];
+            // SAFETY: `s` holds four f64 (checked above); the token proves AVX.
+            Y4(unsafe { _mm256_loadu_pd(s.as_ptr()) })
+        }
+
+        #[inline(always)]
+        fn from_array(_: Avx2Fma, v: [f64; 4]) -> Y4 {
+            // SAFETY: `v` holds four f64; the token proves AVX.
+            Y4(unsafe { _mm256_loadu_pd(v.as_ptr()) })
+        }
+
+        #[inline(always)]
+        fn store(self, a: &mut [f64], i: usize) {
+            let s = &mut a[i..i + 4];
+            // SAFETY: `s` holds four f64 (checked above); `self` exists only with the token.
+            unsafe { _mm256_storeu_pd(s.as_mut_ptr(), self.0) }
+        }
+
+        #[inline(always)]
+        fn to_array(self) -> [f64; 4] {
+            let mut v = [0.0; 4];
+            // SAFETY: `v` holds four f64; `self` exists only with the token.
+            unsafe { _mm256_storeu_pd(v.as_mut_ptr(), self.0) };
+            v
+        }
+
+        #[inline(always)]
+        fn add(self, o: Y4) -> Y4 {
+            // SAFETY: `self` exists only with the token.
+            Y4(unsafe { _mm256_add_pd(self.0, o.0) })
+        }
+
+        #[inline(always)]
+        fn sub(self, o: Y4) -> Y4 {
+            // SAFETY: as `add`.
+            Y4(unsafe { _mm256_sub_pd(self.0, o.0) })
+        }
+
+        #[inline(always)]
+        fn mul(self, o: Y4) -> Y4 {
+            // SAFETY: as `add`.
+            Y4(unsafe { _mm256_mul_pd(self.0, o.0) })
+        }
+
+        #[inline(always)]
+        fn madd(a: Y4, b: Y4, c: Y4) -> Y4 {
+            // SAFETY: the token proves FMA.
+            Y4(unsafe { _mm256_fmadd_pd(a.0, b.0, c.0) })
+        }
+
+        #[inline(always)]
+        fn nmadd(a: Y4, b: Y4, c: Y4) -> Y4 {
+            // SAFETY: the token proves FMA.
+            Y4(unsafe { _mm256_fnmadd_pd(a.0, b.0, c.0) })
+        }
+
+        #[inline(always)]
+        fn shift_down(self) -> (Y4, Y4) {
+            // SAFETY: `self` exists only with the token (AVX2).
+            unsafe {
+                let r = _mm256_permute4x64_pd::<0b00_11_10_01>(self.0);
+                let z = _mm256_setzero_pd();
+                (
+                    Y4(_mm256_blend_pd::<0b1000>(r, z)),
+                    Y4(_mm256_blend_pd::<0b0111>(r, z)),
+                )
+            }
+        }
+
+        #[inline(always)]
+        fn shift_up(self) -> (Y4, Y4) {
+            // SAFETY: `self` exists only with the token (AVX2).
+            unsafe {
+                let r = _mm256_permute4x64_pd::<0b10_01_00_11>(self.0);
+                let z = _mm256_setzero_pd();
+                (
+                    Y4(_mm256_blend_pd::<0b0001>(r, z)),
+                    Y4(_mm256_blend_pd::<0b1110>(r, z)),
+                )
+            }
+        }
+    }
+}
+
+/// The column-major 3x3 matrix of each lane of nine lane vectors.
+#[inline(always)]
+fn lane_matrices<V: Lanes>(a: &[V; 9]) -> [[f64; 9]; 4] {
+    let c: [[f64; 4]; 9] = [
+        a[0].to_array(),
+        a[1].to_array(),
+        a[2].to_array(),
+        a[3].to_array(),
+        a[4].to_array(),
+        a[5].to_array(),
+        a[6].to_array(),
+        a[7].to_array(),
+        a[8].to_array(),
+    ];
+    let mut out = [[0.0; 9]; 4];
+    for (l, m) in out.iter_mut().enumerate() {
+        for (e, v) in m.iter_mut().enumerate() {
+            *v = c[e][l];
+        }
+    }
+    out
+}
+
+/// Rest data of one lane of a group (module documentation); all zero for a padding lane.
+#[derive(Debug, Clone, Copy)]
+struct LaneRest {
+    /// 1 for the owner of a term, 0 for a padding lane.
+    own: f64,
+    /// `A_i^-1` (corrected; identity for the seed variant).
+    a_inv: DMat3,
+    /// `Q_i` (corrected) or the rest strain (seed).
+    q: DMat3,
+    /// `S_i = sum_k w_k` over present neighbours, 1/m.
+    s: DVec3,
+    /// `U_i = sum_k c_k X_k` over present neighbours, N (corrected).
+    u: DVec3,
+}
+
+const PADDING: LaneRest = LaneRest {
+    own: 0.0,
+    a_inv: DMat3::IDENTITY,
+    q: DMat3::ZERO,
+    s: DVec3::ZERO,
+    u: DVec3::ZERO,
+};
+
+/// The stencil layout of a term block (module documentation), sized once.
+#[derive(Debug, Clone)]
+pub(crate) struct StencilGrid {
+    /// The AVX2 + FMA token where the CPU has them.
+    #[cfg(target_arch = "x86_64")]
+    isa: Option<avx2::Avx2Fma>,
+    seed: bool,
+    volume_m3: f64,
+    /// Stencil offsets (lattice cells) and, per offset, `w_k` (1/m), `X_k` (m), `c_k` (N/m)
+    /// and `u_k = c_k X_k` (N).
+    dirs: Vec<[i32; 3]>,
+    w: Vec<[f64; 3]>,
+    x: Vec<DVec3>,
+    c: Vec<f64>,
+    u: Vec<[f64; 3]>,
+    /// Largest component of a stencil offset (the stencil loop needs 1: the 26-cell cube or
+    /// part of it).
+    reach: i64,
+    /// The stencil by rows along x: per row its offset `(0, dy, dz)` and the stencil entries of
+    /// offsets -1, 0, +1 along x (`usize::MAX`: absent; the centre row's 0 is the owner).
+    rows: Vec<([i32; 3], [usize; 3])>,
+    /// Grid-index offset of each stencil entry and of each row for the current grid.
+    off: Vec<isize>,
+    row_off: Vec<isize>,
+    /// Grid dimensions and the lattice cell of grid cell (0, 0, 0).
+    dims: [usize; 3],
+    lo: [i64; 3],
+    cells: usize,
+    capacity_cells: usize,
+    /// Positions, occupancy (1 where a touched particle sits) and forces per grid cell.
+    px: Vec<f64>,
+    py: Vec<f64>,
+    pz: Vec<f64>,
+    occ: Vec<f64>,
+    fx: Vec<f64>,
+    fy: Vec<f64>,
+    fz: Vec<f64>,
+    /// Grid cell of each local particle of the block.
+    cell_of_local: Vec<u32>,
+    /// First grid cell of each group of four owners along x, and the lanes' rest data.
+    groups: Vec<u32>,
+    lanes: Vec<LaneRest>,
+    /// (grid cell, term) of every term, sorted when the grid is built.
+    order: Vec<(u32, u32)>,
+}
+
+impl StencilGrid {
+    /// A grid for blocks of up to `terms` terms touching up to `touched` particles of `cloud`,
+    /// holding at most `capacity_cells` grid cells.
+    pub(crate) fn new(
+        cloud: &ParticleCloud,
+        terms: usize,
+        touched: usize,
+        capacity_cells: usize,
+    ) -> Self {
+        let s = cloud.lattice().spacing_m();
+        // By x offset first, so that the second pass's partially overlapping read-modify-writes
+        // of one row (offsets -1, 0, +1 along x) are a third of the stencil apart.
+        let mut dirs: Vec<[i32; 3]> = cloud.lattice().stencil().to_vec();
+        dirs.sort_by_key(|d| (d[0], d[2], d[1]));
+        let x: Vec<DVec3> = dirs
+            .iter()
+            .map(|d| DVec3::new(d[0] as f64, d[1] as f64, d[2] as f64) * s)
+            .collect();
+        let w = x.iter().map(|&o| cloud.pair_weight(o).to_array()).collect();
+        let c: Vec<f64> = x.iter().map(|&o| cloud.hourglass_stiffness(o)).collect();
+        let u = x
+            .iter()
+            .zip(&c)
+            .map(|(o, c)| (*o * *c).to_array())
+            .collect();
+        let reach = dirs
+            .iter()
+            .flat_map(|d| d.iter().map(|v| v.unsigned_abs() as i64))
+            .max()
+            .unwrap_or(0);
+        let mut rows: Vec<([i32; 3], [usize; 3])> = Vec::new();
+        if reach == 1 {
+            for dz in -1..=1 {
+                for dy in -1..=1 {
+                    let mut e = [usize::MAX; 3];
+                    for (k, d) in dirs.iter().enumerate() {
+                        if d[1] == dy && d[2] == dz {
+                            e[(d[0] + 1) as usize] = k;
+                        }
+                    }
+                    if e != [usize::MAX; 3] || (dy, dz) == (0, 0) {
+                        rows.push(([0, dy, dz], e));
+                    }
+                }
+            }
+        }
+        Self {
+            #[cfg(target_arch = "x86_64")]
+            isa: avx2::Avx2Fma::detect(),
+            seed: cloud.params().variant == MeshfreeVariant::Seed,
+            volume_m3: cloud.volume_m3(),
+            off: vec![0; dirs.len()],
+            dirs,
+            w,
+            x,
+            c,
+            u,
+            reach,
+            row_off: vec![0; rows.len()],
+            rows,
+            dims: [0; 3],
+            lo: [0; 3],
+            cells: 0,
+            capacity_cells,
+            px: vec![0.0; capacity_cells],
+            py: vec![0.0; capacity_cells],
+            pz: vec![0.0; capacity_cells],
+            occ: vec![0.0; capacity_cells],
+            fx: vec![0.0; capacity_cells],
+            fy: vec![0.0; capacity_cells],
+            fz: vec![0.0; capacity_cells],
+            cell_of_local: vec![0; touched],
+            groups: Vec::with_capacity(terms),
+            lanes: Vec::with_capacity(4 * terms),
+            order: Vec::with_capacity(terms),
+        }
+    }
+
+    /// Runs the plain lanes from now on even where the CPU has AVX2 (tests of both builds).
+    #[cfg(test)]
+    pub(crate) fn plain_lanes_only(&mut self) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            self.isa = None;
+        }
+    }
+
+    /// Grid cells in use and groups of four lanes (for studies of the lane occupancy).
+    pub(crate) fn size(&self) -> (usize, usize) {
+        (self.cells, self.groups.len())
+    }
+
+    /// Lays out the block: `particles` (global index of each local particle), the local index
+    /// of each term's owner and each term's rest strain (seed). Allocation-free. Returns false
+    /// (grid not usable) when the bounding box exceeds the capacity.
+    pub(crate) fn build(
+        &mut self,
+        cloud: &ParticleCloud,
+        particles: &[u32],
+        owner_local: &[u32],
+        rest_strain: &[DMat3],
+    ) -> bool {
+        self.groups.clear();
+        self.lanes.clear();
+        self.order.clear();
+        self.cells = 0;
+        if particles.is_empty() {
+            return true;
+        }
+        let mut lo = [i64::MAX; 3];
+        let mut hi = [i64::MIN; 3];
+        for &p in particles {
+            let c = cloud.cell_of(p);
+            for a in 0..3 {
+                lo[a] = lo[a].min(c[a] as i64);
+                hi[a] = hi[a].max(c[a] as i64);
+            }
+        }
+        if self.reach != 1 {
+            return false;
+        }
+        let r = self.reach;
+        // Four cells of margin along x and a row length that is a multiple of four: every
+        // group and every chunk a group writes is aligned to four cells, so chunks of
+        // different groups never partially overlap.
+        let origin = [lo[0] - 4, lo[1] - r, lo[2] - r];
+        let ix_max = hi[0] - origin[0];
+        let nx = ((ix_max + 1 + 3) / 4 * 4 + 4) as usize;
+        let ny = (hi[1] - lo[1] + 1 + 2 * r) as usize;
+        let nz = (hi[2] - lo[2] + 1 + 2 * r) as usize;
+        let cells = nx.saturating_mul(ny).saturating_mul(nz);
+        if cells > self.capacity_cells || cells > u32::MAX as usize {
+            return false;
+        }
+        self.dims = [nx, ny, nz];
+        self.lo = origin;
+        self.cells = cells;
+        for a in [
+            &mut self.px,
+            &mut self.py,
+            &mut self.pz,
+            &mut self.occ,
+            &mut self.fx,
+            &mut self.fy,
+            &mut self.fz,
+        ] {
+            a[..cells].fill(0.0);
+        }
+        for (l, &p) in particles.iter().enumerate() {
+            let c = cloud.cell_of(p);
+            let i = (c[0] as i64 - origin[0]) as usize
+                + nx * ((c[1] as i64 - origin[1]) as usize
+                    + ny * (c[2] as i64 - origin[2]) as usize);
+            self.cell_of_local[l] = i as u32;
+            self.occ[i] = 1.0;
+        }
+        let index = |d: &[i32; 3]| {
+            d[0] as isize + nx as isize * (d[1] as isize + ny as isize * d[2] as isize)
+        };
+        for (o, d) in self.off.iter_mut().zip(&self.dirs) {
+            *o = index(d);
+        }
+        for (o, (d, _)) in self.row_off.iter_mut().zip(&self.rows) {
+            *o = index(d);
+        }
+        for (t, &own) in owner_local.iter().enumerate() {
+            self.order
+                .push((self.cell_of_local[own as usize], t as u32));
+        }
+        self.order.sort_unstable();
+        for &(i, t) in &self.order {
+            let i = i as usize;
+            let lane = (i % nx) & 3;
+            let base = (i - lane) as u32;
+            if self.groups.last() != Some(&base) {
+                self.groups.push(base);
+                self.lanes.extend_from_slice(&[PADDING; 4]);
+            }
+            let mut a = DMat3::ZERO;
+            let mut q = DMat3::ZERO;
+            let mut s = DVec3::ZERO;
+            let mut u = DVec3::ZERO;
+            for k in 0..self.dirs.len() {
+                if self.occ[(i as isize + self.off[k]) as usize] == 0.0 {
+                    continue;
+                }
+                let w = DVec3::from_array(self.w[k]);
+                let x = self.x[k];
+                a += outer(x, w);
+                q += outer(x, x * self.c[k]);
+                s += w;
+                u += DVec3::from_array(self.u[k]);
+            }
+            let slot = self.lanes.len() - 4 + lane;
+            self.lanes[slot] = if self.seed {
+                LaneRest {
+                    own: 1.0,
+                    a_inv: DMat3::IDENTITY,
+                    q: rest_strain[t as usize],
+                    s,
+                    u: DVec3::ZERO,
+                }
+            } else {
+                LaneRest {
+                    own: 1.0,
+                    a_inv: a.inverse(),
+                    q,
+                    s,
+                    u,
+                }
+            };
+        }
+        true
+    }
+
+    /// The terms' forces (N) at positions `x` (m, by global particle) into `f_local` (by
+    /// local particle, overwritten), in the AVX2 + FMA build where the CPU has it.
+    pub(crate) fn forces(
+        &mut self,
+        mat: &MaterialParams,
+        particles: &[u32],
+        x: &[DVec3],
+        f_local: &mut [DVec3],
+    ) {
+        for (&i, &p) in self.cell_of_local.iter().zip(particles) {
+            let (i, xp) = (i as usize, x[p as usize]);
+            self.px[i] = xp.x;
+            self.py[i] = xp.y;
+            self.pz[i] = xp.z;
+            self.fx[i] = 0.0;
+            self.fy[i] = 0.0;
+            self.fz[i] = 0.0;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if let Some(isa) = self.isa {
+            // SAFETY: the token exists only when the CPU has AVX2 and FMA.
+            unsafe { self.group_loop_avx2(isa, mat) };
+        } else {
+            self.group_loop::<L4>((), mat);
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        self.group_loop::<L4>((), mat);
+        for (f, &i) in f_local
+            .iter_mut()
+            .zip(&self.cell_of_local[..particles.len()])
+        {
+            let i = i as usize;
+            *f = DVec3::new(self.fx[i], self.fy[i], self.fz[i]);
+        }
+    }
+
+    /// [`Self::group_loop`] on AVX2 + FMA lanes, compiled for them.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2 and FMA (the token says so).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn group_loop_avx2(&mut self, isa: avx2::Avx2Fma, mat: &MaterialParams) {
+        self.group_loop::<avx2::Y4>(isa, mat);
+    }
+
+    /// Every group's forces from the grid positions into the grid forces (module
+    /// documentation for the formulas).
+    #[inline(always)]
+    fn group_loop<V: Lanes>(&mut self, isa: V::Isa, mat: &MaterialParams) {
+        let Self {
+            seed,
+            volume_m3: v,
+            w: ws,
+            c: cs,
+            u: us,
+            off,
+            rows,
+            row_off,
+            px,
+            py,
+            pz,
+            occ,
+            fx,
+            fy,
+            fz,
+            groups,
+            lanes,
+            ..
+        } = self;
+        let (seed, v) = (*seed, *v);
+        let nk = off.len();
+        assert!(nk <= MAX_STENCIL && ws.len() == nk && cs.len() == nk && us.len() == nk);
+        let zero = V::zero(isa);
+        let mut dbuf = [[zero; 3]; MAX_STENCIL];
+        for (g, &base) in groups.iter().enumerate() {
+            let b = base as usize;
+            let lanes = &lanes[4 * g..4 * g + 4];
+            let own = V::from_array(
+                isa,
+                [lanes[0].own, lanes[1].own, lanes[2].own, lanes[3].own],
+            );
+            let xi = [
+                V::load(isa, px, b),
+                V::load(isa, py, b),
+                V::load(isa, pz, b),
+            ];
+            let mut fa = [zero; 9];
+            let mut da = [zero; 9];
+            let mut sd = [zero; 3];
+            // Pass 1: F~ = sum d (x) w, and (corrected) D = sum d (x) u, sum c d.
+            for k in 0..nk {
+                let o = (b as isize + off[k]) as usize;
+                let m = if seed {
+                    V::load(isa, occ, o)
+                } else {
+                    V::load(isa, occ, o).mul(own)
+                };
+                let d = [
+                    V::load(isa, px, o).sub(xi[0]).mul(m),
+                    V::load(isa, py, o).sub(xi[1]).mul(m),
+                    V::load(isa, pz, o).sub(xi[2]).mul(m),
+                ];
+                let w = ws[k];
+                for c in 0..3 {
+                    let wc = V::splat(isa, w[c]);
+                    for r in 0..3 {
+                        fa[3 * c + r] = V::madd(d[r], wc, fa[3 * c + r]);
+                    }
+                }
+                if !seed {
+                    dbuf[k] = d;
+                    let u = us[k];
+                    for c in 0..3 {
+                        let uc = V::splat(isa, u[c]);
+                        for r in 0..3 {
+                            da[3 * c + r] = V::madd(d[r], uc, da[3 * c + r]);
+                        }
+                    }
+                    let ck = V::splat(isa, cs[k]);
+                    for r in 0..3 {
+                        sd[r] = V::madd(d[r], ck, sd[r]);
+                    }
+                }
+            }
+            // Per lane: stress, N, F and the owner's force.
+            let fts = lane_matrices(&fa);
+            let dms = if seed {
+                [[0.0; 9]; 4]
+            } else {
+                lane_matrices(&da)
+            };
+            let sds = [sd[0].to_array(), sd[1].to_array(), sd[2].to_array()];
+            let mut nl = [[0.0; 4]; 9];
+            let mut fl = [[0.0; 4]; 9];
+            let mut ol = [[0.0; 4]; 3];
+            for (l, lr) in lanes.iter().enumerate() {
+                if lr.own == 0.0 {
+                    continue;
+                }
+                let ft = DMat3::from_cols_array(&fts[l]);
+                let (n, f, owner) = if seed {
+                    let e = green_strain(&ft) - lr.q;
+                    let n = (ft * stvk_stress(&e, mat.lambda_pa, mat.mu_pa)) * v;
+                    (n, DMat3::ZERO, n * lr.s)
+                } else {
+                    let f = ft * lr.a_inv;
+                    let dm = DMat3::from_cols_array(&dms[l]);
+                    let m = first_piola(mat, &f) * v + (f * lr.q - dm);
+                    let n = m * lr.a_inv.transpose();
+                    let sdl = DVec3::new(sds[0][l], sds[1][l], sds[2][l]);
+                    (n, f, n * lr.s - f * lr.u + sdl)
+                };
+                let (na, fa_) = (n.to_cols_array(), f.to_cols_array());
+                for e in 0..9 {
+                    nl[e][l] = na[e];
+                    fl[e][l] = fa_[e];
+                }
+                for r in 0..3 {
+                    ol[r][l] = owner[r];
+                }
+            }
+            let nm: [V; 9] = std::array::from_fn(|e| V::from_array(isa, nl[e]));
+            let fm: [V; 9] = std::array::from_fn(|e| V::from_array(isa, fl[e]));
+            // Pass 2: grad_k = N w_k (- F u_k + c_k d_k), subtracted at the neighbour; the
+            // three offsets of a row along x are combined into whole aligned chunks of four
+            // cells first (a store that a later load overlaps only partly stalls the core).
+            for (&(_, entries), &ro) in rows.iter().zip(row_off.iter()) {
+                let o = (b as isize + ro) as usize;
+                let mut centre = if ro == 0 {
+                    [
+                        V::from_array(isa, ol[0]),
+                        V::from_array(isa, ol[1]),
+                        V::from_array(isa, ol[2]),
+                    ]
+                } else {
+                    [zero; 3]
+                };
+                let mut before = [zero; 3];
+                let mut after = [zero; 3];
+                for (dx, &k) in entries.iter().enumerate() {
+                    if k == usize::MAX {
+                        continue;
+                    }
+                    let w = ws[k];
+                    let (w0, w1, w2) = (
+                        V::splat(isa, w[0]),
+                        V::splat(isa, w[1]),
+                        V::splat(isa, w[2]),
+                    );
+                    let mut gr = [zero; 3];
+                    for r in 0..3 {
+                        gr[r] = V::madd(nm[r], w0, V::madd(nm[3 + r], w1, nm[6 + r].mul(w2)));
+                    }
+                    if !seed {
+                        let u = us[k];
+                        let (u0, u1, u2) = (
+                            V::splat(isa, u[0]),
+                            V::splat(isa, u[1]),
+                            V::splat(isa, u[2]),
+                        );
+                        let ck = V::splat(isa, cs[k]);
+                        let d = dbuf[k];
+                        for r in 0..3 {
+                            let t = V::nmadd(fm[r], u0, gr[r]);
+                            let t = V::nmadd(fm[3 + r], u1, t);
+                            let t = V::nmadd(fm[6 + r], u2, t);
+                            gr[r] = V::madd(d[r], ck, t);
+                        }
+                    }
+                    for r in 0..3 {
+                        match dx {
+                            0 => {
+                                let (c, lo) = gr[r].shift_down();
+                                centre[r] = centre[r].sub(c);
+                                before[r] = before[r].sub(lo);
+                            }
+                            1 => centre[r] = centre[r].sub(gr[r]),
+                            _ => {
+                                let (c, hi) = gr[r].shift_up();
+                                centre[r] = centre[r].sub(c);
+                                after[r] = after[r].sub(hi);
+                            }
+                        }
+                    }
+                }
+                for (a, (c, (lo, hi))) in [&mut *fx, &mut *fy, &mut *fz]
+                    .into_iter()
+                    .zip(centre.iter().zip(before.iter().zip(&after)))
+                {
+                    if entries[0] != usize::MAX {
+                        V::load(isa, a, o - 4).add(*lo).store(a, o - 4);
+                    }
+                    V::load(isa, a, o).add(*c).store(a, o);
+                    if entries[2] != usize::MAX {
+                        V::load(isa, a, o + 4).add(*hi).store(a, o + 4);
+                    }
+                }
+            }
+        }
+    }
+}
