@@ -324,6 +324,64 @@ const PADDING: LaneRest = LaneRest {
     u: DVec3::ZERO,
 };
 
+/// A dense grid over a box of lattice cells with the axes permuted so that `perm[0]` is the
+/// fastest (the vector axis): four cells of margin along it and a row length that is a
+/// multiple of four, so that every group of four owners and every chunk a group writes is
+/// aligned to four cells (chunks of different groups never partially overlap), and `reach`
+/// cells of margin along the others.
+#[derive(Debug, Clone, Copy, Default)]
+struct GridLayout {
+    perm: [usize; 3],
+    origin: [i64; 3],
+    dims: [usize; 3],
+    cells: usize,
+}
+
+impl GridLayout {
+    /// The layout over cells `lo..=hi` (lattice coordinates), `None` beyond `capacity` cells.
+    fn new(
+        perm: [usize; 3],
+        lo: [i64; 3],
+        hi: [i64; 3],
+        reach: i64,
+        capacity: usize,
+    ) -> Option<Self> {
+        let mut origin = [0i64; 3];
+        let mut dims = [0usize; 3];
+        for (a, &ax) in perm.iter().enumerate() {
+            let margin = if a == 0 { 4 } else { reach };
+            origin[a] = lo[ax] - margin;
+            let span = hi[ax] - origin[a] + 1 + margin;
+            dims[a] = if a == 0 {
+                ((span + 3) / 4 * 4) as usize
+            } else {
+                span as usize
+            };
+        }
+        let cells = dims[0].checked_mul(dims[1])?.checked_mul(dims[2])?;
+        (cells <= capacity && cells <= u32::MAX as usize).then_some(Self {
+            perm,
+            origin,
+            dims,
+            cells,
+        })
+    }
+
+    /// Grid index of lattice cell `c` (inside the box).
+    #[inline]
+    fn index(&self, c: [usize; 3]) -> usize {
+        let g = |a: usize| (c[self.perm[a]] as i64 - self.origin[a]) as usize;
+        g(0) + self.dims[0] * (g(1) + self.dims[1] * g(2))
+    }
+
+    /// Grid-index offset of lattice offset `d`.
+    #[inline]
+    fn offset(&self, d: &[i32; 3]) -> isize {
+        let g = |a: usize| d[self.perm[a]] as isize;
+        g(0) + self.dims[0] as isize * (g(1) + self.dims[1] as isize * g(2))
+    }
+}
+
 /// The stencil layout of a term block (module documentation), sized once.
 #[derive(Debug, Clone)]
 pub(crate) struct StencilGrid {
@@ -342,15 +400,14 @@ pub(crate) struct StencilGrid {
     /// Largest component of a stencil offset (the stencil loop needs 1: the 26-cell cube or
     /// part of it).
     reach: i64,
-    /// The stencil by rows along x: per row its offset `(0, dy, dz)` and the stencil entries of
-    /// offsets -1, 0, +1 along x (`usize::MAX`: absent; the centre row's 0 is the owner).
-    rows: Vec<([i32; 3], [usize; 3])>,
-    /// Grid-index offset of each stencil entry and of each row for the current grid.
+    /// The stencil by rows along the vector axis: per row the grid offset of its centre and
+    /// the stencil entries of offsets -1, 0, +1 along the axis (`usize::MAX`: absent; the
+    /// centre row's 0 is the owner). At most nine rows.
+    rows: Vec<(isize, [usize; 3])>,
+    /// Grid-index offset of each stencil entry for the current grid.
     off: Vec<isize>,
-    row_off: Vec<isize>,
     /// Grid dimensions and the lattice cell of grid cell (0, 0, 0).
-    dims: [usize; 3],
-    lo: [i64; 3],
+    layout: GridLayout,
     cells: usize,
     capacity_cells: usize,
     /// Positions, occupancy (1 where a touched particle sits) and forces per grid cell.
@@ -400,22 +457,6 @@ impl StencilGrid {
             .flat_map(|d| d.iter().map(|v| v.unsigned_abs() as i64))
             .max()
             .unwrap_or(0);
-        let mut rows: Vec<([i32; 3], [usize; 3])> = Vec::new();
-        if reach == 1 {
-            for dz in -1..=1 {
-                for dy in -1..=1 {
-                    let mut e = [usize::MAX; 3];
-                    for (k, d) in dirs.iter().enumerate() {
-                        if d[1] == dy && d[2] == dz {
-                            e[(d[0] + 1) as usize] = k;
-                        }
-                    }
-                    if e != [usize::MAX; 3] || (dy, dz) == (0, 0) {
-                        rows.push(([0, dy, dz], e));
-                    }
-                }
-            }
-        }
         Self {
             #[cfg(target_arch = "x86_64")]
             isa: avx2::Avx2Fma::detect(),
@@ -428,10 +469,8 @@ impl StencilGrid {
             c,
             u,
             reach,
-            row_off: vec![0; rows.len()],
-            rows,
-            dims: [0; 3],
-            lo: [0; 3],
+            rows: Vec::with_capacity(9),
+            layout: GridLayout::default(),
             cells: 0,
             capacity_cells,
             px: vec![0.0; capacity_cells],
@@ -479,6 +518,9 @@ impl StencilGrid {
         if particles.is_empty() {
             return true;
         }
+        if self.reach != 1 {
+            return false;
+        }
         let mut lo = [i64::MAX; 3];
         let mut hi = [i64::MIN; 3];
         for &p in particles {
@@ -488,24 +530,40 @@ impl StencilGrid {
                 hi[a] = hi[a].max(c[a] as i64);
             }
         }
-        if self.reach != 1 {
-            return false;
+        // The vector axis: the one whose groups of four hold the most owners (fewest groups).
+        let mut best: Option<(usize, [usize; 3])> = None;
+        for fast in 0..3 {
+            let perm = [fast, (fast + 1) % 3, (fast + 2) % 3];
+            let Some(layout) = GridLayout::new(perm, lo, hi, self.reach, self.capacity_cells)
+            else {
+                continue;
+            };
+            self.order.clear();
+            for &own in owner_local {
+                let i = layout.index(cloud.cell_of(particles[own as usize]));
+                self.order.push(((i & !3) as u32, 0));
+            }
+            self.order.sort_unstable();
+            let mut groups = 0;
+            let mut last = None;
+            for &(b, _) in &self.order {
+                if last != Some(b) {
+                    groups += 1;
+                    last = Some(b);
+                }
+            }
+            if best.is_none_or(|(g, _)| groups < g) {
+                best = Some((groups, perm));
+            }
         }
-        let r = self.reach;
-        // Four cells of margin along x and a row length that is a multiple of four: every
-        // group and every chunk a group writes is aligned to four cells, so chunks of
-        // different groups never partially overlap.
-        let origin = [lo[0] - 4, lo[1] - r, lo[2] - r];
-        let ix_max = hi[0] - origin[0];
-        let nx = ((ix_max + 1 + 3) / 4 * 4 + 4) as usize;
-        let ny = (hi[1] - lo[1] + 1 + 2 * r) as usize;
-        let nz = (hi[2] - lo[2] + 1 + 2 * r) as usize;
-        let cells = nx.saturating_mul(ny).saturating_mul(nz);
-        if cells > self.capacity_cells || cells > u32::MAX as usize {
+        self.order.clear();
+        let Some((_, perm)) = best else {
             return false;
-        }
-        self.dims = [nx, ny, nz];
-        self.lo = origin;
+        };
+        let layout = GridLayout::new(perm, lo, hi, self.reach, self.capacity_cells)
+            .expect("the layout fitted above");
+        let cells = layout.cells;
+        self.layout = layout;
         self.cells = cells;
         for a in [
             &mut self.px,
@@ -519,21 +577,30 @@ impl StencilGrid {
             a[..cells].fill(0.0);
         }
         for (l, &p) in particles.iter().enumerate() {
-            let c = cloud.cell_of(p);
-            let i = (c[0] as i64 - origin[0]) as usize
-                + nx * ((c[1] as i64 - origin[1]) as usize
-                    + ny * (c[2] as i64 - origin[2]) as usize);
+            let i = layout.index(cloud.cell_of(p));
             self.cell_of_local[l] = i as u32;
             self.occ[i] = 1.0;
         }
-        let index = |d: &[i32; 3]| {
-            d[0] as isize + nx as isize * (d[1] as isize + ny as isize * d[2] as isize)
-        };
         for (o, d) in self.off.iter_mut().zip(&self.dirs) {
-            *o = index(d);
+            *o = layout.offset(d);
         }
-        for (o, (d, _)) in self.row_off.iter_mut().zip(&self.rows) {
-            *o = index(d);
+        // Rows along the vector axis: offsets -1, 0, +1 along it of each (other two) offset.
+        self.rows.clear();
+        for b in -1..=1 {
+            for a in -1..=1 {
+                let mut centre = [0i32; 3];
+                centre[perm[1]] = a;
+                centre[perm[2]] = b;
+                let mut e = [usize::MAX; 3];
+                for (k, d) in self.dirs.iter().enumerate() {
+                    if d[perm[1]] == a && d[perm[2]] == b {
+                        e[(d[perm[0]] + 1) as usize] = k;
+                    }
+                }
+                if e != [usize::MAX; 3] || (a, b) == (0, 0) {
+                    self.rows.push((layout.offset(&centre), e));
+                }
+            }
         }
         for (t, &own) in owner_local.iter().enumerate() {
             self.order
@@ -542,7 +609,7 @@ impl StencilGrid {
         self.order.sort_unstable();
         for &(i, t) in &self.order {
             let i = i as usize;
-            let lane = (i % nx) & 3;
+            let lane = i & 3;
             let base = (i - lane) as u32;
             if self.groups.last() != Some(&base) {
                 self.groups.push(base);
@@ -643,7 +710,6 @@ impl StencilGrid {
             u: us,
             off,
             rows,
-            row_off,
             px,
             py,
             pz,
@@ -752,7 +818,7 @@ impl StencilGrid {
             // Pass 2: grad_k = N w_k (- F u_k + c_k d_k), subtracted at the neighbour; the
             // three offsets of a row along x are combined into whole aligned chunks of four
             // cells first (a store that a later load overlaps only partly stalls the core).
-            for (&(_, entries), &ro) in rows.iter().zip(row_off.iter()) {
+            for &(ro, entries) in rows.iter() {
                 let o = (b as isize + ro) as usize;
                 let mut centre = if ro == 0 {
                     [
