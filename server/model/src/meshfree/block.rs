@@ -326,6 +326,7 @@ impl TermBlock {
                     cloud.material(),
                     &self.particles,
                     x,
+                    cloud.rest_m(),
                     &mut self.f_local[..n_local],
                 );
                 return;

@@ -306,6 +306,10 @@ fn lane_matrices<V: Lanes>(a: &[V; 9]) -> [[f64; 9]; 4] {
 struct LaneRest {
     /// 1 for the owner of a term, 0 for a padding lane.
     own: f64,
+    /// The moment matrix `A_i = sum_k X_k (x) w_k` over present neighbours (`F~` at rest).
+    a: DMat3,
+    /// `C_i = sum_k c_k` over present neighbours, N/m (corrected).
+    c: f64,
     /// `A_i^-1` (corrected; identity for the seed variant).
     a_inv: DMat3,
     /// `Q_i` (corrected) or the rest strain (seed).
@@ -316,8 +320,20 @@ struct LaneRest {
     u: DVec3,
 }
 
+/// The seed variant's rest data of a group, lane-wise (structure of arrays): `A`, `S`, the
+/// rest strain and the owner mask, for the vectorised St. Venant-Kirchhoff stress.
+#[derive(Debug, Clone, Copy, Default)]
+struct SeedGroup {
+    a: [[f64; 4]; 9],
+    s: [[f64; 4]; 3],
+    e0: [[f64; 4]; 9],
+    own: [f64; 4],
+}
+
 const PADDING: LaneRest = LaneRest {
     own: 0.0,
+    a: DMat3::IDENTITY,
+    c: 0.0,
     a_inv: DMat3::IDENTITY,
     q: DMat3::ZERO,
     s: DVec3::ZERO,
@@ -406,6 +422,12 @@ pub(crate) struct StencilGrid {
     rows: Vec<(isize, [usize; 3])>,
     /// Grid-index offset of each stencil entry for the current grid.
     off: Vec<isize>,
+    /// Half the stencil, one entry `k` of each pair `(k, -k)`, with the grid offset of `k`;
+    /// ordered by class.
+    pairs: Vec<(usize, isize)>,
+    /// Classes of stencil entries of equal length: `beta = c_k / phi_k` (`c_k X_k = beta
+    /// w_k`), `c_k`, and their range in `pairs`.
+    classes: Vec<(f64, f64, std::ops::Range<usize>)>,
     /// Grid dimensions and the lattice cell of grid cell (0, 0, 0).
     layout: GridLayout,
     cells: usize,
@@ -423,6 +445,8 @@ pub(crate) struct StencilGrid {
     /// First grid cell of each group of four owners along x, and the lanes' rest data.
     groups: Vec<u32>,
     lanes: Vec<LaneRest>,
+    /// The seed variant's lane data by group (empty for the corrected variant).
+    seed_groups: Vec<SeedGroup>,
     /// (grid cell, term) of every term, sorted when the grid is built.
     order: Vec<(u32, u32)>,
 }
@@ -445,7 +469,7 @@ impl StencilGrid {
             .iter()
             .map(|d| DVec3::new(d[0] as f64, d[1] as f64, d[2] as f64) * s)
             .collect();
-        let w = x.iter().map(|&o| cloud.pair_weight(o).to_array()).collect();
+        let w: Vec<[f64; 3]> = x.iter().map(|&o| cloud.pair_weight(o).to_array()).collect();
         let c: Vec<f64> = x.iter().map(|&o| cloud.hourglass_stiffness(o)).collect();
         let u = x
             .iter()
@@ -457,6 +481,29 @@ impl StencilGrid {
             .flat_map(|d| d.iter().map(|v| v.unsigned_abs() as i64))
             .max()
             .unwrap_or(0);
+        // Pairs (k, -k) by class of length; w_-k = -w_k exactly (the weight is odd).
+        let mut half: Vec<usize> = (0..dirs.len())
+            .filter(|&k| {
+                let d = dirs[k];
+                let first = d.iter().copied().find(|&v| v != 0).unwrap_or(0);
+                first > 0 && dirs.contains(&[-d[0], -d[1], -d[2]])
+            })
+            .collect();
+        let len2 = |k: usize| dirs[k].iter().map(|v| v * v).sum::<i32>();
+        half.sort_by_key(|&k| len2(k));
+        let mut classes: Vec<(f64, f64, std::ops::Range<usize>)> = Vec::new();
+        for (j, &k) in half.iter().enumerate() {
+            if classes
+                .last()
+                .is_some_and(|cl| len2(half[cl.2.start]) == len2(k))
+            {
+                classes.last_mut().expect("a class").2.end = j + 1;
+            } else {
+                let phi = DVec3::from_array(w[k]).length() / x[k].length();
+                classes.push((c[k] / phi, c[k], j..j + 1));
+            }
+        }
+        let pairs = half.iter().map(|&k| (k, 0isize)).collect();
         Self {
             #[cfg(target_arch = "x86_64")]
             isa: avx2::Avx2Fma::detect(),
@@ -470,6 +517,8 @@ impl StencilGrid {
             u,
             reach,
             rows: Vec::with_capacity(9),
+            pairs,
+            classes,
             layout: GridLayout::default(),
             cells: 0,
             capacity_cells,
@@ -483,6 +532,7 @@ impl StencilGrid {
             cell_of_local: vec![0; touched],
             groups: Vec::with_capacity(terms),
             lanes: Vec::with_capacity(4 * terms),
+            seed_groups: Vec::with_capacity(terms),
             order: Vec::with_capacity(terms),
         }
     }
@@ -513,6 +563,7 @@ impl StencilGrid {
     ) -> bool {
         self.groups.clear();
         self.lanes.clear();
+        self.seed_groups.clear();
         self.order.clear();
         self.cells = 0;
         if particles.is_empty() {
@@ -584,6 +635,9 @@ impl StencilGrid {
         for (o, d) in self.off.iter_mut().zip(&self.dirs) {
             *o = layout.offset(d);
         }
+        for (k, o) in &mut self.pairs {
+            *o = self.off[*k];
+        }
         // Rows along the vector axis: offsets -1, 0, +1 along it of each (other two) offset.
         self.rows.clear();
         for b in -1..=1 {
@@ -619,6 +673,7 @@ impl StencilGrid {
             let mut q = DMat3::ZERO;
             let mut s = DVec3::ZERO;
             let mut u = DVec3::ZERO;
+            let mut csum = 0.0;
             for k in 0..self.dirs.len() {
                 if self.occ[(i as isize + self.off[k]) as usize] == 0.0 {
                     continue;
@@ -629,11 +684,14 @@ impl StencilGrid {
                 q += outer(x, x * self.c[k]);
                 s += w;
                 u += DVec3::from_array(self.u[k]);
+                csum += self.c[k];
             }
             let slot = self.lanes.len() - 4 + lane;
             self.lanes[slot] = if self.seed {
                 LaneRest {
                     own: 1.0,
+                    a,
+                    c: 0.0,
                     a_inv: DMat3::IDENTITY,
                     q: rest_strain[t as usize],
                     s,
@@ -642,6 +700,8 @@ impl StencilGrid {
             } else {
                 LaneRest {
                     own: 1.0,
+                    a,
+                    c: csum,
                     a_inv: a.inverse(),
                     q,
                     s,
@@ -649,20 +709,39 @@ impl StencilGrid {
                 }
             };
         }
+        if self.seed {
+            for lanes in self.lanes.chunks_exact(4) {
+                let mut sg = SeedGroup::default();
+                for (l, lr) in lanes.iter().enumerate() {
+                    let (a, e0) = (lr.a.to_cols_array(), lr.q.to_cols_array());
+                    for e in 0..9 {
+                        sg.a[e][l] = a[e];
+                        sg.e0[e][l] = e0[e];
+                    }
+                    for (r, v) in lr.s.to_array().into_iter().enumerate() {
+                        sg.s[r][l] = v;
+                    }
+                    sg.own[l] = lr.own;
+                }
+                self.seed_groups.push(sg);
+            }
+        }
         true
     }
 
-    /// The terms' forces (N) at positions `x` (m, by global particle) into `f_local` (by
-    /// local particle, overwritten), in the AVX2 + FMA build where the CPU has it.
+    /// The terms' forces (N) at positions `x` (m, by global particle; `rest`: the rest
+    /// positions) into `f_local` (by local particle, overwritten), in the AVX2 + FMA build
+    /// where the CPU has it. The grid holds displacements (zero in empty cells).
     pub(crate) fn forces(
         &mut self,
         mat: &MaterialParams,
         particles: &[u32],
         x: &[DVec3],
+        rest: &[DVec3],
         f_local: &mut [DVec3],
     ) {
         for (&i, &p) in self.cell_of_local.iter().zip(particles) {
-            let (i, xp) = (i as usize, x[p as usize]);
+            let (i, xp) = (i as usize, x[p as usize] - rest[p as usize]);
             self.px[i] = xp.x;
             self.py[i] = xp.y;
             self.pz[i] = xp.z;
@@ -710,22 +789,24 @@ impl StencilGrid {
             u: us,
             off,
             rows,
+            pairs,
+            classes,
+            x: xs,
             px,
             py,
             pz,
-            occ,
             fx,
             fy,
             fz,
             groups,
             lanes,
+            seed_groups,
             ..
         } = self;
         let (seed, v) = (*seed, *v);
         let nk = off.len();
         assert!(nk <= MAX_STENCIL && ws.len() == nk && cs.len() == nk && us.len() == nk);
         let zero = V::zero(isa);
-        let mut dbuf = [[zero; 3]; MAX_STENCIL];
         for (g, &base) in groups.iter().enumerate() {
             let b = base as usize;
             let lanes = &lanes[4 * g..4 * g + 4];
@@ -733,57 +814,129 @@ impl StencilGrid {
                 isa,
                 [lanes[0].own, lanes[1].own, lanes[2].own, lanes[3].own],
             );
-            let xi = [
+            let ui = [
                 V::load(isa, px, b),
                 V::load(isa, py, b),
                 V::load(isa, pz, b),
             ];
-            let mut fa = [zero; 9];
-            let mut da = [zero; 9];
-            let mut sd = [zero; 3];
-            // Pass 1: F~ = sum d (x) w, and (corrected) D = sum d (x) u, sum c d.
-            for k in 0..nk {
-                let o = (b as isize + off[k]) as usize;
-                let m = if seed {
-                    V::load(isa, occ, o)
-                } else {
-                    V::load(isa, occ, o).mul(own)
-                };
-                let d = [
-                    V::load(isa, px, o).sub(xi[0]).mul(m),
-                    V::load(isa, py, o).sub(xi[1]).mul(m),
-                    V::load(isa, pz, o).sub(xi[2]).mul(m),
-                ];
-                let w = ws[k];
-                for c in 0..3 {
-                    let wc = V::splat(isa, w[c]);
+            // Pass 1, over pairs (k, -k) (w_-k = -w_k): G = sum_k u_(i+k) (x) w_k, and
+            // (corrected) Gb = sum_k beta_k u_(i+k) (x) w_k = sum_k u_(i+k) (x) c_k X_k and
+            // sum_k c_k u_(i+k), class by class (beta and c depend on |k| only).
+            let mut ga = [zero; 9];
+            let mut gb = [zero; 9];
+            let mut cu = [zero; 3];
+            for &(beta, ck, ref range) in classes.iter() {
+                let mut gc = [zero; 9];
+                let mut sc = [zero; 3];
+                for &(k, o) in &pairs[range.clone()] {
+                    let (hi, lo) = ((b as isize + o) as usize, (b as isize - o) as usize);
+                    let a = [
+                        V::load(isa, px, hi),
+                        V::load(isa, py, hi),
+                        V::load(isa, pz, hi),
+                    ];
+                    let m = [
+                        V::load(isa, px, lo),
+                        V::load(isa, py, lo),
+                        V::load(isa, pz, lo),
+                    ];
+                    let w = ws[k];
                     for r in 0..3 {
-                        fa[3 * c + r] = V::madd(d[r], wc, fa[3 * c + r]);
-                    }
-                }
-                if !seed {
-                    dbuf[k] = d;
-                    let u = us[k];
-                    for c in 0..3 {
-                        let uc = V::splat(isa, u[c]);
-                        for r in 0..3 {
-                            da[3 * c + r] = V::madd(d[r], uc, da[3 * c + r]);
+                        let d = a[r].sub(m[r]);
+                        for c in 0..3 {
+                            gc[3 * c + r] = V::madd(d, V::splat(isa, w[c]), gc[3 * c + r]);
+                        }
+                        if !seed {
+                            sc[r] = sc[r].add(a[r].add(m[r]));
                         }
                     }
-                    let ck = V::splat(isa, cs[k]);
+                }
+                if seed {
+                    for e in 0..9 {
+                        ga[e] = ga[e].add(gc[e]);
+                    }
+                } else {
+                    let (bv, cv) = (V::splat(isa, beta), V::splat(isa, ck));
+                    for e in 0..9 {
+                        ga[e] = ga[e].add(gc[e]);
+                        gb[e] = V::madd(gc[e], bv, gb[e]);
+                    }
                     for r in 0..3 {
-                        sd[r] = V::madd(d[r], ck, sd[r]);
+                        cu[r] = V::madd(sc[r], cv, cu[r]);
                     }
                 }
             }
-            // Per lane: stress, N, F and the owner's force.
-            let fts = lane_matrices(&fa);
-            let dms = if seed {
+            if seed {
+                // The seed variant's St. Venant-Kirchhoff stress, lane-wise: F = A + G -
+                // u_i (x) S, E = (F^T F - I) / 2 - E0, N = V F (lambda tr(E) I + 2 mu E),
+                // padding lanes masked.
+                let sg = &seed_groups[g];
+                let ld = |a: &[f64; 4]| V::from_array(isa, *a);
+                let mut f = [zero; 9];
+                for c in 0..3 {
+                    let sc = ld(&sg.s[c]);
+                    for r in 0..3 {
+                        f[3 * c + r] = V::nmadd(ui[r], sc, ld(&sg.a[3 * c + r]).add(ga[3 * c + r]));
+                    }
+                }
+                let half = V::splat(isa, 0.5);
+                let mut e = [zero; 9];
+                for c in 0..3 {
+                    for d in c..3 {
+                        let mut ctd = f[3 * c].mul(f[3 * d]);
+                        ctd = V::madd(f[3 * c + 1], f[3 * d + 1], ctd);
+                        ctd = V::madd(f[3 * c + 2], f[3 * d + 2], ctd);
+                        let id = if c == d { 1.0 } else { 0.0 };
+                        let ecd = ctd
+                            .sub(V::splat(isa, id))
+                            .mul(half)
+                            .sub(ld(&sg.e0[3 * d + c]));
+                        e[3 * d + c] = ecd;
+                        e[3 * c + d] = ecd;
+                    }
+                }
+                let lv = V::splat(isa, mat.lambda_pa * v);
+                let mv = V::splat(isa, 2.0 * mat.mu_pa * v);
+                let tr = lv.mul(e[0].add(e[4]).add(e[8]));
+                let mut sv = [zero; 9];
+                for i in 0..9 {
+                    sv[i] = mv.mul(e[i]);
+                }
+                for i in [0, 4, 8] {
+                    sv[i] = sv[i].add(tr);
+                }
+                let own_v = ld(&sg.own);
+                let mut nmv = [zero; 9];
+                for c in 0..3 {
+                    for r in 0..3 {
+                        let mut acc = f[r].mul(sv[3 * c]);
+                        acc = V::madd(f[3 + r], sv[3 * c + 1], acc);
+                        acc = V::madd(f[6 + r], sv[3 * c + 2], acc);
+                        nmv[3 * c + r] = acc.mul(own_v);
+                    }
+                }
+                let mut ov = [zero; 3];
+                for r in 0..3 {
+                    let mut acc = nmv[r].mul(ld(&sg.s[0]));
+                    acc = V::madd(nmv[3 + r], ld(&sg.s[1]), acc);
+                    acc = V::madd(nmv[6 + r], ld(&sg.s[2]), acc);
+                    ov[r] = acc;
+                }
+                pass_two::<V>(
+                    isa, b, rows, ws, cs, us, xs, off, px, py, pz, fx, fy, fz, true, own, ui, &nmv,
+                    &[zero; 9], ov,
+                );
+                continue;
+            }
+            // Per lane: F~ = A + G - u_i (x) S; stress, N, F and the owner's force.
+            let gas = lane_matrices(&ga);
+            let gbs = if seed {
                 [[0.0; 9]; 4]
             } else {
-                lane_matrices(&da)
+                lane_matrices(&gb)
             };
-            let sds = [sd[0].to_array(), sd[1].to_array(), sd[2].to_array()];
+            let uis = [ui[0].to_array(), ui[1].to_array(), ui[2].to_array()];
+            let cus = [cu[0].to_array(), cu[1].to_array(), cu[2].to_array()];
             let mut nl = [[0.0; 4]; 9];
             let mut fl = [[0.0; 4]; 9];
             let mut ol = [[0.0; 4]; 3];
@@ -791,17 +944,21 @@ impl StencilGrid {
                 if lr.own == 0.0 {
                     continue;
                 }
-                let ft = DMat3::from_cols_array(&fts[l]);
+                let u_i = DVec3::new(uis[0][l], uis[1][l], uis[2][l]);
+                let ft = lr.a + DMat3::from_cols_array(&gas[l]) - outer(u_i, lr.s);
                 let (n, f, owner) = if seed {
                     let e = green_strain(&ft) - lr.q;
                     let n = (ft * stvk_stress(&e, mat.lambda_pa, mat.mu_pa)) * v;
                     (n, DMat3::ZERO, n * lr.s)
                 } else {
                     let f = ft * lr.a_inv;
-                    let dm = DMat3::from_cols_array(&dms[l]);
-                    let m = first_piola(mat, &f) * v + (f * lr.q - dm);
+                    // D = sum_k c_k d_ik (x) X_k = Gb - u_i (x) U + Q; H = F Q - D.
+                    let h = (f - DMat3::IDENTITY) * lr.q - DMat3::from_cols_array(&gbs[l])
+                        + outer(u_i, lr.u);
+                    let m = first_piola(mat, &f) * v + h;
                     let n = m * lr.a_inv.transpose();
-                    let sdl = DVec3::new(sds[0][l], sds[1][l], sds[2][l]);
+                    // sum_k c_k d_ik = sum_k c_k u_(i+k) - C u_i + U.
+                    let sdl = DVec3::new(cus[0][l], cus[1][l], cus[2][l]) - u_i * lr.c + lr.u;
                     (n, f, n * lr.s - f * lr.u + sdl)
                 };
                 let (na, fa_) = (n.to_cols_array(), f.to_cols_array());
@@ -815,80 +972,118 @@ impl StencilGrid {
             }
             let nm: [V; 9] = std::array::from_fn(|e| V::from_array(isa, nl[e]));
             let fm: [V; 9] = std::array::from_fn(|e| V::from_array(isa, fl[e]));
-            // Pass 2: grad_k = N w_k (- F u_k + c_k d_k), subtracted at the neighbour; the
-            // three offsets of a row along x are combined into whole aligned chunks of four
-            // cells first (a store that a later load overlaps only partly stalls the core).
-            for &(ro, entries) in rows.iter() {
-                let o = (b as isize + ro) as usize;
-                let mut centre = if ro == 0 {
-                    [
-                        V::from_array(isa, ol[0]),
-                        V::from_array(isa, ol[1]),
-                        V::from_array(isa, ol[2]),
-                    ]
-                } else {
-                    [zero; 3]
-                };
-                let mut before = [zero; 3];
-                let mut after = [zero; 3];
-                for (dx, &k) in entries.iter().enumerate() {
-                    if k == usize::MAX {
-                        continue;
+            let ov = [
+                V::from_array(isa, ol[0]),
+                V::from_array(isa, ol[1]),
+                V::from_array(isa, ol[2]),
+            ];
+            pass_two::<V>(
+                isa, b, rows, ws, cs, us, xs, off, px, py, pz, fx, fy, fz, seed, own, ui, &nm, &fm,
+                ov,
+            );
+        }
+    }
+}
+
+/// Pass 2 of a group (module documentation): `grad_k = N w_k (- F u_k + c_k d_k)`,
+/// subtracted at the neighbour, the owner's force `ol` added at the owner; the three offsets
+/// of a row along the vector axis are combined into whole aligned chunks of four cells first
+/// (a store that a later load overlaps only partly stalls the core).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)] // the loop's state, split out of one function
+fn pass_two<V: Lanes>(
+    isa: V::Isa,
+    b: usize,
+    rows: &[(isize, [usize; 3])],
+    ws: &[[f64; 3]],
+    cs: &[f64],
+    us: &[[f64; 3]],
+    xs: &[DVec3],
+    off: &[isize],
+    px: &[f64],
+    py: &[f64],
+    pz: &[f64],
+    fx: &mut [f64],
+    fy: &mut [f64],
+    fz: &mut [f64],
+    seed: bool,
+    own: V,
+    ui: [V; 3],
+    nm: &[V; 9],
+    fm: &[V; 9],
+    ol: [V; 3],
+) {
+    let zero = V::zero(isa);
+    for &(ro, entries) in rows.iter() {
+        let o = (b as isize + ro) as usize;
+        let mut centre = if ro == 0 { ol } else { [zero; 3] };
+        let mut before = [zero; 3];
+        let mut after = [zero; 3];
+        for (dx, &k) in entries.iter().enumerate() {
+            if k == usize::MAX {
+                continue;
+            }
+            let w = ws[k];
+            let (w0, w1, w2) = (
+                V::splat(isa, w[0]),
+                V::splat(isa, w[1]),
+                V::splat(isa, w[2]),
+            );
+            let mut gr = [zero; 3];
+            for r in 0..3 {
+                gr[r] = V::madd(nm[r], w0, V::madd(nm[3 + r], w1, nm[6 + r].mul(w2)));
+            }
+            if !seed {
+                let u = us[k];
+                let (u0, u1, u2) = (
+                    V::splat(isa, u[0]),
+                    V::splat(isa, u[1]),
+                    V::splat(isa, u[2]),
+                );
+                // c_k d_ik for an owner lane (padding lanes: zero); an empty
+                // neighbour cell receives a value nobody reads.
+                let ck = V::splat(isa, cs[k]).mul(own);
+                let o = (b as isize + off[k]) as usize;
+                let xk = xs[k];
+                let uj = [
+                    V::load(isa, px, o),
+                    V::load(isa, py, o),
+                    V::load(isa, pz, o),
+                ];
+                for r in 0..3 {
+                    let t = V::nmadd(fm[r], u0, gr[r]);
+                    let t = V::nmadd(fm[3 + r], u1, t);
+                    let t = V::nmadd(fm[6 + r], u2, t);
+                    let d = uj[r].sub(ui[r]).add(V::splat(isa, xk[r]));
+                    gr[r] = V::madd(d, ck, t);
+                }
+            }
+            for r in 0..3 {
+                match dx {
+                    0 => {
+                        let (c, lo) = gr[r].shift_down();
+                        centre[r] = centre[r].sub(c);
+                        before[r] = before[r].sub(lo);
                     }
-                    let w = ws[k];
-                    let (w0, w1, w2) = (
-                        V::splat(isa, w[0]),
-                        V::splat(isa, w[1]),
-                        V::splat(isa, w[2]),
-                    );
-                    let mut gr = [zero; 3];
-                    for r in 0..3 {
-                        gr[r] = V::madd(nm[r], w0, V::madd(nm[3 + r], w1, nm[6 + r].mul(w2)));
-                    }
-                    if !seed {
-                        let u = us[k];
-                        let (u0, u1, u2) = (
-                            V::splat(isa, u[0]),
-                            V::splat(isa, u[1]),
-                            V::splat(isa, u[2]),
-                        );
-                        let ck = V::splat(isa, cs[k]);
-                        let d = dbuf[k];
-                        for r in 0..3 {
-                            let t = V::nmadd(fm[r], u0, gr[r]);
-                            let t = V::nmadd(fm[3 + r], u1, t);
-                            let t = V::nmadd(fm[6 + r], u2, t);
-                            gr[r] = V::madd(d[r], ck, t);
-                        }
-                    }
-                    for r in 0..3 {
-                        match dx {
-                            0 => {
-                                let (c, lo) = gr[r].shift_down();
-                                centre[r] = centre[r].sub(c);
-                                before[r] = before[r].sub(lo);
-                            }
-                            1 => centre[r] = centre[r].sub(gr[r]),
-                            _ => {
-                                let (c, hi) = gr[r].shift_up();
-                                centre[r] = centre[r].sub(c);
-                                after[r] = after[r].sub(hi);
-                            }
-                        }
+                    1 => centre[r] = centre[r].sub(gr[r]),
+                    _ => {
+                        let (c, hi) = gr[r].shift_up();
+                        centre[r] = centre[r].sub(c);
+                        after[r] = after[r].sub(hi);
                     }
                 }
-                for (a, (c, (lo, hi))) in [&mut *fx, &mut *fy, &mut *fz]
-                    .into_iter()
-                    .zip(centre.iter().zip(before.iter().zip(&after)))
-                {
-                    if entries[0] != usize::MAX {
-                        V::load(isa, a, o - 4).add(*lo).store(a, o - 4);
-                    }
-                    V::load(isa, a, o).add(*c).store(a, o);
-                    if entries[2] != usize::MAX {
-                        V::load(isa, a, o + 4).add(*hi).store(a, o + 4);
-                    }
-                }
+            }
+        }
+        for (a, (c, (lo, hi))) in [&mut *fx, &mut *fy, &mut *fz]
+            .into_iter()
+            .zip(centre.iter().zip(before.iter().zip(&after)))
+        {
+            if entries[0] != usize::MAX {
+                V::load(isa, a, o - 4).add(*lo).store(a, o - 4);
+            }
+            V::load(isa, a, o).add(*c).store(a, o);
+            if entries[2] != usize::MAX {
+                V::load(isa, a, o + 4).add(*hi).store(a, o + 4);
             }
         }
     }
