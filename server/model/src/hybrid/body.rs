@@ -437,6 +437,9 @@ impl HybridBody {
                 }
             }
         }
+        // In memory order: the tie gathers and scatters of every sub-step walk the particle
+        // arrays forwards.
+        self.tied_list.sort_unstable();
         self.changed = false;
     }
 

@@ -286,6 +286,9 @@ impl TermBlock {
     /// `f`, both indexed by particle (length at least the cloud's particle count).
     /// Allocation-free.
     pub fn add_forces(&mut self, cloud: &ParticleCloud, x: &[DVec3], f: &mut [DVec3]) {
+        if self.stencil_forces(cloud, x, f, true) {
+            return;
+        }
         self.local_forces(cloud, x);
         for (&p, fl) in self.particles.iter().zip(&self.f_local) {
             f[p as usize] += *fl;
@@ -297,41 +300,52 @@ impl TermBlock {
     /// are left alone): zeroing those entries and [`Self::add_forces`] in one pass.
     /// Allocation-free.
     pub fn write_forces(&mut self, cloud: &ParticleCloud, x: &[DVec3], f: &mut [DVec3]) {
+        if self.stencil_forces(cloud, x, f, false) {
+            return;
+        }
         self.local_forces(cloud, x);
         for (&p, fl) in self.particles.iter().zip(&self.f_local) {
             f[p as usize] = *fl;
         }
     }
 
-    /// The terms' forces into `f_local` (module documentation for the formulas), with the
-    /// AVX2 + FMA build of the loop where the CPU has it.
+    /// The stencil loop's forces written (`add`: added) into `f` when it can run (its layout
+    /// rebuilt if the terms changed); false (nothing done) when the general loop must run.
+    fn stencil_forces(
+        &mut self,
+        cloud: &ParticleCloud,
+        x: &[DVec3],
+        f: &mut [DVec3],
+        add: bool,
+    ) -> bool {
+        if !self.use_stencil {
+            return false;
+        }
+        if self.stencil_state == StencilState::Stale {
+            let fits = self.stencil.build(
+                cloud,
+                &self.particles,
+                &self.owner_local[..self.len],
+                &self.rest_strain[..self.len],
+            );
+            self.stencil_state = if fits {
+                StencilState::Ready
+            } else {
+                StencilState::TooLarge
+            };
+        }
+        if self.stencil_state != StencilState::Ready {
+            return false;
+        }
+        self.stencil
+            .forces(cloud.material(), x, cloud.rest_m(), f, add);
+        true
+    }
+
+    /// The terms' forces into `f_local` by the general loop (module documentation for the
+    /// formulas), with the AVX2 + FMA build of the loop where the CPU has it.
     fn local_forces(&mut self, cloud: &ParticleCloud, x: &[DVec3]) {
         let n_local = self.particles.len();
-        if self.use_stencil {
-            if self.stencil_state == StencilState::Stale {
-                let fits = self.stencil.build(
-                    cloud,
-                    &self.particles,
-                    &self.owner_local[..self.len],
-                    &self.rest_strain[..self.len],
-                );
-                self.stencil_state = if fits {
-                    StencilState::Ready
-                } else {
-                    StencilState::TooLarge
-                };
-            }
-            if self.stencil_state == StencilState::Ready {
-                self.stencil.forces(
-                    cloud.material(),
-                    &self.particles,
-                    x,
-                    cloud.rest_m(),
-                    &mut self.f_local[..n_local],
-                );
-                return;
-            }
-        }
         for (xl, &p) in self.x_local.iter_mut().zip(&self.particles) {
             *xl = x[p as usize];
         }
@@ -464,19 +478,173 @@ impl TermBlock {
 }
 
 /// Explicit stability limit of the whole cloud, s: `2 / sqrt(lambda_max)` of `M^-1 K` at rest,
-/// with `lambda_max` bounded above by Gershgorin's theorem on the linearised stiffness of every
-/// term (elastic block norms `V_i c |g_ij| |g_ik|` plus the hourglass blocks). At rest every law
-/// linearises to isotropic elasticity, whose block `K_jk u = V (lambda g_j (g_k . u) + mu (u
-/// (g_k . g_j) + g_k (u . g_j)))` has norm at most `V (lambda + 2 mu) |g_j| |g_k|`, so
-/// `c = lambda + 2 mu`. Conservative: the true limit is larger (tests/meshfree.rs: stable at
-/// 0.9 times the bound, divergent at 3 times). Used for the Verlet step of seed eq. 33 and its velocity form.
+/// with `lambda_max` bounded above by Gershgorin's theorem on the *assembled* linearised
+/// stiffness (scalar rows of `K`, every term's blocks summed before the absolute values are
+/// taken). At rest every law linearises to isotropic elasticity, whose term block is
+/// `K_ab = V (lambda g_a g_b^T + mu (g_a . g_b) I + mu g_b g_a^T)` (owner: `g = -sum_j g_ij`),
+/// plus the hourglass blocks `sum_q c_q B_qa B_qb I` of the corrected variant
+/// (`e_q = sum_m B_qm u_m`, `B_qm = g_m . X_q - [m = q] + [m = owner]`). Rigorous at rest, and
+/// 1.5 (seed) to 1.6 (corrected) times longer than the bound of the summed block norms
+/// (`V (lambda + 2 mu) |g_a| |g_b|` per term, which ignores that the terms' blocks cancel in
+/// part: on the infinite lattice the true limit is 2.1 to 2.3 times that one, issue 13).
 ///
-/// Cost: one pass over every particle's neighbourhood (no storage beyond one `f64` per
-/// particle).
+/// A row depends only on which lattice cells within two cells of its particle are occupied,
+/// so rows are memoised by that pattern (the interior is one pattern). Stencils reaching
+/// beyond one cell use the summed-norm bound.
+///
+/// Used for the Verlet step of seed eq. 33 and its velocity form.
 ///
 /// # Errors
 /// As [`ParticleCloud::term_rest`].
 pub fn critical_time_step(cloud: &ParticleCloud) -> Result<f64, ModelError> {
+    let reach = cloud
+        .lattice()
+        .stencil()
+        .iter()
+        .flat_map(|d| d.iter().map(|v| v.unsigned_abs()))
+        .max()
+        .unwrap_or(0);
+    let lambda_max = if reach == 1 {
+        assembled_gershgorin(cloud)?
+    } else {
+        summed_norm_gershgorin(cloud)?
+    } / cloud.mass_kg();
+    Ok(if lambda_max > 0.0 {
+        2.0 / lambda_max.sqrt()
+    } else {
+        f64::INFINITY
+    })
+}
+
+/// The largest scalar row sum of `|K|` over the cloud, N/m (stencil reach one cell):
+/// [`critical_time_step`].
+fn assembled_gershgorin(cloud: &ParticleCloud) -> Result<f64, ModelError> {
+    use std::collections::HashMap;
+    let mat = cloud.material();
+    let (lam, mu) = (mat.lambda_pa, mat.mu_pa);
+    let v = cloud.volume_m3();
+    let lattice = cloud.lattice();
+    // The 5 x 5 x 5 cube around a particle, as bits of a u128.
+    let cube = |d: [i32; 3]| ((d[0] + 2) + 5 * ((d[1] + 2) + 5 * (d[2] + 2))) as usize;
+    let mut memo: HashMap<u128, f64> = HashMap::new();
+    let mut nbr = [0u32; MAX_STENCIL];
+    let mut nbr_i = [0u32; MAX_STENCIL];
+    let mut terms: HashMap<u64, Box<TermRest>> = HashMap::new();
+    let mut acc = vec![[0.0f64; 9]; 125];
+    let mut g = [DVec3::ZERO; MAX_STENCIL + 1];
+    let mut cells = [[0i32; 3]; MAX_STENCIL + 1];
+    let mut cb_qa = [0.0f64; MAX_STENCIL];
+    let mut best: f64 = 0.0;
+    for a in 0..cloud.len() as u32 {
+        let ca = cloud.cell_of(a);
+        let mut key = 0u128;
+        for dz in -2..=2 {
+            for dy in -2..=2 {
+                for dx in -2..=2 {
+                    if lattice.get_offset(ca, [dx, dy, dz]).is_some() {
+                        key |= 1u128 << cube([dx, dy, dz]);
+                    }
+                }
+            }
+        }
+        if let Some(&row) = memo.get(&key) {
+            best = best.max(row);
+            continue;
+        }
+        acc.iter_mut().for_each(|b| *b = [0.0; 9]);
+        let ka = cloud.neighbours(a, &mut nbr);
+        for &i in std::iter::once(&a).chain(&nbr[..ka]) {
+            let ki = cloud.neighbours(i, &mut nbr_i);
+            // A term's rest data depend only on which of its stencil cells are occupied.
+            let ci = cloud.cell_of(i);
+            let mut term_key = 0u64;
+            for (bit, d) in lattice.stencil().iter().enumerate() {
+                if lattice.get_offset(ci, *d).is_some() {
+                    term_key |= 1u64 << bit;
+                }
+            }
+            let rest: &TermRest = match terms.get(&term_key) {
+                Some(r) => r,
+                None => {
+                    let mut r = Box::<TermRest>::default();
+                    cloud.term_rest(i, &nbr_i[..ki], &mut r)?;
+                    terms.entry(term_key).or_insert(r)
+                }
+            };
+            // Nodes of term i: the owner (g = -g_sum), then its neighbours.
+            let rel = |c: [usize; 3]| {
+                [
+                    c[0] as i32 - ca[0] as i32,
+                    c[1] as i32 - ca[1] as i32,
+                    c[2] as i32 - ca[2] as i32,
+                ]
+            };
+            g[0] = -rest.g_sum;
+            cells[0] = rel(ci);
+            let mut alpha = 0;
+            for (m, &q) in nbr_i[..ki].iter().enumerate() {
+                g[m + 1] = rest.g[m];
+                cells[m + 1] = rel(cloud.cell_of(q));
+                if q == a {
+                    alpha = m + 1;
+                }
+            }
+            let ga = g[alpha];
+            // Hourglass: sum_q c_q B_qa B_qb = g_b . Y - [b = q] c_q B_qa + [b = owner]
+            // sum_q c_q B_qa, with Y = sum_q c_q B_qa X_q.
+            let hourglass = rest.hourglass_n_per_m[..ki].iter().any(|&c| c != 0.0);
+            let mut y = DVec3::ZERO;
+            let mut cb_sum = 0.0;
+            if hourglass {
+                for (q, cb) in cb_qa[..ki].iter_mut().enumerate() {
+                    let b = ga.dot(rest.offset_m[q])
+                        + if alpha == q + 1 { -1.0 } else { 0.0 }
+                        + if alpha == 0 { 1.0 } else { 0.0 };
+                    *cb = rest.hourglass_n_per_m[q] * b;
+                    y += rest.offset_m[q] * *cb;
+                    cb_sum += *cb;
+                }
+            }
+            for beta in 0..=ki {
+                let gb = g[beta];
+                let mut blk = [0.0f64; 9];
+                let dot = ga.dot(gb);
+                for c in 0..3 {
+                    for r in 0..3 {
+                        blk[3 * c + r] = v * (lam * ga[r] * gb[c] + mu * gb[r] * ga[c])
+                            + if r == c { v * mu * dot } else { 0.0 };
+                    }
+                }
+                if hourglass {
+                    let h = gb.dot(y) + if beta == 0 { cb_sum } else { -cb_qa[beta - 1] };
+                    for d in [0, 4, 8] {
+                        blk[d] += h;
+                    }
+                }
+                let slot = &mut acc[cube(cells[beta])];
+                for (s, b) in slot.iter_mut().zip(blk) {
+                    *s += b;
+                }
+            }
+        }
+        let mut row: f64 = 0.0;
+        for r in 0..3 {
+            let sum: f64 = acc
+                .iter()
+                .map(|b| b[r].abs() + b[3 + r].abs() + b[6 + r].abs())
+                .sum();
+            row = row.max(sum);
+        }
+        memo.insert(key, row);
+        best = best.max(row);
+    }
+    Ok(best)
+}
+
+/// The largest row of the summed-norm Gershgorin bound over the cloud, N/m (the bound before
+/// issue 13: elastic block norms `V c |g_a| |g_b|`, `c = lambda + 2 mu`, and the hourglass
+/// blocks, each term on its own).
+fn summed_norm_gershgorin(cloud: &ParticleCloud) -> Result<f64, ModelError> {
     let n = cloud.len();
     let mat = cloud.material();
     let c = mat.lambda_pa.max(0.0) + 2.0 * mat.mu_pa;
@@ -515,12 +683,7 @@ pub fn critical_time_step(cloud: &ParticleCloud) -> Result<f64, ModelError> {
             row[p as usize] += cq * owner.abs() * abs_sum;
         }
     }
-    let lambda_max = row.iter().fold(0.0f64, |a, &r| a.max(r)) / cloud.mass_kg();
-    Ok(if lambda_max > 0.0 {
-        2.0 / lambda_max.sqrt()
-    } else {
-        f64::INFINITY
-    })
+    Ok(row.iter().fold(0.0f64, |a, &r| a.max(r)))
 }
 
 #[cfg(test)]

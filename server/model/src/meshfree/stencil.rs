@@ -37,7 +37,7 @@ use glam::{DMat3, DVec3};
 use super::MeshfreeVariant;
 use super::cloud::{MAX_STENCIL, ParticleCloud, outer};
 use crate::material::stvk::{green_strain, stvk_stress};
-use crate::material::{MaterialParams, first_piola};
+use crate::material::{MaterialModel, MaterialParams, first_piola};
 
 /// Four f64 lanes: the plain build ([`L4`]) and the AVX2 + FMA one (`Y4`), behind one trait so
 /// that the group loop is written once.
@@ -278,6 +278,40 @@ mod avx2 {
     }
 }
 
+/// Nine lane vectors of a column-major 3x3 matrix per lane.
+#[inline(always)]
+fn lane_mat<V: Lanes>(isa: V::Isa, a: &[[f64; 4]; 9]) -> [V; 9] {
+    std::array::from_fn(|e| V::from_array(isa, a[e]))
+}
+
+/// `a b` lane-wise (column-major).
+#[inline(always)]
+fn mat_mul<V: Lanes>(a: &[V; 9], b: &[V; 9]) -> [V; 9] {
+    let mut out = *a;
+    for c in 0..3 {
+        for r in 0..3 {
+            let mut acc = a[r].mul(b[3 * c]);
+            acc = V::madd(a[3 + r], b[3 * c + 1], acc);
+            acc = V::madd(a[6 + r], b[3 * c + 2], acc);
+            out[3 * c + r] = acc;
+        }
+    }
+    out
+}
+
+/// `a v` lane-wise (column-major `a`).
+#[inline(always)]
+fn mat_vec<V: Lanes>(a: &[V; 9], v: &[V; 3]) -> [V; 3] {
+    let mut out = *v;
+    for (r, o) in out.iter_mut().enumerate() {
+        let mut acc = a[r].mul(v[0]);
+        acc = V::madd(a[3 + r], v[1], acc);
+        acc = V::madd(a[6 + r], v[2], acc);
+        *o = acc;
+    }
+    out
+}
+
 /// The column-major 3x3 matrix of each lane of nine lane vectors.
 #[inline(always)]
 fn lane_matrices<V: Lanes>(a: &[V; 9]) -> [[f64; 9]; 4] {
@@ -320,13 +354,17 @@ struct LaneRest {
     u: DVec3,
 }
 
-/// The seed variant's rest data of a group, lane-wise (structure of arrays): `A`, `S`, the
-/// rest strain and the owner mask, for the vectorised St. Venant-Kirchhoff stress.
+/// The rest data of a group, lane-wise (structure of arrays, the fields of [`LaneRest`]), for
+/// the vectorised St. Venant-Kirchhoff stress.
 #[derive(Debug, Clone, Copy, Default)]
-struct SeedGroup {
+struct GroupRest {
     a: [[f64; 4]; 9],
+    a_inv: [[f64; 4]; 9],
+    /// `Q` (corrected) or the rest strain (seed).
+    q: [[f64; 4]; 9],
     s: [[f64; 4]; 3],
-    e0: [[f64; 4]; 9],
+    u: [[f64; 4]; 3],
+    c: [f64; 4],
     own: [f64; 4],
 }
 
@@ -442,11 +480,14 @@ pub(crate) struct StencilGrid {
     fz: Vec<f64>,
     /// Grid cell of each local particle of the block.
     cell_of_local: Vec<u32>,
+    /// (global particle, grid cell) of every touched particle, sorted by particle: the
+    /// gather and the write-back walk the global arrays in memory order.
+    by_particle: Vec<(u32, u32)>,
     /// First grid cell of each group of four owners along x, and the lanes' rest data.
     groups: Vec<u32>,
     lanes: Vec<LaneRest>,
-    /// The seed variant's lane data by group (empty for the corrected variant).
-    seed_groups: Vec<SeedGroup>,
+    /// The lanes' rest data by group, lane-wise.
+    group_rest: Vec<GroupRest>,
     /// (grid cell, term) of every term, sorted when the grid is built.
     order: Vec<(u32, u32)>,
 }
@@ -530,9 +571,10 @@ impl StencilGrid {
             fy: vec![0.0; capacity_cells],
             fz: vec![0.0; capacity_cells],
             cell_of_local: vec![0; touched],
+            by_particle: Vec::with_capacity(touched),
             groups: Vec::with_capacity(terms),
             lanes: Vec::with_capacity(4 * terms),
-            seed_groups: Vec::with_capacity(terms),
+            group_rest: Vec::with_capacity(terms),
             order: Vec::with_capacity(terms),
         }
     }
@@ -562,8 +604,9 @@ impl StencilGrid {
         rest_strain: &[DMat3],
     ) -> bool {
         self.groups.clear();
+        self.by_particle.clear();
         self.lanes.clear();
-        self.seed_groups.clear();
+        self.group_rest.clear();
         self.order.clear();
         self.cells = 0;
         if particles.is_empty() {
@@ -631,7 +674,9 @@ impl StencilGrid {
             let i = layout.index(cloud.cell_of(p));
             self.cell_of_local[l] = i as u32;
             self.occ[i] = 1.0;
+            self.by_particle.push((p, i as u32));
         }
+        self.by_particle.sort_unstable();
         for (o, d) in self.off.iter_mut().zip(&self.dirs) {
             *o = layout.offset(d);
         }
@@ -709,38 +754,44 @@ impl StencilGrid {
                 }
             };
         }
-        if self.seed {
-            for lanes in self.lanes.chunks_exact(4) {
-                let mut sg = SeedGroup::default();
-                for (l, lr) in lanes.iter().enumerate() {
-                    let (a, e0) = (lr.a.to_cols_array(), lr.q.to_cols_array());
-                    for e in 0..9 {
-                        sg.a[e][l] = a[e];
-                        sg.e0[e][l] = e0[e];
-                    }
-                    for (r, v) in lr.s.to_array().into_iter().enumerate() {
-                        sg.s[r][l] = v;
-                    }
-                    sg.own[l] = lr.own;
+        for lanes in self.lanes.chunks_exact(4) {
+            let mut gr = GroupRest::default();
+            for (l, lr) in lanes.iter().enumerate() {
+                let (a, a_inv, q) = (
+                    lr.a.to_cols_array(),
+                    lr.a_inv.to_cols_array(),
+                    lr.q.to_cols_array(),
+                );
+                for e in 0..9 {
+                    gr.a[e][l] = a[e];
+                    gr.a_inv[e][l] = a_inv[e];
+                    gr.q[e][l] = q[e];
                 }
-                self.seed_groups.push(sg);
+                for r in 0..3 {
+                    gr.s[r][l] = lr.s[r];
+                    gr.u[r][l] = lr.u[r];
+                }
+                gr.c[l] = lr.c;
+                gr.own[l] = lr.own;
             }
+            self.group_rest.push(gr);
         }
         true
     }
 
     /// The terms' forces (N) at positions `x` (m, by global particle; `rest`: the rest
-    /// positions) into `f_local` (by local particle, overwritten), in the AVX2 + FMA build
-    /// where the CPU has it. The grid holds displacements (zero in empty cells).
+    /// positions) written (`add`: added) into `f` (by global particle) for every touched
+    /// particle, in the AVX2 + FMA build where the CPU has it. The grid holds displacements
+    /// (zero in empty cells).
     pub(crate) fn forces(
         &mut self,
         mat: &MaterialParams,
-        particles: &[u32],
         x: &[DVec3],
         rest: &[DVec3],
-        f_local: &mut [DVec3],
+        f: &mut [DVec3],
+        add: bool,
     ) {
-        for (&i, &p) in self.cell_of_local.iter().zip(particles) {
+        for &(p, i) in &self.by_particle {
             let (i, xp) = (i as usize, x[p as usize] - rest[p as usize]);
             self.px[i] = xp.x;
             self.py[i] = xp.y;
@@ -758,12 +809,14 @@ impl StencilGrid {
         }
         #[cfg(not(target_arch = "x86_64"))]
         self.group_loop::<L4>((), mat);
-        for (f, &i) in f_local
-            .iter_mut()
-            .zip(&self.cell_of_local[..particles.len()])
-        {
+        for &(p, i) in &self.by_particle {
             let i = i as usize;
-            *f = DVec3::new(self.fx[i], self.fy[i], self.fz[i]);
+            let fi = DVec3::new(self.fx[i], self.fy[i], self.fz[i]);
+            if add {
+                f[p as usize] += fi;
+            } else {
+                f[p as usize] = fi;
+            }
         }
     }
 
@@ -800,9 +853,10 @@ impl StencilGrid {
             fz,
             groups,
             lanes,
-            seed_groups,
+            group_rest,
             ..
         } = self;
+        let stvk = mat.model == MaterialModel::StVenantKirchhoff;
         let (seed, v) = (*seed, *v);
         let nk = off.len();
         assert!(nk <= MAX_STENCIL && ws.len() == nk && cs.len() == nk && us.len() == nk);
@@ -866,19 +920,22 @@ impl StencilGrid {
                     }
                 }
             }
-            if seed {
-                // The seed variant's St. Venant-Kirchhoff stress, lane-wise: F = A + G -
-                // u_i (x) S, E = (F^T F - I) / 2 - E0, N = V F (lambda tr(E) I + 2 mu E),
-                // padding lanes masked.
-                let sg = &seed_groups[g];
+            if seed || stvk {
+                // St. Venant-Kirchhoff lane-wise (the seed variant's law always). F~ = A + G
+                // - u_i (x) S; seed: F = F~, E = (F^T F - I) / 2 - E0, N = V F S(E);
+                // corrected: F = F~ A^-1, E = (F^T F - I) / 2, M = V F S(E) + (F - I) Q - Gb
+                // + u_i (x) U, N = M A^-T. Padding lanes masked.
+                let gq = &group_rest[g];
                 let ld = |a: &[f64; 4]| V::from_array(isa, *a);
-                let mut f = [zero; 9];
+                let mut ft = [zero; 9];
                 for c in 0..3 {
-                    let sc = ld(&sg.s[c]);
+                    let sc = ld(&gq.s[c]);
                     for r in 0..3 {
-                        f[3 * c + r] = V::nmadd(ui[r], sc, ld(&sg.a[3 * c + r]).add(ga[3 * c + r]));
+                        ft[3 * c + r] =
+                            V::nmadd(ui[r], sc, ld(&gq.a[3 * c + r]).add(ga[3 * c + r]));
                     }
                 }
+                let f = if seed { ft } else { mat_mul(&ft, &lane_mat(isa, &gq.a_inv)) };
                 let half = V::splat(isa, 0.5);
                 let mut e = [zero; 9];
                 for c in 0..3 {
@@ -887,10 +944,10 @@ impl StencilGrid {
                         ctd = V::madd(f[3 * c + 1], f[3 * d + 1], ctd);
                         ctd = V::madd(f[3 * c + 2], f[3 * d + 2], ctd);
                         let id = if c == d { 1.0 } else { 0.0 };
-                        let ecd = ctd
-                            .sub(V::splat(isa, id))
-                            .mul(half)
-                            .sub(ld(&sg.e0[3 * d + c]));
+                        let mut ecd = ctd.sub(V::splat(isa, id)).mul(half);
+                        if seed {
+                            ecd = ecd.sub(ld(&gq.q[3 * d + c]));
+                        }
                         e[3 * d + c] = ecd;
                         e[3 * c + d] = ecd;
                     }
@@ -905,26 +962,57 @@ impl StencilGrid {
                 for i in [0, 4, 8] {
                     sv[i] = sv[i].add(tr);
                 }
-                let own_v = ld(&sg.own);
-                let mut nmv = [zero; 9];
-                for c in 0..3 {
-                    for r in 0..3 {
-                        let mut acc = f[r].mul(sv[3 * c]);
-                        acc = V::madd(f[3 + r], sv[3 * c + 1], acc);
-                        acc = V::madd(f[6 + r], sv[3 * c + 2], acc);
-                        nmv[3 * c + r] = acc.mul(own_v);
+                let own_v = ld(&gq.own);
+                let mut m = mat_mul(&f, &sv);
+                let s3 = [ld(&gq.s[0]), ld(&gq.s[1]), ld(&gq.s[2])];
+                let (nmv, fmv, ov) = if seed {
+                    for x in &mut m {
+                        *x = x.mul(own_v);
                     }
-                }
-                let mut ov = [zero; 3];
-                for r in 0..3 {
-                    let mut acc = nmv[r].mul(ld(&sg.s[0]));
-                    acc = V::madd(nmv[3 + r], ld(&sg.s[1]), acc);
-                    acc = V::madd(nmv[6 + r], ld(&sg.s[2]), acc);
-                    ov[r] = acc;
-                }
+                    let ov = mat_vec(&m, &s3);
+                    (m, [zero; 9], ov)
+                } else {
+                    let mut fmi = f;
+                    for i in [0, 4, 8] {
+                        fmi[i] = fmi[i].sub(V::splat(isa, 1.0));
+                    }
+                    let h = mat_mul(&fmi, &lane_mat(isa, &gq.q));
+                    let u3 = [ld(&gq.u[0]), ld(&gq.u[1]), ld(&gq.u[2])];
+                    for c in 0..3 {
+                        for r in 0..3 {
+                            let i = 3 * c + r;
+                            m[i] = V::madd(ui[r], u3[c], m[i].add(h[i]).sub(gb[i]));
+                        }
+                    }
+                    let a_inv = lane_mat(isa, &gq.a_inv);
+                    let mut n = [zero; 9];
+                    // N = M A^-T: N[r][c] = sum_d M[r][d] A^-1[c][d].
+                    for c in 0..3 {
+                        for r in 0..3 {
+                            let mut acc = m[r].mul(a_inv[c]);
+                            acc = V::madd(m[3 + r], a_inv[3 + c], acc);
+                            acc = V::madd(m[6 + r], a_inv[6 + c], acc);
+                            n[3 * c + r] = acc.mul(own_v);
+                        }
+                    }
+                    let mut fo = f;
+                    for x in &mut fo {
+                        *x = x.mul(own_v);
+                    }
+                    // owner = N S - F U + sum_k c_k u_(i+k) - C u_i + U.
+                    let ns = mat_vec(&n, &s3);
+                    let fu = mat_vec(&fo, &u3);
+                    let cv = ld(&gq.c);
+                    let mut ov = [zero; 3];
+                    for r in 0..3 {
+                        let sdl = V::nmadd(cv, ui[r], cu[r]).add(u3[r]).mul(own_v);
+                        ov[r] = ns[r].sub(fu[r]).add(sdl);
+                    }
+                    (n, fo, ov)
+                };
                 pass_two::<V>(
-                    isa, b, rows, ws, cs, us, xs, off, px, py, pz, fx, fy, fz, true, own, ui, &nmv,
-                    &[zero; 9], ov,
+                    isa, b, rows, ws, cs, us, xs, off, px, py, pz, fx, fy, fz, seed, own, ui,
+                    &nmv, &fmv, ov,
                 );
                 continue;
             }
