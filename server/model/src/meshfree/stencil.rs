@@ -284,6 +284,27 @@ fn lane_mat<V: Lanes>(isa: V::Isa, a: &[[f64; 4]; 9]) -> [V; 9] {
     std::array::from_fn(|e| V::from_array(isa, a[e]))
 }
 
+/// `N - beta_c F` for each class `c` of stencil length (at most three; `N` when `seed`).
+#[inline(always)]
+fn class_matrices<V: Lanes>(
+    n: &[V; 9],
+    f: &[V; 9],
+    classes: &[(f64, f64, std::ops::Range<usize>)],
+    seed: bool,
+    isa: V::Isa,
+) -> [[V; 9]; 3] {
+    let mut out = [*n; 3];
+    if !seed {
+        for (o, cl) in out.iter_mut().zip(classes) {
+            let beta = V::splat(isa, cl.0);
+            for e in 0..9 {
+                o[e] = V::nmadd(f[e], beta, n[e]);
+            }
+        }
+    }
+    out
+}
+
 /// `a b` lane-wise (column-major).
 #[inline(always)]
 fn mat_mul<V: Lanes>(a: &[V; 9], b: &[V; 9]) -> [V; 9] {
@@ -466,6 +487,8 @@ pub(crate) struct StencilGrid {
     /// Classes of stencil entries of equal length: `beta = c_k / phi_k` (`c_k X_k = beta
     /// w_k`), `c_k`, and their range in `pairs`.
     classes: Vec<(f64, f64, std::ops::Range<usize>)>,
+    /// Class of each stencil entry.
+    class_of: Vec<usize>,
     /// Grid dimensions and the lattice cell of grid cell (0, 0, 0).
     layout: GridLayout,
     cells: usize,
@@ -544,6 +567,16 @@ impl StencilGrid {
                 classes.push((c[k] / phi, c[k], j..j + 1));
             }
         }
+        let mut class_of = vec![0usize; dirs.len()];
+        for (ci, cl) in classes.iter().enumerate() {
+            for &k in &half[cl.2.clone()] {
+                let d = dirs[k];
+                class_of[k] = ci;
+                if let Some(m) = dirs.iter().position(|e| *e == [-d[0], -d[1], -d[2]]) {
+                    class_of[m] = ci;
+                }
+            }
+        }
         let pairs = half.iter().map(|&k| (k, 0isize)).collect();
         Self {
             #[cfg(target_arch = "x86_64")]
@@ -560,6 +593,7 @@ impl StencilGrid {
             rows: Vec::with_capacity(9),
             pairs,
             classes,
+            class_of,
             layout: GridLayout::default(),
             cells: 0,
             capacity_cells,
@@ -833,6 +867,7 @@ impl StencilGrid {
     /// Every group's forces from the grid positions into the grid forces (module
     /// documentation for the formulas).
     #[inline(always)]
+    #[allow(clippy::needless_range_loop)] // one index into several 3x3 lane matrices
     fn group_loop<V: Lanes>(&mut self, isa: V::Isa, mat: &MaterialParams) {
         let Self {
             seed,
@@ -844,6 +879,7 @@ impl StencilGrid {
             rows,
             pairs,
             classes,
+            class_of,
             x: xs,
             px,
             py,
@@ -935,7 +971,11 @@ impl StencilGrid {
                             V::nmadd(ui[r], sc, ld(&gq.a[3 * c + r]).add(ga[3 * c + r]));
                     }
                 }
-                let f = if seed { ft } else { mat_mul(&ft, &lane_mat(isa, &gq.a_inv)) };
+                let f = if seed {
+                    ft
+                } else {
+                    mat_mul(&ft, &lane_mat(isa, &gq.a_inv))
+                };
                 let half = V::splat(isa, 0.5);
                 let mut e = [zero; 9];
                 for c in 0..3 {
@@ -1010,9 +1050,10 @@ impl StencilGrid {
                     }
                     (n, fo, ov)
                 };
+                let ncl = class_matrices(&nmv, &fmv, classes, seed, isa);
                 pass_two::<V>(
-                    isa, b, rows, ws, cs, us, xs, off, px, py, pz, fx, fy, fz, seed, own, ui,
-                    &nmv, &fmv, ov,
+                    isa, b, rows, ws, cs, xs, off, px, py, pz, fx, fy, fz, seed, own, ui, &ncl,
+                    class_of, ov,
                 );
                 continue;
             }
@@ -1065,9 +1106,10 @@ impl StencilGrid {
                 V::from_array(isa, ol[1]),
                 V::from_array(isa, ol[2]),
             ];
+            let ncl = class_matrices(&nm, &fm, classes, seed, isa);
             pass_two::<V>(
-                isa, b, rows, ws, cs, us, xs, off, px, py, pz, fx, fy, fz, seed, own, ui, &nm, &fm,
-                ov,
+                isa, b, rows, ws, cs, xs, off, px, py, pz, fx, fy, fz, seed, own, ui, &ncl,
+                class_of, ov,
             );
         }
     }
@@ -1085,7 +1127,6 @@ fn pass_two<V: Lanes>(
     rows: &[(isize, [usize; 3])],
     ws: &[[f64; 3]],
     cs: &[f64],
-    us: &[[f64; 3]],
     xs: &[DVec3],
     off: &[isize],
     px: &[f64],
@@ -1097,8 +1138,8 @@ fn pass_two<V: Lanes>(
     seed: bool,
     own: V,
     ui: [V; 3],
-    nm: &[V; 9],
-    fm: &[V; 9],
+    ncl: &[[V; 9]; 3],
+    class_of: &[usize],
     ol: [V; 3],
 ) {
     let zero = V::zero(isa);
@@ -1117,17 +1158,13 @@ fn pass_two<V: Lanes>(
                 V::splat(isa, w[1]),
                 V::splat(isa, w[2]),
             );
+            // N w_k - F c_k X_k = (N - beta_k F) w_k: one matrix per class of length.
+            let nc = &ncl[class_of[k]];
             let mut gr = [zero; 3];
             for r in 0..3 {
-                gr[r] = V::madd(nm[r], w0, V::madd(nm[3 + r], w1, nm[6 + r].mul(w2)));
+                gr[r] = V::madd(nc[r], w0, V::madd(nc[3 + r], w1, nc[6 + r].mul(w2)));
             }
             if !seed {
-                let u = us[k];
-                let (u0, u1, u2) = (
-                    V::splat(isa, u[0]),
-                    V::splat(isa, u[1]),
-                    V::splat(isa, u[2]),
-                );
                 // c_k d_ik for an owner lane (padding lanes: zero); an empty
                 // neighbour cell receives a value nobody reads.
                 let ck = V::splat(isa, cs[k]).mul(own);
@@ -1139,11 +1176,8 @@ fn pass_two<V: Lanes>(
                     V::load(isa, pz, o),
                 ];
                 for r in 0..3 {
-                    let t = V::nmadd(fm[r], u0, gr[r]);
-                    let t = V::nmadd(fm[3 + r], u1, t);
-                    let t = V::nmadd(fm[6 + r], u2, t);
                     let d = uj[r].sub(ui[r]).add(V::splat(isa, xk[r]));
-                    gr[r] = V::madd(d, ck, t);
+                    gr[r] = V::madd(d, ck, gr[r]);
                 }
             }
             for r in 0..3 {
