@@ -3,8 +3,8 @@
 //! `../shared/data/lv/` and the built-in `lv`, with the three integrators (backward Euler also
 //! reports its mean CG iterations per tick), while the probe presses the epicardium (the haptic
 //! case: contact and implicit coupling active), with each contact model the integrator carries
-//! (the Hertz patch, the sphere and the patch under the explicit and semi-implicit ones, the
-//! Hertz patch and the patch under backward Euler).
+//! (the Hertz patch, the sphere and the patch under every integrator; the sphere is implicit
+//! under backward Euler), and for the condensed `lv_h1` scene (backward Euler only).
 //!
 //! Run: `cargo bench -p haptic-model --bench step` (add `-- --quick` for fewer ticks).
 //! Writes `target/bench/step.csv` (or `--out DIR`) and prints a table. Medians and ratios
@@ -68,10 +68,16 @@ fn main() -> anyhow::Result<()> {
         "lv (built-in)".into(),
         load_builtin("lv").expect("built-in lv"),
     )];
-    for f in ["lv_h3", "lv_h2", "lv_h1"] {
+    for f in ["lv_h3", "lv_h2", "lv_h1", "lv_h1_condensed"] {
         let path = root.join(format!("deploy/scenes/{f}.toml"));
         match load_scene_file(&path) {
-            Ok(s) => scenes.push((format!("{f}.msh"), s)),
+            Ok(s) => scenes.push((
+                match f.strip_suffix("_condensed") {
+                    Some(mesh) => format!("{mesh} condensed"),
+                    None => format!("{f}.msh"),
+                },
+                s,
+            )),
             Err(e) => eprintln!("skipping {f}: {e}"),
         }
     }
@@ -106,7 +112,7 @@ fn main() -> anyhow::Result<()> {
                 ContactModel::Sphere,
                 ContactModel::Patch,
             ] {
-                if integrate::resolve_contact_model(kind, contact).is_err() {
+                if integrate::resolve_contact_model(kind, contact, 0.0).is_err() {
                     continue;
                 }
                 let mut sc = scene.clone();

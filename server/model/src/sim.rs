@@ -144,7 +144,11 @@ impl Simulation {
             ));
         }
         let mut probe_params = scene.probe;
-        probe_params.contact = integrate::resolve_contact_model(p.kind, scene.probe.contact)?;
+        probe_params.contact = integrate::resolve_contact_model(
+            p.kind,
+            scene.probe.contact,
+            scene.probe.friction_coefficient,
+        )?;
         let (e, nu) = (
             scene.material.youngs_modulus_pa(),
             scene.material.poisson_ratio(),
@@ -223,7 +227,10 @@ impl Simulation {
             .iter()
             .map(|t| t.map(|i| local[i as usize]))
             .collect();
-        let probe = Probe::new(probe_params, touchable, fem.rest());
+        let mut probe = Probe::new(probe_params, touchable, fem.rest());
+        if p.kind == IntegratorKind::BackwardEuler {
+            probe.use_implicit_sphere(plan.sub_dt_s);
+        }
         Ok(Self {
             stepper,
             plan,

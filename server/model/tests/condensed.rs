@@ -614,13 +614,17 @@ fn a_following_region_carries_a_stroke_around_the_ventricle() {
 
 /// `lv_h1.msh` (17 924 tets, edge smoothing) as shipped in `lv_h1_condensed.toml`, stroked at
 /// 20 mm/s with every region waited for: the swaps at full speed (in real time the
-/// preparation limits the speed: `docs/benchmarks.md`).
+/// preparation limits the speed: `docs/benchmarks.md`), with its Hertz patch and with the
+/// sphere.
 #[test]
 fn the_shipped_lv_h1_region_follows_a_stroke_at_20_mm_per_s() {
     let path =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../deploy/scenes/lv_h1_condensed.toml");
-    let scene = haptic_model::scene::load_scene_file(&path).expect("lv_h1_condensed.toml");
+    let mut scene = haptic_model::scene::load_scene_file(&path).expect("lv_h1_condensed.toml");
     assert!(scene.active_region.is_some_and(|r| r.follow));
+    check_stroke(&scene, 0.001, 8);
+    // The exact sphere, implicit in the condensed step, follows it as well.
+    scene.probe.contact = ContactModel::Sphere;
     check_stroke(&scene, 0.001, 8);
 }
 

@@ -415,3 +415,79 @@ fn friction_sticks_within_the_cone_and_slides_at_its_edge() {
         assert!(f.x.abs() < 1e-12 && f.y.abs() < 1e-12, "{f}");
     }
 }
+
+/// The implicit sphere of backward Euler ([`Probe::use_implicit_sphere`]): the body's contact
+/// force, explicit part plus the implicit term `-h A^T C A v'` evaluated at any end-of-step
+/// velocities, is exactly minus the device force (linear momentum conserved), and on a flat
+/// face at rest the force is the coupling's `k` times the device's depth below the proxy's
+/// rest position (a sphere resting on the face), along the face normal, with the proxy outside
+/// the face up to the penalty's penetration (half its onset band plus the force over its
+/// stiffness, [`haptic_model::contact::probe::PENALTY_FACTOR`] k).
+#[test]
+fn the_implicit_sphere_conserves_momentum_and_rests_on_a_flat_face() {
+    let (mesh, top) = block();
+    let x = mesh.nodes.clone();
+    let dt = 1e-3;
+    let p = params(ContactModel::Sphere);
+    let mut probe = Probe::new(p, top, &x);
+    probe.use_implicit_sphere(dt);
+    let depth = 0.4e-3;
+    // First touch casts the sphere out of the face; the coupling then pulls it onto the face.
+    let device = DVec3::new(0.0103, 0.0097, 0.005 + p.radius_m - depth);
+    let mut force = DVec3::ZERO;
+    for step in 0..3 {
+        let st = probe.update(&x, device, DVec3::ZERO);
+        assert!(st.in_contact, "step {step}");
+        let mut f = vec![DVec3::ZERO; x.len()];
+        probe.add_reaction(&mut f);
+        let explicit: DVec3 = f.iter().sum();
+        // Arbitrary end-of-step velocities of the contact nodes.
+        let v: Vec<DVec3> = (0..x.len())
+            .map(|i| {
+                DVec3::new(
+                    (i % 7) as f64 - 3.0,
+                    (i % 5) as f64 - 2.0,
+                    (i % 3) as f64 - 1.0,
+                ) * 1e-3
+            })
+            .collect();
+        let mut g = vec![DVec3::ZERO; x.len()];
+        {
+            let c = probe.coupling(dt).expect("in contact");
+            let mut y = vec![0.0; c.rows()];
+            c.a_times(&v, &mut y);
+            c.apply_c(&mut y);
+            c.add_at(&y, -dt, &mut g);
+        }
+        let implicit: DVec3 = g.iter().sum();
+        probe.finish_solved(dt, &v);
+        let device_force = probe.state.force_on_device_n;
+        assert!(
+            (explicit + implicit + device_force).length() <= 1e-12 * device_force.length(),
+            "body {} against -F_device {}",
+            explicit + implicit,
+            -device_force
+        );
+        // At rest (v = 0) on the next pass.
+        let rest = vec![DVec3::ZERO; x.len()];
+        let st = probe.update(&x, device, DVec3::ZERO);
+        assert!(st.in_contact);
+        probe.finish_solved(dt, &rest);
+        force = probe.state.force_on_device_n;
+    }
+    // The faces under the sphere sink in by at most the penalty's onset band's half plus the
+    // force over the penalty stiffness (one face carrying it all).
+    let k = p.coupling_stiffness_n_per_m;
+    let k_p = haptic_model::contact::probe::PENALTY_FACTOR * k;
+    let band = haptic_model::contact::probe::PENALTY_BAND * p.radius_m;
+    let sink = 0.5 * band + k * depth / k_p;
+    assert!(force.x.abs() < 1e-9 && force.y.abs() < 1e-9, "{force}");
+    assert!(
+        force.z <= k * depth && force.z >= k * (depth - sink),
+        "{} N against k d = {} N (the faces may take {sink} m)",
+        force.z,
+        k * depth
+    );
+    let proxy = probe.state.proxy_m;
+    assert!(proxy.z - p.radius_m > 0.005 - sink, "proxy {proxy}");
+}

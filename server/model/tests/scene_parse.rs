@@ -391,10 +391,11 @@ fn the_model_family_defaults_to_fem_and_unknown_ones_are_refused() {
 }
 
 /// `probe.contact`: `auto` by default, resolved by the simulation to the patch with Hertz
-/// compliance under every integrator; the sphere under backward Euler, unknown names and the
-/// Hertz patch on a mass-spring surface (no material modulus) are refused with the field named.
+/// compliance under every integrator; the sphere under every integrator, but with friction
+/// not under backward Euler (the implicit sphere is frictionless); unknown names and the Hertz
+/// patch on a mass-spring surface (no material modulus) are refused with the field named.
 #[test]
-fn the_contact_model_defaults_to_auto_and_backward_euler_refuses_the_sphere() {
+fn the_contact_model_defaults_to_auto_and_backward_euler_refuses_sphere_friction() {
     use haptic_model::contact::ContactModel;
     use haptic_model::integrate::{IntegratorKind, resolve_contact_model};
     let s = parse(BASE).unwrap();
@@ -405,7 +406,7 @@ fn the_contact_model_defaults_to_auto_and_backward_euler_refuses_the_sphere() {
         IntegratorKind::BackwardEuler,
     ] {
         assert_eq!(
-            resolve_contact_model(kind, ContactModel::Auto).unwrap(),
+            resolve_contact_model(kind, ContactModel::Auto, 0.0).unwrap(),
             ContactModel::PatchHertz
         );
     }
@@ -422,19 +423,29 @@ fn the_contact_model_defaults_to_auto_and_backward_euler_refuses_the_sphere() {
     assert_eq!(s.probe.contact, ContactModel::PatchHertz);
     let s = parse(&with("sphere", "semi-implicit")).unwrap();
     assert_eq!(s.probe.contact, ContactModel::Sphere);
+    let s = parse(&with("sphere", "backward-euler")).unwrap();
+    assert_eq!(s.probe.contact, ContactModel::Sphere);
+    let with_friction = |kind: &str| {
+        with("sphere", kind).replacen(
+            "contact = \"sphere\"",
+            "contact = \"sphere\"\nfriction_coefficient = 0.3",
+            1,
+        )
+    };
+    assert!(parse(&with_friction("semi-implicit")).is_ok());
     assert_eq!(
-        field_of(parse(&with("sphere", "backward-euler"))),
-        "probe.contact"
+        field_of(parse(&with_friction("backward-euler"))),
+        "probe.friction_coefficient"
     );
     assert_eq!(
         field_of(parse(&with("ball", "symplectic-euler"))),
         "probe.contact"
     );
     // A scene changed in code is checked again when the simulation is built.
-    let mut s = parse(&with("sphere", "symplectic-euler")).unwrap();
+    let mut s = parse(&with_friction("symplectic-euler")).unwrap();
     s.integrator.kind = IntegratorKind::BackwardEuler;
     assert!(matches!(
         haptic_model::sim::Simulation::new(&s),
-        Err(ModelError::SceneField { field, .. }) if field == "probe.contact"
+        Err(ModelError::SceneField { field, .. }) if field == "probe.friction_coefficient"
     ));
 }

@@ -1,30 +1,160 @@
-//! The virtual coupling's implicit term as a rank-one matrix `gamma U U^T` over the contact
-//! patch, shared by the probe (which builds it) and the implicit integrators (which solve with
-//! it): the type both sides use, so that neither module imports the other.
+//! The probe's implicit term as a low-rank matrix `h^2 A^T C A` of the backward Euler system,
+//! shared by the probe (which builds it) and the implicit integrators (which solve with it):
+//! the type both sides use, so that neither module imports the other.
+//!
+//! Two probes build it: the kernel patch's virtual coupling is one row, `A = U^T`,
+//! `U = (w_i n)` over the patch, with `C = k + b / h` (the coupling against the surface's motion
+//! along `n`); the implicit sphere contact ([`crate::contact::Probe`] under backward Euler) has
+//! one row per face in contact, `a_f = (beta_fj nu_f)` over the face's corners (barycentric
+//! coordinates of the face's point closest to the proxy, unit direction from the proxy's centre
+//! to it), and `C^-1 = I / k_p + N^T Q_c^-1 N`: the faces' penalty springs in series with the
+//! coupling through the massless proxy, eliminated exactly (module documentation of
+//! [`crate::contact`]).
 
 use glam::DVec3;
 
-/// The probe's virtual coupling as a rank-one term `gamma U U^T` of the backward Euler matrix,
-/// `U = (w_i n)` over the contact patch (see [`crate::contact::Probe::coupling_gamma`]).
+/// Largest number of rows of a [`ContactCoupling`] (faces in contact at once).
+pub const MAX_COUPLING_ROWS: usize = 48;
+
+/// The probe's implicit term `h^2 A^T C A` of the backward Euler matrix (module
+/// documentation). `A` has `F = row_ptr.len() - 1` sparse rows over the body's nodes: row `f`
+/// holds `(nodes[e], vectors[e])` for `e` in `row_ptr[f]..row_ptr[f + 1]` (a node at most once
+/// per row); `C` is `F x F` symmetric positive definite, given as its inverse (the compliance,
+/// m/N) and that inverse's lower Cholesky factor, both row-major with stride `F`.
 #[derive(Debug, Clone, Copy)]
-pub struct RankOneCoupling<'a> {
-    /// `gamma = h (k h + b)`, kg.
-    pub gamma_kg: f64,
-    /// Unit contact normal.
-    pub normal: DVec3,
-    /// Patch nodes.
+pub struct ContactCoupling<'a> {
+    /// Row offsets into `nodes` / `vectors`, `F + 1` of them.
+    pub row_ptr: &'a [u32],
+    /// Nodes of the entries.
     pub nodes: &'a [u32],
-    /// Patch weights (sum 1), same length as `nodes`.
-    pub weights: &'a [f64],
+    /// Entries (dimensionless direction times weight).
+    pub vectors: &'a [DVec3],
+    /// `C^-1`, `F x F` row-major, m/N.
+    pub compliance: &'a [f64],
+    /// Lower Cholesky factor `L` of `C^-1 = L L^T`, `F x F` row-major.
+    pub compliance_factor: &'a [f64],
 }
 
-impl RankOneCoupling<'_> {
-    /// `U^T p` for a nodal field `p` (one vector per body node).
-    pub fn ut(&self, p: &[DVec3]) -> f64 {
-        self.nodes
+impl ContactCoupling<'_> {
+    /// Number of rows `F` (at most [`MAX_COUPLING_ROWS`]).
+    pub fn rows(&self) -> usize {
+        self.row_ptr.len() - 1
+    }
+
+    /// The entries of row `f`: `(node, vector)`.
+    pub fn row(&self, f: usize) -> impl Iterator<Item = (u32, DVec3)> + '_ {
+        let (a, b) = (self.row_ptr[f] as usize, self.row_ptr[f + 1] as usize);
+        self.nodes[a..b]
             .iter()
-            .zip(self.weights)
-            .map(|(&i, &w)| w * self.normal.dot(p[i as usize]))
-            .sum()
+            .copied()
+            .zip(self.vectors[a..b].iter().copied())
+    }
+
+    /// `y = A p` for a nodal field `p` (one vector per body node); `y` has `F` values.
+    pub fn a_times(&self, p: &[DVec3], y: &mut [f64]) {
+        for (f, y) in y.iter_mut().enumerate().take(self.rows()) {
+            *y = self.row(f).map(|(i, u)| u.dot(p[i as usize])).sum();
+        }
+    }
+
+    /// `y <- C y` (two triangular solves with the compliance factor).
+    pub fn apply_c(&self, y: &mut [f64]) {
+        cholesky_solve(self.compliance_factor, self.rows(), y);
+    }
+
+    /// `out += s A^T y` (nodal field).
+    pub fn add_at(&self, y: &[f64], s: f64, out: &mut [DVec3]) {
+        for (f, &yf) in y.iter().enumerate().take(self.rows()) {
+            for (i, u) in self.row(f) {
+                out[i as usize] += u * (yf * s);
+            }
+        }
+    }
+}
+
+/// In-place Cholesky factorisation `a = L L^T` of the `n x n` row-major symmetric matrix `a`
+/// (its lower triangle is read, `L` is written there and the upper triangle zeroed). Returns
+/// `false`, with `a` partly overwritten, when `a` is not positive definite (or not finite).
+pub fn cholesky_in_place(a: &mut [f64], n: usize) -> bool {
+    for j in 0..n {
+        let mut d = a[j * n + j];
+        for k in 0..j {
+            d -= a[j * n + k] * a[j * n + k];
+        }
+        if !(d > 0.0) {
+            return false;
+        }
+        let d = d.sqrt();
+        a[j * n + j] = d;
+        for i in j + 1..n {
+            let mut s = a[i * n + j];
+            for k in 0..j {
+                s -= a[i * n + k] * a[j * n + k];
+            }
+            a[i * n + j] = s / d;
+        }
+        for k in j + 1..n {
+            a[j * n + k] = 0.0;
+        }
+    }
+    true
+}
+
+/// Solves `L L^T z = y` in place for the factor `l` of [`cholesky_in_place`] (`n x n`).
+pub fn cholesky_solve(l: &[f64], n: usize, y: &mut [f64]) {
+    for i in 0..n {
+        let mut s = y[i];
+        for k in 0..i {
+            s -= l[i * n + k] * y[k];
+        }
+        y[i] = s / l[i * n + i];
+    }
+    for i in (0..n).rev() {
+        let mut s = y[i];
+        for k in i + 1..n {
+            s -= l[k * n + i] * y[k];
+        }
+        y[i] = s / l[i * n + i];
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The factor solves a random symmetric positive definite system to round-off, and a
+    /// matrix with a negative pivot is refused.
+    #[test]
+    fn cholesky_solves_spd_systems_and_refuses_indefinite_ones() {
+        let n = 7;
+        let mut seed = 12345u64;
+        let mut rnd = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        };
+        let b: Vec<f64> = (0..n * n).map(|_| rnd()).collect();
+        // a = b b^T + n I.
+        let mut a = vec![0.0; n * n];
+        for i in 0..n {
+            for j in 0..n {
+                a[i * n + j] = (0..n).map(|k| b[i * n + k] * b[j * n + k]).sum::<f64>()
+                    + if i == j { n as f64 } else { 0.0 };
+            }
+        }
+        let x: Vec<f64> = (0..n).map(|_| rnd()).collect();
+        let mut y: Vec<f64> = (0..n)
+            .map(|i| (0..n).map(|j| a[i * n + j] * x[j]).sum())
+            .collect();
+        let mut l = a.clone();
+        assert!(cholesky_in_place(&mut l, n));
+        cholesky_solve(&l, n, &mut y);
+        for (yi, xi) in y.iter().zip(&x) {
+            assert!((yi - xi).abs() < 1e-13, "{yi} {xi}");
+        }
+        let mut bad = a.clone();
+        bad[3 * n + 3] = -1.0;
+        assert!(!cholesky_in_place(&mut bad, n));
     }
 }

@@ -14,8 +14,12 @@
 //!   continuously while sliding. On the default LV the servo's force equals an independent
 //!   static solve with exact sphere contact (`crate::indent`) to 0.5 % (`tests/sim_lv.rs`);
 //!   but the real-time meshes' facets (2-4 mm) are coarser than the contact (about 1 mm), so
-//!   that equilibrium is 60-90 % stiffer than the mesh-converged one. Backward Euler refuses it
-//!   ([`crate::integrate::resolve_contact_model`]).
+//!   that equilibrium is 60-90 % stiffer than the mesh-converged one. Under backward Euler
+//!   (whole body or condensed) the same sphere is implicit in the step
+//!   ([`Probe::use_implicit_sphere`], module `probe::implicit`): the faces it touches are
+//!   penalty springs with a smooth onset, in series with the coupling through the massless
+//!   proxy, so the load distribution is solved with the body instead of taken from the
+//!   previous configuration (which oscillated from tick to tick under 1 ms steps).
 //! - **Patch**: a smoothed local surface around the device, the touchable nodes within `2 r`
 //!   with kernel weights `w_i ∝ (1 - d_i^2 / (2r)^2)^2` (sum 1) define the plane through
 //!   `c = sum w_i x_i` with normal `n` the weighted vertex normals; with
@@ -39,12 +43,16 @@
 //! body over the contact nodes with their weights (sum 1), so linear momentum is conserved;
 //! the coupling's implicit term is the rank-one `gamma U U^T`, `U = (w_i n)` (with `k` in
 //! series with the Hertz spring's tangent under PatchHertz), which every
-//! integrator solves (the explicit ones per node by Sherman-Morrison, backward Euler in its CG,
-//! the condensed model by Sherman-Morrison on its factor). Frictionless: the proxy slides
-//! freely along the surface.
+//! integrator solves (the explicit ones per node by Sherman-Morrison; backward Euler and the
+//! condensed model take it, or the implicit sphere's one row per face, as the low-rank term
+//! [`ContactCoupling`] `h^2 A^T C A`, inverted by Woodbury in the CG's preconditioner and on
+//! the condensed factor). Frictionless by default: the proxy slides freely along the surface
+//! (friction: the explicit integrators' sphere).
 //!
 //! Owns: [`surface`] (closest points, kernel patches, triangle neighbourhoods), [`sphere`]
-//! (sphere casts against triangles), [`probe`] (the proxy and the coupling force), [`coupling`] (the coupling's rank-one term for implicit solves). May use:
+//! (sphere casts against triangles), [`probe`] (the proxy and the coupling force; its
+//! `implicit` module, the sphere under backward Euler), [`coupling`] (the probe's low-rank
+//! term for implicit solves). May use:
 //! nothing else of the crate (positions come as slices); in particular nothing of
 //! [`crate::integrate`]: the integrators use this module, not the other way round. The FEM
 //! body ([`crate::sim`]) calls [`Probe::update`] every sub-step, adds the reaction, and lets its
@@ -55,7 +63,7 @@ pub mod probe;
 pub mod sphere;
 pub mod surface;
 
-pub use coupling::RankOneCoupling;
+pub use coupling::ContactCoupling;
 pub use probe::{ContactModel, ContactState, Probe, ProbeParams};
 pub use surface::{ContactSurface, SurfacePoint, closest_point_on_triangle};
 

@@ -1,15 +1,19 @@
 //! The haptic probe: a sphere at the device point touching the touchable surface through a
 //! god-object (proxy) and a virtual coupling (see the module documentation of [`super`]).
 //!
-//! Neighbours: [`super::surface`] for the geometry, [`super::coupling`] for the rank-one term
+//! Neighbours: [`super::surface`] for the geometry, [`super::coupling`] for the low-rank term
 //! the implicit integrators solve with; driven every sub-step by the FEM body's tick.
 
 use glam::DVec3;
 
-use super::coupling::RankOneCoupling;
+use super::coupling::ContactCoupling;
 use super::sphere::sphere_exit;
 use super::surface::{ContactSurface, SurfacePoint};
 use super::{MAX_CONTACT_TRIANGLES, MAX_PATCH_NODES, PATCH_RADIUS_FACTOR};
+
+mod implicit;
+
+pub use implicit::{PENALTY_BAND, PENALTY_FACTOR, contact_law};
 
 /// Largest accepted distance between a device point (or any point a client names) and the
 /// scene origin, m: farther points are absurd (a unit error or a broken sensor).
@@ -150,6 +154,11 @@ pub struct Probe {
     load_weights: Vec<f64>,
     stamp: u32,
     node_slot: Vec<u32>,
+    /// The implicit term handed to backward Euler ([`Probe::coupling`]).
+    rows: implicit::CouplingRows,
+    /// Sub-step of the backward Euler body the sphere contact is implicit for, s; zero for
+    /// the explicit sphere contact ([`Probe::use_implicit_sphere`]).
+    implicit_dt_s: f64,
 }
 
 /// Smallest contact band of the sphere contact, in probe radii: at first touch (proxy offset
@@ -188,6 +197,8 @@ impl Probe {
             load_weights: Vec::with_capacity(MAX_PATCH_NODES),
             stamp: 0,
             node_slot: Vec::new(),
+            rows: implicit::CouplingRows::with_capacity(),
+            implicit_dt_s: 0.0,
         };
         probe.size_scratch();
         probe
@@ -234,6 +245,9 @@ impl Probe {
             }
         };
         match self.params.contact {
+            ContactModel::Sphere if self.implicit_dt_s > 0.0 => {
+                self.update_sphere_implicit(x, device_m, device_vel, sp)
+            }
             ContactModel::Sphere => self.update_sphere(x, device_m, device_vel, sp),
             ContactModel::Patch | ContactModel::PatchHertz | ContactModel::Auto => {
                 self.update_patch(x, device_m, device_vel, sp)
@@ -563,19 +577,36 @@ impl Probe {
         dt_s * (self.coupling_k_n_per_m * dt_s + self.params.coupling_damping_n_s_per_m)
     }
 
-    /// The coupling's implicit term as a rank-one matrix for a global implicit solve
-    /// ([`crate::integrate::implicit::ImplicitSolver`]); `None` out of contact. Pair with
-    /// [`Probe::finish_solved`].
-    pub fn rank_one(&self, dt_s: f64) -> Option<RankOneCoupling<'_>> {
+    /// Makes the sphere contact implicit for a backward Euler body with sub-step `dt_s` (s):
+    /// the faces in contact become penalty springs in series with the coupling, solved inside
+    /// the step ([`Probe::coupling`]; module `implicit` of this file's folder). Without it the
+    /// sphere contact's load distribution is explicit, which only the explicit integrators carry.
+    /// No effect on the patch models.
+    pub fn use_implicit_sphere(&mut self, dt_s: f64) {
+        self.implicit_dt_s = dt_s;
+    }
+
+    /// The probe's implicit term `h^2 A^T C A` for a global implicit solve with sub-step
+    /// `dt_s` ([`crate::integrate::implicit::ImplicitSolver`], the condensed solver); `None`
+    /// out of contact. For the patch models one row, `U = (w_i n)` with `C = k + b / h` (the
+    /// rank-one coupling); for the implicit sphere one row per face in contact. Pair with
+    /// [`Probe::finish_solved`]. Allocation-free.
+    pub fn coupling(&mut self, dt_s: f64) -> Option<ContactCoupling<'_>> {
         if !self.state.in_contact {
             return None;
         }
-        Some(RankOneCoupling {
-            gamma_kg: self.coupling_gamma(dt_s),
-            normal: self.state.normal,
-            nodes: &self.patch_nodes,
-            weights: &self.patch_weights,
-        })
+        if !self.implicit_sphere() {
+            let n = self.state.normal;
+            let weights = &self.patch_weights;
+            let c = self.coupling_gamma(dt_s) / (dt_s * dt_s);
+            self.rows
+                .set_single_row(&self.patch_nodes, |i| n * weights[i], c);
+        }
+        Some(self.rows.view())
+    }
+
+    fn implicit_sphere(&self) -> bool {
+        self.implicit_dt_s > 0.0 && self.params.contact == ContactModel::Sphere
     }
 
     /// The device force from the coupling's end-of-step normal velocity `utv = U^T v'` (m/s):
@@ -595,12 +626,17 @@ impl Probe {
         );
     }
 
-    /// Completes a step whose solve already contained the coupling's rank-one term
-    /// ([`Probe::rank_one`]): the end-of-step velocities `v` (m/s) give the device force
-    /// `phi n`, `phi = phi0 + (k dt + b) U^T v'`, clamped to `[0, max_force_n]`, the same force
-    /// whose unclamped reaction the body received. Allocation-free.
+    /// Completes a step whose solve already contained the probe's term ([`Probe::coupling`]):
+    /// the end-of-step velocities `v` (m/s) give the device force `phi n`,
+    /// `phi = phi0 + (k dt + b) U^T v'`, clamped to `[0, max_force_n]`, the same force whose
+    /// unclamped reaction the body received (the implicit sphere: the faces' multipliers
+    /// `lambda = lambda0 - h C A v'` and the device force `-N lambda`). Allocation-free.
     pub fn finish_solved(&mut self, dt_s: f64, v: &[DVec3]) {
         if !self.state.in_contact {
+            return;
+        }
+        if self.implicit_sphere() {
+            self.finish_implicit_sphere(dt_s, v);
             return;
         }
         let n = self.state.normal;
@@ -667,6 +703,10 @@ impl Probe {
     /// Does nothing out of contact.
     pub fn add_reaction(&self, f: &mut [DVec3]) {
         if !self.state.in_contact {
+            return;
+        }
+        if self.implicit_sphere() {
+            self.add_implicit_sphere_reaction(f);
             return;
         }
         let fr = self.state.normal * self.phi0_n + self.friction_n;

@@ -30,9 +30,10 @@
 //! equilibria are exact for the split model and the frozen matrix only changes the path to
 //! them (a modified Newton step per tick). Because `v'` is solved for directly (not `dv` from
 //! `b - A v`), an inexact solve cannot shift an equilibrium either, which is why the factor is
-//! stored in single precision (half the memory streamed per tick). The probe's virtual coupling
-//! `gamma U U^T` is added exactly by Sherman-Morrison, with `A^-1 U` from columns precomputed
-//! for the active touchable nodes ([`CondensedSolver::prepare_contact`]). The solve is faer's
+//! stored in single precision (half the memory streamed per tick). The probe's term
+//! `h^2 A^T C A` ([`ContactCoupling`]: the patch's coupling, or the implicit sphere's faces) is
+//! added exactly by Woodbury, with `A^-1 A^T` from columns precomputed for the active touchable
+//! nodes ([`CondensedSolver::prepare_contact`]). The solve is faer's
 //! sparse Cholesky (supernodal, AMD ordering) with its workspace allocated at construction, so
 //! [`CondensedSolver::step`] allocates nothing.
 //!
@@ -59,7 +60,8 @@ use glam::DVec3;
 use crate::ordering::{SparseCholesky, symbolic_cholesky};
 
 use crate::ModelError;
-use crate::contact::RankOneCoupling;
+use crate::contact::ContactCoupling;
+use crate::contact::coupling::{MAX_COUPLING_ROWS, cholesky_in_place, cholesky_solve};
 use crate::element::FemModel;
 use crate::element::tangent::cell_tangent_blocks_of;
 use crate::material::{MaterialModel, MaterialParams};
@@ -195,6 +197,8 @@ pub struct CondensedSolver {
     contact_z: Vec<f32>,
     /// Scratch: `A^-1 U`.
     z1: Vec<f64>,
+    /// Woodbury capacitance of the probe's term (`F x F`, [`MAX_COUPLING_ROWS`] squared).
+    capacitance: Vec<f64>,
     /// Global component of each row of `map`: the far boundary's free components, or every
     /// far free component for a following region.
     map_dofs: Vec<usize>,
@@ -737,6 +741,7 @@ impl CondensedSolver {
             contact_col: vec![u32::MAX; n],
             contact_z: Vec::new(),
             z1: vec![0.0; m_eq],
+            capacitance: vec![0.0; MAX_COUPLING_ROWS * MAX_COUPLING_ROWS],
             u_gamma: vec![0.0; g],
             map_dofs: map_far.iter().map(|&k| far_dofs[k]).collect(),
             map,
@@ -849,7 +854,7 @@ impl CondensedSolver {
     pub fn step(
         &mut self,
         f: &[DVec3],
-        coupling: Option<RankOneCoupling<'_>>,
+        coupling: Option<ContactCoupling<'_>>,
         x: &mut [DVec3],
         v: &mut [DVec3],
     ) -> f64 {
@@ -887,72 +892,128 @@ impl CondensedSolver {
             self.rhs[(k, 0)] = *b as f32;
             self.rhs[(k, 1)] = 0.0;
         }
-        // A^-1 U: from the prepared columns when every patch node has them, else by a
-        // second right-hand side in the same solve.
+        // The probe's term `h^2 A^T C A` by Woodbury on the factor:
+        // `v' = z0 - A^-1 A^T W^-1 A z0`, `z0 = A^-1 b`, `W = C^-1 / h^2 + A A^-1 A^T`, with the
+        // columns `A^-1 e` prepared for the contact nodes ([`Self::prepare_contact`]); a row
+        // with a node not prepared falls back to one more solve per row.
         let m = self.eq_dof.len();
-        let prepared = coupling.is_some_and(|c| {
-            c.nodes
-                .iter()
-                .all(|&i| self.contact_col[i as usize] != u32::MAX)
-        });
-        let cols = match coupling {
-            Some(c) if !prepared => {
-                for (&i, &w) in c.nodes.iter().zip(c.weights) {
-                    for k in 0..3 {
-                        let e = self.eq[3 * i as usize + k];
-                        if e != usize::MAX {
-                            self.rhs[(e, 1)] += (w * c.normal[k]) as f32;
-                        }
-                    }
-                }
-                2
-            }
-            _ => 1,
-        };
         LltRef::<usize, f32>::new(&self.symbolic, &self.factor).solve_in_place_with_conj(
             Conj::No,
-            self.rhs.as_mut().subcols_mut(0, cols),
+            self.rhs.as_mut().subcols_mut(0, 1),
             Par::Seq,
             MemStack::new(&mut self.stack.buffer),
         );
+        self.z1.iter_mut().for_each(|z| *z = 0.0);
         if let Some(c) = coupling {
-            if prepared {
-                self.z1.iter_mut().for_each(|z| *z = 0.0);
-                for (&i, &w) in c.nodes.iter().zip(c.weights) {
-                    let base = self.contact_col[i as usize] as usize * 3 * m;
-                    let a = (c.normal * w).to_array();
-                    axpy3(
-                        self.avx2,
-                        &mut self.z1,
-                        a,
-                        &self.contact_z[base..base + 3 * m],
-                    );
-                }
-            } else {
-                for (k, z) in self.z1.iter_mut().enumerate() {
-                    *z = f64::from(self.rhs[(k, 1)]);
-                }
-            }
-        }
-        // v' = z0 - z1 gamma (U^T z0) / (1 + gamma U^T z1) solves (A + gamma U U^T) v' = b.
-        let mut s1 = 0.0;
-        if let Some(c) = coupling {
-            let (mut u0, mut u1) = (0.0, 0.0);
-            for (&i, &w) in c.nodes.iter().zip(c.weights) {
-                for k in 0..3 {
-                    let e = self.eq[3 * i as usize + k];
-                    if e != usize::MAX {
-                        u0 += w * c.normal[k] * f64::from(self.rhs[(e, 0)]);
-                        u1 += w * c.normal[k] * self.z1[e];
+            let nf = c.rows();
+            let prepared = c
+                .nodes
+                .iter()
+                .all(|&i| self.contact_col[i as usize] != u32::MAX);
+            // t = A z0.
+            let mut t = [0.0; MAX_COUPLING_ROWS];
+            for (f, tf) in t.iter_mut().enumerate().take(nf) {
+                for (i, u) in c.row(f) {
+                    for k in 0..3 {
+                        let e = self.eq[3 * i as usize + k];
+                        if e != usize::MAX {
+                            *tf += u[k] * f64::from(self.rhs[(e, 0)]);
+                        }
                     }
                 }
             }
-            s1 = c.gamma_kg * u0 / (1.0 + c.gamma_kg * u1);
-        } else {
-            self.z1.iter_mut().for_each(|z| *z = 0.0);
+            let w = &mut self.capacitance[..nf * nf];
+            for f in 0..nf {
+                for g in 0..nf {
+                    w[f * nf + g] = c.compliance[f * nf + g] / (h * h);
+                }
+            }
+            if prepared {
+                for f in 0..nf {
+                    for g in 0..=f {
+                        let mut s = 0.0;
+                        for (j, u) in c.row(f) {
+                            for (l, wv) in c.row(g) {
+                                let base = self.contact_col[l as usize] as usize * 3 * m;
+                                for a in 0..3 {
+                                    let e = self.eq[3 * j as usize + a];
+                                    if e == usize::MAX {
+                                        continue;
+                                    }
+                                    let z = &self.contact_z[base + 3 * e..base + 3 * e + 3];
+                                    s += u[a]
+                                        * (wv.x * f64::from(z[0])
+                                            + wv.y * f64::from(z[1])
+                                            + wv.z * f64::from(z[2]));
+                                }
+                            }
+                        }
+                        w[f * nf + g] += s;
+                        if g != f {
+                            w[g * nf + f] += s;
+                        }
+                    }
+                }
+            } else {
+                for g in 0..nf {
+                    self.solve_row(c, g);
+                    for f in 0..nf {
+                        let mut s = 0.0;
+                        for (i, u) in c.row(f) {
+                            for k in 0..3 {
+                                let e = self.eq[3 * i as usize + k];
+                                if e != usize::MAX {
+                                    s += u[k] * f64::from(self.rhs[(e, 1)]);
+                                }
+                            }
+                        }
+                        self.capacitance[f * nf + g] += s;
+                    }
+                }
+            }
+            let w = &mut self.capacitance[..nf * nf];
+            if cholesky_in_place(w, nf) {
+                cholesky_solve(w, nf, &mut t[..nf]);
+                // z1 = A^-1 A^T s.
+                if prepared {
+                    for (f, &tf) in t.iter().enumerate().take(nf) {
+                        for (l, u) in c.row(f) {
+                            let base = self.contact_col[l as usize] as usize * 3 * m;
+                            axpy3(
+                                self.avx2,
+                                &mut self.z1,
+                                (u * tf).to_array(),
+                                &self.contact_z[base..base + 3 * m],
+                            );
+                        }
+                    }
+                } else {
+                    self.rhs.col_mut(1).fill(0.0);
+                    for (f, &tf) in t.iter().enumerate().take(nf) {
+                        for (i, u) in c.row(f) {
+                            for k in 0..3 {
+                                let e = self.eq[3 * i as usize + k];
+                                if e != usize::MAX {
+                                    self.rhs[(e, 1)] += (u[k] * tf) as f32;
+                                }
+                            }
+                        }
+                    }
+                    LltRef::<usize, f32>::new(&self.symbolic, &self.factor)
+                        .solve_in_place_with_conj(
+                            Conj::No,
+                            self.rhs.as_mut().subcols_mut(1, 1),
+                            Par::Seq,
+                            MemStack::new(&mut self.stack.buffer),
+                        );
+                    for (k, z) in self.z1.iter_mut().enumerate() {
+                        *z = f64::from(self.rhs[(k, 1)]);
+                    }
+                }
+            }
         }
         for (k, &d) in self.eq_dof.iter().enumerate() {
-            let vi = f64::from(self.rhs[(k, 0)]) - self.z1[k] * s1;
+            let vi = f64::from(self.rhs[(k, 0)]) - self.z1[k];
             v[d / 3][d % 3] = vi;
             x[d / 3][d % 3] += vi * h;
         }
@@ -969,6 +1030,26 @@ impl CondensedSolver {
             }
         }
         if non_finite { f64::NAN } else { max_v2 }
+    }
+
+    /// `A^-1 a_g` for row `g` of the probe's term into the second right-hand-side column (the
+    /// fallback for nodes without prepared columns).
+    fn solve_row(&mut self, c: ContactCoupling<'_>, g: usize) {
+        self.rhs.col_mut(1).fill(0.0);
+        for (i, u) in c.row(g) {
+            for k in 0..3 {
+                let e = self.eq[3 * i as usize + k];
+                if e != usize::MAX {
+                    self.rhs[(e, 1)] += u[k] as f32;
+                }
+            }
+        }
+        LltRef::<usize, f32>::new(&self.symbolic, &self.factor).solve_in_place_with_conj(
+            Conj::No,
+            self.rhs.as_mut().subcols_mut(1, 1),
+            Par::Seq,
+            MemStack::new(&mut self.stack.buffer),
+        );
     }
 
     /// Hands the state over from `self` (the region in use) to `next` at a tick boundary:

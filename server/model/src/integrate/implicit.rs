@@ -3,11 +3,12 @@
 //! system).
 //!
 //! Neighbours: [`crate::element`] (forces, tangent action, rest blocks),
-//! [`crate::contact::coupling`] (the probe's rank-one term, solved inside the same system).
+//! [`crate::contact::coupling`] (the probe's low-rank term, solved inside the same system).
 
 use glam::{DMat3, DVec3};
 
-use crate::contact::{MAX_PATCH_NODES, RankOneCoupling};
+use crate::contact::coupling::{MAX_COUPLING_ROWS, cholesky_in_place, cholesky_solve};
+use crate::contact::{ContactCoupling, MAX_PATCH_NODES};
 use crate::element::{ConstraintMask, FemModel, apply_constraint};
 use crate::material::{self, MaterialModel};
 
@@ -35,9 +36,11 @@ pub struct ImplicitSolver {
     mass_factor: Vec<f64>,
     /// Inverses of the rest blocks of `A`, `m_i (1 + alpha h) I + h D_ii + h^2 K_ii`, 1/kg.
     precond_inv: Vec<DMat3>,
-    /// `B_i^-1 (w_i n)` per patch node (projected): the coupling's rank-one term is inverted
-    /// exactly in the preconditioner by Sherman-Morrison.
+    /// `B_i^-1 u_e` per entry `(i, u_e)` of the probe's term (projected): its low-rank term is
+    /// inverted exactly in the preconditioner by the Woodbury identity.
     patch_bu: Vec<DVec3>,
+    /// Cholesky factor of the Woodbury capacitance `C^-1 / h^2 + A B^-1 A^T` (`F x F`).
+    capacitance: Vec<f64>,
     /// Deformation gradient per element at the start of the step.
     elem_f: Vec<DMat3>,
     /// Per element at the start of the step: the StVK second Piola-Kirchhoff stress (StVK) or
@@ -84,6 +87,7 @@ impl ImplicitSolver {
             mass_factor,
             precond_inv,
             patch_bu: Vec::with_capacity(MAX_PATCH_NODES),
+            capacitance: vec![0.0; MAX_COUPLING_ROWS * MAX_COUPLING_ROWS],
             elem_f: vec![DMat3::IDENTITY; fem.integration_point_count()],
             elem_s: vec![DMat3::ZERO; fem.integration_point_count()],
             rhs: vec![DVec3::ZERO; n],
@@ -119,7 +123,7 @@ impl ImplicitSolver {
         &mut self,
         fem: &FemModel,
         f: &[DVec3],
-        coupling: Option<RankOneCoupling<'_>>,
+        coupling: Option<ContactCoupling<'_>>,
         x: &mut [DVec3],
         v: &mut [DVec3],
     ) -> f64 {
@@ -146,32 +150,55 @@ impl ImplicitSolver {
             elem_s: &self.elem_s,
             coupling,
         };
-        // Preconditioner `P = B + gamma U U^T` (B the block diagonal at rest), inverted
-        // exactly: `P^-1 r = B^-1 r - B^-1 U gamma (U^T B^-1 r) / (1 + gamma U^T B^-1 U)`.
-        // Without the rank-one part CG needed many more iterations (the coupling weight
-        // gamma is far above the patch nodes' masses on fine meshes) and a capped solve could
-        // diverge.
+        // Preconditioner `P = B + h^2 A^T C A` (B the block diagonal at rest), inverted exactly
+        // by Woodbury: `P^-1 r = B^-1 r - B^-1 A^T W^-1 A B^-1 r`, `W = C^-1 / h^2 + A B^-1 A^T`.
+        // Without the low-rank part CG needed many more iterations (the coupling's weight
+        // `h^2 C` is far above the contact nodes' masses on fine meshes) and a capped solve
+        // could diverge.
         self.patch_bu.clear();
-        let mut sm_denominator = 1.0;
+        let mut woodbury = None;
         if let Some(c) = coupling {
-            for (&i, &w) in c.nodes.iter().zip(c.weights) {
-                let mut bu = self.precond_inv[i as usize] * (c.normal * w);
+            for (&i, &u) in c.nodes.iter().zip(c.vectors) {
+                let mut bu = self.precond_inv[i as usize] * u;
                 apply_constraint(fem.constraints()[i as usize], &mut bu);
-                sm_denominator += c.gamma_kg * w * c.normal.dot(bu);
                 self.patch_bu.push(bu);
             }
+            let nf = c.rows();
+            let w = &mut self.capacitance[..nf * nf];
+            for f in 0..nf {
+                for g in 0..=f {
+                    let (g0, g1) = (c.row_ptr[g] as usize, c.row_ptr[g + 1] as usize);
+                    let mut s = c.compliance[f * nf + g] / (h * h);
+                    for (i, u) in c.row(f) {
+                        for e in g0..g1 {
+                            if c.nodes[e] == i {
+                                s += u.dot(self.patch_bu[e]);
+                            }
+                        }
+                    }
+                    w[f * nf + g] = s;
+                    w[g * nf + f] = s;
+                }
+            }
+            if cholesky_in_place(w, nf) {
+                woodbury = Some(nf);
+            }
         }
-        let precondition = |r: &[DVec3], z: &mut [DVec3], patch_bu: &[DVec3]| {
+        let precondition = |r: &[DVec3], z: &mut [DVec3], patch_bu: &[DVec3], w: &[f64]| {
             for i in 0..r.len() {
                 z[i] = self.precond_inv[i] * r[i];
             }
             for (zi, &m) in z.iter_mut().zip(fem.constraints()) {
                 apply_constraint(m, zi);
             }
-            if let Some(c) = coupling {
-                let s = c.gamma_kg * c.ut(z) / sm_denominator;
-                for (&i, bu) in c.nodes.iter().zip(patch_bu) {
-                    z[i as usize] -= *bu * s;
+            if let (Some(c), Some(nf)) = (coupling, woodbury) {
+                let mut t = [0.0; MAX_COUPLING_ROWS];
+                c.a_times(z, &mut t);
+                cholesky_solve(w, nf, &mut t[..nf]);
+                for (f, &tf) in t.iter().enumerate().take(nf) {
+                    for e in c.row_ptr[f] as usize..c.row_ptr[f + 1] as usize {
+                        z[c.nodes[e] as usize] -= patch_bu[e] * tf;
+                    }
                 }
             }
         };
@@ -199,7 +226,7 @@ impl ImplicitSolver {
             self.dv[i] *= scale;
             self.r[i] = self.rhs[i] - self.ap[i] * scale;
         }
-        precondition(&self.r, &mut self.z, &self.patch_bu);
+        precondition(&self.r, &mut self.z, &self.patch_bu, &self.capacitance);
         self.p.copy_from_slice(&self.z);
         let mut rz = dot(&self.r, &self.z);
         let target = self.tolerance * rhs_norm;
@@ -227,7 +254,7 @@ impl ImplicitSolver {
                 self.r[i] -= self.ap[i] * alpha;
             }
             r_norm = norm(&self.r);
-            precondition(&self.r, &mut self.z, &self.patch_bu);
+            precondition(&self.r, &mut self.z, &self.patch_bu, &self.capacitance);
             let rz_new = dot(&self.r, &self.z);
             let beta = rz_new / rz;
             rz = rz_new;
@@ -279,7 +306,7 @@ struct Operator<'a> {
     elem_f: &'a [DMat3],
     /// StVK stresses per element (empty for the other materials).
     elem_s: &'a [DMat3],
-    coupling: Option<RankOneCoupling<'a>>,
+    coupling: Option<ContactCoupling<'a>>,
 }
 
 impl Operator<'_> {
@@ -354,10 +381,10 @@ impl Operator<'_> {
             out[i] += p[i] * self.mass_factor[i];
         }
         if let Some(c) = self.coupling {
-            let s = c.gamma_kg * c.ut(p);
-            for (&i, &w) in c.nodes.iter().zip(c.weights) {
-                out[i as usize] += c.normal * (w * s);
-            }
+            let mut y = [0.0; MAX_COUPLING_ROWS];
+            c.a_times(p, &mut y);
+            c.apply_c(&mut y[..c.rows()]);
+            c.add_at(&y[..c.rows()], h2, out);
         }
         for (o, &m) in out.iter_mut().zip(fem.constraints()) {
             project(m, o);

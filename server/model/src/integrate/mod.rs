@@ -15,18 +15,19 @@
 //! viscous force is never evaluated separately. `gamma U U^T` is the probe's virtual coupling
 //! (rank one over the contact patch, `gamma = h (k h + b)`, see
 //! [`crate::contact::Probe::coupling_gamma`]), so the coupling is exactly implicit inside the
-//! same solve. `A` is applied matrix-free in one element loop on deformation gradients cached at
+//! same solve; in general the probe's term is `h^2 A^T C A` ([`crate::contact::ContactCoupling`]:
+//! one row for the patch, one per face in contact for the implicit sphere). `A` is applied matrix-free in one element loop on deformation gradients cached at
 //! the start of the step (the material's tangent, see `Operator::apply`, plus the viscous
 //! action) and the system is solved by preconditioned conjugate gradients, warm-started with
 //! the previous step's `dv`, capped at `cg_max_iterations` or a relative residual of
 //! `cg_tolerance`. The preconditioner is block-Jacobi on the 3x3 blocks of `A` at rest
-//! (constant per sub-step size) plus the coupling's rank-one term, inverted exactly by
-//! Sherman-Morrison. Follower pressure is explicit (its load stiffness is not symmetric).
+//! (constant per sub-step size) plus the probe's low-rank term, inverted exactly by
+//! Woodbury (Sherman-Morrison for the patch's single row). Follower pressure is explicit (its load stiffness is not symmetric).
 //! Constrained components are projected out of the system.
 //!
 //! Owns: the step of the dynamic state and the completion of the probe's virtual coupling in
 //! each scheme. May use: [`crate::element`] (forces, masses, tangent action, rest blocks),
-//! [`crate::contact`] (the probe and its rank-one coupling), [`crate::material`],
+//! [`crate::contact`] (the probe and its low-rank coupling term), [`crate::material`],
 //! [`crate::mesh`]. Used by the FEM body ([`crate::sim`]), which calls [`Stepper::step`] once
 //! per sub-step.
 
@@ -67,27 +68,25 @@ pub enum IntegratorKind {
 /// probe, Richardson extrapolation; `docs/accuracy.md`, "Sub-grid Hertz contact"): the exact
 /// sphere reaches its mesh's own equilibrium, but the default mesh's facets, 2-4 mm, are coarser
 /// than the contact, and it reads 60-90 % high there; the plain patch spreads the load over
-/// 4 mm and reads 75-90 % high. The exact sphere stays available under the explicit and semi-implicit
-/// integrators. Backward Euler refuses it: with one 1 ms step per tick it nearly reaches the
-/// quasi-static response to the sphere's load distribution, which is explicit in the step (it
-/// follows the gaps of the previous configuration), and the distribution then swings from tick
-/// to tick (measured on the default LV: smooth at 1.3 mm indentation, a period-2 oscillation of
-/// the contact normal past about 2.5 mm, the force swinging between 34 and 58 mN around 45 mN at
-/// 3.7 mm). The smaller response per step of the other integrators damps it; the patch's
-/// distribution depends on the device position only.
+/// 4 mm and reads 75-90 % high. The sphere runs under every integrator: explicit in the step
+/// under the explicit ones, implicit (the faces in contact as penalty springs in series with
+/// the coupling, solved inside the step; [`crate::contact::Probe::use_implicit_sphere`]) under
+/// backward Euler and the condensed model.
 ///
 /// # Errors
-/// [`ModelError::SceneField`] on `probe.contact` for the sphere under backward Euler.
+/// [`ModelError::SceneField`] on `probe.friction_coefficient` for the sphere with friction
+/// under backward Euler (the implicit sphere is frictionless).
 pub fn resolve_contact_model(
     kind: IntegratorKind,
     requested: ContactModel,
+    friction_coefficient: f64,
 ) -> Result<ContactModel, ModelError> {
     let implicit = kind == IntegratorKind::BackwardEuler;
     match requested {
         ContactModel::Auto => Ok(ContactModel::PatchHertz),
-        ContactModel::Sphere if implicit => Err(ModelError::field(
-            "probe.contact",
-            "\"sphere\" needs integrator.kind = \"semi-implicit\" or \"symplectic-euler\": under backward Euler's 1 ms steps its load distribution oscillates past about 2.5 mm indentation; use \"auto\" (\"patch-hertz\") or \"patch\"",
+        ContactModel::Sphere if implicit && friction_coefficient > 0.0 => Err(ModelError::field(
+            "probe.friction_coefficient",
+            "the sphere contact under backward Euler is frictionless: set 0, or use integrator.kind = \"semi-implicit\" or \"symplectic-euler\" for friction",
         )),
         other => Ok(other),
     }
@@ -291,7 +290,7 @@ pub enum Stepper {
     /// Backward Euler on the whole body, the coupling inside its CG solve.
     Implicit(Box<ImplicitSolver>),
     /// Backward Euler on a contact-local active region with the rest condensed, the coupling
-    /// added by Sherman-Morrison to its prefactored solve.
+    /// added by Woodbury to its prefactored solve.
     Condensed(Box<CondensedSolver>),
 }
 
@@ -397,13 +396,13 @@ impl Stepper {
         let max_v2 = match self {
             Self::Condensed(solver) => {
                 let h = solver.dt_s();
-                let max_v2 = solver.step(f, probe.rank_one(h), x, v);
+                let max_v2 = solver.step(f, probe.coupling(h), x, v);
                 probe.finish_solved(h, v);
                 max_v2
             }
             Self::Implicit(solver) => {
                 let h = solver.dt_s();
-                let max_v2 = solver.step(body, f, probe.rank_one(h), x, v);
+                let max_v2 = solver.step(body, f, probe.coupling(h), x, v);
                 probe.finish_solved(h, v);
                 max_v2
             }

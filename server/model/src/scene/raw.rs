@@ -1381,8 +1381,7 @@ fn build_probe(p: &RawProbe, integrator: IntegratorKind) -> Result<ProbeParams, 
             )
         })?,
     };
-    integrate::resolve_contact_model(integrator, contact)?;
-    Ok(ProbeParams {
+    let params = ProbeParams {
         contact,
         radius_m: positive("probe.radius_m", p.radius_m.unwrap_or(d.radius_m))?,
         coupling_stiffness_n_per_m: positive(
@@ -1403,5 +1402,7 @@ fn build_probe(p: &RawProbe, integrator: IntegratorKind) -> Result<ProbeParams, 
             "in [0, 10]",
         )?,
         hertz_modulus_pa: d.hertz_modulus_pa,
-    })
+    };
+    integrate::resolve_contact_model(integrator, contact, params.friction_coefficient)?;
+    Ok(params)
 }
