@@ -554,13 +554,26 @@ fn assembled_gershgorin(cloud: &ParticleCloud) -> Result<f64, ModelError> {
         acc.iter_mut().for_each(|b| *b = [0.0; 9]);
         let ka = cloud.neighbours(a, &mut nbr);
         for &i in std::iter::once(&a).chain(&nbr[..ka]) {
-            let ki = cloud.neighbours(i, &mut nbr_i);
-            // A term's rest data depend only on which of its stencil cells are occupied.
+            // Term i's neighbours (stencil order), their cells relative to a, and its
+            // occupancy pattern: a term's rest data depend only on that pattern.
             let ci = cloud.cell_of(i);
+            let rel = |c: [usize; 3]| {
+                [
+                    c[0] as i32 - ca[0] as i32,
+                    c[1] as i32 - ca[1] as i32,
+                    c[2] as i32 - ca[2] as i32,
+                ]
+            };
+            let ri = rel(ci);
+            cells[0] = ri;
+            let mut ki = 0;
             let mut term_key = 0u64;
             for (bit, d) in lattice.stencil().iter().enumerate() {
-                if lattice.get_offset(ci, *d).is_some() {
+                if let Some(q) = lattice.get_offset(ci, *d) {
                     term_key |= 1u64 << bit;
+                    nbr_i[ki] = q;
+                    cells[ki + 1] = [ri[0] + d[0], ri[1] + d[1], ri[2] + d[2]];
+                    ki += 1;
                 }
             }
             let rest: &TermRest = match terms.get(&term_key) {
@@ -572,19 +585,10 @@ fn assembled_gershgorin(cloud: &ParticleCloud) -> Result<f64, ModelError> {
                 }
             };
             // Nodes of term i: the owner (g = -g_sum), then its neighbours.
-            let rel = |c: [usize; 3]| {
-                [
-                    c[0] as i32 - ca[0] as i32,
-                    c[1] as i32 - ca[1] as i32,
-                    c[2] as i32 - ca[2] as i32,
-                ]
-            };
             g[0] = -rest.g_sum;
-            cells[0] = rel(ci);
             let mut alpha = 0;
             for (m, &q) in nbr_i[..ki].iter().enumerate() {
                 g[m + 1] = rest.g[m];
-                cells[m + 1] = rel(cloud.cell_of(q));
                 if q == a {
                     alpha = m + 1;
                 }
