@@ -115,8 +115,7 @@ fn main() -> anyhow::Result<()> {
                 // A condensed region runs backward Euler only.
                 let condensed_other =
                     scene.active_region.is_some() && kind != IntegratorKind::BackwardEuler;
-                if condensed_other || integrate::resolve_contact_model(kind, contact, 0.0).is_err()
-                {
+                if condensed_other || integrate::resolve_contact_model(kind, contact).is_err() {
                     continue;
                 }
                 let mut sc = scene.clone();

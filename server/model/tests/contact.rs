@@ -491,3 +491,56 @@ fn the_implicit_sphere_conserves_momentum_and_rests_on_a_flat_face() {
     let proxy = probe.state.proxy_m;
     assert!(proxy.z - p.radius_m > 0.005 - sink, "proxy {proxy}");
 }
+
+/// Friction on the implicit sphere: pressed onto the flat face and then moved along it, the
+/// tangential force opposes the motion, stays within `mu` times the normal force (sticking
+/// first, then on the cone's edge), and the body's contact force, friction included, is
+/// minus the device force.
+#[test]
+fn the_implicit_sphere_carries_the_friction_cone() {
+    let (mesh, top) = block();
+    let x = mesh.nodes.clone();
+    let dt = 1e-3;
+    let mu = 0.4;
+    let p = ProbeParams {
+        friction_coefficient: mu,
+        ..params(ContactModel::Sphere)
+    };
+    let mut probe = Probe::new(p, top, &x);
+    probe.use_implicit_sphere(dt);
+    let rest = vec![DVec3::ZERO; x.len()];
+    let (mut stuck, mut slid) = (false, false);
+    for step in 0..40 {
+        // Pressed 0.4 mm, then moved along +x by 20 um per step.
+        let shift = (step as f64 - 4.0).max(0.0) * 2e-5;
+        let device = DVec3::new(0.0103 + shift, 0.0097, 0.005 + p.radius_m - 0.4e-3);
+        assert!(probe.update(&x, device, DVec3::ZERO).in_contact);
+        let mut f = vec![DVec3::ZERO; x.len()];
+        probe.add_reaction(&mut f);
+        probe.finish_solved(dt, &rest);
+        let force = probe.state.force_on_device_n;
+        let body: DVec3 = f.iter().sum();
+        assert!(
+            (body + force).length() <= 1e-12 * force.length(),
+            "step {step}: body {body} against -F_device {}",
+            -force
+        );
+        // In the contact's frame (its normal leans a little where faces' edges touch).
+        let n = probe.state.normal;
+        let f_n = force.dot(n);
+        let f_t = force - n * f_n;
+        assert!(
+            f_t.length() <= mu * f_n * (1.0 + 1e-9),
+            "step {step}: {force}"
+        );
+        if shift > 0.0 {
+            assert!(
+                f_t.x < 0.0,
+                "step {step}: friction {f_t} does not oppose +x"
+            );
+            stuck |= f_t.length() < 0.99 * mu * f_n;
+            slid |= f_t.length() > 0.99 * mu * f_n;
+        }
+    }
+    assert!(stuck && slid, "stuck {stuck}, slid {slid}");
+}

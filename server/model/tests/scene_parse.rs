@@ -391,11 +391,11 @@ fn the_model_family_defaults_to_fem_and_unknown_ones_are_refused() {
 }
 
 /// `probe.contact`: `auto` by default, resolved by the simulation to the patch with Hertz
-/// compliance under every integrator; the sphere under every integrator, but with friction
-/// not under backward Euler (the implicit sphere is frictionless); unknown names and the Hertz
-/// patch on a mass-spring surface (no material modulus) are refused with the field named.
+/// compliance under every integrator; the sphere under every integrator, with or without
+/// friction; unknown names and the Hertz patch on a mass-spring surface (no material modulus)
+/// are refused with the field named.
 #[test]
-fn the_contact_model_defaults_to_auto_and_backward_euler_refuses_sphere_friction() {
+fn the_contact_model_defaults_to_auto_and_every_integrator_takes_the_sphere() {
     use haptic_model::contact::ContactModel;
     use haptic_model::integrate::{IntegratorKind, resolve_contact_model};
     let s = parse(BASE).unwrap();
@@ -406,7 +406,7 @@ fn the_contact_model_defaults_to_auto_and_backward_euler_refuses_sphere_friction
         IntegratorKind::BackwardEuler,
     ] {
         assert_eq!(
-            resolve_contact_model(kind, ContactModel::Auto, 0.0).unwrap(),
+            resolve_contact_model(kind, ContactModel::Auto).unwrap(),
             ContactModel::PatchHertz
         );
     }
@@ -432,20 +432,12 @@ fn the_contact_model_defaults_to_auto_and_backward_euler_refuses_sphere_friction
             1,
         )
     };
-    assert!(parse(&with_friction("semi-implicit")).is_ok());
-    assert_eq!(
-        field_of(parse(&with_friction("backward-euler"))),
-        "probe.friction_coefficient"
-    );
+    for kind in ["semi-implicit", "backward-euler"] {
+        let s = parse(&with_friction(kind)).unwrap();
+        assert_eq!(s.probe.friction_coefficient, 0.3);
+    }
     assert_eq!(
         field_of(parse(&with("ball", "symplectic-euler"))),
         "probe.contact"
     );
-    // A scene changed in code is checked again when the simulation is built.
-    let mut s = parse(&with_friction("symplectic-euler")).unwrap();
-    s.integrator.kind = IntegratorKind::BackwardEuler;
-    assert!(matches!(
-        haptic_model::sim::Simulation::new(&s),
-        Err(ModelError::SceneField { field, .. }) if field == "probe.friction_coefficient"
-    ));
 }

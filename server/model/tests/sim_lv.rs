@@ -508,13 +508,25 @@ fn the_probe_slides_across_the_lv_without_chatter() {
 }
 
 /// The same stroke with Coulomb friction (mu = 0.3): the tangential force opposes the stroke
-/// and stays inside the friction cone, and the body stays bounded.
+/// and stays inside the friction cone, and the body stays bounded; with the default contact
+/// under symplectic Euler and with the implicit sphere under backward Euler.
 #[test]
 fn friction_drags_against_the_stroke_within_the_cone() {
+    for (kind, contact) in [
+        (IntegratorKind::SymplecticEuler, ContactModel::Auto),
+        (IntegratorKind::BackwardEuler, ContactModel::Sphere),
+    ] {
+        friction_stroke(kind, contact);
+    }
+}
+
+fn friction_stroke(kind: IntegratorKind, contact: ContactModel) {
     let mu = 0.3;
     let (surface_at, device_at) = (stroke_surface_at, stroke_device_at);
     let mut scene = load_builtin("lv").unwrap();
     scene.probe.friction_coefficient = mu;
+    scene.integrator.kind = kind;
+    scene.probe.contact = contact;
     let mut sim = Simulation::new(&scene).unwrap();
     let tick = sim.tick_s();
     let mut largest_ratio: f64 = 0.0;
@@ -549,17 +561,18 @@ fn friction_drags_against_the_stroke_within_the_cone() {
             let f_t = f - n * f_n;
             assert!(
                 f_t.dot(along) < 0.0,
-                "t = {t:.3}: friction {f_t} does not oppose {along}"
+                "{kind:?} {contact:?} t = {t:.3}: friction {f_t} does not oppose {along}"
             );
             largest_ratio = largest_ratio.max(f_t.length() / f_n);
         }
     }
-    println!("largest |F_t| / F_n {largest_ratio:.3}");
+    println!("{kind:?} {contact:?}: largest |F_t| / F_n {largest_ratio:.3}");
     // Sliding all along: on the cone's edge (the cone holds for the explicit normal force of
-    // the step; the implicit completion moves the final one by a few per cent).
+    // the step; the implicit completion moves the final one by a few per cent, up to 6 % with
+    // backward Euler's implicit sphere).
     assert!(
-        largest_ratio < 1.05 * mu && largest_ratio > 0.9 * mu,
-        "{largest_ratio}"
+        largest_ratio < 1.07 * mu && largest_ratio > 0.9 * mu,
+        "{kind:?} {contact:?}: {largest_ratio}"
     );
     assert!(sim.stability().stable);
 }

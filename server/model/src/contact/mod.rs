@@ -46,8 +46,8 @@
 //! integrator solves (the explicit ones per node by Sherman-Morrison; backward Euler and the
 //! condensed model take it, or the implicit sphere's one row per face, as the low-rank term
 //! [`ContactCoupling`] `h^2 A^T C A`, inverted by Woodbury in the CG's preconditioner and on
-//! the condensed factor). Frictionless by default: the proxy slides freely along the surface
-//! (friction: the explicit integrators' sphere).
+//! the condensed factor). Frictionless by default: the proxy slides freely along the surface;
+//! `friction_coefficient > 0` gives every model a god-object friction cone.
 //!
 //! Owns: [`surface`] (closest points, kernel patches, triangle neighbourhoods), [`sphere`]
 //! (sphere casts against triangles), [`probe`] (the proxy and the coupling force; its

@@ -71,23 +71,21 @@ pub enum IntegratorKind {
 /// 4 mm and reads 75-90 % high. The sphere runs under every integrator: explicit in the step
 /// under the explicit ones, implicit (the faces in contact as penalty springs in series with
 /// the coupling, solved inside the step; [`crate::contact::Probe::use_implicit_sphere`]) under
-/// backward Euler and the condensed model.
+/// backward Euler and the condensed model (frictionless or with the friction cone of the
+/// other models).
+///
+/// Infallible today (every integrator carries every model); the `Result` stays for models an
+/// integrator cannot carry.
 ///
 /// # Errors
-/// [`ModelError::SceneField`] on `probe.friction_coefficient` for the sphere with friction
-/// under backward Euler (the implicit sphere is frictionless).
+/// None at present.
 pub fn resolve_contact_model(
     kind: IntegratorKind,
     requested: ContactModel,
-    friction_coefficient: f64,
 ) -> Result<ContactModel, ModelError> {
-    let implicit = kind == IntegratorKind::BackwardEuler;
+    let _ = kind;
     match requested {
         ContactModel::Auto => Ok(ContactModel::PatchHertz),
-        ContactModel::Sphere if implicit && friction_coefficient > 0.0 => Err(ModelError::field(
-            "probe.friction_coefficient",
-            "the sphere contact under backward Euler is frictionless: set 0, or use integrator.kind = \"semi-implicit\" or \"symplectic-euler\" for friction",
-        )),
         other => Ok(other),
     }
 }

@@ -1403,6 +1403,6 @@ fn build_probe(p: &RawProbe, integrator: IntegratorKind) -> Result<ProbeParams, 
         )?,
         hertz_modulus_pa: d.hertz_modulus_pa,
     };
-    integrate::resolve_contact_model(integrator, contact, params.friction_coefficient)?;
+    integrate::resolve_contact_model(integrator, contact)?;
     Ok(params)
 }
