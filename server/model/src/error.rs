@@ -46,7 +46,8 @@ pub enum ModelError {
     #[error(
         "unstable configuration: {integrator} needs dt <= {critical_dt_s:.3e} s but the servo tick \
          {tick_s:.3e} s with at most {max_substeps} sub-steps gives {sub_dt_s:.3e} s; raise \
-         integrator.max_substeps, use the semi-implicit integrator, or coarsen the mesh"
+         integrator.max_substeps (or integrator.substeps, where the scene fixes it), use the \
+         semi-implicit integrator, or coarsen the mesh"
     )]
     Unstable {
         /// Integrator name.
@@ -55,7 +56,8 @@ pub enum ModelError {
         critical_dt_s: f64,
         /// Servo tick in seconds.
         tick_s: f64,
-        /// Largest sub-step count allowed.
+        /// Largest sub-step count allowed (the scene's `integrator.substeps` when it fixes
+        /// the count).
         max_substeps: u32,
         /// Resulting sub-step in seconds.
         sub_dt_s: f64,

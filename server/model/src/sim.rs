@@ -150,6 +150,14 @@ impl Simulation {
             scene.material.poisson_ratio(),
         );
         probe_params.hertz_modulus_pa = e / (1.0 - nu * nu);
+        // Before the critical step: an explicit integrator on a condensed scene would
+        // otherwise report the tick as unstable rather than the combination as unsupported.
+        if scene.active_region.is_some() && p.kind != IntegratorKind::BackwardEuler {
+            return Err(ModelError::field(
+                "active_region",
+                "needs integrator.kind = \"backward-euler\"",
+            ));
+        }
         let critical = integrate::critical_time_step(&fem, p.kind);
         let plan = integrate::plan_steps(&p, critical)?;
         let mut stepper = Stepper::new_with_progress(

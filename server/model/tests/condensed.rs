@@ -224,6 +224,15 @@ fn bad_active_regions_are_rejected_with_the_field_named() {
         .expect_err("empty region")
         .to_string();
     assert!(err.contains("active_region"), "{err}");
+    // A scene changed in code to another integrator names the region, not the tick's
+    // stability (which the explicit step on the condensed scene would fail first).
+    let mut scene = condensed_lv(StrainSmoothing::None);
+    scene.integrator.kind = IntegratorKind::SymplecticEuler;
+    let err = Simulation::new(&scene).expect_err("explicit").to_string();
+    assert!(
+        err.contains("active_region") && err.contains("backward-euler"),
+        "{err}"
+    );
     // Quadratic elements are refused.
     let mut scene = condensed_lv(StrainSmoothing::None);
     scene.mesh = generate::lv_shell_quadratic(500);

@@ -215,18 +215,18 @@ pub fn critical_time_step(fem: &FemModel, kind: IntegratorKind) -> f64 {
 /// automatic sub-stepping would need more than `max_substeps` (neither when
 /// `check_critical_step` is off: automatic sub-stepping then uses at most `max_substeps`).
 pub fn plan_steps(p: &IntegratorParams, critical_dt_s: f64) -> Result<StepPlan, ModelError> {
-    let unstable = |n: u32| ModelError::Unstable {
+    let unstable = |n: u32, max_substeps: u32| ModelError::Unstable {
         integrator: p.kind.name(),
         critical_dt_s,
         tick_s: p.tick_s,
-        max_substeps: p.max_substeps,
+        max_substeps,
         sub_dt_s: p.tick_s / n as f64,
     };
     let substeps = match p.substeps {
         Some(n) => {
             let n = n.max(1);
             if p.check_critical_step && p.tick_s / n as f64 > critical_dt_s {
-                return Err(unstable(n));
+                return Err(unstable(n, n));
             }
             n
         }
@@ -236,7 +236,7 @@ pub fn plan_steps(p: &IntegratorParams, critical_dt_s: f64) -> Result<StepPlan, 
                 .max(1.0);
             if need > p.max_substeps as f64 {
                 if p.check_critical_step {
-                    return Err(unstable(p.max_substeps));
+                    return Err(unstable(p.max_substeps, p.max_substeps));
                 }
                 p.max_substeps
             } else {
