@@ -10,7 +10,7 @@
 
 use clap::Parser;
 use haptic_model::DVec3;
-use haptic_model::body::TickInput;
+use haptic_model::body::{SoftBody, TickInput};
 use haptic_model::meshfree::{KernelKind, MeshfreeVariant};
 use haptic_model::scene::load_builtin;
 
@@ -34,6 +34,10 @@ struct Args {
     /// `hybrid.contact_stiffness_n_per_m` override (probe penalty per particle).
     #[arg(long)]
     contact_stiffness_n_per_m: Option<f64>,
+    /// Sub-steps per tick override (a study of the step: the body is built from the scene's
+    /// preprocessed model and `HybridBody::override_substeps`).
+    #[arg(long)]
+    substeps: Option<u32>,
     /// Depths, mm.
     #[arg(long, default_value = "0.5,1", value_delimiter = ',')]
     depths_mm: Vec<f64>,
@@ -68,7 +72,29 @@ fn main() -> anyhow::Result<()> {
     }
     let (variant, mass_scale) = (h.params.meshfree.variant, h.params.mass_scale);
 
-    let mut body = haptic_model::build_body(&scene)?;
+    let mut body: Box<dyn SoftBody> = match args.substeps {
+        None => haptic_model::build_body(&scene)?,
+        Some(n) => {
+            let h = scene.hybrid.as_ref().expect("a hybrid scene");
+            let model = haptic_model::hybrid::prepare(
+                h.geometry,
+                &h.params,
+                &scene.material,
+                h.core_target_tets,
+                &mut |_, _| {},
+            )?;
+            let clamped = model.clamped_core_nodes();
+            let mut b = haptic_model::hybrid::HybridBody::new(
+                model,
+                &clamped,
+                scene.probe,
+                scene.integrator.tick_s,
+                &scene.name,
+            )?;
+            b.override_substeps(n)?;
+            Box::new(b)
+        }
+    };
     let tick = scene.integrator.tick_s;
     println!(
         "{} {} mass_scale {mass_scale}, contact stiffness {} N/m per particle, ramp {} s, hold {} s, {} sub-steps per tick",
