@@ -20,7 +20,7 @@ use clap::Parser;
 use common::TickTimes;
 use haptic_model::DVec3;
 use haptic_model::contact::ContactModel;
-use haptic_model::integrate::{self, IntegratorKind};
+use haptic_model::integrate::IntegratorKind;
 use haptic_model::scene::{Scene, load_builtin, load_scene_file};
 use haptic_model::sim::{Simulation, TickInput};
 use serde::Serialize;
@@ -115,7 +115,7 @@ fn main() -> anyhow::Result<()> {
                 // A condensed region runs backward Euler only.
                 let condensed_other =
                     scene.active_region.is_some() && kind != IntegratorKind::BackwardEuler;
-                if condensed_other || integrate::resolve_contact_model(kind, contact).is_err() {
+                if condensed_other {
                     continue;
                 }
                 let mut sc = scene.clone();

@@ -656,9 +656,7 @@ fn servo_against_reference(
         scene.name,
         scene.mesh.tet_count(),
         scene.material.model.scene_name(),
-        haptic_model::integrate::resolve_contact_model(scene.integrator.kind, scene.probe.contact)
-            .map_err(|e| e.to_string())?
-            .name(),
+        haptic_model::integrate::resolve_contact_model(scene.probe.contact).name(),
         ticks.percentiles().p50_us
     );
     println!("| device depth, mm | servo, mN | reference, mN | servo error |");

@@ -144,7 +144,7 @@ impl Simulation {
             ));
         }
         let mut probe_params = scene.probe;
-        probe_params.contact = integrate::resolve_contact_model(p.kind, scene.probe.contact)?;
+        probe_params.contact = integrate::resolve_contact_model(scene.probe.contact);
         let (e, nu) = (
             scene.material.youngs_modulus_pa(),
             scene.material.poisson_ratio(),

@@ -397,19 +397,13 @@ fn the_model_family_defaults_to_fem_and_unknown_ones_are_refused() {
 #[test]
 fn the_contact_model_defaults_to_auto_and_every_integrator_takes_the_sphere() {
     use haptic_model::contact::ContactModel;
-    use haptic_model::integrate::{IntegratorKind, resolve_contact_model};
+    use haptic_model::integrate::resolve_contact_model;
     let s = parse(BASE).unwrap();
     assert_eq!(s.probe.contact, ContactModel::Auto);
-    for kind in [
-        IntegratorKind::SymplecticEuler,
-        IntegratorKind::SemiImplicit,
-        IntegratorKind::BackwardEuler,
-    ] {
-        assert_eq!(
-            resolve_contact_model(kind, ContactModel::Auto).unwrap(),
-            ContactModel::PatchHertz
-        );
-    }
+    assert_eq!(
+        resolve_contact_model(ContactModel::Auto),
+        ContactModel::PatchHertz
+    );
     let with = |contact: &str, kind: &str| {
         format!("{BASE}\n[probe]\ncontact = \"{contact}\"\n").replacen(
             "[material]",

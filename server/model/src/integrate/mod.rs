@@ -61,7 +61,7 @@ pub enum IntegratorKind {
     BackwardEuler,
 }
 
-/// The contact model a body advanced by `kind` uses for the scene's `requested` one:
+/// The contact model an FEM body uses for the scene's `requested` one:
 /// [`ContactModel::Auto`] becomes the kernel patch with the sphere's Hertz compliance in series
 /// ([`ContactModel::PatchHertz`]) under every integrator. On the real-time LV meshes it is the
 /// most accurate model against the converged sphere reference (three meshes refined under the
@@ -72,21 +72,11 @@ pub enum IntegratorKind {
 /// under the explicit ones, implicit (the faces in contact as penalty springs in series with
 /// the coupling, solved inside the step; [`crate::contact::Probe::use_implicit_sphere`]) under
 /// backward Euler and the condensed model (frictionless or with the friction cone of the
-/// other models).
-///
-/// Infallible today (every integrator carries every model); the `Result` stays for models an
-/// integrator cannot carry.
-///
-/// # Errors
-/// None at present.
-pub fn resolve_contact_model(
-    kind: IntegratorKind,
-    requested: ContactModel,
-) -> Result<ContactModel, ModelError> {
-    let _ = kind;
+/// other models), so the integrator does not enter the choice.
+pub fn resolve_contact_model(requested: ContactModel) -> ContactModel {
     match requested {
-        ContactModel::Auto => Ok(ContactModel::PatchHertz),
-        other => Ok(other),
+        ContactModel::Auto => ContactModel::PatchHertz,
+        other => other,
     }
 }
 

@@ -13,7 +13,7 @@ use crate::contact::{ContactModel, ProbeParams};
 use crate::element::StrainSmoothing;
 use crate::hybrid::{HybridParams, ShellGeometry};
 use crate::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
-use crate::integrate::{self, IntegratorKind, IntegratorParams};
+use crate::integrate::{IntegratorKind, IntegratorParams};
 use crate::loads::{PointForce, PressureLoad, SceneLoads};
 use crate::mass_spring::calibration::{CalibrationTable, ContactShape, calibration_key};
 use crate::mass_spring::{
@@ -417,7 +417,7 @@ pub(super) fn parse_scene(
     } else {
         None
     };
-    let probe = build_probe(&raw.probe.unwrap_or_default(), integrator.kind)?;
+    let probe = build_probe(&raw.probe.unwrap_or_default())?;
     let loads = build_loads(&raw.loads.unwrap_or_default(), &mesh, &clamped_nodes)?;
     let active_region = match &raw.active_region {
         None => None,
@@ -1365,9 +1365,9 @@ fn build_integrator(i: &RawIntegrator) -> Result<IntegratorParams, ModelError> {
     })
 }
 
-/// The probe section; the contact model is checked against the integrator
-/// ([`integrate::resolve_contact_model`]).
-fn build_probe(p: &RawProbe, integrator: IntegratorKind) -> Result<ProbeParams, ModelError> {
+/// The probe section (every integrator carries every contact model:
+/// [`crate::integrate::resolve_contact_model`]).
+fn build_probe(p: &RawProbe) -> Result<ProbeParams, ModelError> {
     let d = ProbeParams::default();
     let contact = match p.contact.as_deref() {
         None => d.contact,
@@ -1403,6 +1403,5 @@ fn build_probe(p: &RawProbe, integrator: IntegratorKind) -> Result<ProbeParams, 
         )?,
         hertz_modulus_pa: d.hertz_modulus_pa,
     };
-    integrate::resolve_contact_model(integrator, contact)?;
     Ok(params)
 }

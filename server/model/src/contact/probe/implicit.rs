@@ -113,8 +113,8 @@ impl CouplingRows {
     pub(super) fn with_capacity() -> Self {
         Self {
             row_ptr: Vec::with_capacity(MAX_COUPLING_ROWS + 1),
-            nodes: Vec::with_capacity(3 * MAX_COUPLING_ROWS.max(super::MAX_PATCH_NODES)),
-            vectors: Vec::with_capacity(3 * MAX_COUPLING_ROWS.max(super::MAX_PATCH_NODES)),
+            nodes: Vec::with_capacity((3 * MAX_COUPLING_ROWS).max(super::MAX_PATCH_NODES)),
+            vectors: Vec::with_capacity((3 * MAX_COUPLING_ROWS).max(super::MAX_PATCH_NODES)),
             compliance: vec![0.0; MAX_COUPLING_ROWS * MAX_COUPLING_ROWS],
             factor: vec![0.0; MAX_COUPLING_ROWS * MAX_COUPLING_ROWS],
             lambda0: Vec::with_capacity(MAX_COUPLING_ROWS),
@@ -391,8 +391,11 @@ impl Probe {
         }
     }
 
-    /// Completes an implicit sphere step from the end-of-step velocities `v`:
-    /// `lambda = lambda0 - h C A v'` ([`Probe::finish_with_multipliers`]).
+    /// Completes an implicit sphere step from the end-of-step velocities `v`: the faces'
+    /// multipliers `lambda = lambda0 - h C A v'`, the device force `F = -N lambda` (clamped in
+    /// magnitude to [`super::ProbeParams::max_force_n`]; the body received the unclamped
+    /// `A^T lambda`, so linear momentum is conserved) plus the friction force, and the proxy
+    /// `p0 + Q_c^-1 (phi + F)` (reported with the friction's offset). Allocation-free.
     pub(super) fn finish_implicit_sphere(&mut self, dt_s: f64, v: &[DVec3]) {
         let nf = self.rows.rows();
         if nf == 0 {
@@ -405,23 +408,9 @@ impl Probe {
         for (l, l0) in lambda.iter_mut().zip(&self.rows.lambda0) {
             *l = l0 - dt_s * *l;
         }
-        self.finish_with_multipliers(dt_s, &lambda[..nf]);
-    }
-
-    /// Completes an implicit sphere step from the faces' multipliers `lambda` (N, one per
-    /// row of [`Probe::coupling`]):
-    /// the device force `F = -N lambda` (clamped in magnitude to
-    /// [`super::ProbeParams::max_force_n`]; the body received the unclamped `A^T lambda`, so
-    /// linear momentum is conserved) plus the friction force, and the proxy
-    /// `p0 + Q_c^-1 (phi + F)` (reported with the friction's offset). Does nothing for
-    /// the other contact models or out of contact. Allocation-free.
-    fn finish_with_multipliers(&mut self, dt_s: f64, lambda: &[f64]) {
-        if !self.state.in_contact || !self.implicit_sphere() {
-            return;
-        }
         let rows = &self.rows;
         let mut force = DVec3::ZERO;
-        for (nu, l) in rows.normals.iter().zip(lambda) {
+        for (nu, l) in rows.normals.iter().zip(&lambda[..nf]) {
             force -= *nu * *l;
         }
         let proxy = rows.proxy0_m + rows.qc_inv * (rows.phi_n + force);
