@@ -130,6 +130,10 @@ enum Study {
         /// factor on the critical step (default 0.5) and the CG cap (default 20).
         #[arg(long, value_delimiter = ',', default_value = "300:2:semi-implicit:0.5")]
         run: Vec<DynamicRun>,
+        /// Backward Euler runs with `integrator.linear_solver = "rest-cholesky"` and this
+        /// `integrator.stiffness_margin` (the tick matrix frozen at rest, factorised once).
+        #[arg(long)]
+        prefactored_margin: Option<f64>,
     },
 }
 
@@ -343,13 +347,21 @@ fn main() {
                 std::process::exit(1);
             }
         }
-        Study::Dynamic { run } => {
+        Study::Dynamic {
+            run,
+            prefactored_margin,
+        } => {
             for r in run {
                 let mut scene = common::lv_scene_order(r.tets, r.quadratic);
                 scene.integrator.kind = r.kind;
                 scene.integrator.safety_factor = r.safety_factor;
                 scene.integrator.cg_max_iterations = r.cg_max_iterations;
                 scene.integrator.max_substeps = 1000;
+                if let Some(margin) = prefactored_margin {
+                    scene.integrator.linear_solver =
+                        haptic_model::integrate::LinearSolver::RestCholesky;
+                    scene.integrator.stiffness_margin = margin;
+                }
                 match probe_dynamic(&scene, false) {
                     Ok((c, ticks, sub)) => println!(
                         "lv-dyn {}: {} nodes, {sub} sub-steps, tick p50 {:.0} us: {:?}",

@@ -58,6 +58,7 @@ pub mod material;
 pub mod mesh;
 pub mod meshfree;
 pub mod ordering;
+pub mod supernodal;
 pub mod scene;
 pub mod sim;
 pub mod statics;

@@ -20,7 +20,7 @@ use crate::body::{BodyInfo, BodyStats, PointLoadZone, SoftBody, SurfaceCapacity,
 use crate::contact::Probe;
 use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
 use crate::element::{CLAMPED, FemModel};
-use crate::integrate::condensed::CondensedSolver;
+use crate::integrate::condensed::{ActiveRegion, CondensedSolver};
 use crate::integrate::follow::{FollowStats, RegionFollower};
 use crate::integrate::implicit::CgStats;
 use crate::integrate::{self, IntegratorKind, StepPlan, Stepper};
@@ -160,14 +160,15 @@ impl Simulation {
         }
         let critical = integrate::critical_time_step(&fem, p.kind);
         let plan = integrate::plan_steps(&p, critical)?;
-        let mut stepper = Stepper::new_with_progress(
-            &fem,
-            &scene.mesh,
-            &p,
-            &plan,
-            scene.active_region,
-            progress,
-        )?;
+        // Backward Euler with the rest factor on the whole body is the condensed solver on a
+        // region holding every element.
+        let region = scene.active_region.or_else(|| {
+            (p.kind == IntegratorKind::BackwardEuler
+                && p.linear_solver == integrate::LinearSolver::RestCholesky)
+                .then(|| ActiveRegion::whole_body(fem.rest(), p.stiffness_margin))
+        });
+        let mut stepper =
+            Stepper::new_with_progress(&fem, &scene.mesh, &p, &plan, region, progress)?;
         let n = fem.node_count();
         let boundary = scene.mesh.boundary_triangles();
         let load_surface: Vec<[u32; 3]> = boundary

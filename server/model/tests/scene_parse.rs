@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 
 use haptic_model::ModelError;
 use haptic_model::element::StrainSmoothing;
-use haptic_model::integrate::IntegratorKind;
+use haptic_model::integrate::{IntegratorKind, LinearSolver};
 use haptic_model::scene::{
     Scene, builtin_scene_names, builtin_scene_toml, load_builtin, load_scene_file, parse_scene_toml,
 };
@@ -433,5 +433,54 @@ fn the_contact_model_defaults_to_auto_and_every_integrator_takes_the_sphere() {
     assert_eq!(
         field_of(parse(&with("ball", "symplectic-euler"))),
         "probe.contact"
+    );
+}
+
+#[test]
+fn the_rest_cholesky_solver_is_for_backward_euler_and_its_margin_is_checked() {
+    let be = |extra: &str| format!("{BASE}[integrator]\nkind = \"backward-euler\"\n{extra}");
+    let scene = parse(&be(
+        "linear_solver = \"rest-cholesky\"\nstiffness_margin = 3.0\n",
+    ))
+    .expect("rest factor");
+    assert_eq!(scene.integrator.linear_solver, LinearSolver::RestCholesky);
+    assert_eq!(scene.integrator.stiffness_margin, 3.0);
+    assert_eq!(
+        parse(&be("")).expect("cg").integrator.linear_solver,
+        LinearSolver::Cg
+    );
+    for bad in [
+        be("linear_solver = \"lu\"\n"),
+        format!(
+            "{BASE}[integrator]\nkind = \"symplectic-euler\"\nlinear_solver = \"rest-cholesky\"\n"
+        ),
+    ] {
+        assert_eq!(field_of(parse(&bad)), "integrator.linear_solver", "{bad}");
+    }
+    for bad in [
+        be("stiffness_margin = 2.0\n"),
+        be("linear_solver = \"rest-cholesky\"\nstiffness_margin = 0.5\n"),
+        be("linear_solver = \"rest-cholesky\"\nstiffness_margin = nan\n"),
+    ] {
+        assert_eq!(
+            field_of(parse(&bad)),
+            "integrator.stiffness_margin",
+            "{bad}"
+        );
+    }
+    let region = "[active_region]\ncentre_m = [0.0, 0.0, 0.0]\nradius_m = 0.005\n";
+    assert_eq!(
+        field_of(parse(&format!(
+            "{}{region}",
+            be("linear_solver = \"cg\"\n")
+        ))),
+        "integrator.linear_solver"
+    );
+    assert_eq!(
+        field_of(parse(&format!(
+            "{}{region}",
+            be("linear_solver = \"rest-cholesky\"\nstiffness_margin = 2.0\n")
+        ))),
+        "integrator.stiffness_margin"
     );
 }

@@ -58,6 +58,7 @@ use faer::{Conj, Mat, Par, Side};
 use glam::DVec3;
 
 use crate::ordering::{SparseCholesky, symbolic_cholesky};
+use crate::supernodal::SupernodalSolve;
 
 use crate::ModelError;
 use crate::contact::ContactCoupling;
@@ -88,6 +89,34 @@ pub struct ActiveRegion {
     /// and swapped in at tick boundaries, and each keeps the far-field rows its successors
     /// need ([`CondensedSolver::hand_over`]).
     pub follow: bool,
+}
+
+impl ActiveRegion {
+    /// A fixed region holding every node of `rest` (m), hence every element: a condensed
+    /// solver built on it condenses nothing and is backward Euler with the rest matrix
+    /// factorised once ([`crate::integrate::LinearSolver::RestCholesky`]).
+    pub fn whole_body(rest: &[DVec3], stiffness_margin: f64) -> Self {
+        let (lo, hi) = rest.iter().fold(
+            (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+            |(lo, hi), p| (lo.min(*p), hi.max(*p)),
+        );
+        let centre_m = if rest.is_empty() {
+            DVec3::ZERO
+        } else {
+            (lo + hi) / 2.0
+        };
+        let radius_m = rest
+            .iter()
+            .map(|p| p.distance(centre_m))
+            .fold(0.0, f64::max);
+        Self {
+            centre_m,
+            // Every node strictly inside, whatever the rounding.
+            radius_m: radius_m * (1.0 + 1e-9) + 1e-12,
+            stiffness_margin,
+            follow: false,
+        }
+    }
 }
 
 /// A following region is swapped in when the device is within this many radii of its centre
@@ -184,6 +213,9 @@ pub struct CondensedSolver {
     symbolic: Arc<SymbolicCholesky<usize>>,
     /// Cholesky factor of `A`, single precision.
     factor: Vec<f32>,
+    /// The tick's one-column solve through `factor` ([`SupernodalSolve`]; `None` for a
+    /// simplicial factor, solved by faer).
+    sweep: Option<SupernodalSolve>,
     stack: Workspace,
     /// Right-hand sides: the step's and the coupling's `U`.
     rhs: Mat<f32>,
@@ -387,7 +419,13 @@ fn sub_mesh(mesh: &TetMesh, keep: &[bool]) -> TetMesh {
             .filter(|(_, k)| **k)
             .map(|(t, _)| *t)
             .collect(),
-        tet_edge_nodes: Vec::new(),
+        tet_edge_nodes: mesh
+            .tet_edge_nodes
+            .iter()
+            .zip(keep)
+            .filter(|(_, k)| **k)
+            .map(|(t, _)| *t)
+            .collect(),
         surfaces: Vec::new(),
         node_groups: Vec::new(),
     }
@@ -435,7 +473,7 @@ impl CondensedSolver {
     ///
     /// # Errors
     /// [`ModelError::SceneField`] (`active_region`) for a non-positive radius, a stiffness
-    /// margin outside `[1, 100]`, a region with no element, or quadratic elements;
+    /// margin outside `[1, 100]`, or a region with no element;
     /// [`ModelError::InvalidMesh`] when a factorisation fails (a far part that is not held by
     /// clamps, or an indefinite matrix).
     pub fn new(
@@ -467,9 +505,6 @@ impl CondensedSolver {
         }
         if !(region.stiffness_margin >= 1.0) || region.stiffness_margin > 100.0 {
             return Err(field("stiffness_margin must be in [1, 100]"));
-        }
-        if body.is_quadratic() {
-            return Err(field("is for linear tetrahedra"));
         }
         let n = body.node_count();
         if 3 * n > u32::MAX as usize {
@@ -503,8 +538,9 @@ impl CondensedSolver {
         };
         let mut node_active = vec![false; n];
         let mut node_far = vec![false; n];
-        for (t, k) in mesh.tets.iter().zip(&keep) {
-            for &i in t {
+        for (e, (t, k)) in mesh.tets.iter().zip(&keep).enumerate() {
+            let mid = mesh.tet_edge_nodes.get(e).map_or(&[][..], |m| &m[..]);
+            for &i in t.iter().chain(mid) {
                 if *k {
                     node_active[i as usize] = true;
                 } else {
@@ -733,6 +769,7 @@ impl CondensedSolver {
             gamma_dof,
             schur: schur.iter().map(|&v| v as f32).collect(),
             avx2: crate::cpu::has_avx2_fma(),
+            sweep: SupernodalSolve::new(&symbolic),
             symbolic: Arc::new(symbolic),
             factor,
             stack,
@@ -897,12 +934,7 @@ impl CondensedSolver {
         // columns `A^-1 e` prepared for the contact nodes ([`Self::prepare_contact`]); a row
         // with a node not prepared falls back to one more solve per row.
         let m = self.eq_dof.len();
-        LltRef::<usize, f32>::new(&self.symbolic, &self.factor).solve_in_place_with_conj(
-            Conj::No,
-            self.rhs.as_mut().subcols_mut(0, 1),
-            Par::Seq,
-            MemStack::new(&mut self.stack.buffer),
-        );
+        self.solve_column(0);
         self.z1.iter_mut().for_each(|z| *z = 0.0);
         if let Some(c) = coupling {
             let nf = c.rows();
@@ -999,13 +1031,7 @@ impl CondensedSolver {
                             }
                         }
                     }
-                    LltRef::<usize, f32>::new(&self.symbolic, &self.factor)
-                        .solve_in_place_with_conj(
-                            Conj::No,
-                            self.rhs.as_mut().subcols_mut(1, 1),
-                            Par::Seq,
-                            MemStack::new(&mut self.stack.buffer),
-                        );
+                    self.solve_column(1);
                     for (k, z) in self.z1.iter_mut().enumerate() {
                         *z = f64::from(self.rhs[(k, 1)]);
                     }
@@ -1044,9 +1070,18 @@ impl CondensedSolver {
                 }
             }
         }
+        self.solve_column(1);
+    }
+
+    /// `A^-1` applied in place to column `col` of `rhs` (allocation-free).
+    fn solve_column(&mut self, col: usize) {
+        if let Some(sweep) = &mut self.sweep {
+            sweep.solve_in_place(&self.factor, self.rhs.col_as_slice_mut(col));
+            return;
+        }
         LltRef::<usize, f32>::new(&self.symbolic, &self.factor).solve_in_place_with_conj(
             Conj::No,
-            self.rhs.as_mut().subcols_mut(1, 1),
+            self.rhs.as_mut().subcols_mut(col, 1),
             Par::Seq,
             MemStack::new(&mut self.stack.buffer),
         );

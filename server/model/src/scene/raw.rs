@@ -13,7 +13,7 @@ use crate::contact::{ContactModel, ProbeParams};
 use crate::element::StrainSmoothing;
 use crate::hybrid::{HybridParams, ShellGeometry};
 use crate::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
-use crate::integrate::{IntegratorKind, IntegratorParams};
+use crate::integrate::{IntegratorKind, IntegratorParams, LinearSolver};
 use crate::loads::{PointForce, PressureLoad, SceneLoads};
 use crate::mass_spring::calibration::{CalibrationTable, ContactShape, calibration_key};
 use crate::mass_spring::{
@@ -186,6 +186,8 @@ struct RawIntegrator {
     safety_factor: Option<f64>,
     cg_max_iterations: Option<i64>,
     cg_tolerance: Option<f64>,
+    linear_solver: Option<String>,
+    stiffness_margin: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -426,6 +428,18 @@ pub(super) fn parse_scene(
                 return Err(ModelError::field(
                     "active_region",
                     "needs integrator.kind = \"backward-euler\"",
+                ));
+            }
+            if raw_integrator.linear_solver.as_deref() == Some("cg") {
+                return Err(ModelError::field(
+                    "integrator.linear_solver",
+                    "a scene with [active_region] solves with the region's rest factor: remove linear_solver or set \"rest-cholesky\"",
+                ));
+            }
+            if raw_integrator.stiffness_margin.is_some() {
+                return Err(ModelError::field(
+                    "integrator.stiffness_margin",
+                    "a scene with [active_region] takes active_region.stiffness_margin",
                 ));
             }
             let centre = required("active_region.centre_m", a.centre_m)?;
@@ -1353,6 +1367,33 @@ fn build_integrator(i: &RawIntegrator) -> Result<IntegratorParams, ModelError> {
         |x| x > 0.0 && x < 1.0,
         "in (0, 1)",
     )?;
+    let linear_solver = match i.linear_solver.as_deref() {
+        None => d.linear_solver,
+        Some(name) => LinearSolver::from_name(name).ok_or_else(|| {
+            ModelError::field(
+                "integrator.linear_solver",
+                format!("unknown linear solver `{name}` (expected \"cg\" or \"rest-cholesky\")"),
+            )
+        })?,
+    };
+    if linear_solver == LinearSolver::RestCholesky && kind != IntegratorKind::BackwardEuler {
+        return Err(ModelError::field(
+            "integrator.linear_solver",
+            "\"rest-cholesky\" needs integrator.kind = \"backward-euler\"",
+        ));
+    }
+    if i.stiffness_margin.is_some() && linear_solver != LinearSolver::RestCholesky {
+        return Err(ModelError::field(
+            "integrator.stiffness_margin",
+            "applies to integrator.linear_solver = \"rest-cholesky\" only",
+        ));
+    }
+    let stiffness_margin = checked(
+        "integrator.stiffness_margin",
+        i.stiffness_margin.unwrap_or(d.stiffness_margin),
+        |c| (1.0..=100.0).contains(&c),
+        "in [1, 100]",
+    )?;
     Ok(IntegratorParams {
         kind,
         tick_s,
@@ -1361,6 +1402,8 @@ fn build_integrator(i: &RawIntegrator) -> Result<IntegratorParams, ModelError> {
         safety_factor,
         cg_max_iterations,
         cg_tolerance,
+        linear_solver,
+        stiffness_margin,
         check_critical_step: true,
     })
 }
