@@ -4,7 +4,9 @@
 //! reports its mean CG iterations per tick), while the probe presses the epicardium (the haptic
 //! case: contact and implicit coupling active), with each contact model the integrator carries
 //! (the Hertz patch, the sphere and the patch under every integrator; the sphere is implicit
-//! under backward Euler), and for the condensed `lv_h1` scene (backward Euler only).
+//! under backward Euler), backward Euler also with the rest matrix factorised once on the whole
+//! body (`linear_solver = "rest-cholesky"`, Hertz patch), and for the condensed `lv_h1` scene
+//! (backward Euler only).
 //!
 //! Run: `cargo bench -p haptic-model --bench step` (add `-- --quick` for fewer ticks).
 //! Writes `target/bench/step.csv` (or `--out DIR`) and prints a table. Medians and ratios
@@ -20,7 +22,7 @@ use clap::Parser;
 use common::TickTimes;
 use haptic_model::DVec3;
 use haptic_model::contact::ContactModel;
-use haptic_model::integrate::IntegratorKind;
+use haptic_model::integrate::{IntegratorKind, LinearSolver};
 use haptic_model::scene::{Scene, load_builtin, load_scene_file};
 use haptic_model::sim::{Simulation, TickInput};
 use serde::Serialize;
@@ -86,7 +88,7 @@ fn main() -> anyhow::Result<()> {
     let path = out.join("step.csv");
     let mut csv = csv::Writer::from_path(&path)?;
     println!(
-        "{:<15} {:<17} {:<7} {:>6} {:>6} {:>4} {:>11} {:>10} {:>10} {:>10} {:>11} {:>8} {:>6}",
+        "{:<15} {:<19} {:<7} {:>6} {:>6} {:>4} {:>11} {:>10} {:>10} {:>10} {:>11} {:>8} {:>6}",
         "scene",
         "integrator",
         "contact",
@@ -107,11 +109,20 @@ fn main() -> anyhow::Result<()> {
             IntegratorKind::SymplecticEuler,
             IntegratorKind::BackwardEuler,
         ] {
-            for contact in [
-                ContactModel::PatchHertz,
-                ContactModel::Sphere,
-                ContactModel::Patch,
-            ] {
+            // Backward Euler also with the rest matrix factorised once on the whole body
+            // (`integrator.linear_solver = "rest-cholesky"`), with the default contact.
+            let rest_factor =
+                kind == IntegratorKind::BackwardEuler && scene.active_region.is_none();
+            let runs = [
+                (ContactModel::PatchHertz, LinearSolver::Cg),
+                (ContactModel::Sphere, LinearSolver::Cg),
+                (ContactModel::Patch, LinearSolver::Cg),
+                (ContactModel::PatchHertz, LinearSolver::RestCholesky),
+            ];
+            for (contact, solver) in runs {
+                if solver == LinearSolver::RestCholesky && !rest_factor {
+                    continue;
+                }
                 // A condensed region runs backward Euler only.
                 let condensed_other =
                     scene.active_region.is_some() && kind != IntegratorKind::BackwardEuler;
@@ -121,6 +132,7 @@ fn main() -> anyhow::Result<()> {
                 let mut sc = scene.clone();
                 sc.integrator.kind = kind;
                 sc.probe.contact = contact;
+                sc.integrator.linear_solver = solver;
                 sc.integrator.max_substeps = 1000;
                 let mut sim = match Simulation::new(&sc) {
                     Ok(s) => s,
@@ -164,7 +176,12 @@ fn main() -> anyhow::Result<()> {
                 let tick = times.percentiles();
                 let row = StepRow {
                     scene: name,
-                    integrator: kind.name(),
+                    integrator: match (kind, solver) {
+                        (IntegratorKind::BackwardEuler, LinearSolver::RestCholesky) => {
+                            "backward-euler/rest"
+                        }
+                        _ => kind.name(),
+                    },
                     contact: contact.name(),
                     nodes: n,
                     tets: sim.fem().tets().len(),
@@ -179,7 +196,7 @@ fn main() -> anyhow::Result<()> {
                     cg_iterations_mean: cg_iterations as f64 / times.len() as f64,
                 };
                 println!(
-                    "{:<15} {:<17} {:<7} {:>6} {:>6} {:>4} {:>11.3e} {:>8.0}us {:>8.0}us {:>8.0}us {:>9.0}us {:>8.2} {:>6.1}",
+                    "{:<15} {:<19} {:<7} {:>6} {:>6} {:>4} {:>11.3e} {:>8.0}us {:>8.0}us {:>8.0}us {:>9.0}us {:>8.2} {:>6.1}",
                     row.scene,
                     row.integrator,
                     row.contact,

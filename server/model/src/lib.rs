@@ -6,6 +6,8 @@
 //!
 //! - [`ordering`]: fill-reducing orderings (METIS nested dissection) and a sparse Cholesky
 //!   factor for the static solver and contact-local condensation.
+//! - [`supernodal`]: one right-hand side through a single-precision supernodal Cholesky factor,
+//!   allocation-free (the condensed tick's solve).
 //! - [`mesh`]: tetrahedral meshes, linear (4-node) or quadratic (10-node), with tagged boundary
 //!   surfaces; [`mesh::gmsh`] reads Gmsh `.msh` 2.2 / 4.1 ASCII; [`mesh::generate`] builds
 //!   structured shells (ellipsoids, the idealized left ventricle, the Lamé sphere) and boxes;
@@ -58,10 +60,10 @@ pub mod material;
 pub mod mesh;
 pub mod meshfree;
 pub mod ordering;
-pub mod supernodal;
 pub mod scene;
 pub mod sim;
 pub mod statics;
+pub mod supernodal;
 
 pub use error::ModelError;
 pub use glam::DVec3;

@@ -14,6 +14,7 @@ const LAYERS: &[&str] = &[
     "error",
     "cpu",
     "ordering",
+    "supernodal",
     "mesh",
     "material",
     "meshfree",
