@@ -37,6 +37,19 @@
 //! sparse Cholesky (supernodal, AMD ordering) with its workspace allocated at construction, so
 //! [`CondensedSolver::step`] allocates nothing.
 //!
+//! **Relaxation.** The frozen matrix is a modified Newton step: where the tangent under the
+//! probe outgrows `2 c K_0` (St. Venant-Kirchhoff pressed 5 mm or more into the LV's 3 mm wall,
+//! whose tangent there even turns indefinite) the step overshoots and the tick settles into a
+//! two-tick oscillation (nodes flipping by 0.3 mm, the force between 48 and 65 mN at 5 mm on
+//! the default mesh). A velocity field that reverses from one tick to the next (cosine with the
+//! previous one below [`REVERSAL_COSINE`], some component faster than
+//! [`REVERSAL_MIN_SPEED_M_PER_S`]) is that overshoot, not motion (the body's own modes take
+//! many ticks per period), so the solved velocity is scaled by a factor that halves on each
+//! such tick (down to [`MIN_RELAXATION`]) and grows back by [`RELAXATION_RECOVERY`] per tick
+//! otherwise: an under-relaxed Newton iteration. It only removes velocity, and `v' = 0` still
+//! needs `f = 0`, so equilibria are unchanged; shallow presses never trigger it
+//! (docs/decisions.md, "The whole-body rest factor").
+//!
 //! Limits: the ball is fixed when the model is built (a contact outside it is not seen: the
 //! caller restricts the touchable surface, [`CondensedSolver::is_active_triangle`]), unless it
 //! follows the probe ([`ActiveRegion::follow`], [`crate::integrate::follow`]: successive
@@ -136,6 +149,20 @@ pub const SURFACE_REFRESH_TICKS: usize = 32;
 /// Default [`ActiveRegion::stiffness_margin`].
 pub const DEFAULT_STIFFNESS_MARGIN: f64 = 2.0;
 
+/// The solved velocity field counts as reversed when its cosine with the previous tick's is
+/// below this (module documentation, "Relaxation").
+pub const REVERSAL_COSINE: f64 = -0.5;
+
+/// ... and its fastest component exceeds this, m/s (0.1 mm/s: below it a reversal is
+/// round-off at rest).
+pub const REVERSAL_MIN_SPEED_M_PER_S: f64 = 1e-4;
+
+/// Smallest factor on the solved velocity.
+pub const MIN_RELAXATION: f64 = 1.0 / 16.0;
+
+/// Growth of the factor per tick without reversal, back to 1.
+pub const RELAXATION_RECOVERY: f64 = 1.1;
+
 /// Sizes of a condensed model, for reports.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct CondensedSizes {
@@ -213,6 +240,11 @@ pub struct CondensedSolver {
     symbolic: Arc<SymbolicCholesky<usize>>,
     /// Cholesky factor of `A`, single precision.
     factor: Vec<f32>,
+    /// Factor on the solved velocity (module documentation, "Relaxation"), in
+    /// `[MIN_RELAXATION, 1]`.
+    relaxation: f64,
+    /// Ticks whose velocity reversed (each halved `relaxation`).
+    relaxed_ticks: u64,
     /// The tick's one-column solve through `factor` ([`SupernodalSolve`]; `None` for a
     /// simplicial factor, solved by faer).
     sweep: Option<SupernodalSolve>,
@@ -770,6 +802,8 @@ impl CondensedSolver {
             schur: schur.iter().map(|&v| v as f32).collect(),
             avx2: crate::cpu::has_avx2_fma(),
             sweep: SupernodalSolve::new(&symbolic),
+            relaxation: 1.0,
+            relaxed_ticks: 0,
             symbolic: Arc::new(symbolic),
             factor,
             stack,
@@ -860,6 +894,12 @@ impl CondensedSolver {
     /// Sizes of the split, for reports.
     pub fn sizes(&self) -> CondensedSizes {
         self.sizes
+    }
+
+    /// Ticks so far whose solved velocity field reversed and was relaxed, and the factor on
+    /// the velocity now (module documentation, "Relaxation").
+    pub fn relaxation(&self) -> (u64, f64) {
+        (self.relaxed_ticks, self.relaxation)
     }
 
     /// Step the matrix was factorised for, s.
@@ -1038,8 +1078,29 @@ impl CondensedSolver {
                 }
             }
         }
+        // Under-relaxation of the modified Newton step (module documentation, "Relaxation"):
+        // a velocity field that reverses from one tick to the next is the frozen matrix's
+        // overshoot, never the body's motion.
+        let (mut dot_old_new, mut old2, mut new2, mut new_max2) = (0.0, 0.0, 0.0, 0.0f64);
         for (k, &d) in self.eq_dof.iter().enumerate() {
-            let vi = f64::from(self.rhs[(k, 0)]) - self.z1[k];
+            let vn = f64::from(self.rhs[(k, 0)]) - self.z1[k];
+            let vo = v[d / 3][d % 3];
+            dot_old_new += vo * vn;
+            old2 += vo * vo;
+            new2 += vn * vn;
+            new_max2 = new_max2.max(vn * vn);
+        }
+        let reversed = dot_old_new < REVERSAL_COSINE * (old2 * new2).sqrt()
+            && new_max2 > REVERSAL_MIN_SPEED_M_PER_S * REVERSAL_MIN_SPEED_M_PER_S;
+        self.relaxation = if reversed {
+            self.relaxed_ticks += 1;
+            (self.relaxation * 0.5).max(MIN_RELAXATION)
+        } else {
+            (self.relaxation * RELAXATION_RECOVERY).min(1.0)
+        };
+        let alpha = self.relaxation;
+        for (k, &d) in self.eq_dof.iter().enumerate() {
+            let vi = alpha * (f64::from(self.rhs[(k, 0)]) - self.z1[k]);
             v[d / 3][d % 3] = vi;
             x[d / 3][d % 3] += vi * h;
         }
