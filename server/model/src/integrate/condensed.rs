@@ -4,7 +4,7 @@
 //! A probe pressing an organ deforms it strongly near the contact and barely elsewhere. The
 //! body is split by an [`ActiveRegion`] (a ball around the expected contact):
 //!
-//! - **active elements**: every tetrahedron with a node inside the ball. They keep the full
+//! - **active elements**: every tetrahedron with a (corner) node inside the ball. They keep the full
 //!   nonlinear material, the viscous stress, the lumped masses and the dynamics;
 //! - **far elements**: all others, linearised at rest and massless (quasi-static). Their
 //!   stiffness is condensed onto the *interface* nodes `G` (active nodes that also belong to a
@@ -47,8 +47,8 @@
 //! many ticks per period), so the solved velocity is scaled by a factor that halves on each
 //! such tick (down to [`MIN_RELAXATION`]) and grows back by [`RELAXATION_RECOVERY`] per tick
 //! otherwise: an under-relaxed Newton iteration. It only removes velocity, and `v' = 0` still
-//! needs `f = 0`, so equilibria are unchanged; shallow presses never trigger it
-//! (docs/decisions.md, "The whole-body rest factor").
+//! needs `f = 0`, so equilibria are unchanged; a shallow press triggers it once at most, where
+//! the device stops (docs/decisions.md, "The whole-body rest factor").
 //!
 //! Limits: the ball is fixed when the model is built (a contact outside it is not seen: the
 //! caller restricts the touchable surface, [`CondensedSolver::is_active_triangle`]), unless it
@@ -81,7 +81,7 @@ use crate::element::tangent::cell_tangent_blocks_of;
 use crate::material::{MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
 
-/// The contact-local region of a condensed model: every tetrahedron with a node within
+/// The contact-local region of a condensed model: every tetrahedron with a corner node within
 /// `radius_m` of `centre_m` (rest positions) is active.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ActiveRegion {
