@@ -452,7 +452,7 @@ impl Simulation {
             (_, true) => PointLoadZone::Refused(
                 "this scene's active region follows the probe (active_region.follow) and takes no point loads: a load away from the probe would act on condensed elements; use the probe, or a scene with a fixed region or none",
             ),
-            (Stepper::Condensed(c), false) => {
+            (Stepper::Condensed(c), false) if !c.is_whole_body() => {
                 let r = c.region();
                 PointLoadZone::Ball {
                     centre_m: r.centre_m,

@@ -152,6 +152,12 @@ fn quadratic_elements_condense_and_the_whole_body_rest_factor_settles_at_the_exp
     // Every element is active, nothing is condensed.
     assert_eq!(sizes.active_tets, whole.fem().tets().len());
     assert_eq!(sizes.interface_nodes, 0);
+    assert!(whole.condensed().expect("condensed").is_whole_body());
+    // Point loads act anywhere on it.
+    assert_eq!(
+        whole.point_load_zone(),
+        haptic_model::body::PointLoadZone::Anywhere
+    );
     let mut part = Simulation::new(&quadratic_lv(Some(ACTIVE))).expect("quadratic region");
     let psizes = part.condensed().expect("condensed").sizes();
     assert!(

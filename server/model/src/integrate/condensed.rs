@@ -891,6 +891,12 @@ impl CondensedSolver {
         self.region
     }
 
+    /// Whether the region holds every element (nothing condensed: backward Euler with the rest
+    /// factor on the whole body, [`crate::integrate::LinearSolver::RestCholesky`]).
+    pub fn is_whole_body(&self) -> bool {
+        self.gamma_dof.is_empty() && self.far.dofs.is_empty()
+    }
+
     /// Sizes of the split, for reports.
     pub fn sizes(&self) -> CondensedSizes {
         self.sizes
