@@ -134,16 +134,20 @@ fn quadratic_lv(region: Option<ActiveRegion>) -> haptic_model::scene::Scene {
     scene
 }
 
+/// The built-in `lv` as shipped, Hertz patch: symplectic Euler at 0.9 of the critical step
+/// (the default configuration), the reference of the rest factor's tests.
+fn explicit_quadratic_lv() -> Simulation {
+    let mut s = quadratic_lv(None);
+    s.integrator.kind = IntegratorKind::SymplecticEuler;
+    s.integrator.substeps = None;
+    s.integrator.linear_solver = LinearSolver::Cg;
+    s.integrator.safety_factor = 0.9;
+    Simulation::new(&s).expect("explicit")
+}
+
 #[test]
 fn quadratic_elements_condense_and_the_whole_body_rest_factor_settles_at_the_explicit_force() {
-    let mut explicit = {
-        let mut s = quadratic_lv(None);
-        s.integrator.kind = IntegratorKind::SymplecticEuler;
-        s.integrator.substeps = None;
-        s.integrator.linear_solver = LinearSolver::Cg;
-        s.integrator.safety_factor = 0.9;
-        Simulation::new(&s).expect("explicit")
-    };
+    let mut explicit = explicit_quadratic_lv();
     let mut whole = Simulation::new(&quadratic_lv(None)).expect("rest factor");
     let sizes = whole
         .condensed()
@@ -215,14 +219,7 @@ fn deep_hold(sim: &mut Simulation, depth_m: f64) -> (f64, f64) {
 /// steady and equals symplectic Euler's on the same body; a shallow press hardly relaxes.
 #[test]
 fn a_deep_press_on_the_rest_factor_holds_steady_at_the_explicit_force() {
-    let mut explicit = {
-        let mut s = quadratic_lv(None);
-        s.integrator.kind = IntegratorKind::SymplecticEuler;
-        s.integrator.substeps = None;
-        s.integrator.linear_solver = LinearSolver::Cg;
-        s.integrator.safety_factor = 0.9;
-        Simulation::new(&s).expect("explicit")
-    };
+    let mut explicit = explicit_quadratic_lv();
     let mut rest = Simulation::new(&quadratic_lv(None)).expect("rest factor");
     let (elo, ehi) = deep_hold(&mut explicit, 0.005);
     let (rlo, rhi) = deep_hold(&mut rest, 0.005);
