@@ -190,6 +190,13 @@ fn dot_avx2(a: &[f32], b: &[f32]) -> f32 {
     s
 }
 
+/// A supernode's first column, column count, start of its values and pattern rows.
+#[inline(always)]
+fn supernode(node: [u32; 5], rows: &[u32]) -> (usize, usize, usize, &[u32]) {
+    let [c0, nc, r0, nr, v0] = node.map(|v| v as usize);
+    (c0, nc, v0, &rows[r0..r0 + nr])
+}
+
 /// Forward `L y = b` then backward `L^T x = y` over the supernodes (module docs); `x` holds
 /// `b` in the permuted numbering and receives `x`.
 #[inline(always)]
@@ -200,16 +207,9 @@ fn sweep<const AVX2: bool>(
     x: &mut [f32],
     y: &mut [f32],
 ) {
-    for &[c0, nc, r0, nr, v0] in nodes {
-        let (c0, nc, r0, nr, v0) = (
-            c0 as usize,
-            nc as usize,
-            r0 as usize,
-            nr as usize,
-            v0 as usize,
-        );
-        let h = nc + nr;
-        let pattern = &rows[r0..r0 + nr];
+    for &node in nodes {
+        let (c0, nc, v0, pattern) = supernode(node, rows);
+        let h = nc + pattern.len();
         let y = &mut y[..h];
         y[..nc].copy_from_slice(&x[c0..c0 + nc]);
         y[nc..].fill(0.0);
@@ -227,16 +227,9 @@ fn sweep<const AVX2: bool>(
             x[r as usize] += yr;
         }
     }
-    for &[c0, nc, r0, nr, v0] in nodes.iter().rev() {
-        let (c0, nc, r0, nr, v0) = (
-            c0 as usize,
-            nc as usize,
-            r0 as usize,
-            nr as usize,
-            v0 as usize,
-        );
-        let h = nc + nr;
-        let pattern = &rows[r0..r0 + nr];
+    for &node in nodes.iter().rev() {
+        let (c0, nc, v0, pattern) = supernode(node, rows);
+        let h = nc + pattern.len();
         let y = &mut y[..h];
         y[..nc].copy_from_slice(&x[c0..c0 + nc]);
         for (yr, &r) in y[nc..].iter_mut().zip(pattern) {

@@ -442,22 +442,17 @@ fn part_model(body: &FemModel, mesh: &TetMesh, keep: &[bool]) -> Result<FemModel
 
 /// The sub-mesh with the tetrahedra `keep` (every node kept, so numbering is shared).
 fn sub_mesh(mesh: &TetMesh, keep: &[bool]) -> TetMesh {
+    fn kept<T: Copy>(rows: &[T], keep: &[bool]) -> Vec<T> {
+        rows.iter()
+            .zip(keep)
+            .filter(|(_, k)| **k)
+            .map(|(r, _)| *r)
+            .collect()
+    }
     TetMesh {
         nodes: mesh.nodes.clone(),
-        tets: mesh
-            .tets
-            .iter()
-            .zip(keep)
-            .filter(|(_, k)| **k)
-            .map(|(t, _)| *t)
-            .collect(),
-        tet_edge_nodes: mesh
-            .tet_edge_nodes
-            .iter()
-            .zip(keep)
-            .filter(|(_, k)| **k)
-            .map(|(t, _)| *t)
-            .collect(),
+        tets: kept(&mesh.tets, keep),
+        tet_edge_nodes: kept(&mesh.tet_edge_nodes, keep),
         surfaces: Vec::new(),
         node_groups: Vec::new(),
     }
