@@ -219,6 +219,11 @@ impl RelayFrame {
 }
 
 /// The relay of one session: its upstream, latest frame and status.
+///
+/// The three channels are written with `send_replace` / `send_if_modified`, which store the
+/// value even while no receiver exists: a plain `send` drops it then, and an upstream that
+/// failed before its first browser subscribed (an unknown session answers at once) left that
+/// browser waiting for an error that never came.
 struct SessionRelay {
     counters: RelayCounters,
     latest: watch::Sender<Option<Arc<RelayFrame>>>,
@@ -282,7 +287,7 @@ impl Relay {
     /// One browser of `id` left; the last one stops the upstream.
     fn leave(&self, id: &str, s: &Arc<SessionRelay>) {
         if s.counters.browsers.fetch_sub(1, Ordering::AcqRel) == 1 {
-            let _ = s.stop.send(true);
+            s.stop.send_replace(true);
             let mut sessions = self.sessions.lock().unwrap_or_else(|e| e.into_inner());
             if sessions.get(id).is_some_and(|x| Arc::ptr_eq(x, s)) {
                 sessions.remove(id);
@@ -293,7 +298,7 @@ impl Relay {
     /// The upstream of `id` ended (error, or the session stopped): its browsers get the last
     /// message and close; a later browser starts a new upstream.
     fn forget(&self, id: &str, s: &Arc<SessionRelay>) {
-        let _ = s.stop.send(true);
+        s.stop.send_replace(true);
         let mut sessions = self.sessions.lock().unwrap_or_else(|e| e.into_inner());
         if sessions.get(id).is_some_and(|x| Arc::ptr_eq(x, s)) {
             sessions.remove(id);
@@ -342,7 +347,7 @@ async fn upstream(relay: Arc<Relay>, id: String, s: Arc<SessionRelay>) {
         Ok(r) => r.into_inner(),
         Err(status) => {
             let e = ClientError::from(status);
-            let _ = s.status.send(Some(Arc::new(
+            s.status.send_replace(Some(Arc::new(
                 json!({"type": "error", "message": e.to_string()}).to_string(),
             )));
             relay.forget(&id, &s);
@@ -397,9 +402,9 @@ async fn upstream(relay: Arc<Relay>, id: String, s: Arc<SessionRelay>) {
             keyframe: OnceLock::new(),
             keyframe_with_topology: OnceLock::new(),
         };
-        let _ = s.latest.send(Some(Arc::new(frame)));
+        s.latest.send_replace(Some(Arc::new(frame)));
     };
-    let _ = s.status.send(Some(Arc::new(ended.to_string())));
+    s.status.send_replace(Some(Arc::new(ended.to_string())));
     relay.forget(&id, &s);
 }
 
@@ -427,15 +432,18 @@ async fn poll_stats(relay: Arc<Relay>, id: String, s: Arc<SessionRelay>) {
         v["relay_browsers"] = json!(c.browsers.load(Ordering::Relaxed));
         v["relay_frames_sent"] = json!(c.frames_sent.load(Ordering::Relaxed));
         v["relay_frames_dropped"] = json!(c.frames_dropped.load(Ordering::Relaxed));
-        // Errors and the end of the stream stay: only replace an earlier status.
-        let keep = s
-            .status
-            .borrow()
-            .as_ref()
-            .is_some_and(|m| !m.contains("\"type\":\"status\""));
-        if !keep {
-            let _ = s.status.send(Some(Arc::new(v.to_string())));
-        }
+        // Errors and the end of the stream stay: only replace an earlier status (checked and
+        // replaced under the channel's lock, so an error sent meanwhile is never overwritten).
+        let v = Arc::new(v.to_string());
+        s.status.send_if_modified(|cur| {
+            let keep = cur
+                .as_ref()
+                .is_some_and(|m| !m.contains("\"type\":\"status\""));
+            if !keep {
+                *cur = Some(v);
+            }
+            !keep
+        });
     }
 }
 

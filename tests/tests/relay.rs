@@ -200,15 +200,20 @@ async fn one_upstream_for_many_browsers_keyframes_first_and_bad_input_answered()
     }
     ensure!(got, "no keyframe after the request");
 
-    // An unknown session: an error message, then the socket closes.
-    let (mut ws, _) =
-        tokio_tungstenite::connect_async(format!("ws://{addr}/ws?session=nosuchsession")).await?;
-    let _hello = next_text(&mut ws).await?;
-    let e = next_text(&mut ws).await?;
-    ensure!(
-        e["type"] == "error" && e["message"].as_str().unwrap_or("").contains("NOT_FOUND"),
-        "{e}"
-    );
+    // An unknown session: an error message, then the socket closes. Every time: the daemon
+    // refuses at once, often before the browser's task has subscribed to the relay's status
+    // (an error sent then used to be lost, and the browser waited forever).
+    for _ in 0..10 {
+        let (mut ws, _) =
+            tokio_tungstenite::connect_async(format!("ws://{addr}/ws?session=nosuchsession"))
+                .await?;
+        let _hello = next_text(&mut ws).await?;
+        let e = next_text(&mut ws).await?;
+        ensure!(
+            e["type"] == "error" && e["message"].as_str().unwrap_or("").contains("NOT_FOUND"),
+            "{e}"
+        );
+    }
     drop(browsers);
     Ok(())
 }
