@@ -357,6 +357,9 @@ fn main() {
                 scene.integrator.safety_factor = r.safety_factor;
                 scene.integrator.cg_max_iterations = r.cg_max_iterations;
                 scene.integrator.max_substeps = 1000;
+                // Backward Euler with CG unless the rest factor is asked for (the built-in
+                // scene's own solver is the rest factor).
+                scene.integrator.linear_solver = haptic_model::integrate::LinearSolver::Cg;
                 if let Some(margin) = prefactored_margin {
                     scene.integrator.linear_solver =
                         haptic_model::integrate::LinearSolver::RestCholesky;

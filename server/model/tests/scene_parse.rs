@@ -66,7 +66,9 @@ fn every_builtin_loads() {
     assert!((lv.material.mu_pa - 5000.0).abs() < 1e-9);
     assert!((lv.material.youngs_modulus_pa() - 14500.0).abs() < 1e-9);
     assert_eq!(lv.material.density_kg_per_m3, 1060.0);
-    assert_eq!(lv.integrator.kind, IntegratorKind::SymplecticEuler);
+    assert_eq!(lv.integrator.kind, IntegratorKind::BackwardEuler);
+    assert_eq!(lv.integrator.linear_solver, LinearSolver::RestCholesky);
+    assert_eq!(lv.integrator.stiffness_margin, 2.0);
     assert_eq!(lv.length_unit_m, 1e-3);
     assert!(lv.mesh.is_quadratic());
     assert!((350..=650).contains(&lv.mesh.tet_count()));

@@ -175,9 +175,13 @@ pub fn smoothstep_rate(t: f64) -> f64 {
 }
 
 /// The built-in `lv` scene (material, probe, integrator settings) on `mesh`: base clamped,
-/// epicardium touchable.
+/// epicardium touchable; with symplectic Euler instead of the scene's backward Euler on the
+/// rest factor, so that a scene built on a large mesh factorises nothing unless its caller
+/// chooses backward Euler (and its linear solver: the rest factor of the built-in scene is
+/// kept for it).
 pub fn lv_scene_on(mesh: TetMesh) -> Scene {
     let mut scene = load_builtin("lv").expect("built-in lv scene");
+    scene.integrator.kind = haptic_model::integrate::IntegratorKind::SymplecticEuler;
     scene.clamped_nodes = mesh
         .nodes_of_surfaces(&["BASE".to_string()], "boundary.clamped")
         .expect("BASE surface");

@@ -7,8 +7,8 @@ use std::time::Instant;
 
 use haptic_model::DVec3;
 use haptic_model::element::StrainSmoothing;
-use haptic_model::integrate::IntegratorKind;
 use haptic_model::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
+use haptic_model::integrate::{IntegratorKind, LinearSolver};
 use haptic_model::material::MaterialModel;
 use haptic_model::sim::Simulation;
 
@@ -111,6 +111,7 @@ pub fn run(cfg: &Config) -> Vec<Row> {
                 kind,
                 sf,
                 cg,
+                solver: LinearSolver::Cg,
                 material: model,
             };
             let mut sc = base.clone();
@@ -118,6 +119,7 @@ pub fn run(cfg: &Config) -> Vec<Row> {
             sc.integrator.kind = kind;
             sc.integrator.safety_factor = sf;
             sc.integrator.cg_max_iterations = cg;
+            sc.integrator.linear_solver = m.solver;
             sc.integrator.max_substeps = 1000;
             let mut row =
                 Row::new(Scenario::LvProbe, m.label(), kind.name(), &sc.mesh).smoothed(smoothing);

@@ -296,6 +296,7 @@ fn run_fem(cfg: &Config, rows: &mut Vec<Row>) {
                 sc.integrator.kind = m.kind;
                 sc.integrator.safety_factor = m.sf;
                 sc.integrator.cg_max_iterations = m.cg;
+                sc.integrator.linear_solver = m.solver;
                 sc.integrator.max_substeps = 1000;
                 let mut row = Row::new(Scenario::LvProbe, m.label(), m.kind.name(), &scene.mesh)
                     .smoothed(smoothing)

@@ -1,7 +1,7 @@
 //! The dynamic methods the scenarios compare ([`methods`]): integrator, step setting and
 //! material, with the labels that name their curves.
 
-use haptic_model::integrate::{IntegratorKind, IntegratorParams};
+use haptic_model::integrate::{IntegratorKind, IntegratorParams, LinearSolver};
 use haptic_model::material::MaterialModel;
 
 use crate::common::{CG_ITERATIONS, INTEGRATORS, MATERIALS};
@@ -12,28 +12,39 @@ pub struct Method {
     pub kind: IntegratorKind,
     /// Safety factor on the critical step (explicit schemes; backward Euler: one sub-step).
     pub sf: f64,
-    /// CG iteration cap (backward Euler).
+    /// CG iteration cap (backward Euler with CG).
     pub cg: u32,
+    /// Backward Euler's linear solver: CG on the current tangent, or the rest factor (the
+    /// built-in `lv`'s default).
+    pub solver: LinearSolver,
     pub material: MaterialModel,
 }
 
 impl Method {
     /// The curve label: "backward-euler cg=10", "semi-implicit sf=0.5 [corotational]".
     pub fn label(&self) -> String {
-        let base = match self.kind {
-            IntegratorKind::BackwardEuler => format!("{} cg={}", self.kind.name(), self.cg),
-            k => format!("{} sf={}", k.name(), self.sf),
+        let base = match (self.kind, self.solver) {
+            (IntegratorKind::BackwardEuler, LinearSolver::RestCholesky) => {
+                format!("{} rest-cholesky", self.kind.name())
+            }
+            (IntegratorKind::BackwardEuler, LinearSolver::Cg) => {
+                format!("{} cg={}", self.kind.name(), self.cg)
+            }
+            (k, _) => format!("{} sf={}", k.name(), self.sf),
         };
         material_label(base, self.material)
     }
 
     /// "auto sub-steps at 0.5 dt_crit (3)" or "1 sub-step(s), CG <= 10 it."
     pub fn step_text(&self, substeps: u32) -> String {
-        match self.kind {
-            IntegratorKind::BackwardEuler => {
+        match (self.kind, self.solver) {
+            (IntegratorKind::BackwardEuler, LinearSolver::RestCholesky) => {
+                format!("{substeps} sub-step(s), rest factor")
+            }
+            (IntegratorKind::BackwardEuler, LinearSolver::Cg) => {
                 format!("{substeps} sub-step(s), CG <= {} it.", self.cg)
             }
-            _ => format!("auto sub-steps at {} dt_crit ({substeps})", self.sf),
+            (_, _) => format!("auto sub-steps at {} dt_crit ({substeps})", self.sf),
         }
     }
 
@@ -43,6 +54,7 @@ impl Method {
             kind: self.kind,
             safety_factor: self.sf,
             cg_max_iterations: self.cg,
+            linear_solver: self.solver,
             max_substeps: 2000,
             ..IntegratorParams::default()
         }
@@ -59,9 +71,9 @@ pub fn material_label(base: String, m: MaterialModel) -> String {
 }
 
 /// The dynamic methods of a scenario: every integrator on St. Venant-Kirchhoff (explicit ones
-/// at each safety factor of `safeties`, backward Euler at each CG cap of [`CG_ITERATIONS`]),
-/// and the other materials with the default semi-implicit scheme at `sf` 0.5 and backward
-/// Euler at the largest CG cap.
+/// at each safety factor of `safeties`, backward Euler at each CG cap of [`CG_ITERATIONS`] and
+/// with the rest factor), and the other materials with the semi-implicit scheme at `sf` 0.5
+/// and backward Euler at the largest CG cap and with the rest factor.
 pub fn methods(safeties: &[f64]) -> Vec<Method> {
     let mut out = Vec::new();
     for &material in MATERIALS {
@@ -79,9 +91,17 @@ pub fn methods(safeties: &[f64]) -> Vec<Method> {
                             kind,
                             sf: 1.0,
                             cg,
+                            solver: LinearSolver::Cg,
                             material,
                         });
                     }
+                    out.push(Method {
+                        kind,
+                        sf: 1.0,
+                        cg: 0,
+                        solver: LinearSolver::RestCholesky,
+                        material,
+                    });
                 }
                 IntegratorKind::SemiImplicit | IntegratorKind::SymplecticEuler => {
                     if !stvk && kind != IntegratorKind::SemiImplicit {
@@ -95,6 +115,7 @@ pub fn methods(safeties: &[f64]) -> Vec<Method> {
                             kind,
                             sf,
                             cg: 20,
+                            solver: LinearSolver::Cg,
                             material,
                         });
                     }

@@ -251,7 +251,8 @@ pub struct CondensedSolver {
     stack: Workspace,
     /// Right-hand sides: the step's and the coupling's `U`.
     rhs: Mat<f32>,
-    /// The step's right-hand side in double precision.
+    /// The step's right-hand side in double precision (with interface components only: a
+    /// whole-body solver writes it straight into `rhs`).
     b: Vec<f64>,
     /// Per body node: its column block in `contact_z`, or `u32::MAX`
     /// ([`CondensedSolver::prepare_contact`]).
@@ -259,7 +260,8 @@ pub struct CondensedSolver {
     /// `A^-1 e` for the three components of every contact node: per node `m` rows of three
     /// interleaved values.
     contact_z: Vec<f32>,
-    /// Scratch: `A^-1 U`.
+    /// Scratch: the probe's correction `A^-1 A^T s`, then the solved velocity `v'` before
+    /// relaxation.
     z1: Vec<f64>,
     /// Woodbury capacitance of the probe's term (`F x F`, [`MAX_COUPLING_ROWS`] squared).
     capacitance: Vec<f64>,
@@ -957,18 +959,25 @@ impl CondensedSolver {
             }
             self.surface_cursor = if end == rows { 0 } else { end };
         }
-        // b = M v + h (f - S u_G).
-        for (k, &d) in self.eq_dof.iter().enumerate() {
-            self.b[k] = self.mass[k] * comp(v, d) + h * comp(f, d);
-        }
-        for (a, &da) in self.gamma_dof.iter().enumerate() {
-            let row = &self.schur[a * g..(a + 1) * g];
-            let su = dot(self.avx2, row, &self.u_gamma);
-            self.b[self.eq[da]] -= h * su;
-        }
-        for (k, b) in self.b.iter().enumerate() {
-            self.rhs[(k, 0)] = *b as f32;
-            self.rhs[(k, 1)] = 0.0;
+        // b = M v + h (f - S u_G), into the first right-hand-side column (the second is
+        // filled where it is used).
+        let rhs0 = self.rhs.col_as_slice_mut(0);
+        if g == 0 {
+            for ((r, &d), &m) in rhs0.iter_mut().zip(&self.eq_dof).zip(&self.mass) {
+                *r = (m * comp(v, d) + h * comp(f, d)) as f32;
+            }
+        } else {
+            for ((b, &d), &m) in self.b.iter_mut().zip(&self.eq_dof).zip(&self.mass) {
+                *b = m * comp(v, d) + h * comp(f, d);
+            }
+            for (a, &da) in self.gamma_dof.iter().enumerate() {
+                let row = &self.schur[a * g..(a + 1) * g];
+                let su = dot(self.avx2, row, &self.u_gamma);
+                self.b[self.eq[da]] -= h * su;
+            }
+            for (r, b) in rhs0.iter_mut().zip(&self.b) {
+                *r = *b as f32;
+            }
         }
         // The probe's term `h^2 A^T C A` by Woodbury on the factor:
         // `v' = z0 - A^-1 A^T W^-1 A z0`, `z0 = A^-1 b`, `W = C^-1 / h^2 + A A^-1 A^T`, with the
@@ -1082,10 +1091,13 @@ impl CondensedSolver {
         // Under-relaxation of the modified Newton step (module documentation, "Relaxation"):
         // a velocity field that reverses from one tick to the next is the frozen matrix's
         // overshoot, never the body's motion.
+        // `z1` becomes the solved (unrelaxed) velocity.
         let (mut dot_old_new, mut old2, mut new2, mut new_max2) = (0.0, 0.0, 0.0, 0.0f64);
-        for (k, &d) in self.eq_dof.iter().enumerate() {
-            let vn = f64::from(self.rhs[(k, 0)]) - self.z1[k];
-            let vo = v[d / 3][d % 3];
+        let z0 = self.rhs.col_as_slice(0);
+        for ((z, &d), &z0) in self.z1.iter_mut().zip(&self.eq_dof).zip(z0) {
+            let vn = f64::from(z0) - *z;
+            *z = vn;
+            let vo = comp(v, d);
             dot_old_new += vo * vn;
             old2 += vo * vo;
             new2 += vn * vn;
@@ -1100,8 +1112,8 @@ impl CondensedSolver {
             (self.relaxation * RELAXATION_RECOVERY).min(1.0)
         };
         let alpha = self.relaxation;
-        for (k, &d) in self.eq_dof.iter().enumerate() {
-            let vi = alpha * (f64::from(self.rhs[(k, 0)]) - self.z1[k]);
+        for (&d, &vn) in self.eq_dof.iter().zip(&self.z1) {
+            let vi = alpha * vn;
             v[d / 3][d % 3] = vi;
             x[d / 3][d % 3] += vi * h;
         }
