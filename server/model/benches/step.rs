@@ -5,7 +5,8 @@
 //! case: contact and implicit coupling active), with each contact model the integrator carries
 //! (the Hertz patch, the sphere and the patch under every integrator; the sphere is implicit
 //! under backward Euler), backward Euler also with the rest matrix factorised once on the whole
-//! body (`linear_solver = "rest-cholesky"`, Hertz patch), and for the condensed `lv_h1` scene
+//! body (`linear_solver = "rest-cholesky"`, the built-in `lv`'s default; Hertz patch and
+//! sphere), and for the condensed `lv_h1` scene
 //! (backward Euler only).
 //!
 //! Run: `cargo bench -p haptic-model --bench step` (add `-- --quick` for fewer ticks).
@@ -110,7 +111,8 @@ fn main() -> anyhow::Result<()> {
             IntegratorKind::BackwardEuler,
         ] {
             // Backward Euler also with the rest matrix factorised once on the whole body
-            // (`integrator.linear_solver = "rest-cholesky"`), with the default contact.
+            // (`integrator.linear_solver = "rest-cholesky"`), with the default contact and the
+            // sphere.
             let rest_factor =
                 kind == IntegratorKind::BackwardEuler && scene.active_region.is_none();
             let runs = [
@@ -118,6 +120,7 @@ fn main() -> anyhow::Result<()> {
                 (ContactModel::Sphere, LinearSolver::Cg),
                 (ContactModel::Patch, LinearSolver::Cg),
                 (ContactModel::PatchHertz, LinearSolver::RestCholesky),
+                (ContactModel::Sphere, LinearSolver::RestCholesky),
             ];
             for (contact, solver) in runs {
                 if solver == LinearSolver::RestCholesky && !rest_factor {
