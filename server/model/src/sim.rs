@@ -17,8 +17,8 @@ use glam::DVec3;
 
 use crate::ModelError;
 use crate::body::{BodyInfo, BodyStats, PointLoadZone, SoftBody, SurfaceCapacity, SurfaceTopology};
-use crate::contact::Probe;
 use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
+use crate::contact::{ContactModel, Probe};
 use crate::element::{CLAMPED, FemModel};
 use crate::integrate::condensed::{ActiveRegion, CondensedSolver};
 use crate::integrate::follow::{FollowStats, RegionFollower};
@@ -169,6 +169,14 @@ impl Simulation {
         });
         let mut stepper =
             Stepper::new_with_progress(&fem, &scene.mesh, &p, &plan, region, progress)?;
+        // The exact sphere on the whole-body rest factor: a second factor for the ticks where
+        // a face enters the contact ([`CondensedSolver::add_entry_factor`]).
+        if let Stepper::Condensed(c) = &mut stepper
+            && c.is_whole_body()
+            && integrate::resolve_contact_model(scene.probe.contact) == ContactModel::Sphere
+        {
+            c.add_entry_factor(&fem, &scene.mesh, progress)?;
+        }
         let n = fem.node_count();
         let boundary = scene.mesh.boundary_triangles();
         let load_surface: Vec<[u32; 3]> = boundary

@@ -966,3 +966,74 @@ fn a_following_region_presses_right_at_ten_random_points() {
     // error: far elements linear; 1-3 % at the equator point).
     assert!(worst < 0.07, "largest difference {worst}");
 }
+
+/// The prepared contact columns are a shortcut, not a different answer, and they respect their
+/// memory limit: the whole-body rest factor of the linear LV (`lv_shell(2000)`) steps a probe
+/// row over five epicardial nodes to the same velocities with the columns prepared and with
+/// none (limit 0: the per-row solve), and the unprepared solver holds no column memory.
+#[test]
+fn prepared_contact_columns_give_the_unprepared_step_and_keep_their_memory_limit() {
+    use haptic_model::contact::ContactCoupling;
+    let (fem, mesh, f_ext, centre) = setup(StrainSmoothing::None);
+    let region = ActiveRegion::whole_body(fem.rest(), 2.0);
+    let mut prepared = CondensedSolver::new(&fem, &mesh, region, 1e-3).expect("rest factor");
+    let mut plain = prepared.clone();
+    let mut epi: Vec<u32> = mesh.surface("EPI").expect("EPI").triangles.concat();
+    epi.sort_unstable();
+    epi.dedup();
+    assert!(prepared.prepare_contact(&epi));
+    assert!(!plain.prepare_contact_within(&epi, 0));
+    let m = prepared.sizes().equations;
+    assert_eq!(
+        prepared.memory_bytes() - plain.memory_bytes(),
+        12 * m * epi.len(),
+        "the prepared columns' memory"
+    );
+    // One row along -x over the five epicardial nodes nearest the centre, weights summing to
+    // one, with the coupling's compliance (300 N/m).
+    let mut near = epi.clone();
+    near.sort_by(|&a, &b| {
+        mesh.nodes[a as usize]
+            .distance(centre)
+            .total_cmp(&mesh.nodes[b as usize].distance(centre))
+    });
+    near.truncate(5);
+    let vectors = vec![DVec3::new(-0.2, 0.0, 0.0); 5];
+    let row_ptr = [0u32, 5];
+    let (compliance, factor) = ([1.0 / 300.0], [(1.0f64 / 300.0).sqrt()]);
+    let coupling = ContactCoupling {
+        row_ptr: &row_ptr,
+        nodes: &near,
+        vectors: &vectors,
+        compliance: &compliance,
+        compliance_factor: &factor,
+    };
+    let n = fem.node_count();
+    let mut states = Vec::new();
+    for solver in [&mut prepared, &mut plain] {
+        let mut x = fem.rest().to_vec();
+        let mut v = vec![DVec3::ZERO; n];
+        let mut f = vec![DVec3::ZERO; n];
+        for _ in 0..20 {
+            f.copy_from_slice(&f_ext);
+            for &i in &near {
+                f[i as usize] += DVec3::new(-2e-3, 0.0, 0.0);
+            }
+            solver.active_model().add_internal_forces(&x, None, &mut f);
+            assert!(solver.step(&f, Some(coupling), &mut x, &mut v).is_finite());
+        }
+        states.push(v);
+    }
+    let scale = states[0].iter().map(|v| v.length()).fold(0.0, f64::max);
+    let diff = states[0]
+        .iter()
+        .zip(&states[1])
+        .map(|(a, b)| (*a - *b).length())
+        .fold(0.0, f64::max);
+    println!("largest speed {scale:.3e} m/s, largest difference {diff:.3e} m/s");
+    assert!(scale > 1e-4, "the probe row moved nothing: {scale}");
+    assert!(
+        diff <= 1e-4 * scale,
+        "prepared and unprepared steps differ by {diff:.3e} of {scale:.3e} m/s"
+    );
+}

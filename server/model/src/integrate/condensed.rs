@@ -81,6 +81,11 @@ use crate::element::tangent::cell_tangent_blocks_of;
 use crate::material::{MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
 
+/// Largest memory of the contact columns [`CondensedSolver::prepare_contact`] precomputes:
+/// 512 MiB (`lv_h1.msh` whole-body: 268 MB; a 50 000-element scene's touchable surface would
+/// take several GB and minutes of solves). Beyond it a tick in contact solves twice.
+pub const PREPARED_CONTACT_MAX_BYTES: usize = 512 << 20;
+
 /// The contact-local region of a condensed model: every tetrahedron with a corner node within
 /// `radius_m` of `centre_m` (rest positions) is active.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -282,7 +287,15 @@ pub struct CondensedSolver {
     far: FarField,
     sizes: CondensedSizes,
     node_active: Vec<bool>,
+    /// The same region with the rest stiffness unscaled (margin 1), stepped instead of this
+    /// one on ticks where a node enters the probe's rows ([`Self::add_entry_factor`]).
+    entry: Option<Box<CondensedSolver>>,
+    /// The nodes of the last tick's probe rows (capacity [`ENTRY_TRACKED_NODES`]).
+    last_contact: Vec<u32>,
 }
+
+/// Probe-row nodes remembered between ticks to tell a node entering the contact.
+const ENTRY_TRACKED_NODES: usize = 3 * MAX_COUPLING_ROWS;
 
 /// `a . b` (single-precision `a`) with eight independent partial sums, so that it vectorises
 /// (a plain fold is a serial chain of scalar adds).
@@ -823,15 +836,64 @@ impl CondensedSolver {
             },
             sizes,
             node_active,
+            entry: None,
+            last_contact: Vec::with_capacity(ENTRY_TRACKED_NODES),
         })
+    }
+
+    /// Adds the entry factor: the same region's tick matrix with the rest stiffness unscaled
+    /// (`c = 1`), stepped instead on ticks where a node enters the probe's rows. With the
+    /// implicit sphere a face entering the contact while sliding otherwise takes its load
+    /// against a body `c` times too stiff in its first tick, and the force turns at once (a
+    /// 20 mm/s stroke on the default LV: 9.0 % between ticks with `c = 2`, 6.1 % with the
+    /// entry factor; docs/decisions.md, "The whole-body rest factor"). Only those ticks use
+    /// it, so `c` still guards every other tick against the stiffening tangent. Costs a second
+    /// factorisation and the memory of one more solver (the prepared contact columns share
+    /// [`PREPARED_CONTACT_MAX_BYTES`]); a margin of 1 needs none. For a whole-body solver (a
+    /// following region's successors are prepared without it).
+    ///
+    /// # Errors
+    /// As [`CondensedSolver::new`].
+    pub fn add_entry_factor(
+        &mut self,
+        body: &FemModel,
+        mesh: &TetMesh,
+        progress: &mut dyn FnMut(&str, f64),
+    ) -> Result<(), ModelError> {
+        if self.region.stiffness_margin > 1.0 {
+            let region = ActiveRegion {
+                stiffness_margin: 1.0,
+                ..self.region
+            };
+            self.entry = Some(Box::new(Self::new_with_progress(
+                body, mesh, region, self.h, progress,
+            )?));
+        }
+        Ok(())
     }
 
     /// Precomputes `A^-1 e` for the three components of each of `nodes` (the nodes a probe
     /// patch can hold: the active touchable surface), so that a tick in contact needs one
     /// right-hand side instead of two. Nodes outside the region are skipped; a patch with a
     /// node not prepared falls back to the second right-hand side. Costs `3 |nodes|` solves
-    /// and `12 m |nodes|` bytes (`m` equations).
-    pub fn prepare_contact(&mut self, nodes: &[u32]) {
+    /// and `12 m |nodes|` bytes (`m` equations), at most [`PREPARED_CONTACT_MAX_BYTES`]:
+    /// beyond it nothing is prepared (a client's large whole-body scene must not take
+    /// gigabytes and minutes of solves) and the result is `false`.
+    pub fn prepare_contact(&mut self, nodes: &[u32]) -> bool {
+        self.prepare_contact_within(nodes, PREPARED_CONTACT_MAX_BYTES)
+    }
+
+    /// [`Self::prepare_contact`] with the memory limit `max_bytes`; `false` (nothing
+    /// prepared, the columns of an earlier call dropped) when the columns would exceed it.
+    pub fn prepare_contact_within(&mut self, nodes: &[u32], max_bytes: usize) -> bool {
+        if let Some(e) = self.entry.as_mut() {
+            e.prepare_contact_within(nodes, max_bytes / 2);
+        }
+        let max_bytes = if self.entry.is_some() {
+            max_bytes / 2
+        } else {
+            max_bytes
+        };
         let m = self.eq_dof.len();
         let mut list: Vec<u32> = nodes
             .iter()
@@ -841,6 +903,10 @@ impl CondensedSolver {
         list.sort_unstable();
         list.dedup();
         self.contact_col.iter_mut().for_each(|c| *c = u32::MAX);
+        if 12usize.saturating_mul(m).saturating_mul(list.len()) > max_bytes {
+            self.contact_z = Vec::new();
+            return false;
+        }
         self.contact_z = vec![0.0; 3 * m * list.len()];
         const BLOCK: usize = 16;
         let mut mem = MemBuffer::new(
@@ -875,6 +941,7 @@ impl CondensedSolver {
                 }
             }
         }
+        true
     }
 
     /// The active elements as a model over the whole body's nodes: its
@@ -938,6 +1005,23 @@ impl CondensedSolver {
         x: &mut [DVec3],
         v: &mut [DVec3],
     ) -> f64 {
+        // A node entering the probe's rows: the step with the unscaled rest stiffness, if
+        // built (its relaxation carried over both ways).
+        let entering = coupling.is_some_and(|c| {
+            c.nodes.len() > ENTRY_TRACKED_NODES
+                || c.nodes.iter().any(|i| !self.last_contact.contains(i))
+        });
+        self.last_contact.clear();
+        if let Some(c) = coupling {
+            let k = c.nodes.len().min(ENTRY_TRACKED_NODES);
+            self.last_contact.extend_from_slice(&c.nodes[..k]);
+        }
+        if entering && let Some(e) = self.entry.as_mut() {
+            e.relaxation = self.relaxation;
+            let r = e.step(f, coupling, x, v);
+            self.relaxation = e.relaxation;
+            return r;
+        }
         let h = self.h;
         let comp = |p: &[DVec3], d: usize| p[d / 3][d % 3];
         let rest = self.active.rest();
@@ -1212,7 +1296,8 @@ impl CondensedSolver {
     /// factor), for reports; index arrays and the active elements' model are not counted.
     pub fn memory_bytes(&self) -> usize {
         let far = self.far.llt.as_ref().map_or(0, |l| 8 * l.factor_entries());
-        4 * (self.factor.len() + self.schur.len() + self.contact_z.len() + self.map.len())
+        self.entry.as_ref().map_or(0, |e| e.memory_bytes())
+            + 4 * (self.factor.len() + self.schur.len() + self.contact_z.len() + self.map.len())
             + 24 * self.far.kfg.len()
             + far
     }
