@@ -966,10 +966,12 @@ impl CondensedSolver {
         self.sizes
     }
 
-    /// Ticks so far whose solved velocity field reversed and was relaxed, and the factor on
-    /// the velocity now (module documentation, "Relaxation").
+    /// Ticks so far whose solved velocity field reversed and was relaxed (those of the entry
+    /// factor included), and the factor on the velocity now (module documentation,
+    /// "Relaxation").
     pub fn relaxation(&self) -> (u64, f64) {
-        (self.relaxed_ticks, self.relaxation)
+        let entry = self.entry.as_ref().map_or(0, |e| e.relaxed_ticks);
+        (self.relaxed_ticks + entry, self.relaxation)
     }
 
     /// Step the matrix was factorised for, s.
