@@ -117,6 +117,18 @@ fn backward_euler_presses_holds_and_recovers_on_lv() {
 
 /// Quadratic (10-node) elements, every integrator: no allocation in the tick (the vectorised
 /// kernels keep their work arrays on the stack), bounded under the press.
+/// Allocations made by `ticks` ticks of [`input`]'s press (each tick must succeed).
+fn press_allocations(sim: &mut Simulation, ticks: usize) -> usize {
+    let mut allocations = 0;
+    for k in 0..ticks {
+        let inp = input(k);
+        let (out, n) = counted(|| sim.tick(&inp));
+        allocations += n;
+        out.unwrap();
+    }
+    allocations
+}
+
 #[test]
 fn quadratic_element_ticks_do_not_allocate() {
     for kind in [
@@ -133,14 +145,7 @@ fn quadratic_element_ticks_do_not_allocate() {
         scene.mesh = mesh;
         scene.integrator.kind = kind;
         let mut sim = Simulation::new(&scene).unwrap();
-        let mut allocations = 0;
-        for k in 0..1500 {
-            let inp = input(k);
-            let (out, n) = counted(|| sim.tick(&inp));
-            allocations += n;
-            out.unwrap();
-        }
-        assert_eq!(allocations, 0, "{kind:?}");
+        assert_eq!(press_allocations(&mut sim, 1500), 0, "{kind:?}");
         assert!(sim.stability().stable, "{kind:?}");
         assert!(
             sim.max_displacement_m() > 1e-3,
@@ -168,14 +173,11 @@ fn backward_euler_tick_does_not_allocate() {
                 0.5,
             )
             .unwrap();
-            let mut allocations = 0;
-            for k in 0..2500 {
-                let inp = input(k);
-                let (out, n) = counted(|| sim.tick(&inp));
-                allocations += n;
-                out.unwrap();
-            }
-            assert_eq!(allocations, 0, "{solver:?} {contact:?}");
+            assert_eq!(
+                press_allocations(&mut sim, 2500),
+                0,
+                "{solver:?} {contact:?}"
+            );
         }
     }
 }
