@@ -175,7 +175,7 @@ impl Simulation {
             && c.is_whole_body()
             && integrate::resolve_contact_model(scene.probe.contact) == ContactModel::Sphere
         {
-            c.add_entry_factor(&fem, &scene.mesh, progress)?;
+            c.add_entry_factor()?;
         }
         let n = fem.node_count();
         let boundary = scene.mesh.boundary_triangles();

@@ -287,15 +287,23 @@ pub struct CondensedSolver {
     far: FarField,
     sizes: CondensedSizes,
     node_active: Vec<bool>,
-    /// The same region with the rest stiffness unscaled (margin 1), stepped instead of this
-    /// one on ticks where a node enters the probe's rows ([`Self::add_entry_factor`]).
-    entry: Option<Box<CondensedSolver>>,
+    /// The tick matrix with the rest stiffness unscaled (margin 1), used instead of `factor`
+    /// on ticks where a node enters the probe's rows ([`Self::add_entry_factor`]).
+    entry: Option<EntryFactor>,
     /// The nodes of the last tick's probe rows (capacity [`ENTRY_TRACKED_NODES`]).
     last_contact: Vec<u32>,
 }
 
 /// Probe-row nodes remembered between ticks to tell a node entering the contact.
 const ENTRY_TRACKED_NODES: usize = 3 * MAX_COUPLING_ROWS;
+
+/// A second numeric factor on the solver's analysis and its prepared contact columns
+/// ([`CondensedSolver::add_entry_factor`]).
+#[derive(Debug, Clone)]
+struct EntryFactor {
+    factor: Vec<f32>,
+    contact_z: Vec<f32>,
+}
 
 /// `a . b` (single-precision `a`) with eight independent partial sums, so that it vectorises
 /// (a plain fold is a serial chain of scalar adds).
@@ -476,6 +484,83 @@ fn sub_mesh(mesh: &TetMesh, keep: &[bool]) -> TetMesh {
 /// Calls `push(row, col, value)` for every entry of the rest tangent stiffness of material
 /// `mat` on every cell of `fem` (N/m), rows and columns as global components `3 i + c`,
 /// constrained components skipped (duplicates are summed by the caller's assembly).
+/// What the tick matrix `A = M (1 + alpha h) + h D0 + h^2 (c K0 + S)` is made of, for any
+/// stiffness margin `c` (the lumped masses are the whole body's: an interface node keeps the
+/// share of its far elements).
+struct TickMatrixParts<'a> {
+    active: &'a FemModel,
+    material: MaterialParams,
+    eq: &'a [usize],
+    gamma_dof: &'a [usize],
+    /// `S`, row-major `g x g`.
+    schur: &'a [f64],
+    /// Lumped mass per equation, kg.
+    mass: &'a [f64],
+    h: f64,
+}
+
+impl TickMatrixParts<'_> {
+    /// The lower triangle of `A` with margin `c`, in single precision: the solve only sets
+    /// the step, while the residual (forces) stays in double precision, so equilibria are
+    /// unaffected (module documentation); it halves the memory the solve streams.
+    fn lower(&self, c: f64) -> Result<SparseColMat<usize, f32>, ModelError> {
+        let (h, mat, eq) = (self.h, self.material, self.eq);
+        let combined = MaterialParams {
+            model: MaterialModel::StVenantKirchhoff,
+            lambda_pa: c * h * h * mat.lambda_pa + 2.0 * h * mat.phi_pa_s,
+            mu_pa: c * h * h * mat.mu_pa + 2.0 * h * mat.psi_pa_s,
+            ..mat
+        };
+        let mut lower = Vec::new();
+        let mut push = |r: usize, c: usize, v: f64| {
+            if c <= r {
+                lower.push(Entry::new(r, c, v as f32));
+            }
+        };
+        rest_tangent(self.active, &combined, |r, c, v| push(eq[r], eq[c], v));
+        let g = self.gamma_dof.len();
+        for a in 0..g {
+            for b in 0..g {
+                let v = h * h * self.schur[a * g + b];
+                if v != 0.0 {
+                    push(eq[self.gamma_dof[a]], eq[self.gamma_dof[b]], v);
+                }
+            }
+        }
+        for (k, m) in self.mass.iter().enumerate() {
+            push(k, k, m * (1.0 + mat.mass_damping_per_s * h));
+        }
+        sparse(self.mass.len(), &lower)
+    }
+}
+
+/// The single-precision Cholesky factor of `a_lower` on its analysis `symbolic`.
+///
+/// # Errors
+/// [`ModelError::InvalidMesh`] when the matrix is not positive definite.
+fn factorize(
+    symbolic: &SymbolicCholesky<usize>,
+    a_lower: &SparseColMat<usize, f32>,
+) -> Result<Vec<f32>, ModelError> {
+    let mut factor = vec![0.0f32; symbolic.len_val()];
+    let mut mem =
+        MemBuffer::new(symbolic.factorize_numeric_llt_scratch::<f32>(Par::Seq, Default::default()));
+    symbolic
+        .factorize_numeric_llt::<f32>(
+            &mut factor,
+            a_lower.as_ref(),
+            Side::Lower,
+            Default::default(),
+            Par::Seq,
+            MemStack::new(&mut mem),
+            Default::default(),
+        )
+        .map_err(|e| {
+            ModelError::InvalidMesh(format!("the tick matrix is not positive definite: {e:?}"))
+        })?;
+    Ok(factor)
+}
+
 fn rest_tangent(fem: &FemModel, mat: &MaterialParams, mut push: impl FnMut(usize, usize, f64)) {
     let mut blocks = Vec::new();
     let constraint = fem.constraints();
@@ -721,77 +806,26 @@ impl CondensedSolver {
                 schur[b * g + a] = s;
             }
         }
-        // A = M (1 + alpha h) + h D0 + h^2 (c K0 + S); the lumped masses are the whole body's
-        // (an interface node keeps the share of its far elements).
         progress("condensation: tick matrix factorisation", 0.85);
         let h = dt_s;
-        let mat = *body.material();
-        let c = region.stiffness_margin;
-        let combined = MaterialParams {
-            model: MaterialModel::StVenantKirchhoff,
-            lambda_pa: c * h * h * mat.lambda_pa + 2.0 * h * mat.phi_pa_s,
-            mu_pa: c * h * h * mat.mu_pa + 2.0 * h * mat.psi_pa_s,
-            ..mat
-        };
-        let mut a_t = Vec::new();
-        rest_tangent(&active, &combined, |r, c, v| {
-            a_t.push(Entry::new(eq[r], eq[c], v));
-        });
-        for a in 0..g {
-            for b in 0..g {
-                let v = h * h * schur[a * g + b];
-                if v != 0.0 {
-                    a_t.push(Entry::new(eq[gamma_dof[a]], eq[gamma_dof[b]], v));
-                }
-            }
-        }
         let mass: Vec<f64> = eq_dof
             .iter()
             .map(|d| body.lumped_mass_kg()[d / 3])
             .collect();
-        let mass_factor: Vec<f64> = mass
-            .iter()
-            .map(|m| m * (1.0 + mat.mass_damping_per_s * h))
-            .collect();
-        for (k, m) in mass_factor.iter().enumerate() {
-            a_t.push(Entry::new(k, k, *m));
-        }
-        // The factor is stored in single precision: the solve only sets the step, while the
-        // residual (forces) stays in double precision, so equilibria are unaffected (see the
-        // module documentation); it halves the memory the solve streams.
-        let lower: Vec<Entry<f32>> = a_t
-            .iter()
-            .filter(|t| t.col <= t.row)
-            .map(|t| Entry {
-                row: t.row,
-                col: t.col,
-                val: t.val as f32,
-            })
-            .collect();
-        let a_lower = sparse(m_eq, &lower)?;
+        let parts = TickMatrixParts {
+            active: &active,
+            material: *body.material(),
+            eq: &eq,
+            gamma_dof: &gamma_dof,
+            schur: &schur,
+            mass: &mass,
+            h,
+        };
+        let a_lower = parts.lower(region.stiffness_margin)?;
         let eq_nodes: Vec<usize> = eq_dof.iter().map(|&d| d / 3).collect();
         let symbolic = symbolic_cholesky(a_lower.symbolic(), Side::Lower, &eq_nodes)?;
-        let mut factor = vec![0.0f32; symbolic.len_val()];
-        {
-            let mut mem = MemBuffer::new(
-                symbolic.factorize_numeric_llt_scratch::<f32>(Par::Seq, Default::default()),
-            );
-            symbolic
-                .factorize_numeric_llt::<f32>(
-                    &mut factor,
-                    a_lower.as_ref(),
-                    Side::Lower,
-                    Default::default(),
-                    Par::Seq,
-                    MemStack::new(&mut mem),
-                    Default::default(),
-                )
-                .map_err(|e| {
-                    ModelError::InvalidMesh(format!(
-                        "the tick matrix is not positive definite: {e:?}"
-                    ))
-                })?;
-        }
+        let factor = factorize(&symbolic, &a_lower)?;
+        let schur: Vec<f32> = schur.iter().map(|&v| v as f32).collect();
         let stack = Workspace::new(symbolic.solve_in_place_scratch::<f32>(2, Par::Seq));
         progress("condensation: done", 1.0);
         let sizes = CondensedSizes {
@@ -809,7 +843,7 @@ impl CondensedSolver {
             eq_dof,
             mass,
             gamma_dof,
-            schur: schur.iter().map(|&v| v as f32).collect(),
+            schur,
             avx2: crate::cpu::has_avx2_fma(),
             sweep: SupernodalSolve::new(&symbolic),
             relaxation: 1.0,
@@ -848,27 +882,44 @@ impl CondensedSolver {
     /// 20 mm/s stroke on the default LV: 9.0 % between ticks with `c = 2`, 6.1 % with the
     /// entry factor; docs/decisions.md, "The whole-body rest factor"). Only those ticks use
     /// it, so `c` still guards every other tick against the stiffening tangent. Costs a second
-    /// factorisation and the memory of one more solver (the prepared contact columns share
-    /// [`PREPARED_CONTACT_MAX_BYTES`]); a margin of 1 needs none. For a whole-body solver (a
-    /// following region's successors are prepared without it).
+    /// numeric factorisation on the same analysis, its memory and that of a second set of
+    /// prepared contact columns (both sets share [`PREPARED_CONTACT_MAX_BYTES`]); a margin of
+    /// 1 needs none. Meant for whole-body solvers (a following region's successors are
+    /// prepared without it).
     ///
     /// # Errors
-    /// As [`CondensedSolver::new`].
-    pub fn add_entry_factor(
-        &mut self,
-        body: &FemModel,
-        mesh: &TetMesh,
-        progress: &mut dyn FnMut(&str, f64),
-    ) -> Result<(), ModelError> {
-        if self.region.stiffness_margin > 1.0 {
-            let region = ActiveRegion {
-                stiffness_margin: 1.0,
-                ..self.region
-            };
-            self.entry = Some(Box::new(Self::new_with_progress(
-                body, mesh, region, self.h, progress,
-            )?));
+    /// [`ModelError::InvalidMesh`] when the matrix is not positive definite.
+    pub fn add_entry_factor(&mut self) -> Result<(), ModelError> {
+        if self.region.stiffness_margin <= 1.0 {
+            return Ok(());
         }
+        let schur: Vec<f64> = self.schur.iter().map(|&v| f64::from(v)).collect();
+        let parts = TickMatrixParts {
+            active: &self.active,
+            material: *self.active.material(),
+            eq: &self.eq,
+            gamma_dof: &self.gamma_dof,
+            schur: &schur,
+            mass: &self.mass,
+            h: self.h,
+        };
+        let factor = factorize(&self.symbolic, &parts.lower(1.0)?)?;
+        // Columns already prepared: the same nodes through the new factor.
+        let mut list: Vec<(u32, u32)> = self
+            .contact_col
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| **c != u32::MAX)
+            .map(|(i, &c)| (c, i as u32))
+            .collect();
+        list.sort_unstable();
+        let nodes: Vec<u32> = list.iter().map(|&(_, i)| i).collect();
+        let contact_z = if nodes.is_empty() {
+            Vec::new()
+        } else {
+            self.contact_columns(&factor, &nodes)
+        };
+        self.entry = Some(EntryFactor { factor, contact_z });
         Ok(())
     }
 
@@ -886,14 +937,6 @@ impl CondensedSolver {
     /// [`Self::prepare_contact`] with the memory limit `max_bytes`; `false` (nothing
     /// prepared, the columns of an earlier call dropped) when the columns would exceed it.
     pub fn prepare_contact_within(&mut self, nodes: &[u32], max_bytes: usize) -> bool {
-        if let Some(e) = self.entry.as_mut() {
-            e.prepare_contact_within(nodes, max_bytes / 2);
-        }
-        let max_bytes = if self.entry.is_some() {
-            max_bytes / 2
-        } else {
-            max_bytes
-        };
         let m = self.eq_dof.len();
         let mut list: Vec<u32> = nodes
             .iter()
@@ -903,11 +946,37 @@ impl CondensedSolver {
         list.sort_unstable();
         list.dedup();
         self.contact_col.iter_mut().for_each(|c| *c = u32::MAX);
-        if 12usize.saturating_mul(m).saturating_mul(list.len()) > max_bytes {
+        let factors = if self.entry.is_some() { 2 } else { 1 };
+        if 12usize
+            .saturating_mul(m)
+            .saturating_mul(list.len())
+            .saturating_mul(factors)
+            > max_bytes
+        {
             self.contact_z = Vec::new();
+            if let Some(e) = self.entry.as_mut() {
+                e.contact_z = Vec::new();
+            }
             return false;
         }
-        self.contact_z = vec![0.0; 3 * m * list.len()];
+        for (c, &i) in list.iter().enumerate() {
+            self.contact_col[i as usize] = c as u32;
+        }
+        self.contact_z = self.contact_columns(&self.factor, &list);
+        if let Some(e) = &self.entry {
+            let z = self.contact_columns(&e.factor, &list);
+            if let Some(e) = self.entry.as_mut() {
+                e.contact_z = z;
+            }
+        }
+        true
+    }
+
+    /// `A^-1 e` through `factor` (of this solver's analysis) for the three components of each
+    /// node of `list`: per node `m` rows of three interleaved values.
+    fn contact_columns(&self, factor: &[f32], list: &[u32]) -> Vec<f32> {
+        let m = self.eq_dof.len();
+        let mut z = vec![0.0; 3 * m * list.len()];
         const BLOCK: usize = 16;
         let mut mem = MemBuffer::new(
             self.symbolic
@@ -923,16 +992,15 @@ impl CondensedSolver {
                     }
                 }
             }
-            LltRef::<usize, f32>::new(&self.symbolic, &self.factor).solve_in_place_with_conj(
+            LltRef::<usize, f32>::new(&self.symbolic, factor).solve_in_place_with_conj(
                 Conj::No,
                 e.as_mut(),
                 Par::Seq,
                 MemStack::new(&mut mem),
             );
-            for (j, &i) in chunk.iter().enumerate() {
+            for j in 0..chunk.len() {
                 let c = b * BLOCK + j;
-                self.contact_col[i as usize] = c as u32;
-                let dst = &mut self.contact_z[3 * c * m..3 * (c + 1) * m];
+                let dst = &mut z[3 * c * m..3 * (c + 1) * m];
                 for (r, d) in dst.chunks_exact_mut(3).enumerate() {
                     // A constrained component has a zero column (its e was zero).
                     for k in 0..3 {
@@ -941,7 +1009,7 @@ impl CondensedSolver {
                 }
             }
         }
-        true
+        z
     }
 
     /// The active elements as a model over the whole body's nodes: its
@@ -966,12 +1034,10 @@ impl CondensedSolver {
         self.sizes
     }
 
-    /// Ticks so far whose solved velocity field reversed and was relaxed (those of the entry
-    /// factor included), and the factor on the velocity now (module documentation,
-    /// "Relaxation").
+    /// Ticks so far whose solved velocity field reversed and was relaxed, and the factor on
+    /// the velocity now (module documentation, "Relaxation").
     pub fn relaxation(&self) -> (u64, f64) {
-        let entry = self.entry.as_ref().map_or(0, |e| e.relaxed_ticks);
-        (self.relaxed_ticks + entry, self.relaxation)
+        (self.relaxed_ticks, self.relaxation)
     }
 
     /// Step the matrix was factorised for, s.
@@ -1008,7 +1074,7 @@ impl CondensedSolver {
         v: &mut [DVec3],
     ) -> f64 {
         // A node entering the probe's rows: the step with the unscaled rest stiffness, if
-        // built (its relaxation carried over both ways).
+        // built.
         let entering = coupling.is_some_and(|c| {
             c.nodes.len() > ENTRY_TRACKED_NODES
                 || c.nodes.iter().any(|i| !self.last_contact.contains(i))
@@ -1018,12 +1084,28 @@ impl CondensedSolver {
             let k = c.nodes.len().min(ENTRY_TRACKED_NODES);
             self.last_contact.extend_from_slice(&c.nodes[..k]);
         }
-        if entering && let Some(e) = self.entry.as_mut() {
-            e.relaxation = self.relaxation;
-            let r = e.step(f, coupling, x, v);
-            self.relaxation = e.relaxation;
-            return r;
-        }
+        let entry = if entering { self.entry.take() } else { None };
+        let Some(mut entry) = entry else {
+            return self.step_solved(f, coupling, x, v);
+        };
+        // The entry factor and its columns stand in for this tick (swapped, not copied).
+        std::mem::swap(&mut self.factor, &mut entry.factor);
+        std::mem::swap(&mut self.contact_z, &mut entry.contact_z);
+        let r = self.step_solved(f, coupling, x, v);
+        std::mem::swap(&mut self.factor, &mut entry.factor);
+        std::mem::swap(&mut self.contact_z, &mut entry.contact_z);
+        self.entry = Some(entry);
+        r
+    }
+
+    /// [`Self::step`] with the factor in `factor` (and its columns in `contact_z`).
+    fn step_solved(
+        &mut self,
+        f: &[DVec3],
+        coupling: Option<ContactCoupling<'_>>,
+        x: &mut [DVec3],
+        v: &mut [DVec3],
+    ) -> f64 {
         let h = self.h;
         let comp = |p: &[DVec3], d: usize| p[d / 3][d % 3];
         let rest = self.active.rest();
@@ -1298,7 +1380,11 @@ impl CondensedSolver {
     /// factor), for reports; index arrays and the active elements' model are not counted.
     pub fn memory_bytes(&self) -> usize {
         let far = self.far.llt.as_ref().map_or(0, |l| 8 * l.factor_entries());
-        self.entry.as_ref().map_or(0, |e| e.memory_bytes())
+        let entry = self
+            .entry
+            .as_ref()
+            .map_or(0, |e| 4 * (e.factor.len() + e.contact_z.len()));
+        entry
             + 4 * (self.factor.len() + self.schur.len() + self.contact_z.len() + self.map.len())
             + 24 * self.far.kfg.len()
             + far
