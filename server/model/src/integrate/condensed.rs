@@ -1073,8 +1073,11 @@ impl CondensedSolver {
         x: &mut [DVec3],
         v: &mut [DVec3],
     ) -> f64 {
-        // A node entering the probe's rows: the step with the unscaled rest stiffness, if
-        // built.
+        // Without an entry factor there is nothing to tell apart.
+        if self.entry.is_none() {
+            return self.step_solved(f, coupling, x, v);
+        }
+        // A node entering the probe's rows: the step with the unscaled rest stiffness.
         let entering = coupling.is_some_and(|c| {
             c.nodes.len() > ENTRY_TRACKED_NODES
                 || c.nodes.iter().any(|i| !self.last_contact.contains(i))
