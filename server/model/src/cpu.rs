@@ -15,3 +15,15 @@ pub(crate) fn has_avx2_fma() -> bool {
 pub(crate) fn has_avx2_fma() -> bool {
     false
 }
+
+/// Whether this CPU runs AVX2, FMA and F16C (half-precision conversions).
+#[cfg(target_arch = "x86_64")]
+pub(crate) fn has_avx2_fma_f16c() -> bool {
+    has_avx2_fma() && std::is_x86_feature_detected!("f16c")
+}
+
+/// Whether this CPU runs AVX2, FMA and F16C: never off x86-64.
+#[cfg(not(target_arch = "x86_64"))]
+pub(crate) fn has_avx2_fma_f16c() -> bool {
+    false
+}

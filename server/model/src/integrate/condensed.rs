@@ -30,11 +30,15 @@
 //! equilibria are exact for the split model and the frozen matrix only changes the path to
 //! them (a modified Newton step per tick). Because `v'` is solved for directly (not `dv` from
 //! `b - A v`), an inexact solve cannot shift an equilibrium either, which is why the factor is
-//! stored in single precision (half the memory streamed per tick). The probe's term
+//! computed in single precision and the tick sweeps it in half precision
+//! ([`crate::supernodal`]: a quarter of the memory a double-precision factor would stream per
+//! tick; the rounding moves the default `lv`'s step by about 1e-3, checked at construction
+//! against [`HALF_MAX_DEVIATION`]). The probe's term
 //! `h^2 A^T C A` ([`ContactCoupling`]: the patch's coupling, or the implicit sphere's faces) is
 //! added exactly by Woodbury, with `A^-1 A^T` from columns precomputed for the active touchable
-//! nodes ([`CondensedSolver::prepare_contact`]). The solve is faer's
-//! sparse Cholesky (supernodal, AMD ordering) with its workspace allocated at construction, so
+//! nodes ([`CondensedSolver::prepare_contact`]). The factor is faer's sparse Cholesky
+//! (supernodal, nested-dissection ordering), solved by [`crate::supernodal`]'s sweep (faer's
+//! solve for a simplicial factor) with its workspace allocated at construction, so
 //! [`CondensedSolver::step`] allocates nothing.
 //!
 //! **Relaxation.** The frozen matrix is a modified Newton step: where the tangent under the
@@ -71,7 +75,7 @@ use faer::{Conj, Mat, Par, Side};
 use glam::DVec3;
 
 use crate::ordering::{SparseCholesky, symbolic_cholesky};
-use crate::supernodal::SupernodalSolve;
+use crate::supernodal::{HalfFactor, SupernodalSolve};
 
 use crate::ModelError;
 use crate::contact::ContactCoupling;
@@ -250,9 +254,13 @@ pub struct CondensedSolver {
     relaxation: f64,
     /// Ticks whose velocity reversed (each halved `relaxation`).
     relaxed_ticks: u64,
-    /// The tick's one-column solve through `factor` ([`SupernodalSolve`]; `None` for a
-    /// simplicial factor, solved by faer).
+    /// The tick's one-column solve ([`SupernodalSolve`]; `None` for a simplicial factor,
+    /// solved by faer through `factor`).
     sweep: Option<SupernodalSolve>,
+    /// `factor` in half precision for `sweep` (`factor` then holds its rounded values; `None`
+    /// when the rounding would move the step too far, [`half_of`], and faer solves through
+    /// `factor`).
+    half: Option<HalfFactor>,
     stack: Workspace,
     /// Right-hand sides: the step's and the coupling's `U`.
     rhs: Mat<f32>,
@@ -262,8 +270,8 @@ pub struct CondensedSolver {
     /// Per body node: its column block in `contact_z`, or `u32::MAX`
     /// ([`CondensedSolver::prepare_contact`]).
     contact_col: Vec<u32>,
-    /// `A^-1 e` for the three components of every contact node: per node `m` rows of three
-    /// interleaved values.
+    /// `A^-1 e` for the three components of every contact node: per node its three columns of
+    /// `m` values one after the other (x, y, z).
     contact_z: Vec<f32>,
     /// Scratch: the probe's correction `A^-1 A^T s`, then the solved velocity `v'` before
     /// relaxation.
@@ -302,7 +310,70 @@ const ENTRY_TRACKED_NODES: usize = 3 * MAX_COUPLING_ROWS;
 #[derive(Debug, Clone)]
 struct EntryFactor {
     factor: Vec<f32>,
+    half: Option<HalfFactor>,
     contact_z: Vec<f32>,
+}
+
+/// Largest estimated contraction `||I - A_h^-1 A||` (`A_h` the half-precision factor's
+/// matrix) for which the tick uses the half-precision factor: beyond it the rounding would
+/// move the step's matrix by more than a few percent of the stiffness margin it is built
+/// with, and the single-precision factor is kept.
+const HALF_MAX_DEVIATION: f64 = 0.05;
+
+/// Power iterations of [`half_of`]'s estimate.
+const HALF_CHECK_ITERATIONS: usize = 12;
+
+/// The half-precision form of `factor` (the factor of `a_lower`, the lower triangle of `A`)
+/// for `sweep`, with `factor` rounded to the values it holds, when the rounding moves the
+/// solve by at most [`HALF_MAX_DEVIATION`]: estimated by power iteration on `I - A_h^-1 A`
+/// from a fixed pseudo-random start. `None` (and `factor` untouched) otherwise, or without a
+/// sweep.
+fn half_of(
+    sweep: Option<&mut SupernodalSolve>,
+    factor: &mut [f32],
+    a_lower: &SparseColMat<usize, f32>,
+) -> Option<HalfFactor> {
+    let sweep = sweep?;
+    let mut rounded = factor.to_vec();
+    let half = sweep.half_factor(&mut rounded);
+    let m = a_lower.nrows();
+    let mut x: Vec<f64> = (0..m as u64)
+        .map(|i| ((i.wrapping_mul(2_654_435_761) % 1_000) as f64) / 500.0 - 1.0)
+        .collect();
+    let mut y = vec![0.0f32; m];
+    let mut deviation = 0.0f64;
+    for _ in 0..HALF_CHECK_ITERATIONS {
+        let norm = x.iter().map(|v| v * v).sum::<f64>().sqrt();
+        if !(norm > 0.0) {
+            break;
+        }
+        x.iter_mut().for_each(|v| *v /= norm);
+        // y = A x (lower triangle stored: both halves).
+        let mut ax = vec![0.0f64; m];
+        for j in 0..m {
+            for (i, &a) in a_lower.row_idx_of_col(j).zip(a_lower.val_of_col(j)) {
+                let a = f64::from(a);
+                ax[i] += a * x[j];
+                if i != j {
+                    ax[j] += a * x[i];
+                }
+            }
+        }
+        for (yi, a) in y.iter_mut().zip(&ax) {
+            *yi = *a as f32;
+        }
+        sweep.solve_in_place(&half, &mut y);
+        // x <- x - A_h^-1 A x; its norm is the contraction along x.
+        for (xi, &yi) in x.iter_mut().zip(&y) {
+            *xi -= f64::from(yi);
+        }
+        deviation = x.iter().map(|v| v * v).sum::<f64>().sqrt();
+    }
+    if !(deviation <= HALF_MAX_DEVIATION) {
+        return None;
+    }
+    factor.copy_from_slice(&rounded);
+    Some(half)
 }
 
 /// `a . b` (single-precision `a`) with eight independent partial sums, so that it vectorises
@@ -321,12 +392,14 @@ fn dot_plain(a: &[f32], b: &[f64]) -> f64 {
     acc.iter().sum::<f64>() + tail
 }
 
-/// `z[r] += a . y[3 r..3 r + 3]` for every row `r` (single-precision `y`, three interleaved
-/// columns).
+/// `z += a[0] y_0 + a[1] y_1 + a[2] y_2`, `y` the three single-precision columns `y_k` of
+/// `z`'s length one after the other.
 #[inline(always)]
 fn axpy3_plain(z: &mut [f64], a: [f64; 3], y: &[f32]) {
-    for (zr, yr) in z.iter_mut().zip(y.chunks_exact(3)) {
-        *zr += a[0] * f64::from(yr[0]) + a[1] * f64::from(yr[1]) + a[2] * f64::from(yr[2]);
+    let m = z.len();
+    let (y0, y1, y2) = (&y[..m], &y[m..2 * m], &y[2 * m..3 * m]);
+    for (((zr, &u0), &u1), &u2) in z.iter_mut().zip(y0).zip(y1).zip(y2) {
+        *zr += a[0] * f64::from(u0) + a[1] * f64::from(u1) + a[2] * f64::from(u2);
     }
 }
 
@@ -824,7 +897,9 @@ impl CondensedSolver {
         let a_lower = parts.lower(region.stiffness_margin)?;
         let eq_nodes: Vec<usize> = eq_dof.iter().map(|&d| d / 3).collect();
         let symbolic = symbolic_cholesky(a_lower.symbolic(), Side::Lower, &eq_nodes)?;
-        let factor = factorize(&symbolic, &a_lower)?;
+        let mut factor = factorize(&symbolic, &a_lower)?;
+        let mut sweep = SupernodalSolve::new(&symbolic);
+        let half = half_of(sweep.as_mut(), &mut factor, &a_lower);
         let schur: Vec<f32> = schur.iter().map(|&v| v as f32).collect();
         let stack = Workspace::new(symbolic.solve_in_place_scratch::<f32>(2, Par::Seq));
         progress("condensation: done", 1.0);
@@ -845,7 +920,8 @@ impl CondensedSolver {
             gamma_dof,
             schur,
             avx2: crate::cpu::has_avx2_fma(),
-            sweep: SupernodalSolve::new(&symbolic),
+            sweep,
+            half,
             relaxation: 1.0,
             relaxed_ticks: 0,
             symbolic: Arc::new(symbolic),
@@ -903,7 +979,9 @@ impl CondensedSolver {
             mass: &self.mass,
             h: self.h,
         };
-        let factor = factorize(&self.symbolic, &parts.lower(1.0)?)?;
+        let a_lower = parts.lower(1.0)?;
+        let mut factor = factorize(&self.symbolic, &a_lower)?;
+        let half = half_of(self.sweep.as_mut(), &mut factor, &a_lower);
         // Columns already prepared: the same nodes through the new factor.
         let mut list: Vec<(u32, u32)> = self
             .contact_col
@@ -919,7 +997,11 @@ impl CondensedSolver {
         } else {
             self.contact_columns(&factor, &nodes)
         };
-        self.entry = Some(EntryFactor { factor, contact_z });
+        self.entry = Some(EntryFactor {
+            factor,
+            half,
+            contact_z,
+        });
         Ok(())
     }
 
@@ -973,7 +1055,7 @@ impl CondensedSolver {
     }
 
     /// `A^-1 e` through `factor` (of this solver's analysis) for the three components of each
-    /// node of `list`: per node `m` rows of three interleaved values.
+    /// node of `list`: per node its three columns of `m` values one after the other.
     fn contact_columns(&self, factor: &[f32], list: &[u32]) -> Vec<f32> {
         let m = self.eq_dof.len();
         let mut z = vec![0.0; 3 * m * list.len()];
@@ -1000,12 +1082,12 @@ impl CondensedSolver {
             );
             for j in 0..chunk.len() {
                 let c = b * BLOCK + j;
-                let dst = &mut z[3 * c * m..3 * (c + 1) * m];
-                for (r, d) in dst.chunks_exact_mut(3).enumerate() {
-                    // A constrained component has a zero column (its e was zero).
-                    for k in 0..3 {
-                        d[k] = e[(r, 3 * j + k)];
-                    }
+                // A constrained component has a zero column (its e was zero).
+                for (k, dst) in z[3 * c * m..3 * (c + 1) * m]
+                    .chunks_exact_mut(m)
+                    .enumerate()
+                {
+                    dst.copy_from_slice(e.col_as_slice(3 * j + k));
                 }
             }
         }
@@ -1093,9 +1175,11 @@ impl CondensedSolver {
         };
         // The entry factor and its columns stand in for this tick (swapped, not copied).
         std::mem::swap(&mut self.factor, &mut entry.factor);
+        std::mem::swap(&mut self.half, &mut entry.half);
         std::mem::swap(&mut self.contact_z, &mut entry.contact_z);
         let r = self.step_solved(f, coupling, x, v);
         std::mem::swap(&mut self.factor, &mut entry.factor);
+        std::mem::swap(&mut self.half, &mut entry.half);
         std::mem::swap(&mut self.contact_z, &mut entry.contact_z);
         self.entry = Some(entry);
         r
@@ -1110,11 +1194,14 @@ impl CondensedSolver {
         v: &mut [DVec3],
     ) -> f64 {
         let h = self.h;
-        let comp = |p: &[DVec3], d: usize| p[d / 3][d % 3];
-        let rest = self.active.rest();
+        // Component `d` of a node array is entry `d` of its flat view.
+        let x: &mut [f64] = bytemuck::cast_slice_mut(x);
+        let v: &mut [f64] = bytemuck::cast_slice_mut(v);
+        let f: &[f64] = bytemuck::cast_slice(f);
+        let rest: &[f64] = bytemuck::cast_slice(self.active.rest());
         let g = self.gamma_dof.len();
         for (u, &d) in self.u_gamma.iter_mut().zip(&self.gamma_dof) {
-            *u = x[d / 3][d % 3] - rest[d / 3][d % 3];
+            *u = x[d] - rest[d];
         }
         // Far boundary nodes: a slice of rows per tick, so the surface is at most
         // `SURFACE_REFRESH_TICKS` ticks behind the interface.
@@ -1126,7 +1213,7 @@ impl CondensedSolver {
                 let r = r as usize;
                 let d = self.map_dofs[r];
                 let u = dot(self.avx2, &self.map[r * g..(r + 1) * g], &self.u_gamma);
-                x[d / 3][d % 3] = rest[d / 3][d % 3] + u;
+                x[d] = rest[d] + u;
             }
             self.surface_cursor = if end == rows { 0 } else { end };
         }
@@ -1135,11 +1222,11 @@ impl CondensedSolver {
         let rhs0 = self.rhs.col_as_slice_mut(0);
         if g == 0 {
             for ((r, &d), &m) in rhs0.iter_mut().zip(&self.eq_dof).zip(&self.mass) {
-                *r = (m * comp(v, d) + h * comp(f, d)) as f32;
+                *r = (m * v[d] + h * f[d]) as f32;
             }
         } else {
             for ((b, &d), &m) in self.b.iter_mut().zip(&self.eq_dof).zip(&self.mass) {
-                *b = m * comp(v, d) + h * comp(f, d);
+                *b = m * v[d] + h * f[d];
             }
             for (a, &da) in self.gamma_dof.iter().enumerate() {
                 let row = &self.schur[a * g..(a + 1) * g];
@@ -1193,11 +1280,11 @@ impl CondensedSolver {
                                     if e == usize::MAX {
                                         continue;
                                     }
-                                    let z = &self.contact_z[base + 3 * e..base + 3 * e + 3];
+                                    let z = &self.contact_z[base + e..];
                                     s += u[a]
                                         * (wv.x * f64::from(z[0])
-                                            + wv.y * f64::from(z[1])
-                                            + wv.z * f64::from(z[2]));
+                                            + wv.y * f64::from(z[m])
+                                            + wv.z * f64::from(z[2 * m]));
                                 }
                             }
                         }
@@ -1268,7 +1355,7 @@ impl CondensedSolver {
         for ((z, &d), &z0) in self.z1.iter_mut().zip(&self.eq_dof).zip(z0) {
             let vn = f64::from(z0) - *z;
             *z = vn;
-            let vo = comp(v, d);
+            let vo = v[d];
             dot_old_new += vo * vn;
             old2 += vo * vo;
             new2 += vn * vn;
@@ -1285,8 +1372,8 @@ impl CondensedSolver {
         let alpha = self.relaxation;
         for (&d, &vn) in self.eq_dof.iter().zip(&self.z1) {
             let vi = alpha * vn;
-            v[d / 3][d % 3] = vi;
-            x[d / 3][d % 3] += vi * h;
+            v[d] = vi;
+            x[d] += vi * h;
         }
         let mut max_v2: f64 = 0.0;
         let mut non_finite = false;
@@ -1295,7 +1382,8 @@ impl CondensedSolver {
             let i = d / 3;
             if i != last {
                 last = i;
-                let s = v[i].length_squared();
+                let s =
+                    v[3 * i] * v[3 * i] + v[3 * i + 1] * v[3 * i + 1] + v[3 * i + 2] * v[3 * i + 2];
                 non_finite |= !s.is_finite();
                 max_v2 = max_v2.max(s);
             }
@@ -1320,8 +1408,8 @@ impl CondensedSolver {
 
     /// `A^-1` applied in place to column `col` of `rhs` (allocation-free).
     fn solve_column(&mut self, col: usize) {
-        if let Some(sweep) = &mut self.sweep {
-            sweep.solve_in_place(&self.factor, self.rhs.col_as_slice_mut(col));
+        if let (Some(sweep), Some(half)) = (&mut self.sweep, &self.half) {
+            sweep.solve_in_place(half, self.rhs.col_as_slice_mut(col));
             return;
         }
         LltRef::<usize, f32>::new(&self.symbolic, &self.factor).solve_in_place_with_conj(
@@ -1383,11 +1471,12 @@ impl CondensedSolver {
     /// factor), for reports; index arrays and the active elements' model are not counted.
     pub fn memory_bytes(&self) -> usize {
         let far = self.far.llt.as_ref().map_or(0, |l| 8 * l.factor_entries());
-        let entry = self
-            .entry
-            .as_ref()
-            .map_or(0, |e| 4 * (e.factor.len() + e.contact_z.len()));
+        let half = |h: &Option<HalfFactor>| h.as_ref().map_or(0, HalfFactor::memory_bytes);
+        let entry = self.entry.as_ref().map_or(0, |e| {
+            4 * (e.factor.len() + e.contact_z.len()) + half(&e.half)
+        });
         entry
+            + half(&self.half)
             + 4 * (self.factor.len() + self.schur.len() + self.contact_z.len() + self.map.len())
             + 24 * self.far.kfg.len()
             + far
