@@ -99,15 +99,22 @@ fn plot_scenario(
     base: &Path,
 ) -> Result<bool, Box<dyn std::error::Error>> {
     let mut curves: BTreeMap<String, Vec<(f64, f64)>> = BTreeMap::new();
+    let mut points = Vec::new();
     for r in rows.iter().filter(|r| r.scenario == scenario && r.stable) {
         let (x, y) = (r.step_p50_us / 1000.0, r.plot_error());
         if x.is_finite() && x > 0.0 && y.is_finite() && y > 0.0 {
             curves.entry(r.method.clone()).or_default().push((x, y));
+            let label = match r.tets {
+                0 => r.method.clone(),
+                n => format!("{}, {n} elements", r.method),
+            };
+            points.push((x, y, label));
         }
     }
     if curves.is_empty() {
         return Ok(false);
     }
+    let front = pareto_front(points);
     for pts in curves.values_mut() {
         pts.sort_by(|a, b| a.0.total_cmp(&b.0));
     }
@@ -122,12 +129,26 @@ fn plot_scenario(
     let svg = base.with_extension("svg");
     {
         use plotters::prelude::*;
-        let root = BitMapBackend::new(&png, (1250, 650)).into_drawing_area();
-        draw_chart(root, &title, ylabel, &curves, (x0, x1, y0, y1))?;
-        let root = SVGBackend::new(&svg, (1250, 650)).into_drawing_area();
-        draw_chart(root, &title, ylabel, &curves, (x0, x1, y0, y1))?;
+        let root = BitMapBackend::new(&png, (1250, 720)).into_drawing_area();
+        draw_chart(root, &title, ylabel, &curves, &front, (x0, x1, y0, y1))?;
+        let root = SVGBackend::new(&svg, (1250, 720)).into_drawing_area();
+        draw_chart(root, &title, ylabel, &curves, &front, (x0, x1, y0, y1))?;
     }
     Ok(true)
+}
+
+/// The Pareto front of `(time, error, label)` points: in order of time, each point whose error
+/// is more than 2 % (of itself) below that of every faster point, so that rows equal to the
+/// printed digit do not crowd it.
+fn pareto_front(mut points: Vec<(f64, f64, String)>) -> Vec<(f64, f64, String)> {
+    points.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
+    let mut front: Vec<(f64, f64, String)> = Vec::new();
+    for p in points {
+        if front.last().is_none_or(|q| p.1 < 0.98 * q.1) {
+            front.push(p);
+        }
+    }
+    front
 }
 
 /// Element family of a method label: its base method (the label without the suffix) and
@@ -144,12 +165,14 @@ fn method_family(label: &str) -> (&str, usize) {
 
 /// Draws one work-precision chart: the plot on the left, a legend panel on the right. Colour
 /// = method (integrator and setting), marker = element family, so about 30 curves stay
-/// readable with a dozen legend entries.
+/// readable with a dozen legend entries; the Pareto `front` (no configuration both faster and
+/// more accurate) is a black line with each of its points labelled.
 fn draw_chart<DB: plotters::prelude::DrawingBackend>(
     root: plotters::drawing::DrawingArea<DB, plotters::coord::Shift>,
     title: &str,
     ylabel: &str,
     curves: &BTreeMap<String, Vec<(f64, f64)>>,
+    front: &[(f64, f64, String)],
     (x0, x1, y0, y1): (f64, f64, f64, f64),
 ) -> Result<(), Box<dyn std::error::Error>>
 where
@@ -218,6 +241,17 @@ where
             )?,
         };
     }
+    // The Pareto front on top, labelled point by point.
+    chart.draw_series(LineSeries::new(
+        front.iter().map(|p| (p.0, p.1)),
+        BLACK.stroke_width(1),
+    ))?;
+    let label_font = ("sans-serif", 12).into_font();
+    chart.draw_series(front.iter().map(|(x, y, label)| {
+        EmptyElement::at((*x, *y))
+            + Circle::new((0, 0), 7, BLACK.stroke_width(1))
+            + Text::new(label.clone(), (8, -16), label_font.clone())
+    }))?;
     // Legend panel (pixel coordinates).
     let font = ("sans-serif", 14).into_font();
     let black = BLACK.stroke_width(2);
@@ -234,6 +268,12 @@ where
     };
     line(&legend, "1 ms haptic budget", grey.stroke_width(2), &mut y)?;
     line(&legend, "7 % force JND", red.stroke_width(2), &mut y)?;
+    line(
+        &legend,
+        "Pareto front (labelled)",
+        BLACK.stroke_width(1),
+        &mut y,
+    )?;
     y += 10;
     let present: Vec<usize> = curves.keys().map(|k| method_family(k).1).collect();
     for (k, text) in [
