@@ -147,9 +147,12 @@ impl SupernodalSolve {
     /// columns) and [`Self::solve_in_place`] agree. Rounding the scaled entries to half
     /// precision perturbs each by at most `2^-11` of itself.
     ///
+    /// `None` when the padded half-precision factor exceeds 32-bit offsets (`values` is then
+    /// partly rounded: pass a copy).
+    ///
     /// # Panics
-    /// If `values` has the wrong length or the half-precision factor exceeds 32-bit offsets.
-    pub fn half_factor(&self, values: &mut [f32]) -> HalfFactor {
+    /// If `values` has the wrong length.
+    pub fn half_factor(&self, values: &mut [f32]) -> Option<HalfFactor> {
         use half::f16;
         assert_eq!(values.len(), self.len_val, "factor length");
         let n = self.x.len();
@@ -181,7 +184,7 @@ impl SupernodalSolve {
                 let c = c0 + j;
                 let col = &mut values[v0 + j * h..v0 + (j + 1) * h];
                 inv_diag[c] = 1.0 / (col[j] * scale[c]);
-                col_start[c] = u32::try_from(half.len()).expect("half factor offsets");
+                col_start[c] = u32::try_from(half.len()).ok()?;
                 for (i, l) in col.iter_mut().enumerate().skip(j + 1) {
                     let s = scale[if i < nc {
                         c0 + i
@@ -195,13 +198,13 @@ impl SupernodalSolve {
                 half.resize(half.len().next_multiple_of(HALF_PAD), 0);
             }
         }
-        col_start[n] = u32::try_from(half.len()).expect("half factor offsets");
-        HalfFactor {
+        col_start[n] = u32::try_from(half.len()).ok()?;
+        Some(HalfFactor {
             scale,
             inv_diag,
             col_start,
             values: half,
-        }
+        })
     }
 
     /// Solves `A x = b` in place through the half-precision factor `factor` (from
@@ -488,7 +491,7 @@ mod tests {
             let mut sweep = SupernodalSolve::new(&symbolic).expect("a supernodal factor");
             assert_eq!(sweep.len(), m);
             let original = values.clone();
-            let half = sweep.half_factor(&mut values);
+            let half = sweep.half_factor(&mut values).expect("32-bit offsets");
             // Every entry of the factor (row scales as D's) rounded by at most 2^-11 of itself
             // (plus the half-precision subnormal spacing of its row for tiny ones).
             let largest = original.iter().fold(0.0f32, |s, v| s.max(v.abs()));

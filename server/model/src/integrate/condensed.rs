@@ -326,8 +326,8 @@ const HALF_CHECK_ITERATIONS: usize = 12;
 /// The half-precision form of `factor` (the factor of `a_lower`, the lower triangle of `A`)
 /// for `sweep`, with `factor` rounded to the values it holds, when the rounding moves the
 /// solve by at most [`HALF_MAX_DEVIATION`]: estimated by power iteration on `I - A_h^-1 A`
-/// from a fixed pseudo-random start. `None` (and `factor` untouched) otherwise, or without a
-/// sweep.
+/// from a fixed pseudo-random start. `None` (and `factor` untouched) otherwise, without a
+/// sweep, or when the half-precision factor would exceed 32-bit offsets.
 fn half_of(
     sweep: Option<&mut SupernodalSolve>,
     factor: &mut [f32],
@@ -335,7 +335,7 @@ fn half_of(
 ) -> Option<HalfFactor> {
     let sweep = sweep?;
     let mut rounded = factor.to_vec();
-    let half = sweep.half_factor(&mut rounded);
+    let half = sweep.half_factor(&mut rounded)?;
     let m = a_lower.nrows();
     let mut x: Vec<f64> = (0..m as u64)
         .map(|i| ((i.wrapping_mul(2_654_435_761) % 1_000) as f64) / 500.0 - 1.0)
