@@ -77,6 +77,10 @@ pub struct HybridBody {
     in_block: Vec<bool>,
     active_list: Vec<u32>,
     tied_list: Vec<u32>,
+    /// The core nodes and tie weights of each particle of `tied_list`, copied when the terms
+    /// are refilled: the per-sub-step gather and scatter read them in order instead of
+    /// looking up the particle's tie and its tetrahedron.
+    tied_ties: Vec<([u32; 4], [f64; 4])>,
     block: TermBlock,
     region_active: Vec<bool>,
     active_regions: Vec<u32>,
@@ -171,6 +175,7 @@ impl HybridBody {
             in_block: vec![false; n],
             active_list: Vec::with_capacity(params.max_active_particles + model.largest_region),
             tied_list: Vec::with_capacity(3 * capacity),
+            tied_ties: Vec::with_capacity(3 * capacity),
             block,
             region_active: vec![false; nv],
             active_regions: Vec::with_capacity(nv),
@@ -440,6 +445,13 @@ impl HybridBody {
         // In memory order: the tie gathers and scatters of every sub-step walk the particle
         // arrays forwards.
         self.tied_list.sort_unstable();
+        let m = &self.model;
+        self.tied_ties.clear();
+        for &q in &self.tied_list {
+            let tie = &m.particle_tie[q as usize];
+            self.tied_ties
+                .push((m.core_mesh.tets[tie.tet as usize], tie.w));
+        }
         self.changed = false;
     }
 
@@ -453,8 +465,13 @@ impl HybridBody {
         }
         let m = &self.model;
         let tets = &m.core_mesh.tets;
-        for &q in &self.tied_list {
-            self.xp[q as usize] = interpolate(&m.particle_tie[q as usize], tets, &self.xc);
+        let xc = &self.xc;
+        for (&q, (t, w)) in self.tied_list.iter().zip(&self.tied_ties) {
+            // `interpolate`, the tie's tetrahedron resolved.
+            self.xp[q as usize] = xc[t[0] as usize] * w[0]
+                + xc[t[1] as usize] * w[1]
+                + xc[t[2] as usize] * w[2]
+                + xc[t[3] as usize] * w[3];
         }
         self.block.write_forces(&m.cloud, &self.xp, &mut self.fp);
         let mut device = DVec3::ZERO;
@@ -479,12 +496,10 @@ impl HybridBody {
             }
         }
         self.fcoup.iter_mut().for_each(|f| *f = DVec3::ZERO);
-        for &q in &self.tied_list {
-            let tie = &m.particle_tie[q as usize];
-            let t = tets[tie.tet as usize];
+        for (&q, (t, w)) in self.tied_list.iter().zip(&self.tied_ties) {
             let f = self.fp[q as usize];
-            for (node, w) in t.iter().zip(tie.w) {
-                self.fcoup[*node as usize] += f * w;
+            for (node, w) in t.iter().zip(w) {
+                self.fcoup[*node as usize] += f * *w;
             }
         }
         for l in &self.loads[..self.load_count] {

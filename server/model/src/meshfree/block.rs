@@ -337,8 +337,7 @@ impl TermBlock {
         if self.stencil_state != StencilState::Ready {
             return false;
         }
-        self.stencil
-            .forces(cloud.material(), x, cloud.rest_m(), f, add);
+        self.stencil.forces(cloud.material(), x, f, add);
         true
     }
 
@@ -698,9 +697,10 @@ mod tests {
     use crate::material::{MaterialModel, MaterialParams};
     use crate::meshfree::{KernelKind, Lattice, MeshfreeParams, MeshfreeVariant, ParticleCloud};
 
-    /// The stencil loop (AVX2 where the CPU has it, and the plain lanes) gives the general
-    /// loop's forces to round-off: both variants, three laws, a ragged particle set (a ball
-    /// with holes, so owners miss neighbours and groups have padding lanes), a partial set of
+    /// The stencil loop (AVX2 where the CPU has it, and the plain lanes; the 26-cell cube's
+    /// specialised loops and the general stencil's pair loops) gives the general loop's
+    /// forces to round-off: both variants, three laws, a ragged particle set (a ball with
+    /// holes, so owners miss neighbours and groups have padding lanes), a partial set of
     /// terms, a large smooth deformation plus noise.
     #[test]
     fn stencil_loop_matches_the_general_loop() {
@@ -755,15 +755,22 @@ mod tests {
                     })
                     .collect();
                 let mut forces = Vec::new();
-                for mode in 0..3 {
+                // Modes: general loop; stencil AVX2 and plain, cube loops along each axis;
+                // stencil AVX2 and plain, pair loops.
+                for mode in 0..9 {
                     let mut block = TermBlock::new(&cloud, cloud.len());
                     for p in (0..cloud.len() as u32).filter(|p| p % 5 != 3) {
                         // Degenerate neighbourhoods (corrected) are refused, as in the body.
                         let _ = block.push(&cloud, p);
                     }
                     block.set_stencil_loop(mode != 0);
-                    if mode == 2 {
+                    if mode % 2 == 0 && mode != 0 {
                         block.stencil.plain_lanes_only();
+                    }
+                    if (1..7).contains(&mode) {
+                        block.stencil.force_vector_axis((mode - 1) / 2);
+                    } else if mode >= 7 {
+                        block.stencil.pair_loops_only();
                     }
                     let mut f = vec![DVec3::splat(7.0); cloud.len()];
                     block.add_forces(&cloud, &x, &mut f);

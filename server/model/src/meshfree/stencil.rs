@@ -25,6 +25,14 @@
 //! whose force nobody reads. Lanes of a group that own no term (tied particles, empty cells)
 //! have `N = F = 0` and masked `d`, so they add nothing.
 //!
+//! **The 26-cell cube.** Both passes run over pairs `(k, -k)` (`w_-k = -w_k`, same class),
+//! so pass 2 forms each pair's `(N - beta F) w_k` once for both entries. When the stencil is
+//! the whole cube (the usual `h = spacing`), `w_k` is a class constant times the lattice
+//! offset, so the loops are written out for its 13 pairs with every zero and sign known at
+//! compile time: sums and differences of positions and of matrix columns, one product per
+//! class, instead of a product per weight component. The general stencil keeps the pair
+//! loops; a unit test in `block.rs` checks both, along every vector axis.
+//!
 //! **When it is used.** When the bounding box of the touched particles fits the grid's
 //! capacity (sized at construction: no allocation at run time); otherwise (active regions far
 //! apart) the block falls back to its general loop.
@@ -65,6 +73,8 @@ trait Lanes: Copy {
     fn madd(a: Self, b: Self, c: Self) -> Self;
     /// `c - a b`.
     fn nmadd(a: Self, b: Self, c: Self) -> Self;
+    /// `-self` (exact: the sign bits flipped).
+    fn neg(self) -> Self;
     /// Moved one cell down (the forces of offset -1 along x): `([v1, v2, v3, 0], [0, 0, 0, v0])`,
     /// the parts in the same chunk of four cells and in the chunk before.
     fn shift_down(self) -> (Self, Self);
@@ -137,6 +147,12 @@ impl Lanes for L4 {
     #[inline(always)]
     fn nmadd(a: L4, b: L4, c: L4) -> L4 {
         c.sub(a.mul(b))
+    }
+
+    #[inline(always)]
+    fn neg(self) -> L4 {
+        let a = self.0;
+        L4([-a[0], -a[1], -a[2], -a[3]])
     }
 
     #[inline(always)]
@@ -251,6 +267,12 @@ mod avx2 {
         }
 
         #[inline(always)]
+        fn neg(self) -> Y4 {
+            // SAFETY: `self` exists only with the token (AVX).
+            Y4(unsafe { _mm256_xor_pd(self.0, _mm256_set1_pd(-0.0)) })
+        }
+
+        #[inline(always)]
         fn shift_down(self) -> (Y4, Y4) {
             // SAFETY: `self` exists only with the token (AVX2).
             unsafe {
@@ -281,7 +303,12 @@ mod avx2 {
 /// Nine lane vectors of a column-major 3x3 matrix per lane.
 #[inline(always)]
 fn lane_mat<V: Lanes>(isa: V::Isa, a: &[[f64; 4]; 9]) -> [V; 9] {
-    std::array::from_fn(|e| V::from_array(isa, a[e]))
+    // A loop, not `array::from_fn`: closures do not inherit the caller's target features.
+    let mut m = [V::zero(isa); 9];
+    for (m, a) in m.iter_mut().zip(a) {
+        *m = V::from_array(isa, *a);
+    }
+    m
 }
 
 /// `N - beta_c F` for each class `c` of stencil length (at most three; `N` when `seed`).
@@ -355,6 +382,30 @@ fn lane_matrices<V: Lanes>(a: &[V; 9]) -> [[f64; 9]; 4] {
     }
     out
 }
+
+/// Most pairs `(k, -k)` of a stencil of reach one (the 26-cell cube).
+const MAX_PAIRS: usize = 13;
+
+/// The 26-cell cube's pairs `(k, -k)` by the `k` whose first nonzero offset is positive, in
+/// grid axes (the vector axis first), by class: faces, edges, corners.
+const CUBE: [[i32; 3]; MAX_PAIRS] = [
+    [1, 0, 0],
+    [0, 1, 0],
+    [0, 0, 1],
+    [1, 1, 0],
+    [1, -1, 0],
+    [1, 0, 1],
+    [1, 0, -1],
+    [0, 1, 1],
+    [0, 1, -1],
+    [1, 1, 1],
+    [1, 1, -1],
+    [1, -1, 1],
+    [1, -1, -1],
+];
+
+/// Class (0 faces, 1 edges, 2 corners) of each of [`CUBE`]'s pairs.
+const CUBE_CLASS: [usize; MAX_PAIRS] = [0, 0, 0, 1, 1, 1, 1, 1, 1, 2, 2, 2, 2];
 
 /// Rest data of one lane of a group (module documentation); all zero for a padding lane.
 #[derive(Debug, Clone, Copy)]
@@ -489,6 +540,22 @@ pub(crate) struct StencilGrid {
     classes: Vec<(f64, f64, std::ops::Range<usize>)>,
     /// Class of each stencil entry.
     class_of: Vec<usize>,
+    /// Per stencil entry `k`, its pair in `pairs` and whether `k` is the pair's negative
+    /// (`w_k = -w_pair`): pass 2 computes `(N - beta F) w` once per pair.
+    half_of: Vec<(usize, bool)>,
+    /// The stencil is the whole 26-cell cube: the loops run [`CUBE`]'s pairs with their
+    /// weights' zeros and signs known at compile time.
+    cube: bool,
+    /// Grid-index offset of each of [`CUBE`]'s pairs for the current grid (cube only).
+    cube_off: [isize; MAX_PAIRS],
+    /// The nonzero components' magnitude `|w_k|_max` of each class (faces, edges, corners),
+    /// 1/m: `w_k = scale * (the lattice offset)` exactly (cube only).
+    cube_scale: [f64; 3],
+    /// Rest offset `X_k` (m) of each of [`CUBE`]'s pairs for the current grid (cube only).
+    cube_x: [[f64; 3]; MAX_PAIRS],
+    /// Grid-index offset of the centre of each row along the vector axis, at
+    /// `(a + 1) + 3 (b + 1)` for offsets `a`, `b` along the other two grid axes (cube only).
+    cube_rows: [isize; 9],
     /// Grid dimensions and the lattice cell of grid cell (0, 0, 0).
     layout: GridLayout,
     cells: usize,
@@ -506,6 +573,8 @@ pub(crate) struct StencilGrid {
     /// (global particle, grid cell) of every touched particle, sorted by particle: the
     /// gather and the write-back walk the global arrays in memory order.
     by_particle: Vec<(u32, u32)>,
+    /// Rest position of each entry of `by_particle`, m (read in order by the gather).
+    rest_of: Vec<DVec3>,
     /// First grid cell of each group of four owners along x, and the lanes' rest data.
     groups: Vec<u32>,
     lanes: Vec<LaneRest>,
@@ -513,6 +582,9 @@ pub(crate) struct StencilGrid {
     group_rest: Vec<GroupRest>,
     /// (grid cell, term) of every term, sorted when the grid is built.
     order: Vec<(u32, u32)>,
+    /// The vector axis forced by a test (every permutation of the cube's loops tested).
+    #[cfg(test)]
+    fast_axis: Option<usize>,
 }
 
 impl StencilGrid {
@@ -577,7 +649,23 @@ impl StencilGrid {
                 }
             }
         }
+        let mut half_of = vec![(usize::MAX, false); dirs.len()];
+        for (j, &k) in half.iter().enumerate() {
+            let d = dirs[k];
+            half_of[k] = (j, false);
+            if let Some(m) = dirs.iter().position(|e| *e == [-d[0], -d[1], -d[2]]) {
+                half_of[m] = (j, true);
+            }
+        }
         let pairs = half.iter().map(|&k| (k, 0isize)).collect();
+        // The 26-cell cube: three classes (faces, edges, corners, by length).
+        let cube = dirs.len() == 26 && reach == 1 && classes.len() == 3;
+        let mut cube_scale = [0.0; 3];
+        for (sc, cl) in cube_scale.iter_mut().zip(&classes) {
+            *sc = w[half[cl.2.start]]
+                .iter()
+                .fold(0.0f64, |a, v| a.max(v.abs()));
+        }
         Self {
             #[cfg(target_arch = "x86_64")]
             isa: avx2::Avx2Fma::detect(),
@@ -594,6 +682,12 @@ impl StencilGrid {
             pairs,
             classes,
             class_of,
+            half_of,
+            cube,
+            cube_off: [0; MAX_PAIRS],
+            cube_scale,
+            cube_x: [[0.0; 3]; MAX_PAIRS],
+            cube_rows: [0; 9],
             layout: GridLayout::default(),
             cells: 0,
             capacity_cells,
@@ -606,10 +700,13 @@ impl StencilGrid {
             fz: vec![0.0; capacity_cells],
             cell_of_local: vec![0; touched],
             by_particle: Vec::with_capacity(touched),
+            rest_of: Vec::with_capacity(touched),
             groups: Vec::with_capacity(terms),
             lanes: Vec::with_capacity(4 * terms),
             group_rest: Vec::with_capacity(terms),
             order: Vec::with_capacity(terms),
+            #[cfg(test)]
+            fast_axis: None,
         }
     }
 
@@ -620,6 +717,20 @@ impl StencilGrid {
         {
             self.isa = None;
         }
+    }
+
+    /// Runs the general stencil's pair loops from now on even for the 26-cell cube (tests of
+    /// both).
+    #[cfg(test)]
+    pub(crate) fn pair_loops_only(&mut self) {
+        self.cube = false;
+    }
+
+    /// Vectorises along lattice axis `axis` from the next layout on (tests of every axis
+    /// permutation).
+    #[cfg(test)]
+    pub(crate) fn force_vector_axis(&mut self, axis: usize) {
+        self.fast_axis = Some(axis);
     }
 
     /// Grid cells in use and groups of four lanes (for studies of the lane occupancy).
@@ -646,7 +757,8 @@ impl StencilGrid {
         if particles.is_empty() {
             return true;
         }
-        if self.reach != 1 {
+        // Reach one, and every entry paired with its negative (pass 1 sums over pairs).
+        if self.reach != 1 || self.half_of.iter().any(|h| h.0 == usize::MAX) {
             return false;
         }
         let mut lo = [i64::MAX; 3];
@@ -661,6 +773,10 @@ impl StencilGrid {
         // The vector axis: the one whose groups of four hold the most owners (fewest groups).
         let mut best: Option<(usize, [usize; 3])> = None;
         for fast in 0..3 {
+            #[cfg(test)]
+            if self.fast_axis.is_some_and(|f| f != fast) {
+                continue;
+            }
             let perm = [fast, (fast + 1) % 3, (fast + 2) % 3];
             let Some(layout) = GridLayout::new(perm, lo, hi, self.reach, self.capacity_cells)
             else {
@@ -711,11 +827,34 @@ impl StencilGrid {
             self.by_particle.push((p, i as u32));
         }
         self.by_particle.sort_unstable();
+        self.rest_of.clear();
+        for &(p, _) in &self.by_particle {
+            self.rest_of.push(cloud.rest_m()[p as usize]);
+        }
         for (o, d) in self.off.iter_mut().zip(&self.dirs) {
             *o = layout.offset(d);
         }
         for (k, o) in &mut self.pairs {
             *o = self.off[*k];
+        }
+        if self.cube {
+            // CUBE is in grid axes: lattice offset d has d[perm[a]] = e[a].
+            for (j, e) in CUBE.iter().enumerate() {
+                let mut d = [0i32; 3];
+                for a in 0..3 {
+                    d[perm[a]] = e[a];
+                }
+                if let Some(k) = self.dirs.iter().position(|dk| *dk == d) {
+                    self.cube_off[j] = self.off[k];
+                    self.cube_x[j] = self.x[k].to_array();
+                }
+            }
+            for (r, o) in self.cube_rows.iter_mut().enumerate() {
+                let mut d = [0i32; 3];
+                d[perm[1]] = r as i32 % 3 - 1;
+                d[perm[2]] = r as i32 / 3 - 1;
+                *o = layout.offset(&d);
+            }
         }
         // Rows along the vector axis: offsets -1, 0, +1 along it of each (other two) offset.
         self.rows.clear();
@@ -813,20 +952,13 @@ impl StencilGrid {
         true
     }
 
-    /// The terms' forces (N) at positions `x` (m, by global particle; `rest`: the rest
-    /// positions) written (`add`: added) into `f` (by global particle) for every touched
-    /// particle, in the AVX2 + FMA build where the CPU has it. The grid holds displacements
-    /// (zero in empty cells).
-    pub(crate) fn forces(
-        &mut self,
-        mat: &MaterialParams,
-        x: &[DVec3],
-        rest: &[DVec3],
-        f: &mut [DVec3],
-        add: bool,
-    ) {
-        for &(p, i) in &self.by_particle {
-            let (i, xp) = (i as usize, x[p as usize] - rest[p as usize]);
+    /// The terms' forces (N) at positions `x` (m, by global particle) written (`add`: added)
+    /// into `f` (by global particle) for every touched particle, in the AVX2 + FMA build
+    /// where the CPU has it. The grid holds displacements from the rest positions of the
+    /// cloud the grid was built with (zero in empty cells).
+    pub(crate) fn forces(&mut self, mat: &MaterialParams, x: &[DVec3], f: &mut [DVec3], add: bool) {
+        for (&(p, i), r) in self.by_particle.iter().zip(&self.rest_of) {
+            let (i, xp) = (i as usize, x[p as usize] - *r);
             self.px[i] = xp.x;
             self.py[i] = xp.y;
             self.pz[i] = xp.z;
@@ -880,6 +1012,13 @@ impl StencilGrid {
             pairs,
             classes,
             class_of,
+            half_of,
+            cube,
+            cube_off,
+            cube_scale,
+            cube_x,
+            cube_rows,
+            layout,
             x: xs,
             px,
             py,
@@ -896,7 +1035,11 @@ impl StencilGrid {
         let (seed, v) = (*seed, *v);
         let nk = off.len();
         assert!(nk <= MAX_STENCIL && ws.len() == nk && cs.len() == nk && us.len() == nk);
+        let (cube, perm) = (*cube, layout.perm);
         let zero = V::zero(isa);
+        // Pass 2's `(N - beta F) w_k` of each pair, written before it is read.
+        assert!(pairs.len() <= MAX_PAIRS);
+        let mut ah = [[zero; 3]; MAX_PAIRS];
         for (g, &base) in groups.iter().enumerate() {
             let b = base as usize;
             let lanes = &lanes[4 * g..4 * g + 4];
@@ -915,7 +1058,33 @@ impl StencilGrid {
             let mut ga = [zero; 9];
             let mut gb = [zero; 9];
             let mut cu = [zero; 3];
-            for &(beta, ck, ref range) in classes.iter() {
+            if cube {
+                // The same sums with w_k = scale_c e_k: per class the signed sums of the
+                // u_(i+k) - u_(i-k) by grid axis (columns perm[a]), scaled once.
+                let (gl, sl) = pass_one_cube::<V>(isa, b, cube_off, px, py, pz, seed);
+                for (c, &(beta, ck, _)) in classes.iter().enumerate() {
+                    let scale = V::splat(isa, cube_scale[c]);
+                    for a in 0..3 {
+                        for r in 0..3 {
+                            let e = 3 * perm[a] + r;
+                            if seed {
+                                ga[e] = V::madd(gl[c][3 * a + r], scale, ga[e]);
+                            } else {
+                                let gc = gl[c][3 * a + r].mul(scale);
+                                ga[e] = ga[e].add(gc);
+                                gb[e] = V::madd(gc, V::splat(isa, beta), gb[e]);
+                            }
+                        }
+                    }
+                    if !seed {
+                        let cv = V::splat(isa, ck);
+                        for r in 0..3 {
+                            cu[r] = V::madd(sl[c][r], cv, cu[r]);
+                        }
+                    }
+                }
+            }
+            for &(beta, ck, ref range) in classes.iter().filter(|_| !cube) {
                 let mut gc = [zero; 9];
                 let mut sc = [zero; 3];
                 for &(k, o) in &pairs[range.clone()] {
@@ -956,7 +1125,7 @@ impl StencilGrid {
                     }
                 }
             }
-            if seed || stvk {
+            let (nm, fm, ov) = if seed || stvk {
                 // St. Venant-Kirchhoff lane-wise (the seed variant's law always). F~ = A + G
                 // - u_i (x) S; seed: F = F~, E = (F^T F - I) / 2 - E0, N = V F S(E);
                 // corrected: F = F~ A^-1, E = (F^T F - I) / 2, M = V F S(E) + (F - I) Q - Gb
@@ -1050,69 +1219,336 @@ impl StencilGrid {
                     }
                     (n, fo, ov)
                 };
-                let ncl = class_matrices(&nmv, &fmv, classes, seed, isa);
-                pass_two::<V>(
-                    isa, b, rows, ws, cs, xs, off, px, py, pz, fx, fy, fz, seed, own, ui, &ncl,
-                    class_of, ov,
-                );
-                continue;
-            }
-            // Per lane: F~ = A + G - u_i (x) S; stress, N, F and the owner's force.
-            let gas = lane_matrices(&ga);
-            let gbs = if seed {
-                [[0.0; 9]; 4]
+                (nmv, fmv, ov)
             } else {
-                lane_matrices(&gb)
-            };
-            let uis = [ui[0].to_array(), ui[1].to_array(), ui[2].to_array()];
-            let cus = [cu[0].to_array(), cu[1].to_array(), cu[2].to_array()];
-            let mut nl = [[0.0; 4]; 9];
-            let mut fl = [[0.0; 4]; 9];
-            let mut ol = [[0.0; 4]; 3];
-            for (l, lr) in lanes.iter().enumerate() {
-                if lr.own == 0.0 {
-                    continue;
-                }
-                let u_i = DVec3::new(uis[0][l], uis[1][l], uis[2][l]);
-                let ft = lr.a + DMat3::from_cols_array(&gas[l]) - outer(u_i, lr.s);
-                let (n, f, owner) = if seed {
-                    let e = green_strain(&ft) - lr.q;
-                    let n = (ft * stvk_stress(&e, mat.lambda_pa, mat.mu_pa)) * v;
-                    (n, DMat3::ZERO, n * lr.s)
+                // Per lane: F~ = A + G - u_i (x) S; stress, N, F and the owner's force.
+                let gas = lane_matrices(&ga);
+                let gbs = if seed {
+                    [[0.0; 9]; 4]
                 } else {
-                    let f = ft * lr.a_inv;
-                    // D = sum_k c_k d_ik (x) X_k = Gb - u_i (x) U + Q; H = F Q - D.
-                    let h = (f - DMat3::IDENTITY) * lr.q - DMat3::from_cols_array(&gbs[l])
-                        + outer(u_i, lr.u);
-                    let m = first_piola(mat, &f) * v + h;
-                    let n = m * lr.a_inv.transpose();
-                    // sum_k c_k d_ik = sum_k c_k u_(i+k) - C u_i + U.
-                    let sdl = DVec3::new(cus[0][l], cus[1][l], cus[2][l]) - u_i * lr.c + lr.u;
-                    (n, f, n * lr.s - f * lr.u + sdl)
+                    lane_matrices(&gb)
                 };
-                let (na, fa_) = (n.to_cols_array(), f.to_cols_array());
-                for e in 0..9 {
-                    nl[e][l] = na[e];
-                    fl[e][l] = fa_[e];
+                let uis = [ui[0].to_array(), ui[1].to_array(), ui[2].to_array()];
+                let cus = [cu[0].to_array(), cu[1].to_array(), cu[2].to_array()];
+                let mut nl = [[0.0; 4]; 9];
+                let mut fl = [[0.0; 4]; 9];
+                let mut ol = [[0.0; 4]; 3];
+                for (l, lr) in lanes.iter().enumerate() {
+                    if lr.own == 0.0 {
+                        continue;
+                    }
+                    let u_i = DVec3::new(uis[0][l], uis[1][l], uis[2][l]);
+                    let ft = lr.a + DMat3::from_cols_array(&gas[l]) - outer(u_i, lr.s);
+                    let (n, f, owner) = if seed {
+                        let e = green_strain(&ft) - lr.q;
+                        let n = (ft * stvk_stress(&e, mat.lambda_pa, mat.mu_pa)) * v;
+                        (n, DMat3::ZERO, n * lr.s)
+                    } else {
+                        let f = ft * lr.a_inv;
+                        // D = sum_k c_k d_ik (x) X_k = Gb - u_i (x) U + Q; H = F Q - D.
+                        let h = (f - DMat3::IDENTITY) * lr.q - DMat3::from_cols_array(&gbs[l])
+                            + outer(u_i, lr.u);
+                        let m = first_piola(mat, &f) * v + h;
+                        let n = m * lr.a_inv.transpose();
+                        // sum_k c_k d_ik = sum_k c_k u_(i+k) - C u_i + U.
+                        let sdl = DVec3::new(cus[0][l], cus[1][l], cus[2][l]) - u_i * lr.c + lr.u;
+                        (n, f, n * lr.s - f * lr.u + sdl)
+                    };
+                    let (na, fa_) = (n.to_cols_array(), f.to_cols_array());
+                    for e in 0..9 {
+                        nl[e][l] = na[e];
+                        fl[e][l] = fa_[e];
+                    }
+                    for r in 0..3 {
+                        ol[r][l] = owner[r];
+                    }
                 }
-                for r in 0..3 {
-                    ol[r][l] = owner[r];
-                }
-            }
-            let nm: [V; 9] = std::array::from_fn(|e| V::from_array(isa, nl[e]));
-            let fm: [V; 9] = std::array::from_fn(|e| V::from_array(isa, fl[e]));
-            let ov = [
-                V::from_array(isa, ol[0]),
-                V::from_array(isa, ol[1]),
-                V::from_array(isa, ol[2]),
-            ];
+                let nm = lane_mat::<V>(isa, &nl);
+                let fm = lane_mat::<V>(isa, &fl);
+                let ov = [
+                    V::from_array(isa, ol[0]),
+                    V::from_array(isa, ol[1]),
+                    V::from_array(isa, ol[2]),
+                ];
+                (nm, fm, ov)
+            };
             let ncl = class_matrices(&nm, &fm, classes, seed, isa);
-            pass_two::<V>(
-                isa, b, rows, ws, cs, xs, off, px, py, pz, fx, fy, fz, seed, own, ui, &ncl,
-                class_of, ov,
-            );
+            if cube {
+                let m = cube_columns(isa, &ncl, cube_scale, perm);
+                let cko = cube_hourglass(isa, classes, own);
+                pass_two_cube::<V>(
+                    isa,
+                    b,
+                    cube_rows,
+                    &m,
+                    cube_x,
+                    &cko,
+                    [px, py, pz],
+                    [fx, fy, fz],
+                    seed,
+                    ui,
+                    ov,
+                );
+            } else {
+                pair_grads(isa, &ncl, ws, class_of, pairs, &mut ah);
+                pass_two::<V>(
+                    isa, b, rows, cs, xs, off, px, py, pz, fx, fy, fz, seed, own, ui, half_of, &ah,
+                    ov,
+                );
+            }
         }
     }
+}
+
+/// `N w_k - F c_k X_k = (N - beta_k F) w_k` of each pair `(k, -k)` (one matrix `ncl` per
+/// class of length; odd in `k`: `w_-k = -w_k`, same class) into `ah`, in `pairs` order.
+#[inline(always)]
+fn pair_grads<V: Lanes>(
+    isa: V::Isa,
+    ncl: &[[V; 9]; 3],
+    ws: &[[f64; 3]],
+    class_of: &[usize],
+    pairs: &[(usize, isize)],
+    ah: &mut [[V; 3]; MAX_PAIRS],
+) {
+    for (a, &(k, _)) in ah.iter_mut().zip(pairs) {
+        let w = ws[k];
+        let (w0, w1, w2) = (
+            V::splat(isa, w[0]),
+            V::splat(isa, w[1]),
+            V::splat(isa, w[2]),
+        );
+        let nc = &ncl[class_of[k]];
+        for r in 0..3 {
+            a[r] = V::madd(nc[r], w0, V::madd(nc[3 + r], w1, nc[6 + r].mul(w2)));
+        }
+    }
+}
+
+/// The columns of `scale_c (N - beta_c F)` by grid axis: `m[c][3 a + r]` is row `r` of
+/// column `perm[a]` (26-cell cube: `w_k = scale_c e_k` with `e_k` in grid axes, so
+/// `(N - beta_c F) w_k` is a signed sum of these columns).
+#[inline(always)]
+fn cube_columns<V: Lanes>(
+    isa: V::Isa,
+    ncl: &[[V; 9]; 3],
+    scale: &[f64; 3],
+    perm: [usize; 3],
+) -> [[V; 9]; 3] {
+    let mut m = [[V::zero(isa); 9]; 3];
+    for c in 0..3 {
+        let sv = V::splat(isa, scale[c]);
+        for a in 0..3 {
+            for r in 0..3 {
+                m[c][3 * a + r] = ncl[c][3 * perm[a] + r].mul(sv);
+            }
+        }
+    }
+    m
+}
+
+/// `c_k` of each class (faces, edges, corners) on the owner lanes, zero on padding lanes.
+#[inline(always)]
+fn cube_hourglass<V: Lanes>(
+    isa: V::Isa,
+    classes: &[(f64, f64, std::ops::Range<usize>)],
+    own: V,
+) -> [V; 3] {
+    // A loop, not `array::from_fn`: closures do not inherit the caller's target features.
+    let mut cko = [V::zero(isa); 3];
+    for (c, cl) in cko.iter_mut().zip(classes) {
+        *c = V::splat(isa, cl.1).mul(own);
+    }
+    cko
+}
+
+/// The pair of [`CUBE`] holding grid-axis offset `e`, and whether `e` is its negative.
+///
+/// # Panics
+/// If `e` is not an offset of the cube (at compile time where it is used).
+const fn cube_pair_of(e: [i32; 3]) -> (usize, bool) {
+    let mut j = 0;
+    while j < MAX_PAIRS {
+        let c = CUBE[j];
+        if c[0] == e[0] && c[1] == e[1] && c[2] == e[2] {
+            return (j, false);
+        }
+        if c[0] == -e[0] && c[1] == -e[1] && c[2] == -e[2] {
+            return (j, true);
+        }
+        j += 1;
+    }
+    panic!("not an offset of the 26-cell cube");
+}
+
+/// Row `r` of `sum_a e[a] m[:, a]` for a constant `e` of entries -1, 0, 1 whose first
+/// nonzero is 1 (the additions only, once inlined).
+#[inline(always)]
+fn cube_column_sum<V: Lanes>(m: &[V; 9], e: [i32; 3], r: usize) -> V {
+    let mut acc: Option<V> = None;
+    for (a, &ea) in e.iter().enumerate() {
+        let col = m[3 * a + r];
+        acc = match (ea, acc) {
+            (0, acc) => acc,
+            (1, None) => Some(col),
+            (1, Some(x)) => Some(x.add(col)),
+            (_, Some(x)) => Some(x.sub(col)),
+            (_, None) => Some(col.neg()),
+        };
+    }
+    acc.expect("a nonzero offset")
+}
+
+/// `grad` (negated when `neg`) subtracted from the row accumulators `acc` (the chunks before,
+/// at and after the row's centre) at offset `dx` along the vector axis.
+#[inline(always)]
+fn cube_put<V: Lanes>(dx: i32, grad: V, neg: bool, acc: &mut [V; 3]) {
+    // Not a closure: closures do not inherit the caller's target features.
+    #[inline(always)]
+    fn sub<V: Lanes>(a: V, g: V, neg: bool) -> V {
+        if neg { a.add(g) } else { a.sub(g) }
+    }
+    match dx {
+        -1 => {
+            let (c, lo) = grad.shift_down();
+            acc[1] = sub(acc[1], c, neg);
+            acc[0] = sub(acc[0], lo, neg);
+        }
+        0 => acc[1] = sub(acc[1], grad, neg),
+        _ => {
+            let (c, hi) = grad.shift_up();
+            acc[1] = sub(acc[1], c, neg);
+            acc[2] = sub(acc[2], hi, neg);
+        }
+    }
+}
+
+/// [`pass_two`] for the 26-cell cube: the rows `(a, b)` and `(-a, -b)` together, so that each
+/// pair's `(N - beta F) w_k` is summed once from the class columns `m` ([`cube_columns`])
+/// and serves both its entries (`w_-k = -w_k`); every offset, sign and zero of the stencil
+/// is known at compile time. `cko`: `c_k` per class on owner lanes ([`cube_hourglass`]).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)] // the loop's state, split out of one function
+fn pass_two_cube<V: Lanes>(
+    isa: V::Isa,
+    b: usize,
+    rows: &[isize; 9],
+    m: &[[V; 9]; 3],
+    xs: &[[f64; 3]; MAX_PAIRS],
+    cko: &[V; 3],
+    p: [&[f64]; 3],
+    f: [&mut [f64]; 3],
+    seed: bool,
+    ui: [V; 3],
+    ol: [V; 3],
+) {
+    let zero = V::zero(isa);
+    // The entry `(dx, a, b)` of row one and its negative in row two (offset `o1 + dx` and
+    // `o2 - dx`), component `r`: pair `j`, sign, the hourglass part `c_k d_ik` (corrected).
+    macro_rules! entry {
+        ($dx:expr, $a:expr, $b:expr, $r:ident, $o1:ident, $o2:ident, $acc1:ident, $acc2:ident) => {{
+            const JN: (usize, bool) = cube_pair_of([$dx, $a, $b]);
+            let (j, neg) = JN;
+            let g = cube_column_sum(&m[CUBE_CLASS[j]], CUBE[j], $r);
+            if seed {
+                cube_put::<V>($dx, g, neg, &mut $acc1);
+                cube_put::<V>(-$dx, g, !neg, &mut $acc2);
+            } else {
+                // grad_k = (N - beta F) w_k + c_k (u_(i+k) - u_i + X_k), X_-k = -X_k.
+                let (g1, g2) = if neg { (g.neg(), g) } else { (g, g.neg()) };
+                let x1 = if neg { -xs[j][$r] } else { xs[j][$r] };
+                let ck = cko[CUBE_CLASS[j]];
+                let d1 = V::load(isa, p[$r], ($o1 as isize + $dx) as usize)
+                    .sub(ui[$r])
+                    .add(V::splat(isa, x1));
+                let d2 = V::load(isa, p[$r], ($o2 as isize - $dx) as usize)
+                    .sub(ui[$r])
+                    .add(V::splat(isa, -x1));
+                cube_put::<V>($dx, V::madd(d1, ck, g1), false, &mut $acc1);
+                cube_put::<V>(-$dx, V::madd(d2, ck, g2), false, &mut $acc2);
+            }
+        }};
+    }
+    // The accumulators of a row added to its three chunks of component `r` (a macro, not a
+    // closure: closures do not inherit the caller's target features).
+    macro_rules! store {
+        ($o:expr, $r:expr, $acc:expr) => {{
+            let (o, a, acc) = ($o, &mut *f[$r], $acc);
+            V::load(isa, a, o - 4).add(acc[0]).store(a, o - 4);
+            V::load(isa, a, o).add(acc[1]).store(a, o);
+            V::load(isa, a, o + 4).add(acc[2]).store(a, o + 4);
+        }};
+    }
+    macro_rules! row_pair {
+        ($a:expr, $b:expr) => {{
+            let o1 = (b as isize + rows[(($a + 1) + 3 * ($b + 1)) as usize]) as usize;
+            let o2 = (b as isize + rows[((1 - $a) + 3 * (1 - $b)) as usize]) as usize;
+            for r in 0..3 {
+                let mut acc1 = [zero; 3];
+                let mut acc2 = [zero; 3];
+                entry!(-1, $a, $b, r, o1, o2, acc1, acc2);
+                entry!(0, $a, $b, r, o1, o2, acc1, acc2);
+                entry!(1, $a, $b, r, o1, o2, acc1, acc2);
+                store!(o1, r, acc1);
+                store!(o2, r, acc2);
+            }
+        }};
+    }
+    // The centre row: the owner's force and the pair (1, 0, 0) at both ends (its row two is
+    // itself).
+    for r in 0..3 {
+        let mut acc = [zero, ol[r], zero];
+        let o = b;
+        entry!(1, 0, 0, r, o, o, acc, acc);
+        store!(o, r, acc);
+    }
+    row_pair!(-1, -1);
+    row_pair!(0, -1);
+    row_pair!(1, -1);
+    row_pair!(-1, 0);
+}
+
+/// Pass 1 for the 26-cell cube: per class (faces, edges, corners) the grid-axis columns
+/// `sum_k e_k[a] (u_(i+k) - u_(i-k))` (at `3 a + r`) and (corrected, `!seed`) the sums
+/// `sum_k (u_(i+k) + u_(i-k))`, over [`CUBE`]'s pairs at grid offsets `off`.
+#[inline(always)]
+#[allow(clippy::type_complexity)] // two small per-class arrays
+fn pass_one_cube<V: Lanes>(
+    isa: V::Isa,
+    b: usize,
+    off: &[isize; MAX_PAIRS],
+    px: &[f64],
+    py: &[f64],
+    pz: &[f64],
+    seed: bool,
+) -> ([[V; 9]; 3], [[V; 3]; 3]) {
+    let zero = V::zero(isa);
+    let mut g = [[zero; 9]; 3];
+    let mut s = [[zero; 3]; 3];
+    macro_rules! pair {
+        ($($j:literal),*) => {$(
+            let (c, e, o) = (CUBE_CLASS[$j], CUBE[$j], off[$j]);
+            let (hi, lo) = ((b as isize + o) as usize, (b as isize - o) as usize);
+            let a = [V::load(isa, px, hi), V::load(isa, py, hi), V::load(isa, pz, hi)];
+            let m = [V::load(isa, px, lo), V::load(isa, py, lo), V::load(isa, pz, lo)];
+            for r in 0..3 {
+                let d = a[r].sub(m[r]);
+                for (ax, &ea) in e.iter().enumerate() {
+                    let x = &mut g[c][3 * ax + r];
+                    match ea {
+                        0 => {}
+                        1 => *x = x.add(d),
+                        _ => *x = x.sub(d),
+                    }
+                }
+                if !seed {
+                    s[c][r] = s[c][r].add(a[r].add(m[r]));
+                }
+            }
+        )*};
+    }
+    pair!(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12);
+    (g, s)
 }
 
 /// Pass 2 of a group (module documentation): `grad_k = N w_k (- F u_k + c_k d_k)`,
@@ -1125,7 +1561,6 @@ fn pass_two<V: Lanes>(
     isa: V::Isa,
     b: usize,
     rows: &[(isize, [usize; 3])],
-    ws: &[[f64; 3]],
     cs: &[f64],
     xs: &[DVec3],
     off: &[isize],
@@ -1138,8 +1573,8 @@ fn pass_two<V: Lanes>(
     seed: bool,
     own: V,
     ui: [V; 3],
-    ncl: &[[V; 9]; 3],
-    class_of: &[usize],
+    half_of: &[(usize, bool)],
+    ah: &[[V; 3]; MAX_PAIRS],
     ol: [V; 3],
 ) {
     let zero = V::zero(isa);
@@ -1152,17 +1587,10 @@ fn pass_two<V: Lanes>(
             if k == usize::MAX {
                 continue;
             }
-            let w = ws[k];
-            let (w0, w1, w2) = (
-                V::splat(isa, w[0]),
-                V::splat(isa, w[1]),
-                V::splat(isa, w[2]),
-            );
-            // N w_k - F c_k X_k = (N - beta_k F) w_k: one matrix per class of length.
-            let nc = &ncl[class_of[k]];
-            let mut gr = [zero; 3];
-            for r in 0..3 {
-                gr[r] = V::madd(nc[r], w0, V::madd(nc[3 + r], w1, nc[6 + r].mul(w2)));
+            let (j, negative) = half_of[k];
+            let mut gr = ah[j];
+            if negative {
+                gr = [gr[0].neg(), gr[1].neg(), gr[2].neg()];
             }
             if !seed {
                 // c_k d_ik for an owner lane (padding lanes: zero); an empty
