@@ -19,20 +19,25 @@ fn main() {
     divan::main();
 }
 
-/// Meshes: structured LV at about N tets (`lvN`), `lv_h1` (`lv_h1.msh`, or the structured
-/// `lv_shell(18000)` when the shared data is absent), and quadratic elements (`lvNq`).
-const SIZES: [&str; 8] = [
-    "lv1000", "lv2000", "lv10000", "lv_h1", "lv_h1es", "lv300q", "lv500q", "lv1000q",
+/// Meshes: structured LV at about N tets (`lvN`), `lv_h1` (`deploy/scenes/lv_h1.toml`:
+/// `lv_h1.msh` with single-precision forces, or the structured `lv_shell(18000)` when the
+/// shared data is absent; `lv_h1d` the same in double precision), and quadratic elements
+/// (`lvNq`).
+const SIZES: [&str; 9] = [
+    "lv1000", "lv2000", "lv10000", "lv_h1", "lv_h1d", "lv_h1es", "lv300q", "lv500q", "lv1000q",
 ];
 
 fn scene(name: &str) -> Scene {
     if name == "lv_h1" {
         return lv_h1_scene().unwrap_or_else(|| lv_scene(18000));
     }
-    if name == "lv_h1es" {
-        // The same mesh with edge-based strain smoothing (ES-FEM-T4).
+    if name == "lv_h1d" || name == "lv_h1es" {
         let mut sc = scene("lv_h1");
-        sc.strain_smoothing = haptic_model::element::StrainSmoothing::Edge;
+        sc.integrator.single_precision_forces = false;
+        if name == "lv_h1es" {
+            // The same mesh with edge-based strain smoothing (ES-FEM-T4).
+            sc.strain_smoothing = haptic_model::element::StrainSmoothing::Edge;
+        }
         return sc;
     }
     let spec = name.trim_start_matches("lv");
@@ -65,7 +70,8 @@ fn pressed_scene(scene: &Scene) -> (Simulation, TickInput) {
     (sim, input)
 }
 
-/// One force evaluation on the pressed body, with the viscous stress when `viscous`.
+/// One force evaluation on the pressed body, with the viscous stress when `viscous`, in the
+/// scene's precision (`FemModel::add_internal_forces_with`).
 fn bench_forces(bencher: divan::Bencher, size: &str, viscous: bool) {
     bench_forces_of(bencher, pressed(size).0, viscous);
 }
@@ -73,11 +79,12 @@ fn bench_forces(bencher: divan::Bencher, size: &str, viscous: bool) {
 fn bench_forces_of(bencher: divan::Bencher, sim: Simulation, viscous: bool) {
     let n = sim.fem().node_count();
     let mut f = vec![DVec3::ZERO; n];
+    let mut scratch = haptic_model::element::ForceScratch::new(n);
     let velocities = viscous.then_some(sim.state().v.as_slice());
     bencher.counter(sim.fem().tets().len()).bench_local(|| {
         f.iter_mut().for_each(|v| *v = DVec3::ZERO);
         sim.fem()
-            .add_internal_forces(&sim.state().x, velocities, &mut f);
+            .add_internal_forces_with(&sim.state().x, velocities, &mut f, &mut scratch);
         divan::black_box(&f);
     });
 }

@@ -147,12 +147,18 @@ fn main() -> anyhow::Result<()> {
                 // Force evaluation alone.
                 let n = sim.fem().node_count();
                 let mut f = vec![DVec3::ZERO; n];
+                let mut scratch = haptic_model::element::ForceScratch::new(n);
                 let mut fe = TickTimes::new();
                 for _ in 0..if quick { 50 } else { 300 } {
                     f.iter_mut().for_each(|v| *v = DVec3::ZERO);
                     let t = Instant::now();
-                    sim.fem()
-                        .add_internal_forces(&sim.state().x, Some(&sim.state().v), &mut f);
+                    // In the scene's precision (single on the lv_h* scenes).
+                    sim.fem().add_internal_forces_with(
+                        &sim.state().x,
+                        Some(&sim.state().v),
+                        &mut f,
+                        &mut scratch,
+                    );
                     fe.record(t.elapsed());
                 }
                 // Full ticks while pressing 6 mm along -x at the equator (z = -5 mm).

@@ -19,7 +19,7 @@ use crate::ModelError;
 use crate::body::{BodyInfo, BodyStats, PointLoadZone, SoftBody, SurfaceCapacity, SurfaceTopology};
 use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
 use crate::contact::{ContactModel, Probe};
-use crate::element::{CLAMPED, FemModel};
+use crate::element::{CLAMPED, FemModel, ForceScratch};
 use crate::integrate::condensed::{ActiveRegion, CondensedSolver};
 use crate::integrate::follow::{FollowStats, RegionFollower};
 use crate::integrate::implicit::CgStats;
@@ -73,6 +73,8 @@ pub struct Simulation {
     state: SimState,
     /// Scratch: total nodal forces of the current sub-step.
     force: Vec<DVec3>,
+    /// Work arrays of the single-precision force kernel (empty when it is off).
+    force_scratch: ForceScratch,
     probe: Probe,
     /// Surface for viewers: distinct boundary nodes and triangles indexing into them.
     surface_nodes: Vec<u32>,
@@ -256,6 +258,11 @@ impl Simulation {
                 time_s: 0.0,
             },
             force: vec![DVec3::ZERO; n],
+            force_scratch: if fem.single_precision() {
+                ForceScratch::new(n)
+            } else {
+                ForceScratch::default()
+            },
             probe,
             surface_nodes,
             surface_triangles,
@@ -300,6 +307,7 @@ impl Simulation {
                 &self.state.x,
                 &self.state.v,
                 &mut self.force,
+                &mut self.force_scratch,
             );
             self.loads.add_to(&self.state.x, &mut self.force);
             // 2. Contact: the probe's proxy and the explicit part of its reaction.

@@ -256,3 +256,60 @@ fn capped_cg_stays_stable_on_lv_h1() {
     assert!(force.x > 0.03, "{force}");
     assert!(sim.stability().stable);
 }
+
+/// Single-precision forces (`integrator.force_precision = "single"`) on a linear StVK LV,
+/// explicit (semi-implicit, nine-odd sub-steps, viscous stress) and backward Euler on the rest
+/// factor: the device force follows the double-precision run to 1e-5 of itself through the
+/// press (above 1 mN), and the tick allocates nothing.
+#[test]
+fn single_precision_forces_follow_double_precision_and_do_not_allocate() {
+    for (kind, solver) in [
+        (IntegratorKind::SemiImplicit, LinearSolver::Cg),
+        (IntegratorKind::BackwardEuler, LinearSolver::RestCholesky),
+    ] {
+        let mut runs = Vec::new();
+        for single in [false, true] {
+            let mut scene = load_builtin("lv").unwrap();
+            let mesh = haptic_model::mesh::generate::lv_shell(600);
+            scene.clamped_nodes = mesh
+                .nodes_of_surfaces(&["BASE".to_string()], "clamped")
+                .unwrap();
+            scene.touchable = mesh.surface("EPI").unwrap().triangles.clone();
+            scene.mesh = mesh;
+            scene.integrator.kind = kind;
+            scene.integrator.linear_solver = solver;
+            scene.integrator.single_precision_forces = single;
+            let mut sim = Simulation::new(&scene).unwrap();
+            assert_eq!(sim.fem().single_precision(), single);
+            let mut forces = Vec::new();
+            for k in 0..1200 {
+                let inp = input(k);
+                let (out, n) = counted(|| sim.tick(&inp));
+                assert_eq!(n, 0, "{kind:?} single={single}: allocated in tick {k}");
+                forces.push(out.unwrap().force_on_device_n);
+            }
+            runs.push(forces);
+        }
+        let (mut compared, mut worst) = (0, 0.0_f64);
+        for (d, s) in runs[0].iter().zip(&runs[1]) {
+            if d.length() > 1e-3 {
+                let rel = (*d - *s).length() / d.length();
+                assert!(rel < 1e-5, "{kind:?}: {d} {s}");
+                worst = worst.max(rel);
+                compared += 1;
+            }
+        }
+        eprintln!("{kind:?}: largest relative difference {worst:.1e} over {compared} ticks");
+        assert!(
+            compared > 300,
+            "{kind:?}: the press reached 1 mN in {compared} ticks"
+        );
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+            assert!(
+                worst > 0.0,
+                "{kind:?}: no rounding difference: did the kernel run?"
+            );
+        }
+    }
+}

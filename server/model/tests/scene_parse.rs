@@ -486,3 +486,35 @@ fn the_rest_cholesky_solver_is_for_backward_euler_and_its_margin_is_checked() {
         "integrator.stiffness_margin"
     );
 }
+
+#[test]
+fn single_precision_forces_are_for_linear_stvk_fem_scenes() {
+    let with = |integrator: &str, extra: &str| format!("{BASE}{extra}[integrator]\n{integrator}");
+    assert!(!parse(BASE).unwrap().integrator.single_precision_forces);
+    let scene = parse(&with("force_precision = \"single\"\n", "")).unwrap();
+    assert!(scene.integrator.single_precision_forces);
+    assert!(scene.fem_model().unwrap().single_precision());
+    assert!(
+        !parse(&with("force_precision = \"double\"\n", ""))
+            .unwrap()
+            .integrator
+            .single_precision_forces
+    );
+    let quadratic = BASE.replace("length_unit = \"mm\"", "length_unit = \"mm\"\norder = 2");
+    let smoothed = BASE.replace(
+        "length_unit = \"mm\"",
+        "length_unit = \"mm\"\nstrain_smoothing = \"edge\"",
+    );
+    let neo = BASE.replace(
+        "density_kg_per_m3 = 1060.0",
+        "density_kg_per_m3 = 1060.0\nmodel = \"stable-neo-hookean\"",
+    );
+    for bad in [
+        with("force_precision = \"half\"\n", ""),
+        format!("{quadratic}[integrator]\nforce_precision = \"single\"\n"),
+        format!("{smoothed}[integrator]\nforce_precision = \"single\"\n"),
+        format!("{neo}[integrator]\nforce_precision = \"single\"\n"),
+    ] {
+        assert_eq!(field_of(parse(&bad)), "integrator.force_precision", "{bad}");
+    }
+}

@@ -254,6 +254,7 @@ pub fn run_loaded_with(
         time_s: 0.0,
     };
     let mut f = vec![DVec3::ZERO; n];
+    let mut scratch = haptic_model::element::ForceScratch::new(n);
     let ticks = (total_s / params.tick_s).round() as usize;
     let mut tick_times = TickTimes::new();
     let mut stable = true;
@@ -264,7 +265,7 @@ pub fn run_loaded_with(
             let t = k as f64 * params.tick_s + s as f64 * h;
             let scale = smoothstep(t / ramp_s);
             f.iter_mut().zip(f_ext).for_each(|(f, e)| *f = *e * scale);
-            stepper.add_internal_forces(fem, &state.x, &state.v, &mut f);
+            stepper.add_internal_forces(fem, &state.x, &state.v, &mut f, &mut scratch);
             let max_v2 = stepper
                 .step(fem, &f, &mut probe, &mut state)
                 .max_speed2_m2_per_s2;

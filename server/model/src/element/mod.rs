@@ -43,7 +43,7 @@
 use glam::{DMat3, DVec3};
 
 use crate::ModelError;
-use crate::material::{self, MaterialParams};
+use crate::material::{self, MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
 
 pub mod fibres;
@@ -54,7 +54,8 @@ pub mod smoothing;
 pub mod tangent;
 
 pub use fibres::{FibreField, FibreRule};
-use kernels::Kernels;
+pub use kernels::ForceScratch;
+use kernels::{Kernels, SingleLinear};
 pub use mass::lumped_masses;
 use quadrature::{IntegrationPoints, linear_gradients, linear_points, quadratic_points};
 pub use smoothing::StrainSmoothing;
@@ -107,6 +108,8 @@ pub struct FemModel {
     points: IntegrationPoints,
     /// The same cells in batches for the vectorised force kernels.
     kernels: Kernels,
+    /// The single-precision kernel, when enabled ([`FemModel::set_single_precision`]).
+    single: Option<SingleLinear>,
     /// Whether the elements are 10-node tetrahedra.
     quadratic: bool,
     /// Strain smoothing of linear elements.
@@ -187,6 +190,7 @@ impl FemModel {
         };
         Ok(Self {
             kernels,
+            single: None,
             points,
             rest: mesh.nodes.clone(),
             tets: mesh.tets.clone(),
@@ -363,6 +367,69 @@ impl FemModel {
         if !self.kernels.add_forces(mat, x, viscous, f) {
             self.generic_forces(x, viscous, f);
         }
+    }
+
+    /// Switches the internal forces of [`FemModel::add_internal_forces_with`] to the
+    /// single-precision kernel (`true`) or back to double precision (`false`). The kernel
+    /// covers linear St Venant-Kirchhoff tetrahedra without strain smoothing, on CPUs with AVX2
+    /// and FMA (elsewhere the double-precision kernel runs); its set-up holds 56 bytes per
+    /// element. See `docs/decisions.md` ("Single-precision forces") for its error.
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] (`integrator.force_precision`) for another element or material.
+    pub fn set_single_precision(&mut self, on: bool) -> Result<(), ModelError> {
+        if !on {
+            self.single = None;
+            return Ok(());
+        }
+        if !self.is_plain_linear() || self.material.model != MaterialModel::StVenantKirchhoff {
+            return Err(ModelError::field(
+                "integrator.force_precision",
+                "single precision is for linear St Venant-Kirchhoff tetrahedra without strain smoothing",
+            ));
+        }
+        if self.single.is_none() {
+            let order = kernels::locality_order(&self.rest, &self.tets);
+            self.single = Some(SingleLinear::build(
+                &order,
+                &self.rest,
+                &self.tets,
+                &self.dm_inv,
+                &self.volume_m3,
+            ));
+        }
+        Ok(())
+    }
+
+    /// Whether [`FemModel::add_internal_forces_with`] uses the single-precision kernel.
+    pub fn single_precision(&self) -> bool {
+        self.single.is_some()
+    }
+
+    /// [`Self::add_internal_forces`] through the single-precision kernel when it is enabled
+    /// ([`Self::set_single_precision`]) and `scratch` serves this model's node count; otherwise
+    /// exactly [`Self::add_internal_forces`]. Allocation-free.
+    ///
+    /// # Panics
+    /// As [`Self::add_internal_forces`].
+    pub fn add_internal_forces_with(
+        &self,
+        x: &[DVec3],
+        v: Option<&[DVec3]>,
+        f: &mut [DVec3],
+        scratch: &mut ForceScratch,
+    ) {
+        let mat = &self.material;
+        if let Some(single) = &self.single
+            && scratch.node_count() >= self.node_count()
+        {
+            let viscous = v.filter(|_| mat.phi_pa_s > 0.0 || mat.psi_pa_s > 0.0);
+            let lame = (mat.lambda_pa, mat.mu_pa);
+            if single.add_forces(lame, (mat.phi_pa_s, mat.psi_pa_s), x, viscous, f, scratch) {
+                return;
+            }
+        }
+        self.add_internal_forces(x, v, f);
     }
 
     /// [`Self::add_internal_forces`] element by element (integration point by integration point

@@ -533,6 +533,7 @@ fn part_model(body: &FemModel, mesh: &TetMesh, keep: &[bool]) -> Result<FemModel
     )?;
     m.copy_constraints_from(body);
     m.copy_fibres_from(body);
+    m.set_single_precision(body.single_precision())?;
     Ok(m)
 }
 

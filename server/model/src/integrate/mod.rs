@@ -35,7 +35,7 @@ use glam::{DMat3, DVec3};
 
 use crate::ModelError;
 use crate::contact::{ContactModel, Probe};
-use crate::element::FemModel;
+use crate::element::{FemModel, ForceScratch};
 use crate::material::MaterialParams;
 use crate::mesh::TetMesh;
 
@@ -168,6 +168,10 @@ pub struct IntegratorParams {
     /// stress tests and benchmarks that must run a known-unstable configuration to show that the
     /// divergence monitor reports it ([`ModelError::Diverged`]) instead of producing NaN.
     pub check_critical_step: bool,
+    /// Whether the servo's internal forces run through the single-precision kernel
+    /// ([`FemModel::set_single_precision`]; scene key `force_precision = "single"`). Default
+    /// false (double precision).
+    pub single_precision_forces: bool,
 }
 
 impl Default for IntegratorParams {
@@ -183,6 +187,7 @@ impl Default for IntegratorParams {
             linear_solver: LinearSolver::Cg,
             stiffness_margin: condensed::DEFAULT_STIFFNESS_MARGIN,
             check_critical_step: true,
+            single_precision_forces: false,
         }
     }
 }
@@ -399,12 +404,22 @@ impl Stepper {
     /// Adds the internal forces a step needs (N) to `f`, for the state `x`, `v`: elastic and
     /// viscous for the explicit schemes, elastic only for backward Euler (which treats the
     /// viscous force implicitly inside its solve). Allocation-free.
-    pub fn add_internal_forces(&self, body: &FemModel, x: &[DVec3], v: &[DVec3], f: &mut [DVec3]) {
+    /// With `scratch` for the model's node count, a model with single precision enabled uses
+    /// it ([`FemModel::add_internal_forces_with`]).
+    pub fn add_internal_forces(
+        &self,
+        body: &FemModel,
+        x: &[DVec3],
+        v: &[DVec3],
+        f: &mut [DVec3],
+        scratch: &mut ForceScratch,
+    ) {
         let v = match self {
             Self::Explicit { .. } => Some(v),
             Self::Implicit(_) | Self::Condensed(_) => None,
         };
-        self.force_model(body).add_internal_forces(x, v, f);
+        self.force_model(body)
+            .add_internal_forces_with(x, v, f, scratch);
     }
 
     /// Advances `state` (positions, velocities; not the time) by one sub-step from the nodal

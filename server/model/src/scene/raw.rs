@@ -188,6 +188,7 @@ struct RawIntegrator {
     cg_tolerance: Option<f64>,
     linear_solver: Option<String>,
     stiffness_margin: Option<f64>,
+    force_precision: Option<String>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -494,6 +495,17 @@ pub(super) fn parse_scene(
     } else {
         None
     };
+    if integrator.single_precision_forces
+        && (mesh.is_quadratic()
+            || strain_smoothing != StrainSmoothing::None
+            || material.model != MaterialModel::StVenantKirchhoff
+            || family != ModelFamily::Fem)
+    {
+        return Err(ModelError::field(
+            "integrator.force_precision",
+            "\"single\" is for linear St Venant-Kirchhoff tetrahedra without strain smoothing (FEM family)",
+        ));
+    }
     Ok(Scene {
         name,
         fibres,
@@ -1394,6 +1406,16 @@ fn build_integrator(i: &RawIntegrator) -> Result<IntegratorParams, ModelError> {
         |c| (1.0..=100.0).contains(&c),
         "in [1, 100]",
     )?;
+    let single_precision_forces = match i.force_precision.as_deref() {
+        None | Some("double") => false,
+        Some("single") => true,
+        Some(other) => {
+            return Err(ModelError::field(
+                "integrator.force_precision",
+                format!("unknown precision `{other}` (expected \"double\" or \"single\")"),
+            ));
+        }
+    };
     Ok(IntegratorParams {
         kind,
         tick_s,
@@ -1405,6 +1427,7 @@ fn build_integrator(i: &RawIntegrator) -> Result<IntegratorParams, ModelError> {
         linear_solver,
         stiffness_margin,
         check_critical_step: true,
+        single_precision_forces,
     })
 }
 
