@@ -73,6 +73,8 @@ trait Lanes: Copy {
     fn madd(a: Self, b: Self, c: Self) -> Self;
     /// `c - a b`.
     fn nmadd(a: Self, b: Self, c: Self) -> Self;
+    /// `a b - c`.
+    fn msub(a: Self, b: Self, c: Self) -> Self;
     /// `-self` (exact: the sign bits flipped).
     fn neg(self) -> Self;
     /// Moved one cell down (the forces of offset -1 along x): `([v1, v2, v3, 0], [0, 0, 0, v0])`,
@@ -147,6 +149,11 @@ impl Lanes for L4 {
     #[inline(always)]
     fn nmadd(a: L4, b: L4, c: L4) -> L4 {
         c.sub(a.mul(b))
+    }
+
+    #[inline(always)]
+    fn msub(a: L4, b: L4, c: L4) -> L4 {
+        a.mul(b).sub(c)
     }
 
     #[inline(always)]
@@ -267,6 +274,12 @@ mod avx2 {
         }
 
         #[inline(always)]
+        fn msub(a: Y4, b: Y4, c: Y4) -> Y4 {
+            // SAFETY: the token proves FMA.
+            Y4(unsafe { _mm256_fmsub_pd(a.0, b.0, c.0) })
+        }
+
+        #[inline(always)]
         fn neg(self) -> Y4 {
             // SAFETY: `self` exists only with the token (AVX).
             Y4(unsafe { _mm256_xor_pd(self.0, _mm256_set1_pd(-0.0)) })
@@ -311,7 +324,9 @@ fn lane_mat<V: Lanes>(isa: V::Isa, a: &[[f64; 4]; 9]) -> [V; 9] {
     m
 }
 
-/// `N - beta_c F` for each class `c` of stencil length (at most three; `N` when `seed`).
+/// `N - beta_c (F - I)` for each class `c` of stencil length from `f` = `F - I` (at most
+/// three; `N` when `seed`): with `c_k X_k = beta_c w_k`, the part `N w_k - F c_k X_k + c_k X_k`
+/// of `grad_ik` (module documentation) is `(N - beta_c (F - I)) w_k`.
 #[inline(always)]
 fn class_matrices<V: Lanes>(
     n: &[V; 9],
@@ -427,17 +442,19 @@ struct LaneRest {
 }
 
 /// The rest data of a group, lane-wise (structure of arrays, the fields of [`LaneRest`]), for
-/// the vectorised St. Venant-Kirchhoff stress.
+/// the vectorised St. Venant-Kirchhoff stress; in the order the loop reads them (one group
+/// is 832 B, streamed from memory once per evaluation).
 #[derive(Debug, Clone, Copy, Default)]
 struct GroupRest {
+    own: [f64; 4],
+    s: [[f64; 4]; 3],
+    /// `A` (seed) or `A^-1` (corrected; zero on padding lanes, so that their `F - I` and `N`
+    /// vanish): the one the variant reads.
     a: [[f64; 4]; 9],
-    a_inv: [[f64; 4]; 9],
     /// `Q` (corrected) or the rest strain (seed).
     q: [[f64; 4]; 9],
-    s: [[f64; 4]; 3],
     u: [[f64; 4]; 3],
     c: [f64; 4],
-    own: [f64; 4],
 }
 
 const PADDING: LaneRest = LaneRest {
@@ -551,8 +568,6 @@ pub(crate) struct StencilGrid {
     /// The nonzero components' magnitude `|w_k|_max` of each class (faces, edges, corners),
     /// 1/m: `w_k = scale * (the lattice offset)` exactly (cube only).
     cube_scale: [f64; 3],
-    /// Rest offset `X_k` (m) of each of [`CUBE`]'s pairs for the current grid (cube only).
-    cube_x: [[f64; 3]; MAX_PAIRS],
     /// Grid-index offset of the centre of each row along the vector axis, at
     /// `(a + 1) + 3 (b + 1)` for offsets `a`, `b` along the other two grid axes (cube only).
     cube_rows: [isize; 9],
@@ -560,18 +575,26 @@ pub(crate) struct StencilGrid {
     layout: GridLayout,
     cells: usize,
     capacity_cells: usize,
-    /// Positions, occupancy (1 where a touched particle sits) and forces per grid cell.
+    /// Positions and occupancy (1 where a touched particle sits) per grid cell.
     px: Vec<f64>,
     py: Vec<f64>,
     pz: Vec<f64>,
     occ: Vec<f64>,
-    fx: Vec<f64>,
-    fy: Vec<f64>,
-    fz: Vec<f64>,
+    /// Forces (x, y, z components) by offset `dx` along the vector axis, stored at their
+    /// owner's cell (the cube loop: no shift across lanes; the pair loops write offset 0
+    /// only, shifted) and interleaved by chunk of four cells: chunk `c` holds `fm`, `f0`, `fp`
+    /// of its four cells at `12 c + 4 (dx + 1)`; the force on cell `i` is
+    /// `f0[i] + fm[i + 1] + fp[i - 1]` ([`cube_force_at`]).
+    fc: [Vec<f64>; 3],
+    /// First cell of every chunk of four cells the group loop writes forces into, ascending
+    /// (zeroed before each evaluation; the other chunks stay zero from the build), and a
+    /// mark per chunk for building the list.
+    write_chunks: Vec<u32>,
+    chunk_mark: Vec<bool>,
     /// Grid cell of each local particle of the block.
     cell_of_local: Vec<u32>,
-    /// (global particle, grid cell) of every touched particle, sorted by particle: the
-    /// gather and the write-back walk the global arrays in memory order.
+    /// (global particle, grid cell) of every touched particle, sorted by grid cell: the
+    /// gather and the write-back walk the grid's arrays in memory order.
     by_particle: Vec<(u32, u32)>,
     /// Rest position of each entry of `by_particle`, m (read in order by the gather).
     rest_of: Vec<DVec3>,
@@ -686,7 +709,6 @@ impl StencilGrid {
             cube,
             cube_off: [0; MAX_PAIRS],
             cube_scale,
-            cube_x: [[0.0; 3]; MAX_PAIRS],
             cube_rows: [0; 9],
             layout: GridLayout::default(),
             cells: 0,
@@ -695,9 +717,13 @@ impl StencilGrid {
             py: vec![0.0; capacity_cells],
             pz: vec![0.0; capacity_cells],
             occ: vec![0.0; capacity_cells],
-            fx: vec![0.0; capacity_cells],
-            fy: vec![0.0; capacity_cells],
-            fz: vec![0.0; capacity_cells],
+            fc: [
+                vec![0.0; 3 * capacity_cells],
+                vec![0.0; 3 * capacity_cells],
+                vec![0.0; 3 * capacity_cells],
+            ],
+            write_chunks: Vec::with_capacity(capacity_cells / 4 + 1),
+            chunk_mark: vec![false; capacity_cells / 4 + 1],
             cell_of_local: vec![0; touched],
             by_particle: Vec::with_capacity(touched),
             rest_of: Vec::with_capacity(touched),
@@ -753,6 +779,7 @@ impl StencilGrid {
         self.lanes.clear();
         self.group_rest.clear();
         self.order.clear();
+        self.write_chunks.clear();
         self.cells = 0;
         if particles.is_empty() {
             return true;
@@ -809,16 +836,11 @@ impl StencilGrid {
         let cells = layout.cells;
         self.layout = layout;
         self.cells = cells;
-        for a in [
-            &mut self.px,
-            &mut self.py,
-            &mut self.pz,
-            &mut self.occ,
-            &mut self.fx,
-            &mut self.fy,
-            &mut self.fz,
-        ] {
+        for a in [&mut self.px, &mut self.py, &mut self.pz, &mut self.occ] {
             a[..cells].fill(0.0);
+        }
+        for a in &mut self.fc {
+            a[..3 * cells].fill(0.0);
         }
         for (l, &p) in particles.iter().enumerate() {
             let i = layout.index(cloud.cell_of(p));
@@ -826,7 +848,7 @@ impl StencilGrid {
             self.occ[i] = 1.0;
             self.by_particle.push((p, i as u32));
         }
-        self.by_particle.sort_unstable();
+        self.by_particle.sort_unstable_by_key(|&(p, i)| (i, p));
         self.rest_of.clear();
         for &(p, _) in &self.by_particle {
             self.rest_of.push(cloud.rest_m()[p as usize]);
@@ -846,7 +868,6 @@ impl StencilGrid {
                 }
                 if let Some(k) = self.dirs.iter().position(|dk| *dk == d) {
                     self.cube_off[j] = self.off[k];
-                    self.cube_x[j] = self.x[k].to_array();
                 }
             }
             for (r, o) in self.cube_rows.iter_mut().enumerate() {
@@ -927,17 +948,38 @@ impl StencilGrid {
                 }
             };
         }
+        // The chunks written: each group's rows (the cube loop at the row's chunk only, in
+        // all three offsets; the pair loops also the chunks before and after, offset 0).
+        let reach: &[isize] = if self.cube { &[0] } else { &[-4, 0, 4] };
+        for &g in &self.groups {
+            for &(ro, _) in &self.rows {
+                for &d in reach {
+                    let c = (g as isize + ro + d) as usize / 4;
+                    if !self.chunk_mark[c] {
+                        self.chunk_mark[c] = true;
+                        self.write_chunks.push(4 * c as u32);
+                    }
+                }
+            }
+        }
+        for &c in &self.write_chunks {
+            self.chunk_mark[c as usize / 4] = false;
+        }
+        self.write_chunks.sort_unstable();
         for lanes in self.lanes.chunks_exact(4) {
             let mut gr = GroupRest::default();
             for (l, lr) in lanes.iter().enumerate() {
-                let (a, a_inv, q) = (
-                    lr.a.to_cols_array(),
-                    lr.a_inv.to_cols_array(),
-                    lr.q.to_cols_array(),
-                );
+                // Corrected: a zero A^-1 makes a padding lane's F - I and N zero.
+                let a = if self.seed {
+                    lr.a
+                } else if lr.own == 0.0 {
+                    DMat3::ZERO
+                } else {
+                    lr.a_inv
+                };
+                let (a, q) = (a.to_cols_array(), lr.q.to_cols_array());
                 for e in 0..9 {
                     gr.a[e][l] = a[e];
-                    gr.a_inv[e][l] = a_inv[e];
                     gr.q[e][l] = q[e];
                 }
                 for r in 0..3 {
@@ -962,9 +1004,13 @@ impl StencilGrid {
             self.px[i] = xp.x;
             self.py[i] = xp.y;
             self.pz[i] = xp.z;
-            self.fx[i] = 0.0;
-            self.fy[i] = 0.0;
-            self.fz[i] = 0.0;
+        }
+        let [f0, f1, f2] = &mut self.fc;
+        for &c in &self.write_chunks {
+            let c = 3 * c as usize;
+            for a in [&mut *f0, &mut *f1, &mut *f2] {
+                a[c..c + 12].fill(0.0);
+            }
         }
         #[cfg(target_arch = "x86_64")]
         if let Some(isa) = self.isa {
@@ -977,7 +1023,12 @@ impl StencilGrid {
         self.group_loop::<L4>((), mat);
         for &(p, i) in &self.by_particle {
             let i = i as usize;
-            let fi = DVec3::new(self.fx[i], self.fy[i], self.fz[i]);
+            let fc = &self.fc;
+            let fi = DVec3::new(
+                cube_force_at(&fc[0], i),
+                cube_force_at(&fc[1], i),
+                cube_force_at(&fc[2], i),
+            );
             if add {
                 f[p as usize] += fi;
             } else {
@@ -1016,16 +1067,12 @@ impl StencilGrid {
             cube,
             cube_off,
             cube_scale,
-            cube_x,
             cube_rows,
             layout,
-            x: xs,
             px,
             py,
             pz,
-            fx,
-            fy,
-            fz,
+            fc,
             groups,
             lanes,
             group_rest,
@@ -1043,10 +1090,7 @@ impl StencilGrid {
         for (g, &base) in groups.iter().enumerate() {
             let b = base as usize;
             let lanes = &lanes[4 * g..4 * g + 4];
-            let own = V::from_array(
-                isa,
-                [lanes[0].own, lanes[1].own, lanes[2].own, lanes[3].own],
-            );
+            let own = V::from_array(isa, group_rest[g].own);
             let ui = [
                 V::load(isa, px, b),
                 V::load(isa, py, b),
@@ -1126,37 +1170,60 @@ impl StencilGrid {
                 }
             }
             let (nm, fm, ov) = if seed || stvk {
-                // St. Venant-Kirchhoff lane-wise (the seed variant's law always). F~ = A + G
-                // - u_i (x) S; seed: F = F~, E = (F^T F - I) / 2 - E0, N = V F S(E);
-                // corrected: F = F~ A^-1, E = (F^T F - I) / 2, M = V F S(E) + (F - I) Q - Gb
-                // + u_i (x) U, N = M A^-T. Padding lanes masked.
+                // St. Venant-Kirchhoff lane-wise (the seed variant's law always).
+                // Seed: F = F~ = A + G - u_i (x) S, E = (F^T F - I) / 2 - E0, N = V F S(E).
+                // Corrected: F - I = (F~ - A) A^-1 = (G - u_i (x) S) A^-1 (A A^-1 = I; zero on
+                // padding lanes, whose A^-1 is stored as zero), E = ((F - I) + (F - I)^T +
+                // (F - I)^T (F - I)) / 2, M = V F S(E) + (F - I) Q - Gb + u_i (x) U,
+                // N = M A^-T (zero on padding lanes).
                 let gq = &group_rest[g];
                 let ld = |a: &[f64; 4]| V::from_array(isa, *a);
                 let mut ft = [zero; 9];
                 for c in 0..3 {
                     let sc = ld(&gq.s[c]);
                     for r in 0..3 {
-                        ft[3 * c + r] =
-                            V::nmadd(ui[r], sc, ld(&gq.a[3 * c + r]).add(ga[3 * c + r]));
+                        let base = if seed {
+                            ld(&gq.a[3 * c + r]).add(ga[3 * c + r])
+                        } else {
+                            ga[3 * c + r]
+                        };
+                        ft[3 * c + r] = V::nmadd(ui[r], sc, base);
                     }
                 }
+                // Seed: `fmi` unused.
+                let fmi = if seed {
+                    ft
+                } else {
+                    mat_mul(&ft, &lane_mat(isa, &gq.a))
+                };
                 let f = if seed {
                     ft
                 } else {
-                    mat_mul(&ft, &lane_mat(isa, &gq.a_inv))
+                    let mut f = fmi;
+                    for i in [0, 4, 8] {
+                        f[i] = f[i].add(V::splat(isa, 1.0));
+                    }
+                    f
                 };
                 let half = V::splat(isa, 0.5);
                 let mut e = [zero; 9];
                 for c in 0..3 {
                     for d in c..3 {
-                        let mut ctd = f[3 * c].mul(f[3 * d]);
-                        ctd = V::madd(f[3 * c + 1], f[3 * d + 1], ctd);
-                        ctd = V::madd(f[3 * c + 2], f[3 * d + 2], ctd);
-                        let id = if c == d { 1.0 } else { 0.0 };
-                        let mut ecd = ctd.sub(V::splat(isa, id)).mul(half);
-                        if seed {
-                            ecd = ecd.sub(ld(&gq.q[3 * d + c]));
-                        }
+                        let ecd = if seed {
+                            let mut ctd = f[3 * c].mul(f[3 * d]);
+                            ctd = V::madd(f[3 * c + 1], f[3 * d + 1], ctd);
+                            ctd = V::madd(f[3 * c + 2], f[3 * d + 2], ctd);
+                            let id = if c == d { 1.0 } else { 0.0 };
+                            ctd.sub(V::splat(isa, id))
+                                .mul(half)
+                                .sub(ld(&gq.q[3 * d + c]))
+                        } else {
+                            let mut ctd = fmi[3 * d + c].add(fmi[3 * c + d]);
+                            ctd = V::madd(fmi[3 * c], fmi[3 * d], ctd);
+                            ctd = V::madd(fmi[3 * c + 1], fmi[3 * d + 1], ctd);
+                            ctd = V::madd(fmi[3 * c + 2], fmi[3 * d + 2], ctd);
+                            ctd.mul(half)
+                        };
                         e[3 * d + c] = ecd;
                         e[3 * c + d] = ecd;
                     }
@@ -1171,7 +1238,7 @@ impl StencilGrid {
                 for i in [0, 4, 8] {
                     sv[i] = sv[i].add(tr);
                 }
-                let own_v = ld(&gq.own);
+                let own_v = own;
                 let mut m = mat_mul(&f, &sv);
                 let s3 = [ld(&gq.s[0]), ld(&gq.s[1]), ld(&gq.s[2])];
                 let (nmv, fmv, ov) = if seed {
@@ -1181,10 +1248,6 @@ impl StencilGrid {
                     let ov = mat_vec(&m, &s3);
                     (m, [zero; 9], ov)
                 } else {
-                    let mut fmi = f;
-                    for i in [0, 4, 8] {
-                        fmi[i] = fmi[i].sub(V::splat(isa, 1.0));
-                    }
                     let h = mat_mul(&fmi, &lane_mat(isa, &gq.q));
                     let u3 = [ld(&gq.u[0]), ld(&gq.u[1]), ld(&gq.u[2])];
                     for c in 0..3 {
@@ -1193,7 +1256,7 @@ impl StencilGrid {
                             m[i] = V::madd(ui[r], u3[c], m[i].add(h[i]).sub(gb[i]));
                         }
                     }
-                    let a_inv = lane_mat(isa, &gq.a_inv);
+                    let a_inv = lane_mat(isa, &gq.a);
                     let mut n = [zero; 9];
                     // N = M A^-T: N[r][c] = sum_d M[r][d] A^-1[c][d].
                     for c in 0..3 {
@@ -1201,27 +1264,25 @@ impl StencilGrid {
                             let mut acc = m[r].mul(a_inv[c]);
                             acc = V::madd(m[3 + r], a_inv[3 + c], acc);
                             acc = V::madd(m[6 + r], a_inv[6 + c], acc);
-                            n[3 * c + r] = acc.mul(own_v);
+                            n[3 * c + r] = acc;
                         }
                     }
-                    let mut fo = f;
-                    for x in &mut fo {
-                        *x = x.mul(own_v);
-                    }
-                    // owner = N S - F U + sum_k c_k u_(i+k) - C u_i + U.
+                    // owner = N S - F U + sum_k c_k u_(i+k) - C u_i + U (U = 0 on padding
+                    // lanes).
                     let ns = mat_vec(&n, &s3);
-                    let fu = mat_vec(&fo, &u3);
+                    let fu = mat_vec(&f, &u3);
                     let cv = ld(&gq.c);
                     let mut ov = [zero; 3];
                     for r in 0..3 {
                         let sdl = V::nmadd(cv, ui[r], cu[r]).add(u3[r]).mul(own_v);
                         ov[r] = ns[r].sub(fu[r]).add(sdl);
                     }
-                    (n, fo, ov)
+                    (n, fmi, ov)
                 };
                 (nmv, fmv, ov)
             } else {
-                // Per lane: F~ = A + G - u_i (x) S; stress, N, F and the owner's force.
+                // Per lane: F~ = A + G - u_i (x) S; stress, N, F (corrected: F - I) and the
+                // owner's force.
                 let gas = lane_matrices(&ga);
                 let gbs = if seed {
                     [[0.0; 9]; 4]
@@ -1238,21 +1299,23 @@ impl StencilGrid {
                         continue;
                     }
                     let u_i = DVec3::new(uis[0][l], uis[1][l], uis[2][l]);
-                    let ft = lr.a + DMat3::from_cols_array(&gas[l]) - outer(u_i, lr.s);
+                    let g_us = DMat3::from_cols_array(&gas[l]) - outer(u_i, lr.s);
                     let (n, f, owner) = if seed {
+                        let ft = lr.a + g_us;
                         let e = green_strain(&ft) - lr.q;
                         let n = (ft * stvk_stress(&e, mat.lambda_pa, mat.mu_pa)) * v;
                         (n, DMat3::ZERO, n * lr.s)
                     } else {
-                        let f = ft * lr.a_inv;
+                        // F - I = (F~ - A) A^-1.
+                        let fmi = g_us * lr.a_inv;
+                        let f = fmi + DMat3::IDENTITY;
                         // D = sum_k c_k d_ik (x) X_k = Gb - u_i (x) U + Q; H = F Q - D.
-                        let h = (f - DMat3::IDENTITY) * lr.q - DMat3::from_cols_array(&gbs[l])
-                            + outer(u_i, lr.u);
+                        let h = fmi * lr.q - DMat3::from_cols_array(&gbs[l]) + outer(u_i, lr.u);
                         let m = first_piola(mat, &f) * v + h;
                         let n = m * lr.a_inv.transpose();
                         // sum_k c_k d_ik = sum_k c_k u_(i+k) - C u_i + U.
                         let sdl = DVec3::new(cus[0][l], cus[1][l], cus[2][l]) - u_i * lr.c + lr.u;
-                        (n, f, n * lr.s - f * lr.u + sdl)
+                        (n, fmi, n * lr.s - f * lr.u + sdl)
                     };
                     let (na, fa_) = (n.to_cols_array(), f.to_cols_array());
                     for e in 0..9 {
@@ -1276,23 +1339,44 @@ impl StencilGrid {
             if cube {
                 let m = cube_columns(isa, &ncl, cube_scale, perm);
                 let cko = cube_hourglass(isa, classes, own);
+                // c_k u_i per class and component (corrected).
+                let mut cui = [[zero; 3]; 3];
+                if !seed {
+                    for (cu, ck) in cui.iter_mut().zip(&cko) {
+                        for r in 0..3 {
+                            cu[r] = ck.mul(ui[r]);
+                        }
+                    }
+                }
                 pass_two_cube::<V>(
                     isa,
                     b,
                     cube_rows,
                     &m,
-                    cube_x,
+                    &cui,
                     &cko,
                     [px, py, pz],
-                    [fx, fy, fz],
+                    fc.each_mut().map(|a| &mut a[..]),
                     seed,
-                    ui,
                     ov,
                 );
             } else {
                 pair_grads(isa, &ncl, ws, class_of, pairs, &mut ah);
                 pass_two::<V>(
-                    isa, b, rows, cs, xs, off, px, py, pz, fx, fy, fz, seed, own, ui, half_of, &ah,
+                    isa,
+                    b,
+                    rows,
+                    cs,
+                    off,
+                    px,
+                    py,
+                    pz,
+                    fc.each_mut().map(|a| &mut a[..]),
+                    seed,
+                    own,
+                    ui,
+                    half_of,
+                    &ah,
                     ov,
                 );
             }
@@ -1300,8 +1384,9 @@ impl StencilGrid {
     }
 }
 
-/// `N w_k - F c_k X_k = (N - beta_k F) w_k` of each pair `(k, -k)` (one matrix `ncl` per
-/// class of length; odd in `k`: `w_-k = -w_k`, same class) into `ah`, in `pairs` order.
+/// `N w_k - F c_k X_k + c_k X_k = (N - beta_k (F - I)) w_k` of each pair `(k, -k)` (one
+/// matrix `ncl` per class of length, [`class_matrices`]; odd in `k`: `w_-k = -w_k`, same
+/// class) into `ah`, in `pairs` order.
 #[inline(always)]
 fn pair_grads<V: Lanes>(
     isa: V::Isa,
@@ -1399,34 +1484,14 @@ fn cube_column_sum<V: Lanes>(m: &[V; 9], e: [i32; 3], r: usize) -> V {
     acc.expect("a nonzero offset")
 }
 
-/// `grad` (negated when `neg`) subtracted from the row accumulators `acc` (the chunks before,
-/// at and after the row's centre) at offset `dx` along the vector axis.
-#[inline(always)]
-fn cube_put<V: Lanes>(dx: i32, grad: V, neg: bool, acc: &mut [V; 3]) {
-    // Not a closure: closures do not inherit the caller's target features.
-    #[inline(always)]
-    fn sub<V: Lanes>(a: V, g: V, neg: bool) -> V {
-        if neg { a.add(g) } else { a.sub(g) }
-    }
-    match dx {
-        -1 => {
-            let (c, lo) = grad.shift_down();
-            acc[1] = sub(acc[1], c, neg);
-            acc[0] = sub(acc[0], lo, neg);
-        }
-        0 => acc[1] = sub(acc[1], grad, neg),
-        _ => {
-            let (c, hi) = grad.shift_up();
-            acc[1] = sub(acc[1], c, neg);
-            acc[2] = sub(acc[2], hi, neg);
-        }
-    }
-}
-
 /// [`pass_two`] for the 26-cell cube: the rows `(a, b)` and `(-a, -b)` together, so that each
-/// pair's `(N - beta F) w_k` is summed once from the class columns `m` ([`cube_columns`])
-/// and serves both its entries (`w_-k = -w_k`); every offset, sign and zero of the stencil
-/// is known at compile time. `cko`: `c_k` per class on owner lanes ([`cube_hourglass`]).
+/// pair's `(N - beta (F - I)) w_k` is summed once from the class columns `m`
+/// ([`cube_columns`]) and serves both its entries (`w_-k = -w_k`); every offset, sign and
+/// zero of the stencil is known at compile time. `cko`: `c_k` per class on owner lanes
+/// ([`cube_hourglass`]); `cui`: `c_k u_i` per class and component (corrected). Each entry
+/// of offset `dx` along the vector axis is subtracted at its row's chunk of four cells in the
+/// forces of that offset (interleaved in `f`, [`StencilGrid`]'s `fc`): aligned whole-chunk
+/// read-modify-writes, no shift across lanes.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)] // the loop's state, split out of one function
 fn pass_two_cube<V: Lanes>(
@@ -1434,49 +1499,49 @@ fn pass_two_cube<V: Lanes>(
     b: usize,
     rows: &[isize; 9],
     m: &[[V; 9]; 3],
-    xs: &[[f64; 3]; MAX_PAIRS],
+    cui: &[[V; 3]; 3],
     cko: &[V; 3],
     p: [&[f64]; 3],
     f: [&mut [f64]; 3],
     seed: bool,
-    ui: [V; 3],
     ol: [V; 3],
 ) {
-    let zero = V::zero(isa);
-    // The entry `(dx, a, b)` of row one and its negative in row two (offset `o1 + dx` and
-    // `o2 - dx`), component `r`: pair `j`, sign, the hourglass part `c_k d_ik` (corrected).
+    // `grad` subtracted (`neg`: added) at chunk `o` of the forces of offset `dx`, component
+    // `r` (interleaved: at `3 o + 4 (dx + 1)`; a macro, not a closure: closures do not
+    // inherit the caller's target features).
+    macro_rules! put {
+        ($dx:expr, $o:expr, $r:expr, $grad:expr, $neg:expr) => {{
+            let (a, i) = (&mut *f[$r], 3 * $o + 4 * ($dx + 1) as usize);
+            let old = V::load(isa, a, i);
+            if $neg { old.add($grad) } else { old.sub($grad) }.store(a, i);
+        }};
+    }
+    // The entry `(dx, a, b)` of row one and its negative in row two (owners' chunks `o1` and
+    // `o2`, neighbours at `o1 + dx` and `o2 - dx`), component `r`: pair `j`, sign, the
+    // hourglass part `c_k (u_(i+k) - u_i)` (corrected; its `c_k X_k` is in `m`).
     macro_rules! entry {
-        ($dx:expr, $a:expr, $b:expr, $r:ident, $o1:ident, $o2:ident, $acc1:ident, $acc2:ident) => {{
+        ($dx:expr, $a:expr, $b:expr, $r:ident, $o1:ident, $o2:ident) => {{
             const JN: (usize, bool) = cube_pair_of([$dx, $a, $b]);
             let (j, neg) = JN;
             let g = cube_column_sum(&m[CUBE_CLASS[j]], CUBE[j], $r);
             if seed {
-                cube_put::<V>($dx, g, neg, &mut $acc1);
-                cube_put::<V>(-$dx, g, !neg, &mut $acc2);
+                put!($dx, $o1, $r, g, neg);
+                put!(-$dx, $o2, $r, g, !neg);
             } else {
-                // grad_k = (N - beta F) w_k + c_k (u_(i+k) - u_i + X_k), X_-k = -X_k.
-                let (g1, g2) = if neg { (g.neg(), g) } else { (g, g.neg()) };
-                let x1 = if neg { -xs[j][$r] } else { xs[j][$r] };
-                let ck = cko[CUBE_CLASS[j]];
-                let d1 = V::load(isa, p[$r], ($o1 as isize + $dx) as usize)
-                    .sub(ui[$r])
-                    .add(V::splat(isa, x1));
-                let d2 = V::load(isa, p[$r], ($o2 as isize - $dx) as usize)
-                    .sub(ui[$r])
-                    .add(V::splat(isa, -x1));
-                cube_put::<V>($dx, V::madd(d1, ck, g1), false, &mut $acc1);
-                cube_put::<V>(-$dx, V::madd(d2, ck, g2), false, &mut $acc2);
+                // grad_k = (N - beta (F - I)) w_k + c_k u_(i+k) - c_k u_i: the entry `g` or
+                // `-g`, its negative the other.
+                let (ck, cu) = (cko[CUBE_CLASS[j]], cui[CUBE_CLASS[j]][$r]);
+                let (gm, gp) = (g.sub(cu), g.add(cu));
+                let u1 = V::load(isa, p[$r], ($o1 as isize + $dx) as usize);
+                let u2 = V::load(isa, p[$r], ($o2 as isize - $dx) as usize);
+                let (d1, d2) = if neg {
+                    (V::msub(u1, ck, gp), V::madd(u2, ck, gm))
+                } else {
+                    (V::madd(u1, ck, gm), V::msub(u2, ck, gp))
+                };
+                put!($dx, $o1, $r, d1, false);
+                put!(-$dx, $o2, $r, d2, false);
             }
-        }};
-    }
-    // The accumulators of a row added to its three chunks of component `r` (a macro, not a
-    // closure: closures do not inherit the caller's target features).
-    macro_rules! store {
-        ($o:expr, $r:expr, $acc:expr) => {{
-            let (o, a, acc) = ($o, &mut *f[$r], $acc);
-            V::load(isa, a, o - 4).add(acc[0]).store(a, o - 4);
-            V::load(isa, a, o).add(acc[1]).store(a, o);
-            V::load(isa, a, o + 4).add(acc[2]).store(a, o + 4);
         }};
     }
     macro_rules! row_pair {
@@ -1484,28 +1549,32 @@ fn pass_two_cube<V: Lanes>(
             let o1 = (b as isize + rows[(($a + 1) + 3 * ($b + 1)) as usize]) as usize;
             let o2 = (b as isize + rows[((1 - $a) + 3 * (1 - $b)) as usize]) as usize;
             for r in 0..3 {
-                let mut acc1 = [zero; 3];
-                let mut acc2 = [zero; 3];
-                entry!(-1, $a, $b, r, o1, o2, acc1, acc2);
-                entry!(0, $a, $b, r, o1, o2, acc1, acc2);
-                entry!(1, $a, $b, r, o1, o2, acc1, acc2);
-                store!(o1, r, acc1);
-                store!(o2, r, acc2);
+                entry!(-1, $a, $b, r, o1, o2);
+                entry!(0, $a, $b, r, o1, o2);
+                entry!(1, $a, $b, r, o1, o2);
             }
         }};
     }
     // The centre row: the owner's force and the pair (1, 0, 0) at both ends (its row two is
     // itself).
     for r in 0..3 {
-        let mut acc = [zero, ol[r], zero];
         let o = b;
-        entry!(1, 0, 0, r, o, o, acc, acc);
-        store!(o, r, acc);
+        put!(0, o, r, ol[r], true);
+        entry!(1, 0, 0, r, o, o);
     }
     row_pair!(-1, -1);
     row_pair!(0, -1);
     row_pair!(1, -1);
     row_pair!(-1, 0);
+}
+
+/// The force on cell `i` from the cube loop's interleaved forces `fc` (one component):
+/// `f0[i] + fm[i + 1] + fp[i - 1]`, chunk `c` holding `fm`, `f0`, `fp` at `12 c`, `12 c + 4`,
+/// `12 c + 8`.
+#[inline]
+fn cube_force_at(fc: &[f64], i: usize) -> f64 {
+    let at = |j: usize, d: usize| fc[3 * (j & !3) + 4 * d + (j & 3)];
+    at(i, 1) + at(i + 1, 0) + at(i - 1, 2)
 }
 
 /// Pass 1 for the 26-cell cube: per class (faces, edges, corners) the grid-axis columns
@@ -1551,10 +1620,12 @@ fn pass_one_cube<V: Lanes>(
     (g, s)
 }
 
-/// Pass 2 of a group (module documentation): `grad_k = N w_k (- F u_k + c_k d_k)`,
+/// Pass 2 of a group (module documentation): `grad_k = N w_k (- F u_k + c_k d_k)`, from
+/// `ah` ([`pair_grads`], which holds `c_k X_k`) plus `c_k (u_(i+k) - u_i)` (corrected),
 /// subtracted at the neighbour, the owner's force `ol` added at the owner; the three offsets
 /// of a row along the vector axis are combined into whole aligned chunks of four cells first
-/// (a store that a later load overlaps only partly stalls the core).
+/// (a store that a later load overlaps only partly stalls the core), written into the forces
+/// of offset 0 in `f` (interleaved, [`StencilGrid`]'s `fc`).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)] // the loop's state, split out of one function
 fn pass_two<V: Lanes>(
@@ -1562,14 +1633,11 @@ fn pass_two<V: Lanes>(
     b: usize,
     rows: &[(isize, [usize; 3])],
     cs: &[f64],
-    xs: &[DVec3],
     off: &[isize],
     px: &[f64],
     py: &[f64],
     pz: &[f64],
-    fx: &mut [f64],
-    fy: &mut [f64],
-    fz: &mut [f64],
+    mut f: [&mut [f64]; 3],
     seed: bool,
     own: V,
     ui: [V; 3],
@@ -1593,18 +1661,17 @@ fn pass_two<V: Lanes>(
                 gr = [gr[0].neg(), gr[1].neg(), gr[2].neg()];
             }
             if !seed {
-                // c_k d_ik for an owner lane (padding lanes: zero); an empty
+                // c_k (u_(i+k) - u_i) for an owner lane (padding lanes: zero); an empty
                 // neighbour cell receives a value nobody reads.
                 let ck = V::splat(isa, cs[k]).mul(own);
                 let o = (b as isize + off[k]) as usize;
-                let xk = xs[k];
                 let uj = [
                     V::load(isa, px, o),
                     V::load(isa, py, o),
                     V::load(isa, pz, o),
                 ];
                 for r in 0..3 {
-                    let d = uj[r].sub(ui[r]).add(V::splat(isa, xk[r]));
+                    let d = uj[r].sub(ui[r]);
                     gr[r] = V::madd(d, ck, gr[r]);
                 }
             }
@@ -1624,16 +1691,19 @@ fn pass_two<V: Lanes>(
                 }
             }
         }
-        for (a, (c, (lo, hi))) in [&mut *fx, &mut *fy, &mut *fz]
-            .into_iter()
+        // Chunk `q` (a multiple of four) of the forces of offset 0 is at `3 q + 4` in `f`.
+        for (a, (c, (lo, hi))) in f
+            .iter_mut()
+            .map(|a| &mut **a)
             .zip(centre.iter().zip(before.iter().zip(&after)))
         {
+            let i = 3 * o + 4;
             if entries[0] != usize::MAX {
-                V::load(isa, a, o - 4).add(*lo).store(a, o - 4);
+                V::load(isa, a, i - 12).add(*lo).store(a, i - 12);
             }
-            V::load(isa, a, o).add(*c).store(a, o);
+            V::load(isa, a, i).add(*c).store(a, i);
             if entries[2] != usize::MAX {
-                V::load(isa, a, o + 4).add(*hi).store(a, o + 4);
+                V::load(isa, a, i + 12).add(*hi).store(a, i + 12);
             }
         }
     }
