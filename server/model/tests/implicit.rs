@@ -129,6 +129,17 @@ fn press_allocations(sim: &mut Simulation, ticks: usize) -> usize {
     allocations
 }
 
+/// The built-in LV scene on another LV mesh: base clamped, epicardium touchable.
+fn lv_on(mesh: haptic_model::mesh::TetMesh) -> haptic_model::scene::Scene {
+    let mut scene = load_builtin("lv").unwrap();
+    scene.clamped_nodes = mesh
+        .nodes_of_surfaces(&["BASE".to_string()], "clamped")
+        .unwrap();
+    scene.touchable = mesh.surface("EPI").unwrap().triangles.clone();
+    scene.mesh = mesh;
+    scene
+}
+
 #[test]
 fn quadratic_element_ticks_do_not_allocate() {
     for kind in [
@@ -136,13 +147,7 @@ fn quadratic_element_ticks_do_not_allocate() {
         IntegratorKind::SymplecticEuler,
         IntegratorKind::BackwardEuler,
     ] {
-        let mut scene = load_builtin("lv").unwrap();
-        let mesh = haptic_model::mesh::generate::lv_shell(300).to_quadratic();
-        scene.clamped_nodes = mesh
-            .nodes_of_surfaces(&["BASE".to_string()], "clamped")
-            .unwrap();
-        scene.touchable = mesh.surface("EPI").unwrap().triangles.clone();
-        scene.mesh = mesh;
+        let mut scene = lv_on(haptic_model::mesh::generate::lv_shell(300).to_quadratic());
         scene.integrator.kind = kind;
         let mut sim = Simulation::new(&scene).unwrap();
         assert_eq!(press_allocations(&mut sim, 1500), 0, "{kind:?}");
@@ -269,13 +274,7 @@ fn single_precision_forces_follow_double_precision_and_do_not_allocate() {
     ] {
         let mut runs = Vec::new();
         for single in [false, true] {
-            let mut scene = load_builtin("lv").unwrap();
-            let mesh = haptic_model::mesh::generate::lv_shell(600);
-            scene.clamped_nodes = mesh
-                .nodes_of_surfaces(&["BASE".to_string()], "clamped")
-                .unwrap();
-            scene.touchable = mesh.surface("EPI").unwrap().triangles.clone();
-            scene.mesh = mesh;
+            let mut scene = lv_on(haptic_model::mesh::generate::lv_shell(600));
             scene.integrator.kind = kind;
             scene.integrator.linear_solver = solver;
             scene.integrator.single_precision_forces = single;

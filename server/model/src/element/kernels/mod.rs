@@ -422,6 +422,21 @@ mod tests {
         (x, v)
     }
 
+    /// `x` with every third node mirrored through z = 0: the half-inverted states an inverted
+    /// start passes through.
+    fn half_inverted(x: &[DVec3]) -> Vec<DVec3> {
+        x.iter()
+            .enumerate()
+            .map(|(i, p)| {
+                if i % 3 == 0 {
+                    DVec3::new(p.x, p.y, -p.z)
+                } else {
+                    *p
+                }
+            })
+            .collect()
+    }
+
     /// Every instruction-set variant of the batch kernels that this CPU can run (AVX-512
     /// registers, AVX2 + FMA, plain code) against the scalar element loop `generic_forces`
     /// (`material::first_piola` per element or integration point), for StVK and stable
@@ -515,18 +530,7 @@ mod tests {
                     assert!(counts.len() >= 3, "{counts:?}");
                 }
                 let (x, v) = deformed_state(&fem);
-                // Also half-inverted: the states an inverted start passes through.
-                let x_inv: Vec<DVec3> = x
-                    .iter()
-                    .enumerate()
-                    .map(|(i, p)| {
-                        if i % 3 == 0 {
-                            DVec3::new(p.x, p.y, -p.z)
-                        } else {
-                            *p
-                        }
-                    })
-                    .collect();
+                let x_inv = half_inverted(&x);
                 for (x, velocities) in [
                     (&x, None),
                     (&x, Some(v.as_slice())),
@@ -580,17 +584,7 @@ mod tests {
         let n = fem.node_count();
         let mut scratch = ForceScratch::new(n + 5);
         let (x, v) = deformed_state(&fem);
-        let x_inv: Vec<DVec3> = x
-            .iter()
-            .enumerate()
-            .map(|(i, p)| {
-                if i % 3 == 0 {
-                    DVec3::new(p.x, p.y, -p.z)
-                } else {
-                    *p
-                }
-            })
-            .collect();
+        let x_inv = half_inverted(&x);
         for x in [&x, &x_inv] {
             for velocities in [None, Some(v.as_slice())] {
                 let mut expected = vec![DVec3::ZERO; n];
