@@ -509,10 +509,13 @@ fn single_precision_forces_are_for_linear_stvk_fem_scenes() {
         "density_kg_per_m3 = 1060.0",
         "density_kg_per_m3 = 1060.0\nmodel = \"stable-neo-hookean\"",
     );
+    let smoothed = parse(&format!(
+        "{smoothed}[integrator]\nforce_precision = \"single\"\n"
+    ));
+    assert!(smoothed.unwrap().fem_model().unwrap().single_precision());
     for bad in [
         with("force_precision = \"half\"\n", ""),
         format!("{quadratic}[integrator]\nforce_precision = \"single\"\n"),
-        format!("{smoothed}[integrator]\nforce_precision = \"single\"\n"),
         format!("{neo}[integrator]\nforce_precision = \"single\"\n"),
     ] {
         assert_eq!(field_of(parse(&bad)), "integrator.force_precision", "{bad}");

@@ -371,9 +371,9 @@ impl FemModel {
 
     /// Switches the internal forces of [`FemModel::add_internal_forces_with`] to the
     /// single-precision kernel (`true`) or back to double precision (`false`). The kernel
-    /// covers linear St Venant-Kirchhoff tetrahedra without strain smoothing, on CPUs with AVX2
-    /// and FMA (elsewhere the double-precision kernel runs); its set-up holds 56 bytes per
-    /// element. See `docs/decisions.md` ("Single-precision forces") for its error.
+    /// covers linear St Venant-Kirchhoff tetrahedra, standard or edge-smoothed, on CPUs with
+    /// AVX2 and FMA (elsewhere the double-precision kernel runs); its set-up holds 56 bytes
+    /// per element (standard) or 16 bytes per node slot of a smoothing domain. See `docs/decisions.md` ("Single-precision forces") for its error.
     ///
     /// # Errors
     /// [`ModelError::SceneField`] (`integrator.force_precision`) for another element or material.
@@ -382,21 +382,26 @@ impl FemModel {
             self.single = None;
             return Ok(());
         }
-        if !self.is_plain_linear() || self.material.model != MaterialModel::StVenantKirchhoff {
+        if self.quadratic || self.material.model != MaterialModel::StVenantKirchhoff {
             return Err(ModelError::field(
                 "integrator.force_precision",
-                "single precision is for linear St Venant-Kirchhoff tetrahedra without strain smoothing",
+                "single precision is for linear St Venant-Kirchhoff tetrahedra",
             ));
         }
         if self.single.is_none() {
-            let order = kernels::locality_order(&self.rest, &self.tets);
-            self.single = Some(SingleLinear::build(
-                &order,
-                &self.rest,
-                &self.tets,
-                &self.dm_inv,
-                &self.volume_m3,
-            ));
+            self.single = match self.smoothing {
+                StrainSmoothing::None => {
+                    let order = kernels::locality_order(&self.rest, &self.tets);
+                    Some(SingleLinear::build(
+                        &order,
+                        &self.rest,
+                        &self.tets,
+                        &self.dm_inv,
+                        &self.volume_m3,
+                    ))
+                }
+                StrainSmoothing::Edge => self.kernels.single_domains(&self.rest),
+            };
         }
         Ok(())
     }

@@ -39,7 +39,7 @@
 //! safety_factor = 0.5            # in (0, 1]
 //! cg_max_iterations = 20         # backward Euler: CG iterations per step, 1..=10000
 //! cg_tolerance = 0.001           # backward Euler: relative CG residual, in (0, 1)
-//! force_precision = "double"     # or "single": linear StVK tets only (FemModel::set_single_precision)
+//! force_precision = "double"     # or "single": linear StVK tets only, standard or edge-smoothed (FemModel::set_single_precision)
 //! [loads]                        # optional; default: no load
 //! gravity_m_per_s2 = [0.0, 0.0, -9.81]
 //! [[loads.pressure]]             # any number; positive pushes into the body

@@ -497,13 +497,12 @@ pub(super) fn parse_scene(
     };
     if integrator.single_precision_forces
         && (mesh.is_quadratic()
-            || strain_smoothing != StrainSmoothing::None
             || material.model != MaterialModel::StVenantKirchhoff
             || family != ModelFamily::Fem)
     {
         return Err(ModelError::field(
             "integrator.force_precision",
-            "\"single\" is for linear St Venant-Kirchhoff tetrahedra without strain smoothing (FEM family)",
+            "\"single\" is for linear St Venant-Kirchhoff tetrahedra (FEM family)",
         ));
     }
     Ok(Scene {

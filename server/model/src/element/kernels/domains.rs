@@ -25,6 +25,16 @@ pub(super) struct DomainBatches {
 }
 
 impl DomainBatches {
+    /// Per batch: the slots' nodes and gradients (1/m) and the lanes' volumes (m^3).
+    pub(super) fn batches(
+        &self,
+    ) -> impl Iterator<Item = (&[[u32; LANES]], &[[[f64; LANES]; 3]], &[f64; LANES])> {
+        self.weight_m3.iter().enumerate().map(|(b, w)| {
+            let slots = self.start[b]..self.start[b + 1];
+            (&self.nodes[slots.clone()], &self.grad[slots], w)
+        })
+    }
+
     pub(super) fn build(points: &IntegrationPoints) -> Self {
         let cells = points.node_start.len() - 1;
         debug_assert_eq!(points.weight_m3.len(), cells, "one point per cell");

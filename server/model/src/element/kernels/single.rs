@@ -86,12 +86,36 @@ impl ForceScratch {
     }
 }
 
-/// The batches of the single-precision kernel of one model of linear tetrahedra, with the
-/// rest positions the displacements are taken from. Invariant (checked at construction):
-/// every node index is below `rest.len()`.
+/// One node slot of a batch of eight smoothing domains: per lane, four times the node and
+/// its smoothed gradient (1/m, component c at `grad[c]`). Padding slots repeat the lane's
+/// first node with a zero gradient.
+#[derive(Debug, Clone)]
+#[repr(C, align(32))]
+struct DomainSlot {
+    nodes: [u32; SINGLE_LANES],
+    grad: [[f32; SINGLE_LANES]; 3],
+}
+
+/// The cells of one layout in batches of eight.
+#[derive(Debug, Clone)]
+enum SingleLayout {
+    /// Linear tetrahedra.
+    Tets(Vec<SingleBatch>),
+    /// Single-point smoothing domains (edge-based strain smoothing): batch `b` has slots
+    /// `start[b]..start[b + 1]` and rest volumes `volume_m3[b]` (zero on padding lanes).
+    Domains {
+        start: Vec<usize>,
+        slots: Vec<DomainSlot>,
+        volume_m3: Vec<[f32; SINGLE_LANES]>,
+    },
+}
+
+/// The batches of the single-precision kernel of one model of linear tetrahedra (standard
+/// or edge-smoothed), with the rest positions the displacements are taken from. Invariant
+/// (checked at construction): every node index is below `rest.len()`.
 #[derive(Debug, Clone)]
 pub(crate) struct SingleLinear {
-    batches: Vec<SingleBatch>,
+    layout: SingleLayout,
     rest: Vec<DVec3>,
 }
 
@@ -143,7 +167,49 @@ impl SingleLinear {
             })
             .collect();
         Self {
-            batches,
+            layout: SingleLayout::Tets(batches),
+            rest: rest.to_vec(),
+        }
+    }
+
+    /// Batches of smoothing domains: `batches` yields, per batch of eight, the slots' nodes
+    /// and gradients (1/m) and the lanes' volumes (m^3), as the double-precision kernel
+    /// batches them (`super::domains::DomainBatches`); over the rest positions `rest` (m).
+    ///
+    /// # Panics
+    /// If a node index is out of range (the caller validated the mesh).
+    pub(crate) fn domains<'a>(
+        batches: impl Iterator<
+            Item = (
+                &'a [[u32; SINGLE_LANES]],
+                &'a [[[f64; SINGLE_LANES]; 3]],
+                &'a [f64; SINGLE_LANES],
+            ),
+        >,
+        rest: &[DVec3],
+    ) -> Self {
+        let (mut start, mut slots, mut volume) = (vec![0], Vec::new(), Vec::new());
+        for (nodes, grads, w) in batches {
+            for (n, g) in nodes.iter().zip(grads) {
+                assert!(
+                    n.iter().all(|&i| (i as usize) < rest.len()),
+                    "domain node index out of range"
+                );
+                slots.push(DomainSlot {
+                    // Below 2^30: FemModel::new refuses more than i32::MAX / 3 nodes.
+                    nodes: n.map(|i| 4 * i),
+                    grad: g.map(|c| c.map(|x| x as f32)),
+                });
+            }
+            start.push(slots.len());
+            volume.push(w.map(|x| x as f32));
+        }
+        Self {
+            layout: SingleLayout::Domains {
+                start,
+                slots,
+                volume_m3: volume,
+            },
             rest: rest.to_vec(),
         }
     }
@@ -185,10 +251,24 @@ impl SingleLinear {
             // SAFETY: AVX2 and FMA were detected; every node index of the batches is below
             // n = packed.len() = force.len() (checked at construction).
             unsafe {
-                if v.is_some() {
-                    forces_avx2::<true>(&self.batches, coef, packed, force);
-                } else {
-                    forces_avx2::<false>(&self.batches, coef, packed, force);
+                match (&self.layout, v.is_some()) {
+                    (SingleLayout::Tets(b), true) => forces_avx2::<true>(b, coef, packed, force),
+                    (SingleLayout::Tets(b), false) => forces_avx2::<false>(b, coef, packed, force),
+                    (
+                        SingleLayout::Domains {
+                            start,
+                            slots,
+                            volume_m3,
+                        },
+                        viscous,
+                    ) => {
+                        let d = (start.as_slice(), slots.as_slice(), volume_m3.as_slice());
+                        if viscous {
+                            domain_forces_avx2::<true>(d, coef, packed, force);
+                        } else {
+                            domain_forces_avx2::<false>(d, coef, packed, force);
+                        }
+                    }
                 }
             }
             // SAFETY: AVX2 was detected; the slices hold n nodes each.
@@ -481,6 +561,114 @@ unsafe fn edge_gradient(d: &[__m256; 9], b: &SingleBatch) -> [__m256; 9] {
 /// The symmetric entries 00 11 22 01 02 12 of a 3x3 matrix, in that order.
 const SYM: [(usize, usize); 6] = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)];
 
+/// The constants of the stress, splatted once per call.
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy)]
+struct LaneCoefficients {
+    half_lambda: __m256,
+    mu: __m256,
+    phi: __m256,
+    two_psi: __m256,
+}
+
+#[cfg(target_arch = "x86_64")]
+impl LaneCoefficients {
+    /// # Safety
+    /// AVX.
+    #[inline(always)]
+    unsafe fn new(c: Coefficients) -> Self {
+        // SAFETY: the caller's contract.
+        unsafe {
+            Self {
+                half_lambda: _mm256_set1_ps(c.half_lambda),
+                mu: _mm256_set1_ps(c.mu),
+                phi: _mm256_set1_ps(c.phi),
+                two_psi: _mm256_set1_ps(c.two_psi),
+            }
+        }
+    }
+}
+
+/// `-V P` (row-major) from the displacement gradient `g = F - I` and, when `VISCOUS`, the
+/// velocity gradient `gd = F'`, for rest volumes `volume` (m^3): `2E = G + G^T + G^T G`,
+/// `S = lambda/2 tr(2E) I + mu 2E` plus the viscous stress of
+/// [`crate::material::viscous_stress`] (`A = F^T F' = F' + G^T F'`, seed eq. 11 with the
+/// module note's factor), `P = F S = S + G S` (eq. 9, 22).
+///
+/// # Safety
+/// AVX2 and FMA.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn scaled_piola<const VISCOUS: bool>(
+    g: &[__m256; 9],
+    gd: &[__m256; 9],
+    volume: __m256,
+    k: &LaneCoefficients,
+) -> [__m256; 9] {
+    // SAFETY: the caller's contract.
+    unsafe {
+        let zero = _mm256_setzero_ps();
+        let (half_lambda, mu, phi, two_psi) = (k.half_lambda, k.mu, k.phi, k.two_psi);
+        // 2E_ij = G_ij + G_ji + sum_r G_ri G_rj.
+        let mut e2 = [zero; 6];
+        for (s, &(i, j)) in SYM.iter().enumerate() {
+            let gtg = dot3([g[i], g[3 + i], g[6 + i]], [g[j], g[3 + j], g[6 + j]]);
+            e2[s] = _mm256_add_ps(gtg, _mm256_add_ps(g[3 * i + j], g[3 * j + i]));
+        }
+        // S / (-V) = lambda/2 tr(2E) I + mu 2E, plus the viscous phi tr(A + A^T) I + 2 psi (A + A^T)
+        // of crate::material::viscous_stress (seed eq. 11 with the factor of the module note).
+        let mut tr = _mm256_mul_ps(
+            half_lambda,
+            _mm256_add_ps(e2[0], _mm256_add_ps(e2[1], e2[2])),
+        );
+        let mut s = [zero; 6];
+        for k in 0..6 {
+            s[k] = _mm256_mul_ps(mu, e2[k]);
+        }
+        if VISCOUS {
+            // A = F^T F' = F' + G^T F'; 2E' = A + A^T.
+            let mut a = [zero; 9];
+            for i in 0..3 {
+                for j in 0..3 {
+                    a[3 * i + j] = fma(
+                        g[6 + i],
+                        gd[6 + j],
+                        fma(g[3 + i], gd[3 + j], fma(g[i], gd[j], gd[3 * i + j])),
+                    );
+                }
+            }
+            let mut trd = zero;
+            for (k, &(i, j)) in SYM.iter().enumerate() {
+                let ed2 = _mm256_add_ps(a[3 * i + j], a[3 * j + i]);
+                if k < 3 {
+                    trd = _mm256_add_ps(trd, ed2);
+                }
+                s[k] = fma(two_psi, ed2, s[k]);
+            }
+            tr = fma(phi, trd, tr);
+        }
+        let w = _mm256_sub_ps(zero, volume);
+        for (k, sk) in s.iter_mut().enumerate() {
+            let diagonal = if k < 3 { _mm256_add_ps(*sk, tr) } else { *sk };
+            *sk = _mm256_mul_ps(w, diagonal);
+        }
+        // The full symmetric -V S, row-major.
+        let sm = [s[0], s[3], s[4], s[3], s[1], s[5], s[4], s[5], s[2]];
+        // P = F S = S + G S.
+        let mut p = [zero; 9];
+        for i in 0..3 {
+            for j in 0..3 {
+                p[3 * i + j] = fma(
+                    g[3 * i + 2],
+                    sm[6 + j],
+                    fma(g[3 * i + 1], sm[3 + j], fma(g[3 * i], sm[j], sm[3 * i + j])),
+                );
+            }
+        }
+        p
+    }
+}
+
 /// The kernel over every batch (module documentation).
 ///
 /// # Safety
@@ -495,10 +683,7 @@ unsafe fn forces_avx2<const VISCOUS: bool>(
 ) {
     // SAFETY: the caller's contract (batch rows are 32-byte aligned: the struct is).
     unsafe {
-        let half_lambda = _mm256_set1_ps(c.half_lambda);
-        let mu = _mm256_set1_ps(c.mu);
-        let phi = _mm256_set1_ps(c.phi);
-        let two_psi = _mm256_set1_ps(c.two_psi);
+        let k = LaneCoefficients::new(c);
         let zero = _mm256_setzero_ps();
         for b in batches {
             let (u0, v0) = load_corner::<VISCOUS>(packed, &b.nodes[0]);
@@ -515,63 +700,12 @@ unsafe fn forces_avx2<const VISCOUS: bool>(
                 }
             }
             let g = edge_gradient(&du, b);
-            // 2E_ij = G_ij + G_ji + sum_r G_ri G_rj.
-            let mut e2 = [zero; 6];
-            for (s, &(i, j)) in SYM.iter().enumerate() {
-                let gtg = dot3([g[i], g[3 + i], g[6 + i]], [g[j], g[3 + j], g[6 + j]]);
-                e2[s] = _mm256_add_ps(gtg, _mm256_add_ps(g[3 * i + j], g[3 * j + i]));
-            }
-            // S / (-V) = lambda/2 tr(2E) I + mu 2E, plus the viscous phi tr(A + A^T) I + 2 psi (A + A^T)
-            // of crate::material::viscous_stress (seed eq. 11 with the factor of the module note).
-            let mut tr = _mm256_mul_ps(
-                half_lambda,
-                _mm256_add_ps(e2[0], _mm256_add_ps(e2[1], e2[2])),
-            );
-            let mut s = [zero; 6];
-            for k in 0..6 {
-                s[k] = _mm256_mul_ps(mu, e2[k]);
-            }
-            if VISCOUS {
-                let gd = edge_gradient(&dv, b);
-                // A = F^T F' = F' + G^T F'; 2E' = A + A^T.
-                let mut a = [zero; 9];
-                for i in 0..3 {
-                    for j in 0..3 {
-                        a[3 * i + j] = fma(
-                            g[6 + i],
-                            gd[6 + j],
-                            fma(g[3 + i], gd[3 + j], fma(g[i], gd[j], gd[3 * i + j])),
-                        );
-                    }
-                }
-                let mut trd = zero;
-                for (k, &(i, j)) in SYM.iter().enumerate() {
-                    let ed2 = _mm256_add_ps(a[3 * i + j], a[3 * j + i]);
-                    if k < 3 {
-                        trd = _mm256_add_ps(trd, ed2);
-                    }
-                    s[k] = fma(two_psi, ed2, s[k]);
-                }
-                tr = fma(phi, trd, tr);
-            }
-            let w = _mm256_sub_ps(zero, _mm256_load_ps(b.volume_m3.as_ptr()));
-            for (k, sk) in s.iter_mut().enumerate() {
-                let diagonal = if k < 3 { _mm256_add_ps(*sk, tr) } else { *sk };
-                *sk = _mm256_mul_ps(w, diagonal);
-            }
-            // The full symmetric -V S, row-major.
-            let sm = [s[0], s[3], s[4], s[3], s[1], s[5], s[4], s[5], s[2]];
-            // P = F S = S + G S.
-            let mut p = [zero; 9];
-            for i in 0..3 {
-                for j in 0..3 {
-                    p[3 * i + j] = fma(
-                        g[3 * i + 2],
-                        sm[6 + j],
-                        fma(g[3 * i + 1], sm[3 + j], fma(g[3 * i], sm[j], sm[3 * i + j])),
-                    );
-                }
-            }
+            let gd = if VISCOUS {
+                edge_gradient(&dv, b)
+            } else {
+                [zero; 9]
+            };
+            let p = scaled_piola::<VISCOUS>(&g, &gd, _mm256_load_ps(b.volume_m3.as_ptr()), &k);
             // H_k (force on corner k+1), component i = sum_j P_ij Bm_kj; corner 0 gets minus
             // their sum.
             let mut h0 = [zero; 3];
@@ -585,6 +719,66 @@ unsafe fn forces_avx2<const VISCOUS: bool>(
                 add_corner(force, &b.nodes[k + 1], hk);
             }
             add_corner(force, &b.nodes[0], h0);
+        }
+    }
+}
+
+/// The kernel over batches of smoothing domains (`start`, `slots`, `volume_m3` of
+/// [`SingleLayout::Domains`]): `G = sum_s (u_s - u_0) g_s^T` over the slots (velocities too
+/// when `VISCOUS`), [`scaled_piola`], then `-V P g_s` added to each slot's node.
+///
+/// # Safety
+/// AVX2 and FMA; every node of the slots below `packed.len()` and `force.len()`; `start` has
+/// one more entry than `volume_m3`, ascending within `slots.len()`, at least one slot a batch.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn domain_forces_avx2<const VISCOUS: bool>(
+    (start, slots, volume_m3): (&[usize], &[DomainSlot], &[[f32; SINGLE_LANES]]),
+    c: Coefficients,
+    packed: &[PackedNode],
+    force: &mut [NodeForce],
+) {
+    use std::arch::x86_64::_mm256_loadu_ps;
+    // SAFETY: the caller's contract (slots are 32-byte aligned).
+    unsafe {
+        let k = LaneCoefficients::new(c);
+        let zero = _mm256_setzero_ps();
+        for (b, volume) in volume_m3.iter().enumerate() {
+            let batch = &slots[start[b]..start[b + 1]];
+            let (u0, v0) = load_corner::<VISCOUS>(packed, &batch[0].nodes);
+            let mut g = [zero; 9];
+            let mut gd = [zero; 9];
+            for slot in &batch[1..] {
+                let (us, vs) = load_corner::<VISCOUS>(packed, &slot.nodes);
+                let gr = [
+                    _mm256_load_ps(slot.grad[0].as_ptr()),
+                    _mm256_load_ps(slot.grad[1].as_ptr()),
+                    _mm256_load_ps(slot.grad[2].as_ptr()),
+                ];
+                for i in 0..3 {
+                    let du = _mm256_sub_ps(us[i], u0[i]);
+                    let dv = _mm256_sub_ps(vs[i], v0[i]);
+                    for j in 0..3 {
+                        g[3 * i + j] = fma(du, gr[j], g[3 * i + j]);
+                        if VISCOUS {
+                            gd[3 * i + j] = fma(dv, gr[j], gd[3 * i + j]);
+                        }
+                    }
+                }
+            }
+            let p = scaled_piola::<VISCOUS>(&g, &gd, _mm256_loadu_ps(volume.as_ptr()), &k);
+            for slot in batch {
+                let gr = [
+                    _mm256_load_ps(slot.grad[0].as_ptr()),
+                    _mm256_load_ps(slot.grad[1].as_ptr()),
+                    _mm256_load_ps(slot.grad[2].as_ptr()),
+                ];
+                let mut h = [zero; 3];
+                for (i, hi) in h.iter_mut().enumerate() {
+                    *hi = dot3([p[3 * i], p[3 * i + 1], p[3 * i + 2]], gr);
+                }
+                add_corner(force, &slot.nodes, h);
+            }
         }
     }
 }
