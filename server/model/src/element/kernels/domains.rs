@@ -24,11 +24,17 @@ pub(super) struct DomainBatches {
     weight_m3: Vec<[f64; LANES]>,
 }
 
+/// One batch of [`DomainBatches`]: the slots' nodes and gradients (1/m, component c at
+/// `[c]`) and the lanes' volumes (m^3).
+pub(super) type DomainBatch<'a> = (
+    &'a [[u32; LANES]],
+    &'a [[[f64; LANES]; 3]],
+    &'a [f64; LANES],
+);
+
 impl DomainBatches {
-    /// Per batch: the slots' nodes and gradients (1/m) and the lanes' volumes (m^3).
-    pub(super) fn batches(
-        &self,
-    ) -> impl Iterator<Item = (&[[u32; LANES]], &[[[f64; LANES]; 3]], &[f64; LANES])> {
+    /// The batches, in order.
+    pub(super) fn batches(&self) -> impl Iterator<Item = DomainBatch<'_>> {
         self.weight_m3.iter().enumerate().map(|(b, w)| {
             let slots = self.start[b]..self.start[b + 1];
             (&self.nodes[slots.clone()], &self.grad[slots], w)

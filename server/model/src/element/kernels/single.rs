@@ -35,6 +35,8 @@ use std::arch::x86_64::{
 
 use glam::{DMat3, DVec3};
 
+use super::domains::DomainBatch;
+
 /// Lanes of the single-precision kernel: eight `f32` fill an AVX2 register.
 const SINGLE_LANES: usize = 8;
 
@@ -179,13 +181,7 @@ impl SingleLinear {
     /// # Panics
     /// If a node index is out of range (the caller validated the mesh).
     pub(crate) fn domains<'a>(
-        batches: impl Iterator<
-            Item = (
-                &'a [[u32; SINGLE_LANES]],
-                &'a [[[f64; SINGLE_LANES]; 3]],
-                &'a [f64; SINGLE_LANES],
-            ),
-        >,
+        batches: impl Iterator<Item = DomainBatch<'a>>,
         rest: &[DVec3],
     ) -> Self {
         let (mut start, mut slots, mut volume) = (vec![0], Vec::new(), Vec::new());
