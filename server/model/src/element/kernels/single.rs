@@ -1,5 +1,6 @@
-//! The single-precision force kernel of linear St Venant-Kirchhoff tetrahedra (AVX2 + FMA):
-//! eight elements per register, no gather instruction and no scalar scatter.
+//! The single-precision force kernel of linear St Venant-Kirchhoff tetrahedra, standard or
+//! edge-smoothed (AVX2 + FMA): eight cells per register, no gather instruction and no scalar
+//! scatter.
 //!
 //! The double-precision kernel ([`super::linear`]) spends most of its time moving data, not on
 //! the stress: per element it gathers twelve coordinates (masked loads and transposes) and
@@ -20,6 +21,10 @@
 //! 4. transposes the four corner forces back to one 16-byte row per lane and adds it to a
 //!    single-precision nodal force array (four read-modify-writes per element instead of
 //!    twelve), which is finally added to the double-precision forces and cleared.
+//!
+//! The smoothing domains of edge-based strain smoothing ([`super::domains`], 4 to 11 nodes)
+//! take the same steps, with `G = sum_s (u_s - u_0) g_s^T` over their node slots and the force
+//! `-V P g_s` added to each slot's node.
 //!
 //! The stress arithmetic is single precision; sums over the elements of a node are single
 //! precision too. The rest state gives exactly zero force (`G = 0`); the error against the
