@@ -52,7 +52,13 @@
 //! such tick (down to [`MIN_RELAXATION`]) and grows back by [`RELAXATION_RECOVERY`] per tick
 //! otherwise: an under-relaxed Newton iteration. It only removes velocity, and `v' = 0` still
 //! needs `f = 0`, so equilibria are unchanged; a shallow press triggers it once at most, where
-//! the device stops (docs/decisions.md, "The whole-body rest factor").
+//! the device stops (docs/decisions.md, "The whole-body rest factor"). The other overshoot is
+//! one-sided: St. Venant-Kirchhoff elements inverted under a deep dent (a 50 mN point load
+//! on a probe-sized patch dents the default `lv`'s wall 6 mm) stay inverted after the load
+//! ends, then snap back, and the frozen matrix turns the snap into a runaway (nodal speeds
+//! from 0.4 to 2.4 m/s in one tick, then to 100 m/s); so a tick whose fastest velocity
+//! component exceeds [`SNAP_MIN_SPEED_M_PER_S`] and [`SNAP_GROWTH`] times the previous tick's
+//! is relaxed the same way (docs/decisions.md, "Relaxing the snap of inverted elements").
 //!
 //! Limits: the ball is fixed when the model is built (a contact outside it is not seen: the
 //! caller restricts the touchable surface, [`CondensedSolver::is_active_triangle`]), unless it
@@ -165,6 +171,15 @@ pub const REVERSAL_COSINE: f64 = -0.5;
 /// ... and its fastest component exceeds this, m/s (0.1 mm/s: below it a reversal is
 /// round-off at rest).
 pub const REVERSAL_MIN_SPEED_M_PER_S: f64 = 1e-4;
+
+/// A solved velocity component faster than [`SNAP_MIN_SPEED_M_PER_S`] and more than this many
+/// times the previous tick's fastest component also counts as overshoot (module
+/// documentation, "Relaxation").
+pub const SNAP_GROWTH: f64 = 3.0;
+
+/// ... m/s: 0.2 mm per 1 ms tick, far above the speed at which a hand moves tissue (the
+/// default `lv`'s shear wave speed `sqrt(mu / rho)` is 2.2 m/s).
+pub const SNAP_MIN_SPEED_M_PER_S: f64 = 0.2;
 
 /// Smallest factor on the solved velocity.
 pub const MIN_RELAXATION: f64 = 1.0 / 16.0;
@@ -1351,7 +1366,10 @@ impl CondensedSolver {
         // a velocity field that reverses from one tick to the next is the frozen matrix's
         // overshoot, never the body's motion.
         // `z1` becomes the solved (unrelaxed) velocity.
-        let (mut dot_old_new, mut old2, mut new2, mut new_max2) = (0.0, 0.0, 0.0, 0.0f64);
+        // A velocity component that grows SNAP_GROWTH-fold in one tick past SNAP_MIN_SPEED is
+        // the same overshoot in one direction (an inverted element snapping back).
+        let (mut dot_old_new, mut old2, mut new2) = (0.0, 0.0, 0.0);
+        let (mut new_max2, mut old_max2) = (0.0f64, 0.0f64);
         let z0 = self.rhs.col_as_slice(0);
         for ((z, &d), &z0) in self.z1.iter_mut().zip(&self.eq_dof).zip(z0) {
             let vn = f64::from(z0) - *z;
@@ -1361,10 +1379,13 @@ impl CondensedSolver {
             old2 += vo * vo;
             new2 += vn * vn;
             new_max2 = new_max2.max(vn * vn);
+            old_max2 = old_max2.max(vo * vo);
         }
         let reversed = dot_old_new < REVERSAL_COSINE * (old2 * new2).sqrt()
             && new_max2 > REVERSAL_MIN_SPEED_M_PER_S * REVERSAL_MIN_SPEED_M_PER_S;
-        self.relaxation = if reversed {
+        let snapped = new_max2 > SNAP_GROWTH * SNAP_GROWTH * old_max2
+            && new_max2 > SNAP_MIN_SPEED_M_PER_S * SNAP_MIN_SPEED_M_PER_S;
+        self.relaxation = if reversed || snapped {
             self.relaxed_ticks += 1;
             (self.relaxation * 0.5).max(MIN_RELAXATION)
         } else {
