@@ -6,12 +6,13 @@
 //!
 //! Which binaries run: the tests never pick up whatever happens to sit in the target folder
 //! (with `cargo test -p haptic-e2e`, cargo builds none of the other packages' binaries, so those
-//! could be stale). The first [`binary`] call of a test process runs one `cargo build --locked`
-//! of the workspace binaries (with `escargot`), in the same profile as the test executable and in
-//! the same target directory (`CARGO_TARGET_DIR` or `build.target-dir` if set, else the
-//! workspace's `target/`; a `--target-dir` flag given to the outer cargo is not seen, use the
-//! variable instead); the paths are cached for the rest of the process. When nothing changed that costs one cargo
-//! no-op check. `HAPTIC_BIN_DIR=DIR` is the explicit override: the tests then run the binaries
+//! could be stale). The first [`binary`] call of a test process runs one
+//! `cargo build --locked --workspace --bins --tests` (with `escargot`; `build_all` says why the
+//! tests too), in the same profile as the test executable and in the same target directory
+//! (`CARGO_TARGET_DIR` or `build.target-dir` if set, else the workspace's `target/`; a
+//! `--target-dir` flag given to the outer cargo is not seen, use the variable instead); the
+//! paths are cached for the rest of the process. After `cargo test --workspace`, or when
+//! nothing changed, that costs one cargo no-op check. `HAPTIC_BIN_DIR=DIR` is the explicit override: the tests then run the binaries
 //! in `DIR` as they are and build nothing.
 //!
 //! The `haptic-demo` runner is not a test: it runs the binaries beside its own executable
@@ -117,7 +118,7 @@ pub fn sibling_bin_dir() -> Result<PathBuf> {
 /// Path of the workspace binary `name` (one of [`HAPTICD`], [`BRIDGE`], [`VIEWER`], [`CTL`]),
 /// built fresh for this test process.
 ///
-/// The first call builds all the binaries in one `cargo build --locked -p ... --bin ...`
+/// The first call builds all the binaries in one `cargo build --locked --workspace --bins --tests`
 /// ([`build_profile_args`] selects the profile) and blocks until it is done (minutes on a cold
 /// target folder, a fraction of a second when nothing changed); later calls, from any thread,
 /// get the cached path or the cached failure. All at once, rather than each when first
@@ -216,22 +217,23 @@ pub fn profile_args_for(exe: &Path, host: &str) -> Option<Vec<String>> {
     Some(args)
 }
 
-/// One `cargo build --locked -p PACKAGE... --bin NAME...` of the [`PACKAGES`] binaries
-/// plus [`build_profile_args`], for the workspace this crate belongs to; returns the
-/// executables in [`PACKAGES`] order. Compiler errors (which cargo prints as JSON on stdout
-/// with `--message-format=json`) are kept for the error message.
+/// One `cargo build --locked --workspace --bins --tests` plus [`build_profile_args`], for the
+/// workspace this crate belongs to; returns the [`PACKAGES`] executables in that order.
+/// Compiler errors (which cargo prints as JSON on stdout with `--message-format=json`) are
+/// kept for the error message.
+///
+/// Why the whole workspace with its tests: that resolves dependency features as
+/// `cargo test --workspace` (the README's test command) does, dev-dependencies included, so
+/// after it the build is a no-op. A build of only the binaries' packages resolved some
+/// features differently (bytemuck's `extern_crate_alloc` from a dev-dependency's `image`,
+/// clap's `wrap_help`, ...) and so compiled bytemuck, glam, faer, the model and the servers a
+/// second time: about 2 minutes of every CI run (2026-11-25).
 fn build_all() -> Result<Vec<PathBuf>> {
     use escargot::format::{Message, diagnostic::DiagnosticLevel};
     let manifest = Path::new(env!("CARGO_MANIFEST_DIR")).join("../Cargo.toml");
-    let mut args = vec!["--locked".to_string()];
-    for (i, (_, package)) in PACKAGES.iter().enumerate() {
-        if !PACKAGES[..i].iter().any(|(_, p)| p == package) {
-            args.extend(["-p".to_string(), package.to_string()]);
-        }
-    }
-    for (bin, _) in PACKAGES {
-        args.extend(["--bin".to_string(), bin.to_string()]);
-    }
+    let mut args: Vec<String> = ["--locked", "--workspace", "--bins", "--tests"]
+        .map(String::from)
+        .to_vec();
     args.extend(build_profile_args());
     let command = format!("cargo build {}", args.join(" "));
     eprintln!("haptic-e2e: {command}");
@@ -246,7 +248,10 @@ fn build_all() -> Result<Vec<PathBuf>> {
         // The last item is cargo's failure (its stderr) when the build failed.
         let m = m.map_err(|e| anyhow!("`{command}` failed:\n{errors}{e}"))?;
         match m.decode() {
-            Ok(Message::CompilerArtifact(a)) if a.target.kind.iter().any(|k| k == "bin") => {
+            // A binary's own unit-test executable has its name too (`profile.test`).
+            Ok(Message::CompilerArtifact(a))
+                if !a.profile.test && a.target.kind.iter().any(|k| k == "bin") =>
+            {
                 if let Some(i) = PACKAGES.iter().position(|(bin, _)| a.target.name == *bin) {
                     exes[i] = a.executable.map(|p| p.into_owned());
                 }
