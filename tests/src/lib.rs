@@ -237,9 +237,13 @@ fn build_all() -> Result<Vec<PathBuf>> {
     args.extend(build_profile_args());
     let command = format!("cargo build {}", args.join(" "));
     eprintln!("haptic-e2e: {command}");
-    let messages = escargot::CargoBuild::new()
+    let mut build = escargot::CargoBuild::new()
         .manifest_path(&manifest)
-        .args(&args)
+        .args(&args);
+    for key in package_env_keys(std::env::vars_os().map(|(k, _)| k)) {
+        build = build.env_remove(key);
+    }
+    let messages = build
         .exec()
         .with_context(|| format!("starting `{command}`"))?;
     let mut exes: Vec<Option<PathBuf>> = vec![None; PACKAGES.len()];
@@ -281,6 +285,29 @@ fn build_all() -> Result<Vec<PathBuf>> {
             Ok(exe)
         })
         .collect()
+}
+
+/// The variables among `keys` that cargo sets for the package whose test is running
+/// (`CARGO_MANIFEST_DIR`, `CARGO_PKG_*`, ...), which the nested build must not inherit: a build
+/// script that reads one at run time (ring's reads `CARGO_MANIFEST_DIR`) declares it with
+/// `rerun-if-env-changed`, and cargo compares the value in its own environment, so the nested
+/// build and the outer `cargo test` would rebuild ring, rustls, tonic and everything above
+/// them for each other, every run.
+fn package_env_keys(keys: impl Iterator<Item = std::ffi::OsString>) -> Vec<std::ffi::OsString> {
+    const EXACT: [&str; 7] = [
+        "CARGO_MANIFEST_DIR",
+        "CARGO_MANIFEST_PATH",
+        "CARGO_CRATE_NAME",
+        "CARGO_BIN_NAME",
+        "CARGO_PRIMARY_PACKAGE",
+        "CARGO_TARGET_TMPDIR",
+        "OUT_DIR",
+    ];
+    keys.filter(|k| {
+        k.to_str()
+            .is_some_and(|k| EXACT.contains(&k) || k.starts_with("CARGO_PKG_"))
+    })
+    .collect()
 }
 
 /// Path of `name` in `dir`, checked to exist.
@@ -789,6 +816,33 @@ mod tests {
         );
         assert_eq!(args("/w/target/release/haptic-demo"), None);
         assert_eq!(args("surface"), None);
+    }
+
+    #[test]
+    fn the_nested_build_drops_the_running_packages_cargo_variables() {
+        let keys = [
+            "CARGO_MANIFEST_DIR",
+            "CARGO_PKG_NAME",
+            "CARGO_PKG_VERSION_MAJOR",
+            "OUT_DIR",
+            "CARGO_TARGET_DIR",
+            "CARGO_HOME",
+            "CARGO",
+            "PATH",
+            "CI",
+        ]
+        .map(std::ffi::OsString::from);
+        let dropped = package_env_keys(keys.into_iter());
+        assert_eq!(
+            dropped,
+            [
+                "CARGO_MANIFEST_DIR",
+                "CARGO_PKG_NAME",
+                "CARGO_PKG_VERSION_MAJOR",
+                "OUT_DIR"
+            ]
+            .map(std::ffi::OsString::from)
+        );
     }
 
     #[test]
