@@ -173,8 +173,11 @@ pub const REVERSAL_COSINE: f64 = -0.5;
 pub const REVERSAL_MIN_SPEED_M_PER_S: f64 = 1e-4;
 
 /// A solved velocity component faster than [`SNAP_MIN_SPEED_M_PER_S`] and more than this many
-/// times the previous tick's fastest component also counts as overshoot (module
-/// documentation, "Relaxation").
+/// times the fastest component of the velocity the body has (the previous tick's, as relaxed)
+/// also counts as overshoot (module documentation, "Relaxation"). So while the factor is
+/// small and the solve still asks for more than 0.2 m/s, the factor stays small: the body
+/// approaches the equilibrium more slowly after a snap (after the demo's press with an 80 mN
+/// dent, the force is back within 1e-6 of the press alone's 1.03 s after the load ends).
 pub const SNAP_GROWTH: f64 = 3.0;
 
 /// ... m/s: 0.2 mm per 1 ms tick, far above the speed at which a hand moves tissue (the
