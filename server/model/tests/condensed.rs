@@ -1027,8 +1027,10 @@ fn a_following_region_presses_right_at_ten_random_points() {
 
 /// The prepared contact columns are a shortcut, not a different answer, and they respect their
 /// memory limit: the whole-body rest factor of the linear LV (`lv_shell(2000)`) steps a probe
-/// row over five epicardial nodes to the same velocities with the columns prepared and with
-/// none (limit 0: the per-row solve), and the unprepared solver holds no column memory.
+/// row over five epicardial nodes (the kernel patch's one row) and two rows over the same
+/// nodes (the sphere's rows, each face its own) to the same velocities with the columns
+/// prepared and with none (limit 0: the per-row solve), and the unprepared solver holds no
+/// column memory.
 #[test]
 fn prepared_contact_columns_give_the_unprepared_step_and_keep_their_memory_limit() {
     use haptic_model::contact::ContactCoupling;
@@ -1056,42 +1058,67 @@ fn prepared_contact_columns_give_the_unprepared_step_and_keep_their_memory_limit
             .total_cmp(&mesh.nodes[b as usize].distance(centre))
     });
     near.truncate(5);
-    let vectors = vec![DVec3::new(-0.2, 0.0, 0.0); 5];
-    let row_ptr = [0u32, 5];
-    let (compliance, factor) = ([1.0 / 300.0], [(1.0f64 / 300.0).sqrt()]);
-    let coupling = ContactCoupling {
-        row_ptr: &row_ptr,
-        nodes: &near,
-        vectors: &vectors,
-        compliance: &compliance,
-        compliance_factor: &factor,
-    };
+    let one_row = vec![DVec3::new(-0.2, 0.0, 0.0); 5];
+    // Two rows: the first three nodes along -x, the last three (one shared) along -x tilted
+    // in y, with a coupled 2 x 2 compliance (m/N) and its Cholesky factor.
+    let two_rows = [
+        DVec3::new(-0.3, 0.0, 0.0),
+        DVec3::new(-0.3, 0.0, 0.0),
+        DVec3::new(-0.4, 0.0, 0.0),
+        DVec3::new(-0.3, 0.1, 0.0),
+        DVec3::new(-0.3, 0.1, 0.0),
+        DVec3::new(-0.4, 0.1, 0.0),
+    ];
+    let two_nodes = [near[0], near[1], near[2], near[2], near[3], near[4]];
+    let c2: [f64; 4] = [1.0 / 300.0, 0.5 / 300.0, 0.5 / 300.0, 1.0 / 300.0];
+    let l00 = c2[0].sqrt();
+    let l10 = c2[2] / l00;
+    let f2 = [l00, 0.0, l10, (c2[3] - l10 * l10).sqrt()];
+    let (c1, f1) = ([1.0 / 300.0], [(1.0f64 / 300.0).sqrt()]);
+    let couplings = [
+        ContactCoupling {
+            row_ptr: &[0, 5],
+            nodes: &near,
+            vectors: &one_row,
+            compliance: &c1,
+            compliance_factor: &f1,
+        },
+        ContactCoupling {
+            row_ptr: &[0, 3, 6],
+            nodes: &two_nodes,
+            vectors: &two_rows,
+            compliance: &c2,
+            compliance_factor: &f2,
+        },
+    ];
     let n = fem.node_count();
-    let mut states = Vec::new();
-    for solver in [&mut prepared, &mut plain] {
-        let mut x = fem.rest().to_vec();
-        let mut v = vec![DVec3::ZERO; n];
-        let mut f = vec![DVec3::ZERO; n];
-        for _ in 0..20 {
-            f.copy_from_slice(&f_ext);
-            for &i in &near {
-                f[i as usize] += DVec3::new(-2e-3, 0.0, 0.0);
+    for (rows, coupling) in [1, 2].into_iter().zip(couplings) {
+        let mut states = Vec::new();
+        for solver in [&mut prepared, &mut plain] {
+            let mut x = fem.rest().to_vec();
+            let mut v = vec![DVec3::ZERO; n];
+            let mut f = vec![DVec3::ZERO; n];
+            for _ in 0..20 {
+                f.copy_from_slice(&f_ext);
+                for &i in &near {
+                    f[i as usize] += DVec3::new(-2e-3, 0.0, 0.0);
+                }
+                solver.active_model().add_internal_forces(&x, None, &mut f);
+                assert!(solver.step(&f, Some(coupling), &mut x, &mut v).is_finite());
             }
-            solver.active_model().add_internal_forces(&x, None, &mut f);
-            assert!(solver.step(&f, Some(coupling), &mut x, &mut v).is_finite());
+            states.push(v);
         }
-        states.push(v);
+        let scale = states[0].iter().map(|v| v.length()).fold(0.0, f64::max);
+        let diff = states[0]
+            .iter()
+            .zip(&states[1])
+            .map(|(a, b)| (*a - *b).length())
+            .fold(0.0, f64::max);
+        println!("{rows} row(s): largest speed {scale:.3e} m/s, largest difference {diff:.3e} m/s");
+        assert!(scale > 1e-4, "{rows} row(s): the probe moved nothing: {scale}");
+        assert!(
+            diff <= 1e-4 * scale,
+            "{rows} row(s): prepared and unprepared steps differ by {diff:.3e} of {scale:.3e} m/s"
+        );
     }
-    let scale = states[0].iter().map(|v| v.length()).fold(0.0, f64::max);
-    let diff = states[0]
-        .iter()
-        .zip(&states[1])
-        .map(|(a, b)| (*a - *b).length())
-        .fold(0.0, f64::max);
-    println!("largest speed {scale:.3e} m/s, largest difference {diff:.3e} m/s");
-    assert!(scale > 1e-4, "the probe row moved nothing: {scale}");
-    assert!(
-        diff <= 1e-4 * scale,
-        "prepared and unprepared steps differ by {diff:.3e} of {scale:.3e} m/s"
-    );
 }

@@ -1287,7 +1287,32 @@ impl CondensedSolver {
                     w[f * nf + g] = c.compliance[f * nf + g] / (h * h);
                 }
             }
-            if prepared {
+            // One row (the kernel patch: every patch node in it): `z1 = A^-1 a^T` from the
+            // prepared columns first, then `W += a z1`. The pair loop below reads `3 N^2`
+            // scattered entries of the columns for a row of `N` nodes, about a fifth of the
+            // tick on a 0.5 mm mesh.
+            let single_row = prepared && nf == 1;
+            if single_row {
+                for (l, u) in c.row(0) {
+                    let base = self.contact_col[l as usize] as usize * 3 * m;
+                    axpy3(
+                        self.avx2,
+                        &mut self.z1,
+                        u.to_array(),
+                        &self.contact_z[base..base + 3 * m],
+                    );
+                }
+                let mut s = 0.0;
+                for (j, u) in c.row(0) {
+                    for a in 0..3 {
+                        let e = self.eq[3 * j as usize + a];
+                        if e != usize::MAX {
+                            s += u[a] * self.z1[e];
+                        }
+                    }
+                }
+                w[0] += s;
+            } else if prepared {
                 for f in 0..nf {
                     for g in 0..=f {
                         let mut s = 0.0;
@@ -1334,7 +1359,10 @@ impl CondensedSolver {
             if cholesky_in_place(w, nf) {
                 cholesky_solve(w, nf, &mut t[..nf]);
                 // z1 = A^-1 A^T s.
-                if prepared {
+                if single_row {
+                    let s = t[0];
+                    self.z1.iter_mut().for_each(|z| *z *= s);
+                } else if prepared {
                     for (f, &tf) in t.iter().enumerate().take(nf) {
                         for (l, u) in c.row(f) {
                             let base = self.contact_col[l as usize] as usize * 3 * m;
@@ -1363,6 +1391,9 @@ impl CondensedSolver {
                         *z = f64::from(self.rhs[(k, 1)]);
                     }
                 }
+            } else if single_row {
+                // No correction, as for several rows.
+                self.z1.iter_mut().for_each(|z| *z = 0.0);
             }
         }
         // Under-relaxation of the modified Newton step (module documentation, "Relaxation"):
