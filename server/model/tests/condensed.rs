@@ -1115,7 +1115,10 @@ fn prepared_contact_columns_give_the_unprepared_step_and_keep_their_memory_limit
             .map(|(a, b)| (*a - *b).length())
             .fold(0.0, f64::max);
         println!("{rows} row(s): largest speed {scale:.3e} m/s, largest difference {diff:.3e} m/s");
-        assert!(scale > 1e-4, "{rows} row(s): the probe moved nothing: {scale}");
+        assert!(
+            scale > 1e-4,
+            "{rows} row(s): the probe moved nothing: {scale}"
+        );
         assert!(
             diff <= 1e-4 * scale,
             "{rows} row(s): prepared and unprepared steps differ by {diff:.3e} of {scale:.3e} m/s"
