@@ -259,9 +259,13 @@ pub struct CondensedSolver {
     mass: Vec<f64>,
     /// Global component of each interface component (free ones only).
     gamma_dof: Vec<usize>,
-    /// `S`, row-major `g x g`, N/m, single precision (its product is a force; 1e-7 relative
-    /// is far below the discretisation error, and it halves the memory the tick streams).
+    /// `S`, N/m: its upper triangle, row `a` holding columns `a..g` from
+    /// [`packed_row_start`], single precision (its product is a force; 1e-7 relative is far
+    /// below the discretisation error). Each entry is read once per tick for both halves:
+    /// the tick streams a quarter of the double-precision matrix.
     schur: Vec<f32>,
+    /// Scratch: `S u_G`.
+    su: Vec<f64>,
     /// Whether the CPU has AVX2 and FMA (the tick's vector loops use them then).
     avx2: bool,
     symbolic: Arc<SymbolicCholesky<usize>>,
@@ -408,6 +412,57 @@ fn dot_plain(a: &[f32], b: &[f64]) -> f64 {
     }
     let tail: f64 = ra.iter().zip(rb).map(|(x, y)| f64::from(*x) * y).sum();
     acc.iter().sum::<f64>() + tail
+}
+
+/// Start of row `a` in the packed upper triangle of a symmetric `g x g` matrix (row `a`
+/// holds columns `a..g`, `g - a` entries).
+fn packed_row_start(a: usize, g: usize) -> usize {
+    a * g - a * a.saturating_sub(1) / 2
+}
+
+/// One row of a symmetric product from its upper triangle: `y += s u_a` and returns `s . u`
+/// (`s` the row's entries right of the diagonal, single precision; `u`, `y` the matching
+/// entries), eight independent partial sums so that it vectorises.
+#[inline(always)]
+fn sym_row_plain(s: &[f32], u: &[f64], y: &mut [f64], ua: f64) -> f64 {
+    let mut acc = [0.0; 8];
+    let (cs, cu, cy) = (s.chunks_exact(8), u.chunks_exact(8), y.chunks_exact_mut(8));
+    let (rs, ru) = (cs.remainder(), cu.remainder());
+    for ((x, w), z) in cs.zip(cu).zip(cy) {
+        for k in 0..8 {
+            let v = f64::from(x[k]);
+            acc[k] += v * w[k];
+            z[k] += v * ua;
+        }
+    }
+    let n = s.len() - rs.len();
+    let mut tail = 0.0;
+    for ((x, w), z) in rs.iter().zip(ru).zip(&mut y[n..]) {
+        let v = f64::from(*x);
+        tail += v * w;
+        *z += v * ua;
+    }
+    acc.iter().sum::<f64>() + tail
+}
+
+/// [`sym_row_plain`] compiled for AVX2 + FMA.
+///
+/// # Safety
+/// The CPU must support AVX2 and FMA.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn sym_row_avx2(s: &[f32], u: &[f64], y: &mut [f64], ua: f64) -> f64 {
+    sym_row_plain(s, u, y, ua)
+}
+
+fn sym_row(avx2: bool, s: &[f32], u: &[f64], y: &mut [f64], ua: f64) -> f64 {
+    #[cfg(target_arch = "x86_64")]
+    if avx2 {
+        // SAFETY: `avx2` comes from `crate::cpu::has_avx2_fma` on this CPU.
+        return unsafe { sym_row_avx2(s, u, y, ua) };
+    }
+    let _ = avx2;
+    sym_row_plain(s, u, y, ua)
 }
 
 /// `z += a[0] y_0 + a[1] y_1 + a[2] y_2`, `y` the three single-precision columns `y_k` of
@@ -919,7 +974,9 @@ impl CondensedSolver {
         let mut factor = factorize(&symbolic, &a_lower)?;
         let mut sweep = SupernodalSolve::new(&symbolic);
         let half = half_of(sweep.as_mut(), &mut factor, &a_lower);
-        let schur: Vec<f32> = schur.iter().map(|&v| v as f32).collect();
+        let schur: Vec<f32> = (0..g)
+            .flat_map(|a| schur[a * g + a..(a + 1) * g].iter().map(|&v| v as f32))
+            .collect();
         let stack = Workspace::new(symbolic.solve_in_place_scratch::<f32>(2, Par::Seq));
         progress("condensation: done", 1.0);
         let sizes = CondensedSizes {
@@ -938,6 +995,7 @@ impl CondensedSolver {
             mass,
             gamma_dof,
             schur,
+            su: vec![0.0; g],
             avx2: crate::cpu::has_avx2_fma(),
             sweep,
             half,
@@ -988,7 +1046,15 @@ impl CondensedSolver {
         if self.region.stiffness_margin <= 1.0 {
             return Ok(());
         }
-        let schur: Vec<f64> = self.schur.iter().map(|&v| f64::from(v)).collect();
+        let g = self.gamma_dof.len();
+        let mut schur = vec![0.0f64; g * g];
+        for a in 0..g {
+            let start = packed_row_start(a, g);
+            for (b, &v) in (a..g).zip(&self.schur[start..start + g - a]) {
+                schur[a * g + b] = f64::from(v);
+                schur[b * g + a] = f64::from(v);
+            }
+        }
         let parts = TickMatrixParts {
             active: &self.active,
             material: *self.active.material(),
@@ -1247,9 +1313,18 @@ impl CondensedSolver {
             for ((b, &d), &m) in self.b.iter_mut().zip(&self.eq_dof).zip(&self.mass) {
                 *b = m * v[d] + h * f[d];
             }
-            for (a, &da) in self.gamma_dof.iter().enumerate() {
-                let row = &self.schur[a * g..(a + 1) * g];
-                let su = dot(self.avx2, row, &self.u_gamma);
+            // S u_G from the packed upper triangle: row `a` adds its dot product to entry
+            // `a` and its entries times `u_a` to the entries after it.
+            self.su.iter_mut().for_each(|s| *s = 0.0);
+            for a in 0..g {
+                let start = packed_row_start(a, g);
+                let row = &self.schur[start..start + g - a];
+                let ua = self.u_gamma[a];
+                let (head, tail) = self.su.split_at_mut(a + 1);
+                let s = sym_row(self.avx2, &row[1..], &self.u_gamma[a + 1..], tail, ua);
+                head[a] += f64::from(row[0]) * ua + s;
+            }
+            for (&da, &su) in self.gamma_dof.iter().zip(&self.su) {
                 self.b[self.eq[da]] -= h * su;
             }
             for (r, b) in rhs0.iter_mut().zip(&self.b) {
@@ -1546,13 +1621,15 @@ impl CondensedSolver {
             let d = self.gamma_dof[a];
             x[d / 3][d % 3] - self.active.rest()[d / 3][d % 3]
         };
+        // Packed upper triangle: the off-diagonal entries count twice.
         (0..g)
             .map(|a| {
-                let row = &self.schur[a * g..(a + 1) * g];
-                u(a) * (0..g).map(|b| f64::from(row[b]) * u(b)).sum::<f64>()
+                let start = packed_row_start(a, g);
+                let row = &self.schur[start..start + g - a];
+                let off: f64 = (a + 1..g).map(|b| f64::from(row[b - a]) * u(b)).sum();
+                u(a) * (0.5 * f64::from(row[0]) * u(a) + off)
             })
             .sum::<f64>()
-            * 0.5
     }
 
     /// Sets the far-only nodes of `x` to the static linear response of the far body to the
@@ -1583,6 +1660,46 @@ impl CondensedSolver {
         llt.solve_in_place(b.as_mut());
         for (k, &d) in self.far.dofs.iter().enumerate() {
             x[d / 3][d % 3] = self.active.rest()[d / 3][d % 3] + b[(k, 0)];
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{packed_row_start, sym_row};
+
+    /// The packed upper triangle's product (plain lanes, and AVX2 where the CPU has it) is the
+    /// dense symmetric product, for sizes with and without a tail of eight.
+    #[test]
+    fn the_packed_symmetric_product_is_the_dense_one() {
+        for g in [1usize, 7, 8, 13, 24, 31] {
+            // A symmetric matrix with entries exact in single precision.
+            let entry = |a: usize, b: usize| {
+                let (i, j) = (a.min(b), a.max(b));
+                ((i * 37 + j * 11) % 17) as f64 / 8.0 - 1.0
+            };
+            let u: Vec<f64> = (0..g).map(|a| (a as f64 * 0.7).sin()).collect();
+            let packed: Vec<f32> = (0..g)
+                .flat_map(|a| (a..g).map(move |b| entry(a, b) as f32))
+                .collect();
+            assert_eq!(packed.len(), g * (g + 1) / 2);
+            assert_eq!(packed_row_start(g - 1, g), packed.len() - 1);
+            let dense: Vec<f64> = (0..g)
+                .map(|a| (0..g).map(|b| entry(a, b) * u[b]).sum())
+                .collect();
+            for avx2 in [false, crate::cpu::has_avx2_fma()] {
+                let mut y = vec![0.0; g];
+                for a in 0..g {
+                    let start = packed_row_start(a, g);
+                    let row = &packed[start..start + g - a];
+                    let (head, tail) = y.split_at_mut(a + 1);
+                    let s = sym_row(avx2, &row[1..], &u[a + 1..], tail, u[a]);
+                    head[a] += f64::from(row[0]) * u[a] + s;
+                }
+                for (a, (p, d)) in y.iter().zip(&dense).enumerate() {
+                    assert!((p - d).abs() <= 1e-12, "g {g}, row {a}: {p} against {d}");
+                }
+            }
         }
     }
 }
