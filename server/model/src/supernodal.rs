@@ -40,6 +40,10 @@ pub struct SupernodalSolve {
     x: Vec<f32>,
     /// One supernode's column block of the right-hand side.
     y: Vec<f32>,
+    /// The second right-hand side of [`Self::forward_pair`] (permuted, scaled).
+    x2: Vec<f32>,
+    /// Its column block.
+    y2: Vec<f32>,
     /// Whether the AVX2 + FMA + F16C build of the sweep runs on this CPU.
     f16c: bool,
 }
@@ -126,8 +130,15 @@ impl SupernodalSolve {
             len_val: s.len_val(),
             x: vec![0.0; n],
             y: vec![0.0; widest + HALF_PAD],
+            x2: vec![0.0; n],
+            y2: vec![0.0; widest + HALF_PAD],
             f16c: crate::cpu::has_avx2_fma_f16c(),
         })
+    }
+
+    /// Number of stored factor values (faer's supernodal layout).
+    pub fn factor_len(&self) -> usize {
+        self.len_val
     }
 
     /// Number of equations.
@@ -234,6 +245,75 @@ impl SupernodalSolve {
             b[f as usize] = xk * s;
         }
     }
+
+    /// The forward half of two solves in one pass over the factor, for a rank-one update of
+    /// the solve (Woodbury with one row `a`): with `(S L)(S L)^T = S A S` ([`HalfFactor`]),
+    /// keeps `y_b = (S L)^-1 S b` and `y_a = (S L)^-1 S a` (permuted) for
+    /// [`Self::backward_combined`] and returns `(y_a . y_a, y_a . y_b)`, which are
+    /// `a^T A^-1 a` and `a^T A^-1 b`, summed in double precision. `b`, `a`: length
+    /// [`Self::len`], original numbering. The factor is streamed once for both (a tick on a
+    /// large factor is bound by that stream). Allocation-free.
+    ///
+    /// # Panics
+    /// If `b` or `a` has the wrong length or `factor` another structure.
+    pub fn forward_pair(&mut self, factor: &HalfFactor, b: &[f32], a: &[f32]) -> (f64, f64) {
+        let n = self.x.len();
+        assert!(b.len() == n && a.len() == n, "right-hand side length");
+        assert_eq!(factor.scale.len(), n, "half factor of another structure");
+        for (((xk, x2k), &f), &s) in self
+            .x
+            .iter_mut()
+            .zip(&mut self.x2)
+            .zip(&self.forward)
+            .zip(&factor.scale)
+        {
+            *xk = b[f as usize] * s;
+            *x2k = a[f as usize] * s;
+        }
+        let x = [&mut self.x[..], &mut self.x2[..]];
+        let y = [&mut self.y[..], &mut self.y2[..]];
+        #[cfg(target_arch = "x86_64")]
+        if self.f16c {
+            // SAFETY: `f16c` comes from `crate::cpu::has_avx2_fma_f16c` on this CPU.
+            unsafe { forward_avx2(&self.nodes, &self.rows, factor, x, y) };
+        } else {
+            forward::<false, 2>(&self.nodes, &self.rows, factor, x, y);
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        forward::<false, 2>(&self.nodes, &self.rows, factor, x, y);
+        let (mut aa, mut ab) = (0.0f64, 0.0f64);
+        for (&yb, &ya) in self.x.iter().zip(&self.x2) {
+            aa += f64::from(ya) * f64::from(ya);
+            ab += f64::from(ya) * f64::from(yb);
+        }
+        (aa, ab)
+    }
+
+    /// The backward half after [`Self::forward_pair`]: `out = A^-1 (b - s a)` (original
+    /// numbering, length [`Self::len`]) through the same `factor`. Allocation-free.
+    ///
+    /// # Panics
+    /// If `out` has the wrong length or `factor` another structure.
+    pub fn backward_combined(&mut self, factor: &HalfFactor, s: f32, out: &mut [f32]) {
+        let n = self.x.len();
+        assert_eq!(out.len(), n, "solution length");
+        assert_eq!(factor.scale.len(), n, "half factor of another structure");
+        for (xb, &xa) in self.x.iter_mut().zip(&self.x2) {
+            *xb = (-s).mul_add(xa, *xb);
+        }
+        #[cfg(target_arch = "x86_64")]
+        if self.f16c {
+            // SAFETY: as in `forward_pair`.
+            unsafe { backward_avx2(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y) };
+        } else {
+            backward::<false>(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y);
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        backward::<false>(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y);
+        for ((&xk, &f), &sc) in self.x.iter().zip(&self.forward).zip(&factor.scale) {
+            out[f as usize] = xk * sc;
+        }
+    }
 }
 
 /// A supernode's first column, column count, start of its values (in faer's layout) and
@@ -260,6 +340,38 @@ unsafe fn sweep_avx2(
     sweep::<true>(nodes, rows, factor, x, y);
 }
 
+/// [`forward`] of two columns compiled for AVX2 + FMA + F16C.
+///
+/// # Safety
+/// The CPU must support AVX2, FMA and F16C.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,f16c")]
+unsafe fn forward_avx2(
+    nodes: &[[u32; 5]],
+    rows: &[u32],
+    factor: &HalfFactor,
+    x: [&mut [f32]; 2],
+    y: [&mut [f32]; 2],
+) {
+    forward::<true, 2>(nodes, rows, factor, x, y);
+}
+
+/// [`backward`] compiled for AVX2 + FMA + F16C.
+///
+/// # Safety
+/// The CPU must support AVX2, FMA and F16C.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,f16c")]
+unsafe fn backward_avx2(
+    nodes: &[[u32; 5]],
+    rows: &[u32],
+    factor: &HalfFactor,
+    x: &mut [f32],
+    y: &mut [f32],
+) {
+    backward::<true>(nodes, rows, factor, x, y);
+}
+
 /// Forward `L y = b` then backward `L^T x = y` over the supernodes of a [`HalfFactor`]
 /// (module docs); `x` holds `S b` in the permuted numbering and receives `S^-1 x`. Every column
 /// is a whole number of [`HALF_PAD`] blocks: `y` has that much slack past the widest
@@ -272,36 +384,92 @@ fn sweep<const F16C: bool>(
     x: &mut [f32],
     y: &mut [f32],
 ) {
-    let column =
-        |c: usize| &factor.values[factor.col_start[c] as usize..factor.col_start[c + 1] as usize];
+    forward::<F16C, 1>(nodes, rows, factor, [&mut *x], [&mut *y]);
+    backward::<F16C>(nodes, rows, factor, x, y);
+}
+
+/// Column `c` of the factor below its diagonal.
+#[inline(always)]
+fn factor_column(factor: &HalfFactor, c: usize) -> &[u16] {
+    &factor.values[factor.col_start[c] as usize..factor.col_start[c + 1] as usize]
+}
+
+/// The forward sweep `L y = b` of [`sweep`] for `K` right-hand sides `x[k]` at once, each
+/// column of the factor read once (its entries reused from the first level cache); `y[k]`
+/// are their column blocks.
+#[inline(always)]
+fn forward<const F16C: bool, const K: usize>(
+    nodes: &[[u32; 5]],
+    rows: &[u32],
+    factor: &HalfFactor,
+    x: [&mut [f32]; K],
+    mut y: [&mut [f32]; K],
+) {
     for &node in nodes {
         let (c0, nc, _, pattern) = supernode(node, rows);
         let h = nc + pattern.len();
-        let y = &mut y[..h + HALF_PAD];
-        y[..nc].copy_from_slice(&x[c0..c0 + nc]);
-        y[nc..].fill(0.0);
+        for k in 0..K {
+            let y = &mut y[k][..h + HALF_PAD];
+            y[..nc].copy_from_slice(&x[k][c0..c0 + nc]);
+            y[nc..].fill(0.0);
+        }
         for j in 0..nc {
-            let yj = y[j] * factor.inv_diag[c0 + j];
-            y[j] = yj;
-            let col = column(c0 + j);
-            let tail = &mut y[j + 1..j + 1 + col.len()];
+            let col = factor_column(factor, c0 + j);
             #[cfg(target_arch = "x86_64")]
-            if F16C {
-                // SAFETY: `F16C` is set only by `sweep_avx2`, which runs on such CPUs.
-                unsafe { axpy_half_avx2(col, tail, -yj) };
+            if F16C && K == 2 {
+                let [y0, y1] = &mut y[..] else { unreachable!() };
+                let (a0, a1) = (
+                    y0[j] * factor.inv_diag[c0 + j],
+                    y1[j] * factor.inv_diag[c0 + j],
+                );
+                y0[j] = a0;
+                y1[j] = a1;
+                let (t0, t1) = (
+                    &mut y0[j + 1..j + 1 + col.len()],
+                    &mut y1[j + 1..j + 1 + col.len()],
+                );
+                // SAFETY: as below.
+                unsafe { axpy2_half_avx2(col, t0, t1, -a0, -a1) };
                 continue;
             }
-            for (yi, &l) in tail.iter_mut().zip(col) {
-                *yi = half::f16::from_bits(l).to_f32().mul_add(-yj, *yi);
+            for y in y.iter_mut() {
+                let yj = y[j] * factor.inv_diag[c0 + j];
+                y[j] = yj;
+                let tail = &mut y[j + 1..j + 1 + col.len()];
+                #[cfg(target_arch = "x86_64")]
+                if F16C {
+                    // SAFETY: `F16C` is set only by the `_avx2` wrappers, which run on such
+                    // CPUs.
+                    unsafe { axpy_half_avx2(col, tail, -yj) };
+                    continue;
+                }
+                for (yi, &l) in tail.iter_mut().zip(col) {
+                    *yi = half::f16::from_bits(l).to_f32().mul_add(-yj, *yi);
+                }
             }
         }
-        x[c0..c0 + nc].copy_from_slice(&y[..nc]);
-        for (&r, &yr) in pattern.iter().zip(&y[nc..h]) {
-            // SAFETY: every pattern row is below `x.len()` (checked by `SupernodalSolve::new`,
-            // the only maker of `nodes` and `rows`, whose `x` is passed here).
-            unsafe { *x.get_unchecked_mut(r as usize) += yr };
+        for k in 0..K {
+            let (x, y) = (&mut *x[k], &*y[k]);
+            x[c0..c0 + nc].copy_from_slice(&y[..nc]);
+            for (&r, &yr) in pattern.iter().zip(&y[nc..h]) {
+                // SAFETY: every pattern row is below `x.len()` (checked by
+                // `SupernodalSolve::new`, the only maker of `nodes` and `rows`, whose `x` and
+                // `x2` are passed here).
+                unsafe { *x.get_unchecked_mut(r as usize) += yr };
+            }
         }
     }
+}
+
+/// The backward sweep `L^T x = y` of [`sweep`].
+#[inline(always)]
+fn backward<const F16C: bool>(
+    nodes: &[[u32; 5]],
+    rows: &[u32],
+    factor: &HalfFactor,
+    x: &mut [f32],
+    y: &mut [f32],
+) {
     for &node in nodes.iter().rev() {
         let (c0, nc, _, pattern) = supernode(node, rows);
         let h = nc + pattern.len();
@@ -313,7 +481,7 @@ fn sweep<const F16C: bool>(
         }
         y[h..].fill(0.0);
         for j in (0..nc).rev() {
-            let col = column(c0 + j);
+            let col = factor_column(factor, c0 + j);
             let (head, tail) = y.split_at_mut(j + 1);
             let tail = &tail[..col.len()];
             #[cfg(target_arch = "x86_64")]
@@ -344,6 +512,25 @@ fn axpy_half_avx2(col: &[u16], y: &mut [f32], a: f32) {
             let c = _mm256_cvtph_ps(_mm_loadu_si128(col.as_ptr().add(k).cast()));
             let p = y.as_mut_ptr().add(k);
             _mm256_storeu_ps(p, _mm256_fmadd_ps(c, va, _mm256_loadu_ps(p)));
+        }
+    }
+}
+
+/// `y0 += a0 col`, `y1 += a1 col`, each block of `col` converted once: [`axpy_half_avx2`]
+/// for two right-hand sides.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,f16c")]
+fn axpy2_half_avx2(col: &[u16], y0: &mut [f32], y1: &mut [f32], a0: f32, a1: f32) {
+    use std::arch::x86_64::*;
+    assert!(col.len().is_multiple_of(HALF_PAD) && y0.len() == col.len() && y1.len() == col.len());
+    let (v0, v1) = (_mm256_set1_ps(a0), _mm256_set1_ps(a1));
+    for k in (0..col.len()).step_by(HALF_PAD) {
+        // SAFETY: `k + 8 <= col.len() == y0.len() == y1.len()`.
+        unsafe {
+            let c = _mm256_cvtph_ps(_mm_loadu_si128(col.as_ptr().add(k).cast()));
+            let (p0, p1) = (y0.as_mut_ptr().add(k), y1.as_mut_ptr().add(k));
+            _mm256_storeu_ps(p0, _mm256_fmadd_ps(c, v0, _mm256_loadu_ps(p0)));
+            _mm256_storeu_ps(p1, _mm256_fmadd_ps(c, v1, _mm256_loadu_ps(p1)));
         }
     }
 }
@@ -554,6 +741,41 @@ mod tests {
                 / (50.0 / 17.0);
             assert!(rel < 1e-2, "relative residual {rel:.2e}");
             println!("relative residual against the unrounded matrix: {rel:.2e}");
+            // The paired forward sweep and the combined backward one (both builds) are the
+            // one-column solves: `a^T A^-1 a`, `a^T A^-1 b` and `A^-1 (b - s a)`.
+            let a_row: Vec<f32> = (0..m)
+                .map(|i| if i % 7 == 0 { (i % 5) as f32 - 2.0 } else { 0.0 } * d[i])
+                .collect();
+            let mut za = a_row.clone();
+            sweep.solve_in_place(&half, &mut za);
+            let dot = |p: &[f32], q: &[f32]| -> f64 {
+                p.iter()
+                    .zip(q)
+                    .map(|(p, q)| f64::from(*p) * f64::from(*q))
+                    .sum()
+            };
+            let (aa_ref, ab_ref) = (dot(&a_row, &za), dot(&a_row, &ours));
+            assert!(aa_ref > 0.0);
+            let s = (ab_ref / aa_ref) as f32;
+            let mut combined_ref: Vec<f32> = b.iter().zip(&a_row).map(|(b, a)| b - s * a).collect();
+            sweep.solve_in_place(&half, &mut combined_ref);
+            for solver in [&mut sweep, &mut plain] {
+                let (aa, ab) = solver.forward_pair(&half, &b, &a_row);
+                assert!(
+                    (aa - aa_ref).abs() <= 1e-5 * aa_ref,
+                    "a A^-1 a {aa} vs {aa_ref}"
+                );
+                assert!(
+                    (ab - ab_ref).abs() <= 1e-5 * (aa_ref * dot(&b, &ours).abs()).sqrt(),
+                    "a A^-1 b {ab} vs {ab_ref}"
+                );
+                let mut out = vec![0.0f32; m];
+                solver.backward_combined(&half, s, &mut out);
+                for i in 0..m {
+                    let (o, r) = (out[i] * d[i], combined_ref[i] * d[i]);
+                    assert!((o - r).abs() <= 1e-5 * scale, "row {i}: {o} vs {r}");
+                }
+            }
         }
     }
 }

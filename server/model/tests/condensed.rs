@@ -20,7 +20,7 @@ use haptic_model::ModelError;
 use haptic_model::body::SoftBody;
 use haptic_model::contact::ContactModel;
 use haptic_model::element::{FemModel, StrainSmoothing};
-use haptic_model::integrate::condensed::{ActiveRegion, CondensedSolver};
+use haptic_model::integrate::condensed::{ActiveRegion, CondensedSolver, PAIRED_SWEEP_MIN_RATIO};
 use haptic_model::integrate::{IntegratorKind, LinearSolver};
 use haptic_model::mesh::generate;
 use haptic_model::scene::{load_builtin, parse_scene_toml};
@@ -1030,7 +1030,9 @@ fn a_following_region_presses_right_at_ten_random_points() {
 /// row over five epicardial nodes (the kernel patch's one row) and two rows over the same
 /// nodes (the sphere's rows, each face its own) to the same velocities with the columns
 /// prepared and with none (limit 0: the per-row solve), and the unprepared solver holds no
-/// column memory.
+/// column memory. One row goes through the paired half-precision sweep, not the columns: it
+/// gives the velocities of the same row with a second row of negligible stiffness (1e-9 N/m)
+/// added, which goes through the prepared columns.
 #[test]
 fn prepared_contact_columns_give_the_unprepared_step_and_keep_their_memory_limit() {
     use haptic_model::contact::ContactCoupling;
@@ -1057,6 +1059,7 @@ fn prepared_contact_columns_give_the_unprepared_step_and_keep_their_memory_limit
             .distance(centre)
             .total_cmp(&mesh.nodes[b as usize].distance(centre))
     });
+    let by_distance = near.clone();
     near.truncate(5);
     let one_row = vec![DVec3::new(-0.2, 0.0, 0.0); 5];
     // Two rows: the first three nodes along -x, the last three (one shared) along -x tilted
@@ -1075,6 +1078,36 @@ fn prepared_contact_columns_give_the_unprepared_step_and_keep_their_memory_limit
     let l10 = c2[2] / l00;
     let f2 = [l00, 0.0, l10, (c2[3] - l10 * l10).sqrt()];
     let (c1, f1) = ([1.0 / 300.0], [(1.0f64 / 300.0).sqrt()]);
+    // A row over enough nodes that it takes the paired sweep (`PAIRED_SWEEP_MIN_RATIO`),
+    // where the five-node row takes the prepared columns.
+    let ratio = |nodes: usize| (3 * nodes * m) as f64 / prepared.sizes().factor_entries as f64;
+    let wide_count = (1..=by_distance.len())
+        .find(|&k| ratio(k) >= 1.5 * PAIRED_SWEEP_MIN_RATIO)
+        .expect("enough epicardial nodes");
+    assert!(
+        ratio(5) < PAIRED_SWEEP_MIN_RATIO,
+        "the five-node row's ratio {}",
+        ratio(5)
+    );
+    let wide_nodes = &by_distance[..wide_count];
+    let wide = vec![DVec3::new(-1.0 / wide_count as f64, 0.0, 0.0); wide_count];
+    // Each one-row coupling plus a row at a node outside it, compliance 1e9 m/N (uncoupled):
+    // the same system through the two-row path (prepared columns).
+    let spare = by_distance[wide_count];
+    let with_slack = |nodes: &[u32], vectors: &[DVec3]| {
+        let mut n = nodes.to_vec();
+        n.push(spare);
+        let mut v = vectors.to_vec();
+        v.push(DVec3::new(0.0, 0.0, -1.0));
+        (n, v)
+    };
+    let slack_small = with_slack(&near, &one_row);
+    let slack_wide = with_slack(wide_nodes, &wide);
+    let c3: [f64; 4] = [1.0 / 300.0, 0.0, 0.0, 1e9];
+    let f3 = [c3[0].sqrt(), 0.0, 0.0, c3[3].sqrt()];
+    let slack_row_ptr = |k: usize| [0, k as u32, k as u32 + 1];
+    let (ptr_small, ptr_wide) = (slack_row_ptr(5), slack_row_ptr(wide_count));
+    let wide_ptr = [0, wide_count as u32];
     let couplings = [
         ContactCoupling {
             row_ptr: &[0, 5],
@@ -1091,29 +1124,71 @@ fn prepared_contact_columns_give_the_unprepared_step_and_keep_their_memory_limit
             compliance_factor: &f2,
         },
     ];
+    let one_and_slack = [
+        (
+            couplings[0],
+            ContactCoupling {
+                row_ptr: &ptr_small,
+                nodes: &slack_small.0,
+                vectors: &slack_small.1,
+                compliance: &c3,
+                compliance_factor: &f3,
+            },
+        ),
+        (
+            ContactCoupling {
+                row_ptr: &wide_ptr,
+                nodes: wide_nodes,
+                vectors: &wide,
+                compliance: &c1,
+                compliance_factor: &f1,
+            },
+            ContactCoupling {
+                row_ptr: &ptr_wide,
+                nodes: &slack_wide.0,
+                vectors: &slack_wide.1,
+                compliance: &c3,
+                compliance_factor: &f3,
+            },
+        ),
+    ];
     let n = fem.node_count();
-    for (rows, coupling) in [1, 2].into_iter().zip(couplings) {
-        let mut states = Vec::new();
-        for solver in [&mut prepared, &mut plain] {
-            let mut x = fem.rest().to_vec();
-            let mut v = vec![DVec3::ZERO; n];
-            let mut f = vec![DVec3::ZERO; n];
-            for _ in 0..20 {
-                f.copy_from_slice(&f_ext);
-                for &i in &near {
-                    f[i as usize] += DVec3::new(-2e-3, 0.0, 0.0);
-                }
-                solver.active_model().add_internal_forces(&x, None, &mut f);
-                assert!(solver.step(&f, Some(coupling), &mut x, &mut v).is_finite());
+    let run = |solver: &mut CondensedSolver, coupling: ContactCoupling<'_>| {
+        let mut x = fem.rest().to_vec();
+        let mut v = vec![DVec3::ZERO; n];
+        let mut f = vec![DVec3::ZERO; n];
+        for _ in 0..20 {
+            f.copy_from_slice(&f_ext);
+            for &i in &near {
+                f[i as usize] += DVec3::new(-2e-3, 0.0, 0.0);
             }
-            states.push(v);
+            solver.active_model().add_internal_forces(&x, None, &mut f);
+            assert!(solver.step(&f, Some(coupling), &mut x, &mut v).is_finite());
         }
-        let scale = states[0].iter().map(|v| v.length()).fold(0.0, f64::max);
-        let diff = states[0]
+        v
+    };
+    let largest = |a: &[DVec3], b: &[DVec3]| {
+        let scale = a.iter().map(|v| v.length()).fold(0.0, f64::max);
+        let diff = a
             .iter()
-            .zip(&states[1])
+            .zip(b)
             .map(|(a, b)| (*a - *b).length())
             .fold(0.0, f64::max);
+        (scale, diff)
+    };
+    for ((one, slack), name) in one_and_slack.into_iter().zip(["five nodes", "wide"]) {
+        let (scale, diff) = largest(&run(&mut prepared, one), &run(&mut prepared, slack));
+        println!(
+            "one row ({name}) against it plus an uncoupled row: largest difference {diff:.3e} of {scale:.3e} m/s"
+        );
+        assert!(
+            scale > 1e-4 && diff <= 1e-4 * scale,
+            "one row ({name}): differs from the two-row path by {diff:.3e} of {scale:.3e} m/s"
+        );
+    }
+    for (rows, coupling) in [1, 2].into_iter().zip(couplings) {
+        let states = [run(&mut prepared, coupling), run(&mut plain, coupling)];
+        let (scale, diff) = largest(&states[0], &states[1]);
         println!("{rows} row(s): largest speed {scale:.3e} m/s, largest difference {diff:.3e} m/s");
         assert!(
             scale > 1e-4,
