@@ -161,6 +161,13 @@ pub const FOLLOW_LEAD_RADII: f64 = 1.0;
 /// components; refreshing them over 16 ticks cost more per tick than the Schur product.)
 pub const SURFACE_REFRESH_TICKS: usize = 32;
 
+/// Most multiply-adds one tick spends on the far-surface refresh (rows times interface
+/// components): beyond it the refresh takes more than [`SURFACE_REFRESH_TICKS`] ticks
+/// ([`CondensedSolver::surface_refresh_ticks`]). Its rows are streamed from main memory (the
+/// map of a following region is hundreds of megabytes): `lv_100k_condensed` (18 936 surface
+/// rows of 792) refreshes in 60 ticks instead of 32, 1.9 -> 1.0 MB per tick.
+pub const SURFACE_REFRESH_MAX_MACS: usize = 1 << 18;
+
 /// Default [`ActiveRegion::stiffness_margin`].
 pub const DEFAULT_STIFFNESS_MARGIN: f64 = 2.0;
 
@@ -1191,6 +1198,28 @@ impl CondensedSolver {
         z
     }
 
+    /// Far-surface rows refreshed per tick: [`SURFACE_REFRESH_TICKS`] ticks for all, or
+    /// fewer rows when that exceeds [`SURFACE_REFRESH_MAX_MACS`].
+    fn surface_rows_per_tick(&self) -> usize {
+        let g = self.gamma_dof.len().max(1);
+        self.surface_rows
+            .len()
+            .div_ceil(SURFACE_REFRESH_TICKS)
+            .min((SURFACE_REFRESH_MAX_MACS / g).max(1))
+    }
+
+    /// Ticks a full refresh of the far surface takes (at most the viewers' lag behind the
+    /// interface): [`SURFACE_REFRESH_TICKS`], more on large far surfaces
+    /// ([`SURFACE_REFRESH_MAX_MACS`]); 0 without far surface.
+    pub fn surface_refresh_ticks(&self) -> usize {
+        let rows = self.surface_rows.len();
+        if rows == 0 {
+            0
+        } else {
+            rows.div_ceil(self.surface_rows_per_tick())
+        }
+    }
+
     /// The active elements as a model over the whole body's nodes: its
     /// [`FemModel::add_internal_forces`] gives the active region's forces.
     pub fn active_model(&self) -> &FemModel {
@@ -1239,7 +1268,7 @@ impl CondensedSolver {
     /// active elements' elastic force at `x` (from [`Self::active_model`]), external loads on
     /// active nodes and the coupling's explicit part; the far field's `-S u_G` is added here.
     /// Updates `x`, `v` of the active nodes and the positions of a slice of the far boundary
-    /// nodes (all of them every [`SURFACE_REFRESH_TICKS`] ticks); other far nodes keep their
+    /// nodes (all of them every [`Self::surface_refresh_ticks`] ticks); other far nodes keep their
     /// values (see [`Self::recover_far_field`]). Returns the largest squared nodal speed (m^2/s^2; NaN if
     /// any value is not finite). Allocation-free.
     ///
@@ -1301,10 +1330,10 @@ impl CondensedSolver {
             *u = x[d] - rest[d];
         }
         // Far boundary nodes: a slice of rows per tick, so the surface is at most
-        // `SURFACE_REFRESH_TICKS` ticks behind the interface.
+        // `surface_refresh_ticks` ticks behind the interface.
         let rows = self.surface_rows.len();
         if rows > 0 {
-            let per_tick = rows.div_ceil(SURFACE_REFRESH_TICKS);
+            let per_tick = self.surface_rows_per_tick();
             let end = (self.surface_cursor + per_tick).min(rows);
             for &r in &self.surface_rows[self.surface_cursor..end] {
                 let r = r as usize;
