@@ -36,7 +36,9 @@
 //! against [`HALF_MAX_DEVIATION`]). The probe's term
 //! `h^2 A^T C A` ([`ContactCoupling`]: the patch's coupling, or the implicit sphere's faces) is
 //! added exactly by Woodbury, with `A^-1 A^T` from columns precomputed for the active touchable
-//! nodes ([`CondensedSolver::prepare_contact`]). The factor is faer's sparse Cholesky
+//! nodes ([`CondensedSolver::prepare_contact`]); a one-row coupling over many nodes (the
+//! patch on a fine mesh) instead sweeps the half-precision factor forward once for both right-hand
+//! sides and backward once ([`PAIRED_SWEEP_MIN_RATIO`]). The factor is faer's sparse Cholesky
 //! (supernodal, nested-dissection ordering), solved by [`crate::supernodal`]'s sweep (faer's
 //! solve for a simplicial factor) with its workspace allocated at construction, so
 //! [`CondensedSolver::step`] allocates nothing.
