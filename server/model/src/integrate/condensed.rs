@@ -37,8 +37,9 @@
 //! `h^2 A^T C A` ([`ContactCoupling`]: the patch's coupling, or the implicit sphere's faces) is
 //! added exactly by Woodbury, with `A^-1 A^T` from columns precomputed for the active touchable
 //! nodes ([`CondensedSolver::prepare_contact`]); a one-row coupling over many nodes (the
-//! patch on a fine mesh) instead sweeps the half-precision factor forward once for both right-hand
-//! sides and backward once ([`PAIRED_SWEEP_MIN_RATIO`]). The factor is faer's sparse Cholesky
+//! patch on a fine mesh) instead sweeps the half-precision factor forward once for both
+//! right-hand sides and backward once ([`PAIRED_SWEEP_MIN_RATIO`]). The factor is faer's sparse
+//! Cholesky
 //! (supernodal, nested-dissection ordering), solved by [`crate::supernodal`]'s sweep (faer's
 //! solve for a simplicial factor) with its workspace allocated at construction, so
 //! [`CondensedSolver::step`] allocates nothing.
@@ -1270,9 +1271,9 @@ impl CondensedSolver {
     /// active elements' elastic force at `x` (from [`Self::active_model`]), external loads on
     /// active nodes and the coupling's explicit part; the far field's `-S u_G` is added here.
     /// Updates `x`, `v` of the active nodes and the positions of a slice of the far boundary
-    /// nodes (all of them every [`Self::surface_refresh_ticks`] ticks); other far nodes keep their
-    /// values (see [`Self::recover_far_field`]). Returns the largest squared nodal speed (m^2/s^2; NaN if
-    /// any value is not finite). Allocation-free.
+    /// nodes (all of them every [`Self::surface_refresh_ticks`] ticks); other far nodes keep
+    /// their values (see [`Self::recover_far_field`]). Returns the largest squared nodal speed
+    /// (m^2/s^2; NaN if any value is not finite). Allocation-free.
     ///
     /// # Panics
     /// If the slices are shorter than the body's node count.
