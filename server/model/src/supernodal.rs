@@ -7,7 +7,9 @@
 //! `lv`, 2 727 equations and 485 000 entries, has about one per node), so on that factor the
 //! calls took most of the solve. Here each supernode's block is swept in faer's order: forward,
 //! `y = L^-1 b` one column at a time with a contiguous update below the diagonal; backward,
-//! `x = L^-T y` with a contiguous dot product per column.
+//! `x = L^-T y` with a contiguous dot product per column. For the probe's one-row Woodbury
+//! term the forward sweep also takes a second right-hand side in the same pass
+//! ([`SupernodalSolve::forward_pair`], [`SupernodalSolve::backward_combined`]).
 //!
 //! **Half precision.** One tick streams the whole factor twice, and that stream bounds the
 //! sweep. [`HalfFactor`] holds `S L`, the factor of the diagonally scaled `S A S` with
