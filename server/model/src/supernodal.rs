@@ -234,17 +234,25 @@ impl SupernodalSolve {
         for ((xk, &f), &s) in self.x.iter_mut().zip(&self.forward).zip(&factor.scale) {
             *xk = b[f as usize] * s;
         }
+        let (nodes, rows) = (&self.nodes, &self.rows);
+        forward_sweep(self.f16c, nodes, rows, factor, [&mut self.x], [&mut self.y]);
+        self.backward_into(factor, b);
+    }
+
+    /// The backward sweep of `self.x` with the CPU's build, then `out = S x` in the original
+    /// numbering.
+    fn backward_into(&mut self, factor: &HalfFactor, out: &mut [f32]) {
         #[cfg(target_arch = "x86_64")]
         if self.f16c {
             // SAFETY: `f16c` comes from `crate::cpu::has_avx2_fma_f16c` on this CPU.
-            unsafe { sweep_avx2(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y) };
+            unsafe { backward_avx2(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y) };
         } else {
-            sweep::<false>(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y);
+            backward::<false>(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y);
         }
         #[cfg(not(target_arch = "x86_64"))]
-        sweep::<false>(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y);
+        backward::<false>(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y);
         for ((&xk, &f), &s) in self.x.iter().zip(&self.forward).zip(&factor.scale) {
-            b[f as usize] = xk * s;
+            out[f as usize] = xk * s;
         }
     }
 
@@ -272,17 +280,14 @@ impl SupernodalSolve {
             *xk = b[f as usize] * s;
             *x2k = a[f as usize] * s;
         }
-        let x = [&mut self.x[..], &mut self.x2[..]];
-        let y = [&mut self.y[..], &mut self.y2[..]];
-        #[cfg(target_arch = "x86_64")]
-        if self.f16c {
-            // SAFETY: `f16c` comes from `crate::cpu::has_avx2_fma_f16c` on this CPU.
-            unsafe { forward_avx2(&self.nodes, &self.rows, factor, x, y) };
-        } else {
-            forward::<false, 2>(&self.nodes, &self.rows, factor, x, y);
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        forward::<false, 2>(&self.nodes, &self.rows, factor, x, y);
+        forward_sweep(
+            self.f16c,
+            &self.nodes,
+            &self.rows,
+            factor,
+            [&mut self.x, &mut self.x2],
+            [&mut self.y, &mut self.y2],
+        );
         let (mut aa, mut ab) = (0.0f64, 0.0f64);
         for (&yb, &ya) in self.x.iter().zip(&self.x2) {
             aa += f64::from(ya) * f64::from(ya);
@@ -303,18 +308,7 @@ impl SupernodalSolve {
         for (xb, &xa) in self.x.iter_mut().zip(&self.x2) {
             *xb = (-s).mul_add(xa, *xb);
         }
-        #[cfg(target_arch = "x86_64")]
-        if self.f16c {
-            // SAFETY: as in `forward_pair`.
-            unsafe { backward_avx2(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y) };
-        } else {
-            backward::<false>(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y);
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        backward::<false>(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y);
-        for ((&xk, &f), &sc) in self.x.iter().zip(&self.forward).zip(&factor.scale) {
-            out[f as usize] = xk * sc;
-        }
+        self.backward_into(factor, out);
     }
 }
 
@@ -326,36 +320,40 @@ fn supernode(node: [u32; 5], rows: &[u32]) -> (usize, usize, usize, &[u32]) {
     (c0, nc, v0, &rows[r0..r0 + nr])
 }
 
-/// [`sweep`] compiled for AVX2 + FMA + F16C.
-///
-/// # Safety
-/// The CPU must support AVX2, FMA and F16C.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,f16c")]
-unsafe fn sweep_avx2(
+/// [`forward`] of `K` right-hand sides with the CPU's build: AVX2 + FMA + F16C when `f16c`.
+#[inline(always)]
+fn forward_sweep<const K: usize>(
+    f16c: bool,
     nodes: &[[u32; 5]],
     rows: &[u32],
     factor: &HalfFactor,
-    x: &mut [f32],
-    y: &mut [f32],
+    x: [&mut [f32]; K],
+    y: [&mut [f32]; K],
 ) {
-    sweep::<true>(nodes, rows, factor, x, y);
+    #[cfg(target_arch = "x86_64")]
+    if f16c {
+        // SAFETY: callers pass `f16c` from `crate::cpu::has_avx2_fma_f16c` on this CPU.
+        unsafe { forward_avx2::<K>(nodes, rows, factor, x, y) };
+        return;
+    }
+    let _ = f16c;
+    forward::<false, K>(nodes, rows, factor, x, y);
 }
 
-/// [`forward`] of two columns compiled for AVX2 + FMA + F16C.
+/// [`forward`] compiled for AVX2 + FMA + F16C.
 ///
 /// # Safety
 /// The CPU must support AVX2, FMA and F16C.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,f16c")]
-unsafe fn forward_avx2(
+unsafe fn forward_avx2<const K: usize>(
     nodes: &[[u32; 5]],
     rows: &[u32],
     factor: &HalfFactor,
-    x: [&mut [f32]; 2],
-    y: [&mut [f32]; 2],
+    x: [&mut [f32]; K],
+    y: [&mut [f32]; K],
 ) {
-    forward::<true, 2>(nodes, rows, factor, x, y);
+    forward::<true, K>(nodes, rows, factor, x, y);
 }
 
 /// [`backward`] compiled for AVX2 + FMA + F16C.
@@ -374,29 +372,14 @@ unsafe fn backward_avx2(
     backward::<true>(nodes, rows, factor, x, y);
 }
 
-/// Forward `L y = b` then backward `L^T x = y` over the supernodes of a [`HalfFactor`]
-/// (module docs); `x` holds `S b` in the permuted numbering and receives `S^-1 x`. Every column
-/// is a whole number of [`HALF_PAD`] blocks: `y` has that much slack past the widest
-/// supernode, zeroed before it is read.
-#[inline(always)]
-fn sweep<const F16C: bool>(
-    nodes: &[[u32; 5]],
-    rows: &[u32],
-    factor: &HalfFactor,
-    x: &mut [f32],
-    y: &mut [f32],
-) {
-    forward::<F16C, 1>(nodes, rows, factor, [&mut *x], [&mut *y]);
-    backward::<F16C>(nodes, rows, factor, x, y);
-}
-
 /// Column `c` of the factor below its diagonal.
 #[inline(always)]
 fn factor_column(factor: &HalfFactor, c: usize) -> &[u16] {
     &factor.values[factor.col_start[c] as usize..factor.col_start[c + 1] as usize]
 }
 
-/// The forward sweep `L y = b` of [`sweep`] for `K` right-hand sides `x[k]` at once, each
+/// The forward sweep `L y = b` over the supernodes of a [`HalfFactor`] (module docs) for `K`
+/// right-hand sides `x[k]` (`S b` in the permuted numbering) at once, each
 /// column of the factor read once (its entries reused from the first level cache); `y[k]`
 /// are their column blocks.
 #[inline(always)]
@@ -463,7 +446,9 @@ fn forward<const F16C: bool, const K: usize>(
     }
 }
 
-/// The backward sweep `L^T x = y` of [`sweep`].
+/// The backward sweep `L^T x = y` after [`forward`]; `x` receives `S^-1 x`. Every column is
+/// a whole number of [`HALF_PAD`] blocks: `y` has that much slack past the widest supernode,
+/// zeroed before it is read.
 #[inline(always)]
 fn backward<const F16C: bool>(
     nodes: &[[u32; 5]],
