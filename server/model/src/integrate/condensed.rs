@@ -435,6 +435,19 @@ fn dot_plain(a: &[f32], b: &[f64]) -> f64 {
     acc.iter().sum::<f64>() + tail
 }
 
+/// `out += scale a_f` over the equations (`eq`: equation of each global component, or
+/// `usize::MAX`), `a_f` row `f` of the probe's coupling.
+fn add_row(eq: &[usize], c: ContactCoupling<'_>, f: usize, scale: f64, out: &mut [f32]) {
+    for (i, u) in c.row(f) {
+        for k in 0..3 {
+            let e = eq[3 * i as usize + k];
+            if e != usize::MAX {
+                out[e] += (u[k] * scale) as f32;
+            }
+        }
+    }
+}
+
 /// Start of row `a` in the packed upper triangle of a symmetric `g x g` matrix (row `a`
 /// holds columns `a..g`, `g - a` entries).
 fn packed_row_start(a: usize, g: usize) -> usize {
@@ -1396,14 +1409,7 @@ impl CondensedSolver {
         let paired =
             if let (Some(c), Some(sweep), Some(half)) = (one_row, &mut self.sweep, &self.half) {
                 self.a_row.iter_mut().for_each(|a| *a = 0.0);
-                for (i, u) in c.row(0) {
-                    for k in 0..3 {
-                        let e = self.eq[3 * i as usize + k];
-                        if e != usize::MAX {
-                            self.a_row[e] += u[k] as f32;
-                        }
-                    }
-                }
+                add_row(&self.eq, c, 0, 1.0, &mut self.a_row);
                 let (aa, ab) = sweep.forward_pair(half, self.rhs.col_as_slice(0), &self.a_row);
                 let w = c.compliance[0] / (h * h) + aa;
                 // A capacitance that is not positive: no correction, as for several rows.
@@ -1528,14 +1534,7 @@ impl CondensedSolver {
                 } else {
                     self.rhs.col_mut(1).fill(0.0);
                     for (f, &tf) in t.iter().enumerate().take(nf) {
-                        for (i, u) in c.row(f) {
-                            for k in 0..3 {
-                                let e = self.eq[3 * i as usize + k];
-                                if e != usize::MAX {
-                                    self.rhs[(e, 1)] += (u[k] * tf) as f32;
-                                }
-                            }
-                        }
+                        add_row(&self.eq, c, f, tf, self.rhs.col_as_slice_mut(1));
                     }
                     self.solve_column(1);
                     for (k, z) in self.z1.iter_mut().enumerate() {
@@ -1602,14 +1601,7 @@ impl CondensedSolver {
     /// fallback for nodes without prepared columns).
     fn solve_row(&mut self, c: ContactCoupling<'_>, g: usize) {
         self.rhs.col_mut(1).fill(0.0);
-        for (i, u) in c.row(g) {
-            for k in 0..3 {
-                let e = self.eq[3 * i as usize + k];
-                if e != usize::MAX {
-                    self.rhs[(e, 1)] += u[k] as f32;
-                }
-            }
-        }
+        add_row(&self.eq, c, g, 1.0, self.rhs.col_as_slice_mut(1));
         self.solve_column(1);
     }
 
