@@ -5,10 +5,14 @@
 //! parallelism); for one column it pays a dense triangular solve and a matrix product call per
 //! supernode. The LV meshes' factors have many small supernodes (the tick matrix of the default
 //! `lv`, 2 727 equations and 485 000 entries, has about one per node), so on that factor the
-//! calls took most of the solve. Here each supernode's block is swept in faer's order: forward,
-//! `y = L^-1 b` one column at a time with a contiguous update below the diagonal; backward,
-//! `x = L^-T y` with a contiguous dot product per column. For the probe's one-row Woodbury
-//! term the forward sweep also takes a second right-hand side in the same pass
+//! calls took most of the solve. Here each supernode's block is swept in faer's order, eight
+//! columns (a panel) at a time ([`HalfFactor`] stores the factor in that order): forward,
+//! `y = L^-1 b` solves the panel's triangle, then updates the rows below it eight at a time,
+//! each held in a register across the panel's columns; backward, `x = L^-T y` takes the
+//! panel's dot products with the rows below, eight rows per load, then its triangle. So the
+//! right-hand side is read and written once per panel, not once per column
+//! (docs/benchmarks.md, "Panel sweeps"). For the probe's one-row Woodbury term the forward
+//! sweep also takes a second right-hand side in the same pass
 //! ([`SupernodalSolve::forward_pair`], [`SupernodalSolve::backward_combined`]).
 //!
 //! **Half precision.** One tick streams the whole factor twice, and that stream bounds the
@@ -50,33 +54,59 @@ pub struct SupernodalSolve {
     f16c: bool,
 }
 
-/// Columns of a [`HalfFactor`] are padded with zeros to a multiple of this many entries (one
-/// AVX2 register of `f32`), so the sweep has no scalar tails.
+/// Rows per block of a [`HalfFactor`] panel (one AVX2 register of `f32`), and columns per
+/// panel: the sweeps read and write the right-hand side eight rows at a time, once per panel.
 const HALF_PAD: usize = 8;
+const PANEL: usize = 8;
 
 /// A factor in the sweep's structure, stored in IEEE half precision: the factor `S L` of the
 /// diagonally scaled matrix `S A S`, `S = diag(A_rr^-1/2)` (so every entry lies in `[-1, 1]`
-/// and the half-precision range holds it), with its diagonal inverted in single precision and
-/// each column's entries below the diagonal zero-padded to a multiple of [`HALF_PAD`].
-/// Built by [`SupernodalSolve::half_factor`], solved by [`SupernodalSolve::solve_in_place`].
+/// and the half-precision range holds it), with its diagonal inverted in single precision.
+///
+/// Layout: each supernode's columns are cut into panels of up to [`PANEL`] consecutive
+/// columns `p0..p0 + w`. A panel keeps the strict lower triangle among its own columns
+/// (single precision, the half-precision values converted; row-major packed) and, for the
+/// rows below it (`p0 + w..` of the supernode's block), blocks of [`HALF_PAD`] rows: block
+/// `b` holds, for each column `t` of the panel in turn, its eight entries of rows
+/// `p0 + w + 8 b ..` (zero past the block's height). So a sweep loads or stores each eight
+/// rows of the right-hand side once per panel instead of once per column, and reads the
+/// factor in order. Built by [`SupernodalSolve::half_factor`], solved by
+/// [`SupernodalSolve::solve_in_place`].
 #[derive(Debug, Clone)]
 pub struct HalfFactor {
     /// Per permuted equation `r`: `s_r = A_rr^-1/2`.
     scale: Vec<f32>,
     /// Per permuted column: the inverse of its diagonal entry in `S L`.
     inv_diag: Vec<f32>,
-    /// Per permuted column, and one past the last: start of its entries below the diagonal in
-    /// `values`.
-    col_start: Vec<u32>,
-    /// The entries below the diagonal of `S L`, column by column (half-precision bits).
+    /// Per supernode, and one past the last: where its panels start in `values` and in
+    /// `triangles`.
+    node_start: Vec<[u32; 2]>,
+    /// The panels' strict lower triangles (entry `(i, t)`, `t < i`, at `i (i - 1) / 2 + t`).
+    triangles: Vec<f32>,
+    /// The panels' row blocks (half-precision bits).
     values: Vec<u16>,
 }
 
 impl HalfFactor {
     /// Bytes of the factor's arrays.
     pub fn memory_bytes(&self) -> usize {
-        2 * self.values.len() + 4 * (self.scale.len() + self.inv_diag.len() + self.col_start.len())
+        2 * self.values.len()
+            + 4 * (self.scale.len()
+                + self.inv_diag.len()
+                + 2 * self.node_start.len()
+                + self.triangles.len())
     }
+}
+
+/// The panels of a supernode of `nc` columns and block height `h`: `(p0, w, blocks)` with
+/// `blocks` the number of [`HALF_PAD`]-row blocks below the panel.
+#[inline(always)]
+fn panels(nc: usize, h: usize) -> impl DoubleEndedIterator<Item = (usize, usize, usize)> {
+    (0..nc.div_ceil(PANEL)).map(move |p| {
+        let p0 = p * PANEL;
+        let w = PANEL.min(nc - p0);
+        (p0, w, (h - p0 - w).div_ceil(HALF_PAD))
+    })
 }
 
 impl SupernodalSolve {
@@ -188,34 +218,60 @@ impl SupernodalSolve {
         }
         let scale: Vec<f32> = row_norm2.iter().map(|&a| (1.0 / a.sqrt()) as f32).collect();
         let mut inv_diag = vec![0.0f32; n];
-        let mut col_start = vec![0u32; n + 1];
+        let mut node_start = Vec::with_capacity(self.nodes.len());
+        let mut triangles = Vec::new();
         let mut half = Vec::new();
         for &node in &self.nodes {
             let (c0, nc, v0, pattern) = supernode(node, &self.rows);
             let h = nc + pattern.len();
+            node_start.push([
+                u32::try_from(half.len()).ok()?,
+                u32::try_from(triangles.len()).ok()?,
+            ]);
             for j in 0..nc {
-                let c = c0 + j;
-                let col = &mut values[v0 + j * h..v0 + (j + 1) * h];
-                inv_diag[c] = 1.0 / (col[j] * scale[c]);
-                col_start[c] = u32::try_from(half.len()).ok()?;
-                for (i, l) in col.iter_mut().enumerate().skip(j + 1) {
-                    let s = scale[if i < nc {
-                        c0 + i
-                    } else {
-                        pattern[i - nc] as usize
-                    }];
-                    let q = f16::from_f32(*l * s);
-                    half.push(q.to_bits());
-                    *l = q.to_f32() / s;
+                inv_diag[c0 + j] = 1.0 / (values[v0 + j * h + j] * scale[c0 + j]);
+            }
+            let row_scale = |i: usize| {
+                scale[if i < nc {
+                    c0 + i
+                } else {
+                    pattern[i - nc] as usize
+                }]
+            };
+            // Entry (row i, column j) of the block, rounded in place to what the half
+            // factor holds; its scaled half-precision value.
+            let mut round = |i: usize, j: usize| {
+                let l = &mut values[v0 + j * h + i];
+                let s = row_scale(i);
+                let q = f16::from_f32(*l * s);
+                *l = q.to_f32() / s;
+                q
+            };
+            for (p0, w, blocks) in panels(nc, h) {
+                for i in 1..w {
+                    for t in 0..i {
+                        triangles.push(round(p0 + i, p0 + t).to_f32());
+                    }
                 }
-                half.resize(half.len().next_multiple_of(HALF_PAD), 0);
+                for b in 0..blocks {
+                    for t in 0..w {
+                        for lane in 0..HALF_PAD {
+                            let i = p0 + w + HALF_PAD * b + lane;
+                            half.push(if i < h { round(i, p0 + t).to_bits() } else { 0 });
+                        }
+                    }
+                }
             }
         }
-        col_start[n] = u32::try_from(half.len()).ok()?;
+        node_start.push([
+            u32::try_from(half.len()).ok()?,
+            u32::try_from(triangles.len()).ok()?,
+        ]);
         Some(HalfFactor {
             scale,
             inv_diag,
-            col_start,
+            node_start,
+            triangles,
             values: half,
         })
     }
@@ -372,16 +428,9 @@ unsafe fn backward_avx2(
     backward::<true>(nodes, rows, factor, x, y);
 }
 
-/// Column `c` of the factor below its diagonal.
-#[inline(always)]
-fn factor_column(factor: &HalfFactor, c: usize) -> &[u16] {
-    &factor.values[factor.col_start[c] as usize..factor.col_start[c + 1] as usize]
-}
-
 /// The forward sweep `L y = b` over the supernodes of a [`HalfFactor`] (module docs) for `K`
-/// right-hand sides `x[k]` (`S b` in the permuted numbering) at once, each
-/// column of the factor read once (its entries reused from the first level cache); `y[k]`
-/// are their column blocks.
+/// right-hand sides `x[k]` (`S b` in the permuted numbering) at once, each panel of the
+/// factor read once for all of them; `y[k]` are their column blocks.
 #[inline(always)]
 fn forward<const F16C: bool, const K: usize>(
     nodes: &[[u32; 5]],
@@ -390,7 +439,7 @@ fn forward<const F16C: bool, const K: usize>(
     x: [&mut [f32]; K],
     mut y: [&mut [f32]; K],
 ) {
-    for &node in nodes {
+    for (&node, &[v_start, t_start]) in nodes.iter().zip(&factor.node_start) {
         let (c0, nc, _, pattern) = supernode(node, rows);
         let h = nc + pattern.len();
         for k in 0..K {
@@ -398,40 +447,43 @@ fn forward<const F16C: bool, const K: usize>(
             y[..nc].copy_from_slice(&x[k][c0..c0 + nc]);
             y[nc..].fill(0.0);
         }
-        for j in 0..nc {
-            let col = factor_column(factor, c0 + j);
+        let (mut v, mut e) = (v_start as usize, t_start as usize);
+        for (p0, w, blocks) in panels(nc, h) {
+            let tri = &factor.triangles[e..e + w * (w - 1) / 2];
+            let inv = &factor.inv_diag[c0 + p0..c0 + p0 + w];
+            // The panel's own columns: `y_i = (y_i - sum_(t<i) L_it y_t) / L_ii`.
+            let mut a = [[0.0f32; PANEL]; K];
+            for (y, a) in y.iter_mut().zip(&mut a) {
+                let mut row = 0;
+                for i in 0..w {
+                    let mut yi = y[p0 + i];
+                    for t in 0..i {
+                        yi = (-tri[row + t]).mul_add(y[p0 + t], yi);
+                    }
+                    row += i;
+                    yi *= inv[i];
+                    y[p0 + i] = yi;
+                    a[i] = yi;
+                }
+            }
+            // The rows below: `y_r -= sum_t L_rt y_t`, eight rows at a time.
+            let len = blocks * w * HALF_PAD;
+            let vals = &factor.values[v..v + len];
+            let below = p0 + w;
+            let tails = y
+                .each_mut()
+                .map(|y| &mut y[below..below + blocks * HALF_PAD]);
             #[cfg(target_arch = "x86_64")]
-            if F16C && K == 2 {
-                let [y0, y1] = &mut y[..] else { unreachable!() };
-                let (a0, a1) = (
-                    y0[j] * factor.inv_diag[c0 + j],
-                    y1[j] * factor.inv_diag[c0 + j],
-                );
-                y0[j] = a0;
-                y1[j] = a1;
-                let (t0, t1) = (
-                    &mut y0[j + 1..j + 1 + col.len()],
-                    &mut y1[j + 1..j + 1 + col.len()],
-                );
-                // SAFETY: as below.
-                unsafe { axpy2_half_avx2(col, t0, t1, -a0, -a1) };
-                continue;
+            if F16C {
+                // SAFETY: `F16C` is set only by the `_avx2` wrappers, which run on such CPUs.
+                unsafe { panel_update_avx2(vals, w, &a, tails) };
+            } else {
+                panel_update(vals, w, &a, tails);
             }
-            for y in y.iter_mut() {
-                let yj = y[j] * factor.inv_diag[c0 + j];
-                y[j] = yj;
-                let tail = &mut y[j + 1..j + 1 + col.len()];
-                #[cfg(target_arch = "x86_64")]
-                if F16C {
-                    // SAFETY: `F16C` is set only by the `_avx2` wrappers, which run on such
-                    // CPUs.
-                    unsafe { axpy_half_avx2(col, tail, -yj) };
-                    continue;
-                }
-                for (yi, &l) in tail.iter_mut().zip(col) {
-                    *yi = half::f16::from_bits(l).to_f32().mul_add(-yj, *yi);
-                }
-            }
+            #[cfg(not(target_arch = "x86_64"))]
+            panel_update(vals, w, &a, tails);
+            v += len;
+            e += w * (w - 1) / 2;
         }
         for k in 0..K {
             let (x, y) = (&mut *x[k], &*y[k]);
@@ -446,9 +498,8 @@ fn forward<const F16C: bool, const K: usize>(
     }
 }
 
-/// The backward sweep `L^T x = y` after [`forward`]; `x` receives `S^-1 x`. Every column is
-/// a whole number of [`HALF_PAD`] blocks: `y` has that much slack past the widest supernode,
-/// zeroed before it is read.
+/// The backward sweep `L^T x = y` after [`forward`]; `x` receives `S^-1 x`. `y` has
+/// [`HALF_PAD`] rows of slack past the widest supernode, zeroed before the blocks read them.
 #[inline(always)]
 fn backward<const F16C: bool>(
     nodes: &[[u32; 5]],
@@ -457,7 +508,7 @@ fn backward<const F16C: bool>(
     x: &mut [f32],
     y: &mut [f32],
 ) {
-    for &node in nodes.iter().rev() {
+    for (ni, &node) in nodes.iter().enumerate().rev() {
         let (c0, nc, _, pattern) = supernode(node, rows);
         let h = nc + pattern.len();
         let y = &mut y[..h + HALF_PAD];
@@ -467,106 +518,206 @@ fn backward<const F16C: bool>(
             *yr = unsafe { *x.get_unchecked(r as usize) };
         }
         y[h..].fill(0.0);
-        for j in (0..nc).rev() {
-            let col = factor_column(factor, c0 + j);
-            let (head, tail) = y.split_at_mut(j + 1);
-            let tail = &tail[..col.len()];
+        let [mut v, mut e] = factor.node_start[ni + 1].map(|o| o as usize);
+        for (p0, w, blocks) in panels(nc, h).rev() {
+            let len = blocks * w * HALF_PAD;
+            v -= len;
+            e -= w * (w - 1) / 2;
+            let vals = &factor.values[v..v + len];
+            let below = p0 + w;
+            let tail = &y[below..below + blocks * HALF_PAD];
+            // `d_t = sum_r L_rt x_r` over the rows below the panel.
             #[cfg(target_arch = "x86_64")]
             let d = if F16C {
-                // SAFETY: as above.
-                unsafe { dot_half_avx2(col, tail) }
+                // SAFETY: as in the forward sweep.
+                unsafe { panel_dots_avx2(vals, w, tail) }
             } else {
-                dot_half(col, tail)
+                panel_dots(vals, w, tail)
             };
             #[cfg(not(target_arch = "x86_64"))]
-            let d = dot_half(col, tail);
-            head[j] = (head[j] - d) * factor.inv_diag[c0 + j];
+            let d = panel_dots(vals, w, tail);
+            // The panel's own columns, last first: `x_t = (y_t - d_t - sum_(i>t) L_it x_i) / L_tt`.
+            let tri = &factor.triangles[e..e + w * (w - 1) / 2];
+            let inv = &factor.inv_diag[c0 + p0..c0 + p0 + w];
+            for t in (0..w).rev() {
+                let mut s = y[p0 + t] - d[t];
+                for i in t + 1..w {
+                    s = (-tri[i * (i - 1) / 2 + t]).mul_add(y[p0 + i], s);
+                }
+                y[p0 + t] = s * inv[t];
+            }
         }
         x[c0..c0 + nc].copy_from_slice(&y[..nc]);
     }
 }
 
-/// `y += a col` for a half-precision `col` of whole [`HALF_PAD`] blocks, `y` as long.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,f16c")]
-fn axpy_half_avx2(col: &[u16], y: &mut [f32], a: f32) {
-    use std::arch::x86_64::*;
-    assert!(col.len().is_multiple_of(HALF_PAD) && y.len() == col.len());
-    let va = _mm256_set1_ps(a);
-    for k in (0..col.len()).step_by(HALF_PAD) {
-        // SAFETY: `k + 8 <= col.len() == y.len()`.
-        unsafe {
-            let c = _mm256_cvtph_ps(_mm_loadu_si128(col.as_ptr().add(k).cast()));
-            let p = y.as_mut_ptr().add(k);
-            _mm256_storeu_ps(p, _mm256_fmadd_ps(c, va, _mm256_loadu_ps(p)));
-        }
-    }
-}
-
-/// `y0 += a0 col`, `y1 += a1 col`, each block of `col` converted once: [`axpy_half_avx2`]
-/// for two right-hand sides.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,f16c")]
-fn axpy2_half_avx2(col: &[u16], y0: &mut [f32], y1: &mut [f32], a0: f32, a1: f32) {
-    use std::arch::x86_64::*;
-    assert!(col.len().is_multiple_of(HALF_PAD) && y0.len() == col.len() && y1.len() == col.len());
-    let (v0, v1) = (_mm256_set1_ps(a0), _mm256_set1_ps(a1));
-    for k in (0..col.len()).step_by(HALF_PAD) {
-        // SAFETY: `k + 8 <= col.len() == y0.len() == y1.len()`.
-        unsafe {
-            let c = _mm256_cvtph_ps(_mm_loadu_si128(col.as_ptr().add(k).cast()));
-            let (p0, p1) = (y0.as_mut_ptr().add(k), y1.as_mut_ptr().add(k));
-            _mm256_storeu_ps(p0, _mm256_fmadd_ps(c, v0, _mm256_loadu_ps(p0)));
-            _mm256_storeu_ps(p1, _mm256_fmadd_ps(c, v1, _mm256_loadu_ps(p1)));
-        }
-    }
-}
-
-/// `col . y` for a half-precision `col` of whole [`HALF_PAD`] blocks, `y` as long: four
-/// accumulators of eight lanes (the fused multiply-add's latency, not the loads, bounds fewer).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,f16c")]
-fn dot_half_avx2(col: &[u16], y: &[f32]) -> f32 {
-    use std::arch::x86_64::*;
-    assert!(col.len().is_multiple_of(HALF_PAD) && y.len() == col.len());
-    let n = col.len();
-    let mut s = [_mm256_setzero_ps(); 4];
-    let mut k = 0;
-    // SAFETY: every access reads 8 entries starting below `n - 7` of slices of length `n`.
-    unsafe {
-        let term = |k: usize| {
-            (
-                _mm256_cvtph_ps(_mm_loadu_si128(col.as_ptr().add(k).cast())),
-                _mm256_loadu_ps(y.as_ptr().add(k)),
-            )
-        };
-        while k + 32 <= n {
-            for (a, acc) in s.iter_mut().enumerate() {
-                let (c, v) = term(k + 8 * a);
-                *acc = _mm256_fmadd_ps(c, v, *acc);
+/// `y_k[8 b + l] -= sum_t vals[(b w + t) 8 + l] a_k[t]` for a panel of `w` columns whose row
+/// blocks are `vals` and the `K` right-hand sides' rows below it `y` (portable).
+fn panel_update<const K: usize>(
+    vals: &[u16],
+    w: usize,
+    a: &[[f32; PANEL]; K],
+    mut y: [&mut [f32]; K],
+) {
+    for (b, block) in vals.chunks_exact(w * HALF_PAD).enumerate() {
+        for (t, col) in block.chunks_exact(HALF_PAD).enumerate() {
+            for (y, a) in y.iter_mut().zip(a) {
+                for (yl, &l) in y[HALF_PAD * b..HALF_PAD * (b + 1)].iter_mut().zip(col) {
+                    *yl = half::f16::from_bits(l).to_f32().mul_add(-a[t], *yl);
+                }
             }
-            k += 32;
-        }
-        let mut a = 0;
-        while k < n {
-            let (c, v) = term(k);
-            s[a] = _mm256_fmadd_ps(c, v, s[a]);
-            a += 1;
-            k += 8;
         }
     }
-    let v = _mm256_add_ps(_mm256_add_ps(s[0], s[1]), _mm256_add_ps(s[2], s[3]));
-    let q = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
-    let q = _mm_add_ps(q, _mm_movehl_ps(q, q));
-    let q = _mm_add_ss(q, _mm_movehdup_ps(q));
-    _mm_cvtss_f32(q)
 }
 
-/// `col . y` for a half-precision `col` (portable).
-fn dot_half(col: &[u16], y: &[f32]) -> f32 {
-    col.iter().zip(y).fold(0.0, |s, (&c, &v)| {
-        half::f16::from_bits(c).to_f32().mul_add(v, s)
-    })
+/// [`panel_update`] with AVX2 + FMA + F16C: the rows of four blocks of every right-hand side
+/// held in registers across the panel's columns, each column's coefficient broadcast once for
+/// the four (the same fused operations in the same order per entry).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,f16c")]
+fn panel_update_avx2<const K: usize>(
+    vals: &[u16],
+    w: usize,
+    a: &[[f32; PANEL]; K],
+    y: [&mut [f32]; K],
+) {
+    use std::arch::x86_64::*;
+    const U: usize = 4;
+    let blocks = vals.len() / (w * HALF_PAD).max(1);
+    assert!(w <= PANEL && vals.len() == blocks * w * HALF_PAD);
+    assert!(y.iter().all(|y| y.len() == blocks * HALF_PAD));
+    let mut b = 0;
+    while b < blocks {
+        let u = U.min(blocks - b);
+        // SAFETY: blocks `b..b + u` of `vals` hold `w * 8` entries each and of each `y` eight,
+        // by the asserts; `t < w <= PANEL` indexes `a`.
+        unsafe {
+            let mut acc = [[_mm256_setzero_ps(); K]; U];
+            for j in 0..u {
+                for k in 0..K {
+                    acc[j][k] = _mm256_loadu_ps(y[k].as_ptr().add(HALF_PAD * (b + j)));
+                }
+            }
+            let block = vals.as_ptr().add(b * w * HALF_PAD);
+            for t in 0..w {
+                let mut coef = [_mm256_setzero_ps(); K];
+                for k in 0..K {
+                    coef[k] = _mm256_set1_ps(*a[k].get_unchecked(t));
+                }
+                if u == U {
+                    for j in 0..U {
+                        let c = _mm256_cvtph_ps(_mm_loadu_si128(
+                            block.add(HALF_PAD * (j * w + t)).cast(),
+                        ));
+                        for k in 0..K {
+                            acc[j][k] = _mm256_fnmadd_ps(c, coef[k], acc[j][k]);
+                        }
+                    }
+                } else {
+                    for j in 0..u {
+                        let c = _mm256_cvtph_ps(_mm_loadu_si128(
+                            block.add(HALF_PAD * (j * w + t)).cast(),
+                        ));
+                        for k in 0..K {
+                            acc[j][k] = _mm256_fnmadd_ps(c, coef[k], acc[j][k]);
+                        }
+                    }
+                }
+            }
+            for j in 0..u {
+                for k in 0..K {
+                    _mm256_storeu_ps(y[k].as_mut_ptr().add(HALF_PAD * (b + j)), acc[j][k]);
+                }
+            }
+        }
+        b += u;
+    }
+}
+
+/// `d[t] = sum_(b, l) vals[(b w + t) 8 + l] y[8 b + l]` for a panel of `w` columns (portable).
+fn panel_dots(vals: &[u16], w: usize, y: &[f32]) -> [f32; PANEL] {
+    let mut d = [0.0f32; PANEL];
+    for (block, yb) in vals
+        .chunks_exact(w * HALF_PAD)
+        .zip(y.chunks_exact(HALF_PAD))
+    {
+        for (d, col) in d.iter_mut().zip(block.chunks_exact(HALF_PAD)) {
+            for (&l, &v) in col.iter().zip(yb) {
+                *d = half::f16::from_bits(l).to_f32().mul_add(v, *d);
+            }
+        }
+    }
+    d
+}
+
+/// [`panel_dots`] with AVX2 + FMA + F16C, for the panel width `w` (1 to [`PANEL`]).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,f16c")]
+fn panel_dots_avx2(vals: &[u16], w: usize, y: &[f32]) -> [f32; PANEL] {
+    match w {
+        8 => panel_dots_w::<8>(vals, y),
+        7 => panel_dots_w::<7>(vals, y),
+        6 => panel_dots_w::<6>(vals, y),
+        5 => panel_dots_w::<5>(vals, y),
+        4 => panel_dots_w::<4>(vals, y),
+        3 => panel_dots_w::<3>(vals, y),
+        2 => panel_dots_w::<2>(vals, y),
+        _ => panel_dots_w::<1>(vals, y),
+    }
+}
+
+/// [`panel_dots_avx2`] for `W` columns: one accumulator per column, two per column for
+/// `W <= 4` (alternate blocks), so that the fused multiply-add's latency does not bound it.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,f16c")]
+fn panel_dots_w<const W: usize>(vals: &[u16], y: &[f32]) -> [f32; PANEL] {
+    use std::arch::x86_64::*;
+    let blocks = y.len() / HALF_PAD;
+    assert!(W <= PANEL && y.len() == blocks * HALF_PAD && vals.len() == blocks * W * HALF_PAD);
+    let mut acc = [_mm256_setzero_ps(); W];
+    let mut acc2 = [_mm256_setzero_ps(); W];
+    let mut b = 0;
+    // SAFETY: block `b < blocks` of `vals` holds `W * 8` entries and of `y` eight. (A macro,
+    // not a closure: closures do not inherit `target_feature`.)
+    unsafe {
+        macro_rules! term {
+            ($b:expr, $t:expr) => {
+                (
+                    _mm256_cvtph_ps(_mm_loadu_si128(
+                        vals.as_ptr().add(($b * W + $t) * HALF_PAD).cast(),
+                    )),
+                    _mm256_loadu_ps(y.as_ptr().add($b * HALF_PAD)),
+                )
+            };
+        }
+        if W <= 4 {
+            while b + 2 <= blocks {
+                for t in 0..W {
+                    let (c, v) = term!(b, t);
+                    acc[t] = _mm256_fmadd_ps(c, v, acc[t]);
+                    let (c, v) = term!(b + 1, t);
+                    acc2[t] = _mm256_fmadd_ps(c, v, acc2[t]);
+                }
+                b += 2;
+            }
+        }
+        while b < blocks {
+            for t in 0..W {
+                let (c, v) = term!(b, t);
+                acc[t] = _mm256_fmadd_ps(c, v, acc[t]);
+            }
+            b += 1;
+        }
+    }
+    let mut d = [0.0f32; PANEL];
+    for t in 0..W {
+        let v = _mm256_add_ps(acc[t], acc2[t]);
+        let q = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
+        let q = _mm_add_ps(q, _mm_movehl_ps(q, q));
+        let q = _mm_add_ss(q, _mm_movehdup_ps(q));
+        d[t] = _mm_cvtss_f32(q);
+    }
+    d
 }
 
 #[cfg(test)]
@@ -664,6 +815,13 @@ mod tests {
                 .unwrap();
             let mut sweep = SupernodalSolve::new(&symbolic).expect("a supernodal factor");
             assert_eq!(sweep.len(), m);
+            // The factor has wide supernodes (several panels, a narrower last one, several
+            // row blocks below) and narrow ones (one panel narrower than `PANEL`).
+            let ncols = |n: &[u32; 5]| n[1] as usize;
+            assert!(sweep.nodes.iter().any(|n| {
+                ncols(n) > 2 * PANEL && ncols(n) % PANEL != 0 && n[3] as usize > 2 * HALF_PAD
+            }));
+            assert!(sweep.nodes.iter().any(|n| ncols(n) < PANEL && n[3] > 0));
             let original = values.clone();
             let half = sweep.half_factor(&mut values).expect("32-bit offsets");
             // Every entry of the factor (row scales as D's) rounded by at most 2^-11 of itself
