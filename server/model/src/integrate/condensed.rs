@@ -70,8 +70,10 @@
 //! elements are linear (small rotations), so the ball must contain every element that strains
 //! or rotates appreciably; external loads act on active nodes only. The far part's boundary
 //! nodes (what viewers draw) are refreshed from the interface a slice per tick
-//! ([`SURFACE_REFRESH_TICKS`]); all far positions are recovered on request
-//! ([`CondensedSolver::recover_far_field`], one sparse solve).
+//! ([`SURFACE_REFRESH_TICKS`]) through the far map `-(K_FF^-1 K_FG)`, stored in half
+//! precision (each far node placed to about `3e-4` of the interface displacement); all far
+//! positions are recovered on request ([`CondensedSolver::recover_far_field`], one sparse
+//! solve, or the map of a following region).
 //! With strain smoothing, each part builds its smoothing domains from its own elements, so an
 //! edge on the interface has one domain per side.
 
@@ -167,8 +169,8 @@ pub const SURFACE_REFRESH_TICKS: usize = 32;
 /// Most multiply-adds one tick spends on the far-surface refresh (rows times interface
 /// components): beyond it the refresh takes more than [`SURFACE_REFRESH_TICKS`] ticks
 /// ([`CondensedSolver::surface_refresh_ticks`]). Its rows are streamed from main memory (the
-/// map of a following region is hundreds of megabytes): `lv_100k_condensed` (18 936 surface
-/// rows of 792) refreshes in 60 ticks instead of 32, 1.9 -> 1.0 MB per tick.
+/// map of a following region is tens of megabytes): `lv_100k_condensed` (18 936 surface rows
+/// of 792) refreshes in 60 ticks instead of 32, 0.5 MB per tick.
 pub const SURFACE_REFRESH_MAX_MACS: usize = 1 << 18;
 
 /// Default [`ActiveRegion::stiffness_margin`].
@@ -316,8 +318,10 @@ pub struct CondensedSolver {
     /// far free component for a following region.
     map_dofs: Vec<usize>,
     /// Their displacement per interface displacement, `-(K_FF^-1 K_FG)` rows, row-major
-    /// `|map_dofs| x g`, single precision.
-    map: Vec<f32>,
+    /// `|map_dofs| x g`, IEEE half precision (bits): it only places far nodes (viewers, the
+    /// probe beyond the region, nodes a successor takes over), each to about `3e-4` of the
+    /// interface displacement, and it is most of a following region's memory.
+    map: Vec<u16>,
     /// Rows of `map` on the far boundary (what viewers see), refreshed a slice per tick.
     surface_rows: Vec<u32>,
     /// Following regions: per global component its row of `map` or `u32::MAX`
@@ -326,6 +330,10 @@ pub struct CondensedSolver {
     /// Next entry of `surface_rows` to refresh.
     surface_cursor: usize,
     u_gamma: Vec<f64>,
+    /// `u_gamma` in single precision, for the map's rows.
+    u_gamma32: Vec<f32>,
+    /// Whether the AVX2 + FMA + F16C build of the map's rows runs on this CPU.
+    f16c: bool,
     far: FarField,
     sizes: CondensedSizes,
     node_active: Vec<bool>,
@@ -419,20 +427,73 @@ fn half_of(
     Some(half)
 }
 
-/// `a . b` (single-precision `a`) with eight independent partial sums, so that it vectorises
-/// (a plain fold is a serial chain of scalar adds).
-#[inline(always)]
-fn dot_plain(a: &[f32], b: &[f64]) -> f64 {
-    let mut acc = [0.0; 8];
+/// `a . b` for a row `a` of the far map (half-precision bits) and `b` in single precision,
+/// summed in single precision with eight independent partial sums (portable).
+fn dot_half_plain(a: &[u16], b: &[f32]) -> f64 {
+    let mut acc = [0.0f32; 8];
     let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
     let (ra, rb) = (ca.remainder(), cb.remainder());
     for (x, y) in ca.zip(cb) {
         for k in 0..8 {
-            acc[k] += f64::from(x[k]) * y[k];
+            acc[k] += half::f16::from_bits(x[k]).to_f32() * y[k];
         }
     }
-    let tail: f64 = ra.iter().zip(rb).map(|(x, y)| f64::from(*x) * y).sum();
-    acc.iter().sum::<f64>() + tail
+    let tail: f32 = ra
+        .iter()
+        .zip(rb)
+        .map(|(x, y)| half::f16::from_bits(*x).to_f32() * y)
+        .sum();
+    f64::from(acc.iter().sum::<f32>() + tail)
+}
+
+/// [`dot_half_plain`] with AVX2 + FMA + F16C: four accumulators of eight lanes.
+///
+/// # Safety
+/// The CPU must support AVX2, FMA and F16C.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,f16c")]
+unsafe fn dot_half_avx2(a: &[u16], b: &[f32]) -> f64 {
+    use std::arch::x86_64::*;
+    assert_eq!(a.len(), b.len());
+    let n = a.len();
+    let mut acc = [_mm256_setzero_ps(); 4];
+    let mut k = 0;
+    // SAFETY: every access reads eight entries below `n` of slices of length `n`.
+    unsafe {
+        while k + 32 <= n {
+            for (j, acc) in acc.iter_mut().enumerate() {
+                let c = _mm256_cvtph_ps(_mm_loadu_si128(a.as_ptr().add(k + 8 * j).cast()));
+                *acc = _mm256_fmadd_ps(c, _mm256_loadu_ps(b.as_ptr().add(k + 8 * j)), *acc);
+            }
+            k += 32;
+        }
+        while k + 8 <= n {
+            let c = _mm256_cvtph_ps(_mm_loadu_si128(a.as_ptr().add(k).cast()));
+            acc[0] = _mm256_fmadd_ps(c, _mm256_loadu_ps(b.as_ptr().add(k)), acc[0]);
+            k += 8;
+        }
+    }
+    let v = _mm256_add_ps(_mm256_add_ps(acc[0], acc[1]), _mm256_add_ps(acc[2], acc[3]));
+    let mut lanes = [0.0f32; 8];
+    // SAFETY: `lanes` holds eight `f32`.
+    unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), v) };
+    let tail: f32 = a[k..]
+        .iter()
+        .zip(&b[k..])
+        .map(|(x, y)| half::f16::from_bits(*x).to_f32() * y)
+        .sum();
+    f64::from(lanes.iter().sum::<f32>() + tail)
+}
+
+/// A row of the far map times the interface displacement, with the CPU's build.
+fn dot_half(f16c: bool, a: &[u16], b: &[f32]) -> f64 {
+    #[cfg(target_arch = "x86_64")]
+    if f16c {
+        // SAFETY: `f16c` comes from `crate::cpu::has_avx2_fma_f16c` on this CPU.
+        return unsafe { dot_half_avx2(a, b) };
+    }
+    let _ = f16c;
+    dot_half_plain(a, b)
 }
 
 /// `out += scale a_f` over the equations (`eq`: equation of each global component, or
@@ -510,16 +571,6 @@ fn axpy3_plain(z: &mut [f64], a: [f64; 3], y: &[f32]) {
     }
 }
 
-/// [`dot_plain`] compiled for AVX2 + FMA.
-///
-/// # Safety
-/// The CPU must support AVX2 and FMA.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn dot_avx2(a: &[f32], b: &[f64]) -> f64 {
-    dot_plain(a, b)
-}
-
 /// [`axpy3_plain`] compiled for AVX2 + FMA.
 ///
 /// # Safety
@@ -528,16 +579,6 @@ unsafe fn dot_avx2(a: &[f32], b: &[f64]) -> f64 {
 #[target_feature(enable = "avx2,fma")]
 unsafe fn axpy3_avx2(z: &mut [f64], a: [f64; 3], y: &[f32]) {
     axpy3_plain(z, a, y);
-}
-
-fn dot(avx2: bool, a: &[f32], b: &[f64]) -> f64 {
-    #[cfg(target_arch = "x86_64")]
-    if avx2 {
-        // SAFETY: `avx2` comes from `crate::cpu::has_avx2_fma` on this CPU.
-        return unsafe { dot_avx2(a, b) };
-    }
-    let _ = avx2;
-    dot_plain(a, b)
 }
 
 fn axpy3(avx2: bool, z: &mut [f64], a: [f64; 3], y: &[f32]) {
@@ -921,7 +962,7 @@ impl CondensedSolver {
             .filter(|&r| on_boundary[far_dofs[map_far[r]] / 3])
             .map(|r| r as u32)
             .collect();
-        let mut map = vec![0.0f32; map_far.len() * g];
+        let mut map = vec![0u16; map_far.len() * g];
         let mut map_row = vec![u32::MAX; if region.follow { 3 * n } else { 0 }];
         if region.follow {
             for (r, &k) in map_far.iter().enumerate() {
@@ -962,7 +1003,7 @@ impl CondensedSolver {
                 llt.solve_in_place(x.as_mut());
                 for (r, &k) in map_far.iter().enumerate() {
                     for j in 0..w {
-                        map[r * g + j0 + j] = -x[(k, j)] as f32;
+                        map[r * g + j0 + j] = half::f16::from_f64(-x[(k, j)]).to_bits();
                     }
                 }
                 // S[gi, j0 + j] -= sum_fr K_FG[fr, gi] X[fr, j]
@@ -1046,6 +1087,8 @@ impl CondensedSolver {
             z1: vec![0.0; m_eq],
             capacitance: vec![0.0; MAX_COUPLING_ROWS * MAX_COUPLING_ROWS],
             u_gamma: vec![0.0; g],
+            u_gamma32: vec![0.0; g],
+            f16c: crate::cpu::has_avx2_fma_f16c(),
             map_dofs: map_far.iter().map(|&k| far_dofs[k]).collect(),
             map,
             surface_rows,
@@ -1342,8 +1385,14 @@ impl CondensedSolver {
         let f: &[f64] = bytemuck::cast_slice(f);
         let rest: &[f64] = bytemuck::cast_slice(self.active.rest());
         let g = self.gamma_dof.len();
-        for (u, &d) in self.u_gamma.iter_mut().zip(&self.gamma_dof) {
+        for ((u, u32), &d) in self
+            .u_gamma
+            .iter_mut()
+            .zip(&mut self.u_gamma32)
+            .zip(&self.gamma_dof)
+        {
             *u = x[d] - rest[d];
+            *u32 = *u as f32;
         }
         // Far boundary nodes: a slice of rows per tick, so the surface is at most
         // `surface_refresh_ticks` ticks behind the interface.
@@ -1354,7 +1403,7 @@ impl CondensedSolver {
             for &r in &self.surface_rows[self.surface_cursor..end] {
                 let r = r as usize;
                 let d = self.map_dofs[r];
-                let u = dot(self.avx2, &self.map[r * g..(r + 1) * g], &self.u_gamma);
+                let u = dot_half(self.f16c, &self.map[r * g..(r + 1) * g], &self.u_gamma32);
                 x[d] = rest[d] + u;
             }
             self.surface_cursor = if end == rows { 0 } else { end };
@@ -1644,14 +1693,20 @@ impl CondensedSolver {
             return false;
         }
         let rest = self.active.rest();
-        for (u, &d) in self.u_gamma.iter_mut().zip(&self.gamma_dof) {
+        for ((u, u32), &d) in self
+            .u_gamma
+            .iter_mut()
+            .zip(&mut self.u_gamma32)
+            .zip(&self.gamma_dof)
+        {
             *u = x[d / 3][d % 3] - rest[d / 3][d % 3];
+            *u32 = *u as f32;
         }
         let g = self.gamma_dof.len();
         for &d in &next.eq_dof {
             if taken(d) {
                 let r = self.map_row[d] as usize;
-                let u = dot(self.avx2, &self.map[r * g..(r + 1) * g], &self.u_gamma);
+                let u = dot_half(self.f16c, &self.map[r * g..(r + 1) * g], &self.u_gamma32);
                 x[d / 3][d % 3] = rest[d / 3][d % 3] + u;
                 v[d / 3][d % 3] = 0.0;
             }
@@ -1676,7 +1731,8 @@ impl CondensedSolver {
         });
         entry
             + half(&self.half)
-            + 4 * (self.factor.len() + self.schur.len() + self.contact_z.len() + self.map.len())
+            + 4 * (self.factor.len() + self.schur.len() + self.contact_z.len())
+            + 2 * self.map.len()
             + 24 * self.far.kfg.len()
             + far
     }
@@ -1709,14 +1765,14 @@ impl CondensedSolver {
         let Some(llt) = &self.far.llt else {
             let g = self.gamma_dof.len();
             let rest = self.active.rest();
-            let u_gamma: Vec<f64> = self
+            let u_gamma: Vec<f32> = self
                 .gamma_dof
                 .iter()
-                .map(|&d| x[d / 3][d % 3] - rest[d / 3][d % 3])
+                .map(|&d| (x[d / 3][d % 3] - rest[d / 3][d % 3]) as f32)
                 .collect();
             for (r, &d) in self.map_dofs.iter().enumerate() {
-                x[d / 3][d % 3] =
-                    rest[d / 3][d % 3] + dot(self.avx2, &self.map[r * g..(r + 1) * g], &u_gamma);
+                x[d / 3][d % 3] = rest[d / 3][d % 3]
+                    + dot_half(self.f16c, &self.map[r * g..(r + 1) * g], &u_gamma);
             }
             return;
         };
@@ -1734,7 +1790,7 @@ impl CondensedSolver {
 
 #[cfg(test)]
 mod tests {
-    use super::{packed_row_start, sym_row};
+    use super::{dot_half, packed_row_start, sym_row};
 
     /// The packed upper triangle's product (plain lanes, and AVX2 where the CPU has it) is the
     /// dense symmetric product, for sizes with and without a tail of eight.
@@ -1767,6 +1823,40 @@ mod tests {
                 for (a, (p, d)) in y.iter().zip(&dense).enumerate() {
                     assert!((p - d).abs() <= 1e-12, "g {g}, row {a}: {p} against {d}");
                 }
+            }
+        }
+    }
+
+    /// A row of the half-precision far map times the interface displacement (plain lanes, and
+    /// AVX2 + F16C where the CPU has it) is the double-precision sum of the rounded entries to
+    /// single-precision round-off, for lengths with and without a tail of eight or 32; and the
+    /// rounding places the row's sum within `2^-11` of each entry's magnitude.
+    #[test]
+    fn a_half_precision_map_row_is_its_rounded_dot_product() {
+        for g in [1usize, 7, 8, 13, 32, 45, 792] {
+            let exact: Vec<f64> = (0..g)
+                .map(|j| ((j * 31 % 23) as f64 - 11.0) / 37.0)
+                .collect();
+            let u: Vec<f64> = (0..g).map(|j| 1e-3 * (j as f64 * 0.37).cos()).collect();
+            let row: Vec<u16> = exact
+                .iter()
+                .map(|&v| half::f16::from_f64(v).to_bits())
+                .collect();
+            let u32: Vec<f32> = u.iter().map(|&v| v as f32).collect();
+            let rounded: f64 = row
+                .iter()
+                .zip(&u32)
+                .map(|(&h, &b)| f64::from(half::f16::from_bits(h).to_f32()) * f64::from(b))
+                .sum();
+            let magnitude: f64 = exact.iter().zip(&u).map(|(a, b)| (a * b).abs()).sum();
+            let true_value: f64 = exact.iter().zip(&u).map(|(a, b)| a * b).sum();
+            assert!((rounded - true_value).abs() <= magnitude * (1.0 / 2048.0) + 1e-12 * g as f64);
+            for f16c in [false, crate::cpu::has_avx2_fma_f16c()] {
+                let d = dot_half(f16c, &row, &u32);
+                assert!(
+                    (d - rounded).abs() <= 1e-6 * magnitude,
+                    "g {g}, f16c {f16c}: {d} against {rounded}"
+                );
             }
         }
     }
