@@ -579,7 +579,7 @@ fn panel_update_avx2<const K: usize>(
     vals: &[u16],
     w: usize,
     a: &[[f32; PANEL]; K],
-    y: [&mut [f32]; K],
+    mut y: [&mut [f32]; K],
 ) {
     use std::arch::x86_64::*;
     const U: usize = 4;
@@ -593,40 +593,39 @@ fn panel_update_avx2<const K: usize>(
         // by the asserts; `t < w <= PANEL` indexes `a`.
         unsafe {
             let mut acc = [[_mm256_setzero_ps(); K]; U];
-            for j in 0..u {
-                for k in 0..K {
-                    acc[j][k] = _mm256_loadu_ps(y[k].as_ptr().add(HALF_PAD * (b + j)));
+            for (j, acc) in acc.iter_mut().enumerate().take(u) {
+                for (a, y) in acc.iter_mut().zip(&y) {
+                    *a = _mm256_loadu_ps(y.as_ptr().add(HALF_PAD * (b + j)));
                 }
             }
             let block = vals.as_ptr().add(b * w * HALF_PAD);
             for t in 0..w {
                 let mut coef = [_mm256_setzero_ps(); K];
-                for k in 0..K {
-                    coef[k] = _mm256_set1_ps(*a[k].get_unchecked(t));
+                for (c, a) in coef.iter_mut().zip(a) {
+                    *c = _mm256_set1_ps(*a.get_unchecked(t));
+                }
+                // Four blocks unrolled (the usual case), or the last few.
+                macro_rules! update {
+                    ($n:expr) => {
+                        for (j, acc) in acc.iter_mut().enumerate().take($n) {
+                            let c = _mm256_cvtph_ps(_mm_loadu_si128(
+                                block.add(HALF_PAD * (j * w + t)).cast(),
+                            ));
+                            for (a, cf) in acc.iter_mut().zip(&coef) {
+                                *a = _mm256_fnmadd_ps(c, *cf, *a);
+                            }
+                        }
+                    };
                 }
                 if u == U {
-                    for j in 0..U {
-                        let c = _mm256_cvtph_ps(_mm_loadu_si128(
-                            block.add(HALF_PAD * (j * w + t)).cast(),
-                        ));
-                        for k in 0..K {
-                            acc[j][k] = _mm256_fnmadd_ps(c, coef[k], acc[j][k]);
-                        }
-                    }
+                    update!(U);
                 } else {
-                    for j in 0..u {
-                        let c = _mm256_cvtph_ps(_mm_loadu_si128(
-                            block.add(HALF_PAD * (j * w + t)).cast(),
-                        ));
-                        for k in 0..K {
-                            acc[j][k] = _mm256_fnmadd_ps(c, coef[k], acc[j][k]);
-                        }
-                    }
+                    update!(u);
                 }
             }
-            for j in 0..u {
-                for k in 0..K {
-                    _mm256_storeu_ps(y[k].as_mut_ptr().add(HALF_PAD * (b + j)), acc[j][k]);
+            for (j, acc) in acc.iter().enumerate().take(u) {
+                for (a, y) in acc.iter().zip(y.iter_mut()) {
+                    _mm256_storeu_ps(y.as_mut_ptr().add(HALF_PAD * (b + j)), *a);
                 }
             }
         }
@@ -692,30 +691,30 @@ fn panel_dots_w<const W: usize>(vals: &[u16], y: &[f32]) -> [f32; PANEL] {
         }
         if W <= 4 {
             while b + 2 <= blocks {
-                for t in 0..W {
+                for (t, (a, a2)) in acc.iter_mut().zip(&mut acc2).enumerate() {
                     let (c, v) = term!(b, t);
-                    acc[t] = _mm256_fmadd_ps(c, v, acc[t]);
+                    *a = _mm256_fmadd_ps(c, v, *a);
                     let (c, v) = term!(b + 1, t);
-                    acc2[t] = _mm256_fmadd_ps(c, v, acc2[t]);
+                    *a2 = _mm256_fmadd_ps(c, v, *a2);
                 }
                 b += 2;
             }
         }
         while b < blocks {
-            for t in 0..W {
+            for (t, a) in acc.iter_mut().enumerate() {
                 let (c, v) = term!(b, t);
-                acc[t] = _mm256_fmadd_ps(c, v, acc[t]);
+                *a = _mm256_fmadd_ps(c, v, *a);
             }
             b += 1;
         }
     }
     let mut d = [0.0f32; PANEL];
-    for t in 0..W {
-        let v = _mm256_add_ps(acc[t], acc2[t]);
+    for ((d, a), a2) in d.iter_mut().zip(&acc).zip(&acc2) {
+        let v = _mm256_add_ps(*a, *a2);
         let q = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
         let q = _mm_add_ps(q, _mm_movehl_ps(q, q));
         let q = _mm_add_ss(q, _mm_movehdup_ps(q));
-        d[t] = _mm_cvtss_f32(q);
+        *d = _mm_cvtss_f32(q);
     }
     d
 }
