@@ -1003,7 +1003,18 @@ impl CondensedSolver {
                 llt.solve_in_place(x.as_mut());
                 for (r, &k) in map_far.iter().enumerate() {
                     for j in 0..w {
-                        map[r * g + j0 + j] = half::f16::from_f64(-x[(k, j)]).to_bits();
+                        let q = half::f16::from_f64(-x[(k, j)]);
+                        // Entries are displacements per interface displacement, of order
+                        // one; beyond half precision's range the far part is barely held.
+                        if !q.is_finite() {
+                            return Err(ModelError::InvalidMesh(format!(
+                                "the far part is barely held: a far displacement is {:.3e} times \
+                                 an interface displacement (add clamps or enlarge the active \
+                                 region)",
+                                x[(k, j)].abs()
+                            )));
+                        }
+                        map[r * g + j0 + j] = q.to_bits();
                     }
                 }
                 // S[gi, j0 + j] -= sum_fr K_FG[fr, gi] X[fr, j]
