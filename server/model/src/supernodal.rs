@@ -98,14 +98,32 @@ impl HalfFactor {
     }
 }
 
-/// The panels of a supernode of `nc` columns and block height `h`: `(p0, w, blocks)` with
-/// `blocks` the number of [`HALF_PAD`]-row blocks below the panel.
+/// One panel of a supernode: columns `p0..p0 + w` of its block, `blocks` blocks of
+/// [`HALF_PAD`] rows below them, and how many entries it keeps in [`HalfFactor`]'s `values`
+/// and `triangles`.
+#[derive(Clone, Copy)]
+struct Panel {
+    p0: usize,
+    w: usize,
+    blocks: usize,
+    values_len: usize,
+    triangle_len: usize,
+}
+
+/// The panels of a supernode of `nc` columns and block height `h`, in column order.
 #[inline(always)]
-fn panels(nc: usize, h: usize) -> impl DoubleEndedIterator<Item = (usize, usize, usize)> {
+fn panels(nc: usize, h: usize) -> impl DoubleEndedIterator<Item = Panel> {
     (0..nc.div_ceil(PANEL)).map(move |p| {
         let p0 = p * PANEL;
         let w = PANEL.min(nc - p0);
-        (p0, w, (h - p0 - w).div_ceil(HALF_PAD))
+        let blocks = (h - p0 - w).div_ceil(HALF_PAD);
+        Panel {
+            p0,
+            w,
+            blocks,
+            values_len: blocks * w * HALF_PAD,
+            triangle_len: w * (w - 1) / 2,
+        }
     })
 }
 
@@ -247,7 +265,7 @@ impl SupernodalSolve {
                 *l = q.to_f32() / s;
                 q
             };
-            for (p0, w, blocks) in panels(nc, h) {
+            for Panel { p0, w, blocks, .. } in panels(nc, h) {
                 for i in 1..w {
                     for t in 0..i {
                         triangles.push(round(p0 + i, p0 + t).to_f32());
@@ -448,8 +466,9 @@ fn forward<const F16C: bool, const K: usize>(
             y[nc..].fill(0.0);
         }
         let (mut v, mut e) = (v_start as usize, t_start as usize);
-        for (p0, w, blocks) in panels(nc, h) {
-            let tri = &factor.triangles[e..e + w * (w - 1) / 2];
+        for panel in panels(nc, h) {
+            let Panel { p0, w, blocks, .. } = panel;
+            let tri = &factor.triangles[e..e + panel.triangle_len];
             let inv = &factor.inv_diag[c0 + p0..c0 + p0 + w];
             // The panel's own columns: `y_i = (y_i - sum_(t<i) L_it y_t) / L_ii`.
             let mut a = [[0.0f32; PANEL]; K];
@@ -467,8 +486,7 @@ fn forward<const F16C: bool, const K: usize>(
                 }
             }
             // The rows below: `y_r -= sum_t L_rt y_t`, eight rows at a time.
-            let len = blocks * w * HALF_PAD;
-            let vals = &factor.values[v..v + len];
+            let vals = &factor.values[v..v + panel.values_len];
             let below = p0 + w;
             let tails = y
                 .each_mut()
@@ -482,8 +500,8 @@ fn forward<const F16C: bool, const K: usize>(
             }
             #[cfg(not(target_arch = "x86_64"))]
             panel_update(vals, w, &a, tails);
-            v += len;
-            e += w * (w - 1) / 2;
+            v += panel.values_len;
+            e += panel.triangle_len;
         }
         for k in 0..K {
             let (x, y) = (&mut *x[k], &*y[k]);
@@ -519,11 +537,11 @@ fn backward<const F16C: bool>(
         }
         y[h..].fill(0.0);
         let [mut v, mut e] = factor.node_start[ni + 1].map(|o| o as usize);
-        for (p0, w, blocks) in panels(nc, h).rev() {
-            let len = blocks * w * HALF_PAD;
-            v -= len;
-            e -= w * (w - 1) / 2;
-            let vals = &factor.values[v..v + len];
+        for panel in panels(nc, h).rev() {
+            let Panel { p0, w, blocks, .. } = panel;
+            v -= panel.values_len;
+            e -= panel.triangle_len;
+            let vals = &factor.values[v..v + panel.values_len];
             let below = p0 + w;
             let tail = &y[below..below + blocks * HALF_PAD];
             // `d_t = sum_r L_rt x_r` over the rows below the panel.
@@ -537,7 +555,7 @@ fn backward<const F16C: bool>(
             #[cfg(not(target_arch = "x86_64"))]
             let d = panel_dots(vals, w, tail);
             // The panel's own columns, last first: `x_t = (y_t - d_t - sum_(i>t) L_it x_i) / L_tt`.
-            let tri = &factor.triangles[e..e + w * (w - 1) / 2];
+            let tri = &factor.triangles[e..e + panel.triangle_len];
             let inv = &factor.inv_diag[c0 + p0..c0 + p0 + w];
             for t in (0..w).rev() {
                 let mut s = y[p0 + t] - d[t];
