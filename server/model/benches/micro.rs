@@ -101,6 +101,45 @@ fn add_elastic_forces(bencher: divan::Bencher, size: &str) {
     bench_forces(bencher, size, false);
 }
 
+/// The single-precision force evaluation of `lv_h1` (pressed as in [`pressed`]) in each
+/// instruction set the kernel is built for, `isa kind` (`avx2` or `avx512`; `viscous` or
+/// `elastic`): the two builds compared in one run. An instruction set this CPU lacks is
+/// reported and skipped.
+const SINGLE_ISA_RUNS: [&str; 4] = [
+    "avx2 viscous",
+    "avx512 viscous",
+    "avx2 elastic",
+    "avx512 elastic",
+];
+
+#[divan::bench(args = SINGLE_ISA_RUNS, sample_count = 30)]
+fn add_forces_single_isa(bencher: divan::Bencher, run: &str) {
+    use haptic_model::element::SingleIsa;
+    let (isa, kind) = run.split_once(' ').expect("isa kind");
+    let isa = if isa == "avx2" {
+        SingleIsa::Avx2
+    } else {
+        SingleIsa::Avx512
+    };
+    if !SingleIsa::available().contains(&isa) {
+        eprintln!("{isa:?} is not available on this CPU: {run} skipped");
+        return;
+    }
+    let sim = pressed("lv_h1").0;
+    let mut fem = sim.fem().clone();
+    fem.pin_single_precision_isa(isa)
+        .expect("lv_h1 runs single precision");
+    let n = fem.node_count();
+    let mut f = vec![DVec3::ZERO; n];
+    let mut scratch = haptic_model::element::ForceScratch::new(n);
+    let velocities = (kind == "viscous").then_some(sim.state().v.as_slice());
+    bencher.counter(fem.tets().len()).bench_local(|| {
+        f.iter_mut().for_each(|v| *v = DVec3::ZERO);
+        fem.add_internal_forces_with(&sim.state().x, velocities, &mut f, &mut scratch);
+        divan::black_box(&f);
+    });
+}
+
 /// Force evaluation (elastic + viscous) per material model: `mesh material`.
 const MATERIAL_RUNS: [&str; 6] = [
     "lv500q stvk",

@@ -54,7 +54,7 @@ pub mod smoothing;
 pub mod tangent;
 
 pub use fibres::{FibreField, FibreRule};
-pub use kernels::ForceScratch;
+pub use kernels::{ForceScratch, SingleIsa};
 use kernels::{Kernels, SingleLinear};
 pub use mass::lumped_masses;
 use quadrature::{IntegrationPoints, linear_gradients, linear_points, quadratic_points};
@@ -391,7 +391,8 @@ impl FemModel {
         if self.single.is_none() {
             self.single = match self.smoothing {
                 StrainSmoothing::None => {
-                    let order = kernels::locality_order(&self.rest, &self.tets);
+                    let order =
+                        kernels::locality_order(&self.rest, &self.tets, SingleLinear::LANES);
                     Some(SingleLinear::build(
                         &order,
                         &self.rest,
@@ -404,6 +405,22 @@ impl FemModel {
             };
         }
         Ok(())
+    }
+
+    /// Pins the single-precision kernel (enabled by [`Self::set_single_precision`]) to the
+    /// instruction set `isa` instead of the widest this CPU runs, for benchmarks that compare
+    /// the builds on one machine.
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] (`integrator.force_precision`) when single precision is
+    /// off or this CPU does not run `isa` ([`SingleIsa::available`]).
+    pub fn pin_single_precision_isa(&mut self, isa: SingleIsa) -> Result<(), ModelError> {
+        let single = self.single.as_mut().ok_or_else(|| {
+            ModelError::field("integrator.force_precision", "single precision is off")
+        })?;
+        single
+            .pin_isa(isa)
+            .map_err(|e| ModelError::field("integrator.force_precision", e))
     }
 
     /// Whether [`FemModel::add_internal_forces_with`] uses the single-precision kernel.

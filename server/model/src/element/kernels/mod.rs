@@ -31,6 +31,7 @@ use lanes::{LaneVec, Plain8};
 use linear::{ElementBatch, forces_linear};
 use quadratic::{QuadraticBatch, forces_quadratic, stvk_operator_quadratic};
 pub use single::ForceScratch;
+pub use single::SingleIsa;
 pub(crate) use single::SingleLinear;
 use stress::{LANE_COROTATIONAL, LANE_STABLE_NEO_HOOKEAN, LANE_STVK, lane_model};
 
@@ -85,7 +86,7 @@ impl Kernels {
         dm_inv: &[DMat3],
         volume_m3: &[f64],
     ) -> Self {
-        let order = locality_order(nodes, tets);
+        let order = locality_order(nodes, tets, LANES);
         Self::checked(
             nodes.len(),
             tets.iter().flatten(),
@@ -102,7 +103,7 @@ impl Kernels {
         tets: &[[u32; 4]],
         points: &IntegrationPoints,
     ) -> Self {
-        let order = locality_order(nodes, tets);
+        let order = locality_order(nodes, tets, LANES);
         let batches = QuadraticBatch::build(&order, points);
         Self::checked(
             nodes.len(),
@@ -235,9 +236,11 @@ impl Kernels {
     }
 }
 
-/// Element order for the force kernel: by the Morton (Z-order) code of the centroid, so that
-/// consecutive elements touch nearby, mostly cache-resident nodes. Ties keep the mesh order.
-pub(crate) fn locality_order(nodes: &[DVec3], tets: &[[u32; 4]]) -> Vec<u32> {
+/// Element order for a force kernel of batches of `lanes` elements: by the Morton (Z-order)
+/// code of the centroid, so that consecutive batches touch nearby, mostly cache-resident
+/// nodes, with `lanes` runs of the curve interleaved (lane l of a batch from run l). Ties keep
+/// the mesh order.
+pub(crate) fn locality_order(nodes: &[DVec3], tets: &[[u32; 4]], lanes: usize) -> Vec<u32> {
     let centroid = |t: &[u32; 4]| t.iter().map(|&i| nodes[i as usize]).sum::<DVec3>() * 0.25;
     let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
     for t in tets {
@@ -265,12 +268,12 @@ pub(crate) fn locality_order(nodes: &[DVec3], tets: &[[u32; 4]]) -> Vec<u32> {
         })
         .collect();
     keyed.sort_unstable();
-    // Interleave LANES runs of the curve, so that the lanes of a batch lie far apart and
+    // Interleave `lanes` runs of the curve, so that the lanes of a batch lie far apart and
     // rarely share a node (a shared node serialises the scatter of the forces).
     let n = keyed.len();
-    let run = n.div_ceil(LANES);
+    let run = n.div_ceil(lanes);
     (0..run)
-        .flat_map(|k| (0..LANES).map(move |l| l * run + k))
+        .flat_map(|k| (0..lanes).map(move |l| l * run + k))
         .filter(|&i| i < n)
         .map(|i| keyed[i].1)
         .collect()
@@ -577,8 +580,9 @@ mod tests {
     /// force for a large non-affine deformation (stretches from about 0.5 to 2), half-inverted
     /// or not, with and without the viscous stress; exactly zero at rest; the same with a force
     /// array that starts nonzero (the kernel adds). 90 tetrahedra and 169 domains of several
-    /// node counts: the last batches have padding lanes and slots. Without AVX2 + FMA the
-    /// kernel declines and the forces are double precision's, bit for bit.
+    /// node counts: the last batches have padding lanes and slots. Each instruction set this
+    /// CPU runs (AVX2 + FMA, AVX-512) and the public path. Without AVX2 + FMA the kernel
+    /// declines and the forces are double precision's, bit for bit.
     #[test]
     fn the_single_precision_kernel_matches_the_double_precision_loop() {
         for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
@@ -619,36 +623,78 @@ mod tests {
         mat.psi_pa_s = 0.2;
         let mut fem = FemModel::with_smoothing(&mesh, mat, smoothing).unwrap();
         fem.set_single_precision(true).unwrap();
-        assert_ne!(fem.cell_count() % 8, 0, "want padding lanes");
+        // Padding lanes in both builds' batches (16 lanes, run as two halves of 8 by AVX2).
+        assert!(
+            !matches!(fem.cell_count() % 16, 0 | 8),
+            "want padding lanes"
+        );
         let n = fem.node_count();
         let mut scratch = ForceScratch::new(n + 5);
         let (x, v) = deformed_state(&fem);
         let x_inv = half_inverted(&x);
-        for x in [&x, &x_inv] {
-            for velocities in [None, Some(v.as_slice())] {
-                let mut expected = vec![DVec3::ZERO; n];
-                fem.generic_forces(x, velocities, &mut expected);
-                let scale = expected.iter().map(|a| a.length()).fold(0.0, f64::max);
-                let offset: Vec<DVec3> = (0..n).map(|i| DVec3::splat(i as f64)).collect();
-                let mut f = offset.clone();
-                fem.add_internal_forces_with(x, velocities, &mut f, &mut scratch);
-                let err = f
-                    .iter()
-                    .zip(&expected)
-                    .zip(&offset)
-                    .map(|((a, b), o)| (*a - *o - *b).length())
-                    .fold(0.0, f64::max);
-                assert!(
-                    err < 2e-6 * scale && err > 1e-9 * scale, // rounded: the kernel ran
-                    "{smoothing:?} viscous={}: {err:e} of {scale:e}",
-                    velocities.is_some()
-                );
+        let single = fem.single.as_ref().expect("single-precision data");
+        let lame = (mat.lambda_pa, mat.mu_pa);
+        let viscosity = (mat.phi_pa_s, mat.psi_pa_s);
+        // Each instruction set this CPU runs, then the public path (the widest of them).
+        let isas = single::SingleIsa::available();
+        assert!(!isas.is_empty());
+        let runs = isas.iter().copied().map(Some).chain([None]);
+        for isa in runs {
+            for x in [&x, &x_inv] {
+                for velocities in [None, Some(v.as_slice())] {
+                    let mut expected = vec![DVec3::ZERO; n];
+                    fem.generic_forces(x, velocities, &mut expected);
+                    let scale = expected.iter().map(|a| a.length()).fold(0.0, f64::max);
+                    let offset: Vec<DVec3> = (0..n).map(|i| DVec3::splat(i as f64)).collect();
+                    let mut f = offset.clone();
+                    match isa {
+                        Some(isa) => single.add_forces_on(
+                            isa,
+                            lame,
+                            viscosity,
+                            x,
+                            velocities,
+                            &mut f,
+                            &mut scratch,
+                        ),
+                        None => fem.add_internal_forces_with(x, velocities, &mut f, &mut scratch),
+                    }
+                    let err = f
+                        .iter()
+                        .zip(&expected)
+                        .zip(&offset)
+                        .map(|((a, b), o)| (*a - *o - *b).length())
+                        .fold(0.0, f64::max);
+                    assert!(
+                        err < 2e-6 * scale && err > 1e-9 * scale, // rounded: the kernel ran
+                        "{isa:?} {smoothing:?} viscous={}: {err:e} of {scale:e}",
+                        velocities.is_some()
+                    );
+                }
             }
         }
         let mut f = vec![DVec3::ZERO; n];
         let v0 = vec![DVec3::ZERO; n];
         fem.add_internal_forces_with(fem.rest(), Some(&v0), &mut f, &mut scratch);
         assert!(f.iter().all(|a| *a == DVec3::ZERO));
+        // A pinned instruction set is the one the public path runs, bit for bit.
+        for isa in isas {
+            let mut pinned = fem.clone();
+            pinned.pin_single_precision_isa(isa).unwrap();
+            let single = pinned.single.as_ref().expect("single-precision data");
+            let (mut direct, mut public) = (vec![DVec3::ZERO; n], vec![DVec3::ZERO; n]);
+            single.add_forces_on(
+                isa,
+                lame,
+                viscosity,
+                &x,
+                Some(&v),
+                &mut direct,
+                &mut scratch,
+            );
+            pinned.add_internal_forces_with(&x, Some(&v), &mut public, &mut scratch);
+            assert_eq!(direct, public, "{isa:?}");
+        }
     }
 
     /// Single precision is refused, with the scene field named, where the kernel does not
@@ -668,6 +714,11 @@ mod tests {
             let err = fem.set_single_precision(true).unwrap_err().to_string();
             assert!(err.contains("integrator.force_precision"), "{err}");
             assert!(!fem.single_precision());
+            let err = fem
+                .pin_single_precision_isa(SingleIsa::Avx2)
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains("single precision is off"), "{err}");
         }
         let mut fem = FemModel::new(&mesh, mat).unwrap();
         fem.set_single_precision(true).unwrap();

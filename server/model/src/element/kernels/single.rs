@@ -1,6 +1,6 @@
 //! The single-precision force kernel of linear St Venant-Kirchhoff tetrahedra, standard or
-//! edge-smoothed (AVX2 + FMA): eight cells per register, no gather instruction and no scalar
-//! scatter.
+//! edge-smoothed: sixteen cells per AVX-512 register, or eight per AVX2 + FMA register (a
+//! batch of sixteen in two halves); no gather instruction and no scalar scatter.
 //!
 //! The double-precision kernel ([`super::linear`]) spends most of its time moving data, not on
 //! the stress: per element it gathers twelve coordinates (masked loads and transposes) and
@@ -11,8 +11,8 @@
 //!    single-precision node array, one aligned 32-byte row per node (`u`, 0, `v`, 0), in double
 //!    precision before rounding, so the rounding error is relative to the displacement, not to
 //!    the position;
-//! 2. loads each corner's rows with one 16-byte load per lane and transposes eight lanes with
-//!    seven shuffles;
+//! 2. loads each corner's rows with one 16-byte load per lane and transposes four lanes per
+//!    128-bit block with unpacks and shuffles;
 //! 3. computes, with `G = Du Dm^-1` the displacement gradient (`F = I + G`, seed 000 eq. 21),
 //!    `2E = G + G^T + G^T G` (Green strain without the cancellation of `F^T F - I`), the
 //!    second Piola-Kirchhoff stress `S = lambda tr(E) I + 2 mu E` plus the viscous stress of
@@ -26,29 +26,42 @@
 //! take the same steps, with `G = sum_s (u_s - u_0) g_s^T` over their node slots and the force
 //! `-V P g_s` added to each slot's node.
 //!
+//! The arithmetic is written once over a lane type ([`F32Lanes`]: `Y8`, eight lanes of AVX2,
+//! and `Z16`, sixteen of AVX-512F) and compiled for each inside a `#[target_feature]` entry
+//! point; the best the CPU runs is chosen per call ([`SingleIsa::detect`]). Both give the same
+//! forces up to the order of the sums over a node's elements.
+//!
 //! The stress arithmetic is single precision; sums over the elements of a node are single
 //! precision too. The rest state gives exactly zero force (`G = 0`); the error against the
 //! double-precision kernel is measured by the tests (`docs/accuracy.md`).
 
 #[cfg(target_arch = "x86_64")]
 use std::arch::x86_64::{
-    __m128, __m256, _mm_add_ps, _mm_load_ps, _mm_store_ps, _mm256_add_ps, _mm256_castps128_ps256,
-    _mm256_castps256_ps128, _mm256_extractf128_ps, _mm256_fmadd_ps, _mm256_insertf128_ps,
-    _mm256_load_ps, _mm256_mul_ps, _mm256_set1_ps, _mm256_setzero_ps, _mm256_shuffle_ps,
-    _mm256_sub_ps, _mm256_unpackhi_ps, _mm256_unpacklo_ps,
+    __m128, __m256, __m512, _mm_add_ps, _mm_load_ps, _mm_store_ps, _mm256_add_ps,
+    _mm256_castps128_ps256, _mm256_castps256_ps128, _mm256_extractf128_ps, _mm256_fmadd_ps,
+    _mm256_insertf128_ps, _mm256_load_ps, _mm256_loadu_ps, _mm256_mul_ps, _mm256_set1_ps,
+    _mm256_setzero_ps, _mm256_shuffle_ps, _mm256_sub_ps, _mm256_unpackhi_ps, _mm256_unpacklo_ps,
+    _mm512_add_ps, _mm512_castps128_ps512, _mm512_castps512_ps128, _mm512_extractf32x4_ps,
+    _mm512_fmadd_ps, _mm512_insertf32x4, _mm512_load_ps, _mm512_loadu_ps, _mm512_mul_ps,
+    _mm512_set1_ps, _mm512_setzero_ps, _mm512_shuffle_ps, _mm512_sub_ps, _mm512_unpackhi_ps,
+    _mm512_unpacklo_ps,
 };
 
 use glam::{DMat3, DVec3};
 
 use super::domains::DomainBatch;
 
-/// Lanes of the single-precision kernel: eight `f32` fill an AVX2 register.
-const SINGLE_LANES: usize = 8;
+/// Lanes of a batch of the single-precision kernel: sixteen `f32` fill an AVX-512 register;
+/// the AVX2 build runs a batch as two halves of eight.
+const SINGLE_LANES: usize = 16;
 
-/// Eight elements side by side; padding lanes repeat node 0 with zero `Dm^-1` and volume, so
-/// they add exactly zero force.
+// A batch of smoothing domains joins two of the double-precision kernel's batches.
+const _: () = assert!(SINGLE_LANES == 2 * super::LANES);
+
+/// Sixteen elements side by side; padding lanes repeat node 0 with zero `Dm^-1` and volume,
+/// so they add exactly zero force.
 #[derive(Debug, Clone)]
-#[repr(C, align(32))]
+#[repr(C, align(64))]
 struct SingleBatch {
     /// `nodes[k][l]`: four times corner k of lane l (the `f32` offset of its force row, and
     /// half that of its packed row: both are then one addressing mode, no shift).
@@ -93,17 +106,17 @@ impl ForceScratch {
     }
 }
 
-/// One node slot of a batch of eight smoothing domains: per lane, four times the node and
+/// One node slot of a batch of sixteen smoothing domains: per lane, four times the node and
 /// its smoothed gradient (1/m, component c at `grad[c]`). Padding slots repeat the lane's
 /// first node with a zero gradient.
 #[derive(Debug, Clone)]
-#[repr(C, align(32))]
+#[repr(C, align(64))]
 struct DomainSlot {
     nodes: [u32; SINGLE_LANES],
     grad: [[f32; SINGLE_LANES]; 3],
 }
 
-/// The cells of one layout in batches of eight.
+/// The cells of one layout in batches of sixteen.
 #[derive(Debug, Clone)]
 enum SingleLayout {
     /// Linear tetrahedra.
@@ -117,6 +130,43 @@ enum SingleLayout {
     },
 }
 
+/// The instruction sets the single-precision force kernel is built for
+/// ([`crate::element::FemModel::pin_single_precision_isa`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SingleIsa {
+    /// Eight lanes per AVX2 register (AVX2 and FMA).
+    Avx2,
+    /// Sixteen lanes per AVX-512 register (AVX-512F, AVX2 and FMA).
+    Avx512,
+}
+
+impl SingleIsa {
+    /// The widest instruction set of this CPU that the kernel is built for, or `None`
+    /// (without AVX2 and FMA).
+    pub fn detect() -> Option<Self> {
+        if crate::cpu::has_avx512f() {
+            Some(Self::Avx512)
+        } else if crate::cpu::has_avx2_fma() {
+            Some(Self::Avx2)
+        } else {
+            None
+        }
+    }
+
+    /// Every instruction set of this CPU that the kernel is built for (for tests and
+    /// benchmarks that compare them).
+    pub fn available() -> Vec<Self> {
+        let mut out = Vec::new();
+        if crate::cpu::has_avx2_fma() {
+            out.push(Self::Avx2);
+        }
+        if crate::cpu::has_avx512f() {
+            out.push(Self::Avx512);
+        }
+        out
+    }
+}
+
 /// The batches of the single-precision kernel of one model of linear tetrahedra (standard
 /// or edge-smoothed), with the rest positions the displacements are taken from. Invariant
 /// (checked at construction): every node index is below `rest.len()`.
@@ -124,9 +174,15 @@ enum SingleLayout {
 pub(crate) struct SingleLinear {
     layout: SingleLayout,
     rest: Vec<DVec3>,
+    /// The instruction set of [`Self::add_forces`]: the widest of this CPU unless pinned.
+    isa: Option<SingleIsa>,
 }
 
 impl SingleLinear {
+    /// The elements of a batch: [`Self::build`]'s order should interleave this many runs
+    /// ([`super::locality_order`]).
+    pub(crate) const LANES: usize = SINGLE_LANES;
+
     /// Batches of the elements `tets` (with `Dm^-1`, 1/m, and rest volumes, m^3) in the order
     /// `order` (a permutation of the element indices), over the rest positions `rest` (m).
     ///
@@ -176,12 +232,15 @@ impl SingleLinear {
         Self {
             layout: SingleLayout::Tets(batches),
             rest: rest.to_vec(),
+            isa: SingleIsa::detect(),
         }
     }
 
     /// Batches of smoothing domains: `batches` yields, per batch of eight, the slots' nodes
     /// and gradients (1/m) and the lanes' volumes (m^3), as the double-precision kernel
-    /// batches them (`super::domains::DomainBatches`); over the rest positions `rest` (m).
+    /// batches them (`super::domains::DomainBatches`, sorted by slot count); two of them make
+    /// one batch of sixteen, the shorter padded with its lanes' first nodes and zero
+    /// gradients. Over the rest positions `rest` (m).
     ///
     /// # Panics
     /// If a node index is out of range (the caller validated the mesh).
@@ -189,21 +248,45 @@ impl SingleLinear {
         batches: impl Iterator<Item = DomainBatch<'a>>,
         rest: &[DVec3],
     ) -> Self {
+        const HALF: usize = super::LANES;
+        let batches: Vec<DomainBatch<'a>> = batches.collect();
         let (mut start, mut slots, mut volume) = (vec![0], Vec::new(), Vec::new());
-        for (nodes, grads, w) in batches {
-            for (n, g) in nodes.iter().zip(grads) {
-                assert!(
-                    n.iter().all(|&i| (i as usize) < rest.len()),
-                    "domain node index out of range"
-                );
-                slots.push(DomainSlot {
-                    // Below 2^30: FemModel::new refuses more than i32::MAX / 3 nodes.
-                    nodes: n.map(|i| 4 * i),
-                    grad: g.map(|c| c.map(|x| x as f32)),
-                });
+        for pair in batches.chunks(2) {
+            let count = pair.iter().map(|b| b.0.len()).max().unwrap_or(0);
+            // Lanes of a missing second half repeat the first lane's first node.
+            let filler = pair[0].0.first().map_or(0, |n| n[0]);
+            for s in 0..count {
+                let mut slot = DomainSlot {
+                    nodes: [4 * filler; SINGLE_LANES],
+                    grad: [[0.0; SINGLE_LANES]; 3],
+                };
+                for (h, (nodes, grads, _)) in pair.iter().enumerate() {
+                    for l in 0..HALF {
+                        let (node, g) = match (nodes.get(s), grads.get(s)) {
+                            (Some(n), Some(g)) => (n[l], g.map(|c| c[l] as f32)),
+                            _ => (nodes[0][l], [0.0; 3]),
+                        };
+                        assert!(
+                            (node as usize) < rest.len(),
+                            "domain node index out of range"
+                        );
+                        // Below 2^30: FemModel::new refuses more than i32::MAX / 3 nodes.
+                        slot.nodes[HALF * h + l] = 4 * node;
+                        for (c, gc) in g.into_iter().enumerate() {
+                            slot.grad[c][HALF * h + l] = gc;
+                        }
+                    }
+                }
+                slots.push(slot);
             }
             start.push(slots.len());
-            volume.push(w.map(|x| x as f32));
+            let mut w = [0.0; SINGLE_LANES];
+            for (h, (_, _, wh)) in pair.iter().enumerate() {
+                for l in 0..HALF {
+                    w[HALF * h + l] = wh[l] as f32;
+                }
+            }
+            volume.push(w);
         }
         Self {
             layout: SingleLayout::Domains {
@@ -212,12 +295,27 @@ impl SingleLinear {
                 volume_m3: volume,
             },
             rest: rest.to_vec(),
+            isa: SingleIsa::detect(),
         }
+    }
+
+    /// Pins the instruction set of [`Self::add_forces`] to `isa`, which this CPU must run.
+    ///
+    /// # Errors
+    /// A message naming the instruction set when this CPU does not run it.
+    pub(crate) fn pin_isa(&mut self, isa: SingleIsa) -> Result<(), String> {
+        if !SingleIsa::available().contains(&isa) {
+            return Err(format!("this CPU does not run the {isa:?} build"));
+        }
+        self.isa = Some(isa);
+        Ok(())
     }
 
     /// Adds the StVK internal forces (N) of Lamé `lambda_pa`, `mu_pa`, plus the viscous ones
     /// (`phi_pa_s`, `psi_pa_s`) when `v` (m/s) is given, for positions `x` (m), to `f`, in
-    /// single precision. Returns `false` (and does nothing) without AVX2 and FMA.
+    /// single precision, with the widest instruction set of this CPU ([`SingleIsa::detect`])
+    /// or the pinned one ([`Self::pin_isa`]). Returns `false` (and does nothing) without AVX2
+    /// and FMA.
     ///
     /// # Panics
     /// If `x`, `v`, `f` or `scratch` holds fewer nodes than the model.
@@ -230,13 +328,43 @@ impl SingleLinear {
         f: &mut [DVec3],
         scratch: &mut ForceScratch,
     ) -> bool {
+        match self.isa {
+            Some(isa) => {
+                self.add_forces_on(isa, lame, viscosity, x, v, f, scratch);
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// [`Self::add_forces`] with the instruction set `isa`.
+    ///
+    /// # Panics
+    /// As [`Self::add_forces`], and if this CPU does not run `isa` (see
+    /// [`SingleIsa::available`]).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn add_forces_on(
+        &self,
+        isa: SingleIsa,
+        lame: (f64, f64),
+        viscosity: (f64, f64),
+        x: &[DVec3],
+        v: Option<&[DVec3]>,
+        f: &mut [DVec3],
+        scratch: &mut ForceScratch,
+    ) {
         let n = self.rest.len();
         assert!(x.len() >= n && f.len() >= n && v.is_none_or(|v| v.len() >= n));
         assert!(scratch.node_count() >= n, "force scratch too small");
+        assert!(
+            SingleIsa::available().contains(&isa),
+            "{isa:?} is not available on this CPU"
+        );
         let (packed, force) = (&mut scratch.packed[..n], &mut scratch.force[..n]);
         #[cfg(target_arch = "x86_64")]
-        if crate::cpu::has_avx2_fma() {
-            // SAFETY: AVX2 was detected; the slices hold n nodes each.
+        {
+            // SAFETY: AVX2 is available (both instruction sets include it); the slices hold
+            // n nodes each.
             unsafe {
                 pack_avx2(&x[..n], Some(&self.rest), packed, 0);
                 if let Some(v) = v {
@@ -249,35 +377,24 @@ impl SingleLinear {
                 phi: viscosity.0 as f32,
                 two_psi: (2.0 * viscosity.1) as f32,
             };
-            // SAFETY: AVX2 and FMA were detected; every node index of the batches is below
-            // n = packed.len() = force.len() (checked at construction).
+            let (layout, viscous) = (&self.layout, v.is_some());
+            // SAFETY: the instruction set is available (asserted above); every node index of
+            // the batches is below n = packed.len() = force.len() (checked at construction).
             unsafe {
-                match (&self.layout, v.is_some()) {
-                    (SingleLayout::Tets(b), true) => forces_avx2::<true>(b, coef, packed, force),
-                    (SingleLayout::Tets(b), false) => forces_avx2::<false>(b, coef, packed, force),
-                    (
-                        SingleLayout::Domains {
-                            start,
-                            slots,
-                            volume_m3,
-                        },
-                        viscous,
-                    ) => {
-                        let d = (start.as_slice(), slots.as_slice(), volume_m3.as_slice());
-                        if viscous {
-                            domain_forces_avx2::<true>(d, coef, packed, force);
-                        } else {
-                            domain_forces_avx2::<false>(d, coef, packed, force);
-                        }
+                match (isa, viscous) {
+                    (SingleIsa::Avx512, true) => forces_avx512::<true>(layout, coef, packed, force),
+                    (SingleIsa::Avx512, false) => {
+                        forces_avx512::<false>(layout, coef, packed, force)
                     }
+                    (SingleIsa::Avx2, true) => forces_avx2::<true>(layout, coef, packed, force),
+                    (SingleIsa::Avx2, false) => forces_avx2::<false>(layout, coef, packed, force),
                 }
             }
-            // SAFETY: AVX2 was detected; the slices hold n nodes each.
+            // SAFETY: AVX2 is available; the slices hold n nodes each.
             unsafe { unpack_avx2(force, &mut f[..n]) };
-            return true;
         }
-        let _ = (lame, viscosity, packed, force);
-        false
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = (isa, lame, viscosity, packed, force);
     }
 }
 
@@ -389,103 +506,45 @@ struct Coefficients {
     two_psi: f32,
 }
 
-/// `a * b + c` in one rounding.
+/// [`F32Lanes::WIDTH`] `f32` lanes in one register: the arithmetic of the kernel, written
+/// once for both instruction sets.
 ///
 /// # Safety
-/// FMA.
+/// Every method executes instructions of the type's instruction set (`Y8`: AVX2 and FMA;
+/// `Z16`: AVX-512F): call them only where it is available, inlined into a function compiled
+/// with it (the methods are `#[inline(always)]`; the kernels' entry points carry the
+/// `#[target_feature]`).
 #[cfg(target_arch = "x86_64")]
-#[inline(always)]
-unsafe fn fma(a: __m256, b: __m256, c: __m256) -> __m256 {
-    // SAFETY: the caller's contract.
-    unsafe { _mm256_fmadd_ps(a, b, c) }
+trait F32Lanes: Copy {
+    /// The number of lanes (divides [`SINGLE_LANES`]).
+    const WIDTH: usize;
+    unsafe fn zero() -> Self;
+    unsafe fn splat(v: f32) -> Self;
+    /// The lanes at `p`, aligned to the register's size.
+    unsafe fn load(p: *const f32) -> Self;
+    /// The lanes at `p`, unaligned.
+    unsafe fn loadu(p: *const f32) -> Self;
+    /// As [`F32Lanes::load`], volatile: the compiler neither keeps the value in a register
+    /// across uses nor spills it (for the batch's `Dm^-1`, in L1 already).
+    unsafe fn load_volatile(p: *const f32) -> Self;
+    unsafe fn add(self, o: Self) -> Self;
+    unsafe fn sub(self, o: Self) -> Self;
+    unsafe fn mul(self, o: Self) -> Self;
+    /// `a * b + c` in one rounding.
+    unsafe fn fma(a: Self, b: Self, c: Self) -> Self;
+    /// Rows `[x, y, z]` of the lanes' packed node rows, from entry `at` (0: displacement, 4:
+    /// velocity) of row `nodes[l] / 4` for lane l (`base` the first `f32` of the packed array;
+    /// rows are 32-byte aligned).
+    unsafe fn load_rows(base: *const f32, nodes: &[u32], at: usize) -> [Self; 3];
+    /// `force[nodes[l] / 4] += (h[0][l], h[1][l], h[2][l])` lane after lane (`base` the first
+    /// `f32` of the force array; rows are 16-byte aligned).
+    unsafe fn add_rows(base: *mut f32, nodes: &[u32], h: [Self; 3]);
 }
 
-/// `a0 b0 + a1 b1 + a2 b2`.
+/// `force row += r`, `node4` four times the node.
 ///
 /// # Safety
-/// AVX2 and FMA.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-unsafe fn dot3(a: [__m256; 3], b: [__m256; 3]) -> __m256 {
-    // SAFETY: the caller's contract.
-    unsafe { fma(a[2], b[2], fma(a[1], b[1], _mm256_mul_ps(a[0], b[0]))) }
-}
-
-/// The half `half` (0: displacement, 1: velocity) of the rows of lanes `l` and `l + 4` in
-/// the low and high halves (`nodes[l]` four times the node of lane l).
-///
-/// # Safety
-/// AVX2; the nodes of lanes `l`, `l + 4` below the packed array's length.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-unsafe fn pair(base: *const f32, nodes: &[u32; SINGLE_LANES], l: usize, half: usize) -> __m256 {
-    // SAFETY: the caller's contract; rows are 32-byte aligned, halves 16-byte aligned.
-    unsafe {
-        let lo = base.add(2 * nodes[l] as usize + 4 * half);
-        let hi = base.add(2 * nodes[l + 4] as usize + 4 * half);
-        _mm256_insertf128_ps::<1>(_mm256_castps128_ps256(_mm_load_ps(lo)), _mm_load_ps(hi))
-    }
-}
-
-/// Rows `[x, y, z]` of eight lanes from four pairs of padded rows (lanes l, l + 4 in r_l).
-///
-/// # Safety
-/// AVX2.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-unsafe fn transpose_in(r: [__m256; 4]) -> [__m256; 3] {
-    // SAFETY: the caller's contract.
-    unsafe {
-        let t0 = _mm256_unpacklo_ps(r[0], r[1]); // x0 x1 y0 y1 | x4 x5 y4 y5
-        let t1 = _mm256_unpackhi_ps(r[0], r[1]); // z0 z1 0 0 | z4 z5 0 0
-        let t2 = _mm256_unpacklo_ps(r[2], r[3]); // x2 x3 y2 y3 | ..
-        let t3 = _mm256_unpackhi_ps(r[2], r[3]); // z2 z3 0 0 | ..
-        [
-            _mm256_shuffle_ps::<0x44>(t0, t2),
-            _mm256_shuffle_ps::<0xEE>(t0, t2),
-            _mm256_shuffle_ps::<0x44>(t1, t3),
-        ]
-    }
-}
-
-/// Corner `k`'s rows of eight lanes: `[ux, uy, uz]` (and `[vx, vy, vz]` when `VISCOUS`);
-/// `nodes[l]` is four times the node of lane l.
-///
-/// # Safety
-/// AVX2; every node below `packed.len()`.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-unsafe fn load_corner<const VISCOUS: bool>(
-    packed: &[PackedNode],
-    nodes: &[u32; SINGLE_LANES],
-) -> ([__m256; 3], [__m256; 3]) {
-    // SAFETY: the caller's contract.
-    unsafe {
-        let base = packed.as_ptr().cast::<f32>();
-        let u = transpose_in([
-            pair(base, nodes, 0, 0),
-            pair(base, nodes, 1, 0),
-            pair(base, nodes, 2, 0),
-            pair(base, nodes, 3, 0),
-        ]);
-        let v = if VISCOUS {
-            transpose_in([
-                pair(base, nodes, 0, 1),
-                pair(base, nodes, 1, 1),
-                pair(base, nodes, 2, 1),
-                pair(base, nodes, 3, 1),
-            ])
-        } else {
-            [_mm256_setzero_ps(); 3]
-        };
-        (u, v)
-    }
-}
-
-/// `force[node] += r` for one padded row, `node4` four times the node.
-///
-/// # Safety
-/// The node below `force.len()` (`base` its first `f32`).
+/// The row inside the force array whose first `f32` is `base`; SSE.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 unsafe fn add_row(base: *mut f32, node4: u32, r: __m128) {
@@ -496,61 +555,275 @@ unsafe fn add_row(base: *mut f32, node4: u32, r: __m128) {
     }
 }
 
-/// Adds corner forces `h` (`[x, y, z]` rows of eight lanes) to the force rows of the nodes
-/// (`nodes[l]` four times the node of lane l).
+/// The first three entries from `at` of the packed row of node `node4 / 4`.
 ///
 /// # Safety
-/// AVX2; every node below `force.len()`.
+/// The row inside the packed array whose first `f32` is `base`; SSE.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-unsafe fn add_corner(force: &mut [NodeForce], nodes: &[u32; SINGLE_LANES], h: [__m256; 3]) {
-    // SAFETY: the caller's contract.
-    unsafe {
-        let zero = _mm256_setzero_ps();
-        let t0 = _mm256_unpacklo_ps(h[0], h[1]); // x0 y0 x1 y1 | x4 y4 x5 y5
-        let t1 = _mm256_unpackhi_ps(h[0], h[1]); // x2 y2 x3 y3 | ..
-        let t2 = _mm256_unpacklo_ps(h[2], zero); // z0 0 z1 0 | ..
-        let t3 = _mm256_unpackhi_ps(h[2], zero); // z2 0 z3 0 | ..
-        let lanes = [
-            _mm256_shuffle_ps::<0x44>(t0, t2), // lanes 0 | 4
-            _mm256_shuffle_ps::<0xEE>(t0, t2), // lanes 1 | 5
-            _mm256_shuffle_ps::<0x44>(t1, t3), // lanes 2 | 6
-            _mm256_shuffle_ps::<0xEE>(t1, t3), // lanes 3 | 7
-        ];
-        let base = force.as_mut_ptr().cast::<f32>();
-        for l in 0..4 {
-            add_row(base, nodes[l], _mm256_castps256_ps128(lanes[l]));
-            add_row(base, nodes[l + 4], _mm256_extractf128_ps::<1>(lanes[l]));
+unsafe fn packed_row(base: *const f32, node4: u32, at: usize) -> __m128 {
+    // SAFETY: the caller's contract; rows are 32-byte aligned, halves 16-byte aligned.
+    unsafe { _mm_load_ps(base.add(2 * node4 as usize + at)) }
+}
+
+/// Eight lanes in an AVX2 register.
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy)]
+struct Y8(__m256);
+
+#[cfg(target_arch = "x86_64")]
+impl F32Lanes for Y8 {
+    const WIDTH: usize = 8;
+
+    #[inline(always)]
+    unsafe fn zero() -> Self {
+        // SAFETY (every method): the trait's contract.
+        Self(unsafe { _mm256_setzero_ps() })
+    }
+
+    #[inline(always)]
+    unsafe fn splat(v: f32) -> Self {
+        Self(unsafe { _mm256_set1_ps(v) })
+    }
+
+    #[inline(always)]
+    unsafe fn load(p: *const f32) -> Self {
+        Self(unsafe { _mm256_load_ps(p) })
+    }
+
+    #[inline(always)]
+    unsafe fn loadu(p: *const f32) -> Self {
+        Self(unsafe { _mm256_loadu_ps(p) })
+    }
+
+    #[inline(always)]
+    unsafe fn load_volatile(p: *const f32) -> Self {
+        Self(unsafe { std::ptr::read_volatile(p.cast::<__m256>()) })
+    }
+
+    #[inline(always)]
+    unsafe fn add(self, o: Self) -> Self {
+        Self(unsafe { _mm256_add_ps(self.0, o.0) })
+    }
+
+    #[inline(always)]
+    unsafe fn sub(self, o: Self) -> Self {
+        Self(unsafe { _mm256_sub_ps(self.0, o.0) })
+    }
+
+    #[inline(always)]
+    unsafe fn mul(self, o: Self) -> Self {
+        Self(unsafe { _mm256_mul_ps(self.0, o.0) })
+    }
+
+    #[inline(always)]
+    unsafe fn fma(a: Self, b: Self, c: Self) -> Self {
+        Self(unsafe { _mm256_fmadd_ps(a.0, b.0, c.0) })
+    }
+
+    /// Lanes l and l + 4 share a register (low and high halves); four registers are
+    /// transposed with seven shuffles.
+    #[inline(always)]
+    unsafe fn load_rows(base: *const f32, nodes: &[u32], at: usize) -> [Self; 3] {
+        let nodes = &nodes[..8];
+        unsafe {
+            let mut r = [_mm256_setzero_ps(); 4];
+            for (l, rl) in r.iter_mut().enumerate() {
+                *rl = _mm256_insertf128_ps::<1>(
+                    _mm256_castps128_ps256(packed_row(base, nodes[l], at)),
+                    packed_row(base, nodes[l + 4], at),
+                );
+            }
+            let t0 = _mm256_unpacklo_ps(r[0], r[1]); // x0 x1 y0 y1 | x4 x5 y4 y5
+            let t1 = _mm256_unpackhi_ps(r[0], r[1]); // z0 z1 0 0 | z4 z5 0 0
+            let t2 = _mm256_unpacklo_ps(r[2], r[3]); // x2 x3 y2 y3 | ..
+            let t3 = _mm256_unpackhi_ps(r[2], r[3]); // z2 z3 0 0 | ..
+            [
+                Self(_mm256_shuffle_ps::<0x44>(t0, t2)),
+                Self(_mm256_shuffle_ps::<0xEE>(t0, t2)),
+                Self(_mm256_shuffle_ps::<0x44>(t1, t3)),
+            ]
+        }
+    }
+
+    #[inline(always)]
+    unsafe fn add_rows(base: *mut f32, nodes: &[u32], h: [Self; 3]) {
+        let nodes = &nodes[..8];
+        unsafe {
+            let zero = _mm256_setzero_ps();
+            let t0 = _mm256_unpacklo_ps(h[0].0, h[1].0); // x0 y0 x1 y1 | x4 y4 x5 y5
+            let t1 = _mm256_unpackhi_ps(h[0].0, h[1].0); // x2 y2 x3 y3 | ..
+            let t2 = _mm256_unpacklo_ps(h[2].0, zero); // z0 0 z1 0 | ..
+            let t3 = _mm256_unpackhi_ps(h[2].0, zero); // z2 0 z3 0 | ..
+            let lanes = [
+                _mm256_shuffle_ps::<0x44>(t0, t2), // lanes 0 | 4
+                _mm256_shuffle_ps::<0xEE>(t0, t2), // lanes 1 | 5
+                _mm256_shuffle_ps::<0x44>(t1, t3), // lanes 2 | 6
+                _mm256_shuffle_ps::<0xEE>(t1, t3), // lanes 3 | 7
+            ];
+            for (l, r) in lanes.into_iter().enumerate() {
+                add_row(base, nodes[l], _mm256_castps256_ps128(r));
+                add_row(base, nodes[l + 4], _mm256_extractf128_ps::<1>(r));
+            }
         }
     }
 }
 
-/// Row `r` of `Dm^-1`'s entries of a batch (`r = 3 row + column`), read from memory at each
-/// use: a volatile read, so that the compiler neither keeps nine of them in the sixteen
-/// registers nor spills them to the stack (they are in L1 already).
+/// Sixteen lanes in an AVX-512 register.
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy)]
+struct Z16(__m512);
+
+#[cfg(target_arch = "x86_64")]
+impl F32Lanes for Z16 {
+    const WIDTH: usize = 16;
+
+    #[inline(always)]
+    unsafe fn zero() -> Self {
+        // SAFETY (every method): the trait's contract.
+        Self(unsafe { _mm512_setzero_ps() })
+    }
+
+    #[inline(always)]
+    unsafe fn splat(v: f32) -> Self {
+        Self(unsafe { _mm512_set1_ps(v) })
+    }
+
+    #[inline(always)]
+    unsafe fn load(p: *const f32) -> Self {
+        Self(unsafe { _mm512_load_ps(p) })
+    }
+
+    #[inline(always)]
+    unsafe fn loadu(p: *const f32) -> Self {
+        Self(unsafe { _mm512_loadu_ps(p) })
+    }
+
+    #[inline(always)]
+    unsafe fn load_volatile(p: *const f32) -> Self {
+        Self(unsafe { std::ptr::read_volatile(p.cast::<__m512>()) })
+    }
+
+    #[inline(always)]
+    unsafe fn add(self, o: Self) -> Self {
+        Self(unsafe { _mm512_add_ps(self.0, o.0) })
+    }
+
+    #[inline(always)]
+    unsafe fn sub(self, o: Self) -> Self {
+        Self(unsafe { _mm512_sub_ps(self.0, o.0) })
+    }
+
+    #[inline(always)]
+    unsafe fn mul(self, o: Self) -> Self {
+        Self(unsafe { _mm512_mul_ps(self.0, o.0) })
+    }
+
+    #[inline(always)]
+    unsafe fn fma(a: Self, b: Self, c: Self) -> Self {
+        Self(unsafe { _mm512_fmadd_ps(a.0, b.0, c.0) })
+    }
+
+    /// Lanes l, l + 4, l + 8 and l + 12 share a register (one per 128-bit block); the
+    /// in-block unpacks and shuffles of [`Y8::load_rows`] then transpose all four blocks.
+    #[inline(always)]
+    unsafe fn load_rows(base: *const f32, nodes: &[u32], at: usize) -> [Self; 3] {
+        let nodes = &nodes[..16];
+        unsafe {
+            let mut r = [_mm512_setzero_ps(); 4];
+            for (l, rl) in r.iter_mut().enumerate() {
+                let q = _mm512_castps128_ps512(packed_row(base, nodes[l], at));
+                let q = _mm512_insertf32x4::<1>(q, packed_row(base, nodes[l + 4], at));
+                let q = _mm512_insertf32x4::<2>(q, packed_row(base, nodes[l + 8], at));
+                *rl = _mm512_insertf32x4::<3>(q, packed_row(base, nodes[l + 12], at));
+            }
+            let t0 = _mm512_unpacklo_ps(r[0], r[1]);
+            let t1 = _mm512_unpackhi_ps(r[0], r[1]);
+            let t2 = _mm512_unpacklo_ps(r[2], r[3]);
+            let t3 = _mm512_unpackhi_ps(r[2], r[3]);
+            [
+                Self(_mm512_shuffle_ps::<0x44>(t0, t2)),
+                Self(_mm512_shuffle_ps::<0xEE>(t0, t2)),
+                Self(_mm512_shuffle_ps::<0x44>(t1, t3)),
+            ]
+        }
+    }
+
+    #[inline(always)]
+    unsafe fn add_rows(base: *mut f32, nodes: &[u32], h: [Self; 3]) {
+        let nodes = &nodes[..16];
+        unsafe {
+            let zero = _mm512_setzero_ps();
+            let t0 = _mm512_unpacklo_ps(h[0].0, h[1].0);
+            let t1 = _mm512_unpackhi_ps(h[0].0, h[1].0);
+            let t2 = _mm512_unpacklo_ps(h[2].0, zero);
+            let t3 = _mm512_unpackhi_ps(h[2].0, zero);
+            // Block j of lanes[l] is the row of lane l + 4 j.
+            let lanes = [
+                _mm512_shuffle_ps::<0x44>(t0, t2),
+                _mm512_shuffle_ps::<0xEE>(t0, t2),
+                _mm512_shuffle_ps::<0x44>(t1, t3),
+                _mm512_shuffle_ps::<0xEE>(t1, t3),
+            ];
+            for (l, r) in lanes.into_iter().enumerate() {
+                add_row(base, nodes[l], _mm512_castps512_ps128(r));
+                add_row(base, nodes[l + 4], _mm512_extractf32x4_ps::<1>(r));
+                add_row(base, nodes[l + 8], _mm512_extractf32x4_ps::<2>(r));
+                add_row(base, nodes[l + 12], _mm512_extractf32x4_ps::<3>(r));
+            }
+        }
+    }
+}
+
+/// `a0 b0 + a1 b1 + a2 b2`.
 ///
 /// # Safety
-/// AVX2.
+/// [`F32Lanes`]' contract.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-unsafe fn bm(b: &SingleBatch, r: usize) -> __m256 {
-    // SAFETY: the row is 32 aligned bytes of the batch (the struct is 32-byte aligned).
-    unsafe { std::ptr::read_volatile(b.dm_inv[r].as_ptr().cast::<__m256>()) }
+unsafe fn dot3<V: F32Lanes>(a: [V; 3], b: [V; 3]) -> V {
+    // SAFETY: the caller's contract.
+    unsafe { V::fma(a[2], b[2], V::fma(a[1], b[1], a[0].mul(b[0]))) }
+}
+
+/// Corner rows of `V::WIDTH` lanes: `[ux, uy, uz]` (and `[vx, vy, vz]` when `VISCOUS`);
+/// `nodes[l]` is four times the node of lane l.
+///
+/// # Safety
+/// [`F32Lanes`]' contract; every node below `packed.len()`.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn load_corner<V: F32Lanes, const VISCOUS: bool>(
+    packed: &[PackedNode],
+    nodes: &[u32],
+) -> ([V; 3], [V; 3]) {
+    // SAFETY: the caller's contract.
+    unsafe {
+        let base = packed.as_ptr().cast::<f32>();
+        let u = V::load_rows(base, nodes, 0);
+        let v = if VISCOUS {
+            V::load_rows(base, nodes, 4)
+        } else {
+            [V::zero(); 3]
+        };
+        (u, v)
+    }
 }
 
 /// `m[3 i + j] = sum_k d[3 k + i] Bm_kj`: the gradient of the edge differences `d`
-/// (component i of edge k at `d[3 k + i]`) through `Dm^-1` of batch `b`, eq. 21.
+/// (component i of edge k at `d[3 k + i]`) through `Dm^-1` of batch `b`, lanes from `half`,
+/// eq. 21.
 ///
 /// # Safety
-/// AVX2 and FMA.
+/// [`F32Lanes`]' contract; `half + V::WIDTH <= SINGLE_LANES`, `half` a multiple of `V::WIDTH`.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-unsafe fn edge_gradient(d: &[__m256; 9], b: &SingleBatch) -> [__m256; 9] {
+unsafe fn edge_gradient<V: F32Lanes>(d: &[V; 9], b: &SingleBatch, half: usize) -> [V; 9] {
     // SAFETY: the caller's contract.
     unsafe {
-        let mut m = [_mm256_setzero_ps(); 9];
+        let mut m = [V::zero(); 9];
         for j in 0..3 {
-            let col = [bm(b, j), bm(b, 3 + j), bm(b, 6 + j)];
+            let col = [bm(b, j, half), bm(b, 3 + j, half), bm(b, 6 + j, half)];
             for i in 0..3 {
                 m[3 * i + j] = dot3([d[i], d[3 + i], d[6 + i]], col);
             }
@@ -559,32 +832,47 @@ unsafe fn edge_gradient(d: &[__m256; 9], b: &SingleBatch) -> [__m256; 9] {
     }
 }
 
+/// Entry `r = 3 row + column` of `Dm^-1` for the lanes of batch `b` from `half`, read from
+/// memory at each use (volatile, so that the compiler neither keeps nine of them in registers
+/// nor spills them to the stack: they are in L1 already).
+///
+/// # Safety
+/// [`F32Lanes`]' contract; `half + V::WIDTH <= SINGLE_LANES`, `half` a multiple of `V::WIDTH`
+/// (then the lanes are aligned: the batch is 64-byte aligned, its rows 64 bytes long).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn bm<V: F32Lanes>(b: &SingleBatch, r: usize, half: usize) -> V {
+    let lanes = &b.dm_inv[r][half..half + V::WIDTH];
+    // SAFETY: the caller's contract; `lanes` is V::WIDTH aligned f32.
+    unsafe { V::load_volatile(lanes.as_ptr()) }
+}
+
 /// The symmetric entries 00 11 22 01 02 12 of a 3x3 matrix, in that order.
 const SYM: [(usize, usize); 6] = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)];
 
 /// The constants of the stress, splatted once per call.
 #[cfg(target_arch = "x86_64")]
 #[derive(Clone, Copy)]
-struct LaneCoefficients {
-    half_lambda: __m256,
-    mu: __m256,
-    phi: __m256,
-    two_psi: __m256,
+struct LaneCoefficients<V> {
+    half_lambda: V,
+    mu: V,
+    phi: V,
+    two_psi: V,
 }
 
 #[cfg(target_arch = "x86_64")]
-impl LaneCoefficients {
+impl<V: F32Lanes> LaneCoefficients<V> {
     /// # Safety
-    /// AVX.
+    /// [`F32Lanes`]' contract.
     #[inline(always)]
     unsafe fn new(c: Coefficients) -> Self {
         // SAFETY: the caller's contract.
         unsafe {
             Self {
-                half_lambda: _mm256_set1_ps(c.half_lambda),
-                mu: _mm256_set1_ps(c.mu),
-                phi: _mm256_set1_ps(c.phi),
-                two_psi: _mm256_set1_ps(c.two_psi),
+                half_lambda: V::splat(c.half_lambda),
+                mu: V::splat(c.mu),
+                phi: V::splat(c.phi),
+                two_psi: V::splat(c.two_psi),
             }
         }
     }
@@ -597,61 +885,58 @@ impl LaneCoefficients {
 /// module note's factor), `P = F S = S + G S` (eq. 9, 22).
 ///
 /// # Safety
-/// AVX2 and FMA.
+/// [`F32Lanes`]' contract.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-unsafe fn scaled_piola<const VISCOUS: bool>(
-    g: &[__m256; 9],
-    gd: &[__m256; 9],
-    volume: __m256,
-    k: &LaneCoefficients,
-) -> [__m256; 9] {
+unsafe fn scaled_piola<V: F32Lanes, const VISCOUS: bool>(
+    g: &[V; 9],
+    gd: &[V; 9],
+    volume: V,
+    k: &LaneCoefficients<V>,
+) -> [V; 9] {
     // SAFETY: the caller's contract.
     unsafe {
-        let zero = _mm256_setzero_ps();
+        let zero = V::zero();
         let (half_lambda, mu, phi, two_psi) = (k.half_lambda, k.mu, k.phi, k.two_psi);
         // 2E_ij = G_ij + G_ji + sum_r G_ri G_rj.
         let mut e2 = [zero; 6];
         for (s, &(i, j)) in SYM.iter().enumerate() {
             let gtg = dot3([g[i], g[3 + i], g[6 + i]], [g[j], g[3 + j], g[6 + j]]);
-            e2[s] = _mm256_add_ps(gtg, _mm256_add_ps(g[3 * i + j], g[3 * j + i]));
+            e2[s] = gtg.add(g[3 * i + j].add(g[3 * j + i]));
         }
         // S / (-V) = lambda/2 tr(2E) I + mu 2E, plus the viscous phi tr(A + A^T) I + 2 psi (A + A^T)
         // of crate::material::viscous_stress (seed eq. 11 with the factor of the module note).
-        let mut tr = _mm256_mul_ps(
-            half_lambda,
-            _mm256_add_ps(e2[0], _mm256_add_ps(e2[1], e2[2])),
-        );
+        let mut tr = half_lambda.mul(e2[0].add(e2[1].add(e2[2])));
         let mut s = [zero; 6];
         for k in 0..6 {
-            s[k] = _mm256_mul_ps(mu, e2[k]);
+            s[k] = mu.mul(e2[k]);
         }
         if VISCOUS {
             // A = F^T F' = F' + G^T F'; 2E' = A + A^T.
             let mut a = [zero; 9];
             for i in 0..3 {
                 for j in 0..3 {
-                    a[3 * i + j] = fma(
+                    a[3 * i + j] = V::fma(
                         g[6 + i],
                         gd[6 + j],
-                        fma(g[3 + i], gd[3 + j], fma(g[i], gd[j], gd[3 * i + j])),
+                        V::fma(g[3 + i], gd[3 + j], V::fma(g[i], gd[j], gd[3 * i + j])),
                     );
                 }
             }
             let mut trd = zero;
             for (k, &(i, j)) in SYM.iter().enumerate() {
-                let ed2 = _mm256_add_ps(a[3 * i + j], a[3 * j + i]);
+                let ed2 = a[3 * i + j].add(a[3 * j + i]);
                 if k < 3 {
-                    trd = _mm256_add_ps(trd, ed2);
+                    trd = trd.add(ed2);
                 }
-                s[k] = fma(two_psi, ed2, s[k]);
+                s[k] = V::fma(two_psi, ed2, s[k]);
             }
-            tr = fma(phi, trd, tr);
+            tr = V::fma(phi, trd, tr);
         }
-        let w = _mm256_sub_ps(zero, volume);
+        let w = zero.sub(volume);
         for (k, sk) in s.iter_mut().enumerate() {
-            let diagonal = if k < 3 { _mm256_add_ps(*sk, tr) } else { *sk };
-            *sk = _mm256_mul_ps(w, diagonal);
+            let diagonal = if k < 3 { sk.add(tr) } else { *sk };
+            *sk = w.mul(diagonal);
         }
         // The full symmetric -V S, row-major.
         let sm = [s[0], s[3], s[4], s[3], s[1], s[5], s[4], s[5], s[2]];
@@ -659,10 +944,14 @@ unsafe fn scaled_piola<const VISCOUS: bool>(
         let mut p = [zero; 9];
         for i in 0..3 {
             for j in 0..3 {
-                p[3 * i + j] = fma(
+                p[3 * i + j] = V::fma(
                     g[3 * i + 2],
                     sm[6 + j],
-                    fma(g[3 * i + 1], sm[3 + j], fma(g[3 * i], sm[j], sm[3 * i + j])),
+                    V::fma(
+                        g[3 * i + 1],
+                        sm[3 + j],
+                        V::fma(g[3 * i], sm[j], sm[3 * i + j]),
+                    ),
                 );
             }
         }
@@ -670,118 +959,192 @@ unsafe fn scaled_piola<const VISCOUS: bool>(
     }
 }
 
-/// The kernel over every batch (module documentation).
+/// The kernel over every batch of tetrahedra (module documentation), `V::WIDTH` lanes at a
+/// time.
 ///
 /// # Safety
-/// AVX2 and FMA; every node index of `batches` below `packed.len()` and `force.len()`.
+/// [`F32Lanes`]' contract; every node index of `batches` below `packed.len()` and
+/// `force.len()`.
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn forces_avx2<const VISCOUS: bool>(
+#[inline(always)]
+unsafe fn tet_forces<V: F32Lanes, const VISCOUS: bool>(
     batches: &[SingleBatch],
     c: Coefficients,
     packed: &[PackedNode],
     force: &mut [NodeForce],
 ) {
-    // SAFETY: the caller's contract (batch rows are 32-byte aligned: the struct is).
+    // SAFETY: the caller's contract (batch rows are aligned: the struct is 64-byte aligned).
     unsafe {
-        let k = LaneCoefficients::new(c);
-        let zero = _mm256_setzero_ps();
+        let k = LaneCoefficients::<V>::new(c);
+        let zero = V::zero();
+        let fbase = force.as_mut_ptr().cast::<f32>();
         for b in batches {
-            let (u0, v0) = load_corner::<VISCOUS>(packed, &b.nodes[0]);
-            // Edge differences: component i of edge k (corner k+1 minus corner 0) at 3 k + i.
-            let mut du = [zero; 9];
-            let mut dv = [zero; 9];
-            for k in 0..3 {
-                let (uk, vk) = load_corner::<VISCOUS>(packed, &b.nodes[k + 1]);
-                for i in 0..3 {
-                    du[3 * k + i] = _mm256_sub_ps(uk[i], u0[i]);
-                    if VISCOUS {
-                        dv[3 * k + i] = _mm256_sub_ps(vk[i], v0[i]);
+            for half in (0..SINGLE_LANES).step_by(V::WIDTH) {
+                let nodes = |k: usize| &b.nodes[k][half..half + V::WIDTH];
+                let (u0, v0) = load_corner::<V, VISCOUS>(packed, nodes(0));
+                // Edge differences: component i of edge k (corner k+1 minus corner 0) at 3 k + i.
+                let mut du = [zero; 9];
+                let mut dv = [zero; 9];
+                for k in 0..3 {
+                    let (uk, vk) = load_corner::<V, VISCOUS>(packed, nodes(k + 1));
+                    for i in 0..3 {
+                        du[3 * k + i] = uk[i].sub(u0[i]);
+                        if VISCOUS {
+                            dv[3 * k + i] = vk[i].sub(v0[i]);
+                        }
                     }
                 }
-            }
-            let g = edge_gradient(&du, b);
-            let gd = if VISCOUS {
-                edge_gradient(&dv, b)
-            } else {
-                [zero; 9]
-            };
-            let p = scaled_piola::<VISCOUS>(&g, &gd, _mm256_load_ps(b.volume_m3.as_ptr()), &k);
-            // H_k (force on corner k+1), component i = sum_j P_ij Bm_kj; corner 0 gets minus
-            // their sum.
-            let mut h0 = [zero; 3];
-            for k in 0..3 {
-                let row = [bm(b, 3 * k), bm(b, 3 * k + 1), bm(b, 3 * k + 2)];
-                let mut hk = [zero; 3];
-                for i in 0..3 {
-                    hk[i] = dot3([p[3 * i], p[3 * i + 1], p[3 * i + 2]], row);
-                    h0[i] = _mm256_sub_ps(h0[i], hk[i]);
+                let g = edge_gradient(&du, b, half);
+                let gd = if VISCOUS {
+                    edge_gradient(&dv, b, half)
+                } else {
+                    [zero; 9]
+                };
+                let volume = V::load(b.volume_m3[half..half + V::WIDTH].as_ptr());
+                let p = scaled_piola::<V, VISCOUS>(&g, &gd, volume, &k);
+                // H_k (force on corner k+1), component i = sum_j P_ij Bm_kj; corner 0 gets
+                // minus their sum.
+                let mut h0 = [zero; 3];
+                for k in 0..3 {
+                    let row = [
+                        bm(b, 3 * k, half),
+                        bm(b, 3 * k + 1, half),
+                        bm(b, 3 * k + 2, half),
+                    ];
+                    let mut hk = [zero; 3];
+                    for i in 0..3 {
+                        hk[i] = dot3([p[3 * i], p[3 * i + 1], p[3 * i + 2]], row);
+                        h0[i] = h0[i].sub(hk[i]);
+                    }
+                    V::add_rows(fbase, nodes(k + 1), hk);
                 }
-                add_corner(force, &b.nodes[k + 1], hk);
+                V::add_rows(fbase, nodes(0), h0);
             }
-            add_corner(force, &b.nodes[0], h0);
         }
     }
 }
 
 /// The kernel over batches of smoothing domains (`start`, `slots`, `volume_m3` of
-/// [`SingleLayout::Domains`]): `G = sum_s (u_s - u_0) g_s^T` over the slots (velocities too
-/// when `VISCOUS`), [`scaled_piola`], then `-V P g_s` added to each slot's node.
+/// [`SingleLayout::Domains`]), `V::WIDTH` lanes at a time: `G = sum_s (u_s - u_0) g_s^T` over
+/// the slots (velocities too when `VISCOUS`), [`scaled_piola`], then `-V P g_s` added to each
+/// slot's node.
 ///
 /// # Safety
-/// AVX2 and FMA; every node of the slots below `packed.len()` and `force.len()`; `start` has
-/// one more entry than `volume_m3`, ascending within `slots.len()`, at least one slot a batch.
+/// [`F32Lanes`]' contract; every node of the slots below `packed.len()` and `force.len()`;
+/// `start` has one more entry than `volume_m3`, ascending within `slots.len()`, at least one
+/// slot a batch.
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn domain_forces_avx2<const VISCOUS: bool>(
+#[inline(always)]
+unsafe fn domain_forces<V: F32Lanes, const VISCOUS: bool>(
     (start, slots, volume_m3): (&[usize], &[DomainSlot], &[[f32; SINGLE_LANES]]),
     c: Coefficients,
     packed: &[PackedNode],
     force: &mut [NodeForce],
 ) {
-    use std::arch::x86_64::_mm256_loadu_ps;
-    // SAFETY: the caller's contract (slots are 32-byte aligned).
+    // SAFETY: the caller's contract (slots are 64-byte aligned, their rows 64 bytes long).
     unsafe {
-        let k = LaneCoefficients::new(c);
-        let zero = _mm256_setzero_ps();
+        let k = LaneCoefficients::<V>::new(c);
+        let zero = V::zero();
+        let fbase = force.as_mut_ptr().cast::<f32>();
         for (b, volume) in volume_m3.iter().enumerate() {
             let batch = &slots[start[b]..start[b + 1]];
-            let (u0, v0) = load_corner::<VISCOUS>(packed, &batch[0].nodes);
-            let mut g = [zero; 9];
-            let mut gd = [zero; 9];
-            for slot in &batch[1..] {
-                let (us, vs) = load_corner::<VISCOUS>(packed, &slot.nodes);
-                let gr = [
-                    _mm256_load_ps(slot.grad[0].as_ptr()),
-                    _mm256_load_ps(slot.grad[1].as_ptr()),
-                    _mm256_load_ps(slot.grad[2].as_ptr()),
-                ];
-                for i in 0..3 {
-                    let du = _mm256_sub_ps(us[i], u0[i]);
-                    let dv = _mm256_sub_ps(vs[i], v0[i]);
-                    for j in 0..3 {
-                        g[3 * i + j] = fma(du, gr[j], g[3 * i + j]);
-                        if VISCOUS {
-                            gd[3 * i + j] = fma(dv, gr[j], gd[3 * i + j]);
+            for half in (0..SINGLE_LANES).step_by(V::WIDTH) {
+                let lanes = half..half + V::WIDTH;
+                let grad = |slot: &DomainSlot| {
+                    [
+                        V::load(slot.grad[0][lanes.clone()].as_ptr()),
+                        V::load(slot.grad[1][lanes.clone()].as_ptr()),
+                        V::load(slot.grad[2][lanes.clone()].as_ptr()),
+                    ]
+                };
+                let (u0, v0) = load_corner::<V, VISCOUS>(packed, &batch[0].nodes[lanes.clone()]);
+                let mut g = [zero; 9];
+                let mut gd = [zero; 9];
+                for slot in &batch[1..] {
+                    let (us, vs) = load_corner::<V, VISCOUS>(packed, &slot.nodes[lanes.clone()]);
+                    let gr = grad(slot);
+                    for i in 0..3 {
+                        let du = us[i].sub(u0[i]);
+                        let dv = vs[i].sub(v0[i]);
+                        for j in 0..3 {
+                            g[3 * i + j] = V::fma(du, gr[j], g[3 * i + j]);
+                            if VISCOUS {
+                                gd[3 * i + j] = V::fma(dv, gr[j], gd[3 * i + j]);
+                            }
                         }
                     }
                 }
-            }
-            let p = scaled_piola::<VISCOUS>(&g, &gd, _mm256_loadu_ps(volume.as_ptr()), &k);
-            for slot in batch {
-                let gr = [
-                    _mm256_load_ps(slot.grad[0].as_ptr()),
-                    _mm256_load_ps(slot.grad[1].as_ptr()),
-                    _mm256_load_ps(slot.grad[2].as_ptr()),
-                ];
-                let mut h = [zero; 3];
-                for (i, hi) in h.iter_mut().enumerate() {
-                    *hi = dot3([p[3 * i], p[3 * i + 1], p[3 * i + 2]], gr);
+                let volume = V::loadu(volume[lanes.clone()].as_ptr());
+                let p = scaled_piola::<V, VISCOUS>(&g, &gd, volume, &k);
+                for slot in batch {
+                    let gr = grad(slot);
+                    let mut h = [zero; 3];
+                    for (i, hi) in h.iter_mut().enumerate() {
+                        *hi = dot3([p[3 * i], p[3 * i + 1], p[3 * i + 2]], gr);
+                    }
+                    V::add_rows(fbase, &slot.nodes[lanes.clone()], h);
                 }
-                add_corner(force, &slot.nodes, h);
             }
         }
     }
+}
+
+/// The kernel of `layout` with lane type `V`.
+///
+/// # Safety
+/// As [`tet_forces`] and [`domain_forces`].
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn layout_forces<V: F32Lanes, const VISCOUS: bool>(
+    layout: &SingleLayout,
+    c: Coefficients,
+    packed: &[PackedNode],
+    force: &mut [NodeForce],
+) {
+    // SAFETY: the caller's contract.
+    unsafe {
+        match layout {
+            SingleLayout::Tets(b) => tet_forces::<V, VISCOUS>(b, c, packed, force),
+            SingleLayout::Domains {
+                start,
+                slots,
+                volume_m3,
+            } => domain_forces::<V, VISCOUS>((start, slots, volume_m3), c, packed, force),
+        }
+    }
+}
+
+/// [`layout_forces`] in AVX2 registers, eight lanes.
+///
+/// # Safety
+/// AVX2 and FMA; every node index of the layout below `packed.len()` and `force.len()`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn forces_avx2<const VISCOUS: bool>(
+    layout: &SingleLayout,
+    c: Coefficients,
+    packed: &[PackedNode],
+    force: &mut [NodeForce],
+) {
+    // SAFETY: the caller's contract; this function is compiled with AVX2 and FMA.
+    unsafe { layout_forces::<Y8, VISCOUS>(layout, c, packed, force) }
+}
+
+/// [`layout_forces`] in AVX-512 registers, sixteen lanes.
+///
+/// # Safety
+/// AVX-512F, AVX2 and FMA; every node index of the layout below `packed.len()` and
+/// `force.len()`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2,fma")]
+unsafe fn forces_avx512<const VISCOUS: bool>(
+    layout: &SingleLayout,
+    c: Coefficients,
+    packed: &[PackedNode],
+    force: &mut [NodeForce],
+) {
+    // SAFETY: the caller's contract; this function is compiled with AVX-512F.
+    unsafe { layout_forces::<Z16, VISCOUS>(layout, c, packed, force) }
 }
 
 #[cfg(test)]
