@@ -121,7 +121,7 @@ fn add_forces_single_isa(bencher: divan::Bencher, run: &str) {
     } else {
         SingleIsa::Avx512
     };
-    if !SingleIsa::available().contains(&isa) {
+    if !isa.is_available() {
         eprintln!("{isa:?} is not available on this CPU: {run} skipped");
         return;
     }

@@ -153,17 +153,21 @@ impl SingleIsa {
         }
     }
 
+    /// Whether this CPU runs this instruction set. Allocation-free (the tick asks).
+    pub fn is_available(self) -> bool {
+        match self {
+            Self::Avx2 => crate::cpu::has_avx2_fma(),
+            Self::Avx512 => crate::cpu::has_avx512f(),
+        }
+    }
+
     /// Every instruction set of this CPU that the kernel is built for (for tests and
     /// benchmarks that compare them).
     pub fn available() -> Vec<Self> {
-        let mut out = Vec::new();
-        if crate::cpu::has_avx2_fma() {
-            out.push(Self::Avx2);
-        }
-        if crate::cpu::has_avx512f() {
-            out.push(Self::Avx512);
-        }
-        out
+        [Self::Avx2, Self::Avx512]
+            .into_iter()
+            .filter(|isa| isa.is_available())
+            .collect()
     }
 }
 
@@ -304,7 +308,7 @@ impl SingleLinear {
     /// # Errors
     /// A message naming the instruction set when this CPU does not run it.
     pub(crate) fn pin_isa(&mut self, isa: SingleIsa) -> Result<(), String> {
-        if !SingleIsa::available().contains(&isa) {
+        if !isa.is_available() {
             return Err(format!("this CPU does not run the {isa:?} build"));
         }
         self.isa = Some(isa);
@@ -356,10 +360,7 @@ impl SingleLinear {
         let n = self.rest.len();
         assert!(x.len() >= n && f.len() >= n && v.is_none_or(|v| v.len() >= n));
         assert!(scratch.node_count() >= n, "force scratch too small");
-        assert!(
-            SingleIsa::available().contains(&isa),
-            "{isa:?} is not available on this CPU"
-        );
+        assert!(isa.is_available(), "{isa:?} is not available on this CPU");
         let (packed, force) = (&mut scratch.packed[..n], &mut scratch.force[..n]);
         #[cfg(target_arch = "x86_64")]
         {
