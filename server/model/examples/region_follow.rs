@@ -38,6 +38,15 @@ struct Args {
     /// Wait for every requested region (deterministic).
     #[arg(long)]
     blocking: bool,
+    /// Hold at the end of the stroke this long, s (for a region to arrive and settle).
+    #[arg(long, default_value_t = 0.3)]
+    hold_end_s: f64,
+    /// Run without the scene's coarse companion (`active_region.fallback_target_tets`).
+    #[arg(long)]
+    no_fallback: bool,
+    /// Write one row per tick (`t_s,force_mN,companion_weight,swaps`) to this CSV file.
+    #[arg(long)]
+    csv: Option<std::path::PathBuf>,
 }
 
 /// Epicardium radius at z = -5 mm of the LV (10 x 10 x 20 mm ellipsoid), m.
@@ -60,6 +69,9 @@ fn main() -> anyhow::Result<()> {
         .as_mut()
         .ok_or_else(|| anyhow::anyhow!("{} has no [active_region]", args.scene))?;
     region.follow = true;
+    if args.no_fallback {
+        scene.fallback = None;
+    }
     let t = Instant::now();
     let mut sim = Simulation::new_with_progress(&scene, &mut |stage, fraction| {
         eprintln!(
@@ -83,7 +95,8 @@ fn main() -> anyhow::Result<()> {
     let arc = args.arc_deg.to_radians();
     let (press_s, settle_s) = (0.3, 0.3);
     let stroke_s = arc / omega;
-    let total = ((press_s + settle_s + stroke_s + settle_s) * 1e3).ceil() as usize;
+    let total = ((press_s + settle_s + stroke_s + args.hold_end_s) * 1e3).ceil() as usize;
+    let mut weights = Vec::with_capacity(total);
     let mut ticks_us = Vec::with_capacity(total);
     let mut forces = Vec::with_capacity(total);
     let mut swap_ticks = Vec::new();
@@ -121,6 +134,7 @@ fn main() -> anyhow::Result<()> {
         })?;
         ticks_us.push(t0.elapsed().as_secs_f64() * 1e6);
         forces.push(out.force_on_device_n);
+        weights.push(sim.fallback_stats().map_or(0.0, |f| f.weight));
         if t_s >= press_s + settle_s && !out.in_contact {
             lost_contact += 1;
         }
@@ -186,6 +200,29 @@ fn main() -> anyhow::Result<()> {
         max_swap_jump * 100.0,
         max_jump_other * 100.0
     );
+    if let Some(fb) = sim.fallback_stats() {
+        println!(
+            "coarse companion ({} tets): answered {} ticks, final weight {:.2}; force at the end {:.2} mN",
+            fb.elements,
+            fb.ticks_answered,
+            fb.weight,
+            forces.last().map_or(0.0, |f| f.length() * 1e3)
+        );
+    }
+    if let Some(path) = &args.csv {
+        let mut text = String::from("t_s,force_mN,companion_weight,swaps\n");
+        let mut swaps = 0;
+        for (k, (f, w)) in forces.iter().zip(&weights).enumerate() {
+            swaps += usize::from(swap_ticks.contains(&k));
+            text += &format!(
+                "{:.3},{:.4},{:.3},{swaps}\n",
+                k as f64 * 1e-3,
+                f.length() * 1e3,
+                w
+            );
+        }
+        std::fs::write(path, text)?;
+    }
     Ok(())
 }
 

@@ -9,6 +9,19 @@
 //! loads, contact update (the probe's explicit reaction), one step of the [`Stepper`] (which
 //! completes the coupling), and a divergence check; then the output.
 //!
+//! **The coarse companion.** A following active region (`[active_region] follow`) holds only
+//! the elements near its centre; a new one takes seconds to prepare on a large mesh
+//! ([`crate::integrate::follow`]), and a probe that leaves the region meanwhile rests on the
+//! condensed far surface, which does not yield. With `fallback_target_tets` the scene carries
+//! a coarse whole-body companion ([`Scene::fallback`]: the same built-in geometry, quadratic,
+//! backward Euler on its rest factor) that ticks with the same device input every tick.
+//! Where the contact patch reaches a node the region does not simulate, the companion answers:
+//! the output force (and contact stiffness) is `(1 - w) f_region + w f_companion`, with `w`
+//! moving towards 1 by at most `1 / FALLBACK_BLEND_TICKS` per tick; it moves back towards 0
+//! only after the region has held the whole patch for `FALLBACK_SETTLE_TICKS` ticks (a region
+//! swapped in under a deep probe starts undeformed and needs that long to settle). Viewers
+//! still see the fine body; point loads act on it only.
+//!
 //! Owns: the FEM body. May use: [`crate::element`], [`crate::integrate`], [`crate::contact`],
 //! [`crate::loads`], [`crate::scene`] (to build from), [`crate::body`] (the interface it
 //! implements).
@@ -32,6 +45,41 @@ pub use crate::integrate::SimState;
 
 /// A nodal speed above this (m/s) is treated as divergence.
 pub const DIVERGENCE_SPEED_M_PER_S: f64 = 100.0;
+
+/// Ticks over which the coarse companion's weight goes from 0 to 1 or back (module
+/// documentation, "The coarse companion").
+pub const FALLBACK_BLEND_TICKS: u32 = 20;
+
+/// Ticks the region must hold the whole contact patch before the coarse companion hands the
+/// probe back to it.
+pub const FALLBACK_SETTLE_TICKS: u32 = 100;
+
+/// The coarse whole-body companion of a following region and its blending state.
+#[derive(Debug, Clone)]
+struct Fallback {
+    sim: Simulation,
+    /// Weight of the companion's answer in the output, in `[0, 1]`.
+    weight: f64,
+    /// Ticks until the region may take the probe back (counts down while it holds the patch).
+    settle_ticks: u32,
+    /// Ticks with a nonzero weight.
+    ticks_answered: u64,
+    /// The region's own force in the last tick, N.
+    region_force_n: DVec3,
+}
+
+/// What the coarse companion of a following region did ([`Simulation::fallback_stats`]).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct FallbackStats {
+    /// The companion's weight in the last output, in `[0, 1]`.
+    pub weight: f64,
+    /// Ticks in which it contributed to the output.
+    pub ticks_answered: u64,
+    /// Its tetrahedra.
+    pub elements: usize,
+    /// The force the region alone gave in the last tick (before the blend), N.
+    pub region_force_n: DVec3,
+}
 
 /// Whether a simulation is still meaningful, with the quantities that say so
 /// ([`Simulation::stability`]).
@@ -83,6 +131,8 @@ pub struct Simulation {
     last_output: TickOutput,
     /// A following active region's worker ([`RegionFollower`]).
     follow: FollowSlot,
+    /// The coarse companion of a following region (`active_region.fallback_target_tets`).
+    fallback: Option<Box<Fallback>>,
 }
 
 /// Holds the [`RegionFollower`] of a following active region. A clone of the simulation does
@@ -246,6 +296,25 @@ impl Simulation {
         if p.kind == IntegratorKind::BackwardEuler {
             probe.use_implicit_sphere(plan.sub_dt_s);
         }
+        let fallback = match (&scene.fallback, follows) {
+            (Some(coarse), true) => {
+                progress("coarse companion", 1.0);
+                let sim = Simulation::new(coarse).map_err(|e| {
+                    ModelError::field(
+                        "active_region.fallback_target_tets",
+                        format!("the coarse companion: {e}"),
+                    )
+                })?;
+                Some(Box::new(Fallback {
+                    sim,
+                    weight: 0.0,
+                    settle_ticks: 0,
+                    ticks_answered: 0,
+                    region_force_n: DVec3::ZERO,
+                }))
+            }
+            _ => None,
+        };
         Ok(Self {
             stepper,
             plan,
@@ -269,6 +338,7 @@ impl Simulation {
             scene_name: scene.name.clone(),
             last_output: TickOutput::default(),
             follow,
+            fallback,
             fem,
         })
     }
@@ -287,6 +357,7 @@ impl Simulation {
         if let Some(time_s) = self.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
+        let swaps_before = self.follow.0.as_ref().map_or(0, |f| f.stats().swaps);
         if let (Some(f), Stepper::Condensed(solver)) = (&mut self.follow.0, &mut self.stepper) {
             let device = input
                 .device_position_m
@@ -350,8 +421,30 @@ impl Simulation {
             contact_stiffness_n_per_m: self.probe.contact_stiffness(),
             sim_time_s: self.state.time_s,
         };
+        let out = match self.fallback.as_deref_mut() {
+            Some(fb) => {
+                let swapped = self.follow.0.as_ref().map_or(0, |f| f.stats().swaps) != swaps_before;
+                let outside = self
+                    .stepper
+                    .condensed()
+                    .is_some_and(|c| self.probe.patch().0.iter().any(|&i| !c.is_active_node(i)));
+                fb.answer(input, out, outside, swapped)?
+            }
+            None => out,
+        };
         self.last_output = out;
         Ok(out)
+    }
+
+    /// What the coarse companion of a following region did (module documentation, "The coarse
+    /// companion"); `None` without one.
+    pub fn fallback_stats(&self) -> Option<FallbackStats> {
+        self.fallback.as_deref().map(|fb| FallbackStats {
+            weight: fb.weight,
+            ticks_answered: fb.ticks_answered,
+            elements: fb.sim.fem.element_count(),
+            region_force_n: fb.region_force_n,
+        })
     }
 
     /// Stability of the current state: finite or not, divergence, energies, inverted elements,
@@ -637,6 +730,51 @@ fn check_device(input: &TickInput) -> Result<(), ModelError> {
 /// `rest[nodes[k]]` (0 without `rest`).
 ///
 /// # Panics
+impl Fallback {
+    /// Ticks the companion with `input` and blends its answer into the region's `fine` one:
+    /// `outside` when the region's contact patch reaches a node it does not simulate, `swapped`
+    /// when a new region came in this tick (module documentation, "The coarse companion").
+    ///
+    /// # Errors
+    /// The companion's tick errors (a diverged companion quarantines the session as the
+    /// region would).
+    fn answer(
+        &mut self,
+        input: &TickInput,
+        fine: TickOutput,
+        outside: bool,
+        swapped: bool,
+    ) -> Result<TickOutput, ModelError> {
+        let coarse = self.sim.tick(input)?;
+        self.region_force_n = fine.force_on_device_n;
+        if outside || (swapped && self.weight > 0.0) {
+            self.settle_ticks = FALLBACK_SETTLE_TICKS;
+        } else {
+            self.settle_ticks = self.settle_ticks.saturating_sub(1);
+        }
+        let target = if self.settle_ticks > 0 { 1.0 } else { 0.0 };
+        let rate = 1.0 / f64::from(FALLBACK_BLEND_TICKS);
+        self.weight += (target - self.weight).clamp(-rate, rate);
+        let w = self.weight;
+        if w <= 0.0 {
+            return Ok(fine);
+        }
+        self.ticks_answered += 1;
+        let main = if w >= 0.5 { coarse } else { fine };
+        let mut stiffness = fine.contact_stiffness_n_per_m;
+        for (k, c) in stiffness.iter_mut().zip(coarse.contact_stiffness_n_per_m) {
+            *k += w * (c - *k);
+        }
+        Ok(TickOutput {
+            force_on_device_n: fine.force_on_device_n.lerp(coarse.force_on_device_n, w),
+            contact_stiffness_n_per_m: stiffness,
+            in_contact: fine.in_contact || coarse.in_contact,
+            proxy_position_m: main.proxy_position_m,
+            sim_time_s: fine.sim_time_s,
+        })
+    }
+}
+
 /// If `out.len() != 3 * nodes.len()`.
 fn write_positions(nodes: &[u32], x: &[DVec3], rest: Option<&[DVec3]>, out: &mut [f32]) -> f64 {
     assert_eq!(out.len(), 3 * nodes.len(), "surface buffer length");

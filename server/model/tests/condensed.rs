@@ -394,6 +394,17 @@ fn bad_active_regions_are_rejected_with_the_field_named() {
             "centre_m",
         ),
         (base, REGION.to_string() + "follow = 1\n", "follow"),
+        // The coarse companion needs a following region, and a sensible size.
+        (
+            base,
+            REGION.to_string() + "fallback_target_tets = 500\n",
+            "fallback_target_tets",
+        ),
+        (
+            base,
+            REGION.to_string() + "follow = true\nfallback_target_tets = 10\n",
+            "fallback_target_tets",
+        ),
     ];
     for (integrator, extra, field) in cases {
         let text = format!(
@@ -434,6 +445,23 @@ fn bad_active_regions_are_rejected_with_the_field_named() {
     let scene = parse_scene_toml(&text, Path::new(".")).expect("parses");
     let err = Simulation::new(&scene).expect_err("loads").to_string();
     assert!(err.contains("active_region.follow"), "{err}");
+    // The coarse companion: the same scene on the built-in mesh, quadratic, on its whole-body
+    // rest factor with the region's margin, without a region, smoothing or single precision.
+    let text = format!(
+        "[mesh]\nbuiltin = \"lv\"\ntarget_tets = 3000\norder = 1\nstrain_smoothing = \"edge\"\n[material]\nyoungs_modulus_pa = 14500.0\npoisson_ratio = 0.45\ndensity_kg_per_m3 = 1060.0\n[boundary]\nclamped = [\"BASE\"]\ntouchable = [\"EPI\"]\n[integrator]\n{base}\nforce_precision = \"single\"\n{REGION}stiffness_margin = 3.0\nfollow = true\nfallback_target_tets = 500\n"
+    );
+    let scene = parse_scene_toml(&text, Path::new(".")).expect("parses");
+    let coarse = scene.fallback.as_deref().expect("companion");
+    assert!(coarse.mesh.is_quadratic() && coarse.mesh.tets.len() < 600);
+    assert_eq!(coarse.strain_smoothing, StrainSmoothing::None);
+    assert!(coarse.active_region.is_none() && coarse.fallback.is_none());
+    assert!(!coarse.integrator.single_precision_forces);
+    assert_eq!(coarse.integrator.linear_solver, LinearSolver::RestCholesky);
+    assert_eq!(coarse.integrator.stiffness_margin, 3.0);
+    assert_eq!(coarse.touchable.len(), {
+        let m = &coarse.mesh;
+        m.surface("EPI").expect("EPI").triangles.len()
+    });
 }
 
 /// The built-in LV (linear tets, base clamped), a load of `force_n` spread over the
@@ -945,6 +973,186 @@ fn check_stroke(scene: &haptic_model::scene::Scene, depth: f64, min_swaps: u64) 
     );
     let st = sim.stability();
     assert!(st.stable && st.inverted_elements == 0, "{st:?}");
+}
+
+/// The device path of the companion test: pressed 1 mm at +x over 0.3 s and held 0.1 s,
+/// lifted 4 mm in 20 ticks, flown around the long axis to -x in 50 ticks, pressed there to
+/// 1 mm in 100 ticks (smoothstep), then held.
+fn fly_and_press(k: usize) -> TickInput {
+    const R_EPI: f64 = 0.00968;
+    let (probe_r, depth, air) = (0.002, 0.001, 0.004);
+    let ring = |d: f64| R_EPI + probe_r - d;
+    let smooth = |t: f64| {
+        let t = t.clamp(0.0, 1.0);
+        t * t * (3.0 - 2.0 * t)
+    };
+    let (theta, radius) = match k {
+        0..400 => (
+            0.0,
+            ring(-0.0005 + smooth(k as f64 / 300.0) * (0.0005 + depth)),
+        ),
+        400..420 => (
+            0.0,
+            ring(depth - smooth((k - 400) as f64 / 20.0) * (depth + air)),
+        ),
+        420..470 => (
+            std::f64::consts::PI * smooth((k - 420) as f64 / 50.0),
+            ring(-air),
+        ),
+        _ => (
+            std::f64::consts::PI,
+            ring(-air + smooth((k - 470) as f64 / 100.0) * (air + depth)),
+        ),
+    };
+    TickInput {
+        device_position_m: Some(DVec3::new(
+            radius * theta.cos(),
+            radius * theta.sin(),
+            -0.005,
+        )),
+        device_velocity_m_per_s: DVec3::ZERO,
+    }
+}
+
+/// The coarse companion (`active_region.fallback_target_tets`): a following region (about
+/// 2 000 linear tets, 6 mm, starting at +x) with the built-in `lv` (474 quadratic tets, rest
+/// factor) as companion, ticked back to back (faster than real time) along [`fly_and_press`],
+/// so the probe presses at -x long before a region there can be prepared. Checked:
+/// - until a region holds the patch, the output is the companion's own force (a second
+///   simulation of the companion alone, same inputs), not the unyielding far surface's (the
+///   fixed region without a companion, the control, reads more than twice as much);
+/// - once a region holds the patch it takes the probe back after the settling ticks, the
+///   weight returns to 0 and the held force is the region's (a blocking run pressed at -x
+///   directly, within 2 %);
+/// - the force changes by less than 7 % between consecutive ticks throughout the hold;
+/// - the tick allocates nothing.
+#[test]
+fn a_coarse_companion_answers_where_the_region_does_not_hold_the_contact() {
+    use haptic_model::sim::{FALLBACK_BLEND_TICKS, FALLBACK_SETTLE_TICKS};
+    const TETS: usize = 12_000;
+    let region = ActiveRegion {
+        radius_m: 0.006,
+        follow: true,
+        ..ACTIVE
+    };
+    let mut scene = lv_scene(
+        StrainSmoothing::None,
+        IntegratorKind::BackwardEuler,
+        Some(region),
+    );
+    // A finer mesh than the other tests', so that a region takes longer to prepare than the
+    // flight and the press take to tick.
+    let mesh = generate::lv_shell(TETS);
+    scene.clamped_nodes = mesh
+        .nodes_of_surfaces(&["BASE".to_string()], "clamped")
+        .expect("base");
+    scene.touchable = mesh.surface("EPI").expect("EPI").triangles.clone();
+    scene.mesh = mesh;
+    let mut coarse = load_builtin("lv").expect("lv");
+    coarse.probe.contact = ContactModel::Patch;
+    scene.fallback = Some(Box::new(coarse.clone()));
+    let mut sim = Simulation::new(&scene).expect("with companion");
+    let mut alone = Simulation::new(&coarse).expect("companion alone");
+
+    let hold_from = 600; // 30 ticks after the press at -x ended
+    let (mut forces, mut weights) = (Vec::new(), Vec::new());
+    let (mut answered, mut settled_at, mut last_swap) = (0usize, None, (0, 0));
+    // The region's own force while the companion answered in the hold (the far surface).
+    let mut region_alone = Vec::with_capacity(200_000);
+    let started = std::time::Instant::now();
+    let mut k = 0;
+    forces.reserve(200_000);
+    weights.reserve(200_000);
+    let (_, allocations) = counted(|| {
+        // Until the region has taken the probe back and held it 200 ticks (or 120 s).
+        while settled_at.is_none_or(|s| k < s + 200) && started.elapsed().as_secs() < 120 {
+            let input = fly_and_press(k);
+            let out = sim.tick(&input).expect("tick");
+            let own = alone.tick(&input).expect("companion tick");
+            let fb = sim.fallback_stats().expect("companion");
+            let w = fb.weight;
+            if w == 1.0 && k >= 470 {
+                let rel = (out.force_on_device_n - own.force_on_device_n).length()
+                    / own.force_on_device_n.length().max(1e-9);
+                assert!(
+                    rel < 1e-9,
+                    "tick {k}: {out:?} against the companion's {own:?}"
+                );
+                answered += 1;
+                if k >= hold_from {
+                    region_alone.push(fb.region_force_n.length());
+                }
+            }
+            if w == 0.0 && k > hold_from && settled_at.is_none() {
+                settled_at = Some(k);
+            }
+            let swaps = sim.follow_stats().expect("follows").swaps;
+            if swaps != last_swap.0 {
+                last_swap = (swaps, k);
+            }
+            forces.push(out.force_on_device_n.length());
+            weights.push(w);
+            k += 1;
+        }
+    });
+    assert_eq!(allocations, 0, "the servo thread allocated");
+    let settled_at = settled_at.expect("the region never took the probe back within 120 s");
+    let stats = sim.follow_stats().expect("follows");
+    eprintln!(
+        "companion answered {answered} ticks at -x, region back at tick {settled_at} ({:.1} s), {stats:?}",
+        started.elapsed().as_secs_f64()
+    );
+    assert!(stats.swaps >= 1 && stats.centre_m.x < -0.005, "{stats:?}");
+    assert!(
+        answered >= 100,
+        "the companion answered {answered} ticks only (regions came too fast to test it)"
+    );
+    // Hand-back: the settling ticks after the last swap, then the blend.
+    let last_full = weights.iter().rposition(|&w| w == 1.0).expect("weight 1");
+    assert_eq!(
+        settled_at - last_full,
+        FALLBACK_BLEND_TICKS as usize,
+        "weight 1 until {last_full}, 0 from {settled_at}"
+    );
+    assert!(
+        settled_at >= last_swap.1 + (FALLBACK_SETTLE_TICKS + FALLBACK_BLEND_TICKS - 1) as usize,
+        "last swap at {}, weight 0 from {settled_at}",
+        last_swap.1
+    );
+    // Continuity through the hold at -x, across the hand-back.
+    let change = (hold_from..forces.len())
+        .map(|k| (forces[k] - forces[k - 1]).abs() / forces[k - 1])
+        .fold(0.0, f64::max);
+    eprintln!("largest tick-to-tick force change in the hold: {change:.4}");
+    assert!(change < 0.07, "force jump {change} in the hold");
+
+    // What the companion replaced: the region alone rests on the unyielding far surface.
+    let at =
+        |f: &[f64], r: std::ops::Range<usize>| f[r.clone()].iter().sum::<f64>() / r.len() as f64;
+    let companion_hold = at(&forces, hold_from..hold_from + 50);
+    let far_surface = at(&region_alone, 0..50);
+    eprintln!("held at -x: companion {companion_hold:.5} N, the region alone {far_surface:.5} N");
+    assert!(
+        far_surface > 2.0 * companion_hold,
+        "the region alone did not rest on the far surface: {far_surface} against {companion_hold}"
+    );
+    // Back on the region: the force of a region centred at -x from the start.
+    let mut direct_scene = scene.clone();
+    direct_scene.fallback = None;
+    let mut direct = Simulation::new(&direct_scene).expect("direct");
+    direct.set_blocking_region_preparation(true);
+    let reference = press_at(
+        &mut direct,
+        DVec3::new(-0.00968, 0.0, -0.005),
+        DVec3::new(-1.0, 0.0, 0.0),
+        0.001,
+    );
+    let end = at(&forces, forces.len() - 50..forces.len());
+    eprintln!("held at -x on the region: {end:.5} N, direct press {reference:.5} N");
+    assert!(
+        (end - reference).abs() < 0.02 * reference,
+        "{end} N after the hand-back, {reference} N pressed directly"
+    );
 }
 
 /// The device force held after pressing `depth` (m) along the inward normal `-n` at the rest

@@ -23,7 +23,9 @@
 //! (its nodes are not simulated: it does not yield to the probe, which rests on it instead of
 //! passing through). How fast the probe may slide is set by the preparation time: the probe
 //! must stay well inside a region (its contact patch reaches two probe radii) until the next
-//! one is ready (`docs/benchmarks.md`).
+//! one is ready (`docs/benchmarks.md`). A scene with a coarse whole-body companion
+//! (`active_region.fallback_target_tets`) lets the companion answer meanwhile
+//! ([`crate::sim::Simulation`], "The coarse companion").
 //!
 //! Owns: the worker thread, the hand-off rings and the re-centring rule. May use:
 //! [`super::condensed`], [`crate::element`], [`crate::mesh`].

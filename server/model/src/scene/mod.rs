@@ -197,6 +197,12 @@ pub struct Scene {
     /// [`ModelFamily::Hybrid`]. `mesh` is then the whole wall (for listings); the body builds
     /// its own core and particle layer from the geometry.
     pub hybrid: Option<HybridScene>,
+    /// The coarse whole-body companion of a following active region
+    /// (`[active_region] fallback_target_tets`): the same scene on the built-in mesh at that
+    /// many quadratic tetrahedra, backward Euler on its whole-body rest factor. It answers the
+    /// probe where the region does not hold the contact ([`crate::sim::Simulation`], "The
+    /// coarse companion").
+    pub fallback: Option<Box<Scene>>,
 }
 
 /// The hybrid part of a scene (`[hybrid]`, with the wall geometry of the built-in mesh).

@@ -95,6 +95,7 @@ struct RawActiveRegion {
     radius_m: Option<f64>,
     stiffness_margin: Option<f64>,
     follow: Option<bool>,
+    fallback_target_tets: Option<i64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -461,6 +462,35 @@ pub(super) fn parse_scene(
         }
     };
     let name = raw.name.unwrap_or_else(|| default_name.to_string());
+    let fallback = match (&raw.active_region, &active_region) {
+        (Some(a), Some(region)) => match a.fallback_target_tets {
+            None => None,
+            Some(tets) => {
+                let field = "active_region.fallback_target_tets";
+                if !region.follow {
+                    return Err(ModelError::field(
+                        field,
+                        "needs active_region.follow = true",
+                    ));
+                }
+                if !matches!(
+                    mesh_raw.builtin.as_deref(),
+                    Some("lv" | "ellipsoids" | "sphere")
+                ) {
+                    return Err(ModelError::field(
+                        field,
+                        "needs mesh.builtin = \"lv\", \"ellipsoids\" or \"sphere\" (the companion is the same built-in geometry, coarser)",
+                    ));
+                }
+                let tets = int_in(field, tets, 50, 20_000)?;
+                let margin = region.stiffness_margin;
+                Some(Box::new(fallback_scene(
+                    text, base_dir, &name, origin, tets, margin,
+                )?))
+            }
+        },
+        _ => None,
+    };
     let (mut mesh, mut touchable, mut clamped_nodes) = (mesh, touchable, clamped_nodes);
     let mass_spring = if springs {
         let section = required("mass_spring", raw.mass_spring)?;
@@ -522,7 +552,45 @@ pub(super) fn parse_scene(
         length_unit_m,
         loads,
         active_region,
+        fallback,
     })
+}
+
+/// The coarse whole-body companion of a following region (`active_region.fallback_target_tets`,
+/// [`Scene::fallback`]): the scene `text` again, on its built-in mesh at about `tets` quadratic
+/// tetrahedra without strain smoothing, backward Euler on the whole-body rest factor with the
+/// region's stiffness margin, double-precision forces, no active region. Parsed by
+/// [`parse_scene`], so every check applies; an error names the fallback's field.
+fn fallback_scene(
+    text: &str,
+    base_dir: &Path,
+    name: &str,
+    origin: Origin,
+    tets: usize,
+    stiffness_margin: f64,
+) -> Result<Scene, ModelError> {
+    let field = "active_region.fallback_target_tets";
+    let bad = |e: String| ModelError::field(field, format!("the coarse companion: {e}"));
+    let mut doc: toml::Table = text
+        .parse()
+        .map_err(|e: toml::de::Error| bad(e.to_string()))?;
+    doc.remove("active_region");
+    fn table<'a>(doc: &'a mut toml::Table, key: &str) -> Option<&'a mut toml::Table> {
+        doc.entry(key)
+            .or_insert_with(|| toml::Value::Table(toml::Table::new()))
+            .as_table_mut()
+    }
+    let mesh = table(&mut doc, "mesh").ok_or_else(|| bad("[mesh] is not a table".into()))?;
+    mesh.insert("target_tets".into(), toml::Value::Integer(tets as i64));
+    mesh.insert("order".into(), toml::Value::Integer(2));
+    mesh.remove("strain_smoothing");
+    let integrator =
+        table(&mut doc, "integrator").ok_or_else(|| bad("[integrator] is not a table".into()))?;
+    integrator.insert("linear_solver".into(), "rest-cholesky".into());
+    integrator.insert("stiffness_margin".into(), stiffness_margin.into());
+    integrator.remove("force_precision");
+    let text = toml::to_string(&doc).map_err(|e| bad(e.to_string()))?;
+    parse_scene(&text, base_dir, name, origin).map_err(|e| bad(e.to_string()))
 }
 
 // ----- hybrid section -----
