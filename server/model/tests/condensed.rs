@@ -462,6 +462,43 @@ fn bad_active_regions_are_rejected_with_the_field_named() {
         let m = &coarse.mesh;
         m.surface("EPI").expect("EPI").triangles.len()
     });
+    // A mesh file of the built-in geometry names it; another geometry is refused.
+    let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/lv/lv_h3.msh");
+    let on_file = |unit: &str, extra: &str| {
+        let text = format!(
+            "[mesh]\nfile = {file:?}\nlength_unit = \"{unit}\"\n[material]\nyoungs_modulus_pa = 14500.0\npoisson_ratio = 0.45\ndensity_kg_per_m3 = 1060.0\n[boundary]\nclamped = [\"BASE\"]\ntouchable = [\"EPI\"]\n[integrator]\n{base}\n{REGION}follow = true\n{extra}"
+        );
+        parse_scene_toml(&text, Path::new("."))
+    };
+    let lv = "fallback_target_tets = 500\nfallback_builtin = \"lv\"\n";
+    let scene = on_file("mm", lv).expect("lv file");
+    let coarse = scene.fallback.as_deref().expect("companion");
+    assert!(coarse.mesh.is_quadratic() && coarse.mesh.tets.len() < 600);
+    for (unit, extra, message) in [
+        (
+            "mm",
+            "fallback_target_tets = 500\n",
+            "is required with a mesh file",
+        ),
+        (
+            "mm",
+            "fallback_builtin = \"lv\"\n",
+            "needs active_region.fallback_target_tets",
+        ),
+        (
+            "mm",
+            "fallback_target_tets = 500\nfallback_builtin = \"box\"\n",
+            "not \"box\"",
+        ),
+        // The file read in centimetres is ten times the built-in lv.
+        ("cm", lv, "does not match the mesh"),
+    ] {
+        let err = on_file(unit, extra).expect_err(extra).to_string();
+        assert!(
+            err.contains("fallback_builtin") && err.contains(message),
+            "{extra}: {err}"
+        );
+    }
 }
 
 /// The built-in LV (linear tets, base clamped), a load of `force_n` spread over the

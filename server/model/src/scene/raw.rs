@@ -96,6 +96,7 @@ struct RawActiveRegion {
     stiffness_margin: Option<f64>,
     follow: Option<bool>,
     fallback_target_tets: Option<i64>,
+    fallback_builtin: Option<String>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -464,6 +465,12 @@ pub(super) fn parse_scene(
     let name = raw.name.unwrap_or_else(|| default_name.to_string());
     let fallback = match (&raw.active_region, &active_region) {
         (Some(a), Some(region)) => match a.fallback_target_tets {
+            None if a.fallback_builtin.is_some() => {
+                return Err(ModelError::field(
+                    "active_region.fallback_builtin",
+                    "needs active_region.fallback_target_tets",
+                ));
+            }
             None => None,
             Some(tets) => {
                 let field = "active_region.fallback_target_tets";
@@ -473,20 +480,36 @@ pub(super) fn parse_scene(
                         "needs active_region.follow = true",
                     ));
                 }
-                if !matches!(
-                    mesh_raw.builtin.as_deref(),
-                    Some("lv" | "ellipsoids" | "sphere")
-                ) {
+                let tets = int_in(field, tets, 100, 20_000)?;
+                // The companion's geometry: the scene's own built-in, or the one named for a
+                // mesh file of the same shape.
+                let builtin = match (&a.fallback_builtin, &mesh_raw.builtin) {
+                    (Some(b), _) | (None, Some(b)) => b.as_str(),
+                    (None, None) => {
+                        return Err(ModelError::field(
+                            "active_region.fallback_builtin",
+                            "is required with a mesh file: the built-in geometry the file meshes (\"lv\", \"ellipsoids\" or \"sphere\")",
+                        ));
+                    }
+                };
+                if !matches!(builtin, "lv" | "ellipsoids" | "sphere") {
+                    let field = if a.fallback_builtin.is_some() {
+                        "active_region.fallback_builtin"
+                    } else {
+                        field
+                    };
                     return Err(ModelError::field(
                         field,
-                        "needs mesh.builtin = \"lv\", \"ellipsoids\" or \"sphere\" (the companion is the same built-in geometry, coarser)",
+                        format!(
+                            "the companion is a built-in \"lv\", \"ellipsoids\" or \"sphere\", not \"{builtin}\""
+                        ),
                     ));
                 }
-                let tets = int_in(field, tets, 50, 20_000)?;
                 let margin = region.stiffness_margin;
-                Some(Box::new(fallback_scene(
-                    text, base_dir, &name, origin, tets, margin,
-                )?))
+                let coarse =
+                    fallback_scene(text, base_dir, &name, origin, (builtin, tets), margin)?;
+                check_same_shape(&mesh, &coarse.mesh)?;
+                Some(Box::new(coarse))
             }
         },
         _ => None,
@@ -557,16 +580,17 @@ pub(super) fn parse_scene(
 }
 
 /// The coarse whole-body companion of a following region (`active_region.fallback_target_tets`,
-/// [`Scene::fallback`]): the scene `text` again, on its built-in mesh at about `tets` quadratic
-/// tetrahedra without strain smoothing, backward Euler on the whole-body rest factor with the
-/// region's stiffness margin, double-precision forces, no active region. Parsed by
-/// [`parse_scene`], so every check applies; an error names the fallback's field.
+/// [`Scene::fallback`]): the scene `text` again, on the built-in mesh `builtin` at about `tets`
+/// quadratic tetrahedra (in place of the scene's mesh) without strain smoothing, backward Euler
+/// on the whole-body rest factor with the region's stiffness margin, double-precision forces,
+/// no active region. Parsed by [`parse_scene`], so every check applies; an error names the
+/// fallback's field.
 fn fallback_scene(
     text: &str,
     base_dir: &Path,
     name: &str,
     origin: Origin,
-    tets: usize,
+    (builtin, tets): (&str, usize),
     stiffness_margin: f64,
 ) -> Result<Scene, ModelError> {
     let field = "active_region.fallback_target_tets";
@@ -581,6 +605,11 @@ fn fallback_scene(
             .as_table_mut()
     }
     let mesh = table(&mut doc, "mesh").ok_or_else(|| bad("[mesh] is not a table".into()))?;
+    if mesh.remove("file").is_some() {
+        // The file's parameters are not the built-in's (its length unit names the outputs').
+        mesh.retain(|k, _| k == "length_unit");
+    }
+    mesh.insert("builtin".into(), builtin.into());
     mesh.insert("target_tets".into(), toml::Value::Integer(tets as i64));
     mesh.insert("order".into(), toml::Value::Integer(2));
     mesh.remove("strain_smoothing");
@@ -591,6 +620,26 @@ fn fallback_scene(
     integrator.remove("force_precision");
     let text = toml::to_string(&doc).map_err(|e| bad(e.to_string()))?;
     parse_scene(&text, base_dir, name, origin).map_err(|e| bad(e.to_string()))
+}
+
+/// Refuses a companion whose mesh is not the scene mesh's shape: their bounding boxes (m) must
+/// agree to 2 % of the scene mesh's diagonal (a mesh file of another geometry, or in another
+/// unit, would be answered by a body the probe is not touching).
+fn check_same_shape(mesh: &TetMesh, coarse: &TetMesh) -> Result<(), ModelError> {
+    let ((lo, hi), (clo, chi)) = (mesh.bounding_box(), coarse.bounding_box());
+    let off = (lo - clo).abs().max((hi - chi).abs()).max_element();
+    let size = (hi - lo).length();
+    if off > 0.02 * size {
+        return Err(ModelError::field(
+            "active_region.fallback_builtin",
+            format!(
+                "the companion's geometry does not match the mesh: bounding boxes differ by {:.3} mm (the mesh spans {:.1} mm)",
+                off * 1e3,
+                size * 1e3
+            ),
+        ));
+    }
+    Ok(())
 }
 
 // ----- hybrid section -----

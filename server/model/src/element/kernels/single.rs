@@ -567,6 +567,61 @@ unsafe fn packed_row(base: *const f32, node4: u32, at: usize) -> __m128 {
     unsafe { _mm_load_ps(base.add(2 * node4 as usize + at)) }
 }
 
+/// The element-wise methods of [`F32Lanes`] for a lane type wrapping one register, from
+/// the intrinsics of its width (zero, splat, aligned and unaligned load, the register type
+/// for the volatile load, add, sub, mul, fused multiply-add).
+#[cfg(target_arch = "x86_64")]
+macro_rules! lane_ops {
+    ($zero:ident, $splat:ident, $load:ident, $loadu:ident, $reg:ty, $add:ident, $sub:ident,
+     $mul:ident, $fma:ident) => {
+        #[inline(always)]
+        unsafe fn zero() -> Self {
+            // SAFETY (every method): the trait's contract.
+            Self(unsafe { $zero() })
+        }
+
+        #[inline(always)]
+        unsafe fn splat(v: f32) -> Self {
+            Self(unsafe { $splat(v) })
+        }
+
+        #[inline(always)]
+        unsafe fn load(p: *const f32) -> Self {
+            Self(unsafe { $load(p) })
+        }
+
+        #[inline(always)]
+        unsafe fn loadu(p: *const f32) -> Self {
+            Self(unsafe { $loadu(p) })
+        }
+
+        #[inline(always)]
+        unsafe fn load_volatile(p: *const f32) -> Self {
+            Self(unsafe { std::ptr::read_volatile(p.cast::<$reg>()) })
+        }
+
+        #[inline(always)]
+        unsafe fn add(self, o: Self) -> Self {
+            Self(unsafe { $add(self.0, o.0) })
+        }
+
+        #[inline(always)]
+        unsafe fn sub(self, o: Self) -> Self {
+            Self(unsafe { $sub(self.0, o.0) })
+        }
+
+        #[inline(always)]
+        unsafe fn mul(self, o: Self) -> Self {
+            Self(unsafe { $mul(self.0, o.0) })
+        }
+
+        #[inline(always)]
+        unsafe fn fma(a: Self, b: Self, c: Self) -> Self {
+            Self(unsafe { $fma(a.0, b.0, c.0) })
+        }
+    };
+}
+
 /// Eight lanes in an AVX2 register.
 #[cfg(target_arch = "x86_64")]
 #[derive(Clone, Copy)]
@@ -576,51 +631,17 @@ struct Y8(__m256);
 impl F32Lanes for Y8 {
     const WIDTH: usize = 8;
 
-    #[inline(always)]
-    unsafe fn zero() -> Self {
-        // SAFETY (every method): the trait's contract.
-        Self(unsafe { _mm256_setzero_ps() })
-    }
-
-    #[inline(always)]
-    unsafe fn splat(v: f32) -> Self {
-        Self(unsafe { _mm256_set1_ps(v) })
-    }
-
-    #[inline(always)]
-    unsafe fn load(p: *const f32) -> Self {
-        Self(unsafe { _mm256_load_ps(p) })
-    }
-
-    #[inline(always)]
-    unsafe fn loadu(p: *const f32) -> Self {
-        Self(unsafe { _mm256_loadu_ps(p) })
-    }
-
-    #[inline(always)]
-    unsafe fn load_volatile(p: *const f32) -> Self {
-        Self(unsafe { std::ptr::read_volatile(p.cast::<__m256>()) })
-    }
-
-    #[inline(always)]
-    unsafe fn add(self, o: Self) -> Self {
-        Self(unsafe { _mm256_add_ps(self.0, o.0) })
-    }
-
-    #[inline(always)]
-    unsafe fn sub(self, o: Self) -> Self {
-        Self(unsafe { _mm256_sub_ps(self.0, o.0) })
-    }
-
-    #[inline(always)]
-    unsafe fn mul(self, o: Self) -> Self {
-        Self(unsafe { _mm256_mul_ps(self.0, o.0) })
-    }
-
-    #[inline(always)]
-    unsafe fn fma(a: Self, b: Self, c: Self) -> Self {
-        Self(unsafe { _mm256_fmadd_ps(a.0, b.0, c.0) })
-    }
+    lane_ops!(
+        _mm256_setzero_ps,
+        _mm256_set1_ps,
+        _mm256_load_ps,
+        _mm256_loadu_ps,
+        __m256,
+        _mm256_add_ps,
+        _mm256_sub_ps,
+        _mm256_mul_ps,
+        _mm256_fmadd_ps
+    );
 
     /// Lanes l and l + 4 share a register (low and high halves); four registers are
     /// transposed with seven shuffles.
@@ -679,51 +700,17 @@ struct Z16(__m512);
 impl F32Lanes for Z16 {
     const WIDTH: usize = 16;
 
-    #[inline(always)]
-    unsafe fn zero() -> Self {
-        // SAFETY (every method): the trait's contract.
-        Self(unsafe { _mm512_setzero_ps() })
-    }
-
-    #[inline(always)]
-    unsafe fn splat(v: f32) -> Self {
-        Self(unsafe { _mm512_set1_ps(v) })
-    }
-
-    #[inline(always)]
-    unsafe fn load(p: *const f32) -> Self {
-        Self(unsafe { _mm512_load_ps(p) })
-    }
-
-    #[inline(always)]
-    unsafe fn loadu(p: *const f32) -> Self {
-        Self(unsafe { _mm512_loadu_ps(p) })
-    }
-
-    #[inline(always)]
-    unsafe fn load_volatile(p: *const f32) -> Self {
-        Self(unsafe { std::ptr::read_volatile(p.cast::<__m512>()) })
-    }
-
-    #[inline(always)]
-    unsafe fn add(self, o: Self) -> Self {
-        Self(unsafe { _mm512_add_ps(self.0, o.0) })
-    }
-
-    #[inline(always)]
-    unsafe fn sub(self, o: Self) -> Self {
-        Self(unsafe { _mm512_sub_ps(self.0, o.0) })
-    }
-
-    #[inline(always)]
-    unsafe fn mul(self, o: Self) -> Self {
-        Self(unsafe { _mm512_mul_ps(self.0, o.0) })
-    }
-
-    #[inline(always)]
-    unsafe fn fma(a: Self, b: Self, c: Self) -> Self {
-        Self(unsafe { _mm512_fmadd_ps(a.0, b.0, c.0) })
-    }
+    lane_ops!(
+        _mm512_setzero_ps,
+        _mm512_set1_ps,
+        _mm512_load_ps,
+        _mm512_loadu_ps,
+        __m512,
+        _mm512_add_ps,
+        _mm512_sub_ps,
+        _mm512_mul_ps,
+        _mm512_fmadd_ps
+    );
 
     /// Lanes l, l + 4, l + 8 and l + 12 share a register (one per 128-bit block); the
     /// in-block unpacks and shuffles of [`Y8::load_rows`] then transpose all four blocks.
