@@ -357,7 +357,7 @@ impl Simulation {
         if let Some(time_s) = self.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
-        let swaps_before = self.follow.0.as_ref().map_or(0, |f| f.stats().swaps);
+        let swaps_before = self.follow.0.as_ref().map_or(0, RegionFollower::swaps);
         if let (Some(f), Stepper::Condensed(solver)) = (&mut self.follow.0, &mut self.stepper) {
             let device = input
                 .device_position_m
@@ -423,7 +423,8 @@ impl Simulation {
         };
         let out = match self.fallback.as_deref_mut() {
             Some(fb) => {
-                let swapped = self.follow.0.as_ref().map_or(0, |f| f.stats().swaps) != swaps_before;
+                let swapped =
+                    self.follow.0.as_ref().map_or(0, RegionFollower::swaps) != swaps_before;
                 let outside = self
                     .stepper
                     .condensed()

@@ -199,6 +199,12 @@ impl RegionFollower {
         self.blocking = on;
     }
 
+    /// Regions swapped in so far (as in [`Self::stats`], without reading the worker's
+    /// counters).
+    pub fn swaps(&self) -> u64 {
+        self.swaps
+    }
+
     /// Counters.
     pub fn stats(&self) -> FollowStats {
         let f = |a: &AtomicU64| f64::from_bits(a.load(Ordering::Relaxed));
