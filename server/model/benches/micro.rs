@@ -77,14 +77,23 @@ fn bench_forces(bencher: divan::Bencher, size: &str, viscous: bool) {
 }
 
 fn bench_forces_of(bencher: divan::Bencher, sim: Simulation, viscous: bool) {
-    let n = sim.fem().node_count();
+    bench_model_forces(bencher, sim.fem(), &sim, viscous);
+}
+
+/// One force evaluation of `fem` (the model of `sim`, or a copy of it) in `sim`'s state.
+fn bench_model_forces(
+    bencher: divan::Bencher,
+    fem: &haptic_model::element::FemModel,
+    sim: &Simulation,
+    viscous: bool,
+) {
+    let n = fem.node_count();
     let mut f = vec![DVec3::ZERO; n];
     let mut scratch = haptic_model::element::ForceScratch::new(n);
     let velocities = viscous.then_some(sim.state().v.as_slice());
-    bencher.counter(sim.fem().tets().len()).bench_local(|| {
+    bencher.counter(fem.tets().len()).bench_local(|| {
         f.iter_mut().for_each(|v| *v = DVec3::ZERO);
-        sim.fem()
-            .add_internal_forces_with(&sim.state().x, velocities, &mut f, &mut scratch);
+        fem.add_internal_forces_with(&sim.state().x, velocities, &mut f, &mut scratch);
         divan::black_box(&f);
     });
 }
@@ -129,15 +138,7 @@ fn add_forces_single_isa(bencher: divan::Bencher, run: &str) {
     let mut fem = sim.fem().clone();
     fem.pin_single_precision_isa(isa)
         .expect("lv_h1 runs single precision");
-    let n = fem.node_count();
-    let mut f = vec![DVec3::ZERO; n];
-    let mut scratch = haptic_model::element::ForceScratch::new(n);
-    let velocities = (kind == "viscous").then_some(sim.state().v.as_slice());
-    bencher.counter(fem.tets().len()).bench_local(|| {
-        f.iter_mut().for_each(|v| *v = DVec3::ZERO);
-        fem.add_internal_forces_with(&sim.state().x, velocities, &mut f, &mut scratch);
-        divan::black_box(&f);
-    });
+    bench_model_forces(bencher, &fem, &sim, kind == "viscous");
 }
 
 /// Force evaluation (elastic + viscous) per material model: `mesh material`.
