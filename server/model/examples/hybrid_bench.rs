@@ -43,6 +43,12 @@ struct Args {
     /// Lattice spacing override, m (half the default spacing: about eight times the particles).
     #[arg(long)]
     spacing_m: Option<f64>,
+    /// `hybrid.mass_scale` override.
+    #[arg(long)]
+    mass_scale: Option<f64>,
+    /// `hybrid.core_mass_scale` override (1: the body's real inertia).
+    #[arg(long)]
+    core_mass_scale: Option<f64>,
 }
 
 fn rss_kib() -> u64 {
@@ -88,6 +94,13 @@ fn main() -> anyhow::Result<()> {
     if let Some(sp) = args.spacing_m {
         h.params.meshfree.spacing_m = sp;
     }
+    if let Some(m) = args.mass_scale {
+        h.params.mass_scale = m;
+    }
+    if args.core_mass_scale.is_some() {
+        h.params.core_mass_scale = args.core_mass_scale;
+    }
+    h.params.validate()?;
     let rss0 = rss_kib();
     let t0 = Instant::now();
     let model = prepare(

@@ -31,6 +31,9 @@ struct Args {
     /// `hybrid.mass_scale` override.
     #[arg(long)]
     mass_scale: Option<f64>,
+    /// `hybrid.core_mass_scale` override (1: the body's real inertia).
+    #[arg(long)]
+    core_mass_scale: Option<f64>,
     /// `hybrid.contact_stiffness_n_per_m` override (probe penalty per particle).
     #[arg(long)]
     contact_stiffness_n_per_m: Option<f64>,
@@ -67,10 +70,18 @@ fn main() -> anyhow::Result<()> {
     if let Some(m) = args.mass_scale {
         h.params.mass_scale = m;
     }
+    if args.core_mass_scale.is_some() {
+        h.params.core_mass_scale = args.core_mass_scale;
+    }
+    h.params.validate()?;
     if let Some(k) = args.contact_stiffness_n_per_m {
         h.params.contact_stiffness_n_per_m = k;
     }
-    let (variant, mass_scale) = (h.params.meshfree.variant, h.params.mass_scale);
+    let (variant, mass_scale, core_mass_scale) = (
+        h.params.meshfree.variant,
+        h.params.mass_scale,
+        h.params.core_mass_scale(),
+    );
 
     let mut body: Box<dyn SoftBody> = match args.substeps {
         None => haptic_model::build_body(&scene)?,
@@ -97,7 +108,7 @@ fn main() -> anyhow::Result<()> {
     };
     let tick = scene.integrator.tick_s;
     println!(
-        "{} {} mass_scale {mass_scale}, contact stiffness {} N/m per particle, ramp {} s, hold {} s, {} sub-steps per tick",
+        "{} {} mass_scale {mass_scale}, core_mass_scale {core_mass_scale}, contact stiffness {} N/m per particle, ramp {} s, hold {} s, {} sub-steps per tick",
         args.scene,
         variant.name(),
         scene

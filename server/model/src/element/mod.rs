@@ -294,6 +294,21 @@ impl FemModel {
         &self.lumped_mass_kg
     }
 
+    /// Adds `kg` to the lumped mass of every node (`kg[i]` to node `i`), for bodies whose
+    /// inertia is carried by the mesh but whose mass lies partly outside it (the hybrid model's
+    /// particle layer).
+    ///
+    /// # Panics
+    /// If `kg` does not have one value per node, or a resulting mass is not finite and
+    /// positive.
+    pub fn add_lumped_mass(&mut self, kg: &[f64]) {
+        assert_eq!(kg.len(), self.lumped_mass_kg.len(), "one mass per node");
+        for (m, a) in self.lumped_mass_kg.iter_mut().zip(kg) {
+            *m += a;
+            assert!(m.is_finite() && *m > 0.0, "lumped mass {m} kg");
+        }
+    }
+
     /// Constrained components per node ([`CLAMPED`] for a clamped node). Length N.
     pub fn constraints(&self) -> &[ConstraintMask] {
         &self.constraint

@@ -97,6 +97,13 @@ pub struct HybridParams {
     /// Not in the seed: above 1 it slows the whole dynamics down by its square root and raises
     /// the critical steps as much; static forces do not change.
     pub mass_scale: f64,
+    /// Multiplier of the core's mass (its own and the particle layer's, which the core
+    /// carries through the ties; `None`: `mass_scale`, a uniform slow-down). `Some(1.0)` gives
+    /// the body its real inertia while the particles keep `mass_scale`: the sub-steps then
+    /// follow the core's critical step, and the probe no longer pushes a body made heavier by
+    /// the mass scale (`docs/accuracy.md`, "The hybrid model's real-inertia core"). Not in
+    /// the seed.
+    pub core_mass_scale: Option<f64>,
     /// Fraction of the critical step used, in (0, 1].
     pub safety_factor: f64,
     /// Most sub-steps per servo tick.
@@ -115,6 +122,7 @@ impl Default for HybridParams {
             max_active_particles: 2000,
             contact_stiffness_n_per_m: 5.0,
             mass_scale: 1.0,
+            core_mass_scale: None,
             safety_factor: 0.9,
             max_substeps: 200,
         }
@@ -122,6 +130,11 @@ impl Default for HybridParams {
 }
 
 impl HybridParams {
+    /// The core's mass multiplier: `core_mass_scale`, or `mass_scale` when unset.
+    pub fn core_mass_scale(&self) -> f64 {
+        self.core_mass_scale.unwrap_or(self.mass_scale)
+    }
+
     /// Checks every value.
     ///
     /// # Errors
@@ -172,6 +185,14 @@ impl HybridParams {
             return Err(ModelError::field(
                 "hybrid.mass_scale",
                 "must be in [1, 1e6]",
+            ));
+        }
+        if let Some(c) = self.core_mass_scale
+            && !(1.0..=1e6).contains(&c)
+        {
+            return Err(ModelError::field(
+                "hybrid.core_mass_scale",
+                format!("must be in [1, 1e6], got {c}"),
             ));
         }
         if !(self.safety_factor > 0.0 && self.safety_factor <= 1.0) {

@@ -83,6 +83,35 @@ pub struct HybridModel {
 }
 
 impl HybridModel {
+    /// The layer particles' mass carried by each core node, kg (length: core nodes; unit mass
+    /// scale): each layer particle's mass (`density spacing^3`) spread over its tie's four
+    /// nodes in proportion to the tie weights (negative weights of a tie extrapolated past its
+    /// tetrahedron count as zero, the rest renormalised, so every share is non-negative and
+    /// the total is the layer's mass). Inactive particles follow the core, so this is where
+    /// their inertia lives (seed 000 section 6: the surface follows the core where no particle
+    /// is simulated).
+    pub fn layer_mass_on_core_kg(&self) -> Vec<f64> {
+        let mut kg = vec![0.0; self.core_mesh.nodes.len()];
+        let m = self.cloud.mass_kg();
+        for tie in &self.particle_tie[..self.layer_count] {
+            let w = tie.w.map(|w| w.max(0.0));
+            let sum: f64 = w.iter().sum();
+            let t = self.core_mesh.tets[tie.tet as usize];
+            if sum > 0.0 {
+                for (node, w) in t.iter().zip(w) {
+                    kg[*node as usize] += m * w / sum;
+                }
+            } else {
+                // Every weight negative cannot happen for barycentric weights summing to 1;
+                // spread evenly rather than lose the mass.
+                for node in t {
+                    kg[node as usize] += 0.25 * m;
+                }
+            }
+        }
+        kg
+    }
+
     /// The core nodes a scene clamps: those on the base plane of a truncated wall (the LV's
     /// base), or those below `-0.8` times the core's outer z semi-axis of a closed one (the
     /// bottom pole cap, as the `ellipsoids` scene clamps), sorted.

@@ -206,7 +206,9 @@ release_radius_m = 0.005
 release_tolerance_m = 0.00002
 max_active_particles = 2000
 contact_stiffness_n_per_m = 16.0 # probe-particle penalty, per particle (static force within 1 % of the hard-contact limit)
-mass_scale = 1000.0
+mass_scale = 1000.0              # uniform (core too): 2 sub-steps per tick, a body 1000 times heavier
+# core_mass_scale = 1.0         # the body's real inertia, only the active particles heavier (with
+#                               # mass_scale = 300): about 10 sub-steps, docs/scenes.md
 safety_factor = 0.9
 max_substeps = 64
 

@@ -63,6 +63,7 @@ struct RawHybrid {
     max_active_particles: Option<i64>,
     contact_stiffness_n_per_m: Option<f64>,
     mass_scale: Option<f64>,
+    core_mass_scale: Option<f64>,
     safety_factor: Option<f64>,
     max_substeps: Option<i64>,
 }
@@ -736,6 +737,7 @@ fn build_hybrid(h: &RawHybrid, mesh: &RawMesh, unit_m: f64) -> Result<HybridScen
             .contact_stiffness_n_per_m
             .unwrap_or(d.contact_stiffness_n_per_m),
         mass_scale: h.mass_scale.unwrap_or(d.mass_scale),
+        core_mass_scale: h.core_mass_scale,
         safety_factor: h.safety_factor.unwrap_or(d.safety_factor),
         max_substeps: opt_int(
             "hybrid.max_substeps",
