@@ -488,19 +488,10 @@ fn power_iteration_finds_the_critical_step() {
 /// The lv-hybrid model with the body's real inertia (`core_mass_scale = 1`) and particles at
 /// `mass_scale = 300`.
 fn lv_real_inertia() -> (haptic_model::hybrid::HybridModel, Vec<u32>, ProbeParams) {
-    let scene = haptic_model::scene::load_builtin("lv-hybrid").expect("lv-hybrid");
-    let mut h = scene.hybrid.clone().expect("a hybrid scene");
-    h.params.mass_scale = 300.0;
-    h.params.core_mass_scale = Some(1.0);
-    let model = prepare(
-        h.geometry,
-        &h.params,
-        &scene.material,
-        h.core_target_tets,
-        &mut |_, _| {},
-    )
-    .expect("prepare");
-    let clamped = model.clamped_core_nodes();
+    let (model, clamped, scene) = common::lv_hybrid_model(|p| {
+        p.mass_scale = 300.0;
+        p.core_mass_scale = Some(1.0);
+    });
     (model, clamped, scene.probe)
 }
 

@@ -11,33 +11,37 @@
 //! held active (up to the scene's 2 000 particles), then released; the body must not diverge
 //! and must come to rest.
 
+mod common;
+
 use glam::DVec3;
 use haptic_model::body::{SoftBody, TickInput};
-use haptic_model::hybrid::{HybridBody, prepare};
+use haptic_model::hybrid::HybridBody;
 use haptic_model::meshfree::{KernelKind, MeshfreeVariant};
-use haptic_model::scene::load_builtin;
 
 #[test]
 fn default_substeps_stay_bounded_pressed_deep_with_many_regions_active() {
     for (variant, substeps) in [(MeshfreeVariant::Seed, 1), (MeshfreeVariant::Corrected, 2)] {
-        worst_case(variant, substeps);
+        worst_case(variant, None, substeps);
     }
 }
 
-fn worst_case(variant: MeshfreeVariant, substeps: u32) {
-    let scene = load_builtin("lv-hybrid").expect("scene");
-    let mut h = scene.hybrid.clone().expect("hybrid");
-    h.params.meshfree.variant = variant;
-    h.params.meshfree.kernel = KernelKind::default_for(variant);
-    let model = prepare(
-        h.geometry,
-        &h.params,
-        &scene.material,
-        h.core_target_tets,
-        &mut |_, _| {},
-    )
-    .expect("prepare");
-    let clamped = model.clamped_core_nodes();
+#[test]
+fn a_real_inertia_core_stays_stable_pressed_deep_with_many_regions_active() {
+    // core_mass_scale = 1 (the body's real inertia), particles at mass_scale = 300: the
+    // sub-steps come from the core's critical step and the coupling margin (10 per tick).
+    worst_case(MeshfreeVariant::Corrected, Some((300.0, 1.0)), 10);
+}
+
+/// `scales`: `(mass_scale, core_mass_scale)`, or the scene's.
+fn worst_case(variant: MeshfreeVariant, scales: Option<(f64, f64)>, substeps: u32) {
+    let (model, clamped, scene) = common::lv_hybrid_model(|p| {
+        p.meshfree.variant = variant;
+        p.meshfree.kernel = KernelKind::default_for(variant);
+        if let Some((m, c)) = scales {
+            p.mass_scale = m;
+            p.core_mass_scale = Some(c);
+        }
+    });
     let mut body = HybridBody::new(
         model,
         &clamped,

@@ -36,3 +36,27 @@ pub fn lame_u_r(r: f64, a: f64, b: f64, e: f64, nu: f64, p: f64) -> f64 {
     p * a.powi(3) / (e * (b.powi(3) - a.powi(3)))
         * ((1.0 - 2.0 * nu) * r + (1.0 + nu) * b.powi(3) / (2.0 * r * r))
 }
+
+/// The built-in `lv-hybrid` scene's model, prepared with `edit` applied to its hybrid
+/// parameters, its clamped core nodes, and the scene.
+pub fn lv_hybrid_model(
+    edit: impl FnOnce(&mut haptic_model::hybrid::HybridParams),
+) -> (
+    haptic_model::hybrid::HybridModel,
+    Vec<u32>,
+    haptic_model::scene::Scene,
+) {
+    let scene = haptic_model::scene::load_builtin("lv-hybrid").expect("lv-hybrid");
+    let mut h = scene.hybrid.clone().expect("a hybrid scene");
+    edit(&mut h.params);
+    let model = haptic_model::hybrid::prepare(
+        h.geometry,
+        &h.params,
+        &scene.material,
+        h.core_target_tets,
+        &mut |_, _| {},
+    )
+    .expect("prepare");
+    let clamped = model.clamped_core_nodes();
+    (model, clamped, scene)
+}
