@@ -11,7 +11,7 @@ use std::time::Instant;
 
 use clap::Parser;
 use haptic_model::body::{SoftBody, TickInput};
-use haptic_model::hybrid::{HybridBody, prepare};
+use haptic_model::hybrid::HybridBody;
 use haptic_model::meshfree::MeshfreeVariant;
 use haptic_model::scene::load_builtin;
 
@@ -84,8 +84,11 @@ fn print_estimate(body: &mut HybridBody, state: &str) -> anyhow::Result<()> {
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let scene = load_builtin(&args.scene)?;
-    let mut h = scene.hybrid.clone().expect("a hybrid scene");
+    let mut scene = load_builtin(&args.scene)?;
+    let h = scene
+        .hybrid
+        .as_mut()
+        .ok_or_else(|| anyhow::anyhow!("{} is not a hybrid scene", args.scene))?;
     if let Some(v) = &args.variant {
         h.params.meshfree.variant = MeshfreeVariant::from_name(v).expect("seed or corrected");
         h.params.meshfree.kernel =
@@ -101,21 +104,16 @@ fn main() -> anyhow::Result<()> {
         h.params.core_mass_scale = args.core_mass_scale;
     }
     h.params.validate()?;
+    let variant = h.params.meshfree.variant;
     let rss0 = rss_kib();
     let t0 = Instant::now();
-    let model = prepare(
-        h.geometry,
-        &h.params,
-        &scene.material,
-        h.core_target_tets,
-        &mut |s, f| {
-            eprintln!(
-                "  preprocessing {:5.1} % {s} ({:.2} s)",
-                100.0 * f,
-                t0.elapsed().as_secs_f64()
-            )
-        },
-    )?;
+    let model = haptic_model::prepare_hybrid(&scene, &mut |s, f| {
+        eprintln!(
+            "  preprocessing {:5.1} % {s} ({:.2} s)",
+            100.0 * f,
+            t0.elapsed().as_secs_f64()
+        )
+    })?;
     let prep_s = t0.elapsed().as_secs_f64();
     let rss1 = rss_kib();
     eprintln!(
@@ -195,7 +193,7 @@ fn main() -> anyhow::Result<()> {
         println!(
             "{},{},{},{},{},{},{},{:.1},{:.1},{:.3}",
             args.scene,
-            h.params.meshfree.variant.name(),
+            variant.name(),
             model.layer_count,
             active,
             body.substeps().0,

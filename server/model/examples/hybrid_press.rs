@@ -86,14 +86,7 @@ fn main() -> anyhow::Result<()> {
     let mut body: Box<dyn SoftBody> = match args.substeps {
         None => haptic_model::build_body(&scene)?,
         Some(n) => {
-            let h = scene.hybrid.as_ref().expect("a hybrid scene");
-            let model = haptic_model::hybrid::prepare(
-                h.geometry,
-                &h.params,
-                &scene.material,
-                h.core_target_tets,
-                &mut |_, _| {},
-            )?;
+            let model = haptic_model::prepare_hybrid(&scene, &mut |_, _| {})?;
             let clamped = model.clamped_core_nodes();
             let mut b = haptic_model::hybrid::HybridBody::new(
                 model,

@@ -80,6 +80,30 @@ pub fn build_body(scene: &scene::Scene) -> Result<Box<dyn body::SoftBody>, Model
     build_body_with_progress(scene, &mut |_, _| {})
 }
 
+/// Preprocesses the hybrid model of a `family = "hybrid"` scene ([`hybrid::prepare`] with the
+/// scene's geometry, `[hybrid]` parameters, material and core size), reporting its stages to
+/// `progress`.
+///
+/// # Errors
+/// [`ModelError::SceneField`] naming `hybrid` when the scene has no `[hybrid]` section; the
+/// errors of [`hybrid::prepare`].
+pub fn prepare_hybrid(
+    scene: &scene::Scene,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<hybrid::HybridModel, ModelError> {
+    let h = scene
+        .hybrid
+        .as_ref()
+        .ok_or_else(|| ModelError::field("hybrid", "is required for model.family = \"hybrid\""))?;
+    hybrid::prepare(
+        h.geometry,
+        &h.params,
+        &scene.material,
+        h.core_target_tets,
+        progress,
+    )
+}
+
 /// [`build_body`] reporting the preprocessing's progress (`stage`, fraction in `[0, 1]`) for
 /// families that preprocess (the hybrid model, [`hybrid::prepare`]; the FEM with a
 /// contact-local active region, [`sim::Simulation::new_with_progress`]).
@@ -93,16 +117,7 @@ pub fn build_body_with_progress(
 ) -> Result<Box<dyn body::SoftBody>, ModelError> {
     match scene.family {
         scene::ModelFamily::Hybrid => {
-            let h = scene.hybrid.as_ref().ok_or_else(|| {
-                ModelError::field("hybrid", "is required for model.family = \"hybrid\"")
-            })?;
-            let model = hybrid::prepare(
-                h.geometry,
-                &h.params,
-                &scene.material,
-                h.core_target_tets,
-                progress,
-            )?;
+            let model = prepare_hybrid(scene, progress)?;
             let clamped = model.clamped_core_nodes();
             Ok(Box::new(hybrid::HybridBody::new(
                 model,

@@ -46,17 +46,9 @@ pub fn lv_hybrid_model(
     Vec<u32>,
     haptic_model::scene::Scene,
 ) {
-    let scene = haptic_model::scene::load_builtin("lv-hybrid").expect("lv-hybrid");
-    let mut h = scene.hybrid.clone().expect("a hybrid scene");
-    edit(&mut h.params);
-    let model = haptic_model::hybrid::prepare(
-        h.geometry,
-        &h.params,
-        &scene.material,
-        h.core_target_tets,
-        &mut |_, _| {},
-    )
-    .expect("prepare");
+    let mut scene = haptic_model::scene::load_builtin("lv-hybrid").expect("lv-hybrid");
+    edit(&mut scene.hybrid.as_mut().expect("a hybrid scene").params);
+    let model = haptic_model::prepare_hybrid(&scene, &mut |_, _| {}).expect("prepare");
     let clamped = model.clamped_core_nodes();
     (model, clamped, scene)
 }
