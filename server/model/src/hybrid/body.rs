@@ -55,7 +55,7 @@ const MAX_SPEED_M_PER_S: f64 = 100.0;
 /// use: the tied particles' terms stiffen the core nodes, so the coupled system's limit is
 /// shorter. Measured by power iteration on the coupled system (`HybridBody::
 /// max_eigenvalue_estimate`) with a real-inertia core (`core_mass_scale = 1`, `mass_scale =
-/// 300`) on lv-hybrid: 0.83-0.99 of the core's step with up to 2 000 active particles; the test
+/// 300`) on lv-hybrid: 0.80-0.99 of the core's step with 188 to 2 000 active particles; the test
 /// `a_real_inertia_core_steps_within_the_coupled_limit` checks the bound against that estimate
 /// at several points of the surface. (With the default uniform mass scale the core's step is
 /// several times the particles' and this does not bind.)
