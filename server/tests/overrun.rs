@@ -77,9 +77,12 @@ async fn a_session_that_keeps_up_is_not_quarantined() {
 /// Issue 16, section 2: heavy sessions next to the LV yield, and leave the LV's loop rate
 /// within 10 % of its own alone. "Alone" is measured before and after (the machine's noise in
 /// the same minute), and the LV beside the heavy sessions is compared with the worse of the
-/// two. The step p99 (about 0.1 ms) varies by up to a third between two runs alone on these
-/// shared 2-core machines, so this test only bounds it at 1.5 times; the 10 % target is met as
-/// a median over interleaved repetitions in `cargo bench -p haptic-server --bench yielding`.
+/// two. The step p99 of a 3 s run varies by up to a third between two runs alone on these
+/// shared 2-core machines (about 0.1 ms), and where the LV step is shorter the machine's own
+/// spikes dominate it (a Zen 5 with AVX-512: 50 to 117 us alone, four runs), so this test
+/// only bounds it at 1.5 times or a tenth of the tick more, whichever is larger (a session
+/// that did not yield would cost the LV milliseconds); the 10 % target is met as a median
+/// over interleaved repetitions in `cargo bench -p haptic-server --bench yielding`.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn heavy_sessions_yield_to_the_lv_that_keeps_up() {
     let _serial = SERIAL.lock().await;
@@ -122,9 +125,10 @@ async fn heavy_sessions_yield_to_the_lv_that_keeps_up() {
         rate_beside >= 0.9 * rate_alone,
         "loop rate {rate_beside:.0} Hz beside the heavy sessions, {rate_alone:.0} Hz alone"
     );
+    let p99_bound = (1.5 * p99_alone).max(p99_alone + 100.0);
     assert!(
-        p99_beside <= 1.5 * p99_alone,
-        "step p99 {p99_beside} us beside the heavy sessions, {p99_alone} us alone"
+        p99_beside <= p99_bound,
+        "step p99 {p99_beside} us beside the heavy sessions, {p99_alone} us alone (bound {p99_bound} us)"
     );
     manager.stop_all();
 }
