@@ -3,7 +3,9 @@
 # reference"): the LV meshed by Gmsh at three sizes refined under the probe
 # (lv_probe_refined.geo, hmin 0.6 / 0.42 / 0.3 mm, hmax = 5 hmin), the exact rigid 2 mm sphere
 # pressed along the lv-probe line by `haptic-solve --indent` on each, then Richardson's
-# extrapolation at the lv-probe device depths and the default servo's error against it.
+# extrapolation at the lv-probe device depths and the default servo's error against it, and
+# the epicardium's extrapolated displacement at the benchmark's sample points
+# (OUT_DIR/surface_reference_MATERIAL.csv).
 #
 #   server/model/examples/lv_sphere_reference.sh [OUT_DIR] [MATERIAL] [DEPTHS] [DEVICE_DEPTHS]
 #
@@ -58,4 +60,6 @@ join() { local IFS=,; echo "$*"; }
 servo_depths=${4:-$([[ $material == stvk ]] && echo 0.5,1 || echo 0.5,1,1.5,2,2.5,3)}
 target/release/examples/lv_study reference --mesh "$(join "${meshes[@]}")" \
   --csv "$(join "${csvs[@]}")" --h 0.6,0.42,0.3 --material "$material" \
-  --depths "$servo_depths" --servo
+  --depths "$servo_depths" --servo --surface "$out/surface_reference_$material.csv"
+# The St. Venant-Kirchhoff surface reference is the benchmark's
+# (server/model/benches/precision/lv_probe_surface_reference.csv).

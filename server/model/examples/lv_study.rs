@@ -122,6 +122,13 @@ enum Study {
         /// scene's, stvk].
         #[arg(long)]
         material: Option<String>,
+        /// Also extrapolate the epicardium's displacement at the benchmark's sample points
+        /// (`common::surface_sample_points_m`) from each run's `indent_NNN.vtu` (beside its
+        /// `indent.csv`) and write it to this CSV: device depth, point, rest position and the
+        /// extrapolated displacement (mm) with its uncertainty (mm, the norm of the
+        /// components' grid convergence indices).
+        #[arg(long)]
+        surface: Option<std::path::PathBuf>,
     },
     /// Dynamic probe curves with chosen integrators.
     Dynamic {
@@ -321,6 +328,7 @@ fn main() {
             servo,
             servo_scene,
             material,
+            surface,
         } => {
             let depths = if depths.is_empty() {
                 vec![0.5, 1.0, 1.5]
@@ -342,6 +350,7 @@ fn main() {
                 &depths,
                 servo.then_some(servo_scene.as_deref()),
                 material,
+                surface.as_deref(),
             ) {
                 eprintln!("lv_study reference: {e}");
                 std::process::exit(1);
@@ -538,8 +547,12 @@ fn reference_study(
     depths: &[f64],
     servo: Option<Option<&std::path::Path>>,
     material: Option<MaterialModel>,
+    surface: Option<&std::path::Path>,
 ) -> Result<(), String> {
     use common::{CONTACT_X_M, device_at};
+    let points = common::surface_sample_points_m();
+    // Per mesh: per device depth, the displacement at each sample point (m).
+    let mut surfaces: Vec<Vec<Vec<glam::DVec3>>> = Vec::new();
     use haptic_model::indent::{IndentParams, Indenter, contact_distance};
     if meshes.len() < 3 || meshes.len() != csvs.len() || !(h.is_empty() || h.len() == meshes.len())
     {
@@ -608,6 +621,9 @@ fn reference_study(
                 .unwrap_or((scene.mesh.tet_count() as f64).powf(-1.0 / 3.0)),
         );
         curves.push(at);
+        if surface.is_some() {
+            surfaces.push(surface_at_depths(&scene, path, &device, depths, &points)?);
+        }
     }
     let k = curves.len();
     let hh = [sizes[k - 3], sizes[k - 2], sizes[k - 1]];
@@ -641,10 +657,149 @@ fn reference_study(
                 .map_or("none (not asymptotic)".into(), |p| format!("{p:.2}"))
         );
     }
+    if let Some(out) = surface {
+        write_surface_reference(out, hh, depths, &points, &surfaces)?;
+    }
     if let Some(scene) = servo {
         servo_against_reference(depths, &reference, scene, material)?;
     }
     Ok(())
+}
+
+/// The displacement (m) at each of `points` on `scene`'s touchable surface at each device
+/// depth of `depths` (mm), from the `indent_NNN.vtu` files beside `csv` (one per row of
+/// `device`, the rows' device depths and forces), interpolated between the solved depths as
+/// the forces are.
+fn surface_at_depths(
+    scene: &Scene,
+    csv: &std::path::Path,
+    device: &[(f64, f64)],
+    depths: &[f64],
+    points: &[glam::DVec3],
+) -> Result<Vec<Vec<glam::DVec3>>, String> {
+    let rest = &scene.mesh.nodes;
+    let sampler = haptic_model::mesh::SurfaceSampler::new(rest, &scene.touchable, points);
+    let worst = sampler.distance_m().iter().fold(0.0f64, |a, d| a.max(*d));
+    if worst > 0.2e-3 {
+        return Err(format!(
+            "a sample point lies {:.3} mm from the touchable surface of {}",
+            worst * 1e3,
+            csv.display()
+        ));
+    }
+    let dir = csv.parent().unwrap_or(std::path::Path::new("."));
+    let mut rows = Vec::with_capacity(device.len());
+    for k in 0..device.len() {
+        let file = dir.join(format!("indent_{:03}.vtu", k + 1));
+        let u_scene = read_vtu_displacement(&file, rest.len())?;
+        let x: Vec<glam::DVec3> = rest
+            .iter()
+            .zip(&u_scene)
+            .map(|(r, u)| *r + *u * scene.length_unit_m)
+            .collect();
+        rows.push(sampler.displacements(rest, &x));
+    }
+    depths
+        .iter()
+        .map(|&d| {
+            (0..points.len())
+                .map(|p| {
+                    let mut u = [0.0; 3];
+                    for (c, uc) in u.iter_mut().enumerate() {
+                        let series: Vec<(f64, f64)> = device
+                            .iter()
+                            .zip(&rows)
+                            .map(|((dd, _), r)| (*dd, r[p][c]))
+                            .collect();
+                        *uc = interpolate(&series, d).ok_or_else(|| {
+                            format!("device depth {d} mm outside {}'s runs", csv.display())
+                        })?;
+                    }
+                    Ok(glam::DVec3::from_array(u))
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// The `displacement` point array of a `write_vtu` file (scene units), `n` nodes.
+fn read_vtu_displacement(path: &std::path::Path, n: usize) -> Result<Vec<glam::DVec3>, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let start = text
+        .find("Name=\"displacement\"")
+        .and_then(|i| text[i..].find('>').map(|j| i + j + 1))
+        .ok_or_else(|| format!("{}: no displacement array", path.display()))?;
+    let end = start
+        + text[start..]
+            .find("</DataArray>")
+            .ok_or_else(|| format!("{}: unterminated displacement array", path.display()))?;
+    let values: Vec<f64> = text[start..end]
+        .split_whitespace()
+        .map(|v| v.parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    if values.len() != 3 * n {
+        return Err(format!(
+            "{}: {} displacement values for {n} nodes",
+            path.display(),
+            values.len()
+        ));
+    }
+    Ok(values
+        .chunks_exact(3)
+        .map(|c| glam::DVec3::new(c[0], c[1], c[2]))
+        .collect())
+}
+
+/// Richardson's extrapolation of each point's displacement through the last three meshes,
+/// written as CSV (mm): `device_depth_mm,point,x_mm,y_mm,z_mm,ux_mm,uy_mm,uz_mm,uncertainty_mm`.
+fn write_surface_reference(
+    out: &std::path::Path,
+    h: [f64; 3],
+    depths: &[f64],
+    points: &[glam::DVec3],
+    surfaces: &[Vec<Vec<glam::DVec3>>],
+) -> Result<(), String> {
+    let k = surfaces.len();
+    let mut text =
+        String::from("device_depth_mm,point,x_mm,y_mm,z_mm,ux_mm,uy_mm,uz_mm,uncertainty_mm\n");
+    println!("surface reference (Richardson per point and component, mm):");
+    for (j, d) in depths.iter().enumerate() {
+        let mut worst: (f64, f64) = (0.0, 0.0);
+        for (p, x) in points.iter().enumerate() {
+            let mut u = [0.0; 3];
+            let mut unc2 = 0.0;
+            for (c, uc) in u.iter_mut().enumerate() {
+                let f = [
+                    surfaces[k - 3][j][p][c],
+                    surfaces[k - 2][j][p][c],
+                    surfaces[k - 1][j][p][c],
+                ];
+                let e = richardson(h, f);
+                *uc = e.value;
+                unc2 += e.uncertainty * e.uncertainty;
+            }
+            let u = glam::DVec3::from_array(u);
+            let unc = unc2.sqrt();
+            worst = (worst.0.max(u.length()), worst.1.max(unc));
+            text.push_str(&format!(
+                "{d},{p},{:.6},{:.6},{:.6},{:.8},{:.8},{:.8},{:.8}\n",
+                x.x * 1e3,
+                x.y * 1e3,
+                x.z * 1e3,
+                u.x * 1e3,
+                u.y * 1e3,
+                u.z * 1e3,
+                unc * 1e3
+            ));
+        }
+        println!(
+            "  device depth {d} mm: largest displacement {:.4} mm, largest uncertainty {:.4} mm",
+            worst.0 * 1e3,
+            worst.1 * 1e3
+        );
+    }
+    std::fs::write(out, text).map_err(|e| format!("{}: {e}", out.display()))
 }
 
 /// The servo of `scene_file` (default: the built-in `lv` scene) through the `lv-probe`
@@ -665,7 +820,8 @@ fn servo_against_reference(
     }
     let mut sim = haptic_model::sim::Simulation::new(&scene).map_err(|e| e.to_string())?;
     let tick = sim.tick_s();
-    let (forces, ticks) = common::lv_press::probe_dynamic_body(&mut sim, tick, false)?;
+    let (curve, ticks) = common::lv_press::probe_dynamic_body(&mut sim, tick, false)?;
+    let forces = curve.forces_n;
     println!(
         "servo: {} ({} elements, {}, {} contact), tick p50 {:.0} us on this machine",
         scene.name,

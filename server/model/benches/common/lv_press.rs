@@ -27,6 +27,40 @@ pub struct ProbeCurve {
     pub forces_n: Vec<f64>,
     /// Positions at the last depth, m.
     pub x_last: Vec<DVec3>,
+    /// The body's surface at the end of each depth's hold (dynamic runs; empty otherwise).
+    pub surfaces: Vec<SurfaceSnapshot>,
+}
+
+/// A body's surface at one instant: rest and current vertex positions (m) and its triangles
+/// (read together: a subdividing surface changes its topology).
+#[derive(Debug, Clone, Default)]
+pub struct SurfaceSnapshot {
+    pub rest: Vec<DVec3>,
+    pub x: Vec<DVec3>,
+    pub triangles: Vec<[u32; 3]>,
+}
+
+impl SurfaceSnapshot {
+    /// The surface of `body` now.
+    pub fn of(body: &dyn SoftBody) -> Self {
+        let topology = body.surface_topology();
+        let n = topology.vertex_count;
+        let triangles = topology.triangles.to_vec();
+        let mut buf = vec![0f32; 3 * n];
+        let to_vec = |b: &[f32]| -> Vec<DVec3> {
+            b.chunks_exact(3)
+                .map(|c| DVec3::new(c[0] as f64, c[1] as f64, c[2] as f64))
+                .collect()
+        };
+        body.write_surface_rest_positions(&mut buf);
+        let rest = to_vec(&buf);
+        body.write_surface_positions(&mut buf);
+        Self {
+            rest,
+            x: to_vec(&buf),
+            triangles,
+        }
+    }
 }
 
 /// Largest number of patch passes of [`probe_static_at`] per depth; more is an error.
@@ -175,6 +209,7 @@ pub fn probe_static_at(
     Ok(ProbeCurve {
         forces_n: forces,
         x_last: x,
+        surfaces: Vec::new(),
     })
 }
 
@@ -270,6 +305,7 @@ pub fn probe_sphere_at(scene: &Scene, depths_mm: &[f64]) -> Result<ProbeCurve, S
     Ok(ProbeCurve {
         forces_n: forces,
         x_last,
+        surfaces: Vec::new(),
     })
 }
 
@@ -337,59 +373,27 @@ pub fn richardson(h: [f64; 3], f: [f64; 3]) -> Extrapolated {
 /// (`lv_probe::sphere_reference`).
 pub fn probe_dynamic(scene: &Scene, quick: bool) -> Result<(ProbeCurve, TickTimes, u32), String> {
     let mut sim = Simulation::new(scene).map_err(|e| e.to_string())?;
-    let (ramp, hold) = if quick { (0.08, 0.08) } else { (0.1, 0.1) };
     let tick = sim.tick_s();
-    let seg_ticks = ((ramp + hold) / tick).round() as usize;
-    let mut ticks = TickTimes::new();
-    let mut forces = Vec::new();
-    let mut prev = -0.3e-3;
-    for d in DEPTHS_MM {
-        let d = d * 1e-3;
-        let mut sum = 0.0;
-        let mut count = 0;
-        for k in 0..seg_ticks {
-            let t = (k + 1) as f64 * tick;
-            let s = t / ramp;
-            let depth = prev + (d - prev) * smoothstep(s);
-            let rate = (d - prev) / ramp * smoothstep_rate(s);
-            let input = TickInput {
-                device_position_m: Some(device_at(depth)),
-                device_velocity_m_per_s: DVec3::new(-rate, 0.0, 0.0),
-            };
-            let t0 = Instant::now();
-            let out = sim.tick(&input).map_err(|e| e.to_string())?;
-            ticks.record(t0.elapsed());
-            if t > ramp + hold / 2.0 {
-                sum += out.force_on_device_n.length();
-                count += 1;
-            }
-        }
-        forces.push(sum / count as f64);
-        prev = d;
-    }
+    let (mut curve, ticks) = probe_dynamic_body(&mut sim, tick, quick)?;
     let substeps = sim.plan().substeps;
     sim.recover_far_field();
-    Ok((
-        ProbeCurve {
-            forces_n: forces,
-            x_last: sim.state().x.clone(),
-        },
-        ticks,
-        substeps,
-    ))
+    curve.x_last = sim.state().x.clone();
+    Ok((curve, ticks, substeps))
 }
 
 /// The dynamic press protocol of [`probe_dynamic`] on any body (ticked at `tick_s`): the
-/// forces per depth and the tick times. The positions are the body's to read afterwards.
+/// forces per depth, the surface at the end of each hold, and the tick times (`x_last` is left
+/// empty: the positions are the body's to read afterwards).
 pub fn probe_dynamic_body(
     body: &mut dyn SoftBody,
     tick_s: f64,
     quick: bool,
-) -> Result<(Vec<f64>, TickTimes), String> {
+) -> Result<(ProbeCurve, TickTimes), String> {
     let (ramp, hold) = if quick { (0.08, 0.08) } else { (0.1, 0.1) };
     let seg_ticks = ((ramp + hold) / tick_s).round() as usize;
     let mut ticks = TickTimes::new();
     let mut forces = Vec::new();
+    let mut surfaces = Vec::new();
     let mut prev = -0.3e-3;
     for d in DEPTHS_MM {
         let d = d * 1e-3;
@@ -413,7 +417,15 @@ pub fn probe_dynamic_body(
             }
         }
         forces.push(sum / count as f64);
+        surfaces.push(SurfaceSnapshot::of(body));
         prev = d;
     }
-    Ok((forces, ticks))
+    Ok((
+        ProbeCurve {
+            forces_n: forces,
+            x_last: Vec::new(),
+            surfaces,
+        },
+        ticks,
+    ))
 }

@@ -299,3 +299,28 @@ pub fn run_loaded_with(
         time_s,
     })
 }
+
+/// The epicardium points where the `lv-probe` surface-displacement error is read, m, on the
+/// analytic epicardium (the ellipsoid of semi-axes 10, 10, 20 mm of `../shared/data/lv`): the
+/// contact point of the lv-probe line (9.682 mm from the axis at z = -5 mm), 5 points each
+/// way along the circumference (arcs 0.48 to 4.3 mm) and 5 each way along the meridian
+/// (z = -5 mm +- 0.5 to 4.2 mm). Each body locates them on its own surface by the closest
+/// point. Shared by `lv_study reference --surface` (the reference) and the benchmark.
+pub fn surface_sample_points_m() -> Vec<DVec3> {
+    let radius_at = |z: f64| 0.010 * (1.0 - (z / 0.020).powi(2)).sqrt();
+    let r = radius_at(PROBE_Z_M);
+    let mut points = vec![DVec3::new(r, 0.0, PROBE_Z_M)];
+    for a in [0.05, 0.1, 0.175, 0.26, 0.44] {
+        for s in [-1.0, 1.0] {
+            let t: f64 = s * a;
+            points.push(DVec3::new(r * t.cos(), r * t.sin(), PROBE_Z_M));
+        }
+    }
+    for dz in [0.5e-3, 1e-3, 1.7e-3, 2.5e-3, 4.2e-3] {
+        for s in [-1.0, 1.0] {
+            let z = PROBE_Z_M + s * dz;
+            points.push(DVec3::new(radius_at(z), 0.0, z));
+        }
+    }
+    points
+}

@@ -11,10 +11,11 @@
 //! at the depths it has (St. Venant-Kirchhoff 0.5 and 1 mm, corotational and stable
 //! neo-Hookean 0.5 to 3 mm).
 //! Probe-force error = the largest relative error over those depths, or "below uncertainty"
-//! when every depth is within the reference's uncertainty. (The surface-displacement error
-//! against the kernel patch's static equilibrium is gone with that reference: the patch is no
-//! longer the physics, its static solve on 2 010 quadratic tets did not converge at 3 mm on
-//! 2026-11-23, and the sphere reference keeps no displacement field.) Linear, quadratic and
+//! when every depth is within the reference's uncertainty. Surface-displacement error (StVK
+//! rows, the `rel_l2_error` and `max_nodal_error_m` columns): the body's surface at the end of
+//! the 0.5 and 1 mm holds read at 21 epicardium points around the contact
+//! ([`crate::common::surface_sample_points_m`]) against the same solves' extrapolated
+//! displacement there ([`fill_lv_surface_errors`]). Linear, quadratic and
 //! edge-smoothed linear elements (method suffix " ES" on the 2 000 and 5 000 target meshes),
 //! the mass-spring surface of the epicardium (`lv-surface-springs`, seed 003) with and without
 //! run-time subdivision, and the hybrid model.
@@ -28,9 +29,12 @@ use crate::method::methods;
 use crate::report::Model;
 use crate::report::{Row, Scenario};
 use crate::{Config, LvProbeRows};
+use haptic_model::DVec3;
 use haptic_model::body::SoftBody;
 use haptic_model::build_body;
+use haptic_model::contact::ContactModel;
 use haptic_model::mass_spring::{MassSpringBody, SpringRule};
+use haptic_model::mesh::SurfaceSampler;
 use haptic_model::meshfree::{KernelKind, MeshfreeVariant};
 use haptic_model::scene::load_builtin;
 
@@ -114,11 +118,53 @@ pub fn run(cfg: &Config, rows: &mut Vec<Row>) {
     match cfg.lv_probe_rows {
         LvProbeRows::MassSpring => mass_spring_rows(cfg.quick, rows),
         LvProbeRows::Hybrid => hybrid_rows(cfg.quick, rows),
+        LvProbeRows::Contact => contact_rows(cfg.quick, rows),
         LvProbeRows::All => {
             run_fem(cfg, rows);
+            contact_rows(cfg.quick, rows);
             mass_spring_rows(cfg.quick, rows);
             hybrid_rows(cfg.quick, rows);
         }
+    }
+}
+
+/// The built-in `lv` scene (474 quadratic tets on the rest factor) with each explicit probe
+/// contact model: the exact sphere, the kernel patch, and the patch with the sphere's Hertz
+/// compliance (`auto`, as every FEM row). The force barely depends on it; the surface does: the
+/// Hertz indentation is sub-grid, so the surface of the `patch-hertz` rows shows the dent
+/// without it.
+pub fn contact_rows(quick: bool, rows: &mut Vec<Row>) {
+    let base = load_builtin("lv").expect("built-in lv");
+    let ref_text = sphere_reference_text(base.material.model);
+    for contact in [
+        ContactModel::Sphere,
+        ContactModel::Patch,
+        ContactModel::PatchHertz,
+    ] {
+        let mut scene = base.clone();
+        scene.probe.contact = contact;
+        let label = format!("lv default, contact {}", contact.name());
+        let mut row = Row::new(
+            Scenario::LvProbe,
+            label.clone(),
+            scene.integrator.kind.name(),
+            &scene.mesh,
+        )
+        .material(scene.material.model);
+        row.reference = ref_text.clone();
+        match probe_dynamic(&scene, quick) {
+            Ok((c, ticks, sub)) => {
+                row.settings = format!(
+                    "tick 1 ms, {sub} sub-steps, the lv scene's integrator; staircase 0.5..3 mm"
+                );
+                row.set_times(&ticks, scene.integrator.tick_s);
+                fill_lv_force_errors(&mut row, scene.material.model, &c);
+                fill_lv_surface_errors(&mut row, scene.material.model, &c);
+            }
+            Err(e) => row.settings = format!("{label}: {e}"),
+        }
+        row.print();
+        rows.push(row);
     }
 }
 
@@ -173,7 +219,7 @@ pub fn hybrid_rows(quick: bool, rows: &mut Vec<Row>) {
         row.nodes = stats0.nodes;
         row.tets = stats0.elements;
         match probe_dynamic_body(body.as_mut(), scene.integrator.tick_s, quick) {
-            Ok((forces, ticks)) => {
+            Ok((curve, ticks)) => {
                 let info = body.info();
                 let stats = body.stats();
                 row.settings = format!(
@@ -188,11 +234,8 @@ pub fn hybrid_rows(quick: bool, rows: &mut Vec<Row>) {
                         .map_or(1.0, |h| h.params.core_mass_scale())
                 );
                 row.set_times(&ticks, scene.integrator.tick_s);
-                let curve = ProbeCurve {
-                    forces_n: forces,
-                    x_last: Vec::new(),
-                };
                 fill_lv_force_errors(&mut row, base.material.model, &curve);
+                fill_lv_surface_errors(&mut row, base.material.model, &curve);
             }
             Err(e) => row.settings = format!("{label}: {e}"),
         }
@@ -248,7 +291,7 @@ pub fn mass_spring_rows(quick: bool, rows: &mut Vec<Row>) {
             }
         };
         match probe_dynamic_body(&mut body, scene.integrator.tick_s, quick) {
-            Ok((forces, ticks)) => {
+            Ok((curve, ticks)) => {
                 row.settings = format!(
                     "tick 1 ms, {} sub-steps (worst-case Gershgorin bound); K_h = K_m = {} N/m; {} subdivision event(s), up to {} nodes; staircase 0.5..3 mm",
                     body.plan().substeps,
@@ -257,11 +300,8 @@ pub fn mass_spring_rows(quick: bool, rows: &mut Vec<Row>) {
                     body.stats().nodes
                 );
                 row.set_times(&ticks, scene.integrator.tick_s);
-                let curve = ProbeCurve {
-                    forces_n: forces,
-                    x_last: Vec::new(),
-                };
                 fill_lv_force_errors(&mut row, MaterialModel::StVenantKirchhoff, &curve);
+                fill_lv_surface_errors(&mut row, MaterialModel::StVenantKirchhoff, &curve);
             }
             Err(e) => row.settings = format!("{label}: {e}"),
         }
@@ -320,6 +360,7 @@ fn run_fem(cfg: &Config, rows: &mut Vec<Row>) {
                             format!("tick 1 ms, {}; staircase 0.5..3 mm", m.step_text(sub));
                         row.set_times(&ticks, sc.integrator.tick_s);
                         fill_lv_force_errors(&mut row, *model, &c);
+                        fill_lv_surface_errors(&mut row, *model, &c);
                     }
                     Err(e) => row.settings = format!("{}: {e}", m.label()),
                 }
@@ -342,6 +383,84 @@ pub const LV_MATERIALS: &[MaterialModel] = &[
 /// [`sphere_reference`] of `model` over its depths, the reference's largest
 /// relative uncertainty, whether every depth is within it, and the observable error at the
 /// reference's deepest depth. Without a reference for `model` the errors stay unmeasured.
+/// The converged surface-displacement reference of the `lv-probe` press (St. Venant-Kirchhoff,
+/// device depths 0.5 and 1 mm): the epicardium's displacement at
+/// [`crate::common::surface_sample_points_m`] from the same three refined-mesh `haptic-solve
+/// --indent` runs as [`sphere_reference`] (`lv_sphere_reference.sh`, then `lv_study reference
+/// --surface`), Richardson's extrapolation per point and component, the uncertainty the norm
+/// of the components' grid convergence indices. CSV, mm.
+const SURFACE_REFERENCE_CSV: &str = include_str!("lv_probe_surface_reference.csv");
+
+/// One row of [`SURFACE_REFERENCE_CSV`] (m).
+struct SurfacePoint {
+    depth_mm: f64,
+    point: usize,
+    u_m: DVec3,
+    uncertainty_m: f64,
+}
+
+fn surface_reference() -> Vec<SurfacePoint> {
+    SURFACE_REFERENCE_CSV
+        .lines()
+        .skip(1)
+        .filter(|l| !l.trim().is_empty())
+        .map(|l| {
+            let v: Vec<f64> = l
+                .split(',')
+                .map(|x| x.trim().parse().expect("a number in the surface reference"))
+                .collect();
+            SurfacePoint {
+                depth_mm: v[0],
+                point: v[1] as usize,
+                u_m: DVec3::new(v[5], v[6], v[7]) * 1e-3,
+                uncertainty_m: v[8] * 1e-3,
+            }
+        })
+        .collect()
+}
+
+/// The surface-displacement error of a dynamic `lv-probe` run against [`surface_reference`]
+/// (St. Venant-Kirchhoff only): at each reference depth, the body's surface at the end of the
+/// hold read at the sample points ([`SurfaceSampler`]); `rel_l2_error` = the largest over the
+/// depths of `sqrt(sum |u - u_ref|^2 / sum |u_ref|^2)`, `max_nodal_error_m` = the largest
+/// point error (m). The reference's own relative uncertainty is printed with it.
+pub fn fill_lv_surface_errors(row: &mut Row, model: MaterialModel, c: &ProbeCurve) {
+    if model != MaterialModel::StVenantKirchhoff || c.surfaces.is_empty() {
+        return;
+    }
+    let reference = surface_reference();
+    let points = crate::common::surface_sample_points_m();
+    let (mut rel, mut max_m, mut unc) = (0.0f64, 0.0f64, 0.0f64);
+    for (j, d) in DEPTHS_MM.iter().enumerate() {
+        let here: Vec<&SurfacePoint> = reference
+            .iter()
+            .filter(|p| (p.depth_mm - d).abs() < 1e-9)
+            .collect();
+        if here.is_empty() || j >= c.surfaces.len() {
+            continue;
+        }
+        let snap = &c.surfaces[j];
+        let sampler = SurfaceSampler::new(&snap.rest, &snap.triangles, &points);
+        let u = sampler.displacements(&snap.rest, &snap.x);
+        let (mut num, mut den, mut unc2) = (0.0, 0.0, 0.0);
+        for p in &here {
+            let e = (u[p.point] - p.u_m).length();
+            num += e * e;
+            den += p.u_m.length_squared();
+            unc2 += p.uncertainty_m * p.uncertainty_m;
+            max_m = max_m.max(e);
+        }
+        rel = rel.max((num / den).sqrt());
+        unc = unc.max((unc2 / den).sqrt());
+    }
+    row.rel_l2_error = rel;
+    row.max_nodal_error_m = max_m;
+    row.settings.push_str(&format!(
+        "; surface reference uncertainty {:.1} %",
+        100.0 * unc
+    ));
+}
+
 pub fn fill_lv_force_errors(row: &mut Row, model: MaterialModel, c: &ProbeCurve) {
     row.observable = format!(
         "F(mm) = [{}] N",

@@ -107,6 +107,8 @@ pub enum LvProbeRows {
     MassSpring,
     /// The hybrid rows only (`lv-hybrid`, seed and corrected variants).
     Hybrid,
+    /// The contact-model rows only (the built-in `lv` with each probe contact model).
+    Contact,
 }
 
 /// Results format read by `--replot`.

@@ -77,8 +77,11 @@ pub struct Row {
     pub step_max_us: f64,
     #[serde(with = "missing")]
     pub realtime_factor: f64,
+    /// Relative L2 displacement error (`lame`); `lv-probe` (St. Venant-Kirchhoff rows): the
+    /// surface-displacement error at the sample points, the larger of the 0.5 and 1 mm holds.
     #[serde(with = "missing")]
     pub rel_l2_error: f64,
+    /// Largest nodal displacement error (`lame`), or largest sample-point error (`lv-probe`), m.
     #[serde(with = "missing")]
     pub max_nodal_error_m: f64,
     #[serde(with = "missing")]
