@@ -62,11 +62,24 @@ pub fn scenarios(rows: &[Row], dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
     let mut written = Vec::new();
     for (scenario, ylabel) in PLOTS {
         let base = dir.join(format!("precision-{}", scenario.name()));
-        if plot_scenario(rows, scenario, ylabel, &base)
+        if plot_scenario(rows, scenario, ylabel, Row::plot_error, &base)
             .map_err(|e| anyhow!("plot {}: {e}", base.display()))?
         {
             written.push(base);
         }
+    }
+    // The lv-probe rows' surface-displacement error (St. Venant-Kirchhoff rows).
+    let base = dir.join("precision-lv-probe-surface");
+    if plot_scenario(
+        rows,
+        Scenario::LvProbe,
+        "surface displacement error at 21 epicardium points vs converged sphere solve",
+        |r| r.rel_l2_error,
+        &base,
+    )
+    .map_err(|e| anyhow!("plot {}: {e}", base.display()))?
+    {
+        written.push(base);
     }
     Ok(written)
 }
@@ -84,24 +97,27 @@ pub fn lv_h1(rows: &[Row], dir: &Path) -> anyhow::Result<Option<PathBuf>> {
         rows,
         Scenario::LvProbe,
         "probe force error on lv_h1.msh vs converged sphere reference (at its uncertainty when below it)",
+        Row::plot_error,
         &base,
     )
     .map_err(|e| anyhow!("plot {}: {e}", base.display()))?;
     Ok(drawn.then_some(base))
 }
 
-/// The work-precision plot of `scenario`'s stable rows: `base` with the extensions `.png` and
-/// `.svg`. Returns `false` (and draws nothing) when no such row has a positive time and error.
+/// The work-precision plot of `scenario`'s stable rows, `error` of each against its tick:
+/// `base` with the extensions `.png` and `.svg`. Returns `false` (and draws nothing) when no
+/// such row has a positive time and error.
 fn plot_scenario(
     rows: &[Row],
     scenario: Scenario,
     ylabel: &str,
+    error: impl Fn(&Row) -> f64,
     base: &Path,
 ) -> Result<bool, Box<dyn std::error::Error>> {
     let mut curves: BTreeMap<String, Vec<(f64, f64)>> = BTreeMap::new();
     let mut points = Vec::new();
     for r in rows.iter().filter(|r| r.scenario == scenario && r.stable) {
-        let (x, y) = (r.step_p50_us / 1000.0, r.plot_error());
+        let (x, y) = (r.step_p50_us / 1000.0, error(r));
         if x.is_finite() && x > 0.0 && y.is_finite() && y > 0.0 {
             curves.entry(r.method.clone()).or_default().push((x, y));
             let label = match r.tets {
