@@ -158,8 +158,7 @@ pub fn contact_rows(quick: bool, rows: &mut Vec<Row>) {
                     "tick 1 ms, {sub} sub-steps, the lv scene's integrator; staircase 0.5..3 mm"
                 );
                 row.set_times(&ticks, scene.integrator.tick_s);
-                fill_lv_force_errors(&mut row, scene.material.model, &c);
-                fill_lv_surface_errors(&mut row, scene.material.model, &c);
+                fill_lv_errors(&mut row, scene.material.model, &c);
             }
             Err(e) => row.settings = format!("{label}: {e}"),
         }
@@ -234,8 +233,7 @@ pub fn hybrid_rows(quick: bool, rows: &mut Vec<Row>) {
                         .map_or(1.0, |h| h.params.core_mass_scale())
                 );
                 row.set_times(&ticks, scene.integrator.tick_s);
-                fill_lv_force_errors(&mut row, base.material.model, &curve);
-                fill_lv_surface_errors(&mut row, base.material.model, &curve);
+                fill_lv_errors(&mut row, base.material.model, &curve);
             }
             Err(e) => row.settings = format!("{label}: {e}"),
         }
@@ -300,8 +298,7 @@ pub fn mass_spring_rows(quick: bool, rows: &mut Vec<Row>) {
                     body.stats().nodes
                 );
                 row.set_times(&ticks, scene.integrator.tick_s);
-                fill_lv_force_errors(&mut row, MaterialModel::StVenantKirchhoff, &curve);
-                fill_lv_surface_errors(&mut row, MaterialModel::StVenantKirchhoff, &curve);
+                fill_lv_errors(&mut row, MaterialModel::StVenantKirchhoff, &curve);
             }
             Err(e) => row.settings = format!("{label}: {e}"),
         }
@@ -359,8 +356,7 @@ fn run_fem(cfg: &Config, rows: &mut Vec<Row>) {
                         row.settings =
                             format!("tick 1 ms, {}; staircase 0.5..3 mm", m.step_text(sub));
                         row.set_times(&ticks, sc.integrator.tick_s);
-                        fill_lv_force_errors(&mut row, *model, &c);
-                        fill_lv_surface_errors(&mut row, *model, &c);
+                        fill_lv_errors(&mut row, *model, &c);
                     }
                     Err(e) => row.settings = format!("{}: {e}", m.label()),
                 }
@@ -459,6 +455,12 @@ pub fn fill_lv_surface_errors(row: &mut Row, model: MaterialModel, c: &ProbeCurv
         "; surface reference uncertainty {:.1} %",
         100.0 * unc
     ));
+}
+
+/// [`fill_lv_force_errors`] and [`fill_lv_surface_errors`].
+pub fn fill_lv_errors(row: &mut Row, model: MaterialModel, c: &ProbeCurve) {
+    fill_lv_force_errors(row, model, c);
+    fill_lv_surface_errors(row, model, c);
 }
 
 pub fn fill_lv_force_errors(row: &mut Row, model: MaterialModel, c: &ProbeCurve) {
