@@ -678,7 +678,7 @@ fn surface_at_depths(
     points: &[glam::DVec3],
 ) -> Result<Vec<Vec<glam::DVec3>>, String> {
     let rest = &scene.mesh.nodes;
-    let sampler = haptic_model::mesh::SurfaceSampler::new(rest, &scene.touchable, points);
+    let sampler = haptic_model::contact::SurfaceSampler::new(rest, &scene.touchable, points);
     let worst = sampler.distance_m().iter().fold(0.0f64, |a, d| a.max(*d));
     if worst > 0.2e-3 {
         return Err(format!(

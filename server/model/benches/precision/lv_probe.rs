@@ -33,8 +33,8 @@ use haptic_model::DVec3;
 use haptic_model::body::SoftBody;
 use haptic_model::build_body;
 use haptic_model::contact::ContactModel;
+use haptic_model::contact::SurfaceSampler;
 use haptic_model::mass_spring::{MassSpringBody, SpringRule};
-use haptic_model::mesh::SurfaceSampler;
 use haptic_model::meshfree::{KernelKind, MeshfreeVariant};
 use haptic_model::scene::load_builtin;
 

@@ -60,11 +60,13 @@
 
 pub mod coupling;
 pub mod probe;
+mod sample;
 pub mod sphere;
 pub mod surface;
 
 pub use coupling::ContactCoupling;
 pub use probe::{ContactModel, ContactState, Probe, ProbeParams};
+pub use sample::SurfaceSampler;
 pub use surface::{ContactSurface, SurfacePoint, closest_point_on_triangle};
 
 /// Largest number of nodes in a contact patch.

@@ -16,9 +16,6 @@ pub mod export;
 pub mod generate;
 pub mod gmsh;
 mod quadratic;
-mod sample;
-
-pub use sample::SurfaceSampler;
 
 /// A named set of boundary triangles (a Gmsh 2-D physical group or a mesher-made surface).
 #[derive(Debug, Clone, PartialEq)]

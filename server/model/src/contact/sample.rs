@@ -4,7 +4,7 @@
 
 use glam::DVec3;
 
-use crate::contact::closest_point_on_triangle;
+use super::closest_point_on_triangle;
 
 /// Sample points located on a rest surface: for each point, the triangle holding its closest
 /// point on the surface and the barycentric weights there.
