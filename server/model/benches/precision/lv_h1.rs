@@ -1,7 +1,8 @@
 //! `lv-h1` (`--scenario lv-h1`, not part of the full run; own output
 //! `precision-lv-h1.{csv,json,png,svg}`): the `lv-probe` press on `lv_h1.msh` (17 924 linear
 //! tets) with standard and edge-smoothed elements and with backward Euler on a contact-local
-//! active region, the rest condensed, against the same converged reference as `lv-probe`.
+//! active region, the rest condensed, against the same converged references (force and
+//! surface displacement) as `lv-probe`.
 
 use std::time::Instant;
 
@@ -14,7 +15,7 @@ use haptic_model::sim::Simulation;
 
 use crate::common::lv_press::probe_dynamic;
 use crate::common::{CONTACT_X_M, PROBE_Z_M, lv_h1_scene, lv_scene_on};
-use crate::lv_probe::fill_lv_force_errors;
+use crate::lv_probe::fill_lv_errors;
 use crate::method::Method;
 use crate::report::{Row, Scenario};
 use crate::{Config, LvH1Rows};
@@ -95,7 +96,7 @@ pub fn run(cfg: &Config) -> Vec<Row> {
                     sc.mesh.tets.len() - sizes.active_tets,
                 );
                 row.set_times(&ticks, sc.integrator.tick_s);
-                fill_lv_force_errors(&mut row, model, &c);
+                fill_lv_errors(&mut row, model, &c);
             }
             Err(e) => row.settings = format!("{method}: {e}"),
         }
@@ -132,7 +133,7 @@ pub fn run(cfg: &Config) -> Vec<Row> {
                         m.step_text(sub)
                     );
                     row.set_times(&ticks, sc.integrator.tick_s);
-                    fill_lv_force_errors(&mut row, model, &c);
+                    fill_lv_errors(&mut row, model, &c);
                 }
                 Err(e) => row.settings = format!("{}: {e}", row.method),
             }
