@@ -117,7 +117,7 @@ fn main() -> anyhow::Result<()> {
     let prep_s = t0.elapsed().as_secs_f64();
     let rss1 = rss_kib();
     eprintln!(
-        "{}: {} layer particles + {} anchors, {} core tets, {} outer vertices; preprocessing {:.3} s; model {:.1} MiB (RSS +{:.1} MiB); particle dt {:.3e} s, core dt {:.3e} s",
+        "{}: {} layer particles + {} anchors, {} core tets, {} outer vertices; preprocessing {:.3} s; model {:.1} MiB (RSS +{:.1} MiB); particle dt {:.3e} s (unit mass scale)",
         args.scene,
         model.layer_count,
         model.cloud.len() - model.layer_count,
@@ -126,8 +126,7 @@ fn main() -> anyhow::Result<()> {
         prep_s,
         model.memory_bytes() as f64 / (1 << 20) as f64,
         (rss1 - rss0) as f64 / 1024.0,
-        model.particle_dt_s,
-        model.core_dt_s
+        model.particle_dt_s
     );
     let clamped = model.clamped_core_nodes();
     println!("scene,variant,particles,active,substeps,core_substeps,ticks,median_us,p99_us,prep_s");

@@ -15,8 +15,8 @@
 //! 5. regions: each layer particle belongs to the outer vertex nearest to it in direction from
 //!    the centre of mass (the seed's radial projection towards the mass centre); `RV(ps)` of a
 //!    vertex is its set of particles;
-//! 6. the critical time steps of the particles (both variants, [`crate::meshfree`]) and of the
-//!    core.
+//! 6. the critical time step of the particles (both variants, [`crate::meshfree`]); the core's
+//!    depends on the masses the body gives it ([`super::HybridBody::new`]).
 //!
 //! Cost: O(lattice cells + particles x stencil); about 1 s per 100 000 particles (see
 //! `docs/benchmarks.md`).
@@ -25,8 +25,6 @@ use glam::{DMat3, DVec3};
 
 use super::{HybridParams, ShellGeometry};
 use crate::ModelError;
-use crate::element::FemModel;
-use crate::integrate::{IntegratorKind, critical_time_step as fem_critical_time_step};
 use crate::material::{MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
 use crate::mesh::generate::truncated_ellipsoid_shell;
@@ -76,8 +74,6 @@ pub struct HybridModel {
     pub centre_m: DVec3,
     /// Particles' explicit stability limit (elastic, Gershgorin bound, unit mass scale), s.
     pub particle_dt_s: f64,
-    /// Core's explicit (symplectic Euler) stability limit, s.
-    pub core_dt_s: f64,
     /// Largest number of terms of one region (its particles and their tied neighbours).
     pub largest_region: usize,
 }
@@ -94,19 +90,13 @@ impl HybridModel {
         let mut kg = vec![0.0; self.core_mesh.nodes.len()];
         let m = self.cloud.mass_kg();
         for tie in &self.particle_tie[..self.layer_count] {
+            // Barycentric weights sum to 1, so at least one is positive.
             let w = tie.w.map(|w| w.max(0.0));
             let sum: f64 = w.iter().sum();
+            debug_assert!(sum > 0.0, "tie weights {:?}", tie.w);
             let t = self.core_mesh.tets[tie.tet as usize];
-            if sum > 0.0 {
-                for (node, w) in t.iter().zip(w) {
-                    kg[*node as usize] += m * w / sum;
-                }
-            } else {
-                // Every weight negative cannot happen for barycentric weights summing to 1;
-                // spread evenly rather than lose the mass.
-                for node in t {
-                    kg[node as usize] += 0.25 * m;
-                }
+            for (node, w) in t.iter().zip(w) {
+                kg[*node as usize] += m * w / sum;
             }
         }
         kg
@@ -153,7 +143,7 @@ impl HybridModel {
 /// [`ModelError::SceneField`] for bad parameters (the `hybrid.*` field; `hybrid.variant` for
 /// the seed variant with another law than StVK), too few or too many
 /// particles (`hybrid.spacing_m`), or a stencil the meshfree terms cannot hold
-/// (`hybrid.smoothing_ratio`); the errors of [`FemModel::new`] for the core.
+/// (`hybrid.smoothing_ratio`).
 pub fn prepare(
     geometry: ShellGeometry,
     params: &HybridParams,
@@ -367,9 +357,8 @@ pub fn prepare(
         .unwrap_or(0);
     // 6. Critical steps.
     progress("critical time steps", 0.75);
+    // The core's step depends on the masses the body gives it (HybridBody::new).
     let particle_dt_s = critical_time_step(&cloud)?;
-    let fem = FemModel::new(&core_mesh, *material)?;
-    let core_dt_s = fem_critical_time_step(&fem, IntegratorKind::SymplecticEuler);
     progress("done", 1.0);
     Ok(HybridModel {
         params: *params,
@@ -387,7 +376,6 @@ pub fn prepare(
         region_particles,
         centre_m,
         particle_dt_s,
-        core_dt_s,
         largest_region,
     })
 }
