@@ -46,9 +46,10 @@ struct Args {
     /// `hybrid.mass_scale` override.
     #[arg(long)]
     mass_scale: Option<f64>,
-    /// `hybrid.core_mass_scale` override (1: the body's real inertia).
+    /// `hybrid.core_mass_scale` override: a number (1: the body's real inertia), `auto` or
+    /// `uniform`.
     #[arg(long)]
-    core_mass_scale: Option<f64>,
+    core_mass_scale: Option<String>,
 }
 
 fn rss_kib() -> u64 {
@@ -100,8 +101,8 @@ fn main() -> anyhow::Result<()> {
     if let Some(m) = args.mass_scale {
         h.params.mass_scale = m;
     }
-    if args.core_mass_scale.is_some() {
-        h.params.core_mass_scale = args.core_mass_scale;
+    if let Some(c) = &args.core_mass_scale {
+        h.params.core_mass_scale = haptic_model::hybrid::CoreMassScale::parse(c)?;
     }
     h.params.validate()?;
     let variant = h.params.meshfree.variant;
@@ -183,9 +184,10 @@ fn main() -> anyhow::Result<()> {
         }
         times.sort_by(f64::total_cmp);
         eprintln!(
-            "  terms and tied particles: {:?}; stencil layout (grid cells, groups): {:?}",
+            "  terms and tied particles: {:?}; stencil layout (grid cells, groups): {:?}; core_mass_scale {:.1}",
             body.work_counts(),
-            body.stencil_layout()
+            body.stencil_layout(),
+            body.core_mass_scale()
         );
         let med = times[times.len() / 2];
         let p99 = times[(times.len() * 99) / 100];

@@ -31,9 +31,10 @@ struct Args {
     /// `hybrid.mass_scale` override.
     #[arg(long)]
     mass_scale: Option<f64>,
-    /// `hybrid.core_mass_scale` override (1: the body's real inertia).
+    /// `hybrid.core_mass_scale` override: a number (1: the body's real inertia), `auto` or
+    /// `uniform`.
     #[arg(long)]
-    core_mass_scale: Option<f64>,
+    core_mass_scale: Option<String>,
     /// `hybrid.contact_stiffness_n_per_m` override (probe penalty per particle).
     #[arg(long)]
     contact_stiffness_n_per_m: Option<f64>,
@@ -70,35 +71,21 @@ fn main() -> anyhow::Result<()> {
     if let Some(m) = args.mass_scale {
         h.params.mass_scale = m;
     }
-    if args.core_mass_scale.is_some() {
-        h.params.core_mass_scale = args.core_mass_scale;
+    if let Some(c) = &args.core_mass_scale {
+        h.params.core_mass_scale = haptic_model::hybrid::CoreMassScale::parse(c)?;
     }
     h.params.validate()?;
     if let Some(k) = args.contact_stiffness_n_per_m {
         h.params.contact_stiffness_n_per_m = k;
     }
-    let (variant, mass_scale, core_mass_scale) = (
-        h.params.meshfree.variant,
-        h.params.mass_scale,
-        h.params.core_mass_scale(),
-    );
+    let (variant, mass_scale) = (h.params.meshfree.variant, h.params.mass_scale);
 
-    let mut body: Box<dyn SoftBody> = match args.substeps {
-        None => haptic_model::build_body(&scene)?,
-        Some(n) => {
-            let model = haptic_model::prepare_hybrid(&scene, &mut |_, _| {})?;
-            let clamped = model.clamped_core_nodes();
-            let mut b = haptic_model::hybrid::HybridBody::new(
-                model,
-                &clamped,
-                scene.probe,
-                scene.integrator.tick_s,
-                &scene.name,
-            )?;
-            b.override_substeps(n)?;
-            Box::new(b)
-        }
-    };
+    let mut hybrid = haptic_model::build_hybrid_body(&scene, &mut |_, _| {})?;
+    if let Some(n) = args.substeps {
+        hybrid.override_substeps(n)?;
+    }
+    let core_mass_scale = hybrid.core_mass_scale();
+    let mut body: Box<dyn SoftBody> = Box::new(hybrid);
     let tick = scene.integrator.tick_s;
     println!(
         "{} {} mass_scale {mass_scale}, core_mass_scale {core_mass_scale}, contact stiffness {} N/m per particle, ramp {} s, hold {} s, {} sub-steps per tick",

@@ -104,6 +104,27 @@ pub fn prepare_hybrid(
     )
 }
 
+/// The hybrid body of a `family = "hybrid"` scene: [`prepare_hybrid`], then
+/// [`hybrid::HybridBody::new`] with the core's clamped nodes, the scene's probe and tick (what
+/// [`build_body`] boxes, for callers that read the hybrid body's own accessors).
+///
+/// # Errors
+/// Those of [`prepare_hybrid`] and [`hybrid::HybridBody::new`].
+pub fn build_hybrid_body(
+    scene: &scene::Scene,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<hybrid::HybridBody, ModelError> {
+    let model = prepare_hybrid(scene, progress)?;
+    let clamped = model.clamped_core_nodes();
+    hybrid::HybridBody::new(
+        model,
+        &clamped,
+        scene.probe,
+        scene.integrator.tick_s,
+        &scene.name,
+    )
+}
+
 /// [`build_body`] reporting the preprocessing's progress (`stage`, fraction in `[0, 1]`) for
 /// families that preprocess (the hybrid model, [`hybrid::prepare`]; the FEM with a
 /// contact-local active region, [`sim::Simulation::new_with_progress`]).
@@ -116,17 +137,7 @@ pub fn build_body_with_progress(
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Box<dyn body::SoftBody>, ModelError> {
     match scene.family {
-        scene::ModelFamily::Hybrid => {
-            let model = prepare_hybrid(scene, progress)?;
-            let clamped = model.clamped_core_nodes();
-            Ok(Box::new(hybrid::HybridBody::new(
-                model,
-                &clamped,
-                scene.probe,
-                scene.integrator.tick_s,
-                &scene.name,
-            )?))
-        }
+        scene::ModelFamily::Hybrid => Ok(Box::new(build_hybrid_body(scene, progress)?)),
         scene::ModelFamily::Fem => Ok(Box::new(sim::Simulation::new_with_progress(
             scene, progress,
         )?)),

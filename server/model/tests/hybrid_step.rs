@@ -15,7 +15,7 @@ mod common;
 
 use glam::DVec3;
 use haptic_model::body::{SoftBody, TickInput};
-use haptic_model::hybrid::HybridBody;
+use haptic_model::hybrid::{CoreMassScale, HybridBody};
 use haptic_model::meshfree::{KernelKind, MeshfreeVariant};
 
 #[test]
@@ -28,8 +28,8 @@ fn default_substeps_stay_bounded_pressed_deep_with_many_regions_active() {
 #[test]
 fn a_real_inertia_core_stays_stable_pressed_deep_with_many_regions_active() {
     // core_mass_scale = 1 (the body's real inertia), particles at mass_scale = 300: the
-    // sub-steps come from the core's critical step and the coupling margin (10 per tick).
-    worst_case(MeshfreeVariant::Corrected, Some((300.0, 1.0)), 10);
+    // sub-steps come from the core's critical step and the coupling margin (11 per tick).
+    worst_case(MeshfreeVariant::Corrected, Some((300.0, 1.0)), 11);
 }
 
 /// `scales`: `(mass_scale, core_mass_scale)`, or the scene's.
@@ -39,7 +39,7 @@ fn worst_case(variant: MeshfreeVariant, scales: Option<(f64, f64)>, substeps: u3
         p.meshfree.kernel = KernelKind::default_for(variant);
         if let Some((m, c)) = scales {
             p.mass_scale = m;
-            p.core_mass_scale = Some(c);
+            p.core_mass_scale = CoreMassScale::Fixed(c);
         }
     });
     let mut body = HybridBody::new(
@@ -109,4 +109,118 @@ fn worst_case(variant: MeshfreeVariant, scales: Option<(f64, f64)>, substeps: u3
         last < 1e-3 * max_speed_proxy,
         "{variant:?}: the body did not come to rest: {last:e} J of {max_speed_proxy:e} J"
     );
+}
+
+#[test]
+fn the_scene_presses_and_slides_with_no_force_jump_at_activation_and_release() {
+    // lv-hybrid at its own scales (corrected variant, the core's mass scale chosen by the
+    // body): the probe approaches the lv-probe point (the epicardium at z = -5 mm, radius 9.682 mm,
+    // on the +x axis) along -x at 10 mm/s, presses 1 mm, holds 200 ms, slides 0.4 rad (3.9 mm of arc) around
+    // the axis, holds 200 ms and retracts. The press fills 1 879 of the 2 000 particles the
+    // scene allows, so the slide goes on by releasing the regions the probe left (farther than
+    // the activation radius, settled or not). At every tick where the active set changes the
+    // force moves by at most the 7 % JND of the larger of the two forces (issue 13, section 3),
+    // the force under the probe stays within 25 % of the hold's while it slides (before the
+    // releases for room it fell to 0.4 mN), and after retracting every region is released.
+    // The seed variant fails here: single-tick spikes of 13-180 mN at activations during the
+    // slide (docs/accuracy.md).
+    let mm = 1e-3;
+    {
+        let variant = MeshfreeVariant::Corrected;
+        let (model, clamped, scene) = common::lv_hybrid_model(|p| {
+            p.meshfree.variant = variant;
+            p.meshfree.kernel = KernelKind::default_for(variant);
+        });
+        let mut body = HybridBody::new(
+            model,
+            &clamped,
+            scene.probe,
+            scene.integrator.tick_s,
+            &scene.name,
+        )
+        .expect("body");
+        let surface = 9.682 * mm + scene.probe.radius_m;
+        let at = |r: f64, a: f64| DVec3::new(r * a.cos(), r * a.sin(), -5.0 * mm);
+        let step = 10.0 * mm * 1e-3;
+        let mut path = Vec::new();
+        let mut r = surface + 5.0 * mm;
+        while r > surface - 1.0 * mm {
+            path.push(at(r, 0.0));
+            r -= step;
+        }
+        let pressed = surface - 1.0 * mm;
+        path.extend(std::iter::repeat_n(at(pressed, 0.0), 200));
+        let hold_end = path.len();
+        let mut a = 0.0;
+        while a < 0.4 {
+            path.push(at(pressed, a));
+            a += step / pressed;
+        }
+        path.extend(std::iter::repeat_n(at(pressed, 0.4), 200));
+        let slide_end = path.len();
+        let mut r = pressed;
+        while r < surface + 8.0 * mm {
+            path.push(at(r, 0.4));
+            r += step;
+        }
+        let (mut prev, mut prev_active) = (DVec3::ZERO, 0usize);
+        let (mut changes, mut worst_jump, mut max_force) = (0, 0.0f64, 0.0f64);
+        let (mut hold_force, mut slide_range) = (0.0, (f64::INFINITY, 0.0f64));
+        for (t, c) in path.iter().enumerate() {
+            let f = body
+                .tick(&TickInput {
+                    device_position_m: Some(*c),
+                    device_velocity_m_per_s: DVec3::ZERO,
+                })
+                .unwrap_or_else(|e| panic!("{variant:?}, tick {t}: {e}"))
+                .force_on_device_n;
+            max_force = max_force.max(f.length());
+            if (hold_end - 50..hold_end).contains(&t) {
+                hold_force += f.length() / 50.0;
+            } else if (hold_end..slide_end).contains(&t) {
+                slide_range = (slide_range.0.min(f.length()), slide_range.1.max(f.length()));
+            }
+            let active = body.active_particles().len();
+            if active != prev_active {
+                changes += 1;
+                let scale = f.length().max(prev.length());
+                if scale > 1e-4 {
+                    worst_jump = worst_jump.max((f - prev).length() / scale);
+                }
+            }
+            prev = f;
+            prev_active = active;
+        }
+        for _ in 0..2000 {
+            body.tick(&TickInput::default()).expect("free tick");
+        }
+        eprintln!(
+            "{variant:?}: core_mass_scale {:.1}, {} sub-steps, {changes} activation/release ticks, largest relative force jump there {:.2} %, hold {:.2} mN, slide {:.2}-{:.2} mN, force up to {:.2} mN, {} particles active 2 s after retracting",
+            body.core_mass_scale(),
+            body.substeps().0,
+            100.0 * worst_jump,
+            hold_force * 1e3,
+            slide_range.0 * 1e3,
+            slide_range.1 * 1e3,
+            max_force * 1e3,
+            body.active_particles().len()
+        );
+        assert!(
+            changes >= 4 && max_force > 5e-3,
+            "{changes} changes, {max_force} N"
+        );
+        assert!(
+            worst_jump <= 0.07,
+            "{variant:?}: jump {:.2} %",
+            100.0 * worst_jump
+        );
+        assert!(
+            slide_range.0 > 0.75 * hold_force && slide_range.1 < 1.25 * hold_force,
+            "slide {slide_range:?} N against the hold's {hold_force} N"
+        );
+        assert!(
+            body.active_particles().is_empty(),
+            "{variant:?}: regions not released"
+        );
+    }
 }

@@ -34,6 +34,7 @@ use haptic_model::body::SoftBody;
 use haptic_model::build_body;
 use haptic_model::contact::ContactModel;
 use haptic_model::contact::SurfaceSampler;
+use haptic_model::hybrid::CoreMassScale;
 use haptic_model::mass_spring::{MassSpringBody, SpringRule};
 use haptic_model::meshfree::{KernelKind, MeshfreeVariant};
 use haptic_model::scene::load_builtin;
@@ -169,43 +170,55 @@ pub fn contact_rows(quick: bool, rows: &mut Vec<Row>) {
 
 /// The seeds' hybrid model `lv-hybrid` (a coarse LV core and about 130 000 meshfree particles
 /// up to the epicardium, activated under the probe) pressed like the FEM
-/// ([`probe_dynamic_body`]): both meshfree variants at the scene's uniform mass scale, the
-/// corrected one at a uniform `mass_scale = 100`, and both with the body's real inertia
-/// (`core_mass_scale = 1`, particles at `mass_scale = 300`); forces against the sphere
-/// reference of its material.
+/// ([`probe_dynamic_body`]): both meshfree variants at the scene's scales (`mass_scale =
+/// 1000`, `core_mass_scale = "auto"`), the corrected one with the core as heavy as the
+/// particles (`"uniform"`, the scene before the automatic choice) at 1000 and at 100, and both
+/// with the body's real inertia (`core_mass_scale = 1`, particles at `mass_scale = 300`);
+/// forces against the sphere reference of its material.
 pub fn hybrid_rows(quick: bool, rows: &mut Vec<Row>) {
     let base = load_builtin("lv-hybrid").expect("built-in lv-hybrid");
     let ref_text = sphere_reference_text(base.material.model);
-    // The scene's uniform mass_scale (1000) slows the whole dynamics 32-fold, which the 100 ms
-    // holds see; 100 is nearer the static answer at three times the sub-steps; a real-inertia
-    // core leaves only the active particles heavier, at the core's sub-steps.
-    let default_scale = base.hybrid.as_ref().map_or(1.0, |h| h.params.mass_scale);
-    for (variant, mass_scale, core_mass_scale) in [
-        (MeshfreeVariant::Seed, default_scale, None),
-        (MeshfreeVariant::Corrected, default_scale, None),
-        (MeshfreeVariant::Corrected, 100.0, None),
-        (MeshfreeVariant::Seed, 300.0, Some(1.0)),
-        (MeshfreeVariant::Corrected, 300.0, Some(1.0)),
+    // A uniform mass_scale of 1000 slows the whole dynamics 32-fold, which the 100 ms holds
+    // see; the automatic core scale keeps the body nearer its real inertia at the same
+    // sub-steps; a real-inertia core leaves only the active particles heavier, at the core's
+    // sub-steps.
+    let (default_scale, default_core) = base
+        .hybrid
+        .as_ref()
+        .map_or((1.0, CoreMassScale::Uniform), |h| {
+            (h.params.mass_scale, h.params.core_mass_scale)
+        });
+    for (variant, mass_scale, core) in [
+        (MeshfreeVariant::Seed, default_scale, default_core),
+        (MeshfreeVariant::Corrected, default_scale, default_core),
+        (
+            MeshfreeVariant::Corrected,
+            default_scale,
+            CoreMassScale::Uniform,
+        ),
+        (MeshfreeVariant::Corrected, 100.0, CoreMassScale::Uniform),
+        (MeshfreeVariant::Seed, 300.0, CoreMassScale::Fixed(1.0)),
+        (MeshfreeVariant::Corrected, 300.0, CoreMassScale::Fixed(1.0)),
     ] {
         let mut scene = base.clone();
         let h = scene.hybrid.as_mut().expect("a hybrid scene");
         h.params.meshfree.variant = variant;
         h.params.meshfree.kernel = KernelKind::default_for(variant);
         h.params.mass_scale = mass_scale;
-        h.params.core_mass_scale = core_mass_scale;
-        let label = match core_mass_scale {
-            Some(c) => format!(
-                "hybrid {} mass_scale {mass_scale} core_mass_scale {c}",
+        h.params.core_mass_scale = core;
+        let label = if mass_scale == default_scale && core == default_core {
+            format!("hybrid {}", variant.name())
+        } else {
+            format!(
+                "hybrid {} mass_scale {mass_scale} core_mass_scale {core}",
                 variant.name()
-            ),
-            None if mass_scale == default_scale => format!("hybrid {}", variant.name()),
-            None => format!("hybrid {} mass_scale {mass_scale}", variant.name()),
+            )
         };
         let mut row = Row::blank(Scenario::LvProbe, label.clone(), "symplectic-euler");
         row.model = Model::Hybrid;
         row.material = scene.material.model.scene_name().into();
         row.reference = ref_text.clone();
-        let mut body = match build_body(&scene) {
+        let mut body = match haptic_model::build_hybrid_body(&scene, &mut |_, _| {}) {
             Ok(b) => b,
             Err(e) => {
                 row.settings = format!("{label}: {e}");
@@ -214,23 +227,17 @@ pub fn hybrid_rows(quick: bool, rows: &mut Vec<Row>) {
                 continue;
             }
         };
+        let core_scale = body.core_mass_scale();
         let stats0 = body.stats();
         row.nodes = stats0.nodes;
         row.tets = stats0.elements;
-        match probe_dynamic_body(body.as_mut(), scene.integrator.tick_s, quick) {
+        match probe_dynamic_body(&mut body, scene.integrator.tick_s, quick) {
             Ok((curve, ticks)) => {
                 let info = body.info();
                 let stats = body.stats();
                 row.settings = format!(
                     "tick 1 ms, {} sub-steps; {} particles, {} active at 3 mm; mass_scale {}, core_mass_scale {}; staircase 0.5..3 mm",
-                    info.substeps,
-                    stats.particles,
-                    stats.active_particles,
-                    mass_scale,
-                    scene
-                        .hybrid
-                        .as_ref()
-                        .map_or(1.0, |h| h.params.core_mass_scale())
+                    info.substeps, stats.particles, stats.active_particles, mass_scale, core_scale
                 );
                 row.set_times(&ticks, scene.integrator.tick_s);
                 fill_lv_errors(&mut row, base.material.model, &curve);

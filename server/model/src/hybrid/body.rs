@@ -3,12 +3,16 @@
 //! velocity form `v += F/m dt; x += v dt`, which gives the same positions), the ties of
 //! everything else to the core, contact-local activation and release, and the probe.
 //!
-//! **A tick.** (1) Activation: the particle region of every outer vertex within
-//! `activation_radius_m` of the probe centre is switched on (its particles start on the core's
-//! interpolation, with the core's interpolated velocity); a region whose vertex is farther than
-//! `release_radius_m` and whose particles are back within `release_tolerance_m` of the core's
-//! interpolation (or at rest: speeds below that tolerance per 0.1 s) is switched off (its particles follow the core again, at no cost). When the
-//! active set changed, the energy terms are refilled (active particles and their tied
+//! **A tick.** (1) Release and activation: a region whose vertex is farther than
+//! `release_radius_m` from the probe and whose particles are back within `release_tolerance_m`
+//! of the core's interpolation (or at rest: speeds below that tolerance per 0.1 s) is switched
+//! off (its particles follow the core again, at no cost); then the particle region of every
+//! outer vertex within `activation_radius_m` of the probe centre is switched on, nearest
+//! first (its particles start on the core's interpolation, with the core's interpolated
+//! velocity). When a region does not fit under `max_active_particles`, the regions farthest
+//! from the probe (beyond halfway to `release_radius_m`) are switched off, settled or not, so
+//! a sliding probe keeps simulated particles under it. When the active set changed, the
+//! energy terms are refilled (active particles and their tied
 //! neighbours, allocation-free). (2) Particle steps at the particles' critical step: tied
 //! particles take the core's interpolated positions, term forces, probe penalty on active
 //! particles, tied particles' forces back to the core with the tie weights; then the core
@@ -20,9 +24,11 @@
 //! **Masses.** Each active particle has `rho s^3` times `mass_scale`. The core's nodes carry
 //! the core's lumped mass and the whole particle layer's (each layer particle's mass spread
 //! over its tie's nodes, [`HybridModel::layer_mass_on_core_kg`]: the inactive particles follow
-//! the core, so their inertia is the core's), times `core_mass_scale` (default `mass_scale`:
-//! a uniform slow-down; 1: the body's real inertia, the sub-steps then set by the core's
-//! critical step).
+//! the core, so their inertia is the core's), times the core's mass scale ([`CoreMassScale`]:
+//! `mass_scale` by default, a uniform slow-down; 1, the body's real inertia, the sub-steps
+//! then set by the core's critical step; `auto`, the smallest scale that adds no sub-step to
+//! the particles' count, so the body is as close to its real inertia as the particle step
+//! allows).
 //!
 //! **Surface.** Each outer vertex shows the core's interpolation at the vertex plus the
 //! deviation of its nearest particle from the core's interpolation at that particle (zero for
@@ -33,6 +39,7 @@
 
 use glam::DVec3;
 
+use super::CoreMassScale;
 use super::prepare::{HybridModel, Tie};
 use crate::ModelError;
 use crate::body::{
@@ -42,7 +49,9 @@ use crate::body::{
 use crate::contact::probe::ProbeParams;
 use crate::element::FemModel;
 use crate::integrate::explicit::integrate_nodes;
-use crate::integrate::{IntegratorKind, critical_time_step};
+use crate::integrate::{
+    IntegratorKind, damped_critical_step_s, damped_max_omega2_per_s2, viscous_beta_s,
+};
 use crate::meshfree::TermBlock;
 
 /// Point loads a body holds at once.
@@ -59,7 +68,7 @@ const MAX_SPEED_M_PER_S: f64 = 100.0;
 /// `a_real_inertia_core_steps_within_the_coupled_limit` checks the bound against that estimate
 /// at several points of the surface. (With the default uniform mass scale the core's step is
 /// several times the particles' and this does not bind.)
-const CORE_COUPLING_MARGIN: f64 = 0.75;
+const CORE_COUPLING_MARGIN: f64 = 0.65;
 
 #[derive(Debug, Clone, Copy, Default)]
 struct PointLoad {
@@ -84,6 +93,7 @@ pub struct HybridBody {
     fcoup: Vec<DVec3>,
     critical_dt_s: f64,
     particle_mass_kg: f64,
+    core_mass_scale: f64,
     xc: Vec<DVec3>,
     vc: Vec<DVec3>,
     fc: Vec<DVec3>,
@@ -101,6 +111,9 @@ pub struct HybridBody {
     block: TermBlock,
     region_active: Vec<bool>,
     active_regions: Vec<u32>,
+    /// Regions to activate this tick with their squared distance to the probe, m^2 (scratch
+    /// of [`Self::activate_near`], one slot per outer vertex).
+    candidates: Vec<(f64, u32)>,
     changed: bool,
     hold: bool,
     refused_activations: u64,
@@ -136,31 +149,48 @@ impl HybridBody {
         name: &str,
     ) -> Result<Self, ModelError> {
         let params = model.params;
-        // The core carries its own mass and the particle layer's (the inactive particles
-        // follow it), both times `core_mass_scale()`: by default `mass_scale`, a uniform
-        // slow-down of the dynamics by its square root (statics unchanged); at 1 the body has
-        // its real inertia and only the active particles are heavier.
-        let core_scale = params.core_mass_scale();
-        let mut material = *model.cloud.material();
-        material.density_kg_per_m3 *= core_scale;
-        let mut fem = FemModel::new(&model.core_mesh, material)?;
-        let mut layer_kg = model.layer_mass_on_core_kg();
-        layer_kg.iter_mut().for_each(|m| *m *= core_scale);
-        fem.add_lumped_mass(&layer_kg);
-        fem.clamp_nodes(clamped);
-        let core_dt_s = critical_time_step(&fem, IntegratorKind::SymplecticEuler);
         let particle_mass_kg = model.cloud.mass_kg() * params.mass_scale;
         // Elastic part scales with 1/mass; the probe penalty adds k / m to the eigenvalue bound.
         let lambda_el = (2.0 / model.particle_dt_s).powi(2) / params.mass_scale;
         let lambda = lambda_el + params.contact_stiffness_n_per_m / particle_mass_kg;
         let particle_dt = 2.0 / lambda.sqrt();
+        let substeps_for = |dt_s: f64| (tick_s / (params.safety_factor * dt_s)).ceil().max(1.0);
+        // The core carries its own mass and the particle layer's (the inactive particles
+        // follow it), both times the core's mass scale (`CoreMassScale`).
+        let core_fem = |scale: f64| -> Result<FemModel, ModelError> {
+            let mut material = *model.cloud.material();
+            material.density_kg_per_m3 *= scale;
+            let mut fem = FemModel::new(&model.core_mesh, material)?;
+            let mut layer_kg = model.layer_mass_on_core_kg();
+            layer_kg.iter_mut().for_each(|m| *m *= scale);
+            fem.add_lumped_mass(&layer_kg);
+            fem.clamp_nodes(clamped);
+            Ok(fem)
+        };
+        // The largest eigenvalue of M^-1 K at the real masses; a uniform mass scale divides it.
+        let real = core_fem(1.0)?;
+        let omega2_real = real.max_eigenvalue(0.0, 300);
+        let beta = viscous_beta_s(real.material());
+        let core_mass_scale = match params.core_mass_scale {
+            CoreMassScale::Fixed(scale) => scale,
+            CoreMassScale::Uniform => params.mass_scale,
+            CoreMassScale::Auto => {
+                let want_dt = tick_s / (params.safety_factor * substeps_for(particle_dt));
+                let omega2_max = damped_max_omega2_per_s2(want_dt / CORE_COUPLING_MARGIN, beta);
+                (omega2_real / omega2_max * (1.0 + 1e-9)).clamp(1.0, params.mass_scale)
+            }
+        };
+        let fem = if core_mass_scale == 1.0 {
+            real
+        } else {
+            core_fem(core_mass_scale)?
+        };
+        let core_dt_s = damped_critical_step_s(omega2_real / core_mass_scale, beta);
         let critical_dt_s = particle_dt.min(CORE_COUPLING_MARGIN * core_dt_s);
         // One rate for both: the particle terms of tied particles stiffen the core nodes, so a
         // core held through a longer particle step (multi-rate, tried, also with a real-inertia
         // core) diverges on lv-hybrid. `core_substeps` stays 1.
-        let substeps = (tick_s / (params.safety_factor * critical_dt_s))
-            .ceil()
-            .max(1.0) as u32;
+        let substeps = substeps_for(critical_dt_s) as u32;
         let core_substeps = 1u32;
         if substeps.max(core_substeps) > params.max_substeps {
             return Err(ModelError::field(
@@ -187,6 +217,7 @@ impl HybridBody {
             fcoup: vec![DVec3::ZERO; nc],
             critical_dt_s,
             particle_mass_kg,
+            core_mass_scale,
             xc: model.core_mesh.nodes.clone(),
             vc: vec![DVec3::ZERO; nc],
             fc: vec![DVec3::ZERO; nc],
@@ -201,6 +232,7 @@ impl HybridBody {
             block,
             region_active: vec![false; nv],
             active_regions: Vec::with_capacity(nv),
+            candidates: Vec::with_capacity(nv),
             changed: false,
             hold: false,
             refused_activations: 0,
@@ -296,6 +328,12 @@ impl HybridBody {
         self.fem.lumped_mass_kg()
     }
 
+    /// The core's mass multiplier in use ([`CoreMassScale`]: the value set, `mass_scale`, or
+    /// the one chosen for `auto`).
+    pub fn core_mass_scale(&self) -> f64 {
+        self.core_mass_scale
+    }
+
     /// Mass of one particle, kg.
     pub fn particle_mass_kg(&self) -> f64 {
         self.particle_mass_kg
@@ -330,10 +368,17 @@ impl HybridBody {
     }
 
     /// Activates the regions of the outer vertices within `radius_m` of `point_m` (m, at
-    /// their current positions). Allocation-free; the terms are refilled at the next tick or
+    /// their current positions). When a region does not fit under `max_active_particles`,
+    /// active regions whose vertex is farther than halfway between `radius_m` and
+    /// `release_radius_m` from `point_m` are released, farthest first, settled or not, to make
+    /// room (not while
+    /// [`Self::hold_regions`] holds them): the probe keeps simulated particles under it as it
+    /// slides. Allocation-free; the terms are refilled at the next tick or
     /// [`Self::evaluate_forces`].
     pub fn activate_near(&mut self, point_m: DVec3, radius_m: f64) {
         let r2 = radius_m * radius_m;
+        // Nearest first: when the cap binds, the regions under the probe get in.
+        self.candidates.clear();
         for v in 0..self.model.outer_rest_m.len() {
             if self.region_active[v] {
                 continue;
@@ -343,19 +388,77 @@ impl HybridBody {
                 &self.model.core_mesh.tets,
                 &self.xc,
             );
-            if (x - point_m).length_squared() < r2 {
-                self.activate_region(v);
+            let d2 = (x - point_m).length_squared();
+            if d2 < r2 {
+                self.candidates.push((d2, v as u32));
             }
         }
+        self.candidates.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+        for k in 0..self.candidates.len() {
+            let v = self.candidates[k].1 as usize;
+            if !self.fits(v) && !self.hold {
+                // Halfway to the release radius: a region at the activation radius's edge is
+                // not evicted and re-activated tick after tick.
+                let p = &self.model.params;
+                let evict_m = 0.5 * (radius_m + p.release_radius_m.max(radius_m));
+                self.evict_far(point_m, evict_m, v);
+            }
+            if self.fits(v) {
+                self.activate_region(v);
+            } else {
+                self.refused_activations += 1;
+            }
+        }
+    }
+
+    /// Whether the region of vertex `v` fits under `max_active_particles`.
+    fn fits(&self, v: usize) -> bool {
+        let m = &self.model;
+        let len = (m.region_start[v + 1] - m.region_start[v]) as usize;
+        self.active_list.len() + len <= m.params.max_active_particles
+    }
+
+    /// Releases active regions whose vertex is farther than `radius_m` from `probe_m`,
+    /// farthest first, until the region of vertex `v` fits or none is left.
+    fn evict_far(&mut self, probe_m: DVec3, radius_m: f64, v: usize) {
+        let r2 = radius_m * radius_m;
+        while !self.fits(v) {
+            let m = &self.model;
+            let mut farthest = None;
+            let mut d2_max = r2;
+            for (k, &u) in self.active_regions.iter().enumerate() {
+                let x = interpolate(&m.vertex_tie[u as usize], &m.core_mesh.tets, &self.xc);
+                let d2 = (x - probe_m).length_squared();
+                if d2 > d2_max {
+                    d2_max = d2;
+                    farthest = Some(k);
+                }
+            }
+            let Some(k) = farthest else {
+                return;
+            };
+            self.deactivate_region(k);
+            let active = &self.active;
+            self.active_list.retain(|&p| active[p as usize]);
+        }
+    }
+
+    /// Switches off the `k`-th active region (its particles follow the core again); the
+    /// caller prunes `active_list`.
+    fn deactivate_region(&mut self, k: usize) {
+        let m = &self.model;
+        let v = self.active_regions[k] as usize;
+        for &p in &m.region_particles[m.region_start[v] as usize..m.region_start[v + 1] as usize] {
+            self.active[p as usize] = false;
+        }
+        self.region_active[v] = false;
+        self.active_regions.swap_remove(k);
+        self.changed = true;
     }
 
     fn activate_region(&mut self, v: usize) {
         let m = &self.model;
         let range = m.region_start[v] as usize..m.region_start[v + 1] as usize;
-        if self.active_list.len() + range.len() > m.params.max_active_particles {
-            self.refused_activations += 1;
-            return;
-        }
         for k in range {
             let p = m.region_particles[k] as usize;
             if m.degenerate[p] {
@@ -375,12 +478,14 @@ impl HybridBody {
     /// Releases the settled regions whose vertex is farther than `release_radius_m` from the
     /// probe (`None`: no probe, every settled region).
     fn release_far(&mut self, probe_m: Option<DVec3>) {
-        let m = &self.model;
-        let tets = &m.core_mesh.tets;
-        let r2 = m.params.release_radius_m * m.params.release_radius_m;
-        let tol2 = m.params.release_tolerance_m * m.params.release_tolerance_m;
+        let p = &self.model.params;
+        let r2 = p.release_radius_m * p.release_radius_m;
+        let tol2 = p.release_tolerance_m * p.release_tolerance_m;
+        let mut released = false;
         let mut k = 0;
         while k < self.active_regions.len() {
+            let m = &self.model;
+            let tets = &m.core_mesh.tets;
             let v = self.active_regions[k] as usize;
             let near = probe_m.is_some_and(|c| {
                 (interpolate(&m.vertex_tie[v], tets, &self.xc) - c).length_squared() < r2
@@ -401,19 +506,13 @@ impl HybridBody {
                     !self.active[p as usize] || self.vp[p as usize].length_squared() * 0.01 < tol2
                 }));
             if settled {
-                for &p in
-                    &m.region_particles[m.region_start[v] as usize..m.region_start[v + 1] as usize]
-                {
-                    self.active[p as usize] = false;
-                }
-                self.region_active[v] = false;
-                self.active_regions.swap_remove(k);
-                self.changed = true;
+                self.deactivate_region(k);
+                released = true;
             } else {
                 k += 1;
             }
         }
-        if self.changed {
+        if released {
             let active = &self.active;
             self.active_list.retain(|&p| active[p as usize]);
         }
@@ -620,13 +719,13 @@ impl SoftBody for HybridBody {
         if let Some(time_s) = self.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
-        // 1. Activation and release.
+        // 1. Release, then activation (which may release unsettled far regions for room).
         let probe = input.device_position_m;
-        if let Some(c) = probe {
-            self.activate_near(c, self.model.params.activation_radius_m);
-        }
         if !self.hold {
             self.release_far(probe);
+        }
+        if let Some(c) = probe {
+            self.activate_near(c, self.model.params.activation_radius_m);
         }
         // 2. Sub-steps.
         let mut out = (DVec3::ZERO, [0.0; 9]);

@@ -98,16 +98,63 @@ pub struct HybridParams {
     /// the critical steps as much; static forces do not change.
     pub mass_scale: f64,
     /// Multiplier of the core's mass (its own and the particle layer's, which the core
-    /// carries through the ties; `None`: `mass_scale`, a uniform slow-down). `Some(1.0)` gives
-    /// the body its real inertia while the particles keep `mass_scale`: the sub-steps then
-    /// follow the core's critical step, and the probe no longer pushes a body made heavier by
-    /// the mass scale (`docs/accuracy.md`, "The hybrid model's real-inertia core"). Not in
-    /// the seed.
-    pub core_mass_scale: Option<f64>,
+    /// carries through the ties), [`CoreMassScale`]. Not in the seed.
+    pub core_mass_scale: CoreMassScale,
     /// Fraction of the critical step used, in (0, 1].
     pub safety_factor: f64,
     /// Most sub-steps per servo tick.
     pub max_substeps: u32,
+}
+
+/// The core's mass multiplier (`hybrid.core_mass_scale`: a number, `"auto"` or `"uniform"`).
+///
+/// The core carries its own mass and the particle layer's (the inactive particles follow it),
+/// so this scale sets the body's inertia; the active particles keep `mass_scale`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum CoreMassScale {
+    /// `mass_scale`: the whole body slowed down uniformly by its square root, statics
+    /// unchanged (the default, and the behaviour before the key existed).
+    #[default]
+    Uniform,
+    /// The smallest value in `[1, mass_scale]` at which the core's critical step (with the
+    /// coupling margin) adds no sub-step to the count the particles' step sets: the body keeps
+    /// as much of its real inertia as that step allows at no extra cost (about 24 on
+    /// `lv-hybrid`; chosen by [`HybridBody::new`], read back with
+    /// [`HybridBody::core_mass_scale`]).
+    Auto,
+    /// This value, in `[1, 1e6]`; 1 is the body's real inertia, the sub-steps then follow the
+    /// core's critical step (`docs/accuracy.md`, "The hybrid model's real-inertia core").
+    Fixed(f64),
+}
+
+impl std::fmt::Display for CoreMassScale {
+    /// As the scene writes it: `uniform`, `auto` or the number.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Uniform => f.write_str("uniform"),
+            Self::Auto => f.write_str("auto"),
+            Self::Fixed(v) => write!(f, "{v}"),
+        }
+    }
+}
+
+impl CoreMassScale {
+    /// Parses `"auto"`, `"uniform"` or a number (checked by [`HybridParams::validate`]).
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] naming `hybrid.core_mass_scale` for anything else.
+    pub fn parse(text: &str) -> Result<Self, ModelError> {
+        match text.trim() {
+            "auto" => Ok(Self::Auto),
+            "uniform" => Ok(Self::Uniform),
+            t => t.parse().map(Self::Fixed).map_err(|_| {
+                ModelError::field(
+                    "hybrid.core_mass_scale",
+                    format!("must be a number, \"auto\" or \"uniform\", got {t:?}"),
+                )
+            }),
+        }
+    }
 }
 
 impl Default for HybridParams {
@@ -122,7 +169,7 @@ impl Default for HybridParams {
             max_active_particles: 2000,
             contact_stiffness_n_per_m: 5.0,
             mass_scale: 1.0,
-            core_mass_scale: None,
+            core_mass_scale: CoreMassScale::Uniform,
             safety_factor: 0.9,
             max_substeps: 200,
         }
@@ -130,11 +177,6 @@ impl Default for HybridParams {
 }
 
 impl HybridParams {
-    /// The core's mass multiplier: `core_mass_scale`, or `mass_scale` when unset.
-    pub fn core_mass_scale(&self) -> f64 {
-        self.core_mass_scale.unwrap_or(self.mass_scale)
-    }
-
     /// Checks every value.
     ///
     /// # Errors
@@ -187,7 +229,7 @@ impl HybridParams {
                 "must be in [1, 1e6]",
             ));
         }
-        if let Some(c) = self.core_mass_scale
+        if let CoreMassScale::Fixed(c) = self.core_mass_scale
             && !(1.0..=1e6).contains(&c)
         {
             return Err(ModelError::field(

@@ -216,6 +216,26 @@ pub fn viscous_beta_s(m: &MaterialParams) -> f64 {
     a.max(2.0 * m.psi_pa_s / m.mu_pa)
 }
 
+/// The symplectic Euler step limit (s) of a mode `omega2_per_s2 = omega^2` (1/s^2) damped by
+/// the stiffness-proportional factor `beta_s` ([`viscous_beta_s`]): `(2 / omega) (sqrt(1 +
+/// xi^2) - xi)` with `xi = beta omega / 2`; infinite when `omega2_per_s2 <= 0`.
+pub fn damped_critical_step_s(omega2_per_s2: f64, beta_s: f64) -> f64 {
+    if omega2_per_s2 <= 0.0 {
+        return f64::INFINITY;
+    }
+    let w = omega2_per_s2.sqrt();
+    let xi = beta_s * w / 2.0;
+    2.0 / w * ((1.0 + xi * xi).sqrt() - xi)
+}
+
+/// The inverse of [`damped_critical_step_s`]: the largest `omega^2` (1/s^2) whose step limit
+/// is at least `dt_s` (s). With `a = 2 / dt`: `omega^2 = a^2 / (1 + a beta)` (squaring
+/// `omega sqrt(1 + xi^2) = a - beta omega^2 / 2`).
+pub fn damped_max_omega2_per_s2(dt_s: f64, beta_s: f64) -> f64 {
+    let a = 2.0 / dt_s;
+    a * a / (1.0 + a * beta_s)
+}
+
 /// Critical (Courant) time step of `kind` on `fem`, s.
 ///
 /// - Symplectic Euler: `dt_crit = (2 / omega_max) (sqrt(1 + xi^2) - xi)` with
@@ -229,14 +249,7 @@ pub fn viscous_beta_s(m: &MaterialParams) -> f64 {
 /// - Backward Euler: `f64::INFINITY` (unconditionally stable for the linearised system).
 pub fn critical_time_step(fem: &FemModel, kind: IntegratorKind) -> f64 {
     let beta = viscous_beta_s(fem.material());
-    let damped = |w2: f64| {
-        if w2 <= 0.0 {
-            return f64::INFINITY;
-        }
-        let w = w2.sqrt();
-        let xi = beta * w / 2.0;
-        2.0 / w * ((1.0 + xi * xi).sqrt() - xi)
-    };
+    let damped = |w2: f64| damped_critical_step_s(w2, beta);
     match kind {
         IntegratorKind::SymplecticEuler => damped(fem.max_eigenvalue(0.0, 300)),
         IntegratorKind::SemiImplicit => damped(fem.max_eigenvalue(2.0, 300)),

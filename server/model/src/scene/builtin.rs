@@ -169,7 +169,7 @@ max_force_n = 10.0
 /// Built-in scene `lv-hybrid`: the seeds' hybrid model on the LV geometry.
 const LV_HYBRID_TOML: &str = r#"# Built-in scene "lv-hybrid" (a copy of the constant in server/model/src/scene/builtin.rs).
 name = "lv-hybrid"
-description = "The seeds' hybrid model (Mero & Susin 2006, sections 4-6) on the idealized LV of the built-in lv scene: a coarse FEM core (inner 35 % of the wall, about 500 linear tets, base clamped) and a layer of about 130 000 meshfree particles (corrected variant) between the core and the epicardium, simulated only in the regions under the probe. Material of the lv scene (E = 14.5 kPa, nu = 0.45). mass_scale = 1000 is ours (not in the seed): it keeps the explicit particle step at a few sub-steps per 1 ms tick."
+description = "The seeds' hybrid model (Mero & Susin 2006, sections 4-6) on the idealized LV of the built-in lv scene: a coarse FEM core (inner 35 % of the wall, about 500 linear tets, base clamped) and a layer of about 130 000 meshfree particles (corrected variant) between the core and the epicardium, simulated only in the regions under the probe. Material of the lv scene (E = 14.5 kPa, nu = 0.45). mass_scale = 1000 on the active particles and an automatic core mass scale (about 24) are ours (not in the seed): they keep the explicit step at two sub-steps per 1 ms tick."
 
 [model]
 family = "hybrid"
@@ -201,14 +201,16 @@ smoothing_ratio = 1.0           # h / spacing: 26 neighbours
 hourglass_coefficient = 0.5
 core_fraction = 0.35            # share of the wall thickness in the FEM core
 surface_target_tets = 12000     # resolution of the outer surface (per-vertex particle regions)
-activation_radius_m = 0.0035
+activation_radius_m = 0.003     # 1 mm beyond the probe: a 1 mm press activates about 1 300
+                                # particles, leaving room under the cap for a slide
 release_radius_m = 0.005
 release_tolerance_m = 0.00002
 max_active_particles = 2000
 contact_stiffness_n_per_m = 16.0 # probe-particle penalty, per particle (static force within 1 % of the hard-contact limit)
-mass_scale = 1000.0              # uniform (core too): 2 sub-steps per tick, a body 1000 times heavier
-# core_mass_scale = 1.0         # the body's real inertia, only the active particles heavier (with
-#                               # mass_scale = 300): about 10 sub-steps, docs/scenes.md
+mass_scale = 1000.0              # the active particles: 2 sub-steps per tick
+core_mass_scale = "auto"         # the body's inertia: the least scale (about 24) that keeps those
+                                 # 2 sub-steps; 1: real inertia (with mass_scale = 300, about 11
+                                 # sub-steps); "uniform": mass_scale, docs/scenes.md
 safety_factor = 0.9
 max_substeps = 64
 
@@ -253,7 +255,7 @@ spacing_m = 0.0005
 smoothing_ratio = 1.0
 core_fraction = 0.4
 surface_target_tets = 8000
-activation_radius_m = 0.0035
+activation_radius_m = 0.003
 release_radius_m = 0.005
 release_tolerance_m = 0.00002
 max_active_particles = 1000

@@ -11,7 +11,7 @@ use super::{HybridScene, MassSpringScene, ModelFamily, Scene, TableState};
 use crate::ModelError;
 use crate::contact::{ContactModel, ProbeParams};
 use crate::element::StrainSmoothing;
-use crate::hybrid::{HybridParams, ShellGeometry};
+use crate::hybrid::{CoreMassScale, HybridParams, ShellGeometry};
 use crate::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
 use crate::integrate::{IntegratorKind, IntegratorParams, LinearSolver};
 use crate::loads::{PointForce, PressureLoad, SceneLoads};
@@ -63,9 +63,17 @@ struct RawHybrid {
     max_active_particles: Option<i64>,
     contact_stiffness_n_per_m: Option<f64>,
     mass_scale: Option<f64>,
-    core_mass_scale: Option<f64>,
+    core_mass_scale: Option<RawCoreMassScale>,
     safety_factor: Option<f64>,
     max_substeps: Option<i64>,
+}
+
+/// `hybrid.core_mass_scale`: a number or a name (`CoreMassScale::parse`).
+#[derive(Debug, Deserialize)]
+#[serde(untagged)]
+enum RawCoreMassScale {
+    Number(f64),
+    Name(String),
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -737,7 +745,11 @@ fn build_hybrid(h: &RawHybrid, mesh: &RawMesh, unit_m: f64) -> Result<HybridScen
             .contact_stiffness_n_per_m
             .unwrap_or(d.contact_stiffness_n_per_m),
         mass_scale: h.mass_scale.unwrap_or(d.mass_scale),
-        core_mass_scale: h.core_mass_scale,
+        core_mass_scale: match &h.core_mass_scale {
+            None => CoreMassScale::Uniform,
+            Some(RawCoreMassScale::Number(v)) => CoreMassScale::Fixed(*v),
+            Some(RawCoreMassScale::Name(t)) => CoreMassScale::parse(t)?,
+        },
         safety_factor: h.safety_factor.unwrap_or(d.safety_factor),
         max_substeps: opt_int(
             "hybrid.max_substeps",
