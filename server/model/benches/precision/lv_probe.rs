@@ -206,13 +206,14 @@ pub fn hybrid_rows(quick: bool, rows: &mut Vec<Row>) {
         h.params.meshfree.kernel = KernelKind::default_for(variant);
         h.params.mass_scale = mass_scale;
         h.params.core_mass_scale = core;
-        let label = if mass_scale == default_scale && core == default_core {
-            format!("hybrid {}", variant.name())
-        } else {
-            format!(
-                "hybrid {} mass_scale {mass_scale} core_mass_scale {core}",
-                variant.name()
-            )
+        let label = match core {
+            _ if mass_scale == default_scale && core == default_core => {
+                format!("hybrid {}", variant.name())
+            }
+            CoreMassScale::Fixed(c) if c == 1.0 => {
+                format!("hybrid {}, real inertia ({mass_scale})", variant.name())
+            }
+            _ => format!("hybrid {}, {core} {mass_scale}", variant.name()),
         };
         let mut row = Row::blank(Scenario::LvProbe, label.clone(), "symplectic-euler");
         row.model = Model::Hybrid;

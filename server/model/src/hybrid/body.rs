@@ -10,8 +10,8 @@
 //! outer vertex within `activation_radius_m` of the probe centre is switched on, nearest
 //! first (its particles start on the core's interpolation, with the core's interpolated
 //! velocity). When a region does not fit under `max_active_particles`, the regions farthest
-//! from the probe (beyond halfway to `release_radius_m`) are switched off, settled or not, so
-//! a sliding probe keeps simulated particles under it. When the active set changed, the
+//! from the probe (farther than it by half of `release_radius_m - activation_radius_m`) are
+//! switched off, settled or not, so a sliding probe keeps simulated particles under it. When the active set changed, the
 //! energy terms are refilled (active particles and their tied
 //! neighbours, allocation-free). (2) Particle steps at the particles' critical step: tied
 //! particles take the core's interpolated positions, term forces, probe penalty on active
@@ -368,10 +368,10 @@ impl HybridBody {
     }
 
     /// Activates the regions of the outer vertices within `radius_m` of `point_m` (m, at
-    /// their current positions). When a region does not fit under `max_active_particles`,
-    /// active regions whose vertex is farther than halfway between `radius_m` and
-    /// `release_radius_m` from `point_m` are released, farthest first, settled or not, to make
-    /// room (not while
+    /// their current positions), nearest first. When a region does not fit under
+    /// `max_active_particles`, active regions whose vertex is farther from `point_m` than the
+    /// region's by half of `release_radius_m - radius_m` are released, farthest first, settled
+    /// or not, to make room (not while
     /// [`Self::hold_regions`] holds them): the probe keeps simulated particles under it as it
     /// slides. Allocation-free; the terms are refilled at the next tick or
     /// [`Self::evaluate_forces`].
@@ -395,13 +395,15 @@ impl HybridBody {
         }
         self.candidates.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
         for k in 0..self.candidates.len() {
-            let v = self.candidates[k].1 as usize;
+            let (d2, v) = self.candidates[k];
+            let v = v as usize;
             if !self.fits(v) && !self.hold {
-                // Halfway to the release radius: a region at the activation radius's edge is
-                // not evicted and re-activated tick after tick.
+                // Regions farther than the candidate by half the release band give way: a
+                // region near the activation radius's edge is not evicted and re-activated
+                // tick after tick, and one coming under the probe gets in first.
                 let p = &self.model.params;
-                let evict_m = 0.5 * (radius_m + p.release_radius_m.max(radius_m));
-                self.evict_far(point_m, evict_m, v);
+                let band_m = 0.5 * (p.release_radius_m - radius_m).max(0.0);
+                self.evict_far(point_m, d2.sqrt() + band_m, v);
             }
             if self.fits(v) {
                 self.activate_region(v);
