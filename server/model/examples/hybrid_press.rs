@@ -42,6 +42,9 @@ struct Args {
     /// preprocessed model and `HybridBody::override_substeps`).
     #[arg(long)]
     substeps: Option<u32>,
+    /// `material.mass_damping_per_s` override (1/s).
+    #[arg(long)]
+    mass_damping_per_s: Option<f64>,
     /// Depths, mm.
     #[arg(long, default_value = "0.5,1", value_delimiter = ',')]
     depths_mm: Vec<f64>,
@@ -75,6 +78,9 @@ fn main() -> anyhow::Result<()> {
         h.params.core_mass_scale = haptic_model::hybrid::CoreMassScale::parse(c)?;
     }
     h.params.validate()?;
+    if let Some(a) = args.mass_damping_per_s {
+        scene.material.mass_damping_per_s = a;
+    }
     if let Some(k) = args.contact_stiffness_n_per_m {
         h.params.contact_stiffness_n_per_m = k;
     }

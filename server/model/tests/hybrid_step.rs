@@ -12,6 +12,8 @@
 //! and must come to rest.
 
 mod common;
+#[path = "common/counting_alloc.rs"]
+mod counting_alloc;
 
 use glam::DVec3;
 use haptic_model::body::{SoftBody, TickInput};
@@ -163,15 +165,24 @@ fn the_scene_presses_and_slides_with_no_force_jump_at_activation_and_release() {
             path.push(at(r, 0.4));
             r += step;
         }
+        // The slide (from the end of the press's hold to the end of the second hold) counts
+        // the heap allocations of the ticks: none, releases for room included.
+        let mut allocations = 0;
         let (mut prev, mut prev_active) = (DVec3::ZERO, 0usize);
         let (mut changes, mut worst_jump, mut max_force) = (0, 0.0f64, 0.0f64);
         let (mut hold_force, mut slide_range) = (0.0, (f64::INFINITY, 0.0f64));
         for (t, c) in path.iter().enumerate() {
-            let f = body
-                .tick(&TickInput {
-                    device_position_m: Some(*c),
-                    device_velocity_m_per_s: DVec3::ZERO,
-                })
+            let input = TickInput {
+                device_position_m: Some(*c),
+                device_velocity_m_per_s: DVec3::ZERO,
+            };
+            let (out, n) = if (hold_end..slide_end).contains(&t) {
+                counting_alloc::counted(|| body.tick(&input))
+            } else {
+                (body.tick(&input), 0)
+            };
+            allocations += n;
+            let f = out
                 .unwrap_or_else(|e| panic!("{variant:?}, tick {t}: {e}"))
                 .force_on_device_n;
             max_force = max_force.max(f.length());
@@ -195,9 +206,10 @@ fn the_scene_presses_and_slides_with_no_force_jump_at_activation_and_release() {
             body.tick(&TickInput::default()).expect("free tick");
         }
         eprintln!(
-            "{variant:?}: core_mass_scale {:.1}, {} sub-steps, {changes} activation/release ticks, largest relative force jump there {:.2} %, hold {:.2} mN, slide {:.2}-{:.2} mN, force up to {:.2} mN, {} particles active 2 s after retracting",
+            "{variant:?}: core_mass_scale {:.1}, {} sub-steps, {changes} activation/release ticks ({} regions released for room), largest relative force jump there {:.2} %, hold {:.2} mN, slide {:.2}-{:.2} mN, force up to {:.2} mN, {} particles active 2 s after retracting",
             body.core_mass_scale(),
             body.substeps().0,
+            body.released_for_room(),
             100.0 * worst_jump,
             hold_force * 1e3,
             slide_range.0 * 1e3,
@@ -214,6 +226,11 @@ fn the_scene_presses_and_slides_with_no_force_jump_at_activation_and_release() {
             "{variant:?}: jump {:.2} %",
             100.0 * worst_jump
         );
+        assert!(
+            body.released_for_room() > 0,
+            "the slide released no region for room"
+        );
+        assert_eq!(allocations, 0, "allocations in the slide's ticks");
         assert!(
             slide_range.0 > 0.75 * hold_force && slide_range.1 < 1.25 * hold_force,
             "slide {slide_range:?} N against the hold's {hold_force} N"

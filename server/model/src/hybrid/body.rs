@@ -11,8 +11,8 @@
 //! first (its particles start on the core's interpolation, with the core's interpolated
 //! velocity). When a region does not fit under `max_active_particles`, the regions farthest
 //! from the probe (farther than it by half of `release_radius_m - activation_radius_m`) are
-//! switched off, settled or not, so a sliding probe keeps simulated particles under it. When the active set changed, the
-//! energy terms are refilled (active particles and their tied
+//! switched off, settled or not, so a sliding probe keeps simulated particles under it. When
+//! the active set changed, the energy terms are refilled (active particles and their tied
 //! neighbours, allocation-free). (2) Particle steps at the particles' critical step: tied
 //! particles take the core's interpolated positions, term forces, probe penalty on active
 //! particles, tied particles' forces back to the core with the tie weights; then the core
@@ -63,11 +63,13 @@ const MAX_SPEED_M_PER_S: f64 = 100.0;
 /// Share of the core's own critical step (power iteration on the core alone) the sub-steps may
 /// use: the tied particles' terms stiffen the core nodes, so the coupled system's limit is
 /// shorter. Measured by power iteration on the coupled system (`HybridBody::
-/// max_eigenvalue_estimate`) with a real-inertia core (`core_mass_scale = 1`, `mass_scale =
-/// 300`) on lv-hybrid: 0.80-0.99 of the core's step with 188 to 2 000 active particles; the test
-/// `a_real_inertia_core_steps_within_the_coupled_limit` checks the bound against that estimate
-/// at several points of the surface. (With the default uniform mass scale the core's step is
-/// several times the particles' and this does not bind.)
+/// max_eigenvalue_estimate`) on lv-hybrid with about 2 000 active particles: 0.80-0.98 of the
+/// core's step with a real-inertia core (`core_mass_scale = 1`, `mass_scale = 300`), 0.70-0.79
+/// with `mass_scale = 1000` and a core scaled by 18. The tests
+/// `a_real_inertia_core_steps_within_the_coupled_limit` and
+/// `the_chosen_core_mass_scale_is_the_least_that_keeps_the_particles_substeps` check the step
+/// against that estimate at several points of the surface. (With a uniform mass scale the
+/// core's step is several times the particles' and this does not bind.)
 const CORE_COUPLING_MARGIN: f64 = 0.65;
 
 #[derive(Debug, Clone, Copy, Default)]
@@ -117,6 +119,7 @@ pub struct HybridBody {
     changed: bool,
     hold: bool,
     refused_activations: u64,
+    released_for_room: u64,
     loads: [PointLoad; MAX_POINT_LOADS],
     load_count: usize,
     time_s: f64,
@@ -236,6 +239,7 @@ impl HybridBody {
             changed: false,
             hold: false,
             refused_activations: 0,
+            released_for_room: 0,
             loads: [PointLoad::default(); MAX_POINT_LOADS],
             load_count: 0,
             time_s: 0.0,
@@ -288,6 +292,12 @@ impl HybridBody {
     /// Activations refused because `max_active_particles` (or the term capacity) was reached.
     pub fn refused_activations(&self) -> u64 {
         self.refused_activations
+    }
+
+    /// Regions released unsettled to make room under `max_active_particles` for regions
+    /// nearer the probe ([`Self::activate_near`]).
+    pub fn released_for_room(&self) -> u64 {
+        self.released_for_room
     }
 
     /// Energy terms and tied particles of the current active set (the per-sub-step work).
@@ -440,6 +450,7 @@ impl HybridBody {
                 return;
             };
             self.deactivate_region(k);
+            self.released_for_room += 1;
             let active = &self.active;
             self.active_list.retain(|&p| active[p as usize]);
         }
