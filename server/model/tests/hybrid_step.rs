@@ -34,8 +34,12 @@ fn a_real_inertia_core_stays_stable_pressed_deep_with_many_regions_active() {
     worst_case(MeshfreeVariant::Corrected, Some((300.0, 1.0)), 11);
 }
 
-/// `scales`: `(mass_scale, core_mass_scale)`, or the scene's.
-fn worst_case(variant: MeshfreeVariant, scales: Option<(f64, f64)>, substeps: u32) {
+/// The lv-hybrid body with `variant` (and its kernel), at `scales` (`(mass_scale,
+/// core_mass_scale)`) or the scene's; with its scene.
+fn lv_body(
+    variant: MeshfreeVariant,
+    scales: Option<(f64, f64)>,
+) -> (HybridBody, haptic_model::scene::Scene) {
     let (model, clamped, scene) = common::lv_hybrid_model(|p| {
         p.meshfree.variant = variant;
         p.meshfree.kernel = KernelKind::default_for(variant);
@@ -44,7 +48,7 @@ fn worst_case(variant: MeshfreeVariant, scales: Option<(f64, f64)>, substeps: u3
             p.core_mass_scale = CoreMassScale::Fixed(c);
         }
     });
-    let mut body = HybridBody::new(
+    let body = HybridBody::new(
         model,
         &clamped,
         scene.probe,
@@ -52,6 +56,12 @@ fn worst_case(variant: MeshfreeVariant, scales: Option<(f64, f64)>, substeps: u3
         &scene.name,
     )
     .expect("body");
+    (body, scene)
+}
+
+/// `scales`: `(mass_scale, core_mass_scale)`, or the scene's.
+fn worst_case(variant: MeshfreeVariant, scales: Option<(f64, f64)>, substeps: u32) {
+    let (mut body, scene) = lv_body(variant, scales);
     let bound = body.critical_step_bound_s();
     assert_eq!(
         body.substeps().0,
@@ -127,117 +137,104 @@ fn the_scene_presses_and_slides_with_no_force_jump_at_activation_and_release() {
     // and after retracting every region is released. The seed variant fails here: one-tick
     // jumps up to 56 % (6.2 -> 13.1 mN) at activations during the slide (docs/accuracy.md).
     let mm = 1e-3;
-    {
-        let variant = MeshfreeVariant::Corrected;
-        let (model, clamped, scene) = common::lv_hybrid_model(|p| {
-            p.meshfree.variant = variant;
-            p.meshfree.kernel = KernelKind::default_for(variant);
-        });
-        let mut body = HybridBody::new(
-            model,
-            &clamped,
-            scene.probe,
-            scene.integrator.tick_s,
-            &scene.name,
-        )
-        .expect("body");
-        let surface = 9.682 * mm + scene.probe.radius_m;
-        let at = |r: f64, a: f64| DVec3::new(r * a.cos(), r * a.sin(), -5.0 * mm);
-        let step = 10.0 * mm * 1e-3;
-        let mut path = Vec::new();
-        let mut r = surface + 5.0 * mm;
-        while r > surface - 1.0 * mm {
-            path.push(at(r, 0.0));
-            r -= step;
-        }
-        let pressed = surface - 1.0 * mm;
-        path.extend(std::iter::repeat_n(at(pressed, 0.0), 200));
-        let hold_end = path.len();
-        let mut a = 0.0;
-        while a < 0.4 {
-            path.push(at(pressed, a));
-            a += step / pressed;
-        }
-        path.extend(std::iter::repeat_n(at(pressed, 0.4), 200));
-        let slide_end = path.len();
-        let mut r = pressed;
-        while r < surface + 8.0 * mm {
-            path.push(at(r, 0.4));
-            r += step;
-        }
-        // The slide (from the end of the press's hold to the end of the second hold) counts
-        // the heap allocations of the ticks: none, releases for room included.
-        let mut allocations = 0;
-        let (mut prev, mut prev_active) = (DVec3::ZERO, 0usize);
-        let (mut changes, mut worst_jump, mut max_force) = (0, 0.0f64, 0.0f64);
-        let (mut hold_force, mut slide_range) = (0.0, (f64::INFINITY, 0.0f64));
-        for (t, c) in path.iter().enumerate() {
-            let input = TickInput {
-                device_position_m: Some(*c),
-                device_velocity_m_per_s: DVec3::ZERO,
-            };
-            let (out, n) = if (hold_end..slide_end).contains(&t) {
-                counting_alloc::counted(|| body.tick(&input))
-            } else {
-                (body.tick(&input), 0)
-            };
-            allocations += n;
-            let f = out
-                .unwrap_or_else(|e| panic!("{variant:?}, tick {t}: {e}"))
-                .force_on_device_n;
-            max_force = max_force.max(f.length());
-            if (hold_end - 50..hold_end).contains(&t) {
-                hold_force += f.length() / 50.0;
-            } else if (hold_end..slide_end).contains(&t) {
-                slide_range = (slide_range.0.min(f.length()), slide_range.1.max(f.length()));
-            }
-            let active = body.active_particles().len();
-            if active != prev_active {
-                changes += 1;
-                let scale = f.length().max(prev.length());
-                if scale > 1e-4 {
-                    worst_jump = worst_jump.max((f - prev).length() / scale);
-                }
-            }
-            prev = f;
-            prev_active = active;
-        }
-        for _ in 0..2000 {
-            body.tick(&TickInput::default()).expect("free tick");
-        }
-        eprintln!(
-            "{variant:?}: core_mass_scale {:.1}, {} sub-steps, {changes} activation/release ticks ({} regions released for room), largest relative force jump there {:.2} %, hold {:.2} mN, slide {:.2}-{:.2} mN, force up to {:.2} mN, {} particles active 2 s after retracting",
-            body.core_mass_scale(),
-            body.substeps().0,
-            body.released_for_room(),
-            100.0 * worst_jump,
-            hold_force * 1e3,
-            slide_range.0 * 1e3,
-            slide_range.1 * 1e3,
-            max_force * 1e3,
-            body.active_particles().len()
-        );
-        assert!(
-            changes >= 4 && max_force > 5e-3,
-            "{changes} changes, {max_force} N"
-        );
-        assert!(
-            worst_jump <= 0.07,
-            "{variant:?}: jump {:.2} %",
-            100.0 * worst_jump
-        );
-        assert!(
-            body.released_for_room() > 0,
-            "the slide released no region for room"
-        );
-        assert_eq!(allocations, 0, "allocations in the slide's ticks");
-        assert!(
-            slide_range.0 > 0.75 * hold_force && slide_range.1 < 1.25 * hold_force,
-            "slide {slide_range:?} N against the hold's {hold_force} N"
-        );
-        assert!(
-            body.active_particles().is_empty(),
-            "{variant:?}: regions not released"
-        );
+    let variant = MeshfreeVariant::Corrected;
+    let (mut body, scene) = lv_body(variant, None);
+    let surface = 9.682 * mm + scene.probe.radius_m;
+    let at = |r: f64, a: f64| DVec3::new(r * a.cos(), r * a.sin(), -5.0 * mm);
+    let step = 10.0 * mm * 1e-3;
+    let mut path = Vec::new();
+    let mut r = surface + 5.0 * mm;
+    while r > surface - 1.0 * mm {
+        path.push(at(r, 0.0));
+        r -= step;
     }
+    let pressed = surface - 1.0 * mm;
+    path.extend(std::iter::repeat_n(at(pressed, 0.0), 200));
+    let hold_end = path.len();
+    let mut a = 0.0;
+    while a < 0.4 {
+        path.push(at(pressed, a));
+        a += step / pressed;
+    }
+    path.extend(std::iter::repeat_n(at(pressed, 0.4), 200));
+    let slide_end = path.len();
+    let mut r = pressed;
+    while r < surface + 8.0 * mm {
+        path.push(at(r, 0.4));
+        r += step;
+    }
+    // The slide (from the end of the press's hold to the end of the second hold) counts
+    // the heap allocations of the ticks: none, releases for room included.
+    let mut allocations = 0;
+    let (mut prev, mut prev_active) = (DVec3::ZERO, 0usize);
+    let (mut changes, mut worst_jump, mut max_force) = (0, 0.0f64, 0.0f64);
+    let (mut hold_force, mut slide_range) = (0.0, (f64::INFINITY, 0.0f64));
+    for (t, c) in path.iter().enumerate() {
+        let input = TickInput {
+            device_position_m: Some(*c),
+            device_velocity_m_per_s: DVec3::ZERO,
+        };
+        let (out, n) = if (hold_end..slide_end).contains(&t) {
+            counting_alloc::counted(|| body.tick(&input))
+        } else {
+            (body.tick(&input), 0)
+        };
+        allocations += n;
+        let f = out
+            .unwrap_or_else(|e| panic!("{variant:?}, tick {t}: {e}"))
+            .force_on_device_n;
+        max_force = max_force.max(f.length());
+        if (hold_end - 50..hold_end).contains(&t) {
+            hold_force += f.length() / 50.0;
+        } else if (hold_end..slide_end).contains(&t) {
+            slide_range = (slide_range.0.min(f.length()), slide_range.1.max(f.length()));
+        }
+        let active = body.active_particles().len();
+        if active != prev_active {
+            changes += 1;
+            let scale = f.length().max(prev.length());
+            if scale > 1e-4 {
+                worst_jump = worst_jump.max((f - prev).length() / scale);
+            }
+        }
+        prev = f;
+        prev_active = active;
+    }
+    for _ in 0..2000 {
+        body.tick(&TickInput::default()).expect("free tick");
+    }
+    eprintln!(
+        "{variant:?}: core_mass_scale {:.1}, {} sub-steps, {changes} activation/release ticks ({} regions released for room), largest relative force jump there {:.2} %, hold {:.2} mN, slide {:.2}-{:.2} mN, force up to {:.2} mN, {} particles active 2 s after retracting",
+        body.core_mass_scale(),
+        body.substeps().0,
+        body.released_for_room(),
+        100.0 * worst_jump,
+        hold_force * 1e3,
+        slide_range.0 * 1e3,
+        slide_range.1 * 1e3,
+        max_force * 1e3,
+        body.active_particles().len()
+    );
+    assert!(
+        changes >= 4 && max_force > 5e-3,
+        "{changes} changes, {max_force} N"
+    );
+    assert!(
+        worst_jump <= 0.07,
+        "{variant:?}: jump {:.2} %",
+        100.0 * worst_jump
+    );
+    assert!(
+        body.released_for_room() > 0,
+        "the slide released no region for room"
+    );
+    assert_eq!(allocations, 0, "allocations in the slide's ticks");
+    assert!(
+        slide_range.0 > 0.75 * hold_force && slide_range.1 < 1.25 * hold_force,
+        "slide {slide_range:?} N against the hold's {hold_force} N"
+    );
+    assert!(
+        body.active_particles().is_empty(),
+        "{variant:?}: regions not released"
+    );
 }
