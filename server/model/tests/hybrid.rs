@@ -416,6 +416,19 @@ fn hybrid_scene_errors_name_their_field() {
             other => panic!("{from} -> {to}: {other:?}"),
         }
     }
+    // A value of the wrong type: the TOML error points at it and says what is expected.
+    let text = base.replace(
+        "mass_scale = 100.0",
+        "mass_scale = 100.0\ncore_mass_scale = true",
+    );
+    let err = haptic_model::scene::parse_scene_toml(&text, std::path::Path::new("."))
+        .expect_err("a boolean core_mass_scale")
+        .to_string();
+    assert!(
+        err.contains("core_mass_scale = true")
+            && err.contains("expected a number, \"auto\" or \"uniform\""),
+        "{err}"
+    );
 }
 
 /// The power-iteration estimate of the critical step is the real stability limit of the
