@@ -511,3 +511,36 @@ impl Stepper {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::{damped_critical_step_s, damped_max_omega2_per_s2};
+
+    /// Largest amplitude over 4 000 symplectic Euler steps of `x'' = -w^2 x - beta w^2 x'`
+    /// (the stiffness-proportional damping explicit, as in the step), from `x = 1`.
+    fn growth(omega2: f64, beta: f64, dt: f64) -> f64 {
+        let (mut x, mut v, mut largest) = (1.0f64, 0.0f64, 0.0f64);
+        for _ in 0..4000 {
+            v += dt * (-omega2 * x - beta * omega2 * v);
+            x += dt * v;
+            largest = largest.max(x.abs());
+        }
+        largest
+    }
+
+    #[test]
+    fn the_damped_step_limit_is_where_a_damped_mode_turns_unstable() {
+        for (omega2, beta) in [(1e6, 0.0), (1e6, 1e-4), (4e8, 5e-5), (1e4, 0.05)] {
+            let dt = damped_critical_step_s(omega2, beta);
+            assert!(growth(omega2, beta, 0.99 * dt) < 10.0, "{omega2} {beta}");
+            assert!(growth(omega2, beta, 1.01 * dt) > 1e3, "{omega2} {beta}");
+            // The inverse: the largest omega^2 whose limit is that step.
+            let back = damped_max_omega2_per_s2(dt, beta);
+            assert!(
+                (back / omega2 - 1.0).abs() < 1e-12,
+                "{back} against {omega2}"
+            );
+        }
+        assert_eq!(damped_critical_step_s(0.0, 1e-3), f64::INFINITY);
+    }
+}
