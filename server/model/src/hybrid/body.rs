@@ -160,20 +160,12 @@ impl HybridBody {
         let substeps_for = |dt_s: f64| (tick_s / (params.safety_factor * dt_s)).ceil().max(1.0);
         // The core carries its own mass and the particle layer's (the inactive particles
         // follow it), both times the core's mass scale (`CoreMassScale`).
-        let core_fem = |scale: f64| -> Result<FemModel, ModelError> {
-            let mut material = *model.cloud.material();
-            material.density_kg_per_m3 *= scale;
-            let mut fem = FemModel::new(&model.core_mesh, material)?;
-            let mut layer_kg = model.layer_mass_on_core_kg();
-            layer_kg.iter_mut().for_each(|m| *m *= scale);
-            fem.add_lumped_mass(&layer_kg);
-            fem.clamp_nodes(clamped);
-            Ok(fem)
-        };
+        let mut fem = FemModel::new(&model.core_mesh, *model.cloud.material())?;
+        fem.add_lumped_mass(&model.layer_mass_on_core_kg());
+        fem.clamp_nodes(clamped);
         // The largest eigenvalue of M^-1 K at the real masses; a uniform mass scale divides it.
-        let real = core_fem(1.0)?;
-        let omega2_real = real.max_eigenvalue(0.0, 300);
-        let beta = viscous_beta_s(real.material());
+        let omega2_real = fem.max_eigenvalue(0.0, 300);
+        let beta = viscous_beta_s(fem.material());
         let core_mass_scale = match params.core_mass_scale {
             CoreMassScale::Fixed(scale) => scale,
             CoreMassScale::Uniform => params.mass_scale,
@@ -183,11 +175,14 @@ impl HybridBody {
                 (omega2_real / omega2_max * (1.0 + 1e-9)).clamp(1.0, params.mass_scale)
             }
         };
-        let fem = if core_mass_scale == 1.0 {
-            real
-        } else {
-            core_fem(core_mass_scale)?
-        };
+        if core_mass_scale != 1.0 {
+            let extra: Vec<f64> = fem
+                .lumped_mass_kg()
+                .iter()
+                .map(|m| m * (core_mass_scale - 1.0))
+                .collect();
+            fem.add_lumped_mass(&extra);
+        }
         let core_dt_s = damped_critical_step_s(omega2_real / core_mass_scale, beta);
         let critical_dt_s = particle_dt.min(CORE_COUPLING_MARGIN * core_dt_s);
         // One rate for both: the particle terms of tied particles stiffen the core nodes, so a
