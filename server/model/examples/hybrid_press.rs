@@ -7,6 +7,8 @@
 //!
 //! The lv-probe benchmark uses `--ramp-s 0.1 --hold-s 0.1`; a hold of several seconds gives the
 //! quasi-static force to compare with the converged sphere reference (`docs/accuracy.md`).
+//! `--trace-every N` also prints `time_s,depth_mm,force_mn` every N ticks to stderr (the
+//! ringing and creep after each ramp).
 
 use clap::Parser;
 use haptic_model::DVec3;
@@ -45,6 +47,9 @@ struct Args {
     /// `material.mass_damping_per_s` override (1/s).
     #[arg(long)]
     mass_damping_per_s: Option<f64>,
+    /// Print `time_s,depth_mm,force_mn` to stderr every N ticks (0: only the summary).
+    #[arg(long, default_value_t = 0)]
+    trace_every: usize,
     /// Depths, mm.
     #[arg(long, default_value = "0.5,1", value_delimiter = ',')]
     depths_mm: Vec<f64>,
@@ -119,6 +124,9 @@ fn main() -> anyhow::Result<()> {
                 device_velocity_m_per_s: DVec3::ZERO,
             })?;
             last = out.force_on_device_n.length();
+            if args.trace_every > 0 && k % args.trace_every == 0 {
+                eprintln!("{:.4},{:.5},{:.4}", t, depth * 1e3, last * 1e3);
+            }
             if t > args.ramp_s + args.hold_s / 2.0 {
                 sum += last;
                 count += 1;
