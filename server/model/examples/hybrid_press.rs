@@ -40,6 +40,9 @@ struct Args {
     /// `hybrid.contact_stiffness_n_per_m` override (probe penalty per particle).
     #[arg(long)]
     contact_stiffness_n_per_m: Option<f64>,
+    /// `hybrid.activation_radius_m` override, m.
+    #[arg(long)]
+    activation_radius_m: Option<f64>,
     /// Sub-steps per tick override (a study of the step: the body is built from the scene's
     /// preprocessed model and `HybridBody::override_substeps`).
     #[arg(long)]
@@ -85,6 +88,9 @@ fn main() -> anyhow::Result<()> {
     h.params.validate()?;
     if let Some(a) = args.mass_damping_per_s {
         scene.material.mass_damping_per_s = a;
+    }
+    if let Some(r) = args.activation_radius_m {
+        h.params.activation_radius_m = r;
     }
     if let Some(k) = args.contact_stiffness_n_per_m {
         h.params.contact_stiffness_n_per_m = k;
