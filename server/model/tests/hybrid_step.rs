@@ -215,14 +215,13 @@ fn the_scene_presses_and_slides_with_no_force_jump_at_activation_and_release() {
         max_force * 1e3,
         body.active_particles().len()
     );
-    assert!(
-        changes >= 4 && max_force > 5e-3,
-        "{changes} changes, {max_force} N"
-    );
-    assert!(
-        worst_jump <= 0.07,
-        "{variant:?}: jump {:.2} %",
-        100.0 * worst_jump
+    common::assert_active_set_changes_without_jump(
+        &format!("{variant:?} slide"),
+        changes,
+        4,
+        max_force,
+        5e-3,
+        worst_jump,
     );
     assert!(
         body.released_for_room() > 0,

@@ -52,3 +52,30 @@ pub fn lv_hybrid_model(
     let clamped = model.clamped_core_nodes();
     (model, clamped, scene)
 }
+
+/// The force just-noticeable difference (relative), the bound on a force jump when the hybrid
+/// body's active set changes (issue 13).
+pub const FORCE_JND: f64 = 0.07;
+
+/// The activation and release checks of the hybrid press tests: the run changed the active set
+/// at least `min_changes` times, pressed harder than `min_force_n` (so the jumps were measured
+/// under load), and the largest relative force jump at a change (`worst_jump`) is within the
+/// [`FORCE_JND`]. `label` names the run in the failure message.
+pub fn assert_active_set_changes_without_jump(
+    label: &str,
+    changes: usize,
+    min_changes: usize,
+    max_force_n: f64,
+    min_force_n: f64,
+    worst_jump: f64,
+) {
+    assert!(
+        changes >= min_changes && max_force_n > min_force_n,
+        "{label}: {changes} changes (at least {min_changes}), peak force {max_force_n} N (above {min_force_n} N)"
+    );
+    assert!(
+        worst_jump <= FORCE_JND,
+        "{label}: jump {:.2} % at an active-set change",
+        100.0 * worst_jump
+    );
+}
