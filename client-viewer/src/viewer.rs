@@ -125,10 +125,10 @@ pub struct ViewerArgs {
     /// watching a server, paced by their simulated time; pictures as in PNG mode.
     #[arg(long, value_name = "FILE", conflicts_with_all = ["web", "session"])]
     pub replay: Option<PathBuf>,
-    /// Serve the browser viewer on this address, HOST:PORT (e.g. 127.0.0.1:8080, localhost:8080,
-    /// [::1]:8080, 0.0.0.0:8080; a host name is bound on its first resolved address that can be
-    /// bound) instead of writing PNGs: a relay that subscribes once per session and fans frames
-    /// out to browsers over WebSocket.
+    /// Serve the browser viewer on this address, HOST:PORT (e.g. `127.0.0.1:8080`,
+    /// `localhost:8080`, `[::1]:8080`, `0.0.0.0:8080`; a host name is bound on its first resolved
+    /// address that can be bound) instead of writing PNGs: a relay that subscribes once per
+    /// session and fans frames out to browsers over WebSocket.
     #[arg(long, value_name = "ADDR")]
     pub web: Option<String>,
     /// Output directory for frame_NNNNN.png and latest.png.

@@ -1,5 +1,5 @@
 //! The `hapticmaster` driver: the Moog/FCS HapticMaster's TCP text protocol, spoken natively
-//! (devices.md section 1.1; [S2] pyHapticMaster, [S3] lab code using HapticAPI), and an
+//! (devices.md section 1.1; \[S2\] pyHapticMaster, \[S3\] lab code using HapticAPI), and an
 //! [`Emulator`] of the device side for tests.
 //!
 //! Wire format (both ways): a 4-byte big-endian length, 4 zero bytes, then that many bytes of
@@ -10,7 +10,7 @@
 //!
 //! The HapticMaster is an admittance device with its own 2.5 kHz controller: the host does not
 //! close a force loop, it updates a **bias force** effect that stays in force until the next
-//! update (what the lab code does with `set ballForce force [..]`, [S3]).
+//! update (what the lab code does with `set ballForce force [..]`, \[S3\]).
 //!
 //! State machine ([`HapticMaster::connect`]): connect (TCP_NODELAY) -> if `get
 //! position_calibrated` is not `true`: `set state init`, then poll `get state` until `stop`
@@ -18,7 +18,7 @@
 //! S13) -> `create biasforce NAME`, force zero, enable -> `set state force`. Every exit path
 //! ([`HapticDevice::safe_stop`], also from `Drop`, so an error or a panic that unwinds still
 //! gets it) sends: bias force `[0,0,0]`, `set NAME disable`, `remove all`, then `set state
-//! stop` (the lab code's sequence, [S3]; `set state off` with [`ExitState::Off`]); the
+//! stop` (the lab code's sequence, \[S3\]; `set state off` with [`ExitState::Off`]); the
 //! `haptic-bridge` binary takes this path on SIGINT, SIGTERM and SIGHUP too. A bridge killed
 //! outright (SIGKILL, power loss) cannot do this: the device then keeps the last bias force,
 //! which the guard's scene limits keep small (the HapticMaster has no host watchdog in its
@@ -43,7 +43,7 @@ use std::time::{Duration, Instant};
 use crate::device::{DeviceError, DeviceSpec, DeviceState, HapticDevice, vec3};
 use crate::sim::Script;
 
-/// The HapticMaster's TCP port in public code ([S2]).
+/// The HapticMaster's TCP port in public code (\[S2\]).
 pub const DEFAULT_PORT: u16 = 7654;
 /// Largest reply accepted, bytes (replies are short text lines).
 pub const MAX_MESSAGE_BYTES: usize = 64 * 1024;
@@ -112,7 +112,7 @@ fn format_vector(v: [f64; 3]) -> String {
 /// The state the device is left in on exit.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ExitState {
-    /// `set state stop`: the arm holds its position (the lab code's choice, [S3]).
+    /// `set state stop`: the arm holds its position (the lab code's choice, \[S3\]).
     #[default]
     Stop,
     /// `set state off`.
@@ -132,7 +132,7 @@ pub struct HapticMasterParams {
     pub io_timeout: Duration,
     /// Longest wait for connecting and for calibration (`set state init` until `stop`).
     pub setup_timeout: Duration,
-    /// Force clamp of the device spec, N (research code clamps the bias force at 100 N, [S3]).
+    /// Force clamp of the device spec, N (research code clamps the bias force at 100 N, \[S3\]).
     pub max_force_n: f64,
 }
 

@@ -529,7 +529,7 @@ struct DeviceLoopStats {
     records: Vec<TickRecord>,
 }
 
-/// The pose deadband (Hinterseer and Steinbach's perceptual deadband, devices.md [S38], applied
+/// The pose deadband (Hinterseer and Steinbach's perceptual deadband, devices.md \[S38\], applied
 /// to the force the local contact model predicts): a sample goes out when the predicted force
 /// changed by more than `k` times its value at the last sent sample (and by more than
 /// [`DEADBAND_FLOOR_N`]), when the probe moved more than [`DEADBAND_MOVE_M`] (so contact onset

@@ -1,10 +1,10 @@
 //! The `openhaptics` driver: Phantom / Touch devices through the vendor's HDAPI (OpenHaptics,
-//! `libHD.so`), loaded at run time (devices.md section 1.2; [S8] `hdDefines.h`, [S10]
-//! HelloHapticDevice, [S11] PreventWarmMotors).
+//! `libHD.so`), loaded at run time (devices.md section 1.2; \[S8\] `hdDefines.h`, \[S10\]
+//! HelloHapticDevice, \[S11\] PreventWarmMotors).
 //!
 //! The driver is written against [`HdApi`], a table of the HDAPI entry points it calls. With
 //! the cargo feature `openhaptics` (off by default: the library is closed and absent in CI),
-//! [`load`] fills the table from `libHD.so` with `libloading` and a missing library or symbol is
+//! `load` fills the table from `libHD.so` with `libloading` and a missing library or symbol is
 //! a clear error naming it. Without the feature the driver logic still compiles and is
 //! unit-tested against a fake table (a simulated device and scheduler in this module's tests).
 //!
@@ -84,7 +84,7 @@ pub struct HdErrorInfo {
 pub type HdCallback = unsafe extern "C" fn(*mut c_void) -> c_uint;
 
 /// The HDAPI entry points the driver calls (C calling convention, as `hdDefines.h` declares
-/// them on Linux). Filled by [`load`] from `libHD.so`, or by a fake in tests.
+/// them on Linux). Filled by `load` from `libHD.so`, or by a fake in tests.
 #[derive(Clone, Copy)]
 pub struct HdApi {
     /// `HHD hdInitDevice(HDstring)`.
@@ -123,7 +123,7 @@ impl std::fmt::Debug for HdApi {
     }
 }
 
-/// The library names tried by [`load`] when no path is given.
+/// The library names tried by `load` when no path is given.
 pub const LIBRARY_NAMES: [&str; 2] = ["libHD.so", "libHD.so.3.4"];
 
 /// Loads `libHD.so` (or `path`) and fills the table. The returned library must outlive every

@@ -1,7 +1,7 @@
 //! Time-domain passivity at the bridge-device port: a passivity observer (energy bookkeeping)
 //! and a passivity controller (adaptive damping that dissipates any energy the far side would
 //! inject), after Ryu, Kwon and Hannaford, "Stability guaranteed control: time domain passivity
-//! approach" (devices.md [S24], [S25]; section 4 rule S12).
+//! approach" (devices.md \[S24\], \[S25\]; section 4 rule S12).
 //!
 //! Sign convention: `f` is the force rendered on the hand (N), `v` the device velocity (m/s).
 //! The observer sums the energy the environment (server, network and local model together)

@@ -11,7 +11,7 @@
 //! Examples (`docs/decisions.md`, "Drivers (issue 15)", gives each with a full command line and
 //! a worked point):
 //! - HapticMaster (z vertical, x fore-aft, y lateral; SI): `--axes y,z,x` is HAPI's mapping
-//!   `(pos[1], pos[2], pos[0])` (devices.md [S4]); add `--offset-m 0,0,-0.45` to bring the
+//!   `(pos[1], pos[2], pos[0])` (devices.md \[S4\]); add `--offset-m 0,0,-0.45` to bring the
 //!   middle of its cylindrical workspace (radius 0.28-0.64 m) near the scene origin.
 //! - Phantom/Touch through OpenHaptics (x right, y up, z toward the user; the driver converts
 //!   mm to m): identity axes; `--scale 0.2` maps its 0.16 m workspace onto a 32 mm organ.

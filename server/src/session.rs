@@ -57,7 +57,7 @@ pub const DEADBAND_HEARTBEAT_US: u64 = 5_000;
 /// Smallest force change the deadband passes, N.
 pub const DEADBAND_FLOOR_N: f64 = 1e-3;
 
-/// The perceptual deadband on the force stream (Hinterseer and Steinbach, devices.md [S38]): a
+/// The perceptual deadband on the force stream (Hinterseer and Steinbach, devices.md \[S38\]): a
 /// force command is sent when the force changed by more than `k` times the last sent one (and
 /// by more than [`DEADBAND_FLOOR_N`]), when the contact flag or the contact stiffness changed
 /// by more than `k`, or [`DEADBAND_HEARTBEAT_US`] after the last one sent. `k <= 0` sends all.

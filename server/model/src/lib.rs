@@ -75,18 +75,18 @@ pub use glam::DVec3;
 /// The errors of the family's constructor ([`sim::Simulation::new`] for the FEM,
 /// [`mass_spring::MassSpringBody::new`] for the mass-spring surface, after
 /// [`scene::MassSpringScene::table`]: a missing or stale calibration table;
-/// [`hybrid::prepare`] and [`hybrid::HybridBody::new`] for the hybrid model).
+/// [`fn@hybrid::prepare`] and [`hybrid::HybridBody::new`] for the hybrid model).
 pub fn build_body(scene: &scene::Scene) -> Result<Box<dyn body::SoftBody>, ModelError> {
     build_body_with_progress(scene, &mut |_, _| {})
 }
 
-/// Preprocesses the hybrid model of a `family = "hybrid"` scene ([`hybrid::prepare`] with the
+/// Preprocesses the hybrid model of a `family = "hybrid"` scene ([`fn@hybrid::prepare`] with the
 /// scene's geometry, `[hybrid]` parameters, material and core size), reporting its stages to
 /// `progress`.
 ///
 /// # Errors
 /// [`ModelError::SceneField`] naming `hybrid` when the scene has no `[hybrid]` section; the
-/// errors of [`hybrid::prepare`].
+/// errors of [`fn@hybrid::prepare`].
 pub fn prepare_hybrid(
     scene: &scene::Scene,
     progress: &mut dyn FnMut(&str, f64),
@@ -126,11 +126,11 @@ pub fn build_hybrid_body(
 }
 
 /// [`build_body`] reporting the preprocessing's progress (`stage`, fraction in `[0, 1]`) for
-/// families that preprocess (the hybrid model, [`hybrid::prepare`]; the FEM with a
+/// families that preprocess (the hybrid model, [`fn@hybrid::prepare`]; the FEM with a
 /// contact-local active region, [`sim::Simulation::new_with_progress`]).
 ///
 /// # Errors
-/// As [`build_body`]; for the hybrid family the errors of [`hybrid::prepare`] and
+/// As [`build_body`]; for the hybrid family the errors of [`fn@hybrid::prepare`] and
 /// [`hybrid::HybridBody::new`].
 pub fn build_body_with_progress(
     scene: &scene::Scene,

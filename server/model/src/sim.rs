@@ -161,8 +161,8 @@ impl Simulation {
 
     /// [`Simulation::new`] reporting its stages, `progress(stage, fraction)` with the fraction
     /// done in `[0, 1]`: the FEM data, then (a contact-local active region) the condensation
-    /// ([`crate::integrate::CondensedSolver::new_with_progress`]), which takes seconds on large
-    /// meshes.
+    /// ([`crate::integrate::condensed::CondensedSolver::new_with_progress`]), which takes
+    /// seconds on large meshes.
     ///
     /// # Errors
     /// As [`Simulation::new`].

@@ -328,9 +328,10 @@ pub trait StaticTerm {
 ///   force `-p/6 (b - a) x (c - a)` on each of their nodes ([`crate::loads::add_pressure_forces`]) and the
 ///   stiffness blocks `K_ka = p/6 [c - b]x`, `K_kb = p/6 [a - c]x`, `K_kc = p/6 [b - a]x` for
 ///   `k` in `a, b, c` (`[v]x` the cross-product matrix).
-/// - Curved 6-node faces (quadratic meshes, [`PressureLoad::quadratic`]) carry the consistent
-///   forces `f_k = -p int N_k (x_xi x x_eta)` ([`add_quadratic_pressure_forces`]) and the
-///   stiffness `K_kb = p int N_k (N_b,eta [x_xi]x - N_b,xi [x_eta]x)`, by the same exact rule.
+/// - Curved 6-node faces (quadratic meshes, [`crate::loads::PressureLoad::quadratic`]) carry
+///   the consistent forces `f_k = -p int N_k (x_xi x x_eta)`
+///   ([`crate::loads::add_quadratic_pressure_forces`]) and the stiffness
+///   `K_kb = p int N_k (N_b,eta [x_xi]x - N_b,xi [x_eta]x)`, by the same exact rule.
 ///
 /// The dynamic bodies apply the same forces. The energy is `E = p V`, `V` the volume of the
 /// cone from the origin over the surface (`sum (1/6) a . (b x c)`, or `(1/3) int x . n dA`),

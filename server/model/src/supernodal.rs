@@ -26,7 +26,7 @@
 //! (test below). How far the rounding moves the step is checked where the factor is used
 //! (`integrate::condensed`); docs/decisions.md, "The whole-body rest factor".
 //!
-//! Owns: the sweep. May use: [`crate::cpu`].
+//! Owns: the sweep. May use: `crate::cpu`.
 
 use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw};
 
@@ -63,10 +63,10 @@ const PANEL: usize = 8;
 /// diagonally scaled matrix `S A S`, `S = diag(A_rr^-1/2)` (so every entry lies in `[-1, 1]`
 /// and the half-precision range holds it), with its diagonal inverted in single precision.
 ///
-/// Layout: each supernode's columns are cut into panels of up to [`PANEL`] consecutive
+/// Layout: each supernode's columns are cut into panels of up to `PANEL` consecutive
 /// columns `p0..p0 + w`. A panel keeps the strict lower triangle among its own columns
 /// (single precision, the half-precision values converted; row-major packed) and, for the
-/// rows below it (`p0 + w..` of the supernode's block), blocks of [`HALF_PAD`] rows: block
+/// rows below it (`p0 + w..` of the supernode's block), blocks of `HALF_PAD` rows: block
 /// `b` holds, for each column `t` of the panel in turn, its eight entries of rows
 /// `p0 + w + 8 b ..` (zero past the block's height). So a sweep loads or stores each eight
 /// rows of the right-hand side once per panel instead of once per column, and reads the

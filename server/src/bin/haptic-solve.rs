@@ -34,7 +34,7 @@ struct Args {
     /// Largest number of Newton iterations per load increment.
     #[arg(long, default_value_t = SolveParams::default().max_iterations)]
     max_iterations: usize,
-    /// Indent the body with the scene's probe sphere instead of applying its [loads].
+    /// Indent the body with the scene's probe sphere instead of applying its `[loads]`.
     #[arg(long, requires_all = ["from", "direction", "depths"])]
     indent: bool,
     /// Start centre of the sphere, clear of the body: X,Y,Z in the scene's length unit.

@@ -720,7 +720,7 @@ impl Probe {
     /// Local contact stiffness felt at the device, 3x3 row-major N/m: `k_c n n^T` in contact,
     /// zero out of contact. `k_c` is the slope of the contact force against the device's
     /// travel along `n` over the last [`STIFFNESS_WINDOW_S`] of contact (least squares with
-    /// exponential forgetting, [`StiffnessEstimate`]): the virtual coupling `k` in series with
+    /// exponential forgetting, `StiffnessEstimate`): the virtual coupling `k` in series with
     /// the tissue under the probe, `k_c = k K / (k + K)`, as the model responds. Until the device
     /// has travelled enough to measure it (just after first touch, or held still since), `k_c`
     /// is the last measured value, or unknown and then `k`, the stiffest the device can feel.

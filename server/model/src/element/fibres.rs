@@ -20,7 +20,7 @@
 //! circumferential, `+90` degrees longitudinal towards the base). Default: `+60` degrees at the
 //! endocardium to `-60` at the epicardium.
 //!
-//! Neighbours: [`super::FemModel::with_fibres`] builds the frames; the Guccione stress of
+//! Neighbours: [`super::FemModel::set_fibres`] builds the frames; the Guccione stress of
 //! [`crate::material::guccione`] reads them.
 
 use faer::linalg::solvers::Solve;

@@ -7,7 +7,7 @@ use crate::mesh::TetMesh;
 /// Lumped nodal masses, kg, one per node of `mesh` (m) with density `density_kg_per_m3`:
 /// `m_i = sum_e rho |V_e| / 4` for linear elements; for quadratic ones the HRZ lumping
 /// `rho |V_e| / 36` per corner and `4 rho |V_e| / 27` per mid-edge node (module docs).
-/// [`FemModel::new`] stores the same values in `lumped_mass_kg`.
+/// [`super::FemModel::new`] stores the same values in `lumped_mass_kg`.
 pub fn lumped_masses(mesh: &TetMesh, density_kg_per_m3: f64) -> Vec<f64> {
     let mut m = vec![0.0; mesh.nodes.len()];
     let (corner, edge) = if mesh.is_quadratic() {

@@ -699,7 +699,7 @@ impl FemModel {
     }
 
     /// Number of cells: the elements, or with strain smoothing the smoothing domains. Cells are
-    /// the units of assembly ([`crate::statics::cell_tangent_blocks`]).
+    /// the units of assembly ([`crate::element::tangent::cell_tangent_blocks`]).
     #[inline]
     pub fn cell_count(&self) -> usize {
         self.points.node_start.len() - 1

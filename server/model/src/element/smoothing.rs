@@ -2,7 +2,7 @@
 //! integration point per mesh edge with the volume-averaged gradients of the tetrahedra around
 //! it.
 //!
-//! Neighbours: produces the cells of [`super::quadrature::IntegrationPoints`] used by
+//! Neighbours: produces the cells of `super::quadrature::IntegrationPoints` used by
 //! [`super::FemModel`].
 
 use glam::{DMat3, DVec3};

@@ -34,7 +34,7 @@
 //! deviation of its nearest particle from the core's interpolation at that particle (zero for
 //! inactive particles), so the surface is continuous at activation and release.
 //!
-//! Neighbours: data from [`super::prepare`]; forces from [`crate::meshfree::block`] and
+//! Neighbours: data from [`mod@super::prepare`]; forces from [`crate::meshfree::block`] and
 //! [`crate::element::FemModel`].
 
 use glam::DVec3;

@@ -3,7 +3,7 @@
 //! meshfree particles ([`crate::meshfree`]) sampled on a regular lattice, of which only the
 //! regions under the probe are simulated.
 //!
-//! - [`prepare`]: preprocessing: the core mesh, the outer surface, the particle lattice, the
+//! - [`mod@prepare`]: preprocessing: the core mesh, the outer surface, the particle lattice, the
 //!   ties of every particle and outer vertex to the core, the per-vertex particle regions.
 //! - [`body`]: [`HybridBody`], the family's [`crate::body::SoftBody`]: activation, coupling,
 //!   the probe, time stepping.

@@ -33,7 +33,7 @@
 //! computed in single precision and the tick sweeps it in half precision
 //! ([`crate::supernodal`]: a quarter of the memory a double-precision factor would stream per
 //! tick; the rounding moves the default `lv`'s step by about 1e-3, checked at construction
-//! against [`HALF_MAX_DEVIATION`]). The probe's term
+//! against `HALF_MAX_DEVIATION`). The probe's term
 //! `h^2 A^T C A` ([`ContactCoupling`]: the patch's coupling, or the implicit sphere's faces) is
 //! added exactly by Woodbury, with `A^-1 A^T` from columns precomputed for the active touchable
 //! nodes ([`CondensedSolver::prepare_contact`]); a one-row coupling over many nodes (the

@@ -32,9 +32,9 @@ pub fn semi_implicit_inverses(fem: &FemModel, dt_s: f64) -> Vec<DMat3> {
 /// - [`IntegratorKind::SymplecticEuler`]: `v = (v + dt f / m) / (1 + alpha dt)`, `x += dt v`.
 /// - [`IntegratorKind::SemiImplicit`]: `v~ = v + dt f / m`, `v = A_i^-1 v~`, `x += dt v`
 ///   (seed 000 eq. 34; `a_inv` from [`semi_implicit_inverses`]).
-/// - [`IntegratorKind::BackwardEuler`] needs the global solve of [`ImplicitSolver::step`]; here
-///   it degrades to its block-diagonal (per-node) approximation, which is the semi-implicit
-///   update, so `a_inv` must be given.
+/// - [`IntegratorKind::BackwardEuler`] needs the global solve of
+///   [`super::implicit::ImplicitSolver::step`]; here it degrades to its block-diagonal
+///   (per-node) approximation, which is the semi-implicit update, so `a_inv` must be given.
 ///
 /// Allocation-free.
 pub fn integrate_nodes(

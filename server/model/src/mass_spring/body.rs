@@ -10,7 +10,7 @@
 //! kept subdivided while its centre was touched within `coarsen_delay_s`, and until it has
 //! come back to rest (within [`QUIET_DISPLACEMENT_OVER_L`]). When the set of
 //! centres changes, an **event** recomputes the refinement's labels ([`super::refine`]), edits
-//! the mixed-level mesh where they changed ([`super::mixed`]) and carries the state over:
+//! the mixed-level mesh where they changed (`super::mixed`) and carries the state over:
 //!
 //! - original nodes keep position and velocity (with [`VertexRule::Loop`] they keep their
 //!   displacement from their moved rest position); a node whose mass changes keeps its

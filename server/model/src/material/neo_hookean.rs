@@ -31,7 +31,8 @@ pub fn cofactor_differential(f: &DMat3, df: &DMat3) -> DMat3 {
     )
 }
 
-/// `(lambda_s, alpha)` of the stable Neo-Hookean material, see [`MaterialModel::StableNeoHookean`].
+/// `(lambda_s, alpha)` of the stable Neo-Hookean material, see
+/// [`super::MaterialModel::StableNeoHookean`].
 #[inline]
 pub fn neo_hookean_params(lambda: f64, mu: f64) -> (f64, f64) {
     let ls = lambda + mu;

@@ -2,8 +2,9 @@
 //! boundary surfaces and node groups.
 //!
 //! Owns: mesh data and everything that reads or writes meshes: [`gmsh`] (Gmsh `.msh` 2.2 /
-//! 4.1 ASCII reader), [`generate`] (structured shells and boxes built in code), [`quadratic`]
-//! (10-node elements from a linear mesh), [`export`] (CSV node tables, ParaView `.vtu`).
+//! 4.1 ASCII reader), [`generate`] (structured shells and boxes built in code),
+//! [`quadratic`](TetMesh::to_quadratic) (10-node elements from a linear mesh), [`export`] (CSV
+//! node tables, ParaView `.vtu`).
 //! May use: nothing of the crate but [`crate::ModelError`]. Used by [`crate::element`]
 //! (precomputes element data) and [`crate::scene`] (picks clamped and touchable surfaces by
 //! name).

@@ -316,7 +316,7 @@ impl ParticleCloud {
     /// The uncorrected (seed-normalised) kernel-gradient weight `w_ij = V (-W'(r) / r) X_ij`
     /// of a pair at rest offset `offset_m = X_ij` (m), 1/m (module documentation). On the
     /// lattice it depends on the stencil offset only, which the stencil loop
-    /// ([`super::stencil`]) uses.
+    /// (`super::stencil`) uses.
     #[inline]
     pub fn pair_weight(&self, offset_m: DVec3) -> DVec3 {
         let r = offset_m.length();

@@ -78,7 +78,7 @@
 //! itself); identical copies live in `deploy/scenes/` for users to edit. The full format with
 //! every default and limit is in `docs/scenes.md`.
 //!
-//! Owns: scene data, its TOML schema ([`raw`]) and the built-ins. May use: [`crate::mesh`]
+//! Owns: scene data, its TOML schema (`raw`) and the built-ins. May use: [`crate::mesh`]
 //! (readers and generators), and the parameter types of [`crate::material`],
 //! [`crate::element`], [`crate::integrate`], [`crate::contact`], [`crate::loads`]. Used by
 //! [`crate::build_body`], which builds a body from a [`Scene`].
