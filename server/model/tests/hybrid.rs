@@ -685,7 +685,11 @@ fn a_real_inertia_core_reaches_the_reference_force_within_the_benchmark_holds() 
     let (model, clamped, probe) = lv_real_inertia();
     let b = HybridBody::new(model, &clamped, probe, 1e-3, "t").expect("body");
     for (e, (f, u)) in lv_probe_force_errors(b).into_iter().zip(REFERENCE_N) {
-        assert!(e.abs() * f < common::FORCE_JND * f + u, "{:+.1} %", 100.0 * e);
+        assert!(
+            e.abs() * f < common::FORCE_JND * f + u,
+            "{:+.1} %",
+            100.0 * e
+        );
     }
 }
 
