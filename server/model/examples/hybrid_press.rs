@@ -40,6 +40,21 @@ struct Args {
     /// `hybrid.contact_stiffness_n_per_m` override (probe penalty per particle).
     #[arg(long)]
     contact_stiffness_n_per_m: Option<f64>,
+    /// `mesh.target_tets` override: wanted tetrahedra of the FEM core.
+    #[arg(long)]
+    core_tets: Option<usize>,
+    /// `hybrid.core_fraction` override: share of the wall thickness in the FEM core.
+    #[arg(long)]
+    core_fraction: Option<f64>,
+    /// `hybrid.spacing_m` override: the particle lattice spacing, m.
+    #[arg(long)]
+    spacing_m: Option<f64>,
+    /// `hybrid.max_active_particles` override.
+    #[arg(long)]
+    max_active: Option<usize>,
+    /// `hybrid.release_radius_m` override, m.
+    #[arg(long)]
+    release_radius_m: Option<f64>,
     /// `hybrid.activation_radius_m` override, m.
     #[arg(long)]
     activation_radius_m: Option<f64>,
@@ -85,9 +100,23 @@ fn main() -> anyhow::Result<()> {
     if let Some(c) = &args.core_mass_scale {
         h.params.core_mass_scale = haptic_model::hybrid::CoreMassScale::parse(c)?;
     }
-    h.params.validate()?;
     if let Some(a) = args.mass_damping_per_s {
         scene.material.mass_damping_per_s = a;
+    }
+    if let Some(n) = args.core_tets {
+        h.core_target_tets = n;
+    }
+    if let Some(c) = args.core_fraction {
+        h.params.core_fraction = c;
+    }
+    if let Some(s) = args.spacing_m {
+        h.params.meshfree.spacing_m = s;
+    }
+    if let Some(n) = args.max_active {
+        h.params.max_active_particles = n;
+    }
+    if let Some(r) = args.release_radius_m {
+        h.params.release_radius_m = r;
     }
     if let Some(r) = args.activation_radius_m {
         h.params.activation_radius_m = r;
@@ -95,6 +124,7 @@ fn main() -> anyhow::Result<()> {
     if let Some(k) = args.contact_stiffness_n_per_m {
         h.params.contact_stiffness_n_per_m = k;
     }
+    h.params.validate()?;
     let (variant, mass_scale) = (h.params.meshfree.variant, h.params.mass_scale);
 
     let mut hybrid = haptic_model::build_hybrid_body(&scene, &mut |_, _| {})?;
@@ -145,5 +175,10 @@ fn main() -> anyhow::Result<()> {
         );
         prev = d;
     }
+    let stats = body.stats();
+    println!(
+        "particles {} total, {} active at the last depth",
+        stats.particles, stats.active_particles
+    );
     Ok(())
 }
