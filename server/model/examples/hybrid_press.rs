@@ -177,8 +177,8 @@ fn main() -> anyhow::Result<()> {
     }
     let stats = body.stats();
     println!(
-        "particles {} total, {} active at the last depth",
-        stats.particles, stats.active_particles
+        "core {} tets; particles {} total, {} active at the last depth",
+        stats.elements, stats.particles, stats.active_particles
     );
     Ok(())
 }
