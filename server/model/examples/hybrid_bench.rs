@@ -50,6 +50,12 @@ struct Args {
     /// `uniform`.
     #[arg(long)]
     core_mass_scale: Option<String>,
+    /// `mesh.target_tets` override: wanted tetrahedra of the FEM core.
+    #[arg(long)]
+    core_tets: Option<usize>,
+    /// `hybrid.core_fraction` override: share of the wall thickness in the FEM core.
+    #[arg(long)]
+    core_fraction: Option<f64>,
 }
 
 fn rss_kib() -> u64 {
@@ -100,6 +106,12 @@ fn main() -> anyhow::Result<()> {
     }
     if let Some(m) = args.mass_scale {
         h.params.mass_scale = m;
+    }
+    if let Some(n) = args.core_tets {
+        h.core_target_tets = n;
+    }
+    if let Some(c) = args.core_fraction {
+        h.params.core_fraction = c;
     }
     if let Some(c) = &args.core_mass_scale {
         h.params.core_mass_scale = haptic_model::hybrid::CoreMassScale::parse(c)?;
