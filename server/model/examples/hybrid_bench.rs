@@ -56,6 +56,9 @@ struct Args {
     /// `hybrid.core_fraction` override: share of the wall thickness in the FEM core.
     #[arg(long)]
     core_fraction: Option<f64>,
+    /// `hybrid.safety_factor` override: the sub-step's share of the critical step bound.
+    #[arg(long)]
+    safety_factor: Option<f64>,
 }
 
 fn rss_kib() -> u64 {
@@ -112,6 +115,9 @@ fn main() -> anyhow::Result<()> {
     }
     if let Some(c) = args.core_fraction {
         h.params.core_fraction = c;
+    }
+    if let Some(f) = args.safety_factor {
+        h.params.safety_factor = f;
     }
     if let Some(c) = &args.core_mass_scale {
         h.params.core_mass_scale = haptic_model::hybrid::CoreMassScale::parse(c)?;
