@@ -160,6 +160,85 @@ fn constant_strain_across_the_interface_gives_no_spurious_force() {
     assert!(spurious < 1e-10 * typical, "{spurious:e} vs {typical:e}");
 }
 
+#[test]
+fn released_particles_are_tied_again_next_to_a_later_active_set() {
+    // A region released at rest, then a region next to it activated: the forces must be those
+    // of a body that never had the first region active (the released particles are tied to
+    // the core again as neighbours of the new set). Regression: released particles kept
+    // their mark of being in the term block, so the new set read their stale positions and
+    // their forces never reached the core.
+    let first = DVec3::new(10.0, 0.0, 0.0) * MM;
+    let second = DVec3::new(10.0 * 0.6f64.cos(), 10.0 * 0.6f64.sin(), 0.0) * MM;
+    let mut reused = body(MeshfreeVariant::Corrected, false, true);
+    reused.hold_regions(true);
+    reused.activate_near(first, 3.0 * MM);
+    let first_set = reused.active_particles().to_vec();
+    assert!(first_set.len() > 50, "{} active", first_set.len());
+    reused.evaluate_forces(); // the first set's terms are built
+    reused.hold_regions(false);
+    reused.run_free(1).expect("release");
+    assert!(reused.active_particles().is_empty(), "released at rest");
+    let mut fresh = body(MeshfreeVariant::Corrected, false, true);
+    let a = DMat3::from_cols(
+        DVec3::new(1.02, 0.01, 0.0),
+        DVec3::new(0.01, 0.99, 0.005),
+        DVec3::new(0.0, 0.005, 1.01),
+    );
+    let mut results = Vec::new();
+    for b in [&mut reused, &mut fresh] {
+        b.hold_regions(true);
+        b.activate_near(second, 3.0 * MM);
+        let rest = b.model().core_mesh.nodes.clone();
+        let (xc, _) = b.core_state_mut();
+        for (x, r) in xc.iter_mut().zip(&rest) {
+            *x = a * *r;
+        }
+        let active = b.active_particles().to_vec();
+        let (fc, fp) = b.evaluate_forces();
+        let (fc, fp) = (fc.to_vec(), fp.to_vec());
+        results.push((active, fc, fp));
+    }
+    let (active, fc_reused, fp_reused) = &results[0];
+    let (active_fresh, fc_fresh, fp_fresh) = &results[1];
+    assert_eq!(active, active_fresh);
+    // The new set reaches the released particles' kernel: otherwise this checks nothing.
+    let support = reused.model().params.meshfree.support_m();
+    let rest = reused.model().cloud.rest_m();
+    let near = first_set
+        .iter()
+        .filter(|p| !active.contains(p))
+        .filter(|&&p| {
+            active
+                .iter()
+                .any(|&q| (rest[p as usize] - rest[q as usize]).length() < support)
+        })
+        .count();
+    assert!(
+        near > 0,
+        "no released particle is a neighbour of the new set"
+    );
+    let scale = fp_fresh
+        .iter()
+        .chain(fc_fresh)
+        .map(|f| f.length())
+        .fold(0.0, f64::max);
+    let worst = active
+        .iter()
+        .map(|&p| (fp_reused[p as usize] - fp_fresh[p as usize]).length())
+        .chain(
+            fc_reused
+                .iter()
+                .zip(fc_fresh)
+                .map(|(a, b)| (*a - *b).length()),
+        )
+        .fold(0.0, f64::max);
+    assert!(scale > 0.0);
+    assert!(
+        worst <= 1e-12 * scale,
+        "forces differ by {worst:e} N (largest {scale:e} N)"
+    );
+}
+
 /// Probe centre on a path in the equatorial plane (the equator is a circle of radius 10 mm):
 /// approach from 5 mm outside, press 1 mm in, hold, slide 0.4 rad (4 mm of arc), hold,
 /// retract to 8 mm outside. Returns (time s, centre m) per 1 ms tick.

@@ -451,13 +451,15 @@ impl HybridBody {
         }
     }
 
-    /// Switches off the `k`-th active region (its particles follow the core again); the
-    /// caller prunes `active_list`.
+    /// Switches off the `k`-th active region (its particles follow the core again, and may be
+    /// tied to it as neighbours of the next active set); the caller prunes `active_list`.
     fn deactivate_region(&mut self, k: usize) {
         let m = &self.model;
         let v = self.active_regions[k] as usize;
         for &p in &m.region_particles[m.region_start[v] as usize..m.region_start[v + 1] as usize] {
             self.active[p as usize] = false;
+            // `rebuild_terms` clears the marks of the pruned `active_list` only.
+            self.in_block[p as usize] = false;
         }
         self.region_active[v] = false;
         self.active_regions.swap_remove(k);
