@@ -237,3 +237,74 @@ fn the_scene_presses_and_slides_with_no_force_jump_at_activation_and_release() {
         "{variant:?}: regions not released"
     );
 }
+
+/// The body of `lv-hybrid` with a core of `core_tets` wanted tetrahedra and at most
+/// `max_active` active particles, its regions held around the outer vertex at the largest x
+/// (the free wall) up to that cap, and the probe 1 mm into it at once (`hybrid_bench`'s
+/// press); `substeps` overrides the body's own count. Returns the sub-steps used and the
+/// outcome of 100 ticks.
+fn instant_press(
+    core_tets: usize,
+    max_active: usize,
+    substeps: Option<u32>,
+) -> (u32, Result<(), haptic_model::ModelError>) {
+    let mut scene = haptic_model::scene::load_builtin("lv-hybrid").expect("lv-hybrid");
+    let h = scene.hybrid.as_mut().expect("hybrid");
+    h.core_target_tets = core_tets;
+    h.params.max_active_particles = max_active;
+    let model = haptic_model::prepare_hybrid(&scene, &mut |_, _| {}).expect("prepare");
+    let clamped = model.clamped_core_nodes();
+    let mut body = HybridBody::new(
+        model,
+        &clamped,
+        scene.probe,
+        scene.integrator.tick_s,
+        &scene.name,
+    )
+    .expect("body");
+    if let Some(n) = substeps {
+        body.override_substeps(n).expect("sub-steps");
+    }
+    let m = body.model();
+    let v = (0..m.outer_rest_m.len())
+        .max_by(|&a, &b| m.outer_rest_m[a].x.total_cmp(&m.outer_rest_m[b].x))
+        .expect("vertices");
+    let surface = m.outer_rest_m[v];
+    let normal = (surface - m.centre_m).normalize();
+    body.hold_regions(true);
+    let mut r = 0.5e-3;
+    while body.active_particles().len() < max_active && r < 0.05 {
+        body.activate_near(surface, r);
+        r += 0.1e-3;
+    }
+    let device = surface + normal * (scene.probe.radius_m - 1e-3);
+    let outcome = (0..100).try_for_each(|_| {
+        body.tick(&TickInput {
+            device_position_m: Some(device),
+            device_velocity_m_per_s: DVec3::ZERO,
+        })
+        .map(|_| ())
+    });
+    (body.substeps().0, outcome)
+}
+
+#[test]
+fn a_finer_core_takes_the_sub_steps_of_its_coupled_limit() {
+    // The core's share of the coupled step (0.65 of its own) was measured on lv-hybrid's
+    // 519-tetrahedron core. With 999 tetrahedra the coupled limit is shorter than the step it
+    // gives (two sub-steps), and an instant 1 mm press with 600 active particles diverges
+    // within a few ticks; the set-up check (power iteration at six outer vertices) gives the
+    // body three.
+    let (substeps, outcome) = instant_press(1000, 600, None);
+    assert!(substeps >= 3, "{substeps} sub-steps");
+    outcome.expect("the press with the checked sub-steps");
+    let (_, unchecked) = instant_press(1000, 600, Some(2));
+    assert!(
+        matches!(unchecked, Err(haptic_model::ModelError::Diverged { .. })),
+        "two sub-steps should diverge here: {unchecked:?}"
+    );
+    // The scene's own core keeps its two.
+    let (scene_substeps, scene_outcome) = instant_press(500, 600, None);
+    assert_eq!(scene_substeps, 2);
+    scene_outcome.expect("the scene's press");
+}
