@@ -21,6 +21,10 @@
 //! because the tied particles' terms stiffen the core nodes). (3) The device force is minus the probe's penalty forces of the last
 //! sub-step, with their stiffness `sum k n n^T`.
 //!
+//! **The sub-step** comes from the particles' Gershgorin bound and the core's own critical step
+//! times `CORE_COUPLING_MARGIN` (0.65), and is then checked at set-up against the coupled system's
+//! limit estimated by power iteration ([`HybridBody::new`], `verify_coupled_step`).
+//!
 //! **Masses.** Each active particle has `rho s^3` times `mass_scale`. The core's nodes carry
 //! the core's lumped mass and the whole particle layer's (each layer particle's mass spread
 //! over its tie's nodes, [`HybridModel::layer_mass_on_core_kg`]: the inactive particles follow
