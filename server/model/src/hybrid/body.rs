@@ -153,9 +153,14 @@ impl HybridBody {
     /// A body at rest from a preprocessed model. `clamped`: core nodes fixed at rest;
     /// `tick_s`: servo period, s.
     ///
+    /// The sub-steps come from the critical step bound, then the set-up check of the coupled
+    /// system's limit (`verify_coupled_step`: power iteration at six outer vertices, about
+    /// 0.2 s on `lv-hybrid`) may raise them.
+    ///
     /// # Errors
-    /// [`ModelError::SceneField`] naming `hybrid.max_substeps` when the critical step needs
-    /// more sub-steps per tick; the errors of [`FemModel::new`].
+    /// [`ModelError::SceneField`] naming `hybrid.max_substeps` when the critical step or the
+    /// check needs more sub-steps per tick; [`ModelError::NoConvergence`] when a power
+    /// iteration of the check does not settle; the errors of [`FemModel::new`].
     pub fn new(
         model: HybridModel,
         clamped: &[u32],
