@@ -252,16 +252,7 @@ fn instant_press(
     let h = scene.hybrid.as_mut().expect("hybrid");
     h.core_target_tets = core_tets;
     h.params.max_active_particles = max_active;
-    let model = haptic_model::prepare_hybrid(&scene, &mut |_, _| {}).expect("prepare");
-    let clamped = model.clamped_core_nodes();
-    let mut body = HybridBody::new(
-        model,
-        &clamped,
-        scene.probe,
-        scene.integrator.tick_s,
-        &scene.name,
-    )
-    .expect("body");
+    let mut body = haptic_model::build_hybrid_body(&scene, &mut |_, _| {}).expect("body");
     if let Some(n) = substeps {
         body.override_substeps(n).expect("sub-steps");
     }
