@@ -59,6 +59,12 @@ struct Args {
     /// `hybrid.safety_factor` override: the sub-step's share of the critical step bound.
     #[arg(long)]
     safety_factor: Option<f64>,
+    /// `hybrid.scaled_motion` override: `absolute` or `deviation`.
+    #[arg(long)]
+    scaled_motion: Option<String>,
+    /// `hybrid.core_step = "implicit"` with this `core_stiffness_margin`.
+    #[arg(long)]
+    implicit_core_margin: Option<f64>,
 }
 
 fn rss_kib() -> u64 {
@@ -115,6 +121,12 @@ fn main() -> anyhow::Result<()> {
     }
     if let Some(c) = args.core_fraction {
         h.params.core_fraction = c;
+    }
+    if let Some(m) = &args.scaled_motion {
+        h.params.scaled_motion = haptic_model::hybrid::ScaledMotion::parse(m)?;
+    }
+    if let Some(margin) = args.implicit_core_margin {
+        h.params.core_step = haptic_model::hybrid::CoreStep::Implicit { margin };
     }
     if let Some(f) = args.safety_factor {
         h.params.safety_factor = f;

@@ -37,6 +37,12 @@ struct Args {
     /// `uniform`.
     #[arg(long)]
     core_mass_scale: Option<String>,
+    /// `hybrid.scaled_motion` override: `absolute` or `deviation`.
+    #[arg(long)]
+    scaled_motion: Option<String>,
+    /// `hybrid.core_step = "implicit"` with this `core_stiffness_margin`.
+    #[arg(long)]
+    implicit_core_margin: Option<f64>,
     /// `hybrid.contact_stiffness_n_per_m` override (probe penalty per particle).
     #[arg(long)]
     contact_stiffness_n_per_m: Option<f64>,
@@ -99,6 +105,12 @@ fn main() -> anyhow::Result<()> {
     }
     if let Some(c) = &args.core_mass_scale {
         h.params.core_mass_scale = haptic_model::hybrid::CoreMassScale::parse(c)?;
+    }
+    if let Some(margin) = args.implicit_core_margin {
+        h.params.core_step = haptic_model::hybrid::CoreStep::Implicit { margin };
+    }
+    if let Some(m) = &args.scaled_motion {
+        h.params.scaled_motion = haptic_model::hybrid::ScaledMotion::parse(m)?;
     }
     if let Some(a) = args.mass_damping_per_s {
         scene.material.mass_damping_per_s = a;

@@ -333,6 +333,31 @@ impl SparseCholesky {
         }
     }
 
+    /// Workspace for [`SparseCholesky::solve_in_place_with`] with `columns` right-hand sides.
+    pub fn solve_workspace(&self, columns: usize) -> MemBuffer {
+        MemBuffer::new(
+            self.symbolic
+                .solve_in_place_scratch::<f64>(columns, Par::Seq),
+        )
+    }
+
+    /// [`SparseCholesky::solve_in_place`] in the workspace `mem` (from
+    /// [`SparseCholesky::solve_workspace`] with at least `rhs.ncols()` columns): allocates
+    /// nothing, for the servo tick.
+    ///
+    /// # Panics
+    /// Before a successful factorisation.
+    pub fn solve_in_place_with(&self, rhs: MatMut<'_, f64>, mem: &mut MemBuffer) {
+        let stack = MemStack::new(mem);
+        match self.ldlt {
+            Some(false) => LltRef::<usize, f64>::new(&self.symbolic, &self.values)
+                .solve_in_place_with_conj(Conj::No, rhs, Par::Seq, stack),
+            Some(true) => LdltRef::<usize, f64>::new(&self.symbolic, &self.values)
+                .solve_in_place_with_conj(Conj::No, rhs, Par::Seq, stack),
+            None => panic!("SparseCholesky::solve_in_place_with before a successful factorisation"),
+        }
+    }
+
     /// Entries of `L`.
     pub fn factor_entries(&self) -> usize {
         self.values.len()

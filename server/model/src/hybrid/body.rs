@@ -21,6 +21,15 @@
 //! because the tied particles' terms stiffen the core nodes). (3) The device force is minus the probe's penalty forces of the last
 //! sub-step, with their stiffness `sum k n n^T`.
 //!
+//! **Two options not in the seed** ([`ScaledMotion`], [`CoreStep`]): with `scaled_motion =
+//! "deviation"` an active particle's state is its deviation from the core's interpolation
+//! (`x_p = sum_k w_pk x_k + d_p`), only `d_p` carries the scaled mass, and every active
+//! particle's force drives the core nodes too; with `core_step = "implicit"` the core takes the
+//! linearly implicit step of [`ImplicitCore`] once per sub-step (its matrix frozen at rest,
+//! with the layer's stiffness condensed on the core), and the sub-steps follow the particles'
+//! critical step alone. Together they give the press the core's real inertia at the scene's
+//! two sub-steps (`docs/accuracy.md`, "Deviation mass and an implicit core").
+//!
 //! **The sub-step** comes from the particles' Gershgorin bound and the core's own critical step
 //! times `CORE_COUPLING_MARGIN` (0.65), and is then checked at set-up against the coupled system's
 //! limit estimated by power iteration ([`HybridBody::new`], `verify_coupled_step`).
@@ -43,8 +52,9 @@
 
 use glam::DVec3;
 
-use super::CoreMassScale;
+use super::implicit::{BlockRows, ImplicitCore, layer_stiffness_blocks};
 use super::prepare::{HybridModel, Tie};
+use super::{CoreMassScale, CoreStep, ScaledMotion};
 use crate::ModelError;
 use crate::body::{
     BodyInfo, BodyStats, MAX_DEVICE_DISTANCE_M, SoftBody, SurfaceCapacity, SurfaceTopology,
@@ -122,7 +132,19 @@ pub struct HybridBody {
     /// are refilled: the per-sub-step gather and scatter read them in order instead of
     /// looking up the particle's tie and its tetrahedron.
     tied_ties: Vec<([u32; 4], [f64; 4])>,
+    /// `scaled_motion = "deviation"` ([`ScaledMotion::Deviation`]): the active particles'
+    /// state is their deviation from the core's interpolation (`xd`, and `vp` its rate), and
+    /// their forces also drive the core nodes.
+    deviation: bool,
+    /// Deviations of the active particles from the core's interpolation, m (deviation mode).
+    xd: Vec<DVec3>,
+    /// The core nodes and tie weights of each particle of `active_list`, copied when the terms
+    /// are refilled (deviation mode).
+    active_ties: Vec<([u32; 4], [f64; 4])>,
     block: TermBlock,
+    /// `core_step = "implicit"`: the core's frozen factor, and the condensed layer stiffness it
+    /// was built from (kept to rebuild it when the sub-step changes).
+    implicit: Option<(ImplicitCore, BlockRows, f64)>,
     region_active: Vec<bool>,
     active_regions: Vec<u32>,
     /// Regions to activate this tick with their squared distance to the probe, m^2 (scratch
@@ -186,6 +208,8 @@ impl HybridBody {
         let core_mass_scale = match params.core_mass_scale {
             CoreMassScale::Fixed(scale) => scale,
             CoreMassScale::Uniform => params.mass_scale,
+            // The implicit core has no critical step: its real inertia costs nothing.
+            CoreMassScale::Auto if params.core_step != CoreStep::Explicit => 1.0,
             CoreMassScale::Auto => {
                 let want_dt = tick_s / (params.safety_factor * substeps_for(particle_dt));
                 let omega2_max = damped_max_omega2_per_s2(want_dt / CORE_COUPLING_MARGIN, beta);
@@ -201,7 +225,10 @@ impl HybridBody {
             fem.add_lumped_mass(&extra);
         }
         let core_dt_s = damped_critical_step_s(omega2_real / core_mass_scale, beta);
-        let critical_dt_s = particle_dt.min(CORE_COUPLING_MARGIN * core_dt_s);
+        let critical_dt_s = match params.core_step {
+            CoreStep::Explicit => particle_dt.min(CORE_COUPLING_MARGIN * core_dt_s),
+            CoreStep::Implicit { .. } => particle_dt,
+        };
         // One rate for both: the particle terms of tied particles stiffen the core nodes, so a
         // core held through a longer particle step (multi-rate, tried, also with a real-inertia
         // core) diverges on lv-hybrid. `core_substeps` stays 1.
@@ -244,7 +271,11 @@ impl HybridBody {
             active_list: Vec::with_capacity(params.max_active_particles + model.largest_region),
             tied_list: Vec::with_capacity(3 * capacity),
             tied_ties: Vec::with_capacity(3 * capacity),
+            deviation: params.scaled_motion == ScaledMotion::Deviation,
+            xd: vec![DVec3::ZERO; n],
+            active_ties: Vec::with_capacity(params.max_active_particles + model.largest_region),
             block,
+            implicit: None,
             region_active: vec![false; nv],
             active_regions: Vec::with_capacity(nv),
             candidates: Vec::with_capacity(nv),
@@ -259,8 +290,27 @@ impl HybridBody {
             last_force_n: DVec3::ZERO,
             model: Box::new(model),
         };
+        if let CoreStep::Implicit { margin } = params.core_step {
+            let layer = layer_stiffness_blocks(&body.model)?;
+            let core = ImplicitCore::new(&body.fem, Some(&layer), body.dt_s, margin)?;
+            body.implicit = Some((core, layer, margin));
+        }
         body.verify_coupled_step()?;
+        body.rebuild_implicit()?;
         Ok(body)
+    }
+
+    /// Rebuilds the implicit core's factor when the sub-step changed (set-up and studies).
+    fn rebuild_implicit(&mut self) -> Result<(), ModelError> {
+        if let Some((core, layer, margin)) = self.implicit.take() {
+            let core = if core.h_s() == self.dt_s {
+                core
+            } else {
+                ImplicitCore::new(&self.fem, Some(&layer), self.dt_s, margin)?
+            };
+            self.implicit = Some((core, layer, margin));
+        }
+        Ok(())
     }
 
     /// The set-up check of the sub-step against the coupled system's own limit. The core's
@@ -362,7 +412,7 @@ impl HybridBody {
         }
         self.substeps = substeps;
         self.dt_s = self.tick_s / substeps as f64;
-        Ok(())
+        self.rebuild_implicit()
     }
 
     /// The critical step the sub-steps come from, s: the smaller of the particles' (Gershgorin
@@ -416,6 +466,8 @@ impl HybridBody {
 
     /// Particle positions and velocities (m, m/s, indexed by particle; only active particles'
     /// entries are state, the others are overwritten from the core), for tests and studies.
+    /// With `scaled_motion = "deviation"` the velocities are the deviations' rates and the
+    /// positions are recomputed from the core and the deviations at every sub-step.
     pub fn particle_state_mut(&mut self) -> (&mut [DVec3], &mut [DVec3]) {
         (&mut self.xp, &mut self.vp)
     }
@@ -438,20 +490,24 @@ impl HybridBody {
     }
 
     /// Total linear momentum of the simulated degrees of freedom (core nodes and active
-    /// particles), kg m/s.
+    /// particles; with `scaled_motion = "deviation"` the core nodes' alone, the momentum
+    /// conjugate to a translation), kg m/s.
     pub fn linear_momentum(&self) -> DVec3 {
         let mut p = DVec3::ZERO;
         for (v, m) in self.vc.iter().zip(self.fem.lumped_mass_kg()) {
             p += *v * *m;
         }
-        for &q in &self.active_list {
-            p += self.vp[q as usize] * self.particle_mass_kg;
+        if !self.deviation {
+            for &q in &self.active_list {
+                p += self.vp[q as usize] * self.particle_mass_kg;
+            }
         }
         p
     }
 
     /// Kinetic and elastic energy (J) of the simulated degrees of freedom (the terms of the
-    /// active set at the current tied positions).
+    /// active set at the current tied positions; with `scaled_motion = "deviation"` the
+    /// particles' kinetic part is their deviations').
     pub fn energy(&self) -> (f64, f64) {
         let mut kin = 0.0;
         for (v, m) in self.vc.iter().zip(self.fem.lumped_mass_kg()) {
@@ -569,7 +625,13 @@ impl HybridBody {
             }
             let tie = &m.particle_tie[p];
             self.xp[p] = interpolate(tie, &m.core_mesh.tets, &self.xc);
-            self.vp[p] = interpolate(tie, &m.core_mesh.tets, &self.vc);
+            if self.deviation {
+                // On the core's interpolation, moving with it: no deviation.
+                self.xd[p] = DVec3::ZERO;
+                self.vp[p] = DVec3::ZERO;
+            } else {
+                self.vp[p] = interpolate(tie, &m.core_mesh.tets, &self.vc);
+            }
             self.active[p] = true;
             self.active_list.push(p as u32);
         }
@@ -682,6 +744,14 @@ impl HybridBody {
             self.tied_ties
                 .push((m.core_mesh.tets[tie.tet as usize], tie.w));
         }
+        self.active_ties.clear();
+        if self.deviation {
+            for &p in &self.active_list {
+                let tie = &m.particle_tie[p as usize];
+                self.active_ties
+                    .push((m.core_mesh.tets[tie.tet as usize], tie.w));
+            }
+        }
         self.changed = false;
     }
 
@@ -702,6 +772,15 @@ impl HybridBody {
                 + xc[t[1] as usize] * w[1]
                 + xc[t[2] as usize] * w[2]
                 + xc[t[3] as usize] * w[3];
+        }
+        if self.deviation {
+            for (&p, (t, w)) in self.active_list.iter().zip(&self.active_ties) {
+                self.xp[p as usize] = xc[t[0] as usize] * w[0]
+                    + xc[t[1] as usize] * w[1]
+                    + xc[t[2] as usize] * w[2]
+                    + xc[t[3] as usize] * w[3]
+                    + self.xd[p as usize];
+            }
         }
         self.block.write_forces(&m.cloud, &self.xp, &mut self.fp);
         let mut device = DVec3::ZERO;
@@ -730,6 +809,15 @@ impl HybridBody {
             let f = self.fp[q as usize];
             for (node, w) in t.iter().zip(w) {
                 self.fcoup[*node as usize] += f * *w;
+            }
+        }
+        if self.deviation {
+            // `d x_p / d x_k = w_pk`: the active particles' forces drive the core too.
+            for (&p, (t, w)) in self.active_list.iter().zip(&self.active_ties) {
+                let f = self.fp[p as usize];
+                for (node, w) in t.iter().zip(w) {
+                    self.fcoup[*node as usize] += f * *w;
+                }
             }
         }
         for l in &self.loads[..self.load_count] {
@@ -765,7 +853,24 @@ impl HybridBody {
         let dt_c = dt / self.core_substeps as f64;
         let mut max_v2: f64 = 0.0;
         let mut non_finite = false;
-        for _ in 0..self.core_substeps {
+        if let Some((core, _, _)) = &mut self.implicit {
+            // Elastic and coupling forces; the viscous operator is in the frozen matrix.
+            self.fc.copy_from_slice(&self.fcoup);
+            self.fem.add_internal_forces(&self.xc, None, &mut self.fc);
+            let v2 = core.step(
+                self.fem.lumped_mass_kg(),
+                &self.fc,
+                &mut self.xc,
+                &mut self.vc,
+            );
+            non_finite |= !v2.is_finite();
+            max_v2 = max_v2.max(v2);
+        }
+        for _ in 0..if self.implicit.is_some() {
+            0
+        } else {
+            self.core_substeps
+        } {
             self.core_forces();
             let v2 = integrate_nodes(
                 IntegratorKind::SymplecticEuler,
@@ -781,14 +886,33 @@ impl HybridBody {
         }
         let damp = 1.0 / (1.0 + self.fem.material().mass_damping_per_s * dt);
         let inv_m = dt / self.particle_mass_kg;
-        for &p in &self.active_list {
-            let p = p as usize;
-            let v = (self.vp[p] + self.fp[p] * inv_m) * damp;
-            self.vp[p] = v;
-            self.xp[p] += v * dt;
-            let s = v.length_squared();
-            non_finite |= !s.is_finite();
-            max_v2 = max_v2.max(s);
+        if self.deviation {
+            let xc = &self.xc;
+            for (&p, (t, w)) in self.active_list.iter().zip(&self.active_ties) {
+                let p = p as usize;
+                let v = (self.vp[p] + self.fp[p] * inv_m) * damp;
+                self.vp[p] = v;
+                self.xd[p] += v * dt;
+                // The absolute position, for the surface and the release test between ticks.
+                self.xp[p] = xc[t[0] as usize] * w[0]
+                    + xc[t[1] as usize] * w[1]
+                    + xc[t[2] as usize] * w[2]
+                    + xc[t[3] as usize] * w[3]
+                    + self.xd[p];
+                let s = v.length_squared();
+                non_finite |= !s.is_finite();
+                max_v2 = max_v2.max(s);
+            }
+        } else {
+            for &p in &self.active_list {
+                let p = p as usize;
+                let v = (self.vp[p] + self.fp[p] * inv_m) * damp;
+                self.vp[p] = v;
+                self.xp[p] += v * dt;
+                let s = v.length_squared();
+                non_finite |= !s.is_finite();
+                max_v2 = max_v2.max(s);
+            }
         }
         if non_finite { f64::NAN } else { max_v2 }
     }
@@ -1013,8 +1137,16 @@ impl HybridBody {
     ) -> Result<EigenEstimate, ModelError> {
         let x0c = self.xc.clone();
         let x0p = self.xp.clone();
+        // Deviation mode: the active particles' coordinates are their deviations.
+        let x0d = self.xd.clone();
         let v0c = std::mem::replace(&mut self.vc, vec![DVec3::ZERO; x0c.len()]);
-        let free: Vec<bool> = self.fem.constraints().iter().map(|c| *c == 0).collect();
+        // The implicit core is not part of the explicit system: held.
+        let free: Vec<bool> = self
+            .fem
+            .constraints()
+            .iter()
+            .map(|c| *c == 0 && self.implicit.is_none())
+            .collect();
         let inv_sqrt_mc: Vec<f64> = self
             .fem
             .lumped_mass_kg()
@@ -1060,7 +1192,11 @@ impl HybridBody {
             for &p in &active {
                 let p = p as usize;
                 up[p] /= norm;
-                self.xp[p] = x0p[p] + up[p] * (eps * inv_sqrt_mp);
+                if self.deviation {
+                    self.xd[p] = x0d[p] + up[p] * (eps * inv_sqrt_mp);
+                } else {
+                    self.xp[p] = x0p[p] + up[p] * (eps * inv_sqrt_mp);
+                }
             }
             self.particle_forces(None);
             self.core_forces();
@@ -1097,6 +1233,7 @@ impl HybridBody {
         }
         self.xc.copy_from_slice(&x0c);
         self.xp.copy_from_slice(&x0p);
+        self.xd.copy_from_slice(&x0d);
         self.vc = v0c;
         self.particle_forces(None);
         result.ok_or_else(|| {

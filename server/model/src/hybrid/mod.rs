@@ -30,11 +30,13 @@
 //! [`crate::build_body`].
 
 pub mod body;
+pub mod implicit;
 pub mod prepare;
 
 use glam::DVec3;
 
 pub use body::{EigenEstimate, HybridBody};
+pub use implicit::ImplicitCore;
 pub use prepare::{HybridModel, prepare};
 
 use crate::ModelError;
@@ -100,6 +102,10 @@ pub struct HybridParams {
     /// Multiplier of the core's mass (its own and the particle layer's, which the core
     /// carries through the ties), [`CoreMassScale`]. Not in the seed.
     pub core_mass_scale: CoreMassScale,
+    /// Which motion of an active particle `mass_scale` weighs ([`ScaledMotion`]).
+    pub scaled_motion: ScaledMotion,
+    /// How the core steps ([`CoreStep`]).
+    pub core_step: CoreStep,
     /// Fraction of the critical step used, in (0, 1].
     pub safety_factor: f64,
     /// Most sub-steps per servo tick.
@@ -125,6 +131,76 @@ pub enum CoreMassScale {
     /// This value, in `[1, 1e6]`; 1 is the body's real inertia, the sub-steps then follow the
     /// core's critical step (`docs/accuracy.md`, "The hybrid model's real-inertia core").
     Fixed(f64),
+}
+
+/// Which motion of an active particle carries the scaled mass (`hybrid.scaled_motion`). Not in
+/// the seed.
+///
+/// An active particle's position is written `x_p = sum_k w_pk x_k + d_p`: the core's
+/// interpolation at its tie plus its deviation `d_p`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ScaledMotion {
+    /// `"absolute"`: the particle's whole motion has the mass `rho s^3 mass_scale`, and its
+    /// forces reach the core only through the tied particles' terms (the behaviour before
+    /// the key existed). Under a press the active region moves as one heavy lump.
+    #[default]
+    Absolute,
+    /// `"deviation"`: only the deviation `d_p` has the scaled mass; the particle's share of the
+    /// core's motion has the core's inertia (which already carries the whole layer's mass,
+    /// [`HybridModel::layer_mass_on_core_kg`]). The generalised coordinates are the core nodes
+    /// and the deviations, with the kinetic energy `1/2 v_c^T M_c v_c + 1/2 sum_p m_s |d_p'|^2`
+    /// (both masses lumped): every active particle's force `f_p` drives its deviation and,
+    /// with its tie weights, the core nodes (`d x_p / d x_k = w_pk`). A selective mass
+    /// scaling: the stiff modes inside the active region stay slow enough for the step, the
+    /// wall's motion under the probe keeps its real (core) inertia. Statics are unchanged;
+    /// linear momentum is the core's, `sum_k M_k v_k` (translation moves the core and leaves
+    /// `d` alone).
+    Deviation,
+}
+
+impl ScaledMotion {
+    /// Parses `"absolute"` or `"deviation"`.
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] naming `hybrid.scaled_motion` for anything else.
+    pub fn parse(text: &str) -> Result<Self, ModelError> {
+        match text.trim() {
+            "absolute" => Ok(Self::Absolute),
+            "deviation" => Ok(Self::Deviation),
+            t => Err(ModelError::field(
+                "hybrid.scaled_motion",
+                format!("must be \"absolute\" or \"deviation\", got {t:?}"),
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for ScaledMotion {
+    /// As the scene writes it.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Absolute => "absolute",
+            Self::Deviation => "deviation",
+        })
+    }
+}
+
+/// How the hybrid core steps (`hybrid.core_step`, `hybrid.core_stiffness_margin`). Not in the
+/// seed (which steps everything explicitly).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum CoreStep {
+    /// `"explicit"`: symplectic Euler with the particles, the sub-step bounded by the core's
+    /// critical step too (the behaviour before the key existed).
+    #[default]
+    Explicit,
+    /// `"implicit"`: the linearly implicit step of [`ImplicitCore`], its matrix frozen at rest
+    /// with the core's and the condensed layer's stiffness times `margin` (in `[1, 100]`):
+    /// the sub-steps follow the particles' critical step alone, and `core_mass_scale = "auto"`
+    /// is 1 (the body's real inertia).
+    Implicit {
+        /// Factor on the rest stiffness in the frozen matrix.
+        margin: f64,
+    },
 }
 
 impl std::fmt::Display for CoreMassScale {
@@ -170,6 +246,8 @@ impl Default for HybridParams {
             contact_stiffness_n_per_m: 5.0,
             mass_scale: 1.0,
             core_mass_scale: CoreMassScale::Uniform,
+            scaled_motion: ScaledMotion::Absolute,
+            core_step: CoreStep::Explicit,
             safety_factor: 0.9,
             max_substeps: 200,
         }
@@ -235,6 +313,14 @@ impl HybridParams {
             return Err(ModelError::field(
                 "hybrid.core_mass_scale",
                 format!("must be in [1, 1e6], got {c}"),
+            ));
+        }
+        if let CoreStep::Implicit { margin } = self.core_step
+            && !(1.0..=100.0).contains(&margin)
+        {
+            return Err(ModelError::field(
+                "hybrid.core_stiffness_margin",
+                format!("must be in [1, 100], got {margin}"),
             ));
         }
         if !(self.safety_factor > 0.0 && self.safety_factor <= 1.0) {

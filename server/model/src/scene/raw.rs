@@ -11,7 +11,10 @@ use super::{HybridScene, MassSpringScene, ModelFamily, Scene, TableState};
 use crate::ModelError;
 use crate::contact::{ContactModel, ProbeParams};
 use crate::element::StrainSmoothing;
-use crate::hybrid::{CoreMassScale, HybridParams, ShellGeometry};
+use crate::hybrid::{CoreMassScale, CoreStep, HybridParams, ScaledMotion, ShellGeometry};
+
+/// `hybrid.core_stiffness_margin` when `core_step = "implicit"` does not give it.
+pub const DEFAULT_CORE_STIFFNESS_MARGIN: f64 = 2.0;
 use crate::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
 use crate::integrate::{IntegratorKind, IntegratorParams, LinearSolver};
 use crate::loads::{PointForce, PressureLoad, SceneLoads};
@@ -64,6 +67,9 @@ struct RawHybrid {
     contact_stiffness_n_per_m: Option<f64>,
     mass_scale: Option<f64>,
     core_mass_scale: Option<RawCoreMassScale>,
+    scaled_motion: Option<String>,
+    core_step: Option<String>,
+    core_stiffness_margin: Option<f64>,
     safety_factor: Option<f64>,
     max_substeps: Option<i64>,
 }
@@ -773,6 +779,31 @@ fn build_hybrid(h: &RawHybrid, mesh: &RawMesh, unit_m: f64) -> Result<HybridScen
             None => CoreMassScale::Uniform,
             Some(RawCoreMassScale::Number(v)) => CoreMassScale::Fixed(*v),
             Some(RawCoreMassScale::Name(t)) => CoreMassScale::parse(t)?,
+        },
+        scaled_motion: h
+            .scaled_motion
+            .as_deref()
+            .map_or(Ok(d.scaled_motion), ScaledMotion::parse)?,
+        core_step: match (
+            h.core_step.as_deref().map(str::trim),
+            h.core_stiffness_margin,
+        ) {
+            (None | Some("explicit"), None) => CoreStep::Explicit,
+            (None | Some("explicit"), Some(_)) => {
+                return Err(ModelError::field(
+                    "hybrid.core_stiffness_margin",
+                    "is only for hybrid.core_step = \"implicit\"",
+                ));
+            }
+            (Some("implicit"), margin) => CoreStep::Implicit {
+                margin: margin.unwrap_or(DEFAULT_CORE_STIFFNESS_MARGIN),
+            },
+            (Some(t), _) => {
+                return Err(ModelError::field(
+                    "hybrid.core_step",
+                    format!("must be \"explicit\" or \"implicit\", got {t:?}"),
+                ));
+            }
         },
         safety_factor: h.safety_factor.unwrap_or(d.safety_factor),
         max_substeps: opt_int(
