@@ -17,7 +17,7 @@
 //! with its `stiffness_margin` (`integrate::LinearSolver::RestCholesky`). The surplus
 //! `K~ - K` damps: a mode of stiffness `k` gets the damping `h (k~ - k)`.
 //!
-//! Neighbours: the core's [`FemModel`], the ties and the cloud of [`super::prepare`], the
+//! Neighbours: the core's [`FemModel`], the ties and the cloud of [`mod@super::prepare`], the
 //! sparse factor of [`crate::ordering`].
 
 use faer::dyn_stack::MemBuffer;
