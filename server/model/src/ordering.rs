@@ -282,6 +282,43 @@ impl SparseCholesky {
         Ok(())
     }
 
+    /// Workspace for [`SparseCholesky::factor_llt_in`].
+    pub fn factor_workspace(&self) -> MemBuffer {
+        MemBuffer::new(
+            self.symbolic
+                .factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
+        )
+    }
+
+    /// [`SparseCholesky::factor_llt`] in the workspace `mem` (from
+    /// [`SparseCholesky::factor_workspace`]): allocates nothing, for refactoring in the tick.
+    ///
+    /// # Errors
+    /// As [`SparseCholesky::factor_llt`].
+    pub fn factor_llt_in(
+        &mut self,
+        a: SparseColMatRef<'_, usize, f64>,
+        side: Side,
+        mem: &mut MemBuffer,
+    ) -> Result<(), ModelError> {
+        self.ldlt = None;
+        self.symbolic
+            .factorize_numeric_llt::<f64>(
+                &mut self.values,
+                a,
+                side,
+                Default::default(),
+                Par::Seq,
+                MemStack::new(mem),
+                Default::default(),
+            )
+            .map_err(|e| {
+                ModelError::InvalidInput(format!("the matrix is not positive definite: {e:?}"))
+            })?;
+        self.ldlt = Some(false);
+        Ok(())
+    }
+
     /// Factors `a` as `L D L^T` without pivoting (symmetric indefinite matrices whose
     /// leading minors do not vanish in this ordering). Check the solution's residual: without
     /// pivoting a small pivot may make it inaccurate.

@@ -17,13 +17,24 @@ mod counting_alloc;
 
 use glam::DVec3;
 use haptic_model::body::{SoftBody, TickInput};
-use haptic_model::hybrid::{CoreMassScale, HybridBody};
+use haptic_model::hybrid::{CoreMassScale, CoreStep, HybridBody, HybridParams, ScaledMotion};
 use haptic_model::meshfree::{KernelKind, MeshfreeVariant};
 
 #[test]
 fn default_substeps_stay_bounded_pressed_deep_with_many_regions_active() {
+    // The scene: deviation mass and the implicit core, one sub-step for both variants.
+    for variant in [MeshfreeVariant::Seed, MeshfreeVariant::Corrected] {
+        worst_case(variant, None, 1);
+    }
+}
+
+#[test]
+fn explicit_substeps_stay_bounded_pressed_deep_with_many_regions_active() {
+    // The scene before the implicit core: everything explicit, mass_scale = 1000 and the
+    // core's scale chosen by the body; one sub-step for the seed variant, two for the
+    // corrected one.
     for (variant, substeps) in [(MeshfreeVariant::Seed, 1), (MeshfreeVariant::Corrected, 2)] {
-        worst_case(variant, None, substeps);
+        worst_case(variant, Some((1000.0, CoreMassScale::Auto)), substeps);
     }
 }
 
@@ -31,21 +42,33 @@ fn default_substeps_stay_bounded_pressed_deep_with_many_regions_active() {
 fn a_real_inertia_core_stays_stable_pressed_deep_with_many_regions_active() {
     // core_mass_scale = 1 (the body's real inertia), particles at mass_scale = 300: the
     // sub-steps come from the core's critical step and the coupling margin (11 per tick).
-    worst_case(MeshfreeVariant::Corrected, Some((300.0, 1.0)), 11);
+    worst_case(
+        MeshfreeVariant::Corrected,
+        Some((300.0, CoreMassScale::Fixed(1.0))),
+        11,
+    );
 }
 
-/// The lv-hybrid body with `variant` (and its kernel), at `scales` (`(mass_scale,
-/// core_mass_scale)`) or the scene's; with its scene.
+/// Steps everything explicitly (`scaled_motion = "absolute"`, `core_step = "explicit"`) at
+/// `mass_scale` and `core`.
+fn explicit(p: &mut HybridParams, mass_scale: f64, core: CoreMassScale) {
+    p.scaled_motion = ScaledMotion::Absolute;
+    p.core_step = CoreStep::Explicit;
+    p.mass_scale = mass_scale;
+    p.core_mass_scale = core;
+}
+
+/// The lv-hybrid body with `variant` (and its kernel), stepped explicitly at `scales`
+/// (`(mass_scale, core_mass_scale)`, [`explicit`]) or as the scene says; with its scene.
 fn lv_body(
     variant: MeshfreeVariant,
-    scales: Option<(f64, f64)>,
+    scales: Option<(f64, CoreMassScale)>,
 ) -> (HybridBody, haptic_model::scene::Scene) {
     let (model, clamped, scene) = common::lv_hybrid_model(|p| {
         p.meshfree.variant = variant;
         p.meshfree.kernel = KernelKind::default_for(variant);
         if let Some((m, c)) = scales {
-            p.mass_scale = m;
-            p.core_mass_scale = CoreMassScale::Fixed(c);
+            explicit(p, m, c);
         }
     });
     let body = HybridBody::new(
@@ -59,8 +82,8 @@ fn lv_body(
     (body, scene)
 }
 
-/// `scales`: `(mass_scale, core_mass_scale)`, or the scene's.
-fn worst_case(variant: MeshfreeVariant, scales: Option<(f64, f64)>, substeps: u32) {
+/// `scales`: `(mass_scale, core_mass_scale)` stepped explicitly, or the scene's.
+fn worst_case(variant: MeshfreeVariant, scales: Option<(f64, CoreMassScale)>, substeps: u32) {
     let (mut body, scene) = lv_body(variant, scales);
     let bound = body.critical_step_bound_s();
     assert_eq!(
@@ -241,17 +264,22 @@ fn the_scene_presses_and_slides_with_no_force_jump_at_activation_and_release() {
 /// The body of `lv-hybrid` with a core of `core_tets` wanted tetrahedra and at most
 /// `max_active` active particles, its regions held around the outer vertex at the largest x
 /// (the free wall) up to that cap, and the probe 1 mm into it at once (`hybrid_bench`'s
-/// press); `substeps` overrides the body's own count. Returns the sub-steps used and the
-/// outcome of 100 ticks.
+/// press); stepped explicitly at the scene's former scales ([`explicit`], `mass_scale =
+/// 1000`, `"auto"`) when `explicit_step`, else as the scene says; `substeps` overrides the
+/// body's own count. Returns the sub-steps used and the outcome of 100 ticks.
 fn instant_press(
     core_tets: usize,
     max_active: usize,
+    explicit_step: bool,
     substeps: Option<u32>,
 ) -> (u32, Result<(), haptic_model::ModelError>) {
     let mut scene = haptic_model::scene::load_builtin("lv-hybrid").expect("lv-hybrid");
     let h = scene.hybrid.as_mut().expect("hybrid");
     h.core_target_tets = core_tets;
     h.params.max_active_particles = max_active;
+    if explicit_step {
+        explicit(&mut h.params, 1000.0, CoreMassScale::Auto);
+    }
     let mut body = haptic_model::build_hybrid_body(&scene, &mut |_, _| {}).expect("body");
     if let Some(n) = substeps {
         body.override_substeps(n).expect("sub-steps");
@@ -281,21 +309,34 @@ fn instant_press(
 
 #[test]
 fn a_finer_core_takes_the_sub_steps_of_its_coupled_limit() {
-    // The core's share of the coupled step (0.65 of its own) was measured on lv-hybrid's
-    // 519-tetrahedron core. With 999 tetrahedra the coupled limit is shorter than the step it
-    // gives (two sub-steps), and an instant 1 mm press with 600 active particles diverges
-    // within a few ticks; the set-up check (power iteration at six outer vertices) gives the
-    // body three.
-    let (substeps, outcome) = instant_press(1000, 600, None);
+    // Stepped explicitly: the core's share of the coupled step (0.65 of its own) was measured
+    // on lv-hybrid's 519-tetrahedron core. With 999 tetrahedra the coupled limit is shorter
+    // than the step it gives (two sub-steps), and an instant 1 mm press with 600 active
+    // particles diverges within a few ticks; the set-up check (power iteration at six outer
+    // vertices) gives the body three.
+    let (substeps, outcome) = instant_press(1000, 600, true, None);
     assert!(substeps >= 3, "{substeps} sub-steps");
     outcome.expect("the press with the checked sub-steps");
-    let (_, unchecked) = instant_press(1000, 600, Some(2));
+    let (_, unchecked) = instant_press(1000, 600, true, Some(2));
     assert!(
         matches!(unchecked, Err(haptic_model::ModelError::Diverged { .. })),
         "two sub-steps should diverge here: {unchecked:?}"
     );
     // The scene's own core keeps its two.
-    let (scene_substeps, scene_outcome) = instant_press(500, 600, None);
+    let (scene_substeps, scene_outcome) = instant_press(500, 600, true, None);
     assert_eq!(scene_substeps, 2);
     scene_outcome.expect("the scene's press");
+}
+
+#[test]
+fn the_implicit_core_holds_an_instant_press_with_the_largest_active_set() {
+    // The scene (deviation mass, implicit core, stiffness margin 4): the instant 1 mm press
+    // with the 2 000 active particles the scene allows holds at one sub-step, on the scene's
+    // core and a finer one (999 tetrahedra). With the margin at 1 it diverged within 2 ms at
+    // mass_scale 1000 (docs/accuracy.md).
+    for core_tets in [500, 1000] {
+        let (substeps, outcome) = instant_press(core_tets, 2000, false, None);
+        assert_eq!(substeps, 1, "{core_tets} tets");
+        outcome.unwrap_or_else(|e| panic!("{core_tets} tets: {e}"));
+    }
 }

@@ -34,7 +34,7 @@ use haptic_model::body::SoftBody;
 use haptic_model::build_body;
 use haptic_model::contact::ContactModel;
 use haptic_model::contact::SurfaceSampler;
-use haptic_model::hybrid::CoreMassScale;
+use haptic_model::hybrid::{CoreMassScale, CoreStep, ScaledMotion};
 use haptic_model::mass_spring::{MassSpringBody, SpringRule};
 use haptic_model::meshfree::{KernelKind, MeshfreeVariant};
 use haptic_model::scene::load_builtin;
@@ -173,8 +173,10 @@ pub fn contact_rows(quick: bool, rows: &mut Vec<Row>) {
 /// ([`probe_dynamic_body`]): both meshfree variants at the scene's scales (`mass_scale =
 /// 1000`, `core_mass_scale = "auto"`), the corrected one with the core as heavy as the
 /// particles (`"uniform"`, the scene before the automatic choice) at 1000 and at 100, and both
-/// with the body's real inertia (`core_mass_scale = 1`, particles at `mass_scale = 300`);
-/// forces against the sphere reference of its material.
+/// with the body's real inertia (`core_mass_scale = 1`, particles at `mass_scale = 300`), and
+/// both with the scene's particles, `scaled_motion = "deviation"` and `core_step =
+/// "implicit"` (the core at its real inertia at the scene's sub-steps); forces against the
+/// sphere reference of its material.
 pub fn hybrid_rows(quick: bool, rows: &mut Vec<Row>) {
     let base = load_builtin("lv-hybrid").expect("built-in lv-hybrid");
     let ref_text = sphere_reference_text(base.material.model);
@@ -188,17 +190,68 @@ pub fn hybrid_rows(quick: bool, rows: &mut Vec<Row>) {
         .map_or((1.0, CoreMassScale::Uniform), |h| {
             (h.params.mass_scale, h.params.core_mass_scale)
         });
-    for (variant, mass_scale, core) in [
-        (MeshfreeVariant::Seed, default_scale, default_core),
-        (MeshfreeVariant::Corrected, default_scale, default_core),
+    let implicit = CoreStep::Implicit {
+        margin: haptic_model::hybrid::DEFAULT_CORE_STIFFNESS_MARGIN,
+    };
+    let (explicit, absolute) = (CoreStep::Explicit, ScaledMotion::Absolute);
+    let deviation = ScaledMotion::Deviation;
+    for (variant, mass_scale, core, motion, core_step) in [
+        (
+            MeshfreeVariant::Seed,
+            default_scale,
+            default_core,
+            absolute,
+            explicit,
+        ),
+        (
+            MeshfreeVariant::Corrected,
+            default_scale,
+            default_core,
+            absolute,
+            explicit,
+        ),
         (
             MeshfreeVariant::Corrected,
             default_scale,
             CoreMassScale::Uniform,
+            absolute,
+            explicit,
         ),
-        (MeshfreeVariant::Corrected, 100.0, CoreMassScale::Uniform),
-        (MeshfreeVariant::Seed, 300.0, CoreMassScale::Fixed(1.0)),
-        (MeshfreeVariant::Corrected, 300.0, CoreMassScale::Fixed(1.0)),
+        (
+            MeshfreeVariant::Corrected,
+            100.0,
+            CoreMassScale::Uniform,
+            absolute,
+            explicit,
+        ),
+        (
+            MeshfreeVariant::Seed,
+            300.0,
+            CoreMassScale::Fixed(1.0),
+            absolute,
+            explicit,
+        ),
+        (
+            MeshfreeVariant::Corrected,
+            300.0,
+            CoreMassScale::Fixed(1.0),
+            absolute,
+            explicit,
+        ),
+        (
+            MeshfreeVariant::Seed,
+            default_scale,
+            CoreMassScale::Auto,
+            deviation,
+            implicit,
+        ),
+        (
+            MeshfreeVariant::Corrected,
+            default_scale,
+            CoreMassScale::Auto,
+            deviation,
+            implicit,
+        ),
     ] {
         let mut scene = base.clone();
         let h = scene.hybrid.as_mut().expect("a hybrid scene");
@@ -206,7 +259,12 @@ pub fn hybrid_rows(quick: bool, rows: &mut Vec<Row>) {
         h.params.meshfree.kernel = KernelKind::default_for(variant);
         h.params.mass_scale = mass_scale;
         h.params.core_mass_scale = core;
+        h.params.scaled_motion = motion;
+        h.params.core_step = core_step;
         let label = match core {
+            _ if core_step != explicit => {
+                format!("hybrid {}, deviation + implicit core", variant.name())
+            }
             _ if mass_scale == default_scale && core == default_core => {
                 format!("hybrid {}", variant.name())
             }

@@ -52,7 +52,7 @@
 
 use glam::DVec3;
 
-use super::implicit::{BlockRows, ImplicitCore, layer_stiffness_blocks};
+use super::implicit::{CondensedLayer, ImplicitCore};
 use super::prepare::{HybridModel, Tie};
 use super::{CoreMassScale, CoreStep, ScaledMotion};
 use crate::ModelError;
@@ -142,9 +142,16 @@ pub struct HybridBody {
     /// are refilled (deviation mode).
     active_ties: Vec<([u32; 4], [f64; 4])>,
     block: TermBlock,
-    /// `core_step = "implicit"`: the core's frozen factor, and the condensed layer stiffness it
-    /// was built from (kept to rebuild it when the sub-step changes).
-    implicit: Option<(ImplicitCore, BlockRows, f64)>,
+    /// `core_step = "implicit"`: the core's factor, the condensed layer stiffness it is built
+    /// from (kept to rebuild it when the sub-step changes) and the margin.
+    implicit: Option<(ImplicitCore, CondensedLayer, f64)>,
+    /// Outer-vertex adjacency (CSR over `outer_triangles`), for the implicit core's regions.
+    vertex_adj_start: Vec<u32>,
+    vertex_adj: Vec<u32>,
+    /// The regions whose condensed stiffness the implicit core's matrix holds: the active ones
+    /// and their neighbours (scratch; `region_mark` flags them).
+    matrix_regions: Vec<u32>,
+    region_mark: Vec<bool>,
     region_active: Vec<bool>,
     active_regions: Vec<u32>,
     /// Regions to activate this tick with their squared distance to the probe, m^2 (scratch
@@ -276,6 +283,10 @@ impl HybridBody {
             active_ties: Vec::with_capacity(params.max_active_particles + model.largest_region),
             block,
             implicit: None,
+            vertex_adj_start: Vec::new(),
+            vertex_adj: Vec::new(),
+            matrix_regions: Vec::with_capacity(nv),
+            region_mark: vec![false; nv],
             region_active: vec![false; nv],
             active_regions: Vec::with_capacity(nv),
             candidates: Vec::with_capacity(nv),
@@ -290,24 +301,42 @@ impl HybridBody {
             last_force_n: DVec3::ZERO,
             model: Box::new(model),
         };
+        // The check holds the core when it steps implicitly (not part of the explicit system).
+        body.verify_coupled_step()?;
         if let CoreStep::Implicit { margin } = params.core_step {
-            let layer = layer_stiffness_blocks(&body.model)?;
-            let core = ImplicitCore::new(&body.fem, Some(&layer), body.dt_s, margin)?;
+            let mut adj: Vec<Vec<u32>> = vec![Vec::new(); nv];
+            for t in &body.model.outer_triangles {
+                for a in 0..3 {
+                    for b in 0..3 {
+                        if a != b && !adj[t[a] as usize].contains(&t[b]) {
+                            adj[t[a] as usize].push(t[b]);
+                        }
+                    }
+                }
+            }
+            body.vertex_adj_start = std::iter::once(0)
+                .chain(adj.iter().scan(0u32, |acc, a| {
+                    *acc += a.len() as u32;
+                    Some(*acc)
+                }))
+                .collect();
+            body.vertex_adj = adj.concat();
+            let layer = CondensedLayer::new(&body.model)?;
+            let core = ImplicitCore::new(&body.fem, &layer, body.dt_s, margin)?;
             body.implicit = Some((core, layer, margin));
         }
-        body.verify_coupled_step()?;
-        body.rebuild_implicit()?;
         Ok(body)
     }
 
-    /// Rebuilds the implicit core's factor when the sub-step changed (set-up and studies).
+    /// Rebuilds the implicit core's factor when the sub-step changed (studies).
     fn rebuild_implicit(&mut self) -> Result<(), ModelError> {
         if let Some((core, layer, margin)) = self.implicit.take() {
-            let core = if core.h_s() == self.dt_s {
+            let mut core = if core.h_s() == self.dt_s {
                 core
             } else {
-                ImplicitCore::new(&self.fem, Some(&layer), self.dt_s, margin)?
+                ImplicitCore::new(&self.fem, &layer, self.dt_s, margin)?
             };
+            core.refactor(&self.matrix_regions)?;
             self.implicit = Some((core, layer, margin));
         }
         Ok(())
@@ -744,6 +773,32 @@ impl HybridBody {
             self.tied_ties
                 .push((m.core_mesh.tets[tie.tet as usize], tie.w));
         }
+        if self.implicit.is_some() {
+            // The active regions and their neighbours: the neighbours stand for the terms of
+            // inactive particles next to the active ones, which the block also holds.
+            for &v in &self.matrix_regions {
+                self.region_mark[v as usize] = false;
+            }
+            self.matrix_regions.clear();
+            for &v in &self.active_regions {
+                let (a, b) = (
+                    self.vertex_adj_start[v as usize] as usize,
+                    self.vertex_adj_start[v as usize + 1] as usize,
+                );
+                for &w in std::iter::once(&v).chain(&self.vertex_adj[a..b]) {
+                    if !self.region_mark[w as usize] {
+                        self.region_mark[w as usize] = true;
+                        self.matrix_regions.push(w);
+                    }
+                }
+            }
+        }
+        if let Some((core, _, _)) = &mut self.implicit
+            && core.refactor(&self.matrix_regions).is_err()
+        {
+            // Positive definite by construction; a failure is a non-finite state.
+            self.diverged_at_s = Some(self.time_s);
+        }
         self.active_ties.clear();
         if self.deviation {
             for &p in &self.active_list {
@@ -1145,7 +1200,7 @@ impl HybridBody {
             .fem
             .constraints()
             .iter()
-            .map(|c| *c == 0 && self.implicit.is_none())
+            .map(|c| *c == 0 && self.model.params.core_step == CoreStep::Explicit)
             .collect();
         let inv_sqrt_mc: Vec<f64> = self
             .fem

@@ -185,6 +185,13 @@ impl std::fmt::Display for ScaledMotion {
     }
 }
 
+/// `hybrid.core_stiffness_margin` when `core_step = "implicit"` does not give it: the factor
+/// on the rest stiffness in the implicit core's matrix. Measured on `lv-hybrid` with
+/// `scaled_motion = "deviation"` (`hybrid_bench`'s instant 1 mm press, 2 000 active
+/// particles): 1 and 2 diverge within 2 ms, 4 holds; the lv-probe press reads +3.8 / -3.3 %
+/// at 4 and +4.1 / -3.5 % at 2 (`docs/accuracy.md`).
+pub const DEFAULT_CORE_STIFFNESS_MARGIN: f64 = 4.0;
+
 /// How the hybrid core steps (`hybrid.core_step`, `hybrid.core_stiffness_margin`). Not in the
 /// seed (which steps everything explicitly).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]

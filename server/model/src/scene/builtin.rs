@@ -169,7 +169,7 @@ max_force_n = 10.0
 /// Built-in scene `lv-hybrid`: the seeds' hybrid model on the LV geometry.
 const LV_HYBRID_TOML: &str = r#"# Built-in scene "lv-hybrid" (a copy of the constant in server/model/src/scene/builtin.rs).
 name = "lv-hybrid"
-description = "The seeds' hybrid model (Mero & Susin 2006, sections 4-6) on the idealized LV of the built-in lv scene: a coarse FEM core (inner 35 % of the wall, about 500 linear tets, base clamped) and a layer of about 130 000 meshfree particles (corrected variant) between the core and the epicardium, simulated only in the regions under the probe. Material of the lv scene (E = 14.5 kPa, nu = 0.45). mass_scale = 1000 on the active particles and an automatic core mass scale (about 24) are ours (not in the seed): they keep the explicit step at two sub-steps per 1 ms tick."
+description = "The seeds' hybrid model (Mero & Susin 2006, sections 4-6) on the idealized LV of the built-in lv scene: a coarse FEM core (inner 35 % of the wall, about 500 linear tets, base clamped) and a layer of about 130 000 meshfree particles (corrected variant) between the core and the epicardium, simulated only in the regions under the probe. Material of the lv scene (E = 14.5 kPa, nu = 0.45). Ours, not in the seed: the active particles' deviation from the core's interpolation weighs mass_scale = 10000 (one explicit sub-step per 1 ms tick), and the core, at its real inertia, steps implicitly."
 
 [model]
 family = "hybrid"
@@ -207,10 +207,12 @@ release_radius_m = 0.005
 release_tolerance_m = 0.00002
 max_active_particles = 2000
 contact_stiffness_n_per_m = 16.0 # probe-particle penalty, per particle (static force within 1 % of the hard-contact limit)
-mass_scale = 1000.0              # the active particles: 2 sub-steps per tick
-core_mass_scale = "auto"         # the body's inertia: the least scale (about 24) that keeps those
-                                 # 2 sub-steps; 1: real inertia (with mass_scale = 300, about 11
-                                 # sub-steps); "uniform": mass_scale, docs/scenes.md
+mass_scale = 10000.0             # on the active particles' deviations: 1 sub-step per tick
+scaled_motion = "deviation"      # only the deviation from the core's interpolation is heavier;
+                                 # "absolute": the particles' whole motion (docs/scenes.md)
+core_step = "implicit"           # the core's linearly implicit step, matrix frozen at rest
+core_stiffness_margin = 4.0      # (core and condensed layer stiffness) x 4 in that matrix
+core_mass_scale = "auto"         # with the implicit core: 1, the body's real inertia
 safety_factor = 0.9
 max_substeps = 64
 

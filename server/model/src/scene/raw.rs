@@ -11,10 +11,10 @@ use super::{HybridScene, MassSpringScene, ModelFamily, Scene, TableState};
 use crate::ModelError;
 use crate::contact::{ContactModel, ProbeParams};
 use crate::element::StrainSmoothing;
-use crate::hybrid::{CoreMassScale, CoreStep, HybridParams, ScaledMotion, ShellGeometry};
-
-/// `hybrid.core_stiffness_margin` when `core_step = "implicit"` does not give it.
-pub const DEFAULT_CORE_STIFFNESS_MARGIN: f64 = 2.0;
+use crate::hybrid::{
+    CoreMassScale, CoreStep, DEFAULT_CORE_STIFFNESS_MARGIN, HybridParams, ScaledMotion,
+    ShellGeometry,
+};
 use crate::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
 use crate::integrate::{IntegratorKind, IntegratorParams, LinearSolver};
 use crate::loads::{PointForce, PressureLoad, SceneLoads};
