@@ -170,108 +170,61 @@ pub fn contact_rows(quick: bool, rows: &mut Vec<Row>) {
 
 /// The seeds' hybrid model `lv-hybrid` (a coarse LV core and about 130 000 meshfree particles
 /// up to the epicardium, activated under the probe) pressed like the FEM
-/// ([`probe_dynamic_body`]): both meshfree variants at the scene's scales (`mass_scale =
-/// 1000`, `core_mass_scale = "auto"`), the corrected one with the core as heavy as the
-/// particles (`"uniform"`, the scene before the automatic choice) at 1000 and at 100, and both
-/// with the body's real inertia (`core_mass_scale = 1`, particles at `mass_scale = 300`), and
-/// both with the scene's particles, `scaled_motion = "deviation"` and `core_step =
-/// "implicit"` (the core at its real inertia at the scene's sub-steps); forces against the
-/// sphere reference of its material.
+/// ([`probe_dynamic_body`]): both meshfree variants as the scene steps them (deviation mass
+/// `mass_scale = 10000`, the implicit core at its real inertia) and stepped explicitly at the
+/// scene's former scales (`mass_scale = 1000`, `core_mass_scale = "auto"`); the corrected
+/// one explicitly with the core as heavy as the particles (`"uniform"`) at 1000 and at 100,
+/// and both explicitly with the body's real inertia (`core_mass_scale = 1`, particles at
+/// `mass_scale = 300`); forces against the sphere reference of its material.
 pub fn hybrid_rows(quick: bool, rows: &mut Vec<Row>) {
     let base = load_builtin("lv-hybrid").expect("built-in lv-hybrid");
     let ref_text = sphere_reference_text(base.material.model);
-    // A uniform mass_scale of 1000 slows the whole dynamics 32-fold, which the 100 ms holds
-    // see; the automatic core scale keeps the body nearer its real inertia at the same
-    // sub-steps; a real-inertia core leaves only the active particles heavier, at the core's
-    // sub-steps.
-    let (default_scale, default_core) = base
-        .hybrid
-        .as_ref()
-        .map_or((1.0, CoreMassScale::Uniform), |h| {
-            (h.params.mass_scale, h.params.core_mass_scale)
-        });
-    let implicit = CoreStep::Implicit {
-        margin: haptic_model::hybrid::DEFAULT_CORE_STIFFNESS_MARGIN,
-    };
-    let (explicit, absolute) = (CoreStep::Explicit, ScaledMotion::Absolute);
-    let deviation = ScaledMotion::Deviation;
-    for (variant, mass_scale, core, motion, core_step) in [
-        (
-            MeshfreeVariant::Seed,
-            default_scale,
-            default_core,
-            absolute,
-            explicit,
-        ),
-        (
-            MeshfreeVariant::Corrected,
-            default_scale,
-            default_core,
-            absolute,
-            explicit,
-        ),
-        (
-            MeshfreeVariant::Corrected,
-            default_scale,
-            CoreMassScale::Uniform,
-            absolute,
-            explicit,
-        ),
-        (
-            MeshfreeVariant::Corrected,
-            100.0,
-            CoreMassScale::Uniform,
-            absolute,
-            explicit,
-        ),
-        (
-            MeshfreeVariant::Seed,
-            300.0,
-            CoreMassScale::Fixed(1.0),
-            absolute,
-            explicit,
-        ),
-        (
-            MeshfreeVariant::Corrected,
-            300.0,
-            CoreMassScale::Fixed(1.0),
-            absolute,
-            explicit,
-        ),
-        (
-            MeshfreeVariant::Seed,
-            default_scale,
-            CoreMassScale::Auto,
-            deviation,
-            implicit,
-        ),
-        (
-            MeshfreeVariant::Corrected,
-            default_scale,
-            CoreMassScale::Auto,
-            deviation,
-            implicit,
-        ),
+    let (seed, corrected) = (MeshfreeVariant::Seed, MeshfreeVariant::Corrected);
+    let (auto, uniform, real) = (
+        CoreMassScale::Auto,
+        CoreMassScale::Uniform,
+        CoreMassScale::Fixed(1.0),
+    );
+    // `None`: as the scene says; else stepped explicitly at (mass_scale, core_mass_scale).
+    for (variant, explicit) in [
+        (seed, None),
+        (corrected, None),
+        (seed, Some((1000.0, auto))),
+        (corrected, Some((1000.0, auto))),
+        (corrected, Some((1000.0, uniform))),
+        (corrected, Some((100.0, uniform))),
+        (seed, Some((300.0, real))),
+        (corrected, Some((300.0, real))),
     ] {
         let mut scene = base.clone();
         let h = scene.hybrid.as_mut().expect("a hybrid scene");
         h.params.meshfree.variant = variant;
         h.params.meshfree.kernel = KernelKind::default_for(variant);
-        h.params.mass_scale = mass_scale;
-        h.params.core_mass_scale = core;
-        h.params.scaled_motion = motion;
-        h.params.core_step = core_step;
-        let label = match core {
-            _ if core_step != explicit => {
-                format!("hybrid {}, deviation + implicit core", variant.name())
+        let label = match explicit {
+            None => format!("hybrid {}", variant.name()),
+            Some((mass_scale, core)) => {
+                h.params.scaled_motion = ScaledMotion::Absolute;
+                h.params.core_step = CoreStep::Explicit;
+                h.params.mass_scale = mass_scale;
+                h.params.core_mass_scale = core;
+                match core {
+                    CoreMassScale::Fixed(_) => {
+                        format!(
+                            "hybrid {}, explicit, real inertia ({mass_scale})",
+                            variant.name()
+                        )
+                    }
+                    _ => format!("hybrid {}, explicit, {core} {mass_scale}", variant.name()),
+                }
             }
-            _ if mass_scale == default_scale && core == default_core => {
-                format!("hybrid {}", variant.name())
-            }
-            CoreMassScale::Fixed(c) if c == 1.0 => {
-                format!("hybrid {}, real inertia ({mass_scale})", variant.name())
-            }
-            _ => format!("hybrid {}, {core} {mass_scale}", variant.name()),
+        };
+        let mass_scale = h.params.mass_scale;
+        let stepping = match h.params.core_step {
+            CoreStep::Explicit => format!("{} mass, explicit core", h.params.scaled_motion),
+            CoreStep::Implicit { margin } => format!(
+                "{} mass, implicit core (margin {margin})",
+                h.params.scaled_motion
+            ),
         };
         let mut row = Row::blank(Scenario::LvProbe, label.clone(), "symplectic-euler");
         row.model = Model::Hybrid;
@@ -295,7 +248,7 @@ pub fn hybrid_rows(quick: bool, rows: &mut Vec<Row>) {
                 let info = body.info();
                 let stats = body.stats();
                 row.settings = format!(
-                    "tick 1 ms, {} sub-steps; {} particles, {} active at 3 mm; mass_scale {}, core_mass_scale {}; staircase 0.5..3 mm",
+                    "tick 1 ms, {} sub-steps; {} particles, {} active at 3 mm; mass_scale {}, core_mass_scale {}, {stepping}; staircase 0.5..3 mm",
                     info.substeps, stats.particles, stats.active_particles, mass_scale, core_scale
                 );
                 row.set_times(&ticks, scene.integrator.tick_s);

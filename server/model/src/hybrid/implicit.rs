@@ -9,13 +9,18 @@
 //!
 //! where `f_el` is the core's elastic force at the start of the step and `f_coup` every force
 //! the particles and point loads put on the core nodes (explicit). `K~ = margin (K_core +
-//! K_layer)`: the core's small-strain stiffness at rest and the particle layer's, condensed on
-//! the core through the ties ([`layer_stiffness_blocks`]). The layer's part is there because
-//! the particles' terms stiffen the core nodes they are tied to (with `scaled_motion =
-//! "deviation"` every active particle's force drives the core): a frozen matrix that
-//! dominates the true tangent keeps the step stable, as the whole-body FEM's rest factor does
-//! with its `stiffness_margin` (`integrate::LinearSolver::RestCholesky`). The surplus
-//! `K~ - K` damps: a mode of stiffness `k` gets the damping `h (k~ - k)`.
+//! K_anchors + sum K_region)`: the core's small-strain stiffness at rest and the particle
+//! terms' condensed on the core through the ties ([`condensed_blocks`]), for the anchors
+//! (always tied) and for each active region and its neighbouring regions (which stand for the
+//! inactive particles next to the active ones, whose terms the body also evaluates): the
+//! particles' terms stiffen the core nodes they are tied to (with `scaled_motion =
+//! "deviation"` every active particle's force drives the core), and a matrix that dominates
+//! the true tangent keeps the step stable, as the whole-body FEM's rest factor does with its
+//! `stiffness_margin` (`integrate::LinearSolver::RestCholesky`). The matrix's values are
+//! rebuilt and refactored when the active set changes ([`ImplicitCore::refactor`]); its
+//! pattern holds every region's entries. With the explicit elastic force the matrix's
+//! stiffness acts as a damping `h K~`: the whole layer in it (tried) overdamps the wall's
+//! bending modes (`docs/accuracy.md`, "Deviation mass and an implicit core").
 //!
 //! Neighbours: the core's [`FemModel`], the ties and the cloud of [`mod@super::prepare`], the
 //! sparse factor of [`crate::ordering`].
@@ -509,5 +514,55 @@ impl ImplicitCore {
             max_v2 = max_v2.max(s);
         }
         if finite { max_v2 } else { f64::NAN }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::element::tangent::element_tangent;
+    use crate::material::MaterialParams;
+    use crate::mesh::generate::box_mesh;
+
+    /// The core's assembled small-strain stiffness equals the FEM's own tangent at rest
+    /// (`element_tangent`, the directional derivative of the first Piola-Kirchhoff stress),
+    /// block by block over a 2 x 2 x 2 box.
+    #[test]
+    fn core_blocks_are_the_fem_tangent_at_rest() {
+        let mesh = box_mesh(DVec3::new(0.02, 0.01, 0.015), [2, 2, 2]);
+        let material = MaterialParams::from_youngs(14_500.0, 0.45, 1060.0);
+        let fem = FemModel::new(&mesh, material).expect("model");
+        let rows = core_blocks(&fem, material.lambda_pa, material.mu_pa);
+        let mut reference = BlockRows::new(fem.node_count());
+        for (e, tet) in fem.tets().iter().enumerate() {
+            let k = element_tangent(&fem, e, fem.rest());
+            for a in 0..4 {
+                for b in 0..4 {
+                    reference.add(tet[a], tet[b], k[a][b]);
+                }
+            }
+        }
+        let scale = rows
+            .row(0)
+            .iter()
+            .map(|(_, m)| m.abs().to_cols_array().into_iter().fold(0.0, f64::max))
+            .fold(0.0, f64::max);
+        assert!(scale > 0.0);
+        for k in 0..fem.node_count() {
+            assert_eq!(rows.row(k).len(), reference.row(k).len(), "row {k}");
+            for (l, m) in rows.row(k) {
+                let (_, r) = reference
+                    .row(k)
+                    .iter()
+                    .find(|(c, _)| c == l)
+                    .expect("same pattern");
+                let diff = (*m - *r)
+                    .abs()
+                    .to_cols_array()
+                    .into_iter()
+                    .fold(0.0, f64::max);
+                assert!(diff < 1e-12 * scale, "block ({k}, {l}): {m} against {r}");
+            }
+        }
     }
 }
