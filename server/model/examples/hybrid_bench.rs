@@ -11,6 +11,7 @@ use std::time::Instant;
 
 use clap::Parser;
 use haptic_model::body::{SoftBody, TickInput};
+use haptic_model::hybrid::CoreStep;
 use haptic_model::hybrid::HybridBody;
 use haptic_model::meshfree::MeshfreeVariant;
 use haptic_model::scene::load_builtin;
@@ -62,9 +63,12 @@ struct Args {
     /// `hybrid.scaled_motion` override: `absolute` or `deviation`.
     #[arg(long)]
     scaled_motion: Option<String>,
-    /// `hybrid.core_step = "implicit"` with this `core_stiffness_margin`.
+    /// `hybrid.core_step` override: `explicit` or `implicit`.
     #[arg(long)]
-    implicit_core_margin: Option<f64>,
+    core_step: Option<String>,
+    /// `hybrid.core_stiffness_margin` override (with an implicit core).
+    #[arg(long)]
+    core_stiffness_margin: Option<f64>,
 }
 
 fn rss_kib() -> u64 {
@@ -125,8 +129,12 @@ fn main() -> anyhow::Result<()> {
     if let Some(m) = &args.scaled_motion {
         h.params.scaled_motion = haptic_model::hybrid::ScaledMotion::parse(m)?;
     }
-    if let Some(margin) = args.implicit_core_margin {
-        h.params.core_step = haptic_model::hybrid::CoreStep::Implicit { margin };
+    if let Some(step) = &args.core_step {
+        h.params.core_step = CoreStep::parse(step, args.core_stiffness_margin)?;
+    } else if let (CoreStep::Implicit { margin }, Some(m)) =
+        (&mut h.params.core_step, args.core_stiffness_margin)
+    {
+        *margin = m;
     }
     if let Some(f) = args.safety_factor {
         h.params.safety_factor = f;
@@ -219,10 +227,11 @@ fn main() -> anyhow::Result<()> {
         }
         times.sort_by(f64::total_cmp);
         eprintln!(
-            "  terms and tied particles: {:?}; first tick (terms refilled) {first_us:.0} us; stencil layout (grid cells, groups): {:?}; core_mass_scale {:.1}",
+            "  terms and tied particles: {:?}; first tick (terms refilled) {first_us:.0} us; stencil layout (grid cells, groups): {:?}; core_mass_scale {:.1}; implicit core {:.1} MiB",
             body.work_counts(),
             body.stencil_layout(),
-            body.core_mass_scale()
+            body.core_mass_scale(),
+            body.implicit_core_memory_bytes() as f64 / (1024.0 * 1024.0)
         );
         let med = times[times.len() / 2];
         let p99 = times[(times.len() * 99) / 100];

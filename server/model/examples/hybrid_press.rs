@@ -13,6 +13,7 @@
 use clap::Parser;
 use haptic_model::DVec3;
 use haptic_model::body::{SoftBody, TickInput};
+use haptic_model::hybrid::CoreStep;
 use haptic_model::meshfree::{KernelKind, MeshfreeVariant};
 use haptic_model::scene::load_builtin;
 
@@ -40,9 +41,12 @@ struct Args {
     /// `hybrid.scaled_motion` override: `absolute` or `deviation`.
     #[arg(long)]
     scaled_motion: Option<String>,
-    /// `hybrid.core_step = "implicit"` with this `core_stiffness_margin`.
+    /// `hybrid.core_step` override: `explicit` or `implicit`.
     #[arg(long)]
-    implicit_core_margin: Option<f64>,
+    core_step: Option<String>,
+    /// `hybrid.core_stiffness_margin` override (with an implicit core).
+    #[arg(long)]
+    core_stiffness_margin: Option<f64>,
     /// `hybrid.contact_stiffness_n_per_m` override (probe penalty per particle).
     #[arg(long)]
     contact_stiffness_n_per_m: Option<f64>,
@@ -106,8 +110,12 @@ fn main() -> anyhow::Result<()> {
     if let Some(c) = &args.core_mass_scale {
         h.params.core_mass_scale = haptic_model::hybrid::CoreMassScale::parse(c)?;
     }
-    if let Some(margin) = args.implicit_core_margin {
-        h.params.core_step = haptic_model::hybrid::CoreStep::Implicit { margin };
+    if let Some(step) = &args.core_step {
+        h.params.core_step = CoreStep::parse(step, args.core_stiffness_margin)?;
+    } else if let (CoreStep::Implicit { margin }, Some(m)) =
+        (&mut h.params.core_step, args.core_stiffness_margin)
+    {
+        *margin = m;
     }
     if let Some(m) = &args.scaled_motion {
         h.params.scaled_motion = haptic_model::hybrid::ScaledMotion::parse(m)?;

@@ -330,7 +330,7 @@ pub struct ImplicitCore {
     base: Vec<f64>,
     /// Per region: (value index, value) to add while it is active.
     region_start: Vec<usize>,
-    region_entries: Vec<(u32, f64)>,
+    region_entries: Vec<(u32, f32)>,
     factor: SparseCholesky,
     factor_mem: MemBuffer,
     mem: MemBuffer,
@@ -403,28 +403,37 @@ impl ImplicitCore {
             };
             base_entries.push((q, q, diag));
         }
-        let mut region_scalars: Vec<Vec<(usize, usize, f64)>> =
-            Vec::with_capacity(layer.regions.len());
-        for list in &layer.regions {
-            let mut out = Vec::new();
-            for (k, l, blk) in list {
-                scalars(*k, *l, blk, hh, &mut out);
-            }
-            region_scalars.push(out);
+        // The pattern: every entry any active set can have, marked in a bitmap of the lower
+        // triangle (no list of every region's scalars).
+        let dofs = 3 * n;
+        let mut seen = vec![0u64; (dofs * dofs).div_ceil(64)];
+        let mark = |r: usize, c: usize, seen: &mut [u64]| {
+            let bit = c * dofs + r;
+            seen[bit / 64] |= 1 << (bit % 64);
+        };
+        let mut region_scalars: Vec<(usize, usize, f64)> = Vec::new();
+        for &(r, c, _) in &base_entries {
+            mark(r, c, &mut seen);
         }
-        // The pattern: every entry any active set can have.
-        let mut columns: Vec<Vec<usize>> = vec![Vec::new(); 3 * n];
-        for &(r, c, _) in base_entries.iter().chain(region_scalars.iter().flatten()) {
-            columns[c].push(r);
+        for list in &layer.regions {
+            region_scalars.clear();
+            for (k, l, blk) in list {
+                scalars(*k, *l, blk, hh, &mut region_scalars);
+            }
+            for &(r, c, _) in &region_scalars {
+                mark(r, c, &mut seen);
+            }
         }
         let mut col_ptr = vec![0usize];
         let mut row_idx = Vec::new();
-        for col in &mut columns {
-            col.sort_unstable();
-            col.dedup();
-            row_idx.extend_from_slice(col);
+        for c in 0..dofs {
+            row_idx.extend((c..dofs).filter(|&r| {
+                let bit = c * dofs + r;
+                seen[bit / 64] & (1 << (bit % 64)) != 0
+            }));
             col_ptr.push(row_idx.len());
         }
+        drop(seen);
         let index = |r: usize, c: usize| {
             let rows = &row_idx[col_ptr[c]..col_ptr[c + 1]];
             col_ptr[c] + rows.binary_search(&r).expect("entry in the pattern")
@@ -435,8 +444,17 @@ impl ImplicitCore {
         }
         let mut region_start = vec![0usize];
         let mut region_entries = Vec::new();
-        for list in &region_scalars {
-            region_entries.extend(list.iter().map(|&(r, c, v)| (index(r, c) as u32, v)));
+        for list in &layer.regions {
+            region_scalars.clear();
+            for (k, l, blk) in list {
+                scalars(*k, *l, blk, hh, &mut region_scalars);
+            }
+            // Single precision: the matrix only has to dominate the tangent.
+            region_entries.extend(
+                region_scalars
+                    .iter()
+                    .map(|&(r, c, v)| (index(r, c) as u32, v as f32)),
+            );
             region_start.push(region_entries.len());
         }
         let symbolic =
@@ -467,6 +485,17 @@ impl ImplicitCore {
         self.h_s
     }
 
+    /// Heap bytes held: the matrix (pattern and two sets of values), the regions' entries and
+    /// the factor.
+    pub fn memory_bytes(&self) -> usize {
+        let values = self.base.len();
+        values * (2 * 8 + 8)
+            + self.region_entries.len() * std::mem::size_of::<(u32, f32)>()
+            + self.region_start.len() * 8
+            + self.factor.factor_entries() * 8
+            + self.rhs.len() * 9
+    }
+
     /// Rebuilds the matrix's values with the regions `active` (indices of outer vertices) and
     /// refactors it (numeric only, allocation-free).
     ///
@@ -479,7 +508,7 @@ impl ImplicitCore {
         for &v in active {
             let v = v as usize;
             for &(i, x) in &self.region_entries[self.region_start[v]..self.region_start[v + 1]] {
-                values[i as usize] += x;
+                values[i as usize] += f64::from(x);
             }
         }
         self.factor

@@ -210,6 +210,31 @@ pub enum CoreStep {
     },
 }
 
+impl CoreStep {
+    /// The step named `name` (`"explicit"` or `"implicit"`), with `margin` for the implicit one
+    /// ([`DEFAULT_CORE_STIFFNESS_MARGIN`] when `None`; checked by [`HybridParams::validate`]).
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] naming `hybrid.core_step` for another name, and
+    /// `hybrid.core_stiffness_margin` when a margin comes with `"explicit"`.
+    pub fn parse(name: &str, margin: Option<f64>) -> Result<Self, ModelError> {
+        match (name.trim(), margin) {
+            ("explicit", None) => Ok(Self::Explicit),
+            ("explicit", Some(_)) => Err(ModelError::field(
+                "hybrid.core_stiffness_margin",
+                "is only for hybrid.core_step = \"implicit\"",
+            )),
+            ("implicit", m) => Ok(Self::Implicit {
+                margin: m.unwrap_or(DEFAULT_CORE_STIFFNESS_MARGIN),
+            }),
+            (t, _) => Err(ModelError::field(
+                "hybrid.core_step",
+                format!("must be \"explicit\" or \"implicit\", got {t:?}"),
+            )),
+        }
+    }
+}
+
 impl std::fmt::Display for CoreMassScale {
     /// As the scene writes it: `uniform`, `auto` or the number.
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {

@@ -11,10 +11,7 @@ use super::{HybridScene, MassSpringScene, ModelFamily, Scene, TableState};
 use crate::ModelError;
 use crate::contact::{ContactModel, ProbeParams};
 use crate::element::StrainSmoothing;
-use crate::hybrid::{
-    CoreMassScale, CoreStep, DEFAULT_CORE_STIFFNESS_MARGIN, HybridParams, ScaledMotion,
-    ShellGeometry,
-};
+use crate::hybrid::{CoreMassScale, CoreStep, HybridParams, ScaledMotion, ShellGeometry};
 use crate::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
 use crate::integrate::{IntegratorKind, IntegratorParams, LinearSolver};
 use crate::loads::{PointForce, PressureLoad, SceneLoads};
@@ -784,27 +781,10 @@ fn build_hybrid(h: &RawHybrid, mesh: &RawMesh, unit_m: f64) -> Result<HybridScen
             .scaled_motion
             .as_deref()
             .map_or(Ok(d.scaled_motion), ScaledMotion::parse)?,
-        core_step: match (
-            h.core_step.as_deref().map(str::trim),
+        core_step: CoreStep::parse(
+            h.core_step.as_deref().unwrap_or("explicit"),
             h.core_stiffness_margin,
-        ) {
-            (None | Some("explicit"), None) => CoreStep::Explicit,
-            (None | Some("explicit"), Some(_)) => {
-                return Err(ModelError::field(
-                    "hybrid.core_stiffness_margin",
-                    "is only for hybrid.core_step = \"implicit\"",
-                ));
-            }
-            (Some("implicit"), margin) => CoreStep::Implicit {
-                margin: margin.unwrap_or(DEFAULT_CORE_STIFFNESS_MARGIN),
-            },
-            (Some(t), _) => {
-                return Err(ModelError::field(
-                    "hybrid.core_step",
-                    format!("must be \"explicit\" or \"implicit\", got {t:?}"),
-                ));
-            }
-        },
+        )?,
         safety_factor: h.safety_factor.unwrap_or(d.safety_factor),
         max_substeps: opt_int(
             "hybrid.max_substeps",
