@@ -151,6 +151,8 @@ pub struct HybridBody {
     /// and their neighbours (scratch; `region_mark` flags them).
     matrix_regions: Vec<u32>,
     region_mark: Vec<bool>,
+    /// Refactorings of the implicit core's matrix since set-up.
+    implicit_refactors: u64,
     region_active: Vec<bool>,
     active_regions: Vec<u32>,
     /// Regions to activate this tick with their squared distance to the probe, m^2 (scratch
@@ -286,6 +288,7 @@ impl HybridBody {
             vertex_adj: Vec::new(),
             matrix_regions: Vec::with_capacity(nv),
             region_mark: vec![false; nv],
+            implicit_refactors: 0,
             region_active: vec![false; nv],
             active_regions: Vec::with_capacity(nv),
             candidates: Vec::with_capacity(nv),
@@ -466,6 +469,12 @@ impl HybridBody {
     /// nearer the probe ([`Self::activate_near`]).
     pub fn released_for_room(&self) -> u64 {
         self.released_for_room
+    }
+
+    /// Refactorings of the implicit core's matrix since set-up (when an active region was not
+    /// in it).
+    pub fn implicit_refactors(&self) -> u64 {
+        self.implicit_refactors
     }
 
     /// Heap bytes of the implicit core's matrix and factor (0 with an explicit core).
@@ -779,9 +788,17 @@ impl HybridBody {
             self.tied_ties
                 .push((m.core_mesh.tets[tie.tet as usize], tie.w));
         }
-        if self.implicit.is_some() {
-            // The active regions and their neighbours: the neighbours stand for the terms of
-            // inactive particles next to the active ones, which the block also holds.
+        // The implicit core's matrix holds the active regions and their neighbours (which stand
+        // for the terms of inactive particles next to the active ones, which the block also
+        // holds). It is refactored only when an active region is not in it: a region released,
+        // or activated next to the active ones (already a neighbour), leaves a matrix that
+        // still dominates the tangent, with a little more damping where it has too much.
+        let refactor = self.implicit.is_some()
+            && !self
+                .active_regions
+                .iter()
+                .all(|&v| self.region_mark[v as usize]);
+        if refactor {
             for &v in &self.matrix_regions {
                 self.region_mark[v as usize] = false;
             }
@@ -800,10 +817,13 @@ impl HybridBody {
             }
         }
         if let Some((core, _)) = &mut self.implicit
-            && core.refactor(&self.matrix_regions).is_err()
+            && refactor
         {
-            // Positive definite by construction; a failure is a non-finite state.
-            self.diverged_at_s = Some(self.time_s);
+            self.implicit_refactors += 1;
+            if core.refactor(&self.matrix_regions).is_err() {
+                // Positive definite by construction; a failure is a non-finite state.
+                self.diverged_at_s = Some(self.time_s);
+            }
         }
         self.active_ties.clear();
         if self.deviation {

@@ -17,7 +17,7 @@
 //! "deviation"` every active particle's force drives the core), and a matrix that dominates
 //! the true tangent keeps the step stable, as the whole-body FEM's rest factor does with its
 //! `stiffness_margin` (`integrate::LinearSolver::RestCholesky`). The matrix's values are
-//! rebuilt and refactored when the active set changes ([`ImplicitCore::refactor`]); its
+//! rebuilt and refactored when an active region is not in it ([`ImplicitCore::refactor`]); its
 //! pattern holds every region's entries. With the explicit elastic force the matrix's
 //! stiffness acts as a damping `h K~`: the whole layer in it (tried) overdamps the wall's
 //! bending modes (`docs/accuracy.md`, "Deviation mass and an implicit core").
