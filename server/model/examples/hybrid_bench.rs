@@ -9,12 +9,14 @@
 
 use std::time::Instant;
 
+#[path = "common/hybrid_overrides.rs"]
+mod hybrid_overrides;
+
 use clap::Parser;
 use haptic_model::body::{SoftBody, TickInput};
-use haptic_model::hybrid::CoreStep;
 use haptic_model::hybrid::HybridBody;
-use haptic_model::meshfree::MeshfreeVariant;
 use haptic_model::scene::load_builtin;
+use hybrid_overrides::HybridOverrides;
 
 #[derive(Parser)]
 struct Args {
@@ -24,9 +26,8 @@ struct Args {
     /// Active particle counts to time, comma separated.
     #[arg(long, default_value = "200,600,2000", value_delimiter = ',')]
     active: Vec<usize>,
-    /// Variant override: seed or corrected.
-    #[arg(long)]
-    variant: Option<String>,
+    #[command(flatten)]
+    hybrid: HybridOverrides,
     /// Ticks timed per count.
     #[arg(long, default_value_t = 400)]
     ticks: usize,
@@ -41,34 +42,6 @@ struct Args {
     /// Run the term block's general force loop instead of the stencil loop.
     #[arg(long)]
     general_loop: bool,
-    /// Lattice spacing override, m (half the default spacing: about eight times the particles).
-    #[arg(long)]
-    spacing_m: Option<f64>,
-    /// `hybrid.mass_scale` override.
-    #[arg(long)]
-    mass_scale: Option<f64>,
-    /// `hybrid.core_mass_scale` override: a number (1: the body's real inertia), `auto` or
-    /// `uniform`.
-    #[arg(long)]
-    core_mass_scale: Option<String>,
-    /// `mesh.target_tets` override: wanted tetrahedra of the FEM core.
-    #[arg(long)]
-    core_tets: Option<usize>,
-    /// `hybrid.core_fraction` override: share of the wall thickness in the FEM core.
-    #[arg(long)]
-    core_fraction: Option<f64>,
-    /// `hybrid.safety_factor` override: the sub-step's share of the critical step bound.
-    #[arg(long)]
-    safety_factor: Option<f64>,
-    /// `hybrid.scaled_motion` override: `absolute` or `deviation`.
-    #[arg(long)]
-    scaled_motion: Option<String>,
-    /// `hybrid.core_step` override: `explicit` or `implicit`.
-    #[arg(long)]
-    core_step: Option<String>,
-    /// `hybrid.core_stiffness_margin` override (with an implicit core).
-    #[arg(long)]
-    core_stiffness_margin: Option<f64>,
 }
 
 fn rss_kib() -> u64 {
@@ -105,45 +78,14 @@ fn print_estimate(body: &mut HybridBody, state: &str) -> anyhow::Result<()> {
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let mut scene = load_builtin(&args.scene)?;
-    let h = scene
+    args.hybrid.apply(&mut scene)?;
+    let variant = scene
         .hybrid
-        .as_mut()
-        .ok_or_else(|| anyhow::anyhow!("{} is not a hybrid scene", args.scene))?;
-    if let Some(v) = &args.variant {
-        h.params.meshfree.variant = MeshfreeVariant::from_name(v).expect("seed or corrected");
-        h.params.meshfree.kernel =
-            haptic_model::meshfree::KernelKind::default_for(h.params.meshfree.variant);
-    }
-    if let Some(sp) = args.spacing_m {
-        h.params.meshfree.spacing_m = sp;
-    }
-    if let Some(m) = args.mass_scale {
-        h.params.mass_scale = m;
-    }
-    if let Some(n) = args.core_tets {
-        h.core_target_tets = n;
-    }
-    if let Some(c) = args.core_fraction {
-        h.params.core_fraction = c;
-    }
-    if let Some(m) = &args.scaled_motion {
-        h.params.scaled_motion = haptic_model::hybrid::ScaledMotion::parse(m)?;
-    }
-    if let Some(step) = &args.core_step {
-        h.params.core_step = CoreStep::parse(step, args.core_stiffness_margin)?;
-    } else if let (CoreStep::Implicit { margin }, Some(m)) =
-        (&mut h.params.core_step, args.core_stiffness_margin)
-    {
-        *margin = m;
-    }
-    if let Some(f) = args.safety_factor {
-        h.params.safety_factor = f;
-    }
-    if let Some(c) = &args.core_mass_scale {
-        h.params.core_mass_scale = haptic_model::hybrid::CoreMassScale::parse(c)?;
-    }
-    h.params.validate()?;
-    let variant = h.params.meshfree.variant;
+        .as_ref()
+        .expect("a hybrid scene")
+        .params
+        .meshfree
+        .variant;
     let rss0 = rss_kib();
     let t0 = Instant::now();
     let model = haptic_model::prepare_hybrid(&scene, &mut |s, f| {

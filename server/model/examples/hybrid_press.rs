@@ -10,71 +10,32 @@
 //! `--trace-every N` also prints `time_s,depth_mm,force_mn` every N ticks to stderr (the
 //! ringing and creep after each ramp).
 
+#[path = "common/hybrid_overrides.rs"]
+mod hybrid_overrides;
+
 use clap::Parser;
 use haptic_model::DVec3;
 use haptic_model::body::{SoftBody, TickInput};
-use haptic_model::hybrid::CoreStep;
-use haptic_model::meshfree::{KernelKind, MeshfreeVariant};
 use haptic_model::scene::load_builtin;
+use hybrid_overrides::HybridOverrides;
 
 #[derive(Parser)]
 struct Args {
     /// Built-in hybrid scene.
     #[arg(long, default_value = "lv-hybrid")]
     scene: String,
-    /// Meshfree variant: seed or corrected (default: the scene's).
-    #[arg(long)]
-    variant: Option<String>,
+    #[command(flatten)]
+    hybrid: HybridOverrides,
     /// Ramp to each depth, s (smoothstep).
     #[arg(long, default_value_t = 0.1)]
     ramp_s: f64,
     /// Hold at each depth, s; the force is averaged over its second half.
     #[arg(long, default_value_t = 0.1)]
     hold_s: f64,
-    /// `hybrid.mass_scale` override.
-    #[arg(long)]
-    mass_scale: Option<f64>,
-    /// `hybrid.core_mass_scale` override: a number (1: the body's real inertia), `auto` or
-    /// `uniform`.
-    #[arg(long)]
-    core_mass_scale: Option<String>,
-    /// `hybrid.scaled_motion` override: `absolute` or `deviation`.
-    #[arg(long)]
-    scaled_motion: Option<String>,
-    /// `hybrid.core_step` override: `explicit` or `implicit`.
-    #[arg(long)]
-    core_step: Option<String>,
-    /// `hybrid.core_stiffness_margin` override (with an implicit core).
-    #[arg(long)]
-    core_stiffness_margin: Option<f64>,
-    /// `hybrid.contact_stiffness_n_per_m` override (probe penalty per particle).
-    #[arg(long)]
-    contact_stiffness_n_per_m: Option<f64>,
-    /// `mesh.target_tets` override: wanted tetrahedra of the FEM core.
-    #[arg(long)]
-    core_tets: Option<usize>,
-    /// `hybrid.core_fraction` override: share of the wall thickness in the FEM core.
-    #[arg(long)]
-    core_fraction: Option<f64>,
-    /// `hybrid.spacing_m` override: the particle lattice spacing, m.
-    #[arg(long)]
-    spacing_m: Option<f64>,
-    /// `hybrid.max_active_particles` override.
-    #[arg(long)]
-    max_active: Option<usize>,
-    /// `hybrid.release_radius_m` override, m.
-    #[arg(long)]
-    release_radius_m: Option<f64>,
-    /// `hybrid.activation_radius_m` override, m.
-    #[arg(long)]
-    activation_radius_m: Option<f64>,
     /// Sub-steps per tick override (a study of the step: the body is built from the scene's
     /// preprocessed model and `HybridBody::override_substeps`).
     #[arg(long)]
     substeps: Option<u32>,
-    /// `material.mass_damping_per_s` override (1/s).
-    #[arg(long)]
-    mass_damping_per_s: Option<f64>,
     /// Print `time_s,depth_mm,force_mn` to stderr every N ticks (0: only the summary).
     #[arg(long, default_value_t = 0)]
     trace_every: usize,
@@ -95,56 +56,8 @@ fn smoothstep(s: f64) -> f64 {
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let mut scene = load_builtin(&args.scene)?;
-    let h = scene
-        .hybrid
-        .as_mut()
-        .ok_or_else(|| anyhow::anyhow!("{} is not a hybrid scene", args.scene))?;
-    if let Some(v) = &args.variant {
-        h.params.meshfree.variant = MeshfreeVariant::from_name(v)
-            .ok_or_else(|| anyhow::anyhow!("variant {v}: seed or corrected"))?;
-        h.params.meshfree.kernel = KernelKind::default_for(h.params.meshfree.variant);
-    }
-    if let Some(m) = args.mass_scale {
-        h.params.mass_scale = m;
-    }
-    if let Some(c) = &args.core_mass_scale {
-        h.params.core_mass_scale = haptic_model::hybrid::CoreMassScale::parse(c)?;
-    }
-    if let Some(step) = &args.core_step {
-        h.params.core_step = CoreStep::parse(step, args.core_stiffness_margin)?;
-    } else if let (CoreStep::Implicit { margin }, Some(m)) =
-        (&mut h.params.core_step, args.core_stiffness_margin)
-    {
-        *margin = m;
-    }
-    if let Some(m) = &args.scaled_motion {
-        h.params.scaled_motion = haptic_model::hybrid::ScaledMotion::parse(m)?;
-    }
-    if let Some(a) = args.mass_damping_per_s {
-        scene.material.mass_damping_per_s = a;
-    }
-    if let Some(n) = args.core_tets {
-        h.core_target_tets = n;
-    }
-    if let Some(c) = args.core_fraction {
-        h.params.core_fraction = c;
-    }
-    if let Some(s) = args.spacing_m {
-        h.params.meshfree.spacing_m = s;
-    }
-    if let Some(n) = args.max_active {
-        h.params.max_active_particles = n;
-    }
-    if let Some(r) = args.release_radius_m {
-        h.params.release_radius_m = r;
-    }
-    if let Some(r) = args.activation_radius_m {
-        h.params.activation_radius_m = r;
-    }
-    if let Some(k) = args.contact_stiffness_n_per_m {
-        h.params.contact_stiffness_n_per_m = k;
-    }
-    h.params.validate()?;
+    args.hybrid.apply(&mut scene)?;
+    let h = scene.hybrid.as_ref().expect("a hybrid scene");
     let (variant, mass_scale) = (h.params.meshfree.variant, h.params.mass_scale);
 
     let mut hybrid = haptic_model::build_hybrid_body(&scene, &mut |_, _| {})?;

@@ -260,26 +260,8 @@ impl SparseCholesky {
         a: SparseColMatRef<'_, usize, f64>,
         side: Side,
     ) -> Result<(), ModelError> {
-        let mut mem = MemBuffer::new(
-            self.symbolic
-                .factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
-        );
-        self.ldlt = None;
-        self.symbolic
-            .factorize_numeric_llt::<f64>(
-                &mut self.values,
-                a,
-                side,
-                Default::default(),
-                Par::Seq,
-                MemStack::new(&mut mem),
-                Default::default(),
-            )
-            .map_err(|e| {
-                ModelError::InvalidInput(format!("the matrix is not positive definite: {e:?}"))
-            })?;
-        self.ldlt = Some(false);
-        Ok(())
+        let mut mem = self.factor_workspace();
+        self.factor_llt_in(a, side, &mut mem)
     }
 
     /// Workspace for [`SparseCholesky::factor_llt_in`].
@@ -356,18 +338,8 @@ impl SparseCholesky {
     /// # Panics
     /// Before a successful factorisation.
     pub fn solve_in_place(&self, rhs: MatMut<'_, f64>) {
-        let mut mem = MemBuffer::new(
-            self.symbolic
-                .solve_in_place_scratch::<f64>(rhs.ncols(), Par::Seq),
-        );
-        let stack = MemStack::new(&mut mem);
-        match self.ldlt {
-            Some(false) => LltRef::<usize, f64>::new(&self.symbolic, &self.values)
-                .solve_in_place_with_conj(Conj::No, rhs, Par::Seq, stack),
-            Some(true) => LdltRef::<usize, f64>::new(&self.symbolic, &self.values)
-                .solve_in_place_with_conj(Conj::No, rhs, Par::Seq, stack),
-            None => panic!("SparseCholesky::solve_in_place before a successful factorisation"),
-        }
+        let mut mem = self.solve_workspace(rhs.ncols());
+        self.solve_in_place_with(rhs, &mut mem);
     }
 
     /// Workspace for [`SparseCholesky::solve_in_place_with`] with `columns` right-hand sides.
@@ -391,7 +363,7 @@ impl SparseCholesky {
                 .solve_in_place_with_conj(Conj::No, rhs, Par::Seq, stack),
             Some(true) => LdltRef::<usize, f64>::new(&self.symbolic, &self.values)
                 .solve_in_place_with_conj(Conj::No, rhs, Par::Seq, stack),
-            None => panic!("SparseCholesky::solve_in_place_with before a successful factorisation"),
+            None => panic!("SparseCholesky::solve_in_place before a successful factorisation"),
         }
     }
 

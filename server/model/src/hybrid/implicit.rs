@@ -328,9 +328,12 @@ pub struct ImplicitCore {
     matrix: SparseColMat<usize, f64>,
     /// Values without any region: mass, viscous operator, core and anchors.
     base: Vec<f64>,
-    /// Per region: (value index, value) to add while it is active.
+    /// Per region: the value indices and values to add while it is active (double
+    /// precision: every row of a region's stiffness sums to zero, so the step conserves
+    /// momentum to round-off).
     region_start: Vec<usize>,
-    region_entries: Vec<(u32, f32)>,
+    region_index: Vec<u32>,
+    region_value: Vec<f64>,
     factor: SparseCholesky,
     factor_mem: MemBuffer,
     mem: MemBuffer,
@@ -443,19 +446,17 @@ impl ImplicitCore {
             base[index(r, c)] += v;
         }
         let mut region_start = vec![0usize];
-        let mut region_entries = Vec::new();
+        let (mut region_index, mut region_value) = (Vec::new(), Vec::new());
         for list in &layer.regions {
             region_scalars.clear();
             for (k, l, blk) in list {
                 scalars(*k, *l, blk, hh, &mut region_scalars);
             }
-            // Single precision: the matrix only has to dominate the tangent.
-            region_entries.extend(
-                region_scalars
-                    .iter()
-                    .map(|&(r, c, v)| (index(r, c) as u32, v as f32)),
-            );
-            region_start.push(region_entries.len());
+            for &(r, c, v) in &region_scalars {
+                region_index.push(index(r, c) as u32);
+                region_value.push(v);
+            }
+            region_start.push(region_index.len());
         }
         let symbolic =
             faer::sparse::SymbolicSparseColMat::new_checked(3 * n, 3 * n, col_ptr, None, row_idx);
@@ -471,7 +472,8 @@ impl ImplicitCore {
             matrix,
             base,
             region_start,
-            region_entries,
+            region_index,
+            region_value,
             factor,
             factor_mem,
             mem,
@@ -490,7 +492,7 @@ impl ImplicitCore {
     pub fn memory_bytes(&self) -> usize {
         let values = self.base.len();
         values * (2 * 8 + 8)
-            + self.region_entries.len() * std::mem::size_of::<(u32, f32)>()
+            + self.region_index.len() * (4 + 8)
             + self.region_start.len() * 8
             + self.factor.factor_entries() * 8
             + self.rhs.len() * 9
@@ -507,8 +509,12 @@ impl ImplicitCore {
         values.copy_from_slice(&self.base);
         for &v in active {
             let v = v as usize;
-            for &(i, x) in &self.region_entries[self.region_start[v]..self.region_start[v + 1]] {
-                values[i as usize] += f64::from(x);
+            let range = self.region_start[v]..self.region_start[v + 1];
+            for (&i, &x) in self.region_index[range.clone()]
+                .iter()
+                .zip(&self.region_value[range])
+            {
+                values[i as usize] += x;
             }
         }
         self.factor
