@@ -947,11 +947,12 @@ impl HybridBody {
             non_finite |= !v2.is_finite();
             max_v2 = max_v2.max(v2);
         }
-        for _ in 0..if self.implicit.is_some() {
+        let explicit_core_steps = if self.implicit.is_some() {
             0
         } else {
             self.core_substeps
-        } {
+        };
+        for _ in 0..explicit_core_steps {
             self.core_forces();
             let v2 = integrate_nodes(
                 IntegratorKind::SymplecticEuler,
