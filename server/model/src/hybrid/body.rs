@@ -27,8 +27,8 @@
 //! particle's force drives the core nodes too; with `core_step = "implicit"` the core takes the
 //! linearly implicit step of [`ImplicitCore`] once per sub-step (its matrix frozen at rest,
 //! with the layer's stiffness condensed on the core), and the sub-steps follow the particles'
-//! critical step alone. Together they give the press the core's real inertia at the scene's
-//! two sub-steps (`docs/accuracy.md`, "Deviation mass and an implicit core").
+//! critical step alone. Together they give the press the core's real inertia at one sub-step
+//! per tick on `lv-hybrid` (`docs/accuracy.md`, "Deviation mass and an implicit core").
 //!
 //! **The sub-step** comes from the particles' Gershgorin bound and the core's own critical step
 //! times `CORE_COUPLING_MARGIN` (0.65), and is then checked at set-up against the coupled system's
@@ -355,10 +355,12 @@ impl HybridBody {
     /// and active particles, tied particles following the core) is estimated by power
     /// iteration, the probe penalty's `k / m` added, and the damped limit
     /// ([`damped_critical_step_s`]) taken; when the sub-step exceeds
-    /// [`COUPLED_STEP_HEADROOM`] of the smallest, the sub-steps are raised. On lv-hybrid
-    /// (519 tetrahedra, 2 000 active) the step is 0.90 of the smallest (at the -x vertex) and
-    /// stays; with 999 tetrahedra it was 1.10 and the check gives 3 sub-steps. The body is left
-    /// at rest with no active region. About 10 ms per point with 2 000 active particles.
+    /// [`COUPLED_STEP_HEADROOM`] of the smallest, the sub-steps are raised. Stepped explicitly,
+    /// lv-hybrid (519 tetrahedra, 2 000 active) has its step at 0.90 of the smallest (at the
+    /// -x vertex), which stays; with 999 tetrahedra it was 1.10 and the check gives 3
+    /// sub-steps. With `core_step = "implicit"` the core is held (not part of the explicit
+    /// system) and the check covers the particles alone. The body is left at rest with no
+    /// active region. About 10 ms per point with 2 000 active particles.
     ///
     /// # Errors
     /// [`ModelError::SceneField`] naming `hybrid.max_substeps` when the raised count exceeds
