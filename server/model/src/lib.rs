@@ -38,6 +38,8 @@
 //! - [`statics`]: static equilibrium (Newton on the tangent, sparse Cholesky) for references.
 //! - [`indent`]: static indentation by a rigid frictionless sphere (augmented Lagrangian over
 //!   [`statics`]): the probe-force reference and `haptic-solve --indent`.
+//! - [`press`]: scripted probe presses through [`body::SoftBody`] as a user feels them
+//!   (staircase holds, the demo's press, strokes): force, steadiness, depth, tick times.
 //!
 //! Units are SI throughout (m, kg, s, N, Pa). Seeds are cited as "seed 000 eq. N":
 //! Mero & Susin, *Deformable Hybrid Approach*, Eurographics 2006.
@@ -60,6 +62,7 @@ pub mod material;
 pub mod mesh;
 pub mod meshfree;
 pub mod ordering;
+pub mod press;
 pub mod scene;
 pub mod sim;
 pub mod statics;
