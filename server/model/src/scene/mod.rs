@@ -163,6 +163,10 @@ pub struct Scene {
     pub description: String,
     /// The model family to build (`[model] family`).
     pub family: ModelFamily,
+    /// Whether the scene may run in the haptic loop (`[model] realtime`, default true);
+    /// false for static benchmarks that only `haptic-solve` solves ([`crate::build_body`]
+    /// refuses them).
+    pub realtime: bool,
     /// The mesh in metres.
     pub mesh: TetMesh,
     /// Strain smoothing of linear elements (`[mesh] strain_smoothing`).

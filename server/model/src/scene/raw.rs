@@ -122,6 +122,7 @@ struct RawMassSpring {
 #[serde(deny_unknown_fields)]
 struct RawModel {
     family: Option<String>,
+    realtime: Option<bool>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -303,7 +304,9 @@ pub(super) fn parse_scene(
     origin: Origin,
 ) -> Result<Scene, ModelError> {
     let raw: RawScene = toml::from_str(text).map_err(|e| ModelError::SceneSyntax(e.to_string()))?;
-    let family = match raw.model.unwrap_or_default().family.as_deref() {
+    let model = raw.model.unwrap_or_default();
+    let realtime = model.realtime.unwrap_or(true);
+    let family = match model.family.as_deref() {
         None => ModelFamily::Fem,
         Some(name) => ModelFamily::from_name(name).ok_or_else(|| {
             let known: Vec<&str> = ModelFamily::ALL.iter().map(|f| f.name()).collect();
@@ -601,6 +604,7 @@ pub(super) fn parse_scene(
         hybrid,
         description: raw.description.unwrap_or_default(),
         family,
+        realtime,
         mesh,
         strain_smoothing,
         material,
