@@ -100,7 +100,8 @@ _EPS2 = np.einsum("ikm,JLN->iJkLmN", _EPS, _EPS).reshape(81, 9)
 
 @dataclass
 class Material:
-    """``model`` is ``"stvk"`` or ``"stable-neo-hookean"``; Lame parameters in Pa."""
+    """``model`` is ``"stvk"``, ``"stable-neo-hookean"`` or ``"linear"`` (small-strain linear
+    elasticity in the deformation gradient, for comparing with Hertz); Lame parameters in Pa."""
 
     model: str
     lam: float
@@ -111,6 +112,10 @@ class Material:
         if self.model == "stvk":
             c = np.einsum("kI...,kJ...->IJ...", f, f)
             e = 0.5 * (c - _eye_like(c))
+            tr = e[0, 0] + e[1, 1] + e[2, 2]
+            return 0.5 * lam * tr**2 + mu * np.einsum("IJ...,IJ...->...", e, e)
+        if self.model == "linear":
+            e = 0.5 * (f + np.swapaxes(f, 0, 1)) - _eye_like(f)
             tr = e[0, 0] + e[1, 1] + e[2, 2]
             return 0.5 * lam * tr**2 + mu * np.einsum("IJ...,IJ...->...", e, e)
         ls = lam + mu
@@ -137,6 +142,15 @@ class Material:
                  + mu * np.einsum("ik...,JL->iJkL...", b, eye)
                  + mu * np.einsum("iL...,kJ...->iJkL...", f, f))
             return p, a
+        if self.model == "linear":
+            e = 0.5 * (f + np.swapaxes(f, 0, 1)) - _eye_like(f)
+            tr = e[0, 0] + e[1, 1] + e[2, 2]
+            p = 2 * mu * e
+            for k in range(3):
+                p[k, k] += lam * tr
+            a = (lam * np.einsum("iJ,kL->iJkL", eye, eye)
+                 + mu * (np.einsum("ik,JL->iJkL", eye, eye) + np.einsum("iL,Jk->iJkL", eye, eye)))
+            return p, np.broadcast_to(a[(...,) + (None,) * (f.ndim - 2)], (3, 3, 3, 3) + f.shape[2:])
         if self.model == "stable-neo-hookean":
             ls = lam + mu
             alpha = 1 + mu / ls

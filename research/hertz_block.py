@@ -55,11 +55,12 @@ def main():
     ap.add_argument("--h-fine", type=float, default=1 / 30, help="of R")
     ap.add_argument("--depths", default=",".join(str(d) for d in DEPTHS_OVER_R),
                     help="d/R list")
+    ap.add_argument("--material", default="stvk", choices=["stvk", "linear"])
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args()
     t_start = time.perf_counter()
     lam_, mu_ = lame(E, NU)
-    mat = Material("stvk", lam_, mu_)
+    mat = Material(args.material, lam_, mu_)
     assert check_material(mat) < 1e-6
     mesh, nv = hertz_block(R, args.h_fine * R, args.fine_radius * R, 1.5 * R, 4 * R)
     body = Body(mesh, mat)
@@ -104,7 +105,7 @@ def main():
               f"Hertz {a_h:.4e} ({row['a_err_pct']:+.1f} %), area-based {a_area:.4e}; "
               f"{res.active} active, {res.newton} Newton, {res.seconds:.1f} s", flush=True)
     total = time.perf_counter() - t_solve
-    print(f"six depths solved in {total:.1f} s (set-up and meshing included: "
+    print(f"{len(depths)} depths solved in {total:.1f} s (set-up and meshing included: "
           f"{time.perf_counter() - t_start:.1f} s) on {os.cpu_count()} cores", flush=True)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

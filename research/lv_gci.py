@@ -5,7 +5,8 @@ convention and depth:
 
 - ``sphere``: sphere travel ``s`` from the analytic epicardium (the solved depths);
 - ``device``: device travel ``D = s + F_x / k`` (k = 300 N/m), the force at the wanted ``D``
-  interpolated (monotone cubic, PCHIP) through the level's solved points (never extrapolated);
+  interpolated (monotone cubic, PCHIP) through the level's solved points, only between the
+  first and the last (never extrapolated);
 
 takes the three finest levels for Richardson's extrapolation (observed order from the three,
 Celik et al. 2008 for non-constant ratios) and the GCI (safety factor 1.25) of the finest level
@@ -53,11 +54,11 @@ def level_forces(rows):
     d = np.array([float(r["device_depth_mm"]) for r in rows])
     out = {("sphere", float(si)): (fi, fxi) for si, fi, fxi in zip(s, f, fx)}
     if len(d) >= 2:
-        # F(D) through (0, 0) and the solved points
+        # F(D) through (0, 0) and the solved points, used only within the solved range
         dd, ff, ffx = np.r_[0.0, d], np.r_[0.0, f], np.r_[0.0, fx]
         pf, pfx = PchipInterpolator(dd, ff), PchipInterpolator(dd, ffx)
         for t in DEVICE_DEPTHS:
-            if t <= d.max() + 1e-12:
+            if d.min() - 1e-12 <= t <= d.max() + 1e-12:
                 out[("device", t)] = (float(pf(t)), float(pfx(t)))
     return out
 
