@@ -92,6 +92,10 @@ def main():
                        observed_order_coarser=(coarse["order"] if coarse and
                                                coarse["order"] is not None else
                                                ("none" if coarse else "")),
+                       note=("oscillatory: finest level, spread as the band" if r["order"] is None
+                             else "order under 0.5: extrapolation not trusted" if r["order"] < 0.5
+                             else "order over 4: extrapolation not trusted" if r["order"] > 4
+                             else "monotone"),
                        finest_h_mm=hs[0], finest_force_n=fs[0],
                        levels_h_mm=" ".join(f"{h:g}" for h in hs),
                        levels_force_n=" ".join(f"{f:.6e}" for f in fs))
