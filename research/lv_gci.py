@@ -12,8 +12,10 @@ takes the three finest levels for Richardson's extrapolation (observed order fro
 Celik et al. 2008 for non-constant ratios) and the GCI (safety factor 1.25) of the finest level
 as the uncertainty; with four or more levels the order of the coarser triple is reported too.
 Writes ``results/lv_levels.csv`` (every level's force), ``results/lv_reference.csv`` (the
-extrapolated values), and, with ``--preliminary PATH``, the long table
-``material, depth_convention, depth_mm, level_h_mm, force_n`` (level 0 = extrapolated).
+extrapolated values, and ``recommended_force_n``: the extrapolation where the order is between
+0.5 and 4 and the three levels monotone, else the finest level), and, with ``--preliminary
+PATH``, the long table ``material, depth_convention, depth_mm, level_h_mm, force_n`` (level 0 =
+the recommended value).
 """
 
 from __future__ import annotations
@@ -99,9 +101,12 @@ def main():
                        finest_h_mm=hs[0], finest_force_n=fs[0],
                        levels_h_mm=" ".join(f"{h:g}" for h in hs),
                        levels_force_n=" ".join(f"{f:.6e}" for f in fs))
+            # the value to aim at: the extrapolation where the order is usable, else the finest
+            row["recommended_force_n"] = (r["extrapolated"] if row["note"] == "monotone"
+                                          else fs[0])
             ref_rows.append(row)
             long_rows.append(dict(material=material, depth_convention=conv, depth_mm=depth,
-                                  level_h_mm=0.0, force_n=r["extrapolated"],
+                                  level_h_mm=0.0, force_n=row["recommended_force_n"],
                                   force_x_n=float("nan")))
     res = Path(args.results)
     write(res / "lv_levels.csv", long_rows)
