@@ -29,6 +29,7 @@ const LAYERS: &[&str] = &[
     "sim",
     "statics",
     "indent",
+    "press",
 ];
 
 /// Modules on the servo's path, which must not import the static solver.

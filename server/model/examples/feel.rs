@@ -1,0 +1,222 @@
+//! How a scene feels through the servo's interface ([`haptic_model::press`]): the staircase
+//! press (ramp 0.5 s, hold 1.5 s per depth), the demo's constant-speed press and hold, or the
+//! left ventricle's half-turn stroke, on any built-in scene or scene file, printed as a table
+//! (force, steadiness, sphere depth, tick p50/p99). Prints only.
+//!
+//! Run: `cargo run --release -p haptic-model --example feel -- --scene lv staircase --depths
+//! 0.25,0.5,1,1.5,2,3,4`, `... -- --scene lv-hybrid demo`, `... -- --scene-file
+//! deploy/scenes/lv_h1_condensed.toml stroke --depth 2 --speed 20`.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use clap::{Parser, Subcommand};
+use haptic_model::DVec3;
+use haptic_model::press::{self, HoldParams, HoldReport, PressLine, PressTrace};
+use haptic_model::scene::{Scene, load_builtin, load_scene_file};
+
+/// How a scene feels under a scripted press (prints only).
+#[derive(Debug, Parser)]
+#[command(name = "feel")]
+struct Args {
+    /// A built-in scene.
+    #[arg(long, default_value = "lv", conflicts_with = "scene_file")]
+    scene: String,
+    /// A scene file instead of a built-in.
+    #[arg(long)]
+    scene_file: Option<PathBuf>,
+    /// Line start, mm (default: the lv-probe line, 15,0,-5, whose depth zero is the analytic
+    /// epicardium). With another start the depth zero is the body's rest surface.
+    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
+    from: Option<DVec3>,
+    /// Line direction (default -1,0,0).
+    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
+    direction: Option<DVec3>,
+    /// Print every tick's force (ms, device depth mm, sphere depth mm, |F| mN).
+    #[arg(long)]
+    trace: bool,
+    #[command(subcommand)]
+    protocol: Protocol,
+}
+
+#[derive(Debug, Subcommand)]
+enum Protocol {
+    /// Ramps to each depth in turn and holds it.
+    Staircase {
+        /// Device depths past first contact, mm.
+        #[arg(long, value_delimiter = ',', default_value = "0.25,0.5,1,1.5,2,3,4")]
+        depths: Vec<f64>,
+        /// Ramp time, s.
+        #[arg(long, default_value_t = 0.5)]
+        ramp_s: f64,
+        /// Hold time, s.
+        #[arg(long, default_value_t = 1.5)]
+        hold_s: f64,
+    },
+    /// The demo's press: constant speed to a depth, then a hold.
+    Demo {
+        /// Depth, mm.
+        #[arg(long, default_value_t = 3.7)]
+        depth: f64,
+        /// Speed, mm/s.
+        #[arg(long, default_value_t = 10.0)]
+        speed: f64,
+        /// Hold, s.
+        #[arg(long, default_value_t = 3.0)]
+        hold_s: f64,
+    },
+    /// The left ventricle's stroke: pressed to a depth on the lv-probe line, then half way round
+    /// the ventricle at z = -5 mm.
+    Stroke {
+        /// Depth, mm.
+        #[arg(long, default_value_t = 2.0)]
+        depth: f64,
+        /// Speed, mm/s.
+        #[arg(long, default_value_t = 20.0)]
+        speed: f64,
+    },
+}
+
+fn main() {
+    if let Err(e) = run(Args::parse()) {
+        eprintln!("error: {e}");
+        std::process::exit(1);
+    }
+}
+
+fn run(args: Args) -> Result<(), String> {
+    let scene: Scene = match &args.scene_file {
+        Some(p) => load_scene_file(p),
+        None => load_builtin(&args.scene),
+    }
+    .map_err(|e| e.to_string())?;
+    let t0 = Instant::now();
+    let mut body = haptic_model::build_body(&scene).map_err(|e| e.to_string())?;
+    let info = body.info();
+    println!(
+        "scene {} ({} family): set-up {:.2} s, tick {} ms, probe radius {} mm",
+        scene.name,
+        info.family,
+        t0.elapsed().as_secs_f64(),
+        info.tick_s * 1e3,
+        info.probe_radius_m * 1e3
+    );
+    let r = info.probe_radius_m;
+    let line = match (&args.from, &args.direction) {
+        (None, None) => PressLine::lv_probe(r),
+        (from, dir) => {
+            let from = from.unwrap_or(DVec3::new(15.0, 0.0, -5.0)) * 1e-3;
+            let dir = dir.unwrap_or(DVec3::NEG_X);
+            PressLine::from_rest_surface(body.as_ref(), from, dir, r).map_err(|e| e.to_string())?
+        }
+    };
+    let tick = info.tick_s;
+    let trace = match args.protocol {
+        Protocol::Staircase {
+            depths,
+            ramp_s,
+            hold_s,
+        } => {
+            let depths: Vec<f64> = depths.iter().map(|d| d * 1e-3).collect();
+            let params = HoldParams {
+                ramp_s,
+                hold_s,
+                average_s: (hold_s * 2.0 / 3.0).min(hold_s),
+            };
+            let (holds, trace) = press::staircase(body.as_mut(), &line, &depths, &params, tick)
+                .map_err(|e| e.to_string())?;
+            print_holds(&holds);
+            trace
+        }
+        Protocol::Demo {
+            depth,
+            speed,
+            hold_s,
+        } => {
+            let (hold, trace) = press::constant_speed_press(
+                body.as_mut(),
+                &line,
+                depth * 1e-3,
+                speed * 1e-3,
+                hold_s,
+                tick,
+            )
+            .map_err(|e| e.to_string())?;
+            print_holds(&[hold]);
+            trace
+        }
+        Protocol::Stroke { depth, speed } => {
+            let (s, trace) =
+                press::lv_half_turn(body.as_mut(), r, depth * 1e-3, speed * 1e-3, tick)
+                    .map_err(|e| e.to_string())?;
+            print_holds(&[s.hold]);
+            println!(
+                "slide: {} ticks ({} in contact), |F| {:.3} to {:.3} mN, largest tick-to-tick \
+                 change {:.3} mN = {:.1} % of the hold force",
+                s.slide_ticks,
+                s.contact_ticks,
+                s.force_min_n * 1e3,
+                s.force_max_n * 1e3,
+                s.max_tick_change_n * 1e3,
+                100.0 * s.max_tick_change_n / s.hold.force_n
+            );
+            trace
+        }
+    };
+    println!(
+        "ticks: {} in all, p50 {:.1} us, p99 {:.1} us, max {:.1} us",
+        trace.tick_wall_s.len(),
+        trace.tick_quantile_s(0.5) * 1e6,
+        trace.tick_quantile_s(0.99) * 1e6,
+        trace.tick_quantile_s(1.0) * 1e6
+    );
+    if args.trace {
+        print_trace(&trace, &line, tick);
+    }
+    Ok(())
+}
+
+/// `X,Y,Z` as a vector.
+fn parse_vec3(s: &str) -> Result<DVec3, String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|c| c.trim().parse::<f64>().map_err(|e| format!("{c:?}: {e}")))
+        .collect::<Result<_, _>>()?;
+    match v[..] {
+        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok(DVec3::new(x, y, z)),
+        _ => Err(format!("{s:?}: expected three finite numbers X,Y,Z")),
+    }
+}
+
+fn print_holds(holds: &[HoldReport]) {
+    println!(
+        "device depth mm | sphere depth mm | |F| mN (mean) | min..max mN | largest tick change mN (% of mean) | contact ticks"
+    );
+    for h in holds {
+        println!(
+            "{:>15.3} | {:>15.4} | {:>13.4} | {:.3}..{:.3} | {:.4} ({:.2} %) | {}/{}",
+            h.device_depth_m * 1e3,
+            h.sphere_depth_m * 1e3,
+            h.force_n * 1e3,
+            h.force_min_n * 1e3,
+            h.force_max_n * 1e3,
+            h.max_tick_change_n * 1e3,
+            100.0 * h.steadiness(),
+            h.contact_ticks,
+            h.hold_ticks
+        );
+    }
+}
+
+fn print_trace(trace: &PressTrace, line: &PressLine, tick_s: f64) {
+    println!("ms,device_depth_mm,sphere_depth_mm,force_mn");
+    for k in 0..trace.force_n.len() {
+        println!(
+            "{:.0},{:.4},{:.4},{:.4}",
+            (k + 1) as f64 * tick_s * 1e3,
+            line.depth_of(trace.device_m[k]) * 1e3,
+            line.depth_of(trace.proxy_m[k]) * 1e3,
+            trace.force_n[k].length() * 1e3
+        );
+    }
+}
