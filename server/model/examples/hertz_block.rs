@@ -31,7 +31,11 @@ const NU: f64 = 0.3;
 #[derive(Debug, Parser)]
 struct Args {
     /// Depths, mm, increasing.
-    #[arg(long, value_delimiter = ',', default_value = "0.04,0.072,0.104,0.136,0.168,0.2")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "0.04,0.072,0.104,0.136,0.168,0.2"
+    )]
     depths: Vec<f64>,
     /// Fine cell size as a fraction of R.
     #[arg(long, default_value_t = 1.0 / 30.0)]
@@ -83,7 +87,11 @@ fn write_msh(mesh: &TetMesh, path: &std::path::Path) -> std::io::Result<()> {
     for (k, g) in groups.iter().enumerate() {
         writeln!(f, "2 {} \"{g}\"", k + 1)?;
     }
-    writeln!(f, "3 10 \"BLOCK\"\n$EndPhysicalNames\n$Nodes\n{}", mesh.nodes.len())?;
+    writeln!(
+        f,
+        "3 10 \"BLOCK\"\n$EndPhysicalNames\n$Nodes\n{}",
+        mesh.nodes.len()
+    )?;
     for (i, p) in mesh.nodes.iter().enumerate() {
         writeln!(f, "{} {} {} {}", i + 1, p.x * 1e3, p.y * 1e3, p.z * 1e3)?;
     }
@@ -98,7 +106,13 @@ fn write_msh(mesh: &TetMesh, path: &std::path::Path) -> std::io::Result<()> {
     writeln!(f, "$EndNodes\n$Elements\n{}", tris.len() + mesh.tets.len())?;
     let mut id = 1;
     for (tag, t) in &tris {
-        writeln!(f, "{id} 2 2 {tag} {tag} {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1)?;
+        writeln!(
+            f,
+            "{id} 2 2 {tag} {tag} {} {} {}",
+            t[0] + 1,
+            t[1] + 1,
+            t[2] + 1
+        )?;
         id += 1;
     }
     for t in &mesh.tets {
@@ -166,7 +180,11 @@ fn main() -> anyhow::Result<()> {
         mesh.tets.len(),
         if args.linear { "linear" } else { "quadratic" }
     );
-    let top = mesh.surface("ZMAX").expect("the top face").triangles.clone();
+    let top = mesh
+        .surface("ZMAX")
+        .expect("the top face")
+        .triangles
+        .clone();
     let indenter = Indenter {
         radius_m: R,
         from_m: DVec3::new(0.0, 0.0, 1.5 * R),

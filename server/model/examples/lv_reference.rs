@@ -101,11 +101,7 @@ fn main() -> anyhow::Result<()> {
             depths,
             out,
         } => solve_level(&msh, h, &material, &depths, &out),
-        Step::Combine {
-            csv,
-            out,
-            markdown,
-        } => combine(&csv, &out, markdown),
+        Step::Combine { csv, out, markdown } => combine(&csv, &out, markdown),
     }
 }
 
@@ -330,11 +326,7 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
         .iter()
         .map(|r| (r.material.clone(), r.convention.clone(), r.depth_mm))
         .collect();
-    keys.sort_by(|a, b| {
-        (&a.0, &a.1)
-            .cmp(&(&b.0, &b.1))
-            .then(a.2.total_cmp(&b.2))
-    });
+    keys.sort_by(|a, b| (&a.0, &a.1).cmp(&(&b.0, &b.1)).then(a.2.total_cmp(&b.2)));
     keys.dedup();
     let mut csv = String::from(
         "# The rigid-sphere reference of the lv-probe press (server/model/examples/lv_reference.rs,\n\
@@ -358,7 +350,10 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
     for (material, conv, depth) in &keys {
         let at = |h: f64| {
             rows.iter().find(|r| {
-                &r.material == material && &r.convention == conv && r.depth_mm == *depth && r.h_mm == h
+                &r.material == material
+                    && &r.convention == conv
+                    && r.depth_mm == *depth
+                    && r.h_mm == h
             })
         };
         let levels: Vec<(f64, f64)> = hs
@@ -386,7 +381,11 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
                 (finest, spread, None)
             }
         };
-        let previous = if k >= 4 { tri(k - 4).map(|t| t.2) } else { None };
+        let previous = if k >= 4 {
+            tri(k - 4).map(|t| t.2)
+        } else {
+            None
+        };
         let fmt_order = |p: Option<f64>| p.map_or(String::new(), |p| format!("{p:.3}"));
         write!(
             csv,

@@ -133,8 +133,10 @@ impl System {
         }
         let find = |i: u32, j: u32| -> u32 {
             let row = &cols[row_ptr[i as usize]..row_ptr[i as usize + 1]];
-            (row_ptr[i as usize] + row.binary_search(&j).expect("a cell pair is in the pattern"))
-                as u32
+            (row_ptr[i as usize]
+                + row
+                    .binary_search(&j)
+                    .expect("a cell pair is in the pattern")) as u32
         };
         let mut cell_start = Vec::with_capacity(fem.cell_count() + 1);
         let mut cell_map = Vec::new();
@@ -669,9 +671,13 @@ mod tests {
             }
         }
         sys.solve(&b, &mut z, 1e-10).unwrap();
-        let res = &a * Mat::<f64>::from_fn(n, 1, |i, _| z[i])
-            - Mat::<f64>::from_fn(n, 1, |i, _| b[i]);
-        assert!(res.norm_l2() <= 1e-10 * norm(&b) * 1.0001, "{:e}", res.norm_l2());
+        let res =
+            &a * Mat::<f64>::from_fn(n, 1, |i, _| z[i]) - Mat::<f64>::from_fn(n, 1, |i, _| b[i]);
+        assert!(
+            res.norm_l2() <= 1e-10 * norm(&b) * 1.0001,
+            "{:e}",
+            res.norm_l2()
+        );
         // m . z = 0 at the constrained nodes, and P K z = b.
         let kz = &k * Mat::<f64>::from_fn(n, 1, |i, _| z[i]);
         let node_vec = |v: &dyn Fn(usize) -> f64, i: usize| {

@@ -183,9 +183,10 @@ impl<'a> Newton<'a> {
     }
 
     /// Force of the body on the sphere, N: minus the active nodes' contact forces and the
-    /// points'.
+    /// points' multipliers (after Uzawa's update, the forces the positions are in equilibrium
+    /// with).
     pub fn force_on_sphere_n(&self, x: &[DVec3]) -> DVec3 {
-        let mut f = self.points.force_on_sphere_n(x);
+        let mut f = self.points.multiplier_force_n(x);
         for k in 0..self.nodes.len() {
             if self.active[k] {
                 f -= self.geometry(k, x).n * self.lambda[k];

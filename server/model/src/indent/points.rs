@@ -150,6 +150,19 @@ impl SphereContact {
         (self.multiplier_n[q] + self.penalty_n_per_m[q] * (self.radius_m - rho)).max(0.0)
     }
 
+    /// Force of the body on the sphere carried by the multipliers alone, `-sum lambda_q n_q`
+    /// (N), at positions `x`: after Uzawa's update (`lambda_q` set to the pressure forces the
+    /// positions were solved with) it is the force the body is in equilibrium with, which
+    /// [`Self::force_on_sphere_n`] would overstate by the updated multipliers' `kappa_q g_q`.
+    pub fn multiplier_force_n(&self, x: &[DVec3]) -> DVec3 {
+        let mut f = DVec3::ZERO;
+        for q in 0..self.points.len() {
+            let (_, n) = self.geometry(q, x);
+            f -= n * self.multiplier_n[q];
+        }
+        f
+    }
+
     /// Force of the body on the sphere, `-sum p_q n_q` (N), at positions `x`.
     pub fn force_on_sphere_n(&self, x: &[DVec3]) -> DVec3 {
         let mut f = DVec3::ZERO;
