@@ -135,12 +135,17 @@ pub struct IndentRequest {
     pub direction: DVec3,
     /// Depths below first contact, increasing, m.
     pub depths_m: Vec<f64>,
+    /// Largest number of Newton iterations per depth increment (the CLI's
+    /// `--max-iterations`).
+    pub max_iterations: usize,
 }
 
 /// The static indentation of `scene` by a rigid frictionless sphere of the scene's probe radius
 /// (`[probe] radius_m`) over its touchable surface, at every depth of `request`
-/// ([`haptic_model::indent::indent`], augmented Lagrangian node-to-sphere contact, the scene's
-/// material, fibres and clamps; `[loads]` are ignored). `progress` sees each converged depth.
+/// ([`haptic_model::indent::indent`]: the touchable nodes constrained exactly by an active
+/// set, contact points inside triangles coarser than the sphere; the scene's material, fibres
+/// and clamps; `[loads]` are ignored) with at most `request.max_iterations` Newton iterations
+/// per depth increment. `progress` sees each converged depth.
 ///
 /// # Errors
 /// [`ModelError::InvalidInput`] for a scene that is not of the FEM family, a scene without a
@@ -170,12 +175,14 @@ pub fn indent_scene(
         from_m: request.from_m,
         direction: request.direction,
     };
+    let mut params = IndentParams::default();
+    params.newton.max_iterations = request.max_iterations;
     indent(
         &fem,
         &scene.touchable,
         &indenter,
         &request.depths_m,
-        &IndentParams::default(),
+        &params,
         progress,
     )
 }

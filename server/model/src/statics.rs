@@ -571,25 +571,25 @@ pub fn solve_scene_loads(
         worst_volume_change: 0.0,
         residual_n: 0.0,
     };
-    let mut solve = |fem: &FemModel, scale: f64, label: String, x: &mut [DVec3]| {
+    // `hint` is added to the message of a failure only (a converged increment prints its
+    // label alone).
+    let mut solve = |fem: &FemModel, scale: f64, label: String, hint: &str, x: &mut [DVec3]| {
         let f: Vec<DVec3> = dead.iter().map(|v| *v * scale).collect();
         let follower = FollowerPressure::new(&scene.loads, scale);
         let term = (!follower.is_empty()).then_some(&follower as &dyn StaticTerm);
         let r = solve_static_with(fem, &f, term, x, params)
-            .map_err(|e| ModelError::NoConvergence(format!("{label}: {e}")))?;
+            .map_err(|e| ModelError::NoConvergence(format!("{label}{hint}: {e}")))?;
         progress(&label, r.iterations);
         Ok::<usize, ModelError>(r.iterations)
     };
     for k in 1..=steps {
         let label = if stages.len() > 1 {
-            format!(
-                "load increment {k}/{steps} (penalty {:.1e} Pa; more load steps may help)",
-                stages[0]
-            )
+            format!("load increment {k}/{steps} (penalty {:.1e} Pa)", stages[0])
         } else {
-            format!("load increment {k}/{steps} (more load steps may help)")
+            format!("load increment {k}/{steps}")
         };
-        report.newton_iterations += solve(&fem, k as f64 / steps as f64, label, &mut x)?;
+        let hint = " (more load steps may help)";
+        report.newton_iterations += solve(&fem, k as f64 / steps as f64, label, hint, &mut x)?;
     }
     let mean_dilatation = scene.material.mean_dilatation();
     let mut ratios = Vec::new();
@@ -638,7 +638,7 @@ pub fn solve_scene_loads(
             let label = format!(
                 "volume pass {pass} (worst element volume change {w:.2e}, penalty {kappa:.1e} Pa)"
             );
-            let its = solve(&fem, 1.0, label, &mut x)?;
+            let its = solve(&fem, 1.0, label, "", &mut x)?;
             report.newton_iterations += its;
             report.constraint_passes += 1;
             if its <= 3 && kappa < kappa_max {
@@ -655,7 +655,7 @@ pub fn solve_scene_loads(
                 "penalty stage {j}/{} (bulk modulus {kappa:.1e} Pa)",
                 stages.len() - 1
             );
-            report.newton_iterations += solve(&fem, 1.0, label, &mut x)?;
+            report.newton_iterations += solve(&fem, 1.0, label, "", &mut x)?;
             report.constraint_passes += 1;
         }
         if mean_dilatation {

@@ -78,10 +78,11 @@ fn sphere_on_half_space_follows_hertz() {
             &IndentParams::default(),
             &mut |p| {
                 eprintln!(
-                    "d/R {:.3}: F {:.5e} N, a {:.4e} m, {} points in contact, {} updates, {} Newton",
+                    "d/R {:.3}: F {:.5e} N, a {:.4e} m, {} nodes and {} points in contact, {} updates, {} Newton",
                     p.depth_m / R,
                     4.0 * p.force_on_sphere_n.z,
                     2.0 * p.contact_radius_m,
+                    p.nodes_in_contact,
                     p.points_in_contact,
                     p.augmentations,
                     p.newton_iterations
@@ -136,8 +137,9 @@ fn sphere_on_half_space_follows_hertz() {
     );
 }
 
-/// Newton's tangent leaves out the sphere's curvature term by default
-/// (`IndentParams::curvature_stiffness`): that changes the iteration, not the equilibrium. On
+/// Newton's tangent with or without the sphere's curvature term
+/// (`IndentParams::curvature_stiffness`, on by default): that changes the iteration, not the
+/// equilibrium. On
 /// the built-in `lv` (474 curved quadratic elements) pressed along the `lv-probe` line, the
 /// forces with and without the term agree within the gap tolerance's share of the force.
 #[test]
@@ -165,8 +167,8 @@ fn the_contact_tangent_changes_the_path_not_the_answer() {
         )
         .unwrap()
     };
-    let (exact, penalty_only) = (run(true), run(false));
-    for (a, b) in exact.iter().zip(&penalty_only) {
+    let (with_term, without_term) = (run(true), run(false));
+    for (a, b) in with_term.iter().zip(&without_term) {
         let (fa, fb) = (a.force_on_sphere_n, b.force_on_sphere_n);
         eprintln!(
             "depth {:.2} mm: {:.6e} N ({} Newton iterations) with the curvature term, {:.6e} N ({}) without",

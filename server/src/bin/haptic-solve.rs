@@ -120,6 +120,7 @@ fn run_indent(args: &Args, scene: &Scene) -> anyhow::Result<()> {
         from_m: DVec3::from_array(args.from.context("--indent needs --from")?) * unit,
         direction: DVec3::from_array(args.direction.context("--indent needs --direction")?),
         depths_m: depths.iter().map(|d| d * unit).collect(),
+        max_iterations: args.max_iterations,
     };
     eprintln!(
         "indenting {} ({} nodes, {} tets, {} touchable triangles) with a rigid sphere of radius {} (scene unit) at {} depth(s) ...",
@@ -138,13 +139,14 @@ fn run_indent(args: &Args, scene: &Scene) -> anyhow::Result<()> {
     let result = indent_scene(scene, &request, &mut |p| {
         let f = p.force_on_sphere_n;
         eprintln!(
-            "  depth {:.4}: force ({:.4e}, {:.4e}, {:.4e}) N, |F| {:.4e} N, contact radius {:.4}, {} contact points carrying force, {} multiplier updates, {} Newton iterations, {:.1} s",
+            "  depth {:.4}: force ({:.4e}, {:.4e}, {:.4e}) N, |F| {:.4e} N, contact radius {:.4}, {} nodes and {} contact points carrying force, {} multiplier updates, {} Newton iterations, {:.1} s",
             p.depth_m / unit,
             f.x,
             f.y,
             f.z,
             f.length(),
             p.contact_radius_m / unit,
+            p.nodes_in_contact,
             p.points_in_contact,
             p.augmentations,
             p.newton_iterations,

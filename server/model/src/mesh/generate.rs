@@ -84,6 +84,86 @@ pub fn lv_shell_quadratic(target_tets: usize) -> TetMesh {
     mesh
 }
 
+/// Moves the mid-edge nodes of the surfaces `ENDO` and `EPI` of a quadratic mesh of the
+/// idealized LV in metres (any mesher's: for example a Gmsh file of
+/// `../shared/data/lv/README.md`'s geometry read and made quadratic by
+/// [`TetMesh::to_quadratic`]) onto the analytic ellipsoids, semi-axes 7, 7, 17 mm and 10, 10,
+/// 20 mm, as [`lv_shell_quadratic`] does (edges on the base plane z = 5 mm stay in it; an edge
+/// in a plane through the long axis, such as a symmetry plane y = 0, stays in it). Corner
+/// nodes are left where they are (a mesher puts them on the surfaces). An element that the
+/// move would invert (an edge long against the surface's curvature, as near the
+/// endocardium's apex, where the radius of curvature is 2.9 mm, on coarse meshes) keeps
+/// straight edges. Returns the number of mid-edge nodes left straight.
+pub fn curve_lv_surfaces(mesh: &mut TetMesh) -> usize {
+    let mm = 1e-3;
+    let straight = mesh.nodes.clone();
+    curve_shell_edges(
+        mesh,
+        &[
+            ("ENDO", DVec3::new(7.0, 7.0, 17.0) * mm),
+            ("EPI", DVec3::new(10.0, 10.0, 20.0) * mm),
+        ],
+        Some(5.0 * mm),
+    );
+    let mut reverted = 0;
+    loop {
+        let bad: Vec<usize> = (0..mesh.tets.len())
+            .filter(|&t| !quadratic_tet_is_valid(mesh, t))
+            .collect();
+        if bad.is_empty() {
+            return reverted;
+        }
+        let before = reverted;
+        for t in bad {
+            for &m in &mesh.tet_edge_nodes[t] {
+                let m = m as usize;
+                if mesh.nodes[m] != straight[m] {
+                    mesh.nodes[m] = straight[m];
+                    reverted += 1;
+                }
+            }
+        }
+        if reverted == before {
+            // Invalid with straight edges too: the caller's element check reports it.
+            return reverted;
+        }
+    }
+}
+
+/// Whether the isoparametric map of quadratic tetrahedron `t` has a positive Jacobian at its
+/// corners, its centroid and the points of the 4-point Gauss rule.
+fn quadratic_tet_is_valid(mesh: &TetMesh, t: usize) -> bool {
+    let (a, b) = (0.585_410_196_624_968_5, 0.138_196_601_125_010_5);
+    let mut samples = vec![[0.25; 4]];
+    for k in 0..4 {
+        let mut corner = [0.0; 4];
+        corner[k] = 1.0;
+        let mut gauss = [b; 4];
+        gauss[k] = a;
+        samples.push(corner);
+        samples.push(gauss);
+    }
+    let dl = [DVec3::splat(-1.0), DVec3::X, DVec3::Y, DVec3::Z];
+    let nodes: Vec<DVec3> = mesh.tets[t]
+        .iter()
+        .chain(&mesh.tet_edge_nodes[t])
+        .map(|&i| mesh.nodes[i as usize])
+        .collect();
+    samples.iter().all(|l| {
+        let mut jac = glam::DMat3::ZERO;
+        let mut add = |x: DVec3, g: DVec3| {
+            jac += glam::DMat3::from_cols(x * g.x, x * g.y, x * g.z);
+        };
+        for i in 0..4 {
+            add(nodes[i], dl[i] * (4.0 * l[i] - 1.0));
+        }
+        for (k, [i, j]) in crate::mesh::TET_EDGES.iter().enumerate() {
+            add(nodes[4 + k], (dl[*j] * l[*i] + dl[*i] * l[*j]) * 4.0);
+        }
+        jac.determinant() > 0.0
+    })
+}
+
 /// [`ellipsoid_shell`] with curved quadratic elements (see [`lv_shell_quadratic`]).
 ///
 /// # Panics

@@ -1,0 +1,437 @@
+//! The converged rigid-sphere reference of the `lv-probe` press (docs/accuracy.md, "The
+//! sphere reference on five nested levels"), in two steps that
+//! `server/model/examples/lv_sphere_reference.sh` runs:
+//!
+//! - `solve`: one mesh level. The idealized LV of `../shared/data/lv/README.md` meshed by Gmsh
+//!   as a half model (`lv_probe_half.geo`: y >= 0, groups ENDO, EPI, BASE, SYM; mm), made
+//!   quadratic with its mid-edge nodes on the analytic ellipsoids
+//!   ([`haptic_model::mesh::generate::curve_lv_surfaces`]), BASE clamped, SYM on rollers (no
+//!   y motion: the plane y = 0 is a plane of mirror symmetry of geometry, load and clamp), EPI
+//!   touchable; a rigid frictionless sphere of 2 mm radius moving along -x at y = 0, z = -5 mm
+//!   ([`haptic_model::indent::Indentation`], converged at every depth or an error). Two depth
+//!   conventions: `sphere`, the sphere's travel from the centre x = 9.682458 + 2 mm (where it
+//!   touches the analytic epicardium at (9.682458, 0, -5) mm), and `device`, the device's
+//!   travel `D = s + F_x / k` with the scenes' virtual coupling `k` = 300 N/m (solved for the
+//!   sphere travel `s` by secant steps to 1e-10 m). Forces are the full body's (twice the
+//!   half's x and z components). Appends one CSV row per depth and convention as each
+//!   converges.
+//! - `combine`: the rows of four or more levels into the reference: per material,
+//!   convention and depth, Richardson's extrapolation through the three finest levels and
+//!   Roache's grid convergence index (1.25 times the extrapolated value's distance from the
+//!   finest level's) as its uncertainty, with the observed order of each consecutive triple of
+//!   levels to show whether it is regular. Writes the CSV the benchmark and the tests read
+//!   (format: `server/model/benches/precision/lv_sphere_reference.csv`'s header comment).
+//!
+//! The reference comes from our own solver: it is a self-convergence check, cross-checked at
+//! one depth per material by an independent code (scikit-fem, `research/`).
+
+use std::fmt::Write as _;
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use clap::{Parser, Subcommand};
+use haptic_model::DVec3;
+use haptic_model::element::FemModel;
+use haptic_model::indent::{IndentParams, Indentation, Indenter};
+use haptic_model::material::{MaterialModel, MaterialParams};
+
+/// The epicardium's x at y = 0, z = -5 mm: 10 sqrt(1 - (5/20)^2) mm.
+const SURFACE_X_MM: f64 = 9.682_458_365_518_542;
+/// Sphere radius, mm.
+const RADIUS_MM: f64 = 2.0;
+/// The press line's z, mm.
+const PROBE_Z_MM: f64 = -5.0;
+/// Virtual coupling stiffness of the LV scenes, N/m.
+const COUPLING_N_PER_M: f64 = 300.0;
+/// The scenes' material.
+const YOUNGS_PA: f64 = 14_500.0;
+const POISSON: f64 = 0.45;
+const DENSITY: f64 = 1060.0;
+
+#[derive(Debug, Parser)]
+#[command(name = "lv_reference")]
+struct Args {
+    #[command(subcommand)]
+    step: Step,
+}
+
+#[derive(Debug, Subcommand)]
+enum Step {
+    /// Solve one mesh level (appends to --out).
+    Solve {
+        /// The half LV mesh (Gmsh, mm, groups ENDO, EPI, BASE, SYM).
+        #[arg(long)]
+        msh: PathBuf,
+        /// The level's size parameter (the element size under the probe), mm.
+        #[arg(long)]
+        h: f64,
+        /// Material by scene name (stvk, stable-neo-hookean, corotational).
+        #[arg(long)]
+        material: String,
+        /// Depths, mm, increasing.
+        #[arg(long, value_delimiter = ',')]
+        depths: Vec<f64>,
+        /// Output CSV (rows appended; header written when new).
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Combine four or more levels into the reference CSV.
+    Combine {
+        /// Level CSVs written by `solve` (any order; rows are grouped by their h).
+        #[arg(long, value_delimiter = ',', required = true)]
+        csv: Vec<PathBuf>,
+        /// The reference CSV to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// Also print the Markdown tables of docs/accuracy.md.
+        #[arg(long)]
+        markdown: bool,
+    },
+}
+
+const LEVEL_HEADER: &str = "material,depth_convention,depth_mm,h_mm,nodes,tets,sphere_travel_mm,force_n,fx_n,fz_n,contact_radius_mm,nodes_in_contact,newton_iterations,seconds";
+
+fn main() -> anyhow::Result<()> {
+    match Args::parse().step {
+        Step::Solve {
+            msh,
+            h,
+            material,
+            depths,
+            out,
+        } => solve_level(&msh, h, &material, &depths, &out),
+        Step::Combine { csv, out, markdown } => combine(&csv, &out, markdown),
+    }
+}
+
+/// The half LV of `msh` with curved quadratic elements, clamps and rollers, and its
+/// touchable triangles.
+fn half_lv(msh: &Path, model: MaterialModel) -> anyhow::Result<(FemModel, Vec<[u32; 3]>, usize)> {
+    let mut mesh = haptic_model::mesh::gmsh::load_msh(msh)?;
+    mesh.scale(1e-3);
+    let vertices_tets = mesh.tets.len();
+    let mut mesh = mesh.to_quadratic();
+    let straight = haptic_model::mesh::generate::curve_lv_surfaces(&mut mesh);
+    if straight > 0 {
+        eprintln!(
+            "{}: {straight} mid-edge node(s) left straight (curving would invert their elements)",
+            msh.display()
+        );
+    }
+    let mut material = MaterialParams::from_youngs(YOUNGS_PA, POISSON, DENSITY);
+    material.model = model;
+    let mut fem = FemModel::new(&mesh, material)?;
+    let names = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+    let base = mesh.nodes_of_surfaces(&names(&["BASE"]), "BASE")?;
+    let sym = mesh.nodes_of_surfaces(&names(&["SYM"]), "SYM")?;
+    for &i in &sym {
+        fem.set_constraint(i as usize, 0b010);
+    }
+    fem.clamp_nodes(&base);
+    let epi = mesh
+        .surface("EPI")
+        .ok_or_else(|| anyhow::anyhow!("{}: no EPI group", msh.display()))?;
+    let touchable = epi
+        .triangles
+        .iter()
+        .filter(|t| !t.iter().all(|i| base.binary_search(i).is_ok()))
+        .copied()
+        .collect();
+    Ok((fem, touchable, vertices_tets))
+}
+
+/// One converged state: sphere travel (m) and the full body's force on the sphere (N).
+struct Solved {
+    travel_m: f64,
+    force: DVec3,
+    contact_radius_m: f64,
+    nodes_in_contact: usize,
+    newton: usize,
+}
+
+fn solve_at(run: &mut Indentation<'_>, travel_m: f64) -> anyhow::Result<Solved> {
+    let p = run.solve(travel_m)?;
+    let f = p.force_on_sphere_n;
+    Ok(Solved {
+        travel_m,
+        // The half model: twice its x and z components; y is the symmetry plane's.
+        force: DVec3::new(2.0 * f.x, 0.0, 2.0 * f.z),
+        // Half the contact is on the half model: the full contact's area is twice it.
+        contact_radius_m: (2.0 * p.contact_area_m2 / std::f64::consts::PI).sqrt(),
+        nodes_in_contact: p.nodes_in_contact,
+        newton: p.newton_iterations,
+    })
+}
+
+fn solve_level(
+    msh: &Path,
+    h: f64,
+    material: &str,
+    depths: &[f64],
+    out: &Path,
+) -> anyhow::Result<()> {
+    let model = MaterialModel::from_scene_name(material)
+        .ok_or_else(|| anyhow::anyhow!("unknown material {material:?}"))?;
+    let (fem, touchable, tets) = half_lv(msh, model)?;
+    eprintln!(
+        "{} (h {h} mm): {} nodes, {tets} tets, {} touchable triangles, material {material}",
+        msh.display(),
+        fem.node_count(),
+        touchable.len()
+    );
+    let mm = 1e-3;
+    let from_x = 15.0;
+    let indenter = Indenter {
+        radius_m: RADIUS_MM * mm,
+        from_m: DVec3::new(from_x, 0.0, PROBE_Z_MM) * mm,
+        direction: DVec3::new(-1.0, 0.0, 0.0),
+    };
+    let params = IndentParams {
+        zero_distance_m: Some((from_x - SURFACE_X_MM - RADIUS_MM) * mm),
+        ..IndentParams::default()
+    };
+    let mut run = Indentation::new(&fem, &touchable, &indenter, &params)?;
+    let new_file = !out.exists();
+    let mut file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(out)?;
+    if new_file {
+        writeln!(file, "{LEVEL_HEADER}")?;
+    }
+    let t0 = Instant::now();
+    let row = |conv: &str, depth_mm: f64, s: &Solved, file: &mut std::fs::File| {
+        let line = format!(
+            "{material},{conv},{depth_mm},{h},{},{tets},{:.9},{:.9e},{:.9e},{:.9e},{:.6},{},{},{:.1}",
+            fem.node_count(),
+            s.travel_m / mm,
+            s.force.length(),
+            s.force.x,
+            s.force.z,
+            s.contact_radius_m / mm,
+            s.nodes_in_contact,
+            s.newton,
+            t0.elapsed().as_secs_f64()
+        );
+        eprintln!("  {line}");
+        writeln!(file, "{line}").and_then(|()| file.flush())
+    };
+    for &d in depths {
+        let sphere = solve_at(&mut run, d * mm)?;
+        row("sphere", d, &sphere, &mut file)?;
+        // Device travel D = s + F_x / k: secant steps on s from s = D and s = D - F_x(D) / k.
+        let target = d * mm;
+        let g = |s: &Solved| s.travel_m + s.force.x / COUPLING_N_PER_M - target;
+        let mut a = sphere;
+        let mut b = solve_at(&mut run, target - a.force.x / COUPLING_N_PER_M)?;
+        let mut steps = 0;
+        while g(&b).abs() > 1e-10 {
+            steps += 1;
+            if steps > 20 {
+                anyhow::bail!("device depth {d} mm: the secant steps did not converge");
+            }
+            let next = b.travel_m - g(&b) * (b.travel_m - a.travel_m) / (g(&b) - g(&a));
+            a = b;
+            b = solve_at(&mut run, next)?;
+        }
+        row("device", d, &b, &mut file)?;
+    }
+    Ok(())
+}
+
+/// A level row of the combine step.
+#[derive(Debug, Clone)]
+struct LevelRow {
+    material: String,
+    convention: String,
+    depth_mm: f64,
+    h_mm: f64,
+    nodes: usize,
+    force_n: f64,
+}
+
+fn read_levels(paths: &[PathBuf]) -> anyhow::Result<Vec<LevelRow>> {
+    let mut rows = Vec::new();
+    for p in paths {
+        let text = std::fs::read_to_string(p)?;
+        let mut lines = text.lines();
+        let header: Vec<&str> = lines.next().unwrap_or("").split(',').collect();
+        let col = |name: &str| {
+            header
+                .iter()
+                .position(|h| *h == name)
+                .ok_or_else(|| anyhow::anyhow!("{}: no column {name}", p.display()))
+        };
+        let (cm, cc, cd, ch, cn, cf) = (
+            col("material")?,
+            col("depth_convention")?,
+            col("depth_mm")?,
+            col("h_mm")?,
+            col("nodes")?,
+            col("force_n")?,
+        );
+        for l in lines.filter(|l| !l.trim().is_empty()) {
+            let v: Vec<&str> = l.split(',').collect();
+            rows.push(LevelRow {
+                material: v[cm].into(),
+                convention: v[cc].into(),
+                depth_mm: v[cd].parse()?,
+                h_mm: v[ch].parse()?,
+                nodes: v[cn].parse()?,
+                force_n: v[cf].parse()?,
+            });
+        }
+    }
+    Ok(rows)
+}
+
+/// Richardson's extrapolation through three levels (sizes `h` coarse to fine, values `f`):
+/// the observed order `p` from `(f3 - f2) / (f2 - f1) = (h3^p - h2^p) / (h2^p - h1^p)`
+/// (bisection on [0.2, 10]), the extrapolated value and Roache's grid convergence index
+/// `1.25 |f* - f3|`; `None` when the changes are not monotone and shrinking.
+fn richardson(h: [f64; 3], f: [f64; 3]) -> Option<(f64, f64, f64)> {
+    let (e21, e32) = (f[1] - f[0], f[2] - f[1]);
+    if e21 == 0.0 || e32 / e21 <= 0.0 || e32.abs() >= e21.abs() {
+        return None;
+    }
+    let target = e32 / e21;
+    let g = |p: f64| (h[2].powf(p) - h[1].powf(p)) / (h[1].powf(p) - h[0].powf(p)) - target;
+    let (mut lo, mut hi) = (0.2, 10.0);
+    if g(lo).signum() == g(hi).signum() {
+        return None;
+    }
+    for _ in 0..100 {
+        let mid = 0.5 * (lo + hi);
+        if g(mid).signum() == g(lo).signum() {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    let p = 0.5 * (lo + hi);
+    let value = f[2] - e32 / (h[2].powf(p) - h[1].powf(p)) * h[2].powf(p);
+    Some((value, 1.25 * (value - f[2]).abs(), p))
+}
+
+fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> {
+    let rows = read_levels(paths)?;
+    let mut hs: Vec<f64> = rows.iter().map(|r| r.h_mm).collect();
+    hs.sort_by(|a, b| b.total_cmp(a));
+    hs.dedup();
+    if hs.len() < 3 {
+        anyhow::bail!("{} level(s): Richardson needs three or more", hs.len());
+    }
+    let mut keys: Vec<(String, String, f64)> = rows
+        .iter()
+        .map(|r| (r.material.clone(), r.convention.clone(), r.depth_mm))
+        .collect();
+    keys.sort_by(|a, b| (&a.0, &a.1).cmp(&(&b.0, &b.1)).then(a.2.total_cmp(&b.2)));
+    keys.dedup();
+    let mut csv = String::from(
+        "# The rigid-sphere reference of the lv-probe press (server/model/examples/lv_reference.rs,\n\
+         # written by server/model/examples/lv_sphere_reference.sh): material, depth convention\n\
+         # (sphere: the sphere's travel from the analytic epicardium, centre x = 11.682458 mm;\n\
+         # device: D = s + F_x / (300 N/m)), depth (mm), the extrapolated force magnitude (N),\n\
+         # its uncertainty (Roache's GCI, N), the observed order of the three finest levels\n\
+         # (empty: not monotone, the finest level's value with the spread of the three finest\n\
+         # as its uncertainty), the order of the three levels before, then each level's force\n\
+         # (N) in columns f_h<size under the probe, mm>_n, coarse to fine (empty: not solved).\n",
+    );
+    write!(
+        csv,
+        "material,depth_convention,depth_mm,force_n,uncertainty_n,observed_order,previous_order"
+    )?;
+    for h in &hs {
+        write!(csv, ",f_h{h:.4}_n")?;
+    }
+    csv.push('\n');
+    let mut md = String::new();
+    for (material, conv, depth) in &keys {
+        let at = |h: f64| {
+            rows.iter().find(|r| {
+                &r.material == material
+                    && &r.convention == conv
+                    && r.depth_mm == *depth
+                    && r.h_mm == h
+            })
+        };
+        let levels: Vec<(f64, f64)> = hs
+            .iter()
+            .filter_map(|&h| at(h).map(|r| (h, r.force_n)))
+            .collect();
+        if levels.len() < 3 {
+            continue;
+        }
+        let k = levels.len();
+        let tri = |i: usize| {
+            richardson(
+                [levels[i].0, levels[i + 1].0, levels[i + 2].0],
+                [levels[i].1, levels[i + 1].1, levels[i + 2].1],
+            )
+        };
+        let finest = levels[k - 1].1;
+        let (value, unc, order) = match tri(k - 3) {
+            Some((v, u, p)) => (v, u, Some(p)),
+            None => {
+                let spread = levels[k - 3..]
+                    .iter()
+                    .map(|l| (l.1 - finest).abs())
+                    .fold(0.0, f64::max);
+                (finest, spread, None)
+            }
+        };
+        let previous = if k >= 4 {
+            tri(k - 4).map(|t| t.2)
+        } else {
+            None
+        };
+        let fmt_order = |p: Option<f64>| p.map_or(String::new(), |p| format!("{p:.3}"));
+        write!(
+            csv,
+            "{material},{conv},{depth},{value:.6e},{unc:.3e},{},{}",
+            fmt_order(order),
+            fmt_order(previous)
+        )?;
+        for h in &hs {
+            match at(*h) {
+                Some(r) => write!(csv, ",{:.6e}", r.force_n)?,
+                None => csv.push(','),
+            }
+        }
+        csv.push('\n');
+        writeln!(
+            md,
+            "| {material} | {conv} | {depth} | {} | **{:.4} +- {:.4} ({:.1} %)** | {} | {} |",
+            levels
+                .iter()
+                .map(|l| format!("{:.4}", l.1 * 1e3))
+                .collect::<Vec<_>>()
+                .join(" / "),
+            value * 1e3,
+            unc * 1e3,
+            100.0 * unc / value,
+            order.map_or("none".into(), |p| format!("{p:.2}")),
+            previous.map_or("none".into(), |p| format!("{p:.2}"))
+        )?;
+    }
+    std::fs::write(out, csv)?;
+    let nodes: Vec<String> = hs
+        .iter()
+        .map(|&h| {
+            rows.iter()
+                .find(|r| r.h_mm == h)
+                .map_or("?".into(), |r| format!("{h} mm: {} nodes", r.nodes))
+        })
+        .collect();
+    println!("levels: {}", nodes.join(", "));
+    println!("wrote {}", out.display());
+    if markdown {
+        println!(
+            "| material | convention | depth, mm | levels, mN (coarse to fine) | reference, mN | order (3 finest) | order (3 before) |"
+        );
+        println!("|---|---|---|---|---|---|---|");
+        print!("{md}");
+    }
+    Ok(())
+}
