@@ -19,7 +19,11 @@ use haptic_model::material::{MaterialModel, MaterialParams};
 #[command(name = "half_space_law")]
 struct Args {
     /// Material models (scene names).
-    #[arg(long, value_delimiter = ',', default_value = "stvk,corotational,stable-neo-hookean")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "stvk,corotational,stable-neo-hookean"
+    )]
     models: Vec<String>,
     /// Poisson ratios.
     #[arg(long, value_delimiter = ',', default_value = "0.45")]

@@ -516,11 +516,7 @@ impl<'a> Solver<'a> {
                 .map_err(|e| ModelError::InvalidInput(format!("half-space tangent: {e:?}")))?;
             if self.chol.is_none() {
                 let group: Vec<usize> = (0..self.neq).collect();
-                self.chol = Some(SparseCholesky::analyse(
-                    k.symbolic(),
-                    Side::Lower,
-                    &group,
-                )?);
+                self.chol = Some(SparseCholesky::analyse(k.symbolic(), Side::Lower, &group)?);
             }
             let chol = self.chol.as_mut().expect("analysed");
             if chol.factor_llt(k.as_ref(), Side::Lower).is_err() {
@@ -570,8 +566,7 @@ impl<'a> Solver<'a> {
                 (MAX_INCREMENT * self.a).min((0.5 * self.depth).max(FIRST_INCREMENT * self.a));
             let next = (self.depth + cut * nominal).min(depth_m);
             // Predictor: the last two solutions extrapolated linearly in depth.
-            let grow =
-                (next - self.depth) / (self.depth - self.prev_depth).max(f64::MIN_POSITIVE);
+            let grow = (next - self.depth) / (self.depth - self.prev_depth).max(f64::MIN_POSITIVE);
             let (last_u, last_lambda) = (self.u.clone(), self.lambda.clone());
             if self.depth > 0.0 {
                 for (u, p) in self.u.iter_mut().zip(&self.prev_u) {
@@ -763,7 +758,10 @@ mod tests {
                     worst = worst.max((fd - tan[a_ * 18 + b]).abs() / scale);
                 }
             }
-            assert!(worst < 1e-6, "{model:?}: tangent off finite differences by {worst:e}");
+            assert!(
+                worst < 1e-6,
+                "{model:?}: tangent off finite differences by {worst:e}"
+            );
             // The residual is the energy's gradient.
             let rscale = res.iter().fold(0.0f64, |m, v| m.max(v.abs()));
             let mut worst_r = 0.0f64;
@@ -775,7 +773,10 @@ mod tests {
                 u[b / 2][b % 2] += h;
                 worst_r = worst_r.max(((ep - em) / (2.0 * h) - res[b]).abs() / rscale);
             }
-            assert!(worst_r < 1e-5, "{model:?}: residual off the energy's gradient by {worst_r:e}");
+            assert!(
+                worst_r < 1e-5,
+                "{model:?}: residual off the energy's gradient by {worst_r:e}"
+            );
         }
     }
 
@@ -810,9 +811,17 @@ mod tests {
                 p[0].force_n / hertz - 1.0,
                 p[0].contact_radius_m / (a * depth).sqrt() - 1.0,
             );
-            eprintln!("{model:?} at d/a {ratio}: force {ef:+.4} against Hertz, contact radius {ea:+.4}");
-            assert!(ef.abs() < tol, "{model:?} at d/a {ratio}: force off Hertz by {ef:+.4}");
-            assert!(ea.abs() < 0.1, "{model:?} at d/a {ratio}: contact radius off by {ea:+.4}");
+            eprintln!(
+                "{model:?} at d/a {ratio}: force {ef:+.4} against Hertz, contact radius {ea:+.4}"
+            );
+            assert!(
+                ef.abs() < tol,
+                "{model:?} at d/a {ratio}: force off Hertz by {ef:+.4}"
+            );
+            assert!(
+                ea.abs() < 0.1,
+                "{model:?} at d/a {ratio}: contact radius off by {ea:+.4}"
+            );
         }
     }
 }

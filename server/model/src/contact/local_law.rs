@@ -18,7 +18,8 @@
 //!
 //! Between the tabulated depths the law is a monotone cubic in `(ln d, ln F)`; below the first
 //! depth it is Hertz's power `d^(3/2)` through the first point, beyond the last the power of the
-//! last interval (at least 1).
+//! last interval (at least 1); its slope is continuous everywhere (the cubic's end slopes are
+//! those powers).
 //!
 //! Owns: the laws and the series solve with the virtual coupling. Uses: [`crate::material`].
 //! Not for the servo tick: building a law parses the table (allocates); evaluating it does not.
@@ -74,7 +75,10 @@ impl LocalLaw {
     pub fn from_points(depth_m: &[f64], force_n: &[f64]) -> Result<Self, ModelError> {
         let ok = depth_m.len() >= 2
             && depth_m.len() == force_n.len()
-            && depth_m.iter().chain(force_n).all(|v| *v > 0.0 && v.is_finite())
+            && depth_m
+                .iter()
+                .chain(force_n)
+                .all(|v| *v > 0.0 && v.is_finite())
             && depth_m.windows(2).all(|w| w[1] > w[0])
             && force_n.windows(2).all(|w| w[1] > w[0]);
         if !ok {
@@ -89,10 +93,13 @@ impl LocalLaw {
             .map(|i| (y[i + 1] - y[i]) / (x[i + 1] - x[i]))
             .collect();
         // Fritsch-Butland: the harmonic mean of the neighbouring secants keeps the cubic
-        // monotone; the ends take their interval's secant.
+        // monotone; the ends take the powers of the head (Hertz's) and of the tail, so that
+        // the law's slope is continuous at the first and last knots.
+        let tail_power = secant[secant.len() - 1].max(1.0);
         let mut slope = vec![0.0; x.len()];
-        slope[0] = secant[0];
-        slope[x.len() - 1] = secant[secant.len() - 1];
+        // (At most three times the secant, which keeps the end intervals monotone.)
+        slope[0] = HEAD_POWER.min(3.0 * secant[0]);
+        slope[x.len() - 1] = tail_power.min(3.0 * secant[secant.len() - 1]);
         for i in 1..x.len() - 1 {
             let (a, b) = (secant[i - 1], secant[i]);
             slope[i] = if a * b > 0.0 {
@@ -102,7 +109,6 @@ impl LocalLaw {
                 0.0
             };
         }
-        let tail_power = secant[secant.len() - 1].max(1.0);
         Ok(Self::Table(LawTable {
             x,
             y,
@@ -113,7 +119,7 @@ impl LocalLaw {
 
     /// The law of `mat` for a sphere of radius `radius_m`: its material model's half-space
     /// table ([`HALF_SPACE_TABLE`]) at its Poisson ratio (interpolated linearly between the
-    /// tabulated ratios, the nearest outside them), scaled by its Young's modulus; Hertz's
+    /// tabulated ratios, the nearest outside them with Hertz's `1 / (1 - nu^2)`), scaled by its Young's modulus; Hertz's
     /// law for a model without a table (Guccione, anisotropic).
     pub fn for_material(mat: &MaterialParams, radius_m: f64) -> Self {
         let (e, nu) = (mat.youngs_modulus_pa(), mat.poisson_ratio());
@@ -250,17 +256,23 @@ fn table_rows(model: MaterialModel) -> Vec<(f64, Vec<f64>, Vec<f64>)> {
 
 /// The dimensionless law of `model` at Poisson ratio `nu`: depth ratios `d / a` and force
 /// ratios `F / (E a^2)`, interpolated linearly in `nu` between the two nearest tabulated ratios
-/// (the force's logarithm at the depth ratios both have), the nearest ratio's outside them.
-/// `None` without a table for `model`.
+/// (the force's logarithm at the depth ratios both have); outside them the nearest ratio's,
+/// scaled by Hertz's `(1 - nu_t^2) / (1 - nu^2)`. `None` without a table for `model`.
 fn half_space_points(model: MaterialModel, nu: f64) -> Option<(Vec<f64>, Vec<f64>)> {
     let rows = table_rows(model);
     let first = rows.first()?;
     let last = rows.last()?;
+    // Outside the tabulated ratios: the nearest one's law with Hertz's dependence on the
+    // ratio, `F ~ E / (1 - nu^2)`.
+    let nearest = |row: &(f64, Vec<f64>, Vec<f64>)| {
+        let scale = (1.0 - row.0 * row.0) / (1.0 - nu * nu);
+        (row.1.clone(), row.2.iter().map(|f| f * scale).collect())
+    };
     if nu <= first.0 {
-        return Some((first.1.clone(), first.2.clone()));
+        return Some(nearest(first));
     }
     if nu >= last.0 {
-        return Some((last.1.clone(), last.2.clone()));
+        return Some(nearest(last));
     }
     let j = rows.iter().position(|r| r.0 >= nu)?;
     let (lo, hi) = (&rows[j - 1], &rows[j]);
@@ -283,11 +295,9 @@ mod tests {
     #[test]
     fn series_indentation_balances_the_spring() {
         let hertz = LocalLaw::hertz(18e3, 2e-3);
-        let table = LocalLaw::from_points(
-            &[1e-5, 1e-4, 5e-4, 1e-3],
-            &[3.4e-5, 1.1e-3, 1.1e-2, 2.8e-2],
-        )
-        .unwrap();
+        let table =
+            LocalLaw::from_points(&[1e-5, 1e-4, 5e-4, 1e-3], &[3.4e-5, 1.1e-3, 1.1e-2, 2.8e-2])
+                .unwrap();
         for law in [hertz, table] {
             for depth in [1e-6, 1e-4, 1e-3, 4e-3, 2e-2] {
                 let d = law.series_indentation(depth, 300.0);
@@ -302,15 +312,76 @@ mod tests {
         }
     }
 
+    /// The compiled-in laws start as Hertz's, `F = 4/3 E/(1 - nu^2) a^(1/2) d^(3/2)` (Johnson
+    /// 1985, eq. 4.23): at and below the first tabulated depth (`d / a = 0.005`) within the
+    /// finite-strain departure (St. Venant-Kirchhoff softens by 2.9 % there, stable
+    /// neo-Hookean by 0.3 %), with Hertz's power; `F / (E a^2)` does not depend on the modulus
+    /// or the radius; models without a table get Hertz's law itself.
+    #[test]
+    fn material_laws_start_as_hertz_and_scale_with_modulus_and_radius() {
+        let nu = 0.45;
+        for (model, tol) in [
+            (MaterialModel::StVenantKirchhoff, 0.035),
+            (MaterialModel::StableNeoHookean, 0.01),
+        ] {
+            let mut scaled = Vec::new();
+            for (e, a) in [(14.5e3, 2e-3), (3.0e3, 0.5e-3)] {
+                let mut mat = MaterialParams::from_youngs(e, nu, 1000.0);
+                mat.model = model;
+                let law = LocalLaw::for_material(&mat, a);
+                assert!(matches!(law, LocalLaw::Table(_)), "{model:?}: no table");
+                for ratio in [0.001, 0.005] {
+                    let d = ratio * a;
+                    let hertz = 4.0 / 3.0 * e / (1.0 - nu * nu) * a.sqrt() * d.powf(1.5);
+                    let (f, df) = law.force(d);
+                    assert!(
+                        (f / hertz - 1.0).abs() < tol,
+                        "{model:?} at d/a {ratio}: {f} against Hertz's {hertz}"
+                    );
+                    assert!(
+                        (df * d / f - 1.5).abs() < 1e-9,
+                        "{model:?}: power {}",
+                        df * d / f
+                    );
+                }
+                scaled.push(law.force(0.1 * a).0 / (e * a * a));
+            }
+            assert!(
+                (scaled[0] / scaled[1] - 1.0).abs() < 1e-12,
+                "{model:?}: {scaled:?}"
+            );
+        }
+        // Away from the tabulated ratio, Hertz's dependence on it.
+        let mut mat = MaterialParams::from_youngs(14.5e3, 0.3, 1000.0);
+        mat.model = MaterialModel::StableNeoHookean;
+        let d: f64 = 0.005 * 2e-3;
+        let hertz = 4.0 / 3.0 * 14.5e3 / (1.0 - 0.09) * 2e-3f64.sqrt() * d.powf(1.5);
+        let f = LocalLaw::for_material(&mat, 2e-3).force(d).0;
+        assert!(
+            (f / hertz - 1.0).abs() < 0.01,
+            "nu 0.3: {f} against {hertz}"
+        );
+        let mut mat = MaterialParams::from_youngs(14.5e3, nu, 1000.0);
+        mat.model = MaterialModel::Corotational;
+        let hertz = super::super::probe::hertz_stiffness(14.5e3 / (1.0 - nu * nu), 2e-3);
+        match LocalLaw::for_material(&mat, 2e-3) {
+            LocalLaw::Hertz { stiffness } => {
+                assert!(
+                    (stiffness / hertz - 1.0).abs() < 1e-12,
+                    "{stiffness} against {hertz}"
+                )
+            }
+            law => panic!("corotational: expected Hertz's law, got {law:?}"),
+        }
+    }
+
     /// The table law's slope is the derivative of its force (central differences), inside,
     /// below and beyond the knots, and its force is continuous at the knots.
     #[test]
     fn table_slope_is_the_derivative() {
-        let law = LocalLaw::from_points(
-            &[1e-5, 1e-4, 5e-4, 1e-3],
-            &[3.4e-5, 1.1e-3, 1.1e-2, 2.8e-2],
-        )
-        .unwrap();
+        let law =
+            LocalLaw::from_points(&[1e-5, 1e-4, 5e-4, 1e-3], &[3.4e-5, 1.1e-3, 1.1e-2, 2.8e-2])
+                .unwrap();
         for d in [3e-6, 1e-5, 4e-5, 1e-4, 3e-4, 7e-4, 1e-3, 2e-3] {
             let h = 1e-7 * d;
             let (f, df) = law.force(d);

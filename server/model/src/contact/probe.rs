@@ -77,7 +77,7 @@ impl ContactModel {
             Self::PatchLocal,
         ]
         .into_iter()
-            .find(|m| m.name() == name)
+        .find(|m| m.name() == name)
     }
 }
 

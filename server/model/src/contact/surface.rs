@@ -500,10 +500,7 @@ fn solve_spd5(m: [[f64; 5]; 5], b: [f64; 5]) -> Option<[f64; 5]> {
     let mut l = [[0.0; 5]; 5];
     for r in 0..5 {
         for c in 0..=r {
-            let mut v = m[r][c];
-            for k in 0..c {
-                v -= l[r][k] * l[c][k];
-            }
+            let v = m[r][c] - (0..c).map(|k| l[r][k] * l[c][k]).sum::<f64>();
             if r == c {
                 if !(v > 1e-10 * scale) {
                     return None;
@@ -516,19 +513,11 @@ fn solve_spd5(m: [[f64; 5]; 5], b: [f64; 5]) -> Option<[f64; 5]> {
     }
     let mut z = [0.0; 5];
     for r in 0..5 {
-        let mut v = b[r];
-        for k in 0..r {
-            v -= l[r][k] * z[k];
-        }
-        z[r] = v / l[r][r];
+        z[r] = (b[r] - (0..r).map(|k| l[r][k] * z[k]).sum::<f64>()) / l[r][r];
     }
     let mut x = [0.0; 5];
     for r in (0..5).rev() {
-        let mut v = z[r];
-        for k in r + 1..5 {
-            v -= l[k][r] * x[k];
-        }
-        x[r] = v / l[r][r];
+        x[r] = (z[r] - (r + 1..5).map(|k| l[k][r] * x[k]).sum::<f64>()) / l[r][r];
     }
     Some(x)
 }
