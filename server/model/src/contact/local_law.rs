@@ -118,9 +118,10 @@ impl LocalLaw {
     }
 
     /// The law of `mat` for a sphere of radius `radius_m`: its material model's half-space
-    /// table ([`HALF_SPACE_TABLE`]) at its Poisson ratio (interpolated linearly between the
-    /// tabulated ratios, the nearest outside them with Hertz's `1 / (1 - nu^2)`), scaled by its Young's modulus; Hertz's
-    /// law for a model without a table (Guccione, anisotropic).
+    /// table (`half_space_law.csv`, module documentation) at its Poisson ratio (interpolated
+    /// linearly between the tabulated ratios; the nearest one outside them, with Hertz's
+    /// `1 / (1 - nu^2)`), scaled by its Young's modulus; Hertz's law for a model without a
+    /// table (corotational, Guccione, anisotropic).
     pub fn for_material(mat: &MaterialParams, radius_m: f64) -> Self {
         let (e, nu) = (mat.youngs_modulus_pa(), mat.poisson_ratio());
         let hertz = || Self::hertz(e / (1.0 - nu * nu), radius_m);

@@ -28,8 +28,9 @@
 //!   than the sphere on the LV), but its distribution depends on the device position only, so
 //!   every integrator carries it; the mass-spring surface's calibration and the seed's point
 //!   contact are built on it too.
-//! - **PatchHertz** (the default on FEM bodies until 2026-11-26): the patch, with the sphere's local Hertz
-//!   indentation `delta` in series between the patch's surface and the proxy, a sub-grid
+//! - **PatchHertz** (the default on FEM bodies until 2026-11-26): the patch, with the
+//!   sphere's local Hertz indentation `delta` in series between the patch's surface and the
+//!   proxy, a sub-grid
 //!   model of what coarse facets cannot resolve: the mesh carries the body's structural
 //!   response to the patch's smooth load, the Hertz spring `F = 4/3 E* r^(1/2) delta^(3/2)`
 //!   ([`probe::hertz_stiffness`], `E* = E / (1 - nu^2)` of the material) the local one, and the
