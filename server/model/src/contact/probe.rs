@@ -25,7 +25,7 @@ pub const MAX_DEVICE_DISTANCE_M: f64 = 10.0;
 /// How the probe meets the surface (scene key `probe.contact`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ContactModel {
-    /// The most accurate model on the body: [`ContactModel::PatchHertz`] on FEM bodies under
+    /// The most accurate model on the body: [`ContactModel::PatchLocal`] on FEM bodies under
     /// every integrator ([`crate::integrate::resolve_contact_model`]), the patch on
     /// mass-spring surfaces. A [`Probe`] given `Auto` uses the patch.
     #[default]
@@ -153,8 +153,9 @@ pub struct Probe {
     /// Explicit part of the normal coupling force of the current step, N.
     phi0_n: f64,
     /// Stiffness of the normal coupling against the surface's motion along `n` in the current
-    /// step, N/m: the coupling `k`, or with the Hertz compliance in series
-    /// ([`ContactModel::PatchHertz`]) `k K' / (k + K')` with `K'` the Hertz spring's tangent.
+    /// step, N/m: the coupling `k`, or with the local law in series
+    /// ([`ContactModel::PatchHertz`], [`ContactModel::PatchLocal`]) `k K' / (k + K')` with `K'`
+    /// the law's tangent.
     coupling_k_n_per_m: f64,
     /// Sphere contact scratch: candidate triangles (capacity [`MAX_CONTACT_TRIANGLES`]), their
     /// visit stamps (one per surface triangle) and each node's slot in the patch (one per
@@ -650,8 +651,8 @@ impl Probe {
 
     /// `gamma = dt (k dt + b)` (kg): the weight of the coupling's implicit rank-one term
     /// `gamma U U^T` over the patch (see [`Probe::finish_implicit`]); `k` is the coupling's
-    /// stiffness against the surface's motion, in series with the Hertz spring under
-    /// [`ContactModel::PatchHertz`].
+    /// stiffness against the surface's motion, in series with the local law under
+    /// [`ContactModel::PatchHertz`] and [`ContactModel::PatchLocal`].
     pub fn coupling_gamma(&self, dt_s: f64) -> f64 {
         dt_s * (self.coupling_k_n_per_m * dt_s + self.params.coupling_damping_n_s_per_m)
     }
