@@ -31,7 +31,7 @@ use glam::DVec3;
 use crate::ModelError;
 use crate::body::{BodyInfo, BodyStats, PointLoadZone, SoftBody, SurfaceCapacity, SurfaceTopology};
 use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
-use crate::contact::{ContactModel, Probe};
+use crate::contact::{ContactModel, LocalLaw, Probe};
 use crate::element::{CLAMPED, FemModel, ForceScratch};
 use crate::integrate::condensed::{ActiveRegion, CondensedSolver};
 use crate::integrate::follow::{FollowStats, RegionFollower};
@@ -293,6 +293,12 @@ impl Simulation {
             .map(|t| t.map(|i| local[i as usize]))
             .collect();
         let mut probe = Probe::new(probe_params, touchable, fem.rest());
+        if probe_params.contact == ContactModel::PatchLocal {
+            probe.set_local_law(LocalLaw::for_material(
+                &scene.material,
+                probe_params.radius_m,
+            ));
+        }
         if p.kind == IntegratorKind::BackwardEuler {
             probe.use_implicit_sphere(plan.sub_dt_s);
         }

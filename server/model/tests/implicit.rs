@@ -115,8 +115,9 @@ fn backward_euler_presses_holds_and_recovers_on_lv() {
     );
 }
 
-/// Quadratic (10-node) elements, every integrator: no allocation in the tick (the vectorised
-/// kernels keep their work arrays on the stack), bounded under the press.
+/// Quadratic (10-node) elements, every integrator, the default contact (the patch with the
+/// material's local law): no allocation in the tick (the vectorised kernels keep their work
+/// arrays on the stack), bounded under the press.
 /// Allocations made by `ticks` ticks of [`input`]'s press (each tick must succeed).
 fn press_allocations(sim: &mut Simulation, ticks: usize) -> usize {
     let mut allocations = 0;
@@ -160,7 +161,8 @@ fn quadratic_element_ticks_do_not_allocate() {
 }
 
 /// Backward Euler's tick allocates nothing with either linear solver (CG; the rest factor, the
-/// built-in `lv`'s) and either probe (the default Hertz patch; the implicit sphere, which on
+/// built-in `lv`'s) and either probe (the default, the patch with the material's local law;
+/// the implicit sphere, which on
 /// the rest factor also steps the entry factor when a face enters), under a press and a point
 /// load.
 #[test]

@@ -105,16 +105,19 @@ fn bad_values_are_refused_naming_the_field() {
         TableState::NotNeeded
     ));
     build_body(&scene).expect("unchanged springs need no table");
-    // The Hertz patch needs a material modulus, which a spring surface does not have.
-    let hertz = parse_scene_toml(
-        &format!("{BASE}\n[probe]\ncontact = \"patch-hertz\"\n"),
-        Path::new("."),
-    )
-    .expect("parses");
-    match build_body(&hertz) {
-        Err(ModelError::SceneField { field, .. }) => assert_eq!(field, "probe.contact"),
-        Err(e) => panic!("expected a field error, got {e}"),
-        Ok(_) => panic!("a mass-spring surface accepted patch-hertz"),
+    // The Hertz and local-law patches need a material's law, which a spring surface does not
+    // have.
+    for contact in ["patch-hertz", "patch-local"] {
+        let scene = parse_scene_toml(
+            &format!("{BASE}\n[probe]\ncontact = \"{contact}\"\n"),
+            Path::new("."),
+        )
+        .expect("parses");
+        match build_body(&scene) {
+            Err(ModelError::SceneField { field, .. }) => assert_eq!(field, "probe.contact"),
+            Err(e) => panic!("expected a field error, got {e}"),
+            Ok(_) => panic!("a mass-spring surface accepted {contact}"),
+        }
     }
     let cases = [
         (

@@ -416,7 +416,7 @@ fn the_contact_model_defaults_to_auto_and_every_integrator_takes_the_sphere() {
     assert_eq!(s.probe.contact, ContactModel::Auto);
     assert_eq!(
         resolve_contact_model(ContactModel::Auto),
-        ContactModel::PatchHertz
+        ContactModel::PatchLocal
     );
     let with = |contact: &str, kind: &str| {
         format!("{BASE}\n[probe]\ncontact = \"{contact}\"\n").replacen(
@@ -429,6 +429,8 @@ fn the_contact_model_defaults_to_auto_and_every_integrator_takes_the_sphere() {
     assert_eq!(s.probe.contact, ContactModel::Patch);
     let s = parse(&with("patch-hertz", "backward-euler")).unwrap();
     assert_eq!(s.probe.contact, ContactModel::PatchHertz);
+    let s = parse(&with("patch-local", "semi-implicit")).unwrap();
+    assert_eq!(s.probe.contact, ContactModel::PatchLocal);
     let s = parse(&with("sphere", "semi-implicit")).unwrap();
     assert_eq!(s.probe.contact, ContactModel::Sphere);
     let s = parse(&with("sphere", "backward-euler")).unwrap();

@@ -368,20 +368,23 @@ fn free_body_spinning_keeps_momentum_and_stays_rigid() {
     }
 }
 
-/// St. Venant-Kirchhoff settles under backward Euler. Under the explicit integrators the
-/// impulse inverts 6 elements under the probe and StVK, whose stress softens in strong
-/// compression and which has inverted equilibria, stays there (measured 2026-11-23: 7.2 mm
-/// peak, 2.4 mm left at 3.5 s): since the default contact is the Hertz patch the injected load
-/// acts until the surface has retreated about 1.2 mm from the probe (the Hertz indentation plus
-/// the coupling's stretch) instead of 0.13 mm with the bare sphere or patch, so far more of
-/// the ten-fold impulse reaches the body. Asserted as it is, so that a change either way is
-/// seen; the robust materials settle under every integrator (the tests below).
+/// St. Venant-Kirchhoff settles under backward Euler and the semi-implicit scheme. Under
+/// symplectic Euler the impulse inverts 6 elements under the probe and StVK, whose stress
+/// softens in strong compression and which has inverted equilibria, stays there (measured
+/// 2026-11-26: 6.2 mm peak, 2.4 mm left): with the patch's local law in series (the default
+/// contact since 2026-11-23, the material's own half-space law since 2026-11-26) the injected
+/// load acts until the surface has retreated from the probe by the local indentation plus the
+/// coupling's stretch, about 1 mm, instead of 0.13 mm with the bare sphere or patch, so far
+/// more of the ten-fold impulse reaches the body. (With the Hertz patch the semi-implicit
+/// scheme stayed inverted too; with the material's law it settles: 5.5 mm peak, 0.03 mm
+/// left.) Asserted as it is, so that a change either way is seen; the robust materials settle
+/// under every integrator (the tests below).
 #[test]
 fn ten_fold_impulse_settles_without_inversion_stvk() {
     let failures = ten_fold_impulse_failures("stvk");
     assert_eq!(
         failures,
-        ["stvk semi-implicit", "stvk symplectic-euler"],
+        ["stvk symplectic-euler"],
         "did not settle: {failures:?}"
     );
 }

@@ -4,12 +4,12 @@
 //! 2 mm probe radius), each step a smoothstep ramp of 100 ms then a 100 ms hold; the force
 //! reported per depth is the mean device force over the last 50 ms of the hold
 //! ([`crate::common::lv_press`]), with the scene's contact model (`auto`: the patch with the
-//! sphere's Hertz compliance).
+//! sphere's local law of the material in series).
 //!
-//! Reference: the converged sphere reference ([`sphere_reference`]: the exact 2 mm sphere on
-//! three Gmsh meshes refined under the probe, Richardson extrapolation, with its uncertainty),
-//! at the depths it has (St. Venant-Kirchhoff 0.5 and 1 mm, corotational and stable
-//! neo-Hookean 0.5 to 3 mm).
+//! Reference: the stored rigid-sphere reference ([`sphere_reference`],
+//! `lv_sphere_reference.csv`: the exact 2 mm sphere on meshes refined under the probe, with
+//! its uncertainty), at the depths of this press it has (St. Venant-Kirchhoff 0.5 and 1 mm,
+//! stable neo-Hookean 0.5 to 3 mm; corotational 0.5 to 3 mm from the 2026-11-23 reference).
 //! Probe-force error = the largest relative error over those depths, or "below uncertainty"
 //! when every depth is within the reference's uncertainty. Surface-displacement error (StVK
 //! rows, the `rel_l2_error` and `max_nodal_error_m` columns): the body's surface at the end of
@@ -56,25 +56,21 @@ const fn point(depth_mm: f64, force_mn: f64, uncertainty_mn: f64) -> SpherePoint
     }
 }
 
-/// The converged sphere reference of the `lv-probe` press for `model` (`None`: not computed).
-/// From `server/model/examples/lv_sphere_reference.sh`
-/// (`haptic-solve --indent` with the exact 2 mm sphere on three Gmsh meshes refined under the
-/// probe, `hmin` 0.6 / 0.42 / 0.3 mm, quadratic elements; `lv_study reference`: device depths
-/// through the 300 N/m coupling, Richardson extrapolation, Roache's grid convergence index as
-/// the uncertainty; 2026-11-23, docs/accuracy.md "A converged sphere reference"). A
-/// self-convergence study of our static solver (no independent code has this problem), which
-/// shares no contact code with the servo. St. Venant-Kirchhoff stops at 1 mm: the refined
-/// meshes find no StVK equilibrium deeper.
-pub fn sphere_reference(model: MaterialModel) -> Option<&'static [SpherePoint]> {
-    const STVK: [SpherePoint; 2] = [point(0.5, 3.9749, 0.3758), point(1.0, 9.0242, 0.2992)];
-    const SNH: [SpherePoint; 6] = [
-        point(0.5, 4.6694, 0.1288),
-        point(1.0, 9.8723, 0.5286),
-        point(1.5, 16.0613, 0.4945),
-        point(2.0, 21.7533, 0.7102),
-        point(2.5, 24.2440, 3.7145),
-        point(3.0, 32.4002, 1.1746),
-    ];
+/// The stored rigid-sphere reference of the `lv-probe` press (the exact 2 mm sphere,
+/// frictionless, static, on meshes refined under the probe; issue 46): rows `material,
+/// depth_convention, depth_mm, force_n, uncertainty_n, ...` (only those five columns are read;
+/// the file's header says where each value comes from). Its device-convention rows are the
+/// reference of this scenario.
+const SPHERE_REFERENCE_CSV: &str = include_str!("lv_sphere_reference.csv");
+
+/// The rigid-sphere reference of the `lv-probe` press for `model` (`None`: not computed): the
+/// device-convention rows of [`SPHERE_REFERENCE_CSV`] (St. Venant-Kirchhoff 0.25-1 mm, stable
+/// neo-Hookean 0.5-4 mm in the preliminary file of 2026-11-26). The corotational material has
+/// no rows there; it keeps the 2026-11-23 three-mesh reference (`lv_sphere_reference.sh`:
+/// `haptic-solve --indent` on Gmsh meshes with `hmin` 0.6 / 0.42 / 0.3 mm under the probe,
+/// Richardson, Roache's grid convergence index; docs/accuracy.md "A converged sphere
+/// reference"), a self-convergence study of our static solver.
+pub fn sphere_reference(model: MaterialModel) -> Option<Vec<SpherePoint>> {
     const COROTATIONAL: [SpherePoint; 6] = [
         point(0.5, 4.5224, 0.1346),
         point(1.0, 9.6137, 0.4167),
@@ -83,19 +79,35 @@ pub fn sphere_reference(model: MaterialModel) -> Option<&'static [SpherePoint]> 
         point(2.5, 24.1831, 2.6765),
         point(3.0, 31.4036, 1.0755),
     ];
-    match model {
-        MaterialModel::StVenantKirchhoff => Some(&STVK),
-        MaterialModel::StableNeoHookean => Some(&SNH),
-        MaterialModel::Corotational => Some(&COROTATIONAL),
-        _ => None,
+    let mut points: Vec<SpherePoint> = SPHERE_REFERENCE_CSV
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty() && !l.starts_with('#') && !l.starts_with("material"))
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split(',').map(str::trim).collect();
+            if f.len() < 5 || f[0] != model.scene_name() || f[1] != "device" {
+                return None;
+            }
+            let num = |s: &str| s.parse::<f64>().expect("a number in the sphere reference");
+            Some(SpherePoint {
+                depth_mm: num(f[2]),
+                force_n: num(f[3]),
+                uncertainty_n: num(f[4]),
+            })
+        })
+        .collect();
+    points.sort_by(|a, b| a.depth_mm.total_cmp(&b.depth_mm));
+    if points.is_empty() && model == MaterialModel::Corotational {
+        points = COROTATIONAL.to_vec();
     }
+    (!points.is_empty()).then_some(points)
 }
 
 /// The reference text of a row of `model`.
 pub fn sphere_reference_text(model: MaterialModel) -> String {
     match sphere_reference(model) {
         Some(points) => format!(
-            "converged sphere reference ({}): {}",
+            "rigid-sphere reference ({}): {}",
             model.scene_name(),
             points
                 .iter()
@@ -108,7 +120,7 @@ pub fn sphere_reference_text(model: MaterialModel) -> String {
                 .collect::<Vec<_>>()
                 .join(", ")
         ),
-        None => format!("no converged sphere reference for {}", model.scene_name()),
+        None => format!("no rigid-sphere reference for {}", model.scene_name()),
     }
 }
 
@@ -130,10 +142,10 @@ pub fn run(cfg: &Config, rows: &mut Vec<Row>) {
 }
 
 /// The built-in `lv` scene (474 quadratic tets on the rest factor) with each explicit probe
-/// contact model: the exact sphere, the kernel patch, and the patch with the sphere's Hertz
-/// compliance (`auto`, as every FEM row). The force barely depends on it; the surface does: the
-/// Hertz indentation is sub-grid, so the surface of the `patch-hertz` rows shows the dent
-/// without it.
+/// contact model: the exact sphere, the kernel patch, the patch with the sphere's Hertz
+/// compliance, and the patch with the material's own local law (`auto`, as every FEM row).
+/// The local indentation of the last two is sub-grid, so their surface shows the dent without
+/// it.
 pub fn contact_rows(quick: bool, rows: &mut Vec<Row>) {
     let base = load_builtin("lv").expect("built-in lv");
     let ref_text = sphere_reference_text(base.material.model);
@@ -141,6 +153,7 @@ pub fn contact_rows(quick: bool, rows: &mut Vec<Row>) {
         ContactModel::Sphere,
         ContactModel::Patch,
         ContactModel::PatchHertz,
+        ContactModel::PatchLocal,
     ] {
         let mut scene = base.clone();
         scene.probe.contact = contact;

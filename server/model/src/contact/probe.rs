@@ -4,12 +4,15 @@
 //! Neighbours: [`super::surface`] for the geometry, [`super::coupling`] for the low-rank term
 //! the implicit integrators solve with; driven every sub-step by the FEM body's tick.
 
-use glam::DVec3;
+use glam::{DMat3, DVec3};
 
 use super::coupling::ContactCoupling;
+use super::local_law::LocalLaw;
 use super::sphere::sphere_exit;
 use super::surface::{ContactSurface, SurfacePoint};
-use super::{MAX_CONTACT_TRIANGLES, MAX_PATCH_NODES, PATCH_RADIUS_FACTOR};
+use super::{
+    LOCAL_PATCH_RADIUS_FACTOR, MAX_CONTACT_TRIANGLES, MAX_PATCH_NODES, PATCH_RADIUS_FACTOR,
+};
 
 mod implicit;
 
@@ -22,7 +25,7 @@ pub const MAX_DEVICE_DISTANCE_M: f64 = 10.0;
 /// How the probe meets the surface (scene key `probe.contact`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ContactModel {
-    /// The most accurate model on the body: [`ContactModel::PatchHertz`] on FEM bodies under
+    /// The most accurate model on the body: [`ContactModel::PatchLocal`] on FEM bodies under
     /// every integrator ([`crate::integrate::resolve_contact_model`]), the patch on
     /// mass-spring surfaces. A [`Probe`] given `Auto` uses the patch.
     #[default]
@@ -42,24 +45,39 @@ pub enum ContactModel {
     /// between the patch's surface and the proxy ([`ProbeParams::hertz_modulus_pa`]). Its
     /// load distribution is the patch's, so every integrator carries it.
     PatchHertz,
+    /// The kernel patch with the sphere's local indentation in series, as
+    /// [`ContactModel::PatchHertz`] but with the material's own law of a sphere on a
+    /// half-space ([`super::local_law`], set by the FEM body: [`Probe::set_local_law`]) in place
+    /// of Hertz's, and the patch's plane raised to the rest surface under the device (its
+    /// curvature's sag, [`patch_sag`]), so that contact starts where the sphere touches the
+    /// surface rather than the chord plane through the patch's nodes.
+    PatchLocal,
 }
 
 impl ContactModel {
-    /// The scene-file name (`"auto"`, `"sphere"`, `"patch"`).
+    /// The scene-file name (`"auto"`, `"sphere"`, `"patch"`, `"patch-hertz"`,
+    /// `"patch-local"`).
     pub fn name(self) -> &'static str {
         match self {
             Self::Auto => "auto",
             Self::Sphere => "sphere",
             Self::Patch => "patch",
             Self::PatchHertz => "patch-hertz",
+            Self::PatchLocal => "patch-local",
         }
     }
 
     /// The model of a scene-file name.
     pub fn from_name(name: &str) -> Option<Self> {
-        [Self::Auto, Self::Sphere, Self::Patch, Self::PatchHertz]
-            .into_iter()
-            .find(|m| m.name() == name)
+        [
+            Self::Auto,
+            Self::Sphere,
+            Self::Patch,
+            Self::PatchHertz,
+            Self::PatchLocal,
+        ]
+        .into_iter()
+        .find(|m| m.name() == name)
     }
 }
 
@@ -79,8 +97,9 @@ pub struct ProbeParams {
     /// Coulomb friction coefficient between the probe and the surface (0: frictionless).
     pub friction_coefficient: f64,
     /// Effective (plane-strain) modulus `E* = E / (1 - nu^2)` of the touched tissue at small
-    /// strain, Pa, for [`ContactModel::PatchHertz`]: set by the FEM body from its material
-    /// (scene files do not set it); zero when unknown.
+    /// strain, Pa, for [`ContactModel::PatchHertz`] (and [`ContactModel::PatchLocal`] until
+    /// its law is set): set by the FEM body from its material (scene files do not set it); zero
+    /// when unknown.
     pub hertz_modulus_pa: f64,
 }
 
@@ -134,8 +153,9 @@ pub struct Probe {
     /// Explicit part of the normal coupling force of the current step, N.
     phi0_n: f64,
     /// Stiffness of the normal coupling against the surface's motion along `n` in the current
-    /// step, N/m: the coupling `k`, or with the Hertz compliance in series
-    /// ([`ContactModel::PatchHertz`]) `k K' / (k + K')` with `K'` the Hertz spring's tangent.
+    /// step, N/m: the coupling `k`, or with the local law in series
+    /// ([`ContactModel::PatchHertz`], [`ContactModel::PatchLocal`]) `k K' / (k + K')` with `K'`
+    /// the law's tangent.
     coupling_k_n_per_m: f64,
     /// Sphere contact scratch: candidate triangles (capacity [`MAX_CONTACT_TRIANGLES`]), their
     /// visit stamps (one per surface triangle) and each node's slot in the patch (one per
@@ -161,7 +181,18 @@ pub struct Probe {
     /// Sub-step of the backward Euler body the sphere contact is implicit for, s; zero for
     /// the explicit sphere contact ([`Probe::use_implicit_sphere`]).
     implicit_dt_s: f64,
+    /// The local law of [`ContactModel::PatchLocal`] ([`Probe::set_local_law`]).
+    local_law: LocalLaw,
+    /// Rest positions and rest curvature tensors of the body's nodes (for the patch's sag
+    /// under [`ContactModel::PatchLocal`]; empty otherwise).
+    rest: Vec<DVec3>,
+    rest_curvature: Vec<DMat3>,
 }
+
+/// Reach of the rest curvature fit at each node ([`ContactSurface::curvature_tensors`]), in
+/// radii of the local patch: twice the patch, so that coarse meshes (nodes 3-4 mm apart on
+/// `lv_h3`) still have enough neighbours.
+const CURVATURE_REACH_FACTOR: f64 = 2.0;
 
 /// Smallest contact band of the sphere contact, in probe radii: at first touch (proxy offset
 /// `t` near zero) the faces within `r / 100` of the sphere carry the load.
@@ -201,9 +232,30 @@ impl Probe {
             node_slot: Vec::new(),
             rows: implicit::CouplingRows::with_capacity(),
             implicit_dt_s: 0.0,
+            local_law: LocalLaw::hertz(params.hertz_modulus_pa, params.radius_m),
+            rest: Vec::new(),
+            rest_curvature: Vec::new(),
         };
         probe.size_scratch();
+        if params.contact == ContactModel::PatchLocal {
+            probe.rest = rest.to_vec();
+            probe.rest_curvature = probe.surface.curvature_tensors(
+                rest,
+                CURVATURE_REACH_FACTOR * LOCAL_PATCH_RADIUS_FACTOR * params.radius_m,
+            );
+        }
         probe
+    }
+
+    /// Sets the local law of [`ContactModel::PatchLocal`] (by default Hertz's with
+    /// [`ProbeParams::hertz_modulus_pa`]). Not for the servo tick (the law is moved in).
+    pub fn set_local_law(&mut self, law: LocalLaw) {
+        self.local_law = law;
+    }
+
+    /// The local law of [`ContactModel::PatchLocal`].
+    pub fn local_law(&self) -> &LocalLaw {
+        &self.local_law
     }
 
     /// Replaces the touchable surface (a body whose surface changes at run time builds it with
@@ -251,9 +303,10 @@ impl Probe {
                 self.update_sphere_implicit(x, device_m, device_vel, sp)
             }
             ContactModel::Sphere => self.update_sphere(x, device_m, device_vel, sp),
-            ContactModel::Patch | ContactModel::PatchHertz | ContactModel::Auto => {
-                self.update_patch(x, device_m, device_vel, sp)
-            }
+            ContactModel::Patch
+            | ContactModel::PatchHertz
+            | ContactModel::PatchLocal
+            | ContactModel::Auto => self.update_patch(x, device_m, device_vel, sp),
         }
     }
 
@@ -277,18 +330,37 @@ impl Probe {
         // under a ten-fold injected load, the patch then following the deformation a step
         // late.)
         self.gather_patch(x, device_m, sp.triangle);
-        if self.patch_nodes.is_empty() {
+        let Some((mut centre, mut n)) = self.patch_plane(x) else {
             return self.disengage(device_m);
+        };
+        let mut signed = (device_m - centre).dot(n);
+        if self.params.contact == ContactModel::PatchLocal {
+            // The footprint of the first touch, kept: the nodes within `sqrt(3) r` of the
+            // device's foot on the plane (module documentation of [`super`]).
+            let foot = device_m - n * signed;
+            self.surface.gather_kernel_patch(
+                x,
+                foot,
+                sp.triangle,
+                LOCAL_PATCH_RADIUS_FACTOR * r,
+                &mut self.patch_nodes,
+                &mut self.patch_weights,
+            );
+            let Some(plane) = self.patch_plane(x) else {
+                return self.disengage(device_m);
+            };
+            (centre, n) = plane;
+            signed = (device_m - centre).dot(n);
+            // The plane through the nodes lies below a convex surface by its sag.
+            signed -= patch_sag(
+                &self.patch_nodes,
+                &self.patch_weights,
+                &self.rest,
+                &self.rest_curvature,
+                r,
+            );
         }
-        let mut centre = DVec3::ZERO;
-        let mut normal_sum = DVec3::ZERO;
-        for (&i, &w) in self.patch_nodes.iter().zip(&self.patch_weights) {
-            centre += x[i as usize] * w;
-            normal_sum += self.surface.vertex_normal(i, x) * w;
-        }
-        let n = normal_sum.normalize_or_zero();
-        let signed = (device_m - centre).dot(n);
-        if signed >= r || n == DVec3::ZERO {
+        if signed >= r {
             return self.disengage(device_m);
         }
         let sp = SurfacePoint {
@@ -487,6 +559,12 @@ impl Probe {
             // The Hertz spring's tangent dF/d(delta) in series with the coupling.
             let k_hertz = 1.5 * hertz_k * delta.sqrt();
             (depth_m - delta, k * k_hertz / (k + k_hertz))
+        } else if p.contact == ContactModel::PatchLocal {
+            let k = p.coupling_stiffness_n_per_m;
+            let delta = self.local_law.series_indentation(depth_m, k);
+            // The law's tangent dF/d(delta) in series with the coupling.
+            let k_local = self.local_law.force(delta).1;
+            (depth_m - delta, k * k_local / (k + k_local))
         } else {
             (depth_m, p.coupling_stiffness_n_per_m)
         };
@@ -573,8 +651,8 @@ impl Probe {
 
     /// `gamma = dt (k dt + b)` (kg): the weight of the coupling's implicit rank-one term
     /// `gamma U U^T` over the patch (see [`Probe::finish_implicit`]); `k` is the coupling's
-    /// stiffness against the surface's motion, in series with the Hertz spring under
-    /// [`ContactModel::PatchHertz`].
+    /// stiffness against the surface's motion, in series with the local law under
+    /// [`ContactModel::PatchHertz`] and [`ContactModel::PatchLocal`].
     pub fn coupling_gamma(&self, dt_s: f64) -> f64 {
         dt_s * (self.coupling_k_n_per_m * dt_s + self.params.coupling_damping_n_s_per_m)
     }
@@ -649,6 +727,21 @@ impl Probe {
             .map(|(&i, &w)| w * n.dot(v[i as usize]))
             .sum();
         self.set_device_force(dt_s, utv);
+    }
+
+    /// The kernel-weighted plane of the current patch: its centre `sum w_i x_i` (m) and unit
+    /// normal (the weighted vertex normals); `None` for an empty patch or a vanishing normal.
+    fn patch_plane(&self, x: &[DVec3]) -> Option<(DVec3, DVec3)> {
+        if self.patch_nodes.is_empty() {
+            return None;
+        }
+        let mut centre = DVec3::ZERO;
+        let mut normal_sum = DVec3::ZERO;
+        for (&i, &w) in self.patch_nodes.iter().zip(&self.patch_weights) {
+            centre += x[i as usize] * w;
+            normal_sum += self.surface.vertex_normal(i, x) * w;
+        }
+        normal_sum.try_normalize().map(|n| (centre, n))
     }
 
     /// Collects the contact patch around the device point `q` (see
@@ -742,6 +835,38 @@ impl Probe {
         }
         out
     }
+}
+
+/// The height (m) of the rest surface above the rest plane of a kernel patch at its centre:
+/// the plane through the weighted centroid `c0 = sum w_i X_i` of the patch's nodes lies below a
+/// convex surface by the curvature's sag, about 0.07 mm on the default LV, so a patch contact
+/// measured from it starts that much late. With the patch's mean rest curvature tensor
+/// `H = sum w_i H_i` ([`ContactSurface::curvature_tensors`]), the surface `z = d^T H d / 2`
+/// around the centre puts the plane at `sum w_i z_i`, so the sag is
+/// `-1/2 sum w_i (X_i - c0)^T H (X_i - c0)` (positive on a convex surface), bounded by `r / 2`
+/// in magnitude. `rest` and `curvature` are per node (m, 1/m); zero without them.
+/// Allocation-free.
+pub fn patch_sag(
+    nodes: &[u32],
+    weights: &[f64],
+    rest: &[DVec3],
+    curvature: &[DMat3],
+    radius_m: f64,
+) -> f64 {
+    if rest.is_empty() || curvature.is_empty() {
+        return 0.0;
+    }
+    let (mut c0, mut h) = (DVec3::ZERO, DMat3::ZERO);
+    for (&i, &w) in nodes.iter().zip(weights) {
+        c0 += rest[i as usize] * w;
+        h += curvature[i as usize] * w;
+    }
+    let mut plane = 0.0;
+    for (&i, &w) in nodes.iter().zip(weights) {
+        let d = rest[i as usize] - c0;
+        plane += w * 0.5 * d.dot(h * d);
+    }
+    (-plane).clamp(-0.5 * radius_m, 0.5 * radius_m)
 }
 
 /// `K = 4/3 E* R^(1/2)` (N/m^(3/2)) of the Hertz contact of a sphere of radius `radius_m` on a

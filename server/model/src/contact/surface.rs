@@ -7,7 +7,7 @@
 //!
 //! Neighbours: used by [`super::probe`] and by [`crate::loads`] (point loads).
 
-use glam::DVec3;
+use glam::{DMat3, DVec3};
 
 use super::MAX_PATCH_NODES;
 
@@ -288,6 +288,54 @@ impl ContactSurface {
         }
     }
 
+    /// The rest surface's curvature tensor at every node, from the positions `rest` (m): at a
+    /// surface node `i`, with the unit vertex normal `N` and a tangent frame `(e1, e2)`, the
+    /// weighted least-squares quadric `z = b u + c v + (A u^2 + 2 B u v + C v^2) / 2` through
+    /// the nodes within `reach_m` (kernel weights, [`ContactSurface::gather_kernel_patch`]),
+    /// `z` along `N`, gives `H = A e1 e1^T + B (e1 e2^T + e2 e1^T) + C e2 e2^T` (1/m; negative
+    /// definite on a convex surface: a sphere of radius `R` gives `-P / R`, `P` the tangential
+    /// projector). Zero off the surface and where the fit is singular (fewer than five
+    /// neighbours, or neighbours on a line). For set-up only (allocates).
+    pub fn curvature_tensors(&self, rest: &[DVec3], reach_m: f64) -> Vec<DMat3> {
+        let mut out = vec![DMat3::ZERO; rest.len()];
+        let (mut nodes, mut weights) = (
+            Vec::with_capacity(MAX_PATCH_NODES),
+            Vec::with_capacity(MAX_PATCH_NODES),
+        );
+        for (i, h) in out.iter_mut().enumerate().take(self.node_count()) {
+            let Some(&seed) = self.triangles_at(i as u32).first() else {
+                continue;
+            };
+            let Some(n) = self.vertex_normal(i as u32, rest).try_normalize() else {
+                continue;
+            };
+            self.gather_kernel_patch(rest, rest[i], seed, reach_m, &mut nodes, &mut weights);
+            let (e1, e2) = n.any_orthonormal_pair();
+            let scale = 1.0 / reach_m;
+            let mut m = [[0.0; 5]; 5];
+            let mut b = [0.0; 5];
+            for (&j, &w) in nodes.iter().zip(&weights) {
+                let d = (rest[j as usize] - rest[i]) * scale;
+                let (u, v, z) = (d.dot(e1), d.dot(e2), d.dot(n));
+                let phi = [u, v, 0.5 * u * u, u * v, 0.5 * v * v];
+                for r in 0..5 {
+                    b[r] += w * phi[r] * z;
+                    for c in 0..5 {
+                        m[r][c] += w * phi[r] * phi[c];
+                    }
+                }
+            }
+            let Some(beta) = solve_spd5(m, b) else {
+                continue;
+            };
+            // Back to 1/m: z and (u, v) were scaled alike, so curvatures scale by `scale`.
+            let (a, bb, c) = (beta[2] * scale, beta[3] * scale, beta[4] * scale);
+            let outer = |p: DVec3, q: DVec3| DMat3::from_cols(p * q.x, p * q.y, p * q.z);
+            *h = outer(e1, e1) * a + (outer(e1, e2) + outer(e2, e1)) * bb + outer(e2, e2) * c;
+        }
+        out
+    }
+
     /// Number of nodes the surface indexes into.
     pub fn node_count(&self) -> usize {
         self.node_lists.len() - 1
@@ -443,4 +491,33 @@ pub fn closest_point_on_triangle(p: DVec3, a: DVec3, b: DVec3, c: DVec3) -> (DVe
     let v = vb * denom;
     let w = vc * denom;
     (a + ab * v + ac * w, [1.0 - v - w, v, w])
+}
+
+/// Solves the symmetric positive definite 5 x 5 system `m x = b` by Cholesky; `None` when a
+/// pivot is not clearly positive (relative to the diagonal's largest entry).
+fn solve_spd5(m: [[f64; 5]; 5], b: [f64; 5]) -> Option<[f64; 5]> {
+    let scale = (0..5).map(|k| m[k][k]).fold(0.0f64, f64::max);
+    let mut l = [[0.0; 5]; 5];
+    for r in 0..5 {
+        for c in 0..=r {
+            let v = m[r][c] - (0..c).map(|k| l[r][k] * l[c][k]).sum::<f64>();
+            if r == c {
+                if !(v > 1e-10 * scale) {
+                    return None;
+                }
+                l[r][r] = v.sqrt();
+            } else {
+                l[r][c] = v / l[c][c];
+            }
+        }
+    }
+    let mut z = [0.0; 5];
+    for r in 0..5 {
+        z[r] = (b[r] - (0..r).map(|k| l[r][k] * z[k]).sum::<f64>()) / l[r][r];
+    }
+    let mut x = [0.0; 5];
+    for r in (0..5).rev() {
+        x[r] = (z[r] - (r + 1..5).map(|k| l[k][r] * x[k]).sum::<f64>()) / l[r][r];
+    }
+    Some(x)
 }

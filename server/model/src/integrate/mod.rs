@@ -62,20 +62,22 @@ pub enum IntegratorKind {
 }
 
 /// The contact model an FEM body uses for the scene's `requested` one:
-/// [`ContactModel::Auto`] becomes the kernel patch with the sphere's Hertz compliance in series
-/// ([`ContactModel::PatchHertz`]) under every integrator. On the real-time LV meshes it is the
-/// most accurate model against the converged sphere reference (three meshes refined under the
-/// probe, Richardson extrapolation; `docs/accuracy.md`, "Sub-grid Hertz contact"): the exact
-/// sphere reaches its mesh's own equilibrium, but the default mesh's facets, 2-4 mm, are coarser
-/// than the contact, and it reads 60-90 % high there; the plain patch spreads the load over
-/// 4 mm and reads 75-90 % high. The sphere runs under every integrator: explicit in the step
+/// [`ContactModel::Auto`] becomes the kernel patch with the sphere's local indentation in series
+/// ([`ContactModel::PatchLocal`]: the material's own law of a sphere on a half-space, the patch
+/// raised by its rest sag, a fixed footprint) under every integrator. On the real-time LV meshes
+/// it is the most accurate model against the rigid-sphere reference (`docs/accuracy.md`,
+/// "The sphere's local law in the patch"): the exact sphere reaches its mesh's own equilibrium,
+/// but the default mesh's facets, 2-4 mm, are coarser than the contact, and it reads 60-90 %
+/// high there; the plain patch spreads the load over 4 mm and reads 75-90 % high; the patch with
+/// Hertz's linear law (the default until 2026-11-26) read 17-23 % low at 0.5 mm and 10 % high at
+/// 4 mm. The sphere runs under every integrator: explicit in the step
 /// under the explicit ones, implicit (the faces in contact as penalty springs in series with
 /// the coupling, solved inside the step; [`crate::contact::Probe::use_implicit_sphere`]) under
 /// backward Euler and the condensed model (frictionless or with the friction cone of the
 /// other models), so the integrator does not enter the choice.
 pub fn resolve_contact_model(requested: ContactModel) -> ContactModel {
     match requested {
-        ContactModel::Auto => ContactModel::PatchHertz,
+        ContactModel::Auto => ContactModel::PatchLocal,
         other => other,
     }
 }

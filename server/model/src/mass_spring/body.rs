@@ -172,10 +172,13 @@ impl MassSpringBody {
         scene_name: &str,
     ) -> Result<Self, ModelError> {
         params.validate()?;
-        if probe.contact == ContactModel::PatchHertz {
+        if matches!(
+            probe.contact,
+            ContactModel::PatchHertz | ContactModel::PatchLocal
+        ) {
             return Err(ModelError::field(
                 "probe.contact",
-                "\"patch-hertz\" takes the Hertz modulus of an FEM material; a mass-spring surface has none (use \"auto\" or \"patch\")",
+                "\"patch-hertz\" and \"patch-local\" take the law of an FEM material; a mass-spring surface has none (use \"auto\" or \"patch\")",
             ));
         }
         if integrator.kind != IntegratorKind::SymplecticEuler {

@@ -1609,7 +1609,7 @@ fn build_probe(p: &RawProbe) -> Result<ProbeParams, ModelError> {
             ModelError::field(
                 "probe.contact",
                 format!(
-                    "unknown contact model {:?}: expected \"auto\", \"sphere\", \"patch\" or \"patch-hertz\"",
+                    "unknown contact model {:?}: expected \"auto\", \"sphere\", \"patch\", \"patch-hertz\" or \"patch-local\"",
                     name.chars().take(40).collect::<String>()
                 ),
             )
