@@ -87,19 +87,21 @@ impl BlockRows {
 }
 
 /// The core's small-strain stiffness at rest (`lambda`, `mu`) or, with the viscous
-/// coefficients `(2 phi, 2 psi)` in their place, the viscous operator `D`: linear
-/// tetrahedra only.
+/// coefficients `(2 phi, 2 psi)` in their place, the viscous operator `D`, assembled over the
+/// FEM's integration points (linear or quadratic tetrahedra):
+/// `K_ab = sum_q w_q B(g_a(q), g_b(q))` with [`isotropic_block`].
 pub fn core_blocks(fem: &FemModel, lambda_pa: f64, mu_pa: f64) -> BlockRows {
     let mut rows = BlockRows::new(fem.node_count());
-    for (e, tet) in fem.tets().iter().enumerate() {
-        let g = fem.shape_gradients(e);
-        let v = fem.volume_m3()[e];
-        for a in 0..4 {
-            for b in 0..4 {
+    for q in 0..fem.integration_point_count() {
+        let nodes = fem.ip_nodes(q);
+        let g = fem.ip_gradients(q);
+        let w = fem.ip_weight_m3(q);
+        for a in 0..nodes.len() {
+            for b in 0..nodes.len() {
                 rows.add(
-                    tet[a],
-                    tet[b],
-                    isotropic_block(lambda_pa, mu_pa, v, g[a], g[b]),
+                    nodes[a],
+                    nodes[b],
+                    isotropic_block(lambda_pa, mu_pa, w, g[a], g[b]),
                 );
             }
         }
@@ -356,17 +358,24 @@ impl ImplicitCore {
     /// Assembles `(1 + alpha h) M + h D + h^2 margin (K_core + K_anchors)` for the core `fem`
     /// (its lumped mass, constraints and material) with the pattern of every region's
     /// condensed stiffness in `layer`, step `h_s` (s), and factorises it with no region
-    /// active.
+    /// active. Without a layer (`inactive_layer = "elements"`: the FEM covers the whole wall
+    /// and stands for the particles' terms) the matrix is `(1 + alpha h) M + h D + h^2 margin
+    /// K_core` and never changes.
     ///
     /// # Errors
     /// [`ModelError::InvalidInput`] when the matrix is not positive definite or its analysis
     /// fails.
     pub fn new(
         fem: &FemModel,
-        layer: &CondensedLayer,
+        layer: Option<&CondensedLayer>,
         h_s: f64,
         margin: f64,
     ) -> Result<Self, ModelError> {
+        let no_regions = CondensedLayer {
+            anchors: BlockRows::new(fem.node_count()),
+            regions: Vec::new(),
+        };
+        let layer = layer.unwrap_or(&no_regions);
         let n = fem.node_count();
         let mat = fem.material();
         let fixed: Vec<bool> = (0..3 * n)
@@ -555,48 +564,53 @@ impl ImplicitCore {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::element::tangent::element_tangent;
+    use crate::element::tangent::cell_tangent_blocks;
     use crate::material::MaterialParams;
     use crate::mesh::generate::box_mesh;
 
     /// The core's assembled small-strain stiffness equals the FEM's own tangent at rest
-    /// (`element_tangent`, the directional derivative of the first Piola-Kirchhoff stress),
-    /// block by block over a 2 x 2 x 2 box.
+    /// (`cell_tangent_blocks`, the directional derivative of the first Piola-Kirchhoff stress
+    /// at each integration point), block by block, over a 2 x 2 x 2 box of linear and of
+    /// quadratic tetrahedra.
     #[test]
     fn core_blocks_are_the_fem_tangent_at_rest() {
-        let mesh = box_mesh(DVec3::new(0.02, 0.01, 0.015), [2, 2, 2]);
-        let material = MaterialParams::from_youngs(14_500.0, 0.45, 1060.0);
-        let fem = FemModel::new(&mesh, material).expect("model");
-        let rows = core_blocks(&fem, material.lambda_pa, material.mu_pa);
-        let mut reference = BlockRows::new(fem.node_count());
-        for (e, tet) in fem.tets().iter().enumerate() {
-            let k = element_tangent(&fem, e, fem.rest());
-            for a in 0..4 {
-                for b in 0..4 {
-                    reference.add(tet[a], tet[b], k[a][b]);
+        let linear = box_mesh(DVec3::new(0.02, 0.01, 0.015), [2, 2, 2]);
+        for mesh in [linear.clone(), linear.to_quadratic()] {
+            let material = MaterialParams::from_youngs(14_500.0, 0.45, 1060.0);
+            let fem = FemModel::new(&mesh, material).expect("model");
+            let rows = core_blocks(&fem, material.lambda_pa, material.mu_pa);
+            let mut reference = BlockRows::new(fem.node_count());
+            let mut blocks = Vec::new();
+            for c in 0..fem.cell_count() {
+                cell_tangent_blocks(&fem, c, fem.rest(), &mut blocks);
+                let nodes = fem.cell_nodes(c);
+                for (a, &na) in nodes.iter().enumerate() {
+                    for (b, &nb) in nodes.iter().enumerate() {
+                        reference.add(na, nb, blocks[a * nodes.len() + b]);
+                    }
                 }
             }
-        }
-        let scale = rows
-            .row(0)
-            .iter()
-            .map(|(_, m)| m.abs().to_cols_array().into_iter().fold(0.0, f64::max))
-            .fold(0.0, f64::max);
-        assert!(scale > 0.0);
-        for k in 0..fem.node_count() {
-            assert_eq!(rows.row(k).len(), reference.row(k).len(), "row {k}");
-            for (l, m) in rows.row(k) {
-                let (_, r) = reference
-                    .row(k)
-                    .iter()
-                    .find(|(c, _)| c == l)
-                    .expect("same pattern");
-                let diff = (*m - *r)
-                    .abs()
-                    .to_cols_array()
-                    .into_iter()
-                    .fold(0.0, f64::max);
-                assert!(diff < 1e-12 * scale, "block ({k}, {l}): {m} against {r}");
+            let scale = rows
+                .row(0)
+                .iter()
+                .map(|(_, m)| m.abs().to_cols_array().into_iter().fold(0.0, f64::max))
+                .fold(0.0, f64::max);
+            assert!(scale > 0.0);
+            for k in 0..fem.node_count() {
+                assert_eq!(rows.row(k).len(), reference.row(k).len(), "row {k}");
+                for (l, m) in rows.row(k) {
+                    let (_, r) = reference
+                        .row(k)
+                        .iter()
+                        .find(|(c, _)| c == l)
+                        .expect("same pattern");
+                    let diff = (*m - *r)
+                        .abs()
+                        .to_cols_array()
+                        .into_iter()
+                        .fold(0.0, f64::max);
+                    assert!(diff < 1e-10 * scale, "block ({k}, {l}): {m} against {r}");
+                }
             }
         }
     }
