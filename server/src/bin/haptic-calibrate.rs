@@ -11,7 +11,7 @@ use clap::Parser;
 
 /// Calibrate the subdivided spring constants of a mass-spring scene.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Args {
     /// Scene file (TOML), or a built-in scene name.
     scene: String,
