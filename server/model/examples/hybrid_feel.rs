@@ -141,12 +141,9 @@ fn main() -> anyhow::Result<()> {
     let r = info.probe_radius_m;
     let line = match &args.from {
         None => PressLine::lv_probe(r),
-        Some(v) if v.len() == 3 => PressLine::from_rest_surface(
-            &body,
-            DVec3::new(v[0], v[1], v[2]) * 1e-3,
-            -DVec3::X,
-            r,
-        )?,
+        Some(v) if v.len() == 3 => {
+            PressLine::from_rest_surface(&body, DVec3::new(v[0], v[1], v[2]) * 1e-3, -DVec3::X, r)?
+        }
         Some(v) => anyhow::bail!("--from takes x,y,z in mm, got {v:?}"),
     };
     println!(

@@ -113,8 +113,7 @@ fn lv_hybrid_follows_the_stvk_reference_and_holds_steady_to_4_mm() {
     let mut body = lv_hybrid(None);
     let line = PressLine::lv_probe(body.info().probe_radius_m);
     let depths = [0.5, 1.0, 1.25, 2.0, 3.0, 4.0].map(|d| d * 1e-3);
-    let (holds, _) =
-        press::staircase(body.as_mut(), &line, &depths, &HOLDS, 1e-3).expect("press");
+    let (holds, _) = press::staircase(body.as_mut(), &line, &depths, &HOLDS, 1e-3).expect("press");
     assert_steady("lv-hybrid", &holds);
     assert_follows("lv-hybrid", &holds, &STVK_REFERENCE, 1.3);
 }
@@ -124,15 +123,9 @@ fn lv_hybrid_with_stable_neo_hookean_follows_the_deep_reference_to_4_mm() {
     let mut body = lv_hybrid(Some(MaterialModel::StableNeoHookean));
     let line = PressLine::lv_probe(body.info().probe_radius_m);
     let depths = [0.5, 1.0, 2.0, 3.0, 4.0].map(|d| d * 1e-3);
-    let (holds, _) =
-        press::staircase(body.as_mut(), &line, &depths, &HOLDS, 1e-3).expect("press");
+    let (holds, _) = press::staircase(body.as_mut(), &line, &depths, &HOLDS, 1e-3).expect("press");
     assert_steady("lv-hybrid, stable neo-Hookean", &holds);
-    assert_follows(
-        "lv-hybrid, stable neo-Hookean",
-        &holds,
-        &SNH_REFERENCE,
-        4.0,
-    );
+    assert_follows("lv-hybrid, stable neo-Hookean", &holds, &SNH_REFERENCE, 4.0);
 }
 
 #[test]
@@ -142,15 +135,17 @@ fn lv_hybrid_holds_steady_after_the_demo_press() {
     let mut body = lv_hybrid(None);
     let line = PressLine::lv_probe(body.info().probe_radius_m);
     let (hold, trace) =
-        press::constant_speed_press(body.as_mut(), &line, 3.7e-3, 10e-3, 0.5, 1e-3)
-            .expect("press");
+        press::constant_speed_press(body.as_mut(), &line, 3.7e-3, 10e-3, 0.5, 1e-3).expect("press");
     assert_steady("lv-hybrid demo", &[hold]);
     // The force grows with the depth all the way in (to within the JND of a tick's change).
     let press = &trace.force_n[..trace.force_n.len() - hold.hold_ticks];
     let mut peak: f64 = 0.0;
     for f in press {
         peak = peak.max(f.length());
-        assert!(f.length() >= peak * (1.0 - common::FORCE_JND), "{f} after {peak}");
+        assert!(
+            f.length() >= peak * (1.0 - common::FORCE_JND),
+            "{f} after {peak}"
+        );
     }
 }
 
@@ -181,11 +176,11 @@ fn ellipsoids_hybrid_holds_steady_and_presses_harder_deeper() {
     let scene = load_builtin("ellipsoids-hybrid").expect("scene");
     let mut body = haptic_model::build_body(&scene).expect("body");
     let r = body.info().probe_radius_m;
-    let line = PressLine::from_rest_surface(body.as_ref(), DVec3::new(15e-3, 0.0, 0.0), -DVec3::X, r)
-        .expect("line");
+    let line =
+        PressLine::from_rest_surface(body.as_ref(), DVec3::new(15e-3, 0.0, 0.0), -DVec3::X, r)
+            .expect("line");
     let depths = [0.5, 1.0, 2.0, 3.0, 4.0].map(|d| d * 1e-3);
-    let (holds, _) =
-        press::staircase(body.as_mut(), &line, &depths, &HOLDS, 1e-3).expect("press");
+    let (holds, _) = press::staircase(body.as_mut(), &line, &depths, &HOLDS, 1e-3).expect("press");
     assert_steady("ellipsoids-hybrid", &holds);
     for w in holds.windows(2) {
         assert!(

@@ -175,7 +175,6 @@ pub struct HybridBody {
     last_force_n: DVec3,
 }
 
-
 impl HybridBody {
     /// A body at rest from a preprocessed model. `clamped`: core nodes fixed at rest;
     /// `tick_s`: servo period, s.
@@ -819,7 +818,8 @@ impl HybridBody {
         let m = &self.model;
         self.tied_ties.clear();
         for &q in &self.tied_list {
-            self.tied_ties.push(m.tie_nodes(&m.particle_tie[q as usize]));
+            self.tied_ties
+                .push(m.tie_nodes(&m.particle_tie[q as usize]));
         }
         // The implicit core's matrix holds the active regions and their neighbours (which stand
         // for the terms of inactive particles next to the active ones, which the block also

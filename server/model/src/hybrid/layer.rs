@@ -48,7 +48,8 @@ impl LayerElements {
     /// The counts of `model`'s particles per element of `fem` (the model's core mesh).
     pub fn new(model: &HybridModel, fem: &FemModel) -> Self {
         let particles = model.particles_per_element();
-        let cell_volume = |e: usize| -> f64 { fem.cell_points(e).map(|q| fem.ip_weight_m3(q)).sum() };
+        let cell_volume =
+            |e: usize| -> f64 { fem.cell_points(e).map(|q| fem.ip_weight_m3(q)).sum() };
         let s3 = model.cloud.volume_m3();
         let coverage = particles
             .iter()
@@ -103,7 +104,13 @@ impl LayerElements {
     /// `x` (m) and, when given, velocities `v` (m/s, the viscous stress): adds
     /// `a_e w_q P(F_q) grad N_a` at each integration point of each replaced element, the
     /// opposite of what [`FemModel::add_internal_forces`] added, times `a_e`.
-    pub fn subtract_forces(&self, fem: &FemModel, x: &[DVec3], v: Option<&[DVec3]>, f: &mut [DVec3]) {
+    pub fn subtract_forces(
+        &self,
+        fem: &FemModel,
+        x: &[DVec3],
+        v: Option<&[DVec3]>,
+        f: &mut [DVec3],
+    ) {
         let mat = fem.material();
         let viscous = v.filter(|_| mat.phi_pa_s > 0.0 || mat.psi_pa_s > 0.0);
         for (e, a) in self.replaced() {
@@ -126,7 +133,8 @@ impl LayerElements {
         for (e, a) in self.replaced() {
             for q in fem.cell_points(e as usize) {
                 let fm = fem.ip_field_gradient(q, x);
-                e_j += a * fem.ip_weight_m3(q) * energy_density_oriented(mat, &fm, &fem.ip_frame(q));
+                e_j +=
+                    a * fem.ip_weight_m3(q) * energy_density_oriented(mat, &fm, &fem.ip_frame(q));
             }
         }
         e_j

@@ -40,10 +40,10 @@ pub mod proxy;
 use glam::DVec3;
 
 pub use body::{EigenEstimate, HybridBody};
-pub use layer::LayerElements;
-pub use proxy::ParticleProxy;
 pub use implicit::ImplicitCore;
+pub use layer::LayerElements;
 pub use prepare::{HybridModel, prepare};
+pub use proxy::ParticleProxy;
 
 use crate::ModelError;
 use crate::meshfree::MeshfreeParams;
