@@ -646,7 +646,7 @@ fn hybrid_scene_errors_name_their_field() {
     for (from, to, field) in [
         ("spacing_m = 0.0005", "spacing_m = -1.0", "hybrid.spacing_m"),
         (
-            "variant = \"seed\"",
+            "variant = \"corrected\"",
             "variant = \"magic\"",
             "hybrid.variant",
         ),
