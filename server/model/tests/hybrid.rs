@@ -661,38 +661,38 @@ fn hybrid_scene_errors_name_their_field() {
             "hybrid.release_radius_m",
         ),
         (
-            "mass_scale = 100.0",
-            "mass_scale = 100.0\ncore_mass_scale = 0.5",
+            "core_mass_scale = \"auto\"",
+            "core_mass_scale = 0.5",
             "hybrid.core_mass_scale",
         ),
         (
-            "mass_scale = 100.0",
-            "mass_scale = 100.0\ncore_mass_scale = nan",
+            "core_mass_scale = \"auto\"",
+            "core_mass_scale = nan",
             "hybrid.core_mass_scale",
         ),
         (
-            "mass_scale = 100.0",
-            "mass_scale = 100.0\ncore_mass_scale = \"automatic\"",
+            "core_mass_scale = \"auto\"",
+            "core_mass_scale = \"automatic\"",
             "hybrid.core_mass_scale",
         ),
         (
-            "mass_scale = 100.0",
-            "mass_scale = 100.0\nscaled_motion = \"relative\"",
+            "scaled_motion = \"deviation\"",
+            "scaled_motion = \"relative\"",
             "hybrid.scaled_motion",
         ),
         (
-            "mass_scale = 100.0",
-            "mass_scale = 100.0\ncore_step = \"semi-implicit\"",
+            "core_step = \"implicit\"",
+            "core_step = \"semi-implicit\"",
             "hybrid.core_step",
         ),
         (
-            "mass_scale = 100.0",
-            "mass_scale = 100.0\ncore_stiffness_margin = 2.0",
+            "core_step = \"implicit\"",
+            "core_step = \"explicit\"",
             "hybrid.core_stiffness_margin",
         ),
         (
-            "mass_scale = 100.0",
-            "mass_scale = 100.0\ncore_step = \"implicit\"\ncore_stiffness_margin = 0.5",
+            "core_stiffness_margin = 10.0",
+            "core_stiffness_margin = 0.5",
             "hybrid.core_stiffness_margin",
         ),
         ("family = \"hybrid\"", "family = \"fem\"", "hybrid"),
@@ -706,10 +706,7 @@ fn hybrid_scene_errors_name_their_field() {
     }
     // A value of the wrong type: the error names the field and its line and says what is
     // expected (issue 47: the documented `scene field` form, not the quoted TOML line).
-    let text = base.replace(
-        "mass_scale = 100.0",
-        "mass_scale = 100.0\ncore_mass_scale = true",
-    );
+    let text = base.replace("core_mass_scale = \"auto\"", "core_mass_scale = true");
     let err = haptic_model::scene::parse_scene_toml(&text, std::path::Path::new("."))
         .expect_err("a boolean core_mass_scale")
         .to_string();
