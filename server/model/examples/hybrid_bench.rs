@@ -44,16 +44,6 @@ struct Args {
     general_loop: bool,
 }
 
-/// This thread's time on a CPU so far, ns (`/proc/thread-self/schedstat`, first field): a tick
-/// timed by it is not lengthened by the other processes of a shared machine, which the wall
-/// clock is.
-fn cpu_ns() -> u64 {
-    std::fs::read_to_string("/proc/thread-self/schedstat")
-        .ok()
-        .and_then(|s| s.split_whitespace().next()?.parse().ok())
-        .unwrap_or(0)
-}
-
 fn rss_kib() -> u64 {
     std::fs::read_to_string("/proc/self/status")
         .ok()
@@ -172,24 +162,12 @@ fn main() -> anyhow::Result<()> {
             print_estimate(&mut body, "pressed 1 mm")?;
         }
         let mut times = Vec::with_capacity(args.ticks);
-        let mut cpu = Vec::with_capacity(args.ticks);
-        // The cost of reading the CPU clock itself, taken off each tick's.
-        let c0 = cpu_ns();
-        let clock_ns = (cpu_ns() - c0) as f64;
         for _ in 0..args.ticks {
-            let c = cpu_ns();
             let t = Instant::now();
             body.tick(&input)?;
             times.push(t.elapsed().as_secs_f64() * 1e6);
-            cpu.push(((cpu_ns() - c) as f64 - clock_ns).max(0.0) * 1e-3);
         }
         times.sort_by(f64::total_cmp);
-        cpu.sort_by(f64::total_cmp);
-        eprintln!(
-            "  CPU time per tick (this thread's, not lengthened by other processes): p50 {:.1} us, p99 {:.1} us",
-            cpu[cpu.len() / 2],
-            cpu[(cpu.len() * 99) / 100]
-        );
         eprintln!(
             "  terms and tied particles: {:?}; first tick (terms refilled) {first_us:.0} us; stencil layout (grid cells, groups): {:?}; core_mass_scale {:.1}; implicit core {:.1} MiB",
             body.work_counts(),

@@ -7,9 +7,11 @@
 //! `ellipsoids-hybrid` holds its depths steadily and its force grows with the depth.
 //!
 //! The references are the independent scikit-fem exact-sphere solves (curved quadratic
-//! meshes refined under the probe, `research/` of the "skfem" work of issue 46; preliminary
-//! values of 2026-11-26, the finest mesh or its extrapolation), at the sphere's depth: the
-//! proxy's travel past first contact with the analytic epicardium.
+//! meshes refined under the probe, `research/results/lv_reference.csv` and `lv_levels.csv`
+//! of issue 46, 2026-11-26: the finest level's force, h = 0.21 mm for St. Venant-Kirchhoff to
+//! 1 mm (at 0.25 and 0.5 mm its Richardson value, within 0.6 % of that level), 0.3 mm at its
+//! 1.25 mm and for the stable neo-Hookean material), at the sphere's depth: the proxy's travel
+//! past first contact with the analytic epicardium.
 
 mod common;
 
@@ -23,9 +25,9 @@ use haptic_model::scene::load_builtin;
 const STVK_REFERENCE: [(f64, f64); 5] = [
     (0.25, 1.928e-3),
     (0.5, 4.319e-3),
-    (0.75, 6.808e-3),
-    (1.0, 9.505e-3),
-    (1.25, 12.09e-3),
+    (0.75, 6.884e-3),
+    (1.0, 9.491e-3),
+    (1.25, 12.014e-3),
 ];
 
 /// Sphere depth (mm) and force (N) of the stable neo-Hookean reference on the lv-probe line.
