@@ -61,8 +61,9 @@ pub struct ParticleProxy {
 pub struct ProxyContact {
     /// Force on the device, N: the coupling's `k_c (c - x_d)`.
     pub force_on_device_n: DVec3,
-    /// `d F_device / d x_device`, 3x3 row-major, N/m: the coupling in series with the
-    /// penalty springs, `k_c I - k_c^2 (k_c I + sum k n n^T)^-1`.
+    /// The stiffness felt at the device, `-d F_device / d x_device`, 3x3 row-major, N/m
+    /// (positive definite, as [`crate::contact::Probe`]'s `k_c n n^T`): the coupling in series
+    /// with the penalty springs, `k_c I - k_c^2 (k_c I + sum k n n^T)^-1`.
     pub stiffness_n_per_m: [f64; 9],
     /// The proxy's centre, m (the device point out of contact).
     pub proxy_m: DVec3,
@@ -305,7 +306,7 @@ mod tests {
         // The proxy sits between the device and the plane, pushed back along +z.
         assert!(out.proxy_m.z > device.z && out.proxy_m.z < r + 0.5 * s);
         assert!(out.force_on_device_n.z > 0.0);
-        // The stiffness is the derivative of the device force: central differences.
+        // The stiffness is minus the derivative of the device force: central differences.
         let h = 1e-7;
         for axis in 0..3 {
             let mut e = DVec3::ZERO;
@@ -320,9 +321,9 @@ mod tests {
             for row in 0..3 {
                 let k = out.stiffness_n_per_m[3 * row + axis];
                 assert!(
-                    (fd[row] - k).abs() < 0.05 * probe.coupling_stiffness_n_per_m,
-                    "d F_{row} / d x_{axis}: {} against {k}",
-                    fd[row]
+                    (-fd[row] - k).abs() < 0.05 * probe.coupling_stiffness_n_per_m,
+                    "-d F_{row} / d x_{axis}: {} against {k}",
+                    -fd[row]
                 );
             }
         }
