@@ -235,11 +235,21 @@ fn curve_shell_edges(mesh: &mut TetMesh, surfaces: &[(&str, DVec3)], z_cut: Opti
             let on_cut =
                 z_cut.is_some_and(|z| (pa.z - z).abs() < 1e-12 && (pb.z - z).abs() < 1e-12);
             let (ax, ay, az) = (axes.x, axes.y, axes.z);
-            mesh.nodes[m as usize] = if on_cut {
+            // Rotationally symmetric shells (a = b) keep the expressions they were built with
+            // before ellipsoids with a != b (the same nodes to the last bit).
+            mesh.nodes[m as usize] = if on_cut && ax == ay {
+                // In the plane: the ring of radius a sqrt(1 - z^2 / c^2).
+                let rho = ax * (1.0 - p.z * p.z / (az * az)).max(0.0).sqrt();
+                let r = (p.x * p.x + p.y * p.y).sqrt();
+                DVec3::new(p.x * rho / r, p.y * rho / r, p.z)
+            } else if on_cut {
                 // In the plane: the ellipse x^2 / a^2 + y^2 / b^2 = 1 - z^2 / c^2.
                 let rim = (1.0 - p.z * p.z / (az * az)).max(0.0);
                 let q = (p.x * p.x / (ax * ax) + p.y * p.y / (ay * ay)) / rim;
                 DVec3::new(p.x / q.sqrt(), p.y / q.sqrt(), p.z)
+            } else if ax == ay {
+                let q = (p.x * p.x + p.y * p.y) / (ax * ax) + p.z * p.z / (az * az);
+                p / q.sqrt()
             } else {
                 let q = p.x * p.x / (ax * ax) + p.y * p.y / (ay * ay) + p.z * p.z / (az * az);
                 p / q.sqrt()
