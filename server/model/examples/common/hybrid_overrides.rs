@@ -1,7 +1,8 @@
 //! The `hybrid.*` (and material) overrides shared by the hybrid study tools (`hybrid_press`,
 //! `hybrid_bench`): each option replaces one scene value; `apply` checks the result.
 
-use haptic_model::hybrid::{CoreMassScale, CoreStep, ScaledMotion};
+use haptic_model::hybrid::{CoreMassScale, CoreStep, InactiveLayer, ScaledMotion};
+use haptic_model::material::MaterialModel;
 use haptic_model::meshfree::{KernelKind, MeshfreeVariant};
 use haptic_model::scene::Scene;
 
@@ -50,6 +51,18 @@ pub struct HybridOverrides {
     /// `hybrid.release_radius_m` override, m.
     #[arg(long)]
     pub release_radius_m: Option<f64>,
+    /// `hybrid.hourglass_coefficient` override.
+    #[arg(long)]
+    pub hourglass_coefficient: Option<f64>,
+    /// `hybrid.inactive_layer` override: `tied` or `elements`.
+    #[arg(long)]
+    pub inactive_layer: Option<String>,
+    /// `mesh.order` override: element order of the core (1 or 2).
+    #[arg(long)]
+    pub core_order: Option<u8>,
+    /// `material.model` override (e.g. `stvk`, `stable-neo-hookean`).
+    #[arg(long)]
+    pub material_model: Option<String>,
     /// `material.mass_damping_per_s` override (1/s).
     #[arg(long)]
     pub mass_damping_per_s: Option<f64>,
@@ -60,6 +73,10 @@ impl HybridOverrides {
     pub fn apply(&self, scene: &mut Scene) -> anyhow::Result<()> {
         if let Some(a) = self.mass_damping_per_s {
             scene.material.mass_damping_per_s = a;
+        }
+        if let Some(m) = &self.material_model {
+            scene.material.model = MaterialModel::from_scene_name(m)
+                .ok_or_else(|| anyhow::anyhow!("material model {m}: unknown"))?;
         }
         let h = scene
             .hybrid
@@ -110,6 +127,15 @@ impl HybridOverrides {
         }
         if let Some(r) = self.release_radius_m {
             p.release_radius_m = r;
+        }
+        if let Some(c) = self.hourglass_coefficient {
+            p.meshfree.hourglass_coefficient = c;
+        }
+        if let Some(l) = &self.inactive_layer {
+            p.inactive_layer = InactiveLayer::parse(l)?;
+        }
+        if let Some(o) = self.core_order {
+            p.core_order = o;
         }
         p.validate()?;
         Ok(())

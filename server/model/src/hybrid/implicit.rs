@@ -25,16 +25,89 @@
 //! Neighbours: the core's [`FemModel`], the ties and the cloud of [`mod@super::prepare`], the
 //! sparse factor of [`crate::ordering`].
 
-use faer::dyn_stack::MemBuffer;
+use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::SparseColMat;
-use faer::{MatMut, Side};
+use faer::{MatMut, Par, Side};
 use glam::{DMat3, DVec3};
 
 use super::prepare::HybridModel;
 use crate::ModelError;
 use crate::element::FemModel;
 use crate::meshfree::cloud::{MAX_STENCIL, TermRest};
-use crate::ordering::SparseCholesky;
+use crate::ordering::{SparseCholesky, symbolic_cholesky};
+use crate::supernodal::{HalfFactor, SupernodalSolve};
+
+/// The largest relative difference allowed between the half-precision sweep's solve and the
+/// double-precision factor's on a test right-hand side; above it the step keeps faer's solve.
+const HALF_MAX_DEVIATION: f64 = 1e-2;
+
+/// The one-column solve of a matrix that never changes ([`crate::supernodal`]: faer's
+/// supernodal factor swept in panels from half precision, as the FEM family's tick does),
+/// with its single-precision right-hand side.
+struct FrozenSweep {
+    sweep: SupernodalSolve,
+    half: HalfFactor,
+    rhs: Vec<f32>,
+}
+
+impl FrozenSweep {
+    /// The sweep of `matrix` (lower triangle, positive definite) under the ordering of
+    /// `group`, checked against `reference` (its double-precision factor) on a fixed
+    /// pseudo-random right-hand side; `None` for a simplicial factor or a deviation above
+    /// [`HALF_MAX_DEVIATION`].
+    fn new(
+        matrix: &SparseColMat<usize, f64>,
+        group: &[usize],
+        reference: &SparseCholesky,
+    ) -> Result<Option<Self>, ModelError> {
+        let symbolic = symbolic_cholesky(matrix.symbolic(), Side::Lower, group)?;
+        let Some(mut sweep) = SupernodalSolve::new(&symbolic) else {
+            return Ok(None);
+        };
+        let mut values = vec![0.0f64; symbolic.len_val()];
+        let mut mem = MemBuffer::new(
+            symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
+        );
+        symbolic
+            .factorize_numeric_llt::<f64>(
+                &mut values,
+                matrix.as_ref(),
+                Side::Lower,
+                Default::default(),
+                Par::Seq,
+                MemStack::new(&mut mem),
+                Default::default(),
+            )
+            .map_err(|e| {
+                ModelError::InvalidInput(format!("the matrix is not positive definite: {e:?}"))
+            })?;
+        let mut rounded: Vec<f32> = values.iter().map(|&v| v as f32).collect();
+        let Some(half) = sweep.half_factor(&mut rounded) else {
+            return Ok(None);
+        };
+        let n = matrix.nrows();
+        let b: Vec<f64> = (0..n as u64)
+            .map(|i| ((i.wrapping_mul(2_654_435_761) % 1_000) as f64) / 500.0 - 1.0)
+            .collect();
+        let mut exact = b.clone();
+        reference.solve_in_place(MatMut::from_column_major_slice_mut(&mut exact, n, 1));
+        let mut swept: Vec<f32> = b.iter().map(|&v| v as f32).collect();
+        sweep.solve_in_place(&half, &mut swept);
+        let (mut diff, mut norm) = (0.0f64, 0.0f64);
+        for (e, s) in exact.iter().zip(&swept) {
+            diff += (e - f64::from(*s)).powi(2);
+            norm += e * e;
+        }
+        if !(diff.sqrt() <= HALF_MAX_DEVIATION * norm.sqrt()) {
+            return Ok(None);
+        }
+        Ok(Some(Self {
+            sweep,
+            half,
+            rhs: vec![0.0; n],
+        }))
+    }
+}
 
 /// The small-strain stiffness block `K_kl` (3x3, N/m) of an energy `V W(eps)` of isotropic
 /// linear elasticity (`lambda`, `mu`, Pa) whose strain is `eps = sym(sum_k u_k (x) b_k)`:
@@ -87,19 +160,21 @@ impl BlockRows {
 }
 
 /// The core's small-strain stiffness at rest (`lambda`, `mu`) or, with the viscous
-/// coefficients `(2 phi, 2 psi)` in their place, the viscous operator `D`: linear
-/// tetrahedra only.
+/// coefficients `(2 phi, 2 psi)` in their place, the viscous operator `D`, assembled over the
+/// FEM's integration points (linear or quadratic tetrahedra):
+/// `K_ab = sum_q w_q B(g_a(q), g_b(q))` with [`isotropic_block`].
 pub fn core_blocks(fem: &FemModel, lambda_pa: f64, mu_pa: f64) -> BlockRows {
     let mut rows = BlockRows::new(fem.node_count());
-    for (e, tet) in fem.tets().iter().enumerate() {
-        let g = fem.shape_gradients(e);
-        let v = fem.volume_m3()[e];
-        for a in 0..4 {
-            for b in 0..4 {
+    for q in 0..fem.integration_point_count() {
+        let nodes = fem.ip_nodes(q);
+        let g = fem.ip_gradients(q);
+        let w = fem.ip_weight_m3(q);
+        for a in 0..nodes.len() {
+            for b in 0..nodes.len() {
                 rows.add(
-                    tet[a],
-                    tet[b],
-                    isotropic_block(lambda_pa, mu_pa, v, g[a], g[b]),
+                    nodes[a],
+                    nodes[b],
+                    isotropic_block(lambda_pa, mu_pa, w, g[a], g[b]),
                 );
             }
         }
@@ -335,6 +410,8 @@ pub struct ImplicitCore {
     region_index: Vec<u32>,
     region_value: Vec<f64>,
     factor: SparseCholesky,
+    /// The half-precision sweep when the matrix never changes (no layer condensed in it).
+    frozen: Option<FrozenSweep>,
     factor_mem: MemBuffer,
     mem: MemBuffer,
     rhs: Vec<f64>,
@@ -356,17 +433,24 @@ impl ImplicitCore {
     /// Assembles `(1 + alpha h) M + h D + h^2 margin (K_core + K_anchors)` for the core `fem`
     /// (its lumped mass, constraints and material) with the pattern of every region's
     /// condensed stiffness in `layer`, step `h_s` (s), and factorises it with no region
-    /// active.
+    /// active. Without a layer (`inactive_layer = "elements"`: the FEM covers the whole wall
+    /// and stands for the particles' terms) the matrix is `(1 + alpha h) M + h D + h^2 margin
+    /// K_core` and never changes.
     ///
     /// # Errors
     /// [`ModelError::InvalidInput`] when the matrix is not positive definite or its analysis
     /// fails.
     pub fn new(
         fem: &FemModel,
-        layer: &CondensedLayer,
+        layer: Option<&CondensedLayer>,
         h_s: f64,
         margin: f64,
     ) -> Result<Self, ModelError> {
+        let no_regions = CondensedLayer {
+            anchors: BlockRows::new(fem.node_count()),
+            regions: Vec::new(),
+        };
+        let layer = layer.unwrap_or(&no_regions);
         let n = fem.node_count();
         let mat = fem.material();
         let fixed: Vec<bool> = (0..3 * n)
@@ -466,6 +550,14 @@ impl ImplicitCore {
         let mut factor_mem = factor.factor_workspace();
         factor.factor_llt_in(matrix.as_ref(), Side::Lower, &mut factor_mem)?;
         let mem = factor.solve_workspace(1);
+        // A matrix without regions is never refactored: its one-column solve per tick is the
+        // tick's largest cost (faer's general solve, a dense call per supernode), so it goes
+        // through the panel sweep the FEM family uses.
+        let frozen = if layer.regions.is_empty() {
+            FrozenSweep::new(&matrix, &group, &factor)?
+        } else {
+            None
+        };
         Ok(Self {
             h_s,
             margin,
@@ -475,6 +567,7 @@ impl ImplicitCore {
             region_index,
             region_value,
             factor,
+            frozen,
             factor_mem,
             mem,
             rhs: vec![0.0; 3 * n],
@@ -535,10 +628,20 @@ impl ImplicitCore {
             }
         }
         let n = self.rhs.len();
-        self.factor.solve_in_place_with(
-            MatMut::from_column_major_slice_mut(&mut self.rhs, n, 1),
-            &mut self.mem,
-        );
+        if let Some(frozen) = &mut self.frozen {
+            for (s, r) in frozen.rhs.iter_mut().zip(&self.rhs) {
+                *s = *r as f32;
+            }
+            frozen.sweep.solve_in_place(&frozen.half, &mut frozen.rhs);
+            for (r, s) in self.rhs.iter_mut().zip(&frozen.rhs) {
+                *r = f64::from(*s);
+            }
+        } else {
+            self.factor.solve_in_place_with(
+                MatMut::from_column_major_slice_mut(&mut self.rhs, n, 1),
+                &mut self.mem,
+            );
+        }
         let mut max_v2: f64 = 0.0;
         let mut finite = true;
         for (i, (x, v)) in x.iter_mut().zip(v.iter_mut()).enumerate() {
@@ -555,48 +658,53 @@ impl ImplicitCore {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::element::tangent::element_tangent;
+    use crate::element::tangent::cell_tangent_blocks;
     use crate::material::MaterialParams;
     use crate::mesh::generate::box_mesh;
 
     /// The core's assembled small-strain stiffness equals the FEM's own tangent at rest
-    /// (`element_tangent`, the directional derivative of the first Piola-Kirchhoff stress),
-    /// block by block over a 2 x 2 x 2 box.
+    /// (`cell_tangent_blocks`, the directional derivative of the first Piola-Kirchhoff stress
+    /// at each integration point), block by block, over a 2 x 2 x 2 box of linear and of
+    /// quadratic tetrahedra.
     #[test]
     fn core_blocks_are_the_fem_tangent_at_rest() {
-        let mesh = box_mesh(DVec3::new(0.02, 0.01, 0.015), [2, 2, 2]);
-        let material = MaterialParams::from_youngs(14_500.0, 0.45, 1060.0);
-        let fem = FemModel::new(&mesh, material).expect("model");
-        let rows = core_blocks(&fem, material.lambda_pa, material.mu_pa);
-        let mut reference = BlockRows::new(fem.node_count());
-        for (e, tet) in fem.tets().iter().enumerate() {
-            let k = element_tangent(&fem, e, fem.rest());
-            for a in 0..4 {
-                for b in 0..4 {
-                    reference.add(tet[a], tet[b], k[a][b]);
+        let linear = box_mesh(DVec3::new(0.02, 0.01, 0.015), [2, 2, 2]);
+        for mesh in [linear.clone(), linear.to_quadratic()] {
+            let material = MaterialParams::from_youngs(14_500.0, 0.45, 1060.0);
+            let fem = FemModel::new(&mesh, material).expect("model");
+            let rows = core_blocks(&fem, material.lambda_pa, material.mu_pa);
+            let mut reference = BlockRows::new(fem.node_count());
+            let mut blocks = Vec::new();
+            for c in 0..fem.cell_count() {
+                cell_tangent_blocks(&fem, c, fem.rest(), &mut blocks);
+                let nodes = fem.cell_nodes(c);
+                for (a, &na) in nodes.iter().enumerate() {
+                    for (b, &nb) in nodes.iter().enumerate() {
+                        reference.add(na, nb, blocks[a * nodes.len() + b]);
+                    }
                 }
             }
-        }
-        let scale = rows
-            .row(0)
-            .iter()
-            .map(|(_, m)| m.abs().to_cols_array().into_iter().fold(0.0, f64::max))
-            .fold(0.0, f64::max);
-        assert!(scale > 0.0);
-        for k in 0..fem.node_count() {
-            assert_eq!(rows.row(k).len(), reference.row(k).len(), "row {k}");
-            for (l, m) in rows.row(k) {
-                let (_, r) = reference
-                    .row(k)
-                    .iter()
-                    .find(|(c, _)| c == l)
-                    .expect("same pattern");
-                let diff = (*m - *r)
-                    .abs()
-                    .to_cols_array()
-                    .into_iter()
-                    .fold(0.0, f64::max);
-                assert!(diff < 1e-12 * scale, "block ({k}, {l}): {m} against {r}");
+            let scale = rows
+                .row(0)
+                .iter()
+                .map(|(_, m)| m.abs().to_cols_array().into_iter().fold(0.0, f64::max))
+                .fold(0.0, f64::max);
+            assert!(scale > 0.0);
+            for k in 0..fem.node_count() {
+                assert_eq!(rows.row(k).len(), reference.row(k).len(), "row {k}");
+                for (l, m) in rows.row(k) {
+                    let (_, r) = reference
+                        .row(k)
+                        .iter()
+                        .find(|(c, _)| c == l)
+                        .expect("same pattern");
+                    let diff = (*m - *r)
+                        .abs()
+                        .to_cols_array()
+                        .into_iter()
+                        .fold(0.0, f64::max);
+                    assert!(diff < 1e-10 * scale, "block ({k}, {l}): {m} against {r}");
+                }
             }
         }
     }

@@ -6,7 +6,9 @@
 //! - [`mod@prepare`]: preprocessing: the core mesh, the outer surface, the particle lattice, the
 //!   ties of every particle and outer vertex to the core, the per-vertex particle regions.
 //! - [`body`]: [`HybridBody`], the family's [`crate::body::SoftBody`]: activation, coupling,
-//!   the probe, time stepping.
+//!   time stepping; [`proxy`]: the probe (proxy sphere and virtual coupling); [`layer`]: the
+//!   elements' and the particles' shares of the wall's energy
+//!   (`inactive_layer = "elements"`); [`implicit`]: the core's linearly implicit step.
 //!
 //! **Geometry.** The built-in hybrid scenes are shells of revolution between two ellipsoids
 //! (the seeds' "region between two concentric ellipsoids", section 6), optionally truncated at a
@@ -31,13 +33,17 @@
 
 pub mod body;
 pub mod implicit;
+pub mod layer;
 pub mod prepare;
+pub mod proxy;
 
 use glam::DVec3;
 
 pub use body::{EigenEstimate, HybridBody};
 pub use implicit::ImplicitCore;
+pub use layer::LayerElements;
 pub use prepare::{HybridModel, prepare};
+pub use proxy::ParticleProxy;
 
 use crate::ModelError;
 use crate::meshfree::MeshfreeParams;
@@ -106,6 +112,12 @@ pub struct HybridParams {
     pub scaled_motion: ScaledMotion,
     /// How the core steps ([`CoreStep`]).
     pub core_step: CoreStep,
+    /// What carries the stiffness of the particle layer where no particle is simulated
+    /// ([`InactiveLayer`]).
+    pub inactive_layer: InactiveLayer,
+    /// Element order of the FEM (`mesh.order`): 1 (linear tetrahedra) or 2 (curved 10-node
+    /// tetrahedra, with `inactive_layer = "elements"` only).
+    pub core_order: u8,
     /// Fraction of the critical step used, in (0, 1].
     pub safety_factor: f64,
     /// Most sub-steps per servo tick.
@@ -181,6 +193,56 @@ impl std::fmt::Display for ScaledMotion {
         f.write_str(match self {
             Self::Absolute => "absolute",
             Self::Deviation => "deviation",
+        })
+    }
+}
+
+/// What carries the stiffness of the particle layer where its particles are not simulated
+/// (`hybrid.inactive_layer`).
+///
+/// The seed (section 6) simulates the particles near the contact only; the others follow the
+/// core by interpolation, at no cost and without their stiffness. With a core converged under
+/// refinement that leaves the wall 30-40 % soft away from the probe (`docs/accuracy.md`, "The
+/// hybrid's static force rests on its coarse core").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum InactiveLayer {
+    /// `"tied"`: the seed's model. The FEM core is the inner `core_fraction` of the wall; every
+    /// particle is tied to the core tetrahedron nearest to it (extrapolating its affine map)
+    /// and adds no stiffness while inactive.
+    #[default]
+    Tied,
+    /// `"elements"` (not in the seed): the FEM covers the whole wall (its elements outside
+    /// `core_fraction` are the *layer elements*), every particle lies in an element and follows
+    /// its interpolation (continuous across the elements), and each element's energy counts in
+    /// proportion to the share of its particles whose meshfree terms are not simulated: where
+    /// the particles are active their terms take over the elements' energy, elsewhere the
+    /// elements carry it (a partition of the wall's energy between the two discretisations).
+    Elements,
+}
+
+impl InactiveLayer {
+    /// Parses `"tied"` or `"elements"`.
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] naming `hybrid.inactive_layer` for anything else.
+    pub fn parse(text: &str) -> Result<Self, ModelError> {
+        match text.trim() {
+            "tied" => Ok(Self::Tied),
+            "elements" => Ok(Self::Elements),
+            t => Err(ModelError::field(
+                "hybrid.inactive_layer",
+                format!("must be \"tied\" or \"elements\", got {t:?}"),
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for InactiveLayer {
+    /// As the scene writes it.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Tied => "tied",
+            Self::Elements => "elements",
         })
     }
 }
@@ -280,6 +342,8 @@ impl Default for HybridParams {
             core_mass_scale: CoreMassScale::Uniform,
             scaled_motion: ScaledMotion::Absolute,
             core_step: CoreStep::Explicit,
+            inactive_layer: InactiveLayer::Tied,
+            core_order: 1,
             safety_factor: 0.9,
             max_substeps: 200,
         }
@@ -354,6 +418,23 @@ impl HybridParams {
                 "hybrid.core_stiffness_margin",
                 format!("must be in [1, 100], got {margin}"),
             ));
+        }
+        match (self.inactive_layer, self.core_order) {
+            (InactiveLayer::Elements, 1 | 2) | (InactiveLayer::Tied, 1) => {}
+            (InactiveLayer::Tied, o) => {
+                return Err(ModelError::field(
+                    "mesh.order",
+                    format!(
+                        "the hybrid core with hybrid.inactive_layer = \"tied\" uses linear tetrahedra (order = 1), got {o}"
+                    ),
+                ));
+            }
+            (InactiveLayer::Elements, o) => {
+                return Err(ModelError::field(
+                    "mesh.order",
+                    format!("must be 1 or 2, got {o}"),
+                ));
+            }
         }
         if !(self.safety_factor > 0.0 && self.safety_factor <= 1.0) {
             return Err(ModelError::field(

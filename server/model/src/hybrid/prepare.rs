@@ -23,20 +23,63 @@
 
 use glam::{DMat3, DVec3};
 
-use super::{HybridParams, ShellGeometry};
+use super::{HybridParams, InactiveLayer, ShellGeometry};
 use crate::ModelError;
 use crate::material::{MaterialModel, MaterialParams};
-use crate::mesh::TetMesh;
-use crate::mesh::generate::truncated_ellipsoid_shell;
+use crate::mesh::generate::{truncated_ellipsoid_shell, truncated_ellipsoid_shell_quadratic};
+use crate::mesh::{TET_EDGES, TetMesh};
 use crate::meshfree::{Lattice, MeshfreeVariant, ParticleCloud, TermBlock, critical_time_step};
 
-/// A particle's or vertex's tie to the core: tetrahedron and barycentric weights (sum 1).
+/// A particle's or vertex's tie to the core: tetrahedron and its barycentric (reference)
+/// coordinates (sum 1). For a linear core they are the weights of the tetrahedron's four
+/// nodes; for a quadratic one the ten quadratic shape functions are evaluated at them
+/// ([`HybridModel::tie_nodes`]).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Tie {
     /// Core tetrahedron.
     pub tet: u32,
-    /// Weights of its four nodes.
+    /// Barycentric coordinates in it.
     pub w: [f64; 4],
+}
+
+/// Most core nodes of one tie (a quadratic tetrahedron's ten).
+pub const MAX_TIE_NODES: usize = 10;
+
+/// A tie expanded to its core nodes and their weights (`sum_k w_k x_k`; weights sum to 1);
+/// entries past `len` are zero.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct TieNodes {
+    /// Core nodes.
+    pub nodes: [u32; MAX_TIE_NODES],
+    /// Their weights.
+    pub w: [f64; MAX_TIE_NODES],
+    /// Number of nodes: 4 or 10.
+    pub len: usize,
+}
+
+impl TieNodes {
+    /// `sum_k w_k x_k`.
+    #[inline]
+    pub fn interpolate(&self, x: &[DVec3]) -> DVec3 {
+        let mut p = DVec3::ZERO;
+        for k in 0..self.len {
+            p += x[self.nodes[k] as usize] * self.w[k];
+        }
+        p
+    }
+}
+
+/// The ten quadratic shape functions at barycentric coordinates `l` (corners, then the mid-edge
+/// nodes in the order of [`TET_EDGES`]).
+pub fn quadratic_shape(l: [f64; 4]) -> [f64; 10] {
+    let mut n = [0.0; 10];
+    for i in 0..4 {
+        n[i] = l[i] * (2.0 * l[i] - 1.0);
+    }
+    for (k, [i, j]) in TET_EDGES.iter().enumerate() {
+        n[4 + k] = 4.0 * l[*i] * l[*j];
+    }
+    n
 }
 
 /// The preprocessed hybrid model (module documentation). Particles `0..layer_count` are layer
@@ -47,7 +90,8 @@ pub struct HybridModel {
     pub params: HybridParams,
     /// Geometry of the wall.
     pub geometry: ShellGeometry,
-    /// The core mesh (surfaces `INNER`, `OUTER`, `BASE` when truncated).
+    /// The FEM mesh (surfaces `INNER`, `OUTER`, `BASE` when truncated): the inner
+    /// `core_fraction` of the wall, or with `inactive_layer = "elements"` the whole wall.
     pub core_mesh: TetMesh,
     /// The particles.
     pub cloud: ParticleCloud,
@@ -79,8 +123,44 @@ pub struct HybridModel {
 }
 
 impl HybridModel {
+    /// The core nodes and weights of `tie` (module documentation of [`super`]).
+    #[inline]
+    pub fn tie_nodes(&self, tie: &Tie) -> TieNodes {
+        let mesh = &self.core_mesh;
+        let t = mesh.tets[tie.tet as usize];
+        let mut out = TieNodes::default();
+        if mesh.is_quadratic() {
+            let e = mesh.tet_edge_nodes[tie.tet as usize];
+            out.nodes[..4].copy_from_slice(&t);
+            out.nodes[4..].copy_from_slice(&e);
+            out.w = quadratic_shape(tie.w);
+            out.len = 10;
+        } else {
+            out.nodes[..4].copy_from_slice(&t);
+            out.w[..4].copy_from_slice(&tie.w);
+            out.len = 4;
+        }
+        out
+    }
+
+    /// `sum_k w_k x_k` over `tie` for the core positions `x` (m).
+    #[inline]
+    pub fn interpolate(&self, tie: &Tie, x: &[DVec3]) -> DVec3 {
+        self.tie_nodes(tie).interpolate(x)
+    }
+
+    /// Particles (layer and anchors) tied to each core tetrahedron.
+    pub fn particles_per_element(&self) -> Vec<u32> {
+        let mut n = vec![0u32; self.core_mesh.tets.len()];
+        for t in &self.particle_tie {
+            n[t.tet as usize] += 1;
+        }
+        n
+    }
+
     /// The layer particles' mass carried by each core node, kg (length: core nodes; unit mass
-    /// scale): each layer particle's mass (`density spacing^3`) spread over its tie's four
+    /// scale), for `inactive_layer = "tied"` (a core that covers the whole wall carries it as
+    /// its own lumped mass): each layer particle's mass (`density spacing^3`) spread over its tie's four
     /// nodes in proportion to the tie weights (negative weights of a tie extrapolated past its
     /// tetrahedron count as zero, the rest renormalised, so every share is non-negative and
     /// the total is the layer's mass). Inactive particles follow the core, so this is where
@@ -162,14 +242,28 @@ pub fn prepare(
     }
     let f = params.core_fraction;
     let s = params.meshfree.spacing_m;
-    // 1. Core.
+    // 1. Core: the inner part of the wall, or the whole wall when elements carry the
+    // inactive layer.
     progress("core mesh", 0.0);
-    let mut core_mesh = truncated_ellipsoid_shell(
-        geometry.inner_m,
-        geometry.axes(f),
-        geometry.z_cut_m,
-        core_target_tets,
-    );
+    let core_outer = match params.inactive_layer {
+        InactiveLayer::Tied => geometry.axes(f),
+        InactiveLayer::Elements => geometry.outer_m,
+    };
+    let mut core_mesh = if params.core_order == 2 {
+        truncated_ellipsoid_shell_quadratic(
+            geometry.inner_m,
+            core_outer,
+            geometry.z_cut_m,
+            core_target_tets,
+        )
+    } else {
+        truncated_ellipsoid_shell(
+            geometry.inner_m,
+            core_outer,
+            geometry.z_cut_m,
+            core_target_tets,
+        )
+    };
     core_mesh.orient_and_check()?;
     // 2. Outer surface.
     progress("outer surface", 0.05);
@@ -271,6 +365,18 @@ pub fn prepare(
             }
         }
     }
+    if params.inactive_layer == InactiveLayer::Elements {
+        // Every lattice point of the core is an anchor: the lattice then covers every element,
+        // and an element's share replaced by the block's terms is the share of its particles
+        // in the block ([`super::layer`]). Anchors cost memory only: they are evaluated when
+        // next to an active particle.
+        for (c, anchor) in is_anchor.iter_mut().enumerate() {
+            if !*anchor && geometry.contains(lattice.position(lattice.cell(c)), 0.0, f) {
+                *anchor = true;
+                anchor_cells.push(c as u32);
+            }
+        }
+    }
     drop(is_anchor);
     anchor_cells.sort_unstable();
     let mut cells = layer_cells;
@@ -283,15 +389,16 @@ pub fn prepare(
         &core_mesh,
         (geometry.outer_m - geometry.inner_m).max_element(),
     );
-    let particle_tie: Vec<Tie> = cloud
-        .rest_m()
-        .iter()
-        .map(|&p| locator.tie(fem_rest, &core_mesh.tets, p))
-        .collect();
-    let vertex_tie: Vec<Tie> = outer_rest_m
-        .iter()
-        .map(|&p| locator.tie(fem_rest, &core_mesh.tets, p))
-        .collect();
+    let tie = |p: DVec3| {
+        let t = locator.tie(fem_rest, &core_mesh.tets, p);
+        if core_mesh.is_quadratic() {
+            curved_tie(&core_mesh, t, p)
+        } else {
+            t
+        }
+    };
+    let particle_tie: Vec<Tie> = cloud.rest_m().iter().map(|&p| tie(p)).collect();
+    let vertex_tie: Vec<Tie> = outer_rest_m.iter().map(|&p| tie(p)).collect();
     progress("ties", 0.55);
     // Degenerate neighbourhoods (corrected variant only).
     let mut degenerate = vec![false; cloud.len()];
@@ -378,6 +485,63 @@ pub fn prepare(
         particle_dt_s,
         largest_region,
     })
+}
+
+/// The reference (barycentric) coordinates of `p` in the curved quadratic tetrahedron of `t`
+/// (whose straight tetrahedron's coordinates `t.w` start the iteration): Newton on
+/// `sum_k N_k(l) X_k = p`, a few iterations (the elements are nearly straight). Falls back to
+/// `t` when it does not converge.
+fn curved_tie(mesh: &TetMesh, t: Tie, p: DVec3) -> Tie {
+    let corners = mesh.tets[t.tet as usize];
+    let mids = mesh.tet_edge_nodes[t.tet as usize];
+    let node = |k: usize| {
+        if k < 4 {
+            mesh.nodes[corners[k] as usize]
+        } else {
+            mesh.nodes[mids[k - 4] as usize]
+        }
+    };
+    let map = |l: [f64; 4]| -> DVec3 {
+        let n = quadratic_shape(l);
+        (0..10).map(|k| node(k) * n[k]).sum()
+    };
+    // dx/d(l_1, l_2, l_3) with l_0 = 1 - l_1 - l_2 - l_3.
+    let jacobian = |l: [f64; 4]| -> DMat3 {
+        let mut cols = [DVec3::ZERO; 3];
+        // dN/dl_i of each shape function, then the chain rule through l_0.
+        let mut dn = [[0.0; 4]; 10];
+        for i in 0..4 {
+            dn[i][i] = 4.0 * l[i] - 1.0;
+        }
+        for (k, [i, j]) in TET_EDGES.iter().enumerate() {
+            dn[4 + k][*i] = 4.0 * l[*j];
+            dn[4 + k][*j] = 4.0 * l[*i];
+        }
+        for (c, col) in cols.iter_mut().enumerate() {
+            for (k, d) in dn.iter().enumerate() {
+                *col += node(k) * (d[c + 1] - d[0]);
+            }
+        }
+        DMat3::from_cols(cols[0], cols[1], cols[2])
+    };
+    let mut l = t.w;
+    let scale = (node(1) - node(0)).length();
+    for _ in 0..20 {
+        let r = p - map(l);
+        if r.length() < 1e-12 * scale {
+            return Tie { tet: t.tet, w: l };
+        }
+        let d = jacobian(l).inverse() * r;
+        if !d.is_finite() {
+            break;
+        }
+        l = [l[0] - d.x - d.y - d.z, l[1] + d.x, l[2] + d.y, l[3] + d.z];
+    }
+    if (p - map(l)).length() < 1e-9 * scale {
+        Tie { tet: t.tet, w: l }
+    } else {
+        t
+    }
 }
 
 /// Barycentric weights of `p` in the tetrahedron `t` (rest positions `x`).

@@ -285,7 +285,7 @@ pub fn hemisphere_surface(radius_m: f64, edge_m: f64) -> TetMesh {
 }
 
 /// Moves the mid-edge nodes of the named surfaces of a quadratic shell (centred at the origin)
-/// onto their ellipsoids `(x^2 + y^2) / a^2 + z^2 / c^2 = 1` (semi-axes `(a, a, c)`), by
+/// onto their ellipsoids `x^2 / a^2 + y^2 / b^2 + z^2 / c^2 = 1` (semi-axes `(a, b, c)`), by
 /// scaling from the origin; an edge on the cut plane `z = z_cut` is scaled in that plane.
 fn curve_shell_edges(mesh: &mut TetMesh, surfaces: &[(&str, DVec3)], z_cut: Option<f64>) {
     use std::collections::HashMap;
@@ -314,13 +314,24 @@ fn curve_shell_edges(mesh: &mut TetMesh, surfaces: &[(&str, DVec3)], z_cut: Opti
             let p = mesh.nodes[m as usize];
             let on_cut =
                 z_cut.is_some_and(|z| (pa.z - z).abs() < 1e-12 && (pb.z - z).abs() < 1e-12);
-            mesh.nodes[m as usize] = if on_cut {
+            let (ax, ay, az) = (axes.x, axes.y, axes.z);
+            // Rotationally symmetric shells (a = b) keep the expressions they were built with
+            // before ellipsoids with a != b (the same nodes to the last bit).
+            mesh.nodes[m as usize] = if on_cut && ax == ay {
                 // In the plane: the ring of radius a sqrt(1 - z^2 / c^2).
-                let rho = axes.x * (1.0 - p.z * p.z / (axes.z * axes.z)).max(0.0).sqrt();
+                let rho = ax * (1.0 - p.z * p.z / (az * az)).max(0.0).sqrt();
                 let r = (p.x * p.x + p.y * p.y).sqrt();
                 DVec3::new(p.x * rho / r, p.y * rho / r, p.z)
+            } else if on_cut {
+                // In the plane: the ellipse x^2 / a^2 + y^2 / b^2 = 1 - z^2 / c^2.
+                let rim = (1.0 - p.z * p.z / (az * az)).max(0.0);
+                let q = (p.x * p.x / (ax * ax) + p.y * p.y / (ay * ay)) / rim;
+                DVec3::new(p.x / q.sqrt(), p.y / q.sqrt(), p.z)
+            } else if ax == ay {
+                let q = (p.x * p.x + p.y * p.y) / (ax * ax) + p.z * p.z / (az * az);
+                p / q.sqrt()
             } else {
-                let q = (p.x * p.x + p.y * p.y) / (axes.x * axes.x) + p.z * p.z / (axes.z * axes.z);
+                let q = p.x * p.x / (ax * ax) + p.y * p.y / (ay * ay) + p.z * p.z / (az * az);
                 p / q.sqrt()
             };
         }
@@ -402,6 +413,23 @@ pub fn truncated_ellipsoid_shell(
     };
     let shell = revolution_shell(&profile, target_tets);
     shell.classify("INNER", "OUTER", z_cut.map(|_| "BASE"))
+}
+
+/// [`truncated_ellipsoid_shell`] with curved quadratic (10-node) elements: the mid-edge nodes
+/// on `INNER` and `OUTER` lie on the ellipsoids (see [`lv_shell_quadratic`]); the hybrid
+/// model's FEM with `hybrid.inactive_layer = "elements"` and `mesh.order = 2`.
+///
+/// # Panics
+/// As [`truncated_ellipsoid_shell`].
+pub fn truncated_ellipsoid_shell_quadratic(
+    inner: DVec3,
+    outer: DVec3,
+    z_cut: Option<f64>,
+    target_tets: usize,
+) -> TetMesh {
+    let mut mesh = truncated_ellipsoid_shell(inner, outer, z_cut, target_tets).to_quadratic();
+    curve_shell_edges(&mut mesh, &[("INNER", inner), ("OUTER", outer)], z_cut);
+    mesh
 }
 
 /// Thick-walled hollow sphere centred at the origin (the Lamé problem), in metres.

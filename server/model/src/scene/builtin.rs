@@ -169,14 +169,15 @@ max_force_n = 10.0
 /// Built-in scene `lv-hybrid`: the seeds' hybrid model on the LV geometry.
 const LV_HYBRID_TOML: &str = r#"# Built-in scene "lv-hybrid" (a copy of the constant in server/model/src/scene/builtin.rs).
 name = "lv-hybrid"
-description = "The seeds' hybrid model (Mero & Susin 2006, sections 4-6) on the idealized LV of the built-in lv scene: a coarse FEM core (inner 35 % of the wall, about 500 linear tets, base clamped) and a layer of about 130 000 meshfree particles (corrected variant) between the core and the epicardium, simulated only in the regions under the probe. Material of the lv scene (E = 14.5 kPa, nu = 0.45). Ours, not in the seed: the active particles' deviation from the core's interpolation weighs mass_scale = 10000 (one explicit sub-step per 1 ms tick), and the core, at its real inertia, steps implicitly."
+description = "The seeds' hybrid model (Mero & Susin 2006, sections 4-6) on the idealized LV of the built-in lv scene: an FEM of the whole wall (about 950 curved quadratic tets, base clamped) and about 130 000 meshfree particles (corrected variant) in its outer 65 %, simulated only in the regions under the probe; there their terms take over the elements' energy, elsewhere the elements carry the layer's stiffness. The probe is a proxy sphere on the particles with the virtual coupling. Material of the lv scene (E = 14.5 kPa, nu = 0.45). Ours, not in the seed: the elements under the layer, the proxy, the active particles' deviation from the FEM's interpolation weighing mass_scale = 10000 (one explicit sub-step per 1 ms tick), and the FEM, at its real inertia, stepping implicitly."
 
 [model]
 family = "hybrid"
 
 [mesh]
 builtin = "lv"
-target_tets = 500       # the FEM core
+target_tets = 1000      # the FEM of the whole wall: 948 tets
+order = 2               # curved 10-node tets (linear ones lock: +40 % at 1 500)
 length_unit = "mm"      # unit for reports; the built-in geometry is fixed
 
 [material]
@@ -199,32 +200,34 @@ variant = "corrected"           # or "seed" (the paper's kernel and gradient)
 spacing_m = 0.00026             # lattice spacing of the particles
 smoothing_ratio = 1.0           # h / spacing: 26 neighbours
 hourglass_coefficient = 0.5
-core_fraction = 0.35            # share of the wall thickness in the FEM core
+core_fraction = 0.35            # the particles fill the wall outside its inner 35 %
+inactive_layer = "elements"     # the FEM's elements carry the layer where no particle is
+                                # simulated ("tied": the seed, no stiffness there)
 surface_target_tets = 12000     # resolution of the outer surface (per-vertex particle regions)
-activation_radius_m = 0.003     # 1 mm beyond the probe: a 1 mm press activates about 1 300
-                                # particles, leaving room under the cap for a slide
-release_radius_m = 0.005
+activation_radius_m = 0.004     # 2 mm beyond the probe: a 1 mm press activates about 3 500
+release_radius_m = 0.006
 release_tolerance_m = 0.00002
-max_active_particles = 2000
-contact_stiffness_n_per_m = 16.0 # probe-particle penalty, per particle (static force within 1 % of the hard-contact limit)
+max_active_particles = 6000
+contact_stiffness_n_per_m = 16.0 # probe-particle penalty, per particle (in series with the coupling)
 mass_scale = 10000.0             # on the active particles' deviations: 1 sub-step per tick
-scaled_motion = "deviation"      # only the deviation from the core's interpolation is heavier;
-                                 # "absolute": the particles' whole motion (docs/scenes.md)
-core_step = "implicit"           # the core's linearly implicit step, matrix frozen at rest
-core_stiffness_margin = 4.0      # (core and condensed layer stiffness) x 4 in that matrix
+scaled_motion = "deviation"      # only the deviation from the FEM's interpolation is heavier
+core_step = "implicit"           # the FEM's linearly implicit step, matrix frozen at rest
+core_stiffness_margin = 10.0     # 10 x the FEM's rest stiffness in that matrix: the particles'
+                                 # penalty on its nodes stays explicit (4 chattered at 3 mm)
 core_mass_scale = "auto"         # with the implicit core: 1, the body's real inertia
 safety_factor = 0.9
 max_substeps = 64
 
 [probe]
 radius_m = 0.002
+coupling_stiffness_n_per_m = 300.0 # the proxy's virtual coupling, as the lv scene's
 max_force_n = 10.0
 "#;
 
 /// Built-in scene `ellipsoids-hybrid`: the seeds' Hybrid Model setting (Table 1).
 const ELLIPSOIDS_HYBRID_TOML: &str = r#"# Built-in scene "ellipsoids-hybrid" (a copy of the constant in server/model/src/scene/builtin.rs).
 name = "ellipsoids-hybrid"
-description = "The seeds' Hybrid Model setting (Mero & Susin 2006, Table 1): lambda = 5.0, mu = 2.0, phi = psi = 9e-5 (read as kPa and kPa s, as in the ellipsoids scene), a 188-tet FEM core (the inner 40 % of the ellipsoidal wall 6x6x12 to 10x10x16 mm, bottom pole clamped) and about 27 000 particles at 0.5 mm (seed variant: the paper's cone kernel, uncorrected gradient, Verlet), of which the regions under the probe are simulated. mass_scale = 100 is ours (not in the seed)."
+description = "The seeds' Hybrid Model setting (Mero & Susin 2006, Table 1): lambda = 5.0, mu = 2.0, phi = psi = 9e-5 (read as kPa and kPa s, as in the ellipsoids scene) on the ellipsoidal wall 6x6x12 to 10x10x16 mm (bottom pole clamped): about 27 000 particles at 0.5 mm in the outer 60 % of the wall, simulated in the regions under the probe, over an FEM of the whole wall (about 400 curved quadratic tets) that carries the layer's stiffness elsewhere. Ours, not in the seed: the corrected meshfree variant (the seed's softens and loses monotony past 3 mm), the elements under the layer, the proxy sphere with the virtual coupling, the deviation mass (mass_scale = 10000) and the implicit FEM step (the seed's variant and layer: variant = \"seed\", inactive_layer = \"tied\", docs/scenes.md)."
 
 [model]
 family = "hybrid"
@@ -234,7 +237,8 @@ builtin = "ellipsoids"
 length_unit = "mm"
 inner_semi_axes = [6.0, 6.0, 12.0]
 outer_semi_axes = [10.0, 10.0, 16.0]
-target_tets = 188
+target_tets = 400       # the FEM of the whole wall (the seed's core had 188 linear tets)
+order = 2
 
 [material]
 lambda_pa = 5000.0
@@ -252,17 +256,22 @@ touchable = ["OUTER"]   # the hybrid body's outer surface is the outer ellipsoid
 tick_s = 0.001
 
 [hybrid]
-variant = "seed"
+variant = "corrected"
 spacing_m = 0.0005
 smoothing_ratio = 1.0
 core_fraction = 0.4
+inactive_layer = "elements"
 surface_target_tets = 8000
 activation_radius_m = 0.0035
 release_radius_m = 0.005
 release_tolerance_m = 0.00002
-max_active_particles = 1000
+max_active_particles = 2000
 contact_stiffness_n_per_m = 2.0
-mass_scale = 100.0
+mass_scale = 10000.0
+scaled_motion = "deviation"
+core_step = "implicit"
+core_stiffness_margin = 10.0
+core_mass_scale = "auto"
 safety_factor = 0.9
 max_substeps = 64
 

@@ -11,7 +11,9 @@ use super::{HybridScene, MassSpringScene, ModelFamily, Scene, TableState};
 use crate::ModelError;
 use crate::contact::{ContactModel, ProbeParams};
 use crate::element::StrainSmoothing;
-use crate::hybrid::{CoreMassScale, CoreStep, HybridParams, ScaledMotion, ShellGeometry};
+use crate::hybrid::{
+    CoreMassScale, CoreStep, HybridParams, InactiveLayer, ScaledMotion, ShellGeometry,
+};
 use crate::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
 use crate::integrate::{IntegratorKind, IntegratorParams, LinearSolver};
 use crate::loads::{PointForce, PressureLoad, SceneLoads};
@@ -67,6 +69,7 @@ struct RawHybrid {
     scaled_motion: Option<String>,
     core_step: Option<String>,
     core_stiffness_margin: Option<f64>,
+    inactive_layer: Option<String>,
     safety_factor: Option<f64>,
     max_substeps: Option<i64>,
 }
@@ -712,13 +715,20 @@ fn build_hybrid(h: &RawHybrid, mesh: &RawMesh, unit_m: f64) -> Result<HybridScen
             ));
         }
     };
-    if mesh.order.unwrap_or(1) != 1 {
-        return Err(ModelError::field(
-            "mesh.order",
-            "the hybrid core uses linear tetrahedra (order = 1)",
-        ));
-    }
     let d = HybridParams::default();
+    let inactive_layer = h
+        .inactive_layer
+        .as_deref()
+        .map_or(Ok(d.inactive_layer), InactiveLayer::parse)?;
+    let core_order = match mesh.order.unwrap_or(1) {
+        o @ (1 | 2) => o as u8,
+        o => {
+            return Err(ModelError::field(
+                "mesh.order",
+                format!("must be 1 or 2, got {o}"),
+            ));
+        }
+    };
     let variant = match h.variant.as_deref() {
         None => MeshfreeVariant::default(),
         Some(v) => MeshfreeVariant::from_name(v).ok_or_else(|| {
@@ -789,6 +799,8 @@ fn build_hybrid(h: &RawHybrid, mesh: &RawMesh, unit_m: f64) -> Result<HybridScen
             h.core_step.as_deref().unwrap_or("explicit"),
             h.core_stiffness_margin,
         )?,
+        inactive_layer,
+        core_order,
         safety_factor: h.safety_factor.unwrap_or(d.safety_factor),
         max_substeps: opt_int(
             "hybrid.max_substeps",

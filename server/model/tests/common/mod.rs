@@ -53,6 +53,37 @@ pub fn lv_hybrid_model(
     (model, clamped, scene)
 }
 
+/// [`lv_hybrid_model`] in the configuration `lv-hybrid` had until 2026-11-26 (the seed's layer:
+/// `inactive_layer = "tied"`, a 519-tetrahedron linear core of the inner 35 % of the wall,
+/// regions activated within 3 mm, at most 2 000 active, core stiffness margin 4), then `edit`.
+pub fn lv_hybrid_tied_model(
+    edit: impl FnOnce(&mut haptic_model::hybrid::HybridParams),
+) -> (
+    haptic_model::hybrid::HybridModel,
+    Vec<u32>,
+    haptic_model::scene::Scene,
+) {
+    let mut scene = haptic_model::scene::load_builtin("lv-hybrid").expect("lv-hybrid");
+    let h = scene.hybrid.as_mut().expect("a hybrid scene");
+    h.core_target_tets = 500;
+    seed_layer(&mut h.params);
+    edit(&mut h.params);
+    let model = haptic_model::prepare_hybrid(&scene, &mut |_, _| {}).expect("prepare");
+    let clamped = model.clamped_core_nodes();
+    (model, clamped, scene)
+}
+
+/// The `lv-hybrid` parameters of [`lv_hybrid_tied_model`] (the core's size is the scene's
+/// `mesh.target_tets`, 500 there).
+pub fn seed_layer(p: &mut haptic_model::hybrid::HybridParams) {
+    p.inactive_layer = haptic_model::hybrid::InactiveLayer::Tied;
+    p.core_order = 1;
+    p.activation_radius_m = 3e-3;
+    p.release_radius_m = 5e-3;
+    p.max_active_particles = 2000;
+    p.core_step = haptic_model::hybrid::CoreStep::Implicit { margin: 4.0 };
+}
+
 /// The force just-noticeable difference (relative), the bound on a force jump when the hybrid
 /// body's active set changes (issue 13).
 pub const FORCE_JND: f64 = 0.07;
