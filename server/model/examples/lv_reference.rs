@@ -338,8 +338,9 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
          # device: D = s + F_x / (300 N/m)), depth (mm), the extrapolated force magnitude (N),\n\
          # its uncertainty (Roache's GCI, N), the observed order of the three finest levels\n\
          # (empty: changes not monotone and shrinking, or an order outside 0.2-10; the finest\n\
-         # level's value with the spread of the three finest as its uncertainty), the order of the three levels before, then each level's force\n\
-         # (N) in columns f_h<size under the probe, mm>_n, coarse to fine (empty: not solved).\n",
+         # level's value with the spread of the three finest as its uncertainty), the order of\n\
+         # the three levels before, then each level's force (N) in columns\n\
+         # f_h<size under the probe, mm>_n, coarse to fine (empty: not solved).\n",
     );
     write!(
         csv,
