@@ -1,6 +1,6 @@
-//! The converged rigid-sphere reference of the `lv-probe` press (docs/accuracy.md, "The
-//! sphere reference on five nested levels"), in two steps that
-//! `server/model/examples/lv_sphere_reference.sh` runs:
+//! The rigid-sphere reference of the `lv-probe` press (docs/accuracy.md, "The sphere reference
+//! on four refined levels"), in two steps that
+//! `server/model/examples/lv_reference.sh` runs:
 //!
 //! - `solve`: one mesh level. The idealized LV of `../shared/data/lv/README.md` meshed by Gmsh
 //!   as a half model (`lv_probe_half.geo`: y >= 0, groups ENDO, EPI, BASE, SYM; mm), made
@@ -330,13 +330,17 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
     keys.dedup();
     let mut csv = String::from(
         "# The rigid-sphere reference of the lv-probe press (server/model/examples/lv_reference.rs,\n\
-         # written by server/model/examples/lv_sphere_reference.sh): material, depth convention\n\
+         # written by server/model/examples/lv_reference.sh). A self-convergence check of our own\n\
+         # solver over the levels below (cross-checked by research/, scikit-fem: docs/accuracy.md);\n\
+         # where the observed orders are empty or differ between the two triples the band is\n\
+         # not a demonstrated bound. Columns: material, depth convention\n\
          # (sphere: the sphere's travel from the analytic epicardium, centre x = 11.682458 mm;\n\
          # device: D = s + F_x / (300 N/m)), depth (mm), the extrapolated force magnitude (N),\n\
          # its uncertainty (Roache's GCI, N), the observed order of the three finest levels\n\
-         # (empty: not monotone, the finest level's value with the spread of the three finest\n\
-         # as its uncertainty), the order of the three levels before, then each level's force\n\
-         # (N) in columns f_h<size under the probe, mm>_n, coarse to fine (empty: not solved).\n",
+         # (empty: changes not monotone and shrinking, or an order outside 0.2-10; the finest\n\
+         # level's value with the spread of the three finest as its uncertainty), the order of\n\
+         # the three levels before, then each level's force (N) in columns\n\
+         # f_h<size under the probe, mm>_n, coarse to fine (empty: not solved).\n",
     );
     write!(
         csv,

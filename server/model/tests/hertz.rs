@@ -9,10 +9,8 @@
 //! refined to R / 30 under the sphere and growing by 1.3 per cell away from it; StVK with
 //! nu = 0.3 (small strains: the largest is about 0.2 a / R = 6 %). The depths 0.02 and 0.06
 //! are one continuation (the second starts from the first's solution); 0.1 is solved from rest
-//! on a second thread, so that the two solves share the test machine's two cores (measured in
-//! debug: the continuation to 0.1 took 88 s alone, 0.1 from rest about 39 s with 19 Newton
-//! iterations, against 14 from 0.06; the same force to 1e-4, the contact radius 0.7 % from
-//! Hertz's instead of 1.4 %: 144 points in contact instead of 142).
+//! on a second thread, so that the two solves share the test machine's two cores (the whole
+//! file took 18 s in debug with the exact node contact of 2026-11-26; about 90 s before).
 //!
 //! A second test checks that the contact tangent Newton uses (with or without the sphere's
 //! curvature term) changes the iteration and not the converged force, on the built-in LV.

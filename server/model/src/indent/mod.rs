@@ -4,9 +4,9 @@
 //! A rigid frictionless sphere of radius `R` with centre `c` may not be penetrated by the
 //! body's touchable surface. Every node of the touchable triangles (corner and mid-edge nodes
 //! on quadratic meshes) is constrained exactly, `|x_i - c| >= R`, by an active set updated
-//! within Newton's iteration ([`newton`]: semismooth Newton, the contact forces are the
+//! within Newton's iteration (`newton.rs`: semismooth Newton, the contact forces are the
 //! reactions, no penalty in the answer). A triangle coarser than the sphere (longest edge
-//! above `point_spacing R`) also carries contact points inside it ([`points`]: augmented
+//! above `point_spacing R`) also carries contact points inside it (`points.rs`: augmented
 //! Lagrangian, Uzawa updates between Newton solves), so that the sphere cannot slip between
 //! the nodes of a coarse mesh (as it does with nodes alone on the built-in `lv`, whose
 //! facets are 2-4 mm).

@@ -280,14 +280,6 @@ impl<'a> Newton<'a> {
             let tol = (s.rel_tol * scale).max(s.abs_tol_n).max(floor);
             last = (res, tol);
             let stable = next == current;
-            if std::env::var_os("HAPTIC_INDENT_DEBUG").is_some() {
-                let changes = next.iter().zip(&current).filter(|(a, b)| a != b).count();
-                let na = next.iter().filter(|a| **a).count();
-                eprintln!(
-                    "  it {it}: res {res:.3e} tol {tol:.3e} (floor {floor:.2e}) active {na} changes {changes} gaps_ok {gaps_ok} fact {} cg {}",
-                    self.sys.stats.factorizations, self.sys.stats.iterations
-                );
-            }
             self.active = next;
             if stable && res <= tol && gaps_ok {
                 return Ok(Converged {
@@ -299,9 +291,7 @@ impl<'a> Newton<'a> {
             if it == s.max_iterations {
                 break;
             }
-            let t_step = std::time::Instant::now();
             let dx = self.step(x, &r, s, &mut floor).map_err(|e| e.to_string())?;
-            let t_ls = std::time::Instant::now();
             // Backtracking on the merit (projected residual and gaps), refusing inverted
             // states; the best of the tried steps is taken.
             let mut best: Option<(f64, f64)> = None;
@@ -322,14 +312,6 @@ impl<'a> Newton<'a> {
                     }
                 }
                 alpha *= 0.5;
-            }
-            if std::env::var_os("HAPTIC_INDENT_DEBUG").is_some() {
-                eprintln!(
-                    "    step alpha {:?}, step {:.2} s, line search {:.2} s",
-                    best.map(|b| b.0),
-                    (t_ls - t_step).as_secs_f64(),
-                    t_ls.elapsed().as_secs_f64()
-                );
             }
             let Some((alpha, _)) = best else {
                 return Err(format!(
@@ -358,11 +340,7 @@ impl<'a> Newton<'a> {
         floor: &mut f64,
     ) -> Result<Vec<DVec3>, ModelError> {
         let fem = self.fem;
-        let t_asm = std::time::Instant::now();
         self.sys.assemble_cells(fem, x);
-        if std::env::var_os("HAPTIC_INDENT_DEBUG").is_some() {
-            eprintln!("    assembly {:.2} s", t_asm.elapsed().as_secs_f64());
-        }
         let mut extra: Vec<(u32, u32, DMat3)> = Vec::new();
         self.points
             .for_each_stiffness_block(x, &mut |i, j, k| extra.push((i, j, k)));

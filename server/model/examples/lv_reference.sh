@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# Regenerates the rigid-sphere reference of the lv-probe press,
+# server/model/benches/precision/lv_sphere_reference.csv (docs/accuracy.md, "The sphere
+# reference on four refined levels"): the half LV meshed by Gmsh at each size parameter
+# (lv_probe_half.geo; s = element size under the probe, mm), every level solved by
+# `lv_reference solve` for St. Venant-Kirchhoff (sphere depths 0.25, 0.5, 1 mm: it has no
+# equilibrium past about 1.2-1.4 mm on the fine levels) and the stable neo-Hookean material
+# (0.25 to 4 mm), then `lv_reference combine` (Richardson through the three finest levels,
+# Roache's GCI). A level whose solve stops keeps the rows it converged (the log says why).
+#
+#   server/model/examples/lv_reference.sh [OUT_DIR] [LEVELS]
+#
+# LEVELS: the size parameters, coarse to fine (default "0.6 0.42 0.3 0.2121"). A level already
+# solved (OUT_DIR/level_S_MATERIAL.csv.done) is not solved again. Needs gmsh
+# (tests/install-gmsh.sh). Run time on the shared 2-core machine: about 1.5 h, most of it the
+# 0.2121 mm level (31 403 nodes: about 16 min for StVK, 40-50 min for the stable neo-Hookean
+# material to 4 mm); the 0.15 mm level (about 80 000 nodes) would take several hours.
+set -euo pipefail
+root=$(cd "$(dirname "$0")/../../.." && pwd)
+cd "$root"
+out=${1:-target/lv-reference}
+levels=${2:-"0.6 0.42 0.3 0.2121"}
+command -v gmsh >/dev/null || { echo "gmsh not found: run tests/install-gmsh.sh" >&2; exit 1; }
+mkdir -p "$out"
+cargo build --release -p haptic-model --example lv_reference
+csvs=()
+for s in $levels; do
+  msh="$out/half_$s.msh"
+  [[ -f $msh ]] || gmsh server/model/examples/lv_probe_half.geo -3 -format msh22 \
+    -setnumber s "$s" -o "$msh" > "$out/gmsh_$s.log"
+  for material in stvk stable-neo-hookean; do
+    if [[ $material == stvk ]]; then depths=0.25,0.5,1; else depths=0.25,0.5,1,1.5,2,3,4; fi
+    csv="$out/level_${s}_$material.csv"
+    csvs+=("$csv")
+    [[ -f $csv.done ]] && continue
+    rm -f "$csv"
+    echo "== $(date +%T) level $s mm, $material, sphere depths $depths mm"
+    if target/release/examples/lv_reference solve --msh "$msh" --h "$s" --material "$material" \
+      --depths "$depths" --out "$csv" > "$out/log_${s}_$material.txt" 2>&1; then
+      touch "$csv.done"
+    else
+      echo "   stopped: $(grep -m1 '^Error' "$out/log_${s}_$material.txt")"
+    fi
+  done
+done
+join() { local IFS=,; echo "$*"; }
+existing=()
+for c in "${csvs[@]}"; do [[ -f $c ]] && existing+=("$c"); done
+target/release/examples/lv_reference combine --csv "$(join "${existing[@]}")" \
+  --out server/model/benches/precision/lv_sphere_reference.csv --markdown
