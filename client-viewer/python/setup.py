@@ -12,7 +12,12 @@ from setuptools import setup
 from setuptools.command.build_py import build_py
 
 HERE = Path(__file__).resolve().parent
-PROTO_ROOT = Path(os.environ.get("HAPTICS_PROTO_ROOT", HERE.parent.parent / "proto"))
+# HAPTICD_PROTO_ROOT (older name HAPTICS_PROTO_ROOT): the proto/ folder of a checkout.
+PROTO_ROOT = Path(
+    os.environ.get("HAPTICD_PROTO_ROOT")
+    or os.environ.get("HAPTICS_PROTO_ROOT")
+    or HERE.parent.parent / "proto"
+)
 PROTO = Path("haptics") / "v1" / "haptics.proto"
 
 
@@ -23,7 +28,7 @@ class BuildWithStubs(build_py):
         if not source.is_file():
             raise SystemExit(
                 f"haptics-client: {source} not found; install from the repository "
-                "(pip install ./client-viewer/python) or set HAPTICS_PROTO_ROOT to its proto/ folder"
+                "(pip install ./client-viewer/python) or set HAPTICD_PROTO_ROOT to its proto/ folder"
             )
         from grpc_tools import protoc
         import grpc_tools

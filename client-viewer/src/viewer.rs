@@ -583,17 +583,35 @@ pub async fn replay(
     shutdown: impl Future<Output = ()>,
 ) -> Result<ViewerSummary, ClientError> {
     let frames = crate::record::read_surface(path)?;
-    let t0 = frames.first().map_or(0.0, |(_, f)| f.sim_time_s);
+    let stream = replay_stream(frames.into_iter().map(|(_, f)| f).collect());
+    run_stream(stream, cfg, shutdown).await
+}
+
+/// `frames` as a stream paced by their simulated time from now on, each stamped with the time
+/// it was due on this replay's clock: its `server_time_us` becomes the replay's start plus its
+/// simulated time since the first frame, so the frame age the viewer reports is how late the
+/// replay delivered it, not how old the recording is (issue 47: a replay showed 152 s).
+pub fn replay_stream(
+    frames: Vec<SurfaceFrame>,
+) -> std::pin::Pin<Box<dyn Stream<Item = Result<SurfaceFrame, tonic::Status>> + Send>> {
+    let t0 = frames.first().map_or(0.0, |f| f.sim_time_s);
     let start = tokio::time::Instant::now();
-    let stream =
-        tokio_stream::StreamExt::then(tokio_stream::iter(frames), move |(_, f)| async move {
-            let due = (f.sim_time_s - t0).max(0.0);
-            if due.is_finite() {
-                tokio::time::sleep_until(start + Duration::from_secs_f64(due.min(1e6))).await;
+    let start_unix_us = now_unix_us();
+    Box::pin(tokio_stream::StreamExt::then(
+        tokio_stream::iter(frames),
+        move |mut f| async move {
+            let due_s = (f.sim_time_s - t0).max(0.0);
+            if due_s.is_finite() {
+                let due = Duration::from_secs_f64(due_s.min(1e6));
+                tokio::time::sleep_until(start + due).await;
+                if f.server_time_us > 0 {
+                    f.server_time_us = u64::try_from(start_unix_us + due.as_micros() as i128)
+                        .unwrap_or(f.server_time_us);
+                }
             }
             Ok::<_, tonic::Status>(f)
-        });
-    run_stream(Box::pin(stream), cfg, shutdown).await
+        },
+    ))
 }
 
 /// Running counters of [`run_stream`].
@@ -859,6 +877,40 @@ mod tests {
         assert!(s.apply(&missing, &p).is_err());
         assert_eq!(s.apply(&pos, &p).unwrap(), FrameKind::Positions);
         assert_eq!(s.positions_m(), &[0.0; 9]);
+    }
+
+    /// Issue 47: the frames of a recording made 152 s ago replay with the age of their
+    /// delivery on the replay's clock, not the recording's age.
+    #[tokio::test]
+    async fn replayed_frames_age_on_the_replay_clock() {
+        let recorded_us = (now_unix_us() - 152_000_000) as u64;
+        let frames: Vec<SurfaceFrame> = (0..5)
+            .map(|k| SurfaceFrame {
+                frame: k,
+                sim_time_s: 10.0 + 0.02 * k as f64,
+                server_time_us: recorded_us + 20_000 * k,
+                ..if k == 0 {
+                    key()
+                } else {
+                    SurfaceFrame {
+                        positions_m: vec![0.0; 9],
+                        ..Default::default()
+                    }
+                }
+            })
+            .collect();
+        let dir = std::env::temp_dir().join(format!("viewer-replay-age-{}", std::process::id()));
+        let mut cfg = ViewerConfig::new("http://unused", "replay");
+        cfg.out_dir = dir.clone();
+        cfg.progress = false;
+        let s = run_stream(replay_stream(frames), &cfg, std::future::pending())
+            .await
+            .unwrap();
+        assert_eq!(s.frames, 5);
+        // The old behaviour gives about 152 000 ms; a replay on a busy machine a few ms.
+        let p99 = s.age_p99_ms.unwrap();
+        assert!((-1.0..10_000.0).contains(&p99), "age p99 {p99} ms");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

@@ -238,6 +238,18 @@ pub struct Relay {
     cfg: WebConfig,
     channel: crate::AuthChannel,
     sessions: Mutex<HashMap<String, Arc<SessionRelay>>>,
+    /// Set when the daemon refused the relay's credentials: [`run`] then stops and reports it
+    /// instead of serving pages that can only fail (issue 47).
+    refused: watch::Sender<Option<(tonic::Code, String)>>,
+}
+
+/// True for the statuses that retrying cannot fix: no or a wrong token, or a role that may
+/// not watch.
+pub fn is_refusal(code: tonic::Code) -> bool {
+    matches!(
+        code,
+        tonic::Code::Unauthenticated | tonic::Code::PermissionDenied
+    )
 }
 
 impl Relay {
@@ -260,7 +272,44 @@ impl Relay {
             cfg,
             channel,
             sessions: Mutex::new(HashMap::new()),
+            refused: watch::channel(None).0,
         }))
+    }
+
+    /// Notes a refusal of the relay's credentials (see [`Relay::refused`]); other statuses are
+    /// left to the caller.
+    fn note_refusal(&self, status: &tonic::Status) {
+        if is_refusal(status.code()) {
+            self.refused.send_if_modified(|r| {
+                let first = r.is_none();
+                if first {
+                    *r = Some((status.code(), status.message().to_string()));
+                }
+                first
+            });
+        }
+    }
+
+    /// Asks the daemon for its sessions once: credentials it refuses are an error now, before
+    /// any browser connects; a daemon that cannot be reached yet is only a warning (the relay
+    /// connects on first use).
+    ///
+    /// # Errors
+    /// [`ClientError::Rpc`] with UNAUTHENTICATED or PERMISSION_DENIED.
+    pub async fn check_access(&self) -> Result<(), ClientError> {
+        let mut ctl = SessionControlClient::new(self.channel.clone());
+        match ctl.list_sessions(ListSessionsRequest {}).await {
+            Ok(_) => Ok(()),
+            Err(status) if is_refusal(status.code()) => Err(status.into()),
+            Err(status) => {
+                tracing::warn!(
+                    "daemon {} not answering yet: {}",
+                    self.cfg.server,
+                    ClientError::from(status)
+                );
+                Ok(())
+            }
+        }
     }
 
     /// The relay of `id`, started (upstream and stats poller) if no browser watches it yet;
@@ -346,6 +395,7 @@ async fn upstream(relay: Arc<Relay>, id: String, s: Arc<SessionRelay>) {
     let mut stream = match watched {
         Ok(r) => r.into_inner(),
         Err(status) => {
+            relay.note_refusal(&status);
             let e = ClientError::from(status);
             s.status.send_replace(Some(Arc::new(
                 json!({"type": "error", "message": e.to_string()}).to_string(),
@@ -422,8 +472,12 @@ async fn poll_stats(relay: Arc<Relay>, id: String, s: Arc<SessionRelay>) {
         let request = GetStatsRequest {
             session_id: id.clone(),
         };
-        let Ok(r) = client.get_stats(request).await else {
-            continue; // the upstream task reports unknown or ended sessions
+        let r = match client.get_stats(request).await {
+            Ok(r) => r,
+            Err(status) => {
+                relay.note_refusal(&status);
+                continue; // the upstream task reports unknown or ended sessions
+            }
         };
         let st = r.into_inner();
         let c = &s.counters;
@@ -514,6 +568,7 @@ async fn api_sessions(State(relay): State<Arc<Relay>>) -> Response {
     let ids = match ctl.list_sessions(ListSessionsRequest {}).await {
         Ok(r) => r.into_inner().session_ids,
         Err(status) => {
+            relay.note_refusal(&status);
             let e = ClientError::from(status);
             return (
                 StatusCode::BAD_GATEWAY,
@@ -786,18 +841,56 @@ pub async fn run(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ClientError> {
     let relay = Relay::new(cfg)?;
+    serve(listener, relay, shutdown).await
+}
+
+/// Serves `relay` on `listener` until `shutdown` resolves, or until the daemon refuses the
+/// relay's credentials (an error then: the relay reports and stops rather than serve pages
+/// that can only fail).
+///
+/// # Errors
+/// [`ClientError::Io`] when serving fails; [`ClientError::Rpc`] with the daemon's refusal.
+pub async fn serve(
+    listener: TcpListener,
+    relay: Arc<Relay>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), ClientError> {
     let addr = listener.local_addr().map_err(|source| ClientError::Io {
         path: "listener".into(),
         source,
     })?;
     tracing::info!("web viewer on http://{addr}/");
-    axum::serve(listener, router(relay))
-        .with_graceful_shutdown(shutdown)
-        .await
-        .map_err(|source| ClientError::Io {
-            path: format!("http://{addr}/").into(),
-            source,
-        })
+    let mut refused = relay.refused.subscribe();
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let served = axum::serve(listener, router(relay.clone())).with_graceful_shutdown(async move {
+        tokio::select! {
+            () = shutdown => {}
+            _ = stop_rx => {}
+        }
+    });
+    let mut server = tokio::spawn(async move { served.await });
+    let io = |source| ClientError::Io {
+        path: format!("http://{addr}/").into(),
+        source,
+    };
+    let task = |e: tokio::task::JoinError| ClientError::Task(e.to_string());
+    let refusal = tokio::select! {
+        done = &mut server => return done.map_err(task)?.map_err(io),
+        r = refused.wait_for(Option::is_some) => match r {
+            Ok(r) => r.clone(),
+            // The relay outlives the server, so its sender cannot go first; serve on.
+            Err(_) => return server.await.map_err(task)?.map_err(io),
+        },
+    };
+    let _ = stop_tx.send(());
+    server.await.map_err(task)?.map_err(io)?;
+    match refusal {
+        Some((code, message)) => {
+            tracing::error!("the daemon refused the relay's credentials: {message}");
+            Err(tonic::Status::new(code, message).into())
+        }
+        None => Ok(()),
+    }
 }
 
 #[cfg(test)]

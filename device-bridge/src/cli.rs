@@ -82,7 +82,7 @@ pub enum ScriptKind {
 #[command(name = "haptic-bridge", version)]
 pub struct Args {
     /// Server URL, e.g. http://127.0.0.1:50051.
-    #[arg(long)]
+    #[arg(long, env = "HAPTICD_ADDR")]
     pub server: String,
     /// Token and TLS files (a `device` token is enough).
     #[command(flatten)]

@@ -345,6 +345,10 @@ pub struct BridgeSummary {
     pub server_restarts: u64,
     /// Why the session cannot be reached any more (the daemon answered NOT_FOUND), if so.
     pub session_lost: Option<String>,
+    /// Why the daemon refused this bridge (UNAUTHENTICATED or PERMISSION_DENIED: no token, a
+    /// wrong one, or a role without the device link), if it did: the bridge stops at once
+    /// rather than retry, since retrying cannot help (issue 47).
+    pub access_refused: Option<String>,
     /// Streams that reached the server (response headers received).
     pub streams_opened: u64,
     /// Streams opened after an earlier attempt failed or a stream was lost.
@@ -778,6 +782,7 @@ struct NetCtx {
     server_instance: Option<String>,
     server_restarts: u64,
     session_lost: Option<String>,
+    access_refused: Option<String>,
     fault: Option<FaultInjection>,
     rng: XorShift,
     injected_drops: u64,
@@ -898,6 +903,9 @@ enum StreamEnd {
     Failed(String),
     /// The server does not know the session (NOT_FOUND): retrying cannot help.
     SessionGone(String),
+    /// The server refused the credentials (UNAUTHENTICATED, PERMISSION_DENIED): retrying
+    /// cannot help either.
+    Refused(String),
 }
 
 /// `error: cause: cause ...`, since tonic's transport errors hide the useful part in sources.
@@ -988,6 +996,12 @@ async fn run_stream(
                 Ok(resp) => break resp,
                 Err(status) if status.code() == tonic::Code::NotFound => {
                     return StreamEnd::SessionGone(status.message().to_owned());
+                }
+                Err(status) if matches!(
+                    status.code(),
+                    tonic::Code::Unauthenticated | tonic::Code::PermissionDenied
+                ) => {
+                    return StreamEnd::Refused(format!("{:?}: {}", status.code(), status.message()));
                 }
                 Err(status) => return StreamEnd::Failed(format!("Connect rejected: {status}")),
             },
@@ -1136,6 +1150,18 @@ async fn network_loop(
                 ctx.session_lost = Some(why);
                 return;
             }
+            StreamEnd::Refused(msg) => {
+                let why = format!(
+                    "hapticd at {} refused the device link ({msg}): give a `device` (or \
+                     `admin`) token with --token-file or HAPTICD_TOKEN_FILE (docs/security.md); \
+                     not retrying",
+                    config.server_url
+                );
+                warn!("{why}");
+                ctx.last_link_error = Some(msg);
+                ctx.access_refused = Some(why);
+                return;
+            }
             StreamEnd::Failed(msg) => {
                 ctx.link_failures += 1;
                 if ctx.streams_opened > opened_before {
@@ -1226,6 +1252,7 @@ pub async fn run(
         server_instance: None,
         server_restarts: 0,
         session_lost: None,
+        access_refused: None,
         fault: config.fault,
         token,
         rng: XorShift(config.fault.map_or(1, |f| f.seed.max(1))),
@@ -1276,6 +1303,7 @@ pub async fn run(
             .map_or(config.guard.max_rate_n_per_s, |l| l.max_rate_n_per_s),
         server_restarts: ctx.server_restarts,
         session_lost: ctx.session_lost.clone(),
+        access_refused: ctx.access_refused.clone(),
         streams_opened: ctx.streams_opened,
         reconnects: ctx.reconnects,
         link_failures: ctx.link_failures,

@@ -2,7 +2,7 @@
 //! binary that calls `hapticd` (`hapticctl`, `haptic-viewer`, `haptic-bridge`, the demo):
 //!
 //! - a **bearer token** on every call (`authorization: Bearer <token>`), read from a file
-//!   (`--token-file`, or `HAPTICS_TOKEN_FILE`) or from the environment (`HAPTICS_TOKEN`), never
+//!   (`--token-file`, or `HAPTICD_TOKEN_FILE`) or from the environment (`HAPTICD_TOKEN`), never
 //!   from the command line, where other users of the machine could read it in `ps`;
 //! - **TLS** for `https://` URLs: the CA certificate that signed the daemon's certificate
 //!   (`--tls-ca`), and optionally this client's own certificate and key (`--tls-cert`,
@@ -11,6 +11,10 @@
 //! `hapticd` writes one token file per role beside its tokens file at first start
 //! (`admin.token`, `control.token`, `device.token`, `viewer.token`, mode 0600), so a client on
 //! the daemon's machine passes e.g. `--token-file /var/lib/hapticd/device.token`.
+//!
+//! Environment variables follow one scheme, `HAPTICD_*` ([`ENV_ALIASES`] lists them with the
+//! older `HAPTICS_*` names, still read when the new one is unset; docs/tools.md, "Environment
+//! variables").
 //!
 //! Neighbours: the server side is `haptic_server::auth`; `docs/security.md` is the operator's
 //! guide.
@@ -23,7 +27,34 @@ use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity};
 
 /// Environment variable holding a token itself (used when no token file is given).
-pub const TOKEN_ENV: &str = "HAPTICS_TOKEN";
+pub const TOKEN_ENV: &str = "HAPTICD_TOKEN";
+
+/// The clients' environment variables and the older names each still answers to (read only
+/// when the new one is unset). The daemon's own are `HAPTICD_CONFIG` and `HAPTICD_TOKENS_FILE`.
+pub const ENV_ALIASES: [(&str, &str); 5] = [
+    (TOKEN_ENV, "HAPTICS_TOKEN"),
+    ("HAPTICD_TOKEN_FILE", "HAPTICS_TOKEN_FILE"),
+    ("HAPTICD_TLS_CA", "HAPTICS_TLS_CA"),
+    ("HAPTICD_TLS_CERT", "HAPTICS_TLS_CERT"),
+    ("HAPTICD_TLS_KEY", "HAPTICS_TLS_KEY"),
+];
+
+/// The value of the environment variable `name`, or of its older alias in [`ENV_ALIASES`]
+/// when `name` is unset; with the name it came from.
+pub fn env_var_or_alias(name: &str) -> Option<(&'static str, std::ffi::OsString)> {
+    lookup_with_alias(name, |k| std::env::var_os(k))
+}
+
+/// [`env_var_or_alias`] over any lookup (tests pass a table instead of the environment).
+fn lookup_with_alias(
+    name: &str,
+    get: impl Fn(&str) -> Option<std::ffi::OsString>,
+) -> Option<(&'static str, std::ffi::OsString)> {
+    let (new, old) = ENV_ALIASES.iter().find(|(new, _)| *new == name)?;
+    get(new)
+        .map(|v| (*new, v))
+        .or_else(|| get(old).map(|v| (*old, v)))
+}
 /// Largest token file read, bytes (a token is 64 characters).
 pub const MAX_TOKEN_FILE_BYTES: u64 = 4096;
 /// Largest certificate or key file read, bytes.
@@ -47,7 +78,7 @@ pub enum CredentialsError {
     /// The token is empty or not printable ASCII.
     #[error("{origin}: the token must be 16-1024 printable ASCII characters without spaces")]
     BadToken {
-        /// Where the token came from (a file's path or `HAPTICS_TOKEN`).
+        /// Where the token came from (a file's path or the environment variable's name).
         origin: String,
     },
     /// An `https://` URL without a CA certificate, or TLS files for an `http://` URL.
@@ -69,17 +100,18 @@ pub enum CredentialsError {
 pub struct ClientCredentials {
     /// File holding this client's token (first non-empty line that is not a `#` comment), e.g.
     /// the `device.token` hapticd writes beside its tokens file. Without it the token is read
-    /// from HAPTICS_TOKEN; without either, calls carry no token (a daemon without tokens).
-    #[arg(long, global = true, env = "HAPTICS_TOKEN_FILE", value_name = "FILE")]
+    /// from HAPTICD_TOKEN; without either, calls carry no token (a daemon without tokens).
+    /// (Older name of the variable: HAPTICS_TOKEN_FILE.)
+    #[arg(long, global = true, env = "HAPTICD_TOKEN_FILE", value_name = "FILE")]
     pub token_file: Option<PathBuf>,
     /// CA certificate (PEM) that signed the daemon's certificate; needed for https:// URLs.
-    #[arg(long, global = true, env = "HAPTICS_TLS_CA", value_name = "PEM")]
+    #[arg(long, global = true, env = "HAPTICD_TLS_CA", value_name = "PEM")]
     pub tls_ca: Option<PathBuf>,
     /// This client's certificate (PEM), for a daemon that requires client certificates.
     #[arg(
         long,
         global = true,
-        env = "HAPTICS_TLS_CERT",
+        env = "HAPTICD_TLS_CERT",
         value_name = "PEM",
         requires = "tls_key"
     )]
@@ -88,7 +120,7 @@ pub struct ClientCredentials {
     #[arg(
         long,
         global = true,
-        env = "HAPTICS_TLS_KEY",
+        env = "HAPTICD_TLS_KEY",
         value_name = "PEM",
         requires = "tls_cert"
     )]
@@ -96,13 +128,31 @@ pub struct ClientCredentials {
 }
 
 impl ClientCredentials {
-    /// The token: from [`Self::token_file`], else from `HAPTICS_TOKEN`, else none.
+    /// These credentials with every unset file taken from the older environment variables
+    /// (`HAPTICS_TOKEN_FILE`, `HAPTICS_TLS_*`; the `HAPTICD_*` ones are read by the flags).
+    pub fn with_env_aliases(&self) -> Self {
+        let alias = |field: &Option<PathBuf>, name: &str| {
+            field
+                .clone()
+                .or_else(|| env_var_or_alias(name).map(|(_, v)| PathBuf::from(v)))
+        };
+        Self {
+            token_file: alias(&self.token_file, "HAPTICD_TOKEN_FILE"),
+            tls_ca: alias(&self.tls_ca, "HAPTICD_TLS_CA"),
+            tls_cert: alias(&self.tls_cert, "HAPTICD_TLS_CERT"),
+            tls_key: alias(&self.tls_key, "HAPTICD_TLS_KEY"),
+        }
+    }
+
+    /// The token: from [`Self::token_file`] (or `HAPTICD_TOKEN_FILE`), else from
+    /// `HAPTICD_TOKEN`, else none; the older `HAPTICS_*` names where the new ones are unset.
     ///
     /// # Errors
     /// [`CredentialsError::Read`] for an unreadable file (or one over 4 KiB);
     /// [`CredentialsError::BadToken`] for an empty or malformed token.
     pub fn token(&self) -> Result<Option<String>, CredentialsError> {
-        if let Some(path) = &self.token_file {
+        let this = self.with_env_aliases();
+        if let Some(path) = &this.token_file {
             let text = read_bounded(path, MAX_TOKEN_FILE_BYTES)?;
             let text = String::from_utf8(text).map_err(|_| CredentialsError::BadToken {
                 origin: path.display().to_string(),
@@ -114,12 +164,14 @@ impl ClientCredentials {
                 .unwrap_or("");
             return check_token(line, &path.display().to_string()).map(Some);
         }
-        match std::env::var(TOKEN_ENV) {
-            Ok(t) => check_token(t.trim(), TOKEN_ENV).map(Some),
-            Err(std::env::VarError::NotPresent) => Ok(None),
-            Err(std::env::VarError::NotUnicode(_)) => Err(CredentialsError::BadToken {
-                origin: TOKEN_ENV.into(),
-            }),
+        match env_var_or_alias(TOKEN_ENV) {
+            Some((name, t)) => match t.into_string() {
+                Ok(t) => check_token(t.trim(), name).map(Some),
+                Err(_) => Err(CredentialsError::BadToken {
+                    origin: name.into(),
+                }),
+            },
+            None => Ok(None),
         }
     }
 
@@ -150,13 +202,19 @@ impl ClientCredentials {
     /// [`CredentialsError::Endpoint`] for a malformed URL; [`CredentialsError::Tls`] and
     /// [`CredentialsError::Read`] for the TLS rules and files above.
     pub fn endpoint(&self, url: &str) -> Result<Endpoint, CredentialsError> {
+        let this = self.with_env_aliases();
+        if this.tls_cert.is_some() != this.tls_key.is_some() {
+            return Err(CredentialsError::Tls(
+                "--tls-cert and --tls-key (HAPTICD_TLS_CERT, HAPTICD_TLS_KEY) go together".into(),
+            ));
+        }
         let endpoint =
             Endpoint::from_shared(url.to_owned()).map_err(|source| CredentialsError::Endpoint {
                 url: url.to_owned(),
                 source,
             })?;
         let https = url.starts_with("https://");
-        let any_tls = self.tls_ca.is_some() || self.tls_cert.is_some();
+        let any_tls = this.tls_ca.is_some() || this.tls_cert.is_some();
         if !https {
             if any_tls {
                 return Err(CredentialsError::Tls(format!(
@@ -165,15 +223,15 @@ impl ClientCredentials {
             }
             return Ok(endpoint);
         }
-        let ca = self.tls_ca.as_deref().ok_or_else(|| {
+        let ca = this.tls_ca.as_deref().ok_or_else(|| {
             CredentialsError::Tls(format!(
-                "{url}: an https:// URL needs --tls-ca (or HAPTICS_TLS_CA): the CA certificate \
+                "{url}: an https:// URL needs --tls-ca (or HAPTICD_TLS_CA): the CA certificate \
                  that signed the daemon's certificate"
             ))
         })?;
         let mut tls = ClientTlsConfig::new()
             .ca_certificate(Certificate::from_pem(read_bounded(ca, MAX_PEM_FILE_BYTES)?));
-        if let (Some(cert), Some(key)) = (&self.tls_cert, &self.tls_key) {
+        if let (Some(cert), Some(key)) = (&this.tls_cert, &this.tls_key) {
             tls = tls.identity(Identity::from_pem(
                 read_bounded(cert, MAX_PEM_FILE_BYTES)?,
                 read_bounded(key, MAX_PEM_FILE_BYTES)?,
@@ -288,6 +346,34 @@ mod tests {
             ..Default::default()
         };
         assert!(c.token().unwrap_err().to_string().contains("larger than"));
+    }
+
+    #[test]
+    fn new_variable_names_win_and_the_old_ones_still_answer() {
+        let env = |pairs: &'static [(&'static str, &'static str)]| {
+            move |k: &str| {
+                pairs
+                    .iter()
+                    .find(|(n, _)| *n == k)
+                    .map(|(_, v)| std::ffi::OsString::from(v))
+            }
+        };
+        let both = env(&[("HAPTICD_TOKEN_FILE", "new"), ("HAPTICS_TOKEN_FILE", "old")]);
+        assert_eq!(
+            lookup_with_alias("HAPTICD_TOKEN_FILE", both),
+            Some(("HAPTICD_TOKEN_FILE", "new".into()))
+        );
+        let old = env(&[("HAPTICS_TLS_CA", "ca.pem")]);
+        assert_eq!(
+            lookup_with_alias("HAPTICD_TLS_CA", old),
+            Some(("HAPTICS_TLS_CA", "ca.pem".into()))
+        );
+        assert_eq!(lookup_with_alias("HAPTICD_TOKEN", env(&[])), None);
+        // Every client variable follows the scheme and has its alias.
+        for (new, old) in ENV_ALIASES {
+            assert!(new.starts_with("HAPTICD_") && old.starts_with("HAPTICS_"));
+            assert_eq!(new["HAPTICD_".len()..], old["HAPTICS_".len()..]);
+        }
     }
 
     #[test]

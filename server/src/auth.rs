@@ -12,10 +12,11 @@
 //!   started**; `viewer` lists sessions, watches and reads statistics; `admin` does everything.
 //!   `ListScenes` is open to every role.
 //! - **Answers**: no token or an unknown one is `UNAUTHENTICATED`; a role without the right is
-//!   `PERMISSION_DENIED`. Failed attempts are counted per client address: past `max_failures`
-//!   in `failure_window`, every call from that address is refused without looking at its token
-//!   until the window ends (so tokens cannot be guessed at network speed). Failures are logged,
-//!   the first of a window and the one that trips the limit at `warn`, the rest at `debug`.
+//!   `PERMISSION_DENIED`. Failed attempts are counted per client address and logged, the first
+//!   of a window and the one that reaches `max_failures` at `warn`, the rest at `debug`; past
+//!   the limit an address's failures are no longer counted until `failure_window` ends. A known
+//!   token is never refused because of failures from its address (issue 47: local clients all
+//!   share 127.0.0.1); guessing is answered by the tokens' 256 bits, not by the limit.
 //! - Tokens are compared by their SHA-256 digests (a hash-map lookup), so the time of a check
 //!   does not depend on how much of a guess is right.
 //!
@@ -149,12 +150,14 @@ impl TokenStore {
     ///
     /// # Errors
     /// [`ServerError::Config`] for a TOML error, an empty file, a malformed token (16-1024
-    /// printable ASCII characters), a repeated name or a repeated token. Messages never quote
-    /// a token.
+    /// printable ASCII characters), a repeated name or a repeated token. Messages give the
+    /// line or the entry's number and what was expected, never the file's text (issue 47).
     pub fn parse(text: &str) -> Result<Self, ServerError> {
         let file: TokensFile = toml::from_str(text).map_err(|e| {
-            // TOML errors quote the offending line, which may hold a token: keep the message.
-            ServerError::Config(format!("tokens file: {}", e.message()))
+            ServerError::Config(format!(
+                "tokens file: {}",
+                haptic_model::scene::describe_toml_error(text, &e)
+            ))
         })?;
         if file.token.is_empty() {
             return Err(ServerError::Config(
@@ -163,20 +166,20 @@ impl TokenStore {
         }
         let mut store = TokenStore::default();
         let mut names = std::collections::HashSet::new();
-        for e in file.token {
+        for (i, e) in file.token.into_iter().enumerate() {
+            let entry = i + 1;
             if e.name.is_empty() || e.name.len() > 64 || !names.insert(e.name.clone()) {
                 return Err(ServerError::Config(format!(
-                    "tokens file: token name {:?} is empty, longer than 64 or repeated",
-                    e.name.chars().take(64).collect::<String>()
+                    "tokens file, [[token]] entry {entry}: expected a name of 1-64 characters \
+                     that no other entry has"
                 )));
             }
             if !(16..=1024).contains(&e.token.len())
                 || !e.token.bytes().all(|b| b.is_ascii_graphic())
             {
                 return Err(ServerError::Config(format!(
-                    "tokens file: the token of {:?} must be 16-1024 printable ASCII characters \
-                     without spaces",
-                    e.name
+                    "tokens file, [[token]] entry {entry}: the token must be 16-1024 printable \
+                     ASCII characters without spaces"
                 )));
             }
             let caller = Caller {
@@ -185,8 +188,7 @@ impl TokenStore {
             };
             if store.by_digest.insert(digest(&e.token), caller).is_some() {
                 return Err(ServerError::Config(format!(
-                    "tokens file: the token of {:?} is used twice",
-                    e.name
+                    "tokens file, [[token]] entry {entry}: its token is used by an earlier entry"
                 )));
             }
         }
@@ -384,22 +386,23 @@ impl Auth {
         self.store.is_some()
     }
 
-    /// Authenticates one call: puts its [`Caller`] in the request's extensions.
+    /// Authenticates one call: puts its [`Caller`] in the request's extensions. A known token
+    /// is always accepted, whatever other clients from the same address did (issue 47: on a
+    /// lab machine every local client shares 127.0.0.1, and one misconfigured bridge must not
+    /// lock the others out; the tokens are 256-bit, so guessing is not the threat the limit
+    /// answers). Failures are what is limited: past `max_failures` in a window, an address's
+    /// further failures are answered at once, not counted and logged only at `debug`, until
+    /// the window ends.
     ///
     /// # Errors
-    /// `UNAUTHENTICATED` for no token, an unknown token, or an address over its failure limit.
+    /// `UNAUTHENTICATED` for no token or an unknown token (saying so, and past the limit that
+    /// the address failed too often).
     pub fn authenticate(&self, req: &mut Request<()>) -> Result<(), Status> {
         let Some(store) = &self.store else {
             return Ok(());
         };
         let address = req.remote_addr().map(|a| a.ip());
         let now = Instant::now();
-        if let Some(retry) = self.refused_for(address, now) {
-            return Err(Status::unauthenticated(format!(
-                "too many failed attempts from this address; retry in {} s",
-                retry.as_secs().max(1)
-            )));
-        }
         let token = req
             .metadata()
             .get("authorization")
@@ -418,6 +421,14 @@ impl Auth {
                 Ok(())
             }
             Err(why) => {
+                if let Some(retry) = self.refused_for(address, now) {
+                    tracing::debug!(?address, "authentication failed: {why} (over the limit)");
+                    return Err(Status::unauthenticated(format!(
+                        "{why}; too many failed attempts from this address (the next {} s are \
+                         not logged)",
+                        retry.as_secs().max(1)
+                    )));
+                }
                 self.count_failure(address, now, why);
                 Err(Status::unauthenticated(why))
             }
@@ -463,7 +474,8 @@ impl Auth {
             tracing::warn!(
                 ?address,
                 failures = w.count,
-                "authentication failed: {why}; this address is refused for {} s",
+                "authentication failed: {why}; further failures from this address are not \
+                 logged for {} s (its valid tokens still pass)",
                 window.as_secs_f64()
             );
         } else {
@@ -590,6 +602,47 @@ mod tests {
         assert_eq!(permission(Role::Control, StopSession), Some(false));
     }
 
+    /// Issue 47: a client failing from an address never locks out the valid tokens of others
+    /// from the same address; only the failures are limited.
+    #[test]
+    fn failures_never_lock_out_a_valid_token_from_the_same_address() {
+        let text = "[[token]]\nname = \"arm\"\nrole = \"device\"\ntoken = \"0123456789abcdef\"\n";
+        let auth = Auth::new(
+            Some(TokenStore::parse(text).unwrap()),
+            FailureLimits {
+                max_failures: 3,
+                window: Duration::from_secs(3600),
+            },
+        );
+        // Requests without a transport share one address (`None`), as local clients share
+        // 127.0.0.1.
+        let call = |token: Option<&str>| {
+            let mut req = Request::new(());
+            if let Some(t) = token {
+                req.metadata_mut()
+                    .insert("authorization", format!("Bearer {t}").parse().unwrap());
+            }
+            auth.authenticate(&mut req)
+                .map(|()| req.extensions().get::<Caller>().map(|c| c.name.to_string()))
+        };
+        for _ in 0..3 {
+            let e = call(None).unwrap_err();
+            assert_eq!(e.code(), tonic::Code::Unauthenticated);
+            assert!(!e.message().contains("too many"), "{e:?}");
+        }
+        for _ in 0..20 {
+            // Past the limit: failures say so, and are no longer counted ...
+            let e = call(Some("wrong-0123456789abcdef")).unwrap_err();
+            assert!(
+                e.message().contains("unknown token") && e.message().contains("too many"),
+                "{e:?}"
+            );
+            // ... and the valid token still passes, every time.
+            assert_eq!(call(Some("0123456789abcdef")).unwrap(), Some("arm".into()));
+        }
+        assert_eq!(lock(&auth.failures)[&None].count, 3);
+    }
+
     #[test]
     fn tokens_file_rules_never_quote_a_token() {
         let ok = "[[token]]\nname = \"a\"\nrole = \"viewer\"\ntoken = \"0123456789abcdef\"\n";
@@ -598,8 +651,12 @@ mod tests {
         for (text, rule) in [
             (String::new(), "no [[token]]"),
             (
-                format!("[[token]]\nname = \"a\"\nrole = \"root\"\ntoken = \"{secret}\"\n"),
-                "unknown variant",
+                format!("[[token]]\nname = \"a\"\nrole = \"{secret}\"\ntoken = \"{secret}\"\n"),
+                "line 3, column 8: unknown value; expected one of",
+            ),
+            (
+                format!("[[token]]\nname = \"a\"\nrole = \"admin\"\ntoken = {secret}\n"),
+                "line 4",
             ),
             (
                 "[[token]]\nname = \"a\"\nrole = \"admin\"\ntoken = \"short\"\n".into(),
@@ -610,11 +667,11 @@ mod tests {
                     "[[token]]\nname = \"a\"\nrole = \"admin\"\ntoken = \"{secret}\"\n\
                      [[token]]\nname = \"b\"\nrole = \"viewer\"\ntoken = \"{secret}\"\n"
                 ),
-                "used twice",
+                "used by an earlier entry",
             ),
             (
                 format!("{ok}[[token]]\nname = \"a\"\nrole = \"admin\"\ntoken = \"{secret}\"\n"),
-                "repeated",
+                "entry 2: expected a name",
             ),
         ] {
             let e = TokenStore::parse(&text).unwrap_err().to_string();

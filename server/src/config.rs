@@ -89,7 +89,8 @@ pub struct ConfigFile {
     pub listen: Option<String>,
     /// Largest number of concurrent sessions.
     pub max_sessions: Option<usize>,
-    /// Directory that relative mesh paths in client-supplied scene text resolve against.
+    /// Directory that relative mesh paths in client-supplied scene text resolve against
+    /// (relative to the configuration file's directory when given in the file).
     pub scene_dir: Option<PathBuf>,
     /// Log format: `text` or `json`.
     pub log_format: Option<String>,
@@ -169,8 +170,10 @@ pub struct ServerConfig {
     pub listen: SocketAddr,
     /// Largest number of concurrent sessions.
     pub max_sessions: usize,
-    /// Base directory for relative mesh paths in scene text.
-    pub scene_dir: PathBuf,
+    /// Base directory for relative mesh paths in client-sent scene text, and the first
+    /// directory such scenes may read from; `None`: client scenes may name files only by
+    /// absolute path inside a data directory.
+    pub scene_dir: Option<PathBuf>,
     /// Log format.
     pub log_format: LogFormat,
     /// Servo settings.
@@ -236,7 +239,7 @@ impl Default for ServerConfig {
         Self {
             listen: "127.0.0.1:50051".parse().expect("literal address"),
             max_sessions: 8,
-            scene_dir: PathBuf::from("."),
+            scene_dir: None,
             log_format: LogFormat::Text,
             servo: ServoConfig::default(),
             state_dir: None,
@@ -258,23 +261,104 @@ impl Default for ServerConfig {
     }
 }
 
+impl ServerConfig {
+    /// Start-up checks of what clients may make the daemon read: `scene_dir` and every data
+    /// directory must exist and must not be the root or a system directory
+    /// ([`crate::confine::check_root`]); they are replaced by their canonical paths. The tokens
+    /// file, the TLS key and the state directory must not lie inside one of them (a client
+    /// could otherwise name them in a scene).
+    ///
+    /// # Errors
+    /// [`ServerError::Config`] naming the setting, the directory and the rule.
+    pub fn check_directories(&mut self) -> Result<(), ServerError> {
+        if let Some(d) = &self.scene_dir {
+            self.scene_dir = Some(crate::confine::check_root("scene_dir", d)?);
+        }
+        for d in &mut self.data_dirs {
+            *d = crate::confine::check_root("data_dirs", d)?;
+        }
+        let roots: Vec<&PathBuf> = self.scene_dir.iter().chain(&self.data_dirs).collect();
+        let private = [
+            ("[auth] tokens_file", self.tokens_file.as_deref()),
+            (
+                "[tls] key_file",
+                self.tls.as_ref().map(|t| t.key_file.as_path()),
+            ),
+            ("state_dir", self.state_dir.as_deref()),
+        ];
+        for (field, path) in private {
+            let Some(canonical) = path.and_then(canonical_even_if_missing) else {
+                continue;
+            };
+            if let Some(root) = roots.iter().find(|r| canonical.starts_with(r)) {
+                return Err(ServerError::Config(format!(
+                    "{field} {} lies inside {}, a directory client scenes may read: move it out",
+                    canonical.display(),
+                    root.display()
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// `path` with its directory resolved (symlinks, `..`) when the file itself does not exist yet
+/// (a tokens file made at first start); `None` when not even the directory resolves.
+fn canonical_even_if_missing(path: &Path) -> Option<PathBuf> {
+    if let Ok(c) = std::fs::canonicalize(path) {
+        return Some(c);
+    }
+    let dir = std::fs::canonicalize(path.parent()?).ok()?;
+    Some(dir.join(path.file_name()?))
+}
+
 impl ConfigFile {
     /// Parses configuration text.
     ///
     /// # Errors
-    /// [`ServerError::Config`] with the TOML error (location and unknown field names).
+    /// [`ServerError::Config`] with the TOML error: its line and column, unknown key names and
+    /// what was expected, never the file's text.
     pub fn parse(text: &str) -> Result<Self, ServerError> {
-        toml::from_str(text).map_err(|e| ServerError::Config(e.to_string()))
+        toml::from_str(text)
+            .map_err(|e| ServerError::Config(haptic_model::scene::describe_toml_error(text, &e)))
     }
 
     /// Reads and parses a configuration file.
     ///
     /// # Errors
     /// [`ServerError::Config`] when the file cannot be read or parsed.
+    /// Relative paths in the file (`scene_dir`, `data_dirs`, `state_dir`, `[auth] tokens_file`,
+    /// the `[tls]` files) resolve against the file's directory, never the working directory:
+    /// the daemon as installed runs in `/`.
     pub fn load(path: &Path) -> Result<Self, ServerError> {
         let text = std::fs::read_to_string(path)
             .map_err(|e| ServerError::Config(format!("reading {}: {e}", path.display())))?;
-        Self::parse(&text).map_err(|e| ServerError::Config(format!("{}: {e}", path.display())))
+        let mut file = Self::parse(&text)
+            .map_err(|e| ServerError::Config(format!("{}: {e}", path.display())))?;
+        let dir = std::path::absolute(path)
+            .map_err(|e| ServerError::Config(format!("{}: {e}", path.display())))?
+            .parent()
+            .map_or_else(|| PathBuf::from("/"), Path::to_path_buf);
+        file.resolve_paths_against(&dir);
+        Ok(file)
+    }
+
+    /// Makes every relative path of the file relative to `dir` instead (see [`Self::load`]).
+    pub fn resolve_paths_against(&mut self, dir: &Path) {
+        let fix = |p: &mut PathBuf| {
+            if p.is_relative() {
+                *p = dir.join(&*p);
+            }
+        };
+        self.scene_dir.iter_mut().for_each(fix);
+        self.data_dirs.iter_mut().for_each(fix);
+        self.state_dir.iter_mut().for_each(fix);
+        self.auth.tokens_file.iter_mut().for_each(fix);
+        if let Some(t) = &mut self.tls {
+            fix(&mut t.cert_file);
+            fix(&mut t.key_file);
+            t.client_ca_file.iter_mut().for_each(fix);
+        }
     }
 
     /// Validates the file over the defaults.
@@ -296,9 +380,7 @@ impl ConfigFile {
             }
             c.max_sessions = m;
         }
-        if let Some(d) = self.scene_dir {
-            c.scene_dir = d;
-        }
+        c.scene_dir = self.scene_dir;
         if let Some(f) = self.log_format {
             c.log_format = match f.as_str() {
                 "text" => LogFormat::Text,

@@ -51,11 +51,114 @@ pub fn lexical_join(base: &Path, rel: &Path) -> PathBuf {
     out
 }
 
+/// Directories that may never be a scene or data directory: the root and the system's own
+/// folders (a client's scene could make the daemon read any file below them).
+pub const SYSTEM_DIRS: &[&str] = &[
+    "/",
+    "/bin",
+    "/boot",
+    "/dev",
+    "/etc",
+    "/home",
+    "/lib",
+    "/lib32",
+    "/lib64",
+    "/libx32",
+    "/media",
+    "/mnt",
+    "/opt",
+    "/proc",
+    "/root",
+    "/run",
+    "/sbin",
+    "/snap",
+    "/srv",
+    "/sys",
+    "/tmp",
+    "/usr",
+    "/usr/bin",
+    "/usr/include",
+    "/usr/lib",
+    "/usr/lib64",
+    "/usr/libexec",
+    "/usr/local",
+    "/usr/local/bin",
+    "/usr/local/etc",
+    "/usr/local/lib",
+    "/usr/local/sbin",
+    "/usr/local/share",
+    "/usr/sbin",
+    "/usr/share",
+    "/usr/src",
+    "/var",
+    "/var/cache",
+    "/var/lib",
+    "/var/lib/private",
+    "/var/local",
+    "/var/log",
+    "/var/mail",
+    "/var/opt",
+    "/var/run",
+    "/var/spool",
+    "/var/tmp",
+];
+
+/// Trees no directory below may serve clients either: kernel interfaces, devices, the
+/// system's configuration and secrets.
+pub const SYSTEM_TREES: &[&str] = &["/boot", "/dev", "/etc", "/proc", "/root", "/run", "/sys"];
+
+/// Why `canonical` (an absolute, symlink-free path) may not serve client scenes, if it may not:
+/// one of [`SYSTEM_DIRS`], inside one of [`SYSTEM_TREES`], or a home directory (`/home/NAME`).
+pub fn system_dir_rule(canonical: &Path) -> Option<&'static str> {
+    if SYSTEM_DIRS.iter().any(|d| canonical == Path::new(d)) {
+        return Some("is the root or a system directory");
+    }
+    if SYSTEM_TREES.iter().any(|d| canonical.starts_with(d)) {
+        return Some("lies inside a system tree (/etc, /proc, /sys, /dev, /run, /boot, /root)");
+    }
+    if canonical.parent() == Some(Path::new("/home")) {
+        return Some("is a home directory");
+    }
+    None
+}
+
+/// Checks a scene or data directory at start-up and returns it canonical: it must exist, be a
+/// directory, and not be the root or a system directory ([`system_dir_rule`]). `field` names
+/// the setting in the message.
+///
+/// # Errors
+/// [`ServerError::Config`] naming the setting, the directory and the rule.
+pub fn check_root(field: &str, dir: &Path) -> Result<PathBuf, ServerError> {
+    let shown = dir.display();
+    let canonical = std::fs::canonicalize(dir).map_err(|e| {
+        ServerError::Config(format!(
+            "{field} {shown}: cannot be resolved ({}); create it (deploy/install.sh makes the \
+             installed ones) or change {field}",
+            e.kind()
+        ))
+    })?;
+    if !canonical.is_dir() {
+        return Err(ServerError::Config(format!(
+            "{field} {shown}: not a directory"
+        )));
+    }
+    if let Some(rule) = system_dir_rule(&canonical) {
+        return Err(ServerError::Config(format!(
+            "{field} {shown} ({}) {rule}: a client's scene could make the daemon read any file \
+             below it. Give the daemon a directory of its own, e.g. /var/lib/hapticd/scenes \
+             (docs/security.md)",
+            canonical.display()
+        )));
+    }
+    Ok(canonical)
+}
+
 impl FileRoots {
-    /// Roots from the scene directory and the data directories (each canonicalized; one that
-    /// does not exist allows nothing), with `max_bytes` per file.
-    pub fn new(scene_dir: &Path, data_dirs: &[PathBuf], max_bytes: u64) -> Self {
-        let scene_dir = std::fs::canonicalize(scene_dir).ok();
+    /// Roots from the scene directory (if any) and the data directories (each canonicalized;
+    /// one that does not exist allows nothing), with `max_bytes` per file. Without a scene
+    /// directory, relative paths are refused and absolute ones must lie in a data directory.
+    pub fn new(scene_dir: Option<&Path>, data_dirs: &[PathBuf], max_bytes: u64) -> Self {
+        let scene_dir = scene_dir.and_then(|d| std::fs::canonicalize(d).ok());
         let roots = scene_dir
             .iter()
             .cloned()
@@ -96,14 +199,18 @@ impl FileRoots {
     /// [`FileRoots::check_file`] with a missing file inside the allowed directories as
     /// `Ok(None)`.
     fn resolve(&self, field: &str, file: &str) -> Result<Option<PathBuf>, ServerError> {
-        let Some(scene_dir) = &self.scene_dir else {
-            return Err(Self::denied(field));
-        };
         if file.contains('\0') {
             return Err(ServerError::InvalidArgument(format!(
                 "`{field}`: a path may not contain NUL"
             )));
         }
+        // Without a scene directory only absolute paths (into a data directory) can be allowed.
+        let root = Path::new("/");
+        let scene_dir = match &self.scene_dir {
+            Some(d) => d.as_path(),
+            None if Path::new(file).is_absolute() => root,
+            None => return Err(Self::denied(field)),
+        };
         let path = lexical_join(scene_dir, Path::new(file));
         if !self.roots.iter().any(|r| path.starts_with(r)) {
             return Err(Self::denied(field));
@@ -234,7 +341,8 @@ impl FileRoots {
         match estimate {
             Some((field, n)) if n > (max_elements as u128).saturating_mul(13) / 10 => {
                 Err(ServerError::InvalidArgument(format!(
-                    "`{field}` asks for about {n} elements; this daemon takes at most                      {max_elements} per client scene (max_elements)"
+                    "`{field}` asks for about {n} elements; this daemon takes at most \
+                     {max_elements} per client scene (max_elements)"
                 )))
             }
             _ => Ok(()),
@@ -260,7 +368,9 @@ pub fn check_counts(
 ) -> Result<(), ServerError> {
     if elements > max_elements || nodes > max_nodes {
         return Err(ServerError::InvalidArgument(format!(
-            "the scene has {nodes} nodes and {elements} elements; this daemon takes at most              {max_nodes} nodes and {max_elements} elements per client scene (max_nodes,              max_elements)"
+            "the scene has {nodes} nodes and {elements} elements; this daemon takes at most \
+             {max_nodes} nodes and {max_elements} elements per client scene (max_nodes, \
+             max_elements)"
         )));
     }
     Ok(())

@@ -45,6 +45,9 @@ pub async fn run(
     config: ServerConfig,
     shutdown: impl Future<Output = ()> + Send,
 ) -> anyhow::Result<()> {
+    let mut config = config;
+    // What clients may read is checked before anything listens (issue 47).
+    config.check_directories()?;
     let manager = Arc::new(session::SessionManager::new(config));
     // Sessions recorded by an earlier process come back (same ids) before anyone can connect.
     for line in manager.restore() {

@@ -501,13 +501,19 @@ impl SessionManager {
             }
             // Files the text names must be allowed ones (issue 16) before the model opens any.
             crate::confine::FileRoots::new(
-                &self.config.scene_dir,
+                self.config.scene_dir.as_deref(),
                 &self.config.data_dirs,
                 self.config.max_file_bytes,
             )
             .check_scene(toml_text)?;
             crate::confine::FileRoots::check_generated_size(toml_text, self.config.max_elements)?;
-            let scene = scene::parse_scene_toml(toml_text, &self.config.scene_dir)?;
+            // Without a scene directory every allowed path is absolute (checked above).
+            let base = self
+                .config
+                .scene_dir
+                .as_deref()
+                .unwrap_or(std::path::Path::new("/"));
+            let scene = scene::parse_scene_toml(toml_text, base)?;
             // Tetrahedra, or the triangles of a mass-spring surface.
             let triangles: usize = scene.mesh.surfaces.iter().map(|g| g.triangles.len()).sum();
             let elements = scene.mesh.tet_count().max(triangles);

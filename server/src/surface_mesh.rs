@@ -73,6 +73,15 @@ fn read_err(path: &Path, message: impl std::fmt::Display) -> MeshInError {
     }
 }
 
+/// Removes a directory tree when dropped (a work folder, on success and on every error path).
+struct RemoveOnDrop(PathBuf);
+
+impl Drop for RemoveOnDrop {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
 /// Reads an STL (ASCII or binary), OBJ or PLY surface by extension and merges coincident
 /// vertices (to 1e-9 of the bounding box diagonal).
 ///
@@ -87,8 +96,20 @@ pub fn read_surface(path: &Path) -> Result<SurfaceMesh, MeshInError> {
     let open = || std::fs::File::open(path).map_err(|e| read_err(path, e));
     let (vertices, triangles): (Vec<[f64; 3]>, Vec<[u32; 3]>) = match ext.as_str() {
         "stl" => {
-            let mesh = stl_io::read_stl(&mut std::io::BufReader::new(open()?))
-                .map_err(|e| read_err(path, format!("not a readable STL file: {e}")))?;
+            // stl_io's messages quote the line it stopped at: say what the format expects.
+            let mesh = stl_io::read_stl(&mut std::io::BufReader::new(open()?)).map_err(|e| {
+                read_err(
+                    path,
+                    if e.kind() == std::io::ErrorKind::InvalidData {
+                        "not a readable STL file: expected binary STL, or ASCII `solid`, then \
+                         per facet `facet normal`, `outer loop`, three `vertex x y z` lines, \
+                         `endloop`, `endfacet`"
+                            .to_string()
+                    } else {
+                        format!("not a readable STL file ({})", e.kind())
+                    },
+                )
+            })?;
             let v = mesh
                 .vertices
                 .iter()
@@ -164,9 +185,22 @@ pub fn read_surface(path: &Path) -> Result<SurfaceMesh, MeshInError> {
 fn read_ply(path: &Path, r: &mut impl std::io::BufRead) -> Result<SurfaceMesh, MeshInError> {
     use ply_rs::ply::Property;
     let parser = ply_rs::parser::Parser::<ply_rs::ply::DefaultElement>::new();
-    let ply = parser
-        .read_ply(r)
-        .map_err(|e| read_err(path, format!("not a readable PLY file: {e}")))?;
+    // ply-rs's messages quote the line: keep only its line number (issue 47).
+    let ply = parser.read_ply(r).map_err(|e| {
+        let text = e.to_string();
+        let line = text
+            .strip_prefix("Line ")
+            .and_then(|t| t.split(':').next())
+            .and_then(|n| n.trim().parse::<usize>().ok());
+        read_err(
+            path,
+            format!(
+                "not a readable PLY file{}: expected a `ply` header, `format ascii 1.0` or \
+                 binary, `element`/`property` lines, `end_header`, then the data",
+                line.map_or(String::new(), |l| format!(" (line {l})"))
+            ),
+        )
+    })?;
     let scalar = |p: Option<&Property>| -> Option<f64> {
         Some(match p? {
             Property::Float(x) => f64::from(*x),
@@ -391,6 +425,8 @@ pub fn mesh_volume(
         path: work.display().to_string(),
         source,
     })?;
+    // The work folder goes whatever happens next (issue 47: a failed run left it behind).
+    let _work_guard = RemoveOnDrop(work.clone());
     let surf = work.join("surface.msh");
     let mut text = String::from("$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nodes\n");
     let inner_offset = outer.vertices.len();
@@ -501,7 +537,6 @@ pub fn mesh_volume(
             }
         )));
     }
-    let _ = std::fs::remove_dir_all(&work);
     Ok(VolumeSummary {
         outer_triangles: outer.triangles.len(),
         base_triangles,
@@ -619,6 +654,26 @@ mod tests {
         }
         let e = read_surface(&dir.join("cube.off")).unwrap_err().to_string();
         assert!(e.contains("unknown surface format"), "{e}");
+        // Malformed files: what the format expects, never the text found (issue 47).
+        let mark = "S3cr3tMark";
+        for (name, text, expect) in [
+            (
+                "bad.stl",
+                format!("solid x\n{mark} 1 2 3\n"),
+                "expected binary STL",
+            ),
+            (
+                "bad.ply",
+                format!("ply\nformat ascii 1.0\n{mark} vertex 8\nend_header\n"),
+                "not a readable PLY file (line 3)",
+            ),
+            ("bad.obj", format!("v 0 0 0\nv {mark} 1 1\n"), "OBJ"),
+        ] {
+            let path = dir.join(name);
+            std::fs::write(&path, text).unwrap();
+            let e = read_surface(&path).unwrap_err().to_string();
+            assert!(e.contains(expect) && !e.contains(mark), "{name}: {e}");
+        }
         let _ = std::fs::remove_dir_all(&dir);
     }
 

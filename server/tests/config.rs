@@ -1,16 +1,135 @@
 //! The shipped configuration parses and validates; layering and bad values are reported.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use haptic_server::config::{ConfigFile, LogFormat, ServerConfig};
 
 #[test]
 fn deploy_config_parses_and_matches_the_defaults() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/hapticd.toml");
-    let cfg = ConfigFile::load(&path).unwrap().into_config().unwrap();
-    // The shipped file documents the defaults: parsing it must give exactly them.
+    let mut cfg = ConfigFile::load(&path).unwrap().into_config().unwrap();
+    // The shipped file names the installed directories (issue 47), absolute, so they do not
+    // depend on where the file lies ...
+    assert_eq!(
+        cfg.scene_dir.take(),
+        Some(PathBuf::from("/var/lib/hapticd/scenes"))
+    );
+    assert_eq!(
+        std::mem::take(&mut cfg.data_dirs),
+        [PathBuf::from("/usr/local/share/hapticd/meshes")]
+    );
+    // ... and documents the defaults for everything else: parsing it must give exactly them.
     assert_eq!(cfg, ServerConfig::default());
     assert_eq!(cfg.log_format, LogFormat::Text);
+}
+
+#[test]
+fn relative_paths_in_the_file_resolve_against_its_directory() {
+    let dir = std::env::temp_dir().join(format!("config-relative-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("hapticd.toml");
+    std::fs::write(
+        &path,
+        "scene_dir = \"scenes\"\ndata_dirs = [\"../meshes\", \"/abs/meshes\"]\n\
+         state_dir = \"state\"\n[auth]\ntokens_file = \"state/tokens.toml\"\n\
+         [tls]\ncert_file = \"tls/s.pem\"\nkey_file = \"tls/s.key\"\n",
+    )
+    .unwrap();
+    // Whatever the working directory: the daemon as installed runs in `/`.
+    let cfg = ConfigFile::load(&path).unwrap().into_config().unwrap();
+    assert_eq!(cfg.scene_dir, Some(dir.join("scenes")));
+    assert_eq!(
+        cfg.data_dirs,
+        [dir.join("../meshes"), PathBuf::from("/abs/meshes")]
+    );
+    assert_eq!(cfg.state_dir, Some(dir.join("state")));
+    assert_eq!(cfg.tokens_file, Some(dir.join("state/tokens.toml")));
+    let tls = cfg.tls.unwrap();
+    assert_eq!(
+        (tls.cert_file, tls.key_file),
+        (dir.join("tls/s.pem"), dir.join("tls/s.key"))
+    );
+    // Text without a file (and flags) keeps its paths as given: relative to the working
+    // directory, like any command-line path.
+    let cfg = ConfigFile::parse("scene_dir = \"scenes\"")
+        .unwrap()
+        .into_config()
+        .unwrap();
+    assert_eq!(cfg.scene_dir, Some(PathBuf::from("scenes")));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn system_directories_never_serve_client_scenes() {
+    let dir = std::env::temp_dir().join(format!("config-system-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(dir.join("scenes")).unwrap();
+    std::os::unix::fs::symlink("/proc/self", dir.join("proc-link")).unwrap();
+    let check = |scene: &Path, data: &[&Path]| {
+        let mut c = ServerConfig {
+            scene_dir: Some(scene.to_path_buf()),
+            data_dirs: data.iter().map(|d| d.to_path_buf()).collect(),
+            ..ServerConfig::default()
+        };
+        c.check_directories().map(|()| c).map_err(|e| e.to_string())
+    };
+    let ok = dir.join("scenes");
+    for bad in [
+        "/",
+        "/etc",
+        "/proc",
+        "/sys",
+        "/dev",
+        "/usr",
+        "/usr/share",
+        "/bin",
+        "/boot",
+        "/root",
+        "/home",
+        "/var",
+        "/var/lib",
+        "/run",
+        "/tmp",
+        "/etc/ssl",
+        "/proc/self",
+        "/sys/kernel",
+    ] {
+        if !Path::new(bad).is_dir() {
+            continue; // not on this machine
+        }
+        let e = check(Path::new(bad), &[]).unwrap_err();
+        assert!(e.contains("scene_dir") && e.contains(bad), "{bad}: {e}");
+        let e = check(&ok, &[Path::new(bad)]).unwrap_err();
+        assert!(e.contains("data_dirs"), "{bad}: {e}");
+    }
+    // Through a symlink: the resolved directory counts.
+    let e = check(&dir.join("proc-link"), &[]).unwrap_err();
+    assert!(e.contains("system tree"), "{e}");
+    let e = check(&dir.join("missing"), &[]).unwrap_err();
+    assert!(e.contains("cannot be resolved"), "{e}");
+    // A directory of its own passes, made canonical.
+    let c = check(&dir.join("scenes/../scenes"), &[]).unwrap();
+    assert_eq!(c.scene_dir, Some(std::fs::canonicalize(&ok).unwrap()));
+    // The tokens file (even before it exists), the TLS key and the state directory stay out
+    // of what clients may read.
+    let mut c = ServerConfig {
+        scene_dir: Some(dir.clone()),
+        tokens_file: Some(dir.join("scenes/tokens.toml")),
+        ..ServerConfig::default()
+    };
+    let e = c.check_directories().unwrap_err().to_string();
+    assert!(
+        e.contains("tokens_file") && e.contains("move it out"),
+        "{e}"
+    );
+    let mut c = ServerConfig {
+        scene_dir: Some(ok.clone()),
+        state_dir: Some(dir.clone()),
+        tokens_file: Some(dir.join("tokens.toml")),
+        ..ServerConfig::default()
+    };
+    assert!(c.check_directories().is_ok());
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]

@@ -25,7 +25,7 @@ fn shared_lv() -> PathBuf {
 
 fn manager(scene_dir: &Path, max_file_bytes: u64) -> SessionManager {
     SessionManager::new(ServerConfig {
-        scene_dir: scene_dir.to_path_buf(),
+        scene_dir: Some(scene_dir.to_path_buf()),
         data_dirs: vec![shared_lv()],
         max_file_bytes,
         ..ServerConfig::default()
@@ -157,7 +157,7 @@ fn a_huge_line_is_not_quoted_back_whole() {
 fn oversized_client_scenes_are_refused_before_they_are_built() {
     let dir = temp_dir("size");
     let m = SessionManager::new(ServerConfig {
-        scene_dir: dir.clone(),
+        scene_dir: Some(dir.clone()),
         max_elements: 20_000,
         ..ServerConfig::default()
     });

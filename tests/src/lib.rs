@@ -350,7 +350,19 @@ impl Daemon {
     /// # Errors
     /// As [`Daemon::spawn`].
     pub fn spawn_from(exe: &Path, args: &[&str]) -> Result<Daemon> {
+        Self::spawn_in(exe, args, None)
+    }
+
+    /// As [`Daemon::spawn_from`], in the working directory `cwd` when given (the systemd
+    /// unit's daemon runs in `/`).
+    ///
+    /// # Errors
+    /// As [`Daemon::spawn`].
+    pub fn spawn_in(exe: &Path, args: &[&str], cwd: Option<&Path>) -> Result<Daemon> {
         let mut cmd = std::process::Command::new(exe);
+        if let Some(dir) = cwd {
+            cmd.current_dir(dir);
+        }
         if !args.contains(&"--listen") {
             cmd.args(["--listen", "127.0.0.1:0"]);
         }
@@ -579,9 +591,15 @@ pub fn spawn_bin_in(dir: &Path, name: &str, args: &[&str]) -> Result<Spawned> {
 
 /// Starts the executable `exe` (called `name` in messages) with `args` in the background.
 fn spawn_exe(exe: &Path, name: &str, args: &[&str]) -> Result<Spawned> {
+    spawn_exe_env(exe, name, args, &[])
+}
+
+/// [`spawn_exe`] with environment variables `env` added.
+fn spawn_exe_env(exe: &Path, name: &str, args: &[&str], env: &[(&str, &str)]) -> Result<Spawned> {
     let command = format!("{name} {}", args.join(" "));
     let child = tokio::process::Command::new(exe)
         .args(args)
+        .envs(env.iter().copied())
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -670,6 +688,19 @@ pub async fn finish(p: Spawned, timeout: Duration) -> Result<CmdOutput> {
 /// Missing binary, spawn failure or timeout; a non-zero exit is *not* an error here.
 pub async fn run_bin(name: &str, args: &[&str], timeout: Duration) -> Result<CmdOutput> {
     finish(spawn_bin(name, args)?, timeout).await
+}
+
+/// [`run_bin`] with environment variables `env` added (`HAPTICD_ADDR`, token files ...).
+///
+/// # Errors
+/// As [`run_bin`].
+pub async fn run_bin_env(
+    name: &str,
+    args: &[&str],
+    env: &[(&str, &str)],
+    timeout: Duration,
+) -> Result<CmdOutput> {
+    finish(spawn_exe_env(&binary(name)?, name, args, env)?, timeout).await
 }
 
 /// Same as [`run_bin`] for a binary in `dir`.

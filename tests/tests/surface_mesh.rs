@@ -1,7 +1,8 @@
 //! Surface meshes in (issue 19): `haptic-mesh` turns the shipped closed surface
 //! `deploy/surfaces/dome.stl` (a hemisphere of radius 10 mm on a flat base) into a tetrahedral
 //! Gmsh mesh and a scene, the daemon runs it, and the real bridge presses its apex; an open
-//! surface and a self-intersecting one are refused with messages that say so.
+//! surface and a self-intersecting one are refused with messages that say so, the failed run
+//! leaving no work folder behind; without Gmsh nothing is written (issue 47).
 //!
 //! Gmsh is Debian's package, installed by `tests/install-gmsh.sh` when missing; where it cannot
 //! be installed (not root, no apt, no network) the test prints why on the process's stderr
@@ -205,6 +206,34 @@ async fn a_shipped_surface_is_meshed_run_and_pressed_and_bad_surfaces_are_refuse
         "{}",
         refused.stderr
     );
+    // A failed run leaves no work folder behind (issue 47) ...
+    ensure!(
+        !out.join("crossing.gmsh-work").exists(),
+        "the failed run left its work folder"
+    );
+    // ... and without Gmsh nothing is written at all, not even the output folder.
+    let fresh = dir.join("fresh");
+    let refused = run_bin(
+        MESH,
+        &[
+            &surface,
+            "--out",
+            &fresh.display().to_string(),
+            "--clamp-below-z",
+            "0.001",
+            "--gmsh",
+            &dir.join("no-such-gmsh").display().to_string(),
+        ],
+        Duration::from_secs(60),
+    )
+    .await?;
+    ensure!(!refused.status.success(), "ran without gmsh");
+    ensure!(
+        refused.stderr.contains("needs Gmsh") && refused.stderr.contains("nothing was written"),
+        "{}",
+        refused.stderr
+    );
+    ensure!(!fresh.exists(), "{} was made", fresh.display());
     let _ = std::fs::remove_dir_all(&dir);
     Ok(())
 }

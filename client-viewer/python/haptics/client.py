@@ -98,14 +98,23 @@ class Frame:
         return np.linalg.norm(self.positions_m - self.rest_positions_m, axis=1)
 
 
+def _env(name: str) -> Optional[str]:
+    """``HAPTICD_<name>``, else the older ``HAPTICS_<name>`` (the daemon's binaries read the same
+    names: docs/tools.md, "Environment variables")."""
+    value = os.environ.get(f"HAPTICD_{name}")
+    return value if value is not None else os.environ.get(f"HAPTICS_{name}")
+
+
 def _token_metadata(token: Optional[str]) -> list:
-    """The bearer token, from the argument, ``HAPTICS_TOKEN`` or the file ``HAPTICS_TOKEN_FILE``.
+    """The bearer token, from the argument, ``HAPTICD_TOKEN`` or the file ``HAPTICD_TOKEN_FILE``
+    (older names ``HAPTICS_TOKEN``, ``HAPTICS_TOKEN_FILE`` still read).
 
     Tokens never come from the command line of the examples (they would show in ``ps``)."""
     if token is None:
-        token = os.environ.get("HAPTICS_TOKEN")
-    if token is None and os.environ.get("HAPTICS_TOKEN_FILE"):
-        token = Path(os.environ["HAPTICS_TOKEN_FILE"]).read_text().strip()
+        token = _env("TOKEN")
+    if token is None and _env("TOKEN_FILE"):
+        lines = Path(_env("TOKEN_FILE")).read_text().splitlines()
+        token = next((l.strip() for l in lines if l.strip() and not l.strip().startswith("#")), None)
     return [("authorization", f"Bearer {token}")] if token else []
 
 
@@ -113,7 +122,7 @@ class Client:
     """A connection to ``hapticd`` (insecure channel on a trusted lab network).
 
     ``address``: ``host:port`` or ``http://host:port``. ``token``: bearer token for daemons with
-    authentication (default: ``HAPTICS_TOKEN`` or the file named by ``HAPTICS_TOKEN_FILE``).
+    authentication (default: ``HAPTICD_TOKEN`` or the file named by ``HAPTICD_TOKEN_FILE``).
     ``timeout_s``: deadline of unary calls.
     """
 

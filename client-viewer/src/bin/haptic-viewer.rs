@@ -14,6 +14,10 @@ use haptic_client::viewer::{self, StopReason, ViewerArgs};
 
 async fn run(args: ViewerArgs) -> anyhow::Result<ExitCode> {
     if let Some((addr, cfg)) = args.web_config()? {
+        // Credentials the daemon refuses end the relay at once, with the reason, before it
+        // serves a page (issue 47); later refusals stop it too (`web::serve`).
+        let relay = haptic_client::web::Relay::new(cfg.clone())?;
+        relay.check_access().await?;
         let listener = haptic_client::web::bind(&addr).await?;
         let addr = listener.local_addr()?;
         println!("listening on {addr}");
@@ -21,7 +25,7 @@ async fn run(args: ViewerArgs) -> anyhow::Result<ExitCode> {
         let shutdown = async {
             let _ = tokio::signal::ctrl_c().await;
         };
-        haptic_client::web::run(listener, cfg, shutdown).await?;
+        haptic_client::web::serve(listener, relay, shutdown).await?;
         return Ok(ExitCode::SUCCESS);
     }
     let json = args.json;
@@ -50,6 +54,8 @@ async fn run(args: ViewerArgs) -> anyhow::Result<ExitCode> {
 async fn main() -> ExitCode {
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
+        // Colour only on a terminal, never in a log file or the journal.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
         )

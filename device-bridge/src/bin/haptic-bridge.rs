@@ -1,7 +1,9 @@
 //! `haptic-bridge`: streams a haptic device's poses to a hapticd session over
 //! `DeviceLink.Connect` and renders the forces it answers. Glue only: the work is in the
 //! `haptic_bridge` library (`cli::Args::setup`, then `link::run`). SIGINT, SIGTERM and SIGHUP
-//! all stop it cleanly: zero force, the driver's safe stop, the summary, exit 0.
+//! all stop it cleanly: zero force, the driver's safe stop, the summary, exit 0. Other exit
+//! codes: 1 bad flags or set-up, 2 never connected, 3 the session is gone (NOT_FOUND), 4 the
+//! daemon refused the credentials (UNAUTHENTICATED or PERMISSION_DENIED; not retried).
 
 use std::process::ExitCode;
 use std::sync::Arc;
@@ -17,6 +19,8 @@ async fn main() -> anyhow::Result<ExitCode> {
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
+        // Colour only on a terminal, never in a log file or the journal.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_env_filter(filter)
         .init();
     // Installed before the device is opened: a signal during a hardware driver's set-up (a
@@ -62,6 +66,10 @@ async fn main() -> anyhow::Result<ExitCode> {
         println!("{}", serde_json::to_string(s)?);
     } else {
         println!("{s}");
+    }
+    if let Some(why) = &s.access_refused {
+        eprintln!("error: {why}");
+        return Ok(ExitCode::from(4));
     }
     if let Some(why) = &s.session_lost {
         eprintln!("error: {why}");

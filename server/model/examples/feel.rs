@@ -27,11 +27,11 @@ struct Args {
     scene_file: Option<PathBuf>,
     /// Line start, mm (default: the lv-probe line, 15,0,-5, whose depth zero is the analytic
     /// epicardium). With another start the depth zero is the body's rest surface.
-    #[arg(long, value_delimiter = ',', num_args = 3)]
-    from: Option<Vec<f64>>,
+    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
+    from: Option<DVec3>,
     /// Line direction (default -1,0,0).
-    #[arg(long, value_delimiter = ',', num_args = 3)]
-    direction: Option<Vec<f64>>,
+    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
+    direction: Option<DVec3>,
     /// Print every tick's force (ms, device depth mm, sphere depth mm, |F| mN).
     #[arg(long)]
     trace: bool,
@@ -105,13 +105,9 @@ fn run(args: Args) -> Result<(), String> {
     let line = match (&args.from, &args.direction) {
         (None, None) => PressLine::lv_probe(r),
         (from, dir) => {
-            let v = |v: &Option<Vec<f64>>, d: [f64; 3]| {
-                v.as_ref()
-                    .map_or(DVec3::from(d), |v| DVec3::new(v[0], v[1], v[2]))
-            };
-            let from = v(from, [15.0, 0.0, -5.0]) * 1e-3;
-            PressLine::from_rest_surface(body.as_ref(), from, v(dir, [-1.0, 0.0, 0.0]), r)
-                .map_err(|e| e.to_string())?
+            let from = from.unwrap_or(DVec3::new(15.0, 0.0, -5.0)) * 1e-3;
+            let dir = dir.unwrap_or(DVec3::NEG_X);
+            PressLine::from_rest_surface(body.as_ref(), from, dir, r).map_err(|e| e.to_string())?
         }
     };
     let tick = info.tick_s;
@@ -178,6 +174,18 @@ fn run(args: Args) -> Result<(), String> {
         print_trace(&trace, &line, tick);
     }
     Ok(())
+}
+
+/// `X,Y,Z` as a vector.
+fn parse_vec3(s: &str) -> Result<DVec3, String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|c| c.trim().parse::<f64>().map_err(|e| format!("{c:?}: {e}")))
+        .collect::<Result<_, _>>()?;
+    match v[..] {
+        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok(DVec3::new(x, y, z)),
+        _ => Err(format!("{s:?}: expected three finite numbers X,Y,Z")),
+    }
 }
 
 fn print_holds(holds: &[HoldReport]) {

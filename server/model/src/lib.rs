@@ -139,11 +139,22 @@ pub fn build_hybrid_body(
 ///
 /// # Errors
 /// As [`build_body`]; for the hybrid family the errors of [`fn@hybrid::prepare`] and
-/// [`hybrid::HybridBody::new`].
+/// [`hybrid::HybridBody::new`]; [`ModelError::SceneField`] naming `model.realtime` for a scene
+/// that declares itself a static benchmark (`[model] realtime = false`).
 pub fn build_body_with_progress(
     scene: &scene::Scene,
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Box<dyn body::SoftBody>, ModelError> {
+    if !scene.realtime {
+        return Err(ModelError::field(
+            "model.realtime",
+            format!(
+                "is false: scene `{}` is a static benchmark for haptic-solve, not a scene for \
+                 the haptic loop",
+                scene.name
+            ),
+        ));
+    }
     match scene.family {
         scene::ModelFamily::Hybrid => Ok(Box::new(build_hybrid_body(scene, progress)?)),
         scene::ModelFamily::Fem => Ok(Box::new(sim::Simulation::new_with_progress(

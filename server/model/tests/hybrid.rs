@@ -619,7 +619,8 @@ fn hybrid_scene_errors_name_their_field() {
             other => panic!("{from} -> {to}: {other:?}"),
         }
     }
-    // A value of the wrong type: the TOML error points at it and says what is expected.
+    // A value of the wrong type: the error names the field and its line and says what is
+    // expected (issue 47: the documented `scene field` form, not the quoted TOML line).
     let text = base.replace(
         "mass_scale = 100.0",
         "mass_scale = 100.0\ncore_mass_scale = true",
@@ -628,8 +629,8 @@ fn hybrid_scene_errors_name_their_field() {
         .expect_err("a boolean core_mass_scale")
         .to_string();
     assert!(
-        err.contains("core_mass_scale = true")
-            && err.contains("expected a number, \"auto\" or \"uniform\""),
+        err.starts_with("scene field `hybrid.core_mass_scale`: ")
+            && err.contains("expected a number, \"auto\" or \"uniform\" (line"),
         "{err}"
     );
 }

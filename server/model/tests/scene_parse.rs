@@ -291,24 +291,36 @@ fn each_error_names_its_field() {
 }
 
 #[test]
-fn syntax_errors_and_unknown_fields_are_scene_syntax_with_location() {
-    for text in [
-        BASE.replace("poisson_ratio = 0.45", "poisson_ratio = 0.45\nyoung = 3.0"),
-        format!("{BASE}[extra]\na = 1\n"),
-        BASE.replace(
-            "density_kg_per_m3 = 1060.0",
-            "density_kg_per_m3 = \"heavy\"",
+fn syntax_errors_have_a_location_and_unknown_keys_and_wrong_types_name_the_field() {
+    match parse(&BASE.replace("[material]", "[material")) {
+        Err(ModelError::SceneSyntax(msg)) => assert!(msg.starts_with("line "), "{msg}"),
+        other => panic!("expected SceneSyntax, got {other:?}"),
+    }
+    // Issue 47: the documented `scene field ...` form, with the line, never the value found.
+    for (text, field, message) in [
+        (
+            BASE.replace("poisson_ratio = 0.45", "poisson_ratio = 0.45\nyoung = 3.0"),
+            "material.young",
+            "unknown key; expected one of",
         ),
-        BASE.replace("[material]", "[material"),
+        (format!("{BASE}[extra]\na = 1\n"), "extra", "unknown key"),
+        (
+            BASE.replace(
+                "density_kg_per_m3 = 1060.0",
+                "density_kg_per_m3 = \"heavy\"",
+            ),
+            "material.density_kg_per_m3",
+            "expected a number (line",
+        ),
     ] {
         match parse(&text) {
-            Err(ModelError::SceneSyntax(msg)) => assert!(msg.contains("line"), "{msg}"),
-            other => panic!("expected SceneSyntax, got {other:?}"),
+            Err(e @ ModelError::SceneField { .. }) => {
+                let m = e.to_string();
+                assert!(m.starts_with(&format!("scene field `{field}`: ")), "{m}");
+                assert!(m.contains(message) && !m.contains("heavy"), "{m}");
+            }
+            other => panic!("expected SceneField {field}, got {other:?}"),
         }
-    }
-    match parse(&BASE.replace("poisson_ratio = 0.45", "poisson_ratio = 0.45\nyoung = 3.0")) {
-        Err(e) => assert!(e.to_string().contains("young"), "{e}"),
-        Ok(_) => unreachable!(),
     }
 }
 

@@ -12,7 +12,7 @@ use haptic_server::calibrate::{Outputs, TableKind, calibrate_scene};
 
 /// Calibrate the subdivided spring constants of a mass-spring scene.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Args {
     /// Scene file (TOML), or a built-in scene name.
     scene: String,

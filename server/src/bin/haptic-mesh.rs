@@ -1,7 +1,9 @@
 //! `haptic-mesh SURFACE --out DIR`: a closed surface mesh (STL, OBJ, PLY; optionally an inner
 //! cavity surface) becomes a tetrahedral Gmsh mesh with named physical groups and a scene file
 //! (`DIR/NAME.msh`, `DIR/NAME.toml`), checked by loading it as the daemon would. Gmsh (Debian's
-//! `gmsh` package; `tests/install-gmsh.sh`) fills the volume.
+//! `gmsh` package; `tests/install-gmsh.sh`) fills the volume: it is looked for first, and
+//! nothing is written without it. A run that fails leaves no work folder behind, nor `DIR` when
+//! it made it.
 
 use std::path::PathBuf;
 
@@ -13,7 +15,7 @@ use haptic_server::surface_mesh::{
 
 /// Turn a closed organ surface into a tetrahedral mesh and a scene.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Args {
     /// Closed outer surface (.stl, .obj or .ply).
     surface: PathBuf,
@@ -51,6 +53,29 @@ struct Args {
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
+    // Gmsh first: without it nothing can be made, so nothing is written.
+    if let Err(e) = std::process::Command::new(&args.gmsh)
+        .arg("--version")
+        .stdin(std::process::Stdio::null())
+        .output()
+    {
+        anyhow::bail!(
+            "cannot run {} ({e}): haptic-mesh needs Gmsh, e.g. Debian's package \
+             (`sudo apt-get install gmsh`, or `sudo bash tests/install-gmsh.sh` from the \
+             repository), or pass --gmsh PATH; nothing was written",
+            args.gmsh.display()
+        );
+    }
+    let made_out = !args.out.exists();
+    let result = run(&args);
+    if result.is_err() && made_out {
+        // Do not leave a half-made output folder this run created.
+        let _ = std::fs::remove_dir_all(&args.out);
+    }
+    result
+}
+
+fn run(args: &Args) -> anyhow::Result<()> {
     let clamp = match (args.clamp_below_z, args.clamp_above_z) {
         (Some(z), None) => ClampRule::BelowZ(z),
         (None, Some(z)) => ClampRule::AboveZ(z),

@@ -21,7 +21,7 @@ use haptics_proto::parse_vec3;
 /// Static equilibrium of a scene (Newton, sparse Cholesky, load stepping), or its static
 /// indentation by the probe sphere.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Args {
     /// Scene file (TOML), or the name of a built-in scene (`lv`, ...).
     scene: String,

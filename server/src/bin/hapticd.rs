@@ -9,7 +9,7 @@ use haptic_server::config::{ConfigFile, LogFormat};
 
 /// Networked haptic server for real-time soft-body simulation.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Args {
     /// Configuration file (TOML); flags override it. See deploy/hapticd.toml.
     #[arg(long, env = "HAPTICD_CONFIG")]
@@ -29,8 +29,9 @@ struct Args {
     /// Largest number of concurrent sessions.
     #[arg(long)]
     max_sessions: Option<usize>,
-    /// Directory that relative mesh paths in client-sent scene text resolve against
-    /// (e.g. `deploy/scenes` for the shipped scene files).
+    /// Directory that relative mesh paths in client-sent scene text resolve against (e.g.
+    /// `deploy/scenes` for the shipped scene files); without one, client scenes may name files
+    /// only by absolute path inside a --data-dir. The root and system directories are refused.
     #[arg(long)]
     scene_dir: Option<PathBuf>,
     /// Log format: text or json.
@@ -95,8 +96,10 @@ async fn main() -> anyhow::Result<()> {
     let config = file.into_config()?;
     let filter =
         tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
+    // Colour only on a terminal: the journal and log files get plain text (issue 47).
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_writer(std::io::stderr);
     match config.log_format {
         LogFormat::Json => builder.json().init(),

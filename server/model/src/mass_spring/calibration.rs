@@ -211,7 +211,8 @@ impl CalibrationTable {
         s
     }
 
-    /// Parses a cache file's text (`path` names it in errors).
+    /// Parses a cache file's text (`path` names it in errors). Messages say what was expected
+    /// on which line, never the text found there: a client's scene can name the file (issue 47).
     ///
     /// # Errors
     /// [`ModelError::Calibration`] naming the file and line for a missing key or node count,
@@ -241,15 +242,15 @@ impl CalibrationTable {
                 if let Some(v) = c.strip_prefix("key ") {
                     key = Some(
                         u64::from_str_radix(v.trim(), 16)
-                            .map_err(|e| err(ln, format!("bad key `{v}`: {e}")))?,
+                            .map_err(|_| err(ln, "expected `# key` and 16 hex digits".into()))?,
                     );
                 } else if let Some(v) = c.strip_prefix("nodes ") {
                     let n: usize = v
                         .trim()
                         .parse()
-                        .map_err(|e| err(ln, format!("bad node count `{v}`: {e}")))?;
+                        .map_err(|_| err(ln, "expected `# nodes` and a whole number".into()))?;
                     if n > 10_000_000 {
-                        return Err(err(ln, format!("{n} nodes is beyond any surface")));
+                        return Err(err(ln, "expected at most 10 000 000 nodes".into()));
                     }
                     nodes = Some(n);
                     rows = vec![None; n];
@@ -258,7 +259,11 @@ impl CalibrationTable {
             }
             if !header_seen {
                 if line != "node,element_size_m,sample,x_over_l,kh_scale,force_n" {
-                    return Err(err(ln, format!("expected the column header, got `{line}`")));
+                    return Err(err(
+                        ln,
+                        "expected the column header `node,element_size_m,sample,x_over_l,kh_scale,force_n`"
+                            .into(),
+                    ));
                 }
                 header_seen = true;
                 continue;
@@ -268,20 +273,20 @@ impl CalibrationTable {
             };
             let f: Vec<&str> = line.split(',').collect();
             if f.len() != 6 {
-                return Err(err(ln, format!("expected 6 fields, got {}", f.len())));
+                return Err(err(ln, "expected 6 comma-separated fields".into()));
             }
             let int = |s: &str| -> Result<usize, ModelError> {
                 s.trim()
                     .parse()
-                    .map_err(|e| err(ln, format!("bad integer `{s}`: {e}")))
+                    .map_err(|_| err(ln, "expected a whole number of 0 or more".into()))
             };
             let num = |s: &str| -> Result<f64, ModelError> {
                 let v: f64 = s
                     .trim()
                     .parse()
-                    .map_err(|e| err(ln, format!("bad number `{s}`: {e}")))?;
+                    .map_err(|_| err(ln, "expected a number".into()))?;
                 if !v.is_finite() {
-                    return Err(err(ln, format!("`{s}` is not finite")));
+                    return Err(err(ln, "expected a finite number".into()));
                 }
                 Ok(v)
             };

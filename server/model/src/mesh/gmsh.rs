@@ -36,7 +36,17 @@ const TYPE_POINT: u32 = 15;
 /// not UTF-8, of an unsupported version or malformed (with the 1-based line when known);
 /// [`ModelError::InvalidMesh`] if the tetrahedra are degenerate.
 pub fn load_msh(path: &Path) -> Result<TetMesh, ModelError> {
-    let shown = path.display().to_string();
+    load_msh_named(path, &path.display().to_string())
+}
+
+/// [`load_msh`] with errors naming the file `shown` (the path as a scene or a client wrote
+/// it, rather than where it resolved). No message quotes the file's text (see
+/// [`read_msh`]).
+///
+/// # Errors
+/// As [`load_msh`].
+pub fn load_msh_named(path: &Path, shown: &str) -> Result<TetMesh, ModelError> {
+    let shown = shown.to_string();
     let bytes = std::fs::read(path).map_err(|source| ModelError::Io {
         path: shown.clone(),
         source,
@@ -68,6 +78,10 @@ pub fn load_msh(path: &Path) -> Result<TetMesh, ModelError> {
 /// The tetrahedra are positively oriented ([`TetMesh::orient_and_check`]) and the surface
 /// triangles outward oriented ([`TetMesh::orient_surfaces_outward`]).
 ///
+/// Error messages give the file, the line and what was expected there, never what was found:
+/// a daemon reads files a client names, and must not send back a line of a file that is not
+/// a mesh (issue 47).
+///
 /// # Errors
 /// [`ModelError::MeshFormat`] for binary files, unsupported versions, missing sections, bad
 /// numbers or truncated sections (with the 1-based line number); [`ModelError::InvalidMesh`] if
@@ -85,11 +99,11 @@ pub fn read_msh(text: &str, path_for_errors: &str) -> Result<TetMesh, ModelError
         let Some(section) = line.strip_prefix('$') else {
             return Err(cur.err(
                 line_no,
-                format!("expected a `$Section` header, found `{}`", clip(line)),
+                "expected a `$Section` header (a line starting with `$`)",
             ));
         };
         if section.starts_with("End") {
-            return Err(cur.err(line_no, format!("unexpected `{line}`")));
+            return Err(cur.err(line_no, "a `$End...` line outside its section"));
         }
         if section != "MeshFormat" && version.is_none() {
             return Err(cur.err(line_no, "the file must start with a $MeshFormat section"));
@@ -170,15 +184,6 @@ fn fmt_err(path: &str, line: Option<usize>, message: impl Into<String>) -> Model
     }
 }
 
-/// Shortens a line for an error message.
-fn clip(s: &str) -> String {
-    if s.chars().count() > 60 {
-        format!("{}...", s.chars().take(60).collect::<String>())
-    } else {
-        s.to_string()
-    }
-}
-
 /// Checks the `version file-type data-size` line of `$MeshFormat`.
 fn check_format_line(line: &str, line_no: usize, path: &str) -> Result<Version, ModelError> {
     let mut it = line.split_whitespace();
@@ -189,15 +194,13 @@ fn check_format_line(line: &str, line_no: usize, path: &str) -> Result<Version, 
             return Err(fmt_err(
                 path,
                 Some(line_no),
-                format!(
-                    "binary Gmsh files are not supported (format {ver}, file-type 1); re-export as ASCII"
-                ),
+                "binary Gmsh files are not supported (file-type 1); re-export as ASCII",
             ));
         }
         return Err(fmt_err(
             path,
             Some(line_no),
-            format!("malformed $MeshFormat line `{}`", clip(line)),
+            "malformed $MeshFormat line: expected `version file-type data-size`, e.g. `4.1 0 8`",
         ));
     }
     match ver {
@@ -206,7 +209,7 @@ fn check_format_line(line: &str, line_no: usize, path: &str) -> Result<Version, 
         _ => Err(fmt_err(
             path,
             Some(line_no),
-            format!("unsupported Gmsh format version {ver} (supported: ASCII 2.2 and 4.1)"),
+            "unsupported Gmsh format version: expected ASCII 2.2 or 4.1",
         )),
     }
 }
@@ -268,17 +271,19 @@ impl<'a> Cursor<'a> {
         if l.trim_start().starts_with('$') {
             return Err(self.err(
                 n,
-                format!(
-                    "`{}` ended {section} too early (counts do not match)",
-                    clip(l.trim())
-                ),
+                format!("{section} ended too early: expected more lines (counts do not match)"),
             ));
         }
         let v = l
             .split_whitespace()
-            .map(|w| {
-                w.parse::<T>()
-                    .map_err(|_| self.err(n, format!("bad number `{}` in {section}", clip(w))))
+            .enumerate()
+            .map(|(i, w)| {
+                w.parse::<T>().map_err(|_| {
+                    self.err(
+                        n,
+                        format!("{section}: expected a number as field {}", i + 1),
+                    )
+                })
             })
             .collect::<Result<Vec<T>, _>>()?;
         Ok((n, v))
@@ -295,10 +300,7 @@ impl<'a> Cursor<'a> {
         if v.len() < min {
             return Err(self.err(
                 n,
-                format!(
-                    "{section}: expected {what} ({min} numbers), found {}",
-                    v.len()
-                ),
+                format!("{section}: expected {what} ({min} numbers) on this line"),
             ));
         }
         Ok((n, v))
@@ -309,13 +311,7 @@ impl<'a> Cursor<'a> {
         let (n, l) = self.expect_line(&format!("${section}"))?;
         let want = format!("$End{section}");
         if l.trim() != want {
-            return Err(self.err(
-                n,
-                format!(
-                    "expected `{want}`, found `{}` (counts do not match?)",
-                    clip(l.trim())
-                ),
-            ));
+            return Err(self.err(n, format!("expected `{want}` (counts do not match?)")));
         }
         Ok(())
     }
@@ -331,14 +327,14 @@ impl<'a> Cursor<'a> {
         Err(fmt_err(
             self.path,
             Some(self.lines.len().max(1)),
-            format!("unexpected end of file: no `{want}`"),
+            "unexpected end of file: an unknown section has no `$End...` line",
         ))
     }
 }
 
 /// Converts a count read from the file.
 fn count(cur: &Cursor<'_>, line: usize, v: i64, what: &str) -> Result<usize, ModelError> {
-    usize::try_from(v).map_err(|_| cur.err(line, format!("negative {what} {v}")))
+    usize::try_from(v).map_err(|_| cur.err(line, format!("expected a {what} of 0 or more")))
 }
 
 fn read_physical_names(
@@ -354,13 +350,7 @@ fn read_physical_names(
         let dim = it.next().and_then(|w| w.parse::<u32>().ok());
         let tag = it.next().and_then(|w| w.parse::<i64>().ok());
         let (Some(dim), Some(tag)) = (dim, tag) else {
-            return Err(cur.err(
-                n,
-                format!(
-                    "$PhysicalNames: expected `dim tag \"name\"`, found `{}`",
-                    clip(l.trim())
-                ),
-            ));
+            return Err(cur.err(n, "$PhysicalNames: expected `dim tag \"name\"`"));
         };
         let rest = l.trim();
         let name = match (rest.find('"'), rest.rfind('"')) {
@@ -368,7 +358,7 @@ fn read_physical_names(
             _ => {
                 return Err(cur.err(
                     n,
-                    format!("$PhysicalNames: missing quoted name in `{}`", clip(rest)),
+                    "$PhysicalNames: expected a quoted name (`dim tag \"name\"`)",
                 ));
             }
         };
@@ -422,9 +412,9 @@ fn insert_node(
     tag: i64,
     p: DVec3,
 ) -> Result<(), ModelError> {
-    let t = u64::try_from(tag).map_err(|_| cur.err(line, format!("bad node tag {tag}")))?;
+    let t = u64::try_from(tag).map_err(|_| cur.err(line, "expected a node tag of 0 or more"))?;
     if nodes.insert(t, p).is_some() {
-        return Err(cur.err(line, format!("node tag {t} appears twice")));
+        return Err(cur.err(line, "expected a new node tag: this one appears twice"));
     }
     Ok(())
 }
@@ -438,22 +428,16 @@ fn read_nodes_22(cur: &mut Cursor<'_>) -> Result<BTreeMap<u64, DVec3>, ModelErro
         let (n, l) = cur.expect_line(S)?;
         let w: Vec<&str> = l.split_whitespace().collect();
         if l.trim_start().starts_with('$') || w.len() < 4 {
-            return Err(cur.err(
-                n,
-                format!(
-                    "$Nodes: expected `tag x y z`, found `{}` (truncated section?)",
-                    clip(l.trim())
-                ),
-            ));
+            return Err(cur.err(n, "$Nodes: expected `tag x y z` (truncated section?)"));
         }
         let tag: i64 = w[0]
             .parse()
-            .map_err(|_| cur.err(n, format!("bad node tag `{}` in $Nodes", clip(w[0]))))?;
+            .map_err(|_| cur.err(n, "$Nodes: expected an integer node tag as field 1"))?;
         let mut xyz = [0.0; 3];
         for k in 0..3 {
             xyz[k] = w[k + 1]
                 .parse()
-                .map_err(|_| cur.err(n, format!("bad number `{}` in $Nodes", clip(w[k + 1]))))?;
+                .map_err(|_| cur.err(n, format!("$Nodes: expected a number as field {}", k + 2)))?;
         }
         let p = check_xyz(cur, n, &xyz)?;
         insert_node(cur, &mut nodes, n, tag, p)?;
@@ -509,7 +493,7 @@ fn nodes_of_type(kind: u32) -> Option<usize> {
 
 fn node_tags(cur: &Cursor<'_>, line: usize, v: &[i64]) -> Result<Vec<u64>, ModelError> {
     v.iter()
-        .map(|&t| u64::try_from(t).map_err(|_| cur.err(line, format!("bad node tag {t}"))))
+        .map(|&t| u64::try_from(t).map_err(|_| cur.err(line, "expected node tags of 0 or more")))
         .collect()
 }
 
@@ -528,9 +512,8 @@ fn read_elements_22(cur: &mut Cursor<'_>) -> Result<Vec<Element>, ModelError> {
             return Err(cur.err(
                 n,
                 format!(
-                    "$Elements: element {tag} of type {kind} needs {} numbers, found {}",
-                    3 + ntags + nn,
-                    e.len()
+                    "$Elements: expected {} numbers for an element of type {kind} with {ntags} tags",
+                    3 + ntags + nn
                 ),
             ));
         }
@@ -582,9 +565,8 @@ fn read_elements_41(
                 return Err(cur.err(
                     n,
                     format!(
-                        "$Elements: element of type {kind} needs {} numbers, found {}",
-                        1 + nn,
-                        e.len()
+                        "$Elements: expected {} numbers for an element of type {kind}",
+                        1 + nn
                     ),
                 ));
             }
@@ -615,11 +597,11 @@ fn assemble(
     path: &str,
 ) -> Result<TetMesh, ModelError> {
     for e in elements {
-        if let Some(t) = e.nodes.iter().find(|t| !nodes.contains_key(t)) {
+        if e.nodes.iter().any(|t| !nodes.contains_key(t)) {
             return Err(fmt_err(
                 path,
                 Some(e.line),
-                format!("element {} references undefined node {t}", e.tag),
+                "expected nodes defined in $Nodes: this element names another",
             ));
         }
     }

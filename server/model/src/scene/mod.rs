@@ -100,9 +100,11 @@ use crate::mesh::TetMesh;
 
 pub mod builtin;
 mod raw;
+mod toml_errors;
 
 pub use builtin::{builtin_calibration, builtin_scene_names, builtin_scene_toml};
 pub use raw::{MAX_GRAVITY_M_PER_S2, MAX_PRESSURE_PA, MAX_SCENE_POINT_FORCE_N};
+pub use toml_errors::describe_toml_error;
 
 /// The model family a scene asks for (section `[model] family`): which [`crate::body::SoftBody`]
 /// implementation [`crate::build_body`] builds.
@@ -163,6 +165,10 @@ pub struct Scene {
     pub description: String,
     /// The model family to build (`[model] family`).
     pub family: ModelFamily,
+    /// Whether the scene may run in the haptic loop (`[model] realtime`, default true);
+    /// false for static benchmarks that only `haptic-solve` solves ([`crate::build_body`]
+    /// refuses them).
+    pub realtime: bool,
     /// The mesh in metres.
     pub mesh: TetMesh,
     /// Strain smoothing of linear elements (`[mesh] strain_smoothing`).
@@ -301,10 +307,8 @@ impl MassSpringScene {
             TableState::NotNeeded => Ok(None),
             TableState::Ready(t) => Ok(Some(t.clone())),
             TableState::Unusable(why) => Err(ModelError::Calibration {
-                path: self
-                    .calibration_path
-                    .as_ref()
-                    .map_or(self.calibration_file.clone(), |p| p.display().to_string()),
+                // As the scene names it, not where it resolved (issue 47).
+                path: self.calibration_file.clone(),
                 message: format!(
                     "{why}; compute it with `haptic-calibrate SCENE_FILE` (writes it beside the scene), or set mass_spring.springs = \"unchanged\" or rings = 0"
                 ),
@@ -396,8 +400,8 @@ pub fn load_scene_file(path: &Path) -> Result<Scene, ModelError> {
 /// `mesh.file` is resolved. The name defaults to `custom`.
 ///
 /// # Errors
-/// [`ModelError::SceneSyntax`] (with the TOML error and its location) for invalid TOML, unknown
-/// fields or wrongly typed values; [`ModelError::SceneField`] naming the dotted field for
+/// [`ModelError::SceneSyntax`] (with its line and column) for text that is not TOML;
+/// [`ModelError::SceneField`] naming the dotted field for unknown keys, wrongly typed,
 /// missing, non-finite, out-of-range or contradictory values and unknown surface names;
 /// [`ModelError::Io`] (with the path) if the mesh file cannot be read, and the errors of
 /// [`crate::mesh::gmsh::load_msh`] if it cannot be parsed.

@@ -126,6 +126,7 @@ struct RawMassSpring {
 #[serde(deny_unknown_fields)]
 struct RawModel {
     family: Option<String>,
+    realtime: Option<bool>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -306,8 +307,10 @@ pub(super) fn parse_scene(
     default_name: &str,
     origin: Origin,
 ) -> Result<Scene, ModelError> {
-    let raw: RawScene = toml::from_str(text).map_err(|e| ModelError::SceneSyntax(e.to_string()))?;
-    let family = match raw.model.unwrap_or_default().family.as_deref() {
+    let raw: RawScene = super::toml_errors::deserialize(text)?;
+    let model = raw.model.unwrap_or_default();
+    let realtime = model.realtime.unwrap_or(true);
+    let family = match model.family.as_deref() {
         None => ModelFamily::Fem,
         Some(name) => ModelFamily::from_name(name).ok_or_else(|| {
             let known: Vec<&str> = ModelFamily::ALL.iter().map(|f| f.name()).collect();
@@ -605,6 +608,7 @@ pub(super) fn parse_scene(
         hybrid,
         description: raw.description.unwrap_or_default(),
         family,
+        realtime,
         mesh,
         strain_smoothing,
         material,
@@ -920,9 +924,7 @@ fn build_mass_spring(
                 .ok_or_else(|| format!("no built-in calibration table `{file}`")),
             Some(p) => std::fs::read_to_string(p).map_err(|e| format!("cannot be read ({e})")),
         };
-        let shown = path
-            .as_ref()
-            .map_or(file.clone(), |p| p.display().to_string());
+        let shown = file.clone();
         match text.and_then(|t| CalibrationTable::parse(&t, &shown).map_err(|e| e.to_string())) {
             Err(why) => TableState::Unusable(why),
             Ok(t) if t.key() != key => TableState::Unusable(format!(
@@ -1259,7 +1261,8 @@ fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64), ModelError
             ));
         }
         (Some(file), None) => {
-            let mut mesh = crate::mesh::gmsh::load_msh(&base_dir.join(file))?;
+            // Errors name the file as the scene wrote it (issue 47).
+            let mut mesh = crate::mesh::gmsh::load_msh_named(&base_dir.join(file), file)?;
             mesh.scale(unit);
             mesh
         }
