@@ -99,7 +99,9 @@ pub fn calibrate_scene(
             .ok_or_else(|| {
                 ModelError::field(
                     field,
-                    format!("a built-in scene's table is compiled into the library: give {flag} FILE"),
+                    format!(
+                        "a built-in scene's table is compiled into the library: give {flag} FILE"
+                    ),
                 )
             })
     };

@@ -598,7 +598,11 @@ mod tests {
         }
         // Along the lv-probe line the same constructor gives the lv-probe line's depth zero.
         let lv = PressLine::lv_probe(r);
-        let q = PressLine::at_surface_point(DVec3::new(LV_PROBE_SURFACE_X_M, 0.0, LV_PROBE_Z_M), DVec3::NEG_X, r);
+        let q = PressLine::at_surface_point(
+            DVec3::new(LV_PROBE_SURFACE_X_M, 0.0, LV_PROBE_Z_M),
+            DVec3::NEG_X,
+            r,
+        );
         assert!((lv.device_at(0.7e-3) - q.device_at(0.7e-3)).length() < 1e-15);
     }
 

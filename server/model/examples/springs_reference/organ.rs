@@ -31,7 +31,10 @@ pub fn read_points(path: &Path) -> anyhow::Result<Vec<Point>> {
         if f.len() != 7 {
             bail!("{}: bad line `{line}`", path.display());
         }
-        let v: Vec<f64> = f[1..].iter().map(|s| s.trim().parse()).collect::<Result<_, _>>()?;
+        let v: Vec<f64> = f[1..]
+            .iter()
+            .map(|s| s.trim().parse())
+            .collect::<Result<_, _>>()?;
         out.push(Point {
             name: f[0].to_string(),
             position_m: DVec3::new(v[0], v[1], v[2]) * 1e-3,
@@ -47,7 +50,10 @@ fn read_indent(path: &Path, unit_m: f64) -> anyhow::Result<Vec<(f64, DVec3)>> {
     text.lines()
         .skip(1)
         .map(|l| {
-            let v: Vec<f64> = l.split(',').map(|s| s.trim().parse()).collect::<Result<_, _>>()?;
+            let v: Vec<f64> = l
+                .split(',')
+                .map(|s| s.trim().parse())
+                .collect::<Result<_, _>>()?;
             Ok((v[0] * unit_m, DVec3::new(v[1], v[2], v[3])))
         })
         .collect()
@@ -107,9 +113,13 @@ fn level_curve(dir: &Path, point: &Point, hmin: &str) -> anyhow::Result<Vec<(f64
         offset * 1e3,
         rows.len()
     );
-    Ok(rows
-        .iter()
-        .map(|&(s, f)| (s + offset, f.length(), -f.dot(point.direction)))
+    // The mesh's first contact carries no force: the curve starts there (a mesh touched a
+    // little after the analytic surface still gives the first reference depths).
+    Ok(std::iter::once((offset, 0.0, 0.0))
+        .chain(
+            rows.iter()
+                .map(|&(s, f)| (s + offset, f.length(), -f.dot(point.direction))),
+        )
         .collect())
 }
 
@@ -128,7 +138,9 @@ pub fn reference(
     writeln!(
         text,
         "# FEM reference of the points of {} (stable neo-Hookean, E = 14.5 kPa, nu = 0.45; exact rigid sphere, static; quadratic tetrahedra refined under each point, hmin {} mm)",
-        points_csv.file_name().map_or(String::new(), |n| n.to_string_lossy().into()),
+        points_csv
+            .file_name()
+            .map_or(String::new(), |n| n.to_string_lossy().into()),
         levels.join(" / ")
     )?;
     writeln!(
@@ -153,9 +165,8 @@ pub fn reference(
             let s = d * 1e-3;
             let at = |c: &[(f64, f64, f64)], pick: fn(&(f64, f64, f64)) -> f64| {
                 let pts: Vec<(f64, f64)> = c.iter().map(|q| (q.0, pick(q))).collect();
-                lagrange(&pts, s).ok_or_else(|| {
-                    anyhow!("{}: depth {d} mm outside the solved depths", p.name)
-                })
+                lagrange(&pts, s)
+                    .ok_or_else(|| anyhow!("{}: depth {d} mm outside the solved depths", p.name))
             };
             let forces: Vec<f64> = curves
                 .iter()
@@ -279,7 +290,10 @@ pub fn feel(
         (None, None) => bail!("give --scene or --scene-file"),
     };
     let ms = scene.mass_spring.as_ref().context("a mass-spring scene")?;
-    let organ = ms.organ.as_ref().context("the scene has no reference_file")?;
+    let organ = ms
+        .organ
+        .as_ref()
+        .context("the scene has no reference_file")?;
     let depths: Vec<f64> = depths_mm.iter().map(|d| d * 1e-3).collect();
     let params = HoldParams {
         ramp_s: 0.5,

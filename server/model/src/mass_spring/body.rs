@@ -39,10 +39,10 @@ use glam::DVec3;
 
 use super::calibration::CalibrationTable;
 use super::contact_rest::contact_rest_positions;
-use super::organ::OrganTable;
 use super::loop_rules::loop_rest_positions;
 use super::mixed::MixedMesh;
 use super::network::{Spring, critical_time_step_s, gershgorin_bound_per_s2};
+use super::organ::OrganTable;
 use super::refine::{NO_OWNER, Refinement};
 use super::surface::SpringSurface;
 use super::{MassSpringParams, SpringRule, VertexRule, prefaulted};
@@ -451,10 +451,7 @@ impl MassSpringBody {
             SpringRule::Unchanged => self.params.mesh_spring_n_per_m / kh,
             SpringRule::Area => {
                 // Eq. 5 over the areas (as the masses of eq. 3), the mesh springs unchanged.
-                let (n1, n2) = (
-                    self.refinement.type1_count(),
-                    self.refinement.type2_count(),
-                );
+                let (n1, n2) = (self.refinement.type1_count(), self.refinement.type2_count());
                 let n_ratio = if n1 + n2 > 0 {
                     n1 as f64 / (n1 + n2) as f64
                 } else {
@@ -1072,7 +1069,8 @@ impl MassSpringBody {
             match input.device_position_m {
                 Some(p) => {
                     self.update_contact_positions();
-                    self.probe.update(&self.cx, p, input.device_velocity_m_per_s);
+                    self.probe
+                        .update(&self.cx, p, input.device_velocity_m_per_s);
                     self.probe.add_reaction(&mut self.f);
                     self.update_contact_factor();
                 }

@@ -39,10 +39,10 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use glam::DVec3;
 
+use super::contact_rest::{ContactRest, contact_rest_positions};
 use super::loop_rules::{apply, edge_stencil, vertex_stencil};
 use super::network::{ContactLoad, Network, Spring, press};
 use super::refine::{NO_OWNER, Refinement};
-use super::contact_rest::{ContactRest, contact_rest_positions};
 use super::surface::{NONE, SpringSurface};
 use super::{MassSpringParams, VertexRule};
 use crate::ModelError;

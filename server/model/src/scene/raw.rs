@@ -869,9 +869,7 @@ fn build_mass_spring(
         Some(n) => SpringRule::from_name(n).ok_or_else(|| {
             ModelError::field(
                 "mass_spring.springs",
-                format!(
-                    "unknown rule `{n}` (expected \"calibrated\", \"unchanged\" or \"area\")"
-                ),
+                format!("unknown rule `{n}` (expected \"calibrated\", \"unchanged\" or \"area\")"),
             )
         })?,
     };

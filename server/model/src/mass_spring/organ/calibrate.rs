@@ -41,6 +41,14 @@ pub const MAX_HOLD_TICKS: usize = 5_000;
 /// slope.
 pub const DEPTH_TOLERANCE: f64 = 2e-3;
 
+/// Holds tried to reach a sphere depth within [`DEPTH_TOLERANCE`]; if none did, the closest
+/// is used when it lies within [`DEPTH_FALLBACK_TOLERANCE`] (its force corrected along the
+/// local slope), else the calibration fails.
+pub const DEPTH_ATTEMPTS: usize = 12;
+
+/// See [`DEPTH_ATTEMPTS`].
+pub const DEPTH_FALLBACK_TOLERANCE: f64 = 2e-2;
+
 /// What the calibration needs of a scene besides the surface: its constants, the probe, the
 /// servo tick settings and, with [`SpringRule::Calibrated`], the eq. 4 table.
 #[derive(Debug, Clone, Copy)]
@@ -90,23 +98,36 @@ pub fn press_sphere_depths(
         let (s_last, f_last) = *measured.last().expect("starts with the origin");
         let mut target = s + (f_last + slope(&measured) * (s - s_last)) / k;
         let mut result = None;
-        for _ in 0..6 {
+        // The closest hold so far: (|depth - s|, depth, force).
+        let mut closest = (f64::INFINITY, 0.0, 0.0);
+        for attempt in 0..DEPTH_ATTEMPTS {
             let (depth, force) = ramp_and_hold(body, &device, at, target)?;
             at = target;
             measured.push((depth, force));
             let sl = slope(&measured).max(0.0);
+            if (depth - s).abs() < closest.0 {
+                closest = ((depth - s).abs(), depth, force);
+            }
             if (depth - s).abs() <= DEPTH_TOLERANCE * s {
                 result = Some(force + sl * (s - depth));
                 break;
             }
-            // The device moves by the sphere's shortfall plus the coupling's extra stretch.
-            target += (s - depth) * (1.0 + sl / k);
+            // The device moves by the sphere's shortfall plus the coupling's extra stretch
+            // (halved after the first corrections: nodes entering the probe's patch can make
+            // the full step overshoot back and forth).
+            let gain = if attempt < 3 { 1.0 } else { 0.5 };
+            target += gain * (s - depth) * (1.0 + sl / k);
+        }
+        if result.is_none() && closest.0 <= DEPTH_FALLBACK_TOLERANCE * s {
+            // Close enough to correct along the local slope of the last holds.
+            result = Some(closest.2 + slope(&measured).max(0.0) * (s - closest.1));
         }
         let Some(f) = result else {
             return Err(ModelError::NoConvergence(format!(
-                "the probe's sphere depth did not reach {:.3} mm within {:.1} %",
+                "the probe's sphere depth did not reach {:.3} mm within {:.1} % in {DEPTH_ATTEMPTS} holds (closest {:.4} mm)",
                 s * 1e3,
-                100.0 * DEPTH_TOLERANCE
+                100.0 * DEPTH_FALLBACK_TOLERANCE,
+                closest.1 * 1e3
             )));
         };
         out.push(f);

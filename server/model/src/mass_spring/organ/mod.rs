@@ -49,8 +49,9 @@ use crate::contact::ProbeParams;
 mod calibrate;
 
 pub use calibrate::{
-    DEPTH_TOLERANCE, MAX_HOLD_TICKS, OrganSetup, RAMP_TICKS, SETTLE_TOLERANCE,
-    SETTLE_WINDOW_TICKS, calibrate_organ, calibrate_organ_node, press_sphere_depths,
+    DEPTH_ATTEMPTS, DEPTH_FALLBACK_TOLERANCE, DEPTH_TOLERANCE, MAX_HOLD_TICKS, OrganSetup,
+    RAMP_TICKS, SETTLE_TOLERANCE, SETTLE_WINDOW_TICKS, calibrate_organ, calibrate_organ_node,
+    press_sphere_depths,
 };
 
 /// Version of the organ table's definition; part of its key.
@@ -62,7 +63,8 @@ pub const REFERENCE_COLUMNS: &str =
     "point,x_mm,y_mm,z_mm,dx,dy,dz,depth_mm,force_n,uncertainty_n,device_depth_mm";
 
 /// The column header of an organ table file.
-pub const TABLE_COLUMNS: &str = "node,sample,depth_m,factor,factor_subdivided,target_force_n,spring_force_n,subdivided_force_n";
+pub const TABLE_COLUMNS: &str =
+    "node,sample,depth_m,factor,factor_subdivided,target_force_n,spring_force_n,subdivided_force_n";
 
 /// The factors a node may take; a calibrated factor outside is an error (a reference or a
 /// surface far from each other: fix the scene's constants).
@@ -165,7 +167,10 @@ impl OrganReference {
             }
             let f: Vec<&str> = line.split(',').map(str::trim).collect();
             if f.len() < 11 {
-                return Err(err(ln, format!("expected 11 fields or more, got {}", f.len())));
+                return Err(err(
+                    ln,
+                    format!("expected 11 fields or more, got {}", f.len()),
+                ));
             }
             let num = |s: &str| -> Result<f64, ModelError> {
                 let v: f64 = s
@@ -444,7 +449,10 @@ impl OrganTable {
                 continue;
             }
             let (Some(n), Some(m)) = (nodes, samples) else {
-                return Err(err(ln, "a row before the `# nodes` and `# samples` lines".into()));
+                return Err(err(
+                    ln,
+                    "a row before the `# nodes` and `# samples` lines".into(),
+                ));
             };
             let f: Vec<&str> = line.split(',').map(str::trim).collect();
             if f.len() != 8 {
@@ -574,7 +582,6 @@ pub fn organ_key(
     h.0
 }
 
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -593,8 +600,14 @@ mod tests {
         let z = DVec3::Z;
         let mid = r.target_at(z, DVec3::new(5.0, 0.0, 2e-3));
         assert!((mid[0] - 0.003).abs() < 1e-15 && (mid[1] - 0.007).abs() < 1e-15);
-        assert_eq!(r.target_at(z, DVec3::new(0.0, 0.0, -1.0)), vec![0.002, 0.005]);
-        assert_eq!(r.target_at(z, DVec3::new(0.0, 0.0, 1.0)), vec![0.004, 0.009]);
+        assert_eq!(
+            r.target_at(z, DVec3::new(0.0, 0.0, -1.0)),
+            vec![0.002, 0.005]
+        );
+        assert_eq!(
+            r.target_at(z, DVec3::new(0.0, 0.0, 1.0)),
+            vec![0.004, 0.009]
+        );
         let a = r.point("a").expect("a");
         assert!((a.force_at(0.25e-3) - 0.001).abs() < 1e-15);
         assert!((a.force_at(0.75e-3) - 0.0035).abs() < 1e-15);
@@ -604,16 +617,30 @@ mod tests {
     #[test]
     fn malformed_references_are_refused_with_the_line() {
         let bad = [
-            (TEXT.replace("a,0,0,1,0,0,-1,1,", "a,0,0,1,0,0,-1,0.4,"), "line 4"),
-            (TEXT.replace("b,0,0,3,0,0,-1,1,", "b,0,0,3,0,0,-1,2,"), "other depths"),
-            (TEXT.replace("0,0,-1,0.5,0.002", "0,0,0,0.5,0.002"), "direction"),
+            (
+                TEXT.replace("a,0,0,1,0,0,-1,1,", "a,0,0,1,0,0,-1,0.4,"),
+                "line 4",
+            ),
+            (
+                TEXT.replace("b,0,0,3,0,0,-1,1,", "b,0,0,3,0,0,-1,2,"),
+                "other depths",
+            ),
+            (
+                TEXT.replace("0,0,-1,0.5,0.002", "0,0,0,0.5,0.002"),
+                "direction",
+            ),
             (TEXT.replace("0.005", "NaN"), "not finite"),
             ("point,x\n".to_string(), "header"),
             ("# nothing\n".to_string(), "no reference point"),
         ];
         for (text, want) in bad {
-            let e = OrganReference::parse(&text, "t.csv").expect_err(want).to_string();
-            assert!(e.contains(want) && e.contains("t.csv"), "{e} (wanted {want})");
+            let e = OrganReference::parse(&text, "t.csv")
+                .expect_err(want)
+                .to_string();
+            assert!(
+                e.contains(want) && e.contains("t.csv"),
+                "{e} (wanted {want})"
+            );
         }
     }
 
@@ -649,8 +676,14 @@ mod tests {
         assert_eq!(t.max_factor(), 3.0);
         let text = t.to_text("");
         for (bad, want) in [
-            (text.replace("1,2,1e-3", "1,3,1e-3"), "expected node 1 sample 2"),
-            (text.replace("# samples 2", "# samples 3"), "expected node 0 sample 3"),
+            (
+                text.replace("1,2,1e-3", "1,3,1e-3"),
+                "expected node 1 sample 2",
+            ),
+            (
+                text.replace("# samples 2", "# samples 3"),
+                "expected node 0 sample 3",
+            ),
             (text.replace("0,1,1e-4,2e0", "0,1,1e-4,2e9"), "outside"),
             (text.replace("# key 0000000000000abc\n", ""), "no `# key`"),
         ] {
