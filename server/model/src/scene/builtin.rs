@@ -151,6 +151,9 @@ springs = "calibrated"
 vertex_rule = "keep"
 coarsen_delay_s = 0.2
 calibration_file = "lv-surface-springs.calibration.csv"
+reference_file = "lv-surface-springs.reference.csv"  # the organ's FEM reference at six points (springs_reference/)
+reference_axis = [0, 0, 1]      # the LV is a body of revolution about z: the target depends on the height
+organ_file = "lv-surface-springs.organ.csv"  # the contact factor per node and sphere depth (haptic-calibrate)
 
 [integrator]
 kind = "symplectic-euler"
@@ -271,9 +274,9 @@ radius_m = 0.002
 max_force_n = 10.0
 "#;
 
-/// The calibration tables of the built-in scenes, by file name (identical copies beside the
-/// scenes in `deploy/scenes/`).
-const CALIBRATIONS: [(&str, &str); 2] = [
+/// The calibration tables and organ references of the built-in scenes, by file name (identical
+/// copies beside the scenes in `deploy/scenes/`).
+const CALIBRATIONS: [(&str, &str); 4] = [
     (
         "hemisphere-springs.calibration.csv",
         include_str!("calibrations/hemisphere-springs.calibration.csv"),
@@ -281,6 +284,14 @@ const CALIBRATIONS: [(&str, &str); 2] = [
     (
         "lv-surface-springs.calibration.csv",
         include_str!("calibrations/lv-surface-springs.calibration.csv"),
+    ),
+    (
+        "lv-surface-springs.reference.csv",
+        include_str!("calibrations/lv-surface-springs.reference.csv"),
+    ),
+    (
+        "lv-surface-springs.organ.csv",
+        include_str!("calibrations/lv-surface-springs.organ.csv"),
     ),
 ];
 

@@ -274,10 +274,8 @@ impl OrganScene {
     /// computes it.
     pub fn table(&self) -> Result<OrganTable, ModelError> {
         self.table.clone().map_err(|why| ModelError::Calibration {
-            path: self
-                .path
-                .as_ref()
-                .map_or(self.file.clone(), |p| p.display().to_string()),
+            // As the scene names it, not where it resolved (issue 47).
+            path: self.file.clone(),
             message: format!(
                 "{why}; compute it with `haptic-calibrate SCENE_FILE` (writes it beside the scene)"
             ),

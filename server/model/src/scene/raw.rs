@@ -990,17 +990,15 @@ fn build_organ(
                 .ok_or_else(|| format!("no built-in file `{file}`")),
             Origin::File => {
                 let p = base_dir.join(file);
+                // Named as the scene names it, not where it resolved (issue 47).
                 std::fs::read_to_string(&p)
                     .map(|t| (t, Some(p.clone())))
-                    .map_err(|e| format!("{} cannot be read ({e})", p.display()))
+                    .map_err(|e| format!("`{file}` cannot be read ({e})"))
             }
         }
     };
-    let (text, ref_path) = read(reference_file).map_err(|e| ModelError::field(field, e))?;
-    let shown = ref_path
-        .as_ref()
-        .map_or(reference_file.to_string(), |p| p.display().to_string());
-    let reference = OrganReference::parse(&text, &shown)
+    let (text, _) = read(reference_file).map_err(|e| ModelError::field(field, e))?;
+    let reference = OrganReference::parse(&text, reference_file)
         .map_err(|e| ModelError::field(field, e.to_string()))?;
     let axis = DVec3::from_array(m.reference_axis.unwrap_or([0.0, 0.0, 1.0]));
     if !(axis.is_finite() && axis.length() > 0.0) {
@@ -1020,10 +1018,8 @@ fn build_organ(
         Origin::File => Some(base_dir.join(&file)),
     };
     let table = read(&file)
-        .and_then(|(t, p)| {
-            let shown = p.map_or(file.clone(), |p| p.display().to_string());
-            OrganTable::parse(&t, &shown).map_err(|e| e.to_string())
-        })
+        // As the scene names it, not where it resolved (issue 47).
+        .and_then(|(t, _)| OrganTable::parse(&t, &file).map_err(|e| e.to_string()))
         .and_then(|t| {
             if t.key() != key {
                 Err(format!(
