@@ -609,9 +609,10 @@ mod tests {
             vec![0.004, 0.009]
         );
         let a = r.point("a").expect("a");
+        // Through the origin below the first depth, linear between, the last slope beyond.
         assert!((a.force_at(0.25e-3) - 0.001).abs() < 1e-15);
         assert!((a.force_at(0.75e-3) - 0.0035).abs() < 1e-15);
-        assert!((a.force_at(1.5e-3) - 0.0065).abs() < 1e-15);
+        assert!((a.force_at(1.5e-3) - 0.008).abs() < 1e-15);
     }
 
     #[test]
