@@ -3,8 +3,9 @@
 //! `..` and symlinks, and no larger than a size limit.
 //!
 //! The check runs on the scene text before anything is opened: every field that names a file
-//! (`mesh.file`, `mass_spring.calibration_file`, and the calibration table a mass-spring scene
-//! reads by default, `NAME.calibration.csv`) is resolved against the scene directory. A path
+//! (`mesh.file`, `mass_spring.calibration_file`, `reference_file` and `organ_file`, and the
+//! tables a mass-spring scene reads by default, `NAME.calibration.csv` and, with a reference,
+//! `NAME.organ.csv`) is resolved against the scene directory. A path
 //! that is outside every allowed directory *lexically* (after `..` is applied, before the file
 //! system is asked) is refused with PERMISSION_DENIED without touching the file system, so the
 //! answer is the same whether such a file exists or not. A path inside is then canonicalized
@@ -286,6 +287,25 @@ impl FileRoots {
                 self.check_calibration("name", &format!("{name}.calibration.csv"))?;
             }
             None => {}
+        }
+        // The organ calibration's files (a reference, and its table by default after the
+        // scene name).
+        if let Some(v) = get("mass_spring", "reference_file") {
+            let f = as_path("mass_spring.reference_file", v)?;
+            self.check_calibration("mass_spring.reference_file", &f)?;
+            match get("mass_spring", "organ_file") {
+                Some(v) => {
+                    let f = as_path("mass_spring.organ_file", v)?;
+                    self.check_calibration("mass_spring.organ_file", &f)?;
+                }
+                None => {
+                    let name = value
+                        .get("name")
+                        .and_then(toml::Value::as_str)
+                        .unwrap_or("custom");
+                    self.check_calibration("name", &format!("{name}.organ.csv"))?;
+                }
+            }
         }
         Ok(())
     }

@@ -1,5 +1,5 @@
 //! The experiment of Zhang, Payandeh & Dill, *Haptic Subdivision* (seed 003), section 3.2, on
-//! our model, and the fit of the `lv-surface-springs` constants.
+//! our model, and the springs scenes against their organs' references.
 //!
 //! - `paper`: the paper's regular equilateral triangular mesh (element size L = 30 mm,
 //!   `K_h = K_m = 0.06 N/mm`), the central node C displaced by x along the normal (point
@@ -15,28 +15,32 @@
 //!
 //!   CSV files and plots (PNG and SVG) go to `target/bench/` (or `--out DIR`); `--publish`
 //!   writes them over the committed ones in `docs/bench/` and `docs/`.
-//! - `fit-lv`: the home spring constant of `lv-surface-springs` (at a given `K_m / K_h`) whose
-//!   coarse surface comes closest to the FEM reference of the `lv-probe` press (the smallest
-//!   largest relative force error over the six depths, the benchmark's dynamic press).
+//! - `reference`: the FEM reference of a springs scene's press points (the CSV its
+//!   `reference_file` names) from the exact-sphere runs of `springs_reference/run.sh`: per point
+//!   and mesh level the force against the sphere's depth below the analytic surface (the mesh's
+//!   own first contact corrected to it), interpolated at the reference depths; the finest level's
+//!   force, an uncertainty from the last refinement's change, and the device depth with the
+//!   scenes' 300 N/m coupling.
+//! - `feel`: the scene pressed at each reference point (staircase holds, subdivided and
+//!   never subdivided), its force against the reference at the measured sphere depth.
 //!
 //! Run: `cargo run --release -p haptic-model --example haptic_subdivision -- paper`.
 
 #[path = "../benches/common/mod.rs"]
 mod common;
+#[path = "springs_reference/organ.rs"]
+mod organ;
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use anyhow::{Context as _, anyhow};
 use clap::{Parser, Subcommand};
-use haptic_model::DVec3;
-use haptic_model::body::TickInput;
 use haptic_model::mass_spring::calibration::{ContactShape, LocalPatch, PATCH_EXTRA_RINGS};
-use haptic_model::mass_spring::{MassSpringBody, SpringSurface, VertexRule};
-use haptic_model::scene::load_builtin;
+use haptic_model::mass_spring::{SpringSurface, VertexRule};
 use plotters::prelude::*;
 
-/// The haptic-subdivision experiment (seed 003, section 3.2) and the LV fit.
+/// The haptic-subdivision experiment (seed 003, section 3.2) and the organ references.
 #[derive(Debug, Parser)]
 #[command(name = "haptic_subdivision")]
 struct Args {
@@ -55,11 +59,50 @@ enum Run {
         #[arg(long, conflicts_with = "out")]
         publish: bool,
     },
-    /// The lv-surface-springs spring constants closest to the FEM reference of lv-probe.
-    FitLv {
-        /// K_m / K_h.
-        #[arg(long, default_value_t = 1.0)]
-        km_over_kh: f64,
+    /// The reference CSV of a springs scene's press points from the FEM runs of
+    /// `springs_reference/run.sh` (two or more mesh levels).
+    Reference {
+        /// lv or hemisphere: the points file `springs_reference/<body>_points.csv`.
+        #[arg(long)]
+        body: String,
+        /// The runs' folder [default: target/springs-reference/<body>].
+        #[arg(long)]
+        dir: Option<PathBuf>,
+        /// Another points file [default: springs_reference/<body>_points.csv].
+        #[arg(long)]
+        points: Option<PathBuf>,
+        /// The mesh levels (hmin, mm, as run.sh names them), coarse to fine.
+        #[arg(long, value_delimiter = ',')]
+        levels: Vec<String>,
+        /// Sphere depths below the analytic surface, mm.
+        #[arg(
+            long,
+            value_delimiter = ',',
+            default_value = "0.1,0.25,0.5,0.75,1,1.25,1.5,2,2.5,3,3.5,4"
+        )]
+        depths: Vec<f64>,
+        /// The scenes' virtual coupling stiffness, N/m (for the device depths).
+        #[arg(long, default_value_t = 300.0)]
+        coupling: f64,
+        /// The CSV to write.
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// A springs scene pressed at its reference points (staircase holds), subdivided and not:
+    /// force against the reference at the measured sphere depth.
+    Feel {
+        /// A built-in scene.
+        #[arg(long)]
+        scene: Option<String>,
+        /// A scene file.
+        #[arg(long, conflicts_with = "scene")]
+        scene_file: Option<PathBuf>,
+        /// Device depths, mm.
+        #[arg(long, value_delimiter = ',', default_value = "0.25,0.5,1,1.5,2,3,4")]
+        depths: Vec<f64>,
+        /// Hold at each depth, s (ramps of 0.5 s).
+        #[arg(long, default_value_t = 1.5)]
+        hold_s: f64,
     },
 }
 
@@ -84,7 +127,33 @@ fn main() -> anyhow::Result<()> {
             };
             paper(&data, &plots)
         }
-        Run::FitLv { km_over_kh } => fit_lv(km_over_kh),
+        Run::Reference {
+            body,
+            dir,
+            points,
+            levels,
+            depths,
+            coupling,
+            out,
+        } => {
+            let root = common::workspace_root();
+            let here = root.join("server/model/examples/springs_reference");
+            let dir = dir.unwrap_or_else(|| root.join("target/springs-reference").join(&body));
+            organ::reference(
+                &points.unwrap_or_else(|| here.join(format!("{body}_points.csv"))),
+                &dir,
+                &levels,
+                &depths,
+                coupling,
+                &out,
+            )
+        }
+        Run::Feel {
+            scene,
+            scene_file,
+            depths,
+            hold_s,
+        } => organ::feel(scene.as_deref(), scene_file.as_ref(), &depths, hold_s),
     }
 }
 
@@ -388,96 +457,5 @@ where
         .draw()
         .map_err(|e| anyhow!("{e}"))?;
     area.present().map_err(|e| anyhow!("{e}"))?;
-    Ok(())
-}
-
-/// The `lv-probe` reference: the static probe force of the FEM reference (`lv_shell(2000)`,
-/// curved quadratic tetrahedra, St. Venant-Kirchhoff) at [`common::lv_press::DEPTHS_MM`], N,
-/// from `cargo run --release -p haptic-model --example lv_study -- static --mesh 2000:2`.
-const LV_REFERENCE_N: [f64; 6] = [0.007449, 0.015645, 0.023259, 0.030192, 0.036416, 0.041941];
-
-/// The coarse LV surface's forces on the `lv-probe` press (the staircase of
-/// [`common::lv_press::probe_dynamic`]: to each depth a 100 ms smoothstep ramp and a 100 ms
-/// hold, the mean force over the last 50 ms) with `K_h = kh`, `K_m = ratio kh`.
-fn lv_curve(kh: f64, ratio: f64) -> anyhow::Result<Vec<f64>> {
-    let scene = load_builtin("lv-surface-springs")?;
-    let ms = scene.mass_spring.as_ref().context("a mass-spring scene")?;
-    let mut params = ms.params;
-    params.home_spring_n_per_m = kh;
-    params.mesh_spring_n_per_m = ratio * kh;
-    params.subdivision.rings = 0;
-    let mut body = MassSpringBody::new(
-        ms.surface.clone(),
-        &params,
-        None,
-        scene.probe,
-        &scene.integrator,
-        "fit",
-    )?;
-    let mut forces = Vec::new();
-    let mut prev = -0.3e-3;
-    for d in common::lv_press::DEPTHS_MM {
-        let d = d * 1e-3;
-        let mut sum = 0.0;
-        for k in 0..200 {
-            let depth = prev + (d - prev) * common::smoothstep((k + 1) as f64 / 100.0);
-            let out = body.tick(&TickInput {
-                device_position_m: Some(common::device_at(depth)),
-                device_velocity_m_per_s: DVec3::ZERO,
-            })?;
-            if k >= 150 {
-                sum += out.force_on_device_n.length();
-            }
-        }
-        forces.push(sum / 50.0);
-        prev = d;
-    }
-    Ok(forces)
-}
-
-/// The largest relative force error of a curve against [`LV_REFERENCE_N`].
-fn lv_error(curve: &[f64]) -> f64 {
-    curve
-        .iter()
-        .zip(LV_REFERENCE_N)
-        .map(|(f, r)| (f / r - 1.0).abs())
-        .fold(0.0, f64::max)
-}
-
-fn fit_lv(ratio: f64) -> anyhow::Result<()> {
-    // Golden-section search on log K_h for the smallest largest relative error.
-    let g = (5f64.sqrt() - 1.0) / 2.0;
-    let (mut a, mut b) = (0.01f64.ln(), 100f64.ln());
-    let err = |l: f64| -> anyhow::Result<f64> { Ok(lv_error(&lv_curve(l.exp(), ratio)?)) };
-    let (mut c, mut d) = (b - g * (b - a), a + g * (b - a));
-    let (mut fc, mut fd) = (err(c)?, err(d)?);
-    for _ in 0..40 {
-        if fc < fd {
-            (b, d, fd) = (d, c, fc);
-            c = b - g * (b - a);
-            fc = err(c)?;
-        } else {
-            (a, c, fc) = (c, d, fd);
-            d = a + g * (b - a);
-            fd = err(d)?;
-        }
-    }
-    let kh = ((a + b) / 2.0).exp();
-    let curve = lv_curve(kh, ratio)?;
-    println!(
-        "K_m / K_h = {ratio}: K_h = {kh:.4} N/m, K_m = {:.4} N/m; largest relative error {:.1} %",
-        ratio * kh,
-        lv_error(&curve) * 100.0
-    );
-    for ((d, f), r) in common::lv_press::DEPTHS_MM
-        .iter()
-        .zip(&curve)
-        .zip(LV_REFERENCE_N)
-    {
-        println!(
-            "  {d} mm: {f:.5} N (reference {r:.5} N, {:+.1} %)",
-            (f / r - 1.0) * 100.0
-        );
-    }
     Ok(())
 }

@@ -167,14 +167,18 @@ pub fn build_body_with_progress(
                     "is required for model.family = \"mass-spring\"",
                 )
             })?;
-            Ok(Box::new(mass_spring::MassSpringBody::new(
+            let body = mass_spring::MassSpringBody::new(
                 ms.surface.clone(),
                 &ms.params,
                 ms.table()?,
                 scene.probe,
                 &scene.integrator,
                 &scene.name,
-            )?))
+            )?;
+            Ok(Box::new(match &ms.organ {
+                Some(o) => body.with_organ_table(o.table()?)?,
+                None => body,
+            }))
         }
     }
 }

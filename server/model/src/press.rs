@@ -39,6 +39,24 @@ pub const LV_PROBE_SURFACE_X_M: f64 = 9.682_458_365_518_542e-3;
 /// Height of the lv-probe line, m (`z = -5 mm`).
 pub const LV_PROBE_Z_M: f64 = -5e-3;
 
+/// Device travel before depth zero of [`PressLine::at_surface_point`], m.
+pub const SURFACE_LINE_CLEARANCE_M: f64 = 1e-3;
+
+/// Semi-axes of the idealized left ventricle's epicardium (the built-in `lv` geometry), m:
+/// `x^2 / a^2 + y^2 / a^2 + z^2 / c^2 = 1` with `a = 10 mm`, `c = 20 mm`, cut at `z = 5 mm`.
+pub const LV_EPICARDIUM_SEMI_AXES_M: (f64, f64) = (10e-3, 20e-3);
+
+/// The point of the analytic LV epicardium at height `z_m` (m, between the apex at -20 mm and
+/// the base at 5 mm) and azimuth `azimuth_rad` (from +x towards +y), and the inward unit normal
+/// there: a press line for [`PressLine::at_surface_point`].
+pub fn lv_epicardium_point(z_m: f64, azimuth_rad: f64) -> (DVec3, DVec3) {
+    let (a, c) = LV_EPICARDIUM_SEMI_AXES_M;
+    let rho = a * (1.0 - (z_m / c).powi(2)).max(0.0).sqrt();
+    let p = DVec3::new(rho * azimuth_rad.cos(), rho * azimuth_rad.sin(), z_m);
+    let n = DVec3::new(p.x / (a * a), p.y / (a * a), p.z / (c * c)).normalize();
+    (p, -n)
+}
+
 /// A straight device path: the device moves from `start_m` along `direction`; the probe sphere
 /// first touches the surface after `contact_travel_m` of travel.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -61,6 +79,20 @@ impl PressLine {
             start_m: DVec3::new(start_x, 0.0, LV_PROBE_Z_M),
             direction: DVec3::NEG_X,
             contact_travel_m: start_x - (LV_PROBE_SURFACE_X_M + radius_m),
+        }
+    }
+
+    /// A line along `direction` (unit after normalising) through the surface point `point_m`,
+    /// whose depth zero is the sphere of `radius_m` centred `radius_m` before the point on the
+    /// line: the sphere touching the point (on a convex analytic surface pressed along its
+    /// inward normal, as [`lv_epicardium_point`] gives, exactly its first contact). The device
+    /// starts [`SURFACE_LINE_CLEARANCE_M`] before that.
+    pub fn at_surface_point(point_m: DVec3, direction: DVec3, radius_m: f64) -> Self {
+        let n = direction.normalize_or_zero();
+        Self {
+            start_m: point_m - n * (radius_m + SURFACE_LINE_CLEARANCE_M),
+            direction: n,
+            contact_travel_m: SURFACE_LINE_CLEARANCE_M,
         }
     }
 
@@ -544,6 +576,34 @@ mod tests {
         let level = (on.x * on.x + on.y * on.y) / (a * a) + on.z * on.z / (b * b);
         assert!((level - 1.0).abs() < 1e-12, "{level}");
         assert!((line.depth_of(line.device_at(1.5e-3)) - 1.5e-3).abs() < 1e-15);
+    }
+
+    #[test]
+    fn an_epicardium_line_touches_the_analytic_surface_at_depth_zero() {
+        let r = 2e-3;
+        let (p, n) = lv_epicardium_point(-12e-3, 1.0);
+        let (a, c) = LV_EPICARDIUM_SEMI_AXES_M;
+        let level = |q: DVec3| (q.x * q.x + q.y * q.y) / (a * a) + q.z * q.z / (c * c);
+        assert!((level(p) - 1.0).abs() < 1e-12);
+        let line = PressLine::at_surface_point(p, n, r);
+        let centre = line.device_at(0.0);
+        assert!((centre + n * r - p).length() < 1e-15);
+        // The sphere there touches the ellipsoid only at p: points of the sphere around the
+        // contact lie outside (level > 1), the contact point on it.
+        for k in 0..64 {
+            let t = k as f64 * 0.1;
+            let u = n.any_orthonormal_pair();
+            let dir = (n + (u.0 * t.cos() + u.1 * t.sin()) * 0.3).normalize();
+            assert!(level(centre + dir * r) >= 1.0 - 1e-12, "{k}");
+        }
+        // Along the lv-probe line the same constructor gives the lv-probe line's depth zero.
+        let lv = PressLine::lv_probe(r);
+        let q = PressLine::at_surface_point(
+            DVec3::new(LV_PROBE_SURFACE_X_M, 0.0, LV_PROBE_Z_M),
+            DVec3::NEG_X,
+            r,
+        );
+        assert!((lv.device_at(0.7e-3) - q.device_at(0.7e-3)).length() < 1e-15);
     }
 
     #[test]

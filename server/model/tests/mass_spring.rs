@@ -335,6 +335,7 @@ fn check_mesh_matches_refinement(body: &MassSpringBody, case: &str) {
     let ratio = match p.subdivision.springs {
         SpringRule::Calibrated => p.subdivision.km_over_kh_after,
         SpringRule::Unchanged => p.mesh_spring_n_per_m / p.home_spring_n_per_m,
+        SpringRule::Area => panic!("{case}: the area rule's K'_m is not a ratio of K'_h"),
     };
     let key = |i: u32, j: u32, l: f64, k: f64| (i.min(j), i.max(j), l.to_bits(), k.to_bits());
     let mut got: Vec<_> = body

@@ -47,6 +47,15 @@ fn the_builtin_spring_scenes_load_with_valid_tables_and_build() {
             builtin_calibration(file).expect("built-in table"),
             "{file}"
         );
+        // And so are the organ reference and table, when the scene has them.
+        if let Some(organ) = &ms.organ {
+            let reference = format!("{name}.reference.csv");
+            for file in [reference.as_str(), organ.file.as_str()] {
+                let copy = std::fs::read_to_string(deploy_dir().join(file)).expect("deploy copy");
+                assert_eq!(copy, builtin_calibration(file).expect("built-in"), "{file}");
+            }
+            assert!(organ.table.is_ok(), "{:?}", organ.table().err());
+        }
         let from_file = load_scene_file(&deploy_dir().join(format!("{name}.toml"))).expect("file");
         let msf = from_file.mass_spring.expect("mass-spring part");
         assert!(
@@ -54,6 +63,10 @@ fn the_builtin_spring_scenes_load_with_valid_tables_and_build() {
             "{:?}",
             msf.table().err()
         );
+        assert_eq!(msf.organ.is_some(), ms.organ.is_some(), "{name}");
+        if let Some(o) = &msf.organ {
+            assert!(o.table.is_ok(), "{name}: {:?}", o.table().err());
+        }
     }
     let hemi = load_builtin("hemisphere-springs").unwrap();
     let ms = hemi.mass_spring.unwrap();

@@ -8,6 +8,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Parser;
+use haptic_server::calibrate::{Outputs, TableKind, calibrate_scene};
 
 /// Calibrate the subdivided spring constants of a mass-spring scene.
 #[derive(Parser, Debug)]
@@ -15,9 +16,12 @@ use clap::Parser;
 struct Args {
     /// Scene file (TOML), or a built-in scene name.
     scene: String,
-    /// Where to write the table [default: the scene's calibration_file beside it].
+    /// Where to write the subdivision table [default: the scene's calibration_file beside it].
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Where to write the organ table [default: the scene's organ_file beside it].
+    #[arg(long)]
+    organ_out: Option<PathBuf>,
     /// Worker threads [default: every core].
     #[arg(long)]
     threads: Option<usize>,
@@ -39,41 +43,56 @@ fn main() -> anyhow::Result<()> {
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     eprintln!("calibrating {} on {threads} thread(s) ...", scene.name);
-    let last = std::sync::Mutex::new(0usize);
-    let report = haptic_server::calibrate::calibrate_scene(
+    let last = std::sync::Mutex::new((TableKind::Organ, usize::MAX));
+    let outputs = Outputs {
+        subdivision: args.out.as_deref(),
+        organ: args.organ_out.as_deref(),
+    };
+    let reports = calibrate_scene(
         &scene,
-        args.out.as_deref(),
+        outputs,
         threads,
         args.force,
-        &|done, total, elapsed| {
+        &|kind, done, total, elapsed| {
             let pct = 100 * done / total.max(1);
             let mut l = last.lock().unwrap_or_else(|e| e.into_inner());
-            if pct > *l || done == total {
-                *l = pct;
+            if (kind, pct) != *l || done == total {
+                *l = (kind, pct);
                 let eta = elapsed / done as f64 * (total - done) as f64;
                 eprint!(
-                    "\r  {done}/{total} nodes ({pct} %), {elapsed:.0} s, about {eta:.0} s left   "
+                    "\r  {}: {done}/{total} nodes ({pct} %), {elapsed:.0} s, about {eta:.0} s left   ",
+                    kind.name()
                 );
                 let _ = std::io::stderr().flush();
+                if done == total {
+                    eprintln!();
+                }
             }
         },
     )?;
-    if report.computed {
-        eprintln!();
-        println!(
-            "wrote {} ({} nodes in {:.1} s; K'_h/K_h from {:.3} to {:.3})",
-            report.path.display(),
-            report.nodes,
-            report.seconds,
-            report.scale_range.0,
-            report.scale_range.1
-        );
-    } else {
-        println!(
-            "{} is up to date ({} nodes); --force recomputes it",
-            report.path.display(),
-            report.nodes
-        );
+    for r in reports {
+        let factor = match r.kind {
+            TableKind::Organ => "contact factor",
+            TableKind::Subdivision => "K'_h/K_h",
+        };
+        if r.computed {
+            println!(
+                "wrote {} {} ({} nodes in {:.1} s; {factor} from {:.3} to {:.3})",
+                r.kind.name(),
+                r.path.display(),
+                r.nodes,
+                r.seconds,
+                r.factor_range.0,
+                r.factor_range.1
+            );
+        } else {
+            println!(
+                "{} {} is up to date ({} nodes); --force recomputes it",
+                r.kind.name(),
+                r.path.display(),
+                r.nodes
+            );
+        }
     }
     Ok(())
 }

@@ -38,9 +38,11 @@
 use glam::DVec3;
 
 use super::calibration::CalibrationTable;
+use super::contact_rest::contact_rest_positions;
 use super::loop_rules::loop_rest_positions;
 use super::mixed::MixedMesh;
 use super::network::{Spring, critical_time_step_s, gershgorin_bound_per_s2};
+use super::organ::OrganTable;
 use super::refine::{NO_OWNER, Refinement};
 use super::surface::SpringSurface;
 use super::{MassSpringParams, SpringRule, VertexRule, prefaulted};
@@ -107,6 +109,10 @@ pub struct MassSpringBody {
     loop_vertex_rest: Vec<DVec3>,
     // Per slot (coarse nodes, then one per coarse edge).
     rest: Vec<DVec3>,
+    /// Where the probe meets each slot at rest ([`super::contact_rest`]); at run time the probe
+    /// sees `cx = x + contact_rest - rest`.
+    contact_rest: Vec<DVec3>,
+    cx: Vec<DVec3>,
     x: Vec<DVec3>,
     v: Vec<DVec3>,
     f: Vec<DVec3>,
@@ -122,6 +128,17 @@ pub struct MassSpringBody {
     kh_area: [f64; MAX_CENTRES],
     km_area: [f64; MAX_CENTRES],
     probe: Probe,
+    /// The organ table ([`super::organ`]) and the contact factor `beta` every spring constant
+    /// is multiplied by now (1 without a table; kept when the probe leaves).
+    organ: Option<OrganTable>,
+    contact_factor: f64,
+    /// The probe's sphere depth at the last sub-step in contact, m (see
+    /// [`MassSpringBody::contact_depth_m`]).
+    contact_depth_m: f64,
+    /// The worst-case Gershgorin bound with constant springs (1/s^2) and the integrator
+    /// settings: the plan is recomputed with the organ table's largest factor.
+    worst_lambda_per_s2: f64,
+    integrator: IntegratorParams,
     loads: BodyLoads,
     plan: StepPlan,
     coarse_critical_dt_s: f64,
@@ -219,6 +236,7 @@ impl MassSpringBody {
         let (edge_rest, loop_vertex_rest) = loop_rest_positions(&surface);
         let mut rest = surface.rest().to_vec();
         rest.extend_from_slice(&edge_rest);
+        let contact_rest = contact_rest_positions(&surface, probe).positions;
         let m = params.node_mass_kg;
         let mut fixed: Vec<bool> = (0..nc as u32).map(|i| surface.is_fixed(i)).collect();
         fixed.extend(
@@ -266,7 +284,7 @@ impl MassSpringBody {
                     kh * a_max.max(1.0),
                     km.max(sub.km_over_kh_after * a_max * kh),
                 ),
-                SpringRule::Unchanged => (kh, km),
+                SpringRule::Unchanged | SpringRule::Area => (kh, km),
             };
             // N' < 4 N for any area of a surface of genus 0, so m' > m / 4.
             let m_min = m / 4.0;
@@ -284,6 +302,8 @@ impl MassSpringBody {
         Ok(Self {
             loop_vertex_rest,
             x: rest.clone(),
+            cx: contact_rest.clone(),
+            contact_rest,
             v: vec![DVec3::ZERO; ns],
             f: vec![DVec3::ZERO; ns],
             mass: vec![m; ns],
@@ -298,6 +318,11 @@ impl MassSpringBody {
             kh_area: [kh; MAX_CENTRES],
             km_area: [km; MAX_CENTRES],
             probe,
+            organ: None,
+            contact_factor: 1.0,
+            contact_depth_m: 0.0,
+            worst_lambda_per_s2: worst_lambda,
+            integrator: *integrator,
             loads,
             plan,
             coarse_critical_dt_s,
@@ -333,14 +358,114 @@ impl MassSpringBody {
         })
     }
 
+    /// The body with the organ table `table` ([`super::organ`]): every spring constant is then
+    /// multiplied by the contact factor the table gives at the probe's sphere depth and contact
+    /// point. The sub-step plan is recomputed with the table's largest factor.
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] (`mass_spring.organ_file`) for a table of another node count;
+    /// [`ModelError::Unstable`] when the stiffest factor needs more than
+    /// `integrator.max_substeps`.
+    pub fn with_organ_table(mut self, table: OrganTable) -> Result<Self, ModelError> {
+        if table.node_count() != self.surface.node_count() {
+            return Err(ModelError::field(
+                "mass_spring.organ_file",
+                format!(
+                    "the organ table covers {} nodes, the surface has {}",
+                    table.node_count(),
+                    self.surface.node_count()
+                ),
+            ));
+        }
+        let beta_max = table.max_factor().max(1.0);
+        self.plan = plan_steps(
+            &self.integrator,
+            critical_time_step_s(self.worst_lambda_per_s2 * beta_max),
+        )?;
+        self.organ = Some(table);
+        Ok(self)
+    }
+
+    /// The organ table, if any.
+    pub fn organ_table(&self) -> Option<&OrganTable> {
+        self.organ.as_ref()
+    }
+
+    /// The probe's sphere depth, m: the travel of its kernel plane from the plane's rest
+    /// position, `sum w_i (rest_i - x_i) . n` over its patch, at the last sub-step in contact
+    /// (the key of the organ table, [`super::organ`]).
+    pub fn contact_depth_m(&self) -> f64 {
+        self.contact_depth_m
+    }
+
+    /// The contact factor every spring constant is multiplied by now ([`super::organ`]).
+    pub fn contact_factor(&self) -> f64 {
+        self.contact_factor
+    }
+
+    /// The contact factor at the probe's current contact: the organ table at the sphere depth
+    /// (the kernel plane's travel from its rest position, `sum w_i (rest_i - x_i) . n` over the
+    /// patch), interpolated over the contact triangle: a node's coarse factor, or its subdivided
+    /// one when it lies in a subdivided area (a new node there takes its edge's ends' mean).
+    /// Unchanged out of contact or without a table. Allocation-free.
+    fn update_contact_factor(&mut self) {
+        let st = self.probe.state;
+        if !st.in_contact {
+            return;
+        }
+        let (nodes, weights) = self.probe.patch();
+        let depth: f64 = nodes
+            .iter()
+            .zip(weights)
+            .map(|(&i, &w)| w * (self.rest[i as usize] - self.x[i as usize]).dot(st.normal))
+            .sum();
+        self.contact_depth_m = depth;
+        let Some(table) = &self.organ else {
+            return;
+        };
+        let Some(tri) = self.probe.surface.triangles.get(st.triangle as usize) else {
+            return;
+        };
+        let nc = self.surface.node_count() as u32;
+        let mut beta = 0.0;
+        for (&s, &b) in tri.iter().zip(&st.bary) {
+            // A node of a subdivided area takes the subdivided configuration's factor.
+            let sub = self.owner[s as usize] != NO_OWNER;
+            let f = if s < nc {
+                table.factor(s, depth, sub)
+            } else {
+                let [a, c] = self.surface.edges()[(s - nc) as usize];
+                0.5 * (table.factor(a, depth, true) + table.factor(c, depth, true))
+            };
+            beta += b * f;
+        }
+        if beta.is_finite() && beta > 0.0 {
+            self.contact_factor = beta;
+        }
+    }
+
     /// `K'_h` and `K'_m` of each centre's area at the current state (section 3.2.4: the table
     /// at the centre's displacement over L; the coarse constants with
-    /// [`SpringRule::Unchanged`]).
+    /// [`SpringRule::Unchanged`]; eq. 5 with [`SpringRule::Area`]).
     fn update_area_constants(&mut self) {
         let kh = self.params.home_spring_n_per_m;
         let ratio = match self.params.subdivision.springs {
             SpringRule::Calibrated => self.params.subdivision.km_over_kh_after,
             SpringRule::Unchanged => self.params.mesh_spring_n_per_m / kh,
+            SpringRule::Area => {
+                // Eq. 5 over the areas (as the masses of eq. 3), the mesh springs unchanged.
+                let (n1, n2) = (self.refinement.type1_count(), self.refinement.type2_count());
+                let n_ratio = if n1 + n2 > 0 {
+                    n1 as f64 / (n1 + n2) as f64
+                } else {
+                    1.0
+                };
+                for k in 0..self.centre_count {
+                    self.kh_area[k] = kh * n_ratio;
+                    self.km_area[k] = self.params.mesh_spring_n_per_m;
+                }
+                return;
+            }
         };
         for k in 0..self.centre_count {
             let c = self.centres[k].node;
@@ -358,18 +483,20 @@ impl MassSpringBody {
 
     #[inline]
     fn home_constant(&self, s: u32) -> f64 {
-        match self.owner[s as usize] {
-            NO_OWNER => self.params.home_spring_n_per_m,
-            o => self.kh_area[o as usize],
-        }
+        self.contact_factor
+            * match self.owner[s as usize] {
+                NO_OWNER => self.params.home_spring_n_per_m,
+                o => self.kh_area[o as usize],
+            }
     }
 
     #[inline]
     fn spring_constant(&self, owner: u8) -> f64 {
-        match owner {
-            NO_OWNER => self.params.mesh_spring_n_per_m,
-            o => self.km_area[o as usize],
-        }
+        self.contact_factor
+            * match owner {
+                NO_OWNER => self.params.mesh_spring_n_per_m,
+                o => self.km_area[o as usize],
+            }
     }
 
     /// Total energy, J: kinetic `sum m v^2 / 2` plus elastic (home and mesh springs, eq. 2)
@@ -502,11 +629,12 @@ impl MassSpringBody {
         }
         self.touched_list.clear();
         // 6. The probe's contact triangle index refers to the old triangles: walk from a piece
-        // of the coarse triangle it was in.
+        // of the coarse triangle it was in (over the new slots' contact positions).
+        self.update_contact_positions();
         if let Some(t) = contact_triangle {
             let st = self.probe.state;
             let point = st.proxy_m - st.normal * self.probe.params.radius_m;
-            let sp = self.probe.surface.closest_local(&self.x, point, t, 16);
+            let sp = self.probe.surface.closest_local(&self.cx, point, t, 16);
             self.probe.state.triangle = sp.triangle;
         }
         self.stats.events += 1;
@@ -692,7 +820,7 @@ impl MassSpringBody {
                 if self.fixed[p as usize] {
                     continue;
                 }
-                let d = (self.x[p as usize] - point).length_squared();
+                let d = (self.cx[p as usize] - point).length_squared();
                 if best.is_none_or(|(bd, _)| d < bd) {
                     best = Some((d, p));
                 }
@@ -932,21 +1060,22 @@ impl MassSpringBody {
                 let d = self.x[sp.j as usize] - self.x[sp.i as usize];
                 let len = d.length();
                 if len > 0.0 {
-                    let k = match sp.owner {
-                        NO_OWNER => self.params.mesh_spring_n_per_m,
-                        o => self.km_area[o as usize],
-                    };
+                    let k = self.spring_constant(sp.owner);
                     let fs = d * (k * (len - sp.rest_length_m) / len);
                     self.f[sp.i as usize] += fs;
                     self.f[sp.j as usize] -= fs;
                 }
             }
             self.loads.add_to(&self.x, &mut self.f);
-            // 2. Contact: proxy and the explicit part of the coupling's reaction.
+            // 2. Contact: proxy and the explicit part of the coupling's reaction, on the
+            // contact positions.
             match input.device_position_m {
                 Some(p) => {
-                    self.probe.update(&self.x, p, input.device_velocity_m_per_s);
+                    self.update_contact_positions();
+                    self.probe
+                        .update(&self.cx, p, input.device_velocity_m_per_s);
                     self.probe.add_reaction(&mut self.f);
+                    self.update_contact_factor();
                 }
                 None => self.probe.release(),
             }
@@ -985,6 +1114,7 @@ impl MassSpringBody {
         }
         self.time_s += self.tick_s;
         self.loads.advance(self.tick_s);
+        self.update_contact_positions();
         // 4. Subdivision around the contact node, coarsening of areas left.
         self.update_centres();
         // 5. Output.
@@ -1000,6 +1130,21 @@ impl MassSpringBody {
             contact_stiffness_n_per_m: self.probe.contact_stiffness(),
             sim_time_s: self.time_s,
         })
+    }
+
+    /// The probe's view of the active slots: `cx = x + contact_rest - rest`. O(active),
+    /// allocation-free.
+    fn update_contact_positions(&mut self) {
+        for &s in self.mesh.active() {
+            let i = s as usize;
+            self.cx[i] = self.x[i] + (self.contact_rest[i] - self.rest[i]);
+        }
+    }
+
+    /// Contact positions per slot (where the probe meets the surface, m; inactive slots hold
+    /// stale values): the positions plus the offsets of [`super::contact_rest`].
+    pub fn contact_positions(&self) -> &[DVec3] {
+        &self.cx
     }
 
     /// Largest displacement from rest over the active nodes, m.

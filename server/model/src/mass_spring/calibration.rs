@@ -39,6 +39,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use glam::DVec3;
 
+use super::contact_rest::{ContactRest, contact_rest_positions};
 use super::loop_rules::{apply, edge_stencil, vertex_stencil};
 use super::network::{ContactLoad, Network, Spring, press};
 use super::refine::{NO_OWNER, Refinement};
@@ -77,8 +78,9 @@ pub const PATCH_EXTRA_RINGS: u32 = 3;
 /// takes its neighbour's factor.
 pub const SCALE_RANGE: (f64, f64) = (0.01, 10.0);
 
-/// Version of the table's definition; part of the key.
-pub const CALIBRATION_VERSION: u32 = 2;
+/// Version of the table's definition; part of the key (3: the probe meets the contact
+/// positions of [`super::contact_rest`]).
+pub const CALIBRATION_VERSION: u32 = 3;
 
 /// How the contact presses the surface in the calibration experiment.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -338,22 +340,22 @@ impl CalibrationTable {
 
 /// FNV-1a, 64 bits: a stable hash for the cache key (no dependency, same on every platform).
 #[derive(Debug, Clone, Copy)]
-struct Fnv(u64);
+pub(crate) struct Fnv(pub(crate) u64);
 
 impl Fnv {
-    fn new() -> Self {
+    pub(crate) fn new() -> Self {
         Self(0xcbf2_9ce4_8422_2325)
     }
-    fn bytes(&mut self, b: &[u8]) {
+    pub(crate) fn bytes(&mut self, b: &[u8]) {
         for &x in b {
             self.0 ^= u64::from(x);
             self.0 = self.0.wrapping_mul(0x0000_0100_0000_01b3);
         }
     }
-    fn f64(&mut self, v: f64) {
+    pub(crate) fn f64(&mut self, v: f64) {
         self.bytes(&v.to_bits().to_le_bytes());
     }
-    fn u64(&mut self, v: u64) {
+    pub(crate) fn u64(&mut self, v: u64) {
         self.bytes(&v.to_le_bytes());
     }
 }
@@ -423,10 +425,35 @@ pub struct LocalPatch {
     fine_area_node: Vec<bool>,
     /// Per fine spring: in the subdivided area (`K'_m`).
     fine_area_spring: Vec<bool>,
+    /// Per coarse node and per fine slot: contact position minus rest position at rest, m
+    /// ([`super::contact_rest`]).
+    coarse_offset: Vec<DVec3>,
+    fine_offset: Vec<DVec3>,
     type1: usize,
     type2: usize,
     kh: f64,
     km: f64,
+}
+
+/// The margin [`LocalPatch::new`] keeps around the subdivided rings of node `centre`:
+/// [`PATCH_EXTRA_RINGS`], and for the probe as many rings again as its patch reaches (`2 r`).
+pub fn default_margin(surface: &SpringSurface, centre: u32, shape: ContactShape) -> u32 {
+    match shape {
+        ContactShape::Point => PATCH_EXTRA_RINGS,
+        ContactShape::Probe(p) => {
+            let l = surface.element_size_m(centre);
+            PATCH_EXTRA_RINGS + (2.0 * p.radius_m / l).ceil() as u32
+        }
+    }
+}
+
+/// The contact positions at rest the probe of `shape` sees on `surface`
+/// ([`contact_rest_positions`]; `None` for the point contact, which presses the node itself).
+pub fn surface_contact_rest(surface: &SpringSurface, shape: ContactShape) -> Option<ContactRest> {
+    match shape {
+        ContactShape::Point => None,
+        ContactShape::Probe(p) => Some(contact_rest_positions(surface, p)),
+    }
 }
 
 impl LocalPatch {
@@ -444,15 +471,37 @@ impl LocalPatch {
         shape: ContactShape,
         constants: (f64, f64),
     ) -> Result<Self, ModelError> {
-        let margin = match shape {
-            ContactShape::Point => PATCH_EXTRA_RINGS,
-            // The probe's patch reaches 2 r from the contact: keep that much inside.
-            ContactShape::Probe(p) => {
-                let l = surface.element_size_m(centre);
-                PATCH_EXTRA_RINGS + (2.0 * p.radius_m / l).ceil() as u32
-            }
-        };
-        Self::with_margin(
+        let contact = surface_contact_rest(surface, shape);
+        Self::with_contact(
+            surface,
+            centre,
+            rings,
+            default_margin(surface, centre, shape),
+            vertex_rule,
+            shape,
+            constants,
+            contact.as_ref(),
+        )
+    }
+
+    /// [`LocalPatch::with_margin`] with the whole surface's contact positions at rest computed
+    /// beforehand (`contact`, [`super::contact_rest::contact_rest_positions`] for the probe of
+    /// `shape`; `None` for a point contact): the calibration of every node computes them once.
+    ///
+    /// # Errors
+    /// As [`LocalPatch::new`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn with_contact(
+        surface: &SpringSurface,
+        centre: u32,
+        rings: u32,
+        margin: u32,
+        vertex_rule: VertexRule,
+        shape: ContactShape,
+        constants: (f64, f64),
+        contact: Option<&ContactRest>,
+    ) -> Result<Self, ModelError> {
+        Self::build(
             surface,
             centre,
             rings,
@@ -460,6 +509,7 @@ impl LocalPatch {
             vertex_rule,
             shape,
             constants,
+            contact,
         )
     }
 
@@ -475,7 +525,31 @@ impl LocalPatch {
         margin: u32,
         vertex_rule: VertexRule,
         shape: ContactShape,
+        constants: (f64, f64),
+    ) -> Result<Self, ModelError> {
+        let contact = surface_contact_rest(surface, shape);
+        Self::build(
+            surface,
+            centre,
+            rings,
+            margin,
+            vertex_rule,
+            shape,
+            constants,
+            contact.as_ref(),
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn build(
+        surface: &SpringSurface,
+        centre: u32,
+        rings: u32,
+        margin: u32,
+        vertex_rule: VertexRule,
+        shape: ContactShape,
         (kh, km): (f64, f64),
+        contact: Option<&ContactRest>,
     ) -> Result<Self, ModelError> {
         if rings == 0 || margin == 0 || surface.is_fixed(centre) {
             return Err(ModelError::InvalidInput(format!(
@@ -566,6 +640,32 @@ impl LocalPatch {
                 }
             })
             .collect();
+        // Contact offsets from the whole surface's contact positions (a patch's own would be
+        // wrong at its cut).
+        let global = |i: u32| ring[i as usize].0;
+        // Depth zero is the sphere touching the node (on the surface the nodes sample; the
+        // offsets put the probe's plane through it).
+        let contact_point = surface.rest()[centre as usize];
+        let coarse_offset: Vec<DVec3> = match contact {
+            Some(cr) => ring
+                .iter()
+                .map(|&(i, _)| cr.positions[i as usize] - surface.rest()[i as usize])
+                .collect(),
+            None => vec![DVec3::ZERO; nc],
+        };
+        let mut fine_offset = vec![DVec3::ZERO; ns];
+        if let Some(cr) = contact {
+            for i in 0..nc {
+                let g = global(i as u32) as usize;
+                fine_offset[i] = cr.positions[g] - fine_rest[i];
+            }
+            for (e, &[a, b]) in patch.edges().iter().enumerate() {
+                if let Some(ge) = surface.edge_between(global(a), global(b)) {
+                    let slot = surface.node_count() + ge as usize;
+                    fine_offset[nc + e] = cr.positions[slot] - fine_rest[nc + e];
+                }
+            }
+        }
         let fine = Network {
             home_n_per_m: (0..ns)
                 .map(|s| if s < nc || fine_area_node[s] { kh } else { 0.0 })
@@ -578,7 +678,7 @@ impl LocalPatch {
             shape,
             centre: c,
             element_size_m: surface.element_size_m(centre),
-            contact_point: surface.rest()[centre as usize],
+            contact_point,
             normal: surface.rest_normal(centre),
             coarse,
             coarse_triangles: patch.triangles().to_vec(),
@@ -586,6 +686,8 @@ impl LocalPatch {
             fine_triangles: fine_mesh.triangles,
             fine_area_node,
             fine_area_spring,
+            coarse_offset,
+            fine_offset,
             type1: refinement.type1_count(),
             type2: refinement.type2_count(),
             kh,
@@ -621,9 +723,9 @@ impl LocalPatch {
     /// probe's patch around Newton solves of [`press`]. `x` is the solution (warm start).
     fn force(
         &self,
-        net: &Network,
-        tris: &[[u32; 3]],
+        (net, tris, offset): (&Network, &[[u32; 3]], &[DVec3]),
         depth_m: f64,
+        coupling: bool,
         x: &mut [DVec3],
     ) -> Result<f64, ModelError> {
         let guess = self.kh * depth_m;
@@ -639,11 +741,17 @@ impl LocalPatch {
             ContactShape::Probe(p) => p,
         };
         let device = self.contact_point + self.normal * (p.radius_m - depth_m);
-        let mut probe = Probe::new(p, tris.to_vec(), &net.rest);
+        let contact_rest: Vec<DVec3> = net.rest.iter().zip(offset).map(|(r, o)| *r + *o).collect();
+        let mut cx = contact_rest.clone();
+        let mut probe = Probe::new(p, tris.to_vec(), &contact_rest);
         let mut load = ContactLoad {
             nodes: Vec::new(),
             normal: self.normal,
-            compliance_m_per_n: 1.0 / p.coupling_stiffness_n_per_m,
+            compliance_m_per_n: if coupling {
+                1.0 / p.coupling_stiffness_n_per_m
+            } else {
+                0.0
+            },
         };
         let mut f_prev = f64::NAN;
         let mut x_prev = x.to_vec();
@@ -653,7 +761,10 @@ impl LocalPatch {
         // (deep presses, where nodes enter and leave the patch).
         let (mut omega, mut change_prev) = (0.5, f64::INFINITY);
         for outer in 0..300 {
-            let st = probe.update(x, device, DVec3::ZERO);
+            for ((c, xi), o) in cx.iter_mut().zip(x.iter()).zip(offset) {
+                *c = *xi + *o;
+            }
+            let st = probe.update(&cx, device, DVec3::ZERO);
             if st.in_contact {
                 let (nodes, w) = probe.patch();
                 load.nodes.clear();
@@ -666,7 +777,7 @@ impl LocalPatch {
             let c_rest: DVec3 = load
                 .nodes
                 .iter()
-                .map(|&(i, w)| net.rest[i as usize] * w)
+                .map(|&(i, w)| contact_rest[i as usize] * w)
                 .sum();
             let depth_eff = p.radius_m - (device - c_rest).dot(load.normal);
             if depth_eff <= 0.0 {
@@ -704,7 +815,32 @@ impl LocalPatch {
     /// # Errors
     /// As [`press`].
     pub fn coarse_press(&self, depth_m: f64, x: &mut [DVec3]) -> Result<f64, ModelError> {
-        self.force(&self.coarse, &self.coarse_triangles, depth_m, x)
+        self.force(
+            (&self.coarse, &self.coarse_triangles, &self.coarse_offset),
+            depth_m,
+            true,
+            x,
+        )
+    }
+
+    /// The coarse contact force at the probe sphere's depth `depth_m` (m; the plane's travel,
+    /// without the virtual coupling in series: the sphere depth of [`crate::press`]) for the
+    /// probe, and at the node's displacement for a point contact, N; `x` as in
+    /// [`LocalPatch::coarse_press`].
+    ///
+    /// # Errors
+    /// As [`press`].
+    pub fn coarse_press_sphere_depth(
+        &self,
+        depth_m: f64,
+        x: &mut [DVec3],
+    ) -> Result<f64, ModelError> {
+        self.force(
+            (&self.coarse, &self.coarse_triangles, &self.coarse_offset),
+            depth_m,
+            false,
+            x,
+        )
     }
 
     /// The subdivided contact force at depth `depth_m` with `K'_h = kh_area` and `K'_m =
@@ -714,8 +850,32 @@ impl LocalPatch {
     /// As [`press`].
     pub fn fine_press(
         &mut self,
+        area: (f64, f64),
+        depth_m: f64,
+        x: &mut [DVec3],
+    ) -> Result<(f64, f64), ModelError> {
+        self.fine_press_with(area, depth_m, true, x)
+    }
+
+    /// [`LocalPatch::fine_press`] at the probe sphere's depth `depth_m` (without the coupling in
+    /// series, as [`LocalPatch::coarse_press_sphere_depth`]).
+    ///
+    /// # Errors
+    /// As [`press`].
+    pub fn fine_press_sphere_depth(
+        &mut self,
+        area: (f64, f64),
+        depth_m: f64,
+        x: &mut [DVec3],
+    ) -> Result<(f64, f64), ModelError> {
+        self.fine_press_with(area, depth_m, false, x)
+    }
+
+    fn fine_press_with(
+        &mut self,
         (kh_area, km_area): (f64, f64),
         depth_m: f64,
+        coupling: bool,
         x: &mut [DVec3],
     ) -> Result<(f64, f64), ModelError> {
         let nc = self.coarse.node_count();
@@ -729,7 +889,12 @@ impl LocalPatch {
         for (s, &area) in self.fine.springs.iter_mut().zip(&self.fine_area_spring) {
             s.stiffness_n_per_m = if area { km_area } else { self.km };
         }
-        let f = self.force(&self.fine, &self.fine_triangles, depth_m, x)?;
+        let f = self.force(
+            (&self.fine, &self.fine_triangles, &self.fine_offset),
+            depth_m,
+            coupling,
+            x,
+        )?;
         let c = self.centre as usize;
         Ok((f, (x[c] - self.fine.rest[c]).length()))
     }
@@ -835,9 +1000,34 @@ pub fn calibrate_node(
     shape: ContactShape,
     node: u32,
 ) -> Result<NodeCalibration, ModelError> {
+    let contact = surface_contact_rest(surface, shape);
+    calibrate_node_with(surface, params, shape, node, contact.as_ref())
+}
+
+/// [`calibrate_node`] with the surface's contact positions at rest computed beforehand
+/// ([`surface_contact_rest`]).
+///
+/// # Errors
+/// As [`calibrate_node`].
+pub fn calibrate_node_with(
+    surface: &SpringSurface,
+    params: &MassSpringParams,
+    shape: ContactShape,
+    node: u32,
+    contact: Option<&ContactRest>,
+) -> Result<NodeCalibration, ModelError> {
     let s = &params.subdivision;
     let (kh, km) = (params.home_spring_n_per_m, params.mesh_spring_n_per_m);
-    let mut patch = LocalPatch::new(surface, node, s.rings, s.vertex_rule, shape, (kh, km))?;
+    let mut patch = LocalPatch::with_contact(
+        surface,
+        node,
+        s.rings,
+        default_margin(surface, node, shape),
+        s.vertex_rule,
+        shape,
+        (kh, km),
+        contact,
+    )?;
     let l = patch.element_size_m();
     let mut xc = patch.coarse_rest();
     let mut xf = patch.fine_rest();
@@ -926,6 +1116,7 @@ pub fn calibrate(
         .filter(|&i| !surface.is_fixed(i))
         .collect();
     let total = nodes.len();
+    let contact = surface_contact_rest(surface, shape);
     let next = AtomicUsize::new(0);
     let done = AtomicUsize::new(0);
     let rows: Mutex<Vec<Option<NodeCalibration>>> = Mutex::new(vec![None; surface.node_count()]);
@@ -939,7 +1130,7 @@ pub fn calibrate(
                         break;
                     }
                     let node = nodes[k];
-                    match calibrate_node(surface, params, shape, node) {
+                    match calibrate_node_with(surface, params, shape, node, contact.as_ref()) {
                         Ok(row) => {
                             if let Ok(mut r) = rows.lock() {
                                 r[node as usize] = Some(row);

@@ -127,7 +127,7 @@ max_force_n = 10.0
 /// Built-in scene `lv-surface-springs`: the LV epicardium as a mass-spring surface.
 const LV_SURFACE_SPRINGS_TOML: &str = r#"# Built-in scene "lv-surface-springs" (a copy of the constant in server/model/src/scene/builtin.rs).
 name = "lv-surface-springs"
-description = "The epicardium of the idealized left ventricle (built-in lv geometry, the linear mesh of about 2000 tets: 350 surface nodes, edges of about 2.2 mm) as a mass-spring surface with home springs (Zhang, Payandeh & Dill eq. 1-2), base rim clamped, run-time one-ring Loop subdivision with calibrated springs. K_h = K_m fitted to the lv-probe force of the FEM reference (haptic_subdivision fit-lv; a surface on home springs stiffens as the probe's contact grows, so the fit is within 40 %, see docs/accuracy.md); node mass: the myocardium (3.43 g) over the epicardial nodes; damping about critical per node."
+description = "The epicardium of the idealized left ventricle (built-in lv geometry, the linear mesh of about 2000 tets: 350 surface nodes, edges of about 2.2 mm) as a mass-spring surface with home springs (Zhang, Payandeh & Dill eq. 1-2), base rim clamped, run-time one-ring Loop subdivision with calibrated springs. K_h = K_m = 2.013 N/m, every spring times the contact factor of the organ table, calibrated to the stable neo-Hookean reference at three epicardial points (reference_file; within 10 % at the lv-probe point never subdivided, not yet subdivided or elsewhere: docs/accuracy.md); node mass: the myocardium (3.43 g) over the epicardial nodes; damping about critical per node."
 
 [model]
 family = "mass-spring"
@@ -143,7 +143,7 @@ touchable = ["EPI"]
 
 [mass_spring]
 mesh_spring_n_per_m = 2.013     # K_m = K_h (the paper's ratio)
-home_spring_n_per_m = 2.013     # fitted: the coarse surface's lv-probe curve closest to the FEM reference (largest error 40 %)
+home_spring_n_per_m = 2.013     # the organ table's contact factor (0.10..0.92) scales it to the reference
 damping_n_s_per_m = 0.01        # about critical for a node on its home spring
 node_mass_kg = 0.00001          # the myocardium's 3.43 g over the 350 epicardial nodes
 rings = 1
@@ -151,6 +151,9 @@ springs = "calibrated"
 vertex_rule = "keep"
 coarsen_delay_s = 0.2
 calibration_file = "lv-surface-springs.calibration.csv"
+reference_file = "lv-surface-springs.reference.csv"  # the organ's FEM reference at six points (springs_reference/)
+reference_axis = [0, 0, 1]      # the LV is a body of revolution about z: the target depends on the height
+organ_file = "lv-surface-springs.organ.csv"  # the contact factor per node and sphere depth (haptic-calibrate)
 
 [integrator]
 kind = "symplectic-euler"
@@ -280,9 +283,9 @@ radius_m = 0.002
 max_force_n = 10.0
 "#;
 
-/// The calibration tables of the built-in scenes, by file name (identical copies beside the
-/// scenes in `deploy/scenes/`).
-const CALIBRATIONS: [(&str, &str); 2] = [
+/// The calibration tables and organ references of the built-in scenes, by file name (identical
+/// copies beside the scenes in `deploy/scenes/`).
+const CALIBRATIONS: [(&str, &str); 4] = [
     (
         "hemisphere-springs.calibration.csv",
         include_str!("calibrations/hemisphere-springs.calibration.csv"),
@@ -290,6 +293,14 @@ const CALIBRATIONS: [(&str, &str); 2] = [
     (
         "lv-surface-springs.calibration.csv",
         include_str!("calibrations/lv-surface-springs.calibration.csv"),
+    ),
+    (
+        "lv-surface-springs.reference.csv",
+        include_str!("calibrations/lv-surface-springs.reference.csv"),
+    ),
+    (
+        "lv-surface-springs.organ.csv",
+        include_str!("calibrations/lv-surface-springs.organ.csv"),
     ),
 ];
 

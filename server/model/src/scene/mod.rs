@@ -94,7 +94,7 @@ use crate::integrate::IntegratorParams;
 use crate::integrate::condensed::ActiveRegion;
 use crate::loads::{SceneLoads, static_dead_forces, static_external_forces};
 use crate::mass_spring::calibration::{CalibrationTable, ContactShape};
-use crate::mass_spring::{MassSpringParams, SpringSurface};
+use crate::mass_spring::{MassSpringParams, OrganReference, OrganTable, SpringSurface};
 use crate::material::MaterialParams;
 use crate::mesh::TetMesh;
 
@@ -242,6 +242,45 @@ pub struct MassSpringScene {
     pub calibration_path: Option<PathBuf>,
     /// The table, or why there is none.
     pub table: TableState,
+    /// The organ calibration (`reference_file`, [`crate::mass_spring::organ`]), if the scene
+    /// gives a reference.
+    pub organ: Option<OrganScene>,
+}
+
+/// The organ calibration of a mass-spring scene: the organ's reference, the axis its target is
+/// interpolated along, and the organ table.
+#[derive(Debug, Clone)]
+pub struct OrganScene {
+    /// The reference (`mass_spring.reference_file`).
+    pub reference: OrganReference,
+    /// `mass_spring.reference_axis`, unit.
+    pub axis: DVec3,
+    /// The key a valid table must carry ([`crate::mass_spring::organ::organ_key`]).
+    pub key: u64,
+    /// The table's file name as the scene gives it (`organ_file`, default
+    /// `<scene name>.organ.csv`).
+    pub file: String,
+    /// Where it is read from and written to; `None` for a built-in scene.
+    pub path: Option<PathBuf>,
+    /// The table, or why it is unusable (missing, malformed, stale).
+    pub table: Result<OrganTable, String>,
+}
+
+impl OrganScene {
+    /// The table.
+    ///
+    /// # Errors
+    /// [`ModelError::Calibration`] naming the file, what is wrong and the command that
+    /// computes it.
+    pub fn table(&self) -> Result<OrganTable, ModelError> {
+        self.table.clone().map_err(|why| ModelError::Calibration {
+            // As the scene names it, not where it resolved (issue 47).
+            path: self.file.clone(),
+            message: format!(
+                "{why}; compute it with `haptic-calibrate SCENE_FILE` (writes it beside the scene)"
+            ),
+        })
+    }
 }
 
 /// The calibration table of a mass-spring scene.

@@ -1,13 +1,13 @@
 //! The raw (serde) form of a scene file and its validation into a [`Scene`]: every field is
 //! checked for presence, finiteness and range, and errors name it by its dotted path.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use glam::DVec3;
 use serde::Deserialize;
 
 use super::builtin::builtin_calibration;
-use super::{HybridScene, MassSpringScene, ModelFamily, Scene, TableState};
+use super::{HybridScene, MassSpringScene, ModelFamily, OrganScene, Scene, TableState};
 use crate::ModelError;
 use crate::contact::{ContactModel, ProbeParams};
 use crate::element::StrainSmoothing;
@@ -18,6 +18,7 @@ use crate::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
 use crate::integrate::{IntegratorKind, IntegratorParams, LinearSolver};
 use crate::loads::{PointForce, PressureLoad, SceneLoads};
 use crate::mass_spring::calibration::{CalibrationTable, ContactShape, calibration_key};
+use crate::mass_spring::organ::{OrganReference, OrganTable, organ_key};
 use crate::mass_spring::{
     MAX_RINGS, MassSpringParams, SpringRule, SpringSurface, SubdivisionParams, VertexRule,
 };
@@ -119,6 +120,9 @@ struct RawMassSpring {
     vertex_rule: Option<String>,
     coarsen_delay_s: Option<f64>,
     calibration_file: Option<String>,
+    reference_file: Option<String>,
+    reference_axis: Option<[f64; 3]>,
+    organ_file: Option<String>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -877,7 +881,7 @@ fn build_mass_spring(
         Some(n) => SpringRule::from_name(n).ok_or_else(|| {
             ModelError::field(
                 "mass_spring.springs",
-                format!("unknown rule `{n}` (expected \"calibrated\" or \"unchanged\")"),
+                format!("unknown rule `{n}` (expected \"calibrated\", \"unchanged\" or \"area\")"),
             )
         })?,
     };
@@ -945,6 +949,25 @@ fn build_mass_spring(
             Ok(t) => TableState::Ready(t),
         }
     };
+    let organ = match &m.reference_file {
+        None => {
+            for (field, given) in [
+                ("mass_spring.organ_file", m.organ_file.is_some()),
+                ("mass_spring.reference_axis", m.reference_axis.is_some()),
+            ] {
+                if given {
+                    return Err(ModelError::field(
+                        field,
+                        "needs mass_spring.reference_file (the organ's reference)",
+                    ));
+                }
+            }
+            None
+        }
+        Some(reference) => Some(build_organ(
+            m, reference, &surface, &params, &probe, scene_name, base_dir, origin,
+        )?),
+    };
     Ok(MassSpringScene {
         params,
         surface,
@@ -952,6 +975,85 @@ fn build_mass_spring(
         key,
         calibration_file: file,
         calibration_path: path,
+        table,
+        organ,
+    })
+}
+
+/// The organ part of a mass-spring scene: the reference (read now: a scene whose reference
+/// cannot be read or parsed is refused), its axis, and the organ table (missing, malformed or
+/// stale: recorded, refused when a body is started).
+#[allow(clippy::too_many_arguments)]
+fn build_organ(
+    m: &RawMassSpring,
+    reference_file: &str,
+    surface: &SpringSurface,
+    params: &MassSpringParams,
+    probe: &ProbeParams,
+    scene_name: &str,
+    base_dir: &Path,
+    origin: Origin,
+) -> Result<OrganScene, ModelError> {
+    let field = "mass_spring.reference_file";
+    let read = |file: &str| -> Result<(String, Option<PathBuf>), String> {
+        match origin {
+            Origin::Builtin => builtin_calibration(file)
+                .map(|t| (t.to_string(), None))
+                .ok_or_else(|| format!("no built-in file `{file}`")),
+            Origin::File => {
+                let p = base_dir.join(file);
+                // Named as the scene names it, not where it resolved (issue 47).
+                std::fs::read_to_string(&p)
+                    .map(|t| (t, Some(p.clone())))
+                    .map_err(|e| format!("`{file}` cannot be read ({e})"))
+            }
+        }
+    };
+    let (text, _) = read(reference_file).map_err(|e| ModelError::field(field, e))?;
+    let reference = OrganReference::parse(&text, reference_file)
+        .map_err(|e| ModelError::field(field, e.to_string()))?;
+    let axis = DVec3::from_array(m.reference_axis.unwrap_or([0.0, 0.0, 1.0]));
+    if !(axis.is_finite() && axis.length() > 0.0) {
+        return Err(ModelError::field(
+            "mass_spring.reference_axis",
+            "must be a finite non-zero vector",
+        ));
+    }
+    let axis = axis.normalize();
+    let file = m
+        .organ_file
+        .clone()
+        .unwrap_or_else(|| format!("{scene_name}.organ.csv"));
+    let key = organ_key(surface, params, probe, &reference, axis);
+    let path = match origin {
+        Origin::Builtin => None,
+        Origin::File => Some(base_dir.join(&file)),
+    };
+    let table = read(&file)
+        // As the scene names it, not where it resolved (issue 47).
+        .and_then(|(t, _)| OrganTable::parse(&t, &file).map_err(|e| e.to_string()))
+        .and_then(|t| {
+            if t.key() != key {
+                Err(format!(
+                    "is stale: computed for key {:016x}, this scene needs {key:016x} (the surface, springs, probe, reference or axis changed)",
+                    t.key()
+                ))
+            } else if t.node_count() != surface.node_count() {
+                Err(format!(
+                    "covers {} nodes, the surface has {}",
+                    t.node_count(),
+                    surface.node_count()
+                ))
+            } else {
+                Ok(t)
+            }
+        });
+    Ok(OrganScene {
+        reference,
+        axis,
+        key,
+        file,
+        path,
         table,
     })
 }

@@ -1,0 +1,363 @@
+//! The organ table's calibration: every free node pressed by the probe through the body itself
+//! (the same [`MassSpringBody::tick`] the servo runs, its constants unscaled), held at each of
+//! the reference's sphere depths until the force settles; the factor is the reference's force
+//! over the body's.
+//!
+//! A static solve of the calibration's local patch ([`super::super::calibration::LocalPatch`])
+//! gives the same forces (checked in `tests/mass_spring_organ.rs`), but with a three-ring area
+//! on the 1.4 mm left-ventricle surface one node took 55 s there (a nine-ring patch, and the
+//! probe's patch found by a fixed point around every Newton solve) against about 0.1 s here:
+//! the body's damped dynamics settle a hold in 20-60 ticks.
+
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use glam::DVec3;
+
+use super::{FACTOR_RANGE, OrganReference, OrganRow, OrganTable, organ_key};
+use crate::ModelError;
+use crate::body::TickInput;
+use crate::contact::ProbeParams;
+use crate::integrate::IntegratorParams;
+use crate::mass_spring::calibration::CalibrationTable;
+use crate::mass_spring::surface::SpringSurface;
+use crate::mass_spring::{MassSpringBody, MassSpringParams, SpringRule};
+
+/// Ticks of the ramp from one device depth to the next (a smoothstep).
+pub const RAMP_TICKS: usize = 20;
+
+/// A hold has settled when the force changed by less than this fraction over
+/// [`SETTLE_WINDOW_TICKS`] ticks.
+pub const SETTLE_TOLERANCE: f64 = 1e-5;
+
+/// See [`SETTLE_TOLERANCE`].
+pub const SETTLE_WINDOW_TICKS: usize = 10;
+
+/// Most ticks of a hold; a hold that has not settled by then is an error.
+pub const MAX_HOLD_TICKS: usize = 5_000;
+
+/// The sphere depth must land within this fraction of the wanted depth (a few corrections
+/// of the device's depth at most), and the force is then corrected to it along the local
+/// slope.
+pub const DEPTH_TOLERANCE: f64 = 2e-3;
+
+/// Holds tried to reach a sphere depth within [`DEPTH_TOLERANCE`]; if none did, the closest
+/// is used when it lies within [`DEPTH_FALLBACK_TOLERANCE`] (its force corrected along the
+/// local slope), else the calibration fails.
+pub const DEPTH_ATTEMPTS: usize = 12;
+
+/// See [`DEPTH_ATTEMPTS`].
+pub const DEPTH_FALLBACK_TOLERANCE: f64 = 2e-2;
+
+/// What the calibration needs of a scene besides the surface: its constants, the probe, the
+/// servo tick settings and, with [`SpringRule::Calibrated`], the eq. 4 table.
+#[derive(Debug, Clone, Copy)]
+pub struct OrganSetup<'a> {
+    /// The scene's constants (`[mass_spring]`).
+    pub params: &'a MassSpringParams,
+    /// The scene's probe.
+    pub probe: ProbeParams,
+    /// The scene's servo tick settings.
+    pub integrator: &'a IntegratorParams,
+    /// The eq. 4 table (needed only with [`SpringRule::Calibrated`] and rings > 0, where the
+    /// subdivided factor is the coarse one).
+    pub subdivision_table: Option<&'a CalibrationTable>,
+}
+
+/// Presses `body` with the probe at `point_m` along `direction` (unit, inward) to the sphere
+/// depths `depths_m` in turn (device depth corrected until the body's sphere depth,
+/// [`MassSpringBody::contact_depth_m`], is within [`DEPTH_TOLERANCE`]), each held until the
+/// force settles: the force at each depth, N.
+///
+/// # Errors
+/// [`ModelError::NoConvergence`] when a hold does not settle in [`MAX_HOLD_TICKS`] or the
+/// depth cannot be reached; the body's tick errors.
+pub fn press_sphere_depths(
+    body: &mut MassSpringBody,
+    point_m: DVec3,
+    direction: DVec3,
+    depths_m: &[f64],
+) -> Result<Vec<f64>, ModelError> {
+    let r = body.probe().params.radius_m;
+    let k = body.probe().params.coupling_stiffness_n_per_m;
+    // Device at depth `d` below first contact: the sphere's centre `r - d` before the point.
+    let device = |d: f64| point_m - direction * (r - d);
+    let mut at = -0.2 * r.min(1e-3);
+    let mut measured: Vec<(f64, f64)> = vec![(0.0, 0.0)];
+    let mut out = Vec::with_capacity(depths_m.len());
+    for &s in depths_m {
+        // Local slope dF/ds from the last two measurements.
+        let slope = |m: &[(f64, f64)]| {
+            let n = m.len();
+            if n >= 2 && m[n - 1].0 > m[n - 2].0 {
+                (m[n - 1].1 - m[n - 2].1) / (m[n - 1].0 - m[n - 2].0)
+            } else {
+                0.0
+            }
+        };
+        let (s_last, f_last) = *measured.last().expect("starts with the origin");
+        let mut target = s + (f_last + slope(&measured) * (s - s_last)) / k;
+        let mut result = None;
+        // The closest hold so far: (|depth - s|, depth, force).
+        let mut closest = (f64::INFINITY, 0.0, 0.0);
+        for attempt in 0..DEPTH_ATTEMPTS {
+            let (depth, force) = ramp_and_hold(body, &device, at, target)?;
+            at = target;
+            measured.push((depth, force));
+            let sl = slope(&measured).max(0.0);
+            if (depth - s).abs() < closest.0 {
+                closest = ((depth - s).abs(), depth, force);
+            }
+            if (depth - s).abs() <= DEPTH_TOLERANCE * s {
+                result = Some(force + sl * (s - depth));
+                break;
+            }
+            // The device moves by the sphere's shortfall plus the coupling's extra stretch
+            // (halved after the first corrections: nodes entering the probe's patch can make
+            // the full step overshoot back and forth).
+            let gain = if attempt < 3 { 1.0 } else { 0.5 };
+            target += gain * (s - depth) * (1.0 + sl / k);
+        }
+        if result.is_none() && closest.0 <= DEPTH_FALLBACK_TOLERANCE * s {
+            // Close enough to correct along the local slope of the last holds.
+            result = Some(closest.2 + slope(&measured).max(0.0) * (s - closest.1));
+        }
+        let Some(f) = result else {
+            return Err(ModelError::NoConvergence(format!(
+                "the probe's sphere depth did not reach {:.3} mm within {:.1} % in {DEPTH_ATTEMPTS} holds (closest {:.4} mm)",
+                s * 1e3,
+                100.0 * DEPTH_FALLBACK_TOLERANCE,
+                closest.1 * 1e3
+            )));
+        };
+        out.push(f);
+    }
+    Ok(out)
+}
+
+/// Ramps the device from depth `from` to `to` (m) and holds it until the force settles:
+/// `(sphere depth m, force N)` at the end of the hold.
+fn ramp_and_hold(
+    body: &mut MassSpringBody,
+    device: &dyn Fn(f64) -> DVec3,
+    from: f64,
+    to: f64,
+) -> Result<(f64, f64), ModelError> {
+    let tick = |body: &mut MassSpringBody, d: f64| {
+        body.tick(&TickInput {
+            device_position_m: Some(device(d)),
+            device_velocity_m_per_s: DVec3::ZERO,
+        })
+    };
+    for j in 1..=RAMP_TICKS {
+        let t = j as f64 / RAMP_TICKS as f64;
+        tick(body, from + (to - from) * t * t * (3.0 - 2.0 * t))?;
+    }
+    let mut history = [0.0; SETTLE_WINDOW_TICKS];
+    for j in 0..MAX_HOLD_TICKS {
+        let out = tick(body, to)?;
+        let f = out.force_on_device_n.length();
+        let old = history[j % SETTLE_WINDOW_TICKS];
+        history[j % SETTLE_WINDOW_TICKS] = f;
+        if j >= SETTLE_WINDOW_TICKS && (f - old).abs() <= SETTLE_TOLERANCE * f.max(1e-12) {
+            if !out.in_contact {
+                return Ok((0.0, 0.0));
+            }
+            return Ok((body.contact_depth_m(), f));
+        }
+    }
+    Err(ModelError::NoConvergence(format!(
+        "a hold at {:.3} mm did not settle in {MAX_HOLD_TICKS} ticks",
+        to * 1e3
+    )))
+}
+
+/// The organ row of free node `node` (module documentation of [`super`]): the body with
+/// constant springs pressed at the node along its rest normal, never subdivided, and (with
+/// rings and [`SpringRule::Area`] or [`SpringRule::Unchanged`]) subdivided as the scene does
+/// (with [`SpringRule::Calibrated`] the eq. 4 table keeps the coarse force and the subdivided
+/// factor is the coarse one); `coarse` and `subdivided` are fresh bodies of the two kinds.
+///
+/// # Errors
+/// As [`press_sphere_depths`]; [`ModelError::Calibration`] when a factor falls outside
+/// [`FACTOR_RANGE`].
+pub fn calibrate_organ_node(
+    surface: &SpringSurface,
+    (coarse, subdivided): (MassSpringBody, Option<MassSpringBody>),
+    reference: &OrganReference,
+    axis: DVec3,
+    node: u32,
+) -> Result<OrganRow, ModelError> {
+    let point = surface.rest()[node as usize];
+    let inward = -surface.rest_normal(node);
+    let depths = reference.depths_m();
+    let target = reference.target_at(axis, point);
+    let factor = |f: &[f64], what: &str| -> Result<Vec<f64>, ModelError> {
+        f.iter()
+            .zip(&target)
+            .zip(depths)
+            .map(|((&f, &t), &d)| {
+                let beta = t / f;
+                if f > 0.0 && (FACTOR_RANGE.0..=FACTOR_RANGE.1).contains(&beta) {
+                    Ok(beta)
+                } else {
+                    Err(ModelError::Calibration {
+                        path: String::new(),
+                        message: format!(
+                            "at {:.3} mm the {what} surface gives {f:.3e} N for a target of {t:.3e} N (factor outside {FACTOR_RANGE:?}): the scene's constants are far from the reference",
+                            d * 1e3
+                        ),
+                    })
+                }
+            })
+            .collect()
+    };
+    let mut body = coarse;
+    let f_coarse = press_sphere_depths(&mut body, point, inward, depths)?;
+    let beta = factor(&f_coarse, "coarse")?;
+    let (beta_sub, f_sub) = match subdivided {
+        Some(mut body) => {
+            let f = press_sphere_depths(&mut body, point, inward, depths)?;
+            (factor(&f, "subdivided")?, f)
+        }
+        None => (beta.clone(), vec![0.0; depths.len()]),
+    };
+    Ok(OrganRow {
+        factor: beta,
+        factor_subdivided: beta_sub,
+        target_force_n: target,
+        spring_force_n: f_coarse,
+        subdivided_force_n: f_sub,
+    })
+}
+
+/// The organ table of `surface` for the scene `setup`, the reference and its axis, computed on
+/// `threads` threads with `progress(done, total)` after each node (module documentation of
+/// [`super`]). A fixed node takes the mean factors of its free neighbours.
+///
+/// # Errors
+/// The errors of building the bodies ([`MassSpringBody::new`]); the first error of
+/// [`calibrate_organ_node`], naming the node.
+pub fn calibrate_organ(
+    surface: &SpringSurface,
+    setup: OrganSetup<'_>,
+    (reference, axis): (&OrganReference, DVec3),
+    threads: usize,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<OrganTable, ModelError> {
+    let params = setup.params;
+    let mut coarse_params = *params;
+    coarse_params.subdivision.rings = 0;
+    let coarse = MassSpringBody::new(
+        surface.clone(),
+        &coarse_params,
+        None,
+        setup.probe,
+        setup.integrator,
+        "organ calibration",
+    )?;
+    let sub = &params.subdivision;
+    let subdivided = if sub.rings > 0 && sub.springs != SpringRule::Calibrated {
+        Some(MassSpringBody::new(
+            surface.clone(),
+            params,
+            setup.subdivision_table.cloned(),
+            setup.probe,
+            setup.integrator,
+            "organ calibration",
+        )?)
+    } else {
+        None
+    };
+    let nc = surface.node_count();
+    let free: Vec<u32> = (0..nc as u32).filter(|&i| !surface.is_fixed(i)).collect();
+    let next = AtomicUsize::new(0);
+    let done = AtomicUsize::new(0);
+    let rows: Mutex<Vec<Option<OrganRow>>> = Mutex::new(vec![None; nc]);
+    let failure: Mutex<Option<ModelError>> = Mutex::new(None);
+    std::thread::scope(|scope| {
+        for _ in 0..threads.max(1) {
+            scope.spawn(|| {
+                loop {
+                    let k = next.fetch_add(1, Ordering::Relaxed);
+                    if k >= free.len() || failure.lock().map(|f| f.is_some()).unwrap_or(true) {
+                        break;
+                    }
+                    let node = free[k];
+                    let bodies = (coarse.clone(), subdivided.clone());
+                    match calibrate_organ_node(surface, bodies, reference, axis, node) {
+                        Ok(row) => {
+                            if let Ok(mut rows) = rows.lock() {
+                                rows[node as usize] = Some(row);
+                            }
+                            progress(done.fetch_add(1, Ordering::Relaxed) + 1, free.len());
+                        }
+                        Err(e) => {
+                            if let Ok(mut f) = failure.lock() {
+                                f.get_or_insert(ModelError::Calibration {
+                                    path: String::new(),
+                                    message: format!("node {node}: {e}"),
+                                });
+                            }
+                            break;
+                        }
+                    }
+                }
+            });
+        }
+    });
+    if let Some(e) = failure.into_inner().ok().flatten() {
+        return Err(e);
+    }
+    let rows = rows.into_inner().unwrap_or_default();
+    let m = reference.depths_m().len();
+    let out = (0..nc)
+        .map(|i| match &rows[i] {
+            Some(r) => r.clone(),
+            None => fixed_node_row(surface, &rows, i as u32, m),
+        })
+        .collect();
+    Ok(OrganTable {
+        key: organ_key(surface, params, &setup.probe, reference, axis),
+        depths_m: reference.depths_m().to_vec(),
+        rows: out,
+    })
+}
+
+/// A fixed node's row: the mean factors and target of its free neighbours (1 without any).
+fn fixed_node_row(
+    surface: &SpringSurface,
+    rows: &[Option<OrganRow>],
+    i: u32,
+    samples: usize,
+) -> OrganRow {
+    let mut row = OrganRow {
+        factor: vec![0.0; samples],
+        factor_subdivided: vec![0.0; samples],
+        target_force_n: vec![0.0; samples],
+        spring_force_n: vec![0.0; samples],
+        subdivided_force_n: vec![0.0; samples],
+    };
+    let mut n = 0.0;
+    for &j in surface.neighbours(i) {
+        if let Some(r) = &rows[j as usize] {
+            for k in 0..samples {
+                row.factor[k] += r.factor[k];
+                row.factor_subdivided[k] += r.factor_subdivided[k];
+                row.target_force_n[k] += r.target_force_n[k];
+            }
+            n += 1.0;
+        }
+    }
+    for k in 0..samples {
+        if n > 0.0 {
+            row.factor[k] /= n;
+            row.factor_subdivided[k] /= n;
+            row.target_force_n[k] /= n;
+        } else {
+            row.factor[k] = 1.0;
+            row.factor_subdivided[k] = 1.0;
+        }
+    }
+    row
+}
