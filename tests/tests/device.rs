@@ -196,8 +196,11 @@ async fn probe_press_force_profile() -> Result<()> {
             "force fell with depth while pressing: bin means {means:?}"
         );
     }
+    // Each 0.5 mm bin is a mean over the bin; the last in-contact bin lies about 3 mm past the
+    // first, where the default `lv` holds about 28 mN (StVK; its model-level staircase,
+    // `scene_table` in docs/accuracy.md), so the force must have grown by well over 20 mN.
     assert!(
-        pressed[pressed.len() - 1] > pressed[0] + 0.03,
+        pressed[pressed.len() - 1] > pressed[0] + 0.02,
         "force hardly grew with depth: bin means {means:?}"
     );
 

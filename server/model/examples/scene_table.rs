@@ -7,7 +7,7 @@
 //! `depth_convention = device`: the sphere's travel plus the virtual coupling's stretch), with
 //! the hold's steadiness (largest tick-to-tick change, % of the held force) and the tick p50/p99
 //! of the whole run on this machine. Prints a markdown table; `--plot FILE.png` also draws force
-//! against depth for every scene with the references' points and uncertainty bars.
+//! against depth for the first six scenes with the references' points and uncertainty bars.
 //!
 //! A scene is a built-in name or a `.toml` file, optionally followed by `:MATERIAL` to run it
 //! with another constitutive model (same Lamé parameters), e.g. `lv:stable-neo-hookean`. The
@@ -101,7 +101,12 @@ fn run(args: Args) -> anyhow::Result<()> {
     print_table(&pressed, &args.depths, &reference);
     if let Some(path) = &args.plot {
         plot(path, &pressed, &reference)?;
-        println!("wrote {}", path.display());
+        println!(
+            "wrote {} (the first {} of {} scenes)",
+            path.display(),
+            pressed.len().min(MAX_PLOTTED),
+            pressed.len()
+        );
     }
     Ok(())
 }
@@ -276,15 +281,17 @@ fn cpu_model() -> String {
 /// DejaVu Sans, the font the benchmark's plots use (see benches/precision/plot.rs).
 static DEJAVU_SANS: &[u8] = include_bytes!("../benches/precision/fonts/DejaVuSans.ttf");
 
-/// Force (mN) against device depth (mm): one line per scene, the references as black points
-/// with their uncertainty as bars.
+/// Scenes drawn by `--plot` (the first ones given; the table has them all).
+const MAX_PLOTTED: usize = 6;
+
+/// Force (mN) against device depth (mm): one line per scene (the first [`MAX_PLOTTED`]), the
+/// references as black points with their uncertainty as bars, up to the deepest press.
 fn plot(path: &Path, pressed: &[Pressed], reference: &[RefPoint]) -> anyhow::Result<()> {
     use plotters::prelude::*;
     plotters::style::register_font("sans-serif", FontStyle::Normal, DEJAVU_SANS)
         .map_err(|_| anyhow::anyhow!("the bundled font is not valid"))?;
-    if pressed.len() > 8 {
-        bail!("--plot draws at most 8 scenes, got {}", pressed.len());
-    }
+    // Six scenes and the two references: at most eight labelled series.
+    let pressed = &pressed[..pressed.len().min(MAX_PLOTTED)];
     let x1 = pressed
         .iter()
         .flat_map(|p| p.holds.iter().map(|h| h.device_depth_m * 1e3))
@@ -296,6 +303,7 @@ fn plot(path: &Path, pressed: &[Pressed], reference: &[RefPoint]) -> anyhow::Res
         .chain(
             reference
                 .iter()
+                .filter(|r| r.depth_m * 1e3 <= x1)
                 .map(|r| (r.force_n + r.uncertainty_n) * 1e3),
         )
         .fold(0.0, f64::max)
@@ -335,7 +343,7 @@ fn plot(path: &Path, pressed: &[Pressed], reference: &[RefPoint]) -> anyhow::Res
     for (material, marker) in [("stvk", 0), ("stable-neo-hookean", 1)] {
         let rows: Vec<&RefPoint> = reference
             .iter()
-            .filter(|r| r.material == material)
+            .filter(|r| r.material == material && r.depth_m * 1e3 <= x1)
             .collect();
         if rows.is_empty() {
             continue;
