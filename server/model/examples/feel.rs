@@ -7,13 +7,17 @@
 //! 0.25,0.5,1,1.5,2,3,4`, `... -- --scene lv-hybrid demo`, `... -- --scene-file
 //! deploy/scenes/lv_h1_condensed.toml stroke --depth 2 --speed 20`.
 
+#[path = "common/press_protocol.rs"]
+mod press_protocol;
+
 use std::path::PathBuf;
 use std::time::Instant;
 
-use clap::{Parser, Subcommand};
+use clap::Parser;
 use haptic_model::DVec3;
 use haptic_model::press::{self, HoldParams, HoldReport, PressLine, PressTrace};
 use haptic_model::scene::{Scene, load_builtin, load_scene_file};
+use press_protocol::Protocol;
 
 /// How a scene feels under a scripted press (prints only).
 #[derive(Debug, Parser)]
@@ -37,44 +41,6 @@ struct Args {
     trace: bool,
     #[command(subcommand)]
     protocol: Protocol,
-}
-
-#[derive(Debug, Subcommand)]
-enum Protocol {
-    /// Ramps to each depth in turn and holds it.
-    Staircase {
-        /// Device depths past first contact, mm.
-        #[arg(long, value_delimiter = ',', default_value = "0.25,0.5,1,1.5,2,3,4")]
-        depths: Vec<f64>,
-        /// Ramp time, s.
-        #[arg(long, default_value_t = 0.5)]
-        ramp_s: f64,
-        /// Hold time, s.
-        #[arg(long, default_value_t = 1.5)]
-        hold_s: f64,
-    },
-    /// The demo's press: constant speed to a depth, then a hold.
-    Demo {
-        /// Depth, mm.
-        #[arg(long, default_value_t = 3.7)]
-        depth: f64,
-        /// Speed, mm/s.
-        #[arg(long, default_value_t = 10.0)]
-        speed: f64,
-        /// Hold, s.
-        #[arg(long, default_value_t = 3.0)]
-        hold_s: f64,
-    },
-    /// The left ventricle's stroke: pressed to a depth on the lv-probe line, then half way round
-    /// the ventricle at z = -5 mm.
-    Stroke {
-        /// Depth, mm.
-        #[arg(long, default_value_t = 2.0)]
-        depth: f64,
-        /// Speed, mm/s.
-        #[arg(long, default_value_t = 20.0)]
-        speed: f64,
-    },
 }
 
 fn main() {

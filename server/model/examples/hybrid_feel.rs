@@ -8,16 +8,19 @@
 
 #[path = "common/hybrid_overrides.rs"]
 mod hybrid_overrides;
+#[path = "common/press_protocol.rs"]
+mod press_protocol;
 
 use std::time::Instant;
 
-use clap::{Parser, Subcommand};
+use clap::Parser;
 use haptic_model::DVec3;
 use haptic_model::body::{SoftBody, TickInput, TickOutput};
 use haptic_model::hybrid::HybridBody;
 use haptic_model::press::{self, HoldParams, PressLine};
 use haptic_model::scene::load_builtin;
 use hybrid_overrides::HybridOverrides;
+use press_protocol::Protocol;
 
 #[derive(Parser)]
 struct Args {
@@ -35,43 +38,6 @@ struct Args {
     from: Option<Vec<f64>>,
     #[command(subcommand)]
     protocol: Protocol,
-}
-
-#[derive(Debug, Subcommand)]
-enum Protocol {
-    /// Ramps to each depth in turn and holds it.
-    Staircase {
-        /// Device depths, mm.
-        #[arg(long, value_delimiter = ',', default_value = "0.5,1,1.5,2,3,4")]
-        depths: Vec<f64>,
-        /// Ramp, s.
-        #[arg(long, default_value_t = 0.5)]
-        ramp_s: f64,
-        /// Hold, s.
-        #[arg(long, default_value_t = 1.5)]
-        hold_s: f64,
-    },
-    /// Constant speed to a depth, then a hold.
-    Demo {
-        /// Depth, mm.
-        #[arg(long, default_value_t = 3.7)]
-        depth: f64,
-        /// Speed, mm/s.
-        #[arg(long, default_value_t = 10.0)]
-        speed: f64,
-        /// Hold, s.
-        #[arg(long, default_value_t = 3.0)]
-        hold_s: f64,
-    },
-    /// The LV half-turn stroke.
-    Stroke {
-        /// Depth, mm.
-        #[arg(long, default_value_t = 2.0)]
-        depth: f64,
-        /// Speed, mm/s.
-        #[arg(long, default_value_t = 20.0)]
-        speed: f64,
-    },
 }
 
 /// A [`HybridBody`] behind the seam that prints its counters every tick when asked.
