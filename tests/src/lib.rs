@@ -824,6 +824,20 @@ pub async fn start_session(url: &str, scene: &str) -> Result<String> {
     Ok(r.into_inner().session_id)
 }
 
+/// Stops session `id` over gRPC (its servo thread joined, its device released).
+///
+/// # Errors
+/// Connection or RPC failure (an unknown session is `NOT_FOUND`).
+pub async fn stop_session(url: &str, id: &str) -> Result<()> {
+    let mut ctl = session_control(url).await?;
+    ctl.stop_session(haptics_proto::v1::StopSessionRequest {
+        session_id: id.to_string(),
+    })
+    .await
+    .with_context(|| format!("StopSession {id}"))?;
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -11,7 +11,7 @@ use std::time::Duration;
 use anyhow::{Context, Result, ensure};
 use haptic_e2e::{
     BRIDGE, CTL, Daemon, STEP_TIMEOUT, VIEWER, finish, run_bin, serial, spawn_bin, start_session,
-    unique_temp_dir,
+    stop_session, unique_temp_dir,
 };
 use haptics_proto::recording::{read_topic, topic};
 use haptics_proto::v1::{AppliedForce, DeviceSample, ForceCommand, SessionStats, SurfaceFrame};
@@ -40,7 +40,7 @@ async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> 
             "--out",
             &surface_arg,
             "--duration-s",
-            "3.5",
+            "4.5",
         ],
     )?;
     tokio::time::sleep(Duration::from_millis(300)).await;
@@ -56,7 +56,7 @@ async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> 
             "--depth-m",
             "0.005",
             "--hold-s",
-            "0.2",
+            "1.0",
             "--record",
             &press_arg,
             "--json",
@@ -191,30 +191,51 @@ async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> 
     );
 
     // Replayed on a fresh session: the device goes through the recorded trajectory (same
-    // deepest point), and the body answers with the same force where the press holds (the
-    // servo ticks once per device sample, so the two runs step alike).
-    let id2 = start_session(&url, "lv").await?;
+    // deepest point), and the body answers with the same force once the 1 s hold has settled
+    // (a servo that fell behind its device under load reaches the same state later).
+    // The recorded session is done with (its recording is on disk): stopped, so the replay
+    // does not share the machine with its servo.
+    stop_session(&url, &id).await?;
+    // A replay whose link fell so far behind that the bridge's watchdog latched the device
+    // to zero force (seen with three busy loops on this 2-core machine) measured the machine,
+    // not the replay: it is run again on a fresh session, at most three times in all.
+    let latched = |json: &serde_json::Value| {
+        json["latches"].as_u64().unwrap_or(0) + json["watchdog_expired"].as_u64().unwrap_or(0) > 0
+    };
     let replay_mcap = dir.join("replay.mcap");
     let replay_arg = replay_mcap.display().to_string();
-    run_bin(
-        BRIDGE,
-        &[
-            "--server",
-            &url,
-            "--session",
-            &id2,
-            "--driver",
-            "replay",
-            "--replay",
-            &press_arg,
-            "--record",
-            &replay_arg,
-            "--json",
-        ],
-        Duration::from_secs(60),
-    )
-    .await?
-    .success()?;
+    let mut attempt = 0;
+    let replay = loop {
+        attempt += 1;
+        let id2 = start_session(&url, "lv").await?;
+        let replay = run_bin(
+            BRIDGE,
+            &[
+                "--server",
+                &url,
+                "--session",
+                &id2,
+                "--driver",
+                "replay",
+                "--replay",
+                &press_arg,
+                "--record",
+                &replay_arg,
+                "--json",
+            ],
+            Duration::from_secs(60),
+        )
+        .await?
+        .success()?;
+        if !latched(&replay.json()?) || attempt == 3 {
+            break replay;
+        }
+        stop_session(&url, &id2).await?;
+        eprintln!(
+            "replay {attempt}: the watchdog latched, run again: {}",
+            replay.stdout.trim()
+        );
+    };
     let replay_bytes = std::fs::read(&replay_mcap)?;
     let (recorded_x, recorded_hold) = held_force_n(&bytes)?;
     let (replay_x, replay_hold) = held_force_n(&replay_bytes)?;
@@ -225,7 +246,9 @@ async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> 
     );
     ensure!(
         (replay_hold - recorded_hold).abs() < 0.03 * recorded_hold,
-        "replayed hold force {replay_hold} N against {recorded_hold} N"
+        "replayed hold force {replay_hold} N against {recorded_hold} N; press {}; replay {}",
+        press.stdout.trim(),
+        replay.stdout.trim()
     );
 
     // The viewer replays the surface recording into pictures.
@@ -281,8 +304,8 @@ async fn bridge_and_session_recordings_decode_replay_and_export() -> Result<()> 
     Ok(())
 }
 
-/// The deepest device x of a bridge recording (m) and the median force magnitude over the
-/// samples within 0.1 mm of it (the press's hold), N.
+/// The deepest device x of a bridge recording (m) and the 90th percentile of the force magnitude
+/// over the later half (in time) of the samples within 0.1 mm of it (the press's hold), N.
 fn held_force_n(bytes: &[u8]) -> Result<(f64, f64)> {
     let samples = read_topic::<DeviceSample>(bytes, topic::DEVICE_SAMPLE)?;
     let forces = read_topic::<ForceCommand>(bytes, topic::DEVICE_FORCE)?;
@@ -304,6 +327,14 @@ fn held_force_n(bytes: &[u8]) -> Result<(f64, f64)> {
         "only {} samples at the deepest point",
         held.len()
     );
-    held.sort_by(f64::total_cmp);
-    Ok((x_min, held[held.len() / 2]))
+    // The later half of the hold: the body has settled there (on this machine the force is
+    // within 0.1 % of its final value after the first tenth of a 1 s hold). The recording holds
+    // the force written after the bridge's guard, which only ever scales a command down
+    // (watchdog ramp on a late command, clamp, slew, passivity); on a loaded machine most hold
+    // samples can be ramped (CI: a 0.2 s hold's median 7 % below the replay's; three busy loops
+    // here: the later half's median 10 % below), so the 90th percentile, the commands passed
+    // whole, is the body's answer.
+    let mut settled = held.split_off(held.len() / 2);
+    settled.sort_by(f64::total_cmp);
+    Ok((x_min, settled[settled.len() * 9 / 10]))
 }
