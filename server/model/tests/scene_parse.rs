@@ -502,7 +502,7 @@ fn the_rest_cholesky_solver_is_for_backward_euler_and_its_margin_is_checked() {
 }
 
 #[test]
-fn single_precision_forces_are_for_linear_stvk_fem_scenes() {
+fn single_precision_forces_are_for_linear_stvk_and_neo_hookean_fem_scenes() {
     let with = |integrator: &str, extra: &str| format!("{BASE}{extra}[integrator]\n{integrator}");
     assert!(!parse(BASE).unwrap().integrator.single_precision_forces);
     let scene = parse(&with("force_precision = \"single\"\n", "")).unwrap();
@@ -519,18 +519,26 @@ fn single_precision_forces_are_for_linear_stvk_fem_scenes() {
         "length_unit = \"mm\"",
         "length_unit = \"mm\"\nstrain_smoothing = \"edge\"",
     );
-    let neo = BASE.replace(
-        "density_kg_per_m3 = 1060.0",
-        "density_kg_per_m3 = 1060.0\nmodel = \"stable-neo-hookean\"",
-    );
+    let material = |model: &str| {
+        BASE.replace(
+            "density_kg_per_m3 = 1060.0",
+            &format!("density_kg_per_m3 = 1060.0\nmodel = \"{model}\""),
+        )
+    };
     let smoothed = parse(&format!(
         "{smoothed}[integrator]\nforce_precision = \"single\"\n"
     ));
     assert!(smoothed.unwrap().fem_model().unwrap().single_precision());
+    let neo = material("stable-neo-hookean");
+    let neo = parse(&format!(
+        "{neo}[integrator]\nforce_precision = \"single\"\n"
+    ));
+    assert!(neo.unwrap().fem_model().unwrap().single_precision());
+    let corotational = material("corotational");
     for bad in [
         with("force_precision = \"half\"\n", ""),
         format!("{quadratic}[integrator]\nforce_precision = \"single\"\n"),
-        format!("{neo}[integrator]\nforce_precision = \"single\"\n"),
+        format!("{corotational}[integrator]\nforce_precision = \"single\"\n"),
     ] {
         assert_eq!(field_of(parse(&bad)), "integrator.force_precision", "{bad}");
     }

@@ -43,7 +43,7 @@
 use glam::{DMat3, DVec3};
 
 use crate::ModelError;
-use crate::material::{self, MaterialModel, MaterialParams};
+use crate::material::{self, MaterialParams};
 use crate::mesh::TetMesh;
 
 pub mod fibres;
@@ -397,10 +397,11 @@ impl FemModel {
             self.single = None;
             return Ok(());
         }
-        if self.quadratic || self.material.model != MaterialModel::StVenantKirchhoff {
+        if self.quadratic || kernels::SingleElastic::of(&self.material).is_none() {
             return Err(ModelError::field(
                 "integrator.force_precision",
-                "single precision is for linear St Venant-Kirchhoff tetrahedra",
+                "single precision is for linear St Venant-Kirchhoff or stable Neo-Hookean \
+                 tetrahedra",
             ));
         }
         if self.single.is_none() {
@@ -461,8 +462,17 @@ impl FemModel {
             && scratch.node_count() >= self.node_count()
         {
             let viscous = v.filter(|_| mat.phi_pa_s > 0.0 || mat.psi_pa_s > 0.0);
-            let lame = (mat.lambda_pa, mat.mu_pa);
-            if single.add_forces(lame, (mat.phi_pa_s, mat.psi_pa_s), x, viscous, f, scratch) {
+            let elastic = kernels::SingleElastic::of(mat);
+            if let Some(elastic) = elastic
+                && single.add_forces(
+                    elastic,
+                    (mat.phi_pa_s, mat.psi_pa_s),
+                    x,
+                    viscous,
+                    f,
+                    scratch,
+                )
+            {
                 return;
             }
         }

@@ -5,7 +5,7 @@
 /// Built-in scene `lv`: the idealized left ventricle built in code.
 const LV_TOML: &str = r#"# Built-in scene "lv" (a copy of the constant in server/model/src/scene/builtin.rs).
 name = "lv"
-description = "Idealized left ventricle (geometry of the Land et al. 2015 cardiac mechanics benchmark, Proc. R. Soc. A 471:20150641: endocardium 7x7x17 mm, epicardium 10x10x20 mm, cut at z = 5 mm), meshed in code, base clamped, epicardium touchable. Material: mu = 5 kPa from the linearised Guccione law of benchmark problem 2 (C = 10 kPa, b_f = b_t = b_fs = 1, so mu = C/2), Poisson ratio 0.45 as a compressible stand-in for the benchmark's incompressibility, hence E = 14.5 kPa; rho = 1060 kg/m^3."
+description = "Idealized left ventricle (geometry of the Land et al. 2015 cardiac mechanics benchmark, Proc. R. Soc. A 471:20150641: endocardium 7x7x17 mm, epicardium 10x10x20 mm, cut at z = 5 mm), meshed in code, base clamped, epicardium touchable. Material: stable neo-Hookean (the organ of every LV scene; StVK has no equilibrium under the probe past about 1.3 mm), mu = 5 kPa from the linearised Guccione law of benchmark problem 2 (C = 10 kPa, b_f = b_t = b_fs = 1, so mu = C/2), Poisson ratio 0.45 as a compressible stand-in for the benchmark's incompressibility, hence E = 14.5 kPa; rho = 1060 kg/m^3."
 
 [mesh]
 builtin = "lv"
@@ -14,6 +14,7 @@ order = 2               # quadratic 10-node tets, mid-edge nodes on the ellipsoi
 length_unit = "mm"      # unit for reports; the built-in geometry is fixed
 
 [material]
+model = "stable-neo-hookean"    # an equilibrium under the probe to 4 mm and past (StVK: none past ~1.3 mm)
 youngs_modulus_pa = 14500.0
 poisson_ratio = 0.45
 phi_pa_s = 0.05
@@ -28,7 +29,7 @@ touchable = ["EPI"]
 [integrator]
 kind = "backward-euler"         # one implicit step per tick, solved with the factor below
 linear_solver = "rest-cholesky" # the tick matrix frozen at rest and factorised once at set-up (0.3 s)
-stiffness_margin = 2.0          # 2 K_0 in the frozen matrix: StVK stiffening (1.0 diverged under a 50 mN point load)
+stiffness_margin = 2.0          # 2 K_0 in the frozen matrix: stiffening under large strain (1.0 diverged under a 50 mN point load, StVK)
 tick_s = 0.001
 substeps = "auto"               # the explicit kinds' sub-steps ("symplectic-euler": 12 here)
 max_substeps = 64

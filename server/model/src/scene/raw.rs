@@ -596,12 +596,17 @@ pub(super) fn parse_scene(
     };
     if integrator.single_precision_forces
         && (mesh.is_quadratic()
-            || material.model != MaterialModel::StVenantKirchhoff
+            || !matches!(
+                material.model,
+                MaterialModel::StVenantKirchhoff | MaterialModel::StableNeoHookean
+            )
+            || material.mean_dilatation()
             || family != ModelFamily::Fem)
     {
         return Err(ModelError::field(
             "integrator.force_precision",
-            "\"single\" is for linear St Venant-Kirchhoff tetrahedra (FEM family)",
+            "\"single\" is for linear St Venant-Kirchhoff or stable Neo-Hookean tetrahedra \
+             (FEM family)",
         ));
     }
     Ok(Scene {

@@ -32,7 +32,7 @@ use linear::{ElementBatch, forces_linear};
 use quadratic::{QuadraticBatch, forces_quadratic, stvk_operator_quadratic};
 pub use single::ForceScratch;
 pub use single::SingleIsa;
-pub(crate) use single::SingleLinear;
+pub(crate) use single::{SingleElastic, SingleLinear};
 use stress::{LANE_COROTATIONAL, LANE_STABLE_NEO_HOOKEAN, LANE_STVK, lane_model};
 
 use super::quadrature::IntegrationPoints;
@@ -575,7 +575,8 @@ mod tests {
         assert!(checked >= 12);
     }
 
-    /// The single-precision kernel of linear StVK tetrahedra, standard and edge-smoothed,
+    /// The single-precision kernel of linear StVK and stable Neo-Hookean tetrahedra, standard
+    /// and edge-smoothed,
     /// against the double-precision scalar element loop: within 2e-6 of the largest nodal
     /// force for a large non-affine deformation (stretches from about 0.5 to 2), half-inverted
     /// or not, with and without the viscous stress; exactly zero at rest; the same with a force
@@ -585,18 +586,24 @@ mod tests {
     /// declines and the forces are double precision's, bit for bit.
     #[test]
     fn the_single_precision_kernel_matches_the_double_precision_loop() {
-        for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
-            if crate::cpu::has_avx2_fma() {
-                single_precision_case(smoothing);
-            } else {
-                single_precision_fallback_case(smoothing);
+        for model in [
+            MaterialModel::StVenantKirchhoff,
+            MaterialModel::StableNeoHookean,
+        ] {
+            for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
+                if crate::cpu::has_avx2_fma() {
+                    single_precision_case(model, smoothing);
+                } else {
+                    single_precision_fallback_case(model, smoothing);
+                }
             }
         }
     }
 
-    fn single_precision_fallback_case(smoothing: StrainSmoothing) {
+    fn single_precision_fallback_case(model: MaterialModel, smoothing: StrainSmoothing) {
         let mesh = box_mesh(DVec3::splat(0.01), [3, 2, 3]);
         let mut mat = MaterialParams::from_youngs(1e4, 0.45, 1000.0);
+        mat.model = model;
         mat.phi_pa_s = 0.3;
         let mut fem = FemModel::with_smoothing(&mesh, mat, smoothing).unwrap();
         fem.set_single_precision(true).unwrap();
@@ -605,7 +612,7 @@ mod tests {
         let (x, v) = deformed_state(&fem);
         let single = fem.single.as_ref().expect("single-precision data");
         let mut untouched = vec![DVec3::ONE; n];
-        let lame = (mat.lambda_pa, mat.mu_pa);
+        let lame = SingleElastic::of(&mat).expect("a single-precision material");
         let viscosity = (mat.phi_pa_s, mat.psi_pa_s);
         assert!(!single.add_forces(lame, viscosity, &x, Some(&v), &mut untouched, &mut scratch));
         assert!(untouched.iter().all(|a| *a == DVec3::ONE));
@@ -616,9 +623,10 @@ mod tests {
         assert_eq!(f, expected, "{smoothing:?}");
     }
 
-    fn single_precision_case(smoothing: StrainSmoothing) {
+    fn single_precision_case(model: MaterialModel, smoothing: StrainSmoothing) {
         let mesh = box_mesh(DVec3::splat(0.01), [3, 2, 3]);
         let mut mat = MaterialParams::from_youngs(1e4, 0.45, 1000.0);
+        mat.model = model;
         mat.phi_pa_s = 0.3;
         mat.psi_pa_s = 0.2;
         let mut fem = FemModel::with_smoothing(&mesh, mat, smoothing).unwrap();
@@ -633,7 +641,7 @@ mod tests {
         let (x, v) = deformed_state(&fem);
         let x_inv = half_inverted(&x);
         let single = fem.single.as_ref().expect("single-precision data");
-        let lame = (mat.lambda_pa, mat.mu_pa);
+        let lame = SingleElastic::of(&mat).expect("a single-precision material");
         let viscosity = (mat.phi_pa_s, mat.psi_pa_s);
         // Each instruction set this CPU runs, then the public path (the widest of them).
         let isas = single::SingleIsa::available();
@@ -667,7 +675,7 @@ mod tests {
                         .fold(0.0, f64::max);
                     assert!(
                         err < 2e-6 * scale && err > 1e-9 * scale, // rounded: the kernel ran
-                        "{isa:?} {smoothing:?} viscous={}: {err:e} of {scale:e}",
+                        "{isa:?} {model:?} {smoothing:?} viscous={}: {err:e} of {scale:e}",
                         velocities.is_some()
                     );
                 }
@@ -701,14 +709,14 @@ mod tests {
     /// apply (quadratic elements, another material), and a scratch too small for the model
     /// falls back to double precision.
     #[test]
-    fn single_precision_is_refused_outside_linear_stvk() {
+    fn single_precision_is_refused_outside_linear_stvk_and_neo_hookean() {
         let mesh = box_mesh(DVec3::splat(0.01), [2, 2, 2]);
         let mat = MaterialParams::from_youngs(1e4, 0.3, 1000.0);
-        let mut neo = mat;
-        neo.model = MaterialModel::StableNeoHookean;
+        let mut corotational = mat;
+        corotational.model = MaterialModel::Corotational;
         for fem in [
             FemModel::new(&mesh.to_quadratic(), mat).unwrap(),
-            FemModel::new(&mesh, neo).unwrap(),
+            FemModel::new(&mesh, corotational).unwrap(),
         ] {
             let mut fem = fem;
             let err = fem.set_single_precision(true).unwrap_err().to_string();

@@ -1,6 +1,7 @@
-//! The single-precision force kernel of linear St Venant-Kirchhoff tetrahedra, standard or
-//! edge-smoothed: sixteen cells per AVX-512 register, or eight per AVX2 + FMA register (a
-//! batch of sixteen in two halves); no gather instruction and no scalar scatter.
+//! The single-precision force kernel of linear St Venant-Kirchhoff and stable Neo-Hookean
+//! tetrahedra, standard or edge-smoothed: sixteen cells per AVX-512 register, or eight per
+//! AVX2 + FMA register (a batch of sixteen in two halves); no gather instruction and no scalar
+//! scatter.
 //!
 //! The double-precision kernel ([`super::linear`]) spends most of its time moving data, not on
 //! the stress: per element it gathers twelve coordinates (masked loads and transposes) and
@@ -17,7 +18,11 @@
 //!    `2E = G + G^T + G^T G` (Green strain without the cancellation of `F^T F - I`), the
 //!    second Piola-Kirchhoff stress `S = lambda tr(E) I + 2 mu E` plus the viscous stress of
 //!    [`crate::material::viscous_stress`] (eq. 11, `A = F^T F'`), scaled by `-V`,
-//!    then `P = F S` and `H = P Dm^-T` (eq. 22), all in registers;
+//!    then `P = F S` and `H = P Dm^-T` (eq. 22), all in registers; for stable Neo-Hookean
+//!    (Smith, de Goes, Kim 2018; [`crate::material::MaterialModel::StableNeoHookean`]) the
+//!    elastic `P = mu F + lambda_s (J - alpha) cof F` is written in `G` so that every term
+//!    vanishes at rest exactly ([`neo_hookean_piola`]) and only the viscous `S` goes through
+//!    `F S`;
 //! 4. transposes the four corner forces back to one 16-byte row per lane and adds it to a
 //!    single-precision nodal force array (four read-modify-writes per element instead of
 //!    twelve), which is finally added to the double-precision forces and cleared.
@@ -315,7 +320,7 @@ impl SingleLinear {
         Ok(())
     }
 
-    /// Adds the StVK internal forces (N) of Lamé `lambda_pa`, `mu_pa`, plus the viscous ones
+    /// Adds the internal forces (N) of the elastic law `elastic`, plus the viscous ones
     /// (`phi_pa_s`, `psi_pa_s`) when `v` (m/s) is given, for positions `x` (m), to `f`, in
     /// single precision, with the widest instruction set of this CPU ([`SingleIsa::detect`])
     /// or the pinned one ([`Self::pin_isa`]). Returns `false` (and does nothing) without AVX2
@@ -325,7 +330,7 @@ impl SingleLinear {
     /// If `x`, `v`, `f` or `scratch` holds fewer nodes than the model.
     pub(crate) fn add_forces(
         &self,
-        lame: (f64, f64),
+        elastic: SingleElastic,
         viscosity: (f64, f64),
         x: &[DVec3],
         v: Option<&[DVec3]>,
@@ -334,7 +339,7 @@ impl SingleLinear {
     ) -> bool {
         match self.isa {
             Some(isa) => {
-                self.add_forces_on(isa, lame, viscosity, x, v, f, scratch);
+                self.add_forces_on(isa, elastic, viscosity, x, v, f, scratch);
                 true
             }
             None => false,
@@ -350,7 +355,7 @@ impl SingleLinear {
     pub(crate) fn add_forces_on(
         &self,
         isa: SingleIsa,
-        lame: (f64, f64),
+        elastic: SingleElastic,
         viscosity: (f64, f64),
         x: &[DVec3],
         v: Option<&[DVec3]>,
@@ -372,9 +377,15 @@ impl SingleLinear {
                     pack_avx2(&v[..n], None, packed, 4);
                 }
             }
+            let (neo_hookean, lambda_pa, mu_pa) = match elastic {
+                SingleElastic::StVenantKirchhoff { lambda_pa, mu_pa } => (false, lambda_pa, mu_pa),
+                SingleElastic::StableNeoHookean { lambda_pa, mu_pa } => (true, lambda_pa, mu_pa),
+            };
             let coef = Coefficients {
-                half_lambda: (0.5 * lame.0) as f32,
-                mu: lame.1 as f32,
+                neo_hookean,
+                half_lambda: (0.5 * lambda_pa) as f32,
+                lambda_s: crate::material::neo_hookean_params(lambda_pa, mu_pa).0 as f32,
+                mu: mu_pa as f32,
                 phi: viscosity.0 as f32,
                 two_psi: (2.0 * viscosity.1) as f32,
             };
@@ -395,7 +406,7 @@ impl SingleLinear {
             unsafe { unpack_avx2(force, &mut f[..n]) };
         }
         #[cfg(not(target_arch = "x86_64"))]
-        let _ = (isa, lame, viscosity, packed, force);
+        let _ = (isa, elastic, viscosity, packed, force);
     }
 }
 
@@ -496,10 +507,49 @@ unsafe fn unpack_avx2(force: &mut [NodeForce], f: &mut [DVec3]) {
     }
 }
 
+/// The elastic law of the single-precision kernel and its Lamé constants (Pa).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) enum SingleElastic {
+    /// St Venant-Kirchhoff, `S = lambda tr(E) I + 2 mu E` (seed 000 eq. 9).
+    StVenantKirchhoff {
+        /// Lamé lambda, Pa.
+        lambda_pa: f64,
+        /// Shear modulus mu, Pa.
+        mu_pa: f64,
+    },
+    /// Stable Neo-Hookean, `P = mu F + lambda_s (J - alpha) cof F`
+    /// ([`crate::material::MaterialModel::StableNeoHookean`]).
+    StableNeoHookean {
+        /// Lamé lambda, Pa.
+        lambda_pa: f64,
+        /// Shear modulus mu, Pa.
+        mu_pa: f64,
+    },
+}
+
+impl SingleElastic {
+    /// The law of `mat`, or `None` for a material the kernel does not cover (corotational,
+    /// Guccione, a mean-dilatation volumetric term).
+    pub(crate) fn of(mat: &crate::material::MaterialParams) -> Option<Self> {
+        use crate::material::MaterialModel;
+        let (lambda_pa, mu_pa) = (mat.lambda_pa, mat.mu_pa);
+        match mat.model {
+            _ if mat.mean_dilatation() => None,
+            MaterialModel::StVenantKirchhoff => Some(Self::StVenantKirchhoff { lambda_pa, mu_pa }),
+            MaterialModel::StableNeoHookean => Some(Self::StableNeoHookean { lambda_pa, mu_pa }),
+            _ => None,
+        }
+    }
+}
+
 /// The material constants of the kernel, single precision.
 #[derive(Clone, Copy)]
 struct Coefficients {
+    /// Stable Neo-Hookean (`lambda_s`, `mu` used) instead of StVK (`half_lambda`, `mu`).
+    neo_hookean: bool,
     half_lambda: f32,
+    /// `lambda_s = lambda + mu` of stable Neo-Hookean.
+    lambda_s: f32,
     mu: f32,
     /// Multiplies `tr(A + A^T)` ([`crate::material::viscous_stress`]).
     phi: f32,
@@ -842,7 +892,9 @@ const SYM: [(usize, usize); 6] = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)
 #[cfg(target_arch = "x86_64")]
 #[derive(Clone, Copy)]
 struct LaneCoefficients<V> {
+    neo_hookean: bool,
     half_lambda: V,
+    lambda_s: V,
     mu: V,
     phi: V,
     two_psi: V,
@@ -857,7 +909,9 @@ impl<V: F32Lanes> LaneCoefficients<V> {
         // SAFETY: the caller's contract.
         unsafe {
             Self {
+                neo_hookean: c.neo_hookean,
                 half_lambda: V::splat(c.half_lambda),
+                lambda_s: V::splat(c.lambda_s),
                 mu: V::splat(c.mu),
                 phi: V::splat(c.phi),
                 two_psi: V::splat(c.two_psi),
@@ -886,18 +940,22 @@ unsafe fn scaled_piola<V: F32Lanes, const VISCOUS: bool>(
     unsafe {
         let zero = V::zero();
         let (half_lambda, mu, phi, two_psi) = (k.half_lambda, k.mu, k.phi, k.two_psi);
-        // 2E_ij = G_ij + G_ji + sum_r G_ri G_rj.
-        let mut e2 = [zero; 6];
-        for (s, &(i, j)) in SYM.iter().enumerate() {
-            let gtg = dot3([g[i], g[3 + i], g[6 + i]], [g[j], g[3 + j], g[6 + j]]);
-            e2[s] = gtg.add(g[3 * i + j].add(g[3 * j + i]));
-        }
-        // S / (-V) = lambda/2 tr(2E) I + mu 2E, plus the viscous phi tr(A + A^T) I + 2 psi (A + A^T)
-        // of crate::material::viscous_stress (seed eq. 11 with the factor of the module note).
-        let mut tr = half_lambda.mul(e2[0].add(e2[1].add(e2[2])));
+        // S / (-V) = lambda/2 tr(2E) I + mu 2E (StVK only: stable Neo-Hookean's elastic P is
+        // added below), plus the viscous phi tr(A + A^T) I + 2 psi (A + A^T) of
+        // crate::material::viscous_stress (seed eq. 11 with the factor of the module note).
+        let mut tr = zero;
         let mut s = [zero; 6];
-        for k in 0..6 {
-            s[k] = mu.mul(e2[k]);
+        if !k.neo_hookean {
+            // 2E_ij = G_ij + G_ji + sum_r G_ri G_rj.
+            let mut e2 = [zero; 6];
+            for (s, &(i, j)) in SYM.iter().enumerate() {
+                let gtg = dot3([g[i], g[3 + i], g[6 + i]], [g[j], g[3 + j], g[6 + j]]);
+                e2[s] = gtg.add(g[3 * i + j].add(g[3 * j + i]));
+            }
+            tr = half_lambda.mul(e2[0].add(e2[1].add(e2[2])));
+            for k in 0..6 {
+                s[k] = mu.mul(e2[k]);
+            }
         }
         if VISCOUS {
             // A = F^T F' = F' + G^T F'; 2E' = A + A^T.
@@ -941,6 +999,69 @@ unsafe fn scaled_piola<V: F32Lanes, const VISCOUS: bool>(
                         V::fma(g[3 * i], sm[j], sm[3 * i + j]),
                     ),
                 );
+            }
+        }
+        if k.neo_hookean {
+            let elastic = neo_hookean_piola(g, k);
+            for (pk, ek) in p.iter_mut().zip(elastic) {
+                *pk = V::fma(w, ek, *pk);
+            }
+        }
+        p
+    }
+}
+
+/// `a b - c d` as `fma(a, b, -(c d))`.
+///
+/// # Safety
+/// [`F32Lanes`]' contract.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn difference_of_products<V: F32Lanes>(a: V, b: V, c: V, d: V) -> V {
+    // SAFETY: the caller's contract.
+    unsafe { V::fma(a, b, V::zero().sub(c.mul(d))) }
+}
+
+/// Stable Neo-Hookean's elastic `P = mu F + lambda_s (J - alpha) cof F` (row-major, Pa) from
+/// the displacement gradient `g = G = F - I`, written so that every term vanishes at `G = 0`
+/// exactly: with `alpha = 1 + mu / lambda_s`, `P = mu G - mu D + lambda_s (J - 1) (I + D)`,
+/// `D = cof F - I = tr(G) I - G^T + cof G`, `J - 1 = tr G + tr(cof G) + det G`.
+///
+/// # Safety
+/// [`F32Lanes`]' contract.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn neo_hookean_piola<V: F32Lanes>(g: &[V; 9], k: &LaneCoefficients<V>) -> [V; 9] {
+    // SAFETY: the caller's contract.
+    unsafe {
+        // cof(G): column j is the cross product of the other two columns, in cyclic order.
+        let cross = difference_of_products::<V>;
+        let cof = [
+            cross(g[4], g[8], g[7], g[5]),
+            cross(g[5], g[6], g[8], g[3]),
+            cross(g[3], g[7], g[6], g[4]),
+            cross(g[7], g[2], g[1], g[8]),
+            cross(g[8], g[0], g[2], g[6]),
+            cross(g[6], g[1], g[0], g[7]),
+            cross(g[1], g[5], g[4], g[2]),
+            cross(g[2], g[3], g[5], g[0]),
+            cross(g[0], g[4], g[3], g[1]),
+        ];
+        let tr_g = g[0].add(g[4]).add(g[8]);
+        let det_g = V::fma(g[0], cof[0], V::fma(g[3], cof[3], g[6].mul(cof[6])));
+        let j_minus_1 = tr_g.add(cof[0].add(cof[4]).add(cof[8])).add(det_g);
+        let (mu, pressure) = (k.mu, k.lambda_s.mul(j_minus_1));
+        let mut p = [V::zero(); 9];
+        for i in 0..3 {
+            for j in 0..3 {
+                // D_ij = tr(G) delta_ij - G_ji + cof(G)_ij.
+                let mut d = cof[3 * i + j].sub(g[3 * j + i]);
+                if i == j {
+                    d = d.add(tr_g);
+                }
+                let cof_f = if i == j { d.add(V::splat(1.0)) } else { d };
+                // mu (G - D) + lambda_s (J - 1) cof F.
+                p[3 * i + j] = V::fma(pressure, cof_f, mu.mul(g[3 * i + j].sub(d)));
             }
         }
         p
