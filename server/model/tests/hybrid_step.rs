@@ -302,9 +302,10 @@ fn instant_press(
     let h = scene.hybrid.as_mut().expect("hybrid");
     h.core_target_tets = core_tets;
     if explicit_step {
-        // The seed's layer, as the scene had it when it stepped explicitly.
+        // The seed's layer and material, as the scene had them when it stepped explicitly.
         common::seed_layer(&mut h.params);
         explicit(&mut h.params, 1000.0, CoreMassScale::Auto);
+        scene.material.model = haptic_model::material::MaterialModel::StVenantKirchhoff;
     }
     h.params.max_active_particles = max_active;
     let mut body = haptic_model::build_hybrid_body(&scene, &mut |_, _| {}).expect("body");

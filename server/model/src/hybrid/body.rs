@@ -288,6 +288,7 @@ impl HybridBody {
                 &probe,
                 params.meshfree.spacing_m,
                 params.contact_stiffness_n_per_m,
+                &model.contact_skin_m(),
                 params.max_active_particles + model.largest_region,
             ),
             implicit: None,

@@ -76,6 +76,27 @@ impl ShellGeometry {
     pub fn contains(&self, x: DVec3, t0: f64, t1: f64) -> bool {
         self.z_cut_m.is_none_or(|z| x.z <= z) && self.level(x, t0) >= 0.0 && self.level(x, t1) < 0.0
     }
+
+    /// The depth of `x` (m) below the outer surface (layer 1's ellipsoid, the base plane
+    /// ignored), m: positive inside. Newton steps on the level function along its gradient
+    /// carry `x` to the surface; the length of that path is the distance along the surface
+    /// normal to within `O(d^2 / R)` for a depth `d` small against the surface's radii of
+    /// curvature `R` (exact on a sphere).
+    pub fn outer_depth_m(&self, x: DVec3) -> f64 {
+        let a2 = self.outer_m * self.outer_m;
+        let mut q = x;
+        for _ in 0..16 {
+            let g = (q * q / a2).element_sum() - 1.0;
+            let grad = 2.0 * q / a2;
+            let step = grad * (g / grad.length_squared());
+            q -= step;
+            if step.length() <= 1e-12 * self.outer_m.max_element() {
+                break;
+            }
+        }
+        let d = (q - x).length();
+        if self.level(x, 1.0) < 0.0 { d } else { -d }
+    }
 }
 
 /// Parameters of the hybrid model (`[hybrid]` in a scene), SI units.

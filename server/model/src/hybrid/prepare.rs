@@ -200,6 +200,30 @@ impl HybridModel {
         }
     }
 
+    /// Each particle's contact skin `t_p` (m, [`super::proxy`]): a layer particle at most a
+    /// lattice spacing `s` below the outer surface at rest stands for the material up to that
+    /// surface (its depth, [`ShellGeometry::outer_depth_m`]); every other particle for half a
+    /// spacing.
+    pub fn contact_skin_m(&self) -> Vec<f64> {
+        let s = self.cloud.lattice().spacing_m();
+        self.cloud
+            .rest_m()
+            .iter()
+            .enumerate()
+            .map(|(p, &x)| {
+                let d = self.geometry.outer_depth_m(x);
+                // `<= s`: a lattice plane on the surface itself is outside the layer (its
+                // points are not strictly inside), so the plane below it, `s` deep, is the
+                // surface's (the ellipsoids' poles).
+                if p < self.layer_count && (0.0..=s * (1.0 + 1e-9)).contains(&d) {
+                    d
+                } else {
+                    0.5 * s
+                }
+            })
+            .collect()
+    }
+
     /// Heap memory of the preprocessed model, bytes (approximate: vectors' capacities).
     pub fn memory_bytes(&self) -> usize {
         self.cloud.memory_bytes()

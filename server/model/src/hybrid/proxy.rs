@@ -5,10 +5,18 @@
 //! the body's surface triangles, where the hybrid's is its particles).
 //!
 //! **The proxy.** With the device at `x_d`, the sphere of radius `r` centred at `c` presses
-//! every active particle closer than `R = r + s / 2` (`s` the lattice spacing: a particle
-//! stands for a cell of that size) with the penalty `k g_p n_p`, `g_p = R - |x_p - c|`,
-//! `n_p = (x_p - c) / |x_p - c|` (`k` = `hybrid.contact_stiffness_n_per_m`). The proxy is
-//! massless: its centre minimises
+//! every active particle closer than its reach `R_p = r + t_p` with the penalty `k g_p n_p`,
+//! `g_p = R_p - |x_p - c|`, `n_p = (x_p - c) / |x_p - c|` (`k` =
+//! `hybrid.contact_stiffness_n_per_m`). `t_p` is the particle's *skin*, the material it stands
+//! for outside its centre: for a surface particle (less than a lattice spacing `s` below the
+//! body's outer surface at rest) its rest depth below that surface, so that the sphere touches
+//! it where it touches the body's surface, whatever the lattice's alignment with the surface;
+//! for the others half a spacing (a particle stands for a cell of size `s`).
+//! [`ParticleProxy::uniform`]: every skin `s / 2` (before 2026-11-26 the only choice: the
+//! particles' contact surface then stood up to `s / 2` off the body's, 0.035 mm inside it
+//! to 0.023 mm outside it at the lv-probe point for spacings of 0.3 to 0.2 mm, which moved
+//! the 0.5 mm press by several per cent from one spacing to the next, `docs/accuracy.md`).
+//! The proxy is massless: its centre minimises
 //!
 //! `E(c) = k_c / 2 |c - x_d|^2 + sum_p k / 2 g_p(c)_+^2`,
 //!
@@ -44,7 +52,10 @@ const FORCE_TOLERANCE_N: f64 = 1e-7;
 #[derive(Debug, Clone)]
 pub struct ParticleProxy {
     radius_m: f64,
-    reach_m: f64,
+    /// Each particle's reach `r + t_p`, m.
+    reach_m: Vec<f64>,
+    /// The largest reach, m.
+    max_reach_m: f64,
     spacing_m: f64,
     k_particle_n_per_m: f64,
     k_coupling_n_per_m: f64,
@@ -74,16 +85,25 @@ pub struct ProxyContact {
 impl ParticleProxy {
     /// A proxy for a probe of `probe.radius_m` with the coupling `probe.
     /// coupling_stiffness_n_per_m`, pressing particles of lattice spacing `spacing_m` (m) with
-    /// `k_particle_n_per_m` each; `capacity`: most active particles.
+    /// `k_particle_n_per_m` each; `skin_m`: each particle's skin `t_p` (m, module
+    /// documentation; indexed like the positions given to [`Self::update`]); `capacity`: most
+    /// active particles.
     pub fn new(
         probe: &ProbeParams,
         spacing_m: f64,
         k_particle_n_per_m: f64,
+        skin_m: &[f64],
         capacity: usize,
     ) -> Self {
+        let reach_m: Vec<f64> = skin_m.iter().map(|t| probe.radius_m + t).collect();
+        let max_reach_m = reach_m
+            .iter()
+            .copied()
+            .fold(probe.radius_m + 0.5 * spacing_m, f64::max);
         Self {
             radius_m: probe.radius_m,
-            reach_m: probe.radius_m + 0.5 * spacing_m,
+            reach_m,
+            max_reach_m,
             spacing_m,
             k_particle_n_per_m,
             k_coupling_n_per_m: probe.coupling_stiffness_n_per_m,
@@ -94,9 +114,21 @@ impl ParticleProxy {
         }
     }
 
-    /// The distance from the sphere's centre within which a particle is pressed, m.
-    pub fn reach_m(&self) -> f64 {
-        self.reach_m
+    /// A proxy whose `particles` particles all have the skin `s / 2` (module documentation).
+    pub fn uniform(
+        probe: &ProbeParams,
+        spacing_m: f64,
+        k_particle_n_per_m: f64,
+        particles: usize,
+        capacity: usize,
+    ) -> Self {
+        let skin = vec![0.5 * spacing_m; particles];
+        Self::new(probe, spacing_m, k_particle_n_per_m, &skin, capacity)
+    }
+
+    /// The distance from the sphere's centre within which particle `p` is pressed, m.
+    pub fn reach_m(&self, p: usize) -> f64 {
+        self.reach_m[p]
     }
 
     /// The probe sphere's radius, m.
@@ -129,11 +161,7 @@ impl ParticleProxy {
         x: &[DVec3],
         gauss_newton: bool,
     ) -> (f64, DVec3, DMat3) {
-        let (k, kc, reach) = (
-            self.k_particle_n_per_m,
-            self.k_coupling_n_per_m,
-            self.reach_m,
-        );
+        let (k, kc) = (self.k_particle_n_per_m, self.k_coupling_n_per_m);
         let d = c - device_m;
         let mut e = 0.5 * kc * d.length_squared();
         let mut grad = d * kc;
@@ -142,6 +170,7 @@ impl ParticleProxy {
         for &p in &self.near {
             let r = x[p as usize] - c;
             let dist = r.length();
+            let reach = self.reach_m[p as usize];
             if dist < reach && dist > 0.0 {
                 let g = reach - dist;
                 let n = r / dist;
@@ -174,7 +203,7 @@ impl ParticleProxy {
         // Every particle the iterates can reach: they stay between the start and the device,
         // within the largest penetration the coupling allows.
         let span = (start - device_m).length();
-        let gather = self.reach_m + span + self.spacing_m;
+        let gather = self.max_reach_m + span + self.spacing_m;
         let (mid, g2) = (0.5 * (start + device_m), (gather + 0.5 * span).powi(2));
         self.near.clear();
         for &p in active {
@@ -232,12 +261,13 @@ impl ParticleProxy {
             self.unconverged += 1;
         }
         // Forces at the final proxy.
-        let (k, reach) = (self.k_particle_n_per_m, self.reach_m);
+        let k = self.k_particle_n_per_m;
         let mut touching = false;
         let mut ks = DMat3::ZERO;
         for &p in &self.near {
             let r = x[p as usize] - c;
             let dist = r.length();
+            let reach = self.reach_m[p as usize];
             if dist < reach && dist > 0.0 {
                 let n = r / dist;
                 if let Some(f) = f.as_deref_mut() {
@@ -289,7 +319,7 @@ mod tests {
         }
         let active: Vec<u32> = (0..x.len() as u32).collect();
         let probe = ProbeParams::default();
-        let mut proxy = ParticleProxy::new(&probe, s, 16.0, x.len());
+        let mut proxy = ParticleProxy::uniform(&probe, s, 16.0, x.len(), x.len());
         let r = probe.radius_m;
         // The device 0.1 mm into the plane of particle centres (less their half spacing).
         let device = DVec3::new(1e-5, -2e-5, r + 0.5 * s - 1e-4);

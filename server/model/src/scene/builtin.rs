@@ -173,7 +173,7 @@ max_force_n = 10.0
 /// Built-in scene `lv-hybrid`: the seeds' hybrid model on the LV geometry.
 const LV_HYBRID_TOML: &str = r#"# Built-in scene "lv-hybrid" (a copy of the constant in server/model/src/scene/builtin.rs).
 name = "lv-hybrid"
-description = "The seeds' hybrid model (Mero & Susin 2006, sections 4-6) on the idealized LV of the built-in lv scene: an FEM of the whole wall (about 950 curved quadratic tets, base clamped) and about 130 000 meshfree particles (corrected variant) in its outer 65 %, simulated only in the regions under the probe; there their terms take over the elements' energy, elsewhere the elements carry the layer's stiffness. The probe is a proxy sphere on the particles with the virtual coupling. Material of the lv scene (E = 14.5 kPa, nu = 0.45). Ours, not in the seed: the elements under the layer, the proxy, the active particles' deviation from the FEM's interpolation weighing mass_scale = 10000 (one explicit sub-step per 1 ms tick), and the FEM, at its real inertia, stepping implicitly."
+description = "The seeds' hybrid model (Mero & Susin 2006, sections 4-6) on the idealized LV of the built-in lv scene: an FEM of the whole wall (about 950 curved quadratic tets, base clamped) and about 130 000 meshfree particles (corrected variant) in its outer 65 %, simulated only in the regions under the probe; there their terms take over the elements' energy, elsewhere the elements carry the layer's stiffness. The probe is a proxy sphere on the particles with the virtual coupling. Material of the lv scene: stable neo-Hookean, E = 14.5 kPa, nu = 0.45 (St. Venant-Kirchhoff has no equilibrium under the probe past about 1.3 mm). Ours, not in the seed: the elements under the layer, the proxy, the active particles' deviation from the FEM's interpolation weighing mass_scale = 10000 (one explicit sub-step per 1 ms tick), and the FEM, at its real inertia, stepping implicitly."
 
 [model]
 family = "hybrid"
@@ -185,6 +185,7 @@ order = 2               # curved 10-node tets (linear ones lock: +40 % at 1 500)
 length_unit = "mm"      # unit for reports; the built-in geometry is fixed
 
 [material]
+model = "stable-neo-hookean"    # the lv scene's organ: an equilibrium under the probe to 4 mm and past (StVK: none past ~1.3 mm)
 youngs_modulus_pa = 14500.0
 poisson_ratio = 0.45
 phi_pa_s = 0.05
@@ -231,7 +232,7 @@ max_force_n = 10.0
 /// Built-in scene `ellipsoids-hybrid`: the seeds' Hybrid Model setting (Table 1).
 const ELLIPSOIDS_HYBRID_TOML: &str = r#"# Built-in scene "ellipsoids-hybrid" (a copy of the constant in server/model/src/scene/builtin.rs).
 name = "ellipsoids-hybrid"
-description = "The seeds' Hybrid Model setting (Mero & Susin 2006, Table 1): lambda = 5.0, mu = 2.0, phi = psi = 9e-5 (read as kPa and kPa s, as in the ellipsoids scene) on the ellipsoidal wall 6x6x12 to 10x10x16 mm (bottom pole clamped): about 27 000 particles at 0.5 mm in the outer 60 % of the wall, simulated in the regions under the probe, over an FEM of the whole wall (about 400 curved quadratic tets) that carries the layer's stiffness elsewhere. Ours, not in the seed: the corrected meshfree variant (the seed's softens and loses monotony past 3 mm), the elements under the layer, the proxy sphere with the virtual coupling, the deviation mass (mass_scale = 10000) and the implicit FEM step (the seed's variant and layer: variant = \"seed\", inactive_layer = \"tied\", docs/scenes.md)."
+description = "The seeds' Hybrid Model setting (Mero & Susin 2006, Table 1): lambda = 5.0, mu = 2.0, phi = psi = 9e-5 (read as kPa and kPa s, as in the ellipsoids scene) on the ellipsoidal wall 6x6x12 to 10x10x16 mm (bottom pole clamped), stable neo-Hookean (the seed's material is St. Venant-Kirchhoff): about 27 000 particles at 0.5 mm in the outer 60 % of the wall, simulated in the regions under the probe, over an FEM of the whole wall (about 400 curved quadratic tets) that carries the layer's stiffness elsewhere. Ours, not in the seed: the corrected meshfree variant (the seed's softens and loses monotony past 3 mm), the elements under the layer, the proxy sphere with the virtual coupling, the deviation mass (mass_scale = 10000) and the implicit FEM step (the seed's variant, layer and material: variant = \"seed\", inactive_layer = \"tied\", model = \"stvk\", docs/scenes.md)."
 
 [model]
 family = "hybrid"
@@ -245,6 +246,7 @@ target_tets = 400       # the FEM of the whole wall (the seed's core had 188 lin
 order = 2
 
 [material]
+model = "stable-neo-hookean"    # as the LV scenes (the seed's St. Venant-Kirchhoff: model = "stvk")
 lambda_pa = 5000.0
 mu_pa = 2000.0
 phi_pa_s = 0.09
@@ -336,12 +338,12 @@ const BUILTINS: [(&str, &str, &str); 6] = [
     (
         "lv-hybrid",
         LV_HYBRID_TOML,
-        "the seeds' hybrid model on the LV: coarse FEM core + ~130k meshfree particles simulated only under the probe",
+        "the seeds' hybrid model on the LV (stable neo-Hookean): quadratic FEM of the wall + ~130k meshfree particles simulated only under the probe",
     ),
     (
         "ellipsoids-hybrid",
         ELLIPSOIDS_HYBRID_TOML,
-        "the seeds' Hybrid Model setting (Table 1): 188-tet FEM core + meshfree particle layer (seed variant)",
+        "the seeds' Hybrid Model setting (Table 1) on ellipsoids, stable neo-Hookean: quadratic FEM of the wall + meshfree particle layer (corrected variant)",
     ),
 ];
 

@@ -48,14 +48,26 @@ pub fn lv_hybrid_model(
 ) {
     let mut scene = haptic_model::scene::load_builtin("lv-hybrid").expect("lv-hybrid");
     edit(&mut scene.hybrid.as_mut().expect("a hybrid scene").params);
+    seed_variant_material(&mut scene);
     let model = haptic_model::prepare_hybrid(&scene, &mut |_, _| {}).expect("prepare");
     let clamped = model.clamped_core_nodes();
     (model, clamped, scene)
 }
 
+/// The seed's meshfree variant is the paper's St. Venant-Kirchhoff formulation: with it the
+/// scene's material (stable neo-Hookean since 2026-11-26) becomes St. Venant-Kirchhoff, as the
+/// scene's was when these configurations were measured.
+fn seed_variant_material(scene: &mut haptic_model::scene::Scene) {
+    let h = scene.hybrid.as_ref().expect("a hybrid scene");
+    if h.params.meshfree.variant == haptic_model::meshfree::MeshfreeVariant::Seed {
+        scene.material.model = haptic_model::material::MaterialModel::StVenantKirchhoff;
+    }
+}
+
 /// [`lv_hybrid_model`] in the configuration `lv-hybrid` had until 2026-11-26 (the seed's layer:
 /// `inactive_layer = "tied"`, a 519-tetrahedron linear core of the inner 35 % of the wall,
-/// regions activated within 3 mm, at most 2 000 active, core stiffness margin 4), then `edit`.
+/// regions activated within 3 mm, at most 2 000 active, core stiffness margin 4, St.
+/// Venant-Kirchhoff), then `edit`.
 pub fn lv_hybrid_tied_model(
     edit: impl FnOnce(&mut haptic_model::hybrid::HybridParams),
 ) -> (
@@ -68,6 +80,8 @@ pub fn lv_hybrid_tied_model(
     h.core_target_tets = 500;
     seed_layer(&mut h.params);
     edit(&mut h.params);
+    // The scene's material then (stable neo-Hookean since 2026-11-26).
+    scene.material.model = haptic_model::material::MaterialModel::StVenantKirchhoff;
     let model = haptic_model::prepare_hybrid(&scene, &mut |_, _| {}).expect("prepare");
     let clamped = model.clamped_core_nodes();
     (model, clamped, scene)
