@@ -34,6 +34,15 @@ impl TableKind {
             Self::Subdivision => "subdivision table",
         }
     }
+
+    /// What the table is computed per: "sites" (the organ table's nodes and edge midpoints)
+    /// or "nodes".
+    pub fn unit(self) -> &'static str {
+        match self {
+            Self::Organ => "sites",
+            Self::Subdivision => "nodes",
+        }
+    }
 }
 
 /// What [`calibrate_scene`] did with one table.
@@ -45,7 +54,7 @@ pub struct TableReport {
     pub path: PathBuf,
     /// Whether the table was computed (false: the file was valid and `force` not given).
     pub computed: bool,
-    /// Calibrated nodes.
+    /// Calibrated nodes (the organ table: sites, [`TableKind::unit`]).
     pub nodes: usize,
     /// Wall time, s.
     pub seconds: f64,
@@ -119,7 +128,7 @@ pub fn calibrate_scene(
                 kind: TableKind::Organ,
                 path,
                 computed: false,
-                nodes: t.node_count(),
+                nodes: t.node_count() + t.edge_count(),
                 seconds: 0.0,
                 factor_range: organ_range(t),
             },
@@ -168,7 +177,7 @@ pub fn calibrate_scene(
                     kind: TableKind::Organ,
                     path,
                     computed: true,
-                    nodes: table.node_count(),
+                    nodes: table.node_count() + table.edge_count(),
                     seconds: start.elapsed().as_secs_f64(),
                     factor_range: organ_range(&table),
                 }
@@ -284,9 +293,9 @@ fn scale_range(t: &haptic_model::mass_spring::CalibrationTable) -> (f64, f64) {
 }
 
 fn organ_range(t: &haptic_model::mass_spring::OrganTable) -> (f64, f64) {
-    (0..t.node_count() as u32)
+    (0..(t.node_count() + t.edge_count()) as u32)
         .filter_map(|i| t.row(i))
-        .flat_map(|r| r.factor.iter().copied())
+        .flat_map(|r| r.factor.iter().chain(&r.factor_subdivided).copied())
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), a| {
             (lo.min(a), hi.max(a))
         })

@@ -4,9 +4,11 @@
 //! (`scene/calibrations/lv-surface-springs.reference.csv`: the lv-probe point's deep
 //! stable neo-Hookean reference and our two-level solves at the other points, corrected to it),
 //! with its run-time subdivision and without: the force of the never-subdivided surface within
-//! 10 % of the reference at the measured sphere depth from 0.25 to 4 mm at the lv-probe point
-//! (the rest within the looser bounds below: not yet the issue's 10 %), each hold steady (the largest tick-to-tick change at
-//! most 7 % of the held force), and the tick with the organ table allocation-free.
+//! 10 % of the reference at the measured sphere depth from 0.25 to 4 mm at every point and on
+//! a node, an edge's midpoint and a triangle's centroid near the lv-probe point (the subdivided
+//! surface within the looser bounds below: not yet the issue's 10 %), each hold steady (the
+//! largest tick-to-tick change at most 7 % of the held force), and the tick with the organ
+//! table allocation-free.
 
 #[path = "common/counting_alloc.rs"]
 mod counting_alloc;
@@ -15,20 +17,25 @@ use counting_alloc::counted;
 use haptic_model::DVec3;
 use haptic_model::body::TickInput;
 use haptic_model::mass_spring::{MassSpringBody, OrganReference};
-use haptic_model::press::{self, HoldParams, PressLine};
+use haptic_model::press::{self, HoldParams, PressLine, lv_epicardium_point};
 use haptic_model::scene::{Scene, load_builtin};
 
 /// Device depths pressed, m.
 const DEPTHS_M: [f64; 6] = [0.25e-3, 0.5e-3, 1e-3, 2e-3, 3e-3, 4e-3];
 /// The acceptance tolerance against the reference (issue 46 section 4), met by the coarse
-/// surface at the lv-probe point; the bounds the rest is held to until it meets it (measured
-/// 2026-11-26: the coarse surface at the other points -15.4 to +11.5 %, the subdivided one
-/// -24.6 to +35.6 %). The contact factor is calibrated with the probe on a node and
-/// interpolated between nodes, where a spring surface pressed between nodes gives another force
-/// than on a node (the subdivided one up to about 30 % more, docs/accuracy.md).
+/// surface at every reference point (measured 2026-11-26, session 3: -6.1 to +9.5 %, the
+/// contact factor calibrated on nodes and edge midpoints); the bounds the subdivided surface is
+/// held to until it meets it (measured: -6.7 to +38.9 % at 0.25 and 0.5 mm, -6.7 to +15.1 %
+/// from 1 mm; docs/accuracy.md).
 const TOLERANCE: f64 = 0.10;
-const COARSE_OTHER_POINTS_TOLERANCE: f64 = 0.20;
-const SUBDIVIDED_TOLERANCE: f64 = 0.40;
+const SUBDIVIDED_SHALLOW_TOLERANCE: f64 = 0.40;
+const SUBDIVIDED_TOLERANCE: f64 = 0.20;
+/// Device depths of the node / edge / centroid presses, m.
+const SITE_DEPTHS_M: [f64; 4] = [0.5e-3, 1e-3, 2e-3, 4e-3];
+/// Their tolerance, never subdivided (the issue's; measured 2026-11-26: -8.2 to +0.9 %) and
+/// subdivided (measured -14.8 to +16.8 %: not yet the issue's 10 %).
+const SITE_TOLERANCE: f64 = 0.10;
+const SITE_SUBDIVIDED_TOLERANCE: f64 = 0.20;
 /// The force JND: the largest tick-to-tick change allowed in a hold.
 const JND: f64 = 0.07;
 
@@ -102,12 +109,97 @@ fn lv_surface_springs_follows_its_reference_subdivided_and_not() {
                     100.0 * h.steadiness()
                 );
                 eprintln!("{line}");
-                let tolerance = match (subdivided, p.name == "lv-probe") {
-                    (true, _) => SUBDIVIDED_TOLERANCE,
-                    (false, true) => TOLERANCE,
-                    (false, false) => COARSE_OTHER_POINTS_TOLERANCE,
+                let tolerance = match (subdivided, h.device_depth_m < 0.9e-3) {
+                    (true, true) => SUBDIVIDED_SHALLOW_TOLERANCE,
+                    (true, false) => SUBDIVIDED_TOLERANCE,
+                    (false, _) => TOLERANCE,
                 };
                 if e.abs() > tolerance || h.steadiness() > JND || h.contact_ticks != h.hold_ticks {
+                    failures.push(line);
+                }
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{failures:#?}");
+}
+
+/// Linear interpolation of a target curve (N at `xs`, m) at `x`, through the origin below the
+/// first depth (as [`haptic_model::mass_spring::organ::ReferencePoint::force_at`]).
+fn curve_at(xs: &[f64], ys: &[f64], x: f64) -> f64 {
+    let n = xs.len();
+    if x <= xs[0] {
+        return ys[0] * (x / xs[0]).max(0.0);
+    }
+    let k = xs.partition_point(|&v| v < x).clamp(1, n - 1);
+    let t = (x - xs[k - 1]) / (xs[k] - xs[k - 1]);
+    ys[k - 1] + t * (ys[k] - ys[k - 1])
+}
+
+/// Wherever the probe lands: near the lv-probe point, on the coarse node closest to it, on the
+/// midpoint of one of its edges and on the centroid of one of its triangles (the centroid is
+/// no site of the table: its factor is interpolated), each pressed along the analytic
+/// epicardium's inward normal under the site (the line's depth zero where the sphere touches
+/// the analytic surface), subdivided and not, within the tolerance of the reference
+/// interpolated to the site.
+#[test]
+fn lv_surface_springs_answers_alike_on_nodes_edges_and_centroids() {
+    let scene = scene();
+    let reference = reference(&scene);
+    let ms = scene.mass_spring.as_ref().expect("a mass-spring scene");
+    let axis = ms.organ.as_ref().expect("organ").axis;
+    let (s, rest) = (&ms.surface, ms.surface.rest());
+    let probe = DVec3::new(9.682e-3, 0.0, -5e-3);
+    let dist = |i: u32| (rest[i as usize] - probe).length();
+    let n = (0..s.node_count() as u32)
+        .min_by(|&a, &b| dist(a).total_cmp(&dist(b)))
+        .expect("nodes");
+    let tri = s.triangles()[s.triangles_at(n)[0] as usize];
+    let other = *tri
+        .iter()
+        .find(|&&j| j != n)
+        .expect("a triangle has three nodes");
+    let p = |i: u32| rest[i as usize];
+    let sites = [
+        ("node", p(n)),
+        ("edge midpoint", 0.5 * (p(n) + p(other))),
+        ("centroid", (p(tri[0]) + p(tri[1]) + p(tri[2])) / 3.0),
+    ];
+    let mut failures = Vec::new();
+    for subdivided in [true, false] {
+        for (name, q) in sites {
+            let (point, inward) = lv_epicardium_point(q.z, q.y.atan2(q.x));
+            let target = reference.target_at(axis, point);
+            let mut body = body(&scene, subdivided);
+            let line = PressLine::at_surface_point(point, inward, body.probe().params.radius_m);
+            let (holds, _) = press::staircase(
+                &mut body,
+                &line,
+                &SITE_DEPTHS_M,
+                &HoldParams::default(),
+                scene.integrator.tick_s,
+            )
+            .expect("press");
+            for h in &holds {
+                let want = curve_at(reference.depths_m(), &target, h.sphere_depth_m);
+                let e = h.force_n / want - 1.0;
+                let line = format!(
+                    "{name} {}: device {:.2} mm sphere {:.3} mm: {:.3} mN, reference {:.3} mN \
+                     ({:+.1} %), steadiness {:.2} %",
+                    if subdivided { "subdivided" } else { "coarse" },
+                    h.device_depth_m * 1e3,
+                    h.sphere_depth_m * 1e3,
+                    h.force_n * 1e3,
+                    want * 1e3,
+                    100.0 * e,
+                    100.0 * h.steadiness()
+                );
+                eprintln!("{line}");
+                let tolerance = if subdivided {
+                    SITE_SUBDIVIDED_TOLERANCE
+                } else {
+                    SITE_TOLERANCE
+                };
+                if e.abs() > tolerance || h.steadiness() > JND {
                     failures.push(line);
                 }
             }

@@ -60,8 +60,9 @@ fn main() -> anyhow::Result<()> {
                 *l = (kind, pct);
                 let eta = elapsed / done as f64 * (total - done) as f64;
                 eprint!(
-                    "\r  {}: {done}/{total} nodes ({pct} %), {elapsed:.0} s, about {eta:.0} s left   ",
-                    kind.name()
+                    "\r  {}: {done}/{total} {} ({pct} %), {elapsed:.0} s, about {eta:.0} s left   ",
+                    kind.name(),
+                    kind.unit()
                 );
                 let _ = std::io::stderr().flush();
                 if done == total {
@@ -77,20 +78,22 @@ fn main() -> anyhow::Result<()> {
         };
         if r.computed {
             println!(
-                "wrote {} {} ({} nodes in {:.1} s; {factor} from {:.3} to {:.3})",
+                "wrote {} {} ({} {} in {:.1} s; {factor} from {:.3} to {:.3})",
                 r.kind.name(),
                 r.path.display(),
                 r.nodes,
+                r.kind.unit(),
                 r.seconds,
                 r.factor_range.0,
                 r.factor_range.1
             );
         } else {
             println!(
-                "{} {} is up to date ({} nodes); --force recomputes it",
+                "{} {} is up to date ({} {}); --force recomputes it",
                 r.kind.name(),
                 r.path.display(),
-                r.nodes
+                r.nodes,
+                r.kind.unit()
             );
         }
     }

@@ -367,13 +367,17 @@ impl MassSpringBody {
     /// [`ModelError::Unstable`] when the stiffest factor needs more than
     /// `integrator.max_substeps`.
     pub fn with_organ_table(mut self, table: OrganTable) -> Result<Self, ModelError> {
-        if table.node_count() != self.surface.node_count() {
+        if (table.node_count(), table.edge_count())
+            != (self.surface.node_count(), self.surface.edge_count())
+        {
             return Err(ModelError::field(
                 "mass_spring.organ_file",
                 format!(
-                    "the organ table covers {} nodes, the surface has {}",
+                    "the organ table covers {} nodes and {} edges, the surface has {} and {}",
                     table.node_count(),
-                    self.surface.node_count()
+                    table.edge_count(),
+                    self.surface.node_count(),
+                    self.surface.edge_count()
                 ),
             ));
         }
@@ -405,9 +409,11 @@ impl MassSpringBody {
 
     /// The contact factor at the probe's current contact: the organ table at the sphere depth
     /// (the kernel plane's travel from its rest position, `sum w_i (rest_i - x_i) . n` over the
-    /// patch), interpolated over the contact triangle: a node's coarse factor, or its subdivided
-    /// one when it lies in a subdivided area (a new node there takes its edge's ends' mean).
-    /// Unchanged out of contact or without a table. Allocation-free.
+    /// patch), interpolated over the contact triangle ([`super::organ`]): a subdivided
+    /// triangle's corners are table sites (coarse nodes and edge midpoints), a coarse triangle
+    /// is interpolated over its four Loop children; each site's coarse factor, or its
+    /// subdivided one when it lies in a subdivided area. Unchanged out of contact or without a
+    /// table. Allocation-free.
     fn update_contact_factor(&mut self) {
         let st = self.probe.state;
         if !st.in_contact {
@@ -427,18 +433,35 @@ impl MassSpringBody {
             return;
         };
         let nc = self.surface.node_count() as u32;
-        let mut beta = 0.0;
-        for (&s, &b) in tri.iter().zip(&st.bary) {
-            // A node of a subdivided area takes the subdivided configuration's factor.
-            let sub = self.owner[s as usize] != NO_OWNER;
-            let f = if s < nc {
-                table.factor(s, depth, sub)
-            } else {
-                let [a, c] = self.surface.edges()[(s - nc) as usize];
-                0.5 * (table.factor(a, depth, true) + table.factor(c, depth, true))
+        // A site of a subdivided area takes the subdivided configuration's factor.
+        let site = |s: u32| table.factor(s, depth, self.owner[s as usize] != NO_OWNER);
+        let b = st.bary;
+        let beta = if tri.iter().all(|&s| s < nc) {
+            // A coarse triangle: linear over its four Loop children (corner i's child where
+            // b_i >= 1/2, else the middle one), whose corners are nodes and edge midpoints.
+            let edge = |i: usize| {
+                self.surface
+                    .edge_between(tri[i], tri[(i + 1) % 3])
+                    .map_or(0.5 * (site(tri[i]) + site(tri[(i + 1) % 3])), |e| {
+                        site(nc + e)
+                    })
             };
-            beta += b * f;
-        }
+            // m[i]: the factor at the midpoint of side (i, i + 1).
+            let m = [edge(0), edge(1), edge(2)];
+            match (0..3).find(|&i| b[i] >= 0.5) {
+                Some(i) => {
+                    let (j, k) = ((i + 1) % 3, (i + 2) % 3);
+                    (2.0 * b[i] - 1.0) * site(tri[i]) + 2.0 * b[j] * m[i] + 2.0 * b[k] * m[k]
+                }
+                None => {
+                    (1.0 - 2.0 * b[2]) * m[0]
+                        + (1.0 - 2.0 * b[0]) * m[1]
+                        + (1.0 - 2.0 * b[1]) * m[2]
+                }
+            }
+        } else {
+            tri.iter().zip(&b).map(|(&s, &w)| w * site(s)).sum()
+        };
         if beta.is_finite() && beta > 0.0 {
             self.contact_factor = beta;
         }

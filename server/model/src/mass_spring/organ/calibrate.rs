@@ -21,7 +21,7 @@ use crate::contact::ProbeParams;
 use crate::integrate::IntegratorParams;
 use crate::mass_spring::calibration::CalibrationTable;
 use crate::mass_spring::surface::SpringSurface;
-use crate::mass_spring::{MassSpringBody, MassSpringParams, SpringRule};
+use crate::mass_spring::{MassSpringBody, MassSpringParams};
 
 /// Ticks of the ramp from one device depth to the next (a smoothstep).
 pub const RAMP_TICKS: usize = 20;
@@ -43,14 +43,24 @@ pub const DEPTH_TOLERANCE: f64 = 2e-3;
 
 /// Holds tried to reach a sphere depth within [`DEPTH_TOLERANCE`]; if none did, the closest
 /// is used when it lies within [`DEPTH_FALLBACK_TOLERANCE`] (its force corrected along the
-/// local slope), else the calibration fails.
+/// local slope), else the force is interpolated between the holds on either side of the depth
+/// (the depth can jump past it when a subdivision event moves the contact), else the
+/// calibration fails.
 pub const DEPTH_ATTEMPTS: usize = 12;
 
 /// See [`DEPTH_ATTEMPTS`].
 pub const DEPTH_FALLBACK_TOLERANCE: f64 = 2e-2;
 
+/// A site's subdivided factor is clamped to within this ratio of its coarse one (either way)
+/// at each depth. Every factor multiplies the whole body's springs, so the sub-step plan grows
+/// with the largest: on `lv-surface-springs` 16 nodes whose eq. 4 table holds `K'_h / K_h` of
+/// 0.010-0.015 at every displacement (the median node 0.45) answer about 20 times softer
+/// subdivided (factors of 20-124 would need about 11 times the sub-steps), and at 0.1 mm,
+/// where the subdivided surface is touched later, the factors reach 3-4 times the coarse ones.
+pub const SUBDIVIDED_FACTOR_SPREAD: f64 = 2.0;
+
 /// What the calibration needs of a scene besides the surface: its constants, the probe, the
-/// servo tick settings and, with [`SpringRule::Calibrated`], the eq. 4 table.
+/// servo tick settings and, with [`crate::mass_spring::SpringRule::Calibrated`], the eq. 4 table.
 #[derive(Debug, Clone, Copy)]
 pub struct OrganSetup<'a> {
     /// The scene's constants (`[mass_spring]`).
@@ -59,8 +69,8 @@ pub struct OrganSetup<'a> {
     pub probe: ProbeParams,
     /// The scene's servo tick settings.
     pub integrator: &'a IntegratorParams,
-    /// The eq. 4 table (needed only with [`SpringRule::Calibrated`] and rings > 0, where the
-    /// subdivided factor is the coarse one).
+    /// The eq. 4 table (needed only with [`crate::mass_spring::SpringRule::Calibrated`] and
+    /// rings > 0: the subdivided surface the calibration presses uses it).
     pub subdivision_table: Option<&'a CalibrationTable>,
 }
 
@@ -122,9 +132,14 @@ pub fn press_sphere_depths(
             // Close enough to correct along the local slope of the last holds.
             result = Some(closest.2 + slope(&measured).max(0.0) * (s - closest.1));
         }
+        if result.is_none() {
+            // The depth jumps past `s` (a subdivision event, nodes entering the patch): linear
+            // between the closest holds on either side of it (the origin among them).
+            result = bracketed(&measured, s);
+        }
         let Some(f) = result else {
             return Err(ModelError::NoConvergence(format!(
-                "the probe's sphere depth did not reach {:.3} mm within {:.1} % in {DEPTH_ATTEMPTS} holds (closest {:.4} mm)",
+                "the probe's sphere depth did not reach {:.3} mm within {:.1} % in {DEPTH_ATTEMPTS} holds, none beyond it (closest {:.4} mm)",
                 s * 1e3,
                 100.0 * DEPTH_FALLBACK_TOLERANCE,
                 closest.1 * 1e3
@@ -133,6 +148,21 @@ pub fn press_sphere_depths(
         out.push(f);
     }
     Ok(out)
+}
+
+/// The force at sphere depth `s` linear between the measured `(depth, force)` holds closest to
+/// it below and above; `None` when no hold lies above.
+fn bracketed(measured: &[(f64, f64)], s: f64) -> Option<f64> {
+    let below = measured
+        .iter()
+        .filter(|m| m.0 <= s)
+        .max_by(|a, b| a.0.total_cmp(&b.0))?;
+    let above = measured
+        .iter()
+        .filter(|m| m.0 > s)
+        .min_by(|a, b| a.0.total_cmp(&b.0))?;
+    let t = (s - below.0) / (above.0 - below.0);
+    Some(below.1 + t * (above.1 - below.1))
 }
 
 /// Ramps the device from depth `from` to `to` (m) and holds it until the force settles:
@@ -172,11 +202,29 @@ fn ramp_and_hold(
     )))
 }
 
-/// The organ row of free node `node` (module documentation of [`super`]): the body with
-/// constant springs pressed at the node along its rest normal, never subdivided, and (with
-/// rings and [`SpringRule::Area`] or [`SpringRule::Unchanged`]) subdivided as the scene does
-/// (with [`SpringRule::Calibrated`] the eq. 4 table keeps the coarse force and the subdivided
-/// factor is the coarse one); `coarse` and `subdivided` are fresh bodies of the two kinds.
+/// Where and along which direction (unit, inward) the calibration presses site `site` of
+/// `surface` (module documentation of [`super`]): a coarse node at its rest position along its
+/// inward rest normal; an edge's site (`node_count + e`) at the midpoint of the edge's ends
+/// along the inward mean of their normals.
+pub fn site_press(surface: &SpringSurface, site: u32) -> (DVec3, DVec3) {
+    let nc = surface.node_count() as u32;
+    if site < nc {
+        return (surface.rest()[site as usize], -surface.rest_normal(site));
+    }
+    let [a, b] = surface.edges()[(site - nc) as usize];
+    let rest = surface.rest();
+    let normal = (surface.rest_normal(a) + surface.rest_normal(b)).normalize_or_zero();
+    (0.5 * (rest[a as usize] + rest[b as usize]), -normal)
+}
+
+/// The organ row of site `site` (a free node, or an edge with a free end; module documentation
+/// of [`super`]): the body with constant springs pressed at the site ([`site_press`]) never
+/// subdivided, and with the scene's run-time subdivision (its rings and spring rule, the eq. 4
+/// table with [`crate::mass_spring::SpringRule::Calibrated`]) when `subdivided` is given; `coarse` and `subdivided`
+/// are fresh bodies of the two kinds. Without subdivision, or when the subdivided press fails
+/// (the depth not reached, a factor out of range), the subdivided factor is the coarse one
+/// and the row's `subdivided_force_n` is 0; it is clamped to [`SUBDIVIDED_FACTOR_SPREAD`] of
+/// the coarse one.
 ///
 /// # Errors
 /// As [`press_sphere_depths`]; [`ModelError::Calibration`] when a factor falls outside
@@ -186,10 +234,9 @@ pub fn calibrate_organ_node(
     (coarse, subdivided): (MassSpringBody, Option<MassSpringBody>),
     reference: &OrganReference,
     axis: DVec3,
-    node: u32,
+    site: u32,
 ) -> Result<OrganRow, ModelError> {
-    let point = surface.rest()[node as usize];
-    let inward = -surface.rest_normal(node);
+    let (point, inward) = site_press(surface, site);
     let depths = reference.depths_m();
     let target = reference.target_at(axis, point);
     let factor = |f: &[f64], what: &str| -> Result<Vec<f64>, ModelError> {
@@ -215,13 +262,21 @@ pub fn calibrate_organ_node(
     let mut body = coarse;
     let f_coarse = press_sphere_depths(&mut body, point, inward, depths)?;
     let beta = factor(&f_coarse, "coarse")?;
-    let (beta_sub, f_sub) = match subdivided {
-        Some(mut body) => {
-            let f = press_sphere_depths(&mut body, point, inward, depths)?;
-            (factor(&f, "subdivided")?, f)
-        }
-        None => (beta.clone(), vec![0.0; depths.len()]),
-    };
+    // A subdivided press that fails (near the left ventricle's apex the subdivided surface
+    // lets the sphere through past 2-3 mm) keeps the coarse factor, its force row 0; the
+    // subdivided factor stays within SUBDIVIDED_FACTOR_SPREAD of the coarse one.
+    let subdivided_row = subdivided.and_then(|mut body| {
+        let f = press_sphere_depths(&mut body, point, inward, depths).ok()?;
+        let b = factor(&f, "subdivided").ok()?;
+        let spread = SUBDIVIDED_FACTOR_SPREAD;
+        let b = b
+            .iter()
+            .zip(&beta)
+            .map(|(s, c)| s.clamp(c / spread, c * spread));
+        Some((b.collect(), f))
+    });
+    let (beta_sub, f_sub) =
+        subdivided_row.unwrap_or_else(|| (beta.clone(), vec![0.0; depths.len()]));
     Ok(OrganRow {
         factor: beta,
         factor_subdivided: beta_sub,
@@ -232,12 +287,14 @@ pub fn calibrate_organ_node(
 }
 
 /// The organ table of `surface` for the scene `setup`, the reference and its axis, computed on
-/// `threads` threads with `progress(done, total)` after each node (module documentation of
-/// [`super`]). A fixed node takes the mean factors of its free neighbours.
+/// `threads` threads with `progress(done, total)` after each site (module documentation of
+/// [`super`]): every free node and every edge with a free end is pressed; a fixed node takes
+/// the mean factors of its free neighbours, an edge between two fixed nodes (or one whose
+/// press fails) the mean of its ends.
 ///
 /// # Errors
 /// The errors of building the bodies ([`MassSpringBody::new`]); the first error of
-/// [`calibrate_organ_node`], naming the node.
+/// [`calibrate_organ_node`] at a node, naming it.
 pub fn calibrate_organ(
     surface: &SpringSurface,
     setup: OrganSetup<'_>,
@@ -256,8 +313,7 @@ pub fn calibrate_organ(
         setup.integrator,
         "organ calibration",
     )?;
-    let sub = &params.subdivision;
-    let subdivided = if sub.rings > 0 && sub.springs != SpringRule::Calibrated {
+    let subdivided = if params.subdivision.rings > 0 {
         Some(MassSpringBody::new(
             surface.clone(),
             params,
@@ -270,10 +326,20 @@ pub fn calibrate_organ(
         None
     };
     let nc = surface.node_count();
-    let free: Vec<u32> = (0..nc as u32).filter(|&i| !surface.is_fixed(i)).collect();
+    let ns = nc + surface.edge_count();
+    let free: Vec<u32> = (0..ns as u32)
+        .filter(|&s| {
+            if (s as usize) < nc {
+                !surface.is_fixed(s)
+            } else {
+                let [a, b] = surface.edges()[s as usize - nc];
+                !(surface.is_fixed(a) && surface.is_fixed(b))
+            }
+        })
+        .collect();
     let next = AtomicUsize::new(0);
     let done = AtomicUsize::new(0);
-    let rows: Mutex<Vec<Option<OrganRow>>> = Mutex::new(vec![None; nc]);
+    let rows: Mutex<Vec<Option<OrganRow>>> = Mutex::new(vec![None; ns]);
     let failure: Mutex<Option<ModelError>> = Mutex::new(None);
     std::thread::scope(|scope| {
         for _ in 0..threads.max(1) {
@@ -283,20 +349,29 @@ pub fn calibrate_organ(
                     if k >= free.len() || failure.lock().map(|f| f.is_some()).unwrap_or(true) {
                         break;
                     }
-                    let node = free[k];
+                    let site = free[k];
                     let bodies = (coarse.clone(), subdivided.clone());
-                    match calibrate_organ_node(surface, bodies, reference, axis, node) {
+                    match calibrate_organ_node(surface, bodies, reference, axis, site) {
+                        // An edge's site the probe cannot press takes its ends' mean.
+                        Err(_) if site as usize >= nc => {
+                            progress(done.fetch_add(1, Ordering::Relaxed) + 1, free.len());
+                        }
                         Ok(row) => {
                             if let Ok(mut rows) = rows.lock() {
-                                rows[node as usize] = Some(row);
+                                rows[site as usize] = Some(row);
                             }
                             progress(done.fetch_add(1, Ordering::Relaxed) + 1, free.len());
                         }
                         Err(e) => {
                             if let Ok(mut f) = failure.lock() {
+                                let what = if (site as usize) < nc {
+                                    "node"
+                                } else {
+                                    "edge site"
+                                };
                                 f.get_or_insert(ModelError::Calibration {
                                     path: String::new(),
-                                    message: format!("node {node}: {e}"),
+                                    message: format!("{what} {site}: {e}"),
                                 });
                             }
                             break;
@@ -309,28 +384,32 @@ pub fn calibrate_organ(
     if let Some(e) = failure.into_inner().ok().flatten() {
         return Err(e);
     }
-    let rows = rows.into_inner().unwrap_or_default();
+    let mut rows = rows.into_inner().unwrap_or_default();
     let m = reference.depths_m().len();
-    let out = (0..nc)
-        .map(|i| match &rows[i] {
-            Some(r) => r.clone(),
-            None => fixed_node_row(surface, &rows, i as u32, m),
-        })
+    let fixed: Vec<(usize, OrganRow)> = (0..nc)
+        .filter(|&i| rows[i].is_none())
+        .map(|i| (i, mean_row(&rows, surface.neighbours(i as u32), m)))
         .collect();
+    for (i, row) in fixed {
+        rows[i] = Some(row);
+    }
+    for s in nc..ns {
+        if rows[s].is_none() {
+            let ends = surface.edges()[s - nc];
+            rows[s] = Some(mean_row(&rows, &ends, m));
+        }
+    }
     Ok(OrganTable {
         key: organ_key(surface, params, &setup.probe, reference, axis),
         depths_m: reference.depths_m().to_vec(),
-        rows: out,
+        nodes: nc,
+        rows: rows.into_iter().map(Option::unwrap_or_default).collect(),
     })
 }
 
-/// A fixed node's row: the mean factors and target of its free neighbours (1 without any).
-fn fixed_node_row(
-    surface: &SpringSurface,
-    rows: &[Option<OrganRow>],
-    i: u32,
-    samples: usize,
-) -> OrganRow {
+/// The mean factors and target of the calibrated sites `of` (factor 1 without any): the row
+/// of a site the probe cannot press (a fixed node, an edge between two).
+fn mean_row(rows: &[Option<OrganRow>], of: &[u32], samples: usize) -> OrganRow {
     let mut row = OrganRow {
         factor: vec![0.0; samples],
         factor_subdivided: vec![0.0; samples],
@@ -339,7 +418,7 @@ fn fixed_node_row(
         subdivided_force_n: vec![0.0; samples],
     };
     let mut n = 0.0;
-    for &j in surface.neighbours(i) {
+    for &j in of {
         if let Some(r) = &rows[j as usize] {
             for k in 0..samples {
                 row.factor[k] += r.factor[k];

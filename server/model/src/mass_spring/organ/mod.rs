@@ -15,15 +15,23 @@
 //! `beta_i(s) = F_ref(i, s) / F_1(i, s)`,
 //!
 //! `F_1` the static probe force of the surface with its constant springs pressed at node `i`
-//! along its rest normal to sphere depth `s` (the calibration's local patch, as for eq. 4, without
-//! the coupling in series), `F_ref` the organ's reference at that node. Scaling every spring by
-//! the same factor scales the static force at a given shape by that factor, so the body pressed
-//! at node `i` to depth `s` gives `F_ref` exactly (one solve per node and depth, no iteration).
-//! At run time `beta` is interpolated in `s` and over the contact triangle (barycentric; a
-//! subdivided area's new node takes the mean of its edge's ends), so it is continuous while the
-//! probe slides and across subdivision events, and constant during a hold. With subdivision,
-//! the area's constants are the eq. 4 table's (`K'_h = a K_h`, keeping the force of the coarse
-//! surface) times the same `beta`.
+//! along its rest normal to sphere depth `s` (through the body's own tick, held until it
+//! settles), `F_ref` the organ's reference at that node. Scaling every spring by the same factor
+//! scales the static force at a given shape by that factor, so the body pressed at node `i` to
+//! depth `s` gives `F_ref` exactly (one press per node and depth, no iteration).
+//!
+//! A spring surface pressed *between* nodes answers otherwise than on a node (on the left
+//! ventricle's surface, with the node's factor, up to +13 % at an edge's midpoint never
+//! subdivided and +29 % subdivided: docs/accuracy.md), so the table has a row per *site*: every
+//! coarse node and every coarse edge's midpoint, each pressed there (along the mean of its
+//! ends' normals for an edge), never subdivided (`factor`) and with the run-time subdivision
+//! the scene configures around the contact (`factor_subdivided`: the eq. 4 table keeps the
+//! force at a node, not between nodes). At run time `beta` is interpolated in `s` and over
+//! the contact triangle: on a subdivided triangle linearly between its corners (coarse nodes
+//! and edge midpoints: exactly the sites), on a coarse triangle linearly over its four Loop
+//! children (the same field). So it is continuous while the probe slides and constant during a
+//! hold; the centroid of a triangle takes the mean of its edges' factors (measured:
+//! docs/accuracy.md).
 //!
 //! The reference ([`OrganReference`], a CSV beside the scene) gives force against sphere depth
 //! at a few points of the organ's surface, from an FEM solve of the organ pressed by the exact
@@ -50,12 +58,12 @@ mod calibrate;
 
 pub use calibrate::{
     DEPTH_ATTEMPTS, DEPTH_FALLBACK_TOLERANCE, DEPTH_TOLERANCE, MAX_HOLD_TICKS, OrganSetup,
-    RAMP_TICKS, SETTLE_TOLERANCE, SETTLE_WINDOW_TICKS, calibrate_organ, calibrate_organ_node,
-    press_sphere_depths,
+    RAMP_TICKS, SETTLE_TOLERANCE, SETTLE_WINDOW_TICKS, SUBDIVIDED_FACTOR_SPREAD, calibrate_organ,
+    calibrate_organ_node, press_sphere_depths, site_press,
 };
 
 /// Version of the organ table's definition; part of its key.
-pub const ORGAN_VERSION: u32 = 1;
+pub const ORGAN_VERSION: u32 = 2;
 
 /// The column header of a reference file (further columns may follow, e.g. each mesh level's
 /// force; they are not read).
@@ -64,7 +72,7 @@ pub const REFERENCE_COLUMNS: &str =
 
 /// The column header of an organ table file.
 pub const TABLE_COLUMNS: &str =
-    "node,sample,depth_m,factor,factor_subdivided,target_force_n,spring_force_n,subdivided_force_n";
+    "site,sample,depth_m,factor,factor_subdivided,target_force_n,spring_force_n,subdivided_force_n";
 
 /// The factors a node may take; a calibrated factor outside is an error (a reference or a
 /// surface far from each other: fix the scene's constants).
@@ -272,8 +280,8 @@ impl OrganReference {
     }
 }
 
-/// One node's row of the organ table.
-#[derive(Debug, Clone, PartialEq)]
+/// One site's row of the organ table (a coarse node, or a coarse edge's midpoint).
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct OrganRow {
     /// The contact factor `beta` of the coarse surface at each of the table's depths.
     pub factor: Vec<f64>,
@@ -281,7 +289,7 @@ pub struct OrganRow {
     /// constants; equal to `factor` when the eq. 4 table keeps the coarse force, or without
     /// subdivision).
     pub factor_subdivided: Vec<f64>,
-    /// The reference's force at the node at each depth, N.
+    /// The reference's force at the site at each depth, N.
     pub target_force_n: Vec<f64>,
     /// The coarse surface's force with constant springs at each depth, N (0 for a fixed node,
     /// whose factors are its free neighbours' mean).
@@ -291,12 +299,14 @@ pub struct OrganRow {
     pub subdivided_force_n: Vec<f64>,
 }
 
-/// The organ table of a surface (module documentation): per node the contact factor over
-/// sphere depth.
+/// The organ table of a surface (module documentation): per *site* the contact factor over
+/// sphere depth. The sites are the coarse nodes `0..N`, then one per coarse edge `e` (its
+/// midpoint, site `N + e`: the number Loop subdivision gives the edge's new node).
 #[derive(Debug, Clone, PartialEq)]
 pub struct OrganTable {
     key: u64,
     depths_m: Vec<f64>,
+    nodes: usize,
     rows: Vec<OrganRow>,
 }
 
@@ -306,9 +316,14 @@ impl OrganTable {
         self.key
     }
 
-    /// Number of nodes.
+    /// Number of coarse nodes.
     pub fn node_count(&self) -> usize {
-        self.rows.len()
+        self.nodes
+    }
+
+    /// Number of coarse edges (sites after the nodes).
+    pub fn edge_count(&self) -> usize {
+        self.rows.len() - self.nodes
     }
 
     /// The sphere depths of the samples, m.
@@ -316,14 +331,14 @@ impl OrganTable {
         &self.depths_m
     }
 
-    /// Node `i`'s row.
+    /// Site `i`'s row (a node below [`OrganTable::node_count`], an edge's midpoint from it).
     pub fn row(&self, i: u32) -> Option<&OrganRow> {
         self.rows.get(i as usize)
     }
 
-    /// The contact factor of node `i` at sphere depth `depth_m` (m), of the coarse surface or
-    /// (`subdivided`) with the node's area subdivided: linear between the samples, constant
-    /// beyond the first and the last; 1 for a node out of range. Allocation-free.
+    /// The contact factor of site `i` at sphere depth `depth_m` (m), of the coarse surface or
+    /// (`subdivided`) with the site's area subdivided: linear between the samples, constant
+    /// beyond the first and the last; 1 for a site out of range. Allocation-free.
     pub fn factor(&self, i: u32, depth_m: f64, subdivided: bool) -> f64 {
         let Some(r) = self.rows.get(i as usize) else {
             return 1.0;
@@ -354,8 +369,8 @@ impl OrganTable {
             .fold(0.0, f64::max)
     }
 
-    /// The file's text: commented header with the key, the depths' count, then
-    /// [`TABLE_COLUMNS`] rows, one per node and depth.
+    /// The file's text: commented header with the key, the node, edge and depth counts, then
+    /// [`TABLE_COLUMNS`] rows, one per site and depth.
     pub fn to_text(&self, description: &str) -> String {
         let mut s = String::new();
         let _ = writeln!(
@@ -366,7 +381,8 @@ impl OrganTable {
             let _ = writeln!(s, "# {line}");
         }
         let _ = writeln!(s, "# key {:016x}", self.key);
-        let _ = writeln!(s, "# nodes {}", self.rows.len());
+        let _ = writeln!(s, "# nodes {}", self.nodes);
+        let _ = writeln!(s, "# edges {}", self.edge_count());
         let _ = writeln!(s, "# samples {}", self.depths_m.len());
         let _ = writeln!(s, "{TABLE_COLUMNS}");
         for (i, r) in self.rows.iter().enumerate() {
@@ -389,10 +405,10 @@ impl OrganTable {
     /// Parses a table file's text (`path` names it in errors).
     ///
     /// # Errors
-    /// [`ModelError::Calibration`] naming the file and line for a missing key, node or sample
-    /// count or header, a malformed or non-finite number, a node or sample out of range or out
-    /// of order, depths that differ between nodes or do not increase, a factor outside
-    /// [`FACTOR_RANGE`], or a node without rows.
+    /// [`ModelError::Calibration`] naming the file and line for a missing key, node, edge or
+    /// sample count or header, a malformed or non-finite number, a site or sample out of range
+    /// or out of order, depths that differ between sites or do not increase, a factor outside
+    /// [`FACTOR_RANGE`], or a site without rows.
     pub fn parse(text: &str, path: &str) -> Result<Self, ModelError> {
         let err = |line: usize, m: String| ModelError::Calibration {
             path: path.to_string(),
@@ -402,7 +418,7 @@ impl OrganTable {
                 m
             },
         };
-        let (mut key, mut nodes, mut samples) = (None, None, None);
+        let (mut key, mut nodes, mut edges, mut samples) = (None, None, None, None);
         let mut depths: Vec<f64> = Vec::new();
         let mut rows: Vec<OrganRow> = Vec::new();
         let mut header = false;
@@ -432,6 +448,8 @@ impl OrganTable {
                     );
                 } else if let Some(v) = c.strip_prefix("nodes ") {
                     nodes = Some(count(v, "nodes")?);
+                } else if let Some(v) = c.strip_prefix("edges ") {
+                    edges = Some(count(v, "edges")?);
                 } else if let Some(v) = c.strip_prefix("samples ") {
                     let n = count(v, "samples")?;
                     if n > 1000 {
@@ -448,12 +466,13 @@ impl OrganTable {
                 header = true;
                 continue;
             }
-            let (Some(n), Some(m)) = (nodes, samples) else {
+            let (Some(nn), Some(ne), Some(m)) = (nodes, edges, samples) else {
                 return Err(err(
                     ln,
-                    "a row before the `# nodes` and `# samples` lines".into(),
+                    "a row before the `# nodes`, `# edges` and `# samples` lines".into(),
                 ));
             };
+            let n = nn + ne;
             let f: Vec<&str> = line.split(',').map(str::trim).collect();
             if f.len() != 8 {
                 return Err(err(ln, format!("expected 8 fields, got {}", f.len())));
@@ -477,14 +496,14 @@ impl OrganTable {
                 return Err(err(
                     ln,
                     format!(
-                        "expected node {} sample {}, got node {node} sample {sample}",
+                        "expected site {} sample {}, got site {node} sample {sample}",
                         next.0,
                         next.1 + 1
                     ),
                 ));
             }
             if node >= n {
-                return Err(err(ln, format!("node {node} is beyond the {n} nodes")));
+                return Err(err(ln, format!("site {node} is beyond the {n} sites")));
             }
             let (depth, factor, factor_sub) = (num(f[2])?, num(f[3])?, num(f[4])?);
             for v in [factor, factor_sub] {
@@ -502,7 +521,7 @@ impl OrganTable {
                 }
                 depths.push(depth);
             } else if depth != depths[s] {
-                return Err(err(ln, format!("node {node}: depths differ from node 0's")));
+                return Err(err(ln, format!("site {node}: depths differ from site 0's")));
             }
             if s == 0 {
                 rows.push(OrganRow {
@@ -526,16 +545,19 @@ impl OrganTable {
             };
         }
         let key = key.ok_or_else(|| err(0, "no `# key` line".into()))?;
-        let n = nodes.ok_or_else(|| err(0, "no `# nodes` line".into()))?;
+        let nn = nodes.ok_or_else(|| err(0, "no `# nodes` line".into()))?;
+        let ne = edges.ok_or_else(|| err(0, "no `# edges` line".into()))?;
+        let n = nn + ne;
         if rows.len() != n || next.1 != 0 {
             return Err(err(
                 0,
-                format!("{} complete nodes of the {n} announced", next.0),
+                format!("{} complete sites of the {n} announced", next.0),
             ));
         }
         Ok(Self {
             key,
             depths_m: depths,
+            nodes: nn,
             rows,
         })
     }
@@ -650,6 +672,7 @@ mod tests {
         let t = OrganTable {
             key: 0xabc,
             depths_m: vec![1e-4, 1e-3],
+            nodes: 1,
             rows: vec![
                 OrganRow {
                     factor: vec![2.0, 1.0],
@@ -669,6 +692,7 @@ mod tests {
         };
         let back = OrganTable::parse(&t.to_text("x\ny"), "t").expect("parses");
         assert_eq!(back, t);
+        assert_eq!((back.node_count(), back.edge_count()), (1, 1));
         assert_eq!(t.factor(0, 0.0, false), 2.0);
         assert!((t.factor(0, 5.5e-4, false) - 1.5).abs() < 1e-12);
         assert!((t.factor(0, 5.5e-4, true) - 2.25).abs() < 1e-12);
@@ -679,14 +703,15 @@ mod tests {
         for (bad, want) in [
             (
                 text.replace("1,2,1e-3", "1,3,1e-3"),
-                "expected node 1 sample 2",
+                "expected site 1 sample 2",
             ),
             (
                 text.replace("# samples 2", "# samples 3"),
-                "expected node 0 sample 3",
+                "expected site 0 sample 3",
             ),
             (text.replace("0,1,1e-4,2e0", "0,1,1e-4,2e9"), "outside"),
             (text.replace("# key 0000000000000abc\n", ""), "no `# key`"),
+            (text.replace("# edges 1\n", ""), "`# edges`"),
         ] {
             let e = OrganTable::parse(&bad, "t").expect_err(want).to_string();
             assert!(e.contains(want), "{e} (wanted {want})");
