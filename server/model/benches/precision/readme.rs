@@ -55,9 +55,19 @@ pub fn readme(rows: &[Row], dir: &Path) -> anyhow::Result<Option<PathBuf>> {
         if !(x.is_finite() && x > 0.0 && y.is_finite() && y > 0.0) {
             continue;
         }
+        // The material once (FEM method labels carry it already unless StVK), shortened.
+        let method = r.method.replace("stable-neo-hookean", "neo-Hookean");
+        let material = if r.method.contains('[') {
+            String::new()
+        } else {
+            format!(
+                " [{}]",
+                r.material.replace("stable-neo-hookean", "neo-Hookean")
+            )
+        };
         let label = match r.tets {
-            0 => format!("{} [{}]", r.method, r.material),
-            n => format!("{} [{}], {n} el.", r.method, r.material),
+            0 => format!("{method}{material}"),
+            n => format!("{method}{material}, {n} el."),
         };
         if let Some((scene, _)) = SHIPPED.iter().find(|(_, m)| *m == r.method) {
             shipped.push((format!("{scene}: {label}"), (x, y, label.clone())));
@@ -78,10 +88,10 @@ pub fn readme(rows: &[Row], dir: &Path) -> anyhow::Result<Option<PathBuf>> {
     let svg = base.with_extension("svg");
     {
         use plotters::prelude::*;
-        let root = BitMapBackend::new(&png, (1100, 560)).into_drawing_area();
+        let root = BitMapBackend::new(&png, (1200, 560)).into_drawing_area();
         draw(root, &all, &front, &shipped, bounds)
             .map_err(|e| anyhow!("plot {}: {e}", png.display()))?;
-        let root = SVGBackend::new(&svg, (1100, 560)).into_drawing_area();
+        let root = SVGBackend::new(&svg, (1200, 560)).into_drawing_area();
         draw(root, &all, &front, &shipped, bounds)
             .map_err(|e| anyhow!("plot {}: {e}", svg.display()))?;
     }
@@ -112,7 +122,7 @@ where
     ];
     root.fill(&WHITE)?;
     let (w, _) = root.dim_in_pixel();
-    let (plot, legend) = root.split_horizontally(w.saturating_sub(430));
+    let (plot, legend) = root.split_horizontally(w.saturating_sub(500));
     let mut chart = ChartBuilder::on(&plot)
         .caption(
             "LV probe press: force error vs wall time per simulated ms",
