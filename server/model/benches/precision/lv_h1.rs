@@ -31,9 +31,10 @@ const CONDENSED_RUNS: &[(StrainSmoothing, f64)] = &[
 
 /// The rows of `lv-probe` on `lv_h1.msh`: backward Euler on a contact-local active region with
 /// the rest condensed ([`CONDENSED_RUNS`], `haptic_model::integrate::condensed`), then (unless
-/// `--lv-h1-rows condensed`) standard and edge-smoothed (ES-FEM-T4) elements, each with
-/// semi-implicit at 0.5 and symplectic Euler at 0.9 of the critical step and backward Euler with
-/// CG capped at 5. No rows when `lv_h1.msh` is absent. Static curves on this mesh take minutes
+/// `--lv-h1-rows condensed`) the shipped scenes ([`scene_rows`]) and standard and edge-smoothed
+/// (ES-FEM-T4) elements, each with semi-implicit at 0.5 and symplectic Euler at 0.9 of the
+/// critical step and backward Euler with CG capped at 5; all but the scene rows St.
+/// Venant-Kirchhoff. `--lv-h1-rows scenes`: the scene rows alone. No rows when `lv_h1.msh` is absent. Static curves on this mesh take minutes
 /// each (the `lv_study` example).
 pub fn run(cfg: &Config) -> Vec<Row> {
     let mut rows = Vec::new();
@@ -41,9 +42,16 @@ pub fn run(cfg: &Config) -> Vec<Row> {
         eprintln!("lv_h1.msh not found: scenario lv-h1 skipped");
         return rows;
     };
+    if cfg.lv_h1_rows == LvH1Rows::Scenes {
+        scene_rows(&mut rows);
+        return rows;
+    }
     let model = MaterialModel::StVenantKirchhoff;
     let ref_text = crate::lv_probe::sphere_reference_text(model);
-    let base = lv_scene_on(h1.mesh);
+    let mut base = lv_scene_on(h1.mesh);
+    // The built-in lv scene's material is stable neo-Hookean since 2026-11-26: these rows are
+    // labelled and referenced as St. Venant-Kirchhoff, so they must run it.
+    base.material.model = model;
     // Semi-implicit at 0.5: at 0.9 it diverges on this mesh with standard elements (StVK
     // stiffens under the probe; ARCHITECTURE.md, "Safety factor 0.5").
     let runs = [
@@ -106,6 +114,7 @@ pub fn run(cfg: &Config) -> Vec<Row> {
     if cfg.lv_h1_rows == LvH1Rows::Condensed {
         return rows;
     }
+    scene_rows(&mut rows);
     for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
         for (kind, sf, cg) in runs {
             let m = Method {
@@ -142,4 +151,55 @@ pub fn run(cfg: &Config) -> Vec<Row> {
         }
     }
     rows
+}
+
+/// The shipped scenes on `lv_h1.msh` (`deploy/scenes/`), each pressed exactly as its file
+/// configures it (material, strain smoothing, integrator, active region; stable neo-Hookean
+/// today), against the sphere reference of its own material. Label "`<file stem>` (scene)",
+/// which `readme::SHIPPED` matches. A scene that does not load is a row saying why.
+pub fn scene_rows(rows: &mut Vec<Row>) {
+    for stem in ["lv_h1", "lv_h1_es", "lv_h1_condensed"] {
+        let path = crate::common::workspace_root().join(format!("deploy/scenes/{stem}.toml"));
+        let method = format!("{stem} (scene)");
+        let sc = match haptic_model::scene::load_scene_file(&path) {
+            Ok(sc) => sc,
+            Err(e) => {
+                let mut row = Row::blank(Scenario::LvProbe, method.clone(), "-");
+                row.settings = format!("{}: {e}", path.display());
+                row.print();
+                rows.push(row);
+                continue;
+            }
+        };
+        let model = sc.material.model;
+        let mut row = Row::new(
+            Scenario::LvProbe,
+            method,
+            sc.integrator.kind.name(),
+            &sc.mesh,
+        )
+        .smoothed(sc.strain_smoothing)
+        .material(model);
+        row.reference = crate::lv_probe::sphere_reference_text(model);
+        match probe_dynamic(&sc, false) {
+            Ok((c, ticks, sub)) => {
+                row.settings = format!(
+                    "deploy/scenes/{stem}.toml as shipped: strain smoothing {}, {} ({}), {sub} sub-step(s) per 1 ms tick{}; staircase 0.5..3 mm",
+                    sc.strain_smoothing.name(),
+                    sc.integrator.kind.name(),
+                    sc.integrator.linear_solver.name(),
+                    if sc.active_region.is_some() {
+                        ", contact-local active region, the rest condensed"
+                    } else {
+                        ""
+                    },
+                );
+                row.set_times(&ticks, sc.integrator.tick_s);
+                fill_lv_errors(&mut row, model, &c);
+            }
+            Err(e) => row.settings = format!("{}: {e}", row.method),
+        }
+        row.print();
+        rows.push(row);
+    }
 }

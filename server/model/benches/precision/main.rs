@@ -1,6 +1,8 @@
 //! Run time versus error (issue 3, section 4): scenarios x methods x resolutions x settings,
 //! one row per run in `precision.csv` and `.json` ([`report`]), and a work-precision plot per
-//! scenario, `precision-<scenario>.png` / `.svg` ([`plot`]).
+//! scenario, `precision-<scenario>.png` / `.svg` ([`plot`]), and the README-sized plot of the
+//! LV press with the shipped scenes and the Pareto front, `precision-lv-probe-readme.png` /
+//! `.svg` ([`readme`]).
 //!
 //! Scenarios, one file each: [`lame`] (thick sphere, analytic), [`cantilever`]
 //! (Bisshopp-Drucker), [`lv_probe`] (the probe pressed into the LV, converged static
@@ -29,6 +31,7 @@ mod lv_h1;
 mod lv_probe;
 mod method;
 mod plot;
+mod readme;
 mod report;
 
 use std::path::{Path, PathBuf};
@@ -50,7 +53,8 @@ struct Args {
     /// materials, shorter runs.
     #[arg(long)]
     quick: bool,
-    /// lv-h1: which rows to run (all, or the condensed ones only).
+    /// lv-h1: which rows to run (all, the condensed ones only, or the shipped lv_h1 scenes
+    /// only).
     #[arg(long, value_enum, default_value_t = LvH1Rows::All)]
     lv_h1_rows: LvH1Rows,
     /// lv-probe: which rows to run (all, or the mass-spring ones only: a few seconds once the
@@ -96,6 +100,8 @@ pub enum LvH1Rows {
     All,
     /// The condensed rows only.
     Condensed,
+    /// The shipped lv_h1 scenes only, as their files configure them.
+    Scenes,
 }
 
 /// Which rows of `lv-probe` to run.
@@ -202,6 +208,29 @@ fn main() -> anyhow::Result<()> {
     } else {
         plot::scenarios(&rows, &plot_dir)?
     });
+    readme_plot(&data_dir, Format::Json, &plot_dir)
+}
+
+/// The README plot ([`readme::readme`]) from the results in `from`: `precision.<ext>` and, if
+/// present, `precision-lv-h1.<ext>` (a missing file is skipped with a note).
+fn readme_plot(from: &Path, format: Format, plot_dir: &Path) -> anyhow::Result<()> {
+    let ext = match format {
+        Format::Json => "json",
+        Format::Csv => "csv",
+    };
+    let mut rows = Vec::new();
+    for stem in ["precision", "precision-lv-h1"] {
+        let path = from.join(format!("{stem}.{ext}"));
+        if path.exists() {
+            rows.extend(report::read(&path)?);
+        } else {
+            eprintln!(
+                "{} not found: its rows are not in the README plot",
+                path.display()
+            );
+        }
+    }
+    report_plot(readme::readme(&rows, plot_dir)?.into_iter().collect());
     Ok(())
 }
 
@@ -221,7 +250,7 @@ fn replot(from: &Path, format: Format, plot_dir: &Path) -> anyhow::Result<()> {
     } else {
         eprintln!("{} not found: lv-h1 plot skipped", h1.display());
     }
-    Ok(())
+    readme_plot(from, format, plot_dir)
 }
 
 /// Prints the plots written.

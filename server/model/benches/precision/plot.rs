@@ -23,7 +23,7 @@ use crate::report::{Row, Scenario};
 static DEJAVU_SANS: &[u8] = include_bytes!("fonts/DejaVuSans.ttf");
 
 /// Registers [`DEJAVU_SANS`] as plotters' "sans-serif", once per process.
-fn register_font() -> anyhow::Result<()> {
+pub fn register_font() -> anyhow::Result<()> {
     static REGISTERED: OnceLock<Result<(), String>> = OnceLock::new();
     REGISTERED
         .get_or_init(|| {
@@ -156,7 +156,7 @@ fn plot_scenario(
 /// The Pareto front of `(time, error, label)` points: in order of time, each point whose error
 /// is more than 2 % (of itself) below that of every faster point, so that rows equal to the
 /// printed digit do not crowd it.
-fn pareto_front(mut points: Vec<(f64, f64, String)>) -> Vec<(f64, f64, String)> {
+pub fn pareto_front(mut points: Vec<(f64, f64, String)>) -> Vec<(f64, f64, String)> {
     points.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
     let mut front: Vec<(f64, f64, String)> = Vec::new();
     for p in points {
