@@ -54,6 +54,7 @@ pub mod smoothing;
 pub mod tangent;
 
 pub use fibres::{FibreField, FibreRule};
+pub(crate) use kernels::SingleElastic;
 pub use kernels::{ForceScratch, SingleIsa};
 use kernels::{Kernels, SingleLinear};
 pub use mass::lumped_masses;
@@ -397,7 +398,7 @@ impl FemModel {
             self.single = None;
             return Ok(());
         }
-        if self.quadratic || kernels::SingleElastic::of(&self.material).is_none() {
+        if self.quadratic || SingleElastic::of(&self.material).is_none() {
             return Err(ModelError::field(
                 "integrator.force_precision",
                 "single precision is for linear St Venant-Kirchhoff or stable Neo-Hookean \
@@ -462,7 +463,7 @@ impl FemModel {
             && scratch.node_count() >= self.node_count()
         {
             let viscous = v.filter(|_| mat.phi_pa_s > 0.0 || mat.psi_pa_s > 0.0);
-            let elastic = kernels::SingleElastic::of(mat);
+            let elastic = SingleElastic::of(mat);
             if let Some(elastic) = elastic
                 && single.add_forces(
                     elastic,

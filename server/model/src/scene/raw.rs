@@ -596,11 +596,7 @@ pub(super) fn parse_scene(
     };
     if integrator.single_precision_forces
         && (mesh.is_quadratic()
-            || !matches!(
-                material.model,
-                MaterialModel::StVenantKirchhoff | MaterialModel::StableNeoHookean
-            )
-            || material.mean_dilatation()
+            || crate::element::SingleElastic::of(&material).is_none()
             || family != ModelFamily::Fem)
     {
         return Err(ModelError::field(
