@@ -303,6 +303,8 @@ pub fn stats_rows(s: &SessionStats) -> Vec<StatRow> {
         ),
         row("region_swaps", U64(s.region_swaps), "count"),
         row("region_preparation_s", f(s.region_preparation_s, 3), "s"),
+        row("contact_ticks", U64(s.contact_ticks), "count"),
+        row("companion_ticks", U64(s.companion_ticks), "count"),
     ]
 }
 

@@ -269,6 +269,22 @@ impl Collector for SessionCollector {
         per_session(
             e,
             &rows,
+            "hapticd_contact_ticks_total",
+            "Servo ticks with the probe in contact",
+            Counter,
+            |r| Value::Counter(r.stats.contact_ticks),
+        )?;
+        per_session(
+            e,
+            &rows,
+            "hapticd_companion_ticks_total",
+            "Contact ticks to which a following region's coarse companion contributed",
+            Counter,
+            |r| Value::Counter(r.stats.body.companion_ticks),
+        )?;
+        per_session(
+            e,
+            &rows,
             "hapticd_active_particles",
             "Meshfree particles simulated now",
             Gauge,

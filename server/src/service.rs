@@ -242,6 +242,8 @@ impl SessionControl for Services {
             active_elements: st.body.active_elements as u32,
             region_swaps: st.body.region_swaps,
             region_preparation_s: st.body.region_preparation_s,
+            contact_ticks: st.contact_ticks,
+            companion_ticks: st.body.companion_ticks,
             total_particles: st.body.particles as u32,
             active_particles: st.body.active_particles as u32,
             surface_vertices: st.body.surface_vertices as u32,

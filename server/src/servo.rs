@@ -175,6 +175,8 @@ pub struct StatsSnapshot {
     pub sim_time_s: f64,
     /// In contact at the last tick.
     pub in_contact: bool,
+    /// Ticks whose force was a contact's, so far.
+    pub contact_ticks: u64,
     /// Largest device force magnitude so far, N.
     pub peak_force_n: f64,
     /// Largest nodal displacement from rest so far, m.
@@ -409,6 +411,7 @@ pub struct ServoCore {
     current: TickInput,
     fault: Option<&'static str>,
     peak_force_n: f64,
+    contact_ticks: u64,
     max_displacement_m: f64,
     device_samples: u64,
     window_start_us: u64,
@@ -564,6 +567,7 @@ impl ServoCore {
             current: TickInput::default(),
             fault: None,
             peak_force_n: 0.0,
+            contact_ticks: 0,
             max_displacement_m: 0.0,
             device_samples: 0,
             window_start_us: 0,
@@ -741,6 +745,7 @@ impl ServoCore {
             force.proxy_m = o.proxy_position_m;
         }
         self.peak_force_n = self.peak_force_n.max(force.force_n.length());
+        self.contact_ticks += u64::from(force.in_contact);
         self.last_force = force;
         if fresh {
             // A full ring means the forwarder is stalled; dropping is the safe choice (the
@@ -834,6 +839,7 @@ impl ServoCore {
                 },
                 sim_time_s: self.sim_time_s,
                 in_contact: force.in_contact,
+                contact_ticks: self.contact_ticks,
                 peak_force_n: self.peak_force_n,
                 max_displacement_m: self.max_displacement_m,
                 device_samples: self.device_samples,

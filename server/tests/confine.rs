@@ -267,3 +267,33 @@ async fn concurrent_starts_never_exceed_the_session_limit() {
     assert!(manager.start(&scene).is_ok());
     manager.stop_all();
 }
+
+/// A scene we ship starts with the configuration we ship (issue 48, section 4): every
+/// `deploy/scenes/*.toml`, sent as a client's scene text, passes the default daemon's checks
+/// (allowed files, `max_elements`, `max_nodes`, `max_particles`; the installed configuration
+/// `deploy/hapticd.toml` leaves them at their defaults), the 100 000-tet LV included.
+#[test]
+fn every_shipped_scene_passes_the_default_limits() {
+    let scenes = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/scenes");
+    let installed = include_str!("../../deploy/hapticd.toml");
+    for key in ["max_elements", "max_nodes", "max_particles"] {
+        assert!(
+            installed.lines().all(|l| !l.trim_start().starts_with(key)),
+            "deploy/hapticd.toml sets {key}: test the shipped scenes with its value"
+        );
+    }
+    let m = manager(&scenes, ServerConfig::default().max_file_bytes);
+    let mut names: Vec<PathBuf> = std::fs::read_dir(&scenes)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "toml"))
+        .collect();
+    names.sort();
+    assert!(names.len() >= 15, "{names:?}");
+    for path in &names {
+        let text = std::fs::read_to_string(path).unwrap();
+        if let Err(e) = m.load_scene("", &text) {
+            panic!("{}: {}", path.display(), status(e).message());
+        }
+    }
+}

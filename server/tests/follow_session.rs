@@ -1,7 +1,8 @@
 //! A condensed scene whose active region follows the probe, through the server (issue 20): a
 //! scene file with `active_region.follow` starts a session, a device slides around the
 //! ventricle in the servo, the region is swapped in as it goes (the worker thread runs beside
-//! the servo), and `GetStats` reports the swaps and the last preparation time; `ApplyForce`
+//! the servo), and `GetStats` reports the swaps, the last preparation time and the contact
+//! ticks (none answered by a companion: this scene has none); `ApplyForce`
 //! is refused with a clear error (one contact per following region).
 
 use std::sync::Arc;
@@ -124,4 +125,11 @@ async fn a_following_region_swaps_as_the_device_slides() {
     );
     assert!(stats.in_contact, "{stats:?}");
     assert!(stats.active_elements > 0 && stats.active_elements < stats.tetrahedra);
+    // Who answered: the probe (2 mm) touches from the first samples on, and this scene has
+    // no coarse companion.
+    assert!(
+        stats.contact_ticks > stats.steps / 2 && stats.contact_ticks <= stats.steps,
+        "{stats:?}"
+    );
+    assert_eq!(stats.companion_ticks, 0, "{stats:?}");
 }

@@ -78,9 +78,17 @@ async fn sessions_are_scraped_with_consistent_counters_and_histograms() {
     let sum = sample(&text, "hapticd_step_time_seconds_sum", &labels).unwrap();
     let mean = sum / count;
     assert!(mean > 1e-6 && mean < 0.1, "mean step {mean} s");
-    // No device: no pose-to-force records.
+    // No device: no pose-to-force records, no contact, no companion.
     assert_eq!(
         sample(&text, "hapticd_pose_to_force_seconds_count", &labels),
+        Some(0.0)
+    );
+    assert_eq!(
+        sample(&text, "hapticd_contact_ticks_total", &labels),
+        Some(0.0)
+    );
+    assert_eq!(
+        sample(&text, "hapticd_companion_ticks_total", &labels),
         Some(0.0)
     );
 

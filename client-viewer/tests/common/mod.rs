@@ -227,6 +227,8 @@ pub fn canned_stats(id: &str) -> SessionStats {
         watcher_queue_limit_bytes: 65_536,
         region_swaps: 12,
         region_preparation_s: 1.234,
+        contact_ticks: 5_000,
+        companion_ticks: 40,
     }
 }
 

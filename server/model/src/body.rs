@@ -155,6 +155,10 @@ pub struct BodyStats {
     pub region_swaps: u64,
     /// Preparation time of the last region a following active region prepared, s (0 if none).
     pub region_preparation_s: f64,
+    /// Ticks in contact in which a following region's coarse companion contributed to the
+    /// force (its blend weight was positive), so far; 0 without a companion. Against the
+    /// servo's count of contact ticks it says how much of a press the coarse organ answered.
+    pub companion_ticks: u64,
 }
 
 /// A deformable body the servo can drive (module documentation). Implementations must keep

@@ -64,6 +64,8 @@ struct Fallback {
     settle_ticks: u32,
     /// Ticks with a nonzero weight.
     ticks_answered: u64,
+    /// Of those, the ticks whose output is in contact.
+    contact_ticks_answered: u64,
     /// The region's own force in the last tick, N.
     region_force_n: DVec3,
 }
@@ -75,6 +77,8 @@ pub struct FallbackStats {
     pub weight: f64,
     /// Ticks in which it contributed to the output.
     pub ticks_answered: u64,
+    /// Of those, the ticks in contact.
+    pub contact_ticks_answered: u64,
     /// Its tetrahedra.
     pub elements: usize,
     /// The force the region alone gave in the last tick (before the blend), N.
@@ -316,6 +320,7 @@ impl Simulation {
                     weight: 0.0,
                     settle_ticks: 0,
                     ticks_answered: 0,
+                    contact_ticks_answered: 0,
                     region_force_n: DVec3::ZERO,
                 }))
             }
@@ -449,6 +454,7 @@ impl Simulation {
         self.fallback.as_deref().map(|fb| FallbackStats {
             weight: fb.weight,
             ticks_answered: fb.ticks_answered,
+            contact_ticks_answered: fb.contact_ticks_answered,
             elements: fb.sim.fem.element_count(),
             region_force_n: fb.region_force_n,
         })
@@ -772,10 +778,12 @@ impl Fallback {
         for (k, c) in stiffness.iter_mut().zip(coarse.contact_stiffness_n_per_m) {
             *k += w * (c - *k);
         }
+        let in_contact = fine.in_contact || coarse.in_contact;
+        self.contact_ticks_answered += u64::from(in_contact);
         Ok(TickOutput {
             force_on_device_n: fine.force_on_device_n.lerp(coarse.force_on_device_n, w),
             contact_stiffness_n_per_m: stiffness,
-            in_contact: fine.in_contact || coarse.in_contact,
+            in_contact,
             proxy_position_m: main.proxy_position_m,
             sim_time_s: fine.sim_time_s,
         })
@@ -850,6 +858,10 @@ impl SoftBody for Simulation {
             max_displacement_m: self.max_displacement_m(),
             region_swaps: self.follow_stats().map_or(0, |f| f.swaps),
             region_preparation_s: self.follow_stats().map_or(0.0, |f| f.last_prepare_s),
+            companion_ticks: self
+                .fallback
+                .as_deref()
+                .map_or(0, |fb| fb.contact_ticks_answered),
         }
     }
 

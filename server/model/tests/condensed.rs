@@ -1111,6 +1111,9 @@ fn a_coarse_companion_answers_where_the_region_does_not_hold_the_contact() {
     let hold_from = 600; // 30 ticks after the press at -x ended
     let (mut forces, mut weights) = (Vec::new(), Vec::new());
     let (mut answered, mut settled_at, mut last_swap) = (0usize, None, (0, 0));
+    // Contact ticks the companion contributed to (its weight positive), counted here against
+    // the body's own statistic (`BodyStats::companion_ticks`, what `GetStats` reports).
+    let mut contact_answered = 0u64;
     // The region's own force while the companion answered in the hold (the far surface).
     let mut region_alone = Vec::with_capacity(200_000);
     let started = std::time::Instant::now();
@@ -1125,6 +1128,7 @@ fn a_coarse_companion_answers_where_the_region_does_not_hold_the_contact() {
             let own = alone.tick(&input).expect("companion tick");
             let fb = sim.fallback_stats().expect("companion");
             let w = fb.weight;
+            contact_answered += u64::from(w > 0.0 && out.in_contact);
             if w == 1.0 && k >= 470 {
                 let rel = (out.force_on_device_n - own.force_on_device_n).length()
                     / own.force_on_device_n.length().max(1e-9);
@@ -1160,6 +1164,12 @@ fn a_coarse_companion_answers_where_the_region_does_not_hold_the_contact() {
     assert!(
         answered >= 100,
         "the companion answered {answered} ticks only (regions came too fast to test it)"
+    );
+    assert!(contact_answered >= answered as u64);
+    assert_eq!(
+        SoftBody::stats(&sim).companion_ticks,
+        contact_answered,
+        "companion_ticks"
     );
     // Hand-back: the settling ticks after the last swap, then the blend.
     let last_full = weights.iter().rposition(|&w| w == 1.0).expect("weight 1");
