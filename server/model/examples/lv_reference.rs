@@ -15,12 +15,15 @@
 //!   sphere travel `s` by secant steps to 1e-10 m). Forces are the full body's (twice the
 //!   half's x and z components). Appends one CSV row per depth and convention as each
 //!   converges.
-//! - `combine`: the rows of four or more levels into the reference: per material,
-//!   convention and depth, Richardson's extrapolation through the three finest levels and
-//!   Roache's grid convergence index (1.25 times the extrapolated value's distance from the
-//!   finest level's) as its uncertainty, with the observed order of each consecutive triple of
-//!   levels to show whether it is regular. Writes the CSV the benchmark and the tests read
-//!   (format: `server/model/benches/precision/lv_sphere_reference.csv`'s header comment).
+//! - `combine`: the rows of three or more levels into the reference: per material,
+//!   convention and depth, with four or more levels the least-squares estimate of Eca &
+//!   Hoekstra (2014) over all of them (`eca_hoekstra`: the limit of a fitted `f0 + a h^p`
+//!   and a band that covers the fit's scatter), with three Richardson's extrapolation through
+//!   them and Roache's grid convergence index (1.25 times the extrapolated value's distance
+//!   from the finest level's). Both are written, with the observed order of each of the last
+//!   two consecutive triples of levels to show whether the three-level orders are regular.
+//!   Writes the CSV the benchmark and the tests read (format:
+//!   `server/model/benches/precision/lv_sphere_reference.csv`'s header comment).
 //!
 //! The reference comes from our own solver: it is a self-convergence check, cross-checked at
 //! one depth per material by an independent code (scikit-fem, `research/`).
@@ -314,6 +317,109 @@ fn richardson(h: [f64; 3], f: [f64; 3]) -> Option<(f64, f64, f64)> {
     Some((value, 1.25 * (value - f[2]).abs(), p))
 }
 
+/// A least-squares fit over every level of `f(h) = f0 + sum_k a_k h^(e_k)` (h in mm): the
+/// limit `f0`, the standard deviation `sigma` of the residuals (over `n - 1 - terms` degrees of
+/// freedom) and the fitted value at the finest level.
+#[derive(Debug, Clone, Copy)]
+struct LsFit {
+    f0: f64,
+    sigma: f64,
+    at_finest: f64,
+}
+
+/// [`LsFit`] for the exponents `exps` (one or two terms), by the normal equations; `None` when
+/// they are singular or there are no degrees of freedom left.
+fn ls_fit(levels: &[(f64, f64)], exps: &[f64]) -> Option<LsFit> {
+    let m = 1 + exps.len();
+    if levels.len() <= m {
+        return None;
+    }
+    let basis = |h: f64| -> Vec<f64> {
+        std::iter::once(1.0)
+            .chain(exps.iter().map(|e| h.powf(*e)))
+            .collect()
+    };
+    // [A^T A | A^T f], Gaussian elimination with partial pivoting.
+    let mut a = vec![vec![0.0; m + 1]; m];
+    for &(h, f) in levels {
+        let b = basis(h);
+        for i in 0..m {
+            for j in 0..m {
+                a[i][j] += b[i] * b[j];
+            }
+            a[i][m] += b[i] * f;
+        }
+    }
+    for c in 0..m {
+        let piv = (c..m).max_by(|&x, &y| a[x][c].abs().total_cmp(&a[y][c].abs()))?;
+        if a[piv][c].abs() < 1e-300 {
+            return None;
+        }
+        a.swap(c, piv);
+        for r in 0..m {
+            if r != c {
+                let k = a[r][c] / a[c][c];
+                for j in c..=m {
+                    a[r][j] -= k * a[c][j];
+                }
+            }
+        }
+    }
+    let coef: Vec<f64> = (0..m).map(|i| a[i][m] / a[i][i]).collect();
+    let eval = |h: f64| basis(h).iter().zip(&coef).map(|(b, c)| b * c).sum::<f64>();
+    let ssr: f64 = levels.iter().map(|&(h, f)| (f - eval(h)).powi(2)).sum();
+    let h_fine = levels.last()?.0;
+    Some(LsFit {
+        f0: coef[0],
+        sigma: (ssr / (levels.len() - m) as f64).sqrt(),
+        at_finest: eval(h_fine),
+    })
+}
+
+/// The least-squares uncertainty estimate of Eca & Hoekstra (J. Comput. Phys. 262, 2014,
+/// 104-130) over four or more levels (`(h, f)` coarse to fine), for refinement studies whose
+/// three-level orders scatter:
+/// - fit `f0 + a h^p` with `p` free (searched on [0.2, 4]); if `0.5 <= p < 2.1`, the value is
+///   `f0` and the uncertainty `1.25 |f0 - f_1| + sigma + |f_1 - fit(h_1)|` (`f_1` the finest
+///   level);
+/// - otherwise the fixed-order fits `f0 + a h`, `f0 + a h^2` and `f0 + a h + b h^2`, the one with
+///   the smallest `sigma`, with the safety factor 3: `3 |f0 - f_1| + sigma + |f_1 - fit(h_1)|`,
+///   and when `p >= 2.1` at least `1.25` times the data range per level
+///   `(max f - min f) / (n - 1)`.
+///
+/// Returns (value, uncertainty, the free fit's order); `None` below four levels.
+fn eca_hoekstra(levels: &[(f64, f64)]) -> Option<(f64, f64, f64)> {
+    if levels.len() < 4 {
+        return None;
+    }
+    let f1 = levels.last()?.1;
+    let (p, free) = (200..=4000)
+        .filter_map(|i| {
+            let p = f64::from(i) * 1e-3;
+            ls_fit(levels, &[p]).map(|fit| (p, fit))
+        })
+        .min_by(|a, b| a.1.sigma.total_cmp(&b.1.sigma))?;
+    let band =
+        |fit: &LsFit, fs: f64| fs * (fit.f0 - f1).abs() + fit.sigma + (f1 - fit.at_finest).abs();
+    if (0.5..2.1).contains(&p) {
+        return Some((free.f0, band(&free, 1.25), p));
+    }
+    let fixed = [&[1.0][..], &[2.0][..], &[1.0, 2.0][..]]
+        .iter()
+        .filter_map(|e| ls_fit(levels, e))
+        .min_by(|a, b| a.sigma.total_cmp(&b.sigma))?;
+    let mut u = band(&fixed, 3.0);
+    if p >= 2.1 {
+        let (lo, hi) = levels
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), l| {
+                (lo.min(l.1), hi.max(l.1))
+            });
+        u = u.max(1.25 * (hi - lo) / (levels.len() - 1) as f64);
+    }
+    Some((fixed.f0, u, p))
+}
+
 fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> {
     let rows = read_levels(paths)?;
     let mut hs: Vec<f64> = rows.iter().map(|r| r.h_mm).collect();
@@ -331,20 +437,21 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
     let mut csv = String::from(
         "# The rigid-sphere reference of the lv-probe press (server/model/examples/lv_reference.rs,\n\
          # written by server/model/examples/lv_reference.sh). A self-convergence check of our own\n\
-         # solver over the levels below (cross-checked by research/, scikit-fem: docs/accuracy.md);\n\
-         # where the observed orders are empty or differ between the two triples the band is\n\
-         # not a demonstrated bound. Columns: material, depth convention\n\
-         # (sphere: the sphere's travel from the analytic epicardium, centre x = 11.682458 mm;\n\
-         # device: D = s + F_x / (300 N/m)), depth (mm), the extrapolated force magnitude (N),\n\
-         # its uncertainty (Roache's GCI, N), the observed order of the three finest levels\n\
-         # (empty: changes not monotone and shrinking, or an order outside 0.2-10; the finest\n\
-         # level's value with the spread of the three finest as its uncertainty), the order of\n\
-         # the three levels before, then each level's force (N) in columns\n\
-         # f_h<size under the probe, mm>_n, coarse to fine (empty: not solved).\n",
+         # solver over the levels below (cross-checked by research/, scikit-fem: docs/accuracy.md).\n\
+         # Columns: material, depth convention (sphere: the sphere's travel from the analytic\n\
+         # epicardium, centre x = 11.682458 mm; device: D = s + F_x / (300 N/m)), depth (mm), the\n\
+         # reference force magnitude (N) and its uncertainty (N): with four or more levels the\n\
+         # least-squares estimate of Eca & Hoekstra (J. Comput. Phys. 262, 2014) over all of\n\
+         # them, with three Richardson's extrapolation and Roache's GCI; then the observed\n\
+         # Richardson order of the three finest levels (empty: changes not monotone and\n\
+         # shrinking, or an order outside 0.2-10) and of the three before, the least-squares\n\
+         # fit's order, Richardson's value through the three finest levels and its GCI (N; no\n\
+         # order: the finest level and the spread of the three finest), then each level's force\n\
+         # (N) in columns f_h<size under the probe, mm>_n, coarse to fine (empty: not solved).\n",
     );
     write!(
         csv,
-        "material,depth_convention,depth_mm,force_n,uncertainty_n,observed_order,previous_order"
+        "material,depth_convention,depth_mm,force_n,uncertainty_n,observed_order,previous_order,ls_order,richardson_force_n,gci_n"
     )?;
     for h in &hs {
         write!(csv, ",f_h{h:.4}_n")?;
@@ -375,7 +482,7 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
             )
         };
         let finest = levels[k - 1].1;
-        let (value, unc, order) = match tri(k - 3) {
+        let (richardson_value, gci, order) = match tri(k - 3) {
             Some((v, u, p)) => (v, u, Some(p)),
             None => {
                 let spread = levels[k - 3..]
@@ -385,6 +492,10 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
                 (finest, spread, None)
             }
         };
+        // Four or more levels: the least-squares estimate over all of them is the reference;
+        // three: Richardson through them with Roache's GCI.
+        let ls = eca_hoekstra(&levels);
+        let (value, unc) = ls.map_or((richardson_value, gci), |(v, u, _)| (v, u));
         let previous = if k >= 4 {
             tri(k - 4).map(|t| t.2)
         } else {
@@ -393,9 +504,10 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
         let fmt_order = |p: Option<f64>| p.map_or(String::new(), |p| format!("{p:.3}"));
         write!(
             csv,
-            "{material},{conv},{depth},{value:.6e},{unc:.3e},{},{}",
+            "{material},{conv},{depth},{value:.6e},{unc:.3e},{},{},{},{richardson_value:.6e},{gci:.3e}",
             fmt_order(order),
-            fmt_order(previous)
+            fmt_order(previous),
+            fmt_order(ls.map(|l| l.2)),
         )?;
         for h in &hs {
             match at(*h) {
@@ -406,7 +518,7 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
         csv.push('\n');
         writeln!(
             md,
-            "| {material} | {conv} | {depth} | {} | **{:.4} +- {:.4} ({:.1} %)** | {} | {} |",
+            "| {material} | {conv} | {depth} | {} | **{:.4} +- {:.4} ({:.1} %)** | {} | {} | {} | {:.4} +- {:.4} ({:.1} %) |",
             levels
                 .iter()
                 .map(|l| format!("{:.4}", l.1 * 1e3))
@@ -416,7 +528,11 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
             unc * 1e3,
             100.0 * unc / value,
             order.map_or("none".into(), |p| format!("{p:.2}")),
-            previous.map_or("none".into(), |p| format!("{p:.2}"))
+            previous.map_or("none".into(), |p| format!("{p:.2}")),
+            ls.map_or("-".into(), |l| format!("{:.2}", l.2)),
+            richardson_value * 1e3,
+            gci * 1e3,
+            100.0 * gci / richardson_value
         )?;
     }
     std::fs::write(out, csv)?;
@@ -432,10 +548,83 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
     println!("wrote {}", out.display());
     if markdown {
         println!(
-            "| material | convention | depth, mm | levels, mN (coarse to fine) | reference, mN | order (3 finest) | order (3 before) |"
+            "| material | convention | depth, mm | levels, mN (coarse to fine) | reference, mN | order (3 finest) | order (3 before) | order (least squares) | Richardson (3 finest), GCI |"
         );
-        println!("|---|---|---|---|---|---|---|");
+        println!("|---|---|---|---|---|---|---|---|---|");
         print!("{md}");
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const H: [f64; 5] = [0.6, 0.42, 0.3, 0.2121, 0.15];
+
+    #[test]
+    fn a_clean_power_law_is_extrapolated_exactly() {
+        // f = 4.6 + 0.3 h^1.3: the free fit finds p = 1.3 and the limit, with no scatter.
+        let levels: Vec<(f64, f64)> = H.iter().map(|&h| (h, 4.6 + 0.3 * h.powf(1.3))).collect();
+        let (value, u, p) = eca_hoekstra(&levels).expect("five levels");
+        assert!((p - 1.3).abs() < 2e-3, "{p}");
+        assert!((value - 4.6).abs() < 1e-4, "{value}");
+        // 1.25 times the finest level's distance from the limit, nothing for scatter.
+        let eps = 0.3 * 0.15f64.powf(1.3);
+        assert!(
+            (u - 1.25 * eps).abs() < 1e-3 * eps + 1e-6,
+            "{u} against {}",
+            1.25 * eps
+        );
+        // Richardson through the three finest levels agrees.
+        let (rv, gci, rp) = richardson([H[2], H[3], H[4]], [levels[2].1, levels[3].1, levels[4].1])
+            .expect("monotone");
+        assert!(
+            (rp - 1.3).abs() < 1e-6 && (rv - 4.6).abs() < 1e-9,
+            "{rv} {rp}"
+        );
+        assert!((gci - 1.25 * eps).abs() < 1e-9);
+    }
+
+    #[test]
+    fn scatter_widens_the_band_and_irregular_orders_take_the_safety_factor_3() {
+        // A first-order trend with an alternating scatter of 0.3 % of the trend's last change:
+        // the three finest levels alone give a wild order, the fit does not.
+        let trend = |h: f64| 10.0 + 0.5 * h;
+        let noise = [0.0, 0.004, -0.004, 0.004, -0.004];
+        let levels: Vec<(f64, f64)> = H
+            .iter()
+            .zip(noise)
+            .map(|(&h, e)| (h, trend(h) + e))
+            .collect();
+        let (value, u, p) = eca_hoekstra(&levels).expect("five levels");
+        let f1 = levels[4].1;
+        assert!((value - 10.0).abs() < u, "{value} +- {u}");
+        assert!(u >= 1.25 * (value - f1).abs(), "{u}");
+        // The band holds the true limit and the scatter.
+        assert!(u > 0.004, "{u}");
+        assert!(
+            (0.5..2.1).contains(&p) || u >= 3.0 * (value - f1).abs(),
+            "{p} {u}"
+        );
+        // Four levels are needed.
+        assert!(eca_hoekstra(&levels[..3]).is_none());
+    }
+
+    #[test]
+    fn the_fits_match_a_direct_least_squares_solution() {
+        // f0 + a h + b h^2 through four points with known residuals: the normal equations'
+        // limit against the exact coefficients of a quadratic through noise-free data.
+        let levels: Vec<(f64, f64)> = H[..4]
+            .iter()
+            .map(|&h| (h, 2.0 - 0.7 * h + 1.1 * h * h))
+            .collect();
+        let fit = ls_fit(&levels, &[1.0, 2.0]).expect("fit");
+        assert!((fit.f0 - 2.0).abs() < 1e-12, "{fit:?}");
+        assert!(fit.sigma < 1e-12 && (fit.at_finest - levels[3].1).abs() < 1e-12);
+        assert!(
+            ls_fit(&levels[..3], &[1.0, 2.0]).is_none(),
+            "no degree of freedom"
+        );
+    }
 }
