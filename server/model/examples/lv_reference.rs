@@ -343,11 +343,10 @@ fn ls_fit(levels: &[(f64, f64)], exps: &[f64]) -> Option<LsFit> {
     let mut a = vec![vec![0.0; m + 1]; m];
     for &(h, f) in levels {
         let b = basis(h);
-        for i in 0..m {
-            for j in 0..m {
-                a[i][j] += b[i] * b[j];
+        for (row, bi) in a.iter_mut().zip(&b) {
+            for (x, bj) in row.iter_mut().zip(b.iter().chain(std::iter::once(&f))) {
+                *x += bi * bj;
             }
-            a[i][m] += b[i] * f;
         }
     }
     for c in 0..m {
@@ -356,11 +355,12 @@ fn ls_fit(levels: &[(f64, f64)], exps: &[f64]) -> Option<LsFit> {
             return None;
         }
         a.swap(c, piv);
-        for r in 0..m {
+        let pivot_row = a[c].clone();
+        for (r, row) in a.iter_mut().enumerate() {
             if r != c {
-                let k = a[r][c] / a[c][c];
-                for j in c..=m {
-                    a[r][j] -= k * a[c][j];
+                let k = row[c] / pivot_row[c];
+                for (x, p) in row.iter_mut().zip(&pivot_row).skip(c) {
+                    *x -= k * p;
                 }
             }
         }
