@@ -129,6 +129,21 @@ impl Ctl {
             .session_ids)
     }
 
+    /// The running sessions with their scene, family and device.
+    ///
+    /// # Errors
+    /// [`ClientError::Rpc`].
+    pub async fn session_summaries(
+        &mut self,
+    ) -> Result<Vec<haptics_proto::v1::SessionSummary>, ClientError> {
+        Ok(self
+            .client
+            .list_sessions(ListSessionsRequest {})
+            .await?
+            .into_inner()
+            .sessions)
+    }
+
     /// Applies `force_n` (newtons) at `point_m` (metres, scene frame) for `duration_s` seconds of
     /// simulated time.
     ///
@@ -305,7 +320,61 @@ pub fn stats_rows(s: &SessionStats) -> Vec<StatRow> {
         row("region_preparation_s", f(s.region_preparation_s, 3), "s"),
         row("contact_ticks", U64(s.contact_ticks), "count"),
         row("companion_ticks", U64(s.companion_ticks), "count"),
+        row(
+            "device",
+            Str(s.device.as_ref().map_or_else(String::new, device_summary)),
+            "",
+        ),
+        row(
+            "out_of_workspace_samples",
+            U64(s.out_of_workspace_samples),
+            "count",
+        ),
     ]
+}
+
+/// One line for a device's capabilities (`hapticctl stats`, `hapticctl sessions --long`):
+/// name, degrees of freedom sensed / actuated, peak and continuous force, stiffness limit,
+/// rate and workspace box (mm), the undeclared ones left out.
+pub fn device_summary(c: &haptics_proto::v1::DeviceCapabilities) -> String {
+    let mut parts = vec![format!(
+        "{} ({}/{} DOF)",
+        if c.name.is_empty() {
+            "unnamed"
+        } else {
+            &c.name
+        },
+        c.sensed_degrees_of_freedom,
+        c.actuated_degrees_of_freedom
+    )];
+    let mut put = |v: f64, text: String| {
+        if v > 0.0 {
+            parts.push(text);
+        }
+    };
+    put(c.max_force_n, format!("{} N peak", c.max_force_n));
+    put(
+        c.max_continuous_force_n,
+        format!("{} N continuous", c.max_continuous_force_n),
+    );
+    put(
+        c.max_stiffness_n_per_m,
+        format!("{} N/m", c.max_stiffness_n_per_m),
+    );
+    put(c.native_rate_hz, format!("{} Hz", c.native_rate_hz));
+    if let (Some(lo), Some(hi)) = (&c.workspace_min_m, &c.workspace_max_m) {
+        let mm = |v: f64| format!("{:.0}", v * 1e3);
+        parts.push(format!(
+            "workspace {},{},{}..{},{},{} mm",
+            mm(lo.x),
+            mm(lo.y),
+            mm(lo.z),
+            mm(hi.x),
+            mm(hi.y),
+            mm(hi.z)
+        ));
+    }
+    parts.join(", ")
 }
 
 /// The statistics as a `FIELD  VALUE  UNIT` table, one line per [`SessionStats`] field.
@@ -364,7 +433,13 @@ pub enum CtlCommand {
         id: String,
     },
     /// List the running session ids, one per line.
-    Sessions,
+    Sessions {
+        /// One row per session: id, scene, model family and the connected device as it
+        /// introduced itself (`-` for none; `connected` for a device that sent no
+        /// capabilities).
+        #[arg(long)]
+        long: bool,
+    },
     /// Apply a force to a session's surface.
     Force {
         /// Session id.
@@ -482,10 +557,32 @@ pub async fn execute(
             ctl.stop(&id).await?;
             writeln!(err, "stopped session {id}").map_err(io_err("<stderr>"))?;
         }
-        CtlCommand::Sessions => {
+        CtlCommand::Sessions { long: false } => {
             for id in ctl.sessions().await? {
                 writeln!(out, "{id}").map_err(io_err("<stdout>"))?;
             }
+        }
+        CtlCommand::Sessions { long: true } => {
+            let rows: Vec<Vec<String>> = ctl
+                .session_summaries()
+                .await?
+                .iter()
+                .map(|s| {
+                    let device = match (&s.device, s.device_connected) {
+                        (Some(c), _) => device_summary(c),
+                        (None, true) => "connected".into(),
+                        (None, false) => "-".into(),
+                    };
+                    vec![
+                        s.session_id.clone(),
+                        s.scene.clone(),
+                        s.model_family.clone(),
+                        device,
+                    ]
+                })
+                .collect();
+            let text = table(&["ID", "SCENE", "FAMILY", "DEVICE"], &rows);
+            write!(out, "{text}").map_err(io_err("<stdout>"))?;
         }
         CtlCommand::Force {
             id,

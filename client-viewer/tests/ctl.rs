@@ -111,9 +111,29 @@ async fn commands_against_a_mock_server() {
     assert_eq!(out, "s-1\n", "start prints only the id on stdout");
     assert!(err.contains("412 nodes"), "{err}");
 
-    let (r, out, _) = run(&mut ctl, CtlCommand::Sessions).await;
+    let (r, out, _) = run(&mut ctl, CtlCommand::Sessions { long: false }).await;
     r.unwrap();
     assert_eq!(out, "s-1\ns-2\n");
+    let (r, out, _) = run(&mut ctl, CtlCommand::Sessions { long: true }).await;
+    r.unwrap();
+    let lines: Vec<&str> = out.lines().collect();
+    assert_eq!(lines.len(), 3, "{out}");
+    assert!(
+        lines[0].starts_with("ID") && lines[0].ends_with("DEVICE"),
+        "{out}"
+    );
+    assert_eq!(
+        lines[1].split_whitespace().take(4).collect::<Vec<_>>(),
+        ["s-1", "lv", "fem", "touch"],
+        "{out}"
+    );
+    assert!(
+        lines[1].ends_with(
+            "touch (6/3 DOF), 3.3 N peak, 0.88 N continuous, 1260 N/m, 1000 Hz, workspace -80,-60,-35..80,60,35 mm"
+        ),
+        "{out}"
+    );
+    assert!(lines[2].ends_with("hybrid  -"), "{out}");
 
     let force = CtlCommand::Force {
         id: "s-1".into(),

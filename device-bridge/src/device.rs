@@ -14,8 +14,12 @@ use thiserror::Error;
 /// Static description of a device: its limits and nominal rate.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DeviceSpec {
-    /// Model name, for logs.
+    /// Model name, for logs and the capabilities the bridge sends (`DeviceCapabilities`).
     pub name: String,
+    /// Pose inputs: 3 (position) or 6 (position and orientation).
+    pub sensed_degrees_of_freedom: u32,
+    /// Force outputs: 3 for a force-feedback arm.
+    pub actuated_degrees_of_freedom: u32,
     /// Peak force the device may render, in N (devices.md S6; Touch 3.3 N, Premium 3.0 22 N).
     pub max_force_n: f64,
     /// Force the motors can hold, in N (devices.md S8, `HD_NOMINAL_MAX_CONTINUOUS_FORCE`; Touch
@@ -43,6 +47,8 @@ impl DeviceSpec {
     pub fn sim_default() -> Self {
         Self {
             name: "sim".to_owned(),
+            sensed_degrees_of_freedom: 3,
+            actuated_degrees_of_freedom: 3,
             max_force_n: 10.0,
             max_continuous_force_n: 3.0,
             max_stiffness_n_per_m: 1000.0,

@@ -158,6 +158,9 @@ impl HapticMasterParams {
 pub fn spec(max_force_n: f64) -> DeviceSpec {
     DeviceSpec {
         name: "hapticmaster".to_owned(),
+        // Position in, force out (an admittance-controlled 3-DOF arm; the gimbal is passive).
+        sensed_degrees_of_freedom: 3,
+        actuated_degrees_of_freedom: 3,
         max_force_n,
         // No rating is public (devices.md section 6): the clamp is not lowered by S8.
         max_continuous_force_n: max_force_n,

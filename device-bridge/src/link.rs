@@ -48,7 +48,7 @@ use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
 use haptics_proto::v1::device_link_client::DeviceLinkClient;
-use haptics_proto::v1::{DeviceSample, ForceCommand};
+use haptics_proto::v1::{DeviceCapabilities, DeviceSample, ForceCommand};
 use hdrhistogram::Histogram;
 use serde::Serialize;
 use thiserror::Error;
@@ -163,6 +163,9 @@ pub struct BridgeConfig {
     pub fault: Option<FaultInjection>,
     /// Pose deadband (fraction of the predicted force, e.g. 0.07; `None`: every sample is sent).
     pub deadband: Option<f64>,
+    /// What the first sample of every stream tells the daemon about the device
+    /// ([`capabilities_of`] its spec; `None`: nothing, as bridges before issue 50 did).
+    pub capabilities: Option<DeviceCapabilities>,
 }
 
 impl BridgeConfig {
@@ -189,6 +192,7 @@ impl BridgeConfig {
             rearm: RearmMode::Auto,
             fault: None,
             deadband: None,
+            capabilities: Some(capabilities_of(spec)),
         }
     }
 
@@ -790,6 +794,23 @@ struct NetCtx {
     delayed: VecDeque<(u64, ForceCommand)>,
 }
 
+/// The capabilities message of a device spec (scene frame when the spec is a
+/// [`crate::transform::Transformed`] device's): name, degrees of freedom, workspace box, peak and
+/// continuous force, stiffness limit and rate.
+pub fn capabilities_of(spec: &DeviceSpec) -> DeviceCapabilities {
+    DeviceCapabilities {
+        name: spec.name.clone(),
+        sensed_degrees_of_freedom: spec.sensed_degrees_of_freedom,
+        actuated_degrees_of_freedom: spec.actuated_degrees_of_freedom,
+        workspace_min_m: Some(spec.workspace_min_m.into()),
+        workspace_max_m: Some(spec.workspace_max_m.into()),
+        max_force_n: spec.max_force_n,
+        max_continuous_force_n: spec.max_continuous_force_n,
+        max_stiffness_n_per_m: spec.max_stiffness_n_per_m,
+        native_rate_hz: spec.rate_hz,
+    }
+}
+
 fn to_proto(s: &OutSample) -> DeviceSample {
     DeviceSample {
         session_id: String::new(),
@@ -797,6 +818,7 @@ fn to_proto(s: &OutSample) -> DeviceSample {
         device_time_us: s.state.time_us,
         position_m: Some(s.state.position_m.into()),
         velocity_m_per_s: Some(s.state.velocity_m_per_s.into()),
+        capabilities: None,
     }
 }
 
@@ -973,6 +995,7 @@ async fn run_stream(
     let (out_tx, out_rx) = mpsc::channel::<DeviceSample>(config.sample_queue);
     let mut first_msg = to_proto(&first);
     first_msg.session_id.clone_from(&config.session_id);
+    first_msg.capabilities.clone_from(&config.capabilities);
     // The first sample carries the session id: never drop it by injection.
     let fault = ctx.fault.take();
     ctx.forward(&out_tx, first_msg);

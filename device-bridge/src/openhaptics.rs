@@ -331,6 +331,10 @@ impl OpenHapticsDevice {
         let has_safety_switch = check(&api, "safety switch").is_ok();
         let spec = DeviceSpec {
             name: "openhaptics".into(),
+            // The Touch, Desktop and Premium 1.5 (HD_INPUT_DOF / HD_OUTPUT_DOF not queried:
+            // the servo renders a 3-DOF force either way).
+            sensed_degrees_of_freedom: 6,
+            actuated_degrees_of_freedom: 3,
             // The peak, held only as long as the thermal limit (S8) allows, toward the
             // continuous rating.
             max_force_n: peak,

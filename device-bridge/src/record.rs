@@ -73,6 +73,7 @@ pub fn write_mcap_file(path: &Path, rows: &[TickRecord]) -> std::io::Result<()> 
             device_time_us: t_ns / 1000,
             position_m: Some(Vec3::from(r.position_m)),
             velocity_m_per_s: Some(Vec3::from(velocity)),
+            capabilities: None,
         };
         rec.write(topic::DEVICE_SAMPLE, t_ns, &sample)
             .map_err(other)?;

@@ -58,6 +58,8 @@ pub fn spec_from_caps(caps: &Caps) -> DeviceSpec {
         } else {
             name
         },
+        sensed_degrees_of_freedom: u32::from(caps.dof_in),
+        actuated_degrees_of_freedom: u32::from(caps.dof_out),
         max_force_n: f64::from(caps.peak_force_n),
         max_continuous_force_n: f64::from(caps.continuous_force_n),
         max_stiffness_n_per_m: f64::from(caps.max_stiffness_n_per_m),

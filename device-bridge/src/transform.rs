@@ -179,6 +179,8 @@ impl DeviceTransform {
         }
         DeviceSpec {
             name: spec.name.clone(),
+            sensed_degrees_of_freedom: spec.sensed_degrees_of_freedom,
+            actuated_degrees_of_freedom: spec.actuated_degrees_of_freedom,
             max_force_n: spec.max_force_n / self.force_scale,
             max_continuous_force_n: spec.max_continuous_force_n / self.force_scale,
             max_stiffness_n_per_m: spec.max_stiffness_n_per_m / (self.force_scale * self.scale),

@@ -22,6 +22,8 @@ use tonic::{Request, Response, Status, Streaming};
 struct Seen {
     /// `session_id` of every sample, per stream.
     streams: Vec<Vec<(u64, String)>>,
+    /// The capabilities of each stream's samples that carried any, per stream.
+    capabilities: Vec<Vec<(u64, haptics_proto::v1::DeviceCapabilities)>>,
 }
 
 #[derive(Clone)]
@@ -61,6 +63,7 @@ impl DeviceLink for Wall {
         let stream_index = {
             let mut s = seen.lock().unwrap();
             s.streams.push(Vec::new());
+            s.capabilities.push(Vec::new());
             s.streams.len() - 1
         };
         let limit = self.close_first_after.filter(|_| stream_index == 0);
@@ -68,8 +71,13 @@ impl DeviceLink for Wall {
         tokio::spawn(async move {
             let mut n = 0;
             while let Ok(Some(sample)) = inbound.message().await {
-                seen.lock().unwrap().streams[stream_index]
-                    .push((sample.seq, sample.session_id.clone()));
+                {
+                    let mut s = seen.lock().unwrap();
+                    s.streams[stream_index].push((sample.seq, sample.session_id.clone()));
+                    if let Some(c) = &sample.capabilities {
+                        s.capabilities[stream_index].push((sample.seq, c.clone()));
+                    }
+                }
                 n += 1;
                 if limit.is_some_and(|l| n > l) {
                     let _ = tx
@@ -216,6 +224,20 @@ async fn press_against_a_virtual_wall_renders_its_force_and_ends_at_zero() {
     let samples = &seen.streams[0];
     assert_eq!(samples[0].1, "sess-1");
     assert!(samples.windows(2).all(|w| w[1].0 > w[0].0));
+    // The first sample, and only it, introduces the device: the sim probe's spec.
+    let caps = &seen.capabilities[0];
+    assert_eq!(caps.len(), 1, "{caps:?}");
+    assert_eq!(caps[0].0, samples[0].0);
+    let c = &caps[0].1;
+    assert_eq!((c.name.as_str(), c.sensed_degrees_of_freedom), ("sim", 3));
+    assert_eq!(c.actuated_degrees_of_freedom, 3);
+    assert_eq!((c.max_force_n, c.max_continuous_force_n), (10.0, 3.0));
+    assert_eq!(
+        (c.max_stiffness_n_per_m, c.native_rate_hz),
+        (1000.0, 1000.0)
+    );
+    assert_eq!(c.workspace_min_m, Some(Vec3::new(-0.2, -0.2, -0.2)));
+    assert_eq!(c.workspace_max_m, Some(Vec3::new(0.2, 0.2, 0.2)));
 
     // One record per tick; forces in use carry their round trip.
     assert_eq!(report.ticks.len() as u64, s.ticks);
@@ -290,9 +312,12 @@ async fn a_stream_dropped_by_the_server_zeroes_force_and_reconnects() {
     let s = &report.summary;
     assert!(s.link_failures >= 1);
     assert!(s.streams_opened >= 2 && s.reconnects >= 1, "{s}");
-    // Every new stream starts with the session id again.
-    for stream in &seen.lock().unwrap().streams {
+    // Every new stream starts with the session id and the device's capabilities again.
+    let seen = seen.lock().unwrap();
+    for (stream, caps) in seen.streams.iter().zip(&seen.capabilities) {
         assert_eq!(stream[0].1, "sess-1");
+        assert_eq!(caps.len(), 1, "{caps:?}");
+        assert_eq!((caps[0].0, caps[0].1.name.as_str()), (stream[0].0, "sim"));
     }
     assert_stopped_at_zero(&report, &monitor);
 }

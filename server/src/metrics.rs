@@ -5,7 +5,8 @@
 //! ([`crate::servo::LatencyBuckets`]).
 //!
 //! Per session (labels `session`, `scene`, `family`): loop rate, steps, overruns, step-time and
-//! pose-to-force histograms (seconds), device samples accepted and rejected, faulted, in
+//! pose-to-force histograms (seconds), device samples accepted, rejected and outside the
+//! device's declared workspace, faulted, in
 //! contact, simulated time, peak force, watchers and their frames/bytes, active elements and
 //! particles, surface vertices. Process-wide: the number of sessions.
 //!
@@ -185,6 +186,14 @@ impl Collector for SessionCollector {
             "Device samples rejected (non-finite, absurd, out of order)",
             Counter,
             |r| Value::Counter(r.session.shared.rejected_samples.load(Relaxed)),
+        )?;
+        per_session(
+            e,
+            &rows,
+            "hapticd_out_of_workspace_samples",
+            "Device samples dropped outside the workspace the device declared",
+            Counter,
+            |r| Value::Counter(r.session.shared.out_of_workspace_samples.load(Relaxed)),
         )?;
         per_session(
             e,

@@ -256,6 +256,11 @@ impl SessionControl for Services {
             device_silences: st.device_silences,
             overrunning: st.overrunning,
             demoted: st.demoted,
+            device: s.device.capabilities(),
+            out_of_workspace_samples: s
+                .shared
+                .out_of_workspace_samples
+                .load(std::sync::atomic::Ordering::Relaxed),
             ..watcher_stats(&s.watcher_stats)
         }))
     }
@@ -265,8 +270,22 @@ impl SessionControl for Services {
         req: Request<ListSessionsRequest>,
     ) -> Result<Response<ListSessionsResponse>, Status> {
         let caller = self.auth.authorize(&req, Action::ListSessions, None)?;
+        let session_ids = self.auth.visible(&caller, self.manager.ids());
+        // A session stopped between the two calls is left out of the details.
+        let sessions = session_ids
+            .iter()
+            .filter_map(|id| self.manager.get(id).ok())
+            .map(|s| SessionSummary {
+                session_id: s.id.clone(),
+                scene: s.scene.clone(),
+                model_family: s.family.to_string(),
+                device_connected: s.has_device(),
+                device: s.device.capabilities(),
+            })
+            .collect();
         Ok(Response::new(ListSessionsResponse {
-            session_ids: self.auth.visible(&caller, self.manager.ids()),
+            session_ids,
+            sessions,
         }))
     }
 }
@@ -341,12 +360,29 @@ impl DeviceLink for Services {
                 "the first DeviceSample must carry session_id",
             ));
         }
+        // A device that introduces itself is checked before the session is touched.
+        if let Some(c) = &first.capabilities {
+            crate::device::check(c).map_err(Status::invalid_argument)?;
+        }
         let session = self.manager.get(&first.session_id)?;
         let (tx, rx) = mpsc::channel(256);
         let mut pose_in = session.attach_device(tx)?;
-        let (limits, instance) = (session.limits, self.manager.instance().to_owned());
+        let caps = first.capabilities.clone();
+        let workspace = caps.as_ref().and_then(crate::device::workspace);
+        let device_force_n = caps
+            .as_ref()
+            .map_or(f64::INFINITY, crate::device::force_limit_n);
+        let limits = session.limits.map(|l| crate::session::LinkLimits {
+            max_force_n: l.max_force_n.min(device_force_n),
+            ..l
+        });
+        let instance = self.manager.instance().to_owned();
         session.set_force_deadband(deadband);
-        tracing::info!(session = %session.id, "device connected");
+        match &caps {
+            Some(c) => tracing::info!(session = %session.id, device = %c.name, "device connected"),
+            None => tracing::info!(session = %session.id, "device connected"),
+        }
+        session.device.attach(caps);
         tokio::spawn(async move {
             let mut next = Some(first);
             let mut last_seq: Option<u64> = None;
@@ -375,6 +411,14 @@ impl DeviceLink for Services {
                     continue;
                 }
                 match validate_sample(&sample) {
+                    Ok((p, _))
+                        if workspace.is_some_and(|ws| !crate::device::in_workspace(ws, p)) =>
+                    {
+                        session
+                            .shared
+                            .out_of_workspace_samples
+                            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    }
                     Ok((p, v)) => {
                         last_seq = Some(sample.seq);
                         pose_in.write(Pose {
@@ -403,6 +447,7 @@ impl DeviceLink for Services {
                 }
             }
             tracing::info!(session = %session.id, "device disconnected");
+            session.device.detach();
             session.detach_device(pose_in);
         });
         let mut response = Response::new(Box::pin(ReceiverStream::new(rx)) as ForceStream);

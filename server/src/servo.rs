@@ -214,6 +214,8 @@ pub struct SessionShared {
     pub rejected_samples: AtomicU64,
     /// Device samples dropped because their `seq` was not newer than the last one accepted.
     pub out_of_order_samples: AtomicU64,
+    /// Device samples dropped because they lay outside the workspace the device declared.
+    pub out_of_workspace_samples: AtomicU64,
     /// Set by the servo when it has sent its final zero force and exited.
     pub finished: AtomicBool,
 }

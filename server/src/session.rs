@@ -208,6 +208,8 @@ pub struct Session {
     servo_thread: std::thread::Thread,
     /// The force-stream deadband and its counters.
     pub deadband: Arc<DeadbandShared>,
+    /// The attached device as it introduced itself, and its limits ([`crate::device`]).
+    pub device: Arc<crate::device::DeviceShared>,
     commands: Mutex<rtrb::Producer<Command>>,
     pose_input: Mutex<Option<triple_buffer::Input<Pose>>>,
     link: Arc<Mutex<Option<ForceSender>>>,
@@ -283,6 +285,11 @@ impl Session {
             .lock()
             .map_err(|_| ServerError::Internal("link poisoned".into()))? = Some(tx);
         Ok(input)
+    }
+
+    /// A device stream is attached.
+    pub fn has_device(&self) -> bool {
+        self.pose_input.lock().is_ok_and(|slot| slot.is_none())
     }
 
     /// Detaches the device stream and returns the pose input (publishing "disconnected").
@@ -649,6 +656,8 @@ impl SessionManager {
         let fwd_link = link.clone();
         let deadband = Arc::new(DeadbandShared::default());
         let fwd_deadband = deadband.clone();
+        let device = Arc::new(crate::device::DeviceShared::default());
+        let fwd_device = device.clone();
         let forwarder = std::thread::Builder::new()
             .name(format!("fwd-{id}"))
             .spawn(move || {
@@ -667,7 +676,8 @@ impl SessionManager {
                         }
                         let sender = fwd_link.lock().ok().and_then(|l| l.clone());
                         if let Some(tx) = sender {
-                            if tx.try_send(Ok(force_command(&f))).is_ok() {
+                            let limits = fwd_device.limits();
+                            if tx.try_send(Ok(force_command(&f, limits))).is_ok() {
                                 fwd_deadband.sent.fetch_add(1, Ordering::Relaxed);
                             }
                             last = Some((f, Instant::now()));
@@ -752,6 +762,7 @@ impl SessionManager {
             limits,
             servo_thread: servo.thread().clone(),
             deadband,
+            device,
             commands: Mutex::new(cmd_tx),
             pose_input: Mutex::new(Some(pose_in)),
             link,
@@ -811,13 +822,17 @@ impl SessionManager {
     }
 }
 
-fn force_command(f: &ForceOut) -> ForceCommand {
+/// The command for `f`, its force and contact stiffness clamped to the attached device's
+/// `(force N, stiffness N/m)` limits ([`crate::device::DeviceShared::limits`]).
+fn force_command(f: &ForceOut, (max_force_n, max_stiffness_n_per_m): (f64, f64)) -> ForceCommand {
+    let force = crate::device::clamp_force(f.force_n, max_force_n);
+    let stiffness = crate::device::clamp_stiffness(f.stiffness_n_per_m, max_stiffness_n_per_m);
     ForceCommand {
         seq: f.seq,
-        force_n: Some(Vec3::from(f.force_n.to_array())),
+        force_n: Some(Vec3::from(force.to_array())),
         server_time_us: unix_time_us(),
         in_contact: f.in_contact,
-        stiffness_n_per_m: f.stiffness_n_per_m.to_vec(),
+        stiffness_n_per_m: stiffness.to_vec(),
         proxy_position_m: Some(Vec3::from(f.proxy_m.to_array())),
     }
 }

@@ -47,6 +47,7 @@ async fn connect_headers(
         device_time_us: 1,
         position_m: Some([0.1, 0.1, 0.1].into()),
         velocity_m_per_s: Some([0.0; 3].into()),
+        capabilities: None,
     })
     .await
     .unwrap();

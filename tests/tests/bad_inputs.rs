@@ -57,6 +57,7 @@ fn sample(session: &str, seq: u64, p: [f64; 3]) -> DeviceSample {
         device_time_us: seq * 1000,
         position_m: Some(Vec3::from(p)),
         velocity_m_per_s: Some(Vec3::new(0.0, 0.0, 0.0)),
+        capabilities: None,
     }
 }
 

@@ -144,6 +144,7 @@ fn rpcs(target: &str) -> Vec<(&'static str, Kind, Vec<u8>)> {
                 device_time_us: 1,
                 position_m: v(0.0, 0.0, 0.05),
                 velocity_m_per_s: v(0.0, 0.0, 0.0),
+                capabilities: None,
             }
             .encode_to_vec(),
         ),

@@ -263,6 +263,7 @@ async fn a_browser_gets_the_new_triangles_when_a_press_subdivides_the_surface() 
                 device_time_us: (t * 1e6) as u64,
                 position_m: Some(Vec3::new(x, y, z + r - depth)),
                 velocity_m_per_s: Some(Vec3::new(0.0, 0.0, 0.0)),
+                capabilities: None,
             };
             if tx.send(s).await.is_err() {
                 break;

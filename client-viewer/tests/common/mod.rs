@@ -184,6 +184,21 @@ impl SurfaceStream for Mock {
     }
 }
 
+/// A Phantom Touch as it introduces itself (its published ratings; scene frame = device frame).
+pub fn touch() -> DeviceCapabilities {
+    DeviceCapabilities {
+        name: "touch".into(),
+        sensed_degrees_of_freedom: 6,
+        actuated_degrees_of_freedom: 3,
+        workspace_min_m: Some(Vec3::from([-0.08, -0.06, -0.035])),
+        workspace_max_m: Some(Vec3::from([0.08, 0.06, 0.035])),
+        max_force_n: 3.3,
+        max_continuous_force_n: 0.88,
+        max_stiffness_n_per_m: 1260.0,
+        native_rate_hz: 1000.0,
+    }
+}
+
 /// Statistics with every field set to a distinct non-default value.
 pub fn canned_stats(id: &str) -> SessionStats {
     SessionStats {
@@ -229,6 +244,8 @@ pub fn canned_stats(id: &str) -> SessionStats {
         region_preparation_s: 1.234,
         contact_ticks: 5_000,
         companion_ticks: 40,
+        device: Some(touch()),
+        out_of_workspace_samples: 9,
     }
 }
 
@@ -319,6 +336,22 @@ impl SessionControl for Mock {
     ) -> Result<Response<ListSessionsResponse>, Status> {
         Ok(Response::new(ListSessionsResponse {
             session_ids: vec!["s-1".into(), "s-2".into()],
+            sessions: vec![
+                SessionSummary {
+                    session_id: "s-1".into(),
+                    scene: "lv".into(),
+                    model_family: "fem".into(),
+                    device_connected: true,
+                    device: Some(touch()),
+                },
+                SessionSummary {
+                    session_id: "s-2".into(),
+                    scene: "lv-hybrid".into(),
+                    model_family: "hybrid".into(),
+                    device_connected: false,
+                    device: None,
+                },
+            ],
         }))
     }
 }
