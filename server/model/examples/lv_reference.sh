@@ -5,21 +5,23 @@
 # (lv_probe_half.geo; s = element size under the probe, mm), every level solved by
 # `lv_reference solve` for St. Venant-Kirchhoff (sphere depths 0.25, 0.5, 1 mm: it has no
 # equilibrium past about 1.2-1.4 mm on the fine levels) and the stable neo-Hookean material
-# (0.25 to 4 mm), then `lv_reference combine` (Richardson through the three finest levels,
-# Roache's GCI). A level whose solve stops keeps the rows it converged (the log says why).
+# (0.25 to 4 mm), then `lv_reference combine` (with four or more levels the least-squares
+# estimate of Eca & Hoekstra 2014 over all of them; Richardson through the three finest levels
+# and Roache's GCI are kept as columns). A level whose solve stops keeps the rows it converged
+# (the log says why).
 #
 #   server/model/examples/lv_reference.sh [OUT_DIR] [LEVELS]
 #
-# LEVELS: the size parameters, coarse to fine (default "0.6 0.42 0.3 0.2121"). A level already
-# solved (OUT_DIR/level_S_MATERIAL.csv.done) is not solved again. Needs gmsh
-# (tests/install-gmsh.sh). Run time on the shared 2-core machine: about 1.5 h, most of it the
-# 0.2121 mm level (31 403 nodes: about 16 min for StVK, 40-50 min for the stable neo-Hookean
-# material to 4 mm); the 0.15 mm level (about 80 000 nodes) would take several hours.
+# LEVELS: the size parameters, coarse to fine (default "0.6 0.42 0.3 0.2121 0.15"). A level
+# already solved (OUT_DIR/level_S_MATERIAL.csv.done) is not solved again. Needs gmsh
+# (tests/install-gmsh.sh). Run time on the shared 2-core machine: about 3.5 h, most of it the
+# two finest levels (0.2121 mm, 31 403 nodes: about 16 min for StVK, 40-50 min for the stable
+# neo-Hookean material to 4 mm; 0.15 mm, 82 389 nodes: about 25 min and 1 h).
 set -euo pipefail
 root=$(cd "$(dirname "$0")/../../.." && pwd)
 cd "$root"
 out=${1:-target/lv-reference}
-levels=${2:-"0.6 0.42 0.3 0.2121"}
+levels=${2:-"0.6 0.42 0.3 0.2121 0.15"}
 command -v gmsh >/dev/null || { echo "gmsh not found: run tests/install-gmsh.sh" >&2; exit 1; }
 mkdir -p "$out"
 cargo build --release -p haptic-model --example lv_reference
