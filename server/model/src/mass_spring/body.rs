@@ -6,8 +6,7 @@
 //! completed implicitly ([`Probe::finish_implicit`], the same probe as the FEM's), and the
 //! subdivided area's spring constants looked up in the calibrated table at the current
 //! displacement of its contact node once per step (section 3.2.4). After the steps, the
-//! contact node (the coarse node nearest the contact point; with an organ table the ends of
-//! the nearest table site, [`MassSpringBody::centre_on_sites`]) becomes a *centre*; an area is
+//! contact node (the coarse node nearest the contact point) becomes a *centre*; an area is
 //! kept subdivided while its centre was touched within `coarsen_delay_s`, and until it has
 //! come back to rest (within [`QUIET_DISPLACEMENT_OVER_L`]). When the set of
 //! centres changes, an **event** recomputes the refinement's labels ([`super::refine`]), edits
@@ -132,9 +131,6 @@ pub struct MassSpringBody {
     /// The organ table ([`super::organ`]) and the contact factor `beta` every spring constant
     /// is multiplied by now (1 without a table; kept when the probe leaves).
     organ: Option<OrganTable>,
-    /// Whether the contact's centres are the ends of its nearest table site
-    /// ([`MassSpringBody::centre_on_sites`]) rather than the nearest node.
-    site_centres: bool,
     contact_factor: f64,
     /// The probe's sphere depth at the last sub-step in contact, m (see
     /// [`MassSpringBody::contact_depth_m`]).
@@ -323,7 +319,6 @@ impl MassSpringBody {
             km_area: [km; MAX_CENTRES],
             probe,
             organ: None,
-            site_centres: false,
             contact_factor: 1.0,
             contact_depth_m: 0.0,
             worst_lambda_per_s2: worst_lambda,
@@ -392,21 +387,7 @@ impl MassSpringBody {
             critical_time_step_s(self.worst_lambda_per_s2 * beta_max),
         )?;
         self.organ = Some(table);
-        self.site_centres = true;
         Ok(self)
-    }
-
-    /// Whether subdivision centres on the contact's nearest organ-table *site* (a node: that
-    /// node; an edge's midpoint: both its ends) instead of the paper's nearest node alone. On
-    /// with an organ table ([`MassSpringBody::with_organ_table`]) and in its calibration
-    /// ([`super::organ::calibrate_organ`]): a site's subdivided factor is calibrated with the
-    /// probe on that site, and with the nearest node alone the area under a press near an
-    /// edge's midpoint depended on the press path (one centre or both ends; on
-    /// `lv-surface-springs` both ends read up to +46 % at 0.25 mm against a table made with
-    /// one: docs/accuracy.md, "The organ table, session 4"). Off by default (the paper's rule).
-    pub fn centre_on_sites(mut self, on: bool) -> Self {
-        self.site_centres = on;
-        self
     }
 
     /// The organ table, if any.
@@ -871,63 +852,6 @@ impl MassSpringBody {
         best.map(|b| b.1)
     }
 
-    /// The contact's centres with [`MassSpringBody::centre_on_sites`]: the free ends of the
-    /// table site nearest the probe's contact
-    /// point among the sites of the triangle it touches (a subdivided triangle's corners; a
-    /// coarse triangle's corners and edge midpoints): the node itself when the nearest site is
-    /// a coarse node (the contact node C of the paper), both ends of the edge when it is an
-    /// edge's midpoint. The organ table's subdivided factor of a site is calibrated with the
-    /// probe pressing that site, i.e. with exactly these centres; the paper's nearest node
-    /// alone made the subdivided area depend on the press path (issue 46 section 4,
-    /// docs/accuracy.md "The organ table, session 4").
-    fn contact_centres(&self) -> ([u32; 2], usize) {
-        let none = ([0, 0], 0);
-        let st = self.probe.state;
-        if !st.in_contact {
-            return none;
-        }
-        let point = st.proxy_m - st.normal * self.probe.params.radius_m;
-        let nc = self.surface.node_count() as u32;
-        let Some(&tri) = self.probe.surface.triangles.get(st.triangle as usize) else {
-            return none;
-        };
-        let ends = |s: u32| {
-            if s < nc {
-                [s, s]
-            } else {
-                self.surface.edges()[(s - nc) as usize]
-            }
-        };
-        // The triangle's corners are active slots (their contact positions are current); a
-        // coarse triangle's edge midpoints are its corners' means.
-        let mut best: Option<(f64, u32)> = None;
-        let mut consider = |s: u32, at: DVec3| {
-            let d = (at - point).length_squared();
-            if best.is_none_or(|(bd, _)| d < bd) {
-                best = Some((d, s));
-            }
-        };
-        let coarse = tri.iter().all(|&s| s < nc);
-        for k in 0..3 {
-            let (a, b) = (tri[k], tri[(k + 1) % 3]);
-            consider(a, self.cx[a as usize]);
-            if coarse && let Some(e) = self.surface.edge_between(a, b) {
-                consider(nc + e, 0.5 * (self.cx[a as usize] + self.cx[b as usize]));
-            }
-        }
-        let Some((_, site)) = best else {
-            return none;
-        };
-        let mut out = none;
-        for p in ends(site) {
-            if !self.fixed[p as usize] && !out.0[..out.1].contains(&p) {
-                out.0[out.1] = p;
-                out.1 += 1;
-            }
-        }
-        out
-    }
-
     /// Updates the centres from the contact (touched now: refreshed or added; untouched for
     /// longer than the delay: removed) and runs an event when they changed.
     fn update_centres(&mut self) {
@@ -936,15 +860,7 @@ impl MassSpringBody {
         }
         let now = self.time_s;
         let mut added = false;
-        let (contact, count) = if self.site_centres {
-            self.contact_centres()
-        } else {
-            match self.contact_node() {
-                Some(c) => ([c, c], 1),
-                None => ([0, 0], 0),
-            }
-        };
-        for &c in &contact[..count] {
+        if let Some(c) = self.contact_node() {
             match self.centres[..self.centre_count]
                 .iter_mut()
                 .find(|k| k.node == c)

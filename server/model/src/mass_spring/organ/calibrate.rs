@@ -55,7 +55,7 @@ pub const DEPTH_FALLBACK_TOLERANCE: f64 = 2e-2;
 /// at each depth. Every factor multiplies the whole body's springs, so the sub-step plan grows
 /// with the largest: at 0.1 mm, where the subdivided surface is touched later, the factors
 /// reach 3-4 times the coarse ones (on `lv-surface-springs` every site is clamped there, and
-/// 22-48 sites at 0.25-1 mm; until session 4, 23 nodes with a broken eq. 4 row needed 20-124).
+/// 21-48 sites at 0.25-1 mm; until session 4, 23 nodes with a broken eq. 4 row needed 20-124).
 pub const SUBDIVIDED_FACTOR_SPREAD: f64 = 2.0;
 
 /// What the calibration needs of a scene besides the surface: its constants, the probe, the
@@ -313,18 +313,14 @@ pub fn calibrate_organ(
         "organ calibration",
     )?;
     let subdivided = if params.subdivision.rings > 0 {
-        // Centred on the pressed site, as the body with its organ table is at run time.
-        Some(
-            MassSpringBody::new(
-                surface.clone(),
-                params,
-                setup.subdivision_table.cloned(),
-                setup.probe,
-                setup.integrator,
-                "organ calibration",
-            )?
-            .centre_on_sites(true),
-        )
+        Some(MassSpringBody::new(
+            surface.clone(),
+            params,
+            setup.subdivision_table.cloned(),
+            setup.probe,
+            setup.integrator,
+            "organ calibration",
+        )?)
     } else {
         None
     };
