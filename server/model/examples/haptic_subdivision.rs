@@ -104,6 +104,21 @@ enum Run {
         #[arg(long, default_value_t = 1.5)]
         hold_s: f64,
     },
+    /// Recomputes some rows of a scene file's eq. 4 table (`calibration_file`) in place: the
+    /// given nodes, or every node with a sample the calibration could not match (its
+    /// displacement then repeats the previous one's, plus 1e-9); the key and the other rows are
+    /// kept (the table's definition is unchanged: use `haptic-calibrate` when it is not).
+    Recalibrate {
+        /// The scene file whose `calibration_file` is rewritten.
+        #[arg(long)]
+        scene_file: PathBuf,
+        /// Nodes to recompute [default: the nodes with an unmatched sample].
+        #[arg(long, value_delimiter = ',')]
+        nodes: Vec<u32>,
+        /// Threads [default: the cores].
+        #[arg(long)]
+        threads: Option<usize>,
+    },
 }
 
 /// Element size of the paper's mesh, m.
@@ -154,6 +169,11 @@ fn main() -> anyhow::Result<()> {
             depths,
             hold_s,
         } => organ::feel(scene.as_deref(), scene_file.as_ref(), &depths, hold_s),
+        Run::Recalibrate {
+            scene_file,
+            nodes,
+            threads,
+        } => organ::recalibrate(&scene_file, &nodes, threads),
     }
 }
 

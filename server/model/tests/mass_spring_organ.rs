@@ -2,15 +2,13 @@
 //! `lv-surface-springs` pressed as a user feels it ([`press::staircase`], ramps of 0.5 s and
 //! holds of 1.5 s through `SoftBody::tick`) at every point of its stored FEM reference
 //! (`scene/calibrations/lv-surface-springs.reference.csv`: the lv-probe point's deep
-//! stable neo-Hookean reference and our two-level solves at the other points, corrected to it),
-//! with its run-time subdivision and without: the force of the never-subdivided surface within
-//! 10 % of the reference at the measured sphere depth from 0.25 to 4 mm at every point and on
-//! a node, an edge's midpoint and a triangle's centroid near the lv-probe point (the subdivided
-//! surface within the looser bounds below: not yet the issue's 10 %), each hold steady (the
-//! largest tick-to-tick change at most 7 % of the held force), and the tick with the organ
-//! table allocation-free. Points p3-p5 (`springs_reference/lv_points.reference.csv`, not yet
-//! the scene's reference: the table was calibrated without them) within 10 % never subdivided
-//! (12 % at p5 from 3 mm) and the present bounds subdivided.
+//! stable neo-Hookean reference and our two-level solves at p1-p5, corrected to it), with its
+//! run-time subdivision and without: the force of the never-subdivided surface within 10 % of
+//! the reference at the measured sphere depth from 0.25 to 4 mm at every point and on a node,
+//! an edge's midpoint and a triangle's centroid near the lv-probe point (the subdivided surface
+//! within the looser bounds below: not yet the issue's 10 %), each hold steady (the largest
+//! tick-to-tick change at most 7 % of the held force), and the tick with the organ table
+//! allocation-free.
 
 #[path = "common/counting_alloc.rs"]
 mod counting_alloc;
@@ -23,42 +21,24 @@ use haptic_model::mass_spring::{MassSpringBody, OrganReference};
 use haptic_model::press::{self, HoldParams, PressLine, lv_epicardium_point};
 use haptic_model::scene::{Scene, load_builtin};
 
-/// Device depths pressed, m.
+/// Device depths pressed at the scene's first three points, m.
 const DEPTHS_M: [f64; 6] = [0.25e-3, 0.5e-3, 1e-3, 2e-3, 3e-3, 4e-3];
+/// Device depths pressed at p3-p5, m (four: the test's cost).
+const P345_DEPTHS_M: [f64; 4] = [0.25e-3, 1e-3, 2e-3, 4e-3];
 /// The acceptance tolerance against the reference (issue 46 section 4), met by the coarse
-/// surface at every reference point (measured 2026-11-26, session 3: -6.1 to +9.5 %, the
-/// contact factor calibrated on nodes and edge midpoints); the bounds the subdivided surface is
-/// held to until it meets it (measured: -6.7 to +38.9 % at 0.25 and 0.5 mm, -6.7 to +15.1 %
-/// from 1 mm; docs/accuracy.md).
+/// surface at every reference point (measured 2026-11-26, session 4, the organ table
+/// calibrated to the six points: -7.7 to +9.5 %); the bounds the subdivided surface is held
+/// to until it meets it (measured: -5.4 to +38.9 % below 1 mm, -7.9 to +14.7 % from 1 mm;
+/// docs/accuracy.md, "The organ table, session 4").
 const TOLERANCE: f64 = 0.10;
 const SUBDIVIDED_SHALLOW_TOLERANCE: f64 = 0.40;
 const SUBDIVIDED_TOLERANCE: f64 = 0.20;
 /// Device depths of the node / edge / centroid presses, m.
 const SITE_DEPTHS_M: [f64; 4] = [0.5e-3, 1e-3, 2e-3, 4e-3];
-/// Their tolerance, never subdivided (the issue's; measured 2026-11-26: -8.2 to +0.9 %) and
-/// subdivided (measured -14.8 to +16.8 %: not yet the issue's 10 %).
+/// Their tolerance, never subdivided (the issue's; measured -8.2 to +3.4 %) and subdivided
+/// (measured -14.8 to +14.8 %: not yet the issue's 10 %).
 const SITE_TOLERANCE: f64 = 0.10;
 const SITE_SUBDIVIDED_TOLERANCE: f64 = 0.20;
-/// The six-point reference: the scene's three points and p3-p5 (session 4, the same
-/// `springs_reference/` pipeline, lv-probe's rows reused for the correction).
-const SIX_POINTS: &str = include_str!("../examples/springs_reference/lv_points.reference.csv");
-/// Device depths pressed at p3-p5, m (four, not the six of the calibration points: the
-/// test's cost).
-const P345_DEPTHS_M: [f64; 4] = [0.25e-3, 1e-3, 2e-3, 4e-3];
-/// Their tolerance against the six-point reference (measured 2026-11-26, session 4,
-/// docs/accuracy.md). Never subdivided: the issue's 10 % (p3 / p4 -6.9 to +7.7 %, p5 -9.5 to
-/// +2.3 % to 2 mm), except p5 from 3 mm (-10.2 %: 12 %; its reference +-5 %). Subdivided,
-/// the present bounds (not the issue's 10 %): below 1 mm 55 % (+32 / +48 / +43 % at 0.25 mm),
-/// 1-2 mm 20 % (-6.2 to +10.6 %), from 3 mm 40 % (+7 / +22 / +34 % at 4 mm).
-fn p345_tolerance(name: &str, subdivided: bool, device_depth_m: f64) -> f64 {
-    match (subdivided, device_depth_m) {
-        (false, d) if name == "p5" && d > 2.5e-3 => 0.12,
-        (false, _) => TOLERANCE,
-        (true, d) if d < 0.9e-3 => 0.55,
-        (true, d) if d < 2.5e-3 => SUBDIVIDED_TOLERANCE,
-        (true, _) => 0.40,
-    }
-}
 /// The force JND: the largest tick-to-tick change allowed in a hold.
 const JND: f64 = 0.07;
 
@@ -101,7 +81,13 @@ fn reference(scene: &Scene) -> OrganReference {
 fn lv_surface_springs_follows_its_reference_subdivided_and_not() {
     let scene = scene();
     let reference = reference(&scene);
-    assert!(reference.point("lv-probe").is_some());
+    let names: Vec<&str> = reference.points().iter().map(|p| p.name.as_str()).collect();
+    assert_eq!(names, ["lv-probe", "p1", "p2", "p3", "p4", "p5"]);
+    assert_eq!(
+        include_str!("../examples/springs_reference/lv_points.reference.csv"),
+        include_str!("../src/scene/calibrations/lv-surface-springs.reference.csv"),
+        "the scene's reference is springs_reference/lv_points.reference.csv"
+    );
     let mut failures = Vec::new();
     for subdivided in [true, false] {
         for p in reference.points() {
@@ -110,7 +96,12 @@ fn lv_surface_springs_follows_its_reference_subdivided_and_not() {
                 (true, false) => SUBDIVIDED_TOLERANCE,
                 (false, _) => TOLERANCE,
             };
-            failures.extend(press_point(&scene, p, subdivided, &DEPTHS_M, tolerance));
+            let depths: &[f64] = if ["p3", "p4", "p5"].contains(&p.name.as_str()) {
+                &P345_DEPTHS_M
+            } else {
+                &DEPTHS_M
+            };
+            failures.extend(press_point(&scene, p, subdivided, depths, tolerance));
         }
     }
     assert!(failures.is_empty(), "{failures:#?}");
@@ -162,41 +153,6 @@ fn press_point(
         }
     }
     failures
-}
-
-/// Points p3-p5 (z = -12 / -15 / -17.5 mm, three sides; `springs_reference/lv_points.csv`),
-/// whose references (same pipeline as p1/p2) are not yet the scene's `reference_file`: the
-/// organ table was calibrated without them (below p2's height every site targets p2's curve),
-/// so this checks the table away from its calibration points. The file's other three points
-/// must be the scene's reference, unchanged.
-#[test]
-fn lv_surface_springs_at_p3_p5_outside_its_calibration_points() {
-    let scene = scene();
-    let shipped = reference(&scene);
-    let six = OrganReference::parse(SIX_POINTS, "lv_points.reference.csv").expect("six points");
-    for p in shipped.points() {
-        assert_eq!(
-            six.point(&p.name),
-            Some(p),
-            "{} differs from the scene's",
-            p.name
-        );
-    }
-    let mut failures = Vec::new();
-    for subdivided in [true, false] {
-        for name in ["p3", "p4", "p5"] {
-            let p = six.point(name).expect("p3-p5 in the file");
-            let tolerance = |d: f64| p345_tolerance(name, subdivided, d);
-            failures.extend(press_point(
-                &scene,
-                p,
-                subdivided,
-                &P345_DEPTHS_M,
-                tolerance,
-            ));
-        }
-    }
-    assert!(failures.is_empty(), "{failures:#?}");
 }
 
 /// Linear interpolation of a target curve (N at `xs`, m) at `x`, through the origin below the

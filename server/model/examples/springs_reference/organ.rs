@@ -4,11 +4,16 @@
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use anyhow::{Context as _, anyhow, bail};
 use haptic_model::DVec3;
 use haptic_model::body::SoftBody;
 use haptic_model::indent::{IndentParams, Indenter, contact_distance};
+use haptic_model::mass_spring::calibration::{
+    CalibrationTable, NodeCalibration, calibrate_node_with, surface_contact_rest,
+};
 use haptic_model::mass_spring::organ::REFERENCE_COLUMNS;
 use haptic_model::mass_spring::{MassSpringBody, OrganReference};
 use haptic_model::press::{self, HoldParams, PressLine};
@@ -336,4 +341,121 @@ pub fn feel(
         );
     }
     Ok(())
+}
+
+/// Whether a row of the eq. 4 table has a sample the calibration could not match (it then
+/// repeats the previous displacement plus 1e-9: `calibrate_node_with`).
+fn has_unmatched_sample(row: &NodeCalibration) -> bool {
+    row.x_over_l.windows(2).any(|w| w[1] - w[0] < 1e-8)
+}
+
+/// The `recalibrate` subcommand: the rows `nodes` (default: those with an unmatched sample) of
+/// the scene file's eq. 4 table computed again, the rest and the key kept, the file rewritten
+/// with its comment lines.
+pub fn recalibrate(scene_file: &Path, nodes: &[u32], threads: Option<usize>) -> anyhow::Result<()> {
+    let scene = load_scene_file(scene_file)?;
+    let ms = scene.mass_spring.as_ref().context("a mass-spring scene")?;
+    let table = ms.table()?.context("the scene has no eq. 4 table")?;
+    let path = ms
+        .calibration_path
+        .clone()
+        .context("the scene file's calibration_file")?;
+    let nodes: Vec<u32> = if nodes.is_empty() {
+        (0..table.node_count() as u32)
+            .filter(|&i| table.node(i).is_some_and(has_unmatched_sample))
+            .collect()
+    } else {
+        nodes.to_vec()
+    };
+    println!("recalibrating {} nodes: {nodes:?}", nodes.len());
+    let contact = surface_contact_rest(&ms.surface, ms.contact);
+    let next = AtomicUsize::new(0);
+    let done: Mutex<Vec<(u32, anyhow::Result<NodeCalibration>)>> = Mutex::new(Vec::new());
+    let threads =
+        threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, usize::from));
+    std::thread::scope(|scope| {
+        for _ in 0..threads.max(1) {
+            scope.spawn(|| {
+                loop {
+                    let k = next.fetch_add(1, Ordering::Relaxed);
+                    let Some(&node) = nodes.get(k) else { break };
+                    let row = calibrate_node_with(
+                        &ms.surface,
+                        &ms.params,
+                        ms.contact,
+                        node,
+                        contact.as_ref(),
+                    )
+                    .map_err(anyhow::Error::from);
+                    if let Ok(mut d) = done.lock() {
+                        d.push((node, row));
+                        println!("{} / {} nodes", d.len(), nodes.len());
+                    }
+                }
+            });
+        }
+    });
+    let mut rows: Vec<Option<NodeCalibration>> = (0..table.node_count() as u32)
+        .map(|i| table.node(i).copied())
+        .collect();
+    for (node, row) in done
+        .into_inner()
+        .map_err(|_| anyhow!("a thread panicked"))?
+    {
+        let row = row.with_context(|| format!("node {node}"))?;
+        let (lo, hi) = row
+            .kh_scale
+            .iter()
+            .fold((f64::INFINITY, 0.0_f64), |(a, b), &s| (a.min(s), b.max(s)));
+        println!(
+            "node {node}: K'_h/K_h {lo:.3}-{hi:.3}{}",
+            if has_unmatched_sample(&row) {
+                " (a sample still unmatched)"
+            } else {
+                ""
+            }
+        );
+        rows[node as usize] = Some(row);
+    }
+    let old = std::fs::read_to_string(&path).with_context(|| format!("{}", path.display()))?;
+    let mut description: Vec<String> = old
+        .lines()
+        .filter_map(|l| l.strip_prefix("# "))
+        .filter(|l| {
+            !(l.starts_with("key ")
+                || l.starts_with("nodes ")
+                || l.starts_with("haptic-model mass-spring calibration table"))
+        })
+        .map(str::to_string)
+        .collect();
+    // Not starting with "nodes " or "key ": the parser reads those lines.
+    description.push(format!(
+        "recomputed by `haptic_subdivision recalibrate`: the rows of nodes {}",
+        compact_list(&nodes)
+    ));
+    let new = CalibrationTable::from_rows(table.key(), rows);
+    std::fs::write(&path, new.to_text(&description.join("\n")))?;
+    println!("wrote {}", path.display());
+    Ok(())
+}
+
+/// `1,2,3,7` as `1-3,7`.
+fn compact_list(nodes: &[u32]) -> String {
+    let mut v = nodes.to_vec();
+    v.sort_unstable();
+    let mut out: Vec<String> = Vec::new();
+    let mut k = 0;
+    while k < v.len() {
+        let mut j = k;
+        while j + 1 < v.len() && v[j + 1] == v[j] + 1 {
+            j += 1;
+        }
+        out.push(if j > k {
+            format!("{}-{}", v[k], v[j])
+        } else {
+            v[k].to_string()
+        });
+        k = j + 1;
+    }
+    out.join(",")
 }

@@ -78,6 +78,13 @@ pub const PATCH_EXTRA_RINGS: u32 = 3;
 /// takes its neighbour's factor.
 pub const SCALE_RANGE: (f64, f64) = (0.01, 10.0);
 
+/// The largest step of [`LocalPatch::match_force`] in `ln s` before the match is bracketed
+/// (a factor of e^1.5, about 4.5). Without it the secant's extrapolation left the search window
+/// at once when the start was far from the match: on `lv-surface-springs` 23 nodes near the
+/// apex kept their first sample's factor (0.010-0.016) at every depth (docs/accuracy.md,
+/// "The organ table, session 4").
+pub const MAX_UNBRACKETED_STEP: f64 = 1.5;
+
 /// Version of the table's definition; part of the key (3: the probe meets the contact
 /// positions of [`super::contact_rest`]).
 pub const CALIBRATION_VERSION: u32 = 3;
@@ -963,15 +970,21 @@ impl LocalPatch {
                         return Ok(Some((s1, u1)));
                     }
                 }
+                // Not bracketed yet: a secant through two points on the convex `F(log s)`
+                // overshoots far when the start is far from the match (the table's first,
+                // tiny-depth sample can give a factor 30 times the next one's), so a step
+                // grows the factor by at most MAX_UNBRACKETED_STEP.
                 (Some(_), None) => {
                     if !(next > l1 && next.is_finite()) {
                         next = l1 + 0.7;
                     }
+                    next = next.min(l1 + MAX_UNBRACKETED_STEP);
                 }
                 (None, Some(_)) => {
                     if !(next < l1 && next.is_finite()) {
                         next = l1 - 0.7;
                     }
+                    next = next.max(l1 - MAX_UNBRACKETED_STEP);
                 }
                 (None, None) => unreachable!("every evaluation is noted"),
             }
@@ -1058,7 +1071,20 @@ pub fn calibrate_node_with(
             continue;
         }
         let backup = xf.clone();
-        match patch.match_force(f, depth, |a| (a * kh, ratio * a * kh), a, &mut xf) {
+        let constants = |a: f64| (a * kh, ratio * a * kh);
+        let mut matched = patch.match_force(f, depth, constants, a, &mut xf);
+        let retry = match &matched {
+            Ok(Some((a_k, _))) => !(SCALE_RANGE.0..=SCALE_RANGE.1).contains(a_k),
+            Ok(None) | Err(ModelError::NoConvergence(_)) => true,
+            Err(_) => false,
+        };
+        if a != 1.0 && retry {
+            // Started from the previous sample's factor, which can be far off (the first,
+            // tiny-depth sample's is about a twelfth of the next one's): once more from 1.
+            xf.clone_from(&backup);
+            matched = patch.match_force(f, depth, constants, 1.0, &mut xf);
+        }
+        match matched {
             Ok(Some((a_k, u))) if (SCALE_RANGE.0..=SCALE_RANGE.1).contains(&a_k) => {
                 a = a_k;
                 out.x_over_l[k] = u / l;

@@ -53,10 +53,9 @@ pub const DEPTH_FALLBACK_TOLERANCE: f64 = 2e-2;
 
 /// A site's subdivided factor is clamped to within this ratio of its coarse one (either way)
 /// at each depth. Every factor multiplies the whole body's springs, so the sub-step plan grows
-/// with the largest: on `lv-surface-springs` 16 nodes whose eq. 4 table holds `K'_h / K_h` of
-/// 0.010-0.015 at every displacement (the median node 0.45) answer about 20 times softer
-/// subdivided (factors of 20-124 would need about 11 times the sub-steps), and at 0.1 mm,
-/// where the subdivided surface is touched later, the factors reach 3-4 times the coarse ones.
+/// with the largest: at 0.1 mm, where the subdivided surface is touched later, the factors
+/// reach 3-4 times the coarse ones (on `lv-surface-springs` every site is clamped there, and
+/// 21-48 sites at 0.25-1 mm; until session 4, 23 nodes with a broken eq. 4 row needed 20-124).
 pub const SUBDIVIDED_FACTOR_SPREAD: f64 = 2.0;
 
 /// What the calibration needs of a scene besides the surface: its constants, the probe, the
