@@ -3,8 +3,9 @@
 //! 1.5 s through `SoftBody::tick`) along the inward normal at each point of its stored
 //! reference (`scene/calibrations/hemisphere-springs.reference.csv`: the solid half ball of
 //! radius 50 mm, base clamped, stable neo-Hookean E = 14.5 kPa, nu = 0.45, pressed by the
-//! scene's exact 4 mm sphere; our `haptic-solve --indent` on two nested meshes, a
-//! self-convergence check), never subdivided and with the scene's one-ring subdivision: the
+//! scene's exact 4 mm sphere; our `haptic-solve --indent` on two mesh levels, hmin 1.2 and
+//! 0.85 mm: a self-convergence check), never subdivided and with the scene's one-ring
+//! subdivision: the
 //! force against the reference at the measured sphere depth within the tolerances below (the
 //! issue's 10 % where the surface meets it, the measured bound elsewhere: docs/accuracy.md,
 //! "hemisphere-springs calibrated to its solid"), every hold steady (the largest tick-to-tick
