@@ -136,6 +136,16 @@ fn springs_scene(table: &str) -> Result<String> {
     let text = std::fs::read_to_string(repo().join("deploy/scenes/hemisphere-springs.toml"))?;
     let line = "calibration_file = \"hemisphere-springs.calibration.csv\"";
     ensure!(text.contains(line), "the shipped scene changed");
+    // Without its organ keys: their files are not in the daemon's scene directory.
+    let text: String = text
+        .lines()
+        .filter(|l| {
+            !["reference_file", "reference_axis", "organ_file"]
+                .iter()
+                .any(|k| l.starts_with(k))
+        })
+        .map(|l| format!("{l}\n"))
+        .collect();
     Ok(text.replace(line, &format!("calibration_file = {table:?}")))
 }
 

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # FEM references of the mass-spring scenes at their press points (docs/accuracy.md, "The
 # mass-spring surfaces calibrated to the organ"): for each point of POINTS_CSV, the body meshed
-# by Gmsh refined under the point (GEO) at each size of HMINS (hmax = HMAX_FACTOR * hmin),
+# by Gmsh refined under the point (GEO) at each size of HMINS (hmax = HMAX_FACTOR * hmin; the
+# hemisphere keeps hmax = 10 mm: its 50 mm half ball is large against the 4 mm probe),
 # quadratic tetrahedra, the stable neo-Hookean material (E = 14.5 kPa, nu = 0.45, the LV
 # scenes' moduli), and the scene's rigid sphere pressed along the point's direction by
 # `haptic-solve --indent` (exact sphere, frictionless, static). The indent.csv files are then
@@ -18,16 +19,20 @@ body=${1:?lv or hemisphere}
 out=${2:-$root/target/springs-reference/$body}
 case $body in
   lv) geo=$here/lv_point_refined.geo points_csv=$here/lv_points.csv radius_mm=2
-      hmins_default=0.6,0.42 hmax_factor=5 rfine=2.5 rcoarse=9 surfaces='clamped = ["BASE"]
+      hmins_default=0.6,0.42 hmax_factor=5 hmax_fixed= rfine=2.5 rcoarse=9 surfaces='clamped = ["BASE"]
 touchable = ["EPI"]' ;;
   hemisphere) geo=$here/hemisphere_point_refined.geo points_csv=$here/hemisphere_points.csv
-      radius_mm=8 hmins_default=2.4,1.7 hmax_factor=5 rfine=10 rcoarse=30 surfaces='clamped = ["BASE"]
+      radius_mm=4 hmins_default=1.2,0.85 hmax_factor= hmax_fixed=10 rfine=6 rcoarse=15 surfaces='clamped = ["BASE"]
 touchable = ["SURFACE"]' ;;
   *) echo "unknown body $body (lv or hemisphere)" >&2; exit 2 ;;
 esac
 hmins=${3:-$hmins_default}
 only=${4:-}
-depths=${DEPTHS:-0.1,0.25,0.5,0.75,1,1.25,1.5,2,2.5,3,3.5,4,4.25}
+case $body in
+  lv) depths_default=0.1,0.25,0.5,0.75,1,1.25,1.5,2,2.5,3,3.5,4,4.25 ;;
+  hemisphere) depths_default=0.1,0.25,0.5,0.75,1,1.5,2,2.5,3,4,4.25 ;;
+esac
+depths=${DEPTHS:-$depths_default}
 solve=${HAPTIC_SOLVE:-$root/target/release/haptic-solve}
 command -v gmsh >/dev/null || { echo "gmsh not found: run tests/install-gmsh.sh" >&2; exit 1; }
 [[ -x $solve ]] || { echo "$solve not found: cargo build --release -p haptic-server --bin haptic-solve" >&2; exit 1; }
@@ -38,7 +43,7 @@ grep -v '^#' "$points_csv" | tail -n +2 | while IFS=, read -r name x y z dx dy d
   from=$(awk -v x="$x" -v y="$y" -v z="$z" -v dx="$dx" -v dy="$dy" -v dz="$dz" -v r="$radius_mm" \
     'BEGIN { s = r + 1; printf "%.6f,%.6f,%.6f", x - s * dx, y - s * dy, z - s * dz }')
   for hmin in ${hmins//,/ }; do
-    hmax=$(awk "BEGIN { print $hmax_factor * $hmin }")
+    if [[ -n $hmax_fixed ]]; then hmax=$hmax_fixed; else hmax=$(awk "BEGIN { print $hmax_factor * $hmin }"); fi
     tag="${name}_$hmin"
     msh="$out/$tag.msh"
     [[ -f $msh ]] || gmsh "$geo" -3 -format msh22 -setnumber hmin "$hmin" -setnumber hmax "$hmax" \

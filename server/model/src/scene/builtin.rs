@@ -84,7 +84,7 @@ max_force_n = 10.0
 /// surface with one-ring subdivision.
 const HEMISPHERE_SPRINGS_TOML: &str = r#"# Built-in scene "hemisphere-springs" (a copy of the constant in server/model/src/scene/builtin.rs).
 name = "hemisphere-springs"
-description = "A triangulated hemisphere (Zhang, Payandeh & Dill, Haptic Subdivision, Figure 12) as a mass-spring surface with home springs (eq. 1-2) and run-time one-ring Loop subdivision around the contact node, spring constants from the calibrated table (section 3.2.4). K_h = K_m = 0.06 N/mm as in the paper's experiment (section 3.2.2); radius 50 mm and edges of about 8 mm, node mass 1 g and damping 0.2 N s/m are ours (the paper gives none); rim clamped."
+description = "A triangulated hemisphere (Zhang, Payandeh & Dill, Haptic Subdivision, Figure 12) as a mass-spring surface with home springs (eq. 1-2) and run-time one-ring Loop subdivision around the contact node, spring constants from the calibrated table (section 3.2.4). K_h = K_m = 0.06 N/mm as in the paper's experiment (section 3.2.2); radius 50 mm and edges of about 8 mm, node mass 1 g and damping 0.2 N s/m are ours (the paper gives none); rim clamped. Every spring times the contact factor of the organ table (per node and edge midpoint and sphere depth), calibrated to the FEM of the solid half ball it bounds (stable neo-Hookean, E = 14.5 kPa, nu = 0.45, base clamped, the exact 4 mm sphere) at six points from the pole towards the rim (reference_file; docs/accuracy.md)."
 
 [model]
 family = "mass-spring"
@@ -110,6 +110,9 @@ km_over_kh_after = 1.0          # the fixed ratio K'_m / K'_h, kept at K_m / K_h
 vertex_rule = "keep"            # original nodes keep their rest position
 coarsen_delay_s = 0.2           # an area is coarsened 0.2 s after the probe left it
 calibration_file = "hemisphere-springs.calibration.csv"
+reference_file = "hemisphere-springs.reference.csv"  # the solid half ball's FEM reference at six points (springs_reference/)
+reference_axis = [0, 0, 1]      # a body of revolution about z: the target depends on the height (the polar angle)
+organ_file = "hemisphere-springs.organ.csv"  # the contact factor per node and edge midpoint and sphere depth (haptic-calibrate)
 
 [integrator]
 kind = "symplectic-euler"
@@ -288,10 +291,18 @@ max_force_n = 10.0
 
 /// The calibration tables and organ references of the built-in scenes, by file name (identical
 /// copies beside the scenes in `deploy/scenes/`).
-const CALIBRATIONS: [(&str, &str); 4] = [
+const CALIBRATIONS: [(&str, &str); 6] = [
     (
         "hemisphere-springs.calibration.csv",
         include_str!("calibrations/hemisphere-springs.calibration.csv"),
+    ),
+    (
+        "hemisphere-springs.reference.csv",
+        include_str!("calibrations/hemisphere-springs.reference.csv"),
+    ),
+    (
+        "hemisphere-springs.organ.csv",
+        include_str!("calibrations/hemisphere-springs.organ.csv"),
     ),
     (
         "lv-surface-springs.calibration.csv",
