@@ -53,10 +53,15 @@ sids=()
 for i in $(seq 1 "$n"); do
   t0=$(date +%s.%N)
   if [[ -f $scene ]]; then
-    sid=$("$bin/hapticctl" start --scene-file "$scene" 2>/dev/null)
+    args=(start --scene-file "$scene")
   else
-    sid=$("$bin/hapticctl" start "$scene" 2>/dev/null)
+    args=(start "$scene")
   fi
+  sid=$("$bin/hapticctl" "${args[@]}" 2> "$work/start.err") || {
+    echo "capacity: session $i did not start:" >&2
+    cat "$work/start.err" >&2
+    exit 1
+  }
   t1=$(date +%s.%N)
   printf 'session %2d: %s set up in %.2f s\n' "$i" "$sid" "$(awk -v a="$t0" -v b="$t1" 'BEGIN {print b - a}')" >&2
   sids+=("$sid")
