@@ -216,7 +216,8 @@ mod tests {
             Ok(()),
             "nothing declared"
         );
-        let bad: [(&str, fn(&mut DeviceCapabilities)); 8] = [
+        type Spoil = fn(&mut DeviceCapabilities);
+        let bad: [(&str, Spoil); 8] = [
             ("name", |c| c.name = "x\u{1b}[31m".into()),
             ("name", |c| c.name = "n".repeat(65)),
             ("sensed_degrees_of_freedom", |c| {

@@ -278,7 +278,7 @@ impl Collector for SessionCollector {
         per_session(
             e,
             &rows,
-            "hapticd_contact_ticks_total",
+            "hapticd_contact_ticks",
             "Servo ticks with the probe in contact",
             Counter,
             |r| Value::Counter(r.stats.contact_ticks),
@@ -286,7 +286,7 @@ impl Collector for SessionCollector {
         per_session(
             e,
             &rows,
-            "hapticd_companion_ticks_total",
+            "hapticd_companion_ticks",
             "Contact ticks to which a following region's coarse companion contributed",
             Counter,
             |r| Value::Counter(r.stats.body.companion_ticks),
