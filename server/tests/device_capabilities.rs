@@ -85,8 +85,14 @@ async fn stats(control: &mut SessionControlClient<Channel>, id: &str) -> Session
         .into_inner()
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_device_that_introduces_itself_is_limited_checked_and_shown() {
+/// A daemon on 127.0.0.1:0 with a session of the built-in LV: (its stop switch, a channel to
+/// it, a control client, the session id).
+async fn lv_session() -> (
+    tokio::sync::oneshot::Sender<()>,
+    Channel,
+    SessionControlClient<Channel>,
+    String,
+) {
     let (url, stop) = start_server().await;
     let ch = channel(&url).await;
     let mut control = SessionControlClient::new(ch.clone());
@@ -99,6 +105,12 @@ async fn a_device_that_introduces_itself_is_limited_checked_and_shown() {
         .unwrap()
         .into_inner()
         .session_id;
+    (stop, ch, control, id)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_device_that_introduces_itself_is_limited_checked_and_shown() {
+    let (stop, ch, mut control, id) = lv_session().await;
 
     let mut link = DeviceLinkClient::new(ch.clone());
     let (tx, rx) = mpsc::channel(64);
@@ -222,18 +234,7 @@ async fn a_device_that_introduces_itself_is_limited_checked_and_shown() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn absurd_capabilities_refuse_the_stream_and_leave_the_session_free() {
-    let (url, stop) = start_server().await;
-    let ch = channel(&url).await;
-    let mut control = SessionControlClient::new(ch.clone());
-    let id = control
-        .start_session(StartSessionRequest {
-            scene: "lv".into(),
-            scene_toml: String::new(),
-        })
-        .await
-        .unwrap()
-        .into_inner()
-        .session_id;
+    let (stop, ch, mut control, id) = lv_session().await;
     let absurd = [
         DeviceCapabilities {
             max_force_n: f64::NAN,
