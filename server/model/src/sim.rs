@@ -68,6 +68,8 @@ struct Fallback {
     contact_ticks_answered: u64,
     /// The region's own force in the last tick, N.
     region_force_n: DVec3,
+    /// The companion's own force in the last tick, N.
+    companion_force_n: DVec3,
 }
 
 /// What the coarse companion of a following region did ([`Simulation::fallback_stats`]).
@@ -83,6 +85,8 @@ pub struct FallbackStats {
     pub elements: usize,
     /// The force the region alone gave in the last tick (before the blend), N.
     pub region_force_n: DVec3,
+    /// The force the companion alone gave in the last tick (before the blend), N.
+    pub companion_force_n: DVec3,
 }
 
 /// Whether a simulation is still meaningful, with the quantities that say so
@@ -322,6 +326,7 @@ impl Simulation {
                     ticks_answered: 0,
                     contact_ticks_answered: 0,
                     region_force_n: DVec3::ZERO,
+                    companion_force_n: DVec3::ZERO,
                 }))
             }
             _ => None,
@@ -457,6 +462,7 @@ impl Simulation {
             contact_ticks_answered: fb.contact_ticks_answered,
             elements: fb.sim.fem.element_count(),
             region_force_n: fb.region_force_n,
+            companion_force_n: fb.companion_force_n,
         })
     }
 
@@ -760,6 +766,7 @@ impl Fallback {
     ) -> Result<TickOutput, ModelError> {
         let coarse = self.sim.tick(input)?;
         self.region_force_n = fine.force_on_device_n;
+        self.companion_force_n = coarse.force_on_device_n;
         if outside || (swapped && self.weight > 0.0) {
             self.settle_ticks = FALLBACK_SETTLE_TICKS;
         } else {
