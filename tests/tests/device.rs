@@ -197,10 +197,14 @@ async fn probe_press_force_profile() -> Result<()> {
         );
     }
     // Each 0.5 mm bin is a mean over the bin; the last in-contact bin lies about 3 mm past the
-    // first, where the default `lv` holds about 28 mN (StVK; its model-level staircase,
-    // `scene_table` in docs/accuracy.md), so the force must have grown by well over 20 mN.
+    // first contact, where the default `lv` holds about 30-38 mN (its model-level staircase,
+    // `scene_table` in docs/accuracy.md). A stall at the onset can leave the shallow bins
+    // without a full-gain tick (seen once under load: bins 5-7 empty, the first filled one
+    // already at 20 mN), so the deepest bin is checked against the force that depth holds, and
+    // the growth from the first filled bin more loosely.
+    let (first, last) = (pressed[0], pressed[pressed.len() - 1]);
     assert!(
-        pressed[pressed.len() - 1] > pressed[0] + 0.02,
+        last > 0.025 && last > first + 0.01,
         "force hardly grew with depth: bin means {means:?}"
     );
 
