@@ -1,5 +1,5 @@
 //! Recordings: `hapticctl record` writes a session's surface frames and statistics to MCAP
-//! ([`haptics_proto::recording`], opens in Foxglove), and `hapticctl export-vtu` turns the
+//! ([`haptic_cli::recording`], opens in Foxglove), and `hapticctl export-vtu` turns the
 //! frames of a recording into a ParaView time series (`surface.pvd` + one `.vtu` per frame).
 //!
 //! Injected loads (`ApplyForce`, from any client) reach the recording through the frames, which
@@ -18,8 +18,8 @@ use std::io::{BufWriter, Write as _};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use crate::AuthChannel;
-use haptics_proto::recording::{Recorder, read_topic, topic};
+use haptic_cli::credentials::AuthChannel;
+use haptic_cli::recording::{Recorder, read_topic, topic};
 use haptics_proto::v1::surface_stream_client::SurfaceStreamClient;
 use haptics_proto::v1::{SurfaceEncoding, SurfaceFrame, WatchRequest};
 use tokio_stream::StreamExt;
@@ -52,7 +52,7 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> ClientError + '_ {
     }
 }
 
-fn rec_err(path: &Path, e: haptics_proto::recording::RecordingError) -> ClientError {
+fn rec_err(path: &Path, e: haptic_cli::recording::RecordingError) -> ClientError {
     ClientError::Io {
         path: path.to_path_buf(),
         source: std::io::Error::other(e.to_string()),
