@@ -646,7 +646,6 @@ pub async fn execute(
             };
             let r = crate::record::record(
                 channel,
-                ctl,
                 &id,
                 &path,
                 crate::record::RecordParams {

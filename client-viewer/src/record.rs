@@ -9,8 +9,9 @@
 //! files share the schema set and open side by side in Foxglove. The frames carry the probe
 //! position and its force at the frame rate.
 //!
-//! Neighbours: [`crate::ctl`] dispatches the commands; the viewer replays the `/surface` topic
-//! (`haptic-viewer --replay`).
+//! Neighbours: [`crate::ctl`] dispatches the commands (this module does not import it: `record`
+//! takes the channel and makes its own `SessionControl` client); the viewer replays the
+//! `/surface` topic (`haptic-viewer --replay`).
 
 use std::fmt::Write as _;
 use std::future::Future;
@@ -20,12 +21,14 @@ use std::time::Duration;
 
 use haptic_cli::credentials::AuthChannel;
 use haptic_cli::recording::{Recorder, read_topic, topic};
+use haptics_proto::v1::session_control_client::SessionControlClient;
 use haptics_proto::v1::surface_stream_client::SurfaceStreamClient;
-use haptics_proto::v1::{SurfaceEncoding, SurfaceFrame, WatchRequest};
+use haptics_proto::v1::{
+    GetStatsRequest, SessionStats, SurfaceEncoding, SurfaceFrame, WatchRequest,
+};
 use tokio_stream::StreamExt;
 
 use crate::ClientError;
-use crate::ctl::Ctl;
 
 /// What `record` wrote.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -76,10 +79,10 @@ pub struct RecordParams {
     pub stats_interval_s: f64,
 }
 
-/// Records `session_id` into `out` (MCAP): every surface frame of a full-encoding `Watch` at up
-/// to `params.rate_hz` on `/surface` (log time: the server's send time) and `GetStats` every
-/// `params.stats_interval_s` on `/stats` (log time: this machine's clock), until `params.duration_s` passes,
-/// the session ends, or `shutdown` resolves. The file is complete (summary and index) on every
+/// Records `session_id` into `out` (MCAP) over `channel`: every surface frame of a
+/// full-encoding `Watch` at up to `params.rate_hz` on `/surface` (log time: the server's send
+/// time) and `GetStats` every `params.stats_interval_s` on `/stats` (log time: this machine's
+/// clock), until `params.duration_s` passes, the session ends, or `shutdown` resolves. The file is complete (summary and index) on every
 /// one of those exits.
 ///
 /// # Errors
@@ -87,7 +90,6 @@ pub struct RecordParams {
 /// session is unknown at the start, [`ClientError::Io`] when the file cannot be written.
 pub async fn record(
     channel: AuthChannel,
-    ctl: &mut Ctl,
     session_id: &str,
     out: &Path,
     params: RecordParams,
@@ -115,8 +117,9 @@ pub async fn record(
             "duration {d} s: expected a positive number"
         )));
     }
+    let mut control = SessionControlClient::new(channel.clone());
     // The first statistics answer also checks that the session exists before a file is made.
-    let first_stats = ctl.stats(session_id).await?;
+    let first_stats = stats(&mut control, session_id).await?;
     let mut frames = SurfaceStreamClient::new(channel)
         .max_decoding_message_size(256 << 20)
         .watch(WatchRequest {
@@ -179,7 +182,7 @@ pub async fn record(
                 // The session ended (or the stream failed): keep what was recorded.
                 Some(Err(_)) | None => break,
             },
-            _ = stats_tick.tick() => match ctl.stats(session_id).await {
+            _ = stats_tick.tick() => match stats(&mut control, session_id).await {
                 Ok(s) => {
                     summary.stats += 1;
                     rec.write(topic::STATS, unix_time_ns(), &s).map_err(|e| rec_err(out, e))?;
@@ -191,6 +194,17 @@ pub async fn record(
     rec.finish().map_err(|e| rec_err(out, e))?;
     summary.bytes = std::fs::metadata(out).map_err(io(out))?.len();
     Ok(summary)
+}
+
+/// `GetStats` of `session_id`.
+async fn stats(
+    control: &mut SessionControlClient<AuthChannel>,
+    session_id: &str,
+) -> Result<SessionStats, ClientError> {
+    let request = GetStatsRequest {
+        session_id: session_id.to_string(),
+    };
+    Ok(control.get_stats(request).await?.into_inner())
 }
 
 /// The `/surface` frames of a recording, in order.
