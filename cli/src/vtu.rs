@@ -370,17 +370,15 @@ pub fn write_pvd(path: &Path, datasets: &[(f64, String)]) -> Result<(), VtuError
 mod tests {
     use super::*;
 
-    /// One triangle, surface style (points and cells first, one-line offsets and types).
-    #[test]
-    fn a_triangle_in_the_recordings_layout() {
-        let points = [0.0f32, 0.0, 0.0, 1.5, 0.0, 0.0, 0.0, 2.0, -0.25];
-        let displacement = [0.0f32, 0.5, 1e-3];
-        let grid = Grid {
+    /// One triangle at `points` (3 points), surface style: points and cells first, one-line
+    /// offsets and types.
+    fn triangle(points: &[f32]) -> Grid<'_> {
+        Grid {
             version: Version::V0_1,
             points: DataArray {
                 name: None,
                 components: 3,
-                values: Values::F32(&points),
+                values: Values::F32(points),
                 layout: Layout::Rows,
             },
             cells: Cells {
@@ -389,15 +387,23 @@ mod tests {
                 types: Values::U8(&[VTK_TRIANGLE]),
                 layout: Layout::Line,
             },
-            point_data: vec![DataArray {
-                name: Some("displacement_m"),
-                components: 1,
-                values: Values::F32(&displacement),
-                layout: Layout::Line,
-            }],
+            point_data: vec![],
             cell_data: vec![],
             data_first: false,
-        };
+        }
+    }
+
+    #[test]
+    fn a_triangle_in_the_recordings_layout() {
+        let points = [0.0f32, 0.0, 0.0, 1.5, 0.0, 0.0, 0.0, 2.0, -0.25];
+        let displacement = [0.0f32, 0.5, 1e-3];
+        let mut grid = triangle(&points);
+        grid.point_data.push(DataArray {
+            name: Some("displacement_m"),
+            components: 1,
+            values: Values::F32(&displacement),
+            layout: Layout::Line,
+        });
         let expected = "<?xml version=\"1.0\"?>
 <VTKFile type=\"UnstructuredGrid\" version=\"0.1\" byte_order=\"LittleEndian\">
 <UnstructuredGrid>
@@ -517,24 +523,7 @@ mod tests {
     #[test]
     fn inconsistent_grids_are_refused() {
         let points = [0.0f32; 9];
-        let ok = Grid {
-            version: Version::V0_1,
-            points: DataArray {
-                name: None,
-                components: 3,
-                values: Values::F32(&points),
-                layout: Layout::Rows,
-            },
-            cells: Cells {
-                connectivity: Values::U32(&[0, 1, 2]),
-                offsets: Values::U32(&[3]),
-                types: Values::U8(&[VTK_TRIANGLE]),
-                layout: Layout::Line,
-            },
-            point_data: vec![],
-            cell_data: vec![],
-            data_first: false,
-        };
+        let ok = triangle(&points);
         assert!(vtu_text(&ok).is_ok());
         let refused = |g: Grid| match vtu_text(&g) {
             Err(VtuError::Shape(m)) => m,
