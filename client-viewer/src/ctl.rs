@@ -5,13 +5,13 @@
 //! server; [`CtlCommand`] is the command line and [`execute`] runs one command, writing results
 //! to `out` (script-friendly: `start` prints only the session id) and details to `err`.
 //!
-//! Neighbours: [`crate::connect`] opens the channel; the server implements the service.
+//! Neighbours: [`haptic_cli::connect`] opens the channel; the server implements the service.
 
 use std::io::Write;
 use std::path::PathBuf;
 use std::time::Duration;
 
-use crate::{AuthChannel, ClientCredentials};
+use haptic_cli::credentials::{AuthChannel, ClientCredentials};
 use haptics_proto::v1::session_control_client::SessionControlClient;
 use haptics_proto::v1::{
     ApplyForceRequest, GetStatsRequest, ListScenesRequest, ListSessionsRequest, SceneInfo,
@@ -21,13 +21,13 @@ use haptics_proto::v1::{
 use crate::ClientError;
 
 /// Parses `X,Y,Z` into three finite numbers (SI units as the caller says) with
-/// [`haptics_proto::parse_vec3`]: whitespace around a component is allowed; anything else
+/// [`haptic_cli::vec3::parse_vec3`]: whitespace around a component is allowed; anything else
 /// (missing or extra components, empty ones, words, NaN, infinity) is refused.
 ///
 /// # Errors
 /// [`ClientError::InvalidVector`] with the input, saying which component is wrong and why.
 pub fn parse_vec3(input: &str) -> Result<[f64; 3], ClientError> {
-    haptics_proto::parse_vec3(input).map_err(|source| ClientError::InvalidVector {
+    haptic_cli::vec3::parse_vec3(input).map_err(|source| ClientError::InvalidVector {
         input: input.to_string(),
         source,
     })
@@ -63,12 +63,14 @@ impl Ctl {
         self.channel.clone()
     }
 
-    /// Connects to `url` with `credentials` (see [`crate::connect`]).
+    /// Connects to `url` with `credentials` (see [`haptic_cli::connect::connect`]).
     ///
     /// # Errors
     /// [`ClientError::Connect`], [`ClientError::Credentials`].
     pub async fn connect(url: &str, credentials: &ClientCredentials) -> Result<Self, ClientError> {
-        Ok(Self::new(crate::connect(url, credentials).await?))
+        Ok(Self::new(
+            haptic_cli::connect::connect(url, credentials).await?,
+        ))
     }
 
     /// The built-in scenes.
@@ -644,7 +646,6 @@ pub async fn execute(
             };
             let r = crate::record::record(
                 channel,
-                ctl,
                 &id,
                 &path,
                 crate::record::RecordParams {

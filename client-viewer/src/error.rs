@@ -5,11 +5,13 @@
 
 use std::path::PathBuf;
 
+use haptic_cli::connect::{ConnectError, error_chain};
+
 /// Everything that can go wrong in the client library.
 #[derive(Debug, thiserror::Error)]
 pub enum ClientError {
     /// The server URL is malformed or the connection could not be made.
-    #[error("cannot connect to {url}: {}", chain(.source))]
+    #[error("cannot connect to {url}: {}", error_chain(.source))]
     Connect {
         /// The URL that was tried.
         url: String,
@@ -19,7 +21,7 @@ pub enum ClientError {
     },
     /// A token, certificate or key could not be read, or the TLS set-up is inconsistent.
     #[error("credentials: {0}")]
-    Credentials(#[from] haptics_proto::client::CredentialsError),
+    Credentials(#[from] haptic_cli::credentials::CredentialsError),
     /// The server answered with a non-OK gRPC status. Displayed as `CODE: message`,
     /// e.g. `NOT_FOUND: no session abc`.
     #[error("{}: {}", code_name(.0.code()), .0.message())]
@@ -31,7 +33,7 @@ pub enum ClientError {
         input: String,
         /// What was wrong with it (which component, and why).
         #[source]
-        source: haptics_proto::ParseVec3Error,
+        source: haptic_cli::vec3::ParseVec3Error,
     },
     /// A configuration value is out of range (checked before anything is started).
     #[error("invalid configuration: {0}")]
@@ -68,6 +70,15 @@ pub enum ClientError {
     /// A background task (the picture writer) panicked or was cancelled.
     #[error("background task failed: {0}")]
     Task(String),
+}
+
+impl From<ConnectError> for ClientError {
+    fn from(e: ConnectError) -> Self {
+        match e {
+            ConnectError::Connect { url, source } => ClientError::Connect { url, source },
+            ConnectError::Credentials(e) => ClientError::Credentials(e),
+        }
+    }
 }
 
 impl From<tonic::Status> for ClientError {
@@ -114,21 +125,4 @@ pub fn code_name(code: tonic::Code) -> &'static str {
         DataLoss => "DATA_LOSS",
         Unauthenticated => "UNAUTHENTICATED",
     }
-}
-
-/// `e` and its sources joined by `": "` (tonic's transport errors hide the cause in `source()`).
-fn chain(e: &dyn std::error::Error) -> String {
-    let mut s = e.to_string();
-    let mut cur = e.source();
-    let mut last = s.clone();
-    while let Some(c) = cur {
-        let m = c.to_string();
-        if m != last {
-            s.push_str(": ");
-            s.push_str(&m);
-        }
-        last = m;
-        cur = c.source();
-    }
-    s
 }

@@ -17,7 +17,7 @@
 //!   and three.js compiled into the binary.
 //!
 //! Neighbours: the wire contract is `haptics_proto::v1`; the server (`haptic-server`) implements
-//! it. This crate never depends on the physics model: everything it knows about a session comes
+//! it; credentials, connecting, `X,Y,Z` vectors and MCAP recordings are `haptic_cli`'s. This crate never depends on the physics model: everything it knows about a session comes
 //! over gRPC.
 
 pub mod compact;
@@ -29,42 +29,3 @@ pub mod viewer;
 pub mod web;
 
 pub use error::ClientError;
-
-pub use haptics_proto::client::{AuthChannel, ClientCredentials};
-
-/// Default server address when neither `--server` nor `HAPTICD_ADDR` is given.
-pub const DEFAULT_SERVER: &str = "http://127.0.0.1:50051";
-
-/// Opens a gRPC channel to `url` (`http://host:port` or `https://host:port`; a bare
-/// `host:port` gets `http://`) whose every call carries the token of `credentials`, over TLS
-/// for `https://` ([`haptics_proto::client`]).
-///
-/// The connection attempt gives up after 5 s, so a wrong address fails quickly in scripts.
-///
-/// # Errors
-/// [`ClientError::Credentials`] for an unreadable token or TLS file;
-/// [`ClientError::Connect`] when the URL is malformed or nothing answers at the address.
-pub async fn connect(
-    url: &str,
-    credentials: &ClientCredentials,
-) -> Result<AuthChannel, ClientError> {
-    let url = normalize_url(url);
-    let token = credentials.interceptor()?;
-    let endpoint = credentials
-        .endpoint(&url)?
-        .connect_timeout(std::time::Duration::from_secs(5));
-    let channel = endpoint
-        .connect()
-        .await
-        .map_err(|source| ClientError::Connect { url, source })?;
-    Ok(token.wrap(channel))
-}
-
-/// Adds the `http://` scheme to a bare `host:port` address; other strings pass unchanged.
-pub fn normalize_url(url: &str) -> String {
-    if url.contains("://") {
-        url.to_string()
-    } else {
-        format!("http://{url}")
-    }
-}

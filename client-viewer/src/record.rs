@@ -1,5 +1,5 @@
 //! Recordings: `hapticctl record` writes a session's surface frames and statistics to MCAP
-//! ([`haptics_proto::recording`], opens in Foxglove), and `hapticctl export-vtu` turns the
+//! ([`haptic_cli::recording`], opens in Foxglove), and `hapticctl export-vtu` turns the
 //! frames of a recording into a ParaView time series (`surface.pvd` + one `.vtu` per frame).
 //!
 //! Injected loads (`ApplyForce`, from any client) reach the recording through the frames, which
@@ -9,23 +9,26 @@
 //! files share the schema set and open side by side in Foxglove. The frames carry the probe
 //! position and its force at the frame rate.
 //!
-//! Neighbours: [`crate::ctl`] dispatches the commands; the viewer replays the `/surface` topic
-//! (`haptic-viewer --replay`).
+//! Neighbours: [`crate::ctl`] dispatches the commands (this module does not import it: `record`
+//! takes the channel and makes its own `SessionControl` client); the viewer replays the
+//! `/surface` topic (`haptic-viewer --replay`).
 
-use std::fmt::Write as _;
 use std::future::Future;
-use std::io::{BufWriter, Write as _};
-use std::path::{Path, PathBuf};
+use std::io::BufWriter;
+use std::path::Path;
 use std::time::Duration;
 
-use crate::AuthChannel;
-use haptics_proto::recording::{Recorder, read_topic, topic};
+use haptic_cli::credentials::AuthChannel;
+use haptic_cli::recording::{Recorder, read_topic, topic};
+use haptic_cli::vtu::{self, Cells, DataArray, Grid, Layout, Values, VtuError};
+use haptics_proto::v1::session_control_client::SessionControlClient;
 use haptics_proto::v1::surface_stream_client::SurfaceStreamClient;
-use haptics_proto::v1::{SurfaceEncoding, SurfaceFrame, WatchRequest};
+use haptics_proto::v1::{
+    GetStatsRequest, SessionStats, SurfaceEncoding, SurfaceFrame, WatchRequest,
+};
 use tokio_stream::StreamExt;
 
 use crate::ClientError;
-use crate::ctl::Ctl;
 
 /// What `record` wrote.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -52,7 +55,7 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> ClientError + '_ {
     }
 }
 
-fn rec_err(path: &Path, e: haptics_proto::recording::RecordingError) -> ClientError {
+fn rec_err(path: &Path, e: haptic_cli::recording::RecordingError) -> ClientError {
     ClientError::Io {
         path: path.to_path_buf(),
         source: std::io::Error::other(e.to_string()),
@@ -76,10 +79,10 @@ pub struct RecordParams {
     pub stats_interval_s: f64,
 }
 
-/// Records `session_id` into `out` (MCAP): every surface frame of a full-encoding `Watch` at up
-/// to `params.rate_hz` on `/surface` (log time: the server's send time) and `GetStats` every
-/// `params.stats_interval_s` on `/stats` (log time: this machine's clock), until `params.duration_s` passes,
-/// the session ends, or `shutdown` resolves. The file is complete (summary and index) on every
+/// Records `session_id` into `out` (MCAP) over `channel`: every surface frame of a
+/// full-encoding `Watch` at up to `params.rate_hz` on `/surface` (log time: the server's send
+/// time) and `GetStats` every `params.stats_interval_s` on `/stats` (log time: this machine's
+/// clock), until `params.duration_s` passes, the session ends, or `shutdown` resolves. The file is complete (summary and index) on every
 /// one of those exits.
 ///
 /// # Errors
@@ -87,7 +90,6 @@ pub struct RecordParams {
 /// session is unknown at the start, [`ClientError::Io`] when the file cannot be written.
 pub async fn record(
     channel: AuthChannel,
-    ctl: &mut Ctl,
     session_id: &str,
     out: &Path,
     params: RecordParams,
@@ -115,8 +117,9 @@ pub async fn record(
             "duration {d} s: expected a positive number"
         )));
     }
+    let mut control = SessionControlClient::new(channel.clone());
     // The first statistics answer also checks that the session exists before a file is made.
-    let first_stats = ctl.stats(session_id).await?;
+    let first_stats = stats(&mut control, session_id).await?;
     let mut frames = SurfaceStreamClient::new(channel)
         .max_decoding_message_size(256 << 20)
         .watch(WatchRequest {
@@ -179,7 +182,7 @@ pub async fn record(
                 // The session ended (or the stream failed): keep what was recorded.
                 Some(Err(_)) | None => break,
             },
-            _ = stats_tick.tick() => match ctl.stats(session_id).await {
+            _ = stats_tick.tick() => match stats(&mut control, session_id).await {
                 Ok(s) => {
                     summary.stats += 1;
                     rec.write(topic::STATS, unix_time_ns(), &s).map_err(|e| rec_err(out, e))?;
@@ -191,6 +194,17 @@ pub async fn record(
     rec.finish().map_err(|e| rec_err(out, e))?;
     summary.bytes = std::fs::metadata(out).map_err(io(out))?.len();
     Ok(summary)
+}
+
+/// `GetStats` of `session_id`.
+async fn stats(
+    control: &mut SessionControlClient<AuthChannel>,
+    session_id: &str,
+) -> Result<SessionStats, ClientError> {
+    let request = GetStatsRequest {
+        session_id: session_id.to_string(),
+    };
+    Ok(control.get_stats(request).await?.into_inner())
 }
 
 /// The `/surface` frames of a recording, in order.
@@ -215,10 +229,7 @@ pub fn export_vtu(input: &Path, dir: &Path) -> Result<usize, ClientError> {
     std::fs::create_dir_all(dir).map_err(io(dir))?;
     let mut triangles: Option<Vec<u32>> = None;
     let mut rest: Option<Vec<f32>> = None;
-    let mut pvd = String::from(
-        "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\">\n  <Collection>\n",
-    );
-    let mut written = 0;
+    let mut series: Vec<(f64, String)> = Vec::with_capacity(frames.len());
     for (_, f) in &frames {
         if f.keyframe && !f.triangles.is_empty() {
             triangles = Some(f.triangles.clone());
@@ -237,70 +248,71 @@ pub fn export_vtu(input: &Path, dir: &Path) -> Result<usize, ClientError> {
         if f.positions_m.len() % 3 != 0 || tris.iter().any(|&i| i as usize >= n) {
             return Err(bad("positions do not match the keyframe's triangles"));
         }
-        let name = format!("frame_{written:05}.vtu");
+        let name = format!("frame_{:05}.vtu", series.len());
         let path = dir.join(&name);
         let rest_here = rest.as_ref().filter(|r| r.len() == f.positions_m.len());
         write_vtu(&path, &f.positions_m, tris, rest_here.map(Vec::as_slice))?;
-        let _ = writeln!(
-            pvd,
-            "    <DataSet timestep=\"{}\" part=\"0\" file=\"{name}\"/>",
-            f.sim_time_s
-        );
-        written += 1;
+        series.push((f.sim_time_s, name));
     }
-    pvd.push_str("  </Collection>\n</VTKFile>\n");
-    let pvd_path = dir.join("surface.pvd");
-    std::fs::write(&pvd_path, pvd).map_err(io(&pvd_path))?;
-    Ok(written)
+    vtu::write_pvd(&dir.join("surface.pvd"), &series).map_err(vtu_err)?;
+    Ok(series.len())
 }
 
+/// Writes one recorded surface as a `.vtu` ([`haptic_cli::vtu`]): positions in m (`Float32`),
+/// triangles, and point data `displacement_m` (distance from the rest position) when `rest_m`
+/// is given.
 fn write_vtu(
-    path: &PathBuf,
+    path: &Path,
     positions_m: &[f32],
     triangles: &[u32],
     rest_m: Option<&[f32]>,
 ) -> Result<(), ClientError> {
-    let n = positions_m.len() / 3;
     let m = triangles.len() / 3;
-    let mut s = String::with_capacity(positions_m.len() * 12 + triangles.len() * 8 + 512);
-    let _ = write!(
-        s,
-        "<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"0.1\" \
-         byte_order=\"LittleEndian\">\n<UnstructuredGrid>\n<Piece NumberOfPoints=\"{n}\" \
-         NumberOfCells=\"{m}\">\n<Points>\n<DataArray type=\"Float32\" NumberOfComponents=\"3\" \
-         format=\"ascii\">\n"
-    );
-    for p in positions_m.chunks_exact(3) {
-        let _ = writeln!(s, "{} {} {}", p[0], p[1], p[2]);
+    let offsets: Vec<u32> = (1..=m).map(|i| 3 * i as u32).collect();
+    let types = vec![vtu::VTK_TRIANGLE; m];
+    let displacement: Option<Vec<f32>> = rest_m.map(|rest| {
+        positions_m
+            .chunks_exact(3)
+            .zip(rest.chunks_exact(3))
+            .map(|(p, r)| {
+                ((p[0] - r[0]).powi(2) + (p[1] - r[1]).powi(2) + (p[2] - r[2]).powi(2)).sqrt()
+            })
+            .collect()
+    });
+    let grid = Grid {
+        version: vtu::Version::V0_1,
+        points: DataArray {
+            name: None,
+            components: 3,
+            values: Values::F32(positions_m),
+            layout: Layout::Rows,
+        },
+        cells: Cells {
+            connectivity: Values::U32(&triangles[..3 * m]),
+            offsets: Values::U32(&offsets),
+            types: Values::U8(&types),
+            layout: Layout::Line,
+        },
+        point_data: displacement
+            .as_deref()
+            .map(|d| DataArray {
+                name: Some("displacement_m"),
+                components: 1,
+                values: Values::F32(d),
+                layout: Layout::Line,
+            })
+            .into_iter()
+            .collect(),
+        cell_data: Vec::new(),
+        data_first: false,
+    };
+    vtu::write_vtu(path, &grid).map_err(vtu_err)
+}
+
+/// A [`VtuError`] as the client's error: the file, or why the grid is malformed.
+fn vtu_err(e: VtuError) -> ClientError {
+    match e {
+        VtuError::Io { path, source } => ClientError::Io { path, source },
+        VtuError::Shape(reason) => ClientError::InvalidConfig(reason),
     }
-    s.push_str("</DataArray>\n</Points>\n<Cells>\n");
-    s.push_str("<DataArray type=\"UInt32\" Name=\"connectivity\" format=\"ascii\">\n");
-    for t in triangles.chunks_exact(3) {
-        let _ = writeln!(s, "{} {} {}", t[0], t[1], t[2]);
-    }
-    s.push_str("</DataArray>\n<DataArray type=\"UInt32\" Name=\"offsets\" format=\"ascii\">\n");
-    for i in 1..=m {
-        let _ = write!(s, "{} ", 3 * i);
-    }
-    s.push_str("\n</DataArray>\n<DataArray type=\"UInt8\" Name=\"types\" format=\"ascii\">\n");
-    for _ in 0..m {
-        s.push_str("5 "); // VTK_TRIANGLE
-    }
-    s.push_str("\n</DataArray>\n</Cells>\n");
-    if let Some(rest) = rest_m {
-        s.push_str(
-            "<PointData Scalars=\"displacement_m\">\n<DataArray type=\"Float32\" \
-             Name=\"displacement_m\" format=\"ascii\">\n",
-        );
-        for (p, r) in positions_m.chunks_exact(3).zip(rest.chunks_exact(3)) {
-            let d = ((p[0] - r[0]).powi(2) + (p[1] - r[1]).powi(2) + (p[2] - r[2]).powi(2)).sqrt();
-            let _ = write!(s, "{d} ");
-        }
-        s.push_str("\n</DataArray>\n</PointData>\n");
-    }
-    s.push_str("</Piece>\n</UnstructuredGrid>\n</VTKFile>\n");
-    let file = std::fs::File::create(path).map_err(io(path))?;
-    let mut w = BufWriter::new(file);
-    w.write_all(s.as_bytes()).map_err(io(path))?;
-    w.flush().map_err(io(path))
 }

@@ -41,7 +41,7 @@ pub struct ViewerConfig {
     /// Server URL, e.g. `http://127.0.0.1:50051`.
     pub server: String,
     /// Token and TLS files for the server.
-    pub credentials: crate::ClientCredentials,
+    pub credentials: haptic_cli::credentials::ClientCredentials,
     /// Session to watch.
     pub session_id: String,
     /// Directory for the pictures (created when missing).
@@ -67,7 +67,7 @@ impl ViewerConfig {
     pub fn new(server: impl Into<String>, session_id: impl Into<String>) -> Self {
         Self {
             server: server.into(),
-            credentials: crate::ClientCredentials::default(),
+            credentials: haptic_cli::credentials::ClientCredentials::default(),
             session_id: session_id.into(),
             out_dir: PathBuf::from("viewer-out"),
             interval_s: 0.5,
@@ -113,11 +113,11 @@ impl ViewerConfig {
 )]
 pub struct ViewerArgs {
     /// Server URL.
-    #[arg(long, env = "HAPTICD_ADDR", default_value = crate::DEFAULT_SERVER)]
+    #[arg(long, env = "HAPTICD_ADDR", default_value = haptic_cli::connect::DEFAULT_SERVER)]
     pub server: String,
     /// Token and TLS files (a `viewer` token is enough).
     #[command(flatten)]
-    pub credentials: crate::ClientCredentials,
+    pub credentials: haptic_cli::credentials::ClientCredentials,
     /// Session id to watch (PNG mode; the web viewer lets the browser choose).
     #[arg(long, required_unless_present_any = ["web", "replay"])]
     pub session: Option<String>,
@@ -553,7 +553,7 @@ pub async fn run(
     shutdown: impl Future<Output = ()>,
 ) -> Result<ViewerSummary, ClientError> {
     cfg.validate()?;
-    let channel = crate::connect(&cfg.server, &cfg.credentials).await?;
+    let channel = haptic_cli::connect::connect(&cfg.server, &cfg.credentials).await?;
     let mut client = SurfaceStreamClient::new(channel).max_decoding_message_size(256 << 20);
     let stream = client
         .watch(WatchRequest {

@@ -78,7 +78,7 @@ pub struct WebConfig {
     /// Daemon URL, e.g. `http://127.0.0.1:50051`.
     pub server: String,
     /// Token and TLS files for the daemon (a `viewer` token is enough).
-    pub credentials: crate::ClientCredentials,
+    pub credentials: haptic_cli::credentials::ClientCredentials,
     /// Rate the relay asks of the daemon per session, Hz (browsers can ask up to this).
     pub upstream_rate_hz: f64,
     /// Browser rate when the page does not ask, Hz.
@@ -90,7 +90,7 @@ impl WebConfig {
     pub fn new(server: impl Into<String>) -> Self {
         Self {
             server: server.into(),
-            credentials: crate::ClientCredentials::default(),
+            credentials: haptic_cli::credentials::ClientCredentials::default(),
             upstream_rate_hz: 60.0,
             default_rate_hz: 30.0,
         }
@@ -236,7 +236,7 @@ struct SessionRelay {
 /// The relay: upstream connections and the browsers of every session.
 pub struct Relay {
     cfg: WebConfig,
-    channel: crate::AuthChannel,
+    channel: haptic_cli::credentials::AuthChannel,
     sessions: Mutex<HashMap<String, Arc<SessionRelay>>>,
     /// Set when the daemon refused the relay's credentials: [`run`] then stops and reports it
     /// instead of serving pages that can only fail (issue 47).
@@ -259,7 +259,7 @@ impl Relay {
     /// [`ClientError::InvalidConfig`] for bad rates; [`ClientError::Connect`] for a malformed URL.
     pub fn new(cfg: WebConfig) -> Result<Arc<Self>, ClientError> {
         cfg.validate()?;
-        let url = crate::normalize_url(&cfg.server);
+        let url = haptic_cli::connect::normalize_url(&cfg.server);
         let token = cfg.credentials.interceptor()?;
         let channel = token.wrap(
             cfg.credentials

@@ -10,7 +10,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use clap::{Parser, ValueEnum};
-use haptics_proto::parse_vec3;
+use haptic_cli::vec3::parse_vec3;
 use thiserror::Error;
 
 use crate::device::{DeviceError, DeviceSpec, HapticDevice};
@@ -86,7 +86,7 @@ pub struct Args {
     pub server: String,
     /// Token and TLS files (a `device` token is enough).
     #[command(flatten)]
-    pub credentials: haptics_proto::client::ClientCredentials,
+    pub credentials: haptic_cli::credentials::ClientCredentials,
     /// Session id (from SessionControl.StartSession).
     #[arg(long)]
     pub session: String,

@@ -137,8 +137,8 @@ pub struct FaultInjection {
 pub struct BridgeConfig {
     /// Server URL, `http://host:port` (or `https://` with a CA in `credentials`).
     pub server_url: String,
-    /// Token and TLS files (a `device` token is enough; [`haptics_proto::client`]).
-    pub credentials: haptics_proto::client::ClientCredentials,
+    /// Token and TLS files (a `device` token is enough; [`haptic_cli::credentials`]).
+    pub credentials: haptic_cli::credentials::ClientCredentials,
     /// Session id sent on the first sample of every stream.
     pub session_id: String,
     /// Device loop rate, in Hz.
@@ -764,7 +764,7 @@ impl XorShift {
 struct NetCtx {
     clock: Arc<dyn Clock>,
     /// Puts the bridge's token on the device stream.
-    token: haptics_proto::client::BearerToken,
+    token: haptic_cli::credentials::BearerToken,
     shared: Arc<Shared>,
     /// `seq -> (read time us, position m)` of recently sent samples, indexed by
     /// `seq % RTT_RING`.

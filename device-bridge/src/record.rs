@@ -52,9 +52,9 @@ pub fn is_mcap(path: &Path) -> bool {
 /// # Errors
 /// Any I/O or MCAP error, as `std::io::Error`.
 pub fn write_mcap_file(path: &Path, rows: &[TickRecord]) -> std::io::Result<()> {
-    use haptics_proto::recording::{Recorder, topic};
+    use haptic_cli::recording::{Recorder, topic};
     use haptics_proto::v1::{DeviceSample, ForceCommand, Vec3};
-    let other = |e: haptics_proto::recording::RecordingError| std::io::Error::other(e.to_string());
+    let other = |e: haptic_cli::recording::RecordingError| std::io::Error::other(e.to_string());
     let f = std::fs::File::create(path)?;
     let mut rec = Recorder::new(std::io::BufWriter::new(f)).map_err(other)?;
     for (i, r) in rows.iter().enumerate() {
@@ -207,9 +207,9 @@ mod mcap_tests {
         assert!((p[0] - (0.014 - 1e-5 * 20.5)).abs() < 1e-12, "{p:?}");
         assert!((v[0] + 1e-2).abs() < 1e-9, "{v:?}");
         let bytes = std::fs::read(&path).unwrap();
-        let forces = haptics_proto::recording::read_topic::<haptics_proto::v1::ForceCommand>(
+        let forces = haptic_cli::recording::read_topic::<haptics_proto::v1::ForceCommand>(
             &bytes,
-            haptics_proto::recording::topic::DEVICE_FORCE,
+            haptic_cli::recording::topic::DEVICE_FORCE,
         )
         .unwrap();
         assert_eq!(forces.len(), 50);

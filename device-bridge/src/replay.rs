@@ -160,7 +160,7 @@ impl Trajectory {
     /// [`DeviceError::Replay`] (line 0) for a malformed file, a sample without a position, or
     /// the checks of [`Trajectory::new`].
     pub fn from_mcap(bytes: &[u8]) -> Result<Self, DeviceError> {
-        use haptics_proto::recording::{read_topic, topic};
+        use haptic_cli::recording::{read_topic, topic};
         let samples = read_topic::<haptics_proto::v1::DeviceSample>(bytes, topic::DEVICE_SAMPLE)
             .map_err(|e| err(0, e.to_string()))?;
         let mut times_s = Vec::with_capacity(samples.len());

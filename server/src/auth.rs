@@ -26,7 +26,7 @@
 //!
 //! Neighbours: [`crate::service`] calls [`Auth::authorize`] first in every handler;
 //! [`crate::run`] puts [`AuthInterceptor`] in front of the services; clients attach tokens with
-//! `haptics_proto::client`.
+//! `haptic_cli::credentials`.
 
 use std::collections::HashMap;
 use std::net::IpAddr;

@@ -7,7 +7,9 @@
 
 use std::path::Path;
 
+use haptic_cli::vtu::{self, Cells, DataArray, Grid, Layout, Values, VtuError};
 use haptic_model::indent::{IndentParams, IndentPoint, Indenter, indent};
+use haptic_model::mesh::TetMesh;
 use haptic_model::scene::{ModelFamily, Scene};
 use haptic_model::statics::{StaticParams, solve_scene_loads};
 use haptic_model::{DVec3, ModelError};
@@ -118,12 +120,85 @@ pub fn write_solution(dir: &Path, scene: &Scene, x: &[DVec3]) -> Result<(), Mode
         x,
         scene.length_unit_m,
     )?;
-    haptic_model::mesh::export::write_vtu(
+    write_mesh_vtu(
         &dir.join("solution.vtu"),
         &scene.mesh,
         x,
         scene.length_unit_m,
     )
+}
+
+/// Writes a VTK XML unstructured grid (`.vtu`, ASCII, [`haptic_cli::vtu`]) of the tetrahedra
+/// at the current positions `x` (m, one per node), with point data `displacement` (x - rest)
+/// and cell data `volume_ratio` ([`TetMesh::volume_ratios`]). Coordinates and displacements
+/// are divided by `length_unit_m`; numbers are written with 13 significant digits.
+///
+/// # Errors
+/// [`ModelError::Io`] when the file cannot be written; [`ModelError::InvalidMesh`] when `x`
+/// does not match the mesh.
+pub fn write_mesh_vtu(
+    path: &Path,
+    mesh: &TetMesh,
+    x: &[DVec3],
+    length_unit_m: f64,
+) -> Result<(), ModelError> {
+    if x.len() != mesh.nodes.len() {
+        return Err(ModelError::InvalidMesh(format!(
+            "{} positions for {} nodes",
+            x.len(),
+            mesh.nodes.len()
+        )));
+    }
+    let s = 1.0 / length_unit_m;
+    let points: Vec<f64> = x.iter().flat_map(|p| (*p * s).to_array()).collect();
+    let displacement: Vec<f64> = x
+        .iter()
+        .zip(&mesh.nodes)
+        .flat_map(|(p, r)| ((*p - *r) * s).to_array())
+        .collect();
+    let ratios = mesh.volume_ratios(x);
+    // Quadratic elements: VTK_QUADRATIC_TETRA, whose mid-edge node order is ours.
+    let mut connectivity = Vec::with_capacity(mesh.tets.len() * 10);
+    let mut offsets = Vec::with_capacity(mesh.tets.len());
+    for (k, t) in mesh.tets.iter().enumerate() {
+        connectivity.extend(t.iter().map(|&i| i64::from(i)));
+        if let Some(m) = mesh.tet_edge_nodes.get(k) {
+            connectivity.extend(m.iter().map(|&i| i64::from(i)));
+        }
+        offsets.push(connectivity.len() as i64);
+    }
+    let cell_type = if mesh.is_quadratic() {
+        vtu::VTK_QUADRATIC_TETRA
+    } else {
+        vtu::VTK_TETRA
+    };
+    let types = vec![cell_type; mesh.tets.len()];
+    let rows = |name, components, values| DataArray {
+        name,
+        components,
+        values: Values::F64(values),
+        layout: Layout::Rows,
+    };
+    let grid = Grid {
+        version: vtu::Version::V1_0,
+        points: rows(None, 3, &points),
+        cells: Cells {
+            connectivity: Values::I64(&connectivity),
+            offsets: Values::I64(&offsets),
+            types: Values::U8(&types),
+            layout: Layout::Rows,
+        },
+        point_data: vec![rows(Some("displacement"), 3, &displacement)],
+        cell_data: vec![rows(Some("volume_ratio"), 1, &ratios)],
+        data_first: true,
+    };
+    vtu::write_vtu(path, &grid).map_err(|e| match e {
+        VtuError::Io { path, source } => ModelError::Io {
+            path: path.display().to_string(),
+            source,
+        },
+        VtuError::Shape(m) => ModelError::InvalidMesh(m),
+    })
 }
 
 /// A static sphere indentation of a scene (`haptic-solve --indent`), in metres.
@@ -238,7 +313,7 @@ pub fn write_indent_vtu(
     k: usize,
     point: &IndentPoint,
 ) -> Result<(), ModelError> {
-    haptic_model::mesh::export::write_vtu(
+    write_mesh_vtu(
         &dir.join(indent_vtu_name(k)),
         &scene.mesh,
         &point.x_m,

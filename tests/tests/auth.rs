@@ -1,7 +1,7 @@
 //! Who may do what (issue 16, section 3), over loopback against the server library: tokens
 //! with roles, ownership of sessions, the tokens file made at first start, the limit on failed
 //! attempts, and TLS with and without client certificates. The clients use the same
-//! credentials code as the binaries (`haptics_proto::client`).
+//! credentials code as the binaries (`haptic_cli::credentials`).
 
 mod common;
 
@@ -11,8 +11,8 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use common::InProcess;
+use haptic_cli::credentials::{AuthChannel, ClientCredentials};
 use haptic_server::ServerConfig;
-use haptics_proto::client::{AuthChannel, ClientCredentials};
 use haptics_proto::v1::device_link_client::DeviceLinkClient;
 use haptics_proto::v1::session_control_client::SessionControlClient;
 use haptics_proto::v1::surface_stream_client::SurfaceStreamClient;

@@ -127,6 +127,7 @@ fn mirror(bin_dir: &Path) -> Result<PathBuf> {
         "ARCHITECTURE.md",
         "Cargo.lock",
         "Cargo.toml",
+        "cli",
         "README.md",
         "client-viewer",
         "deploy",

@@ -16,8 +16,8 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, ensure};
 use common::InProcess;
+use haptic_cli::credentials::{AuthChannel, ClientCredentials};
 use haptic_server::ServerConfig;
-use haptics_proto::client::{AuthChannel, ClientCredentials};
 use haptics_proto::v1::device_link_client::DeviceLinkClient;
 use haptics_proto::v1::session_control_client::SessionControlClient;
 use haptics_proto::v1::surface_stream_client::SurfaceStreamClient;

@@ -17,8 +17,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use anyhow::{Context, Result, ensure};
+use haptic_cli::credentials::ClientCredentials;
 use haptic_e2e::{Daemon, HAPTICD, STEP_TIMEOUT, binary, serial, unique_temp_dir, wait_timeout};
-use haptics_proto::client::ClientCredentials;
 use haptics_proto::v1::session_control_client::SessionControlClient;
 use haptics_proto::v1::{StartSessionRequest, StopSessionRequest};
 use tonic::Code;

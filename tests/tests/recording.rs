@@ -9,11 +9,11 @@
 use std::time::Duration;
 
 use anyhow::{Context, Result, ensure};
+use haptic_cli::recording::{read_topic, topic};
 use haptic_e2e::{
     BRIDGE, CTL, Daemon, STEP_TIMEOUT, VIEWER, finish, run_bin, serial, spawn_bin, start_session,
     stop_session, unique_temp_dir,
 };
-use haptics_proto::recording::{read_topic, topic};
 use haptics_proto::v1::{AppliedForce, DeviceSample, ForceCommand, SessionStats, SurfaceFrame};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -18,11 +18,11 @@ use haptic_client::ctl::{self, Ctl, CtlCommand};
 )]
 struct Cli {
     /// Server URL.
-    #[arg(long, global = true, env = "HAPTICD_ADDR", default_value = haptic_client::DEFAULT_SERVER)]
+    #[arg(long, global = true, env = "HAPTICD_ADDR", default_value = haptic_cli::connect::DEFAULT_SERVER)]
     server: String,
     /// Token and TLS files (`control` starts and drives its own sessions; `viewer` reads).
     #[command(flatten)]
-    credentials: haptic_client::ClientCredentials,
+    credentials: haptic_cli::credentials::ClientCredentials,
     #[command(subcommand)]
     command: CtlCommand,
 }

@@ -722,7 +722,7 @@ fn surface_at_depths(
         .collect()
 }
 
-/// The `displacement` point array of a `write_vtu` file (scene units), `n` nodes.
+/// The `displacement` point array of a `.vtu` written by `haptic-solve` (scene units), `n` nodes.
 fn read_vtu_displacement(path: &std::path::Path, n: usize) -> Result<Vec<glam::DVec3>, String> {
     let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
     let start = text

@@ -10,13 +10,13 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use clap::Parser;
+use haptic_cli::vec3::parse_vec3;
 use haptic_model::DVec3;
 use haptic_model::scene::Scene;
 use haptic_server::solve::{
     IndentRequest, SolveParams, indent_scene, indent_vtu_name, solve_scene, write_indent_csv,
     write_indent_vtu, write_solution,
 };
-use haptics_proto::parse_vec3;
 
 /// Static equilibrium of a scene (Newton, sparse Cholesky, load stepping), or its static
 /// indentation by the probe sphere.

@@ -96,6 +96,22 @@ impl TetMesh {
         !self.tet_edge_nodes.is_empty()
     }
 
+    /// Current over rest volume of each tetrahedron (of the corner tetrahedron for quadratic
+    /// elements), one per entry of `tets`: 1 undeformed, negative for an inverted element.
+    /// `x` holds the current positions, one per node, m.
+    pub fn volume_ratios(&self, x: &[DVec3]) -> Vec<f64> {
+        self.tets
+            .iter()
+            .map(|t| {
+                let [a, b, c, d] = t.map(|i| i as usize);
+                let cur = tet_signed_volume(x[a], x[b], x[c], x[d]);
+                let rest =
+                    tet_signed_volume(self.nodes[a], self.nodes[b], self.nodes[c], self.nodes[d]);
+                cur / rest
+            })
+            .collect()
+    }
+
     /// The surface group called `name`, if any.
     pub fn surface(&self, name: &str) -> Option<&SurfaceGroup> {
         self.surfaces.iter().find(|s| s.name == name)
@@ -287,5 +303,30 @@ impl TetMesh {
             .chain(self.node_groups.iter().map(|g| g.name.as_str()))
             .collect::<Vec<_>>()
             .join(", ")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Uniform scaling by s multiplies every volume by s^3; a reflection inverts every element.
+    #[test]
+    fn volume_ratios_of_a_scaled_and_a_mirrored_box() {
+        let mesh = generate::box_mesh(DVec3::new(1.0, 2.0, 3.0), [2, 1, 1]);
+        let scaled: Vec<DVec3> = mesh.nodes.iter().map(|p| *p * 1.5).collect();
+        let ratios = mesh.volume_ratios(&scaled);
+        assert_eq!(ratios.len(), mesh.tets.len());
+        assert!(
+            ratios.iter().all(|r| (r - 3.375).abs() < 1e-12),
+            "{ratios:?}"
+        );
+        let mirrored: Vec<DVec3> = mesh
+            .nodes
+            .iter()
+            .map(|p| p * DVec3::new(-1.0, 1.0, 1.0))
+            .collect();
+        let ratios = mesh.volume_ratios(&mirrored);
+        assert!(ratios.iter().all(|r| (r + 1.0).abs() < 1e-12), "{ratios:?}");
     }
 }

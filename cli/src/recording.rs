@@ -99,7 +99,7 @@ impl<W: Write + Seek> Recorder<W> {
                 let schema = self.writer.add_schema(
                     &M::full_name(),
                     "protobuf",
-                    crate::FILE_DESCRIPTOR_SET,
+                    haptics_proto::FILE_DESCRIPTOR_SET,
                 )?;
                 let id = self
                     .writer
@@ -175,7 +175,7 @@ pub fn read_topic<M: Message + Name + Default>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::v1::{DeviceSample, SessionStats, SurfaceFrame, Vec3};
+    use haptics_proto::v1::{DeviceSample, SessionStats, SurfaceFrame, Vec3};
 
     #[test]
     fn messages_round_trip_by_topic_with_schemas_and_times() {
@@ -224,7 +224,7 @@ mod tests {
         );
         for s in summary.schemas.values() {
             assert_eq!(s.encoding, "protobuf");
-            assert_eq!(s.data.as_ref(), crate::FILE_DESCRIPTOR_SET);
+            assert_eq!(s.data.as_ref(), haptics_proto::FILE_DESCRIPTOR_SET);
         }
     }
 
