@@ -164,6 +164,35 @@ mod tests {
         assert!(lines.iter().all(|l| l.split(',').count() == 12));
     }
 
+    /// The exact bytes of two rows, written by hand (the format of the recordings already on
+    /// disk: `{:.6}` time, force and command, `{:.9}` position, empty rtt/age when absent,
+    /// `\n` line ends, no quoting).
+    #[test]
+    fn two_rows_are_these_bytes() {
+        let rows = [
+            TickRecord {
+                t_s: 0.0,
+                ..Default::default()
+            },
+            TickRecord {
+                t_s: 12.3456789,
+                position_m: [0.01, -0.0123456789, 1.5],
+                force_n: [-1.5, 0.25, 3.3],
+                in_contact: true,
+                rtt_us: Some(87),
+                age_us: None,
+                state: "scaled",
+                command_n: 4.0000004,
+            },
+        ];
+        let mut buf = Vec::new();
+        write_csv(&mut buf, &rows).unwrap();
+        let expected = "t_s,x_m,y_m,z_m,fx_n,fy_n,fz_n,in_contact,rtt_us,age_us,state,command_n\n\
+            0.000000,0.000000000,0.000000000,0.000000000,0.000000,0.000000,0.000000,false,,,,0.000000\n\
+            12.345679,0.010000000,-0.012345679,1.500000000,-1.500000,0.250000,3.300000,true,87,,scaled,4.000000\n";
+        assert_eq!(String::from_utf8(buf).unwrap(), expected);
+    }
+
     #[test]
     fn a_recording_replays() {
         let rows: Vec<_> = (0..5)
