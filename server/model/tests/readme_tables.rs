@@ -48,27 +48,22 @@ fn assert_named(text: &str, what: &str, names: impl IntoIterator<Item = &'static
 #[test]
 fn the_scene_table_names_every_choice_the_code_accepts() {
     let r = readme();
-    assert_named(row(&r, "mesh"), "[mesh] row", BUILTIN_MESHES);
-    assert_named(
-        row(&r, "material"),
-        "[material] row",
-        MaterialModel::ALL.map(MaterialModel::scene_name),
-    );
-    assert_named(
-        row(&r, "model"),
-        "[model] row",
-        ModelFamily::ALL.iter().map(|f| f.name()),
-    );
-    assert_named(
-        row(&r, "integrator"),
-        "[integrator] row",
-        IntegratorKind::ALL.map(IntegratorKind::name),
-    );
-    assert_named(
-        row(&r, "probe"),
-        "[probe] row",
-        ContactModel::ALL.map(ContactModel::name),
-    );
+    let rows: [(&str, Vec<&'static str>); 5] = [
+        ("mesh", BUILTIN_MESHES.to_vec()),
+        (
+            "material",
+            MaterialModel::ALL.map(MaterialModel::scene_name).to_vec(),
+        ),
+        ("model", ModelFamily::ALL.iter().map(|f| f.name()).collect()),
+        (
+            "integrator",
+            IntegratorKind::ALL.map(IntegratorKind::name).to_vec(),
+        ),
+        ("probe", ContactModel::ALL.map(ContactModel::name).to_vec()),
+    ];
+    for (section, names) in rows {
+        assert_named(row(&r, section), section, names);
+    }
     // The families with their own section have their row.
     row(&r, "hybrid");
     row(&r, "mass_spring");
