@@ -28,6 +28,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use glam::DVec3;
 use haptics_proto::v1::surface_stream_client::SurfaceStreamClient;
 use haptics_proto::v1::{SurfaceEncoding, SurfaceFrame, WatchRequest};
+use hdrhistogram::Histogram;
 use serde::Serialize;
 use tokio::sync::mpsc;
 use tokio_stream::{Stream, StreamExt};
@@ -517,15 +518,78 @@ fn spawn_worker(
     (tx, handle)
 }
 
-/// Nearest-rank percentile `q` in `[0, 1]` of unsorted samples; `None` when empty.
-pub fn percentile(samples: &[f64], q: f64) -> Option<f64> {
-    if samples.is_empty() {
-        return None;
+/// Frame ages (local wall clock minus server send time) in microseconds, kept in two HDR
+/// histograms of 3 significant digits: ages >= 0, and the magnitudes of negative ones (the
+/// local clock behind the server's, which the summary must still show as a negative age).
+/// Memory is bounded whatever the run's length.
+#[derive(Debug, Clone)]
+pub struct FrameAges {
+    late: Histogram<u64>,
+    early: Histogram<u64>,
+}
+
+impl Default for FrameAges {
+    fn default() -> Self {
+        // 3 significant digits is within the crate's 0..=5; auto-resizing covers any age.
+        let h = || Histogram::new(3).expect("3 significant digits is valid");
+        Self {
+            late: h(),
+            early: h(),
+        }
     }
-    let mut s = samples.to_vec();
-    s.sort_by(f64::total_cmp);
-    let rank = (q.clamp(0.0, 1.0) * s.len() as f64).ceil() as usize;
-    Some(s[rank.clamp(1, s.len()) - 1])
+}
+
+impl FrameAges {
+    /// Records one frame age, microseconds (negative when the local clock is behind).
+    pub fn record(&mut self, age_us: i64) {
+        let h = if age_us >= 0 {
+            &mut self.late
+        } else {
+            &mut self.early
+        };
+        // The histogram grows to hold any age; clamped only past its largest trackable value.
+        let v = age_us.unsigned_abs();
+        if h.record(v).is_err() {
+            h.saturating_record(v);
+        }
+    }
+
+    /// Forgets every age recorded.
+    pub fn clear(&mut self) {
+        self.late.reset();
+        self.early.reset();
+    }
+
+    /// Nearest-rank quantile `q` in `[0, 1]` of the recorded ages, milliseconds; `None` when
+    /// none was recorded. Exact below 2.048 ms; above, the upper end of the sample's histogram
+    /// bucket, at most 0.1 % above the sample.
+    pub fn quantile_ms(&self, q: f64) -> Option<f64> {
+        let (n_early, n) = (self.early.len(), self.early.len() + self.late.len());
+        if n == 0 {
+            return None;
+        }
+        let rank = ((q.clamp(0.0, 1.0) * n as f64).ceil() as u64).clamp(1, n);
+        let us = if rank <= n_early {
+            // The rank-th smallest age is the (n_early - rank + 1)-th smallest magnitude.
+            let v = value_at_rank(&self.early, n_early - rank + 1);
+            -(self.early.lowest_equivalent(v) as f64)
+        } else {
+            value_at_rank(&self.late, rank - n_early) as f64
+        };
+        Some(us / 1e3)
+    }
+}
+
+/// The value of the `rank`-th smallest sample of `h` (1-based; the upper end of its bucket).
+fn value_at_rank(h: &Histogram<u64>, rank: u64) -> u64 {
+    let mut seen = 0;
+    for v in h.iter_recorded() {
+        seen += v.count_since_last_iteration();
+        if seen >= rank {
+            return v.value_iterated_to();
+        }
+    }
+    h.max()
 }
 
 /// Microseconds since the UNIX epoch on the local wall clock.
@@ -619,7 +683,7 @@ struct Counters {
     frames: u64,
     keyframes: u64,
     bad_frames: u64,
-    ages_ms: Vec<f64>,
+    ages: FrameAges,
     max_displacement_m: f64,
     last_sim_time_s: f64,
     last_error: Option<String>,
@@ -652,7 +716,7 @@ where
         frames: 0,
         keyframes: 0,
         bad_frames: 0,
-        ages_ms: Vec::new(),
+        ages: FrameAges::default(),
         max_displacement_m: 0.0,
         last_sim_time_s: 0.0,
         last_error: None,
@@ -675,7 +739,8 @@ where
         Duration::from_secs(1),
     );
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let (mut window_frames, mut window_ages, mut window_start) = (0u64, Vec::new(), Instant::now());
+    let (mut window_frames, mut window_ages, mut window_start) =
+        (0u64, FrameAges::default(), Instant::now());
 
     let stop_reason = loop {
         tokio::select! {
@@ -684,7 +749,7 @@ where
             () = &mut sleep, if deadline.is_some() => break StopReason::Duration,
             _ = tick.tick(), if cfg.progress => {
                 let dt = window_start.elapsed().as_secs_f64().max(1e-9);
-                let ms = |q| percentile(&window_ages, q).map_or("-".into(), |v| format!("{v:.1}"));
+                let ms = |q| window_ages.quantile_ms(q).map_or("-".into(), |v| format!("{v:.1}"));
                 eprintln!(
                     "viewer: t={:.0}s frames={} ({:.1} fps) age p50 {} ms p99 {} ms, \
                      pictures {}, bad {}, max disp {:.3} mm",
@@ -735,9 +800,10 @@ where
                         }
                     }
                     if frame.server_time_us > 0 {
-                        let age_ms = (recv_us - frame.server_time_us as i128) as f64 / 1e3;
-                        c.ages_ms.push(age_ms);
-                        window_ages.push(age_ms);
+                        let age = recv_us - i128::from(frame.server_time_us);
+                        let age_us = i64::try_from(age).unwrap_or(i64::MAX);
+                        c.ages.record(age_us);
+                        window_ages.record(age_us);
                     }
                     if frame.max_displacement_m.is_finite() {
                         c.max_displacement_m = c.max_displacement_m.max(frame.max_displacement_m);
@@ -780,8 +846,8 @@ where
         bad_frames: c.bad_frames,
         elapsed_s,
         fps: c.frames as f64 / elapsed_s.max(1e-9),
-        age_p50_ms: percentile(&c.ages_ms, 0.5),
-        age_p99_ms: percentile(&c.ages_ms, 0.99),
+        age_p50_ms: c.ages.quantile_ms(0.5),
+        age_p99_ms: c.ages.quantile_ms(0.99),
         pictures_written: report.written,
         picture_errors: report.errors,
         out_dir: cfg.out_dir.clone(),
@@ -798,11 +864,33 @@ mod tests {
 
     #[test]
     fn percentiles_nearest_rank() {
-        let s = [5.0, 1.0, 3.0, 2.0, 4.0];
-        assert_eq!(percentile(&s, 0.5), Some(3.0));
-        assert_eq!(percentile(&s, 0.99), Some(5.0));
-        assert_eq!(percentile(&s, 0.0), Some(1.0));
-        assert_eq!(percentile(&[], 0.5), None);
+        let mut a = FrameAges::default();
+        assert_eq!(a.quantile_ms(0.5), None);
+        // Below 2.048 ms the histogram is exact.
+        for us in [500, 100, 300, 200, 400] {
+            a.record(us);
+        }
+        assert_eq!(a.quantile_ms(0.5), Some(0.3));
+        assert_eq!(a.quantile_ms(0.99), Some(0.5));
+        assert_eq!(a.quantile_ms(0.0), Some(0.1));
+        // Negative ages (the local clock behind the server's) keep their sign and rank.
+        a.clear();
+        for us in [700, -1500, 1200, -200, 100] {
+            a.record(us);
+        }
+        // Sorted: -1.5, -0.2, 0.1, 0.7, 1.2 ms; nearest rank ceil(q n).
+        assert_eq!(a.quantile_ms(0.0), Some(-1.5));
+        assert_eq!(a.quantile_ms(0.2), Some(-1.5));
+        assert_eq!(a.quantile_ms(0.4), Some(-0.2));
+        assert_eq!(a.quantile_ms(0.5), Some(0.1));
+        assert_eq!(a.quantile_ms(0.99), Some(1.2));
+        // Large ages within the 3 significant digits (0.1 %), rounded up (toward +inf).
+        a.clear();
+        a.record(152_000_000);
+        a.record(-152_000_000);
+        let (hi, lo) = (a.quantile_ms(1.0).unwrap(), a.quantile_ms(0.0).unwrap());
+        assert!((152_000.0..=152_000.0 * 1.001).contains(&hi), "{hi}");
+        assert!((-152_000.0..=-152_000.0 * 0.999).contains(&lo), "{lo}");
     }
 
     #[test]

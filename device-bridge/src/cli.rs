@@ -382,9 +382,8 @@ impl Args {
         t: DeviceTransform,
         cap: impl Fn(DeviceSpec) -> DeviceSpec,
     ) -> Result<Box<dyn HapticDevice>, CliError> {
-        use crate::openhaptics::{OpenHapticsDevice, load};
-        let (lib, api) = load(self.hd_library.as_deref())?;
-        let dev = OpenHapticsDevice::open(api, Some(Box::new(lib)))?;
+        use crate::openhaptics::{HdApi, OpenHapticsDevice};
+        let dev = OpenHapticsDevice::open(HdApi::load(self.hd_library.as_deref())?)?;
         Ok(Box::new(Transformed::new(Capped::new(dev, cap), t)?))
     }
 

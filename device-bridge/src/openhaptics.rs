@@ -2,11 +2,41 @@
 //! `libHD.so`), loaded at run time (devices.md section 1.2; \[S8\] `hdDefines.h`, \[S10\]
 //! HelloHapticDevice, \[S11\] PreventWarmMotors).
 //!
-//! The driver is written against [`HdApi`], a table of the HDAPI entry points it calls. With
-//! the cargo feature `openhaptics` (off by default: the library is closed and absent in CI),
-//! `load` fills the table from `libHD.so` with `libloading` and a missing library or symbol is
-//! a clear error naming it. Without the feature the driver logic still compiles and is
-//! unit-tested against a fake table (a simulated device and scheduler in this module's tests).
+//! The driver is written against [`HdApi`], the table of the HDAPI entry points it calls
+//! ([`HdTable`]) together with the library they live in. With the cargo feature `openhaptics`
+//! (off by default: the library is closed and absent in CI), `HdApi::load` fills the table
+//! from `libHD.so` with `libloading` and a missing library or symbol is a clear error naming
+//! it. Without the feature the driver logic still compiles and is unit-tested against a fake
+//! table (a simulated device and scheduler in this module's tests), wrapped by the `unsafe`
+//! [`HdApi::from_table`].
+//!
+//! Soundness: an [`HdApi`] owns (shares) the library its pointers came from, its fields are
+//! private and it is `Clone`, not `Copy`; the device keeps it in the servo state the callback
+//! reads, so the library stays mapped until the callback is unscheduled. Safe code cannot
+//! drop the library under a live table, nor build a table of arbitrary pointers:
+//!
+//! ```compile_fail
+//! use haptic_bridge::openhaptics::{HdApi, HdTable};
+//! fn forge(table: HdTable) -> HdApi {
+//!     HdApi { table } // private fields: only `load` and the unsafe `from_table` make one
+//! }
+//! ```
+//!
+//! ```compile_fail,E0133
+//! use haptic_bridge::openhaptics::{HdApi, HdTable};
+//! fn forge(table: HdTable) -> HdApi {
+//!     HdApi::from_table(table) // E0133: calling an unsafe function needs an unsafe block
+//! }
+//! ```
+//!
+//! ```
+//! use haptic_bridge::openhaptics::{HdApi, HdTable};
+//! fn forge(table: HdTable) -> HdApi {
+//!     // SAFETY: the caller of `forge` vouches for the table (the same code as above, with
+//!     // the unsafe block: it compiles, so the failures above are the ones the docs name).
+//!     unsafe { HdApi::from_table(table) }
+//! }
+//! ```
 //!
 //! How it runs: `hdInitDevice(HD_DEFAULT_DEVICE)`; the limits are read from the device
 //! (`HD_NOMINAL_MAX_FORCE`, `HD_NOMINAL_MAX_CONTINUOUS_FORCE`, `HD_NOMINAL_MAX_STIFFNESS` and
@@ -84,9 +114,10 @@ pub struct HdErrorInfo {
 pub type HdCallback = unsafe extern "C" fn(*mut c_void) -> c_uint;
 
 /// The HDAPI entry points the driver calls (C calling convention, as `hdDefines.h` declares
-/// them on Linux). Filled by `load` from `libHD.so`, or by a fake in tests.
+/// them on Linux). Filled by `HdApi::load` from `libHD.so`, or by a fake in tests; calling
+/// through a field is `unsafe`, and the driver only does so through an [`HdApi`].
 #[derive(Clone, Copy)]
-pub struct HdApi {
+pub struct HdTable {
     /// `HHD hdInitDevice(HDstring)`.
     pub init_device: unsafe extern "C" fn(*const c_char) -> c_uint,
     /// `void hdDisableDevice(HHD)`.
@@ -117,57 +148,90 @@ pub struct HdApi {
     pub get_booleanv: unsafe extern "C" fn(c_uint, *mut u8),
 }
 
+/// The HDAPI table and the library its entry points live in (module documentation,
+/// "Soundness"). Made by `HdApi::load` (feature `openhaptics`) or, for a table of one's own
+/// (a fake device), by the `unsafe` [`HdApi::from_table`]; clones share the library, which is
+/// unloaded when the last clone is dropped.
+#[derive(Clone)]
+pub struct HdApi {
+    table: HdTable,
+    /// Keeps the vendor library mapped while any clone (the device's servo state) lives.
+    #[cfg(feature = "openhaptics")]
+    _library: Option<Arc<libloading::Library>>,
+}
+
 impl std::fmt::Debug for HdApi {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str("HdApi { .. }")
     }
 }
 
-/// The library names tried by `load` when no path is given.
-pub const LIBRARY_NAMES: [&str; 2] = ["libHD.so", "libHD.so.3.4"];
-
-/// Loads `libHD.so` (or `path`) and fills the table. The returned library must outlive every
-/// use of the table.
-///
-/// # Errors
-/// [`DeviceError::Comm`] naming the library that could not be loaded (and how to install it)
-/// or the symbol that is missing.
-#[cfg(feature = "openhaptics")]
-pub fn load(path: Option<&std::path::Path>) -> Result<(libloading::Library, HdApi), DeviceError> {
-    let names: Vec<std::ffi::OsString> = match path {
-        Some(p) => vec![p.as_os_str().to_owned()],
-        None => LIBRARY_NAMES.iter().map(Into::into).collect(),
-    };
-    let mut last = String::new();
-    for name in &names {
-        // SAFETY: loading the vendor library runs its initialisers; this is the documented
-        // way to use OpenHaptics, and nothing else of ours runs concurrently with it here.
-        match unsafe { libloading::Library::new(name) } {
-            Ok(lib) => {
-                let api = table(&lib)?;
-                return Ok((lib, api));
-            }
-            Err(e) => last = format!("{}: {e}", name.to_string_lossy()),
+impl HdApi {
+    /// Wraps a table whose entry points are not from a library this type loaded (the fake
+    /// HDAPI of the tests).
+    ///
+    /// # Safety
+    /// Every pointer in `table` must behave as the HDAPI prototype its field documents
+    /// (`hd.h`, OpenHaptics 3.x: out-pointers written within the parameter's size, the
+    /// scheduler calling the callback only with the data it was given, until
+    /// `hdStopScheduler`/`hdUnschedule` return) and stay callable while any clone of the
+    /// returned value lives.
+    pub unsafe fn from_table(table: HdTable) -> Self {
+        Self {
+            table,
+            #[cfg(feature = "openhaptics")]
+            _library: None,
         }
     }
-    Err(DeviceError::Comm(format!(
-        "OpenHaptics: cannot load the HDAPI library ({last}); install 3D Systems OpenHaptics \
-         for Linux and the Touch device driver, or pass --hd-library PATH"
-    )))
+
+    /// Loads `libHD.so` (or `path`) and fills the table; the result owns the library.
+    ///
+    /// # Errors
+    /// [`DeviceError::Comm`] naming the library that could not be loaded (and how to install
+    /// it) or the symbol that is missing.
+    #[cfg(feature = "openhaptics")]
+    pub fn load(path: Option<&std::path::Path>) -> Result<Self, DeviceError> {
+        let names: Vec<std::ffi::OsString> = match path {
+            Some(p) => vec![p.as_os_str().to_owned()],
+            None => LIBRARY_NAMES.iter().map(Into::into).collect(),
+        };
+        let mut last = String::new();
+        for name in &names {
+            // SAFETY: loading the vendor library runs its initialisers; this is the documented
+            // way to use OpenHaptics, and nothing else of ours runs concurrently with it here.
+            match unsafe { libloading::Library::new(name) } {
+                Ok(lib) => {
+                    let table = table(&lib)?;
+                    return Ok(Self {
+                        table,
+                        _library: Some(Arc::new(lib)),
+                    });
+                }
+                Err(e) => last = format!("{}: {e}", name.to_string_lossy()),
+            }
+        }
+        Err(DeviceError::Comm(format!(
+            "OpenHaptics: cannot load the HDAPI library ({last}); install 3D Systems OpenHaptics \
+             for Linux and the Touch device driver, or pass --hd-library PATH"
+        )))
+    }
 }
 
+/// The library names tried by `HdApi::load` when no path is given.
+pub const LIBRARY_NAMES: [&str; 2] = ["libHD.so", "libHD.so.3.4"];
+
 #[cfg(feature = "openhaptics")]
-fn table(lib: &libloading::Library) -> Result<HdApi, DeviceError> {
+fn table(lib: &libloading::Library) -> Result<HdTable, DeviceError> {
     fn sym<T: Copy>(lib: &libloading::Library, name: &str) -> Result<T, DeviceError> {
         // SAFETY: the symbol's type is the HDAPI prototype from hdDefines.h/hd.h that the
-        // field it fills declares; the library outlives the table (the caller keeps it).
+        // field it fills declares; the library outlives the table (`HdApi::load` stores both).
         unsafe {
             lib.get::<T>(name.as_bytes())
                 .map(|s| *s)
                 .map_err(|e| DeviceError::Comm(format!("OpenHaptics: symbol {name} missing: {e}")))
         }
     }
-    Ok(HdApi {
+    Ok(HdTable {
         init_device: sym(lib, "hdInitDevice")?,
         disable_device: sym(lib, "hdDisableDevice")?,
         get_error: sym(lib, "hdGetError")?,
@@ -216,7 +280,7 @@ unsafe extern "C" fn servo_callback(data: *mut c_void) -> c_uint {
     // `hdScheduleAsynchronous`; it stays alive until after the callback is unscheduled and the
     // scheduler stopped (`safe_stop`).
     let servo = unsafe { &*(data as *const Servo) };
-    let api = servo.api;
+    let api = &servo.api.table;
     let (mut p, mut v) = ([0.0f64; 3], [0.0f64; 3]);
     let mut switch = 1u8;
     // SAFETY: HDAPI calls inside a scheduler callback with valid out-pointers of the sizes the
@@ -268,8 +332,6 @@ pub struct OpenHapticsDevice {
     handle: c_ulong,
     spec: DeviceSpec,
     peak_force_n: f64,
-    /// Keeps the vendor library loaded while the table is in use.
-    _library: Option<Box<dyn std::any::Any + Send>>,
     stopped: bool,
 }
 
@@ -277,7 +339,7 @@ pub struct OpenHapticsDevice {
 // function pointers and a Mutex); it is never dereferenced by this type except to reclaim it.
 unsafe impl Send for OpenHapticsDevice {}
 
-fn check(api: &HdApi, what: &str) -> Result<(), DeviceError> {
+fn check(api: &HdTable, what: &str) -> Result<(), DeviceError> {
     // SAFETY: plain HDAPI call.
     let e = unsafe { (api.get_error)() };
     if e.error_code == hd::SUCCESS {
@@ -291,16 +353,14 @@ fn check(api: &HdApi, what: &str) -> Result<(), DeviceError> {
 }
 
 impl OpenHapticsDevice {
-    /// Initialises the default device through `api`, reads its limits, enables force output and
-    /// starts the servo callback. `library` is kept alive with the device (the `libloading`
-    /// library the table came from, or `None` for a fake).
+    /// Initialises the default device through `hd_api`, reads its limits, enables force output
+    /// and starts the servo callback. The device keeps `hd_api` (and so its library) in the
+    /// servo state until the callback is unscheduled ([`HapticDevice::safe_stop`]).
     ///
     /// # Errors
     /// [`DeviceError::Comm`] with the HD error code of the step that failed.
-    pub fn open(
-        api: HdApi,
-        library: Option<Box<dyn std::any::Any + Send>>,
-    ) -> Result<Self, DeviceError> {
+    pub fn open(hd_api: HdApi) -> Result<Self, DeviceError> {
+        let api = hd_api.table;
         // SAFETY: HDAPI set-up calls with valid arguments (a null config name selects the
         // default device; out-pointers sized for each parameter).
         let hhd = unsafe { (api.init_device)(std::ptr::null()) };
@@ -347,7 +407,7 @@ impl OpenHapticsDevice {
         };
         spec.validate()?;
         let servo = Arc::new(Servo {
-            api,
+            api: hd_api,
             hhd,
             has_safety_switch,
             slot: Mutex::new(Slot {
@@ -380,7 +440,6 @@ impl OpenHapticsDevice {
             handle,
             spec,
             peak_force_n: peak,
-            _library: library,
             stopped: false,
         };
         if let Err(e) = check(&api, "starting the scheduler") {
@@ -468,7 +527,7 @@ impl HapticDevice for OpenHapticsDevice {
         }
         // Let one callback render zero, then stop it.
         std::thread::sleep(Duration::from_millis(3));
-        let api = servo.api;
+        let api = &servo.api.table;
         // SAFETY: HDAPI shut-down sequence; after `hdStopScheduler` and `hdUnschedule` the
         // callback no longer runs, so its data can be released.
         unsafe {
@@ -618,7 +677,7 @@ mod tests {
     }
 
     fn fake_api() -> HdApi {
-        HdApi {
+        let table = HdTable {
             init_device,
             disable_device,
             get_error,
@@ -633,7 +692,11 @@ mod tests {
             get_doublev,
             set_doublev,
             get_booleanv,
-        }
+        };
+        // SAFETY: the fake's functions follow the HDAPI prototypes (out-pointers written within
+        // each parameter's size, the scheduler thread joined by `stop_scheduler`) and are
+        // statics, callable for the whole process.
+        unsafe { HdApi::from_table(table) }
     }
 
     fn device_force() -> [f64; 3] {
@@ -659,7 +722,7 @@ mod tests {
             position_mm: [10.0, -20.0, 5.0],
             ..Fake::default()
         });
-        let mut d = OpenHapticsDevice::open(fake_api(), None).unwrap();
+        let mut d = OpenHapticsDevice::open(fake_api()).unwrap();
         let s = d.spec().clone();
         // Limits read from the device: the peak as clamp, the continuous force for the thermal
         // limit (S8), N/mm -> N/m, mm -> m.
@@ -706,7 +769,7 @@ mod tests {
             safety: 0,
             ..Fake::default()
         });
-        let mut d = OpenHapticsDevice::open(fake_api(), None).unwrap();
+        let mut d = OpenHapticsDevice::open(fake_api()).unwrap();
         assert!(eventually(|| d.read(0).is_ok()));
         let before = with(|f| f.forces_set);
         for _ in 0..10 {
@@ -727,7 +790,7 @@ mod tests {
     #[cfg(feature = "openhaptics")]
     #[test]
     fn a_missing_library_is_named() {
-        let e = load(Some(std::path::Path::new("/nonexistent/libHD.so")))
+        let e = HdApi::load(Some(std::path::Path::new("/nonexistent/libHD.so")))
             .err()
             .unwrap()
             .to_string();

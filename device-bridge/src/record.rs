@@ -93,29 +93,36 @@ pub fn write_mcap_file(path: &Path, rows: &[TickRecord]) -> std::io::Result<()> 
 pub const CSV_HEADER: &str =
     "t_s,x_m,y_m,z_m,fx_n,fy_n,fz_n,in_contact,rtt_us,age_us,state,command_n";
 
-/// Writes `rows` as CSV with [`CSV_HEADER`]; `rtt_us` and `age_us` are empty when absent.
+/// Writes `rows` as CSV with [`CSV_HEADER`] through the `csv` crate (the reader of
+/// [`crate::replay`]); `rtt_us` and `age_us` are empty when absent. Fields are formatted as
+/// `{:.6}` (time, force, command) and `{:.9}` (position); no field needs quoting, so the
+/// bytes are those of the plain format.
 ///
 /// # Errors
 /// Any I/O error of the writer.
-pub fn write_csv<W: Write>(mut out: W, rows: &[TickRecord]) -> std::io::Result<()> {
-    writeln!(out, "{CSV_HEADER}")?;
+pub fn write_csv<W: Write>(out: W, rows: &[TickRecord]) -> std::io::Result<()> {
+    let mut w = csv::Writer::from_writer(out);
+    w.write_record(CSV_HEADER.split(','))?;
+    let optional = |v: Option<u64>| v.map_or_else(String::new, |v| v.to_string());
     for r in rows {
         let [x, y, z] = r.position_m;
         let [fx, fy, fz] = r.force_n;
-        write!(
-            out,
-            "{:.6},{x:.9},{y:.9},{z:.9},{fx:.6},{fy:.6},{fz:.6},{}",
-            r.t_s, r.in_contact
-        )?;
-        for v in [r.rtt_us, r.age_us] {
-            match v {
-                Some(v) => write!(out, ",{v}")?,
-                None => write!(out, ",")?,
-            }
-        }
-        writeln!(out, ",{},{:.6}", r.state, r.command_n)?;
+        w.write_record([
+            format!("{:.6}", r.t_s),
+            format!("{x:.9}"),
+            format!("{y:.9}"),
+            format!("{z:.9}"),
+            format!("{fx:.6}"),
+            format!("{fy:.6}"),
+            format!("{fz:.6}"),
+            r.in_contact.to_string(),
+            optional(r.rtt_us),
+            optional(r.age_us),
+            r.state.to_owned(),
+            format!("{:.6}", r.command_n),
+        ])?;
     }
-    out.flush()
+    w.flush()
 }
 
 /// Writes `rows` to the file at `path` (created or truncated).
@@ -162,6 +169,35 @@ mod tests {
             lines[2]
         );
         assert!(lines.iter().all(|l| l.split(',').count() == 12));
+    }
+
+    /// The exact bytes of two rows, written by hand (the format of the recordings already on
+    /// disk: `{:.6}` time, force and command, `{:.9}` position, empty rtt/age when absent,
+    /// `\n` line ends, no quoting).
+    #[test]
+    fn two_rows_are_these_bytes() {
+        let rows = [
+            TickRecord {
+                t_s: 0.0,
+                ..Default::default()
+            },
+            TickRecord {
+                t_s: 12.3456789,
+                position_m: [0.01, -0.0123456789, 1.5],
+                force_n: [-1.5, 0.25, 3.3],
+                in_contact: true,
+                rtt_us: Some(87),
+                age_us: None,
+                state: "scaled",
+                command_n: 4.0000004,
+            },
+        ];
+        let mut buf = Vec::new();
+        write_csv(&mut buf, &rows).unwrap();
+        let expected = "t_s,x_m,y_m,z_m,fx_n,fy_n,fz_n,in_contact,rtt_us,age_us,state,command_n\n\
+            0.000000,0.000000000,0.000000000,0.000000000,0.000000,0.000000,0.000000,false,,,,0.000000\n\
+            12.345679,0.010000000,-0.012345679,1.500000000,-1.500000,0.250000,3.300000,true,87,,scaled,4.000000\n";
+        assert_eq!(String::from_utf8(buf).unwrap(), expected);
     }
 
     #[test]

@@ -969,8 +969,8 @@ fn report(r: Report<'_>) -> Result<bool> {
         let Some(end) = this.last() else { continue };
         let all = Group::of(this.iter().copied());
         let (q, h) = quiet_and_heavy(&this);
-        let mut fps: Vec<f64> = this.iter().map(|w| w.frames_per_watcher_per_s).collect();
-        let fps = percentile(&mut fps, 0.5);
+        let fps: Vec<f64> = this.iter().map(|w| w.frames_per_watcher_per_s).collect();
+        let fps = percentile(&fps, 0.5);
         println!(
             "| {} | {:.1} | {} % | {} | {} / {} | {} / {} | {} / {} | {:.0} | {fps:.1} |",
             m + 1,
@@ -1039,7 +1039,7 @@ fn report(r: Report<'_>) -> Result<bool> {
         heavy_p50.len(),
         heavy_failed,
         opt_cell(
-            (!heavy_p50.is_empty()).then(|| percentile(&mut heavy_p50.clone(), 0.5)),
+            (!heavy_p50.is_empty()).then(|| percentile(&heavy_p50, 0.5)),
             0
         ),
         forces.0,

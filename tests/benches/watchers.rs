@@ -138,7 +138,7 @@ async fn run(
         Some((addr, _)) if mode == Mode::Relay => relay_counters(addr).await.ok(),
         _ => None,
     };
-    let mut per: Vec<f64> = watchers
+    let per: Vec<f64> = watchers
         .iter()
         .zip(&before)
         .map(|(w, b)| (w.snapshot().0 - b) as f64)
@@ -172,7 +172,7 @@ async fn run(
         "daemon_rss_mb": mem_daemon.0 as f64 / 1e6,
         "relay_rss_mb": mem_relay.map(|m| m.0 as f64 / 1e6),
         "frames_per_watcher_min": per.iter().copied().reduce(f64::min).unwrap_or(0.0),
-        "frames_per_watcher_p50": percentile(&mut per, 0.5),
+        "frames_per_watcher_p50": percentile(&per, 0.5),
         "frames_per_watcher_max": per.iter().copied().fold(0.0, f64::max),
         "expected_frames_per_watcher": RATE_HZ * dt,
         "failed_watchers": failed,
@@ -244,12 +244,12 @@ async fn main() -> Result<()> {
     }
     // Medians over the repetitions of each set-up.
     let median = |mode: &str, n: u64, key: &str| -> Option<f64> {
-        let mut v: Vec<f64> = rows
+        let v: Vec<f64> = rows
             .iter()
             .filter(|r| r["mode"] == mode && r["watchers"] == n)
             .filter_map(|r| r[key].as_f64())
             .collect();
-        (!v.is_empty()).then(|| percentile(&mut v, 0.5))
+        (!v.is_empty()).then(|| percentile(&v, 0.5))
     };
     let range = |mode: &str, n: u64, key: &str| -> String {
         let v: Vec<f64> = rows

@@ -1,6 +1,6 @@
 //! Helpers of the viewer benchmarks (`tests/benches/stream_bytes.rs`, `tests/benches/watchers.rs`):
 //! watchers that count what they receive (gRPC `Watch` streams and relay WebSockets), CPU time
-//! and memory of a process from `/proc`, and nearest-rank percentiles. Loopback only; every
+//! and memory of a process from `/proc`, and nearest-rank percentiles (`hdrhistogram`). Loopback only; every
 //! loop is bounded by a deadline or a stop flag.
 
 use std::sync::Arc;
@@ -10,6 +10,7 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use futures_util::StreamExt;
 use haptics_proto::v1::{SurfaceEncoding, SurfaceFrame, WatchRequest};
+use hdrhistogram::Histogram;
 use prost::Message as _;
 
 /// What one watcher received.
@@ -165,12 +166,38 @@ pub fn memory_bytes(pid: u32) -> Result<(u64, u64)> {
     Ok((field("VmRSS:")?, field("VmHWM:")?))
 }
 
-/// Nearest-rank percentile `q` in `[0, 1]` of `v` (sorted in place); 0 when empty.
-pub fn percentile(v: &mut [f64], q: f64) -> f64 {
-    if v.is_empty() {
+/// Nearest-rank percentile `q` in `[0, 1]` of `v`; 0 when empty. The values go to an
+/// `hdrhistogram` in thousandths (rounded; 3 significant digits): exact below 2.048, otherwise
+/// the upper end of the sample's bucket, at most 0.1 % above it. Negative values count as 0.
+pub fn percentile(v: &[f64], q: f64) -> f64 {
+    // 3 significant digits is within the crate's 0..=5; the histogram grows to any value.
+    let mut h = Histogram::<u64>::new(3).expect("3 significant digits is valid");
+    for &x in v {
+        let milli = (x.max(0.0) * 1e3).round() as u64;
+        if h.record(milli).is_err() {
+            h.saturating_record(milli);
+        }
+    }
+    if h.is_empty() {
         return 0.0;
     }
-    v.sort_by(f64::total_cmp);
-    let rank = (q.clamp(0.0, 1.0) * v.len() as f64).ceil() as usize;
-    v[rank.clamp(1, v.len()) - 1]
+    h.value_at_quantile(q.clamp(0.0, 1.0)) as f64 / 1e3
+}
+
+#[cfg(test)]
+mod tests {
+    use super::percentile;
+
+    #[test]
+    fn percentiles_are_nearest_rank_to_three_digits() {
+        assert_eq!(percentile(&[], 0.5), 0.0);
+        // Sorted 0.5, 1, 1.5, 2: ranks ceil(q n) = 2, 4, 1.
+        let v = [2.0, 0.5, 1.5, 1.0];
+        assert_eq!(percentile(&v, 0.5), 1.0);
+        assert_eq!(percentile(&v, 0.99), 2.0);
+        assert_eq!(percentile(&v, 0.0), 0.5);
+        // 59.7 frames/s is 59 700 thousandths: within 0.1 %, never below.
+        let p = percentile(&[59.7, 10.0, 80.25], 0.5);
+        assert!((59.7..=59.7 * 1.001).contains(&p), "{p}");
+    }
 }

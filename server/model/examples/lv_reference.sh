@@ -12,25 +12,31 @@
 #
 #   server/model/examples/lv_reference.sh [OUT_DIR] [LEVELS]
 #
-# LEVELS: the size parameters, coarse to fine (default "0.6 0.42 0.3 0.2121 0.15"). A level
-# already solved (OUT_DIR/level_S_MATERIAL.csv.done) is not solved again. Needs gmsh
-# (tests/install-gmsh.sh). Run time on the shared 2-core machine: about 3.5 h, most of it the
-# two finest levels (0.2121 mm, 31 403 nodes: about 16 min for StVK, 40-50 min for the stable
-# neo-Hookean material to 4 mm; 0.15 mm, 82 389 nodes: about 25 min and 1 h).
+# LEVELS: the size parameters, coarse to fine (default "0.6 0.42 0.3 0.2121 0.15 0.10607:stvk");
+# a level written S:MATERIAL is solved for that material only (the sixth level, 219 211 nodes,
+# for StVK: about 1.7 h and 7.4 GB here; the stable neo-Hookean material to 4 mm there would
+# take an estimated 5 h). A level already solved (OUT_DIR/level_S_MATERIAL.csv.done) is not
+# solved again. Needs gmsh (tests/install-gmsh.sh). Run time on the shared 2-core machine:
+# about 5 h, most of it the three finest levels (0.2121 mm, 31 403 nodes: about 16 min for
+# StVK, 40-50 min for the stable neo-Hookean material to 4 mm; 0.15 mm, 82 389 nodes: about
+# 25 min and 1 h).
 set -euo pipefail
 root=$(cd "$(dirname "$0")/../../.." && pwd)
 cd "$root"
 out=${1:-target/lv-reference}
-levels=${2:-"0.6 0.42 0.3 0.2121 0.15"}
+levels=${2:-"0.6 0.42 0.3 0.2121 0.15 0.10607:stvk"}
 command -v gmsh >/dev/null || { echo "gmsh not found: run tests/install-gmsh.sh" >&2; exit 1; }
 mkdir -p "$out"
 cargo build --release -p haptic-model --example lv_reference
 csvs=()
-for s in $levels; do
+for level in $levels; do
+  s=${level%%:*}
+  materials="stvk stable-neo-hookean"
+  [[ $level == *:* ]] && materials=${level#*:}
   msh="$out/half_$s.msh"
   [[ -f $msh ]] || gmsh server/model/examples/lv_probe_half.geo -3 -format msh22 \
     -setnumber s "$s" -o "$msh" > "$out/gmsh_$s.log"
-  for material in stvk stable-neo-hookean; do
+  for material in $materials; do
     if [[ $material == stvk ]]; then depths=0.25,0.5,1; else depths=0.25,0.5,1,1.5,2,3,4; fi
     csv="$out/level_${s}_$material.csv"
     csvs+=("$csv")

@@ -55,6 +55,16 @@ pub enum ContactModel {
 }
 
 impl ContactModel {
+    /// Every model a scene may name, in the order of [`ContactModel::name`] (for parsing and
+    /// listings; the README test checks each is documented).
+    pub const ALL: [ContactModel; 5] = [
+        Self::Auto,
+        Self::Sphere,
+        Self::Patch,
+        Self::PatchHertz,
+        Self::PatchLocal,
+    ];
+
     /// The scene-file name (`"auto"`, `"sphere"`, `"patch"`, `"patch-hertz"`,
     /// `"patch-local"`).
     pub fn name(self) -> &'static str {
@@ -69,15 +79,7 @@ impl ContactModel {
 
     /// The model of a scene-file name.
     pub fn from_name(name: &str) -> Option<Self> {
-        [
-            Self::Auto,
-            Self::Sphere,
-            Self::Patch,
-            Self::PatchHertz,
-            Self::PatchLocal,
-        ]
-        .into_iter()
-        .find(|m| m.name() == name)
+        Self::ALL.into_iter().find(|m| m.name() == name)
     }
 }
 

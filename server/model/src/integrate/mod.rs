@@ -83,6 +83,14 @@ pub fn resolve_contact_model(requested: ContactModel) -> ContactModel {
 }
 
 impl IntegratorKind {
+    /// Every integrator, in the order of the scene-file documentation (for parsing and
+    /// listings; the README test checks each is documented).
+    pub const ALL: [IntegratorKind; 3] = [
+        Self::SemiImplicit,
+        Self::SymplecticEuler,
+        Self::BackwardEuler,
+    ];
+
     /// The name used in scene files (`semi-implicit`, `symplectic-euler`, `backward-euler`).
     pub fn name(self) -> &'static str {
         match self {
@@ -94,13 +102,7 @@ impl IntegratorKind {
 
     /// Parses a scene-file name (see [`IntegratorKind::name`]); `None` if unknown.
     pub fn from_name(name: &str) -> Option<Self> {
-        [
-            Self::SemiImplicit,
-            Self::SymplecticEuler,
-            Self::BackwardEuler,
-        ]
-        .into_iter()
-        .find(|k| k.name() == name)
+        Self::ALL.into_iter().find(|k| k.name() == name)
     }
 }
 

@@ -106,6 +106,10 @@ pub use builtin::{builtin_calibration, builtin_scene_names, builtin_scene_toml};
 pub use raw::{MAX_GRAVITY_M_PER_S2, MAX_PRESSURE_PA, MAX_SCENE_POINT_FORCE_N};
 pub use toml_errors::describe_toml_error;
 
+/// The names `[mesh] builtin` accepts (the generated meshes; scene-file documentation above).
+/// The parser's error for an unknown name lists the same names (checked by the README test).
+pub const BUILTIN_MESHES: [&str; 5] = ["lv", "ellipsoids", "sphere", "box", "hemisphere"];
+
 /// The model family a scene asks for (section `[model] family`): which [`crate::body::SoftBody`]
 /// implementation [`crate::build_body`] builds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
