@@ -1,7 +1,7 @@
 //! Where the organ table is read at run time: the probe's *foot* on the coarse rest surface.
 //!
-//! The calibration ([`super::calibrate`]) presses a site (a coarse node, an edge's midpoint)
-//! along its inward rest normal, so the sphere's centre stays on the line through the site's
+//! The calibration ([`super::calibrate_organ`]) presses a site (a coarse node, an edge's
+//! midpoint) along its inward rest normal, so the sphere's centre stays on the line through the site's
 //! rest position. At run time the factor is read where that line meets the rest surface: the
 //! line through the probe's proxy centre along its contact normal, intersected with the coarse
 //! rest triangles (the hit nearest the centre's expected distance `r - s`, `r` the probe's
