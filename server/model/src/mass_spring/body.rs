@@ -43,6 +43,7 @@ use super::loop_rules::loop_rest_positions;
 use super::mixed::MixedMesh;
 use super::network::{Spring, critical_time_step_s, gershgorin_bound_per_s2};
 use super::organ::OrganTable;
+use super::organ::foot::{RestFoot, foot_depth_m, rest_foot};
 use super::refine::{NO_OWNER, Refinement};
 use super::surface::SpringSurface;
 use super::{MassSpringParams, SpringRule, VertexRule, prefaulted};
@@ -135,6 +136,12 @@ pub struct MassSpringBody {
     /// The probe's sphere depth at the last sub-step in contact, m (see
     /// [`MassSpringBody::contact_depth_m`]).
     contact_depth_m: f64,
+    /// The probe's foot on the coarse rest surface ([`super::organ::foot`]), where the organ
+    /// table is read; `None` out of contact, without a table or off the surface.
+    foot: Option<RestFoot>,
+    /// Whether a sub-step of this tick already searched the foot (at most one search per
+    /// tick besides the end-of-tick update).
+    foot_searched: bool,
     /// The worst-case Gershgorin bound with constant springs (1/s^2) and the integrator
     /// settings: the plan is recomputed with the organ table's largest factor.
     worst_lambda_per_s2: f64,
@@ -321,6 +328,8 @@ impl MassSpringBody {
             organ: None,
             contact_factor: 1.0,
             contact_depth_m: 0.0,
+            foot: None,
+            foot_searched: false,
             worst_lambda_per_s2: worst_lambda,
             integrator: *integrator,
             loads,
@@ -395,9 +404,12 @@ impl MassSpringBody {
         self.organ.as_ref()
     }
 
-    /// The probe's sphere depth, m: the travel of its kernel plane from the plane's rest
-    /// position, `sum w_i (rest_i - x_i) . n` over its patch, at the last sub-step in contact
-    /// (the key of the organ table, [`super::organ`]).
+    /// The probe's sphere depth, m, at the last sub-step in contact (the key of the organ
+    /// table, [`super::organ`]): when the probe's foot ([`super::organ::foot`]) lies on a
+    /// rest triangle with a corner in a subdivided area, the sphere's depth below that flat
+    /// triangle along the line through the proxy along the contact normal; elsewhere the travel
+    /// of the probe's kernel plane from its rest position, `sum w_i (rest_i - x_i) . n` over
+    /// its patch.
     pub fn contact_depth_m(&self) -> f64 {
         self.contact_depth_m
     }
@@ -407,35 +419,55 @@ impl MassSpringBody {
         self.contact_factor
     }
 
-    /// The contact factor at the probe's current contact: the organ table at the sphere depth
-    /// (the kernel plane's travel from its rest position, `sum w_i (rest_i - x_i) . n` over the
-    /// patch), interpolated over the contact triangle ([`super::organ`]): a subdivided
-    /// triangle's corners are table sites (coarse nodes and edge midpoints), a coarse triangle
-    /// is interpolated over its four Loop children; each site's coarse factor, or its
-    /// subdivided one when it lies in a subdivided area. Unchanged out of contact or without a
-    /// table. Allocation-free.
+    /// The probe's sphere depth ([`MassSpringBody::contact_depth_m`]: below the flat rest
+    /// triangle at the foot in a subdivided area, the kernel plane's travel elsewhere) and the
+    /// contact factor at its current contact: the organ table at that depth, interpolated at the probe's foot
+    /// on the coarse rest surface ([`super::organ::foot`]: where the calibration pressed, so a
+    /// press along a site's normal reads that site's row at any depth) over its coarse
+    /// triangle's four Loop children (corners: nodes and edge midpoints, the table's sites);
+    /// each site's coarse factor, or its subdivided one when it lies in a subdivided area. Off
+    /// the rest surface (no foot), at the contact point of the deformed surface (the probe's
+    /// triangle). Unchanged out of contact; the factor
+    /// unchanged without a table. Allocation-free.
     fn update_contact_factor(&mut self) {
         let st = self.probe.state;
         if !st.in_contact {
             return;
         }
-        let (nodes, weights) = self.probe.patch();
-        let depth: f64 = nodes
-            .iter()
-            .zip(weights)
-            .map(|(&i, &w)| w * (self.rest[i as usize] - self.x[i as usize]).dot(st.normal))
-            .sum();
+        self.update_foot();
+        // In a subdivided area the depth below the flat rest triangle at the foot (the
+        // subdivided patch's kernel plane sits lower at rest than the coarse one's); elsewhere
+        // the kernel plane's travel (which follows the organ's surface between nodes).
+        let foot_in_area = self.foot.filter(|f| {
+            self.surface.triangles()[f.triangle as usize]
+                .iter()
+                .any(|&s| self.owner[s as usize] != NO_OWNER)
+        });
+        let depth = match &foot_in_area {
+            Some(foot) => foot_depth_m(foot, self.probe.params.radius_m),
+            None => {
+                let (nodes, weights) = self.probe.patch();
+                nodes
+                    .iter()
+                    .zip(weights)
+                    .map(|(&i, &w)| w * (self.rest[i as usize] - self.x[i as usize]).dot(st.normal))
+                    .sum()
+            }
+        };
         self.contact_depth_m = depth;
         let Some(table) = &self.organ else {
             return;
         };
-        let Some(tri) = self.probe.surface.triangles.get(st.triangle as usize) else {
-            return;
+        let (tri, b) = match self.foot {
+            Some(foot) => (self.surface.triangles()[foot.triangle as usize], foot.bary),
+            None => match self.probe.surface.triangles.get(st.triangle as usize) {
+                Some(&tri) => (tri, st.bary),
+                None => return,
+            },
         };
         let nc = self.surface.node_count() as u32;
         // A site of a subdivided area takes the subdivided configuration's factor.
         let site = |s: u32| table.factor(s, depth, self.owner[s as usize] != NO_OWNER);
-        let b = st.bary;
         let beta = if tri.iter().all(|&s| s < nc) {
             // A coarse triangle: linear over its four Loop children (corner i's child where
             // b_i >= 1/2, else the middle one), whose corners are nodes and edge midpoints.
@@ -465,6 +497,31 @@ impl MassSpringBody {
         if beta.is_finite() && beta > 0.0 {
             self.contact_factor = beta;
         }
+    }
+
+    /// The probe's foot on the coarse rest surface ([`super::organ::foot`]) from its state now:
+    /// searched around the last foot's triangles, over the whole surface at a first contact (at
+    /// most once a tick while none is found); `None` when the line through the proxy along the
+    /// normal meets no rest triangle within a probe radius of where the centre should be.
+    /// Allocation-free.
+    fn update_foot(&mut self) {
+        let hint = self.foot.map(|f| f.triangle);
+        if hint.is_none() {
+            if self.foot_searched {
+                return;
+            }
+            self.foot_searched = true;
+        }
+        let st = self.probe.state;
+        let r = self.probe.params.radius_m;
+        let expected = if hint.is_some() {
+            r - self.contact_depth_m
+        } else {
+            r
+        };
+        self.foot = rest_foot(&self.surface, st.proxy_m, st.normal, expected, r, hint)
+            .filter(|f| f.miss_m <= r)
+            .map(|f| f.foot);
     }
 
     /// `K'_h` and `K'_m` of each centre's area at the current state (section 3.2.4: the table
@@ -1138,6 +1195,10 @@ impl MassSpringBody {
         self.time_s += self.tick_s;
         self.loads.advance(self.tick_s);
         self.update_contact_positions();
+        if !self.probe.state.in_contact {
+            self.foot = None;
+        }
+        self.foot_searched = false;
         // 4. Subdivision around the contact node, coarsening of areas left.
         self.update_centres();
         // 5. Output.

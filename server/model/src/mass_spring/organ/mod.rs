@@ -10,7 +10,8 @@
 //! wall responds almost linearly (10-11 N/m). No constant spring can follow that, so every
 //! spring constant of the body (home and mesh, coarse and subdivided) is multiplied by a
 //! *contact factor* `beta`: per node `i` and probe sphere depth `s` (the kernel plane's travel
-//! below its rest position) the table holds
+//! below its rest position; in a subdivided area, since version 3, the sphere's depth below
+//! the flat rest surface along the contact normal, [`foot`]) the table holds
 //!
 //! `beta_i(s) = F_ref(i, s) / F_1(i, s)`,
 //!
@@ -26,10 +27,12 @@
 //! coarse node and every coarse edge's midpoint, each pressed there (along the mean of its
 //! ends' normals for an edge), never subdivided (`factor`) and with the run-time subdivision
 //! the scene configures around the contact (`factor_subdivided`: the eq. 4 table keeps the
-//! force at a node, not between nodes). At run time `beta` is interpolated in `s` and over
-//! the contact triangle: on a subdivided triangle linearly between its corners (coarse nodes
-//! and edge midpoints: exactly the sites), on a coarse triangle linearly over its four Loop
-//! children (the same field). So it is continuous while the probe slides and constant during a
+//! force at a node, not between nodes). At run time `beta` is interpolated in `s` and at the
+//! probe's *foot* on the coarse rest surface ([`foot`]: where the line through the sphere's
+//! centre along the contact normal meets the rest triangles, which for a press along a site's
+//! normal is the site itself, so a user's press there reads what the calibration measured)
+//! linearly over its coarse triangle's four Loop children (corners: coarse nodes and edge
+//! midpoints, exactly the sites). So it is continuous while the probe slides and constant during a
 //! hold; the centroid of a triangle takes the mean of its edges' factors (measured:
 //! docs/accuracy.md).
 //!
@@ -55,6 +58,7 @@ use crate::ModelError;
 use crate::contact::ProbeParams;
 
 mod calibrate;
+pub mod foot;
 
 pub use calibrate::{
     DEPTH_ATTEMPTS, DEPTH_FALLBACK_TOLERANCE, DEPTH_TOLERANCE, MAX_HOLD_TICKS, OrganSetup,
@@ -62,8 +66,11 @@ pub use calibrate::{
     calibrate_organ_node, press_sphere_depths, site_press,
 };
 
-/// Version of the organ table's definition; part of its key.
-pub const ORGAN_VERSION: u32 = 2;
+/// Version of the organ table's definition; part of its key. 3 (session 5): in a subdivided
+/// area (the `factor_subdivided` column) the depth is the sphere's depth below the flat rest
+/// triangle at the probe's foot ([`foot`]), at calibration and at run time alike (was the
+/// kernel plane's travel, which the coarse column keeps).
+pub const ORGAN_VERSION: u32 = 3;
 
 /// The column header of a reference file (further columns may follow, e.g. each mesh level's
 /// force; they are not read).
