@@ -12,6 +12,8 @@
 //! Neighbours: `hapticctl`, `haptic-viewer` (`haptic-client`), `haptic-bridge`, the end-to-end
 //! tests and `haptic-solve` (`haptic-server`) use it; it depends on `haptics-proto` only.
 
+#![forbid(unsafe_code)]
+
 pub mod connect;
 pub mod credentials;
 pub mod recording;

@@ -20,6 +20,8 @@
 //! it; credentials, connecting, `X,Y,Z` vectors and MCAP recordings are `haptic_cli`'s. This crate never depends on the physics model: everything it knows about a session comes
 //! over gRPC.
 
+#![forbid(unsafe_code)]
+
 pub mod compact;
 pub mod ctl;
 pub mod error;

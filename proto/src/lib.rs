@@ -11,6 +11,8 @@
 //! end-to-end tests call them, with the client-side helpers of `haptic-cli` (credentials,
 //! connecting, `X,Y,Z` vectors, MCAP recordings).
 
+#![forbid(unsafe_code)]
+
 pub mod codec;
 pub mod delta;
 

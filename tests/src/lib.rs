@@ -26,6 +26,7 @@ pub mod browser;
 pub mod demo;
 pub mod install;
 pub mod load;
+pub mod source_scan;
 
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
