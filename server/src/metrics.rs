@@ -270,7 +270,7 @@ impl Collector for SessionCollector {
         per_session(
             e,
             &rows,
-            "hapticd_region_swaps_total",
+            "hapticd_region_swaps",
             "Active regions swapped in by a region that follows the probe",
             Counter,
             |r| Value::Counter(r.stats.body.region_swaps),

@@ -95,6 +95,13 @@ async fn sessions_are_scraped_with_consistent_counters_and_histograms() {
         sample(&text, "hapticd_out_of_workspace_samples_total", &labels),
         Some(0.0)
     );
+    // The default scene does not follow the probe: no region swaps. Counter names end in
+    // one `_total` (the encoder adds it), never two.
+    assert_eq!(
+        sample(&text, "hapticd_region_swaps_total", &labels),
+        Some(0.0)
+    );
+    assert!(!text.contains("_total_total"), "{text}");
 
     // Over HTTP.
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
