@@ -352,13 +352,60 @@ fn check(api: &HdTable, what: &str) -> Result<(), DeviceError> {
     }
 }
 
+/// The device's limits and workspace (HDAPI units converted to SI) and whether it has a
+/// safety switch, read from an initialised device.
+///
+/// # Errors
+/// [`DeviceError::Comm`] when HDAPI reports an error reading the limits; the checks of
+/// [`DeviceSpec::validate`] for limits that are not finite and positive.
+fn read_spec(api: &HdTable) -> Result<(DeviceSpec, bool), DeviceError> {
+    let get1 = |p: u32| {
+        let mut v = 0.0f64;
+        // SAFETY: a scalar parameter, one double.
+        unsafe { (api.get_doublev)(p, &mut v) };
+        v
+    };
+    let peak = get1(hd::NOMINAL_MAX_FORCE);
+    let continuous = get1(hd::NOMINAL_MAX_CONTINUOUS_FORCE);
+    let k_n_per_mm = get1(hd::NOMINAL_MAX_STIFFNESS);
+    let b_n_per_mm_s = get1(hd::NOMINAL_MAX_DAMPING);
+    let mut ws = [0.0f64; 6];
+    // SAFETY: six doubles.
+    unsafe { (api.get_doublev)(hd::USABLE_WORKSPACE_DIMENSIONS, ws.as_mut_ptr()) };
+    check(api, "reading the device limits")?;
+    let mut switch = 0u8;
+    // SAFETY: one boolean; devices without the switch report an error, cleared below.
+    unsafe { (api.get_booleanv)(hd::CURRENT_SAFETY_SWITCH, &mut switch) };
+    let has_safety_switch = check(api, "safety switch").is_ok();
+    let spec = DeviceSpec {
+        name: "openhaptics".into(),
+        // The Touch, Desktop and Premium 1.5 (HD_INPUT_DOF / HD_OUTPUT_DOF not queried:
+        // the servo renders a 3-DOF force either way).
+        sensed_degrees_of_freedom: 6,
+        actuated_degrees_of_freedom: 3,
+        // The peak, held only as long as the thermal limit (S8) allows, toward the
+        // continuous rating.
+        max_force_n: peak,
+        max_continuous_force_n: if continuous > 0.0 { continuous } else { peak },
+        max_stiffness_n_per_m: k_n_per_mm * 1e3,
+        workspace_min_m: [ws[0] * 1e-3, ws[1] * 1e-3, ws[2] * 1e-3],
+        workspace_max_m: [ws[3] * 1e-3, ws[4] * 1e-3, ws[5] * 1e-3],
+        rate_hz: 1000.0,
+        max_damping_n_s_per_m: b_n_per_mm_s * 1e3,
+    };
+    spec.validate()?;
+    Ok((spec, has_safety_switch))
+}
+
 impl OpenHapticsDevice {
     /// Initialises the default device through `hd_api`, reads its limits, enables force output
     /// and starts the servo callback. The device keeps `hd_api` (and so its library) in the
     /// servo state until the callback is unscheduled ([`HapticDevice::safe_stop`]).
     ///
     /// # Errors
-    /// [`DeviceError::Comm`] with the HD error code of the step that failed.
+    /// [`DeviceError::Comm`] with the HD error code of the step that failed;
+    /// [`DeviceError::InvalidSpec`] for limits the device reports that are not usable. After
+    /// `hdInitDevice` succeeded, every error disables the device again (`hdDisableDevice`).
     pub fn open(hd_api: HdApi) -> Result<Self, DeviceError> {
         let api = hd_api.table;
         // SAFETY: HDAPI set-up calls with valid arguments (a null config name selects the
@@ -371,41 +418,16 @@ impl OpenHapticsDevice {
             ));
         }
         check(&api, "hdInitDevice")?;
-        let get1 = |p: u32| {
-            let mut v = 0.0f64;
-            // SAFETY: a scalar parameter, one double.
-            unsafe { (api.get_doublev)(p, &mut v) };
-            v
+        // From here on the device is initialised: an error disables it again.
+        let (spec, has_safety_switch) = match read_spec(&api) {
+            Ok(v) => v,
+            Err(e) => {
+                // SAFETY: the handle hdInitDevice returned; nothing is scheduled yet.
+                unsafe { (api.disable_device)(hhd) };
+                return Err(e);
+            }
         };
-        let peak = get1(hd::NOMINAL_MAX_FORCE);
-        let continuous = get1(hd::NOMINAL_MAX_CONTINUOUS_FORCE);
-        let k_n_per_mm = get1(hd::NOMINAL_MAX_STIFFNESS);
-        let b_n_per_mm_s = get1(hd::NOMINAL_MAX_DAMPING);
-        let mut ws = [0.0f64; 6];
-        // SAFETY: six doubles.
-        unsafe { (api.get_doublev)(hd::USABLE_WORKSPACE_DIMENSIONS, ws.as_mut_ptr()) };
-        check(&api, "reading the device limits")?;
-        let mut switch = 0u8;
-        // SAFETY: one boolean; devices without the switch report an error, cleared below.
-        unsafe { (api.get_booleanv)(hd::CURRENT_SAFETY_SWITCH, &mut switch) };
-        let has_safety_switch = check(&api, "safety switch").is_ok();
-        let spec = DeviceSpec {
-            name: "openhaptics".into(),
-            // The Touch, Desktop and Premium 1.5 (HD_INPUT_DOF / HD_OUTPUT_DOF not queried:
-            // the servo renders a 3-DOF force either way).
-            sensed_degrees_of_freedom: 6,
-            actuated_degrees_of_freedom: 3,
-            // The peak, held only as long as the thermal limit (S8) allows, toward the
-            // continuous rating.
-            max_force_n: peak,
-            max_continuous_force_n: if continuous > 0.0 { continuous } else { peak },
-            max_stiffness_n_per_m: k_n_per_mm * 1e3,
-            workspace_min_m: [ws[0] * 1e-3, ws[1] * 1e-3, ws[2] * 1e-3],
-            workspace_max_m: [ws[3] * 1e-3, ws[4] * 1e-3, ws[5] * 1e-3],
-            rate_hz: 1000.0,
-            max_damping_n_s_per_m: b_n_per_mm_s * 1e3,
-        };
-        spec.validate()?;
+        let peak = spec.max_force_n;
         let servo = Arc::new(Servo {
             api: hd_api,
             hhd,
@@ -566,6 +588,10 @@ mod tests {
         error: u32,
         scheduler: Option<std::thread::JoinHandle<()>>,
         unscheduled: bool,
+        /// An HD error code the workspace read reports (0: none).
+        limits_error: u32,
+        /// The workspace the device reports, mm (`None`: a Touch's +-80 x 60 x 35 mm box).
+        workspace_mm: Option<[f64; 6]>,
     }
 
     static FAKE: Mutex<Option<Fake>> = Mutex::new(None);
@@ -643,7 +669,14 @@ mod tests {
             hd::NOMINAL_MAX_CONTINUOUS_FORCE => vec![0.88],
             hd::NOMINAL_MAX_STIFFNESS => vec![0.5],
             hd::NOMINAL_MAX_DAMPING => vec![0.002],
-            hd::USABLE_WORKSPACE_DIMENSIONS => vec![-80.0, -60.0, -35.0, 80.0, 60.0, 35.0],
+            hd::USABLE_WORKSPACE_DIMENSIONS => with(|f| {
+                if f.limits_error != 0 {
+                    f.error = f.limits_error;
+                }
+                f.workspace_mm
+                    .unwrap_or([-80.0, -60.0, -35.0, 80.0, 60.0, 35.0])
+                    .to_vec()
+            }),
             hd::CURRENT_POSITION => with(|f| f.position_mm.to_vec()),
             hd::CURRENT_VELOCITY => vec![10.0, 0.0, 0.0],
             _ => vec![0.0],
@@ -759,6 +792,38 @@ mod tests {
             assert!(f.unscheduled && !f.output_enabled && !f.device_enabled);
             assert!(f.scheduler.is_none());
         });
+    }
+
+    #[test]
+    fn a_failed_open_disables_the_device_again() {
+        let _turn = TURN.lock().unwrap_or_else(PoisonError::into_inner);
+        let cases = [
+            (
+                Fake {
+                    limits_error: 0x0200,
+                    ..Fake::default()
+                },
+                "reading the device limits: HD error 0x0200",
+            ),
+            (
+                Fake {
+                    workspace_mm: Some([80.0, -60.0, -35.0, -80.0, 60.0, 35.0]),
+                    ..Fake::default()
+                },
+                "workspace axis 0",
+            ),
+        ];
+        for (fake, expected) in cases {
+            *FAKE.lock().unwrap() = Some(fake);
+            let Err(e) = OpenHapticsDevice::open(fake_api()) else {
+                panic!("open succeeded on a device that reports {expected}");
+            };
+            assert!(e.to_string().contains(expected), "{e}");
+            with(|f| {
+                assert!(!f.device_enabled, "the device stays enabled after: {e}");
+                assert!(!f.output_enabled && f.callback.is_none());
+            });
+        }
     }
 
     #[test]
