@@ -512,6 +512,8 @@ fn stats_json(st: &SessionStats) -> Value {
         "loop_rate_hz": st.loop_rate_hz,
         "step_p50_us": st.step_p50_us,
         "step_p99_us": st.step_p99_us,
+        "pose_to_force_p50_us": st.pose_to_force_p50_us,
+        "pose_to_force_p99_us": st.pose_to_force_p99_us,
         "overruns": st.overruns,
         "in_contact": st.in_contact,
         "peak_force_n": st.peak_force_n,

@@ -289,6 +289,7 @@ function applyFrame(f) {
   updateProbe(f);
   dirty = true;
   S.frames++; S.windowFrames++;
+  chartPush(chart.force, [performance.now(), S.forceN]);
   if (f.serverTimeUs > 0) S.ageMs = Date.now() - f.serverTimeUs / 1000;
 }
 
@@ -359,6 +360,60 @@ function showStatus() {
   statusEl.dataset.frames = String(S.frames);
 }
 
+// ---------------------------------------------------------------------------------------------
+// Strip chart: the force magnitude (from every frame) and the pose-to-force latency p50 / p99
+// (from the status message, once a second) over the last CHART_WINDOW_MS.
+// ---------------------------------------------------------------------------------------------
+const CHART_WINDOW_MS = 10000;
+const chart = { force: [], latency: [] }; // [t_ms, N] and [t_ms, p50_ms, p99_ms], oldest first
+const strip = document.getElementById('strip');
+const stripCtx = strip.getContext('2d');
+
+function chartPush(series, sample) {
+  series.push(sample);
+  while (series.length && sample[0] - series[0][0] > CHART_WINDOW_MS) series.shift();
+}
+
+// A polyline of series[k] against time, scaled so that `top` reaches the top of the canvas.
+function chartLine(series, k, top, now, color) {
+  const w = strip.width, h = strip.height;
+  stripCtx.strokeStyle = color;
+  stripCtx.lineWidth = 1.5;
+  stripCtx.beginPath();
+  series.forEach((p, i) => {
+    const x = w - (now - p[0]) / CHART_WINDOW_MS * w;
+    const y = h - 2 - Math.min(p[k] / top, 1) * (h - 4);
+    if (i === 0) stripCtx.moveTo(x, y); else stripCtx.lineTo(x, y);
+  });
+  stripCtx.stroke();
+}
+
+function drawChart() {
+  const now = performance.now();
+  for (const series of [chart.force, chart.latency]) {
+    while (series.length && now - series[0][0] > CHART_WINDOW_MS) series.shift();
+  }
+  const w = strip.width, h = strip.height;
+  stripCtx.clearRect(0, 0, w, h);
+  stripCtx.strokeStyle = '#454b55';
+  stripCtx.lineWidth = 1;
+  for (let s = 1; s < 10; s++) { // one line a second
+    const x = Math.round(s / 10 * w) + 0.5;
+    stripCtx.beginPath(); stripCtx.moveTo(x, 0); stripCtx.lineTo(x, h); stripCtx.stroke();
+  }
+  const forceTop = Math.max(0.01, ...chart.force.map((p) => p[1])) * 1.1;
+  const latencyTop = Math.max(1, ...chart.latency.map((p) => p[2])) * 1.1;
+  chartLine(chart.latency, 1, latencyTop, now, '#4fc3f7');
+  chartLine(chart.latency, 2, latencyTop, now, '#b39ddb');
+  chartLine(chart.force, 1, forceTop, now, '#ff9e3d');
+  const last = chart.latency[chart.latency.length - 1];
+  document.getElementById('chart-force').textContent =
+    `${S.forceN.toFixed(3)} N (axis ${forceTop.toFixed(3)} N)`;
+  document.getElementById('chart-latency').textContent = last
+    ? `${last[1].toFixed(2)} / ${last[2].toFixed(2)} ms (axis ${latencyTop.toFixed(1)} ms)` : '-';
+}
+setInterval(drawChart, 100);
+
 // Draw only when something changed (a frame, the camera, the size): an idle page costs nothing.
 controls.addEventListener('change', () => { dirty = true; });
 window.addEventListener('resize', () => { dirty = true; });
@@ -403,6 +458,7 @@ async function listSessions() {
 function connect() {
   if (socket) { socket.onclose = null; socket.close(); }
   Object.assign(S, { topology: null, reference: null, keyframeRequested: false, frames: 0 });
+  chart.force.length = 0; chart.latency.length = 0;
   const id = select.value;
   if (!id) return;
   messageEl.textContent = 'waiting for the first keyframe...';
@@ -414,6 +470,9 @@ function connect() {
       const m = JSON.parse(ev.data);
       if (m.type === 'status') {
         S.stats = m;
+        if (m.pose_to_force_p50_us > 0) {
+          chartPush(chart.latency, [performance.now(), m.pose_to_force_p50_us / 1e3, m.pose_to_force_p99_us / 1e3]);
+        }
         document.getElementById('scene').textContent = `${m.scene}: ${m.nodes} nodes, ${m.tetrahedra} elements`;
       } else if (m.type === 'error') messageEl.textContent = 'error: ' + m.message;
       else if (m.type === 'ended') messageEl.textContent = 'the session ended';
@@ -446,6 +505,13 @@ window.hapticViewer = {
   camera() {
     return { position: camera.position.toArray(), target: controls.target.toArray(),
       home: home && { position: home.position.toArray(), target: home.target.toArray() } };
+  },
+  // The strip chart's samples (copies) and where it sits on the screen (CSS pixels).
+  chart() {
+    const c = strip.getBoundingClientRect(), box = document.getElementById('chart').getBoundingClientRect();
+    return { force: chart.force.map((p) => p.slice()), latency: chart.latency.map((p) => p.slice()),
+      windowMs: CHART_WINDOW_MS, now: performance.now(), forceN: S.forceN,
+      canvas: [c.left, c.top, c.width, c.height], box: [box.left, box.top, box.width, box.height] };
   },
   probeScreen() {
     if (!probe.visible) return null;

@@ -2,7 +2,8 @@
 //! and `haptic-bridge`, and Debian's headless Chromium. The page lists the session, shows the
 //! surface at rest (displacement colours: all blue), and during a bridge press shows the dent in
 //! the displacement colours around the contact, a force and a small frame age in its status
-//! line; a mouse drag orbits the camera and the reset-view button brings it back.
+//! line, and a strip chart of the force and the pose-to-force latency over the last 10 s (issue
+//! 50, section 3); a mouse drag orbits the camera and the reset-view button brings it back.
 //!
 //! Chromium comes from `tests/install-chromium.sh` (Debian's package) when it is not on PATH;
 //! where it cannot be installed (no root, no apt, no network) the test prints why on the
@@ -180,9 +181,18 @@ async fn web_viewer_shows_the_dent_and_the_force_during_a_bridge_press() -> Resu
         Duration::from_secs(60),
     )
     .await?;
-    // Let the status line catch up with GetStats (once a second) and the frame.
+    // Let the status line catch up with GetStats (once a second) and the frame, and the strip
+    // chart gather two latency samples (the device's pose-to-force percentiles).
     tokio::time::sleep(Duration::from_millis(1500)).await;
+    wait_for(
+        &mut browser,
+        &page,
+        "window.hapticViewer.chart().latency.length >= 2",
+        Duration::from_secs(30),
+    )
+    .await?;
     let pressed = browser.screenshot(&page).await?;
+    let chart = browser.eval(&page, "window.hapticViewer.chart()").await?;
     let probe = browser
         .eval(&page, "window.hapticViewer.probeScreen()")
         .await?;
@@ -261,8 +271,14 @@ async fn web_viewer_shows_the_dent_and_the_force_during_a_bridge_press() -> Resu
         Rgb::from_png(&orbited)?,
         Rgb::from_png(&reset)?,
     );
-    // The 3D view only: above the status line, below the tool bar.
-    let view = ((0, 40), (held.width as i64, held.height as i64 - 40));
+    // The 3D view only: above the status line and the strip chart (which moves with time),
+    // below the tool bar.
+    let dpr = held.width as f64 / f64::from(WIDTH);
+    let chart_top = (chart["box"][1].as_f64().context("chart box")? * dpr) as i64;
+    let view = (
+        (0, 40),
+        (held.width as i64, chart_top.min(held.height as i64 - 40)),
+    );
     let (by_drag, by_reset) = (
         changed_pixels(&held, &orbited, view.0, view.1),
         changed_pixels(&held, &reset, view.0, view.1),
@@ -334,6 +350,7 @@ async fn web_viewer_shows_the_dent_and_the_force_during_a_bridge_press() -> Resu
     // where the rest picture was blue.
     let rest = Rgb::from_png(&rest)?;
     let pressed = Rgb::from_png(&pressed)?;
+    check_strip_chart(&chart, &rest, &pressed)?;
     let (px, py) = (
         probe[0].as_f64().context("probe x")?,
         probe[1].as_f64().context("probe y")?,
@@ -363,5 +380,105 @@ async fn web_viewer_shows_the_dent_and_the_force_during_a_bridge_press() -> Resu
         "no dent in the displacement colours: {red_press}"
     );
     ensure!(changed > 1000, "too few pixels changed: {changed}");
+    Ok(())
+}
+
+/// Pixels of the strip chart's force line (`#ff9e3d`), blended or not with the background.
+fn orange(p: [u8; 3]) -> bool {
+    let [r, g, b] = p.map(i32::from);
+    r > 180 && (90..200).contains(&g) && b < 110
+}
+
+/// The strip chart during the hold: force samples of every frame over more than a second and
+/// within its 10 s window, ending at the page's force; latency percentiles from the device's
+/// statistics (0 < p50 <= p99 < 200 ms); in the picture, the force line near the top of the
+/// chart (the held force is the window's largest), where at rest it lay on the bottom.
+fn check_strip_chart(chart: &serde_json::Value, rest: &Rgb, pressed: &Rgb) -> Result<()> {
+    let series = |k: &str| -> Result<Vec<Vec<f64>>> {
+        chart[k]
+            .as_array()
+            .with_context(|| format!("chart.{k}: {chart}"))?
+            .iter()
+            .map(|p| {
+                p.as_array()
+                    .context("a sample")?
+                    .iter()
+                    .map(|v| v.as_f64().context("a number"))
+                    .collect()
+            })
+            .collect()
+    };
+    let (force, latency) = (series("force")?, series("latency")?);
+    let (now, window) = (
+        chart["now"].as_f64().context("now")?,
+        chart["windowMs"].as_f64().context("windowMs")?,
+    );
+    let (first, last) = (
+        force.first().context("no force sample")?,
+        force.last().context("no force sample")?,
+    );
+    eprintln!(
+        "strip chart: {} force samples over {:.1} s, last {:.4} N; latency p50/p99 {:?} ms",
+        force.len(),
+        (last[0] - first[0]) / 1e3,
+        last[1],
+        latency.last().map(|p| [p[1], p[2]])
+    );
+    ensure!(
+        force.len() >= 20 && last[0] - first[0] > 1000.0,
+        "too few force samples: {} over {} ms",
+        force.len(),
+        last[0] - first[0]
+    );
+    ensure!(
+        now - first[0] <= window + 300.0,
+        "a sample older than the window: {} ms",
+        now - first[0]
+    );
+    ensure!(
+        last[1] == chart["forceN"].as_f64().context("forceN")? && last[1] > 0.01,
+        "the chart's last force {} is not the page's {}",
+        last[1],
+        chart["forceN"]
+    );
+    ensure!(
+        force.windows(2).all(|w| w[1][0] >= w[0][0]),
+        "force samples out of time order"
+    );
+    for p in &latency {
+        ensure!(
+            p[1] > 0.0 && p[1] <= p[2] && p[2] < 200.0,
+            "pose-to-force p50 / p99 {} / {} ms",
+            p[1],
+            p[2]
+        );
+    }
+    // The canvas's upper half, in screenshot pixels.
+    let dpr = pressed.width as f64 / f64::from(WIDTH);
+    let c: Vec<f64> = chart["canvas"]
+        .as_array()
+        .context("canvas rect")?
+        .iter()
+        .filter_map(|v| v.as_f64())
+        .map(|v| v * dpr)
+        .collect();
+    ensure!(c.len() == 4, "canvas rect {chart}");
+    let upper = |img: &Rgb| {
+        let (x0, y0, w, h) = (c[0] as i64, c[1] as i64, c[2] as i64, c[3] as i64);
+        (y0..y0 + h / 2)
+            .flat_map(|y| (x0..x0 + w).map(move |x| (x, y)))
+            .filter(|&(x, y)| img.get(x, y).is_some_and(orange))
+            .count()
+    };
+    let (at_rest, held) = (upper(rest), upper(pressed));
+    eprintln!("strip chart's upper half: {at_rest} force-line pixels at rest, {held} held");
+    ensure!(
+        at_rest == 0,
+        "a force line high in the chart at rest: {at_rest} pixels"
+    );
+    ensure!(
+        held > 30,
+        "no force line high in the chart while held: {held} pixels"
+    );
     Ok(())
 }
