@@ -421,9 +421,11 @@ impl MassSpringBody {
 
     /// The probe's sphere depth ([`MassSpringBody::contact_depth_m`]: below the flat rest
     /// triangle at the foot in a subdivided area, the kernel plane's travel elsewhere) and the
-    /// contact factor at its current contact: the organ table at that depth, interpolated at the probe's foot
-    /// on the coarse rest surface ([`super::organ::foot`]: where the calibration pressed, so a
-    /// press along a site's normal reads that site's row at any depth) over its coarse
+    /// contact factor at its current contact: the organ table at that depth, interpolated on the
+    /// coarse surface at the foot of the kernel patch's centroid
+    /// ([`MassSpringBody::patch_foot`]), in a subdivided area at the probe's foot on the coarse
+    /// rest surface ([`super::organ::foot`]: where the calibration pressed, so a press along a
+    /// site's normal reads that site's row at any depth), over its coarse
     /// triangle's four Loop children (corners: nodes and edge midpoints, the table's sites);
     /// each site's coarse factor, or its subdivided one when it lies in a subdivided area. Off
     /// the rest surface (no foot), at the contact point of the deformed surface (the probe's
