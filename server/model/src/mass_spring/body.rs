@@ -421,9 +421,11 @@ impl MassSpringBody {
 
     /// The probe's sphere depth ([`MassSpringBody::contact_depth_m`]: below the flat rest
     /// triangle at the foot in a subdivided area, the kernel plane's travel elsewhere) and the
-    /// contact factor at its current contact: the organ table at that depth, interpolated at the probe's foot
-    /// on the coarse rest surface ([`super::organ::foot`]: where the calibration pressed, so a
-    /// press along a site's normal reads that site's row at any depth) over its coarse
+    /// contact factor at its current contact: the organ table at that depth, interpolated on the
+    /// coarse surface at the foot of the kernel patch's centroid
+    /// ([`MassSpringBody::patch_foot`]), in a subdivided area at the probe's foot on the coarse
+    /// rest surface ([`super::organ::foot`]: where the calibration pressed, so a press along a
+    /// site's normal reads that site's row at any depth), over its coarse
     /// triangle's four Loop children (corners: nodes and edge midpoints, the table's sites);
     /// each site's coarse factor, or its subdivided one when it lies in a subdivided area. Off
     /// the rest surface (no foot), at the contact point of the deformed surface (the probe's
@@ -458,7 +460,13 @@ impl MassSpringBody {
         let Some(table) = &self.organ else {
             return;
         };
-        let (tri, b) = match self.foot {
+        // On the coarse surface at the patch's centroid ([`MassSpringBody::patch_foot`]); in a
+        // subdivided area at the proxy's foot.
+        let at = match foot_in_area {
+            Some(_) => self.foot,
+            None => self.patch_foot().or(self.foot),
+        };
+        let (tri, b) = match at {
             Some(foot) => (self.surface.triangles()[foot.triangle as usize], foot.bary),
             None => match self.probe.surface.triangles.get(st.triangle as usize) {
                 Some(&tri) => (tri, st.bary),
@@ -497,6 +505,34 @@ impl MassSpringBody {
         if beta.is_finite() && beta > 0.0 {
             self.contact_factor = beta;
         }
+    }
+
+    /// Where the organ table is read ([`super::organ::foot`], session 6): the foot on the coarse
+    /// rest surface of the probe's patch centroid at rest, `sum w_j rest_j` over the patch's
+    /// slots, along the contact normal. The patch carries the force: on `hemisphere-springs`
+    /// (8 mm edges under a 4 mm sphere) a press between nodes bears on the nearest node almost
+    /// alone (3 mm from node 13 at the point `h1`: its weight 0.987), as a press on that node
+    /// does, and reads that node's row, not the mean of its edges' (about half a node's) that
+    /// the proxy's foot gave; on a node, an edge's midpoint (equal weights on its ends) and a
+    /// symmetric patch it is the proxy's foot, as the calibration pressed. Continuous as the
+    /// weights are. `None` without a foot (then the proxy's foot or the contact triangle).
+    /// Allocation-free.
+    fn patch_foot(&self) -> Option<RestFoot> {
+        let hint = self.foot?.triangle;
+        let (nodes, weights) = self.probe.patch();
+        if nodes.is_empty() {
+            return None;
+        }
+        let centre: DVec3 = nodes
+            .iter()
+            .zip(weights)
+            .map(|(&i, &w)| self.rest[i as usize] * w)
+            .sum();
+        let m = self.probe.state.normal;
+        let r = self.probe.params.radius_m;
+        rest_foot(&self.surface, centre + m * r, m, r, r, Some(hint))
+            .filter(|h| h.miss_m <= r)
+            .map(|h| h.foot)
     }
 
     /// The probe's foot on the coarse rest surface ([`super::organ::foot`]) from its state now:
