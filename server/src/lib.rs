@@ -17,6 +17,7 @@ pub mod config;
 pub mod confine;
 pub mod device;
 pub mod error;
+pub mod frame;
 pub mod metrics;
 pub mod service;
 pub mod servo;

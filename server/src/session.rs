@@ -9,7 +9,7 @@
 use std::collections::HashMap;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use haptic_model::scene::{self, Scene};
 use haptics_proto::v1::{ForceCommand, Vec3};
@@ -18,6 +18,7 @@ use tonic::Status;
 
 use crate::config::ServerConfig;
 use crate::error::ServerError;
+use crate::frame::{FrameData, WatcherGuard, WatcherStats, unix_time_us};
 use crate::servo::{
     self, Command, ForceOut, MonotonicClock, Pose, ServoCore, SessionShared, StatsSnapshot,
 };
@@ -111,52 +112,6 @@ pub struct SessionRecord {
     pub scene_toml: String,
 }
 
-/// The surface connectivity of a session at one topology version (shared by every frame until
-/// the version changes; a viewer gets a keyframe with it then).
-#[derive(Debug, Clone, PartialEq)]
-pub struct Topology {
-    /// [`haptic_model::body::SurfaceTopology::version`].
-    pub version: u64,
-    /// Surface triangles, three vertex indices each.
-    pub triangles: Vec<u32>,
-    /// Rest positions of the surface vertices, xyz, m.
-    pub rest_positions_m: Vec<f32>,
-    /// Prediction order of compact streams for these triangles (`None` if they are invalid).
-    pub codec: Option<Arc<haptics_proto::delta::DeltaCodec>>,
-}
-
-/// A viewer frame built from a servo snapshot (shared by all viewers of a session).
-#[derive(Debug)]
-pub struct FrameData {
-    /// Snapshot tick.
-    pub tick: u64,
-    /// Simulated time, s.
-    pub sim_time_s: f64,
-    /// The surface connectivity these positions belong to.
-    pub topology: Arc<Topology>,
-    /// Surface positions, xyz, m.
-    pub positions_m: Vec<f32>,
-    /// Probe position, m (NaN when no device).
-    pub probe_m: [f64; 3],
-    /// Contact force, N.
-    pub force_n: [f64; 3],
-    /// In contact.
-    pub in_contact: bool,
-    /// Largest surface displacement, m.
-    pub max_displacement_m: f64,
-    /// Injected loads acting at this frame or ended since the previous snapshot.
-    pub applied_forces: Vec<haptics_proto::v1::AppliedForce>,
-    /// Loads the session has accepted so far.
-    pub applied_forces_total: u64,
-    /// The reference keyframe of compact streams (`None` while no compact watcher exists).
-    pub reference: Option<Arc<crate::stream::Reference>>,
-    /// `positions_m` against `reference` at the default quantum (1 um), encoded; `None`
-    /// without a reference. Empty when the positions are the reference.
-    pub delta: Option<prost::bytes::Bytes>,
-    /// Deltas at other quanta, computed on demand ([`FrameData::delta_for`]).
-    pub other_deltas: Mutex<Vec<(u64, Option<prost::bytes::Bytes>)>>,
-}
-
 /// Sender half of a DeviceLink response stream.
 pub type ForceSender = mpsc::Sender<Result<ForceCommand, Status>>;
 
@@ -199,7 +154,7 @@ pub struct Session {
     /// Shared atomics.
     pub shared: Arc<SessionShared>,
     /// Counters and keyframe requests of the session's watchers ([`crate::stream`]).
-    pub watcher_stats: Arc<crate::stream::WatcherStats>,
+    pub watcher_stats: Arc<WatcherStats>,
     /// Session clock zero.
     pub epoch: Instant,
     /// The scene's limits for the device bridge (`None` for a body started without a scene).
@@ -216,14 +171,6 @@ pub struct Session {
     stats: Mutex<triple_buffer::Output<StatsSnapshot>>,
     frames: watch::Receiver<Option<Arc<FrameData>>>,
     threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
-}
-
-/// Microseconds since the UNIX epoch (cross-process timestamps for frame age and latency).
-pub fn unix_time_us() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_micros() as u64)
-        .unwrap_or(0)
 }
 
 impl Session {
@@ -344,15 +291,6 @@ impl Session {
     /// Milliseconds-resolution session clock now, µs.
     pub fn now_us(&self) -> u64 {
         self.epoch.elapsed().as_micros() as u64
-    }
-}
-
-/// Decrements the watcher count when a viewer stream ends.
-pub struct WatcherGuard(Arc<SessionShared>);
-
-impl Drop for WatcherGuard {
-    fn drop(&mut self) {
-        self.0.watchers.fetch_sub(1, Ordering::AcqRel);
     }
 }
 
@@ -733,7 +671,7 @@ impl SessionManager {
 
         // Frame task: servo snapshots -> shared viewer frames, only while someone watches.
         let (frame_tx, frame_rx) = watch::channel(None);
-        let watcher_stats = Arc::new(crate::stream::WatcherStats::default());
+        let watcher_stats = Arc::new(WatcherStats::default());
         crate::stream::spawn_frame_task(
             snap_out,
             frame_tx,
