@@ -16,8 +16,10 @@
 mod core;
 mod handoff;
 mod pacer;
+mod params;
 mod realtime;
 mod run;
+mod stats;
 
 pub use self::core::{DEFAULT_DEVICE_SILENCE_US, ServoCore};
 pub use handoff::{

@@ -28,7 +28,7 @@ pub fn run_loop_device_paced(
             break;
         }
         pacer.finish(clock.now_us());
-        core.overruns = pacer.overruns;
+        core.set_overruns(pacer.overruns);
         yielding.after_tick(&mut core);
     }
 }
@@ -54,7 +54,7 @@ pub fn run_loop(
             break;
         }
         pacer.finish(started, clock.now_us());
-        core.overruns = pacer.overruns;
+        core.set_overruns(pacer.overruns);
         yielding.after_tick(&mut core);
     }
 }
