@@ -39,6 +39,34 @@ pub enum ServerError {
     /// Unexpected internal failure.
     #[error("internal: {0}")]
     Internal(String),
+    /// The daemon could not bind one of its listeners ([`crate::run`]).
+    #[error("binding the {what} {addr}: {reason}")]
+    Bind {
+        /// Which listener (`"metrics endpoint"`).
+        what: &'static str,
+        /// The address asked for.
+        addr: std::net::SocketAddr,
+        /// The operating system's error.
+        reason: std::io::Error,
+    },
+    /// A TLS file cannot be used ([`crate::run`]): unreadable, not a regular file, or larger
+    /// than 1 MiB.
+    #[error("TLS file {}: {reason}", path.display())]
+    Tls {
+        /// The file.
+        path: std::path::PathBuf,
+        /// Why.
+        reason: String,
+    },
+    /// An input/output error of the daemon's listeners ([`crate::run`]).
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+    /// The gRPC transport failed ([`crate::run`]: TLS set-up, serving).
+    #[error(transparent)]
+    Transport(#[from] tonic::transport::Error),
+    /// The reflection service could not be built ([`crate::run`]).
+    #[error(transparent)]
+    Reflection(#[from] tonic_reflection::server::Error),
 }
 
 /// Longest status message sent to a client, bytes: a parse error quoting a huge line of the
@@ -72,7 +100,12 @@ impl From<ServerError> for Status {
             ServerError::Exhausted(_) => Status::resource_exhausted(msg),
             ServerError::FailedPrecondition(_) => Status::failed_precondition(msg),
             ServerError::DeadlineExceeded(_) => Status::deadline_exceeded(msg),
-            ServerError::Internal(_) => Status::internal(msg),
+            ServerError::Internal(_)
+            | ServerError::Bind { .. }
+            | ServerError::Tls { .. }
+            | ServerError::Io(_)
+            | ServerError::Transport(_)
+            | ServerError::Reflection(_) => Status::internal(msg),
         }
     }
 }

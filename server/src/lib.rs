@@ -17,6 +17,7 @@ pub mod config;
 pub mod confine;
 pub mod device;
 pub mod error;
+pub mod frame;
 pub mod metrics;
 pub mod service;
 pub mod servo;
@@ -40,12 +41,14 @@ pub use error::ServerError;
 /// `listening on ADDR` on stdout once access control (tokens, TLS) is set up.
 ///
 /// # Errors
-/// When the transport fails or the reflection service cannot be built.
+/// A bad directory, tokens file or TLS file ([`ServerError::Config`], [`ServerError::Tls`],
+/// ...), a metrics address that cannot be bound ([`ServerError::Bind`]), or a failing
+/// transport or reflection service ([`ServerError::Transport`], [`ServerError::Reflection`]).
 pub async fn run(
     listener: TcpListener,
     config: ServerConfig,
     shutdown: impl Future<Output = ()> + Send,
-) -> anyhow::Result<()> {
+) -> Result<(), ServerError> {
     let mut config = config;
     // What clients may read is checked before anything listens (issue 47).
     config.check_directories()?;
@@ -57,7 +60,11 @@ pub async fn run(
     if let Some(addr) = manager.config().metrics_listen {
         let listener = TcpListener::bind(addr)
             .await
-            .map_err(|e| anyhow::anyhow!("binding the metrics endpoint {addr}: {e}"))?;
+            .map_err(|reason| ServerError::Bind {
+                what: "metrics endpoint",
+                addr,
+                reason,
+            })?;
         // Printed like the gRPC address, so scripts and tests can find a port-0 endpoint.
         println!("metrics on {}", listener.local_addr()?);
         tokio::spawn(metrics::serve(listener, manager.clone()));
@@ -128,18 +135,18 @@ pub async fn run(
 }
 
 /// The server's TLS configuration from its PEM files (each at most 1 MiB).
-fn tls_config(files: &config::TlsFiles) -> anyhow::Result<tonic::transport::ServerTlsConfig> {
+fn tls_config(files: &config::TlsFiles) -> Result<tonic::transport::ServerTlsConfig, ServerError> {
     use tonic::transport::{Certificate, Identity, ServerTlsConfig};
-    let read = |p: &std::path::Path| -> anyhow::Result<Vec<u8>> {
-        let meta =
-            std::fs::metadata(p).map_err(|e| anyhow::anyhow!("TLS file {}: {e}", p.display()))?;
+    let fail = |p: &std::path::Path, reason: String| ServerError::Tls {
+        path: p.to_path_buf(),
+        reason,
+    };
+    let read = |p: &std::path::Path| -> Result<Vec<u8>, ServerError> {
+        let meta = std::fs::metadata(p).map_err(|e| fail(p, e.to_string()))?;
         if !meta.is_file() || meta.len() > 1 << 20 {
-            anyhow::bail!(
-                "TLS file {}: not a regular file of at most 1 MiB",
-                p.display()
-            );
+            return Err(fail(p, "not a regular file of at most 1 MiB".into()));
         }
-        std::fs::read(p).map_err(|e| anyhow::anyhow!("TLS file {}: {e}", p.display()))
+        std::fs::read(p).map_err(|e| fail(p, e.to_string()))
     };
     let mut tls = ServerTlsConfig::new().identity(Identity::from_pem(
         read(&files.cert_file)?,

@@ -320,7 +320,7 @@ fn link_headers(
 }
 
 /// The watcher fields of `SessionStats` (40-45).
-fn watcher_stats(w: &crate::stream::WatcherStats) -> SessionStats {
+fn watcher_stats(w: &crate::frame::WatcherStats) -> SessionStats {
     use std::sync::atomic::Ordering::Relaxed;
     SessionStats {
         watchers: w.watchers.load(Relaxed) as u32,
@@ -469,7 +469,14 @@ impl SurfaceStream for Services {
         let r = req.into_inner();
         let params = crate::stream::WatchParams::from_request(&r)?;
         let session = self.manager.get(&r.session_id)?;
-        Ok(Response::new(crate::stream::spawn_watch(session, params)))
+        let (frames, servo_guard) = session.watch();
+        Ok(Response::new(crate::stream::spawn_watch(
+            frames,
+            servo_guard,
+            session.watcher_stats.clone(),
+            session.probe_radius_m,
+            params,
+        )))
     }
 
     async fn request_keyframe(

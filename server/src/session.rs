@@ -9,7 +9,7 @@
 use std::collections::HashMap;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use haptic_model::scene::{self, Scene};
 use haptics_proto::v1::{ForceCommand, Vec3};
@@ -18,6 +18,7 @@ use tonic::Status;
 
 use crate::config::ServerConfig;
 use crate::error::ServerError;
+use crate::frame::{FrameData, WatcherGuard, WatcherStats, unix_time_us};
 use crate::servo::{
     self, Command, ForceOut, MonotonicClock, Pose, ServoCore, SessionShared, StatsSnapshot,
 };
@@ -111,52 +112,6 @@ pub struct SessionRecord {
     pub scene_toml: String,
 }
 
-/// The surface connectivity of a session at one topology version (shared by every frame until
-/// the version changes; a viewer gets a keyframe with it then).
-#[derive(Debug, Clone, PartialEq)]
-pub struct Topology {
-    /// [`haptic_model::body::SurfaceTopology::version`].
-    pub version: u64,
-    /// Surface triangles, three vertex indices each.
-    pub triangles: Vec<u32>,
-    /// Rest positions of the surface vertices, xyz, m.
-    pub rest_positions_m: Vec<f32>,
-    /// Prediction order of compact streams for these triangles (`None` if they are invalid).
-    pub codec: Option<Arc<haptics_proto::delta::DeltaCodec>>,
-}
-
-/// A viewer frame built from a servo snapshot (shared by all viewers of a session).
-#[derive(Debug)]
-pub struct FrameData {
-    /// Snapshot tick.
-    pub tick: u64,
-    /// Simulated time, s.
-    pub sim_time_s: f64,
-    /// The surface connectivity these positions belong to.
-    pub topology: Arc<Topology>,
-    /// Surface positions, xyz, m.
-    pub positions_m: Vec<f32>,
-    /// Probe position, m (NaN when no device).
-    pub probe_m: [f64; 3],
-    /// Contact force, N.
-    pub force_n: [f64; 3],
-    /// In contact.
-    pub in_contact: bool,
-    /// Largest surface displacement, m.
-    pub max_displacement_m: f64,
-    /// Injected loads acting at this frame or ended since the previous snapshot.
-    pub applied_forces: Vec<haptics_proto::v1::AppliedForce>,
-    /// Loads the session has accepted so far.
-    pub applied_forces_total: u64,
-    /// The reference keyframe of compact streams (`None` while no compact watcher exists).
-    pub reference: Option<Arc<crate::stream::Reference>>,
-    /// `positions_m` against `reference` at the default quantum (1 um), encoded; `None`
-    /// without a reference. Empty when the positions are the reference.
-    pub delta: Option<prost::bytes::Bytes>,
-    /// Deltas at other quanta, computed on demand ([`FrameData::delta_for`]).
-    pub other_deltas: Mutex<Vec<(u64, Option<prost::bytes::Bytes>)>>,
-}
-
 /// Sender half of a DeviceLink response stream.
 pub type ForceSender = mpsc::Sender<Result<ForceCommand, Status>>;
 
@@ -199,7 +154,7 @@ pub struct Session {
     /// Shared atomics.
     pub shared: Arc<SessionShared>,
     /// Counters and keyframe requests of the session's watchers ([`crate::stream`]).
-    pub watcher_stats: Arc<crate::stream::WatcherStats>,
+    pub watcher_stats: Arc<WatcherStats>,
     /// Session clock zero.
     pub epoch: Instant,
     /// The scene's limits for the device bridge (`None` for a body started without a scene).
@@ -216,14 +171,6 @@ pub struct Session {
     stats: Mutex<triple_buffer::Output<StatsSnapshot>>,
     frames: watch::Receiver<Option<Arc<FrameData>>>,
     threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
-}
-
-/// Microseconds since the UNIX epoch (cross-process timestamps for frame age and latency).
-pub fn unix_time_us() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_micros() as u64)
-        .unwrap_or(0)
 }
 
 impl Session {
@@ -344,15 +291,6 @@ impl Session {
     /// Milliseconds-resolution session clock now, µs.
     pub fn now_us(&self) -> u64 {
         self.epoch.elapsed().as_micros() as u64
-    }
-}
-
-/// Decrements the watcher count when a viewer stream ends.
-pub struct WatcherGuard(Arc<SessionShared>);
-
-impl Drop for WatcherGuard {
-    fn drop(&mut self) {
-        self.0.watchers.fetch_sub(1, Ordering::AcqRel);
     }
 }
 
@@ -643,7 +581,7 @@ impl SessionManager {
         let servo::ServoHandles {
             commands: cmd_tx,
             pose: pose_in,
-            forces: mut force_rx,
+            forces: force_rx,
             snapshot: snap_out,
             stats: stats_out,
         } = handles;
@@ -652,88 +590,31 @@ impl SessionManager {
         let link: Arc<Mutex<Option<ForceSender>>> = Arc::new(Mutex::new(None));
 
         // Forwarder: force ring -> the attached DeviceLink stream (through the deadband).
-        let fwd_shared = shared.clone();
-        let fwd_link = link.clone();
         let deadband = Arc::new(DeadbandShared::default());
-        let fwd_deadband = deadband.clone();
         let device = Arc::new(crate::device::DeviceShared::default());
-        let fwd_device = device.clone();
-        let forwarder = std::thread::Builder::new()
-            .name(format!("fwd-{id}"))
-            .spawn(move || {
-                let mut last: Option<(ForceOut, Instant)> = None;
-                loop {
-                    std::thread::park_timeout(Duration::from_millis(5));
-                    while let Ok(f) = force_rx.pop() {
-                        let k = f64::from_bits(fwd_deadband.fraction_bits.load(Ordering::Relaxed));
-                        let finishing = fwd_shared.stop.load(Ordering::Acquire);
-                        let since = last.map_or(u64::MAX, |(_, t)| t.elapsed().as_micros() as u64);
-                        if !finishing
-                            && !force_deadband_passes(k, last.as_ref().map(|(l, _)| l), since, &f)
-                        {
-                            fwd_deadband.suppressed.fetch_add(1, Ordering::Relaxed);
-                            continue;
-                        }
-                        let sender = fwd_link.lock().ok().and_then(|l| l.clone());
-                        if let Some(tx) = sender {
-                            let limits = fwd_device.limits();
-                            if tx.try_send(Ok(force_command(&f, limits))).is_ok() {
-                                fwd_deadband.sent.fetch_add(1, Ordering::Relaxed);
-                            }
-                            last = Some((f, Instant::now()));
-                        } else {
-                            last = None;
-                        }
-                    }
-                    if fwd_shared.finished.load(Ordering::Acquire) && force_rx.is_empty() {
-                        break;
-                    }
-                }
-            })
-            .map_err(|e| ServerError::Internal(format!("spawning the forwarder: {e}")))?;
-        let servo_cfg = self.config.servo.clone();
-        let core = ServoCore::new(
-            body,
-            ends,
+        let forwarder = spawn_forwarder(
+            &id,
+            force_rx,
             shared.clone(),
-            servo_cfg.snapshot_every_ticks,
-            servo_cfg.stats_every_ticks,
-        )
-        .with_device_silence_us(u64::from(servo_cfg.device_silence_ms) * 1000);
-        // Overrunning: a whole second below the fraction of the nominal rate.
-        let min_rate_hz = servo_cfg.min_rate_fraction * 1e6 / period_us as f64;
-        let core = match servo_cfg.overrun_policy {
-            crate::config::OverrunPolicy::Report => core.with_overrun_limit(min_rate_hz, 1_000_000),
-            crate::config::OverrunPolicy::Degrade => {
-                core.with_overrun_degrade(min_rate_hz, 1_000_000)
-            }
-        };
-        let running = self.running.clone();
-        let fwd_thread = forwarder.thread().clone();
-        let servo_id = id.clone();
-        let pacing = servo_cfg.pacing;
-        let servo = std::thread::Builder::new()
-            .name(format!("servo-{id}"))
-            .spawn(move || {
-                for w in servo::setup_realtime(&servo_cfg) {
-                    tracing::warn!(session = %servo_id, "{w}");
-                }
-                let clock = MonotonicClock::new(epoch);
-                let yielding = servo::Yielding::new(servo_cfg.yield_when_overrunning, running);
-                match pacing {
-                    crate::config::Pacing::Device => {
-                        servo::run_loop_device_paced(core, clock, period_us, fwd_thread, yielding)
-                    }
-                    crate::config::Pacing::Clock => {
-                        servo::run_loop(core, clock, period_us, fwd_thread, yielding)
-                    }
-                }
-            })
-            .map_err(|e| ServerError::Internal(format!("spawning the servo thread: {e}")))?;
+            link.clone(),
+            deadband.clone(),
+            device.clone(),
+        )?;
+        let servo_cfg = self.config.servo.clone();
+        let core = servo_core(&servo_cfg, body, ends, shared.clone(), period_us);
+        let servo = spawn_servo(
+            &id,
+            servo_cfg,
+            core,
+            epoch,
+            period_us,
+            forwarder.thread().clone(),
+            self.running.clone(),
+        )?;
 
         // Frame task: servo snapshots -> shared viewer frames, only while someone watches.
         let (frame_tx, frame_rx) = watch::channel(None);
-        let watcher_stats = Arc::new(crate::stream::WatcherStats::default());
+        let watcher_stats = Arc::new(WatcherStats::default());
         crate::stream::spawn_frame_task(
             snap_out,
             frame_tx,
@@ -820,6 +701,109 @@ impl SessionManager {
             s.stop();
         }
     }
+}
+/// The servo core of a body as the daemon's servo configuration asks, for a tick of
+/// `period_us`.
+fn servo_core(
+    servo_cfg: &crate::config::ServoConfig,
+    body: Box<dyn haptic_model::body::SoftBody>,
+    ends: servo::ServoEnds,
+    shared: Arc<SessionShared>,
+    period_us: u64,
+) -> ServoCore {
+    let core = ServoCore::new(
+        body,
+        ends,
+        shared,
+        servo_cfg.snapshot_every_ticks,
+        servo_cfg.stats_every_ticks,
+    )
+    .with_device_silence_us(u64::from(servo_cfg.device_silence_ms) * 1000);
+    // Overrunning: a whole second below the fraction of the nominal rate.
+    let min_rate_hz = servo_cfg.min_rate_fraction * 1e6 / period_us as f64;
+    match servo_cfg.overrun_policy {
+        crate::config::OverrunPolicy::Report => core.with_overrun_limit(min_rate_hz, 1_000_000),
+        crate::config::OverrunPolicy::Degrade => core.with_overrun_degrade(min_rate_hz, 1_000_000),
+    }
+}
+
+/// Spawns the servo thread of session `id`: real-time set-up (its warnings logged here, before
+/// the loop), then the loop the configuration's pacing names until the session stops.
+fn spawn_servo(
+    id: &str,
+    servo_cfg: crate::config::ServoConfig,
+    core: ServoCore,
+    epoch: Instant,
+    period_us: u64,
+    fwd_thread: std::thread::Thread,
+    running: Arc<std::sync::atomic::AtomicUsize>,
+) -> Result<std::thread::JoinHandle<()>, ServerError> {
+    let servo_id = id.to_owned();
+    let pacing = servo_cfg.pacing;
+    std::thread::Builder::new()
+        .name(format!("servo-{id}"))
+        .spawn(move || {
+            for w in servo::setup_realtime(&servo_cfg) {
+                tracing::warn!(session = %servo_id, "{w}");
+            }
+            let clock = MonotonicClock::new(epoch);
+            let yielding = servo::Yielding::new(servo_cfg.yield_when_overrunning, running);
+            match pacing {
+                crate::config::Pacing::Device => {
+                    servo::run_loop_device_paced(core, clock, period_us, fwd_thread, yielding)
+                }
+                crate::config::Pacing::Clock => {
+                    servo::run_loop(core, clock, period_us, fwd_thread, yielding)
+                }
+            }
+        })
+        .map_err(|e| ServerError::Internal(format!("spawning the servo thread: {e}")))
+}
+
+/// Spawns the forwarder thread of session `id`: drains the force ring into the attached
+/// DeviceLink stream through the deadband and the device's limits, until the servo has
+/// finished and the ring is empty.
+fn spawn_forwarder(
+    id: &str,
+    mut force_rx: rtrb::Consumer<ForceOut>,
+    fwd_shared: Arc<SessionShared>,
+    fwd_link: Arc<Mutex<Option<ForceSender>>>,
+    fwd_deadband: Arc<DeadbandShared>,
+    fwd_device: Arc<crate::device::DeviceShared>,
+) -> Result<std::thread::JoinHandle<()>, ServerError> {
+    std::thread::Builder::new()
+        .name(format!("fwd-{id}"))
+        .spawn(move || {
+            let mut last: Option<(ForceOut, Instant)> = None;
+            loop {
+                std::thread::park_timeout(Duration::from_millis(5));
+                while let Ok(f) = force_rx.pop() {
+                    let k = f64::from_bits(fwd_deadband.fraction_bits.load(Ordering::Relaxed));
+                    let finishing = fwd_shared.stop.load(Ordering::Acquire);
+                    let since = last.map_or(u64::MAX, |(_, t)| t.elapsed().as_micros() as u64);
+                    if !finishing
+                        && !force_deadband_passes(k, last.as_ref().map(|(l, _)| l), since, &f)
+                    {
+                        fwd_deadband.suppressed.fetch_add(1, Ordering::Relaxed);
+                        continue;
+                    }
+                    let sender = fwd_link.lock().ok().and_then(|l| l.clone());
+                    if let Some(tx) = sender {
+                        let limits = fwd_device.limits();
+                        if tx.try_send(Ok(force_command(&f, limits))).is_ok() {
+                            fwd_deadband.sent.fetch_add(1, Ordering::Relaxed);
+                        }
+                        last = Some((f, Instant::now()));
+                    } else {
+                        last = None;
+                    }
+                }
+                if fwd_shared.finished.load(Ordering::Acquire) && force_rx.is_empty() {
+                    break;
+                }
+            }
+        })
+        .map_err(|e| ServerError::Internal(format!("spawning the forwarder: {e}")))
 }
 
 /// The command for `f`, its force and contact stiffness clamped to the attached device's

@@ -24,8 +24,7 @@
 //! [`crate::service`] validates `WatchRequest`s with [`WatchParams::from_request`]. Nothing
 //! here runs on the servo thread.
 
-use std::collections::HashMap;
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -38,8 +37,8 @@ use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
 
 use crate::error::ServerError;
+use crate::frame::{FrameData, Reference, Topology, WatcherGuard, WatcherStats, unix_time_us};
 use crate::servo::{SessionShared, Snapshot};
-use crate::session::{FrameData, Session, Topology, unix_time_us};
 
 /// Default watcher frame rate, Hz.
 pub const DEFAULT_RATE_HZ: f64 = 30.0;
@@ -93,46 +92,6 @@ impl WatchParams {
     }
 }
 
-/// Counters of a session's watchers (atomics: the watch tasks write, `GetStats` reads).
-#[derive(Debug, Default)]
-pub struct WatcherStats {
-    /// Watch streams open now.
-    pub watchers: AtomicUsize,
-    /// Watch streams open now that asked for DELTA (the frame task encodes only for them).
-    pub delta_watchers: AtomicUsize,
-    /// Frames queued to watchers so far.
-    pub frames_sent: AtomicU64,
-    /// Frames a watcher was due while its queue was full.
-    pub frames_dropped: AtomicU64,
-    /// Encoded bytes of the frames sent.
-    pub bytes_sent: AtomicU64,
-    /// Encoded bytes waiting in watcher queues now (released when a frame leaves a queue,
-    /// including with the queue of a watcher that disconnected).
-    pub queued_bytes: AtomicU64,
-    /// The most one watcher's queue can hold for the current topology, bytes.
-    pub queue_limit_bytes: AtomicU64,
-    /// Keyframe requests of the open streams, by watch id.
-    requests: Mutex<HashMap<u64, Arc<AtomicBool>>>,
-}
-
-impl WatcherStats {
-    /// Asks stream `watch_id` for a keyframe with its topology as its next frame.
-    ///
-    /// # Errors
-    /// [`ServerError::UnknownWatch`] when no such stream is open on this session.
-    pub fn request_keyframe(&self, watch_id: u64) -> Result<(), ServerError> {
-        let requests = self
-            .requests
-            .lock()
-            .map_err(|_| ServerError::Internal("keyframe requests poisoned".into()))?;
-        let flag = requests
-            .get(&watch_id)
-            .ok_or(ServerError::UnknownWatch(watch_id))?;
-        flag.store(true, Ordering::Release);
-        Ok(())
-    }
-}
-
 /// When the frame task renews the reference keyframe of compact streams.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct KeyframePolicy {
@@ -173,23 +132,6 @@ impl KeyframePolicy {
             && (delta_bytes.saturating_sub(step_bytes)) as f64 * self.payback_frames
                 > keyframe_bytes as f64
     }
-}
-
-/// A reference keyframe of the compact streams: delta frames encode positions against it.
-#[derive(Debug)]
-pub struct Reference {
-    /// Increasing per session from 1 (`SurfaceFrame.keyframe_id`).
-    pub id: u64,
-    /// The connectivity of these positions.
-    pub topology: Arc<Topology>,
-    /// Surface positions, xyz, m.
-    pub positions_m: Vec<f32>,
-    /// Simulated time of these positions, s.
-    pub sim_time_s: f64,
-    /// How a client that has the previous reference gets this one: `(previous id, delta)` with
-    /// `positions_m = previous + delta` exactly as a client decodes it (1 um steps). `None` for
-    /// a first reference, a new topology, or a displacement a delta cannot express.
-    pub chain: Option<(u64, Bytes)>,
 }
 
 /// Spawns the frame task of a session: every 10 ms, while someone watches and the servo
@@ -342,41 +284,6 @@ fn queue_limit_bytes(t: &Topology) -> u64 {
     (WATCH_QUEUE_FRAMES * frame) as u64
 }
 
-impl FrameData {
-    /// The encoded delta of this frame against [`FrameData::reference`] in steps of
-    /// `quantum_m` (computed once per quantum and shared); `None` without a reference or when
-    /// not representable.
-    pub fn delta_for(&self, quantum_m: f64) -> Option<Bytes> {
-        let reference = self.reference.as_ref()?;
-        if quantum_m == DEFAULT_QUANTUM_M {
-            return self.delta.clone();
-        }
-        let key = quantum_m.to_bits();
-        if let Ok(cache) = self.other_deltas.lock()
-            && let Some((_, d)) = cache.iter().find(|(k, _)| *k == key)
-        {
-            return d.clone();
-        }
-        let codec = reference.topology.codec.as_ref()?;
-        let mut buf = Vec::new();
-        let d = codec
-            .encode(
-                &reference.positions_m,
-                &self.positions_m,
-                quantum_m,
-                &mut buf,
-            )
-            .ok()
-            .map(|()| Bytes::from(buf));
-        if let Ok(mut cache) = self.other_deltas.lock()
-            && cache.len() < 8
-        {
-            cache.push((key, d.clone()));
-        }
-        d
-    }
-}
-
 /// What one watcher has received so far.
 #[derive(Debug, Default)]
 struct WatcherState {
@@ -439,9 +346,18 @@ impl Drop for QueuedBytes {
     }
 }
 
-/// Starts a watcher of `session` with `params`: returns its stream of frames (keyframe first).
-pub fn spawn_watch(session: Arc<Session>, params: WatchParams) -> FrameStream {
-    let stats = session.watcher_stats.clone();
+/// Starts a watcher of a session with `params`: returns its stream of frames (keyframe first).
+///
+/// `frames` and `servo_guard` come from [`crate::session::Session::watch`] (the servo publishes
+/// while the guard lives), `stats` is the session's [`WatcherStats`] and `probe_radius_m` its
+/// probe radius, m (sent in every frame).
+pub fn spawn_watch(
+    frames: watch::Receiver<Option<Arc<FrameData>>>,
+    servo_guard: WatcherGuard,
+    stats: Arc<WatcherStats>,
+    probe_radius_m: f64,
+    params: WatchParams,
+) -> FrameStream {
     let id = NEXT_WATCH_ID.fetch_add(1, Ordering::Relaxed);
     let requested = Arc::new(AtomicBool::new(false));
     if let Ok(mut r) = stats.requests.lock() {
@@ -456,7 +372,7 @@ pub fn spawn_watch(session: Arc<Session>, params: WatchParams) -> FrameStream {
         id,
         delta: params.quantum_m.is_some(),
     };
-    let (mut frames, servo_guard) = session.watch();
+    let mut frames = frames;
     let (tx, rx) = mpsc::channel::<(SurfaceFrame, QueuedBytes)>(WATCH_QUEUE_FRAMES);
     tokio::spawn(async move {
         let _guards = (guard, servo_guard);
@@ -485,7 +401,7 @@ pub fn spawn_watch(session: Arc<Session>, params: WatchParams) -> FrameStream {
             };
             let force_topology = requested.swap(false, Ordering::AcqRel);
             let Some((frame, kept)) =
-                build_frame(&f, &session, &params, &state, id, force_topology)
+                build_frame(&f, probe_radius_m, &params, &state, id, force_topology)
             else {
                 continue; // compact stream, no reference yet: wait for the next frame
             };
@@ -517,7 +433,7 @@ pub fn spawn_watch(session: Arc<Session>, params: WatchParams) -> FrameStream {
 /// `None` for a compact watcher while the session has no reference keyframe yet.
 fn build_frame(
     f: &FrameData,
-    session: &Session,
+    probe_radius_m: f64,
     params: &WatchParams,
     state: &WatcherState,
     watch_id: u64,
@@ -531,7 +447,7 @@ fn build_frame(
         probe_position_m: Some(Vec3::from(f.probe_m)),
         contact_force_n: Some(Vec3::from(f.force_n)),
         in_contact: f.in_contact,
-        probe_radius_m: session.probe_radius_m,
+        probe_radius_m,
         server_time_us: unix_time_us(),
         max_displacement_m: f.max_displacement_m,
         applied_forces: f.applied_forces.clone(),

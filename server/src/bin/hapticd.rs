@@ -109,7 +109,8 @@ async fn main() -> anyhow::Result<()> {
         .await
         .with_context(|| format!("binding {}", config.listen))?;
     // `run` prints `listening on ADDR` once tokens and TLS are set up.
-    haptic_server::run(listener, config, shutdown_signal()).await
+    haptic_server::run(listener, config, shutdown_signal()).await?;
+    Ok(())
 }
 
 async fn shutdown_signal() {

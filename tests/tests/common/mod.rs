@@ -9,7 +9,7 @@ pub struct InProcess {
     /// `http://127.0.0.1:PORT`.
     pub url: String,
     stop: Option<oneshot::Sender<()>>,
-    task: Option<tokio::task::JoinHandle<anyhow::Result<()>>>,
+    task: Option<tokio::task::JoinHandle<Result<(), haptic_server::ServerError>>>,
 }
 
 impl InProcess {

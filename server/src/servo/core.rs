@@ -1,0 +1,478 @@
+//! [`ServoCore`]: the servo's state and its allocation-, lock- and log-free [`ServoCore::tick`].
+//!
+//! The core is split by how its parts change: [`ServoParams`] (set before the loop, read-only in
+//! the tick), [`ServoState`] (what a tick reads and writes), [`AppliedLoads`] (the accepted
+//! loads a snapshot lists) and [`ServoStats`] (accumulators copied into the statistics).
+
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+
+use haptic_model::body::{SoftBody, TickInput, TickOutput};
+use haptic_model::{DVec3, ModelError};
+
+use super::params::{OverrunLimit, ServoParams};
+use super::stats::ServoStats;
+use super::{
+    APPLIED_LOAD_CAPACITY, AppliedLoad, Clock, Command, Flow, ForceOut, Pose, ServoEnds,
+    SessionShared, Snapshot,
+};
+
+/// The servo's state and both ends of its handoffs. Everything is sized at construction.
+pub struct ServoCore {
+    body: Box<dyn SoftBody>,
+    ends: ServoEnds,
+    shared: Arc<SessionShared>,
+    params: ServoParams,
+    state: ServoState,
+    applied: AppliedLoads,
+    stats: ServoStats,
+}
+
+/// Default silence limit of a connected device, µs (50 ms: five times the bridge watchdog's
+/// fresh window; issue 16).
+pub const DEFAULT_DEVICE_SILENCE_US: u64 = 50_000;
+
+/// The overrun judgement's memory.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+struct OverrunJudge {
+    /// Start of the current stretch of slow statistics windows, µs.
+    slow_since_us: Option<u64>,
+    /// See [`super::StatsSnapshot::overrunning`].
+    overrunning: bool,
+}
+
+/// What a tick reads and writes besides the body.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+struct ServoState {
+    ticks: u64,
+    last_seq: Option<u64>,
+    current: TickInput,
+    fault: Option<&'static str>,
+    /// Simulated time after the last successful tick, s.
+    sim_time_s: f64,
+    last_force: ForceOut,
+    device_silent: bool,
+    /// See [`super::StatsSnapshot::demoted`]; set by the loop.
+    demoted: bool,
+    judge: OverrunJudge,
+}
+
+/// Accepted loads not yet reported as ended (the first `len`), for snapshots.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct AppliedLoads {
+    loads: [AppliedLoad; APPLIED_LOAD_CAPACITY],
+    len: usize,
+    /// Loads accepted so far.
+    total: u64,
+}
+
+impl AppliedLoads {
+    fn new() -> Self {
+        Self {
+            loads: [AppliedLoad::default(); APPLIED_LOAD_CAPACITY],
+            len: 0,
+            total: 0,
+        }
+    }
+
+    /// Keeps an accepted load for the next snapshot, started at `sim_time_s`. Without watchers
+    /// (`watched` false) nothing reports them, so loads that have ended are dropped first; a
+    /// table still full (more accepted loads than a body holds, all unreported) loses its
+    /// oldest entry, which the index gap shows.
+    fn note(
+        &mut self,
+        point_m: DVec3,
+        force_n: DVec3,
+        duration_s: f64,
+        sim_time_s: f64,
+        watched: bool,
+    ) {
+        self.total += 1;
+        if !watched {
+            self.prune(sim_time_s);
+        }
+        if self.len == APPLIED_LOAD_CAPACITY {
+            self.loads.copy_within(1.., 0);
+            self.len -= 1;
+        }
+        self.loads[self.len] = AppliedLoad {
+            index: self.total,
+            point_m,
+            force_n,
+            start_sim_time_s: sim_time_s,
+            duration_s,
+        };
+        self.len += 1;
+    }
+
+    /// Drops the loads that ended at or before `t_s` (order kept; no allocation).
+    fn prune(&mut self, t_s: f64) {
+        let mut kept = 0;
+        for i in 0..self.len {
+            let a = self.loads[i];
+            if a.start_sim_time_s + a.duration_s > t_s {
+                self.loads[kept] = a;
+                kept += 1;
+            }
+        }
+        self.len = kept;
+    }
+
+    /// Copies the table into a snapshot.
+    fn copy_to(&self, snap: &mut Snapshot) {
+        snap.applied = self.loads;
+        snap.applied_len = self.len;
+        snap.applied_total = self.total;
+    }
+}
+
+/// The latest pose as a tick reads it.
+#[derive(Debug, Clone, Copy)]
+struct PoseRead {
+    pose: Pose,
+    /// A sample the servo has not seen before, from a connected device.
+    fresh: bool,
+}
+
+impl ServoCore {
+    /// Judges the session overrunning ([`ServoCore::overrunning`]) once the loop rate of every
+    /// statistics window (`stats_every` ticks) has stayed below `min_rate_hz` for `for_us` of
+    /// wall time; it stops being so after one window at or above the rate.
+    pub fn with_overrun_limit(mut self, min_rate_hz: f64, for_us: u64) -> Self {
+        self.params.overrun = Some(OverrunLimit {
+            min_rate_hz,
+            for_us,
+            degrade: false,
+        });
+        self
+    }
+
+    /// As [`Self::with_overrun_limit`], and quarantines the session (zero force, `fault` set,
+    /// the body no longer stepped) once it is overrunning: the loop rate of every
+    /// statistics window (`stats_every` ticks) has stayed below `min_rate_hz` for `for_us` of
+    /// wall time. Without this call the rate is only reported.
+    pub fn with_overrun_degrade(mut self, min_rate_hz: f64, for_us: u64) -> Self {
+        self.params.overrun = Some(OverrunLimit {
+            min_rate_hz,
+            for_us,
+            degrade: true,
+        });
+        self
+    }
+
+    /// The silence limit of a connected device, µs (default [`DEFAULT_DEVICE_SILENCE_US`]).
+    pub fn with_device_silence_us(mut self, us: u64) -> Self {
+        self.params.device_silence_us = us.max(1);
+        self
+    }
+
+    /// Builds the core. `snapshot_every` / `stats_every` are in ticks (>= 1). `ends` must come
+    /// from [`super::channels`] for this body (the snapshot buffers are sized for its surface).
+    pub fn new(
+        body: Box<dyn SoftBody>,
+        ends: ServoEnds,
+        shared: Arc<SessionShared>,
+        snapshot_every: u32,
+        stats_every: u32,
+    ) -> Self {
+        Self {
+            body,
+            ends,
+            shared,
+            params: ServoParams {
+                snapshot_every: snapshot_every.max(1) as u64,
+                stats_every: stats_every.max(1) as u64,
+                device_silence_us: DEFAULT_DEVICE_SILENCE_US,
+                overrun: None,
+            },
+            state: ServoState::default(),
+            applied: AppliedLoads::new(),
+            stats: ServoStats::new(),
+        }
+    }
+
+    /// The body (for tests and set-up).
+    pub fn body(&self) -> &dyn SoftBody {
+        self.body.as_ref()
+    }
+
+    /// The fault that quarantined the session, if any.
+    pub fn fault(&self) -> Option<&'static str> {
+        self.state.fault
+    }
+
+    /// True when the device stream published a pose the servo has not read yet (wait-free).
+    pub fn sample_pending(&self) -> bool {
+        self.ends.pose.updated()
+    }
+
+    /// True when the session has stayed below its minimum loop rate for the judged time
+    /// ([`Self::with_overrun_limit`]).
+    pub fn overrunning(&self) -> bool {
+        self.state.judge.overrunning
+    }
+
+    /// Records whether the loop has demoted this servo thread (published with the statistics).
+    pub fn set_demoted(&mut self, demoted: bool) {
+        self.state.demoted = demoted;
+    }
+
+    /// Records the overruns counted by the loop's pacer (published with the statistics).
+    pub fn set_overruns(&mut self, overruns: u64) {
+        self.stats.overruns = overruns;
+    }
+
+    /// True when the last pose read came from a connected device.
+    pub fn device_connected(&self) -> bool {
+        self.state.current.device_position_m.is_some()
+    }
+
+    /// Runs one tick at time `now_us` (clock read again after the step for timing).
+    /// Allocation-free, lock-free, no logging.
+    pub fn tick(&mut self, now_us: u64, clock: &impl Clock) -> Flow {
+        if self.stop_requested() {
+            return Flow::Stop;
+        }
+        if self.stats.window.ticks == 0 && self.state.ticks == 0 {
+            self.stats.window.start_us = now_us;
+        }
+        // 1. Commands.
+        self.drain_commands();
+        // 2. Latest pose.
+        let read = self.read_pose(now_us);
+        // 3. Step.
+        let (out, t1) = self.step_body(clock);
+        // 4. Guard and hand out the force.
+        let force = self.hand_out_force(out, read, clock);
+        self.state.ticks += 1;
+        self.stats.window.ticks += 1;
+        // 5. Snapshot for viewers.
+        if self.state.ticks.is_multiple_of(self.params.snapshot_every)
+            && self.shared.watchers.load(Ordering::Relaxed) > 0
+        {
+            self.publish_snapshot(force);
+        }
+        // 6. Statistics.
+        if self.state.ticks.is_multiple_of(self.params.stats_every) {
+            self.publish_stats(t1, force);
+        }
+        Flow::Continue
+    }
+
+    /// On a stop request: pushes the final zero force, marks the servo finished, true.
+    fn stop_requested(&mut self) -> bool {
+        if !self.shared.stop.load(Ordering::Acquire) {
+            return false;
+        }
+        let seq = self.state.last_seq.unwrap_or(0);
+        let _ = self.ends.forces.push(ForceOut {
+            seq,
+            ..ForceOut::default()
+        });
+        self.shared.finished.store(true, Ordering::Release);
+        true
+    }
+
+    /// Applies the queued commands (wait-free ring).
+    fn drain_commands(&mut self) {
+        while let Ok(cmd) = self.ends.commands.pop() {
+            match cmd {
+                Command::ApplyForce {
+                    point_m,
+                    force_n,
+                    duration_s,
+                } => {
+                    // Validated by the handler; a full load table drops the command.
+                    if self
+                        .body
+                        .add_point_load(point_m, force_n, duration_s)
+                        .is_ok()
+                    {
+                        let watched = self.shared.watchers.load(Ordering::Relaxed) != 0;
+                        self.applied.note(
+                            point_m,
+                            force_n,
+                            duration_s,
+                            self.state.sim_time_s,
+                            watched,
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    /// Reads the latest pose (triple buffer, wait-free) into the tick's input; a connected
+    /// device silent for longer than the limit leaves the scene until its next sample.
+    fn read_pose(&mut self, now_us: u64) -> PoseRead {
+        self.ends.pose.update();
+        let pose = *self.ends.pose.output_buffer();
+        let fresh = pose.connected && self.state.last_seq != Some(pose.seq);
+        // A device that stopped sending (a stalled bridge) must not keep pressing with its
+        // last pose: past the silence limit it leaves the scene until its next sample.
+        let silent = pose.connected
+            && !fresh
+            && now_us.saturating_sub(pose.received_us) > self.params.device_silence_us;
+        if silent && !self.state.device_silent {
+            self.stats.device_silences += 1;
+        }
+        self.state.device_silent = silent;
+        if pose.connected && !silent {
+            self.state.current = TickInput {
+                device_position_m: Some(pose.position_m),
+                device_velocity_m_per_s: pose.velocity_m_per_s,
+            };
+        } else {
+            self.state.current = TickInput::default();
+        }
+        if fresh {
+            self.state.last_seq = Some(pose.seq);
+            self.stats.device_samples += 1;
+        }
+        PoseRead { pose, fresh }
+    }
+
+    /// Steps the body unless quarantined (a model error quarantines it) and records the step
+    /// time. Returns the output and the clock after the step, µs.
+    fn step_body(&mut self, clock: &impl Clock) -> (Option<TickOutput>, u64) {
+        let t0 = clock.now_us();
+        let out = if self.state.fault.is_none() {
+            match self.body.tick(&self.state.current) {
+                Ok(o) => {
+                    self.state.sim_time_s = o.sim_time_s;
+                    Some(o)
+                }
+                Err(e) => {
+                    self.state.fault = Some(match e {
+                        ModelError::Diverged { .. } => {
+                            "the simulation diverged; session quarantined (zero force)"
+                        }
+                        ModelError::InvalidDevice(m) => m,
+                        _ => "the model failed; session quarantined (zero force)",
+                    });
+                    None
+                }
+            }
+        } else {
+            None
+        };
+        let t1 = clock.now_us();
+        self.stats.record_step(t1 - t0);
+        (out, t1)
+    }
+
+    /// Guards the force (a non-finite one, or none, is zero) and pushes it to the forwarder
+    /// when it answers a fresh sample, recording the pose-to-force latency.
+    fn hand_out_force(
+        &mut self,
+        out: Option<TickOutput>,
+        read: PoseRead,
+        clock: &impl Clock,
+    ) -> ForceOut {
+        let mut force = ForceOut {
+            seq: read.pose.seq,
+            ..ForceOut::default()
+        };
+        if let Some(o) = out
+            && o.force_on_device_n.is_finite()
+        {
+            force.force_n = o.force_on_device_n;
+            force.in_contact = o.in_contact;
+            force.stiffness_n_per_m = o.contact_stiffness_n_per_m;
+            force.proxy_m = o.proxy_position_m;
+        }
+        self.stats.peak_force_n = self.stats.peak_force_n.max(force.force_n.length());
+        self.stats.contact_ticks += u64::from(force.in_contact);
+        self.state.last_force = force;
+        if read.fresh {
+            // A full ring means the forwarder is stalled; dropping is the safe choice (the
+            // bridge's watchdog ramps the force down).
+            let _ = self.ends.forces.push(force);
+            let done = clock.now_us();
+            self.stats
+                .record_pose_to_force(done.saturating_sub(read.pose.received_us));
+        }
+        force
+    }
+
+    /// Writes and publishes a surface snapshot (within the capacity sized by
+    /// [`super::channels`]: no allocation), then drops the loads it reported as ended.
+    fn publish_snapshot(&mut self, force: ForceOut) {
+        let snap = self.ends.snapshot.input_buffer_mut();
+        let topology = self.body.surface_topology();
+        let n = 3 * topology.vertex_count;
+        // Within the capacity sized by `channels`: no allocation.
+        if snap.topology_version != topology.version {
+            snap.triangles.clear();
+            snap.triangles
+                .extend(topology.triangles.iter().flatten().copied());
+            snap.rest_positions_m.resize(n, 0.0);
+            self.body
+                .write_surface_rest_positions(&mut snap.rest_positions_m);
+            snap.topology_version = topology.version;
+        }
+        snap.positions_m.resize(n, 0.0);
+        snap.tick = self.state.ticks;
+        snap.sim_time_s = self.state.sim_time_s;
+        let d = self.body.write_surface_positions(&mut snap.positions_m);
+        snap.max_displacement_m = d;
+        snap.probe_m = match self.state.current.device_position_m {
+            Some(p) => p,
+            None => DVec3::NAN,
+        };
+        snap.force_n = force.force_n;
+        snap.in_contact = force.in_contact;
+        self.applied.copy_to(snap);
+        self.ends.snapshot.publish();
+        // Reported once after they ended: drop them.
+        self.applied.prune(self.state.sim_time_s);
+    }
+
+    /// Closes the statistics window ending at `t1` µs: judges the overrun and publishes the
+    /// statistics.
+    fn publish_stats(&mut self, t1: u64, force: ForceOut) {
+        let body = self.body.stats();
+        self.stats.max_displacement_m = self.stats.max_displacement_m.max(body.max_displacement_m);
+        let elapsed_us = t1.saturating_sub(self.stats.window.start_us).max(1);
+        let rate = self.stats.window.ticks as f64 * 1e6 / elapsed_us as f64;
+        self.stats.window.start_us = t1;
+        self.stats.window.ticks = 0;
+        self.judge_overrun(rate, elapsed_us, t1);
+        let s = &self.state;
+        *self.ends.stats.input_buffer_mut() = super::StatsSnapshot {
+            sim_time_s: s.sim_time_s,
+            in_contact: force.in_contact,
+            fault: s.fault,
+            device_silent: s.device_silent,
+            overrunning: s.judge.overrunning,
+            demoted: s.demoted,
+            ..self.stats.snapshot(s.ticks, rate, body)
+        };
+        self.ends.stats.publish();
+    }
+
+    /// Judges the window of `elapsed_us` ending at `t1` µs, at `rate` Hz (the first window
+    /// includes start-up: not judged); quarantines under the `degrade` policy.
+    fn judge_overrun(&mut self, rate: f64, elapsed_us: u64, t1: u64) {
+        let Some(limit) = self.params.overrun else {
+            return;
+        };
+        if self.state.ticks <= self.params.stats_every {
+            return;
+        }
+        let judge = &mut self.state.judge;
+        let window_start = t1.saturating_sub(elapsed_us);
+        judge.slow_since_us = if rate < limit.min_rate_hz {
+            Some(judge.slow_since_us.unwrap_or(window_start))
+        } else {
+            None
+        };
+        let slow_for = judge.slow_since_us.map_or(0, |s| t1.saturating_sub(s));
+        judge.overrunning = slow_for >= limit.for_us;
+        if judge.overrunning && limit.degrade && self.state.fault.is_none() {
+            self.state.fault = Some(
+                "the servo cannot keep its rate on this machine (overrun policy \"degrade\"): session quarantined (zero force)",
+            );
+        }
+    }
+}
