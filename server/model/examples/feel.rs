@@ -175,7 +175,7 @@ fn run(args: Args) -> Result<(), String> {
 /// prepares a following region blocking (deterministic swaps, for `--digest`).
 fn build_deterministic(scene: &Scene) -> Result<Box<dyn SoftBody>, String> {
     if scene.family == ModelFamily::Fem && scene.realtime {
-        let mut sim = haptic_model::sim::Simulation::new(scene).map_err(|e| e.to_string())?;
+        let mut sim = haptic_model::fem::FemBody::new(scene).map_err(|e| e.to_string())?;
         sim.set_blocking_region_preparation(true);
         Ok(Box::new(sim))
     } else {

@@ -9,7 +9,7 @@
 //! so that viewers get a new keyframe then; it reports its size and cost drivers
 //! ([`SoftBody::stats`]). Everything a servo tick calls is allocation-free and lock-free.
 //!
-//! [`crate::build_body`] picks the family a scene asks for: [`crate::sim::Simulation`] (FEM),
+//! [`crate::build_body`] picks the family a scene asks for: [`crate::fem::FemBody`] (FEM),
 //! [`crate::mass_spring::MassSpringBody`], [`crate::hybrid::HybridBody`].
 //!
 //! Owns: the interface and its plain data types. May use: [`crate::contact`] and

@@ -1,10 +1,10 @@
-//! [`Simulation`]: the FEM family of [`crate::body::SoftBody`]: one tetrahedral body driven
+//! [`FemBody`]: the FEM family of [`crate::body::SoftBody`]: one tetrahedral body driven
 //! by a haptic probe and loads, advanced one servo tick at a time.
 //!
-//! Layout follows state / scratch / parameters: [`SimState`] holds positions, velocities and
+//! Layout follows state / scratch / parameters: [`FemState`] holds positions, velocities and
 //! time; the force buffer is scratch sized at construction; the [`FemModel`], the
 //! [`Stepper`] (which owns its solver workspace), the [`BodyLoads`] and the probe parameters are
-//! fixed at construction. [`Simulation::tick`] allocates nothing, takes no lock and does no
+//! fixed at construction. [`FemBody::tick`] allocates nothing, takes no lock and does no
 //! I/O, so the server can call it on its servo thread. A tick is, per sub-step: internal forces,
 //! loads, contact update (the probe's explicit reaction), one step of the [`Stepper`] (which
 //! completes the coupling), and a divergence check; then the output.
@@ -41,7 +41,7 @@ use crate::loads::BodyLoads;
 use crate::scene::Scene;
 
 pub use crate::body::{TickInput, TickOutput};
-pub use crate::integrate::SimState;
+pub use crate::integrate::FemState;
 
 /// A nodal speed above this (m/s) is treated as divergence.
 pub const DIVERGENCE_SPEED_M_PER_S: f64 = 100.0;
@@ -57,7 +57,7 @@ pub const FALLBACK_SETTLE_TICKS: u32 = 100;
 /// The coarse whole-body companion of a following region and its blending state.
 #[derive(Debug, Clone)]
 struct Fallback {
-    sim: Simulation,
+    sim: FemBody,
     /// Weight of the companion's answer in the output, in `[0, 1]`.
     weight: f64,
     /// Ticks until the region may take the probe back (counts down while it holds the patch).
@@ -72,7 +72,7 @@ struct Fallback {
     companion_force_n: DVec3,
 }
 
-/// What the coarse companion of a following region did ([`Simulation::fallback_stats`]).
+/// What the coarse companion of a following region did ([`FemBody::fallback_stats`]).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct FallbackStats {
     /// The companion's weight in the last output, in `[0, 1]`.
@@ -90,7 +90,7 @@ pub struct FallbackStats {
 }
 
 /// Whether a simulation is still meaningful, with the quantities that say so
-/// ([`Simulation::stability`]).
+/// ([`FemBody::stability`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StabilityReport {
     /// The state is finite and no tick diverged.
@@ -118,7 +118,7 @@ pub struct StabilityReport {
 /// A tetrahedral FEM body with its probe, loads, stepper and sub-stepping (module
 /// documentation).
 #[derive(Debug, Clone)]
-pub struct Simulation {
+pub struct FemBody {
     fem: FemModel,
     stepper: Stepper,
     plan: StepPlan,
@@ -126,7 +126,7 @@ pub struct Simulation {
     loads: BodyLoads,
     /// Set when a tick diverged; later ticks refuse to run.
     diverged_at_s: Option<f64>,
-    state: SimState,
+    state: FemState,
     /// Scratch: total nodal forces of the current sub-step.
     force: Vec<DVec3>,
     /// Work arrays of the single-precision force kernel (empty when it is off).
@@ -154,7 +154,7 @@ impl Clone for FollowSlot {
     }
 }
 
-impl Simulation {
+impl FemBody {
     /// Builds the simulation of `scene`: precomputes the FEM data, the critical time step, the
     /// sub-step plan and the stepper (the semi-implicit per-node matrices, the backward Euler
     /// preconditioner, or the condensed factorisation).
@@ -167,13 +167,13 @@ impl Simulation {
         Self::new_with_progress(scene, &mut |_, _| {})
     }
 
-    /// [`Simulation::new`] reporting its stages, `progress(stage, fraction)` with the fraction
+    /// [`FemBody::new`] reporting its stages, `progress(stage, fraction)` with the fraction
     /// done in `[0, 1]`: the FEM data, then (a contact-local active region) the condensation
     /// ([`crate::integrate::condensed::CondensedSolver::new_with_progress`]), which takes
     /// seconds on large meshes.
     ///
     /// # Errors
-    /// As [`Simulation::new`].
+    /// As [`FemBody::new`].
     pub fn new_with_progress(
         scene: &Scene,
         progress: &mut dyn FnMut(&str, f64),
@@ -183,10 +183,10 @@ impl Simulation {
         Self::from_fem_with_progress(fem, scene, &mut |stage, f| progress(stage, 0.1 + 0.9 * f))
     }
 
-    /// Like [`Simulation::new`] but with a prepared [`FemModel`] (e.g. with roller constraints).
+    /// Like [`FemBody::new`] but with a prepared [`FemModel`] (e.g. with roller constraints).
     ///
     /// # Errors
-    /// As [`Simulation::new`].
+    /// As [`FemBody::new`].
     pub fn from_fem(fem: FemModel, scene: &Scene) -> Result<Self, ModelError> {
         Self::from_fem_with_progress(fem, scene, &mut |_, _| {})
     }
@@ -313,7 +313,7 @@ impl Simulation {
         let fallback = match (&scene.fallback, follows) {
             (Some(coarse), true) => {
                 progress("coarse companion", 1.0);
-                let sim = Simulation::new(coarse).map_err(|e| {
+                let sim = FemBody::new(coarse).map_err(|e| {
                     ModelError::field(
                         "active_region.fallback_target_tets",
                         format!("the coarse companion: {e}"),
@@ -337,7 +337,7 @@ impl Simulation {
             tick_s: p.tick_s,
             loads,
             diverged_at_s: None,
-            state: SimState {
+            state: FemState {
                 x: fem.rest().to_vec(),
                 v: vec![DVec3::ZERO; n],
                 time_s: 0.0,
@@ -532,7 +532,7 @@ impl Simulation {
     ///
     /// # Errors
     /// As [`BodyLoads::add_point_load`]: [`ModelError::InvalidInput`] (state untouched) for
-    /// non-finite or absurd values, or a point outside [`Simulation::point_load_zone`] (a
+    /// non-finite or absurd values, or a point outside [`FemBody::point_load_zone`] (a
     /// fixed active region's ball; none for a following region);
     /// [`ModelError::LoadTableFull`] when the table is full.
     /// Allocation-free, so the servo tick may call it.
@@ -560,7 +560,7 @@ impl Simulation {
     /// probe (the stability suite's 10-fold impulse), not a change of the coupling. A new call
     /// replaces an active probe load. Allocation-free.
     ///
-    /// Unlike [`Simulation::add_point_load`], whose patch is fixed to the nodes around the
+    /// Unlike [`FemBody::add_point_load`], whose patch is fixed to the nodes around the
     /// point when the load is added, this load moves with the probe.
     ///
     /// # Errors
@@ -591,7 +591,7 @@ impl Simulation {
         }
     }
 
-    /// Remaining time of the probe load of [`Simulation::add_probe_load`], s (0 when none).
+    /// Remaining time of the probe load of [`FemBody::add_probe_load`], s (0 when none).
     pub fn probe_load_remaining_s(&self) -> f64 {
         self.loads.probe_load_remaining_s()
     }
@@ -642,7 +642,7 @@ impl Simulation {
         &self.surface_nodes
     }
 
-    /// Boundary triangles indexing into [`Simulation::surface_node_indices`], outward oriented.
+    /// Boundary triangles indexing into [`FemBody::surface_node_indices`], outward oriented.
     pub fn surface_triangles(&self) -> &[[u32; 3]] {
         &self.surface_triangles
     }
@@ -685,13 +685,13 @@ impl Simulation {
     }
 
     /// The dynamic state.
-    pub fn state(&self) -> &SimState {
+    pub fn state(&self) -> &FemState {
         &self.state
     }
 
     /// Mutable state, for tests and set-ups (e.g. imposing an initial deformation). Forgets
     /// the backward Euler warm start and a recorded divergence.
-    pub fn state_mut(&mut self) -> &mut SimState {
+    pub fn state_mut(&mut self) -> &mut FemState {
         self.stepper.reset();
         self.diverged_at_s = None;
         &mut self.state
@@ -813,9 +813,9 @@ fn write_positions(nodes: &[u32], x: &[DVec3], rest: Option<&[DVec3]>, out: &mut
     max_d2.sqrt()
 }
 
-impl SoftBody for Simulation {
+impl SoftBody for FemBody {
     fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
-        Simulation::tick(self, input)
+        FemBody::tick(self, input)
     }
 
     fn add_point_load(
@@ -824,7 +824,7 @@ impl SoftBody for Simulation {
         force_n: DVec3,
         duration_s: f64,
     ) -> Result<(), ModelError> {
-        Simulation::add_point_load(self, point_m, force_n, duration_s)
+        FemBody::add_point_load(self, point_m, force_n, duration_s)
     }
 
     /// The boundary of the mesh; it never changes (version 0).
@@ -844,7 +844,7 @@ impl SoftBody for Simulation {
     }
 
     fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
-        Simulation::write_surface_positions(self, out)
+        FemBody::write_surface_positions(self, out)
     }
 
     fn write_surface_rest_positions(&self, out: &mut [f32]) {
