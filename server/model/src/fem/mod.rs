@@ -42,6 +42,11 @@ use crate::scene::Scene;
 
 pub use crate::body::{TickInput, TickOutput};
 pub use crate::integrate::FemState;
+pub use fallback::FallbackStats;
+
+mod fallback;
+
+use fallback::Fallback;
 
 /// A nodal speed above this (m/s) is treated as divergence.
 pub const DIVERGENCE_SPEED_M_PER_S: f64 = 100.0;
@@ -53,41 +58,6 @@ pub const FALLBACK_BLEND_TICKS: u32 = 20;
 /// Ticks the region must hold the whole contact patch before the coarse companion hands the
 /// probe back to it.
 pub const FALLBACK_SETTLE_TICKS: u32 = 100;
-
-/// The coarse whole-body companion of a following region and its blending state.
-#[derive(Debug, Clone)]
-struct Fallback {
-    sim: FemBody,
-    /// Weight of the companion's answer in the output, in `[0, 1]`.
-    weight: f64,
-    /// Ticks until the region may take the probe back (counts down while it holds the patch).
-    settle_ticks: u32,
-    /// Ticks with a nonzero weight.
-    ticks_answered: u64,
-    /// Of those, the ticks whose output is in contact.
-    contact_ticks_answered: u64,
-    /// The region's own force in the last tick, N.
-    region_force_n: DVec3,
-    /// The companion's own force in the last tick, N.
-    companion_force_n: DVec3,
-}
-
-/// What the coarse companion of a following region did ([`FemBody::fallback_stats`]).
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct FallbackStats {
-    /// The companion's weight in the last output, in `[0, 1]`.
-    pub weight: f64,
-    /// Ticks in which it contributed to the output.
-    pub ticks_answered: u64,
-    /// Of those, the ticks in contact.
-    pub contact_ticks_answered: u64,
-    /// Its tetrahedra.
-    pub elements: usize,
-    /// The force the region alone gave in the last tick (before the blend), N.
-    pub region_force_n: DVec3,
-    /// The force the companion alone gave in the last tick (before the blend), N.
-    pub companion_force_n: DVec3,
-}
 
 /// Whether a simulation is still meaningful, with the quantities that say so
 /// ([`FemBody::stability`]).
@@ -319,15 +289,7 @@ impl FemBody {
                         format!("the coarse companion: {e}"),
                     )
                 })?;
-                Some(Box::new(Fallback {
-                    sim,
-                    weight: 0.0,
-                    settle_ticks: 0,
-                    ticks_answered: 0,
-                    contact_ticks_answered: 0,
-                    region_force_n: DVec3::ZERO,
-                    companion_force_n: DVec3::ZERO,
-                }))
+                Some(Box::new(Fallback::new(sim)))
             }
             _ => None,
         };
@@ -456,14 +418,7 @@ impl FemBody {
     /// What the coarse companion of a following region did (module documentation, "The coarse
     /// companion"); `None` without one.
     pub fn fallback_stats(&self) -> Option<FallbackStats> {
-        self.fallback.as_deref().map(|fb| FallbackStats {
-            weight: fb.weight,
-            ticks_answered: fb.ticks_answered,
-            contact_ticks_answered: fb.contact_ticks_answered,
-            elements: fb.sim.fem.element_count(),
-            region_force_n: fb.region_force_n,
-            companion_force_n: fb.companion_force_n,
-        })
+        self.fallback.as_deref().map(Fallback::stats)
     }
 
     /// Stability of the current state: finite or not, divergence, energies, inverted elements,
@@ -749,54 +704,6 @@ fn check_device(input: &TickInput) -> Result<(), ModelError> {
 /// `rest[nodes[k]]` (0 without `rest`).
 ///
 /// # Panics
-impl Fallback {
-    /// Ticks the companion with `input` and blends its answer into the region's `fine` one:
-    /// `outside` when the region's contact patch reaches a node it does not simulate, `swapped`
-    /// when a new region came in this tick (module documentation, "The coarse companion").
-    ///
-    /// # Errors
-    /// The companion's tick errors (a diverged companion quarantines the session as the
-    /// region would).
-    fn answer(
-        &mut self,
-        input: &TickInput,
-        fine: TickOutput,
-        outside: bool,
-        swapped: bool,
-    ) -> Result<TickOutput, ModelError> {
-        let coarse = self.sim.tick(input)?;
-        self.region_force_n = fine.force_on_device_n;
-        self.companion_force_n = coarse.force_on_device_n;
-        if outside || (swapped && self.weight > 0.0) {
-            self.settle_ticks = FALLBACK_SETTLE_TICKS;
-        } else {
-            self.settle_ticks = self.settle_ticks.saturating_sub(1);
-        }
-        let target = if self.settle_ticks > 0 { 1.0 } else { 0.0 };
-        let rate = 1.0 / f64::from(FALLBACK_BLEND_TICKS);
-        self.weight += (target - self.weight).clamp(-rate, rate);
-        let w = self.weight;
-        if w <= 0.0 {
-            return Ok(fine);
-        }
-        self.ticks_answered += 1;
-        let main = if w >= 0.5 { coarse } else { fine };
-        let mut stiffness = fine.contact_stiffness_n_per_m;
-        for (k, c) in stiffness.iter_mut().zip(coarse.contact_stiffness_n_per_m) {
-            *k += w * (c - *k);
-        }
-        let in_contact = fine.in_contact || coarse.in_contact;
-        self.contact_ticks_answered += u64::from(in_contact);
-        Ok(TickOutput {
-            force_on_device_n: fine.force_on_device_n.lerp(coarse.force_on_device_n, w),
-            contact_stiffness_n_per_m: stiffness,
-            in_contact,
-            proxy_position_m: main.proxy_position_m,
-            sim_time_s: fine.sim_time_s,
-        })
-    }
-}
-
 /// If `out.len() != 3 * nodes.len()`.
 fn write_positions(nodes: &[u32], x: &[DVec3], rest: Option<&[DVec3]>, out: &mut [f32]) -> f64 {
     assert_eq!(out.len(), 3 * nodes.len(), "surface buffer length");
@@ -866,9 +773,8 @@ impl SoftBody for FemBody {
             region_swaps: self.follow_stats().map_or(0, |f| f.swaps),
             region_preparation_s: self.follow_stats().map_or(0.0, |f| f.last_prepare_s),
             companion_ticks: self
-                .fallback
-                .as_deref()
-                .map_or(0, |fb| fb.contact_ticks_answered),
+                .fallback_stats()
+                .map_or(0, |s| s.contact_ticks_answered),
         }
     }
 
