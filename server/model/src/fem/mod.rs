@@ -30,7 +30,6 @@ use glam::DVec3;
 
 use crate::ModelError;
 use crate::body::{BodyInfo, BodyStats, PointLoadZone, SoftBody, SurfaceCapacity, SurfaceTopology};
-use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
 use crate::contact::{ContactModel, LocalLaw, Probe};
 use crate::element::{CLAMPED, FemModel, ForceScratch};
 use crate::integrate::condensed::{ActiveRegion, CondensedSolver};
@@ -331,7 +330,7 @@ impl FemBody {
     /// caller must quarantine the session: the state is no longer meaningful). Neither
     /// allocates.
     pub fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
-        check_device(input)?;
+        input.validate()?;
         if let Some(time_s) = self.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
@@ -681,23 +680,6 @@ impl FemBody {
     pub fn last_output(&self) -> TickOutput {
         self.last_output
     }
-}
-
-/// Rejects a non-finite or absurd device input.
-fn check_device(input: &TickInput) -> Result<(), ModelError> {
-    if let Some(p) = input.device_position_m {
-        if !p.is_finite() || !input.device_velocity_m_per_s.is_finite() {
-            return Err(ModelError::InvalidDevice(
-                "device position or velocity is not finite",
-            ));
-        }
-        if p.abs().max_element() > MAX_DEVICE_DISTANCE_M {
-            return Err(ModelError::InvalidDevice(
-                "device position is farther than 10 m from the origin",
-            ));
-        }
-    }
-    Ok(())
 }
 
 /// Writes `x[nodes[k]]` (f32, xyz interleaved) into `out` and returns the largest distance to
