@@ -8,8 +8,8 @@ use std::sync::atomic::Ordering;
 
 use haptic_model::DVec3;
 use haptic_model::body::SoftBody;
+use haptic_model::fem::FemBody;
 use haptic_model::scene::load_builtin;
-use haptic_model::sim::Simulation;
 use haptic_server::servo::{
     self, Clock, Flow, ForceOut, Pacer, Pose, ServoCore, ServoHandles, SessionShared, StatsSnapshot,
 };
@@ -90,7 +90,7 @@ fn rig(body: Box<dyn SoftBody>) -> Rig {
 #[test]
 fn each_fresh_pose_gets_one_force_and_stop_sends_zero() {
     let mut r = rig(Box::new(
-        Simulation::new(&load_builtin("lv").unwrap()).unwrap(),
+        FemBody::new(&load_builtin("lv").unwrap()).unwrap(),
     ));
     let clock = ManualClock(Cell::new(0));
     let mut answered = Vec::new();
@@ -132,7 +132,7 @@ fn each_fresh_pose_gets_one_force_and_stop_sends_zero() {
 
 #[test]
 fn a_diverging_model_is_quarantined_with_zero_force() {
-    let mut sim = Simulation::new(&load_builtin("lv").unwrap()).unwrap();
+    let mut sim = FemBody::new(&load_builtin("lv").unwrap()).unwrap();
     // Corrupt the state: a NaN velocity on a free node makes the next step diverge.
     let free = (0..sim.fem().node_count())
         .find(|&i| sim.fem().constraints()[i] == 0)

@@ -1,5 +1,5 @@
 //! Micro-benchmarks (issue 3, section 4) with divan: one internal-force evaluation
-//! (`FemModel::add_internal_forces`, elastic + viscous, and elastic alone) and one full `Simulation::tick` (all
+//! (`FemModel::add_internal_forces`, elastic + viscous, and elastic alone) and one full `FemBody::tick` (all
 //! sub-steps, probe pressing 3 mm into the epicardium) on the structured LV at about 1k, 2k,
 //! 10k tets, on `lv_h1.msh` (17 924 tets), and with quadratic (10-node) tetrahedra on the
 //! structured LV at about 500 and 1k elements (`q` suffix); and the condensed tick of
@@ -12,8 +12,8 @@ mod common;
 
 use common::{lv_h1_scene, lv_scene};
 use haptic_model::DVec3;
+use haptic_model::fem::{FemBody, TickInput};
 use haptic_model::scene::Scene;
-use haptic_model::sim::{Simulation, TickInput};
 
 fn main() {
     divan::main();
@@ -52,12 +52,12 @@ fn scene(name: &str) -> Scene {
 
 /// A simulation pressed 3 mm into the epicardium at the equator (200 ticks to get there), so
 /// that forces and ticks are measured on a deformed body in contact.
-fn pressed(size: &str) -> (Simulation, TickInput) {
+fn pressed(size: &str) -> (FemBody, TickInput) {
     pressed_scene(&scene(size))
 }
 
-fn pressed_scene(scene: &Scene) -> (Simulation, TickInput) {
-    let mut sim = Simulation::new(scene).expect("simulation");
+fn pressed_scene(scene: &Scene) -> (FemBody, TickInput) {
+    let mut sim = FemBody::new(scene).expect("simulation");
     let mut input = TickInput::default();
     for k in 0..200 {
         let depth = 0.003 * common::smoothstep(k as f64 / 150.0);
@@ -76,7 +76,7 @@ fn bench_forces(bencher: divan::Bencher, size: &str, viscous: bool) {
     bench_forces_of(bencher, pressed(size).0, viscous);
 }
 
-fn bench_forces_of(bencher: divan::Bencher, sim: Simulation, viscous: bool) {
+fn bench_forces_of(bencher: divan::Bencher, sim: FemBody, viscous: bool) {
     bench_model_forces(bencher, sim.fem(), &sim, viscous);
 }
 
@@ -84,7 +84,7 @@ fn bench_forces_of(bencher: divan::Bencher, sim: Simulation, viscous: bool) {
 fn bench_model_forces(
     bencher: divan::Bencher,
     fem: &haptic_model::element::FemModel,
-    sim: &Simulation,
+    sim: &FemBody,
     viscous: bool,
 ) {
     let n = fem.node_count();

@@ -23,9 +23,9 @@ use clap::Parser;
 use common::TickTimes;
 use haptic_model::DVec3;
 use haptic_model::contact::ContactModel;
+use haptic_model::fem::{FemBody, TickInput};
 use haptic_model::integrate::{IntegratorKind, LinearSolver};
 use haptic_model::scene::{Scene, load_builtin, load_scene_file};
-use haptic_model::sim::{Simulation, TickInput};
 use serde::Serialize;
 
 /// Step-time benchmark: servo tick and force evaluation per LV mesh and integrator.
@@ -137,7 +137,7 @@ fn main() -> anyhow::Result<()> {
                 sc.probe.contact = contact;
                 sc.integrator.linear_solver = solver;
                 sc.integrator.max_substeps = 1000;
-                let mut sim = match Simulation::new(&sc) {
+                let mut sim = match FemBody::new(&sc) {
                     Ok(s) => s,
                     Err(e) => {
                         eprintln!("{name} {kind:?}: {e}");

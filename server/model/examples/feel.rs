@@ -6,17 +6,28 @@
 //! Run: `cargo run --release -p haptic-model --example feel -- --scene lv staircase --depths
 //! 0.25,0.5,1,1.5,2,3,4`, `... -- --scene lv-hybrid demo`, `... -- --scene-file
 //! deploy/scenes/lv_h1_condensed.toml stroke --depth 2 --speed 20`.
+//!
+//! Checks that a change alters no output: `--digest FILE` writes every tick's device force,
+//! contact stiffness and proxy position (`{:.17e}`) to FILE and prints one FNV-1a hash of their
+//! bit patterns last (an FEM body then prepares a following region blocking, so that it swaps
+//! at the same tick in every run: never time `--digest` runs); `--dump-scene` prints the parsed
+//! scene (`{:#?}`) and exits.
 
 #[path = "common/press_protocol.rs"]
 mod press_protocol;
 
+use std::fs::File;
+use std::io::{BufWriter, Write};
 use std::path::PathBuf;
 use std::time::Instant;
 
 use clap::Parser;
-use haptic_model::DVec3;
+use haptic_model::body::{
+    BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput, TickOutput,
+};
 use haptic_model::press::{self, HoldParams, HoldReport, PressLine, PressTrace};
-use haptic_model::scene::{Scene, load_builtin, load_scene_file};
+use haptic_model::scene::{ModelFamily, Scene, load_builtin, load_scene_file};
+use haptic_model::{DVec3, ModelError};
 use press_protocol::Protocol;
 
 /// How a scene feels under a scripted press (prints only).
@@ -39,8 +50,15 @@ struct Args {
     /// Print every tick's force (ms, device depth mm, sphere depth mm, |F| mN).
     #[arg(long)]
     trace: bool,
+    /// Write every tick's force, contact stiffness and proxy position to this file and print
+    /// an FNV-1a hash of their bits last (the no-change check; not for timing).
+    #[arg(long)]
+    digest: Option<PathBuf>,
+    /// Print the parsed scene and exit.
+    #[arg(long)]
+    dump_scene: bool,
     #[command(subcommand)]
-    protocol: Protocol,
+    protocol: Option<Protocol>,
 }
 
 fn main() {
@@ -56,8 +74,18 @@ fn run(args: Args) -> Result<(), String> {
         None => load_builtin(&args.scene),
     }
     .map_err(|e| e.to_string())?;
+    if args.dump_scene {
+        println!("{scene:#?}");
+        return Ok(());
+    }
+    let protocol = args
+        .protocol
+        .ok_or("a protocol is required (staircase, demo or stroke)")?;
     let t0 = Instant::now();
-    let mut body = haptic_model::build_body(&scene).map_err(|e| e.to_string())?;
+    let mut body = match &args.digest {
+        Some(path) => Box::new(Digest::new(build_deterministic(&scene)?, path)?),
+        None => haptic_model::build_body(&scene).map_err(|e| e.to_string())?,
+    };
     let info = body.info();
     println!(
         "scene {} ({} family): set-up {:.2} s, tick {} ms, probe radius {} mm",
@@ -77,7 +105,7 @@ fn run(args: Args) -> Result<(), String> {
         }
     };
     let tick = info.tick_s;
-    let trace = match args.protocol {
+    let trace = match protocol {
         Protocol::Staircase {
             depths,
             ramp_s,
@@ -139,7 +167,105 @@ fn run(args: Args) -> Result<(), String> {
     if args.trace {
         print_trace(&trace, &line, tick);
     }
+    drop(body); // a digest body prints its hash when dropped: last
     Ok(())
+}
+
+/// The scene's body as [`haptic_model::build_body`] builds it, except that an FEM body
+/// prepares a following region blocking (deterministic swaps, for `--digest`).
+fn build_deterministic(scene: &Scene) -> Result<Box<dyn SoftBody>, String> {
+    if scene.family == ModelFamily::Fem && scene.realtime {
+        let mut sim = haptic_model::fem::FemBody::new(scene).map_err(|e| e.to_string())?;
+        sim.set_blocking_region_preparation(true);
+        Ok(Box::new(sim))
+    } else {
+        haptic_model::build_body(scene).map_err(|e| e.to_string())
+    }
+}
+
+/// A body that forwards every call and records each tick's output (`--digest`): the values
+/// as `{:.17e}` to a file, their bit patterns into one FNV-1a hash printed on drop.
+struct Digest {
+    inner: Box<dyn SoftBody>,
+    out: BufWriter<File>,
+    hash: u64,
+    ticks: u64,
+}
+
+impl Digest {
+    fn new(inner: Box<dyn SoftBody>, path: &PathBuf) -> Result<Self, String> {
+        let file = File::create(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        Ok(Self {
+            inner,
+            out: BufWriter::new(file),
+            hash: 0xcbf2_9ce4_8422_2325,
+            ticks: 0,
+        })
+    }
+
+    fn record(&mut self, o: &TickOutput) {
+        let f = o.force_on_device_n.to_array();
+        let p = o.proxy_position_m.to_array();
+        let values = f.iter().chain(&o.contact_stiffness_n_per_m).chain(&p);
+        let mut line = String::new();
+        for v in values {
+            for b in v.to_bits().to_le_bytes() {
+                self.hash = (self.hash ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
+            }
+            line.push_str(&format!("{v:.17e} "));
+        }
+        // A failed write shows as a short file next to the hash, which covers every tick.
+        let _ = writeln!(self.out, "{}", line.trim_end());
+        self.ticks += 1;
+    }
+}
+
+impl Drop for Digest {
+    fn drop(&mut self) {
+        let _ = self.out.flush();
+        println!("digest: {} ticks, FNV-1a {:016x}", self.ticks, self.hash);
+    }
+}
+
+impl SoftBody for Digest {
+    fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
+        let o = self.inner.tick(input)?;
+        self.record(&o);
+        Ok(o)
+    }
+
+    fn add_point_load(
+        &mut self,
+        point_m: DVec3,
+        force_n: DVec3,
+        duration_s: f64,
+    ) -> Result<(), ModelError> {
+        self.inner.add_point_load(point_m, force_n, duration_s)
+    }
+
+    fn surface_topology(&self) -> SurfaceTopology<'_> {
+        self.inner.surface_topology()
+    }
+
+    fn surface_capacity(&self) -> SurfaceCapacity {
+        self.inner.surface_capacity()
+    }
+
+    fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
+        self.inner.write_surface_positions(out)
+    }
+
+    fn write_surface_rest_positions(&self, out: &mut [f32]) {
+        self.inner.write_surface_rest_positions(out)
+    }
+
+    fn stats(&self) -> BodyStats {
+        self.inner.stats()
+    }
+
+    fn info(&self) -> BodyInfo {
+        self.inner.info()
+    }
 }
 
 /// `X,Y,Z` as a vector.

@@ -17,7 +17,7 @@
 //!   or more meshes refined under the probe (their `indent.csv`), at the `lv-probe` device
 //!   depths, by Richardson extrapolation with its uncertainty; with `--servo`, the default
 //!   scene's servo error against it (docs/accuracy.md, "A converged sphere reference").
-//! - `dynamic`: the dynamic press (`Simulation::tick`, ramps and holds) with each `--run`'s
+//! - `dynamic`: the dynamic press (`FemBody::tick`, ramps and holds) with each `--run`'s
 //!   mesh and integrator, and its median tick.
 //!
 //! Run: `cargo run --release -p haptic-model --example lv_study -- static --mesh 1000:2,h1:1`
@@ -818,7 +818,7 @@ fn servo_against_reference(
     if let Some(model) = material {
         scene.material.model = model;
     }
-    let mut sim = haptic_model::sim::Simulation::new(&scene).map_err(|e| e.to_string())?;
+    let mut sim = haptic_model::fem::FemBody::new(&scene).map_err(|e| e.to_string())?;
     let tick = sim.tick_s();
     let (curve, ticks) = common::lv_press::probe_dynamic_body(&mut sim, tick, false)?;
     let forces = curve.forces_n;

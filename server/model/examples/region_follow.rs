@@ -15,8 +15,8 @@ use std::time::{Duration, Instant};
 use clap::Parser;
 use haptic_model::DVec3;
 use haptic_model::body::TickInput;
+use haptic_model::fem::FemBody;
 use haptic_model::scene::load_scene_file;
-use haptic_model::sim::Simulation;
 
 #[derive(Parser)]
 struct Args {
@@ -73,7 +73,7 @@ fn main() -> anyhow::Result<()> {
         scene.fallback = None;
     }
     let t = Instant::now();
-    let mut sim = Simulation::new_with_progress(&scene, &mut |stage, fraction| {
+    let mut sim = FemBody::new_with_progress(&scene, &mut |stage, fraction| {
         eprintln!(
             "  {:6.2} s {:3.0} % {stage} (peak memory {:.0} MB)",
             t.elapsed().as_secs_f64(),

@@ -50,8 +50,8 @@ use std::time::Instant;
 use clap::Parser;
 use common::{Percentiles, TickTimes, git_commit, smoothstep, smoothstep_rate};
 use haptic_model::DVec3;
+use haptic_model::fem::{FemBody, TickInput};
 use haptic_model::scene::load_builtin;
-use haptic_model::sim::{Simulation, TickInput};
 
 /// Servo tick, s (the `lv` scene's `integrator.tick_s`; checked at start).
 const TICK_S: f64 = 1e-3;
@@ -556,7 +556,7 @@ fn main() {
     let commit = git_commit();
     let scene = load_builtin("lv").expect("built-in lv scene");
     assert_eq!(scene.integrator.tick_s, TICK_S, "lv tick changed");
-    let mut sim = Simulation::new(&scene).expect("lv simulation");
+    let mut sim = FemBody::new(&scene).expect("lv simulation");
     let (nodes, tets) = (sim.fem().node_count(), sim.fem().tets().len());
     let plan = sim.plan();
     let kc = scene.probe.coupling_stiffness_n_per_m;

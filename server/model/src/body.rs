@@ -9,7 +9,7 @@
 //! so that viewers get a new keyframe then; it reports its size and cost drivers
 //! ([`SoftBody::stats`]). Everything a servo tick calls is allocation-free and lock-free.
 //!
-//! [`crate::build_body`] picks the family a scene asks for: [`crate::sim::Simulation`] (FEM),
+//! [`crate::build_body`] picks the family a scene asks for: [`crate::fem::FemBody`] (FEM),
 //! [`crate::mass_spring::MassSpringBody`], [`crate::hybrid::HybridBody`].
 //!
 //! Owns: the interface and its plain data types. May use: [`crate::contact`] and
@@ -30,6 +30,31 @@ pub struct TickInput {
     pub device_position_m: Option<DVec3>,
     /// Device velocity, m/s.
     pub device_velocity_m_per_s: DVec3,
+}
+
+impl TickInput {
+    /// Rejects a non-finite or absurd device input; every body's tick calls it first, so the
+    /// state is not touched. Allocation-free.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidDevice`] when a connected device's position or velocity is not
+    /// finite, or its position lies farther than [`MAX_DEVICE_DISTANCE_M`] (10 m) from the
+    /// origin along an axis.
+    pub fn validate(&self) -> Result<(), ModelError> {
+        if let Some(p) = self.device_position_m {
+            if !p.is_finite() || !self.device_velocity_m_per_s.is_finite() {
+                return Err(ModelError::InvalidDevice(
+                    "device position or velocity is not finite",
+                ));
+            }
+            if p.abs().max_element() > MAX_DEVICE_DISTANCE_M {
+                return Err(ModelError::InvalidDevice(
+                    "device position is farther than 10 m from the origin",
+                ));
+            }
+        }
+        Ok(())
+    }
 }
 
 /// What one servo tick returns to the device.

@@ -4,10 +4,11 @@
 //! be tested and benchmarked alone. Module map, lowest layer first (a module uses only those
 //! above it; `tests/module_layers.rs` checks that no import goes the other way):
 //!
-//! - [`ordering`]: fill-reducing orderings (METIS nested dissection) and a sparse Cholesky
-//!   factor for the static solver and contact-local condensation.
-//! - [`supernodal`]: one right-hand side through a single-precision supernodal Cholesky factor,
-//!   allocation-free (the condensed tick's solve).
+//! - `simd` (crate-private): what the CPU can run and the lane types of the vectorised kernels.
+//! - [`linalg`]: [`linalg::ordering`], fill-reducing orderings (METIS nested dissection) and a
+//!   sparse Cholesky factor for the static solver and contact-local condensation;
+//!   [`linalg::supernodal`], one right-hand side through a single-precision supernodal Cholesky
+//!   factor, allocation-free (the condensed tick's solve).
 //! - [`mesh`]: tetrahedral meshes, linear (4-node) or quadratic (10-node), with tagged boundary
 //!   surfaces; [`mesh::gmsh`] reads Gmsh `.msh` 2.2 / 4.1 ASCII; [`mesh::generate`] builds
 //!   structured shells (ellipsoids, the idealized left ventricle, the Lamé sphere) and boxes;
@@ -26,7 +27,7 @@
 //!   [`integrate::Stepper`].
 //! - [`loads`]: scene loads, point loads, the probe load, pressure forces.
 //! - [`scene`]: scene files (TOML) and built-in scenes, validated into a [`scene::Scene`].
-//! - [`sim`]: [`sim::Simulation`], the FEM body: state + scratch + parameters, one `tick` per
+//! - [`fem`]: [`fem::FemBody`], the FEM body: state + scratch + parameters, one `tick` per
 //!   servo period.
 //! - [`body`]: [`body::SoftBody`], the interface the server drives every model family through;
 //!   [`build_body`] builds the family a scene names.
@@ -50,23 +51,22 @@
 
 pub mod body;
 pub mod contact;
-pub(crate) mod cpu;
 pub mod element;
 pub mod error;
+pub mod fem;
 pub mod hybrid;
 pub mod indent;
 pub mod integrate;
+pub mod linalg;
 pub mod loads;
 pub mod mass_spring;
 pub mod material;
 pub mod mesh;
 pub mod meshfree;
-pub mod ordering;
 pub mod press;
 pub mod scene;
-pub mod sim;
+pub(crate) mod simd;
 pub mod statics;
-pub mod supernodal;
 
 pub use error::ModelError;
 pub use glam::DVec3;
@@ -75,7 +75,7 @@ pub use glam::DVec3;
 /// [`scene::ModelFamily`]), behind the [`body::SoftBody`] interface.
 ///
 /// # Errors
-/// The errors of the family's constructor ([`sim::Simulation::new`] for the FEM,
+/// The errors of the family's constructor ([`fem::FemBody::new`] for the FEM,
 /// [`mass_spring::MassSpringBody::new`] for the mass-spring surface, after
 /// [`scene::MassSpringScene::table`]: a missing or stale calibration table;
 /// [`fn@hybrid::prepare`] and [`hybrid::HybridBody::new`] for the hybrid model).
@@ -135,7 +135,7 @@ pub fn build_hybrid_body(
 
 /// [`build_body`] reporting the preprocessing's progress (`stage`, fraction in `[0, 1]`) for
 /// families that preprocess (the hybrid model, [`fn@hybrid::prepare`]; the FEM with a
-/// contact-local active region, [`sim::Simulation::new_with_progress`]).
+/// contact-local active region, [`fem::FemBody::new_with_progress`]).
 ///
 /// # Errors
 /// As [`build_body`]; for the hybrid family the errors of [`fn@hybrid::prepare`] and
@@ -157,9 +157,7 @@ pub fn build_body_with_progress(
     }
     match scene.family {
         scene::ModelFamily::Hybrid => Ok(Box::new(build_hybrid_body(scene, progress)?)),
-        scene::ModelFamily::Fem => Ok(Box::new(sim::Simulation::new_with_progress(
-            scene, progress,
-        )?)),
+        scene::ModelFamily::Fem => Ok(Box::new(fem::FemBody::new_with_progress(scene, progress)?)),
         scene::ModelFamily::MassSpring => {
             let ms = scene.mass_spring.as_ref().ok_or_else(|| {
                 ModelError::field(

@@ -5,7 +5,7 @@
 //! the linearised step of a bending beam leaves a large axial residual from the quadratic
 //! Green strain even though it is an excellent step, and a residual-norm search alone
 //! stalled); each linear system is solved by faer's sparse Cholesky under a nested-dissection
-//! ordering ([`crate::ordering`]; when the tangent is not positive definite, e.g. StVK under
+//! ordering ([`crate::linalg::ordering`]; when the tangent is not positive definite, e.g. StVK under
 //! strong compression or a sphere contact's curvature term, an unpivoted `L D L^T` on the same
 //! analysis checked by its residual, else sparse LU), the pattern's ordering and symbolic
 //! factorisation computed once per solve.
@@ -29,9 +29,9 @@ use glam::{DMat3, DVec3};
 use crate::ModelError;
 use crate::element::tangent::cell_tangent_blocks;
 use crate::element::{ConstraintMask, FemModel};
+use crate::linalg::ordering::SparseCholesky;
 use crate::loads::{SceneLoads, add_pressure_load, face_points, face_tangents, quadratic_face};
 use crate::material::{MaterialModel, MaterialParams};
-use crate::ordering::SparseCholesky;
 
 /// Newton solver settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -116,7 +116,7 @@ struct Pattern {
     /// The order of the values in `symbolic` for the entries as assembled.
     argsort: Argsort<usize>,
     /// The Cholesky (or `L D L^T`) factor under a nested-dissection ordering
-    /// ([`crate::ordering`]), analysed once per pattern.
+    /// ([`crate::linalg::ordering`]), analysed once per pattern.
     llt: SparseCholesky,
     /// The symbolic LU, made the first time Cholesky fails.
     lu: Option<SymbolicLu<usize>>,
@@ -212,7 +212,7 @@ impl Tangent {
     }
 
     /// Solves `K dx = r` in place of `rhs` (`nfree` equations): sparse Cholesky on the kept
-    /// symbolic factorisation (nested-dissection ordering, [`crate::ordering`]); when `K` is not
+    /// symbolic factorisation (nested-dissection ordering, [`crate::linalg::ordering`]); when `K` is not
     /// positive definite (StVK under strong compression, the curvature term of a sphere
     /// contact), `L D L^T` without pivoting on the same analysis, kept when its solution's
     /// residual is below [`LDLT_RESIDUAL`] of `|r|`; sparse LU otherwise. Why not a diagonal
@@ -859,7 +859,7 @@ mod tests {
 
     #[test]
     fn tangent_solves_match_dense_and_extend_the_pattern() {
-        // Enough nodes for the nested-dissection ordering (crate::ordering::MIN_VERTICES).
+        // Enough nodes for the nested-dissection ordering (crate::linalg::ordering::MIN_VERTICES).
         let nodes = 80u32;
         // Node 0 constrained: dof numbering skips it.
         let mut dof = vec![usize::MAX; 3 * nodes as usize];

@@ -20,12 +20,12 @@ use haptic_model::ModelError;
 use haptic_model::body::SoftBody;
 use haptic_model::contact::ContactModel;
 use haptic_model::element::{FemModel, StrainSmoothing};
+use haptic_model::fem::{FemBody, TickInput};
 use haptic_model::integrate::condensed::{ActiveRegion, CondensedSolver, PAIRED_SWEEP_MIN_RATIO};
 use haptic_model::integrate::{IntegratorKind, LinearSolver};
 use haptic_model::material::MaterialModel;
 use haptic_model::mesh::generate;
 use haptic_model::scene::{load_builtin, parse_scene_toml};
-use haptic_model::sim::{Simulation, TickInput};
 use haptic_model::statics::{StaticParams, solve_static};
 
 #[path = "common/counting_alloc.rs"]
@@ -83,7 +83,7 @@ fn press(k: usize) -> TickInput {
 }
 
 /// Mean device force over ticks 1400..1500 of [`press`].
-fn hold_force(sim: &mut Simulation) -> f64 {
+fn hold_force(sim: &mut FemBody) -> f64 {
     let mut sum = 0.0;
     for k in 0..1500 {
         let out = sim.tick(&press(k)).expect("tick");
@@ -97,10 +97,9 @@ fn hold_force(sim: &mut Simulation) -> f64 {
 #[test]
 fn a_condensed_press_settles_at_the_whole_body_force() {
     for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
-        let mut whole =
-            Simulation::new(&lv_scene(smoothing, IntegratorKind::SymplecticEuler, None))
-                .expect("whole");
-        let mut condensed = Simulation::new(&condensed_lv(smoothing)).expect("condensed");
+        let mut whole = FemBody::new(&lv_scene(smoothing, IntegratorKind::SymplecticEuler, None))
+            .expect("whole");
+        let mut condensed = FemBody::new(&condensed_lv(smoothing)).expect("condensed");
         let sizes = condensed.condensed().expect("condensed solver").sizes();
         let (fw, fc) = (hold_force(&mut whole), hold_force(&mut condensed));
         let rel = (fc - fw).abs() / fw;
@@ -138,19 +137,19 @@ fn quadratic_lv(region: Option<ActiveRegion>) -> haptic_model::scene::Scene {
 
 /// The built-in `lv` as shipped, Hertz patch: symplectic Euler at 0.9 of the critical step
 /// (the default configuration), the reference of the rest factor's tests.
-fn explicit_quadratic_lv() -> Simulation {
+fn explicit_quadratic_lv() -> FemBody {
     let mut s = quadratic_lv(None);
     s.integrator.kind = IntegratorKind::SymplecticEuler;
     s.integrator.substeps = None;
     s.integrator.linear_solver = LinearSolver::Cg;
     s.integrator.safety_factor = 0.9;
-    Simulation::new(&s).expect("explicit")
+    FemBody::new(&s).expect("explicit")
 }
 
 #[test]
 fn quadratic_elements_condense_and_the_whole_body_rest_factor_settles_at_the_explicit_force() {
     let mut explicit = explicit_quadratic_lv();
-    let mut whole = Simulation::new(&quadratic_lv(None)).expect("rest factor");
+    let mut whole = FemBody::new(&quadratic_lv(None)).expect("rest factor");
     let sizes = whole
         .condensed()
         .expect("the rest factor runs the condensed solver")
@@ -164,7 +163,7 @@ fn quadratic_elements_condense_and_the_whole_body_rest_factor_settles_at_the_exp
         whole.point_load_zone(),
         haptic_model::body::PointLoadZone::Anywhere
     );
-    let mut part = Simulation::new(&quadratic_lv(Some(ACTIVE))).expect("quadratic region");
+    let mut part = FemBody::new(&quadratic_lv(Some(ACTIVE))).expect("quadratic region");
     let psizes = part.condensed().expect("condensed").sizes();
     assert!(
         psizes.active_tets < sizes.active_tets && psizes.interface_nodes > 0,
@@ -196,7 +195,7 @@ fn quadratic_elements_condense_and_the_whole_body_rest_factor_settles_at_the_exp
 
 /// Force held over ticks 1000..1500 of a press `depth_m` past x = 11.7 mm at the equator
 /// (ramped over 0.2 s): its minimum and maximum, N.
-fn deep_hold(sim: &mut Simulation, depth_m: f64) -> (f64, f64) {
+fn deep_hold(sim: &mut FemBody, depth_m: f64) -> (f64, f64) {
     let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
     for k in 0..1500 {
         let d = depth_m * (k as f64 / 200.0).min(1.0);
@@ -234,8 +233,8 @@ fn a_deep_press_on_the_rest_factor_holds_steady_at_the_explicit_force() {
         explicit_scene.integrator.substeps = None;
         explicit_scene.integrator.linear_solver = LinearSolver::Cg;
         explicit_scene.integrator.safety_factor = 0.9;
-        let mut explicit = Simulation::new(&explicit_scene).expect("explicit");
-        let mut rest = Simulation::new(&scene).expect("rest factor");
+        let mut explicit = FemBody::new(&explicit_scene).expect("explicit");
+        let mut rest = FemBody::new(&scene).expect("rest factor");
         let (elo, ehi) = deep_hold(&mut explicit, 0.005);
         let (rlo, rhi) = deep_hold(&mut rest, 0.005);
         let (relaxed, factor) = rest.condensed().expect("condensed").relaxation();
@@ -259,7 +258,7 @@ fn a_deep_press_on_the_rest_factor_holds_steady_at_the_explicit_force() {
         if model == MaterialModel::StVenantKirchhoff {
             assert!(relaxed > 0, "the relaxation never acted");
             // A 2 mm press relaxes one tick at most (measured: one, where the ramp stops).
-            let mut shallow = Simulation::new(&scene).expect("rest factor");
+            let mut shallow = FemBody::new(&scene).expect("rest factor");
             let _ = deep_hold(&mut shallow, 0.002);
             let (relaxed, factor) = shallow.condensed().expect("condensed").relaxation();
             assert!(
@@ -275,7 +274,7 @@ fn a_deep_press_on_the_rest_factor_holds_steady_at_the_explicit_force() {
 /// (`None`: no load), for `ticks` ticks: the device force of the last tick, the inverted
 /// elements then, and the ticks the rest factor relaxed.
 fn demo_press(load: Option<(f64, f64)>, ticks: usize) -> Result<(f64, usize, u64), ModelError> {
-    let mut sim = Simulation::new(&load_builtin("lv").expect("lv")).expect("sim");
+    let mut sim = FemBody::new(&load_builtin("lv").expect("lv")).expect("sim");
     let mut force = 0.0;
     for k in 0..ticks {
         let t = k as f64 * 1e-3;
@@ -329,7 +328,7 @@ fn the_snap_back_of_a_deep_point_load_dent_settles_on_the_rest_factor() {
 
 #[test]
 fn the_far_boundary_follows_the_interface_and_the_tick_allocates_nothing() {
-    let mut sim = Simulation::new(&condensed_lv(StrainSmoothing::Edge)).expect("sim");
+    let mut sim = FemBody::new(&condensed_lv(StrainSmoothing::Edge)).expect("sim");
     let solver = sim.condensed().expect("condensed solver").clone();
     let n = sim.state().x.len();
     // Far boundary nodes: on the surface, outside the active region.
@@ -442,15 +441,13 @@ fn bad_active_regions_are_rejected_with_the_field_named() {
             ..ACTIVE
         }),
     );
-    let err = Simulation::new(&scene)
-        .expect_err("empty region")
-        .to_string();
+    let err = FemBody::new(&scene).expect_err("empty region").to_string();
     assert!(err.contains("active_region"), "{err}");
     // A scene changed in code to another integrator names the region, not the tick's
     // stability (which the explicit step on the condensed scene would fail first).
     let mut scene = condensed_lv(StrainSmoothing::None);
     scene.integrator.kind = IntegratorKind::SymplecticEuler;
-    let err = Simulation::new(&scene).expect_err("explicit").to_string();
+    let err = FemBody::new(&scene).expect_err("explicit").to_string();
     assert!(
         err.contains("active_region") && err.contains("backward-euler"),
         "{err}"
@@ -460,7 +457,7 @@ fn bad_active_regions_are_rejected_with_the_field_named() {
         "[mesh]\nbuiltin = \"lv\"\ntarget_tets = 1000\norder = 1\n[material]\nyoungs_modulus_pa = 14500.0\npoisson_ratio = 0.45\ndensity_kg_per_m3 = 1060.0\n[boundary]\nclamped = [\"BASE\"]\ntouchable = [\"EPI\"]\n[integrator]\n{base}\n{REGION}follow = true\n[loads]\ngravity_m_per_s2 = [0.0, 0.0, -9.81]\n"
     );
     let scene = parse_scene_toml(&text, Path::new(".")).expect("parses");
-    let err = Simulation::new(&scene).expect_err("loads").to_string();
+    let err = FemBody::new(&scene).expect_err("loads").to_string();
     assert!(err.contains("active_region.follow"), "{err}");
     // The coarse companion: the same scene on the built-in mesh, quadratic, on its whole-body
     // rest factor with the region's margin, without a region, smoothing or single precision.
@@ -629,7 +626,7 @@ fn impulse_and_scrambled_start_stay_bounded() {
         let mut scene = condensed_lv(StrainSmoothing::Edge);
         scene.material.model =
             haptic_model::material::MaterialModel::from_scene_name(model).expect("model");
-        let mut sim = Simulation::new(&scene).expect("sim");
+        let mut sim = FemBody::new(&scene).expect("sim");
         let device = |k: usize| {
             let t = k as f64 * 1e-3;
             let depth = 0.006 * ((t / 0.6).min(1.0) - ((t - 0.9) / 0.6).clamp(0.0, 1.0));
@@ -670,7 +667,7 @@ fn impulse_and_scrambled_start_stay_bounded() {
         );
 
         // Scrambled start.
-        let mut sim = Simulation::new(&scene).expect("sim");
+        let mut sim = FemBody::new(&scene).expect("sim");
         let active: Vec<bool> = (0..sim.state().x.len() as u32)
             .map(|i| sim.condensed().expect("condensed").is_active_node(i))
             .collect();
@@ -733,7 +730,7 @@ fn poisson_sweep_stays_finite_and_reports_volume_change() {
         if let Some(r) = &mut scene.active_region {
             r.stiffness_margin = margin;
         }
-        let mut sim = Simulation::new(&scene).expect("sim");
+        let mut sim = FemBody::new(&scene).expect("sim");
         let mut outcome = Ok(0.0);
         for k in 0..600 {
             match sim.tick(&press(k)) {
@@ -794,7 +791,7 @@ fn point_loads_are_refused_where_condensed_elements_would_take_them() {
     let outside = DVec3::new(-0.00968, 0.0, -0.005);
     let push = DVec3::new(-0.01, 0.0, 0.0);
 
-    let mut whole = Simulation::new(&lv_scene(
+    let mut whole = FemBody::new(&lv_scene(
         StrainSmoothing::None,
         IntegratorKind::BackwardEuler,
         None,
@@ -804,7 +801,7 @@ fn point_loads_are_refused_where_condensed_elements_would_take_them() {
     whole.add_point_load(outside, push, 0.1).expect("anywhere");
     assert_eq!(whole.active_point_loads(), 1);
 
-    let mut fixed = Simulation::new(&condensed_lv(StrainSmoothing::None)).expect("fixed");
+    let mut fixed = FemBody::new(&condensed_lv(StrainSmoothing::None)).expect("fixed");
     assert!(matches!(
         fixed.point_load_zone(),
         PointLoadZone::Ball { radius_m, .. } if radius_m == ACTIVE.radius_m
@@ -823,7 +820,7 @@ fn point_loads_are_refused_where_condensed_elements_would_take_them() {
         follow: true,
         ..ACTIVE
     });
-    let mut following = Simulation::new(&scene).expect("following");
+    let mut following = FemBody::new(&scene).expect("following");
     for p in [inside, outside] {
         match following.add_point_load(p, push, 0.1) {
             Err(ModelError::InvalidInput(m)) => assert!(m.contains("follows the probe"), "{m}"),
@@ -890,7 +887,7 @@ fn a_following_region_carries_a_stroke_around_the_ventricle() {
         follow: false,
         ..region
     });
-    let mut fixed = Simulation::new(&fixed_scene).expect("fixed");
+    let mut fixed = FemBody::new(&fixed_scene).expect("fixed");
     let lost_fixed = (0..STROKE_TICKS)
         .filter(|&k| {
             let (input, pressed) = stroke(k, depth);
@@ -937,7 +934,7 @@ fn the_shipped_lv_h1_region_follows_a_stroke_at_20_mm_per_s() {
 /// this thread, force and energy continuous at the swaps, and the hold force at -x after the
 /// slide equal to the one at +x before it (the ventricle's symmetry).
 fn check_stroke(scene: &haptic_model::scene::Scene, depth: f64, min_swaps: u64) {
-    let mut sim = Simulation::new(scene).expect("following");
+    let mut sim = FemBody::new(scene).expect("following");
     sim.set_blocking_region_preparation(true);
     let mut forces = Vec::with_capacity(STROKE_TICKS);
     let mut energy = Vec::with_capacity(STROKE_TICKS);
@@ -1082,7 +1079,7 @@ fn fly_and_press(k: usize) -> TickInput {
 /// - the tick allocates nothing.
 #[test]
 fn a_coarse_companion_answers_where_the_region_does_not_hold_the_contact() {
-    use haptic_model::sim::{FALLBACK_BLEND_TICKS, FALLBACK_SETTLE_TICKS};
+    use haptic_model::fem::{FALLBACK_BLEND_TICKS, FALLBACK_SETTLE_TICKS};
     const TETS: usize = 12_000;
     let region = ActiveRegion {
         radius_m: 0.006,
@@ -1105,8 +1102,8 @@ fn a_coarse_companion_answers_where_the_region_does_not_hold_the_contact() {
     let mut coarse = load_builtin("lv").expect("lv");
     coarse.probe.contact = ContactModel::Patch;
     scene.fallback = Some(Box::new(coarse.clone()));
-    let mut sim = Simulation::new(&scene).expect("with companion");
-    let mut alone = Simulation::new(&coarse).expect("companion alone");
+    let mut sim = FemBody::new(&scene).expect("with companion");
+    let mut alone = FemBody::new(&coarse).expect("companion alone");
 
     let hold_from = 600; // 30 ticks after the press at -x ended
     let (mut forces, mut weights) = (Vec::new(), Vec::new());
@@ -1211,7 +1208,7 @@ fn a_coarse_companion_answers_where_the_region_does_not_hold_the_contact() {
     // Back on the region: the force of a region centred at -x from the start.
     let mut direct_scene = scene.clone();
     direct_scene.fallback = None;
-    let mut direct = Simulation::new(&direct_scene).expect("direct");
+    let mut direct = FemBody::new(&direct_scene).expect("direct");
     direct.set_blocking_region_preparation(true);
     let reference = press_at(
         &mut direct,
@@ -1230,7 +1227,7 @@ fn a_coarse_companion_answers_where_the_region_does_not_hold_the_contact() {
 /// The device force held after pressing `depth` (m) along the inward normal `-n` at the rest
 /// surface point `p`: from 0.5 mm outside the sphere's first contact, over 0.3 s (smoothstep),
 /// then held; the mean over ticks 1400..1500.
-fn press_at(sim: &mut Simulation, p: DVec3, n: DVec3, depth: f64) -> f64 {
+fn press_at(sim: &mut FemBody, p: DVec3, n: DVec3, depth: f64) -> f64 {
     let mut sum = 0.0;
     for k in 0..1500 {
         let t = (k as f64 * 1e-3 / 0.3).min(1.0);
@@ -1283,11 +1280,11 @@ fn a_following_region_presses_right_at_ten_random_points() {
     }
     let mut worst = 0.0f64;
     for (k, &(p, n)) in points.iter().enumerate() {
-        let mut following = Simulation::new(&scene).expect("following");
+        let mut following = FemBody::new(&scene).expect("following");
         following.set_blocking_region_preparation(true);
         let fc = press_at(&mut following, p, n, 0.001);
         let stats = following.follow_stats().expect("follows");
-        let mut whole = Simulation::new(&whole_scene).expect("whole");
+        let mut whole = FemBody::new(&whole_scene).expect("whole");
         let fw = press_at(&mut whole, p, n, 0.001);
         let rel = (fc - fw) / fw;
         eprintln!(

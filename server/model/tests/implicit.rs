@@ -7,9 +7,9 @@ use std::path::Path;
 
 use haptic_model::DVec3;
 use haptic_model::contact::ContactModel;
+use haptic_model::fem::{FemBody, TickInput};
 use haptic_model::integrate::{IntegratorKind, LinearSolver};
 use haptic_model::scene::{load_builtin, parse_scene_toml};
-use haptic_model::sim::{Simulation, TickInput};
 
 #[path = "common/counting_alloc.rs"]
 mod counting_alloc;
@@ -45,13 +45,13 @@ fn input(k: usize) -> TickInput {
 /// these schemes were written and measured for (with the scene's stable neo-Hookean the
 /// capped CG (20 iterations) of the 6 mm press below ends 11 % from semi-implicit's hold,
 /// every tick at the cap: the rest-factor solver the scene ships with has no cap).
-fn lv(kind: IntegratorKind) -> Simulation {
+fn lv(kind: IntegratorKind) -> FemBody {
     let mut scene = load_builtin("lv").unwrap();
     scene.material.model = haptic_model::material::MaterialModel::StVenantKirchhoff;
     scene.integrator.kind = kind;
     scene.integrator.linear_solver = LinearSolver::Cg;
     scene.probe.contact = ContactModel::Patch;
-    Simulation::new(&scene).unwrap()
+    FemBody::new(&scene).unwrap()
 }
 
 #[test]
@@ -123,7 +123,7 @@ fn backward_euler_presses_holds_and_recovers_on_lv() {
 /// material's local law): no allocation in the tick (the vectorised kernels keep their work
 /// arrays on the stack), bounded under the press.
 /// Allocations made by `ticks` ticks of [`input`]'s press (each tick must succeed).
-fn press_allocations(sim: &mut Simulation, ticks: usize) -> usize {
+fn press_allocations(sim: &mut FemBody, ticks: usize) -> usize {
     let mut allocations = 0;
     for k in 0..ticks {
         let inp = input(k);
@@ -154,7 +154,7 @@ fn quadratic_element_ticks_do_not_allocate() {
     ] {
         let mut scene = lv_on(haptic_model::mesh::generate::lv_shell(300).to_quadratic());
         scene.integrator.kind = kind;
-        let mut sim = Simulation::new(&scene).unwrap();
+        let mut sim = FemBody::new(&scene).unwrap();
         assert_eq!(press_allocations(&mut sim, 1500), 0, "{kind:?}");
         assert!(sim.stability().stable, "{kind:?}");
         assert!(
@@ -177,7 +177,7 @@ fn backward_euler_tick_does_not_allocate() {
             scene.integrator.kind = IntegratorKind::BackwardEuler;
             scene.integrator.linear_solver = solver;
             scene.probe.contact = contact;
-            let mut sim = Simulation::new(&scene).unwrap();
+            let mut sim = FemBody::new(&scene).unwrap();
             sim.add_point_load(
                 DVec3::new(0.0, 0.0097, -0.005),
                 DVec3::new(0.0, -0.02, 0.0),
@@ -225,7 +225,7 @@ force_n = [0.0, 0.0, -0.001]
     for kind in ["backward-euler", "semi-implicit", "symplectic-euler"] {
         let text = text.replace("\"backward-euler\"", &format!("\"{kind}\""));
         let scene = parse_scene_toml(&text, Path::new(".")).unwrap();
-        let mut sim = Simulation::new(&scene).unwrap();
+        let mut sim = FemBody::new(&scene).unwrap();
         let mut allocations = 0;
         for _ in 0..200 {
             let (out, n) = counted(|| sim.tick(&TickInput::default()));
@@ -254,7 +254,7 @@ fn capped_cg_stays_stable_on_lv_h1() {
     // The scene's own solver is the rest factor: this test is about capped CG.
     scene.integrator.linear_solver = LinearSolver::Cg;
     scene.integrator.cg_max_iterations = 5;
-    let mut sim = Simulation::new(&scene).unwrap();
+    let mut sim = FemBody::new(&scene).unwrap();
     let dev = |k: usize| DVec3::new(0.014 - 0.006 * (k as f64 / 600.0).min(1.0), 0.0, -0.005);
     let mut force = DVec3::ZERO;
     for k in 0..650 {
@@ -286,7 +286,7 @@ fn single_precision_forces_follow_double_precision_and_do_not_allocate() {
             scene.integrator.kind = kind;
             scene.integrator.linear_solver = solver;
             scene.integrator.single_precision_forces = single;
-            let mut sim = Simulation::new(&scene).unwrap();
+            let mut sim = FemBody::new(&scene).unwrap();
             assert_eq!(sim.fem().single_precision(), single);
             let mut forces = Vec::new();
             for k in 0..1200 {

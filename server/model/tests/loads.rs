@@ -5,9 +5,9 @@
 
 use std::path::Path;
 
+use haptic_model::fem::{FemBody, TickInput};
 use haptic_model::integrate::IntegratorKind;
 use haptic_model::scene::{Scene, parse_scene_toml};
-use haptic_model::sim::{Simulation, TickInput};
 use haptic_model::statics::{StaticParams, solve_static};
 use haptic_model::{DVec3, ModelError};
 
@@ -77,7 +77,7 @@ fn damped_dynamics_settle_on_the_static_solution_for_every_integrator() {
                  [[loads.point]]\npoint_m = [0.02, 0.005, 0.01]\nforce_n = [0.0, 0.0, -0.002]\n";
     let scene = beam(loads).unwrap();
     // Static reference: Newton on the dead part, fixed point on the follower part.
-    let sim = Simulation::new(&scene).unwrap();
+    let sim = FemBody::new(&scene).unwrap();
     let fem = sim.fem().clone();
     let mut x = fem.rest().to_vec();
     for _ in 0..30 {
@@ -100,7 +100,7 @@ fn damped_dynamics_settle_on_the_static_solution_for_every_integrator() {
     ] {
         let mut s = scene.clone();
         s.integrator.kind = kind;
-        let mut sim = Simulation::new(&s).unwrap();
+        let mut sim = FemBody::new(&s).unwrap();
         for _ in 0..4000 {
             sim.tick(&TickInput::default()).unwrap();
         }

@@ -3,9 +3,9 @@
 
 use std::path::Path;
 
+use haptic_model::fem::{FemBody, TickInput};
 use haptic_model::integrate::IntegratorKind;
 use haptic_model::scene::{load_builtin, load_scene_file};
-use haptic_model::sim::{Simulation, TickInput};
 use haptic_model::{DVec3, ModelError};
 
 #[test]
@@ -19,7 +19,7 @@ fn every_lv_mesh_file_loads_and_runs() {
             (hi.x - 0.010).abs() < 1e-4 && (lo.z + 0.020).abs() < 1e-4,
             "{name}: {lo} {hi}"
         );
-        let mut sim = Simulation::new(&scene).unwrap();
+        let mut sim = FemBody::new(&scene).unwrap();
         let mut peak: f64 = 0.0;
         for k in 0..300 {
             // Reach the surface quickly, then press 1 mm in.
@@ -47,7 +47,7 @@ fn an_explicit_configuration_that_cannot_be_stable_is_refused() {
     scene.integrator.kind = IntegratorKind::SymplecticEuler;
     // One sub-step of 1 ms is far above the ~0.1 ms critical step.
     scene.integrator.substeps = Some(1);
-    let err = Simulation::new(&scene).unwrap_err();
+    let err = FemBody::new(&scene).unwrap_err();
     assert!(matches!(err, ModelError::Unstable { .. }), "{err}");
     let msg = err.to_string();
     assert!(
@@ -58,12 +58,12 @@ fn an_explicit_configuration_that_cannot_be_stable_is_refused() {
     scene.integrator.substeps = None;
     scene.integrator.max_substeps = 2;
     assert!(matches!(
-        Simulation::new(&scene),
+        FemBody::new(&scene),
         Err(ModelError::Unstable { .. })
     ));
     // And the automatic plan is stable by construction.
     scene.integrator.max_substeps = 64;
-    let sim = Simulation::new(&scene).unwrap();
+    let sim = FemBody::new(&scene).unwrap();
     let sf = scene.integrator.safety_factor;
     assert!(sf <= 0.9);
     assert!(sim.plan().sub_dt_s <= sf * sim.plan().critical_dt_s + 1e-15);

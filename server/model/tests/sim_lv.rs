@@ -4,10 +4,10 @@
 
 use haptic_model::DVec3;
 use haptic_model::contact::ContactModel;
+use haptic_model::fem::{FemBody, TickInput};
 use haptic_model::integrate::{IntegratorKind, LinearSolver};
 use haptic_model::material::MaterialModel;
 use haptic_model::scene::{load_builtin, parse_scene_toml};
-use haptic_model::sim::{Simulation, TickInput};
 
 /// Probe path: start 14 mm from the axis at z = -5 mm (outside the 9.68 mm epicardium radius
 /// there), move along -x by `depth` over 1 s, hold, release.
@@ -28,7 +28,7 @@ fn device_at(t: f64, depth: f64) -> DVec3 {
 fn run(kind: IntegratorKind) {
     let mut scene = load_builtin("lv").unwrap();
     scene.integrator.kind = kind;
-    let mut sim = Simulation::new(&scene).unwrap();
+    let mut sim = FemBody::new(&scene).unwrap();
     let plan = sim.plan();
     assert!(
         plan.substeps >= 1 && plan.sub_dt_s <= plan.critical_dt_s,
@@ -128,7 +128,7 @@ fn symplectic_euler_stays_bounded_for_ten_seconds_and_recovers() {
 #[test]
 fn point_load_moves_the_loaded_region_along_the_force() {
     let scene = load_builtin("lv").unwrap();
-    let mut sim = Simulation::new(&scene).unwrap();
+    let mut sim = FemBody::new(&scene).unwrap();
     let point = DVec3::new(0.0, 0.00968, -0.005);
     sim.add_point_load(point, DVec3::new(0.0, -0.05, 0.0), 0.5)
         .unwrap();
@@ -183,7 +183,7 @@ fn point_load_converges_with_the_mesh() {
             "lv.toml has target_tets = 500"
         );
         let scene = parse_scene_toml(&scene_text, std::path::Path::new(".")).unwrap();
-        let mut sim = Simulation::new(&scene).unwrap();
+        let mut sim = FemBody::new(&scene).unwrap();
         sim.add_point_load(point, DVec3::new(0.0, -0.05, 0.0), 10.0)
             .unwrap();
         let rest = sim.fem().rest().to_vec();
@@ -238,7 +238,7 @@ fn probe_staircase_to(
             0.0
         }
     };
-    let mut sim = Simulation::new(scene).unwrap();
+    let mut sim = FemBody::new(scene).unwrap();
     let (ramp, hold, tick) = (0.1, 0.1, sim.tick_s());
     let ticks = ((ramp + hold) / tick).round() as usize;
     let mut previous = -0.3e-3;
@@ -511,7 +511,7 @@ fn the_probe_slides_across_the_lv_without_chatter() {
         scene.integrator.kind = kind;
         scene.integrator.linear_solver = solver;
         scene.probe.contact = contact;
-        let mut sim = Simulation::new(&scene).unwrap();
+        let mut sim = FemBody::new(&scene).unwrap();
         let tick = sim.tick_s();
         let (mut worst_cos, mut worst_jump, mut previous) = (1.0f64, 0.0f64, None::<DVec3>);
         for k in 0..800 {
@@ -572,7 +572,7 @@ fn friction_stroke(kind: IntegratorKind, contact: ContactModel) {
     scene.probe.friction_coefficient = mu;
     scene.integrator.kind = kind;
     scene.probe.contact = contact;
-    let mut sim = Simulation::new(&scene).unwrap();
+    let mut sim = FemBody::new(&scene).unwrap();
     let tick = sim.tick_s();
     let mut largest_ratio: f64 = 0.0;
     for k in 0..700 {

@@ -1,5 +1,5 @@
 //! Stability stress suite, short versions (issue 3 section 3). Every model / integrator pair
-//! reports stable or unstable (`Simulation::stability`, `ModelError::Diverged`,
+//! reports stable or unstable (`FemBody::stability`, `ModelError::Diverged`,
 //! `ModelError::Unstable`) instead of producing NaN:
 //! time-step sweep around the computed critical step; Poisson ratio sweep with the volume error;
 //! element inversion and a scrambled (flattened) start; a free body spinning at 2 pi rad/s;
@@ -10,10 +10,10 @@
 use std::path::Path;
 
 use haptic_model::element::StrainSmoothing;
+use haptic_model::fem::{FemBody, TickInput};
 use haptic_model::integrate::{self, IntegratorKind};
 use haptic_model::mesh::generate::{box_mesh, min_dihedral_angle_deg};
 use haptic_model::scene::{Scene, load_builtin, parse_scene_toml};
-use haptic_model::sim::{Simulation, TickInput};
 use haptic_model::{DVec3, ModelError};
 
 const ALL: [IntegratorKind; 3] = [
@@ -54,7 +54,7 @@ impl Rng {
     }
 }
 
-fn kick(sim: &mut Simulation, speed: f64, seed: u64) {
+fn kick(sim: &mut FemBody, speed: f64, seed: u64) {
     let mut rng = Rng(seed);
     let clamped: Vec<bool> = sim.fem().constraints().iter().map(|&c| c != 0).collect();
     for (v, c) in sim.state_mut().v.iter_mut().zip(clamped) {
@@ -64,7 +64,7 @@ fn kick(sim: &mut Simulation, speed: f64, seed: u64) {
     }
 }
 
-fn energy(sim: &Simulation) -> f64 {
+fn energy(sim: &FemBody) -> f64 {
     sim.kinetic_energy_j() + sim.fem().elastic_energy(&sim.state().x)
 }
 
@@ -84,14 +84,14 @@ fn time_step_sweep_around_the_critical_step() {
 }
 
 fn time_step_sweep(base: &Scene, smoothing: StrainSmoothing) {
-    let probe = Simulation::new(base).unwrap();
+    let probe = FemBody::new(base).unwrap();
     let dt_crit = integrate::critical_time_step(probe.fem(), IntegratorKind::SymplecticEuler);
     for factor in [0.25, 0.5, 0.9, 1.1, 2.0] {
         let mut scene = base.clone();
         scene.integrator.tick_s = factor * dt_crit;
         scene.integrator.substeps = Some(1);
         // The configuration check refuses a step above the critical one ...
-        let checked = Simulation::new(&scene);
+        let checked = FemBody::new(&scene);
         assert_eq!(
             checked.is_err(),
             factor > 1.0,
@@ -103,7 +103,7 @@ fn time_step_sweep(base: &Scene, smoothing: StrainSmoothing) {
         }
         // ... and with the check off, the run-time monitor reports the divergence.
         scene.integrator.check_critical_step = false;
-        let mut sim = Simulation::new(&scene).unwrap();
+        let mut sim = FemBody::new(&scene).unwrap();
         kick(&mut sim, 1e-3, 7);
         let e0 = energy(&sim);
         let mut max_ratio: f64 = 0.0;
@@ -163,7 +163,7 @@ fn backward_euler_stays_bounded_at_one_millisecond() {
         ("stiff cube", stiff),
         ("stiff cube 10 ms", stiff_10ms),
     ] {
-        let mut sim = Simulation::new(&scene).unwrap();
+        let mut sim = FemBody::new(&scene).unwrap();
         assert_eq!(sim.plan().substeps, 1);
         let explicit = integrate::critical_time_step(sim.fem(), IntegratorKind::SymplecticEuler);
         kick(&mut sim, 0.05, 3);
@@ -207,7 +207,7 @@ fn poisson_ratio_sweep_reports_the_volume_error() {
             );
             scene.integrator.kind = kind;
             scene.integrator.max_substeps = 2000;
-            let mut sim = Simulation::new(&scene).unwrap();
+            let mut sim = FemBody::new(&scene).unwrap();
             for _ in 0..500 {
                 sim.tick(&TickInput::default()).unwrap();
             }
@@ -232,7 +232,7 @@ fn poisson_ratio_sweep_reports_the_volume_error() {
 }
 
 /// Runs `ticks` ticks without a device and returns the final stability report.
-fn settle(sim: &mut Simulation, ticks: usize) -> haptic_model::sim::StabilityReport {
+fn settle(sim: &mut FemBody, ticks: usize) -> haptic_model::fem::StabilityReport {
     for _ in 0..ticks {
         if sim.tick(&TickInput::default()).is_err() {
             break;
@@ -255,7 +255,7 @@ fn inversion_and_flattened_start_recover_with_robust_materials() {
                 );
                 scene.integrator.kind = kind;
                 scene.integrator.max_substeps = 2000;
-                let mut sim = Simulation::new(&scene).unwrap();
+                let mut sim = FemBody::new(&scene).unwrap();
                 let rest = sim.fem().rest().to_vec();
                 for (x, r) in sim.state_mut().x.iter_mut().zip(&rest) {
                     // The clamped base is z = 0: mirror through it, or collapse onto it.
@@ -296,7 +296,7 @@ fn inversion_and_flattened_start_recover_with_robust_materials() {
     assert!(failures.is_empty(), "did not recover: {failures:?}");
 }
 
-fn momenta(sim: &Simulation) -> (DVec3, DVec3) {
+fn momenta(sim: &FemBody) -> (DVec3, DVec3) {
     let m = sim.fem().lumped_mass_kg();
     let s = sim.state();
     let p = s.v.iter().zip(m).map(|(v, m)| *v * *m).sum::<DVec3>();
@@ -316,7 +316,7 @@ fn free_body_spinning_keeps_momentum_and_stays_rigid() {
         let mut scene = cube("youngs_modulus_pa = 1000000.0\npoisson_ratio = 0.3", "");
         scene.integrator.kind = kind;
         scene.integrator.max_substeps = 1000;
-        let mut sim = Simulation::new(&scene).unwrap();
+        let mut sim = FemBody::new(&scene).unwrap();
         let centre = DVec3::splat(0.005);
         {
             let s = sim.state_mut();
@@ -417,7 +417,7 @@ fn ten_fold_impulse_failures(model: &str) -> Vec<String> {
         scene.material.model =
             haptic_model::material::MaterialModel::from_scene_name(model).unwrap();
         scene.integrator.kind = kind;
-        let mut sim = Simulation::new(&scene).unwrap();
+        let mut sim = FemBody::new(&scene).unwrap();
         let device = |k: usize| {
             let t = k as f64 * 1e-3;
             let depth = 0.006 * ((t / 0.6).min(1.0) - ((t - 0.9) / 0.6).clamp(0.0, 1.0));
@@ -498,7 +498,7 @@ fn deep_sliding_probe_inverts_nothing_with_the_robust_materials() {
         let mut scene = load_builtin("lv").unwrap();
         scene.material.model =
             haptic_model::material::MaterialModel::from_scene_name(model).unwrap();
-        let mut sim = Simulation::new(&scene).unwrap();
+        let mut sim = FemBody::new(&scene).unwrap();
         // Epicardium at x = 9.68 mm on the equator line z = -5 mm; the 2 mm probe touches it
         // with its centre at 11.68 mm.
         let device = |k: usize| {
@@ -583,8 +583,8 @@ fn sliver_mesh_is_stable_under_the_automatic_time_step() {
         scene.integrator.max_substeps = 5000;
         let mut regular = scene.clone();
         regular.mesh = box_mesh(DVec3::splat(0.01), [3, 3, 3]);
-        let mut sim = Simulation::new(&scene).unwrap();
-        let plain = Simulation::new(&regular).unwrap();
+        let mut sim = FemBody::new(&scene).unwrap();
+        let plain = FemBody::new(&regular).unwrap();
         kick(&mut sim, 1e-2, 11);
         let e0 = energy(&sim);
         let mut max_ratio: f64 = 0.0;
@@ -610,7 +610,7 @@ fn absurd_inputs_are_rejected_without_touching_the_state() {
     for kind in ALL {
         let mut scene = load_builtin("lv").unwrap();
         scene.integrator.kind = kind;
-        let mut sim = Simulation::new(&scene).unwrap();
+        let mut sim = FemBody::new(&scene).unwrap();
         for _ in 0..20 {
             sim.tick(&TickInput {
                 device_position_m: Some(DVec3::new(0.0105, 0.0, -0.005)),
@@ -770,7 +770,7 @@ fn the_implicit_sphere_survives_deep_fast_and_jumping_probes() {
         scene.integrator.kind = haptic_model::integrate::IntegratorKind::BackwardEuler;
         scene.probe.contact = haptic_model::contact::ContactModel::Sphere;
         let max_force = scene.probe.max_force_n;
-        let mut sim = Simulation::new(&scene).unwrap();
+        let mut sim = FemBody::new(&scene).unwrap();
         let device = |k: usize| -> Option<DVec3> {
             let t = k as f64 * 1e-3;
             if k == 750 {

@@ -10,11 +10,11 @@ use std::path::Path;
 
 use glam::DMat3;
 use haptic_model::element::{FemModel, StrainSmoothing};
+use haptic_model::fem::FemBody;
 use haptic_model::material::MaterialParams;
 use haptic_model::mesh::TET_EDGES;
 use haptic_model::mesh::generate::box_mesh;
 use haptic_model::scene::parse_scene_toml;
-use haptic_model::sim::Simulation;
 use haptic_model::{DVec3, ModelError};
 
 fn models() -> (haptic_model::mesh::TetMesh, FemModel, FemModel) {
@@ -130,7 +130,7 @@ clamped = ["ZMIN"]
 fn scenes_select_the_smoothing_and_reject_bad_values() {
     let s = scene(1, "edge").unwrap();
     assert_eq!(s.strain_smoothing, StrainSmoothing::Edge);
-    let sim = Simulation::new(&s).unwrap();
+    let sim = FemBody::new(&s).unwrap();
     assert_eq!(sim.fem().strain_smoothing(), StrainSmoothing::Edge);
     assert_eq!(
         scene(1, "none").unwrap().strain_smoothing,

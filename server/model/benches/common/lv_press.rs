@@ -2,7 +2,7 @@
 //! `lv_study` example: the probe centre moves along -x at z = -5 mm into the epicardium of an
 //! LV scene ([`super::lv_scene_on`]) to the depths of [`DEPTHS_MM`], statically
 //! ([`probe_static_at`]: equilibrium with the probe coupling per depth) or dynamically
-//! ([`probe_dynamic`]: `Simulation::tick` through a staircase of ramps and holds).
+//! ([`probe_dynamic`]: `FemBody::tick` through a staircase of ramps and holds).
 
 use std::time::Instant;
 
@@ -10,8 +10,8 @@ use haptic_model::DVec3;
 use haptic_model::body::SoftBody;
 use haptic_model::contact::{ContactModel, Probe};
 use haptic_model::element::FemModel;
+use haptic_model::fem::{FemBody, TickInput};
 use haptic_model::scene::Scene;
-use haptic_model::sim::{Simulation, TickInput};
 use haptic_model::statics::{StaticParams, solve_static};
 
 use super::{TickTimes, device_at, smoothstep, smoothstep_rate};
@@ -362,7 +362,7 @@ pub fn richardson(h: [f64; 3], f: [f64; 3]) -> Extrapolated {
     }
 }
 
-/// The dynamic press protocol with `Simulation::tick`: the probe centre moves along -x from
+/// The dynamic press protocol with `FemBody::tick`: the probe centre moves along -x from
 /// 0.3 mm clear of contact to each depth of [`DEPTHS_MM`], a smoothstep ramp then a hold
 /// (100 ms each, 80 ms with `quick`); the force per depth is the mean device force over the
 /// second half of the hold. Returns the curve, the tick times and the sub-steps per tick, or
@@ -372,7 +372,7 @@ pub fn richardson(h: [f64; 3], f: [f64; 3]) -> Extrapolated {
 /// compliance); the forces are compared with the converged sphere reference
 /// (`lv_probe::sphere_reference`).
 pub fn probe_dynamic(scene: &Scene, quick: bool) -> Result<(ProbeCurve, TickTimes, u32), String> {
-    let mut sim = Simulation::new(scene).map_err(|e| e.to_string())?;
+    let mut sim = FemBody::new(scene).map_err(|e| e.to_string())?;
     let tick = sim.tick_s();
     let (mut curve, ticks) = probe_dynamic_body(&mut sim, tick, quick)?;
     let substeps = sim.plan().substeps;

@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 use haptic_model::DVec3;
 use haptic_model::contact::{Probe, ProbeParams};
 use haptic_model::element::FemModel;
-use haptic_model::integrate::{self, IntegratorKind, IntegratorParams, SimState, Stepper};
+use haptic_model::integrate::{self, FemState, IntegratorKind, IntegratorParams, Stepper};
 use haptic_model::material::MaterialModel;
 use haptic_model::mesh::TetMesh;
 use haptic_model::mesh::generate;
@@ -227,7 +227,7 @@ pub struct LoadedRun {
 /// Runs `fem` (built on `mesh`) dynamically for `total_s` under the dead nodal load `f_ext`
 /// (N), ramped in with a smoothstep over `ramp_s`, with the servo tick of `params` divided into
 /// the sub-steps that keep each step below its safety factor times the critical step of its
-/// integrator. Each sub-step is the library's [`Stepper`], as in `Simulation::tick` without a
+/// integrator. Each sub-step is the library's [`Stepper`], as in `FemBody::tick` without a
 /// probe: internal forces ([`Stepper::add_internal_forces`]: elastic, plus viscous for the
 /// explicit schemes), the external load, then [`Stepper::step`]. The probe the stepper asks
 /// for has no touchable surface, so it is never in contact and its coupling completion does
@@ -248,7 +248,7 @@ pub fn run_loaded_with(
     let mut stepper = Stepper::new(fem, mesh, params, &plan, None).map_err(|e| e.to_string())?;
     let mut probe = Probe::new(ProbeParams::default(), Vec::new(), fem.rest());
     let n = fem.node_count();
-    let mut state = SimState {
+    let mut state = FemState {
         x: fem.rest().to_vec(),
         v: vec![DVec3::ZERO; n],
         time_s: 0.0,

@@ -8,10 +8,10 @@ use std::time::Instant;
 
 use haptic_model::DVec3;
 use haptic_model::element::StrainSmoothing;
+use haptic_model::fem::FemBody;
 use haptic_model::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
 use haptic_model::integrate::{IntegratorKind, LinearSolver};
 use haptic_model::material::MaterialModel;
-use haptic_model::sim::Simulation;
 
 use crate::common::lv_press::probe_dynamic;
 use crate::common::{CONTACT_X_M, PROBE_Z_M, lv_h1_scene, lv_scene_on};
@@ -82,7 +82,7 @@ pub fn run(cfg: &Config) -> Vec<Row> {
         .smoothed(smoothing);
         row.reference = ref_text.clone();
         let t0 = Instant::now();
-        let sizes = match Simulation::new(&sc) {
+        let sizes = match FemBody::new(&sc) {
             Ok(sim) => sim.condensed().map(|c| c.sizes()).unwrap_or_default(),
             Err(e) => {
                 row.settings = format!("{method}: {e}");

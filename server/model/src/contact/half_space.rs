@@ -27,8 +27,8 @@ use faer::sparse::{SparseColMat, Triplet};
 use glam::{DMat3, DVec3};
 
 use crate::ModelError;
+use crate::linalg::ordering::SparseCholesky;
 use crate::material::{MaterialParams, first_piola, first_piola_differential};
-use crate::ordering::SparseCholesky;
 
 /// Mesh and solver settings of [`indent_half_space`] (lengths in sphere radii).
 #[derive(Debug, Clone, Copy, PartialEq)]

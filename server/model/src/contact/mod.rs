@@ -65,11 +65,11 @@
 //! (sphere casts against triangles), [`probe`] (the proxy and the coupling force; its
 //! `implicit` module, the sphere under backward Euler), [`coupling`] (the probe's low-rank
 //! term for implicit solves), [`local_law`] and [`half_space`] (the sphere's local law and its
-//! calibration). May use: [`crate::material`] (the laws' stresses) and [`crate::ordering`]
+//! calibration). May use: [`crate::material`] (the laws' stresses) and [`crate::linalg::ordering`]
 //! (the calibration's sparse Cholesky), nothing else of the crate (positions come as slices);
 //! in particular nothing of
 //! [`crate::integrate`]: the integrators use this module, not the other way round. The FEM
-//! body ([`crate::sim`]) calls [`Probe::update`] every sub-step, adds the reaction, and lets its
+//! body ([`crate::fem`]) calls [`Probe::update`] every sub-step, adds the reaction, and lets its
 //! stepper complete the coupling.
 
 pub mod coupling;

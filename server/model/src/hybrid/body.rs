@@ -59,8 +59,8 @@ use super::proxy::{ParticleProxy, ProxyContact};
 use super::{CoreMassScale, CoreStep, InactiveLayer, ScaledMotion};
 use crate::ModelError;
 use crate::body::{
-    BodyInfo, BodyStats, MAX_DEVICE_DISTANCE_M, SoftBody, SurfaceCapacity, SurfaceTopology,
-    TickInput, TickOutput, validate_point_load,
+    BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput, TickOutput,
+    validate_point_load,
 };
 use crate::contact::probe::ProbeParams;
 use crate::element::FemModel;
@@ -1038,18 +1038,7 @@ impl HybridBody {
 
 impl SoftBody for HybridBody {
     fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
-        if let Some(p) = input.device_position_m {
-            if !p.is_finite() || !input.device_velocity_m_per_s.is_finite() {
-                return Err(ModelError::InvalidDevice(
-                    "device position or velocity is not finite",
-                ));
-            }
-            if p.abs().max_element() > MAX_DEVICE_DISTANCE_M {
-                return Err(ModelError::InvalidDevice(
-                    "device position is farther than 10 m from the origin",
-                ));
-            }
-        }
+        input.validate()?;
         if let Some(time_s) = self.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }

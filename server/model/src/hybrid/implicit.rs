@@ -23,7 +23,7 @@
 //! bending modes (`docs/accuracy.md`, "Deviation mass and an implicit core").
 //!
 //! Neighbours: the core's [`FemModel`], the ties and the cloud of [`mod@super::prepare`], the
-//! sparse factor of [`crate::ordering`].
+//! sparse factor of [`crate::linalg::ordering`].
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::SparseColMat;
@@ -33,15 +33,15 @@ use glam::{DMat3, DVec3};
 use super::prepare::HybridModel;
 use crate::ModelError;
 use crate::element::FemModel;
+use crate::linalg::ordering::{SparseCholesky, symbolic_cholesky};
+use crate::linalg::supernodal::{HalfFactor, SupernodalSolve};
 use crate::meshfree::cloud::{MAX_STENCIL, TermRest};
-use crate::ordering::{SparseCholesky, symbolic_cholesky};
-use crate::supernodal::{HalfFactor, SupernodalSolve};
 
 /// The largest relative difference allowed between the half-precision sweep's solve and the
 /// double-precision factor's on a test right-hand side; above it the step keeps faer's solve.
 const HALF_MAX_DEVIATION: f64 = 1e-2;
 
-/// The one-column solve of a matrix that never changes ([`crate::supernodal`]: faer's
+/// The one-column solve of a matrix that never changes ([`crate::linalg::supernodal`]: faer's
 /// supernodal factor swept in panels from half precision, as the FEM family's tick does),
 /// with its single-precision right-hand side.
 struct FrozenSweep {

@@ -9,7 +9,7 @@
 //! Solves: preconditioned conjugate gradients ([`System::solve`]) whose preconditioner is a
 //! single-precision sparse Cholesky factor of an earlier projected tangent (the ordering and
 //! symbolic analysis are made once per pattern: METIS nested dissection,
-//! [`crate::ordering`]). A factor is kept while it makes the iteration converge in fewer
+//! [`crate::linalg::ordering`]). A factor is kept while it makes the iteration converge in fewer
 //! steps than the cost of a new one, so most Newton iterations cost back-substitutions
 //! (modified Newton's factor with Newton's exact tangent: inexact Newton, Dembo, Eisenstat &
 //! Steihaug 1982). Single precision halves the factor's time and memory (measured on a
@@ -18,7 +18,7 @@
 //! compression) is solved directly in double precision: unpivoted `L D L^T` on the same
 //! analysis, checked by its residual, else sparse LU.
 //!
-//! Owns: assembly into the block pattern and the linear solves. Uses: [`crate::ordering`],
+//! Owns: assembly into the block pattern and the linear solves. Uses: [`crate::linalg::ordering`],
 //! [`crate::element`] (cell tangents).
 
 use std::sync::Arc;
@@ -35,7 +35,7 @@ use glam::{DMat3, DVec3};
 use crate::ModelError;
 use crate::element::FemModel;
 use crate::element::tangent::cell_tangent_blocks;
-use crate::ordering::{SparseCholesky, symbolic_cholesky};
+use crate::linalg::ordering::{SparseCholesky, symbolic_cholesky};
 
 /// Largest relative residual `|A x - b| / |b|` of a direct `L D L^T` solve that is accepted
 /// (else sparse LU solves it).

@@ -30,7 +30,7 @@
 //!
 //! Owns: the sphere contact and the indentation driver. Uses: [`crate::element`],
 //! [`crate::statics`] (free-equation numbering, [`StaticTerm`](crate::statics::StaticTerm)),
-//! [`crate::ordering`], [`crate::material`] (principal stretches for error messages). Not used
+//! [`crate::linalg::ordering`], [`crate::material`] (principal stretches for error messages). Not used
 //! by the real-time path.
 
 mod linear;

@@ -31,7 +31,7 @@
 //! them (a modified Newton step per tick). Because `v'` is solved for directly (not `dv` from
 //! `b - A v`), an inexact solve cannot shift an equilibrium either, which is why the factor is
 //! computed in single precision and the tick sweeps it in half precision
-//! ([`crate::supernodal`]: a quarter of the memory a double-precision factor would stream per
+//! ([`crate::linalg::supernodal`]: a quarter of the memory a double-precision factor would stream per
 //! tick; the rounding moves the default `lv`'s step by about 1e-3, checked at construction
 //! against `HALF_MAX_DEVIATION`). The probe's term
 //! `h^2 A^T C A` ([`ContactCoupling`]: the patch's coupling, or the implicit sphere's faces) is
@@ -40,7 +40,7 @@
 //! patch on a fine mesh) instead sweeps the half-precision factor forward once for both
 //! right-hand sides and backward once ([`PAIRED_SWEEP_MIN_RATIO`]). The factor is faer's sparse
 //! Cholesky
-//! (supernodal, nested-dissection ordering), solved by [`crate::supernodal`]'s sweep (faer's
+//! (supernodal, nested-dissection ordering), solved by [`crate::linalg::supernodal`]'s sweep (faer's
 //! solve for a simplicial factor) with its workspace allocated at construction, so
 //! [`CondensedSolver::step`] allocates nothing.
 //!
@@ -85,8 +85,8 @@ use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky};
 use faer::{Conj, Mat, Par, Side};
 use glam::DVec3;
 
-use crate::ordering::{SparseCholesky, symbolic_cholesky};
-use crate::supernodal::{HalfFactor, SupernodalSolve};
+use crate::linalg::ordering::{SparseCholesky, symbolic_cholesky};
+use crate::linalg::supernodal::{HalfFactor, SupernodalSolve};
 
 use crate::ModelError;
 use crate::contact::ContactCoupling;
@@ -249,7 +249,7 @@ impl std::fmt::Debug for Workspace {
 struct FarField {
     /// Global component index `3 i + c` of each far equation.
     dofs: Vec<usize>,
-    llt: Option<crate::ordering::SparseCholesky>,
+    llt: Option<crate::linalg::ordering::SparseCholesky>,
     /// `K_FG` as (far equation, interface component, value).
     kfg: Vec<(usize, usize, f64)>,
 }
@@ -489,7 +489,7 @@ unsafe fn dot_half_avx2(a: &[u16], b: &[f32]) -> f64 {
 fn dot_half(f16c: bool, a: &[u16], b: &[f32]) -> f64 {
     #[cfg(target_arch = "x86_64")]
     if f16c {
-        // SAFETY: `f16c` comes from `crate::cpu::has_avx2_fma_f16c` on this CPU.
+        // SAFETY: `f16c` comes from `crate::simd::has_avx2_fma_f16c` on this CPU.
         return unsafe { dot_half_avx2(a, b) };
     }
     let _ = f16c;
@@ -553,7 +553,7 @@ unsafe fn sym_row_avx2(s: &[f32], u: &[f64], y: &mut [f64], ua: f64) -> f64 {
 fn sym_row(avx2: bool, s: &[f32], u: &[f64], y: &mut [f64], ua: f64) -> f64 {
     #[cfg(target_arch = "x86_64")]
     if avx2 {
-        // SAFETY: `avx2` comes from `crate::cpu::has_avx2_fma` on this CPU.
+        // SAFETY: `avx2` comes from `crate::simd::has_avx2_fma` on this CPU.
         return unsafe { sym_row_avx2(s, u, y, ua) };
     }
     let _ = avx2;
@@ -584,7 +584,7 @@ unsafe fn axpy3_avx2(z: &mut [f64], a: [f64; 3], y: &[f32]) {
 fn axpy3(avx2: bool, z: &mut [f64], a: [f64; 3], y: &[f32]) {
     #[cfg(target_arch = "x86_64")]
     if avx2 {
-        // SAFETY: `avx2` comes from `crate::cpu::has_avx2_fma` on this CPU.
+        // SAFETY: `avx2` comes from `crate::simd::has_avx2_fma` on this CPU.
         return unsafe { axpy3_avx2(z, a, y) };
     }
     let _ = avx2;
@@ -1083,7 +1083,7 @@ impl CondensedSolver {
             schur,
             su: vec![0.0; g],
             a_row: vec![0.0; m_eq],
-            avx2: crate::cpu::has_avx2_fma(),
+            avx2: crate::simd::has_avx2_fma(),
             sweep,
             half,
             relaxation: 1.0,
@@ -1099,7 +1099,7 @@ impl CondensedSolver {
             capacitance: vec![0.0; MAX_COUPLING_ROWS * MAX_COUPLING_ROWS],
             u_gamma: vec![0.0; g],
             u_gamma32: vec![0.0; g],
-            f16c: crate::cpu::has_avx2_fma_f16c(),
+            f16c: crate::simd::has_avx2_fma_f16c(),
             map_dofs: map_far.iter().map(|&k| far_dofs[k]).collect(),
             map,
             surface_rows,
@@ -1822,7 +1822,7 @@ mod tests {
             let dense: Vec<f64> = (0..g)
                 .map(|a| (0..g).map(|b| entry(a, b) * u[b]).sum())
                 .collect();
-            for avx2 in [false, crate::cpu::has_avx2_fma()] {
+            for avx2 in [false, crate::simd::has_avx2_fma()] {
                 let mut y = vec![0.0; g];
                 for a in 0..g {
                     let start = packed_row_start(a, g);
@@ -1862,7 +1862,7 @@ mod tests {
             let magnitude: f64 = exact.iter().zip(&u).map(|(a, b)| (a * b).abs()).sum();
             let true_value: f64 = exact.iter().zip(&u).map(|(a, b)| a * b).sum();
             assert!((rounded - true_value).abs() <= magnitude * (1.0 / 2048.0) + 1e-12 * g as f64);
-            for f16c in [false, crate::cpu::has_avx2_fma_f16c()] {
+            for f16c in [false, crate::simd::has_avx2_fma_f16c()] {
                 let d = dot_half(f16c, &row, &u32);
                 assert!(
                     (d - rounded).abs() <= 1e-6 * magnitude,

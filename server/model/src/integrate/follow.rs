@@ -25,7 +25,7 @@
 //! must stay well inside a region (its contact patch reaches two probe radii) until the next
 //! one is ready (`docs/benchmarks.md`). A scene with a coarse whole-body companion
 //! (`active_region.fallback_target_tets`) lets the companion answer meanwhile
-//! ([`crate::sim::Simulation`], "The coarse companion").
+//! ([`crate::fem::FemBody`], "The coarse companion").
 //!
 //! Owns: the worker thread, the hand-off rings and the re-centring rule. May use:
 //! [`super::condensed`], [`crate::element`], [`crate::mesh`].

@@ -28,7 +28,7 @@
 //! Owns: the step of the dynamic state and the completion of the probe's virtual coupling in
 //! each scheme. May use: [`crate::element`] (forces, masses, tangent action, rest blocks),
 //! [`crate::contact`] (the probe and its low-rank coupling term), [`crate::material`],
-//! [`crate::mesh`]. Used by the FEM body ([`crate::sim`]), which calls [`Stepper::step`] once
+//! [`crate::mesh`]. Used by the FEM body ([`crate::fem`]), which calls [`Stepper::step`] once
 //! per sub-step.
 
 use glam::{DMat3, DVec3};
@@ -143,7 +143,7 @@ impl LinearSolver {
 pub struct IntegratorParams {
     /// Which scheme.
     pub kind: IntegratorKind,
-    /// Servo tick (one call of `Simulation::tick`), s. Default 1 ms.
+    /// Servo tick (one call of `FemBody::tick`), s. Default 1 ms.
     pub tick_s: f64,
     /// Fixed sub-steps per tick; `None` chooses the fewest that keep the sub-step below
     /// `safety_factor` times the critical time step.
@@ -306,7 +306,7 @@ pub fn plan_steps(p: &IntegratorParams, critical_dt_s: f64) -> Result<StepPlan, 
 
 /// Dynamic state of a body: what a [`Stepper`] advances.
 #[derive(Debug, Clone)]
-pub struct SimState {
+pub struct FemState {
     /// Node positions, m.
     pub x: Vec<DVec3>,
     /// Node velocities, m/s.
@@ -451,7 +451,7 @@ impl Stepper {
         body: &FemModel,
         f: &[DVec3],
         probe: &mut Probe,
-        state: &mut SimState,
+        state: &mut FemState,
     ) -> StepReport {
         let (x, v) = (&mut state.x, &mut state.v);
         let max_v2 = match self {

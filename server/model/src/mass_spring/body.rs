@@ -51,7 +51,6 @@ use crate::ModelError;
 use crate::body::{
     BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput, TickOutput,
 };
-use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
 use crate::contact::{ContactModel, Probe, ProbeParams};
 use crate::integrate::{IntegratorKind, IntegratorParams, StepPlan, plan_steps};
 use crate::loads::{BodyLoads, SceneLoads};
@@ -1149,18 +1148,7 @@ impl MassSpringBody {
     /// untouched); [`ModelError::Diverged`] when the state diverged (then every later tick
     /// too). Allocation-free, also when the tick runs a subdivision event.
     pub fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
-        if let Some(p) = input.device_position_m {
-            if !p.is_finite() || !input.device_velocity_m_per_s.is_finite() {
-                return Err(ModelError::InvalidDevice(
-                    "device position or velocity is not finite",
-                ));
-            }
-            if p.abs().max_element() > MAX_DEVICE_DISTANCE_M {
-                return Err(ModelError::InvalidDevice(
-                    "device position is farther than 10 m from the origin",
-                ));
-            }
-        }
+        input.validate()?;
         if let Some(time_s) = self.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }

@@ -155,7 +155,7 @@ impl TermBlock {
             local_of: vec![u32::MAX; cloud.len()],
             x_local: vec![DVec3::ZERO; touched],
             f_local: vec![DVec3::ZERO; touched],
-            avx2: crate::cpu::has_avx2_fma(),
+            avx2: crate::simd::has_avx2_fma(),
             scratch: Box::default(),
             nbr_scratch: [0; MAX_STENCIL],
             stencil: StencilGrid::new(

@@ -192,7 +192,7 @@ mod avx2 {
     impl Avx2Fma {
         /// The token, if the CPU has AVX2 and FMA.
         pub(super) fn detect() -> Option<Self> {
-            crate::cpu::has_avx2_fma().then_some(Self(()))
+            crate::simd::has_avx2_fma().then_some(Self(()))
         }
     }
 

@@ -114,7 +114,7 @@ pub const BUILTIN_MESHES: [&str; 5] = ["lv", "ellipsoids", "sphere", "box", "hem
 /// implementation [`crate::build_body`] builds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ModelFamily {
-    /// The tetrahedral FEM body ([`crate::sim::Simulation`]; `"fem"`, the default).
+    /// The tetrahedral FEM body ([`crate::fem::FemBody`]; `"fem"`, the default).
     #[default]
     Fem,
     /// The mass-spring surface with run-time Loop subdivision
@@ -210,7 +210,7 @@ pub struct Scene {
     /// The coarse whole-body companion of a following active region
     /// (`[active_region] fallback_target_tets`): the same scene on the built-in mesh at that
     /// many quadratic tetrahedra, backward Euler on its whole-body rest factor. It answers the
-    /// probe where the region does not hold the contact ([`crate::sim::Simulation`], "The
+    /// probe where the region does not hold the contact ([`crate::fem::FemBody`], "The
     /// coarse companion").
     pub fallback: Option<Box<Scene>>,
 }

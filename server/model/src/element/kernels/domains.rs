@@ -4,10 +4,10 @@
 use glam::DVec3;
 
 use super::LANES;
-use super::lanes::LaneVec;
 use super::stress::first_piola_lane;
 use crate::element::quadrature::IntegrationPoints;
 use crate::material::MaterialParams;
+use crate::simd::LaneVec;
 
 /// Single-point cells with a variable number of nodes (the smoothing domains of
 /// [`StrainSmoothing::Edge`]) in batches of [`LANES`], for the vectorised force kernel. Batch

@@ -5,9 +5,9 @@
 use glam::{DMat3, DVec3};
 
 use super::LANES;
-use super::lanes::LaneVec;
 use super::stress::{dot3, first_piola_lane, gather_differences};
 use crate::material::MaterialParams;
+use crate::simd::LaneVec;
 
 /// [`LANES`] elements, structure-of-arrays: `dm_inv[3 r + c][lane]` is entry (r, c) of
 /// `Dm^-1`. Padding lanes (at the end of the mesh) repeat node 0 with zero `Dm^-1` and volume,

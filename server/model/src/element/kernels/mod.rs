@@ -4,7 +4,7 @@
 //! chosen at run time.
 //!
 //! Owns: the batch layouts ([`linear`], [`quadratic`], [`domains`]), the lane arithmetic
-//! ([`lanes`], [`stress`]) and every `unsafe` block of the element code. May use:
+//! ([`crate::simd::lanes`], [`stress`]) and every `unsafe` block of the element code. May use:
 //! [`crate::material`] (parameters; the stress formulas are repeated per lane in [`stress`] and
 //! checked against [`crate::material::first_piola`] by the tests below) and the integration
 //! points of [`super::quadrature`].
@@ -13,21 +13,21 @@
 //! only way to run them: it checks at construction that every node index of its batches is below
 //! its `node_count`, keeps its batches private, and checks before each call that the slices hold
 //! at least `node_count` nodes; the CPU features come from tokens made only by run-time
-//! detection ([`lanes`]).
+//! detection ([`crate::simd::lanes`]).
 
 use glam::{DMat3, DVec3};
 
 mod domains;
-mod lanes;
+
 mod linear;
 mod quadratic;
 mod single;
 mod stress;
 
-use domains::{DomainBatches, forces_domains};
 #[cfg(target_arch = "x86_64")]
-use lanes::{Avx2Fma, Avx512, Ymm, Zmm};
-use lanes::{LaneVec, Plain8};
+use crate::simd::{Avx2Fma, Avx512, Ymm, Zmm};
+use crate::simd::{LaneVec, Plain8};
+use domains::{DomainBatches, forces_domains};
 use linear::{ElementBatch, forces_linear};
 use quadratic::{QuadraticBatch, forces_quadratic, stvk_operator_quadratic};
 pub use single::ForceScratch;
@@ -591,7 +591,7 @@ mod tests {
             MaterialModel::StableNeoHookean,
         ] {
             for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
-                if crate::cpu::has_avx2_fma() {
+                if crate::simd::has_avx2_fma() {
                     single_precision_case(model, smoothing);
                 } else {
                     single_precision_fallback_case(model, smoothing);

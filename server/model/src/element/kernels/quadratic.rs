@@ -4,10 +4,10 @@
 use glam::{DMat3, DVec3};
 
 use super::LANES;
-use super::lanes::LaneVec;
 use super::stress::{dot3, first_piola_lane, gather_differences};
 use crate::element::quadrature::IntegrationPoints;
 use crate::material::MaterialParams;
+use crate::simd::LaneVec;
 
 /// [`LANES`] quadratic elements, structure-of-arrays, for the vectorised StVK kernel of
 /// 10-node tetrahedra: `grad[q][3 (a - 1) + c][l]` is component c of `grad N_a` (a = 1..9;

@@ -5,8 +5,8 @@
 use glam::DVec3;
 
 use super::LANES;
-use super::lanes::{Lane, LaneVec};
 use crate::material::{self, MaterialModel, MaterialParams};
+use crate::simd::{Lane, LaneVec};
 
 /// `a . b` of two 3-vectors with [`Lane::madd`] (fused multiply-adds when `FMA`; Rust never
 /// contracts `a * b + c` by itself, and fusing cut the kernels' instruction count by a third).
@@ -262,7 +262,7 @@ pub(super) unsafe fn gather_differences<V: LaneVec, const N: usize>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::element::kernels::lanes::{LaneVec, Plain8};
+    use crate::simd::{LaneVec, Plain8};
     use glam::{DMat3, DQuat};
 
     /// Eight deformation gradients `Q diag(s) P^T` (rotations Q, P) with singular values `s`.

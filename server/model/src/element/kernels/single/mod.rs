@@ -154,9 +154,9 @@ impl SingleIsa {
     /// The widest instruction set of this CPU that the kernel is built for, or `None`
     /// (without AVX2 and FMA).
     pub fn detect() -> Option<Self> {
-        if crate::cpu::has_avx512f() {
+        if crate::simd::has_avx512f() {
             Some(Self::Avx512)
-        } else if crate::cpu::has_avx2_fma() {
+        } else if crate::simd::has_avx2_fma() {
             Some(Self::Avx2)
         } else {
             None
@@ -166,8 +166,8 @@ impl SingleIsa {
     /// Whether this CPU runs this instruction set. Allocation-free (the tick asks).
     pub fn is_available(self) -> bool {
         match self {
-            Self::Avx2 => crate::cpu::has_avx2_fma(),
-            Self::Avx512 => crate::cpu::has_avx512f(),
+            Self::Avx2 => crate::simd::has_avx2_fma(),
+            Self::Avx512 => crate::simd::has_avx512f(),
         }
     }
 
@@ -1087,7 +1087,7 @@ mod tests {
     /// are cleared.
     #[test]
     fn packing_and_unpacking_cover_every_tail() {
-        if !crate::cpu::has_avx2_fma() {
+        if !crate::simd::has_avx2_fma() {
             eprintln!("no AVX2: nothing to test");
             return;
         }

@@ -1,10 +1,10 @@
-//! [`Simulation`]: the FEM family of [`crate::body::SoftBody`]: one tetrahedral body driven
+//! [`FemBody`]: the FEM family of [`crate::body::SoftBody`]: one tetrahedral body driven
 //! by a haptic probe and loads, advanced one servo tick at a time.
 //!
-//! Layout follows state / scratch / parameters: [`SimState`] holds positions, velocities and
+//! Layout follows state / scratch / parameters: [`FemState`] holds positions, velocities and
 //! time; the force buffer is scratch sized at construction; the [`FemModel`], the
 //! [`Stepper`] (which owns its solver workspace), the [`BodyLoads`] and the probe parameters are
-//! fixed at construction. [`Simulation::tick`] allocates nothing, takes no lock and does no
+//! fixed at construction. [`FemBody::tick`] allocates nothing, takes no lock and does no
 //! I/O, so the server can call it on its servo thread. A tick is, per sub-step: internal forces,
 //! loads, contact update (the probe's explicit reaction), one step of the [`Stepper`] (which
 //! completes the coupling), and a divergence check; then the output.
@@ -30,7 +30,6 @@ use glam::DVec3;
 
 use crate::ModelError;
 use crate::body::{BodyInfo, BodyStats, PointLoadZone, SoftBody, SurfaceCapacity, SurfaceTopology};
-use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
 use crate::contact::{ContactModel, LocalLaw, Probe};
 use crate::element::{CLAMPED, FemModel, ForceScratch};
 use crate::integrate::condensed::{ActiveRegion, CondensedSolver};
@@ -41,7 +40,12 @@ use crate::loads::BodyLoads;
 use crate::scene::Scene;
 
 pub use crate::body::{TickInput, TickOutput};
-pub use crate::integrate::SimState;
+pub use crate::integrate::FemState;
+pub use fallback::FallbackStats;
+
+mod fallback;
+
+use fallback::Fallback;
 
 /// A nodal speed above this (m/s) is treated as divergence.
 pub const DIVERGENCE_SPEED_M_PER_S: f64 = 100.0;
@@ -54,43 +58,8 @@ pub const FALLBACK_BLEND_TICKS: u32 = 20;
 /// probe back to it.
 pub const FALLBACK_SETTLE_TICKS: u32 = 100;
 
-/// The coarse whole-body companion of a following region and its blending state.
-#[derive(Debug, Clone)]
-struct Fallback {
-    sim: Simulation,
-    /// Weight of the companion's answer in the output, in `[0, 1]`.
-    weight: f64,
-    /// Ticks until the region may take the probe back (counts down while it holds the patch).
-    settle_ticks: u32,
-    /// Ticks with a nonzero weight.
-    ticks_answered: u64,
-    /// Of those, the ticks whose output is in contact.
-    contact_ticks_answered: u64,
-    /// The region's own force in the last tick, N.
-    region_force_n: DVec3,
-    /// The companion's own force in the last tick, N.
-    companion_force_n: DVec3,
-}
-
-/// What the coarse companion of a following region did ([`Simulation::fallback_stats`]).
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct FallbackStats {
-    /// The companion's weight in the last output, in `[0, 1]`.
-    pub weight: f64,
-    /// Ticks in which it contributed to the output.
-    pub ticks_answered: u64,
-    /// Of those, the ticks in contact.
-    pub contact_ticks_answered: u64,
-    /// Its tetrahedra.
-    pub elements: usize,
-    /// The force the region alone gave in the last tick (before the blend), N.
-    pub region_force_n: DVec3,
-    /// The force the companion alone gave in the last tick (before the blend), N.
-    pub companion_force_n: DVec3,
-}
-
 /// Whether a simulation is still meaningful, with the quantities that say so
-/// ([`Simulation::stability`]).
+/// ([`FemBody::stability`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StabilityReport {
     /// The state is finite and no tick diverged.
@@ -118,7 +87,7 @@ pub struct StabilityReport {
 /// A tetrahedral FEM body with its probe, loads, stepper and sub-stepping (module
 /// documentation).
 #[derive(Debug, Clone)]
-pub struct Simulation {
+pub struct FemBody {
     fem: FemModel,
     stepper: Stepper,
     plan: StepPlan,
@@ -126,7 +95,7 @@ pub struct Simulation {
     loads: BodyLoads,
     /// Set when a tick diverged; later ticks refuse to run.
     diverged_at_s: Option<f64>,
-    state: SimState,
+    state: FemState,
     /// Scratch: total nodal forces of the current sub-step.
     force: Vec<DVec3>,
     /// Work arrays of the single-precision force kernel (empty when it is off).
@@ -154,7 +123,7 @@ impl Clone for FollowSlot {
     }
 }
 
-impl Simulation {
+impl FemBody {
     /// Builds the simulation of `scene`: precomputes the FEM data, the critical time step, the
     /// sub-step plan and the stepper (the semi-implicit per-node matrices, the backward Euler
     /// preconditioner, or the condensed factorisation).
@@ -167,13 +136,13 @@ impl Simulation {
         Self::new_with_progress(scene, &mut |_, _| {})
     }
 
-    /// [`Simulation::new`] reporting its stages, `progress(stage, fraction)` with the fraction
+    /// [`FemBody::new`] reporting its stages, `progress(stage, fraction)` with the fraction
     /// done in `[0, 1]`: the FEM data, then (a contact-local active region) the condensation
     /// ([`crate::integrate::condensed::CondensedSolver::new_with_progress`]), which takes
     /// seconds on large meshes.
     ///
     /// # Errors
-    /// As [`Simulation::new`].
+    /// As [`FemBody::new`].
     pub fn new_with_progress(
         scene: &Scene,
         progress: &mut dyn FnMut(&str, f64),
@@ -183,10 +152,10 @@ impl Simulation {
         Self::from_fem_with_progress(fem, scene, &mut |stage, f| progress(stage, 0.1 + 0.9 * f))
     }
 
-    /// Like [`Simulation::new`] but with a prepared [`FemModel`] (e.g. with roller constraints).
+    /// Like [`FemBody::new`] but with a prepared [`FemModel`] (e.g. with roller constraints).
     ///
     /// # Errors
-    /// As [`Simulation::new`].
+    /// As [`FemBody::new`].
     pub fn from_fem(fem: FemModel, scene: &Scene) -> Result<Self, ModelError> {
         Self::from_fem_with_progress(fem, scene, &mut |_, _| {})
     }
@@ -313,21 +282,13 @@ impl Simulation {
         let fallback = match (&scene.fallback, follows) {
             (Some(coarse), true) => {
                 progress("coarse companion", 1.0);
-                let sim = Simulation::new(coarse).map_err(|e| {
+                let sim = FemBody::new(coarse).map_err(|e| {
                     ModelError::field(
                         "active_region.fallback_target_tets",
                         format!("the coarse companion: {e}"),
                     )
                 })?;
-                Some(Box::new(Fallback {
-                    sim,
-                    weight: 0.0,
-                    settle_ticks: 0,
-                    ticks_answered: 0,
-                    contact_ticks_answered: 0,
-                    region_force_n: DVec3::ZERO,
-                    companion_force_n: DVec3::ZERO,
-                }))
+                Some(Box::new(Fallback::new(sim)))
             }
             _ => None,
         };
@@ -337,7 +298,7 @@ impl Simulation {
             tick_s: p.tick_s,
             loads,
             diverged_at_s: None,
-            state: SimState {
+            state: FemState {
                 x: fem.rest().to_vec(),
                 v: vec![DVec3::ZERO; n],
                 time_s: 0.0,
@@ -369,7 +330,7 @@ impl Simulation {
     /// caller must quarantine the session: the state is no longer meaningful). Neither
     /// allocates.
     pub fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
-        check_device(input)?;
+        input.validate()?;
         if let Some(time_s) = self.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
@@ -456,14 +417,7 @@ impl Simulation {
     /// What the coarse companion of a following region did (module documentation, "The coarse
     /// companion"); `None` without one.
     pub fn fallback_stats(&self) -> Option<FallbackStats> {
-        self.fallback.as_deref().map(|fb| FallbackStats {
-            weight: fb.weight,
-            ticks_answered: fb.ticks_answered,
-            contact_ticks_answered: fb.contact_ticks_answered,
-            elements: fb.sim.fem.element_count(),
-            region_force_n: fb.region_force_n,
-            companion_force_n: fb.companion_force_n,
-        })
+        self.fallback.as_deref().map(Fallback::stats)
     }
 
     /// Stability of the current state: finite or not, divergence, energies, inverted elements,
@@ -532,7 +486,7 @@ impl Simulation {
     ///
     /// # Errors
     /// As [`BodyLoads::add_point_load`]: [`ModelError::InvalidInput`] (state untouched) for
-    /// non-finite or absurd values, or a point outside [`Simulation::point_load_zone`] (a
+    /// non-finite or absurd values, or a point outside [`FemBody::point_load_zone`] (a
     /// fixed active region's ball; none for a following region);
     /// [`ModelError::LoadTableFull`] when the table is full.
     /// Allocation-free, so the servo tick may call it.
@@ -560,7 +514,7 @@ impl Simulation {
     /// probe (the stability suite's 10-fold impulse), not a change of the coupling. A new call
     /// replaces an active probe load. Allocation-free.
     ///
-    /// Unlike [`Simulation::add_point_load`], whose patch is fixed to the nodes around the
+    /// Unlike [`FemBody::add_point_load`], whose patch is fixed to the nodes around the
     /// point when the load is added, this load moves with the probe.
     ///
     /// # Errors
@@ -591,7 +545,7 @@ impl Simulation {
         }
     }
 
-    /// Remaining time of the probe load of [`Simulation::add_probe_load`], s (0 when none).
+    /// Remaining time of the probe load of [`FemBody::add_probe_load`], s (0 when none).
     pub fn probe_load_remaining_s(&self) -> f64 {
         self.loads.probe_load_remaining_s()
     }
@@ -642,7 +596,7 @@ impl Simulation {
         &self.surface_nodes
     }
 
-    /// Boundary triangles indexing into [`Simulation::surface_node_indices`], outward oriented.
+    /// Boundary triangles indexing into [`FemBody::surface_node_indices`], outward oriented.
     pub fn surface_triangles(&self) -> &[[u32; 3]] {
         &self.surface_triangles
     }
@@ -685,13 +639,13 @@ impl Simulation {
     }
 
     /// The dynamic state.
-    pub fn state(&self) -> &SimState {
+    pub fn state(&self) -> &FemState {
         &self.state
     }
 
     /// Mutable state, for tests and set-ups (e.g. imposing an initial deformation). Forgets
     /// the backward Euler warm start and a recorded divergence.
-    pub fn state_mut(&mut self) -> &mut SimState {
+    pub fn state_mut(&mut self) -> &mut FemState {
         self.stepper.reset();
         self.diverged_at_s = None;
         &mut self.state
@@ -728,75 +682,10 @@ impl Simulation {
     }
 }
 
-/// Rejects a non-finite or absurd device input.
-fn check_device(input: &TickInput) -> Result<(), ModelError> {
-    if let Some(p) = input.device_position_m {
-        if !p.is_finite() || !input.device_velocity_m_per_s.is_finite() {
-            return Err(ModelError::InvalidDevice(
-                "device position or velocity is not finite",
-            ));
-        }
-        if p.abs().max_element() > MAX_DEVICE_DISTANCE_M {
-            return Err(ModelError::InvalidDevice(
-                "device position is farther than 10 m from the origin",
-            ));
-        }
-    }
-    Ok(())
-}
-
 /// Writes `x[nodes[k]]` (f32, xyz interleaved) into `out` and returns the largest distance to
 /// `rest[nodes[k]]` (0 without `rest`).
 ///
 /// # Panics
-impl Fallback {
-    /// Ticks the companion with `input` and blends its answer into the region's `fine` one:
-    /// `outside` when the region's contact patch reaches a node it does not simulate, `swapped`
-    /// when a new region came in this tick (module documentation, "The coarse companion").
-    ///
-    /// # Errors
-    /// The companion's tick errors (a diverged companion quarantines the session as the
-    /// region would).
-    fn answer(
-        &mut self,
-        input: &TickInput,
-        fine: TickOutput,
-        outside: bool,
-        swapped: bool,
-    ) -> Result<TickOutput, ModelError> {
-        let coarse = self.sim.tick(input)?;
-        self.region_force_n = fine.force_on_device_n;
-        self.companion_force_n = coarse.force_on_device_n;
-        if outside || (swapped && self.weight > 0.0) {
-            self.settle_ticks = FALLBACK_SETTLE_TICKS;
-        } else {
-            self.settle_ticks = self.settle_ticks.saturating_sub(1);
-        }
-        let target = if self.settle_ticks > 0 { 1.0 } else { 0.0 };
-        let rate = 1.0 / f64::from(FALLBACK_BLEND_TICKS);
-        self.weight += (target - self.weight).clamp(-rate, rate);
-        let w = self.weight;
-        if w <= 0.0 {
-            return Ok(fine);
-        }
-        self.ticks_answered += 1;
-        let main = if w >= 0.5 { coarse } else { fine };
-        let mut stiffness = fine.contact_stiffness_n_per_m;
-        for (k, c) in stiffness.iter_mut().zip(coarse.contact_stiffness_n_per_m) {
-            *k += w * (c - *k);
-        }
-        let in_contact = fine.in_contact || coarse.in_contact;
-        self.contact_ticks_answered += u64::from(in_contact);
-        Ok(TickOutput {
-            force_on_device_n: fine.force_on_device_n.lerp(coarse.force_on_device_n, w),
-            contact_stiffness_n_per_m: stiffness,
-            in_contact,
-            proxy_position_m: main.proxy_position_m,
-            sim_time_s: fine.sim_time_s,
-        })
-    }
-}
-
 /// If `out.len() != 3 * nodes.len()`.
 fn write_positions(nodes: &[u32], x: &[DVec3], rest: Option<&[DVec3]>, out: &mut [f32]) -> f64 {
     assert_eq!(out.len(), 3 * nodes.len(), "surface buffer length");
@@ -813,9 +702,9 @@ fn write_positions(nodes: &[u32], x: &[DVec3], rest: Option<&[DVec3]>, out: &mut
     max_d2.sqrt()
 }
 
-impl SoftBody for Simulation {
+impl SoftBody for FemBody {
     fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
-        Simulation::tick(self, input)
+        FemBody::tick(self, input)
     }
 
     fn add_point_load(
@@ -824,7 +713,7 @@ impl SoftBody for Simulation {
         force_n: DVec3,
         duration_s: f64,
     ) -> Result<(), ModelError> {
-        Simulation::add_point_load(self, point_m, force_n, duration_s)
+        FemBody::add_point_load(self, point_m, force_n, duration_s)
     }
 
     /// The boundary of the mesh; it never changes (version 0).
@@ -844,7 +733,7 @@ impl SoftBody for Simulation {
     }
 
     fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
-        Simulation::write_surface_positions(self, out)
+        FemBody::write_surface_positions(self, out)
     }
 
     fn write_surface_rest_positions(&self, out: &mut [f32]) {
@@ -866,9 +755,8 @@ impl SoftBody for Simulation {
             region_swaps: self.follow_stats().map_or(0, |f| f.swaps),
             region_preparation_s: self.follow_stats().map_or(0.0, |f| f.last_prepare_s),
             companion_ticks: self
-                .fallback
-                .as_deref()
-                .map_or(0, |fb| fb.contact_ticks_answered),
+                .fallback_stats()
+                .map_or(0, |s| s.contact_ticks_answered),
         }
     }
 

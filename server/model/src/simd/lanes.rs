@@ -2,7 +2,7 @@
 //! single `f64` and by several `f64` side by side ([`LaneVec`]: [`Plain8`], eight lanes in plain
 //! code; on x86-64 [`Ymm`], four lanes in one AVX2 register, and [`Zmm`], eight in one AVX-512
 //! register), so that the stress formulas and the force kernels are written once and compiled
-//! for each. The batches hold [`super::LANES`] (eight) elements; a vector of fewer lanes runs a
+//! for each. The batches hold [`crate::element::kernels::LANES`] (eight) elements; a vector of fewer lanes runs a
 //! batch in parts ([`LaneVec::WIDTH`] lanes at a time).
 //!
 //! **Soundness.** Every operation of [`Ymm`] and [`Zmm`] is an AVX2/FMA or AVX-512

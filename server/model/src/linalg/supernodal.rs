@@ -26,7 +26,7 @@
 //! (test below). How far the rounding moves the step is checked where the factor is used
 //! (`integrate::condensed`); docs/decisions.md, "The whole-body rest factor".
 //!
-//! Owns: the sweep. May use: `crate::cpu`.
+//! Owns: the sweep. May use: `crate::simd`.
 
 use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw};
 
@@ -182,7 +182,7 @@ impl SupernodalSolve {
             y: vec![0.0; widest + HALF_PAD],
             x2: vec![0.0; n],
             y2: vec![0.0; widest + HALF_PAD],
-            f16c: crate::cpu::has_avx2_fma_f16c(),
+            f16c: crate::simd::has_avx2_fma_f16c(),
         })
     }
 
@@ -318,7 +318,7 @@ impl SupernodalSolve {
     fn backward_into(&mut self, factor: &HalfFactor, out: &mut [f32]) {
         #[cfg(target_arch = "x86_64")]
         if self.f16c {
-            // SAFETY: `f16c` comes from `crate::cpu::has_avx2_fma_f16c` on this CPU.
+            // SAFETY: `f16c` comes from `crate::simd::has_avx2_fma_f16c` on this CPU.
             unsafe { backward_avx2(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y) };
         } else {
             backward::<false>(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y);
@@ -406,7 +406,7 @@ fn forward_sweep<const K: usize>(
 ) {
     #[cfg(target_arch = "x86_64")]
     if f16c {
-        // SAFETY: callers pass `f16c` from `crate::cpu::has_avx2_fma_f16c` on this CPU.
+        // SAFETY: callers pass `f16c` from `crate::simd::has_avx2_fma_f16c` on this CPU.
         unsafe { forward_avx2::<K>(nodes, rows, factor, x, y) };
         return;
     }
