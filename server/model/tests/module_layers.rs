@@ -6,7 +6,7 @@
 //! the static solver.
 
 use std::collections::BTreeSet;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// Top-level modules, lowest layer first. `error` (the crate's one error type) may be used by
 /// every module and uses none.
@@ -43,106 +43,15 @@ const REAL_TIME: &[&str] = &[
     "fem",
 ];
 
-fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
-    for entry in std::fs::read_dir(dir).expect("read src") {
-        let path = entry.expect("dir entry").path();
-        if path.is_dir() {
-            rust_files(&path, out);
-        } else if path.extension().is_some_and(|e| e == "rs") {
-            out.push(path);
-        }
-    }
-}
-
-/// The code of a Rust file without comments (line comments, doc comments, block comments);
-/// string contents are kept, which is harmless here.
-fn strip_comments(text: &str) -> String {
-    let mut out = String::with_capacity(text.len());
-    let mut depth = 0;
-    for line in text.lines() {
-        let mut rest = line;
-        loop {
-            if depth > 0 {
-                match rest.find("*/") {
-                    Some(i) => {
-                        depth -= 1;
-                        rest = &rest[i + 2..];
-                    }
-                    None => break,
-                }
-            } else {
-                let line_comment = rest.find("//");
-                let block = rest.find("/*");
-                match (line_comment, block) {
-                    (Some(l), Some(b)) if b < l => {
-                        out.push_str(&rest[..b]);
-                        depth += 1;
-                        rest = &rest[b + 2..];
-                    }
-                    (None, Some(b)) => {
-                        out.push_str(&rest[..b]);
-                        depth += 1;
-                        rest = &rest[b + 2..];
-                    }
-                    (Some(l), _) => {
-                        out.push_str(&rest[..l]);
-                        break;
-                    }
-                    (None, None) => {
-                        out.push_str(rest);
-                        break;
-                    }
-                }
-            }
-        }
-        out.push('\n');
-    }
-    out
-}
+/// The source scanner the house tests share (`tests/src/source_scan.rs`: comments and strings
+/// stripped, grouped imports read, test modules left out).
+#[allow(dead_code)]
+#[path = "../../../tests/src/source_scan.rs"]
+mod source_scan;
 
 /// `(from, to)` for every `crate::to` path in the code of top-level module `from`.
 fn edges() -> BTreeSet<(String, String)> {
-    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
-    let mut files = Vec::new();
-    rust_files(&src, &mut files);
-    let mut edges = BTreeSet::new();
-    for file in files {
-        let rel = file.strip_prefix(&src).expect("under src");
-        let first = rel.components().next().expect("component");
-        let module = first
-            .as_os_str()
-            .to_string_lossy()
-            .trim_end_matches(".rs")
-            .to_string();
-        if module == "lib" {
-            continue; // the crate root declares and assembles the modules
-        }
-        let code = strip_comments(&std::fs::read_to_string(&file).expect("read file"));
-        for (i, _) in code.match_indices("crate::") {
-            let before = code[..i].chars().last();
-            if before.is_some_and(|c| c.is_alphanumeric() || c == '_') {
-                continue; // e.g. `haptic_model_crate::`
-            }
-            let after = &code[i + "crate::".len()..];
-            assert!(
-                !after.starts_with('{'),
-                "{}: write one `use crate::module::...` per module (grouped `crate::{{..}}` imports \
-                 hide edges from this check)",
-                rel.display()
-            );
-            let target: String = after
-                .chars()
-                .take_while(|c| c.is_alphanumeric() || *c == '_')
-                .collect();
-            if !target.is_empty()
-                && target != module
-                && target.chars().next().is_some_and(|c| c.is_lowercase())
-            {
-                edges.insert((module.clone(), target));
-            }
-        }
-    }
-    edges
+    source_scan::crate_edges(&Path::new(env!("CARGO_MANIFEST_DIR")).join("src"))
 }
 
 #[test]
@@ -183,8 +92,40 @@ fn the_real_time_path_does_not_use_the_static_solvers() {
 
 #[test]
 fn the_comment_stripper_keeps_code_and_drops_comments() {
-    let code =
-        strip_comments("use crate::a; // crate::b\n/* crate::c */ let x = 1; /// crate::d\n");
+    let code = source_scan::strip_comments_and_strings(
+        "use crate::a; // crate::b\n/* crate::c */ let x = 1; /// crate::d\n",
+    );
     assert!(code.contains("crate::a") && code.contains("let x = 1;"));
     assert!(!code.contains("crate::b") && !code.contains("crate::c") && !code.contains("crate::d"));
+}
+
+#[test]
+fn architecture_lists_the_layers_in_this_order() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../ARCHITECTURE.md");
+    let text = std::fs::read_to_string(&path).expect("ARCHITECTURE.md");
+    let start = text
+        .find("**Layers in the model, no import cycles.**")
+        .expect("ARCHITECTURE.md has the layers bullet");
+    let bullet = &text[start..];
+    let bullet = &bullet[..bullet.find("\n- ").unwrap_or(bullet.len())];
+    let chain: Vec<String> = bullet
+        .split("**")
+        .nth(2)
+        .and_then(|rest| rest.split(';').next())
+        .expect("a chain `a <- b <- ...;`")
+        .split("<-")
+        .map(|m| m.split_whitespace().collect::<String>())
+        .collect();
+    let on_top = &LAYERS[chain.len()..];
+    assert_eq!(
+        chain,
+        LAYERS[..chain.len()],
+        "ARCHITECTURE.md's layer chain differs from LAYERS"
+    );
+    for m in on_top {
+        assert!(
+            bullet.contains(m),
+            "ARCHITECTURE.md's layers bullet does not name `{m}` (on top of the chain)"
+        );
+    }
 }
