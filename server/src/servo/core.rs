@@ -50,7 +50,6 @@ struct ServoState {
     fault: Option<&'static str>,
     /// Simulated time after the last successful tick, s.
     sim_time_s: f64,
-    last_force: ForceOut,
     device_silent: bool,
     /// See [`super::StatsSnapshot::demoted`]; set by the loop.
     demoted: bool,
@@ -383,7 +382,6 @@ impl ServoCore {
         }
         self.stats.peak_force_n = self.stats.peak_force_n.max(force.force_n.length());
         self.stats.contact_ticks += u64::from(force.in_contact);
-        self.state.last_force = force;
         if read.fresh {
             // A full ring means the forwarder is stalled; dropping is the safe choice (the
             // bridge's watchdog ramps the force down).

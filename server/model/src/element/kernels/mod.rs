@@ -3,8 +3,9 @@
 //! action of quadratic StVK elements, each compiled for AVX-512, AVX2 + FMA and plain code and
 //! chosen at run time.
 //!
-//! Owns: the batch layouts ([`linear`], [`quadratic`], [`domains`]), the lane arithmetic
-//! ([`crate::simd::lanes`], [`stress`]) and every `unsafe` block of the element code. May use:
+//! Owns: the batch layouts ([`linear`], [`quadratic`], [`domains`]), the per-lane
+//! stress formulas ([`stress`]; the lane types are [`crate::simd`]'s) and every `unsafe` block of
+//! the element code. May use:
 //! [`crate::material`] (parameters; the stress formulas are repeated per lane in [`stress`] and
 //! checked against [`crate::material::first_piola`] by the tests below) and the integration
 //! points of [`super::quadrature`].
