@@ -388,11 +388,15 @@ function chartLine(series, k, top, now, color) {
   stripCtx.stroke();
 }
 
+let chartBlank = false; // the canvas shows an empty window: nothing to redraw until a sample
 function drawChart() {
   const now = performance.now();
   for (const series of [chart.force, chart.latency]) {
     while (series.length && now - series[0][0] > CHART_WINDOW_MS) series.shift();
   }
+  const empty = !chart.force.length && !chart.latency.length;
+  if (empty && chartBlank) return; // an idle page costs nothing
+  chartBlank = empty;
   const w = strip.width, h = strip.height;
   stripCtx.clearRect(0, 0, w, h);
   stripCtx.strokeStyle = '#454b55';
