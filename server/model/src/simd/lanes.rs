@@ -228,11 +228,12 @@ impl LaneVec for Plain8 {
 }
 
 #[cfg(target_arch = "x86_64")]
-pub(crate) use x86::{Avx2Fma, Avx512, Ymm, Zmm};
+pub(crate) use x86::{Ymm, Zmm};
 
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::{Lane, LaneVec};
+    use crate::simd::isa::{Avx2Fma, Avx512};
     use std::arch::x86_64::{
         __m128i, __m256d, __m256i, __m512d, _mm_loadu_si128, _mm256_add_pd, _mm256_div_pd,
         _mm256_fmadd_pd, _mm256_fmsub_pd, _mm256_i32gather_pd, _mm256_loadu_pd, _mm256_loadu_si256,
@@ -242,37 +243,6 @@ mod x86 {
         _mm512_loadu_pd, _mm512_mul_pd, _mm512_set1_pd, _mm512_storeu_pd, _mm512_sub_pd,
     };
     use std::ops::{Add, Div, Mul, Sub};
-
-    /// Proof that this CPU runs AVX-512F, AVX-512VL, AVX2 and FMA: the only way to make
-    /// [`Zmm`] values. The private field keeps it from being made other than by
-    /// [`Avx512::detect`].
-    #[derive(Clone, Copy, Debug)]
-    pub(crate) struct Avx512(());
-
-    impl Avx512 {
-        /// The token, when the CPU has every feature (std caches the detection).
-        #[inline]
-        pub(crate) fn detect() -> Option<Self> {
-            (std::is_x86_feature_detected!("avx512f")
-                && std::is_x86_feature_detected!("avx512vl")
-                && Avx2Fma::detect().is_some())
-            .then_some(Self(()))
-        }
-    }
-
-    /// Proof that this CPU runs AVX2 and FMA: the only way to make [`Ymm`] values (see
-    /// [`Avx512`]).
-    #[derive(Clone, Copy, Debug)]
-    pub(crate) struct Avx2Fma(());
-
-    impl Avx2Fma {
-        /// The token, when the CPU has both features (std caches the detection).
-        #[inline]
-        pub(crate) fn detect() -> Option<Self> {
-            (std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma"))
-                .then_some(Self(()))
-        }
-    }
 
     /// Eight `f64` lanes in one AVX-512 register.
     ///
