@@ -1,0 +1,181 @@
+//! The subdivided areas' centres: which coarse node the probe touches, when an area is
+//! added or coarsened, and the areas' spring constants (section 3.2.4).
+
+use super::Centre;
+use super::MAX_CENTRES;
+use super::MassSpringBody;
+use super::QUIET_DISPLACEMENT_OVER_L;
+use crate::mass_spring::SpringRule;
+
+impl MassSpringBody {
+    /// `K'_h` and `K'_m` of each centre's area at the current state (section 3.2.4: the table
+    /// at the centre's displacement over L; the coarse constants with
+    /// [`SpringRule::Unchanged`]; eq. 5 with [`SpringRule::Area`]).
+    pub(super) fn update_area_constants(&mut self) {
+        let kh = self.params.home_spring_n_per_m;
+        let ratio = match self.params.subdivision.springs {
+            SpringRule::Calibrated => self.params.subdivision.km_over_kh_after,
+            SpringRule::Unchanged => self.params.mesh_spring_n_per_m / kh,
+            SpringRule::Area => {
+                // Eq. 5 over the areas (as the masses of eq. 3), the mesh springs unchanged.
+                let (n1, n2) = (self.refinement.type1_count(), self.refinement.type2_count());
+                let n_ratio = if n1 + n2 > 0 {
+                    n1 as f64 / (n1 + n2) as f64
+                } else {
+                    1.0
+                };
+                for k in 0..self.centre_count {
+                    self.kh_area[k] = kh * n_ratio;
+                    self.km_area[k] = self.params.mesh_spring_n_per_m;
+                }
+                return;
+            }
+        };
+        for k in 0..self.centre_count {
+            let c = self.centres[k].node;
+            let a = match &self.table {
+                Some(t) => {
+                    let u = (self.x[c as usize] - self.rest[c as usize]).length();
+                    t.scale(c, u / self.surface.element_size_m(c))
+                }
+                None => 1.0,
+            };
+            self.kh_area[k] = a * kh;
+            self.km_area[k] = ratio * a * kh;
+        }
+    }
+
+    /// The coarse node nearest the probe's contact point among the coarse vertices of the
+    /// triangle it touches (the contact node C of the paper), if it is free.
+    fn contact_node(&self) -> Option<u32> {
+        let st = self.probe.state;
+        if !st.in_contact {
+            return None;
+        }
+        let point = st.proxy_m - st.normal * self.probe.params.radius_m;
+        let nc = self.surface.node_count() as u32;
+        let tri = *self.probe.surface.triangles.get(st.triangle as usize)?;
+        let mut best: Option<(f64, u32)> = None;
+        for s in tri {
+            let parents = if s < nc {
+                [s, s]
+            } else {
+                self.surface.edges()[(s - nc) as usize]
+            };
+            for p in parents {
+                if self.fixed[p as usize] {
+                    continue;
+                }
+                let d = (self.cx[p as usize] - point).length_squared();
+                if best.is_none_or(|(bd, _)| d < bd) {
+                    best = Some((d, p));
+                }
+            }
+        }
+        best.map(|b| b.1)
+    }
+
+    /// Updates the centres from the contact (touched now: refreshed or added; untouched for
+    /// longer than the delay: removed) and runs an event when they changed.
+    pub(super) fn update_centres(&mut self) {
+        if self.params.subdivision.rings == 0 {
+            return;
+        }
+        let now = self.time_s;
+        let mut added = false;
+        if let Some(c) = self.contact_node() {
+            match self.centres[..self.centre_count]
+                .iter_mut()
+                .find(|k| k.node == c)
+            {
+                Some(k) => k.last_contact_s = k.last_contact_s.max(now),
+                None => {
+                    if self.centre_count == MAX_CENTRES {
+                        // Replace the one touched longest ago.
+                        let oldest = (0..MAX_CENTRES)
+                            .min_by(|&a, &b| {
+                                self.centres[a]
+                                    .last_contact_s
+                                    .total_cmp(&self.centres[b].last_contact_s)
+                            })
+                            .unwrap_or(0);
+                        self.centres[oldest] = Centre {
+                            node: c,
+                            last_contact_s: now,
+                        };
+                    } else {
+                        self.centres[self.centre_count] = Centre {
+                            node: c,
+                            last_contact_s: now,
+                        };
+                        self.centre_count += 1;
+                    }
+                    added = true;
+                }
+            }
+        }
+        let delay = self.params.subdivision.coarsen_delay_s;
+        let before = self.centre_count;
+        let mut k = 0;
+        while k < self.centre_count {
+            if now - self.centres[k].last_contact_s > delay && self.area_is_quiet(k) {
+                self.centre_count -= 1;
+                self.centres[k] = self.centres[self.centre_count];
+            } else {
+                k += 1;
+            }
+        }
+        let removed = self.centre_count < before;
+        if added || removed {
+            self.event(added, removed);
+        }
+    }
+
+    /// Whether every node of centre `k`'s area (its rings' coarse nodes and their type-2
+    /// nodes) is within [`QUIET_DISPLACEMENT_OVER_L`] of its rest position. O(area),
+    /// allocation-free.
+    fn area_is_quiet(&mut self, k: usize) -> bool {
+        let c = self.centres[k].node;
+        let limit = QUIET_DISPLACEMENT_OVER_L * self.surface.element_size_m(c);
+        let limit2 = limit * limit;
+        let rings = self.params.subdivision.rings;
+        let mut ring = std::mem::take(&mut self.ring);
+        self.surface.ring(c, rings, &mut self.ring_dist, &mut ring);
+        let nc = self.surface.node_count() as u32;
+        let moved = |s: u32| (self.x[s as usize] - self.rest[s as usize]).length_squared() > limit2;
+        let quiet = ring.iter().all(|&(i, _)| {
+            !moved(i)
+                && self
+                    .surface
+                    .incident_edges(i)
+                    .iter()
+                    .all(|&e| !self.refinement.is_edge_split(e) || !moved(nc + e))
+        });
+        self.ring = ring;
+        quiet
+    }
+
+    /// Subdivides around the coarse nodes `nodes` (replacing every current area; they stay
+    /// subdivided until [`MassSpringBody::coarsen`]): a subdivision event, for tests, tools and
+    /// the calibration experiment. At most [`MAX_CENTRES`] nodes are taken; fixed ones and
+    /// nodes out of range are skipped. Allocation-free.
+    pub fn subdivide_around(&mut self, nodes: &[u32]) {
+        self.centre_count = 0;
+        for &c in nodes.iter().take(MAX_CENTRES) {
+            if (c as usize) < self.surface.node_count() && !self.surface.is_fixed(c) {
+                self.centres[self.centre_count] = Centre {
+                    node: c,
+                    last_contact_s: f64::INFINITY,
+                };
+                self.centre_count += 1;
+            }
+        }
+        self.event(true, false);
+    }
+
+    /// Coarsens every subdivided area: back to the coarse mesh (an event). Allocation-free.
+    pub fn coarsen(&mut self) {
+        self.centre_count = 0;
+        self.event(false, true);
+    }
+}

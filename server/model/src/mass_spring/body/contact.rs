@@ -1,0 +1,152 @@
+//! The organ table at the probe's contact: the sphere depth, the probe's foot on the coarse
+//! rest surface and the contact factor ([`crate::mass_spring::organ`]).
+
+use super::MassSpringBody;
+use crate::mass_spring::organ::foot::RestFoot;
+use crate::mass_spring::organ::foot::foot_depth_m;
+use crate::mass_spring::organ::foot::rest_foot;
+use crate::mass_spring::refine::NO_OWNER;
+use glam::DVec3;
+
+impl MassSpringBody {
+    /// The probe's sphere depth ([`MassSpringBody::contact_depth_m`]: below the flat rest
+    /// triangle at the foot in a subdivided area, the kernel plane's travel elsewhere) and the
+    /// contact factor at its current contact: the organ table at that depth, interpolated on the
+    /// coarse surface at the foot of the kernel patch's centroid
+    /// ([`MassSpringBody::patch_foot`]), in a subdivided area at the probe's foot on the coarse
+    /// rest surface ([`crate::mass_spring::organ::foot`]: where the calibration pressed, so a press along a
+    /// site's normal reads that site's row at any depth), over its coarse
+    /// triangle's four Loop children (corners: nodes and edge midpoints, the table's sites);
+    /// each site's coarse factor, or its subdivided one when it lies in a subdivided area. Off
+    /// the rest surface (no foot), at the contact point of the deformed surface (the probe's
+    /// triangle). Unchanged out of contact; the factor
+    /// unchanged without a table. Allocation-free.
+    pub(super) fn update_contact_factor(&mut self) {
+        let st = self.probe.state;
+        if !st.in_contact {
+            return;
+        }
+        self.update_foot();
+        // In a subdivided area the depth below the flat rest triangle at the foot (the
+        // subdivided patch's kernel plane sits lower at rest than the coarse one's); elsewhere
+        // the kernel plane's travel (which follows the organ's surface between nodes).
+        let foot_in_area = self.foot.filter(|f| {
+            self.surface.triangles()[f.triangle as usize]
+                .iter()
+                .any(|&s| self.owner[s as usize] != NO_OWNER)
+        });
+        let depth = match &foot_in_area {
+            Some(foot) => foot_depth_m(foot, self.probe.params.radius_m),
+            None => {
+                let (nodes, weights) = self.probe.patch();
+                nodes
+                    .iter()
+                    .zip(weights)
+                    .map(|(&i, &w)| w * (self.rest[i as usize] - self.x[i as usize]).dot(st.normal))
+                    .sum()
+            }
+        };
+        self.contact_depth_m = depth;
+        let Some(table) = &self.organ else {
+            return;
+        };
+        // On the coarse surface at the patch's centroid ([`MassSpringBody::patch_foot`]); in a
+        // subdivided area at the proxy's foot.
+        let at = match foot_in_area {
+            Some(_) => self.foot,
+            None => self.patch_foot().or(self.foot),
+        };
+        let (tri, b) = match at {
+            Some(foot) => (self.surface.triangles()[foot.triangle as usize], foot.bary),
+            None => match self.probe.surface.triangles.get(st.triangle as usize) {
+                Some(&tri) => (tri, st.bary),
+                None => return,
+            },
+        };
+        let nc = self.surface.node_count() as u32;
+        // A site of a subdivided area takes the subdivided configuration's factor.
+        let site = |s: u32| table.factor(s, depth, self.owner[s as usize] != NO_OWNER);
+        let beta = if tri.iter().all(|&s| s < nc) {
+            // A coarse triangle: linear over its four Loop children (corner i's child where
+            // b_i >= 1/2, else the middle one), whose corners are nodes and edge midpoints.
+            let edge = |i: usize| {
+                self.surface
+                    .edge_between(tri[i], tri[(i + 1) % 3])
+                    .map_or(0.5 * (site(tri[i]) + site(tri[(i + 1) % 3])), |e| {
+                        site(nc + e)
+                    })
+            };
+            // m[i]: the factor at the midpoint of side (i, i + 1).
+            let m = [edge(0), edge(1), edge(2)];
+            match (0..3).find(|&i| b[i] >= 0.5) {
+                Some(i) => {
+                    let (j, k) = ((i + 1) % 3, (i + 2) % 3);
+                    (2.0 * b[i] - 1.0) * site(tri[i]) + 2.0 * b[j] * m[i] + 2.0 * b[k] * m[k]
+                }
+                None => {
+                    (1.0 - 2.0 * b[2]) * m[0]
+                        + (1.0 - 2.0 * b[0]) * m[1]
+                        + (1.0 - 2.0 * b[1]) * m[2]
+                }
+            }
+        } else {
+            tri.iter().zip(&b).map(|(&s, &w)| w * site(s)).sum()
+        };
+        if beta.is_finite() && beta > 0.0 {
+            self.contact_factor = beta;
+        }
+    }
+
+    /// Where the organ table is read ([`crate::mass_spring::organ::foot`], session 6): the foot on the coarse
+    /// rest surface of the probe's patch centroid at rest, `sum w_j rest_j` over the patch's
+    /// slots, along the contact normal. The patch carries the force: on `hemisphere-springs`
+    /// (8 mm edges under a 4 mm sphere) a press between nodes bears on the nearest node almost
+    /// alone (3 mm from node 13 at the point `h1`: its weight 0.987), as a press on that node
+    /// does, and reads that node's row, not the mean of its edges' (about half a node's) that
+    /// the proxy's foot gave; on a node, an edge's midpoint (equal weights on its ends) and a
+    /// symmetric patch it is the proxy's foot, as the calibration pressed. Continuous as the
+    /// weights are. `None` without a foot (then the proxy's foot or the contact triangle).
+    /// Allocation-free.
+    fn patch_foot(&self) -> Option<RestFoot> {
+        let hint = self.foot?.triangle;
+        let (nodes, weights) = self.probe.patch();
+        if nodes.is_empty() {
+            return None;
+        }
+        let centre: DVec3 = nodes
+            .iter()
+            .zip(weights)
+            .map(|(&i, &w)| self.rest[i as usize] * w)
+            .sum();
+        let m = self.probe.state.normal;
+        let r = self.probe.params.radius_m;
+        rest_foot(&self.surface, centre + m * r, m, r, r, Some(hint))
+            .filter(|h| h.miss_m <= r)
+            .map(|h| h.foot)
+    }
+
+    /// The probe's foot on the coarse rest surface ([`crate::mass_spring::organ::foot`]) from its state now:
+    /// searched around the last foot's triangles, over the whole surface at a first contact (at
+    /// most once a tick while none is found); `None` when the line through the proxy along the
+    /// normal meets no rest triangle within a probe radius of where the centre should be.
+    /// Allocation-free.
+    fn update_foot(&mut self) {
+        let hint = self.foot.map(|f| f.triangle);
+        if hint.is_none() {
+            if self.foot_searched {
+                return;
+            }
+            self.foot_searched = true;
+        }
+        let st = self.probe.state;
+        let r = self.probe.params.radius_m;
+        let expected = if hint.is_some() {
+            r - self.contact_depth_m
+        } else {
+            r
+        };
+        self.foot = rest_foot(&self.surface, st.proxy_m, st.normal, expected, r, hint)
+            .filter(|f| f.miss_m <= r)
+            .map(|f| f.foot);
+    }
+}

@@ -1,0 +1,645 @@
+//! [`MassSpringBody`]: the mass-spring surface with run-time haptic subdivision, behind the
+//! [`SoftBody`] interface the servo drives.
+//!
+//! A tick is `substeps` steps of symplectic Euler on eq. 1-2 with the damping `K_d` implicit
+//! (`v' = (m v + dt f) / (m + dt K_d)`, `x' = x + dt v'`), the probe's virtual coupling
+//! completed implicitly ([`Probe::finish_implicit`], the same probe as the FEM's), and the
+//! subdivided area's spring constants looked up in the calibrated table at the current
+//! displacement of its contact node once per step (section 3.2.4). After the steps, the
+//! contact node (the coarse node nearest the contact point) becomes a *centre*; an area is
+//! kept subdivided while its centre was touched within `coarsen_delay_s`, and until it has
+//! come back to rest (within [`QUIET_DISPLACEMENT_OVER_L`]). When the set of
+//! centres changes, an **event** recomputes the refinement's labels ([`super::refine`]), edits
+//! the mixed-level mesh where they changed (`super::mixed`) and carries the state over:
+//!
+//! - original nodes keep position and velocity (with [`VertexRule::Loop`](super::VertexRule::Loop) they keep their
+//!   displacement from their moved rest position); a node whose mass changes keeps its
+//!   velocity when it gets lighter and its momentum when it gets heavier, so no node gains
+//!   kinetic energy;
+//! - a new type-2 node takes Loop's edge rule for its rest position and the mean displacement
+//!   and velocity of its edge's end points (the deformed surface under the probe stays where
+//!   it was);
+//! - masses follow eq. 3 (`m' = m N / N'` over the subdivided area), damping `K_d m' / m`;
+//! - if the event still raised the total energy (the subdivided area can store more elastic
+//!   energy in the same shape), the velocities of the nodes it touched are scaled down by the
+//!   excess; what kinetic energy cannot cover is counted in [`EventStats::injected_energy_j`].
+//!
+//! Everything an event touches is sized at construction for the whole surface subdivided, so
+//! neither a tick nor an event allocates, locks or does I/O. Events run on the servo thread
+//! (preparing them on another thread would need a hand-off the servo does not have): an event
+//! visits only the subdivided areas before and after it and the coarse triangles around them
+//! (labels, mesh edits, the energy balance over that region, the contact triangle found again
+//! by a local walk), so it costs O(areas), independent of the surface size;
+//! `docs/benchmarks.md` has the numbers. The
+//! sub-step is fixed at construction from a Gershgorin bound that covers every configuration
+//! the events can produce (lightest masses `m/4`, stiffest table entry, most springs per node),
+//! so an event never makes the integration unstable.
+
+use glam::DVec3;
+
+use super::MassSpringParams;
+use super::calibration::CalibrationTable;
+use super::mixed::MixedMesh;
+use super::network::{Spring, critical_time_step_s, gershgorin_bound_per_s2};
+use super::organ::OrganTable;
+use super::organ::foot::RestFoot;
+use super::refine::{NO_OWNER, Refinement};
+use super::surface::SpringSurface;
+use crate::ModelError;
+use crate::body::{
+    BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput, TickOutput,
+};
+use crate::contact::Probe;
+use crate::integrate::{IntegratorParams, StepPlan, plan_steps};
+use crate::loads::BodyLoads;
+
+mod centres;
+mod contact;
+mod event;
+mod setup;
+
+/// Most centres (subdivided areas) at a time: the contact node and former contact nodes still
+/// within their coarsening delay. A new centre beyond it replaces the oldest.
+pub const MAX_CENTRES: usize = 8;
+
+/// An area is coarsened only once every node of it is back within this fraction of the
+/// element size L of its rest position: coarsening restores the coarse constants, stiffer than
+/// the calibrated ones, so a displaced area would gain elastic energy (at most
+/// `N' K_h (1e-3 L)^2 / 2` this way, 1e-8 J on the hemisphere).
+pub const QUIET_DISPLACEMENT_OVER_L: f64 = 1e-3;
+
+/// A nodal speed above this (m/s) is treated as divergence (as for the FEM).
+pub const DIVERGENCE_SPEED_M_PER_S: f64 = 100.0;
+
+/// A subdivided area's contact node and when it was last touched.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Centre {
+    node: u32,
+    last_contact_s: f64,
+}
+
+/// Counters of the subdivision events of a body.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct EventStats {
+    /// Events (changes of the set of subdivided areas).
+    pub events: u64,
+    /// Events that added a subdivided area.
+    pub subdivisions: u64,
+    /// Events that removed one.
+    pub coarsenings: u64,
+    /// Kinetic energy removed to keep events from raising the total energy, J.
+    pub drained_energy_j: f64,
+    /// Energy events added that kinetic energy could not cover, J (see the module
+    /// documentation).
+    pub injected_energy_j: f64,
+    /// The largest single-event excess that was injected, J.
+    pub max_injected_energy_j: f64,
+}
+
+/// The mass-spring body (module documentation).
+#[derive(Debug, Clone)]
+pub struct MassSpringBody {
+    surface: SpringSurface,
+    params: MassSpringParams,
+    table: Option<CalibrationTable>,
+    /// The labels (levels, owners) for the current centres.
+    refinement: Refinement,
+    /// The springs, triangles and active nodes for those labels (the probe's contact surface
+    /// holds the triangles over slots).
+    mesh: MixedMesh,
+    /// Loop rest positions per coarse node (type-1; a type-2 node's, Loop's edge rule, is its
+    /// slot's entry of `rest`).
+    loop_vertex_rest: Vec<DVec3>,
+    // Per slot (coarse nodes, then one per coarse edge).
+    rest: Vec<DVec3>,
+    /// Where the probe meets each slot at rest ([`super::contact_rest`]); at run time the probe
+    /// sees `cx = x + contact_rest - rest`.
+    contact_rest: Vec<DVec3>,
+    cx: Vec<DVec3>,
+    x: Vec<DVec3>,
+    v: Vec<DVec3>,
+    f: Vec<DVec3>,
+    mass: Vec<f64>,
+    damping: Vec<f64>,
+    fixed: Vec<bool>,
+    /// The centre slot whose area each slot belongs to ([`NO_OWNER`]: none), as built: equal
+    /// to the refinement's labels except inside an event.
+    owner: Vec<u8>,
+    centres: [Centre; MAX_CENTRES],
+    centre_count: usize,
+    /// Per centre: `K'_h` and `K'_m` now, N/m.
+    kh_area: [f64; MAX_CENTRES],
+    km_area: [f64; MAX_CENTRES],
+    probe: Probe,
+    /// The organ table ([`super::organ`]) and the contact factor `beta` every spring constant
+    /// is multiplied by now (1 without a table; kept when the probe leaves).
+    organ: Option<OrganTable>,
+    contact_factor: f64,
+    /// The probe's sphere depth at the last sub-step in contact, m (see
+    /// [`MassSpringBody::contact_depth_m`]).
+    contact_depth_m: f64,
+    /// The probe's foot on the coarse rest surface ([`super::organ::foot`]), where the organ
+    /// table is read; `None` out of contact, without a table or off the surface.
+    foot: Option<RestFoot>,
+    /// Whether a sub-step of this tick already searched the foot (at most one search per
+    /// tick besides the end-of-tick update).
+    foot_searched: bool,
+    /// The worst-case Gershgorin bound with constant springs (1/s^2) and the integrator
+    /// settings: the plan is recomputed with the organ table's largest factor.
+    worst_lambda_per_s2: f64,
+    integrator: IntegratorParams,
+    loads: BodyLoads,
+    plan: StepPlan,
+    coarse_critical_dt_s: f64,
+    tick_s: f64,
+    time_s: f64,
+    diverged_at_s: Option<f64>,
+    version: u64,
+    stats: EventStats,
+    // Event scratch: the labels before the event, the region it can change (coarse nodes,
+    // triangles and edges, with stamps against repeats), the nodes whose state it changed.
+    old_region: Vec<u32>,
+    old_edges: Vec<u32>,
+    old_type1: Vec<u32>,
+    region_nodes: Vec<u32>,
+    region_tris: Vec<u32>,
+    region_edges: Vec<u32>,
+    node_stamp: Vec<u32>,
+    tri_stamp: Vec<u32>,
+    edge_stamp: Vec<u32>,
+    stamp: u32,
+    touched: Vec<bool>,
+    touched_list: Vec<u32>,
+    scratch_home: Vec<f64>,
+    ring: Vec<(u32, u32)>,
+    ring_dist: Vec<u32>,
+    scratch_a: Vec<f64>,
+    scratch_b: Vec<f64>,
+    scene_name: String,
+}
+
+impl MassSpringBody {
+    /// The body with the organ table `table` ([`super::organ`]): every spring constant is then
+    /// multiplied by the contact factor the table gives at the probe's sphere depth and contact
+    /// point. The sub-step plan is recomputed with the table's largest factor.
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] (`mass_spring.organ_file`) for a table of another node count;
+    /// [`ModelError::Unstable`] when the stiffest factor needs more than
+    /// `integrator.max_substeps`.
+    pub fn with_organ_table(mut self, table: OrganTable) -> Result<Self, ModelError> {
+        if (table.node_count(), table.edge_count())
+            != (self.surface.node_count(), self.surface.edge_count())
+        {
+            return Err(ModelError::field(
+                "mass_spring.organ_file",
+                format!(
+                    "the organ table covers {} nodes and {} edges, the surface has {} and {}",
+                    table.node_count(),
+                    table.edge_count(),
+                    self.surface.node_count(),
+                    self.surface.edge_count()
+                ),
+            ));
+        }
+        let beta_max = table.max_factor().max(1.0);
+        self.plan = plan_steps(
+            &self.integrator,
+            critical_time_step_s(self.worst_lambda_per_s2 * beta_max),
+        )?;
+        self.organ = Some(table);
+        Ok(self)
+    }
+
+    /// The organ table, if any.
+    pub fn organ_table(&self) -> Option<&OrganTable> {
+        self.organ.as_ref()
+    }
+
+    /// The probe's sphere depth, m, at the last sub-step in contact (the key of the organ
+    /// table, [`super::organ`]): when the probe's foot ([`super::organ::foot`]) lies on a
+    /// rest triangle with a corner in a subdivided area, the sphere's depth below that flat
+    /// triangle along the line through the proxy along the contact normal; elsewhere the travel
+    /// of the probe's kernel plane from its rest position, `sum w_i (rest_i - x_i) . n` over
+    /// its patch.
+    pub fn contact_depth_m(&self) -> f64 {
+        self.contact_depth_m
+    }
+
+    /// The contact factor every spring constant is multiplied by now ([`super::organ`]).
+    pub fn contact_factor(&self) -> f64 {
+        self.contact_factor
+    }
+
+    #[inline]
+    fn home_constant(&self, s: u32) -> f64 {
+        self.contact_factor
+            * match self.owner[s as usize] {
+                NO_OWNER => self.params.home_spring_n_per_m,
+                o => self.kh_area[o as usize],
+            }
+    }
+
+    #[inline]
+    fn spring_constant(&self, owner: u8) -> f64 {
+        self.contact_factor
+            * match owner {
+                NO_OWNER => self.params.mesh_spring_n_per_m,
+                o => self.km_area[o as usize],
+            }
+    }
+
+    /// Total energy, J: kinetic `sum m v^2 / 2` plus elastic (home and mesh springs, eq. 2)
+    /// over the current mesh with the current constants. Allocation-free.
+    pub fn energy_j(&self) -> f64 {
+        let mut e = 0.0;
+        for &s in self.mesh.active() {
+            e += self.node_energy_j(s);
+        }
+        for k in 0..self.mesh.springs().len() {
+            e += self.spring_energy_j(k);
+        }
+        e
+    }
+
+    /// Kinetic and home-spring energy of slot `s`, J.
+    #[inline]
+    fn node_energy_j(&self, s: u32) -> f64 {
+        let i = s as usize;
+        0.5 * self.mass[i] * self.v[i].length_squared()
+            + 0.5 * self.home_constant(s) * (self.x[i] - self.rest[i]).length_squared()
+    }
+
+    /// Elastic energy of mesh spring `k`, J.
+    #[inline]
+    fn spring_energy_j(&self, k: usize) -> f64 {
+        let sp = &self.mesh.springs()[k];
+        let stretch = (self.x[sp.j as usize] - self.x[sp.i as usize]).length() - sp.rest_length_m;
+        0.5 * self.spring_constant(sp.owner) * stretch * stretch
+    }
+
+    /// Kinetic energy over the active nodes, J.
+    pub fn kinetic_energy_j(&self) -> f64 {
+        self.mesh
+            .active()
+            .iter()
+            .map(|&s| 0.5 * self.mass[s as usize] * self.v[s as usize].length_squared())
+            .sum()
+    }
+
+    /// Total mass of the active nodes, kg (eq. 3 keeps it constant).
+    pub fn total_mass_kg(&self) -> f64 {
+        self.mesh
+            .active()
+            .iter()
+            .map(|&s| self.mass[s as usize])
+            .sum()
+    }
+
+    /// The coarse surface.
+    pub fn surface(&self) -> &SpringSurface {
+        &self.surface
+    }
+
+    /// The current refinement: levels and owners (its [`Refinement::mesh`] lists what
+    /// [`MassSpringBody::triangles`] and [`MassSpringBody::springs`] hold).
+    pub fn refinement(&self) -> &Refinement {
+        &self.refinement
+    }
+
+    /// The parameters.
+    pub fn params(&self) -> &MassSpringParams {
+        &self.params
+    }
+
+    /// Active slots (the coarse nodes, then the active type-2 nodes in the order they
+    /// appeared): the viewer's vertices.
+    pub fn active_nodes(&self) -> &[u32] {
+        self.mesh.active()
+    }
+
+    /// Triangles of the current mesh over slots, outward oriented: the probe's contact
+    /// surface (the pieces of a coarse triangle are not consecutive; as a set they are
+    /// [`Refinement::mesh`]'s).
+    pub fn triangles(&self) -> &[[u32; 3]] {
+        &self.probe.surface.triangles
+    }
+
+    /// Mesh springs of the current mesh with their rest lengths and current constants (as a
+    /// set, [`Refinement::mesh`]'s springs).
+    pub fn springs(&self) -> impl Iterator<Item = Spring> + '_ {
+        self.mesh.springs().iter().map(|sp| Spring {
+            i: sp.i,
+            j: sp.j,
+            rest_length_m: sp.rest_length_m,
+            stiffness_n_per_m: self.spring_constant(sp.owner),
+        })
+    }
+
+    /// Positions per slot, m (inactive slots hold stale values).
+    pub fn positions(&self) -> &[DVec3] {
+        &self.x
+    }
+
+    /// Velocities per slot, m/s.
+    pub fn velocities(&self) -> &[DVec3] {
+        &self.v
+    }
+
+    /// Rest positions per slot, m.
+    pub fn rest_positions(&self) -> &[DVec3] {
+        &self.rest
+    }
+
+    /// Masses per slot, kg.
+    pub fn masses(&self) -> &[f64] {
+        &self.mass
+    }
+
+    /// Positions and velocities per slot, to set a state (tests, experiments). Fixed nodes
+    /// must stay at rest with zero velocity.
+    pub fn state_mut(&mut self) -> (&mut [DVec3], &mut [DVec3]) {
+        self.diverged_at_s = None;
+        (&mut self.x, &mut self.v)
+    }
+
+    /// Event counters.
+    pub fn event_stats(&self) -> EventStats {
+        self.stats
+    }
+
+    /// The sub-step plan (from the worst-case Gershgorin bound).
+    pub fn plan(&self) -> StepPlan {
+        self.plan
+    }
+
+    /// Critical time step of the coarse mesh (Gershgorin bound), s.
+    pub fn coarse_critical_dt_s(&self) -> f64 {
+        self.coarse_critical_dt_s
+    }
+
+    /// The current `K'_h` of each centre's area (N/m), in centre order, with the centres'
+    /// nodes: for tests and tools.
+    pub fn area_home_constants(&self) -> impl Iterator<Item = (u32, f64)> + '_ {
+        (0..self.centre_count).map(|k| (self.centres[k].node, self.kh_area[k]))
+    }
+
+    /// The probe.
+    pub fn probe(&self) -> &Probe {
+        &self.probe
+    }
+
+    /// Advances one servo tick (module documentation).
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidDevice`] for a non-finite or absurd device input (state
+    /// untouched); [`ModelError::Diverged`] when the state diverged (then every later tick
+    /// too). Allocation-free, also when the tick runs a subdivision event.
+    pub fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
+        input.validate()?;
+        if let Some(time_s) = self.diverged_at_s {
+            return Err(ModelError::Diverged { time_s });
+        }
+        let dt = self.plan.sub_dt_s;
+        for _ in 0..self.plan.substeps {
+            self.update_area_constants();
+            // 1. Forces of eq. 2: home springs, mesh springs, point loads.
+            for &s in self.mesh.active() {
+                let i = s as usize;
+                self.f[i] = (self.rest[i] - self.x[i]) * self.home_constant(s);
+            }
+            for sp in self.mesh.springs() {
+                let d = self.x[sp.j as usize] - self.x[sp.i as usize];
+                let len = d.length();
+                if len > 0.0 {
+                    let k = self.spring_constant(sp.owner);
+                    let fs = d * (k * (len - sp.rest_length_m) / len);
+                    self.f[sp.i as usize] += fs;
+                    self.f[sp.j as usize] -= fs;
+                }
+            }
+            self.loads.add_to(&self.x, &mut self.f);
+            // 2. Contact: proxy and the explicit part of the coupling's reaction, on the
+            // contact positions.
+            match input.device_position_m {
+                Some(p) => {
+                    self.update_contact_positions();
+                    self.probe
+                        .update(&self.cx, p, input.device_velocity_m_per_s);
+                    self.probe.add_reaction(&mut self.f);
+                    self.update_contact_factor();
+                }
+                None => self.probe.release(),
+            }
+            // 3. Symplectic Euler with implicit damping, then the implicit coupling.
+            let mut max_v2: f64 = 0.0;
+            for &s in self.mesh.active() {
+                let i = s as usize;
+                if self.fixed[i] {
+                    continue;
+                }
+                let denom = self.mass[i] + dt * self.damping[i];
+                self.v[i] = (self.v[i] * self.mass[i] + self.f[i] * dt) / denom;
+                self.x[i] += self.v[i] * dt;
+                max_v2 = max_v2.max(self.v[i].length_squared());
+            }
+            if self.probe.state.in_contact {
+                let (mass, damping, fixed) = (&self.mass, &self.damping, &self.fixed);
+                self.probe
+                    .finish_implicit(dt, &mut self.x, &mut self.v, |i, w| {
+                        if fixed[i] {
+                            DVec3::ZERO
+                        } else {
+                            w / (mass[i] + dt * damping[i])
+                        }
+                    });
+                for &i in self.probe.patch().0 {
+                    max_v2 = max_v2.max(self.v[i as usize].length_squared());
+                }
+            }
+            if !(max_v2 <= DIVERGENCE_SPEED_M_PER_S * DIVERGENCE_SPEED_M_PER_S) {
+                self.diverged_at_s = Some(self.time_s);
+                return Err(ModelError::Diverged {
+                    time_s: self.time_s,
+                });
+            }
+        }
+        self.time_s += self.tick_s;
+        self.loads.advance(self.tick_s);
+        self.update_contact_positions();
+        if !self.probe.state.in_contact {
+            self.foot = None;
+        }
+        self.foot_searched = false;
+        // 4. Subdivision around the contact node, coarsening of areas left.
+        self.update_centres();
+        // 5. Output.
+        let contact = self.probe.state;
+        Ok(TickOutput {
+            force_on_device_n: contact.force_on_device_n,
+            in_contact: contact.in_contact,
+            proxy_position_m: if contact.in_contact {
+                contact.proxy_m
+            } else {
+                input.device_position_m.unwrap_or(DVec3::ZERO)
+            },
+            contact_stiffness_n_per_m: self.probe.contact_stiffness(),
+            sim_time_s: self.time_s,
+        })
+    }
+
+    /// The probe's view of the active slots: `cx = x + contact_rest - rest`. O(active),
+    /// allocation-free.
+    fn update_contact_positions(&mut self) {
+        for &s in self.mesh.active() {
+            let i = s as usize;
+            self.cx[i] = self.x[i] + (self.contact_rest[i] - self.rest[i]);
+        }
+    }
+
+    /// Contact positions per slot (where the probe meets the surface, m; inactive slots hold
+    /// stale values): the positions plus the offsets of [`super::contact_rest`].
+    pub fn contact_positions(&self) -> &[DVec3] {
+        &self.cx
+    }
+
+    /// Largest displacement from rest over the active nodes, m.
+    pub fn max_displacement_m(&self) -> f64 {
+        self.mesh
+            .active()
+            .iter()
+            .map(|&s| (self.x[s as usize] - self.rest[s as usize]).length_squared())
+            .fold(0.0, f64::max)
+            .sqrt()
+    }
+
+    /// The Gershgorin bound on `M^-1 K` (1/s^2) of the current mesh with the current
+    /// constants (the tick's sub-step respects the worst case over all meshes, see
+    /// [`MassSpringBody::plan`]). Allocation-free.
+    pub fn current_stiffness_bound_per_s2(&mut self) -> f64 {
+        let n = self.mass.len();
+        let mut home = std::mem::take(&mut self.scratch_home);
+        for (s, h) in home.iter_mut().enumerate().take(n) {
+            *h = if !self.mesh.is_active(s as u32) {
+                0.0
+            } else {
+                self.home_constant(s as u32)
+            };
+        }
+        let mut diag = std::mem::take(&mut self.scratch_a);
+        let mut off = std::mem::take(&mut self.scratch_b);
+        let lambda = gershgorin_bound_per_s2(
+            &home,
+            &self.mass,
+            &self.fixed,
+            self.mesh
+                .springs()
+                .iter()
+                .map(|sp| (sp.i, sp.j, self.spring_constant(sp.owner))),
+            &mut diag,
+            &mut off,
+        );
+        self.scratch_home = home;
+        self.scratch_a = diag;
+        self.scratch_b = off;
+        lambda
+    }
+}
+
+impl SoftBody for MassSpringBody {
+    fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
+        MassSpringBody::tick(self, input)
+    }
+
+    /// Point loads act on the coarse nodes around the point (they survive every event).
+    fn add_point_load(
+        &mut self,
+        point_m: DVec3,
+        force_n: DVec3,
+        duration_s: f64,
+    ) -> Result<(), ModelError> {
+        self.loads.add_point_load(
+            &self.x,
+            self.probe.params.radius_m,
+            point_m,
+            force_n,
+            duration_s,
+        )
+    }
+
+    fn surface_topology(&self) -> SurfaceTopology<'_> {
+        SurfaceTopology {
+            version: self.version,
+            vertex_count: self.mesh.active().len(),
+            triangles: self.mesh.view_triangles(),
+        }
+    }
+
+    fn surface_capacity(&self) -> SurfaceCapacity {
+        SurfaceCapacity {
+            vertices: self.mass.len(),
+            triangles: 4 * self.surface.triangle_count(),
+        }
+    }
+
+    fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
+        assert_eq!(
+            out.len(),
+            3 * self.mesh.active().len(),
+            "surface buffer length"
+        );
+        let mut max_d2: f64 = 0.0;
+        for (k, &s) in self.mesh.active().iter().enumerate() {
+            let p = self.x[s as usize];
+            out[3 * k] = p.x as f32;
+            out[3 * k + 1] = p.y as f32;
+            out[3 * k + 2] = p.z as f32;
+            max_d2 = max_d2.max((p - self.rest[s as usize]).length_squared());
+        }
+        max_d2.sqrt()
+    }
+
+    fn write_surface_rest_positions(&self, out: &mut [f32]) {
+        assert_eq!(
+            out.len(),
+            3 * self.mesh.active().len(),
+            "surface buffer length"
+        );
+        for (k, &s) in self.mesh.active().iter().enumerate() {
+            let p = self.rest[s as usize];
+            out[3 * k] = p.x as f32;
+            out[3 * k + 1] = p.y as f32;
+            out[3 * k + 2] = p.z as f32;
+        }
+    }
+
+    /// Nodes and surface vertices are the current (subdivided) node count; elements are the
+    /// mesh springs, all of them simulated.
+    fn stats(&self) -> BodyStats {
+        BodyStats {
+            nodes: self.mesh.active().len(),
+            elements: self.mesh.springs().len(),
+            active_elements: self.mesh.springs().len(),
+            particles: 0,
+            active_particles: 0,
+            active_point_loads: self.loads.active_point_loads(),
+            surface_vertices: self.mesh.active().len(),
+            topology_version: self.version,
+            sim_time_s: self.time_s,
+            max_displacement_m: self.max_displacement_m(),
+            ..BodyStats::default()
+        }
+    }
+
+    fn info(&self) -> BodyInfo {
+        BodyInfo {
+            family: "mass-spring",
+            scene: self.scene_name.clone(),
+            tick_s: self.tick_s,
+            substeps: self.plan.substeps,
+            critical_dt_s: self.plan.critical_dt_s,
+            probe_radius_m: self.probe.params.radius_m,
+            point_loads: crate::body::PointLoadZone::Anywhere,
+        }
+    }
+}

@@ -1,0 +1,221 @@
+//! Building a [`MassSpringBody`]: checks, rest positions, masses and damping, the
+//! worst-case sub-step plan (module documentation of [`super`]).
+
+use super::Centre;
+use super::EventStats;
+use super::MAX_CENTRES;
+use super::MassSpringBody;
+use crate::ModelError;
+use crate::contact::ContactModel;
+use crate::contact::Probe;
+use crate::contact::ProbeParams;
+use crate::integrate::IntegratorKind;
+use crate::integrate::IntegratorParams;
+use crate::integrate::plan_steps;
+use crate::loads::BodyLoads;
+use crate::loads::SceneLoads;
+use crate::mass_spring::MassSpringParams;
+use crate::mass_spring::SpringRule;
+use crate::mass_spring::calibration::CalibrationTable;
+use crate::mass_spring::contact_rest::contact_rest_positions;
+use crate::mass_spring::loop_rules::loop_rest_positions;
+use crate::mass_spring::mixed::MixedMesh;
+use crate::mass_spring::network::critical_time_step_s;
+use crate::mass_spring::network::gershgorin_bound_per_s2;
+use crate::mass_spring::prefaulted;
+use crate::mass_spring::refine::NO_OWNER;
+use crate::mass_spring::refine::Refinement;
+use crate::mass_spring::surface::SpringSurface;
+use glam::DVec3;
+
+impl MassSpringBody {
+    /// Builds the body on `surface` with `params`; `table` is the calibrated lookup table
+    /// (required when `params.subdivision` subdivides with [`SpringRule::Calibrated`]); the
+    /// probe and the servo tick settings as for the FEM (`integrator.kind` must be
+    /// symplectic Euler, the only scheme of this family).
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] for invalid parameters (naming the field), a missing table
+    /// (`mass_spring.calibration_file`) or one for another node count, another integrator
+    /// kind; [`ModelError::Unstable`] when the sub-steps needed by the worst-case Gershgorin
+    /// bound exceed `integrator.max_substeps` (or a fixed `integrator.substeps` is too few).
+    pub fn new(
+        surface: SpringSurface,
+        params: &MassSpringParams,
+        table: Option<CalibrationTable>,
+        probe: ProbeParams,
+        integrator: &IntegratorParams,
+        scene_name: &str,
+    ) -> Result<Self, ModelError> {
+        params.validate()?;
+        if matches!(
+            probe.contact,
+            ContactModel::PatchHertz | ContactModel::PatchLocal
+        ) {
+            return Err(ModelError::field(
+                "probe.contact",
+                "\"patch-hertz\" and \"patch-local\" take the law of an FEM material; a mass-spring surface has none (use \"auto\" or \"patch\")",
+            ));
+        }
+        if integrator.kind != IntegratorKind::SymplecticEuler {
+            return Err(ModelError::field(
+                "integrator.kind",
+                "the mass-spring family integrates with \"symplectic-euler\" only",
+            ));
+        }
+        let sub = params.subdivision;
+        let needs_table = sub.rings > 0 && sub.springs == SpringRule::Calibrated;
+        let table = if needs_table {
+            let t = table.ok_or_else(|| {
+                ModelError::field(
+                    "mass_spring.calibration_file",
+                    "subdividing with springs = \"calibrated\" needs the calibration table (run `haptic-calibrate SCENE`)",
+                )
+            })?;
+            if t.node_count() != surface.node_count() {
+                return Err(ModelError::field(
+                    "mass_spring.calibration_file",
+                    format!(
+                        "the table covers {} nodes, the surface has {}",
+                        t.node_count(),
+                        surface.node_count()
+                    ),
+                ));
+            }
+            Some(t)
+        } else {
+            None
+        };
+        let (nc, ne, nt) = (
+            surface.node_count(),
+            surface.edge_count(),
+            surface.triangle_count(),
+        );
+        let ns = nc + ne;
+        let (edge_rest, loop_vertex_rest) = loop_rest_positions(&surface);
+        let mut rest = surface.rest().to_vec();
+        rest.extend_from_slice(&edge_rest);
+        let contact_rest = contact_rest_positions(&surface, probe).positions;
+        let m = params.node_mass_kg;
+        let mut fixed: Vec<bool> = (0..nc as u32).map(|i| surface.is_fixed(i)).collect();
+        fixed.extend(
+            surface
+                .edges()
+                .iter()
+                .map(|&[a, b]| surface.is_fixed(a) && surface.is_fixed(b)),
+        );
+        let refinement = Refinement::new(&surface);
+        let mut probe = Probe::new(probe, surface.triangles().to_vec(), &rest);
+        let (mesh, contact_surface) = MixedMesh::new(&surface, &rest);
+        probe.replace_surface(contact_surface);
+        let load_surface: Vec<[u32; 3]> = surface
+            .triangles()
+            .iter()
+            .copied()
+            .filter(|t| !t.iter().all(|&i| surface.is_fixed(i)))
+            .collect();
+        let loads = BodyLoads::new(
+            &SceneLoads::default(),
+            surface.rest(),
+            &vec![m; nc],
+            load_surface,
+        );
+        // Stability: the coarse bound, and the worst case over every refinement.
+        let kh = params.home_spring_n_per_m;
+        let km = params.mesh_spring_n_per_m;
+        let mut diag = vec![0.0; ns];
+        let mut off = vec![0.0; ns];
+        let coarse_lambda = gershgorin_bound_per_s2(
+            &vec![kh; nc],
+            &vec![m; nc],
+            &fixed[..nc],
+            surface.edges().iter().map(|&[a, b]| (a, b, km)),
+            &mut diag,
+            &mut off,
+        );
+        let coarse_critical_dt_s = critical_time_step_s(coarse_lambda);
+        let worst_lambda = if sub.rings == 0 {
+            coarse_lambda
+        } else {
+            let a_max = table.as_ref().map_or(1.0, |t| t.max_scale());
+            let (kh_max, k_max) = match sub.springs {
+                SpringRule::Calibrated => (
+                    kh * a_max.max(1.0),
+                    km.max(sub.km_over_kh_after * a_max * kh),
+                ),
+                SpringRule::Unchanged | SpringRule::Area => (kh, km),
+            };
+            // N' < 4 N for any area of a surface of genus 0, so m' > m / 4.
+            let m_min = m / 4.0;
+            let node_bound = |springs: f64| (kh_max + 2.0 * springs * k_max) / m_min;
+            let coarse_worst = (0..nc as u32)
+                .filter(|&i| !surface.is_fixed(i))
+                .map(|i| {
+                    node_bound(f64::from(surface.valence(i)) + surface.triangles_at(i).len() as f64)
+                })
+                .fold(0.0, f64::max);
+            coarse_worst.max(node_bound(6.0)).max(coarse_lambda)
+        };
+        let worst_dt = critical_time_step_s(worst_lambda);
+        let plan = plan_steps(integrator, worst_dt)?;
+        Ok(Self {
+            loop_vertex_rest,
+            x: rest.clone(),
+            cx: contact_rest.clone(),
+            contact_rest,
+            v: vec![DVec3::ZERO; ns],
+            f: vec![DVec3::ZERO; ns],
+            mass: vec![m; ns],
+            damping: prefaulted(params.damping_n_s_per_m, ns),
+            fixed,
+            owner: vec![NO_OWNER; ns],
+            centres: [Centre {
+                node: 0,
+                last_contact_s: 0.0,
+            }; MAX_CENTRES],
+            centre_count: 0,
+            kh_area: [kh; MAX_CENTRES],
+            km_area: [km; MAX_CENTRES],
+            probe,
+            organ: None,
+            contact_factor: 1.0,
+            contact_depth_m: 0.0,
+            foot: None,
+            foot_searched: false,
+            worst_lambda_per_s2: worst_lambda,
+            integrator: *integrator,
+            loads,
+            plan,
+            coarse_critical_dt_s,
+            tick_s: integrator.tick_s,
+            time_s: 0.0,
+            diverged_at_s: None,
+            version: 0,
+            stats: EventStats::default(),
+            old_region: Vec::with_capacity(nt),
+            old_edges: Vec::with_capacity(ne),
+            old_type1: Vec::with_capacity(nc),
+            region_nodes: Vec::with_capacity(nc),
+            region_tris: Vec::with_capacity(nt),
+            region_edges: Vec::with_capacity(ne),
+            node_stamp: prefaulted(0, nc),
+            tri_stamp: prefaulted(0, nt),
+            edge_stamp: prefaulted(0, ne),
+            stamp: 0,
+            touched: prefaulted(false, ns),
+            touched_list: Vec::with_capacity(ns),
+            scratch_home: vec![0.0; ns],
+            ring: Vec::with_capacity(nc),
+            ring_dist: vec![u32::MAX; nc],
+            scratch_a: diag,
+            scratch_b: off,
+            scene_name: scene_name.to_string(),
+            rest,
+            refinement,
+            mesh,
+            table,
+            params: *params,
+            surface,
+        })
+    }
+}
