@@ -12,61 +12,69 @@ impl MassSpringBody {
     /// at the centre's displacement over L; the coarse constants with
     /// [`SpringRule::Unchanged`]; eq. 5 with [`SpringRule::Area`]).
     pub(super) fn update_area_constants(&mut self) {
-        let kh = self.params.home_spring_n_per_m;
-        let ratio = match self.params.subdivision.springs {
-            SpringRule::Calibrated => self.params.subdivision.km_over_kh_after,
-            SpringRule::Unchanged => self.params.mesh_spring_n_per_m / kh,
+        let kh = self.setup.params.home_spring_n_per_m;
+        let ratio = match self.setup.params.subdivision.springs {
+            SpringRule::Calibrated => self.setup.params.subdivision.km_over_kh_after,
+            SpringRule::Unchanged => self.setup.params.mesh_spring_n_per_m / kh,
             SpringRule::Area => {
                 // Eq. 5 over the areas (as the masses of eq. 3), the mesh springs unchanged.
-                let (n1, n2) = (self.refinement.type1_count(), self.refinement.type2_count());
+                let (n1, n2) = (
+                    self.state.refinement.type1_count(),
+                    self.state.refinement.type2_count(),
+                );
                 let n_ratio = if n1 + n2 > 0 {
                     n1 as f64 / (n1 + n2) as f64
                 } else {
                     1.0
                 };
-                for k in 0..self.centre_count {
-                    self.kh_area[k] = kh * n_ratio;
-                    self.km_area[k] = self.params.mesh_spring_n_per_m;
+                for k in 0..self.state.centre_count {
+                    self.state.kh_area[k] = kh * n_ratio;
+                    self.state.km_area[k] = self.setup.params.mesh_spring_n_per_m;
                 }
                 return;
             }
         };
-        for k in 0..self.centre_count {
-            let c = self.centres[k].node;
-            let a = match &self.table {
+        for k in 0..self.state.centre_count {
+            let c = self.state.centres[k].node;
+            let a = match &self.model.table {
                 Some(t) => {
-                    let u = (self.x[c as usize] - self.rest[c as usize]).length();
-                    t.scale(c, u / self.surface.element_size_m(c))
+                    let u = (self.state.x[c as usize] - self.state.rest[c as usize]).length();
+                    t.scale(c, u / self.model.surface.element_size_m(c))
                 }
                 None => 1.0,
             };
-            self.kh_area[k] = a * kh;
-            self.km_area[k] = ratio * a * kh;
+            self.state.kh_area[k] = a * kh;
+            self.state.km_area[k] = ratio * a * kh;
         }
     }
 
     /// The coarse node nearest the probe's contact point among the coarse vertices of the
     /// triangle it touches (the contact node C of the paper), if it is free.
     fn contact_node(&self) -> Option<u32> {
-        let st = self.probe.state;
+        let st = self.state.probe.state;
         if !st.in_contact {
             return None;
         }
-        let point = st.proxy_m - st.normal * self.probe.params.radius_m;
-        let nc = self.surface.node_count() as u32;
-        let tri = *self.probe.surface.triangles.get(st.triangle as usize)?;
+        let point = st.proxy_m - st.normal * self.state.probe.params.radius_m;
+        let nc = self.model.surface.node_count() as u32;
+        let tri = *self
+            .state
+            .probe
+            .surface
+            .triangles
+            .get(st.triangle as usize)?;
         let mut best: Option<(f64, u32)> = None;
         for s in tri {
             let parents = if s < nc {
                 [s, s]
             } else {
-                self.surface.edges()[(s - nc) as usize]
+                self.model.surface.edges()[(s - nc) as usize]
             };
             for p in parents {
-                if self.fixed[p as usize] {
+                if self.model.fixed[p as usize] {
                     continue;
                 }
-                let d = (self.cx[p as usize] - point).length_squared();
+                let d = (self.scratch.cx[p as usize] - point).length_squared();
                 if best.is_none_or(|(bd, _)| d < bd) {
                     best = Some((d, p));
                 }
@@ -78,54 +86,54 @@ impl MassSpringBody {
     /// Updates the centres from the contact (touched now: refreshed or added; untouched for
     /// longer than the delay: removed) and runs an event when they changed.
     pub(super) fn update_centres(&mut self) {
-        if self.params.subdivision.rings == 0 {
+        if self.setup.params.subdivision.rings == 0 {
             return;
         }
-        let now = self.time_s;
+        let now = self.state.time_s;
         let mut added = false;
         if let Some(c) = self.contact_node() {
-            match self.centres[..self.centre_count]
+            match self.state.centres[..self.state.centre_count]
                 .iter_mut()
                 .find(|k| k.node == c)
             {
                 Some(k) => k.last_contact_s = k.last_contact_s.max(now),
                 None => {
-                    if self.centre_count == MAX_CENTRES {
+                    if self.state.centre_count == MAX_CENTRES {
                         // Replace the one touched longest ago.
                         let oldest = (0..MAX_CENTRES)
                             .min_by(|&a, &b| {
-                                self.centres[a]
+                                self.state.centres[a]
                                     .last_contact_s
-                                    .total_cmp(&self.centres[b].last_contact_s)
+                                    .total_cmp(&self.state.centres[b].last_contact_s)
                             })
                             .unwrap_or(0);
-                        self.centres[oldest] = Centre {
+                        self.state.centres[oldest] = Centre {
                             node: c,
                             last_contact_s: now,
                         };
                     } else {
-                        self.centres[self.centre_count] = Centre {
+                        self.state.centres[self.state.centre_count] = Centre {
                             node: c,
                             last_contact_s: now,
                         };
-                        self.centre_count += 1;
+                        self.state.centre_count += 1;
                     }
                     added = true;
                 }
             }
         }
-        let delay = self.params.subdivision.coarsen_delay_s;
-        let before = self.centre_count;
+        let delay = self.setup.params.subdivision.coarsen_delay_s;
+        let before = self.state.centre_count;
         let mut k = 0;
-        while k < self.centre_count {
-            if now - self.centres[k].last_contact_s > delay && self.area_is_quiet(k) {
-                self.centre_count -= 1;
-                self.centres[k] = self.centres[self.centre_count];
+        while k < self.state.centre_count {
+            if now - self.state.centres[k].last_contact_s > delay && self.area_is_quiet(k) {
+                self.state.centre_count -= 1;
+                self.state.centres[k] = self.state.centres[self.state.centre_count];
             } else {
                 k += 1;
             }
         }
-        let removed = self.centre_count < before;
+        let removed = self.state.centre_count < before;
         if added || removed {
             self.event(added, removed);
         }
@@ -135,23 +143,28 @@ impl MassSpringBody {
     /// nodes) is within [`QUIET_DISPLACEMENT_OVER_L`] of its rest position. O(area),
     /// allocation-free.
     fn area_is_quiet(&mut self, k: usize) -> bool {
-        let c = self.centres[k].node;
-        let limit = QUIET_DISPLACEMENT_OVER_L * self.surface.element_size_m(c);
+        let c = self.state.centres[k].node;
+        let limit = QUIET_DISPLACEMENT_OVER_L * self.model.surface.element_size_m(c);
         let limit2 = limit * limit;
-        let rings = self.params.subdivision.rings;
-        let mut ring = std::mem::take(&mut self.ring);
-        self.surface.ring(c, rings, &mut self.ring_dist, &mut ring);
-        let nc = self.surface.node_count() as u32;
-        let moved = |s: u32| (self.x[s as usize] - self.rest[s as usize]).length_squared() > limit2;
+        let rings = self.setup.params.subdivision.rings;
+        let mut ring = std::mem::take(&mut self.event.ring);
+        self.model
+            .surface
+            .ring(c, rings, &mut self.event.ring_dist, &mut ring);
+        let nc = self.model.surface.node_count() as u32;
+        let moved = |s: u32| {
+            (self.state.x[s as usize] - self.state.rest[s as usize]).length_squared() > limit2
+        };
         let quiet = ring.iter().all(|&(i, _)| {
             !moved(i)
                 && self
+                    .model
                     .surface
                     .incident_edges(i)
                     .iter()
-                    .all(|&e| !self.refinement.is_edge_split(e) || !moved(nc + e))
+                    .all(|&e| !self.state.refinement.is_edge_split(e) || !moved(nc + e))
         });
-        self.ring = ring;
+        self.event.ring = ring;
         quiet
     }
 
@@ -160,14 +173,14 @@ impl MassSpringBody {
     /// the calibration experiment. At most [`MAX_CENTRES`] nodes are taken; fixed ones and
     /// nodes out of range are skipped. Allocation-free.
     pub fn subdivide_around(&mut self, nodes: &[u32]) {
-        self.centre_count = 0;
+        self.state.centre_count = 0;
         for &c in nodes.iter().take(MAX_CENTRES) {
-            if (c as usize) < self.surface.node_count() && !self.surface.is_fixed(c) {
-                self.centres[self.centre_count] = Centre {
+            if (c as usize) < self.model.surface.node_count() && !self.model.surface.is_fixed(c) {
+                self.state.centres[self.state.centre_count] = Centre {
                     node: c,
                     last_contact_s: f64::INFINITY,
                 };
-                self.centre_count += 1;
+                self.state.centre_count += 1;
             }
         }
         self.event(true, false);
@@ -175,7 +188,7 @@ impl MassSpringBody {
 
     /// Coarsens every subdivided area: back to the coarse mesh (an event). Allocation-free.
     pub fn coarsen(&mut self) {
-        self.centre_count = 0;
+        self.state.centre_count = 0;
         self.event(false, true);
     }
 }

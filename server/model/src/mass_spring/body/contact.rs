@@ -22,7 +22,7 @@ impl MassSpringBody {
     /// triangle). Unchanged out of contact; the factor
     /// unchanged without a table. Allocation-free.
     pub(super) fn update_contact_factor(&mut self) {
-        let st = self.probe.state;
+        let st = self.state.probe.state;
         if !st.in_contact {
             return;
         }
@@ -30,47 +30,53 @@ impl MassSpringBody {
         // In a subdivided area the depth below the flat rest triangle at the foot (the
         // subdivided patch's kernel plane sits lower at rest than the coarse one's); elsewhere
         // the kernel plane's travel (which follows the organ's surface between nodes).
-        let foot_in_area = self.foot.filter(|f| {
-            self.surface.triangles()[f.triangle as usize]
+        let foot_in_area = self.state.foot.filter(|f| {
+            self.model.surface.triangles()[f.triangle as usize]
                 .iter()
-                .any(|&s| self.owner[s as usize] != NO_OWNER)
+                .any(|&s| self.state.owner[s as usize] != NO_OWNER)
         });
         let depth = match &foot_in_area {
-            Some(foot) => foot_depth_m(foot, self.probe.params.radius_m),
+            Some(foot) => foot_depth_m(foot, self.state.probe.params.radius_m),
             None => {
-                let (nodes, weights) = self.probe.patch();
+                let (nodes, weights) = self.state.probe.patch();
                 nodes
                     .iter()
                     .zip(weights)
-                    .map(|(&i, &w)| w * (self.rest[i as usize] - self.x[i as usize]).dot(st.normal))
+                    .map(|(&i, &w)| {
+                        w * (self.state.rest[i as usize] - self.state.x[i as usize]).dot(st.normal)
+                    })
                     .sum()
             }
         };
-        self.contact_depth_m = depth;
-        let Some(table) = &self.organ else {
+        self.state.contact_depth_m = depth;
+        let Some(table) = &self.model.organ else {
             return;
         };
         // On the coarse surface at the patch's centroid ([`MassSpringBody::patch_foot`]); in a
         // subdivided area at the proxy's foot.
         let at = match foot_in_area {
-            Some(_) => self.foot,
-            None => self.patch_foot().or(self.foot),
+            Some(_) => self.state.foot,
+            None => self.patch_foot().or(self.state.foot),
         };
         let (tri, b) = match at {
-            Some(foot) => (self.surface.triangles()[foot.triangle as usize], foot.bary),
-            None => match self.probe.surface.triangles.get(st.triangle as usize) {
+            Some(foot) => (
+                self.model.surface.triangles()[foot.triangle as usize],
+                foot.bary,
+            ),
+            None => match self.state.probe.surface.triangles.get(st.triangle as usize) {
                 Some(&tri) => (tri, st.bary),
                 None => return,
             },
         };
-        let nc = self.surface.node_count() as u32;
+        let nc = self.model.surface.node_count() as u32;
         // A site of a subdivided area takes the subdivided configuration's factor.
-        let site = |s: u32| table.factor(s, depth, self.owner[s as usize] != NO_OWNER);
+        let site = |s: u32| table.factor(s, depth, self.state.owner[s as usize] != NO_OWNER);
         let beta = if tri.iter().all(|&s| s < nc) {
             // A coarse triangle: linear over its four Loop children (corner i's child where
             // b_i >= 1/2, else the middle one), whose corners are nodes and edge midpoints.
             let edge = |i: usize| {
-                self.surface
+                self.model
+                    .surface
                     .edge_between(tri[i], tri[(i + 1) % 3])
                     .map_or(0.5 * (site(tri[i]) + site(tri[(i + 1) % 3])), |e| {
                         site(nc + e)
@@ -93,7 +99,7 @@ impl MassSpringBody {
             tri.iter().zip(&b).map(|(&s, &w)| w * site(s)).sum()
         };
         if beta.is_finite() && beta > 0.0 {
-            self.contact_factor = beta;
+            self.state.contact_factor = beta;
         }
     }
 
@@ -108,19 +114,19 @@ impl MassSpringBody {
     /// weights are. `None` without a foot (then the proxy's foot or the contact triangle).
     /// Allocation-free.
     fn patch_foot(&self) -> Option<RestFoot> {
-        let hint = self.foot?.triangle;
-        let (nodes, weights) = self.probe.patch();
+        let hint = self.state.foot?.triangle;
+        let (nodes, weights) = self.state.probe.patch();
         if nodes.is_empty() {
             return None;
         }
         let centre: DVec3 = nodes
             .iter()
             .zip(weights)
-            .map(|(&i, &w)| self.rest[i as usize] * w)
+            .map(|(&i, &w)| self.state.rest[i as usize] * w)
             .sum();
-        let m = self.probe.state.normal;
-        let r = self.probe.params.radius_m;
-        rest_foot(&self.surface, centre + m * r, m, r, r, Some(hint))
+        let m = self.state.probe.state.normal;
+        let r = self.state.probe.params.radius_m;
+        rest_foot(&self.model.surface, centre + m * r, m, r, r, Some(hint))
             .filter(|h| h.miss_m <= r)
             .map(|h| h.foot)
     }
@@ -131,22 +137,29 @@ impl MassSpringBody {
     /// normal meets no rest triangle within a probe radius of where the centre should be.
     /// Allocation-free.
     fn update_foot(&mut self) {
-        let hint = self.foot.map(|f| f.triangle);
+        let hint = self.state.foot.map(|f| f.triangle);
         if hint.is_none() {
-            if self.foot_searched {
+            if self.state.foot_searched {
                 return;
             }
-            self.foot_searched = true;
+            self.state.foot_searched = true;
         }
-        let st = self.probe.state;
-        let r = self.probe.params.radius_m;
+        let st = self.state.probe.state;
+        let r = self.state.probe.params.radius_m;
         let expected = if hint.is_some() {
-            r - self.contact_depth_m
+            r - self.state.contact_depth_m
         } else {
             r
         };
-        self.foot = rest_foot(&self.surface, st.proxy_m, st.normal, expected, r, hint)
-            .filter(|f| f.miss_m <= r)
-            .map(|f| f.foot);
+        self.state.foot = rest_foot(
+            &self.model.surface,
+            st.proxy_m,
+            st.normal,
+            expected,
+            r,
+            hint,
+        )
+        .filter(|f| f.miss_m <= r)
+        .map(|f| f.foot);
     }
 }

@@ -96,32 +96,69 @@ pub struct EventStats {
     pub max_injected_energy_j: f64,
 }
 
-/// The mass-spring body (module documentation).
+/// The mass-spring body (module documentation): what the build fixes ([`MassSpringModel`]),
+/// the parameters ([`MassSpringSetup`]), what a tick changes ([`MassSpringState`]), the
+/// per-tick and per-event work arrays and the event counters, as separate parts.
 #[derive(Debug, Clone)]
 pub struct MassSpringBody {
+    model: MassSpringModel,
+    setup: MassSpringSetup,
+    state: MassSpringState,
+    scratch: MassSpringScratch,
+    event: EventScratch,
+    stats: EventStats,
+}
+
+/// What the build fixes and no tick changes.
+#[derive(Debug, Clone)]
+struct MassSpringModel {
+    /// The coarse surface.
     surface: SpringSurface,
-    params: MassSpringParams,
+    /// The calibrated lookup table of the subdivided areas (section 3.2.4), if subdividing
+    /// with calibrated springs.
     table: Option<CalibrationTable>,
+    /// The organ table ([`super::organ`]), if any.
+    organ: Option<OrganTable>,
+    /// Loop rest positions per coarse node (type-1; a type-2 node's, Loop's edge rule, is its
+    /// slot's entry of the rest positions).
+    loop_vertex_rest: Vec<DVec3>,
+    /// Where the probe meets each slot at rest ([`super::contact_rest`]); at run time the probe
+    /// sees `cx = x + contact_rest - rest`.
+    contact_rest: Vec<DVec3>,
+    /// Per slot: clamped (never moves).
+    fixed: Vec<bool>,
+    scene_name: String,
+}
+
+/// The parameters: the scene's and what the build derived from them.
+#[derive(Debug, Clone)]
+struct MassSpringSetup {
+    params: MassSpringParams,
+    integrator: IntegratorParams,
+    /// The sub-step plan, from the worst-case Gershgorin bound (times the organ table's
+    /// largest factor).
+    plan: StepPlan,
+    coarse_critical_dt_s: f64,
+    /// The worst-case Gershgorin bound with constant springs (1/s^2) and the integrator
+    /// settings: the plan is recomputed with the organ table's largest factor.
+    worst_lambda_per_s2: f64,
+    tick_s: f64,
+}
+
+/// What a tick (and an event) changes.
+#[derive(Debug, Clone)]
+struct MassSpringState {
     /// The labels (levels, owners) for the current centres.
     refinement: Refinement,
     /// The springs, triangles and active nodes for those labels (the probe's contact surface
     /// holds the triangles over slots).
     mesh: MixedMesh,
-    /// Loop rest positions per coarse node (type-1; a type-2 node's, Loop's edge rule, is its
-    /// slot's entry of `rest`).
-    loop_vertex_rest: Vec<DVec3>,
     // Per slot (coarse nodes, then one per coarse edge).
     rest: Vec<DVec3>,
-    /// Where the probe meets each slot at rest ([`super::contact_rest`]); at run time the probe
-    /// sees `cx = x + contact_rest - rest`.
-    contact_rest: Vec<DVec3>,
-    cx: Vec<DVec3>,
     x: Vec<DVec3>,
     v: Vec<DVec3>,
-    f: Vec<DVec3>,
     mass: Vec<f64>,
     damping: Vec<f64>,
-    fixed: Vec<bool>,
     /// The centre slot whose area each slot belongs to ([`NO_OWNER`]: none), as built: equal
     /// to the refinement's labels except inside an event.
     owner: Vec<u8>,
@@ -131,9 +168,8 @@ pub struct MassSpringBody {
     kh_area: [f64; MAX_CENTRES],
     km_area: [f64; MAX_CENTRES],
     probe: Probe,
-    /// The organ table ([`super::organ`]) and the contact factor `beta` every spring constant
-    /// is multiplied by now (1 without a table; kept when the probe leaves).
-    organ: Option<OrganTable>,
+    /// The contact factor `beta` every spring constant is multiplied by now (1 without an
+    /// organ table; kept when the probe leaves).
     contact_factor: f64,
     /// The probe's sphere depth at the last sub-step in contact, m (see
     /// [`MassSpringBody::contact_depth_m`]).
@@ -144,20 +180,25 @@ pub struct MassSpringBody {
     /// Whether a sub-step of this tick already searched the foot (at most one search per
     /// tick besides the end-of-tick update).
     foot_searched: bool,
-    /// The worst-case Gershgorin bound with constant springs (1/s^2) and the integrator
-    /// settings: the plan is recomputed with the organ table's largest factor.
-    worst_lambda_per_s2: f64,
-    integrator: IntegratorParams,
     loads: BodyLoads,
-    plan: StepPlan,
-    coarse_critical_dt_s: f64,
-    tick_s: f64,
     time_s: f64,
     diverged_at_s: Option<f64>,
     version: u64,
-    stats: EventStats,
-    // Event scratch: the labels before the event, the region it can change (coarse nodes,
-    // triangles and edges, with stamps against repeats), the nodes whose state it changed.
+}
+
+/// Overwritten every tick: the forces and the contact positions per slot.
+#[derive(Debug, Clone)]
+struct MassSpringScratch {
+    f: Vec<DVec3>,
+    /// `x + contact_rest - rest` over the active slots (what the probe sees).
+    cx: Vec<DVec3>,
+}
+
+/// One subdivision event's work arrays, sized at build: the labels before the event, the
+/// region it can change (coarse nodes, triangles and edges, with stamps against repeats), the
+/// nodes whose state it changed, and the Gershgorin and ring scratch.
+#[derive(Debug, Clone)]
+struct EventScratch {
     old_region: Vec<u32>,
     old_edges: Vec<u32>,
     old_type1: Vec<u32>,
@@ -175,7 +216,6 @@ pub struct MassSpringBody {
     ring_dist: Vec<u32>,
     scratch_a: Vec<f64>,
     scratch_b: Vec<f64>,
-    scene_name: String,
 }
 
 impl MassSpringBody {
@@ -189,7 +229,10 @@ impl MassSpringBody {
     /// `integrator.max_substeps`.
     pub fn with_organ_table(mut self, table: OrganTable) -> Result<Self, ModelError> {
         if (table.node_count(), table.edge_count())
-            != (self.surface.node_count(), self.surface.edge_count())
+            != (
+                self.model.surface.node_count(),
+                self.model.surface.edge_count(),
+            )
         {
             return Err(ModelError::field(
                 "mass_spring.organ_file",
@@ -197,23 +240,23 @@ impl MassSpringBody {
                     "the organ table covers {} nodes and {} edges, the surface has {} and {}",
                     table.node_count(),
                     table.edge_count(),
-                    self.surface.node_count(),
-                    self.surface.edge_count()
+                    self.model.surface.node_count(),
+                    self.model.surface.edge_count()
                 ),
             ));
         }
         let beta_max = table.max_factor().max(1.0);
-        self.plan = plan_steps(
-            &self.integrator,
-            critical_time_step_s(self.worst_lambda_per_s2 * beta_max),
+        self.setup.plan = plan_steps(
+            &self.setup.integrator,
+            critical_time_step_s(self.setup.worst_lambda_per_s2 * beta_max),
         )?;
-        self.organ = Some(table);
+        self.model.organ = Some(table);
         Ok(self)
     }
 
     /// The organ table, if any.
     pub fn organ_table(&self) -> Option<&OrganTable> {
-        self.organ.as_ref()
+        self.model.organ.as_ref()
     }
 
     /// The probe's sphere depth, m, at the last sub-step in contact (the key of the organ
@@ -223,29 +266,29 @@ impl MassSpringBody {
     /// of the probe's kernel plane from its rest position, `sum w_i (rest_i - x_i) . n` over
     /// its patch.
     pub fn contact_depth_m(&self) -> f64 {
-        self.contact_depth_m
+        self.state.contact_depth_m
     }
 
     /// The contact factor every spring constant is multiplied by now ([`super::organ`]).
     pub fn contact_factor(&self) -> f64 {
-        self.contact_factor
+        self.state.contact_factor
     }
 
     #[inline]
     fn home_constant(&self, s: u32) -> f64 {
-        self.contact_factor
-            * match self.owner[s as usize] {
-                NO_OWNER => self.params.home_spring_n_per_m,
-                o => self.kh_area[o as usize],
+        self.state.contact_factor
+            * match self.state.owner[s as usize] {
+                NO_OWNER => self.setup.params.home_spring_n_per_m,
+                o => self.state.kh_area[o as usize],
             }
     }
 
     #[inline]
     fn spring_constant(&self, owner: u8) -> f64 {
-        self.contact_factor
+        self.state.contact_factor
             * match owner {
-                NO_OWNER => self.params.mesh_spring_n_per_m,
-                o => self.km_area[o as usize],
+                NO_OWNER => self.setup.params.mesh_spring_n_per_m,
+                o => self.state.km_area[o as usize],
             }
     }
 
@@ -253,10 +296,10 @@ impl MassSpringBody {
     /// over the current mesh with the current constants. Allocation-free.
     pub fn energy_j(&self) -> f64 {
         let mut e = 0.0;
-        for &s in self.mesh.active() {
+        for &s in self.state.mesh.active() {
             e += self.node_energy_j(s);
         }
-        for k in 0..self.mesh.springs().len() {
+        for k in 0..self.state.mesh.springs().len() {
             e += self.spring_energy_j(k);
         }
         e
@@ -266,69 +309,72 @@ impl MassSpringBody {
     #[inline]
     fn node_energy_j(&self, s: u32) -> f64 {
         let i = s as usize;
-        0.5 * self.mass[i] * self.v[i].length_squared()
-            + 0.5 * self.home_constant(s) * (self.x[i] - self.rest[i]).length_squared()
+        0.5 * self.state.mass[i] * self.state.v[i].length_squared()
+            + 0.5 * self.home_constant(s) * (self.state.x[i] - self.state.rest[i]).length_squared()
     }
 
     /// Elastic energy of mesh spring `k`, J.
     #[inline]
     fn spring_energy_j(&self, k: usize) -> f64 {
-        let sp = &self.mesh.springs()[k];
-        let stretch = (self.x[sp.j as usize] - self.x[sp.i as usize]).length() - sp.rest_length_m;
+        let sp = &self.state.mesh.springs()[k];
+        let stretch =
+            (self.state.x[sp.j as usize] - self.state.x[sp.i as usize]).length() - sp.rest_length_m;
         0.5 * self.spring_constant(sp.owner) * stretch * stretch
     }
 
     /// Kinetic energy over the active nodes, J.
     pub fn kinetic_energy_j(&self) -> f64 {
-        self.mesh
+        self.state
+            .mesh
             .active()
             .iter()
-            .map(|&s| 0.5 * self.mass[s as usize] * self.v[s as usize].length_squared())
+            .map(|&s| 0.5 * self.state.mass[s as usize] * self.state.v[s as usize].length_squared())
             .sum()
     }
 
     /// Total mass of the active nodes, kg (eq. 3 keeps it constant).
     pub fn total_mass_kg(&self) -> f64 {
-        self.mesh
+        self.state
+            .mesh
             .active()
             .iter()
-            .map(|&s| self.mass[s as usize])
+            .map(|&s| self.state.mass[s as usize])
             .sum()
     }
 
     /// The coarse surface.
     pub fn surface(&self) -> &SpringSurface {
-        &self.surface
+        &self.model.surface
     }
 
     /// The current refinement: levels and owners (its [`Refinement::mesh`] lists what
     /// [`MassSpringBody::triangles`] and [`MassSpringBody::springs`] hold).
     pub fn refinement(&self) -> &Refinement {
-        &self.refinement
+        &self.state.refinement
     }
 
     /// The parameters.
     pub fn params(&self) -> &MassSpringParams {
-        &self.params
+        &self.setup.params
     }
 
     /// Active slots (the coarse nodes, then the active type-2 nodes in the order they
     /// appeared): the viewer's vertices.
     pub fn active_nodes(&self) -> &[u32] {
-        self.mesh.active()
+        self.state.mesh.active()
     }
 
     /// Triangles of the current mesh over slots, outward oriented: the probe's contact
     /// surface (the pieces of a coarse triangle are not consecutive; as a set they are
     /// [`Refinement::mesh`]'s).
     pub fn triangles(&self) -> &[[u32; 3]] {
-        &self.probe.surface.triangles
+        &self.state.probe.surface.triangles
     }
 
     /// Mesh springs of the current mesh with their rest lengths and current constants (as a
     /// set, [`Refinement::mesh`]'s springs).
     pub fn springs(&self) -> impl Iterator<Item = Spring> + '_ {
-        self.mesh.springs().iter().map(|sp| Spring {
+        self.state.mesh.springs().iter().map(|sp| Spring {
             i: sp.i,
             j: sp.j,
             rest_length_m: sp.rest_length_m,
@@ -338,29 +384,29 @@ impl MassSpringBody {
 
     /// Positions per slot, m (inactive slots hold stale values).
     pub fn positions(&self) -> &[DVec3] {
-        &self.x
+        &self.state.x
     }
 
     /// Velocities per slot, m/s.
     pub fn velocities(&self) -> &[DVec3] {
-        &self.v
+        &self.state.v
     }
 
     /// Rest positions per slot, m.
     pub fn rest_positions(&self) -> &[DVec3] {
-        &self.rest
+        &self.state.rest
     }
 
     /// Masses per slot, kg.
     pub fn masses(&self) -> &[f64] {
-        &self.mass
+        &self.state.mass
     }
 
     /// Positions and velocities per slot, to set a state (tests, experiments). Fixed nodes
     /// must stay at rest with zero velocity.
     pub fn state_mut(&mut self) -> (&mut [DVec3], &mut [DVec3]) {
-        self.diverged_at_s = None;
-        (&mut self.x, &mut self.v)
+        self.state.diverged_at_s = None;
+        (&mut self.state.x, &mut self.state.v)
     }
 
     /// Event counters.
@@ -370,23 +416,23 @@ impl MassSpringBody {
 
     /// The sub-step plan (from the worst-case Gershgorin bound).
     pub fn plan(&self) -> StepPlan {
-        self.plan
+        self.setup.plan
     }
 
     /// Critical time step of the coarse mesh (Gershgorin bound), s.
     pub fn coarse_critical_dt_s(&self) -> f64 {
-        self.coarse_critical_dt_s
+        self.setup.coarse_critical_dt_s
     }
 
     /// The current `K'_h` of each centre's area (N/m), in centre order, with the centres'
     /// nodes: for tests and tools.
     pub fn area_home_constants(&self) -> impl Iterator<Item = (u32, f64)> + '_ {
-        (0..self.centre_count).map(|k| (self.centres[k].node, self.kh_area[k]))
+        (0..self.state.centre_count).map(|k| (self.state.centres[k].node, self.state.kh_area[k]))
     }
 
     /// The probe.
     pub fn probe(&self) -> &Probe {
-        &self.probe
+        &self.state.probe
     }
 
     /// Advances one servo tick (module documentation).
@@ -397,84 +443,91 @@ impl MassSpringBody {
     /// too). Allocation-free, also when the tick runs a subdivision event.
     pub fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
         input.validate()?;
-        if let Some(time_s) = self.diverged_at_s {
+        if let Some(time_s) = self.state.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
-        let dt = self.plan.sub_dt_s;
-        for _ in 0..self.plan.substeps {
+        let dt = self.setup.plan.sub_dt_s;
+        for _ in 0..self.setup.plan.substeps {
             self.update_area_constants();
             // 1. Forces of eq. 2: home springs, mesh springs, point loads.
-            for &s in self.mesh.active() {
+            for &s in self.state.mesh.active() {
                 let i = s as usize;
-                self.f[i] = (self.rest[i] - self.x[i]) * self.home_constant(s);
+                self.scratch.f[i] = (self.state.rest[i] - self.state.x[i]) * self.home_constant(s);
             }
-            for sp in self.mesh.springs() {
-                let d = self.x[sp.j as usize] - self.x[sp.i as usize];
+            for sp in self.state.mesh.springs() {
+                let d = self.state.x[sp.j as usize] - self.state.x[sp.i as usize];
                 let len = d.length();
                 if len > 0.0 {
                     let k = self.spring_constant(sp.owner);
                     let fs = d * (k * (len - sp.rest_length_m) / len);
-                    self.f[sp.i as usize] += fs;
-                    self.f[sp.j as usize] -= fs;
+                    self.scratch.f[sp.i as usize] += fs;
+                    self.scratch.f[sp.j as usize] -= fs;
                 }
             }
-            self.loads.add_to(&self.x, &mut self.f);
+            self.state.loads.add_to(&self.state.x, &mut self.scratch.f);
             // 2. Contact: proxy and the explicit part of the coupling's reaction, on the
             // contact positions.
             match input.device_position_m {
                 Some(p) => {
                     self.update_contact_positions();
-                    self.probe
-                        .update(&self.cx, p, input.device_velocity_m_per_s);
-                    self.probe.add_reaction(&mut self.f);
+                    self.state
+                        .probe
+                        .update(&self.scratch.cx, p, input.device_velocity_m_per_s);
+                    self.state.probe.add_reaction(&mut self.scratch.f);
                     self.update_contact_factor();
                 }
-                None => self.probe.release(),
+                None => self.state.probe.release(),
             }
             // 3. Symplectic Euler with implicit damping, then the implicit coupling.
             let mut max_v2: f64 = 0.0;
-            for &s in self.mesh.active() {
+            for &s in self.state.mesh.active() {
                 let i = s as usize;
-                if self.fixed[i] {
+                if self.model.fixed[i] {
                     continue;
                 }
-                let denom = self.mass[i] + dt * self.damping[i];
-                self.v[i] = (self.v[i] * self.mass[i] + self.f[i] * dt) / denom;
-                self.x[i] += self.v[i] * dt;
-                max_v2 = max_v2.max(self.v[i].length_squared());
+                let denom = self.state.mass[i] + dt * self.state.damping[i];
+                self.state.v[i] =
+                    (self.state.v[i] * self.state.mass[i] + self.scratch.f[i] * dt) / denom;
+                self.state.x[i] += self.state.v[i] * dt;
+                max_v2 = max_v2.max(self.state.v[i].length_squared());
             }
-            if self.probe.state.in_contact {
-                let (mass, damping, fixed) = (&self.mass, &self.damping, &self.fixed);
-                self.probe
-                    .finish_implicit(dt, &mut self.x, &mut self.v, |i, w| {
+            if self.state.probe.state.in_contact {
+                let (mass, damping, fixed) =
+                    (&self.state.mass, &self.state.damping, &self.model.fixed);
+                self.state.probe.finish_implicit(
+                    dt,
+                    &mut self.state.x,
+                    &mut self.state.v,
+                    |i, w| {
                         if fixed[i] {
                             DVec3::ZERO
                         } else {
                             w / (mass[i] + dt * damping[i])
                         }
-                    });
-                for &i in self.probe.patch().0 {
-                    max_v2 = max_v2.max(self.v[i as usize].length_squared());
+                    },
+                );
+                for &i in self.state.probe.patch().0 {
+                    max_v2 = max_v2.max(self.state.v[i as usize].length_squared());
                 }
             }
             if !(max_v2 <= DIVERGENCE_SPEED_M_PER_S * DIVERGENCE_SPEED_M_PER_S) {
-                self.diverged_at_s = Some(self.time_s);
+                self.state.diverged_at_s = Some(self.state.time_s);
                 return Err(ModelError::Diverged {
-                    time_s: self.time_s,
+                    time_s: self.state.time_s,
                 });
             }
         }
-        self.time_s += self.tick_s;
-        self.loads.advance(self.tick_s);
+        self.state.time_s += self.setup.tick_s;
+        self.state.loads.advance(self.setup.tick_s);
         self.update_contact_positions();
-        if !self.probe.state.in_contact {
-            self.foot = None;
+        if !self.state.probe.state.in_contact {
+            self.state.foot = None;
         }
-        self.foot_searched = false;
+        self.state.foot_searched = false;
         // 4. Subdivision around the contact node, coarsening of areas left.
         self.update_centres();
         // 5. Output.
-        let contact = self.probe.state;
+        let contact = self.state.probe.state;
         Ok(TickOutput {
             force_on_device_n: contact.force_on_device_n,
             in_contact: contact.in_contact,
@@ -483,32 +536,34 @@ impl MassSpringBody {
             } else {
                 input.device_position_m.unwrap_or(DVec3::ZERO)
             },
-            contact_stiffness_n_per_m: self.probe.contact_stiffness(),
-            sim_time_s: self.time_s,
+            contact_stiffness_n_per_m: self.state.probe.contact_stiffness(),
+            sim_time_s: self.state.time_s,
         })
     }
 
     /// The probe's view of the active slots: `cx = x + contact_rest - rest`. O(active),
     /// allocation-free.
     fn update_contact_positions(&mut self) {
-        for &s in self.mesh.active() {
+        for &s in self.state.mesh.active() {
             let i = s as usize;
-            self.cx[i] = self.x[i] + (self.contact_rest[i] - self.rest[i]);
+            self.scratch.cx[i] =
+                self.state.x[i] + (self.model.contact_rest[i] - self.state.rest[i]);
         }
     }
 
     /// Contact positions per slot (where the probe meets the surface, m; inactive slots hold
     /// stale values): the positions plus the offsets of [`super::contact_rest`].
     pub fn contact_positions(&self) -> &[DVec3] {
-        &self.cx
+        &self.scratch.cx
     }
 
     /// Largest displacement from rest over the active nodes, m.
     pub fn max_displacement_m(&self) -> f64 {
-        self.mesh
+        self.state
+            .mesh
             .active()
             .iter()
-            .map(|&s| (self.x[s as usize] - self.rest[s as usize]).length_squared())
+            .map(|&s| (self.state.x[s as usize] - self.state.rest[s as usize]).length_squared())
             .fold(0.0, f64::max)
             .sqrt()
     }
@@ -517,31 +572,32 @@ impl MassSpringBody {
     /// constants (the tick's sub-step respects the worst case over all meshes, see
     /// [`MassSpringBody::plan`]). Allocation-free.
     pub fn current_stiffness_bound_per_s2(&mut self) -> f64 {
-        let n = self.mass.len();
-        let mut home = std::mem::take(&mut self.scratch_home);
+        let n = self.state.mass.len();
+        let mut home = std::mem::take(&mut self.event.scratch_home);
         for (s, h) in home.iter_mut().enumerate().take(n) {
-            *h = if !self.mesh.is_active(s as u32) {
+            *h = if !self.state.mesh.is_active(s as u32) {
                 0.0
             } else {
                 self.home_constant(s as u32)
             };
         }
-        let mut diag = std::mem::take(&mut self.scratch_a);
-        let mut off = std::mem::take(&mut self.scratch_b);
+        let mut diag = std::mem::take(&mut self.event.scratch_a);
+        let mut off = std::mem::take(&mut self.event.scratch_b);
         let lambda = gershgorin_bound_per_s2(
             &home,
-            &self.mass,
-            &self.fixed,
-            self.mesh
+            &self.state.mass,
+            &self.model.fixed,
+            self.state
+                .mesh
                 .springs()
                 .iter()
                 .map(|sp| (sp.i, sp.j, self.spring_constant(sp.owner))),
             &mut diag,
             &mut off,
         );
-        self.scratch_home = home;
-        self.scratch_a = diag;
-        self.scratch_b = off;
+        self.event.scratch_home = home;
+        self.event.scratch_a = diag;
+        self.event.scratch_b = off;
         lambda
     }
 }
@@ -558,9 +614,9 @@ impl SoftBody for MassSpringBody {
         force_n: DVec3,
         duration_s: f64,
     ) -> Result<(), ModelError> {
-        self.loads.add_point_load(
-            &self.x,
-            self.probe.params.radius_m,
+        self.state.loads.add_point_load(
+            &self.state.x,
+            self.state.probe.params.radius_m,
             point_m,
             force_n,
             duration_s,
@@ -569,32 +625,32 @@ impl SoftBody for MassSpringBody {
 
     fn surface_topology(&self) -> SurfaceTopology<'_> {
         SurfaceTopology {
-            version: self.version,
-            vertex_count: self.mesh.active().len(),
-            triangles: self.mesh.view_triangles(),
+            version: self.state.version,
+            vertex_count: self.state.mesh.active().len(),
+            triangles: self.state.mesh.view_triangles(),
         }
     }
 
     fn surface_capacity(&self) -> SurfaceCapacity {
         SurfaceCapacity {
-            vertices: self.mass.len(),
-            triangles: 4 * self.surface.triangle_count(),
+            vertices: self.state.mass.len(),
+            triangles: 4 * self.model.surface.triangle_count(),
         }
     }
 
     fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
         assert_eq!(
             out.len(),
-            3 * self.mesh.active().len(),
+            3 * self.state.mesh.active().len(),
             "surface buffer length"
         );
         let mut max_d2: f64 = 0.0;
-        for (k, &s) in self.mesh.active().iter().enumerate() {
-            let p = self.x[s as usize];
+        for (k, &s) in self.state.mesh.active().iter().enumerate() {
+            let p = self.state.x[s as usize];
             out[3 * k] = p.x as f32;
             out[3 * k + 1] = p.y as f32;
             out[3 * k + 2] = p.z as f32;
-            max_d2 = max_d2.max((p - self.rest[s as usize]).length_squared());
+            max_d2 = max_d2.max((p - self.state.rest[s as usize]).length_squared());
         }
         max_d2.sqrt()
     }
@@ -602,11 +658,11 @@ impl SoftBody for MassSpringBody {
     fn write_surface_rest_positions(&self, out: &mut [f32]) {
         assert_eq!(
             out.len(),
-            3 * self.mesh.active().len(),
+            3 * self.state.mesh.active().len(),
             "surface buffer length"
         );
-        for (k, &s) in self.mesh.active().iter().enumerate() {
-            let p = self.rest[s as usize];
+        for (k, &s) in self.state.mesh.active().iter().enumerate() {
+            let p = self.state.rest[s as usize];
             out[3 * k] = p.x as f32;
             out[3 * k + 1] = p.y as f32;
             out[3 * k + 2] = p.z as f32;
@@ -617,15 +673,15 @@ impl SoftBody for MassSpringBody {
     /// mesh springs, all of them simulated.
     fn stats(&self) -> BodyStats {
         BodyStats {
-            nodes: self.mesh.active().len(),
-            elements: self.mesh.springs().len(),
-            active_elements: self.mesh.springs().len(),
+            nodes: self.state.mesh.active().len(),
+            elements: self.state.mesh.springs().len(),
+            active_elements: self.state.mesh.springs().len(),
             particles: 0,
             active_particles: 0,
-            active_point_loads: self.loads.active_point_loads(),
-            surface_vertices: self.mesh.active().len(),
-            topology_version: self.version,
-            sim_time_s: self.time_s,
+            active_point_loads: self.state.loads.active_point_loads(),
+            surface_vertices: self.state.mesh.active().len(),
+            topology_version: self.state.version,
+            sim_time_s: self.state.time_s,
             max_displacement_m: self.max_displacement_m(),
             ..BodyStats::default()
         }
@@ -634,11 +690,11 @@ impl SoftBody for MassSpringBody {
     fn info(&self) -> BodyInfo {
         BodyInfo {
             family: "mass-spring",
-            scene: self.scene_name.clone(),
-            tick_s: self.tick_s,
-            substeps: self.plan.substeps,
-            critical_dt_s: self.plan.critical_dt_s,
-            probe_radius_m: self.probe.params.radius_m,
+            scene: self.model.scene_name.clone(),
+            tick_s: self.setup.tick_s,
+            substeps: self.setup.plan.substeps,
+            critical_dt_s: self.setup.plan.critical_dt_s,
+            probe_radius_m: self.state.probe.params.radius_m,
             point_loads: crate::body::PointLoadZone::Anywhere,
         }
     }
