@@ -96,8 +96,8 @@ pub struct EventStats {
     pub max_injected_energy_j: f64,
 }
 
-/// The mass-spring body (module documentation): what the build fixes ([`MassSpringModel`]),
-/// the parameters ([`MassSpringSetup`]), what a tick changes ([`MassSpringState`]), the
+/// The mass-spring body (module documentation): what the build fixes (`MassSpringModel`),
+/// the parameters (`MassSpringSetup`), what a tick changes (`MassSpringState`), the
 /// per-tick and per-event work arrays and the event counters, as separate parts.
 #[derive(Debug, Clone)]
 pub struct MassSpringBody {
