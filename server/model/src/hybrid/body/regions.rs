@@ -1,0 +1,164 @@
+//! Contact-local activation and release of the particle regions (seed 000 section 6; module
+//! documentation of [`super`], a tick's step 1).
+
+use super::HybridBody;
+use glam::DVec3;
+
+impl HybridBody {
+    /// Activates the regions of the outer vertices within `radius_m` of `point_m` (m, at
+    /// their current positions), nearest first. When a region does not fit under
+    /// `max_active_particles`, active regions whose vertex is farther from `point_m` than the
+    /// region's by half of `release_radius_m - radius_m` are released, farthest first, settled
+    /// or not, to make room (not while
+    /// [`Self::hold_regions`] holds them): the probe keeps simulated particles under it as it
+    /// slides. Allocation-free; the terms are refilled at the next tick or
+    /// [`Self::evaluate_forces`].
+    pub fn activate_near(&mut self, point_m: DVec3, radius_m: f64) {
+        let r2 = radius_m * radius_m;
+        // Nearest first: when the cap binds, the regions under the probe get in.
+        self.candidates.clear();
+        for v in 0..self.model.outer_rest_m.len() {
+            if self.region_active[v] {
+                continue;
+            }
+            let x = self.model.interpolate(&self.model.vertex_tie[v], &self.xc);
+            let d2 = (x - point_m).length_squared();
+            if d2 < r2 {
+                self.candidates.push((d2, v as u32));
+            }
+        }
+        self.candidates.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+        for k in 0..self.candidates.len() {
+            let (d2, v) = self.candidates[k];
+            let v = v as usize;
+            if !self.fits(v) && !self.hold {
+                // Regions farther than the candidate by half the release band give way: a
+                // region near the activation radius's edge is not evicted and re-activated
+                // tick after tick, and one coming under the probe gets in first.
+                let p = &self.model.params;
+                let band_m = 0.5 * (p.release_radius_m - radius_m).max(0.0);
+                self.evict_far(point_m, d2.sqrt() + band_m, v);
+            }
+            if self.fits(v) {
+                self.activate_region(v);
+            } else {
+                self.refused_activations += 1;
+            }
+        }
+    }
+
+    /// Whether the region of vertex `v` fits under `max_active_particles`.
+    pub(super) fn fits(&self, v: usize) -> bool {
+        let m = &self.model;
+        let len = (m.region_start[v + 1] - m.region_start[v]) as usize;
+        self.active_list.len() + len <= m.params.max_active_particles
+    }
+
+    /// Releases active regions whose vertex is farther than `radius_m` from `probe_m`,
+    /// farthest first, until the region of vertex `v` fits or none is left.
+    pub(super) fn evict_far(&mut self, probe_m: DVec3, radius_m: f64, v: usize) {
+        let r2 = radius_m * radius_m;
+        while !self.fits(v) {
+            let m = &self.model;
+            let mut farthest = None;
+            let mut d2_max = r2;
+            for (k, &u) in self.active_regions.iter().enumerate() {
+                let x = m.interpolate(&m.vertex_tie[u as usize], &self.xc);
+                let d2 = (x - probe_m).length_squared();
+                if d2 > d2_max {
+                    d2_max = d2;
+                    farthest = Some(k);
+                }
+            }
+            let Some(k) = farthest else {
+                return;
+            };
+            self.deactivate_region(k);
+            self.released_for_room += 1;
+            let active = &self.active;
+            self.active_list.retain(|&p| active[p as usize]);
+        }
+    }
+
+    /// Switches off the `k`-th active region (its particles follow the core again, and may be
+    /// tied to it as neighbours of the next active set); the caller prunes `active_list`.
+    pub(super) fn deactivate_region(&mut self, k: usize) {
+        let m = &self.model;
+        let v = self.active_regions[k] as usize;
+        for &p in &m.region_particles[m.region_start[v] as usize..m.region_start[v + 1] as usize] {
+            self.active[p as usize] = false;
+            // `rebuild_terms` clears the marks of the pruned `active_list` only.
+            self.in_block[p as usize] = false;
+        }
+        self.region_active[v] = false;
+        self.active_regions.swap_remove(k);
+        self.changed = true;
+    }
+
+    pub(super) fn activate_region(&mut self, v: usize) {
+        let m = &self.model;
+        let range = m.region_start[v] as usize..m.region_start[v + 1] as usize;
+        for k in range {
+            let p = m.region_particles[k] as usize;
+            if m.degenerate[p] {
+                continue;
+            }
+            let tie = &m.particle_tie[p];
+            self.xp[p] = m.interpolate(tie, &self.xc);
+            if self.deviation {
+                // On the core's interpolation, moving with it: no deviation.
+                self.xd[p] = DVec3::ZERO;
+                self.vp[p] = DVec3::ZERO;
+            } else {
+                self.vp[p] = m.interpolate(tie, &self.vc);
+            }
+            self.active[p] = true;
+            self.active_list.push(p as u32);
+        }
+        self.region_active[v] = true;
+        self.active_regions.push(v as u32);
+        self.changed = true;
+    }
+
+    /// Releases the settled regions whose vertex is farther than `release_radius_m` from the
+    /// probe (`None`: no probe, every settled region).
+    pub(super) fn release_far(&mut self, probe_m: Option<DVec3>) {
+        let p = &self.model.params;
+        let r2 = p.release_radius_m * p.release_radius_m;
+        let tol2 = p.release_tolerance_m * p.release_tolerance_m;
+        let mut released = false;
+        let mut k = 0;
+        while k < self.active_regions.len() {
+            let m = &self.model;
+            let v = self.active_regions[k] as usize;
+            let near = probe_m.is_some_and(|c| {
+                (m.interpolate(&m.vertex_tie[v], &self.xc) - c).length_squared() < r2
+            });
+            let region =
+                &m.region_particles[m.region_start[v] as usize..m.region_start[v + 1] as usize];
+            // Settled: back on the core's interpolation, or at rest (speeds below the tolerance
+            // per 0.1 s) in a state the layer cannot leave by itself (a fold pressed in by the
+            // probe), which the release then removes.
+            let settled = !near
+                && (region.iter().all(|&p| {
+                    let p = p as usize;
+                    !self.active[p]
+                        || (self.xp[p] - m.interpolate(&m.particle_tie[p], &self.xc))
+                            .length_squared()
+                            < tol2
+                }) || region.iter().all(|&p| {
+                    !self.active[p as usize] || self.vp[p as usize].length_squared() * 0.01 < tol2
+                }));
+            if settled {
+                self.deactivate_region(k);
+                released = true;
+            } else {
+                k += 1;
+            }
+        }
+        if released {
+            let active = &self.active;
+            self.active_list.retain(|&p| active[p as usize]);
+        }
+    }
+}
