@@ -103,76 +103,118 @@ struct PointLoad {
     remaining_s: f64,
 }
 
-/// The hybrid body (module documentation).
+/// The hybrid body (module documentation): the preprocessed model and the core's elements,
+/// the parameters fixed at build (`HybridSetup`), what a tick changes (`HybridState`), the
+/// active regions and particles (`RegionSet`), the caches rebuilt when they change
+/// (`HybridPipeline`), per-step work arrays and counters, as separate parts.
 #[derive(Debug)]
 pub struct HybridBody {
     model: Box<HybridModel>,
     fem: FemModel,
+    setup: HybridSetup,
+    state: HybridState,
+    regions: RegionSet,
+    pipeline: HybridPipeline,
+    scratch: HybridScratch,
+    stats: HybridStats,
+}
+
+/// The parameters fixed at build ([`HybridBody::override_substeps`] is the one writer).
+#[derive(Debug)]
+struct HybridSetup {
     name: String,
     probe: ProbeParams,
     tick_s: f64,
     substeps: u32,
     core_substeps: u32,
     dt_s: f64,
-    /// Forces of the tied particles and point loads on the core nodes, held over a particle
-    /// step, N.
-    fcoup: Vec<DVec3>,
     critical_dt_s: f64,
     particle_mass_kg: f64,
     core_mass_scale: f64,
+    /// `scaled_motion = "deviation"` ([`ScaledMotion::Deviation`](super::ScaledMotion)): the
+    /// active particles' state is their deviation from the core's interpolation (`xd`, and
+    /// `vp` its rate), and their forces also drive the core nodes.
+    deviation: bool,
+}
+
+/// What a tick changes.
+#[derive(Debug)]
+struct HybridState {
     xc: Vec<DVec3>,
     vc: Vec<DVec3>,
-    fc: Vec<DVec3>,
     xp: Vec<DVec3>,
     vp: Vec<DVec3>,
-    fp: Vec<DVec3>,
-    active: Vec<bool>,
-    in_block: Vec<bool>,
-    active_list: Vec<u32>,
-    tied_list: Vec<u32>,
-    /// The core nodes and tie weights of each particle of `tied_list`, copied when the terms
-    /// are refilled: the per-sub-step gather and scatter read them in order instead of
-    /// looking up the particle's tie and its tetrahedron.
-    tied_ties: Vec<TieNodes>,
-    /// `scaled_motion = "deviation"` ([`ScaledMotion::Deviation`]): the active particles'
-    /// state is their deviation from the core's interpolation (`xd`, and `vp` its rate), and
-    /// their forces also drive the core nodes.
-    deviation: bool,
     /// Deviations of the active particles from the core's interpolation, m (deviation mode).
     xd: Vec<DVec3>,
-    /// The core nodes and tie weights of each particle of `active_list`, copied when the terms
-    /// are refilled (deviation mode).
-    active_ties: Vec<TieNodes>,
-    block: TermBlock,
     /// The probe: the proxy sphere on the active particles and the virtual coupling.
     proxy: ParticleProxy,
-    /// `inactive_layer = "elements"`: the elements' shares of the wall's energy.
-    layer: Option<LayerElements>,
-    /// `core_step = "implicit"`: the core's factor and its margin.
-    implicit: Option<(ImplicitCore, f64)>,
-    /// Outer-vertex adjacency (CSR over `outer_triangles`), for the implicit core's regions.
-    vertex_adj_start: Vec<u32>,
-    vertex_adj: Vec<u32>,
-    /// The regions whose condensed stiffness the implicit core's matrix holds: the active ones
-    /// and their neighbours (scratch; `region_mark` flags them).
-    matrix_regions: Vec<u32>,
-    region_mark: Vec<bool>,
-    /// Refactorings of the implicit core's matrix since set-up.
-    implicit_refactors: u64,
-    region_active: Vec<bool>,
-    active_regions: Vec<u32>,
-    /// Regions to activate this tick with their squared distance to the probe, m^2 (scratch
-    /// of [`Self::activate_near`], one slot per outer vertex).
-    candidates: Vec<(f64, u32)>,
-    changed: bool,
-    hold: bool,
-    refused_activations: u64,
-    released_for_room: u64,
     loads: [PointLoad; MAX_POINT_LOADS],
     load_count: usize,
     time_s: f64,
     diverged_at_s: Option<f64>,
     last_force_n: DVec3,
+}
+
+/// The active regions and particles (contact-local activation, `regions.rs`).
+#[derive(Debug)]
+struct RegionSet {
+    active: Vec<bool>,
+    in_block: Vec<bool>,
+    active_list: Vec<u32>,
+    tied_list: Vec<u32>,
+    region_active: Vec<bool>,
+    active_regions: Vec<u32>,
+    /// Outer-vertex adjacency (CSR over `outer_triangles`), for the implicit core's regions
+    /// (built once; empty with an explicit core).
+    vertex_adj_start: Vec<u32>,
+    vertex_adj: Vec<u32>,
+    /// The active set changed: the terms are refilled before the next force evaluation.
+    changed: bool,
+    /// [`HybridBody::hold_regions`]: no release.
+    hold: bool,
+}
+
+/// Caches rebuilt when the active set changes.
+#[derive(Debug)]
+struct HybridPipeline {
+    block: TermBlock,
+    /// `inactive_layer = "elements"`: the elements' shares of the wall's energy.
+    layer: Option<LayerElements>,
+    /// `core_step = "implicit"`: the core's factor and its margin.
+    implicit: Option<(ImplicitCore, f64)>,
+    /// The core nodes and tie weights of each particle of `tied_list`, copied when the terms
+    /// are refilled: the per-sub-step gather and scatter read them in order instead of
+    /// looking up the particle's tie and its tetrahedron.
+    tied_ties: Vec<TieNodes>,
+    /// The core nodes and tie weights of each particle of `active_list`, copied when the terms
+    /// are refilled (deviation mode).
+    active_ties: Vec<TieNodes>,
+}
+
+/// Work arrays, sized at build and overwritten.
+#[derive(Debug)]
+struct HybridScratch {
+    fc: Vec<DVec3>,
+    fp: Vec<DVec3>,
+    /// Forces of the tied particles and point loads on the core nodes, held over a particle
+    /// step, N.
+    fcoup: Vec<DVec3>,
+    /// The regions whose condensed stiffness the implicit core's matrix holds: the active ones
+    /// and their neighbours (`region_mark` flags them).
+    matrix_regions: Vec<u32>,
+    region_mark: Vec<bool>,
+    /// Regions to activate this tick with their squared distance to the probe, m^2 (one slot
+    /// per outer vertex).
+    candidates: Vec<(f64, u32)>,
+}
+
+/// Counters since set-up.
+#[derive(Debug, Default)]
+struct HybridStats {
+    /// Refactorings of the implicit core's matrix.
+    implicit_refactors: u64,
+    refused_activations: u64,
+    released_for_room: u64,
 }
 
 impl HybridBody {
@@ -183,7 +225,11 @@ impl HybridBody {
 
     /// Particle sub-steps per tick, the particle step (s) and core steps per particle step.
     pub fn substeps(&self) -> (u32, f64, u32) {
-        (self.substeps, self.dt_s, self.core_substeps)
+        (
+            self.setup.substeps,
+            self.setup.dt_s,
+            self.setup.core_substeps,
+        )
     }
 
     /// Sets the particle sub-steps per tick, overriding the count derived from the critical
@@ -199,75 +245,78 @@ impl HybridBody {
                 self.model.params.max_substeps
             )));
         }
-        self.substeps = substeps;
-        self.dt_s = self.tick_s / substeps as f64;
+        self.setup.substeps = substeps;
+        self.setup.dt_s = self.setup.tick_s / substeps as f64;
         self.rebuild_implicit()
     }
 
     /// The critical step the sub-steps come from, s: the smaller of the particles' (Gershgorin
     /// bound, mass-scaled, with the probe penalty) and the core's.
     pub fn critical_step_bound_s(&self) -> f64 {
-        self.critical_dt_s
+        self.setup.critical_dt_s
     }
 
     /// Keeps every active region active (no release) while `hold` is true: for tests and
     /// studies of a fixed active set.
     pub fn hold_regions(&mut self, hold: bool) {
-        self.hold = hold;
+        self.regions.hold = hold;
     }
 
     /// Activations refused because `max_active_particles` (or the term capacity) was reached.
     pub fn refused_activations(&self) -> u64 {
-        self.refused_activations
+        self.stats.refused_activations
     }
 
     /// Regions released unsettled to make room under `max_active_particles` for regions
     /// nearer the probe ([`Self::activate_near`]).
     pub fn released_for_room(&self) -> u64 {
-        self.released_for_room
+        self.stats.released_for_room
     }
 
     /// Proxy solves that stopped at their iteration cap since set-up
     /// ([`ParticleProxy::unconverged_solves`]).
     pub fn unconverged_proxy_solves(&self) -> u64 {
-        self.proxy.unconverged_solves()
+        self.state.proxy.unconverged_solves()
     }
 
     /// Refactorings of the implicit core's matrix since set-up (when an active region was not
     /// in it).
     pub fn implicit_refactors(&self) -> u64 {
-        self.implicit_refactors
+        self.stats.implicit_refactors
     }
 
     /// Heap bytes of the implicit core's matrix and factor (0 with an explicit core).
     pub fn implicit_core_memory_bytes(&self) -> usize {
-        self.implicit.as_ref().map_or(0, |(c, _)| c.memory_bytes())
+        self.pipeline
+            .implicit
+            .as_ref()
+            .map_or(0, |(c, _)| c.memory_bytes())
     }
 
     /// Energy terms and tied particles of the current active set (the per-sub-step work).
     pub fn work_counts(&self) -> (usize, usize) {
-        (self.block.len(), self.tied_list.len())
+        (self.pipeline.block.len(), self.regions.tied_list.len())
     }
 
     /// The term block's stencil layout in use (grid cells, groups of four owners), `None`
     /// when its general loop runs ([`TermBlock::stencil_layout`]).
     pub fn stencil_layout(&self) -> Option<(usize, usize)> {
-        self.block.stencil_layout()
+        self.pipeline.block.stencil_layout()
     }
 
     /// Chooses the term block's force loop ([`TermBlock::set_stencil_loop`]), for benchmarks.
     pub fn set_stencil_loop(&mut self, on: bool) {
-        self.block.set_stencil_loop(on);
+        self.pipeline.block.set_stencil_loop(on);
     }
 
     /// Currently active particles.
     pub fn active_particles(&self) -> &[u32] {
-        &self.active_list
+        &self.regions.active_list
     }
 
     /// Core positions and velocities (m, m/s), for tests and studies.
     pub fn core_state_mut(&mut self) -> (&mut [DVec3], &mut [DVec3]) {
-        (&mut self.xc, &mut self.vc)
+        (&mut self.state.xc, &mut self.state.vc)
     }
 
     /// Particle positions and velocities (m, m/s, indexed by particle; only active particles'
@@ -275,7 +324,7 @@ impl HybridBody {
     /// With `scaled_motion = "deviation"` the velocities are the deviations' rates and the
     /// positions are recomputed from the core and the deviations at every sub-step.
     pub fn particle_state_mut(&mut self) -> (&mut [DVec3], &mut [DVec3]) {
-        (&mut self.xp, &mut self.vp)
+        (&mut self.state.xp, &mut self.state.vp)
     }
 
     /// Lumped masses of the core nodes, kg (the core's and the particle layer's, times
@@ -287,24 +336,24 @@ impl HybridBody {
     /// The core's mass multiplier in use ([`CoreMassScale`](super::CoreMassScale): the value set, `mass_scale`, or
     /// the one chosen for `auto`).
     pub fn core_mass_scale(&self) -> f64 {
-        self.core_mass_scale
+        self.setup.core_mass_scale
     }
 
     /// Mass of one particle, kg.
     pub fn particle_mass_kg(&self) -> f64 {
-        self.particle_mass_kg
+        self.setup.particle_mass_kg
     }
 }
 
 impl SoftBody for HybridBody {
     fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
         input.validate()?;
-        if let Some(time_s) = self.diverged_at_s {
+        if let Some(time_s) = self.state.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
         // 1. Release, then activation (which may release unsettled far regions for room).
         let probe = input.device_position_m;
-        if !self.hold {
+        if !self.regions.hold {
             self.release_far(probe);
         }
         if let Some(c) = probe {
@@ -317,13 +366,13 @@ impl SoftBody for HybridBody {
             proxy_m: probe.unwrap_or(DVec3::ZERO),
             in_contact: false,
         };
-        for _ in 0..self.substeps {
+        for _ in 0..self.setup.substeps {
             out = self.particle_forces(probe);
-            let v2 = self.update(self.dt_s);
+            let v2 = self.update(self.setup.dt_s);
             if !(v2 <= MAX_SPEED_M_PER_S * MAX_SPEED_M_PER_S) {
-                self.diverged_at_s = Some(self.time_s);
+                self.state.diverged_at_s = Some(self.state.time_s);
                 return Err(ModelError::Diverged {
-                    time_s: self.time_s,
+                    time_s: self.state.time_s,
                 });
             }
         }
@@ -332,16 +381,19 @@ impl SoftBody for HybridBody {
         // by a tick: through the coupling that reads `k_c v h` too high while the device moves,
         // 3 mN at 10 mm/s, and drops by as much in the tick it stops.)
         if let Some(device) = probe {
-            out = self.proxy.update(device, &self.xp, &self.active_list, None);
+            out = self
+                .state
+                .proxy
+                .update(device, &self.state.xp, &self.regions.active_list, None);
         }
-        self.time_s += self.tick_s;
+        self.state.time_s += self.setup.tick_s;
         // Point loads age by the tick.
         let mut k = 0;
-        while k < self.load_count {
-            self.loads[k].remaining_s -= self.tick_s;
-            if self.loads[k].remaining_s <= 0.0 {
-                self.loads[k] = self.loads[self.load_count - 1];
-                self.load_count -= 1;
+        while k < self.state.load_count {
+            self.state.loads[k].remaining_s -= self.setup.tick_s;
+            if self.state.loads[k].remaining_s <= 0.0 {
+                self.state.loads[k] = self.state.loads[self.state.load_count - 1];
+                self.state.load_count -= 1;
             } else {
                 k += 1;
             }
@@ -349,18 +401,18 @@ impl SoftBody for HybridBody {
         // 4. Device force, clamped.
         let (mut force, mut stiffness) = (out.force_on_device_n, out.stiffness_n_per_m);
         let mag = force.length();
-        if mag > self.probe.max_force_n {
-            let s = self.probe.max_force_n / mag;
+        if mag > self.setup.probe.max_force_n {
+            let s = self.setup.probe.max_force_n / mag;
             force *= s;
             stiffness.iter_mut().for_each(|v| *v *= s);
         }
-        self.last_force_n = force;
+        self.state.last_force_n = force;
         Ok(TickOutput {
             force_on_device_n: force,
             in_contact: out.in_contact,
             proxy_position_m: out.proxy_m,
             contact_stiffness_n_per_m: stiffness,
-            sim_time_s: self.time_s,
+            sim_time_s: self.state.time_s,
         })
     }
 
@@ -371,24 +423,24 @@ impl SoftBody for HybridBody {
         duration_s: f64,
     ) -> Result<(), ModelError> {
         validate_point_load(point_m, force_n, duration_s)?;
-        if self.load_count == MAX_POINT_LOADS {
+        if self.state.load_count == MAX_POINT_LOADS {
             return Err(ModelError::LoadTableFull(MAX_POINT_LOADS));
         }
         let m = &self.model;
         let mut best = (f64::INFINITY, 0usize);
         for v in 0..m.outer_rest_m.len() {
-            let x = m.interpolate(&m.vertex_tie[v], &self.xc);
+            let x = m.interpolate(&m.vertex_tie[v], &self.state.xc);
             let d = (x - point_m).length_squared();
             if d < best.0 {
                 best = (d, v);
             }
         }
-        self.loads[self.load_count] = PointLoad {
+        self.state.loads[self.state.load_count] = PointLoad {
             tie: m.vertex_tie[best.1],
             force_n,
             remaining_s: duration_s,
         };
-        self.load_count += 1;
+        self.state.load_count += 1;
         Ok(())
     }
 
@@ -412,11 +464,11 @@ impl SoftBody for HybridBody {
         assert_eq!(out.len(), 3 * m.outer_rest_m.len(), "surface buffer length");
         let mut max_d2: f64 = 0.0;
         for v in 0..m.outer_rest_m.len() {
-            let mut x = m.interpolate(&m.vertex_tie[v], &self.xc);
+            let mut x = m.interpolate(&m.vertex_tie[v], &self.state.xc);
             let p = m.vertex_particle[v];
-            if p != u32::MAX && self.active[p as usize] {
+            if p != u32::MAX && self.regions.active[p as usize] {
                 let p = p as usize;
-                x += self.xp[p] - m.interpolate(&m.particle_tie[p], &self.xc);
+                x += self.state.xp[p] - m.interpolate(&m.particle_tie[p], &self.state.xc);
             }
             out[3 * v] = x.x as f32;
             out[3 * v + 1] = x.y as f32;
@@ -438,20 +490,21 @@ impl SoftBody for HybridBody {
 
     fn stats(&self) -> BodyStats {
         let max_displacement_m = self
+            .state
             .xc
             .iter()
             .zip(&self.model.core_mesh.nodes)
             .fold(0.0f64, |a, (x, r)| a.max((*x - *r).length()));
         BodyStats {
-            nodes: self.xc.len(),
+            nodes: self.state.xc.len(),
             elements: self.model.core_mesh.tets.len(),
             active_elements: self.model.core_mesh.tets.len(),
             particles: self.model.layer_count,
-            active_particles: self.active_list.len(),
-            active_point_loads: self.load_count,
+            active_particles: self.regions.active_list.len(),
+            active_point_loads: self.state.load_count,
             surface_vertices: self.model.outer_rest_m.len(),
             topology_version: 1,
-            sim_time_s: self.time_s,
+            sim_time_s: self.state.time_s,
             max_displacement_m,
             ..BodyStats::default()
         }
@@ -460,11 +513,11 @@ impl SoftBody for HybridBody {
     fn info(&self) -> BodyInfo {
         BodyInfo {
             family: "hybrid",
-            scene: self.name.clone(),
-            tick_s: self.tick_s,
-            substeps: self.substeps,
-            critical_dt_s: self.critical_dt_s,
-            probe_radius_m: self.probe.radius_m,
+            scene: self.setup.name.clone(),
+            tick_s: self.setup.tick_s,
+            substeps: self.setup.substeps,
+            critical_dt_s: self.setup.critical_dt_s,
+            probe_radius_m: self.setup.probe.radius_m,
             point_loads: crate::body::PointLoadZone::Anywhere,
         }
     }

@@ -16,22 +16,26 @@ impl HybridBody {
     pub fn activate_near(&mut self, point_m: DVec3, radius_m: f64) {
         let r2 = radius_m * radius_m;
         // Nearest first: when the cap binds, the regions under the probe get in.
-        self.candidates.clear();
+        self.scratch.candidates.clear();
         for v in 0..self.model.outer_rest_m.len() {
-            if self.region_active[v] {
+            if self.regions.region_active[v] {
                 continue;
             }
-            let x = self.model.interpolate(&self.model.vertex_tie[v], &self.xc);
+            let x = self
+                .model
+                .interpolate(&self.model.vertex_tie[v], &self.state.xc);
             let d2 = (x - point_m).length_squared();
             if d2 < r2 {
-                self.candidates.push((d2, v as u32));
+                self.scratch.candidates.push((d2, v as u32));
             }
         }
-        self.candidates.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
-        for k in 0..self.candidates.len() {
-            let (d2, v) = self.candidates[k];
+        self.scratch
+            .candidates
+            .sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+        for k in 0..self.scratch.candidates.len() {
+            let (d2, v) = self.scratch.candidates[k];
             let v = v as usize;
-            if !self.fits(v) && !self.hold {
+            if !self.fits(v) && !self.regions.hold {
                 // Regions farther than the candidate by half the release band give way: a
                 // region near the activation radius's edge is not evicted and re-activated
                 // tick after tick, and one coming under the probe gets in first.
@@ -42,7 +46,7 @@ impl HybridBody {
             if self.fits(v) {
                 self.activate_region(v);
             } else {
-                self.refused_activations += 1;
+                self.stats.refused_activations += 1;
             }
         }
     }
@@ -51,7 +55,7 @@ impl HybridBody {
     pub(super) fn fits(&self, v: usize) -> bool {
         let m = &self.model;
         let len = (m.region_start[v + 1] - m.region_start[v]) as usize;
-        self.active_list.len() + len <= m.params.max_active_particles
+        self.regions.active_list.len() + len <= m.params.max_active_particles
     }
 
     /// Releases active regions whose vertex is farther than `radius_m` from `probe_m`,
@@ -62,8 +66,8 @@ impl HybridBody {
             let m = &self.model;
             let mut farthest = None;
             let mut d2_max = r2;
-            for (k, &u) in self.active_regions.iter().enumerate() {
-                let x = m.interpolate(&m.vertex_tie[u as usize], &self.xc);
+            for (k, &u) in self.regions.active_regions.iter().enumerate() {
+                let x = m.interpolate(&m.vertex_tie[u as usize], &self.state.xc);
                 let d2 = (x - probe_m).length_squared();
                 if d2 > d2_max {
                     d2_max = d2;
@@ -74,9 +78,9 @@ impl HybridBody {
                 return;
             };
             self.deactivate_region(k);
-            self.released_for_room += 1;
-            let active = &self.active;
-            self.active_list.retain(|&p| active[p as usize]);
+            self.stats.released_for_room += 1;
+            let active = &self.regions.active;
+            self.regions.active_list.retain(|&p| active[p as usize]);
         }
     }
 
@@ -84,15 +88,15 @@ impl HybridBody {
     /// tied to it as neighbours of the next active set); the caller prunes `active_list`.
     pub(super) fn deactivate_region(&mut self, k: usize) {
         let m = &self.model;
-        let v = self.active_regions[k] as usize;
+        let v = self.regions.active_regions[k] as usize;
         for &p in &m.region_particles[m.region_start[v] as usize..m.region_start[v + 1] as usize] {
-            self.active[p as usize] = false;
+            self.regions.active[p as usize] = false;
             // `rebuild_terms` clears the marks of the pruned `active_list` only.
-            self.in_block[p as usize] = false;
+            self.regions.in_block[p as usize] = false;
         }
-        self.region_active[v] = false;
-        self.active_regions.swap_remove(k);
-        self.changed = true;
+        self.regions.region_active[v] = false;
+        self.regions.active_regions.swap_remove(k);
+        self.regions.changed = true;
     }
 
     pub(super) fn activate_region(&mut self, v: usize) {
@@ -104,20 +108,20 @@ impl HybridBody {
                 continue;
             }
             let tie = &m.particle_tie[p];
-            self.xp[p] = m.interpolate(tie, &self.xc);
-            if self.deviation {
+            self.state.xp[p] = m.interpolate(tie, &self.state.xc);
+            if self.setup.deviation {
                 // On the core's interpolation, moving with it: no deviation.
-                self.xd[p] = DVec3::ZERO;
-                self.vp[p] = DVec3::ZERO;
+                self.state.xd[p] = DVec3::ZERO;
+                self.state.vp[p] = DVec3::ZERO;
             } else {
-                self.vp[p] = m.interpolate(tie, &self.vc);
+                self.state.vp[p] = m.interpolate(tie, &self.state.vc);
             }
-            self.active[p] = true;
-            self.active_list.push(p as u32);
+            self.regions.active[p] = true;
+            self.regions.active_list.push(p as u32);
         }
-        self.region_active[v] = true;
-        self.active_regions.push(v as u32);
-        self.changed = true;
+        self.regions.region_active[v] = true;
+        self.regions.active_regions.push(v as u32);
+        self.regions.changed = true;
     }
 
     /// Releases the settled regions whose vertex is farther than `release_radius_m` from the
@@ -128,11 +132,11 @@ impl HybridBody {
         let tol2 = p.release_tolerance_m * p.release_tolerance_m;
         let mut released = false;
         let mut k = 0;
-        while k < self.active_regions.len() {
+        while k < self.regions.active_regions.len() {
             let m = &self.model;
-            let v = self.active_regions[k] as usize;
+            let v = self.regions.active_regions[k] as usize;
             let near = probe_m.is_some_and(|c| {
-                (m.interpolate(&m.vertex_tie[v], &self.xc) - c).length_squared() < r2
+                (m.interpolate(&m.vertex_tie[v], &self.state.xc) - c).length_squared() < r2
             });
             let region =
                 &m.region_particles[m.region_start[v] as usize..m.region_start[v + 1] as usize];
@@ -142,12 +146,13 @@ impl HybridBody {
             let settled = !near
                 && (region.iter().all(|&p| {
                     let p = p as usize;
-                    !self.active[p]
-                        || (self.xp[p] - m.interpolate(&m.particle_tie[p], &self.xc))
+                    !self.regions.active[p]
+                        || (self.state.xp[p] - m.interpolate(&m.particle_tie[p], &self.state.xc))
                             .length_squared()
                             < tol2
                 }) || region.iter().all(|&p| {
-                    !self.active[p as usize] || self.vp[p as usize].length_squared() * 0.01 < tol2
+                    !self.regions.active[p as usize]
+                        || self.state.vp[p as usize].length_squared() * 0.01 < tol2
                 }));
             if settled {
                 self.deactivate_region(k);
@@ -157,8 +162,8 @@ impl HybridBody {
             }
         }
         if released {
-            let active = &self.active;
-            self.active_list.retain(|&p| active[p as usize]);
+            let active = &self.regions.active;
+            self.regions.active_list.retain(|&p| active[p as usize]);
         }
     }
 }

@@ -3,10 +3,12 @@
 
 use super::CORE_COUPLING_MARGIN;
 use super::COUPLED_STEP_HEADROOM;
-use super::HybridBody;
 use super::MAX_POINT_LOADS;
 use super::PointLoad;
 use super::STEP_CHECK_POINTS;
+use super::{
+    HybridBody, HybridPipeline, HybridScratch, HybridSetup, HybridState, HybridStats, RegionSet,
+};
 use crate::ModelError;
 use crate::contact::probe::ProbeParams;
 use crate::element::FemModel;
@@ -45,12 +47,6 @@ impl HybridBody {
         name: &str,
     ) -> Result<Self, ModelError> {
         let params = model.params;
-        let particle_mass_kg = model.cloud.mass_kg() * params.mass_scale;
-        // Elastic part scales with 1/mass; the probe penalty adds k / m to the eigenvalue bound.
-        let lambda_el = (2.0 / model.particle_dt_s).powi(2) / params.mass_scale;
-        let lambda = lambda_el + params.contact_stiffness_n_per_m / particle_mass_kg;
-        let particle_dt = 2.0 / lambda.sqrt();
-        let substeps_for = |dt_s: f64| (tick_s / (params.safety_factor * dt_s)).ceil().max(1.0);
         // The core carries its own mass and the particle layer's (the inactive particles
         // follow it), both times the core's mass scale (`CoreMassScale`).
         let mut fem = FemModel::new(&model.core_mesh, *model.cloud.material())?;
@@ -58,6 +54,198 @@ impl HybridBody {
             fem.add_lumped_mass(&model.layer_mass_on_core_kg());
         }
         fem.clamp_nodes(clamped);
+        let setup = HybridSetup::new(&model, &mut fem, probe, tick_s, name)?;
+        let n = model.cloud.len();
+        let nc = model.core_mesh.nodes.len();
+        let nv = model.outer_rest_m.len();
+        let capacity = 4 * params.max_active_particles + 4 * model.largest_region + 64;
+        let most_active = params.max_active_particles + model.largest_region;
+        let mut body = Self {
+            state: HybridState {
+                xc: model.core_mesh.nodes.clone(),
+                vc: vec![DVec3::ZERO; nc],
+                xp: model.cloud.rest_m().to_vec(),
+                vp: vec![DVec3::ZERO; n],
+                xd: vec![DVec3::ZERO; n],
+                proxy: ParticleProxy::new(
+                    &probe,
+                    params.meshfree.spacing_m,
+                    params.contact_stiffness_n_per_m,
+                    &model.contact_skin_m(),
+                    most_active,
+                ),
+                loads: [PointLoad::default(); MAX_POINT_LOADS],
+                load_count: 0,
+                time_s: 0.0,
+                diverged_at_s: None,
+                last_force_n: DVec3::ZERO,
+            },
+            regions: RegionSet {
+                active: vec![false; n],
+                in_block: vec![false; n],
+                active_list: Vec::with_capacity(most_active),
+                tied_list: Vec::with_capacity(3 * capacity),
+                region_active: vec![false; nv],
+                active_regions: Vec::with_capacity(nv),
+                vertex_adj_start: Vec::new(),
+                vertex_adj: Vec::new(),
+                changed: false,
+                hold: false,
+            },
+            pipeline: HybridPipeline {
+                block: TermBlock::new(&model.cloud, capacity),
+                layer: (params.inactive_layer == InactiveLayer::Elements)
+                    .then(|| LayerElements::new(&model, &fem)),
+                implicit: None,
+                tied_ties: Vec::with_capacity(3 * capacity),
+                active_ties: Vec::with_capacity(most_active),
+            },
+            scratch: HybridScratch {
+                fc: vec![DVec3::ZERO; nc],
+                fp: vec![DVec3::ZERO; n],
+                fcoup: vec![DVec3::ZERO; nc],
+                matrix_regions: Vec::with_capacity(nv),
+                region_mark: vec![false; nv],
+                candidates: Vec::with_capacity(nv),
+            },
+            stats: HybridStats::default(),
+            setup,
+            fem,
+            model: Box::new(model),
+        };
+        // The check holds the core when it steps implicitly (not part of the explicit system).
+        body.verify_coupled_step()?;
+        if let CoreStep::Implicit { margin } = params.core_step {
+            (body.regions.vertex_adj_start, body.regions.vertex_adj) =
+                vertex_adjacency(&body.model.outer_triangles, nv);
+            let layer = match params.inactive_layer {
+                InactiveLayer::Tied => Some(CondensedLayer::new(&body.model)?),
+                InactiveLayer::Elements => None,
+            };
+            let core = ImplicitCore::new(&body.fem, layer.as_ref(), body.setup.dt_s, margin)?;
+            body.pipeline.implicit = Some((core, margin));
+        }
+        Ok(body)
+    }
+
+    /// Rebuilds the implicit core's matrix when the sub-step changed (studies; condenses the
+    /// layer again, about 0.8 s on `lv-hybrid`).
+    pub(super) fn rebuild_implicit(&mut self) -> Result<(), ModelError> {
+        if let Some((core, margin)) = self.pipeline.implicit.take() {
+            let mut core = if core.h_s() == self.setup.dt_s {
+                core
+            } else {
+                let layer = match self.model.params.inactive_layer {
+                    InactiveLayer::Tied => Some(CondensedLayer::new(&self.model)?),
+                    InactiveLayer::Elements => None,
+                };
+                ImplicitCore::new(&self.fem, layer.as_ref(), self.setup.dt_s, margin)?
+            };
+            core.refactor(&self.scratch.matrix_regions)?;
+            self.pipeline.implicit = Some((core, margin));
+        }
+        Ok(())
+    }
+
+    /// The set-up check of the sub-step against the coupled system's own limit. The core's
+    /// share of the step ([`CORE_COUPLING_MARGIN`]) was measured on one core mesh (lv-hybrid's
+    /// 519 tetrahedra); with finer cores the coupled limit fell to 0.84-0.96 of the step bound
+    /// and an instant 1 mm press diverged. At [`STEP_CHECK_POINTS`] outer vertices (the
+    /// extremes of x, y and z) the regions nearest the vertex are activated up to
+    /// `max_active_particles`, the largest eigenvalue of the coupled system (free core nodes
+    /// and active particles, tied particles following the core) is estimated by power
+    /// iteration, the probe penalty's `k / m` added, and the damped limit
+    /// ([`damped_critical_step_s`]) taken; when the sub-step exceeds
+    /// [`COUPLED_STEP_HEADROOM`] of the smallest, the sub-steps are raised. Stepped explicitly,
+    /// lv-hybrid (519 tetrahedra, 2 000 active) has its step at 0.90 of the smallest (at the
+    /// -x vertex), which stays; with 999 tetrahedra it was 1.10 and the check gives 3
+    /// sub-steps. With `core_step = "implicit"` the core is held (not part of the explicit
+    /// system) and the check covers the particles alone. The body is left at rest with no
+    /// active region. About 10 ms per point with 2 000 active particles.
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] naming `hybrid.max_substeps` when the raised count exceeds
+    /// it; [`ModelError::NoConvergence`] when a power iteration does not settle.
+    pub(super) fn verify_coupled_step(&mut self) -> Result<(), ModelError> {
+        let params = self.model.params;
+        let beta = viscous_beta_s(self.fem.material());
+        let k_over_m = params.contact_stiffness_n_per_m / self.setup.particle_mass_kg;
+        let outer = &self.model.outer_rest_m;
+        let extreme = |key: &dyn Fn(DVec3) -> f64| {
+            (0..outer.len()).max_by(|&a, &b| key(outer[a]).total_cmp(&key(outer[b])))
+        };
+        let points: Vec<DVec3> = [
+            extreme(&|x| x.x),
+            extreme(&|x| -x.x),
+            extreme(&|x| x.y),
+            extreme(&|x| -x.y),
+            extreme(&|x| x.z),
+            extreme(&|x| -x.z),
+        ]
+        .into_iter()
+        .flatten()
+        .map(|v| outer[v])
+        .collect();
+        debug_assert_eq!(points.len(), STEP_CHECK_POINTS);
+        let mut limit_s = f64::INFINITY;
+        self.regions.hold = true;
+        for point in points {
+            let mut r = 0.5 * params.meshfree.spacing_m;
+            while self.regions.active_list.len() < params.max_active_particles && r < 0.05 {
+                self.activate_near(point, r);
+                r += 0.5 * params.meshfree.spacing_m;
+            }
+            let estimate = self.max_eigenvalue_estimate(1000, 1e-3);
+            while let Some(k) = self.regions.active_regions.len().checked_sub(1) {
+                self.deactivate_region(k);
+            }
+            self.regions.active_list.clear();
+            let e = estimate?;
+            limit_s = limit_s.min(damped_critical_step_s(e.lambda_per_s2 + k_over_m, beta));
+        }
+        self.regions.hold = false;
+        self.stats.refused_activations = 0;
+        self.rebuild_terms();
+        let needed = (self.setup.tick_s / (COUPLED_STEP_HEADROOM * limit_s)).ceil() as u32;
+        if needed > self.setup.substeps {
+            if needed > params.max_substeps {
+                return Err(ModelError::field(
+                    "hybrid.max_substeps",
+                    format!(
+                        "the coupled system's critical step ({limit_s:.3e} s, power iteration at {STEP_CHECK_POINTS} points) needs {needed} sub-steps per {} s tick; raise max_substeps or mass_scale, or use a coarser core",
+                        self.setup.tick_s
+                    ),
+                ));
+            }
+            self.setup.substeps = needed;
+            self.setup.dt_s = self.setup.tick_s / needed as f64;
+        }
+        Ok(())
+    }
+}
+
+impl HybridSetup {
+    /// The masses and sub-steps: the particles' critical step (Gershgorin bound with the probe
+    /// penalty), the core's mass scale ([`CoreMassScale`]; adds the scaled mass to `fem`) and
+    /// its critical step times [`CORE_COUPLING_MARGIN`] for an explicit core.
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] naming `hybrid.max_substeps` when the steps need more
+    /// sub-steps per tick.
+    fn new(
+        model: &HybridModel,
+        fem: &mut FemModel,
+        probe: ProbeParams,
+        tick_s: f64,
+        name: &str,
+    ) -> Result<Self, ModelError> {
+        let params = model.params;
+        let particle_mass_kg = model.cloud.mass_kg() * params.mass_scale;
+        // Elastic part scales with 1/mass; the probe penalty adds k / m to the eigenvalue bound.
+        let lambda_el = (2.0 / model.particle_dt_s).powi(2) / params.mass_scale;
+        let lambda = lambda_el + params.contact_stiffness_n_per_m / particle_mass_kg;
+        let particle_dt = 2.0 / lambda.sqrt();
+        let substeps_for = |dt_s: f64| (tick_s / (params.safety_factor * dt_s)).ceil().max(1.0);
         // The largest eigenvalue of M^-1 K at the real masses; a uniform mass scale divides it.
         let omega2_real = fem.max_eigenvalue(0.0, 300);
         let beta = viscous_beta_s(fem.material());
@@ -99,190 +287,39 @@ impl HybridBody {
                 ),
             ));
         }
-        let n = model.cloud.len();
-        let nc = model.core_mesh.nodes.len();
-        let capacity = 4 * params.max_active_particles + 4 * model.largest_region + 64;
-        let block = TermBlock::new(&model.cloud, capacity);
-        let nv = model.outer_rest_m.len();
-        let layer = (params.inactive_layer == InactiveLayer::Elements)
-            .then(|| LayerElements::new(&model, &fem));
-        let mut body = Self {
-            fem,
+        Ok(Self {
             name: name.to_string(),
             probe,
             tick_s,
             substeps,
             core_substeps,
             dt_s: tick_s / substeps as f64,
-            fcoup: vec![DVec3::ZERO; nc],
             critical_dt_s,
             particle_mass_kg,
             core_mass_scale,
-            xc: model.core_mesh.nodes.clone(),
-            vc: vec![DVec3::ZERO; nc],
-            fc: vec![DVec3::ZERO; nc],
-            xp: model.cloud.rest_m().to_vec(),
-            vp: vec![DVec3::ZERO; n],
-            fp: vec![DVec3::ZERO; n],
-            active: vec![false; n],
-            in_block: vec![false; n],
-            active_list: Vec::with_capacity(params.max_active_particles + model.largest_region),
-            tied_list: Vec::with_capacity(3 * capacity),
-            tied_ties: Vec::with_capacity(3 * capacity),
             deviation: params.scaled_motion == ScaledMotion::Deviation,
-            xd: vec![DVec3::ZERO; n],
-            active_ties: Vec::with_capacity(params.max_active_particles + model.largest_region),
-            block,
-            layer,
-            proxy: ParticleProxy::new(
-                &probe,
-                params.meshfree.spacing_m,
-                params.contact_stiffness_n_per_m,
-                &model.contact_skin_m(),
-                params.max_active_particles + model.largest_region,
-            ),
-            implicit: None,
-            vertex_adj_start: Vec::new(),
-            vertex_adj: Vec::new(),
-            matrix_regions: Vec::with_capacity(nv),
-            region_mark: vec![false; nv],
-            implicit_refactors: 0,
-            region_active: vec![false; nv],
-            active_regions: Vec::with_capacity(nv),
-            candidates: Vec::with_capacity(nv),
-            changed: false,
-            hold: false,
-            refused_activations: 0,
-            released_for_room: 0,
-            loads: [PointLoad::default(); MAX_POINT_LOADS],
-            load_count: 0,
-            time_s: 0.0,
-            diverged_at_s: None,
-            last_force_n: DVec3::ZERO,
-            model: Box::new(model),
-        };
-        // The check holds the core when it steps implicitly (not part of the explicit system).
-        body.verify_coupled_step()?;
-        if let CoreStep::Implicit { margin } = params.core_step {
-            let mut adj: Vec<Vec<u32>> = vec![Vec::new(); nv];
-            for t in &body.model.outer_triangles {
-                for a in 0..3 {
-                    for b in 0..3 {
-                        if a != b && !adj[t[a] as usize].contains(&t[b]) {
-                            adj[t[a] as usize].push(t[b]);
-                        }
-                    }
+        })
+    }
+}
+
+/// The outer vertices' adjacency over `triangles` as CSR (`start`, `adjacent`): vertex `v`'s
+/// neighbours are `adjacent[start[v]..start[v + 1]]`, in first-seen order.
+fn vertex_adjacency(triangles: &[[u32; 3]], nv: usize) -> (Vec<u32>, Vec<u32>) {
+    let mut adj: Vec<Vec<u32>> = vec![Vec::new(); nv];
+    for t in triangles {
+        for a in 0..3 {
+            for b in 0..3 {
+                if a != b && !adj[t[a] as usize].contains(&t[b]) {
+                    adj[t[a] as usize].push(t[b]);
                 }
             }
-            body.vertex_adj_start = std::iter::once(0)
-                .chain(adj.iter().scan(0u32, |acc, a| {
-                    *acc += a.len() as u32;
-                    Some(*acc)
-                }))
-                .collect();
-            body.vertex_adj = adj.concat();
-            let layer = match params.inactive_layer {
-                InactiveLayer::Tied => Some(CondensedLayer::new(&body.model)?),
-                InactiveLayer::Elements => None,
-            };
-            let core = ImplicitCore::new(&body.fem, layer.as_ref(), body.dt_s, margin)?;
-            body.implicit = Some((core, margin));
         }
-        Ok(body)
     }
-
-    /// Rebuilds the implicit core's matrix when the sub-step changed (studies; condenses the
-    /// layer again, about 0.8 s on `lv-hybrid`).
-    pub(super) fn rebuild_implicit(&mut self) -> Result<(), ModelError> {
-        if let Some((core, margin)) = self.implicit.take() {
-            let mut core = if core.h_s() == self.dt_s {
-                core
-            } else {
-                let layer = match self.model.params.inactive_layer {
-                    InactiveLayer::Tied => Some(CondensedLayer::new(&self.model)?),
-                    InactiveLayer::Elements => None,
-                };
-                ImplicitCore::new(&self.fem, layer.as_ref(), self.dt_s, margin)?
-            };
-            core.refactor(&self.matrix_regions)?;
-            self.implicit = Some((core, margin));
-        }
-        Ok(())
-    }
-
-    /// The set-up check of the sub-step against the coupled system's own limit. The core's
-    /// share of the step ([`CORE_COUPLING_MARGIN`]) was measured on one core mesh (lv-hybrid's
-    /// 519 tetrahedra); with finer cores the coupled limit fell to 0.84-0.96 of the step bound
-    /// and an instant 1 mm press diverged. At [`STEP_CHECK_POINTS`] outer vertices (the
-    /// extremes of x, y and z) the regions nearest the vertex are activated up to
-    /// `max_active_particles`, the largest eigenvalue of the coupled system (free core nodes
-    /// and active particles, tied particles following the core) is estimated by power
-    /// iteration, the probe penalty's `k / m` added, and the damped limit
-    /// ([`damped_critical_step_s`]) taken; when the sub-step exceeds
-    /// [`COUPLED_STEP_HEADROOM`] of the smallest, the sub-steps are raised. Stepped explicitly,
-    /// lv-hybrid (519 tetrahedra, 2 000 active) has its step at 0.90 of the smallest (at the
-    /// -x vertex), which stays; with 999 tetrahedra it was 1.10 and the check gives 3
-    /// sub-steps. With `core_step = "implicit"` the core is held (not part of the explicit
-    /// system) and the check covers the particles alone. The body is left at rest with no
-    /// active region. About 10 ms per point with 2 000 active particles.
-    ///
-    /// # Errors
-    /// [`ModelError::SceneField`] naming `hybrid.max_substeps` when the raised count exceeds
-    /// it; [`ModelError::NoConvergence`] when a power iteration does not settle.
-    pub(super) fn verify_coupled_step(&mut self) -> Result<(), ModelError> {
-        let params = self.model.params;
-        let beta = viscous_beta_s(self.fem.material());
-        let k_over_m = params.contact_stiffness_n_per_m / self.particle_mass_kg;
-        let outer = &self.model.outer_rest_m;
-        let extreme = |key: &dyn Fn(DVec3) -> f64| {
-            (0..outer.len()).max_by(|&a, &b| key(outer[a]).total_cmp(&key(outer[b])))
-        };
-        let points: Vec<DVec3> = [
-            extreme(&|x| x.x),
-            extreme(&|x| -x.x),
-            extreme(&|x| x.y),
-            extreme(&|x| -x.y),
-            extreme(&|x| x.z),
-            extreme(&|x| -x.z),
-        ]
-        .into_iter()
-        .flatten()
-        .map(|v| outer[v])
+    let start = std::iter::once(0)
+        .chain(adj.iter().scan(0u32, |acc, a| {
+            *acc += a.len() as u32;
+            Some(*acc)
+        }))
         .collect();
-        debug_assert_eq!(points.len(), STEP_CHECK_POINTS);
-        let mut limit_s = f64::INFINITY;
-        self.hold = true;
-        for point in points {
-            let mut r = 0.5 * params.meshfree.spacing_m;
-            while self.active_list.len() < params.max_active_particles && r < 0.05 {
-                self.activate_near(point, r);
-                r += 0.5 * params.meshfree.spacing_m;
-            }
-            let estimate = self.max_eigenvalue_estimate(1000, 1e-3);
-            while let Some(k) = self.active_regions.len().checked_sub(1) {
-                self.deactivate_region(k);
-            }
-            self.active_list.clear();
-            let e = estimate?;
-            limit_s = limit_s.min(damped_critical_step_s(e.lambda_per_s2 + k_over_m, beta));
-        }
-        self.hold = false;
-        self.refused_activations = 0;
-        self.rebuild_terms();
-        let needed = (self.tick_s / (COUPLED_STEP_HEADROOM * limit_s)).ceil() as u32;
-        if needed > self.substeps {
-            if needed > params.max_substeps {
-                return Err(ModelError::field(
-                    "hybrid.max_substeps",
-                    format!(
-                        "the coupled system's critical step ({limit_s:.3e} s, power iteration at {STEP_CHECK_POINTS} points) needs {needed} sub-steps per {} s tick; raise max_substeps or mass_scale, or use a coarser core",
-                        self.tick_s
-                    ),
-                ));
-            }
-            self.substeps = needed;
-            self.dt_s = self.tick_s / needed as f64;
-        }
-        Ok(())
-    }
+    (start, adj.concat())
 }

@@ -13,60 +13,85 @@ impl HybridBody {
     /// Refills the energy terms for the current active set (allocation-free): terms of the
     /// active particles and of their inactive neighbours (ring 1); the tied list holds ring 1
     /// and the inactive neighbours of ring 1 (ring 2), whose positions those terms read and
-    /// whose forces go to the core.
+    /// whose forces go to the core. Then the ties copied in the lists' order and the implicit
+    /// core's matrix where the active regions left it.
     pub(super) fn rebuild_terms(&mut self) {
-        for &q in &self.tied_list {
-            self.in_block[q as usize] = false;
+        self.refill_block();
+        let m = &self.model;
+        self.pipeline.tied_ties.clear();
+        for &q in &self.regions.tied_list {
+            self.pipeline
+                .tied_ties
+                .push(m.tie_nodes(&m.particle_tie[q as usize]));
         }
-        for &q in &self.active_list {
-            self.in_block[q as usize] = false;
+        self.refresh_implicit_matrix();
+        let m = &self.model;
+        self.pipeline.active_ties.clear();
+        if self.setup.deviation {
+            for &p in &self.regions.active_list {
+                self.pipeline
+                    .active_ties
+                    .push(m.tie_nodes(&m.particle_tie[p as usize]));
+            }
         }
-        self.tied_list.clear();
-        self.block.clear();
-        if let Some(layer) = &mut self.layer {
+        self.regions.changed = false;
+    }
+
+    /// The term block and the tied list (rings 1 and 2) for the active list, sorted in memory
+    /// order; the layer's term counts.
+    fn refill_block(&mut self) {
+        for &q in &self.regions.tied_list {
+            self.regions.in_block[q as usize] = false;
+        }
+        for &q in &self.regions.active_list {
+            self.regions.in_block[q as usize] = false;
+        }
+        self.regions.tied_list.clear();
+        self.pipeline.block.clear();
+        if let Some(layer) = &mut self.pipeline.layer {
             layer.clear();
         }
         let cloud = &self.model.cloud;
         let ties = &self.model.particle_tie;
         let mut nbr = [0u32; crate::meshfree::cloud::MAX_STENCIL];
-        for &p in &self.active_list {
-            self.in_block[p as usize] = true;
-            if matches!(self.block.push(cloud, p), Ok(true)) {
-                if let Some(layer) = &mut self.layer {
+        for &p in &self.regions.active_list {
+            self.regions.in_block[p as usize] = true;
+            if matches!(self.pipeline.block.push(cloud, p), Ok(true)) {
+                if let Some(layer) = &mut self.pipeline.layer {
                     layer.count_term(ties[p as usize].tet);
                 }
             } else {
-                self.refused_activations += 1;
+                self.stats.refused_activations += 1;
             }
         }
         for ring in 0..2 {
             let to = if ring == 0 {
-                self.active_list.len()
+                self.regions.active_list.len()
             } else {
-                self.tied_list.len()
+                self.regions.tied_list.len()
             };
             for a in 0..to {
                 let p = if ring == 0 {
-                    self.active_list[a]
+                    self.regions.active_list[a]
                 } else {
-                    self.tied_list[a]
+                    self.regions.tied_list[a]
                 };
                 let k = cloud.neighbours(p, &mut nbr);
                 for &q in &nbr[..k] {
-                    if self.in_block[q as usize]
-                        || self.tied_list.len() == self.tied_list.capacity()
+                    if self.regions.in_block[q as usize]
+                        || self.regions.tied_list.len() == self.regions.tied_list.capacity()
                     {
                         continue;
                     }
-                    self.in_block[q as usize] = true;
-                    self.tied_list.push(q);
+                    self.regions.in_block[q as usize] = true;
+                    self.regions.tied_list.push(q);
                     if ring == 0 && !self.model.degenerate[q as usize] {
-                        if matches!(self.block.push(cloud, q), Ok(true)) {
-                            if let Some(layer) = &mut self.layer {
+                        if matches!(self.pipeline.block.push(cloud, q), Ok(true)) {
+                            if let Some(layer) = &mut self.pipeline.layer {
                                 layer.count_term(ties[q as usize].tet);
                             }
                         } else {
-                            self.refused_activations += 1;
+                            self.stats.refused_activations += 1;
                         }
                     }
                 }
@@ -74,62 +99,54 @@ impl HybridBody {
         }
         // In memory order: the tie gathers and scatters of every sub-step walk the particle
         // arrays forwards.
-        self.tied_list.sort_unstable();
-        if let Some(layer) = &mut self.layer {
+        self.regions.tied_list.sort_unstable();
+        if let Some(layer) = &mut self.pipeline.layer {
             layer.finish();
         }
-        let m = &self.model;
-        self.tied_ties.clear();
-        for &q in &self.tied_list {
-            self.tied_ties
-                .push(m.tie_nodes(&m.particle_tie[q as usize]));
-        }
+    }
+
+    /// Refactors the implicit core's matrix when an active region is not in it (a non-finite
+    /// factor marks the body diverged).
+    fn refresh_implicit_matrix(&mut self) {
         // The implicit core's matrix holds the active regions and their neighbours (which stand
         // for the terms of inactive particles next to the active ones, which the block also
         // holds). It is refactored only when an active region is not in it: a region released,
         // or activated next to the active ones (already a neighbour), leaves a matrix that
         // still dominates the tangent, with a little more damping where it has too much.
-        let refactor = self.implicit.is_some()
-            && self.layer.is_none()
+        let refactor = self.pipeline.implicit.is_some()
+            && self.pipeline.layer.is_none()
             && !self
+                .regions
                 .active_regions
                 .iter()
-                .all(|&v| self.region_mark[v as usize]);
+                .all(|&v| self.scratch.region_mark[v as usize]);
         if refactor {
-            for &v in &self.matrix_regions {
-                self.region_mark[v as usize] = false;
+            for &v in &self.scratch.matrix_regions {
+                self.scratch.region_mark[v as usize] = false;
             }
-            self.matrix_regions.clear();
-            for &v in &self.active_regions {
+            self.scratch.matrix_regions.clear();
+            for &v in &self.regions.active_regions {
                 let (a, b) = (
-                    self.vertex_adj_start[v as usize] as usize,
-                    self.vertex_adj_start[v as usize + 1] as usize,
+                    self.regions.vertex_adj_start[v as usize] as usize,
+                    self.regions.vertex_adj_start[v as usize + 1] as usize,
                 );
-                for &w in std::iter::once(&v).chain(&self.vertex_adj[a..b]) {
-                    if !self.region_mark[w as usize] {
-                        self.region_mark[w as usize] = true;
-                        self.matrix_regions.push(w);
+                for &w in std::iter::once(&v).chain(&self.regions.vertex_adj[a..b]) {
+                    if !self.scratch.region_mark[w as usize] {
+                        self.scratch.region_mark[w as usize] = true;
+                        self.scratch.matrix_regions.push(w);
                     }
                 }
             }
         }
-        if let Some((core, _)) = &mut self.implicit
+        if let Some((core, _)) = &mut self.pipeline.implicit
             && refactor
         {
-            self.implicit_refactors += 1;
-            if core.refactor(&self.matrix_regions).is_err() {
+            self.stats.implicit_refactors += 1;
+            if core.refactor(&self.scratch.matrix_regions).is_err() {
                 // Positive definite by construction; a failure is a non-finite state.
-                self.diverged_at_s = Some(self.time_s);
+                self.state.diverged_at_s = Some(self.state.time_s);
             }
         }
-        self.active_ties.clear();
-        if self.deviation {
-            for &p in &self.active_list {
-                self.active_ties
-                    .push(m.tie_nodes(&m.particle_tie[p as usize]));
-            }
-        }
-        self.changed = false;
     }
 
     /// Particle forces of the current state (no update): tied positions from the core, terms,
@@ -137,25 +154,34 @@ impl HybridBody {
     /// `sum k n n^T`, N/m); the tied particles' forces and the point loads go to the core
     /// nodes' coupling buffer with the tie weights.
     pub(super) fn particle_forces(&mut self, probe_m: Option<DVec3>) -> ProxyContact {
-        if self.changed {
+        if self.regions.changed {
             self.rebuild_terms();
         }
         let m = &self.model;
-        let xc = &self.xc;
-        for (&q, t) in self.tied_list.iter().zip(&self.tied_ties) {
-            self.xp[q as usize] = t.interpolate(xc);
+        let xc = &self.state.xc;
+        for (&q, t) in self.regions.tied_list.iter().zip(&self.pipeline.tied_ties) {
+            self.state.xp[q as usize] = t.interpolate(xc);
         }
-        if self.deviation {
-            for (&p, t) in self.active_list.iter().zip(&self.active_ties) {
-                self.xp[p as usize] = t.interpolate(xc) + self.xd[p as usize];
+        if self.setup.deviation {
+            for (&p, t) in self
+                .regions
+                .active_list
+                .iter()
+                .zip(&self.pipeline.active_ties)
+            {
+                self.state.xp[p as usize] = t.interpolate(xc) + self.state.xd[p as usize];
             }
         }
-        self.block.write_forces(&m.cloud, &self.xp, &mut self.fp);
+        self.pipeline
+            .block
+            .write_forces(&m.cloud, &self.state.xp, &mut self.scratch.fp);
         let contact = match probe_m {
-            Some(device) => {
-                self.proxy
-                    .update(device, &self.xp, &self.active_list, Some(&mut self.fp))
-            }
+            Some(device) => self.state.proxy.update(
+                device,
+                &self.state.xp,
+                &self.regions.active_list,
+                Some(&mut self.scratch.fp),
+            ),
             None => ProxyContact {
                 force_on_device_n: DVec3::ZERO,
                 stiffness_n_per_m: [0.0; 9],
@@ -163,26 +189,31 @@ impl HybridBody {
                 in_contact: false,
             },
         };
-        self.fcoup.iter_mut().for_each(|f| *f = DVec3::ZERO);
-        for (&q, t) in self.tied_list.iter().zip(&self.tied_ties) {
-            let f = self.fp[q as usize];
+        self.scratch.fcoup.iter_mut().for_each(|f| *f = DVec3::ZERO);
+        for (&q, t) in self.regions.tied_list.iter().zip(&self.pipeline.tied_ties) {
+            let f = self.scratch.fp[q as usize];
             for k in 0..t.len {
-                self.fcoup[t.nodes[k] as usize] += f * t.w[k];
+                self.scratch.fcoup[t.nodes[k] as usize] += f * t.w[k];
             }
         }
-        if self.deviation {
+        if self.setup.deviation {
             // `d x_p / d x_k = w_pk`: the active particles' forces drive the core too.
-            for (&p, t) in self.active_list.iter().zip(&self.active_ties) {
-                let f = self.fp[p as usize];
+            for (&p, t) in self
+                .regions
+                .active_list
+                .iter()
+                .zip(&self.pipeline.active_ties)
+            {
+                let f = self.scratch.fp[p as usize];
                 for k in 0..t.len {
-                    self.fcoup[t.nodes[k] as usize] += f * t.w[k];
+                    self.scratch.fcoup[t.nodes[k] as usize] += f * t.w[k];
                 }
             }
         }
-        for l in &self.loads[..self.load_count] {
+        for l in &self.state.loads[..self.state.load_count] {
             let t = m.tie_nodes(&l.tie);
             for k in 0..t.len {
-                self.fcoup[t.nodes[k] as usize] += l.force_n * t.w[k];
+                self.scratch.fcoup[t.nodes[k] as usize] += l.force_n * t.w[k];
             }
         }
         contact
@@ -190,7 +221,7 @@ impl HybridBody {
 
     /// Core forces: the coupling buffer plus the FEM's internal (elastic and viscous) forces.
     pub(super) fn core_forces(&mut self) {
-        self.fc.copy_from_slice(&self.fcoup);
+        self.scratch.fc.copy_from_slice(&self.scratch.fcoup);
         self.add_fem_forces(true);
     }
 
@@ -198,10 +229,11 @@ impl HybridBody {
     /// at its velocities when `viscous`), less the shares the particles' terms replace
     /// (`inactive_layer = "elements"`, [`LayerElements`]).
     pub(super) fn add_fem_forces(&mut self, viscous: bool) {
-        let v = viscous.then_some(self.vc.as_slice());
-        self.fem.add_internal_forces(&self.xc, v, &mut self.fc);
-        if let Some(layer) = &self.layer {
-            layer.subtract_forces(&self.fem, &self.xc, v, &mut self.fc);
+        let v = viscous.then_some(self.state.vc.as_slice());
+        self.fem
+            .add_internal_forces(&self.state.xc, v, &mut self.scratch.fc);
+        if let Some(layer) = &self.pipeline.layer {
+            layer.subtract_forces(&self.fem, &self.state.xc, v, &mut self.scratch.fc);
         }
     }
 
@@ -211,7 +243,7 @@ impl HybridBody {
     pub fn evaluate_forces(&mut self) -> (&[DVec3], &[DVec3]) {
         self.particle_forces(None);
         self.core_forces();
-        (&self.fc, &self.fp)
+        (&self.scratch.fc, &self.scratch.fp)
     }
 
     /// One particle step of length `dt` from the forces in the buffers, during which the core
@@ -219,29 +251,29 @@ impl HybridBody {
     /// exchanged through the ties are equal and opposite, so momentum stays exact); returns the
     /// largest squared speed (NaN when non-finite).
     pub(super) fn update(&mut self, dt: f64) -> f64 {
-        let dt_c = dt / self.core_substeps as f64;
+        let dt_c = dt / self.setup.core_substeps as f64;
         let mut max_v2: f64 = 0.0;
         let mut non_finite = false;
-        if self.implicit.is_some() {
+        if self.pipeline.implicit.is_some() {
             // Elastic and coupling forces; the viscous operator is in the frozen matrix.
-            self.fc.copy_from_slice(&self.fcoup);
+            self.scratch.fc.copy_from_slice(&self.scratch.fcoup);
             self.add_fem_forces(false);
-            let Some((core, _)) = &mut self.implicit else {
+            let Some((core, _)) = &mut self.pipeline.implicit else {
                 unreachable!("checked above")
             };
             let v2 = core.step(
                 self.fem.lumped_mass_kg(),
-                &self.fc,
-                &mut self.xc,
-                &mut self.vc,
+                &self.scratch.fc,
+                &mut self.state.xc,
+                &mut self.state.vc,
             );
             non_finite |= !v2.is_finite();
             max_v2 = max_v2.max(v2);
         }
-        let explicit_core_steps = if self.implicit.is_some() {
+        let explicit_core_steps = if self.pipeline.implicit.is_some() {
             0
         } else {
-            self.core_substeps
+            self.setup.core_substeps
         };
         for _ in 0..explicit_core_steps {
             self.core_forces();
@@ -250,34 +282,39 @@ impl HybridBody {
                 &self.fem,
                 &[],
                 dt_c,
-                &self.fc,
-                &mut self.xc,
-                &mut self.vc,
+                &self.scratch.fc,
+                &mut self.state.xc,
+                &mut self.state.vc,
             );
             non_finite |= !v2.is_finite();
             max_v2 = max_v2.max(v2);
         }
         let damp = 1.0 / (1.0 + self.fem.material().mass_damping_per_s * dt);
-        let inv_m = dt / self.particle_mass_kg;
-        if self.deviation {
-            let xc = &self.xc;
-            for (&p, t) in self.active_list.iter().zip(&self.active_ties) {
+        let inv_m = dt / self.setup.particle_mass_kg;
+        if self.setup.deviation {
+            let xc = &self.state.xc;
+            for (&p, t) in self
+                .regions
+                .active_list
+                .iter()
+                .zip(&self.pipeline.active_ties)
+            {
                 let p = p as usize;
-                let v = (self.vp[p] + self.fp[p] * inv_m) * damp;
-                self.vp[p] = v;
-                self.xd[p] += v * dt;
+                let v = (self.state.vp[p] + self.scratch.fp[p] * inv_m) * damp;
+                self.state.vp[p] = v;
+                self.state.xd[p] += v * dt;
                 // The absolute position, for the surface and the release test between ticks.
-                self.xp[p] = t.interpolate(xc) + self.xd[p];
+                self.state.xp[p] = t.interpolate(xc) + self.state.xd[p];
                 let s = v.length_squared();
                 non_finite |= !s.is_finite();
                 max_v2 = max_v2.max(s);
             }
         } else {
-            for &p in &self.active_list {
+            for &p in &self.regions.active_list {
                 let p = p as usize;
-                let v = (self.vp[p] + self.fp[p] * inv_m) * damp;
-                self.vp[p] = v;
-                self.xp[p] += v * dt;
+                let v = (self.state.vp[p] + self.scratch.fp[p] * inv_m) * damp;
+                self.state.vp[p] = v;
+                self.state.xp[p] += v * dt;
                 let s = v.length_squared();
                 non_finite |= !s.is_finite();
                 max_v2 = max_v2.max(s);
