@@ -264,13 +264,80 @@ pub fn prepare(
             "\"seed\" is the paper's St. Venant-Kirchhoff formulation: set material.model = \"stvk\" or use \"corrected\"",
         ));
     }
-    let f = params.core_fraction;
-    let s = params.meshfree.spacing_m;
     // 1. Core: the inner part of the wall, or the whole wall when elements carry the
     // inactive layer.
     progress("core mesh", 0.0);
+    let core_mesh = core_mesh(&geometry, params, core_target_tets)?;
+    // 2. Outer surface.
+    progress("outer surface", 0.05);
+    let (outer_rest_m, outer_triangles) = outer_surface(&geometry, params);
+    // 3. Lattice and particles.
+    progress("lattice", 0.1);
+    let (cloud, layer_count) = particle_cloud(&geometry, params, material)?;
+    progress("particles", 0.3);
+    // 4. Ties.
+    let locator = TetLocator::new(
+        &core_mesh,
+        (geometry.outer_m - geometry.inner_m).max_element(),
+    );
+    let tie = |p: DVec3| {
+        let t = locator.tie(&core_mesh.nodes, &core_mesh.tets, p);
+        if core_mesh.is_quadratic() {
+            curved_tie(&core_mesh, t, p)
+        } else {
+            t
+        }
+    };
+    let particle_tie: Vec<Tie> = cloud.rest_m().iter().map(|&p| tie(p)).collect();
+    let vertex_tie: Vec<Tie> = outer_rest_m.iter().map(|&p| tie(p)).collect();
+    progress("ties", 0.55);
+    // Degenerate neighbourhoods (corrected variant only).
+    let mut degenerate = vec![false; cloud.len()];
+    {
+        let mut block = TermBlock::new(&cloud, 1);
+        for (p, d) in degenerate.iter_mut().enumerate() {
+            block.clear();
+            *d = block.push(&cloud, p as u32).is_err();
+        }
+    }
+    let vertex_particle = nearest_layer_particles(&cloud, layer_count, &outer_rest_m);
+    // 5. Regions by direction from the centre of mass.
+    progress("regions", 0.65);
+    let regions = Regions::new(&cloud, layer_count, &outer_rest_m);
+    // 6. Critical steps.
+    progress("critical time steps", 0.75);
+    // The core's step depends on the masses the body gives it (HybridBody::new).
+    let particle_dt_s = critical_time_step(&cloud)?;
+    progress("done", 1.0);
+    Ok(HybridModel {
+        params: *params,
+        geometry,
+        core_mesh,
+        cloud,
+        layer_count,
+        particle_tie,
+        degenerate,
+        outer_rest_m,
+        outer_triangles,
+        vertex_tie,
+        vertex_particle,
+        region_start: regions.start,
+        region_particles: regions.particles,
+        centre_m: regions.centre_m,
+        particle_dt_s,
+        largest_region: regions.largest,
+    })
+}
+
+/// The core's mesh (step 1 of [`prepare`]): the inner part of the wall up to the core
+/// fraction, or the whole wall when elements carry the inactive layer; linear or quadratic.
+fn core_mesh(
+    geometry: &ShellGeometry,
+    params: &HybridParams,
+    core_target_tets: usize,
+) -> Result<TetMesh, ModelError> {
     let core_outer = match params.inactive_layer {
-        InactiveLayer::Tied => geometry.axes(f),
+        InactiveLayer::Tied => geometry.axes(params.core_fraction),
         InactiveLayer::Elements => geometry.outer_m,
     };
     let mut core_mesh = if params.core_order == 2 {
@@ -289,8 +356,12 @@ pub fn prepare(
         )
     };
     core_mesh.orient_and_check()?;
-    // 2. Outer surface.
-    progress("outer surface", 0.05);
+    Ok(core_mesh)
+}
+
+/// The outer surface (step 2 of [`prepare`]): its vertices' rest positions, m, and its
+/// triangles over them, from a shell mesh of `surface_target_tets`.
+fn outer_surface(geometry: &ShellGeometry, params: &HybridParams) -> (Vec<DVec3>, Vec<[u32; 3]>) {
     let shell = truncated_ellipsoid_shell(
         geometry.inner_m,
         geometry.outer_m,
@@ -315,8 +386,22 @@ pub fn prepare(
             })
         })
         .collect();
-    // 3. Lattice and particles.
-    progress("lattice", 0.1);
+    (outer_rest_m, outer_triangles)
+}
+
+/// The lattice and the particle cloud (step 3 of [`prepare`]): the layer's particles first
+/// (their count is returned), then the anchors in the core.
+///
+/// # Errors
+/// [`ModelError::SceneField`] (`hybrid.spacing_m`) for a lattice above 2e9 cells or a layer of
+/// fewer than 8 or more than 20 000 000 particles; the cloud's errors.
+fn particle_cloud(
+    geometry: &ShellGeometry,
+    params: &HybridParams,
+    material: &MaterialParams,
+) -> Result<(ParticleCloud, usize), ModelError> {
+    let f = params.core_fraction;
+    let s = params.meshfree.spacing_m;
     let support = params.meshfree.support_m();
     let half = geometry.outer_m + DVec3::splat(2.0 * support);
     let lo = -half;
@@ -356,13 +441,39 @@ pub fn prepare(
             format!("{s} m gives {layer_count} particles; at most 20 000 000"),
         ));
     }
-    // Anchors: two stencil rings into the core, so that every anchor whose term reaches a
-    // layer particle has a full neighbourhood.
+    let anchors = anchor_cells(
+        &lattice,
+        geometry,
+        f,
+        &layer_cells,
+        params.inactive_layer == InactiveLayer::Elements,
+    );
+    let mut cells = layer_cells;
+    cells.extend_from_slice(&anchors);
+    let cloud = ParticleCloud::new(lattice, cells, params.meshfree, *material)?;
+    Ok((cloud, layer_count))
+}
+
+/// The anchors' lattice cells, sorted: two stencil rings into the core from the layer's
+/// `layer_cells`, so that every anchor whose term reaches a layer particle has a full
+/// neighbourhood; with `every_core_point` (elements carry the inactive layer) every lattice
+/// point of the core: the lattice then covers every element, and an element's share replaced
+/// by the block's terms is the share of its particles in the block ([`super::layer`]). Anchors
+/// cost memory only: they are evaluated when next to an active particle.
+fn anchor_cells(
+    lattice: &Lattice,
+    geometry: &ShellGeometry,
+    core_fraction: f64,
+    layer_cells: &[u32],
+    every_core_point: bool,
+) -> Vec<u32> {
+    let dims = lattice.dims();
+    let count = dims[0] * dims[1] * dims[2];
     let mut is_anchor = vec![false; count];
     let mut anchor_cells: Vec<u32> = Vec::new();
     for pass in 0..2 {
         let sources: Vec<u32> = if pass == 0 {
-            layer_cells.clone()
+            layer_cells.to_vec()
         } else {
             anchor_cells.clone()
         };
@@ -382,58 +493,34 @@ pub fn prepare(
                     continue;
                 }
                 let p = lattice.position(lattice.cell(qi));
-                if geometry.contains(p, 0.0, f) {
+                if geometry.contains(p, 0.0, core_fraction) {
                     is_anchor[qi] = true;
                     anchor_cells.push(qi as u32);
                 }
             }
         }
     }
-    if params.inactive_layer == InactiveLayer::Elements {
-        // Every lattice point of the core is an anchor: the lattice then covers every element,
-        // and an element's share replaced by the block's terms is the share of its particles
-        // in the block ([`super::layer`]). Anchors cost memory only: they are evaluated when
-        // next to an active particle.
+    if every_core_point {
         for (c, anchor) in is_anchor.iter_mut().enumerate() {
-            if !*anchor && geometry.contains(lattice.position(lattice.cell(c)), 0.0, f) {
+            if !*anchor && geometry.contains(lattice.position(lattice.cell(c)), 0.0, core_fraction)
+            {
                 *anchor = true;
                 anchor_cells.push(c as u32);
             }
         }
     }
-    drop(is_anchor);
     anchor_cells.sort_unstable();
-    let mut cells = layer_cells;
-    cells.extend_from_slice(&anchor_cells);
-    let cloud = ParticleCloud::new(lattice, cells, params.meshfree, *material)?;
-    progress("particles", 0.3);
-    // 4. Ties.
-    let fem_rest = &core_mesh.nodes;
-    let locator = TetLocator::new(
-        &core_mesh,
-        (geometry.outer_m - geometry.inner_m).max_element(),
-    );
-    let tie = |p: DVec3| {
-        let t = locator.tie(fem_rest, &core_mesh.tets, p);
-        if core_mesh.is_quadratic() {
-            curved_tie(&core_mesh, t, p)
-        } else {
-            t
-        }
-    };
-    let particle_tie: Vec<Tie> = cloud.rest_m().iter().map(|&p| tie(p)).collect();
-    let vertex_tie: Vec<Tie> = outer_rest_m.iter().map(|&p| tie(p)).collect();
-    progress("ties", 0.55);
-    // Degenerate neighbourhoods (corrected variant only).
-    let mut degenerate = vec![false; cloud.len()];
-    {
-        let mut block = TermBlock::new(&cloud, 1);
-        for (p, d) in degenerate.iter_mut().enumerate() {
-            block.clear();
-            *d = block.push(&cloud, p as u32).is_err();
-        }
-    }
-    let vertex_particle: Vec<u32> = outer_rest_m
+    anchor_cells
+}
+
+/// Per outer vertex, the nearest layer particle (of the first `layer_count`) within two
+/// lattice cells of it (`u32::MAX`: none).
+fn nearest_layer_particles(
+    cloud: &ParticleCloud,
+    layer_count: usize,
+    outer_rest_m: &[DVec3],
+) -> Vec<u32> {
+    outer_rest_m
         .iter()
         .map(|&v| {
             let ijk = cloud.lattice().nearest_cell(v);
@@ -454,61 +541,56 @@ pub fn prepare(
             }
             best.1
         })
-        .collect();
-    // 5. Regions by direction from the centre of mass.
-    progress("regions", 0.65);
-    let centre_m = cloud.rest_m()[..layer_count].iter().sum::<DVec3>() / layer_count as f64;
-    let directions = DirectionGrid::new(
-        &outer_rest_m
+        .collect()
+}
+
+/// The particle regions (step 5 of [`prepare`]): each layer particle belongs to the outer
+/// vertex nearest in direction from the layer's centre of mass; CSR over the vertices.
+struct Regions {
+    centre_m: DVec3,
+    start: Vec<u32>,
+    particles: Vec<u32>,
+    largest: usize,
+}
+
+impl Regions {
+    fn new(cloud: &ParticleCloud, layer_count: usize, outer_rest_m: &[DVec3]) -> Self {
+        let centre_m = cloud.rest_m()[..layer_count].iter().sum::<DVec3>() / layer_count as f64;
+        let directions = DirectionGrid::new(
+            &outer_rest_m
+                .iter()
+                .map(|&v| (v - centre_m).normalize_or_zero())
+                .collect::<Vec<_>>(),
+        );
+        let owner: Vec<u32> = cloud.rest_m()[..layer_count]
             .iter()
-            .map(|&v| (v - centre_m).normalize_or_zero())
-            .collect::<Vec<_>>(),
-    );
-    let owner: Vec<u32> = cloud.rest_m()[..layer_count]
-        .iter()
-        .map(|&p| directions.nearest((p - centre_m).normalize_or_zero()))
-        .collect();
-    let nv = outer_rest_m.len();
-    let mut region_start = vec![0u32; nv + 1];
-    for &o in &owner {
-        region_start[o as usize + 1] += 1;
+            .map(|&p| directions.nearest((p - centre_m).normalize_or_zero()))
+            .collect();
+        let nv = outer_rest_m.len();
+        let mut start = vec![0u32; nv + 1];
+        for &o in &owner {
+            start[o as usize + 1] += 1;
+        }
+        for v in 0..nv {
+            start[v + 1] += start[v];
+        }
+        let mut fill = start.clone();
+        let mut particles = vec![0u32; layer_count];
+        for (p, &o) in owner.iter().enumerate() {
+            particles[fill[o as usize] as usize] = p as u32;
+            fill[o as usize] += 1;
+        }
+        let largest = (0..nv)
+            .map(|v| (start[v + 1] - start[v]) as usize)
+            .max()
+            .unwrap_or(0);
+        Self {
+            centre_m,
+            start,
+            particles,
+            largest,
+        }
     }
-    for v in 0..nv {
-        region_start[v + 1] += region_start[v];
-    }
-    let mut fill = region_start.clone();
-    let mut region_particles = vec![0u32; layer_count];
-    for (p, &o) in owner.iter().enumerate() {
-        region_particles[fill[o as usize] as usize] = p as u32;
-        fill[o as usize] += 1;
-    }
-    let largest_region = (0..nv)
-        .map(|v| (region_start[v + 1] - region_start[v]) as usize)
-        .max()
-        .unwrap_or(0);
-    // 6. Critical steps.
-    progress("critical time steps", 0.75);
-    // The core's step depends on the masses the body gives it (HybridBody::new).
-    let particle_dt_s = critical_time_step(&cloud)?;
-    progress("done", 1.0);
-    Ok(HybridModel {
-        params: *params,
-        geometry,
-        core_mesh,
-        cloud,
-        layer_count,
-        particle_tie,
-        degenerate,
-        outer_rest_m,
-        outer_triangles,
-        vertex_tie,
-        vertex_particle,
-        region_start,
-        region_particles,
-        centre_m,
-        particle_dt_s,
-        largest_region,
-    })
 }
 
 /// The reference (barycentric) coordinates of `p` in the curved quadratic tetrahedron of `t`
