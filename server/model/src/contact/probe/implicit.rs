@@ -110,6 +110,34 @@ pub(super) struct CouplingRows {
 }
 
 impl CouplingRows {
+    /// The explicit multipliers `lambda0` of the candidate rows: the compliance `A Q_c^-1 A^T
+    /// + K_f^-1` (`qc_inv`: the coupling's inverse stiffness), its Cholesky factor, and the
+    /// solve for `-g_hat`. `false` when the factor fails (a non-finite state).
+    fn solve_multipliers(&mut self, qc_inv: &DMat3) -> bool {
+        let rows = self;
+        let nf = rows.candidates.len();
+        for f in 0..nf {
+            let qf = *qc_inv * rows.candidates[f].nu;
+            for g in 0..=f {
+                let mut v = rows.candidates[g].nu.dot(qf);
+                if f == g {
+                    v += 1.0 / rows.candidates[f].k_f;
+                }
+                rows.compliance[f * nf + g] = v;
+                rows.compliance[g * nf + f] = v;
+            }
+        }
+        rows.factor[..nf * nf].copy_from_slice(&rows.compliance[..nf * nf]);
+        if !cholesky_in_place(&mut rows.factor[..nf * nf], nf) {
+            return false;
+        }
+        rows.lambda0.clear();
+        rows.lambda0
+            .extend(rows.candidates.iter().map(|c| -c.g_hat));
+        cholesky_solve(&rows.factor[..nf * nf], nf, &mut rows.lambda0);
+        true
+    }
+
     pub(super) fn with_capacity() -> Self {
         Self {
             row_ptr: Vec::with_capacity(MAX_COUPLING_ROWS + 1),
@@ -202,6 +230,66 @@ impl Probe {
         let nn = DMat3::from_cols(n * n.x, n * n.y, n * n.z);
         let qc_inv = (DMat3::IDENTITY - nn) * (1.0 / k) + nn * (1.0 / k_n);
         let free = qc_inv * phi;
+        self.gather_candidates(x, p0, n, free);
+
+        // Every penetrated face is in the step (no active-set iteration: dropping the faces
+        // whose multiplier comes out negative made the load jump between two faces from tick
+        // to tick while sliding; kept, such a face pulls a little for a step and leaves as it
+        // separates, its stiffness vanishing with its force).
+        let rows = &mut self.rows;
+        let nf = rows.candidates.len();
+        if nf == 0 {
+            rows.row_ptr.clear();
+            return self.disengage(device_m);
+        }
+        if !rows.solve_multipliers(&qc_inv) {
+            rows.row_ptr.clear();
+            return self.disengage(device_m);
+        }
+        // Rows a_f = (beta_fj nu_f) over the face's corners.
+        rows.row_ptr.clear();
+        rows.nodes.clear();
+        rows.vectors.clear();
+        rows.normals.clear();
+        rows.row_ptr.push(0);
+        let (mut best, mut best_lambda) = (0, f64::NEG_INFINITY);
+        let mut total = DVec3::ZERO;
+        for (f, c) in rows.candidates.iter().enumerate() {
+            let tri = self.surface.triangles[c.triangle as usize];
+            for (&i, &beta) in tri.iter().zip(&c.bary) {
+                rows.nodes.push(i);
+                rows.vectors.push(c.nu * beta);
+            }
+            rows.row_ptr.push(rows.nodes.len() as u32);
+            rows.normals.push(c.nu);
+            total += c.nu * rows.lambda0[f];
+            if rows.lambda0[f] > best_lambda {
+                best_lambda = rows.lambda0[f];
+                best = f;
+            }
+        }
+        rows.phi_n = phi;
+        rows.qc_inv = qc_inv;
+        rows.proxy0_m = p0;
+        self.share_patch();
+        let c = self.rows.candidates[best];
+        let normal = (-total).try_normalize().unwrap_or(n);
+        self.state.in_contact = true;
+        self.state.normal = normal;
+        self.state.triangle = c.triangle;
+        self.state.bary = c.bary;
+        self.state.force_on_device_n = -total;
+        self.apply_friction(p0 + (free - normal * free.dot(normal)), total, first_touch);
+        self.state.force_on_device_n += self.friction_n;
+        self.state
+    }
+
+    /// The faces within reach of the proxy `p0` moving freely (by `free`) towards the device,
+    /// penetrated by it, as candidate rows (at most [`MAX_COUPLING_ROWS`], the deepest), with
+    /// the smoothed penalty linearised at their gaps; `n` is the last contact normal.
+    fn gather_candidates(&mut self, x: &[DVec3], p0: DVec3, n: DVec3, free: DVec3) {
+        let r = self.params.radius_m;
+        let k = self.params.coupling_stiffness_n_per_m;
         // Faces within reach of the proxy moving freely towards the device.
         self.stamp = self.stamp.wrapping_add(1);
         if self.stamp == 0 {
@@ -261,62 +349,42 @@ impl Probe {
                 .select_nth_unstable_by(MAX_COUPLING_ROWS, |a, b| a.g_hat.total_cmp(&b.g_hat));
             rows.candidates.truncate(MAX_COUPLING_ROWS);
         }
+    }
 
-        // Every penetrated face is in the step (no active-set iteration: dropping the faces
-        // whose multiplier comes out negative made the load jump between two faces from tick
-        // to tick while sliding; kept, such a face pulls a little for a step and leaves as it
-        // separates, its stiffness vanishing with its force).
-        let nf = rows.candidates.len();
-        if nf == 0 {
-            rows.row_ptr.clear();
-            return self.disengage(device_m);
+    /// The coupling force's tangential part under Coulomb friction, `friction_n`, and its
+    /// anchor, for the frictionless proxy's position along the surface `frictionless` and
+    /// the contact force `total` (N; `first_touch`: no offset yet).
+    fn apply_friction(&mut self, frictionless: DVec3, total: DVec3, first_touch: bool) {
+        let normal = self.state.normal;
+        let k = self.params.coupling_stiffness_n_per_m;
+        // Coulomb friction: the god-object cone of the other contact models
+        // ([`Probe::engage`]), explicit in the step: the felt proxy sticks where it was while
+        // the tangential coupling force `k o_t` stays within `mu` times the normal force,
+        // and is dragged along the cone's edge beyond.
+        self.friction_n = DVec3::ZERO;
+        let mu = self.params.friction_coefficient;
+        if mu > 0.0 {
+            let offset = if first_touch {
+                DVec3::ZERO
+            } else {
+                let o = self.anchor_m - frictionless;
+                o - normal * o.dot(normal)
+            };
+            let limit = mu * total.length().min(self.params.max_force_n) / k;
+            let len = offset.length();
+            let offset = if len > limit {
+                offset * (limit / len)
+            } else {
+                offset
+            };
+            self.friction_n = offset * k;
+            self.anchor_m = frictionless + offset;
         }
-        for f in 0..nf {
-            let qf = qc_inv * rows.candidates[f].nu;
-            for g in 0..=f {
-                let mut v = rows.candidates[g].nu.dot(qf);
-                if f == g {
-                    v += 1.0 / rows.candidates[f].k_f;
-                }
-                rows.compliance[f * nf + g] = v;
-                rows.compliance[g * nf + f] = v;
-            }
-        }
-        rows.factor[..nf * nf].copy_from_slice(&rows.compliance[..nf * nf]);
-        if !cholesky_in_place(&mut rows.factor[..nf * nf], nf) {
-            rows.row_ptr.clear();
-            return self.disengage(device_m);
-        }
-        rows.lambda0.clear();
-        rows.lambda0
-            .extend(rows.candidates.iter().map(|c| -c.g_hat));
-        cholesky_solve(&rows.factor[..nf * nf], nf, &mut rows.lambda0);
-        // Rows a_f = (beta_fj nu_f) over the face's corners.
-        rows.row_ptr.clear();
-        rows.nodes.clear();
-        rows.vectors.clear();
-        rows.normals.clear();
-        rows.row_ptr.push(0);
-        let (mut best, mut best_lambda) = (0, f64::NEG_INFINITY);
-        let mut total = DVec3::ZERO;
-        for (f, c) in rows.candidates.iter().enumerate() {
-            let tri = self.surface.triangles[c.triangle as usize];
-            for (&i, &beta) in tri.iter().zip(&c.bary) {
-                rows.nodes.push(i);
-                rows.vectors.push(c.nu * beta);
-            }
-            rows.row_ptr.push(rows.nodes.len() as u32);
-            rows.normals.push(c.nu);
-            total += c.nu * rows.lambda0[f];
-            if rows.lambda0[f] > best_lambda {
-                best_lambda = rows.lambda0[f];
-                best = f;
-            }
-        }
-        rows.phi_n = phi;
-        rows.qc_inv = qc_inv;
-        rows.proxy0_m = p0;
-        // The contact nodes and their share of the explicit load (what `patch` reports).
+    }
+
+    /// The contact nodes and their share of the explicit load (what `patch` reports).
+    fn share_patch(&mut self) {
+        let rows = &self.rows;
         self.patch_nodes.clear();
         self.patch_weights.clear();
         let sum: f64 = rows.lambda0.iter().sum();
@@ -341,41 +409,6 @@ impl Probe {
         for &i in &self.patch_nodes {
             self.node_slot[i as usize] = u32::MAX;
         }
-        let c = rows.candidates[best];
-        let normal = (-total).try_normalize().unwrap_or(n);
-        self.state.in_contact = true;
-        self.state.normal = normal;
-        self.state.triangle = c.triangle;
-        self.state.bary = c.bary;
-        self.state.force_on_device_n = -total;
-        // Coulomb friction: the god-object cone of the other contact models
-        // ([`Probe::engage`]), explicit in the step: the felt proxy sticks where it was while
-        // the tangential coupling force `k o_t` stays within `mu` times the normal force,
-        // and is dragged along the cone's edge beyond.
-        self.friction_n = DVec3::ZERO;
-        let mu = self.params.friction_coefficient;
-        if mu > 0.0 {
-            // Where the frictionless proxy goes in this step along the surface: under the
-            // device (it slides freely there).
-            let frictionless = p0 + (free - normal * free.dot(normal));
-            let offset = if first_touch {
-                DVec3::ZERO
-            } else {
-                let o = self.anchor_m - frictionless;
-                o - normal * o.dot(normal)
-            };
-            let limit = mu * total.length().min(self.params.max_force_n) / k;
-            let len = offset.length();
-            let offset = if len > limit {
-                offset * (limit / len)
-            } else {
-                offset
-            };
-            self.friction_n = offset * k;
-            self.anchor_m = frictionless + offset;
-        }
-        self.state.force_on_device_n += self.friction_n;
-        self.state
     }
 
     /// Adds the implicit sphere's explicit contact force `A^T lambda0` and minus the friction
