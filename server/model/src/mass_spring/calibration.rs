@@ -563,30 +563,7 @@ impl LocalPatch {
                 "node {centre} cannot be calibrated (fixed, or no ring to subdivide or margin)"
             )));
         }
-        let extra = margin;
-        let outer = rings + extra;
-        let mut dist = vec![u32::MAX; surface.node_count()];
-        let mut ring = Vec::new();
-        surface.ring(centre, outer, &mut dist, &mut ring);
-        let mut local = vec![NONE; surface.node_count()];
-        for (k, &(i, _)) in ring.iter().enumerate() {
-            local[i as usize] = k as u32;
-        }
-        let rest: Vec<DVec3> = ring
-            .iter()
-            .map(|&(i, _)| surface.rest()[i as usize])
-            .collect();
-        let fixed: Vec<bool> = ring
-            .iter()
-            .map(|&(i, d)| surface.is_fixed(i) || d == outer)
-            .collect();
-        let tris: Vec<[u32; 3]> = surface
-            .triangles()
-            .iter()
-            .filter(|t| t.iter().all(|&i| local[i as usize] != NONE))
-            .map(|t| t.map(|i| local[i as usize]))
-            .collect();
-        let patch = SpringSurface::patch(rest, tris, fixed)?;
+        let (ring, patch) = cut_patch(surface, centre, rings + margin)?;
         let c = 0u32; // the ring starts with the centre
         let nc = patch.node_count();
         let coarse = Network {
@@ -647,32 +624,13 @@ impl LocalPatch {
                 }
             })
             .collect();
-        // Contact offsets from the whole surface's contact positions (a patch's own would be
-        // wrong at its cut).
-        let global = |i: u32| ring[i as usize].0;
+        let (coarse_offset, fine_offset) = match contact {
+            Some(cr) => contact_offsets(surface, &patch, &ring, cr, &fine_rest),
+            None => (vec![DVec3::ZERO; nc], vec![DVec3::ZERO; ns]),
+        };
         // Depth zero is the sphere touching the node (on the surface the nodes sample; the
         // offsets put the probe's plane through it).
         let contact_point = surface.rest()[centre as usize];
-        let coarse_offset: Vec<DVec3> = match contact {
-            Some(cr) => ring
-                .iter()
-                .map(|&(i, _)| cr.positions[i as usize] - surface.rest()[i as usize])
-                .collect(),
-            None => vec![DVec3::ZERO; nc],
-        };
-        let mut fine_offset = vec![DVec3::ZERO; ns];
-        if let Some(cr) = contact {
-            for i in 0..nc {
-                let g = global(i as u32) as usize;
-                fine_offset[i] = cr.positions[g] - fine_rest[i];
-            }
-            for (e, &[a, b]) in patch.edges().iter().enumerate() {
-                if let Some(ge) = surface.edge_between(global(a), global(b)) {
-                    let slot = surface.node_count() + ge as usize;
-                    fine_offset[nc + e] = cr.positions[slot] - fine_rest[nc + e];
-                }
-            }
-        }
         let fine = Network {
             home_n_per_m: (0..ns)
                 .map(|s| if s < nc || fine_area_node[s] { kh } else { 0.0 })
@@ -1184,4 +1142,67 @@ pub fn calibrate(
         key: calibration_key(surface, params, shape),
         rows: rows.into_inner().unwrap_or_default(),
     })
+}
+
+/// The local problem's patch: the rings around `centre` up to `outer` (`ring`: the whole
+/// surface's node and its ring distance, the centre first), the outermost ring and the
+/// surface's fixed nodes fixed.
+fn cut_patch(
+    surface: &SpringSurface,
+    centre: u32,
+    outer: u32,
+) -> Result<(Vec<(u32, u32)>, SpringSurface), ModelError> {
+    let mut dist = vec![u32::MAX; surface.node_count()];
+    let mut ring = Vec::new();
+    surface.ring(centre, outer, &mut dist, &mut ring);
+    let mut local = vec![NONE; surface.node_count()];
+    for (k, &(i, _)) in ring.iter().enumerate() {
+        local[i as usize] = k as u32;
+    }
+    let rest: Vec<DVec3> = ring
+        .iter()
+        .map(|&(i, _)| surface.rest()[i as usize])
+        .collect();
+    let fixed: Vec<bool> = ring
+        .iter()
+        .map(|&(i, d)| surface.is_fixed(i) || d == outer)
+        .collect();
+    let tris: Vec<[u32; 3]> = surface
+        .triangles()
+        .iter()
+        .filter(|t| t.iter().all(|&i| local[i as usize] != NONE))
+        .map(|t| t.map(|i| local[i as usize]))
+        .collect();
+    let patch = SpringSurface::patch(rest, tris, fixed)?;
+    Ok((ring, patch))
+}
+
+/// The probe's contact offsets (contact position minus rest position) of the patch's coarse
+/// nodes and of its subdivided slots (rest positions `fine_rest`), from the whole surface's
+/// contact positions `contact` (a patch's own would be wrong at its cut).
+fn contact_offsets(
+    surface: &SpringSurface,
+    patch: &SpringSurface,
+    ring: &[(u32, u32)],
+    contact: &ContactRest,
+    fine_rest: &[DVec3],
+) -> (Vec<DVec3>, Vec<DVec3>) {
+    let nc = patch.node_count();
+    let global = |i: u32| ring[i as usize].0;
+    let coarse_offset = ring
+        .iter()
+        .map(|&(i, _)| contact.positions[i as usize] - surface.rest()[i as usize])
+        .collect();
+    let mut fine_offset = vec![DVec3::ZERO; fine_rest.len()];
+    for i in 0..nc {
+        let g = global(i as u32) as usize;
+        fine_offset[i] = contact.positions[g] - fine_rest[i];
+    }
+    for (e, &[a, b]) in patch.edges().iter().enumerate() {
+        if let Some(ge) = surface.edge_between(global(a), global(b)) {
+            let slot = surface.node_count() + ge as usize;
+            fine_offset[nc + e] = contact.positions[slot] - fine_rest[nc + e];
+        }
+    }
+    (coarse_offset, fine_offset)
 }

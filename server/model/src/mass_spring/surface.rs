@@ -125,120 +125,16 @@ impl SpringSurface {
         check_fans: bool,
     ) -> Result<Self, ModelError> {
         let n = rest.len();
+        check_input(&rest, &triangles, &fixed)?;
+        let EdgeTable {
+            edges,
+            edge_tris,
+            edge_opposite,
+            tri_edges,
+        } = EdgeTable::new(&triangles)?;
+        let (nbr_offsets, nbrs, nbr_edges) = node_neighbours(n, &edges);
+        let (tri_offsets, node_tris) = node_triangles(n, &triangles);
         let bad = |m: String| Err(ModelError::InvalidMesh(m));
-        if fixed.len() != n {
-            return bad(format!("{} fixed flags for {n} nodes", fixed.len()));
-        }
-        if triangles.is_empty() {
-            return bad("the spring surface has no triangle".into());
-        }
-        let mut span: f64 = 0.0;
-        for p in &rest {
-            if !p.is_finite() {
-                return bad("a surface node position is not finite".into());
-            }
-            span = span.max(p.abs().max_element());
-        }
-        for t in &triangles {
-            if t.iter().any(|&i| i as usize >= n) || t[0] == t[1] || t[1] == t[2] || t[0] == t[2] {
-                return bad(format!("surface triangle {t:?} is invalid for {n} nodes"));
-            }
-            let [a, b, c] = t.map(|i| rest[i as usize]);
-            let area2 = (b - a).cross(c - a).length();
-            let scale = (b - a).length_squared().max((c - a).length_squared());
-            if !(area2 > 1e-12 * scale) {
-                return bad(format!("surface triangle {t:?} has zero area"));
-            }
-        }
-        // Edges from sorted directed half-edges.
-        let mut half: Vec<(u32, u32, u32, u32)> = Vec::with_capacity(3 * triangles.len());
-        for (k, t) in triangles.iter().enumerate() {
-            for s in 0..3 {
-                let (a, b) = (t[s], t[(s + 1) % 3]);
-                half.push((a.min(b), a.max(b), k as u32, s as u32));
-            }
-        }
-        half.sort_unstable();
-        let mut edges = Vec::new();
-        let mut edge_tris = Vec::new();
-        let mut edge_opposite = Vec::new();
-        let mut tri_edges = vec![[NONE; 3]; triangles.len()];
-        let mut k = 0;
-        while k < half.len() {
-            let (a, b) = (half[k].0, half[k].1);
-            let mut m = k;
-            while m < half.len() && half[m].0 == a && half[m].1 == b {
-                m += 1;
-            }
-            if m - k > 2 {
-                return bad(format!(
-                    "edge ({a}, {b}) belongs to {} triangles: the surface is not a manifold",
-                    m - k
-                ));
-            }
-            let e = edges.len() as u32;
-            let mut tris = [NONE; 2];
-            let mut opp = [NONE; 2];
-            for (slot, h) in half[k..m].iter().enumerate() {
-                let t = triangles[h.2 as usize];
-                tris[slot] = h.2;
-                opp[slot] = t[(h.3 as usize + 2) % 3];
-                tri_edges[h.2 as usize][h.3 as usize] = e;
-            }
-            if m - k == 2 {
-                // Consistent orientation: the two triangles run along the edge in opposite
-                // directions.
-                let dir = |h: &(u32, u32, u32, u32)| triangles[h.2 as usize][h.3 as usize] == a;
-                if dir(&half[k]) == dir(&half[k + 1]) {
-                    return bad(format!(
-                        "triangles {} and {} share edge ({a}, {b}) with the same orientation",
-                        half[k].2,
-                        half[k + 1].2
-                    ));
-                }
-            }
-            edges.push([a, b]);
-            edge_tris.push(tris);
-            edge_opposite.push(opp);
-            k = m;
-        }
-        // Node adjacency (CSR) from the edges.
-        let mut nbr_offsets = vec![0u32; n + 1];
-        for e in &edges {
-            nbr_offsets[e[0] as usize + 1] += 1;
-            nbr_offsets[e[1] as usize + 1] += 1;
-        }
-        for i in 0..n {
-            nbr_offsets[i + 1] += nbr_offsets[i];
-        }
-        let mut cursor = nbr_offsets.clone();
-        let mut nbrs = vec![0u32; 2 * edges.len()];
-        let mut nbr_edges = vec![0u32; 2 * edges.len()];
-        for (e, &[a, b]) in edges.iter().enumerate() {
-            for (p, q) in [(a, b), (b, a)] {
-                let c = &mut cursor[p as usize];
-                nbrs[*c as usize] = q;
-                nbr_edges[*c as usize] = e as u32;
-                *c += 1;
-            }
-        }
-        let mut tri_offsets = vec![0u32; n + 1];
-        for t in &triangles {
-            for &i in t {
-                tri_offsets[i as usize + 1] += 1;
-            }
-        }
-        for i in 0..n {
-            tri_offsets[i + 1] += tri_offsets[i];
-        }
-        let mut cursor = tri_offsets.clone();
-        let mut node_tris = vec![0u32; 3 * triangles.len()];
-        for (k, t) in triangles.iter().enumerate() {
-            for &i in t {
-                node_tris[cursor[i as usize] as usize] = k as u32;
-                cursor[i as usize] += 1;
-            }
-        }
         let mut boundary = vec![false; n];
         for (e, t) in edges.iter().zip(&edge_tris) {
             if t[1] == NONE {
@@ -531,4 +427,156 @@ impl SpringSurface {
             dist[i as usize] = u32::MAX;
         }
     }
+}
+
+/// The checks of [`SpringSurface::new`] on its input alone: flags per node, finite positions,
+/// triangles over existing distinct nodes with a non-zero area.
+fn check_input(rest: &[DVec3], triangles: &[[u32; 3]], fixed: &[bool]) -> Result<(), ModelError> {
+    let n = rest.len();
+    let bad = |m: String| Err(ModelError::InvalidMesh(m));
+    if fixed.len() != n {
+        return bad(format!("{} fixed flags for {n} nodes", fixed.len()));
+    }
+    if triangles.is_empty() {
+        return bad("the spring surface has no triangle".into());
+    }
+    for p in rest {
+        if !p.is_finite() {
+            return bad("a surface node position is not finite".into());
+        }
+    }
+    for t in triangles {
+        if t.iter().any(|&i| i as usize >= n) || t[0] == t[1] || t[1] == t[2] || t[0] == t[2] {
+            return bad(format!("surface triangle {t:?} is invalid for {n} nodes"));
+        }
+        let [a, b, c] = t.map(|i| rest[i as usize]);
+        let area2 = (b - a).cross(c - a).length();
+        let scale = (b - a).length_squared().max((c - a).length_squared());
+        if !(area2 > 1e-12 * scale) {
+            return bad(format!("surface triangle {t:?} has zero area"));
+        }
+    }
+    Ok(())
+}
+
+/// The edges of a triangle list, from its sorted directed half-edges: per edge its ends, its
+/// one or two triangles and their opposite corners; per triangle its three edges.
+struct EdgeTable {
+    edges: Vec<[u32; 2]>,
+    edge_tris: Vec<[u32; 2]>,
+    edge_opposite: Vec<[u32; 2]>,
+    tri_edges: Vec<[u32; 3]>,
+}
+
+impl EdgeTable {
+    /// # Errors
+    /// [`ModelError::InvalidMesh`] for an edge of more than two triangles or two triangles
+    /// sharing an edge with the same orientation.
+    fn new(triangles: &[[u32; 3]]) -> Result<Self, ModelError> {
+        let bad = |m: String| Err(ModelError::InvalidMesh(m));
+        let mut half: Vec<(u32, u32, u32, u32)> = Vec::with_capacity(3 * triangles.len());
+        for (k, t) in triangles.iter().enumerate() {
+            for s in 0..3 {
+                let (a, b) = (t[s], t[(s + 1) % 3]);
+                half.push((a.min(b), a.max(b), k as u32, s as u32));
+            }
+        }
+        half.sort_unstable();
+        let mut edges = Vec::new();
+        let mut edge_tris = Vec::new();
+        let mut edge_opposite = Vec::new();
+        let mut tri_edges = vec![[NONE; 3]; triangles.len()];
+        let mut k = 0;
+        while k < half.len() {
+            let (a, b) = (half[k].0, half[k].1);
+            let mut m = k;
+            while m < half.len() && half[m].0 == a && half[m].1 == b {
+                m += 1;
+            }
+            if m - k > 2 {
+                return bad(format!(
+                    "edge ({a}, {b}) belongs to {} triangles: the surface is not a manifold",
+                    m - k
+                ));
+            }
+            let e = edges.len() as u32;
+            let mut tris = [NONE; 2];
+            let mut opp = [NONE; 2];
+            for (slot, h) in half[k..m].iter().enumerate() {
+                let t = triangles[h.2 as usize];
+                tris[slot] = h.2;
+                opp[slot] = t[(h.3 as usize + 2) % 3];
+                tri_edges[h.2 as usize][h.3 as usize] = e;
+            }
+            if m - k == 2 {
+                // Consistent orientation: the two triangles run along the edge in opposite
+                // directions.
+                let dir = |h: &(u32, u32, u32, u32)| triangles[h.2 as usize][h.3 as usize] == a;
+                if dir(&half[k]) == dir(&half[k + 1]) {
+                    return bad(format!(
+                        "triangles {} and {} share edge ({a}, {b}) with the same orientation",
+                        half[k].2,
+                        half[k + 1].2
+                    ));
+                }
+            }
+            edges.push([a, b]);
+            edge_tris.push(tris);
+            edge_opposite.push(opp);
+            k = m;
+        }
+        Ok(Self {
+            edges,
+            edge_tris,
+            edge_opposite,
+            tri_edges,
+        })
+    }
+}
+
+/// Node adjacency from the edges, CSR: `(offsets, neighbours, edges)`, node `i`'s neighbours
+/// `neighbours[offsets[i]..offsets[i + 1]]` and the edges to them.
+fn node_neighbours(n: usize, edges: &[[u32; 2]]) -> (Vec<u32>, Vec<u32>, Vec<u32>) {
+    let mut nbr_offsets = vec![0u32; n + 1];
+    for e in edges {
+        nbr_offsets[e[0] as usize + 1] += 1;
+        nbr_offsets[e[1] as usize + 1] += 1;
+    }
+    for i in 0..n {
+        nbr_offsets[i + 1] += nbr_offsets[i];
+    }
+    let mut cursor = nbr_offsets.clone();
+    let mut nbrs = vec![0u32; 2 * edges.len()];
+    let mut nbr_edges = vec![0u32; 2 * edges.len()];
+    for (e, &[a, b]) in edges.iter().enumerate() {
+        for (p, q) in [(a, b), (b, a)] {
+            let c = &mut cursor[p as usize];
+            nbrs[*c as usize] = q;
+            nbr_edges[*c as usize] = e as u32;
+            *c += 1;
+        }
+    }
+    (nbr_offsets, nbrs, nbr_edges)
+}
+
+/// The triangles at each node, CSR: `(offsets, triangles)`.
+fn node_triangles(n: usize, triangles: &[[u32; 3]]) -> (Vec<u32>, Vec<u32>) {
+    let mut tri_offsets = vec![0u32; n + 1];
+    for t in triangles {
+        for &i in t {
+            tri_offsets[i as usize + 1] += 1;
+        }
+    }
+    for i in 0..n {
+        tri_offsets[i + 1] += tri_offsets[i];
+    }
+    let mut cursor = tri_offsets.clone();
+    let mut node_tris = vec![0u32; 3 * triangles.len()];
+    for (k, t) in triangles.iter().enumerate() {
+        for &i in t {
+            node_tris[cursor[i as usize] as usize] = k as u32;
+            cursor[i as usize] += 1;
+        }
+    }
+    (tri_offsets, node_tris)
 }
