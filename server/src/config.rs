@@ -395,30 +395,7 @@ impl ConfigFile {
                 }
             };
         }
-        if !(1..=99).contains(&self.servo.priority) {
-            return Err(ServerError::Config(format!(
-                "servo.priority = {}: expected 1..=99",
-                self.servo.priority
-            )));
-        }
-        if self.servo.snapshot_every_ticks == 0 || self.servo.stats_every_ticks == 0 {
-            return Err(ServerError::Config(
-                "servo.snapshot_every_ticks and servo.stats_every_ticks must be >= 1".into(),
-            ));
-        }
-        if !(self.servo.min_rate_fraction.is_finite()
-            && (0.0..=1.0).contains(&self.servo.min_rate_fraction))
-        {
-            return Err(ServerError::Config(format!(
-                "servo.min_rate_fraction = {}: expected 0..=1",
-                self.servo.min_rate_fraction
-            )));
-        }
-        if self.servo.device_silence_ms == 0 {
-            return Err(ServerError::Config(
-                "servo.device_silence_ms must be at least 1".into(),
-            ));
-        }
+        check_servo(&self.servo)?;
         c.servo = self.servo;
         c.state_dir = self.state_dir;
         c.data_dirs = self.data_dirs;
@@ -464,12 +441,7 @@ impl ConfigFile {
             }
         }
         if let Some(t) = self.build_timeout_s {
-            if !(t.is_finite() && (0.001..=3600.0).contains(&t)) {
-                return Err(ServerError::Config(format!(
-                    "build_timeout_s = {t}: expected 0.001..=3600"
-                )));
-            }
-            c.build_timeout = std::time::Duration::from_secs_f64(t);
+            c.build_timeout = duration_s("build_timeout_s", t, 3600.0)?;
         }
         c.tokens_file = self.auth.tokens_file;
         if let Some(n) = self.auth.max_failures {
@@ -481,26 +453,11 @@ impl ConfigFile {
             c.auth_limits.max_failures = n;
         }
         if let Some(t) = self.auth.failure_window_s {
-            if !(t.is_finite() && (0.001..=86_400.0).contains(&t)) {
-                return Err(ServerError::Config(format!(
-                    "auth.failure_window_s = {t}: expected 0.001..=86400"
-                )));
-            }
-            c.auth_limits.window = std::time::Duration::from_secs_f64(t);
+            c.auth_limits.window = duration_s("auth.failure_window_s", t, 86_400.0)?;
         }
         c.tls = self.tls;
         c.allow_insecure_remote = self.allow_insecure_remote;
-        if !c.listen.ip().is_loopback()
-            && (c.tls.is_none() || c.tokens_file.is_none())
-            && !c.allow_insecure_remote
-        {
-            return Err(ServerError::Config(format!(
-                "refusing to listen on {} without TLS and tokens: anyone on the network could \
-                 drive the arm. Set [tls] and [auth] tokens_file (docs/security.md), or \
-                 allow_insecure_remote = true (--allow-insecure-remote) on a trusted network",
-                c.listen
-            )));
-        }
+        check_remote(&c)?;
         if let Some(m) = self.metrics_listen {
             c.metrics_listen = Some(
                 m.parse()
@@ -509,4 +466,59 @@ impl ConfigFile {
         }
         Ok(c)
     }
+}
+
+/// The `[servo]` table's ranges: priority 1..=99, snapshot and statistics periods and the
+/// device-silence timeout at least 1, `min_rate_fraction` in 0..=1.
+fn check_servo(servo: &ServoConfig) -> Result<(), ServerError> {
+    if !(1..=99).contains(&servo.priority) {
+        return Err(ServerError::Config(format!(
+            "servo.priority = {}: expected 1..=99",
+            servo.priority
+        )));
+    }
+    if servo.snapshot_every_ticks == 0 || servo.stats_every_ticks == 0 {
+        return Err(ServerError::Config(
+            "servo.snapshot_every_ticks and servo.stats_every_ticks must be >= 1".into(),
+        ));
+    }
+    if !(servo.min_rate_fraction.is_finite() && (0.0..=1.0).contains(&servo.min_rate_fraction)) {
+        return Err(ServerError::Config(format!(
+            "servo.min_rate_fraction = {}: expected 0..=1",
+            servo.min_rate_fraction
+        )));
+    }
+    if servo.device_silence_ms == 0 {
+        return Err(ServerError::Config(
+            "servo.device_silence_ms must be at least 1".into(),
+        ));
+    }
+    Ok(())
+}
+
+/// A duration key given in seconds: finite, from 1 ms to `max_s`.
+fn duration_s(name: &str, t: f64, max_s: f64) -> Result<std::time::Duration, ServerError> {
+    if !(t.is_finite() && (0.001..=max_s).contains(&t)) {
+        return Err(ServerError::Config(format!(
+            "{name} = {t}: expected 0.001..={max_s}"
+        )));
+    }
+    Ok(std::time::Duration::from_secs_f64(t))
+}
+
+/// Refuses a non-loopback listen address without TLS and tokens unless
+/// `allow_insecure_remote` says the network is trusted.
+fn check_remote(c: &ServerConfig) -> Result<(), ServerError> {
+    if !c.listen.ip().is_loopback()
+        && (c.tls.is_none() || c.tokens_file.is_none())
+        && !c.allow_insecure_remote
+    {
+        return Err(ServerError::Config(format!(
+            "refusing to listen on {} without TLS and tokens: anyone on the network could \
+             drive the arm. Set [tls] and [auth] tokens_file (docs/security.md), or \
+             allow_insecure_remote = true (--allow-insecure-remote) on a trusted network",
+            c.listen
+        )));
+    }
+    Ok(())
 }

@@ -115,6 +115,136 @@ fn per_session(
     Ok(())
 }
 
+/// How one per-session metric is read from a session's row.
+type Extract = fn(&Row) -> Value;
+
+/// The per-session metrics: name, help, type and value, in scrape order.
+const SESSION_METRICS: &[(&str, &str, MetricType, Extract)] = {
+    use MetricType::{Counter, Gauge, Histogram};
+    &[
+        (
+            "hapticd_loop_rate_hz",
+            "Servo ticks per second of wall time",
+            Gauge,
+            |r| Value::Gauge(r.stats.loop_rate_hz),
+        ),
+        ("hapticd_steps", "Servo ticks run", Counter, |r| {
+            Value::Counter(r.stats.steps)
+        }),
+        ("hapticd_overruns", "Late servo ticks", Counter, |r| {
+            Value::Counter(r.stats.overruns)
+        }),
+        (
+            "hapticd_step_time_seconds",
+            "Servo step compute time",
+            Histogram,
+            |r| Value::Histogram(r.stats.step_buckets),
+        ),
+        (
+            "hapticd_pose_to_force_seconds",
+            "Device pose received to force command pushed",
+            Histogram,
+            |r| Value::Histogram(r.stats.pose_to_force_buckets),
+        ),
+        (
+            "hapticd_device_samples",
+            "Device samples accepted",
+            Counter,
+            |r| Value::Counter(r.stats.device_samples),
+        ),
+        (
+            "hapticd_rejected_samples",
+            "Device samples rejected (non-finite, absurd, out of order)",
+            Counter,
+            |r| Value::Counter(r.session.shared.rejected_samples.load(Relaxed)),
+        ),
+        (
+            "hapticd_out_of_workspace_samples",
+            "Device samples dropped outside the workspace the device declared",
+            Counter,
+            |r| Value::Counter(r.session.shared.out_of_workspace_samples.load(Relaxed)),
+        ),
+        (
+            "hapticd_faulted",
+            "1 when the session is quarantined (zero force) after a fault",
+            Gauge,
+            |r| Value::Gauge(if r.stats.fault.is_some() { 1.0 } else { 0.0 }),
+        ),
+        (
+            "hapticd_in_contact",
+            "1 while the probe touches the body",
+            Gauge,
+            |r| Value::Gauge(if r.stats.in_contact { 1.0 } else { 0.0 }),
+        ),
+        ("hapticd_sim_time_seconds", "Simulated time", Gauge, |r| {
+            Value::Gauge(r.stats.sim_time_s)
+        }),
+        (
+            "hapticd_peak_force_newtons",
+            "Largest device force magnitude so far",
+            Gauge,
+            |r| Value::Gauge(r.stats.peak_force_n),
+        ),
+        ("hapticd_watchers", "Surface streams open", Gauge, |r| {
+            Value::Gauge(r.session.watcher_stats.watchers.load(Relaxed) as f64)
+        }),
+        (
+            "hapticd_watcher_frames_sent",
+            "Frames queued to watchers",
+            Counter,
+            |r| Value::Counter(r.session.watcher_stats.frames_sent.load(Relaxed)),
+        ),
+        (
+            "hapticd_watcher_frames_dropped",
+            "Frames a watcher was due but its queue was full",
+            Counter,
+            |r| Value::Counter(r.session.watcher_stats.frames_dropped.load(Relaxed)),
+        ),
+        (
+            "hapticd_watcher_bytes_sent",
+            "Encoded bytes of frames queued to watchers",
+            Counter,
+            |r| Value::Counter(r.session.watcher_stats.bytes_sent.load(Relaxed)),
+        ),
+        (
+            "hapticd_active_elements",
+            "Elements simulated with full dynamics",
+            Gauge,
+            |r| Value::Gauge(r.stats.body.active_elements as f64),
+        ),
+        (
+            "hapticd_region_swaps",
+            "Active regions swapped in by a region that follows the probe",
+            Counter,
+            |r| Value::Counter(r.stats.body.region_swaps),
+        ),
+        (
+            "hapticd_contact_ticks",
+            "Servo ticks with the probe in contact",
+            Counter,
+            |r| Value::Counter(r.stats.contact_ticks),
+        ),
+        (
+            "hapticd_companion_ticks",
+            "Contact ticks to which a following region's coarse companion contributed",
+            Counter,
+            |r| Value::Counter(r.stats.body.companion_ticks),
+        ),
+        (
+            "hapticd_active_particles",
+            "Meshfree particles simulated now",
+            Gauge,
+            |r| Value::Gauge(r.stats.body.active_particles as f64),
+        ),
+        (
+            "hapticd_surface_vertices",
+            "Vertices of the surface viewers receive",
+            Gauge,
+            |r| Value::Gauge(r.stats.body.surface_vertices as f64),
+        ),
+    ]
+};
+
 impl Collector for SessionCollector {
     fn encode(&self, mut enc: DescriptorEncoder<'_>) -> fmt::Result {
         let rows: Vec<Row> = self
@@ -134,179 +264,9 @@ impl Collector for SessionCollector {
             None,
             MetricType::Gauge,
         )?)?;
-        use MetricType::{Counter, Gauge, Histogram};
-        let e = &mut enc;
-        per_session(
-            e,
-            &rows,
-            "hapticd_loop_rate_hz",
-            "Servo ticks per second of wall time",
-            Gauge,
-            |r| Value::Gauge(r.stats.loop_rate_hz),
-        )?;
-        per_session(e, &rows, "hapticd_steps", "Servo ticks run", Counter, |r| {
-            Value::Counter(r.stats.steps)
-        })?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_overruns",
-            "Late servo ticks",
-            Counter,
-            |r| Value::Counter(r.stats.overruns),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_step_time_seconds",
-            "Servo step compute time",
-            Histogram,
-            |r| Value::Histogram(r.stats.step_buckets),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_pose_to_force_seconds",
-            "Device pose received to force command pushed",
-            Histogram,
-            |r| Value::Histogram(r.stats.pose_to_force_buckets),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_device_samples",
-            "Device samples accepted",
-            Counter,
-            |r| Value::Counter(r.stats.device_samples),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_rejected_samples",
-            "Device samples rejected (non-finite, absurd, out of order)",
-            Counter,
-            |r| Value::Counter(r.session.shared.rejected_samples.load(Relaxed)),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_out_of_workspace_samples",
-            "Device samples dropped outside the workspace the device declared",
-            Counter,
-            |r| Value::Counter(r.session.shared.out_of_workspace_samples.load(Relaxed)),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_faulted",
-            "1 when the session is quarantined (zero force) after a fault",
-            Gauge,
-            |r| Value::Gauge(if r.stats.fault.is_some() { 1.0 } else { 0.0 }),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_in_contact",
-            "1 while the probe touches the body",
-            Gauge,
-            |r| Value::Gauge(if r.stats.in_contact { 1.0 } else { 0.0 }),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_sim_time_seconds",
-            "Simulated time",
-            Gauge,
-            |r| Value::Gauge(r.stats.sim_time_s),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_peak_force_newtons",
-            "Largest device force magnitude so far",
-            Gauge,
-            |r| Value::Gauge(r.stats.peak_force_n),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_watchers",
-            "Surface streams open",
-            Gauge,
-            |r| Value::Gauge(r.session.watcher_stats.watchers.load(Relaxed) as f64),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_watcher_frames_sent",
-            "Frames queued to watchers",
-            Counter,
-            |r| Value::Counter(r.session.watcher_stats.frames_sent.load(Relaxed)),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_watcher_frames_dropped",
-            "Frames a watcher was due but its queue was full",
-            Counter,
-            |r| Value::Counter(r.session.watcher_stats.frames_dropped.load(Relaxed)),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_watcher_bytes_sent",
-            "Encoded bytes of frames queued to watchers",
-            Counter,
-            |r| Value::Counter(r.session.watcher_stats.bytes_sent.load(Relaxed)),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_active_elements",
-            "Elements simulated with full dynamics",
-            Gauge,
-            |r| Value::Gauge(r.stats.body.active_elements as f64),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_region_swaps",
-            "Active regions swapped in by a region that follows the probe",
-            Counter,
-            |r| Value::Counter(r.stats.body.region_swaps),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_contact_ticks",
-            "Servo ticks with the probe in contact",
-            Counter,
-            |r| Value::Counter(r.stats.contact_ticks),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_companion_ticks",
-            "Contact ticks to which a following region's coarse companion contributed",
-            Counter,
-            |r| Value::Counter(r.stats.body.companion_ticks),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_active_particles",
-            "Meshfree particles simulated now",
-            Gauge,
-            |r| Value::Gauge(r.stats.body.active_particles as f64),
-        )?;
-        per_session(
-            e,
-            &rows,
-            "hapticd_surface_vertices",
-            "Vertices of the surface viewers receive",
-            Gauge,
-            |r| Value::Gauge(r.stats.body.surface_vertices as f64),
-        )?;
+        for &(name, help, metric_type, value) in SESSION_METRICS {
+            per_session(&mut enc, &rows, name, help, metric_type, value)?;
+        }
         Ok(())
     }
 }
