@@ -147,12 +147,7 @@ pub fn spawn_frame_task(
     tokio::spawn(async move {
         let mut tick = tokio::time::interval(Duration::from_millis(10));
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-        let mut topology: Option<Arc<Topology>> = None;
-        let mut reference: Option<Arc<Reference>> = None;
-        let mut renewed_at = tokio::time::Instant::now();
-        let mut previous: Vec<f32> = Vec::new();
-        let mut next_id = 1u64;
-        let (mut buf, mut step_buf) = (Vec::new(), Vec::new());
+        let mut frames = FrameBuilder::new(stats, policy);
         loop {
             tick.tick().await;
             if shared.finished.load(Ordering::Acquire) || shared.stop.load(Ordering::Acquire) {
@@ -161,115 +156,183 @@ pub fn spawn_frame_task(
             if shared.watchers.load(Ordering::Acquire) == 0 || !snap_out.update() {
                 continue;
             }
-            let s = snap_out.output_buffer();
-            let topology = match &topology {
-                Some(t) if t.version == s.topology_version => t.clone(),
-                _ => {
-                    let n = s.rest_positions_m.len() / 3;
-                    let t = Arc::new(Topology {
-                        version: s.topology_version,
-                        triangles: s.triangles.clone(),
-                        rest_positions_m: s.rest_positions_m.clone(),
-                        codec: DeltaCodec::new(n, &s.triangles).ok().map(Arc::new),
-                    });
-                    stats
-                        .queue_limit_bytes
-                        .store(queue_limit_bytes(&t), Ordering::Relaxed);
-                    topology.insert(t).clone()
-                }
-            };
-            let mut delta = None;
-            if stats.delta_watchers.load(Ordering::Acquire) == 0 {
-                reference = None;
-            } else if let Some(codec) = topology.codec.as_deref() {
-                let now = tokio::time::Instant::now();
-                let encoded = match &reference {
-                    Some(r) if r.topology.version == topology.version => codec
-                        .encode(&r.positions_m, &s.positions_m, DEFAULT_QUANTUM_M, &mut buf)
-                        .ok()
-                        .map(|()| buf.len()),
-                    _ => None,
-                };
-                let renew = match encoded {
-                    None => true,
-                    Some(len) => {
-                        let step = if previous.len() == s.positions_m.len() {
-                            codec
-                                .encode(&previous, &s.positions_m, DEFAULT_QUANTUM_M, &mut step_buf)
-                                .map_or(usize::MAX, |()| step_buf.len())
-                        } else {
-                            usize::MAX
-                        };
-                        // A chained renewal costs about one delta (`len`), not a float keyframe.
-                        policy.should_renew((now - renewed_at).as_secs_f64(), len, step, len)
-                    }
-                };
-                if renew {
-                    // Chained when the old reference can express the new one: the new reference
-                    // is what a client decodes from the old one (within half a step of the
-                    // surface), so a renewal costs a delta instead of a float keyframe.
-                    let chained = match (&reference, encoded) {
-                        (Some(old), Some(_)) => {
-                            let mut p = vec![0.0; s.positions_m.len()];
-                            codec
-                                .decode(&old.positions_m, &buf, DEFAULT_QUANTUM_M, &mut p)
-                                .ok()
-                                .map(|()| (p, (old.id, Bytes::copy_from_slice(&buf))))
-                        }
-                        _ => None,
-                    };
-                    let (positions_m, chain) = match chained {
-                        Some((p, c)) => (p, Some(c)),
-                        None => (s.positions_m.clone(), None),
-                    };
-                    delta = codec
-                        .encode(&positions_m, &s.positions_m, DEFAULT_QUANTUM_M, &mut buf)
-                        .ok()
-                        .map(|()| Bytes::copy_from_slice(&buf));
-                    reference = Some(Arc::new(Reference {
-                        id: next_id,
-                        topology: topology.clone(),
-                        positions_m,
-                        sim_time_s: s.sim_time_s,
-                        chain,
-                    }));
-                    next_id += 1;
-                    renewed_at = now;
-                } else {
-                    delta = Some(Bytes::copy_from_slice(&buf));
-                }
-                previous.clear();
-                previous.extend_from_slice(&s.positions_m);
-            }
-            let frame = FrameData {
-                tick: s.tick,
-                sim_time_s: s.sim_time_s,
-                topology,
-                positions_m: s.positions_m.clone(),
-                probe_m: s.probe_m.to_array(),
-                force_n: s.force_n.to_array(),
-                in_contact: s.in_contact,
-                max_displacement_m: s.max_displacement_m,
-                applied_forces: s.applied[..s.applied_len.min(s.applied.len())]
-                    .iter()
-                    .map(|a| AppliedForce {
-                        index: a.index,
-                        point_m: Some(Vec3::from(a.point_m.to_array())),
-                        force_n: Some(Vec3::from(a.force_n.to_array())),
-                        start_sim_time_s: a.start_sim_time_s,
-                        duration_s: a.duration_s,
-                    })
-                    .collect(),
-                applied_forces_total: s.applied_total,
-                reference: reference.clone(),
-                delta,
-                other_deltas: Mutex::new(Vec::new()),
-            };
+            let frame = frames.frame(snap_out.output_buffer());
             if frame_tx.send(Some(Arc::new(frame))).is_err() {
                 break; // no receiver left (the session was dropped)
             }
         }
     });
+}
+
+/// What the frame task carries from frame to frame: the topology, the delta reference and
+/// when it was renewed, the last positions, and the encoders' buffers.
+struct FrameBuilder {
+    stats: Arc<WatcherStats>,
+    policy: KeyframePolicy,
+    topology: Option<Arc<Topology>>,
+    reference: Option<Arc<Reference>>,
+    renewed_at: tokio::time::Instant,
+    previous: Vec<f32>,
+    next_id: u64,
+    buf: Vec<u8>,
+    step_buf: Vec<u8>,
+}
+
+impl FrameBuilder {
+    fn new(stats: Arc<WatcherStats>, policy: KeyframePolicy) -> Self {
+        Self {
+            stats,
+            policy,
+            topology: None,
+            reference: None,
+            renewed_at: tokio::time::Instant::now(),
+            previous: Vec::new(),
+            next_id: 1,
+            buf: Vec::new(),
+            step_buf: Vec::new(),
+        }
+    }
+
+    /// The frame of snapshot `s`: its topology (shared while its version holds), the delta
+    /// against the reference while compact watchers exist, the state.
+    fn frame(&mut self, s: &Snapshot) -> FrameData {
+        let topology = self.topology_of(s);
+        let delta = if self.stats.delta_watchers.load(Ordering::Acquire) == 0 {
+            self.reference = None;
+            None
+        } else if let Some(codec) = topology.codec.clone() {
+            self.delta(s, &topology, &codec)
+        } else {
+            None
+        };
+        FrameData {
+            tick: s.tick,
+            sim_time_s: s.sim_time_s,
+            topology,
+            positions_m: s.positions_m.clone(),
+            probe_m: s.probe_m.to_array(),
+            force_n: s.force_n.to_array(),
+            in_contact: s.in_contact,
+            max_displacement_m: s.max_displacement_m,
+            applied_forces: s.applied[..s.applied_len.min(s.applied.len())]
+                .iter()
+                .map(|a| AppliedForce {
+                    index: a.index,
+                    point_m: Some(Vec3::from(a.point_m.to_array())),
+                    force_n: Some(Vec3::from(a.force_n.to_array())),
+                    start_sim_time_s: a.start_sim_time_s,
+                    duration_s: a.duration_s,
+                })
+                .collect(),
+            applied_forces_total: s.applied_total,
+            reference: self.reference.clone(),
+            delta,
+            other_deltas: Mutex::new(Vec::new()),
+        }
+    }
+
+    /// The topology of `s`: the current one while its version holds, else a new one (and the
+    /// watchers' queue limit for it).
+    fn topology_of(&mut self, s: &Snapshot) -> Arc<Topology> {
+        match &self.topology {
+            Some(t) if t.version == s.topology_version => t.clone(),
+            _ => {
+                let n = s.rest_positions_m.len() / 3;
+                let t = Arc::new(Topology {
+                    version: s.topology_version,
+                    triangles: s.triangles.clone(),
+                    rest_positions_m: s.rest_positions_m.clone(),
+                    codec: DeltaCodec::new(n, &s.triangles).ok().map(Arc::new),
+                });
+                self.stats
+                    .queue_limit_bytes
+                    .store(queue_limit_bytes(&t), Ordering::Relaxed);
+                self.topology.insert(t).clone()
+            }
+        }
+    }
+
+    /// The delta of `s` against the reference, renewing the reference when the policy says
+    /// so (chained when the old reference can express the new one).
+    fn delta(
+        &mut self,
+        s: &Snapshot,
+        topology: &Arc<Topology>,
+        codec: &DeltaCodec,
+    ) -> Option<Bytes> {
+        let now = tokio::time::Instant::now();
+        let buf = &mut self.buf;
+        let encoded = match &self.reference {
+            Some(r) if r.topology.version == topology.version => codec
+                .encode(&r.positions_m, &s.positions_m, DEFAULT_QUANTUM_M, buf)
+                .ok()
+                .map(|()| buf.len()),
+            _ => None,
+        };
+        let renew = match encoded {
+            None => true,
+            Some(len) => {
+                let step = if self.previous.len() == s.positions_m.len() {
+                    codec
+                        .encode(
+                            &self.previous,
+                            &s.positions_m,
+                            DEFAULT_QUANTUM_M,
+                            &mut self.step_buf,
+                        )
+                        .map_or(usize::MAX, |()| self.step_buf.len())
+                } else {
+                    usize::MAX
+                };
+                // A chained renewal costs about one delta (`len`), not a float keyframe.
+                self.policy
+                    .should_renew((now - self.renewed_at).as_secs_f64(), len, step, len)
+            }
+        };
+        let delta = if renew {
+            // Chained when the old reference can express the new one: the new reference
+            // is what a client decodes from the old one (within half a step of the
+            // surface), so a renewal costs a delta instead of a float keyframe.
+            let chained = match (&self.reference, encoded) {
+                (Some(old), Some(_)) => {
+                    let mut p = vec![0.0; s.positions_m.len()];
+                    codec
+                        .decode(&old.positions_m, &self.buf, DEFAULT_QUANTUM_M, &mut p)
+                        .ok()
+                        .map(|()| (p, (old.id, Bytes::copy_from_slice(&self.buf))))
+                }
+                _ => None,
+            };
+            let (positions_m, chain) = match chained {
+                Some((p, c)) => (p, Some(c)),
+                None => (s.positions_m.clone(), None),
+            };
+            let delta = codec
+                .encode(
+                    &positions_m,
+                    &s.positions_m,
+                    DEFAULT_QUANTUM_M,
+                    &mut self.buf,
+                )
+                .ok()
+                .map(|()| Bytes::copy_from_slice(&self.buf));
+            self.reference = Some(Arc::new(Reference {
+                id: self.next_id,
+                topology: topology.clone(),
+                positions_m,
+                sim_time_s: s.sim_time_s,
+                chain,
+            }));
+            self.next_id += 1;
+            self.renewed_at = now;
+            delta
+        } else {
+            Some(Bytes::copy_from_slice(&self.buf))
+        };
+        self.previous.clear();
+        self.previous.extend_from_slice(&s.positions_m);
+        delta
+    }
 }
 
 /// The largest frame of a topology (keyframe with triangles, rest, positions and a full delta)
