@@ -425,7 +425,7 @@ impl OrganTable {
                 m
             },
         };
-        let (mut key, mut nodes, mut edges, mut samples) = (None, None, None, None);
+        let mut counts = Counts::default();
         let mut depths: Vec<f64> = Vec::new();
         let mut rows: Vec<OrganRow> = Vec::new();
         let mut header = false;
@@ -437,33 +437,7 @@ impl OrganTable {
                 continue;
             }
             if let Some(c) = line.strip_prefix('#') {
-                let c = c.trim();
-                let count = |v: &str, what: &str| -> Result<usize, ModelError> {
-                    let n: usize = v
-                        .trim()
-                        .parse()
-                        .map_err(|e| err(ln, format!("bad {what} count `{v}`: {e}")))?;
-                    if n == 0 || n > 10_000_000 {
-                        return Err(err(ln, format!("{n} {what} is out of range")));
-                    }
-                    Ok(n)
-                };
-                if let Some(v) = c.strip_prefix("key ") {
-                    key = Some(
-                        u64::from_str_radix(v.trim(), 16)
-                            .map_err(|e| err(ln, format!("bad key `{v}`: {e}")))?,
-                    );
-                } else if let Some(v) = c.strip_prefix("nodes ") {
-                    nodes = Some(count(v, "nodes")?);
-                } else if let Some(v) = c.strip_prefix("edges ") {
-                    edges = Some(count(v, "edges")?);
-                } else if let Some(v) = c.strip_prefix("samples ") {
-                    let n = count(v, "samples")?;
-                    if n > 1000 {
-                        return Err(err(ln, format!("{n} samples is out of range")));
-                    }
-                    samples = Some(n);
-                }
+                counts.read(c.trim(), ln, &err)?;
                 continue;
             }
             if !header {
@@ -473,7 +447,7 @@ impl OrganTable {
                 header = true;
                 continue;
             }
-            let (Some(nn), Some(ne), Some(m)) = (nodes, edges, samples) else {
+            let (Some(nn), Some(ne), Some(m)) = (counts.nodes, counts.edges, counts.samples) else {
                 return Err(err(
                     ln,
                     "a row before the `# nodes`, `# edges` and `# samples` lines".into(),
@@ -551,9 +525,13 @@ impl OrganTable {
                 (node, sample)
             };
         }
-        let key = key.ok_or_else(|| err(0, "no `# key` line".into()))?;
-        let nn = nodes.ok_or_else(|| err(0, "no `# nodes` line".into()))?;
-        let ne = edges.ok_or_else(|| err(0, "no `# edges` line".into()))?;
+        let key = counts.key.ok_or_else(|| err(0, "no `# key` line".into()))?;
+        let nn = counts
+            .nodes
+            .ok_or_else(|| err(0, "no `# nodes` line".into()))?;
+        let ne = counts
+            .edges
+            .ok_or_else(|| err(0, "no `# edges` line".into()))?;
         let n = nn + ne;
         if rows.len() != n || next.1 != 0 {
             return Err(err(
@@ -567,6 +545,54 @@ impl OrganTable {
             nodes: nn,
             rows,
         })
+    }
+}
+
+/// The `# key`, `# nodes`, `# edges` and `# samples` lines of a table file.
+#[derive(Default)]
+struct Counts {
+    key: Option<u64>,
+    nodes: Option<usize>,
+    edges: Option<usize>,
+    samples: Option<usize>,
+}
+
+impl Counts {
+    /// Reads one comment line `c` (without its `#`, trimmed) of line `ln`; other comments are
+    /// ignored. `err` makes the error naming the file and line.
+    fn read(
+        &mut self,
+        c: &str,
+        ln: usize,
+        err: &impl Fn(usize, String) -> ModelError,
+    ) -> Result<(), ModelError> {
+        let count = |v: &str, what: &str| -> Result<usize, ModelError> {
+            let n: usize = v
+                .trim()
+                .parse()
+                .map_err(|e| err(ln, format!("bad {what} count `{v}`: {e}")))?;
+            if n == 0 || n > 10_000_000 {
+                return Err(err(ln, format!("{n} {what} is out of range")));
+            }
+            Ok(n)
+        };
+        if let Some(v) = c.strip_prefix("key ") {
+            self.key = Some(
+                u64::from_str_radix(v.trim(), 16)
+                    .map_err(|e| err(ln, format!("bad key `{v}`: {e}")))?,
+            );
+        } else if let Some(v) = c.strip_prefix("nodes ") {
+            self.nodes = Some(count(v, "nodes")?);
+        } else if let Some(v) = c.strip_prefix("edges ") {
+            self.edges = Some(count(v, "edges")?);
+        } else if let Some(v) = c.strip_prefix("samples ") {
+            let n = count(v, "samples")?;
+            if n > 1000 {
+                return Err(err(ln, format!("{n} samples is out of range")));
+            }
+            self.samples = Some(n);
+        }
+        Ok(())
     }
 }
 
