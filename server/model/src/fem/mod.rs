@@ -30,12 +30,12 @@ use glam::DVec3;
 
 use crate::ModelError;
 use crate::body::{BodyInfo, BodyStats, PointLoadZone, SoftBody, SurfaceCapacity, SurfaceTopology};
-use crate::contact::{ContactModel, LocalLaw, Probe};
+use crate::contact::{ContactModel, LocalLaw, Probe, ProbeParams};
 use crate::element::{CLAMPED, FemModel, ForceScratch};
 use crate::integrate::condensed::{ActiveRegion, CondensedSolver};
 use crate::integrate::follow::{FollowStats, RegionFollower};
 use crate::integrate::implicit::CgStats;
-use crate::integrate::{self, IntegratorKind, StepPlan, Stepper};
+use crate::integrate::{self, IntegratorKind, IntegratorParams, StepPlan, Stepper};
 use crate::loads::BodyLoads;
 use crate::scene::Scene;
 
@@ -172,13 +172,7 @@ impl FemBody {
                 "must be a positive number",
             ));
         }
-        let mut probe_params = scene.probe;
-        probe_params.contact = integrate::resolve_contact_model(scene.probe.contact);
-        let (e, nu) = (
-            scene.material.youngs_modulus_pa(),
-            scene.material.poisson_ratio(),
-        );
-        probe_params.hertz_modulus_pa = e / (1.0 - nu * nu);
+        let probe_params = probe_params_of(scene);
         // Before the critical step: an explicit integrator on a condensed scene would
         // otherwise report the tick as unstable rather than the combination as unsupported.
         if scene.active_region.is_some() && p.kind != IntegratorKind::BackwardEuler {
@@ -189,23 +183,7 @@ impl FemBody {
         }
         let critical = integrate::critical_time_step(&fem, p.kind);
         let plan = integrate::plan_steps(&p, critical)?;
-        // Backward Euler with the rest factor on the whole body is the condensed solver on a
-        // region holding every element.
-        let region = scene.active_region.or_else(|| {
-            (p.kind == IntegratorKind::BackwardEuler
-                && p.linear_solver == integrate::LinearSolver::RestCholesky)
-                .then(|| ActiveRegion::whole_body(fem.rest(), p.stiffness_margin))
-        });
-        let mut stepper =
-            Stepper::new_with_progress(&fem, &scene.mesh, &p, &plan, region, progress)?;
-        // The exact sphere on the whole-body rest factor: a second factor for the ticks where
-        // a face enters the contact ([`CondensedSolver::add_entry_factor`]).
-        if let Stepper::Condensed(c) = &mut stepper
-            && c.is_whole_body()
-            && integrate::resolve_contact_model(scene.probe.contact) == ContactModel::Sphere
-        {
-            c.add_entry_factor()?;
-        }
+        let mut stepper = stepper_of(&fem, scene, &p, &plan, progress)?;
         let n = fem.node_count();
         let boundary = scene.mesh.boundary_triangles();
         let load_surface: Vec<[u32; 3]> = boundary
@@ -227,28 +205,9 @@ impl FemBody {
                 "a following region takes no scene loads (they would act on condensed elements as the region moves): remove [loads] or fix the region",
             ));
         }
-        // A condensed model sees loads and contact on its active nodes only; a following one
-        // keeps the whole touchable surface (a touch outside the region rests on the far
-        // surface until the region arrives: `integrate::follow`).
         if let Some(c) = stepper.condensed().filter(|_| !follows) {
-            if loads.acts_outside(|i| c.is_active_node(i)) {
-                return Err(ModelError::field(
-                    "active_region",
-                    "a scene load acts outside the active region (condensed elements are unloaded): enlarge the region or remove the load",
-                ));
-            }
-            touchable.retain(|t| c.is_active_triangle(t));
-            if touchable.is_empty() {
-                return Err(ModelError::field(
-                    "active_region",
-                    "no touchable triangle lies inside the active region",
-                ));
-            }
-            let load_surface: Vec<[u32; 3]> = load_surface
-                .into_iter()
-                .filter(|t| c.is_active_triangle(t))
-                .collect();
-            loads = BodyLoads::new(&scene.loads, fem.rest(), fem.lumped_mass_kg(), load_surface);
+            (loads, touchable) =
+                confine_to_region(c, scene, &fem, &loads, &load_surface, touchable)?;
         }
         let mut follow = FollowSlot(None);
         if let Stepper::Condensed(c) = &mut stepper {
@@ -258,17 +217,7 @@ impl FemBody {
                 follow.0 = Some(RegionFollower::spawn(&fem, &scene.mesh, &contact_nodes, c)?);
             }
         }
-        let mut surface_nodes: Vec<u32> = boundary.iter().flatten().copied().collect();
-        surface_nodes.sort_unstable();
-        surface_nodes.dedup();
-        let mut local = vec![u32::MAX; n];
-        for (k, &i) in surface_nodes.iter().enumerate() {
-            local[i as usize] = k as u32;
-        }
-        let surface_triangles = boundary
-            .iter()
-            .map(|t| t.map(|i| local[i as usize]))
-            .collect();
+        let (surface_nodes, surface_triangles) = surface_map(&boundary, n);
         let mut probe = Probe::new(probe_params, touchable, fem.rest());
         if probe_params.contact == ContactModel::PatchLocal {
             probe.set_local_law(LocalLaw::for_material(
@@ -279,19 +228,7 @@ impl FemBody {
         if p.kind == IntegratorKind::BackwardEuler {
             probe.use_implicit_sphere(plan.sub_dt_s);
         }
-        let fallback = match (&scene.fallback, follows) {
-            (Some(coarse), true) => {
-                progress("coarse companion", 1.0);
-                let sim = FemBody::new(coarse).map_err(|e| {
-                    ModelError::field(
-                        "active_region.fallback_target_tets",
-                        format!("the coarse companion: {e}"),
-                    )
-                })?;
-                Some(Box::new(Fallback::new(sim)))
-            }
-            _ => None,
-        };
+        let fallback = companion(scene, follows, progress)?;
         Ok(Self {
             stepper,
             plan,
@@ -700,6 +637,118 @@ fn write_positions(nodes: &[u32], x: &[DVec3], rest: Option<&[DVec3]>, out: &mut
         }
     }
     max_d2.sqrt()
+}
+
+/// The probe's parameters for `scene`: its contact model resolved (`auto`) and the plane-strain
+/// modulus `E / (1 - nu^2)` of its material for the Hertz laws.
+fn probe_params_of(scene: &Scene) -> ProbeParams {
+    let mut probe_params = scene.probe;
+    probe_params.contact = integrate::resolve_contact_model(scene.probe.contact);
+    let (e, nu) = (
+        scene.material.youngs_modulus_pa(),
+        scene.material.poisson_ratio(),
+    );
+    probe_params.hertz_modulus_pa = e / (1.0 - nu * nu);
+    probe_params
+}
+
+/// The stepper of `scene`'s integrator `p` with sub-step `plan`: backward Euler with the rest
+/// factor on the whole body is the condensed solver on a region holding every element.
+fn stepper_of(
+    fem: &FemModel,
+    scene: &Scene,
+    p: &IntegratorParams,
+    plan: &StepPlan,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Stepper, ModelError> {
+    // Backward Euler with the rest factor on the whole body is the condensed solver on a
+    // region holding every element.
+    let region = scene.active_region.or_else(|| {
+        (p.kind == IntegratorKind::BackwardEuler
+            && p.linear_solver == integrate::LinearSolver::RestCholesky)
+            .then(|| ActiveRegion::whole_body(fem.rest(), p.stiffness_margin))
+    });
+    let mut stepper = Stepper::new_with_progress(fem, &scene.mesh, p, plan, region, progress)?;
+    // The exact sphere on the whole-body rest factor: a second factor for the ticks where
+    // a face enters the contact ([`CondensedSolver::add_entry_factor`]).
+    if let Stepper::Condensed(c) = &mut stepper
+        && c.is_whole_body()
+        && integrate::resolve_contact_model(scene.probe.contact) == ContactModel::Sphere
+    {
+        c.add_entry_factor()?;
+    }
+    Ok(stepper)
+}
+
+/// A condensed model (not following) sees loads and contact on its active nodes only: the
+/// touchable triangles and the loads on the load surface inside the region; refused when one
+/// of the whole surface's `loads` acts outside it or no touchable triangle lies inside.
+fn confine_to_region(
+    c: &CondensedSolver,
+    scene: &Scene,
+    fem: &FemModel,
+    loads: &BodyLoads,
+    load_surface: &[[u32; 3]],
+    mut touchable: Vec<[u32; 3]>,
+) -> Result<(BodyLoads, Vec<[u32; 3]>), ModelError> {
+    if loads.acts_outside(|i| c.is_active_node(i)) {
+        return Err(ModelError::field(
+            "active_region",
+            "a scene load acts outside the active region (condensed elements are unloaded): enlarge the region or remove the load",
+        ));
+    }
+    touchable.retain(|t| c.is_active_triangle(t));
+    if touchable.is_empty() {
+        return Err(ModelError::field(
+            "active_region",
+            "no touchable triangle lies inside the active region",
+        ));
+    }
+    let load_surface: Vec<[u32; 3]> = load_surface
+        .iter()
+        .copied()
+        .filter(|t| c.is_active_triangle(t))
+        .collect();
+    let loads = BodyLoads::new(&scene.loads, fem.rest(), fem.lumped_mass_kg(), load_surface);
+    Ok((loads, touchable))
+}
+
+/// The boundary's nodes (sorted) and its triangles over their local numbers, for `n` nodes.
+fn surface_map(boundary: &[[u32; 3]], n: usize) -> (Vec<u32>, Vec<[u32; 3]>) {
+    let mut surface_nodes: Vec<u32> = boundary.iter().flatten().copied().collect();
+    surface_nodes.sort_unstable();
+    surface_nodes.dedup();
+    let mut local = vec![u32::MAX; n];
+    for (k, &i) in surface_nodes.iter().enumerate() {
+        local[i as usize] = k as u32;
+    }
+    let surface_triangles = boundary
+        .iter()
+        .map(|t| t.map(|i| local[i as usize]))
+        .collect();
+    (surface_nodes, surface_triangles)
+}
+
+/// The following region's coarse companion, built from the scene's `fallback` (only when the
+/// region follows the probe).
+fn companion(
+    scene: &Scene,
+    follows: bool,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Option<Box<Fallback>>, ModelError> {
+    Ok(match (&scene.fallback, follows) {
+        (Some(coarse), true) => {
+            progress("coarse companion", 1.0);
+            let sim = FemBody::new(coarse).map_err(|e| {
+                ModelError::field(
+                    "active_region.fallback_target_tets",
+                    format!("the coarse companion: {e}"),
+                )
+            })?;
+            Some(Box::new(Fallback::new(sim)))
+        }
+        _ => None,
+    })
 }
 
 impl SoftBody for FemBody {
