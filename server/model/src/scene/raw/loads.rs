@@ -4,21 +4,6 @@ use super::*;
 
 // ----- loads section -----
 
-/// A finite vector with every component checked and a bounded magnitude.
-pub(super) fn bounded_vec(field: &str, v: [f64; 3], max: f64) -> Result<DVec3, ModelError> {
-    for x in v {
-        checked(field, x, |_| true, "finite")?;
-    }
-    let d = DVec3::from_array(v);
-    if d.length() > max {
-        return Err(ModelError::field(
-            field,
-            format!("magnitude {:.3e} exceeds the {max:.0e} limit", d.length()),
-        ));
-    }
-    Ok(d)
-}
-
 pub(super) fn build_loads(
     l: &RawLoads,
     mesh: &TetMesh,

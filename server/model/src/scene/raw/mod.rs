@@ -9,6 +9,7 @@ use serde::Deserialize;
 use super::builtin::builtin_calibration;
 use super::{HybridScene, MassSpringScene, ModelFamily, OrganScene, Scene, TableState};
 use crate::ModelError;
+use crate::check::{bounded_vec, checked, int_in, non_negative, positive, positive_vec, required};
 use crate::contact::{ContactModel, ProbeParams};
 use crate::element::StrainSmoothing;
 use crate::hybrid::{
@@ -264,54 +265,6 @@ struct RawProbe {
     coupling_damping_n_s_per_m: Option<f64>,
     max_force_n: Option<f64>,
     friction_coefficient: Option<f64>,
-}
-
-// ----- validation helpers -----
-
-/// A finite value satisfying `ok`, described by `expect` in the error.
-fn checked(field: &str, v: f64, ok: impl Fn(f64) -> bool, expect: &str) -> Result<f64, ModelError> {
-    if !v.is_finite() {
-        return Err(ModelError::field(
-            field,
-            format!("must be a finite number, got {v}"),
-        ));
-    }
-    if !ok(v) {
-        return Err(ModelError::field(
-            field,
-            format!("must be {expect}, got {v}"),
-        ));
-    }
-    Ok(v)
-}
-
-fn required<T>(field: &str, v: Option<T>) -> Result<T, ModelError> {
-    v.ok_or_else(|| ModelError::field(field, "is required but missing"))
-}
-
-fn positive(field: &str, v: f64) -> Result<f64, ModelError> {
-    checked(field, v, |x| x > 0.0, "> 0")
-}
-
-fn non_negative(field: &str, v: f64) -> Result<f64, ModelError> {
-    checked(field, v, |x| x >= 0.0, ">= 0")
-}
-
-fn positive_vec(field: &str, v: [f64; 3], unit: f64) -> Result<DVec3, ModelError> {
-    for x in v {
-        positive(field, x)?;
-    }
-    Ok(DVec3::from_array(v) * unit)
-}
-
-fn int_in(field: &str, v: i64, lo: i64, hi: i64) -> Result<usize, ModelError> {
-    if v < lo || v > hi {
-        return Err(ModelError::field(
-            field,
-            format!("must be an integer in {lo}..={hi}, got {v}"),
-        ));
-    }
-    Ok(v as usize)
 }
 
 /// Where a scene's text comes from: a built-in scene reads its calibration table from the
