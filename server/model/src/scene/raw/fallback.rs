@@ -64,3 +64,78 @@ pub(super) fn check_same_shape(mesh: &TetMesh, coarse: &TetMesh) -> Result<(), M
     }
     Ok(())
 }
+
+/// Where the scene text being parsed comes from (for its companion's re-parse).
+pub(super) struct Source<'a> {
+    /// The scene's TOML text.
+    pub(super) text: &'a str,
+    /// The directory relative paths resolve against.
+    pub(super) base_dir: &'a Path,
+    /// The scene's name.
+    pub(super) name: &'a str,
+    /// Built-in or file.
+    pub(super) origin: Origin,
+}
+
+/// The companion of `region` (section `a`) when `active_region.fallback_target_tets` is set:
+/// needs `follow = true`, a built-in "lv", "ellipsoids" or "sphere" geometry (the scene's own or
+/// `fallback_builtin`), and the scene mesh's shape.
+pub(super) fn companion(
+    a: &RawActiveRegion,
+    region: &ActiveRegion,
+    mesh_raw: &RawMesh,
+    mesh: &TetMesh,
+    source: Source,
+) -> Result<Option<Box<Scene>>, ModelError> {
+    let Some(tets) = a.fallback_target_tets else {
+        if a.fallback_builtin.is_some() {
+            return Err(ModelError::field(
+                "active_region.fallback_builtin",
+                "needs active_region.fallback_target_tets",
+            ));
+        }
+        return Ok(None);
+    };
+    let field = "active_region.fallback_target_tets";
+    if !region.follow {
+        return Err(ModelError::field(
+            field,
+            "needs active_region.follow = true",
+        ));
+    }
+    let tets = int_in(field, tets, 100, 20_000)?;
+    // The companion's geometry: the scene's own built-in, or the one named for a
+    // mesh file of the same shape.
+    let builtin = match (&a.fallback_builtin, &mesh_raw.builtin) {
+        (Some(b), _) | (None, Some(b)) => b.as_str(),
+        (None, None) => {
+            return Err(ModelError::field(
+                "active_region.fallback_builtin",
+                "is required with a mesh file: the built-in geometry the file meshes (\"lv\", \"ellipsoids\" or \"sphere\")",
+            ));
+        }
+    };
+    if !matches!(builtin, "lv" | "ellipsoids" | "sphere") {
+        let field = if a.fallback_builtin.is_some() {
+            "active_region.fallback_builtin"
+        } else {
+            field
+        };
+        return Err(ModelError::field(
+            field,
+            format!(
+                "the companion is a built-in \"lv\", \"ellipsoids\" or \"sphere\", not \"{builtin}\""
+            ),
+        ));
+    }
+    let margin = region.stiffness_margin;
+    let Source {
+        text,
+        base_dir,
+        name,
+        origin,
+    } = source;
+    let coarse = fallback_scene(text, base_dir, name, origin, (builtin, tets), margin)?;
+    check_same_shape(mesh, &coarse.mesh)?;
+    Ok(Some(Box::new(coarse)))
+}

@@ -141,3 +141,23 @@ pub(super) fn build_hybrid(
         core_target_tets,
     })
 }
+
+/// The `[hybrid]` section: required for the hybrid family, refused for the others.
+pub(super) fn hybrid_section(
+    family: ModelFamily,
+    section: Option<&RawHybrid>,
+    mesh_raw: &RawMesh,
+    length_unit_m: f64,
+) -> Result<Option<HybridScene>, ModelError> {
+    if family == ModelFamily::Hybrid {
+        let section = required("hybrid", section)?;
+        Ok(Some(build_hybrid(section, mesh_raw, length_unit_m)?))
+    } else if section.is_some() {
+        Err(ModelError::field(
+            "hybrid",
+            "is only for model.family = \"hybrid\"",
+        ))
+    } else {
+        Ok(None)
+    }
+}

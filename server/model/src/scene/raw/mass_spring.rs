@@ -238,3 +238,31 @@ pub(super) fn build_organ(
         table,
     })
 }
+
+/// A mass-spring scene's `(mesh, touchable triangles, clamped nodes)`.
+pub(super) type SurfaceScene = (TetMesh, Vec<[u32; 3]>, Vec<u32>);
+
+/// The scene's mesh becomes the surface the body simulates (listings and outputs then count its
+/// nodes): `(mesh, touchable, clamped nodes)` of the spring surface's nodes, no tetrahedra, the
+/// touchable triangles as one surface named after the touchable surfaces (`touchable_names`,
+/// else every surface of `mesh`), node groups restricted to it; `ms.surface` is renumbered as
+/// the new mesh (its key is unchanged).
+pub(super) fn into_spring_mesh(
+    ms: &mut MassSpringScene,
+    touchable_names: Option<&[String]>,
+    mesh: &TetMesh,
+) -> Result<SurfaceScene, ModelError> {
+    let names = touchable_names
+        .map(<[String]>::to_vec)
+        .unwrap_or_else(|| mesh.surfaces.iter().map(|s| s.name.clone()).collect());
+    let mesh = surface_mesh(mesh, &ms.surface, &names.join("+"));
+    let touchable = ms.surface.triangles().to_vec();
+    let clamped_nodes = (0..ms.surface.node_count() as u32)
+        .filter(|&i| ms.surface.is_fixed(i))
+        .collect();
+    let fixed = (0..ms.surface.node_count() as u32)
+        .map(|i| ms.surface.is_fixed(i))
+        .collect();
+    ms.surface = SpringSurface::new(mesh.nodes.clone(), touchable.clone(), fixed)?;
+    Ok((mesh, touchable, clamped_nodes))
+}

@@ -237,3 +237,25 @@ pub(super) fn build_material(m: &RawMaterial) -> Result<MaterialParams, ModelErr
     mat.validate()?;
     Ok(mat)
 }
+
+/// The material and its fibre frame: required for the volume families, refused for the
+/// mass-spring family (`springs`), which takes its constants from `[mass_spring]`.
+pub(super) fn material_section(
+    raw_material: Option<RawMaterial>,
+    mesh: &TetMesh,
+    springs: bool,
+) -> Result<(MaterialParams, Option<crate::scene::FibreSpec>), ModelError> {
+    if springs {
+        if raw_material.is_some() {
+            return Err(ModelError::field(
+                "material",
+                "the mass-spring family takes its constants from [mass_spring]: remove [material]",
+            ));
+        }
+        return Ok((MaterialParams::default(), None));
+    }
+    let raw_material = required("material", raw_material)?;
+    let material = build_material(&raw_material)?;
+    let fibres = build_fibres(&raw_material, &material, mesh)?;
+    Ok((material, fibres))
+}

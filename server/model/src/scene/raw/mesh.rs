@@ -194,3 +194,39 @@ pub(super) fn build_mesh(m: &RawMesh, base_dir: &Path) -> Result<(TetMesh, f64),
     };
     Ok((mesh, unit))
 }
+
+/// The mesh rules: a volume family needs tetrahedra (`springs`: the mass-spring family takes a
+/// surface mesh); `mesh.strain_smoothing` (none when absent) is for linear tetrahedra.
+pub(super) fn mesh_rules(
+    mesh_raw: &RawMesh,
+    mesh: &TetMesh,
+    springs: bool,
+) -> Result<StrainSmoothing, ModelError> {
+    if !springs && mesh.tets.is_empty() {
+        let field = if mesh_raw.builtin.is_some() {
+            "mesh.builtin"
+        } else {
+            "mesh.file"
+        };
+        return Err(ModelError::field(
+            field,
+            "the mesh has no tetrahedra: a surface mesh is for model.family = \"mass-spring\"",
+        ));
+    }
+    let strain_smoothing = match mesh_raw.strain_smoothing.as_deref() {
+        None => StrainSmoothing::None,
+        Some(name) => StrainSmoothing::from_name(name).ok_or_else(|| {
+            ModelError::field(
+                "mesh.strain_smoothing",
+                format!("unknown strain smoothing `{name}` (expected none or edge)"),
+            )
+        })?,
+    };
+    if strain_smoothing != StrainSmoothing::None && mesh.is_quadratic() {
+        return Err(ModelError::field(
+            "mesh.strain_smoothing",
+            "strain smoothing is for linear tetrahedra (order = 1)",
+        ));
+    }
+    Ok(strain_smoothing)
+}

@@ -27,7 +27,9 @@ use crate::material::{MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
 use crate::meshfree::{KernelKind, MeshfreeParams, MeshfreeVariant};
 
+mod boundary;
 mod fallback;
+mod family;
 mod hybrid;
 mod integrator;
 mod loads;
@@ -35,8 +37,11 @@ mod mass_spring;
 mod material;
 mod mesh;
 mod probe;
+mod region;
 
+use boundary::*;
 use fallback::*;
+use family::*;
 use hybrid::*;
 use integrator::*;
 use loads::*;
@@ -44,6 +49,7 @@ use mass_spring::*;
 use material::*;
 use mesh::*;
 use probe::*;
+use region::*;
 
 /// Largest accepted gravitational acceleration magnitude in a scene, m/s^2.
 pub const MAX_GRAVITY_M_PER_S2: f64 = 1e4;
@@ -284,251 +290,43 @@ pub(super) fn parse_scene(
     let raw: RawScene = super::toml_errors::deserialize(text)?;
     let model = raw.model.unwrap_or_default();
     let realtime = model.realtime.unwrap_or(true);
-    let family = match model.family.as_deref() {
-        None => ModelFamily::Fem,
-        Some(name) => ModelFamily::from_name(name).ok_or_else(|| {
-            let known: Vec<&str> = ModelFamily::ALL.iter().map(|f| f.name()).collect();
-            ModelError::field(
-                "model.family",
-                format!(
-                    "unknown model family `{name}` (known: {})",
-                    known.join(", ")
-                ),
-            )
-        })?,
-    };
+    let family = model_family(model.family.as_deref())?;
     let springs = family == ModelFamily::MassSpring;
     let mesh_raw = required("mesh", raw.mesh)?;
     let (mesh, length_unit_m) = build_mesh(&mesh_raw, base_dir)?;
-    if !springs && mesh.tets.is_empty() {
-        let field = if mesh_raw.builtin.is_some() {
-            "mesh.builtin"
-        } else {
-            "mesh.file"
-        };
-        return Err(ModelError::field(
-            field,
-            "the mesh has no tetrahedra: a surface mesh is for model.family = \"mass-spring\"",
-        ));
-    }
-    let strain_smoothing = match mesh_raw.strain_smoothing.as_deref() {
-        None => StrainSmoothing::None,
-        Some(name) => StrainSmoothing::from_name(name).ok_or_else(|| {
-            ModelError::field(
-                "mesh.strain_smoothing",
-                format!("unknown strain smoothing `{name}` (expected none or edge)"),
-            )
-        })?,
-    };
-    if strain_smoothing != StrainSmoothing::None && mesh.is_quadratic() {
-        return Err(ModelError::field(
-            "mesh.strain_smoothing",
-            "strain smoothing is for linear tetrahedra (order = 1)",
-        ));
-    }
-    let (material, fibres) = if springs {
-        if raw.material.is_some() {
-            return Err(ModelError::field(
-                "material",
-                "the mass-spring family takes its constants from [mass_spring]: remove [material]",
-            ));
-        }
-        (MaterialParams::default(), None)
-    } else {
-        let raw_material = required("material", raw.material)?;
-        let material = build_material(&raw_material)?;
-        let fibres = build_fibres(&raw_material, &material, &mesh)?;
-        (material, fibres)
-    };
+    let strain_smoothing = mesh_rules(&mesh_raw, &mesh, springs)?;
+    let (material, fibres) = material_section(raw.material, &mesh, springs)?;
     let boundary = raw.boundary.unwrap_or_default();
-    let clamped_nodes = match &boundary.clamped {
-        Some(names) => mesh.nodes_of_surfaces(names, "boundary.clamped")?,
-        None => Vec::new(),
-    };
-    let touchable = match &boundary.touchable {
-        Some(names) => {
-            let mut tris = Vec::new();
-            for name in names {
-                let Some(s) = mesh.surface(name) else {
-                    let known: Vec<&str> = mesh.surfaces.iter().map(|s| s.name.as_str()).collect();
-                    return Err(ModelError::field(
-                        "boundary.touchable",
-                        format!(
-                            "no surface named `{name}` (mesh surfaces: {})",
-                            known.join(", ")
-                        ),
-                    ));
-                };
-                tris.extend(s.triangles.iter().copied());
-            }
-            let mut seen = std::collections::HashSet::new();
-            tris.retain(|t| {
-                let mut k = *t;
-                k.sort_unstable();
-                seen.insert(k)
-            });
-            tris
-        }
-        None if mesh.tets.is_empty() => {
-            let mut tris: Vec<[u32; 3]> = mesh
-                .surfaces
-                .iter()
-                .flat_map(|s| s.triangles.iter().copied())
-                .collect();
-            let mut seen = std::collections::HashSet::new();
-            tris.retain(|t| {
-                let mut k = *t;
-                k.sort_unstable();
-                seen.insert(k)
-            });
-            tris
-        }
-        None => mesh
-            .boundary_triangles()
-            .into_iter()
-            .filter(|t| !t.iter().all(|i| clamped_nodes.binary_search(i).is_ok()))
-            .collect(),
-    };
-    if touchable.is_empty() {
-        return Err(ModelError::field(
-            "boundary.touchable",
-            "no touchable triangle is left",
-        ));
-    }
+    let (clamped_nodes, touchable) = build_boundary(&boundary, &mesh)?;
     let raw_integrator = raw.integrator.unwrap_or_default();
     let mut integrator = build_integrator(&raw_integrator)?;
-    if springs {
-        match raw_integrator.kind {
-            None => integrator.kind = IntegratorKind::SymplecticEuler,
-            Some(_) if integrator.kind == IntegratorKind::SymplecticEuler => {}
-            Some(k) => {
-                return Err(ModelError::field(
-                    "integrator.kind",
-                    format!(
-                        "the mass-spring family integrates with \"symplectic-euler\" only, got `{k}`"
-                    ),
-                ));
-            }
-        }
-        if raw.loads.is_some() {
-            return Err(ModelError::field(
-                "loads",
-                "scene loads are not supported by the mass-spring family (clients can still apply point forces)",
-            ));
-        }
-        if raw.active_region.is_some() {
-            return Err(ModelError::field(
-                "active_region",
-                "is for the FEM family with backward Euler",
-            ));
-        }
-    } else if raw.mass_spring.is_some() {
-        return Err(ModelError::field(
-            "mass_spring",
-            "is only for model.family = \"mass-spring\"",
-        ));
-    }
-    let hybrid = if family == ModelFamily::Hybrid {
-        let section = required("hybrid", raw.hybrid.as_ref())?;
-        Some(build_hybrid(section, &mesh_raw, length_unit_m)?)
-    } else if raw.hybrid.is_some() {
-        return Err(ModelError::field(
-            "hybrid",
-            "is only for model.family = \"hybrid\"",
-        ));
-    } else {
-        None
+    let present = Present {
+        loads: raw.loads.is_some(),
+        active_region: raw.active_region.is_some(),
+        mass_spring: raw.mass_spring.is_some(),
     };
+    family_rules(
+        springs,
+        raw_integrator.kind.as_deref(),
+        &mut integrator,
+        &present,
+    )?;
+    let hybrid = hybrid_section(family, raw.hybrid.as_ref(), &mesh_raw, length_unit_m)?;
     let probe = build_probe(&raw.probe.unwrap_or_default())?;
     let loads = build_loads(&raw.loads.unwrap_or_default(), &mesh, &clamped_nodes)?;
-    let active_region = match &raw.active_region {
-        None => None,
-        Some(a) => {
-            if integrator.kind != IntegratorKind::BackwardEuler {
-                return Err(ModelError::field(
-                    "active_region",
-                    "needs integrator.kind = \"backward-euler\"",
-                ));
-            }
-            if raw_integrator.linear_solver.as_deref() == Some("cg") {
-                return Err(ModelError::field(
-                    "integrator.linear_solver",
-                    "a scene with [active_region] solves with the region's rest factor: remove linear_solver or set \"rest-cholesky\"",
-                ));
-            }
-            if raw_integrator.stiffness_margin.is_some() {
-                return Err(ModelError::field(
-                    "integrator.stiffness_margin",
-                    "a scene with [active_region] takes active_region.stiffness_margin",
-                ));
-            }
-            let centre = required("active_region.centre_m", a.centre_m)?;
-            Some(ActiveRegion {
-                centre_m: bounded_vec("active_region.centre_m", centre, 1e3)?,
-                radius_m: positive(
-                    "active_region.radius_m",
-                    required("active_region.radius_m", a.radius_m)?,
-                )?,
-                stiffness_margin: checked(
-                    "active_region.stiffness_margin",
-                    a.stiffness_margin.unwrap_or(DEFAULT_STIFFNESS_MARGIN),
-                    |c| (1.0..=100.0).contains(&c),
-                    "in [1, 100]",
-                )?,
-                follow: a.follow.unwrap_or(false),
-            })
-        }
-    };
+    let raw_region = raw.active_region.as_ref();
+    let active_region = region_section(raw_region, &integrator, &raw_integrator)?;
     let name = raw.name.unwrap_or_else(|| default_name.to_string());
-    let fallback = match (&raw.active_region, &active_region) {
-        (Some(a), Some(region)) => match a.fallback_target_tets {
-            None if a.fallback_builtin.is_some() => {
-                return Err(ModelError::field(
-                    "active_region.fallback_builtin",
-                    "needs active_region.fallback_target_tets",
-                ));
-            }
-            None => None,
-            Some(tets) => {
-                let field = "active_region.fallback_target_tets";
-                if !region.follow {
-                    return Err(ModelError::field(
-                        field,
-                        "needs active_region.follow = true",
-                    ));
-                }
-                let tets = int_in(field, tets, 100, 20_000)?;
-                // The companion's geometry: the scene's own built-in, or the one named for a
-                // mesh file of the same shape.
-                let builtin = match (&a.fallback_builtin, &mesh_raw.builtin) {
-                    (Some(b), _) | (None, Some(b)) => b.as_str(),
-                    (None, None) => {
-                        return Err(ModelError::field(
-                            "active_region.fallback_builtin",
-                            "is required with a mesh file: the built-in geometry the file meshes (\"lv\", \"ellipsoids\" or \"sphere\")",
-                        ));
-                    }
-                };
-                if !matches!(builtin, "lv" | "ellipsoids" | "sphere") {
-                    let field = if a.fallback_builtin.is_some() {
-                        "active_region.fallback_builtin"
-                    } else {
-                        field
-                    };
-                    return Err(ModelError::field(
-                        field,
-                        format!(
-                            "the companion is a built-in \"lv\", \"ellipsoids\" or \"sphere\", not \"{builtin}\""
-                        ),
-                    ));
-                }
-                let margin = region.stiffness_margin;
-                let coarse =
-                    fallback_scene(text, base_dir, &name, origin, (builtin, tets), margin)?;
-                check_same_shape(&mesh, &coarse.mesh)?;
-                Some(Box::new(coarse))
-            }
-        },
+    let fallback = match (raw_region, &active_region) {
+        (Some(a), Some(region)) => {
+            let source = Source {
+                text,
+                base_dir,
+                name: &name,
+                origin,
+            };
+            companion(a, region, &mesh_raw, &mesh, source)?
+        }
         _ => None,
     };
     let (mut mesh, mut touchable, mut clamped_nodes) = (mesh, touchable, clamped_nodes);
@@ -544,38 +342,13 @@ pub(super) fn parse_scene(
             base_dir,
             origin,
         )?;
-        // The scene's mesh becomes the surface the body simulates (listings and outputs then
-        // count its nodes): the spring surface's nodes, no tetrahedra, the touchable triangles
-        // as one surface named after the touchable surfaces, node groups restricted to it.
-        let names = boundary
-            .touchable
-            .clone()
-            .unwrap_or_else(|| mesh.surfaces.iter().map(|s| s.name.clone()).collect());
-        mesh = surface_mesh(&mesh, &ms.surface, &names.join("+"));
-        touchable = ms.surface.triangles().to_vec();
-        clamped_nodes = (0..ms.surface.node_count() as u32)
-            .filter(|&i| ms.surface.is_fixed(i))
-            .collect();
-        // The same surface, numbered as the new mesh (its key is unchanged).
-        let fixed = (0..ms.surface.node_count() as u32)
-            .map(|i| ms.surface.is_fixed(i))
-            .collect();
-        ms.surface = SpringSurface::new(mesh.nodes.clone(), touchable.clone(), fixed)?;
+        (mesh, touchable, clamped_nodes) =
+            into_spring_mesh(&mut ms, boundary.touchable.as_deref(), &mesh)?;
         Some(ms)
     } else {
         None
     };
-    if integrator.single_precision_forces
-        && (mesh.is_quadratic()
-            || crate::element::SingleElastic::of(&material).is_none()
-            || family != ModelFamily::Fem)
-    {
-        return Err(ModelError::field(
-            "integrator.force_precision",
-            "\"single\" is for linear St Venant-Kirchhoff or stable Neo-Hookean tetrahedra \
-             (FEM family)",
-        ));
-    }
+    single_precision_rule(&integrator, &mesh, &material, family)?;
     Ok(Scene {
         name,
         fibres,
