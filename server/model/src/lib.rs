@@ -4,6 +4,8 @@
 //! be tested and benchmarked alone. Module map, lowest layer first (a module uses only those
 //! above it; `tests/module_layers.rs` checks that no import goes the other way):
 //!
+//! - `check` (crate-private): the field validators of scene sections (scene and the families'
+//!   own sections).
 //! - `simd` (crate-private): what the CPU can run and the lane types of the vectorised kernels.
 //! - [`linalg`]: [`linalg::ordering`], fill-reducing orderings (METIS nested dissection) and a
 //!   sparse Cholesky factor for the static solver and contact-local condensation;
@@ -50,6 +52,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod body;
+pub(crate) mod check;
 pub mod contact;
 pub mod element;
 pub mod error;

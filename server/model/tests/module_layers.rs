@@ -12,6 +12,7 @@ use std::path::Path;
 /// every module and uses none.
 const LAYERS: &[&str] = &[
     "error",
+    "check",
     "simd",
     "linalg",
     "mesh",

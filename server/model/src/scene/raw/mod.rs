@@ -1,0 +1,372 @@
+//! The raw (serde) form of a scene file and its validation into a [`Scene`]: every field is
+//! checked for presence, finiteness and range, and errors name it by its dotted path.
+
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+use serde::Deserialize;
+
+use super::builtin::builtin_calibration;
+use super::{HybridScene, MassSpringScene, ModelFamily, OrganScene, Scene, TableState};
+use crate::ModelError;
+use crate::check::{bounded_vec, checked, int_in, non_negative, positive, positive_vec, required};
+use crate::contact::{ContactModel, ProbeParams};
+use crate::element::StrainSmoothing;
+use crate::hybrid::{
+    CoreMassScale, CoreStep, HybridParams, InactiveLayer, ScaledMotion, ShellGeometry,
+};
+use crate::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
+use crate::integrate::{IntegratorKind, IntegratorParams, LinearSolver};
+use crate::loads::{PointForce, PressureLoad, SceneLoads};
+use crate::mass_spring::calibration::{CalibrationTable, ContactShape, calibration_key};
+use crate::mass_spring::organ::{OrganReference, OrganTable, organ_key};
+use crate::mass_spring::{
+    MAX_RINGS, MassSpringParams, SpringRule, SpringSurface, SubdivisionParams, VertexRule,
+};
+use crate::material::{MaterialModel, MaterialParams};
+use crate::mesh::TetMesh;
+use crate::meshfree::{KernelKind, MeshfreeParams, MeshfreeVariant};
+
+mod boundary;
+mod fallback;
+mod family;
+mod hybrid;
+mod integrator;
+mod loads;
+mod mass_spring;
+mod material;
+mod mesh;
+mod probe;
+mod region;
+
+use boundary::*;
+use fallback::*;
+use family::*;
+use hybrid::*;
+use integrator::*;
+use loads::*;
+use mass_spring::*;
+use material::*;
+use mesh::*;
+use probe::*;
+use region::*;
+
+/// Largest accepted gravitational acceleration magnitude in a scene, m/s^2.
+pub const MAX_GRAVITY_M_PER_S2: f64 = 1e4;
+/// Largest accepted surface pressure magnitude in a scene, Pa.
+pub const MAX_PRESSURE_PA: f64 = 1e9;
+/// Largest accepted scene point-force magnitude, N.
+pub const MAX_SCENE_POINT_FORCE_N: f64 = 1e9;
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawScene {
+    name: Option<String>,
+    description: Option<String>,
+    model: Option<RawModel>,
+    mesh: Option<RawMesh>,
+    material: Option<RawMaterial>,
+    boundary: Option<RawBoundary>,
+    integrator: Option<RawIntegrator>,
+    probe: Option<RawProbe>,
+    loads: Option<RawLoads>,
+    active_region: Option<RawActiveRegion>,
+    mass_spring: Option<RawMassSpring>,
+    hybrid: Option<RawHybrid>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawHybrid {
+    variant: Option<String>,
+    kernel: Option<String>,
+    spacing_m: Option<f64>,
+    smoothing_ratio: Option<f64>,
+    hourglass_coefficient: Option<f64>,
+    core_fraction: Option<f64>,
+    surface_target_tets: Option<i64>,
+    activation_radius_m: Option<f64>,
+    release_radius_m: Option<f64>,
+    release_tolerance_m: Option<f64>,
+    max_active_particles: Option<i64>,
+    contact_stiffness_n_per_m: Option<f64>,
+    mass_scale: Option<f64>,
+    core_mass_scale: Option<RawCoreMassScale>,
+    scaled_motion: Option<String>,
+    core_step: Option<String>,
+    core_stiffness_margin: Option<f64>,
+    inactive_layer: Option<String>,
+    safety_factor: Option<f64>,
+    max_substeps: Option<i64>,
+}
+
+/// `hybrid.core_mass_scale`: a number or a name (`CoreMassScale::parse`).
+#[derive(Debug)]
+enum RawCoreMassScale {
+    Number(f64),
+    Name(String),
+}
+
+impl<'de> Deserialize<'de> for RawCoreMassScale {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct Visitor;
+        impl serde::de::Visitor<'_> for Visitor {
+            type Value = RawCoreMassScale;
+            fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str("a number, \"auto\" or \"uniform\"")
+            }
+            fn visit_f64<E>(self, v: f64) -> Result<Self::Value, E> {
+                Ok(RawCoreMassScale::Number(v))
+            }
+            fn visit_i64<E>(self, v: i64) -> Result<Self::Value, E> {
+                Ok(RawCoreMassScale::Number(v as f64))
+            }
+            fn visit_u64<E>(self, v: u64) -> Result<Self::Value, E> {
+                Ok(RawCoreMassScale::Number(v as f64))
+            }
+            fn visit_str<E>(self, v: &str) -> Result<Self::Value, E> {
+                Ok(RawCoreMassScale::Name(v.to_string()))
+            }
+        }
+        d.deserialize_any(Visitor)
+    }
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawMassSpring {
+    mesh_spring_n_per_m: Option<f64>,
+    home_spring_n_per_m: Option<f64>,
+    damping_n_s_per_m: Option<f64>,
+    node_mass_kg: Option<f64>,
+    rings: Option<i64>,
+    springs: Option<String>,
+    km_over_kh_after: Option<f64>,
+    vertex_rule: Option<String>,
+    coarsen_delay_s: Option<f64>,
+    calibration_file: Option<String>,
+    reference_file: Option<String>,
+    reference_axis: Option<[f64; 3]>,
+    organ_file: Option<String>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawModel {
+    family: Option<String>,
+    realtime: Option<bool>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawActiveRegion {
+    centre_m: Option<[f64; 3]>,
+    radius_m: Option<f64>,
+    stiffness_margin: Option<f64>,
+    follow: Option<bool>,
+    fallback_target_tets: Option<i64>,
+    fallback_builtin: Option<String>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawLoads {
+    gravity_m_per_s2: Option<[f64; 3]>,
+    pressure: Option<Vec<RawPressure>>,
+    point: Option<Vec<RawPoint>>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawPressure {
+    surfaces: Option<Vec<String>>,
+    pressure_pa: Option<f64>,
+    follower: Option<bool>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawPoint {
+    point_m: Option<[f64; 3]>,
+    force_n: Option<[f64; 3]>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawMesh {
+    file: Option<String>,
+    builtin: Option<String>,
+    length_unit: Option<String>,
+    target_tets: Option<i64>,
+    inner_radius: Option<f64>,
+    outer_radius: Option<f64>,
+    inner_semi_axes: Option<[f64; 3]>,
+    outer_semi_axes: Option<[f64; 3]>,
+    size: Option<[f64; 3]>,
+    cells: Option<[i64; 3]>,
+    edge_length: Option<f64>,
+    order: Option<i64>,
+    strain_smoothing: Option<String>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawMaterial {
+    model: Option<String>,
+    youngs_modulus_pa: Option<f64>,
+    poisson_ratio: Option<f64>,
+    lambda_pa: Option<f64>,
+    mu_pa: Option<f64>,
+    phi_pa_s: Option<f64>,
+    psi_pa_s: Option<f64>,
+    density_kg_per_m3: Option<f64>,
+    mass_damping_per_s: Option<f64>,
+    guccione_c_pa: Option<f64>,
+    b_f: Option<f64>,
+    b_t: Option<f64>,
+    b_fs: Option<f64>,
+    bulk_modulus_pa: Option<f64>,
+    volumetric: Option<String>,
+    fibres: Option<RawFibres>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawFibres {
+    endo: Option<String>,
+    epi: Option<String>,
+    helix_endo_deg: Option<f64>,
+    helix_epi_deg: Option<f64>,
+    long_axis: Option<[f64; 3]>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawBoundary {
+    clamped: Option<Vec<String>>,
+    touchable: Option<Vec<String>>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawIntegrator {
+    kind: Option<String>,
+    tick_s: Option<f64>,
+    substeps: Option<toml::Value>,
+    max_substeps: Option<i64>,
+    safety_factor: Option<f64>,
+    cg_max_iterations: Option<i64>,
+    cg_tolerance: Option<f64>,
+    linear_solver: Option<String>,
+    stiffness_margin: Option<f64>,
+    force_precision: Option<String>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawProbe {
+    contact: Option<String>,
+    radius_m: Option<f64>,
+    coupling_stiffness_n_per_m: Option<f64>,
+    coupling_damping_n_s_per_m: Option<f64>,
+    max_force_n: Option<f64>,
+    friction_coefficient: Option<f64>,
+}
+
+/// Where a scene's text comes from: a built-in scene reads its calibration table from the
+/// library, any other from its directory.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Origin {
+    Builtin,
+    File,
+}
+
+pub(super) fn parse_scene(
+    text: &str,
+    base_dir: &Path,
+    default_name: &str,
+    origin: Origin,
+) -> Result<Scene, ModelError> {
+    let raw: RawScene = super::toml_errors::deserialize(text)?;
+    let model = raw.model.unwrap_or_default();
+    let realtime = model.realtime.unwrap_or(true);
+    let family = model_family(model.family.as_deref())?;
+    let springs = family == ModelFamily::MassSpring;
+    let mesh_raw = required("mesh", raw.mesh)?;
+    let (mesh, length_unit_m) = build_mesh(&mesh_raw, base_dir)?;
+    let strain_smoothing = mesh_rules(&mesh_raw, &mesh, springs)?;
+    let (material, fibres) = material_section(raw.material, &mesh, springs)?;
+    let boundary = raw.boundary.unwrap_or_default();
+    let (clamped_nodes, touchable) = build_boundary(&boundary, &mesh)?;
+    let raw_integrator = raw.integrator.unwrap_or_default();
+    let mut integrator = build_integrator(&raw_integrator)?;
+    let present = Present {
+        loads: raw.loads.is_some(),
+        active_region: raw.active_region.is_some(),
+        mass_spring: raw.mass_spring.is_some(),
+    };
+    family_rules(
+        springs,
+        raw_integrator.kind.as_deref(),
+        &mut integrator,
+        &present,
+    )?;
+    let hybrid = hybrid_section(family, raw.hybrid.as_ref(), &mesh_raw, length_unit_m)?;
+    let probe = build_probe(&raw.probe.unwrap_or_default())?;
+    let loads = build_loads(&raw.loads.unwrap_or_default(), &mesh, &clamped_nodes)?;
+    let raw_region = raw.active_region.as_ref();
+    let active_region = region_section(raw_region, &integrator, &raw_integrator)?;
+    let name = raw.name.unwrap_or_else(|| default_name.to_string());
+    let fallback = match (raw_region, &active_region) {
+        (Some(a), Some(region)) => {
+            let source = Source {
+                text,
+                base_dir,
+                name: &name,
+                origin,
+            };
+            companion(a, region, &mesh_raw, &mesh, source)?
+        }
+        _ => None,
+    };
+    let (mut mesh, mut touchable, mut clamped_nodes) = (mesh, touchable, clamped_nodes);
+    let mass_spring = if springs {
+        let section = required("mass_spring", raw.mass_spring)?;
+        let mut ms = build_mass_spring(
+            &section,
+            &mesh,
+            &touchable,
+            &clamped_nodes,
+            probe,
+            &name,
+            base_dir,
+            origin,
+        )?;
+        (mesh, touchable, clamped_nodes) =
+            into_spring_mesh(&mut ms, boundary.touchable.as_deref(), &mesh)?;
+        Some(ms)
+    } else {
+        None
+    };
+    single_precision_rule(&integrator, &mesh, &material, family)?;
+    Ok(Scene {
+        name,
+        fibres,
+        mass_spring,
+        hybrid,
+        description: raw.description.unwrap_or_default(),
+        family,
+        realtime,
+        mesh,
+        strain_smoothing,
+        material,
+        integrator,
+        probe,
+        clamped_nodes,
+        touchable,
+        length_unit_m,
+        loads,
+        active_region,
+        fallback,
+    })
+}
