@@ -592,7 +592,7 @@ mod tests {
             MaterialModel::StableNeoHookean,
         ] {
             for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
-                if crate::simd::has_avx2_fma() {
+                if Avx2Fma::detect().is_some() {
                     single_precision_case(model, smoothing);
                 } else {
                     single_precision_fallback_case(model, smoothing);
