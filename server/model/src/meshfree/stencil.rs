@@ -46,276 +46,13 @@ use super::MeshfreeVariant;
 use super::cloud::{MAX_STENCIL, ParticleCloud, outer};
 use crate::material::stvk::{green_strain, stvk_stress};
 use crate::material::{MaterialModel, MaterialParams, first_piola};
-
-/// Four f64 lanes: the plain build ([`L4`]) and the AVX2 + FMA one (`Y4`), behind one trait so
-/// that the group loop is written once.
-trait Lanes: Copy {
-    /// The proof that the CPU runs this lane type (a token for `Y4`).
-    type Isa: Copy;
-    fn zero(isa: Self::Isa) -> Self;
-    fn splat(isa: Self::Isa, v: f64) -> Self;
-    /// Lanes `a[i..i + 4]`.
-    ///
-    /// # Panics
-    /// If `a` is shorter than `i + 4`.
-    fn load(isa: Self::Isa, a: &[f64], i: usize) -> Self;
-    fn from_array(isa: Self::Isa, v: [f64; 4]) -> Self;
-    /// Into `a[i..i + 4]`.
-    ///
-    /// # Panics
-    /// If `a` is shorter than `i + 4`.
-    fn store(self, a: &mut [f64], i: usize);
-    fn to_array(self) -> [f64; 4];
-    fn add(self, o: Self) -> Self;
-    fn sub(self, o: Self) -> Self;
-    fn mul(self, o: Self) -> Self;
-    /// `a b + c`.
-    fn madd(a: Self, b: Self, c: Self) -> Self;
-    /// `c - a b`.
-    fn nmadd(a: Self, b: Self, c: Self) -> Self;
-    /// `a b - c`.
-    fn msub(a: Self, b: Self, c: Self) -> Self;
-    /// `-self` (exact: the sign bits flipped).
-    fn neg(self) -> Self;
-    /// Moved one cell down (the forces of offset -1 along x): `([v1, v2, v3, 0], [0, 0, 0, v0])`,
-    /// the parts in the same chunk of four cells and in the chunk before.
-    fn shift_down(self) -> (Self, Self);
-    /// Moved one cell up (offset +1 along x): `([0, v0, v1, v2], [v3, 0, 0, 0])`, the parts in
-    /// the same chunk and in the chunk after.
-    fn shift_up(self) -> (Self, Self);
-}
-
-/// Four plain f64 lanes.
-#[derive(Debug, Clone, Copy)]
-struct L4([f64; 4]);
-
-impl Lanes for L4 {
-    type Isa = ();
-
-    #[inline(always)]
-    fn zero(_: ()) -> L4 {
-        L4([0.0; 4])
-    }
-
-    #[inline(always)]
-    fn splat(_: (), v: f64) -> L4 {
-        L4([v; 4])
-    }
-
-    #[inline(always)]
-    fn load(_: (), a: &[f64], i: usize) -> L4 {
-        let s = &a[i..i + 4];
-        L4([s[0], s[1], s[2], s[3]])
-    }
-
-    #[inline(always)]
-    fn from_array(_: (), v: [f64; 4]) -> L4 {
-        L4(v)
-    }
-
-    #[inline(always)]
-    fn store(self, a: &mut [f64], i: usize) {
-        a[i..i + 4].copy_from_slice(&self.0);
-    }
-
-    #[inline(always)]
-    fn to_array(self) -> [f64; 4] {
-        self.0
-    }
-
-    #[inline(always)]
-    fn add(self, o: L4) -> L4 {
-        let (a, b) = (self.0, o.0);
-        L4([a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3]])
-    }
-
-    #[inline(always)]
-    fn sub(self, o: L4) -> L4 {
-        let (a, b) = (self.0, o.0);
-        L4([a[0] - b[0], a[1] - b[1], a[2] - b[2], a[3] - b[3]])
-    }
-
-    #[inline(always)]
-    fn mul(self, o: L4) -> L4 {
-        let (a, b) = (self.0, o.0);
-        L4([a[0] * b[0], a[1] * b[1], a[2] * b[2], a[3] * b[3]])
-    }
-
-    #[inline(always)]
-    fn madd(a: L4, b: L4, c: L4) -> L4 {
-        a.mul(b).add(c)
-    }
-
-    #[inline(always)]
-    fn nmadd(a: L4, b: L4, c: L4) -> L4 {
-        c.sub(a.mul(b))
-    }
-
-    #[inline(always)]
-    fn msub(a: L4, b: L4, c: L4) -> L4 {
-        a.mul(b).sub(c)
-    }
-
-    #[inline(always)]
-    fn neg(self) -> L4 {
-        let a = self.0;
-        L4([-a[0], -a[1], -a[2], -a[3]])
-    }
-
-    #[inline(always)]
-    fn shift_down(self) -> (L4, L4) {
-        let v = self.0;
-        (L4([v[1], v[2], v[3], 0.0]), L4([0.0, 0.0, 0.0, v[0]]))
-    }
-
-    #[inline(always)]
-    fn shift_up(self) -> (L4, L4) {
-        let v = self.0;
-        (L4([0.0, v[0], v[1], v[2]]), L4([v[3], 0.0, 0.0, 0.0]))
-    }
-}
-
 #[cfg(target_arch = "x86_64")]
-mod avx2 {
-    //! The AVX2 + FMA lanes. Every intrinsic call is sound because a `Y4` value exists only
-    //! after [`Avx2Fma::detect`] returned a token (the CPU has AVX2 and FMA), and loads and
-    //! stores check their slice bounds first.
-
-    use std::arch::x86_64::*;
-
-    use super::Lanes;
-
-    /// Proof that the CPU runs AVX2 and FMA.
-    #[derive(Debug, Clone, Copy)]
-    pub(super) struct Avx2Fma(());
-
-    impl Avx2Fma {
-        /// The token, if the CPU has AVX2 and FMA.
-        pub(super) fn detect() -> Option<Self> {
-            crate::simd::has_avx2_fma().then_some(Self(()))
-        }
-    }
-
-    /// Four f64 lanes in one ymm register.
-    #[derive(Debug, Clone, Copy)]
-    pub(super) struct Y4(__m256d);
-
-    impl Lanes for Y4 {
-        type Isa = Avx2Fma;
-
-        #[inline(always)]
-        fn zero(_: Avx2Fma) -> Y4 {
-            // SAFETY: the token proves AVX (module documentation).
-            Y4(unsafe { _mm256_setzero_pd() })
-        }
-
-        #[inline(always)]
-        fn splat(_: Avx2Fma, v: f64) -> Y4 {
-            // SAFETY: as `zero`.
-            Y4(unsafe { _mm256_set1_pd(v) })
-        }
-
-        #[inline(always)]
-        fn load(_: Avx2Fma, a: &[f64], i: usize) -> Y4 {
-            let s = &a[i..i + 4];
-            // SAFETY: `s` holds four f64 (checked above); the token proves AVX.
-            Y4(unsafe { _mm256_loadu_pd(s.as_ptr()) })
-        }
-
-        #[inline(always)]
-        fn from_array(_: Avx2Fma, v: [f64; 4]) -> Y4 {
-            // SAFETY: `v` holds four f64; the token proves AVX.
-            Y4(unsafe { _mm256_loadu_pd(v.as_ptr()) })
-        }
-
-        #[inline(always)]
-        fn store(self, a: &mut [f64], i: usize) {
-            let s = &mut a[i..i + 4];
-            // SAFETY: `s` holds four f64 (checked above); `self` exists only with the token.
-            unsafe { _mm256_storeu_pd(s.as_mut_ptr(), self.0) }
-        }
-
-        #[inline(always)]
-        fn to_array(self) -> [f64; 4] {
-            let mut v = [0.0; 4];
-            // SAFETY: `v` holds four f64; `self` exists only with the token.
-            unsafe { _mm256_storeu_pd(v.as_mut_ptr(), self.0) };
-            v
-        }
-
-        #[inline(always)]
-        fn add(self, o: Y4) -> Y4 {
-            // SAFETY: `self` exists only with the token.
-            Y4(unsafe { _mm256_add_pd(self.0, o.0) })
-        }
-
-        #[inline(always)]
-        fn sub(self, o: Y4) -> Y4 {
-            // SAFETY: as `add`.
-            Y4(unsafe { _mm256_sub_pd(self.0, o.0) })
-        }
-
-        #[inline(always)]
-        fn mul(self, o: Y4) -> Y4 {
-            // SAFETY: as `add`.
-            Y4(unsafe { _mm256_mul_pd(self.0, o.0) })
-        }
-
-        #[inline(always)]
-        fn madd(a: Y4, b: Y4, c: Y4) -> Y4 {
-            // SAFETY: the token proves FMA.
-            Y4(unsafe { _mm256_fmadd_pd(a.0, b.0, c.0) })
-        }
-
-        #[inline(always)]
-        fn nmadd(a: Y4, b: Y4, c: Y4) -> Y4 {
-            // SAFETY: the token proves FMA.
-            Y4(unsafe { _mm256_fnmadd_pd(a.0, b.0, c.0) })
-        }
-
-        #[inline(always)]
-        fn msub(a: Y4, b: Y4, c: Y4) -> Y4 {
-            // SAFETY: the token proves FMA.
-            Y4(unsafe { _mm256_fmsub_pd(a.0, b.0, c.0) })
-        }
-
-        #[inline(always)]
-        fn neg(self) -> Y4 {
-            // SAFETY: `self` exists only with the token (AVX).
-            Y4(unsafe { _mm256_xor_pd(self.0, _mm256_set1_pd(-0.0)) })
-        }
-
-        #[inline(always)]
-        fn shift_down(self) -> (Y4, Y4) {
-            // SAFETY: `self` exists only with the token (AVX2).
-            unsafe {
-                let r = _mm256_permute4x64_pd::<0b00_11_10_01>(self.0);
-                let z = _mm256_setzero_pd();
-                (
-                    Y4(_mm256_blend_pd::<0b1000>(r, z)),
-                    Y4(_mm256_blend_pd::<0b0111>(r, z)),
-                )
-            }
-        }
-
-        #[inline(always)]
-        fn shift_up(self) -> (Y4, Y4) {
-            // SAFETY: `self` exists only with the token (AVX2).
-            unsafe {
-                let r = _mm256_permute4x64_pd::<0b10_01_00_11>(self.0);
-                let z = _mm256_setzero_pd();
-                (
-                    Y4(_mm256_blend_pd::<0b0001>(r, z)),
-                    Y4(_mm256_blend_pd::<0b1110>(r, z)),
-                )
-            }
-        }
-    }
-}
+use crate::simd::Ymm;
+use crate::simd::{Avx2Fma, Lanes4, Plain4};
 
 /// Nine lane vectors of a column-major 3x3 matrix per lane.
 #[inline(always)]
-fn lane_mat<V: Lanes>(isa: V::Isa, a: &[[f64; 4]; 9]) -> [V; 9] {
+fn lane_mat<V: Lanes4>(isa: V::Isa, a: &[[f64; 4]; 9]) -> [V; 9] {
     // A loop, not `array::from_fn`: closures do not inherit the caller's target features.
     let mut m = [V::zero(isa); 9];
     for (m, a) in m.iter_mut().zip(a) {
@@ -328,7 +65,7 @@ fn lane_mat<V: Lanes>(isa: V::Isa, a: &[[f64; 4]; 9]) -> [V; 9] {
 /// three; `N` when `seed`): with `c_k X_k = beta_c w_k`, the part `N w_k - F c_k X_k + c_k X_k`
 /// of `grad_ik` (module documentation) is `(N - beta_c (F - I)) w_k`.
 #[inline(always)]
-fn class_matrices<V: Lanes>(
+fn class_matrices<V: Lanes4>(
     n: &[V; 9],
     f: &[V; 9],
     classes: &[(f64, f64, std::ops::Range<usize>)],
@@ -349,7 +86,7 @@ fn class_matrices<V: Lanes>(
 
 /// `a b` lane-wise (column-major).
 #[inline(always)]
-fn mat_mul<V: Lanes>(a: &[V; 9], b: &[V; 9]) -> [V; 9] {
+fn mat_mul<V: Lanes4>(a: &[V; 9], b: &[V; 9]) -> [V; 9] {
     let mut out = *a;
     for c in 0..3 {
         for r in 0..3 {
@@ -364,7 +101,7 @@ fn mat_mul<V: Lanes>(a: &[V; 9], b: &[V; 9]) -> [V; 9] {
 
 /// `a v` lane-wise (column-major `a`).
 #[inline(always)]
-fn mat_vec<V: Lanes>(a: &[V; 9], v: &[V; 3]) -> [V; 3] {
+fn mat_vec<V: Lanes4>(a: &[V; 9], v: &[V; 3]) -> [V; 3] {
     let mut out = *v;
     for (r, o) in out.iter_mut().enumerate() {
         let mut acc = a[r].mul(v[0]);
@@ -377,7 +114,7 @@ fn mat_vec<V: Lanes>(a: &[V; 9], v: &[V; 3]) -> [V; 3] {
 
 /// The column-major 3x3 matrix of each lane of nine lane vectors.
 #[inline(always)]
-fn lane_matrices<V: Lanes>(a: &[V; 9]) -> [[f64; 9]; 4] {
+fn lane_matrices<V: Lanes4>(a: &[V; 9]) -> [[f64; 9]; 4] {
     let c: [[f64; 4]; 9] = [
         a[0].to_array(),
         a[1].to_array(),
@@ -530,7 +267,7 @@ impl GridLayout {
 pub(crate) struct StencilGrid {
     /// The AVX2 + FMA token where the CPU has them.
     #[cfg(target_arch = "x86_64")]
-    isa: Option<avx2::Avx2Fma>,
+    isa: Option<Avx2Fma>,
     seed: bool,
     volume_m3: f64,
     /// Stencil offsets (lattice cells) and, per offset, `w_k` (1/m), `X_k` (m), `c_k` (N/m)
@@ -691,7 +428,7 @@ impl StencilGrid {
         }
         Self {
             #[cfg(target_arch = "x86_64")]
-            isa: avx2::Avx2Fma::detect(),
+            isa: Avx2Fma::detect(),
             seed: cloud.params().variant == MeshfreeVariant::Seed,
             volume_m3: cloud.volume_m3(),
             off: vec![0; dirs.len()],
@@ -1014,13 +751,13 @@ impl StencilGrid {
         }
         #[cfg(target_arch = "x86_64")]
         if let Some(isa) = self.isa {
-            // SAFETY: the token exists only when the CPU has AVX2 and FMA.
+            // SAFETY: the token.
             unsafe { self.group_loop_avx2(isa, mat) };
         } else {
-            self.group_loop::<L4>((), mat);
+            self.group_loop::<Plain4>((), mat);
         }
         #[cfg(not(target_arch = "x86_64"))]
-        self.group_loop::<L4>((), mat);
+        self.group_loop::<Plain4>((), mat);
         for &(p, i) in &self.by_particle {
             let i = i as usize;
             let fc = &self.fc;
@@ -1037,21 +774,19 @@ impl StencilGrid {
         }
     }
 
-    /// [`Self::group_loop`] on AVX2 + FMA lanes, compiled for them.
-    ///
-    /// # Safety
-    /// The CPU must support AVX2 and FMA (the token says so).
+    /// [`Self::group_loop`] on AVX2 + FMA lanes, compiled for them (the token proves the CPU
+    /// has them).
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
-    unsafe fn group_loop_avx2(&mut self, isa: avx2::Avx2Fma, mat: &MaterialParams) {
-        self.group_loop::<avx2::Y4>(isa, mat);
+    fn group_loop_avx2(&mut self, isa: Avx2Fma, mat: &MaterialParams) {
+        self.group_loop::<Ymm>(isa, mat);
     }
 
     /// Every group's forces from the grid positions into the grid forces (module
     /// documentation for the formulas).
     #[inline(always)]
     #[allow(clippy::needless_range_loop)] // one index into several 3x3 lane matrices
-    fn group_loop<V: Lanes>(&mut self, isa: V::Isa, mat: &MaterialParams) {
+    fn group_loop<V: Lanes4>(&mut self, isa: V::Isa, mat: &MaterialParams) {
         let Self {
             seed,
             volume_m3: v,
@@ -1388,7 +1123,7 @@ impl StencilGrid {
 /// matrix `ncl` per class of length, [`class_matrices`]; odd in `k`: `w_-k = -w_k`, same
 /// class) into `ah`, in `pairs` order.
 #[inline(always)]
-fn pair_grads<V: Lanes>(
+fn pair_grads<V: Lanes4>(
     isa: V::Isa,
     ncl: &[[V; 9]; 3],
     ws: &[[f64; 3]],
@@ -1414,7 +1149,7 @@ fn pair_grads<V: Lanes>(
 /// column `perm[a]` (26-cell cube: `w_k = scale_c e_k` with `e_k` in grid axes, so
 /// `(N - beta_c F) w_k` is a signed sum of these columns).
 #[inline(always)]
-fn cube_columns<V: Lanes>(
+fn cube_columns<V: Lanes4>(
     isa: V::Isa,
     ncl: &[[V; 9]; 3],
     scale: &[f64; 3],
@@ -1434,7 +1169,7 @@ fn cube_columns<V: Lanes>(
 
 /// `c_k` of each class (faces, edges, corners) on the owner lanes, zero on padding lanes.
 #[inline(always)]
-fn cube_hourglass<V: Lanes>(
+fn cube_hourglass<V: Lanes4>(
     isa: V::Isa,
     classes: &[(f64, f64, std::ops::Range<usize>)],
     own: V,
@@ -1469,7 +1204,7 @@ const fn cube_pair_of(e: [i32; 3]) -> (usize, bool) {
 /// Row `r` of `sum_a e[a] m[:, a]` for a constant `e` of entries -1, 0, 1 whose first
 /// nonzero is 1 (the additions only, once inlined).
 #[inline(always)]
-fn cube_column_sum<V: Lanes>(m: &[V; 9], e: [i32; 3], r: usize) -> V {
+fn cube_column_sum<V: Lanes4>(m: &[V; 9], e: [i32; 3], r: usize) -> V {
     let mut acc: Option<V> = None;
     for (a, &ea) in e.iter().enumerate() {
         let col = m[3 * a + r];
@@ -1494,7 +1229,7 @@ fn cube_column_sum<V: Lanes>(m: &[V; 9], e: [i32; 3], r: usize) -> V {
 /// read-modify-writes, no shift across lanes.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)] // the loop's state, split out of one function
-fn pass_two_cube<V: Lanes>(
+fn pass_two_cube<V: Lanes4>(
     isa: V::Isa,
     b: usize,
     rows: &[isize; 9],
@@ -1582,7 +1317,7 @@ fn cube_force_at(fc: &[f64], i: usize) -> f64 {
 /// `sum_k (u_(i+k) + u_(i-k))`, over [`CUBE`]'s pairs at grid offsets `off`.
 #[inline(always)]
 #[allow(clippy::type_complexity)] // two small per-class arrays
-fn pass_one_cube<V: Lanes>(
+fn pass_one_cube<V: Lanes4>(
     isa: V::Isa,
     b: usize,
     off: &[isize; MAX_PAIRS],
@@ -1628,7 +1363,7 @@ fn pass_one_cube<V: Lanes>(
 /// of offset 0 in `f` (interleaved, [`StencilGrid`]'s `fc`).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)] // the loop's state, split out of one function
-fn pass_two<V: Lanes>(
+fn pass_two<V: Lanes4>(
     isa: V::Isa,
     b: usize,
     rows: &[(isize, [usize; 3])],
