@@ -380,33 +380,11 @@ impl SingleLinear {
     ) -> bool {
         match self.isa {
             Some(token) => {
-                self.add_forces_with(token, elastic, viscosity, x, v, f, scratch);
+                self.add_forces_on(token, elastic, viscosity, x, v, f, scratch);
                 true
             }
             None => false,
         }
-    }
-
-    /// [`Self::add_forces`] with the instruction set `isa`.
-    ///
-    /// # Panics
-    /// As [`Self::add_forces`], and if this CPU does not run `isa` (see
-    /// [`SingleIsa::available`]).
-    #[cfg(test)]
-    #[allow(clippy::too_many_arguments)]
-    pub(crate) fn add_forces_on(
-        &self,
-        isa: SingleIsa,
-        elastic: SingleElastic,
-        viscosity: (f64, f64),
-        x: &[DVec3],
-        v: Option<&[DVec3]>,
-        f: &mut [DVec3],
-        scratch: &mut ForceScratch,
-    ) {
-        let token =
-            SingleToken::of(isa).unwrap_or_else(|| panic!("{isa:?} is not available on this CPU"));
-        self.add_forces_with(token, elastic, viscosity, x, v, f, scratch);
     }
 
     /// [`Self::add_forces`] with the build that `token` proves.
@@ -414,7 +392,7 @@ impl SingleLinear {
     /// # Panics
     /// As [`Self::add_forces`].
     #[allow(clippy::too_many_arguments)]
-    fn add_forces_with(
+    pub(crate) fn add_forces_on(
         &self,
         token: SingleToken,
         elastic: SingleElastic,
