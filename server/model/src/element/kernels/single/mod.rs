@@ -148,7 +148,7 @@ pub enum SingleIsa {
     /// Eight lanes per AVX2 register (AVX2 and FMA).
     Avx2,
     /// Sixteen lanes per AVX-512 register (AVX-512F, AVX-512VL, AVX2 and FMA: the
-    /// [`crate::simd`] AVX-512 token).
+    /// `crate::simd` AVX-512 token).
     Avx512,
 }
 
@@ -160,7 +160,7 @@ impl SingleIsa {
     }
 
     /// Whether this CPU runs this instruction set (a query; the kernel's proof is the
-    /// token, [`SingleToken`]). Allocation-free (the tick asks).
+    /// token, `SingleToken`). Allocation-free (the tick asks).
     pub fn is_available(self) -> bool {
         SingleToken::of(self).is_some()
     }
