@@ -25,6 +25,7 @@ use super::stencil::StencilGrid;
 use crate::ModelError;
 use crate::material::stvk::{green_strain, stvk_energy_density, stvk_stress};
 use crate::material::{energy_density, first_piola};
+use crate::simd::Avx2Fma;
 
 /// The energy terms of a set of particles (module documentation), sized once.
 ///
@@ -62,8 +63,8 @@ pub struct TermBlock {
     /// Positions and forces of the touched particles, by local index.
     x_local: Vec<DVec3>,
     f_local: Vec<DVec3>,
-    /// The CPU has AVX2 and FMA (the force loop's fast build).
-    avx2: bool,
+    /// The AVX2 + FMA token when the CPU has them (the force loop's fast build).
+    isa: Option<Avx2Fma>,
     scratch: Box<TermRest>,
     nbr_scratch: [u32; MAX_STENCIL],
     /// The stencil layout of the force loop ([`super::stencil`]), rebuilt at the first force
@@ -155,7 +156,7 @@ impl TermBlock {
             local_of: vec![u32::MAX; cloud.len()],
             x_local: vec![DVec3::ZERO; touched],
             f_local: vec![DVec3::ZERO; touched],
-            avx2: crate::simd::has_avx2_fma(),
+            isa: Avx2Fma::detect(),
             scratch: Box::default(),
             nbr_scratch: [0; MAX_STENCIL],
             stencil: StencilGrid::new(
@@ -350,21 +351,18 @@ impl TermBlock {
         }
         self.f_local[..n_local].fill(DVec3::ZERO);
         #[cfg(target_arch = "x86_64")]
-        if self.avx2 {
-            // SAFETY: `avx2` is set only when the CPU has AVX2 and FMA (`TermBlock::new`).
-            unsafe { self.term_loop_avx2(cloud) };
+        if let Some(isa) = self.isa {
+            // SAFETY: the token.
+            unsafe { self.term_loop_avx2(isa, cloud) };
             return;
         }
         self.term_loop(cloud);
     }
 
-    /// [`Self::term_loop`] compiled for AVX2 + FMA.
-    ///
-    /// # Safety
-    /// The CPU must support AVX2 and FMA.
+    /// [`Self::term_loop`] compiled for AVX2 + FMA (the token proves the CPU has them).
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
-    unsafe fn term_loop_avx2(&mut self, cloud: &ParticleCloud) {
+    fn term_loop_avx2(&mut self, _isa: Avx2Fma, cloud: &ParticleCloud) {
         self.term_loop(cloud);
     }
 

@@ -101,6 +101,7 @@ pub(crate) fn has_avx2_fma() -> bool {
 
 /// Whether this CPU runs AVX-512F, AVX2 and FMA (no VL). Removed in step 2e: take
 /// [`Avx512::detect`] (which also needs VL).
+#[allow(dead_code)] // no caller since step 2e; deleted at its merge
 pub(crate) fn has_avx512f() -> bool {
     #[cfg(target_arch = "x86_64")]
     {

@@ -465,4 +465,128 @@ mod x86 {
             }
         }
     }
+
+    /// [`crate::simd::Lanes4`] on [`Ymm`]: the meshfree stencil's AVX2 + FMA lanes (a child
+    /// module, so that its methods do not meet [`Lane`]'s of the same names). Every intrinsic
+    /// call is sound because a `Ymm` value exists only after [`Avx2Fma::detect`] returned a
+    /// token, and loads and stores check their slice bounds first.
+    mod four {
+        use std::arch::x86_64::*;
+
+        use super::Ymm;
+        use crate::simd::isa::Avx2Fma;
+        use crate::simd::lanes4::Lanes4;
+
+        impl Lanes4 for Ymm {
+            type Isa = Avx2Fma;
+
+            #[inline(always)]
+            fn zero(_: Avx2Fma) -> Ymm {
+                // SAFETY: the token proves AVX (the module documentation of `crate::simd`).
+                Ymm(unsafe { _mm256_setzero_pd() })
+            }
+
+            #[inline(always)]
+            fn splat(_: Avx2Fma, v: f64) -> Ymm {
+                // SAFETY: as `zero`.
+                Ymm(unsafe { _mm256_set1_pd(v) })
+            }
+
+            #[inline(always)]
+            fn load(_: Avx2Fma, a: &[f64], i: usize) -> Ymm {
+                let s = &a[i..i + 4];
+                // SAFETY: `s` holds four f64 (checked above); the token proves AVX.
+                Ymm(unsafe { _mm256_loadu_pd(s.as_ptr()) })
+            }
+
+            #[inline(always)]
+            fn from_array(_: Avx2Fma, v: [f64; 4]) -> Ymm {
+                // SAFETY: `v` holds four f64; the token proves AVX.
+                Ymm(unsafe { _mm256_loadu_pd(v.as_ptr()) })
+            }
+
+            #[inline(always)]
+            fn store(self, a: &mut [f64], i: usize) {
+                let s = &mut a[i..i + 4];
+                // SAFETY: `s` holds four f64 (checked above); `self` exists only with the token.
+                unsafe { _mm256_storeu_pd(s.as_mut_ptr(), self.0) }
+            }
+
+            #[inline(always)]
+            fn to_array(self) -> [f64; 4] {
+                let mut v = [0.0; 4];
+                // SAFETY: `v` holds four f64; `self` exists only with the token.
+                unsafe { _mm256_storeu_pd(v.as_mut_ptr(), self.0) };
+                v
+            }
+
+            #[inline(always)]
+            fn add(self, o: Ymm) -> Ymm {
+                // SAFETY: `self` exists only with the token.
+                Ymm(unsafe { _mm256_add_pd(self.0, o.0) })
+            }
+
+            #[inline(always)]
+            fn sub(self, o: Ymm) -> Ymm {
+                // SAFETY: as `add`.
+                Ymm(unsafe { _mm256_sub_pd(self.0, o.0) })
+            }
+
+            #[inline(always)]
+            fn mul(self, o: Ymm) -> Ymm {
+                // SAFETY: as `add`.
+                Ymm(unsafe { _mm256_mul_pd(self.0, o.0) })
+            }
+
+            #[inline(always)]
+            fn madd(a: Ymm, b: Ymm, c: Ymm) -> Ymm {
+                // SAFETY: the token proves FMA.
+                Ymm(unsafe { _mm256_fmadd_pd(a.0, b.0, c.0) })
+            }
+
+            #[inline(always)]
+            fn nmadd(a: Ymm, b: Ymm, c: Ymm) -> Ymm {
+                // SAFETY: the token proves FMA.
+                Ymm(unsafe { _mm256_fnmadd_pd(a.0, b.0, c.0) })
+            }
+
+            #[inline(always)]
+            fn msub(a: Ymm, b: Ymm, c: Ymm) -> Ymm {
+                // SAFETY: the token proves FMA.
+                Ymm(unsafe { _mm256_fmsub_pd(a.0, b.0, c.0) })
+            }
+
+            #[inline(always)]
+            fn neg(self) -> Ymm {
+                // SAFETY: `self` exists only with the token (AVX).
+                Ymm(unsafe { _mm256_xor_pd(self.0, _mm256_set1_pd(-0.0)) })
+            }
+
+            #[inline(always)]
+            fn shift_down(self) -> (Ymm, Ymm) {
+                // SAFETY: `self` exists only with the token (AVX2).
+                unsafe {
+                    let r = _mm256_permute4x64_pd::<0b00_11_10_01>(self.0);
+                    let z = _mm256_setzero_pd();
+                    (
+                        Ymm(_mm256_blend_pd::<0b1000>(r, z)),
+                        Ymm(_mm256_blend_pd::<0b0111>(r, z)),
+                    )
+                }
+            }
+
+            #[inline(always)]
+            fn shift_up(self) -> (Ymm, Ymm) {
+                // SAFETY: `self` exists only with the token (AVX2).
+                unsafe {
+                    let r = _mm256_permute4x64_pd::<0b10_01_00_11>(self.0);
+                    let z = _mm256_setzero_pd();
+                    (
+                        Ymm(_mm256_blend_pd::<0b0001>(r, z)),
+                        Ymm(_mm256_blend_pd::<0b1110>(r, z)),
+                    )
+                }
+            }
+        }
+    }
 }

@@ -1,9 +1,20 @@
-//! The SIMD layer: what the CPU can run (the instruction-set tokens of [`isa`]) and the lane
-//! types the element kernels are written over ([`lanes`]).
+//! The SIMD layer: what the CPU can run (the instruction-set tokens of [`isa`]), the lane
+//! types the element kernels are written over ([`lanes`]) and the four-lane type of the
+//! meshfree stencil ([`lanes4`]).
+//!
+//! **The rule** for every vectorised path of the crate: a vector value or a token exists only
+//! after run-time detection (`detect`, the tokens' only maker; vector values are made from a
+//! token); every `#[target_feature]` function takes the token of its features as an argument;
+//! intrinsics appear only in this module or inside such a function; the call of a
+//! `#[target_feature]` entry is the one `unsafe` block of its caller, commented "SAFETY: the
+//! token". Operations that are unsafe for memory reasons (gathers and packings through raw
+//! offsets) stay `unsafe fn` with their own `# Safety` contract.
 
 pub(crate) mod isa;
 pub(crate) mod lanes;
+pub(crate) mod lanes4;
 
 #[allow(unused_imports)] // Avx2FmaF16c: first caller in issue 49 step 2d
 pub(crate) use isa::{Avx2Fma, Avx2FmaF16c, Avx512, has_avx2_fma, has_avx2_fma_f16c, has_avx512f};
 pub(crate) use lanes::{Lane, LaneVec, Plain8, Ymm, Zmm};
+pub(crate) use lanes4::{Lanes4, Plain4};

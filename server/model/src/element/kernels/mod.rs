@@ -592,7 +592,7 @@ mod tests {
             MaterialModel::StableNeoHookean,
         ] {
             for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
-                if crate::simd::has_avx2_fma() {
+                if Avx2Fma::detect().is_some() {
                     single_precision_case(model, smoothing);
                 } else {
                     single_precision_fallback_case(model, smoothing);
@@ -658,7 +658,7 @@ mod tests {
                     let mut f = offset.clone();
                     match isa {
                         Some(isa) => single.add_forces_on(
-                            isa,
+                            single::SingleToken::of(isa).expect("listed as available"),
                             lame,
                             viscosity,
                             x,
@@ -693,7 +693,7 @@ mod tests {
             let single = pinned.single.as_ref().expect("single-precision data");
             let (mut direct, mut public) = (vec![DVec3::ZERO; n], vec![DVec3::ZERO; n]);
             single.add_forces_on(
-                isa,
+                single::SingleToken::of(isa).expect("listed as available"),
                 lame,
                 viscosity,
                 &x,

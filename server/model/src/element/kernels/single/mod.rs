@@ -55,6 +55,7 @@ use std::arch::x86_64::{
 use glam::{DMat3, DVec3};
 
 use super::domains::DomainBatch;
+use crate::simd::{Avx2Fma, Avx512};
 
 #[cfg(target_arch = "x86_64")]
 mod stress;
@@ -146,7 +147,8 @@ enum SingleLayout {
 pub enum SingleIsa {
     /// Eight lanes per AVX2 register (AVX2 and FMA).
     Avx2,
-    /// Sixteen lanes per AVX-512 register (AVX-512F, AVX2 and FMA).
+    /// Sixteen lanes per AVX-512 register (AVX-512F, AVX-512VL, AVX2 and FMA: the
+    /// `crate::simd` AVX-512 token).
     Avx512,
 }
 
@@ -154,21 +156,13 @@ impl SingleIsa {
     /// The widest instruction set of this CPU that the kernel is built for, or `None`
     /// (without AVX2 and FMA).
     pub fn detect() -> Option<Self> {
-        if crate::simd::has_avx512f() {
-            Some(Self::Avx512)
-        } else if crate::simd::has_avx2_fma() {
-            Some(Self::Avx2)
-        } else {
-            None
-        }
+        SingleToken::detect().map(SingleToken::isa)
     }
 
-    /// Whether this CPU runs this instruction set. Allocation-free (the tick asks).
+    /// Whether this CPU runs this instruction set (a query; the kernel's proof is the
+    /// token, `SingleToken`). Allocation-free (the tick asks).
     pub fn is_available(self) -> bool {
-        match self {
-            Self::Avx2 => crate::simd::has_avx2_fma(),
-            Self::Avx512 => crate::simd::has_avx512f(),
-        }
+        SingleToken::of(self).is_some()
     }
 
     /// Every instruction set of this CPU that the kernel is built for (for tests and
@@ -181,6 +175,48 @@ impl SingleIsa {
     }
 }
 
+/// The proof that this CPU runs the kernel's build for one [`SingleIsa`]: the instruction-set
+/// token of [`crate::simd`] that build needs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum SingleToken {
+    /// The AVX2 build (eight lanes).
+    Avx2(Avx2Fma),
+    /// The AVX-512 build (sixteen lanes).
+    Avx512(Avx512),
+}
+
+impl SingleToken {
+    /// The token of the widest build this CPU runs, or `None` (without AVX2 and FMA).
+    pub(crate) fn detect() -> Option<Self> {
+        Self::of(SingleIsa::Avx512).or_else(|| Self::of(SingleIsa::Avx2))
+    }
+
+    /// The token of the build `isa`, when this CPU runs it.
+    pub(crate) fn of(isa: SingleIsa) -> Option<Self> {
+        match isa {
+            SingleIsa::Avx2 => Avx2Fma::detect().map(Self::Avx2),
+            SingleIsa::Avx512 => Avx512::detect().map(Self::Avx512),
+        }
+    }
+
+    /// The instruction set this token proves.
+    pub(crate) fn isa(self) -> SingleIsa {
+        match self {
+            Self::Avx2(_) => SingleIsa::Avx2,
+            Self::Avx512(_) => SingleIsa::Avx512,
+        }
+    }
+
+    /// The AVX2 and FMA part of the proof (the packing and unpacking run on it).
+    #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
+    fn avx2_fma(self) -> Avx2Fma {
+        match self {
+            Self::Avx2(t) => t,
+            Self::Avx512(t) => t.avx2_fma(),
+        }
+    }
+}
+
 /// The batches of the single-precision kernel of one model of linear tetrahedra (standard
 /// or edge-smoothed), with the rest positions the displacements are taken from. Invariant
 /// (checked at construction): every node index is below `rest.len()`.
@@ -188,8 +224,9 @@ impl SingleIsa {
 pub(crate) struct SingleLinear {
     layout: SingleLayout,
     rest: Vec<DVec3>,
-    /// The instruction set of [`Self::add_forces`]: the widest of this CPU unless pinned.
-    isa: Option<SingleIsa>,
+    /// The instruction set of [`Self::add_forces`] (its token): the widest of this CPU unless
+    /// pinned.
+    isa: Option<SingleToken>,
 }
 
 impl SingleLinear {
@@ -246,7 +283,7 @@ impl SingleLinear {
         Self {
             layout: SingleLayout::Tets(batches),
             rest: rest.to_vec(),
-            isa: SingleIsa::detect(),
+            isa: SingleToken::detect(),
         }
     }
 
@@ -309,7 +346,7 @@ impl SingleLinear {
                 volume_m3: volume,
             },
             rest: rest.to_vec(),
-            isa: SingleIsa::detect(),
+            isa: SingleToken::detect(),
         }
     }
 
@@ -318,10 +355,9 @@ impl SingleLinear {
     /// # Errors
     /// A message naming the instruction set when this CPU does not run it.
     pub(crate) fn pin_isa(&mut self, isa: SingleIsa) -> Result<(), String> {
-        if !isa.is_available() {
-            return Err(format!("this CPU does not run the {isa:?} build"));
-        }
-        self.isa = Some(isa);
+        let token = SingleToken::of(isa)
+            .ok_or_else(|| format!("this CPU does not run the {isa:?} build"))?;
+        self.isa = Some(token);
         Ok(())
     }
 
@@ -343,23 +379,22 @@ impl SingleLinear {
         scratch: &mut ForceScratch,
     ) -> bool {
         match self.isa {
-            Some(isa) => {
-                self.add_forces_on(isa, elastic, viscosity, x, v, f, scratch);
+            Some(token) => {
+                self.add_forces_on(token, elastic, viscosity, x, v, f, scratch);
                 true
             }
             None => false,
         }
     }
 
-    /// [`Self::add_forces`] with the instruction set `isa`.
+    /// [`Self::add_forces`] with the build that `token` proves.
     ///
     /// # Panics
-    /// As [`Self::add_forces`], and if this CPU does not run `isa` (see
-    /// [`SingleIsa::available`]).
+    /// As [`Self::add_forces`].
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn add_forces_on(
         &self,
-        isa: SingleIsa,
+        token: SingleToken,
         elastic: SingleElastic,
         viscosity: (f64, f64),
         x: &[DVec3],
@@ -370,16 +405,15 @@ impl SingleLinear {
         let n = self.rest.len();
         assert!(x.len() >= n && f.len() >= n && v.is_none_or(|v| v.len() >= n));
         assert!(scratch.node_count() >= n, "force scratch too small");
-        assert!(isa.is_available(), "{isa:?} is not available on this CPU");
         let (packed, force) = (&mut scratch.packed[..n], &mut scratch.force[..n]);
         #[cfg(target_arch = "x86_64")]
         {
-            // SAFETY: AVX2 is available (both instruction sets include it); the slices hold
-            // n nodes each.
+            let avx2 = token.avx2_fma();
+            // SAFETY: the token; the slices hold n nodes each.
             unsafe {
-                pack_avx2(&x[..n], Some(&self.rest), packed, 0);
+                pack_avx2(avx2, &x[..n], Some(&self.rest), packed, 0);
                 if let Some(v) = v {
-                    pack_avx2(&v[..n], None, packed, 4);
+                    pack_avx2(avx2, &v[..n], None, packed, 4);
                 }
             }
             let (neo_hookean, lambda_pa, mu_pa) = match elastic {
@@ -395,23 +429,29 @@ impl SingleLinear {
                 two_psi: (2.0 * viscosity.1) as f32,
             };
             let (layout, viscous) = (&self.layout, v.is_some());
-            // SAFETY: the instruction set is available (asserted above); every node index of
-            // the batches is below n = packed.len() = force.len() (checked at construction).
+            // SAFETY: the token; every node index of the batches is below n = packed.len() =
+            // force.len() (checked at construction).
             unsafe {
-                match (isa, viscous) {
-                    (SingleIsa::Avx512, true) => forces_avx512::<true>(layout, coef, packed, force),
-                    (SingleIsa::Avx512, false) => {
-                        forces_avx512::<false>(layout, coef, packed, force)
+                match (token, viscous) {
+                    (SingleToken::Avx512(t), true) => {
+                        forces_avx512::<true>(t, layout, coef, packed, force)
                     }
-                    (SingleIsa::Avx2, true) => forces_avx2::<true>(layout, coef, packed, force),
-                    (SingleIsa::Avx2, false) => forces_avx2::<false>(layout, coef, packed, force),
+                    (SingleToken::Avx512(t), false) => {
+                        forces_avx512::<false>(t, layout, coef, packed, force)
+                    }
+                    (SingleToken::Avx2(t), true) => {
+                        forces_avx2::<true>(t, layout, coef, packed, force)
+                    }
+                    (SingleToken::Avx2(t), false) => {
+                        forces_avx2::<false>(t, layout, coef, packed, force)
+                    }
                 }
             }
-            // SAFETY: AVX2 is available; the slices hold n nodes each.
-            unsafe { unpack_avx2(force, &mut f[..n]) };
+            // SAFETY: the token; the slices hold n nodes each.
+            unsafe { unpack_avx2(avx2, force, &mut f[..n]) };
         }
         #[cfg(not(target_arch = "x86_64"))]
-        let _ = (isa, elastic, viscosity, packed, force);
+        let _ = (token, elastic, viscosity, packed, force);
     }
 }
 
@@ -419,10 +459,16 @@ impl SingleLinear {
 /// first three of the four entries (the fourth is never read).
 ///
 /// # Safety
-/// AVX2; `a`, `rest` and `packed` of one length.
+/// `a`, `rest` and `packed` of one length (the token proves AVX2).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn pack_avx2(a: &[DVec3], rest: Option<&[DVec3]>, packed: &mut [PackedNode], at: usize) {
+unsafe fn pack_avx2(
+    _isa: Avx2Fma,
+    a: &[DVec3],
+    rest: Option<&[DVec3]>,
+    packed: &mut [PackedNode],
+    at: usize,
+) {
     use std::arch::x86_64::{
         _mm_alignr_epi8, _mm_castps_si128, _mm_castsi128_ps, _mm_setzero_ps, _mm256_cvtpd_ps,
         _mm256_loadu_pd, _mm256_sub_pd,
@@ -468,10 +514,10 @@ unsafe fn pack_avx2(a: &[DVec3], rest: Option<&[DVec3]>, packed: &mut [PackedNod
 /// `f[i] += force[i]` (in double precision) and `force[i] = 0`.
 ///
 /// # Safety
-/// AVX2; `force` and `f` of one length.
+/// `force` and `f` of one length (the token proves AVX2).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn unpack_avx2(force: &mut [NodeForce], f: &mut [DVec3]) {
+unsafe fn unpack_avx2(_isa: Avx2Fma, force: &mut [NodeForce], f: &mut [DVec3]) {
     use std::arch::x86_64::{
         _mm_blend_ps, _mm_shuffle_ps, _mm256_add_pd, _mm256_cvtps_pd, _mm256_loadu_pd,
         _mm256_storeu_pd, _mm256_storeu_ps,
@@ -1048,10 +1094,12 @@ unsafe fn layout_forces<V: F32Lanes, const VISCOUS: bool>(
 /// [`layout_forces`] in AVX2 registers, eight lanes.
 ///
 /// # Safety
-/// AVX2 and FMA; every node index of the layout below `packed.len()` and `force.len()`.
+/// Every node index of the layout below `packed.len()` and `force.len()` (the token proves
+/// AVX2 and FMA).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn forces_avx2<const VISCOUS: bool>(
+    _isa: Avx2Fma,
     layout: &SingleLayout,
     c: Coefficients,
     packed: &[PackedNode],
@@ -1064,11 +1112,12 @@ unsafe fn forces_avx2<const VISCOUS: bool>(
 /// [`layout_forces`] in AVX-512 registers, sixteen lanes.
 ///
 /// # Safety
-/// AVX-512F, AVX2 and FMA; every node index of the layout below `packed.len()` and
-/// `force.len()`.
+/// Every node index of the layout below `packed.len()` and `force.len()` (the token proves
+/// AVX-512F, AVX-512VL, AVX2 and FMA; the build enables only the F part it uses, as before).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx2,fma")]
 unsafe fn forces_avx512<const VISCOUS: bool>(
+    _isa: Avx512,
     layout: &SingleLayout,
     c: Coefficients,
     packed: &[PackedNode],
@@ -1087,20 +1136,20 @@ mod tests {
     /// are cleared.
     #[test]
     fn packing_and_unpacking_cover_every_tail() {
-        if !crate::simd::has_avx2_fma() {
+        let Some(isa) = Avx2Fma::detect() else {
             eprintln!("no AVX2: nothing to test");
             return;
-        }
+        };
         for n in 0..11 {
             let a: Vec<DVec3> = (0..n)
                 .map(|i| DVec3::new(0.1 + i as f64, -0.2 * i as f64, 1e-3 * (i * i) as f64))
                 .collect();
             let rest: Vec<DVec3> = (0..n).map(|i| DVec3::splat(0.01 * i as f64)).collect();
             let mut packed = vec![PackedNode::default(); n];
-            // SAFETY: AVX2 checked above; slices of one length.
+            // SAFETY: the token; slices of one length.
             unsafe {
-                pack_avx2(&a, Some(&rest), &mut packed, 0);
-                pack_avx2(&a, None, &mut packed, 4);
+                pack_avx2(isa, &a, Some(&rest), &mut packed, 0);
+                pack_avx2(isa, &a, None, &mut packed, 4);
             }
             for i in 0..n {
                 let u = a[i] - rest[i];
@@ -1121,7 +1170,7 @@ mod tests {
                 .collect();
             let mut f = a.clone();
             // SAFETY: as above.
-            unsafe { unpack_avx2(&mut force, &mut f) };
+            unsafe { unpack_avx2(isa, &mut force, &mut f) };
             for i in 0..n {
                 let k = i as f64;
                 assert_eq!(f[i], a[i] + DVec3::new(k, 2.0 * k, -k), "{n} {i}");
