@@ -81,13 +81,10 @@ fn dot_half_plain(a: &[u16], b: &[f32]) -> f64 {
     f64::from(acc.iter().sum::<f32>() + tail)
 }
 
-/// [`dot_half_plain`] with AVX2 + FMA + F16C: four accumulators of eight lanes.
-///
-/// # Safety
-/// The CPU must support AVX2, FMA and F16C.
+/// [`dot_half_plain`] with AVX2 + FMA + F16C (the token): four accumulators of eight lanes.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,f16c")]
-unsafe fn dot_half_avx2(a: &[u16], b: &[f32]) -> f64 {
+fn dot_half_avx2(_: Avx2FmaF16c, a: &[u16], b: &[f32]) -> f64 {
     use std::arch::x86_64::*;
     assert_eq!(a.len(), b.len());
     let n = a.len();
@@ -121,13 +118,13 @@ unsafe fn dot_half_avx2(a: &[u16], b: &[f32]) -> f64 {
 }
 
 /// A row of the far map times the interface displacement, with the CPU's build.
-pub(super) fn dot_half(f16c: bool, a: &[u16], b: &[f32]) -> f64 {
+pub(super) fn dot_half(isa: Option<Avx2FmaF16c>, a: &[u16], b: &[f32]) -> f64 {
     #[cfg(target_arch = "x86_64")]
-    if f16c {
-        // SAFETY: `f16c` comes from `crate::simd::has_avx2_fma_f16c` on this CPU.
-        return unsafe { dot_half_avx2(a, b) };
+    if let Some(isa) = isa {
+        // SAFETY: the token proves AVX2, FMA and F16C on this CPU.
+        return unsafe { dot_half_avx2(isa, a, b) };
     }
-    let _ = f16c;
+    let _ = isa;
     dot_half_plain(a, b)
 }
 
@@ -175,23 +172,20 @@ fn sym_row_plain(s: &[f32], u: &[f64], y: &mut [f64], ua: f64) -> f64 {
     acc.iter().sum::<f64>() + tail
 }
 
-/// [`sym_row_plain`] compiled for AVX2 + FMA.
-///
-/// # Safety
-/// The CPU must support AVX2 and FMA.
+/// [`sym_row_plain`] compiled for AVX2 + FMA (the token).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn sym_row_avx2(s: &[f32], u: &[f64], y: &mut [f64], ua: f64) -> f64 {
+fn sym_row_avx2(_: Avx2Fma, s: &[f32], u: &[f64], y: &mut [f64], ua: f64) -> f64 {
     sym_row_plain(s, u, y, ua)
 }
 
-pub(super) fn sym_row(avx2: bool, s: &[f32], u: &[f64], y: &mut [f64], ua: f64) -> f64 {
+pub(super) fn sym_row(isa: Option<Avx2Fma>, s: &[f32], u: &[f64], y: &mut [f64], ua: f64) -> f64 {
     #[cfg(target_arch = "x86_64")]
-    if avx2 {
-        // SAFETY: `avx2` comes from `crate::simd::has_avx2_fma` on this CPU.
-        return unsafe { sym_row_avx2(s, u, y, ua) };
+    if let Some(isa) = isa {
+        // SAFETY: the token proves AVX2 and FMA on this CPU.
+        return unsafe { sym_row_avx2(isa, s, u, y, ua) };
     }
-    let _ = avx2;
+    let _ = isa;
     sym_row_plain(s, u, y, ua)
 }
 
@@ -206,29 +200,27 @@ fn axpy3_plain(z: &mut [f64], a: [f64; 3], y: &[f32]) {
     }
 }
 
-/// [`axpy3_plain`] compiled for AVX2 + FMA.
-///
-/// # Safety
-/// The CPU must support AVX2 and FMA.
+/// [`axpy3_plain`] compiled for AVX2 + FMA (the token).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn axpy3_avx2(z: &mut [f64], a: [f64; 3], y: &[f32]) {
+fn axpy3_avx2(_: Avx2Fma, z: &mut [f64], a: [f64; 3], y: &[f32]) {
     axpy3_plain(z, a, y);
 }
 
-pub(super) fn axpy3(avx2: bool, z: &mut [f64], a: [f64; 3], y: &[f32]) {
+pub(super) fn axpy3(isa: Option<Avx2Fma>, z: &mut [f64], a: [f64; 3], y: &[f32]) {
     #[cfg(target_arch = "x86_64")]
-    if avx2 {
-        // SAFETY: `avx2` comes from `crate::simd::has_avx2_fma` on this CPU.
-        return unsafe { axpy3_avx2(z, a, y) };
+    if let Some(isa) = isa {
+        // SAFETY: the token proves AVX2 and FMA on this CPU.
+        return unsafe { axpy3_avx2(isa, z, a, y) };
     }
-    let _ = avx2;
+    let _ = isa;
     axpy3_plain(z, a, y);
 }
 
 #[cfg(test)]
 mod tests {
     use super::{dot_half, packed_row_start, sym_row};
+    use crate::simd::{Avx2Fma, Avx2FmaF16c};
 
     /// The packed upper triangle's product (plain lanes, and AVX2 where the CPU has it) is the
     /// dense symmetric product, for sizes with and without a tail of eight.
@@ -249,13 +241,13 @@ mod tests {
             let dense: Vec<f64> = (0..g)
                 .map(|a| (0..g).map(|b| entry(a, b) * u[b]).sum())
                 .collect();
-            for avx2 in [false, crate::simd::has_avx2_fma()] {
+            for isa in [None, Avx2Fma::detect()] {
                 let mut y = vec![0.0; g];
                 for a in 0..g {
                     let start = packed_row_start(a, g);
                     let row = &packed[start..start + g - a];
                     let (head, tail) = y.split_at_mut(a + 1);
-                    let s = sym_row(avx2, &row[1..], &u[a + 1..], tail, u[a]);
+                    let s = sym_row(isa, &row[1..], &u[a + 1..], tail, u[a]);
                     head[a] += f64::from(row[0]) * u[a] + s;
                 }
                 for (a, (p, d)) in y.iter().zip(&dense).enumerate() {
@@ -289,11 +281,11 @@ mod tests {
             let magnitude: f64 = exact.iter().zip(&u).map(|(a, b)| (a * b).abs()).sum();
             let true_value: f64 = exact.iter().zip(&u).map(|(a, b)| a * b).sum();
             assert!((rounded - true_value).abs() <= magnitude * (1.0 / 2048.0) + 1e-12 * g as f64);
-            for f16c in [false, crate::simd::has_avx2_fma_f16c()] {
-                let d = dot_half(f16c, &row, &u32);
+            for isa in [None, Avx2FmaF16c::detect()] {
+                let d = dot_half(isa, &row, &u32);
                 assert!(
                     (d - rounded).abs() <= 1e-6 * magnitude,
-                    "g {g}, f16c {f16c}: {d} against {rounded}"
+                    "g {g}, {isa:?}: {d} against {rounded}"
                 );
             }
         }

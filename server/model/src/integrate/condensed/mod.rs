@@ -95,6 +95,7 @@ use crate::element::FemModel;
 use crate::element::tangent::cell_tangent_blocks_of;
 use crate::material::{MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
+use crate::simd::{Avx2Fma, Avx2FmaF16c};
 
 mod build;
 mod contact;
@@ -289,8 +290,8 @@ pub struct CondensedSolver {
     su: Vec<f64>,
     /// Scratch: a one-row coupling's row `a` over the equations.
     a_row: Vec<f32>,
-    /// Whether the CPU has AVX2 and FMA (the tick's vector loops use them then).
-    avx2: bool,
+    /// The AVX2 + FMA token when the CPU has them (the tick's vector loops use them then).
+    avx2: Option<Avx2Fma>,
     symbolic: Arc<SymbolicCholesky<usize>>,
     /// Cholesky factor of `A`, single precision.
     factor: Vec<f32>,
@@ -341,8 +342,8 @@ pub struct CondensedSolver {
     u_gamma: Vec<f64>,
     /// `u_gamma` in single precision, for the map's rows.
     u_gamma32: Vec<f32>,
-    /// Whether the AVX2 + FMA + F16C build of the map's rows runs on this CPU.
-    f16c: bool,
+    /// The AVX2 + FMA + F16C token when the CPU has them (the map's rows use that build).
+    f16c: Option<Avx2FmaF16c>,
     far: FarField,
     sizes: CondensedSizes,
     node_active: Vec<bool>,
