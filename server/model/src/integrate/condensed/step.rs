@@ -56,13 +56,21 @@ impl CondensedSolver {
         x: &mut [DVec3],
         v: &mut [DVec3],
     ) -> f64 {
-        let h = self.h;
         // Component `d` of a node array is entry `d` of its flat view.
         let x: &mut [f64] = bytemuck::cast_slice_mut(x);
         let v: &mut [f64] = bytemuck::cast_slice_mut(v);
         let f: &[f64] = bytemuck::cast_slice(f);
+        self.gather_interface(x);
+        self.refresh_surface_rows(x);
+        self.right_hand_side(f, v);
+        self.solve_with_probe(coupling);
+        let alpha = self.relax(v);
+        self.scatter(alpha, x, v)
+    }
+
+    /// The interface displacement `u_G` from `x` (flat), in double and single precision.
+    fn gather_interface(&mut self, x: &[f64]) {
         let rest: &[f64] = bytemuck::cast_slice(self.active.rest());
-        let g = self.gamma_dof.len();
         for ((u, u32), &d) in self
             .u_gamma
             .iter_mut()
@@ -72,8 +80,13 @@ impl CondensedSolver {
             *u = x[d] - rest[d];
             *u32 = *u as f32;
         }
-        // Far boundary nodes: a slice of rows per tick, so the surface is at most
-        // `surface_refresh_ticks` ticks behind the interface.
+    }
+
+    /// Far boundary nodes: a slice of rows per tick, so the surface is at most
+    /// `surface_refresh_ticks` ticks behind the interface.
+    fn refresh_surface_rows(&mut self, x: &mut [f64]) {
+        let rest: &[f64] = bytemuck::cast_slice(self.active.rest());
+        let g = self.gamma_dof.len();
         let rows = self.surface_rows.len();
         if rows > 0 {
             let per_tick = self.surface_rows_per_tick();
@@ -86,8 +99,13 @@ impl CondensedSolver {
             }
             self.surface_cursor = if end == rows { 0 } else { end };
         }
-        // b = M v + h (f - S u_G), into the first right-hand-side column (the second is
-        // filled where it is used).
+    }
+
+    /// `b = M v + h (f - S u_G)`, into the first right-hand-side column (the second is
+    /// filled where it is used).
+    fn right_hand_side(&mut self, f: &[f64], v: &[f64]) {
+        let h = self.h;
+        let g = self.gamma_dof.len();
         let rhs0 = self.rhs.col_as_slice_mut(0);
         if g == 0 {
             for ((r, &d), &m) in rhs0.iter_mut().zip(&self.eq_dof).zip(&self.mass) {
@@ -115,16 +133,30 @@ impl CondensedSolver {
                 *r = *b as f32;
             }
         }
-        // The probe's term `h^2 A^T C A` by Woodbury on the factor:
-        // `v' = z0 - A^-1 A^T W^-1 A z0`, `z0 = A^-1 b`, `W = C^-1 / h^2 + A A^-1 A^T`, with the
-        // columns `A^-1 e` prepared for the contact nodes ([`Self::prepare_contact`]); a row
-        // with a node not prepared falls back to one more solve per row.
-        let m = self.eq_dof.len();
+    }
+
+    /// The solve of the tick: `z0 = A^-1 b` into the first right-hand-side column, with the
+    /// probe's term `h^2 A^T C A` by Woodbury on the factor:
+    /// `v' = z0 - A^-1 A^T W^-1 A z0`, `z0 = A^-1 b`, `W = C^-1 / h^2 + A A^-1 A^T`, with the
+    /// columns `A^-1 e` prepared for the contact nodes ([`Self::prepare_contact`]); a row
+    /// with a node not prepared falls back to one more solve per row. `z1` receives the
+    /// correction `A^-1 A^T W^-1 A z0` (zero without one).
+    fn solve_with_probe(&mut self, coupling: Option<ContactCoupling<'_>>) {
         self.z1.iter_mut().for_each(|z| *z = 0.0);
-        // One row `a` (the kernel patch) over many nodes through the half-precision sweep:
-        // both forward sweeps in one pass over the factor, `W = C^-1 / h^2 + a A^-1 a`,
-        // `s = a z0 / W`, then one backward sweep of `b - s a`: `v' = A^-1 (b - s a)`, without
-        // the prepared columns ([`PAIRED_SWEEP_MIN_RATIO`]).
+        let paired = self.paired_sweep_row(coupling);
+        if let Some(c) = coupling.filter(|_| !paired) {
+            self.woodbury_rows(c);
+        }
+    }
+
+    /// One row `a` (the kernel patch) over many nodes through the half-precision sweep:
+    /// both forward sweeps in one pass over the factor, `W = C^-1 / h^2 + a A^-1 a`,
+    /// `s = a z0 / W`, then one backward sweep of `b - s a`: `v' = A^-1 (b - s a)`, without
+    /// the prepared columns ([`PAIRED_SWEEP_MIN_RATIO`]). Otherwise the plain solve
+    /// `z0 = A^-1 b`; returns whether the paired sweep ran.
+    fn paired_sweep_row(&mut self, coupling: Option<ContactCoupling<'_>>) -> bool {
+        let h = self.h;
+        let m = self.eq_dof.len();
         let factor_len = self
             .sweep
             .as_ref()
@@ -133,152 +165,171 @@ impl CondensedSolver {
             c.rows() == 1
                 && (3 * c.nodes.len() * m) as f64 >= PAIRED_SWEEP_MIN_RATIO * factor_len as f64
         });
-        let paired =
-            if let (Some(c), Some(sweep), Some(half)) = (one_row, &mut self.sweep, &self.half) {
-                self.a_row.iter_mut().for_each(|a| *a = 0.0);
-                add_row(&self.eq, c, 0, 1.0, &mut self.a_row);
-                let (aa, ab) = sweep.forward_pair(half, self.rhs.col_as_slice(0), &self.a_row);
-                let w = c.compliance[0] / (h * h) + aa;
-                // A capacitance that is not positive: no correction, as for several rows.
-                let s = if w > 0.0 { ab / w } else { 0.0 };
-                sweep.backward_combined(half, s as f32, self.rhs.col_as_slice_mut(0));
-                true
-            } else {
-                self.solve_column(0);
-                false
-            };
-        if let Some(c) = coupling.filter(|_| !paired) {
-            let nf = c.rows();
-            let prepared = c
-                .nodes
-                .iter()
-                .all(|&i| self.contact_col[i as usize] != u32::MAX);
-            // t = A z0.
-            let mut t = [0.0; MAX_COUPLING_ROWS];
-            for (f, tf) in t.iter_mut().enumerate().take(nf) {
-                for (i, u) in c.row(f) {
-                    for k in 0..3 {
-                        let e = self.eq[3 * i as usize + k];
-                        if e != usize::MAX {
-                            *tf += u[k] * f64::from(self.rhs[(e, 0)]);
-                        }
+        if let (Some(c), Some(sweep), Some(half)) = (one_row, &mut self.sweep, &self.half) {
+            self.a_row.iter_mut().for_each(|a| *a = 0.0);
+            add_row(&self.eq, c, 0, 1.0, &mut self.a_row);
+            let (aa, ab) = sweep.forward_pair(half, self.rhs.col_as_slice(0), &self.a_row);
+            let w = c.compliance[0] / (h * h) + aa;
+            // A capacitance that is not positive: no correction, as for several rows.
+            let s = if w > 0.0 { ab / w } else { 0.0 };
+            sweep.backward_combined(half, s as f32, self.rhs.col_as_slice_mut(0));
+            true
+        } else {
+            self.solve_column(0);
+            false
+        }
+    }
+
+    /// The Woodbury correction of the probe's rows `c` into `z1` ([`Self::solve_with_probe`]),
+    /// from the prepared columns when every node has them.
+    fn woodbury_rows(&mut self, c: ContactCoupling<'_>) {
+        let nf = c.rows();
+        let prepared = c
+            .nodes
+            .iter()
+            .all(|&i| self.contact_col[i as usize] != u32::MAX);
+        // t = A z0.
+        let mut t = [0.0; MAX_COUPLING_ROWS];
+        for (f, tf) in t.iter_mut().enumerate().take(nf) {
+            for (i, u) in c.row(f) {
+                for k in 0..3 {
+                    let e = self.eq[3 * i as usize + k];
+                    if e != usize::MAX {
+                        *tf += u[k] * f64::from(self.rhs[(e, 0)]);
                     }
                 }
             }
-            let w = &mut self.capacitance[..nf * nf];
-            for f in 0..nf {
-                for g in 0..nf {
-                    w[f * nf + g] = c.compliance[f * nf + g] / (h * h);
+        }
+        // One row (the kernel patch: every patch node in it): `z1 = A^-1 a^T` from the
+        // prepared columns first, then `W += a z1`.
+        let single_row = prepared && nf == 1;
+        self.capacitance_of(c, prepared, single_row);
+        let w = &mut self.capacitance[..nf * nf];
+        if cholesky_in_place(w, nf) {
+            cholesky_solve(w, nf, &mut t[..nf]);
+            self.correction(c, &t[..nf], prepared, single_row);
+        } else if single_row {
+            // No correction, as for several rows.
+            self.z1.iter_mut().for_each(|z| *z = 0.0);
+        }
+    }
+
+    /// The capacitance `W = C^-1 / h^2 + A A^-1 A^T` of the probe's rows `c` into
+    /// `capacitance`; with `single_row`, `z1 = A^-1 a^T` on the way.
+    fn capacitance_of(&mut self, c: ContactCoupling<'_>, prepared: bool, single_row: bool) {
+        let h = self.h;
+        let m = self.eq_dof.len();
+        let nf = c.rows();
+        let w = &mut self.capacitance[..nf * nf];
+        for f in 0..nf {
+            for g in 0..nf {
+                w[f * nf + g] = c.compliance[f * nf + g] / (h * h);
+            }
+        }
+        // The pair loop below reads `3 N^2` scattered entries of the columns for a row of
+        // `N` nodes, about a fifth of the tick on a 0.5 mm mesh: one row goes through `z1`.
+        if single_row {
+            for (l, u) in c.row(0) {
+                let base = self.contact_col[l as usize] as usize * 3 * m;
+                axpy3(
+                    self.avx2,
+                    &mut self.z1,
+                    u.to_array(),
+                    &self.contact_z[base..base + 3 * m],
+                );
+            }
+            let mut s = 0.0;
+            for (j, u) in c.row(0) {
+                for a in 0..3 {
+                    let e = self.eq[3 * j as usize + a];
+                    if e != usize::MAX {
+                        s += u[a] * self.z1[e];
+                    }
                 }
             }
-            // One row (the kernel patch: every patch node in it): `z1 = A^-1 a^T` from the
-            // prepared columns first, then `W += a z1`. The pair loop below reads `3 N^2`
-            // scattered entries of the columns for a row of `N` nodes, about a fifth of the
-            // tick on a 0.5 mm mesh.
-            let single_row = prepared && nf == 1;
-            if single_row {
-                for (l, u) in c.row(0) {
+            w[0] += s;
+        } else if prepared {
+            for f in 0..nf {
+                for g in 0..=f {
+                    let mut s = 0.0;
+                    for (j, u) in c.row(f) {
+                        for (l, wv) in c.row(g) {
+                            let base = self.contact_col[l as usize] as usize * 3 * m;
+                            for a in 0..3 {
+                                let e = self.eq[3 * j as usize + a];
+                                if e == usize::MAX {
+                                    continue;
+                                }
+                                let z = &self.contact_z[base + e..];
+                                s += u[a]
+                                    * (wv.x * f64::from(z[0])
+                                        + wv.y * f64::from(z[m])
+                                        + wv.z * f64::from(z[2 * m]));
+                            }
+                        }
+                    }
+                    w[f * nf + g] += s;
+                    if g != f {
+                        w[g * nf + f] += s;
+                    }
+                }
+            }
+        } else {
+            for g in 0..nf {
+                self.solve_row(c, g);
+                for f in 0..nf {
+                    let mut s = 0.0;
+                    for (i, u) in c.row(f) {
+                        for k in 0..3 {
+                            let e = self.eq[3 * i as usize + k];
+                            if e != usize::MAX {
+                                s += u[k] * f64::from(self.rhs[(e, 1)]);
+                            }
+                        }
+                    }
+                    self.capacitance[f * nf + g] += s;
+                }
+            }
+        }
+    }
+
+    /// `z1 = A^-1 A^T s` for the solved multipliers `s` of the probe's rows `c`.
+    fn correction(&mut self, c: ContactCoupling<'_>, t: &[f64], prepared: bool, single_row: bool) {
+        let m = self.eq_dof.len();
+        if single_row {
+            let s = t[0];
+            self.z1.iter_mut().for_each(|z| *z *= s);
+        } else if prepared {
+            for (f, &tf) in t.iter().enumerate() {
+                for (l, u) in c.row(f) {
                     let base = self.contact_col[l as usize] as usize * 3 * m;
                     axpy3(
                         self.avx2,
                         &mut self.z1,
-                        u.to_array(),
+                        (u * tf).to_array(),
                         &self.contact_z[base..base + 3 * m],
                     );
                 }
-                let mut s = 0.0;
-                for (j, u) in c.row(0) {
-                    for a in 0..3 {
-                        let e = self.eq[3 * j as usize + a];
-                        if e != usize::MAX {
-                            s += u[a] * self.z1[e];
-                        }
-                    }
-                }
-                w[0] += s;
-            } else if prepared {
-                for f in 0..nf {
-                    for g in 0..=f {
-                        let mut s = 0.0;
-                        for (j, u) in c.row(f) {
-                            for (l, wv) in c.row(g) {
-                                let base = self.contact_col[l as usize] as usize * 3 * m;
-                                for a in 0..3 {
-                                    let e = self.eq[3 * j as usize + a];
-                                    if e == usize::MAX {
-                                        continue;
-                                    }
-                                    let z = &self.contact_z[base + e..];
-                                    s += u[a]
-                                        * (wv.x * f64::from(z[0])
-                                            + wv.y * f64::from(z[m])
-                                            + wv.z * f64::from(z[2 * m]));
-                                }
-                            }
-                        }
-                        w[f * nf + g] += s;
-                        if g != f {
-                            w[g * nf + f] += s;
-                        }
-                    }
-                }
-            } else {
-                for g in 0..nf {
-                    self.solve_row(c, g);
-                    for f in 0..nf {
-                        let mut s = 0.0;
-                        for (i, u) in c.row(f) {
-                            for k in 0..3 {
-                                let e = self.eq[3 * i as usize + k];
-                                if e != usize::MAX {
-                                    s += u[k] * f64::from(self.rhs[(e, 1)]);
-                                }
-                            }
-                        }
-                        self.capacitance[f * nf + g] += s;
-                    }
-                }
             }
-            let w = &mut self.capacitance[..nf * nf];
-            if cholesky_in_place(w, nf) {
-                cholesky_solve(w, nf, &mut t[..nf]);
-                // z1 = A^-1 A^T s.
-                if single_row {
-                    let s = t[0];
-                    self.z1.iter_mut().for_each(|z| *z *= s);
-                } else if prepared {
-                    for (f, &tf) in t.iter().enumerate().take(nf) {
-                        for (l, u) in c.row(f) {
-                            let base = self.contact_col[l as usize] as usize * 3 * m;
-                            axpy3(
-                                self.avx2,
-                                &mut self.z1,
-                                (u * tf).to_array(),
-                                &self.contact_z[base..base + 3 * m],
-                            );
-                        }
-                    }
-                } else {
-                    self.rhs.col_mut(1).fill(0.0);
-                    for (f, &tf) in t.iter().enumerate().take(nf) {
-                        add_row(&self.eq, c, f, tf, self.rhs.col_as_slice_mut(1));
-                    }
-                    self.solve_column(1);
-                    for (k, z) in self.z1.iter_mut().enumerate() {
-                        *z = f64::from(self.rhs[(k, 1)]);
-                    }
-                }
-            } else if single_row {
-                // No correction, as for several rows.
-                self.z1.iter_mut().for_each(|z| *z = 0.0);
+        } else {
+            self.rhs.col_mut(1).fill(0.0);
+            for (f, &tf) in t.iter().enumerate() {
+                add_row(&self.eq, c, f, tf, self.rhs.col_as_slice_mut(1));
+            }
+            self.solve_column(1);
+            for (k, z) in self.z1.iter_mut().enumerate() {
+                *z = f64::from(self.rhs[(k, 1)]);
             }
         }
-        // Under-relaxation of the modified Newton step (module documentation, "Relaxation"):
-        // a velocity field that reverses from one tick to the next is the frozen matrix's
-        // overshoot, never the body's motion.
-        // `z1` becomes the solved (unrelaxed) velocity.
-        // A velocity component that grows SNAP_GROWTH-fold in one tick past SNAP_MIN_SPEED is
-        // the same overshoot in one direction (an inverted element snapping back).
+    }
+
+    /// Under-relaxation of the modified Newton step (module documentation, "Relaxation"):
+    /// a velocity field that reverses from one tick to the next is the frozen matrix's
+    /// overshoot, never the body's motion. A velocity component that grows SNAP_GROWTH-fold
+    /// in one tick past SNAP_MIN_SPEED is the same overshoot in one direction (an inverted
+    /// element snapping back). `z1` becomes the solved (unrelaxed) velocity; returns the
+    /// factor on it.
+    fn relax(&mut self, v: &[f64]) -> f64 {
         let (mut dot_old_new, mut old2, mut new2) = (0.0, 0.0, 0.0);
         let (mut new_max2, mut old_max2) = (0.0f64, 0.0f64);
         let z0 = self.rhs.col_as_slice(0);
@@ -302,7 +353,13 @@ impl CondensedSolver {
         } else {
             (self.relaxation * RELAXATION_RECOVERY).min(1.0)
         };
-        let alpha = self.relaxation;
+        self.relaxation
+    }
+
+    /// `v = alpha z1`, `x += h v` on the equations; returns the largest squared nodal speed
+    /// (NaN if any value is not finite).
+    fn scatter(&self, alpha: f64, x: &mut [f64], v: &mut [f64]) -> f64 {
+        let h = self.h;
         for (&d, &vn) in self.eq_dof.iter().zip(&self.z1) {
             let vi = alpha * vn;
             v[d] = vi;
