@@ -256,198 +256,35 @@ impl CondensedSolver {
         dt_s: f64,
         progress: &mut dyn FnMut(&str, f64),
     ) -> Result<Self, ModelError> {
-        let field = |m: &str| ModelError::field("active_region", m);
-        if !(region.radius_m > 0.0) || !region.radius_m.is_finite() || !region.centre_m.is_finite()
-        {
-            return Err(field("needs a finite centre and a positive radius"));
-        }
-        if !(region.stiffness_margin >= 1.0) || region.stiffness_margin > 100.0 {
-            return Err(field("stiffness_margin must be in [1, 100]"));
-        }
+        check_region(body, &region)?;
         let n = body.node_count();
-        if 3 * n > u32::MAX as usize {
-            return Err(field(
-                "the mesh has more nodes than 32-bit equation numbers allow",
-            ));
-        }
-        let r2 = region.radius_m * region.radius_m;
-        let inside: Vec<bool> = body
-            .rest()
-            .iter()
-            .map(|p| p.distance_squared(region.centre_m) <= r2)
-            .collect();
-        let keep: Vec<bool> = mesh
-            .tets
-            .iter()
-            .map(|t| t.iter().any(|&i| inside[i as usize]))
-            .collect();
-        let active_tets = keep.iter().filter(|k| **k).count();
-        if active_tets == 0 {
-            return Err(field("contains no element"));
-        }
-        let active = part_model(body, mesh, &keep)?;
-        let far_keep: Vec<bool> = keep.iter().map(|k| !k).collect();
-        // None when the region holds every element: then this is backward Euler with a
-        // prefactored rest matrix on the whole body.
-        let far_model = if far_keep.contains(&true) {
-            Some(part_model(body, mesh, &far_keep)?)
-        } else {
-            None
-        };
-        let mut node_active = vec![false; n];
-        let mut node_far = vec![false; n];
-        for (e, (t, k)) in mesh.tets.iter().zip(&keep).enumerate() {
-            let mid = mesh.tet_edge_nodes.get(e).map_or(&[][..], |m| &m[..]);
-            for &i in t.iter().chain(mid) {
-                if *k {
-                    node_active[i as usize] = true;
-                } else {
-                    node_far[i as usize] = true;
-                }
-            }
-        }
-        let free = |i: usize, c: usize| body.constraints()[i] & (1 << c) == 0;
-        // Equations: free components of active nodes.
-        let mut eq = vec![usize::MAX; 3 * n];
-        let mut eq_dof = Vec::new();
-        for i in (0..n).filter(|&i| node_active[i]) {
-            for c in (0..3).filter(|&c| free(i, c)) {
-                eq[3 * i + c] = eq_dof.len();
-                eq_dof.push(3 * i + c);
-            }
-        }
-        let m_eq = eq_dof.len();
-        // Interface components and far-only components.
-        let mut gamma_index = vec![usize::MAX; 3 * n];
-        let mut gamma_dof = Vec::new();
-        let mut far_index = vec![usize::MAX; 3 * n];
-        let mut far_dofs = Vec::new();
-        let mut interface_nodes = 0;
-        for i in 0..n {
-            if node_active[i] && node_far[i] {
-                interface_nodes += 1;
-            }
-            for c in (0..3).filter(|&c| free(i, c)) {
-                if node_active[i] && node_far[i] {
-                    gamma_index[3 * i + c] = gamma_dof.len();
-                    gamma_dof.push(3 * i + c);
-                } else if node_far[i] && !node_active[i] {
-                    far_index[3 * i + c] = far_dofs.len();
-                    far_dofs.push(3 * i + c);
-                }
-            }
-        }
+        let Selection {
+            active_tets,
+            active,
+            far_model,
+            node_active,
+            node_far,
+        } = select_elements(body, mesh, &region)?;
+        let num = number_equations(body, &node_active, &node_far);
+        let Condensation {
+            schur,
+            map_far,
+            map,
+            surface_rows,
+            map_row,
+            llt,
+            kfg,
+        } = condense_far(mesh, &region, far_model.as_ref(), &num, progress)?;
+        let Numbering {
+            eq,
+            eq_dof,
+            gamma_dof,
+            far_dofs,
+            interface_nodes,
+            ..
+        } = num;
         let g = gamma_dof.len();
-        let f = far_dofs.len();
-        progress("condensation: far stiffness", 0.0);
-        // Far stiffness blocks.
-        let mut kgg = vec![0.0; g * g];
-        let mut kff = Vec::new();
-        let mut kfg = Vec::new();
-        rest_tangent_opt(far_model.as_ref(), |r, c, v| {
-            match (gamma_index[r], gamma_index[c], far_index[r], far_index[c]) {
-                (gr, gc, _, _) if gr != usize::MAX && gc != usize::MAX => kgg[gr * g + gc] += v,
-                (_, gc, fr, _) if fr != usize::MAX && gc != usize::MAX => kfg.push((fr, gc, v)),
-                (_, _, fr, fc) if fr != usize::MAX && fc != usize::MAX && fc <= fr => {
-                    kff.push(Entry::new(fr, fc, v));
-                }
-                _ => {}
-            }
-        });
-        let mut schur = kgg;
-        // Rows of `-X` kept: the far boundary components (the surface viewers see, refreshed a
-        // slice per tick), or for a following region every far component (a successor may
-        // activate any far node: `hand_over`).
-        let mut on_boundary = vec![false; n];
-        for t in mesh.boundary_triangles() {
-            for i in t {
-                on_boundary[i as usize] = true;
-            }
-        }
-        let map_far: Vec<usize> = (0..f)
-            .filter(|&k| region.follow || on_boundary[far_dofs[k] / 3])
-            .collect();
-        let surface_rows: Vec<u32> = (0..map_far.len())
-            .filter(|&r| on_boundary[far_dofs[map_far[r]] / 3])
-            .map(|r| r as u32)
-            .collect();
-        let mut map = vec![0u16; map_far.len() * g];
-        let mut map_row = vec![u32::MAX; if region.follow { 3 * n } else { 0 }];
-        if region.follow {
-            for (r, &k) in map_far.iter().enumerate() {
-                map_row[far_dofs[k]] = r as u32;
-            }
-        }
-        let llt = if f > 0 {
-            progress("condensation: far factorisation", 0.15);
-            let far_nodes: Vec<usize> = far_dofs.iter().map(|&d| d / 3).collect();
-            // The triplets go before the factorisation (on a 100 000-tet mesh they are about
-            // 0.4 GB, as much as the factor).
-            let kff_csc = sparse(f, &std::mem::take(&mut kff))?;
-            let llt =
-                SparseCholesky::factor(kff_csc.as_ref(), Side::Lower, &far_nodes).map_err(|e| {
-                    ModelError::InvalidMesh(format!(
-                        "the far part is not held (add clamps or enlarge the active region): {e}"
-                    ))
-                })?;
-            drop(kff_csc);
-            // X = K_FF^-1 K_FG, in blocks of columns; S -= K_GF X.
-            let mut by_col: Vec<Vec<(usize, f64)>> = vec![Vec::new(); g];
-            for &(fr, gc, v) in &kfg {
-                by_col[gc].push((fr, v));
-            }
-            const BLOCK: usize = 64;
-            for j0 in (0..g).step_by(BLOCK) {
-                progress(
-                    "condensation: interface column solves",
-                    0.25 + 0.6 * j0 as f64 / g as f64,
-                );
-                let w = BLOCK.min(g - j0);
-                let mut x = Mat::<f64>::zeros(f, w);
-                for j in 0..w {
-                    for &(fr, v) in &by_col[j0 + j] {
-                        x[(fr, j)] += v;
-                    }
-                }
-                llt.solve_in_place(x.as_mut());
-                for (r, &k) in map_far.iter().enumerate() {
-                    for j in 0..w {
-                        let q = ::half::f16::from_f64(-x[(k, j)]);
-                        // Entries are displacements per interface displacement, of order
-                        // one; beyond half precision's range the far part is barely held.
-                        if !q.is_finite() {
-                            return Err(ModelError::InvalidMesh(format!(
-                                "the far part is barely held: a far displacement is {:.3e} times \
-                                 an interface displacement (add clamps or enlarge the active \
-                                 region)",
-                                x[(k, j)].abs()
-                            )));
-                        }
-                        map[r * g + j0 + j] = q.to_bits();
-                    }
-                }
-                // S[gi, j0 + j] -= sum_fr K_FG[fr, gi] X[fr, j]
-                for &(fr, gi, v) in &kfg {
-                    let row = &mut schur[gi * g + j0..gi * g + j0 + w];
-                    for (j, s) in row.iter_mut().enumerate() {
-                        *s -= v * x[(fr, j)];
-                    }
-                }
-            }
-            // A following region recovers its far field from its maps only (the factor is
-            // most of its memory: 42 of 80 MB on `lv_h1` at r = 7 mm).
-            (!region.follow).then_some(llt)
-        } else {
-            None
-        };
-        // Symmetrise (round-off).
-        for a in 0..g {
-            for b in 0..a {
-                let s = 0.5 * (schur[a * g + b] + schur[b * g + a]);
-                schur[a * g + b] = s;
-                schur[b * g + a] = s;
-            }
-        }
+        let m_eq = eq_dof.len();
         progress("condensation: tick matrix factorisation", 0.85);
         let h = dt_s;
         let mass: Vec<f64> = eq_dof
@@ -463,12 +300,8 @@ impl CondensedSolver {
             mass: &mass,
             h,
         };
-        let a_lower = parts.lower(region.stiffness_margin)?;
-        let eq_nodes: Vec<usize> = eq_dof.iter().map(|&d| d / 3).collect();
-        let symbolic = symbolic_cholesky(a_lower.symbolic(), Side::Lower, &eq_nodes)?;
-        let mut factor = factorize(&symbolic, &a_lower)?;
-        let mut sweep = SupernodalSolve::new(&symbolic);
-        let half = half_of(sweep.as_mut(), &mut factor, &a_lower);
+        let (symbolic, factor, sweep, half) =
+            factor_tick_matrix(&parts, &eq_dof, region.stiffness_margin)?;
         let schur: Vec<f32> = (0..g)
             .flat_map(|a| schur[a * g + a..(a + 1) * g].iter().map(|&v| v as f32))
             .collect();
@@ -525,4 +358,355 @@ impl CondensedSolver {
             last_contact: Vec::with_capacity(ENTRY_TRACKED_NODES),
         })
     }
+}
+
+/// The region's parameters and the mesh's size checked ([`CondensedSolver::new`]'s errors).
+fn check_region(body: &FemModel, region: &ActiveRegion) -> Result<(), ModelError> {
+    let field = |m: &str| ModelError::field("active_region", m);
+    if !(region.radius_m > 0.0) || !region.radius_m.is_finite() || !region.centre_m.is_finite() {
+        return Err(field("needs a finite centre and a positive radius"));
+    }
+    if !(region.stiffness_margin >= 1.0) || region.stiffness_margin > 100.0 {
+        return Err(field("stiffness_margin must be in [1, 100]"));
+    }
+    if 3 * body.node_count() > u32::MAX as usize {
+        return Err(field(
+            "the mesh has more nodes than 32-bit equation numbers allow",
+        ));
+    }
+    Ok(())
+}
+
+/// The active and far elements of a region ([`select_elements`]).
+struct Selection {
+    active_tets: usize,
+    active: FemModel,
+    /// `None` when the region holds every element: then this is backward Euler with a
+    /// prefactored rest matrix on the whole body.
+    far_model: Option<FemModel>,
+    /// Nodes of an active element.
+    node_active: Vec<bool>,
+    /// Nodes of a far element.
+    node_far: Vec<bool>,
+}
+
+/// Every tetrahedron with a corner node within the region is active, the others far.
+///
+/// # Errors
+/// [`ModelError::SceneField`] for a region with no element; the parts' model errors.
+fn select_elements(
+    body: &FemModel,
+    mesh: &TetMesh,
+    region: &ActiveRegion,
+) -> Result<Selection, ModelError> {
+    let n = body.node_count();
+    let r2 = region.radius_m * region.radius_m;
+    let inside: Vec<bool> = body
+        .rest()
+        .iter()
+        .map(|p| p.distance_squared(region.centre_m) <= r2)
+        .collect();
+    let keep: Vec<bool> = mesh
+        .tets
+        .iter()
+        .map(|t| t.iter().any(|&i| inside[i as usize]))
+        .collect();
+    let active_tets = keep.iter().filter(|k| **k).count();
+    if active_tets == 0 {
+        return Err(ModelError::field("active_region", "contains no element"));
+    }
+    let active = part_model(body, mesh, &keep)?;
+    let far_keep: Vec<bool> = keep.iter().map(|k| !k).collect();
+    let far_model = if far_keep.contains(&true) {
+        Some(part_model(body, mesh, &far_keep)?)
+    } else {
+        None
+    };
+    let mut node_active = vec![false; n];
+    let mut node_far = vec![false; n];
+    for (e, (t, k)) in mesh.tets.iter().zip(&keep).enumerate() {
+        let mid = mesh.tet_edge_nodes.get(e).map_or(&[][..], |m| &m[..]);
+        for &i in t.iter().chain(mid) {
+            if *k {
+                node_active[i as usize] = true;
+            } else {
+                node_far[i as usize] = true;
+            }
+        }
+    }
+    Ok(Selection {
+        active_tets,
+        active,
+        far_model,
+        node_active,
+        node_far,
+    })
+}
+
+/// The components of a split: equations (free components of active nodes), interface
+/// components (free, of nodes both active and far) and far-only components; each index
+/// array maps a global component `3 i + c` to its number, or `usize::MAX`.
+struct Numbering {
+    eq: Vec<usize>,
+    eq_dof: Vec<usize>,
+    gamma_index: Vec<usize>,
+    gamma_dof: Vec<usize>,
+    far_index: Vec<usize>,
+    far_dofs: Vec<usize>,
+    interface_nodes: usize,
+}
+
+/// Numbers the components of the split `node_active` / `node_far` of `body`.
+fn number_equations(body: &FemModel, node_active: &[bool], node_far: &[bool]) -> Numbering {
+    let n = body.node_count();
+    let free = |i: usize, c: usize| body.constraints()[i] & (1 << c) == 0;
+    // Equations: free components of active nodes.
+    let mut eq = vec![usize::MAX; 3 * n];
+    let mut eq_dof = Vec::new();
+    for i in (0..n).filter(|&i| node_active[i]) {
+        for c in (0..3).filter(|&c| free(i, c)) {
+            eq[3 * i + c] = eq_dof.len();
+            eq_dof.push(3 * i + c);
+        }
+    }
+    // Interface components and far-only components.
+    let mut gamma_index = vec![usize::MAX; 3 * n];
+    let mut gamma_dof = Vec::new();
+    let mut far_index = vec![usize::MAX; 3 * n];
+    let mut far_dofs = Vec::new();
+    let mut interface_nodes = 0;
+    for i in 0..n {
+        if node_active[i] && node_far[i] {
+            interface_nodes += 1;
+        }
+        for c in (0..3).filter(|&c| free(i, c)) {
+            if node_active[i] && node_far[i] {
+                gamma_index[3 * i + c] = gamma_dof.len();
+                gamma_dof.push(3 * i + c);
+            } else if node_far[i] && !node_active[i] {
+                far_index[3 * i + c] = far_dofs.len();
+                far_dofs.push(3 * i + c);
+            }
+        }
+    }
+    Numbering {
+        eq,
+        eq_dof,
+        gamma_index,
+        gamma_dof,
+        far_index,
+        far_dofs,
+        interface_nodes,
+    }
+}
+
+/// The far part condensed on the interface ([`condense_far`]).
+struct Condensation {
+    /// `S`, row-major `g x g`, symmetrised.
+    schur: Vec<f64>,
+    /// The far component of each row of the map.
+    map_far: Vec<usize>,
+    /// The far map `-(K_FF^-1 K_FG)`, rows `map_far`, half-precision bits.
+    map: Vec<u16>,
+    surface_rows: Vec<u32>,
+    map_row: Vec<u32>,
+    llt: Option<SparseCholesky>,
+    kfg: Vec<(usize, usize, f64)>,
+}
+
+/// The Schur complement `S = K_GG - K_GF K_FF^-1 K_FG` of the far part `far_model` on the
+/// interface, the far map's rows and the far factor (module documentation).
+///
+/// # Errors
+/// [`ModelError::InvalidMesh`] when the far part is not held.
+fn condense_far(
+    mesh: &TetMesh,
+    region: &ActiveRegion,
+    far_model: Option<&FemModel>,
+    num: &Numbering,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Condensation, ModelError> {
+    let n = num.eq.len() / 3;
+    let (g, f) = (num.gamma_dof.len(), num.far_dofs.len());
+    let (gamma_index, far_index, far_dofs) = (&num.gamma_index, &num.far_index, &num.far_dofs);
+    progress("condensation: far stiffness", 0.0);
+    // Far stiffness blocks.
+    let mut kgg = vec![0.0; g * g];
+    let mut kff = Vec::new();
+    let mut kfg = Vec::new();
+    rest_tangent_opt(far_model, |r, c, v| {
+        match (gamma_index[r], gamma_index[c], far_index[r], far_index[c]) {
+            (gr, gc, _, _) if gr != usize::MAX && gc != usize::MAX => kgg[gr * g + gc] += v,
+            (_, gc, fr, _) if fr != usize::MAX && gc != usize::MAX => kfg.push((fr, gc, v)),
+            (_, _, fr, fc) if fr != usize::MAX && fc != usize::MAX && fc <= fr => {
+                kff.push(Entry::new(fr, fc, v));
+            }
+            _ => {}
+        }
+    });
+    let mut schur = kgg;
+    // Rows of `-X` kept: the far boundary components (the surface viewers see, refreshed a
+    // slice per tick), or for a following region every far component (a successor may
+    // activate any far node: `hand_over`).
+    let mut on_boundary = vec![false; n];
+    for t in mesh.boundary_triangles() {
+        for i in t {
+            on_boundary[i as usize] = true;
+        }
+    }
+    let map_far: Vec<usize> = (0..f)
+        .filter(|&k| region.follow || on_boundary[far_dofs[k] / 3])
+        .collect();
+    let surface_rows: Vec<u32> = (0..map_far.len())
+        .filter(|&r| on_boundary[far_dofs[map_far[r]] / 3])
+        .map(|r| r as u32)
+        .collect();
+    let mut map = vec![0u16; map_far.len() * g];
+    let mut map_row = vec![u32::MAX; if region.follow { 3 * n } else { 0 }];
+    if region.follow {
+        for (r, &k) in map_far.iter().enumerate() {
+            map_row[far_dofs[k]] = r as u32;
+        }
+    }
+    let llt = if f > 0 {
+        progress("condensation: far factorisation", 0.15);
+        let far = FarSolve {
+            g,
+            far_dofs,
+            map_far: &map_far,
+            kfg: &kfg,
+        };
+        let llt = far.solve(kff, &mut schur, &mut map, progress)?;
+        // A following region recovers its far field from its maps only (the factor is
+        // most of its memory: 42 of 80 MB on `lv_h1` at r = 7 mm).
+        (!region.follow).then_some(llt)
+    } else {
+        None
+    };
+    // Symmetrise (round-off).
+    for a in 0..g {
+        for b in 0..a {
+            let s = 0.5 * (schur[a * g + b] + schur[b * g + a]);
+            schur[a * g + b] = s;
+            schur[b * g + a] = s;
+        }
+    }
+    Ok(Condensation {
+        schur,
+        map_far,
+        map,
+        surface_rows,
+        map_row,
+        llt,
+        kfg,
+    })
+}
+
+/// What the far solves of [`condense_far`] read.
+struct FarSolve<'a> {
+    /// Interface components.
+    g: usize,
+    far_dofs: &'a [usize],
+    map_far: &'a [usize],
+    kfg: &'a [(usize, usize, f64)],
+}
+
+impl FarSolve<'_> {
+    /// Factorises `K_FF` (lower triplets `kff`), then `X = K_FF^-1 K_FG` in blocks of
+    /// columns: the map's rows `-X` into `map`, `S -= K_GF X` into `schur`.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidMesh`] when the far part is not held.
+    fn solve(
+        &self,
+        kff: Vec<Entry<f64>>,
+        schur: &mut [f64],
+        map: &mut [u16],
+        progress: &mut dyn FnMut(&str, f64),
+    ) -> Result<SparseCholesky, ModelError> {
+        let (g, f, kfg) = (self.g, self.far_dofs.len(), self.kfg);
+        let far_nodes: Vec<usize> = self.far_dofs.iter().map(|&d| d / 3).collect();
+        // The triplets go before the factorisation (on a 100 000-tet mesh they are about
+        // 0.4 GB, as much as the factor).
+        let kff_csc = sparse(f, &kff)?;
+        drop(kff);
+        let llt =
+            SparseCholesky::factor(kff_csc.as_ref(), Side::Lower, &far_nodes).map_err(|e| {
+                ModelError::InvalidMesh(format!(
+                    "the far part is not held (add clamps or enlarge the active region): {e}"
+                ))
+            })?;
+        drop(kff_csc);
+        // X = K_FF^-1 K_FG, in blocks of columns; S -= K_GF X.
+        let mut by_col: Vec<Vec<(usize, f64)>> = vec![Vec::new(); g];
+        for &(fr, gc, v) in kfg {
+            by_col[gc].push((fr, v));
+        }
+        const BLOCK: usize = 64;
+        for j0 in (0..g).step_by(BLOCK) {
+            progress(
+                "condensation: interface column solves",
+                0.25 + 0.6 * j0 as f64 / g as f64,
+            );
+            let w = BLOCK.min(g - j0);
+            let mut x = Mat::<f64>::zeros(f, w);
+            for j in 0..w {
+                for &(fr, v) in &by_col[j0 + j] {
+                    x[(fr, j)] += v;
+                }
+            }
+            llt.solve_in_place(x.as_mut());
+            for (r, &k) in self.map_far.iter().enumerate() {
+                for j in 0..w {
+                    let q = ::half::f16::from_f64(-x[(k, j)]);
+                    // Entries are displacements per interface displacement, of order
+                    // one; beyond half precision's range the far part is barely held.
+                    if !q.is_finite() {
+                        return Err(ModelError::InvalidMesh(format!(
+                            "the far part is barely held: a far displacement is {:.3e} times \
+                             an interface displacement (add clamps or enlarge the active \
+                             region)",
+                            x[(k, j)].abs()
+                        )));
+                    }
+                    map[r * g + j0 + j] = q.to_bits();
+                }
+            }
+            // S[gi, j0 + j] -= sum_fr K_FG[fr, gi] X[fr, j]
+            for &(fr, gi, v) in kfg {
+                let row = &mut schur[gi * g + j0..gi * g + j0 + w];
+                for (j, s) in row.iter_mut().enumerate() {
+                    *s -= v * x[(fr, j)];
+                }
+            }
+        }
+        Ok(llt)
+    }
+}
+
+/// The tick matrix's factor: its analysis, the single-precision factor and, when the
+/// rounding allows ([`half_of`]), the half-precision sweep.
+type TickFactor = (
+    SymbolicCholesky<usize>,
+    Vec<f32>,
+    Option<SupernodalSolve>,
+    Option<HalfFactor>,
+);
+
+/// Factorises the tick matrix of `parts` with stiffness margin `c` (equations `eq_dof`).
+///
+/// # Errors
+/// [`ModelError::InvalidMesh`] when the matrix is not positive definite.
+fn factor_tick_matrix(
+    parts: &TickMatrixParts<'_>,
+    eq_dof: &[usize],
+    c: f64,
+) -> Result<TickFactor, ModelError> {
+    let a_lower = parts.lower(c)?;
+    let eq_nodes: Vec<usize> = eq_dof.iter().map(|&d| d / 3).collect();
+    let symbolic = symbolic_cholesky(a_lower.symbolic(), Side::Lower, &eq_nodes)?;
+    let mut factor = factorize(&symbolic, &a_lower)?;
+    let mut sweep = SupernodalSolve::new(&symbolic);
+    let half = half_of(sweep.as_mut(), &mut factor, &a_lower);
+    Ok((symbolic, factor, sweep, half))
 }
