@@ -30,6 +30,8 @@
 
 use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw};
 
+use crate::simd::Avx2FmaF16c;
+
 /// The supernodal structure of a factor in the form the sweep reads, with its workspace.
 #[derive(Debug, Clone)]
 pub struct SupernodalSolve {
@@ -50,8 +52,8 @@ pub struct SupernodalSolve {
     x2: Vec<f32>,
     /// Its column block.
     y2: Vec<f32>,
-    /// Whether the AVX2 + FMA + F16C build of the sweep runs on this CPU.
-    f16c: bool,
+    /// The AVX2 + FMA + F16C token when the CPU has them (the sweep runs that build then).
+    f16c: Option<Avx2FmaF16c>,
 }
 
 /// Rows per block of a [`HalfFactor`] panel (one AVX2 register of `f32`), and columns per
@@ -182,7 +184,7 @@ impl SupernodalSolve {
             y: vec![0.0; widest + HALF_PAD],
             x2: vec![0.0; n],
             y2: vec![0.0; widest + HALF_PAD],
-            f16c: crate::simd::has_avx2_fma_f16c(),
+            f16c: Avx2FmaF16c::detect(),
         })
     }
 
@@ -316,15 +318,16 @@ impl SupernodalSolve {
     /// The backward sweep of `self.x` with the CPU's build, then `out = S x` in the original
     /// numbering.
     fn backward_into(&mut self, factor: &HalfFactor, out: &mut [f32]) {
+        let (nodes, rows) = (&self.nodes, &self.rows);
         #[cfg(target_arch = "x86_64")]
-        if self.f16c {
-            // SAFETY: `f16c` comes from `crate::simd::has_avx2_fma_f16c` on this CPU.
-            unsafe { backward_avx2(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y) };
+        if let Some(isa) = self.f16c {
+            // SAFETY: the token proves AVX2, FMA and F16C on this CPU.
+            unsafe { backward_avx2(isa, nodes, rows, factor, &mut self.x, &mut self.y) };
         } else {
-            backward::<false>(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y);
+            backward(Portable, nodes, rows, factor, &mut self.x, &mut self.y);
         }
         #[cfg(not(target_arch = "x86_64"))]
-        backward::<false>(&self.nodes, &self.rows, factor, &mut self.x, &mut self.y);
+        backward(Portable, nodes, rows, factor, &mut self.x, &mut self.y);
         for ((&xk, &f), &s) in self.x.iter().zip(&self.forward).zip(&factor.scale) {
             out[f as usize] = xk * s;
         }
@@ -394,10 +397,10 @@ fn supernode(node: [u32; 5], rows: &[u32]) -> (usize, usize, usize, &[u32]) {
     (c0, nc, v0, &rows[r0..r0 + nr])
 }
 
-/// [`forward`] of `K` right-hand sides with the CPU's build: AVX2 + FMA + F16C when `f16c`.
+/// [`forward`] of `K` right-hand sides with the CPU's build: AVX2 + FMA + F16C with the token.
 #[inline(always)]
 fn forward_sweep<const K: usize>(
-    f16c: bool,
+    isa: Option<Avx2FmaF16c>,
     nodes: &[[u32; 5]],
     rows: &[u32],
     factor: &HalfFactor,
@@ -405,52 +408,49 @@ fn forward_sweep<const K: usize>(
     y: [&mut [f32]; K],
 ) {
     #[cfg(target_arch = "x86_64")]
-    if f16c {
-        // SAFETY: callers pass `f16c` from `crate::simd::has_avx2_fma_f16c` on this CPU.
-        unsafe { forward_avx2::<K>(nodes, rows, factor, x, y) };
+    if let Some(isa) = isa {
+        // SAFETY: the token proves AVX2, FMA and F16C on this CPU.
+        unsafe { forward_avx2::<K>(isa, nodes, rows, factor, x, y) };
         return;
     }
-    let _ = f16c;
-    forward::<false, K>(nodes, rows, factor, x, y);
+    let _ = isa;
+    forward::<Portable, K>(Portable, nodes, rows, factor, x, y);
 }
 
-/// [`forward`] compiled for AVX2 + FMA + F16C.
-///
-/// # Safety
-/// The CPU must support AVX2, FMA and F16C.
+/// [`forward`] compiled for AVX2 + FMA + F16C (the token).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,f16c")]
-unsafe fn forward_avx2<const K: usize>(
+fn forward_avx2<const K: usize>(
+    isa: Avx2FmaF16c,
     nodes: &[[u32; 5]],
     rows: &[u32],
     factor: &HalfFactor,
     x: [&mut [f32]; K],
     y: [&mut [f32]; K],
 ) {
-    forward::<true, K>(nodes, rows, factor, x, y);
+    forward::<Avx2FmaF16c, K>(isa, nodes, rows, factor, x, y);
 }
 
-/// [`backward`] compiled for AVX2 + FMA + F16C.
-///
-/// # Safety
-/// The CPU must support AVX2, FMA and F16C.
+/// [`backward`] compiled for AVX2 + FMA + F16C (the token).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,f16c")]
-unsafe fn backward_avx2(
+fn backward_avx2(
+    isa: Avx2FmaF16c,
     nodes: &[[u32; 5]],
     rows: &[u32],
     factor: &HalfFactor,
     x: &mut [f32],
     y: &mut [f32],
 ) {
-    backward::<true>(nodes, rows, factor, x, y);
+    backward(isa, nodes, rows, factor, x, y);
 }
 
 /// The forward sweep `L y = b` over the supernodes of a [`HalfFactor`] (module docs) for `K`
 /// right-hand sides `x[k]` (`S b` in the permuted numbering) at once, each panel of the
 /// factor read once for all of them; `y[k]` are their column blocks.
 #[inline(always)]
-fn forward<const F16C: bool, const K: usize>(
+fn forward<P: PanelKernel, const K: usize>(
+    kernel: P,
     nodes: &[[u32; 5]],
     rows: &[u32],
     factor: &HalfFactor,
@@ -491,15 +491,7 @@ fn forward<const F16C: bool, const K: usize>(
             let tails = y
                 .each_mut()
                 .map(|y| &mut y[below..below + blocks * HALF_PAD]);
-            #[cfg(target_arch = "x86_64")]
-            if F16C {
-                // SAFETY: `F16C` is set only by the `_avx2` wrappers, which run on such CPUs.
-                unsafe { panel_update_avx2(vals, w, &a, tails) };
-            } else {
-                panel_update(vals, w, &a, tails);
-            }
-            #[cfg(not(target_arch = "x86_64"))]
-            panel_update(vals, w, &a, tails);
+            kernel.update(vals, w, &a, tails);
             v += panel.values_len;
             e += panel.triangle_len;
         }
@@ -519,7 +511,8 @@ fn forward<const F16C: bool, const K: usize>(
 /// The backward sweep `L^T x = y` after [`forward`]; `x` receives `S^-1 x`. `y` has
 /// [`HALF_PAD`] rows of slack past the widest supernode, zeroed before the blocks read them.
 #[inline(always)]
-fn backward<const F16C: bool>(
+fn backward<P: PanelKernel>(
+    kernel: P,
     nodes: &[[u32; 5]],
     rows: &[u32],
     factor: &HalfFactor,
@@ -545,15 +538,7 @@ fn backward<const F16C: bool>(
             let below = p0 + w;
             let tail = &y[below..below + blocks * HALF_PAD];
             // `d_t = sum_r L_rt x_r` over the rows below the panel.
-            #[cfg(target_arch = "x86_64")]
-            let d = if F16C {
-                // SAFETY: as in the forward sweep.
-                unsafe { panel_dots_avx2(vals, w, tail) }
-            } else {
-                panel_dots(vals, w, tail)
-            };
-            #[cfg(not(target_arch = "x86_64"))]
-            let d = panel_dots(vals, w, tail);
+            let d = kernel.dots(vals, w, tail);
             // The panel's own columns, last first: `x_t = (y_t - d_t - sum_(i>t) L_it x_i) / L_tt`.
             let tri = &factor.triangles[e..e + panel.triangle_len];
             let inv = &factor.inv_diag[c0 + p0..c0 + p0 + w];
@@ -566,6 +551,65 @@ fn backward<const F16C: bool>(
             }
         }
         x[c0..c0 + nc].copy_from_slice(&y[..nc]);
+    }
+}
+
+/// The two panel kernels of the sweeps, [`panel_update`] and [`panel_dots`]: the portable
+/// build ([`Portable`]) or the AVX2 + FMA + F16C one (the token [`Avx2FmaF16c`]), with the
+/// same fused operations in the same order per entry.
+trait PanelKernel: Copy {
+    /// [`panel_update`].
+    fn update<const K: usize>(
+        self,
+        vals: &[u16],
+        w: usize,
+        a: &[[f32; PANEL]; K],
+        y: [&mut [f32]; K],
+    );
+    /// [`panel_dots`].
+    fn dots(self, vals: &[u16], w: usize, y: &[f32]) -> [f32; PANEL];
+}
+
+/// The portable panel kernels.
+#[derive(Clone, Copy)]
+struct Portable;
+
+impl PanelKernel for Portable {
+    #[inline(always)]
+    fn update<const K: usize>(
+        self,
+        vals: &[u16],
+        w: usize,
+        a: &[[f32; PANEL]; K],
+        y: [&mut [f32]; K],
+    ) {
+        panel_update(vals, w, a, y);
+    }
+
+    #[inline(always)]
+    fn dots(self, vals: &[u16], w: usize, y: &[f32]) -> [f32; PANEL] {
+        panel_dots(vals, w, y)
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+impl PanelKernel for Avx2FmaF16c {
+    #[inline(always)]
+    fn update<const K: usize>(
+        self,
+        vals: &[u16],
+        w: usize,
+        a: &[[f32; PANEL]; K],
+        y: [&mut [f32]; K],
+    ) {
+        // SAFETY: the token proves AVX2, FMA and F16C on this CPU.
+        unsafe { panel_update_avx2(self, vals, w, a, y) };
+    }
+
+    #[inline(always)]
+    fn dots(self, vals: &[u16], w: usize, y: &[f32]) -> [f32; PANEL] {
+        // SAFETY: the token proves AVX2, FMA and F16C on this CPU.
+        unsafe { panel_dots_avx2(self, vals, w, y) }
     }
 }
 
@@ -594,6 +638,7 @@ fn panel_update<const K: usize>(
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,f16c")]
 fn panel_update_avx2<const K: usize>(
+    _: Avx2FmaF16c,
     vals: &[u16],
     w: usize,
     a: &[[f32; PANEL]; K],
@@ -670,16 +715,16 @@ fn panel_dots(vals: &[u16], w: usize, y: &[f32]) -> [f32; PANEL] {
 /// [`panel_dots`] with AVX2 + FMA + F16C, for the panel width `w` (1 to [`PANEL`]).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,f16c")]
-fn panel_dots_avx2(vals: &[u16], w: usize, y: &[f32]) -> [f32; PANEL] {
+fn panel_dots_avx2(isa: Avx2FmaF16c, vals: &[u16], w: usize, y: &[f32]) -> [f32; PANEL] {
     match w {
-        8 => panel_dots_w::<8>(vals, y),
-        7 => panel_dots_w::<7>(vals, y),
-        6 => panel_dots_w::<6>(vals, y),
-        5 => panel_dots_w::<5>(vals, y),
-        4 => panel_dots_w::<4>(vals, y),
-        3 => panel_dots_w::<3>(vals, y),
-        2 => panel_dots_w::<2>(vals, y),
-        _ => panel_dots_w::<1>(vals, y),
+        8 => panel_dots_w::<8>(isa, vals, y),
+        7 => panel_dots_w::<7>(isa, vals, y),
+        6 => panel_dots_w::<6>(isa, vals, y),
+        5 => panel_dots_w::<5>(isa, vals, y),
+        4 => panel_dots_w::<4>(isa, vals, y),
+        3 => panel_dots_w::<3>(isa, vals, y),
+        2 => panel_dots_w::<2>(isa, vals, y),
+        _ => panel_dots_w::<1>(isa, vals, y),
     }
 }
 
@@ -687,7 +732,7 @@ fn panel_dots_avx2(vals: &[u16], w: usize, y: &[f32]) -> [f32; PANEL] {
 /// `W <= 4` (alternate blocks), so that the fused multiply-add's latency does not bound it.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,f16c")]
-fn panel_dots_w<const W: usize>(vals: &[u16], y: &[f32]) -> [f32; PANEL] {
+fn panel_dots_w<const W: usize>(_: Avx2FmaF16c, vals: &[u16], y: &[f32]) -> [f32; PANEL] {
     use std::arch::x86_64::*;
     let blocks = y.len() / HALF_PAD;
     assert!(W <= PANEL && y.len() == blocks * HALF_PAD && vals.len() == blocks * W * HALF_PAD);
@@ -870,7 +915,7 @@ mod tests {
             // The portable build of the sweep gives the same solution (on AVX2 machines the
             // solve above ran the AVX2 build). Compared as `D x`, of order one.
             let mut plain = sweep.clone();
-            plain.f16c = false;
+            plain.f16c = None;
             let mut portable = b.clone();
             plain.solve_in_place(&half, &mut portable);
             let scale = ours

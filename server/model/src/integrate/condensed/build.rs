@@ -1,0 +1,712 @@
+use super::*;
+
+/// One assembly entry: row, column (32-bit: the triplets of an edge-smoothed far part run to
+/// tens of millions, and a third less memory matters there) and value.
+#[derive(Clone, Copy)]
+struct Entry<T> {
+    row: u32,
+    col: u32,
+    val: T,
+}
+
+impl<T> Entry<T> {
+    fn new(row: usize, col: usize, val: T) -> Self {
+        // Indices are equation numbers, below 3 n (checked in `CondensedSolver::new`).
+        Self {
+            row: row as u32,
+            col: col as u32,
+            val,
+        }
+    }
+}
+
+/// Square `n x n` sparse matrix from triplets, duplicates summed. A counting sort by column
+/// and a dense row marker per column: linear in the triplets, where a general sort of the
+/// millions of triplets of an edge-smoothed far part took a fifth of a region's preparation.
+///
+/// # Errors
+/// [`ModelError::InvalidMesh`] for an index out of range.
+fn sparse<T: Copy + Default + std::ops::AddAssign + faer::traits::ComplexField>(
+    n: usize,
+    t: &[Entry<T>],
+) -> Result<SparseColMat<usize, T>, ModelError> {
+    if t.iter().any(|e| e.row as usize >= n || e.col as usize >= n) {
+        return Err(ModelError::InvalidMesh(
+            "sparse assembly: an index is out of range".into(),
+        ));
+    }
+    // Bucket the triplets by column.
+    let mut start = vec![0usize; n + 1];
+    for e in t {
+        start[e.col as usize + 1] += 1;
+    }
+    for j in 0..n {
+        start[j + 1] += start[j];
+    }
+    let mut fill = start.clone();
+    let mut order = vec![0u32; t.len()];
+    for (k, e) in t.iter().enumerate() {
+        order[fill[e.col as usize]] = k as u32;
+        fill[e.col as usize] += 1;
+    }
+    // Per column: merge duplicate rows through a marker, then sort the distinct rows.
+    let mut slot = vec![usize::MAX; n];
+    let mut col_ptr = Vec::with_capacity(n + 1);
+    let mut rows: Vec<usize> = Vec::new();
+    let mut vals: Vec<T> = Vec::new();
+    let mut column: Vec<(usize, T)> = Vec::new();
+    col_ptr.push(0);
+    for j in 0..n {
+        column.clear();
+        for &k in &order[start[j]..start[j + 1]] {
+            let e = &t[k as usize];
+            match slot[e.row as usize] {
+                usize::MAX => {
+                    slot[e.row as usize] = column.len();
+                    column.push((e.row as usize, e.val));
+                }
+                s => column[s].1 += e.val,
+            }
+        }
+        for &(r, _) in &column {
+            slot[r] = usize::MAX;
+        }
+        column.sort_unstable_by_key(|&(r, _)| r);
+        rows.extend(column.iter().map(|&(r, _)| r));
+        vals.extend(column.iter().map(|&(_, v)| v));
+        col_ptr.push(rows.len());
+    }
+    let symbolic = faer::sparse::SymbolicSparseColMat::new_checked(n, n, col_ptr, None, rows);
+    Ok(SparseColMat::new(symbolic, vals))
+}
+
+/// The model of the tetrahedra `keep` of `body` (mesh `mesh`): every node kept, so numbering
+/// is shared; the body's material, strain smoothing and constraints.
+fn part_model(body: &FemModel, mesh: &TetMesh, keep: &[bool]) -> Result<FemModel, ModelError> {
+    let mut m = FemModel::with_smoothing(
+        &sub_mesh(mesh, keep),
+        *body.material(),
+        body.strain_smoothing(),
+    )?;
+    m.copy_constraints_from(body);
+    m.copy_fibres_from(body);
+    m.set_single_precision(body.single_precision())?;
+    Ok(m)
+}
+
+/// The sub-mesh with the tetrahedra `keep` (every node kept, so numbering is shared).
+fn sub_mesh(mesh: &TetMesh, keep: &[bool]) -> TetMesh {
+    fn kept<T: Copy>(rows: &[T], keep: &[bool]) -> Vec<T> {
+        rows.iter()
+            .zip(keep)
+            .filter(|(_, k)| **k)
+            .map(|(r, _)| *r)
+            .collect()
+    }
+    TetMesh {
+        nodes: mesh.nodes.clone(),
+        tets: kept(&mesh.tets, keep),
+        tet_edge_nodes: kept(&mesh.tet_edge_nodes, keep),
+        surfaces: Vec::new(),
+        node_groups: Vec::new(),
+    }
+}
+
+/// Calls `push(row, col, value)` for every entry of the rest tangent stiffness of material
+/// `mat` on every cell of `fem` (N/m), rows and columns as global components `3 i + c`,
+/// constrained components skipped (duplicates are summed by the caller's assembly).
+/// What the tick matrix `A = M (1 + alpha h) + h D0 + h^2 (c K0 + S)` is made of, for any
+/// stiffness margin `c` (the lumped masses are the whole body's: an interface node keeps the
+/// share of its far elements).
+pub(super) struct TickMatrixParts<'a> {
+    pub(super) active: &'a FemModel,
+    pub(super) material: MaterialParams,
+    pub(super) eq: &'a [usize],
+    pub(super) gamma_dof: &'a [usize],
+    /// `S`, row-major `g x g`.
+    pub(super) schur: &'a [f64],
+    /// Lumped mass per equation, kg.
+    pub(super) mass: &'a [f64],
+    pub(super) h: f64,
+}
+
+impl TickMatrixParts<'_> {
+    /// The lower triangle of `A` with margin `c`, in single precision: the solve only sets
+    /// the step, while the residual (forces) stays in double precision, so equilibria are
+    /// unaffected (module documentation); it halves the memory the solve streams.
+    pub(super) fn lower(&self, c: f64) -> Result<SparseColMat<usize, f32>, ModelError> {
+        let (h, mat, eq) = (self.h, self.material, self.eq);
+        let combined = MaterialParams {
+            model: MaterialModel::StVenantKirchhoff,
+            lambda_pa: c * h * h * mat.lambda_pa + 2.0 * h * mat.phi_pa_s,
+            mu_pa: c * h * h * mat.mu_pa + 2.0 * h * mat.psi_pa_s,
+            ..mat
+        };
+        let mut lower = Vec::new();
+        let mut push = |r: usize, c: usize, v: f64| {
+            if c <= r {
+                lower.push(Entry::new(r, c, v as f32));
+            }
+        };
+        rest_tangent(self.active, &combined, |r, c, v| push(eq[r], eq[c], v));
+        let g = self.gamma_dof.len();
+        for a in 0..g {
+            for b in 0..g {
+                let v = h * h * self.schur[a * g + b];
+                if v != 0.0 {
+                    push(eq[self.gamma_dof[a]], eq[self.gamma_dof[b]], v);
+                }
+            }
+        }
+        for (k, m) in self.mass.iter().enumerate() {
+            push(k, k, m * (1.0 + mat.mass_damping_per_s * h));
+        }
+        sparse(self.mass.len(), &lower)
+    }
+}
+
+/// The single-precision Cholesky factor of `a_lower` on its analysis `symbolic`.
+///
+/// # Errors
+/// [`ModelError::InvalidMesh`] when the matrix is not positive definite.
+pub(super) fn factorize(
+    symbolic: &SymbolicCholesky<usize>,
+    a_lower: &SparseColMat<usize, f32>,
+) -> Result<Vec<f32>, ModelError> {
+    let mut factor = vec![0.0f32; symbolic.len_val()];
+    let mut mem =
+        MemBuffer::new(symbolic.factorize_numeric_llt_scratch::<f32>(Par::Seq, Default::default()));
+    symbolic
+        .factorize_numeric_llt::<f32>(
+            &mut factor,
+            a_lower.as_ref(),
+            Side::Lower,
+            Default::default(),
+            Par::Seq,
+            MemStack::new(&mut mem),
+            Default::default(),
+        )
+        .map_err(|e| {
+            ModelError::InvalidMesh(format!("the tick matrix is not positive definite: {e:?}"))
+        })?;
+    Ok(factor)
+}
+
+fn rest_tangent(fem: &FemModel, mat: &MaterialParams, mut push: impl FnMut(usize, usize, f64)) {
+    let mut blocks = Vec::new();
+    let constraint = fem.constraints();
+    for c in 0..fem.cell_count() {
+        cell_tangent_blocks_of(fem, mat, c, fem.rest(), &mut blocks);
+        let t = fem.cell_nodes(c);
+        for (a, &na) in t.iter().enumerate() {
+            for (b, &nb) in t.iter().enumerate() {
+                let k = blocks[a * t.len() + b];
+                for ca in 0..3 {
+                    if constraint[na as usize] & (1 << ca) != 0 {
+                        continue;
+                    }
+                    for cb in 0..3 {
+                        if constraint[nb as usize] & (1 << cb) != 0 {
+                            continue;
+                        }
+                        push(3 * na as usize + ca, 3 * nb as usize + cb, k.col(cb)[ca]);
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn rest_tangent_opt(fem: Option<&FemModel>, push: impl FnMut(usize, usize, f64)) {
+    if let Some(f) = fem {
+        rest_tangent(f, f.material(), push);
+    }
+}
+
+impl CondensedSolver {
+    /// Splits `body` (the whole body's model, with its constraints; `mesh` its mesh) by
+    /// `region`, condenses the far part and factorises the tick matrix for the step `dt_s` (s).
+    /// Costs one sparse factorisation of the far stiffness and `3|G|` solves with it. A region holding every element condenses nothing: then this is
+    /// backward Euler with a prefactored rest matrix on the whole body.
+    ///
+    /// # Errors
+    /// [`ModelError::SceneField`] (`active_region`) for a non-positive radius, a stiffness
+    /// margin outside `[1, 100]`, or a region with no element;
+    /// [`ModelError::InvalidMesh`] when a factorisation fails (a far part that is not held by
+    /// clamps, or an indefinite matrix).
+    pub fn new(
+        body: &FemModel,
+        mesh: &TetMesh,
+        region: ActiveRegion,
+        dt_s: f64,
+    ) -> Result<Self, ModelError> {
+        Self::new_with_progress(body, mesh, region, dt_s, &mut |_, _| {})
+    }
+
+    /// [`CondensedSolver::new`] reporting its stages: `progress(stage, fraction)` with the
+    /// fraction of the work done in `[0, 1]` (the far factorisation, the column solves in
+    /// blocks of 64, the tick factorisation); for set-up output on large meshes.
+    ///
+    /// # Errors
+    /// As [`CondensedSolver::new`].
+    pub fn new_with_progress(
+        body: &FemModel,
+        mesh: &TetMesh,
+        region: ActiveRegion,
+        dt_s: f64,
+        progress: &mut dyn FnMut(&str, f64),
+    ) -> Result<Self, ModelError> {
+        check_region(body, &region)?;
+        let n = body.node_count();
+        let Selection {
+            active_tets,
+            active,
+            far_model,
+            node_active,
+            node_far,
+        } = select_elements(body, mesh, &region)?;
+        let num = number_equations(body, &node_active, &node_far);
+        let Condensation {
+            schur,
+            map_far,
+            map,
+            surface_rows,
+            map_row,
+            llt,
+            kfg,
+        } = condense_far(mesh, &region, far_model.as_ref(), &num, progress)?;
+        let Numbering {
+            eq,
+            eq_dof,
+            gamma_dof,
+            far_dofs,
+            interface_nodes,
+            ..
+        } = num;
+        let g = gamma_dof.len();
+        let m_eq = eq_dof.len();
+        progress("condensation: tick matrix factorisation", 0.85);
+        let h = dt_s;
+        let mass: Vec<f64> = eq_dof
+            .iter()
+            .map(|d| body.lumped_mass_kg()[d / 3])
+            .collect();
+        let parts = TickMatrixParts {
+            active: &active,
+            material: *body.material(),
+            eq: &eq,
+            gamma_dof: &gamma_dof,
+            schur: &schur,
+            mass: &mass,
+            h,
+        };
+        let (symbolic, factor, sweep, half) =
+            factor_tick_matrix(&parts, &eq_dof, region.stiffness_margin)?;
+        let schur: Vec<f32> = (0..g)
+            .flat_map(|a| schur[a * g + a..(a + 1) * g].iter().map(|&v| v as f32))
+            .collect();
+        let stack = Workspace::new(symbolic.solve_in_place_scratch::<f32>(2, Par::Seq));
+        progress("condensation: done", 1.0);
+        let sizes = CondensedSizes {
+            active_tets,
+            active_nodes: node_active.iter().filter(|a| **a).count(),
+            interface_nodes,
+            equations: m_eq,
+            factor_entries: factor.len(),
+        };
+        Ok(Self {
+            h,
+            region,
+            active,
+            eq,
+            eq_dof,
+            mass,
+            gamma_dof,
+            schur,
+            su: vec![0.0; g],
+            a_row: vec![0.0; m_eq],
+            avx2: Avx2Fma::detect(),
+            sweep,
+            half,
+            relaxation: 1.0,
+            relaxed_ticks: 0,
+            symbolic: Arc::new(symbolic),
+            factor,
+            stack,
+            rhs: Mat::zeros(m_eq, 2),
+            b: vec![0.0; m_eq],
+            contact_col: vec![u32::MAX; n],
+            contact_z: Vec::new(),
+            z1: vec![0.0; m_eq],
+            capacitance: vec![0.0; MAX_COUPLING_ROWS * MAX_COUPLING_ROWS],
+            u_gamma: vec![0.0; g],
+            u_gamma32: vec![0.0; g],
+            f16c: Avx2FmaF16c::detect(),
+            map_dofs: map_far.iter().map(|&k| far_dofs[k]).collect(),
+            map,
+            surface_rows,
+            map_row,
+            surface_cursor: 0,
+            far: FarField {
+                dofs: far_dofs,
+                llt,
+                kfg,
+            },
+            sizes,
+            node_active,
+            entry: None,
+            last_contact: Vec::with_capacity(ENTRY_TRACKED_NODES),
+        })
+    }
+}
+
+/// The region's parameters and the mesh's size checked ([`CondensedSolver::new`]'s errors).
+fn check_region(body: &FemModel, region: &ActiveRegion) -> Result<(), ModelError> {
+    let field = |m: &str| ModelError::field("active_region", m);
+    if !(region.radius_m > 0.0) || !region.radius_m.is_finite() || !region.centre_m.is_finite() {
+        return Err(field("needs a finite centre and a positive radius"));
+    }
+    if !(region.stiffness_margin >= 1.0) || region.stiffness_margin > 100.0 {
+        return Err(field("stiffness_margin must be in [1, 100]"));
+    }
+    if 3 * body.node_count() > u32::MAX as usize {
+        return Err(field(
+            "the mesh has more nodes than 32-bit equation numbers allow",
+        ));
+    }
+    Ok(())
+}
+
+/// The active and far elements of a region ([`select_elements`]).
+struct Selection {
+    active_tets: usize,
+    active: FemModel,
+    /// `None` when the region holds every element: then this is backward Euler with a
+    /// prefactored rest matrix on the whole body.
+    far_model: Option<FemModel>,
+    /// Nodes of an active element.
+    node_active: Vec<bool>,
+    /// Nodes of a far element.
+    node_far: Vec<bool>,
+}
+
+/// Every tetrahedron with a corner node within the region is active, the others far.
+///
+/// # Errors
+/// [`ModelError::SceneField`] for a region with no element; the parts' model errors.
+fn select_elements(
+    body: &FemModel,
+    mesh: &TetMesh,
+    region: &ActiveRegion,
+) -> Result<Selection, ModelError> {
+    let n = body.node_count();
+    let r2 = region.radius_m * region.radius_m;
+    let inside: Vec<bool> = body
+        .rest()
+        .iter()
+        .map(|p| p.distance_squared(region.centre_m) <= r2)
+        .collect();
+    let keep: Vec<bool> = mesh
+        .tets
+        .iter()
+        .map(|t| t.iter().any(|&i| inside[i as usize]))
+        .collect();
+    let active_tets = keep.iter().filter(|k| **k).count();
+    if active_tets == 0 {
+        return Err(ModelError::field("active_region", "contains no element"));
+    }
+    let active = part_model(body, mesh, &keep)?;
+    let far_keep: Vec<bool> = keep.iter().map(|k| !k).collect();
+    let far_model = if far_keep.contains(&true) {
+        Some(part_model(body, mesh, &far_keep)?)
+    } else {
+        None
+    };
+    let mut node_active = vec![false; n];
+    let mut node_far = vec![false; n];
+    for (e, (t, k)) in mesh.tets.iter().zip(&keep).enumerate() {
+        let mid = mesh.tet_edge_nodes.get(e).map_or(&[][..], |m| &m[..]);
+        for &i in t.iter().chain(mid) {
+            if *k {
+                node_active[i as usize] = true;
+            } else {
+                node_far[i as usize] = true;
+            }
+        }
+    }
+    Ok(Selection {
+        active_tets,
+        active,
+        far_model,
+        node_active,
+        node_far,
+    })
+}
+
+/// The components of a split: equations (free components of active nodes), interface
+/// components (free, of nodes both active and far) and far-only components; each index
+/// array maps a global component `3 i + c` to its number, or `usize::MAX`.
+struct Numbering {
+    eq: Vec<usize>,
+    eq_dof: Vec<usize>,
+    gamma_index: Vec<usize>,
+    gamma_dof: Vec<usize>,
+    far_index: Vec<usize>,
+    far_dofs: Vec<usize>,
+    interface_nodes: usize,
+}
+
+/// Numbers the components of the split `node_active` / `node_far` of `body`.
+fn number_equations(body: &FemModel, node_active: &[bool], node_far: &[bool]) -> Numbering {
+    let n = body.node_count();
+    let free = |i: usize, c: usize| body.constraints()[i] & (1 << c) == 0;
+    // Equations: free components of active nodes.
+    let mut eq = vec![usize::MAX; 3 * n];
+    let mut eq_dof = Vec::new();
+    for i in (0..n).filter(|&i| node_active[i]) {
+        for c in (0..3).filter(|&c| free(i, c)) {
+            eq[3 * i + c] = eq_dof.len();
+            eq_dof.push(3 * i + c);
+        }
+    }
+    // Interface components and far-only components.
+    let mut gamma_index = vec![usize::MAX; 3 * n];
+    let mut gamma_dof = Vec::new();
+    let mut far_index = vec![usize::MAX; 3 * n];
+    let mut far_dofs = Vec::new();
+    let mut interface_nodes = 0;
+    for i in 0..n {
+        if node_active[i] && node_far[i] {
+            interface_nodes += 1;
+        }
+        for c in (0..3).filter(|&c| free(i, c)) {
+            if node_active[i] && node_far[i] {
+                gamma_index[3 * i + c] = gamma_dof.len();
+                gamma_dof.push(3 * i + c);
+            } else if node_far[i] && !node_active[i] {
+                far_index[3 * i + c] = far_dofs.len();
+                far_dofs.push(3 * i + c);
+            }
+        }
+    }
+    Numbering {
+        eq,
+        eq_dof,
+        gamma_index,
+        gamma_dof,
+        far_index,
+        far_dofs,
+        interface_nodes,
+    }
+}
+
+/// The far part condensed on the interface ([`condense_far`]).
+struct Condensation {
+    /// `S`, row-major `g x g`, symmetrised.
+    schur: Vec<f64>,
+    /// The far component of each row of the map.
+    map_far: Vec<usize>,
+    /// The far map `-(K_FF^-1 K_FG)`, rows `map_far`, half-precision bits.
+    map: Vec<u16>,
+    surface_rows: Vec<u32>,
+    map_row: Vec<u32>,
+    llt: Option<SparseCholesky>,
+    kfg: Vec<(usize, usize, f64)>,
+}
+
+/// The Schur complement `S = K_GG - K_GF K_FF^-1 K_FG` of the far part `far_model` on the
+/// interface, the far map's rows and the far factor (module documentation).
+///
+/// # Errors
+/// [`ModelError::InvalidMesh`] when the far part is not held.
+fn condense_far(
+    mesh: &TetMesh,
+    region: &ActiveRegion,
+    far_model: Option<&FemModel>,
+    num: &Numbering,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Condensation, ModelError> {
+    let n = num.eq.len() / 3;
+    let (g, f) = (num.gamma_dof.len(), num.far_dofs.len());
+    let (gamma_index, far_index, far_dofs) = (&num.gamma_index, &num.far_index, &num.far_dofs);
+    progress("condensation: far stiffness", 0.0);
+    // Far stiffness blocks.
+    let mut kgg = vec![0.0; g * g];
+    let mut kff = Vec::new();
+    let mut kfg = Vec::new();
+    rest_tangent_opt(far_model, |r, c, v| {
+        match (gamma_index[r], gamma_index[c], far_index[r], far_index[c]) {
+            (gr, gc, _, _) if gr != usize::MAX && gc != usize::MAX => kgg[gr * g + gc] += v,
+            (_, gc, fr, _) if fr != usize::MAX && gc != usize::MAX => kfg.push((fr, gc, v)),
+            (_, _, fr, fc) if fr != usize::MAX && fc != usize::MAX && fc <= fr => {
+                kff.push(Entry::new(fr, fc, v));
+            }
+            _ => {}
+        }
+    });
+    let mut schur = kgg;
+    // Rows of `-X` kept: the far boundary components (the surface viewers see, refreshed a
+    // slice per tick), or for a following region every far component (a successor may
+    // activate any far node: `hand_over`).
+    let mut on_boundary = vec![false; n];
+    for t in mesh.boundary_triangles() {
+        for i in t {
+            on_boundary[i as usize] = true;
+        }
+    }
+    let map_far: Vec<usize> = (0..f)
+        .filter(|&k| region.follow || on_boundary[far_dofs[k] / 3])
+        .collect();
+    let surface_rows: Vec<u32> = (0..map_far.len())
+        .filter(|&r| on_boundary[far_dofs[map_far[r]] / 3])
+        .map(|r| r as u32)
+        .collect();
+    let mut map = vec![0u16; map_far.len() * g];
+    let mut map_row = vec![u32::MAX; if region.follow { 3 * n } else { 0 }];
+    if region.follow {
+        for (r, &k) in map_far.iter().enumerate() {
+            map_row[far_dofs[k]] = r as u32;
+        }
+    }
+    let llt = if f > 0 {
+        progress("condensation: far factorisation", 0.15);
+        let far = FarSolve {
+            g,
+            far_dofs,
+            map_far: &map_far,
+            kfg: &kfg,
+        };
+        let llt = far.solve(kff, &mut schur, &mut map, progress)?;
+        // A following region recovers its far field from its maps only (the factor is
+        // most of its memory: 42 of 80 MB on `lv_h1` at r = 7 mm).
+        (!region.follow).then_some(llt)
+    } else {
+        None
+    };
+    // Symmetrise (round-off).
+    for a in 0..g {
+        for b in 0..a {
+            let s = 0.5 * (schur[a * g + b] + schur[b * g + a]);
+            schur[a * g + b] = s;
+            schur[b * g + a] = s;
+        }
+    }
+    Ok(Condensation {
+        schur,
+        map_far,
+        map,
+        surface_rows,
+        map_row,
+        llt,
+        kfg,
+    })
+}
+
+/// What the far solves of [`condense_far`] read.
+struct FarSolve<'a> {
+    /// Interface components.
+    g: usize,
+    far_dofs: &'a [usize],
+    map_far: &'a [usize],
+    kfg: &'a [(usize, usize, f64)],
+}
+
+impl FarSolve<'_> {
+    /// Factorises `K_FF` (lower triplets `kff`), then `X = K_FF^-1 K_FG` in blocks of
+    /// columns: the map's rows `-X` into `map`, `S -= K_GF X` into `schur`.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidMesh`] when the far part is not held.
+    fn solve(
+        &self,
+        kff: Vec<Entry<f64>>,
+        schur: &mut [f64],
+        map: &mut [u16],
+        progress: &mut dyn FnMut(&str, f64),
+    ) -> Result<SparseCholesky, ModelError> {
+        let (g, f, kfg) = (self.g, self.far_dofs.len(), self.kfg);
+        let far_nodes: Vec<usize> = self.far_dofs.iter().map(|&d| d / 3).collect();
+        // The triplets go before the factorisation (on a 100 000-tet mesh they are about
+        // 0.4 GB, as much as the factor).
+        let kff_csc = sparse(f, &kff)?;
+        drop(kff);
+        let llt =
+            SparseCholesky::factor(kff_csc.as_ref(), Side::Lower, &far_nodes).map_err(|e| {
+                ModelError::InvalidMesh(format!(
+                    "the far part is not held (add clamps or enlarge the active region): {e}"
+                ))
+            })?;
+        drop(kff_csc);
+        // X = K_FF^-1 K_FG, in blocks of columns; S -= K_GF X.
+        let mut by_col: Vec<Vec<(usize, f64)>> = vec![Vec::new(); g];
+        for &(fr, gc, v) in kfg {
+            by_col[gc].push((fr, v));
+        }
+        const BLOCK: usize = 64;
+        for j0 in (0..g).step_by(BLOCK) {
+            progress(
+                "condensation: interface column solves",
+                0.25 + 0.6 * j0 as f64 / g as f64,
+            );
+            let w = BLOCK.min(g - j0);
+            let mut x = Mat::<f64>::zeros(f, w);
+            for j in 0..w {
+                for &(fr, v) in &by_col[j0 + j] {
+                    x[(fr, j)] += v;
+                }
+            }
+            llt.solve_in_place(x.as_mut());
+            for (r, &k) in self.map_far.iter().enumerate() {
+                for j in 0..w {
+                    let q = ::half::f16::from_f64(-x[(k, j)]);
+                    // Entries are displacements per interface displacement, of order
+                    // one; beyond half precision's range the far part is barely held.
+                    if !q.is_finite() {
+                        return Err(ModelError::InvalidMesh(format!(
+                            "the far part is barely held: a far displacement is {:.3e} times \
+                             an interface displacement (add clamps or enlarge the active \
+                             region)",
+                            x[(k, j)].abs()
+                        )));
+                    }
+                    map[r * g + j0 + j] = q.to_bits();
+                }
+            }
+            // S[gi, j0 + j] -= sum_fr K_FG[fr, gi] X[fr, j]
+            for &(fr, gi, v) in kfg {
+                let row = &mut schur[gi * g + j0..gi * g + j0 + w];
+                for (j, s) in row.iter_mut().enumerate() {
+                    *s -= v * x[(fr, j)];
+                }
+            }
+        }
+        Ok(llt)
+    }
+}
+
+/// The tick matrix's factor: its analysis, the single-precision factor and, when the
+/// rounding allows ([`half_of`]), the half-precision sweep.
+type TickFactor = (
+    SymbolicCholesky<usize>,
+    Vec<f32>,
+    Option<SupernodalSolve>,
+    Option<HalfFactor>,
+);
+
+/// Factorises the tick matrix of `parts` with stiffness margin `c` (equations `eq_dof`).
+///
+/// # Errors
+/// [`ModelError::InvalidMesh`] when the matrix is not positive definite.
+fn factor_tick_matrix(
+    parts: &TickMatrixParts<'_>,
+    eq_dof: &[usize],
+    c: f64,
+) -> Result<TickFactor, ModelError> {
+    let a_lower = parts.lower(c)?;
+    let eq_nodes: Vec<usize> = eq_dof.iter().map(|&d| d / 3).collect();
+    let symbolic = symbolic_cholesky(a_lower.symbolic(), Side::Lower, &eq_nodes)?;
+    let mut factor = factorize(&symbolic, &a_lower)?;
+    let mut sweep = SupernodalSolve::new(&symbolic);
+    let half = half_of(sweep.as_mut(), &mut factor, &a_lower);
+    Ok((symbolic, factor, sweep, half))
+}

@@ -1,0 +1,106 @@
+use super::*;
+
+impl CondensedSolver {
+    /// Hands the state over from `self` (the region in use) to `next` at a tick boundary:
+    /// every node `next` simulates that `self` condenses gets the displacement the far field
+    /// of `self` gives it for the current interface displacement (`u = -K_FF^-1 K_FG u_G`,
+    /// from the map of every far component kept when `self` was built with
+    /// [`ActiveRegion::follow`]) and zero
+    /// velocity (the far field is quasi-static); nodes both simulate keep their state, and
+    /// nodes only `self` simulates keep their positions (`next` refreshes its far surface
+    /// from its own map) with zero velocity.
+    /// Returns `false`, touching nothing, when `self` has no such map (not built to follow).
+    /// Costs `3 g` multiply-adds per such node (`g` interface
+    /// components of `self`); allocation-free.
+    ///
+    /// # Panics
+    /// If `x`, `v` are shorter than the body's node count or `next` is of another body.
+    pub fn hand_over(&mut self, next: &CondensedSolver, x: &mut [DVec3], v: &mut [DVec3]) -> bool {
+        let node_active = &self.node_active;
+        let taken = |d: usize| !node_active[d / 3];
+        let missing = next
+            .eq_dof
+            .iter()
+            .any(|&d| taken(d) && self.map_row.get(d).is_none_or(|&r| r == u32::MAX));
+        if missing {
+            return false;
+        }
+        let rest = self.active.rest();
+        for ((u, u32), &d) in self
+            .u_gamma
+            .iter_mut()
+            .zip(&mut self.u_gamma32)
+            .zip(&self.gamma_dof)
+        {
+            *u = x[d / 3][d % 3] - rest[d / 3][d % 3];
+            *u32 = *u as f32;
+        }
+        let g = self.gamma_dof.len();
+        for &d in &next.eq_dof {
+            if taken(d) {
+                let r = self.map_row[d] as usize;
+                let u = dot_half(self.f16c, &self.map[r * g..(r + 1) * g], &self.u_gamma32);
+                x[d / 3][d % 3] = rest[d / 3][d % 3] + u;
+                v[d / 3][d % 3] = 0.0;
+            }
+        }
+        // Nodes `next` condenses become quasi-static: their kinetic energy is dropped (never
+        // injected), and the probe's coupling sees them at rest.
+        for &d in &self.eq_dof {
+            if !next.node_active[d / 3] {
+                v[d / 3][d % 3] = 0.0;
+            }
+        }
+        true
+    }
+
+    /// Elastic energy of the condensed far part for the interface displacement in `x`,
+    /// `u_G^T S u_G / 2`, J (exact for its linear elements).
+    pub fn far_energy_j(&self, x: &[DVec3]) -> f64 {
+        let g = self.gamma_dof.len();
+        let u = |a: usize| {
+            let d = self.gamma_dof[a];
+            x[d / 3][d % 3] - self.active.rest()[d / 3][d % 3]
+        };
+        // Packed upper triangle: the off-diagonal entries count twice.
+        (0..g)
+            .map(|a| {
+                let start = packed_row_start(a, g);
+                let row = &self.schur[start..start + g - a];
+                let off: f64 = (a + 1..g).map(|b| f64::from(row[b - a]) * u(b)).sum();
+                u(a) * (0.5 * f64::from(row[0]) * u(a) + off)
+            })
+            .sum::<f64>()
+    }
+
+    /// Sets the far-only nodes of `x` to the static linear response of the far body to the
+    /// interface displacement, `u_F = -K_FF^-1 K_FG u_G` (one sparse solve; allocates). Far
+    /// velocities are left as they are (zero for a quasi-static far field).
+    /// A following region ([`ActiveRegion::follow`]) keeps no far factor: it sets the far
+    /// nodes from its map of every far component instead.
+    pub fn recover_far_field(&self, x: &mut [DVec3]) {
+        let Some(llt) = &self.far.llt else {
+            let g = self.gamma_dof.len();
+            let rest = self.active.rest();
+            let u_gamma: Vec<f32> = self
+                .gamma_dof
+                .iter()
+                .map(|&d| (x[d / 3][d % 3] - rest[d / 3][d % 3]) as f32)
+                .collect();
+            for (r, &d) in self.map_dofs.iter().enumerate() {
+                x[d / 3][d % 3] = rest[d / 3][d % 3]
+                    + dot_half(self.f16c, &self.map[r * g..(r + 1) * g], &u_gamma);
+            }
+            return;
+        };
+        let mut b = Mat::<f64>::zeros(self.far.dofs.len(), 1);
+        for &(fr, gc, v) in &self.far.kfg {
+            let d = self.gamma_dof[gc];
+            b[(fr, 0)] -= v * (x[d / 3][d % 3] - self.active.rest()[d / 3][d % 3]);
+        }
+        llt.solve_in_place(b.as_mut());
+        for (k, &d) in self.far.dofs.iter().enumerate() {
+            x[d / 3][d % 3] = self.active.rest()[d / 3][d % 3] + b[(k, 0)];
+        }
+    }
+}
