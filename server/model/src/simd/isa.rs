@@ -5,8 +5,7 @@
 //! CPU that has every feature the token names, so a function that takes a token by value may
 //! call the matching `#[target_feature]` code without another check. On other architectures
 //! the same names exist and `detect` returns `None`, so fields of type `Option<Token>` need no
-//! `cfg`. The `has_*` functions are the older boolean queries, kept while the callers move to
-//! the tokens (issue 49, steps 2d and 2e).
+//! `cfg`. No `bool` stands for a CPU feature anywhere: callers hold `Option<Token>`.
 //!
 //! Neighbours: none (the bottom layer); the lane types of [`crate::simd::lanes`] are made from
 //! these tokens.
@@ -58,13 +57,6 @@ impl Avx2FmaF16c {
             None
         }
     }
-
-    /// The AVX2 and FMA part of the proof.
-    #[allow(dead_code)] // first callers: issue 49 steps 2d and 2e
-    #[inline]
-    pub(crate) fn avx2_fma(self) -> Avx2Fma {
-        Avx2Fma(())
-    }
 }
 
 impl Avx512 {
@@ -87,36 +79,10 @@ impl Avx512 {
     }
 
     /// The AVX2 and FMA part of the proof.
-    #[allow(dead_code)] // first callers: issue 49 steps 2d and 2e
     #[inline]
     pub(crate) fn avx2_fma(self) -> Avx2Fma {
         Avx2Fma(())
     }
-}
-
-/// Whether this CPU runs AVX2 and FMA. Removed in step 2d/2e: take [`Avx2Fma::detect`].
-pub(crate) fn has_avx2_fma() -> bool {
-    Avx2Fma::detect().is_some()
-}
-
-/// Whether this CPU runs AVX-512F, AVX2 and FMA (no VL). Removed in step 2e: take
-/// [`Avx512::detect`] (which also needs VL).
-#[allow(dead_code)] // no caller since step 2e; deleted at its merge
-pub(crate) fn has_avx512f() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        has_avx2_fma() && std::is_x86_feature_detected!("avx512f")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
-}
-
-/// Whether this CPU runs AVX2, FMA and F16C. Removed in step 2d: take [`Avx2FmaF16c::detect`].
-#[allow(dead_code)] // no caller since step 2d; deleted at its merge
-pub(crate) fn has_avx2_fma_f16c() -> bool {
-    Avx2FmaF16c::detect().is_some()
 }
 
 #[cfg(test)]
@@ -129,8 +95,6 @@ mod tests {
         if Avx512::detect().is_some() || Avx2FmaF16c::detect().is_some() {
             assert!(Avx2Fma::detect().is_some());
         }
-        assert_eq!(has_avx2_fma(), Avx2Fma::detect().is_some());
-        assert_eq!(has_avx2_fma_f16c(), Avx2FmaF16c::detect().is_some());
         #[cfg(target_arch = "x86_64")]
         assert_eq!(
             Avx2Fma::detect().is_some(),

@@ -14,7 +14,6 @@ pub(crate) mod isa;
 pub(crate) mod lanes;
 pub(crate) mod lanes4;
 
-#[allow(unused_imports)] // Avx2FmaF16c: first caller in issue 49 step 2d
-pub(crate) use isa::{Avx2Fma, Avx2FmaF16c, Avx512, has_avx2_fma, has_avx2_fma_f16c, has_avx512f};
+pub(crate) use isa::{Avx2Fma, Avx2FmaF16c, Avx512};
 pub(crate) use lanes::{Lane, LaneVec, Plain8, Ymm, Zmm};
 pub(crate) use lanes4::{Lanes4, Plain4};
