@@ -467,7 +467,8 @@ mod x86 {
     }
 
     /// [`crate::simd::Lanes4`] on [`Ymm`]: the meshfree stencil's AVX2 + FMA lanes (a child
-    /// module, so that its methods do not meet [`Lane`]'s of the same names). Every intrinsic
+    /// module, so that its methods do not meet [`Lane`]'s of the same names; where the
+    /// operations are the same they call `Ymm`'s own). Every intrinsic
     /// call is sound because a `Ymm` value exists only after [`Avx2Fma::detect`] returned a
     /// token, and loads and stores check their slice bounds first.
     mod four {
@@ -475,6 +476,7 @@ mod x86 {
 
         use super::Ymm;
         use crate::simd::isa::Avx2Fma;
+        use crate::simd::lanes::Lane;
         use crate::simd::lanes4::Lanes4;
 
         impl Lanes4 for Ymm {
@@ -487,9 +489,8 @@ mod x86 {
             }
 
             #[inline(always)]
-            fn splat(_: Avx2Fma, v: f64) -> Ymm {
-                // SAFETY: as `zero`.
-                Ymm(unsafe { _mm256_set1_pd(v) })
+            fn splat(isa: Avx2Fma, v: f64) -> Ymm {
+                <Ymm as Lane>::splat(isa, v)
             }
 
             #[inline(always)]
@@ -522,26 +523,22 @@ mod x86 {
 
             #[inline(always)]
             fn add(self, o: Ymm) -> Ymm {
-                // SAFETY: `self` exists only with the token.
-                Ymm(unsafe { _mm256_add_pd(self.0, o.0) })
+                self + o
             }
 
             #[inline(always)]
             fn sub(self, o: Ymm) -> Ymm {
-                // SAFETY: as `add`.
-                Ymm(unsafe { _mm256_sub_pd(self.0, o.0) })
+                self - o
             }
 
             #[inline(always)]
             fn mul(self, o: Ymm) -> Ymm {
-                // SAFETY: as `add`.
-                Ymm(unsafe { _mm256_mul_pd(self.0, o.0) })
+                self * o
             }
 
             #[inline(always)]
             fn madd(a: Ymm, b: Ymm, c: Ymm) -> Ymm {
-                // SAFETY: the token proves FMA.
-                Ymm(unsafe { _mm256_fmadd_pd(a.0, b.0, c.0) })
+                <Ymm as Lane>::madd::<true>(a, b, c)
             }
 
             #[inline(always)]
@@ -552,8 +549,7 @@ mod x86 {
 
             #[inline(always)]
             fn msub(a: Ymm, b: Ymm, c: Ymm) -> Ymm {
-                // SAFETY: the token proves FMA.
-                Ymm(unsafe { _mm256_fmsub_pd(a.0, b.0, c.0) })
+                <Ymm as Lane>::msub::<true>(a, b, c)
             }
 
             #[inline(always)]
