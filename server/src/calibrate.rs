@@ -101,6 +101,34 @@ pub fn calibrate_scene(
             "the scene has no reference_file and does not subdivide with calibrated springs (rings = 0 or springs = \"unchanged\"): nothing to calibrate",
         ));
     }
+    let mut reports = Vec::new();
+    if ms.organ.is_some() {
+        reports.push(organ_table(scene, out, threads, force, progress)?);
+    }
+    if subdivides {
+        reports.push(subdivision_table(scene, out, threads, force, progress)?);
+    }
+    Ok(reports)
+}
+
+/// The organ table of [`calibrate_scene`].
+fn organ_table(
+    scene: &Scene,
+    out: Outputs<'_>,
+    threads: usize,
+    force: bool,
+    progress: &(dyn Fn(TableKind, usize, usize, f64) + Sync),
+) -> Result<TableReport, ModelError> {
+    let Some((ms, organ)) = scene
+        .mass_spring
+        .as_ref()
+        .and_then(|ms| Some((ms, ms.organ.as_ref()?)))
+    else {
+        return Err(ModelError::field(
+            "mass_spring.organ_file",
+            "not a mass-spring scene with an organ table",
+        ));
+    };
     let target = |given: Option<&Path>, beside: Option<&PathBuf>, field: &str, flag: &str| {
         given
             .map(Path::to_path_buf)
@@ -114,81 +142,74 @@ pub fn calibrate_scene(
                 )
             })
     };
-    let mut reports = Vec::new();
-    if let Some(organ) = &ms.organ {
-        let path = target(
-            out.organ,
-            organ.path.as_ref(),
-            "mass_spring.organ_file",
-            "--organ-out",
-        )?;
-        let start = Instant::now();
-        let report = match (&organ.table, force || out.organ.is_some()) {
-            (Ok(t), false) => TableReport {
+    let path = target(
+        out.organ,
+        organ.path.as_ref(),
+        "mass_spring.organ_file",
+        "--organ-out",
+    )?;
+    let start = Instant::now();
+    let report = match (&organ.table, force || out.organ.is_some()) {
+        (Ok(t), false) => TableReport {
+            kind: TableKind::Organ,
+            path,
+            computed: false,
+            nodes: t.node_count() + t.edge_count(),
+            seconds: 0.0,
+            factor_range: organ_range(t),
+        },
+        _ => {
+            let subdivision_table = match &ms.table {
+                TableState::Ready(t) => Some(t),
+                _ => None,
+            };
+            let setup = OrganSetup {
+                params: &ms.params,
+                probe: scene.probe,
+                integrator: &scene.integrator,
+                subdivision_table,
+            };
+            let table = calibrate_organ(
+                &ms.surface,
+                setup,
+                (&organ.reference, organ.axis),
+                threads,
+                &|done, total| {
+                    progress(TableKind::Organ, done, total, start.elapsed().as_secs_f64())
+                },
+            )?;
+            let p = &ms.params;
+            let description = format!(
+                "scene {}: {} nodes, {} triangles; K_h = {} N/m, K_m = {} N/m, probe radius {} m; reference {} along ({}, {}, {})\nwritten by haptic-calibrate; recompute with `haptic-calibrate SCENE_FILE`",
+                scene.name,
+                ms.surface.node_count(),
+                ms.surface.triangle_count(),
+                p.home_spring_n_per_m,
+                p.mesh_spring_n_per_m,
+                scene.probe.radius_m,
+                organ
+                    .reference
+                    .points()
+                    .iter()
+                    .map(|q| q.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(" "),
+                organ.axis.x,
+                organ.axis.y,
+                organ.axis.z,
+            );
+            write_atomically(&path, &table.to_text(&description))?;
+            TableReport {
                 kind: TableKind::Organ,
                 path,
-                computed: false,
-                nodes: t.node_count() + t.edge_count(),
-                seconds: 0.0,
-                factor_range: organ_range(t),
-            },
-            _ => {
-                let subdivision_table = match &ms.table {
-                    TableState::Ready(t) => Some(t),
-                    _ => None,
-                };
-                let setup = OrganSetup {
-                    params: &ms.params,
-                    probe: scene.probe,
-                    integrator: &scene.integrator,
-                    subdivision_table,
-                };
-                let table = calibrate_organ(
-                    &ms.surface,
-                    setup,
-                    (&organ.reference, organ.axis),
-                    threads,
-                    &|done, total| {
-                        progress(TableKind::Organ, done, total, start.elapsed().as_secs_f64())
-                    },
-                )?;
-                let p = &ms.params;
-                let description = format!(
-                    "scene {}: {} nodes, {} triangles; K_h = {} N/m, K_m = {} N/m, probe radius {} m; reference {} along ({}, {}, {})\nwritten by haptic-calibrate; recompute with `haptic-calibrate SCENE_FILE`",
-                    scene.name,
-                    ms.surface.node_count(),
-                    ms.surface.triangle_count(),
-                    p.home_spring_n_per_m,
-                    p.mesh_spring_n_per_m,
-                    scene.probe.radius_m,
-                    organ
-                        .reference
-                        .points()
-                        .iter()
-                        .map(|q| q.name.as_str())
-                        .collect::<Vec<_>>()
-                        .join(" "),
-                    organ.axis.x,
-                    organ.axis.y,
-                    organ.axis.z,
-                );
-                write_atomically(&path, &table.to_text(&description))?;
-                TableReport {
-                    kind: TableKind::Organ,
-                    path,
-                    computed: true,
-                    nodes: table.node_count() + table.edge_count(),
-                    seconds: start.elapsed().as_secs_f64(),
-                    factor_range: organ_range(&table),
-                }
+                computed: true,
+                nodes: table.node_count() + table.edge_count(),
+                seconds: start.elapsed().as_secs_f64(),
+                factor_range: organ_range(&table),
             }
-        };
-        reports.push(report);
-    }
-    if subdivides {
-        reports.push(subdivision_table(scene, out, threads, force, progress)?);
-    }
-    Ok(reports)
+        }
+    };
+    Ok(report)
 }
 
 /// The subdivision table of [`calibrate_scene`].

@@ -366,7 +366,7 @@ impl DeviceLink for Services {
         }
         let session = self.manager.get(&first.session_id)?;
         let (tx, rx) = mpsc::channel(256);
-        let mut pose_in = session.attach_device(tx)?;
+        let pose_in = session.attach_device(tx)?;
         let caps = first.capabilities.clone();
         let workspace = caps.as_ref().and_then(crate::device::workspace);
         let device_force_n = caps
@@ -383,77 +383,89 @@ impl DeviceLink for Services {
             None => tracing::info!(session = %session.id, "device connected"),
         }
         session.device.attach(caps);
-        tokio::spawn(async move {
-            let mut next = Some(first);
-            let mut last_seq: Option<u64> = None;
-            loop {
-                let sample = match next.take() {
-                    Some(s) => s,
-                    None => match inbound.next().await {
-                        Some(Ok(s)) => s,
-                        _ => break,
-                    },
-                };
-                if !sample.session_id.is_empty() && sample.session_id != session.id {
-                    session
-                        .shared
-                        .rejected_samples
-                        .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                    continue;
-                }
-                // Sequence numbers only go up: an older or repeated one (a replay, a duplicate
-                // with a new position) is dropped and counted, never applied unanswered.
-                if last_seq.is_some_and(|l| sample.seq <= l) {
-                    session
-                        .shared
-                        .out_of_order_samples
-                        .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                    continue;
-                }
-                match validate_sample(&sample) {
-                    Ok((p, _))
-                        if workspace.is_some_and(|ws| !crate::device::in_workspace(ws, p)) =>
-                    {
-                        session
-                            .shared
-                            .out_of_workspace_samples
-                            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                    }
-                    Ok((p, v)) => {
-                        last_seq = Some(sample.seq);
-                        pose_in.write(Pose {
-                            seq: sample.seq,
-                            position_m: p,
-                            velocity_m_per_s: v,
-                            received_us: session.now_us(),
-                            connected: true,
-                        });
-                        // Device pacing: the servo ticks for this sample now.
-                        session.wake_servo();
-                    }
-                    Err(_) => {
-                        session
-                            .shared
-                            .rejected_samples
-                            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                    }
-                }
-                if session
-                    .shared
-                    .stop
-                    .load(std::sync::atomic::Ordering::Acquire)
-                {
-                    break;
-                }
-            }
-            tracing::info!(session = %session.id, "device disconnected");
-            session.device.detach();
-            session.detach_device(pose_in);
-        });
+        tokio::spawn(pump_device_samples(
+            session, first, inbound, pose_in, workspace,
+        ));
         let mut response = Response::new(Box::pin(ReceiverStream::new(rx)) as ForceStream);
         link_headers(response.metadata_mut(), limits, &instance);
         Ok(response)
     }
+}
+
+/// The device stream's task: every sample of the session's device (the first already read)
+/// is checked (session id, rising sequence number, finite and bounded pose, inside the
+/// declared workspace) and written to the servo's pose buffer, or dropped and counted; the
+/// device is detached when the stream ends or the session stops.
+async fn pump_device_samples(
+    session: Arc<crate::session::Session>,
+    first: DeviceSample,
+    mut inbound: Streaming<DeviceSample>,
+    mut pose_in: triple_buffer::Input<Pose>,
+    workspace: Option<(DVec3, DVec3)>,
+) {
+    let mut next = Some(first);
+    let mut last_seq: Option<u64> = None;
+    loop {
+        let sample = match next.take() {
+            Some(s) => s,
+            None => match inbound.next().await {
+                Some(Ok(s)) => s,
+                _ => break,
+            },
+        };
+        if !sample.session_id.is_empty() && sample.session_id != session.id {
+            session
+                .shared
+                .rejected_samples
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            continue;
+        }
+        // Sequence numbers only go up: an older or repeated one (a replay, a duplicate
+        // with a new position) is dropped and counted, never applied unanswered.
+        if last_seq.is_some_and(|l| sample.seq <= l) {
+            session
+                .shared
+                .out_of_order_samples
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            continue;
+        }
+        match validate_sample(&sample) {
+            Ok((p, _)) if workspace.is_some_and(|ws| !crate::device::in_workspace(ws, p)) => {
+                session
+                    .shared
+                    .out_of_workspace_samples
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            }
+            Ok((p, v)) => {
+                last_seq = Some(sample.seq);
+                pose_in.write(Pose {
+                    seq: sample.seq,
+                    position_m: p,
+                    velocity_m_per_s: v,
+                    received_us: session.now_us(),
+                    connected: true,
+                });
+                // Device pacing: the servo ticks for this sample now.
+                session.wake_servo();
+            }
+            Err(_) => {
+                session
+                    .shared
+                    .rejected_samples
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            }
+        }
+        if session
+            .shared
+            .stop
+            .load(std::sync::atomic::Ordering::Acquire)
+        {
+            break;
+        }
+    }
+    tracing::info!(session = %session.id, "device disconnected");
+    session.device.detach();
+    session.detach_device(pose_in);
 }
 
 #[tonic::async_trait]

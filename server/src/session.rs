@@ -563,7 +563,7 @@ impl SessionManager {
     /// [`SessionManager::start_body_as`] in a reserved slot.
     fn start_in_slot(
         &self,
-        mut slot: SlotReservation<'_>,
+        slot: SlotReservation<'_>,
         id: &str,
         body: Box<dyn haptic_model::body::SoftBody>,
         limits: Option<LinkLimits>,
@@ -651,18 +651,27 @@ impl SessionManager {
             frames: frame_rx,
             threads: Mutex::new(vec![servo, forwarder]),
         });
-        {
-            let mut sessions = self
-                .sessions
-                .lock()
-                .map_err(|_| ServerError::Internal("session table poisoned".into()))?;
-            sessions.insert(id, session.clone());
-            self.running.store(sessions.len(), Ordering::Relaxed);
-            // The session now counts in the table: its reservation ends under the same lock.
-            slot.taken = true;
-            self.pending.fetch_sub(1, Ordering::AcqRel);
-        }
+        self.insert_session(slot, id, session.clone())?;
         Ok(session)
+    }
+
+    /// Puts a started session in the table; its slot's reservation ends under the same lock.
+    fn insert_session(
+        &self,
+        mut slot: SlotReservation<'_>,
+        id: String,
+        session: Arc<Session>,
+    ) -> Result<(), ServerError> {
+        let mut sessions = self
+            .sessions
+            .lock()
+            .map_err(|_| ServerError::Internal("session table poisoned".into()))?;
+        sessions.insert(id, session);
+        self.running.store(sessions.len(), Ordering::Relaxed);
+        // The session now counts in the table: its reservation ends under the same lock.
+        slot.taken = true;
+        self.pending.fetch_sub(1, Ordering::AcqRel);
+        Ok(())
     }
 
     /// Stops and removes a session (blocking: joins its threads).

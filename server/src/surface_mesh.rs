@@ -397,8 +397,45 @@ pub fn mesh_volume(
     inner: Option<&SurfaceMesh>,
     options: &VolumeOptions,
     out_msh: &Path,
-    mut progress: impl FnMut(&str),
+    progress: impl FnMut(&str),
 ) -> Result<VolumeSummary, MeshInError> {
+    let is_base = clamped_triangles(outer, options)?;
+    let base_triangles = is_base.iter().filter(|&&b| b).count();
+    let work = out_msh.with_extension("gmsh-work");
+    std::fs::create_dir_all(&work).map_err(|source| MeshInError::Io {
+        path: work.display().to_string(),
+        source,
+    })?;
+    // The work folder goes whatever happens next (issue 47: a failed run left it behind).
+    let _work_guard = RemoveOnDrop(work.clone());
+    write_text(
+        &work.join("surface.msh"),
+        surface_msh_text(outer, inner, &is_base),
+    )?;
+    let out_abs = std::path::absolute(out_msh).map_err(|source| MeshInError::Io {
+        path: out_msh.display().to_string(),
+        source,
+    })?;
+    write_text(
+        &work.join("volume.geo"),
+        volume_geo_text(inner.is_some(), options.max_size),
+    )?;
+    run_gmsh(&options.gmsh, &work, &out_abs, progress)?;
+    Ok(VolumeSummary {
+        outer_triangles: outer.triangles.len(),
+        base_triangles,
+        inner_triangles: inner.map_or(0, |m| m.triangles.len()),
+    })
+}
+
+/// Per outer triangle, whether the clamp rule holds at its three vertices.
+///
+/// # Errors
+/// [`MeshInError::Options`] when the rule selects no triangle or all of them.
+fn clamped_triangles(
+    outer: &SurfaceMesh,
+    options: &VolumeOptions,
+) -> Result<Vec<bool>, MeshInError> {
     let is_base: Vec<bool> = outer
         .triangles
         .iter()
@@ -420,14 +457,20 @@ pub fn mesh_volume(
             options.clamp
         )));
     }
-    let work = out_msh.with_extension("gmsh-work");
-    std::fs::create_dir_all(&work).map_err(|source| MeshInError::Io {
-        path: work.display().to_string(),
+    Ok(is_base)
+}
+
+/// Writes `text` to `path`, the error naming the path.
+fn write_text(path: &Path, text: String) -> Result<(), MeshInError> {
+    std::fs::write(path, text).map_err(|source| MeshInError::Io {
+        path: path.display().to_string(),
         source,
-    })?;
-    // The work folder goes whatever happens next (issue 47: a failed run left it behind).
-    let _work_guard = RemoveOnDrop(work.clone());
-    let surf = work.join("surface.msh");
+    })
+}
+
+/// The surfaces as a Gmsh 2.2 surface mesh: elementary and physical tags 1 = `OUTER`, 2 =
+/// `BASE` (where `is_base`), 3 = `INNER`.
+fn surface_msh_text(outer: &SurfaceMesh, inner: Option<&SurfaceMesh>, is_base: &[bool]) -> String {
     let mut text = String::from("$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nodes\n");
     let inner_offset = outer.vertices.len();
     let all_vertices: Vec<&[f64; 3]> = outer
@@ -446,7 +489,7 @@ pub fn mesh_volume(
         outer.triangles.len() + inner_count
     );
     let mut id = 0;
-    for (t, &base) in outer.triangles.iter().zip(&is_base) {
+    for (t, &base) in outer.triangles.iter().zip(is_base) {
         id += 1;
         let tag = if base { 2 } else { 1 };
         let _ = writeln!(
@@ -463,16 +506,14 @@ pub fn mesh_volume(
         let _ = writeln!(text, "{id} 2 2 3 3 {a} {b} {c}");
     }
     text.push_str("$EndElements\n");
-    std::fs::write(&surf, text).map_err(|source| MeshInError::Io {
-        path: surf.display().to_string(),
-        source,
-    })?;
-    let out_abs = std::path::absolute(out_msh).map_err(|source| MeshInError::Io {
-        path: out_msh.display().to_string(),
-        source,
-    })?;
+    text
+}
+
+/// The Gmsh script that bounds a volume by `surface.msh`'s surfaces (a cavity when
+/// `with_inner`) and names the physical groups.
+fn volume_geo_text(with_inner: bool, max_size: Option<f64>) -> String {
     let mut geo = String::from("Merge \"surface.msh\";\nSurface Loop(1) = {1, 2};\n");
-    if inner.is_some() {
+    if with_inner {
         geo.push_str("Surface Loop(2) = {3};\nVolume(1) = {1, 2};\n");
         geo.push_str("Physical Surface(\"INNER\") = {3};\n");
     } else {
@@ -482,24 +523,32 @@ pub fn mesh_volume(
         "Physical Surface(\"OUTER\") = {1};\nPhysical Surface(\"BASE\") = {2};\n\
          Physical Volume(\"TISSUE\") = {1};\nMesh.Optimize = 1;\nMesh.MshFileVersion = 2.2;\n",
     );
-    if let Some(h) = options.max_size {
+    if let Some(h) = max_size {
         let _ = writeln!(geo, "Mesh.MeshSizeMax = {h:e};");
     }
-    let geo_path = work.join("volume.geo");
-    std::fs::write(&geo_path, geo).map_err(|source| MeshInError::Io {
-        path: geo_path.display().to_string(),
-        source,
-    })?;
-    let output = Command::new(&options.gmsh)
-        .current_dir(&work)
+    geo
+}
+
+/// Runs Gmsh on `work/volume.geo`, writing `out_abs`; `progress` gets its `Info` lines.
+///
+/// # Errors
+/// [`MeshInError::Gmsh`] when Gmsh is missing, fails, or logs an error (quoted).
+fn run_gmsh(
+    gmsh: &Path,
+    work: &Path,
+    out_abs: &Path,
+    mut progress: impl FnMut(&str),
+) -> Result<(), MeshInError> {
+    let output = Command::new(gmsh)
+        .current_dir(work)
         .args(["volume.geo", "-3", "-format", "msh22", "-o"])
-        .arg(&out_abs)
+        .arg(out_abs)
         .stdin(Stdio::null())
         .output()
         .map_err(|e| {
             MeshInError::Gmsh(format!(
                 "cannot run {}: {e} (install Debian's gmsh: tests/install-gmsh.sh)",
-                options.gmsh.display()
+                gmsh.display()
             ))
         })?;
     let log = String::from_utf8_lossy(&output.stdout).into_owned()
@@ -516,32 +565,28 @@ pub fn mesh_volume(
                     .any(|s| l.contains(s))
         })
         .collect();
-    if !output.status.success() || !errors.is_empty() {
-        let quoted: String = errors
-            .iter()
-            .take(6)
-            .copied()
-            .collect::<Vec<_>>()
-            .join("; ");
-        let hint = if log.contains("intersect") || log.contains("overlapping") {
-            " (the surface intersects itself: repair it before meshing)"
-        } else {
-            ""
-        };
-        return Err(MeshInError::Gmsh(format!(
-            "volume meshing failed{hint}: {}",
-            if quoted.is_empty() {
-                format!("exit status {}", output.status)
-            } else {
-                quoted
-            }
-        )));
+    if output.status.success() && errors.is_empty() {
+        return Ok(());
     }
-    Ok(VolumeSummary {
-        outer_triangles: outer.triangles.len(),
-        base_triangles,
-        inner_triangles: inner_count,
-    })
+    let quoted: String = errors
+        .iter()
+        .take(6)
+        .copied()
+        .collect::<Vec<_>>()
+        .join("; ");
+    let hint = if log.contains("intersect") || log.contains("overlapping") {
+        " (the surface intersects itself: repair it before meshing)"
+    } else {
+        ""
+    };
+    Err(MeshInError::Gmsh(format!(
+        "volume meshing failed{hint}: {}",
+        if quoted.is_empty() {
+            format!("exit status {}", output.status)
+        } else {
+            quoted
+        }
+    )))
 }
 
 #[cfg(test)]

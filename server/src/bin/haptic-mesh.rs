@@ -10,7 +10,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::Parser;
 use haptic_server::surface_mesh::{
-    ClampRule, VolumeOptions, check_closed, mesh_volume, read_surface,
+    ClampRule, SurfaceMesh, VolumeOptions, VolumeSummary, check_closed, mesh_volume, read_surface,
 };
 
 /// Turn a closed organ surface into a tetrahedral mesh and a scene.
@@ -75,7 +75,8 @@ fn main() -> anyhow::Result<()> {
     result
 }
 
-fn run(args: &Args) -> anyhow::Result<()> {
+/// The clamp rule and the scene's name from the arguments, every option checked.
+fn checked_options(args: &Args) -> anyhow::Result<(ClampRule, String)> {
     let clamp = match (args.clamp_below_z, args.clamp_above_z) {
         (Some(z), None) => ClampRule::BelowZ(z),
         (None, Some(z)) => ClampRule::AboveZ(z),
@@ -110,26 +111,27 @@ fn run(args: &Args) -> anyhow::Result<()> {
         "--name {name:?}: use letters, digits, '-' and '_'"
     );
 
-    eprintln!("reading {} ...", args.surface.display());
-    let outer = read_surface(&args.surface)?;
-    check_closed(&outer, &args.surface)?;
+    Ok((clamp, name))
+}
+
+/// Reads a surface, checks that it is closed and manifold, and reports its size.
+fn read_closed(path: &std::path::Path, what: &str) -> anyhow::Result<SurfaceMesh> {
+    eprintln!("reading {what}{} ...", path.display());
+    let mesh = read_surface(path)?;
+    check_closed(&mesh, path)?;
     eprintln!(
         "  {} vertices, {} triangles, closed and manifold",
-        outer.vertices.len(),
-        outer.triangles.len()
+        mesh.vertices.len(),
+        mesh.triangles.len()
     );
+    Ok(mesh)
+}
+
+fn run(args: &Args) -> anyhow::Result<()> {
+    let (clamp, name) = checked_options(args)?;
+    let outer = read_closed(&args.surface, "")?;
     let inner = match &args.inner {
-        Some(p) => {
-            eprintln!("reading the cavity {} ...", p.display());
-            let m = read_surface(p)?;
-            check_closed(&m, p)?;
-            eprintln!(
-                "  {} vertices, {} triangles",
-                m.vertices.len(),
-                m.triangles.len()
-            );
-            Some(m)
-        }
+        Some(p) => Some(read_closed(p, "the cavity ")?),
         None => None,
     };
     std::fs::create_dir_all(&args.out)
@@ -155,7 +157,26 @@ fn run(args: &Args) -> anyhow::Result<()> {
     eprintln!("  done in {:.1} s", t.elapsed().as_secs_f64());
 
     let scene_path = args.out.join(format!("{name}.toml"));
-    let scene = format!(
+    let scene = scene_text(args, &name, &summary);
+    std::fs::write(&scene_path, scene)
+        .with_context(|| format!("writing {}", scene_path.display()))?;
+    eprintln!("checking the scene as the daemon loads it ...");
+    let loaded = haptic_model::scene::load_scene_file(&scene_path)
+        .with_context(|| format!("the generated scene {} does not load", scene_path.display()))?;
+    println!(
+        "{}: {} nodes, {} tetrahedra; scene {}",
+        msh.display(),
+        loaded.mesh.node_count(),
+        loaded.mesh.tet_count(),
+        scene_path.display()
+    );
+    Ok(())
+}
+
+/// The scene file for the meshed volume: `name`'s mesh, the material of the arguments, the
+/// shipped integrator and probe defaults.
+fn scene_text(args: &Args, name: &str, summary: &VolumeSummary) -> String {
+    format!(
         "# Made by haptic-mesh from {surface} ({outer} outer triangles: {base} clamped as BASE, the\n\
          # rest touchable as OUTER{cavity}).\n\
          name = \"{name}\"\n\
@@ -182,18 +203,5 @@ fn run(args: &Args) -> anyhow::Result<()> {
         unit = args.unit,
         e = args.youngs_modulus_pa,
         nu = args.poisson_ratio,
-    );
-    std::fs::write(&scene_path, scene)
-        .with_context(|| format!("writing {}", scene_path.display()))?;
-    eprintln!("checking the scene as the daemon loads it ...");
-    let loaded = haptic_model::scene::load_scene_file(&scene_path)
-        .with_context(|| format!("the generated scene {} does not load", scene_path.display()))?;
-    println!(
-        "{}: {} nodes, {} tetrahedra; scene {}",
-        msh.display(),
-        loaded.mesh.node_count(),
-        loaded.mesh.tet_count(),
-        scene_path.display()
-    );
-    Ok(())
+    )
 }
