@@ -110,7 +110,13 @@ fn skip_string(chars: &[char], i: usize, out: &mut String) -> usize {
     out.push_str("\"\"");
     while j < chars.len() {
         match chars[j] {
-            '\\' => j += 2,
+            '\\' => {
+                // A line continuation's break is a line of the file too.
+                if chars.get(j + 1) == Some(&'\n') {
+                    out.push('\n');
+                }
+                j += 2;
+            }
             '"' => return j + 1,
             '\n' => {
                 out.push('\n');
@@ -260,6 +266,100 @@ pub fn uses_unsafe(code: &str) -> bool {
     })
 }
 
+/// The code of a file before its first test module (`#[cfg(test)]` followed by `mod`),
+/// comments and strings stripped. Unlike [`code_outside_tests`], a `#[cfg(test)]` on a field,
+/// an import or a helper function does not end the code there.
+pub fn code_before_test_module(text: &str) -> String {
+    let code = strip_comments_and_strings(text);
+    let end = code
+        .match_indices("#[cfg(test)]")
+        .find(|(i, m)| {
+            let rest = code[i + m.len()..].trim_start();
+            rest.starts_with("mod ")
+                || rest.starts_with("pub mod ")
+                || rest.starts_with("pub(crate) mod ")
+        })
+        .map_or(code.len(), |(i, _)| i);
+    code[..end].to_string()
+}
+
+/// A function with a body in stripped code: its name, the line of its `fn` keyword (1-based)
+/// and its length in lines, from that line to the line of its closing brace, both counted.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FnSpan {
+    /// The function's name.
+    pub name: String,
+    /// Line of the `fn` keyword, 1-based.
+    pub line: usize,
+    /// Lines from the `fn` keyword's line to the closing brace's, both included.
+    pub lines: usize,
+}
+
+/// Every function with a body in the stripped `code` (nested ones too; a declaration ending
+/// in `;` and a `fn(..)` pointer type are not functions). The body is the first `{` after the
+/// name outside parentheses and brackets (so `-> [u8; 3]` is a return type, not the end),
+/// matched to its closing brace.
+pub fn function_spans(code: &str) -> Vec<FnSpan> {
+    let bytes = code.as_bytes();
+    let mut spans = Vec::new();
+    for (at, _) in code.match_indices("fn") {
+        let before_ok = at == 0 || !is_ident_char(bytes[at - 1] as char);
+        let rest = &code[at + 2..];
+        let after = rest.trim_start();
+        if !before_ok || !rest.starts_with(char::is_whitespace) {
+            continue;
+        }
+        let name: String = after.chars().take_while(|&c| is_ident_char(c)).collect();
+        if name.is_empty() || name.starts_with(|c: char| c.is_ascii_digit()) {
+            continue;
+        }
+        let Some(open) = body_start(code, at + 2) else {
+            continue;
+        };
+        let Some(close) = matching_brace(code, open) else {
+            continue;
+        };
+        let line = code[..at].matches('\n').count() + 1;
+        let lines = code[at..=close].matches('\n').count() + 1;
+        spans.push(FnSpan { name, line, lines });
+    }
+    spans
+}
+
+/// The byte index of the `{` that opens the body of the function whose signature starts at
+/// `from`, or `None` for a declaration (`;` first).
+fn body_start(code: &str, from: usize) -> Option<usize> {
+    let mut depth = 0i32;
+    for (i, c) in code[from..].char_indices() {
+        match c {
+            '(' | '[' => depth += 1,
+            ')' | ']' => depth -= 1,
+            '{' if depth == 0 => return Some(from + i),
+            ';' if depth == 0 => return None,
+            _ => {}
+        }
+    }
+    None
+}
+
+/// The byte index of the `}` that closes the `{` at `open`.
+fn matching_brace(code: &str, open: usize) -> Option<usize> {
+    let mut depth = 0usize;
+    for (i, c) in code[open..].char_indices() {
+        match c {
+            '{' => depth += 1,
+            '}' => {
+                depth -= 1;
+                if depth == 0 {
+                    return Some(open + i);
+                }
+            }
+            _ => {}
+        }
+    }
+    None
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -294,6 +394,25 @@ mod tests {
         ] {
             assert!(!uses_unsafe(code), "{code}");
         }
+    }
+
+    #[test]
+    fn measures_functions_from_their_keyword_to_their_closing_brace() {
+        let text = "pub fn a(x: [u8; 3]) -> [u8; 3] {\n    let s = \"}{ a \\\n  b\";\n    x\n}\nfn b();\ntype P = fn(u8) -> u8;\nimpl T {\n    fn c<'a>(&'a self) where Self: Sized {\n        fn d() {}\n    }\n}\n#[cfg(test)]\nstruct Only;\nfn e() {}\n#[cfg(test)]\nmod tests {\n    fn f() {}\n}\n";
+        let code = code_before_test_module(text);
+        let spans: Vec<(String, usize, usize)> = function_spans(&code)
+            .into_iter()
+            .map(|s| (s.name, s.line, s.lines))
+            .collect();
+        assert_eq!(
+            spans,
+            [
+                ("a".to_string(), 1, 5),
+                ("c".to_string(), 9, 3),
+                ("d".to_string(), 10, 1),
+                ("e".to_string(), 15, 1),
+            ]
+        );
     }
 
     #[test]

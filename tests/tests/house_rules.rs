@@ -5,12 +5,17 @@
 //!   above it), and every entry of that list still holds some `unsafe`;
 //! - no crate's top-level modules import each other in a cycle (the model's stricter layer
 //!   order is `server/model/tests/module_layers.rs`);
-//! - ARCHITECTURE.md stays a map of at most 150 lines.
+//! - ARCHITECTURE.md stays a map of at most 150 lines;
+//! - no function outside the tests is longer than [`MAX_FUNCTION_LINES`] (issue 49: a function
+//!   that long is cut at its stages into named functions).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
-use haptic_e2e::source_scan::{crate_edges, rust_files, strip_comments_and_strings, uses_unsafe};
+use haptic_e2e::source_scan::{
+    code_before_test_module, crate_edges, function_spans, rust_files, strip_comments_and_strings,
+    uses_unsafe,
+};
 
 /// The repository's root (this crate is `tests/`).
 fn root() -> PathBuf {
@@ -183,4 +188,42 @@ fn architecture_is_a_map_of_at_most_150_lines() {
 fn the_unsafe_list_is_read_from_the_bullet_only() {
     let text = "intro `a/b.rs`\n- **`unsafe`** in `x/y.rs` and `x/z/`\n  also `p/q.rs`, not `word`\n- next `m/n.rs`\n";
     assert_eq!(listed_unsafe_paths(text), ["x/y.rs", "x/z/", "p/q.rs"]);
+}
+
+/// The longest a function outside the tests may be, in lines from its `fn` keyword to its
+/// closing brace.
+const MAX_FUNCTION_LINES: usize = 100;
+
+#[test]
+fn no_function_outside_the_tests_is_longer_than_the_limit() {
+    let root = root();
+    let mut long = Vec::new();
+    let mut functions = 0;
+    for src in LIBRARIES {
+        for file in rust_files(&root.join(src)) {
+            let text = std::fs::read_to_string(&file).expect("read a source file");
+            let spans = function_spans(&code_before_test_module(&text));
+            functions += spans.len();
+            for span in spans.into_iter().filter(|s| s.lines > MAX_FUNCTION_LINES) {
+                let rel = file.strip_prefix(&root).expect("under the root");
+                long.push(format!(
+                    "{}:{} {} ({} lines)",
+                    rel.display(),
+                    span.line,
+                    span.name,
+                    span.lines
+                ));
+            }
+        }
+    }
+    assert!(
+        functions > 1000,
+        "the scan found too few functions ({functions}) to be real"
+    );
+    assert!(
+        long.is_empty(),
+        "functions longer than {MAX_FUNCTION_LINES} lines: cut them at their stages into \
+         named functions:\n{}",
+        long.join("\n")
+    );
 }
