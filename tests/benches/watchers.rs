@@ -77,6 +77,43 @@ async fn relay_counters(addr: &str) -> Result<Value> {
     Ok(serde_json::from_str(body)?)
 }
 
+/// `n` watchers of session `id` in `mode`, 30 Hz each, until `stop`.
+async fn attach_watchers(
+    mode: Mode,
+    n: usize,
+    url: &str,
+    id: &str,
+    relay: Option<(&str, u32)>,
+    stop: &Arc<AtomicBool>,
+) -> Result<Vec<Arc<Received>>> {
+    let mut watchers: Vec<Arc<Received>> = Vec::with_capacity(n);
+    for _ in 0..n {
+        let w = match mode {
+            Mode::GrpcCompact => grpc_watcher(url, id, RATE_HZ, true, stop.clone()).await?,
+            Mode::GrpcFull => grpc_watcher(url, id, RATE_HZ, false, stop.clone()).await?,
+            Mode::Relay => {
+                let (addr, _) = relay.context("relay")?;
+                ws_watcher(addr, id, RATE_HZ, stop.clone()).await?
+            }
+        };
+        watchers.push(w);
+    }
+    Ok(watchers)
+}
+
+/// CPU seconds used so far by the daemon, the relay (if any) and this process.
+fn cpu_sample(
+    daemon_pid: u32,
+    relay: Option<(&str, u32)>,
+    me: u32,
+) -> Result<(f64, Option<f64>, f64)> {
+    Ok((
+        cpu_seconds(daemon_pid)?,
+        relay.map(|(_, p)| cpu_seconds(p)).transpose()?,
+        cpu_seconds(me)?,
+    ))
+}
+
 #[allow(clippy::too_many_arguments)]
 async fn run(
     mode: Mode,
@@ -88,18 +125,7 @@ async fn run(
 ) -> Result<Value> {
     let id = start_session(url, "lv").await?;
     let stop = Arc::new(AtomicBool::new(false));
-    let mut watchers: Vec<Arc<Received>> = Vec::with_capacity(n);
-    for _ in 0..n {
-        let w = match mode {
-            Mode::GrpcCompact => grpc_watcher(url, &id, RATE_HZ, true, stop.clone()).await?,
-            Mode::GrpcFull => grpc_watcher(url, &id, RATE_HZ, false, stop.clone()).await?,
-            Mode::Relay => {
-                let (addr, _) = relay.context("relay")?;
-                ws_watcher(addr, &id, RATE_HZ, stop.clone()).await?
-            }
-        };
-        watchers.push(w);
-    }
+    let watchers = attach_watchers(mode, n, url, &id, relay, &stop).await?;
     let hold_s = format!("{}", window_s + 4.0);
     let bridge = spawn_bin(
         BRIDGE,
@@ -118,19 +144,11 @@ async fn run(
     let before: Vec<u64> = watchers.iter().map(|w| w.snapshot().0).collect();
     let s0 = stats(url, &id).await?;
     let me = std::process::id();
-    let cpu0 = (
-        cpu_seconds(daemon_pid)?,
-        relay.map(|(_, p)| cpu_seconds(p)).transpose()?,
-        cpu_seconds(me)?,
-    );
+    let cpu0 = cpu_sample(daemon_pid, relay, me)?;
     let t0 = Instant::now();
     tokio::time::sleep(Duration::from_secs_f64(window_s)).await;
     let dt = t0.elapsed().as_secs_f64();
-    let cpu1 = (
-        cpu_seconds(daemon_pid)?,
-        relay.map(|(_, p)| cpu_seconds(p)).transpose()?,
-        cpu_seconds(me)?,
-    );
+    let cpu1 = cpu_sample(daemon_pid, relay, me)?;
     let s1 = stats(url, &id).await?;
     let mem_daemon = memory_bytes(daemon_pid)?;
     let mem_relay = relay.map(|(_, p)| memory_bytes(p)).transpose()?;
@@ -188,34 +206,71 @@ fn cell(v: &Value, key: &str, decimals: usize) -> String {
         .map_or("-".into(), |x| format!("{x:.decimals$}"))
 }
 
+/// The command line: `--quick`, `--window S`, `--compact-only N,M`, `--repeat R`, `--realtime`.
+struct Options {
+    window_s: f64,
+    compact_only: Option<Vec<usize>>,
+    repeat: usize,
+    realtime: bool,
+}
+
+impl Options {
+    fn parse(args: &[String]) -> Self {
+        let quick = args.iter().any(|a| a == "--quick");
+        let value = |flag: &str| {
+            args.iter()
+                .position(|a| a == flag)
+                .and_then(|i| args.get(i + 1).cloned())
+        };
+        Self {
+            // `--window S`: a longer window counts more overruns per run (the overrun question
+            // of issue 17 needs them; the default 10 s gives a handful).
+            window_s: value("--window")
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(if quick { 3.0 } else { 10.0 }),
+            // `--compact-only N,M`: only the grpc-compact set-ups with these watcher counts.
+            compact_only: value("--compact-only")
+                .map(|v| v.split(',').filter_map(|n| n.trim().parse().ok()).collect()),
+            // Repetitions of the whole plan, interleaved, so that a slow minute of the shared
+            // machine does not land on one set-up; the table gives medians over them.
+            repeat: value("--repeat")
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(if quick { 1 } else { 3 }),
+            // `--realtime`: the servo as deployed (SCHED_FIFO, pinned to CPU 1), so that what
+            // the watchers cost it is not hidden by the scheduler's noise.
+            realtime: args.iter().any(|a| a == "--realtime"),
+        }
+    }
+
+    /// The set-ups of one repetition.
+    fn plan(&self) -> Vec<(Mode, usize)> {
+        match &self.compact_only {
+            Some(counts) => counts.iter().map(|&n| (Mode::GrpcCompact, n)).collect(),
+            None => [0, 1, 10, 100, 300]
+                .iter()
+                .map(|&n| (Mode::GrpcCompact, n))
+                .chain([1, 10, 100, 300].iter().map(|&n| (Mode::Relay, n)))
+                .chain([100, 300].iter().map(|&n| (Mode::GrpcFull, n)))
+                .collect(),
+        }
+    }
+
+    /// The results file's name.
+    fn file_name(&self) -> &'static str {
+        match (self.compact_only.is_some(), self.realtime) {
+            (true, true) => "watchers-overruns-realtime.json",
+            (true, false) => "watchers-overruns.json",
+            (false, true) => "watchers-realtime.json",
+            (false, false) => "watchers.json",
+        }
+    }
+}
+
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
 async fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
-    let quick = args.iter().any(|a| a == "--quick");
-    let value = |flag: &str| {
-        args.iter()
-            .position(|a| a == flag)
-            .and_then(|i| args.get(i + 1).cloned())
-    };
-    // `--window S`: a longer window counts more overruns per run (the overrun question of
-    // issue 17 needs them; the default 10 s gives a handful).
-    let window_s = value("--window")
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(if quick { 3.0 } else { 10.0 });
-    // `--compact-only N,M`: only the grpc-compact set-ups with these watcher counts.
-    let compact_only: Option<Vec<usize>> = value("--compact-only")
-        .map(|v| v.split(',').filter_map(|n| n.trim().parse().ok()).collect());
-    // Repetitions of the whole plan, interleaved, so that a slow minute of the shared machine
-    // does not land on one set-up; the table gives medians over them.
-    let repeat: usize = args
-        .iter()
-        .position(|a| a == "--repeat")
-        .and_then(|i| args.get(i + 1)?.parse().ok())
-        .unwrap_or(if quick { 1 } else { 3 });
-    // `--realtime`: the servo as deployed (SCHED_FIFO, pinned to CPU 1), so that what the
-    // watchers cost it is not hidden by the scheduler's noise.
-    let realtime = args.iter().any(|a| a == "--realtime");
-    let daemon = if realtime {
+    let opts = Options::parse(&args);
+    let daemon = if opts.realtime {
         Daemon::spawn(&["--realtime", "--cpu", "1"])?
     } else {
         Daemon::spawn(&[])?
@@ -225,23 +280,42 @@ async fn main() -> Result<()> {
     let (relay_proc, relay_addr) = spawn_web_viewer(&url, &[]).await?;
     let relay_pid = relay_proc.child.id().context("relay pid")?;
     let mut rows = Vec::new();
-    let plan: Vec<(Mode, usize)> = match &compact_only {
-        Some(counts) => counts.iter().map(|&n| (Mode::GrpcCompact, n)).collect(),
-        None => [0, 1, 10, 100, 300]
-            .iter()
-            .map(|&n| (Mode::GrpcCompact, n))
-            .chain([1, 10, 100, 300].iter().map(|&n| (Mode::Relay, n)))
-            .chain([100, 300].iter().map(|&n| (Mode::GrpcFull, n)))
-            .collect(),
-    };
-    for rep in 0..repeat {
+    let plan = opts.plan();
+    for rep in 0..opts.repeat {
         for &(mode, n) in &plan {
             let relay = Some((relay_addr.as_str(), relay_pid));
-            let mut row = run(mode, n, window_s, &url, daemon_pid, relay).await?;
+            let mut row = run(mode, n, opts.window_s, &url, daemon_pid, relay).await?;
             row["repetition"] = json!(rep);
             rows.push(row);
         }
     }
+    let summary = summarize(&rows, &plan);
+    print_table(&summary, opts.window_s);
+    let out = results_dir()?.join(opts.file_name());
+    let doc = json!({
+        "what": "servo step time and overruns, CPU and memory against watchers at 30 Hz, default lv, bridge pressing",
+        "command": format!(
+            "cargo bench -p haptic-e2e --bench watchers --{}",
+            args.iter()
+                .skip(1)
+                .filter(|a| *a != "--bench" && *a != "--publish")
+                .fold(String::new(), |acc, a| acc + " " + a)
+        ),
+        "window_s": opts.window_s,
+        "repetitions": opts.repeat,
+        "realtime": opts.realtime,
+        "summary": summary,
+        "runs": rows,
+    });
+    std::fs::write(&out, serde_json::to_string_pretty(&doc)? + "\n")?;
+    eprintln!("wrote {}", out.display());
+    drop(relay_proc);
+    Ok(())
+}
+
+/// Per set-up of `plan`, the medians over the repetitions in `rows` (memory: the first
+/// repetition's), the p99 and overrun ranges, and the frames dropped in all of them.
+fn summarize(rows: &[Value], plan: &[(Mode, usize)]) -> Vec<Value> {
     // Medians over the repetitions of each set-up.
     let median = |mode: &str, n: u64, key: &str| -> Option<f64> {
         let v: Vec<f64> = rows
@@ -266,8 +340,7 @@ async fn main() -> Result<()> {
             .find(|r| r["mode"] == mode && r["watchers"] == n)
             .and_then(|r| r[key].as_f64())
     };
-    let summary: Vec<Value> = plan
-        .iter()
+    plan.iter()
         .map(|&(mode, n)| {
             let (m, n) = (mode.name(), n as u64);
             let dropped: u64 = rows
@@ -301,13 +374,17 @@ async fn main() -> Result<()> {
                 "dropped": dropped,
             })
         })
-        .collect();
+        .collect()
+}
+
+/// The summary as a Markdown table on stdout.
+fn print_table(summary: &[Value], window_s: f64) {
     println!(
         "| set-up | watchers | step p50 / p99 (us) | p99 range | overruns in {window_s:.0} s (range) | daemon CPU | relay CPU | watchers' CPU | daemon / relay RSS (MB) | frames per watcher min / p50 (of {:.0}) | dropped |",
         RATE_HZ * window_s
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|");
-    for r in &summary {
+    for r in summary {
         println!(
             "| {} | {} | {} / {} | {} | {} ({}) | {} % | {} % | {} % | {} / {} | {} / {} | {} |",
             r["mode"].as_str().unwrap_or(""),
@@ -327,32 +404,6 @@ async fn main() -> Result<()> {
             r["dropped"],
         );
     }
-    let name = match (compact_only.is_some(), realtime) {
-        (true, true) => "watchers-overruns-realtime.json",
-        (true, false) => "watchers-overruns.json",
-        (false, true) => "watchers-realtime.json",
-        (false, false) => "watchers.json",
-    };
-    let out = results_dir()?.join(name);
-    let doc = json!({
-        "what": "servo step time and overruns, CPU and memory against watchers at 30 Hz, default lv, bridge pressing",
-        "command": format!(
-            "cargo bench -p haptic-e2e --bench watchers --{}",
-            args.iter()
-                .skip(1)
-                .filter(|a| *a != "--bench" && *a != "--publish")
-                .fold(String::new(), |acc, a| acc + " " + a)
-        ),
-        "window_s": window_s,
-        "repetitions": repeat,
-        "realtime": realtime,
-        "summary": summary,
-        "runs": rows,
-    });
-    std::fs::write(&out, serde_json::to_string_pretty(&doc)? + "\n")?;
-    eprintln!("wrote {}", out.display());
-    drop(relay_proc);
-    Ok(())
 }
 
 /// Where results go: `target/bench/` (or `$CARGO_TARGET_DIR/bench/`), or `docs/bench/` with
