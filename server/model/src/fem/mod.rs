@@ -90,26 +90,45 @@ pub struct StabilityReport {
 pub struct FemBody {
     fem: FemModel,
     stepper: Stepper,
-    plan: StepPlan,
-    tick_s: f64,
-    loads: BodyLoads,
-    /// Set when a tick diverged; later ticks refuse to run.
-    diverged_at_s: Option<f64>,
+    setup: FemSetup,
     state: FemState,
-    /// Scratch: total nodal forces of the current sub-step.
-    force: Vec<DVec3>,
-    /// Work arrays of the single-precision force kernel (empty when it is off).
-    force_scratch: ForceScratch,
     probe: Probe,
-    /// Surface for viewers: distinct boundary nodes and triangles indexing into them.
-    surface_nodes: Vec<u32>,
-    surface_triangles: Vec<[u32; 3]>,
-    scene_name: String,
-    last_output: TickOutput,
+    loads: BodyLoads,
+    scratch: FemScratch,
+    status: TickStatus,
     /// A following active region's worker ([`RegionFollower`]).
     follow: FollowSlot,
     /// The coarse companion of a following region (`active_region.fallback_target_tets`).
     fallback: Option<Box<Fallback>>,
+}
+
+/// What a [`FemBody`] fixes at set-up: its sub-stepping, tick and the surface it shows.
+#[derive(Debug, Clone)]
+struct FemSetup {
+    plan: StepPlan,
+    /// Servo tick, s.
+    tick_s: f64,
+    scene_name: String,
+    /// Surface for viewers: distinct boundary nodes and triangles indexing into them.
+    surface_nodes: Vec<u32>,
+    surface_triangles: Vec<[u32; 3]>,
+}
+
+/// Work arrays of one sub-step, overwritten every time.
+#[derive(Debug, Clone)]
+struct FemScratch {
+    /// Total nodal forces of the current sub-step, N.
+    force: Vec<DVec3>,
+    /// Work arrays of the single-precision force kernel (empty when it is off).
+    kernel: ForceScratch,
+}
+
+/// What the ticks so far left: the last output and whether one diverged.
+#[derive(Debug, Clone, Copy, Default)]
+struct TickStatus {
+    /// Set when a tick diverged; later ticks refuse to run.
+    diverged_at_s: Option<f64>,
+    last_output: TickOutput,
 }
 
 /// Holds the [`RegionFollower`] of a following active region. A clone of the simulation does
@@ -231,26 +250,29 @@ impl FemBody {
         let fallback = companion(scene, follows, progress)?;
         Ok(Self {
             stepper,
-            plan,
-            tick_s: p.tick_s,
+            setup: FemSetup {
+                plan,
+                tick_s: p.tick_s,
+                scene_name: scene.name.clone(),
+                surface_nodes,
+                surface_triangles,
+            },
             loads,
-            diverged_at_s: None,
             state: FemState {
                 x: fem.rest().to_vec(),
                 v: vec![DVec3::ZERO; n],
                 time_s: 0.0,
             },
-            force: vec![DVec3::ZERO; n],
-            force_scratch: if fem.single_precision() {
-                ForceScratch::new(n)
-            } else {
-                ForceScratch::default()
+            scratch: FemScratch {
+                force: vec![DVec3::ZERO; n],
+                kernel: if fem.single_precision() {
+                    ForceScratch::new(n)
+                } else {
+                    ForceScratch::default()
+                },
             },
             probe,
-            surface_nodes,
-            surface_triangles,
-            scene_name: scene.name.clone(),
-            last_output: TickOutput::default(),
+            status: TickStatus::default(),
             follow,
             fallback,
             fem,
@@ -268,7 +290,7 @@ impl FemBody {
     /// allocates.
     pub fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
         input.validate()?;
-        if let Some(time_s) = self.diverged_at_s {
+        if let Some(time_s) = self.status.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
         let swaps_before = self.follow.0.as_ref().map_or(0, RegionFollower::swaps);
@@ -284,44 +306,47 @@ impl FemBody {
                 &mut self.state.v,
             );
         }
-        for _ in 0..self.plan.substeps {
+        for _ in 0..self.setup.plan.substeps {
             // 1. Forces: internal and external.
-            self.force.iter_mut().for_each(|f| *f = DVec3::ZERO);
+            self.scratch.force.iter_mut().for_each(|f| *f = DVec3::ZERO);
             self.stepper.add_internal_forces(
                 &self.fem,
                 &self.state.x,
                 &self.state.v,
-                &mut self.force,
-                &mut self.force_scratch,
+                &mut self.scratch.force,
+                &mut self.scratch.kernel,
             );
-            self.loads.add_to(&self.state.x, &mut self.force);
+            self.loads.add_to(&self.state.x, &mut self.scratch.force);
             // 2. Contact: the probe's proxy and the explicit part of its reaction.
             match input.device_position_m {
                 Some(p) => {
                     self.probe
                         .update(&self.state.x, p, input.device_velocity_m_per_s);
-                    self.probe.add_reaction(&mut self.force);
+                    self.probe.add_reaction(&mut self.scratch.force);
                     if self.loads.probe_load_remaining_s() > 0.0 {
                         let patch = self.probe.load_patch(&self.state.x);
-                        self.loads.add_probe_load_to(patch, &mut self.force);
+                        self.loads.add_probe_load_to(patch, &mut self.scratch.force);
                     }
                 }
                 None => self.probe.release(),
             }
             // 3. Step, completing the coupling.
-            let report =
-                self.stepper
-                    .step(&self.fem, &self.force, &mut self.probe, &mut self.state);
+            let report = self.stepper.step(
+                &self.fem,
+                &self.scratch.force,
+                &mut self.probe,
+                &mut self.state,
+            );
             let max_v2 = report.max_speed2_m2_per_s2;
             if !(max_v2 <= DIVERGENCE_SPEED_M_PER_S * DIVERGENCE_SPEED_M_PER_S) {
-                self.diverged_at_s = Some(self.state.time_s);
+                self.status.diverged_at_s = Some(self.state.time_s);
                 return Err(ModelError::Diverged {
                     time_s: self.state.time_s,
                 });
             }
         }
-        self.state.time_s += self.tick_s;
-        self.loads.advance(self.tick_s);
+        self.state.time_s += self.setup.tick_s;
+        self.loads.advance(self.setup.tick_s);
         // 4. Output.
         let contact = self.probe.state;
         let out = TickOutput {
@@ -347,7 +372,7 @@ impl FemBody {
             }
             None => out,
         };
-        self.last_output = out;
+        self.status.last_output = out;
         Ok(out)
     }
 
@@ -388,8 +413,8 @@ impl FemBody {
             }
         };
         StabilityReport {
-            stable: finite && self.diverged_at_s.is_none(),
-            diverged_at_s: self.diverged_at_s,
+            stable: finite && self.status.diverged_at_s.is_none(),
+            diverged_at_s: self.status.diverged_at_s,
             finite,
             max_speed_m_per_s: max_speed,
             kinetic_energy_j: self.kinetic_energy_j(),
@@ -500,7 +525,7 @@ impl FemBody {
     /// If `out` has the wrong length.
     pub fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
         write_positions(
-            &self.surface_nodes,
+            &self.setup.surface_nodes,
             &self.state.x,
             Some(self.fem.rest()),
             out,
@@ -530,12 +555,12 @@ impl FemBody {
 
     /// Boundary nodes shown to viewers (indices into the body's nodes), sorted.
     pub fn surface_node_indices(&self) -> &[u32] {
-        &self.surface_nodes
+        &self.setup.surface_nodes
     }
 
     /// Boundary triangles indexing into [`FemBody::surface_node_indices`], outward oriented.
     pub fn surface_triangles(&self) -> &[[u32; 3]] {
-        &self.surface_triangles
+        &self.setup.surface_triangles
     }
 
     /// The FEM data.
@@ -584,13 +609,13 @@ impl FemBody {
     /// the backward Euler warm start and a recorded divergence.
     pub fn state_mut(&mut self) -> &mut FemState {
         self.stepper.reset();
-        self.diverged_at_s = None;
+        self.status.diverged_at_s = None;
         &mut self.state
     }
 
     /// Sub-step plan.
     pub fn plan(&self) -> StepPlan {
-        self.plan
+        self.setup.plan
     }
 
     /// Integrator in use.
@@ -600,7 +625,7 @@ impl FemBody {
 
     /// Servo tick, s.
     pub fn tick_s(&self) -> f64 {
-        self.tick_s
+        self.setup.tick_s
     }
 
     /// Probe radius, m.
@@ -610,12 +635,12 @@ impl FemBody {
 
     /// Scene name.
     pub fn scene_name(&self) -> &str {
-        &self.scene_name
+        &self.setup.scene_name
     }
 
     /// The output of the last successful tick.
     pub fn last_output(&self) -> TickOutput {
-        self.last_output
+        self.status.last_output
     }
 }
 
@@ -769,15 +794,15 @@ impl SoftBody for FemBody {
     fn surface_topology(&self) -> SurfaceTopology<'_> {
         SurfaceTopology {
             version: 0,
-            vertex_count: self.surface_nodes.len(),
-            triangles: &self.surface_triangles,
+            vertex_count: self.setup.surface_nodes.len(),
+            triangles: &self.setup.surface_triangles,
         }
     }
 
     fn surface_capacity(&self) -> SurfaceCapacity {
         SurfaceCapacity {
-            vertices: self.surface_nodes.len(),
-            triangles: self.surface_triangles.len(),
+            vertices: self.setup.surface_nodes.len(),
+            triangles: self.setup.surface_triangles.len(),
         }
     }
 
@@ -786,7 +811,7 @@ impl SoftBody for FemBody {
     }
 
     fn write_surface_rest_positions(&self, out: &mut [f32]) {
-        write_positions(&self.surface_nodes, self.fem.rest(), None, out);
+        write_positions(&self.setup.surface_nodes, self.fem.rest(), None, out);
     }
 
     fn stats(&self) -> BodyStats {
@@ -797,7 +822,7 @@ impl SoftBody for FemBody {
             particles: 0,
             active_particles: 0,
             active_point_loads: self.loads.active_point_loads(),
-            surface_vertices: self.surface_nodes.len(),
+            surface_vertices: self.setup.surface_nodes.len(),
             topology_version: 0,
             sim_time_s: self.state.time_s,
             max_displacement_m: self.max_displacement_m(),
@@ -812,10 +837,10 @@ impl SoftBody for FemBody {
     fn info(&self) -> BodyInfo {
         BodyInfo {
             family: "fem",
-            scene: self.scene_name.clone(),
-            tick_s: self.tick_s,
-            substeps: self.plan.substeps,
-            critical_dt_s: self.plan.critical_dt_s,
+            scene: self.setup.scene_name.clone(),
+            tick_s: self.setup.tick_s,
+            substeps: self.setup.plan.substeps,
+            critical_dt_s: self.setup.plan.critical_dt_s,
             probe_radius_m: self.probe.params.radius_m,
             point_loads: self.point_load_zone(),
         }
