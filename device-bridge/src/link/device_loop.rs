@@ -7,11 +7,11 @@ use std::sync::atomic::Ordering;
 use tokio::sync::mpsc;
 
 use crate::clock::Clock;
-use crate::device::{HapticDevice, vec3};
+use crate::device::{DeviceError, DeviceSpec, DeviceState, HapticDevice, PressAxis, vec3};
 use crate::guard::{ForceGuard, GuardCommand, GuardState, GuardStats, Limits};
 use crate::record::TickRecord;
 
-use super::shared::{OutSample, Shared};
+use super::shared::{OutSample, ReceivedForce, Shared};
 use super::{BridgeConfig, RearmMode};
 
 /// Rows reserved up front when recording: 120 s at the device rate.
@@ -70,179 +70,304 @@ impl Deadband {
     }
 }
 
+/// The device thread's state between ticks: what [`device_loop`] set up before the first tick
+/// and carries from one tick to the next. Built once per run; a tick only copies into it.
+struct DeviceThread<'a> {
+    device: Box<dyn HapticDevice>,
+    clock: Arc<dyn Clock>,
+    shared: Arc<Shared>,
+    samples: mpsc::Sender<OutSample>,
+    config: &'a BridgeConfig,
+    spec: DeviceSpec,
+    period_us: u64,
+    guard: ForceGuard,
+    axis: Option<PressAxis>,
+    st: DeviceLoopStats,
+    start_us: u64,
+    stop_at_us: Option<u64>,
+    deadline_us: u64,
+    /// Sequence number of the last sample sent.
+    seq: u64,
+    /// First failed read of the current run of failures.
+    failing_since_us: Option<u64>,
+    /// Re-arm button presses already acted on.
+    presses_seen: u64,
+    /// The device's output is disabled in hardware (devices.md S5).
+    output_disabled: bool,
+    deadband: Option<Deadband>,
+}
+
+impl<'a> DeviceThread<'a> {
+    /// Everything the loop needs before its first tick (the recording buffer reserved here).
+    fn new(
+        device: Box<dyn HapticDevice>,
+        clock: Arc<dyn Clock>,
+        shared: Arc<Shared>,
+        samples: mpsc::Sender<OutSample>,
+        config: &'a BridgeConfig,
+    ) -> Self {
+        let spec = device.spec().clone();
+        let period_us = ((1e6 / config.rate_hz).round() as u64).max(1);
+        let guard = ForceGuard::new(config.guard);
+        let axis = device.press_axis();
+        let mut st = DeviceLoopStats::default();
+        if config.record {
+            st.records
+                .reserve((RECORD_RESERVE_S * config.rate_hz) as usize);
+        }
+        let start_us = clock.now_us();
+        let stop_at_us = config
+            .max_duration
+            .map(|d| start_us.saturating_add(u64::try_from(d.as_micros()).unwrap_or(u64::MAX)));
+        let presses_seen = match &config.rearm {
+            RearmMode::Operator(b) => b.presses(),
+            RearmMode::Auto => 0,
+        };
+        let deadband = config.deadband.map(|k| Deadband {
+            k,
+            last_sent_us: None,
+            sent_position_m: [0.0; 3],
+            sent_force_n: [0.0; 3],
+        });
+        Self {
+            device,
+            clock,
+            shared,
+            samples,
+            config,
+            spec,
+            period_us,
+            guard,
+            axis,
+            st,
+            start_us,
+            stop_at_us,
+            deadline_us: start_us,
+            seq: 0,
+            failing_since_us: None,
+            presses_seen,
+            output_disabled: false,
+            deadband,
+        }
+    }
+
+    /// The device finished, the hard stop passed, or the network side asked to stop.
+    fn stop_requested(&self, now: u64) -> bool {
+        self.shared.stop.load(Ordering::Acquire)
+            || self.device.finished(now)
+            || self.stop_at_us.is_some_and(|t| now >= t)
+    }
+
+    /// One tick with a good pose: read the slot, send the sample (unless the deadband keeps it
+    /// back), re-arm if due, render the guarded force, count it and record the row.
+    fn tick(&mut self, now: u64, state: DeviceState) {
+        self.failing_since_us = None;
+        let (link_up, latest, limits) = {
+            let s = self.shared.slot();
+            (s.link_up, s.latest, s.limits)
+        };
+        self.send_sample(now, state, latest);
+        self.guard.set_app_limits(limits);
+        self.rearm();
+        let f = self.render(now, link_up, latest, &state);
+        let st = &mut self.st;
+        st.final_force_n = f;
+        st.peak_force_n = st.peak_force_n.max(vec3::norm(f));
+        if let Some(a) = self.axis {
+            let d = vec3::dot(vec3::sub(state.position_m, a.start_m), a.direction);
+            st.max_depth_m = st.max_depth_m.max(d);
+        }
+        if self.config.record {
+            self.record(now, &state, f, latest);
+        }
+    }
+
+    /// Hands the sample to the network task (never blocking: a full queue drops and counts
+    /// it), or counts it as kept back by the deadband.
+    fn send_sample(&mut self, now: u64, state: DeviceState, latest: Option<ReceivedForce>) {
+        let predicted = latest.map_or([0.0; 3], |r| {
+            crate::guard::extrapolate(
+                r.force_n,
+                &r.stiffness_n_per_m,
+                r.sample_position_m,
+                state.position_m,
+                self.config.guard.max_extrapolation_m,
+            )
+        });
+        let send = self
+            .deadband
+            .as_ref()
+            .is_none_or(|d| d.should_send(now, state.position_m, predicted));
+        if send {
+            self.seq += 1;
+            if let Some(d) = self.deadband.as_mut() {
+                d.last_sent_us = Some(now);
+                d.sent_position_m = state.position_m;
+                d.sent_force_n = predicted;
+            }
+            if let Err(mpsc::error::TrySendError::Full(_)) = self.samples.try_send(OutSample {
+                seq: self.seq,
+                state,
+            }) {
+                self.st.samples_dropped += 1;
+            }
+        } else {
+            self.st.samples_suppressed += 1;
+        }
+    }
+
+    /// Asks the guard to re-arm: at once when it is ready (`--rearm auto`), or on a new press
+    /// of the operator's button.
+    fn rearm(&mut self) {
+        match &self.config.rearm {
+            RearmMode::Auto => {
+                if self.guard.state() == GuardState::ReadyToRearm {
+                    self.guard.request_rearm();
+                }
+            }
+            RearmMode::Operator(b) => {
+                let p = b.presses();
+                if p != self.presses_seen {
+                    self.presses_seen = p;
+                    self.guard.request_rearm();
+                }
+            }
+        }
+    }
+
+    /// The guard's force for the latest command, written to the device (with the hardware
+    /// output switched off while the guard is latched); returns the force written, N.
+    fn render(
+        &mut self,
+        now: u64,
+        link_up: bool,
+        latest: Option<ReceivedForce>,
+        state: &DeviceState,
+    ) -> [f64; 3] {
+        let cmd = latest.map(|r| GuardCommand {
+            generation: r.generation,
+            seq: r.seq,
+            force_n: r.force_n,
+            stiffness_n_per_m: r.stiffness_n_per_m,
+            position_m: r.sample_position_m,
+            sample_time_us: r.sample_time_us,
+        });
+        let f = self
+            .guard
+            .filter(now, link_up, cmd.as_ref(), state, &self.spec);
+        let disabled = self.guard.state().is_disabled();
+        if disabled != self.output_disabled {
+            // devices.md S5: disabled in hardware too, while latched.
+            self.output_disabled = disabled;
+            if self.device.set_output_enabled(!disabled).is_err() {
+                self.st.device_errors += 1;
+            }
+        }
+        self.shared
+            .guard_state
+            .store(self.guard.state().code(), Ordering::Release);
+        if self.device.write_force(f).is_err() {
+            self.st.device_errors += 1;
+        }
+        f
+    }
+
+    /// Appends this tick's row to the pre-reserved recording.
+    fn record(
+        &mut self,
+        now: u64,
+        state: &DeviceState,
+        f: [f64; 3],
+        latest: Option<ReceivedForce>,
+    ) {
+        let guard = &self.guard;
+        let in_use = matches!(
+            guard.state(),
+            GuardState::Fresh | GuardState::Rising | GuardState::Ramp
+        );
+        let used = latest.filter(|_| in_use);
+        self.st.records.push(TickRecord {
+            t_s: now.saturating_sub(self.start_us) as f64 * 1e-6,
+            position_m: state.position_m,
+            force_n: f,
+            in_contact: used.is_some_and(|r| r.in_contact),
+            rtt_us: used.and_then(|r| r.rtt_us),
+            age_us: guard.held_age_us(),
+            state: guard.state().name(),
+            command_n: guard.command_n(),
+        });
+    }
+
+    /// A failed read (devices.md S2: never trust a stale pose): zero now; true when the reads
+    /// have failed for [`DEVICE_FAULT_US`] and the loop must give up.
+    fn read_failed(&mut self, now: u64, e: DeviceError) -> bool {
+        self.st.device_errors += 1;
+        self.guard.reset();
+        let _ = self.device.write_force([0.0; 3]);
+        self.st.final_force_n = [0.0; 3];
+        let since = *self.failing_since_us.get_or_insert(now);
+        if now.saturating_sub(since) >= DEVICE_FAULT_US {
+            self.st.device_fault = Some(e.to_string());
+            return true;
+        }
+        false
+    }
+
+    /// Sleeps until the next deadline; an overrun skips the missed deadlines instead of
+    /// bursting to catch up.
+    fn wait_next_deadline(&mut self) {
+        self.deadline_us += self.period_us;
+        let after = self.clock.now_us();
+        if after > self.deadline_us {
+            self.st.overruns += 1;
+            self.deadline_us += ((after - self.deadline_us) / self.period_us + 1) * self.period_us;
+        }
+        self.clock.sleep_until_us(self.deadline_us);
+    }
+
+    /// Zero force, `safe_stop`, and the run's totals.
+    fn finish(mut self) -> DeviceLoopStats {
+        if self.device.write_force([0.0; 3]).is_err() {
+            self.st.device_errors += 1;
+        }
+        self.device.safe_stop();
+        let mut st = self.st;
+        st.final_force_n = [0.0; 3];
+        st.guard = self.guard.stats();
+        st.limits = Some(self.guard.limits());
+        st.duration_s = self.clock.now_us().saturating_sub(self.start_us) as f64 * 1e-6;
+        st
+    }
+}
+
 /// The device thread: one tick per period at absolute deadlines until the device finishes, the
 /// hard stop passes, or `shared.stop` is set. Writes zero and calls `safe_stop` on the way out.
 /// Nothing in the tick allocates (except growing a full recording buffer), logs or awaits.
 pub(super) fn device_loop(
-    mut device: Box<dyn HapticDevice>,
+    device: Box<dyn HapticDevice>,
     clock: Arc<dyn Clock>,
     shared: Arc<Shared>,
     samples: mpsc::Sender<OutSample>,
     config: &BridgeConfig,
 ) -> DeviceLoopStats {
-    let spec = device.spec().clone();
-    let period_us = ((1e6 / config.rate_hz).round() as u64).max(1);
-    let mut guard = ForceGuard::new(config.guard);
-    let axis = device.press_axis();
-    let mut st = DeviceLoopStats::default();
-    if config.record {
-        st.records
-            .reserve((RECORD_RESERVE_S * config.rate_hz) as usize);
-    }
-    let start_us = clock.now_us();
-    let stop_at_us = config
-        .max_duration
-        .map(|d| start_us.saturating_add(u64::try_from(d.as_micros()).unwrap_or(u64::MAX)));
-    let mut deadline_us = start_us;
-    let mut seq = 0_u64;
-    let mut failing_since_us: Option<u64> = None;
-    let mut presses_seen = match &config.rearm {
-        RearmMode::Operator(b) => b.presses(),
-        RearmMode::Auto => 0,
-    };
-    let mut output_disabled = false;
-    let mut deadband = config.deadband.map(|k| Deadband {
-        k,
-        last_sent_us: None,
-        sent_position_m: [0.0; 3],
-        sent_force_n: [0.0; 3],
-    });
+    let mut t = DeviceThread::new(device, clock, shared, samples, config);
     loop {
-        let now = clock.now_us();
-        if shared.stop.load(Ordering::Acquire)
-            || device.finished(now)
-            || stop_at_us.is_some_and(|t| now >= t)
-        {
+        let now = t.clock.now_us();
+        if t.stop_requested(now) {
             break;
         }
-        st.ticks += 1;
-        match device.read(now) {
-            Ok(state) => {
-                failing_since_us = None;
-                let (link_up, latest, limits) = {
-                    let s = shared.slot();
-                    (s.link_up, s.latest, s.limits)
-                };
-                let predicted = latest.map_or([0.0; 3], |r| {
-                    crate::guard::extrapolate(
-                        r.force_n,
-                        &r.stiffness_n_per_m,
-                        r.sample_position_m,
-                        state.position_m,
-                        config.guard.max_extrapolation_m,
-                    )
-                });
-                let send = deadband
-                    .as_ref()
-                    .is_none_or(|d| d.should_send(now, state.position_m, predicted));
-                if send {
-                    seq += 1;
-                    if let Some(d) = deadband.as_mut() {
-                        d.last_sent_us = Some(now);
-                        d.sent_position_m = state.position_m;
-                        d.sent_force_n = predicted;
-                    }
-                    if let Err(mpsc::error::TrySendError::Full(_)) =
-                        samples.try_send(OutSample { seq, state })
-                    {
-                        st.samples_dropped += 1;
-                    }
-                } else {
-                    st.samples_suppressed += 1;
-                }
-                guard.set_app_limits(limits);
-                match &config.rearm {
-                    RearmMode::Auto => {
-                        if guard.state() == GuardState::ReadyToRearm {
-                            guard.request_rearm();
-                        }
-                    }
-                    RearmMode::Operator(b) => {
-                        let p = b.presses();
-                        if p != presses_seen {
-                            presses_seen = p;
-                            guard.request_rearm();
-                        }
-                    }
-                }
-                let cmd = latest.map(|r| GuardCommand {
-                    generation: r.generation,
-                    seq: r.seq,
-                    force_n: r.force_n,
-                    stiffness_n_per_m: r.stiffness_n_per_m,
-                    position_m: r.sample_position_m,
-                    sample_time_us: r.sample_time_us,
-                });
-                let f = guard.filter(now, link_up, cmd.as_ref(), &state, &spec);
-                let disabled = guard.state().is_disabled();
-                if disabled != output_disabled {
-                    // devices.md S5: disabled in hardware too, while latched.
-                    output_disabled = disabled;
-                    if device.set_output_enabled(!disabled).is_err() {
-                        st.device_errors += 1;
-                    }
-                }
-                shared
-                    .guard_state
-                    .store(guard.state().code(), Ordering::Release);
-                if device.write_force(f).is_err() {
-                    st.device_errors += 1;
-                }
-                st.final_force_n = f;
-                st.peak_force_n = st.peak_force_n.max(vec3::norm(f));
-                if let Some(a) = axis {
-                    let d = vec3::dot(vec3::sub(state.position_m, a.start_m), a.direction);
-                    st.max_depth_m = st.max_depth_m.max(d);
-                }
-                if config.record {
-                    let in_use = matches!(
-                        guard.state(),
-                        GuardState::Fresh | GuardState::Rising | GuardState::Ramp
-                    );
-                    let used = latest.filter(|_| in_use);
-                    st.records.push(TickRecord {
-                        t_s: now.saturating_sub(start_us) as f64 * 1e-6,
-                        position_m: state.position_m,
-                        force_n: f,
-                        in_contact: used.is_some_and(|r| r.in_contact),
-                        rtt_us: used.and_then(|r| r.rtt_us),
-                        age_us: guard.held_age_us(),
-                        state: guard.state().name(),
-                        command_n: guard.command_n(),
-                    });
-                }
-            }
+        t.st.ticks += 1;
+        match t.device.read(now) {
+            Ok(state) => t.tick(now, state),
             Err(e) => {
-                // devices.md S2: never trust a stale pose; zero now, give up after 20 ms.
-                st.device_errors += 1;
-                guard.reset();
-                let _ = device.write_force([0.0; 3]);
-                st.final_force_n = [0.0; 3];
-                let since = *failing_since_us.get_or_insert(now);
-                if now.saturating_sub(since) >= DEVICE_FAULT_US {
-                    st.device_fault = Some(e.to_string());
+                if t.read_failed(now, e) {
                     break;
                 }
             }
         }
-        deadline_us += period_us;
-        let after = clock.now_us();
-        if after > deadline_us {
-            // Overrun: skip the missed deadlines instead of bursting to catch up.
-            st.overruns += 1;
-            deadline_us += ((after - deadline_us) / period_us + 1) * period_us;
-        }
-        clock.sleep_until_us(deadline_us);
+        t.wait_next_deadline();
     }
-    if device.write_force([0.0; 3]).is_err() {
-        st.device_errors += 1;
-    }
-    device.safe_stop();
-    st.final_force_n = [0.0; 3];
-    st.guard = guard.stats();
-    st.limits = Some(guard.limits());
-    st.duration_s = clock.now_us().saturating_sub(start_us) as f64 * 1e-6;
-    st
+    t.finish()
 }
 
 #[cfg(test)]
