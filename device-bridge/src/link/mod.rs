@@ -48,12 +48,10 @@ mod shared;
 mod stream;
 mod summary;
 
-use std::collections::VecDeque;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
-use hdrhistogram::Histogram;
 use tokio::sync::{mpsc, watch};
 use tonic::transport::Endpoint;
 use tracing::{debug, info, warn};
@@ -69,7 +67,7 @@ pub use device_loop::{DEADBAND_FLOOR_N, DEADBAND_HEARTBEAT_US, DEADBAND_MOVE_M};
 pub use summary::{BridgeReport, BridgeSummary};
 
 use device_loop::device_loop;
-use net::{NetCtx, RTT_RING, XorShift};
+use net::NetCtx;
 use shared::{OutSample, Shared};
 use stream::{StreamEnd, run_stream, wait_shutdown};
 
@@ -207,6 +205,43 @@ pub async fn run(
 ) -> Result<BridgeReport, BridgeError> {
     config.validate()?;
     device.spec().validate()?;
+    let (token, endpoint) = connection_of(&config)?;
+    let config = Arc::new(config);
+    let shared = Arc::new(Shared::default());
+    let (sample_tx, sample_rx) = mpsc::channel(config.sample_queue);
+    let handle = {
+        let (clock, shared, config) = (clock.clone(), shared.clone(), config.clone());
+        std::thread::Builder::new()
+            .name("bridge-device".to_owned())
+            .spawn(move || device_loop(device, clock, shared, sample_tx, &config))
+            .map_err(|e| BridgeError::Thread(format!("cannot start: {e}")))?
+    };
+    let monitor_task = tokio::spawn(monitor(shared.clone(), config.rearm.clone()));
+    let mut ctx = NetCtx::new(clock, shared.clone(), token, &config)?;
+    network_loop(endpoint, &config, sample_rx, shutdown, &mut ctx).await;
+    shared.stop.store(true, Ordering::Release);
+    shared.set_link(false, None);
+    let _ = monitor_task.await;
+    let dev = tokio::task::spawn_blocking(move || handle.join())
+        .await
+        .map_err(|e| BridgeError::Thread(e.to_string()))?
+        .map_err(|_| BridgeError::Thread("device thread panicked".to_owned()))?;
+    let summary = BridgeSummary::of_run(&ctx, &dev, &config);
+    info!(
+        ticks = summary.ticks,
+        forces = summary.forces_received,
+        "bridge finished"
+    );
+    Ok(BridgeReport {
+        summary,
+        ticks: dev.records,
+    })
+}
+
+/// The bearer token and the endpoint (TCP_NODELAY, connect timeout) of `config`'s server.
+fn connection_of(
+    config: &BridgeConfig,
+) -> Result<(haptic_cli::credentials::BearerToken, Endpoint), BridgeError> {
     let token = config
         .credentials
         .interceptor()
@@ -220,109 +255,5 @@ pub async fn run(
         })?
         .tcp_nodelay(true)
         .connect_timeout(config.connect_timeout);
-    let config = Arc::new(config);
-    let shared = Arc::new(Shared::default());
-    let (sample_tx, sample_rx) = mpsc::channel(config.sample_queue);
-    let handle = {
-        let (clock, shared, config) = (clock.clone(), shared.clone(), config.clone());
-        std::thread::Builder::new()
-            .name("bridge-device".to_owned())
-            .spawn(move || device_loop(device, clock, shared, sample_tx, &config))
-            .map_err(|e| BridgeError::Thread(format!("cannot start: {e}")))?
-    };
-    let monitor_task = tokio::spawn(monitor(shared.clone(), config.rearm.clone()));
-    let mut ctx = NetCtx {
-        clock,
-        shared: shared.clone(),
-        sent: vec![(u64::MAX, 0, [0.0; 3]); RTT_RING],
-        rtt_us: Histogram::new_with_bounds(1, 60_000_000, 3)
-            .map_err(|e| BridgeError::Config(format!("histogram: {e}")))?,
-        generation: 0,
-        samples_sent: 0,
-        samples_dropped: 0,
-        forces_received: 0,
-        unmatched_forces: 0,
-        contact_samples: 0,
-        streams_opened: 0,
-        reconnects: 0,
-        link_failures: 0,
-        attempts: 0,
-        last_link_error: None,
-        last_accepted_seq: None,
-        stale_forces: 0,
-        server_instance: None,
-        server_restarts: 0,
-        session_lost: None,
-        access_refused: None,
-        fault: config.fault,
-        token,
-        rng: XorShift(config.fault.map_or(1, |f| f.seed.max(1))),
-        injected_drops: 0,
-        delayed: VecDeque::new(),
-    };
-    network_loop(endpoint, &config, sample_rx, shutdown, &mut ctx).await;
-    shared.stop.store(true, Ordering::Release);
-    shared.set_link(false, None);
-    let _ = monitor_task.await;
-    let dev = tokio::task::spawn_blocking(move || handle.join())
-        .await
-        .map_err(|e| BridgeError::Thread(e.to_string()))?
-        .map_err(|_| BridgeError::Thread("device thread panicked".to_owned()))?;
-    let h = &ctx.rtt_us;
-    let rtt = |q: f64| (!h.is_empty()).then(|| h.value_at_quantile(q));
-    let summary = BridgeSummary {
-        samples_sent: ctx.samples_sent,
-        samples_dropped: ctx.samples_dropped + dev.samples_dropped,
-        forces_received: ctx.forces_received,
-        unmatched_forces: ctx.unmatched_forces,
-        stale_forces: ctx.stale_forces + dev.guard.stale_dropped,
-        samples_suppressed: dev.samples_suppressed,
-        injected_drops: ctx.injected_drops,
-        rtt_p50_us: rtt(0.5),
-        rtt_p99_us: rtt(0.99),
-        rtt_max_us: (!h.is_empty()).then(|| h.max()),
-        peak_force_n: dev.peak_force_n,
-        max_depth_m: dev.max_depth_m,
-        contact_samples: ctx.contact_samples,
-        clamped: dev.guard.clamped,
-        rate_limited: dev.guard.rate_limited,
-        rejected_nan: dev.guard.rejected_nan,
-        watchdog_ramps: dev.guard.watchdog_ramps,
-        watchdog_expired: dev.guard.watchdog_expired,
-        workspace_violations: dev.guard.workspace_violations,
-        latches: dev.guard.latches,
-        rearms: dev.guard.rearms,
-        rearm_refused: dev.guard.rearm_refused,
-        passivity_energy_j: dev.guard.passivity.energy_j,
-        passivity_dissipated_j: dev.guard.passivity.dissipated_j,
-        passivity_active_ticks: dev.guard.passivity.active_ticks,
-        max_force_n: dev
-            .limits
-            .map_or(config.guard.max_force_n, |l| l.max_force_n),
-        max_force_rate_n_per_s: dev
-            .limits
-            .map_or(config.guard.max_rate_n_per_s, |l| l.max_rate_n_per_s),
-        server_restarts: ctx.server_restarts,
-        session_lost: ctx.session_lost.clone(),
-        access_refused: ctx.access_refused.clone(),
-        streams_opened: ctx.streams_opened,
-        reconnects: ctx.reconnects,
-        link_failures: ctx.link_failures,
-        last_link_error: ctx.last_link_error.clone(),
-        ticks: dev.ticks,
-        overruns: dev.overruns,
-        device_errors: dev.device_errors,
-        device_fault: dev.device_fault.clone(),
-        final_force_n: dev.final_force_n,
-        duration_s: dev.duration_s,
-    };
-    info!(
-        ticks = summary.ticks,
-        forces = summary.forces_received,
-        "bridge finished"
-    );
-    Ok(BridgeReport {
-        summary,
-        ticks: dev.records,
-    })
+    Ok((token, endpoint))
 }

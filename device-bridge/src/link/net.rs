@@ -11,8 +11,8 @@ use tokio::sync::mpsc;
 
 use crate::clock::Clock;
 
-use super::FaultInjection;
 use super::shared::{OutSample, ReceivedForce, Shared};
+use super::{BridgeConfig, BridgeError, FaultInjection};
 
 /// Number of sent `seq -> send time` entries kept for round-trip matching (4 s at 1 kHz).
 pub(super) const RTT_RING: usize = 4096;
@@ -78,6 +78,47 @@ pub(super) fn to_proto(s: &OutSample) -> DeviceSample {
 }
 
 impl NetCtx {
+    /// A network side with nothing sent or received yet; `config.fault` seeds the injection.
+    ///
+    /// # Errors
+    /// [`BridgeError::Config`] if the round-trip histogram cannot be built.
+    pub(super) fn new(
+        clock: Arc<dyn Clock>,
+        shared: Arc<Shared>,
+        token: haptic_cli::credentials::BearerToken,
+        config: &BridgeConfig,
+    ) -> Result<Self, BridgeError> {
+        Ok(Self {
+            clock,
+            shared,
+            sent: vec![(u64::MAX, 0, [0.0; 3]); RTT_RING],
+            rtt_us: Histogram::new_with_bounds(1, 60_000_000, 3)
+                .map_err(|e| BridgeError::Config(format!("histogram: {e}")))?,
+            generation: 0,
+            samples_sent: 0,
+            samples_dropped: 0,
+            forces_received: 0,
+            unmatched_forces: 0,
+            contact_samples: 0,
+            streams_opened: 0,
+            reconnects: 0,
+            link_failures: 0,
+            attempts: 0,
+            last_link_error: None,
+            last_accepted_seq: None,
+            stale_forces: 0,
+            server_instance: None,
+            server_restarts: 0,
+            session_lost: None,
+            access_refused: None,
+            fault: config.fault,
+            token,
+            rng: XorShift(config.fault.map_or(1, |f| f.seed.max(1))),
+            injected_drops: 0,
+            delayed: VecDeque::new(),
+        })
+    }
+
     fn injected_drop(&mut self) -> bool {
         let Some(f) = self.fault else { return false };
         let drop = f.drop_fraction > 0.0 && self.rng.next_f64() < f.drop_fraction;

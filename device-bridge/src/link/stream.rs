@@ -4,11 +4,12 @@
 
 use std::time::Duration;
 
-use haptics_proto::v1::DeviceSample;
 use haptics_proto::v1::device_link_client::DeviceLinkClient;
+use haptics_proto::v1::{DeviceSample, ForceCommand};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
-use tonic::transport::Endpoint;
+use tonic::Streaming;
+use tonic::transport::{Channel, Endpoint};
 use tracing::{info, warn};
 
 use crate::guard::Limits;
@@ -80,6 +81,10 @@ fn header_limits(md: &tonic::metadata::MetadataMap) -> Option<Limits> {
     l.is_valid().then_some(l)
 }
 
+/// One `DeviceLink.Connect` stream, from connecting to its end: the first sample carries the
+/// session id and the capabilities, the response headers the scene's limits and the server
+/// instance; then samples go out and force commands come in until the device finishes, the
+/// shutdown signal fires or the link fails. The link is marked down on the way out.
 pub(super) async fn run_stream(
     endpoint: &Endpoint,
     config: &BridgeConfig,
@@ -89,19 +94,61 @@ pub(super) async fn run_stream(
     ctx: &mut NetCtx,
 ) -> StreamEnd {
     ctx.attempts += 1;
-    let channel = tokio::select! {
-        biased;
-        _ = wait_shutdown(shutdown) => return StreamEnd::Shutdown,
-        c = endpoint.connect() => match c {
-            Ok(c) => c,
-            Err(e) => {
-                return StreamEnd::Failed(format!("connect to {}: {}", config.server_url, chain(&e)));
-            }
-        },
+    let channel = match connect(endpoint, config, shutdown).await {
+        Ok(c) => c,
+        Err(end) => return end,
     };
     let mut client = DeviceLinkClient::with_interceptor(channel, ctx.token.clone());
+    let (out_tx, request) = first_request(config, &first, ctx);
+    let call = client.connect(request);
+    let response = match await_headers(call, &out_tx, samples, shutdown, ctx).await {
+        Ok(r) => r,
+        Err(end) => return end,
+    };
+    let mut inbound = stream_opened(config, ctx, response);
+    let end = exchange(&mut inbound, &out_tx, samples, shutdown, ctx).await;
+    ctx.shared.set_link(false, None);
+    ctx.delayed.clear();
+    if matches!(end, StreamEnd::Finished | StreamEnd::Shutdown) {
+        // Close our half and collect the answers still in flight, briefly.
+        drop(out_tx);
+        let _ = tokio::time::timeout(CLOSE_GRACE, async {
+            while let Ok(Some(cmd)) = inbound.message().await {
+                ctx.on_force(&cmd);
+            }
+        })
+        .await;
+    }
+    end
+}
+
+/// Opens the transport (or gives up on shutdown).
+async fn connect(
+    endpoint: &Endpoint,
+    config: &BridgeConfig,
+    shutdown: &mut watch::Receiver<bool>,
+) -> Result<Channel, StreamEnd> {
+    tokio::select! {
+        biased;
+        _ = wait_shutdown(shutdown) => Err(StreamEnd::Shutdown),
+        c = endpoint.connect() => c.map_err(|e| {
+            StreamEnd::Failed(format!("connect to {}: {}", config.server_url, chain(&e)))
+        }),
+    }
+}
+
+/// The outbound queue with the stream's first sample in it (session id, capabilities), and the
+/// request that streams the queue (with the deadband header when one is set).
+fn first_request(
+    config: &BridgeConfig,
+    first: &OutSample,
+    ctx: &mut NetCtx,
+) -> (
+    mpsc::Sender<DeviceSample>,
+    tonic::Request<ReceiverStream<DeviceSample>>,
+) {
     let (out_tx, out_rx) = mpsc::channel::<DeviceSample>(config.sample_queue);
-    let mut first_msg = to_proto(&first);
+    let mut first_msg = to_proto(first);
     first_msg.session_id.clone_from(&config.session_id);
     first_msg.capabilities.clone_from(&config.capabilities);
     // The first sample carries the session id: never drop it by injection.
@@ -115,40 +162,60 @@ pub(super) async fn run_stream(
         // The same deadband on the force stream, applied by the server.
         request.metadata_mut().insert(HEADER_FORCE_DEADBAND, v);
     }
-    let call = client.connect(request);
+    (out_tx, request)
+}
+
+/// Waits for the response headers of `call`, feeding samples meanwhile: a server may wait for
+/// the first message (it carries the session id) before answering. NOT_FOUND ends as
+/// [`StreamEnd::SessionGone`], UNAUTHENTICATED and PERMISSION_DENIED as [`StreamEnd::Refused`].
+async fn await_headers(
+    call: impl Future<Output = Result<tonic::Response<Streaming<ForceCommand>>, tonic::Status>>,
+    out_tx: &mpsc::Sender<DeviceSample>,
+    samples: &mut mpsc::Receiver<OutSample>,
+    shutdown: &mut watch::Receiver<bool>,
+    ctx: &mut NetCtx,
+) -> Result<tonic::Response<Streaming<ForceCommand>>, StreamEnd> {
     tokio::pin!(call);
-    // Keep feeding samples while waiting for response headers: a server may wait for the first
-    // message (it carries the session id) before answering.
-    let response = loop {
+    loop {
         tokio::select! {
             biased;
-            _ = wait_shutdown(shutdown) => return StreamEnd::Shutdown,
+            _ = wait_shutdown(shutdown) => return Err(StreamEnd::Shutdown),
             r = &mut call => match r {
-                Ok(resp) => break resp,
+                Ok(resp) => return Ok(resp),
                 Err(status) if status.code() == tonic::Code::NotFound => {
-                    return StreamEnd::SessionGone(status.message().to_owned());
+                    return Err(StreamEnd::SessionGone(status.message().to_owned()));
                 }
                 Err(status) if matches!(
                     status.code(),
                     tonic::Code::Unauthenticated | tonic::Code::PermissionDenied
                 ) => {
-                    return StreamEnd::Refused(format!("{:?}: {}", status.code(), status.message()));
+                    return Err(StreamEnd::Refused(format!("{:?}: {}", status.code(), status.message())));
                 }
-                Err(status) => return StreamEnd::Failed(format!("Connect rejected: {status}")),
+                Err(status) => return Err(StreamEnd::Failed(format!("Connect rejected: {status}"))),
             },
             s = samples.recv() => match s {
-                Some(s) => ctx.forward(&out_tx, to_proto(&s)),
-                None => return StreamEnd::Finished,
+                Some(s) => ctx.forward(out_tx, to_proto(&s)),
+                None => return Err(StreamEnd::Finished),
             },
         }
-    };
+    }
+}
+
+/// Takes the opened stream's headers: counts the stream (and the reconnect), notices a
+/// restarted daemon, hands the scene's limits to the device thread with the link up, and logs
+/// it. Returns the inbound force commands.
+fn stream_opened(
+    config: &BridgeConfig,
+    ctx: &mut NetCtx,
+    response: tonic::Response<Streaming<ForceCommand>>,
+) -> Streaming<ForceCommand> {
     let limits = header_limits(response.metadata());
     let instance = response
         .metadata()
         .get(HEADER_SERVER_INSTANCE)
         .and_then(|v| v.to_str().ok())
         .map(str::to_owned);
-    let mut inbound = response.into_inner();
+    let inbound = response.into_inner();
     ctx.streams_opened += 1;
     if ctx.attempts > 1 {
         ctx.reconnects += 1;
@@ -177,7 +244,18 @@ pub(super) async fn run_stream(
         None => info!(url = %config.server_url, session = %config.session_id,
             "DeviceLink stream open (the server sent no scene limits: device limits only)"),
     }
-    let end = loop {
+    inbound
+}
+
+/// Samples out, force commands in (through fault injection's delays) until the stream ends.
+async fn exchange(
+    inbound: &mut Streaming<ForceCommand>,
+    out_tx: &mpsc::Sender<DeviceSample>,
+    samples: &mut mpsc::Receiver<OutSample>,
+    shutdown: &mut watch::Receiver<bool>,
+    ctx: &mut NetCtx,
+) -> StreamEnd {
+    loop {
         // Deliver what is due first: a timer is only checked when the runtime turns, and a
         // stream of samples every millisecond would keep a zero-length sleep from firing.
         ctx.release_delayed();
@@ -192,22 +270,9 @@ pub(super) async fn run_stream(
                 Err(status) => break StreamEnd::Failed(format!("stream error: {status}")),
             },
             s = samples.recv() => match s {
-                Some(s) => ctx.forward(&out_tx, to_proto(&s)),
+                Some(s) => ctx.forward(out_tx, to_proto(&s)),
                 None => break StreamEnd::Finished,
             },
         }
-    };
-    ctx.shared.set_link(false, None);
-    ctx.delayed.clear();
-    if matches!(end, StreamEnd::Finished | StreamEnd::Shutdown) {
-        // Close our half and collect the answers still in flight, briefly.
-        drop(out_tx);
-        let _ = tokio::time::timeout(CLOSE_GRACE, async {
-            while let Ok(Some(cmd)) = inbound.message().await {
-                ctx.on_force(&cmd);
-            }
-        })
-        .await;
     }
-    end
 }

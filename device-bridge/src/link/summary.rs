@@ -6,6 +6,10 @@ use serde::Serialize;
 
 use crate::record::TickRecord;
 
+use super::BridgeConfig;
+use super::device_loop::DeviceLoopStats;
+use super::net::NetCtx;
+
 /// What happened during a run. Counts are totals over the run; times in microseconds.
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct BridgeSummary {
@@ -95,6 +99,59 @@ pub struct BridgeSummary {
 }
 
 impl BridgeSummary {
+    /// The totals of a run: the network side's counters and round trips (`ctx`), the device
+    /// thread's (`dev`), and the limits in force at the end (`config`'s when the scene sent none).
+    pub(super) fn of_run(ctx: &NetCtx, dev: &DeviceLoopStats, config: &BridgeConfig) -> Self {
+        let h = &ctx.rtt_us;
+        let rtt = |q: f64| (!h.is_empty()).then(|| h.value_at_quantile(q));
+        Self {
+            samples_sent: ctx.samples_sent,
+            samples_dropped: ctx.samples_dropped + dev.samples_dropped,
+            forces_received: ctx.forces_received,
+            unmatched_forces: ctx.unmatched_forces,
+            stale_forces: ctx.stale_forces + dev.guard.stale_dropped,
+            samples_suppressed: dev.samples_suppressed,
+            injected_drops: ctx.injected_drops,
+            rtt_p50_us: rtt(0.5),
+            rtt_p99_us: rtt(0.99),
+            rtt_max_us: (!h.is_empty()).then(|| h.max()),
+            peak_force_n: dev.peak_force_n,
+            max_depth_m: dev.max_depth_m,
+            contact_samples: ctx.contact_samples,
+            clamped: dev.guard.clamped,
+            rate_limited: dev.guard.rate_limited,
+            rejected_nan: dev.guard.rejected_nan,
+            watchdog_ramps: dev.guard.watchdog_ramps,
+            watchdog_expired: dev.guard.watchdog_expired,
+            workspace_violations: dev.guard.workspace_violations,
+            latches: dev.guard.latches,
+            rearms: dev.guard.rearms,
+            rearm_refused: dev.guard.rearm_refused,
+            passivity_energy_j: dev.guard.passivity.energy_j,
+            passivity_dissipated_j: dev.guard.passivity.dissipated_j,
+            passivity_active_ticks: dev.guard.passivity.active_ticks,
+            max_force_n: dev
+                .limits
+                .map_or(config.guard.max_force_n, |l| l.max_force_n),
+            max_force_rate_n_per_s: dev
+                .limits
+                .map_or(config.guard.max_rate_n_per_s, |l| l.max_rate_n_per_s),
+            server_restarts: ctx.server_restarts,
+            session_lost: ctx.session_lost.clone(),
+            access_refused: ctx.access_refused.clone(),
+            streams_opened: ctx.streams_opened,
+            reconnects: ctx.reconnects,
+            link_failures: ctx.link_failures,
+            last_link_error: ctx.last_link_error.clone(),
+            ticks: dev.ticks,
+            overruns: dev.overruns,
+            device_errors: dev.device_errors,
+            device_fault: dev.device_fault.clone(),
+            final_force_n: dev.final_force_n,
+            duration_s: dev.duration_s,
+        }
+    }
+
     /// True when at least one stream reached the server.
     pub fn connected(&self) -> bool {
         self.streams_opened > 0
