@@ -530,30 +530,7 @@ pub async fn execute(
     match cmd {
         CtlCommand::Scenes => write!(out, "{}", scenes_table(&ctl.scenes().await?)).map_err(o)?,
         CtlCommand::Start { scene, scene_file } => {
-            let source = match (scene, scene_file) {
-                (_, Some(path)) => {
-                    SceneSource::Toml(std::fs::read_to_string(&path).map_err(|source| {
-                        ClientError::Io {
-                            path: path.clone(),
-                            source,
-                        }
-                    })?)
-                }
-                (Some(name), None) => SceneSource::Name(name),
-                (None, None) => {
-                    return Err(ClientError::InvalidConfig(
-                        "give a scene name or --scene-file".into(),
-                    ));
-                }
-            };
-            let r = ctl.start(source).await?;
-            writeln!(out, "{}", r.session_id).map_err(o)?;
-            writeln!(
-                err,
-                "started session {}: {} nodes, {} tetrahedra, {} substeps per tick, critical dt {:.3e} s",
-                r.session_id, r.nodes, r.tetrahedra, r.substeps, r.critical_dt_s
-            )
-            .map_err(io_err("<stderr>"))?;
+            start_session(ctl, scene, scene_file, out, err).await?;
         }
         CtlCommand::Stop { id } => {
             ctl.stop(&id).await?;
@@ -564,42 +541,13 @@ pub async fn execute(
                 writeln!(out, "{id}").map_err(io_err("<stdout>"))?;
             }
         }
-        CtlCommand::Sessions { long: true } => {
-            let rows: Vec<Vec<String>> = ctl
-                .session_summaries()
-                .await?
-                .iter()
-                .map(|s| {
-                    let device = match (&s.device, s.device_connected) {
-                        (Some(c), _) => device_summary(c),
-                        (None, true) => "connected".into(),
-                        (None, false) => "-".into(),
-                    };
-                    vec![
-                        s.session_id.clone(),
-                        s.scene.clone(),
-                        s.model_family.clone(),
-                        device,
-                    ]
-                })
-                .collect();
-            let text = table(&["ID", "SCENE", "FAMILY", "DEVICE"], &rows);
-            write!(out, "{text}").map_err(io_err("<stdout>"))?;
-        }
+        CtlCommand::Sessions { long: true } => list_sessions_long(ctl, out).await?,
         CtlCommand::Force {
             id,
             point,
             force,
             duration_s,
-        } => {
-            let (p, f) = (parse_vec3(&point)?, parse_vec3(&force)?);
-            ctl.force(&id, p, f, duration_s).await?;
-            writeln!(
-                err,
-                "applied force {f:?} N at {p:?} m for {duration_s} s to session {id}"
-            )
-            .map_err(io_err("<stderr>"))?;
-        }
+        } => apply_force(ctl, &id, &point, &force, duration_s, err).await?,
         CtlCommand::Stats { id, json } => {
             let s = ctl.stats(&id).await?;
             if json {
@@ -613,26 +561,7 @@ pub async fn execute(
             interval_s,
             count,
             json,
-        } => {
-            if !(interval_s.is_finite() && interval_s > 0.0) {
-                return Err(ClientError::InvalidConfig(
-                    "interval must be a positive number of seconds".into(),
-                ));
-            }
-            let mut tick = tokio::time::interval(Duration::from_secs_f64(interval_s));
-            let mut n = 0;
-            while count == 0 || n < count {
-                tick.tick().await;
-                let s = ctl.stats(&id).await?;
-                if json {
-                    writeln!(out, "{}", stats_json(&s)).map_err(io_err("<stdout>"))?;
-                } else {
-                    writeln!(out, "{}", stats_table(&s)).map_err(io_err("<stdout>"))?;
-                }
-                out.flush().map_err(io_err("<stdout>"))?;
-                n += 1;
-            }
-        }
+        } => watch_stats(ctl, &id, interval_s, count, json, out).await?,
         CtlCommand::Record {
             id,
             out: path,
@@ -640,44 +569,161 @@ pub async fn execute(
             rate_hz,
             stats_interval_s,
         } => {
-            let channel = ctl.channel();
-            let shutdown = async {
-                let _ = tokio::signal::ctrl_c().await;
+            let params = crate::record::RecordParams {
+                duration_s,
+                rate_hz,
+                stats_interval_s,
             };
-            let r = crate::record::record(
-                channel,
-                &id,
-                &path,
-                crate::record::RecordParams {
-                    duration_s,
-                    rate_hz,
-                    stats_interval_s,
-                },
-                shutdown,
-            )
-            .await?;
-            writeln!(
-                out,
-                "{}: {} surface frames ({} keyframes), {} statistics, {} injected loads{}, {} bytes",
-                path.display(),
-                r.frames,
-                r.keyframes,
-                r.stats,
-                r.loads,
-                if r.loads_missed > 0 {
-                    format!(" ({} missed: raise --rate-hz)", r.loads_missed)
-                } else {
-                    String::new()
-                },
-                r.bytes
-            )
-            .map_err(o)?;
+            record_session(ctl, &id, &path, params, out).await?;
         }
         CtlCommand::ExportVtu { input, out: dir } => {
             let n = crate::record::export_vtu(&input, &dir)?;
             writeln!(out, "{}: {n} frames", dir.join("surface.pvd").display()).map_err(o)?;
         }
     }
+    Ok(())
+}
+
+/// `start`: a session of the named built-in scene or of a scene file; prints its id to `out`
+/// and its size to `err`.
+async fn start_session(
+    ctl: &mut Ctl,
+    scene: Option<String>,
+    scene_file: Option<PathBuf>,
+    out: &mut dyn Write,
+    err: &mut dyn Write,
+) -> Result<(), ClientError> {
+    let source = match (scene, scene_file) {
+        (_, Some(path)) => {
+            SceneSource::Toml(
+                std::fs::read_to_string(&path).map_err(|source| ClientError::Io {
+                    path: path.clone(),
+                    source,
+                })?,
+            )
+        }
+        (Some(name), None) => SceneSource::Name(name),
+        (None, None) => {
+            return Err(ClientError::InvalidConfig(
+                "give a scene name or --scene-file".into(),
+            ));
+        }
+    };
+    let r = ctl.start(source).await?;
+    writeln!(out, "{}", r.session_id).map_err(io_err("<stdout>"))?;
+    writeln!(
+        err,
+        "started session {}: {} nodes, {} tetrahedra, {} substeps per tick, critical dt {:.3e} s",
+        r.session_id, r.nodes, r.tetrahedra, r.substeps, r.critical_dt_s
+    )
+    .map_err(io_err("<stderr>"))?;
+    Ok(())
+}
+
+/// `sessions --long`: one row per session (id, scene, family, device).
+async fn list_sessions_long(ctl: &mut Ctl, out: &mut dyn Write) -> Result<(), ClientError> {
+    let rows: Vec<Vec<String>> = ctl
+        .session_summaries()
+        .await?
+        .iter()
+        .map(|s| {
+            let device = match (&s.device, s.device_connected) {
+                (Some(c), _) => device_summary(c),
+                (None, true) => "connected".into(),
+                (None, false) => "-".into(),
+            };
+            vec![
+                s.session_id.clone(),
+                s.scene.clone(),
+                s.model_family.clone(),
+                device,
+            ]
+        })
+        .collect();
+    let text = table(&["ID", "SCENE", "FAMILY", "DEVICE"], &rows);
+    write!(out, "{text}").map_err(io_err("<stdout>"))?;
+    Ok(())
+}
+
+/// `force`: checks the two vectors before sending, then applies the force.
+async fn apply_force(
+    ctl: &mut Ctl,
+    id: &str,
+    point: &str,
+    force: &str,
+    duration_s: f64,
+    err: &mut dyn Write,
+) -> Result<(), ClientError> {
+    let (p, f) = (parse_vec3(point)?, parse_vec3(force)?);
+    ctl.force(id, p, f, duration_s).await?;
+    writeln!(
+        err,
+        "applied force {f:?} N at {p:?} m for {duration_s} s to session {id}"
+    )
+    .map_err(io_err("<stderr>"))?;
+    Ok(())
+}
+
+/// `watch-stats`: `count` reports (0: until interrupted), one every `interval_s` seconds.
+async fn watch_stats(
+    ctl: &mut Ctl,
+    id: &str,
+    interval_s: f64,
+    count: u64,
+    json: bool,
+    out: &mut dyn Write,
+) -> Result<(), ClientError> {
+    if !(interval_s.is_finite() && interval_s > 0.0) {
+        return Err(ClientError::InvalidConfig(
+            "interval must be a positive number of seconds".into(),
+        ));
+    }
+    let mut tick = tokio::time::interval(Duration::from_secs_f64(interval_s));
+    let mut n = 0;
+    while count == 0 || n < count {
+        tick.tick().await;
+        let s = ctl.stats(id).await?;
+        if json {
+            writeln!(out, "{}", stats_json(&s)).map_err(io_err("<stdout>"))?;
+        } else {
+            writeln!(out, "{}", stats_table(&s)).map_err(io_err("<stdout>"))?;
+        }
+        out.flush().map_err(io_err("<stdout>"))?;
+        n += 1;
+    }
+    Ok(())
+}
+
+/// `record`: records until the duration, the session's end or Ctrl-C, then prints what the
+/// file holds.
+async fn record_session(
+    ctl: &mut Ctl,
+    id: &str,
+    path: &std::path::Path,
+    params: crate::record::RecordParams,
+    out: &mut dyn Write,
+) -> Result<(), ClientError> {
+    let channel = ctl.channel();
+    let shutdown = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    let r = crate::record::record(channel, id, path, params, shutdown).await?;
+    writeln!(
+        out,
+        "{}: {} surface frames ({} keyframes), {} statistics, {} injected loads{}, {} bytes",
+        path.display(),
+        r.frames,
+        r.keyframes,
+        r.stats,
+        r.loads,
+        if r.loads_missed > 0 {
+            format!(" ({} missed: raise --rate-hz)", r.loads_missed)
+        } else {
+            String::new()
+        },
+        r.bytes
+    )
+    .map_err(io_err("<stdout>"))?;
     Ok(())
 }
 

@@ -79,6 +79,35 @@ pub struct RecordParams {
     pub stats_interval_s: f64,
 }
 
+impl RecordParams {
+    /// Checks the ranges documented on the fields (and a positive duration).
+    ///
+    /// # Errors
+    /// [`ClientError::InvalidConfig`] naming the value.
+    fn validate(&self) -> Result<(), ClientError> {
+        if !(self.rate_hz.is_finite() && (0.1..=120.0).contains(&self.rate_hz)) {
+            return Err(ClientError::InvalidConfig(format!(
+                "rate {} Hz: expected 0.1..=120",
+                self.rate_hz
+            )));
+        }
+        if !(self.stats_interval_s.is_finite() && self.stats_interval_s >= 0.01) {
+            return Err(ClientError::InvalidConfig(format!(
+                "stats interval {} s: expected at least 0.01",
+                self.stats_interval_s
+            )));
+        }
+        if let Some(d) = self.duration_s
+            && !(d.is_finite() && d > 0.0)
+        {
+            return Err(ClientError::InvalidConfig(format!(
+                "duration {d} s: expected a positive number"
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// Records `session_id` into `out` (MCAP) over `channel`: every surface frame of a
 /// full-encoding `Watch` at up to `params.rate_hz` on `/surface` (log time: the server's send
 /// time) and `GetStats` every `params.stats_interval_s` on `/stats` (log time: this machine's
@@ -100,23 +129,7 @@ pub async fn record(
         rate_hz,
         stats_interval_s,
     } = params;
-    if !(rate_hz.is_finite() && (0.1..=120.0).contains(&rate_hz)) {
-        return Err(ClientError::InvalidConfig(format!(
-            "rate {rate_hz} Hz: expected 0.1..=120"
-        )));
-    }
-    if !(stats_interval_s.is_finite() && stats_interval_s >= 0.01) {
-        return Err(ClientError::InvalidConfig(format!(
-            "stats interval {stats_interval_s} s: expected at least 0.01"
-        )));
-    }
-    if let Some(d) = duration_s
-        && !(d.is_finite() && d > 0.0)
-    {
-        return Err(ClientError::InvalidConfig(format!(
-            "duration {d} s: expected a positive number"
-        )));
-    }
+    params.validate()?;
     let mut control = SessionControlClient::new(channel.clone());
     // The first statistics answer also checks that the session exists before a file is made.
     let first_stats = stats(&mut control, session_id).await?;
@@ -151,34 +164,7 @@ pub async fn record(
             () = &mut deadline => break,
             () = &mut shutdown => break,
             frame = frames.next() => match frame {
-                Some(Ok(f)) => {
-                    summary.frames += 1;
-                    summary.keyframes += u64::from(f.keyframe);
-                    let t_ns = f.server_time_us.saturating_mul(1000);
-                    for load in &f.applied_forces {
-                        if last_load.is_some_and(|last| load.index <= last) {
-                            continue;
-                        }
-                        if let Some(last) = last_load {
-                            summary.loads_missed += load.index - last - 1;
-                        }
-                        rec.write(topic::LOADS, t_ns, load).map_err(|e| rec_err(out, e))?;
-                        summary.loads += 1;
-                        last_load = Some(load.index);
-                    }
-                    match last_load {
-                        // Nothing listed yet: the session's loads so far came before us.
-                        None => last_load = Some(f.applied_forces_total),
-                        // Accepted and ended between the frames this watcher received.
-                        Some(last) if f.applied_forces_total > last => {
-                            summary.loads_missed += f.applied_forces_total - last;
-                            last_load = Some(f.applied_forces_total);
-                        }
-                        Some(_) => {}
-                    }
-                    rec.write(topic::SURFACE, t_ns, &f)
-                        .map_err(|e| rec_err(out, e))?;
-                }
+                Some(Ok(f)) => write_frame(&mut rec, out, &f, &mut summary, &mut last_load)?,
                 // The session ended (or the stream failed): keep what was recorded.
                 Some(Err(_)) | None => break,
             },
@@ -194,6 +180,46 @@ pub async fn record(
     rec.finish().map_err(|e| rec_err(out, e))?;
     summary.bytes = std::fs::metadata(out).map_err(io(out))?.len();
     Ok(summary)
+}
+
+/// Writes frame `f` on `/surface` and the loads it lists that are newer than `last_load` on
+/// `/loads` (log time: the server's send time), counting frames, keyframes, loads, and the loads
+/// no received frame listed (known from the indices and `applied_forces_total`).
+fn write_frame<W: std::io::Write + std::io::Seek>(
+    rec: &mut Recorder<W>,
+    out: &Path,
+    f: &SurfaceFrame,
+    summary: &mut RecordSummary,
+    last_load: &mut Option<u64>,
+) -> Result<(), ClientError> {
+    summary.frames += 1;
+    summary.keyframes += u64::from(f.keyframe);
+    let t_ns = f.server_time_us.saturating_mul(1000);
+    for load in &f.applied_forces {
+        if last_load.is_some_and(|last| load.index <= last) {
+            continue;
+        }
+        if let Some(last) = *last_load {
+            summary.loads_missed += load.index - last - 1;
+        }
+        rec.write(topic::LOADS, t_ns, load)
+            .map_err(|e| rec_err(out, e))?;
+        summary.loads += 1;
+        *last_load = Some(load.index);
+    }
+    match *last_load {
+        // Nothing listed yet: the session's loads so far came before us.
+        None => *last_load = Some(f.applied_forces_total),
+        // Accepted and ended between the frames this watcher received.
+        Some(last) if f.applied_forces_total > last => {
+            summary.loads_missed += f.applied_forces_total - last;
+            *last_load = Some(f.applied_forces_total);
+        }
+        Some(_) => {}
+    }
+    rec.write(topic::SURFACE, t_ns, f)
+        .map_err(|e| rec_err(out, e))?;
+    Ok(())
 }
 
 /// `GetStats` of `session_id`.

@@ -689,6 +689,149 @@ struct Counters {
     last_error: Option<String>,
 }
 
+/// What [`run_stream`] carries from one frame to the next: the surface, the counters, the
+/// picture schedule and the progress line's one-second window.
+struct Viewing {
+    state: SurfaceState,
+    compact: crate::compact::CompactState,
+    c: Counters,
+    /// The picture worker's queue (one slot).
+    tx: mpsc::Sender<RenderJob>,
+    /// Time between two pictures.
+    interval: Duration,
+    pictures_queued: u64,
+    next_picture: Option<Instant>,
+    start: Instant,
+    window_frames: u64,
+    window_ages: FrameAges,
+    window_start: Instant,
+}
+
+impl Viewing {
+    /// Prints the progress line of the last window to standard error and starts a new window.
+    fn progress(&mut self) {
+        let c = &self.c;
+        let dt = self.window_start.elapsed().as_secs_f64().max(1e-9);
+        let ms = |q| {
+            self.window_ages
+                .quantile_ms(q)
+                .map_or("-".into(), |v| format!("{v:.1}"))
+        };
+        eprintln!(
+            "viewer: t={:.0}s frames={} ({:.1} fps) age p50 {} ms p99 {} ms, \
+             pictures {}, bad {}, max disp {:.3} mm",
+            self.start.elapsed().as_secs_f64(),
+            c.frames,
+            self.window_frames as f64 / dt,
+            ms(0.5),
+            ms(0.99),
+            self.pictures_queued,
+            c.bad_frames,
+            c.max_displacement_m * 1e3
+        );
+        (self.window_frames, self.window_start) = (0, Instant::now());
+        self.window_ages.clear();
+    }
+
+    /// Counts a frame that could not be used (logged; the run goes on).
+    fn bad_frame(&mut self, e: &dyn fmt::Display) {
+        tracing::error!("{e}");
+        self.c.bad_frames += 1;
+        self.c.last_error = Some(e.to_string());
+    }
+
+    /// One frame from the stream: expanded (compact frames) and applied to the surface, its
+    /// age and displacement counted, and a picture queued when one is due.
+    async fn on_frame(&mut self, frame: SurfaceFrame, cfg: &ViewerConfig) {
+        let recv_us = now_unix_us();
+        // Compact frames become full ones (absolute positions) first.
+        let frame = match self.compact.expand(frame) {
+            Ok(f) => f,
+            Err(e) => return self.bad_frame(&e),
+        };
+        match self.state.apply(&frame, &cfg.render) {
+            Err(e) => return self.bad_frame(&e),
+            Ok(kind) => {
+                self.c.frames += 1;
+                self.window_frames += 1;
+                if kind == FrameKind::Keyframe {
+                    self.c.keyframes += 1;
+                }
+            }
+        }
+        let c = &mut self.c;
+        if frame.server_time_us > 0 {
+            let age = recv_us - i128::from(frame.server_time_us);
+            let age_us = i64::try_from(age).unwrap_or(i64::MAX);
+            c.ages.record(age_us);
+            self.window_ages.record(age_us);
+        }
+        if frame.max_displacement_m.is_finite() {
+            c.max_displacement_m = c.max_displacement_m.max(frame.max_displacement_m);
+        }
+        c.last_sim_time_s = frame.sim_time_s;
+        self.queue_picture(cfg).await;
+    }
+
+    /// Queues a picture of the current surface: always the first one (waiting for the worker),
+    /// then one per interval when the worker is free (a busy worker skips to the next frame).
+    async fn queue_picture(&mut self, cfg: &ViewerConfig) {
+        let now = Instant::now();
+        if self.next_picture.is_none() {
+            // The first state after the first keyframe is always written.
+            let path = picture_path(&cfg.out_dir, self.pictures_queued + 1);
+            if let Some(job) = self.state.job(path)
+                && self.tx.send(job).await.is_ok()
+            {
+                self.pictures_queued += 1;
+                self.next_picture = Some(now + self.interval);
+            }
+        } else if self.next_picture.is_some_and(|t| now >= t) {
+            let path = picture_path(&cfg.out_dir, self.pictures_queued + 1);
+            // Busy worker: skip, try again on the next frame.
+            if let Some(job) = self.state.job(path)
+                && self.tx.try_send(job).is_ok()
+            {
+                self.pictures_queued += 1;
+                self.next_picture = Some(now + self.interval);
+            }
+        }
+    }
+
+    /// Writes `latest.png`, waits for the worker and sums the run up.
+    async fn finish(
+        self,
+        worker: tokio::task::JoinHandle<WorkerReport>,
+        cfg: &ViewerConfig,
+        stop_reason: StopReason,
+        elapsed_s: f64,
+    ) -> Result<ViewerSummary, ClientError> {
+        if let Some(job) = self.state.job(cfg.out_dir.join("latest.png")) {
+            let _ = self.tx.send(job).await;
+        }
+        drop(self.tx);
+        let report = worker.await.map_err(|e| ClientError::Task(e.to_string()))?;
+        let c = self.c;
+        Ok(ViewerSummary {
+            session_id: cfg.session_id.clone(),
+            frames: c.frames,
+            keyframes: c.keyframes,
+            bad_frames: c.bad_frames,
+            elapsed_s,
+            fps: c.frames as f64 / elapsed_s.max(1e-9),
+            age_p50_ms: c.ages.quantile_ms(0.5),
+            age_p99_ms: c.ages.quantile_ms(0.99),
+            pictures_written: report.written,
+            picture_errors: report.errors,
+            out_dir: cfg.out_dir.clone(),
+            max_displacement_m: c.max_displacement_m,
+            last_sim_time_s: c.last_sim_time_s,
+            stop_reason,
+            last_error: report.last_error.or(c.last_error),
+        })
+    }
+}
+
 /// Consumes a stream of surface frames as [`run`] does (everything but connecting), so it can be
 /// fed by any source. `cfg.server` is not used.
 ///
@@ -710,21 +853,6 @@ where
         source,
     })?;
     let (tx, worker) = spawn_worker(cfg.render.clone());
-    let mut state = SurfaceState::new();
-    let mut compact = crate::compact::CompactState::new();
-    let mut c = Counters {
-        frames: 0,
-        keyframes: 0,
-        bad_frames: 0,
-        ages: FrameAges::default(),
-        max_displacement_m: 0.0,
-        last_sim_time_s: 0.0,
-        last_error: None,
-    };
-    let interval = Duration::from_secs_f64(cfg.interval_s);
-    let mut pictures_queued = 0u64;
-    let mut next_picture: Option<Instant> = None;
-
     let start = Instant::now();
     let deadline = cfg
         .duration_s
@@ -739,123 +867,52 @@ where
         Duration::from_secs(1),
     );
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let (mut window_frames, mut window_ages, mut window_start) =
-        (0u64, FrameAges::default(), Instant::now());
-
+    let mut v = Viewing {
+        state: SurfaceState::new(),
+        compact: crate::compact::CompactState::new(),
+        c: Counters {
+            frames: 0,
+            keyframes: 0,
+            bad_frames: 0,
+            ages: FrameAges::default(),
+            max_displacement_m: 0.0,
+            last_sim_time_s: 0.0,
+            last_error: None,
+        },
+        tx,
+        interval: Duration::from_secs_f64(cfg.interval_s),
+        pictures_queued: 0,
+        next_picture: None,
+        start,
+        window_frames: 0,
+        window_ages: FrameAges::default(),
+        window_start: Instant::now(),
+    };
     let stop_reason = loop {
         tokio::select! {
             biased;
             () = &mut shutdown => break StopReason::Shutdown,
             () = &mut sleep, if deadline.is_some() => break StopReason::Duration,
-            _ = tick.tick(), if cfg.progress => {
-                let dt = window_start.elapsed().as_secs_f64().max(1e-9);
-                let ms = |q| window_ages.quantile_ms(q).map_or("-".into(), |v| format!("{v:.1}"));
-                eprintln!(
-                    "viewer: t={:.0}s frames={} ({:.1} fps) age p50 {} ms p99 {} ms, \
-                     pictures {}, bad {}, max disp {:.3} mm",
-                    start.elapsed().as_secs_f64(), c.frames, window_frames as f64 / dt,
-                    ms(0.5), ms(0.99), pictures_queued, c.bad_frames, c.max_displacement_m * 1e3
-                );
-                (window_frames, window_start) = (0, Instant::now());
-                window_ages.clear();
-            }
+            _ = tick.tick(), if cfg.progress => v.progress(),
             msg = stream.next() => match msg {
                 None => break StopReason::StreamEnded,
                 Some(Err(status)) => {
-                    if c.frames == 0 && c.bad_frames == 0 {
-                        drop(tx);
+                    if v.c.frames == 0 && v.c.bad_frames == 0 {
+                        drop(v);
                         let _ = worker.await;
                         return Err(status.into());
                     }
                     let e = ClientError::from(status);
                     tracing::error!("stream failed: {e}");
-                    c.last_error = Some(e.to_string());
+                    v.c.last_error = Some(e.to_string());
                     break StopReason::StreamError;
                 }
-                Some(Ok(frame)) => {
-                    let recv_us = now_unix_us();
-                    // Compact frames become full ones (absolute positions) first.
-                    let frame = match compact.expand(frame) {
-                        Ok(f) => f,
-                        Err(e) => {
-                            tracing::error!("{e}");
-                            c.bad_frames += 1;
-                            c.last_error = Some(e.to_string());
-                            continue;
-                        }
-                    };
-                    match state.apply(&frame, &cfg.render) {
-                        Err(e) => {
-                            tracing::error!("{e}");
-                            c.bad_frames += 1;
-                            c.last_error = Some(e.to_string());
-                            continue;
-                        }
-                        Ok(kind) => {
-                            c.frames += 1;
-                            window_frames += 1;
-                            if kind == FrameKind::Keyframe {
-                                c.keyframes += 1;
-                            }
-                        }
-                    }
-                    if frame.server_time_us > 0 {
-                        let age = recv_us - i128::from(frame.server_time_us);
-                        let age_us = i64::try_from(age).unwrap_or(i64::MAX);
-                        c.ages.record(age_us);
-                        window_ages.record(age_us);
-                    }
-                    if frame.max_displacement_m.is_finite() {
-                        c.max_displacement_m = c.max_displacement_m.max(frame.max_displacement_m);
-                    }
-                    c.last_sim_time_s = frame.sim_time_s;
-                    let now = Instant::now();
-                    if next_picture.is_none() {
-                        // The first state after the first keyframe is always written.
-                        let path = picture_path(&cfg.out_dir, pictures_queued + 1);
-                        if let Some(job) = state.job(path)
-                            && tx.send(job).await.is_ok()
-                        {
-                            pictures_queued += 1;
-                            next_picture = Some(now + interval);
-                        }
-                    } else if next_picture.is_some_and(|t| now >= t) {
-                        let path = picture_path(&cfg.out_dir, pictures_queued + 1);
-                        // Busy worker: skip, try again on the next frame.
-                        if let Some(job) = state.job(path)
-                            && tx.try_send(job).is_ok()
-                        {
-                            pictures_queued += 1;
-                            next_picture = Some(now + interval);
-                        }
-                    }
-                }
+                Some(Ok(frame)) => v.on_frame(frame, cfg).await,
             }
         }
     };
-    let elapsed_s = start.elapsed().as_secs_f64();
-    if let Some(job) = state.job(cfg.out_dir.join("latest.png")) {
-        let _ = tx.send(job).await;
-    }
-    drop(tx);
-    let report = worker.await.map_err(|e| ClientError::Task(e.to_string()))?;
-    Ok(ViewerSummary {
-        session_id: cfg.session_id.clone(),
-        frames: c.frames,
-        keyframes: c.keyframes,
-        bad_frames: c.bad_frames,
-        elapsed_s,
-        fps: c.frames as f64 / elapsed_s.max(1e-9),
-        age_p50_ms: c.ages.quantile_ms(0.5),
-        age_p99_ms: c.ages.quantile_ms(0.99),
-        pictures_written: report.written,
-        picture_errors: report.errors,
-        out_dir: cfg.out_dir.clone(),
-        max_displacement_m: c.max_displacement_m,
-        last_sim_time_s: c.last_sim_time_s,
-        stop_reason,
-        last_error: report.last_error.or(c.last_error),
-    })
+    let elapsed_s = v.start.elapsed().as_secs_f64();
+    v.finish(worker, cfg, stop_reason, elapsed_s).await
 }
 
 #[cfg(test)]

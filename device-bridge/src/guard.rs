@@ -478,6 +478,52 @@ impl ForceGuard {
         );
         self.stats.thermal_limited += u64::from(self.thermal.limiting());
         // 1. Accept.
+        self.accept(command);
+        // 2-3. Age and watchdog gain.
+        let age = self.held.map(|h| now_us.saturating_sub(h.sample_time_us));
+        let w = age.map_or(0.0, |a| watchdog_gain(a, p.fresh_us, p.zero_us));
+        let fresh = link_up && age.is_some_and(|a| a <= p.fresh_us);
+        let healthy = link_up && age.is_some_and(|a| a < p.zero_us);
+        // 4. Latch and re-arm.
+        self.latch_or_rearm(now_us, age, fresh, healthy);
+        // 5. Arm gain: follows the watchdog down at once, comes back up along the ramp.
+        if self.arm == Arm::Armed {
+            let up = dt_us as f64 / p.rearm_ramp_us.max(1) as f64;
+            self.arm_gain = (self.arm_gain + up).min(w).clamp(0.0, 1.0);
+        }
+        let previous_state = self.state;
+        let limits = self.limits();
+        self.command_n = 0.0;
+        let (state, target) = self.target(now_us, age, w, device, spec);
+        if state != previous_state {
+            match state {
+                GuardState::Ramp => self.stats.watchdog_ramps += 1,
+                GuardState::Expired => self.stats.watchdog_expired += 1,
+                _ => {}
+            }
+        }
+        self.state = state;
+        self.output_n = match target {
+            // Zero is always safe: no slew limit on the way down to it.
+            None => [0.0; 3],
+            Some(t) => {
+                // 7. Passivity, 8. clamp and slew.
+                let t = self
+                    .passivity
+                    .apply(t, device.velocity_m_per_s, dt_us as f64 * 1e-6);
+                let (t, _) = clamp_magnitude(t, limits.max_force_n.min(thermal_clamp_n));
+                let (f, limited) =
+                    rate_limit(self.output_n, t, limits.max_rate_n_per_s * p.period_s);
+                self.stats.rate_limited += u64::from(limited);
+                f
+            }
+        };
+        self.output_n
+    }
+
+    /// Step 1: holds a new finite command that is newer than the held one; counts the
+    /// non-finite (rejected), the old (stale) and the too strong (clamped later).
+    fn accept(&mut self, command: Option<&GuardCommand>) {
         if let Some(c) = command
             && self.last_generation != Some(c.generation)
         {
@@ -495,12 +541,13 @@ impl ForceGuard {
                 self.held = Some(*c);
             }
         }
-        // 2-3. Age and watchdog gain.
-        let age = self.held.map(|h| now_us.saturating_sub(h.sample_time_us));
-        let w = age.map_or(0.0, |a| watchdog_gain(a, p.fresh_us, p.zero_us));
-        let fresh = link_up && age.is_some_and(|a| a <= p.fresh_us);
-        let healthy = link_up && age.is_some_and(|a| a < p.zero_us);
-        // 4. Latch and re-arm.
+    }
+
+    /// Step 4 (S5, S9): latches the output off once an engaged command is `latch_us` old;
+    /// while latched, tracks the healthy stretch and takes a pending re-arm request (accepted
+    /// after `healthy_us`, refused and counted before).
+    fn latch_or_rearm(&mut self, now_us: u64, age: Option<u64>, fresh: bool, healthy: bool) {
+        let p = self.params;
         let requested = std::mem::take(&mut self.rearm_requested);
         match self.arm {
             Arm::Armed => {
@@ -536,84 +583,63 @@ impl ForceGuard {
                 }
             }
         }
-        // 5. Arm gain: follows the watchdog down at once, comes back up along the ramp.
-        if self.arm == Arm::Armed {
-            let up = dt_us as f64 / p.rearm_ramp_us.max(1) as f64;
-            self.arm_gain = (self.arm_gain + up).min(w).clamp(0.0, 1.0);
-        }
-        let previous_state = self.state;
-        let limits = self.limits();
-        self.command_n = 0.0;
-        let state;
-        let target = if !spec.contains(device.position_m, p.workspace_margin) {
+    }
+
+    /// This tick's state and the force to aim at before passivity, clamp and slew (`None`:
+    /// zero): nothing outside the workspace or while latched, else step 6, the held command's
+    /// local contact model at the device position scaled by the arm gain (`w` is the
+    /// watchdog gain of the command's `age`, us).
+    fn target(
+        &mut self,
+        now_us: u64,
+        age: Option<u64>,
+        w: f64,
+        device: &DeviceState,
+        spec: &DeviceSpec,
+    ) -> (GuardState, Option<[f64; 3]>) {
+        let p = self.params;
+        if !spec.contains(device.position_m, p.workspace_margin) {
             self.stats.workspace_violations += 1;
-            state = GuardState::OutsideWorkspace;
-            None
-        } else if let Arm::Latched { healthy_since_us } = self.arm {
+            return (GuardState::OutsideWorkspace, None);
+        }
+        if let Arm::Latched { healthy_since_us } = self.arm {
             let ready = healthy_since_us.is_some_and(|s| now_us.saturating_sub(s) >= p.healthy_us);
-            state = if ready {
+            let state = if ready {
                 GuardState::ReadyToRearm
             } else {
                 GuardState::Disabled
             };
-            None
-        } else {
-            match (self.held, age) {
-                (Some(h), Some(a)) => {
-                    state = if a <= p.fresh_us {
-                        if self.arm_gain >= 1.0 {
-                            GuardState::Fresh
-                        } else {
-                            GuardState::Rising
-                        }
-                    } else if w > 0.0 {
-                        GuardState::Ramp
-                    } else {
-                        GuardState::Expired
-                    };
-                    // 6. Local contact model, scaled by the gain.
-                    let f = extrapolate(
-                        h.force_n,
-                        &h.stiffness_n_per_m,
-                        h.position_m,
-                        device.position_m,
-                        p.max_extrapolation_m,
-                    );
-                    self.command_n = vec3::norm(f);
-                    // A zero gain is a zero force: no passivity damping either (the watchdog
-                    // promises exactly zero from 60 ms on).
-                    (self.arm_gain > 0.0).then(|| vec3::scale(f, self.arm_gain))
-                }
-                _ => {
-                    state = GuardState::NoCommand;
-                    None
-                }
-            }
-        };
-        if state != previous_state {
-            match state {
-                GuardState::Ramp => self.stats.watchdog_ramps += 1,
-                GuardState::Expired => self.stats.watchdog_expired += 1,
-                _ => {}
-            }
+            return (state, None);
         }
-        self.state = state;
-        self.output_n = match target {
-            // Zero is always safe: no slew limit on the way down to it.
-            None => [0.0; 3],
-            Some(t) => {
-                // 7. Passivity, 8. clamp and slew.
-                let t = self
-                    .passivity
-                    .apply(t, device.velocity_m_per_s, dt_us as f64 * 1e-6);
-                let (t, _) = clamp_magnitude(t, limits.max_force_n.min(thermal_clamp_n));
-                let (f, limited) =
-                    rate_limit(self.output_n, t, limits.max_rate_n_per_s * p.period_s);
-                self.stats.rate_limited += u64::from(limited);
-                f
-            }
+        let (Some(h), Some(a)) = (self.held, age) else {
+            return (GuardState::NoCommand, None);
         };
-        self.output_n
+        let state = if a <= p.fresh_us {
+            if self.arm_gain >= 1.0 {
+                GuardState::Fresh
+            } else {
+                GuardState::Rising
+            }
+        } else if w > 0.0 {
+            GuardState::Ramp
+        } else {
+            GuardState::Expired
+        };
+        // 6. Local contact model, scaled by the gain.
+        let f = extrapolate(
+            h.force_n,
+            &h.stiffness_n_per_m,
+            h.position_m,
+            device.position_m,
+            p.max_extrapolation_m,
+        );
+        self.command_n = vec3::norm(f);
+        // A zero gain is a zero force: no passivity damping either (the watchdog
+        // promises exactly zero from 60 ms on).
+        (
+            state,
+            (self.arm_gain > 0.0).then(|| vec3::scale(f, self.arm_gain)),
+        )
     }
 }
 

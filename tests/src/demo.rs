@@ -14,7 +14,9 @@ use std::time::Duration;
 use anyhow::{Context, Result, bail, ensure};
 use serde_json::{Value, json};
 
-use crate::{BRIDGE, CTL, Daemon, HAPTICD, STEP_TIMEOUT, VIEWER, finish, run_bin_in, spawn_bin_in};
+use crate::{
+    BRIDGE, CTL, Daemon, HAPTICD, STEP_TIMEOUT, Spawned, VIEWER, finish, run_bin_in, spawn_bin_in,
+};
 
 /// What the demo does; [`Default`] is what `haptic-demo` without flags runs.
 #[derive(Debug, Clone)]
@@ -54,135 +56,28 @@ const PRESS_SPEED_M_PER_S: f64 = 0.01;
 pub async fn run(p: &DemoParams, progress: &mut dyn FnMut(&str)) -> Result<Value> {
     let out = &p.out_dir;
     let pictures = out.join("pictures");
-    if pictures.exists() {
-        std::fs::remove_dir_all(&pictures)
-            .with_context(|| format!("clearing {}", pictures.display()))?;
-    }
-    std::fs::create_dir_all(&pictures)
-        .with_context(|| format!("creating {}", pictures.display()))?;
+    fresh_dir(&pictures)?;
     let csv = out.join("bridge.csv");
-    let (dir, s) = (&p.bin_dir, |p: &Path| p.display().to_string());
     // Fresh tokens each run: the daemon creates the tokens file and one `<role>.token` per
     // role (mode 0600) at first start; each client passes the file of its role.
     let auth = out.join("auth");
-    if auth.exists() {
-        std::fs::remove_dir_all(&auth).with_context(|| format!("clearing {}", auth.display()))?;
-    }
-    std::fs::create_dir_all(&auth).with_context(|| format!("creating {}", auth.display()))?;
-    let tokens = s(&auth.join("tokens.toml"));
-    let token = |role: &str| s(&auth.join(format!("{role}.token")));
-    let (control, device, viewer_token) = (token("control"), token("device"), token("viewer"));
-
-    progress(&format!(
-        "starting {HAPTICD} --listen 127.0.0.1:0 --tokens-file {tokens} ..."
-    ));
-    let mut daemon = Daemon::spawn_from(
-        &crate::binary_in(dir, HAPTICD)?,
-        &["--tokens-file", &tokens],
-    )?;
-    let url = daemon.url();
-    progress(&format!(
-        "{HAPTICD} listening on {}; tokens in {}",
-        daemon.addr,
-        auth.display()
-    ));
-
-    progress("starting session: hapticctl --token-file control.token start lv ...");
-    let started = run_bin_in(
-        dir,
-        CTL,
-        &["--server", &url, "--token-file", &control, "start", "lv"],
-        STEP_TIMEOUT,
-    )
-    .await?
-    .success()?;
-    let id = started
-        .stdout
-        .lines()
-        .map(str::trim)
-        .rfind(|l| !l.is_empty())
-        .context("hapticctl start printed no session id")?
-        .to_string();
-    progress(&format!("session {id}"));
+    fresh_dir(&auth)?;
+    let mut daemon = start_daemon(&p.bin_dir, &auth, progress)?;
+    let token = |role: &str| shown(&auth.join(format!("{role}.token")));
+    let c = Clients {
+        dir: &p.bin_dir,
+        url: daemon.url(),
+        control: token("control"),
+        device: token("device"),
+        viewer: token("viewer"),
+    };
+    let id = c.start_session(progress).await?;
 
     let bridge_s = 2.0 * PRESS_DEPTH_M / PRESS_SPEED_M_PER_S + p.hold_s;
-    let viewer_s = format!("{:.1}", bridge_s + 3.0);
-    progress(&format!(
-        "starting {VIEWER} (pictures every 0.5 s for {viewer_s} s into {}) ...",
-        pictures.display()
-    ));
-    let viewer = spawn_bin_in(
-        dir,
-        VIEWER,
-        &[
-            "--server",
-            &url,
-            "--token-file",
-            &viewer_token,
-            "--session",
-            &id,
-            "--out",
-            &s(&pictures),
-            "--interval-s",
-            "0.5",
-            "--duration-s",
-            &viewer_s,
-            "--json",
-        ],
-    )?;
-
-    progress(&format!(
-        "starting {BRIDGE} (sim probe, press {:.0} mm along -x, hold {} s, recording {}) ...",
-        PRESS_DEPTH_M * 1e3,
-        p.hold_s,
-        csv.display()
-    ));
-    let hold = p.hold_s.to_string();
-    let bridge = spawn_bin_in(
-        dir,
-        BRIDGE,
-        &[
-            "--server",
-            &url,
-            "--token-file",
-            &device,
-            "--session",
-            &id,
-            "--driver",
-            "sim",
-            "--script",
-            "press",
-            "--hold-s",
-            &hold,
-            "--record",
-            &s(&csv),
-            "--json",
-        ],
-    )?;
-
+    let viewer = c.start_viewer(&id, &pictures, bridge_s + 3.0, progress)?;
+    let bridge = c.start_bridge(&id, p.hold_s, &csv, progress)?;
     tokio::time::sleep(Duration::from_secs_f64(p.force_after_s)).await;
-    progress("applying 0.05 N along -y at (0, 9.68, -5) mm for 0.5 s: hapticctl force ...");
-    run_bin_in(
-        dir,
-        CTL,
-        &[
-            "--server",
-            &url,
-            "--token-file",
-            &control,
-            "force",
-            &id,
-            "--point",
-            "0,0.00968,-0.005",
-            "--force",
-            "0,-0.05,0",
-            "--duration-s",
-            "0.5",
-        ],
-        STEP_TIMEOUT,
-    )
-    .await?
-    .success()?;
+    c.push_epicardium(&id, progress).await?;
 
     progress("waiting for the bridge to finish ...");
     let bridge_sum = finish(bridge, Duration::from_secs_f64(bridge_s + 30.0))
@@ -194,49 +89,212 @@ pub async fn run(p: &DemoParams, progress: &mut dyn FnMut(&str)) -> Result<Value
         .await?
         .success()?
         .json()?;
+    let stats = c.stats_and_stop(&id, &mut daemon, progress).await?;
 
-    progress("reading statistics: hapticctl stats --json ...");
-    let stats = run_bin_in(
-        dir,
-        CTL,
-        &[
-            "--server",
-            &url,
-            "--token-file",
-            &control,
-            "stats",
-            &id,
-            "--json",
-        ],
-        STEP_TIMEOUT,
-    )
-    .await?
-    .success()?
-    .json()?;
-    progress("stopping the session: hapticctl stop ...");
-    run_bin_in(
-        dir,
-        CTL,
-        &["--server", &url, "--token-file", &control, "stop", &id],
-        STEP_TIMEOUT,
-    )
-    .await?
-    .success()?;
-    progress(&format!("stopping {HAPTICD} (SIGTERM) ..."));
-    let status = daemon.terminate(Duration::from_secs(15))?;
-    if !status.success() {
-        bail!(
-            "{HAPTICD} exited with {status} after SIGTERM; log:\n{}",
-            daemon.log_tail()
-        );
+    let summary = summary_of(&id, stats, bridge_sum, viewer_sum, &pictures, &csv);
+    let path = out.join("summary.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&summary)? + "\n")
+        .with_context(|| format!("writing {}", path.display()))?;
+    Ok(summary)
+}
+
+/// `path` as shown in arguments and messages.
+fn shown(path: &Path) -> String {
+    path.display().to_string()
+}
+
+/// Empties `dir` (removing what an earlier run left) and creates it.
+fn fresh_dir(dir: &Path) -> Result<()> {
+    if dir.exists() {
+        std::fs::remove_dir_all(dir).with_context(|| format!("clearing {}", dir.display()))?;
     }
-    ensure!(
-        stats["faulted"] != json!(true),
-        "the session faulted: {}",
-        stats["fault"]
-    );
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))
+}
 
-    let summary = json!({
+/// Starts `hapticd` on 127.0.0.1 port 0 with a new tokens file in `auth`.
+fn start_daemon(dir: &Path, auth: &Path, progress: &mut dyn FnMut(&str)) -> Result<Daemon> {
+    let tokens = shown(&auth.join("tokens.toml"));
+    progress(&format!(
+        "starting {HAPTICD} --listen 127.0.0.1:0 --tokens-file {tokens} ..."
+    ));
+    let daemon = Daemon::spawn_from(
+        &crate::binary_in(dir, HAPTICD)?,
+        &["--tokens-file", &tokens],
+    )?;
+    progress(&format!(
+        "{HAPTICD} listening on {}; tokens in {}",
+        daemon.addr,
+        auth.display()
+    ));
+    Ok(daemon)
+}
+
+/// What every client step needs: where the binaries are, the daemon's URL and the token file
+/// of each role.
+struct Clients<'a> {
+    dir: &'a Path,
+    url: String,
+    control: String,
+    device: String,
+    viewer: String,
+}
+
+impl Clients<'_> {
+    /// `hapticctl --server URL --token-file CONTROL ARGS...`, which must succeed within
+    /// [`STEP_TIMEOUT`].
+    async fn ctl(&self, args: &[&str]) -> Result<crate::CmdOutput> {
+        let mut all = vec!["--server", &self.url, "--token-file", &self.control];
+        all.extend_from_slice(args);
+        run_bin_in(self.dir, CTL, &all, STEP_TIMEOUT)
+            .await?
+            .success()
+    }
+
+    /// `hapticctl start lv`: returns the new session's id.
+    async fn start_session(&self, progress: &mut dyn FnMut(&str)) -> Result<String> {
+        progress("starting session: hapticctl --token-file control.token start lv ...");
+        let started = self.ctl(&["start", "lv"]).await?;
+        let id = started
+            .stdout
+            .lines()
+            .map(str::trim)
+            .rfind(|l| !l.is_empty())
+            .context("hapticctl start printed no session id")?
+            .to_string();
+        progress(&format!("session {id}"));
+        Ok(id)
+    }
+
+    /// The viewer, writing a picture every 0.5 s into `pictures` for `viewer_s` seconds.
+    fn start_viewer(
+        &self,
+        id: &str,
+        pictures: &Path,
+        viewer_s: f64,
+        progress: &mut dyn FnMut(&str),
+    ) -> Result<Spawned> {
+        let viewer_s = format!("{viewer_s:.1}");
+        progress(&format!(
+            "starting {VIEWER} (pictures every 0.5 s for {viewer_s} s into {}) ...",
+            pictures.display()
+        ));
+        spawn_bin_in(
+            self.dir,
+            VIEWER,
+            &[
+                "--server",
+                &self.url,
+                "--token-file",
+                &self.viewer,
+                "--session",
+                id,
+                "--out",
+                &shown(pictures),
+                "--interval-s",
+                "0.5",
+                "--duration-s",
+                &viewer_s,
+                "--json",
+            ],
+        )
+    }
+
+    /// The bridge with the simulated probe's press script, holding `hold_s` seconds and
+    /// recording `csv`.
+    fn start_bridge(
+        &self,
+        id: &str,
+        hold_s: f64,
+        csv: &Path,
+        progress: &mut dyn FnMut(&str),
+    ) -> Result<Spawned> {
+        progress(&format!(
+            "starting {BRIDGE} (sim probe, press {:.0} mm along -x, hold {} s, recording {}) ...",
+            PRESS_DEPTH_M * 1e3,
+            hold_s,
+            csv.display()
+        ));
+        let hold = hold_s.to_string();
+        spawn_bin_in(
+            self.dir,
+            BRIDGE,
+            &[
+                "--server",
+                &self.url,
+                "--token-file",
+                &self.device,
+                "--session",
+                id,
+                "--driver",
+                "sim",
+                "--script",
+                "press",
+                "--hold-s",
+                &hold,
+                "--record",
+                &shown(csv),
+                "--json",
+            ],
+        )
+    }
+
+    /// `hapticctl force`: pushes the epicardium elsewhere during the hold.
+    async fn push_epicardium(&self, id: &str, progress: &mut dyn FnMut(&str)) -> Result<()> {
+        progress("applying 0.05 N along -y at (0, 9.68, -5) mm for 0.5 s: hapticctl force ...");
+        self.ctl(&[
+            "force",
+            id,
+            "--point",
+            "0,0.00968,-0.005",
+            "--force",
+            "0,-0.05,0",
+            "--duration-s",
+            "0.5",
+        ])
+        .await?;
+        Ok(())
+    }
+
+    /// `hapticctl stats --json`, `hapticctl stop`, then SIGTERM to the daemon (which must exit
+    /// cleanly); fails if the session faulted. Returns the statistics.
+    async fn stats_and_stop(
+        &self,
+        id: &str,
+        daemon: &mut Daemon,
+        progress: &mut dyn FnMut(&str),
+    ) -> Result<Value> {
+        progress("reading statistics: hapticctl stats --json ...");
+        let stats = self.ctl(&["stats", id, "--json"]).await?.json()?;
+        progress("stopping the session: hapticctl stop ...");
+        self.ctl(&["stop", id]).await?;
+        progress(&format!("stopping {HAPTICD} (SIGTERM) ..."));
+        let status = daemon.terminate(Duration::from_secs(15))?;
+        if !status.success() {
+            bail!(
+                "{HAPTICD} exited with {status} after SIGTERM; log:\n{}",
+                daemon.log_tail()
+            );
+        }
+        ensure!(
+            stats["faulted"] != json!(true),
+            "the session faulted: {}",
+            stats["fault"]
+        );
+        Ok(stats)
+    }
+}
+
+/// The demo's summary: the headline numbers of the daemon's statistics, the bridge's and the
+/// viewer's summaries, where the outputs are, and the three summaries in full.
+fn summary_of(
+    id: &str,
+    stats: Value,
+    bridge_sum: Value,
+    viewer_sum: Value,
+    pictures: &Path,
+    csv: &Path,
+) -> Value {
+    json!({
         "session_id": id,
         "scene": stats["scene"],
         "nodes": stats["nodes"],
@@ -260,16 +318,12 @@ pub async fn run(p: &DemoParams, progress: &mut dyn FnMut(&str)) -> Result<Value
         "viewer_frames": viewer_sum["frames"],
         "viewer_fps": viewer_sum["fps"],
         "pictures_written": viewer_sum["pictures_written"],
-        "pictures_dir": s(&pictures),
-        "bridge_csv": s(&csv),
+        "pictures_dir": shown(pictures),
+        "bridge_csv": shown(csv),
         "stats": stats,
         "bridge": bridge_sum,
         "viewer": viewer_sum,
-    });
-    let path = out.join("summary.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&summary)? + "\n")
-        .with_context(|| format!("writing {}", path.display()))?;
-    Ok(summary)
+    })
 }
 
 /// The human-readable summary of [`run`]'s result.
