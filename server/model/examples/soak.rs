@@ -680,7 +680,7 @@ impl Run {
     /// a settle check.
     fn check_state(&mut self, sim: &FemBody, done: u64, time_s: f64) -> Result<(), Failure> {
         let settle_at = self.settles.get(self.next_settle).copied();
-        let cadence = done % CADENCE_TICKS == 0;
+        let cadence = done.is_multiple_of(CADENCE_TICKS);
         if !(cadence || settle_at == Some(done) || settle_at == Some(done + SETTLE_TICKS / 2)) {
             return Ok(());
         }
