@@ -14,18 +14,50 @@ pub(super) struct Report<'a> {
     pub(super) last: &'a SessionStats,
 }
 
+/// The four kinds of window, grouped.
+struct Groups {
+    quiet: Option<Group>,
+    steady: Option<Group>,
+    switch: Option<Group>,
+    with_heavy: Option<Group>,
+}
+
+impl Groups {
+    fn of(windows: &[Window]) -> Self {
+        Self {
+            quiet: Group::of(windows.iter().filter(|w| w.presence == Presence::Quiet)),
+            steady: Group::of(windows.iter().filter(|w| w.presence == Presence::Heavy)),
+            switch: Group::of(windows.iter().filter(|w| w.presence == Presence::Switch)),
+            with_heavy: Group::of(windows.iter().filter(|w| w.presence != Presence::Quiet)),
+        }
+    }
+}
+
 /// Prints the tables and verdicts, writes the JSON; `Ok(false)` when a verdict failed.
 pub(super) fn report(r: Report<'_>) -> Result<bool> {
-    let Report {
-        cfg,
-        windows,
-        cycles,
-        bridge_runs,
-        forces,
-        watchers_failed,
-        first_rss_mb,
-        last,
-    } = r;
+    let minutes = minutes_table(r.cfg, r.windows);
+    let groups = Groups::of(r.windows);
+    groups_table(&groups);
+    summary_line(&r);
+    let (memory_ok, memory_json) = memory_verdict(r.cfg, r.windows, r.first_rss_mb);
+    let (overrun_ok, overrun_json) = overrun_verdict(&groups);
+    let last = r.last;
+    let fault_ok = !last.faulted && r.windows.iter().all(|w| !w.stats.faulted);
+    if !fault_ok {
+        println!("the genuine session faulted: {}", last.fault);
+    }
+    let verdicts = json!({"memory_bounded": memory_json, "no_attributable_overruns": overrun_json,
+                          "genuine_faulted": !fault_ok});
+    let doc = report_json(&r, &groups, minutes, verdicts);
+    let out = results_dir(r.cfg.publish)?.join("system-soak.json");
+    std::fs::write(&out, serde_json::to_string_pretty(&doc)? + "\n")
+        .with_context(|| format!("writing {}", out.display()))?;
+    eprintln!("wrote {}", out.display());
+    Ok(memory_ok && overrun_ok && fault_ok)
+}
+
+/// Prints the table per minute; its rows for the JSON.
+fn minutes_table(cfg: &SoakConfig, windows: &[Window]) -> Vec<Value> {
     println!(
         "| minute | RSS end (MB) | daemon CPU | loop (Hz) | overruns/s quiet / heavy | lost slots/s quiet / heavy | step p99 in windows, quiet / heavy (us) | step p99 over life (us) | frames/s per watcher |"
     );
@@ -61,11 +93,17 @@ pub(super) fn report(r: Report<'_>) -> Result<bool> {
             "frames_per_watcher_per_s": fps,
         }));
     }
+    minutes
+}
 
-    let quiet = Group::of(windows.iter().filter(|w| w.presence == Presence::Quiet));
-    let steady = Group::of(windows.iter().filter(|w| w.presence == Presence::Heavy));
-    let switch = Group::of(windows.iter().filter(|w| w.presence == Presence::Switch));
-    let with_heavy = Group::of(windows.iter().filter(|w| w.presence != Presence::Quiet));
+/// Prints the table per kind of window.
+fn groups_table(groups: &Groups) {
+    let Groups {
+        quiet,
+        steady,
+        switch,
+        with_heavy,
+    } = groups;
     println!();
     println!(
         "| windows ({WINDOW_S} s) | count | overruns/s | lost slots/s | loop (Hz) | daemon CPU | step mean (us) | step p99 (us, bucket) | ticks > 10 ms |"
@@ -94,6 +132,21 @@ pub(super) fn report(r: Report<'_>) -> Result<bool> {
             None => println!("| {name} | 0 | - | - | - | - | - | - | - |"),
         }
     }
+}
+
+/// Prints the line on the heavy sessions, forces, bridge runs, watchers and the genuine
+/// session.
+fn summary_line(r: &Report<'_>) {
+    let Report {
+        cfg,
+        windows,
+        cycles,
+        bridge_runs,
+        forces,
+        watchers_failed,
+        last,
+        ..
+    } = *r;
     let heavy_p50: Vec<f64> = cycles
         .iter()
         .filter_map(|c| c["step_p50_us"].as_f64())
@@ -123,7 +176,10 @@ pub(super) fn report(r: Report<'_>) -> Result<bool> {
         cycles.iter().filter(|c| c["demoted"] == true).count(),
         heavy_p50.len(),
     );
+}
 
+/// Verdict 1, memory bounded: printed; `(pass, JSON)`.
+fn memory_verdict(cfg: &SoakConfig, windows: &[Window], first_rss_mb: f64) -> (bool, Value) {
     // Verdict 1: memory bounded.
     let warmup = WARMUP_MINUTES.min(cfg.minutes / 2);
     let base = windows
@@ -132,7 +188,7 @@ pub(super) fn report(r: Report<'_>) -> Result<bool> {
         .map(|w| w.rss_mb);
     let end_rss = windows.last().map(|w| w.rss_mb);
     let peak_hwm = windows.iter().map(|w| w.hwm_mb).fold(0.0, f64::max);
-    let (memory_ok, memory_json) = match (base, end_rss) {
+    match (base, end_rss) {
         (Some(b), Some(e)) if warmup >= 1 => {
             let growth = (e - b) / b;
             let ok = growth < RSS_GROWTH_LIMIT;
@@ -160,10 +216,14 @@ pub(super) fn report(r: Report<'_>) -> Result<bool> {
                 json!({"pass": null, "first_rss_mb": first_rss_mb, "end_rss_mb": end_rss, "peak_hwm_mb": peak_hwm}),
             )
         }
-    };
+    }
+}
 
+/// Verdict 2, no overruns attributable to the heavy session: printed; `(pass, JSON)`.
+fn overrun_verdict(groups: &Groups) -> (bool, Value) {
+    let (quiet, with_heavy) = (&groups.quiet, &groups.with_heavy);
     // Verdict 2: no overruns attributable to the heavy session.
-    let (overrun_ok, overrun_json) = match (&quiet, &with_heavy) {
+    match (&quiet, &with_heavy) {
         (Some(q), Some(h)) => {
             let ok_overruns = h.overruns_per_s <= q.overruns_per_s + OVERRUN_TOLERANCE_PER_S;
             let ok_lost = h.lost_slots_per_s <= q.lost_slots_per_s + OVERRUN_TOLERANCE_PER_S;
@@ -195,12 +255,27 @@ pub(super) fn report(r: Report<'_>) -> Result<bool> {
                 json!({"pass": false, "error": "no windows to compare"}),
             )
         }
-    };
-    let fault_ok = !last.faulted && windows.iter().all(|w| !w.stats.faulted);
-    if !fault_ok {
-        println!("the genuine session faulted: {}", last.fault);
     }
+}
 
+/// The result file's content.
+fn report_json(r: &Report<'_>, groups: &Groups, minutes: Vec<Value>, verdicts: Value) -> Value {
+    let Report {
+        cfg,
+        windows,
+        cycles,
+        bridge_runs,
+        forces,
+        watchers_failed,
+        last,
+        ..
+    } = *r;
+    let Groups {
+        quiet,
+        steady,
+        switch,
+        with_heavy,
+    } = groups;
     let doc = json!({
         "what": "system soak (issue 16): the genuine session's overruns and the daemon's memory with the bridge at 1 kHz, watchers at 30 Hz, scripted forces and a heavy session started and stopped every minute",
         "command": cfg.command(),
@@ -214,8 +289,7 @@ pub(super) fn report(r: Report<'_>) -> Result<bool> {
         "force": {"period_s": FORCE_PERIOD.as_secs_f64(), "point_m": FORCE_POINT_M, "force_n": FORCE_N,
                   "duration_s": FORCE_DURATION_S, "applied": forces.0, "failed": forces.1},
         "bridge": {"script": "poke", "amplitude_m": POKE_AMPLITUDE_M, "frequency_hz": POKE_FREQUENCY_HZ, "runs": bridge_runs},
-        "verdicts": {"memory_bounded": memory_json, "no_attributable_overruns": overrun_json,
-                     "genuine_faulted": !fault_ok},
+        "verdicts": verdicts,
         "summary": {
             "quiet": quiet.as_ref().map(Group::json),
             "heavy": steady.as_ref().map(Group::json),
@@ -231,9 +305,5 @@ pub(super) fn report(r: Report<'_>) -> Result<bool> {
         "minutes_table": minutes,
         "windows": windows.iter().map(Window::json).collect::<Vec<_>>(),
     });
-    let out = results_dir(cfg.publish)?.join("system-soak.json");
-    std::fs::write(&out, serde_json::to_string_pretty(&doc)? + "\n")
-        .with_context(|| format!("writing {}", out.display()))?;
-    eprintln!("wrote {}", out.display());
-    Ok(memory_ok && overrun_ok && fault_ok)
+    doc
 }
