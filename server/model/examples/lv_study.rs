@@ -285,27 +285,7 @@ fn main() {
             } else {
                 depths
             };
-            for m in mesh {
-                let mut scene = m.scene();
-                if let Some(s) = smoothing {
-                    scene.strain_smoothing = s;
-                }
-                if let Some(nu) = nu {
-                    let mat = &mut scene.material;
-                    let e = mat.youngs_modulus_pa();
-                    mat.lambda_pa = e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu));
-                    mat.mu_pa = e / (2.0 * (1.0 + nu));
-                }
-                let t = Instant::now();
-                let c = probe_static_at(&scene, &depths, debug);
-                println!(
-                    "lv-study {}: {} nodes, {:.1} s: {:?}",
-                    m.label(),
-                    scene.mesh.node_count(),
-                    t.elapsed().as_secs_f64(),
-                    c.map(|c| c.forces_n)
-                );
-            }
+            static_study(&mesh, nu, &depths, smoothing, debug);
         }
         Study::Sphere {
             mesh,
@@ -359,32 +339,65 @@ fn main() {
         Study::Dynamic {
             run,
             prefactored_margin,
-        } => {
-            for r in run {
-                let mut scene = common::lv_scene_order(r.tets, r.quadratic);
-                scene.integrator.kind = r.kind;
-                scene.integrator.safety_factor = r.safety_factor;
-                scene.integrator.cg_max_iterations = r.cg_max_iterations;
-                scene.integrator.max_substeps = 1000;
-                // Backward Euler with CG unless the rest factor is asked for (the built-in
-                // scene's own solver is the rest factor).
-                scene.integrator.linear_solver = haptic_model::integrate::LinearSolver::Cg;
-                if let Some(margin) = prefactored_margin {
-                    scene.integrator.linear_solver =
-                        haptic_model::integrate::LinearSolver::RestCholesky;
-                    scene.integrator.stiffness_margin = margin;
-                }
-                match probe_dynamic(&scene, false) {
-                    Ok((c, ticks, sub)) => println!(
-                        "lv-dyn {}: {} nodes, {sub} sub-steps, tick p50 {:.0} us: {:?}",
-                        r.spec,
-                        scene.mesh.node_count(),
-                        ticks.percentiles().p50_us,
-                        c.forces_n
-                    ),
-                    Err(e) => println!("lv-dyn {}: {e}", r.spec),
-                }
-            }
+        } => dynamic_study(&run, prefactored_margin),
+    }
+}
+
+/// The `static` study (see [`Study::Static`]).
+fn static_study(
+    mesh: &[MeshSpec],
+    nu: Option<f64>,
+    depths: &[f64],
+    smoothing: Option<StrainSmoothing>,
+    debug: bool,
+) {
+    for m in mesh {
+        let mut scene = m.scene();
+        if let Some(s) = smoothing {
+            scene.strain_smoothing = s;
+        }
+        if let Some(nu) = nu {
+            let mat = &mut scene.material;
+            let e = mat.youngs_modulus_pa();
+            mat.lambda_pa = e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu));
+            mat.mu_pa = e / (2.0 * (1.0 + nu));
+        }
+        let t = Instant::now();
+        let c = probe_static_at(&scene, depths, debug);
+        println!(
+            "lv-study {}: {} nodes, {:.1} s: {:?}",
+            m.label(),
+            scene.mesh.node_count(),
+            t.elapsed().as_secs_f64(),
+            c.map(|c| c.forces_n)
+        );
+    }
+}
+
+/// The `dynamic` study (see [`Study::Dynamic`]).
+fn dynamic_study(run: &[DynamicRun], prefactored_margin: Option<f64>) {
+    for r in run {
+        let mut scene = common::lv_scene_order(r.tets, r.quadratic);
+        scene.integrator.kind = r.kind;
+        scene.integrator.safety_factor = r.safety_factor;
+        scene.integrator.cg_max_iterations = r.cg_max_iterations;
+        scene.integrator.max_substeps = 1000;
+        // Backward Euler with CG unless the rest factor is asked for (the built-in
+        // scene's own solver is the rest factor).
+        scene.integrator.linear_solver = haptic_model::integrate::LinearSolver::Cg;
+        if let Some(margin) = prefactored_margin {
+            scene.integrator.linear_solver = haptic_model::integrate::LinearSolver::RestCholesky;
+            scene.integrator.stiffness_margin = margin;
+        }
+        match probe_dynamic(&scene, false) {
+            Ok((c, ticks, sub)) => println!(
+                "lv-dyn {}: {} nodes, {sub} sub-steps, tick p50 {:.0} us: {:?}",
+                r.spec,
+                scene.mesh.node_count(),
+                ticks.percentiles().p50_us,
+                c.forces_n
+            ),
+            Err(e) => println!("lv-dyn {}: {e}", r.spec),
         }
     }
 }
