@@ -562,11 +562,9 @@ fn reference_study(
     material: Option<MaterialModel>,
     surface: Option<&std::path::Path>,
 ) -> Result<(), String> {
-    use common::{CONTACT_X_M, device_at};
     let points = common::surface_sample_points_m();
     // Per mesh: per device depth, the displacement at each sample point (m).
     let mut surfaces: Vec<Vec<Vec<glam::DVec3>>> = Vec::new();
-    use haptic_model::indent::{IndentParams, Indenter, contact_distance};
     if meshes.len() < 3 || meshes.len() != csvs.len() || !(h.is_empty() || h.len() == meshes.len())
     {
         return Err(format!(
@@ -579,55 +577,7 @@ fn reference_study(
     let mut curves = Vec::new();
     let mut sizes = Vec::new();
     for (k, (m, path)) in meshes.iter().zip(csvs).enumerate() {
-        let mut scene = m.scene();
-        if let Some(model) = material {
-            scene.material.model = model;
-        }
-        let fem = scene.fem_model().map_err(|e| e.to_string())?;
-        let from = device_at(-1e-3);
-        let indenter = Indenter {
-            radius_m: scene.probe.radius_m,
-            from_m: from,
-            direction: glam::DVec3::new(-1.0, 0.0, 0.0),
-        };
-        let t0 = contact_distance(&fem, &scene.touchable, &indenter, &IndentParams::default())
-            .map_err(|e| e.to_string())?;
-        // indent.csv's depth zero is this mesh's first contact, `1 mm - t0` before the
-        // lv-probe contact point CONTACT_X_M.
-        let offset_mm = (1e-3 - t0) * 1e3;
-        let kc = scene.probe.coupling_stiffness_n_per_m;
-        let rows = read_indent_csv(path)?;
-        // The device sits `F_x / k` beyond the sphere along the press; the force is reported
-        // as the dynamic runs report it, by its magnitude.
-        let device: Vec<(f64, f64)> = rows
-            .iter()
-            .map(|&(s, fx, f)| (s - offset_mm + fx / kc * 1e3, f))
-            .collect();
-        println!(
-            "mesh {} ({} tets, {} nodes): first contact {:+.4} mm from x = {:.3} mm; sphere depth mm -> force N: {}",
-            m.label(),
-            scene.mesh.tet_count(),
-            scene.mesh.node_count(),
-            -offset_mm,
-            CONTACT_X_M * 1e3,
-            rows.iter()
-                .map(|(s, _, f)| format!("{s}: {f:.5e}"))
-                .collect::<Vec<_>>()
-                .join(", ")
-        );
-        let at: Vec<f64> = depths
-            .iter()
-            .map(|&d| {
-                interpolate(&device, d).ok_or_else(|| {
-                    format!(
-                        "{}: device depth {d} mm is outside the solved range {:.3} to {:.3} mm",
-                        path.display(),
-                        device[0].0,
-                        device[device.len() - 1].0
-                    )
-                })
-            })
-            .collect::<Result<_, _>>()?;
+        let MeshCurve { scene, device, at } = mesh_curve(m, path, material, depths)?;
         sizes.push(
             h.get(k)
                 .copied()
@@ -645,6 +595,95 @@ fn reference_study(
         hh[0] / hh[2],
         hh[1] / hh[2]
     );
+    let reference = reference_table(depths, &curves, hh);
+    if let Some(out) = surface {
+        write_surface_reference(out, hh, depths, &points, &surfaces)?;
+    }
+    if let Some(scene) = servo {
+        servo_against_reference(depths, &reference, scene, material)?;
+    }
+    Ok(())
+}
+
+/// One mesh of the `reference` study.
+struct MeshCurve {
+    scene: Scene,
+    /// The `indent.csv` rows as (device depth mm, force magnitude N).
+    device: Vec<(f64, f64)>,
+    /// The force at each requested device depth, N.
+    at: Vec<f64>,
+}
+
+/// One mesh of the `reference` study: its scene (with `material`), its `indent.csv` at `path`
+/// and the force at each of `depths` (mm).
+fn mesh_curve(
+    m: &MeshSpec,
+    path: &std::path::Path,
+    material: Option<MaterialModel>,
+    depths: &[f64],
+) -> Result<MeshCurve, String> {
+    use common::{CONTACT_X_M, device_at};
+    use haptic_model::indent::{IndentParams, Indenter, contact_distance};
+    let mut scene = m.scene();
+    if let Some(model) = material {
+        scene.material.model = model;
+    }
+    let fem = scene.fem_model().map_err(|e| e.to_string())?;
+    let from = device_at(-1e-3);
+    let indenter = Indenter {
+        radius_m: scene.probe.radius_m,
+        from_m: from,
+        direction: glam::DVec3::new(-1.0, 0.0, 0.0),
+    };
+    let t0 = contact_distance(&fem, &scene.touchable, &indenter, &IndentParams::default())
+        .map_err(|e| e.to_string())?;
+    // indent.csv's depth zero is this mesh's first contact, `1 mm - t0` before the
+    // lv-probe contact point CONTACT_X_M.
+    let offset_mm = (1e-3 - t0) * 1e3;
+    let kc = scene.probe.coupling_stiffness_n_per_m;
+    let rows = read_indent_csv(path)?;
+    // The device sits `F_x / k` beyond the sphere along the press; the force is reported
+    // as the dynamic runs report it, by its magnitude.
+    let device: Vec<(f64, f64)> = rows
+        .iter()
+        .map(|&(s, fx, f)| (s - offset_mm + fx / kc * 1e3, f))
+        .collect();
+    println!(
+        "mesh {} ({} tets, {} nodes): first contact {:+.4} mm from x = {:.3} mm; sphere depth mm -> force N: {}",
+        m.label(),
+        scene.mesh.tet_count(),
+        scene.mesh.node_count(),
+        -offset_mm,
+        CONTACT_X_M * 1e3,
+        rows.iter()
+            .map(|(s, _, f)| format!("{s}: {f:.5e}"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    let at: Vec<f64> = depths
+        .iter()
+        .map(|&d| {
+            interpolate(&device, d).ok_or_else(|| {
+                format!(
+                    "{}: device depth {d} mm is outside the solved range {:.3} to {:.3} mm",
+                    path.display(),
+                    device[0].0,
+                    device[device.len() - 1].0
+                )
+            })
+        })
+        .collect::<Result<_, _>>()?;
+    Ok(MeshCurve { scene, device, at })
+}
+
+/// Prints the table of the `reference` study: each mesh's force and the extrapolation through
+/// the last three (sizes `hh`) at each device depth; the extrapolations.
+fn reference_table(
+    depths: &[f64],
+    curves: &[Vec<f64>],
+    hh: [f64; 3],
+) -> Vec<common::lv_press::Extrapolated> {
+    let k = curves.len();
     println!(
         "| device depth, mm | {} | extrapolated, mN | uncertainty, mN (%) | observed order |",
         (0..k)
@@ -670,13 +709,7 @@ fn reference_study(
                 .map_or("none (not asymptotic)".into(), |p| format!("{p:.2}"))
         );
     }
-    if let Some(out) = surface {
-        write_surface_reference(out, hh, depths, &points, &surfaces)?;
-    }
-    if let Some(scene) = servo {
-        servo_against_reference(depths, &reference, scene, material)?;
-    }
-    Ok(())
+    reference
 }
 
 /// The displacement (m) at each of `points` on `scene`'s touchable surface at each device
