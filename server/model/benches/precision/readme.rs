@@ -98,6 +98,19 @@ pub fn readme(rows: &[Row], dir: &Path) -> anyhow::Result<Option<PathBuf>> {
     Ok(Some(base))
 }
 
+const COLORS: [plotters::style::RGBColor; 6] = [
+    plotters::style::RGBColor(31, 119, 180),
+    plotters::style::RGBColor(255, 127, 14),
+    plotters::style::RGBColor(44, 160, 44),
+    plotters::style::RGBColor(214, 39, 40),
+    plotters::style::RGBColor(148, 103, 189),
+    plotters::style::RGBColor(227, 119, 194),
+];
+/// The haptic budget line, the other configurations' dots and the JND line.
+const GREY: plotters::style::RGBColor = plotters::style::RGBColor(120, 120, 120);
+const LIGHT: plotters::style::RGBColor = plotters::style::RGBColor(185, 185, 185);
+const RED: plotters::style::RGBColor = plotters::style::RGBColor(200, 60, 60);
+
 /// Draws the README chart: every row as a small grey dot, the Pareto `front` as a black line
 /// through numbered points (the numbers listed in the legend), and each shipped scene's row
 /// as a large coloured marker with its own legend entry.
@@ -112,14 +125,6 @@ where
     DB::ErrorType: 'static,
 {
     use plotters::prelude::*;
-    const COLORS: [RGBColor; 6] = [
-        RGBColor(31, 119, 180),
-        RGBColor(255, 127, 14),
-        RGBColor(44, 160, 44),
-        RGBColor(214, 39, 40),
-        RGBColor(148, 103, 189),
-        RGBColor(227, 119, 194),
-    ];
     root.fill(&WHITE)?;
     let (w, _) = root.dim_in_pixel();
     let (plot, legend) = root.split_horizontally(w.saturating_sub(500));
@@ -139,9 +144,7 @@ where
         .x_label_formatter(&|v| format!("{v:.3}"))
         .y_label_formatter(&|v| format!("{:.1}%", v * 100.0))
         .draw()?;
-    let grey = RGBColor(120, 120, 120);
-    let light = RGBColor(185, 185, 185);
-    let red = RGBColor(200, 60, 60);
+    let (grey, light, red) = (GREY, LIGHT, RED);
     chart.draw_series(LineSeries::new(
         [(1.0, y0), (1.0, y1)],
         grey.stroke_width(2),
@@ -172,7 +175,23 @@ where
                 + Circle::new((0, 0), 8, BLACK.stroke_width(1)),
         ))?;
     }
-    // Legend panel (pixel coordinates): the lines, the shipped scenes, the front's points.
+    draw_legend(&legend, front, shipped)?;
+    root.present()?;
+    Ok(())
+}
+
+/// The legend panel of [`draw`] (pixel coordinates): the lines, the shipped scenes, the
+/// front's points.
+fn draw_legend<DB: plotters::prelude::DrawingBackend>(
+    legend: &plotters::drawing::DrawingArea<DB, plotters::coord::Shift>,
+    front: &[Point],
+    shipped: &[(String, Point)],
+) -> Result<(), Box<dyn std::error::Error>>
+where
+    DB::ErrorType: 'static,
+{
+    use plotters::prelude::*;
+    let (grey, light, red) = (GREY, LIGHT, RED);
     let font = ("sans-serif", 13).into_font();
     let small = ("sans-serif", 11).into_font();
     let mut y = 30;
@@ -215,6 +234,5 @@ where
         ))?;
         y += 16;
     }
-    root.present()?;
     Ok(())
 }
