@@ -571,17 +571,15 @@ fn csv_row<'a>(
         unc,
         richardson_value,
         gci,
-        order,
-        previous,
-        ls,
+        ..
     } = *e;
     let fmt_order = |p: Option<f64>| p.map_or(String::new(), |p| format!("{p:.3}"));
     write!(
         csv,
         "{material},{conv},{depth},{value:.6e},{unc:.3e},{},{},{},{richardson_value:.6e},{gci:.3e}",
-        fmt_order(order),
-        fmt_order(previous),
-        fmt_order(ls.map(|l| l.2)),
+        fmt_order(e.order),
+        fmt_order(e.previous),
+        fmt_order(e.ls.map(|l| l.2)),
     )?;
     for r in at_levels {
         match r {
@@ -600,15 +598,6 @@ fn md_row(
     e: &Estimate,
     levels: &[(f64, f64)],
 ) -> anyhow::Result<()> {
-    let Estimate {
-        value,
-        unc,
-        richardson_value,
-        gci,
-        order,
-        previous,
-        ls,
-    } = *e;
     writeln!(
         md,
         "| {material} | {conv} | {depth} | {} | **{:.4} +- {:.4} ({:.1} %)** | {} | {} | {} | {:.4} +- {:.4} ({:.1} %) |",
@@ -617,15 +606,15 @@ fn md_row(
             .map(|l| format!("{:.4}", l.1 * 1e3))
             .collect::<Vec<_>>()
             .join(" / "),
-        value * 1e3,
-        unc * 1e3,
-        100.0 * unc / value,
-        order.map_or("none".into(), |p| format!("{p:.2}")),
-        previous.map_or("none".into(), |p| format!("{p:.2}")),
-        ls.map_or("-".into(), |l| format!("{:.2}", l.2)),
-        richardson_value * 1e3,
-        gci * 1e3,
-        100.0 * gci / richardson_value
+        e.value * 1e3,
+        e.unc * 1e3,
+        100.0 * e.unc / e.value,
+        e.order.map_or("none".into(), |p| format!("{p:.2}")),
+        e.previous.map_or("none".into(), |p| format!("{p:.2}")),
+        e.ls.map_or("-".into(), |l| format!("{:.2}", l.2)),
+        e.richardson_value * 1e3,
+        e.gci * 1e3,
+        100.0 * e.gci / e.richardson_value
     )?;
     Ok(())
 }

@@ -260,22 +260,8 @@ fn overrun_verdict(groups: &Groups) -> (bool, Value) {
 
 /// The result file's content.
 fn report_json(r: &Report<'_>, groups: &Groups, minutes: Vec<Value>, verdicts: Value) -> Value {
-    let Report {
-        cfg,
-        windows,
-        cycles,
-        bridge_runs,
-        forces,
-        watchers_failed,
-        last,
-        ..
-    } = *r;
-    let Groups {
-        quiet,
-        steady,
-        switch,
-        with_heavy,
-    } = groups;
+    let (cfg, windows, cycles, last) = (r.cfg, r.windows, r.cycles, r.last);
+    let (bridge_runs, forces, watchers_failed) = (r.bridge_runs, r.forces, r.watchers_failed);
     let doc = json!({
         "what": "system soak (issue 16): the genuine session's overruns and the daemon's memory with the bridge at 1 kHz, watchers at 30 Hz, scripted forces and a heavy session started and stopped every minute",
         "command": cfg.command(),
@@ -291,10 +277,10 @@ fn report_json(r: &Report<'_>, groups: &Groups, minutes: Vec<Value>, verdicts: V
         "bridge": {"script": "poke", "amplitude_m": POKE_AMPLITUDE_M, "frequency_hz": POKE_FREQUENCY_HZ, "runs": bridge_runs},
         "verdicts": verdicts,
         "summary": {
-            "quiet": quiet.as_ref().map(Group::json),
-            "heavy": steady.as_ref().map(Group::json),
-            "switch": switch.as_ref().map(Group::json),
-            "with_heavy": with_heavy.as_ref().map(Group::json),
+            "quiet": groups.quiet.as_ref().map(Group::json),
+            "heavy": groups.steady.as_ref().map(Group::json),
+            "switch": groups.switch.as_ref().map(Group::json),
+            "with_heavy": groups.with_heavy.as_ref().map(Group::json),
         },
         "genuine_final": {"steps": last.steps, "overruns": last.overruns, "step_p50_us": last.step_p50_us,
                           "step_p99_us": last.step_p99_us, "step_max_us": last.step_max_us,

@@ -179,22 +179,6 @@ fn method_family(label: &str) -> (&str, usize) {
     }
 }
 
-// Tableau 10, then greys.
-const COLORS: [plotters::style::RGBColor; 12] = [
-    plotters::style::RGBColor(31, 119, 180),
-    plotters::style::RGBColor(255, 127, 14),
-    plotters::style::RGBColor(44, 160, 44),
-    plotters::style::RGBColor(214, 39, 40),
-    plotters::style::RGBColor(148, 103, 189),
-    plotters::style::RGBColor(140, 86, 75),
-    plotters::style::RGBColor(227, 119, 194),
-    plotters::style::RGBColor(127, 127, 127),
-    plotters::style::RGBColor(188, 189, 34),
-    plotters::style::RGBColor(23, 190, 207),
-    plotters::style::RGBColor(60, 60, 60),
-    plotters::style::RGBColor(170, 170, 170),
-];
-
 /// Draws one work-precision chart: the plot on the left, a legend panel on the right. Colour
 /// = method (integrator and setting), marker = element family, so about 30 curves stay
 /// readable with a dozen legend entries; the Pareto `front` (no configuration both faster and
@@ -211,6 +195,21 @@ where
     DB::ErrorType: 'static,
 {
     use plotters::prelude::*;
+    // Tableau 10, then greys.
+    const COLORS: [RGBColor; 12] = [
+        RGBColor(31, 119, 180),
+        RGBColor(255, 127, 14),
+        RGBColor(44, 160, 44),
+        RGBColor(214, 39, 40),
+        RGBColor(148, 103, 189),
+        RGBColor(140, 86, 75),
+        RGBColor(227, 119, 194),
+        RGBColor(127, 127, 127),
+        RGBColor(188, 189, 34),
+        RGBColor(23, 190, 207),
+        RGBColor(60, 60, 60),
+        RGBColor(170, 170, 170),
+    ];
     root.fill(&WHITE)?;
     let (w, _) = root.dim_in_pixel();
     let (plot, legend) = root.split_horizontally(w.saturating_sub(350));
@@ -241,7 +240,10 @@ where
     bases.dedup();
     bases.sort_unstable();
     bases.dedup();
-    let color_of = |base: &str| method_colour(&bases, base);
+    let color_of = |base: &str| {
+        let k = bases.iter().position(|b| *b == base).unwrap_or(0);
+        COLORS[k % COLORS.len()]
+    };
     for (name, pts) in curves {
         let (base, family) = method_family(name);
         let color = color_of(base);
@@ -266,25 +268,27 @@ where
             + Circle::new((0, 0), 7, BLACK.stroke_width(1))
             + Text::new(label.clone(), (8, -16), label_font.clone())
     }))?;
-    draw_legend(&legend, curves, &bases)?;
+    draw_legend(&legend, curves, &bases, (&color_of, [grey, red]))?;
     root.present()?;
     Ok(())
 }
 
 /// The legend panel of [`draw_chart`] (pixel coordinates): the two limits, the front, the
-/// element families present, then the methods `bases` by colour.
+/// element families present, then the methods `bases` in their colours `color_of`; `grey`
+/// and `red` draw the budget and JND lines.
 fn draw_legend<DB: plotters::prelude::DrawingBackend>(
     legend: &plotters::drawing::DrawingArea<DB, plotters::coord::Shift>,
     curves: &BTreeMap<String, Vec<(f64, f64)>>,
     bases: &[&str],
+    (color_of, [grey, red]): (
+        &dyn Fn(&str) -> plotters::style::RGBColor,
+        [plotters::style::RGBColor; 2],
+    ),
 ) -> Result<(), Box<dyn std::error::Error>>
 where
     DB::ErrorType: 'static,
 {
     use plotters::prelude::*;
-    let grey = RGBColor(120, 120, 120);
-    let red = RGBColor(200, 60, 60);
-    let color_of = |base: &str| method_colour(bases, base);
     let font = ("sans-serif", 14).into_font();
     let black = BLACK.stroke_width(2);
     let mut y = 40;
@@ -331,10 +335,4 @@ where
         line(legend, base, color_of(base).stroke_width(3), &mut y)?;
     }
     Ok(())
-}
-
-/// The colour of method `base` among `bases`.
-fn method_colour(bases: &[&str], base: &str) -> plotters::style::RGBColor {
-    let k = bases.iter().position(|b| *b == base).unwrap_or(0);
-    COLORS[k % COLORS.len()]
 }

@@ -98,19 +98,6 @@ pub fn readme(rows: &[Row], dir: &Path) -> anyhow::Result<Option<PathBuf>> {
     Ok(Some(base))
 }
 
-const COLORS: [plotters::style::RGBColor; 6] = [
-    plotters::style::RGBColor(31, 119, 180),
-    plotters::style::RGBColor(255, 127, 14),
-    plotters::style::RGBColor(44, 160, 44),
-    plotters::style::RGBColor(214, 39, 40),
-    plotters::style::RGBColor(148, 103, 189),
-    plotters::style::RGBColor(227, 119, 194),
-];
-/// The haptic budget line, the other configurations' dots and the JND line.
-const GREY: plotters::style::RGBColor = plotters::style::RGBColor(120, 120, 120);
-const LIGHT: plotters::style::RGBColor = plotters::style::RGBColor(185, 185, 185);
-const RED: plotters::style::RGBColor = plotters::style::RGBColor(200, 60, 60);
-
 /// Draws the README chart: every row as a small grey dot, the Pareto `front` as a black line
 /// through numbered points (the numbers listed in the legend), and each shipped scene's row
 /// as a large coloured marker with its own legend entry.
@@ -125,6 +112,14 @@ where
     DB::ErrorType: 'static,
 {
     use plotters::prelude::*;
+    const COLORS: [RGBColor; 6] = [
+        RGBColor(31, 119, 180),
+        RGBColor(255, 127, 14),
+        RGBColor(44, 160, 44),
+        RGBColor(214, 39, 40),
+        RGBColor(148, 103, 189),
+        RGBColor(227, 119, 194),
+    ];
     root.fill(&WHITE)?;
     let (w, _) = root.dim_in_pixel();
     let (plot, legend) = root.split_horizontally(w.saturating_sub(500));
@@ -144,7 +139,9 @@ where
         .x_label_formatter(&|v| format!("{v:.3}"))
         .y_label_formatter(&|v| format!("{:.1}%", v * 100.0))
         .draw()?;
-    let (grey, light, red) = (GREY, LIGHT, RED);
+    let grey = RGBColor(120, 120, 120);
+    let light = RGBColor(185, 185, 185);
+    let red = RGBColor(200, 60, 60);
     chart.draw_series(LineSeries::new(
         [(1.0, y0), (1.0, y1)],
         grey.stroke_width(2),
@@ -175,23 +172,23 @@ where
                 + Circle::new((0, 0), 8, BLACK.stroke_width(1)),
         ))?;
     }
-    draw_legend(&legend, front, shipped)?;
+    draw_legend(&legend, front, shipped, (&COLORS, [grey, light, red]))?;
     root.present()?;
     Ok(())
 }
 
 /// The legend panel of [`draw`] (pixel coordinates): the lines, the shipped scenes, the
-/// front's points.
+/// front's points; `colors` of the shipped scenes, then the budget, other-row and JND colours.
 fn draw_legend<DB: plotters::prelude::DrawingBackend>(
     legend: &plotters::drawing::DrawingArea<DB, plotters::coord::Shift>,
     front: &[Point],
     shipped: &[(String, Point)],
+    (colors, [grey, light, red]): (&[plotters::style::RGBColor], [plotters::style::RGBColor; 3]),
 ) -> Result<(), Box<dyn std::error::Error>>
 where
     DB::ErrorType: 'static,
 {
     use plotters::prelude::*;
-    let (grey, light, red) = (GREY, LIGHT, RED);
     let font = ("sans-serif", 13).into_font();
     let small = ("sans-serif", 11).into_font();
     let mut y = 30;
@@ -213,7 +210,7 @@ where
     legend.draw(&Text::new("shipped scenes:", (8, y - 7), font.clone()))?;
     y += 20;
     for (k, (text, _)) in shipped.iter().enumerate() {
-        let c = COLORS[k % COLORS.len()];
+        let c = colors[k % colors.len()];
         legend.draw(&Circle::new((21, y), 7, c.filled()))?;
         legend.draw(&Text::new(text.clone(), (42, y - 7), small.clone()))?;
         y += 20;
