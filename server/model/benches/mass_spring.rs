@@ -85,7 +85,7 @@ struct Row {
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let out = args.out.unwrap_or_else(common::default_out_dir);
+    let out = args.out.clone().unwrap_or_else(common::default_out_dir);
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let path = out.join("mass_spring.csv");
     let mut csv = csv::Writer::from_path(&path)?;
@@ -96,23 +96,7 @@ fn main() -> anyhow::Result<()> {
     if args.only == Only::Slide {
         return Ok(());
     }
-    let lv = load_builtin("lv-surface-springs")?;
-    let mut meshes: Vec<(String, Scene)> = vec![
-        ("hemisphere-springs".into(), hemi.clone()),
-        ("lv-surface-springs".into(), lv),
-    ];
-    for (label, edge_mm) in [
-        ("hemisphere 1k", 4.3),
-        ("hemisphere 10k", 1.36),
-        ("hemisphere 50k", 0.61),
-    ] {
-        if args.mesh.as_deref().is_none_or(|m| label.contains(m)) {
-            meshes.push((label.into(), generated(&hemi, edge_mm * 1e-3)?));
-        }
-    }
-    if let Some(m) = &args.mesh {
-        meshes.retain(|(label, _)| label.contains(m.as_str()));
-    }
+    let meshes = meshes(&args, &hemi)?;
     println!(
         "{:<20} {:>6} {:>6} {:<16} {:>4} {:>7} {:>9} {:>9} {:>9} {:>8}",
         "mesh", "nodes", "tris", "what", "sub", "count", "p50 us", "p99 us", "max us", "overruns"
@@ -124,124 +108,202 @@ fn main() -> anyhow::Result<()> {
             .reps
             .unwrap_or(if args.quick { 50 } else { 400 })
             .min(4 * n);
-        let mut emit =
-            |what: &str, substeps: u32, t: &TickTimes, overruns: u64| -> anyhow::Result<()> {
-                let p = t.percentiles();
-                let row = Row {
-                    mesh: label.clone(),
-                    nodes: n,
-                    triangles: ms.surface.triangle_count(),
-                    what: what.into(),
-                    substeps,
-                    count: t.len(),
-                    p50_us: p.p50_us,
-                    p99_us: p.p99_us,
-                    max_us: p.max_us,
-                    overruns,
-                };
-                println!(
-                    "{:<20} {:>6} {:>6} {:<16} {:>4} {:>7} {:>9.1} {:>9.1} {:>9.1} {:>8}",
-                    row.mesh,
-                    row.nodes,
-                    row.triangles,
-                    row.what,
-                    row.substeps,
-                    row.count,
-                    row.p50_us,
-                    row.p99_us,
-                    row.max_us,
-                    row.overruns
-                );
-                csv.serialize(&row)?;
-                Ok(())
-            };
-        // Events: subdivide around a random free node, then coarsen, many times.
-        for rings in [1u32, 2] {
-            let mut body = body_with_rings(scene, rings)?;
-            let free: Vec<u32> = (0..n as u32).filter(|&i| !ms.surface.is_fixed(i)).collect();
-            let (mut sub, mut coarse) = (TickTimes::new(), TickTimes::new());
-            let mut rng = common_rng(rings as u64);
-            for _ in 0..reps {
-                let c = free[(rng() * free.len() as f64) as usize % free.len()];
-                let t = Instant::now();
-                body.subdivide_around(&[c]);
-                sub.record(t.elapsed());
-                let t = Instant::now();
-                body.coarsen();
-                coarse.record(t.elapsed());
-            }
-            emit(
-                &format!("event {rings}-ring"),
-                body.plan().substeps,
-                &sub,
-                0,
-            )?;
-            emit(
-                &format!("coarsen {rings}-ring"),
-                body.plan().substeps,
-                &coarse,
-                0,
-            )?;
-        }
+        let mut emit = Emit {
+            csv: &mut csv,
+            mesh: label,
+            nodes: n,
+            triangles: ms.surface.triangle_count(),
+        };
+        event_rows(scene, &ms.surface, reps, &mut emit)?;
         if args.only == Only::Events {
             continue;
         }
-        // Ticks with events: press the apex, slide to a rim-ward node, leave, press again.
-        let mut body = body_with_rings(scene, 1)?;
-        let path = probe_path(&ms.surface, scene.probe.radius_m);
-        let ticks = if args.quick { 1500 } else { 3000 };
-        let mut times = TickTimes::new();
-        for k in 0..ticks {
-            let input = TickInput {
-                device_position_m: Some(path(k as f64 / ticks as f64)),
-                device_velocity_m_per_s: DVec3::ZERO,
-            };
-            let t = Instant::now();
-            body.tick(&input)?;
-            times.record(t.elapsed());
-        }
-        let events = body.event_stats().events;
-        emit(
-            &format!("tick ({events} events)"),
-            body.plan().substeps,
-            &times,
-            times.count_at_least_us(1000),
-        )?;
-        // Step time while pressed (subdivided).
-        let mut body = body_with_rings(scene, 1)?;
-        let apex = ms.surface.rest()[0] + ms.surface.rest_normal(0) * scene.probe.radius_m;
-        let press = |d: f64| TickInput {
-            device_position_m: Some(apex - ms.surface.rest_normal(0) * d),
-            device_velocity_m_per_s: DVec3::ZERO,
-        };
-        let depth = 0.5 * ms.surface.element_size_m(0);
-        for k in 0..300 {
-            body.tick(&press(depth * (k as f64 / 200.0).min(1.0)))?;
-        }
-        let mut times = TickTimes::new();
-        let count = if args.quick {
-            500
-        } else {
-            if n > 20_000 { 1000 } else { 3000 }
-        };
-        for _ in 0..count {
-            let t = Instant::now();
-            body.tick(&press(depth))?;
-            times.record(t.elapsed());
-        }
-        assert!(
-            body.stats().nodes > n,
-            "{label}: the pressed surface is subdivided"
-        );
-        emit(
-            "tick (pressed)",
-            body.plan().substeps,
-            &times,
-            times.count_at_least_us(1000),
-        )?;
+        events_tick_row(scene, &ms.surface, args.quick, &mut emit)?;
+        pressed_tick_row(label, scene, &ms.surface, args.quick, &mut emit)?;
     }
     csv.flush()?;
     println!("wrote {}", path.display());
+    Ok(())
+}
+
+/// The meshes to time: the two built-ins and the generated hemispheres, those matching
+/// `--mesh`.
+fn meshes(args: &Args, hemi: &Scene) -> anyhow::Result<Vec<(String, Scene)>> {
+    let lv = load_builtin("lv-surface-springs")?;
+    let mut meshes: Vec<(String, Scene)> = vec![
+        ("hemisphere-springs".into(), hemi.clone()),
+        ("lv-surface-springs".into(), lv),
+    ];
+    for (label, edge_mm) in [
+        ("hemisphere 1k", 4.3),
+        ("hemisphere 10k", 1.36),
+        ("hemisphere 50k", 0.61),
+    ] {
+        if args.mesh.as_deref().is_none_or(|m| label.contains(m)) {
+            meshes.push((label.into(), generated(hemi, edge_mm * 1e-3)?));
+        }
+    }
+    if let Some(m) = &args.mesh {
+        meshes.retain(|(label, _)| label.contains(m.as_str()));
+    }
+    Ok(meshes)
+}
+
+/// Prints and writes the rows of one mesh.
+struct Emit<'a> {
+    csv: &'a mut csv::Writer<std::fs::File>,
+    mesh: &'a str,
+    nodes: usize,
+    triangles: usize,
+}
+
+impl Emit<'_> {
+    fn emit(
+        &mut self,
+        what: &str,
+        substeps: u32,
+        t: &TickTimes,
+        overruns: u64,
+    ) -> anyhow::Result<()> {
+        let p = t.percentiles();
+        let row = Row {
+            mesh: self.mesh.to_string(),
+            nodes: self.nodes,
+            triangles: self.triangles,
+            what: what.into(),
+            substeps,
+            count: t.len(),
+            p50_us: p.p50_us,
+            p99_us: p.p99_us,
+            max_us: p.max_us,
+            overruns,
+        };
+        println!(
+            "{:<20} {:>6} {:>6} {:<16} {:>4} {:>7} {:>9.1} {:>9.1} {:>9.1} {:>8}",
+            row.mesh,
+            row.nodes,
+            row.triangles,
+            row.what,
+            row.substeps,
+            row.count,
+            row.p50_us,
+            row.p99_us,
+            row.max_us,
+            row.overruns
+        );
+        self.csv.serialize(&row)?;
+        Ok(())
+    }
+}
+
+/// Events: subdivide around a random free node, then coarsen, `reps` times, with 1 and 2 rings.
+fn event_rows(
+    scene: &Scene,
+    surface: &SpringSurface,
+    reps: usize,
+    emit: &mut Emit<'_>,
+) -> anyhow::Result<()> {
+    let n = surface.node_count();
+    for rings in [1u32, 2] {
+        let mut body = body_with_rings(scene, rings)?;
+        let free: Vec<u32> = (0..n as u32).filter(|&i| !surface.is_fixed(i)).collect();
+        let (mut sub, mut coarse) = (TickTimes::new(), TickTimes::new());
+        let mut rng = common_rng(rings as u64);
+        for _ in 0..reps {
+            let c = free[(rng() * free.len() as f64) as usize % free.len()];
+            let t = Instant::now();
+            body.subdivide_around(&[c]);
+            sub.record(t.elapsed());
+            let t = Instant::now();
+            body.coarsen();
+            coarse.record(t.elapsed());
+        }
+        emit.emit(
+            &format!("event {rings}-ring"),
+            body.plan().substeps,
+            &sub,
+            0,
+        )?;
+        emit.emit(
+            &format!("coarsen {rings}-ring"),
+            body.plan().substeps,
+            &coarse,
+            0,
+        )?;
+    }
+    Ok(())
+}
+
+/// Ticks with events: press the apex, slide to a rim-ward node, leave, press again.
+fn events_tick_row(
+    scene: &Scene,
+    surface: &SpringSurface,
+    quick: bool,
+    emit: &mut Emit<'_>,
+) -> anyhow::Result<()> {
+    let mut body = body_with_rings(scene, 1)?;
+    let path = probe_path(surface, scene.probe.radius_m);
+    let ticks = if quick { 1500 } else { 3000 };
+    let mut times = TickTimes::new();
+    for k in 0..ticks {
+        let input = TickInput {
+            device_position_m: Some(path(k as f64 / ticks as f64)),
+            device_velocity_m_per_s: DVec3::ZERO,
+        };
+        let t = Instant::now();
+        body.tick(&input)?;
+        times.record(t.elapsed());
+    }
+    let events = body.event_stats().events;
+    emit.emit(
+        &format!("tick ({events} events)"),
+        body.plan().substeps,
+        &times,
+        times.count_at_least_us(1000),
+    )?;
+    Ok(())
+}
+
+/// Step time while pressed (subdivided).
+fn pressed_tick_row(
+    label: &str,
+    scene: &Scene,
+    surface: &SpringSurface,
+    quick: bool,
+    emit: &mut Emit<'_>,
+) -> anyhow::Result<()> {
+    let n = surface.node_count();
+    let mut body = body_with_rings(scene, 1)?;
+    let apex = surface.rest()[0] + surface.rest_normal(0) * scene.probe.radius_m;
+    let press = |d: f64| TickInput {
+        device_position_m: Some(apex - surface.rest_normal(0) * d),
+        device_velocity_m_per_s: DVec3::ZERO,
+    };
+    let depth = 0.5 * surface.element_size_m(0);
+    for k in 0..300 {
+        body.tick(&press(depth * (k as f64 / 200.0).min(1.0)))?;
+    }
+    let mut times = TickTimes::new();
+    let count = if quick {
+        500
+    } else {
+        if n > 20_000 { 1000 } else { 3000 }
+    };
+    for _ in 0..count {
+        let t = Instant::now();
+        body.tick(&press(depth))?;
+        times.record(t.elapsed());
+    }
+    assert!(
+        body.stats().nodes > n,
+        "{label}: the pressed surface is subdivided"
+    );
+    emit.emit(
+        "tick (pressed)",
+        body.plan().substeps,
+        &times,
+        times.count_at_least_us(1000),
+    )?;
     Ok(())
 }
 

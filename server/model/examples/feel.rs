@@ -105,58 +105,7 @@ fn run(args: Args) -> Result<(), String> {
         }
     };
     let tick = info.tick_s;
-    let trace = match protocol {
-        Protocol::Staircase {
-            depths,
-            ramp_s,
-            hold_s,
-        } => {
-            let depths: Vec<f64> = depths.iter().map(|d| d * 1e-3).collect();
-            let params = HoldParams {
-                ramp_s,
-                hold_s,
-                average_s: (hold_s * 2.0 / 3.0).min(hold_s),
-            };
-            let (holds, trace) = press::staircase(body.as_mut(), &line, &depths, &params, tick)
-                .map_err(|e| e.to_string())?;
-            print_holds(&holds);
-            trace
-        }
-        Protocol::Demo {
-            depth,
-            speed,
-            hold_s,
-        } => {
-            let (hold, trace) = press::constant_speed_press(
-                body.as_mut(),
-                &line,
-                depth * 1e-3,
-                speed * 1e-3,
-                hold_s,
-                tick,
-            )
-            .map_err(|e| e.to_string())?;
-            print_holds(&[hold]);
-            trace
-        }
-        Protocol::Stroke { depth, speed } => {
-            let (s, trace) =
-                press::lv_half_turn(body.as_mut(), r, depth * 1e-3, speed * 1e-3, tick)
-                    .map_err(|e| e.to_string())?;
-            print_holds(&[s.hold]);
-            println!(
-                "slide: {} ticks ({} in contact), |F| {:.3} to {:.3} mN, largest tick-to-tick \
-                 change {:.3} mN = {:.1} % of the hold force",
-                s.slide_ticks,
-                s.contact_ticks,
-                s.force_min_n * 1e3,
-                s.force_max_n * 1e3,
-                s.max_tick_change_n * 1e3,
-                100.0 * s.max_tick_change_n / s.hold.force_n
-            );
-            trace
-        }
-    };
+    let trace = run_protocol(protocol, body.as_mut(), &line, r, tick)?;
     println!(
         "ticks: {} in all, p50 {:.1} us, p99 {:.1} us, max {:.1} us",
         trace.tick_wall_s.len(),
@@ -169,6 +118,63 @@ fn run(args: Args) -> Result<(), String> {
     }
     drop(body); // a digest body prints its hash when dropped: last
     Ok(())
+}
+
+/// Runs `protocol` on `body` along `line` (probe radius `r` m, tick `tick` s), printing its
+/// holds (and the slide of a stroke); the trace.
+fn run_protocol(
+    protocol: Protocol,
+    body: &mut dyn SoftBody,
+    line: &PressLine,
+    r: f64,
+    tick: f64,
+) -> Result<PressTrace, String> {
+    let trace = match protocol {
+        Protocol::Staircase {
+            depths,
+            ramp_s,
+            hold_s,
+        } => {
+            let depths: Vec<f64> = depths.iter().map(|d| d * 1e-3).collect();
+            let params = HoldParams {
+                ramp_s,
+                hold_s,
+                average_s: (hold_s * 2.0 / 3.0).min(hold_s),
+            };
+            let (holds, trace) =
+                press::staircase(body, line, &depths, &params, tick).map_err(|e| e.to_string())?;
+            print_holds(&holds);
+            trace
+        }
+        Protocol::Demo {
+            depth,
+            speed,
+            hold_s,
+        } => {
+            let (hold, trace) =
+                press::constant_speed_press(body, line, depth * 1e-3, speed * 1e-3, hold_s, tick)
+                    .map_err(|e| e.to_string())?;
+            print_holds(&[hold]);
+            trace
+        }
+        Protocol::Stroke { depth, speed } => {
+            let (s, trace) = press::lv_half_turn(body, r, depth * 1e-3, speed * 1e-3, tick)
+                .map_err(|e| e.to_string())?;
+            print_holds(&[s.hold]);
+            println!(
+                "slide: {} ticks ({} in contact), |F| {:.3} to {:.3} mN, largest tick-to-tick \
+             change {:.3} mN = {:.1} % of the hold force",
+                s.slide_ticks,
+                s.contact_ticks,
+                s.force_min_n * 1e3,
+                s.force_max_n * 1e3,
+                s.max_tick_change_n * 1e3,
+                100.0 * s.max_tick_change_n / s.hold.force_n
+            );
+            trace
+        }
+    };
+    Ok(trace)
 }
 
 /// The scene's body as [`haptic_model::build_body`] builds it, except that an FEM body

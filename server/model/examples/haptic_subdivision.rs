@@ -180,6 +180,8 @@ fn main() -> anyhow::Result<()> {
 /// One curve: label and (x / L, value) points (NaN where there is no value).
 type Curve = (String, Vec<(f64, f64)>);
 
+type CsvFile = csv::Writer<std::fs::File>;
+
 fn paper(data: &Path, plots: &Path) -> anyhow::Result<()> {
     std::fs::create_dir_all(data)?;
     std::fs::create_dir_all(plots)?;
@@ -187,9 +189,62 @@ fn paper(data: &Path, plots: &Path) -> anyhow::Result<()> {
     let k = (K_N_PER_M, K_N_PER_M);
     let shape = ContactShape::Point;
     let xs = xs();
+    let f = fig5(data, plots, &surface, &xs)?;
+    // Fig. 6-7, the stiffening, Fig. 8-11.
+    let mut fig67 = csv::Writer::from_path(data.join("haptic-subdivision-fig6-7.csv"))?;
+    fig67.write_record([
+        "rings",
+        "x_over_l",
+        "km_ratio_kh_unchanged",
+        "km_ratio_kh_eq5",
+        "force_ratio_unchanged_springs",
+    ])?;
+    let mut fig811 = csv::Writer::from_path(data.join("haptic-subdivision-fig8-11.csv"))?;
+    fig811.write_record([
+        "rings",
+        "km_over_kh_after",
+        "x_over_l",
+        "kh_ratio",
+        "km_ratio",
+    ])?;
+    let mut kh_curves: [Vec<Curve>; 2] = Default::default();
+    let mut km_curves: [Vec<Curve>; 2] = Default::default();
+    for rings in [1u32, 2] {
+        let mut p = LocalPatch::new(&surface, 0, rings, VertexRule::Keep, shape, k)?;
+        fig67_rings(&mut p, rings, (&xs, &f), &mut fig67, plots)?;
+        let r = rings as usize - 1;
+        fig811_rings(
+            &mut p,
+            rings,
+            (&xs, &f),
+            &mut fig811,
+            (&mut kh_curves[r], &mut km_curves[r]),
+        )?;
+    }
+    fig67.flush()?;
+    fig811.flush()?;
+    fig811_plots(plots, &kh_curves, &km_curves)?;
+    println!(
+        "wrote {}/haptic-subdivision-fig*.csv and {}/haptic-subdivision-fig*.png/.svg",
+        data.display(),
+        plots.display()
+    );
+    Ok(())
+}
+
+/// Fig. 5 and the convergence of the local problem: the contact force before subdivision at
+/// `xs` (times L), N.
+fn fig5(
+    data: &Path,
+    plots: &Path,
+    surface: &SpringSurface,
+    xs: &[f64],
+) -> anyhow::Result<Vec<f64>> {
+    let k = (K_N_PER_M, K_N_PER_M);
+    let shape = ContactShape::Point;
     // Fig. 5 and the convergence of the local problem.
     let coarse = |margin: u32| -> anyhow::Result<Vec<f64>> {
-        let p = LocalPatch::with_margin(&surface, 0, 1, margin, VertexRule::Keep, shape, k)?;
+        let p = LocalPatch::with_margin(surface, 0, 1, margin, VertexRule::Keep, shape, k)?;
         let mut x = p.coarse_rest();
         xs.iter()
             .map(|r| Ok(p.coarse_press(r * L_M, &mut x)?))
@@ -224,132 +279,142 @@ fn paper(data: &Path, plots: &Path) -> anyhow::Result<()> {
             xs.iter().copied().zip(f.iter().copied()).collect(),
         )],
     )?;
-    // Fig. 6-7, the stiffening, Fig. 8-11.
-    let mut fig67 = csv::Writer::from_path(data.join("haptic-subdivision-fig6-7.csv"))?;
-    fig67.write_record([
-        "rings",
-        "x_over_l",
-        "km_ratio_kh_unchanged",
-        "km_ratio_kh_eq5",
-        "force_ratio_unchanged_springs",
-    ])?;
-    let mut fig811 = csv::Writer::from_path(data.join("haptic-subdivision-fig8-11.csv"))?;
-    fig811.write_record([
-        "rings",
-        "km_over_kh_after",
-        "x_over_l",
-        "kh_ratio",
-        "km_ratio",
-    ])?;
-    let mut kh_curves: [Vec<Curve>; 2] = Default::default();
-    let mut km_curves: [Vec<Curve>; 2] = Default::default();
-    for rings in [1u32, 2] {
-        let mut p = LocalPatch::new(&surface, 0, rings, VertexRule::Keep, shape, k)?;
-        let (n, n_after) = p.area_node_counts();
-        let eq5 = K_N_PER_M * n as f64 / n_after as f64;
-        let mut unchanged = Vec::new();
-        let mut kh_fixed = Vec::new();
-        let mut kh_eq5 = Vec::new();
-        let (mut s1, mut s2) = (1.0, 10.0);
-        let mut x1 = p.fine_rest();
-        let mut x2 = p.fine_rest();
-        let mut x3 = p.fine_rest();
+    Ok(f)
+}
+
+/// Fig. 6-7 for a `rings` subdivision: the K'_m / K_m restoring the coarse forces `f` at `xs`
+/// with K'_h unchanged and with eq. 5, and the stiffening with unchanged springs.
+fn fig67_rings(
+    p: &mut LocalPatch,
+    rings: u32,
+    (xs, f): (&[f64], &[f64]),
+    fig67: &mut CsvFile,
+    plots: &Path,
+) -> anyhow::Result<()> {
+    let k = (K_N_PER_M, K_N_PER_M);
+    let (n, n_after) = p.area_node_counts();
+    let eq5 = K_N_PER_M * n as f64 / n_after as f64;
+    let mut unchanged = Vec::new();
+    let mut kh_fixed = Vec::new();
+    let mut kh_eq5 = Vec::new();
+    let (mut s1, mut s2) = (1.0, 10.0);
+    let mut x1 = p.fine_rest();
+    let mut x2 = p.fine_rest();
+    let mut x3 = p.fine_rest();
+    for (i, &r) in xs.iter().enumerate() {
+        let depth = r * L_M;
+        let (f_same, _) = p.fine_press(k, depth, &mut x3)?;
+        unchanged.push(f_same / f[i]);
+        let a = p.match_force(f[i], depth, |s| (K_N_PER_M, s * K_N_PER_M), s1, &mut x1)?;
+        kh_fixed.push(a.map_or(f64::NAN, |v| v.0));
+        s1 = a.map_or(s1, |v| v.0);
+        let b = p.match_force(f[i], depth, |s| (eq5, s * K_N_PER_M), s2, &mut x2)?;
+        kh_eq5.push(b.map_or(f64::NAN, |v| v.0));
+        s2 = b.map_or(s2, |v| v.0);
+        fig67.write_record([
+            rings.to_string(),
+            r.to_string(),
+            kh_fixed[i].to_string(),
+            kh_eq5[i].to_string(),
+            unchanged[i].to_string(),
+        ])?;
+    }
+    println!(
+        "{rings}-ring (N = {n}, N' = {n_after}): K' = K stiffens F_c by {:.0} % at x = 0.1 L, {:.0} % at L (max {:.0} %); K'_m/K_m with K'_h unchanged {:.3} .. {:.3}; with eq. 5 {:.1} at x = {} L, {:.3} at L",
+        (unchanged[3] - 1.0) * 100.0,
+        (unchanged[unchanged.len() - 1] - 1.0) * 100.0,
+        unchanged
+            .iter()
+            .fold(0.0f64, |m, v| m.max(*v) - 0.0)
+            .max(1.0)
+            * 100.0
+            - 100.0,
+        kh_fixed.iter().copied().fold(f64::INFINITY, f64::min),
+        kh_fixed.iter().copied().fold(0.0, f64::max),
+        kh_eq5
+            .iter()
+            .copied()
+            .find(|v| v.is_finite())
+            .unwrap_or(f64::NAN),
+        xs[kh_eq5.iter().position(|v| v.is_finite()).unwrap_or(0)],
+        kh_eq5[kh_eq5.len() - 1],
+    );
+    // Log scale: the eq. 5 curve runs to infinity at small x (drawn as log10).
+    line_plot(
+        &plots.join(format!("haptic-subdivision-fig{}", 5 + rings)),
+        &format!(
+            "Fig. {}: K'_m / K_m restoring F_c, {} subdivision",
+            5 + rings,
+            if rings == 1 { "one-ring" } else { "two-ring" }
+        ),
+        "log10(K'_m / K_m)",
+        &[
+            (
+                "K'_h = K_h N / N' (eq. 5)".into(),
+                xs.iter()
+                    .copied()
+                    .zip(kh_eq5.iter().map(|v| v.log10()))
+                    .collect(),
+            ),
+            (
+                "K'_h = K_h".into(),
+                xs.iter()
+                    .copied()
+                    .zip(kh_fixed.iter().map(|v| v.log10()))
+                    .collect(),
+            ),
+        ],
+    )?;
+    Ok(())
+}
+
+/// Fig. 8-11 data for a `rings` subdivision: K'_h / K_h and K'_m / K_m restoring the coarse
+/// forces `f` at fixed K'_m / K'_h ratios, appended to `curves` (K'_h, K'_m).
+fn fig811_rings(
+    p: &mut LocalPatch,
+    rings: u32,
+    (xs, f): (&[f64], &[f64]),
+    fig811: &mut CsvFile,
+    (kh_curves, km_curves): (&mut Vec<Curve>, &mut Vec<Curve>),
+) -> anyhow::Result<()> {
+    for ratio in [4.0, 1.0, 0.25] {
+        let mut x = p.fine_rest();
+        let mut a = 1.0;
+        let mut kh = Vec::new();
+        let mut km = Vec::new();
         for (i, &r) in xs.iter().enumerate() {
-            let depth = r * L_M;
-            let (f_same, _) = p.fine_press(k, depth, &mut x3)?;
-            unchanged.push(f_same / f[i]);
-            let a = p.match_force(f[i], depth, |s| (K_N_PER_M, s * K_N_PER_M), s1, &mut x1)?;
-            kh_fixed.push(a.map_or(f64::NAN, |v| v.0));
-            s1 = a.map_or(s1, |v| v.0);
-            let b = p.match_force(f[i], depth, |s| (eq5, s * K_N_PER_M), s2, &mut x2)?;
-            kh_eq5.push(b.map_or(f64::NAN, |v| v.0));
-            s2 = b.map_or(s2, |v| v.0);
-            fig67.write_record([
+            let m = p.match_force(
+                f[i],
+                r * L_M,
+                |s| (s * K_N_PER_M, ratio * s * K_N_PER_M),
+                a,
+                &mut x,
+            )?;
+            let v = m.map_or(f64::NAN, |m| m.0);
+            a = m.map_or(a, |m| m.0);
+            kh.push((r, v));
+            km.push((r, v * ratio));
+            fig811.write_record([
                 rings.to_string(),
+                ratio.to_string(),
                 r.to_string(),
-                kh_fixed[i].to_string(),
-                kh_eq5[i].to_string(),
-                unchanged[i].to_string(),
+                v.to_string(),
+                (v * ratio).to_string(),
             ])?;
         }
-        println!(
-            "{rings}-ring (N = {n}, N' = {n_after}): K' = K stiffens F_c by {:.0} % at x = 0.1 L, {:.0} % at L (max {:.0} %); K'_m/K_m with K'_h unchanged {:.3} .. {:.3}; with eq. 5 {:.1} at x = {} L, {:.3} at L",
-            (unchanged[3] - 1.0) * 100.0,
-            (unchanged[unchanged.len() - 1] - 1.0) * 100.0,
-            unchanged
-                .iter()
-                .fold(0.0f64, |m, v| m.max(*v) - 0.0)
-                .max(1.0)
-                * 100.0
-                - 100.0,
-            kh_fixed.iter().copied().fold(f64::INFINITY, f64::min),
-            kh_fixed.iter().copied().fold(0.0, f64::max),
-            kh_eq5
-                .iter()
-                .copied()
-                .find(|v| v.is_finite())
-                .unwrap_or(f64::NAN),
-            xs[kh_eq5.iter().position(|v| v.is_finite()).unwrap_or(0)],
-            kh_eq5[kh_eq5.len() - 1],
-        );
-        // Log scale: the eq. 5 curve runs to infinity at small x (drawn as log10).
-        line_plot(
-            &plots.join(format!("haptic-subdivision-fig{}", 5 + rings)),
-            &format!(
-                "Fig. {}: K'_m / K_m restoring F_c, {} subdivision",
-                5 + rings,
-                if rings == 1 { "one-ring" } else { "two-ring" }
-            ),
-            "log10(K'_m / K_m)",
-            &[
-                (
-                    "K'_h = K_h N / N' (eq. 5)".into(),
-                    xs.iter()
-                        .copied()
-                        .zip(kh_eq5.iter().map(|v| v.log10()))
-                        .collect(),
-                ),
-                (
-                    "K'_h = K_h".into(),
-                    xs.iter()
-                        .copied()
-                        .zip(kh_fixed.iter().map(|v| v.log10()))
-                        .collect(),
-                ),
-            ],
-        )?;
-        for ratio in [4.0, 1.0, 0.25] {
-            let mut x = p.fine_rest();
-            let mut a = 1.0;
-            let mut kh = Vec::new();
-            let mut km = Vec::new();
-            for (i, &r) in xs.iter().enumerate() {
-                let m = p.match_force(
-                    f[i],
-                    r * L_M,
-                    |s| (s * K_N_PER_M, ratio * s * K_N_PER_M),
-                    a,
-                    &mut x,
-                )?;
-                let v = m.map_or(f64::NAN, |m| m.0);
-                a = m.map_or(a, |m| m.0);
-                kh.push((r, v));
-                km.push((r, v * ratio));
-                fig811.write_record([
-                    rings.to_string(),
-                    ratio.to_string(),
-                    r.to_string(),
-                    v.to_string(),
-                    (v * ratio).to_string(),
-                ])?;
-            }
-            let label = format!("K'_m / K'_h = {ratio}");
-            kh_curves[rings as usize - 1].push((label.clone(), kh));
-            km_curves[rings as usize - 1].push((label, km));
-        }
+        let label = format!("K'_m / K'_h = {ratio}");
+        kh_curves.push((label.clone(), kh));
+        km_curves.push((label, km));
     }
-    fig67.flush()?;
-    fig811.flush()?;
+    Ok(())
+}
+
+/// Fig. 8-11 plots and their summary lines.
+fn fig811_plots(
+    plots: &Path,
+    kh_curves: &[Vec<Curve>; 2],
+    km_curves: &[Vec<Curve>; 2],
+) -> anyhow::Result<()> {
     for rings in [1usize, 2] {
         let which = if rings == 1 { "one-ring" } else { "two-ring" };
         let (fh, fm) = if rings == 1 { (8, 9) } else { (10, 11) };
@@ -375,11 +440,6 @@ fn paper(data: &Path, plots: &Path) -> anyhow::Result<()> {
             );
         }
     }
-    println!(
-        "wrote {}/haptic-subdivision-fig*.csv and {}/haptic-subdivision-fig*.png/.svg",
-        data.display(),
-        plots.display()
-    );
     Ok(())
 }
 

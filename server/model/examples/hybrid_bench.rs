@@ -14,8 +14,9 @@ mod hybrid_overrides;
 
 use clap::Parser;
 use haptic_model::body::{SoftBody, TickInput};
-use haptic_model::hybrid::HybridBody;
-use haptic_model::scene::load_builtin;
+use haptic_model::hybrid::{HybridBody, HybridModel};
+use haptic_model::meshfree::MeshfreeVariant;
+use haptic_model::scene::{Scene, load_builtin};
 use hybrid_overrides::HybridOverrides;
 
 #[derive(Parser)]
@@ -86,9 +87,21 @@ fn main() -> anyhow::Result<()> {
         .params
         .meshfree
         .variant;
+    let (model, prep_s) = prepare(&args.scene, &scene)?;
+    let clamped = model.clamped_core_nodes();
+    println!("scene,variant,particles,active,substeps,core_substeps,ticks,median_us,p99_us,prep_s");
+    for &target in &args.active {
+        press_target(&args, &scene, &model, &clamped, target, (variant, prep_s))?;
+    }
+    Ok(())
+}
+
+/// Preprocesses the hybrid model of `scene` (named `name`), reporting its stages, sizes and
+/// memory: `(model, preprocessing wall time s)`.
+fn prepare(name: &str, scene: &Scene) -> anyhow::Result<(HybridModel, f64)> {
     let rss0 = rss_kib();
     let t0 = Instant::now();
-    let model = haptic_model::prepare_hybrid(&scene, &mut |s, f| {
+    let model = haptic_model::prepare_hybrid(scene, &mut |s, f| {
         eprintln!(
             "  preprocessing {:5.1} % {s} ({:.2} s)",
             100.0 * f,
@@ -99,7 +112,7 @@ fn main() -> anyhow::Result<()> {
     let rss1 = rss_kib();
     eprintln!(
         "{}: {} layer particles + {} anchors, {} core tets, {} outer vertices; preprocessing {:.3} s; model {:.1} MiB (RSS +{:.1} MiB); particle dt {:.3e} s (unit mass scale)",
-        args.scene,
+        name,
         model.layer_count,
         model.cloud.len() - model.layer_count,
         model.core_mesh.tets.len(),
@@ -109,87 +122,96 @@ fn main() -> anyhow::Result<()> {
         (rss1 - rss0) as f64 / 1024.0,
         model.particle_dt_s
     );
-    let clamped = model.clamped_core_nodes();
-    println!("scene,variant,particles,active,substeps,core_substeps,ticks,median_us,p99_us,prep_s");
-    for &target in &args.active {
-        let mut p = model.params;
-        p.max_active_particles = target;
-        let mut m2 = model.clone();
-        m2.params = p;
-        let mut body = HybridBody::new(
-            m2,
-            &clamped,
-            scene.probe,
-            scene.integrator.tick_s,
-            &scene.name,
-        )?;
-        // Touch point: the outer vertex at the largest x (the free wall), pressed 1 mm in.
-        let m = body.model();
-        let v = (0..m.outer_rest_m.len())
-            .max_by(|&a, &b| m.outer_rest_m[a].x.total_cmp(&m.outer_rest_m[b].x))
-            .expect("vertices");
-        let surf = m.outer_rest_m[v];
-        let normal = (surf - m.centre_m).normalize();
-        let radius = scene.probe.radius_m;
-        body.hold_regions(true);
-        let mut r = 0.5e-3;
-        while body.active_particles().len() < target && r < 0.05 {
-            body.activate_near(surf, r);
-            r += 0.1e-3;
-        }
-        let active = body.active_particles().len();
-        if args.estimate_critical_step {
-            print_estimate(&mut body, "at rest")?;
-        }
-        body.set_stencil_loop(!args.general_loop);
-        if let Some(n) = args.substeps {
-            body.override_substeps(n)?;
-        }
-        let device = surf + normal * (radius - 1e-3);
-        let input = TickInput {
-            device_position_m: Some(device),
-            device_velocity_m_per_s: Default::default(),
-        };
-        // The first tick refills the terms of the new active set (and refactors an implicit
-        // core): the cost of an activation change.
+    Ok((model, prep_s))
+}
+
+/// Activates `target` particles around the free wall's outer vertex, presses 1 mm and prints
+/// the tick times as a CSV line (and the work counts on stderr).
+fn press_target(
+    args: &Args,
+    scene: &Scene,
+    model: &HybridModel,
+    clamped: &[u32],
+    target: usize,
+    (variant, prep_s): (MeshfreeVariant, f64),
+) -> anyhow::Result<()> {
+    let mut p = model.params;
+    p.max_active_particles = target;
+    let mut m2 = model.clone();
+    m2.params = p;
+    let mut body = HybridBody::new(
+        m2,
+        clamped,
+        scene.probe,
+        scene.integrator.tick_s,
+        &scene.name,
+    )?;
+    // Touch point: the outer vertex at the largest x (the free wall), pressed 1 mm in.
+    let m = body.model();
+    let v = (0..m.outer_rest_m.len())
+        .max_by(|&a, &b| m.outer_rest_m[a].x.total_cmp(&m.outer_rest_m[b].x))
+        .expect("vertices");
+    let surf = m.outer_rest_m[v];
+    let normal = (surf - m.centre_m).normalize();
+    let radius = scene.probe.radius_m;
+    body.hold_regions(true);
+    let mut r = 0.5e-3;
+    while body.active_particles().len() < target && r < 0.05 {
+        body.activate_near(surf, r);
+        r += 0.1e-3;
+    }
+    let active = body.active_particles().len();
+    if args.estimate_critical_step {
+        print_estimate(&mut body, "at rest")?;
+    }
+    body.set_stencil_loop(!args.general_loop);
+    if let Some(n) = args.substeps {
+        body.override_substeps(n)?;
+    }
+    let device = surf + normal * (radius - 1e-3);
+    let input = TickInput {
+        device_position_m: Some(device),
+        device_velocity_m_per_s: Default::default(),
+    };
+    // The first tick refills the terms of the new active set (and refactors an implicit
+    // core): the cost of an activation change.
+    let t = Instant::now();
+    body.tick(&input)?;
+    let first_us = t.elapsed().as_secs_f64() * 1e6;
+    for _ in 0..49 {
+        body.tick(&input)?;
+    }
+    if args.estimate_critical_step {
+        print_estimate(&mut body, "pressed 1 mm")?;
+    }
+    let mut times = Vec::with_capacity(args.ticks);
+    for _ in 0..args.ticks {
         let t = Instant::now();
         body.tick(&input)?;
-        let first_us = t.elapsed().as_secs_f64() * 1e6;
-        for _ in 0..49 {
-            body.tick(&input)?;
-        }
-        if args.estimate_critical_step {
-            print_estimate(&mut body, "pressed 1 mm")?;
-        }
-        let mut times = Vec::with_capacity(args.ticks);
-        for _ in 0..args.ticks {
-            let t = Instant::now();
-            body.tick(&input)?;
-            times.push(t.elapsed().as_secs_f64() * 1e6);
-        }
-        times.sort_by(f64::total_cmp);
-        eprintln!(
-            "  terms and tied particles: {:?}; first tick (terms refilled) {first_us:.0} us; stencil layout (grid cells, groups): {:?}; core_mass_scale {:.1}; implicit core {:.1} MiB",
-            body.work_counts(),
-            body.stencil_layout(),
-            body.core_mass_scale(),
-            body.implicit_core_memory_bytes() as f64 / (1024.0 * 1024.0)
-        );
-        let med = times[times.len() / 2];
-        let p99 = times[(times.len() * 99) / 100];
-        println!(
-            "{},{},{},{},{},{},{},{:.1},{:.1},{:.3}",
-            args.scene,
-            variant.name(),
-            model.layer_count,
-            active,
-            body.substeps().0,
-            body.substeps().2,
-            args.ticks,
-            med,
-            p99,
-            prep_s
-        );
+        times.push(t.elapsed().as_secs_f64() * 1e6);
     }
+    times.sort_by(f64::total_cmp);
+    eprintln!(
+        "  terms and tied particles: {:?}; first tick (terms refilled) {first_us:.0} us; stencil layout (grid cells, groups): {:?}; core_mass_scale {:.1}; implicit core {:.1} MiB",
+        body.work_counts(),
+        body.stencil_layout(),
+        body.core_mass_scale(),
+        body.implicit_core_memory_bytes() as f64 / (1024.0 * 1024.0)
+    );
+    let med = times[times.len() / 2];
+    let p99 = times[(times.len() * 99) / 100];
+    println!(
+        "{},{},{},{},{},{},{},{:.1},{:.1},{:.3}",
+        args.scene,
+        variant.name(),
+        model.layer_count,
+        active,
+        body.substeps().0,
+        body.substeps().2,
+        args.ticks,
+        med,
+        p99,
+        prep_s
+    );
     Ok(())
 }

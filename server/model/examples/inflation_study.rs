@@ -55,7 +55,10 @@ fn main() -> anyhow::Result<()> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let scene_path = root.join("deploy/scenes/lv_guccione_inflation.toml");
     let template = std::fs::read_to_string(&scene_path)?;
-    let out = args.out.unwrap_or_else(|| root.join("target/bench"));
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| root.join("target/bench"));
     std::fs::create_dir_all(&out)?;
     let csv_path = out.join("inflation.csv");
     let mut csv = csv::Writer::from_path(&csv_path)?;
@@ -66,102 +69,117 @@ fn main() -> anyhow::Result<()> {
     for vol in &args.volumetric {
         let mut rows: Vec<Row> = Vec::new();
         for &tets in &args.tets {
-            let text = template
-                .replace("target_tets = 2000", &format!("target_tets = {tets}"))
-                .replace(
-                    "volumetric = \"mean-dilatation\"",
-                    &format!("volumetric = \"{vol}\""),
-                )
-                .replace(
-                    "bulk_modulus_pa = 1.0e7",
-                    &format!("bulk_modulus_pa = {:e}", args.bulk_modulus_pa),
-                );
-            let scene = parse_scene_toml(&text, scene_path.parent().unwrap())?;
-            let fem = scene.fem_model()?;
-            let rest = &scene.mesh.nodes;
-            let nearest = |p: DVec3| {
-                (0..rest.len())
-                    .min_by(|&a, &b| (rest[a] - p).length().total_cmp(&(rest[b] - p).length()))
-                    .unwrap()
-            };
-            let endo = nearest(DVec3::new(0.0, 0.0, -17e-3));
-            let epi = nearest(DVec3::new(0.0, 0.0, -20e-3));
-            anyhow::ensure!(
-                (rest[endo] - DVec3::new(0.0, 0.0, -17e-3)).length() < 1e-9
-                    && (rest[epi] - DVec3::new(0.0, 0.0, -20e-3)).length() < 1e-9,
-                "the mesh has no node at an apex"
-            );
-            let t = Instant::now();
-            let params = StaticParams {
-                rel_tol: 1e-8,
-                ..StaticParams::default()
-            };
-            let (x, report) =
-                solve_scene_loads(&scene, args.load_steps, &params, &mut |label, its| {
-                    eprintln!(
-                        "  {vol} {tets}: {label}: {its} Newton iterations, {:.1} s",
-                        t.elapsed().as_secs_f64()
-                    )
-                })
-                .map_err(|e| anyhow::anyhow!("{vol}, {tets} tets: {e}"))?;
-            let iterations = report.newton_iterations;
-            let row = Row {
-                volumetric: vol.clone(),
-                tets: scene.mesh.tet_count(),
-                nodes: scene.mesh.node_count(),
-                endo_apex_z_mm: x[endo].z * 1e3,
-                epi_apex_z_mm: x[epi].z * 1e3,
-                wall_volume_change: fem.deformed_volume_m3(&x) / fem.deformed_volume_m3(rest) - 1.0,
-                newton_iterations: iterations,
-                seconds: t.elapsed().as_secs_f64(),
-            };
-            println!(
-                "{:<16} {:>6} {:>7} {:>11.4} mm {:>11.4} mm {:>12.2e} {:>7} {:>6.1} s",
-                row.volumetric,
-                row.tets,
-                row.nodes,
-                row.endo_apex_z_mm,
-                row.epi_apex_z_mm,
-                row.wall_volume_change,
-                row.newton_iterations,
-                row.seconds
-            );
+            let row = solve_row(&args, (&template, &scene_path), vol, tets)?;
             csv.serialize(&row)?;
             csv.flush()?;
             rows.push(row);
         }
-        if let [.., a, b, c] = &rows[..] {
-            // Richardson from the three finest meshes, h ~ tets^(-1/3).
-            for (name, get) in [
-                ("endo", (|r: &Row| r.endo_apex_z_mm) as fn(&Row) -> f64),
-                ("epi", |r: &Row| r.epi_apex_z_mm),
-            ] {
-                let (h1, h2, h3) = (
-                    (a.tets as f64).powf(-1.0 / 3.0),
-                    (b.tets as f64).powf(-1.0 / 3.0),
-                    (c.tets as f64).powf(-1.0 / 3.0),
-                );
-                let (f1, f2, f3) = (get(a), get(b), get(c));
-                let (r12, r23) = (h1 / h2, h2 / h3);
-                // Observed order from the three (ratios close to each other).
-                let ratio = (f1 - f2) / (f2 - f3);
-                let order = if ratio > 0.0 {
-                    ratio.ln() / (0.5 * (r12 + r23)).ln()
-                } else {
-                    f64::NAN
-                };
-                let extrapolated = if order.is_finite() && order > 0.0 {
-                    f3 + (f3 - f2) / (r23.powf(order) - 1.0)
-                } else {
-                    f64::NAN
-                };
-                println!(
-                    "{vol}: {name} apex z: finest {f3:.4} mm, observed order {order:.2}, Richardson {extrapolated:.4} mm (|finest - extrapolated| {:.4} mm)",
-                    (f3 - extrapolated).abs()
-                );
-            }
-        }
+        richardson_lines(vol, &rows);
     }
     println!("wrote {}", csv_path.display());
     Ok(())
+}
+
+/// Solves the inflation of the scene `template` (read from `scene_path`) with `vol` and about
+/// `tets` tets, prints its row and returns it.
+fn solve_row(
+    args: &Args,
+    (template, scene_path): (&str, &Path),
+    vol: &str,
+    tets: usize,
+) -> anyhow::Result<Row> {
+    let text = template
+        .replace("target_tets = 2000", &format!("target_tets = {tets}"))
+        .replace(
+            "volumetric = \"mean-dilatation\"",
+            &format!("volumetric = \"{vol}\""),
+        )
+        .replace(
+            "bulk_modulus_pa = 1.0e7",
+            &format!("bulk_modulus_pa = {:e}", args.bulk_modulus_pa),
+        );
+    let scene = parse_scene_toml(&text, scene_path.parent().unwrap())?;
+    let fem = scene.fem_model()?;
+    let rest = &scene.mesh.nodes;
+    let nearest = |p: DVec3| {
+        (0..rest.len())
+            .min_by(|&a, &b| (rest[a] - p).length().total_cmp(&(rest[b] - p).length()))
+            .unwrap()
+    };
+    let endo = nearest(DVec3::new(0.0, 0.0, -17e-3));
+    let epi = nearest(DVec3::new(0.0, 0.0, -20e-3));
+    anyhow::ensure!(
+        (rest[endo] - DVec3::new(0.0, 0.0, -17e-3)).length() < 1e-9
+            && (rest[epi] - DVec3::new(0.0, 0.0, -20e-3)).length() < 1e-9,
+        "the mesh has no node at an apex"
+    );
+    let t = Instant::now();
+    let params = StaticParams {
+        rel_tol: 1e-8,
+        ..StaticParams::default()
+    };
+    let (x, report) = solve_scene_loads(&scene, args.load_steps, &params, &mut |label, its| {
+        eprintln!(
+            "  {vol} {tets}: {label}: {its} Newton iterations, {:.1} s",
+            t.elapsed().as_secs_f64()
+        )
+    })
+    .map_err(|e| anyhow::anyhow!("{vol}, {tets} tets: {e}"))?;
+    let iterations = report.newton_iterations;
+    let row = Row {
+        volumetric: vol.to_string(),
+        tets: scene.mesh.tet_count(),
+        nodes: scene.mesh.node_count(),
+        endo_apex_z_mm: x[endo].z * 1e3,
+        epi_apex_z_mm: x[epi].z * 1e3,
+        wall_volume_change: fem.deformed_volume_m3(&x) / fem.deformed_volume_m3(rest) - 1.0,
+        newton_iterations: iterations,
+        seconds: t.elapsed().as_secs_f64(),
+    };
+    println!(
+        "{:<16} {:>6} {:>7} {:>11.4} mm {:>11.4} mm {:>12.2e} {:>7} {:>6.1} s",
+        row.volumetric,
+        row.tets,
+        row.nodes,
+        row.endo_apex_z_mm,
+        row.epi_apex_z_mm,
+        row.wall_volume_change,
+        row.newton_iterations,
+        row.seconds
+    );
+    Ok(row)
+}
+
+/// Richardson from the three finest meshes of `rows` (h ~ tets^(-1/3)), one line per apex.
+fn richardson_lines(vol: &str, rows: &[Row]) {
+    if let [.., a, b, c] = rows {
+        for (name, get) in [
+            ("endo", (|r: &Row| r.endo_apex_z_mm) as fn(&Row) -> f64),
+            ("epi", |r: &Row| r.epi_apex_z_mm),
+        ] {
+            let (h1, h2, h3) = (
+                (a.tets as f64).powf(-1.0 / 3.0),
+                (b.tets as f64).powf(-1.0 / 3.0),
+                (c.tets as f64).powf(-1.0 / 3.0),
+            );
+            let (f1, f2, f3) = (get(a), get(b), get(c));
+            let (r12, r23) = (h1 / h2, h2 / h3);
+            // Observed order from the three (ratios close to each other).
+            let ratio = (f1 - f2) / (f2 - f3);
+            let order = if ratio > 0.0 {
+                ratio.ln() / (0.5 * (r12 + r23)).ln()
+            } else {
+                f64::NAN
+            };
+            let extrapolated = if order.is_finite() && order > 0.0 {
+                f3 + (f3 - f2) / (r23.powf(order) - 1.0)
+            } else {
+                f64::NAN
+            };
+            println!(
+                "{vol}: {name} apex z: finest {f3:.4} mm, observed order {order:.2}, Richardson {extrapolated:.4} mm (|finest - extrapolated| {:.4} mm)",
+                (f3 - extrapolated).abs()
+            );
+        }
+    }
 }

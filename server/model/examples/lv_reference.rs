@@ -434,6 +434,52 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
         .collect();
     keys.sort_by(|a, b| (&a.0, &a.1).cmp(&(&b.0, &b.1)).then(a.2.total_cmp(&b.2)));
     keys.dedup();
+    let mut csv = csv_header(&hs)?;
+    let mut md = String::new();
+    for key in &keys {
+        let (material, conv, depth) = key;
+        let at = |h: f64| {
+            rows.iter().find(|r| {
+                &r.material == material
+                    && &r.convention == conv
+                    && r.depth_mm == *depth
+                    && r.h_mm == h
+            })
+        };
+        let levels: Vec<(f64, f64)> = hs
+            .iter()
+            .filter_map(|&h| at(h).map(|r| (h, r.force_n)))
+            .collect();
+        if levels.len() < 3 {
+            continue;
+        }
+        let e = Estimate::of(&levels);
+        csv_row(&mut csv, key, &e, hs.iter().map(|h| at(*h)))?;
+        md_row(&mut md, key, &e, &levels)?;
+    }
+    std::fs::write(out, csv)?;
+    let nodes: Vec<String> = hs
+        .iter()
+        .map(|&h| {
+            rows.iter()
+                .find(|r| r.h_mm == h)
+                .map_or("?".into(), |r| format!("{h} mm: {} nodes", r.nodes))
+        })
+        .collect();
+    println!("levels: {}", nodes.join(", "));
+    println!("wrote {}", out.display());
+    if markdown {
+        println!(
+            "| material | convention | depth, mm | levels, mN (coarse to fine) | reference, mN | order (3 finest) | order (3 before) | order (least squares) | Richardson (3 finest), GCI |"
+        );
+        println!("|---|---|---|---|---|---|---|---|---|");
+        print!("{md}");
+    }
+    Ok(())
+}
+
+/// The reference file's comment lines and column names for the levels `hs` (mm).
+fn csv_header(hs: &[f64]) -> anyhow::Result<String> {
     let mut csv = String::from(
         "# The rigid-sphere reference of the lv-probe press (server/model/examples/lv_reference.rs,\n\
          # written by server/model/examples/lv_reference.sh). A self-convergence check of our own\n\
@@ -453,27 +499,27 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
         csv,
         "material,depth_convention,depth_mm,force_n,uncertainty_n,observed_order,previous_order,ls_order,richardson_force_n,gci_n"
     )?;
-    for h in &hs {
+    for h in hs {
         write!(csv, ",f_h{h:.4}_n")?;
     }
     csv.push('\n');
-    let mut md = String::new();
-    for (material, conv, depth) in &keys {
-        let at = |h: f64| {
-            rows.iter().find(|r| {
-                &r.material == material
-                    && &r.convention == conv
-                    && r.depth_mm == *depth
-                    && r.h_mm == h
-            })
-        };
-        let levels: Vec<(f64, f64)> = hs
-            .iter()
-            .filter_map(|&h| at(h).map(|r| (h, r.force_n)))
-            .collect();
-        if levels.len() < 3 {
-            continue;
-        }
+    Ok(csv)
+}
+
+/// The reference value of one (material, convention, depth) from its levels `(h mm, force N)`
+/// (three or more, coarse to fine).
+struct Estimate {
+    value: f64,
+    unc: f64,
+    richardson_value: f64,
+    gci: f64,
+    order: Option<f64>,
+    previous: Option<f64>,
+    ls: Option<(f64, f64, f64)>,
+}
+
+impl Estimate {
+    fn of(levels: &[(f64, f64)]) -> Self {
         let k = levels.len();
         let tri = |i: usize| {
             richardson(
@@ -494,65 +540,82 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
         };
         // Four or more levels: the least-squares estimate over all of them is the reference;
         // three: Richardson through them with Roache's GCI.
-        let ls = eca_hoekstra(&levels);
+        let ls = eca_hoekstra(levels);
         let (value, unc) = ls.map_or((richardson_value, gci), |(v, u, _)| (v, u));
         let previous = if k >= 4 {
             tri(k - 4).map(|t| t.2)
         } else {
             None
         };
-        let fmt_order = |p: Option<f64>| p.map_or(String::new(), |p| format!("{p:.3}"));
-        write!(
-            csv,
-            "{material},{conv},{depth},{value:.6e},{unc:.3e},{},{},{},{richardson_value:.6e},{gci:.3e}",
-            fmt_order(order),
-            fmt_order(previous),
-            fmt_order(ls.map(|l| l.2)),
-        )?;
-        for h in &hs {
-            match at(*h) {
-                Some(r) => write!(csv, ",{:.6e}", r.force_n)?,
-                None => csv.push(','),
-            }
+        Self {
+            value,
+            unc,
+            richardson_value,
+            gci,
+            order,
+            previous,
+            ls,
         }
-        csv.push('\n');
-        writeln!(
-            md,
-            "| {material} | {conv} | {depth} | {} | **{:.4} +- {:.4} ({:.1} %)** | {} | {} | {} | {:.4} +- {:.4} ({:.1} %) |",
-            levels
-                .iter()
-                .map(|l| format!("{:.4}", l.1 * 1e3))
-                .collect::<Vec<_>>()
-                .join(" / "),
-            value * 1e3,
-            unc * 1e3,
-            100.0 * unc / value,
-            order.map_or("none".into(), |p| format!("{p:.2}")),
-            previous.map_or("none".into(), |p| format!("{p:.2}")),
-            ls.map_or("-".into(), |l| format!("{:.2}", l.2)),
-            richardson_value * 1e3,
-            gci * 1e3,
-            100.0 * gci / richardson_value
-        )?;
     }
-    std::fs::write(out, csv)?;
-    let nodes: Vec<String> = hs
-        .iter()
-        .map(|&h| {
-            rows.iter()
-                .find(|r| r.h_mm == h)
-                .map_or("?".into(), |r| format!("{h} mm: {} nodes", r.nodes))
-        })
-        .collect();
-    println!("levels: {}", nodes.join(", "));
-    println!("wrote {}", out.display());
-    if markdown {
-        println!(
-            "| material | convention | depth, mm | levels, mN (coarse to fine) | reference, mN | order (3 finest) | order (3 before) | order (least squares) | Richardson (3 finest), GCI |"
-        );
-        println!("|---|---|---|---|---|---|---|---|---|");
-        print!("{md}");
+}
+
+/// One line of the reference file: the estimate, then each level's force.
+fn csv_row<'a>(
+    csv: &mut String,
+    (material, conv, depth): &(String, String, f64),
+    e: &Estimate,
+    at_levels: impl Iterator<Item = Option<&'a LevelRow>>,
+) -> anyhow::Result<()> {
+    let Estimate {
+        value,
+        unc,
+        richardson_value,
+        gci,
+        ..
+    } = *e;
+    let fmt_order = |p: Option<f64>| p.map_or(String::new(), |p| format!("{p:.3}"));
+    write!(
+        csv,
+        "{material},{conv},{depth},{value:.6e},{unc:.3e},{},{},{},{richardson_value:.6e},{gci:.3e}",
+        fmt_order(e.order),
+        fmt_order(e.previous),
+        fmt_order(e.ls.map(|l| l.2)),
+    )?;
+    for r in at_levels {
+        match r {
+            Some(r) => write!(csv, ",{:.6e}", r.force_n)?,
+            None => csv.push(','),
+        }
     }
+    csv.push('\n');
+    Ok(())
+}
+
+/// One row of the Markdown table.
+fn md_row(
+    md: &mut String,
+    (material, conv, depth): &(String, String, f64),
+    e: &Estimate,
+    levels: &[(f64, f64)],
+) -> anyhow::Result<()> {
+    writeln!(
+        md,
+        "| {material} | {conv} | {depth} | {} | **{:.4} +- {:.4} ({:.1} %)** | {} | {} | {} | {:.4} +- {:.4} ({:.1} %) |",
+        levels
+            .iter()
+            .map(|l| format!("{:.4}", l.1 * 1e3))
+            .collect::<Vec<_>>()
+            .join(" / "),
+        e.value * 1e3,
+        e.unc * 1e3,
+        100.0 * e.unc / e.value,
+        e.order.map_or("none".into(), |p| format!("{p:.2}")),
+        e.previous.map_or("none".into(), |p| format!("{p:.2}")),
+        e.ls.map_or("-".into(), |l| format!("{:.2}", l.2)),
+        e.richardson_value * 1e3,
+        e.gci * 1e3,
+        100.0 * e.gci / e.richardson_value
+    )?;
     Ok(())
 }
 

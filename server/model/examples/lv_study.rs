@@ -285,27 +285,7 @@ fn main() {
             } else {
                 depths
             };
-            for m in mesh {
-                let mut scene = m.scene();
-                if let Some(s) = smoothing {
-                    scene.strain_smoothing = s;
-                }
-                if let Some(nu) = nu {
-                    let mat = &mut scene.material;
-                    let e = mat.youngs_modulus_pa();
-                    mat.lambda_pa = e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu));
-                    mat.mu_pa = e / (2.0 * (1.0 + nu));
-                }
-                let t = Instant::now();
-                let c = probe_static_at(&scene, &depths, debug);
-                println!(
-                    "lv-study {}: {} nodes, {:.1} s: {:?}",
-                    m.label(),
-                    scene.mesh.node_count(),
-                    t.elapsed().as_secs_f64(),
-                    c.map(|c| c.forces_n)
-                );
-            }
+            static_study(&mesh, nu, &depths, smoothing, debug);
         }
         Study::Sphere {
             mesh,
@@ -359,32 +339,65 @@ fn main() {
         Study::Dynamic {
             run,
             prefactored_margin,
-        } => {
-            for r in run {
-                let mut scene = common::lv_scene_order(r.tets, r.quadratic);
-                scene.integrator.kind = r.kind;
-                scene.integrator.safety_factor = r.safety_factor;
-                scene.integrator.cg_max_iterations = r.cg_max_iterations;
-                scene.integrator.max_substeps = 1000;
-                // Backward Euler with CG unless the rest factor is asked for (the built-in
-                // scene's own solver is the rest factor).
-                scene.integrator.linear_solver = haptic_model::integrate::LinearSolver::Cg;
-                if let Some(margin) = prefactored_margin {
-                    scene.integrator.linear_solver =
-                        haptic_model::integrate::LinearSolver::RestCholesky;
-                    scene.integrator.stiffness_margin = margin;
-                }
-                match probe_dynamic(&scene, false) {
-                    Ok((c, ticks, sub)) => println!(
-                        "lv-dyn {}: {} nodes, {sub} sub-steps, tick p50 {:.0} us: {:?}",
-                        r.spec,
-                        scene.mesh.node_count(),
-                        ticks.percentiles().p50_us,
-                        c.forces_n
-                    ),
-                    Err(e) => println!("lv-dyn {}: {e}", r.spec),
-                }
-            }
+        } => dynamic_study(&run, prefactored_margin),
+    }
+}
+
+/// The `static` study (see [`Study::Static`]).
+fn static_study(
+    mesh: &[MeshSpec],
+    nu: Option<f64>,
+    depths: &[f64],
+    smoothing: Option<StrainSmoothing>,
+    debug: bool,
+) {
+    for m in mesh {
+        let mut scene = m.scene();
+        if let Some(s) = smoothing {
+            scene.strain_smoothing = s;
+        }
+        if let Some(nu) = nu {
+            let mat = &mut scene.material;
+            let e = mat.youngs_modulus_pa();
+            mat.lambda_pa = e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu));
+            mat.mu_pa = e / (2.0 * (1.0 + nu));
+        }
+        let t = Instant::now();
+        let c = probe_static_at(&scene, depths, debug);
+        println!(
+            "lv-study {}: {} nodes, {:.1} s: {:?}",
+            m.label(),
+            scene.mesh.node_count(),
+            t.elapsed().as_secs_f64(),
+            c.map(|c| c.forces_n)
+        );
+    }
+}
+
+/// The `dynamic` study (see [`Study::Dynamic`]).
+fn dynamic_study(run: &[DynamicRun], prefactored_margin: Option<f64>) {
+    for r in run {
+        let mut scene = common::lv_scene_order(r.tets, r.quadratic);
+        scene.integrator.kind = r.kind;
+        scene.integrator.safety_factor = r.safety_factor;
+        scene.integrator.cg_max_iterations = r.cg_max_iterations;
+        scene.integrator.max_substeps = 1000;
+        // Backward Euler with CG unless the rest factor is asked for (the built-in
+        // scene's own solver is the rest factor).
+        scene.integrator.linear_solver = haptic_model::integrate::LinearSolver::Cg;
+        if let Some(margin) = prefactored_margin {
+            scene.integrator.linear_solver = haptic_model::integrate::LinearSolver::RestCholesky;
+            scene.integrator.stiffness_margin = margin;
+        }
+        match probe_dynamic(&scene, false) {
+            Ok((c, ticks, sub)) => println!(
+                "lv-dyn {}: {} nodes, {sub} sub-steps, tick p50 {:.0} us: {:?}",
+                r.spec,
+                scene.mesh.node_count(),
+                ticks.percentiles().p50_us,
+                c.forces_n
+            ),
+            Err(e) => println!("lv-dyn {}: {e}", r.spec),
         }
     }
 }
@@ -549,11 +562,9 @@ fn reference_study(
     material: Option<MaterialModel>,
     surface: Option<&std::path::Path>,
 ) -> Result<(), String> {
-    use common::{CONTACT_X_M, device_at};
     let points = common::surface_sample_points_m();
     // Per mesh: per device depth, the displacement at each sample point (m).
     let mut surfaces: Vec<Vec<Vec<glam::DVec3>>> = Vec::new();
-    use haptic_model::indent::{IndentParams, Indenter, contact_distance};
     if meshes.len() < 3 || meshes.len() != csvs.len() || !(h.is_empty() || h.len() == meshes.len())
     {
         return Err(format!(
@@ -566,55 +577,7 @@ fn reference_study(
     let mut curves = Vec::new();
     let mut sizes = Vec::new();
     for (k, (m, path)) in meshes.iter().zip(csvs).enumerate() {
-        let mut scene = m.scene();
-        if let Some(model) = material {
-            scene.material.model = model;
-        }
-        let fem = scene.fem_model().map_err(|e| e.to_string())?;
-        let from = device_at(-1e-3);
-        let indenter = Indenter {
-            radius_m: scene.probe.radius_m,
-            from_m: from,
-            direction: glam::DVec3::new(-1.0, 0.0, 0.0),
-        };
-        let t0 = contact_distance(&fem, &scene.touchable, &indenter, &IndentParams::default())
-            .map_err(|e| e.to_string())?;
-        // indent.csv's depth zero is this mesh's first contact, `1 mm - t0` before the
-        // lv-probe contact point CONTACT_X_M.
-        let offset_mm = (1e-3 - t0) * 1e3;
-        let kc = scene.probe.coupling_stiffness_n_per_m;
-        let rows = read_indent_csv(path)?;
-        // The device sits `F_x / k` beyond the sphere along the press; the force is reported
-        // as the dynamic runs report it, by its magnitude.
-        let device: Vec<(f64, f64)> = rows
-            .iter()
-            .map(|&(s, fx, f)| (s - offset_mm + fx / kc * 1e3, f))
-            .collect();
-        println!(
-            "mesh {} ({} tets, {} nodes): first contact {:+.4} mm from x = {:.3} mm; sphere depth mm -> force N: {}",
-            m.label(),
-            scene.mesh.tet_count(),
-            scene.mesh.node_count(),
-            -offset_mm,
-            CONTACT_X_M * 1e3,
-            rows.iter()
-                .map(|(s, _, f)| format!("{s}: {f:.5e}"))
-                .collect::<Vec<_>>()
-                .join(", ")
-        );
-        let at: Vec<f64> = depths
-            .iter()
-            .map(|&d| {
-                interpolate(&device, d).ok_or_else(|| {
-                    format!(
-                        "{}: device depth {d} mm is outside the solved range {:.3} to {:.3} mm",
-                        path.display(),
-                        device[0].0,
-                        device[device.len() - 1].0
-                    )
-                })
-            })
-            .collect::<Result<_, _>>()?;
+        let MeshCurve { scene, device, at } = mesh_curve(m, path, material, depths)?;
         sizes.push(
             h.get(k)
                 .copied()
@@ -632,6 +595,95 @@ fn reference_study(
         hh[0] / hh[2],
         hh[1] / hh[2]
     );
+    let reference = reference_table(depths, &curves, hh);
+    if let Some(out) = surface {
+        write_surface_reference(out, hh, depths, &points, &surfaces)?;
+    }
+    if let Some(scene) = servo {
+        servo_against_reference(depths, &reference, scene, material)?;
+    }
+    Ok(())
+}
+
+/// One mesh of the `reference` study.
+struct MeshCurve {
+    scene: Scene,
+    /// The `indent.csv` rows as (device depth mm, force magnitude N).
+    device: Vec<(f64, f64)>,
+    /// The force at each requested device depth, N.
+    at: Vec<f64>,
+}
+
+/// One mesh of the `reference` study: its scene (with `material`), its `indent.csv` at `path`
+/// and the force at each of `depths` (mm).
+fn mesh_curve(
+    m: &MeshSpec,
+    path: &std::path::Path,
+    material: Option<MaterialModel>,
+    depths: &[f64],
+) -> Result<MeshCurve, String> {
+    use common::{CONTACT_X_M, device_at};
+    use haptic_model::indent::{IndentParams, Indenter, contact_distance};
+    let mut scene = m.scene();
+    if let Some(model) = material {
+        scene.material.model = model;
+    }
+    let fem = scene.fem_model().map_err(|e| e.to_string())?;
+    let from = device_at(-1e-3);
+    let indenter = Indenter {
+        radius_m: scene.probe.radius_m,
+        from_m: from,
+        direction: glam::DVec3::new(-1.0, 0.0, 0.0),
+    };
+    let t0 = contact_distance(&fem, &scene.touchable, &indenter, &IndentParams::default())
+        .map_err(|e| e.to_string())?;
+    // indent.csv's depth zero is this mesh's first contact, `1 mm - t0` before the
+    // lv-probe contact point CONTACT_X_M.
+    let offset_mm = (1e-3 - t0) * 1e3;
+    let kc = scene.probe.coupling_stiffness_n_per_m;
+    let rows = read_indent_csv(path)?;
+    // The device sits `F_x / k` beyond the sphere along the press; the force is reported
+    // as the dynamic runs report it, by its magnitude.
+    let device: Vec<(f64, f64)> = rows
+        .iter()
+        .map(|&(s, fx, f)| (s - offset_mm + fx / kc * 1e3, f))
+        .collect();
+    println!(
+        "mesh {} ({} tets, {} nodes): first contact {:+.4} mm from x = {:.3} mm; sphere depth mm -> force N: {}",
+        m.label(),
+        scene.mesh.tet_count(),
+        scene.mesh.node_count(),
+        -offset_mm,
+        CONTACT_X_M * 1e3,
+        rows.iter()
+            .map(|(s, _, f)| format!("{s}: {f:.5e}"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    let at: Vec<f64> = depths
+        .iter()
+        .map(|&d| {
+            interpolate(&device, d).ok_or_else(|| {
+                format!(
+                    "{}: device depth {d} mm is outside the solved range {:.3} to {:.3} mm",
+                    path.display(),
+                    device[0].0,
+                    device[device.len() - 1].0
+                )
+            })
+        })
+        .collect::<Result<_, _>>()?;
+    Ok(MeshCurve { scene, device, at })
+}
+
+/// Prints the table of the `reference` study: each mesh's force and the extrapolation through
+/// the last three (sizes `hh`) at each device depth; the extrapolations.
+fn reference_table(
+    depths: &[f64],
+    curves: &[Vec<f64>],
+    hh: [f64; 3],
+) -> Vec<common::lv_press::Extrapolated> {
+    let k = curves.len();
     println!(
         "| device depth, mm | {} | extrapolated, mN | uncertainty, mN (%) | observed order |",
         (0..k)
@@ -657,13 +709,7 @@ fn reference_study(
                 .map_or("none (not asymptotic)".into(), |p| format!("{p:.2}"))
         );
     }
-    if let Some(out) = surface {
-        write_surface_reference(out, hh, depths, &points, &surfaces)?;
-    }
-    if let Some(scene) = servo {
-        servo_against_reference(depths, &reference, scene, material)?;
-    }
-    Ok(())
+    reference
 }
 
 /// The displacement (m) at each of `points` on `scene`'s touchable surface at each device

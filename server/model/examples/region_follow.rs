@@ -55,6 +55,19 @@ const Z_M: f64 = -0.005;
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
+    let (mut sim, probe_r) = set_up(&args)?;
+    let path = Path::new(&args, probe_r);
+    let trace = run(&args, &mut sim, &path)?;
+    report(&args, &sim, &path, &trace);
+    if let Some(csv) = &args.csv {
+        write_csv(csv, &trace)?;
+    }
+    Ok(())
+}
+
+/// Loads the scene with its region following (and without its companion on request) and
+/// builds the body, reporting the stages; `(body, probe radius m)`.
+fn set_up(args: &Args) -> anyhow::Result<(FemBody, f64)> {
     let t = Instant::now();
     let mut scene = load_scene_file(std::path::Path::new(&args.scene))?;
     eprintln!(
@@ -89,38 +102,93 @@ fn main() -> anyhow::Result<()> {
             .map_or(0.0, |s| s.region_bytes as f64 / 1e6)
     );
     sim.set_blocking_region_preparation(args.blocking);
-    let probe_r = scene.probe.radius_m;
-    let ring = EPI_R_M + probe_r - args.depth_mm * 1e-3;
-    let omega = args.speed_mm_s * 1e-3 / EPI_R_M;
-    let arc = args.arc_deg.to_radians();
-    let (press_s, settle_s) = (0.3, 0.3);
-    let stroke_s = arc / omega;
-    let total = ((press_s + settle_s + stroke_s + args.hold_end_s) * 1e3).ceil() as usize;
-    let mut weights = Vec::with_capacity(total);
-    let mut ticks_us = Vec::with_capacity(total);
-    let mut forces = Vec::with_capacity(total);
-    let mut swap_ticks = Vec::new();
-    let mut lost_contact = 0usize;
-    let mut last_swaps = 0;
-    let start = Instant::now();
-    for k in 0..total {
-        let t_s = k as f64 * 1e-3;
+    Ok((sim, scene.probe.radius_m))
+}
+
+/// The device path: press, settle, stroke around the long axis, hold.
+struct Path {
+    probe_r: f64,
+    depth_mm: f64,
+    ring: f64,
+    omega: f64,
+    press_s: f64,
+    settle_s: f64,
+    stroke_s: f64,
+    /// Ticks of the whole run.
+    total: usize,
+}
+
+impl Path {
+    fn new(args: &Args, probe_r: f64) -> Self {
+        let ring = EPI_R_M + probe_r - args.depth_mm * 1e-3;
+        let omega = args.speed_mm_s * 1e-3 / EPI_R_M;
+        let arc = args.arc_deg.to_radians();
+        let (press_s, settle_s) = (0.3, 0.3);
+        let stroke_s = arc / omega;
+        let total = ((press_s + settle_s + stroke_s + args.hold_end_s) * 1e3).ceil() as usize;
+        Self {
+            probe_r,
+            depth_mm: args.depth_mm,
+            ring,
+            omega,
+            press_s,
+            settle_s,
+            stroke_s,
+            total,
+        }
+    }
+
+    /// Device position and velocity at `t_s`.
+    fn at(&self, t_s: f64) -> (DVec3, DVec3) {
+        let (press_s, settle_s, ring) = (self.press_s, self.settle_s, self.ring);
         let (theta, radius, speed) = if t_s < press_s {
             let s = t_s / press_s;
             (
                 0.0,
-                EPI_R_M + probe_r + 0.5e-3 - s * (0.5e-3 + args.depth_mm * 1e-3),
+                EPI_R_M + self.probe_r + 0.5e-3 - s * (0.5e-3 + self.depth_mm * 1e-3),
                 0.0,
             )
         } else if t_s < press_s + settle_s {
             (0.0, ring, 0.0)
         } else {
-            let ts = (t_s - press_s - settle_s).min(stroke_s);
-            let moving = t_s - press_s - settle_s < stroke_s;
-            (omega * ts, ring, if moving { omega * ring } else { 0.0 })
+            let ts = (t_s - press_s - settle_s).min(self.stroke_s);
+            let moving = t_s - press_s - settle_s < self.stroke_s;
+            (
+                self.omega * ts,
+                ring,
+                if moving { self.omega * ring } else { 0.0 },
+            )
         };
         let p = DVec3::new(radius * theta.cos(), radius * theta.sin(), Z_M);
         let vel = DVec3::new(-theta.sin(), theta.cos(), 0.0) * speed;
+        (p, vel)
+    }
+}
+
+/// Per-tick records of the run.
+struct Trace {
+    weights: Vec<f64>,
+    ticks_us: Vec<f64>,
+    forces: Vec<DVec3>,
+    swap_ticks: Vec<usize>,
+    lost_contact: usize,
+}
+
+/// Runs the path's ticks (paced on request).
+fn run(args: &Args, sim: &mut FemBody, path: &Path) -> anyhow::Result<Trace> {
+    let total = path.total;
+    let mut tr = Trace {
+        weights: Vec::with_capacity(total),
+        ticks_us: Vec::with_capacity(total),
+        forces: Vec::with_capacity(total),
+        swap_ticks: Vec::new(),
+        lost_contact: 0,
+    };
+    let mut last_swaps = 0;
+    let start = Instant::now();
+    for k in 0..total {
+        let t_s = k as f64 * 1e-3;
+        let (p, vel) = path.at(t_s);
         if args.paced {
             let due = start + Duration::from_micros(1000 * k as u64);
             while Instant::now() < due {
@@ -132,18 +200,27 @@ fn main() -> anyhow::Result<()> {
             device_position_m: Some(p),
             device_velocity_m_per_s: vel,
         })?;
-        ticks_us.push(t0.elapsed().as_secs_f64() * 1e6);
-        forces.push(out.force_on_device_n);
-        weights.push(sim.fallback_stats().map_or(0.0, |f| f.weight));
-        if t_s >= press_s + settle_s && !out.in_contact {
-            lost_contact += 1;
+        tr.ticks_us.push(t0.elapsed().as_secs_f64() * 1e6);
+        tr.forces.push(out.force_on_device_n);
+        tr.weights
+            .push(sim.fallback_stats().map_or(0.0, |f| f.weight));
+        if t_s >= path.press_s + path.settle_s && !out.in_contact {
+            tr.lost_contact += 1;
         }
         let swaps = sim.follow_stats().map_or(0, |s| s.swaps);
         if swaps != last_swaps {
-            swap_ticks.push(k);
+            tr.swap_ticks.push(k);
             last_swaps = swaps;
         }
     }
+    Ok(tr)
+}
+
+/// Prints the run's summary.
+fn report(args: &Args, sim: &FemBody, path: &Path, tr: &Trace) {
+    let (press_s, settle_s, total) = (path.press_s, path.settle_s, path.total);
+    let (ticks_us, forces, swap_ticks) = (&tr.ticks_us, &tr.forces, &tr.swap_ticks);
+    let lost_contact = tr.lost_contact;
     let stats = sim.follow_stats().unwrap_or_default();
     let mut sorted = ticks_us.clone();
     sorted.sort_by(f64::total_cmp);
@@ -209,20 +286,23 @@ fn main() -> anyhow::Result<()> {
             forces.last().map_or(0.0, |f| f.length() * 1e3)
         );
     }
-    if let Some(path) = &args.csv {
-        let mut text = String::from("t_s,force_mN,companion_weight,swaps\n");
-        let mut swaps = 0;
-        for (k, (f, w)) in forces.iter().zip(&weights).enumerate() {
-            swaps += usize::from(swap_ticks.contains(&k));
-            text += &format!(
-                "{:.3},{:.4},{:.3},{swaps}\n",
-                k as f64 * 1e-3,
-                f.length() * 1e3,
-                w
-            );
-        }
-        std::fs::write(path, text)?;
+}
+
+/// One row per tick: `t_s,force_mN,companion_weight,swaps`.
+fn write_csv(path: &std::path::Path, tr: &Trace) -> anyhow::Result<()> {
+    let (forces, weights, swap_ticks) = (&tr.forces, &tr.weights, &tr.swap_ticks);
+    let mut text = String::from("t_s,force_mN,companion_weight,swaps\n");
+    let mut swaps = 0;
+    for (k, (f, w)) in forces.iter().zip(weights).enumerate() {
+        swaps += usize::from(swap_ticks.contains(&k));
+        text += &format!(
+            "{:.3},{:.4},{:.3},{swaps}\n",
+            k as f64 * 1e-3,
+            f.length() * 1e3,
+            w
+        );
     }
+    std::fs::write(path, text)?;
     Ok(())
 }
 

@@ -271,14 +271,21 @@ fn main() {
     };
     let scene = common::lv_scene_on(h1.mesh);
     let quad = common::lv_scene_on(scene.mesh.to_quadratic());
+    let fem = compliance_study(&args.alpha, &scene, &quad);
+    prefactored_study(&fem);
+}
+
+/// Part 1: the small-strain probe compliance with each smoothing domain, the alpha-FEM mixes
+/// `alphas` and the library's smoothings against quadratic elements; the linear model.
+fn compliance_study(alphas: &[f64], scene: &Scene, quad: &Scene) -> FemModel {
     println!("1. small-strain probe compliance on lv_h1.msh (17 924 tets), patch load at 0.5 mm");
-    let (c_ref, n_ref, t_ref) = static_compliance(&quad, StrainSmoothing::None);
+    let (c_ref, n_ref, t_ref) = static_compliance(quad, StrainSmoothing::None);
     println!(
         "quadratic T10 on the same mesh ({n_ref} nodes, static, {t_ref:.1} s): {c_ref:.5e} m/N (reference)"
     );
     let mut fem = FemModel::new(&scene.mesh, scene.material).expect("FEM");
     fem.clamp_nodes(&scene.clamped_nodes);
-    let (patch, dir) = probe_patch(&scene, &fem);
+    let (patch, dir) = probe_patch(scene, &fem);
     let f = patch_load(fem.node_count(), &patch, dir, 1.0);
     let report = |name: &str, c: f64, extra: String| {
         println!(
@@ -305,7 +312,7 @@ fn main() {
             ),
         );
     }
-    for a in args.alpha {
+    for &a in alphas {
         let mut ops = vec![
             (a, SmoothedOperator::new(&fem, Domains::Element)),
             (1.0 - a, SmoothedOperator::new(&fem, Domains::Node)),
@@ -318,21 +325,26 @@ fn main() {
         );
     }
     for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
-        let (c, _, t) = static_compliance(&scene, smoothing);
+        let (c, _, t) = static_compliance(scene, smoothing);
         report(
             &format!("library, smoothing {}", smoothing.name()),
             c,
             format!("static Newton, {t:.1} s"),
         );
     }
+    fem
+}
 
+/// Part 2: the prefactored backward Euler matrix M/h^2 + K_rest of `fem`: factorisation and
+/// solve times.
+fn prefactored_study(fem: &FemModel) {
     println!("2. prefactored backward Euler matrix M/h^2 + K_rest on lv_h1.msh, h = 1 ms");
-    let (dof, free) = free_dofs(&fem);
+    let (dof, free) = free_dofs(fem);
     let h = 1e-3;
     let mut triplets = Vec::new();
     let mut blocks = Vec::new();
     for c in 0..fem.cell_count() {
-        cell_tangent_blocks(&fem, c, fem.rest(), &mut blocks);
+        cell_tangent_blocks(fem, c, fem.rest(), &mut blocks);
         let t = fem.cell_nodes(c);
         for (a, &na) in t.iter().enumerate() {
             for (b, &nb) in t.iter().enumerate() {

@@ -545,207 +545,284 @@ fn hms(s: f64) -> String {
     format!("{}:{:02}:{:02}", s / 3600, s / 60 % 60, s % 60)
 }
 
-fn main() {
-    let cfg = match SoakConfig::new(Args::parse()) {
-        Ok(c) => c,
-        Err(e) => {
-            eprintln!("soak: {e}");
-            std::process::exit(2);
+/// What the summary and the JSON say about the model and the run's setup.
+struct Setup {
+    commit: String,
+    nodes: usize,
+    tets: usize,
+    material: String,
+    integrator: String,
+    substeps: u32,
+    sub_dt_s: f64,
+    critical_dt_s: f64,
+    total: u64,
+}
+
+/// The accumulators of one run.
+struct Run {
+    settles: Vec<u64>,
+    hist_all: TickTimes,
+    hist_min: TickTimes,
+    minute: MinuteStats,
+    overall: MinuteStats,
+    minutes: Vec<MinuteStats>,
+    checks: Vec<SettleCheck>,
+    failure: Option<Failure>,
+    contact_ticks: u64,
+    contact_total: u64,
+    episodes: u64,
+    out_of_contact_ticks: u64,
+    max_depth_m: f64,
+    max_speed: f64,
+    max_stretch_m: f64,
+    mid_energy: f64,
+    next_settle: usize,
+    ticks_run: u64,
+    wall_s: f64,
+}
+
+impl Run {
+    fn new(cfg: &SoakConfig, settles: Vec<u64>) -> Self {
+        Self {
+            hist_all: TickTimes::new(),
+            hist_min: TickTimes::new(),
+            minute: MinuteStats::default(),
+            overall: MinuteStats::default(),
+            minutes: Vec::with_capacity(cfg.minutes as usize),
+            checks: Vec::with_capacity(settles.len()),
+            settles,
+            failure: None,
+            contact_ticks: 0,
+            contact_total: 0,
+            episodes: 0,
+            out_of_contact_ticks: u64::MAX,
+            max_depth_m: 0.0,
+            max_speed: 0.0,
+            max_stretch_m: 0.0,
+            mid_energy: f64::NAN,
+            next_settle: 0,
+            ticks_run: 0,
+            wall_s: 0.0,
         }
-    };
-    let commit = git_commit();
-    let scene = load_builtin("lv").expect("built-in lv scene");
-    assert_eq!(scene.integrator.tick_s, TICK_S, "lv tick changed");
-    let mut sim = FemBody::new(&scene).expect("lv simulation");
-    let (nodes, tets) = (sim.fem().node_count(), sim.fem().tets().len());
-    let plan = sim.plan();
-    let kc = scene.probe.coupling_stiffness_n_per_m;
-    let total = cfg.total_ticks();
-    println!(
-        "soak: lv ({nodes} nodes, {tets} tets), {} ({} sub-steps of {:.1} us, critical {:.1} us), {} min = {total} ticks, seed {:#x}, commit {commit}",
-        sim.integrator().name(),
-        plan.substeps,
-        plan.sub_dt_s * 1e6,
-        plan.critical_dt_s * 1e6,
-        cfg.minutes,
-        cfg.seed
-    );
+    }
 
-    let settles = cfg.settle_ticks();
-    let mut path = ProbePath::new(cfg.seed, sim.probe_radius_m(), settles.clone());
-    let mut hist_all = TickTimes::new();
-    let mut hist_min = TickTimes::new();
-    let mut minute = MinuteStats::default();
-    let mut overall = MinuteStats::default();
-    let mut minutes: Vec<MinuteStats> = Vec::with_capacity(cfg.minutes as usize);
-    let mut checks: Vec<SettleCheck> = Vec::with_capacity(settles.len());
-    let mut failure: Option<Failure> = None;
-    let (mut contact_ticks, mut contact_total, mut episodes) = (0u64, 0u64, 0u64);
-    let mut out_of_contact_ticks = u64::MAX;
-    let (mut max_depth_m, mut max_speed, mut max_stretch_m) = (0f64, 0f64, 0f64);
-    let mut mid_energy = f64::NAN;
-    let mut next_settle = 0usize;
-    let wall = Instant::now();
-    let mut ticks_run = 0u64;
+    /// Runs the ticks until the end or the first failure.
+    fn run(&mut self, cfg: &SoakConfig, sim: &mut FemBody, path: &mut ProbePath, kc: f64) {
+        let total = cfg.total_ticks();
+        let wall = Instant::now();
+        for k in 0..total {
+            if let Err(f) = self.tick(k, sim, path, kc) {
+                self.failure = Some(f);
+                break;
+            }
+            let done = k + 1;
+            if done % TICKS_PER_MINUTE == 0 {
+                self.end_minute(cfg, done, wall.elapsed().as_secs_f64());
+            }
+        }
+        // A run that stopped mid-minute still counts its partial minute in the peaks.
+        self.overall.absorb(&self.minute);
+        self.overall.contact_fraction =
+            (self.contact_total + self.contact_ticks) as f64 / self.ticks_run.max(1) as f64;
+        self.wall_s = wall.elapsed().as_secs_f64();
+    }
 
-    for k in 0..total {
+    /// One servo tick `k`: its time, the per-minute peaks, the contact accounting and the state
+    /// checks due after it.
+    fn tick(
+        &mut self,
+        k: u64,
+        sim: &mut FemBody,
+        path: &mut ProbePath,
+        kc: f64,
+    ) -> Result<(), Failure> {
         let input = path.input(k);
-        max_depth_m = max_depth_m.max(path.depth_m(k));
-        max_speed = max_speed.max(input.device_velocity_m_per_s.length());
+        self.max_depth_m = self.max_depth_m.max(path.depth_m(k));
+        self.max_speed = self.max_speed.max(input.device_velocity_m_per_s.length());
         let t0 = Instant::now();
         let result = sim.tick(&input);
         let elapsed = t0.elapsed();
         let time_s = (k + 1) as f64 * TICK_S;
-        let out = match result {
-            Ok(o) => o,
-            Err(e) => {
-                failure = Some(Failure {
-                    time_s,
-                    what: format!("tick returned an error: {e}"),
-                });
-                break;
-            }
-        };
-        ticks_run = k + 1;
-        hist_all.record(elapsed);
-        hist_min.record(elapsed);
+        let out = result.map_err(|e| Failure {
+            time_s,
+            what: format!("tick returned an error: {e}"),
+        })?;
+        self.ticks_run = k + 1;
+        self.hist_all.record(elapsed);
+        self.hist_min.record(elapsed);
         let force = out.force_on_device_n.length();
         let ke = sim.kinetic_energy_j();
         if !force.is_finite() || !ke.is_finite() {
-            failure = Some(Failure {
+            return Err(Failure {
                 time_s,
                 what: format!("non-finite device force ({force}) or kinetic energy ({ke})"),
             });
-            break;
         }
+        let minute = &mut self.minute;
         minute.max_force_n = minute.max_force_n.max(force);
         minute.max_kinetic_energy_j = minute.max_kinetic_energy_j.max(ke);
         minute.max_displacement_m = minute.max_displacement_m.max(sim.max_displacement_m());
         if out.in_contact {
-            contact_ticks += 1;
+            self.contact_ticks += 1;
             // A new episode after at least 10 ms without contact (grazing flicker is not one).
-            if out_of_contact_ticks >= 10 {
-                episodes += 1;
+            if self.out_of_contact_ticks >= 10 {
+                self.episodes += 1;
             }
-            out_of_contact_ticks = 0;
-            max_stretch_m = max_stretch_m.max(force / kc);
+            self.out_of_contact_ticks = 0;
+            self.max_stretch_m = self.max_stretch_m.max(force / kc);
         } else {
-            out_of_contact_ticks = out_of_contact_ticks.saturating_add(1);
+            self.out_of_contact_ticks = self.out_of_contact_ticks.saturating_add(1);
         }
+        self.check_state(sim, k + 1, time_s)
+    }
 
-        let done = k + 1;
-        let settle_at = settles.get(next_settle).copied();
-        let cadence = done % CADENCE_TICKS == 0;
-        if cadence || settle_at == Some(done) || settle_at == Some(done + SETTLE_TICKS / 2) {
-            let st = sim.stability();
-            if !st.finite {
-                failure = Some(Failure {
-                    time_s,
-                    what: "non-finite position or velocity".into(),
-                });
-                break;
-            }
-            minute.max_elastic_energy_j = minute.max_elastic_energy_j.max(st.elastic_energy_j);
-            minute.max_inverted_elements = minute.max_inverted_elements.max(st.inverted_elements);
-            let total_e = st.kinetic_energy_j + st.elastic_energy_j;
-            if settle_at == Some(done + SETTLE_TICKS / 2) {
-                mid_energy = total_e;
-            }
-            if settle_at == Some(done) {
-                let c = SettleCheck {
-                    time_s,
-                    residual_displacement_m: st.max_displacement_m,
-                    kinetic_energy_j: st.kinetic_energy_j,
-                    elastic_energy_j: st.elastic_energy_j,
-                    mid_total_energy_j: mid_energy,
-                    inverted_elements: st.inverted_elements,
-                    out_of_contact_s: out_of_contact_ticks.min(done) as f64 * TICK_S,
-                };
-                println!(
-                    "  settle check at {:>6.1} min: residual {:.3e} mm, kinetic {:.3e} J, elastic {:.3e} J (total {:.3e} J, {:.3e} J mid-settle), {} inverted, {:.2} s out of contact",
-                    time_s / 60.0,
-                    c.residual_displacement_m * 1e3,
-                    c.kinetic_energy_j,
-                    c.elastic_energy_j,
-                    c.total_energy_j(),
-                    c.mid_total_energy_j,
-                    c.inverted_elements,
-                    c.out_of_contact_s
-                );
-                checks.push(c);
-                next_settle += 1;
-            }
+    /// The state checks after `done` ticks: at the [`CADENCE_TICKS`] cadence, mid-settle and at
+    /// a settle check.
+    fn check_state(&mut self, sim: &FemBody, done: u64, time_s: f64) -> Result<(), Failure> {
+        let settle_at = self.settles.get(self.next_settle).copied();
+        let cadence = done.is_multiple_of(CADENCE_TICKS);
+        if !(cadence || settle_at == Some(done) || settle_at == Some(done + SETTLE_TICKS / 2)) {
+            return Ok(());
         }
-
-        if done % TICKS_PER_MINUTE == 0 {
-            minute.minute = done / TICKS_PER_MINUTE;
-            let p = hist_min.percentiles();
-            minute.tick_p50_us = p.p50_us;
-            minute.tick_p99_us = p.p99_us;
-            minute.tick_max_us = p.max_us;
-            minute.ticks_over_1ms = hist_min.count_at_least_us(1000);
-            minute.contact_fraction = contact_ticks as f64 / TICKS_PER_MINUTE as f64;
-            let w = wall.elapsed().as_secs_f64();
+        let st = sim.stability();
+        if !st.finite {
+            return Err(Failure {
+                time_s,
+                what: "non-finite position or velocity".into(),
+            });
+        }
+        let minute = &mut self.minute;
+        minute.max_elastic_energy_j = minute.max_elastic_energy_j.max(st.elastic_energy_j);
+        minute.max_inverted_elements = minute.max_inverted_elements.max(st.inverted_elements);
+        let total_e = st.kinetic_energy_j + st.elastic_energy_j;
+        if settle_at == Some(done + SETTLE_TICKS / 2) {
+            self.mid_energy = total_e;
+        }
+        if settle_at == Some(done) {
+            let c = SettleCheck {
+                time_s,
+                residual_displacement_m: st.max_displacement_m,
+                kinetic_energy_j: st.kinetic_energy_j,
+                elastic_energy_j: st.elastic_energy_j,
+                mid_total_energy_j: self.mid_energy,
+                inverted_elements: st.inverted_elements,
+                out_of_contact_s: self.out_of_contact_ticks.min(done) as f64 * TICK_S,
+            };
             println!(
-                "minute {:>3}/{}: wall {} ETA {} | tick p50 {:>4.0} p99 {:>5.0} max {:>6.0} us | KE max {:.2e} J, elastic max {:.2e} J, disp max {:.2} mm, force max {:.3} N, contact {:>3.0} %, inverted {}",
-                minute.minute,
-                cfg.minutes,
-                hms(w),
-                hms(w / done as f64 * (total - done) as f64),
-                minute.tick_p50_us,
-                minute.tick_p99_us,
-                minute.tick_max_us,
-                minute.max_kinetic_energy_j,
-                minute.max_elastic_energy_j,
-                minute.max_displacement_m * 1e3,
-                minute.max_force_n,
-                minute.contact_fraction * 100.0,
-                minute.max_inverted_elements
+                "  settle check at {:>6.1} min: residual {:.3e} mm, kinetic {:.3e} J, elastic {:.3e} J (total {:.3e} J, {:.3e} J mid-settle), {} inverted, {:.2} s out of contact",
+                time_s / 60.0,
+                c.residual_displacement_m * 1e3,
+                c.kinetic_energy_j,
+                c.elastic_energy_j,
+                c.total_energy_j(),
+                c.mid_total_energy_j,
+                c.inverted_elements,
+                c.out_of_contact_s
             );
-            overall.absorb(&minute);
-            contact_total += contact_ticks;
-            minutes.push(minute);
-            minute = MinuteStats::default();
-            hist_min.reset();
-            contact_ticks = 0;
+            self.checks.push(c);
+            self.next_settle += 1;
+        }
+        Ok(())
+    }
+
+    /// Closes the simulated minute ending after `done` ticks: prints its line and starts the
+    /// next.
+    fn end_minute(&mut self, cfg: &SoakConfig, done: u64, wall_s: f64) {
+        let total = cfg.total_ticks();
+        let minute = &mut self.minute;
+        minute.minute = done / TICKS_PER_MINUTE;
+        let p = self.hist_min.percentiles();
+        minute.tick_p50_us = p.p50_us;
+        minute.tick_p99_us = p.p99_us;
+        minute.tick_max_us = p.max_us;
+        minute.ticks_over_1ms = self.hist_min.count_at_least_us(1000);
+        minute.contact_fraction = self.contact_ticks as f64 / TICKS_PER_MINUTE as f64;
+        println!(
+            "minute {:>3}/{}: wall {} ETA {} | tick p50 {:>4.0} p99 {:>5.0} max {:>6.0} us | KE max {:.2e} J, elastic max {:.2e} J, disp max {:.2} mm, force max {:.3} N, contact {:>3.0} %, inverted {}",
+            minute.minute,
+            cfg.minutes,
+            hms(wall_s),
+            hms(wall_s / done as f64 * (total - done) as f64),
+            minute.tick_p50_us,
+            minute.tick_p99_us,
+            minute.tick_max_us,
+            minute.max_kinetic_energy_j,
+            minute.max_elastic_energy_j,
+            minute.max_displacement_m * 1e3,
+            minute.max_force_n,
+            minute.contact_fraction * 100.0,
+            minute.max_inverted_elements
+        );
+        self.overall.absorb(&self.minute);
+        self.contact_total += self.contact_ticks;
+        self.minutes.push(self.minute);
+        self.minute = MinuteStats::default();
+        self.hist_min.reset();
+        self.contact_ticks = 0;
+    }
+}
+
+/// The run's verdicts.
+struct Verdicts {
+    no_nan: bool,
+    rest_recovered: bool,
+    decaying: bool,
+    no_energy_growth: bool,
+    trend: Option<f64>,
+}
+
+impl Verdicts {
+    fn of(run: &Run, total: u64) -> Self {
+        let checks = &run.checks;
+        let completed = run.failure.is_none() && run.ticks_run == total;
+        let no_nan = run.failure.is_none();
+        let rest_recovered = completed
+            && checks.len() == run.settles.len()
+            && checks
+                .iter()
+                .all(|c| c.residual_displacement_m < REST_TOLERANCE_M);
+        let trend = energy_trend_factor(checks);
+        let energies_small = checks
+            .iter()
+            .all(|c| c.total_energy_j() < SETTLED_ENERGY_LIMIT_J);
+        let decaying = checks.iter().all(SettleCheck::decaying);
+        let no_trend = trend.is_none_or(|f| f <= MAX_TREND_FACTOR);
+        let no_energy_growth =
+            completed && !checks.is_empty() && energies_small && decaying && no_trend;
+        Self {
+            no_nan,
+            rest_recovered,
+            decaying,
+            no_energy_growth,
+            trend,
         }
     }
-    // A run that stopped mid-minute still counts its partial minute in the peaks.
-    overall.absorb(&minute);
-    overall.contact_fraction = (contact_total + contact_ticks) as f64 / ticks_run.max(1) as f64;
-    let wall_s = wall.elapsed().as_secs_f64();
 
-    // Verdicts.
-    let completed = failure.is_none() && ticks_run == total;
-    let no_nan = failure.is_none();
-    let rest_recovered = completed
-        && checks.len() == settles.len()
-        && checks
-            .iter()
-            .all(|c| c.residual_displacement_m < REST_TOLERANCE_M);
-    let trend = energy_trend_factor(&checks);
-    let energies_small = checks
-        .iter()
-        .all(|c| c.total_energy_j() < SETTLED_ENERGY_LIMIT_J);
-    let decaying = checks.iter().all(SettleCheck::decaying);
-    let no_trend = trend.is_none_or(|f| f <= MAX_TREND_FACTOR);
-    let no_energy_growth =
-        completed && !checks.is_empty() && energies_small && decaying && no_trend;
+    fn all_pass(&self) -> bool {
+        self.no_nan && self.rest_recovered && self.no_energy_growth
+    }
+}
 
+/// The summary printed at the end: totals, peaks and the verdict table.
+fn summary_table(setup: &Setup, run: &Run, v: &Verdicts) -> String {
     let Percentiles {
         p50_us: p50,
         p99_us: p99,
         max_us: tick_max,
-    } = hist_all.percentiles();
-    let over_budget = hist_all.count_at_least_us(1000);
+    } = run.hist_all.percentiles();
+    let over_budget = run.hist_all.count_at_least_us(1000);
+    let (overall, ticks_run) = (&run.overall, run.ticks_run);
     let mut table = String::new();
     let _ = writeln!(
         table,
-        "\nsoak of lv ({nodes} nodes, {tets} tets, {} x{}): {ticks_run} of {total} ticks ({:.1} simulated min) in {} wall",
-        sim.integrator().name(),
-        plan.substeps,
+        "\nsoak of lv ({} nodes, {} tets, {} x{}): {ticks_run} of {} ticks ({:.1} simulated min) in {} wall",
+        setup.nodes,
+        setup.tets,
+        setup.integrator,
+        setup.substeps,
+        setup.total,
         ticks_run as f64 * TICK_S / 60.0,
-        hms(wall_s)
+        hms(run.wall_s)
     );
     let _ = writeln!(
         table,
@@ -753,12 +830,13 @@ fn main() {
     );
     let _ = writeln!(
         table,
-        "  probe: {episodes} contact episodes, in contact {:.1} % of the time, max depth {:.2} mm below rest surface, max force {:.4} N, max device speed {:.3} m/s{}",
+        "  probe: {} contact episodes, in contact {:.1} % of the time, max depth {:.2} mm below rest surface, max force {:.4} N, max device speed {:.3} m/s{}",
+        run.episodes,
         overall.contact_fraction * 100.0,
-        max_depth_m * 1e3,
+        run.max_depth_m * 1e3,
         overall.max_force_n,
-        max_speed,
-        if max_speed > HAND_SPEED_M_PER_S {
+        run.max_speed,
+        if run.max_speed > HAND_SPEED_M_PER_S {
             " (ABOVE the 0.1 m/s hand bound)"
         } else {
             ""
@@ -772,9 +850,16 @@ fn main() {
         overall.max_elastic_energy_j,
         overall.max_inverted_elements
     );
-    if let Some(f) = &failure {
+    if let Some(f) = &run.failure {
         let _ = writeln!(table, "  FAILURE at {:.3} s: {}", f.time_s, f.what);
     }
+    verdict_table(&mut table, run, v);
+    table
+}
+
+/// The verdict lines of [`summary_table`].
+fn verdict_table(table: &mut String, run: &Run, v: &Verdicts) {
+    let checks = &run.checks;
     let worst_residual = checks
         .iter()
         .map(|c| c.residual_displacement_m)
@@ -789,8 +874,8 @@ fn main() {
         table,
         "  {:<18} {:<6} {}",
         "no_nan",
-        verdict(no_nan),
-        failure
+        verdict(v.no_nan),
+        run.failure
             .as_ref()
             .map_or("every tick Ok and finite".into(), |f| f.what.clone())
     );
@@ -798,75 +883,140 @@ fn main() {
         table,
         "  {:<18} {:<6} worst residual {:.3e} mm over {} settle checks (limit {} mm)",
         "rest_recovered",
-        verdict(rest_recovered),
+        verdict(v.rest_recovered),
         worst_residual * 1e3,
         checks.len(),
         REST_TOLERANCE_M * 1e3
     );
     let _ = writeln!(
         table,
-        "  {:<18} {:<6} worst settled energy {:.3e} J (limit {:.0e} J), decaying in every settle: {decaying}, fitted growth over the run: {}",
+        "  {:<18} {:<6} worst settled energy {:.3e} J (limit {:.0e} J), decaying in every settle: {}, fitted growth over the run: {}",
         "no_energy_growth",
-        verdict(no_energy_growth),
+        verdict(v.no_energy_growth),
         worst_energy,
         SETTLED_ENERGY_LIMIT_J,
-        trend.map_or("n/a (fewer than 3 checks)".into(), |f| format!(
-            "x{f:.3} (limit x{MAX_TREND_FACTOR})"
-        ))
+        v.decaying,
+        v.trend
+            .map_or("n/a (fewer than 3 checks)".into(), |f| format!(
+                "x{f:.3} (limit x{MAX_TREND_FACTOR})"
+            ))
     );
-    print!("{table}");
+}
 
+/// The result file's content.
+fn result_json(cfg: &SoakConfig, setup: &Setup, run: &Run, v: &Verdicts) -> serde_json::Value {
     let mut json = serde_json::json!({
         "benchmark": "soak",
         "command": format!(
             "cargo run --release -p haptic-model --example soak -- --minutes {} --seed {}",
             cfg.minutes, cfg.seed
         ),
-        "commit": commit,
+        "commit": setup.commit,
         "scene": "lv (built-in, load_builtin(\"lv\"): the daemon's default interactive configuration)",
-        "nodes": nodes,
-        "tets": tets,
-        "material": scene.material.model.scene_name(),
-        "integrator": sim.integrator().name(),
-        "substeps": plan.substeps,
-        "sub_dt_s": plan.sub_dt_s,
-        "critical_dt_s": plan.critical_dt_s,
+        "nodes": setup.nodes,
+        "tets": setup.tets,
+        "material": setup.material,
+        "integrator": setup.integrator,
+        "substeps": setup.substeps,
+        "sub_dt_s": setup.sub_dt_s,
+        "critical_dt_s": setup.critical_dt_s,
         "tick_s": TICK_S,
         "seed": cfg.seed,
         "minutes": cfg.minutes,
-        "ticks": total,
-        "ticks_run": ticks_run,
-        "wall_s": wall_s,
+        "ticks": setup.total,
+        "ticks_run": run.ticks_run,
+        "wall_s": run.wall_s,
     });
-    let results = serde_json::json!({
+    if let (Some(all), serde_json::Value::Object(r)) = (json.as_object_mut(), results_json(run, v))
+    {
+        all.extend(r);
+    }
+    json
+}
+
+/// The measured part of [`result_json`].
+fn results_json(run: &Run, v: &Verdicts) -> serde_json::Value {
+    let Percentiles {
+        p50_us: p50,
+        p99_us: p99,
+        max_us: tick_max,
+    } = run.hist_all.percentiles();
+    let overall = &run.overall;
+    serde_json::json!({
         "tick_p50_us": num(p50),
         "tick_p99_us": num(p99),
         "tick_max_us": num(tick_max),
-        "ticks_over_1ms": over_budget,
+        "ticks_over_1ms": run.hist_all.count_at_least_us(1000),
         "max_force_n": num(overall.max_force_n),
-        "max_depth_mm": num(max_depth_m * 1e3),
-        "max_coupling_stretch_mm": num(max_stretch_m * 1e3),
-        "max_device_speed_m_per_s": num(max_speed),
-        "contact_episodes": episodes,
+        "max_depth_mm": num(run.max_depth_m * 1e3),
+        "max_coupling_stretch_mm": num(run.max_stretch_m * 1e3),
+        "max_device_speed_m_per_s": num(run.max_speed),
+        "contact_episodes": run.episodes,
         "contact_fraction": num(overall.contact_fraction),
         "max_displacement_mm": num(overall.max_displacement_m * 1e3),
         "max_kinetic_energy_j": num(overall.max_kinetic_energy_j),
         "max_elastic_energy_j": num(overall.max_elastic_energy_j),
         "max_inverted_elements": overall.max_inverted_elements,
-        "settle_checks": checks.iter().map(SettleCheck::json).collect::<Vec<_>>(),
-        "per_minute": minutes.iter().map(MinuteStats::json).collect::<Vec<_>>(),
-        "failure": failure.as_ref().map(|f| serde_json::json!({"time_s": f.time_s, "what": f.what})),
+        "settle_checks": run.checks.iter().map(SettleCheck::json).collect::<Vec<_>>(),
+        "per_minute": run.minutes.iter().map(MinuteStats::json).collect::<Vec<_>>(),
+        "failure": run.failure.as_ref().map(|f| serde_json::json!({"time_s": f.time_s, "what": f.what})),
         "limits": limits_json(),
-        "settled_energy_trend_factor": trend.map(num),
+        "settled_energy_trend_factor": v.trend.map(num),
         "verdicts": {
-            "no_nan": no_nan,
-            "rest_recovered": rest_recovered,
-            "no_energy_growth": no_energy_growth,
+            "no_nan": v.no_nan,
+            "rest_recovered": v.rest_recovered,
+            "no_energy_growth": v.no_energy_growth,
         },
-    });
-    if let (Some(all), serde_json::Value::Object(r)) = (json.as_object_mut(), results) {
-        all.extend(r);
-    }
+    })
+}
+
+fn main() {
+    let cfg = match SoakConfig::new(Args::parse()) {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("soak: {e}");
+            std::process::exit(2);
+        }
+    };
+    let commit = git_commit();
+    let scene = load_builtin("lv").expect("built-in lv scene");
+    assert_eq!(scene.integrator.tick_s, TICK_S, "lv tick changed");
+    let mut sim = FemBody::new(&scene).expect("lv simulation");
+    let plan = sim.plan();
+    let setup = Setup {
+        commit,
+        nodes: sim.fem().node_count(),
+        tets: sim.fem().tets().len(),
+        material: scene.material.model.scene_name().to_string(),
+        integrator: sim.integrator().name().to_string(),
+        substeps: plan.substeps,
+        sub_dt_s: plan.sub_dt_s,
+        critical_dt_s: plan.critical_dt_s,
+        total: cfg.total_ticks(),
+    };
+    let kc = scene.probe.coupling_stiffness_n_per_m;
+    println!(
+        "soak: lv ({} nodes, {} tets), {} ({} sub-steps of {:.1} us, critical {:.1} us), {} min = {} ticks, seed {:#x}, commit {}",
+        setup.nodes,
+        setup.tets,
+        setup.integrator,
+        plan.substeps,
+        plan.sub_dt_s * 1e6,
+        plan.critical_dt_s * 1e6,
+        cfg.minutes,
+        setup.total,
+        cfg.seed,
+        setup.commit
+    );
+
+    let settles = cfg.settle_ticks();
+    let mut path = ProbePath::new(cfg.seed, sim.probe_radius_m(), settles.clone());
+    let mut run = Run::new(&cfg, settles);
+    run.run(&cfg, &mut sim, &mut path, kc);
+    let verdicts = Verdicts::of(&run, setup.total);
+    print!("{}", summary_table(&setup, &run, &verdicts));
+
+    let json = result_json(&cfg, &setup, &run, &verdicts);
     let file = &cfg.output;
     std::fs::create_dir_all(file.parent().expect("parent")).expect("creating output dir");
     std::fs::write(
@@ -875,7 +1025,7 @@ fn main() {
     )
     .expect("writing soak json");
     println!("wrote {}", file.display());
-    if !(no_nan && rest_recovered && no_energy_growth) {
+    if !verdicts.all_pass() {
         std::process::exit(1);
     }
 }

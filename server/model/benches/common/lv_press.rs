@@ -147,48 +147,7 @@ pub fn probe_static_at(
                 let phi = (kc * (r - (device - centre).dot(normal))).max(0.0);
                 Ok(f - phi)
             };
-            // g(F) = F - k (r - s(F)) increases with F: bracket, then Illinois.
-            let (mut lo, mut hi) = (f / 1.1, f * 1.1);
-            let mut glo = g(lo, &mut x)?;
-            while glo > 0.0 {
-                hi = lo;
-                lo /= 1.25;
-                glo = g(lo, &mut x)?;
-            }
-            let mut ghi = g(hi, &mut x)?;
-            while ghi < 0.0 {
-                (lo, glo) = (hi, ghi);
-                hi *= 1.25;
-                ghi = g(hi, &mut x)?;
-                if hi > 100.0 {
-                    return Err(format!("no bracket at depth {d} mm"));
-                }
-            }
-            let mut side = 0i8;
-            let mut fi = hi;
-            for it in 0..=80 {
-                if it == 80 {
-                    return Err(format!("no convergence at depth {d} mm: F in [{lo}, {hi}]"));
-                }
-                fi = (lo * ghi - hi * glo) / (ghi - glo);
-                let gf = g(fi, &mut x)?;
-                if gf.abs() <= 1e-8 * fi.max(1e-3) || (hi - lo) <= 1e-10 * hi {
-                    break;
-                }
-                if gf < 0.0 {
-                    (lo, glo) = (fi, gf);
-                    if side == -1 {
-                        ghi *= 0.5;
-                    }
-                    side = -1;
-                } else {
-                    (hi, ghi) = (fi, gf);
-                    if side == 1 {
-                        glo *= 0.5;
-                    }
-                    side = 1;
-                }
-            }
+            let fi = bracketed_root(f, *d, |t| g(t, &mut x))?;
             let change = (fi - f).abs() / fi;
             f = fi;
             if debug {
@@ -211,6 +170,58 @@ pub fn probe_static_at(
         x_last: x,
         surfaces: Vec::new(),
     })
+}
+
+/// The root of `g(F) = F - k (r - s(F))`, which increases with `F`, from the guess `f` (N) at
+/// depth `d` (mm): a bracket grown by 1.25, then Illinois (at most 80 iterations, to 1e-8
+/// relative or a 1e-10 relative bracket).
+fn bracketed_root(
+    f: f64,
+    d: f64,
+    mut g: impl FnMut(f64) -> Result<f64, String>,
+) -> Result<f64, String> {
+    let (mut lo, mut hi) = (f / 1.1, f * 1.1);
+    let mut glo = g(lo)?;
+    while glo > 0.0 {
+        hi = lo;
+        lo /= 1.25;
+        glo = g(lo)?;
+    }
+    let mut ghi = g(hi)?;
+    while ghi < 0.0 {
+        (lo, glo) = (hi, ghi);
+        hi *= 1.25;
+        ghi = g(hi)?;
+        if hi > 100.0 {
+            return Err(format!("no bracket at depth {d} mm"));
+        }
+    }
+    let mut side = 0i8;
+    let mut fi = hi;
+    for it in 0..=80 {
+        if it == 80 {
+            return Err(format!("no convergence at depth {d} mm: F in [{lo}, {hi}]"));
+        }
+        fi = (lo * ghi - hi * glo) / (ghi - glo);
+        let gf = g(fi)?;
+        if gf.abs() <= 1e-8 * fi.max(1e-3) || (hi - lo) <= 1e-10 * hi {
+            break;
+        }
+        if gf < 0.0 {
+            (lo, glo) = (fi, gf);
+            if side == -1 {
+                ghi *= 0.5;
+            }
+            side = -1;
+        } else {
+            (hi, ghi) = (fi, gf);
+            if side == 1 {
+                glo *= 0.5;
+            }
+            side = 1;
+        }
+    }
+    Ok(fi)
 }
 
 /// Half-width of the bracket of sphere depths [`probe_sphere_at`] solves at below each device

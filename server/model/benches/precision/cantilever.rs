@@ -9,11 +9,12 @@ use std::time::Instant;
 use haptic_model::DVec3;
 use haptic_model::element::FemModel;
 use haptic_model::material::{MaterialModel, MaterialParams};
+use haptic_model::mesh::TetMesh;
 use haptic_model::mesh::generate::box_mesh;
 use haptic_model::statics::{StaticParams, solve_static};
 
 use crate::common::{MATERIALS, run_loaded_with};
-use crate::method::{material_label, methods, steady_text};
+use crate::method::{Method, material_label, methods, steady_text};
 use crate::report::{Row, Scenario};
 
 /// Bisshopp-Drucker's tip deflection v / L at alpha = P L^2 / (E I) = 1.
@@ -66,28 +67,7 @@ pub fn run(quick: bool, rows: &mut Vec<Row>) {
                     / tip_nodes.len() as f64
                     / len
             };
-            // Static with 10 load increments.
-            let mut x = mesh.nodes.clone();
-            let t = Instant::now();
-            let mut ok = true;
-            for k in 1..=10 {
-                let fk: Vec<DVec3> = f_ext.iter().map(|f| *f * (k as f64 / 10.0)).collect();
-                if solve_static(
-                    &fem,
-                    &fk,
-                    &mut x,
-                    &StaticParams {
-                        rel_tol: 1e-9,
-                        ..StaticParams::default()
-                    },
-                )
-                .is_err()
-                {
-                    ok = false;
-                    break;
-                }
-            }
-            let solve_us = t.elapsed().as_secs_f64() * 1e6;
+            let (x, ok, solve_us) = static_solve(&fem, &f_ext, mesh.nodes.clone());
             let mut row = Row::new(
                 Scenario::Cantilever,
                 material_label("static".into(), model),
@@ -113,36 +93,108 @@ pub fn run(quick: bool, rows: &mut Vec<Row>) {
             // The other materials (corotational: a polar decomposition per element) run
             // dynamically on the two coarser meshes only.
             let dynamic = model == MaterialModel::StVenantKirchhoff || n <= 3;
-            for m in all_methods
-                .iter()
-                .filter(|m| dynamic && m.material == model)
-            {
-                let mut row =
-                    Row::new(Scenario::Cantilever, m.label(), m.kind.name(), &mesh).material(model);
-                row.reference = reference.clone();
-                match run_loaded_with(&fem, &mesh, &m.params(), &f_ext, 0.3, cap) {
-                    Err(e) => row.settings = format!("refused: {e}"),
-                    Ok(run) => {
-                        row.settings = format!(
-                            "{}x{n}x{n} cells, {}, alpha 60/s, {}",
-                            10 * n,
-                            m.step_text(run.substeps),
-                            steady_text(run.time_s, cap)
-                        );
-                        row.set_times(&run.ticks, 1e-3);
-                        row.stable = run.stable && run.x.iter().all(|v| v.is_finite());
-                        if row.stable {
-                            let v = deflection(&run.x);
-                            row.observable_error = (v - BD_ALPHA1).abs() / BD_ALPHA1;
-                            row.observable =
-                                format!("v/L = {v:.5} (static on this mesh {static_v:.5})");
-                        }
-                    }
+            let beam = Beam {
+                n,
+                model,
+                mesh: &mesh,
+                fem: &fem,
+                f_ext: &f_ext,
+                reference: &reference,
+            };
+            dynamic_rows(
+                &beam,
+                all_methods
+                    .iter()
+                    .filter(|m| dynamic && m.material == model),
+                cap,
+                &deflection,
+                static_v,
+                rows,
+            );
+        }
+    }
+}
+
+/// Static with 10 load increments from `x0`: the positions, whether every increment
+/// converged, the wall time of the whole solve (us).
+fn static_solve(fem: &FemModel, f_ext: &[DVec3], x0: Vec<DVec3>) -> (Vec<DVec3>, bool, f64) {
+    let mut x = x0;
+    let t = Instant::now();
+    let mut ok = true;
+    for k in 1..=10 {
+        let fk: Vec<DVec3> = f_ext.iter().map(|f| *f * (k as f64 / 10.0)).collect();
+        if solve_static(
+            fem,
+            &fk,
+            &mut x,
+            &StaticParams {
+                rel_tol: 1e-9,
+                ..StaticParams::default()
+            },
+        )
+        .is_err()
+        {
+            ok = false;
+            break;
+        }
+    }
+    let solve_us = t.elapsed().as_secs_f64() * 1e6;
+    (x, ok, solve_us)
+}
+
+/// One beam of the scenario: `n` cells across, its material, mesh, model, tip load and
+/// reference text.
+struct Beam<'a> {
+    n: usize,
+    model: MaterialModel,
+    mesh: &'a TetMesh,
+    fem: &'a FemModel,
+    f_ext: &'a [DVec3],
+    reference: &'a str,
+}
+
+/// The dynamic rows of `beam`, one per method (at most `cap` s simulated); `deflection` gives
+/// v / L of positions, `static_v` the static solution's on this mesh.
+fn dynamic_rows<'m>(
+    beam: &Beam<'_>,
+    methods: impl Iterator<Item = &'m Method>,
+    cap: f64,
+    deflection: &dyn Fn(&[DVec3]) -> f64,
+    static_v: f64,
+    rows: &mut Vec<Row>,
+) {
+    let Beam {
+        n,
+        model,
+        mesh,
+        fem,
+        f_ext,
+        reference,
+    } = *beam;
+    for m in methods {
+        let mut row =
+            Row::new(Scenario::Cantilever, m.label(), m.kind.name(), &mesh).material(model);
+        row.reference = reference.to_string();
+        match run_loaded_with(&fem, &mesh, &m.params(), &f_ext, 0.3, cap) {
+            Err(e) => row.settings = format!("refused: {e}"),
+            Ok(run) => {
+                row.settings = format!(
+                    "{}x{n}x{n} cells, {}, alpha 60/s, {}",
+                    10 * n,
+                    m.step_text(run.substeps),
+                    steady_text(run.time_s, cap)
+                );
+                row.set_times(&run.ticks, 1e-3);
+                row.stable = run.stable && run.x.iter().all(|v| v.is_finite());
+                if row.stable {
+                    let v = deflection(&run.x);
+                    row.observable_error = (v - BD_ALPHA1).abs() / BD_ALPHA1;
+                    row.observable = format!("v/L = {v:.5} (static on this mesh {static_v:.5})");
                 }
-                row.print();
-                rows.push(row);
             }
         }
+        row.print();
+        rows.push(row);
     }
 }
 

@@ -105,33 +105,7 @@ pub fn run(quick: bool, rows: &mut Vec<Row>) {
                 &mut f_ext,
             );
             // Static: the discretisation error alone.
-            let mut x = mesh.nodes.clone();
-            let t = Instant::now();
-            let rep = solve_static(&fem, &f_ext, &mut x, &StaticParams::default());
-            let solve_us = t.elapsed().as_secs_f64() * 1e6;
-            let mut row = Row::new(
-                Scenario::Lame,
-                material_label("static".into(), model),
-                "static",
-                &mesh,
-            )
-            .material(model);
-            row.settings = "Newton + sparse Cholesky; time = whole solve".into();
-            row.set_solve_time(solve_us);
-            row.reference = reference.clone();
-            let x_static = x.clone();
-            if let Ok(rep) = rep {
-                let (l2, max_e, mean) = lame_errors(&mesh, &x);
-                row.rel_l2_error = l2;
-                row.max_nodal_error_m = max_e;
-                row.observable_error = (mean - exact_inner).abs() / exact_inner;
-                row.observable = format!(
-                    "mean u_r(a) = {:.4} mm ({} Newton it.)",
-                    mean * 1e3,
-                    rep.iterations
-                );
-                row.stable = true;
-            }
+            let (row, x_static) = static_row(model, &mesh, &fem, &f_ext, &reference);
             row.print();
             rows.push(row);
             // The corotational force costs a polar decomposition per element (about 30 times
@@ -174,6 +148,46 @@ pub fn run(quick: bool, rows: &mut Vec<Row>) {
             }
         }
     }
+}
+
+/// The static row of `mesh` under `f_ext` (Newton + sparse Cholesky, timed as a whole) and
+/// the static solution.
+fn static_row(
+    model: MaterialModel,
+    mesh: &TetMesh,
+    fem: &FemModel,
+    f_ext: &[DVec3],
+    reference: &str,
+) -> (Row, Vec<DVec3>) {
+    let exact_inner = lame_u_r(LAME.0);
+    let mut x = mesh.nodes.clone();
+    let t = Instant::now();
+    let rep = solve_static(fem, f_ext, &mut x, &StaticParams::default());
+    let solve_us = t.elapsed().as_secs_f64() * 1e6;
+    let mut row = Row::new(
+        Scenario::Lame,
+        material_label("static".into(), model),
+        "static",
+        mesh,
+    )
+    .material(model);
+    row.settings = "Newton + sparse Cholesky; time = whole solve".into();
+    row.set_solve_time(solve_us);
+    row.reference = reference.to_string();
+    let x_static = x.clone();
+    if let Ok(rep) = rep {
+        let (l2, max_e, mean) = lame_errors(mesh, &x);
+        row.rel_l2_error = l2;
+        row.max_nodal_error_m = max_e;
+        row.observable_error = (mean - exact_inner).abs() / exact_inner;
+        row.observable = format!(
+            "mean u_r(a) = {:.4} mm ({} Newton it.)",
+            mean * 1e3,
+            rep.iterations
+        );
+        row.stable = true;
+    }
+    (row, x_static)
 }
 
 /// `|x - y| / |y - rest|` over all nodes.

@@ -12,6 +12,7 @@ use haptic_model::fem::FemBody;
 use haptic_model::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
 use haptic_model::integrate::{IntegratorKind, LinearSolver};
 use haptic_model::material::MaterialModel;
+use haptic_model::scene::Scene;
 
 use crate::common::lv_press::probe_dynamic;
 use crate::common::{CONTACT_X_M, PROBE_Z_M, lv_h1_scene, lv_scene_on};
@@ -60,54 +61,7 @@ pub fn run(cfg: &Config) -> Vec<Row> {
         (IntegratorKind::BackwardEuler, 1.0, 5),
     ];
     for &(smoothing, radius_mm) in CONDENSED_RUNS {
-        let mut sc = base.clone();
-        sc.strain_smoothing = smoothing;
-        sc.integrator.kind = IntegratorKind::BackwardEuler;
-        sc.integrator.substeps = Some(1);
-        // The contact point of the press: the probe centre at first contact minus its radius.
-        sc.active_region = Some(ActiveRegion {
-            centre_m: DVec3::new(CONTACT_X_M - sc.probe.radius_m, 0.0, PROBE_Z_M),
-            radius_m: radius_mm * 1e-3,
-            stiffness_margin: DEFAULT_STIFFNESS_MARGIN,
-            follow: false,
-        });
-        // One label for every radius, so the radii form one work-precision curve.
-        let method = "condensed backward-euler".to_string();
-        let mut row = Row::new(
-            Scenario::LvProbe,
-            method.clone(),
-            "backward-euler",
-            &sc.mesh,
-        )
-        .smoothed(smoothing);
-        row.reference = ref_text.clone();
-        let t0 = Instant::now();
-        let sizes = match FemBody::new(&sc) {
-            Ok(sim) => sim.condensed().map(|c| c.sizes()).unwrap_or_default(),
-            Err(e) => {
-                row.settings = format!("{method}: {e}");
-                row.print();
-                rows.push(row);
-                continue;
-            }
-        };
-        let setup_s = t0.elapsed().as_secs_f64();
-        match probe_dynamic(&sc, false) {
-            Ok((c, ticks, _)) => {
-                row.settings = format!(
-                    "lv_h1.msh, strain smoothing {}; tick 1 ms, active region r = {radius_mm} mm: one backward Euler step on the {} tets within it ({} equations, {} interface nodes, {} factor entries), the other {} condensed; set-up {setup_s:.1} s",
-                    smoothing.name(),
-                    sizes.active_tets,
-                    sizes.equations,
-                    sizes.interface_nodes,
-                    sizes.factor_entries,
-                    sc.mesh.tets.len() - sizes.active_tets,
-                );
-                row.set_times(&ticks, sc.integrator.tick_s);
-                fill_lv_errors(&mut row, model, &c);
-            }
-            Err(e) => row.settings = format!("{method}: {e}"),
-        }
+        let row = condensed_row(&base, smoothing, radius_mm, &ref_text);
         row.print();
         rows.push(row);
     }
@@ -151,6 +105,60 @@ pub fn run(cfg: &Config) -> Vec<Row> {
         }
     }
     rows
+}
+
+/// One row of [`CONDENSED_RUNS`]: backward Euler on the active region of `radius_mm` around
+/// the contact point, the rest of `base` condensed, with `smoothing`.
+fn condensed_row(base: &Scene, smoothing: StrainSmoothing, radius_mm: f64, ref_text: &str) -> Row {
+    // St. Venant-Kirchhoff, as [`run`] sets it.
+    let model = base.material.model;
+    let mut sc = base.clone();
+    sc.strain_smoothing = smoothing;
+    sc.integrator.kind = IntegratorKind::BackwardEuler;
+    sc.integrator.substeps = Some(1);
+    // The contact point of the press: the probe centre at first contact minus its radius.
+    sc.active_region = Some(ActiveRegion {
+        centre_m: DVec3::new(CONTACT_X_M - sc.probe.radius_m, 0.0, PROBE_Z_M),
+        radius_m: radius_mm * 1e-3,
+        stiffness_margin: DEFAULT_STIFFNESS_MARGIN,
+        follow: false,
+    });
+    // One label for every radius, so the radii form one work-precision curve.
+    let method = "condensed backward-euler".to_string();
+    let mut row = Row::new(
+        Scenario::LvProbe,
+        method.clone(),
+        "backward-euler",
+        &sc.mesh,
+    )
+    .smoothed(smoothing);
+    row.reference = ref_text.to_string();
+    let t0 = Instant::now();
+    let sizes = match FemBody::new(&sc) {
+        Ok(sim) => sim.condensed().map(|c| c.sizes()).unwrap_or_default(),
+        Err(e) => {
+            row.settings = format!("{method}: {e}");
+            return row;
+        }
+    };
+    let setup_s = t0.elapsed().as_secs_f64();
+    match probe_dynamic(&sc, false) {
+        Ok((c, ticks, _)) => {
+            row.settings = format!(
+                "lv_h1.msh, strain smoothing {}; tick 1 ms, active region r = {radius_mm} mm: one backward Euler step on the {} tets within it ({} equations, {} interface nodes, {} factor entries), the other {} condensed; set-up {setup_s:.1} s",
+                smoothing.name(),
+                sizes.active_tets,
+                sizes.equations,
+                sizes.interface_nodes,
+                sizes.factor_entries,
+                sc.mesh.tets.len() - sizes.active_tets,
+            );
+            row.set_times(&ticks, sc.integrator.tick_s);
+            fill_lv_errors(&mut row, model, &c);
+        }
+        Err(e) => row.settings = format!("{method}: {e}"),
+    }
+    row
 }
 
 /// The shipped scenes on `lv_h1.msh` (`deploy/scenes/`), each pressed exactly as its file

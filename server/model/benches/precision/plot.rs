@@ -268,7 +268,27 @@ where
             + Circle::new((0, 0), 7, BLACK.stroke_width(1))
             + Text::new(label.clone(), (8, -16), label_font.clone())
     }))?;
-    // Legend panel (pixel coordinates).
+    draw_legend(&legend, curves, &bases, (&color_of, [grey, red]))?;
+    root.present()?;
+    Ok(())
+}
+
+/// The legend panel of [`draw_chart`] (pixel coordinates): the two limits, the front, the
+/// element families present, then the methods `bases` in their colours `color_of`; `grey`
+/// and `red` draw the budget and JND lines.
+fn draw_legend<DB: plotters::prelude::DrawingBackend>(
+    legend: &plotters::drawing::DrawingArea<DB, plotters::coord::Shift>,
+    curves: &BTreeMap<String, Vec<(f64, f64)>>,
+    bases: &[&str],
+    (color_of, [grey, red]): (
+        &dyn Fn(&str) -> plotters::style::RGBColor,
+        [plotters::style::RGBColor; 2],
+    ),
+) -> Result<(), Box<dyn std::error::Error>>
+where
+    DB::ErrorType: 'static,
+{
+    use plotters::prelude::*;
     let font = ("sans-serif", 14).into_font();
     let black = BLACK.stroke_width(2);
     let mut y = 40;
@@ -282,10 +302,10 @@ where
         *y += 22;
         Ok(())
     };
-    line(&legend, "1 ms haptic budget", grey.stroke_width(2), &mut y)?;
-    line(&legend, "7 % force JND", red.stroke_width(2), &mut y)?;
+    line(legend, "1 ms haptic budget", grey.stroke_width(2), &mut y)?;
+    line(legend, "7 % force JND", red.stroke_width(2), &mut y)?;
     line(
-        &legend,
+        legend,
         "Pareto front (labelled)",
         BLACK.stroke_width(1),
         &mut y,
@@ -311,9 +331,8 @@ where
         y += 22;
     }
     y += 10;
-    for base in &bases {
-        line(&legend, base, color_of(base).stroke_width(3), &mut y)?;
+    for base in bases {
+        line(legend, base, color_of(base).stroke_width(3), &mut y)?;
     }
-    root.present()?;
     Ok(())
 }

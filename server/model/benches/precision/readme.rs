@@ -172,7 +172,23 @@ where
                 + Circle::new((0, 0), 8, BLACK.stroke_width(1)),
         ))?;
     }
-    // Legend panel (pixel coordinates): the lines, the shipped scenes, the front's points.
+    draw_legend(&legend, front, shipped, (&COLORS, [grey, light, red]))?;
+    root.present()?;
+    Ok(())
+}
+
+/// The legend panel of [`draw`] (pixel coordinates): the lines, the shipped scenes, the
+/// front's points; `colors` of the shipped scenes, then the budget, other-row and JND colours.
+fn draw_legend<DB: plotters::prelude::DrawingBackend>(
+    legend: &plotters::drawing::DrawingArea<DB, plotters::coord::Shift>,
+    front: &[Point],
+    shipped: &[(String, Point)],
+    (colors, [grey, light, red]): (&[plotters::style::RGBColor], [plotters::style::RGBColor; 3]),
+) -> Result<(), Box<dyn std::error::Error>>
+where
+    DB::ErrorType: 'static,
+{
+    use plotters::prelude::*;
     let font = ("sans-serif", 13).into_font();
     let small = ("sans-serif", 11).into_font();
     let mut y = 30;
@@ -194,7 +210,7 @@ where
     legend.draw(&Text::new("shipped scenes:", (8, y - 7), font.clone()))?;
     y += 20;
     for (k, (text, _)) in shipped.iter().enumerate() {
-        let c = COLORS[k % COLORS.len()];
+        let c = colors[k % colors.len()];
         legend.draw(&Circle::new((21, y), 7, c.filled()))?;
         legend.draw(&Text::new(text.clone(), (42, y - 7), small.clone()))?;
         y += 20;
@@ -215,6 +231,5 @@ where
         ))?;
         y += 16;
     }
-    root.present()?;
     Ok(())
 }
