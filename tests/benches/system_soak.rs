@@ -795,43 +795,17 @@ async fn soak() -> Result<bool> {
         if phase == HEAVY_START_WINDOW || phase == HEAVY_STOP_WINDOW {
             tokio::time::sleep_until((start + Duration::from_secs(ACTION_OFFSET_S)).into()).await;
             switched = true;
-            if phase == HEAVY_START_WINDOW && heavy.is_none() {
-                let t = Instant::now();
-                match heavy_ctl
-                    .start_session(StartSessionRequest {
-                        scene: String::new(),
-                        scene_toml: heavy_toml.clone(),
-                    })
-                    .await
-                {
-                    Ok(r) => heavy = Some((r.into_inner().session_id, t)),
-                    Err(e) => cycles.push(json!({
-                        "minute": k / WINDOWS_PER_MINUTE,
-                        "error": format!("StartSession: {e}"),
-                    })),
-                }
-            } else if let Some((hid, t)) = heavy.take() {
-                let s = stats(&mut heavy_ctl, &hid).await.ok();
-                let stopped = heavy_ctl
-                    .stop_session(StopSessionRequest {
-                        session_id: hid.clone(),
-                    })
-                    .await;
-                cycles.push(json!({
-                    "minute": k / WINDOWS_PER_MINUTE,
-                    "session": hid,
-                    "ran_s": t.elapsed().as_secs_f64(),
-                    "nodes": s.as_ref().map(|s| s.nodes),
-                    "tetrahedra": s.as_ref().map(|s| s.tetrahedra),
-                    "substeps": s.as_ref().map(|s| s.substeps),
-                    "step_p50_us": s.as_ref().map(|s| s.step_p50_us),
-                    "step_p99_us": s.as_ref().map(|s| s.step_p99_us),
-                    "steps": s.as_ref().map(|s| s.steps),
-                    "overruns": s.as_ref().map(|s| s.overruns),
-                    "demoted": s.as_ref().map(|s| s.demoted),
-                    "stop_error": stopped.err().map(|e| e.to_string()),
-                }));
-            }
+            let minute = k / WINDOWS_PER_MINUTE;
+            let starting = phase == HEAVY_START_WINDOW;
+            switch_heavy(
+                starting,
+                minute,
+                &mut heavy,
+                &mut heavy_ctl,
+                &heavy_toml,
+                &mut cycles,
+            )
+            .await;
         }
         tokio::time::sleep_until((start + Duration::from_secs(WINDOW_S)).into()).await;
         let now = probe.sample().await?;
@@ -892,6 +866,55 @@ async fn soak() -> Result<bool> {
         first_rss_mb,
         last: &last,
     })
+}
+
+/// At a heavy window's action time: starts the heavy session (`starting`, when none runs) or
+/// stops the running one, recording the cycle (or the start's error) in `cycles`.
+async fn switch_heavy(
+    starting: bool,
+    minute: u64,
+    heavy: &mut Option<(String, Instant)>,
+    heavy_ctl: &mut SessionControlClient<Channel>,
+    heavy_toml: &str,
+    cycles: &mut Vec<Value>,
+) {
+    if starting && heavy.is_none() {
+        let t = Instant::now();
+        match heavy_ctl
+            .start_session(StartSessionRequest {
+                scene: String::new(),
+                scene_toml: heavy_toml.to_string(),
+            })
+            .await
+        {
+            Ok(r) => *heavy = Some((r.into_inner().session_id, t)),
+            Err(e) => cycles.push(json!({
+                "minute": minute,
+                "error": format!("StartSession: {e}"),
+            })),
+        }
+    } else if let Some((hid, t)) = heavy.take() {
+        let s = stats(heavy_ctl, &hid).await.ok();
+        let stopped = heavy_ctl
+            .stop_session(StopSessionRequest {
+                session_id: hid.clone(),
+            })
+            .await;
+        cycles.push(json!({
+            "minute": minute,
+            "session": hid,
+            "ran_s": t.elapsed().as_secs_f64(),
+            "nodes": s.as_ref().map(|s| s.nodes),
+            "tetrahedra": s.as_ref().map(|s| s.tetrahedra),
+            "substeps": s.as_ref().map(|s| s.substeps),
+            "step_p50_us": s.as_ref().map(|s| s.step_p50_us),
+            "step_p99_us": s.as_ref().map(|s| s.step_p99_us),
+            "steps": s.as_ref().map(|s| s.steps),
+            "overruns": s.as_ref().map(|s| s.overruns),
+            "demoted": s.as_ref().map(|s| s.demoted),
+            "stop_error": stopped.err().map(|e| e.to_string()),
+        }));
+    }
 }
 
 /// The quiet windows of `this` and those the heavy session touched.
