@@ -730,20 +730,41 @@ async fn main() -> ExitCode {
     }
 }
 
-/// The soak; `Ok(false)` when a verdict failed.
-async fn soak() -> Result<bool> {
-    let cfg = SoakConfig::parse(std::env::args().skip(1))?;
-    let heavy_toml = heavy_scene_toml(cfg.heavy_tets)?;
+/// The daemon with its metrics listener (SCHED_FIFO on CPU 1 when `realtime`), and the
+/// metrics address it printed.
+async fn start_daemon(realtime: bool) -> Result<(Daemon, Option<String>)> {
     let mut daemon_args = vec!["--metrics-listen", "127.0.0.1:0"];
-    if cfg.realtime {
+    if realtime {
         daemon_args.extend(["--realtime", "--cpu", "1"]);
     }
     let daemon = Daemon::spawn(&daemon_args)?;
-    let url = daemon.url();
     let metrics = metrics_addr(&daemon).await;
     if metrics.is_none() {
         eprintln!("system_soak: the daemon printed no metrics address: no per-window step times");
     }
+    Ok((daemon, metrics))
+}
+
+/// `n` compact gRPC watchers of session `id` at [`WATCH_RATE_HZ`], until `stop`.
+async fn start_watchers(
+    url: &str,
+    id: &str,
+    n: usize,
+    stop: &Arc<AtomicBool>,
+) -> Result<Vec<Arc<Received>>> {
+    let mut watchers = Vec::with_capacity(n);
+    for _ in 0..n {
+        watchers.push(grpc_watcher(url, id, WATCH_RATE_HZ, true, stop.clone()).await?);
+    }
+    Ok(watchers)
+}
+
+/// The soak; `Ok(false)` when a verdict failed.
+async fn soak() -> Result<bool> {
+    let cfg = SoakConfig::parse(std::env::args().skip(1))?;
+    let heavy_toml = heavy_scene_toml(cfg.heavy_tets)?;
+    let (daemon, metrics) = start_daemon(cfg.realtime).await?;
+    let url = daemon.url();
     let id = start_session(&url, &cfg.scene).await?;
     let ctl = session_control(&url).await?;
     eprintln!(
@@ -752,10 +773,7 @@ async fn soak() -> Result<bool> {
     );
 
     let stop = Arc::new(AtomicBool::new(false));
-    let mut watchers = Vec::with_capacity(cfg.watchers);
-    for _ in 0..cfg.watchers {
-        watchers.push(grpc_watcher(&url, &id, WATCH_RATE_HZ, true, stop.clone()).await?);
-    }
+    let watchers = start_watchers(&url, &id, cfg.watchers, &stop).await?;
     let soak_s = cfg.minutes * 60;
     let t0 = Instant::now() + Duration::from_secs(SETTLE_S);
     // The bridge outlasts the last sample by 2 s.
@@ -785,31 +803,27 @@ async fn soak() -> Result<bool> {
     let first_rss_mb = prev.rss_bytes as f64 / 1e6;
     let mut windows: Vec<Window> = Vec::new();
     let mut cycles: Vec<Value> = Vec::new();
-    let mut heavy: Option<(String, Instant)> = None;
-    let mut heavy_ctl = ctl.clone();
+    let mut heavy = Heavy {
+        ctl: ctl.clone(),
+        toml: heavy_toml,
+        running: None,
+    };
     for k in 0..cfg.minutes * WINDOWS_PER_MINUTE {
         let start = t0 + Duration::from_secs(k * WINDOW_S);
-        let present_at_start = heavy.is_some();
+        let present_at_start = heavy.running.is_some();
         let mut switched = false;
         let phase = k % WINDOWS_PER_MINUTE;
         if phase == HEAVY_START_WINDOW || phase == HEAVY_STOP_WINDOW {
             tokio::time::sleep_until((start + Duration::from_secs(ACTION_OFFSET_S)).into()).await;
             switched = true;
             let minute = k / WINDOWS_PER_MINUTE;
-            let starting = phase == HEAVY_START_WINDOW;
-            switch_heavy(
-                starting,
-                minute,
-                &mut heavy,
-                &mut heavy_ctl,
-                &heavy_toml,
-                &mut cycles,
-            )
-            .await;
+            heavy
+                .switch(phase == HEAVY_START_WINDOW, minute, &mut cycles)
+                .await;
         }
         tokio::time::sleep_until((start + Duration::from_secs(WINDOW_S)).into()).await;
         let now = probe.sample().await?;
-        let presence = match (present_at_start, heavy.is_some(), switched) {
+        let presence = match (present_at_start, heavy.running.is_some(), switched) {
             (false, false, false) => Presence::Quiet,
             (true, true, false) => Presence::Heavy,
             _ => Presence::Switch,
@@ -817,40 +831,16 @@ async fn soak() -> Result<bool> {
         windows.push(Window::new(k, presence, &prev, &now, cfg.watchers));
         prev = now;
         if phase == WINDOWS_PER_MINUTE - 1 {
-            progress(
-                &windows,
-                k / WINDOWS_PER_MINUTE,
-                cfg.minutes,
-                &cycles,
-                &forces_ok,
-            );
+            let minute = k / WINDOWS_PER_MINUTE;
+            progress(&windows, minute, cfg.minutes, &cycles, &forces_ok);
         }
     }
 
     // Wind down: forces, bridge, watchers, a heavy session left over, the genuine session.
     stop.store(true, Ordering::Relaxed);
-    let _ = tokio::time::timeout(Duration::from_secs(10), forces).await;
-    let bridge_runs = match tokio::time::timeout(Duration::from_secs(60), bridge).await {
-        Ok(Ok(runs)) => runs,
-        _ => vec![json!({"error": "the bridge did not end within 60 s of the soak (killed)"})],
-    };
-    if let Some((hid, _)) = heavy.take() {
-        let _ = heavy_ctl
-            .stop_session(StopSessionRequest { session_id: hid })
-            .await;
-    }
-    let last = stats(&mut probe.ctl.clone(), &id).await?;
-    let watchers_failed = probe
-        .watchers
-        .iter()
-        .filter(|w| w.failed.load(Ordering::Relaxed))
-        .count();
-    let _ = probe
-        .ctl
-        .stop_session(StopSessionRequest {
-            session_id: id.clone(),
-        })
-        .await;
+    let heavy_left = heavy.running.take().map(|(hid, _)| hid);
+    let (bridge_runs, last, watchers_failed) =
+        wind_down(forces, bridge, heavy_left, &mut heavy.ctl, &probe).await?;
     drop(daemon);
 
     report(Report {
@@ -868,52 +858,94 @@ async fn soak() -> Result<bool> {
     })
 }
 
-/// At a heavy window's action time: starts the heavy session (`starting`, when none runs) or
-/// stops the running one, recording the cycle (or the start's error) in `cycles`.
-async fn switch_heavy(
-    starting: bool,
-    minute: u64,
-    heavy: &mut Option<(String, Instant)>,
+/// After the soak (the stop flag set): waits for the force task and the bridge, stops a heavy
+/// session left over and the genuine one; returns the bridge's runs, the genuine session's
+/// last statistics and how many watchers failed.
+async fn wind_down(
+    forces: tokio::task::JoinHandle<()>,
+    bridge: tokio::task::JoinHandle<Vec<Value>>,
+    heavy_left: Option<String>,
     heavy_ctl: &mut SessionControlClient<Channel>,
-    heavy_toml: &str,
-    cycles: &mut Vec<Value>,
-) {
-    if starting && heavy.is_none() {
-        let t = Instant::now();
-        match heavy_ctl
-            .start_session(StartSessionRequest {
-                scene: String::new(),
-                scene_toml: heavy_toml.to_string(),
-            })
-            .await
-        {
-            Ok(r) => *heavy = Some((r.into_inner().session_id, t)),
-            Err(e) => cycles.push(json!({
-                "minute": minute,
-                "error": format!("StartSession: {e}"),
-            })),
-        }
-    } else if let Some((hid, t)) = heavy.take() {
-        let s = stats(heavy_ctl, &hid).await.ok();
-        let stopped = heavy_ctl
-            .stop_session(StopSessionRequest {
-                session_id: hid.clone(),
-            })
+    probe: &Probe,
+) -> Result<(Vec<Value>, SessionStats, usize)> {
+    let id = &probe.id;
+    let _ = tokio::time::timeout(Duration::from_secs(10), forces).await;
+    let bridge_runs = match tokio::time::timeout(Duration::from_secs(60), bridge).await {
+        Ok(Ok(runs)) => runs,
+        _ => vec![json!({"error": "the bridge did not end within 60 s of the soak (killed)"})],
+    };
+    if let Some(hid) = heavy_left {
+        let _ = heavy_ctl
+            .stop_session(StopSessionRequest { session_id: hid })
             .await;
-        cycles.push(json!({
-            "minute": minute,
-            "session": hid,
-            "ran_s": t.elapsed().as_secs_f64(),
-            "nodes": s.as_ref().map(|s| s.nodes),
-            "tetrahedra": s.as_ref().map(|s| s.tetrahedra),
-            "substeps": s.as_ref().map(|s| s.substeps),
-            "step_p50_us": s.as_ref().map(|s| s.step_p50_us),
-            "step_p99_us": s.as_ref().map(|s| s.step_p99_us),
-            "steps": s.as_ref().map(|s| s.steps),
-            "overruns": s.as_ref().map(|s| s.overruns),
-            "demoted": s.as_ref().map(|s| s.demoted),
-            "stop_error": stopped.err().map(|e| e.to_string()),
-        }));
+    }
+    let last = stats(&mut probe.ctl.clone(), id).await?;
+    let watchers_failed = probe
+        .watchers
+        .iter()
+        .filter(|w| w.failed.load(Ordering::Relaxed))
+        .count();
+    let _ = probe
+        .ctl
+        .clone()
+        .stop_session(StopSessionRequest {
+            session_id: id.to_string(),
+        })
+        .await;
+    Ok((bridge_runs, last, watchers_failed))
+}
+
+/// The heavy session that comes and goes during the soak.
+struct Heavy {
+    ctl: SessionControlClient<Channel>,
+    /// Its scene.
+    toml: String,
+    /// Its id and start time while it runs.
+    running: Option<(String, Instant)>,
+}
+
+impl Heavy {
+    /// At a heavy window's action time: starts the heavy session (`starting`, when none runs) or
+    /// stops the running one, recording the cycle (or the start's error) in `cycles`.
+    async fn switch(&mut self, starting: bool, minute: u64, cycles: &mut Vec<Value>) {
+        let (heavy, heavy_ctl) = (&mut self.running, &mut self.ctl);
+        if starting && heavy.is_none() {
+            let t = Instant::now();
+            match heavy_ctl
+                .start_session(StartSessionRequest {
+                    scene: String::new(),
+                    scene_toml: self.toml.clone(),
+                })
+                .await
+            {
+                Ok(r) => *heavy = Some((r.into_inner().session_id, t)),
+                Err(e) => cycles.push(json!({
+                    "minute": minute,
+                    "error": format!("StartSession: {e}"),
+                })),
+            }
+        } else if let Some((hid, t)) = heavy.take() {
+            let s = stats(heavy_ctl, &hid).await.ok();
+            let stopped = heavy_ctl
+                .stop_session(StopSessionRequest {
+                    session_id: hid.clone(),
+                })
+                .await;
+            cycles.push(json!({
+                "minute": minute,
+                "session": hid,
+                "ran_s": t.elapsed().as_secs_f64(),
+                "nodes": s.as_ref().map(|s| s.nodes),
+                "tetrahedra": s.as_ref().map(|s| s.tetrahedra),
+                "substeps": s.as_ref().map(|s| s.substeps),
+                "step_p50_us": s.as_ref().map(|s| s.step_p50_us),
+                "step_p99_us": s.as_ref().map(|s| s.step_p99_us),
+                "steps": s.as_ref().map(|s| s.steps),
+                "overruns": s.as_ref().map(|s| s.overruns),
+                "demoted": s.as_ref().map(|s| s.demoted),
+                "stop_error": stopped.err().map(|e| e.to_string()),
+            }));
+        }
     }
 }
 
