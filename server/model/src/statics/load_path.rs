@@ -100,17 +100,17 @@ pub fn solve_scene_loads(
     progress: &mut dyn FnMut(&str, usize),
 ) -> Result<(Vec<DVec3>, LoadPathReport), ModelError> {
     let stages = penalty_continuation(&scene.material);
-    let model_with = |kappa: f64| {
-        let mut s = scene.clone();
-        s.material = with_bulk_modulus(&scene.material, kappa);
-        s.fem_model()
-    };
     let mut fem = if stages.len() > 1 {
-        model_with(stages[0])?
+        scene_model(scene, stages[0])?
     } else {
         scene.fem_model()?
     };
-    let dead = scene.dead_forces();
+    let mut path = LoadPath {
+        scene,
+        dead: scene.dead_forces(),
+        params,
+        progress,
+    };
     let steps = load_steps.max(1);
     let mut x = scene.mesh.nodes.clone();
     let mut report = LoadPathReport {
@@ -119,17 +119,6 @@ pub fn solve_scene_loads(
         worst_volume_change: 0.0,
         residual_n: 0.0,
     };
-    // `hint` is added to the message of a failure only (a converged increment prints its
-    // label alone).
-    let mut solve = |fem: &FemModel, scale: f64, label: String, hint: &str, x: &mut [DVec3]| {
-        let f: Vec<DVec3> = dead.iter().map(|v| *v * scale).collect();
-        let follower = FollowerPressure::new(&scene.loads, scale);
-        let term = (!follower.is_empty()).then_some(&follower as &dyn StaticTerm);
-        let r = solve_static_with(fem, &f, term, x, params)
-            .map_err(|e| ModelError::NoConvergence(format!("{label}{hint}: {e}")))?;
-        progress(&label, r.iterations);
-        Ok::<usize, ModelError>(r.iterations)
-    };
     for k in 1..=steps {
         let label = if stages.len() > 1 {
             format!("load increment {k}/{steps} (penalty {:.1e} Pa)", stages[0])
@@ -137,15 +126,70 @@ pub fn solve_scene_loads(
             format!("load increment {k}/{steps}")
         };
         let hint = " (more load steps may help)";
-        report.newton_iterations += solve(&fem, k as f64 / steps as f64, label, hint, &mut x)?;
+        report.newton_iterations +=
+            path.solve(&fem, k as f64 / steps as f64, label, hint, &mut x)?;
     }
-    let mean_dilatation = scene.material.mean_dilatation();
-    let mut ratios = Vec::new();
-    let worst = |fem: &FemModel, x: &[DVec3], ratios: &mut Vec<f64>| {
-        fem.cell_volume_ratios(x, ratios);
-        ratios.iter().map(|j| (j - 1.0).abs()).fold(0.0, f64::max)
-    };
-    let true_residual = |fem: &FemModel, x: &[DVec3]| {
+    // The multipliers need an element that can keep its volume: on linear tetrahedra one
+    // constraint per element locks (and the passes diverge), so they take the penalty stages.
+    if scene.material.mean_dilatation() && scene.mesh.is_quadratic() && stages.len() > 1 {
+        path.volume_passes(&mut fem, &stages, &mut x, &mut report)?;
+    } else {
+        path.penalty_stages(&mut fem, &stages, &mut x, &mut report)?;
+    }
+    report.residual_n = path.true_residual(&fem, &x);
+    Ok((x, report))
+}
+
+/// The model of `scene` with the volumetric penalty `kappa` (Pa, [`with_bulk_modulus`]).
+fn scene_model(scene: &crate::scene::Scene, kappa: f64) -> Result<FemModel, ModelError> {
+    let mut s = scene.clone();
+    s.material = with_bulk_modulus(&scene.material, kappa);
+    s.fem_model()
+}
+
+/// Largest `|J_c - 1|` over the cells of `fem` at `x` (`ratios` receives every `J_c`).
+fn worst_volume_change(fem: &FemModel, x: &[DVec3], ratios: &mut Vec<f64>) -> f64 {
+    fem.cell_volume_ratios(x, ratios);
+    ratios.iter().map(|j| (j - 1.0).abs()).fold(0.0, f64::max)
+}
+
+/// The solves of [`solve_scene_loads`]: the scene, its dead loads at full scale, Newton's
+/// parameters and the progress callback.
+struct LoadPath<'a> {
+    scene: &'a crate::scene::Scene,
+    /// Dead nodal forces at full load, N.
+    dead: Vec<DVec3>,
+    params: &'a StaticParams,
+    progress: &'a mut dyn FnMut(&str, usize),
+}
+
+impl LoadPath<'_> {
+    /// Static equilibrium of `fem` from `x` under the scene's loads scaled by `scale`;
+    /// returns Newton's iterations. `hint` is added to the message of a failure only (a
+    /// converged increment prints its label alone).
+    ///
+    /// # Errors
+    /// [`ModelError::NoConvergence`] naming `label`.
+    fn solve(
+        &mut self,
+        fem: &FemModel,
+        scale: f64,
+        label: String,
+        hint: &str,
+        x: &mut [DVec3],
+    ) -> Result<usize, ModelError> {
+        let f: Vec<DVec3> = self.dead.iter().map(|v| *v * scale).collect();
+        let follower = FollowerPressure::new(&self.scene.loads, scale);
+        let term = (!follower.is_empty()).then_some(&follower as &dyn StaticTerm);
+        let r = solve_static_with(fem, &f, term, x, self.params)
+            .map_err(|e| ModelError::NoConvergence(format!("{label}{hint}: {e}")))?;
+        (self.progress)(&label, r.iterations);
+        Ok(r.iterations)
+    }
+
+    /// The free residual at `x` with every load evaluated at `x`, N.
+    fn true_residual(&self, fem: &FemModel, x: &[DVec3]) -> f64 {
+        let scene = self.scene;
         free_residual_norm(
             fem,
             &crate::loads::static_external_forces(
@@ -156,18 +200,28 @@ pub fn solve_scene_loads(
             ),
             x,
         )
-    };
-    // The multipliers need an element that can keep its volume: on linear tetrahedra one
-    // constraint per element locks (and the passes diverge), so they take the penalty stages.
-    if mean_dilatation && scene.mesh.is_quadratic() && stages.len() > 1 {
-        // Method of multipliers: lambda_c += kappa (J_c - 1) after each solve; the penalty
-        // grows fourfold (up to the scene's) after a pass Newton finished in a few iterations,
-        // which keeps it where Newton converges while the constraint error shrinks.
+    }
+
+    /// Method of multipliers at full load: `lambda_c += kappa (J_c - 1)` after each solve;
+    /// the penalty grows fourfold (up to the scene's, the last of `stages`) after a pass
+    /// Newton finished in a few iterations, which keeps it where Newton converges while the
+    /// constraint error shrinks ([`solve_scene_loads`]).
+    ///
+    /// # Errors
+    /// As [`Self::solve`]; [`ModelError::NoConvergence`] after [`MAX_VOLUME_PASSES`] passes.
+    fn volume_passes(
+        &mut self,
+        fem: &mut FemModel,
+        stages: &[f64],
+        x: &mut [DVec3],
+        report: &mut LoadPathReport,
+    ) -> Result<(), ModelError> {
         let kappa_max = stages[stages.len() - 1];
         let mut kappa = stages[0];
         let mut lambda = vec![0.0; fem.cell_count()];
+        let mut ratios = Vec::new();
         for pass in 1.. {
-            let w = worst(&fem, &x, &mut ratios);
+            let w = worst_volume_change(fem, x, &mut ratios);
             report.worst_volume_change = w;
             if w <= VOLUME_TOLERANCE {
                 break;
@@ -186,30 +240,43 @@ pub fn solve_scene_loads(
             let label = format!(
                 "volume pass {pass} (worst element volume change {w:.2e}, penalty {kappa:.1e} Pa)"
             );
-            let its = solve(&fem, 1.0, label, "", &mut x)?;
+            let its = self.solve(fem, 1.0, label, "", x)?;
             report.newton_iterations += its;
             report.constraint_passes += 1;
             if its <= 3 && kappa < kappa_max {
                 kappa = (kappa * 4.0).min(kappa_max);
-                fem = model_with(kappa)?;
+                *fem = scene_model(self.scene, kappa)?;
                 fem.set_cell_pressures(lambda.clone());
             }
         }
-        report.residual_n = true_residual(&fem, &x);
-    } else {
+        Ok(())
+    }
+
+    /// The penalty stages after the first (tenfold each, to the scene's bulk modulus) at full
+    /// load; the worst volume change at the end for a mean-dilatation material.
+    ///
+    /// # Errors
+    /// As [`Self::solve`].
+    fn penalty_stages(
+        &mut self,
+        fem: &mut FemModel,
+        stages: &[f64],
+        x: &mut [DVec3],
+        report: &mut LoadPathReport,
+    ) -> Result<(), ModelError> {
         for (j, &kappa) in stages.iter().enumerate().skip(1) {
-            fem = model_with(kappa)?;
+            *fem = scene_model(self.scene, kappa)?;
             let label = format!(
                 "penalty stage {j}/{} (bulk modulus {kappa:.1e} Pa)",
                 stages.len() - 1
             );
-            report.newton_iterations += solve(&fem, 1.0, label, "", &mut x)?;
+            report.newton_iterations += self.solve(fem, 1.0, label, "", x)?;
             report.constraint_passes += 1;
         }
-        if mean_dilatation {
-            report.worst_volume_change = worst(&fem, &x, &mut ratios);
+        if self.scene.material.mean_dilatation() {
+            let mut ratios = Vec::new();
+            report.worst_volume_change = worst_volume_change(fem, x, &mut ratios);
         }
-        report.residual_n = true_residual(&fem, &x);
+        Ok(())
     }
-    Ok((x, report))
 }

@@ -133,6 +133,34 @@ impl Tangent {
         self.term.clear();
     }
 
+    /// Clears the tangent and pushes the cells' tangent blocks at `x` and the term's
+    /// stiffness blocks (`blocks` a work array).
+    fn fill_at(
+        &mut self,
+        fem: &FemModel,
+        term: Option<&dyn StaticTerm>,
+        x: &[DVec3],
+        dof: &[usize],
+        blocks: &mut Vec<DMat3>,
+    ) {
+        self.clear();
+        for c in 0..fem.cell_count() {
+            cell_tangent_blocks(fem, c, x, blocks);
+            let t = fem.cell_nodes(c);
+            let npe = t.len();
+            for a in 0..npe {
+                for b in 0..npe {
+                    self.push_block(dof, t[a], t[b], &blocks[a * npe + b], false);
+                }
+            }
+        }
+        if let Some(term) = term {
+            term.for_each_stiffness_block(x, &mut |i, j, k| {
+                self.push_block(dof, i, j, &k, true);
+            });
+        }
+    }
+
     /// Appends the free entries of the 3x3 block `k` coupling nodes `i` (rows) and `j`
     /// (columns), in the equation numbering `dof` of [`free_dofs`]: a cell's block, or with
     /// `from_term` a [`StaticTerm`]'s.
@@ -509,36 +537,17 @@ pub fn solve_static_with(
     } else {
         f_ext
     };
-    let load_norm = f_ext.iter().map(|v| v.length_squared()).sum::<f64>().sqrt();
-    let mut term_f = vec![DVec3::ZERO; if term.is_some() { n } else { 0 }];
-    // The extra term's share of the load scale: the largest norm of its forces seen so far, so
-    // an iterate where the term lets go (a contact released) does not shrink the tolerance to
-    // `abs_tol_n`.
-    let mut term_scale = 0.0f64;
-    // Residual r = f_ext + f_int + f_term at x, its free norm and the tolerance there.
-    let mut residual = |x: &[DVec3], r: &mut Vec<DVec3>| -> (f64, f64) {
-        r.clear();
-        r.extend_from_slice(f_ext);
-        fem.add_internal_forces(x, None, r);
-        let mut scale = load_norm;
-        if let Some(term) = term {
-            term_f.iter_mut().for_each(|v| *v = DVec3::ZERO);
-            term.add_forces(x, &mut term_f);
-            let mut s2 = 0.0;
-            for (ri, fi) in r.iter_mut().zip(&term_f) {
-                *ri += *fi;
-                s2 += fi.length_squared();
-            }
-            term_scale = term_scale.max(s2.sqrt());
-            scale += term_scale;
-        }
-        (
-            free_norm(fem.constraints(), r),
-            (params.rel_tol * scale).max(params.abs_tol_n),
-        )
+    let mut residual = Residual {
+        fem,
+        f_ext,
+        term,
+        params,
+        load_norm: f_ext.iter().map(|v| v.length_squared()).sum::<f64>().sqrt(),
+        term_f: vec![DVec3::ZERO; if term.is_some() { n } else { 0 }],
+        term_scale: 0.0,
     };
     let mut r = Vec::with_capacity(n);
-    let (mut rnorm, mut tol) = residual(x, &mut r);
+    let (mut rnorm, mut tol) = residual.eval(x, &mut r);
     let mut tangent = Tangent {
         group: free_dof_nodes(&dof, nfree),
         ..Tangent::default()
@@ -556,22 +565,7 @@ pub fn solve_static_with(
                 residual_n: rnorm,
             });
         }
-        tangent.clear();
-        for c in 0..fem.cell_count() {
-            cell_tangent_blocks(fem, c, x, &mut blocks);
-            let t = fem.cell_nodes(c);
-            let npe = t.len();
-            for a in 0..npe {
-                for b in 0..npe {
-                    tangent.push_block(&dof, t[a], t[b], &blocks[a * npe + b], false);
-                }
-            }
-        }
-        if let Some(term) = term {
-            term.for_each_stiffness_block(x, &mut |i, j, k| {
-                tangent.push_block(&dof, i, j, &k, true);
-            });
-        }
+        tangent.fill_at(fem, term, x, &dof, &mut blocks);
         let mut rhs = Mat::<f64>::zeros(nfree, 1);
         for i in 0..n {
             for c in 0..3 {
@@ -583,31 +577,12 @@ pub fn solve_static_with(
         }
         // K dx = r (r = f_int + f_ext, K = -d f_int/dx).
         tangent.solve(nfree, rhs.as_mut())?;
-        // Backtracking line search on the total potential or the residual norm (module docs).
-        let potential = |y: &[DVec3]| {
-            fem.elastic_energy(y) - y.iter().zip(f_ext).map(|(a, b)| a.dot(*b)).sum::<f64>()
-                + term.map_or(0.0, |t| t.energy(y))
+        let search = LineSearch {
+            dof: &dof,
+            dx: &rhs,
+            rnorm,
         };
-        let pi0 = potential(x);
-        let mut step = 1.0;
-        loop {
-            trial.copy_from_slice(x);
-            for i in 0..n {
-                for c in 0..3 {
-                    let d = dof[3 * i + c];
-                    if d != usize::MAX {
-                        trial[i][c] += step * rhs[(d, 0)];
-                    }
-                }
-            }
-            let (tn, ttol) = residual(&trial, &mut r);
-            if tn < rnorm || (tn.is_finite() && potential(&trial) < pi0) || step < 1e-3 {
-                x.copy_from_slice(&trial);
-                (rnorm, tol) = (tn, ttol);
-                break;
-            }
-            step *= 0.5;
-        }
+        (rnorm, tol) = search.run(&mut residual, x, &mut trial, &mut r);
         if !rnorm.is_finite() {
             return Err(ModelError::NoConvergence(
                 "the residual became non-finite".into(),
@@ -624,6 +599,105 @@ pub fn solve_static_with(
             "Newton stopped after {} iterations with residual {rnorm:.3e} N (tolerance {tol:.3e} N)",
             params.max_iterations
         )))
+    }
+}
+
+/// The residual of [`solve_static_with`] and its tolerance.
+struct Residual<'a> {
+    fem: &'a FemModel,
+    /// Dead external nodal forces, N (one per node).
+    f_ext: &'a [DVec3],
+    term: Option<&'a dyn StaticTerm>,
+    params: &'a StaticParams,
+    /// `|f_ext|`, N.
+    load_norm: f64,
+    /// The term's forces (one per node with a term, else empty), N.
+    term_f: Vec<DVec3>,
+    /// The extra term's share of the load scale: the largest norm of its forces seen so far,
+    /// so an iterate where the term lets go (a contact released) does not shrink the
+    /// tolerance to `abs_tol_n`.
+    term_scale: f64,
+}
+
+impl Residual<'_> {
+    /// Residual `r = f_ext + f_int + f_term` at `x`; returns its free norm and the tolerance
+    /// there (N).
+    fn eval(&mut self, x: &[DVec3], r: &mut Vec<DVec3>) -> (f64, f64) {
+        r.clear();
+        r.extend_from_slice(self.f_ext);
+        self.fem.add_internal_forces(x, None, r);
+        let mut scale = self.load_norm;
+        if let Some(term) = self.term {
+            self.term_f.iter_mut().for_each(|v| *v = DVec3::ZERO);
+            term.add_forces(x, &mut self.term_f);
+            let mut s2 = 0.0;
+            for (ri, fi) in r.iter_mut().zip(&self.term_f) {
+                *ri += *fi;
+                s2 += fi.length_squared();
+            }
+            self.term_scale = self.term_scale.max(s2.sqrt());
+            scale += self.term_scale;
+        }
+        (
+            free_norm(self.fem.constraints(), r),
+            (self.params.rel_tol * scale).max(self.params.abs_tol_n),
+        )
+    }
+
+    /// The total potential at `y`, J: elastic energy, minus the dead loads' work, plus the
+    /// term's energy.
+    fn potential(&self, y: &[DVec3]) -> f64 {
+        self.fem.elastic_energy(y)
+            - y.iter()
+                .zip(self.f_ext)
+                .map(|(a, b)| a.dot(*b))
+                .sum::<f64>()
+            + self.term.map_or(0.0, |t| t.energy(y))
+    }
+}
+
+/// One backtracking line search of [`solve_static_with`] along the Newton step `dx`.
+struct LineSearch<'a> {
+    /// Free equation of each global component, or `usize::MAX`.
+    dof: &'a [usize],
+    /// The Newton step on the free equations (one column), m.
+    dx: &'a Mat<f64>,
+    /// The residual's free norm at `x`, N.
+    rnorm: f64,
+}
+
+impl LineSearch<'_> {
+    /// Halves the step from 1 until the residual norm or the total potential decreases (or
+    /// the step is below 1e-3; module documentation), then moves `x` there (`trial` and `r`
+    /// are work arrays; `r` holds the residual there). Returns the residual's free norm and
+    /// the tolerance at the new `x`.
+    fn run(
+        &self,
+        residual: &mut Residual<'_>,
+        x: &mut [DVec3],
+        trial: &mut [DVec3],
+        r: &mut Vec<DVec3>,
+    ) -> (f64, f64) {
+        let pi0 = residual.potential(x);
+        let mut step = 1.0;
+        loop {
+            trial.copy_from_slice(x);
+            for (i, t) in trial.iter_mut().enumerate().take(self.dof.len() / 3) {
+                for c in 0..3 {
+                    let d = self.dof[3 * i + c];
+                    if d != usize::MAX {
+                        t[c] += step * self.dx[(d, 0)];
+                    }
+                }
+            }
+            let (tn, ttol) = residual.eval(trial, r);
+            if tn < self.rnorm || (tn.is_finite() && residual.potential(trial) < pi0) || step < 1e-3
+            {
+                x.copy_from_slice(trial);
+                return (tn, ttol);
+            }
+            step *= 0.5;
+        }
     }
 }
 
