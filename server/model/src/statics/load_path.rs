@@ -100,7 +100,7 @@ pub fn solve_scene_loads(
     progress: &mut dyn FnMut(&str, usize),
 ) -> Result<(Vec<DVec3>, LoadPathReport), ModelError> {
     let stages = penalty_continuation(&scene.material);
-    let mut fem = if stages.len() > 1 {
+    let fem = if stages.len() > 1 {
         scene_model(scene, stages[0])?
     } else {
         scene.fem_model()?
@@ -110,15 +110,16 @@ pub fn solve_scene_loads(
         dead: scene.dead_forces(),
         params,
         progress,
+        fem,
+        x: scene.mesh.nodes.clone(),
+        report: LoadPathReport {
+            newton_iterations: 0,
+            constraint_passes: 0,
+            worst_volume_change: 0.0,
+            residual_n: 0.0,
+        },
     };
     let steps = load_steps.max(1);
-    let mut x = scene.mesh.nodes.clone();
-    let mut report = LoadPathReport {
-        newton_iterations: 0,
-        constraint_passes: 0,
-        worst_volume_change: 0.0,
-        residual_n: 0.0,
-    };
     for k in 1..=steps {
         let label = if stages.len() > 1 {
             format!("load increment {k}/{steps} (penalty {:.1e} Pa)", stages[0])
@@ -126,18 +127,17 @@ pub fn solve_scene_loads(
             format!("load increment {k}/{steps}")
         };
         let hint = " (more load steps may help)";
-        report.newton_iterations +=
-            path.solve(&fem, k as f64 / steps as f64, label, hint, &mut x)?;
+        path.report.newton_iterations += path.solve(k as f64 / steps as f64, label, hint)?;
     }
     // The multipliers need an element that can keep its volume: on linear tetrahedra one
     // constraint per element locks (and the passes diverge), so they take the penalty stages.
     if scene.material.mean_dilatation() && scene.mesh.is_quadratic() && stages.len() > 1 {
-        path.volume_passes(&mut fem, &stages, &mut x, &mut report)?;
+        path.volume_passes(&stages)?;
     } else {
-        path.penalty_stages(&mut fem, &stages, &mut x, &mut report)?;
+        path.penalty_stages(&stages)?;
     }
-    report.residual_n = path.true_residual(&fem, &x);
-    Ok((x, report))
+    path.report.residual_n = path.true_residual();
+    Ok((path.x, path.report))
 }
 
 /// The model of `scene` with the volumetric penalty `kappa` (Pa, [`with_bulk_modulus`]).
@@ -154,51 +154,50 @@ fn worst_volume_change(fem: &FemModel, x: &[DVec3], ratios: &mut Vec<f64>) -> f6
 }
 
 /// The solves of [`solve_scene_loads`]: the scene, its dead loads at full scale, Newton's
-/// parameters and the progress callback.
+/// parameters, the progress callback, and the path's state (the model with its penalty and
+/// element pressures, the positions and the report so far).
 struct LoadPath<'a> {
     scene: &'a crate::scene::Scene,
     /// Dead nodal forces at full load, N.
     dead: Vec<DVec3>,
     params: &'a StaticParams,
     progress: &'a mut dyn FnMut(&str, usize),
+    /// The model of the current penalty stage.
+    fem: FemModel,
+    /// Node positions, m.
+    x: Vec<DVec3>,
+    report: LoadPathReport,
 }
 
 impl LoadPath<'_> {
-    /// Static equilibrium of `fem` from `x` under the scene's loads scaled by `scale`;
+    /// Static equilibrium of the model from `x` under the scene's loads scaled by `scale`;
     /// returns Newton's iterations. `hint` is added to the message of a failure only (a
     /// converged increment prints its label alone).
     ///
     /// # Errors
     /// [`ModelError::NoConvergence`] naming `label`.
-    fn solve(
-        &mut self,
-        fem: &FemModel,
-        scale: f64,
-        label: String,
-        hint: &str,
-        x: &mut [DVec3],
-    ) -> Result<usize, ModelError> {
+    fn solve(&mut self, scale: f64, label: String, hint: &str) -> Result<usize, ModelError> {
         let f: Vec<DVec3> = self.dead.iter().map(|v| *v * scale).collect();
         let follower = FollowerPressure::new(&self.scene.loads, scale);
         let term = (!follower.is_empty()).then_some(&follower as &dyn StaticTerm);
-        let r = solve_static_with(fem, &f, term, x, self.params)
+        let r = solve_static_with(&self.fem, &f, term, &mut self.x, self.params)
             .map_err(|e| ModelError::NoConvergence(format!("{label}{hint}: {e}")))?;
         (self.progress)(&label, r.iterations);
         Ok(r.iterations)
     }
 
     /// The free residual at `x` with every load evaluated at `x`, N.
-    fn true_residual(&self, fem: &FemModel, x: &[DVec3]) -> f64 {
+    fn true_residual(&self) -> f64 {
         let scene = self.scene;
         free_residual_norm(
-            fem,
+            &self.fem,
             &crate::loads::static_external_forces(
                 &scene.loads,
                 &scene.mesh,
                 scene.material.density_kg_per_m3,
-                x,
+                &self.x,
             ),
-            x,
+            &self.x,
         )
     }
 
@@ -209,20 +208,14 @@ impl LoadPath<'_> {
     ///
     /// # Errors
     /// As [`Self::solve`]; [`ModelError::NoConvergence`] after [`MAX_VOLUME_PASSES`] passes.
-    fn volume_passes(
-        &mut self,
-        fem: &mut FemModel,
-        stages: &[f64],
-        x: &mut [DVec3],
-        report: &mut LoadPathReport,
-    ) -> Result<(), ModelError> {
+    fn volume_passes(&mut self, stages: &[f64]) -> Result<(), ModelError> {
         let kappa_max = stages[stages.len() - 1];
         let mut kappa = stages[0];
-        let mut lambda = vec![0.0; fem.cell_count()];
+        let mut lambda = vec![0.0; self.fem.cell_count()];
         let mut ratios = Vec::new();
         for pass in 1.. {
-            let w = worst_volume_change(fem, x, &mut ratios);
-            report.worst_volume_change = w;
+            let w = worst_volume_change(&self.fem, &self.x, &mut ratios);
+            self.report.worst_volume_change = w;
             if w <= VOLUME_TOLERANCE {
                 break;
             }
@@ -236,17 +229,17 @@ impl LoadPath<'_> {
             for (l, j) in lambda.iter_mut().zip(&ratios) {
                 *l += kappa * (j - 1.0);
             }
-            fem.set_cell_pressures(lambda.clone());
+            self.fem.set_cell_pressures(lambda.clone());
             let label = format!(
                 "volume pass {pass} (worst element volume change {w:.2e}, penalty {kappa:.1e} Pa)"
             );
-            let its = self.solve(fem, 1.0, label, "", x)?;
-            report.newton_iterations += its;
-            report.constraint_passes += 1;
+            let its = self.solve(1.0, label, "")?;
+            self.report.newton_iterations += its;
+            self.report.constraint_passes += 1;
             if its <= 3 && kappa < kappa_max {
                 kappa = (kappa * 4.0).min(kappa_max);
-                *fem = scene_model(self.scene, kappa)?;
-                fem.set_cell_pressures(lambda.clone());
+                self.fem = scene_model(self.scene, kappa)?;
+                self.fem.set_cell_pressures(lambda.clone());
             }
         }
         Ok(())
@@ -257,25 +250,19 @@ impl LoadPath<'_> {
     ///
     /// # Errors
     /// As [`Self::solve`].
-    fn penalty_stages(
-        &mut self,
-        fem: &mut FemModel,
-        stages: &[f64],
-        x: &mut [DVec3],
-        report: &mut LoadPathReport,
-    ) -> Result<(), ModelError> {
+    fn penalty_stages(&mut self, stages: &[f64]) -> Result<(), ModelError> {
         for (j, &kappa) in stages.iter().enumerate().skip(1) {
-            *fem = scene_model(self.scene, kappa)?;
+            self.fem = scene_model(self.scene, kappa)?;
             let label = format!(
                 "penalty stage {j}/{} (bulk modulus {kappa:.1e} Pa)",
                 stages.len() - 1
             );
-            report.newton_iterations += self.solve(fem, 1.0, label, "", x)?;
-            report.constraint_passes += 1;
+            self.report.newton_iterations += self.solve(1.0, label, "")?;
+            self.report.constraint_passes += 1;
         }
         if self.scene.material.mean_dilatation() {
             let mut ratios = Vec::new();
-            report.worst_volume_change = worst_volume_change(fem, x, &mut ratios);
+            self.report.worst_volume_change = worst_volume_change(&self.fem, &self.x, &mut ratios);
         }
         Ok(())
     }
