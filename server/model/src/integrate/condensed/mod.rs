@@ -266,10 +266,10 @@ struct FarField {
 
 /// Backward Euler on an active region with the far body condensed (module documentation).
 /// Built once per scene; [`CondensedSolver::step`] is allocation-free. Its parts: what the
-/// scene set ([`CondensedParams`]), what construction built ([`CondensedSystem`]), the contact
-/// columns prepared for the touchable nodes ([`ContactColumns`]), what a tick hands to the
-/// next ([`CondensedState`]), what a tick overwrites ([`CondensedScratch`]) and the counters
-/// ([`CondensedStats`]).
+/// scene set (`CondensedParams`), what construction built (`CondensedSystem`), the contact
+/// columns prepared for the touchable nodes (`ContactColumns`), what a tick hands to the
+/// next (`CondensedState`), what a tick overwrites (`CondensedScratch`) and the counters
+/// (`CondensedStats`).
 #[derive(Debug, Clone)]
 pub struct CondensedSolver {
     params: CondensedParams,
