@@ -46,13 +46,27 @@ pub struct ImplicitSolver {
     /// Per element at the start of the step: the StVK second Piola-Kirchhoff stress (StVK) or
     /// the rotation of the polar decomposition (corotational, stable Neo-Hookean).
     elem_s: Vec<DMat3>,
-    rhs: Vec<DVec3>,
-    dv: Vec<DVec3>,
-    r: Vec<DVec3>,
-    z: Vec<DVec3>,
-    p: Vec<DVec3>,
-    ap: Vec<DVec3>,
+    /// The step's right-hand side and CG vectors.
+    cg: CgVectors,
     stats: CgStats,
+}
+
+/// The vectors of one CG solve (`n` nodes each), allocated at construction; `dv` is kept
+/// from one step to the next as the warm start.
+#[derive(Debug, Clone)]
+struct CgVectors {
+    /// `M v + h f - A v` (projected).
+    rhs: Vec<DVec3>,
+    /// The solution `dv`, m/s.
+    dv: Vec<DVec3>,
+    /// Residual `rhs - A dv`.
+    r: Vec<DVec3>,
+    /// Preconditioned residual `P^-1 r`.
+    z: Vec<DVec3>,
+    /// Search direction.
+    p: Vec<DVec3>,
+    /// `A p` (or `A` of whatever was applied last).
+    ap: Vec<DVec3>,
 }
 
 impl ImplicitSolver {
@@ -90,12 +104,14 @@ impl ImplicitSolver {
             capacitance: vec![0.0; MAX_COUPLING_ROWS * MAX_COUPLING_ROWS],
             elem_f: vec![DMat3::IDENTITY; fem.integration_point_count()],
             elem_s: vec![DMat3::ZERO; fem.integration_point_count()],
-            rhs: vec![DVec3::ZERO; n],
-            dv: vec![DVec3::ZERO; n],
-            r: vec![DVec3::ZERO; n],
-            z: vec![DVec3::ZERO; n],
-            p: vec![DVec3::ZERO; n],
-            ap: vec![DVec3::ZERO; n],
+            cg: CgVectors {
+                rhs: vec![DVec3::ZERO; n],
+                dv: vec![DVec3::ZERO; n],
+                r: vec![DVec3::ZERO; n],
+                z: vec![DVec3::ZERO; n],
+                p: vec![DVec3::ZERO; n],
+                ap: vec![DVec3::ZERO; n],
+            },
             stats: CgStats::default(),
         }
     }
@@ -130,6 +146,56 @@ impl ImplicitSolver {
         let h = self.dt_s;
         let mat = fem.material();
         let viscous = mat.phi_pa_s > 0.0 || mat.psi_pa_s > 0.0;
+        self.cache_deformation(fem, x);
+        let op = Operator {
+            fem,
+            h,
+            viscous,
+            mass_factor: &self.mass_factor,
+            elem_f: &self.elem_f,
+            elem_s: &self.elem_s,
+            coupling,
+        };
+        let woodbury = coupling.and_then(|c| {
+            woodbury_capacitance(
+                WoodburyInputs {
+                    fem,
+                    h,
+                    precond_inv: &self.precond_inv,
+                    coupling: c,
+                },
+                &mut self.patch_bu,
+                &mut self.capacitance,
+            )
+        });
+        let pre = Preconditioner {
+            precond_inv: &self.precond_inv,
+            constraints: fem.constraints(),
+            coupling,
+            woodbury,
+            patch_bu: &self.patch_bu,
+            capacitance: &self.capacitance,
+        };
+        let rhs_norm = self.cg.right_hand_side(&op, f, v);
+        self.cg.warm_start(&op);
+        let target = self.tolerance * rhs_norm;
+        let (iterations, r_norm) = self.cg.solve(&op, &pre, target, self.max_iterations);
+        self.stats = CgStats {
+            iterations,
+            relative_residual: if rhs_norm > 0.0 {
+                r_norm / rhs_norm
+            } else {
+                0.0
+            },
+            converged: r_norm <= target,
+        };
+        self.cg.update(fem, h, x, v)
+    }
+
+    /// The deformation gradient at each integration point at `x` (m) and what the operator
+    /// freezes there: the StVK second Piola-Kirchhoff stress or the polar rotation.
+    fn cache_deformation(&mut self, fem: &FemModel, x: &[DVec3]) {
+        let mat = fem.material();
         for (q, fe) in self.elem_f.iter_mut().enumerate() {
             *fe = fem.ip_field_gradient(q, x);
         }
@@ -141,80 +207,121 @@ impl ImplicitSolver {
                 _ => material::polar_decomposition(fe).0,
             };
         }
-        let op = Operator {
-            fem,
-            h,
-            viscous,
-            mass_factor: &self.mass_factor,
-            elem_f: &self.elem_f,
-            elem_s: &self.elem_s,
-            coupling,
-        };
-        // Preconditioner `P = B + h^2 A^T C A` (B the block diagonal at rest), inverted exactly
-        // by Woodbury: `P^-1 r = B^-1 r - B^-1 A^T W^-1 A B^-1 r`, `W = C^-1 / h^2 + A B^-1 A^T`.
-        // Without the low-rank part CG needed many more iterations (the coupling's weight
-        // `h^2 C` is far above the contact nodes' masses on fine meshes) and a capped solve
-        // could diverge.
-        self.patch_bu.clear();
-        let mut woodbury = None;
-        if let Some(c) = coupling {
-            for (&i, &u) in c.nodes.iter().zip(c.vectors) {
-                let mut bu = self.precond_inv[i as usize] * u;
-                apply_constraint(fem.constraints()[i as usize], &mut bu);
-                self.patch_bu.push(bu);
-            }
-            let nf = c.rows();
-            let w = &mut self.capacitance[..nf * nf];
-            for f in 0..nf {
-                for g in 0..=f {
-                    let (g0, g1) = (c.row_ptr[g] as usize, c.row_ptr[g + 1] as usize);
-                    let mut s = c.compliance[f * nf + g] / (h * h);
-                    for (i, u) in c.row(f) {
-                        for e in g0..g1 {
-                            if c.nodes[e] == i {
-                                s += u.dot(self.patch_bu[e]);
-                            }
-                        }
+    }
+
+    /// Forgets the warm start (after the state was replaced from outside).
+    pub fn reset_warm_start(&mut self) {
+        self.cg.dv.iter_mut().for_each(|d| *d = DVec3::ZERO);
+    }
+}
+
+/// What [`woodbury_capacitance`] reads.
+struct WoodburyInputs<'a> {
+    fem: &'a FemModel,
+    h: f64,
+    /// Inverses of the rest blocks `B_i`, 1/kg.
+    precond_inv: &'a [DMat3],
+    coupling: ContactCoupling<'a>,
+}
+
+/// The low-rank part of the preconditioner `P = B + h^2 A^T C A` (B the block diagonal at
+/// rest), inverted exactly by Woodbury: `P^-1 r = B^-1 r - B^-1 A^T W^-1 A B^-1 r`,
+/// `W = C^-1 / h^2 + A B^-1 A^T`. Writes `B_i^-1 u_e` per entry of the probe's term into
+/// `patch_bu` and the Cholesky factor of `W` into `capacitance`; returns the number of rows
+/// `F`, or `None` when `W` is not positive definite (no low-rank part then). Without the
+/// low-rank part CG needed many more iterations (the coupling's weight `h^2 C` is far above
+/// the contact nodes' masses on fine meshes) and a capped solve could diverge.
+fn woodbury_capacitance(
+    inputs: WoodburyInputs<'_>,
+    patch_bu: &mut Vec<DVec3>,
+    capacitance: &mut [f64],
+) -> Option<usize> {
+    let WoodburyInputs {
+        fem,
+        h,
+        precond_inv,
+        coupling: c,
+    } = inputs;
+    patch_bu.clear();
+    for (&i, &u) in c.nodes.iter().zip(c.vectors) {
+        let mut bu = precond_inv[i as usize] * u;
+        apply_constraint(fem.constraints()[i as usize], &mut bu);
+        patch_bu.push(bu);
+    }
+    let nf = c.rows();
+    let w = &mut capacitance[..nf * nf];
+    for f in 0..nf {
+        for g in 0..=f {
+            let (g0, g1) = (c.row_ptr[g] as usize, c.row_ptr[g + 1] as usize);
+            let mut s = c.compliance[f * nf + g] / (h * h);
+            for (i, u) in c.row(f) {
+                for (&node, bu) in c.nodes[g0..g1].iter().zip(&patch_bu[g0..g1]) {
+                    if node == i {
+                        s += u.dot(*bu);
                     }
-                    w[f * nf + g] = s;
-                    w[g * nf + f] = s;
                 }
             }
-            if cholesky_in_place(w, nf) {
-                woodbury = Some(nf);
+            w[f * nf + g] = s;
+            w[g * nf + f] = s;
+        }
+    }
+    cholesky_in_place(w, nf).then_some(nf)
+}
+
+/// The preconditioner `P^-1` of the CG solve: the inverse rest blocks and, with a probe,
+/// the Woodbury correction of its low-rank term ([`woodbury_capacitance`]).
+struct Preconditioner<'a> {
+    precond_inv: &'a [DMat3],
+    constraints: &'a [ConstraintMask],
+    coupling: Option<ContactCoupling<'a>>,
+    /// Rows of the low-rank part, when its capacitance was factorised.
+    woodbury: Option<usize>,
+    patch_bu: &'a [DVec3],
+    /// Cholesky factor of the capacitance `W`.
+    capacitance: &'a [f64],
+}
+
+impl Preconditioner<'_> {
+    /// `z = P^-1 r` (constrained components of `z` are zero).
+    fn apply(&self, r: &[DVec3], z: &mut [DVec3]) {
+        for i in 0..r.len() {
+            z[i] = self.precond_inv[i] * r[i];
+        }
+        for (zi, &m) in z.iter_mut().zip(self.constraints) {
+            apply_constraint(m, zi);
+        }
+        if let (Some(c), Some(nf)) = (self.coupling, self.woodbury) {
+            let mut t = [0.0; MAX_COUPLING_ROWS];
+            c.a_times(z, &mut t);
+            cholesky_solve(self.capacitance, nf, &mut t[..nf]);
+            for (f, &tf) in t.iter().enumerate().take(nf) {
+                for e in c.row_ptr[f] as usize..c.row_ptr[f + 1] as usize {
+                    z[c.nodes[e] as usize] -= self.patch_bu[e] * tf;
+                }
             }
         }
-        let precondition = |r: &[DVec3], z: &mut [DVec3], patch_bu: &[DVec3], w: &[f64]| {
-            for i in 0..r.len() {
-                z[i] = self.precond_inv[i] * r[i];
-            }
-            for (zi, &m) in z.iter_mut().zip(fem.constraints()) {
-                apply_constraint(m, zi);
-            }
-            if let (Some(c), Some(nf)) = (coupling, woodbury) {
-                let mut t = [0.0; MAX_COUPLING_ROWS];
-                c.a_times(z, &mut t);
-                cholesky_solve(w, nf, &mut t[..nf]);
-                for (f, &tf) in t.iter().enumerate().take(nf) {
-                    for e in c.row_ptr[f] as usize..c.row_ptr[f + 1] as usize {
-                        z[c.nodes[e] as usize] -= patch_bu[e] * tf;
-                    }
-                }
-            }
-        };
-        // rhs = M v + h f - A v.
+    }
+}
+
+impl CgVectors {
+    /// `rhs = M v + h f - A v` (projected); returns its norm.
+    fn right_hand_side(&mut self, op: &Operator<'_>, f: &[DVec3], v: &[DVec3]) -> f64 {
+        let fem = op.fem;
         op.apply(v, &mut self.ap);
         for i in 0..v.len() {
-            let mut b = v[i] * fem.lumped_mass_kg()[i] + f[i] * h - self.ap[i];
+            let mut b = v[i] * fem.lumped_mass_kg()[i] + f[i] * op.h - self.ap[i];
             apply_constraint(fem.constraints()[i], &mut b);
             self.rhs[i] = b;
         }
-        let rhs_norm = norm(&self.rhs);
-        // Warm start: the previous step's dv (already projected), scaled by the minimiser
-        // `s = rhs.dv / dv.A.dv` (clamped to [0, 1]) of the step's quadratic energy
-        // `dv.A.dv / 2 - rhs.dv` along it, so the start is never worse than zero. Reusing dv
-        // unscaled made a capped solve (5-10 iterations) diverge on lv_h1 (18k tets): the
-        // stiff components that CG leaves unresolved were re-applied every step.
+        norm(&self.rhs)
+    }
+
+    /// Warm start: the previous step's dv (already projected), scaled by the minimiser
+    /// `s = rhs.dv / dv.A.dv` (clamped to [0, 1]) of the step's quadratic energy
+    /// `dv.A.dv / 2 - rhs.dv` along it, so the start is never worse than zero; `r` its
+    /// residual. Reusing dv unscaled made a capped solve (5-10 iterations) diverge on lv_h1
+    /// (18k tets): the stiff components that CG leaves unresolved were re-applied every step.
+    fn warm_start(&mut self, op: &Operator<'_>) {
         op.apply(&self.dv, &mut self.ap);
         let curvature = dot(&self.dv, &self.ap);
         let scale = if curvature > 0.0 {
@@ -222,17 +329,28 @@ impl ImplicitSolver {
         } else {
             0.0
         };
-        for i in 0..v.len() {
+        for i in 0..self.dv.len() {
             self.dv[i] *= scale;
             self.r[i] = self.rhs[i] - self.ap[i] * scale;
         }
-        precondition(&self.r, &mut self.z, &self.patch_bu, &self.capacitance);
+    }
+
+    /// Preconditioned CG from the warm start until `|r| <= target` or `max_iterations`;
+    /// returns the iterations and the final `|r|`.
+    fn solve(
+        &mut self,
+        op: &Operator<'_>,
+        pre: &Preconditioner<'_>,
+        target: f64,
+        max_iterations: u32,
+    ) -> (u32, f64) {
+        let n = self.dv.len();
+        pre.apply(&self.r, &mut self.z);
         self.p.copy_from_slice(&self.z);
         let mut rz = dot(&self.r, &self.z);
-        let target = self.tolerance * rhs_norm;
         let mut iterations = 0;
         let mut r_norm = norm(&self.r);
-        while r_norm > target && iterations < self.max_iterations {
+        while r_norm > target && iterations < max_iterations {
             op.apply(&self.p, &mut self.ap);
             let pap = dot(&self.p, &self.ap);
             // An indefinite tangent (strong compression, inverted elements) or a non-finite
@@ -241,7 +359,7 @@ impl ImplicitSolver {
             // blocks, like the seed's per-node scheme), so the body still moves.
             if !(pap > 0.0) || !(rz > 0.0) {
                 if iterations == 0 && rz > 0.0 {
-                    for i in 0..v.len() {
+                    for i in 0..n {
                         self.dv[i] += self.z[i];
                     }
                 }
@@ -249,28 +367,25 @@ impl ImplicitSolver {
             }
             iterations += 1;
             let alpha = rz / pap;
-            for i in 0..v.len() {
+            for i in 0..n {
                 self.dv[i] += self.p[i] * alpha;
                 self.r[i] -= self.ap[i] * alpha;
             }
             r_norm = norm(&self.r);
-            precondition(&self.r, &mut self.z, &self.patch_bu, &self.capacitance);
+            pre.apply(&self.r, &mut self.z);
             let rz_new = dot(&self.r, &self.z);
             let beta = rz_new / rz;
             rz = rz_new;
-            for i in 0..v.len() {
+            for i in 0..n {
                 self.p[i] = self.z[i] + self.p[i] * beta;
             }
         }
-        self.stats = CgStats {
-            iterations,
-            relative_residual: if rhs_norm > 0.0 {
-                r_norm / rhs_norm
-            } else {
-                0.0
-            },
-            converged: r_norm <= target,
-        };
+        (iterations, r_norm)
+    }
+
+    /// `v += dv` (projected), `x += h v`; returns the largest squared nodal speed (NaN if any
+    /// value is not finite, and the warm start is forgotten).
+    fn update(&mut self, fem: &FemModel, h: f64, x: &mut [DVec3], v: &mut [DVec3]) -> f64 {
         let mut max_v2: f64 = 0.0;
         let mut non_finite = false;
         for i in 0..v.len() {
@@ -289,11 +404,6 @@ impl ImplicitSolver {
         } else {
             max_v2
         }
-    }
-
-    /// Forgets the warm start (after the state was replaced from outside).
-    pub fn reset_warm_start(&mut self) {
-        self.dv.iter_mut().for_each(|d| *d = DVec3::ZERO);
     }
 }
 

@@ -55,7 +55,6 @@ pub fn nested_dissection(
     row_idx: &[usize],
     group: &[usize],
 ) -> Result<Option<Ordering>, ModelError> {
-    let bad = |what: String| ModelError::InvalidInput(format!("nested dissection: {what}"));
     if col_ptr.len() != n + 1 || group.len() != n {
         return Err(bad(format!(
             "{} column pointers and {} groups for {n} equations",
@@ -66,7 +65,51 @@ pub fn nested_dissection(
     if col_ptr.windows(2).any(|w| w[0] > w[1]) || col_ptr[n] > row_idx.len() {
         return Err(bad("column pointers are not increasing".into()));
     }
-    // Dense group numbers.
+    let (dense, ng) = dense_groups(group);
+    if ng < MIN_VERTICES {
+        return Ok(None);
+    }
+    let members = Members::of(group, &dense, ng);
+    let (transpose_ptr, transpose) = transpose_pattern(n, col_ptr, row_idx)?;
+    let pattern = Pattern {
+        col_ptr,
+        row_idx,
+        transpose_ptr: &transpose_ptr,
+        transpose: &transpose,
+    };
+    let graph = group_graph(&pattern, group, &dense, &members)?;
+    let perm = metis_node_nd(graph, &members, n)?;
+    let mut forward = Vec::with_capacity(n);
+    for &d in &perm {
+        let d = usize::try_from(d)
+            .ok()
+            .filter(|&d| d < ng)
+            .ok_or_else(|| bad(format!("METIS returned vertex {d} of {ng}")))?;
+        forward.extend_from_slice(members.of_group(d));
+    }
+    let mut inverse = vec![usize::MAX; n];
+    for (k, &o) in forward.iter().enumerate() {
+        inverse[o] = k;
+    }
+    if forward.len() != n || inverse.contains(&usize::MAX) {
+        return Err(bad("METIS's permutation is not one".into()));
+    }
+    Ok(Some(Ordering { forward, inverse }))
+}
+
+/// [`nested_dissection`]'s error for `what`.
+fn bad(what: String) -> ModelError {
+    ModelError::InvalidInput(format!("nested dissection: {what}"))
+}
+
+/// [`nested_dissection`]'s error for `n` equations beyond METIS's indices.
+fn too_large(n: usize) -> ModelError {
+    bad(format!("{n} equations exceed METIS's 32-bit indices"))
+}
+
+/// Dense group numbers in the order of first appearance: per group name its number (or
+/// `usize::MAX` for a name no equation has), and the number of groups.
+fn dense_groups(group: &[usize]) -> (Vec<usize>, usize) {
     let group_range = group.iter().max().map_or(0, |&g| g + 1);
     let mut dense = vec![usize::MAX; group_range];
     let mut ng = 0;
@@ -76,30 +119,57 @@ pub fn nested_dissection(
             ng += 1;
         }
     }
-    if ng < MIN_VERTICES {
-        return Ok(None);
+    (dense, ng)
+}
+
+/// The equations of each dense group, in original order (compressed rows).
+struct Members {
+    /// Start of each group in `list` (length groups + 1).
+    ptr: Vec<usize>,
+    list: Vec<usize>,
+}
+
+impl Members {
+    /// The members of the `ng` dense groups `dense[group[k]]` of the equations `k`.
+    fn of(group: &[usize], dense: &[usize], ng: usize) -> Self {
+        let mut ptr = vec![0usize; ng + 1];
+        for &g in group {
+            ptr[dense[g] + 1] += 1;
+        }
+        for k in 0..ng {
+            ptr[k + 1] += ptr[k];
+        }
+        let mut list = vec![0usize; group.len()];
+        let mut fill = ptr.clone();
+        for (k, &g) in group.iter().enumerate() {
+            let d = dense[g];
+            list[fill[d]] = k;
+            fill[d] += 1;
+        }
+        Self { ptr, list }
     }
-    let too_large = || bad(format!("{n} equations exceed METIS's 32-bit indices"));
-    // Members of each group, in original order.
-    let mut members_ptr = vec![0usize; ng + 1];
-    for &g in group {
-        members_ptr[dense[g] + 1] += 1;
+
+    /// The equations of dense group `d`.
+    fn of_group(&self, d: usize) -> &[usize] {
+        &self.list[self.ptr[d]..self.ptr[d + 1]]
     }
-    for k in 0..ng {
-        members_ptr[k + 1] += members_ptr[k];
+
+    /// Number of groups.
+    fn groups(&self) -> usize {
+        self.ptr.len() - 1
     }
-    let mut members = vec![0usize; n];
-    let mut fill = members_ptr.clone();
-    for (k, &g) in group.iter().enumerate() {
-        let d = dense[g];
-        members[fill[d]] = k;
-        fill[d] += 1;
-    }
-    // Group adjacency (symmetric, no self loops): the union over each group's columns.
-    let mut xadj: Vec<i32> = Vec::with_capacity(ng + 1);
-    let mut adjncy: Vec<i32> = Vec::new();
-    let mut seen = vec![usize::MAX; ng];
-    // A pattern given by one triangle: collect the transpose too.
+}
+
+/// The transpose of the pattern's first `col_ptr[n]` entries (compressed columns: pointers,
+/// row indices), so that a pattern given by one triangle is seen whole.
+///
+/// # Errors
+/// [`ModelError::InvalidInput`] for a row index out of range.
+fn transpose_pattern(
+    n: usize,
+    col_ptr: &[usize],
+    row_idx: &[usize],
+) -> Result<(Vec<usize>, Vec<usize>), ModelError> {
     let mut transpose_ptr = vec![0usize; n + 1];
     for &r in &row_idx[..col_ptr[n]] {
         if r >= n {
@@ -118,39 +188,80 @@ pub fn nested_dissection(
             cursor[r] += 1;
         }
     }
+    Ok((transpose_ptr, transpose))
+}
+
+/// A sparsity pattern in compressed columns with its transpose.
+struct Pattern<'a> {
+    col_ptr: &'a [usize],
+    row_idx: &'a [usize],
+    transpose_ptr: &'a [usize],
+    transpose: &'a [usize],
+}
+
+/// A graph as METIS reads it: adjacency in compressed rows, 32-bit.
+struct Graph {
+    xadj: Vec<i32>,
+    adjncy: Vec<i32>,
+}
+
+/// The group adjacency (symmetric, no self loops): the union over each group's columns of
+/// `pattern` and its transpose.
+///
+/// # Errors
+/// [`ModelError::InvalidInput`] beyond METIS's 32-bit indices.
+fn group_graph(
+    pattern: &Pattern<'_>,
+    group: &[usize],
+    dense: &[usize],
+    members: &Members,
+) -> Result<Graph, ModelError> {
+    let (n, ng) = (group.len(), members.groups());
+    let mut xadj: Vec<i32> = Vec::with_capacity(ng + 1);
+    let mut adjncy: Vec<i32> = Vec::new();
+    let mut seen = vec![usize::MAX; ng];
     xadj.push(0);
     for d in 0..ng {
         seen[d] = d;
-        for &k in &members[members_ptr[d]..members_ptr[d + 1]] {
-            let neighbours = row_idx[col_ptr[k]..col_ptr[k + 1]]
+        for &k in members.of_group(d) {
+            let neighbours = pattern.row_idx[pattern.col_ptr[k]..pattern.col_ptr[k + 1]]
                 .iter()
-                .chain(&transpose[transpose_ptr[k]..transpose_ptr[k + 1]]);
+                .chain(&pattern.transpose[pattern.transpose_ptr[k]..pattern.transpose_ptr[k + 1]]);
             for &r in neighbours {
                 let e = dense[group[r]];
                 if seen[e] != d {
                     seen[e] = d;
-                    adjncy.push(i32::try_from(e).map_err(|_| too_large())?);
+                    adjncy.push(i32::try_from(e).map_err(|_| too_large(n))?);
                 }
             }
         }
-        xadj.push(i32::try_from(adjncy.len()).map_err(|_| too_large())?);
+        xadj.push(i32::try_from(adjncy.len()).map_err(|_| too_large(n))?);
     }
-    let mut vwgt: Vec<i32> = (0..ng)
-        .map(|d| (members_ptr[d + 1] - members_ptr[d]) as i32)
-        .collect();
-    let mut nvtxs = i32::try_from(ng).map_err(|_| too_large())?;
+    Ok(Graph { xadj, adjncy })
+}
+
+/// `METIS_NodeND` on `graph`, each vertex weighted by its group's size: the permutation of
+/// the groups (METIS's `perm`; `n` equations, for the error message).
+///
+/// # Errors
+/// [`ModelError::InvalidInput`] beyond METIS's 32-bit indices or when METIS reports an error.
+fn metis_node_nd(mut graph: Graph, members: &Members, n: usize) -> Result<Vec<i32>, ModelError> {
+    let ng = members.groups();
+    let mut vwgt: Vec<i32> = (0..ng).map(|d| members.of_group(d).len() as i32).collect();
+    let mut nvtxs = i32::try_from(ng).map_err(|_| too_large(n))?;
     let mut perm = vec![0i32; ng];
     let mut iperm = vec![0i32; ng];
     let mut options = [-1i32; metis_sys::METIS_NOPTIONS as usize];
     // SAFETY: every array has the length METIS_NodeND reads or writes: `xadj` nvtxs + 1,
-    // `adjncy` xadj[nvtxs] (a symmetric graph without self loops, built above), `vwgt`,
-    // `perm` and `iperm` nvtxs, `options` METIS_NOPTIONS (set to defaults by -1, which
-    // METIS_SetDefaultOptions also writes). The pointers are live and unaliased for the call.
+    // `adjncy` xadj[nvtxs] (a symmetric graph without self loops, built by `group_graph`),
+    // `vwgt`, `perm` and `iperm` nvtxs, `options` METIS_NOPTIONS (set to defaults by -1,
+    // which METIS_SetDefaultOptions also writes). The pointers are live and unaliased for
+    // the call.
     let status = unsafe {
         metis_sys::METIS_NodeND(
             &mut nvtxs,
-            xadj.as_mut_ptr(),
-            adjncy.as_mut_ptr(),
+            graph.xadj.as_mut_ptr(),
+            graph.adjncy.as_mut_ptr(),
             vwgt.as_mut_ptr(),
             options.as_mut_ptr(),
             perm.as_mut_ptr(),
@@ -160,22 +271,7 @@ pub fn nested_dissection(
     if status != metis_sys::rstatus_et_METIS_OK {
         return Err(bad(format!("METIS_NodeND returned status {status}")));
     }
-    let mut forward = Vec::with_capacity(n);
-    for &d in &perm {
-        let d = usize::try_from(d)
-            .ok()
-            .filter(|&d| d < ng)
-            .ok_or_else(|| bad(format!("METIS returned vertex {d} of {ng}")))?;
-        forward.extend_from_slice(&members[members_ptr[d]..members_ptr[d + 1]]);
-    }
-    let mut inverse = vec![usize::MAX; n];
-    for (k, &o) in forward.iter().enumerate() {
-        inverse[o] = k;
-    }
-    if forward.len() != n || inverse.contains(&usize::MAX) {
-        return Err(bad("METIS's permutation is not one".into()));
-    }
-    Ok(Some(Ordering { forward, inverse }))
+    Ok(perm)
 }
 
 /// The symbolic Cholesky factorisation of a symmetric pattern (`side` the triangle given, or

@@ -257,14 +257,49 @@ impl CondensedSolver {
         progress: &mut dyn FnMut(&str, f64),
     ) -> Result<Self, ModelError> {
         check_region(body, &region)?;
-        let n = body.node_count();
+        let system = CondensedSystem::build(body, mesh, &region, dt_s, progress)?;
+        let (m, g) = (system.eq_dof.len(), system.gamma_dof.len());
+        let stack = Workspace::new(system.symbolic.solve_in_place_scratch::<f32>(2, Par::Seq));
+        progress("condensation: done", 1.0);
+        Ok(Self {
+            params: CondensedParams { h: dt_s, region },
+            system,
+            contact: ContactColumns {
+                col: vec![u32::MAX; body.node_count()],
+                z: Vec::new(),
+            },
+            state: CondensedState {
+                relaxation: 1.0,
+                last_contact: Vec::with_capacity(ENTRY_TRACKED_NODES),
+                surface_cursor: 0,
+            },
+            scratch: CondensedScratch::new(m, g, stack),
+            stats: CondensedStats::default(),
+        })
+    }
+}
+
+impl CondensedSystem {
+    /// Splits `body` (mesh `mesh`) by `region`, condenses the far part and factorises the
+    /// tick matrix for the step `h` (s); `progress` as [`CondensedSolver::new_with_progress`]
+    /// (all but the last stage).
+    ///
+    /// # Errors
+    /// As [`CondensedSolver::new`], the region's parameters already checked.
+    fn build(
+        body: &FemModel,
+        mesh: &TetMesh,
+        region: &ActiveRegion,
+        h: f64,
+        progress: &mut dyn FnMut(&str, f64),
+    ) -> Result<Self, ModelError> {
         let Selection {
             active_tets,
             active,
             far_model,
             node_active,
             node_far,
-        } = select_elements(body, mesh, &region)?;
+        } = select_elements(body, mesh, region)?;
         let num = number_equations(body, &node_active, &node_far);
         let Condensation {
             schur,
@@ -274,7 +309,7 @@ impl CondensedSolver {
             map_row,
             llt,
             kfg,
-        } = condense_far(mesh, &region, far_model.as_ref(), &num, progress)?;
+        } = condense_far(mesh, region, far_model.as_ref(), &num, progress)?;
         let Numbering {
             eq,
             eq_dof,
@@ -284,9 +319,7 @@ impl CondensedSolver {
             ..
         } = num;
         let g = gamma_dof.len();
-        let m_eq = eq_dof.len();
         progress("condensation: tick matrix factorisation", 0.85);
-        let h = dt_s;
         let mass: Vec<f64> = eq_dof
             .iter()
             .map(|d| body.lumped_mass_kg()[d / 3])
@@ -305,48 +338,30 @@ impl CondensedSolver {
         let schur: Vec<f32> = (0..g)
             .flat_map(|a| schur[a * g + a..(a + 1) * g].iter().map(|&v| v as f32))
             .collect();
-        let stack = Workspace::new(symbolic.solve_in_place_scratch::<f32>(2, Par::Seq));
-        progress("condensation: done", 1.0);
         let sizes = CondensedSizes {
             active_tets,
             active_nodes: node_active.iter().filter(|a| **a).count(),
             interface_nodes,
-            equations: m_eq,
+            equations: eq_dof.len(),
             factor_entries: factor.len(),
         };
         Ok(Self {
-            h,
-            region,
             active,
             eq,
             eq_dof,
             mass,
             gamma_dof,
             schur,
-            su: vec![0.0; g],
-            a_row: vec![0.0; m_eq],
             avx2: Avx2Fma::detect(),
-            sweep,
-            half,
-            relaxation: 1.0,
-            relaxed_ticks: 0,
+            f16c: Avx2FmaF16c::detect(),
             symbolic: Arc::new(symbolic),
             factor,
-            stack,
-            rhs: Mat::zeros(m_eq, 2),
-            b: vec![0.0; m_eq],
-            contact_col: vec![u32::MAX; n],
-            contact_z: Vec::new(),
-            z1: vec![0.0; m_eq],
-            capacitance: vec![0.0; MAX_COUPLING_ROWS * MAX_COUPLING_ROWS],
-            u_gamma: vec![0.0; g],
-            u_gamma32: vec![0.0; g],
-            f16c: Avx2FmaF16c::detect(),
+            sweep,
+            half,
             map_dofs: map_far.iter().map(|&k| far_dofs[k]).collect(),
             map,
             surface_rows,
             map_row,
-            surface_cursor: 0,
             far: FarField {
                 dofs: far_dofs,
                 llt,
@@ -355,7 +370,6 @@ impl CondensedSolver {
             sizes,
             node_active,
             entry: None,
-            last_contact: Vec::with_capacity(ENTRY_TRACKED_NODES),
         })
     }
 }

@@ -16,33 +16,34 @@ impl CondensedSolver {
     /// # Errors
     /// [`ModelError::InvalidMesh`] when the matrix is not positive definite.
     pub fn add_entry_factor(&mut self) -> Result<(), ModelError> {
-        if self.region.stiffness_margin <= 1.0 {
+        if self.params.region.stiffness_margin <= 1.0 {
             return Ok(());
         }
-        let g = self.gamma_dof.len();
+        let g = self.system.gamma_dof.len();
         let mut schur = vec![0.0f64; g * g];
         for a in 0..g {
             let start = packed_row_start(a, g);
-            for (b, &v) in (a..g).zip(&self.schur[start..start + g - a]) {
+            for (b, &v) in (a..g).zip(&self.system.schur[start..start + g - a]) {
                 schur[a * g + b] = f64::from(v);
                 schur[b * g + a] = f64::from(v);
             }
         }
         let parts = TickMatrixParts {
-            active: &self.active,
-            material: *self.active.material(),
-            eq: &self.eq,
-            gamma_dof: &self.gamma_dof,
+            active: &self.system.active,
+            material: *self.system.active.material(),
+            eq: &self.system.eq,
+            gamma_dof: &self.system.gamma_dof,
             schur: &schur,
-            mass: &self.mass,
-            h: self.h,
+            mass: &self.system.mass,
+            h: self.params.h,
         };
         let a_lower = parts.lower(1.0)?;
-        let mut factor = factorize(&self.symbolic, &a_lower)?;
-        let half = half_of(self.sweep.as_mut(), &mut factor, &a_lower);
+        let mut factor = factorize(&self.system.symbolic, &a_lower)?;
+        let half = half_of(self.system.sweep.as_mut(), &mut factor, &a_lower);
         // Columns already prepared: the same nodes through the new factor.
         let mut list: Vec<(u32, u32)> = self
-            .contact_col
+            .contact
+            .col
             .iter()
             .enumerate()
             .filter(|(_, c)| **c != u32::MAX)
@@ -55,7 +56,7 @@ impl CondensedSolver {
         } else {
             self.contact_columns(&factor, &nodes)
         };
-        self.entry = Some(EntryFactor {
+        self.system.entry = Some(EntryFactor {
             factor,
             half,
             contact_z,
@@ -77,35 +78,41 @@ impl CondensedSolver {
     /// [`Self::prepare_contact`] with the memory limit `max_bytes`; `false` (nothing
     /// prepared, the columns of an earlier call dropped) when the columns would exceed it.
     pub fn prepare_contact_within(&mut self, nodes: &[u32], max_bytes: usize) -> bool {
-        let m = self.eq_dof.len();
+        let m = self.system.eq_dof.len();
         let mut list: Vec<u32> = nodes
             .iter()
             .copied()
-            .filter(|&i| self.node_active.get(i as usize).copied().unwrap_or(false))
+            .filter(|&i| {
+                self.system
+                    .node_active
+                    .get(i as usize)
+                    .copied()
+                    .unwrap_or(false)
+            })
             .collect();
         list.sort_unstable();
         list.dedup();
-        self.contact_col.iter_mut().for_each(|c| *c = u32::MAX);
-        let factors = if self.entry.is_some() { 2 } else { 1 };
+        self.contact.col.iter_mut().for_each(|c| *c = u32::MAX);
+        let factors = if self.system.entry.is_some() { 2 } else { 1 };
         if 12usize
             .saturating_mul(m)
             .saturating_mul(list.len())
             .saturating_mul(factors)
             > max_bytes
         {
-            self.contact_z = Vec::new();
-            if let Some(e) = self.entry.as_mut() {
+            self.contact.z = Vec::new();
+            if let Some(e) = self.system.entry.as_mut() {
                 e.contact_z = Vec::new();
             }
             return false;
         }
         for (c, &i) in list.iter().enumerate() {
-            self.contact_col[i as usize] = c as u32;
+            self.contact.col[i as usize] = c as u32;
         }
-        self.contact_z = self.contact_columns(&self.factor, &list);
-        if let Some(e) = &self.entry {
+        self.contact.z = self.contact_columns(&self.system.factor, &list);
+        if let Some(e) = &self.system.entry {
             let z = self.contact_columns(&e.factor, &list);
-            if let Some(e) = self.entry.as_mut() {
+            if let Some(e) = self.system.entry.as_mut() {
                 e.contact_z = z;
             }
         }
@@ -115,24 +122,25 @@ impl CondensedSolver {
     /// `A^-1 e` through `factor` (of this solver's analysis) for the three components of each
     /// node of `list`: per node its three columns of `m` values one after the other.
     fn contact_columns(&self, factor: &[f32], list: &[u32]) -> Vec<f32> {
-        let m = self.eq_dof.len();
+        let m = self.system.eq_dof.len();
         let mut z = vec![0.0; 3 * m * list.len()];
         const BLOCK: usize = 16;
         let mut mem = MemBuffer::new(
-            self.symbolic
+            self.system
+                .symbolic
                 .solve_in_place_scratch::<f32>(3 * BLOCK, Par::Seq),
         );
         for (b, chunk) in list.chunks(BLOCK).enumerate() {
             let mut e = Mat::<f32>::zeros(m, 3 * chunk.len());
             for (j, &i) in chunk.iter().enumerate() {
                 for k in 0..3 {
-                    let q = self.eq[3 * i as usize + k];
+                    let q = self.system.eq[3 * i as usize + k];
                     if q != usize::MAX {
                         e[(q, 3 * j + k)] = 1.0;
                     }
                 }
             }
-            LltRef::<usize, f32>::new(&self.symbolic, factor).solve_in_place_with_conj(
+            LltRef::<usize, f32>::new(&self.system.symbolic, factor).solve_in_place_with_conj(
                 Conj::No,
                 e.as_mut(),
                 Par::Seq,

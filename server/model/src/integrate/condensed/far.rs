@@ -16,38 +16,40 @@ impl CondensedSolver {
     /// # Panics
     /// If `x`, `v` are shorter than the body's node count or `next` is of another body.
     pub fn hand_over(&mut self, next: &CondensedSolver, x: &mut [DVec3], v: &mut [DVec3]) -> bool {
-        let node_active = &self.node_active;
+        let (sys, scratch) = (&self.system, &mut self.scratch);
+        let node_active = &sys.node_active;
         let taken = |d: usize| !node_active[d / 3];
         let missing = next
+            .system
             .eq_dof
             .iter()
-            .any(|&d| taken(d) && self.map_row.get(d).is_none_or(|&r| r == u32::MAX));
+            .any(|&d| taken(d) && sys.map_row.get(d).is_none_or(|&r| r == u32::MAX));
         if missing {
             return false;
         }
-        let rest = self.active.rest();
-        for ((u, u32), &d) in self
+        let rest = sys.active.rest();
+        for ((u, u32), &d) in scratch
             .u_gamma
             .iter_mut()
-            .zip(&mut self.u_gamma32)
-            .zip(&self.gamma_dof)
+            .zip(&mut scratch.u_gamma32)
+            .zip(&sys.gamma_dof)
         {
             *u = x[d / 3][d % 3] - rest[d / 3][d % 3];
             *u32 = *u as f32;
         }
-        let g = self.gamma_dof.len();
-        for &d in &next.eq_dof {
+        let g = sys.gamma_dof.len();
+        for &d in &next.system.eq_dof {
             if taken(d) {
-                let r = self.map_row[d] as usize;
-                let u = dot_half(self.f16c, &self.map[r * g..(r + 1) * g], &self.u_gamma32);
+                let r = sys.map_row[d] as usize;
+                let u = dot_half(sys.f16c, &sys.map[r * g..(r + 1) * g], &scratch.u_gamma32);
                 x[d / 3][d % 3] = rest[d / 3][d % 3] + u;
                 v[d / 3][d % 3] = 0.0;
             }
         }
         // Nodes `next` condenses become quasi-static: their kinetic energy is dropped (never
         // injected), and the probe's coupling sees them at rest.
-        for &d in &self.eq_dof {
-            if !next.node_active[d / 3] {
+        for &d in &sys.eq_dof {
+            if !next.system.node_active[d / 3] {
                 v[d / 3][d % 3] = 0.0;
             }
         }
@@ -57,16 +59,17 @@ impl CondensedSolver {
     /// Elastic energy of the condensed far part for the interface displacement in `x`,
     /// `u_G^T S u_G / 2`, J (exact for its linear elements).
     pub fn far_energy_j(&self, x: &[DVec3]) -> f64 {
-        let g = self.gamma_dof.len();
+        let sys = &self.system;
+        let g = sys.gamma_dof.len();
         let u = |a: usize| {
-            let d = self.gamma_dof[a];
-            x[d / 3][d % 3] - self.active.rest()[d / 3][d % 3]
+            let d = sys.gamma_dof[a];
+            x[d / 3][d % 3] - sys.active.rest()[d / 3][d % 3]
         };
         // Packed upper triangle: the off-diagonal entries count twice.
         (0..g)
             .map(|a| {
                 let start = packed_row_start(a, g);
-                let row = &self.schur[start..start + g - a];
+                let row = &sys.schur[start..start + g - a];
                 let off: f64 = (a + 1..g).map(|b| f64::from(row[b - a]) * u(b)).sum();
                 u(a) * (0.5 * f64::from(row[0]) * u(a) + off)
             })
@@ -79,28 +82,29 @@ impl CondensedSolver {
     /// A following region ([`ActiveRegion::follow`]) keeps no far factor: it sets the far
     /// nodes from its map of every far component instead.
     pub fn recover_far_field(&self, x: &mut [DVec3]) {
-        let Some(llt) = &self.far.llt else {
-            let g = self.gamma_dof.len();
-            let rest = self.active.rest();
-            let u_gamma: Vec<f32> = self
+        let sys = &self.system;
+        let Some(llt) = &sys.far.llt else {
+            let g = sys.gamma_dof.len();
+            let rest = sys.active.rest();
+            let u_gamma: Vec<f32> = sys
                 .gamma_dof
                 .iter()
                 .map(|&d| (x[d / 3][d % 3] - rest[d / 3][d % 3]) as f32)
                 .collect();
-            for (r, &d) in self.map_dofs.iter().enumerate() {
-                x[d / 3][d % 3] = rest[d / 3][d % 3]
-                    + dot_half(self.f16c, &self.map[r * g..(r + 1) * g], &u_gamma);
+            for (r, &d) in sys.map_dofs.iter().enumerate() {
+                x[d / 3][d % 3] =
+                    rest[d / 3][d % 3] + dot_half(sys.f16c, &sys.map[r * g..(r + 1) * g], &u_gamma);
             }
             return;
         };
-        let mut b = Mat::<f64>::zeros(self.far.dofs.len(), 1);
-        for &(fr, gc, v) in &self.far.kfg {
-            let d = self.gamma_dof[gc];
-            b[(fr, 0)] -= v * (x[d / 3][d % 3] - self.active.rest()[d / 3][d % 3]);
+        let mut b = Mat::<f64>::zeros(sys.far.dofs.len(), 1);
+        for &(fr, gc, v) in &sys.far.kfg {
+            let d = sys.gamma_dof[gc];
+            b[(fr, 0)] -= v * (x[d / 3][d % 3] - sys.active.rest()[d / 3][d % 3]);
         }
         llt.solve_in_place(b.as_mut());
-        for (k, &d) in self.far.dofs.iter().enumerate() {
-            x[d / 3][d % 3] = self.active.rest()[d / 3][d % 3] + b[(k, 0)];
+        for (k, &d) in sys.far.dofs.iter().enumerate() {
+            x[d / 3][d % 3] = sys.active.rest()[d / 3][d % 3] + b[(k, 0)];
         }
     }
 }

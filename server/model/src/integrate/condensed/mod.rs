@@ -265,11 +265,35 @@ struct FarField {
 }
 
 /// Backward Euler on an active region with the far body condensed (module documentation).
-/// Built once per scene; [`CondensedSolver::step`] is allocation-free.
+/// Built once per scene; [`CondensedSolver::step`] is allocation-free. Its parts: what the
+/// scene set (`CondensedParams`), what construction built (`CondensedSystem`), the contact
+/// columns prepared for the touchable nodes (`ContactColumns`), what a tick hands to the
+/// next (`CondensedState`), what a tick overwrites (`CondensedScratch`) and the counters
+/// (`CondensedStats`).
 #[derive(Debug, Clone)]
 pub struct CondensedSolver {
+    params: CondensedParams,
+    system: CondensedSystem,
+    contact: ContactColumns,
+    state: CondensedState,
+    scratch: CondensedScratch,
+    stats: CondensedStats,
+}
+
+/// What a condensed solver was built for (read only).
+#[derive(Debug, Clone, Copy)]
+struct CondensedParams {
+    /// The step the tick matrix was factorised for, s.
     h: f64,
     region: ActiveRegion,
+}
+
+/// What construction builds once and the tick reads: the split, its numbering, the condensed
+/// far part and the tick matrix's factor ([`CondensedSolver::new`]). The supernodal sweep is
+/// the one member a tick writes (its own work vectors); the entry factor, when added, is
+/// swapped with `factor` / `half` for the ticks that use it ([`CondensedSolver::step`]).
+#[derive(Debug, Clone)]
+struct CondensedSystem {
     /// The active elements (all nodes of the body, numbered as in the body; far nodes have no
     /// element here). Its forces are the active region's.
     active: FemModel,
@@ -286,44 +310,20 @@ pub struct CondensedSolver {
     /// below the discretisation error). Each entry is read once per tick for both halves:
     /// the tick streams a quarter of the double-precision matrix.
     schur: Vec<f32>,
-    /// Scratch: `S u_G`.
-    su: Vec<f64>,
-    /// Scratch: a one-row coupling's row `a` over the equations.
-    a_row: Vec<f32>,
     /// The AVX2 + FMA token when the CPU has them (the tick's vector loops use them then).
     avx2: Option<Avx2Fma>,
+    /// The AVX2 + FMA + F16C token when the CPU has them (the map's rows use that build).
+    f16c: Option<Avx2FmaF16c>,
     symbolic: Arc<SymbolicCholesky<usize>>,
     /// Cholesky factor of `A`, single precision.
     factor: Vec<f32>,
-    /// Factor on the solved velocity (module documentation, "Relaxation"), in
-    /// `[MIN_RELAXATION, 1]`.
-    relaxation: f64,
-    /// Ticks whose velocity reversed (each halved `relaxation`).
-    relaxed_ticks: u64,
-    /// The tick's one-column solve ([`SupernodalSolve`]; `None` for a simplicial factor,
-    /// solved by faer through `factor`).
+    /// The tick's one-column solve ([`SupernodalSolve`], keeping its own work vectors; `None`
+    /// for a simplicial factor, solved by faer through `factor`).
     sweep: Option<SupernodalSolve>,
     /// `factor` in half precision for `sweep` (`factor` then holds its rounded values; `None`
     /// when the rounding would move the step too far, [`half_of`], and faer solves through
     /// `factor`).
     half: Option<HalfFactor>,
-    stack: Workspace,
-    /// Right-hand sides: the step's and the coupling's `U`.
-    rhs: Mat<f32>,
-    /// The step's right-hand side in double precision (with interface components only: a
-    /// whole-body solver writes it straight into `rhs`).
-    b: Vec<f64>,
-    /// Per body node: its column block in `contact_z`, or `u32::MAX`
-    /// ([`CondensedSolver::prepare_contact`]).
-    contact_col: Vec<u32>,
-    /// `A^-1 e` for the three components of every contact node: per node its three columns of
-    /// `m` values one after the other (x, y, z).
-    contact_z: Vec<f32>,
-    /// Scratch: the probe's correction `A^-1 A^T s`, then the solved velocity `v'` before
-    /// relaxation.
-    z1: Vec<f64>,
-    /// Woodbury capacitance of the probe's term (`F x F`, [`MAX_COUPLING_ROWS`] squared).
-    capacitance: Vec<f64>,
     /// Global component of each row of `map`: the far boundary's free components, or every
     /// far free component for a following region.
     map_dofs: Vec<usize>,
@@ -335,23 +335,87 @@ pub struct CondensedSolver {
     /// Rows of `map` on the far boundary (what viewers see), refreshed a slice per tick.
     surface_rows: Vec<u32>,
     /// Following regions: per global component its row of `map` or `u32::MAX`
-    /// ([`Self::hand_over`]); empty otherwise.
+    /// ([`CondensedSolver::hand_over`]); empty otherwise.
     map_row: Vec<u32>,
-    /// Next entry of `surface_rows` to refresh.
-    surface_cursor: usize,
-    u_gamma: Vec<f64>,
-    /// `u_gamma` in single precision, for the map's rows.
-    u_gamma32: Vec<f32>,
-    /// The AVX2 + FMA + F16C token when the CPU has them (the map's rows use that build).
-    f16c: Option<Avx2FmaF16c>,
     far: FarField,
     sizes: CondensedSizes,
     node_active: Vec<bool>,
     /// The tick matrix with the rest stiffness unscaled (margin 1), used instead of `factor`
-    /// on ticks where a node enters the probe's rows ([`Self::add_entry_factor`]).
+    /// on ticks where a node enters the probe's rows ([`CondensedSolver::add_entry_factor`]).
     entry: Option<EntryFactor>,
+}
+
+/// The contact columns `A^-1 e` prepared for the touchable nodes
+/// ([`CondensedSolver::prepare_contact`]; not per tick).
+#[derive(Debug, Clone)]
+struct ContactColumns {
+    /// Per body node: its column block in `z`, or `u32::MAX`.
+    col: Vec<u32>,
+    /// `A^-1 e` for the three components of every contact node: per node its three columns of
+    /// `m` values one after the other (x, y, z).
+    z: Vec<f32>,
+}
+
+/// What one tick hands to the next.
+#[derive(Debug, Clone)]
+struct CondensedState {
+    /// Factor on the solved velocity (module documentation, "Relaxation"), in
+    /// `[MIN_RELAXATION, 1]`.
+    relaxation: f64,
     /// The nodes of the last tick's probe rows (capacity [`ENTRY_TRACKED_NODES`]).
     last_contact: Vec<u32>,
+    /// Next entry of `surface_rows` to refresh.
+    surface_cursor: usize,
+}
+
+/// Work arrays every tick overwrites, allocated at construction (`m` equations, `g` interface
+/// components).
+#[derive(Debug, Clone)]
+struct CondensedScratch {
+    /// `S u_G` (`g`).
+    su: Vec<f64>,
+    /// A one-row coupling's row `a` over the equations (`m`).
+    a_row: Vec<f32>,
+    /// faer's solve workspace.
+    stack: Workspace,
+    /// Right-hand sides: the step's and the coupling's `U` (`m x 2`).
+    rhs: Mat<f32>,
+    /// The step's right-hand side in double precision (with interface components only: a
+    /// whole-body solver writes it straight into `rhs`).
+    b: Vec<f64>,
+    /// The probe's correction `A^-1 A^T s`, then the solved velocity `v'` before relaxation.
+    z1: Vec<f64>,
+    /// Woodbury capacitance of the probe's term (`F x F`, [`MAX_COUPLING_ROWS`] squared).
+    capacitance: Vec<f64>,
+    /// The interface displacement `u_G` (`g`).
+    u_gamma: Vec<f64>,
+    /// `u_gamma` in single precision, for the map's rows.
+    u_gamma32: Vec<f32>,
+}
+
+impl CondensedScratch {
+    /// Zeroed work arrays for `m` equations and `g` interface components; `stack` the solve
+    /// workspace.
+    fn new(m: usize, g: usize, stack: Workspace) -> Self {
+        Self {
+            su: vec![0.0; g],
+            a_row: vec![0.0; m],
+            stack,
+            rhs: Mat::zeros(m, 2),
+            b: vec![0.0; m],
+            z1: vec![0.0; m],
+            capacitance: vec![0.0; MAX_COUPLING_ROWS * MAX_COUPLING_ROWS],
+            u_gamma: vec![0.0; g],
+            u_gamma32: vec![0.0; g],
+        }
+    }
+}
+
+/// Counters for reports.
+#[derive(Debug, Clone, Copy, Default)]
+struct CondensedStats {
+    /// Ticks whose velocity reversed (each halved the relaxation).
+    relaxed_ticks: u64,
 }
 
 /// A one-row probe coupling over `N` nodes is solved by the paired sweep
@@ -379,8 +443,9 @@ impl CondensedSolver {
     /// Far-surface rows refreshed per tick: [`SURFACE_REFRESH_TICKS`] ticks for all, or
     /// fewer rows when that exceeds [`SURFACE_REFRESH_MAX_MACS`].
     fn surface_rows_per_tick(&self) -> usize {
-        let g = self.gamma_dof.len().max(1);
-        self.surface_rows
+        let g = self.system.gamma_dof.len().max(1);
+        self.system
+            .surface_rows
             .len()
             .div_ceil(SURFACE_REFRESH_TICKS)
             .min((SURFACE_REFRESH_MAX_MACS / g).max(1))
@@ -390,7 +455,7 @@ impl CondensedSolver {
     /// interface): [`SURFACE_REFRESH_TICKS`], more on large far surfaces
     /// ([`SURFACE_REFRESH_MAX_MACS`]); 0 without far surface.
     pub fn surface_refresh_ticks(&self) -> usize {
-        let rows = self.surface_rows.len();
+        let rows = self.system.surface_rows.len();
         if rows == 0 {
             0
         } else {
@@ -401,39 +466,39 @@ impl CondensedSolver {
     /// The active elements as a model over the whole body's nodes: its
     /// [`FemModel::add_internal_forces`] gives the active region's forces.
     pub fn active_model(&self) -> &FemModel {
-        &self.active
+        &self.system.active
     }
 
     /// The region this solver simulates.
     pub fn region(&self) -> ActiveRegion {
-        self.region
+        self.params.region
     }
 
     /// Whether the region holds every element (nothing condensed: backward Euler with the rest
     /// factor on the whole body, [`crate::integrate::LinearSolver::RestCholesky`]).
     pub fn is_whole_body(&self) -> bool {
-        self.gamma_dof.is_empty() && self.far.dofs.is_empty()
+        self.system.gamma_dof.is_empty() && self.system.far.dofs.is_empty()
     }
 
     /// Sizes of the split, for reports.
     pub fn sizes(&self) -> CondensedSizes {
-        self.sizes
+        self.system.sizes
     }
 
     /// Ticks so far whose solved velocity field reversed and was relaxed, and the factor on
     /// the velocity now (module documentation, "Relaxation").
     pub fn relaxation(&self) -> (u64, f64) {
-        (self.relaxed_ticks, self.relaxation)
+        (self.stats.relaxed_ticks, self.state.relaxation)
     }
 
     /// Step the matrix was factorised for, s.
     pub fn dt_s(&self) -> f64 {
-        self.h
+        self.params.h
     }
 
     /// Whether node `i` belongs to an active element.
     pub fn is_active_node(&self, i: u32) -> bool {
-        self.node_active[i as usize]
+        self.system.node_active[i as usize]
     }
 
     /// Whether every corner of triangle `t` is an active node (contact and loads must stay
@@ -445,16 +510,21 @@ impl CondensedSolver {
     /// Bytes held by the region's numeric arrays (tick factor, maps, coupling columns, far
     /// factor), for reports; index arrays and the active elements' model are not counted.
     pub fn memory_bytes(&self) -> usize {
-        let far = self.far.llt.as_ref().map_or(0, |l| 8 * l.factor_entries());
+        let far = self
+            .system
+            .far
+            .llt
+            .as_ref()
+            .map_or(0, |l| 8 * l.factor_entries());
         let half = |h: &Option<HalfFactor>| h.as_ref().map_or(0, HalfFactor::memory_bytes);
-        let entry = self.entry.as_ref().map_or(0, |e| {
+        let entry = self.system.entry.as_ref().map_or(0, |e| {
             4 * (e.factor.len() + e.contact_z.len()) + half(&e.half)
         });
         entry
-            + half(&self.half)
-            + 4 * (self.factor.len() + self.schur.len() + self.contact_z.len())
-            + 2 * self.map.len()
-            + 24 * self.far.kfg.len()
+            + half(&self.system.half)
+            + 4 * (self.system.factor.len() + self.system.schur.len() + self.contact.z.len())
+            + 2 * self.system.map.len()
+            + 24 * self.system.far.kfg.len()
             + far
     }
 }

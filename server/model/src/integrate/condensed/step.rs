@@ -19,33 +19,41 @@ impl CondensedSolver {
         v: &mut [DVec3],
     ) -> f64 {
         // Without an entry factor there is nothing to tell apart.
-        if self.entry.is_none() {
+        if self.system.entry.is_none() {
             return self.step_solved(f, coupling, x, v);
         }
         // A node entering the probe's rows: the step with the unscaled rest stiffness.
         let entering = coupling.is_some_and(|c| {
             c.nodes.len() > ENTRY_TRACKED_NODES
-                || c.nodes.iter().any(|i| !self.last_contact.contains(i))
+                || c.nodes.iter().any(|i| !self.state.last_contact.contains(i))
         });
-        self.last_contact.clear();
+        self.state.last_contact.clear();
         if let Some(c) = coupling {
             let k = c.nodes.len().min(ENTRY_TRACKED_NODES);
-            self.last_contact.extend_from_slice(&c.nodes[..k]);
+            self.state.last_contact.extend_from_slice(&c.nodes[..k]);
         }
-        let entry = if entering { self.entry.take() } else { None };
+        let entry = if entering {
+            self.system.entry.take()
+        } else {
+            None
+        };
         let Some(mut entry) = entry else {
             return self.step_solved(f, coupling, x, v);
         };
         // The entry factor and its columns stand in for this tick (swapped, not copied).
-        std::mem::swap(&mut self.factor, &mut entry.factor);
-        std::mem::swap(&mut self.half, &mut entry.half);
-        std::mem::swap(&mut self.contact_z, &mut entry.contact_z);
+        self.swap_entry(&mut entry);
         let r = self.step_solved(f, coupling, x, v);
-        std::mem::swap(&mut self.factor, &mut entry.factor);
-        std::mem::swap(&mut self.half, &mut entry.half);
-        std::mem::swap(&mut self.contact_z, &mut entry.contact_z);
-        self.entry = Some(entry);
+        self.swap_entry(&mut entry);
+        self.system.entry = Some(entry);
         r
+    }
+
+    /// Swaps the tick factor, its half-precision copy and the contact columns with the entry
+    /// factor's (allocation-free).
+    fn swap_entry(&mut self, entry: &mut EntryFactor) {
+        std::mem::swap(&mut self.system.factor, &mut entry.factor);
+        std::mem::swap(&mut self.system.half, &mut entry.half);
+        std::mem::swap(&mut self.contact.z, &mut entry.contact_z);
     }
 
     /// [`Self::step`] with the factor in `factor` (and its columns in `contact_z`).
@@ -70,12 +78,13 @@ impl CondensedSolver {
 
     /// The interface displacement `u_G` from `x` (flat), in double and single precision.
     fn gather_interface(&mut self, x: &[f64]) {
-        let rest: &[f64] = bytemuck::cast_slice(self.active.rest());
+        let rest: &[f64] = bytemuck::cast_slice(self.system.active.rest());
         for ((u, u32), &d) in self
+            .scratch
             .u_gamma
             .iter_mut()
-            .zip(&mut self.u_gamma32)
-            .zip(&self.gamma_dof)
+            .zip(&mut self.scratch.u_gamma32)
+            .zip(&self.system.gamma_dof)
         {
             *u = x[d] - rest[d];
             *u32 = *u as f32;
@@ -85,51 +94,71 @@ impl CondensedSolver {
     /// Far boundary nodes: a slice of rows per tick, so the surface is at most
     /// `surface_refresh_ticks` ticks behind the interface.
     fn refresh_surface_rows(&mut self, x: &mut [f64]) {
-        let rest: &[f64] = bytemuck::cast_slice(self.active.rest());
-        let g = self.gamma_dof.len();
-        let rows = self.surface_rows.len();
+        let rest: &[f64] = bytemuck::cast_slice(self.system.active.rest());
+        let g = self.system.gamma_dof.len();
+        let rows = self.system.surface_rows.len();
         if rows > 0 {
             let per_tick = self.surface_rows_per_tick();
-            let end = (self.surface_cursor + per_tick).min(rows);
-            for &r in &self.surface_rows[self.surface_cursor..end] {
+            let end = (self.state.surface_cursor + per_tick).min(rows);
+            for &r in &self.system.surface_rows[self.state.surface_cursor..end] {
                 let r = r as usize;
-                let d = self.map_dofs[r];
-                let u = dot_half(self.f16c, &self.map[r * g..(r + 1) * g], &self.u_gamma32);
+                let d = self.system.map_dofs[r];
+                let u = dot_half(
+                    self.system.f16c,
+                    &self.system.map[r * g..(r + 1) * g],
+                    &self.scratch.u_gamma32,
+                );
                 x[d] = rest[d] + u;
             }
-            self.surface_cursor = if end == rows { 0 } else { end };
+            self.state.surface_cursor = if end == rows { 0 } else { end };
         }
     }
 
     /// `b = M v + h (f - S u_G)`, into the first right-hand-side column (the second is
     /// filled where it is used).
     fn right_hand_side(&mut self, f: &[f64], v: &[f64]) {
-        let h = self.h;
-        let g = self.gamma_dof.len();
-        let rhs0 = self.rhs.col_as_slice_mut(0);
+        let h = self.params.h;
+        let g = self.system.gamma_dof.len();
+        let rhs0 = self.scratch.rhs.col_as_slice_mut(0);
         if g == 0 {
-            for ((r, &d), &m) in rhs0.iter_mut().zip(&self.eq_dof).zip(&self.mass) {
+            for ((r, &d), &m) in rhs0
+                .iter_mut()
+                .zip(&self.system.eq_dof)
+                .zip(&self.system.mass)
+            {
                 *r = (m * v[d] + h * f[d]) as f32;
             }
         } else {
-            for ((b, &d), &m) in self.b.iter_mut().zip(&self.eq_dof).zip(&self.mass) {
+            for ((b, &d), &m) in self
+                .scratch
+                .b
+                .iter_mut()
+                .zip(&self.system.eq_dof)
+                .zip(&self.system.mass)
+            {
                 *b = m * v[d] + h * f[d];
             }
             // S u_G from the packed upper triangle: row `a` adds its dot product to entry
             // `a` and its entries times `u_a` to the entries after it.
-            self.su.iter_mut().for_each(|s| *s = 0.0);
+            self.scratch.su.iter_mut().for_each(|s| *s = 0.0);
             for a in 0..g {
                 let start = packed_row_start(a, g);
-                let row = &self.schur[start..start + g - a];
-                let ua = self.u_gamma[a];
-                let (head, tail) = self.su.split_at_mut(a + 1);
-                let s = sym_row(self.avx2, &row[1..], &self.u_gamma[a + 1..], tail, ua);
+                let row = &self.system.schur[start..start + g - a];
+                let ua = self.scratch.u_gamma[a];
+                let (head, tail) = self.scratch.su.split_at_mut(a + 1);
+                let s = sym_row(
+                    self.system.avx2,
+                    &row[1..],
+                    &self.scratch.u_gamma[a + 1..],
+                    tail,
+                    ua,
+                );
                 head[a] += f64::from(row[0]) * ua + s;
             }
-            for (&da, &su) in self.gamma_dof.iter().zip(&self.su) {
-                self.b[self.eq[da]] -= h * su;
+            for (&da, &su) in self.system.gamma_dof.iter().zip(&self.scratch.su) {
+                self.scratch.b[self.system.eq[da]] -= h * su;
             }
-            for (r, b) in rhs0.iter_mut().zip(&self.b) {
+            for (r, b) in rhs0.iter_mut().zip(&self.scratch.b) {
                 *r = *b as f32;
             }
         }
@@ -142,7 +171,7 @@ impl CondensedSolver {
     /// with a node not prepared falls back to one more solve per row. `z1` receives the
     /// correction `A^-1 A^T W^-1 A z0` (zero without one).
     fn solve_with_probe(&mut self, coupling: Option<ContactCoupling<'_>>) {
-        self.z1.iter_mut().for_each(|z| *z = 0.0);
+        self.scratch.z1.iter_mut().for_each(|z| *z = 0.0);
         let paired = self.paired_sweep_row(coupling);
         if let Some(c) = coupling.filter(|_| !paired) {
             self.woodbury_rows(c);
@@ -155,9 +184,10 @@ impl CondensedSolver {
     /// the prepared columns ([`PAIRED_SWEEP_MIN_RATIO`]). Otherwise the plain solve
     /// `z0 = A^-1 b`; returns whether the paired sweep ran.
     fn paired_sweep_row(&mut self, coupling: Option<ContactCoupling<'_>>) -> bool {
-        let h = self.h;
-        let m = self.eq_dof.len();
+        let h = self.params.h;
+        let m = self.system.eq_dof.len();
         let factor_len = self
+            .system
             .sweep
             .as_ref()
             .map_or(usize::MAX, SupernodalSolve::factor_len);
@@ -165,14 +195,17 @@ impl CondensedSolver {
             c.rows() == 1
                 && (3 * c.nodes.len() * m) as f64 >= PAIRED_SWEEP_MIN_RATIO * factor_len as f64
         });
-        if let (Some(c), Some(sweep), Some(half)) = (one_row, &mut self.sweep, &self.half) {
-            self.a_row.iter_mut().for_each(|a| *a = 0.0);
-            add_row(&self.eq, c, 0, 1.0, &mut self.a_row);
-            let (aa, ab) = sweep.forward_pair(half, self.rhs.col_as_slice(0), &self.a_row);
+        if let (Some(c), Some(sweep), Some(half)) =
+            (one_row, &mut self.system.sweep, &self.system.half)
+        {
+            self.scratch.a_row.iter_mut().for_each(|a| *a = 0.0);
+            add_row(&self.system.eq, c, 0, 1.0, &mut self.scratch.a_row);
+            let (aa, ab) =
+                sweep.forward_pair(half, self.scratch.rhs.col_as_slice(0), &self.scratch.a_row);
             let w = c.compliance[0] / (h * h) + aa;
             // A capacitance that is not positive: no correction, as for several rows.
             let s = if w > 0.0 { ab / w } else { 0.0 };
-            sweep.backward_combined(half, s as f32, self.rhs.col_as_slice_mut(0));
+            sweep.backward_combined(half, s as f32, self.scratch.rhs.col_as_slice_mut(0));
             true
         } else {
             self.solve_column(0);
@@ -187,15 +220,15 @@ impl CondensedSolver {
         let prepared = c
             .nodes
             .iter()
-            .all(|&i| self.contact_col[i as usize] != u32::MAX);
+            .all(|&i| self.contact.col[i as usize] != u32::MAX);
         // t = A z0.
         let mut t = [0.0; MAX_COUPLING_ROWS];
         for (f, tf) in t.iter_mut().enumerate().take(nf) {
             for (i, u) in c.row(f) {
                 for k in 0..3 {
-                    let e = self.eq[3 * i as usize + k];
+                    let e = self.system.eq[3 * i as usize + k];
                     if e != usize::MAX {
-                        *tf += u[k] * f64::from(self.rhs[(e, 0)]);
+                        *tf += u[k] * f64::from(self.scratch.rhs[(e, 0)]);
                     }
                 }
             }
@@ -204,23 +237,23 @@ impl CondensedSolver {
         // prepared columns first, then `W += a z1`.
         let single_row = prepared && nf == 1;
         self.capacitance_of(c, prepared, single_row);
-        let w = &mut self.capacitance[..nf * nf];
+        let w = &mut self.scratch.capacitance[..nf * nf];
         if cholesky_in_place(w, nf) {
             cholesky_solve(w, nf, &mut t[..nf]);
             self.correction(c, &t[..nf], prepared, single_row);
         } else if single_row {
             // No correction, as for several rows.
-            self.z1.iter_mut().for_each(|z| *z = 0.0);
+            self.scratch.z1.iter_mut().for_each(|z| *z = 0.0);
         }
     }
 
     /// The capacitance `W = C^-1 / h^2 + A A^-1 A^T` of the probe's rows `c` into
     /// `capacitance`; with `single_row`, `z1 = A^-1 a^T` on the way.
     fn capacitance_of(&mut self, c: ContactCoupling<'_>, prepared: bool, single_row: bool) {
-        let h = self.h;
-        let m = self.eq_dof.len();
+        let h = self.params.h;
+        let m = self.system.eq_dof.len();
         let nf = c.rows();
-        let w = &mut self.capacitance[..nf * nf];
+        let w = &mut self.scratch.capacitance[..nf * nf];
         for f in 0..nf {
             for g in 0..nf {
                 w[f * nf + g] = c.compliance[f * nf + g] / (h * h);
@@ -230,20 +263,20 @@ impl CondensedSolver {
         // `N` nodes, about a fifth of the tick on a 0.5 mm mesh: one row goes through `z1`.
         if single_row {
             for (l, u) in c.row(0) {
-                let base = self.contact_col[l as usize] as usize * 3 * m;
+                let base = self.contact.col[l as usize] as usize * 3 * m;
                 axpy3(
-                    self.avx2,
-                    &mut self.z1,
+                    self.system.avx2,
+                    &mut self.scratch.z1,
                     u.to_array(),
-                    &self.contact_z[base..base + 3 * m],
+                    &self.contact.z[base..base + 3 * m],
                 );
             }
             let mut s = 0.0;
             for (j, u) in c.row(0) {
                 for a in 0..3 {
-                    let e = self.eq[3 * j as usize + a];
+                    let e = self.system.eq[3 * j as usize + a];
                     if e != usize::MAX {
-                        s += u[a] * self.z1[e];
+                        s += u[a] * self.scratch.z1[e];
                     }
                 }
             }
@@ -254,13 +287,13 @@ impl CondensedSolver {
                     let mut s = 0.0;
                     for (j, u) in c.row(f) {
                         for (l, wv) in c.row(g) {
-                            let base = self.contact_col[l as usize] as usize * 3 * m;
+                            let base = self.contact.col[l as usize] as usize * 3 * m;
                             for a in 0..3 {
-                                let e = self.eq[3 * j as usize + a];
+                                let e = self.system.eq[3 * j as usize + a];
                                 if e == usize::MAX {
                                     continue;
                                 }
-                                let z = &self.contact_z[base + e..];
+                                let z = &self.contact.z[base + e..];
                                 s += u[a]
                                     * (wv.x * f64::from(z[0])
                                         + wv.y * f64::from(z[m])
@@ -281,13 +314,13 @@ impl CondensedSolver {
                     let mut s = 0.0;
                     for (i, u) in c.row(f) {
                         for k in 0..3 {
-                            let e = self.eq[3 * i as usize + k];
+                            let e = self.system.eq[3 * i as usize + k];
                             if e != usize::MAX {
-                                s += u[k] * f64::from(self.rhs[(e, 1)]);
+                                s += u[k] * f64::from(self.scratch.rhs[(e, 1)]);
                             }
                         }
                     }
-                    self.capacitance[f * nf + g] += s;
+                    self.scratch.capacitance[f * nf + g] += s;
                 }
             }
         }
@@ -295,30 +328,36 @@ impl CondensedSolver {
 
     /// `z1 = A^-1 A^T s` for the solved multipliers `s` of the probe's rows `c`.
     fn correction(&mut self, c: ContactCoupling<'_>, t: &[f64], prepared: bool, single_row: bool) {
-        let m = self.eq_dof.len();
+        let m = self.system.eq_dof.len();
         if single_row {
             let s = t[0];
-            self.z1.iter_mut().for_each(|z| *z *= s);
+            self.scratch.z1.iter_mut().for_each(|z| *z *= s);
         } else if prepared {
             for (f, &tf) in t.iter().enumerate() {
                 for (l, u) in c.row(f) {
-                    let base = self.contact_col[l as usize] as usize * 3 * m;
+                    let base = self.contact.col[l as usize] as usize * 3 * m;
                     axpy3(
-                        self.avx2,
-                        &mut self.z1,
+                        self.system.avx2,
+                        &mut self.scratch.z1,
                         (u * tf).to_array(),
-                        &self.contact_z[base..base + 3 * m],
+                        &self.contact.z[base..base + 3 * m],
                     );
                 }
             }
         } else {
-            self.rhs.col_mut(1).fill(0.0);
+            self.scratch.rhs.col_mut(1).fill(0.0);
             for (f, &tf) in t.iter().enumerate() {
-                add_row(&self.eq, c, f, tf, self.rhs.col_as_slice_mut(1));
+                add_row(
+                    &self.system.eq,
+                    c,
+                    f,
+                    tf,
+                    self.scratch.rhs.col_as_slice_mut(1),
+                );
             }
             self.solve_column(1);
-            for (k, z) in self.z1.iter_mut().enumerate() {
-                *z = f64::from(self.rhs[(k, 1)]);
+            for (k, z) in self.scratch.z1.iter_mut().enumerate() {
+                *z = f64::from(self.scratch.rhs[(k, 1)]);
             }
         }
     }
@@ -332,8 +371,8 @@ impl CondensedSolver {
     fn relax(&mut self, v: &[f64]) -> f64 {
         let (mut dot_old_new, mut old2, mut new2) = (0.0, 0.0, 0.0);
         let (mut new_max2, mut old_max2) = (0.0f64, 0.0f64);
-        let z0 = self.rhs.col_as_slice(0);
-        for ((z, &d), &z0) in self.z1.iter_mut().zip(&self.eq_dof).zip(z0) {
+        let z0 = self.scratch.rhs.col_as_slice(0);
+        for ((z, &d), &z0) in self.scratch.z1.iter_mut().zip(&self.system.eq_dof).zip(z0) {
             let vn = f64::from(z0) - *z;
             *z = vn;
             let vo = v[d];
@@ -347,20 +386,20 @@ impl CondensedSolver {
             && new_max2 > REVERSAL_MIN_SPEED_M_PER_S * REVERSAL_MIN_SPEED_M_PER_S;
         let snapped = new_max2 > SNAP_GROWTH * SNAP_GROWTH * old_max2
             && new_max2 > SNAP_MIN_SPEED_M_PER_S * SNAP_MIN_SPEED_M_PER_S;
-        self.relaxation = if reversed || snapped {
-            self.relaxed_ticks += 1;
-            (self.relaxation * 0.5).max(MIN_RELAXATION)
+        self.state.relaxation = if reversed || snapped {
+            self.stats.relaxed_ticks += 1;
+            (self.state.relaxation * 0.5).max(MIN_RELAXATION)
         } else {
-            (self.relaxation * RELAXATION_RECOVERY).min(1.0)
+            (self.state.relaxation * RELAXATION_RECOVERY).min(1.0)
         };
-        self.relaxation
+        self.state.relaxation
     }
 
     /// `v = alpha z1`, `x += h v` on the equations; returns the largest squared nodal speed
     /// (NaN if any value is not finite).
     fn scatter(&self, alpha: f64, x: &mut [f64], v: &mut [f64]) -> f64 {
-        let h = self.h;
-        for (&d, &vn) in self.eq_dof.iter().zip(&self.z1) {
+        let h = self.params.h;
+        for (&d, &vn) in self.system.eq_dof.iter().zip(&self.scratch.z1) {
             let vi = alpha * vn;
             v[d] = vi;
             x[d] += vi * h;
@@ -368,7 +407,7 @@ impl CondensedSolver {
         let mut max_v2: f64 = 0.0;
         let mut non_finite = false;
         let mut last = usize::MAX;
-        for &d in &self.eq_dof {
+        for &d in &self.system.eq_dof {
             let i = d / 3;
             if i != last {
                 last = i;
@@ -384,22 +423,29 @@ impl CondensedSolver {
     /// `A^-1 a_g` for row `g` of the probe's term into the second right-hand-side column (the
     /// fallback for nodes without prepared columns).
     fn solve_row(&mut self, c: ContactCoupling<'_>, g: usize) {
-        self.rhs.col_mut(1).fill(0.0);
-        add_row(&self.eq, c, g, 1.0, self.rhs.col_as_slice_mut(1));
+        self.scratch.rhs.col_mut(1).fill(0.0);
+        add_row(
+            &self.system.eq,
+            c,
+            g,
+            1.0,
+            self.scratch.rhs.col_as_slice_mut(1),
+        );
         self.solve_column(1);
     }
 
     /// `A^-1` applied in place to column `col` of `rhs` (allocation-free).
     fn solve_column(&mut self, col: usize) {
-        if let (Some(sweep), Some(half)) = (&mut self.sweep, &self.half) {
-            sweep.solve_in_place(half, self.rhs.col_as_slice_mut(col));
+        if let (Some(sweep), Some(half)) = (&mut self.system.sweep, &self.system.half) {
+            sweep.solve_in_place(half, self.scratch.rhs.col_as_slice_mut(col));
             return;
         }
-        LltRef::<usize, f32>::new(&self.symbolic, &self.factor).solve_in_place_with_conj(
-            Conj::No,
-            self.rhs.as_mut().subcols_mut(col, 1),
-            Par::Seq,
-            MemStack::new(&mut self.stack.buffer),
-        );
+        LltRef::<usize, f32>::new(&self.system.symbolic, &self.system.factor)
+            .solve_in_place_with_conj(
+                Conj::No,
+                self.scratch.rhs.as_mut().subcols_mut(col, 1),
+                Par::Seq,
+                MemStack::new(&mut self.scratch.stack.buffer),
+            );
     }
 }

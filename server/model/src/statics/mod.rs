@@ -31,7 +31,11 @@ use crate::element::tangent::cell_tangent_blocks;
 use crate::element::{ConstraintMask, FemModel};
 use crate::linalg::ordering::SparseCholesky;
 use crate::loads::{SceneLoads, add_pressure_load, face_points, face_tangents, quadratic_face};
-use crate::material::{MaterialModel, MaterialParams};
+mod load_path;
+pub use load_path::{
+    LoadPathReport, MAX_VOLUME_PASSES, VOLUME_TOLERANCE, penalty_continuation, solve_scene_loads,
+    with_bulk_modulus,
+};
 
 /// Newton solver settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -127,6 +131,34 @@ impl Tangent {
         self.pairs.clear();
         self.vals.clear();
         self.term.clear();
+    }
+
+    /// Clears the tangent and pushes the cells' tangent blocks at `x` and the term's
+    /// stiffness blocks (`blocks` a work array).
+    fn fill_at(
+        &mut self,
+        fem: &FemModel,
+        term: Option<&dyn StaticTerm>,
+        x: &[DVec3],
+        dof: &[usize],
+        blocks: &mut Vec<DMat3>,
+    ) {
+        self.clear();
+        for c in 0..fem.cell_count() {
+            cell_tangent_blocks(fem, c, x, blocks);
+            let t = fem.cell_nodes(c);
+            let npe = t.len();
+            for a in 0..npe {
+                for b in 0..npe {
+                    self.push_block(dof, t[a], t[b], &blocks[a * npe + b], false);
+                }
+            }
+        }
+        if let Some(term) = term {
+            term.for_each_stiffness_block(x, &mut |i, j, k| {
+                self.push_block(dof, i, j, &k, true);
+            });
+        }
     }
 
     /// Appends the free entries of the 3x3 block `k` coupling nodes `i` (rows) and `j`
@@ -461,211 +493,6 @@ impl StaticTerm for FollowerPressure<'_> {
     }
 }
 
-/// Bulk moduli of the volumetric penalty a static solve passes through for `material`
-/// (penalty continuation), Pa, ending with the material's own; a single entry when no
-/// continuation is needed.
-///
-/// Newton on a displacement-only penalty formulation converges only within a radius that
-/// shrinks as the bulk modulus `kappa` grows: a step that is right to first order leaves a
-/// second-order volume error which `kappa` turns into a stress far above the load. On the LV
-/// inflation (`deploy/scenes/lv_guccione_inflation.toml`, 474 quadratic elements) Newton
-/// converges with `kappa` = 20 times the shear modulus in 45 iterations, needs 115 at 200
-/// times, and diverges from the first step at 2 000 times. So the load is applied with
-/// `kappa_0 = 20 mu`, and [`solve_scene_loads`] then either raises `kappa` tenfold per stage at
-/// full load (each stage starts within `p / kappa` of its solution; this still stalls at
-/// 2 000 times on finer LV meshes) or, with the element-mean dilatation, keeps `kappa_0` and
-/// adds augmented-Lagrangian element pressures. The equilibrium of a hyperelastic body under
-/// the final load does not depend on the path.
-///
-/// Only the Guccione material has a separate bulk modulus; for the others this returns its
-/// `lambda` alone.
-pub fn penalty_continuation(material: &MaterialParams) -> Vec<f64> {
-    let kappa = material.lambda_pa;
-    if material.model != MaterialModel::Guccione {
-        return vec![kappa];
-    }
-    let start = 20.0 * material.mu_pa;
-    let mut stages = Vec::new();
-    let mut k = start;
-    while k < kappa {
-        stages.push(k);
-        k *= 10.0;
-    }
-    stages.push(kappa);
-    stages
-}
-
-/// `material` with the volumetric penalty `bulk_modulus_pa` (Pa): see
-/// [`penalty_continuation`].
-pub fn with_bulk_modulus(material: &MaterialParams, bulk_modulus_pa: f64) -> MaterialParams {
-    let mut m = *material;
-    m.lambda_pa = bulk_modulus_pa;
-    m.guccione.bulk_modulus_pa = bulk_modulus_pa;
-    m
-}
-
-/// What [`solve_scene_loads`] did.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct LoadPathReport {
-    /// Newton iterations over all increments and passes.
-    pub newton_iterations: usize,
-    /// Solves at full load after the increments: penalty stages ([`penalty_continuation`]) or
-    /// augmented-Lagrangian updates of the element pressures (0 when none).
-    pub constraint_passes: usize,
-    /// Largest `|J_c - 1|` over the cells at the end, for the mean-dilatation Guccione material
-    /// (0 otherwise).
-    pub worst_volume_change: f64,
-    /// Final free residual of the model of the last solve (with its element pressures), every
-    /// load evaluated at the final shape, N.
-    pub residual_n: f64,
-}
-
-/// Largest `|J_c - 1|` the augmented-Lagrangian passes of [`solve_scene_loads`] leave.
-pub const VOLUME_TOLERANCE: f64 = 1e-6;
-/// Largest number of those passes.
-pub const MAX_VOLUME_PASSES: usize = 60;
-
-/// Static equilibrium of `scene` under its `[loads]` from the rest shape: the load in
-/// `load_steps` equal increments (dead loads scaled, follower pressures as
-/// [`FollowerPressure`] with their load stiffness), Newton at each with `params`. `progress`
-/// sees each increment or pass as `(label, Newton iterations)`. Returns the node positions, m.
-///
-/// A Guccione material whose bulk modulus exceeds 20 times its shear modulus stands for an
-/// incompressible one, and a large penalty stalls Newton ([`penalty_continuation`]): the
-/// increments run with the penalty `kappa_0 = 20 mu`; then, with the element-mean dilatation
-/// (`volumetric = "mean-dilatation"`) on quadratic elements, augmented-Lagrangian passes at full load (method of
-/// multipliers: `lambda_c += kappa (J_c - 1)`, [`FemModel::set_cell_pressures`], the penalty
-/// raised fourfold towards the scene's after each pass Newton finishes in at most three
-/// iterations) drive every element's volume ratio to 1 within [`VOLUME_TOLERANCE`]: the
-/// incompressible solution, whatever the scene's bulk modulus; otherwise (per-point penalty, or
-/// linear elements, which lock under one constraint each) the penalty is raised tenfold per
-/// pass to the scene's.
-///
-/// # Errors
-/// The scene's model errors ([`crate::scene::Scene::fem_model`]);
-/// [`ModelError::NoConvergence`] naming the increment or pass that failed and why, or when
-/// the volume constraint is not met after [`MAX_VOLUME_PASSES`] passes.
-pub fn solve_scene_loads(
-    scene: &crate::scene::Scene,
-    load_steps: usize,
-    params: &StaticParams,
-    progress: &mut dyn FnMut(&str, usize),
-) -> Result<(Vec<DVec3>, LoadPathReport), ModelError> {
-    let stages = penalty_continuation(&scene.material);
-    let model_with = |kappa: f64| {
-        let mut s = scene.clone();
-        s.material = with_bulk_modulus(&scene.material, kappa);
-        s.fem_model()
-    };
-    let mut fem = if stages.len() > 1 {
-        model_with(stages[0])?
-    } else {
-        scene.fem_model()?
-    };
-    let dead = scene.dead_forces();
-    let steps = load_steps.max(1);
-    let mut x = scene.mesh.nodes.clone();
-    let mut report = LoadPathReport {
-        newton_iterations: 0,
-        constraint_passes: 0,
-        worst_volume_change: 0.0,
-        residual_n: 0.0,
-    };
-    // `hint` is added to the message of a failure only (a converged increment prints its
-    // label alone).
-    let mut solve = |fem: &FemModel, scale: f64, label: String, hint: &str, x: &mut [DVec3]| {
-        let f: Vec<DVec3> = dead.iter().map(|v| *v * scale).collect();
-        let follower = FollowerPressure::new(&scene.loads, scale);
-        let term = (!follower.is_empty()).then_some(&follower as &dyn StaticTerm);
-        let r = solve_static_with(fem, &f, term, x, params)
-            .map_err(|e| ModelError::NoConvergence(format!("{label}{hint}: {e}")))?;
-        progress(&label, r.iterations);
-        Ok::<usize, ModelError>(r.iterations)
-    };
-    for k in 1..=steps {
-        let label = if stages.len() > 1 {
-            format!("load increment {k}/{steps} (penalty {:.1e} Pa)", stages[0])
-        } else {
-            format!("load increment {k}/{steps}")
-        };
-        let hint = " (more load steps may help)";
-        report.newton_iterations += solve(&fem, k as f64 / steps as f64, label, hint, &mut x)?;
-    }
-    let mean_dilatation = scene.material.mean_dilatation();
-    let mut ratios = Vec::new();
-    let worst = |fem: &FemModel, x: &[DVec3], ratios: &mut Vec<f64>| {
-        fem.cell_volume_ratios(x, ratios);
-        ratios.iter().map(|j| (j - 1.0).abs()).fold(0.0, f64::max)
-    };
-    let true_residual = |fem: &FemModel, x: &[DVec3]| {
-        free_residual_norm(
-            fem,
-            &crate::loads::static_external_forces(
-                &scene.loads,
-                &scene.mesh,
-                scene.material.density_kg_per_m3,
-                x,
-            ),
-            x,
-        )
-    };
-    // The multipliers need an element that can keep its volume: on linear tetrahedra one
-    // constraint per element locks (and the passes diverge), so they take the penalty stages.
-    if mean_dilatation && scene.mesh.is_quadratic() && stages.len() > 1 {
-        // Method of multipliers: lambda_c += kappa (J_c - 1) after each solve; the penalty
-        // grows fourfold (up to the scene's) after a pass Newton finished in a few iterations,
-        // which keeps it where Newton converges while the constraint error shrinks.
-        let kappa_max = stages[stages.len() - 1];
-        let mut kappa = stages[0];
-        let mut lambda = vec![0.0; fem.cell_count()];
-        for pass in 1.. {
-            let w = worst(&fem, &x, &mut ratios);
-            report.worst_volume_change = w;
-            if w <= VOLUME_TOLERANCE {
-                break;
-            }
-            if pass > MAX_VOLUME_PASSES {
-                return Err(ModelError::NoConvergence(format!(
-                    "the volume constraint: an element still changes its volume by {w:.2e} \
-                     after {MAX_VOLUME_PASSES} augmented-Lagrangian passes (tolerance \
-                     {VOLUME_TOLERANCE:.0e})"
-                )));
-            }
-            for (l, j) in lambda.iter_mut().zip(&ratios) {
-                *l += kappa * (j - 1.0);
-            }
-            fem.set_cell_pressures(lambda.clone());
-            let label = format!(
-                "volume pass {pass} (worst element volume change {w:.2e}, penalty {kappa:.1e} Pa)"
-            );
-            let its = solve(&fem, 1.0, label, "", &mut x)?;
-            report.newton_iterations += its;
-            report.constraint_passes += 1;
-            if its <= 3 && kappa < kappa_max {
-                kappa = (kappa * 4.0).min(kappa_max);
-                fem = model_with(kappa)?;
-                fem.set_cell_pressures(lambda.clone());
-            }
-        }
-        report.residual_n = true_residual(&fem, &x);
-    } else {
-        for (j, &kappa) in stages.iter().enumerate().skip(1) {
-            fem = model_with(kappa)?;
-            let label = format!(
-                "penalty stage {j}/{} (bulk modulus {kappa:.1e} Pa)",
-                stages.len() - 1
-            );
-            report.newton_iterations += solve(&fem, 1.0, label, "", &mut x)?;
-            report.constraint_passes += 1;
-        }
-        if mean_dilatation {
-            report.worst_volume_change = worst(&fem, &x, &mut ratios);
-        }
-        report.residual_n = true_residual(&fem, &x);
-    }
-    Ok((x, report))
-}
-
 /// Solves `f_int(x) + f_ext = 0` for the free components of `x` (m), starting from `x`, with
 /// dead external nodal forces `f_ext` (N). Constrained components keep their values in `x`.
 ///
@@ -710,36 +537,17 @@ pub fn solve_static_with(
     } else {
         f_ext
     };
-    let load_norm = f_ext.iter().map(|v| v.length_squared()).sum::<f64>().sqrt();
-    let mut term_f = vec![DVec3::ZERO; if term.is_some() { n } else { 0 }];
-    // The extra term's share of the load scale: the largest norm of its forces seen so far, so
-    // an iterate where the term lets go (a contact released) does not shrink the tolerance to
-    // `abs_tol_n`.
-    let mut term_scale = 0.0f64;
-    // Residual r = f_ext + f_int + f_term at x, its free norm and the tolerance there.
-    let mut residual = |x: &[DVec3], r: &mut Vec<DVec3>| -> (f64, f64) {
-        r.clear();
-        r.extend_from_slice(f_ext);
-        fem.add_internal_forces(x, None, r);
-        let mut scale = load_norm;
-        if let Some(term) = term {
-            term_f.iter_mut().for_each(|v| *v = DVec3::ZERO);
-            term.add_forces(x, &mut term_f);
-            let mut s2 = 0.0;
-            for (ri, fi) in r.iter_mut().zip(&term_f) {
-                *ri += *fi;
-                s2 += fi.length_squared();
-            }
-            term_scale = term_scale.max(s2.sqrt());
-            scale += term_scale;
-        }
-        (
-            free_norm(fem.constraints(), r),
-            (params.rel_tol * scale).max(params.abs_tol_n),
-        )
+    let mut residual = Residual {
+        fem,
+        f_ext,
+        term,
+        params,
+        load_norm: f_ext.iter().map(|v| v.length_squared()).sum::<f64>().sqrt(),
+        term_f: vec![DVec3::ZERO; if term.is_some() { n } else { 0 }],
+        term_scale: 0.0,
     };
     let mut r = Vec::with_capacity(n);
-    let (mut rnorm, mut tol) = residual(x, &mut r);
+    let (mut rnorm, mut tol) = residual.eval(x, &mut r);
     let mut tangent = Tangent {
         group: free_dof_nodes(&dof, nfree),
         ..Tangent::default()
@@ -757,22 +565,7 @@ pub fn solve_static_with(
                 residual_n: rnorm,
             });
         }
-        tangent.clear();
-        for c in 0..fem.cell_count() {
-            cell_tangent_blocks(fem, c, x, &mut blocks);
-            let t = fem.cell_nodes(c);
-            let npe = t.len();
-            for a in 0..npe {
-                for b in 0..npe {
-                    tangent.push_block(&dof, t[a], t[b], &blocks[a * npe + b], false);
-                }
-            }
-        }
-        if let Some(term) = term {
-            term.for_each_stiffness_block(x, &mut |i, j, k| {
-                tangent.push_block(&dof, i, j, &k, true);
-            });
-        }
+        tangent.fill_at(fem, term, x, &dof, &mut blocks);
         let mut rhs = Mat::<f64>::zeros(nfree, 1);
         for i in 0..n {
             for c in 0..3 {
@@ -784,31 +577,12 @@ pub fn solve_static_with(
         }
         // K dx = r (r = f_int + f_ext, K = -d f_int/dx).
         tangent.solve(nfree, rhs.as_mut())?;
-        // Backtracking line search on the total potential or the residual norm (module docs).
-        let potential = |y: &[DVec3]| {
-            fem.elastic_energy(y) - y.iter().zip(f_ext).map(|(a, b)| a.dot(*b)).sum::<f64>()
-                + term.map_or(0.0, |t| t.energy(y))
+        let search = LineSearch {
+            dof: &dof,
+            dx: &rhs,
+            rnorm,
         };
-        let pi0 = potential(x);
-        let mut step = 1.0;
-        loop {
-            trial.copy_from_slice(x);
-            for i in 0..n {
-                for c in 0..3 {
-                    let d = dof[3 * i + c];
-                    if d != usize::MAX {
-                        trial[i][c] += step * rhs[(d, 0)];
-                    }
-                }
-            }
-            let (tn, ttol) = residual(&trial, &mut r);
-            if tn < rnorm || (tn.is_finite() && potential(&trial) < pi0) || step < 1e-3 {
-                x.copy_from_slice(&trial);
-                (rnorm, tol) = (tn, ttol);
-                break;
-            }
-            step *= 0.5;
-        }
+        (rnorm, tol) = search.run(&mut residual, x, &mut trial, &mut r);
         if !rnorm.is_finite() {
             return Err(ModelError::NoConvergence(
                 "the residual became non-finite".into(),
@@ -828,9 +602,109 @@ pub fn solve_static_with(
     }
 }
 
+/// The residual of [`solve_static_with`] and its tolerance.
+struct Residual<'a> {
+    fem: &'a FemModel,
+    /// Dead external nodal forces, N (one per node).
+    f_ext: &'a [DVec3],
+    term: Option<&'a dyn StaticTerm>,
+    params: &'a StaticParams,
+    /// `|f_ext|`, N.
+    load_norm: f64,
+    /// The term's forces (one per node with a term, else empty), N.
+    term_f: Vec<DVec3>,
+    /// The extra term's share of the load scale: the largest norm of its forces seen so far,
+    /// so an iterate where the term lets go (a contact released) does not shrink the
+    /// tolerance to `abs_tol_n`.
+    term_scale: f64,
+}
+
+impl Residual<'_> {
+    /// Residual `r = f_ext + f_int + f_term` at `x`; returns its free norm and the tolerance
+    /// there (N).
+    fn eval(&mut self, x: &[DVec3], r: &mut Vec<DVec3>) -> (f64, f64) {
+        r.clear();
+        r.extend_from_slice(self.f_ext);
+        self.fem.add_internal_forces(x, None, r);
+        let mut scale = self.load_norm;
+        if let Some(term) = self.term {
+            self.term_f.iter_mut().for_each(|v| *v = DVec3::ZERO);
+            term.add_forces(x, &mut self.term_f);
+            let mut s2 = 0.0;
+            for (ri, fi) in r.iter_mut().zip(&self.term_f) {
+                *ri += *fi;
+                s2 += fi.length_squared();
+            }
+            self.term_scale = self.term_scale.max(s2.sqrt());
+            scale += self.term_scale;
+        }
+        (
+            free_norm(self.fem.constraints(), r),
+            (self.params.rel_tol * scale).max(self.params.abs_tol_n),
+        )
+    }
+
+    /// The total potential at `y`, J: elastic energy, minus the dead loads' work, plus the
+    /// term's energy.
+    fn potential(&self, y: &[DVec3]) -> f64 {
+        self.fem.elastic_energy(y)
+            - y.iter()
+                .zip(self.f_ext)
+                .map(|(a, b)| a.dot(*b))
+                .sum::<f64>()
+            + self.term.map_or(0.0, |t| t.energy(y))
+    }
+}
+
+/// One backtracking line search of [`solve_static_with`] along the Newton step `dx`.
+struct LineSearch<'a> {
+    /// Free equation of each global component, or `usize::MAX`.
+    dof: &'a [usize],
+    /// The Newton step on the free equations (one column), m.
+    dx: &'a Mat<f64>,
+    /// The residual's free norm at `x`, N.
+    rnorm: f64,
+}
+
+impl LineSearch<'_> {
+    /// Halves the step from 1 until the residual norm or the total potential decreases (or
+    /// the step is below 1e-3; module documentation), then moves `x` there (`trial` and `r`
+    /// are work arrays; `r` holds the residual there). Returns the residual's free norm and
+    /// the tolerance at the new `x`.
+    fn run(
+        &self,
+        residual: &mut Residual<'_>,
+        x: &mut [DVec3],
+        trial: &mut [DVec3],
+        r: &mut Vec<DVec3>,
+    ) -> (f64, f64) {
+        let pi0 = residual.potential(x);
+        let mut step = 1.0;
+        loop {
+            trial.copy_from_slice(x);
+            for (i, t) in trial.iter_mut().enumerate().take(self.dof.len() / 3) {
+                for c in 0..3 {
+                    let d = self.dof[3 * i + c];
+                    if d != usize::MAX {
+                        t[c] += step * self.dx[(d, 0)];
+                    }
+                }
+            }
+            let (tn, ttol) = residual.eval(trial, r);
+            if tn < self.rnorm || (tn.is_finite() && residual.potential(trial) < pi0) || step < 1e-3
+            {
+                x.copy_from_slice(trial);
+                return (tn, ttol);
+            }
+            step *= 0.5;
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::material::MaterialParams;
 
     /// Dense `K` of the entries pushed to `t` (cells and term), `n` equations.
     fn dense(t: &Tangent, n: usize) -> Mat<f64> {
