@@ -452,75 +452,12 @@ impl ImplicitCore {
         };
         let layer = layer.unwrap_or(&no_regions);
         let n = fem.node_count();
-        let mat = fem.material();
         let fixed: Vec<bool> = (0..3 * n)
             .map(|q| fem.constraints()[q / 3] & (1 << (q % 3)) != 0)
             .collect();
         let hh = h_s * h_s * margin;
-        // Lower-triangle scalar entries of a block list.
-        let scalars =
-            |k: u32, l: u32, blk: &DMat3, scale: f64, out: &mut Vec<(usize, usize, f64)>| {
-                for r in 0..3 {
-                    for c in 0..3 {
-                        let (qr, qc) = (3 * k as usize + r, 3 * l as usize + c);
-                        if qr >= qc && !fixed[qr] && !fixed[qc] {
-                            out.push((qr, qc, blk.col(c)[r] * scale));
-                        }
-                    }
-                }
-            };
-        let mut base_entries: Vec<(usize, usize, f64)> = Vec::new();
-        let k_core = core_blocks(fem, mat.lambda_pa, mat.mu_pa);
-        let d_core = core_blocks(fem, 2.0 * mat.phi_pa_s, 2.0 * mat.psi_pa_s);
-        for (rows, scale) in [(&k_core, hh), (&d_core, h_s), (&layer.anchors, hh)] {
-            for k in 0..n {
-                for (l, blk) in rows.row(k) {
-                    if k as u32 >= *l {
-                        scalars(k as u32, *l, blk, scale, &mut base_entries);
-                    }
-                }
-            }
-        }
-        let damp = 1.0 + mat.mass_damping_per_s * h_s;
-        for (q, fixed) in fixed.iter().enumerate() {
-            let diag = if *fixed {
-                1.0
-            } else {
-                damp * fem.lumped_mass_kg()[q / 3]
-            };
-            base_entries.push((q, q, diag));
-        }
-        // The pattern: every entry any active set can have, marked in a bitmap of the lower
-        // triangle (no list of every region's scalars).
-        let dofs = 3 * n;
-        let mut seen = vec![0u64; (dofs * dofs).div_ceil(64)];
-        let mark = |r: usize, c: usize, seen: &mut [u64]| {
-            let bit = c * dofs + r;
-            seen[bit / 64] |= 1 << (bit % 64);
-        };
-        let mut region_scalars: Vec<(usize, usize, f64)> = Vec::new();
-        for &(r, c, _) in &base_entries {
-            mark(r, c, &mut seen);
-        }
-        for list in &layer.regions {
-            region_scalars.clear();
-            for (k, l, blk) in list {
-                scalars(*k, *l, blk, hh, &mut region_scalars);
-            }
-            for &(r, c, _) in &region_scalars {
-                mark(r, c, &mut seen);
-            }
-        }
-        let mut col_ptr = vec![0usize];
-        let mut row_idx = Vec::new();
-        for c in 0..dofs {
-            row_idx.extend((c..dofs).filter(|&r| {
-                let bit = c * dofs + r;
-                seen[bit / 64] & (1 << (bit % 64)) != 0
-            }));
-            col_ptr.push(row_idx.len());
-        }
-        drop(seen);
+        let base_entries = base_entries(fem, layer, &fixed, h_s, hh);
+        let (col_ptr, row_idx) = pattern(3 * n, &base_entries, layer, &fixed, hh);
         let index = |r: usize, c: usize| {
             let rows = &row_idx[col_ptr[c]..col_ptr[c + 1]];
             col_ptr[c] + rows.binary_search(&r).expect("entry in the pattern")
@@ -531,10 +468,11 @@ impl ImplicitCore {
         }
         let mut region_start = vec![0usize];
         let (mut region_index, mut region_value) = (Vec::new(), Vec::new());
+        let mut region_scalars: Vec<(usize, usize, f64)> = Vec::new();
         for list in &layer.regions {
             region_scalars.clear();
             for (k, l, blk) in list {
-                scalars(*k, *l, blk, hh, &mut region_scalars);
+                lower_scalars(&fixed, *k, *l, blk, hh, &mut region_scalars);
             }
             for &(r, c, v) in &region_scalars {
                 region_index.push(index(r, c) as u32);
@@ -653,6 +591,102 @@ impl ImplicitCore {
         }
         if finite { max_v2 } else { f64::NAN }
     }
+}
+
+/// The lower-triangle scalar entries `(row, column, value)` of block `blk` at block row `k`,
+/// column `l`, times `scale`, into `out`, leaving out the `fixed` degrees of freedom.
+fn lower_scalars(
+    fixed: &[bool],
+    k: u32,
+    l: u32,
+    blk: &DMat3,
+    scale: f64,
+    out: &mut Vec<(usize, usize, f64)>,
+) {
+    for r in 0..3 {
+        for c in 0..3 {
+            let (qr, qc) = (3 * k as usize + r, 3 * l as usize + c);
+            if qr >= qc && !fixed[qr] && !fixed[qc] {
+                out.push((qr, qc, blk.col(c)[r] * scale));
+            }
+        }
+    }
+}
+
+/// The lower-triangle entries of the matrix with no region active ([`ImplicitCore::new`]):
+/// `hh K_core`, `h D`, `hh` times the anchors of `layer` (`hh = h^2 margin`), then the
+/// diagonal `(1 + alpha h) M` (1 on `fixed` degrees of freedom).
+fn base_entries(
+    fem: &FemModel,
+    layer: &CondensedLayer,
+    fixed: &[bool],
+    h_s: f64,
+    hh: f64,
+) -> Vec<(usize, usize, f64)> {
+    let n = fem.node_count();
+    let mat = fem.material();
+    let mut base_entries: Vec<(usize, usize, f64)> = Vec::new();
+    let k_core = core_blocks(fem, mat.lambda_pa, mat.mu_pa);
+    let d_core = core_blocks(fem, 2.0 * mat.phi_pa_s, 2.0 * mat.psi_pa_s);
+    for (rows, scale) in [(&k_core, hh), (&d_core, h_s), (&layer.anchors, hh)] {
+        for k in 0..n {
+            for (l, blk) in rows.row(k) {
+                if k as u32 >= *l {
+                    lower_scalars(fixed, k as u32, *l, blk, scale, &mut base_entries);
+                }
+            }
+        }
+    }
+    let damp = 1.0 + mat.mass_damping_per_s * h_s;
+    for (q, fixed) in fixed.iter().enumerate() {
+        let diag = if *fixed {
+            1.0
+        } else {
+            damp * fem.lumped_mass_kg()[q / 3]
+        };
+        base_entries.push((q, q, diag));
+    }
+    base_entries
+}
+
+/// The pattern (column pointers, row indices of the lower triangle, `dofs` columns) of every
+/// entry any active set can have: `base_entries` and every region's of `layer` (`hh` their
+/// scale), marked in a bitmap of the lower triangle (no list of every region's scalars).
+fn pattern(
+    dofs: usize,
+    base_entries: &[(usize, usize, f64)],
+    layer: &CondensedLayer,
+    fixed: &[bool],
+    hh: f64,
+) -> (Vec<usize>, Vec<usize>) {
+    let mut seen = vec![0u64; (dofs * dofs).div_ceil(64)];
+    let mark = |r: usize, c: usize, seen: &mut [u64]| {
+        let bit = c * dofs + r;
+        seen[bit / 64] |= 1 << (bit % 64);
+    };
+    let mut region_scalars: Vec<(usize, usize, f64)> = Vec::new();
+    for &(r, c, _) in base_entries {
+        mark(r, c, &mut seen);
+    }
+    for list in &layer.regions {
+        region_scalars.clear();
+        for (k, l, blk) in list {
+            lower_scalars(fixed, *k, *l, blk, hh, &mut region_scalars);
+        }
+        for &(r, c, _) in &region_scalars {
+            mark(r, c, &mut seen);
+        }
+    }
+    let mut col_ptr = vec![0usize];
+    let mut row_idx = Vec::new();
+    for c in 0..dofs {
+        row_idx.extend((c..dofs).filter(|&r| {
+            let bit = c * dofs + r;
+            seen[bit / 64] & (1 << (bit % 64)) != 0
+        }));
+        col_ptr.push(row_idx.len());
+    }
+    (col_ptr, row_idx)
 }
 
 #[cfg(test)]

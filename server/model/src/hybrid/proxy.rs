@@ -193,13 +193,21 @@ impl ParticleProxy {
         device_m: DVec3,
         x: &[DVec3],
         active: &[u32],
-        mut f: Option<&mut [DVec3]>,
+        f: Option<&mut [DVec3]>,
     ) -> ProxyContact {
         let start = if self.in_contact {
             self.proxy_m
         } else {
             device_m
         };
+        self.gather_near(start, device_m, x, active);
+        let c = self.minimise(start, device_m, x);
+        self.contact_at(c, device_m, x, f)
+    }
+
+    /// The particles of `active` (positions `x`, m) the iterates from `start` can reach, into
+    /// `near`.
+    fn gather_near(&mut self, start: DVec3, device_m: DVec3, x: &[DVec3], active: &[u32]) {
         // Every particle the iterates can reach: they stay between the start and the device,
         // within the largest penetration the coupling allows.
         let span = (start - device_m).length();
@@ -211,6 +219,12 @@ impl ParticleProxy {
                 self.near.push(p);
             }
         }
+    }
+
+    /// The proxy position minimising `E` from `start` over the `near` particles (Newton with
+    /// backtracking, Gauss-Newton where the Newton matrix is not positive definite); counts
+    /// an unconverged solve.
+    fn minimise(&mut self, start: DVec3, device_m: DVec3, x: &[DVec3]) -> DVec3 {
         let mut c = start;
         let (mut e, mut grad, _) = self.energy(c, device_m, x, false);
         let mut converged = false;
@@ -260,6 +274,18 @@ impl ParticleProxy {
         if !converged {
             self.unconverged += 1;
         }
+        c
+    }
+
+    /// The contact at proxy position `c`: the penalty forces added to `f` when given (N,
+    /// indexed like `x`), the new proxy state, and the device force and stiffness.
+    fn contact_at(
+        &mut self,
+        c: DVec3,
+        device_m: DVec3,
+        x: &[DVec3],
+        mut f: Option<&mut [DVec3]>,
+    ) -> ProxyContact {
         // Forces at the final proxy.
         let k = self.k_particle_n_per_m;
         let mut touching = false;

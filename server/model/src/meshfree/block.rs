@@ -517,33 +517,17 @@ pub fn critical_time_step(cloud: &ParticleCloud) -> Result<f64, ModelError> {
 /// [`critical_time_step`].
 fn assembled_gershgorin(cloud: &ParticleCloud) -> Result<f64, ModelError> {
     use std::collections::HashMap;
-    let mat = cloud.material();
-    let (lam, mu) = (mat.lambda_pa, mat.mu_pa);
-    let v = cloud.volume_m3();
     let lattice = cloud.lattice();
-    // The 5 x 5 x 5 cube around a particle, as bits of a u128.
-    let cube = |d: [i32; 3]| ((d[0] + 2) + 5 * ((d[1] + 2) + 5 * (d[2] + 2))) as usize;
     let mut memo: HashMap<u128, f64> = HashMap::new();
     let mut nbr = [0u32; MAX_STENCIL];
     let mut nbr_i = [0u32; MAX_STENCIL];
     let mut terms: HashMap<u64, Box<TermRest>> = HashMap::new();
     let mut acc = vec![[0.0f64; 9]; 125];
-    let mut g = [DVec3::ZERO; MAX_STENCIL + 1];
     let mut cells = [[0i32; 3]; MAX_STENCIL + 1];
-    let mut cb_qa = [0.0f64; MAX_STENCIL];
     let mut best: f64 = 0.0;
     for a in 0..cloud.len() as u32 {
         let ca = cloud.cell_of(a);
-        let mut key = 0u128;
-        for dz in -2..=2 {
-            for dy in -2..=2 {
-                for dx in -2..=2 {
-                    if lattice.get_offset(ca, [dx, dy, dz]).is_some() {
-                        key |= 1u128 << cube([dx, dy, dz]);
-                    }
-                }
-            }
-        }
+        let key = cube_occupancy(cloud, ca);
         if let Some(&row) = memo.get(&key) {
             best = best.max(row);
             continue;
@@ -581,52 +565,7 @@ fn assembled_gershgorin(cloud: &ParticleCloud) -> Result<f64, ModelError> {
                     terms.entry(term_key).or_insert(r)
                 }
             };
-            // Nodes of term i: the owner (g = -g_sum), then its neighbours.
-            g[0] = -rest.g_sum;
-            let mut alpha = 0;
-            for (m, &q) in nbr_i[..ki].iter().enumerate() {
-                g[m + 1] = rest.g[m];
-                if q == a {
-                    alpha = m + 1;
-                }
-            }
-            let ga = g[alpha];
-            // Hourglass: sum_q c_q B_qa B_qb = g_b . Y - [b = q] c_q B_qa + [b = owner]
-            // sum_q c_q B_qa, with Y = sum_q c_q B_qa X_q.
-            let hourglass = rest.hourglass_n_per_m[..ki].iter().any(|&c| c != 0.0);
-            let mut y = DVec3::ZERO;
-            let mut cb_sum = 0.0;
-            if hourglass {
-                for (q, cb) in cb_qa[..ki].iter_mut().enumerate() {
-                    let b = ga.dot(rest.offset_m[q])
-                        + if alpha == q + 1 { -1.0 } else { 0.0 }
-                        + if alpha == 0 { 1.0 } else { 0.0 };
-                    *cb = rest.hourglass_n_per_m[q] * b;
-                    y += rest.offset_m[q] * *cb;
-                    cb_sum += *cb;
-                }
-            }
-            for beta in 0..=ki {
-                let gb = g[beta];
-                let mut blk = [0.0f64; 9];
-                let dot = ga.dot(gb);
-                for c in 0..3 {
-                    for r in 0..3 {
-                        blk[3 * c + r] = v * (lam * ga[r] * gb[c] + mu * gb[r] * ga[c])
-                            + if r == c { v * mu * dot } else { 0.0 };
-                    }
-                }
-                if hourglass {
-                    let h = gb.dot(y) + if beta == 0 { cb_sum } else { -cb_qa[beta - 1] };
-                    for d in [0, 4, 8] {
-                        blk[d] += h;
-                    }
-                }
-                let slot = &mut acc[cube(cells[beta])];
-                for (s, b) in slot.iter_mut().zip(blk) {
-                    *s += b;
-                }
-            }
+            add_term_blocks(cloud, rest, &nbr_i[..ki], a, &cells[..=ki], &mut acc);
         }
         let mut row: f64 = 0.0;
         for r in 0..3 {
@@ -640,6 +579,94 @@ fn assembled_gershgorin(cloud: &ParticleCloud) -> Result<f64, ModelError> {
         best = best.max(row);
     }
     Ok(best)
+}
+
+/// Bit of cell offset `d` (each component in -2..=2) in the 5 x 5 x 5 cube around a particle
+/// ([`assembled_gershgorin`]).
+fn cube_bit(d: [i32; 3]) -> usize {
+    ((d[0] + 2) + 5 * ((d[1] + 2) + 5 * (d[2] + 2))) as usize
+}
+
+/// The occupied cells of the 5 x 5 x 5 cube around lattice cell `ca`, as bits of a u128
+/// ([`cube_bit`]): the key of a row of [`assembled_gershgorin`].
+fn cube_occupancy(cloud: &ParticleCloud, ca: [usize; 3]) -> u128 {
+    let mut key = 0u128;
+    for dz in -2..=2 {
+        for dy in -2..=2 {
+            for dx in -2..=2 {
+                if cloud.lattice().get_offset(ca, [dx, dy, dz]).is_some() {
+                    key |= 1u128 << cube_bit([dx, dy, dz]);
+                }
+            }
+        }
+    }
+    key
+}
+
+/// Adds term `i`'s 3x3 stiffness blocks `K_ab` (row of particle `a`, every node `b` of the
+/// term: its owner then its neighbours `nbr_i`, at cells `cells` relative to `a`) into `acc`
+/// (by [`cube_bit`]): elastic `V (lambda g_a (x) g_b + mu g_b (x) g_a + mu (g_a . g_b) I)`
+/// plus the hourglass part; `rest`: the term's rest data.
+fn add_term_blocks(
+    cloud: &ParticleCloud,
+    rest: &TermRest,
+    nbr_i: &[u32],
+    a: u32,
+    cells: &[[i32; 3]],
+    acc: &mut [[f64; 9]],
+) {
+    let mat = cloud.material();
+    let (lam, mu) = (mat.lambda_pa, mat.mu_pa);
+    let v = cloud.volume_m3();
+    let ki = nbr_i.len();
+    let mut g = [DVec3::ZERO; MAX_STENCIL + 1];
+    let mut cb_qa = [0.0f64; MAX_STENCIL];
+    // Nodes of term i: the owner (g = -g_sum), then its neighbours.
+    g[0] = -rest.g_sum;
+    let mut alpha = 0;
+    for (m, &q) in nbr_i.iter().enumerate() {
+        g[m + 1] = rest.g[m];
+        if q == a {
+            alpha = m + 1;
+        }
+    }
+    let ga = g[alpha];
+    // Hourglass: sum_q c_q B_qa B_qb = g_b . Y - [b = q] c_q B_qa + [b = owner]
+    // sum_q c_q B_qa, with Y = sum_q c_q B_qa X_q.
+    let hourglass = rest.hourglass_n_per_m[..ki].iter().any(|&c| c != 0.0);
+    let mut y = DVec3::ZERO;
+    let mut cb_sum = 0.0;
+    if hourglass {
+        for (q, cb) in cb_qa[..ki].iter_mut().enumerate() {
+            let b = ga.dot(rest.offset_m[q])
+                + if alpha == q + 1 { -1.0 } else { 0.0 }
+                + if alpha == 0 { 1.0 } else { 0.0 };
+            *cb = rest.hourglass_n_per_m[q] * b;
+            y += rest.offset_m[q] * *cb;
+            cb_sum += *cb;
+        }
+    }
+    for beta in 0..=ki {
+        let gb = g[beta];
+        let mut blk = [0.0f64; 9];
+        let dot = ga.dot(gb);
+        for c in 0..3 {
+            for r in 0..3 {
+                blk[3 * c + r] = v * (lam * ga[r] * gb[c] + mu * gb[r] * ga[c])
+                    + if r == c { v * mu * dot } else { 0.0 };
+            }
+        }
+        if hourglass {
+            let h = gb.dot(y) + if beta == 0 { cb_sum } else { -cb_qa[beta - 1] };
+            for d in [0, 4, 8] {
+                blk[d] += h;
+            }
+        }
+        let slot = &mut acc[cube_bit(cells[beta])];
+        for (s, b) in slot.iter_mut().zip(blk) {
+            *s += b;
+        }
+    }
 }
 
 /// The largest row of the summed-norm Gershgorin bound over the cloud, N/m (the bound before

@@ -1,11 +1,13 @@
-//! The group loop of [`StencilGrid`] (module documentation of [`super`] for the formulas):
+//! The group loop of [`super::StencilGrid`] (module documentation of [`super`] for the formulas):
 //! every group of four cells along x through pass 1 (positions to `F`, hourglass sums), the
 //! stress and pass 2 (forces onto the grid), with its lane helpers, written once over
 //! [`Lanes4`] and compiled plain and for AVX2 + FMA.
 
 use glam::{DMat3, DVec3};
 
-use super::{CUBE, CUBE_CLASS, MAX_PAIRS, StencilGrid};
+use super::layout::{GroupRest, LaneRest, StencilLayout};
+use super::offsets::Stencil;
+use super::{CUBE, CUBE_CLASS, GridBuffers, MAX_PAIRS};
 use crate::material::stvk::{green_strain, stvk_stress};
 use crate::material::{MaterialModel, MaterialParams, first_piola};
 use crate::meshfree::cloud::{MAX_STENCIL, outer};
@@ -97,349 +99,464 @@ fn lane_matrices<V: Lanes4>(a: &[V; 9]) -> [[f64; 9]; 4] {
     out
 }
 
-impl StencilGrid {
-    /// [`Self::group_loop`] on AVX2 + FMA lanes, compiled for them (the token proves the CPU
-    /// has them).
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2,fma")]
-    pub(super) fn group_loop_avx2(&mut self, isa: Avx2Fma, mat: &MaterialParams) {
-        self.group_loop::<Ymm>(isa, mat);
-    }
+/// [`group_loop`] on AVX2 + FMA lanes, compiled for them (the token proves the CPU has them).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+pub(super) fn group_loop_avx2(
+    isa: Avx2Fma,
+    st: &Stencil,
+    lay: &StencilLayout,
+    buf: &mut GridBuffers,
+    mat: &MaterialParams,
+) {
+    group_loop::<Ymm>(isa, st, lay, buf, mat);
+}
 
-    /// Every group's forces from the grid positions into the grid forces (module
-    /// documentation for the formulas).
-    #[inline(always)]
-    #[allow(clippy::needless_range_loop)] // one index into several 3x3 lane matrices
-    pub(super) fn group_loop<V: Lanes4>(&mut self, isa: V::Isa, mat: &MaterialParams) {
-        let Self {
+/// Pass 1's sums of a group: `G` (`ga`), (corrected) `Gb` (`gb`) and `sum_k c_k u_(i+k)`
+/// (`cu`), lane-wise ([`pass_one`]).
+type PassOne<V> = ([V; 9], [V; 9], [V; 3]);
+
+/// What the stress gives pass 2 for a group: `N`, `F - I` (corrected; zero for the seed
+/// variant) and the owner's force, lane-wise.
+type StressOut<V> = ([V; 9], [V; 9], [V; 3]);
+
+/// Every group's forces from the grid positions into the grid forces (module documentation
+/// of [`super`] for the formulas): pass 1, the stress (St. Venant-Kirchhoff lane-wise, other
+/// laws per lane), pass 2.
+#[inline(always)]
+pub(super) fn group_loop<V: Lanes4>(
+    isa: V::Isa,
+    st: &Stencil,
+    lay: &StencilLayout,
+    buf: &mut GridBuffers,
+    mat: &MaterialParams,
+) {
+    let stvk = mat.model == MaterialModel::StVenantKirchhoff;
+    let nk = lay.off.len();
+    assert!(nk <= MAX_STENCIL && st.w.len() == nk && st.c.len() == nk && st.u.len() == nk);
+    let zero = V::zero(isa);
+    // Pass 2's `(N - beta F) w_k` of each pair, written before it is read.
+    assert!(lay.pairs.len() <= MAX_PAIRS);
+    let mut ah = [[zero; 3]; MAX_PAIRS];
+    for (g, &base) in lay.groups.iter().enumerate() {
+        let b = base as usize;
+        let lanes = &lay.lanes[4 * g..4 * g + 4];
+        let own = V::from_array(isa, lay.group_rest[g].own);
+        let ui = [
+            V::load(isa, &buf.px, b),
+            V::load(isa, &buf.py, b),
+            V::load(isa, &buf.pz, b),
+        ];
+        let sums = pass_one(isa, st, lay, buf, b);
+        let out = if st.seed || stvk {
+            stress_stvk(isa, st, &lay.group_rest[g], &sums, ui, own, mat)
+        } else {
+            stress_per_lane(isa, st, lanes, &sums, ui, mat)
+        };
+        pass_two_group(isa, st, lay, buf, b, own, ui, &out, &mut ah);
+    }
+}
+
+/// Pass 1 of the group at cell `b`, over pairs `(k, -k)` (`w_-k = -w_k`):
+/// `G = sum_k u_(i+k) (x) w_k`, and (corrected) `Gb = sum_k beta_k u_(i+k) (x) w_k =
+/// sum_k u_(i+k) (x) c_k X_k` and `sum_k c_k u_(i+k)`, class by class (`beta` and `c` depend
+/// on `|k|` only).
+#[inline(always)]
+#[allow(clippy::needless_range_loop)] // one index into several 3x3 lane matrices
+fn pass_one<V: Lanes4>(
+    isa: V::Isa,
+    st: &Stencil,
+    lay: &StencilLayout,
+    buf: &GridBuffers,
+    b: usize,
+) -> PassOne<V> {
+    let (seed, zero) = (st.seed, V::zero(isa));
+    let (px, py, pz) = (&buf.px[..], &buf.py[..], &buf.pz[..]);
+    let mut ga = [zero; 9];
+    let mut gb = [zero; 9];
+    let mut cu = [zero; 3];
+    if st.cube {
+        // The same sums with w_k = scale_c e_k: per class the signed sums of the
+        // u_(i+k) - u_(i-k) by grid axis (columns perm[a]), scaled once.
+        let perm = lay.grid.perm;
+        let (gl, sl) = pass_one_cube::<V>(isa, b, &lay.cube_off, px, py, pz, seed);
+        for (c, &(beta, ck, _)) in st.classes.iter().enumerate() {
+            let scale = V::splat(isa, st.cube_scale[c]);
+            for a in 0..3 {
+                for r in 0..3 {
+                    let e = 3 * perm[a] + r;
+                    if seed {
+                        ga[e] = V::madd(gl[c][3 * a + r], scale, ga[e]);
+                    } else {
+                        let gc = gl[c][3 * a + r].mul(scale);
+                        ga[e] = ga[e].add(gc);
+                        gb[e] = V::madd(gc, V::splat(isa, beta), gb[e]);
+                    }
+                }
+            }
+            if !seed {
+                let cv = V::splat(isa, ck);
+                for r in 0..3 {
+                    cu[r] = V::madd(sl[c][r], cv, cu[r]);
+                }
+            }
+        }
+        return (ga, gb, cu);
+    }
+    for &(beta, ck, ref range) in &st.classes {
+        let mut gc = [zero; 9];
+        let mut sc = [zero; 3];
+        for &(k, o) in &lay.pairs[range.clone()] {
+            let (hi, lo) = ((b as isize + o) as usize, (b as isize - o) as usize);
+            let a = [
+                V::load(isa, px, hi),
+                V::load(isa, py, hi),
+                V::load(isa, pz, hi),
+            ];
+            let m = [
+                V::load(isa, px, lo),
+                V::load(isa, py, lo),
+                V::load(isa, pz, lo),
+            ];
+            let w = st.w[k];
+            for r in 0..3 {
+                let d = a[r].sub(m[r]);
+                for c in 0..3 {
+                    gc[3 * c + r] = V::madd(d, V::splat(isa, w[c]), gc[3 * c + r]);
+                }
+                if !seed {
+                    sc[r] = sc[r].add(a[r].add(m[r]));
+                }
+            }
+        }
+        if seed {
+            for e in 0..9 {
+                ga[e] = ga[e].add(gc[e]);
+            }
+        } else {
+            let (bv, cv) = (V::splat(isa, beta), V::splat(isa, ck));
+            for e in 0..9 {
+                ga[e] = ga[e].add(gc[e]);
+                gb[e] = V::madd(gc[e], bv, gb[e]);
+            }
+            for r in 0..3 {
+                cu[r] = V::madd(sc[r], cv, cu[r]);
+            }
+        }
+    }
+    (ga, gb, cu)
+}
+
+/// The St. Venant-Kirchhoff stress of a group lane-wise (the seed variant's law always), from
+/// pass 1's sums and the group's rest data `gq`; `ui`: the owners' displacements, `own`: 1 on
+/// owner lanes.
+///
+/// Seed: `F = F~ = A + G - u_i (x) S`, `E = (F^T F - I) / 2 - E0`, `N = V F S(E)`.
+/// Corrected: `F - I = (F~ - A) A^-1 = (G - u_i (x) S) A^-1` (`A A^-1 = I`; zero on padding
+/// lanes, whose `A^-1` is stored as zero), `E = ((F - I) + (F - I)^T + (F - I)^T (F - I)) / 2`,
+/// `M = V F S(E) + (F - I) Q - Gb + u_i (x) U`, `N = M A^-T` (zero on padding lanes).
+#[inline(always)]
+fn stress_stvk<V: Lanes4>(
+    isa: V::Isa,
+    st: &Stencil,
+    gq: &GroupRest,
+    sums: &PassOne<V>,
+    ui: [V; 3],
+    own: V,
+    mat: &MaterialParams,
+) -> StressOut<V> {
+    let seed = st.seed;
+    let (ga, gb, cu) = sums;
+    let (f, fmi) = lane_deformation(isa, seed, gq, ga, ui);
+    let e = lane_strain(isa, seed, gq, &f, &fmi);
+    let sv = lane_stvk(isa, mat, st.volume_m3, &e);
+    let mut m = mat_mul(&f, &sv);
+    let ld = |a: &[f64; 4]| V::from_array(isa, *a);
+    let s3 = [ld(&gq.s[0]), ld(&gq.s[1]), ld(&gq.s[2])];
+    if seed {
+        for x in &mut m {
+            *x = x.mul(own);
+        }
+        let ov = mat_vec(&m, &s3);
+        return (m, [V::zero(isa); 9], ov);
+    }
+    corrected_forces(isa, gq, m, &f, fmi, gb, cu, ui, own, s3)
+}
+
+/// `F` and (corrected) `F - I` of a group lane-wise ([`stress_stvk`]); seed: `F` twice.
+#[inline(always)]
+fn lane_deformation<V: Lanes4>(
+    isa: V::Isa,
+    seed: bool,
+    gq: &GroupRest,
+    ga: &[V; 9],
+    ui: [V; 3],
+) -> ([V; 9], [V; 9]) {
+    let ld = |a: &[f64; 4]| V::from_array(isa, *a);
+    let mut ft = [V::zero(isa); 9];
+    for c in 0..3 {
+        let sc = ld(&gq.s[c]);
+        for r in 0..3 {
+            let base = if seed {
+                ld(&gq.a[3 * c + r]).add(ga[3 * c + r])
+            } else {
+                ga[3 * c + r]
+            };
+            ft[3 * c + r] = V::nmadd(ui[r], sc, base);
+        }
+    }
+    // Seed: `fmi` unused.
+    let fmi = if seed {
+        ft
+    } else {
+        mat_mul(&ft, &lane_mat(isa, &gq.a))
+    };
+    let f = if seed {
+        ft
+    } else {
+        let mut f = fmi;
+        for i in [0, 4, 8] {
+            f[i] = f[i].add(V::splat(isa, 1.0));
+        }
+        f
+    };
+    (f, fmi)
+}
+
+/// The Green strain lane-wise (column-major, symmetric): seed `(F^T F - I) / 2 - E0` (`E0`
+/// in `gq.q`), corrected `((F - I) + (F - I)^T + (F - I)^T (F - I)) / 2` from `fmi`.
+#[inline(always)]
+fn lane_strain<V: Lanes4>(
+    isa: V::Isa,
+    seed: bool,
+    gq: &GroupRest,
+    f: &[V; 9],
+    fmi: &[V; 9],
+) -> [V; 9] {
+    let ld = |a: &[f64; 4]| V::from_array(isa, *a);
+    let half = V::splat(isa, 0.5);
+    let mut e = [V::zero(isa); 9];
+    for c in 0..3 {
+        for d in c..3 {
+            let ecd = if seed {
+                let mut ctd = f[3 * c].mul(f[3 * d]);
+                ctd = V::madd(f[3 * c + 1], f[3 * d + 1], ctd);
+                ctd = V::madd(f[3 * c + 2], f[3 * d + 2], ctd);
+                let id = if c == d { 1.0 } else { 0.0 };
+                ctd.sub(V::splat(isa, id))
+                    .mul(half)
+                    .sub(ld(&gq.q[3 * d + c]))
+            } else {
+                let mut ctd = fmi[3 * d + c].add(fmi[3 * c + d]);
+                ctd = V::madd(fmi[3 * c], fmi[3 * d], ctd);
+                ctd = V::madd(fmi[3 * c + 1], fmi[3 * d + 1], ctd);
+                ctd = V::madd(fmi[3 * c + 2], fmi[3 * d + 2], ctd);
+                ctd.mul(half)
+            };
+            e[3 * d + c] = ecd;
+            e[3 * c + d] = ecd;
+        }
+    }
+    e
+}
+
+/// `V S(E) = V (lambda tr(E) I + 2 mu E)` lane-wise (`v`: the particle volume, m^3).
+#[inline(always)]
+#[allow(clippy::needless_range_loop)] // one index into two 3x3 lane matrices
+fn lane_stvk<V: Lanes4>(isa: V::Isa, mat: &MaterialParams, v: f64, e: &[V; 9]) -> [V; 9] {
+    let lv = V::splat(isa, mat.lambda_pa * v);
+    let mv = V::splat(isa, 2.0 * mat.mu_pa * v);
+    let tr = lv.mul(e[0].add(e[4]).add(e[8]));
+    let mut sv = [V::zero(isa); 9];
+    for i in 0..9 {
+        sv[i] = mv.mul(e[i]);
+    }
+    for i in [0, 4, 8] {
+        sv[i] = sv[i].add(tr);
+    }
+    sv
+}
+
+/// The corrected variant's `N = M A^-T` (`M = V F S(E) + (F - I) Q - Gb + u_i (x) U`, `m`
+/// holding `V F S(E)`) and the owner's force `N S - F U + sum_k c_k u_(i+k) - C u_i + U`
+/// (`U = 0` on padding lanes), lane-wise; `s3`: `S`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)] // the stress's state, split out of one function
+#[allow(clippy::needless_range_loop)] // one index into several 3x3 lane matrices
+fn corrected_forces<V: Lanes4>(
+    isa: V::Isa,
+    gq: &GroupRest,
+    mut m: [V; 9],
+    f: &[V; 9],
+    fmi: [V; 9],
+    gb: &[V; 9],
+    cu: &[V; 3],
+    ui: [V; 3],
+    own: V,
+    s3: [V; 3],
+) -> StressOut<V> {
+    let zero = V::zero(isa);
+    let ld = |a: &[f64; 4]| V::from_array(isa, *a);
+    let h = mat_mul(&fmi, &lane_mat(isa, &gq.q));
+    let u3 = [ld(&gq.u[0]), ld(&gq.u[1]), ld(&gq.u[2])];
+    for c in 0..3 {
+        for r in 0..3 {
+            let i = 3 * c + r;
+            m[i] = V::madd(ui[r], u3[c], m[i].add(h[i]).sub(gb[i]));
+        }
+    }
+    let a_inv = lane_mat(isa, &gq.a);
+    let mut n = [zero; 9];
+    // N = M A^-T: N[r][c] = sum_d M[r][d] A^-1[c][d].
+    for c in 0..3 {
+        for r in 0..3 {
+            let mut acc = m[r].mul(a_inv[c]);
+            acc = V::madd(m[3 + r], a_inv[3 + c], acc);
+            acc = V::madd(m[6 + r], a_inv[6 + c], acc);
+            n[3 * c + r] = acc;
+        }
+    }
+    let ns = mat_vec(&n, &s3);
+    let fu = mat_vec(f, &u3);
+    let cv = ld(&gq.c);
+    let mut ov = [zero; 3];
+    for r in 0..3 {
+        let sdl = V::nmadd(cv, ui[r], cu[r]).add(u3[r]).mul(own);
+        ov[r] = ns[r].sub(fu[r]).add(sdl);
+    }
+    (n, fmi, ov)
+}
+
+/// The stress of a group per lane (laws other than St. Venant-Kirchhoff, corrected variant;
+/// the seed branch serves the tests of every law): `F~ = A + G - u_i (x) S`; stress, `N`,
+/// `F` (corrected: `F - I`) and the owner's force of each owner lane, zero on padding lanes.
+#[inline(always)]
+fn stress_per_lane<V: Lanes4>(
+    isa: V::Isa,
+    st: &Stencil,
+    lanes: &[LaneRest],
+    sums: &PassOne<V>,
+    ui: [V; 3],
+    mat: &MaterialParams,
+) -> StressOut<V> {
+    let (seed, v) = (st.seed, st.volume_m3);
+    let (ga, gb, cu) = sums;
+    let gas = lane_matrices(ga);
+    let gbs = if seed {
+        [[0.0; 9]; 4]
+    } else {
+        lane_matrices(gb)
+    };
+    let uis = [ui[0].to_array(), ui[1].to_array(), ui[2].to_array()];
+    let cus = [cu[0].to_array(), cu[1].to_array(), cu[2].to_array()];
+    let mut nl = [[0.0; 4]; 9];
+    let mut fl = [[0.0; 4]; 9];
+    let mut ol = [[0.0; 4]; 3];
+    for (l, lr) in lanes.iter().enumerate() {
+        if lr.own == 0.0 {
+            continue;
+        }
+        let u_i = DVec3::new(uis[0][l], uis[1][l], uis[2][l]);
+        let g_us = DMat3::from_cols_array(&gas[l]) - outer(u_i, lr.s);
+        let (n, f, owner) = if seed {
+            let ft = lr.a + g_us;
+            let e = green_strain(&ft) - lr.q;
+            let n = (ft * stvk_stress(&e, mat.lambda_pa, mat.mu_pa)) * v;
+            (n, DMat3::ZERO, n * lr.s)
+        } else {
+            // F - I = (F~ - A) A^-1.
+            let fmi = g_us * lr.a_inv;
+            let f = fmi + DMat3::IDENTITY;
+            // D = sum_k c_k d_ik (x) X_k = Gb - u_i (x) U + Q; H = F Q - D.
+            let h = fmi * lr.q - DMat3::from_cols_array(&gbs[l]) + outer(u_i, lr.u);
+            let m = first_piola(mat, &f) * v + h;
+            let n = m * lr.a_inv.transpose();
+            // sum_k c_k d_ik = sum_k c_k u_(i+k) - C u_i + U.
+            let sdl = DVec3::new(cus[0][l], cus[1][l], cus[2][l]) - u_i * lr.c + lr.u;
+            (n, fmi, n * lr.s - f * lr.u + sdl)
+        };
+        let (na, fa_) = (n.to_cols_array(), f.to_cols_array());
+        for e in 0..9 {
+            nl[e][l] = na[e];
+            fl[e][l] = fa_[e];
+        }
+        for r in 0..3 {
+            ol[r][l] = owner[r];
+        }
+    }
+    let nm = lane_mat::<V>(isa, &nl);
+    let fm = lane_mat::<V>(isa, &fl);
+    let ov = [
+        V::from_array(isa, ol[0]),
+        V::from_array(isa, ol[1]),
+        V::from_array(isa, ol[2]),
+    ];
+    (nm, fm, ov)
+}
+
+/// Pass 2 of the group at cell `b` from its stress `out` ([`StressOut`]): the cube's written-out
+/// loop ([`pass_two_cube`]) or the pair loops ([`pair_grads`], [`pass_two`]; `ah` their
+/// scratch).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)] // the loop's state, split out of one function
+fn pass_two_group<V: Lanes4>(
+    isa: V::Isa,
+    st: &Stencil,
+    lay: &StencilLayout,
+    buf: &mut GridBuffers,
+    b: usize,
+    own: V,
+    ui: [V; 3],
+    out: &StressOut<V>,
+    ah: &mut [[V; 3]; MAX_PAIRS],
+) {
+    let seed = st.seed;
+    let GridBuffers { px, py, pz, fc, .. } = buf;
+    let (nm, fm, ov) = out;
+    let ncl = class_matrices(nm, fm, &st.classes, seed, isa);
+    if st.cube {
+        let m = cube_columns(isa, &ncl, &st.cube_scale, lay.grid.perm);
+        let cko = cube_hourglass(isa, &st.classes, own);
+        // c_k u_i per class and component (corrected).
+        let mut cui = [[V::zero(isa); 3]; 3];
+        if !seed {
+            for (cu, ck) in cui.iter_mut().zip(&cko) {
+                for r in 0..3 {
+                    cu[r] = ck.mul(ui[r]);
+                }
+            }
+        }
+        pass_two_cube::<V>(
+            isa,
+            b,
+            &lay.cube_rows,
+            &m,
+            &cui,
+            &cko,
+            [px, py, pz],
+            fc.each_mut().map(|a| &mut a[..]),
             seed,
-            volume_m3: v,
-            w: ws,
-            c: cs,
-            u: us,
-            off,
-            rows,
-            pairs,
-            classes,
-            class_of,
-            half_of,
-            cube,
-            cube_off,
-            cube_scale,
-            cube_rows,
-            layout,
+            *ov,
+        );
+    } else {
+        pair_grads(isa, &ncl, &st.w, &st.class_of, &lay.pairs, ah);
+        pass_two::<V>(
+            isa,
+            b,
+            &lay.rows,
+            &st.c,
+            &lay.off,
             px,
             py,
             pz,
-            fc,
-            groups,
-            lanes,
-            group_rest,
-            ..
-        } = self;
-        let stvk = mat.model == MaterialModel::StVenantKirchhoff;
-        let (seed, v) = (*seed, *v);
-        let nk = off.len();
-        assert!(nk <= MAX_STENCIL && ws.len() == nk && cs.len() == nk && us.len() == nk);
-        let (cube, perm) = (*cube, layout.perm);
-        let zero = V::zero(isa);
-        // Pass 2's `(N - beta F) w_k` of each pair, written before it is read.
-        assert!(pairs.len() <= MAX_PAIRS);
-        let mut ah = [[zero; 3]; MAX_PAIRS];
-        for (g, &base) in groups.iter().enumerate() {
-            let b = base as usize;
-            let lanes = &lanes[4 * g..4 * g + 4];
-            let own = V::from_array(isa, group_rest[g].own);
-            let ui = [
-                V::load(isa, px, b),
-                V::load(isa, py, b),
-                V::load(isa, pz, b),
-            ];
-            // Pass 1, over pairs (k, -k) (w_-k = -w_k): G = sum_k u_(i+k) (x) w_k, and
-            // (corrected) Gb = sum_k beta_k u_(i+k) (x) w_k = sum_k u_(i+k) (x) c_k X_k and
-            // sum_k c_k u_(i+k), class by class (beta and c depend on |k| only).
-            let mut ga = [zero; 9];
-            let mut gb = [zero; 9];
-            let mut cu = [zero; 3];
-            if cube {
-                // The same sums with w_k = scale_c e_k: per class the signed sums of the
-                // u_(i+k) - u_(i-k) by grid axis (columns perm[a]), scaled once.
-                let (gl, sl) = pass_one_cube::<V>(isa, b, cube_off, px, py, pz, seed);
-                for (c, &(beta, ck, _)) in classes.iter().enumerate() {
-                    let scale = V::splat(isa, cube_scale[c]);
-                    for a in 0..3 {
-                        for r in 0..3 {
-                            let e = 3 * perm[a] + r;
-                            if seed {
-                                ga[e] = V::madd(gl[c][3 * a + r], scale, ga[e]);
-                            } else {
-                                let gc = gl[c][3 * a + r].mul(scale);
-                                ga[e] = ga[e].add(gc);
-                                gb[e] = V::madd(gc, V::splat(isa, beta), gb[e]);
-                            }
-                        }
-                    }
-                    if !seed {
-                        let cv = V::splat(isa, ck);
-                        for r in 0..3 {
-                            cu[r] = V::madd(sl[c][r], cv, cu[r]);
-                        }
-                    }
-                }
-            }
-            for &(beta, ck, ref range) in classes.iter().filter(|_| !cube) {
-                let mut gc = [zero; 9];
-                let mut sc = [zero; 3];
-                for &(k, o) in &pairs[range.clone()] {
-                    let (hi, lo) = ((b as isize + o) as usize, (b as isize - o) as usize);
-                    let a = [
-                        V::load(isa, px, hi),
-                        V::load(isa, py, hi),
-                        V::load(isa, pz, hi),
-                    ];
-                    let m = [
-                        V::load(isa, px, lo),
-                        V::load(isa, py, lo),
-                        V::load(isa, pz, lo),
-                    ];
-                    let w = ws[k];
-                    for r in 0..3 {
-                        let d = a[r].sub(m[r]);
-                        for c in 0..3 {
-                            gc[3 * c + r] = V::madd(d, V::splat(isa, w[c]), gc[3 * c + r]);
-                        }
-                        if !seed {
-                            sc[r] = sc[r].add(a[r].add(m[r]));
-                        }
-                    }
-                }
-                if seed {
-                    for e in 0..9 {
-                        ga[e] = ga[e].add(gc[e]);
-                    }
-                } else {
-                    let (bv, cv) = (V::splat(isa, beta), V::splat(isa, ck));
-                    for e in 0..9 {
-                        ga[e] = ga[e].add(gc[e]);
-                        gb[e] = V::madd(gc[e], bv, gb[e]);
-                    }
-                    for r in 0..3 {
-                        cu[r] = V::madd(sc[r], cv, cu[r]);
-                    }
-                }
-            }
-            let (nm, fm, ov) = if seed || stvk {
-                // St. Venant-Kirchhoff lane-wise (the seed variant's law always).
-                // Seed: F = F~ = A + G - u_i (x) S, E = (F^T F - I) / 2 - E0, N = V F S(E).
-                // Corrected: F - I = (F~ - A) A^-1 = (G - u_i (x) S) A^-1 (A A^-1 = I; zero on
-                // padding lanes, whose A^-1 is stored as zero), E = ((F - I) + (F - I)^T +
-                // (F - I)^T (F - I)) / 2, M = V F S(E) + (F - I) Q - Gb + u_i (x) U,
-                // N = M A^-T (zero on padding lanes).
-                let gq = &group_rest[g];
-                let ld = |a: &[f64; 4]| V::from_array(isa, *a);
-                let mut ft = [zero; 9];
-                for c in 0..3 {
-                    let sc = ld(&gq.s[c]);
-                    for r in 0..3 {
-                        let base = if seed {
-                            ld(&gq.a[3 * c + r]).add(ga[3 * c + r])
-                        } else {
-                            ga[3 * c + r]
-                        };
-                        ft[3 * c + r] = V::nmadd(ui[r], sc, base);
-                    }
-                }
-                // Seed: `fmi` unused.
-                let fmi = if seed {
-                    ft
-                } else {
-                    mat_mul(&ft, &lane_mat(isa, &gq.a))
-                };
-                let f = if seed {
-                    ft
-                } else {
-                    let mut f = fmi;
-                    for i in [0, 4, 8] {
-                        f[i] = f[i].add(V::splat(isa, 1.0));
-                    }
-                    f
-                };
-                let half = V::splat(isa, 0.5);
-                let mut e = [zero; 9];
-                for c in 0..3 {
-                    for d in c..3 {
-                        let ecd = if seed {
-                            let mut ctd = f[3 * c].mul(f[3 * d]);
-                            ctd = V::madd(f[3 * c + 1], f[3 * d + 1], ctd);
-                            ctd = V::madd(f[3 * c + 2], f[3 * d + 2], ctd);
-                            let id = if c == d { 1.0 } else { 0.0 };
-                            ctd.sub(V::splat(isa, id))
-                                .mul(half)
-                                .sub(ld(&gq.q[3 * d + c]))
-                        } else {
-                            let mut ctd = fmi[3 * d + c].add(fmi[3 * c + d]);
-                            ctd = V::madd(fmi[3 * c], fmi[3 * d], ctd);
-                            ctd = V::madd(fmi[3 * c + 1], fmi[3 * d + 1], ctd);
-                            ctd = V::madd(fmi[3 * c + 2], fmi[3 * d + 2], ctd);
-                            ctd.mul(half)
-                        };
-                        e[3 * d + c] = ecd;
-                        e[3 * c + d] = ecd;
-                    }
-                }
-                let lv = V::splat(isa, mat.lambda_pa * v);
-                let mv = V::splat(isa, 2.0 * mat.mu_pa * v);
-                let tr = lv.mul(e[0].add(e[4]).add(e[8]));
-                let mut sv = [zero; 9];
-                for i in 0..9 {
-                    sv[i] = mv.mul(e[i]);
-                }
-                for i in [0, 4, 8] {
-                    sv[i] = sv[i].add(tr);
-                }
-                let own_v = own;
-                let mut m = mat_mul(&f, &sv);
-                let s3 = [ld(&gq.s[0]), ld(&gq.s[1]), ld(&gq.s[2])];
-                let (nmv, fmv, ov) = if seed {
-                    for x in &mut m {
-                        *x = x.mul(own_v);
-                    }
-                    let ov = mat_vec(&m, &s3);
-                    (m, [zero; 9], ov)
-                } else {
-                    let h = mat_mul(&fmi, &lane_mat(isa, &gq.q));
-                    let u3 = [ld(&gq.u[0]), ld(&gq.u[1]), ld(&gq.u[2])];
-                    for c in 0..3 {
-                        for r in 0..3 {
-                            let i = 3 * c + r;
-                            m[i] = V::madd(ui[r], u3[c], m[i].add(h[i]).sub(gb[i]));
-                        }
-                    }
-                    let a_inv = lane_mat(isa, &gq.a);
-                    let mut n = [zero; 9];
-                    // N = M A^-T: N[r][c] = sum_d M[r][d] A^-1[c][d].
-                    for c in 0..3 {
-                        for r in 0..3 {
-                            let mut acc = m[r].mul(a_inv[c]);
-                            acc = V::madd(m[3 + r], a_inv[3 + c], acc);
-                            acc = V::madd(m[6 + r], a_inv[6 + c], acc);
-                            n[3 * c + r] = acc;
-                        }
-                    }
-                    // owner = N S - F U + sum_k c_k u_(i+k) - C u_i + U (U = 0 on padding
-                    // lanes).
-                    let ns = mat_vec(&n, &s3);
-                    let fu = mat_vec(&f, &u3);
-                    let cv = ld(&gq.c);
-                    let mut ov = [zero; 3];
-                    for r in 0..3 {
-                        let sdl = V::nmadd(cv, ui[r], cu[r]).add(u3[r]).mul(own_v);
-                        ov[r] = ns[r].sub(fu[r]).add(sdl);
-                    }
-                    (n, fmi, ov)
-                };
-                (nmv, fmv, ov)
-            } else {
-                // Per lane: F~ = A + G - u_i (x) S; stress, N, F (corrected: F - I) and the
-                // owner's force.
-                let gas = lane_matrices(&ga);
-                let gbs = if seed {
-                    [[0.0; 9]; 4]
-                } else {
-                    lane_matrices(&gb)
-                };
-                let uis = [ui[0].to_array(), ui[1].to_array(), ui[2].to_array()];
-                let cus = [cu[0].to_array(), cu[1].to_array(), cu[2].to_array()];
-                let mut nl = [[0.0; 4]; 9];
-                let mut fl = [[0.0; 4]; 9];
-                let mut ol = [[0.0; 4]; 3];
-                for (l, lr) in lanes.iter().enumerate() {
-                    if lr.own == 0.0 {
-                        continue;
-                    }
-                    let u_i = DVec3::new(uis[0][l], uis[1][l], uis[2][l]);
-                    let g_us = DMat3::from_cols_array(&gas[l]) - outer(u_i, lr.s);
-                    let (n, f, owner) = if seed {
-                        let ft = lr.a + g_us;
-                        let e = green_strain(&ft) - lr.q;
-                        let n = (ft * stvk_stress(&e, mat.lambda_pa, mat.mu_pa)) * v;
-                        (n, DMat3::ZERO, n * lr.s)
-                    } else {
-                        // F - I = (F~ - A) A^-1.
-                        let fmi = g_us * lr.a_inv;
-                        let f = fmi + DMat3::IDENTITY;
-                        // D = sum_k c_k d_ik (x) X_k = Gb - u_i (x) U + Q; H = F Q - D.
-                        let h = fmi * lr.q - DMat3::from_cols_array(&gbs[l]) + outer(u_i, lr.u);
-                        let m = first_piola(mat, &f) * v + h;
-                        let n = m * lr.a_inv.transpose();
-                        // sum_k c_k d_ik = sum_k c_k u_(i+k) - C u_i + U.
-                        let sdl = DVec3::new(cus[0][l], cus[1][l], cus[2][l]) - u_i * lr.c + lr.u;
-                        (n, fmi, n * lr.s - f * lr.u + sdl)
-                    };
-                    let (na, fa_) = (n.to_cols_array(), f.to_cols_array());
-                    for e in 0..9 {
-                        nl[e][l] = na[e];
-                        fl[e][l] = fa_[e];
-                    }
-                    for r in 0..3 {
-                        ol[r][l] = owner[r];
-                    }
-                }
-                let nm = lane_mat::<V>(isa, &nl);
-                let fm = lane_mat::<V>(isa, &fl);
-                let ov = [
-                    V::from_array(isa, ol[0]),
-                    V::from_array(isa, ol[1]),
-                    V::from_array(isa, ol[2]),
-                ];
-                (nm, fm, ov)
-            };
-            let ncl = class_matrices(&nm, &fm, classes, seed, isa);
-            if cube {
-                let m = cube_columns(isa, &ncl, cube_scale, perm);
-                let cko = cube_hourglass(isa, classes, own);
-                // c_k u_i per class and component (corrected).
-                let mut cui = [[zero; 3]; 3];
-                if !seed {
-                    for (cu, ck) in cui.iter_mut().zip(&cko) {
-                        for r in 0..3 {
-                            cu[r] = ck.mul(ui[r]);
-                        }
-                    }
-                }
-                pass_two_cube::<V>(
-                    isa,
-                    b,
-                    cube_rows,
-                    &m,
-                    &cui,
-                    &cko,
-                    [px, py, pz],
-                    fc.each_mut().map(|a| &mut a[..]),
-                    seed,
-                    ov,
-                );
-            } else {
-                pair_grads(isa, &ncl, ws, class_of, pairs, &mut ah);
-                pass_two::<V>(
-                    isa,
-                    b,
-                    rows,
-                    cs,
-                    off,
-                    px,
-                    py,
-                    pz,
-                    fc.each_mut().map(|a| &mut a[..]),
-                    seed,
-                    own,
-                    ui,
-                    half_of,
-                    &ah,
-                    ov,
-                );
-            }
-        }
+            fc.each_mut().map(|a| &mut a[..]),
+            seed,
+            own,
+            ui,
+            &st.half_of,
+            ah,
+            *ov,
+        );
     }
 }
 
@@ -549,7 +666,7 @@ fn cube_column_sum<V: Lanes4>(m: &[V; 9], e: [i32; 3], r: usize) -> V {
 /// zero of the stencil is known at compile time. `cko`: `c_k` per class on owner lanes
 /// ([`cube_hourglass`]); `cui`: `c_k u_i` per class and component (corrected). Each entry
 /// of offset `dx` along the vector axis is subtracted at its row's chunk of four cells in the
-/// forces of that offset (interleaved in `f`, [`StencilGrid`]'s `fc`): aligned whole-chunk
+/// forces of that offset (interleaved in `f`, [`GridBuffers`]' `fc`): aligned whole-chunk
 /// read-modify-writes, no shift across lanes.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)] // the loop's state, split out of one function
@@ -684,7 +801,7 @@ fn pass_one_cube<V: Lanes4>(
 /// subtracted at the neighbour, the owner's force `ol` added at the owner; the three offsets
 /// of a row along the vector axis are combined into whole aligned chunks of four cells first
 /// (a store that a later load overlaps only partly stalls the core), written into the forces
-/// of offset 0 in `f` (interleaved, [`StencilGrid`]'s `fc`).
+/// of offset 0 in `f` (interleaved, [`GridBuffers`]' `fc`).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)] // the loop's state, split out of one function
 fn pass_two<V: Lanes4>(
