@@ -36,6 +36,7 @@ pub mod implicit;
 pub mod layer;
 pub mod prepare;
 pub mod proxy;
+pub(crate) mod section;
 
 use glam::DVec3;
 
@@ -44,6 +45,7 @@ pub use implicit::ImplicitCore;
 pub use layer::LayerElements;
 pub use prepare::{HybridModel, prepare};
 pub use proxy::ParticleProxy;
+pub use section::HybridScene;
 
 use crate::ModelError;
 use crate::meshfree::MeshfreeParams;

@@ -43,6 +43,7 @@ pub mod condensed;
 pub mod explicit;
 pub mod follow;
 pub mod implicit;
+pub(crate) mod region_section;
 
 use condensed::{ActiveRegion, CondensedSolver};
 use implicit::{CgStats, ImplicitSolver};
