@@ -7,12 +7,12 @@ use glam::DVec3;
 use serde::Deserialize;
 
 use super::builtin::builtin_calibration;
-use super::{ModelFamily, Scene};
+use super::{BUILTIN_MESHES, ModelFamily, Scene};
 use crate::ModelError;
 use crate::check::{bounded_vec, checked, int_in, non_negative, positive, positive_vec, required};
 use crate::contact::{ContactModel, ProbeParams};
 use crate::element::StrainSmoothing;
-use crate::hybrid::section::{HybridMesh, RawHybrid, hybrid_section};
+use crate::hybrid::section::{RawHybrid, hybrid_section};
 use crate::integrate::condensed::ActiveRegion;
 use crate::integrate::region_section::{RawActiveRegion, region_section};
 use crate::integrate::{IntegratorKind, IntegratorParams, LinearSolver};
@@ -185,6 +185,16 @@ pub(super) enum Origin {
     File,
 }
 
+impl Origin {
+    /// Where a scene of this origin in `base_dir` reads its calibration tables.
+    fn table_source(self, base_dir: &Path) -> TableSource<'_> {
+        match self {
+            Origin::Builtin => TableSource::Builtin(builtin_calibration),
+            Origin::File => TableSource::Dir(base_dir),
+        }
+    }
+}
+
 pub(super) fn parse_scene(
     text: &str,
     base_dir: &Path,
@@ -215,14 +225,7 @@ pub(super) fn parse_scene(
         &mut integrator,
         &present,
     )?;
-    let hybrid_mesh = HybridMesh {
-        builtin: mesh_raw.builtin.as_deref(),
-        inner_semi_axes: mesh_raw.inner_semi_axes,
-        outer_semi_axes: mesh_raw.outer_semi_axes,
-        order: mesh_raw.order,
-        target_tets: mesh_raw.target_tets,
-        unit_m: length_unit_m,
-    };
+    let hybrid_mesh = hybrid_mesh(&mesh_raw, length_unit_m);
     let hybrid = hybrid_section(
         family == ModelFamily::Hybrid,
         raw.hybrid.as_ref(),
@@ -253,10 +256,7 @@ pub(super) fn parse_scene(
     let (mut mesh, mut touchable, mut clamped_nodes) = (mesh, touchable, clamped_nodes);
     let mass_spring = if springs {
         let section = required("mass_spring", raw.mass_spring)?;
-        let source = match origin {
-            Origin::Builtin => TableSource::Builtin(builtin_calibration),
-            Origin::File => TableSource::Dir(base_dir),
-        };
+        let source = origin.table_source(base_dir);
         let mut ms = build_mass_spring(
             &section,
             &mesh,
