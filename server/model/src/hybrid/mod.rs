@@ -36,6 +36,7 @@ pub mod implicit;
 pub mod layer;
 pub mod prepare;
 pub mod proxy;
+pub(crate) mod section;
 
 use glam::DVec3;
 
@@ -44,6 +45,7 @@ pub use implicit::ImplicitCore;
 pub use layer::LayerElements;
 pub use prepare::{HybridModel, prepare};
 pub use proxy::ParticleProxy;
+pub use section::HybridScene;
 
 use crate::ModelError;
 use crate::meshfree::MeshfreeParams;
@@ -377,6 +379,13 @@ impl HybridParams {
     /// # Errors
     /// [`ModelError::SceneField`] naming the `hybrid.*` field that is out of range.
     pub fn validate(&self) -> Result<(), ModelError> {
+        self.check_values()?;
+        self.check_core_order()?;
+        self.check_limits()
+    }
+
+    /// The lengths, stiffnesses, ratios and mass scales.
+    fn check_values(&self) -> Result<(), ModelError> {
         let pos = |name: &str, v: f64| {
             if v.is_finite() && v > 0.0 {
                 Ok(())
@@ -440,6 +449,11 @@ impl HybridParams {
                 format!("must be in [1, 100], got {margin}"),
             ));
         }
+        Ok(())
+    }
+
+    /// The core's element order for the inactive layer.
+    fn check_core_order(&self) -> Result<(), ModelError> {
         match (self.inactive_layer, self.core_order) {
             (InactiveLayer::Elements, 1 | 2) | (InactiveLayer::Tied, 1) => {}
             (InactiveLayer::Tied, o) => {
@@ -457,6 +471,11 @@ impl HybridParams {
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// The step's safety factor and the count limits.
+    fn check_limits(&self) -> Result<(), ModelError> {
         if !(self.safety_factor > 0.0 && self.safety_factor <= 1.0) {
             return Err(ModelError::field(
                 "hybrid.safety_factor",

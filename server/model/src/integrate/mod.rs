@@ -43,6 +43,7 @@ pub mod condensed;
 pub mod explicit;
 pub mod follow;
 pub mod implicit;
+pub(crate) mod region_section;
 
 use condensed::{ActiveRegion, CondensedSolver};
 use implicit::{CgStats, ImplicitSolver};
@@ -122,6 +123,9 @@ pub enum LinearSolver {
 }
 
 impl LinearSolver {
+    /// Every linear solver, in the order of the docs.
+    pub const ALL: [LinearSolver; 2] = [Self::Cg, Self::RestCholesky];
+
     /// The name used in scene files (`cg`, `rest-cholesky`).
     pub fn name(self) -> &'static str {
         match self {
@@ -132,9 +136,7 @@ impl LinearSolver {
 
     /// Parses a scene-file name (see [`LinearSolver::name`]); `None` if unknown.
     pub fn from_name(name: &str) -> Option<Self> {
-        [Self::Cg, Self::RestCholesky]
-            .into_iter()
-            .find(|k| k.name() == name)
+        Self::ALL.into_iter().find(|k| k.name() == name)
     }
 }
 

@@ -36,11 +36,13 @@ mod mixed;
 pub mod network;
 pub mod organ;
 pub mod refine;
+pub(crate) mod section;
 pub mod surface;
 
 pub use body::MassSpringBody;
 pub use calibration::{CalibrationTable, ContactShape};
 pub use organ::{OrganReference, OrganTable};
+pub use section::{MassSpringScene, OrganScene, TableState};
 pub use surface::SpringSurface;
 
 use crate::ModelError;

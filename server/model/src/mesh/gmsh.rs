@@ -589,6 +589,65 @@ fn read_elements_41(
     Ok(out)
 }
 
+/// The named surfaces (triangles) and node groups (points) of `elements` in the compact
+/// numbering `index` (elements with a node outside it are left out); unnamed groups are called
+/// `surface_TAG` and `point_TAG`.
+fn physical_groups(
+    elements: &[Element],
+    index: &HashMap<u64, u32>,
+    names: &HashMap<(u32, i64), String>,
+) -> (Vec<SurfaceGroup>, Vec<NodeGroup>) {
+    let map = |e: &Element| -> Option<Vec<u32>> {
+        e.nodes.iter().map(|t| index.get(t).copied()).collect()
+    };
+    let mut surfaces: BTreeMap<i64, Vec<[u32; 3]>> = BTreeMap::new();
+    let mut points: BTreeMap<i64, Vec<u32>> = BTreeMap::new();
+    for e in elements {
+        match e.kind {
+            TYPE_TRIANGLE => {
+                if let Some(v) = map(e) {
+                    for &p in &e.physical {
+                        surfaces.entry(p).or_default().push([v[0], v[1], v[2]]);
+                    }
+                }
+            }
+            TYPE_POINT => {
+                if let Some(v) = map(e) {
+                    for &p in &e.physical {
+                        points.entry(p).or_default().push(v[0]);
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
+    let surfaces = surfaces
+        .into_iter()
+        .map(|(tag, triangles)| SurfaceGroup {
+            name: names
+                .get(&(2, tag))
+                .cloned()
+                .unwrap_or_else(|| format!("surface_{tag}")),
+            triangles,
+        })
+        .collect();
+    let node_groups = points
+        .into_iter()
+        .map(|(tag, mut nodes)| {
+            nodes.sort_unstable();
+            nodes.dedup();
+            NodeGroup {
+                name: names
+                    .get(&(0, tag))
+                    .cloned()
+                    .unwrap_or_else(|| format!("point_{tag}")),
+                nodes,
+            }
+        })
+        .collect();
+    (surfaces, node_groups)
+}
+
 /// Builds the compacted [`TetMesh`] from the parsed nodes and elements.
 fn assemble(
     nodes: BTreeMap<u64, DVec3>,
@@ -639,54 +698,7 @@ fn assemble(
         surfaces: Vec::new(),
         node_groups: Vec::new(),
     };
-    let map = |e: &Element| -> Option<Vec<u32>> {
-        e.nodes.iter().map(|t| index.get(t).copied()).collect()
-    };
-    let mut surfaces: BTreeMap<i64, Vec<[u32; 3]>> = BTreeMap::new();
-    let mut points: BTreeMap<i64, Vec<u32>> = BTreeMap::new();
-    for e in elements {
-        match e.kind {
-            TYPE_TRIANGLE => {
-                if let Some(v) = map(e) {
-                    for &p in &e.physical {
-                        surfaces.entry(p).or_default().push([v[0], v[1], v[2]]);
-                    }
-                }
-            }
-            TYPE_POINT => {
-                if let Some(v) = map(e) {
-                    for &p in &e.physical {
-                        points.entry(p).or_default().push(v[0]);
-                    }
-                }
-            }
-            _ => {}
-        }
-    }
-    mesh.surfaces = surfaces
-        .into_iter()
-        .map(|(tag, triangles)| SurfaceGroup {
-            name: names
-                .get(&(2, tag))
-                .cloned()
-                .unwrap_or_else(|| format!("surface_{tag}")),
-            triangles,
-        })
-        .collect();
-    mesh.node_groups = points
-        .into_iter()
-        .map(|(tag, mut nodes)| {
-            nodes.sort_unstable();
-            nodes.dedup();
-            NodeGroup {
-                name: names
-                    .get(&(0, tag))
-                    .cloned()
-                    .unwrap_or_else(|| format!("point_{tag}")),
-                nodes,
-            }
-        })
-        .collect();
+    (mesh.surfaces, mesh.node_groups) = physical_groups(elements, &index, names);
     mesh.orient_and_check()?;
     mesh.orient_surfaces_outward();
     Ok(mesh)

@@ -83,7 +83,7 @@
 //! [`crate::element`], [`crate::integrate`], [`crate::contact`], [`crate::loads`]. Used by
 //! [`crate::build_body`], which builds a body from a [`Scene`].
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use glam::DVec3;
 
@@ -93,8 +93,6 @@ use crate::element::{FemModel, FibreField, FibreRule, StrainSmoothing};
 use crate::integrate::IntegratorParams;
 use crate::integrate::condensed::ActiveRegion;
 use crate::loads::{SceneLoads, static_dead_forces, static_external_forces};
-use crate::mass_spring::calibration::{CalibrationTable, ContactShape};
-use crate::mass_spring::{MassSpringParams, OrganReference, OrganTable, SpringSurface};
 use crate::material::MaterialParams;
 use crate::mesh::TetMesh;
 
@@ -102,6 +100,8 @@ pub mod builtin;
 mod raw;
 mod toml_errors;
 
+pub use crate::hybrid::HybridScene;
+pub use crate::mass_spring::{MassSpringScene, OrganScene, TableState};
 pub use builtin::{builtin_calibration, builtin_scene_names, builtin_scene_toml};
 pub use raw::{MAX_GRAVITY_M_PER_S2, MAX_PRESSURE_PA, MAX_SCENE_POINT_FORCE_N};
 pub use toml_errors::describe_toml_error;
@@ -213,110 +213,6 @@ pub struct Scene {
     /// probe where the region does not hold the contact ([`crate::fem::FemBody`], "The
     /// coarse companion").
     pub fallback: Option<Box<Scene>>,
-}
-
-/// The hybrid part of a scene (`[hybrid]`, with the wall geometry of the built-in mesh).
-#[derive(Debug, Clone)]
-pub struct HybridScene {
-    /// The wall between two ellipsoids (`mesh.builtin` = `"lv"` or `"ellipsoids"`).
-    pub geometry: crate::hybrid::ShellGeometry,
-    /// Parameters.
-    pub params: crate::hybrid::HybridParams,
-    /// Wanted tetrahedra of the FEM core (`mesh.target_tets`).
-    pub core_target_tets: usize,
-}
-
-/// The mass-spring part of a scene: the spring surface (the touchable triangles, with the
-/// clamped nodes fixed), the parameters, and the calibrated table with its cache file.
-#[derive(Debug, Clone)]
-pub struct MassSpringScene {
-    /// Parameters (eq. 1-3, subdivision).
-    pub params: MassSpringParams,
-    /// The coarse surface.
-    pub surface: SpringSurface,
-    /// The contact the table is calibrated for: the scene's probe.
-    pub contact: ContactShape,
-    /// The key a valid table must carry ([`crate::mass_spring::calibration::calibration_key`]).
-    pub key: u64,
-    /// The table's file name as the scene gives it (`calibration_file`, default
-    /// `<scene name>.calibration.csv`).
-    pub calibration_file: String,
-    /// Where the table is read from and written to (relative to the scene's directory);
-    /// `None` for a built-in scene, whose table is compiled into the library.
-    pub calibration_path: Option<PathBuf>,
-    /// The table, or why there is none.
-    pub table: TableState,
-    /// The organ calibration (`reference_file`, [`crate::mass_spring::organ`]), if the scene
-    /// gives a reference.
-    pub organ: Option<OrganScene>,
-}
-
-/// The organ calibration of a mass-spring scene: the organ's reference, the axis its target is
-/// interpolated along, and the organ table.
-#[derive(Debug, Clone)]
-pub struct OrganScene {
-    /// The reference (`mass_spring.reference_file`).
-    pub reference: OrganReference,
-    /// `mass_spring.reference_axis`, unit.
-    pub axis: DVec3,
-    /// The key a valid table must carry ([`crate::mass_spring::organ::organ_key`]).
-    pub key: u64,
-    /// The table's file name as the scene gives it (`organ_file`, default
-    /// `<scene name>.organ.csv`).
-    pub file: String,
-    /// Where it is read from and written to; `None` for a built-in scene.
-    pub path: Option<PathBuf>,
-    /// The table, or why it is unusable (missing, malformed, stale).
-    pub table: Result<OrganTable, String>,
-}
-
-impl OrganScene {
-    /// The table.
-    ///
-    /// # Errors
-    /// [`ModelError::Calibration`] naming the file, what is wrong and the command that
-    /// computes it.
-    pub fn table(&self) -> Result<OrganTable, ModelError> {
-        self.table.clone().map_err(|why| ModelError::Calibration {
-            // As the scene names it, not where it resolved (issue 47).
-            path: self.file.clone(),
-            message: format!(
-                "{why}; compute it with `haptic-calibrate SCENE_FILE` (writes it beside the scene)"
-            ),
-        })
-    }
-}
-
-/// The calibration table of a mass-spring scene.
-#[derive(Debug, Clone)]
-pub enum TableState {
-    /// The scene does not subdivide with calibrated springs.
-    NotNeeded,
-    /// Read and valid for this scene.
-    Ready(CalibrationTable),
-    /// Missing, unreadable, malformed or stale: why.
-    Unusable(String),
-}
-
-impl MassSpringScene {
-    /// The table the body needs (`None` when it needs none).
-    ///
-    /// # Errors
-    /// [`ModelError::Calibration`] naming the file, saying what is wrong and the command that
-    /// computes it, when the table is needed but unusable.
-    pub fn table(&self) -> Result<Option<CalibrationTable>, ModelError> {
-        match &self.table {
-            TableState::NotNeeded => Ok(None),
-            TableState::Ready(t) => Ok(Some(t.clone())),
-            TableState::Unusable(why) => Err(ModelError::Calibration {
-                // As the scene names it, not where it resolved (issue 47).
-                path: self.calibration_file.clone(),
-                message: format!(
-                    "{why}; compute it with `haptic-calibrate SCENE_FILE` (writes it beside the scene), or set mass_spring.springs = \"unchanged\" or rings = 0"
-                ),
-            }),
-        }
-    }
 }
 
 impl Scene {

@@ -230,14 +230,7 @@ impl CalibrationTable {
     /// a malformed or non-finite number, a node out of range, samples missing or out of order,
     /// or displacements that do not increase.
     pub fn parse(text: &str, path: &str) -> Result<Self, ModelError> {
-        let err = |line: usize, m: String| ModelError::Calibration {
-            path: path.to_string(),
-            message: if line > 0 {
-                format!("line {line}: {m}")
-            } else {
-                m
-            },
-        };
+        let err = |line: usize, m: String| table_error(path, line, m);
         let mut key = None;
         let mut nodes = None;
         let mut rows: Vec<Option<NodeCalibration>> = Vec::new();
@@ -279,60 +272,10 @@ impl CalibrationTable {
                 header_seen = true;
                 continue;
             }
-            let Some(n) = nodes else {
+            if nodes.is_none() {
                 return Err(err(ln, "a row before the `# nodes` line".into()));
-            };
-            let f: Vec<&str> = line.split(',').collect();
-            if f.len() != 6 {
-                return Err(err(ln, "expected 6 comma-separated fields".into()));
             }
-            let int = |s: &str| -> Result<usize, ModelError> {
-                s.trim()
-                    .parse()
-                    .map_err(|_| err(ln, "expected a whole number of 0 or more".into()))
-            };
-            let num = |s: &str| -> Result<f64, ModelError> {
-                let v: f64 = s
-                    .trim()
-                    .parse()
-                    .map_err(|_| err(ln, "expected a number".into()))?;
-                if !v.is_finite() {
-                    return Err(err(ln, "expected a finite number".into()));
-                }
-                Ok(v)
-            };
-            let (node, sample) = (int(f[0])?, int(f[2])?);
-            if node >= n {
-                return Err(err(ln, format!("node {node} is beyond the {n} nodes")));
-            }
-            if !(1..=SAMPLES).contains(&sample) {
-                return Err(err(ln, format!("sample {sample} is not in 1..={SAMPLES}")));
-            }
-            let row = rows[node].get_or_insert(NodeCalibration {
-                element_size_m: num(f[1])?,
-                x_over_l: [f64::NAN; SAMPLES],
-                kh_scale: [f64::NAN; SAMPLES],
-                force_n: [f64::NAN; SAMPLES],
-            });
-            let s = sample - 1;
-            if s > 0 && row.x_over_l[s - 1].is_nan() {
-                return Err(err(
-                    ln,
-                    format!("node {node}: sample {sample} out of order"),
-                ));
-            }
-            row.x_over_l[s] = num(f[3])?;
-            row.kh_scale[s] = num(f[4])?;
-            row.force_n[s] = num(f[5])?;
-            if !(row.kh_scale[s] > 0.0) {
-                return Err(err(ln, format!("node {node}: kh_scale must be > 0")));
-            }
-            if s > 0 && !(row.x_over_l[s] > row.x_over_l[s - 1]) {
-                return Err(err(
-                    ln,
-                    format!("node {node}: x_over_l must increase with the sample"),
-                ));
-            }
+            parse_row(line, ln, &mut rows, path)?;
         }
         let key = key.ok_or_else(|| err(0, "no `# key` line".into()))?;
         if nodes.is_none() {
@@ -347,6 +290,82 @@ impl CalibrationTable {
         }
         Ok(Self { key, rows })
     }
+}
+
+/// A calibration-table error in file `path` at `line` (0: the whole file).
+fn table_error(path: &str, line: usize, m: String) -> ModelError {
+    ModelError::Calibration {
+        path: path.to_string(),
+        message: if line > 0 {
+            format!("line {line}: {m}")
+        } else {
+            m
+        },
+    }
+}
+
+/// One data row `line` (line number `ln`) of a calibration table of `rows.len()` nodes: checks
+/// its fields and stores its sample in `rows`.
+fn parse_row(
+    line: &str,
+    ln: usize,
+    rows: &mut [Option<NodeCalibration>],
+    path: &str,
+) -> Result<(), ModelError> {
+    let err = |line: usize, m: String| table_error(path, line, m);
+    let n = rows.len();
+    let f: Vec<&str> = line.split(',').collect();
+    if f.len() != 6 {
+        return Err(err(ln, "expected 6 comma-separated fields".into()));
+    }
+    let int = |s: &str| -> Result<usize, ModelError> {
+        s.trim()
+            .parse()
+            .map_err(|_| err(ln, "expected a whole number of 0 or more".into()))
+    };
+    let num = |s: &str| -> Result<f64, ModelError> {
+        let v: f64 = s
+            .trim()
+            .parse()
+            .map_err(|_| err(ln, "expected a number".into()))?;
+        if !v.is_finite() {
+            return Err(err(ln, "expected a finite number".into()));
+        }
+        Ok(v)
+    };
+    let (node, sample) = (int(f[0])?, int(f[2])?);
+    if node >= n {
+        return Err(err(ln, format!("node {node} is beyond the {n} nodes")));
+    }
+    if !(1..=SAMPLES).contains(&sample) {
+        return Err(err(ln, format!("sample {sample} is not in 1..={SAMPLES}")));
+    }
+    let row = rows[node].get_or_insert(NodeCalibration {
+        element_size_m: num(f[1])?,
+        x_over_l: [f64::NAN; SAMPLES],
+        kh_scale: [f64::NAN; SAMPLES],
+        force_n: [f64::NAN; SAMPLES],
+    });
+    let s = sample - 1;
+    if s > 0 && row.x_over_l[s - 1].is_nan() {
+        return Err(err(
+            ln,
+            format!("node {node}: sample {sample} out of order"),
+        ));
+    }
+    row.x_over_l[s] = num(f[3])?;
+    row.kh_scale[s] = num(f[4])?;
+    row.force_n[s] = num(f[5])?;
+    if !(row.kh_scale[s] > 0.0) {
+        return Err(err(ln, format!("node {node}: kh_scale must be > 0")));
+    }
+    if s > 0 && !(row.x_over_l[s] > row.x_over_l[s - 1]) {
+        return Err(err(
+            ln,
+            format!("node {node}: x_over_l must increase with the sample"),
+        ));
+    }
+    Ok(())
 }
 
 /// FNV-1a, 64 bits: a stable hash for the cache key (no dependency, same on every platform).

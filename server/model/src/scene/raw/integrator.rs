@@ -2,6 +2,48 @@
 
 use super::*;
 
+/// `integrator.substeps`: "auto" (absent: `None`) or an integer in `1..=max_substeps`.
+fn substeps(value: Option<&toml::Value>, max_substeps: u32) -> Result<Option<u32>, ModelError> {
+    match value {
+        None => Ok(None),
+        Some(toml::Value::String(s)) if s == "auto" => Ok(None),
+        Some(toml::Value::Integer(n)) => {
+            Ok(Some(
+                int_in("integrator.substeps", *n, 1, i64::from(max_substeps))? as u32,
+            ))
+        }
+        Some(other) => Err(ModelError::field(
+            "integrator.substeps",
+            format!("must be \"auto\" or an integer in 1..={max_substeps}, got {other}"),
+        )),
+    }
+}
+
+/// `integrator.linear_solver` (absent: `default`); "rest-cholesky" needs backward Euler (`kind`).
+fn linear_solver(
+    name: Option<&str>,
+    default: LinearSolver,
+    kind: IntegratorKind,
+) -> Result<LinearSolver, ModelError> {
+    let linear_solver = match name {
+        None => default,
+        Some(name) => LinearSolver::from_name(name).ok_or_else(|| {
+            ModelError::field(
+                "integrator.linear_solver",
+                format!("unknown linear solver `{name}` (expected \"cg\" or \"rest-cholesky\")"),
+            )
+        })?,
+    };
+    if linear_solver == LinearSolver::RestCholesky && kind != IntegratorKind::BackwardEuler {
+        return Err(ModelError::field(
+            "integrator.linear_solver",
+            "\"rest-cholesky\" needs integrator.kind = \"backward-euler\"",
+        ));
+    }
+    Ok(linear_solver)
+}
+
+/// The `[integrator]` section (absent keys: [`IntegratorParams::default`]).
 pub(super) fn build_integrator(i: &RawIntegrator) -> Result<IntegratorParams, ModelError> {
     let d = IntegratorParams::default();
     let kind = match i.kind.as_deref() {
@@ -25,19 +67,7 @@ pub(super) fn build_integrator(i: &RawIntegrator) -> Result<IntegratorParams, Mo
         None => d.max_substeps,
         Some(v) => int_in("integrator.max_substeps", v, 1, 100_000)? as u32,
     };
-    let substeps = match &i.substeps {
-        None => None,
-        Some(toml::Value::String(s)) if s == "auto" => None,
-        Some(toml::Value::Integer(n)) => {
-            Some(int_in("integrator.substeps", *n, 1, i64::from(max_substeps))? as u32)
-        }
-        Some(other) => {
-            return Err(ModelError::field(
-                "integrator.substeps",
-                format!("must be \"auto\" or an integer in 1..={max_substeps}, got {other}"),
-            ));
-        }
-    };
+    let substeps = substeps(i.substeps.as_ref(), max_substeps)?;
     let safety_factor = checked(
         "integrator.safety_factor",
         i.safety_factor.unwrap_or(d.safety_factor),
@@ -54,21 +84,7 @@ pub(super) fn build_integrator(i: &RawIntegrator) -> Result<IntegratorParams, Mo
         |x| x > 0.0 && x < 1.0,
         "in (0, 1)",
     )?;
-    let linear_solver = match i.linear_solver.as_deref() {
-        None => d.linear_solver,
-        Some(name) => LinearSolver::from_name(name).ok_or_else(|| {
-            ModelError::field(
-                "integrator.linear_solver",
-                format!("unknown linear solver `{name}` (expected \"cg\" or \"rest-cholesky\")"),
-            )
-        })?,
-    };
-    if linear_solver == LinearSolver::RestCholesky && kind != IntegratorKind::BackwardEuler {
-        return Err(ModelError::field(
-            "integrator.linear_solver",
-            "\"rest-cholesky\" needs integrator.kind = \"backward-euler\"",
-        ));
-    }
+    let linear_solver = linear_solver(i.linear_solver.as_deref(), d.linear_solver, kind)?;
     if i.stiffness_margin.is_some() && linear_solver != LinearSolver::RestCholesky {
         return Err(ModelError::field(
             "integrator.stiffness_margin",

@@ -1,55 +1,45 @@
 //! The raw (serde) form of a scene file and its validation into a [`Scene`]: every field is
 //! checked for presence, finiteness and range, and errors name it by its dotted path.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use glam::DVec3;
 use serde::Deserialize;
 
 use super::builtin::builtin_calibration;
-use super::{HybridScene, MassSpringScene, ModelFamily, OrganScene, Scene, TableState};
+use super::{BUILTIN_MESHES, ModelFamily, Scene};
 use crate::ModelError;
 use crate::check::{bounded_vec, checked, int_in, non_negative, positive, positive_vec, required};
 use crate::contact::{ContactModel, ProbeParams};
 use crate::element::StrainSmoothing;
-use crate::hybrid::{
-    CoreMassScale, CoreStep, HybridParams, InactiveLayer, ScaledMotion, ShellGeometry,
-};
-use crate::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
+use crate::hybrid::section::{RawHybrid, hybrid_section};
+use crate::integrate::condensed::ActiveRegion;
+use crate::integrate::region_section::{RawActiveRegion, region_section};
 use crate::integrate::{IntegratorKind, IntegratorParams, LinearSolver};
 use crate::loads::{PointForce, PressureLoad, SceneLoads};
-use crate::mass_spring::calibration::{CalibrationTable, ContactShape, calibration_key};
-use crate::mass_spring::organ::{OrganReference, OrganTable, organ_key};
-use crate::mass_spring::{
-    MAX_RINGS, MassSpringParams, SpringRule, SpringSurface, SubdivisionParams, VertexRule,
+use crate::mass_spring::section::{
+    RawMassSpring, TableSource, build_mass_spring, into_spring_mesh,
 };
 use crate::material::{MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
-use crate::meshfree::{KernelKind, MeshfreeParams, MeshfreeVariant};
 
 mod boundary;
 mod fallback;
 mod family;
-mod hybrid;
 mod integrator;
 mod loads;
-mod mass_spring;
 mod material;
 mod mesh;
 mod probe;
-mod region;
 
 use boundary::*;
 use fallback::*;
 use family::*;
-use hybrid::*;
 use integrator::*;
 use loads::*;
-use mass_spring::*;
 use material::*;
 use mesh::*;
 use probe::*;
-use region::*;
 
 /// Largest accepted gravitational acceleration magnitude in a scene, m/s^2.
 pub const MAX_GRAVITY_M_PER_S2: f64 = 1e4;
@@ -77,95 +67,9 @@ struct RawScene {
 
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
-struct RawHybrid {
-    variant: Option<String>,
-    kernel: Option<String>,
-    spacing_m: Option<f64>,
-    smoothing_ratio: Option<f64>,
-    hourglass_coefficient: Option<f64>,
-    core_fraction: Option<f64>,
-    surface_target_tets: Option<i64>,
-    activation_radius_m: Option<f64>,
-    release_radius_m: Option<f64>,
-    release_tolerance_m: Option<f64>,
-    max_active_particles: Option<i64>,
-    contact_stiffness_n_per_m: Option<f64>,
-    mass_scale: Option<f64>,
-    core_mass_scale: Option<RawCoreMassScale>,
-    scaled_motion: Option<String>,
-    core_step: Option<String>,
-    core_stiffness_margin: Option<f64>,
-    inactive_layer: Option<String>,
-    safety_factor: Option<f64>,
-    max_substeps: Option<i64>,
-}
-
-/// `hybrid.core_mass_scale`: a number or a name (`CoreMassScale::parse`).
-#[derive(Debug)]
-enum RawCoreMassScale {
-    Number(f64),
-    Name(String),
-}
-
-impl<'de> Deserialize<'de> for RawCoreMassScale {
-    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
-        struct Visitor;
-        impl serde::de::Visitor<'_> for Visitor {
-            type Value = RawCoreMassScale;
-            fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-                f.write_str("a number, \"auto\" or \"uniform\"")
-            }
-            fn visit_f64<E>(self, v: f64) -> Result<Self::Value, E> {
-                Ok(RawCoreMassScale::Number(v))
-            }
-            fn visit_i64<E>(self, v: i64) -> Result<Self::Value, E> {
-                Ok(RawCoreMassScale::Number(v as f64))
-            }
-            fn visit_u64<E>(self, v: u64) -> Result<Self::Value, E> {
-                Ok(RawCoreMassScale::Number(v as f64))
-            }
-            fn visit_str<E>(self, v: &str) -> Result<Self::Value, E> {
-                Ok(RawCoreMassScale::Name(v.to_string()))
-            }
-        }
-        d.deserialize_any(Visitor)
-    }
-}
-
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RawMassSpring {
-    mesh_spring_n_per_m: Option<f64>,
-    home_spring_n_per_m: Option<f64>,
-    damping_n_s_per_m: Option<f64>,
-    node_mass_kg: Option<f64>,
-    rings: Option<i64>,
-    springs: Option<String>,
-    km_over_kh_after: Option<f64>,
-    vertex_rule: Option<String>,
-    coarsen_delay_s: Option<f64>,
-    calibration_file: Option<String>,
-    reference_file: Option<String>,
-    reference_axis: Option<[f64; 3]>,
-    organ_file: Option<String>,
-}
-
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
 struct RawModel {
     family: Option<String>,
     realtime: Option<bool>,
-}
-
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RawActiveRegion {
-    centre_m: Option<[f64; 3]>,
-    radius_m: Option<f64>,
-    stiffness_margin: Option<f64>,
-    follow: Option<bool>,
-    fallback_target_tets: Option<i64>,
-    fallback_builtin: Option<String>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -281,6 +185,16 @@ pub(super) enum Origin {
     File,
 }
 
+impl Origin {
+    /// Where a scene of this origin in `base_dir` reads its calibration tables.
+    fn table_source(self, base_dir: &Path) -> TableSource<'_> {
+        match self {
+            Origin::Builtin => TableSource::Builtin(builtin_calibration),
+            Origin::File => TableSource::Dir(base_dir),
+        }
+    }
+}
+
 pub(super) fn parse_scene(
     text: &str,
     base_dir: &Path,
@@ -311,11 +225,21 @@ pub(super) fn parse_scene(
         &mut integrator,
         &present,
     )?;
-    let hybrid = hybrid_section(family, raw.hybrid.as_ref(), &mesh_raw, length_unit_m)?;
+    let hybrid_mesh = hybrid_mesh(&mesh_raw, length_unit_m);
+    let hybrid = hybrid_section(
+        family == ModelFamily::Hybrid,
+        raw.hybrid.as_ref(),
+        &hybrid_mesh,
+    )?;
     let probe = build_probe(&raw.probe.unwrap_or_default())?;
     let loads = build_loads(&raw.loads.unwrap_or_default(), &mesh, &clamped_nodes)?;
     let raw_region = raw.active_region.as_ref();
-    let active_region = region_section(raw_region, &integrator, &raw_integrator)?;
+    let active_region = region_section(
+        raw_region,
+        &integrator,
+        raw_integrator.linear_solver.as_deref(),
+        raw_integrator.stiffness_margin.is_some(),
+    )?;
     let name = raw.name.unwrap_or_else(|| default_name.to_string());
     let fallback = match (raw_region, &active_region) {
         (Some(a), Some(region)) => {
@@ -332,6 +256,7 @@ pub(super) fn parse_scene(
     let (mut mesh, mut touchable, mut clamped_nodes) = (mesh, touchable, clamped_nodes);
     let mass_spring = if springs {
         let section = required("mass_spring", raw.mass_spring)?;
+        let source = origin.table_source(base_dir);
         let mut ms = build_mass_spring(
             &section,
             &mesh,
@@ -339,8 +264,7 @@ pub(super) fn parse_scene(
             &clamped_nodes,
             probe,
             &name,
-            base_dir,
-            origin,
+            source,
         )?;
         (mesh, touchable, clamped_nodes) =
             into_spring_mesh(&mut ms, boundary.touchable.as_deref(), &mesh)?;
