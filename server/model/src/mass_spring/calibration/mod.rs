@@ -535,6 +535,17 @@ pub fn calibrate_node_with(
             Err(e) => return Err(e),
         }
     }
+    fill_unmatched(&mut out, node)?;
+    Ok(out)
+}
+
+/// Gives the samples [`calibrate_node_with`] could not match their neighbour's factor (the
+/// first matched one before it, the last one after) and keeps the displacements increasing,
+/// so that the table is a function of the displacement.
+///
+/// # Errors
+/// [`ModelError::NoConvergence`] when no sample matched.
+fn fill_unmatched(out: &mut NodeCalibration, node: u32) -> Result<(), ModelError> {
     let Some(first) = out.kh_scale.iter().position(|v| v.is_finite()) else {
         return Err(ModelError::NoConvergence(format!(
             "node {node}: no depth up to L at which the subdivided force can match"
@@ -562,7 +573,7 @@ pub fn calibrate_node_with(
             out.x_over_l[k] = out.x_over_l[k - 1] + 1e-9;
         }
     }
-    Ok(out)
+    Ok(())
 }
 
 /// Calibrates every free node of `surface` for `params` and `shape` on `threads` threads

@@ -154,21 +154,7 @@ impl LocalPatch {
         let (ring, patch) = cut_patch(surface, centre, rings + margin)?;
         let c = 0u32; // the ring starts with the centre
         let nc = patch.node_count();
-        let coarse = Network {
-            rest: patch.rest().to_vec(),
-            fixed: (0..nc as u32).map(|i| patch.is_fixed(i)).collect(),
-            home_n_per_m: vec![kh; nc],
-            springs: patch
-                .edges()
-                .iter()
-                .map(|&[a, b]| Spring {
-                    i: a,
-                    j: b,
-                    rest_length_m: (patch.rest()[b as usize] - patch.rest()[a as usize]).length(),
-                    stiffness_n_per_m: km,
-                })
-                .collect(),
-        };
+        let coarse = coarse_network(&patch, kh, km);
         // Subdivided network over slots (coarse nodes, then one per edge), as at run time.
         let mut refinement = Refinement::new(&patch);
         refinement.begin();
@@ -176,19 +162,7 @@ impl LocalPatch {
         refinement.finish(&patch);
         let fine_mesh = refinement.mesh(&patch);
         let ns = nc + patch.edge_count();
-        let mut fine_rest = patch.rest().to_vec();
-        let mut stencil = Vec::new();
-        if vertex_rule == VertexRule::Loop {
-            for i in 0..nc as u32 {
-                if refinement.node_owner(i) != NO_OWNER && !patch.is_fixed(i) {
-                    vertex_stencil(&patch, i, &mut stencil);
-                    fine_rest[i as usize] = apply(&stencil, patch.rest());
-                }
-            }
-        }
-        for e in 0..patch.edge_count() as u32 {
-            fine_rest.push(apply(&edge_stencil(&patch, e), patch.rest()));
-        }
+        let fine_rest = fine_rest_positions(&patch, &refinement, vertex_rule);
         let mut fine_fixed: Vec<bool> = coarse.fixed.clone();
         fine_fixed.resize(ns, true);
         for &e in refinement.active_edges() {
@@ -542,6 +516,52 @@ impl LocalPatch {
         }
         Ok(None)
     }
+}
+
+/// The coarse patch as a spring network: home springs `kh` at every node, mesh springs `km`
+/// along every edge, N/m.
+fn coarse_network(patch: &SpringSurface, kh: f64, km: f64) -> Network {
+    let nc = patch.node_count();
+    Network {
+        rest: patch.rest().to_vec(),
+        fixed: (0..nc as u32).map(|i| patch.is_fixed(i)).collect(),
+        home_n_per_m: vec![kh; nc],
+        springs: patch
+            .edges()
+            .iter()
+            .map(|&[a, b]| Spring {
+                i: a,
+                j: b,
+                rest_length_m: (patch.rest()[b as usize] - patch.rest()[a as usize]).length(),
+                stiffness_n_per_m: km,
+            })
+            .collect(),
+    }
+}
+
+/// Rest positions of the subdivided patch's slots (coarse nodes, then one per edge), as at
+/// run time: the refined coarse nodes moved by Loop's vertex rule when `vertex_rule` says so,
+/// every edge's new vertex by the edge rule.
+fn fine_rest_positions(
+    patch: &SpringSurface,
+    refinement: &Refinement,
+    vertex_rule: VertexRule,
+) -> Vec<DVec3> {
+    let nc = patch.node_count();
+    let mut fine_rest = patch.rest().to_vec();
+    let mut stencil = Vec::new();
+    if vertex_rule == VertexRule::Loop {
+        for i in 0..nc as u32 {
+            if refinement.node_owner(i) != NO_OWNER && !patch.is_fixed(i) {
+                vertex_stencil(patch, i, &mut stencil);
+                fine_rest[i as usize] = apply(&stencil, patch.rest());
+            }
+        }
+    }
+    for e in 0..patch.edge_count() as u32 {
+        fine_rest.push(apply(&edge_stencil(patch, e), patch.rest()));
+    }
+    fine_rest
 }
 
 /// The local problem's patch: the rings around `centre` up to `outer` (`ring`: the whole

@@ -302,28 +302,7 @@ pub fn calibrate_organ(
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<OrganTable, ModelError> {
     let params = setup.params;
-    let mut coarse_params = *params;
-    coarse_params.subdivision.rings = 0;
-    let coarse = MassSpringBody::new(
-        surface.clone(),
-        &coarse_params,
-        None,
-        setup.probe,
-        setup.integrator,
-        "organ calibration",
-    )?;
-    let subdivided = if params.subdivision.rings > 0 {
-        Some(MassSpringBody::new(
-            surface.clone(),
-            params,
-            setup.subdivision_table.cloned(),
-            setup.probe,
-            setup.integrator,
-            "organ calibration",
-        )?)
-    } else {
-        None
-    };
+    let (coarse, subdivided) = organ_bodies(surface, &setup)?;
     let nc = surface.node_count();
     let ns = nc + surface.edge_count();
     let free: Vec<u32> = (0..ns as u32)
@@ -384,10 +363,58 @@ pub fn calibrate_organ(
         return Err(e);
     }
     let mut rows = rows.into_inner().unwrap_or_default();
-    let m = reference.depths_m().len();
+    fill_fixed_sites(&mut rows, surface, reference.depths_m().len());
+    Ok(OrganTable {
+        key: organ_key(surface, params, &setup.probe, reference, axis),
+        depths_m: reference.depths_m().to_vec(),
+        nodes: nc,
+        rows: rows.into_iter().map(Option::unwrap_or_default).collect(),
+    })
+}
+
+/// The bodies a site is pressed on: the coarse surface (no subdivision) and, when the scene
+/// subdivides, the subdivided one.
+///
+/// # Errors
+/// The errors of [`MassSpringBody::new`].
+fn organ_bodies(
+    surface: &SpringSurface,
+    setup: &OrganSetup<'_>,
+) -> Result<(MassSpringBody, Option<MassSpringBody>), ModelError> {
+    let params = setup.params;
+    let mut coarse_params = *params;
+    coarse_params.subdivision.rings = 0;
+    let coarse = MassSpringBody::new(
+        surface.clone(),
+        &coarse_params,
+        None,
+        setup.probe,
+        setup.integrator,
+        "organ calibration",
+    )?;
+    let subdivided = if params.subdivision.rings > 0 {
+        Some(MassSpringBody::new(
+            surface.clone(),
+            params,
+            setup.subdivision_table.cloned(),
+            setup.probe,
+            setup.integrator,
+            "organ calibration",
+        )?)
+    } else {
+        None
+    };
+    Ok((coarse, subdivided))
+}
+
+/// Gives every site without a row (a fixed node, an edge whose press failed or whose ends are
+/// fixed) the mean row of its neighbours (a node) or its ends (an edge site), `m` samples.
+fn fill_fixed_sites(rows: &mut [Option<OrganRow>], surface: &SpringSurface, m: usize) {
+    let nc = surface.node_count();
+    let ns = rows.len();
     let fixed: Vec<(usize, OrganRow)> = (0..nc)
         .filter(|&i| rows[i].is_none())
-        .map(|i| (i, mean_row(&rows, surface.neighbours(i as u32), m)))
+        .map(|i| (i, mean_row(rows, surface.neighbours(i as u32), m)))
         .collect();
     for (i, row) in fixed {
         rows[i] = Some(row);
@@ -395,15 +422,9 @@ pub fn calibrate_organ(
     for s in nc..ns {
         if rows[s].is_none() {
             let ends = surface.edges()[s - nc];
-            rows[s] = Some(mean_row(&rows, &ends, m));
+            rows[s] = Some(mean_row(rows, &ends, m));
         }
     }
-    Ok(OrganTable {
-        key: organ_key(surface, params, &setup.probe, reference, axis),
-        depths_m: reference.depths_m().to_vec(),
-        nodes: nc,
-        rows: rows.into_iter().map(Option::unwrap_or_default).collect(),
-    })
 }
 
 /// The mean factors and target of the calibrated sites `of` (factor 1 without any): the row

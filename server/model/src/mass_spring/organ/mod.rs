@@ -426,10 +426,8 @@ impl OrganTable {
             },
         };
         let mut counts = Counts::default();
-        let mut depths: Vec<f64> = Vec::new();
-        let mut rows: Vec<OrganRow> = Vec::new();
+        let mut reader = RowReader::default();
         let mut header = false;
-        let mut next = (0usize, 0usize);
         for (k, line) in text.lines().enumerate() {
             let ln = k + 1;
             let line = line.trim();
@@ -453,77 +451,7 @@ impl OrganTable {
                     "a row before the `# nodes`, `# edges` and `# samples` lines".into(),
                 ));
             };
-            let n = nn + ne;
-            let f: Vec<&str> = line.split(',').map(str::trim).collect();
-            if f.len() != 8 {
-                return Err(err(ln, format!("expected 8 fields, got {}", f.len())));
-            }
-            let int = |s: &str| -> Result<usize, ModelError> {
-                s.parse()
-                    .map_err(|e| err(ln, format!("bad integer `{s}`: {e}")))
-            };
-            let num = |s: &str| -> Result<f64, ModelError> {
-                let v: f64 = s
-                    .parse()
-                    .map_err(|e| err(ln, format!("bad number `{s}`: {e}")))?;
-                if v.is_finite() {
-                    Ok(v)
-                } else {
-                    Err(err(ln, format!("`{s}` is not finite")))
-                }
-            };
-            let (node, sample) = (int(f[0])?, int(f[1])?);
-            if (node, sample) != (next.0, next.1 + 1) {
-                return Err(err(
-                    ln,
-                    format!(
-                        "expected site {} sample {}, got site {node} sample {sample}",
-                        next.0,
-                        next.1 + 1
-                    ),
-                ));
-            }
-            if node >= n {
-                return Err(err(ln, format!("site {node} is beyond the {n} sites")));
-            }
-            let (depth, factor, factor_sub) = (num(f[2])?, num(f[3])?, num(f[4])?);
-            for v in [factor, factor_sub] {
-                if !(FACTOR_RANGE.0..=FACTOR_RANGE.1).contains(&v) {
-                    return Err(err(ln, format!("factor {v} is outside {FACTOR_RANGE:?}")));
-                }
-            }
-            let s = sample - 1;
-            if node == 0 {
-                if s > 0 && !(depth > depths[s - 1]) {
-                    return Err(err(ln, "depths must increase".into()));
-                }
-                if !(depth > 0.0) {
-                    return Err(err(ln, "depths must be > 0".into()));
-                }
-                depths.push(depth);
-            } else if depth != depths[s] {
-                return Err(err(ln, format!("site {node}: depths differ from site 0's")));
-            }
-            if s == 0 {
-                rows.push(OrganRow {
-                    factor: Vec::with_capacity(m),
-                    factor_subdivided: Vec::with_capacity(m),
-                    target_force_n: Vec::with_capacity(m),
-                    spring_force_n: Vec::with_capacity(m),
-                    subdivided_force_n: Vec::with_capacity(m),
-                });
-            }
-            let r = rows.last_mut().expect("pushed at sample 1");
-            r.factor.push(factor);
-            r.factor_subdivided.push(factor_sub);
-            r.target_force_n.push(num(f[5])?);
-            r.spring_force_n.push(num(f[6])?);
-            r.subdivided_force_n.push(num(f[7])?);
-            next = if sample == m {
-                (node + 1, 0)
-            } else {
-                (node, sample)
-            };
+            reader.read(line, nn + ne, m, &|message| err(ln, message))?;
         }
         let key = counts.key.ok_or_else(|| err(0, "no `# key` line".into()))?;
         let nn = counts
@@ -533,6 +461,7 @@ impl OrganTable {
             .edges
             .ok_or_else(|| err(0, "no `# edges` line".into()))?;
         let n = nn + ne;
+        let RowReader { depths, rows, next } = reader;
         if rows.len() != n || next.1 != 0 {
             return Err(err(
                 0,
@@ -545,6 +474,96 @@ impl OrganTable {
             nodes: nn,
             rows,
         })
+    }
+}
+
+/// The data rows of a table file read so far: the depths (site 0's), the sites' rows, and the
+/// site and sample expected next (`(site, last sample read)`).
+#[derive(Default)]
+struct RowReader {
+    depths: Vec<f64>,
+    rows: Vec<OrganRow>,
+    next: (usize, usize),
+}
+
+impl RowReader {
+    /// Reads one data row of a table of `n` sites with `m` samples each; `err` makes this line's
+    /// error (see [`OrganTable::parse`]).
+    fn read(
+        &mut self,
+        line: &str,
+        n: usize,
+        m: usize,
+        err: &dyn Fn(String) -> ModelError,
+    ) -> Result<(), ModelError> {
+        let f: Vec<&str> = line.split(',').map(str::trim).collect();
+        if f.len() != 8 {
+            return Err(err(format!("expected 8 fields, got {}", f.len())));
+        }
+        let int = |s: &str| -> Result<usize, ModelError> {
+            s.parse()
+                .map_err(|e| err(format!("bad integer `{s}`: {e}")))
+        };
+        let num = |s: &str| -> Result<f64, ModelError> {
+            let v: f64 = s
+                .parse()
+                .map_err(|e| err(format!("bad number `{s}`: {e}")))?;
+            if v.is_finite() {
+                Ok(v)
+            } else {
+                Err(err(format!("`{s}` is not finite")))
+            }
+        };
+        let (node, sample) = (int(f[0])?, int(f[1])?);
+        if (node, sample) != (self.next.0, self.next.1 + 1) {
+            return Err(err(format!(
+                "expected site {} sample {}, got site {node} sample {sample}",
+                self.next.0,
+                self.next.1 + 1
+            )));
+        }
+        if node >= n {
+            return Err(err(format!("site {node} is beyond the {n} sites")));
+        }
+        let (depth, factor, factor_sub) = (num(f[2])?, num(f[3])?, num(f[4])?);
+        for v in [factor, factor_sub] {
+            if !(FACTOR_RANGE.0..=FACTOR_RANGE.1).contains(&v) {
+                return Err(err(format!("factor {v} is outside {FACTOR_RANGE:?}")));
+            }
+        }
+        let s = sample - 1;
+        if node == 0 {
+            if s > 0 && !(depth > self.depths[s - 1]) {
+                return Err(err("depths must increase".into()));
+            }
+            if !(depth > 0.0) {
+                return Err(err("depths must be > 0".into()));
+            }
+            self.depths.push(depth);
+        } else if depth != self.depths[s] {
+            return Err(err(format!("site {node}: depths differ from site 0's")));
+        }
+        if s == 0 {
+            self.rows.push(OrganRow {
+                factor: Vec::with_capacity(m),
+                factor_subdivided: Vec::with_capacity(m),
+                target_force_n: Vec::with_capacity(m),
+                spring_force_n: Vec::with_capacity(m),
+                subdivided_force_n: Vec::with_capacity(m),
+            });
+        }
+        let r = self.rows.last_mut().expect("pushed at sample 1");
+        r.factor.push(factor);
+        r.factor_subdivided.push(factor_sub);
+        r.target_force_n.push(num(f[5])?);
+        r.spring_force_n.push(num(f[6])?);
+        r.subdivided_force_n.push(num(f[7])?);
+        self.next = if sample == m {
+            (node + 1, 0)
+        } else {
+            (node, sample)
+        };
+        Ok(())
     }
 }
 
