@@ -178,25 +178,22 @@ fn organ_table(
                     progress(TableKind::Organ, done, total, start.elapsed().as_secs_f64())
                 },
             )?;
-            let p = &ms.params;
-            let description = format!(
-                "scene {}: {} nodes, {} triangles; K_h = {} N/m, K_m = {} N/m, probe radius {} m; reference {} along ({}, {}, {})\nwritten by haptic-calibrate; recompute with `haptic-calibrate SCENE_FILE`",
-                scene.name,
-                ms.surface.node_count(),
-                ms.surface.triangle_count(),
-                p.home_spring_n_per_m,
-                p.mesh_spring_n_per_m,
-                scene.probe.radius_m,
-                organ
-                    .reference
-                    .points()
-                    .iter()
-                    .map(|q| q.name.as_str())
-                    .collect::<Vec<_>>()
-                    .join(" "),
-                organ.axis.x,
-                organ.axis.y,
-                organ.axis.z,
+            let description = table_description(
+                scene,
+                format!(
+                    "probe radius {} m; reference {} along ({}, {}, {})",
+                    scene.probe.radius_m,
+                    organ
+                        .reference
+                        .points()
+                        .iter()
+                        .map(|q| q.name.as_str())
+                        .collect::<Vec<_>>()
+                        .join(" "),
+                    organ.axis.x,
+                    organ.axis.y,
+                    organ.axis.z,
+                ),
             );
             write_atomically(&path, &table.to_text(&description))?;
             TableReport {
@@ -210,6 +207,23 @@ fn organ_table(
         }
     };
     Ok(report)
+}
+
+/// A calibration table's description line: the scene, its surface and spring constants, then
+/// `specifics` (what else the table depends on), and how to recompute it.
+fn table_description(scene: &Scene, specifics: String) -> String {
+    let Some(ms) = scene.mass_spring.as_ref() else {
+        return specifics;
+    };
+    let p = &ms.params;
+    format!(
+        "scene {}: {} nodes, {} triangles; K_h = {} N/m, K_m = {} N/m, {specifics}\nwritten by haptic-calibrate; recompute with `haptic-calibrate SCENE_FILE`",
+        scene.name,
+        ms.surface.node_count(),
+        ms.surface.triangle_count(),
+        p.home_spring_n_per_m,
+        p.mesh_spring_n_per_m,
+    )
 }
 
 /// The subdivision table of [`calibrate_scene`].
@@ -262,17 +276,15 @@ fn subdivision_table(
         },
     )?;
     let p = &ms.params;
-    let description = format!(
-        "scene {}: {} nodes, {} triangles; K_h = {} N/m, K_m = {} N/m, K'_m/K'_h = {}, {} ring(s), vertex rule {}, contact {:?}\nwritten by haptic-calibrate; recompute with `haptic-calibrate SCENE_FILE`",
-        scene.name,
-        ms.surface.node_count(),
-        ms.surface.triangle_count(),
-        p.home_spring_n_per_m,
-        p.mesh_spring_n_per_m,
-        p.subdivision.km_over_kh_after,
-        p.subdivision.rings,
-        p.subdivision.vertex_rule.name(),
-        ms.contact,
+    let description = table_description(
+        scene,
+        format!(
+            "K'_m/K'_h = {}, {} ring(s), vertex rule {}, contact {:?}",
+            p.subdivision.km_over_kh_after,
+            p.subdivision.rings,
+            p.subdivision.vertex_rule.name(),
+            ms.contact,
+        ),
     );
     write_atomically(&path, &table.to_text(&description))?;
     Ok(TableReport {
