@@ -79,35 +79,6 @@ impl LocalPatch {
         )
     }
 
-    /// [`LocalPatch::with_margin`] with the whole surface's contact positions at rest computed
-    /// beforehand (`contact`, [`crate::mass_spring::contact_rest::contact_rest_positions`] for the probe of
-    /// `shape`; `None` for a point contact): the calibration of every node computes them once.
-    ///
-    /// # Errors
-    /// As [`LocalPatch::new`].
-    #[allow(clippy::too_many_arguments)]
-    pub fn with_contact(
-        surface: &SpringSurface,
-        centre: u32,
-        rings: u32,
-        margin: u32,
-        vertex_rule: VertexRule,
-        shape: ContactShape,
-        constants: (f64, f64),
-        contact: Option<&ContactRest>,
-    ) -> Result<Self, ModelError> {
-        Self::build(
-            surface,
-            centre,
-            rings,
-            margin,
-            vertex_rule,
-            shape,
-            constants,
-            contact,
-        )
-    }
-
     /// [`LocalPatch::new`] with `margin` rings beyond the subdivided ones (the outermost held
     /// at rest), for the patch-size convergence check.
     ///
@@ -123,7 +94,7 @@ impl LocalPatch {
         constants: (f64, f64),
     ) -> Result<Self, ModelError> {
         let contact = surface_contact_rest(surface, shape);
-        Self::build(
+        Self::with_contact(
             surface,
             centre,
             rings,
@@ -135,8 +106,14 @@ impl LocalPatch {
         )
     }
 
+    /// [`LocalPatch::with_margin`] with the whole surface's contact positions at rest computed
+    /// beforehand (`contact`, [`crate::mass_spring::contact_rest::contact_rest_positions`] for the probe of
+    /// `shape`; `None` for a point contact): the calibration of every node computes them once.
+    ///
+    /// # Errors
+    /// As [`LocalPatch::new`].
     #[allow(clippy::too_many_arguments)]
-    fn build(
+    pub fn with_contact(
         surface: &SpringSurface,
         centre: u32,
         rings: u32,
