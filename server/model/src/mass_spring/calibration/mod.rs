@@ -388,6 +388,23 @@ impl Fnv {
     pub(crate) fn u64(&mut self, v: u64) {
         self.bytes(&v.to_le_bytes());
     }
+    /// Every rest position, triangle and fixed flag of `surface`, in that order (the part of
+    /// the calibration and organ tables' keys that names the surface).
+    pub(crate) fn surface(&mut self, surface: &SpringSurface) {
+        for p in surface.rest() {
+            self.f64(p.x);
+            self.f64(p.y);
+            self.f64(p.z);
+        }
+        for t in surface.triangles() {
+            for &i in t {
+                self.u64(u64::from(i));
+            }
+        }
+        for i in 0..surface.node_count() as u32 {
+            self.bytes(&[u8::from(surface.is_fixed(i))]);
+        }
+    }
 }
 
 /// The key of the table for `surface` with `params` and contact `shape`: a hash of the
@@ -408,19 +425,7 @@ pub fn calibration_key(
     h.f64(SCALE_RANGE.0);
     h.f64(SCALE_RANGE.1);
     h.u64(surface.node_count() as u64);
-    for p in surface.rest() {
-        h.f64(p.x);
-        h.f64(p.y);
-        h.f64(p.z);
-    }
-    for t in surface.triangles() {
-        for &i in t {
-            h.u64(u64::from(i));
-        }
-    }
-    for i in 0..surface.node_count() as u32 {
-        h.bytes(&[u8::from(surface.is_fixed(i))]);
-    }
+    h.surface(surface);
     let s = &params.subdivision;
     h.f64(params.home_spring_n_per_m);
     h.f64(params.mesh_spring_n_per_m);

@@ -628,19 +628,7 @@ pub fn organ_key(
 ) -> u64 {
     let mut h = Fnv::new();
     h.u64(u64::from(ORGAN_VERSION));
-    for p in surface.rest() {
-        h.f64(p.x);
-        h.f64(p.y);
-        h.f64(p.z);
-    }
-    for t in surface.triangles() {
-        for &i in t {
-            h.u64(u64::from(i));
-        }
-    }
-    for i in 0..surface.node_count() as u32 {
-        h.bytes(&[u8::from(surface.is_fixed(i))]);
-    }
+    h.surface(surface);
     h.f64(params.home_spring_n_per_m);
     h.f64(params.mesh_spring_n_per_m);
     let sub = &params.subdivision;
