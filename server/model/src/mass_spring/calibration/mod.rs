@@ -193,15 +193,11 @@ impl CalibrationTable {
     /// The cache file's text: a commented header with the key, then one CSV row per node and
     /// sample: `node,element_size_m,sample,x_over_l,kh_scale,force_n`.
     pub fn to_text(&self, description: &str) -> String {
-        let mut s = String::new();
-        let _ = writeln!(
-            s,
-            "# haptic-model mass-spring calibration table (Zhang, Payandeh & Dill section 3.2.4)"
+        let mut s = table_header(
+            "haptic-model mass-spring calibration table (Zhang, Payandeh & Dill section 3.2.4)",
+            description,
+            self.key,
         );
-        for line in description.lines() {
-            let _ = writeln!(s, "# {line}");
-        }
-        let _ = writeln!(s, "# key {:016x}", self.key);
         let _ = writeln!(s, "# nodes {}", self.rows.len());
         let _ = writeln!(s, "node,element_size_m,sample,x_over_l,kh_scale,force_n");
         for (i, row) in self.rows.iter().enumerate() {
@@ -366,6 +362,18 @@ fn parse_row(
         ));
     }
     Ok(())
+}
+
+/// The first lines of a table file: `# title`, the description's lines commented, `# key`
+/// in 16 hexadecimal digits.
+pub(crate) fn table_header(title: &str, description: &str, key: u64) -> String {
+    let mut s = String::new();
+    let _ = writeln!(s, "# {title}");
+    for line in description.lines() {
+        let _ = writeln!(s, "# {line}");
+    }
+    let _ = writeln!(s, "# key {key:016x}");
+    s
 }
 
 /// FNV-1a, 64 bits: a stable hash for the cache key (no dependency, same on every platform).

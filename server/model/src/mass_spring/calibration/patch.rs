@@ -66,16 +66,15 @@ impl LocalPatch {
         shape: ContactShape,
         constants: (f64, f64),
     ) -> Result<Self, ModelError> {
-        let contact = surface_contact_rest(surface, shape);
-        Self::with_contact(
+        let margin = default_margin(surface, centre, shape);
+        Self::with_margin(
             surface,
             centre,
             rings,
-            default_margin(surface, centre, shape),
+            margin,
             vertex_rule,
             shape,
             constants,
-            contact.as_ref(),
         )
     }
 

@@ -52,7 +52,7 @@ use std::fmt::Write as _;
 use glam::DVec3;
 
 use super::MassSpringParams;
-use super::calibration::Fnv;
+use super::calibration::{Fnv, table_header};
 use super::surface::SpringSurface;
 use crate::ModelError;
 use crate::contact::ProbeParams;
@@ -379,15 +379,11 @@ impl OrganTable {
     /// The file's text: commented header with the key, the node, edge and depth counts, then
     /// [`TABLE_COLUMNS`] rows, one per site and depth.
     pub fn to_text(&self, description: &str) -> String {
-        let mut s = String::new();
-        let _ = writeln!(
-            s,
-            "# haptic-model mass-spring organ table (contact factor over sphere depth)"
+        let mut s = table_header(
+            "haptic-model mass-spring organ table (contact factor over sphere depth)",
+            description,
+            self.key,
         );
-        for line in description.lines() {
-            let _ = writeln!(s, "# {line}");
-        }
-        let _ = writeln!(s, "# key {:016x}", self.key);
         let _ = writeln!(s, "# nodes {}", self.nodes);
         let _ = writeln!(s, "# edges {}", self.edge_count());
         let _ = writeln!(s, "# samples {}", self.depths_m.len());
