@@ -289,7 +289,7 @@ impl CalibrationTable {
 }
 
 /// A calibration-table error in file `path` at `line` (0: the whole file).
-fn table_error(path: &str, line: usize, m: String) -> ModelError {
+pub(crate) fn table_error(path: &str, line: usize, m: String) -> ModelError {
     ModelError::Calibration {
         path: path.to_string(),
         message: if line > 0 {

@@ -52,7 +52,7 @@ use std::fmt::Write as _;
 use glam::DVec3;
 
 use super::MassSpringParams;
-use super::calibration::{Fnv, table_header};
+use super::calibration::{Fnv, table_error, table_header};
 use super::surface::SpringSurface;
 use crate::ModelError;
 use crate::contact::ProbeParams;
@@ -154,14 +154,7 @@ impl OrganReference {
     /// non-finite or negative number, a zero direction, depths that do not increase, points
     /// with different depths, or no point.
     pub fn parse(text: &str, path: &str) -> Result<Self, ModelError> {
-        let err = |line: usize, m: String| ModelError::Calibration {
-            path: path.to_string(),
-            message: if line > 0 {
-                format!("line {line}: {m}")
-            } else {
-                m
-            },
-        };
+        let err = |line: usize, m: String| table_error(path, line, m);
         let mut points: Vec<ReferencePoint> = Vec::new();
         let mut header = false;
         for (k, line) in text.lines().enumerate() {
@@ -413,14 +406,7 @@ impl OrganTable {
     /// or out of order, depths that differ between sites or do not increase, a factor outside
     /// [`FACTOR_RANGE`], or a site without rows.
     pub fn parse(text: &str, path: &str) -> Result<Self, ModelError> {
-        let err = |line: usize, m: String| ModelError::Calibration {
-            path: path.to_string(),
-            message: if line > 0 {
-                format!("line {line}: {m}")
-            } else {
-                m
-            },
-        };
+        let err = |line: usize, m: String| table_error(path, line, m);
         let mut counts = Counts::default();
         let mut reader = RowReader::default();
         let mut header = false;
