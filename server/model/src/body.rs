@@ -14,11 +14,15 @@
 //!
 //! Owns: the interface and its plain data types. May use: [`crate::contact`] and
 //! [`crate::loads`] (input limits). Implemented by the model families; used by the server
-//! (never the other way round: the model knows nothing of threads, sockets or logging).
+//! (never the other way round: the model knows nothing of sockets or logging, and of threads
+//! only its own: the tick pool and the region follower).
+
+use std::sync::Arc;
 
 use glam::DVec3;
 
 use crate::ModelError;
+use crate::pool::TickPool;
 
 pub use crate::contact::probe::MAX_DEVICE_DISTANCE_M;
 pub use crate::loads::{MAX_POINT_FORCE_N, MAX_POINT_LOAD_DURATION_S, validate_point_load};
@@ -237,4 +241,17 @@ pub trait SoftBody: Send {
 
     /// Fixed facts (family, timing, probe).
     fn info(&self) -> BodyInfo;
+
+    /// Threads this body's tick can use to advantage (issue 48): the session gives it at most
+    /// this many, counting the servo thread. Provided: 1 (the one-core tick).
+    fn wants_threads(&self) -> usize {
+        1
+    }
+
+    /// Hands the body the worker pool of its session, before the first tick (the session's
+    /// set-up, not a tick: may allocate). A body cuts its jobs into `pool.threads()` parts, so
+    /// its results depend on the thread count only. Provided: the pool is not used.
+    fn set_tick_pool(&mut self, pool: Arc<TickPool>) {
+        let _ = pool;
+    }
 }

@@ -6,6 +6,8 @@
 //!
 //! - `check` (crate-private): the field validators of scene sections (scene and the families'
 //!   own sections).
+//! - [`pool`]: the real-time worker pool a body may cut its tick into (issue 48): no allocation or
+//!   lock in a job, results fixed by the thread count, one thread the one-core path.
 //! - `simd` (crate-private): what the CPU can run and the lane types of the vectorised kernels.
 //! - [`linalg`]: [`linalg::ordering`], fill-reducing orderings (METIS nested dissection) and a
 //!   sparse Cholesky factor for the static solver and contact-local condensation;
@@ -66,6 +68,7 @@ pub mod mass_spring;
 pub mod material;
 pub mod mesh;
 pub mod meshfree;
+pub mod pool;
 pub mod press;
 pub mod scene;
 pub(crate) mod simd;

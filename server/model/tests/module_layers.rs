@@ -13,6 +13,7 @@ use std::path::Path;
 const LAYERS: &[&str] = &[
     "error",
     "check",
+    "pool",
     "simd",
     "linalg",
     "mesh",

@@ -1,23 +1,45 @@
-//! A global allocator that counts the allocations (and reallocations) this thread makes while
-//! counting is on: the "no allocation in the tick" tests of the model and of the server. A test
-//! file includes it with `#[path = "common/counting_alloc.rs"] mod counting_alloc;` (from
+//! A global allocator that counts allocations (and reallocations): the "no allocation in the
+//! tick" tests of the model and of the server. Two modes:
+//!
+//! - [`counted`]: what the calling thread allocates while `f` runs;
+//! - [`counted_registered`]: what every *registered* thread allocates while `f` runs: the calling
+//!   thread, and every thread that called [`count_this_thread`] (a tick pool's workers call it from
+//!   their start hook), so work moved to pool threads cannot escape the count while the test
+//!   harness's other threads are never counted.
+//!
+//! A test file includes it with `#[path = "common/counting_alloc.rs"] mod counting_alloc;` (from
 //! `server/tests`: `"../model/tests/common/counting_alloc.rs"`); it installs the allocator of
 //! that test binary.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 struct Counting;
 thread_local! {
     static COUNTING: Cell<bool> = const { Cell::new(false) };
     static ALLOCATIONS: Cell<usize> = const { Cell::new(0) };
+    static REGISTERED: Cell<bool> = const { Cell::new(false) };
+}
+/// Counting of the registered threads is on.
+static REGISTERED_ON: AtomicBool = AtomicBool::new(false);
+/// Allocations by registered threads while [`REGISTERED_ON`].
+static REGISTERED_ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+
+/// Counts one allocation of this thread in the modes that are on.
+fn note_allocation() {
+    // `try_with`: a thread being torn down has no thread-locals left and is not counted.
+    if COUNTING.try_with(|c| c.get()).unwrap_or(false) {
+        let _ = ALLOCATIONS.try_with(|a| a.set(a.get() + 1));
+    }
+    if REGISTERED_ON.load(Ordering::Relaxed) && REGISTERED.try_with(|r| r.get()).unwrap_or(false) {
+        REGISTERED_ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+    }
 }
 
 unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCATIONS.with(|a| a.set(a.get() + 1));
-        }
+        note_allocation();
         // SAFETY: forwarded unchanged to the system allocator.
         unsafe { System.alloc(layout) }
     }
@@ -26,9 +48,7 @@ unsafe impl GlobalAlloc for Counting {
         unsafe { System.dealloc(ptr, layout) }
     }
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        if COUNTING.with(|c| c.get()) {
-            ALLOCATIONS.with(|a| a.set(a.get() + 1));
-        }
+        note_allocation();
         // SAFETY: forwarded unchanged to the system allocator.
         unsafe { System.realloc(ptr, layout, new_size) }
     }
@@ -44,4 +64,23 @@ pub fn counted<T>(f: impl FnOnce() -> T) -> (T, usize) {
     let out = f();
     COUNTING.with(|c| c.set(false));
     (out, ALLOCATIONS.with(|a| a.get()) - before)
+}
+
+/// Registers the calling thread for [`counted_registered`] (for the rest of its life).
+#[allow(dead_code)]
+pub fn count_this_thread() {
+    REGISTERED.with(|r| r.set(true));
+}
+
+/// Runs `f` on this thread (registered by the call) and returns its result with the number of
+/// allocations every registered thread made meanwhile. Runs of it must not overlap (one test at
+/// a time in a binary that uses it: keep such tests in their own file or serialise them).
+#[allow(dead_code)]
+pub fn counted_registered<T>(f: impl FnOnce() -> T) -> (T, usize) {
+    count_this_thread();
+    let before = REGISTERED_ALLOCATIONS.load(Ordering::SeqCst);
+    REGISTERED_ON.store(true, Ordering::SeqCst);
+    let out = f();
+    REGISTERED_ON.store(false, Ordering::SeqCst);
+    (out, REGISTERED_ALLOCATIONS.load(Ordering::SeqCst) - before)
 }
