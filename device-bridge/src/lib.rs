@@ -23,6 +23,12 @@ pub mod sim;
 pub mod thermal;
 pub mod transform;
 
+/// The model's counting allocator (thread-local counts), installed in this crate's unit-test
+/// binary: the device loop's tick is checked allocation-free with it.
+#[cfg(test)]
+#[path = "../../server/model/tests/common/counting_alloc.rs"]
+mod counting_alloc;
+
 pub use clock::{Clock, ManualClock, MonotonicClock};
 pub use device::{DeviceError, DeviceSpec, DeviceState, HapticDevice};
 pub use link::{
