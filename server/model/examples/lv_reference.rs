@@ -78,6 +78,12 @@ enum Step {
         /// Output CSV (rows appended; header written when new).
         #[arg(long)]
         out: PathBuf,
+        /// Checkpoint file: written after each depth (both conventions), and when it exists
+        /// at the start the solve continues after its last depth (the CSV is cut back to the
+        /// rows of the depths it holds). Refused when it belongs to another mesh, material or
+        /// depth list.
+        #[arg(long)]
+        checkpoint: Option<PathBuf>,
     },
     /// Combine four or more levels into the reference CSV.
     Combine {
@@ -103,7 +109,8 @@ fn main() -> anyhow::Result<()> {
             material,
             depths,
             out,
-        } => solve_level(&msh, h, &material, &depths, &out),
+            checkpoint,
+        } => solve_level(&msh, h, &material, &depths, &out, checkpoint.as_deref()),
         Step::Combine { csv, out, markdown } => combine(&csv, &out, markdown),
     }
 }
@@ -173,6 +180,7 @@ fn solve_level(
     material: &str,
     depths: &[f64],
     out: &Path,
+    checkpoint: Option<&Path>,
 ) -> anyhow::Result<()> {
     let model = MaterialModel::from_scene_name(material)
         .ok_or_else(|| anyhow::anyhow!("unknown material {material:?}"))?;
@@ -195,6 +203,15 @@ fn solve_level(
         ..IndentParams::default()
     };
     let mut run = Indentation::new(&fem, &touchable, &indenter, &params)?;
+    let key = format!(
+        "{} h {h} {material} nodes {} depths {depths:?}",
+        msh.file_name().unwrap_or_default().to_string_lossy(),
+        fem.node_count()
+    );
+    let done = match checkpoint.filter(|p| p.exists()) {
+        Some(path) => resume_level(&mut run, path, &key, out)?,
+        None => 0,
+    };
     let new_file = !out.exists();
     let mut file = std::fs::OpenOptions::new()
         .create(true)
@@ -220,7 +237,7 @@ fn solve_level(
         eprintln!("  {line}");
         writeln!(file, "{line}").and_then(|()| file.flush())
     };
-    for &d in depths {
+    for (i, &d) in depths.iter().enumerate().skip(done) {
         let sphere = solve_at(&mut run, d * mm)?;
         row("sphere", d, &sphere, &mut file)?;
         // Device travel D = s + F_x / k: secant steps on s from s = D and s = D - F_x(D) / k.
@@ -239,8 +256,160 @@ fn solve_level(
             b = solve_at(&mut run, next)?;
         }
         row("device", d, &b, &mut file)?;
+        if let Some(path) = checkpoint {
+            // The device's secant left the run at the device depth: the next depth starts
+            // from there, resumed or not.
+            checkpoint_file::write(path, &key, i + 1, &run.checkpoint())?;
+        }
     }
     Ok(())
+}
+
+/// Resumes `run` from the checkpoint at `path` (which must carry `key`), cuts the CSV `out`
+/// back to the header and the rows of the depths the checkpoint holds (a depth interrupted
+/// between its two rows is solved again), and returns how many depths are done.
+fn resume_level(
+    run: &mut Indentation<'_>,
+    path: &Path,
+    key: &str,
+    out: &Path,
+) -> anyhow::Result<usize> {
+    let (done, c) = checkpoint_file::read(path, key)?;
+    let reached_mm = c.reached_m * 1e3;
+    run.resume(c)?;
+    let text = std::fs::read_to_string(out)
+        .map_err(|e| anyhow::anyhow!("{}: {e} (the checkpoint's CSV)", out.display()))?;
+    let kept: Vec<&str> = text.lines().take(1 + 2 * done).collect();
+    anyhow::ensure!(
+        kept.len() == 1 + 2 * done,
+        "{} has {} rows but the checkpoint holds {done} depths (two rows each)",
+        out.display(),
+        kept.len().saturating_sub(1)
+    );
+    std::fs::write(out, kept.join("\n") + "\n")?;
+    eprintln!(
+        "resumed from {}: {done} depths done, sphere travel {reached_mm:.6} mm",
+        path.display()
+    );
+    Ok(done)
+}
+
+/// The checkpoint file of `solve --checkpoint`: magic, key (mesh, h, material, nodes,
+/// depths), depths done, then the [`haptic_model::indent::IndentCheckpoint`]'s numbers, all
+/// little-endian; written to a temporary file and renamed, so a kill leaves the last one.
+mod checkpoint_file {
+    use std::path::Path;
+
+    use haptic_model::DVec3;
+    use haptic_model::indent::IndentCheckpoint;
+
+    const MAGIC: &[u8; 8] = b"LVREFCP1";
+
+    fn put_f64s(out: &mut Vec<u8>, v: impl ExactSizeIterator<Item = f64>) {
+        out.extend_from_slice(&(v.len() as u64).to_le_bytes());
+        v.for_each(|x| out.extend_from_slice(&x.to_le_bytes()));
+    }
+
+    fn put_points(out: &mut Vec<u8>, p: &[DVec3]) {
+        put_f64s(
+            out,
+            p.iter()
+                .flat_map(|p| p.to_array())
+                .collect::<Vec<_>>()
+                .into_iter(),
+        );
+    }
+
+    /// Writes `c` with `key` and `done` to `path` (through `path.tmp`).
+    pub fn write(path: &Path, key: &str, done: usize, c: &IndentCheckpoint) -> anyhow::Result<()> {
+        let mut out = MAGIC.to_vec();
+        out.extend_from_slice(&(key.len() as u64).to_le_bytes());
+        out.extend_from_slice(key.as_bytes());
+        out.extend_from_slice(&(done as u64).to_le_bytes());
+        out.extend_from_slice(&c.reached_m.to_le_bytes());
+        put_points(&mut out, &c.positions_m);
+        out.push(u8::from(c.previous.is_some()));
+        if let Some((d, x)) = &c.previous {
+            out.extend_from_slice(&d.to_le_bytes());
+            put_points(&mut out, x);
+        }
+        put_f64s(&mut out, c.active.iter().map(|&a| f64::from(u8::from(a))));
+        put_f64s(&mut out, c.lambda.iter().copied());
+        put_f64s(&mut out, c.multiplier_n.iter().copied());
+        put_f64s(&mut out, c.penalty_n_per_m.iter().copied());
+        let tmp = path.with_extension("tmp");
+        std::fs::write(&tmp, &out)?;
+        std::fs::rename(&tmp, path)?;
+        Ok(())
+    }
+
+    /// A reader over the file's bytes that fails on a short file.
+    struct Bytes<'a>(&'a [u8]);
+
+    impl Bytes<'_> {
+        fn take(&mut self, n: usize) -> anyhow::Result<&[u8]> {
+            anyhow::ensure!(self.0.len() >= n, "the checkpoint file is truncated");
+            let (a, b) = self.0.split_at(n);
+            self.0 = b;
+            Ok(a)
+        }
+        fn u64(&mut self) -> anyhow::Result<u64> {
+            Ok(u64::from_le_bytes(self.take(8)?.try_into()?))
+        }
+        fn f64(&mut self) -> anyhow::Result<f64> {
+            Ok(f64::from_le_bytes(self.take(8)?.try_into()?))
+        }
+        fn f64s(&mut self) -> anyhow::Result<Vec<f64>> {
+            let n = usize::try_from(self.u64()?)?;
+            anyhow::ensure!(n <= self.0.len() / 8, "the checkpoint file is truncated");
+            (0..n).map(|_| self.f64()).collect()
+        }
+        fn points(&mut self) -> anyhow::Result<Vec<DVec3>> {
+            let v = self.f64s()?;
+            anyhow::ensure!(
+                v.len() % 3 == 0,
+                "the checkpoint's positions are not triples"
+            );
+            Ok(v.chunks_exact(3).map(DVec3::from_slice).collect())
+        }
+    }
+
+    /// Reads the checkpoint at `path`; refused when its key is not `key`.
+    pub fn read(path: &Path, key: &str) -> anyhow::Result<(usize, IndentCheckpoint)> {
+        let data = std::fs::read(path)?;
+        let mut b = Bytes(&data);
+        anyhow::ensure!(
+            b.take(8)? == MAGIC,
+            "{} is not a checkpoint",
+            path.display()
+        );
+        let n = usize::try_from(b.u64()?)?;
+        let theirs = String::from_utf8_lossy(b.take(n)?).into_owned();
+        anyhow::ensure!(
+            theirs == key,
+            "{} is the checkpoint of [{theirs}], not of this solve [{key}]",
+            path.display()
+        );
+        let done = usize::try_from(b.u64()?)?;
+        let reached_m = b.f64()?;
+        let positions_m = b.points()?;
+        let previous = match b.take(1)?[0] {
+            0 => None,
+            _ => Some((b.f64()?, b.points()?)),
+        };
+        let active = b.f64s()?.into_iter().map(|a| a != 0.0).collect();
+        let c = IndentCheckpoint {
+            reached_m,
+            positions_m,
+            previous,
+            active,
+            lambda: b.f64s()?,
+            multiplier_n: b.f64s()?,
+            penalty_n_per_m: b.f64s()?,
+        };
+        anyhow::ensure!(b.0.is_empty(), "{} has trailing bytes", path.display());
+        Ok((done, c))
+    }
 }
 
 /// A level row of the combine step.

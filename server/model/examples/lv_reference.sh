@@ -15,8 +15,9 @@
 # LEVELS: the size parameters, coarse to fine (default "0.6 0.42 0.3 0.2121 0.15 0.10607:stvk");
 # a level written S:MATERIAL is solved for that material only (the sixth level, 219 211 nodes,
 # for StVK: about 1.7 h and 7.4 GB here; the stable neo-Hookean material to 4 mm there would
-# take an estimated 5 h). A level already solved (OUT_DIR/level_S_MATERIAL.csv.done) is not
-# solved again. Needs gmsh (tests/install-gmsh.sh). Run time on the shared 2-core machine:
+# take an estimated 5-8 h). A level already solved (OUT_DIR/level_S_MATERIAL.csv.done) is not
+# solved again; one interrupted (killed, machine stopped) continues after its last finished
+# depth from OUT_DIR/level_S_MATERIAL.ckpt, so a long level can be run a few depths at a time. Needs gmsh (tests/install-gmsh.sh). Run time on the shared 2-core machine:
 # about 5 h, most of it the three finest levels (0.2121 mm, 31 403 nodes: about 16 min for
 # StVK, 40-50 min for the stable neo-Hookean material to 4 mm; 0.15 mm, 82 389 nodes: about
 # 25 min and 1 h).
@@ -41,10 +42,11 @@ for level in $levels; do
     csv="$out/level_${s}_$material.csv"
     csvs+=("$csv")
     [[ -f $csv.done ]] && continue
-    rm -f "$csv"
+    ckpt="$out/level_${s}_$material.ckpt"
+    [[ -f $ckpt ]] || rm -f "$csv"
     echo "== $(date +%T) level $s mm, $material, sphere depths $depths mm"
     if target/release/examples/lv_reference solve --msh "$msh" --h "$s" --material "$material" \
-      --depths "$depths" --out "$csv" > "$out/log_${s}_$material.txt" 2>&1; then
+      --depths "$depths" --out "$csv" --checkpoint "$ckpt" >> "$out/log_${s}_$material.txt" 2>&1; then
       touch "$csv.done"
     else
       echo "   stopped: $(grep -m1 '^Error' "$out/log_${s}_$material.txt")"

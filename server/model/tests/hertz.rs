@@ -17,7 +17,7 @@
 
 use haptic_model::DVec3;
 use haptic_model::element::FemModel;
-use haptic_model::indent::{IndentParams, Indenter, indent};
+use haptic_model::indent::{IndentParams, Indentation, Indenter, indent};
 use haptic_model::material::MaterialParams;
 use haptic_model::mesh::generate::{box_mesh_graded, graded_coordinates};
 
@@ -179,4 +179,48 @@ fn the_contact_tangent_changes_the_path_not_the_answer() {
         assert!(fa.length() > 1e-3, "the sphere must press: {fa}");
         assert!((fa - fb).length() < 5e-4 * fa.length(), "{fa} against {fb}");
     }
+}
+
+/// A reference solve can stop after any depth and continue in another process: an
+/// indentation resumed from a checkpoint taken at 0.5 mm reaches the same 1 mm equilibrium as
+/// the uninterrupted run (to well within the Newton tolerance: the resumed run refactors its
+/// preconditioner), and a checkpoint of another size is refused without touching the run.
+#[test]
+fn a_resumed_indentation_continues_like_an_uninterrupted_one() {
+    let scene = haptic_model::scene::load_builtin("lv").unwrap();
+    let fem = scene.fem_model().unwrap();
+    let indenter = Indenter {
+        radius_m: scene.probe.radius_m,
+        from_m: DVec3::new(0.0127, 0.0, -0.005),
+        direction: DVec3::new(-1.0, 0.0, 0.0),
+    };
+    let params = IndentParams::default();
+    let new_run = || Indentation::new(&fem, &scene.touchable, &indenter, &params).unwrap();
+    let mut straight = new_run();
+    straight.solve(0.5e-3).unwrap();
+    let checkpoint = straight.checkpoint();
+    let expected = straight.solve(1.0e-3).unwrap().force_on_sphere_n;
+
+    let mut resumed = new_run();
+    let mut foreign = checkpoint.clone();
+    foreign.positions_m.pop();
+    let err = resumed.resume(foreign).unwrap_err().to_string();
+    assert!(err.contains("positions"), "{err}");
+    assert_eq!(
+        resumed.checkpoint().reached_m,
+        0.0,
+        "a refused checkpoint changed the run"
+    );
+    resumed.resume(checkpoint.clone()).unwrap();
+    assert_eq!(resumed.checkpoint(), checkpoint);
+    let got = resumed.solve(1.0e-3).unwrap().force_on_sphere_n;
+    eprintln!("1 mm: {expected} N uninterrupted, {got} N resumed at 0.5 mm");
+    assert!(
+        expected.length() > 1e-3,
+        "the sphere must press: {expected}"
+    );
+    assert!(
+        (got - expected).length() < 1e-7 * expected.length(),
+        "{got} against {expected}"
+    );
 }

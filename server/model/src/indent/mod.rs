@@ -274,6 +274,29 @@ pub struct Indentation<'a> {
 /// Contact multipliers and the active set: what a failed attempt restores.
 type ContactState = (Vec<bool>, Vec<f64>, Vec<f64>, Vec<f64>);
 
+/// Everything [`Indentation::solve`] carries from one depth to the next, so that a long
+/// reference solve can stop after any depth and continue in another process
+/// ([`Indentation::checkpoint`], [`Indentation::resume`]). Lengths: `positions_m` and the
+/// previous state's positions one per node; `active` and `lambda` one per touchable node;
+/// `multiplier_n` and `penalty_n_per_m` one per contact point.
+#[derive(Debug, Clone, PartialEq)]
+pub struct IndentCheckpoint {
+    /// The last converged depth, m.
+    pub reached_m: f64,
+    /// Positions at that depth, m.
+    pub positions_m: Vec<DVec3>,
+    /// The converged state before it (depth, positions), for the extrapolated start.
+    pub previous: Option<(f64, Vec<DVec3>)>,
+    /// Node contact: the active set.
+    pub active: Vec<bool>,
+    /// Node contact: the multipliers, N.
+    pub lambda: Vec<f64>,
+    /// Contact points: the augmented-Lagrangian multipliers, N.
+    pub multiplier_n: Vec<f64>,
+    /// Contact points: the penalties, N/m.
+    pub penalty_n_per_m: Vec<f64>,
+}
+
 impl<'a> Indentation<'a> {
     /// The body `fem` at rest with the sphere `indenter` at depth zero, touchable surface
     /// `triangles`.
@@ -342,6 +365,85 @@ impl<'a> Indentation<'a> {
     /// The current positions, m.
     pub fn positions(&self) -> &[DVec3] {
         &self.x
+    }
+
+    /// The state at the last converged depth (see [`IndentCheckpoint`]).
+    pub fn checkpoint(&self) -> IndentCheckpoint {
+        let (active, lambda, multiplier_n, penalty_n_per_m) = self.contact_state();
+        IndentCheckpoint {
+            reached_m: self.reached,
+            positions_m: self.x.clone(),
+            previous: self.previous.clone(),
+            active,
+            lambda,
+            multiplier_n,
+            penalty_n_per_m,
+        }
+    }
+
+    /// Continues from `c`, a checkpoint of an indentation of the same body, surface, sphere
+    /// and parameters: the next [`Indentation::solve`] starts where `c`'s run stopped (its
+    /// linear solver refactors first, so the iterates agree with an uninterrupted run to the
+    /// solver's tolerances, not bit for bit).
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] when a length does not match this indentation's (another
+    /// mesh, surface or contact-point set) or a value is not finite; nothing is changed then.
+    pub fn resume(&mut self, c: IndentCheckpoint) -> Result<(), ModelError> {
+        let nodes = self.x.len();
+        let lengths = [
+            ("positions", c.positions_m.len(), nodes),
+            (
+                "previous positions",
+                c.previous.as_ref().map_or(nodes, |p| p.1.len()),
+                nodes,
+            ),
+            ("active set", c.active.len(), self.newton.active.len()),
+            ("node multipliers", c.lambda.len(), self.newton.lambda.len()),
+            (
+                "point multipliers",
+                c.multiplier_n.len(),
+                self.newton.points.multiplier_n.len(),
+            ),
+            (
+                "point penalties",
+                c.penalty_n_per_m.len(),
+                self.newton.points.penalty_n_per_m.len(),
+            ),
+        ];
+        for (what, got, want) in lengths {
+            if got != want {
+                return Err(ModelError::InvalidInput(format!(
+                    "the checkpoint's {what} has {got} entries where this indentation has \
+                     {want}: it belongs to another mesh, surface or sphere"
+                )));
+            }
+        }
+        let finite = c.reached_m.is_finite()
+            && c.reached_m >= 0.0
+            && c.positions_m.iter().all(|p| p.is_finite())
+            && c.previous
+                .as_ref()
+                .is_none_or(|(d, x)| d.is_finite() && x.iter().all(|p| p.is_finite()))
+            && c.lambda
+                .iter()
+                .chain(&c.multiplier_n)
+                .chain(&c.penalty_n_per_m)
+                .all(|v| v.is_finite());
+        if !finite {
+            return Err(ModelError::InvalidInput(
+                "the checkpoint holds a negative depth or a non-finite value".into(),
+            ));
+        }
+        self.reached = c.reached_m;
+        self.x = c.positions_m;
+        self.previous = c.previous;
+        self.restore((c.active, c.lambda, c.multiplier_n, c.penalty_n_per_m));
+        let centre = self.centre(self.reached);
+        self.newton.centre = centre;
+        self.newton.points.centre_m = centre;
+        self.newton.sys.forget_factor();
+        Ok(())
     }
 
     fn contact_state(&self) -> ContactState {
