@@ -14,7 +14,8 @@
 //!   the answers as tables or JSON (binary `hapticctl`).
 //! - [`web`]: the browser viewer (`haptic-viewer --web ADDR`), a relay that subscribes once
 //!   per session and fans the compact stream out to browsers over WebSocket, with the page
-//!   and three.js compiled into the binary.
+//!   and three.js compiled into the binary; [`overview`], its session overview page over one or
+//!   more daemons (`--stations FILE`).
 //!
 //! Neighbours: the wire contract is `haptics_proto::v1`; the server (`haptic-server`) implements
 //! it; credentials, connecting, `X,Y,Z` vectors and MCAP recordings are `haptic_cli`'s. This crate never depends on the physics model: everything it knows about a session comes
@@ -25,6 +26,7 @@
 pub mod compact;
 pub mod ctl;
 pub mod error;
+pub mod overview;
 pub mod raster;
 pub mod record;
 pub mod viewer;

@@ -132,6 +132,11 @@ pub struct ViewerArgs {
     /// session and fans frames out to browsers over WebSocket.
     #[arg(long, value_name = "ADDR")]
     pub web: Option<String>,
+    /// With --web: a TOML file of other daemons the session overview page (`/overview`) shows
+    /// besides --server (`[[station]]` tables with `url`, optional `name`, `token_file`,
+    /// `tls_ca`; docs/tools.md).
+    #[arg(long, value_name = "FILE", requires = "web")]
+    pub stations: Option<PathBuf>,
     /// Output directory for frame_NNNNN.png and latest.png.
     #[arg(long, default_value = "viewer-out")]
     pub out: PathBuf,
@@ -180,7 +185,7 @@ impl ViewerArgs {
     ///
     /// # Errors
     /// [`ClientError::InvalidConfig`] for an address that is not `HOST:PORT` (a port from 0 to
-    /// 65535) or bad rates.
+    /// 65535), bad rates or a bad `--stations` file.
     pub fn web_config(&self) -> Result<Option<(String, crate::web::WebConfig)>, ClientError> {
         let Some(addr) = &self.web else {
             return Ok(None);
@@ -198,6 +203,9 @@ impl ViewerArgs {
         let addr = addr.clone();
         let mut cfg = crate::web::WebConfig::new(self.server.clone());
         cfg.credentials = self.credentials.clone();
+        if let Some(path) = &self.stations {
+            cfg.stations = crate::overview::read_stations(path)?;
+        }
         if self.max_rate_hz > 0.0 {
             cfg.default_rate_hz = self.max_rate_hz.min(crate::web::MAX_BROWSER_RATE_HZ);
         }

@@ -8,6 +8,8 @@
 //!   registry: `web/vendor/README.md`);
 //! - `GET /api/sessions`: the daemon's sessions with their scene and statistics (JSON array);
 //! - `GET /api/relay`: the relay's own counters per session (browsers, frames, drops, bytes);
+//! - `GET /overview`, `GET /api/overview`, `GET /api/picture`: the session overview of this
+//!   daemon and the `--stations` ones ([`crate::overview`]);
 //! - `GET /ws?session=ID&rate=HZ`: a WebSocket. Binary messages from the relay are
 //!   `haptics.v1.SurfaceFrame` protobuf encodings of the compact stream (keyframes and
 //!   quantized deltas, `haptics_proto::delta`); text messages are JSON: `{"type":"status",...}`
@@ -83,6 +85,8 @@ pub struct WebConfig {
     pub upstream_rate_hz: f64,
     /// Browser rate when the page does not ask, Hz.
     pub default_rate_hz: f64,
+    /// Other daemons the overview page shows besides `server` ([`crate::overview`]).
+    pub stations: Vec<crate::overview::StationConfig>,
 }
 
 impl WebConfig {
@@ -93,6 +97,7 @@ impl WebConfig {
             credentials: haptic_cli::credentials::ClientCredentials::default(),
             upstream_rate_hz: 60.0,
             default_rate_hz: 30.0,
+            stations: Vec::new(),
         }
     }
 
@@ -241,6 +246,9 @@ pub struct Relay {
     /// Set when the daemon refused the relay's credentials: [`run`] then stops and reports it
     /// instead of serving pages that can only fail (issue 47).
     refused: watch::Sender<Option<(tonic::Code, String)>>,
+    /// The overview's daemons: `server` first, then [`WebConfig::stations`].
+    stations: Vec<crate::overview::StationLink>,
+    pictures: crate::overview::Pictures,
 }
 
 /// True for the statuses that retrying cannot fix: no or a wrong token, or a role that may
@@ -268,12 +276,32 @@ impl Relay {
                 .tcp_nodelay(true)
                 .connect_lazy(),
         );
+        let mut stations = vec![crate::overview::StationLink {
+            name: cfg.server.clone(),
+            url: url.clone(),
+            channel: channel.clone(),
+        }];
+        for s in &cfg.stations {
+            stations.push(crate::overview::StationLink::new(s)?);
+        }
         Ok(Arc::new(Self {
             cfg,
             channel,
             sessions: Mutex::new(HashMap::new()),
             refused: watch::channel(None).0,
+            stations,
+            pictures: crate::overview::Pictures::default(),
         }))
+    }
+
+    /// The overview's daemons: the relay's own first.
+    pub(crate) fn stations(&self) -> &[crate::overview::StationLink] {
+        &self.stations
+    }
+
+    /// The overview's pictures.
+    pub(crate) fn pictures(&self) -> &crate::overview::Pictures {
+        &self.pictures
     }
 
     /// Notes a refusal of the relay's credentials (see [`Relay::refused`]); other statuses are
@@ -502,7 +530,7 @@ async fn poll_stats(relay: Arc<Relay>, id: String, s: Arc<SessionRelay>) {
 }
 
 /// The statistics fields the page shows, by their proto names.
-fn stats_json(st: &SessionStats) -> Value {
+pub(crate) fn stats_json(st: &SessionStats) -> Value {
     json!({
         "session_id": st.session_id,
         "scene": st.scene,
@@ -551,6 +579,9 @@ pub fn router(relay: Arc<Relay>) -> Router {
             "/vendor/LICENSE",
             get(|| async { asset("text/plain; charset=utf-8", THREE_LICENSE) }),
         )
+        .route("/overview", get(crate::overview::page))
+        .route("/api/overview", get(crate::overview::api_overview))
+        .route("/api/picture", get(crate::overview::api_picture))
         .route("/api/sessions", get(api_sessions))
         .route("/api/relay", get(api_relay))
         .route("/ws", get(ws_upgrade))
@@ -592,7 +623,7 @@ async fn api_sessions(State(relay): State<Arc<Relay>>) -> Response {
 }
 
 /// A session id as the daemon makes them (and nothing that could be anything else).
-fn valid_session_id(id: &str) -> bool {
+pub(crate) fn valid_session_id(id: &str) -> bool {
     !id.is_empty()
         && id.len() <= 64
         && id

@@ -180,7 +180,8 @@ impl Browser {
         Ok(Page { session })
     }
 
-    /// Evaluates a JavaScript expression in `page` and returns its value (JSON).
+    /// Evaluates a JavaScript expression in `page` and returns its value (JSON); a promise is
+    /// awaited and its result returned.
     ///
     /// # Errors
     /// As [`Browser::call`], or the expression threw.
@@ -189,7 +190,7 @@ impl Browser {
             .call(
                 Some(&page.session),
                 "Runtime.evaluate",
-                json!({"expression": expression, "returnByValue": true}),
+                json!({"expression": expression, "returnByValue": true, "awaitPromise": true}),
             )
             .await?;
         if let Some(e) = r.get("exceptionDetails") {
