@@ -14,7 +14,7 @@
 //!   the answers as tables or JSON (binary `hapticctl`).
 //! - [`web`]: the browser viewer (`haptic-viewer --web ADDR`), a relay that subscribes once
 //!   per session and fans the compact stream out to browsers over WebSocket, with the page
-//!   and three.js compiled into the binary; [`overview`], its session overview page over one or
+//!   and three.js compiled into the binary; [`web::overview`], its session overview page over one or
 //!   more daemons (`--stations FILE`).
 //!
 //! Neighbours: the wire contract is `haptics_proto::v1`; the server (`haptic-server`) implements
@@ -26,7 +26,6 @@
 pub mod compact;
 pub mod ctl;
 pub mod error;
-pub mod overview;
 pub mod raster;
 pub mod record;
 pub mod viewer;

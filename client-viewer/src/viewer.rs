@@ -204,7 +204,7 @@ impl ViewerArgs {
         let mut cfg = crate::web::WebConfig::new(self.server.clone());
         cfg.credentials = self.credentials.clone();
         if let Some(path) = &self.stations {
-            cfg.stations = crate::overview::read_stations(path)?;
+            cfg.stations = crate::web::overview::read_stations(path)?;
         }
         if self.max_rate_hz > 0.0 {
             cfg.default_rate_hz = self.max_rate_hz.min(crate::web::MAX_BROWSER_RATE_HZ);

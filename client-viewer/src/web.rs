@@ -9,7 +9,7 @@
 //! - `GET /api/sessions`: the daemon's sessions with their scene and statistics (JSON array);
 //! - `GET /api/relay`: the relay's own counters per session (browsers, frames, drops, bytes);
 //! - `GET /overview`, `GET /api/overview`, `GET /api/picture`: the session overview of this
-//!   daemon and the `--stations` ones ([`crate::overview`]);
+//!   daemon and the `--stations` ones ([`overview`]);
 //! - `GET /ws?session=ID&rate=HZ`: a WebSocket. Binary messages from the relay are
 //!   `haptics.v1.SurfaceFrame` protobuf encodings of the compact stream (keyframes and
 //!   quantized deltas, `haptics_proto::delta`); text messages are JSON: `{"type":"status",...}`
@@ -60,6 +60,8 @@ use tokio::sync::{mpsc, watch};
 use crate::ClientError;
 use crate::compact::CompactState;
 
+pub mod overview;
+
 /// Messages one browser may have queued in front of its socket.
 pub const BROWSER_QUEUE: usize = 4;
 /// Smallest browser frame rate, Hz.
@@ -85,8 +87,8 @@ pub struct WebConfig {
     pub upstream_rate_hz: f64,
     /// Browser rate when the page does not ask, Hz.
     pub default_rate_hz: f64,
-    /// Other daemons the overview page shows besides `server` ([`crate::overview`]).
-    pub stations: Vec<crate::overview::StationConfig>,
+    /// Other daemons the overview page shows besides `server` ([`overview`]).
+    pub stations: Vec<overview::StationConfig>,
 }
 
 impl WebConfig {
@@ -247,8 +249,8 @@ pub struct Relay {
     /// instead of serving pages that can only fail (issue 47).
     refused: watch::Sender<Option<(tonic::Code, String)>>,
     /// The overview's daemons: `server` first, then [`WebConfig::stations`].
-    stations: Vec<crate::overview::StationLink>,
-    pictures: crate::overview::Pictures,
+    stations: Vec<overview::StationLink>,
+    pictures: overview::Pictures,
 }
 
 /// True for the statuses that retrying cannot fix: no or a wrong token, or a role that may
@@ -276,13 +278,13 @@ impl Relay {
                 .tcp_nodelay(true)
                 .connect_lazy(),
         );
-        let mut stations = vec![crate::overview::StationLink {
+        let mut stations = vec![overview::StationLink {
             name: cfg.server.clone(),
             url: url.clone(),
             channel: channel.clone(),
         }];
         for s in &cfg.stations {
-            stations.push(crate::overview::StationLink::new(s)?);
+            stations.push(overview::StationLink::new(s)?);
         }
         Ok(Arc::new(Self {
             cfg,
@@ -290,17 +292,17 @@ impl Relay {
             sessions: Mutex::new(HashMap::new()),
             refused: watch::channel(None).0,
             stations,
-            pictures: crate::overview::Pictures::default(),
+            pictures: overview::Pictures::default(),
         }))
     }
 
     /// The overview's daemons: the relay's own first.
-    pub(crate) fn stations(&self) -> &[crate::overview::StationLink] {
+    pub(crate) fn stations(&self) -> &[overview::StationLink] {
         &self.stations
     }
 
     /// The overview's pictures.
-    pub(crate) fn pictures(&self) -> &crate::overview::Pictures {
+    pub(crate) fn pictures(&self) -> &overview::Pictures {
         &self.pictures
     }
 
@@ -579,9 +581,9 @@ pub fn router(relay: Arc<Relay>) -> Router {
             "/vendor/LICENSE",
             get(|| async { asset("text/plain; charset=utf-8", THREE_LICENSE) }),
         )
-        .route("/overview", get(crate::overview::page))
-        .route("/api/overview", get(crate::overview::api_overview))
-        .route("/api/picture", get(crate::overview::api_picture))
+        .route("/overview", get(overview::page))
+        .route("/api/overview", get(overview::api_overview))
+        .route("/api/picture", get(overview::api_picture))
         .route("/api/sessions", get(api_sessions))
         .route("/api/relay", get(api_relay))
         .route("/ws", get(ws_upgrade))

@@ -16,7 +16,7 @@
 //! A station's token comes only from its `token_file` (never from `HAPTICD_TOKEN`, which
 //! belongs to `--server`), so one daemon's token is never sent to another.
 //!
-//! Routes (added to [`crate::web::router`]):
+//! Routes (added to [`super::router`]):
 //! - `GET /overview`: the page (`web/overview.html`, self-contained);
 //! - `GET /api/overview`: `{"stations": [{"station", "name", "url", "error", "sessions":
 //!   [...]}]}`, each session the statistics of `/api/sessions` plus `device` (the connected
@@ -42,10 +42,9 @@ use serde::Deserialize;
 use serde_json::{Value, json};
 use tokio::sync::Semaphore;
 
+use super::Relay;
 use crate::ClientError;
-use crate::raster::RenderParams;
-use crate::viewer::SurfaceState;
-use crate::web::Relay;
+use crate::raster::{Camera, ProbeView, RenderParams, SurfaceView, bounding_box, render_surface};
 
 /// Most stations a relay shows.
 pub const MAX_STATIONS: usize = 64;
@@ -64,7 +63,7 @@ pub const PICTURE_RENDERS: usize = 2;
 /// Pictures kept (the oldest go first).
 const PICTURE_CACHE: usize = 256;
 
-const OVERVIEW_HTML: &[u8] = include_bytes!("../web/overview.html");
+const OVERVIEW_HTML: &[u8] = include_bytes!("../../web/overview.html");
 
 /// One daemon of the overview besides the relay's own.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -224,7 +223,7 @@ async fn station_json(index: usize, link: &StationLink) -> Value {
             };
             // A session that ended between the two calls is left out.
             if let Ok(r) = ctl.get_stats(request).await {
-                let mut v = crate::web::stats_json(&r.into_inner());
+                let mut v = super::stats_json(&r.into_inner());
                 v["device"] = summary.device.map_or(Value::Null, |d| json!(d.name));
                 v["device_connected"] = json!(summary.device_connected);
                 sessions.push(v);
@@ -285,7 +284,7 @@ pub(crate) async fn api_picture(
         )
             .into_response();
     };
-    if !crate::web::valid_session_id(&id) {
+    if !super::valid_session_id(&id) {
         return (
             StatusCode::BAD_REQUEST,
             "session: give the id of a running session (letters, digits, - and _)",
@@ -348,14 +347,50 @@ async fn picture(link: &StationLink, id: &str) -> Result<Vec<u8>, String> {
     .map_err(|_| format!("no frame within {} s", STATION_TIMEOUT.as_secs_f64()))?
     .map_err(|status| ClientError::from(status).to_string())?
     .ok_or("the session's stream ended")?;
-    let mut state = SurfaceState::new();
-    state.apply(&first, &params).map_err(|e| e.to_string())?;
-    tokio::task::spawn_blocking(move || {
-        let image = state.render(&params).ok_or("no keyframe yet")?;
-        image.encode_png().map_err(|e| e.to_string())
-    })
-    .await
-    .map_err(|e| format!("the picture worker failed: {e}"))?
+    tokio::task::spawn_blocking(move || render_first(&first, &params))
+        .await
+        .map_err(|e| format!("the picture worker failed: {e}"))?
+}
+
+/// Renders a full keyframe (positions, triangles, optionally rest positions) to a PNG; a
+/// frame that is not one, or is malformed, is an error (nothing is drawn from it).
+fn render_first(
+    f: &haptics_proto::v1::SurfaceFrame,
+    params: &RenderParams,
+) -> Result<Vec<u8>, String> {
+    let p = &f.positions_m;
+    let n = p.len() / 3;
+    if !f.keyframe || p.is_empty() || !p.len().is_multiple_of(3) {
+        return Err("the first frame is not a full keyframe".into());
+    }
+    if !f.triangles.len().is_multiple_of(3) || f.triangles.iter().any(|&i| i as usize >= n) {
+        return Err("the keyframe's triangles do not fit its vertices".into());
+    }
+    if p.iter().any(|v| !v.is_finite()) {
+        return Err("the keyframe has a non-finite position".into());
+    }
+    let rest_ok =
+        f.rest_positions_m.len() == p.len() && f.rest_positions_m.iter().all(|v| v.is_finite());
+    let rest = if rest_ok { &f.rest_positions_m } else { p };
+    let (min, max) = bounding_box(p).ok_or("the keyframe has no finite vertex")?;
+    let probe = f.probe_position_m.as_ref().map(|pos| ProbeView {
+        position_m: glam::DVec3::from_array(pos.to_array()),
+        radius_m: f.probe_radius_m,
+        force_n: f
+            .contact_force_n
+            .as_ref()
+            .map_or(glam::DVec3::ZERO, |v| glam::DVec3::from_array(v.to_array())),
+        in_contact: f.in_contact,
+    });
+    let view = SurfaceView {
+        rest_m: rest,
+        positions_m: p,
+        triangles: &f.triangles,
+        probe,
+    };
+    render_surface(&view, &Camera::auto_frame(min, max, params), params)
+        .encode_png()
+        .map_err(|e| e.to_string())
 }
 
 #[cfg(test)]
