@@ -18,7 +18,7 @@ pub fn setup_realtime(cfg: &ServoConfig) -> Vec<String> {
 
 /// [`setup_realtime`] pinning the calling (servo) thread to `cpu` (`None`: unpinned).
 pub fn setup_realtime_on(cfg: &ServoConfig, cpu: Option<usize>) -> Vec<String> {
-    let mut warnings = schedule_thread(cfg, cpu, "servo thread");
+    let mut warnings = schedule_thread(cfg, cpu, None);
     if cfg.mlockall {
         // SAFETY: mlockall has no memory-safety preconditions; it only changes paging.
         let rc = unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) };
@@ -33,8 +33,13 @@ pub fn setup_realtime_on(cfg: &ServoConfig, cpu: Option<usize>) -> Vec<String> {
 }
 
 /// Pins the calling thread to `cpu` and gives it `SCHED_FIFO` at `cfg.priority` when
-/// `cfg.realtime`; what failed, as messages naming `what`.
-fn schedule_thread(cfg: &ServoConfig, cpu: Option<usize>, what: &str) -> Vec<String> {
+/// `cfg.realtime`; what failed, as messages naming the servo thread or tick-pool worker `worker`.
+/// Allocates only to report a failure (a worker may start while an allocation count runs).
+fn schedule_thread(cfg: &ServoConfig, cpu: Option<usize>, worker: Option<usize>) -> Vec<String> {
+    let what = |w: Option<usize>| match w {
+        Some(k) => format!("tick-pool worker {k}"),
+        None => "servo thread".to_owned(),
+    };
     let mut warnings = Vec::new();
     if let Some(cpu) = cpu {
         let ok = core_affinity::get_core_ids()
@@ -43,7 +48,8 @@ fn schedule_thread(cfg: &ServoConfig, cpu: Option<usize>, what: &str) -> Vec<Str
             .unwrap_or(false);
         if !ok {
             warnings.push(format!(
-                "could not pin the {what} to CPU {cpu}; running unpinned"
+                "could not pin the {} to CPU {cpu}; running unpinned",
+                what(worker)
             ));
         }
     }
@@ -55,9 +61,10 @@ fn schedule_thread(cfg: &ServoConfig, cpu: Option<usize>, what: &str) -> Vec<Str
         let policy = ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo);
         if let Err(e) = set_thread_priority_and_policy(thread_native_id(), prio, policy) {
             warnings.push(format!(
-                "SCHED_FIFO priority {} refused for the {what} ({e:?}); running with normal \
+                "SCHED_FIFO priority {} refused for the {} ({e:?}); running with normal \
                  scheduling",
-                cfg.priority
+                cfg.priority,
+                what(worker)
             ));
         }
     }
@@ -129,8 +136,7 @@ pub fn worker_start_hook(
     let cfg = cfg.clone();
     Arc::new(move |k: usize| {
         workers.record_this_thread(k);
-        let what = format!("tick-pool worker {k}");
-        for w in schedule_thread(&cfg, worker_cpus.get(k).copied(), &what) {
+        for w in schedule_thread(&cfg, worker_cpus.get(k).copied(), Some(k)) {
             tracing::warn!(session = %session, "{w}");
         }
     })
