@@ -114,6 +114,20 @@ impl WorkerThreads {
         }
     }
 
+    /// Gives every recorded worker `policy` at `priority` (`sched_setscheduler`); returns how
+    /// many accepted. A worker that has exited is skipped: the call fails for it and changes
+    /// nothing else.
+    pub fn set_policy(&self, policy: libc::c_int, priority: libc::c_int) -> usize {
+        let param = libc::sched_param {
+            sched_priority: priority,
+        };
+        self.started()
+            // SAFETY: changes the policy of one of this session's own threads by id; `param`
+            // outlives the call.
+            .filter(|&tid| unsafe { libc::sched_setscheduler(tid, policy, &param) } == 0)
+            .count()
+    }
+
     /// The recorded workers' thread ids.
     pub fn started(&self) -> impl Iterator<Item = libc::pid_t> + '_ {
         self.tids
@@ -233,12 +247,91 @@ impl Yielding {
         } else {
             self.stuck = true;
         }
-        // The workers follow (they were given the servo's policy by their start hook). A worker
-        // that has exited is skipped: the call fails for it and changes nothing else.
-        for tid in self.workers.iter().flat_map(|w| w.started()) {
-            // SAFETY: changes the policy of one of this session's own threads by id; `param`
-            // outlives the call.
-            unsafe { libc::sched_setscheduler(tid, policy, &param) };
+        // The workers follow (they were given the servo's policy by their start hook).
+        if let Some(w) = &self.workers {
+            w.set_policy(policy, priority);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Runs `f` on a new thread that first calls `hook(k)`, and returns what `f` read there
+    /// while the thread is still alive, together with `check`'s result (run meanwhile by the
+    /// test thread).
+    fn on_worker<T: Send + 'static>(
+        hook: StartHook,
+        k: usize,
+        check: impl FnOnce() -> usize,
+        f: impl FnOnce() -> T + Send + 'static,
+    ) -> (T, usize) {
+        let (ready_tx, ready_rx) = std::sync::mpsc::channel();
+        let (done_tx, done_rx) = std::sync::mpsc::channel::<()>();
+        let worker = std::thread::spawn(move || {
+            hook(k);
+            ready_tx.send(()).unwrap();
+            done_rx.recv().unwrap();
+            f()
+        });
+        ready_rx.recv().unwrap();
+        let checked = check();
+        done_tx.send(()).unwrap();
+        (worker.join().unwrap(), checked)
+    }
+
+    /// The calling thread's scheduling policy.
+    fn policy() -> libc::c_int {
+        // SAFETY: reads the calling thread's policy.
+        unsafe { libc::sched_getscheduler(0) }
+    }
+
+    #[test]
+    fn the_hook_records_the_worker_and_yielding_can_demote_and_restore_it() {
+        let workers = Arc::new(WorkerThreads::default());
+        let hook = worker_start_hook(
+            &ServoConfig::default(),
+            Vec::new(),
+            workers.clone(),
+            "t".into(),
+        );
+        let w = workers.clone();
+        let demote_and_restore = move || {
+            assert_eq!(w.started().count(), 1, "worker 1 recorded its id");
+            let demoted = w.set_policy(libc::SCHED_IDLE, 0);
+            // SAFETY: reads another thread's policy by id.
+            let seen = w
+                .started()
+                .map(|t| unsafe { libc::sched_getscheduler(t) })
+                .next();
+            assert_eq!(seen, Some(libc::SCHED_IDLE));
+            // Leaving SCHED_IDLE needs CAP_SYS_NICE (root here and in CI).
+            demoted + w.set_policy(libc::SCHED_OTHER, 0)
+        };
+        let (end_policy, accepted) = on_worker(hook, 1, demote_and_restore, policy);
+        assert_eq!(accepted, 2);
+        assert_eq!(end_policy, libc::SCHED_OTHER);
+        // Worker slots past the pool's largest are ignored, not a panic.
+        WorkerThreads::default().record_this_thread(MAX_WORKERS);
+    }
+
+    #[test]
+    fn the_hook_pins_worker_k_to_its_listed_cpu() {
+        let workers = Arc::new(WorkerThreads::default());
+        let hook = worker_start_hook(&ServoConfig::default(), vec![5, 0], workers, "t".into());
+        let cpus = || {
+            // SAFETY: a zeroed cpu_set_t is a valid empty set; sched_getaffinity fills it for the
+            // calling thread and is told its size.
+            unsafe {
+                let mut set: libc::cpu_set_t = std::mem::zeroed();
+                libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut set);
+                (0..64)
+                    .filter(|&c| libc::CPU_ISSET(c, &set))
+                    .collect::<Vec<_>>()
+            }
+        };
+        let (pinned, _) = on_worker(hook, 1, || 0, cpus);
+        assert_eq!(pinned, [0], "worker 1 goes to the list's second CPU");
     }
 }
