@@ -297,3 +297,19 @@ fn servo_threads_and_cpus_are_read_and_checked() {
     assert_eq!("3".parse::<ServoThreads>(), Ok(ServoThreads::Fixed(3)));
     assert!("0".parse::<ServoThreads>().is_err());
 }
+
+#[test]
+fn the_servo_threads_flag_refuses_what_the_key_refuses() {
+    for bad in ["0", "17", "many"] {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_hapticd"))
+            .args(["--servo-threads", bad, "--listen", "127.0.0.1:0"])
+            .output()
+            .expect("hapticd runs");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{bad}: {err}");
+        assert!(
+            err.contains("--servo-threads") && err.contains("1..=16"),
+            "{bad}: {err}"
+        );
+    }
+}
