@@ -9,10 +9,12 @@
 # SCENE: a built-in name (default lv) or a scene file (sent as text; relative mesh paths
 # resolve against deploy/scenes). N: sessions (default 2). HOLD_S: hold at depth (default 5).
 # Binaries: $HAPTIC_BIN (default target/release). The press point and direction can be moved
-# with START_M, DIRECTION, DEPTH_M (m, as haptic-bridge takes them). One row per session:
-# loop rate over the last statistics window, step time p50 / p99 / max, overruns (late ticks),
-# pose-to-force p50 / p99 (device sample received to force sent, server side), peak force;
-# then the machine (CPU model, cores). What the figures mean: docs/benchmarks.md, "Capacity".
+# with START_M, DIRECTION, DEPTH_M (m, as haptic-bridge takes them). THREADS (auto or 1..16,
+# default: the daemon's default, auto) is passed as `hapticd --servo-threads`. One row per
+# session: threads of its tick (servo thread plus tick-pool workers), loop rate over the last
+# statistics window, step time p50 / p99 / max, overruns (late ticks), pose-to-force p50 / p99
+# (device sample received to force sent, server side), peak force; then the machine (CPU
+# model, cores). What the figures mean: docs/benchmarks.md, "Capacity".
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 bin=${HAPTIC_BIN:-$root/target/release}
@@ -23,6 +25,9 @@ start_m=${START_M:-0.014,0,-0.005}
 direction=${DIRECTION:--1,0,0}
 depth_m=${DEPTH_M:-0.006}
 [[ $n =~ ^[1-9][0-9]*$ && $n -le 64 ]] || { echo "capacity: N must be 1..64, not $n" >&2; exit 2; }
+threads=${THREADS:-}
+[[ -z $threads || $threads == auto || ( $threads =~ ^[1-9][0-9]?$ && $threads -le 16 ) ]] || {
+  echo "capacity: THREADS must be auto or 1..16, not $threads" >&2; exit 2; }
 [[ $hold_s =~ ^[0-9]+([.][0-9]+)?$ ]] || { echo "capacity: HOLD_S must be seconds, not $hold_s" >&2; exit 2; }
 for b in hapticd hapticctl haptic-bridge; do
   [[ -x $bin/$b ]] || { echo "capacity: $bin/$b missing: cargo build --release --workspace" >&2; exit 1; }
@@ -36,8 +41,9 @@ cleanup() {
 }
 trap cleanup EXIT
 
-"$bin/hapticd" --listen 127.0.0.1:0 --scene-dir "$root/deploy/scenes" \
-  --data-dir "$root/../shared/data" > "$work/hapticd.log" 2>&1 &
+daemon_args=(--listen 127.0.0.1:0 --scene-dir "$root/deploy/scenes" --data-dir "$root/../shared/data")
+[[ -n $threads ]] && daemon_args+=(--servo-threads "$threads")
+"$bin/hapticd" "${daemon_args[@]}" > "$work/hapticd.log" 2>&1 &
 daemon=$!
 addr=
 for _ in $(seq 1 100); do
@@ -80,16 +86,17 @@ done
 
 # One row per session from `hapticctl stats` (FIELD VALUE UNIT lines).
 field() { awk -v k="$2" '$1 == k {print $2}' "$1"; }
-printf '%-4s %-14s %9s %22s %9s %16s %10s\n' "#" session "rate Hz" "step p50/p99/max us" overruns "p2f p50/p99 us" "peak N"
+printf '%-4s %-14s %7s %9s %22s %9s %16s %10s\n' "#" session threads "rate Hz" "step p50/p99/max us" overruns "p2f p50/p99 us" "peak N"
 i=0
 for sid in "${sids[@]}"; do
   i=$((i + 1))
   "$bin/hapticctl" stats "$sid" > "$work/stats"
-  printf '%-4s %-14s %9s %22s %9s %16s %10s\n' "$i" "$sid" "$(field "$work/stats" loop_rate_hz)" \
+  printf '%-4s %-14s %7s %9s %22s %9s %16s %10s\n' "$i" "$sid" "$(field "$work/stats" threads)" \
+    "$(field "$work/stats" loop_rate_hz)" \
     "$(field "$work/stats" step_p50_us)/$(field "$work/stats" step_p99_us)/$(field "$work/stats" step_max_us)" \
     "$(field "$work/stats" overruns)" \
     "$(field "$work/stats" pose_to_force_p50_us)/$(field "$work/stats" pose_to_force_p99_us)" \
     "$(field "$work/stats" peak_force_n)"
   "$bin/hapticctl" stop "$sid"
 done
-echo "scene $scene, $n session(s), hold ${hold_s} s; $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), $(nproc) cores"
+echo "scene $scene, $n session(s), threads ${threads:-auto}, hold ${hold_s} s; $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), $(nproc) cores"

@@ -4,7 +4,8 @@
 # `run`. Kernel threads bound to the shielded CPU stay (only `isolcpus=` at boot removes those).
 #
 #   sudo deploy/cpu-shield.sh on 1          # shield CPU 1, everything else on the other CPUs
-#   sudo deploy/cpu-shield.sh run 1 CMD...  # run CMD on the shielded CPU
+#   sudo deploy/cpu-shield.sh on 2,3        # shield CPUs 2 and 3 (a session's servo + worker)
+#   sudo deploy/cpu-shield.sh run 1 CMD...  # run CMD on the shielded CPUs
 #   sudo deploy/cpu-shield.sh off           # undo
 #
 # cgroup v1 cpuset only (mounted at /sys/fs/cgroup/cpuset). On cgroup v2 (most current
@@ -23,21 +24,21 @@ die() { echo "cpu-shield: $*" >&2; exit 1; }
 
 all_cpus() { cat "$ROOT/cpuset.effective_cpus" 2>/dev/null || cat "$ROOT/cpuset.cpus"; }
 
-# CPUs of the list $1 (e.g. 0-3,6) except $2, as a list.
+# CPUs of the list $1 (e.g. 0-3,6) except those of the comma list $2, as a list.
 others() {
-    local list=$1 skip=$2 out=() part a b i
+    local list=$1 skip=",$2," out=() part a b i
     IFS=, read -ra parts <<< "$list"
     for part in "${parts[@]}"; do
         if [[ $part == *-* ]]; then a=${part%-*}; b=${part#*-}; else a=$part; b=$part; fi
-        for ((i = a; i <= b; i++)); do [[ $i == "$skip" ]] || out+=("$i"); done
+        for ((i = a; i <= b; i++)); do [[ $skip == *",$i,"* ]] || out+=("$i"); done
     done
     local IFS=,; echo "${out[*]}"
 }
 
 case "${1:-}" in
 on)
-    cpu=${2:?usage: cpu-shield.sh on CPU}
-    [[ $cpu =~ ^[0-9]+$ ]] || die "CPU must be a number"
+    cpu=${2:?usage: cpu-shield.sh on CPU[,CPU...]}
+    [[ $cpu =~ ^[0-9]+(,[0-9]+)*$ ]] || die "CPU must be a number or a comma list of numbers"
     hk=$(others "$(all_cpus)" "$cpu")
     [[ -n $hk ]] || die "no CPU left for housekeeping"
     mems=$(cat "$ROOT/cpuset.mems")
@@ -51,7 +52,7 @@ on)
     done < "$ROOT/tasks"
     # Separate scheduling domains: the scheduler no longer balances load onto the shield.
     echo 0 > "$ROOT/cpuset.sched_load_balance" || true
-    echo "cpu-shield: CPU $cpu shielded; $moved tasks moved to CPUs $hk, $stuck could not move (kernel threads)"
+    echo "cpu-shield: CPU(s) $cpu shielded; $moved tasks moved to CPUs $hk, $stuck could not move (kernel threads)"
     ;;
 run)
     [[ -d $RT ]] || die "no shield: run 'cpu-shield.sh on CPU' first"
@@ -70,6 +71,6 @@ off)
     echo "cpu-shield: off"
     ;;
 *)
-    die "usage: cpu-shield.sh on CPU | run CPU CMD... | off"
+    die "usage: cpu-shield.sh on CPU[,CPU...] | run CPU CMD... | off"
     ;;
 esac

@@ -332,6 +332,8 @@ pub fn stats_rows(s: &SessionStats) -> Vec<StatRow> {
             U64(s.out_of_workspace_samples),
             "count",
         ),
+        row("threads", U64(s.threads.into()), "count"),
+        row("pool_wait_us_max", U64(s.pool_wait_us_max), "us"),
     ]
 }
 

@@ -31,8 +31,16 @@ pub struct ServoConfig {
     pub priority: u8,
     /// Lock the process memory (`mlockall`) so page faults cannot stall the loop.
     pub mlockall: bool,
-    /// Pin servo threads to this CPU index (none: let the OS choose).
+    /// Pin servo threads to this CPU index (none: let the OS choose); the same as
+    /// `cpus = [cpu]` (giving both is an error).
     pub cpu: Option<usize>,
+    /// The CPUs servo threads and their tick-pool workers are pinned to, in order (empty: no
+    /// pinning); also the cores `threads = "auto"` shares out among sessions
+    /// ([`ServoConfig::pinned_cpus`]).
+    pub cpus: Vec<usize>,
+    /// Threads of a session's tick (its servo thread plus tick-pool workers): `"auto"` (the
+    /// body's wish, limited by the free cores) or a count 1..=[`MAX_SERVO_THREADS`].
+    pub threads: ServoThreads,
     /// Publish a surface snapshot for viewers every this many ticks (16 -> 62.5 Hz at 1 kHz).
     pub snapshot_every_ticks: u32,
     /// Publish statistics for `GetStats` every this many ticks.
@@ -49,6 +57,79 @@ pub struct ServoConfig {
     /// An overrunning session's servo thread yields to the sessions that keep up
     /// (`SCHED_IDLE` while it overruns and another session runs; [`crate::servo::Yielding`]).
     pub yield_when_overrunning: bool,
+}
+
+/// Most threads `[servo] threads` may give one session's tick (the servo thread plus at most
+/// 15 tick-pool workers, `haptic_model::pool::MAX_WORKERS`).
+pub const MAX_SERVO_THREADS: usize = 16;
+
+/// [`ServoConfig::threads`]: how many threads a session's tick uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[serde(try_from = "RawThreads")]
+pub enum ServoThreads {
+    /// The body's wish (`SoftBody::wants_threads`) limited by the cores no other session has
+    /// reserved; one where `SCHED_FIFO` was asked for and refused.
+    #[default]
+    Auto,
+    /// This many threads, 1..=[`MAX_SERVO_THREADS`], whatever the other sessions use.
+    Fixed(usize),
+}
+
+/// `threads` as written in the file: `"auto"` or an integer.
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum RawThreads {
+    Count(i64),
+    Name(String),
+}
+
+impl TryFrom<RawThreads> for ServoThreads {
+    type Error = String;
+    fn try_from(raw: RawThreads) -> Result<Self, String> {
+        match raw {
+            RawThreads::Count(n) => n.to_string().parse(),
+            RawThreads::Name(s) => s.parse(),
+        }
+    }
+}
+
+impl std::str::FromStr for ServoThreads {
+    type Err = String;
+    /// `"auto"` or an integer 1..=[`MAX_SERVO_THREADS`]; the error names `servo.threads`.
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s == "auto" {
+            return Ok(Self::Auto);
+        }
+        match s.parse::<i64>() {
+            Ok(n) if (1..=MAX_SERVO_THREADS as i64).contains(&n) => Ok(Self::Fixed(n as usize)),
+            // A number is quoted back; other text is not (configuration values never are).
+            Ok(n) => Err(format!(
+                "servo.threads = {n}: expected \"auto\" or 1..={MAX_SERVO_THREADS}"
+            )),
+            Err(_) => Err(format!(
+                "servo.threads: expected \"auto\" or 1..={MAX_SERVO_THREADS}"
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for ServoThreads {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Auto => f.write_str("auto"),
+            Self::Fixed(n) => write!(f, "{n}"),
+        }
+    }
+}
+
+impl ServoConfig {
+    /// The CPUs to pin to, in order: `cpus`, or `[cpu]`; empty: no pinning.
+    pub fn pinned_cpus(&self) -> Vec<usize> {
+        match self.cpu {
+            Some(c) if self.cpus.is_empty() => vec![c],
+            _ => self.cpus.clone(),
+        }
+    }
 }
 
 /// [`ServoConfig::overrun_policy`].
@@ -70,6 +151,8 @@ impl Default for ServoConfig {
             priority: 80,
             mlockall: false,
             cpu: None,
+            cpus: Vec::new(),
+            threads: ServoThreads::Auto,
             snapshot_every_ticks: 16,
             stats_every_ticks: 100,
             pacing: Pacing::Device,
@@ -469,7 +552,8 @@ impl ConfigFile {
 }
 
 /// The `[servo]` table's ranges: priority 1..=99, snapshot and statistics periods and the
-/// device-silence timeout at least 1, `min_rate_fraction` in 0..=1.
+/// device-silence timeout at least 1, `min_rate_fraction` in 0..=1, `threads` 1..=16,
+/// `cpu` and `cpus` not both, no CPU listed twice.
 fn check_servo(servo: &ServoConfig) -> Result<(), ServerError> {
     if !(1..=99).contains(&servo.priority) {
         return Err(ServerError::Config(format!(
@@ -487,6 +571,25 @@ fn check_servo(servo: &ServoConfig) -> Result<(), ServerError> {
             "servo.min_rate_fraction = {}: expected 0..=1",
             servo.min_rate_fraction
         )));
+    }
+    if let ServoThreads::Fixed(n) = servo.threads
+        && !(1..=MAX_SERVO_THREADS).contains(&n)
+    {
+        return Err(ServerError::Config(format!(
+            "servo.threads = {n}: expected \"auto\" or 1..={MAX_SERVO_THREADS}"
+        )));
+    }
+    if servo.cpu.is_some() && !servo.cpus.is_empty() {
+        return Err(ServerError::Config(
+            "servo.cpu and servo.cpus are both given: keep one (cpu = N is cpus = [N])".into(),
+        ));
+    }
+    for (i, c) in servo.cpus.iter().enumerate() {
+        if servo.cpus[..i].contains(c) {
+            return Err(ServerError::Config(format!(
+                "servo.cpus lists CPU {c} twice: each CPU once"
+            )));
+        }
     }
     if servo.device_silence_ms == 0 {
         return Err(ServerError::Config(

@@ -15,6 +15,7 @@ pub mod builds;
 pub mod calibrate;
 pub mod config;
 pub mod confine;
+pub mod cores;
 pub mod device;
 pub mod error;
 pub mod frame;

@@ -231,6 +231,18 @@ const SESSION_METRICS: &[(&str, &str, MetricType, Extract)] = {
             |r| Value::Counter(r.stats.body.companion_ticks),
         ),
         (
+            "hapticd_session_threads",
+            "Threads the session's tick uses (servo thread plus tick-pool workers)",
+            Gauge,
+            |r| Value::Gauge(r.session.tick_threads as f64),
+        ),
+        (
+            "hapticd_pool_wait_max_seconds",
+            "Longest wait of the servo for a part of its tick a pool worker had claimed",
+            Gauge,
+            |r| Value::Gauge(r.stats.pool_wait_us_max as f64 * 1e-6),
+        ),
+        (
             "hapticd_active_particles",
             "Meshfree particles simulated now",
             Gauge,

@@ -256,6 +256,8 @@ impl SessionControl for Services {
             device_silences: st.device_silences,
             overrunning: st.overrunning,
             demoted: st.demoted,
+            threads: st.threads.max(s.tick_threads),
+            pool_wait_us_max: st.pool_wait_us_max,
             device: s.device.capabilities(),
             out_of_workspace_samples: s
                 .shared

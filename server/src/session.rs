@@ -161,6 +161,9 @@ pub struct Session {
     pub limits: Option<LinkLimits>,
     /// The servo thread, unparked when a device sample arrives (device pacing).
     servo_thread: std::thread::Thread,
+    /// Threads the session's tick uses: its servo thread plus tick-pool workers
+    /// ([`crate::cores`]).
+    pub tick_threads: u32,
     /// The force-stream deadband and its counters.
     pub deadband: Arc<DeadbandShared>,
     /// The attached device as it introduced itself, and its limits ([`crate::device`]).
@@ -305,18 +308,82 @@ pub struct SessionManager {
     instance: String,
     /// Sessions in the table, for the servo threads' [`servo::Yielding`].
     running: Arc<std::sync::atomic::AtomicUsize>,
+    /// The cores the running sessions' ticks hold ([`crate::cores`]).
+    cores: crate::cores::CoreBudget,
+    /// `SCHED_FIFO` is permitted (tried once, at the first session start that needs to know).
+    fifo_permitted: std::sync::OnceLock<bool>,
 }
 
 impl SessionManager {
     /// An empty manager.
     pub fn new(config: ServerConfig) -> Self {
         Self {
-            config,
             sessions: Mutex::new(HashMap::new()),
             pending: std::sync::atomic::AtomicUsize::new(0),
             instance: uuid::Uuid::new_v4().simple().to_string()[..12].to_string(),
             running: Arc::new(std::sync::atomic::AtomicUsize::new(0)),
+            cores: crate::cores::CoreBudget::for_cpus(&config.servo.pinned_cpus()),
+            fifo_permitted: std::sync::OnceLock::new(),
+            config,
         }
+    }
+
+    /// Cores the running sessions' ticks hold now (servo threads and tick-pool workers), and the
+    /// cores there are to share ([`crate::cores::CoreBudget`]).
+    pub fn reserved_cores(&self) -> (usize, usize) {
+        (self.cores.reserved(), self.cores.capacity())
+    }
+
+    /// `SCHED_FIFO` was asked for (`[servo] realtime`) and is refused to this process.
+    fn fifo_refused(&self) -> bool {
+        let servo = &self.config.servo;
+        servo.realtime
+            && !*self
+                .fifo_permitted
+                .get_or_init(|| servo::fifo_permitted(servo.priority))
+    }
+
+    /// Decides and reserves the threads of session `id`'s tick, creates its tick pool
+    /// (`threads - 1` workers set up by [`servo::worker_start_hook`]) and hands it to `body`.
+    /// A pool that cannot be created leaves the session on one thread (logged).
+    fn tick_threads(
+        &self,
+        id: &str,
+        body: &mut dyn haptic_model::body::SoftBody,
+    ) -> (TickThreads, Option<Arc<haptic_model::pool::TickPool>>) {
+        let servo_cfg = &self.config.servo;
+        let mut reservation =
+            self.cores
+                .reserve(servo_cfg.threads, body.wants_threads(), self.fifo_refused());
+        let cpus = servo_cfg.pinned_cpus();
+        let cpu_at = |i: usize| (!cpus.is_empty()).then(|| cpus[i % cpus.len()]);
+        let first = reservation.first();
+        let workers = Arc::new(servo::WorkerThreads::default());
+        let mut pool = None;
+        if reservation.cores() > 1 {
+            let worker_cpus = (1..reservation.cores())
+                .filter_map(|k| cpu_at(first + k))
+                .collect();
+            let hook =
+                servo::worker_start_hook(servo_cfg, worker_cpus, workers.clone(), id.to_owned());
+            match haptic_model::pool::TickPool::new(reservation.cores() - 1, hook) {
+                Ok(p) => {
+                    body.set_tick_pool(p.clone());
+                    pool = Some(p);
+                }
+                Err(e) => {
+                    tracing::warn!(session = %id, "no tick pool ({e}); one thread");
+                    reservation.shrink_to(1);
+                }
+            }
+        }
+        let plan = TickThreads {
+            servo_cpu: cpu_at(first),
+            workers,
+            reservation,
+            running: self.running.clone(),
+        };
+        (plan, pool)
     }
 
     /// This daemon process's instance id (new at every start).
@@ -565,7 +632,7 @@ impl SessionManager {
         &self,
         slot: SlotReservation<'_>,
         id: &str,
-        body: Box<dyn haptic_model::body::SoftBody>,
+        mut body: Box<dyn haptic_model::body::SoftBody>,
         limits: Option<LinkLimits>,
     ) -> Result<Arc<Session>, ServerError> {
         if self.get(id).is_ok() {
@@ -601,7 +668,10 @@ impl SessionManager {
             device.clone(),
         )?;
         let servo_cfg = self.config.servo.clone();
-        let core = servo_core(&servo_cfg, body, ends, shared.clone(), period_us);
+        let (plan, pool) = self.tick_threads(&id, body.as_mut());
+        let threads = plan.reservation.cores();
+        let core = servo_core(&servo_cfg, body, ends, shared.clone(), period_us)
+            .with_tick_pool(pool, threads);
         let servo = spawn_servo(
             &id,
             servo_cfg,
@@ -609,7 +679,7 @@ impl SessionManager {
             epoch,
             period_us,
             forwarder.thread().clone(),
-            self.running.clone(),
+            plan,
         )?;
 
         // Frame task: servo snapshots -> shared viewer frames, only while someone watches.
@@ -641,6 +711,7 @@ impl SessionManager {
             watcher_stats,
             epoch,
             limits,
+            tick_threads: threads as u32,
             servo_thread: servo.thread().clone(),
             deadband,
             device,
@@ -736,8 +807,20 @@ fn servo_core(
     }
 }
 
+/// Where a session's tick runs ([`SessionManager::start_body_as`]): the servo's CPU, the pool
+/// workers' thread ids, the cores reserved, and the daemon's running-session count (for
+/// [`servo::Yielding`]).
+struct TickThreads {
+    servo_cpu: Option<usize>,
+    workers: Arc<servo::WorkerThreads>,
+    reservation: crate::cores::CoreReservation,
+    running: Arc<std::sync::atomic::AtomicUsize>,
+}
+
 /// Spawns the servo thread of session `id`: real-time set-up (its warnings logged here, before
-/// the loop), then the loop the configuration's pacing names until the session stops.
+/// the loop), then the loop the configuration's pacing names until the session stops. The
+/// loop's [`servo::Yielding`] demotes the pool's workers with the servo and holds the session's
+/// core reservation, given back when the loop ends or the session is quarantined.
 fn spawn_servo(
     id: &str,
     servo_cfg: crate::config::ServoConfig,
@@ -745,18 +828,20 @@ fn spawn_servo(
     epoch: Instant,
     period_us: u64,
     fwd_thread: std::thread::Thread,
-    running: Arc<std::sync::atomic::AtomicUsize>,
+    plan: TickThreads,
 ) -> Result<std::thread::JoinHandle<()>, ServerError> {
     let servo_id = id.to_owned();
     let pacing = servo_cfg.pacing;
     std::thread::Builder::new()
         .name(format!("servo-{id}"))
         .spawn(move || {
-            for w in servo::setup_realtime(&servo_cfg) {
+            for w in servo::setup_realtime_on(&servo_cfg, plan.servo_cpu) {
                 tracing::warn!(session = %servo_id, "{w}");
             }
             let clock = MonotonicClock::new(epoch);
-            let yielding = servo::Yielding::new(servo_cfg.yield_when_overrunning, running);
+            let yielding = servo::Yielding::new(servo_cfg.yield_when_overrunning, plan.running)
+                .with_workers(plan.workers)
+                .holding(plan.reservation);
             match pacing {
                 crate::config::Pacing::Device => {
                     servo::run_loop_device_paced(core, clock, period_us, fwd_thread, yielding)

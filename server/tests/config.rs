@@ -237,3 +237,79 @@ fn listening_beyond_loopback_needs_tls_and_tokens_or_an_explicit_override() {
         .to_string();
     assert!(e.contains("auth.failure_window_s"), "{e}");
 }
+
+#[test]
+fn servo_threads_and_cpus_are_read_and_checked() {
+    use haptic_server::config::ServoThreads;
+    let cfg = ConfigFile::parse("").unwrap().into_config().unwrap();
+    assert_eq!(cfg.servo.threads, ServoThreads::Auto);
+    assert!(cfg.servo.pinned_cpus().is_empty());
+    let cfg = ConfigFile::parse("[servo]\nthreads = 2\ncpus = [2, 3]")
+        .unwrap()
+        .into_config()
+        .unwrap();
+    assert_eq!(cfg.servo.threads, ServoThreads::Fixed(2));
+    assert_eq!(cfg.servo.pinned_cpus(), [2, 3]);
+    let cfg = ConfigFile::parse("[servo]\nthreads = \"auto\"\ncpu = 1")
+        .unwrap()
+        .into_config()
+        .unwrap();
+    assert_eq!(cfg.servo.threads, ServoThreads::Auto);
+    assert_eq!(
+        cfg.servo.pinned_cpus(),
+        [1],
+        "cpu = N is a one-element list"
+    );
+    let sixteen = ConfigFile::parse("[servo]\nthreads = 16").unwrap();
+    assert_eq!(sixteen.servo.threads, ServoThreads::Fixed(16));
+    // Refused at parsing (the TOML error names the key and says what is expected).
+    for text in [
+        "[servo]\nthreads = 0",
+        "[servo]\nthreads = 17",
+        "[servo]\nthreads = -1",
+        "[servo]\nthreads = \"many\"",
+    ] {
+        let e = ConfigFile::parse(text).unwrap_err().to_string();
+        assert!(
+            e.contains("servo.threads") && e.contains("1..=16"),
+            "{text}: {e}"
+        );
+    }
+    // Refused at validation.
+    for (text, named) in [
+        ("[servo]\ncpu = 1\ncpus = [0, 1]", "servo.cpus"),
+        ("[servo]\ncpus = [1, 1]", "servo.cpus"),
+    ] {
+        let e = ConfigFile::parse(text)
+            .unwrap()
+            .into_config()
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(named), "{text}: {e}");
+    }
+    // A value built in code is checked too.
+    let mut file = ConfigFile::default();
+    file.servo.threads = ServoThreads::Fixed(0);
+    let e = file.into_config().unwrap_err().to_string();
+    assert!(e.contains("servo.threads = 0"), "{e}");
+    // The flag's parser is the key's.
+    assert_eq!("auto".parse::<ServoThreads>(), Ok(ServoThreads::Auto));
+    assert_eq!("3".parse::<ServoThreads>(), Ok(ServoThreads::Fixed(3)));
+    assert!("0".parse::<ServoThreads>().is_err());
+}
+
+#[test]
+fn the_servo_threads_flag_refuses_what_the_key_refuses() {
+    for bad in ["0", "17", "many"] {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_hapticd"))
+            .args(["--servo-threads", bad, "--listen", "127.0.0.1:0"])
+            .output()
+            .expect("hapticd runs");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{bad}: {err}");
+        assert!(
+            err.contains("--servo-threads") && err.contains("1..=16"),
+            "{bad}: {err}"
+        );
+    }
+}

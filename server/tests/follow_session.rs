@@ -3,7 +3,8 @@
 //! ventricle in the servo, the region is swapped in as it goes (the worker thread runs beside
 //! the servo), and `GetStats` reports the swaps, the last preparation time and the contact
 //! ticks (none answered by a companion: this scene has none); `ApplyForce`
-//! is refused with a clear error (one contact per following region).
+//! is refused with a clear error (one contact per following region). The session runs with
+//! `[servo] threads = 2` (issue 48): a tick pool with one worker beside the servo.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -44,7 +45,9 @@ follow = true
 
 #[tokio::test]
 async fn a_following_region_swaps_as_the_device_slides() {
-    let manager = Arc::new(SessionManager::new(ServerConfig::default()));
+    let mut config = ServerConfig::default();
+    config.servo.threads = haptic_server::config::ServoThreads::Fixed(2);
+    let manager = Arc::new(SessionManager::new(config));
     let services = Services::new(manager.clone());
     let scene = manager.load_scene("", SCENE).expect("scene");
     let session = manager.start(&scene).expect("session");
@@ -132,4 +135,5 @@ async fn a_following_region_swaps_as_the_device_slides() {
         "{stats:?}"
     );
     assert_eq!(stats.companion_ticks, 0, "{stats:?}");
+    assert_eq!(stats.threads, 2, "{stats:?}");
 }

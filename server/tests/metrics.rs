@@ -95,6 +95,16 @@ async fn sessions_are_scraped_with_consistent_counters_and_histograms() {
         sample(&text, "hapticd_out_of_workspace_samples_total", &labels),
         Some(0.0)
     );
+    // The default LV asks for one thread ("auto" gives it one): no pool, no wait.
+    assert_eq!(
+        sample(&text, "hapticd_session_threads", &labels),
+        Some(f64::from(session.tick_threads))
+    );
+    assert_eq!(session.tick_threads, 1);
+    assert_eq!(
+        sample(&text, "hapticd_pool_wait_max_seconds", &labels),
+        Some(0.0)
+    );
     // The default scene does not follow the probe: no region swaps. Counter names end in
     // one `_total` (the encoder adds it), never two.
     assert_eq!(

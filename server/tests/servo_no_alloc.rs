@@ -1,7 +1,9 @@
 //! The servo tick allocates nothing (STYLE.md habit 4): a counting global allocator, enabled only
 //! on this thread and only inside `ServoCore::tick`, must see zero allocations over thousands of
 //! ticks that exercise every path: device poses in and out of contact, point-load commands,
-//! snapshots for a watcher, statistics publication, and a device disconnect.
+//! snapshots for a watcher, statistics publication, and a device disconnect. The second test
+//! runs the same ticks with a two-thread tick pool set up as the daemon does
+//! ([`servo::worker_start_hook`]), counting the servo thread and the pool's workers.
 
 use std::cell::Cell;
 use std::sync::Arc;
@@ -13,7 +15,9 @@ use haptic_server::servo::{self, Clock, Command, Pose, ServoCore, ServoHandles, 
 
 #[path = "../model/tests/common/counting_alloc.rs"]
 mod counting_alloc;
-use counting_alloc::counted;
+use counting_alloc::{count_this_thread, counted, counted_registered};
+use haptic_model::pool::{StartHook, TickPool};
+use haptic_server::servo::StatsSnapshot;
 
 /// A clock the test advances by hand.
 struct ManualClock(Cell<u64>);
@@ -27,8 +31,47 @@ impl Clock for ManualClock {
 
 #[test]
 fn servo_tick_never_allocates() {
-    let scene = load_builtin("lv").unwrap();
-    let body = haptic_model::build_body(&scene).unwrap();
+    let body = haptic_model::build_body(&load_builtin("lv").unwrap()).unwrap();
+    let stats = press_and_count(body, None, 1, &mut |tick| counted(tick).1);
+    assert_eq!(stats.threads, 1);
+}
+
+#[test]
+fn servo_tick_with_a_two_thread_pool_never_allocates_on_any_of_its_threads() {
+    let mut body = haptic_model::build_body(&load_builtin("lv").unwrap()).unwrap();
+    let workers = Arc::new(servo::WorkerThreads::default());
+    let daemon_hook = servo::worker_start_hook(
+        &haptic_server::config::ServoConfig::default(),
+        Vec::new(),
+        workers.clone(),
+        "test".into(),
+    );
+    let hook: StartHook = Arc::new(move |k| {
+        count_this_thread();
+        daemon_hook(k);
+    });
+    let pool = TickPool::new(1, hook).unwrap();
+    body.set_tick_pool(pool.clone());
+    let stats = press_and_count(body, Some(pool.clone()), 2, &mut |tick| {
+        counted_registered(tick).1
+    });
+    // With the serial pool of issue 48's step 0 the count is the servo thread's alone; with
+    // workers their allocations count too. Either way the session says it uses two threads.
+    assert_eq!(stats.threads, 2, "{stats:?}");
+    assert_eq!(stats.pool_wait_us_max, pool.stats().longest_wait_us);
+    // A pool with workers ran its start hook on each: their thread ids were recorded.
+    assert_eq!(workers.started().count(), pool.threads() - 1);
+}
+
+/// Runs 3 000 ticks of `body` (a 6 mm press and release, point loads, a watcher, a disconnect)
+/// through a servo core with `pool` and `threads`, asserting that `count` (the allocations made
+/// while the given tick runs) is zero for each tick; returns the last statistics.
+fn press_and_count(
+    body: Box<dyn haptic_model::body::SoftBody>,
+    pool: Option<Arc<TickPool>>,
+    threads: usize,
+    count: &mut dyn FnMut(&mut dyn FnMut()) -> usize,
+) -> StatsSnapshot {
     let shared = Arc::new(SessionShared::default());
     let (ends, handles) = servo::channels(body.as_ref());
     let ServoHandles {
@@ -38,7 +81,7 @@ fn servo_tick_never_allocates() {
         snapshot: mut snap_out,
         stats: mut stats_out,
     } = handles;
-    let mut core = ServoCore::new(body, ends, shared.clone(), 4, 50);
+    let mut core = ServoCore::new(body, ends, shared.clone(), 4, 50).with_tick_pool(pool, threads);
     shared.watchers.store(1, Ordering::Relaxed);
     let clock = ManualClock(Cell::new(0));
     let mut worst = 0;
@@ -65,7 +108,9 @@ fn servo_tick_never_allocates() {
                 .unwrap();
         }
         let now = clock.now_us();
-        let (_, allocations) = counted(|| core.tick(now, &clock));
+        let allocations = count(&mut || {
+            core.tick(now, &clock);
+        });
         worst = worst.max(allocations);
         while let Ok(f) = force_rx.pop() {
             if f.in_contact {
@@ -109,4 +154,5 @@ fn servo_tick_never_allocates() {
     // And every one of them was listed by the snapshots, in order.
     assert_eq!(seen_loads, [1, 2, 3, 4, 5, 6]);
     assert_eq!(snap.applied_total, 6);
+    stats
 }

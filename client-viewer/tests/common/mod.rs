@@ -246,6 +246,8 @@ pub fn canned_stats(id: &str) -> SessionStats {
         companion_ticks: 40,
         device: Some(touch()),
         out_of_workspace_samples: 9,
+        threads: 2,
+        pool_wait_us_max: 35,
     }
 }
 

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Parser;
-use haptic_server::config::{ConfigFile, LogFormat};
+use haptic_server::config::{ConfigFile, LogFormat, ServoThreads};
 
 /// Networked haptic server for real-time soft-body simulation.
 #[derive(Parser, Debug)]
@@ -26,6 +26,10 @@ struct Args {
     /// Pin servo threads to this CPU.
     #[arg(long)]
     cpu: Option<usize>,
+    /// Threads of each session's tick: "auto" (the model's wish, limited by the cores other
+    /// sessions have not reserved) or 1..=16 (the servo thread plus tick-pool workers).
+    #[arg(long, value_name = "auto|N", value_parser = parse_servo_threads)]
+    servo_threads: Option<ServoThreads>,
     /// Largest number of concurrent sessions.
     #[arg(long)]
     max_sessions: Option<usize>,
@@ -92,7 +96,14 @@ async fn main() -> anyhow::Result<()> {
     file.allow_insecure_remote |= args.allow_insecure_remote;
     file.servo.realtime |= args.realtime;
     file.servo.mlockall |= args.mlockall;
-    file.servo.cpu = args.cpu.or(file.servo.cpu);
+    if let Some(cpu) = args.cpu {
+        // The flag replaces the file's pinning, whichever key the file used.
+        file.servo.cpu = Some(cpu);
+        file.servo.cpus.clear();
+    }
+    if let Some(t) = args.servo_threads {
+        file.servo.threads = t;
+    }
     let config = file.into_config()?;
     let filter =
         tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
@@ -111,6 +122,11 @@ async fn main() -> anyhow::Result<()> {
     // `run` prints `listening on ADDR` once tokens and TLS are set up.
     haptic_server::run(listener, config, shutdown_signal()).await?;
     Ok(())
+}
+
+/// `--servo-threads`: `auto` or 1..=16 (the configuration key's rule).
+fn parse_servo_threads(s: &str) -> Result<ServoThreads, String> {
+    s.parse()
 }
 
 async fn shutdown_signal() {

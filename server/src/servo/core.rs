@@ -26,6 +26,9 @@ pub struct ServoCore {
     state: ServoState,
     applied: AppliedLoads,
     stats: ServoStats,
+    /// The body's tick pool (for its statistics) and the threads the session's tick uses.
+    pool: Option<Arc<haptic_model::pool::TickPool>>,
+    threads: u32,
 }
 
 /// Default silence limit of a connected device, µs (50 ms: five times the bridge watchdog's
@@ -187,7 +190,22 @@ impl ServoCore {
             state: ServoState::default(),
             applied: AppliedLoads::new(),
             stats: ServoStats::new(),
+            pool: None,
+            threads: 1,
         }
+    }
+
+    /// Records the session's tick pool, already handed to the body
+    /// (`SoftBody::set_tick_pool`), and the threads its tick uses (the servo's plus the pool's
+    /// workers, as the session decided): published as `threads` and `pool_wait_us_max`.
+    pub fn with_tick_pool(
+        mut self,
+        pool: Option<Arc<haptic_model::pool::TickPool>>,
+        threads: usize,
+    ) -> Self {
+        self.pool = pool;
+        self.threads = threads.max(1) as u32;
+        self
     }
 
     /// The body (for tests and set-up).
@@ -444,6 +462,8 @@ impl ServoCore {
             device_silent: s.device_silent,
             overrunning: s.judge.overrunning,
             demoted: s.demoted,
+            threads: self.threads,
+            pool_wait_us_max: self.pool.as_ref().map_or(0, |p| p.stats().longest_wait_us),
             ..self.stats.snapshot(s.ticks, rate, body)
         };
         self.ends.stats.publish();

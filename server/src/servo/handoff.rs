@@ -180,6 +180,12 @@ pub struct StatsSnapshot {
     pub overrunning: bool,
     /// The servo thread yields to the sessions that keep up (`SCHED_IDLE`; [`super::Yielding`]).
     pub demoted: bool,
+    /// Threads the session's tick uses: the servo thread plus its tick-pool workers
+    /// ([`crate::cores`]); 0 before the first publication.
+    pub threads: u32,
+    /// Longest time the servo waited for a part of its tick a pool worker had claimed, µs
+    /// (`haptic_model::pool::PoolStats::longest_wait_us`; 0 without workers).
+    pub pool_wait_us_max: u64,
     /// The body's size and state at the last publication.
     pub body: BodyStats,
     /// Step compute times, all ticks so far (for the metrics endpoint).

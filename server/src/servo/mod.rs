@@ -28,5 +28,7 @@ pub use handoff::{
     Snapshot, StatsSnapshot, channels,
 };
 pub use pacer::{Clock, DevicePacer, Flow, MonotonicClock, Pacer, Wake};
-pub use realtime::{Yielding, setup_realtime};
+pub use realtime::{
+    WorkerThreads, Yielding, fifo_permitted, setup_realtime, setup_realtime_on, worker_start_hook,
+};
 pub use run::{run_loop, run_loop_device_paced};

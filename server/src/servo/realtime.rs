@@ -1,38 +1,24 @@
-//! Real-time set-up of the servo thread (affinity, `SCHED_FIFO`, `mlockall`) and [`Yielding`]:
-//! the operating-system calls, made by the loop, never inside the tick.
+//! Real-time set-up of the servo thread and its tick-pool workers (affinity, `SCHED_FIFO`,
+//! `mlockall`) and [`Yielding`]: the operating-system calls, made by the loop or a worker's start
+//! hook, never inside the tick.
 
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicI32, Ordering};
+
+use haptic_model::pool::{MAX_WORKERS, StartHook};
 
 use super::ServoCore;
+use crate::config::ServoConfig;
 
-/// Real-time set-up outcome messages (logged by the caller, never from the tick).
-pub fn setup_realtime(cfg: &crate::config::ServoConfig) -> Vec<String> {
-    let mut warnings = Vec::new();
-    if let Some(cpu) = cfg.cpu {
-        let ok = core_affinity::get_core_ids()
-            .and_then(|ids| ids.into_iter().find(|c| c.id == cpu))
-            .map(core_affinity::set_for_current)
-            .unwrap_or(false);
-        if !ok {
-            warnings.push(format!(
-                "could not pin the servo thread to CPU {cpu}; running unpinned"
-            ));
-        }
-    }
-    if cfg.realtime {
-        use thread_priority::*;
-        let prio = ThreadPriority::Crossplatform(
-            ThreadPriorityValue::try_from(cfg.priority.min(99)).unwrap_or(ThreadPriorityValue::MAX),
-        );
-        let policy = ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo);
-        if let Err(e) = set_thread_priority_and_policy(thread_native_id(), prio, policy) {
-            warnings.push(format!(
-                "SCHED_FIFO priority {} refused ({e:?}); running with normal scheduling",
-                cfg.priority
-            ));
-        }
-    }
+/// Real-time set-up outcome messages (logged by the caller, never from the tick): the servo
+/// thread pinned to the first CPU of [`ServoConfig::pinned_cpus`].
+pub fn setup_realtime(cfg: &ServoConfig) -> Vec<String> {
+    setup_realtime_on(cfg, cfg.pinned_cpus().first().copied())
+}
+
+/// [`setup_realtime`] pinning the calling (servo) thread to `cpu` (`None`: unpinned).
+pub fn setup_realtime_on(cfg: &ServoConfig, cpu: Option<usize>) -> Vec<String> {
+    let mut warnings = schedule_thread(cfg, cpu, None);
     if cfg.mlockall {
         // SAFETY: mlockall has no memory-safety preconditions; it only changes paging.
         let rc = unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) };
@@ -46,6 +32,130 @@ pub fn setup_realtime(cfg: &crate::config::ServoConfig) -> Vec<String> {
     warnings
 }
 
+/// Pins the calling thread to `cpu` and gives it `SCHED_FIFO` at `cfg.priority` when
+/// `cfg.realtime`; what failed, as messages naming the servo thread or tick-pool worker `worker`.
+/// Allocates only to report a failure (a worker may start while an allocation count runs).
+fn schedule_thread(cfg: &ServoConfig, cpu: Option<usize>, worker: Option<usize>) -> Vec<String> {
+    let what = |w: Option<usize>| match w {
+        Some(k) => format!("tick-pool worker {k}"),
+        None => "servo thread".to_owned(),
+    };
+    let mut warnings = Vec::new();
+    if let Some(cpu) = cpu {
+        let ok = core_affinity::get_core_ids()
+            .and_then(|ids| ids.into_iter().find(|c| c.id == cpu))
+            .map(core_affinity::set_for_current)
+            .unwrap_or(false);
+        if !ok {
+            warnings.push(format!(
+                "could not pin the {} to CPU {cpu}; running unpinned",
+                what(worker)
+            ));
+        }
+    }
+    if cfg.realtime {
+        use thread_priority::*;
+        let prio = ThreadPriority::Crossplatform(
+            ThreadPriorityValue::try_from(cfg.priority.min(99)).unwrap_or(ThreadPriorityValue::MAX),
+        );
+        let policy = ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo);
+        if let Err(e) = set_thread_priority_and_policy(thread_native_id(), prio, policy) {
+            warnings.push(format!(
+                "SCHED_FIFO priority {} refused for the {} ({e:?}); running with normal \
+                 scheduling",
+                cfg.priority,
+                what(worker)
+            ));
+        }
+    }
+    warnings
+}
+
+/// Whether this process may give a thread `SCHED_FIFO` at `priority`: tried on a short-lived
+/// thread of its own (session set-up, not a tick).
+pub fn fifo_permitted(priority: u8) -> bool {
+    std::thread::spawn(move || {
+        use thread_priority::*;
+        let prio = ThreadPriority::Crossplatform(
+            ThreadPriorityValue::try_from(priority.clamp(1, 99))
+                .unwrap_or(ThreadPriorityValue::MAX),
+        );
+        let policy = ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo);
+        set_thread_priority_and_policy(thread_native_id(), prio, policy).is_ok()
+    })
+    .join()
+    .unwrap_or(false)
+}
+
+/// The kernel thread ids of a session's tick-pool workers, recorded by their start hook
+/// ([`worker_start_hook`]) so that [`Yielding`] demotes and restores them with the servo.
+/// Fixed size, atomics only: reading it after a tick neither locks nor allocates.
+#[derive(Debug)]
+pub struct WorkerThreads {
+    /// Thread id of worker `k` (0: not started yet).
+    tids: [AtomicI32; MAX_WORKERS],
+}
+
+impl Default for WorkerThreads {
+    fn default() -> Self {
+        Self {
+            tids: std::array::from_fn(|_| AtomicI32::new(0)),
+        }
+    }
+}
+
+impl WorkerThreads {
+    /// Records the calling thread as worker `k` (ignored past [`MAX_WORKERS`]).
+    pub fn record_this_thread(&self, k: usize) {
+        if let Some(slot) = self.tids.get(k) {
+            // SAFETY: gettid has no preconditions; it returns the calling thread's id.
+            let tid = unsafe { libc::syscall(libc::SYS_gettid) } as i32;
+            slot.store(tid, Ordering::Release);
+        }
+    }
+
+    /// Gives every recorded worker `policy` at `priority` (`sched_setscheduler`); returns how
+    /// many accepted. A worker that has exited is skipped: the call fails for it and changes
+    /// nothing else.
+    pub fn set_policy(&self, policy: libc::c_int, priority: libc::c_int) -> usize {
+        let param = libc::sched_param {
+            sched_priority: priority,
+        };
+        self.started()
+            // SAFETY: changes the policy of one of this session's own threads by id; `param`
+            // outlives the call.
+            .filter(|&tid| unsafe { libc::sched_setscheduler(tid, policy, &param) } == 0)
+            .count()
+    }
+
+    /// The recorded workers' thread ids.
+    pub fn started(&self) -> impl Iterator<Item = libc::pid_t> + '_ {
+        self.tids
+            .iter()
+            .map(|t| t.load(Ordering::Acquire))
+            .filter(|&t| t > 0)
+    }
+}
+
+/// The tick pool's start hook of a session: worker `k` is pinned to `worker_cpus[k]` (when
+/// given; the caller lists the CPUs after the servo's), gets the servo's `SCHED_FIFO` priority
+/// when `cfg.realtime`, and records its thread id in `workers`. Failures are logged as
+/// warnings naming `session`, on the worker before its first job.
+pub fn worker_start_hook(
+    cfg: &ServoConfig,
+    worker_cpus: Vec<usize>,
+    workers: Arc<WorkerThreads>,
+    session: String,
+) -> StartHook {
+    let cfg = cfg.clone();
+    Arc::new(move |k: usize| {
+        workers.record_this_thread(k);
+        for w in schedule_thread(&cfg, worker_cpus.get(k).copied(), Some(k)) {
+            tracing::warn!(session = %session, "{w}");
+        }
+    })
+}
+
 /// Lets an overrunning session's servo thread yield to the sessions that keep up (issue 16,
 /// section 2). While the session is overrunning ([`ServoCore::overrunning`]) and another
 /// session runs, its thread is moved to `SCHED_IDLE`: it then gets only the CPU time the
@@ -55,10 +165,17 @@ pub fn setup_realtime(cfg: &crate::config::ServoConfig) -> Vec<String> {
 /// `CAP_SYS_NICE` (the systemd unit grants it); without it a demoted thread stays demoted,
 /// which `GetStats` shows (`demoted`).
 ///
-/// Called from the loop after each tick, never inside it: a demotion is one system call.
+/// The session's tick-pool workers ([`Yielding::with_workers`]) are demoted and restored with the
+/// servo thread. It also holds the session's core reservation ([`Yielding::holding`]) and lets it
+/// go when the session is quarantined (its body no longer steps) or the loop ends.
+///
+/// Called from the loop after each tick, never inside it: a demotion is one system call per
+/// thread.
 #[derive(Debug)]
 pub struct Yielding {
     enabled: bool,
+    workers: Option<Arc<WorkerThreads>>,
+    reservation: Option<crate::cores::CoreReservation>,
     running_sessions: Arc<std::sync::atomic::AtomicUsize>,
     /// The thread's policy and priority when the loop started.
     original: (libc::c_int, libc::c_int),
@@ -81,6 +198,8 @@ impl Yielding {
         };
         Self {
             enabled,
+            workers: None,
+            reservation: None,
             running_sessions,
             original,
             demoted: false,
@@ -88,8 +207,24 @@ impl Yielding {
         }
     }
 
+    /// Demotes and restores these tick-pool workers with the servo thread.
+    pub fn with_workers(mut self, workers: Arc<WorkerThreads>) -> Self {
+        self.workers = Some(workers);
+        self
+    }
+
+    /// Holds the session's core reservation until the session is quarantined or the loop ends.
+    pub fn holding(mut self, reservation: crate::cores::CoreReservation) -> Self {
+        self.reservation = Some(reservation);
+        self
+    }
+
     /// Demotes or restores the thread as the session's state asks (see the type).
     pub fn after_tick(&mut self, core: &mut ServoCore) {
+        if core.fault().is_some() {
+            // A quarantined body no longer steps: its cores go back to the other sessions.
+            self.reservation = None;
+        }
         if !self.enabled || self.stuck {
             return;
         }
@@ -112,5 +247,91 @@ impl Yielding {
         } else {
             self.stuck = true;
         }
+        // The workers follow (they were given the servo's policy by their start hook).
+        if let Some(w) = &self.workers {
+            w.set_policy(policy, priority);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Runs `f` on a new thread that first calls `hook(k)`, and returns what `f` read there
+    /// while the thread is still alive, together with `check`'s result (run meanwhile by the
+    /// test thread).
+    fn on_worker<T: Send + 'static>(
+        hook: StartHook,
+        k: usize,
+        check: impl FnOnce() -> usize,
+        f: impl FnOnce() -> T + Send + 'static,
+    ) -> (T, usize) {
+        let (ready_tx, ready_rx) = std::sync::mpsc::channel();
+        let (done_tx, done_rx) = std::sync::mpsc::channel::<()>();
+        let worker = std::thread::spawn(move || {
+            hook(k);
+            ready_tx.send(()).unwrap();
+            done_rx.recv().unwrap();
+            f()
+        });
+        ready_rx.recv().unwrap();
+        let checked = check();
+        done_tx.send(()).unwrap();
+        (worker.join().unwrap(), checked)
+    }
+
+    /// The calling thread's scheduling policy.
+    fn policy() -> libc::c_int {
+        // SAFETY: reads the calling thread's policy.
+        unsafe { libc::sched_getscheduler(0) }
+    }
+
+    #[test]
+    fn the_hook_records_the_worker_and_yielding_can_demote_and_restore_it() {
+        let workers = Arc::new(WorkerThreads::default());
+        let hook = worker_start_hook(
+            &ServoConfig::default(),
+            Vec::new(),
+            workers.clone(),
+            "t".into(),
+        );
+        let w = workers.clone();
+        let demote_and_restore = move || {
+            assert_eq!(w.started().count(), 1, "worker 1 recorded its id");
+            let demoted = w.set_policy(libc::SCHED_IDLE, 0);
+            // SAFETY: reads another thread's policy by id.
+            let seen = w
+                .started()
+                .map(|t| unsafe { libc::sched_getscheduler(t) })
+                .next();
+            assert_eq!(seen, Some(libc::SCHED_IDLE));
+            // Leaving SCHED_IDLE needs CAP_SYS_NICE (root here and in CI).
+            demoted + w.set_policy(libc::SCHED_OTHER, 0)
+        };
+        let (end_policy, accepted) = on_worker(hook, 1, demote_and_restore, policy);
+        assert_eq!(accepted, 2);
+        assert_eq!(end_policy, libc::SCHED_OTHER);
+        // Worker slots past the pool's largest are ignored, not a panic.
+        WorkerThreads::default().record_this_thread(MAX_WORKERS);
+    }
+
+    #[test]
+    fn the_hook_pins_worker_k_to_its_listed_cpu() {
+        let workers = Arc::new(WorkerThreads::default());
+        let hook = worker_start_hook(&ServoConfig::default(), vec![5, 0], workers, "t".into());
+        let cpus = || {
+            // SAFETY: a zeroed cpu_set_t is a valid empty set; sched_getaffinity fills it for the
+            // calling thread and is told its size.
+            unsafe {
+                let mut set: libc::cpu_set_t = std::mem::zeroed();
+                libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut set);
+                (0..64)
+                    .filter(|&c| libc::CPU_ISSET(c, &set))
+                    .collect::<Vec<_>>()
+            }
+        };
+        let (pinned, _) = on_worker(hook, 1, || 0, cpus);
+        assert_eq!(pinned, [0], "worker 1 goes to the list's second CPU");
     }
 }

@@ -1,0 +1,160 @@
+//! Cores per session (issue 48 section 1): how many threads a session's tick gets, and the
+//! daemon's reservation of cores for its running sessions.
+//!
+//! `[servo] threads = "auto"` gives a session the threads its body asks for
+//! (`SoftBody::wants_threads`), limited by the cores no running session has reserved: the
+//! machine's (`std::thread::available_parallelism`) or the `[servo] cpus` list's. A session that
+//! cannot get its threads gets fewer (at least its servo thread) and never waits; where
+//! `SCHED_FIFO` was asked for and refused it gets one (an unprotected worker preempted while it
+//! holds a part would stall the servo). `threads = N` gives every session N. Either way the
+//! session reserves what it got ([`CoreReservation`]) until its servo loop ends or it is
+//! quarantined.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use crate::config::{MAX_SERVO_THREADS, ServoThreads};
+
+/// The cores the daemon shares out and how many its running sessions hold.
+#[derive(Debug)]
+pub struct CoreBudget {
+    capacity: usize,
+    reserved: Arc<AtomicUsize>,
+}
+
+/// The cores one session holds; given back when dropped. Lock-free: dropping it is one atomic
+/// subtraction (the servo loop may drop it after a tick).
+#[derive(Debug)]
+pub struct CoreReservation {
+    reserved: Arc<AtomicUsize>,
+    cores: usize,
+    first: usize,
+}
+
+impl CoreReservation {
+    /// Threads (cores) this reservation holds.
+    pub fn cores(&self) -> usize {
+        self.cores
+    }
+
+    /// Holds `cores` (at least 1) instead, giving the rest back (a tick pool that could not be
+    /// created leaves its session on one thread).
+    pub fn shrink_to(&mut self, cores: usize) {
+        let keep = cores.clamp(1, self.cores);
+        self.reserved.fetch_sub(self.cores - keep, Ordering::AcqRel);
+        self.cores = keep;
+    }
+
+    /// Cores other sessions held when this one was made: the session's servo takes the CPU at
+    /// this position of the `cpus` list (modulo its length) and its workers the next ones.
+    pub fn first(&self) -> usize {
+        self.first
+    }
+}
+
+impl Drop for CoreReservation {
+    fn drop(&mut self) {
+        self.reserved.fetch_sub(self.cores, Ordering::AcqRel);
+    }
+}
+
+/// Threads of a session whose body wants `wants` under `mode`, with `free` cores unreserved;
+/// `fifo_refused`: `SCHED_FIFO` was asked for and refused. Always 1..=[`MAX_SERVO_THREADS`].
+pub fn decide_threads(mode: ServoThreads, wants: usize, free: usize, fifo_refused: bool) -> usize {
+    match mode {
+        ServoThreads::Fixed(n) => n.clamp(1, MAX_SERVO_THREADS),
+        ServoThreads::Auto if fifo_refused => 1,
+        ServoThreads::Auto => wants.clamp(1, MAX_SERVO_THREADS).min(free.max(1)),
+    }
+}
+
+impl CoreBudget {
+    /// A budget of `capacity` cores (at least 1), none reserved.
+    pub fn new(capacity: usize) -> Self {
+        Self {
+            capacity: capacity.max(1),
+            reserved: Arc::new(AtomicUsize::new(0)),
+        }
+    }
+
+    /// The budget of a daemon pinned to `cpus` (their number), or of the whole machine when the
+    /// list is empty (`available_parallelism`, 1 when unknown).
+    pub fn for_cpus(cpus: &[usize]) -> Self {
+        let capacity = if cpus.is_empty() {
+            std::thread::available_parallelism().map_or(1, usize::from)
+        } else {
+            cpus.len()
+        };
+        Self::new(capacity)
+    }
+
+    /// Cores the budget shares out.
+    pub fn capacity(&self) -> usize {
+        self.capacity
+    }
+
+    /// Cores the running sessions hold now (may exceed the capacity: fixed `threads = N` and the
+    /// one servo thread every session has are never refused).
+    pub fn reserved(&self) -> usize {
+        self.reserved.load(Ordering::Acquire)
+    }
+
+    /// Decides a new session's threads ([`decide_threads`] with the cores free now) and reserves
+    /// them, atomically against concurrent starts. Never waits.
+    pub fn reserve(&self, mode: ServoThreads, wants: usize, fifo_refused: bool) -> CoreReservation {
+        let mut now = self.reserved.load(Ordering::Acquire);
+        loop {
+            let free = self.capacity.saturating_sub(now);
+            let cores = decide_threads(mode, wants, free, fifo_refused);
+            match self.reserved.compare_exchange_weak(
+                now,
+                now + cores,
+                Ordering::AcqRel,
+                Ordering::Acquire,
+            ) {
+                Ok(_) => {
+                    return CoreReservation {
+                        reserved: self.reserved.clone(),
+                        cores,
+                        first: now,
+                    };
+                }
+                Err(actual) => now = actual,
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn auto_takes_what_is_free_and_never_less_than_one() {
+        let auto = ServoThreads::Auto;
+        assert_eq!(decide_threads(auto, 2, 2, false), 2);
+        assert_eq!(decide_threads(auto, 4, 2, false), 2);
+        assert_eq!(decide_threads(auto, 2, 1, false), 1);
+        assert_eq!(decide_threads(auto, 2, 0, false), 1);
+        assert_eq!(decide_threads(auto, 0, 8, false), 1);
+        assert_eq!(decide_threads(auto, 2, 2, true), 1, "FIFO refused");
+        assert_eq!(decide_threads(ServoThreads::Fixed(3), 1, 0, true), 3);
+    }
+
+    #[test]
+    fn reservations_add_up_and_are_given_back_on_drop() {
+        let budget = CoreBudget::new(2);
+        let a = budget.reserve(ServoThreads::Auto, 2, false);
+        assert_eq!((a.cores(), a.first(), budget.reserved()), (2, 0, 2));
+        let b = budget.reserve(ServoThreads::Auto, 2, false);
+        assert_eq!((b.cores(), b.first(), budget.reserved()), (1, 2, 3));
+        drop(a);
+        assert_eq!(budget.reserved(), 1);
+        let c = budget.reserve(ServoThreads::Auto, 2, false);
+        assert_eq!(c.cores(), 1, "one core is free");
+        drop((b, c));
+        assert_eq!(budget.reserved(), 0);
+        assert_eq!(budget.reserve(ServoThreads::Auto, 2, false).cores(), 2);
+        assert_eq!(budget.reserved(), 0, "the unnamed reservation was dropped");
+    }
+}

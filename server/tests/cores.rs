@@ -1,0 +1,123 @@
+//! Cores per session (issue 48 section 1): in `threads = "auto"` a session gets the threads its
+//! body asks for while cores of the `cpus` list are free, fewer (never less than one, never
+//! waiting) when they are not, and gives them back when it stops or is quarantined.
+
+mod common;
+
+use std::time::Duration;
+
+use haptic_model::body::{
+    BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput, TickOutput,
+};
+use haptic_model::{DVec3, ModelError};
+use haptic_server::config::{ConfigFile, ServerConfig};
+use haptic_server::session::SessionManager;
+
+/// A real body that asks for `threads` threads and, with `fail_at`, fails its tick from then on
+/// (a fault quarantines the session).
+struct Wanting {
+    body: Box<dyn SoftBody>,
+    threads: usize,
+    fail_at: Option<u64>,
+    ticks: u64,
+}
+
+impl SoftBody for Wanting {
+    fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
+        self.ticks += 1;
+        if self.fail_at.is_some_and(|t| self.ticks >= t) {
+            return Err(ModelError::InvalidInput("a test fault".into()));
+        }
+        self.body.tick(input)
+    }
+    fn add_point_load(&mut self, p: DVec3, f: DVec3, d: f64) -> Result<(), ModelError> {
+        self.body.add_point_load(p, f, d)
+    }
+    fn surface_topology(&self) -> SurfaceTopology<'_> {
+        self.body.surface_topology()
+    }
+    fn surface_capacity(&self) -> SurfaceCapacity {
+        self.body.surface_capacity()
+    }
+    fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
+        self.body.write_surface_positions(out)
+    }
+    fn write_surface_rest_positions(&self, out: &mut [f32]) {
+        self.body.write_surface_rest_positions(out)
+    }
+    fn stats(&self) -> BodyStats {
+        self.body.stats()
+    }
+    fn info(&self) -> BodyInfo {
+        self.body.info()
+    }
+    fn wants_threads(&self) -> usize {
+        self.threads
+    }
+}
+
+fn wanting(threads: usize, fail_at: Option<u64>) -> Box<dyn SoftBody> {
+    Box::new(Wanting {
+        body: common::builtin_body("ellipsoids"),
+        threads,
+        fail_at,
+        ticks: 0,
+    })
+}
+
+fn config(servo: &str) -> ServerConfig {
+    ConfigFile::parse(&format!("[servo]\n{servo}"))
+        .unwrap()
+        .into_config()
+        .unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn auto_threads_share_the_listed_cpus_and_come_back_when_a_session_stops() {
+    let manager = SessionManager::new(config("threads = \"auto\"\ncpus = [0, 1]"));
+    assert_eq!(manager.reserved_cores(), (0, 2));
+    let a = manager.start_body(wanting(2, None)).unwrap();
+    assert_eq!(a.tick_threads, 2, "both listed CPUs are free");
+    let b = manager.start_body(wanting(2, None)).unwrap();
+    assert_eq!(
+        b.tick_threads, 1,
+        "none free: fewer threads, started at once"
+    );
+    assert_eq!(manager.reserved_cores(), (3, 2));
+    let c = manager.start_body(wanting(1, None)).unwrap();
+    assert_eq!(c.tick_threads, 1);
+    // GetStats says the same once the servo has published (every 100 ticks).
+    let published = common::wait_for(|| a.stats().threads != 0, Duration::from_secs(5)).await;
+    assert!(published);
+    assert_eq!(a.stats().threads, 2);
+    manager.stop(&a.id).unwrap();
+    assert_eq!(manager.reserved_cores(), (2, 2), "a's two cores came back");
+    manager.stop(&c.id).unwrap();
+    let d = manager.start_body(wanting(2, None)).unwrap();
+    assert_eq!(d.tick_threads, 1, "b holds one core: one is free");
+    manager.stop(&b.id).unwrap();
+    manager.stop(&d.id).unwrap();
+    assert_eq!(manager.reserved_cores(), (0, 2));
+    // A quarantined session's body no longer steps: its cores come back too.
+    let e = manager.start_body(wanting(2, Some(20))).unwrap();
+    assert_eq!(e.tick_threads, 2);
+    let released =
+        common::wait_for(|| manager.reserved_cores().0 == 0, Duration::from_secs(5)).await;
+    assert!(released, "{:?} {:?}", manager.reserved_cores(), e.stats());
+    assert!(e.stats().fault.is_some() || e.stats().steps == 0);
+    let f = manager.start_body(wanting(2, None)).unwrap();
+    assert_eq!(f.tick_threads, 2);
+    manager.stop_all();
+    assert_eq!(manager.reserved_cores(), (0, 2));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fixed_thread_count_is_given_whatever_is_free() {
+    let manager = SessionManager::new(config("threads = 2\ncpus = [0]"));
+    let a = manager.start_body(wanting(1, None)).unwrap();
+    let b = manager.start_body(wanting(1, None)).unwrap();
+    assert_eq!((a.tick_threads, b.tick_threads), (2, 2));
+    assert_eq!(manager.reserved_cores(), (4, 1));
+    manager.stop_all();
+    assert_eq!(manager.reserved_cores(), (0, 1));
+}
