@@ -135,13 +135,9 @@ fn sphere_on_half_space_follows_hertz() {
     );
 }
 
-/// Newton's tangent with or without the sphere's curvature term
-/// (`IndentParams::curvature_stiffness`, on by default): that changes the iteration, not the
-/// equilibrium. On
-/// the built-in `lv` (474 curved quadratic elements) pressed along the `lv-probe` line, the
-/// forces with and without the term agree within the gap tolerance's share of the force.
-#[test]
-fn the_contact_tangent_changes_the_path_not_the_answer() {
+/// The built-in `lv`, its force model and the scene's sphere on the `lv-probe` line (along -x
+/// at y = 0, z = -5 mm, from x = 12.7 mm).
+fn lv_probe() -> (haptic_model::scene::Scene, FemModel, Indenter) {
     let scene = haptic_model::scene::load_builtin("lv").unwrap();
     let fem = scene.fem_model().unwrap();
     let indenter = Indenter {
@@ -149,6 +145,17 @@ fn the_contact_tangent_changes_the_path_not_the_answer() {
         from_m: DVec3::new(0.0127, 0.0, -0.005),
         direction: DVec3::new(-1.0, 0.0, 0.0),
     };
+    (scene, fem, indenter)
+}
+
+/// Newton's tangent with or without the sphere's curvature term
+/// (`IndentParams::curvature_stiffness`, on by default): that changes the iteration, not the
+/// equilibrium. On
+/// the built-in `lv` (474 curved quadratic elements) pressed along the `lv-probe` line, the
+/// forces with and without the term agree within the gap tolerance's share of the force.
+#[test]
+fn the_contact_tangent_changes_the_path_not_the_answer() {
+    let (scene, fem, indenter) = lv_probe();
     let depths = [0.5e-3, 1.0e-3];
     let run = |curvature_stiffness: bool| {
         let params = IndentParams {
@@ -187,13 +194,7 @@ fn the_contact_tangent_changes_the_path_not_the_answer() {
 /// preconditioner), and a checkpoint of another size is refused without touching the run.
 #[test]
 fn a_resumed_indentation_continues_like_an_uninterrupted_one() {
-    let scene = haptic_model::scene::load_builtin("lv").unwrap();
-    let fem = scene.fem_model().unwrap();
-    let indenter = Indenter {
-        radius_m: scene.probe.radius_m,
-        from_m: DVec3::new(0.0127, 0.0, -0.005),
-        direction: DVec3::new(-1.0, 0.0, 0.0),
-    };
+    let (scene, fem, indenter) = lv_probe();
     let params = IndentParams::default();
     let new_run = || Indentation::new(&fem, &scene.touchable, &indenter, &params).unwrap();
     let mut straight = new_run();
