@@ -92,11 +92,14 @@ fn run(args: Args) -> Result<(), String> {
         Some(path) => Box::new(Digest::new(build_deterministic(&scene)?, path)?),
         None => haptic_model::build_body(&scene).map_err(|e| e.to_string())?,
     };
-    if args.threads > 1 {
+    let pool = if args.threads > 1 {
         let workers = usize::from(args.threads) - 1;
         let pool = TickPool::new(workers, Arc::new(|_| {})).map_err(|e| e.to_string())?;
-        body.set_tick_pool(pool);
-    }
+        body.set_tick_pool(Arc::clone(&pool));
+        Some(pool)
+    } else {
+        None
+    };
     let info = body.info();
     println!(
         "scene {} ({} family): set-up {:.2} s, tick {} ms, probe radius {} mm, {} thread(s) (the body wants {})",
@@ -126,6 +129,17 @@ fn run(args: Args) -> Result<(), String> {
         trace.tick_quantile_s(0.99) * 1e6,
         trace.tick_quantile_s(1.0) * 1e6
     );
+    if let Some(pool) = &pool {
+        let s = pool.stats();
+        println!(
+            "tick pool: {} threads, {} jobs, parts on the caller {} / on workers {}, longest wait {} us",
+            pool.threads(),
+            s.jobs,
+            s.parts_on_caller,
+            s.parts_on_workers,
+            s.longest_wait_us
+        );
+    }
     if args.trace {
         print_trace(&trace, &line, tick);
     }
