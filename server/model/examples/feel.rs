@@ -11,7 +11,9 @@
 //! contact stiffness and proxy position (`{:.17e}`) to FILE and prints one FNV-1a hash of their
 //! bit patterns last (an FEM body then prepares a following region blocking, so that it swaps
 //! at the same tick in every run: never time `--digest` runs); `--dump-scene` prints the parsed
-//! scene (`{:#?}`) and exits.
+//! scene (`{:#?}`) and exits. `--threads N` hands the body a tick pool of `N - 1` workers (the
+//! coarse companion of a following region then ticks beside it: the digest must not change)
+//! and prints the pool's statistics after the run.
 
 #[path = "common/press_protocol.rs"]
 mod press_protocol;
