@@ -11,7 +11,9 @@
 //! contact stiffness and proxy position (`{:.17e}`) to FILE and prints one FNV-1a hash of their
 //! bit patterns last (an FEM body then prepares a following region blocking, so that it swaps
 //! at the same tick in every run: never time `--digest` runs); `--dump-scene` prints the parsed
-//! scene (`{:#?}`) and exits.
+//! scene (`{:#?}`) and exits. `--threads N` hands the body a tick pool of `N - 1` workers (the
+//! coarse companion of a following region then ticks beside it: the digest must not change)
+//! and prints the pool's statistics after the run.
 
 #[path = "common/press_protocol.rs"]
 mod press_protocol;
@@ -19,12 +21,14 @@ mod press_protocol;
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Instant;
 
 use clap::Parser;
 use haptic_model::body::{
     BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput, TickOutput,
 };
+use haptic_model::pool::TickPool;
 use haptic_model::press::{self, HoldParams, HoldReport, PressLine, PressTrace};
 use haptic_model::scene::{ModelFamily, Scene, load_builtin, load_scene_file};
 use haptic_model::{DVec3, ModelError};
@@ -57,6 +61,10 @@ struct Args {
     /// Print the parsed scene and exit.
     #[arg(long)]
     dump_scene: bool,
+    /// Threads of the body's tick, the servo's included: `N - 1` tick-pool workers (no start
+    /// hook: unpinned, normal priority) handed to the body. 1: no pool.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=16))]
+    threads: u16,
     #[command(subcommand)]
     protocol: Option<Protocol>,
 }
@@ -86,14 +94,24 @@ fn run(args: Args) -> Result<(), String> {
         Some(path) => Box::new(Digest::new(build_deterministic(&scene)?, path)?),
         None => haptic_model::build_body(&scene).map_err(|e| e.to_string())?,
     };
+    let pool = if args.threads > 1 {
+        let workers = usize::from(args.threads) - 1;
+        let pool = TickPool::new(workers, Arc::new(|_| {})).map_err(|e| e.to_string())?;
+        body.set_tick_pool(Arc::clone(&pool));
+        Some(pool)
+    } else {
+        None
+    };
     let info = body.info();
     println!(
-        "scene {} ({} family): set-up {:.2} s, tick {} ms, probe radius {} mm",
+        "scene {} ({} family): set-up {:.2} s, tick {} ms, probe radius {} mm, {} thread(s) (the body wants {})",
         scene.name,
         info.family,
         t0.elapsed().as_secs_f64(),
         info.tick_s * 1e3,
-        info.probe_radius_m * 1e3
+        info.probe_radius_m * 1e3,
+        args.threads,
+        body.wants_threads()
     );
     let r = info.probe_radius_m;
     let line = match (&args.from, &args.direction) {
@@ -113,6 +131,17 @@ fn run(args: Args) -> Result<(), String> {
         trace.tick_quantile_s(0.99) * 1e6,
         trace.tick_quantile_s(1.0) * 1e6
     );
+    if let Some(pool) = &pool {
+        let s = pool.stats();
+        println!(
+            "tick pool: {} threads, {} jobs, parts on the caller {} / on workers {}, longest wait {} us",
+            pool.threads(),
+            s.jobs,
+            s.parts_on_caller,
+            s.parts_on_workers,
+            s.longest_wait_us
+        );
+    }
     if args.trace {
         print_trace(&trace, &line, tick);
     }
@@ -271,6 +300,14 @@ impl SoftBody for Digest {
 
     fn info(&self) -> BodyInfo {
         self.inner.info()
+    }
+
+    fn wants_threads(&self) -> usize {
+        self.inner.wants_threads()
+    }
+
+    fn set_tick_pool(&mut self, pool: Arc<TickPool>) {
+        self.inner.set_tick_pool(pool);
     }
 }
 

@@ -72,21 +72,26 @@ impl Fallback {
         }
     }
 
-    /// Ticks the companion with `input` and blends its answer into the region's `fine` one:
-    /// `outside` when the region's contact patch reaches a node it does not simulate, `swapped`
-    /// when a new region came in this tick (module documentation, "The coarse companion").
+    /// Ticks the companion with `input` (on a pool worker beside the region: it shares no
+    /// state with it).
     ///
     /// # Errors
     /// The companion's tick errors (a diverged companion quarantines the session as the
     /// region would).
-    pub(super) fn answer(
+    pub(super) fn tick_companion(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
+        self.sim.tick(input)
+    }
+
+    /// Blends the companion's answer `coarse` of this tick into the region's `fine` one:
+    /// `outside` when the region's contact patch reaches a node it does not simulate, `swapped`
+    /// when a new region came in this tick (module documentation, "The coarse companion").
+    pub(super) fn blend(
         &mut self,
-        input: &TickInput,
         fine: TickOutput,
+        coarse: TickOutput,
         outside: bool,
         swapped: bool,
-    ) -> Result<TickOutput, ModelError> {
-        let coarse = self.sim.tick(input)?;
+    ) -> TickOutput {
         self.region_force_n = fine.force_on_device_n;
         self.companion_force_n = coarse.force_on_device_n;
         if outside || (swapped && self.weight > 0.0) {
@@ -99,7 +104,7 @@ impl Fallback {
         self.weight += (target - self.weight).clamp(-rate, rate);
         let w = self.weight;
         if w <= 0.0 {
-            return Ok(fine);
+            return fine;
         }
         self.ticks_answered += 1;
         let main = if w >= 0.5 { coarse } else { fine };
@@ -109,12 +114,12 @@ impl Fallback {
         }
         let in_contact = fine.in_contact || coarse.in_contact;
         self.contact_ticks_answered += u64::from(in_contact);
-        Ok(TickOutput {
+        TickOutput {
             force_on_device_n: fine.force_on_device_n.lerp(coarse.force_on_device_n, w),
             contact_stiffness_n_per_m: stiffness,
             in_contact,
             proxy_position_m: main.proxy_position_m,
             sim_time_s: fine.sim_time_s,
-        })
+        }
     }
 }

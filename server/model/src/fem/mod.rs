@@ -14,7 +14,9 @@
 //! ([`crate::integrate::follow`]), and a probe that leaves the region meanwhile rests on the
 //! condensed far surface, which does not yield. With `fallback_target_tets` the scene carries
 //! a coarse whole-body companion ([`Scene::fallback`]: the same built-in geometry, quadratic,
-//! backward Euler on its rest factor) that ticks with the same device input every tick.
+//! backward Euler on its rest factor) that ticks with the same device input every tick, on a
+//! worker of the session's [`TickPool`] beside the region when it has one (the two share no
+//! state, so the output is the same bit for bit at any thread count).
 //! Where the contact patch reaches a node the region does not simulate, the companion answers:
 //! the output force (and contact stiffness) is `(1 - w) f_region + w f_companion`, with `w`
 //! moving towards 1 by at most `1 / FALLBACK_BLEND_TICKS` per tick; it moves back towards 0
@@ -25,6 +27,8 @@
 //! Owns: the FEM body. May use: [`crate::element`], [`crate::integrate`], [`crate::contact`],
 //! [`crate::loads`], [`crate::scene`] (to build from), [`crate::body`] (the interface it
 //! implements).
+
+use std::sync::Arc;
 
 use glam::DVec3;
 
@@ -37,6 +41,7 @@ use crate::integrate::follow::{FollowStats, RegionFollower};
 use crate::integrate::implicit::CgStats;
 use crate::integrate::{self, IntegratorKind, IntegratorParams, StepPlan, Stepper};
 use crate::loads::BodyLoads;
+use crate::pool::TickPool;
 use crate::scene::Scene;
 
 pub use crate::body::{TickInput, TickOutput};
@@ -100,6 +105,9 @@ pub struct FemBody {
     follow: FollowSlot,
     /// The coarse companion of a following region (`active_region.fallback_target_tets`).
     fallback: Option<Box<Fallback>>,
+    /// The session's worker pool ([`SoftBody::set_tick_pool`]; serial until one is given): the
+    /// companion ticks on a worker beside the region.
+    pool: Arc<TickPool>,
 }
 
 /// What a [`FemBody`] fixes at set-up: its sub-stepping, tick and the surface it shows.
@@ -275,6 +283,7 @@ impl FemBody {
             status: TickStatus::default(),
             follow,
             fallback,
+            pool: TickPool::serial(),
             fem,
         })
     }
@@ -293,7 +302,44 @@ impl FemBody {
         if let Some(time_s) = self.status.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
+        let out = match self.fallback.take() {
+            None => self.tick_model(input)?,
+            Some(mut fb) => {
+                let out = self.tick_with_companion(input, &mut fb);
+                self.fallback = Some(fb);
+                out?
+            }
+        };
+        self.status.last_output = out;
+        Ok(out)
+    }
+
+    /// [`Self::tick`] of a following region with its coarse companion `fb` (taken out of
+    /// `self.fallback` meanwhile): the region on this thread and the companion's tick beside it
+    /// on a pool worker ([`TickPool::join`]; they share nothing but `input`, so the outputs do
+    /// not depend on the thread count), then the blend (module documentation, "The coarse
+    /// companion"). Both tick even when the region fails (its error is returned first; a
+    /// diverged region quarantines the session anyway).
+    fn tick_with_companion(
+        &mut self,
+        input: &TickInput,
+        fb: &mut Fallback,
+    ) -> Result<TickOutput, ModelError> {
         let swaps_before = self.follow.0.as_ref().map_or(0, RegionFollower::swaps);
+        let pool = Arc::clone(&self.pool);
+        let (fine, coarse) = pool.join(|| self.tick_model(input), || fb.tick_companion(input));
+        let (fine, coarse) = (fine?, coarse?);
+        let swapped = self.follow.0.as_ref().map_or(0, RegionFollower::swaps) != swaps_before;
+        let outside = self
+            .stepper
+            .condensed()
+            .is_some_and(|c| self.probe.patch().0.iter().any(|&i| !c.is_active_node(i)));
+        Ok(fb.blend(fine, coarse, outside, swapped))
+    }
+
+    /// The tick of this body's own model (the region when one follows), without the companion:
+    /// [`Self::tick`] after its checks.
+    fn tick_model(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
         if let (Some(f), Stepper::Condensed(solver)) = (&mut self.follow.0, &mut self.stepper) {
             let device = input
                 .device_position_m
@@ -349,7 +395,7 @@ impl FemBody {
         self.loads.advance(self.setup.tick_s);
         // 4. Output.
         let contact = self.probe.state;
-        let out = TickOutput {
+        Ok(TickOutput {
             force_on_device_n: contact.force_on_device_n,
             in_contact: contact.in_contact,
             proxy_position_m: if contact.in_contact {
@@ -359,21 +405,7 @@ impl FemBody {
             },
             contact_stiffness_n_per_m: self.probe.contact_stiffness(),
             sim_time_s: self.state.time_s,
-        };
-        let out = match self.fallback.as_deref_mut() {
-            Some(fb) => {
-                let swapped =
-                    self.follow.0.as_ref().map_or(0, RegionFollower::swaps) != swaps_before;
-                let outside = self
-                    .stepper
-                    .condensed()
-                    .is_some_and(|c| self.probe.patch().0.iter().any(|&i| !c.is_active_node(i)));
-                fb.answer(input, out, outside, swapped)?
-            }
-            None => out,
-        };
-        self.status.last_output = out;
-        Ok(out)
+        })
     }
 
     /// What the coarse companion of a following region did (module documentation, "The coarse
@@ -844,5 +876,15 @@ impl SoftBody for FemBody {
             probe_radius_m: self.probe.params.radius_m,
             point_loads: self.point_load_zone(),
         }
+    }
+
+    /// 2 with a coarse companion (it ticks beside the region), else 1.
+    fn wants_threads(&self) -> usize {
+        if self.fallback.is_some() { 2 } else { 1 }
+    }
+
+    /// Keeps `pool` for the companion's tick ([`FemBody::tick`]); the companion itself gets none.
+    fn set_tick_pool(&mut self, pool: Arc<TickPool>) {
+        self.pool = pool;
     }
 }

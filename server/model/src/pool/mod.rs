@@ -12,10 +12,35 @@
 //!   the one-core code path, bit for bit.
 //! - **A starved worker degrades to one core**: parts no worker has claimed run on the caller.
 //!
-//! This module holds the API and the serial pool ([`TickPool::serial`]: every part runs on the
-//! caller, in order). The threaded workers arrive behind the same API.
+//! **How it works.** [`TickPool::new`] starts `workers` std threads. A parts job
+//! ([`TickPool::for_each_mut`]) is published as one word `(epoch << 36) | (parts << 20) | next`:
+//! every thread, the caller included, claims part `next` by `fetch_add(1)` on that word, so a
+//! claim is always a part of the job current at the claim (a late worker cannot run a part of a
+//! finished job: that job's word was replaced before its caller returned). The caller then spins
+//! (never parks) only for parts a worker claimed and has not finished. [`TickPool::join`]
+//! offers its second closure in a task slot (`offered -> claimed -> done`), runs the first, and
+//! takes the second back to run it itself when no worker claimed it. One parts job and one task
+//! may be in flight together (the region's parts while a worker ticks the companion); a second
+//! caller that finds a slot busy (a cloned body on another thread) runs its job serially on
+//! itself. Workers spin [`SPIN_US`] after their last work, then `park()`; the caller `unpark`s
+//! the parked ones when it publishes (a `SeqCst` flag on both sides, so no wake-up is lost).
+//! Jobs erase their closure's type into a data pointer and a monomorphic call function valid
+//! until the job is done: this module's `unsafe`.
+//!
+//! **Panics.** A part or task that panics on a worker is caught there (the worker lives on);
+//! the caller panics once the job is done (a task's payload is re-raised, a part's becomes "a
+//! part of a tick-pool job panicked on a worker"). A panic on the caller first withdraws the
+//! unclaimed parts and waits for the claimed ones (they borrow its stack), then unwinds. Either
+//! way the pool stays usable and nothing deadlocks; a body that panics mid-tick is poisoned
+//! anyway (the session quarantines it).
 
+use std::cell::UnsafeCell;
+use std::panic::{AssertUnwindSafe, catch_unwind, resume_unwind};
 use std::sync::Arc;
+use std::sync::atomic::Ordering::{AcqRel, Acquire, Relaxed, Release, SeqCst};
+use std::sync::atomic::{AtomicBool, AtomicU8, AtomicU32, AtomicU64};
+use std::thread::{JoinHandle, Thread};
+use std::time::{Duration, Instant};
 
 use crate::ModelError;
 
@@ -25,6 +50,13 @@ pub type StartHook = Arc<dyn Fn(usize) + Send + Sync>;
 
 /// Most worker threads a pool takes (a body's tick is cut into at most `MAX_WORKERS + 1` parts).
 pub const MAX_WORKERS: usize = 15;
+
+/// How long a worker spins after its last part or task before it parks, microseconds.
+pub const SPIN_US: u64 = 50;
+
+/// Most parts a threaded [`TickPool::for_each_mut`] job takes (the word's 16-bit part count);
+/// a longer slice runs serially on the caller.
+pub const MAX_THREADED_PARTS: usize = PARTS_MASK as usize;
 
 /// What the pool has done so far, for `GetStats`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -39,9 +71,216 @@ pub struct PoolStats {
     pub longest_wait_us: u64,
 }
 
+/// The parts word: `next` in bits 0..20, the part count in 20..36, the epoch above.
+const NEXT_BITS: u32 = 20;
+const NEXT_MASK: u64 = (1 << NEXT_BITS) - 1;
+const PARTS_MASK: u64 = (1 << 16) - 1;
+const EPOCH_SHIFT: u32 = 36;
+
+/// The states of the task slot ([`TickPool::join`]).
+const TASK_EMPTY: u8 = 0;
+const TASK_OFFERED: u8 = 1;
+const TASK_CLAIMED: u8 = 2;
+const TASK_DONE: u8 = 3;
+
+/// The part a claim `w` (the parts word before the `fetch_add`) hands out, if any.
+fn claimed_part(w: u64) -> Option<usize> {
+    let next = w & NEXT_MASK;
+    let parts = (w >> NEXT_BITS) & PARTS_MASK;
+    (next < parts).then_some(next as usize)
+}
+
+/// A job with its closure's type erased: `call(data, part)`; `data` is valid while the job is.
+#[derive(Clone, Copy)]
+struct Erased {
+    data: *const (),
+    call: unsafe fn(*const (), usize),
+}
+
+/// The call of an empty slot (never made: a slot is read only after a claim).
+unsafe fn no_call(_: *const (), _: usize) {}
+
+impl Erased {
+    const NONE: Self = Self {
+        data: std::ptr::null(),
+        call: no_call,
+    };
+}
+
+/// What the caller and the workers share.
+struct Shared {
+    /// `(epoch << 36) | (parts << 20) | next` of the current parts job.
+    parts_word: AtomicU64,
+    /// The current parts job; written by its caller before the word is published.
+    parts_job: UnsafeCell<Erased>,
+    /// Parts of the current job that workers finished.
+    parts_done: AtomicU32,
+    /// A worker's part panicked in the current job.
+    parts_panicked: AtomicBool,
+    /// A caller owns the parts slot.
+    parts_busy: AtomicBool,
+    /// `TASK_EMPTY`, `TASK_OFFERED`, `TASK_CLAIMED` or `TASK_DONE`.
+    task_state: AtomicU8,
+    /// The offered task; written by its caller before it is offered.
+    task_job: UnsafeCell<Erased>,
+    /// A caller owns the task slot.
+    task_busy: AtomicBool,
+    /// Worker `k` is parked or about to park (the caller unparks it when it publishes).
+    sleeping: [AtomicBool; MAX_WORKERS],
+    /// The pool is being dropped: workers return.
+    stop: AtomicBool,
+    jobs: AtomicU64,
+    parts_on_caller: AtomicU64,
+    parts_on_workers: AtomicU64,
+    longest_wait_ns: AtomicU64,
+}
+
+// SAFETY: the `UnsafeCell`s are written only by the caller owning the slot (its busy flag) while
+// no worker can read them (no claimable part, task not offered), and read by a worker only
+// after a claim that synchronises with the publishing store (Release/Acquire); the raw pointers
+// they hold are only dereferenced under that claim (see `call_part`, `call_task`).
+unsafe impl Send for Shared {}
+// SAFETY: as for `Send` above.
+unsafe impl Sync for Shared {}
+
+impl Shared {
+    fn new() -> Self {
+        Self {
+            parts_word: AtomicU64::new(0),
+            parts_job: UnsafeCell::new(Erased::NONE),
+            parts_done: AtomicU32::new(0),
+            parts_panicked: AtomicBool::new(false),
+            parts_busy: AtomicBool::new(false),
+            task_state: AtomicU8::new(TASK_EMPTY),
+            task_job: UnsafeCell::new(Erased::NONE),
+            task_busy: AtomicBool::new(false),
+            sleeping: std::array::from_fn(|_| AtomicBool::new(false)),
+            stop: AtomicBool::new(false),
+            jobs: AtomicU64::new(0),
+            parts_on_caller: AtomicU64::new(0),
+            parts_on_workers: AtomicU64::new(0),
+            longest_wait_ns: AtomicU64::new(0),
+        }
+    }
+
+    /// Work a worker could claim now (`SeqCst`: the other half of the caller's wake-up check).
+    fn has_work(&self) -> bool {
+        self.task_state.load(SeqCst) == TASK_OFFERED
+            || claimed_part(self.parts_word.load(SeqCst)).is_some()
+    }
+
+    /// Claims and runs the offered task, if any (on a worker). Whether it ran one.
+    fn run_task(&self) -> bool {
+        if self.task_state.load(Relaxed) != TASK_OFFERED
+            || self
+                .task_state
+                .compare_exchange(TASK_OFFERED, TASK_CLAIMED, Acquire, Relaxed)
+                .is_err()
+        {
+            return false;
+        }
+        // SAFETY: the claim synchronises with the caller's offer, which followed its write of
+        // `task_job`; the caller neither rewrites it nor returns until `TASK_DONE`.
+        let job = unsafe { *self.task_job.get() };
+        // SAFETY: `job` is the claimed task's (`call_task` with its own data), run once.
+        unsafe { (job.call)(job.data, 0) };
+        self.parts_on_workers.fetch_add(1, Relaxed);
+        self.task_state.store(TASK_DONE, Release);
+        true
+    }
+
+    /// Claims and runs parts of the current job while there are any (on a worker). Whether it
+    /// ran one.
+    fn run_parts(&self) -> bool {
+        let mut ran = false;
+        while claimed_part(self.parts_word.load(Acquire)).is_some() {
+            let Some(p) = claimed_part(self.parts_word.fetch_add(1, AcqRel)) else {
+                break;
+            };
+            // SAFETY: the claim of part `p` synchronises with the store that published this
+            // job, after its caller wrote `parts_job`; the caller does not return (nor rewrite
+            // the slot) before this part is counted in `parts_done`.
+            let job = unsafe { *self.parts_job.get() };
+            // SAFETY: `job` is the current job's (`call_part`), `p` is below its part count and
+            // was handed out once.
+            let out = catch_unwind(AssertUnwindSafe(|| unsafe { (job.call)(job.data, p) }));
+            if out.is_err() {
+                self.parts_panicked.store(true, Relaxed);
+            }
+            self.parts_on_workers.fetch_add(1, Relaxed);
+            self.parts_done.fetch_add(1, Release);
+            ran = true;
+        }
+        ran
+    }
+
+    /// Records a wait of the caller for workers.
+    fn note_wait(&self, since: Instant) {
+        let ns = u64::try_from(since.elapsed().as_nanos()).unwrap_or(u64::MAX);
+        self.longest_wait_ns.fetch_max(ns, Relaxed);
+    }
+}
+
+/// A slot owned while this guard lives.
+struct Busy<'a>(&'a AtomicBool);
+
+impl<'a> Busy<'a> {
+    fn try_take(flag: &'a AtomicBool) -> Option<Self> {
+        flag.compare_exchange(false, true, Acquire, Relaxed)
+            .ok()
+            .map(|_| Self(flag))
+    }
+}
+
+impl Drop for Busy<'_> {
+    fn drop(&mut self) {
+        self.0.store(false, Release);
+    }
+}
+
+/// The erased data of a parts job: the items and the closure.
+struct PartsJob<'a, T> {
+    items: *mut T,
+    f: &'a (dyn Fn(usize, &mut T) + Sync),
+}
+
+/// Runs part `p` of the [`PartsJob<T>`] at `data`.
+///
+/// # Safety
+/// `data` points to a live `PartsJob<T>` whose `items` holds more than `p` elements, and part
+/// `p` is run once (its `&mut` is unique).
+unsafe fn call_part<T>(data: *const (), p: usize) {
+    // SAFETY: the caller's contract.
+    let job = unsafe { &*data.cast::<PartsJob<'_, T>>() };
+    // SAFETY: `p` is in bounds and handed out once, so this `&mut` aliases nothing.
+    let item = unsafe { &mut *job.items.add(p) };
+    (job.f)(p, item);
+}
+
+/// The erased data of a task: the closure until it runs, then its result.
+struct Task<B, R> {
+    f: Option<B>,
+    out: Option<std::thread::Result<R>>,
+}
+
+/// Runs the [`Task<B, R>`] at `data` and stores its result (a panic is caught into it).
+///
+/// # Safety
+/// `data` points to a live `Task<B, R>` no other thread touches until the call returns.
+unsafe fn call_task<B: FnOnce() -> R, R>(data: *const (), _: usize) {
+    // SAFETY: the caller's contract (the pointer came from a `&mut Task<B, R>`).
+    let task = unsafe { &mut *data.cast_mut().cast::<Task<B, R>>() };
+    if let Some(f) = task.f.take() {
+        task.out = Some(catch_unwind(AssertUnwindSafe(f)));
+    }
+}
+
 /// The worker pool of one body (module documentation). Shared by the body and its workers.
 pub struct TickPool {
     workers: usize,
+    shared: Arc<Shared>,
+    threads: Vec<Thread>,
+    handles: Vec<JoinHandle<()>>,
 }
 
 impl std::fmt::Debug for TickPool {
@@ -52,25 +291,70 @@ impl std::fmt::Debug for TickPool {
     }
 }
 
+/// A worker's life: the start hook, then claim work, spin [`SPIN_US`], park, until `stop`.
+fn worker(shared: Arc<Shared>, k: usize, on_start: StartHook) {
+    on_start(k);
+    let spin = Duration::from_micros(SPIN_US);
+    let mut idle_since = Instant::now();
+    while !shared.stop.load(Acquire) {
+        if shared.run_task() | shared.run_parts() {
+            idle_since = Instant::now();
+        } else if idle_since.elapsed() < spin {
+            std::hint::spin_loop();
+        } else {
+            shared.sleeping[k].store(true, SeqCst);
+            if !shared.has_work() && !shared.stop.load(SeqCst) {
+                std::thread::park();
+            }
+            shared.sleeping[k].store(false, SeqCst);
+            idle_since = Instant::now();
+        }
+    }
+}
+
 impl TickPool {
     /// The pool without workers: every call runs on the caller, in order (one core).
     pub fn serial() -> Arc<Self> {
-        Arc::new(Self { workers: 0 })
+        Arc::new(Self {
+            workers: 0,
+            shared: Arc::new(Shared::new()),
+            threads: Vec::new(),
+            handles: Vec::new(),
+        })
     }
 
-    /// A pool of `workers` threads beside the caller; `on_start(k)` runs first on worker `k`.
+    /// A pool of `workers` threads beside the caller; `on_start(k)` runs first on worker `k`
+    /// (dropping the pool waits for the hooks to return). Allocates: set-up, not a tick.
     ///
     /// # Errors
-    /// [`ModelError::InvalidInput`] when `workers > MAX_WORKERS`.
+    /// [`ModelError::InvalidInput`] when `workers > MAX_WORKERS` or a thread cannot be started
+    /// (the ones already started are stopped).
     pub fn new(workers: usize, on_start: StartHook) -> Result<Arc<Self>, ModelError> {
         if workers > MAX_WORKERS {
             return Err(ModelError::InvalidInput(format!(
                 "a tick pool takes at most {MAX_WORKERS} workers, not {workers}"
             )));
         }
-        // The serial skeleton: workers arrive with the threaded implementation.
-        let _ = on_start;
-        Ok(Self::serial())
+        let mut pool = Self {
+            workers: 0,
+            shared: Arc::new(Shared::new()),
+            threads: Vec::with_capacity(workers),
+            handles: Vec::with_capacity(workers),
+        };
+        for k in 0..workers {
+            let shared = Arc::clone(&pool.shared);
+            let hook = Arc::clone(&on_start);
+            let handle = std::thread::Builder::new()
+                .name(format!("tick-pool-{k}"))
+                .spawn(move || worker(shared, k, hook))
+                .map_err(|e| {
+                    ModelError::InvalidInput(format!("starting tick-pool worker {k}: {e}"))
+                })?;
+            pool.threads.push(handle.thread().clone());
+            pool.handles.push(handle);
+            pool.workers = k + 1;
+        }
+        Ok(Arc::new(pool))
     }
 
     /// Threads that run a job: the workers plus the caller. Also the number of parts a body
@@ -79,28 +363,190 @@ impl TickPool {
         self.workers + 1
     }
 
+    /// Unparks the workers that are parked or about to park (after a publish).
+    fn wake(&self) {
+        for (k, t) in self.threads.iter().enumerate() {
+            if self.shared.sleeping[k].load(SeqCst) {
+                t.unpark();
+            }
+        }
+    }
+
     /// Runs `f(p, &mut items[p])` once for every `p`, each on one thread, and returns when all
-    /// are done. Allocation-free.
+    /// are done. Allocation-free and lock-free. Serial on the caller without workers, for
+    /// fewer than two or more than [`MAX_THREADED_PARTS`] items, and when another caller's
+    /// parts job is in flight.
+    ///
+    /// # Panics
+    /// When `f` panics (on the caller: the same panic; on a worker: "a part of a tick-pool job
+    /// panicked on a worker"), after every claimed part has finished (module documentation).
     pub fn for_each_mut<T: Send>(&self, items: &mut [T], f: &(dyn Fn(usize, &mut T) + Sync)) {
-        for (p, item) in items.iter_mut().enumerate() {
-            f(p, item);
+        let sh = &*self.shared;
+        sh.jobs.fetch_add(1, Relaxed);
+        let n = items.len();
+        let slot = if self.workers > 0 && (2..=MAX_THREADED_PARTS).contains(&n) {
+            Busy::try_take(&sh.parts_busy)
+        } else {
+            None
+        };
+        let Some(_slot) = slot else {
+            for (p, item) in items.iter_mut().enumerate() {
+                f(p, item);
+            }
+            sh.parts_on_caller.fetch_add(n as u64, Relaxed);
+            return;
+        };
+        let job = PartsJob {
+            items: items.as_mut_ptr(),
+            f,
+        };
+        let data = (&raw const job).cast::<()>();
+        // SAFETY: this caller owns the parts slot and the previous job's word is exhausted, so
+        // no worker reads `parts_job` until the store below publishes this job.
+        unsafe {
+            *sh.parts_job.get() = Erased {
+                data,
+                call: call_part::<T>,
+            };
+        }
+        sh.parts_done.store(0, Relaxed);
+        let epoch = (sh.parts_word.load(Relaxed) >> EPOCH_SHIFT).wrapping_add(1);
+        let head = (epoch << EPOCH_SHIFT) | ((n as u64) << NEXT_BITS);
+        sh.parts_word.store(head, SeqCst);
+        self.wake();
+        let mut mine = 0_u32;
+        let ran = catch_unwind(AssertUnwindSafe(|| {
+            while let Some(p) = claimed_part(sh.parts_word.fetch_add(1, AcqRel)) {
+                mine += 1;
+                // SAFETY: `job` lives on this frame until every claimed part is done, `p` is
+                // below `n` and handed out once.
+                unsafe { call_part::<T>(data, p) };
+            }
+        }));
+        // Withdraw what is unclaimed (parts remain only after a panic), then wait for the parts
+        // workers claimed: they borrow `items` and `f`.
+        let old = sh.parts_word.swap(head | n as u64, AcqRel);
+        let claimed = ((old & NEXT_MASK) as usize).min(n) as u32;
+        let by_workers = claimed - mine;
+        if sh.parts_done.load(Acquire) < by_workers {
+            let since = Instant::now();
+            while sh.parts_done.load(Acquire) < by_workers {
+                std::hint::spin_loop();
+            }
+            sh.note_wait(since);
+        }
+        sh.parts_on_caller.fetch_add(u64::from(mine), Relaxed);
+        if let Err(payload) = ran {
+            sh.parts_panicked.store(false, Relaxed);
+            resume_unwind(payload);
+        }
+        if sh.parts_panicked.swap(false, Relaxed) {
+            panic!("a part of a tick-pool job panicked on a worker");
         }
     }
 
     /// Runs `a` on the caller and `b` on a worker if one claims it (else on the caller after
-    /// `a`); returns both results. Allocation-free.
+    /// `a`); returns both results. Allocation-free and lock-free; serial without workers or
+    /// when another caller's task is in flight.
+    ///
+    /// # Panics
+    /// When `a` or `b` panics, with its payload, after `b` is finished or withdrawn (`b` is
+    /// not run when `a` panicked before a worker claimed it).
     pub fn join<RA: Send, RB: Send>(
         &self,
         a: impl FnOnce() -> RA + Send,
         b: impl FnOnce() -> RB + Send,
     ) -> (RA, RB) {
-        let ra = a();
-        (ra, b())
+        let sh = &*self.shared;
+        sh.jobs.fetch_add(1, Relaxed);
+        let slot = if self.workers > 0 {
+            Busy::try_take(&sh.task_busy)
+        } else {
+            None
+        };
+        let Some(slot) = slot else {
+            let ra = a();
+            let rb = b();
+            sh.parts_on_caller.fetch_add(2, Relaxed);
+            return (ra, rb);
+        };
+        let (ra, on_caller, mut task) = self.offer(a, b);
+        drop(slot);
+        sh.parts_on_caller
+            .fetch_add(if on_caller { 2 } else { 1 }, Relaxed);
+        let ra = ra.unwrap_or_else(|payload| resume_unwind(payload));
+        let rb = match (on_caller, task.f.take(), task.out.take()) {
+            (true, Some(b), _) => b(),
+            (false, _, Some(Ok(rb))) => rb,
+            (false, _, Some(Err(payload))) => resume_unwind(payload),
+            _ => unreachable!("a tick-pool task is run once, by the caller or a worker"),
+        };
+        (ra, rb)
+    }
+
+    /// [`Self::join`] with the task slot owned: offers `b`, runs `a`, then takes `b` back
+    /// (`true`: the caller must run it) or waits until the worker that claimed it is done.
+    #[allow(clippy::type_complexity)]
+    fn offer<RA, RB, A: FnOnce() -> RA, B: FnOnce() -> RB>(
+        &self,
+        a: A,
+        b: B,
+    ) -> (std::thread::Result<RA>, bool, Task<B, RB>) {
+        let sh = &*self.shared;
+        let mut task = Task {
+            f: Some(b),
+            out: None,
+        };
+        // SAFETY: this caller owns the task slot and it is empty, so no worker reads `task_job`
+        // until the offer below.
+        unsafe {
+            *sh.task_job.get() = Erased {
+                data: (&raw mut task).cast_const().cast::<()>(),
+                call: call_task::<B, RB>,
+            };
+        }
+        sh.task_state.store(TASK_OFFERED, SeqCst);
+        self.wake();
+        let ra = catch_unwind(AssertUnwindSafe(a));
+        let on_caller = sh
+            .task_state
+            .compare_exchange(TASK_OFFERED, TASK_EMPTY, Acquire, Acquire)
+            .is_ok();
+        if !on_caller {
+            if sh.task_state.load(Acquire) != TASK_DONE {
+                let since = Instant::now();
+                while sh.task_state.load(Acquire) != TASK_DONE {
+                    std::hint::spin_loop();
+                }
+                sh.note_wait(since);
+            }
+            sh.task_state.store(TASK_EMPTY, Relaxed);
+        }
+        (ra, on_caller, task)
     }
 
     /// What the pool has done so far.
     pub fn stats(&self) -> PoolStats {
-        PoolStats::default()
+        let sh = &*self.shared;
+        PoolStats {
+            jobs: sh.jobs.load(Relaxed),
+            parts_on_caller: sh.parts_on_caller.load(Relaxed),
+            parts_on_workers: sh.parts_on_workers.load(Relaxed),
+            longest_wait_us: sh.longest_wait_ns.load(Relaxed) / 1_000,
+        }
+    }
+}
+
+impl Drop for TickPool {
+    /// Stops the workers and joins them (after their start hooks returned).
+    fn drop(&mut self) {
+        self.shared.stop.store(true, SeqCst);
+        for t in &self.threads {
+            t.unpark();
+        }
+        for h in self.handles.drain(..) {
+            let _ = h.join();
+        }
     }
 }
 
