@@ -45,6 +45,7 @@ use glam::{DMat3, DVec3};
 use crate::ModelError;
 use crate::material::{self, MaterialParams};
 use crate::mesh::TetMesh;
+use crate::pool::TickPool;
 
 pub mod fibres;
 mod kernels;
@@ -55,8 +56,8 @@ pub mod tangent;
 
 pub use fibres::{FibreField, FibreRule};
 pub(crate) use kernels::SingleElastic;
-pub use kernels::{ForceScratch, SingleIsa};
-use kernels::{Kernels, SingleLinear};
+pub use kernels::{ForcePart, ForceScratch, MAX_FORCE_PARTS, SingleIsa};
+use kernels::{Kernels, RunParts, SingleLinear};
 pub use mass::lumped_masses;
 use quadrature::{IntegrationPoints, linear_gradients, linear_points, quadratic_points};
 pub use smoothing::StrainSmoothing;
@@ -64,6 +65,28 @@ use smoothing::edge_smoothed_points;
 
 /// Largest number of integration points of a cell (the 4-point rule of quadratic elements).
 pub const MAX_CELL_POINTS: usize = 4;
+
+/// What runs the parts of one force evaluation ([`FemModel::add_internal_forces_in`]): a
+/// [`TickPool`], or in tests and benchmarks any other runner with the same contract.
+pub trait PartRunner {
+    /// Threads that run a job, and so the number of parts an evaluation is cut into (at most
+    /// [`MAX_FORCE_PARTS`] and the scratch's parts are used).
+    fn threads(&self) -> usize;
+
+    /// Calls `f(p, &mut parts[p])` once for every `p`, each on one thread, and returns when all
+    /// are done. Must not allocate (it runs in the tick).
+    fn run_parts(&self, parts: &mut [ForcePart], f: &(dyn Fn(usize, &mut ForcePart) + Sync));
+}
+
+impl PartRunner for TickPool {
+    fn threads(&self) -> usize {
+        TickPool::threads(self)
+    }
+
+    fn run_parts(&self, parts: &mut [ForcePart], f: &(dyn Fn(usize, &mut ForcePart) + Sync)) {
+        self.for_each_mut(parts, f);
+    }
+}
 
 /// Bit mask of constrained displacement components of a node: bit 0 = x, 1 = y, 2 = z.
 pub type ConstraintMask = u8;
@@ -478,6 +501,48 @@ impl FemModel {
             }
         }
         self.add_internal_forces(x, v, f);
+    }
+
+    /// [`Self::add_internal_forces_with`] cut into parts that `pool` runs on its threads: with
+    /// single precision enabled and `scratch` for this model's node count, the kernel's batches
+    /// in `k = min(pool.threads(), scratch.parts(), MAX_FORCE_PARTS)` contiguous ranges, each
+    /// part summing into its own arrays over the nodes it touches, the nodes several parts touch
+    /// summed on the caller in part order (`docs/decisions.md`, "Element forces in parts"). The
+    /// arithmetic depends only on `k`; `k = 1` is [`Self::add_internal_forces_with`] bit for bit.
+    /// Otherwise exactly [`Self::add_internal_forces_with`] on the caller. Allocation-free.
+    ///
+    /// # Panics
+    /// As [`Self::add_internal_forces`].
+    pub fn add_internal_forces_in<R: PartRunner + ?Sized>(
+        &self,
+        pool: &R,
+        x: &[DVec3],
+        v: Option<&[DVec3]>,
+        f: &mut [DVec3],
+        scratch: &mut ForceScratch,
+    ) {
+        let run: RunParts<'_> = &|parts, g| pool.run_parts(parts, g);
+        let mat = &self.material;
+        if let Some(single) = &self.single
+            && scratch.node_count() >= self.node_count()
+            && let Some(elastic) = SingleElastic::of(mat)
+        {
+            let viscous = v.filter(|_| mat.phi_pa_s > 0.0 || mat.psi_pa_s > 0.0);
+            let law = (mat.phi_pa_s, mat.psi_pa_s);
+            let parts = (pool.threads(), run);
+            if single.add_forces_parts(elastic, law, (x, viscous), f, scratch, parts) {
+                return;
+            }
+        }
+        self.add_internal_forces(x, v, f);
+    }
+
+    /// With single precision enabled, for an evaluation in `parts` parts
+    /// ([`Self::add_internal_forces_in`], 1 to [`MAX_FORCE_PARTS`]): the nodes its elements
+    /// touch and, of them, the nodes more than one part touches (summed after the parts).
+    /// `None` otherwise.
+    pub fn force_part_nodes(&self, parts: usize) -> Option<(usize, usize)> {
+        self.single.as_ref()?.cut_nodes(parts)
     }
 
     /// [`Self::add_internal_forces`] element by element (integration point by integration point

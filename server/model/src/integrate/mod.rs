@@ -35,7 +35,7 @@ use glam::{DMat3, DVec3};
 
 use crate::ModelError;
 use crate::contact::{ContactModel, Probe};
-use crate::element::{FemModel, ForceScratch};
+use crate::element::{FemModel, ForceScratch, PartRunner};
 use crate::material::MaterialParams;
 use crate::mesh::TetMesh;
 
@@ -439,6 +439,26 @@ impl Stepper {
         };
         self.force_model(body)
             .add_internal_forces_with(x, v, f, scratch);
+    }
+
+    /// [`Self::add_internal_forces`] cut into parts that `pool` runs
+    /// ([`FemModel::add_internal_forces_in`]: the arithmetic depends only on the number of parts,
+    /// `min(pool.threads(), scratch.parts())`; one part is [`Self::add_internal_forces`] bit for
+    /// bit). Allocation-free.
+    pub fn add_internal_forces_in<R: PartRunner + ?Sized>(
+        &self,
+        pool: &R,
+        body: &FemModel,
+        (x, v): (&[DVec3], &[DVec3]),
+        f: &mut [DVec3],
+        scratch: &mut ForceScratch,
+    ) {
+        let v = match self {
+            Self::Explicit { .. } => Some(v),
+            Self::Implicit(_) | Self::Condensed(_) => None,
+        };
+        self.force_model(body)
+            .add_internal_forces_in(pool, x, v, f, scratch);
     }
 
     /// Advances `state` (positions, velocities; not the time) by one sub-step from the nodal

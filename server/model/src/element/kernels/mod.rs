@@ -31,9 +31,9 @@ use crate::simd::{LaneVec, Plain8};
 use domains::{DomainBatches, forces_domains};
 use linear::{ElementBatch, forces_linear};
 use quadratic::{QuadraticBatch, forces_quadratic, stvk_operator_quadratic};
-pub use single::ForceScratch;
 pub use single::SingleIsa;
-pub(crate) use single::{SingleElastic, SingleLinear};
+pub use single::{ForcePart, ForceScratch, MAX_FORCE_PARTS};
+pub(crate) use single::{RunParts, SingleElastic, SingleLinear};
 use stress::{LANE_COROTATIONAL, LANE_STABLE_NEO_HOOKEAN, LANE_STVK, lane_model};
 
 use super::quadrature::IntegrationPoints;

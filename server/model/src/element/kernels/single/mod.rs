@@ -43,6 +43,8 @@
 #[cfg(target_arch = "x86_64")]
 use std::arch::x86_64::{_mm_load_ps, _mm_store_ps, _mm256_setzero_ps};
 
+use std::ops::Range;
+
 use glam::{DMat3, DVec3};
 
 use super::domains::DomainBatch;
@@ -50,8 +52,11 @@ use crate::simd::{Avx2Fma, Avx512};
 #[cfg(target_arch = "x86_64")]
 use crate::simd::{F32Lanes, Y8, Z16};
 
+mod parts;
 #[cfg(target_arch = "x86_64")]
 mod stress;
+pub use parts::MAX_FORCE_PARTS;
+use parts::{Cut, PartPlan, Split};
 #[cfg(target_arch = "x86_64")]
 use stress::{LaneCoefficients, scaled_piola};
 
@@ -86,29 +91,79 @@ pub(crate) struct PackedNode([f32; 8]);
 #[repr(C, align(16))]
 pub(crate) struct NodeForce([f32; 4]);
 
-/// The work arrays of the single-precision force kernel, one row per node (48 bytes a node),
-/// reused across calls so that a call allocates nothing. Arrays for `n` nodes serve every model
-/// of at most `n` nodes (a condensed region's model and its whole body).
+/// The work arrays of the single-precision force kernel, per part of an evaluation
+/// ([`ForcePart`]), reused across calls so that a call allocates nothing. Arrays for `n` nodes
+/// serve every model of at most `n` nodes (a condensed region's model and its whole body).
 #[derive(Debug, Clone, Default)]
 pub struct ForceScratch {
+    parts: Vec<ForcePart>,
+}
+
+/// The work arrays of one part of a force evaluation, one row per node (48 bytes a node): the
+/// packed displacements and velocities of the nodes the part touches and its single-precision
+/// force sums (zero between calls). The items a tick pool's job runs over
+/// ([`crate::element::PartRunner`]).
+#[derive(Debug, Clone, Default)]
+pub struct ForcePart {
     packed: Vec<PackedNode>,
     force: Vec<NodeForce>,
 }
 
 impl ForceScratch {
-    /// Work arrays for models of at most `node_count` nodes.
+    /// Work arrays for models of at most `node_count` nodes, one part (the one-core path).
     pub fn new(node_count: usize) -> Self {
-        Self {
-            packed: vec![PackedNode::default(); node_count],
-            force: vec![NodeForce::default(); node_count],
+        Self::with_parts(node_count, 1)
+    }
+
+    /// Work arrays for models of at most `node_count` nodes and evaluations cut into at most
+    /// `parts` parts (at least one; more than [`MAX_FORCE_PARTS`] are never used).
+    pub fn with_parts(node_count: usize, parts: usize) -> Self {
+        let mut s = Self::default();
+        s.ensure(node_count, parts);
+        s
+    }
+
+    /// Grows the arrays to serve `node_count` nodes and `parts` parts (set-up: allocates when
+    /// they grow; at most [`MAX_FORCE_PARTS`] parts are kept).
+    pub fn ensure(&mut self, node_count: usize, parts: usize) {
+        let parts = parts.clamp(1, MAX_FORCE_PARTS);
+        let node_count = node_count.max(self.node_count());
+        if self.parts.len() < parts {
+            self.parts.resize_with(parts, ForcePart::default);
+        }
+        for p in &mut self.parts {
+            p.packed.resize(node_count, PackedNode::default());
+            p.force.resize(node_count, NodeForce::default());
         }
     }
 
     /// The largest node count the arrays serve.
     pub fn node_count(&self) -> usize {
-        self.packed.len()
+        self.parts.first().map_or(0, |p| p.packed.len())
+    }
+
+    /// The most parts the arrays serve (0 for the empty scratch).
+    pub fn parts(&self) -> usize {
+        self.parts.len()
     }
 }
+
+/// Runs the parts of one force evaluation: calls `f(p, &mut parts[p])` once for every `p`
+/// (each on one thread, in any order) and returns when all are done. Allocation-free in the
+/// tick ([`crate::pool::TickPool::for_each_mut`]).
+pub(crate) type RunParts<'a> =
+    &'a dyn Fn(&mut [ForcePart], &(dyn Fn(usize, &mut ForcePart) + Sync));
+
+/// The double-precision forces the parts write to, each only at the nodes it owns
+/// ([`PartPlan::own`], disjoint between the parts of a cut).
+struct OwnedForces {
+    ptr: *mut DVec3,
+    len: usize,
+}
+
+// SAFETY: the parts write through the pointer only at the nodes they own, which are disjoint
+// ([`parts::cut`]), and only while the `&mut` slice it was made from is not otherwise used.
+unsafe impl Sync for OwnedForces {}
 
 /// One node slot of a batch of sixteen smoothing domains: per lane, four times the node and
 /// its smoothed gradient (1/m, component c at `grad[c]`). Padding slots repeat the lane's
@@ -217,6 +272,9 @@ impl SingleToken {
 pub(crate) struct SingleLinear {
     layout: SingleLayout,
     rest: Vec<DVec3>,
+    /// `cuts[k - 1]`: the evaluation in `k` parts (invariant: their batch ranges cover the
+    /// batches, their nodes are below `rest.len()`).
+    cuts: Vec<Cut>,
     /// The instruction set of [`Self::add_forces`] (its token): the widest of this CPU unless
     /// pinned.
     isa: Option<SingleToken>,
@@ -272,10 +330,17 @@ impl SingleLinear {
                 }
                 b
             })
-            .collect();
+            .collect::<Vec<SingleBatch>>();
+        let work = vec![1; batches.len()];
+        let split = (&work[..], SINGLE_LANES, Split::Lanes);
+        let cuts = parts::cuts(rest.len(), split, |b, lanes| {
+            let nodes = batches[b].nodes;
+            lanes.flat_map(move |l| nodes.map(|corner| (corner[l] / 4) as usize))
+        });
         Self {
             layout: SingleLayout::Tets(batches),
             rest: rest.to_vec(),
+            cuts,
             isa: SingleToken::detect(),
         }
     }
@@ -332,7 +397,15 @@ impl SingleLinear {
             }
             volume.push(w);
         }
+        let work: Vec<usize> = start.windows(2).map(|w| w[1] - w[0]).collect();
+        let split = (&work[..], SINGLE_LANES, Split::Batches);
+        let cuts = parts::cuts(rest.len(), split, |b, lanes| {
+            slots[start[b]..start[b + 1]]
+                .iter()
+                .flat_map(move |s| s.nodes[lanes.clone()].iter().map(|&i| (i / 4) as usize))
+        });
         Self {
+            cuts,
             layout: SingleLayout::Domains {
                 start,
                 slots,
@@ -341,6 +414,14 @@ impl SingleLinear {
             rest: rest.to_vec(),
             isa: SingleToken::detect(),
         }
+    }
+
+    /// The nodes the batches touch and, of them, those several of `parts` parts touch (the
+    /// cut), for `parts` in `1..=MAX_FORCE_PARTS`.
+    pub(crate) fn cut_nodes(&self, parts: usize) -> Option<(usize, usize)> {
+        let cut = self.cuts.get(parts.checked_sub(1)?)?;
+        let owned: usize = cut.parts.iter().flat_map(|p| &p.own).map(|r| r.len()).sum();
+        Some((owned + cut.shared.len(), cut.shared.len()))
     }
 
     /// Pins the instruction set of [`Self::add_forces`] to `isa`, which this CPU must run.
@@ -371,19 +452,40 @@ impl SingleLinear {
         f: &mut [DVec3],
         scratch: &mut ForceScratch,
     ) -> bool {
+        self.add_forces_parts(elastic, viscosity, (x, v), f, scratch, (1, &serial_parts))
+    }
+
+    /// [`Self::add_forces`] cut into `parts` parts (at most `scratch.parts()` and
+    /// [`MAX_FORCE_PARTS`]; the arithmetic depends only on that number) that `run` runs:
+    /// contiguous batch ranges, each part packing the nodes it touches into its own arrays and
+    /// adding the sums of the nodes only it touches to `f`; the nodes several parts touch are
+    /// summed afterwards on the calling thread, in part order. One part is the one-core path.
+    ///
+    /// # Panics
+    /// As [`Self::add_forces`].
+    pub(crate) fn add_forces_parts(
+        &self,
+        elastic: SingleElastic,
+        viscosity: (f64, f64),
+        xv: (&[DVec3], Option<&[DVec3]>),
+        f: &mut [DVec3],
+        scratch: &mut ForceScratch,
+        parts: (usize, RunParts<'_>),
+    ) -> bool {
         match self.isa {
             Some(token) => {
-                self.add_forces_on(token, elastic, viscosity, x, v, f, scratch);
+                self.add_forces_in(token, (elastic, viscosity), xv, f, scratch, parts);
                 true
             }
             None => false,
         }
     }
 
-    /// [`Self::add_forces`] with the build that `token` proves.
+    /// [`Self::add_forces`] with the build that `token` proves (the tests compare the builds).
     ///
     /// # Panics
     /// As [`Self::add_forces`].
+    #[cfg(test)]
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn add_forces_on(
         &self,
@@ -395,56 +497,118 @@ impl SingleLinear {
         f: &mut [DVec3],
         scratch: &mut ForceScratch,
     ) {
+        let law = (elastic, viscosity);
+        self.add_forces_in(token, law, (x, v), f, scratch, (1, &serial_parts));
+    }
+
+    /// [`Self::add_forces_parts`] with the build that `token` proves.
+    ///
+    /// # Panics
+    /// As [`Self::add_forces`].
+    pub(crate) fn add_forces_in(
+        &self,
+        token: SingleToken,
+        (elastic, viscosity): (SingleElastic, (f64, f64)),
+        (x, v): (&[DVec3], Option<&[DVec3]>),
+        f: &mut [DVec3],
+        scratch: &mut ForceScratch,
+        (parts, run): (usize, RunParts<'_>),
+    ) {
         let n = self.rest.len();
         assert!(x.len() >= n && f.len() >= n && v.is_none_or(|v| v.len() >= n));
         assert!(scratch.node_count() >= n, "force scratch too small");
-        let (packed, force) = (&mut scratch.packed[..n], &mut scratch.force[..n]);
+        let k = parts.clamp(1, scratch.parts().min(MAX_FORCE_PARTS));
+        let (cut, items) = (&self.cuts[k - 1], &mut scratch.parts[..k]);
         #[cfg(target_arch = "x86_64")]
         {
-            let avx2 = token.avx2_fma();
-            // SAFETY: the token; the slices hold n nodes each.
-            unsafe {
-                pack_avx2(avx2, &x[..n], Some(&self.rest), packed, 0);
-                if let Some(v) = v {
-                    pack_avx2(avx2, &v[..n], None, packed, 4);
+            let coef = Coefficients::of(elastic, viscosity);
+            let out = OwnedForces {
+                ptr: f.as_mut_ptr(),
+                len: n,
+            };
+            run(&mut *items, &|p, part| {
+                // SAFETY: the token; `cut` is one of this model's cuts, `x`, `v` and `part`
+                // hold n nodes (asserted above); `out` comes from `f` (n nodes), unused
+                // until `run` returns, and the parts of a cut own disjoint nodes.
+                unsafe { self.part_forces(token, coef, &cut.parts[p], (x, v), part, &out) }
+            });
+            for &i in &cut.shared {
+                let i = i as usize;
+                for part in items.iter_mut() {
+                    let s = std::mem::take(&mut part.force[i]).0;
+                    f[i] += DVec3::new(s[0] as f64, s[1] as f64, s[2] as f64);
                 }
             }
-            let (neo_hookean, lambda_pa, mu_pa) = match elastic {
-                SingleElastic::StVenantKirchhoff { lambda_pa, mu_pa } => (false, lambda_pa, mu_pa),
-                SingleElastic::StableNeoHookean { lambda_pa, mu_pa } => (true, lambda_pa, mu_pa),
-            };
-            let coef = Coefficients {
-                neo_hookean,
-                half_lambda: (0.5 * lambda_pa) as f32,
-                lambda_s: crate::material::neo_hookean_params(lambda_pa, mu_pa).0 as f32,
-                mu: mu_pa as f32,
-                phi: viscosity.0 as f32,
-                two_psi: (2.0 * viscosity.1) as f32,
-            };
-            let (layout, viscous) = (&self.layout, v.is_some());
-            // SAFETY: the token; every node index of the batches is below n = packed.len() =
-            // force.len() (checked at construction).
-            unsafe {
-                match (token, viscous) {
-                    (SingleToken::Avx512(t), true) => {
-                        forces_avx512::<true>(t, layout, coef, packed, force)
-                    }
-                    (SingleToken::Avx512(t), false) => {
-                        forces_avx512::<false>(t, layout, coef, packed, force)
-                    }
-                    (SingleToken::Avx2(t), true) => {
-                        forces_avx2::<true>(t, layout, coef, packed, force)
-                    }
-                    (SingleToken::Avx2(t), false) => {
-                        forces_avx2::<false>(t, layout, coef, packed, force)
-                    }
-                }
-            }
-            // SAFETY: the token; the slices hold n nodes each.
-            unsafe { unpack_avx2(avx2, force, &mut f[..n]) };
         }
         #[cfg(not(target_arch = "x86_64"))]
-        let _ = (token, elastic, viscosity, packed, force);
+        let _ = (token, elastic, viscosity, cut, items, run);
+    }
+
+    /// One part of [`Self::add_forces_in`]: packs the nodes `plan` touches into `part`, runs
+    /// its batches into `part`'s sums, and adds the sums of the nodes it owns to `out` (and
+    /// clears them).
+    ///
+    /// # Safety
+    /// The CPU runs `token`'s build; `plan` is a part of one of `self.cuts`; `x`, `v` and
+    /// `part`'s arrays hold at least `self.rest.len()` nodes; `out` points to at least that
+    /// many nodes that nothing else reads or writes at `plan.own` during the call.
+    #[cfg(target_arch = "x86_64")]
+    unsafe fn part_forces(
+        &self,
+        token: SingleToken,
+        coef: Coefficients,
+        plan: &PartPlan,
+        (x, v): (&[DVec3], Option<&[DVec3]>),
+        part: &mut ForcePart,
+        out: &OwnedForces,
+    ) {
+        let n = self.rest.len();
+        let (packed, force) = (&mut part.packed[..n], &mut part.force[..n]);
+        let avx2 = token.avx2_fma();
+        let (layout, batches) = (&self.layout, (plan.batches.clone(), plan.lanes.clone()));
+        // Half the lanes of a batch run in the eight-lane build (AVX2), whatever the CPU.
+        let token = if plan.lanes.len() < SINGLE_LANES {
+            SingleToken::Avx2(avx2)
+        } else {
+            token
+        };
+        // SAFETY: the caller's contract; the runs and the batches' node indices are below n
+        // (construction), so every slice below has one length and every index is in range.
+        unsafe {
+            for r in plan.touched.iter().cloned() {
+                let (rest, p) = (&self.rest[r.clone()], &mut packed[r.clone()]);
+                pack_avx2(avx2, &x[r.clone()], Some(rest), p, 0);
+                if let Some(v) = v {
+                    pack_avx2(avx2, &v[r.clone()], None, &mut packed[r], 4);
+                }
+            }
+            match (token, v.is_some()) {
+                (SingleToken::Avx512(t), true) => {
+                    forces_avx512::<true>(t, layout, batches, coef, packed, force)
+                }
+                (SingleToken::Avx512(t), false) => {
+                    forces_avx512::<false>(t, layout, batches, coef, packed, force)
+                }
+                (SingleToken::Avx2(t), true) => {
+                    forces_avx2::<true>(t, layout, batches, coef, packed, force)
+                }
+                (SingleToken::Avx2(t), false) => {
+                    forces_avx2::<false>(t, layout, batches, coef, packed, force)
+                }
+            }
+            for r in plan.own.iter().cloned() {
+                debug_assert!(r.end <= out.len);
+                let f = std::slice::from_raw_parts_mut(out.ptr.add(r.start), r.len());
+                unpack_avx2(avx2, &mut force[r], f);
+            }
+        }
+    }
+}
+
+/// The one-thread [`RunParts`]: every part on the caller, in order.
+fn serial_parts(parts: &mut [ForcePart], f: &(dyn Fn(usize, &mut ForcePart) + Sync)) {
+    for (p, part) in parts.iter_mut().enumerate() {
+        f(p, part);
     }
 }
 
@@ -601,6 +765,25 @@ struct Coefficients {
     two_psi: f32,
 }
 
+impl Coefficients {
+    /// The constants of `elastic` and the viscosities `(phi, psi)` (Pa s).
+    #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
+    fn of(elastic: SingleElastic, viscosity: (f64, f64)) -> Self {
+        let (neo_hookean, lambda_pa, mu_pa) = match elastic {
+            SingleElastic::StVenantKirchhoff { lambda_pa, mu_pa } => (false, lambda_pa, mu_pa),
+            SingleElastic::StableNeoHookean { lambda_pa, mu_pa } => (true, lambda_pa, mu_pa),
+        };
+        Self {
+            neo_hookean,
+            half_lambda: (0.5 * lambda_pa) as f32,
+            lambda_s: crate::material::neo_hookean_params(lambda_pa, mu_pa).0 as f32,
+            mu: mu_pa as f32,
+            phi: viscosity.0 as f32,
+            two_psi: (2.0 * viscosity.1) as f32,
+        }
+    }
+}
+
 /// `a0 b0 + a1 b1 + a2 b2`.
 ///
 /// # Safety
@@ -677,12 +860,13 @@ unsafe fn bm<V: F32Lanes>(b: &SingleBatch, r: usize, half: usize) -> V {
 /// time.
 ///
 /// # Safety
-/// [`F32Lanes`]' contract; every node index of `batches` below `packed.len()` and
+/// [`F32Lanes`]' contract; `lanes` within `0..SINGLE_LANES`, its ends multiples of `V::WIDTH`;
+/// every node index of `batches` below `packed.len()` and
 /// `force.len()`.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 unsafe fn tet_forces<V: F32Lanes, const VISCOUS: bool>(
-    batches: &[SingleBatch],
+    (batches, lanes): (&[SingleBatch], Range<usize>),
     c: Coefficients,
     packed: &[PackedNode],
     force: &mut [NodeForce],
@@ -693,7 +877,7 @@ unsafe fn tet_forces<V: F32Lanes, const VISCOUS: bool>(
         let zero = V::zero();
         let fbase = force.as_mut_ptr().cast::<f32>();
         for b in batches {
-            for half in (0..SINGLE_LANES).step_by(V::WIDTH) {
+            for half in lanes.clone().step_by(V::WIDTH) {
                 let nodes = |k: usize| &b.nodes[k][half..half + V::WIDTH];
                 let (u0, v0) = load_corner::<V, VISCOUS>(packed, nodes(0));
                 // Edge differences: component i of edge k (corner k+1 minus corner 0) at 3 k + i.
@@ -744,13 +928,15 @@ unsafe fn tet_forces<V: F32Lanes, const VISCOUS: bool>(
 /// slot's node.
 ///
 /// # Safety
-/// [`F32Lanes`]' contract; every node of the slots below `packed.len()` and `force.len()`;
+/// [`F32Lanes`]' contract; `lanes` as in [`tet_forces`]; every node of the slots below
+/// `packed.len()` and `force.len()`;
 /// `start` has one more entry than `volume_m3`, ascending within `slots.len()`, at least one
 /// slot a batch.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 unsafe fn domain_forces<V: F32Lanes, const VISCOUS: bool>(
     (start, slots, volume_m3): (&[usize], &[DomainSlot], &[[f32; SINGLE_LANES]]),
+    lanes: Range<usize>,
     c: Coefficients,
     packed: &[PackedNode],
     force: &mut [NodeForce],
@@ -762,7 +948,7 @@ unsafe fn domain_forces<V: F32Lanes, const VISCOUS: bool>(
         let fbase = force.as_mut_ptr().cast::<f32>();
         for (b, volume) in volume_m3.iter().enumerate() {
             let batch = &slots[start[b]..start[b + 1]];
-            for half in (0..SINGLE_LANES).step_by(V::WIDTH) {
+            for half in lanes.clone().step_by(V::WIDTH) {
                 let lanes = half..half + V::WIDTH;
                 let grad = |slot: &DomainSlot| {
                     [
@@ -803,14 +989,16 @@ unsafe fn domain_forces<V: F32Lanes, const VISCOUS: bool>(
     }
 }
 
-/// The kernel of `layout` with lane type `V`.
+/// The kernel of the batches `batches` of `layout` with lane type `V`.
 ///
 /// # Safety
-/// As [`tet_forces`] and [`domain_forces`].
+/// As [`tet_forces`] and [`domain_forces`]; `batches` within the layout's batches; `lanes`
+/// within `0..SINGLE_LANES`, its ends multiples of `V::WIDTH`.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 unsafe fn layout_forces<V: F32Lanes, const VISCOUS: bool>(
     layout: &SingleLayout,
+    (batches, lanes): (Range<usize>, Range<usize>),
     c: Coefficients,
     packed: &[PackedNode],
     force: &mut [NodeForce],
@@ -818,12 +1006,19 @@ unsafe fn layout_forces<V: F32Lanes, const VISCOUS: bool>(
     // SAFETY: the caller's contract.
     unsafe {
         match layout {
-            SingleLayout::Tets(b) => tet_forces::<V, VISCOUS>(b, c, packed, force),
+            SingleLayout::Tets(b) => {
+                tet_forces::<V, VISCOUS>((&b[batches], lanes), c, packed, force)
+            }
             SingleLayout::Domains {
                 start,
                 slots,
                 volume_m3,
-            } => domain_forces::<V, VISCOUS>((start, slots, volume_m3), c, packed, force),
+            } => {
+                let start = &start[batches.start..=batches.end];
+                let volume_m3 = &volume_m3[batches];
+                let batches = (start, &slots[..], volume_m3);
+                domain_forces::<V, VISCOUS>(batches, lanes, c, packed, force)
+            }
         }
     }
 }
@@ -831,37 +1026,40 @@ unsafe fn layout_forces<V: F32Lanes, const VISCOUS: bool>(
 /// [`layout_forces`] in AVX2 registers, eight lanes.
 ///
 /// # Safety
-/// Every node index of the layout below `packed.len()` and `force.len()` (the token proves
-/// AVX2 and FMA).
+/// `batches` (batch range, lanes) as [`layout_forces`]; every node index of the layout below `packed.len()`
+/// and `force.len()` (the token proves AVX2 and FMA).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn forces_avx2<const VISCOUS: bool>(
     _isa: Avx2Fma,
     layout: &SingleLayout,
+    batches: (Range<usize>, Range<usize>),
     c: Coefficients,
     packed: &[PackedNode],
     force: &mut [NodeForce],
 ) {
     // SAFETY: the caller's contract; this function is compiled with AVX2 and FMA.
-    unsafe { layout_forces::<Y8, VISCOUS>(layout, c, packed, force) }
+    unsafe { layout_forces::<Y8, VISCOUS>(layout, batches, c, packed, force) }
 }
 
 /// [`layout_forces`] in AVX-512 registers, sixteen lanes.
 ///
 /// # Safety
-/// Every node index of the layout below `packed.len()` and `force.len()` (the token proves
-/// AVX-512F, AVX-512VL, AVX2 and FMA; the build enables only the F part it uses, as before).
+/// `batches` (batch range, lanes) as [`layout_forces`]; every node index of the layout below `packed.len()`
+/// and `force.len()` (the token proves AVX-512F, AVX-512VL, AVX2 and FMA; the build enables
+/// only the F part it uses, as before).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx2,fma")]
 unsafe fn forces_avx512<const VISCOUS: bool>(
     _isa: Avx512,
     layout: &SingleLayout,
+    batches: (Range<usize>, Range<usize>),
     c: Coefficients,
     packed: &[PackedNode],
     force: &mut [NodeForce],
 ) {
     // SAFETY: the caller's contract; this function is compiled with AVX-512F.
-    unsafe { layout_forces::<Z16, VISCOUS>(layout, c, packed, force) }
+    unsafe { layout_forces::<Z16, VISCOUS>(layout, batches, c, packed, force) }
 }
 
 #[cfg(test)]
