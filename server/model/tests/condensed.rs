@@ -923,8 +923,15 @@ fn a_following_region_carries_a_stroke_around_the_ventricle() {
 fn the_shipped_lv_h1_region_follows_a_stroke_at_20_mm_per_s() {
     let path =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../deploy/scenes/lv_h1_condensed.toml");
-    let patch = haptic_model::scene::load_scene_file(&path).expect("lv_h1_condensed.toml");
-    assert!(patch.active_region.is_some_and(|r| r.follow));
+    let mut patch = haptic_model::scene::load_scene_file(&path).expect("lv_h1_condensed.toml");
+    let region = patch.active_region.as_mut().expect("region");
+    assert!(region.follow);
+    assert!(matches!(region.tiles, TileMode::Background { .. }));
+    // Regions prepared on demand, as before the cache: with tiles each blocking request would
+    // also wait for the background build in progress (about 3 s a tile in debug), and the
+    // tiled path is checked on the coarse LV
+    // (`a_tiled_following_region_carries_the_stroke_without_allocating`).
+    region.tiles = TileMode::Off;
     // The exact sphere, implicit in the condensed step, follows it as well.
     let mut sphere = patch.clone();
     sphere.probe.contact = ContactModel::Sphere;
