@@ -1655,10 +1655,16 @@ fn a_cached_tile_steps_bit_identically_to_a_fresh_region() {
 #[test]
 fn a_tiled_following_region_carries_the_stroke_without_allocating() {
     let (_, _, _, centre) = setup(StrainSmoothing::None);
+    // A cover of 4 mm (57 tiles instead of the default's 83): the cache is complete
+    // sooner, so fewer blocking requests wait for a background build.
+    let region = ActiveRegion {
+        tiles: TileMode::Background { cover_m: 0.004 },
+        ..tiled_region(centre)
+    };
     let scene = lv_scene(
         StrainSmoothing::None,
         IntegratorKind::BackwardEuler,
-        Some(tiled_region(centre)),
+        Some(region),
     );
     check_stroke(&scene, 0.001, 4);
 }
