@@ -9,6 +9,12 @@
 //! regions in real time; without it the ticks run back to back (faster than real time: a
 //! harder test of the worker); `--blocking` makes every tick that requests a region wait for
 //! it (deterministic, as in the tests).
+//!
+//! A scene with `active_region.tiles = "background"` builds its region cache while the
+//! probe strokes; `--wait-tiles` waits for the whole cache before the press (the cache's
+//! steady state), `--no-tiles` turns the cache off (every region prepared on demand).
+//!
+//! `cargo run --release -p haptic-model --example region_follow -- --speed-mm-s 20 --paced --hold-end-s 3 --wait-tiles`
 
 use std::time::{Duration, Instant};
 
@@ -16,6 +22,7 @@ use clap::Parser;
 use haptic_model::DVec3;
 use haptic_model::body::TickInput;
 use haptic_model::fem::FemBody;
+use haptic_model::integrate::condensed::TileMode;
 use haptic_model::scene::load_scene_file;
 
 #[derive(Parser)]
@@ -44,6 +51,13 @@ struct Args {
     /// Run without the scene's coarse companion (`active_region.fallback_target_tets`).
     #[arg(long)]
     no_fallback: bool,
+    /// Wait until the region cache (`active_region.tiles = "background"`) is complete before
+    /// the press.
+    #[arg(long)]
+    wait_tiles: bool,
+    /// Turn the scene's region cache off (`active_region.tiles = "off"`).
+    #[arg(long)]
+    no_tiles: bool,
     /// Write one row per tick (`t_s,force_mN,companion_weight,swaps`) to this CSV file.
     #[arg(long)]
     csv: Option<std::path::PathBuf>,
@@ -82,6 +96,9 @@ fn set_up(args: &Args) -> anyhow::Result<(FemBody, f64)> {
         .as_mut()
         .ok_or_else(|| anyhow::anyhow!("{} has no [active_region]", args.scene))?;
     region.follow = true;
+    if args.no_tiles {
+        region.tiles = TileMode::Off;
+    }
     if args.no_fallback {
         scene.fallback = None;
     }
@@ -101,8 +118,42 @@ fn set_up(args: &Args) -> anyhow::Result<(FemBody, f64)> {
         sim.follow_stats()
             .map_or(0.0, |s| s.region_bytes as f64 / 1e6)
     );
+    if args.wait_tiles {
+        wait_for_tiles(&sim);
+    }
     sim.set_blocking_region_preparation(args.blocking);
     Ok((sim, scene.probe.radius_m))
+}
+
+/// Waits until every tile of the region cache is built (or failed), reporting progress.
+fn wait_for_tiles(sim: &FemBody) {
+    let t = Instant::now();
+    let mut last = u64::MAX;
+    loop {
+        let s = sim.follow_stats().unwrap_or_default();
+        if s.tiles_built + s.failed >= s.tiles {
+            eprintln!(
+                "tile cache complete after {:.1} s more: {} tiles built ({} failed), {:.0} MB, {:.1} s of builds; peak memory {:.0} MB",
+                t.elapsed().as_secs_f64(),
+                s.tiles_built,
+                s.failed,
+                s.tile_cache_bytes as f64 / 1e6,
+                s.tile_build_s,
+                peak_memory_mb()
+            );
+            return;
+        }
+        if s.tiles_built != last && s.tiles_built.is_multiple_of(10) {
+            eprintln!(
+                "  {:6.1} s: {}/{} tiles",
+                t.elapsed().as_secs_f64(),
+                s.tiles_built,
+                s.tiles
+            );
+            last = s.tiles_built;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
 }
 
 /// The device path: press, settle, stroke around the long axis, hold.
@@ -172,6 +223,9 @@ struct Trace {
     forces: Vec<DVec3>,
     swap_ticks: Vec<usize>,
     lost_contact: usize,
+    /// Ticks of the stroke in contact, and those of them the companion answered (weight > 0).
+    contact_ticks: usize,
+    companion_ticks: usize,
 }
 
 /// Runs the path's ticks (paced on request).
@@ -183,6 +237,8 @@ fn run(args: &Args, sim: &mut FemBody, path: &Path) -> anyhow::Result<Trace> {
         forces: Vec::with_capacity(total),
         swap_ticks: Vec::new(),
         lost_contact: 0,
+        contact_ticks: 0,
+        companion_ticks: 0,
     };
     let mut last_swaps = 0;
     let start = Instant::now();
@@ -202,10 +258,12 @@ fn run(args: &Args, sim: &mut FemBody, path: &Path) -> anyhow::Result<Trace> {
         })?;
         tr.ticks_us.push(t0.elapsed().as_secs_f64() * 1e6);
         tr.forces.push(out.force_on_device_n);
-        tr.weights
-            .push(sim.fallback_stats().map_or(0.0, |f| f.weight));
-        if t_s >= path.press_s + path.settle_s && !out.in_contact {
-            tr.lost_contact += 1;
+        let weight = sim.fallback_stats().map_or(0.0, |f| f.weight);
+        tr.weights.push(weight);
+        if t_s >= path.press_s + path.settle_s {
+            tr.lost_contact += usize::from(!out.in_contact);
+            tr.contact_ticks += usize::from(out.in_contact);
+            tr.companion_ticks += usize::from(out.in_contact && weight > 0.0);
         }
         let swaps = sim.follow_stats().map_or(0, |s| s.swaps);
         if swaps != last_swaps {
@@ -277,6 +335,25 @@ fn report(args: &Args, sim: &FemBody, path: &Path, tr: &Trace) {
         max_swap_jump * 100.0,
         max_jump_other * 100.0
     );
+    println!(
+        "stroke: companion share {:.1} % ({} of {} contact ticks); largest tick-to-tick change {:.2} %",
+        100.0 * tr.companion_ticks as f64 / tr.contact_ticks.max(1) as f64,
+        tr.companion_ticks,
+        tr.contact_ticks,
+        100.0 * max_swap_jump.max(max_jump_other)
+    );
+    if stats.tiles > 0 {
+        println!(
+            "tiles: {} centres, {} built ({:.0} MB, {:.1} s of builds), {} hits, {} misses; peak memory {:.0} MB",
+            stats.tiles,
+            stats.tiles_built,
+            stats.tile_cache_bytes as f64 / 1e6,
+            stats.tile_build_s,
+            stats.tile_hits,
+            stats.tile_misses,
+            peak_memory_mb()
+        );
+    }
     if let Some(fb) = sim.fallback_stats() {
         println!(
             "coarse companion ({} tets): answered {} ticks, final weight {:.2}; force at the end {:.2} mN",

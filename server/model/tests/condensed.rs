@@ -14,6 +14,7 @@
 //! - the demo's deep point-load dent snaps back and settles on the default `lv`'s rest factor.
 
 use std::path::Path;
+use std::time::Instant;
 
 use haptic_model::DVec3;
 use haptic_model::ModelError;
@@ -21,7 +22,10 @@ use haptic_model::body::SoftBody;
 use haptic_model::contact::ContactModel;
 use haptic_model::element::{FemModel, StrainSmoothing};
 use haptic_model::fem::{FemBody, TickInput};
-use haptic_model::integrate::condensed::{ActiveRegion, CondensedSolver, PAIRED_SWEEP_MIN_RATIO};
+use haptic_model::integrate::condensed::{
+    ActiveRegion, CondensedSolver, PAIRED_SWEEP_MIN_RATIO, TileMode,
+};
+use haptic_model::integrate::follow::{RegionFollower, tile_centres};
 use haptic_model::integrate::{IntegratorKind, LinearSolver};
 use haptic_model::material::MaterialModel;
 use haptic_model::mesh::generate;
@@ -64,6 +68,7 @@ const ACTIVE: ActiveRegion = ActiveRegion {
     radius_m: 0.008,
     stiffness_margin: haptic_model::integrate::condensed::DEFAULT_STIFFNESS_MARGIN,
     follow: false,
+    tiles: TileMode::Off,
 };
 
 /// [`lv_scene`] condensed on [`ACTIVE`] (backward Euler).
@@ -572,6 +577,7 @@ fn condensed_equilibrium_matches_the_whole_body_static_solution() {
             radius_m: 5e-3,
             stiffness_margin: 2.0,
             follow: false,
+            tiles: TileMode::Off,
         };
         let mut solver = CondensedSolver::new(&fem, &mesh, region, 1e-3).expect("condensed");
         let sizes = solver.sizes();
@@ -818,6 +824,7 @@ fn point_loads_are_refused_where_condensed_elements_would_take_them() {
     let mut scene = condensed_lv(StrainSmoothing::None);
     scene.active_region = Some(ActiveRegion {
         follow: true,
+        tiles: TileMode::Off,
         ..ACTIVE
     });
     let mut following = FemBody::new(&scene).expect("following");
@@ -874,6 +881,7 @@ fn a_following_region_carries_a_stroke_around_the_ventricle() {
     let region = ActiveRegion {
         radius_m: 0.006,
         follow: true,
+        tiles: TileMode::Off,
         ..ACTIVE
     };
     let scene = lv_scene(
@@ -885,6 +893,7 @@ fn a_following_region_carries_a_stroke_around_the_ventricle() {
     let mut fixed_scene = scene.clone();
     fixed_scene.active_region = Some(ActiveRegion {
         follow: false,
+        tiles: TileMode::Off,
         ..region
     });
     let mut fixed = FemBody::new(&fixed_scene).expect("fixed");
@@ -914,8 +923,15 @@ fn a_following_region_carries_a_stroke_around_the_ventricle() {
 fn the_shipped_lv_h1_region_follows_a_stroke_at_20_mm_per_s() {
     let path =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../deploy/scenes/lv_h1_condensed.toml");
-    let patch = haptic_model::scene::load_scene_file(&path).expect("lv_h1_condensed.toml");
-    assert!(patch.active_region.is_some_and(|r| r.follow));
+    let mut patch = haptic_model::scene::load_scene_file(&path).expect("lv_h1_condensed.toml");
+    let region = patch.active_region.as_mut().expect("region");
+    assert!(region.follow);
+    assert!(matches!(region.tiles, TileMode::Background { .. }));
+    // Regions prepared on demand, as before the cache: with tiles each blocking request would
+    // also wait for the background build in progress (about 3 s a tile in debug), and the
+    // tiled path is checked on the coarse LV
+    // (`a_tiled_following_region_carries_the_stroke_without_allocating`).
+    region.tiles = TileMode::Off;
     // The exact sphere, implicit in the condensed step, follows it as well.
     let mut sphere = patch.clone();
     sphere.probe.contact = ContactModel::Sphere;
@@ -1084,6 +1100,7 @@ fn a_coarse_companion_answers_where_the_region_does_not_hold_the_contact() {
     let region = ActiveRegion {
         radius_m: 0.006,
         follow: true,
+        tiles: TileMode::Off,
         ..ACTIVE
     };
     let mut scene = lv_scene(
@@ -1250,6 +1267,7 @@ fn a_following_region_presses_right_at_ten_random_points() {
     let region = ActiveRegion {
         radius_m: 0.007,
         follow: true,
+        tiles: TileMode::Off,
         ..ACTIVE
     };
     let scene = lv_scene(
@@ -1481,4 +1499,172 @@ fn prepared_contact_columns_give_the_unprepared_step_and_keep_their_memory_limit
             "{rows} row(s): prepared and unprepared steps differ by {diff:.3e} of {scale:.3e} m/s"
         );
     }
+}
+
+/// The coarse LV's following region (r = 6 mm) with tiles at the default cover
+/// (`radius_m - sqrt(3) probe.radius_m`, the probe's 2 mm).
+fn tiled_region(centre_m: DVec3) -> ActiveRegion {
+    ActiveRegion {
+        centre_m,
+        radius_m: 0.006,
+        follow: true,
+        tiles: TileMode::Background {
+            cover_m: 0.006 - 3f64.sqrt() * 0.002,
+        },
+        ..ACTIVE
+    }
+}
+
+/// The epicardial (touchable) nodes of `mesh`, sorted.
+fn epi_nodes(mesh: &haptic_model::mesh::TetMesh) -> Vec<u32> {
+    let mut nodes: Vec<u32> = mesh
+        .surface("EPI")
+        .expect("EPI")
+        .triangles
+        .iter()
+        .flatten()
+        .copied()
+        .collect();
+    nodes.sort_unstable();
+    nodes.dedup();
+    nodes
+}
+
+#[test]
+fn tile_centres_cover_every_touchable_node() {
+    let (_, mesh, _, centre) = setup(StrainSmoothing::None);
+    let nodes = epi_nodes(&mesh);
+    let TileMode::Background { cover_m } = tiled_region(centre).tiles else {
+        unreachable!()
+    };
+    let centres = tile_centres(&mesh.nodes, &nodes, centre, cover_m);
+    eprintln!(
+        "{} tile centres cover {} epicardial nodes within {cover_m} m",
+        centres.len(),
+        nodes.len()
+    );
+    assert_eq!(centres[0], centre);
+    assert_eq!(centres, tile_centres(&mesh.nodes, &nodes, centre, cover_m));
+    for &i in &nodes {
+        let p = mesh.nodes[i as usize];
+        let d = centres
+            .iter()
+            .map(|c| c.distance(p))
+            .fold(f64::INFINITY, f64::min);
+        assert!(d <= cover_m, "node {i} lies {d} m from every centre");
+    }
+    // Farthest-point: each centre was farther than the cover from every earlier one, so no
+    // two lie within it (a covering without redundant centres).
+    for (k, a) in centres.iter().enumerate() {
+        for b in &centres[..k] {
+            assert!(a.distance(*b) > cover_m, "{a} and {b}");
+        }
+    }
+    assert!((5..100).contains(&centres.len()), "{}", centres.len());
+    // A larger cover needs fewer centres; the whole surface within reach of one.
+    assert!(tile_centres(&mesh.nodes, &nodes, centre, 2.0 * cover_m).len() < centres.len());
+    assert_eq!(tile_centres(&mesh.nodes, &nodes, centre, 1.0).len(), 1);
+}
+
+/// With tiles, a request after the cache is full is a hit, and the copy it swaps in steps bit
+/// for bit like a region prepared at the same centre by `CondensedSolver::new` +
+/// `prepare_contact`: the trimmed tile lost nothing the tick reads.
+#[test]
+fn a_cached_tile_steps_bit_identically_to_a_fresh_region() {
+    let (fem, mesh, _, centre) = setup(StrainSmoothing::None);
+    let nodes = epi_nodes(&mesh);
+    let dt = 1e-3;
+    // A coarser cover than the default (5 mm: about 20 tiles instead of 83) keeps the wait
+    // for the full cache short; the construction does not depend on it.
+    let region = ActiveRegion {
+        tiles: TileMode::Background { cover_m: 0.005 },
+        ..tiled_region(centre)
+    };
+    let mut first = CondensedSolver::new(&fem, &mesh, region, dt).expect("first");
+    first.prepare_contact(&nodes);
+    let mut follower = RegionFollower::spawn(&fem, &mesh, &nodes, &first).expect("spawn");
+    follower.set_blocking(true);
+    let mut solver = Box::new(first);
+    let stats = follower.stats();
+    assert!(stats.tiles >= 5, "{stats:?}");
+    let waited = Instant::now();
+    while follower.stats().tiles_built < stats.tiles {
+        assert!(waited.elapsed().as_secs() < 120, "{:?}", follower.stats());
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    // A device at the epicardial node opposite the first centre.
+    let target = DVec3::new(-centre.x, -centre.y, centre.z);
+    let p = nodes
+        .iter()
+        .map(|&i| mesh.nodes[i as usize])
+        .min_by(|a, b| a.distance(target).total_cmp(&b.distance(target)))
+        .expect("node");
+    let mut x = fem.rest().to_vec();
+    let mut v = vec![DVec3::ZERO; x.len()];
+    follower.before_tick(&mut solver, Some((p, DVec3::ZERO)), &[], &mut x, &mut v);
+    let stats = follower.stats();
+    assert_eq!(
+        (stats.swaps, stats.tile_hits, stats.tile_misses),
+        (1, 1, 0),
+        "{stats:?}"
+    );
+    assert!(stats.tile_cache_bytes > 0 && stats.failed == 0, "{stats:?}");
+    assert!(stats.centre_m.distance(p) < 0.006, "{stats:?}");
+    let mut fresh = CondensedSolver::new(
+        &fem,
+        &mesh,
+        ActiveRegion {
+            centre_m: stats.centre_m,
+            ..region
+        },
+        dt,
+    )
+    .expect("fresh");
+    fresh.prepare_contact(&nodes);
+    assert!(solver.memory_bytes() < fresh.memory_bytes());
+    // A push of 0.1 mN inwards on the epicardial nodes within 2 mm of the device.
+    let pushed: Vec<u32> = nodes
+        .iter()
+        .copied()
+        .filter(|&i| mesh.nodes[i as usize].distance(p) < 2e-3)
+        .collect();
+    assert!(!pushed.is_empty() && pushed.iter().all(|&i| solver.is_active_node(i)));
+    let mut load = vec![DVec3::ZERO; x.len()];
+    for &i in &pushed {
+        load[i as usize] = DVec3::new(p.x, p.y, 0.0).normalize() * (-1e-4 / pushed.len() as f64);
+    }
+    let (mut xa, mut va, mut xb, mut vb) = (x.clone(), v.clone(), x, v);
+    for _ in 0..50 {
+        solver.step(&load, None, &mut xa, &mut va);
+        fresh.step(&load, None, &mut xb, &mut vb);
+    }
+    let bits = |a: &[DVec3]| -> Vec<[u64; 3]> {
+        a.iter().map(|p| p.to_array().map(f64::to_bits)).collect()
+    };
+    assert!(
+        xa.iter().zip(fem.rest()).any(|(a, r)| a != r),
+        "the load moved nothing"
+    );
+    assert_eq!(bits(&xa), bits(&xb));
+    assert_eq!(bits(&va), bits(&vb));
+}
+
+/// The stroke of [`a_following_region_carries_a_stroke_around_the_ventricle`] with tiles
+/// (blocking requests; the cache fills in the background meanwhile): the same checks, the
+/// servo thread's zero allocations included, and the tiles answer.
+#[test]
+fn a_tiled_following_region_carries_the_stroke_without_allocating() {
+    let (_, _, _, centre) = setup(StrainSmoothing::None);
+    // A cover of 4 mm (57 tiles instead of the default's 83): the cache is complete
+    // sooner, so fewer blocking requests wait for a background build.
+    let region = ActiveRegion {
+        tiles: TileMode::Background { cover_m: 0.004 },
+        ..tiled_region(centre)
+    };
+    let scene = lv_scene(
+        StrainSmoothing::None,
+        IntegratorKind::BackwardEuler,
+        Some(region),
+    );
+    check_stroke(&scene, 0.001, 4);
 }

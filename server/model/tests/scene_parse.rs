@@ -4,6 +4,7 @@ use std::path::{Path, PathBuf};
 
 use haptic_model::ModelError;
 use haptic_model::element::StrainSmoothing;
+use haptic_model::integrate::condensed::TileMode;
 use haptic_model::integrate::{IntegratorKind, LinearSolver};
 use haptic_model::scene::{
     Scene, builtin_scene_names, builtin_scene_toml, load_builtin, load_scene_file, parse_scene_toml,
@@ -547,5 +548,73 @@ fn single_precision_forces_are_for_linear_stvk_and_neo_hookean_fem_scenes() {
         format!("{corotational}[integrator]\nforce_precision = \"single\"\n"),
     ] {
         assert_eq!(field_of(parse(&bad)), "integrator.force_precision", "{bad}");
+    }
+}
+
+#[test]
+fn region_tiles_default_to_off_and_their_cover_is_checked() {
+    let region = |extra: &str| {
+        format!(
+            "{BASE}[integrator]\nkind = \"backward-euler\"\n[active_region]\ncentre_m = [0.0, 0.0, 0.0]\nradius_m = 0.007\n{extra}"
+        )
+    };
+    let tiles = |s: &str| parse(s).expect(s).active_region.expect("region").tiles;
+    assert_eq!(tiles(&region("follow = true\n")), TileMode::Off);
+    assert_eq!(tiles(&region("tiles = \"off\"\n")), TileMode::Off);
+    // Default cover: radius_m - sqrt(3) probe.radius_m (the probe's default radius is 2 mm).
+    let TileMode::Background { cover_m } =
+        tiles(&region("follow = true\ntiles = \"background\"\n"))
+    else {
+        panic!("tiles on");
+    };
+    assert!(
+        (cover_m - (0.007 - 3f64.sqrt() * 0.002)).abs() < 1e-15,
+        "{cover_m}"
+    );
+    assert_eq!(
+        tiles(&region(
+            "follow = true\ntiles = \"background\"\ntile_cover_m = 0.002\n"
+        )),
+        TileMode::Background { cover_m: 0.002 }
+    );
+    for (bad, field) in [
+        (
+            region("follow = true\ntiles = \"on\"\n"),
+            "active_region.tiles",
+        ),
+        (region("tiles = \"background\"\n"), "active_region.tiles"),
+        (
+            region("follow = true\ntile_cover_m = 0.002\n"),
+            "active_region.tile_cover_m",
+        ),
+        (
+            region("follow = true\ntiles = \"background\"\ntile_cover_m = 0.0004\n"),
+            "active_region.tile_cover_m",
+        ),
+        (
+            region("follow = true\ntiles = \"background\"\ntile_cover_m = 0.008\n"),
+            "active_region.tile_cover_m",
+        ),
+        (
+            region("follow = true\ntiles = \"background\"\ntile_cover_m = nan\n"),
+            "active_region.tile_cover_m",
+        ),
+    ] {
+        assert_eq!(field_of(parse(&bad)), field, "{bad}");
+    }
+    // The default cover below 0.5 mm: refused naming the radius and the probe's radius.
+    let small = format!(
+        "{}[probe]\nradius_m = 0.0039\n",
+        region("follow = true\ntiles = \"background\"\n")
+    );
+    match parse(&small) {
+        Err(ModelError::SceneField { field, message }) => {
+            assert_eq!(field, "active_region.tile_cover_m");
+            assert!(
+                message.contains("7.000 mm") && message.contains("3.900 mm"),
+                "{message}"
+            );
+        }
+        other => panic!("expected a refusal, got {other:?}"),
     }
 }

@@ -9,7 +9,7 @@ use std::time::Instant;
 use haptic_model::DVec3;
 use haptic_model::element::StrainSmoothing;
 use haptic_model::fem::FemBody;
-use haptic_model::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
+use haptic_model::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN, TileMode};
 use haptic_model::integrate::{IntegratorKind, LinearSolver};
 use haptic_model::material::MaterialModel;
 use haptic_model::scene::Scene;
@@ -122,6 +122,7 @@ fn condensed_row(base: &Scene, smoothing: StrainSmoothing, radius_mm: f64, ref_t
         radius_m: radius_mm * 1e-3,
         stiffness_margin: DEFAULT_STIFFNESS_MARGIN,
         follow: false,
+        tiles: TileMode::Off,
     });
     // One label for every radius, so the radii form one work-precision curve.
     let method = "condensed backward-euler".to_string();

@@ -76,7 +76,8 @@ impl CondensedSolver {
     }
 
     /// [`Self::prepare_contact`] with the memory limit `max_bytes`; `false` (nothing
-    /// prepared, the columns of an earlier call dropped) when the columns would exceed it.
+    /// prepared, the columns of an earlier call dropped) when the columns would exceed it or
+    /// the tick factor was dropped ([`Self::trim_for_tiles`]).
     pub fn prepare_contact_within(&mut self, nodes: &[u32], max_bytes: usize) -> bool {
         let m = self.system.eq_dof.len();
         let mut list: Vec<u32> = nodes
@@ -99,6 +100,7 @@ impl CondensedSolver {
             .saturating_mul(list.len())
             .saturating_mul(factors)
             > max_bytes
+            || self.system.factor.is_empty()
         {
             self.contact.z = Vec::new();
             if let Some(e) = self.system.entry.as_mut() {

@@ -132,7 +132,30 @@ pub struct ActiveRegion {
     /// and swapped in at tick boundaries, and each keeps the far-field rows its successors
     /// need ([`CondensedSolver::hand_over`]).
     pub follow: bool,
+    /// Whether a following region keeps a cache of regions prepared ahead
+    /// ([`TileMode::Background`], [`crate::integrate::follow`]; issue 48 s2).
+    pub tiles: TileMode,
 }
+
+/// The region cache of a following region ([`ActiveRegion::tiles`]; scene key
+/// `active_region.tiles`).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum TileMode {
+    /// Every region is prepared on demand (the default).
+    #[default]
+    Off,
+    /// Regions ("tiles") are prepared ahead, while the worker is idle, at centres covering the
+    /// touchable surface: every touchable node lies within `cover_m` (m, > 0) of a centre
+    /// ([`crate::integrate::follow::tile_centres`]); a request takes the nearest built tile.
+    Background {
+        /// Covering radius of the tile centres, m.
+        cover_m: f64,
+    },
+}
+
+/// Smallest [`TileMode::Background`] covering radius a scene may set, m (0.5 mm: below it the
+/// tiles of a touchable surface number in the thousands).
+pub const MIN_TILE_COVER_M: f64 = 5e-4;
 
 impl ActiveRegion {
     /// A fixed region holding every node of `rest` (m), hence every element: a condensed
@@ -158,6 +181,7 @@ impl ActiveRegion {
             radius_m: radius_m * (1.0 + 1e-9) + 1e-12,
             stiffness_margin,
             follow: false,
+            tiles: TileMode::Off,
         }
     }
 }
@@ -505,6 +529,25 @@ impl CondensedSolver {
     /// on such triangles).
     pub fn is_active_triangle(&self, t: &[u32; 3]) -> bool {
         t.iter().all(|&i| self.is_active_node(i))
+    }
+
+    /// Drops what a stepped copy of a prepared following region never reads (a cached tile,
+    /// [`TileMode::Background`]; issue 48 s2): the far coupling `K_FG` triplets when there is
+    /// no far factor (only [`Self::recover_far_field`] reads them, with that factor; a
+    /// following region keeps none), and the single-precision tick factor when the tick
+    /// sweeps its half-precision copy and there is no entry factor (then only
+    /// [`Self::prepare_contact`] reads it: call that first; afterwards it prepares nothing).
+    /// Steps are unchanged bit for bit. Returns the bytes freed ([`Self::memory_bytes`]).
+    pub fn trim_for_tiles(&mut self) -> usize {
+        let before = self.memory_bytes();
+        let sys = &mut self.system;
+        if sys.far.llt.is_none() {
+            sys.far.kfg = Vec::new();
+        }
+        if sys.sweep.is_some() && sys.half.is_some() && sys.entry.is_none() {
+            sys.factor = Vec::new();
+        }
+        before - self.memory_bytes()
     }
 
     /// Bytes held by the region's numeric arrays (tick factor, maps, coupling columns, far

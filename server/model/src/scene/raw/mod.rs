@@ -239,6 +239,7 @@ pub(super) fn parse_scene(
         &integrator,
         raw_integrator.linear_solver.as_deref(),
         raw_integrator.stiffness_margin.is_some(),
+        probe.radius_m,
     )?;
     let name = raw.name.unwrap_or_else(|| default_name.to_string());
     let fallback = match (raw_region, &active_region) {

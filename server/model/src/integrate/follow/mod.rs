@@ -27,8 +27,16 @@
 //! (`active_region.fallback_target_tets`) lets the companion answer meanwhile
 //! ([`crate::fem::FemBody`], "The coarse companion").
 //!
-//! Owns: the worker thread, the hand-off rings and the re-centring rule. May use:
-//! [`super::condensed`], [`crate::element`], [`crate::mesh`].
+//! **Tiles** ([`TileMode::Background`], issue 48 s2): the worker keeps regions prepared ahead
+//! at centres covering the touchable surface ([`tile_centres`]) and builds them while it has
+//! no request, the tile nearest the last requested point first. A request then takes the tile
+//! nearest the point ([`TILE_HYSTERESIS_M`] replaces [`RECENTRE_RADII`]) and sends a copy
+//! (the tile itself is never stepped), or prepares the tile on demand when it is not built
+//! yet and keeps it. A request waits at most for the one tile being built. The servo's side
+//! is unchanged.
+//!
+//! Owns: the worker thread, the hand-off rings, the re-centring rule and the tile cache
+//! (`tiles`). May use: [`super::condensed`], [`crate::element`], [`crate::mesh`].
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -37,10 +45,17 @@ use std::time::{Duration, Instant};
 
 use glam::DVec3;
 
-use super::condensed::{ActiveRegion, CondensedSolver, FOLLOW_LEAD_RADII, FOLLOW_NEAR_RADII};
+use super::condensed::{
+    ActiveRegion, CondensedSolver, FOLLOW_LEAD_RADII, FOLLOW_NEAR_RADII, TileMode,
+};
 use crate::ModelError;
 use crate::element::FemModel;
 use crate::mesh::TetMesh;
+
+mod tiles;
+
+pub use tiles::{TILE_HYSTERESIS_M, tile_centres};
+use tiles::{Tile, TileCache};
 
 /// Servo ticks between two requests when none is in flight.
 pub const POLL_TICKS: u64 = 20;
@@ -75,12 +90,28 @@ struct Shared {
     /// Last and largest preparation time, s, as `f64` bits.
     last_prepare_s: AtomicU64,
     max_prepare_s: AtomicU64,
+    tile_hits: AtomicU64,
+    tile_misses: AtomicU64,
+    tiles_built: AtomicU64,
+    tiles: AtomicU64,
+    tile_cache_bytes: AtomicU64,
+    tile_build_s: AtomicU64,
+}
+
+impl Shared {
+    /// Records one preparation (or tile lookup) of `s` seconds.
+    fn record_prepare_s(&self, s: f64) {
+        self.last_prepare_s.store(s.to_bits(), Ordering::Relaxed);
+        let max = f64::from_bits(self.max_prepare_s.load(Ordering::Relaxed));
+        self.max_prepare_s
+            .store(max.max(s).to_bits(), Ordering::Relaxed);
+    }
 }
 
 /// Counters of a following region, for reports.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct FollowStats {
-    /// Regions prepared by the worker.
+    /// Regions the worker sent (with tiles: tile copies included).
     pub prepared: u64,
     /// Preparations that failed (a factorisation error; the current region stays).
     pub failed: u64,
@@ -89,7 +120,8 @@ pub struct FollowStats {
     /// Prepared regions not swapped in (the device had moved back, the contact patch left
     /// the region).
     pub rejected: u64,
-    /// Last and largest preparation time, s.
+    /// Last preparation time, s (with tiles: of the lookup and copy, or of the on-demand
+    /// preparation of a tile not built yet).
     pub last_prepare_s: f64,
     /// Largest preparation time, s.
     pub max_prepare_s: f64,
@@ -97,6 +129,19 @@ pub struct FollowStats {
     pub centre_m: DVec3,
     /// Bytes held by the region in use ([`CondensedSolver::memory_bytes`]).
     pub region_bytes: usize,
+    /// Requests answered by a built tile ([`TileMode::Background`]).
+    pub tile_hits: u64,
+    /// Requests whose tile was not built yet (prepared on demand, then kept).
+    pub tile_misses: u64,
+    /// Tiles built (on demand or in the background).
+    pub tiles_built: u64,
+    /// Tile centres (0 without tiles).
+    pub tiles: u64,
+    /// Bytes held by the built tiles ([`CondensedSolver::memory_bytes`] after
+    /// [`CondensedSolver::trim_for_tiles`]).
+    pub tile_cache_bytes: u64,
+    /// Seconds the worker spent building tiles.
+    pub tile_build_s: f64,
 }
 
 /// The servo's side of a following region (module documentation).
@@ -154,7 +199,17 @@ impl RegionFollower {
         let (worker_results, results) = rtrb::RingBuffer::new(1);
         let (returns, worker_returns) = rtrb::RingBuffer::new(4);
         let shared = Arc::new(Shared::default());
+        let cache = match region.tiles {
+            TileMode::Background { cover_m } if region.follow => {
+                let centres = tile_centres(body.rest(), &nodes, region.centre_m, cover_m);
+                shared.tiles.store(centres.len() as u64, Ordering::Relaxed);
+                Some(TileCache::new(centres, cover_m))
+            }
+            _ => None,
+        };
         let job = Worker {
+            cache,
+            last_point_m: region.centre_m,
             body: body.clone(),
             mesh: mesh.clone(),
             nodes,
@@ -217,6 +272,12 @@ impl RegionFollower {
             max_prepare_s: f(&self.shared.max_prepare_s),
             centre_m: self.centre_m,
             region_bytes: self.region_bytes,
+            tile_hits: self.shared.tile_hits.load(Ordering::Relaxed),
+            tile_misses: self.shared.tile_misses.load(Ordering::Relaxed),
+            tiles_built: self.shared.tiles_built.load(Ordering::Relaxed),
+            tiles: self.shared.tiles.load(Ordering::Relaxed),
+            tile_cache_bytes: self.shared.tile_cache_bytes.load(Ordering::Relaxed),
+            tile_build_s: f(&self.shared.tile_build_s),
         }
     }
 
@@ -330,6 +391,10 @@ impl Drop for RegionFollower {
 
 /// The worker thread's state.
 struct Worker {
+    /// The tiles ([`TileMode::Background`]), or `None`.
+    cache: Option<TileCache>,
+    /// The last requested point, m: background builds start nearest it.
+    last_point_m: DVec3,
     body: FemModel,
     mesh: TetMesh,
     nodes: Vec<u32>,
@@ -352,12 +417,20 @@ impl Worker {
             }
             match self.requests.pop() {
                 Ok(request) => {
-                    let answer = self.prepare(request);
+                    let answer = if self.cache.is_some() {
+                        self.lookup(request)
+                    } else {
+                        self.prepare(request)
+                    };
                     // The servo sends one request at a time and reads the answer before the
                     // next, so the ring has room.
                     let _ = self.results.push(answer);
                 }
-                Err(_) => std::thread::park_timeout(Duration::from_millis(50)),
+                Err(_) => {
+                    if !self.build_next_tile() {
+                        std::thread::park_timeout(Duration::from_millis(50));
+                    }
+                }
             }
         }
     }
@@ -389,14 +462,7 @@ impl Worker {
         match CondensedSolver::new(&self.body, &self.mesh, region, self.dt_s) {
             Ok(mut solver) => {
                 solver.prepare_contact(&self.nodes);
-                let s = start.elapsed().as_secs_f64();
-                self.shared
-                    .last_prepare_s
-                    .store(s.to_bits(), Ordering::Relaxed);
-                let max = f64::from_bits(self.shared.max_prepare_s.load(Ordering::Relaxed));
-                self.shared
-                    .max_prepare_s
-                    .store(max.max(s).to_bits(), Ordering::Relaxed);
+                self.shared.record_prepare_s(start.elapsed().as_secs_f64());
                 self.shared.prepared.fetch_add(1, Ordering::Relaxed);
                 Prepared::Region {
                     solver: Box::new(solver),
@@ -408,5 +474,94 @@ impl Worker {
                 Prepared::Nothing
             }
         }
+    }
+
+    /// A region centred at `centre_m`, prepared as [`Self::prepare`] does and trimmed for the
+    /// cache ([`CondensedSolver::trim_for_tiles`]); `None` when the preparation failed.
+    fn build_tile(&self, centre_m: DVec3) -> Option<Arc<CondensedSolver>> {
+        let region = ActiveRegion {
+            centre_m,
+            ..self.region
+        };
+        let mut solver = CondensedSolver::new(&self.body, &self.mesh, region, self.dt_s).ok()?;
+        solver.prepare_contact(&self.nodes);
+        solver.trim_for_tiles();
+        Some(Arc::new(solver))
+    }
+
+    /// Builds tile `k` and stores it; counts it (or the failure).
+    fn build_and_keep(&mut self, k: usize) -> Option<Arc<CondensedSolver>> {
+        let cache = self.cache.as_ref()?;
+        let start = Instant::now();
+        let tile = self.build_tile(cache.centres[k]);
+        let s = start.elapsed().as_secs_f64();
+        let built = f64::from_bits(self.shared.tile_build_s.load(Ordering::Relaxed));
+        self.shared
+            .tile_build_s
+            .store((built + s).to_bits(), Ordering::Relaxed);
+        let cache = self.cache.as_mut()?;
+        match &tile {
+            Some(t) => {
+                self.shared.tiles_built.fetch_add(1, Ordering::Relaxed);
+                self.shared
+                    .tile_cache_bytes
+                    .fetch_add(t.memory_bytes() as u64, Ordering::Relaxed);
+                cache.tiles[k] = Tile::Built(Arc::clone(t));
+            }
+            None => {
+                self.shared.failed.fetch_add(1, Ordering::Relaxed);
+                cache.tiles[k] = Tile::Failed;
+            }
+        }
+        tile
+    }
+
+    /// Builds the missing tile nearest the last requested point (idle work); `false` when
+    /// there is none (or no cache).
+    fn build_next_tile(&mut self) -> bool {
+        let Some(k) = self
+            .cache
+            .as_ref()
+            .and_then(|c| c.next_missing(self.last_point_m))
+        else {
+            return false;
+        };
+        self.build_and_keep(k);
+        true
+    }
+
+    /// A request with tiles: the tile the cache chooses, copied (built first when missing).
+    fn lookup(&mut self, request: Request) -> Prepared {
+        let (_, d) = self.nearest(request.point_m);
+        if d > self.region.radius_m {
+            return Prepared::Nothing;
+        }
+        self.last_point_m = request.point_m;
+        let start = Instant::now();
+        let Some(cache) = self.cache.as_ref() else {
+            return Prepared::Nothing;
+        };
+        let Some(k) = cache.choose(request.point_m, request.centre_m) else {
+            return Prepared::Nothing;
+        };
+        let centre_m = cache.centres[k];
+        let tile = match &cache.tiles[k] {
+            Tile::Built(t) => {
+                self.shared.tile_hits.fetch_add(1, Ordering::Relaxed);
+                Arc::clone(t)
+            }
+            Tile::Failed => return Prepared::Nothing,
+            Tile::Missing => {
+                self.shared.tile_misses.fetch_add(1, Ordering::Relaxed);
+                match self.build_and_keep(k) {
+                    Some(t) => t,
+                    None => return Prepared::Nothing,
+                }
+            }
+        };
+        let solver = Box::new((*tile).clone());
+        self.shared.record_prepare_s(start.elapsed().as_secs_f64());
+        self.shared.prepared.fetch_add(1, Ordering::Relaxed);
+        Prepared::Region { solver, centre_m }
     }
 }
