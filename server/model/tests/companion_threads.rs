@@ -17,7 +17,7 @@ use haptic_model::contact::ContactModel;
 use haptic_model::element::StrainSmoothing;
 use haptic_model::fem::{FallbackStats, FemBody, TickInput};
 use haptic_model::integrate::IntegratorKind;
-use haptic_model::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN};
+use haptic_model::integrate::condensed::{ActiveRegion, DEFAULT_STIFFNESS_MARGIN, TileMode};
 use haptic_model::mesh::generate;
 use haptic_model::pool::{StartHook, TickPool};
 use haptic_model::scene::{Scene, load_builtin};
@@ -46,6 +46,7 @@ fn scene() -> Scene {
         radius_m: 0.006,
         stiffness_margin: DEFAULT_STIFFNESS_MARGIN,
         follow: true,
+        tiles: TileMode::Off,
     });
     scene.probe.contact = ContactModel::Patch;
     let mut coarse = load_builtin("lv").expect("lv");

@@ -355,10 +355,12 @@ impl FemBody {
         for _ in 0..self.setup.plan.substeps {
             // 1. Forces: internal and external.
             self.scratch.force.iter_mut().for_each(|f| *f = DVec3::ZERO);
-            self.stepper.add_internal_forces(
+            // Cut into the pool's parts (one part without a pool: the one-core path, bit for
+            // bit; with a companion its worker is usually busy, so the parts run here).
+            self.stepper.add_internal_forces_in(
+                &*self.pool,
                 &self.fem,
-                &self.state.x,
-                &self.state.v,
+                (&self.state.x, &self.state.v),
                 &mut self.scratch.force,
                 &mut self.scratch.kernel,
             );
@@ -883,8 +885,15 @@ impl SoftBody for FemBody {
         if self.fallback.is_some() { 2 } else { 1 }
     }
 
-    /// Keeps `pool` for the companion's tick ([`FemBody::tick`]); the companion itself gets none.
+    /// Keeps `pool` for the companion's tick ([`FemBody::tick`]) and the element forces in
+    /// parts (the single-precision kernel's per-part arrays are sized here); the companion
+    /// itself gets none.
     fn set_tick_pool(&mut self, pool: Arc<TickPool>) {
+        if self.fem.single_precision() {
+            self.scratch
+                .kernel
+                .ensure(self.fem.node_count(), pool.threads());
+        }
         self.pool = pool;
     }
 }
