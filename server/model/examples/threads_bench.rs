@@ -19,7 +19,7 @@ use std::time::Instant;
 use clap::{Parser, ValueEnum};
 use haptic_model::DVec3;
 use haptic_model::body::TickInput;
-use haptic_model::element::{ForcePart, ForceScratch, PartRunner};
+use haptic_model::element::{ForceScratch, PartRunner};
 use haptic_model::fem::FemBody;
 use haptic_model::pool::{StartHook, TickPool};
 use haptic_model::scene::load_scene_file;
@@ -59,42 +59,9 @@ struct Args {
     threads_impl: ThreadsImpl,
 }
 
-/// The parts one after the other on the caller, cut into `.0` parts.
-struct Serial(usize);
-
-impl PartRunner for Serial {
-    fn threads(&self) -> usize {
-        self.0
-    }
-
-    fn run_parts(&self, parts: &mut [ForcePart], f: &(dyn Fn(usize, &mut ForcePart) + Sync)) {
-        for (p, part) in parts.iter_mut().enumerate() {
-            f(p, part);
-        }
-    }
-}
-
-/// Two threads: part 0 on the caller, the others on a scoped thread spawned per call.
-struct Scoped;
-
-impl PartRunner for Scoped {
-    fn threads(&self) -> usize {
-        2
-    }
-
-    fn run_parts(&self, parts: &mut [ForcePart], f: &(dyn Fn(usize, &mut ForcePart) + Sync)) {
-        let (first, rest) = parts.split_at_mut(1);
-        std::thread::scope(|s| {
-            let worker = s.spawn(|| {
-                for (p, part) in rest.iter_mut().enumerate() {
-                    f(p + 1, part);
-                }
-            });
-            f(0, &mut first[0]);
-            worker.join().expect("the worker part");
-        });
-    }
-}
+#[path = "common/part_runners.rs"]
+mod part_runners;
+use part_runners::{Scoped, Serial};
 
 /// A variant: its name and what runs its parts (`None`: an empty scoped spawn).
 type Variant = (&'static str, Option<Box<dyn PartRunner>>);

@@ -14,46 +14,13 @@ use std::path::Path;
 use std::sync::Arc;
 
 use haptic_model::DVec3;
-use haptic_model::element::{FemModel, ForcePart, ForceScratch, PartRunner, StrainSmoothing};
+use haptic_model::element::{FemModel, ForceScratch, PartRunner, StrainSmoothing};
 use haptic_model::mesh::TetMesh;
 use haptic_model::pool::{StartHook, TickPool};
 
-/// The parts one after the other on the calling thread: `0` parts of the cut.
-struct Serial(usize);
-
-impl PartRunner for Serial {
-    fn threads(&self) -> usize {
-        self.0
-    }
-
-    fn run_parts(&self, parts: &mut [ForcePart], f: &(dyn Fn(usize, &mut ForcePart) + Sync)) {
-        for (p, part) in parts.iter_mut().enumerate() {
-            f(p, part);
-        }
-    }
-}
-
-/// A test stand-in for a two-thread pool: part 0 on the caller, the others on a scoped thread.
-struct Scoped;
-
-impl PartRunner for Scoped {
-    fn threads(&self) -> usize {
-        2
-    }
-
-    fn run_parts(&self, parts: &mut [ForcePart], f: &(dyn Fn(usize, &mut ForcePart) + Sync)) {
-        let (first, rest) = parts.split_at_mut(1);
-        std::thread::scope(|s| {
-            let worker = s.spawn(|| {
-                for (p, part) in rest.iter_mut().enumerate() {
-                    f(p + 1, part);
-                }
-            });
-            f(0, &mut first[0]);
-            worker.join().expect("the worker part");
-        });
-    }
-}
+#[path = "../examples/common/part_runners.rs"]
+mod part_runners;
+use part_runners::{Scoped, Serial};
 
 /// The probe's point on the epicardium of `lv_h1` (m) and the outward normal there.
 const CENTRE_M: DVec3 = DVec3::new(0.009682, 0.0, -0.005);
