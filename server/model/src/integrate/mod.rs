@@ -433,12 +433,17 @@ impl Stepper {
         f: &mut [DVec3],
         scratch: &mut ForceScratch,
     ) {
-        let v = match self {
+        self.force_model(body)
+            .add_internal_forces_with(x, self.viscous_velocities(v), f, scratch);
+    }
+
+    /// The velocities the viscous stress takes: the explicit schemes' `v`; none for the
+    /// implicit ones, whose solve treats the viscous force implicitly.
+    fn viscous_velocities<'v>(&self, v: &'v [DVec3]) -> Option<&'v [DVec3]> {
+        match self {
             Self::Explicit { .. } => Some(v),
             Self::Implicit(_) | Self::Condensed(_) => None,
-        };
-        self.force_model(body)
-            .add_internal_forces_with(x, v, f, scratch);
+        }
     }
 
     /// [`Self::add_internal_forces`] cut into parts that `pool` runs
@@ -453,12 +458,13 @@ impl Stepper {
         f: &mut [DVec3],
         scratch: &mut ForceScratch,
     ) {
-        let v = match self {
-            Self::Explicit { .. } => Some(v),
-            Self::Implicit(_) | Self::Condensed(_) => None,
-        };
-        self.force_model(body)
-            .add_internal_forces_in(pool, x, v, f, scratch);
+        self.force_model(body).add_internal_forces_in(
+            pool,
+            x,
+            self.viscous_velocities(v),
+            f,
+            scratch,
+        );
     }
 
     /// Advances `state` (positions, velocities; not the time) by one sub-step from the nodal
