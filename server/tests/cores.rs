@@ -6,63 +6,16 @@ mod common;
 
 use std::time::Duration;
 
-use haptic_model::body::{
-    BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput, TickOutput,
-};
-use haptic_model::{DVec3, ModelError};
+use haptic_model::body::SoftBody;
 use haptic_server::config::{ConfigFile, ServerConfig};
 use haptic_server::session::SessionManager;
 
-/// A real body that asks for `threads` threads and, with `fail_at`, fails its tick from then on
-/// (a fault quarantines the session).
-struct Wanting {
-    body: Box<dyn SoftBody>,
-    threads: usize,
-    fail_at: Option<u64>,
-    ticks: u64,
-}
-
-impl SoftBody for Wanting {
-    fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
-        self.ticks += 1;
-        if self.fail_at.is_some_and(|t| self.ticks >= t) {
-            return Err(ModelError::InvalidInput("a test fault".into()));
-        }
-        self.body.tick(input)
-    }
-    fn add_point_load(&mut self, p: DVec3, f: DVec3, d: f64) -> Result<(), ModelError> {
-        self.body.add_point_load(p, f, d)
-    }
-    fn surface_topology(&self) -> SurfaceTopology<'_> {
-        self.body.surface_topology()
-    }
-    fn surface_capacity(&self) -> SurfaceCapacity {
-        self.body.surface_capacity()
-    }
-    fn write_surface_positions(&self, out: &mut [f32]) -> f64 {
-        self.body.write_surface_positions(out)
-    }
-    fn write_surface_rest_positions(&self, out: &mut [f32]) {
-        self.body.write_surface_rest_positions(out)
-    }
-    fn stats(&self) -> BodyStats {
-        self.body.stats()
-    }
-    fn info(&self) -> BodyInfo {
-        self.body.info()
-    }
-    fn wants_threads(&self) -> usize {
-        self.threads
-    }
-}
-
 fn wanting(threads: usize, fail_at: Option<u64>) -> Box<dyn SoftBody> {
-    Box::new(Wanting {
-        body: common::builtin_body("ellipsoids"),
+    Box::new(common::Burdened::wanting(
+        common::builtin_body("ellipsoids"),
         threads,
         fail_at,
-        ticks: 0,
-    })
+    ))
 }
 
 fn config(servo: &str) -> ServerConfig {

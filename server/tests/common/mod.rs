@@ -12,7 +12,9 @@ use haptic_model::{DVec3, ModelError};
 use haptic_server::session::{Session, SessionManager};
 
 /// A real body whose tick takes `extra` longer: asleep (a model too slow for the machine,
-/// made deterministic) or spinning (one that also takes the CPU from everyone else).
+/// made deterministic) or spinning (one that also takes the CPU from everyone else); it asks
+/// for `threads` threads and, with `fail_at`, fails its tick from that tick on (a fault
+/// quarantines the session).
 pub struct Burdened {
     /// The real body.
     pub body: Box<dyn SoftBody>,
@@ -20,6 +22,12 @@ pub struct Burdened {
     pub extra: Duration,
     /// Spin the CPU for it (true) or sleep.
     pub spin: bool,
+    /// What [`SoftBody::wants_threads`] answers.
+    pub threads: usize,
+    /// The tick (counted from 1) from which every tick fails.
+    pub fail_at: Option<u64>,
+    /// Ticks so far.
+    pub ticks: u64,
 }
 
 impl Burdened {
@@ -29,18 +37,35 @@ impl Burdened {
             body,
             extra,
             spin: false,
+            threads: 1,
+            fail_at: None,
+            ticks: 0,
+        }
+    }
+
+    /// No extra time; asks for `threads` threads and fails from tick `fail_at` on.
+    #[allow(dead_code)]
+    pub fn wanting(body: Box<dyn SoftBody>, threads: usize, fail_at: Option<u64>) -> Self {
+        Self {
+            threads,
+            fail_at,
+            ..Self::sleeping(body, Duration::ZERO)
         }
     }
 }
 
 impl SoftBody for Burdened {
     fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
+        self.ticks += 1;
+        if self.fail_at.is_some_and(|t| self.ticks >= t) {
+            return Err(ModelError::InvalidInput("a test fault".into()));
+        }
         if self.spin {
             let t0 = Instant::now();
             while t0.elapsed() < self.extra {
                 std::hint::spin_loop();
             }
-        } else {
+        } else if !self.extra.is_zero() {
             std::thread::sleep(self.extra);
         }
         self.body.tick(input)
@@ -66,6 +91,9 @@ impl SoftBody for Burdened {
     fn info(&self) -> BodyInfo {
         self.body.info()
     }
+    fn wants_threads(&self) -> usize {
+        self.threads
+    }
 }
 
 /// Starts `n` heavy sessions in `manager`: the default LV plus 3 ms of CPU spinning a tick
@@ -75,9 +103,8 @@ pub fn start_heavy(manager: &SessionManager, n: usize) -> Vec<std::sync::Arc<Ses
         .map(|_| {
             manager
                 .start_body(Box::new(Burdened {
-                    body: lv_body(),
-                    extra: Duration::from_millis(3),
                     spin: true,
+                    ..Burdened::sleeping(lv_body(), Duration::from_millis(3))
                 }))
                 .expect("a heavy session")
         })
