@@ -254,4 +254,78 @@ pub trait SoftBody: Send {
     fn set_tick_pool(&mut self, pool: Arc<TickPool>) {
         let _ = pool;
     }
+
+    /// Tools (device streams) this body takes at once (issue 50): the session accepts at most
+    /// this many, each in its own slot `0..max_tools()`. At most [`MAX_TOOLS`]. Provided: 1.
+    fn max_tools(&self) -> usize {
+        1
+    }
+
+    /// The slot a tool named `tool_id` must take, when the scene names its tools (with their
+    /// own probe parameters); `None`: any free slot the scene does not reserve for a named
+    /// tool. Provided: `None`.
+    fn tool_slot(&self, tool_id: &str) -> Option<usize> {
+        let _ = tool_id;
+        None
+    }
+
+    /// Advances one servo tick with every tool slot's input: `inputs[k]` is slot `k`'s device
+    /// (`device_position_m: None` for a slot without a stream: its contact is released) and
+    /// `outputs[k]` receives its force. All tools' contacts act on the body in the same tick.
+    /// Allocation-free, as [`SoftBody::tick`].
+    ///
+    /// Provided for one-tool bodies: one slot is [`SoftBody::tick`].
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] when `inputs` and `outputs` differ in length, are empty or
+    /// longer than [`SoftBody::max_tools`] (nothing changed); otherwise as [`SoftBody::tick`]
+    /// (any tool's invalid input refuses the whole tick).
+    fn tick_tools(
+        &mut self,
+        inputs: &[TickInput],
+        outputs: &mut [TickOutput],
+    ) -> Result<(), ModelError> {
+        check_tool_slots(inputs.len(), outputs.len(), self.max_tools())?;
+        outputs[0] = self.tick(&inputs[0])?;
+        Ok(())
+    }
+}
+
+/// Most tools any body takes at once (issue 50); a scene's `probe.max_tools` is at most this.
+pub const MAX_TOOLS: usize = 4;
+
+/// The slot counts [`SoftBody::tick_tools`] accepts: `inputs` and `outputs` of one length in
+/// `1..=max_tools`.
+///
+/// # Errors
+/// [`ModelError::InvalidInput`] otherwise.
+pub fn check_tool_slots(inputs: usize, outputs: usize, max_tools: usize) -> Result<(), ModelError> {
+    if inputs != outputs {
+        return Err(ModelError::InvalidInput(
+            "tick_tools: inputs and outputs differ in length".into(),
+        ));
+    }
+    if inputs == 0 || inputs > max_tools.min(MAX_TOOLS) {
+        return Err(ModelError::InvalidInput(
+            "tick_tools: the slot count is zero or above the body's max_tools".into(),
+        ));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tool_slot_tests {
+    use super::{MAX_TOOLS, check_tool_slots};
+
+    #[test]
+    fn slot_counts_outside_one_to_max_tools_or_of_unequal_lengths_are_refused() {
+        assert!(check_tool_slots(1, 1, 1).is_ok());
+        assert!(check_tool_slots(2, 2, 2).is_ok());
+        assert!(check_tool_slots(0, 0, 2).is_err());
+        assert!(check_tool_slots(2, 1, 2).is_err());
+        assert!(check_tool_slots(3, 3, 2).is_err());
+        // A body claiming more than MAX_TOOLS is held to MAX_TOOLS.
+        assert!(check_tool_slots(MAX_TOOLS + 1, MAX_TOOLS + 1, MAX_TOOLS + 1).is_err());
+        assert!(check_tool_slots(MAX_TOOLS, MAX_TOOLS, MAX_TOOLS + 1).is_ok());
+    }
 }
