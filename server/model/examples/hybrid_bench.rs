@@ -62,7 +62,8 @@ fn print_estimate(body: &mut HybridBody, state: &str) -> anyhow::Result<()> {
     let active = body.active_particles().len();
     let e = body.max_eigenvalue_estimate(5000, 1e-5)?;
     // The probe penalty adds at most k / m per particle in contact.
-    let k_over_m = body.model().params.contact_stiffness_n_per_m / body.particle_mass_kg();
+    let k_over_m =
+        body.model().params.particle_contact_stiffness_n_per_m() / body.particle_mass_kg();
     let with_probe = 2.0 / (e.lambda_per_s2 + k_over_m).sqrt();
     eprintln!(
         "  {active} active, {state}: critical step bound {:.3e} s; power-iteration estimate {:.3e} s ({} iterations, change {:.1e}), {:.3e} s with the probe penalty: {:.2} times the bound",

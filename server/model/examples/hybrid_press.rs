@@ -74,7 +74,7 @@ fn main() -> anyhow::Result<()> {
         scene
             .hybrid
             .as_ref()
-            .map_or(0.0, |h| h.params.contact_stiffness_n_per_m),
+            .map_or(0.0, |h| h.params.particle_contact_stiffness_n_per_m()),
         args.ramp_s,
         args.hold_s,
         body.info().substeps

@@ -641,6 +641,22 @@ fn builtin_hybrid_scenes_build_and_press() {
 }
 
 #[test]
+fn a_penalty_per_area_gives_each_particle_its_cell_share() {
+    // `contact_stiffness_pa_per_m` times the spacing squared (docs/scenes.md).
+    let scene = haptic_model::scene::load_builtin("ellipsoids-hybrid").unwrap();
+    let mut p = scene.hybrid.expect("hybrid").params;
+    assert_eq!(p.contact_stiffness_pa_per_m, Some(8.0e6));
+    assert!((p.particle_contact_stiffness_n_per_m() - 2.0).abs() < 1e-12);
+    p.meshfree.spacing_m = 0.25e-3;
+    assert!((p.particle_contact_stiffness_n_per_m() - 0.5).abs() < 1e-12);
+    p.contact_stiffness_pa_per_m = None;
+    assert_eq!(
+        p.particle_contact_stiffness_n_per_m(),
+        p.contact_stiffness_n_per_m
+    );
+}
+
+#[test]
 fn hybrid_scene_errors_name_their_field() {
     let base = haptic_model::scene::builtin_scene_toml("ellipsoids-hybrid").unwrap();
     for (from, to, field) in [
@@ -695,6 +711,16 @@ fn hybrid_scene_errors_name_their_field() {
             "core_stiffness_margin = 0.5",
             "hybrid.core_stiffness_margin",
         ),
+        (
+            "contact_stiffness_pa_per_m = 8.0e6",
+            "contact_stiffness_pa_per_m = -8.0e6",
+            "hybrid.contact_stiffness_pa_per_m",
+        ),
+        (
+            "contact_stiffness_pa_per_m = 8.0e6",
+            "contact_stiffness_pa_per_m = 8.0e6\ncontact_stiffness_n_per_m = 2.0",
+            "hybrid.contact_stiffness_pa_per_m",
+        ),
         ("family = \"hybrid\"", "family = \"fem\"", "hybrid"),
     ] {
         let text = base.replace(from, to);
@@ -743,7 +769,7 @@ fn power_iteration_finds_the_critical_step() {
         assert!(b.active_particles().len() > 50);
         let e = b.max_eigenvalue_estimate(20_000, 1e-7).expect("estimate");
         // The bound includes the probe penalty k / m, which the estimate (no probe) has not.
-        let k_over_m = model.params.contact_stiffness_n_per_m / b.particle_mass_kg();
+        let k_over_m = model.params.particle_contact_stiffness_n_per_m() / b.particle_mass_kg();
         let with_probe = 2.0 / (e.lambda_per_s2 + k_over_m).sqrt();
         assert!(
             b.critical_step_bound_s() <= with_probe,
@@ -860,8 +886,8 @@ fn worst_step_over_coupled_limit(
     points: usize,
 ) -> f64 {
     let n = model.outer_rest_m.len();
-    let k_over_m =
-        model.params.contact_stiffness_n_per_m / (model.cloud.mass_kg() * model.params.mass_scale);
+    let k_over_m = model.params.particle_contact_stiffness_n_per_m()
+        / (model.cloud.mass_kg() * model.params.mass_scale);
     let mut worst: f64 = 0.0;
     for s in 0..points {
         let v = (s * n) / points + n / (2 * points);

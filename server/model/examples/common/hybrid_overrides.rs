@@ -39,9 +39,14 @@ pub struct HybridOverrides {
     /// `hybrid.safety_factor` override: the sub-step's share of the critical step bound.
     #[arg(long)]
     pub safety_factor: Option<f64>,
-    /// `hybrid.contact_stiffness_n_per_m` override (probe penalty per particle).
-    #[arg(long)]
+    /// `hybrid.contact_stiffness_n_per_m` override (probe penalty per particle, whatever the
+    /// spacing; clears a per-area penalty).
+    #[arg(long, conflicts_with = "contact_stiffness_pa_per_m")]
     pub contact_stiffness_n_per_m: Option<f64>,
+    /// `hybrid.contact_stiffness_pa_per_m` override (probe penalty per area, Pa/m: one
+    /// particle's is this times the spacing squared).
+    #[arg(long)]
+    pub contact_stiffness_pa_per_m: Option<f64>,
     /// `hybrid.max_active_particles` override.
     #[arg(long)]
     pub max_active: Option<usize>,
@@ -118,6 +123,10 @@ impl HybridOverrides {
         }
         if let Some(k) = self.contact_stiffness_n_per_m {
             p.contact_stiffness_n_per_m = k;
+            p.contact_stiffness_pa_per_m = None;
+        }
+        if let Some(k) = self.contact_stiffness_pa_per_m {
+            p.contact_stiffness_pa_per_m = Some(k);
         }
         if let Some(n) = self.max_active {
             p.max_active_particles = n;

@@ -122,8 +122,14 @@ pub struct HybridParams {
     pub release_tolerance_m: f64,
     /// Most particles simulated at once.
     pub max_active_particles: usize,
-    /// Penalty stiffness between the probe sphere and one particle, N/m.
+    /// Penalty stiffness between the probe sphere and one particle, N/m (used when
+    /// `contact_stiffness_pa_per_m` is `None`).
     pub contact_stiffness_n_per_m: f64,
+    /// Penalty stiffness per area of the particles' cells, Pa/m (N/m per m^2): one particle's
+    /// penalty is this times `spacing_m^2`, so the contact's stiffness per area does not
+    /// change when the lattice is refined (issue 46 section 3; docs/decisions.md). `None`:
+    /// `contact_stiffness_n_per_m` per particle, whatever the spacing.
+    pub contact_stiffness_pa_per_m: Option<f64>,
     /// Multiplier of every mass, core and particles (1: the material's density, the seed's).
     /// Not in the seed: above 1 it slows the whole dynamics down by its square root and raises
     /// the critical steps as much; static forces do not change.
@@ -350,6 +356,17 @@ impl CoreMassScale {
     }
 }
 
+impl HybridParams {
+    /// The probe's penalty on one particle, N/m: `contact_stiffness_pa_per_m * spacing_m^2`
+    /// when the penalty is given per area, else `contact_stiffness_n_per_m`.
+    pub fn particle_contact_stiffness_n_per_m(&self) -> f64 {
+        self.contact_stiffness_pa_per_m
+            .map_or(self.contact_stiffness_n_per_m, |k| {
+                k * self.meshfree.spacing_m * self.meshfree.spacing_m
+            })
+    }
+}
+
 impl Default for HybridParams {
     fn default() -> Self {
         Self {
@@ -361,6 +378,7 @@ impl Default for HybridParams {
             release_tolerance_m: 2e-5,
             max_active_particles: 2000,
             contact_stiffness_n_per_m: 5.0,
+            contact_stiffness_pa_per_m: None,
             mass_scale: 1.0,
             core_mass_scale: CoreMassScale::Uniform,
             scaled_motion: ScaledMotion::Absolute,
@@ -401,6 +419,9 @@ impl HybridParams {
         pos("release_radius_m", self.release_radius_m)?;
         pos("release_tolerance_m", self.release_tolerance_m)?;
         pos("contact_stiffness_n_per_m", self.contact_stiffness_n_per_m)?;
+        if let Some(k) = self.contact_stiffness_pa_per_m {
+            pos("contact_stiffness_pa_per_m", k)?;
+        }
         if !(self.meshfree.smoothing_ratio >= 0.9 && self.meshfree.smoothing_ratio <= 2.0) {
             return Err(ModelError::field(
                 "hybrid.smoothing_ratio",

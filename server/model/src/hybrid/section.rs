@@ -54,6 +54,7 @@ pub(crate) struct RawHybrid {
     release_tolerance_m: Option<f64>,
     max_active_particles: Option<i64>,
     contact_stiffness_n_per_m: Option<f64>,
+    contact_stiffness_pa_per_m: Option<f64>,
     mass_scale: Option<f64>,
     core_mass_scale: Option<RawCoreMassScale>,
     scaled_motion: Option<String>,
@@ -183,6 +184,12 @@ fn hybrid_params(h: &RawHybrid, mesh: &HybridMesh) -> Result<HybridParams, Model
         .map_or(Ok(d.inactive_layer), InactiveLayer::parse)?;
     let core_order = core_order(mesh)?;
     let meshfree = meshfree_params(h, &d.meshfree)?;
+    if h.contact_stiffness_n_per_m.is_some() && h.contact_stiffness_pa_per_m.is_some() {
+        return Err(ModelError::field(
+            "hybrid.contact_stiffness_pa_per_m",
+            "give the probe's penalty either per particle (contact_stiffness_n_per_m) or per area (contact_stiffness_pa_per_m), not both",
+        ));
+    }
     let opt_int = |field: &str, v: Option<i64>, default: usize, lo: i64, hi: i64| {
         v.map_or(Ok(default), |v| int_in(field, v, lo, hi))
     };
@@ -209,6 +216,7 @@ fn hybrid_params(h: &RawHybrid, mesh: &HybridMesh) -> Result<HybridParams, Model
         contact_stiffness_n_per_m: h
             .contact_stiffness_n_per_m
             .unwrap_or(d.contact_stiffness_n_per_m),
+        contact_stiffness_pa_per_m: h.contact_stiffness_pa_per_m,
         mass_scale: h.mass_scale.unwrap_or(d.mass_scale),
         core_mass_scale: match &h.core_mass_scale {
             None => CoreMassScale::Uniform,

@@ -25,6 +25,7 @@ use super::stencil::StencilGrid;
 use crate::ModelError;
 use crate::material::stvk::{green_strain, stvk_energy_density, stvk_stress};
 use crate::material::{energy_density, first_piola};
+use crate::pool::TickPool;
 use crate::simd::Avx2Fma;
 
 /// The energy terms of a set of particles (module documentation), sized once.
@@ -177,6 +178,13 @@ impl TermBlock {
         self.use_stencil = on;
     }
 
+    /// Cuts the stencil loop of later evaluations into `parts` parts (at least 1), for a tick
+    /// pool of that many threads ([`Self::write_forces_in`]). Set-up, not a tick: allocates
+    /// the parts' force buffers.
+    pub fn set_parts(&mut self, parts: usize) {
+        self.stencil.set_parts(parts);
+    }
+
     /// Whether the last force evaluation ran the stencil loop, with its grid cells and groups
     /// of four lanes (`None`: the general loop ran).
     pub fn stencil_layout(&self) -> Option<(usize, usize)> {
@@ -287,7 +295,7 @@ impl TermBlock {
     /// `f`, both indexed by particle (length at least the cloud's particle count).
     /// Allocation-free.
     pub fn add_forces(&mut self, cloud: &ParticleCloud, x: &[DVec3], f: &mut [DVec3]) {
-        if self.stencil_forces(cloud, x, f, true) {
+        if self.stencil_forces(None, cloud, x, f, true) {
             return;
         }
         self.local_forces(cloud, x);
@@ -301,7 +309,21 @@ impl TermBlock {
     /// are left alone): zeroing those entries and [`Self::add_forces`] in one pass.
     /// Allocation-free.
     pub fn write_forces(&mut self, cloud: &ParticleCloud, x: &[DVec3], f: &mut [DVec3]) {
-        if self.stencil_forces(cloud, x, f, false) {
+        self.write_forces_in(None, cloud, x, f);
+    }
+
+    /// [`Self::write_forces`] with the stencil loop's groups cut into the parts of
+    /// [`Self::set_parts`] on `pool` (issue 48; the general loop stays serial). One part is
+    /// [`Self::write_forces`] bit for bit; more parts sum each particle's force over the parts
+    /// (round-off apart). Allocation-free.
+    pub fn write_forces_in(
+        &mut self,
+        pool: Option<&TickPool>,
+        cloud: &ParticleCloud,
+        x: &[DVec3],
+        f: &mut [DVec3],
+    ) {
+        if self.stencil_forces(pool, cloud, x, f, false) {
             return;
         }
         self.local_forces(cloud, x);
@@ -314,6 +336,7 @@ impl TermBlock {
     /// rebuilt if the terms changed); false (nothing done) when the general loop must run.
     fn stencil_forces(
         &mut self,
+        pool: Option<&TickPool>,
         cloud: &ParticleCloud,
         x: &[DVec3],
         f: &mut [DVec3],
@@ -338,7 +361,7 @@ impl TermBlock {
         if self.stencil_state != StencilState::Ready {
             return false;
         }
-        self.stencil.forces(cloud.material(), x, f, add);
+        self.stencil.forces_in(pool, cloud.material(), x, f, add);
         true
     }
 

@@ -50,6 +50,8 @@
 //! Neighbours: data from [`mod@super::prepare`]; forces from [`crate::meshfree::block`] and
 //! [`crate::element::FemModel`].
 
+use std::sync::Arc;
+
 use glam::DVec3;
 
 use super::implicit::ImplicitCore;
@@ -64,6 +66,7 @@ use crate::body::{
 use crate::contact::probe::ProbeParams;
 use crate::element::FemModel;
 use crate::meshfree::TermBlock;
+use crate::pool::TickPool;
 
 mod diagnostics;
 mod regions;
@@ -189,6 +192,9 @@ struct HybridPipeline {
     /// The core nodes and tie weights of each particle of `active_list`, copied when the terms
     /// are refilled (deviation mode).
     active_ties: Vec<TieNodes>,
+    /// The session's tick pool ([`SoftBody::set_tick_pool`]): the terms' stencil loop runs in
+    /// its parts (issue 48). `None`: one part, the one-core tick.
+    pool: Option<Arc<TickPool>>,
 }
 
 /// Work arrays, sized at build and overwritten.
@@ -520,6 +526,18 @@ impl SoftBody for HybridBody {
             probe_radius_m: self.setup.probe.radius_m,
             point_loads: crate::body::PointLoadZone::Anywhere,
         }
+    }
+
+    /// Two: the terms' stencil loop, the largest share of the tick (docs/benchmarks.md), runs
+    /// in two parts.
+    fn wants_threads(&self) -> usize {
+        2
+    }
+
+    /// Cuts the terms' stencil loop into `pool.threads()` parts.
+    fn set_tick_pool(&mut self, pool: Arc<TickPool>) {
+        self.pipeline.block.set_parts(pool.threads());
+        self.pipeline.pool = Some(pool);
     }
 }
 

@@ -70,7 +70,7 @@ impl HybridBody {
                 proxy: ParticleProxy::new(
                     &probe,
                     params.meshfree.spacing_m,
-                    params.contact_stiffness_n_per_m,
+                    params.particle_contact_stiffness_n_per_m(),
                     &model.contact_skin_m(),
                     most_active,
                 ),
@@ -99,6 +99,7 @@ impl HybridBody {
                 implicit: None,
                 tied_ties: Vec::with_capacity(3 * capacity),
                 active_ties: Vec::with_capacity(most_active),
+                pool: None,
             },
             scratch: HybridScratch {
                 fc: vec![DVec3::ZERO; nc],
@@ -169,7 +170,7 @@ impl HybridBody {
     pub(super) fn verify_coupled_step(&mut self) -> Result<(), ModelError> {
         let params = self.model.params;
         let beta = viscous_beta_s(self.fem.material());
-        let k_over_m = params.contact_stiffness_n_per_m / self.setup.particle_mass_kg;
+        let k_over_m = params.particle_contact_stiffness_n_per_m() / self.setup.particle_mass_kg;
         let outer = &self.model.outer_rest_m;
         let extreme = |key: &dyn Fn(DVec3) -> f64| {
             (0..outer.len()).max_by(|&a, &b| key(outer[a]).total_cmp(&key(outer[b])))
@@ -243,7 +244,7 @@ impl HybridSetup {
         let particle_mass_kg = model.cloud.mass_kg() * params.mass_scale;
         // Elastic part scales with 1/mass; the probe penalty adds k / m to the eigenvalue bound.
         let lambda_el = (2.0 / model.particle_dt_s).powi(2) / params.mass_scale;
-        let lambda = lambda_el + params.contact_stiffness_n_per_m / particle_mass_kg;
+        let lambda = lambda_el + params.particle_contact_stiffness_n_per_m() / particle_mass_kg;
         let particle_dt = 2.0 / lambda.sqrt();
         let substeps_for = |dt_s: f64| (tick_s / (params.safety_factor * dt_s)).ceil().max(1.0);
         // The largest eigenvalue of M^-1 K at the real masses; a uniform mass scale divides it.

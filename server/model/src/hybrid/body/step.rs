@@ -1,7 +1,7 @@
 //! The energy terms of the active set and the particle steps: forces on the particles and the
 //! core, the update (module documentation of [`super`], a tick's step 2).
 
-use super::HybridBody;
+use super::{HybridBody, HybridPipeline};
 use crate::ModelError;
 use crate::body::{SoftBody, TickInput};
 use crate::hybrid::proxy::ProxyContact;
@@ -172,9 +172,13 @@ impl HybridBody {
                 self.state.xp[p as usize] = t.interpolate(xc) + self.state.xd[p as usize];
             }
         }
-        self.pipeline
-            .block
-            .write_forces(&m.cloud, &self.state.xp, &mut self.scratch.fp);
+        let HybridPipeline { block, pool, .. } = &mut self.pipeline;
+        block.write_forces_in(
+            pool.as_deref(),
+            &m.cloud,
+            &self.state.xp,
+            &mut self.scratch.fp,
+        );
         let contact = match probe_m {
             Some(device) => self.state.proxy.update(
                 device,

@@ -3,11 +3,13 @@
 //! stress and pass 2 (forces onto the grid), with its lane helpers, written once over
 //! [`Lanes4`] and compiled plain and for AVX2 + FMA.
 
+use std::ops::Range;
+
 use glam::{DMat3, DVec3};
 
 use super::layout::{GroupRest, LaneRest, StencilLayout};
 use super::offsets::Stencil;
-use super::{CUBE, CUBE_CLASS, GridBuffers, MAX_PAIRS};
+use super::{CUBE, CUBE_CLASS, MAX_PAIRS};
 use crate::material::stvk::{green_strain, stvk_stress};
 use crate::material::{MaterialModel, MaterialParams, first_piola};
 use crate::meshfree::cloud::{MAX_STENCIL, outer};
@@ -106,10 +108,18 @@ pub(super) fn group_loop_avx2(
     isa: Avx2Fma,
     st: &Stencil,
     lay: &StencilLayout,
-    buf: &mut GridBuffers,
+    part: GroupPart<'_>,
     mat: &MaterialParams,
 ) {
-    group_loop::<Ymm>(isa, st, lay, buf, mat);
+    group_loop::<Ymm>(isa, st, lay, part, mat);
+}
+
+/// One part of a group loop: the grid positions (x, y, z displacement per cell, shared by
+/// every part), the part's own force buffers (`GridBuffers`' layout) and its groups.
+pub(super) struct GroupPart<'a> {
+    pub(super) pos: [&'a [f64]; 3],
+    pub(super) fc: &'a mut [Vec<f64>; 3],
+    pub(super) groups: Range<usize>,
 }
 
 /// Pass 1's sums of a group: `G` (`ga`), (corrected) `Gb` (`gb`) and `sum_k c_k u_(i+k)`
@@ -128,9 +138,10 @@ pub(super) fn group_loop<V: Lanes4>(
     isa: V::Isa,
     st: &Stencil,
     lay: &StencilLayout,
-    buf: &mut GridBuffers,
+    part: GroupPart<'_>,
     mat: &MaterialParams,
 ) {
+    let GroupPart { pos, fc, groups } = part;
     let stvk = mat.model == MaterialModel::StVenantKirchhoff;
     let nk = lay.off.len();
     assert!(nk <= MAX_STENCIL && st.w.len() == nk && st.c.len() == nk && st.u.len() == nk);
@@ -138,22 +149,28 @@ pub(super) fn group_loop<V: Lanes4>(
     // Pass 2's `(N - beta F) w_k` of each pair, written before it is read.
     assert!(lay.pairs.len() <= MAX_PAIRS);
     let mut ah = [[zero; 3]; MAX_PAIRS];
-    for (g, &base) in lay.groups.iter().enumerate() {
+    for (g, &base) in lay
+        .groups
+        .iter()
+        .enumerate()
+        .take(groups.end)
+        .skip(groups.start)
+    {
         let b = base as usize;
         let lanes = &lay.lanes[4 * g..4 * g + 4];
         let own = V::from_array(isa, lay.group_rest[g].own);
         let ui = [
-            V::load(isa, &buf.px, b),
-            V::load(isa, &buf.py, b),
-            V::load(isa, &buf.pz, b),
+            V::load(isa, pos[0], b),
+            V::load(isa, pos[1], b),
+            V::load(isa, pos[2], b),
         ];
-        let sums = pass_one(isa, st, lay, buf, b);
+        let sums = pass_one(isa, st, lay, pos, b);
         let out = if st.seed || stvk {
             stress_stvk(isa, st, &lay.group_rest[g], &sums, ui, own, mat)
         } else {
             stress_per_lane(isa, st, lanes, &sums, ui, mat)
         };
-        pass_two_group(isa, st, lay, buf, b, own, ui, &out, &mut ah);
+        pass_two_group(isa, st, lay, (pos, &mut *fc), b, own, ui, &out, &mut ah);
     }
 }
 
@@ -167,11 +184,11 @@ fn pass_one<V: Lanes4>(
     isa: V::Isa,
     st: &Stencil,
     lay: &StencilLayout,
-    buf: &GridBuffers,
+    pos: [&[f64]; 3],
     b: usize,
 ) -> PassOne<V> {
     let (seed, zero) = (st.seed, V::zero(isa));
-    let (px, py, pz) = (&buf.px[..], &buf.py[..], &buf.pz[..]);
+    let [px, py, pz] = pos;
     let mut ga = [zero; 9];
     let mut gb = [zero; 9];
     let mut cu = [zero; 3];
@@ -503,7 +520,7 @@ fn pass_two_group<V: Lanes4>(
     isa: V::Isa,
     st: &Stencil,
     lay: &StencilLayout,
-    buf: &mut GridBuffers,
+    (pos, fc): ([&[f64]; 3], &mut [Vec<f64>; 3]),
     b: usize,
     own: V,
     ui: [V; 3],
@@ -511,7 +528,7 @@ fn pass_two_group<V: Lanes4>(
     ah: &mut [[V; 3]; MAX_PAIRS],
 ) {
     let seed = st.seed;
-    let GridBuffers { px, py, pz, fc, .. } = buf;
+    let [px, py, pz] = pos;
     let (nm, fm, ov) = out;
     let ncl = class_matrices(nm, fm, &st.classes, seed, isa);
     if st.cube {
@@ -666,7 +683,7 @@ fn cube_column_sum<V: Lanes4>(m: &[V; 9], e: [i32; 3], r: usize) -> V {
 /// zero of the stencil is known at compile time. `cko`: `c_k` per class on owner lanes
 /// ([`cube_hourglass`]); `cui`: `c_k u_i` per class and component (corrected). Each entry
 /// of offset `dx` along the vector axis is subtracted at its row's chunk of four cells in the
-/// forces of that offset (interleaved in `f`, [`GridBuffers`]' `fc`): aligned whole-chunk
+/// forces of that offset (interleaved in `f`, [`super::GridBuffers`]' `fc`): aligned whole-chunk
 /// read-modify-writes, no shift across lanes.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)] // the loop's state, split out of one function
@@ -801,7 +818,7 @@ fn pass_one_cube<V: Lanes4>(
 /// subtracted at the neighbour, the owner's force `ol` added at the owner; the three offsets
 /// of a row along the vector axis are combined into whole aligned chunks of four cells first
 /// (a store that a later load overlaps only partly stalls the core), written into the forces
-/// of offset 0 in `f` (interleaved, [`GridBuffers`]' `fc`).
+/// of offset 0 in `f` (interleaved, [`super::GridBuffers`]' `fc`).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)] // the loop's state, split out of one function
 fn pass_two<V: Lanes4>(

@@ -288,7 +288,7 @@ impl StencilLayout {
         for a in [&mut buf.px, &mut buf.py, &mut buf.pz, &mut buf.occ] {
             a[..cells].fill(0.0);
         }
-        for a in &mut buf.fc {
+        for a in buf.fc.iter_mut().flatten() {
             a[..3 * cells].fill(0.0);
         }
         for (l, &p) in particles.iter().enumerate() {

@@ -44,12 +44,13 @@ use glam::{DMat3, DVec3};
 
 use super::cloud::ParticleCloud;
 use crate::material::MaterialParams;
+use crate::pool::TickPool;
 use crate::simd::{Avx2Fma, Plain4};
 
 mod group;
 mod layout;
 mod offsets;
-use group::{cube_force_at, group_loop};
+use group::{GroupPart, cube_force_at, group_loop};
 use layout::StencilLayout;
 use offsets::Stencil;
 
@@ -89,8 +90,10 @@ struct GridBuffers {
     /// owner's cell (the cube loop: no shift across lanes; the pair loops write offset 0
     /// only, shifted) and interleaved by chunk of four cells: chunk `c` holds `fm`, `f0`, `fp`
     /// of its four cells at `12 c + 4 (dx + 1)`; the force on cell `i` is
-    /// `f0[i] + fm[i + 1] + fp[i - 1]` ([`cube_force_at`]).
-    fc: [Vec<f64>; 3],
+    /// `f0[i] + fm[i + 1] + fp[i - 1]` ([`cube_force_at`]). One set per part of the
+    /// evaluation (issue 48: the groups cut into the tick pool's parts, each adding into its
+    /// own set; the force on a cell is the sum over the sets); one set: the one-core loop.
+    fc: Vec<[Vec<f64>; 3]>,
 }
 
 impl GridBuffers {
@@ -101,12 +104,17 @@ impl GridBuffers {
             py: vec![0.0; capacity_cells],
             pz: vec![0.0; capacity_cells],
             occ: vec![0.0; capacity_cells],
-            fc: [
-                vec![0.0; 3 * capacity_cells],
-                vec![0.0; 3 * capacity_cells],
-                vec![0.0; 3 * capacity_cells],
-            ],
+            fc: vec![Self::force_set(capacity_cells)],
         }
+    }
+
+    /// One zeroed set of force buffers for `capacity_cells` cells.
+    fn force_set(capacity_cells: usize) -> [Vec<f64>; 3] {
+        [
+            vec![0.0; 3 * capacity_cells],
+            vec![0.0; 3 * capacity_cells],
+            vec![0.0; 3 * capacity_cells],
+        ]
     }
 }
 
@@ -165,6 +173,16 @@ impl StencilGrid {
         self.layout.fast_axis = Some(axis);
     }
 
+    /// Cuts every later evaluation's groups into `parts` parts (at least 1), each with its own
+    /// force buffers, for a tick pool of `parts` threads ([`Self::forces_in`]). Set-up, not a
+    /// tick: allocates the buffers of the new parts.
+    pub(crate) fn set_parts(&mut self, parts: usize) {
+        let capacity = self.buffers.px.len();
+        self.buffers
+            .fc
+            .resize_with(parts.max(1), || GridBuffers::force_set(capacity));
+    }
+
     /// Grid cells in use and groups of four lanes (for studies of the lane occupancy).
     pub(crate) fn size(&self) -> (usize, usize) {
         (self.layout.cells, self.layout.groups.len())
@@ -192,9 +210,19 @@ impl StencilGrid {
 
     /// The terms' forces (N) at positions `x` (m, by global particle) written (`add`: added)
     /// into `f` (by global particle) for every touched particle, in the AVX2 + FMA build
-    /// where the CPU has it. The grid holds displacements from the rest positions of the
-    /// cloud the grid was built with (zero in empty cells).
-    pub(crate) fn forces(&mut self, mat: &MaterialParams, x: &[DVec3], f: &mut [DVec3], add: bool) {
+    /// where the CPU has it, the groups cut into the parts of [`Self::set_parts`] and run on
+    /// `pool` (serially without one). The grid holds displacements from the rest positions of
+    /// the cloud the grid was built with (zero in empty cells). One part is the one-core loop
+    /// bit for bit; more parts sum each cell's force over the parts (round-off apart).
+    /// Allocation-free.
+    pub(crate) fn forces_in(
+        &mut self,
+        pool: Option<&TickPool>,
+        mat: &MaterialParams,
+        x: &[DVec3],
+        f: &mut [DVec3],
+        add: bool,
+    ) {
         let Self {
             stencil,
             layout,
@@ -207,30 +235,52 @@ impl StencilGrid {
             buf.py[i] = xp.y;
             buf.pz[i] = xp.z;
         }
-        let [f0, f1, f2] = &mut buf.fc;
-        for &c in &layout.write_chunks {
-            let c = 3 * c as usize;
-            for a in [&mut *f0, &mut *f1, &mut *f2] {
-                a[c..c + 12].fill(0.0);
-            }
-        }
+        let pos = [&buf.px[..], &buf.py[..], &buf.pz[..]];
+        let (parts, groups) = (buf.fc.len(), layout.groups.len());
         #[cfg(target_arch = "x86_64")]
-        if let Some(isa) = self.isa {
-            // SAFETY: the token.
-            unsafe { group::group_loop_avx2(isa, stencil, layout, buf, mat) };
-        } else {
-            group_loop::<Plain4>((), stencil, layout, buf, mat);
+        let isa = self.isa;
+        let (st, lay) = (&*stencil, &*layout);
+        let part = |k: usize, fc: &mut [Vec<f64>; 3]| {
+            for &c in &lay.write_chunks {
+                let c = 3 * c as usize;
+                for a in fc.iter_mut() {
+                    a[c..c + 12].fill(0.0);
+                }
+            }
+            let part = GroupPart {
+                pos,
+                fc,
+                groups: groups * k / parts..groups * (k + 1) / parts,
+            };
+            #[cfg(target_arch = "x86_64")]
+            if let Some(isa) = isa {
+                // SAFETY: the token.
+                unsafe { group::group_loop_avx2(isa, st, lay, part, mat) };
+            } else {
+                group_loop::<Plain4>((), st, lay, part, mat);
+            }
+            #[cfg(not(target_arch = "x86_64"))]
+            group_loop::<Plain4>((), st, lay, part, mat);
+        };
+        match pool {
+            Some(pool) if parts > 1 => pool.for_each_mut(&mut buf.fc, &part),
+            _ => buf
+                .fc
+                .iter_mut()
+                .enumerate()
+                .for_each(|(k, fc)| part(k, fc)),
         }
-        #[cfg(not(target_arch = "x86_64"))]
-        group_loop::<Plain4>((), stencil, layout, buf, mat);
         for &(p, i) in &layout.by_particle {
             let i = i as usize;
-            let fc = &buf.fc;
-            let fi = DVec3::new(
-                cube_force_at(&fc[0], i),
-                cube_force_at(&fc[1], i),
-                cube_force_at(&fc[2], i),
-            );
+            let mut fi = DVec3::ZERO;
+            for (k, fc) in buf.fc.iter().enumerate() {
+                let fk = DVec3::new(
+                    cube_force_at(&fc[0], i),
+                    cube_force_at(&fc[1], i),
+                    cube_force_at(&fc[2], i),
+                );
+                fi = if k == 0 { fk } else { fi + fk };
+            }
             if add {
                 f[p as usize] += fi;
             } else {
