@@ -36,6 +36,7 @@ use crate::element::FemModel;
 use crate::linalg::ordering::{SparseCholesky, symbolic_cholesky};
 use crate::linalg::supernodal::{HalfFactor, SupernodalSolve};
 use crate::meshfree::cloud::{MAX_STENCIL, TermRest};
+use crate::pool::TickPool;
 
 /// The largest relative difference allowed between the half-precision sweep's solve and the
 /// double-precision factor's on a test right-hand side; above it the step keeps faer's solve.
@@ -557,6 +558,28 @@ impl ImplicitCore {
     /// matrix was built with. Updates `v` and `x`; returns the largest squared speed (NaN if
     /// not finite).
     pub fn step(&mut self, mass_kg: &[f64], f: &[DVec3], x: &mut [DVec3], v: &mut [DVec3]) -> f64 {
+        self.step_in(None, mass_kg, f, x, v)
+    }
+
+    /// Cuts the frozen matrix's half-precision sweep in two for a tick pool of `parts` threads
+    /// when its elimination tree forks in balanced halves
+    /// ([`SupernodalSolve::set_parts`]); returns whether it did. Set-up, not a tick.
+    pub fn set_parts(&mut self, parts: usize) -> bool {
+        self.frozen
+            .as_mut()
+            .is_some_and(|f| f.sweep.set_parts(parts))
+    }
+
+    /// [`Self::step`] with the frozen sweep's halves on `pool` ([`Self::set_parts`];
+    /// [`SupernodalSolve::solve_in_place_in`]). Allocation-free.
+    pub fn step_in(
+        &mut self,
+        pool: Option<&TickPool>,
+        mass_kg: &[f64],
+        f: &[DVec3],
+        x: &mut [DVec3],
+        v: &mut [DVec3],
+    ) -> f64 {
         let h = self.h_s;
         for (i, ((m, f), v)) in mass_kg.iter().zip(f).zip(v.iter()).enumerate() {
             let r = *v * *m + *f * h;
@@ -570,7 +593,9 @@ impl ImplicitCore {
             for (s, r) in frozen.rhs.iter_mut().zip(&self.rhs) {
                 *s = *r as f32;
             }
-            frozen.sweep.solve_in_place(&frozen.half, &mut frozen.rhs);
+            frozen
+                .sweep
+                .solve_in_place_in(pool, &frozen.half, &mut frozen.rhs);
             for (r, s) in self.rhs.iter_mut().zip(&frozen.rhs) {
                 *r = f64::from(*s);
             }

@@ -30,6 +30,7 @@
 
 use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw};
 
+use crate::pool::TickPool;
 use crate::simd::Avx2FmaF16c;
 
 /// The supernodal structure of a factor in the form the sweep reads, with its workspace.
@@ -54,6 +55,25 @@ pub struct SupernodalSolve {
     y2: Vec<f32>,
     /// The AVX2 + FMA + F16C token when the CPU has them (the sweep runs that build then).
     f16c: Option<Avx2FmaF16c>,
+    /// The elimination tree cut in two for [`Self::solve_in_place_in`] ([`Self::set_parts`]).
+    split: Option<TreeSplit>,
+}
+
+/// The supernodes cut into two groups of whole subtrees, `a = 0..b_start` and
+/// `b = b_start..top_start`, below their common ancestors `top_start..` (issue 48): the rows
+/// of a supernode of `a` lie in the columns of `a` or of the top only, so the two groups'
+/// sweeps touch disjoint parts of the right-hand side except the top's rows, which the second
+/// group's forward sweep adds into its own copy.
+#[derive(Debug, Clone)]
+struct TreeSplit {
+    b_start: usize,
+    top_start: usize,
+    /// First column of `b` and of the top.
+    col_b: usize,
+    col_top: usize,
+    /// The second group's right-hand side (its columns and the top's rows) and column block.
+    xb: Vec<f32>,
+    yb: Vec<f32>,
 }
 
 /// Rows per block of a [`HalfFactor`] panel (one AVX2 register of `f32`), and columns per
@@ -185,7 +205,32 @@ impl SupernodalSolve {
             x2: vec![0.0; n],
             y2: vec![0.0; widest + HALF_PAD],
             f16c: Avx2FmaF16c::detect(),
+            split: None,
         })
+    }
+
+    /// Cuts later [`Self::solve_in_place_in`] sweeps into two groups of subtrees when `parts`
+    /// is at least 2 and the elimination tree has a fork whose two sides each hold at least
+    /// a quarter of the factor below ancestors holding at most a third ([`TreeSplit`]);
+    /// otherwise (or with `parts` 1) the sweep stays whole. Set-up, not a tick: allocates.
+    /// Returns whether the sweep is cut.
+    pub fn set_parts(&mut self, parts: usize) -> bool {
+        self.split = if parts >= 2 {
+            tree_split(&self.nodes, &self.rows, self.len_val).map(|(b_start, top_start)| {
+                let col = |k: usize| self.nodes[k][0] as usize;
+                TreeSplit {
+                    b_start,
+                    top_start,
+                    col_b: col(b_start),
+                    col_top: col(top_start),
+                    xb: vec![0.0; self.x.len()],
+                    yb: vec![0.0; self.y.len()],
+                }
+            })
+        } else {
+            None
+        };
+        self.split.is_some()
     }
 
     /// Number of stored factor values (faer's supernodal layout).
@@ -304,30 +349,86 @@ impl SupernodalSolve {
     /// # Panics
     /// If `b` has the wrong length or `factor` another structure.
     pub fn solve_in_place(&mut self, factor: &HalfFactor, b: &mut [f32]) {
+        self.solve_in_place_in(None, factor, b);
+    }
+
+    /// [`Self::solve_in_place`] with the sweeps' two groups of subtrees (when
+    /// [`Self::set_parts`] cut them) on the caller and a worker of `pool` (serially without
+    /// one); the common ancestors before (backward) or after (forward) them on the caller.
+    /// Uncut, or without a pool, it is [`Self::solve_in_place`] bit for bit; cut, the top's
+    /// rows sum the second group's updates separately (single-precision round-off apart).
+    /// Allocation-free.
+    ///
+    /// # Panics
+    /// As [`Self::solve_in_place`].
+    pub fn solve_in_place_in(
+        &mut self,
+        pool: Option<&TickPool>,
+        factor: &HalfFactor,
+        b: &mut [f32],
+    ) {
         let n = self.x.len();
         assert_eq!(b.len(), n, "right-hand side length");
         assert_eq!(factor.scale.len(), n, "half factor of another structure");
         for ((xk, &f), &s) in self.x.iter_mut().zip(&self.forward).zip(&factor.scale) {
             *xk = b[f as usize] * s;
         }
-        let (nodes, rows) = (&self.nodes, &self.rows);
-        forward_sweep(self.f16c, nodes, rows, factor, [&mut self.x], [&mut self.y]);
-        self.backward_into(factor, b);
+        let Self {
+            nodes,
+            rows,
+            x,
+            y,
+            split,
+            f16c,
+            ..
+        } = self;
+        let (isa, nodes, rows) = (*f16c, &nodes[..], &rows[..]);
+        let (Some(pool), Some(sp)) = (pool, split.as_mut()) else {
+            forward_sweep(isa, nodes, 0, rows, factor, [x], [y]);
+            return self.backward_into(factor, b);
+        };
+        let (b0, t0, cb, ct) = (sp.b_start, sp.top_start, sp.col_b, sp.col_top);
+        sp.xb[cb..ct].copy_from_slice(&x[cb..ct]);
+        sp.xb[ct..].fill(0.0);
+        let (xb, yb) = (&mut sp.xb[..], &mut sp.yb[..]);
+        let (xa, ya) = (&mut x[..], &mut y[..]);
+        pool.join(
+            || forward_sweep(isa, &nodes[..b0], 0, rows, factor, [xa], [ya]),
+            || forward_sweep(isa, &nodes[b0..t0], b0, rows, factor, [xb], [yb]),
+        );
+        x[cb..ct].copy_from_slice(&sp.xb[cb..ct]);
+        for (xk, &d) in x[ct..].iter_mut().zip(&sp.xb[ct..]) {
+            *xk += d;
+        }
+        forward_sweep(
+            isa,
+            &nodes[t0..],
+            t0,
+            rows,
+            factor,
+            [&mut x[..]],
+            [&mut y[..]],
+        );
+        backward_sweep(isa, &nodes[t0..], t0, rows, factor, x, y);
+        sp.xb[ct..].copy_from_slice(&x[ct..]);
+        sp.xb[cb..ct].copy_from_slice(&x[cb..ct]);
+        let (xb, yb) = (&mut sp.xb[..], &mut sp.yb[..]);
+        let (xa, ya) = (&mut x[..], &mut y[..]);
+        pool.join(
+            || backward_sweep(isa, &nodes[..b0], 0, rows, factor, xa, ya),
+            || backward_sweep(isa, &nodes[b0..t0], b0, rows, factor, xb, yb),
+        );
+        x[cb..ct].copy_from_slice(&sp.xb[cb..ct]);
+        for ((&xk, &f), &s) in self.x.iter().zip(&self.forward).zip(&factor.scale) {
+            b[f as usize] = xk * s;
+        }
     }
 
     /// The backward sweep of `self.x` with the CPU's build, then `out = S x` in the original
     /// numbering.
     fn backward_into(&mut self, factor: &HalfFactor, out: &mut [f32]) {
         let (nodes, rows) = (&self.nodes, &self.rows);
-        #[cfg(target_arch = "x86_64")]
-        if let Some(isa) = self.f16c {
-            // SAFETY: the token proves AVX2, FMA and F16C on this CPU.
-            unsafe { backward_avx2(isa, nodes, rows, factor, &mut self.x, &mut self.y) };
-        } else {
-            backward(Portable, nodes, rows, factor, &mut self.x, &mut self.y);
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        backward(Portable, nodes, rows, factor, &mut self.x, &mut self.y);
+        backward_sweep(self.f16c, nodes, 0, rows, factor, &mut self.x, &mut self.y);
         for ((&xk, &f), &s) in self.x.iter().zip(&self.forward).zip(&factor.scale) {
             out[f as usize] = xk * s;
         }
@@ -360,6 +461,7 @@ impl SupernodalSolve {
         forward_sweep(
             self.f16c,
             &self.nodes,
+            0,
             &self.rows,
             factor,
             [&mut self.x, &mut self.x2],
@@ -389,6 +491,71 @@ impl SupernodalSolve {
     }
 }
 
+/// The cut of [`TreeSplit`] for supernodes `nodes` (parents after their children, as faer
+/// stores them in postorder) with pattern `rows` and `len_val` factor values:
+/// `(b_start, top_start)`, or `None` when no fork balances (each side at least a quarter of
+/// the values, the rest at most a third) or the check below fails. The parent of a supernode
+/// is the one holding its smallest pattern row. From the heaviest root (clamped equations
+/// are roots of their own) down through every child holding more than two thirds of its
+/// parent's subtree to the first balanced fork; its child subtrees are cut where the two
+/// sides' values balance best, everything before them joins the first side, the fork and
+/// everything after it is the top. Checked directly, so the sweeps may rely on it: every
+/// pattern row of a supernode before `b_start` lies before the second side's first column
+/// or in the top's columns, and every top supernode's rows lie in the top's columns.
+fn tree_split(nodes: &[[u32; 5]], rows: &[u32], len_val: usize) -> Option<(usize, usize)> {
+    let ns = nodes.len();
+    let cols = nodes.last().map(|n| (n[0] + n[1]) as usize)?;
+    let mut node_of_col = vec![0_usize; cols];
+    for (k, n) in nodes.iter().enumerate() {
+        node_of_col[n[0] as usize..(n[0] + n[1]) as usize].fill(k);
+    }
+    let pattern = |k: usize| &rows[nodes[k][2] as usize..][..nodes[k][3] as usize];
+    let values = |k: usize| {
+        let end = nodes.get(k + 1).map_or(len_val, |n| n[4] as usize);
+        end - nodes[k][4] as usize
+    };
+    let mut children = vec![Vec::new(); ns];
+    let mut roots = Vec::new();
+    let mut subtree: Vec<usize> = (0..ns).map(values).collect();
+    for k in 0..ns {
+        match pattern(k).iter().min() {
+            Some(&r) if node_of_col[r as usize] > k => {
+                let p = node_of_col[r as usize];
+                children[p].push(k);
+                subtree[p] += subtree[k];
+            }
+            Some(_) => return None,
+            None => roots.push(k),
+        }
+    }
+    let mut fork = *roots.iter().max_by_key(|&&k| subtree[k])?;
+    let heaviest = |k: usize| children[k].iter().copied().max_by_key(|&c| subtree[c]);
+    while let Some(c) = heaviest(fork).filter(|&c| 3 * subtree[c] > 2 * subtree[fork]) {
+        fork = c;
+    }
+    let kids = &children[fork];
+    if kids.len() < 2 {
+        return None;
+    }
+    let mut prefix = vec![0_usize; fork + 1];
+    for k in 0..fork {
+        prefix[k + 1] = prefix[k] + values(k);
+    }
+    let below = prefix[fork];
+    let b_start = kids[..kids.len() - 1]
+        .iter()
+        .map(|&c| c + 1)
+        .min_by_key(|&j| prefix[j].abs_diff(below - prefix[j]))?;
+    let (a, b, top) = (prefix[b_start], below - prefix[b_start], len_val - below);
+    if 4 * a.min(b) < len_val || 3 * top > len_val {
+        return None;
+    }
+    let (col_b, col_top) = (nodes[b_start][0], nodes[fork][0]);
+    let a_stays = (0..b_start).all(|k| pattern(k).iter().all(|&r| r < col_b || r >= col_top));
+    let top_stays = (fork..ns).all(|k| pattern(k).iter().all(|&r| r >= col_top));
+    (a_stays && top_stays).then_some((b_start, fork))
+}
+
 /// A supernode's first column, column count, start of its values (in faer's layout) and
 /// pattern rows.
 #[inline(always)]
@@ -402,19 +569,44 @@ fn supernode(node: [u32; 5], rows: &[u32]) -> (usize, usize, usize, &[u32]) {
 fn forward_sweep<const K: usize>(
     isa: Option<Avx2FmaF16c>,
     nodes: &[[u32; 5]],
+    first: usize,
     rows: &[u32],
     factor: &HalfFactor,
     x: [&mut [f32]; K],
     y: [&mut [f32]; K],
 ) {
+    let starts = &factor.node_start[first..first + nodes.len()];
     #[cfg(target_arch = "x86_64")]
     if let Some(isa) = isa {
         // SAFETY: the token proves AVX2, FMA and F16C on this CPU.
-        unsafe { forward_avx2::<K>(isa, nodes, rows, factor, x, y) };
+        unsafe { forward_avx2::<K>(isa, nodes, starts, rows, factor, x, y) };
         return;
     }
     let _ = isa;
-    forward::<Portable, K>(Portable, nodes, rows, factor, x, y);
+    forward::<Portable, K>(Portable, nodes, starts, rows, factor, x, y);
+}
+
+/// [`backward`] of the supernodes `nodes` (the structure's from index `first` on) with the
+/// CPU's build: AVX2 + FMA + F16C with the token.
+#[inline(always)]
+fn backward_sweep(
+    isa: Option<Avx2FmaF16c>,
+    nodes: &[[u32; 5]],
+    first: usize,
+    rows: &[u32],
+    factor: &HalfFactor,
+    x: &mut [f32],
+    y: &mut [f32],
+) {
+    let starts = &factor.node_start[first..=first + nodes.len()];
+    #[cfg(target_arch = "x86_64")]
+    if let Some(isa) = isa {
+        // SAFETY: the token proves AVX2, FMA and F16C on this CPU.
+        unsafe { backward_avx2(isa, nodes, starts, rows, factor, x, y) };
+        return;
+    }
+    let _ = isa;
+    backward(Portable, nodes, starts, rows, factor, x, y);
 }
 
 /// [`forward`] compiled for AVX2 + FMA + F16C (the token).
@@ -423,12 +615,13 @@ fn forward_sweep<const K: usize>(
 fn forward_avx2<const K: usize>(
     isa: Avx2FmaF16c,
     nodes: &[[u32; 5]],
+    starts: &[[u32; 2]],
     rows: &[u32],
     factor: &HalfFactor,
     x: [&mut [f32]; K],
     y: [&mut [f32]; K],
 ) {
-    forward::<Avx2FmaF16c, K>(isa, nodes, rows, factor, x, y);
+    forward::<Avx2FmaF16c, K>(isa, nodes, starts, rows, factor, x, y);
 }
 
 /// [`backward`] compiled for AVX2 + FMA + F16C (the token).
@@ -437,12 +630,13 @@ fn forward_avx2<const K: usize>(
 fn backward_avx2(
     isa: Avx2FmaF16c,
     nodes: &[[u32; 5]],
+    starts: &[[u32; 2]],
     rows: &[u32],
     factor: &HalfFactor,
     x: &mut [f32],
     y: &mut [f32],
 ) {
-    backward(isa, nodes, rows, factor, x, y);
+    backward(isa, nodes, starts, rows, factor, x, y);
 }
 
 /// The forward sweep `L y = b` over the supernodes of a [`HalfFactor`] (module docs) for `K`
@@ -452,12 +646,13 @@ fn backward_avx2(
 fn forward<P: PanelKernel, const K: usize>(
     kernel: P,
     nodes: &[[u32; 5]],
+    starts: &[[u32; 2]],
     rows: &[u32],
     factor: &HalfFactor,
     x: [&mut [f32]; K],
     mut y: [&mut [f32]; K],
 ) {
-    for (&node, &[v_start, t_start]) in nodes.iter().zip(&factor.node_start) {
+    for (&node, &[v_start, t_start]) in nodes.iter().zip(starts) {
         let (c0, nc, _, pattern) = supernode(node, rows);
         let h = nc + pattern.len();
         for k in 0..K {
@@ -514,6 +709,7 @@ fn forward<P: PanelKernel, const K: usize>(
 fn backward<P: PanelKernel>(
     kernel: P,
     nodes: &[[u32; 5]],
+    starts: &[[u32; 2]],
     rows: &[u32],
     factor: &HalfFactor,
     x: &mut [f32],
@@ -529,7 +725,7 @@ fn backward<P: PanelKernel>(
             *yr = unsafe { *x.get_unchecked(r as usize) };
         }
         y[h..].fill(0.0);
-        let [mut v, mut e] = factor.node_start[ni + 1].map(|o| o as usize);
+        let [mut v, mut e] = starts[ni + 1].map(|o| o as usize);
         for panel in panels(nc, h).rev() {
             let Panel { p0, w, blocks, .. } = panel;
             v -= panel.values_len;
@@ -984,5 +1180,95 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The sweep cut in two at a fork of the elimination tree (issue 48): on the grid matrix
+    /// ordered by one level of nested dissection by hand (the halves `i < 4` and `i > 4`, then
+    /// the plane `i = 4`), [`SupernodalSolve::set_parts`] finds the fork; the cut solve on a
+    /// 2-thread pool agrees with the whole sweep to single-precision round-off (1e-5 of the
+    /// largest entry), and without a pool it is the whole sweep bit for bit. One part never
+    /// cuts.
+    #[test]
+    fn the_sweep_cut_at_a_fork_agrees_with_the_whole_sweep() {
+        let n = 9;
+        let a = grid_matrix(n);
+        let m = a.nrows();
+        let planes = (0..n)
+            .filter(|&i| i < 4)
+            .chain((0..n).filter(|&i| i > 4))
+            .chain([4]);
+        let forward: Vec<usize> = planes
+            .flat_map(|i| (0..n * n).map(move |jk| i * n * n + jk))
+            .flat_map(|v| [3 * v, 3 * v + 1, 3 * v + 2])
+            .collect();
+        let mut inverse = vec![0; m];
+        for (k, &i) in forward.iter().enumerate() {
+            inverse[i] = k;
+        }
+        let perm = faer::perm::PermRef::new_checked(&forward, &inverse, m);
+        let symbolic = factorize_symbolic_cholesky(
+            a.symbolic(),
+            Side::Lower,
+            faer::sparse::linalg::cholesky::SymmetricOrdering::Custom(perm),
+            faer::sparse::linalg::cholesky::CholeskySymbolicParams {
+                supernodal_flop_ratio_threshold:
+                    faer::sparse::linalg::SupernodalThreshold::FORCE_SUPERNODAL,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let mut values = vec![0.0f32; symbolic.len_val()];
+        let mut mem = MemBuffer::new(
+            symbolic.factorize_numeric_llt_scratch::<f32>(Par::Seq, Default::default()),
+        );
+        symbolic
+            .factorize_numeric_llt::<f32>(
+                &mut values,
+                a.as_ref(),
+                Side::Lower,
+                Default::default(),
+                Par::Seq,
+                MemStack::new(&mut mem),
+                Default::default(),
+            )
+            .unwrap();
+        let mut whole = SupernodalSolve::new(&symbolic).expect("a supernodal factor");
+        let half = whole.half_factor(&mut values).expect("32-bit offsets");
+        let mut cut = whole.clone();
+        assert!(!whole.set_parts(1), "one part cut the sweep");
+        assert!(cut.set_parts(2), "no fork found");
+        let sp = cut.split.as_ref().expect("cut");
+        eprintln!(
+            "{} supernodes: second side from {}, top from {} (columns {} and {} of {m})",
+            cut.nodes.len(),
+            sp.b_start,
+            sp.top_start,
+            sp.col_b,
+            sp.col_top
+        );
+        let b: Vec<f32> = (0..m)
+            .map(|i| ((i * 37 % 101) as f32 - 50.0) / 17.0)
+            .collect();
+        let mut x_whole = b.clone();
+        whole.solve_in_place(&half, &mut x_whole);
+        let mut x_serial = b.clone();
+        cut.solve_in_place_in(None, &half, &mut x_serial);
+        assert_eq!(
+            x_serial, x_whole,
+            "without a pool the cut sweep is not the whole one"
+        );
+        let pool = TickPool::new(1, std::sync::Arc::new(|_| {})).expect("pool");
+        for _ in 0..50 {
+            let mut x_cut = b.clone();
+            cut.solve_in_place_in(Some(&pool), &half, &mut x_cut);
+            let largest = x_whole.iter().fold(0.0f32, |s, v| s.max(v.abs()));
+            let worst = x_whole
+                .iter()
+                .zip(&x_cut)
+                .fold(0.0f32, |s, (p, q)| s.max((p - q).abs()));
+            assert!(worst <= 1e-5 * largest, "{worst} against {largest}");
+        }
+        // Which thread ran the second half is the scheduler's business (both orders agree).
+        eprintln!("pool {:?}", pool.stats());
     }
 }

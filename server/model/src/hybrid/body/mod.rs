@@ -534,9 +534,13 @@ impl SoftBody for HybridBody {
         2
     }
 
-    /// Cuts the terms' stencil loop into `pool.threads()` parts.
+    /// Cuts the terms' stencil loop into `pool.threads()` parts, and the implicit core's
+    /// sweep in two where its elimination tree forks in balanced halves.
     fn set_tick_pool(&mut self, pool: Arc<TickPool>) {
         self.pipeline.block.set_parts(pool.threads());
+        if let Some((core, _)) = &mut self.pipeline.implicit {
+            core.set_parts(pool.threads());
+        }
         self.pipeline.pool = Some(pool);
     }
 }

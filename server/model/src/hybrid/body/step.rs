@@ -262,10 +262,12 @@ impl HybridBody {
             // Elastic and coupling forces; the viscous operator is in the frozen matrix.
             self.scratch.fc.copy_from_slice(&self.scratch.fcoup);
             self.add_fem_forces(false);
-            let Some((core, _)) = &mut self.pipeline.implicit else {
+            let HybridPipeline { implicit, pool, .. } = &mut self.pipeline;
+            let Some((core, _)) = implicit else {
                 unreachable!("checked above")
             };
-            let v2 = core.step(
+            let v2 = core.step_in(
+                pool.as_deref(),
                 self.fem.lumped_mass_kg(),
                 &self.scratch.fc,
                 &mut self.state.xc,
