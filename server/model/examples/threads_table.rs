@@ -134,7 +134,9 @@ fn main() -> Result<(), String> {
 /// Medians over the rounds per scene and thread count, and the p50 speed-up.
 fn summary(scenes: &[Scene], threads: &[usize], runs: &[Vec<Vec<Run>>]) {
     println!();
-    println!("| scene | threads | p50 median | p99 median | set-up median | over 1 ms (median) | p50 speed-up |");
+    println!(
+        "| scene | threads | p50 median | p99 median | set-up median | over 1 ms (median) | p50 speed-up |"
+    );
     println!("|---|---|---|---|---|---|---|");
     for (scene, per_threads) in scenes.iter().zip(runs) {
         let median = |rs: &[Run], f: &dyn Fn(&Run) -> f64| {

@@ -205,6 +205,11 @@ struct HybridScratch {
     /// Forces of the tied particles and point loads on the core nodes, held over a particle
     /// step, N.
     fcoup: Vec<DVec3>,
+    /// The FEM's elastic forces (less the layer's replaced shares) at the core's positions,
+    /// computed on a pool worker beside the proxy and the ties (two threads, implicit core);
+    /// `ffem_ready` until [`HybridBody::update`] has used them.
+    ffem: Vec<DVec3>,
+    ffem_ready: bool,
     /// The regions whose condensed stiffness the implicit core's matrix holds: the active ones
     /// and their neighbours (`region_mark` flags them).
     matrix_regions: Vec<u32>,

@@ -105,6 +105,8 @@ impl HybridBody {
                 fc: vec![DVec3::ZERO; nc],
                 fp: vec![DVec3::ZERO; n],
                 fcoup: vec![DVec3::ZERO; nc],
+                ffem: vec![DVec3::ZERO; nc],
+                ffem_ready: false,
                 matrix_regions: Vec::with_capacity(nv),
                 region_mark: vec![false; nv],
                 candidates: Vec::with_capacity(nv),

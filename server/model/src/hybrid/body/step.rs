@@ -1,10 +1,11 @@
 //! The energy terms of the active set and the particle steps: forces on the particles and the
 //! core, the update (module documentation of [`super`], a tick's step 2).
 
-use super::{HybridBody, HybridPipeline};
+use super::{HybridBody, HybridPipeline, PointLoad};
 use crate::ModelError;
 use crate::body::{SoftBody, TickInput};
-use crate::hybrid::proxy::ProxyContact;
+use crate::hybrid::prepare::{HybridModel, TieNodes};
+use crate::hybrid::proxy::{ParticleProxy, ProxyContact};
 use crate::integrate::IntegratorKind;
 use crate::integrate::explicit::integrate_nodes;
 use glam::DVec3;
@@ -179,52 +180,48 @@ impl HybridBody {
             &self.state.xp,
             &mut self.scratch.fp,
         );
-        let contact = match probe_m {
-            Some(device) => self.state.proxy.update(
-                device,
-                &self.state.xp,
-                &self.regions.active_list,
-                Some(&mut self.scratch.fp),
-            ),
-            None => ProxyContact {
-                force_on_device_n: DVec3::ZERO,
-                stiffness_n_per_m: [0.0; 9],
-                proxy_m: DVec3::ZERO,
-                in_contact: false,
-            },
+        let scatter = TieScatter {
+            proxy: &mut self.state.proxy,
+            xp: &self.state.xp,
+            active: &self.regions.active_list,
+            tied: &self.regions.tied_list,
+            tied_ties: &self.pipeline.tied_ties,
+            active_ties: &self.pipeline.active_ties,
+            loads: &self.state.loads[..self.state.load_count],
+            model: &self.model,
+            fp: &mut self.scratch.fp,
+            fcoup: &mut self.scratch.fcoup,
+            deviation: self.setup.deviation,
         };
-        self.scratch.fcoup.iter_mut().for_each(|f| *f = DVec3::ZERO);
-        for (&q, t) in self.regions.tied_list.iter().zip(&self.pipeline.tied_ties) {
-            let f = self.scratch.fp[q as usize];
-            for k in 0..t.len {
-                self.scratch.fcoup[t.nodes[k] as usize] += f * t.w[k];
-            }
-        }
-        if self.setup.deviation {
-            // `d x_p / d x_k = w_pk`: the active particles' forces drive the core too.
-            for (&p, t) in self
-                .regions
-                .active_list
-                .iter()
-                .zip(&self.pipeline.active_ties)
-            {
-                let f = self.scratch.fp[p as usize];
-                for k in 0..t.len {
-                    self.scratch.fcoup[t.nodes[k] as usize] += f * t.w[k];
+        let beside = self
+            .pipeline
+            .pool
+            .as_deref()
+            .filter(|p| p.threads() > 1 && self.pipeline.implicit.is_some());
+        let Some(pool) = beside else {
+            return scatter.run(probe_m);
+        };
+        // Two threads: the FEM's forces for the implicit step (they read the core's positions
+        // only) on the worker, beside the proxy and the ties.
+        let (fem, layer, xc) = (&self.fem, &self.pipeline.layer, &self.state.xc);
+        let ffem = &mut self.scratch.ffem;
+        let (contact, ()) = pool.join(
+            || scatter.run(probe_m),
+            || {
+                ffem.iter_mut().for_each(|f| *f = DVec3::ZERO);
+                fem.add_internal_forces(xc, None, ffem);
+                if let Some(layer) = layer {
+                    layer.subtract_forces(fem, xc, None, ffem);
                 }
-            }
-        }
-        for l in &self.state.loads[..self.state.load_count] {
-            let t = m.tie_nodes(&l.tie);
-            for k in 0..t.len {
-                self.scratch.fcoup[t.nodes[k] as usize] += l.force_n * t.w[k];
-            }
-        }
+            },
+        );
+        self.scratch.ffem_ready = true;
         contact
     }
 
     /// Core forces: the coupling buffer plus the FEM's internal (elastic and viscous) forces.
     pub(super) fn core_forces(&mut self) {
+        self.scratch.ffem_ready = false;
         self.scratch.fc.copy_from_slice(&self.scratch.fcoup);
         self.add_fem_forces(true);
     }
@@ -260,8 +257,15 @@ impl HybridBody {
         let mut non_finite = false;
         if self.pipeline.implicit.is_some() {
             // Elastic and coupling forces; the viscous operator is in the frozen matrix.
-            self.scratch.fc.copy_from_slice(&self.scratch.fcoup);
-            self.add_fem_forces(false);
+            if std::mem::take(&mut self.scratch.ffem_ready) {
+                let sc = &mut self.scratch;
+                for ((fc, &coupling), &elastic) in sc.fc.iter_mut().zip(&sc.fcoup).zip(&sc.ffem) {
+                    *fc = coupling + elastic;
+                }
+            } else {
+                self.scratch.fc.copy_from_slice(&self.scratch.fcoup);
+                self.add_fem_forces(false);
+            }
             let HybridPipeline { implicit, pool, .. } = &mut self.pipeline;
             let Some((core, _)) = implicit else {
                 unreachable!("checked above")
@@ -338,5 +342,63 @@ impl HybridBody {
             self.tick(&TickInput::default())?;
         }
         Ok(())
+    }
+}
+
+/// What the proxy and the ties' scatter read and write, borrowed apart from the rest of the
+/// body so that the FEM's forces can be computed beside them ([`HybridBody::particle_forces`]).
+struct TieScatter<'a> {
+    proxy: &'a mut ParticleProxy,
+    xp: &'a [DVec3],
+    active: &'a [u32],
+    tied: &'a [u32],
+    tied_ties: &'a [TieNodes],
+    active_ties: &'a [TieNodes],
+    loads: &'a [PointLoad],
+    model: &'a HybridModel,
+    fp: &'a mut [DVec3],
+    fcoup: &'a mut [DVec3],
+    deviation: bool,
+}
+
+impl TieScatter<'_> {
+    /// The probe at `probe_m` on the particles (its reaction into `fp`), then the tied (and,
+    /// in deviation mode, the active) particles' forces and the point loads onto the core
+    /// nodes' coupling buffer with the tie weights. Returns the probe's contact.
+    fn run(self, probe_m: Option<DVec3>) -> ProxyContact {
+        let contact = match probe_m {
+            Some(device) => self
+                .proxy
+                .update(device, self.xp, self.active, Some(&mut *self.fp)),
+            None => ProxyContact {
+                force_on_device_n: DVec3::ZERO,
+                stiffness_n_per_m: [0.0; 9],
+                proxy_m: DVec3::ZERO,
+                in_contact: false,
+            },
+        };
+        self.fcoup.iter_mut().for_each(|f| *f = DVec3::ZERO);
+        for (&q, t) in self.tied.iter().zip(self.tied_ties) {
+            let f = self.fp[q as usize];
+            for k in 0..t.len {
+                self.fcoup[t.nodes[k] as usize] += f * t.w[k];
+            }
+        }
+        if self.deviation {
+            // `d x_p / d x_k = w_pk`: the active particles' forces drive the core too.
+            for (&p, t) in self.active.iter().zip(self.active_ties) {
+                let f = self.fp[p as usize];
+                for k in 0..t.len {
+                    self.fcoup[t.nodes[k] as usize] += f * t.w[k];
+                }
+            }
+        }
+        for l in self.loads {
+            let t = self.model.tie_nodes(&l.tie);
+            for k in 0..t.len {
+                self.fcoup[t.nodes[k] as usize] += l.force_n * t.w[k];
+            }
+        }
+        contact
     }
 }
