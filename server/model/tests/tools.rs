@@ -292,3 +292,57 @@ fn a_two_tool_tick_allocates_nothing() {
     r.unwrap();
     assert_eq!(allocations, 0);
 }
+
+/// A named change of the built-in `lv` scene.
+type Variant = (&'static str, fn(&mut Scene));
+
+/// Every FEM stepper carries two tools: backward Euler with conjugate gradients (the joined
+/// term in its preconditioner and operator), the explicit symplectic Euler (the couplings
+/// completed one after another) and the implicit sphere contact on the rest factor (one row
+/// per face of each tool, joined): opposite presses hold steady and the clamp balances them.
+#[test]
+fn every_fem_stepper_carries_two_tools_in_equilibrium() {
+    use haptic_model::contact::ContactModel;
+    use haptic_model::integrate::{IntegratorKind, LinearSolver};
+    let variants: [Variant; 3] = [
+        ("backward Euler, CG", |s| {
+            s.integrator.linear_solver = LinearSolver::Cg;
+        }),
+        ("symplectic Euler", |s| {
+            s.integrator.kind = IntegratorKind::SymplecticEuler;
+        }),
+        ("implicit sphere", |s| {
+            s.probe.contact = ContactModel::Sphere
+        }),
+    ];
+    for (name, change) in variants {
+        let mut scene = load_builtin("lv").unwrap();
+        change(&mut scene);
+        let mut body = FemBody::new(&scene).unwrap();
+        let r = scene.probe.radius_m;
+        let (a, b) = (line_at(0.0, r), line_at(std::f64::consts::PI, r));
+        let n = ticks(RAMP_S + HOLD_S);
+        let trace = run(&mut body, n, |k| {
+            let t = (k + 1) as f64 * 1e-3;
+            [ramp_input(&a, 1.5e-3, t), ramp_input(&b, 1.5e-3, t)]
+        });
+        let hold = ticks(RAMP_S + 0.2)..n;
+        let (f0, c0) = hold_stats(&trace, 0, hold.clone());
+        let (f1, c1) = hold_stats(&trace, 1, hold);
+        let total = trace[n - 1][0].force_on_device_n + trace[n - 1][1].force_on_device_n;
+        let support = clamp_support_n(&body, &scene);
+        let scale = f0.length().max(f1.length());
+        let residual = (support - total).length() / scale;
+        eprintln!(
+            "{name}: F0 {f0} F1 {f1}, changes {:.2e} {:.2e} of the hold, clamp residual {residual:.2e}",
+            c0 / f0.length(),
+            c1 / f1.length()
+        );
+        assert!(
+            f0.dot(-a.direction) > 0.005 && f1.dot(-b.direction) > 0.005,
+            "{name}"
+        );
+        assert!(c0 < JND * f0.length() && c1 < JND * f1.length(), "{name}");
+        assert!(residual < 1e-3, "{name}: support {support} vs {total}");
+    }
+}
