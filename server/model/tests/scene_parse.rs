@@ -693,12 +693,14 @@ fn tools_default_to_two_on_fem_and_named_tools_and_bad_counts_are_checked() {
     assert_eq!(s.tools.named[0].id.chars().count(), 64);
 }
 
-/// The families and regions that take one tool default to one and refuse more, saying why.
+/// The families and regions that take one tool default to one and refuse more, saying why;
+/// the hybrid family takes two by default.
 #[test]
 fn one_tool_bodies_default_to_one_tool_and_refuse_more_with_the_reason() {
     let springs = builtin_scene_toml("lv-surface-springs").unwrap();
-    let hybrid = builtin_scene_toml("lv-hybrid").unwrap();
-    for (text, why) in [(springs, "mass-spring"), (hybrid, "hybrid")] {
+    let hybrid = parse_scene_toml(builtin_scene_toml("lv-hybrid").unwrap(), &deploy_dir());
+    assert_eq!(hybrid.unwrap().tools.max_tools, 2);
+    for (text, why) in [(springs, "mass-spring")] {
         let s = parse_scene_toml(text, &deploy_dir()).unwrap();
         assert_eq!(s.tools.max_tools, 1, "{why}");
         let more = format!("{text}\nmax_tools = 2\n");

@@ -9,6 +9,14 @@ use crate::integrate::IntegratorKind;
 use crate::integrate::explicit::integrate_nodes;
 use glam::DVec3;
 
+/// A slot without a device: no contact.
+pub(super) const NO_CONTACT: ProxyContact = ProxyContact {
+    force_on_device_n: DVec3::ZERO,
+    stiffness_n_per_m: [0.0; 9],
+    proxy_m: DVec3::ZERO,
+    in_contact: false,
+};
+
 impl HybridBody {
     /// Refills the energy terms for the current active set (allocation-free): terms of the
     /// active particles and of their inactive neighbours (ring 1); the tied list holds ring 1
@@ -154,6 +162,19 @@ impl HybridBody {
     /// `sum k n n^T`, N/m); the tied particles' forces and the point loads go to the core
     /// nodes' coupling buffer with the tie weights.
     pub(super) fn particle_forces(&mut self, probe_m: Option<DVec3>) -> ProxyContact {
+        let mut contact = [NO_CONTACT];
+        self.particle_forces_tools(&[probe_m], &mut contact);
+        contact[0]
+    }
+
+    /// [`Self::particle_forces`] with a probe per tool slot: `devices[k]` drives slot `k`'s
+    /// proxy (slot 0 the body's first, slot `k > 0` its `tools[k - 1]`), whose contact goes to
+    /// `contacts[k]`; every proxy adds its penalty forces to the same particles' forces.
+    pub(super) fn particle_forces_tools(
+        &mut self,
+        devices: &[Option<DVec3>],
+        contacts: &mut [ProxyContact],
+    ) {
         if self.regions.changed {
             self.rebuild_terms();
         }
@@ -175,20 +196,21 @@ impl HybridBody {
         self.pipeline
             .block
             .write_forces(&m.cloud, &self.state.xp, &mut self.scratch.fp);
-        let contact = match probe_m {
-            Some(device) => self.state.proxy.update(
-                device,
-                &self.state.xp,
-                &self.regions.active_list,
-                Some(&mut self.scratch.fp),
-            ),
-            None => ProxyContact {
-                force_on_device_n: DVec3::ZERO,
-                stiffness_n_per_m: [0.0; 9],
-                proxy_m: DVec3::ZERO,
-                in_contact: false,
-            },
-        };
+        for (k, (device, contact)) in devices.iter().zip(contacts.iter_mut()).enumerate() {
+            let proxy = match k {
+                0 => &mut self.state.proxy,
+                _ => &mut self.state.tools[k - 1].proxy,
+            };
+            *contact = match device {
+                Some(device) => proxy.update(
+                    *device,
+                    &self.state.xp,
+                    &self.regions.active_list,
+                    Some(&mut self.scratch.fp),
+                ),
+                None => NO_CONTACT,
+            };
+        }
         self.scratch.fcoup.iter_mut().for_each(|f| *f = DVec3::ZERO);
         for (&q, t) in self.regions.tied_list.iter().zip(&self.pipeline.tied_ties) {
             let f = self.scratch.fp[q as usize];
@@ -216,7 +238,6 @@ impl HybridBody {
                 self.scratch.fcoup[t.nodes[k] as usize] += l.force_n * t.w[k];
             }
         }
-        contact
     }
 
     /// Core forces: the coupling buffer plus the FEM's internal (elastic and viscous) forces.

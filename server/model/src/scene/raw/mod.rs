@@ -216,7 +216,6 @@ pub(super) fn parse_scene(
 ) -> Result<Scene, ModelError> {
     let raw: RawScene = super::toml_errors::deserialize(text)?;
     let model = raw.model.unwrap_or_default();
-    let realtime = model.realtime.unwrap_or(true);
     let family = model_family(model.family.as_deref())?;
     let springs = family == ModelFamily::MassSpring;
     let mesh_raw = required("mesh", raw.mesh)?;
@@ -244,8 +243,7 @@ pub(super) fn parse_scene(
         raw.hybrid.as_ref(),
         &hybrid_mesh,
     )?;
-    let raw_probe = raw.probe.unwrap_or_default();
-    let probe = build_probe(&raw_probe)?;
+    let (raw_probe, probe) = probe_section(raw.probe)?;
     let loads = build_loads(&raw.loads.unwrap_or_default(), &mesh, &clamped_nodes)?;
     let raw_region = raw.active_region.as_ref();
     let active_region = region_section(
@@ -255,7 +253,6 @@ pub(super) fn parse_scene(
         raw_integrator.stiffness_margin.is_some(),
         probe.radius_m,
     )?;
-    let tools = build_tools(&raw_probe, probe, one_tool_reason(family, &active_region))?;
     let name = raw.name.unwrap_or_else(|| default_name.to_string());
     let fallback = match (raw_region, &active_region) {
         (Some(a), Some(region)) => {
@@ -296,13 +293,13 @@ pub(super) fn parse_scene(
         hybrid,
         description: raw.description.unwrap_or_default(),
         family,
-        realtime,
+        realtime: model.realtime.unwrap_or(true),
         mesh,
         strain_smoothing,
         material,
         integrator,
         probe,
-        tools,
+        tools: build_tools(&raw_probe, probe, one_tool_reason(family, &active_region))?,
         clamped_nodes,
         touchable,
         length_unit_m,

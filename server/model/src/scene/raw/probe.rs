@@ -2,6 +2,13 @@
 
 use super::*;
 
+/// The raw `[probe]` section (empty when absent) and its probe ([`build_probe`]).
+pub(super) fn probe_section(p: Option<RawProbe>) -> Result<(RawProbe, ProbeParams), ModelError> {
+    let p = p.unwrap_or_default();
+    let params = build_probe(&p)?;
+    Ok((p, params))
+}
+
 /// The probe section (every integrator carries every contact model:
 /// [`crate::integrate::resolve_contact_model`]).
 pub(super) fn build_probe(p: &RawProbe) -> Result<ProbeParams, ModelError> {
@@ -52,13 +59,10 @@ pub(super) fn one_tool_reason(
         ModelFamily::MassSpring => Some(
             "the mass-spring family takes one tool: its run-time subdivision follows one contact node",
         ),
-        ModelFamily::Hybrid => Some(
-            "the hybrid family takes one tool: its particle layer is activated under one proxy",
-        ),
         ModelFamily::Fem if region.is_some_and(|r| r.follow) => Some(
             "a following active region (active_region.follow) takes one tool: the region follows one contact and would leave a second tool on condensed elements; use a fixed region or none",
         ),
-        ModelFamily::Fem => None,
+        ModelFamily::Fem | ModelFamily::Hybrid => None,
     }
 }
 
