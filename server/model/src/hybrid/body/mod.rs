@@ -383,7 +383,7 @@ impl HybridBody {
     /// Tools leaving while another stays (issue 50): a slot whose device left while its proxy
     /// touched is withdrawn by a ghost device over [`RELEASE_FADE_TICKS`] ticks, linearly from
     /// its last point back to where it last touched nothing, so its force on the body fades
-    /// instead of vanishing in one tick (which moved the other tool's force by 7 % at once on
+    /// instead of vanishing in one tick (which stepped the other tool's force by 6.9 % on
     /// `lv-hybrid`, `tests/tools.rs`). `devices[k]` becomes the ghost. Never with one slot, or
     /// with no other device connected (the one-tool tick is unchanged).
     fn fade_released(&mut self, devices: &mut [Option<DVec3>]) {
@@ -391,13 +391,13 @@ impl HybridBody {
         if connected == 0 {
             self.state.departed = [None; MAX_TOOLS];
         }
-        for k in 0..devices.len() {
+        for (k, device) in devices.iter_mut().enumerate() {
             let touching = match k {
                 0 => self.state.proxy.state().1,
                 _ => self.state.tools[k - 1].proxy.state().1,
             };
             let fade = &mut self.state.fades[k];
-            if let Some(d) = devices[k] {
+            if let Some(d) = *device {
                 if !touching {
                     fade.clear_m = Some(d);
                 }
@@ -415,7 +415,7 @@ impl HybridBody {
             fade.clear_m = None;
             if let Some((last, clear, left)) = fade.ghost {
                 let s = f64::from(left) / f64::from(RELEASE_FADE_TICKS + 1);
-                devices[k] = Some(clear + (last - clear) * s);
+                *device = Some(clear + (last - clear) * s);
                 fade.ghost = (left > 1).then_some((last, clear, left - 1));
             }
         }
