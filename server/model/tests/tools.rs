@@ -420,3 +420,48 @@ fn hybrid_two_tools_activate_under_each_hold_steady_and_release_continuously() {
     assert!(after < JND * f0.length());
     assert!(!trace[n - 1][1].in_contact && trace[n - 1][0].in_contact);
 }
+
+/// A fixed active region (condensed far field) takes two tools inside it, each with its own
+/// contact, holding steady; a tool outside the region touches nothing there (its triangles
+/// are condensed: docs/scenes.md, "Several tools").
+#[test]
+fn a_fixed_region_takes_two_tools_inside_it() {
+    let text = format!(
+        "{}\n[active_region]\ncentre_m = [0.0097, 0.0, -0.005]\nradius_m = 0.008\n",
+        haptic_model::scene::builtin_scene_toml("lv")
+            .unwrap()
+            .replace("linear_solver = \"rest-cholesky\"", "")
+            .replace("stiffness_margin = 2.0", "")
+    );
+    let scene = haptic_model::scene::parse_scene_toml(&text, std::path::Path::new(".")).unwrap();
+    assert_eq!(scene.tools.max_tools, 2);
+    let mut body = FemBody::new(&scene).unwrap();
+    assert!(body.condensed().is_some_and(|c| !c.is_whole_body()));
+    let r = scene.probe.radius_m;
+    let (a, b) = (line_at(0.25, r), line_at(-0.25, r));
+    let n = ticks(RAMP_S + HOLD_S);
+    let trace = run(&mut body, n, |k| {
+        let t = (k + 1) as f64 * 1e-3;
+        [ramp_input(&a, 1.5e-3, t), ramp_input(&b, 1.5e-3, t)]
+    });
+    let hold = ticks(RAMP_S + 0.2)..n;
+    let (f0, c0) = hold_stats(&trace, 0, hold.clone());
+    let (f1, c1) = hold_stats(&trace, 1, hold);
+    eprintln!(
+        "fixed region: F0 {f0} F1 {f1}, changes {:.2e} {:.2e} of the hold",
+        c0 / f0.length(),
+        c1 / f1.length()
+    );
+    assert!(trace[n - 1][0].in_contact && trace[n - 1][1].in_contact);
+    assert!(f0.dot(-a.direction) > 0.005 && f1.dot(-b.direction) > 0.005);
+    assert!(c0 < JND * f0.length() && c1 < JND * f1.length());
+    // The far side is condensed: no contact there.
+    let far = line_at(std::f64::consts::PI, r);
+    let mut out = [TickOutput::default(); 2];
+    body.tick_tools(
+        &[ramp_input(&a, 1.5e-3, 1.0), ramp_input(&far, 1.5e-3, 1.0)],
+        &mut out,
+    )
+    .unwrap();
+    assert!(out[0].in_contact && !out[1].in_contact);
+}
