@@ -9,6 +9,12 @@
 //! loads, contact update (the probe's explicit reaction), one step of the [`Stepper`] (which
 //! completes the coupling), and a divergence check; then the output.
 //!
+//! **Several tools** (issue 50). The body keeps one [`Probe`] per tool slot (`probe.max_tools`,
+//! one with a following region); [`FemBody::tick_tools`] updates every connected slot's probe
+//! and adds its reaction in each sub-step, and the stepper solves all their couplings in the
+//! same step ([`Stepper::step_tools`]: backward Euler joins their rows in one low-rank term).
+//! [`FemBody::tick`] is slot 0 alone, the other slots released.
+//!
 //! **The coarse companion.** A following active region (`[active_region] follow`) holds only
 //! the elements near its centre; a new one takes seconds to prepare on a large mesh
 //! ([`crate::integrate::follow`]), and a probe that leaves the region meanwhile rests on the

@@ -43,6 +43,13 @@
 //! the particles' count, so the body is as close to its real inertia as the particle step
 //! allows).
 //!
+//! **Several tools** (issue 50, [`HybridBody::set_tools`]). Each tool slot has its own proxy
+//! on the same particles, all adding their penalties in the same sub-steps; the active regions
+//! are the union of those under each device, and no tool's activation evicts the regions under
+//! another. A tool that leaves while another stays is withdrawn by a ghost device over
+//! [`RELEASE_FADE_TICKS`] ticks and its regions stay until no tool is connected, so the other
+//! tool's force stays continuous (`docs/decisions.md`, "Several tools in one implicit step").
+//!
 //! **Surface.** Each outer vertex shows the core's interpolation at the vertex plus the
 //! deviation of its nearest particle from the core's interpolation at that particle (zero for
 //! inactive particles), so the surface is continuous at activation and release.
