@@ -268,4 +268,42 @@ mod tests {
         bad[3 * n + 3] = -1.0;
         assert!(!cholesky_in_place(&mut bad, n));
     }
+
+    /// Two probes' terms join into rows one after another with the block-diagonal compliance
+    /// and factor; a cleared merge has no term.
+    #[test]
+    fn a_merge_joins_rows_with_the_block_diagonal_compliance() {
+        let one = ContactCoupling {
+            row_ptr: &[0, 2],
+            nodes: &[3, 4],
+            vectors: &[DVec3::X, DVec3::Y],
+            compliance: &[4.0],
+            compliance_factor: &[2.0],
+        };
+        let two = ContactCoupling {
+            row_ptr: &[0, 1, 2],
+            nodes: &[4, 5],
+            vectors: &[DVec3::Z, DVec3::X],
+            compliance: &[9.0, 0.0, 0.0, 1.0],
+            compliance_factor: &[3.0, 0.0, 0.0, 1.0],
+        };
+        let mut merge = CouplingMerge::with_capacity(2, 8);
+        merge.push(one);
+        merge.push(two);
+        let c = merge.view().expect("rows");
+        assert_eq!(c.rows(), 3);
+        assert_eq!(c.row_ptr, &[0, 2, 3, 4]);
+        assert_eq!(c.nodes, &[3, 4, 4, 5]);
+        assert_eq!(c.compliance, &[4.0, 0.0, 0.0, 0.0, 9.0, 0.0, 0.0, 0.0, 1.0]);
+        assert_eq!(
+            c.compliance_factor,
+            &[2.0, 0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 0.0, 1.0]
+        );
+        // `C y` with the joined factor is each block's.
+        let mut y = [8.0, 18.0, 5.0];
+        c.apply_c(&mut y);
+        assert_eq!(y, [2.0, 2.0, 5.0]);
+        merge.clear();
+        assert!(merge.view().is_none());
+    }
 }
