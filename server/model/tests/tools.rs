@@ -557,3 +557,39 @@ fn hybrid_two_tools_on_the_same_spot_hold_steady() {
     assert!(f0.dot(-a.direction) > 0.002 && f1.dot(-a.direction) > 0.002);
     assert!(c0 < JND * f0.length() && c1 < JND * f1.length());
 }
+
+/// Named tools (`[[probe.tool]]`) take the slot of their index with their own radius and force
+/// limit: on the built-in `lv`, a 3 mm tool pushes harder than a 2 mm one pressed as deep (a
+/// larger sphere), and a tool limited to 5 mN is held there.
+#[test]
+fn named_tools_take_their_slots_with_their_own_radius_and_force_limit() {
+    let scene_with = |radius_m: f64| {
+        let text = format!(
+            "{}max_tools = 2\n[[probe.tool]]\nid = \"grasper\"\nradius_m = {radius_m}\n[[probe.tool]]\nid = \"needle\"\nmax_force_n = 0.005\n",
+            haptic_model::scene::builtin_scene_toml("lv").unwrap()
+        );
+        haptic_model::scene::parse_scene_toml(&text, std::path::Path::new(".")).unwrap()
+    };
+    let press = |radius_m: f64| {
+        let mut body = FemBody::new(&scene_with(radius_m)).unwrap();
+        assert_eq!(SoftBody::tool_slot(&body, "grasper"), Some(0));
+        assert_eq!(SoftBody::tool_slot(&body, "needle"), Some(1));
+        assert_eq!(SoftBody::tool_slot(&body, "scalpel"), None);
+        let (a, b) = (line_at(0.0, radius_m), line_at(std::f64::consts::PI, 0.002));
+        let n = ticks(RAMP_S + 0.3);
+        let trace = run(&mut body, n, |k| {
+            let t = (k + 1) as f64 * 1e-3;
+            [ramp_input(&a, 1.5e-3, t), ramp_input(&b, 1.5e-3, t)]
+        });
+        trace[n - 1]
+    };
+    let [big, needle] = press(0.003);
+    let [small, _] = press(0.002);
+    eprintln!(
+        "grasper 3 mm {} N, 2 mm {} N, needle {} N",
+        big.force_on_device_n, small.force_on_device_n, needle.force_on_device_n
+    );
+    assert!(big.in_contact && small.in_contact && needle.in_contact);
+    assert!(big.force_on_device_n.length() > 1.05 * small.force_on_device_n.length());
+    assert!((needle.force_on_device_n.length() - 0.005).abs() < 1e-12);
+}
