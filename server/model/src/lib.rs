@@ -130,13 +130,19 @@ pub fn build_hybrid_body(
         "body set-up: the sub-step check, and the implicit core's condensed layer",
         1.0,
     );
-    hybrid::HybridBody::new(
+    let mut body = hybrid::HybridBody::new(
         model,
         &clamped,
-        scene.probe,
+        scene.tool_probe(0),
         scene.integrator.tick_s,
         &scene.name,
-    )
+    )?;
+    let more: Vec<contact::ProbeParams> = (1..scene.tools.max_tools)
+        .map(|k| scene.tool_probe(k))
+        .collect();
+    let ids: Vec<String> = scene.tools.named.iter().map(|t| t.id.clone()).collect();
+    body.set_tools(&more, &ids);
+    Ok(body)
 }
 
 /// [`build_body`] reporting the preprocessing's progress (`stage`, fraction in `[0, 1]`) for

@@ -618,3 +618,111 @@ fn region_tiles_default_to_off_and_their_cover_is_checked() {
         other => panic!("expected a refusal, got {other:?}"),
     }
 }
+
+/// `[probe] max_tools` and `[[probe.tool]]` (issue 50): two tools by default on FEM bodies,
+/// one on the families and regions that take one (an explicit larger count refused naming
+/// why); named tools override the radius and force limit of `[probe]` and take the slot of
+/// their index; counts, ids and values out of range are refused naming the field.
+#[test]
+fn tools_default_to_two_on_fem_and_named_tools_and_bad_counts_are_checked() {
+    use haptic_model::body::MAX_TOOLS;
+    let s = parse(BASE).unwrap();
+    assert_eq!(s.tools.max_tools, 2);
+    assert!(s.tools.named.is_empty());
+    assert_eq!(s.tool_probe(1), s.probe);
+    let text = format!(
+        "{BASE}[probe]\nradius_m = 0.002\nmax_force_n = 8.0\nmax_tools = 3\n[[probe.tool]]\nid = \"grasper\"\nradius_m = 0.003\n[[probe.tool]]\nid = \"needle\"\nmax_force_n = 2.0\n"
+    );
+    let s = parse(&text).unwrap();
+    assert_eq!(s.tools.max_tools, 3);
+    assert_eq!(s.tool_slot("grasper"), Some(0));
+    assert_eq!(s.tool_slot("needle"), Some(1));
+    assert_eq!(s.tool_slot("scalpel"), None);
+    assert_eq!(s.tool_probe(0).radius_m, 0.003);
+    assert_eq!(s.tool_probe(0).max_force_n, 8.0);
+    assert_eq!(s.tool_probe(1).radius_m, 0.002);
+    assert_eq!(s.tool_probe(1).max_force_n, 2.0);
+    assert_eq!(s.tool_probe(2), s.probe);
+    let tool = |id: &str| format!("[[probe.tool]]\nid = \"{id}\"\n");
+    let long = "x".repeat(65);
+    let cases = [
+        ("probe.max_tools", format!("{BASE}[probe]\nmax_tools = 0\n")),
+        (
+            "probe.max_tools",
+            format!("{BASE}[probe]\nmax_tools = {}\n", MAX_TOOLS + 1),
+        ),
+        (
+            "probe.tool",
+            format!("{BASE}[probe]\nmax_tools = 1\n{}{}", tool("a"), tool("b")),
+        ),
+        ("probe.tool[0].id", format!("{BASE}[probe]\n{}", tool(""))),
+        (
+            "probe.tool[0].id",
+            format!("{BASE}[probe]\n{}", tool(&long)),
+        ),
+        (
+            "probe.tool[0].id",
+            format!("{BASE}[probe]\n{}", tool("a\\tb")),
+        ),
+        (
+            "probe.tool[1].id",
+            format!("{BASE}[probe]\n{}{}", tool("a"), tool("a")),
+        ),
+        (
+            "probe.tool[0].id",
+            format!("{BASE}[probe]\n[[probe.tool]]\nradius_m = 0.003\n"),
+        ),
+        (
+            "probe.tool[0].radius_m",
+            format!("{BASE}[probe]\n{}radius_m = -0.001\n", tool("a")),
+        ),
+        (
+            "probe.tool[0].max_force_n",
+            format!("{BASE}[probe]\n{}max_force_n = nan\n", tool("a")),
+        ),
+        (
+            "probe.tool[0].contact",
+            format!("{BASE}[probe]\n{}contact = \"sphere\"\n", tool("a")),
+        ),
+    ];
+    for (field, text) in cases {
+        assert_eq!(field_of(parse(&text)), field, "{text}");
+    }
+    // 64 characters (not bytes) are fine.
+    let s = parse(&format!("{BASE}[probe]\n{}", tool(&"é".repeat(64)))).unwrap();
+    assert_eq!(s.tools.named[0].id.chars().count(), 64);
+}
+
+/// The families and regions that take one tool default to one and refuse more, saying why;
+/// the hybrid family takes two by default.
+#[test]
+fn one_tool_bodies_default_to_one_tool_and_refuse_more_with_the_reason() {
+    let springs = builtin_scene_toml("lv-surface-springs").unwrap();
+    let hybrid = parse_scene_toml(builtin_scene_toml("lv-hybrid").unwrap(), &deploy_dir());
+    assert_eq!(hybrid.unwrap().tools.max_tools, 2);
+    let s = parse_scene_toml(springs, &deploy_dir()).unwrap();
+    assert_eq!(s.tools.max_tools, 1);
+    let more = format!("{springs}\nmax_tools = 2\n");
+    assert!(more.contains("[probe]"));
+    let msg = parse_scene_toml(&more, &deploy_dir())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        msg.contains("probe.max_tools") && msg.contains("mass-spring"),
+        "{msg}"
+    );
+    let region = "[integrator]\nkind = \"backward-euler\"\n[active_region]\ncentre_m = [0.0, 0.0, 0.0]\nradius_m = 0.007\n";
+    let fixed = parse(&format!("{BASE}{region}")).unwrap();
+    assert_eq!(fixed.tools.max_tools, 2);
+    let follows = parse(&format!("{BASE}{region}follow = true\n")).unwrap();
+    assert_eq!(follows.tools.max_tools, 1);
+    let msg = parse(&format!(
+        "{BASE}{region}follow = true\n[probe]\nmax_tools = 2\n"
+    ))
+    .unwrap_err()
+    .to_string();
+    assert!(
+        msg.contains("probe.max_tools") && msg.contains("following active region"),
+        "{msg}"
+    );
+}

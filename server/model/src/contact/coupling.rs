@@ -13,8 +13,16 @@
 
 use glam::DVec3;
 
-/// Largest number of rows of a [`ContactCoupling`] (faces in contact at once).
+/// Largest number of rows of one probe's [`ContactCoupling`] (faces in contact at once).
 pub const MAX_COUPLING_ROWS: usize = 48;
+
+/// Most probes whose terms a [`CouplingMerge`] joins (the bodies' tool slots, issue 50; the
+/// FEM body checks that `crate::body::MAX_TOOLS` fits).
+pub const MAX_COUPLED_PROBES: usize = 4;
+
+/// Largest number of rows of a [`ContactCoupling`] the integrators solve with: the rows of
+/// [`MAX_COUPLED_PROBES`] probes.
+pub const MAX_MERGED_ROWS: usize = MAX_COUPLED_PROBES * MAX_COUPLING_ROWS;
 
 /// The probe's implicit term `h^2 A^T C A` of the backward Euler matrix (module
 /// documentation). `A` has `F = row_ptr.len() - 1` sparse rows over the body's nodes: row `f`
@@ -69,6 +77,109 @@ impl ContactCoupling<'_> {
                 out[i as usize] += u * (yf * s);
             }
         }
+    }
+}
+
+/// The terms of several probes joined into one [`ContactCoupling`] (several tools on one
+/// body, issue 50): their rows one after another, and the block-diagonal compliance and
+/// factor of their blocks (each probe's proxy and coupling are its own, so the probes couple
+/// only through the body). Solved exactly by the integrators' Woodbury terms like one probe's
+/// rows. Buffers sized at construction: joining is allocation-free.
+#[derive(Debug, Clone, Default)]
+pub struct CouplingMerge {
+    row_ptr: Vec<u32>,
+    nodes: Vec<u32>,
+    vectors: Vec<DVec3>,
+    /// The blocks' compliances and factors as given, one after another (row-major each).
+    blocks: Vec<f64>,
+    /// Rows of each block.
+    block_rows: Vec<usize>,
+    compliance: Vec<f64>,
+    factor: Vec<f64>,
+}
+
+impl CouplingMerge {
+    /// Buffers for `probes` probes (at most [`MAX_COUPLED_PROBES`]) of at most `entries`
+    /// entries each.
+    pub fn with_capacity(probes: usize, entries: usize) -> Self {
+        let probes = probes.min(MAX_COUPLED_PROBES);
+        let rows = probes * MAX_COUPLING_ROWS;
+        Self {
+            row_ptr: Vec::with_capacity(rows + 1),
+            nodes: Vec::with_capacity(probes * entries),
+            vectors: Vec::with_capacity(probes * entries),
+            blocks: Vec::with_capacity(2 * probes * MAX_COUPLING_ROWS * MAX_COUPLING_ROWS),
+            block_rows: Vec::with_capacity(probes),
+            compliance: vec![0.0; rows * rows],
+            factor: vec![0.0; rows * rows],
+        }
+    }
+
+    /// Forgets the joined terms.
+    pub fn clear(&mut self) {
+        self.row_ptr.clear();
+        self.nodes.clear();
+        self.vectors.clear();
+        self.blocks.clear();
+        self.block_rows.clear();
+    }
+
+    /// Appends one probe's term `c`.
+    ///
+    /// # Panics
+    /// When the buffers of [`Self::with_capacity`] are full (more probes or entries).
+    pub fn push(&mut self, c: ContactCoupling<'_>) {
+        assert!(
+            self.block_rows.len() < self.block_rows.capacity(),
+            "CouplingMerge: more probes than its capacity"
+        );
+        let nf = c.rows();
+        if self.row_ptr.is_empty() {
+            self.row_ptr.push(0);
+        }
+        let base = self.nodes.len() as u32;
+        for f in 0..nf {
+            self.row_ptr.push(base + c.row_ptr[f + 1] - c.row_ptr[0]);
+        }
+        let (a, b) = (c.row_ptr[0] as usize, c.row_ptr[nf] as usize);
+        self.nodes.extend_from_slice(&c.nodes[a..b]);
+        self.vectors.extend_from_slice(&c.vectors[a..b]);
+        self.blocks.extend_from_slice(&c.compliance[..nf * nf]);
+        self.blocks
+            .extend_from_slice(&c.compliance_factor[..nf * nf]);
+        self.block_rows.push(nf);
+    }
+
+    /// The joined term: the rows appended so far with the block-diagonal compliance and
+    /// factor (`None` without rows).
+    pub fn view(&mut self) -> Option<ContactCoupling<'_>> {
+        let total: usize = self.block_rows.iter().sum();
+        if total == 0 {
+            return None;
+        }
+        self.compliance[..total * total].fill(0.0);
+        self.factor[..total * total].fill(0.0);
+        let (mut at, mut offset) = (0, 0);
+        for &nf in &self.block_rows {
+            let (c, l) = (
+                &self.blocks[at..at + nf * nf],
+                &self.blocks[at + nf * nf..at + 2 * nf * nf],
+            );
+            for f in 0..nf {
+                let row = (offset + f) * total + offset;
+                self.compliance[row..row + nf].copy_from_slice(&c[f * nf..(f + 1) * nf]);
+                self.factor[row..row + nf].copy_from_slice(&l[f * nf..(f + 1) * nf]);
+            }
+            at += 2 * nf * nf;
+            offset += nf;
+        }
+        Some(ContactCoupling {
+            row_ptr: &self.row_ptr,
+            nodes: &self.nodes,
+            vectors: &self.vectors,
+            compliance: &self.compliance[..total * total],
+            compliance_factor: &self.factor[..total * total],
+        })
     }
 }
 
@@ -156,5 +267,43 @@ mod tests {
         let mut bad = a.clone();
         bad[3 * n + 3] = -1.0;
         assert!(!cholesky_in_place(&mut bad, n));
+    }
+
+    /// Two probes' terms join into rows one after another with the block-diagonal compliance
+    /// and factor; a cleared merge has no term.
+    #[test]
+    fn a_merge_joins_rows_with_the_block_diagonal_compliance() {
+        let one = ContactCoupling {
+            row_ptr: &[0, 2],
+            nodes: &[3, 4],
+            vectors: &[DVec3::X, DVec3::Y],
+            compliance: &[4.0],
+            compliance_factor: &[2.0],
+        };
+        let two = ContactCoupling {
+            row_ptr: &[0, 1, 2],
+            nodes: &[4, 5],
+            vectors: &[DVec3::Z, DVec3::X],
+            compliance: &[9.0, 0.0, 0.0, 1.0],
+            compliance_factor: &[3.0, 0.0, 0.0, 1.0],
+        };
+        let mut merge = CouplingMerge::with_capacity(2, 8);
+        merge.push(one);
+        merge.push(two);
+        let c = merge.view().expect("rows");
+        assert_eq!(c.rows(), 3);
+        assert_eq!(c.row_ptr, &[0, 2, 3, 4]);
+        assert_eq!(c.nodes, &[3, 4, 4, 5]);
+        assert_eq!(c.compliance, &[4.0, 0.0, 0.0, 0.0, 9.0, 0.0, 0.0, 0.0, 1.0]);
+        assert_eq!(
+            c.compliance_factor,
+            &[2.0, 0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 0.0, 1.0]
+        );
+        // `C y` with the joined factor is each block's.
+        let mut y = [8.0, 18.0, 5.0];
+        c.apply_c(&mut y);
+        assert_eq!(y, [2.0, 2.0, 5.0]);
+        merge.clear();
+        assert!(merge.view().is_none());
     }
 }

@@ -80,7 +80,7 @@ mod sample;
 pub mod sphere;
 pub mod surface;
 
-pub use coupling::ContactCoupling;
+pub use coupling::{ContactCoupling, CouplingMerge};
 pub use local_law::LocalLaw;
 pub use probe::{ContactModel, ContactState, Probe, ProbeParams};
 pub use sample::SurfaceSampler;

@@ -9,6 +9,12 @@
 //! loads, contact update (the probe's explicit reaction), one step of the [`Stepper`] (which
 //! completes the coupling), and a divergence check; then the output.
 //!
+//! **Several tools** (issue 50). The body keeps one [`Probe`] per tool slot (`probe.max_tools`,
+//! one with a following region); [`FemBody::tick_tools`] updates every connected slot's probe
+//! and adds its reaction in each sub-step, and the stepper solves all their couplings in the
+//! same step ([`Stepper::step_tools`]: backward Euler joins their rows in one low-rank term).
+//! [`FemBody::tick`] is slot 0 alone, the other slots released.
+//!
 //! **The coarse companion.** A following active region (`[active_region] follow`) holds only
 //! the elements near its centre; a new one takes seconds to prepare on a large mesh
 //! ([`crate::integrate::follow`]), and a probe that leaves the region meanwhile rests on the
@@ -33,8 +39,12 @@ use std::sync::Arc;
 use glam::DVec3;
 
 use crate::ModelError;
-use crate::body::{BodyInfo, BodyStats, PointLoadZone, SoftBody, SurfaceCapacity, SurfaceTopology};
-use crate::contact::{ContactModel, LocalLaw, Probe, ProbeParams};
+use crate::body::{
+    BodyInfo, BodyStats, MAX_TOOLS, PointLoadZone, SoftBody, SurfaceCapacity, SurfaceTopology,
+    check_tool_slots,
+};
+use crate::contact::coupling::{MAX_COUPLED_PROBES, MAX_COUPLING_ROWS};
+use crate::contact::{ContactModel, CouplingMerge, LocalLaw, MAX_PATCH_NODES, Probe, ProbeParams};
 use crate::element::{CLAMPED, FemModel, ForceScratch};
 use crate::integrate::condensed::{ActiveRegion, CondensedSolver};
 use crate::integrate::follow::{FollowStats, RegionFollower};
@@ -51,6 +61,9 @@ pub use fallback::FallbackStats;
 mod fallback;
 
 use fallback::Fallback;
+
+// The probes' joined implicit term holds every tool slot's rows.
+const _: () = assert!(MAX_TOOLS <= MAX_COUPLED_PROBES);
 
 /// A nodal speed above this (m/s) is treated as divergence.
 pub const DIVERGENCE_SPEED_M_PER_S: f64 = 100.0;
@@ -97,7 +110,11 @@ pub struct FemBody {
     stepper: Stepper,
     setup: FemSetup,
     state: FemState,
-    probe: Probe,
+    /// One probe per tool slot (issue 50), slot 0 first: [`FemBody::tick`] drives slot 0
+    /// alone; [`FemBody::tick_tools`] every slot.
+    probes: Vec<Probe>,
+    /// The joined implicit term of the probes in contact ([`Stepper::step_tools`]).
+    merge: CouplingMerge,
     loads: BodyLoads,
     scratch: FemScratch,
     status: TickStatus,
@@ -120,6 +137,8 @@ struct FemSetup {
     /// Surface for viewers: distinct boundary nodes and triangles indexing into them.
     surface_nodes: Vec<u32>,
     surface_triangles: Vec<[u32; 3]>,
+    /// The scene's named tools by slot ([`SoftBody::tool_slot`]).
+    tool_ids: Vec<String>,
 }
 
 /// Work arrays of one sub-step, overwritten every time.
@@ -199,7 +218,6 @@ impl FemBody {
                 "must be a positive number",
             ));
         }
-        let probe_params = probe_params_of(scene);
         // Before the critical step: an explicit integrator on a condensed scene would
         // otherwise report the tick as unstable rather than the combination as unsupported.
         if scene.active_region.is_some() && p.kind != IntegratorKind::BackwardEuler {
@@ -245,16 +263,8 @@ impl FemBody {
             }
         }
         let (surface_nodes, surface_triangles) = surface_map(&boundary, n);
-        let mut probe = Probe::new(probe_params, touchable, fem.rest());
-        if probe_params.contact == ContactModel::PatchLocal {
-            probe.set_local_law(LocalLaw::for_material(
-                &scene.material,
-                probe_params.radius_m,
-            ));
-        }
-        if p.kind == IntegratorKind::BackwardEuler {
-            probe.use_implicit_sphere(plan.sub_dt_s);
-        }
+        let implicit_dt_s = (p.kind == IntegratorKind::BackwardEuler).then_some(plan.sub_dt_s);
+        let probes = tool_probes(scene, &touchable, fem.rest(), implicit_dt_s, follows);
         let fallback = companion(scene, follows, progress)?;
         Ok(Self {
             stepper,
@@ -264,6 +274,7 @@ impl FemBody {
                 scene_name: scene.name.clone(),
                 surface_nodes,
                 surface_triangles,
+                tool_ids: scene.tools.named.iter().map(|t| t.id.clone()).collect(),
             },
             loads,
             state: FemState {
@@ -279,7 +290,11 @@ impl FemBody {
                     ForceScratch::default()
                 },
             },
-            probe,
+            merge: CouplingMerge::with_capacity(
+                probes.len(),
+                MAX_PATCH_NODES.max(3 * MAX_COUPLING_ROWS),
+            ),
+            probes,
             status: TickStatus::default(),
             follow,
             fallback,
@@ -298,20 +313,44 @@ impl FemBody {
     /// caller must quarantine the session: the state is no longer meaningful). Neither
     /// allocates.
     pub fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
-        input.validate()?;
+        let mut out = [TickOutput::default()];
+        self.tick_tools(std::slice::from_ref(input), &mut out)?;
+        Ok(out[0])
+    }
+
+    /// [`Self::tick`] with every tool slot's input (issue 50; [`SoftBody::tick_tools`]):
+    /// `inputs[k]` drives the probe of slot `k` and `outputs[k]` receives its force; slots past
+    /// `inputs.len()` are released. All the probes' reactions act in the same sub-steps and
+    /// backward Euler solves their couplings together ([`Stepper::step_tools`]). One slot is
+    /// [`Self::tick`] bit for bit.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] for slot counts [`check_tool_slots`] refuses; otherwise as
+    /// [`Self::tick`] (any slot's invalid input refuses the tick, state untouched). Neither
+    /// allocates.
+    pub fn tick_tools(
+        &mut self,
+        inputs: &[TickInput],
+        outputs: &mut [TickOutput],
+    ) -> Result<(), ModelError> {
+        check_tool_slots(inputs.len(), outputs.len(), self.probes.len())?;
+        for input in inputs {
+            input.validate()?;
+        }
         if let Some(time_s) = self.status.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
-        let out = match self.fallback.take() {
-            None => self.tick_model(input)?,
+        match self.fallback.take() {
+            None => self.tick_model(inputs, outputs)?,
             Some(mut fb) => {
-                let out = self.tick_with_companion(input, &mut fb);
+                // A following region takes one tool (`max_tools` 1): `inputs` has one slot.
+                let out = self.tick_with_companion(&inputs[0], &mut fb);
                 self.fallback = Some(fb);
-                out?
+                outputs[0] = out?;
             }
-        };
-        self.status.last_output = out;
-        Ok(out)
+        }
+        self.status.last_output = outputs[0];
+        Ok(())
     }
 
     /// [`Self::tick`] of a following region with its coarse companion `fb` (taken out of
@@ -327,27 +366,42 @@ impl FemBody {
     ) -> Result<TickOutput, ModelError> {
         let swaps_before = self.follow.0.as_ref().map_or(0, RegionFollower::swaps);
         let pool = Arc::clone(&self.pool);
-        let (fine, coarse) = pool.join(|| self.tick_model(input), || fb.tick_companion(input));
+        let (fine, coarse) = pool.join(
+            || {
+                let mut out = [TickOutput::default()];
+                self.tick_model(std::slice::from_ref(input), &mut out)
+                    .map(|()| out[0])
+            },
+            || fb.tick_companion(input),
+        );
         let (fine, coarse) = (fine?, coarse?);
         let swapped = self.follow.0.as_ref().map_or(0, RegionFollower::swaps) != swaps_before;
-        let outside = self
-            .stepper
-            .condensed()
-            .is_some_and(|c| self.probe.patch().0.iter().any(|&i| !c.is_active_node(i)));
+        let outside = self.stepper.condensed().is_some_and(|c| {
+            self.probes[0]
+                .patch()
+                .0
+                .iter()
+                .any(|&i| !c.is_active_node(i))
+        });
         Ok(fb.blend(fine, coarse, outside, swapped))
     }
 
     /// The tick of this body's own model (the region when one follows), without the companion:
-    /// [`Self::tick`] after its checks.
-    fn tick_model(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
+    /// [`Self::tick_tools`] after its checks.
+    fn tick_model(
+        &mut self,
+        inputs: &[TickInput],
+        outputs: &mut [TickOutput],
+    ) -> Result<(), ModelError> {
         if let (Some(f), Stepper::Condensed(solver)) = (&mut self.follow.0, &mut self.stepper) {
+            let input = &inputs[0];
             let device = input
                 .device_position_m
                 .map(|p| (p, input.device_velocity_m_per_s));
             f.before_tick(
                 solver,
                 device,
-                self.probe.patch().0,
+                self.probes[0].patch().0,
                 &mut self.state.x,
                 &mut self.state.v,
             );
@@ -365,24 +419,14 @@ impl FemBody {
                 &mut self.scratch.kernel,
             );
             self.loads.add_to(&self.state.x, &mut self.scratch.force);
-            // 2. Contact: the probe's proxy and the explicit part of its reaction.
-            match input.device_position_m {
-                Some(p) => {
-                    self.probe
-                        .update(&self.state.x, p, input.device_velocity_m_per_s);
-                    self.probe.add_reaction(&mut self.scratch.force);
-                    if self.loads.probe_load_remaining_s() > 0.0 {
-                        let patch = self.probe.load_patch(&self.state.x);
-                        self.loads.add_probe_load_to(patch, &mut self.scratch.force);
-                    }
-                }
-                None => self.probe.release(),
-            }
-            // 3. Step, completing the coupling.
-            let report = self.stepper.step(
+            // 2. Contact: every probe's proxy and the explicit part of its reaction.
+            self.update_probes(inputs);
+            // 3. Step, completing the couplings.
+            let report = self.stepper.step_tools(
                 &self.fem,
                 &self.scratch.force,
-                &mut self.probe,
+                &mut self.probes,
+                &mut self.merge,
                 &mut self.state,
             );
             let max_v2 = report.max_speed2_m2_per_s2;
@@ -396,18 +440,40 @@ impl FemBody {
         self.state.time_s += self.setup.tick_s;
         self.loads.advance(self.setup.tick_s);
         // 4. Output.
-        let contact = self.probe.state;
-        Ok(TickOutput {
-            force_on_device_n: contact.force_on_device_n,
-            in_contact: contact.in_contact,
-            proxy_position_m: if contact.in_contact {
-                contact.proxy_m
-            } else {
-                input.device_position_m.unwrap_or(DVec3::ZERO)
-            },
-            contact_stiffness_n_per_m: self.probe.contact_stiffness(),
-            sim_time_s: self.state.time_s,
-        })
+        for ((probe, input), out) in self.probes.iter().zip(inputs).zip(outputs.iter_mut()) {
+            let contact = probe.state;
+            *out = TickOutput {
+                force_on_device_n: contact.force_on_device_n,
+                in_contact: contact.in_contact,
+                proxy_position_m: if contact.in_contact {
+                    contact.proxy_m
+                } else {
+                    input.device_position_m.unwrap_or(DVec3::ZERO)
+                },
+                contact_stiffness_n_per_m: probe.contact_stiffness(),
+                sim_time_s: self.state.time_s,
+            };
+        }
+        Ok(())
+    }
+
+    /// Contact of one sub-step: each slot's probe at its device (released without one, and
+    /// past `inputs`), its explicit reaction into the force; the probe load acts at slot 0.
+    fn update_probes(&mut self, inputs: &[TickInput]) {
+        for (k, probe) in self.probes.iter_mut().enumerate() {
+            let input = inputs.get(k).copied().unwrap_or_default();
+            match input.device_position_m {
+                Some(p) => {
+                    probe.update(&self.state.x, p, input.device_velocity_m_per_s);
+                    probe.add_reaction(&mut self.scratch.force);
+                    if k == 0 && self.loads.probe_load_remaining_s() > 0.0 {
+                        let patch = probe.load_patch(&self.state.x);
+                        self.loads.add_probe_load_to(patch, &mut self.scratch.force);
+                    }
+                }
+                None => probe.release(),
+            }
+        }
     }
 
     /// What the coarse companion of a following region did (module documentation, "The coarse
@@ -495,7 +561,7 @@ impl FemBody {
         self.point_load_zone().check(point_m)?;
         self.loads.add_point_load(
             &self.state.x,
-            self.probe.params.radius_m,
+            self.probes[0].params.radius_m,
             point_m,
             force_n,
             duration_s,
@@ -664,7 +730,7 @@ impl FemBody {
 
     /// Probe radius, m.
     pub fn probe_radius_m(&self) -> f64 {
-        self.probe.params.radius_m
+        self.probes[0].params.radius_m
     }
 
     /// Scene name.
@@ -698,11 +764,46 @@ fn write_positions(nodes: &[u32], x: &[DVec3], rest: Option<&[DVec3]>, out: &mut
     max_d2.sqrt()
 }
 
-/// The probe's parameters for `scene`: its contact model resolved (`auto`) and the plane-strain
+/// One probe per tool slot of `scene` (one with a following region) over `touchable` of a
+/// body at rest `rest`, each with its tool's parameters ([`Scene::tool_probe`]), the local law
+/// of its radius, and the implicit sphere for a backward Euler sub-step `implicit_dt_s`. Slots
+/// with the same parameters share one set-up (cloned).
+fn tool_probes(
+    scene: &Scene,
+    touchable: &[[u32; 3]],
+    rest: &[DVec3],
+    implicit_dt_s: Option<f64>,
+    follows: bool,
+) -> Vec<Probe> {
+    let slots = if follows {
+        1
+    } else {
+        scene.tools.max_tools.max(1)
+    };
+    let mut probes: Vec<Probe> = Vec::with_capacity(slots);
+    for slot in 0..slots {
+        let params = probe_params_of(scene, slot);
+        if let Some(same) = probes.iter().find(|p| p.params == params) {
+            probes.push(same.clone());
+            continue;
+        }
+        let mut probe = Probe::new(params, touchable.to_vec(), rest);
+        if params.contact == ContactModel::PatchLocal {
+            probe.set_local_law(LocalLaw::for_material(&scene.material, params.radius_m));
+        }
+        if let Some(h) = implicit_dt_s {
+            probe.use_implicit_sphere(h);
+        }
+        probes.push(probe);
+    }
+    probes
+}
+
+/// The probe's parameters of tool slot `slot` of `scene`: its contact model resolved (`auto`) and the plane-strain
 /// modulus `E / (1 - nu^2)` of its material for the Hertz laws.
-fn probe_params_of(scene: &Scene) -> ProbeParams {
-    let mut probe_params = scene.probe;
-    probe_params.contact = integrate::resolve_contact_model(scene.probe.contact);
+fn probe_params_of(scene: &Scene, slot: usize) -> ProbeParams {
+    let mut probe_params = scene.tool_probe(slot);
+    probe_params.contact = integrate::resolve_contact_model(probe_params.contact);
     let (e, nu) = (
         scene.material.youngs_modulus_pa(),
         scene.material.poisson_ratio(),
@@ -815,6 +916,24 @@ impl SoftBody for FemBody {
         FemBody::tick(self, input)
     }
 
+    /// The scene's `probe.max_tools` (1 with a following active region).
+    fn max_tools(&self) -> usize {
+        self.probes.len()
+    }
+
+    /// The index of `tool_id` among the scene's `[[probe.tool]]`.
+    fn tool_slot(&self, tool_id: &str) -> Option<usize> {
+        self.setup.tool_ids.iter().position(|id| id == tool_id)
+    }
+
+    fn tick_tools(
+        &mut self,
+        inputs: &[TickInput],
+        outputs: &mut [TickOutput],
+    ) -> Result<(), ModelError> {
+        FemBody::tick_tools(self, inputs, outputs)
+    }
+
     fn add_point_load(
         &mut self,
         point_m: DVec3,
@@ -875,7 +994,7 @@ impl SoftBody for FemBody {
             tick_s: self.setup.tick_s,
             substeps: self.setup.plan.substeps,
             critical_dt_s: self.setup.plan.critical_dt_s,
-            probe_radius_m: self.probe.params.radius_m,
+            probe_radius_m: self.probes[0].params.radius_m,
             point_loads: self.point_load_zone(),
         }
     }

@@ -7,7 +7,9 @@
 
 use glam::{DMat3, DVec3};
 
-use crate::contact::coupling::{MAX_COUPLING_ROWS, cholesky_in_place, cholesky_solve};
+use crate::contact::coupling::{
+    MAX_COUPLED_PROBES, MAX_COUPLING_ROWS, MAX_MERGED_ROWS, cholesky_in_place, cholesky_solve,
+};
 use crate::contact::{ContactCoupling, MAX_PATCH_NODES};
 use crate::element::{ConstraintMask, FemModel, apply_constraint};
 use crate::material::{self, MaterialModel};
@@ -100,8 +102,10 @@ impl ImplicitSolver {
             tolerance: params.cg_tolerance,
             mass_factor,
             precond_inv,
-            patch_bu: Vec::with_capacity(MAX_PATCH_NODES),
-            capacitance: vec![0.0; MAX_COUPLING_ROWS * MAX_COUPLING_ROWS],
+            patch_bu: Vec::with_capacity(
+                MAX_COUPLED_PROBES * MAX_PATCH_NODES.max(3 * MAX_COUPLING_ROWS),
+            ),
+            capacitance: vec![0.0; MAX_MERGED_ROWS * MAX_MERGED_ROWS],
             elem_f: vec![DMat3::IDENTITY; fem.integration_point_count()],
             elem_s: vec![DMat3::ZERO; fem.integration_point_count()],
             cg: CgVectors {
@@ -291,7 +295,7 @@ impl Preconditioner<'_> {
             apply_constraint(m, zi);
         }
         if let (Some(c), Some(nf)) = (self.coupling, self.woodbury) {
-            let mut t = [0.0; MAX_COUPLING_ROWS];
+            let mut t = [0.0; MAX_MERGED_ROWS];
             c.a_times(z, &mut t);
             cholesky_solve(self.capacitance, nf, &mut t[..nf]);
             for (f, &tf) in t.iter().enumerate().take(nf) {
@@ -491,7 +495,7 @@ impl Operator<'_> {
             out[i] += p[i] * self.mass_factor[i];
         }
         if let Some(c) = self.coupling {
-            let mut y = [0.0; MAX_COUPLING_ROWS];
+            let mut y = [0.0; MAX_MERGED_ROWS];
             c.a_times(p, &mut y);
             c.apply_c(&mut y[..c.rows()]);
             c.add_at(&y[..c.rows()], h2, out);

@@ -34,7 +34,7 @@
 use glam::{DMat3, DVec3};
 
 use crate::ModelError;
-use crate::contact::{ContactModel, Probe};
+use crate::contact::{ContactCoupling, ContactModel, CouplingMerge, Probe};
 use crate::element::{FemModel, ForceScratch, PartRunner};
 use crate::material::MaterialParams;
 use crate::mesh::TetMesh;
@@ -481,24 +481,47 @@ impl Stepper {
         probe: &mut Probe,
         state: &mut FemState,
     ) -> StepReport {
+        // One probe never joins terms: an empty merge allocates nothing.
+        let mut merge = CouplingMerge::default();
+        self.step_tools(body, f, std::slice::from_mut(probe), &mut merge, state)
+    }
+
+    /// [`Self::step`] with several probes (tools, issue 50) acting on the body in the same
+    /// step: `f` holds every probe's explicit reaction. Backward Euler solves all the probes'
+    /// terms at once: with two or more in contact, their rows joined in `merge` (sized for
+    /// `probes`, [`CouplingMerge::with_capacity`]) with the block-diagonal compliance, exact
+    /// in the same Woodbury solve; with at most one, that probe's term as [`Self::step`]
+    /// (bit for bit). The explicit schemes complete the probes' couplings one after another
+    /// (Sherman-Morrison each, on the velocities the previous one left). Allocation-free.
+    ///
+    /// # Panics
+    /// As [`Self::step`]; when `merge` is too small for the probes in contact.
+    pub fn step_tools(
+        &mut self,
+        body: &FemModel,
+        f: &[DVec3],
+        probes: &mut [Probe],
+        merge: &mut CouplingMerge,
+        state: &mut FemState,
+    ) -> StepReport {
         let (x, v) = (&mut state.x, &mut state.v);
         let max_v2 = match self {
             Self::Condensed(solver) => {
                 let h = solver.dt_s();
-                let max_v2 = solver.step(f, probe.coupling(h), x, v);
-                probe.finish_solved(h, v);
+                let max_v2 = solver.step(f, joined_coupling(probes, merge, h), x, v);
+                probes.iter_mut().for_each(|p| p.finish_solved(h, v));
                 max_v2
             }
             Self::Implicit(solver) => {
                 let h = solver.dt_s();
-                let max_v2 = solver.step(body, f, probe.coupling(h), x, v);
-                probe.finish_solved(h, v);
+                let max_v2 = solver.step(body, f, joined_coupling(probes, merge, h), x, v);
+                probes.iter_mut().for_each(|p| p.finish_solved(h, v));
                 max_v2
             }
             Self::Explicit { kind, a_inv, dt_s } => {
                 let (kind, h) = (*kind, *dt_s);
                 let mut max_v2 = explicit::integrate_nodes(kind, body, a_inv, h, f, x, v);
-                if probe.state.in_contact {
+                for probe in probes.iter_mut().filter(|p| p.state.in_contact) {
                     probe.finish_implicit(h, x, v, |i, w| {
                         explicit::apply_inverse(kind, body, a_inv, h, i, w)
                     });
@@ -542,6 +565,29 @@ impl Stepper {
             _ => None,
         }
     }
+}
+
+/// The implicit term of `probes` for sub-step `h`: none out of contact, the one probe's in
+/// contact, or the terms of those in contact joined in `merge` (block-diagonal compliance).
+fn joined_coupling<'a>(
+    probes: &'a mut [Probe],
+    merge: &'a mut CouplingMerge,
+    h: f64,
+) -> Option<ContactCoupling<'a>> {
+    let touching = probes.iter().filter(|p| p.state.in_contact).count();
+    if touching <= 1 {
+        return probes
+            .iter_mut()
+            .find(|p| p.state.in_contact)
+            .and_then(|p| p.coupling(h));
+    }
+    merge.clear();
+    for p in probes.iter_mut() {
+        if let Some(c) = p.coupling(h) {
+            merge.push(c);
+        }
+    }
+    merge.view()
 }
 
 #[cfg(test)]

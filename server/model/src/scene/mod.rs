@@ -72,6 +72,12 @@
 //! coupling_stiffness_n_per_m = 300.0
 //! coupling_damping_n_s_per_m = 0.05
 //! max_force_n = 10.0
+//! max_tools = 2                  # tools (device streams) at once, 1..=4; default 2 on FEM
+//!                                # bodies without a following region, else 1 (docs/scenes.md)
+//! [[probe.tool]]                 # optional, at most max_tools: a named tool takes slot k
+//! id = "grasper"                 # (its index here); unique, 1..=64 characters
+//! radius_m = 0.003               # optional overrides of [probe] for this tool
+//! max_force_n = 5.0
 //! ```
 //!
 //! Built-in scenes are string constants ([`builtin`]; the library reads no file outside
@@ -160,6 +166,46 @@ pub struct FibreSpec {
     pub rule: FibreRule,
 }
 
+/// The tools (device streams) a scene takes at once (`[probe] max_tools`, `[[probe.tool]]`;
+/// issue 50): each tool has its own proxy, coupling and contact, all acting on the body in the
+/// same tick.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ToolSpec {
+    /// Tools at once, `1..=`[`crate::body::MAX_TOOLS`]: the parser's default is
+    /// [`DEFAULT_MAX_TOOLS`] where the body carries several tools, else 1.
+    pub max_tools: usize,
+    /// Named tools: the tool `named[k].id` takes slot `k` with its own probe parameters;
+    /// unnamed tools take the other slots with the scene's `[probe]`. At most `max_tools`.
+    pub named: Vec<NamedTool>,
+}
+
+impl Default for ToolSpec {
+    /// One tool, none named.
+    fn default() -> Self {
+        Self {
+            max_tools: 1,
+            named: Vec::new(),
+        }
+    }
+}
+
+/// A tool the scene names (`[[probe.tool]]`), with the probe parameters it overrides.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NamedTool {
+    /// Tool id (non-empty, at most [`MAX_TOOL_ID_CHARS`] characters, no control character,
+    /// unique in the scene), sent by a device stream in its first sample.
+    pub id: String,
+    /// The scene's `[probe]` with this tool's `radius_m` and `max_force_n`.
+    pub probe: ProbeParams,
+}
+
+/// `[probe] max_tools` when a scene does not set it, on the bodies that carry several tools
+/// (FEM without a following active region).
+pub const DEFAULT_MAX_TOOLS: usize = 2;
+
+/// Longest tool id, in characters.
+pub const MAX_TOOL_ID_CHARS: usize = 64;
+
 /// A validated scene, ready to build a body ([`crate::build_body`]). SI units.
 #[derive(Debug, Clone)]
 pub struct Scene {
@@ -181,8 +227,11 @@ pub struct Scene {
     pub material: MaterialParams,
     /// Integrator settings.
     pub integrator: IntegratorParams,
-    /// Haptic probe settings.
+    /// Haptic probe settings (of every tool the scene does not name).
     pub probe: ProbeParams,
+    /// The tools the body takes at once and the named ones (`[probe] max_tools`,
+    /// `[[probe.tool]]`).
+    pub tools: ToolSpec,
     /// Nodes fixed at their rest position (clamped), sorted, distinct.
     pub clamped_nodes: Vec<u32>,
     /// Triangles the probe can touch, outward oriented.
@@ -252,6 +301,16 @@ impl Scene {
     /// [`static_dead_forces`].
     pub fn dead_forces(&self) -> Vec<DVec3> {
         static_dead_forces(&self.loads, &self.mesh, self.material.density_kg_per_m3)
+    }
+
+    /// The probe parameters of tool slot `slot`: a named tool's, else the scene's `[probe]`.
+    pub fn tool_probe(&self, slot: usize) -> ProbeParams {
+        self.tools.named.get(slot).map_or(self.probe, |t| t.probe)
+    }
+
+    /// The slot of the tool named `id` (its index in `[[probe.tool]]`), `None` if unnamed.
+    pub fn tool_slot(&self, id: &str) -> Option<usize> {
+        self.tools.named.iter().position(|t| t.id == id)
     }
 }
 

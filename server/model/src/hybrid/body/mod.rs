@@ -43,6 +43,13 @@
 //! the particles' count, so the body is as close to its real inertia as the particle step
 //! allows).
 //!
+//! **Several tools** (issue 50, [`HybridBody::set_tools`]). Each tool slot has its own proxy
+//! on the same particles, all adding their penalties in the same sub-steps; the active regions
+//! are the union of those under each device, and no tool's activation evicts the regions under
+//! another. A tool that leaves while another stays is withdrawn by a ghost device over
+//! [`RELEASE_FADE_TICKS`] ticks and its regions stay until no tool is connected, so the other
+//! tool's force stays continuous (`docs/decisions.md`, "Several tools in one implicit step").
+//!
 //! **Surface.** Each outer vertex shows the core's interpolation at the vertex plus the
 //! deviation of its nearest particle from the core's interpolation at that particle (zero for
 //! inactive particles), so the surface is continuous at activation and release.
@@ -60,13 +67,14 @@ use super::prepare::{HybridModel, Tie, TieNodes};
 use super::proxy::{ParticleProxy, ProxyContact};
 use crate::ModelError;
 use crate::body::{
-    BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput, TickOutput,
-    validate_point_load,
+    BodyInfo, BodyStats, MAX_TOOLS, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput,
+    TickOutput, check_tool_slots, validate_point_load,
 };
 use crate::contact::probe::ProbeParams;
 use crate::element::FemModel;
 use crate::meshfree::TermBlock;
 use crate::pool::TickPool;
+use step::NO_CONTACT;
 
 mod diagnostics;
 mod regions;
@@ -127,6 +135,8 @@ pub struct HybridBody {
 struct HybridSetup {
     name: String,
     probe: ProbeParams,
+    /// The scene's named tools by slot ([`SoftBody::tool_slot`]).
+    tool_ids: Vec<String>,
     tick_s: f64,
     substeps: u32,
     core_substeps: u32,
@@ -140,6 +150,26 @@ struct HybridSetup {
     deviation: bool,
 }
 
+/// Ticks over which a leaving tool's force on the body fades while another tool stays
+/// ([`HybridBody::tick_tools`]).
+pub const RELEASE_FADE_TICKS: u32 = 20;
+
+/// A tool slot's device of the last tick, where it last touched nothing, and after it left
+/// while touching, its ghost's path (from, to, m) with the ticks it still presses.
+#[derive(Debug, Clone, Copy, Default)]
+struct ReleaseFade {
+    last_device_m: Option<DVec3>,
+    clear_m: Option<DVec3>,
+    ghost: Option<(DVec3, DVec3, u32)>,
+}
+
+/// A tool slot past the first: its proxy and force limit (N).
+#[derive(Debug)]
+struct ExtraTool {
+    proxy: ParticleProxy,
+    max_force_n: f64,
+}
+
 /// What a tick changes.
 #[derive(Debug)]
 struct HybridState {
@@ -149,8 +179,19 @@ struct HybridState {
     vp: Vec<DVec3>,
     /// Deviations of the active particles from the core's interpolation, m (deviation mode).
     xd: Vec<DVec3>,
-    /// The probe: the proxy sphere on the active particles and the virtual coupling.
+    /// The probe: the proxy sphere on the active particles and the virtual coupling (tool
+    /// slot 0).
     proxy: ParticleProxy,
+    /// Tool slots 1.. (issue 50, [`HybridBody::set_tools`]).
+    tools: Vec<ExtraTool>,
+    /// Per tool slot: the release fade ([`RELEASE_FADE_TICKS`]).
+    fades: [ReleaseFade; MAX_TOOLS],
+    /// Per tool slot: where its tool left while another stayed (m; `release_far` keeps the
+    /// folds there), until no tool is connected.
+    departed: [Option<DVec3>; MAX_TOOLS],
+    /// Points whose regions an activation may not evict (m; the other tools during one tool's
+    /// activation).
+    evict_guard: [Option<DVec3>; MAX_TOOLS],
     loads: [PointLoad; MAX_POINT_LOADS],
     load_count: usize,
     time_s: f64,
@@ -356,29 +397,153 @@ impl HybridBody {
     }
 }
 
+impl HybridBody {
+    /// Tools leaving while another stays (issue 50): a slot whose device left while its proxy
+    /// touched is withdrawn by a ghost device over [`RELEASE_FADE_TICKS`] ticks, linearly from
+    /// its last point back to where it last touched nothing, so its force on the body fades
+    /// instead of vanishing in one tick (which stepped the other tool's force by 6.9 % on
+    /// `lv-hybrid`, `tests/tools.rs`). `devices[k]` becomes the ghost. Never with one slot, or
+    /// with no other device connected (the one-tool tick is unchanged).
+    fn fade_released(&mut self, devices: &mut [Option<DVec3>]) {
+        let connected = devices.iter().filter(|d| d.is_some()).count();
+        if connected == 0 {
+            self.state.departed = [None; MAX_TOOLS];
+        }
+        for (k, device) in devices.iter_mut().enumerate() {
+            let touching = match k {
+                0 => self.state.proxy.state().1,
+                _ => self.state.tools[k - 1].proxy.state().1,
+            };
+            let fade = &mut self.state.fades[k];
+            if let Some(d) = *device {
+                if !touching {
+                    fade.clear_m = Some(d);
+                }
+                fade.last_device_m = Some(d);
+                fade.ghost = None;
+                self.state.departed[k] = None;
+                continue;
+            }
+            if let (Some(last), true, true) = (fade.last_device_m, touching, connected > 0) {
+                let clear = fade.clear_m.unwrap_or(last);
+                fade.ghost = Some((last, clear, RELEASE_FADE_TICKS));
+                self.state.departed[k] = Some(last);
+            }
+            fade.last_device_m = None;
+            fade.clear_m = None;
+            if let Some((last, clear, left)) = fade.ghost {
+                let s = f64::from(left) / f64::from(RELEASE_FADE_TICKS + 1);
+                *device = Some(clear + (last - clear) * s);
+                fade.ghost = (left > 1).then_some((last, clear, left - 1));
+            }
+        }
+    }
+
+    /// Point loads age by the tick; expired ones leave the table.
+    fn age_point_loads(&mut self) {
+        let mut k = 0;
+        while k < self.state.load_count {
+            self.state.loads[k].remaining_s -= self.setup.tick_s;
+            if self.state.loads[k].remaining_s <= 0.0 {
+                self.state.loads[k] = self.state.loads[self.state.load_count - 1];
+                self.state.load_count -= 1;
+            } else {
+                k += 1;
+            }
+        }
+    }
+}
+
+/// The tick output of a proxy's `contact` at `time_s` (s), its force clamped to
+/// `max_force_n` (N; the stiffness scaled with it).
+fn clamped_output(contact: &ProxyContact, max_force_n: f64, time_s: f64) -> TickOutput {
+    let (mut force, mut stiffness) = (contact.force_on_device_n, contact.stiffness_n_per_m);
+    let mag = force.length();
+    if mag > max_force_n {
+        let s = max_force_n / mag;
+        force *= s;
+        stiffness.iter_mut().for_each(|v| *v *= s);
+    }
+    TickOutput {
+        force_on_device_n: force,
+        in_contact: contact.in_contact,
+        proxy_position_m: contact.proxy_m,
+        contact_stiffness_n_per_m: stiffness,
+        sim_time_s: time_s,
+    }
+}
+
 impl SoftBody for HybridBody {
     fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
-        input.validate()?;
+        let mut out = [TickOutput::default()];
+        self.tick_tools(std::slice::from_ref(input), &mut out)?;
+        Ok(out[0])
+    }
+
+    /// The scene's `probe.max_tools`.
+    fn max_tools(&self) -> usize {
+        1 + self.state.tools.len()
+    }
+
+    /// The index of `tool_id` among the scene's `[[probe.tool]]`.
+    fn tool_slot(&self, tool_id: &str) -> Option<usize> {
+        self.setup.tool_ids.iter().position(|id| id == tool_id)
+    }
+
+    /// Every slot's proxy on the same particles: the active regions are the union of those
+    /// under each device; each proxy adds its penalty forces to the particles in the same
+    /// sub-steps. One slot is [`SoftBody::tick`] bit for bit.
+    fn tick_tools(
+        &mut self,
+        inputs: &[TickInput],
+        outputs: &mut [TickOutput],
+    ) -> Result<(), ModelError> {
+        check_tool_slots(inputs.len(), outputs.len(), self.max_tools())?;
+        for input in inputs {
+            input.validate()?;
+        }
         if let Some(time_s) = self.state.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
-        // 1. Release, then activation (which may release unsettled far regions for room).
-        let probe = input.device_position_m;
-        if !self.regions.hold {
-            self.release_far(probe);
+        let mut devices = [None; MAX_TOOLS];
+        for (d, input) in devices.iter_mut().zip(inputs) {
+            *d = input.device_position_m;
         }
-        if let Some(c) = probe {
+        let connected = devices;
+        self.fade_released(&mut devices[..inputs.len()]);
+        let devices = &devices[..inputs.len()];
+        // A slot past the first without a device (or a fading one) forgets its contact.
+        for (k, tool) in self.state.tools.iter_mut().enumerate() {
+            if devices.get(k + 1).copied().flatten().is_none() {
+                tool.proxy.reset();
+            }
+        }
+        // 1. Release, then activation (which may release unsettled far regions for room).
+        if !self.regions.hold {
+            self.release_far(devices);
+        }
+        // Ghosts activate nothing (a region activated under a leaving tool moved the other's
+        // force by 15 % in one tick).
+        for (k, c) in connected[..inputs.len()].iter().enumerate() {
+            let Some(c) = *c else { continue };
+            // Each tool's activation evicts none of the regions under the others.
+            for (j, g) in self.state.evict_guard.iter_mut().enumerate() {
+                *g = match j {
+                    _ if j == k || j >= devices.len() => None,
+                    _ => devices[j].or(self.state.departed[j]),
+                };
+            }
             self.activate_near(c, self.model.params.activation_radius_m);
         }
+        self.state.evict_guard = [None; MAX_TOOLS];
         // 2. Sub-steps.
-        let mut out = ProxyContact {
-            force_on_device_n: DVec3::ZERO,
-            stiffness_n_per_m: [0.0; 9],
-            proxy_m: probe.unwrap_or(DVec3::ZERO),
-            in_contact: false,
-        };
+        let mut contacts = [NO_CONTACT; MAX_TOOLS];
+        for (c, d) in contacts.iter_mut().zip(devices) {
+            c.proxy_m = d.unwrap_or(DVec3::ZERO);
+        }
+        let contacts = &mut contacts[..devices.len()];
         for _ in 0..self.setup.substeps {
-            out = self.particle_forces(probe);
+            self.particle_forces_tools(devices, contacts);
             let v2 = self.update(self.setup.dt_s);
             if !(v2 <= MAX_SPEED_M_PER_S * MAX_SPEED_M_PER_S) {
                 self.state.diverged_at_s = Some(self.state.time_s);
@@ -391,40 +556,30 @@ impl SoftBody for HybridBody {
         // particles the sub-steps moved. (The force of the last sub-step's start lags the body
         // by a tick: through the coupling that reads `k_c v h` too high while the device moves,
         // 3 mN at 10 mm/s, and drops by as much in the tick it stops.)
-        if let Some(device) = probe {
-            out = self
-                .state
-                .proxy
-                .update(device, &self.state.xp, &self.regions.active_list, None);
+        for (k, (device, contact)) in devices.iter().zip(contacts.iter_mut()).enumerate() {
+            let Some(device) = *device else { continue };
+            let proxy = match k {
+                0 => &mut self.state.proxy,
+                _ => &mut self.state.tools[k - 1].proxy,
+            };
+            *contact = proxy.update(device, &self.state.xp, &self.regions.active_list, None);
         }
         self.state.time_s += self.setup.tick_s;
-        // Point loads age by the tick.
-        let mut k = 0;
-        while k < self.state.load_count {
-            self.state.loads[k].remaining_s -= self.setup.tick_s;
-            if self.state.loads[k].remaining_s <= 0.0 {
-                self.state.loads[k] = self.state.loads[self.state.load_count - 1];
-                self.state.load_count -= 1;
-            } else {
-                k += 1;
-            }
+        self.age_point_loads();
+        // 4. Device forces, clamped.
+        for (k, (contact, out)) in contacts.iter().zip(outputs.iter_mut()).enumerate() {
+            let max_force_n = match k {
+                0 => self.setup.probe.max_force_n,
+                _ => self.state.tools[k - 1].max_force_n,
+            };
+            *out = match connected[k] {
+                Some(_) => clamped_output(contact, max_force_n, self.state.time_s),
+                // A fading slot's device is gone: nobody feels its force.
+                None => clamped_output(&NO_CONTACT, max_force_n, self.state.time_s),
+            };
         }
-        // 4. Device force, clamped.
-        let (mut force, mut stiffness) = (out.force_on_device_n, out.stiffness_n_per_m);
-        let mag = force.length();
-        if mag > self.setup.probe.max_force_n {
-            let s = self.setup.probe.max_force_n / mag;
-            force *= s;
-            stiffness.iter_mut().for_each(|v| *v *= s);
-        }
-        self.state.last_force_n = force;
-        Ok(TickOutput {
-            force_on_device_n: force,
-            in_contact: out.in_contact,
-            proxy_position_m: out.proxy_m,
-            contact_stiffness_n_per_m: stiffness,
-            sim_time_s: self.state.time_s,
-        })
+        self.state.last_force_n = outputs[0].force_on_device_n;
+        Ok(())
     }
 
     fn add_point_load(

@@ -59,17 +59,26 @@ impl HybridBody {
     }
 
     /// Releases active regions whose vertex is farther than `radius_m` from `probe_m`,
-    /// farthest first, until the region of vertex `v` fits or none is left.
+    /// farthest first, until the region of vertex `v` fits or none is left; never a region
+    /// within `release_radius_m` of another tool (`self.state.evict_guard`).
     pub(super) fn evict_far(&mut self, probe_m: DVec3, radius_m: f64, v: usize) {
         let r2 = radius_m * radius_m;
         while !self.fits(v) {
             let m = &self.model;
             let mut farthest = None;
             let mut d2_max = r2;
+            let guard2 = m.params.release_radius_m * m.params.release_radius_m;
             for (k, &u) in self.regions.active_regions.iter().enumerate() {
                 let x = m.interpolate(&m.vertex_tie[u as usize], &self.state.xc);
                 let d2 = (x - probe_m).length_squared();
-                if d2 > d2_max {
+                // Regions under another tool (or where one left) are not this one's to evict.
+                let guarded = self
+                    .state
+                    .evict_guard
+                    .iter()
+                    .flatten()
+                    .any(|&g| (x - g).length_squared() < guard2);
+                if d2 > d2_max && !guarded {
                     d2_max = d2;
                     farthest = Some(k);
                 }
@@ -124,9 +133,12 @@ impl HybridBody {
         self.regions.changed = true;
     }
 
-    /// Releases the settled regions whose vertex is farther than `release_radius_m` from the
-    /// probe (`None`: no probe, every settled region).
-    pub(super) fn release_far(&mut self, probe_m: Option<DVec3>) {
+    /// Releases the settled regions whose vertex is farther than `release_radius_m` from every
+    /// device (`None`: no device there). Regions near the last point of a tool that left while
+    /// another stays (`self.state.departed`) stay active until no tool is connected: their
+    /// release (185 particles) moved the other tool's force by 13 % in one tick on
+    /// `lv-hybrid` (`tests/tools.rs`).
+    pub(super) fn release_far(&mut self, devices: &[Option<DVec3>]) {
         let p = &self.model.params;
         let r2 = p.release_radius_m * p.release_radius_m;
         let tol2 = p.release_tolerance_m * p.release_tolerance_m;
@@ -135,15 +147,24 @@ impl HybridBody {
         while k < self.regions.active_regions.len() {
             let m = &self.model;
             let v = self.regions.active_regions[k] as usize;
-            let near = probe_m.is_some_and(|c| {
-                (m.interpolate(&m.vertex_tie[v], &self.state.xc) - c).length_squared() < r2
-            });
+            let vertex = m.interpolate(&m.vertex_tie[v], &self.state.xc);
+            let near = devices
+                .iter()
+                .flatten()
+                .any(|&c| (vertex - c).length_squared() < r2);
+            let kept = self
+                .state
+                .departed
+                .iter()
+                .flatten()
+                .any(|&c| (vertex - c).length_squared() < r2);
             let region =
                 &m.region_particles[m.region_start[v] as usize..m.region_start[v + 1] as usize];
             // Settled: back on the core's interpolation, or at rest (speeds below the tolerance
             // per 0.1 s) in a state the layer cannot leave by itself (a fold pressed in by the
             // probe), which the release then removes.
             let settled = !near
+                && !kept
                 && (region.iter().all(|&p| {
                     let p = p as usize;
                     !self.regions.active[p]

@@ -7,9 +7,11 @@ use super::MAX_POINT_LOADS;
 use super::PointLoad;
 use super::STEP_CHECK_POINTS;
 use super::{
-    HybridBody, HybridPipeline, HybridScratch, HybridSetup, HybridState, HybridStats, RegionSet,
+    ExtraTool, HybridBody, HybridPipeline, HybridScratch, HybridSetup, HybridState, HybridStats,
+    RegionSet,
 };
 use crate::ModelError;
+use crate::body::MAX_TOOLS;
 use crate::contact::probe::ProbeParams;
 use crate::element::FemModel;
 use crate::hybrid::CoreMassScale;
@@ -28,6 +30,30 @@ use crate::meshfree::TermBlock;
 use glam::DVec3;
 
 impl HybridBody {
+    /// Gives the body tool slots 1.. (issue 50; slot 0 is the probe of [`Self::new`]): one
+    /// proxy per entry of `probes` (each with its radius, coupling stiffness and force limit),
+    /// and the named tools' ids by slot (`tool_ids[k]` names slot `k`). Set-up, not a tick:
+    /// allocates.
+    pub fn set_tools(&mut self, probes: &[ProbeParams], tool_ids: &[String]) {
+        let params = self.model.params;
+        let skin = self.model.contact_skin_m();
+        let most_active = params.max_active_particles + self.model.largest_region;
+        self.state.tools = probes
+            .iter()
+            .take(MAX_TOOLS - 1)
+            .map(|p| ExtraTool {
+                proxy: ParticleProxy::new(
+                    p,
+                    params.meshfree.spacing_m,
+                    params.contact_stiffness_n_per_m,
+                    &skin,
+                    most_active,
+                ),
+                max_force_n: p.max_force_n,
+            })
+            .collect();
+        self.setup.tool_ids = tool_ids.to_vec();
+    }
     /// A body at rest from a preprocessed model. `clamped`: core nodes fixed at rest;
     /// `tick_s`: servo period, s.
     ///
@@ -79,6 +105,10 @@ impl HybridBody {
                 time_s: 0.0,
                 diverged_at_s: None,
                 last_force_n: DVec3::ZERO,
+                tools: Vec::new(),
+                fades: Default::default(),
+                departed: [None; MAX_TOOLS],
+                evict_guard: [None; MAX_TOOLS],
             },
             regions: RegionSet {
                 active: vec![false; n],
@@ -293,6 +323,7 @@ impl HybridSetup {
         Ok(Self {
             name: name.to_string(),
             probe,
+            tool_ids: Vec::new(),
             tick_s,
             substeps,
             core_substeps,

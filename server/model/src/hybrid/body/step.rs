@@ -1,7 +1,7 @@
 //! The energy terms of the active set and the particle steps: forces on the particles and the
 //! core, the update (module documentation of [`super`], a tick's step 2).
 
-use super::{HybridBody, HybridPipeline, PointLoad};
+use super::{ExtraTool, HybridBody, HybridPipeline, PointLoad};
 use crate::ModelError;
 use crate::body::{SoftBody, TickInput};
 use crate::hybrid::prepare::{HybridModel, TieNodes};
@@ -9,6 +9,14 @@ use crate::hybrid::proxy::{ParticleProxy, ProxyContact};
 use crate::integrate::IntegratorKind;
 use crate::integrate::explicit::integrate_nodes;
 use glam::DVec3;
+
+/// A slot without a device: no contact.
+pub(super) const NO_CONTACT: ProxyContact = ProxyContact {
+    force_on_device_n: DVec3::ZERO,
+    stiffness_n_per_m: [0.0; 9],
+    proxy_m: DVec3::ZERO,
+    in_contact: false,
+};
 
 impl HybridBody {
     /// Refills the energy terms for the current active set (allocation-free): terms of the
@@ -155,6 +163,19 @@ impl HybridBody {
     /// `sum k n n^T`, N/m); the tied particles' forces and the point loads go to the core
     /// nodes' coupling buffer with the tie weights.
     pub(super) fn particle_forces(&mut self, probe_m: Option<DVec3>) -> ProxyContact {
+        let mut contact = [NO_CONTACT];
+        self.particle_forces_tools(&[probe_m], &mut contact);
+        contact[0]
+    }
+
+    /// [`Self::particle_forces`] with a probe per tool slot: `devices[k]` drives slot `k`'s
+    /// proxy (slot 0 the body's first, slot `k > 0` its `tools[k - 1]`), whose contact goes to
+    /// `contacts[k]`; every proxy adds its penalty forces to the same particles' forces.
+    pub(super) fn particle_forces_tools(
+        &mut self,
+        devices: &[Option<DVec3>],
+        contacts: &mut [ProxyContact],
+    ) {
         if self.regions.changed {
             self.rebuild_terms();
         }
@@ -182,6 +203,7 @@ impl HybridBody {
         );
         let scatter = TieScatter {
             proxy: &mut self.state.proxy,
+            tools: &mut self.state.tools,
             xp: &self.state.xp,
             active: &self.regions.active_list,
             tied: &self.regions.tied_list,
@@ -199,14 +221,14 @@ impl HybridBody {
             .as_deref()
             .filter(|p| p.threads() > 1 && self.pipeline.implicit.is_some());
         let Some(pool) = beside else {
-            return scatter.run(probe_m);
+            return scatter.run(devices, contacts);
         };
         // Two threads: the FEM's forces for the implicit step (they read the core's positions
-        // only) on the worker, beside the proxy and the ties.
+        // only) on the worker, beside the proxies and the ties.
         let (fem, layer, xc) = (&self.fem, &self.pipeline.layer, &self.state.xc);
         let ffem = &mut self.scratch.ffem;
-        let (contact, ()) = pool.join(
-            || scatter.run(probe_m),
+        pool.join(
+            || scatter.run(devices, contacts),
             || {
                 ffem.iter_mut().for_each(|f| *f = DVec3::ZERO);
                 fem.add_internal_forces(xc, None, ffem);
@@ -216,7 +238,6 @@ impl HybridBody {
             },
         );
         self.scratch.ffem_ready = true;
-        contact
     }
 
     /// Core forces: the coupling buffer plus the FEM's internal (elastic and viscous) forces.
@@ -348,7 +369,9 @@ impl HybridBody {
 /// What the proxy and the ties' scatter read and write, borrowed apart from the rest of the
 /// body so that the FEM's forces can be computed beside them ([`HybridBody::particle_forces`]).
 struct TieScatter<'a> {
+    /// Slot 0's proxy and the other slots' tools.
     proxy: &'a mut ParticleProxy,
+    tools: &'a mut [ExtraTool],
     xp: &'a [DVec3],
     active: &'a [u32],
     tied: &'a [u32],
@@ -362,21 +385,21 @@ struct TieScatter<'a> {
 }
 
 impl TieScatter<'_> {
-    /// The probe at `probe_m` on the particles (its reaction into `fp`), then the tied (and,
-    /// in deviation mode, the active) particles' forces and the point loads onto the core
-    /// nodes' coupling buffer with the tie weights. Returns the probe's contact.
-    fn run(self, probe_m: Option<DVec3>) -> ProxyContact {
-        let contact = match probe_m {
-            Some(device) => self
-                .proxy
-                .update(device, self.xp, self.active, Some(&mut *self.fp)),
-            None => ProxyContact {
-                force_on_device_n: DVec3::ZERO,
-                stiffness_n_per_m: [0.0; 9],
-                proxy_m: DVec3::ZERO,
-                in_contact: false,
-            },
-        };
+    /// Every slot's probe (`devices[k]`, slot 0 the body's first proxy, slot `k > 0` its
+    /// `tools[k - 1]`) on the particles, its contact into `contacts[k]` and its reaction into
+    /// `fp`, then the tied (and, in deviation mode, the active) particles' forces and the
+    /// point loads onto the core nodes' coupling buffer with the tie weights.
+    fn run(self, devices: &[Option<DVec3>], contacts: &mut [ProxyContact]) {
+        for (k, (device, contact)) in devices.iter().zip(contacts.iter_mut()).enumerate() {
+            let proxy = match k {
+                0 => &mut *self.proxy,
+                _ => &mut self.tools[k - 1].proxy,
+            };
+            *contact = match device {
+                Some(device) => proxy.update(*device, self.xp, self.active, Some(&mut *self.fp)),
+                None => NO_CONTACT,
+            };
+        }
         self.fcoup.iter_mut().for_each(|f| *f = DVec3::ZERO);
         for (&q, t) in self.tied.iter().zip(self.tied_ties) {
             let f = self.fp[q as usize];
@@ -399,6 +422,5 @@ impl TieScatter<'_> {
                 self.fcoup[t.nodes[k] as usize] += l.force_n * t.w[k];
             }
         }
-        contact
     }
 }

@@ -90,7 +90,7 @@ use crate::linalg::supernodal::{HalfFactor, SupernodalSolve};
 
 use crate::ModelError;
 use crate::contact::ContactCoupling;
-use crate::contact::coupling::{MAX_COUPLING_ROWS, cholesky_in_place, cholesky_solve};
+use crate::contact::coupling::{MAX_MERGED_ROWS, cholesky_in_place, cholesky_solve};
 use crate::element::FemModel;
 use crate::element::tangent::cell_tangent_blocks_of;
 use crate::material::{MaterialModel, MaterialParams};
@@ -409,7 +409,7 @@ struct CondensedScratch {
     b: Vec<f64>,
     /// The probe's correction `A^-1 A^T s`, then the solved velocity `v'` before relaxation.
     z1: Vec<f64>,
-    /// Woodbury capacitance of the probe's term (`F x F`, [`MAX_COUPLING_ROWS`] squared).
+    /// Woodbury capacitance of the probe's term (`F x F`, [`MAX_MERGED_ROWS`] squared).
     capacitance: Vec<f64>,
     /// The interface displacement `u_G` (`g`).
     u_gamma: Vec<f64>,
@@ -428,7 +428,7 @@ impl CondensedScratch {
             rhs: Mat::zeros(m, 2),
             b: vec![0.0; m],
             z1: vec![0.0; m],
-            capacitance: vec![0.0; MAX_COUPLING_ROWS * MAX_COUPLING_ROWS],
+            capacitance: vec![0.0; MAX_MERGED_ROWS * MAX_MERGED_ROWS],
             u_gamma: vec![0.0; g],
             u_gamma32: vec![0.0; g],
         }
@@ -452,7 +452,7 @@ struct CondensedStats {
 pub const PAIRED_SWEEP_MIN_RATIO: f64 = 0.3;
 
 /// Probe-row nodes remembered between ticks to tell a node entering the contact.
-const ENTRY_TRACKED_NODES: usize = 3 * MAX_COUPLING_ROWS;
+const ENTRY_TRACKED_NODES: usize = 3 * MAX_MERGED_ROWS;
 
 /// A second numeric factor on the solver's analysis and its prepared contact columns
 /// ([`CondensedSolver::add_entry_factor`]).

@@ -222,7 +222,7 @@ impl CondensedSolver {
             .iter()
             .all(|&i| self.contact.col[i as usize] != u32::MAX);
         // t = A z0.
-        let mut t = [0.0; MAX_COUPLING_ROWS];
+        let mut t = [0.0; MAX_MERGED_ROWS];
         for (f, tf) in t.iter_mut().enumerate().take(nf) {
             for (i, u) in c.row(f) {
                 for k in 0..3 {

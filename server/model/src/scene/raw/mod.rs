@@ -7,8 +7,11 @@ use glam::DVec3;
 use serde::Deserialize;
 
 use super::builtin::builtin_calibration;
-use super::{BUILTIN_MESHES, ModelFamily, Scene};
+use super::{
+    BUILTIN_MESHES, DEFAULT_MAX_TOOLS, MAX_TOOL_ID_CHARS, ModelFamily, NamedTool, Scene, ToolSpec,
+};
 use crate::ModelError;
+use crate::body::MAX_TOOLS;
 use crate::check::{bounded_vec, checked, int_in, non_negative, positive, positive_vec, required};
 use crate::contact::{ContactModel, ProbeParams};
 use crate::element::StrainSmoothing;
@@ -175,6 +178,16 @@ struct RawProbe {
     coupling_damping_n_s_per_m: Option<f64>,
     max_force_n: Option<f64>,
     friction_coefficient: Option<f64>,
+    max_tools: Option<i64>,
+    tool: Option<Vec<RawTool>>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawTool {
+    id: Option<String>,
+    radius_m: Option<f64>,
+    max_force_n: Option<f64>,
 }
 
 /// Where a scene's text comes from: a built-in scene reads its calibration table from the
@@ -203,7 +216,6 @@ pub(super) fn parse_scene(
 ) -> Result<Scene, ModelError> {
     let raw: RawScene = super::toml_errors::deserialize(text)?;
     let model = raw.model.unwrap_or_default();
-    let realtime = model.realtime.unwrap_or(true);
     let family = model_family(model.family.as_deref())?;
     let springs = family == ModelFamily::MassSpring;
     let mesh_raw = required("mesh", raw.mesh)?;
@@ -231,7 +243,7 @@ pub(super) fn parse_scene(
         raw.hybrid.as_ref(),
         &hybrid_mesh,
     )?;
-    let probe = build_probe(&raw.probe.unwrap_or_default())?;
+    let (raw_probe, probe) = probe_section(raw.probe)?;
     let loads = build_loads(&raw.loads.unwrap_or_default(), &mesh, &clamped_nodes)?;
     let raw_region = raw.active_region.as_ref();
     let active_region = region_section(
@@ -281,12 +293,13 @@ pub(super) fn parse_scene(
         hybrid,
         description: raw.description.unwrap_or_default(),
         family,
-        realtime,
+        realtime: model.realtime.unwrap_or(true),
         mesh,
         strain_smoothing,
         material,
         integrator,
         probe,
+        tools: build_tools(&raw_probe, probe, one_tool_reason(family, &active_region))?,
         clamped_nodes,
         touchable,
         length_unit_m,

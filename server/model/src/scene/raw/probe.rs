@@ -2,6 +2,13 @@
 
 use super::*;
 
+/// The raw `[probe]` section (empty when absent) and its probe ([`build_probe`]).
+pub(super) fn probe_section(p: Option<RawProbe>) -> Result<(RawProbe, ProbeParams), ModelError> {
+    let p = p.unwrap_or_default();
+    let params = build_probe(&p)?;
+    Ok((p, params))
+}
+
 /// The probe section (every integrator carries every contact model:
 /// [`crate::integrate::resolve_contact_model`]).
 pub(super) fn build_probe(p: &RawProbe) -> Result<ProbeParams, ModelError> {
@@ -41,4 +48,88 @@ pub(super) fn build_probe(p: &RawProbe) -> Result<ProbeParams, ModelError> {
         hertz_modulus_pa: d.hertz_modulus_pa,
     };
     Ok(params)
+}
+
+/// Why a scene of `family` with `region` takes one tool only (`None`: it takes several).
+pub(super) fn one_tool_reason(
+    family: ModelFamily,
+    region: &Option<ActiveRegion>,
+) -> Option<&'static str> {
+    match family {
+        ModelFamily::MassSpring => Some(
+            "the mass-spring family takes one tool: its run-time subdivision follows one contact node",
+        ),
+        ModelFamily::Fem if region.is_some_and(|r| r.follow) => Some(
+            "a following active region (active_region.follow) takes one tool: the region follows one contact and would leave a second tool on condensed elements; use a fixed region or none",
+        ),
+        ModelFamily::Fem | ModelFamily::Hybrid => None,
+    }
+}
+
+/// `[probe] max_tools` and `[[probe.tool]]` (module documentation of [`crate::scene`]): the
+/// named tools' probes are `probe` with their overrides. `one_tool`: why the body takes one
+/// tool only (then the default is 1 and more is refused with that reason).
+pub(super) fn build_tools(
+    p: &RawProbe,
+    probe: ProbeParams,
+    one_tool: Option<&'static str>,
+) -> Result<ToolSpec, ModelError> {
+    let max_tools = match (p.max_tools, one_tool) {
+        (None, None) => DEFAULT_MAX_TOOLS,
+        (None, Some(_)) => 1,
+        (Some(n), _) => int_in("probe.max_tools", n, 1, MAX_TOOLS as i64)?,
+    };
+    if let (true, Some(why)) = (max_tools > 1, one_tool) {
+        return Err(ModelError::field(
+            "probe.max_tools",
+            format!("must be 1 here, got {max_tools}: {why}"),
+        ));
+    }
+    let raw_tools = p.tool.as_deref().unwrap_or_default();
+    if raw_tools.len() > max_tools {
+        return Err(ModelError::field(
+            "probe.tool",
+            format!(
+                "{} named tools for max_tools = {max_tools}: name at most max_tools tools (or raise probe.max_tools, at most {MAX_TOOLS})",
+                raw_tools.len()
+            ),
+        ));
+    }
+    let mut named: Vec<NamedTool> = Vec::with_capacity(raw_tools.len());
+    for (k, t) in raw_tools.iter().enumerate() {
+        let field = |name: &str| format!("probe.tool[{k}].{name}");
+        let id = required(&field("id"), t.id.clone())?;
+        tool_id_rules(&field("id"), &id)?;
+        if named.iter().any(|n| n.id == id) {
+            return Err(ModelError::field(
+                field("id"),
+                format!("{id:?} names an earlier tool too: tool ids must be unique"),
+            ));
+        }
+        let mut params = probe;
+        if let Some(r) = t.radius_m {
+            params.radius_m = positive(&field("radius_m"), r)?;
+        }
+        if let Some(f) = t.max_force_n {
+            params.max_force_n = positive(&field("max_force_n"), f)?;
+        }
+        named.push(NamedTool { id, probe: params });
+    }
+    Ok(ToolSpec { max_tools, named })
+}
+
+/// A tool id is non-empty, at most [`MAX_TOOL_ID_CHARS`] characters, without control
+/// characters.
+fn tool_id_rules(field: &str, id: &str) -> Result<(), ModelError> {
+    let chars = id.chars().count();
+    if chars == 0 || chars > MAX_TOOL_ID_CHARS {
+        return Err(ModelError::field(
+            field,
+            format!("must have 1..={MAX_TOOL_ID_CHARS} characters, got {chars}"),
+        ));
+    }
+    if id.chars().any(char::is_control) {
+        return Err(ModelError::field(field, "holds a control character"));
+    }
+    Ok(())
 }
