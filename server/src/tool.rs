@@ -1,0 +1,109 @@
+//! Several tools in one session (issue 50): which tool slot a `DeviceLink` stream takes. A
+//! session has `SoftBody::max_tools()` slots (the scene's `probe.max_tools`, default 2, at most
+//! `haptic_model::body::MAX_TOOLS`); a stream names its tool in its first sample's `tool_id`
+//! ("" = the default tool). A tool the scene names (`[[probe.tool]] id`, answered by
+//! `SoftBody::tool_slot`) takes its own slot; any other takes the lowest free slot no named tool
+//! reserves. Pure functions: the session ([`crate::session::Session::attach_tool`]) holds the
+//! lock and the slots.
+
+use crate::error::ServerError;
+
+/// Longest tool id accepted, bytes.
+pub const MAX_TOOL_ID_BYTES: usize = 64;
+
+/// Checks a stream's tool id.
+///
+/// # Errors
+/// [`ServerError::InvalidArgument`] for an id longer than [`MAX_TOOL_ID_BYTES`] or with
+/// control characters.
+pub fn check_tool_id(id: &str) -> Result<(), ServerError> {
+    if id.len() > MAX_TOOL_ID_BYTES || id.chars().any(char::is_control) {
+        return Err(ServerError::InvalidArgument(format!(
+            "tool_id must be at most {MAX_TOOL_ID_BYTES} bytes without control characters"
+        )));
+    }
+    Ok(())
+}
+
+/// The slot tool `id` takes in session `session`, given the named tools' slots (`named`: id,
+/// slot) and the ids of the streams connected now (`occupied[k]`: slot `k`'s, `None` when
+/// free).
+///
+/// # Errors
+/// [`ServerError::FailedPrecondition`] when a stream of the same tool id is connected (one
+/// stream per tool, as one device per session before issue 50);
+/// [`ServerError::Exhausted`] when no slot is free for it (the session's limit, or the only
+/// free slots are reserved for named tools).
+pub fn choose_slot(
+    session: &str,
+    id: &str,
+    named: &[(String, usize)],
+    occupied: &[Option<String>],
+) -> Result<usize, ServerError> {
+    if occupied.iter().any(|o| o.as_deref() == Some(id)) {
+        return Err(ServerError::FailedPrecondition(if id.is_empty() {
+            format!("session {session} already has a device connected (the default tool)")
+        } else {
+            format!("session {session} already has tool {id:?} connected")
+        }));
+    }
+    if let Some(&(_, k)) = named.iter().find(|(n, k)| n == id && *k < occupied.len()) {
+        // Unnamed tools never take a reserved slot, and the same id is not connected.
+        return Ok(k);
+    }
+    let reserved = |k: usize| named.iter().any(|&(_, r)| r == k);
+    (0..occupied.len())
+        .find(|&k| occupied[k].is_none() && !reserved(k))
+        .ok_or_else(|| {
+            ServerError::Exhausted(format!(
+                "session {session} takes at most {} tools at once (the scene's probe.max_tools) \
+                 and has no free slot for tool {id:?}",
+                occupied.len()
+            ))
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn occ(ids: &[Option<&str>]) -> Vec<Option<String>> {
+        ids.iter().map(|o| o.map(str::to_owned)).collect()
+    }
+
+    #[test]
+    fn tools_take_the_lowest_free_slot_their_own_if_named_and_never_twice() {
+        let none: Vec<(String, usize)> = Vec::new();
+        assert_eq!(choose_slot("s", "", &none, &occ(&[None, None])).unwrap(), 0);
+        assert_eq!(
+            choose_slot("s", "right", &none, &occ(&[Some(""), None])).unwrap(),
+            1
+        );
+        let e = choose_slot("s", "", &none, &occ(&[Some(""), None])).unwrap_err();
+        assert!(matches!(e, ServerError::FailedPrecondition(_)), "{e}");
+        let e = choose_slot("s", "c", &none, &occ(&[Some("a"), Some("b")])).unwrap_err();
+        assert!(
+            matches!(&e, ServerError::Exhausted(m) if m.contains("at most 2 tools")),
+            "{e}"
+        );
+        // A named tool takes its slot; others skip it.
+        let named = vec![("right".to_owned(), 0)];
+        assert_eq!(choose_slot("s", "", &named, &occ(&[None, None])).unwrap(), 1);
+        assert_eq!(
+            choose_slot("s", "right", &named, &occ(&[None, Some("")])).unwrap(),
+            0
+        );
+        let e = choose_slot("s", "x", &named, &occ(&[None, Some("")])).unwrap_err();
+        assert!(matches!(e, ServerError::Exhausted(_)), "{e}");
+        // A one-slot session: a second default tool is refused as before issue 50.
+        let e = choose_slot("s", "", &none, &occ(&[Some("")])).unwrap_err();
+        assert!(matches!(e, ServerError::FailedPrecondition(_)), "{e}");
+    }
+
+    #[test]
+    fn tool_ids_are_short_and_printable() {
+        assert!(check_tool_id("").is_ok() && check_tool_id("left").is_ok());
+        assert!(check_tool_id(&"x".repeat(65)).is_err());
+        assert!(check_tool_id("a\u{1b}[31m").is_err());
+    }
+}
