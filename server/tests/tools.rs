@@ -191,6 +191,26 @@ async fn two_tools_get_their_own_forces_a_third_is_refused_and_one_leaving_spare
     assert!(l.pose_to_force_p99_us > 0.0 && r.pose_to_force_p99_us > 0.0);
     assert!(s.in_contact && (s.peak_force_n - slot_force(1)).abs() < 1e-12);
     assert_eq!(s.device_samples, l.device_samples + r.device_samples);
+    // The same per tool in the metrics (labels tool and slot).
+    let text = haptic_server::metrics::render(&haptic_server::metrics::registry(manager.clone()))
+        .unwrap();
+    for (tool, slot) in [("left", 0), ("right", 1)] {
+        let labels = format!(
+            r#"session="{id}",scene="wall",family="wall",tool="{tool}",slot="{slot}""#
+        );
+        let value = |name: &str| {
+            let key = format!("{name}{{{labels}}} ");
+            text.lines()
+                .find_map(|l| l.strip_prefix(key.as_str()))
+                .and_then(|v| v.trim().parse::<f64>().ok())
+                .unwrap_or_else(|| panic!("{key} in {text}"))
+        };
+        assert_eq!(value("hapticd_tool_connected"), 1.0);
+        assert_eq!(value("hapticd_tool_in_contact"), 1.0);
+        assert!(value("hapticd_tool_force_newtons") > 0.0);
+        assert!(value("hapticd_tool_pose_to_force_seconds_count") > 10.0);
+        assert_eq!(value("hapticd_tool_rejected_samples_total"), 0.0);
+    }
 
     // Left leaves: its slot frees and its contact is released; right's force goes on unchanged.
     left_task.abort();
