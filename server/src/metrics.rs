@@ -334,7 +334,13 @@ fn per_tool(
     let mut m = enc.encode_descriptor(name, help, None, metric_type)?;
     for r in rows {
         let [a, b, c] = r.session.labels();
-        let labels = [a, b, c, ("tool", r.tool_id.as_str()), ("slot", r.slot.as_str())];
+        let labels = [
+            a,
+            b,
+            c,
+            ("tool", r.tool_id.as_str()),
+            ("slot", r.slot.as_str()),
+        ];
         let mut family = m.encode_family(&labels)?;
         encode_value(&mut family, value(r))?;
     }

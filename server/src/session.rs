@@ -310,7 +310,9 @@ impl Session {
             .lock()
             .map_err(|_| poisoned("pose slot"))?
             .take()
-            .ok_or_else(|| ServerError::Internal("a free tool slot without its pose input".into()))?;
+            .ok_or_else(|| {
+                ServerError::Internal("a free tool slot without its pose input".into())
+            })?;
         *tool.tool_id.lock().map_err(|_| poisoned("tool id"))? = tool_id.to_owned();
         *tool.link.lock().map_err(|_| poisoned("link"))? = Some(tx);
         Ok(ToolAttachment { slot, pose })
@@ -701,7 +703,13 @@ impl SessionManager {
             scene,
             &mut |stage, fraction| tracing::info!(scene = %name, "preprocessing {:3.0} %: {stage}", 100.0 * fraction),
         )?;
-        self.start_in_slot(slot, &id, body, Some(LinkLimits::of_scene(scene)), tool_names)
+        self.start_in_slot(
+            slot,
+            &id,
+            body,
+            Some(LinkLimits::of_scene(scene)),
+            tool_names,
+        )
     }
 
     /// Reserves a session slot: running plus pending sessions stay at most `max_sessions`
@@ -1039,7 +1047,11 @@ fn named_tool_slots(
 ) -> Vec<(String, usize)> {
     names
         .iter()
-        .filter_map(|n| body.tool_slot(n).filter(|&k| k < slots).map(|k| (n.clone(), k)))
+        .filter_map(|n| {
+            body.tool_slot(n)
+                .filter(|&k| k < slots)
+                .map(|k| (n.clone(), k))
+        })
         .collect()
 }
 

@@ -88,7 +88,10 @@ mod tests {
         );
         // A named tool takes its slot; others skip it.
         let named = vec![("right".to_owned(), 0)];
-        assert_eq!(choose_slot("s", "", &named, &occ(&[None, None])).unwrap(), 1);
+        assert_eq!(
+            choose_slot("s", "", &named, &occ(&[None, None])).unwrap(),
+            1
+        );
         assert_eq!(
             choose_slot("s", "right", &named, &occ(&[None, Some("")])).unwrap(),
             0

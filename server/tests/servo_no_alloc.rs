@@ -84,8 +84,7 @@ fn servo_tick_with_two_tools_never_allocates() {
         pose: mut right,
         forces: mut right_forces,
     } = more.remove(0);
-    let mut core = ServoCore::new(body, ends, shared.clone(), 4, 50)
-        .with_device_silence_us(2_000);
+    let mut core = ServoCore::new(body, ends, shared.clone(), 4, 50).with_device_silence_us(2_000);
     shared.watchers.store(1, Ordering::Relaxed);
     let clock = ManualClock(Cell::new(0));
     let (mut worst, mut answered) = (0, [0u64; 2]);
@@ -110,10 +109,16 @@ fn servo_tick_with_two_tools_never_allocates() {
             ..Pose::default()
         });
         let now = clock.now_us();
-        worst = worst.max(counted(|| {
-            core.tick(now, &clock);
-        }).1);
-        for (i, ring) in [&mut left_forces, &mut right_forces].into_iter().enumerate() {
+        worst = worst.max(
+            counted(|| {
+                core.tick(now, &clock);
+            })
+            .1,
+        );
+        for (i, ring) in [&mut left_forces, &mut right_forces]
+            .into_iter()
+            .enumerate()
+        {
             while let Ok(f) = ring.pop() {
                 let want = wall::wall_force(i, Some(DVec3::new(-0.001 * (i + 1) as f64, 0.0, 0.0)));
                 assert_eq!(f.force_n, want, "slot {i} tick {k}");

@@ -68,7 +68,11 @@ async fn press(
         for seq in 1.. {
             let first = seq == 1;
             let s = DeviceSample {
-                session_id: if first { session.clone() } else { String::new() },
+                session_id: if first {
+                    session.clone()
+                } else {
+                    String::new()
+                },
                 seq,
                 device_time_us: seq * 1000,
                 position_m: Some(Vec3::new(x, 0.0, 0.0)),
@@ -179,25 +183,30 @@ async fn two_tools_get_their_own_forces_a_third_is_refused_and_one_leaving_spare
 
     // Per-tool statistics.
     let s = stats_until(&ch, &id, |s| {
-        s.tools.len() == 2 && s.tools.iter().all(|t| t.in_contact && t.device_samples > 20)
+        s.tools.len() == 2
+            && s.tools
+                .iter()
+                .all(|t| t.in_contact && t.device_samples > 20)
     })
     .await;
     assert_eq!(s.max_tools, 2);
     let (l, r) = (&s.tools[0], &s.tools[1]);
     assert_eq!((l.tool_id.as_str(), l.slot, l.connected), ("left", 0, true));
-    assert_eq!((r.tool_id.as_str(), r.slot, r.connected), ("right", 1, true));
+    assert_eq!(
+        (r.tool_id.as_str(), r.slot, r.connected),
+        ("right", 1, true)
+    );
     assert!((l.force_n - slot_force(0)).abs() < 1e-12, "{l:?}");
     assert!((r.force_n - slot_force(1)).abs() < 1e-12, "{r:?}");
     assert!(l.pose_to_force_p99_us > 0.0 && r.pose_to_force_p99_us > 0.0);
     assert!(s.in_contact && (s.peak_force_n - slot_force(1)).abs() < 1e-12);
     assert_eq!(s.device_samples, l.device_samples + r.device_samples);
     // The same per tool in the metrics (labels tool and slot).
-    let text = haptic_server::metrics::render(&haptic_server::metrics::registry(manager.clone()))
-        .unwrap();
+    let text =
+        haptic_server::metrics::render(&haptic_server::metrics::registry(manager.clone())).unwrap();
     for (tool, slot) in [("left", 0), ("right", 1)] {
-        let labels = format!(
-            r#"session="{id}",scene="wall",family="wall",tool="{tool}",slot="{slot}""#
-        );
+        let labels =
+            format!(r#"session="{id}",scene="wall",family="wall",tool="{tool}",slot="{slot}""#);
         let value = |name: &str| {
             let key = format!("{name}{{{labels}}} ");
             text.lines()
@@ -219,7 +228,10 @@ async fn two_tools_get_their_own_forces_a_third_is_refused_and_one_leaving_spare
         assert!((f - previous).abs() <= 0.07 * previous, "{previous} -> {f}");
         previous = f;
     }
-    let s = stats_until(&ch, &id, |s| !s.tools[0].connected && !s.tools[0].in_contact).await;
+    let s = stats_until(&ch, &id, |s| {
+        !s.tools[0].connected && !s.tools[0].in_contact
+    })
+    .await;
     assert!(!s.tools[0].connected && !s.tools[0].in_contact, "{s:?}");
     assert!(s.tools[1].connected && s.tools[1].in_contact, "{s:?}");
     let listed = SessionControlClient::new(ch.clone())
@@ -229,7 +241,11 @@ async fn two_tools_get_their_own_forces_a_third_is_refused_and_one_leaving_spare
         .into_inner();
     let summary = &listed.sessions[0];
     assert_eq!(summary.max_tools, 2);
-    let tools: Vec<_> = summary.tools.iter().map(|t| (t.tool_id.as_str(), t.slot)).collect();
+    let tools: Vec<_> = summary
+        .tools
+        .iter()
+        .map(|t| (t.tool_id.as_str(), t.slot))
+        .collect();
     assert_eq!(tools, [("right", 1)]);
     // The freed slot takes a new tool.
     let (back, back_task) = press(&ch, &id, "left-again", -DEPTH_M).await;
@@ -264,7 +280,10 @@ async fn a_named_tool_takes_its_own_slot_and_unnamed_ones_skip_it() {
     assert!((f[4] - slot_force(0)).abs() < 1e-12, "{f:?}");
     // A bad tool id is refused before the session is touched.
     let (bad, bad_task) = press(&ch, &id, "a\u{7}b", -DEPTH_M).await;
-    assert_eq!(bad.expect_err("bad id").code(), tonic::Code::InvalidArgument);
+    assert_eq!(
+        bad.expect_err("bad id").code(),
+        tonic::Code::InvalidArgument
+    );
     bad_task.abort();
     default_task.abort();
     right_task.abort();
