@@ -117,6 +117,17 @@ async fn two_bridges_press_opposite_sides_of_the_lv_and_balance_at_the_clamp() -
     let daemon = Daemon::spawn(&[])?;
     let url = daemon.url();
     let id = start_session(&url, "lv").await?;
+    let mut control = session_control(&url).await?;
+    let stats = |id: &str| GetStatsRequest {
+        session_id: id.to_owned(),
+    };
+    let before = control.get_stats(stats(&id)).await?.into_inner();
+    ensure!(
+        before.max_tools >= 2,
+        "the LV session takes {} tool(s): this test needs the model's several-tools support \
+         (probe.max_tools, branch tools-model)",
+        before.max_tools
+    );
     let dir = unique_temp_dir("haptic-e2e-tools")?;
     let (left_csv, right_csv) = (dir.join("left.csv"), dir.join("right.csv"));
     // 14 mm off the axis on either side, 5 mm in at 10 mm/s (0.5 s), then hold: left 1.5 s,
@@ -181,14 +192,7 @@ async fn two_bridges_press_opposite_sides_of_the_lv_and_balance_at_the_clamp() -
         }
         previous = Some(row.fx_n);
     }
-    let stats = session_control(&url)
-        .await?
-        .get_stats(GetStatsRequest {
-            session_id: id.clone(),
-        })
-        .await?
-        .into_inner();
-    ensure!(stats.max_tools >= 2, "{stats:?}");
+    let stats = control.get_stats(stats(&id)).await?.into_inner();
     for name in ["left", "right"] {
         let t = stats
             .tools

@@ -200,6 +200,13 @@ async fn web_viewer_shows_the_dent_and_the_force_during_a_bridge_press() -> Resu
         .eval(&page, "document.getElementById('status').textContent")
         .await?;
     let status = status.as_str().context("no status text")?.to_string();
+    // One tool (the bridge's default tool, from SurfaceFrame.tools): its probe and arrow show,
+    // no other tool's.
+    let tools = browser.eval(&page, "window.hapticViewer.tools()").await?;
+    ensure!(
+        tools == serde_json::json!([{ "slot": 0, "probe": true, "arrow": true, "toolId": "" }]),
+        "tools {tools}"
+    );
     // Every frame decoded (keyframes, chained keyframes and deltas) without asking again.
     let decoded = browser
         .eval(
