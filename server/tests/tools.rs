@@ -199,6 +199,15 @@ async fn two_tools_get_their_own_forces_a_third_is_refused_and_one_leaving_spare
     assert!((l.force_n - slot_force(0)).abs() < 1e-12, "{l:?}");
     assert!((r.force_n - slot_force(1)).abs() < 1e-12, "{r:?}");
     assert!(l.pose_to_force_p99_us > 0.0 && r.pose_to_force_p99_us > 0.0);
+    eprintln!(
+        "pose-to-force p50/p99: left {}/{} us, right {}/{} us; samples {} + {}",
+        l.pose_to_force_p50_us,
+        l.pose_to_force_p99_us,
+        r.pose_to_force_p50_us,
+        r.pose_to_force_p99_us,
+        l.device_samples,
+        r.device_samples
+    );
     assert!(s.in_contact && (s.peak_force_n - slot_force(1)).abs() < 1e-12);
     assert_eq!(s.device_samples, l.device_samples + r.device_samples);
     // The same per tool in the metrics (labels tool and slot).
