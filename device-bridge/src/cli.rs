@@ -550,7 +550,7 @@ mod tests {
             .unwrap()
         };
         assert_eq!(args("left").setup().unwrap().config.tool_id, "left");
-        let e = args("a\u{7}b").setup().err().unwrap().to_string();
+        let e = args("a b").setup().err().unwrap().to_string();
         assert!(e.contains("tool id"), "{e}");
         assert!(args(&"x".repeat(65)).setup().is_err());
     }

@@ -11,15 +11,22 @@ use crate::error::ServerError;
 /// Longest tool id accepted, bytes.
 pub const MAX_TOOL_ID_BYTES: usize = 64;
 
+/// Whether `c` may appear in a tool id: ASCII letters and digits, `-`, `_`, `.`, `:` (ids show
+/// in tables, metrics labels and the web page as they are).
+pub fn tool_id_char(c: char) -> bool {
+    c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.' | ':')
+}
+
 /// Checks a stream's tool id.
 ///
 /// # Errors
-/// [`ServerError::InvalidArgument`] for an id longer than [`MAX_TOOL_ID_BYTES`] or with
-/// control characters.
+/// [`ServerError::InvalidArgument`] for an id longer than [`MAX_TOOL_ID_BYTES`] or with a
+/// character [`tool_id_char`] refuses.
 pub fn check_tool_id(id: &str) -> Result<(), ServerError> {
-    if id.len() > MAX_TOOL_ID_BYTES || id.chars().any(char::is_control) {
+    if id.len() > MAX_TOOL_ID_BYTES || !id.chars().all(tool_id_char) {
         return Err(ServerError::InvalidArgument(format!(
-            "tool_id must be at most {MAX_TOOL_ID_BYTES} bytes without control characters"
+            "tool_id must be at most {MAX_TOOL_ID_BYTES} ASCII letters, digits, '-', '_', '.' \
+             or ':'"
         )));
     }
     Ok(())
@@ -104,9 +111,12 @@ mod tests {
     }
 
     #[test]
-    fn tool_ids_are_short_and_printable() {
-        assert!(check_tool_id("").is_ok() && check_tool_id("left").is_ok());
+    fn tool_ids_are_short_and_plain() {
+        assert!(check_tool_id("").is_ok() && check_tool_id("left-2.a_b:c").is_ok());
+        assert!(check_tool_id(&"x".repeat(64)).is_ok());
         assert!(check_tool_id(&"x".repeat(65)).is_err());
-        assert!(check_tool_id("a\u{1b}[31m").is_err());
+        for bad in ["a\u{1b}[31m", "a b", "a\"b", "gauche\u{e9}"] {
+            assert!(check_tool_id(bad).is_err(), "{bad:?}");
+        }
     }
 }

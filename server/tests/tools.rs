@@ -288,7 +288,7 @@ async fn a_named_tool_takes_its_own_slot_and_unnamed_ones_skip_it() {
     let f = next_forces(&mut default.expect("default"), 5).await;
     assert!((f[4] - slot_force(0)).abs() < 1e-12, "{f:?}");
     // A bad tool id is refused before the session is touched.
-    let (bad, bad_task) = press(&ch, &id, "a\u{7}b", -DEPTH_M).await;
+    let (bad, bad_task) = press(&ch, &id, "a b", -DEPTH_M).await;
     assert_eq!(
         bad.expect_err("bad id").code(),
         tonic::Code::InvalidArgument

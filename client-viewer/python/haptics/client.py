@@ -274,8 +274,8 @@ class Session:
         ``tool`` names the tool this probe drives (``DeviceSample.tool_id``; "" = the default
         tool): a session takes several tools at once up to its scene's ``probe.max_tools``.
         """
-        if len(tool.encode()) > 64 or any(ord(c) < 32 or ord(c) == 127 for c in tool):
-            raise ValueError("tool must be at most 64 bytes without control characters")
+        if len(tool) > 64 or not all(c.isascii() and (c.isalnum() or c in "-_.:") for c in tool):
+            raise ValueError("tool must be at most 64 ASCII letters, digits, '-', '_', '.' or ':'")
         start = np.asarray([float(c) for c in start_m])
         n = np.asarray([float(c) for c in direction])
         if start.shape != (3,) or n.shape != (3,) or not np.all(np.isfinite(np.r_[start, n])):

@@ -135,8 +135,11 @@ impl BridgeConfig {
     /// [`BridgeError::Config`] naming the field.
     pub fn validate(&self) -> Result<(), BridgeError> {
         let bad = |m: String| Err(BridgeError::Config(m));
-        if self.tool_id.len() > 64 || self.tool_id.chars().any(char::is_control) {
-            return bad("tool id must be at most 64 bytes without control characters".into());
+        let plain = |c: char| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.' | ':');
+        if self.tool_id.len() > 64 || !self.tool_id.chars().all(plain) {
+            return bad(
+                "tool id must be at most 64 ASCII letters, digits, '-', '_', '.' or ':'".into(),
+            );
         }
         if !(self.server_url.starts_with("http://") || self.server_url.starts_with("https://")) {
             return bad(format!(
