@@ -54,8 +54,7 @@ pub struct FrameData {
     pub applied_forces: Vec<haptics_proto::v1::AppliedForce>,
     /// Loads the session has accepted so far.
     pub applied_forces_total: u64,
-    /// Every tool slot with a device, in slot order (`probe_radius_m` left 0: each watcher
-    /// fills in the session's).
+    /// Every tool slot with a device, in slot order.
     pub tools: Vec<haptics_proto::v1::ToolProbe>,
     /// The reference keyframe of compact streams (`None` while no compact watcher exists).
     pub reference: Option<Arc<Reference>>,

@@ -137,7 +137,7 @@ impl SessionControl for Services {
             .builds
             .run(client, &self.manager, move || {
                 let scene = manager.load_scene(&r.scene, &r.scene_toml)?;
-                let tools = crate::session::scene_tool_names(&r.scene, &r.scene_toml);
+                let tools = crate::tool::scene_tools(&r.scene, &r.scene_toml);
                 let session = manager.start_with_tools(&scene, &tools)?;
                 // Recorded for a restart (with a state dir); a failure to record is logged,
                 // the session runs anyway.
@@ -423,8 +423,10 @@ impl DeviceLink for Services {
         let device_force_n = caps
             .as_ref()
             .map_or(f64::INFINITY, crate::device::force_limit_n);
+        // The lowest of the scene's, the tool's own and the device's force limits.
+        let tool_force_n = tool.max_force_n.unwrap_or(f64::INFINITY);
         let limits = session.limits.map(|l| crate::session::LinkLimits {
-            max_force_n: l.max_force_n.min(device_force_n),
+            max_force_n: l.max_force_n.min(tool_force_n).min(device_force_n),
             ..l
         });
         let instance = self.manager.instance().to_owned();

@@ -22,6 +22,7 @@ use crate::frame::{FrameData, WatcherGuard, WatcherStats, unix_time_us};
 use crate::servo::{
     self, Command, ForceOut, MonotonicClock, Pose, ServoCore, SessionShared, StatsSnapshot,
 };
+use crate::tool::NamedTool;
 
 /// Largest scene text accepted, bytes.
 pub const MAX_SCENE_TOML_BYTES: usize = 1 << 20;
@@ -133,14 +134,27 @@ pub struct ToolSlot {
     pub out_of_order_samples: std::sync::atomic::AtomicU64,
     /// Samples dropped outside the declared workspace.
     pub out_of_workspace_samples: std::sync::atomic::AtomicU64,
+    /// This slot's probe radius, m: its named tool's (`[[probe.tool]] radius_m`), else the
+    /// scene's.
+    pub probe_radius_m: f64,
+    /// This slot's force limit, N, when its named tool has its own (`[[probe.tool]]
+    /// max_force_n`; sent to its bridge when lower than the scene's).
+    pub max_force_n: Option<f64>,
     pose_input: Mutex<Option<triple_buffer::Input<Pose>>>,
     link: Mutex<Option<ForceSender>>,
 }
 
 impl ToolSlot {
-    fn new(slot: usize, pose_input: triple_buffer::Input<Pose>) -> Self {
+    fn new(
+        slot: usize,
+        pose_input: triple_buffer::Input<Pose>,
+        probe_radius_m: f64,
+        named: Option<&NamedTool>,
+    ) -> Self {
         Self {
             slot,
+            probe_radius_m: named.and_then(|n| n.radius_m).unwrap_or(probe_radius_m),
+            max_force_n: named.and_then(|n| n.max_force_n),
             tool_id: Mutex::new(String::new()),
             deadband: Arc::default(),
             device: Arc::default(),
@@ -249,7 +263,7 @@ pub struct Session {
     pub device: Arc<crate::device::DeviceShared>,
     /// The tool slots (issue 50): `SoftBody::max_tools()` of them, at least one.
     pub tools: Vec<Arc<ToolSlot>>,
-    /// The tools the scene names and their slots (`SoftBody::tool_slot`).
+    /// The ids of the tools the scene names and their slots (`SoftBody::tool_slot`).
     named_tools: Vec<(String, usize)>,
     /// Held while a stream chooses and takes its slot.
     attach_lock: Mutex<()>,
@@ -562,7 +576,7 @@ impl SessionManager {
                         .map_err(|e| e.to_string())?;
                     let slot = self.reserve_slot().map_err(|e| e.to_string())?;
                     let body = haptic_model::build_body(&scene).map_err(|e| e.to_string())?;
-                    let names = scene_tool_names(&rec.scene, &rec.scene_toml);
+                    let names = crate::tool::scene_tools(&rec.scene, &rec.scene_toml);
                     let limits = Some(LinkLimits::of_scene(&scene));
                     self.start_in_slot(slot, &rec.id, body, limits, &names)
                         .map_err(|e| e.to_string())?;
@@ -683,14 +697,14 @@ impl SessionManager {
     }
 
     /// [`SessionManager::start`] for a scene that names the tools `tool_names`
-    /// ([`scene_tool_names`]): each takes its own slot.
+    /// ([`crate::tool::scene_tools`]): each takes its own slot and parameters.
     ///
     /// # Errors
     /// As [`SessionManager::start`].
     pub fn start_with_tools(
         &self,
         scene: &Scene,
-        tool_names: &[String],
+        tool_names: &[NamedTool],
     ) -> Result<Arc<Session>, ServerError> {
         // The slot is taken before the (possibly long) build, so concurrent starts cannot all
         // pass a check and then exceed the limit.
@@ -774,7 +788,7 @@ impl SessionManager {
     pub fn start_body_with_tools(
         &self,
         body: Box<dyn haptic_model::body::SoftBody>,
-        tool_names: &[String],
+        tool_names: &[NamedTool],
     ) -> Result<Arc<Session>, ServerError> {
         let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
         let slot = self.reserve_slot()?;
@@ -788,7 +802,7 @@ impl SessionManager {
         id: &str,
         mut body: Box<dyn haptic_model::body::SoftBody>,
         limits: Option<LinkLimits>,
-        tool_names: &[String],
+        tool_names: &[NamedTool],
     ) -> Result<Arc<Session>, ServerError> {
         if self.get(id).is_ok() {
             return Err(ServerError::FailedPrecondition(format!(
@@ -810,12 +824,20 @@ impl SessionManager {
         } = handles;
         let period_us = (info.tick_s * 1e6).round().max(1.0) as u64;
         let epoch = Instant::now();
+        let named_in = |k: usize| named_tools.iter().find(|(_, s)| *s == k).map(|(n, _)| n);
+        let radius = info.probe_radius_m;
         let mut rings = vec![force_rx];
-        let mut tools = vec![Arc::new(ToolSlot::new(0, pose_in))];
+        let mut tools = vec![Arc::new(ToolSlot::new(0, pose_in, radius, named_in(0)))];
         for (k, h) in more_tools.into_iter().enumerate() {
             rings.push(h.forces);
-            tools.push(Arc::new(ToolSlot::new(k + 1, h.pose)));
+            tools.push(Arc::new(ToolSlot::new(
+                k + 1,
+                h.pose,
+                radius,
+                named_in(k + 1),
+            )));
         }
+        let named_tools = named_tools.into_iter().map(|(n, k)| (n.id, k)).collect();
 
         // Forwarder: each tool's force ring -> its DeviceLink stream (through its deadband).
         let forwarder = spawn_forwarder(&id, rings, shared.clone(), tools.clone())?;
@@ -1008,47 +1030,27 @@ fn spawn_servo(
         .map_err(|e| ServerError::Internal(format!("spawning the servo thread: {e}")))
 }
 
-/// The tools a scene names (`[[probe.tool]] id`) in its text (`scene_toml`, or the built-in
-/// scene `scene`'s): candidates for [`SoftBody::tool_slot`](haptic_model::body::SoftBody);
-/// empty when the text names none or cannot be read.
-pub fn scene_tool_names(scene: &str, scene_toml: &str) -> Vec<String> {
-    let text = if scene_toml.trim().is_empty() {
-        haptic_model::scene::builtin_scene_toml(scene).unwrap_or("")
-    } else {
-        scene_toml
-    };
-    let Ok(value) = text.parse::<toml::Table>() else {
-        return Vec::new();
-    };
-    value
-        .get("probe")
-        .and_then(|p| p.get("tool"))
-        .and_then(|t| t.as_array())
-        .map(|tools| {
-            tools
-                .iter()
-                .filter_map(|t| t.get("id")?.as_str().map(str::to_owned))
-                .collect()
-        })
-        .unwrap_or_default()
-}
-
-/// Names the tool slots `tools` for the frame task ([`crate::stream::ToolIds`]).
+/// Names the tool slots `tools` for the frame task, with their probe radii
+/// ([`crate::stream::ToolIds`]).
 fn tool_ids(tools: &[Arc<ToolSlot>]) -> crate::stream::ToolIds {
     let tools = tools.to_vec();
-    Arc::new(move |k| tools.get(k).map(|t| t.tool_id()).unwrap_or_default())
+    Arc::new(move |k| {
+        tools
+            .get(k)
+            .map_or((String::new(), 0.0), |t| (t.tool_id(), t.probe_radius_m))
+    })
 }
 
-/// The slots `body` gives the tools `names` (those within its `slots`), as (id, slot).
+/// The slots `body` gives the named tools `named` (those within its `slots`), as (tool, slot).
 fn named_tool_slots(
     body: &dyn haptic_model::body::SoftBody,
-    names: &[String],
+    named: &[NamedTool],
     slots: usize,
-) -> Vec<(String, usize)> {
-    names
+) -> Vec<(NamedTool, usize)> {
+    named
         .iter()
         .filter_map(|n| {
-            body.tool_slot(n)
+            body.tool_slot(&n.id)
                 .filter(|&k| k < slots)
                 .map(|k| (n.clone(), k))
         })

@@ -166,8 +166,9 @@ pub fn spawn_frame_task(
     });
 }
 
-/// The tool id of a session's tool slot (for frames: the frame task does not know sessions).
-pub type ToolIds = Arc<dyn Fn(usize) -> String + Send + Sync>;
+/// The tool id and probe radius (m) of a session's tool slot (for frames: the frame task does
+/// not know sessions).
+pub type ToolIds = Arc<dyn Fn(usize) -> (String, f64) + Send + Sync>;
 
 /// The probes of the tool slots of `s` with a device, in slot order, named by `tool_ids`.
 fn tool_probes(s: &Snapshot, tool_ids: &ToolIds) -> Vec<haptics_proto::v1::ToolProbe> {
@@ -175,13 +176,16 @@ fn tool_probes(s: &Snapshot, tool_ids: &ToolIds) -> Vec<haptics_proto::v1::ToolP
         .iter()
         .enumerate()
         .filter(|(_, t)| t.connected)
-        .map(|(k, t)| haptics_proto::v1::ToolProbe {
-            tool_id: tool_ids(k),
-            slot: k as u32,
-            probe_position_m: Some(Vec3::from(t.probe_m.to_array())),
-            contact_force_n: Some(Vec3::from(t.force_n.to_array())),
-            in_contact: t.in_contact,
-            probe_radius_m: 0.0,
+        .map(|(k, t)| {
+            let (tool_id, probe_radius_m) = tool_ids(k);
+            haptics_proto::v1::ToolProbe {
+                tool_id,
+                slot: k as u32,
+                probe_position_m: Some(Vec3::from(t.probe_m.to_array())),
+                contact_force_n: Some(Vec3::from(t.force_n.to_array())),
+                in_contact: t.in_contact,
+                probe_radius_m,
+            }
         })
         .collect()
 }
@@ -538,14 +542,7 @@ fn build_frame(
         max_displacement_m: f.max_displacement_m,
         applied_forces: f.applied_forces.clone(),
         applied_forces_total: f.applied_forces_total,
-        tools: f
-            .tools
-            .iter()
-            .map(|t| haptics_proto::v1::ToolProbe {
-                probe_radius_m,
-                ..t.clone()
-            })
-            .collect(),
+        tools: f.tools.clone(),
         watch_id,
         topology_version: version,
         ..SurfaceFrame::default()

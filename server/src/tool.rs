@@ -8,6 +8,64 @@
 
 use crate::error::ServerError;
 
+/// A tool a scene names (`[[probe.tool]]`): its id and its own probe parameters, where given.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct NamedTool {
+    /// The tool id (`id`).
+    pub id: String,
+    /// Its probe radius (`radius_m`), m.
+    pub radius_m: Option<f64>,
+    /// Its force limit (`max_force_n`), N.
+    pub max_force_n: Option<f64>,
+}
+
+impl NamedTool {
+    /// A named tool without parameters of its own.
+    pub fn id(id: &str) -> Self {
+        Self {
+            id: id.to_owned(),
+            ..Self::default()
+        }
+    }
+}
+
+/// The tools a scene names (`[[probe.tool]] id`, with `radius_m` and `max_force_n` when they
+/// are finite and positive) in its text: `scene_toml`, or the built-in scene `scene`'s. These
+/// are the candidates for `SoftBody::tool_slot` (the model checks the scene; this reads it
+/// only to learn the names). Empty when the text names none or cannot be read.
+pub fn scene_tools(scene: &str, scene_toml: &str) -> Vec<NamedTool> {
+    let text = if scene_toml.trim().is_empty() {
+        haptic_model::scene::builtin_scene_toml(scene).unwrap_or("")
+    } else {
+        scene_toml
+    };
+    let Ok(value) = text.parse::<toml::Table>() else {
+        return Vec::new();
+    };
+    let positive = |t: &toml::Value, key: &str| {
+        let v = t.get(key)?;
+        let v = v.as_float().or_else(|| v.as_integer().map(|i| i as f64))?;
+        (v.is_finite() && v > 0.0).then_some(v)
+    };
+    let Some(tools) = value
+        .get("probe")
+        .and_then(|p| p.get("tool"))
+        .and_then(|t| t.as_array())
+    else {
+        return Vec::new();
+    };
+    tools
+        .iter()
+        .filter_map(|t| {
+            Some(NamedTool {
+                id: t.get("id")?.as_str()?.to_owned(),
+                radius_m: positive(t, "radius_m"),
+                max_force_n: positive(t, "max_force_n"),
+            })
+        })
+        .collect()
+}
+
 /// Longest tool id accepted, bytes.
 pub const MAX_TOOL_ID_BYTES: usize = 64;
 
@@ -108,6 +166,29 @@ mod tests {
         // A one-slot session: a second default tool is refused as before issue 50.
         let e = choose_slot("s", "", &none, &occ(&[Some("")])).unwrap_err();
         assert!(matches!(e, ServerError::FailedPrecondition(_)), "{e}");
+    }
+
+    #[test]
+    fn scene_texts_name_their_tools_with_their_parameters() {
+        let text = "[probe]\nmax_tools = 2\n[[probe.tool]]\nid = \"left\"\nradius_m = 0.003\n\
+                    max_force_n = 2\n[[probe.tool]]\nid = \"right\"\nradius_m = -1.0\n";
+        assert_eq!(
+            scene_tools("", text),
+            [
+                NamedTool {
+                    id: "left".into(),
+                    radius_m: Some(0.003),
+                    max_force_n: Some(2.0),
+                },
+                NamedTool::id("right"),
+            ]
+        );
+        assert!(scene_tools("", "[probe]\nradius_m = 0.002\n").is_empty());
+        assert!(scene_tools("", "not toml [").is_empty());
+        assert!(
+            scene_tools("lv", "").is_empty(),
+            "the built-in lv names no tools"
+        );
     }
 
     #[test]

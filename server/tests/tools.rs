@@ -138,7 +138,10 @@ fn slot_force(k: usize) -> f64 {
 }
 
 fn start(manager: &SessionManager, body: Wall, names: &[&str]) -> Arc<Session> {
-    let names: Vec<String> = names.iter().map(|n| (*n).to_owned()).collect();
+    let names: Vec<_> = names
+        .iter()
+        .map(|n| haptic_server::tool::NamedTool::id(n))
+        .collect();
     manager
         .start_body_with_tools(Box::new(body), &names)
         .unwrap()
