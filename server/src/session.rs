@@ -824,20 +824,12 @@ impl SessionManager {
         } = handles;
         let period_us = (info.tick_s * 1e6).round().max(1.0) as u64;
         let epoch = Instant::now();
-        let named_in = |k: usize| named_tools.iter().find(|(_, s)| *s == k).map(|(n, _)| n);
-        let radius = info.probe_radius_m;
-        let mut rings = vec![force_rx];
-        let mut tools = vec![Arc::new(ToolSlot::new(0, pose_in, radius, named_in(0)))];
-        for (k, h) in more_tools.into_iter().enumerate() {
-            rings.push(h.forces);
-            tools.push(Arc::new(ToolSlot::new(
-                k + 1,
-                h.pose,
-                radius,
-                named_in(k + 1),
-            )));
-        }
-        let named_tools = named_tools.into_iter().map(|(n, k)| (n.id, k)).collect();
+        let first = servo::ToolHandles {
+            pose: pose_in,
+            forces: force_rx,
+        };
+        let (rings, tools, named_tools) =
+            tool_slots(first, more_tools, info.probe_radius_m, named_tools);
 
         // Forwarder: each tool's force ring -> its DeviceLink stream (through its deadband).
         let forwarder = spawn_forwarder(&id, rings, shared.clone(), tools.clone())?;
@@ -1028,6 +1020,35 @@ fn spawn_servo(
             }
         })
         .map_err(|e| ServerError::Internal(format!("spawning the servo thread: {e}")))
+}
+
+/// The tool slots of a session from the async ends of its slots (`first`, then `more`), the
+/// scene's probe radius (m) and the named tools' slots: each slot's force ring (for the
+/// forwarder), the slots, and the named tools' ids and slots.
+#[allow(clippy::type_complexity)]
+fn tool_slots(
+    first: servo::ToolHandles,
+    more: Vec<servo::ToolHandles>,
+    probe_radius_m: f64,
+    named: Vec<(NamedTool, usize)>,
+) -> (
+    Vec<rtrb::Consumer<ForceOut>>,
+    Vec<Arc<ToolSlot>>,
+    Vec<(String, usize)>,
+) {
+    let named_in = |k: usize| named.iter().find(|(_, s)| *s == k).map(|(n, _)| n);
+    let (mut rings, mut tools) = (Vec::new(), Vec::new());
+    for (k, h) in std::iter::once(first).chain(more).enumerate() {
+        rings.push(h.forces);
+        tools.push(Arc::new(ToolSlot::new(
+            k,
+            h.pose,
+            probe_radius_m,
+            named_in(k),
+        )));
+    }
+    let ids = named.into_iter().map(|(n, k)| (n.id, k)).collect();
+    (rings, tools, ids)
 }
 
 /// Names the tool slots `tools` for the frame task, with their probe radii
