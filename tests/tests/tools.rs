@@ -1,8 +1,10 @@
 //! Several tools on one organ end to end (issue 50, section 1): two real `haptic-bridge`
 //! processes (`--tool left`, `--tool right`, the sim arm's press script each) press opposite
 //! sides of the built-in LV at once. Each holds steady (within the 7 % JND over its hold), the
-//! net reaction balances at the clamp (the two forces on the devices cancel within 7 % of
-//! either: the LV is symmetric under x -> -x), `GetStats` shows both tools in contact, and the
+//! net reaction balances at the clamp (the two forces on the devices cancel along x within 7 %
+//! of either: the LV is symmetric under a half turn about its axis; one tool alone 5 mm in at
+//! +x / -x holds +0.0288 / -0.0295 N in the model, 2.1 % apart), `GetStats` shows both tools in
+//! contact, and the
 //! right tool's force stays continuous (7 % per fresh tick) while the left one releases and
 //! disconnects.
 //!
