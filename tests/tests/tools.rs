@@ -4,9 +4,8 @@
 //! net reaction balances at the clamp (the two forces on the devices cancel along x within 7 %
 //! of either: the LV is symmetric under a half turn about its axis; one tool alone 5 mm in at
 //! +x / -x holds +0.0288 / -0.0295 N in the model, 2.1 % apart), `GetStats` shows both tools in
-//! contact, and the
-//! right tool's force stays continuous (7 % per fresh tick) while the left one releases and
-//! disconnects.
+//! contact, and the right tool's force stays continuous (7 % per fresh tick) while the left one
+//! releases and disconnects.
 //!
 //! Needs the model's several-tools support (`probe.max_tools` = 2 in the FEM family; branch
 //! `tools-model`): until it merges the LV takes one tool and the second bridge is refused with
