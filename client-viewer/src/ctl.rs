@@ -15,7 +15,7 @@ use haptic_cli::credentials::{AuthChannel, ClientCredentials};
 use haptics_proto::v1::session_control_client::SessionControlClient;
 use haptics_proto::v1::{
     ApplyForceRequest, GetStatsRequest, ListScenesRequest, ListSessionsRequest, SceneInfo,
-    SessionStats, StartSessionRequest, StartSessionResponse, StopSessionRequest, Vec3,
+    SessionStats, StartSessionRequest, StartSessionResponse, StopSessionRequest, ToolStats, Vec3,
 };
 
 use crate::ClientError;
@@ -334,7 +334,86 @@ pub fn stats_rows(s: &SessionStats) -> Vec<StatRow> {
         ),
         row("threads", U64(s.threads.into()), "count"),
         row("pool_wait_us_max", U64(s.pool_wait_us_max), "us"),
+        row("max_tools", U64(s.max_tools.into()), "count"),
+        row("tools", Str(tools_summary(&s.tools)), ""),
     ]
+}
+
+/// The `tools` row of the statistics table: "N connected of M slots" (the per-tool table
+/// follows the main one, [`tools_table`]).
+fn tools_summary(tools: &[ToolStats]) -> String {
+    if tools.is_empty() {
+        return String::new();
+    }
+    let connected = tools.iter().filter(|t| t.connected).count();
+    format!("{connected} connected of {} slots", tools.len())
+}
+
+/// The per-tool table of `hapticctl stats` (one row per tool slot): tool id ("-" for the
+/// default tool), slot, connected, in contact, force N, pose-to-force p50 / p99 us, samples
+/// accepted, rejected, outside the workspace, device.
+pub fn tools_table(tools: &[ToolStats]) -> String {
+    let rows: Vec<Vec<String>> = tools
+        .iter()
+        .map(|t| {
+            vec![
+                if t.tool_id.is_empty() {
+                    "-".to_string()
+                } else {
+                    t.tool_id.clone()
+                },
+                t.slot.to_string(),
+                t.connected.to_string(),
+                t.in_contact.to_string(),
+                format!("{:.3}", t.force_n),
+                format!("{:.1}", t.pose_to_force_p50_us),
+                format!("{:.1}", t.pose_to_force_p99_us),
+                t.device_samples.to_string(),
+                t.rejected_samples.to_string(),
+                t.out_of_workspace_samples.to_string(),
+                t.device
+                    .as_ref()
+                    .map_or_else(|| "-".to_string(), device_summary),
+            ]
+        })
+        .collect();
+    table(
+        &[
+            "TOOL",
+            "SLOT",
+            "CONNECTED",
+            "IN_CONTACT",
+            "FORCE_N",
+            "P2F_P50_US",
+            "P2F_P99_US",
+            "SAMPLES",
+            "REJECTED",
+            "OUT_OF_WORKSPACE",
+            "DEVICE",
+        ],
+        &rows,
+    )
+}
+
+/// One tool's statistics as a JSON object keyed by the `ToolStats` proto field names.
+pub fn tool_json(t: &ToolStats) -> serde_json::Value {
+    serde_json::json!({
+        "tool_id": t.tool_id,
+        "slot": t.slot,
+        "connected": t.connected,
+        "in_contact": t.in_contact,
+        "force_n": t.force_n,
+        "peak_force_n": t.peak_force_n,
+        "pose_to_force_p50_us": t.pose_to_force_p50_us,
+        "pose_to_force_p99_us": t.pose_to_force_p99_us,
+        "device_samples": t.device_samples,
+        "rejected_samples": t.rejected_samples,
+        "out_of_order_samples": t.out_of_order_samples,
+        "out_of_workspace_samples": t.out_of_workspace_samples,
+        "device_silent": t.device_silent,
+        "contact_ticks": t.contact_ticks,
+        "device": t.device.as_ref().map(device_summary),
+    })
 }
 
 /// One line for a device's capabilities (`hapticctl stats`, `hapticctl sessions --long`):
@@ -396,13 +475,20 @@ pub fn stats_table(s: &SessionStats) -> String {
             vec![r.name.to_string(), v, r.unit.to_string()]
         })
         .collect();
-    table(&["FIELD", "VALUE", "UNIT"], &rows)
+    let main = table(&["FIELD", "VALUE", "UNIT"], &rows);
+    if s.tools.is_empty() {
+        main
+    } else {
+        // One blank line between the two tables (`main` ends with its newline).
+        format!("{main}\n{}", tools_table(&s.tools))
+    }
 }
 
 /// The statistics as one JSON object keyed by the proto field names (numbers as JSON numbers,
-/// 64-bit counters included; a non-finite float becomes `null`).
+/// 64-bit counters included; a non-finite float becomes `null`); `tools` is an array of
+/// [`tool_json`] objects.
 pub fn stats_json(s: &SessionStats) -> serde_json::Value {
-    let map = stats_rows(s)
+    let mut map: serde_json::Map<String, serde_json::Value> = stats_rows(s)
         .into_iter()
         .map(|r| {
             let v = match r.value {
@@ -414,6 +500,10 @@ pub fn stats_json(s: &SessionStats) -> serde_json::Value {
             (r.name.to_string(), v)
         })
         .collect();
+    map.insert(
+        "tools".into(),
+        serde_json::Value::Array(s.tools.iter().map(tool_json).collect()),
+    );
     serde_json::Value::Object(map)
 }
 
@@ -622,7 +712,8 @@ async fn start_session(
     Ok(())
 }
 
-/// `sessions --long`: one row per session (id, scene, family, device).
+/// `sessions --long`: one row per session (id, scene, family, tools, device). Tools:
+/// `CONNECTED/MAX:ID,...` (issue 50; `(default)` for the default tool's "").
 async fn list_sessions_long(ctl: &mut Ctl, out: &mut dyn Write) -> Result<(), ClientError> {
     let rows: Vec<Vec<String>> = ctl
         .session_summaries()
@@ -634,15 +725,31 @@ async fn list_sessions_long(ctl: &mut Ctl, out: &mut dyn Write) -> Result<(), Cl
                 (None, true) => "connected".into(),
                 (None, false) => "-".into(),
             };
+            let ids: Vec<&str> = s
+                .tools
+                .iter()
+                .map(|t| {
+                    if t.tool_id.is_empty() {
+                        "(default)"
+                    } else {
+                        t.tool_id.as_str()
+                    }
+                })
+                .collect();
+            let mut tools = format!("{}/{}", s.tools.len(), s.max_tools);
+            if !ids.is_empty() {
+                tools = format!("{tools}:{}", ids.join(","));
+            }
             vec![
                 s.session_id.clone(),
                 s.scene.clone(),
                 s.model_family.clone(),
+                tools,
                 device,
             ]
         })
         .collect();
-    let text = table(&["ID", "SCENE", "FAMILY", "DEVICE"], &rows);
+    let text = table(&["ID", "SCENE", "FAMILY", "TOOLS", "DEVICE"], &rows);
     write!(out, "{text}").map_err(io_err("<stdout>"))?;
     Ok(())
 }

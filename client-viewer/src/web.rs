@@ -551,6 +551,16 @@ pub(crate) fn stats_json(st: &SessionStats) -> Value {
         "fault": st.fault,
         "watchers": st.watchers,
         "watcher_frames_dropped": st.watcher_frames_dropped,
+        // Each tool's figures (issue 50), for its strip chart.
+        "tools": st.tools.iter().map(|t| json!({
+            "tool_id": t.tool_id,
+            "slot": t.slot,
+            "connected": t.connected,
+            "in_contact": t.in_contact,
+            "force_n": t.force_n,
+            "pose_to_force_p50_us": t.pose_to_force_p50_us,
+            "pose_to_force_p99_us": t.pose_to_force_p99_us,
+        })).collect::<Vec<_>>(),
     })
 }
 

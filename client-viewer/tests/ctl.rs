@@ -39,13 +39,38 @@ fn stats_table_and_json_cover_every_proto_field() {
     assert_eq!(json["fault"], "NaN in node 17");
     assert_eq!(json["tetrahedra"], 1352);
 
-    let table = ctl::stats_table(&stats);
+    // Per tool (issue 50): an array of objects keyed by the ToolStats field names.
+    let tools = json["tools"].as_array().expect("tools array");
+    assert_eq!(tools.len(), 2);
+    assert_eq!(tools[0]["tool_id"], "left");
+    assert_eq!(tools[0]["pose_to_force_p99_us"], 222.2);
+    assert_eq!(tools[1]["slot"], 1);
+    assert_eq!(tools[1]["force_n"], 0.25);
+    assert_eq!(json["max_tools"], 2);
+
+    let full = ctl::stats_table(&stats);
+    // The session's fields, then (after a blank line) one row per tool.
+    let (table, tools_table) = full.split_once("\n\n").expect("a tools table");
     let names: BTreeSet<String> = table
         .lines()
         .skip(1)
         .map(|l| l.split_whitespace().next().unwrap().to_string())
         .collect();
     assert_eq!(names, fields, "one table row per proto field");
+    let rows: Vec<Vec<&str>> = tools_table
+        .lines()
+        .map(|l| l.split_whitespace().collect())
+        .collect();
+    assert_eq!(rows.len(), 3, "{tools_table}");
+    assert_eq!(
+        rows[0][..5],
+        ["TOOL", "SLOT", "CONNECTED", "IN_CONTACT", "FORCE_N"]
+    );
+    assert_eq!(
+        rows[1][..7],
+        ["left", "0", "true", "true", "0.125", "44.4", "222.2"]
+    );
+    assert_eq!(rows[2][..5], ["right", "1", "false", "false", "0.250"]);
     // Units are printed for quantities whose name carries one.
     for line in table.lines().skip(1) {
         let name = line.split_whitespace().next().unwrap();
@@ -123,8 +148,8 @@ async fn commands_against_a_mock_server() {
         "{out}"
     );
     assert_eq!(
-        lines[1].split_whitespace().take(4).collect::<Vec<_>>(),
-        ["s-1", "lv", "fem", "touch"],
+        lines[1].split_whitespace().take(5).collect::<Vec<_>>(),
+        ["s-1", "lv", "fem", "1/2:left", "touch"],
         "{out}"
     );
     assert!(
@@ -133,7 +158,7 @@ async fn commands_against_a_mock_server() {
         ),
         "{out}"
     );
-    assert!(lines[2].ends_with("hybrid  -"), "{out}");
+    assert!(lines[2].ends_with("hybrid  0/1       -"), "{out}");
 
     let force = CtlCommand::Force {
         id: "s-1".into(),

@@ -52,12 +52,32 @@ function vec3(bytes) {
   return v;
 }
 
+// A ToolProbe (SurfaceFrame.tools, issue 50): one tool's probe.
+function decodeTool(bytes) {
+  const r = new Reader(bytes);
+  const t = { toolId: '', slot: 0, probe: null, force: [0, 0, 0], inContact: false, probeRadius: 0 };
+  while (!r.done()) {
+    const key = r.varint(), field = Math.floor(key / 8), wire = key & 7;
+    switch (field) {
+      case 1: t.toolId = new TextDecoder().decode(r.bytes()); break;
+      case 2: t.slot = r.varint(); break;
+      case 3: t.probe = vec3(r.bytes()); break;
+      case 4: t.force = vec3(r.bytes()); break;
+      case 5: t.inContact = r.varint() !== 0; break;
+      case 6: t.probeRadius = r.double(); break;
+      default: r.skip(wire);
+    }
+  }
+  return t;
+}
+
 function decodeFrame(buffer) {
   const r = new Reader(new Uint8Array(buffer));
   const f = { frame: 0, simTime: 0, keyframe: false, positions: null, triangles: null,
     probe: null, force: [0, 0, 0], inContact: false, probeRadius: 0, serverTimeUs: 0,
     maxDisplacement: 0, rest: null, watchId: 0, topologyVersion: 0, keyframeId: 0,
-    quantum: 0, delta: new Uint8Array(0), baseKeyframeId: 0, referenceDelta: new Uint8Array(0) };
+    quantum: 0, delta: new Uint8Array(0), baseKeyframeId: 0, referenceDelta: new Uint8Array(0),
+    tools: [] };
   while (!r.done()) {
     const key = r.varint(), field = Math.floor(key / 8), wire = key & 7;
     switch (field) {
@@ -80,6 +100,7 @@ function decodeFrame(buffer) {
       case 17: f.delta = r.bytes(); break;
       case 18: f.baseKeyframeId = r.varint(); break;
       case 19: f.referenceDelta = r.bytes(); break;
+      case 22: f.tools.push(decodeTool(r.bytes())); break;
       default: r.skip(wire);
     }
   }
@@ -179,6 +200,23 @@ scene.add(probe);
 const arrow = new THREE.ArrowHelper(new THREE.Vector3(1, 0, 0), new THREE.Vector3(), 0.01, 0xffd54a);
 arrow.visible = false;
 scene.add(arrow);
+// Every tool's probe and force arrow (issue 50): slot 0 uses `probe` and `arrow` above, the
+// other slots get their own, made on first use; arrow colours by slot.
+const TOOL_COLORS = [0xffd54a, 0x66bb6a, 0xef5350, 0x42a5f5];
+const toolMarks = new Map(); // slot -> { probe, arrow }
+function toolMark(slot) {
+  if (slot === 0) return { probe, arrow };
+  if (!toolMarks.has(slot)) {
+    const p = new THREE.Mesh(new THREE.SphereGeometry(1, 24, 16),
+      new THREE.MeshLambertMaterial({ color: 0x9aa0a6, transparent: true, opacity: 0.55 }));
+    const a = new THREE.ArrowHelper(new THREE.Vector3(1, 0, 0), new THREE.Vector3(), 0.01,
+      TOOL_COLORS[slot % TOOL_COLORS.length]);
+    p.visible = false; a.visible = false;
+    scene.add(p); scene.add(a);
+    toolMarks.set(slot, { probe: p, arrow: a });
+  }
+  return toolMarks.get(slot);
+}
 const FORCE_SCALE_M_PER_N = 0.1; // as haptic-viewer's PNGs: 100 mm per newton
 const MIN_COLOR_SCALE_M = 0.5e-3;
 
@@ -289,7 +327,6 @@ function applyFrame(f) {
   updateProbe(f);
   dirty = true;
   S.frames++; S.windowFrames++;
-  chartPush(chart.force, [performance.now(), S.forceN]);
   if (f.serverTimeUs > 0) S.ageMs = Date.now() - f.serverTimeUs / 1000;
 }
 
@@ -318,24 +355,47 @@ function updateMesh() {
   document.getElementById('legend-mid').textContent = (scale * 500).toFixed(2) + ' mm';
 }
 
-function updateProbe(f) {
-  const ok = f.probe && f.probe.every(Number.isFinite) && f.probeRadius > 0;
-  probe.visible = !!ok;
-  const F = new THREE.Vector3(...f.force);
-  S.forceN = F.length();
-  if (!ok) { arrow.visible = false; return; }
-  probe.position.set(...f.probe);
-  probe.scale.setScalar(f.probeRadius);
-  probe.material.color.set(f.inContact ? 0xf0f0f0 : 0x9aa0a6);
-  if (S.forceN > 1e-4) {
-    const len = S.forceN * FORCE_SCALE_M_PER_N;
-    arrow.position.copy(probe.position);
-    arrow.setDirection(F.clone().normalize());
-    arrow.setLength(len, Math.min(0.3 * len, 0.004), Math.min(0.15 * len, 0.002));
-    arrow.visible = true;
+// Places one tool's sphere and force arrow; returns the force magnitude, N.
+function placeTool(mark, t) {
+  const ok = t.probe && t.probe.every(Number.isFinite) && t.probeRadius > 0;
+  mark.probe.visible = !!ok;
+  const F = new THREE.Vector3(...t.force);
+  const n = F.length();
+  if (!ok) { mark.arrow.visible = false; return n; }
+  mark.probe.position.set(...t.probe);
+  mark.probe.scale.setScalar(t.probeRadius);
+  mark.probe.material.color.set(t.inContact ? 0xf0f0f0 : 0x9aa0a6);
+  if (n > 1e-4) {
+    const len = n * FORCE_SCALE_M_PER_N;
+    mark.arrow.position.copy(mark.probe.position);
+    mark.arrow.setDirection(F.clone().normalize());
+    mark.arrow.setLength(len, Math.min(0.3 * len, 0.004), Math.min(0.15 * len, 0.002));
+    mark.arrow.visible = true;
   } else {
-    arrow.visible = false;
+    mark.arrow.visible = false;
   }
+  return n;
+}
+
+// The probes of a frame: every tool of `tools` (issue 50), or the one probe of fields 6-9 from
+// daemons that send no tools. S.forceN is the first tool's force (slot 0's).
+function updateProbe(f) {
+  const now = performance.now();
+  if (!f.tools.length) {
+    S.forceN = placeTool(toolMark(0), f);
+    for (const m of toolMarks.values()) { m.probe.visible = false; m.arrow.visible = false; }
+    chartPush(toolChart(0, '').force, [now, S.forceN]);
+    return;
+  }
+  const seen = new Set();
+  for (const t of f.tools) {
+    const n = placeTool(toolMark(t.slot), { ...t, probeRadius: t.probeRadius || f.probeRadius });
+    seen.add(t.slot);
+    chartPush(toolChart(t.slot, t.toolId).force, [now, n]);
+  }
+  S.forceN = new THREE.Vector3(...f.force).length();
+  if (!seen.has(0)) { probe.visible = false; arrow.visible = false; }
+  for (const [slot, m] of toolMarks) if (!seen.has(slot)) { m.probe.visible = false; m.arrow.visible = false; }
 }
 
 function showStatus() {
@@ -365,56 +425,77 @@ function showStatus() {
 // (from the status message, once a second) over the last CHART_WINDOW_MS.
 // ---------------------------------------------------------------------------------------------
 const CHART_WINDOW_MS = 10000;
-const chart = { force: [], latency: [] }; // [t_ms, N] and [t_ms, p50_ms, p99_ms], oldest first
-const strip = document.getElementById('strip');
-const stripCtx = strip.getContext('2d');
+// One strip chart per tool slot (issue 50): slot 0 is the page's #chart, the others copies of
+// it made on first use, stacked above it.
+const charts = new Map(); // slot -> { force: [t_ms, N], latency: [t_ms, p50_ms, p99_ms], box, canvas, toolId }
+function toolChart(slot, toolId) {
+  if (!charts.has(slot)) {
+    let box = document.getElementById('chart');
+    if (slot !== 0) {
+      box = box.cloneNode(true);
+      box.id = 'chart-' + slot;
+      box.querySelectorAll('[id]').forEach((e) => { e.id = e.id + '-' + slot; });
+      document.body.appendChild(box);
+    }
+    box.style.bottom = `calc(2.8em + ${slot * 150}px)`;
+    charts.set(slot, { force: [], latency: [], box, canvas: box.querySelector('canvas'), toolId });
+  }
+  const c = charts.get(slot);
+  if (toolId !== undefined && toolId !== c.toolId) c.toolId = toolId;
+  return c;
+}
+const chart = toolChart(0, '');
+const strip = chart.canvas;
 
 function chartPush(series, sample) {
   series.push(sample);
   while (series.length && sample[0] - series[0][0] > CHART_WINDOW_MS) series.shift();
 }
 
-// A polyline of series[k] against time, scaled so that `top` reaches the top of the canvas.
-function chartLine(series, k, top, now, color) {
-  const w = strip.width, h = strip.height;
-  stripCtx.strokeStyle = color;
-  stripCtx.lineWidth = 1.5;
-  stripCtx.beginPath();
+// A polyline of series[k] against time on `canvas`, scaled so that `top` reaches its top.
+function chartLine(canvas, series, k, top, now, color) {
+  const g = canvas.getContext('2d'), w = canvas.width, h = canvas.height;
+  g.strokeStyle = color;
+  g.lineWidth = 1.5;
+  g.beginPath();
   series.forEach((p, i) => {
     const x = w - (now - p[0]) / CHART_WINDOW_MS * w;
     const y = h - 2 - Math.min(p[k] / top, 1) * (h - 4);
-    if (i === 0) stripCtx.moveTo(x, y); else stripCtx.lineTo(x, y);
+    if (i === 0) g.moveTo(x, y); else g.lineTo(x, y);
   });
-  stripCtx.stroke();
+  g.stroke();
 }
 
-let chartBlank = false; // the canvas shows an empty window: nothing to redraw until a sample
-function drawChart() {
-  const now = performance.now();
-  for (const series of [chart.force, chart.latency]) {
+function drawToolChart(slot, c, now) {
+  for (const series of [c.force, c.latency]) {
     while (series.length && now - series[0][0] > CHART_WINDOW_MS) series.shift();
   }
-  const empty = !chart.force.length && !chart.latency.length;
-  if (empty && chartBlank) return; // an idle page costs nothing
-  chartBlank = empty;
-  const w = strip.width, h = strip.height;
-  stripCtx.clearRect(0, 0, w, h);
-  stripCtx.strokeStyle = '#454b55';
-  stripCtx.lineWidth = 1;
+  const canvas = c.canvas, g = canvas.getContext('2d'), w = canvas.width, h = canvas.height;
+  g.clearRect(0, 0, w, h);
+  g.strokeStyle = '#454b55';
+  g.lineWidth = 1;
   for (let s = 1; s < 10; s++) { // one line a second
     const x = Math.round(s / 10 * w) + 0.5;
-    stripCtx.beginPath(); stripCtx.moveTo(x, 0); stripCtx.lineTo(x, h); stripCtx.stroke();
+    g.beginPath(); g.moveTo(x, 0); g.lineTo(x, h); g.stroke();
   }
-  const forceTop = Math.max(0.01, ...chart.force.map((p) => p[1])) * 1.1;
-  const latencyTop = Math.max(1, ...chart.latency.map((p) => p[2])) * 1.1;
-  chartLine(chart.latency, 1, latencyTop, now, '#4fc3f7');
-  chartLine(chart.latency, 2, latencyTop, now, '#b39ddb');
-  chartLine(chart.force, 1, forceTop, now, '#ff9e3d');
-  const last = chart.latency[chart.latency.length - 1];
-  document.getElementById('chart-force').textContent =
-    `${S.forceN.toFixed(3)} N (axis ${forceTop.toFixed(3)} N)`;
-  document.getElementById('chart-latency').textContent = last
+  const forceTop = Math.max(0.01, ...c.force.map((p) => p[1])) * 1.1;
+  const latencyTop = Math.max(1, ...c.latency.map((p) => p[2])) * 1.1;
+  chartLine(canvas, c.latency, 1, latencyTop, now, '#4fc3f7');
+  chartLine(canvas, c.latency, 2, latencyTop, now, '#b39ddb');
+  chartLine(canvas, c.force, 1, forceTop, now, '#ff9e3d');
+  const last = c.latency[c.latency.length - 1];
+  const lastForce = c.force.length ? c.force[c.force.length - 1][1] : 0;
+  const suffix = slot === 0 ? '' : '-' + slot;
+  const name = c.toolId ? `tool ${c.toolId}: ` : (charts.size > 1 ? `slot ${slot}: ` : '');
+  document.getElementById('chart-force' + suffix).textContent =
+    `${name}${lastForce.toFixed(3)} N (axis ${forceTop.toFixed(3)} N)`;
+  document.getElementById('chart-latency' + suffix).textContent = last
     ? `${last[1].toFixed(2)} / ${last[2].toFixed(2)} ms (axis ${latencyTop.toFixed(1)} ms)` : '-';
+}
+
+function drawChart() {
+  const now = performance.now();
+  for (const [slot, c] of charts) drawToolChart(slot, c, now);
 }
 setInterval(drawChart, 100);
 
@@ -462,7 +543,12 @@ async function listSessions() {
 function connect() {
   if (socket) { socket.onclose = null; socket.close(); }
   Object.assign(S, { topology: null, reference: null, keyframeRequested: false, frames: 0 });
-  chart.force.length = 0; chart.latency.length = 0;
+  for (const [slot, c] of charts) {
+    c.force.length = 0; c.latency.length = 0;
+    if (slot !== 0) { c.box.remove(); charts.delete(slot); }
+  }
+  for (const m of toolMarks.values()) { scene.remove(m.probe); scene.remove(m.arrow); }
+  toolMarks.clear();
   const id = select.value;
   if (!id) return;
   messageEl.textContent = 'waiting for the first keyframe...';
@@ -474,8 +560,17 @@ function connect() {
       const m = JSON.parse(ev.data);
       if (m.type === 'status') {
         S.stats = m;
-        if (m.pose_to_force_p50_us > 0) {
-          chartPush(chart.latency, [performance.now(), m.pose_to_force_p50_us / 1e3, m.pose_to_force_p99_us / 1e3]);
+        const now = performance.now();
+        if (m.tools && m.tools.length) {
+          // Each tool's own figures (issue 50), on its own chart.
+          for (const t of m.tools) {
+            if (t.connected && t.pose_to_force_p50_us > 0) {
+              chartPush(toolChart(t.slot, t.tool_id).latency,
+                [now, t.pose_to_force_p50_us / 1e3, t.pose_to_force_p99_us / 1e3]);
+            }
+          }
+        } else if (m.pose_to_force_p50_us > 0) {
+          chartPush(chart.latency, [now, m.pose_to_force_p50_us / 1e3, m.pose_to_force_p99_us / 1e3]);
         }
         document.getElementById('scene').textContent = `${m.scene}: ${m.nodes} nodes, ${m.tetrahedra} elements`;
       } else if (m.type === 'error') messageEl.textContent = 'error: ' + m.message;
@@ -511,11 +606,19 @@ window.hapticViewer = {
       home: home && { position: home.position.toArray(), target: home.target.toArray() } };
   },
   // The strip chart's samples (copies) and where it sits on the screen (CSS pixels).
-  chart() {
-    const c = strip.getBoundingClientRect(), box = document.getElementById('chart').getBoundingClientRect();
-    return { force: chart.force.map((p) => p.slice()), latency: chart.latency.map((p) => p.slice()),
-      windowMs: CHART_WINDOW_MS, now: performance.now(), forceN: S.forceN,
+  chart(slot = 0) {
+    const t = charts.get(slot);
+    if (!t) return null;
+    const c = t.canvas.getBoundingClientRect(), box = t.box.getBoundingClientRect();
+    return { force: t.force.map((p) => p.slice()), latency: t.latency.map((p) => p.slice()),
+      windowMs: CHART_WINDOW_MS, now: performance.now(), forceN: S.forceN, toolId: t.toolId,
       canvas: [c.left, c.top, c.width, c.height], box: [box.left, box.top, box.width, box.height] };
+  },
+  // The tools of the last frame: slot, id, whether its probe and arrow show (issue 50).
+  tools() {
+    const out = [{ slot: 0, probe: probe.visible, arrow: arrow.visible }];
+    for (const [slot, m] of toolMarks) out.push({ slot, probe: m.probe.visible, arrow: m.arrow.visible });
+    return out.map((t) => ({ ...t, toolId: charts.has(t.slot) ? charts.get(t.slot).toolId : '' }));
   },
   probeScreen() {
     if (!probe.visible) return null;

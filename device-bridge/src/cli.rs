@@ -183,6 +183,10 @@ pub struct Args {
     /// Perceptual deadband on the pose stream, as a fraction (e.g. 0.07); off by default.
     #[arg(long)]
     pub deadband: Option<f64>,
+    /// The tool this bridge drives in the session (several bridges, one tool each, press one
+    /// session at once up to its scene's probe.max_tools); empty: the default tool.
+    #[arg(long, default_value = "")]
+    pub tool: String,
     /// Fault injection (tests only): fraction of messages dropped each way.
     #[arg(long, default_value_t = 0.0)]
     pub fault_drop: f64,
@@ -422,6 +426,7 @@ impl Args {
             None => RearmMode::Auto,
         };
         config.deadband = self.deadband;
+        config.tool_id.clone_from(&self.tool);
         let delay = match &self.fault_delay_ms {
             None => None,
             Some(text) => {
@@ -527,6 +532,27 @@ mod tests {
         assert!(s.config.fault.is_none() && s.config.deadband.is_none());
         assert!(s.device.press_axis().is_some());
         assert!(s.config.max_duration.is_none() && !s.config.record && !s.json);
+        assert_eq!(s.config.tool_id, "", "the default tool");
+    }
+
+    #[test]
+    fn the_tool_flag_names_the_tool_and_bad_ids_are_refused() {
+        let args = |tool: &str| {
+            Args::try_parse_from([
+                "haptic-bridge",
+                "--server",
+                "http://127.0.0.1:1",
+                "--session",
+                "s",
+                "--tool",
+                tool,
+            ])
+            .unwrap()
+        };
+        assert_eq!(args("left").setup().unwrap().config.tool_id, "left");
+        let e = args("a b").setup().err().unwrap().to_string();
+        assert!(e.contains("tool id"), "{e}");
+        assert!(args(&"x".repeat(65)).setup().is_err());
     }
 
     #[test]

@@ -74,6 +74,7 @@ pub fn write_mcap_file(path: &Path, rows: &[TickRecord]) -> std::io::Result<()> 
             position_m: Some(Vec3::from(r.position_m)),
             velocity_m_per_s: Some(Vec3::from(velocity)),
             capabilities: None,
+            tool_id: String::new(),
         };
         rec.write(topic::DEVICE_SAMPLE, t_ns, &sample)
             .map_err(other)?;

@@ -54,6 +54,8 @@ pub struct FrameData {
     pub applied_forces: Vec<haptics_proto::v1::AppliedForce>,
     /// Loads the session has accepted so far.
     pub applied_forces_total: u64,
+    /// Every tool slot with a device, in slot order.
+    pub tools: Vec<haptics_proto::v1::ToolProbe>,
     /// The reference keyframe of compact streams (`None` while no compact watcher exists).
     pub reference: Option<Arc<Reference>>,
     /// `positions_m` against `reference` at the default quantum (1 um), encoded; `None`

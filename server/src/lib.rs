@@ -26,6 +26,7 @@ pub mod session;
 pub mod solve;
 pub mod stream;
 pub mod surface_mesh;
+pub mod tool;
 
 use std::future::Future;
 use std::sync::Arc;

@@ -8,7 +8,10 @@
 //! pose-to-force histograms (seconds), device samples accepted, rejected and outside the
 //! device's declared workspace, faulted, in
 //! contact, simulated time, peak force, watchers and their frames/bytes, active elements and
-//! particles, surface vertices. Process-wide: the number of sessions.
+//! particles, surface vertices. Per tool slot (issue 50; labels `session`, `scene`, `family`,
+//! `tool` (the tool id, "" for the default tool) and `slot`): connected, in contact, force,
+//! pose-to-force histogram, samples accepted, rejected and outside the workspace. Process-wide:
+//! the number of sessions.
 //!
 //! Neighbours: [`crate::run`] spawns [`serve`] when `metrics_listen` is configured; the data come
 //! from [`crate::session::SessionManager`] and [`crate::servo::StatsSnapshot`].
@@ -26,8 +29,8 @@ use prometheus_client::metrics::gauge::ConstGauge;
 use prometheus_client::registry::Registry;
 use tokio::net::TcpListener;
 
-use crate::servo::{LATENCY_BUCKET_BOUNDS_US, LatencyBuckets, StatsSnapshot};
-use crate::session::{Session, SessionManager};
+use crate::servo::{LATENCY_BUCKET_BOUNDS_US, LatencyBuckets, StatsSnapshot, ToolStatsSnapshot};
+use crate::session::{Session, SessionManager, ToolSlot};
 
 /// OpenMetrics text, as Prometheus negotiates it.
 pub const CONTENT_TYPE_OPENMETRICS: &str =
@@ -257,6 +260,93 @@ const SESSION_METRICS: &[(&str, &str, MetricType, Extract)] = {
     ]
 };
 
+/// One tool slot's row at scrape time.
+struct ToolRow<'a> {
+    session: &'a Row,
+    tool: &'a ToolSlot,
+    tool_id: String,
+    slot: String,
+    stats: ToolStatsSnapshot,
+}
+
+/// A 0/1 gauge.
+fn flag(b: bool) -> Value {
+    Value::Gauge(if b { 1.0 } else { 0.0 })
+}
+
+/// How one per-tool metric is read from a tool's row.
+type ToolExtract = fn(&ToolRow<'_>) -> Value;
+
+/// The per-tool metrics: name, help, type and value, in scrape order.
+const TOOL_METRICS: &[(&str, &str, MetricType, ToolExtract)] = {
+    use MetricType::{Counter, Gauge, Histogram};
+    &[
+        (
+            "hapticd_tool_connected",
+            "1 while a device stream drives the tool slot",
+            Gauge,
+            |r| flag(r.tool.connected()),
+        ),
+        (
+            "hapticd_tool_in_contact",
+            "1 while the tool touches the body",
+            Gauge,
+            |r| flag(r.stats.in_contact),
+        ),
+        (
+            "hapticd_tool_force_newtons",
+            "Force magnitude on the tool's device at the last statistics publication",
+            Gauge,
+            |r| Value::Gauge(r.stats.force_n),
+        ),
+        (
+            "hapticd_tool_pose_to_force_seconds",
+            "The tool's device pose received to force command pushed",
+            Histogram,
+            |r| Value::Histogram(r.stats.pose_to_force_buckets),
+        ),
+        (
+            "hapticd_tool_device_samples",
+            "The tool's device samples accepted",
+            Counter,
+            |r| Value::Counter(r.stats.device_samples),
+        ),
+        (
+            "hapticd_tool_rejected_samples",
+            "The tool's device samples rejected (non-finite, absurd, another session's)",
+            Counter,
+            |r| Value::Counter(r.tool.rejected_samples.load(Relaxed)),
+        ),
+        (
+            "hapticd_tool_out_of_workspace_samples",
+            "The tool's device samples dropped outside its declared workspace",
+            Counter,
+            |r| Value::Counter(r.tool.out_of_workspace_samples.load(Relaxed)),
+        ),
+    ]
+};
+
+fn per_tool(
+    enc: &mut DescriptorEncoder<'_>,
+    rows: &[ToolRow<'_>],
+    (name, help, metric_type, value): (&str, &str, MetricType, ToolExtract),
+) -> fmt::Result {
+    let mut m = enc.encode_descriptor(name, help, None, metric_type)?;
+    for r in rows {
+        let [a, b, c] = r.session.labels();
+        let labels = [
+            a,
+            b,
+            c,
+            ("tool", r.tool_id.as_str()),
+            ("slot", r.slot.as_str()),
+        ];
+        let mut family = m.encode_family(&labels)?;
+        encode_value(&mut family, value(r))?;
+    }
+    Ok(())
+}
+
 impl Collector for SessionCollector {
     fn encode(&self, mut enc: DescriptorEncoder<'_>) -> fmt::Result {
         let rows: Vec<Row> = self
@@ -278,6 +368,21 @@ impl Collector for SessionCollector {
         )?)?;
         for &(name, help, metric_type, value) in SESSION_METRICS {
             per_session(&mut enc, &rows, name, help, metric_type, value)?;
+        }
+        let tools: Vec<ToolRow<'_>> = rows
+            .iter()
+            .flat_map(|r| {
+                r.session.tools.iter().map(move |t| ToolRow {
+                    session: r,
+                    tool: t,
+                    tool_id: t.tool_id(),
+                    slot: t.slot.to_string(),
+                    stats: r.stats.tools.get(t.slot).copied().unwrap_or_default(),
+                })
+            })
+            .collect();
+        for &metric in TOOL_METRICS {
+            per_tool(&mut enc, &tools, metric)?;
         }
         Ok(())
     }

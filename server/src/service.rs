@@ -137,7 +137,8 @@ impl SessionControl for Services {
             .builds
             .run(client, &self.manager, move || {
                 let scene = manager.load_scene(&r.scene, &r.scene_toml)?;
-                let session = manager.start(&scene)?;
+                let tools = crate::tool::scene_tools(&r.scene, &r.scene_toml);
+                let session = manager.start_with_tools(&scene, &tools)?;
                 // Recorded for a restart (with a state dir); a failure to record is logged,
                 // the session runs anyway.
                 if let Err(e) = manager.record(&session.id, &r.scene, &r.scene_toml) {
@@ -258,7 +259,9 @@ impl SessionControl for Services {
             demoted: st.demoted,
             threads: st.threads.max(s.tick_threads),
             pool_wait_us_max: st.pool_wait_us_max,
-            device: s.device.capabilities(),
+            device: first_device(&s),
+            max_tools: s.tools.len() as u32,
+            tools: tool_stats(&s, &st),
             out_of_workspace_samples: s
                 .shared
                 .out_of_workspace_samples
@@ -282,7 +285,16 @@ impl SessionControl for Services {
                 scene: s.scene.clone(),
                 model_family: s.family.to_string(),
                 device_connected: s.has_device(),
-                device: s.device.capabilities(),
+                device: first_device(&s),
+                max_tools: s.tools.len() as u32,
+                tools: s
+                    .connected_tools()
+                    .map(|t| ToolSummary {
+                        tool_id: t.tool_id(),
+                        slot: t.slot as u32,
+                        device: t.device.capabilities(),
+                    })
+                    .collect(),
             })
             .collect();
         Ok(Response::new(ListSessionsResponse {
@@ -319,6 +331,41 @@ fn link_headers(
         put(HEADER_MAX_FORCE_RATE, l.max_force_rate_n_per_s.to_string());
     }
     put(HEADER_SERVER_INSTANCE, instance.to_owned());
+}
+
+/// The capabilities of the first connected tool (lowest slot) that introduced itself: the
+/// session-level `device` of `GetStats` and `ListSessions`.
+fn first_device(s: &crate::session::Session) -> Option<DeviceCapabilities> {
+    s.connected_tools().find_map(|t| t.device.capabilities())
+}
+
+/// `SessionStats.tools`: every slot of `s`, from the servo's statistics `st` and the stream
+/// tasks' counters.
+fn tool_stats(s: &crate::session::Session, st: &crate::servo::StatsSnapshot) -> Vec<ToolStats> {
+    use std::sync::atomic::Ordering::Relaxed;
+    s.tools
+        .iter()
+        .map(|t| {
+            let ts = st.tools.get(t.slot).copied().unwrap_or_default();
+            ToolStats {
+                tool_id: t.tool_id(),
+                slot: t.slot as u32,
+                connected: t.connected(),
+                in_contact: ts.in_contact,
+                force_n: ts.force_n,
+                peak_force_n: ts.peak_force_n,
+                pose_to_force_p50_us: ts.pose_to_force_p50_us,
+                pose_to_force_p99_us: ts.pose_to_force_p99_us,
+                device_samples: ts.device_samples,
+                rejected_samples: t.rejected_samples.load(Relaxed),
+                out_of_order_samples: t.out_of_order_samples.load(Relaxed),
+                out_of_workspace_samples: t.out_of_workspace_samples.load(Relaxed),
+                device_silent: ts.device_silent,
+                contact_ticks: ts.contact_ticks,
+                device: t.device.capabilities(),
+            }
+        })
+        .collect()
 }
 
 /// The watcher fields of `SessionStats` (40-45).
@@ -366,27 +413,36 @@ impl DeviceLink for Services {
         if let Some(c) = &first.capabilities {
             crate::device::check(c).map_err(Status::invalid_argument)?;
         }
+        crate::tool::check_tool_id(&first.tool_id)?;
         let session = self.manager.get(&first.session_id)?;
         let (tx, rx) = mpsc::channel(256);
-        let pose_in = session.attach_device(tx)?;
+        let attached = session.attach_tool(&first.tool_id, tx)?;
+        let tool = session.tools[attached.slot].clone();
         let caps = first.capabilities.clone();
         let workspace = caps.as_ref().and_then(crate::device::workspace);
         let device_force_n = caps
             .as_ref()
             .map_or(f64::INFINITY, crate::device::force_limit_n);
+        // The lowest of the scene's, the tool's own and the device's force limits.
+        let tool_force_n = tool.max_force_n.unwrap_or(f64::INFINITY);
         let limits = session.limits.map(|l| crate::session::LinkLimits {
-            max_force_n: l.max_force_n.min(device_force_n),
+            max_force_n: l.max_force_n.min(tool_force_n).min(device_force_n),
             ..l
         });
         let instance = self.manager.instance().to_owned();
-        session.set_force_deadband(deadband);
-        match &caps {
-            Some(c) => tracing::info!(session = %session.id, device = %c.name, "device connected"),
-            None => tracing::info!(session = %session.id, "device connected"),
-        }
-        session.device.attach(caps);
+        tool.set_force_deadband(deadband);
+        let name = caps.as_ref().map_or("", |c| c.name.as_str());
+        tracing::info!(session = %session.id, tool = %first.tool_id, slot = attached.slot, device = %name, "device connected");
+        tool.device.attach(caps);
         tokio::spawn(pump_device_samples(
-            session, first, inbound, pose_in, workspace,
+            DeviceStream {
+                session,
+                tool,
+                pose_in: attached.pose,
+                workspace,
+            },
+            first,
+            inbound,
         ));
         let mut response = Response::new(Box::pin(ReceiverStream::new(rx)) as ForceStream);
         link_headers(response.metadata_mut(), limits, &instance);
@@ -394,16 +450,49 @@ impl DeviceLink for Services {
     }
 }
 
-/// The device stream's task: every sample of the session's device (the first already read)
-/// is checked (session id, rising sequence number, finite and bounded pose, inside the
-/// declared workspace) and written to the servo's pose buffer, or dropped and counted; the
-/// device is detached when the stream ends or the session stops.
-async fn pump_device_samples(
+/// A device stream attached to a tool slot, as its task holds it.
+struct DeviceStream {
     session: Arc<crate::session::Session>,
+    tool: Arc<crate::session::ToolSlot>,
+    pose_in: triple_buffer::Input<Pose>,
+    /// The declared workspace box, if any.
+    workspace: Option<(DVec3, DVec3)>,
+}
+
+/// Why a device sample was dropped.
+#[derive(Clone, Copy)]
+enum Dropped {
+    /// Non-finite, absurd, or another session's.
+    Rejected,
+    /// `seq` not newer than the last accepted.
+    OutOfOrder,
+    /// Outside the declared workspace.
+    OutOfWorkspace,
+}
+
+impl DeviceStream {
+    /// Counts a dropped sample in the tool's counter and the session's.
+    fn count(&self, why: Dropped) {
+        use std::sync::atomic::Ordering::Relaxed;
+        let (t, s) = (&self.tool, &self.session.shared);
+        let (tool, session) = match why {
+            Dropped::Rejected => (&t.rejected_samples, &s.rejected_samples),
+            Dropped::OutOfOrder => (&t.out_of_order_samples, &s.out_of_order_samples),
+            Dropped::OutOfWorkspace => (&t.out_of_workspace_samples, &s.out_of_workspace_samples),
+        };
+        tool.fetch_add(1, Relaxed);
+        session.fetch_add(1, Relaxed);
+    }
+}
+
+/// The device stream's task: every sample of one tool's stream (the first already read) is
+/// checked (session id, rising sequence number, finite and bounded pose, inside the declared
+/// workspace) and written to its slot's pose buffer, or dropped and counted (in the tool's and
+/// the session's counters); the tool is detached when the stream ends or the session stops.
+async fn pump_device_samples(
+    mut link: DeviceStream,
     first: DeviceSample,
     mut inbound: Streaming<DeviceSample>,
-    mut pose_in: triple_buffer::Input<Pose>,
-    workspace: Option<(DVec3, DVec3)>,
 ) {
     let mut next = Some(first);
     let mut last_seq: Option<u64> = None;
@@ -415,49 +504,40 @@ async fn pump_device_samples(
                 _ => break,
             },
         };
-        if !sample.session_id.is_empty() && sample.session_id != session.id {
-            session
-                .shared
-                .rejected_samples
-                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        if !sample.session_id.is_empty() && sample.session_id != link.session.id {
+            link.count(Dropped::Rejected);
             continue;
         }
         // Sequence numbers only go up: an older or repeated one (a replay, a duplicate
         // with a new position) is dropped and counted, never applied unanswered.
         if last_seq.is_some_and(|l| sample.seq <= l) {
-            session
-                .shared
-                .out_of_order_samples
-                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            link.count(Dropped::OutOfOrder);
             continue;
         }
         match validate_sample(&sample) {
-            Ok((p, _)) if workspace.is_some_and(|ws| !crate::device::in_workspace(ws, p)) => {
-                session
-                    .shared
-                    .out_of_workspace_samples
-                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            Ok((p, _))
+                if link
+                    .workspace
+                    .is_some_and(|ws| !crate::device::in_workspace(ws, p)) =>
+            {
+                link.count(Dropped::OutOfWorkspace);
             }
             Ok((p, v)) => {
                 last_seq = Some(sample.seq);
-                pose_in.write(Pose {
+                link.pose_in.write(Pose {
                     seq: sample.seq,
                     position_m: p,
                     velocity_m_per_s: v,
-                    received_us: session.now_us(),
+                    received_us: link.session.now_us(),
                     connected: true,
                 });
                 // Device pacing: the servo ticks for this sample now.
-                session.wake_servo();
+                link.session.wake_servo();
             }
-            Err(_) => {
-                session
-                    .shared
-                    .rejected_samples
-                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            }
+            Err(_) => link.count(Dropped::Rejected),
         }
-        if session
+        if link
+            .session
             .shared
             .stop
             .load(std::sync::atomic::Ordering::Acquire)
@@ -465,9 +545,14 @@ async fn pump_device_samples(
             break;
         }
     }
-    tracing::info!(session = %session.id, "device disconnected");
-    session.device.detach();
-    session.detach_device(pose_in);
+    let DeviceStream {
+        session,
+        tool,
+        pose_in,
+        ..
+    } = link;
+    tracing::info!(session = %session.id, tool = %tool.tool_id(), slot = tool.slot, "device disconnected");
+    session.detach_tool(tool.slot, pose_in);
 }
 
 #[tonic::async_trait]

@@ -22,6 +22,7 @@ use crate::frame::{FrameData, WatcherGuard, WatcherStats, unix_time_us};
 use crate::servo::{
     self, Command, ForceOut, MonotonicClock, Pose, ServoCore, SessionShared, StatsSnapshot,
 };
+use crate::tool::NamedTool;
 
 /// Largest scene text accepted, bytes.
 pub const MAX_SCENE_TOML_BYTES: usize = 1 << 20;
@@ -115,6 +116,97 @@ pub struct SessionRecord {
 /// Sender half of a DeviceLink response stream.
 pub type ForceSender = mpsc::Sender<Result<ForceCommand, Status>>;
 
+/// One tool slot of a session (issue 50; [`crate::tool`]): the async-side end of its pose
+/// buffer (taken while a stream drives it), its force stream, deadband, device, and its
+/// sample counters. Shared by the stream task, the forwarder and the statistics.
+pub struct ToolSlot {
+    /// Slot index, 0-based.
+    pub slot: usize,
+    /// Tool id of the connected stream, or of the last one ("" = the default tool).
+    tool_id: Mutex<String>,
+    /// The force-stream deadband of this slot's stream and its counters.
+    pub deadband: Arc<DeadbandShared>,
+    /// The device on this slot as it introduced itself, and its limits.
+    pub device: Arc<crate::device::DeviceShared>,
+    /// Samples rejected (non-finite, absurd, another session's).
+    pub rejected_samples: std::sync::atomic::AtomicU64,
+    /// Samples dropped: `seq` not newer than the last accepted.
+    pub out_of_order_samples: std::sync::atomic::AtomicU64,
+    /// Samples dropped outside the declared workspace.
+    pub out_of_workspace_samples: std::sync::atomic::AtomicU64,
+    /// This slot's probe radius, m: its named tool's (`[[probe.tool]] radius_m`), else the
+    /// scene's.
+    pub probe_radius_m: f64,
+    /// This slot's force limit, N, when its named tool has its own (`[[probe.tool]]
+    /// max_force_n`; sent to its bridge when lower than the scene's).
+    pub max_force_n: Option<f64>,
+    pose_input: Mutex<Option<triple_buffer::Input<Pose>>>,
+    link: Mutex<Option<ForceSender>>,
+}
+
+impl ToolSlot {
+    fn new(
+        slot: usize,
+        pose_input: triple_buffer::Input<Pose>,
+        probe_radius_m: f64,
+        named: Option<&NamedTool>,
+    ) -> Self {
+        Self {
+            slot,
+            probe_radius_m: named.and_then(|n| n.radius_m).unwrap_or(probe_radius_m),
+            max_force_n: named.and_then(|n| n.max_force_n),
+            tool_id: Mutex::new(String::new()),
+            deadband: Arc::default(),
+            device: Arc::default(),
+            rejected_samples: Default::default(),
+            out_of_order_samples: Default::default(),
+            out_of_workspace_samples: Default::default(),
+            pose_input: Mutex::new(Some(pose_input)),
+            link: Mutex::new(None),
+        }
+    }
+
+    /// The tool id of the connected (or last) stream.
+    pub fn tool_id(&self) -> String {
+        self.tool_id.lock().map(|t| t.clone()).unwrap_or_default()
+    }
+
+    /// A stream drives this slot now.
+    pub fn connected(&self) -> bool {
+        self.pose_input.lock().is_ok_and(|p| p.is_none())
+    }
+
+    /// The id of the stream driving this slot, if one does.
+    fn occupant(&self) -> Option<String> {
+        self.connected().then(|| self.tool_id())
+    }
+
+    /// Sets this slot's force deadband (fraction, 0 = off; from the `haptics-force-deadband`
+    /// request header); a value outside `[0, 1)` or not finite is 0.
+    pub fn set_force_deadband(&self, k: f64) {
+        let k = if k.is_finite() && (0.0..1.0).contains(&k) {
+            k
+        } else {
+            0.0
+        };
+        self.deadband
+            .fraction_bits
+            .store(k.to_bits(), Ordering::Relaxed);
+    }
+
+    fn sender(&self) -> Option<ForceSender> {
+        self.link.lock().ok().and_then(|l| l.clone())
+    }
+}
+
+/// A device stream attached to a tool slot ([`Session::attach_tool`]).
+pub struct ToolAttachment {
+    /// The slot it drives.
+    pub slot: usize,
+    /// Its pose input: the stream task publishes each accepted sample here.
+    pub pose: triple_buffer::Input<Pose>,
+}
+
 /// A reserved session slot ([`SessionManager::reserve_slot`]); released on drop unless a
 /// session took it.
 struct SlotReservation<'a> {
@@ -164,13 +256,18 @@ pub struct Session {
     /// Threads the session's tick uses: its servo thread plus tick-pool workers
     /// ([`crate::cores`]).
     pub tick_threads: u32,
-    /// The force-stream deadband and its counters.
+    /// The force-stream deadband of tool slot 0 and its counters (`tools[0].deadband`).
     pub deadband: Arc<DeadbandShared>,
-    /// The attached device as it introduced itself, and its limits ([`crate::device`]).
+    /// The device on tool slot 0 as it introduced itself, and its limits ([`crate::device`];
+    /// `tools[0].device`).
     pub device: Arc<crate::device::DeviceShared>,
+    /// The tool slots (issue 50): `SoftBody::max_tools()` of them, at least one.
+    pub tools: Vec<Arc<ToolSlot>>,
+    /// The ids of the tools the scene names and their slots (`SoftBody::tool_slot`).
+    named_tools: Vec<(String, usize)>,
+    /// Held while a stream chooses and takes its slot.
+    attach_lock: Mutex<()>,
     commands: Mutex<rtrb::Producer<Command>>,
-    pose_input: Mutex<Option<triple_buffer::Input<Pose>>>,
-    link: Arc<Mutex<Option<ForceSender>>>,
     stats: Mutex<triple_buffer::Output<StatsSnapshot>>,
     frames: watch::Receiver<Option<Arc<FrameData>>>,
     threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
@@ -198,65 +295,98 @@ impl Session {
         }
     }
 
-    /// Sets the force deadband of the attached stream (fraction, 0 = off; from the bridge's
-    /// `haptics-force-deadband` request header).
+    /// Sets the force deadband of tool slot 0's stream (fraction, 0 = off; from the
+    /// bridge's `haptics-force-deadband` request header).
     pub fn set_force_deadband(&self, k: f64) {
-        let k = if k.is_finite() && (0.0..1.0).contains(&k) {
-            k
-        } else {
-            0.0
-        };
-        self.deadband
-            .fraction_bits
-            .store(k.to_bits(), Ordering::Relaxed);
+        self.tools[0].set_force_deadband(k);
     }
 
-    /// Attaches a device stream: returns the pose input to publish into.
+    /// Attaches a device stream of tool `tool_id` ("" = the default tool) to its slot
+    /// ([`crate::tool::choose_slot`]): the slot and the pose input to publish into.
     ///
     /// # Errors
-    /// [`ServerError::FailedPrecondition`] when a device is already connected.
+    /// [`ServerError::InvalidArgument`] for a bad tool id;
+    /// [`ServerError::FailedPrecondition`] when that tool is already connected;
+    /// [`ServerError::Exhausted`] when the session has no free slot for it.
+    pub fn attach_tool(
+        &self,
+        tool_id: &str,
+        tx: ForceSender,
+    ) -> Result<ToolAttachment, ServerError> {
+        crate::tool::check_tool_id(tool_id)?;
+        let poisoned = |what: &str| ServerError::Internal(format!("{what} poisoned"));
+        let _guard = self.attach_lock.lock().map_err(|_| poisoned("attach"))?;
+        let occupied: Vec<Option<String>> = self.tools.iter().map(|t| t.occupant()).collect();
+        let slot = crate::tool::choose_slot(&self.id, tool_id, &self.named_tools, &occupied)?;
+        let tool = &self.tools[slot];
+        let pose = tool
+            .pose_input
+            .lock()
+            .map_err(|_| poisoned("pose slot"))?
+            .take()
+            .ok_or_else(|| {
+                ServerError::Internal("a free tool slot without its pose input".into())
+            })?;
+        *tool.tool_id.lock().map_err(|_| poisoned("tool id"))? = tool_id.to_owned();
+        *tool.link.lock().map_err(|_| poisoned("link"))? = Some(tx);
+        Ok(ToolAttachment { slot, pose })
+    }
+
+    /// Attaches the default tool's device stream ([`Session::attach_tool`] with id ""):
+    /// returns the pose input to publish into.
+    ///
+    /// # Errors
+    /// As [`Session::attach_tool`]: [`ServerError::FailedPrecondition`] when the default tool
+    /// is already connected.
     pub fn attach_device(
         &self,
         tx: ForceSender,
     ) -> Result<triple_buffer::Input<Pose>, ServerError> {
-        let input = self
-            .pose_input
-            .lock()
-            .map_err(|_| ServerError::Internal("pose slot poisoned".into()))?
-            .take()
-            .ok_or_else(|| {
-                ServerError::FailedPrecondition(format!(
-                    "session {} already has a device connected",
-                    self.id
-                ))
-            })?;
-        *self
-            .link
-            .lock()
-            .map_err(|_| ServerError::Internal("link poisoned".into()))? = Some(tx);
-        Ok(input)
+        self.attach_tool("", tx).map(|a| a.pose)
     }
 
-    /// A device stream is attached.
+    /// A device stream is attached (any tool).
     pub fn has_device(&self) -> bool {
-        self.pose_input.lock().is_ok_and(|slot| slot.is_none())
+        self.tools.iter().any(|t| t.connected())
     }
 
-    /// Detaches the device stream and returns the pose input (publishing "disconnected").
-    pub fn detach_device(&self, mut input: triple_buffer::Input<Pose>) {
+    /// The tool slots a stream drives now.
+    pub fn connected_tools(&self) -> impl Iterator<Item = &Arc<ToolSlot>> {
+        self.tools.iter().filter(|t| t.connected())
+    }
+
+    /// Detaches tool slot `slot`'s stream and returns its pose input (publishing
+    /// "disconnected": the tool's contact is released, the others continue) and forgets its
+    /// device.
+    pub fn detach_tool(&self, slot: usize, mut input: triple_buffer::Input<Pose>) {
+        let Some(tool) = self.tools.get(slot) else {
+            return;
+        };
         input.write(Pose {
             connected: false,
             ..Pose::default()
         });
-        if let Ok(mut l) = self.link.lock() {
+        tool.device.detach();
+        if let Ok(mut l) = tool.link.lock() {
             // While stopping, keep the sender: `stop` clears it after the final zero force.
             if !self.shared.stop.load(Ordering::Acquire) {
                 *l = None;
             }
         }
-        if let Ok(mut slot) = self.pose_input.lock() {
-            *slot = Some(input);
+        if let Ok(mut p) = tool.pose_input.lock() {
+            *p = Some(input);
         }
+    }
+
+    /// Detaches the default tool's stream ([`Session::attach_device`]'s): the lowest
+    /// connected slot of tool id "".
+    pub fn detach_device(&self, input: triple_buffer::Input<Pose>) {
+        let slot = self
+            .tools
+            .iter()
+            .find(|t| t.occupant().as_deref() == Some(""))
+            .map_or(0, |t| t.slot);
+        self.detach_tool(slot, input);
     }
 
     /// Subscribes to viewer frames (counts as a watcher until the guard drops).
@@ -281,8 +411,10 @@ impl Session {
         for t in threads {
             let _ = t.join();
         }
-        if let Ok(mut l) = self.link.lock() {
-            *l = None;
+        for tool in &self.tools {
+            if let Ok(mut l) = tool.link.lock() {
+                *l = None;
+            }
         }
     }
 
@@ -444,7 +576,9 @@ impl SessionManager {
                         .map_err(|e| e.to_string())?;
                     let slot = self.reserve_slot().map_err(|e| e.to_string())?;
                     let body = haptic_model::build_body(&scene).map_err(|e| e.to_string())?;
-                    self.start_in_slot(slot, &rec.id, body, Some(LinkLimits::of_scene(&scene)))
+                    let names = crate::tool::scene_tools(&rec.scene, &rec.scene_toml);
+                    let limits = Some(LinkLimits::of_scene(&scene));
+                    self.start_in_slot(slot, &rec.id, body, limits, &names)
                         .map_err(|e| e.to_string())?;
                     Ok(rec)
                 });
@@ -559,6 +693,19 @@ impl SessionManager {
     /// [`ServerError::Exhausted`] at the session limit; [`ServerError::Model`] when the
     /// simulation cannot be built (e.g. an unstable explicit configuration).
     pub fn start(&self, scene: &Scene) -> Result<Arc<Session>, ServerError> {
+        self.start_with_tools(scene, &[])
+    }
+
+    /// [`SessionManager::start`] for a scene that names the tools `tool_names`
+    /// ([`crate::tool::scene_tools`]): each takes its own slot and parameters.
+    ///
+    /// # Errors
+    /// As [`SessionManager::start`].
+    pub fn start_with_tools(
+        &self,
+        scene: &Scene,
+        tool_names: &[NamedTool],
+    ) -> Result<Arc<Session>, ServerError> {
         // The slot is taken before the (possibly long) build, so concurrent starts cannot all
         // pass a check and then exceed the limit.
         let slot = self.reserve_slot()?;
@@ -570,7 +717,13 @@ impl SessionManager {
             scene,
             &mut |stage, fraction| tracing::info!(scene = %name, "preprocessing {:3.0} %: {stage}", 100.0 * fraction),
         )?;
-        self.start_in_slot(slot, &id, body, Some(LinkLimits::of_scene(scene)))
+        self.start_in_slot(
+            slot,
+            &id,
+            body,
+            Some(LinkLimits::of_scene(scene)),
+            tool_names,
+        )
     }
 
     /// Reserves a session slot: running plus pending sessions stay at most `max_sessions`
@@ -624,16 +777,32 @@ impl SessionManager {
         limits: Option<LinkLimits>,
     ) -> Result<Arc<Session>, ServerError> {
         let slot = self.reserve_slot()?;
-        self.start_in_slot(slot, id, body, limits)
+        self.start_in_slot(slot, id, body, limits, &[])
     }
 
-    /// [`SessionManager::start_body_as`] in a reserved slot.
+    /// [`SessionManager::start_body`] for a body whose tools `tool_names` are named (each
+    /// takes the slot `SoftBody::tool_slot` gives it; other tools take the free slots left).
+    ///
+    /// # Errors
+    /// As [`SessionManager::start_body`].
+    pub fn start_body_with_tools(
+        &self,
+        body: Box<dyn haptic_model::body::SoftBody>,
+        tool_names: &[NamedTool],
+    ) -> Result<Arc<Session>, ServerError> {
+        let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
+        let slot = self.reserve_slot()?;
+        self.start_in_slot(slot, &id, body, None, tool_names)
+    }
+
+    /// [`SessionManager::start_body_as`] in a reserved slot, with the tool names of its scene.
     fn start_in_slot(
         &self,
         slot: SlotReservation<'_>,
         id: &str,
         mut body: Box<dyn haptic_model::body::SoftBody>,
         limits: Option<LinkLimits>,
+        tool_names: &[NamedTool],
     ) -> Result<Arc<Session>, ServerError> {
         if self.get(id).is_ok() {
             return Err(ServerError::FailedPrecondition(format!(
@@ -644,7 +813,8 @@ impl SessionManager {
         let info = body.info();
         let size = body.stats();
         let shared = Arc::new(SessionShared::default());
-        let (ends, handles) = servo::channels(body.as_ref());
+        let (ends, handles, more_tools) = servo::tool_channels(body.as_ref());
+        let named_tools = named_tool_slots(body.as_ref(), tool_names, ends.tools.len());
         let servo::ServoHandles {
             commands: cmd_tx,
             pose: pose_in,
@@ -654,19 +824,15 @@ impl SessionManager {
         } = handles;
         let period_us = (info.tick_s * 1e6).round().max(1.0) as u64;
         let epoch = Instant::now();
-        let link: Arc<Mutex<Option<ForceSender>>> = Arc::new(Mutex::new(None));
+        let first = servo::ToolHandles {
+            pose: pose_in,
+            forces: force_rx,
+        };
+        let (rings, tools, named_tools) =
+            tool_slots(first, more_tools, info.probe_radius_m, named_tools);
 
-        // Forwarder: force ring -> the attached DeviceLink stream (through the deadband).
-        let deadband = Arc::new(DeadbandShared::default());
-        let device = Arc::new(crate::device::DeviceShared::default());
-        let forwarder = spawn_forwarder(
-            &id,
-            force_rx,
-            shared.clone(),
-            link.clone(),
-            deadband.clone(),
-            device.clone(),
-        )?;
+        // Forwarder: each tool's force ring -> its DeviceLink stream (through its deadband).
+        let forwarder = spawn_forwarder(&id, rings, shared.clone(), tools.clone())?;
         let servo_cfg = self.config.servo.clone();
         let (plan, pool) = self.tick_threads(&id, body.as_mut());
         let threads = plan.reservation.cores();
@@ -691,6 +857,7 @@ impl SessionManager {
             shared.clone(),
             watcher_stats.clone(),
             crate::stream::KeyframePolicy::default(),
+            tool_ids(&tools),
         );
 
         let session = Arc::new(Session {
@@ -713,11 +880,12 @@ impl SessionManager {
             limits,
             tick_threads: threads as u32,
             servo_thread: servo.thread().clone(),
-            deadband,
-            device,
+            deadband: tools[0].deadband.clone(),
+            device: tools[0].device.clone(),
+            tools,
+            named_tools,
+            attach_lock: Mutex::new(()),
             commands: Mutex::new(cmd_tx),
-            pose_input: Mutex::new(Some(pose_in)),
-            link,
             stats: Mutex::new(stats_out),
             frames: frame_rx,
             threads: Mutex::new(vec![servo, forwarder]),
@@ -854,50 +1022,115 @@ fn spawn_servo(
         .map_err(|e| ServerError::Internal(format!("spawning the servo thread: {e}")))
 }
 
-/// Spawns the forwarder thread of session `id`: drains the force ring into the attached
-/// DeviceLink stream through the deadband and the device's limits, until the servo has
-/// finished and the ring is empty.
+/// The tool slots of a session from the async ends of its slots (`first`, then `more`), the
+/// scene's probe radius (m) and the named tools' slots: each slot's force ring (for the
+/// forwarder), the slots, and the named tools' ids and slots.
+#[allow(clippy::type_complexity)]
+fn tool_slots(
+    first: servo::ToolHandles,
+    more: Vec<servo::ToolHandles>,
+    probe_radius_m: f64,
+    named: Vec<(NamedTool, usize)>,
+) -> (
+    Vec<rtrb::Consumer<ForceOut>>,
+    Vec<Arc<ToolSlot>>,
+    Vec<(String, usize)>,
+) {
+    let named_in = |k: usize| named.iter().find(|(_, s)| *s == k).map(|(n, _)| n);
+    let (mut rings, mut tools) = (Vec::new(), Vec::new());
+    for (k, h) in std::iter::once(first).chain(more).enumerate() {
+        rings.push(h.forces);
+        tools.push(Arc::new(ToolSlot::new(
+            k,
+            h.pose,
+            probe_radius_m,
+            named_in(k),
+        )));
+    }
+    let ids = named.into_iter().map(|(n, k)| (n.id, k)).collect();
+    (rings, tools, ids)
+}
+
+/// Names the tool slots `tools` for the frame task, with their probe radii
+/// ([`crate::stream::ToolIds`]).
+fn tool_ids(tools: &[Arc<ToolSlot>]) -> crate::stream::ToolIds {
+    let tools = tools.to_vec();
+    Arc::new(move |k| {
+        tools
+            .get(k)
+            .map_or((String::new(), 0.0), |t| (t.tool_id(), t.probe_radius_m))
+    })
+}
+
+/// The slots `body` gives the named tools `named` (those within its `slots`), as (tool, slot).
+fn named_tool_slots(
+    body: &dyn haptic_model::body::SoftBody,
+    named: &[NamedTool],
+    slots: usize,
+) -> Vec<(NamedTool, usize)> {
+    named
+        .iter()
+        .filter_map(|n| {
+            body.tool_slot(&n.id)
+                .filter(|&k| k < slots)
+                .map(|k| (n.clone(), k))
+        })
+        .collect()
+}
+
+/// Spawns the forwarder thread of session `id`: drains each tool slot's force ring (`rings[k]`
+/// for `tools[k]`) into that slot's DeviceLink stream through its deadband and its device's
+/// limits, until the servo has finished and the rings are empty.
 fn spawn_forwarder(
     id: &str,
-    mut force_rx: rtrb::Consumer<ForceOut>,
+    mut rings: Vec<rtrb::Consumer<ForceOut>>,
     fwd_shared: Arc<SessionShared>,
-    fwd_link: Arc<Mutex<Option<ForceSender>>>,
-    fwd_deadband: Arc<DeadbandShared>,
-    fwd_device: Arc<crate::device::DeviceShared>,
+    tools: Vec<Arc<ToolSlot>>,
 ) -> Result<std::thread::JoinHandle<()>, ServerError> {
     std::thread::Builder::new()
         .name(format!("fwd-{id}"))
         .spawn(move || {
-            let mut last: Option<(ForceOut, Instant)> = None;
+            let mut last: Vec<Option<(ForceOut, Instant)>> = vec![None; tools.len()];
             loop {
                 std::thread::park_timeout(Duration::from_millis(5));
-                while let Ok(f) = force_rx.pop() {
-                    let k = f64::from_bits(fwd_deadband.fraction_bits.load(Ordering::Relaxed));
-                    let finishing = fwd_shared.stop.load(Ordering::Acquire);
-                    let since = last.map_or(u64::MAX, |(_, t)| t.elapsed().as_micros() as u64);
-                    if !finishing
-                        && !force_deadband_passes(k, last.as_ref().map(|(l, _)| l), since, &f)
-                    {
-                        fwd_deadband.suppressed.fetch_add(1, Ordering::Relaxed);
-                        continue;
-                    }
-                    let sender = fwd_link.lock().ok().and_then(|l| l.clone());
-                    if let Some(tx) = sender {
-                        let limits = fwd_device.limits();
-                        if tx.try_send(Ok(force_command(&f, limits))).is_ok() {
-                            fwd_deadband.sent.fetch_add(1, Ordering::Relaxed);
-                        }
-                        last = Some((f, Instant::now()));
-                    } else {
-                        last = None;
-                    }
+                for ((ring, tool), last) in rings.iter_mut().zip(&tools).zip(&mut last) {
+                    forward_tool(ring, tool, last, &fwd_shared);
                 }
-                if fwd_shared.finished.load(Ordering::Acquire) && force_rx.is_empty() {
+                if fwd_shared.finished.load(Ordering::Acquire) && rings.iter().all(|r| r.is_empty())
+                {
                     break;
                 }
             }
         })
         .map_err(|e| ServerError::Internal(format!("spawning the forwarder: {e}")))
+}
+
+/// Drains one tool's force ring into its stream (the forwarder's work for one slot): `last` is
+/// the last command sent and when, for the deadband.
+fn forward_tool(
+    ring: &mut rtrb::Consumer<ForceOut>,
+    tool: &ToolSlot,
+    last: &mut Option<(ForceOut, Instant)>,
+    shared: &SessionShared,
+) {
+    while let Ok(f) = ring.pop() {
+        let k = f64::from_bits(tool.deadband.fraction_bits.load(Ordering::Relaxed));
+        let finishing = shared.stop.load(Ordering::Acquire);
+        let since = last.map_or(u64::MAX, |(_, t)| t.elapsed().as_micros() as u64);
+        if !finishing && !force_deadband_passes(k, last.as_ref().map(|(l, _)| l), since, &f) {
+            tool.deadband.suppressed.fetch_add(1, Ordering::Relaxed);
+            continue;
+        }
+        if let Some(tx) = tool.sender() {
+            let limits = tool.device.limits();
+            if tx.try_send(Ok(force_command(&f, limits))).is_ok() {
+                tool.deadband.sent.fetch_add(1, Ordering::Relaxed);
+            }
+            *last = Some((f, Instant::now()));
+        } else {
+            *last = None;
+        }
+    }
 }
 
 /// The command for `f`, its force and contact stiffness clamped to the attached device's

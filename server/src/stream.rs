@@ -143,6 +143,7 @@ pub fn spawn_frame_task(
     shared: Arc<SessionShared>,
     stats: Arc<WatcherStats>,
     policy: KeyframePolicy,
+    tool_ids: ToolIds,
 ) {
     tokio::spawn(async move {
         let mut tick = tokio::time::interval(Duration::from_millis(10));
@@ -156,12 +157,37 @@ pub fn spawn_frame_task(
             if shared.watchers.load(Ordering::Acquire) == 0 || !snap_out.update() {
                 continue;
             }
-            let frame = frames.frame(snap_out.output_buffer());
+            let mut frame = frames.frame(snap_out.output_buffer());
+            frame.tools = tool_probes(snap_out.output_buffer(), &tool_ids);
             if frame_tx.send(Some(Arc::new(frame))).is_err() {
                 break; // no receiver left (the session was dropped)
             }
         }
     });
+}
+
+/// The tool id and probe radius (m) of a session's tool slot (for frames: the frame task does
+/// not know sessions).
+pub type ToolIds = Arc<dyn Fn(usize) -> (String, f64) + Send + Sync>;
+
+/// The probes of the tool slots of `s` with a device, in slot order, named by `tool_ids`.
+fn tool_probes(s: &Snapshot, tool_ids: &ToolIds) -> Vec<haptics_proto::v1::ToolProbe> {
+    s.tools[..s.tool_count.min(s.tools.len())]
+        .iter()
+        .enumerate()
+        .filter(|(_, t)| t.connected)
+        .map(|(k, t)| {
+            let (tool_id, probe_radius_m) = tool_ids(k);
+            haptics_proto::v1::ToolProbe {
+                tool_id,
+                slot: k as u32,
+                probe_position_m: Some(Vec3::from(t.probe_m.to_array())),
+                contact_force_n: Some(Vec3::from(t.force_n.to_array())),
+                in_contact: t.in_contact,
+                probe_radius_m,
+            }
+        })
+        .collect()
 }
 
 /// What the frame task carries from frame to frame: the topology, the delta reference and
@@ -225,6 +251,7 @@ impl FrameBuilder {
                 })
                 .collect(),
             applied_forces_total: s.applied_total,
+            tools: Vec::new(),
             reference: self.reference.clone(),
             delta,
             other_deltas: Mutex::new(Vec::new()),
@@ -515,6 +542,7 @@ fn build_frame(
         max_displacement_m: f.max_displacement_m,
         applied_forces: f.applied_forces.clone(),
         applied_forces_total: f.applied_forces_total,
+        tools: f.tools.clone(),
         watch_id,
         topology_version: version,
         ..SurfaceFrame::default()

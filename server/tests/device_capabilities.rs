@@ -50,6 +50,7 @@ fn sample(session: &str, seq: u64, x: f64, caps: Option<DeviceCapabilities>) -> 
         position_m: Some(Vec3::new(x, 0.0, -0.005)),
         velocity_m_per_s: Some(Vec3::new(0.0, 0.0, 0.0)),
         capabilities: caps,
+        tool_id: String::new(),
     }
 }
 

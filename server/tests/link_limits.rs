@@ -48,6 +48,7 @@ async fn connect_headers(
         position_m: Some([0.1, 0.1, 0.1].into()),
         velocity_m_per_s: Some([0.0; 3].into()),
         capabilities: None,
+        tool_id: String::new(),
     })
     .await
     .unwrap();

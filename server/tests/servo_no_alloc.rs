@@ -3,7 +3,9 @@
 //! ticks that exercise every path: device poses in and out of contact, point-load commands,
 //! snapshots for a watcher, statistics publication, and a device disconnect. The second test
 //! runs the same ticks with a two-thread tick pool set up as the daemon does
-//! ([`servo::worker_start_hook`]), counting the servo thread and the pool's workers.
+//! ([`servo::worker_start_hook`]), counting the servo thread and the pool's workers. The third
+//! runs two tools (issue 50) on the wall test body: both pressing, one falling silent and
+//! coming back, one disconnecting while the other goes on.
 
 use std::cell::Cell;
 use std::sync::Arc;
@@ -61,6 +63,78 @@ fn servo_tick_with_a_two_thread_pool_never_allocates_on_any_of_its_threads() {
     assert_eq!(stats.pool_wait_us_max, pool.stats().longest_wait_us);
     // A pool with workers ran its start hook on each: their thread ids were recorded.
     assert_eq!(workers.started().count(), pool.threads() - 1);
+}
+
+#[path = "common/tools.rs"]
+mod wall;
+
+#[test]
+fn servo_tick_with_two_tools_never_allocates() {
+    let body = Box::new(wall::Wall::new(2, &[]));
+    let shared = Arc::new(SessionShared::default());
+    let (ends, handles, mut more) = servo::tool_channels(body.as_ref());
+    assert_eq!(more.len(), 1);
+    let ServoHandles {
+        pose: mut left,
+        forces: mut left_forces,
+        stats: mut stats_out,
+        ..
+    } = handles;
+    let servo::ToolHandles {
+        pose: mut right,
+        forces: mut right_forces,
+    } = more.remove(0);
+    let mut core = ServoCore::new(body, ends, shared.clone(), 4, 50).with_device_silence_us(2_000);
+    shared.watchers.store(1, Ordering::Relaxed);
+    let clock = ManualClock(Cell::new(0));
+    let (mut worst, mut answered) = (0, [0u64; 2]);
+    for k in 1..=2000u64 {
+        // Left presses 1 mm throughout but is silent for ticks 500..800 (its pose ages past the
+        // 2 ms limit); right presses 2 mm and disconnects at tick 1500.
+        let t = clock.0.get();
+        if !(500..800).contains(&k) {
+            left.write(Pose {
+                seq: k,
+                position_m: DVec3::new(-0.001, 0.0, 0.0),
+                received_us: t,
+                connected: true,
+                ..Pose::default()
+            });
+        }
+        right.write(Pose {
+            seq: k,
+            position_m: DVec3::new(-0.002, 0.0, 0.0),
+            received_us: t,
+            connected: k < 1500,
+            ..Pose::default()
+        });
+        let now = clock.now_us();
+        worst = worst.max(
+            counted(|| {
+                core.tick(now, &clock);
+            })
+            .1,
+        );
+        for (i, ring) in [&mut left_forces, &mut right_forces]
+            .into_iter()
+            .enumerate()
+        {
+            while let Ok(f) = ring.pop() {
+                let want = wall::wall_force(i, Some(DVec3::new(-0.001 * (i + 1) as f64, 0.0, 0.0)));
+                assert_eq!(f.force_n, want, "slot {i} tick {k}");
+                answered[i] += 1;
+            }
+        }
+    }
+    assert_eq!(worst, 0, "a two-tool servo tick allocated");
+    // Left answered all but its silent ticks; right until it left.
+    assert_eq!(answered, [2000 - 300, 1499]);
+    let stats = *stats_out.read();
+    assert_eq!(stats.tool_count, 2);
+    assert_eq!(stats.tools[0].device_silences, 1);
+    assert!(stats.tools[0].connected && stats.tools[0].in_contact);
+    assert!(!stats.tools[1].connected && !stats.tools[1].in_contact);
+    assert_eq!(stats.device_samples, 1700 + 1499);
 }
 
 /// Runs 3 000 ticks of `body` (a 6 mm press and release, point loads, a watcher, a disconnect)

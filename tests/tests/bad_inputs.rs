@@ -58,6 +58,7 @@ fn sample(session: &str, seq: u64, p: [f64; 3]) -> DeviceSample {
         position_m: Some(Vec3::from(p)),
         velocity_m_per_s: Some(Vec3::new(0.0, 0.0, 0.0)),
         capabilities: None,
+        tool_id: String::new(),
     }
 }
 

@@ -252,6 +252,7 @@ async fn shutdown_on_sigterm_sends_zero_force_and_exits() -> Result<()> {
                 position_m: Some(Vec3::new(x, 0.0, -0.005)),
                 velocity_m_per_s: Some(Vec3::new(0.0, 0.0, 0.0)),
                 capabilities: None,
+                tool_id: String::new(),
             };
             if tx.send(s).await.is_err() {
                 break;

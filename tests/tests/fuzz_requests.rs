@@ -145,6 +145,7 @@ fn rpcs(target: &str) -> Vec<(&'static str, Kind, Vec<u8>)> {
                 position_m: v(0.0, 0.0, 0.05),
                 velocity_m_per_s: v(0.0, 0.0, 0.0),
                 capabilities: None,
+                tool_id: String::new(),
             }
             .encode_to_vec(),
         ),

@@ -264,6 +264,7 @@ async fn a_browser_gets_the_new_triangles_when_a_press_subdivides_the_surface() 
                 position_m: Some(Vec3::new(x, y, z + r - depth)),
                 velocity_m_per_s: Some(Vec3::new(0.0, 0.0, 0.0)),
                 capabilities: None,
+                tool_id: String::new(),
             };
             if tx.send(s).await.is_err() {
                 break;

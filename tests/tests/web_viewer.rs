@@ -4,6 +4,9 @@
 //! the displacement colours around the contact, a force and a small frame age in its status
 //! line, and a strip chart of the force and the pose-to-force latency over the last 10 s (issue
 //! 50, section 3); a mouse drag orbits the camera and the reset-view button brings it back.
+//! With two tools (a daemon run in the test's process over the two-tool wall test body, until
+//! the model families take several tools) it shows each tool's probe and arrow and a strip
+//! chart per tool, with that tool's own force and latencies.
 //!
 //! Chromium comes from `tests/install-chromium.sh` (Debian's package) when it is not on PATH;
 //! where it cannot be installed (no root, no apt, no network) the test prints why on the
@@ -200,6 +203,13 @@ async fn web_viewer_shows_the_dent_and_the_force_during_a_bridge_press() -> Resu
         .eval(&page, "document.getElementById('status').textContent")
         .await?;
     let status = status.as_str().context("no status text")?.to_string();
+    // One tool (the bridge's default tool, from SurfaceFrame.tools): its probe and arrow show,
+    // no other tool's.
+    let tools = browser.eval(&page, "window.hapticViewer.tools()").await?;
+    ensure!(
+        tools == serde_json::json!([{ "slot": 0, "probe": true, "arrow": true, "toolId": "" }]),
+        "tools {tools}"
+    );
     // Every frame decoded (keyframes, chained keyframes and deltas) without asking again.
     let decoded = browser
         .eval(
@@ -480,5 +490,159 @@ fn check_strip_chart(chart: &serde_json::Value, rest: &Rgb, pressed: &Rgb) -> Re
         held > 30,
         "no force line high in the chart while held: {held} pixels"
     );
+    Ok(())
+}
+
+#[path = "../../server/tests/common/tools.rs"]
+mod wall;
+
+/// A daemon's services in this process over `manager`, on 127.0.0.1:0: its URL.
+async fn serve_in_process(
+    manager: std::sync::Arc<haptic_server::session::SessionManager>,
+) -> Result<String> {
+    use haptics_proto::v1::device_link_server::DeviceLinkServer;
+    use haptics_proto::v1::session_control_server::SessionControlServer;
+    use haptics_proto::v1::surface_stream_server::SurfaceStreamServer;
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+    let url = format!("http://{}", listener.local_addr()?);
+    let services = haptic_server::service::Services::new(manager);
+    tokio::spawn(
+        tonic::transport::Server::builder()
+            .add_service(DeviceLinkServer::new(services.clone()))
+            .add_service(SessionControlServer::new(services.clone()))
+            .add_service(SurfaceStreamServer::new(services))
+            .serve_with_incoming(tonic::transport::server::TcpIncoming::from(listener)),
+    );
+    Ok(url)
+}
+
+/// Tool `tool` of session `id` pressing at `p` (m) at about 1 kHz until the task is aborted;
+/// the force stream is drained.
+fn press_tool(url: String, id: String, tool: &str, p: [f64; 3]) -> tokio::task::JoinHandle<()> {
+    use haptics_proto::v1::{DeviceSample, Vec3};
+    let tool = tool.to_owned();
+    tokio::spawn(async move {
+        let (tx, rx) = tokio::sync::mpsc::channel(16);
+        let mut link = haptic_e2e::device_link(&url).await.expect("device link");
+        let sender = tokio::spawn(async move {
+            for seq in 1u64.. {
+                let first = seq == 1;
+                let s = DeviceSample {
+                    session_id: if first { id.clone() } else { String::new() },
+                    seq,
+                    device_time_us: seq * 1000,
+                    position_m: Some(Vec3::new(p[0], p[1], p[2])),
+                    velocity_m_per_s: Some(Vec3::new(0.0, 0.0, 0.0)),
+                    capabilities: None,
+                    tool_id: if first { tool.clone() } else { String::new() },
+                };
+                if tx.send(s).await.is_err() {
+                    return;
+                }
+                tokio::time::sleep(Duration::from_millis(1)).await;
+            }
+        });
+        let mut forces = link
+            .connect(tokio_stream::wrappers::ReceiverStream::new(rx))
+            .await
+            .expect("the tool connects")
+            .into_inner();
+        while let Ok(Some(_)) = forces.message().await {}
+        sender.abort();
+    })
+}
+
+/// Several tools (issue 50, section 3): two tools press the wall test body (slot k: (k + 1) x
+/// 100 N/m x depth) of a daemon run in this process; the page shows each tool's probe and force
+/// arrow and a strip chart per tool, named by its tool id, whose force ends at that tool's own
+/// force (left 1 mm deep: 0.1 N; right 2 mm: 0.4 N) and which gathers that tool's latencies.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn web_viewer_shows_every_tool_and_a_strip_chart_per_tool() -> Result<()> {
+    let chromium = match find_or_install_chromium() {
+        Ok(p) => p,
+        Err(missing) => return install::skip_or_fail("web_viewer (chromium)", &missing),
+    };
+    let _serial = serial().await;
+    let manager = std::sync::Arc::new(haptic_server::session::SessionManager::new(
+        haptic_server::ServerConfig::default(),
+    ));
+    let session = manager
+        .start_body_with_tools(Box::new(wall::Wall::new(2, &[])), &[])
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let id = session.id.clone();
+    let url = serve_in_process(manager.clone()).await?;
+    let left = press_tool(url.clone(), id.clone(), "left", [-0.001, 0.002, 0.002]);
+    tokio::time::sleep(Duration::from_millis(300)).await; // left takes slot 0
+    let right = press_tool(url.clone(), id.clone(), "right", [-0.002, 0.008, 0.008]);
+
+    let mut web = spawn_bin(VIEWER, &["--server", &url, "--web", "127.0.0.1:0"])?;
+    let stdout = web.child.stdout.take().context("piped stdout")?;
+    let mut lines = BufReader::new(stdout).lines();
+    let addr = tokio::time::timeout(Duration::from_secs(30), async {
+        while let Some(l) = lines.next_line().await? {
+            if let Some(a) = l.strip_prefix("listening on ") {
+                return anyhow::Ok(a.trim().to_string());
+            }
+        }
+        bail!("haptic-viewer --web ended without printing its address")
+    })
+    .await
+    .context("haptic-viewer --web did not start within 30 s")??;
+    let mut browser = Browser::launch(&chromium, WIDTH, HEIGHT).await?;
+    let page = browser
+        .open(
+            &format!("http://{addr}/?session={id}&rate=30"),
+            WIDTH,
+            HEIGHT,
+        )
+        .await?;
+    wait_for(
+        &mut browser,
+        &page,
+        "(() => { const v = window.hapticViewer; if (!v || v.state.frames < 10) return false; \
+         const t = v.tools(), c = v.chart(1); \
+         return t.length === 2 && t.every((x) => x.probe && x.arrow) && !!c \
+           && c.force.length >= 5 && c.latency.length >= 1 && v.chart(0).latency.length >= 1; })()",
+        Duration::from_secs(60),
+    )
+    .await?;
+    let tools = browser.eval(&page, "window.hapticViewer.tools()").await?;
+    let (c0, c1) = (
+        browser.eval(&page, "window.hapticViewer.chart(0)").await?,
+        browser.eval(&page, "window.hapticViewer.chart(1)").await?,
+    );
+    left.abort();
+    right.abort();
+    manager.stop(&id).map_err(|e| anyhow::anyhow!("{e}"))?;
+    ensure!(
+        tools
+            == serde_json::json!([
+                { "slot": 0, "probe": true, "arrow": true, "toolId": "left" },
+                { "slot": 1, "probe": true, "arrow": true, "toolId": "right" },
+            ]),
+        "tools {tools}"
+    );
+    let last_force = |c: &serde_json::Value| -> Result<f64> {
+        let f = c["force"].as_array().context("force series")?;
+        f.last()
+            .and_then(|p| p[1].as_f64())
+            .context("a force sample")
+    };
+    let (f0, f1) = (last_force(&c0)?, last_force(&c1)?);
+    eprintln!("tools: left chart ends at {f0:.4} N, right at {f1:.4} N");
+    ensure!(
+        (f0 - 0.1).abs() < 1e-9 && (f1 - 0.4).abs() < 1e-9,
+        "charts {c0} {c1}"
+    );
+    ensure!(
+        c0["toolId"] == "left" && c1["toolId"] == "right",
+        "{c0} {c1}"
+    );
+    for c in [&c0, &c1] {
+        let l = &c["latency"][0];
+        let (p50, p99) = (l[1].as_f64().unwrap_or(-1.0), l[2].as_f64().unwrap_or(-1.0));
+        ensure!(0.0 < p50 && p50 <= p99 && p99 < 200.0, "latency {l}");
+    }
+    drop(web);
     Ok(())
 }

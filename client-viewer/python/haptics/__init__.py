@@ -18,6 +18,6 @@ A small typed layer over the generated ``haptics.v1`` gRPC stubs (built from the
 All quantities are SI (metres, newtons, seconds), as on the wire.
 """
 
-from .client import Client, Frame, Press, SceneInfo, Session, read_recording
+from .client import Client, Frame, Press, SceneInfo, Session, ToolFigures, read_recording
 
-__all__ = ["Client", "Frame", "Press", "SceneInfo", "Session", "read_recording"]
+__all__ = ["Client", "Frame", "Press", "SceneInfo", "Session", "ToolFigures", "read_recording"]

@@ -98,6 +98,38 @@ class Frame:
         return np.linalg.norm(self.positions_m - self.rest_positions_m, axis=1)
 
 
+@dataclass
+class ToolFigures:
+    """One tool slot's figures from ``SessionStats.tools`` (SI units in the names)."""
+
+    tool_id: str
+    slot: int
+    connected: bool
+    in_contact: bool
+    force_n: float
+    pose_to_force_p50_us: float
+    pose_to_force_p99_us: float
+    device_samples: int
+    rejected_samples: int
+    out_of_workspace_samples: int
+
+    @classmethod
+    def of(cls, t) -> "ToolFigures":
+        """The figures of a ``pb.ToolStats``."""
+        return cls(
+            tool_id=t.tool_id,
+            slot=int(t.slot),
+            connected=bool(t.connected),
+            in_contact=bool(t.in_contact),
+            force_n=float(t.force_n),
+            pose_to_force_p50_us=float(t.pose_to_force_p50_us),
+            pose_to_force_p99_us=float(t.pose_to_force_p99_us),
+            device_samples=int(t.device_samples),
+            rejected_samples=int(t.rejected_samples),
+            out_of_workspace_samples=int(t.out_of_workspace_samples),
+        )
+
+
 def _env(name: str) -> Optional[str]:
     """``HAPTICD_<name>``, else the older ``HAPTICS_<name>`` (the daemon's binaries read the same
     names: docs/tools.md, "Environment variables")."""
@@ -205,6 +237,12 @@ class Session:
         proto, SI units in their names)."""
         return self.client._call(self.client.control.GetStats, pb.GetStatsRequest(session_id=self.id))
 
+    def tools(self) -> list["ToolFigures"]:
+        """Per-tool figures of ``GetStats`` (issue 50: one per tool slot of the session, in
+        slot order): tool id ("" = the default tool), slot, connected, contact, force (N),
+        pose-to-force p50/p99 (us), samples accepted, rejected and outside the workspace."""
+        return [ToolFigures.of(t) for t in self.stats().tools]
+
     def apply_force(self, point_m: Vec, force_n: Vec, duration_s: float) -> None:
         """Inject ``force_n`` (N) at the surface near ``point_m`` (m) for ``duration_s``
         simulated seconds (``ApplyForce``)."""
@@ -226,13 +264,18 @@ class Session:
         speed_m_per_s: float = 0.01,
         hold_s: float = 0.2,
         rate_hz: float = 500.0,
+        tool: str = "",
     ) -> Press:
         """A scripted probe on ``DeviceLink.Connect``: from ``start_m`` along ``direction`` to
         ``depth_m`` at ``speed_m_per_s``, hold ``hold_s``, back out. Samples are paced at
         ``rate_hz`` and sent one at a time (each waits up to 50 ms for its answer), so the
         recording pairs every pose with the force that answers it. The defaults press the
         built-in ``lv`` from 14 mm off its axis towards the epicardium (9.68 mm at z = -5 mm).
+        ``tool`` names the tool this probe drives (``DeviceSample.tool_id``; "" = the default
+        tool): a session takes several tools at once up to its scene's ``probe.max_tools``.
         """
+        if len(tool) > 64 or not all(c.isascii() and (c.isalnum() or c in "-_.:") for c in tool):
+            raise ValueError("tool must be at most 64 ASCII letters, digits, '-', '_', '.' or ':'")
         start = np.asarray([float(c) for c in start_m])
         n = np.asarray([float(c) for c in direction])
         if start.shape != (3,) or n.shape != (3,) or not np.all(np.isfinite(np.r_[start, n])):
@@ -269,6 +312,7 @@ class Session:
                     device_time_us=int(t[i] * 1e6),
                     position_m=pb.Vec3(x=p[0], y=p[1], z=p[2]),
                     velocity_m_per_s=pb.Vec3(x=v[i, 0], y=v[i, 1], z=v[i, 2]),
+                    tool_id=tool if i == 0 else "",
                 )
                 try:
                     answered.get(timeout=0.05)

@@ -77,6 +77,30 @@ class Live(unittest.TestCase):
             session.stats()
         self.assertEqual(err.exception.code(), grpc.StatusCode.NOT_FOUND)
 
+    def test_a_named_tool_gets_its_own_figures(self):
+        session = self.client.start("lv")
+        try:
+            press = session.press(depth_m=0.003, hold_s=0.05, tool="left")
+            self.assertGreater(np.nanmax(press.force_n[:, 0]), 0.005)
+            # Statistics are published every 100 ticks: wait for the press's last ones.
+            deadline = time.monotonic() + 30.0
+            while time.monotonic() < deadline:
+                tools = session.tools()
+                if tools and tools[0].device_samples >= 0.8 * len(press.t_s) and not tools[0].connected:
+                    break
+                time.sleep(0.05)
+            first = tools[0]
+            self.assertEqual((first.tool_id, first.slot), ("left", 0))
+            self.assertFalse(first.connected)
+            self.assertGreater(first.device_samples, 0.8 * len(press.t_s))
+            self.assertGreater(first.pose_to_force_p99_us, 0.0)
+            self.assertEqual(first.rejected_samples, 0)
+            self.assertEqual(len(tools), session.stats().max_tools)
+            with self.assertRaises(ValueError):
+                session.press(tool="x" * 65)
+        finally:
+            session.stop()
+
     def test_bad_arguments_are_refused_before_sending(self):
         session = self.client.session("no-such-session")
         with self.assertRaises(ValueError):

@@ -248,6 +248,33 @@ pub fn canned_stats(id: &str) -> SessionStats {
         out_of_workspace_samples: 9,
         threads: 2,
         pool_wait_us_max: 35,
+        max_tools: 2,
+        tools: vec![
+            ToolStats {
+                tool_id: "left".into(),
+                slot: 0,
+                connected: true,
+                in_contact: true,
+                force_n: 0.125,
+                peak_force_n: 0.5,
+                pose_to_force_p50_us: 44.4,
+                pose_to_force_p99_us: 222.2,
+                device_samples: 60_000,
+                rejected_samples: 1,
+                out_of_order_samples: 2,
+                out_of_workspace_samples: 3,
+                device_silent: false,
+                contact_ticks: 4_000,
+                device: Some(touch()),
+            },
+            ToolStats {
+                tool_id: "right".into(),
+                slot: 1,
+                force_n: 0.25,
+                device_samples: 39_000,
+                ..ToolStats::default()
+            },
+        ],
     }
 }
 
@@ -345,6 +372,12 @@ impl SessionControl for Mock {
                     model_family: "fem".into(),
                     device_connected: true,
                     device: Some(touch()),
+                    max_tools: 2,
+                    tools: vec![ToolSummary {
+                        tool_id: "left".into(),
+                        slot: 0,
+                        device: Some(touch()),
+                    }],
                 },
                 SessionSummary {
                     session_id: "s-2".into(),
@@ -352,6 +385,8 @@ impl SessionControl for Mock {
                     model_family: "hybrid".into(),
                     device_connected: false,
                     device: None,
+                    max_tools: 1,
+                    tools: Vec::new(),
                 },
             ],
         }))

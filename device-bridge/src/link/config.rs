@@ -95,6 +95,9 @@ pub struct BridgeConfig {
     /// What the first sample of every stream tells the daemon about the device
     /// ([`capabilities_of`] its spec; `None`: nothing, as bridges before issue 50 did).
     pub capabilities: Option<DeviceCapabilities>,
+    /// The tool this bridge drives in the session (`DeviceSample.tool_id` of each stream's
+    /// first sample; "" = the default tool; issue 50): a session takes several tools at once.
+    pub tool_id: String,
 }
 
 impl BridgeConfig {
@@ -122,6 +125,7 @@ impl BridgeConfig {
             fault: None,
             deadband: None,
             capabilities: Some(capabilities_of(spec)),
+            tool_id: String::new(),
         }
     }
 
@@ -131,6 +135,12 @@ impl BridgeConfig {
     /// [`BridgeError::Config`] naming the field.
     pub fn validate(&self) -> Result<(), BridgeError> {
         let bad = |m: String| Err(BridgeError::Config(m));
+        let plain = |c: char| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.' | ':');
+        if self.tool_id.len() > 64 || !self.tool_id.chars().all(plain) {
+            return bad(
+                "tool id must be at most 64 ASCII letters, digits, '-', '_', '.' or ':'".into(),
+            );
+        }
         if !(self.server_url.starts_with("http://") || self.server_url.starts_with("https://")) {
             return bad(format!(
                 "server URL must start with http:// or https://, got `{}`",

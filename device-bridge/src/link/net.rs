@@ -74,6 +74,7 @@ pub(super) fn to_proto(s: &OutSample) -> DeviceSample {
         position_m: Some(s.state.position_m.into()),
         velocity_m_per_s: Some(s.state.velocity_m_per_s.into()),
         capabilities: None,
+        tool_id: String::new(),
     }
 }
 

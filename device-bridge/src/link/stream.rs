@@ -151,6 +151,7 @@ fn first_request(
     let mut first_msg = to_proto(first);
     first_msg.session_id.clone_from(&config.session_id);
     first_msg.capabilities.clone_from(&config.capabilities);
+    first_msg.tool_id.clone_from(&config.tool_id);
     // The first sample carries the session id: never drop it by injection.
     let fault = ctx.fault.take();
     ctx.forward(&out_tx, first_msg);

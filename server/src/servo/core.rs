@@ -7,7 +7,7 @@
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 
-use haptic_model::body::{SoftBody, TickInput, TickOutput};
+use haptic_model::body::{MAX_TOOLS, SoftBody, TickInput, TickOutput};
 use haptic_model::{DVec3, ModelError};
 
 use super::params::{OverrunLimit, ServoParams};
@@ -48,11 +48,18 @@ struct OverrunJudge {
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 struct ServoState {
     ticks: u64,
-    last_seq: Option<u64>,
-    current: TickInput,
+    /// Per tool slot (the first `tool_count`): the last sequence number read.
+    last_seq: [Option<u64>; MAX_TOOLS],
+    /// Per tool slot: the tick's input (`None` position: no device, or a silent one).
+    current: [TickInput; MAX_TOOLS],
+    /// Per tool slot: the connected device is silent.
+    silent: [bool; MAX_TOOLS],
+    /// Tool slots of the body ([`super::tool_slots`]).
+    tool_count: usize,
     fault: Option<&'static str>,
     /// Simulated time after the last successful tick, s.
     sim_time_s: f64,
+    /// Any connected tool is silent.
     device_silent: bool,
     /// See [`super::StatsSnapshot::demoted`]; set by the loop.
     demoted: bool,
@@ -129,7 +136,7 @@ impl AppliedLoads {
 }
 
 /// The latest pose as a tick reads it.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Default)]
 struct PoseRead {
     pose: Pose,
     /// A sample the servo has not seen before, from a connected device.
@@ -177,6 +184,7 @@ impl ServoCore {
         snapshot_every: u32,
         stats_every: u32,
     ) -> Self {
+        let tool_count = ends.tools.len().clamp(1, MAX_TOOLS);
         Self {
             body,
             ends,
@@ -187,7 +195,10 @@ impl ServoCore {
                 device_silence_us: DEFAULT_DEVICE_SILENCE_US,
                 overrun: None,
             },
-            state: ServoState::default(),
+            state: ServoState {
+                tool_count,
+                ..ServoState::default()
+            },
             applied: AppliedLoads::new(),
             stats: ServoStats::new(),
             pool: None,
@@ -218,9 +229,10 @@ impl ServoCore {
         self.state.fault
     }
 
-    /// True when the device stream published a pose the servo has not read yet (wait-free).
+    /// True when a device stream (any tool's) published a pose the servo has not read yet
+    /// (wait-free).
     pub fn sample_pending(&self) -> bool {
-        self.ends.pose.updated()
+        self.ends.tools.iter().any(|t| t.pose.updated())
     }
 
     /// True when the session has stayed below its minimum loop rate for the judged time
@@ -239,9 +251,11 @@ impl ServoCore {
         self.stats.overruns = overruns;
     }
 
-    /// True when the last pose read came from a connected device.
+    /// True when the last pose read of any tool slot came from a connected device.
     pub fn device_connected(&self) -> bool {
-        self.state.current.device_position_m.is_some()
+        self.state.current[..self.state.tool_count]
+            .iter()
+            .any(|c| c.device_position_m.is_some())
     }
 
     /// Runs one tick at time `now_us` (clock read again after the step for timing).
@@ -255,37 +269,39 @@ impl ServoCore {
         }
         // 1. Commands.
         self.drain_commands();
-        // 2. Latest pose.
-        let read = self.read_pose(now_us);
-        // 3. Step.
+        // 2. Latest pose of every tool.
+        let reads = self.read_poses(now_us);
+        // 3. Step (every tool's contact in the same tick).
         let (out, t1) = self.step_body(clock);
-        // 4. Guard and hand out the force.
-        let force = self.hand_out_force(out, read, clock);
+        // 4. Guard and hand out each tool's force.
+        let forces = self.hand_out_forces(out.as_ref(), &reads, clock);
         self.state.ticks += 1;
         self.stats.window.ticks += 1;
         // 5. Snapshot for viewers.
         if self.state.ticks.is_multiple_of(self.params.snapshot_every)
             && self.shared.watchers.load(Ordering::Relaxed) > 0
         {
-            self.publish_snapshot(force);
+            self.publish_snapshot(&forces);
         }
         // 6. Statistics.
         if self.state.ticks.is_multiple_of(self.params.stats_every) {
-            self.publish_stats(t1, force);
+            self.publish_stats(t1, &forces);
         }
         Flow::Continue
     }
 
-    /// On a stop request: pushes the final zero force, marks the servo finished, true.
+    /// On a stop request: pushes the final zero force to every tool, marks the servo finished,
+    /// true.
     fn stop_requested(&mut self) -> bool {
         if !self.shared.stop.load(Ordering::Acquire) {
             return false;
         }
-        let seq = self.state.last_seq.unwrap_or(0);
-        let _ = self.ends.forces.push(ForceOut {
-            seq,
-            ..ForceOut::default()
-        });
+        for (tool, last) in self.ends.tools.iter_mut().zip(self.state.last_seq) {
+            let _ = tool.forces.push(ForceOut {
+                seq: last.unwrap_or(0),
+                ..ForceOut::default()
+            });
+        }
         self.shared.finished.store(true, Ordering::Release);
         true
     }
@@ -319,45 +335,65 @@ impl ServoCore {
         }
     }
 
-    /// Reads the latest pose (triple buffer, wait-free) into the tick's input; a connected
-    /// device silent for longer than the limit leaves the scene until its next sample.
-    fn read_pose(&mut self, now_us: u64) -> PoseRead {
-        self.ends.pose.update();
-        let pose = *self.ends.pose.output_buffer();
-        let fresh = pose.connected && self.state.last_seq != Some(pose.seq);
+    /// Reads every tool slot's latest pose ([`Self::read_pose`]); any tool silent makes the
+    /// session's `device_silent`.
+    fn read_poses(&mut self, now_us: u64) -> [PoseRead; MAX_TOOLS] {
+        let mut reads = [PoseRead::default(); MAX_TOOLS];
+        for (k, read) in reads.iter_mut().enumerate().take(self.state.tool_count) {
+            *read = self.read_pose(k, now_us);
+        }
+        self.state.device_silent = self.state.silent.iter().any(|&s| s);
+        reads
+    }
+
+    /// Reads tool slot `k`'s latest pose (triple buffer, wait-free) into the tick's input; a
+    /// connected device silent for longer than the limit leaves the scene until its next
+    /// sample (its contact released; the other tools continue).
+    fn read_pose(&mut self, k: usize, now_us: u64) -> PoseRead {
+        let ends = &mut self.ends.tools[k];
+        ends.pose.update();
+        let pose = *ends.pose.output_buffer();
+        let fresh = pose.connected && self.state.last_seq[k] != Some(pose.seq);
         // A device that stopped sending (a stalled bridge) must not keep pressing with its
         // last pose: past the silence limit it leaves the scene until its next sample.
         let silent = pose.connected
             && !fresh
             && now_us.saturating_sub(pose.received_us) > self.params.device_silence_us;
-        if silent && !self.state.device_silent {
+        if silent && !self.state.silent[k] {
             self.stats.device_silences += 1;
+            self.stats.tools[k].device_silences += 1;
         }
-        self.state.device_silent = silent;
-        if pose.connected && !silent {
-            self.state.current = TickInput {
+        self.state.silent[k] = silent;
+        self.state.current[k] = if pose.connected && !silent {
+            TickInput {
                 device_position_m: Some(pose.position_m),
                 device_velocity_m_per_s: pose.velocity_m_per_s,
-            };
+            }
         } else {
-            self.state.current = TickInput::default();
-        }
+            TickInput::default()
+        };
         if fresh {
-            self.state.last_seq = Some(pose.seq);
+            self.state.last_seq[k] = Some(pose.seq);
             self.stats.device_samples += 1;
+            self.stats.tools[k].device_samples += 1;
         }
         PoseRead { pose, fresh }
     }
 
     /// Steps the body unless quarantined (a model error quarantines it) and records the step
     /// time. Returns the output and the clock after the step, µs.
-    fn step_body(&mut self, clock: &impl Clock) -> (Option<TickOutput>, u64) {
+    fn step_body(&mut self, clock: &impl Clock) -> (Option<[TickOutput; MAX_TOOLS]>, u64) {
         let t0 = clock.now_us();
+        let n = self.state.tool_count;
+        let mut outputs = [TickOutput::default(); MAX_TOOLS];
         let out = if self.state.fault.is_none() {
-            match self.body.tick(&self.state.current) {
-                Ok(o) => {
-                    self.state.sim_time_s = o.sim_time_s;
-                    Some(o)
+            match self
+                .body
+                .tick_tools(&self.state.current[..n], &mut outputs[..n])
+            {
+                Ok(()) => {
+                    self.state.sim_time_s = outputs[0].sim_time_s;
+                    Some(outputs)
                 }
                 Err(e) => {
                     self.state.fault = Some(match e {
@@ -378,10 +414,29 @@ impl ServoCore {
         (out, t1)
     }
 
-    /// Guards the force (a non-finite one, or none, is zero) and pushes it to the forwarder
-    /// when it answers a fresh sample, recording the pose-to-force latency.
+    /// Guards each tool's force ([`Self::hand_out_force`]); the session counts a contact tick
+    /// when any tool is in contact, and its peak force is any tool's.
+    fn hand_out_forces(
+        &mut self,
+        out: Option<&[TickOutput; MAX_TOOLS]>,
+        reads: &[PoseRead; MAX_TOOLS],
+        clock: &impl Clock,
+    ) -> [ForceOut; MAX_TOOLS] {
+        let mut forces = [ForceOut::default(); MAX_TOOLS];
+        for (k, force) in forces.iter_mut().enumerate().take(self.state.tool_count) {
+            *force = self.hand_out_force(k, out.map(|o| o[k]), reads[k], clock);
+        }
+        let any_contact = forces.iter().any(|f| f.in_contact);
+        self.stats.contact_ticks += u64::from(any_contact);
+        forces
+    }
+
+    /// Guards tool slot `k`'s force (a non-finite one, or none, is zero) and pushes it to the
+    /// slot's forwarder ring when it answers a fresh sample, recording the pose-to-force
+    /// latency.
     fn hand_out_force(
         &mut self,
+        k: usize,
         out: Option<TickOutput>,
         read: PoseRead,
         clock: &impl Clock,
@@ -398,22 +453,25 @@ impl ServoCore {
             force.stiffness_n_per_m = o.contact_stiffness_n_per_m;
             force.proxy_m = o.proxy_position_m;
         }
-        self.stats.peak_force_n = self.stats.peak_force_n.max(force.force_n.length());
-        self.stats.contact_ticks += u64::from(force.in_contact);
+        let magnitude = force.force_n.length();
+        self.stats.peak_force_n = self.stats.peak_force_n.max(magnitude);
+        let tool = &mut self.stats.tools[k];
+        tool.peak_force_n = tool.peak_force_n.max(magnitude);
+        tool.contact_ticks += u64::from(force.in_contact);
         if read.fresh {
             // A full ring means the forwarder is stalled; dropping is the safe choice (the
             // bridge's watchdog ramps the force down).
-            let _ = self.ends.forces.push(force);
+            let _ = self.ends.tools[k].forces.push(force);
             let done = clock.now_us();
             self.stats
-                .record_pose_to_force(done.saturating_sub(read.pose.received_us));
+                .record_pose_to_force(k, done.saturating_sub(read.pose.received_us));
         }
         force
     }
 
     /// Writes and publishes a surface snapshot (within the capacity sized by
     /// [`super::channels`]: no allocation), then drops the loads it reported as ended.
-    fn publish_snapshot(&mut self, force: ForceOut) {
+    fn publish_snapshot(&mut self, forces: &[ForceOut; MAX_TOOLS]) {
         let snap = self.ends.snapshot.input_buffer_mut();
         let topology = self.body.surface_topology();
         let n = 3 * topology.vertex_count;
@@ -432,12 +490,22 @@ impl ServoCore {
         snap.sim_time_s = self.state.sim_time_s;
         let d = self.body.write_surface_positions(&mut snap.positions_m);
         snap.max_displacement_m = d;
-        snap.probe_m = match self.state.current.device_position_m {
+        snap.probe_m = match self.state.current[0].device_position_m {
             Some(p) => p,
             None => DVec3::NAN,
         };
-        snap.force_n = force.force_n;
-        snap.in_contact = force.in_contact;
+        snap.force_n = forces[0].force_n;
+        snap.in_contact = forces[0].in_contact;
+        snap.tool_count = self.state.tool_count;
+        for (k, t) in snap.tools.iter_mut().enumerate() {
+            let p = self.state.current[k].device_position_m;
+            *t = super::ToolProbeSnapshot {
+                connected: p.is_some(),
+                probe_m: p.unwrap_or(DVec3::NAN),
+                force_n: forces[k].force_n,
+                in_contact: forces[k].in_contact,
+            };
+        }
         self.applied.copy_to(snap);
         self.ends.snapshot.publish();
         // Reported once after they ended: drop them.
@@ -446,7 +514,7 @@ impl ServoCore {
 
     /// Closes the statistics window ending at `t1` µs: judges the overrun and publishes the
     /// statistics.
-    fn publish_stats(&mut self, t1: u64, force: ForceOut) {
+    fn publish_stats(&mut self, t1: u64, forces: &[ForceOut; MAX_TOOLS]) {
         let body = self.body.stats();
         self.stats.max_displacement_m = self.stats.max_displacement_m.max(body.max_displacement_m);
         let elapsed_us = t1.saturating_sub(self.stats.window.start_us).max(1);
@@ -455,9 +523,18 @@ impl ServoCore {
         self.stats.window.ticks = 0;
         self.judge_overrun(rate, elapsed_us, t1);
         let s = &self.state;
+        let tools = std::array::from_fn(|k| super::ToolStatsSnapshot {
+            connected: s.current[k].device_position_m.is_some() || s.silent[k],
+            in_contact: forces[k].in_contact,
+            force_n: forces[k].force_n.length(),
+            device_silent: s.silent[k],
+            ..self.stats.tools[k].snapshot()
+        });
         *self.ends.stats.input_buffer_mut() = super::StatsSnapshot {
             sim_time_s: s.sim_time_s,
-            in_contact: force.in_contact,
+            in_contact: forces.iter().any(|f| f.in_contact),
+            tool_count: s.tool_count as u32,
+            tools,
             fault: s.fault,
             device_silent: s.device_silent,
             overrunning: s.judge.overrunning,

@@ -4,7 +4,7 @@
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize};
 
 use haptic_model::DVec3;
-use haptic_model::body::{BodyStats, SoftBody};
+use haptic_model::body::{BodyStats, MAX_TOOLS, SoftBody};
 
 /// A command from the gRPC side to the servo thread.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -86,7 +86,7 @@ pub struct Snapshot {
     pub rest_positions_m: Vec<f32>,
     /// Surface vertex positions, xyz interleaved, m.
     pub positions_m: Vec<f32>,
-    /// Device (probe) position, m; NaN when no device is connected.
+    /// Device (probe) position of tool slot 0, m; NaN when no device is connected.
     pub probe_m: DVec3,
     /// Contact force on the device, N.
     pub force_n: DVec3,
@@ -101,6 +101,24 @@ pub struct Snapshot {
     pub applied_len: usize,
     /// Loads accepted by the session so far.
     pub applied_total: u64,
+    /// Every tool slot's probe (the first `tool_count`; slot 0 repeats `probe_m`, `force_n`,
+    /// `in_contact`).
+    pub tools: [ToolProbeSnapshot; MAX_TOOLS],
+    /// Tool slots of the session.
+    pub tool_count: usize,
+}
+
+/// One tool slot's probe in a [`Snapshot`].
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ToolProbeSnapshot {
+    /// A device drives the slot (and is not silent).
+    pub connected: bool,
+    /// Device point, m (meaningful when `connected`).
+    pub probe_m: DVec3,
+    /// Force on the device, N.
+    pub force_n: DVec3,
+    /// In contact.
+    pub in_contact: bool,
 }
 
 /// Upper bounds of the latency buckets, µs (the last bucket is everything above). Chosen around
@@ -192,6 +210,38 @@ pub struct StatsSnapshot {
     pub step_buckets: LatencyBuckets,
     /// Pose received to force pushed, all answered samples so far.
     pub pose_to_force_buckets: LatencyBuckets,
+    /// Tool slots of the session (`SoftBody::max_tools`, at most [`MAX_TOOLS`]); 0 before the
+    /// first publication.
+    pub tool_count: u32,
+    /// Per tool slot (the first `tool_count`).
+    pub tools: [ToolStatsSnapshot; MAX_TOOLS],
+}
+
+/// One tool slot's statistics in a [`StatsSnapshot`] (issue 50).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ToolStatsSnapshot {
+    /// A device stream drives the slot (its last pose says connected).
+    pub connected: bool,
+    /// In contact at the last tick.
+    pub in_contact: bool,
+    /// Force magnitude on the device at the last tick, N.
+    pub force_n: f64,
+    /// Largest force magnitude so far, N.
+    pub peak_force_n: f64,
+    /// Pose received to force pushed, this tool's samples, µs.
+    pub pose_to_force_p50_us: f64,
+    /// 99th percentile of the same, µs.
+    pub pose_to_force_p99_us: f64,
+    /// Samples consumed.
+    pub device_samples: u64,
+    /// Ticks in contact so far.
+    pub contact_ticks: u64,
+    /// The connected device is silent (see [`StatsSnapshot::device_silent`]).
+    pub device_silent: bool,
+    /// Times it fell silent.
+    pub device_silences: u64,
+    /// Pose received to force pushed, this tool's samples so far.
+    pub pose_to_force_buckets: LatencyBuckets,
 }
 
 /// Atomics shared between the servo thread and the async side.
@@ -211,14 +261,29 @@ pub struct SessionShared {
     pub finished: AtomicBool,
 }
 
-/// The handoff ends a [`super::ServoCore`] owns.
-pub struct ServoEnds {
-    /// Commands in.
-    pub commands: rtrb::Consumer<Command>,
+/// One tool slot's ends on the servo side: its latest pose in, its forces out.
+pub struct ToolEnds {
     /// Latest pose in.
     pub pose: triple_buffer::Output<Pose>,
     /// Forces out.
     pub forces: rtrb::Producer<ForceOut>,
+}
+
+/// One tool slot's ends on the async side (slots 1.. of [`tool_channels`]; slot 0's are
+/// [`ServoHandles::pose`] and [`ServoHandles::forces`]).
+pub struct ToolHandles {
+    /// Latest pose out to the servo.
+    pub pose: triple_buffer::Input<Pose>,
+    /// Forces from the servo.
+    pub forces: rtrb::Consumer<ForceOut>,
+}
+
+/// The handoff ends a [`super::ServoCore`] owns.
+pub struct ServoEnds {
+    /// Commands in.
+    pub commands: rtrb::Consumer<Command>,
+    /// Every tool slot's pose in and forces out (at least one, at most [`MAX_TOOLS`]).
+    pub tools: Vec<ToolEnds>,
     /// Snapshots out.
     pub snapshot: triple_buffer::Input<Snapshot>,
     /// Statistics out.
@@ -229,9 +294,9 @@ pub struct ServoEnds {
 pub struct ServoHandles {
     /// Commands out to the servo.
     pub commands: rtrb::Producer<Command>,
-    /// Latest pose out to the servo.
+    /// Latest pose out to the servo (tool slot 0).
     pub pose: triple_buffer::Input<Pose>,
-    /// Forces from the servo.
+    /// Forces from the servo (tool slot 0).
     pub forces: rtrb::Consumer<ForceOut>,
     /// Snapshots from the servo.
     pub snapshot: triple_buffer::Output<Snapshot>,
@@ -246,11 +311,37 @@ pub const FORCE_CAPACITY: usize = 256;
 
 /// Creates every handoff of a servo for `body`, sized once (the snapshot buffers hold the
 /// body's largest surface, [`SoftBody::surface_capacity`]): the servo's ends and the async
-/// side's ends.
+/// side's ends of tool slot 0. A body with several tool slots keeps only slot 0 reachable
+/// ([`tool_channels`] gives them all).
 pub fn channels(body: &dyn SoftBody) -> (ServoEnds, ServoHandles) {
+    let (ends, handles, _more) = tool_channels(body);
+    (ends, handles)
+}
+
+/// Tool slots of `body`'s sessions: [`SoftBody::max_tools`] within `1..=MAX_TOOLS`.
+pub fn tool_slots(body: &dyn SoftBody) -> usize {
+    body.max_tools().clamp(1, MAX_TOOLS)
+}
+
+/// [`channels`] with every tool slot ([`tool_slots`]): slot 0's async ends in the handles, the
+/// others' (slots 1..) in the vector, in slot order.
+pub fn tool_channels(body: &dyn SoftBody) -> (ServoEnds, ServoHandles, Vec<ToolHandles>) {
     let (cmd_tx, cmd_rx) = rtrb::RingBuffer::new(COMMAND_CAPACITY);
-    let (force_tx, force_rx) = rtrb::RingBuffer::new(FORCE_CAPACITY);
-    let (pose_in, pose_out) = triple_buffer::triple_buffer(&Pose::default());
+    let mut tools = Vec::new();
+    let mut handles = Vec::new();
+    for _ in 0..tool_slots(body) {
+        let (force_tx, force_rx) = rtrb::RingBuffer::new(FORCE_CAPACITY);
+        let (pose_in, pose_out) = triple_buffer::triple_buffer(&Pose::default());
+        tools.push(ToolEnds {
+            pose: pose_out,
+            forces: force_tx,
+        });
+        handles.push(ToolHandles {
+            pose: pose_in,
+            forces: force_rx,
+        });
+    }
+    let first = handles.remove(0);
     // Full-length buffers: a clone (the triple buffer makes three) keeps only the length as
     // capacity, and the servo later shrinks and regrows them within it.
     let cap = body.surface_capacity();
@@ -266,17 +357,17 @@ pub fn channels(body: &dyn SoftBody) -> (ServoEnds, ServoHandles) {
     (
         ServoEnds {
             commands: cmd_rx,
-            pose: pose_out,
-            forces: force_tx,
+            tools,
             snapshot: snap_in,
             stats: stats_in,
         },
         ServoHandles {
             commands: cmd_tx,
-            pose: pose_in,
-            forces: force_rx,
+            pose: first.pose,
+            forces: first.forces,
             snapshot: snap_out,
             stats: stats_out,
         },
+        handles,
     )
 }

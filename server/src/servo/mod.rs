@@ -25,7 +25,8 @@ pub use self::core::{DEFAULT_DEVICE_SILENCE_US, ServoCore};
 pub use handoff::{
     APPLIED_LOAD_CAPACITY, AppliedLoad, COMMAND_CAPACITY, Command, FORCE_CAPACITY, ForceOut,
     LATENCY_BUCKET_BOUNDS_US, LatencyBuckets, Pose, ServoEnds, ServoHandles, SessionShared,
-    Snapshot, StatsSnapshot, channels,
+    Snapshot, StatsSnapshot, ToolEnds, ToolHandles, ToolProbeSnapshot, ToolStatsSnapshot, channels,
+    tool_channels, tool_slots,
 };
 pub use pacer::{Clock, DevicePacer, Flow, MonotonicClock, Pacer, Wake};
 pub use realtime::{

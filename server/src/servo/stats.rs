@@ -1,10 +1,10 @@
 //! The servo's statistics accumulators ([`ServoStats`]): preallocated histograms and counters,
 //! copied into a [`StatsSnapshot`] every statistics window.
 
-use haptic_model::body::BodyStats;
+use haptic_model::body::{BodyStats, MAX_TOOLS};
 use hdrhistogram::Histogram;
 
-use super::{LatencyBuckets, StatsSnapshot};
+use super::{LatencyBuckets, StatsSnapshot, ToolStatsSnapshot};
 
 /// The loop rate's current window: ticks since `start_us`.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -29,6 +29,55 @@ pub(super) struct ServoStats {
     pub(super) window: RateWindow,
     /// Overruns, maintained by the loop's [`super::Pacer`].
     pub(super) overruns: u64,
+    /// Per tool slot (issue 50); the fields above add up all tools.
+    pub(super) tools: [ToolAccum; MAX_TOOLS],
+}
+
+/// One tool slot's accumulators.
+pub(super) struct ToolAccum {
+    pub(super) p2f_hist: Histogram<u64>,
+    pub(super) p2f_buckets: LatencyBuckets,
+    pub(super) peak_force_n: f64,
+    pub(super) contact_ticks: u64,
+    pub(super) device_samples: u64,
+    pub(super) device_silences: u64,
+}
+
+impl ToolAccum {
+    fn new() -> Self {
+        Self {
+            p2f_hist: histogram(),
+            p2f_buckets: LatencyBuckets::default(),
+            peak_force_n: 0.0,
+            contact_ticks: 0,
+            device_samples: 0,
+            device_silences: 0,
+        }
+    }
+
+    /// This tool's part of a statistics snapshot (the caller fills in the tick's state:
+    /// connected, contact, force, silence).
+    pub(super) fn snapshot(&self) -> ToolStatsSnapshot {
+        ToolStatsSnapshot {
+            peak_force_n: self.peak_force_n,
+            pose_to_force_p50_us: quantile(&self.p2f_hist, 0.5),
+            pose_to_force_p99_us: quantile(&self.p2f_hist, 0.99),
+            device_samples: self.device_samples,
+            contact_ticks: self.contact_ticks,
+            device_silences: self.device_silences,
+            pose_to_force_buckets: self.p2f_buckets,
+            ..ToolStatsSnapshot::default()
+        }
+    }
+}
+
+/// The `q` quantile of `h`, 0 when it is empty.
+fn quantile(h: &Histogram<u64>, q: f64) -> f64 {
+    if h.is_empty() {
+        0.0
+    } else {
+        h.value_at_quantile(q) as f64
+    }
 }
 
 fn histogram() -> Histogram<u64> {
@@ -51,6 +100,7 @@ impl ServoStats {
             device_silences: 0,
             window: RateWindow::default(),
             overruns: 0,
+            tools: std::array::from_fn(|_| ToolAccum::new()),
         }
     }
 
@@ -60,10 +110,14 @@ impl ServoStats {
         self.step_buckets.record(us);
     }
 
-    /// Records one pose-to-force latency, µs.
-    pub(super) fn record_pose_to_force(&mut self, us: u64) {
+    /// Records one pose-to-force latency of tool slot `slot`, µs (the session's and the
+    /// tool's).
+    pub(super) fn record_pose_to_force(&mut self, slot: usize, us: u64) {
         self.p2f_hist.saturating_record(us.max(1));
         self.p2f_buckets.record(us);
+        let t = &mut self.tools[slot];
+        t.p2f_hist.saturating_record(us.max(1));
+        t.p2f_buckets.record(us);
     }
 
     /// The statistics snapshot of these accumulators with the servo state's fields: `steps`
@@ -76,16 +130,8 @@ impl ServoStats {
             step_p50_us: self.step_hist.value_at_quantile(0.5) as f64,
             step_p99_us: self.step_hist.value_at_quantile(0.99) as f64,
             step_max_us: self.step_hist.max() as f64,
-            pose_to_force_p50_us: if self.p2f_hist.is_empty() {
-                0.0
-            } else {
-                self.p2f_hist.value_at_quantile(0.5) as f64
-            },
-            pose_to_force_p99_us: if self.p2f_hist.is_empty() {
-                0.0
-            } else {
-                self.p2f_hist.value_at_quantile(0.99) as f64
-            },
+            pose_to_force_p50_us: quantile(&self.p2f_hist, 0.5),
+            pose_to_force_p99_us: quantile(&self.p2f_hist, 0.99),
             contact_ticks: self.contact_ticks,
             peak_force_n: self.peak_force_n,
             max_displacement_m: self.max_displacement_m,
