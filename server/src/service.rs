@@ -137,7 +137,7 @@ impl SessionControl for Services {
             .builds
             .run(client, &self.manager, move || {
                 let scene = manager.load_scene(&r.scene, &r.scene_toml)?;
-                let tools = crate::tool::scene_tools(&r.scene, &r.scene_toml);
+                let tools = crate::tool::scene_tools(&scene);
                 let session = manager.start_with_tools(&scene, &tools)?;
                 // Recorded for a restart (with a state dir); a failure to record is logged,
                 // the session runs anyway.

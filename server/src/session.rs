@@ -576,7 +576,7 @@ impl SessionManager {
                         .map_err(|e| e.to_string())?;
                     let slot = self.reserve_slot().map_err(|e| e.to_string())?;
                     let body = haptic_model::build_body(&scene).map_err(|e| e.to_string())?;
-                    let names = crate::tool::scene_tools(&rec.scene, &rec.scene_toml);
+                    let names = crate::tool::scene_tools(&scene);
                     let limits = Some(LinkLimits::of_scene(&scene));
                     self.start_in_slot(slot, &rec.id, body, limits, &names)
                         .map_err(|e| e.to_string())?;

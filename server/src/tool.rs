@@ -29,39 +29,18 @@ impl NamedTool {
     }
 }
 
-/// The tools a scene names (`[[probe.tool]] id`, with `radius_m` and `max_force_n` when they
-/// are finite and positive) in its text: `scene_toml`, or the built-in scene `scene`'s. These
-/// are the candidates for `SoftBody::tool_slot` (the model checks the scene; this reads it
-/// only to learn the names). Empty when the text names none or cannot be read.
-pub fn scene_tools(scene: &str, scene_toml: &str) -> Vec<NamedTool> {
-    let text = if scene_toml.trim().is_empty() {
-        haptic_model::scene::builtin_scene_toml(scene).unwrap_or("")
-    } else {
-        scene_toml
-    };
-    let Ok(value) = text.parse::<toml::Table>() else {
-        return Vec::new();
-    };
-    let positive = |t: &toml::Value, key: &str| {
-        let v = t.get(key)?;
-        let v = v.as_float().or_else(|| v.as_integer().map(|i| i as f64))?;
-        (v.is_finite() && v > 0.0).then_some(v)
-    };
-    let Some(tools) = value
-        .get("probe")
-        .and_then(|p| p.get("tool"))
-        .and_then(|t| t.as_array())
-    else {
-        return Vec::new();
-    };
-    tools
+/// The tools `scene` names (`[[probe.tool]]`, parsed and checked by the model's scene
+/// parser), with their own probe radius and force limit: the candidates for
+/// `SoftBody::tool_slot`, and the parameters frames and link headers show per tool.
+pub fn scene_tools(scene: &haptic_model::scene::Scene) -> Vec<NamedTool> {
+    scene
+        .tools
+        .named
         .iter()
-        .filter_map(|t| {
-            Some(NamedTool {
-                id: t.get("id")?.as_str()?.to_owned(),
-                radius_m: positive(t, "radius_m"),
-                max_force_n: positive(t, "max_force_n"),
-            })
+        .map(|t| NamedTool {
+            id: t.id.clone(),
+            radius_m: Some(t.probe.radius_m),
+            max_force_n: Some(t.probe.max_force_n),
         })
         .collect()
 }
@@ -169,24 +148,31 @@ mod tests {
     }
 
     #[test]
-    fn scene_texts_name_their_tools_with_their_parameters() {
-        let text = "[probe]\nmax_tools = 2\n[[probe.tool]]\nid = \"left\"\nradius_m = 0.003\n\
-                    max_force_n = 2\n[[probe.tool]]\nid = \"right\"\nradius_m = -1.0\n";
-        assert_eq!(
-            scene_tools("", text),
-            [
-                NamedTool {
-                    id: "left".into(),
-                    radius_m: Some(0.003),
-                    max_force_n: Some(2.0),
-                },
-                NamedTool::id("right"),
-            ]
+    fn the_tools_a_scene_names_come_with_their_parameters() {
+        let base = haptic_model::scene::builtin_scene_toml("lv").expect("lv");
+        let text = format!(
+            "{base}\n[[probe.tool]]\nid = \"left\"\nradius_m = 0.003\nmax_force_n = 2.0\n\
+             [[probe.tool]]\nid = \"right\"\n"
         );
-        assert!(scene_tools("", "[probe]\nradius_m = 0.002\n").is_empty());
-        assert!(scene_tools("", "not toml [").is_empty());
+        let scene = haptic_model::scene::parse_scene_toml(&text, std::path::Path::new("."))
+            .expect("the lv scene with two named tools");
+        let tools = scene_tools(&scene);
+        assert_eq!(tools.len(), 2);
+        assert_eq!(
+            tools[0],
+            NamedTool {
+                id: "left".into(),
+                radius_m: Some(0.003),
+                max_force_n: Some(2.0),
+            }
+        );
+        // Unnamed parameters are the scene's `[probe]`.
+        assert_eq!(tools[1].id, "right");
+        assert_eq!(tools[1].radius_m, Some(scene.probe.radius_m));
+        assert_eq!(tools[1].max_force_n, Some(scene.probe.max_force_n));
+        let lv = haptic_model::scene::load_builtin("lv").expect("lv");
         assert!(
-            scene_tools("lv", "").is_empty(),
+            scene_tools(&lv).is_empty(),
             "the built-in lv names no tools"
         );
     }
