@@ -211,8 +211,8 @@ impl SupernodalSolve {
 
     /// Cuts later [`Self::solve_in_place_in`] sweeps into two groups of subtrees when `parts`
     /// is at least 2 and the elimination tree has a fork whose two sides each hold at least
-    /// a quarter of the factor below ancestors holding at most a third ([`TreeSplit`]);
-    /// otherwise (or with `parts` 1) the sweep stays whole. Set-up, not a tick: allocates.
+    /// a quarter of the factor, the rest at most a third (found from the heaviest root down
+    /// through children holding more than two thirds of their parent); otherwise (or with `parts` 1) the sweep stays whole. Set-up, not a tick: allocates.
     /// Returns whether the sweep is cut.
     pub fn set_parts(&mut self, parts: usize) -> bool {
         self.split = if parts >= 2 {
