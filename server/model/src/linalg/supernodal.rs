@@ -983,7 +983,7 @@ mod tests {
     use super::*;
     use faer::dyn_stack::{MemBuffer, MemStack};
     use faer::sparse::SparseColMat;
-    use faer::sparse::linalg::cholesky::{LltRef, factorize_symbolic_cholesky};
+    use faer::sparse::linalg::cholesky::{LltRef, SymmetricOrdering, factorize_symbolic_cholesky};
     use faer::{Conj, Mat, Par, Side};
 
     /// A 3-D Laplacian-like SPD matrix on an `n^3` grid with 3 components per node (block
@@ -1020,6 +1020,41 @@ mod tests {
         SparseColMat::try_new_from_triplets(3 * n * n * n, 3 * n * n * n, &t).unwrap()
     }
 
+    /// The supernodal symbolic factor of `a` (lower triangle) in `ordering` and its
+    /// single-precision numeric factor.
+    fn supernodal_factor(
+        a: &SparseColMat<usize, f32>,
+        ordering: SymmetricOrdering<'_, usize>,
+    ) -> (SymbolicCholesky<usize>, Vec<f32>) {
+        let symbolic = factorize_symbolic_cholesky(
+            a.symbolic(),
+            Side::Lower,
+            ordering,
+            faer::sparse::linalg::cholesky::CholeskySymbolicParams {
+                supernodal_flop_ratio_threshold:
+                    faer::sparse::linalg::SupernodalThreshold::FORCE_SUPERNODAL,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let mut values = vec![0.0f32; symbolic.len_val()];
+        let mut mem = MemBuffer::new(
+            symbolic.factorize_numeric_llt_scratch::<f32>(Par::Seq, Default::default()),
+        );
+        symbolic
+            .factorize_numeric_llt::<f32>(
+                &mut values,
+                a.as_ref(),
+                Side::Lower,
+                Default::default(),
+                Par::Seq,
+                MemStack::new(&mut mem),
+                Default::default(),
+            )
+            .unwrap();
+        (symbolic, values)
+    }
+
     /// `D A D` for the diagonal `d` (lower triangle of `a`).
     fn scaled(a: &SparseColMat<usize, f32>, d: &[f32]) -> SparseColMat<usize, f32> {
         let mut t = Vec::new();
@@ -1045,32 +1080,7 @@ mod tests {
         let wild: Vec<f32> = (0..m).map(|i| 10f32.powi((i % 13) as i32 - 6)).collect();
         for d in [unit, wild] {
             let a = scaled(&a, &d);
-            let symbolic = factorize_symbolic_cholesky(
-                a.symbolic(),
-                Side::Lower,
-                faer::sparse::linalg::cholesky::SymmetricOrdering::Amd,
-                faer::sparse::linalg::cholesky::CholeskySymbolicParams {
-                    supernodal_flop_ratio_threshold:
-                        faer::sparse::linalg::SupernodalThreshold::FORCE_SUPERNODAL,
-                    ..Default::default()
-                },
-            )
-            .unwrap();
-            let mut values = vec![0.0f32; symbolic.len_val()];
-            let mut mem = MemBuffer::new(
-                symbolic.factorize_numeric_llt_scratch::<f32>(Par::Seq, Default::default()),
-            );
-            symbolic
-                .factorize_numeric_llt::<f32>(
-                    &mut values,
-                    a.as_ref(),
-                    Side::Lower,
-                    Default::default(),
-                    Par::Seq,
-                    MemStack::new(&mut mem),
-                    Default::default(),
-                )
-                .unwrap();
+            let (symbolic, mut values) = supernodal_factor(&a, SymmetricOrdering::Amd);
             let mut sweep = SupernodalSolve::new(&symbolic).expect("a supernodal factor");
             assert_eq!(sweep.len(), m);
             // The factor has wide supernodes (several panels, a narrower last one, several
@@ -1206,32 +1216,7 @@ mod tests {
             inverse[i] = k;
         }
         let perm = faer::perm::PermRef::new_checked(&forward, &inverse, m);
-        let symbolic = factorize_symbolic_cholesky(
-            a.symbolic(),
-            Side::Lower,
-            faer::sparse::linalg::cholesky::SymmetricOrdering::Custom(perm),
-            faer::sparse::linalg::cholesky::CholeskySymbolicParams {
-                supernodal_flop_ratio_threshold:
-                    faer::sparse::linalg::SupernodalThreshold::FORCE_SUPERNODAL,
-                ..Default::default()
-            },
-        )
-        .unwrap();
-        let mut values = vec![0.0f32; symbolic.len_val()];
-        let mut mem = MemBuffer::new(
-            symbolic.factorize_numeric_llt_scratch::<f32>(Par::Seq, Default::default()),
-        );
-        symbolic
-            .factorize_numeric_llt::<f32>(
-                &mut values,
-                a.as_ref(),
-                Side::Lower,
-                Default::default(),
-                Par::Seq,
-                MemStack::new(&mut mem),
-                Default::default(),
-            )
-            .unwrap();
+        let (symbolic, mut values) = supernodal_factor(&a, SymmetricOrdering::Custom(perm));
         let mut whole = SupernodalSolve::new(&symbolic).expect("a supernodal factor");
         let half = whole.half_factor(&mut values).expect("32-bit offsets");
         let mut cut = whole.clone();
