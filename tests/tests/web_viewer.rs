@@ -109,19 +109,10 @@ async fn wait_for(
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn web_viewer_shows_the_dent_and_the_force_during_a_bridge_press() -> Result<()> {
-    let chromium = match find_or_install_chromium() {
-        Ok(p) => p,
-        Err(missing) => return install::skip_or_fail("web_viewer (chromium)", &missing),
-    };
-    let _serial = serial().await;
-    let daemon = Daemon::spawn(&[])?;
-    let url = daemon.url();
-    let id = start_session(&url, "lv").await?;
-
-    // The web viewer, on a port-0 listener; it prints `listening on ADDR`.
-    let mut web = spawn_bin(VIEWER, &["--server", &url, "--web", "127.0.0.1:0"])?;
+/// `haptic-viewer --web` on a port-0 listener for the daemon at `url`, and the address it
+/// prints (`listening on ADDR`); the process lives as long as the returned handle.
+async fn web_viewer(url: &str) -> Result<(haptic_e2e::Spawned, String)> {
+    let mut web = spawn_bin(VIEWER, &["--server", url, "--web", "127.0.0.1:0"])?;
     let stdout = web.child.stdout.take().context("piped stdout")?;
     let mut lines = BufReader::new(stdout).lines();
     let addr = tokio::time::timeout(Duration::from_secs(30), async {
@@ -134,6 +125,22 @@ async fn web_viewer_shows_the_dent_and_the_force_during_a_bridge_press() -> Resu
     })
     .await
     .context("haptic-viewer --web did not start within 30 s")??;
+    Ok((web, addr))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn web_viewer_shows_the_dent_and_the_force_during_a_bridge_press() -> Result<()> {
+    let chromium = match find_or_install_chromium() {
+        Ok(p) => p,
+        Err(missing) => return install::skip_or_fail("web_viewer (chromium)", &missing),
+    };
+    let _serial = serial().await;
+    let daemon = Daemon::spawn(&[])?;
+    let url = daemon.url();
+    let id = start_session(&url, "lv").await?;
+
+    // The web viewer, on a port-0 listener; it prints `listening on ADDR`.
+    let (_web, addr) = web_viewer(&url).await?;
 
     // The session list answers with our session.
     let mut browser = Browser::launch(&chromium, WIDTH, HEIGHT).await?;
@@ -575,19 +582,7 @@ async fn web_viewer_shows_every_tool_and_a_strip_chart_per_tool() -> Result<()> 
     tokio::time::sleep(Duration::from_millis(300)).await; // left takes slot 0
     let right = press_tool(url.clone(), id.clone(), "right", [-0.002, 0.008, 0.008]);
 
-    let mut web = spawn_bin(VIEWER, &["--server", &url, "--web", "127.0.0.1:0"])?;
-    let stdout = web.child.stdout.take().context("piped stdout")?;
-    let mut lines = BufReader::new(stdout).lines();
-    let addr = tokio::time::timeout(Duration::from_secs(30), async {
-        while let Some(l) = lines.next_line().await? {
-            if let Some(a) = l.strip_prefix("listening on ") {
-                return anyhow::Ok(a.trim().to_string());
-            }
-        }
-        bail!("haptic-viewer --web ended without printing its address")
-    })
-    .await
-    .context("haptic-viewer --web did not start within 30 s")??;
+    let (web, addr) = web_viewer(&url).await?;
     let mut browser = Browser::launch(&chromium, WIDTH, HEIGHT).await?;
     let page = browser
         .open(
