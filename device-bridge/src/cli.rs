@@ -184,9 +184,12 @@ pub struct Args {
     #[arg(long)]
     pub deadband: Option<f64>,
     /// The tool this bridge drives in the session (several bridges, one tool each, press one
-    /// session at once up to its scene's probe.max_tools); empty: the default tool.
-    #[arg(long, default_value = "")]
-    pub tool: String,
+    /// session at once up to its scene's probe.max_tools); empty: the default tool. Repeated
+    /// with `--driver sim` (at most [`MAX_SIM_TOOLS`]), one process drives a simulated arm per
+    /// tool: tool k of n plays the script turned by k 360/n degrees about the scene's z axis
+    /// (the LV's long axis: two tools press opposite sides).
+    #[arg(long = "tool", default_value = "")]
+    pub tool: Vec<String>,
     /// Fault injection (tests only): fraction of messages dropped each way.
     #[arg(long, default_value_t = 0.0)]
     pub fault_drop: f64,
@@ -221,7 +224,11 @@ pub enum CliError {
     Bridge(#[from] BridgeError),
 }
 
-/// Everything the binary needs to call [`crate::link::run`].
+/// Most tools one `haptic-bridge --driver sim` process drives (`--tool` repeated); the daemon's
+/// own limit is the scene's `probe.max_tools` (at most 4).
+pub const MAX_SIM_TOOLS: usize = 4;
+
+/// Everything the binary needs to call [`crate::link::run`] for one tool.
 pub struct Setup {
     /// The device to drive.
     pub device: Box<dyn HapticDevice>,
@@ -252,27 +259,39 @@ impl Args {
         }
     }
 
-    /// The sim script these flags describe.
+    /// The sim script these flags describe (the first tool's).
     pub fn sim_script(&self) -> Script {
+        self.sim_script_for(0, 1)
+    }
+
+    /// The sim script of tool `k` of `n` (`--tool` repeated): the flags' script with its start
+    /// point, press direction and slide direction turned by `k 360 / n` degrees about the
+    /// scene's z axis.
+    pub fn sim_script_for(&self, k: usize, n: usize) -> Script {
+        let angle = std::f64::consts::TAU * k as f64 / n.max(1) as f64;
+        let (sin, cos) = angle.sin_cos();
+        let turn = |v: [f64; 3]| [cos * v[0] - sin * v[1], sin * v[0] + cos * v[1], v[2]];
+        let (start_m, direction, along) =
+            (turn(self.start_m), turn(self.direction), turn(self.along));
         match self.script {
             ScriptKind::Press => Script::Press {
-                start_m: self.start_m,
-                direction: self.direction,
+                start_m,
+                direction,
                 depth_m: self.depth_m,
                 speed_m_per_s: self.speed_m_per_s,
                 hold_s: self.hold_s,
             },
             ScriptKind::Stroke => Script::Stroke {
-                start_m: self.start_m,
-                direction: self.direction,
+                start_m,
+                direction,
                 depth_m: self.depth_m,
-                along: self.along,
+                along,
                 length_m: self.length_m,
                 speed_m_per_s: self.speed_m_per_s,
             },
             ScriptKind::Poke => Script::Poke {
-                start_m: self.start_m,
-                direction: self.direction,
+                start_m,
+                direction,
                 amplitude_m: self.amplitude_m,
                 frequency_hz: self.frequency_hz,
                 cycles: self.cycles,
@@ -280,10 +299,6 @@ impl Args {
         }
     }
 
-    /// Validates the flags and builds the device and configuration.
-    ///
-    /// # Errors
-    /// [`CliError`] saying which flag is wrong.
     /// The device-to-scene transform these flags describe.
     ///
     /// # Errors
@@ -330,6 +345,11 @@ impl Args {
     /// # Errors
     /// [`CliError`] when a flag is missing or the device cannot be reached.
     pub fn device(&self) -> Result<Box<dyn HapticDevice>, CliError> {
+        self.device_for(0, 1)
+    }
+
+    /// [`Self::device`] of tool `k` of `n` (the sim driver plays [`Self::sim_script_for`]).
+    fn device_for(&self, k: usize, n: usize) -> Result<Box<dyn HapticDevice>, CliError> {
         let spec = self.spec();
         spec.validate()?;
         let t = self.transform()?;
@@ -341,7 +361,7 @@ impl Args {
         };
         Ok(match self.driver {
             Driver::Sim => Box::new(Transformed::new(
-                SimProbe::new(self.sim_script(), spec)?,
+                SimProbe::new(self.sim_script_for(k, n), spec)?,
                 t,
             )?),
             Driver::Replay => {
@@ -404,12 +424,57 @@ impl Args {
         ))
     }
 
-    /// Validates the flags and builds the device and configuration.
+    /// Validates the flags and builds the device and configuration of a one-tool bridge.
     ///
     /// # Errors
-    /// [`CliError`] saying which flag is wrong.
+    /// [`CliError`] saying which flag is wrong; [`CliError::Invalid`] when `--tool` is
+    /// repeated (use [`Self::setups`]).
     pub fn setup(&self) -> Result<Setup, CliError> {
-        let device = self.device()?;
+        match self.tool.as_slice() {
+            [tool] => self.setup_for(0, 1, tool),
+            _ => Err(CliError::Invalid(
+                "several --tool flags: build them with Args::setups".to_owned(),
+            )),
+        }
+    }
+
+    /// One [`Setup`] per `--tool` (one without the flag), in the order given: each its own
+    /// device (tool `k` of `n` plays [`Self::sim_script_for`]) and configuration; with several
+    /// tools a `--record FILE` is written per tool as `FILE` with `-TOOL` before its extension.
+    ///
+    /// # Errors
+    /// [`CliError`] as [`Self::setup`]; [`CliError::Invalid`] for more than one tool with a
+    /// driver other than `sim`, more than [`MAX_SIM_TOOLS`] tools, an empty or repeated id.
+    pub fn setups(&self) -> Result<Vec<Setup>, CliError> {
+        let n = self.tool.len();
+        if n > 1 {
+            if self.driver != Driver::Sim {
+                return Err(CliError::Invalid(format!(
+                    "--tool given {n} times: one process drives several tools with --driver sim \
+                     only; run one haptic-bridge per device"
+                )));
+            }
+            if n > MAX_SIM_TOOLS {
+                return Err(CliError::Invalid(format!(
+                    "--tool given {n} times: at most {MAX_SIM_TOOLS}"
+                )));
+            }
+            for (k, t) in self.tool.iter().enumerate() {
+                if t.is_empty() || self.tool[..k].contains(t) {
+                    return Err(CliError::Invalid(format!(
+                        "--tool {t:?}: several tools need distinct, non-empty ids"
+                    )));
+                }
+            }
+        }
+        (0..n.max(1))
+            .map(|k| self.setup_for(k, n.max(1), self.tool.get(k).map_or("", String::as_str)))
+            .collect()
+    }
+
+    /// The [`Setup`] of tool `k` of `n`, named `tool`.
+    fn setup_for(&self, k: usize, n: usize, tool: &str) -> Result<Setup, CliError> {
+        let device = self.device_for(k, n)?;
         let spec = device.spec().clone();
         let mut config = BridgeConfig::new(&self.server, &self.session, &spec);
         config.credentials = self.credentials.clone();
@@ -426,7 +491,7 @@ impl Args {
             None => RearmMode::Auto,
         };
         config.deadband = self.deadband;
-        config.tool_id.clone_from(&self.tool);
+        tool.clone_into(&mut config.tool_id);
         let delay = match &self.fault_delay_ms {
             None => None,
             Some(text) => {
@@ -468,11 +533,27 @@ impl Args {
         Ok(Setup {
             device,
             config,
-            record_path: self.record.clone(),
+            record_path: self.record.as_deref().map(|p| {
+                if n > 1 {
+                    tool_file(p, tool)
+                } else {
+                    p.to_owned()
+                }
+            }),
             json: self.json,
             rearm_button,
         })
     }
+}
+
+/// `path` with `-TOOL` before its extension (`press.mcap` -> `press-left.mcap`).
+fn tool_file(path: &std::path::Path, tool: &str) -> PathBuf {
+    let stem = path.file_stem().unwrap_or_default().to_string_lossy();
+    let name = match path.extension() {
+        Some(ext) => format!("{stem}-{tool}.{}", ext.to_string_lossy()),
+        None => format!("{stem}-{tool}"),
+    };
+    path.with_file_name(name)
 }
 
 /// A driver whose spec's force limit is lowered by the operator (`--max-force-n`).
@@ -553,6 +634,77 @@ mod tests {
         let e = args("a b").setup().err().unwrap().to_string();
         assert!(e.contains("tool id"), "{e}");
         assert!(args(&"x".repeat(65)).setup().is_err());
+    }
+
+    #[test]
+    fn a_repeated_tool_flag_drives_one_simulated_arm_per_tool_turned_about_z() {
+        let args = |extra: &[&str]| {
+            let mut v = vec![
+                "haptic-bridge",
+                "--server",
+                "http://127.0.0.1:1",
+                "--session",
+                "s",
+            ];
+            v.extend_from_slice(extra);
+            Args::try_parse_from(v).unwrap()
+        };
+        let a = args(&[
+            "--tool",
+            "left",
+            "--tool",
+            "right",
+            "--record",
+            "out/p.mcap",
+        ]);
+        let s = a.setups().unwrap();
+        assert_eq!(s.len(), 2);
+        assert_eq!(
+            (s[0].config.tool_id.as_str(), s[1].config.tool_id.as_str()),
+            ("left", "right")
+        );
+        let paths: Vec<_> = s.iter().map(|s| s.record_path.clone().unwrap()).collect();
+        assert_eq!(
+            paths,
+            [
+                PathBuf::from("out/p-left.mcap"),
+                PathBuf::from("out/p-right.mcap")
+            ]
+        );
+        // Tool 1 of 2 presses the mirror point (turned 180 degrees about z), towards the axis.
+        let Script::Press {
+            start_m, direction, ..
+        } = a.sim_script_for(1, 2)
+        else {
+            panic!("a press")
+        };
+        let near = |u: [f64; 3], v: [f64; 3]| (0..3).all(|i| (u[i] - v[i]).abs() < 1e-15);
+        assert!(near(start_m, [-0.014, 0.0, -0.005]) && near(direction, [1.0, 0.0, 0.0]));
+        assert_eq!(a.sim_script_for(0, 2), a.sim_script());
+        assert!(a.setup().is_err(), "setup() builds one tool only");
+        // Refusals: duplicates, empty ids among several, a hardware driver, too many.
+        for (extra, says) in [
+            (&["--tool", "a", "--tool", "a"][..], "distinct"),
+            (&["--tool", "a", "--tool", ""][..], "distinct"),
+            (
+                &["--tool", "a", "--tool", "b", "--driver", "serial"][..],
+                "--driver sim",
+            ),
+            (
+                &[
+                    "--tool", "a", "--tool", "b", "--tool", "c", "--tool", "d", "--tool", "e",
+                ][..],
+                "at most 4",
+            ),
+        ] {
+            let e = args(extra).setups().err().unwrap().to_string();
+            assert!(e.contains(says), "{extra:?}: {e}");
+        }
+        assert_eq!(
+            args(&[]).setups().unwrap().len(),
+            1,
+            "no flag: the default tool"
+        );
     }
 
     #[test]

@@ -7,9 +7,9 @@
 //! contact, and the right tool's force stays continuous (7 % per fresh tick) while the left one
 //! releases and disconnects.
 //!
-//! Needs the model's several-tools support (`probe.max_tools` = 2 in the FEM family; branch
-//! `tools-model`): until it merges the LV takes one tool and the second bridge is refused with
-//! RESOURCE_EXHAUSTED, so this test fails.
+//! The simulated arm also runs both tools from one process (`haptic-bridge --tool left --tool
+//! right`: the second plays the script turned half a turn about the LV's axis): the same
+//! holds and balance.
 
 use std::time::Duration;
 
@@ -212,6 +212,64 @@ async fn two_bridges_press_opposite_sides_of_the_lv_and_balance_at_the_clamp() -
             .with_context(|| format!("tool {name} in {:?}", stats.tools))?;
         ensure!(t.contact_ticks > 500 && t.device_samples > 1000, "{t:?}");
     }
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_bridge_process_drives_two_simulated_tools_on_opposite_sides() -> Result<()> {
+    let _serial = serial().await;
+    let daemon = Daemon::spawn(&[])?;
+    let url = daemon.url();
+    let id = start_session(&url, "lv").await?;
+    let dir = unique_temp_dir("haptic-e2e-tools-one")?;
+    let record = dir.join("press.csv");
+    let record_arg = record.display().to_string();
+    // The default press (14 mm off the axis at +x, 6 mm in at 10 mm/s), its mirror at -x.
+    let out = run_bin(
+        BRIDGE,
+        &[
+            "--server",
+            &url,
+            "--session",
+            &id,
+            "--tool",
+            "left",
+            "--tool",
+            "right",
+            "--hold-s",
+            "1.0",
+            "--record",
+            &record_arg,
+            "--json",
+        ],
+        Duration::from_secs(90),
+    )
+    .await?
+    .success()?;
+    let lines: Vec<serde_json::Value> = out
+        .stdout
+        .lines()
+        .filter(|l| !l.trim().is_empty())
+        .map(serde_json::from_str)
+        .collect::<Result<_, _>>()?;
+    ensure!(lines.len() == 2, "one summary per tool: {}", out.stdout);
+    let l = read_recording(&dir.join("press-left.csv"))?;
+    let r = read_recording(&dir.join("press-right.csv"))?;
+    // The script starts with the stream (about 0.3 s after the recording), presses for 0.6 s
+    // and holds 1 s: the hold is about 0.93-1.9 s of each recording.
+    let (fl, spread_l) = hold(&l, (1.0, 1.8))?;
+    let (fr, spread_r) = hold(&r, (1.0, 1.8))?;
+    eprintln!(
+        "one process: left {fl:.4} N (spread {spread_l:.3}), right {fr:.4} N (spread {spread_r:.3})"
+    );
+    ensure!(fl > 0.01 && fr < -0.01, "each pushed back out: {fl} / {fr}");
+    ensure!(spread_l <= 0.07 && spread_r <= 0.07, "holds not steady");
+    ensure!(
+        (fl + fr).abs() <= 0.07 * fl.abs().min(fr.abs()),
+        "net reaction at the clamp {:.4} N of forces {fl:.4} / {fr:.4} N",
+        fl + fr
+    );
     let _ = std::fs::remove_dir_all(&dir);
     Ok(())
 }
