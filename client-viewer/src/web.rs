@@ -551,13 +551,16 @@ pub(crate) fn stats_json(st: &SessionStats) -> Value {
         "fault": st.fault,
         "watchers": st.watchers,
         "watcher_frames_dropped": st.watcher_frames_dropped,
-        // Each tool's figures (issue 50), for its strip chart.
+        "max_tools": st.max_tools,
+        // Each tool's figures (issue 50), for its strip chart and the overview's card.
         "tools": st.tools.iter().map(|t| json!({
             "tool_id": t.tool_id,
             "slot": t.slot,
             "connected": t.connected,
             "in_contact": t.in_contact,
             "force_n": t.force_n,
+            "peak_force_n": t.peak_force_n,
+            "device": t.device.as_ref().map(|d| d.name.clone()),
             "pose_to_force_p50_us": t.pose_to_force_p50_us,
             "pose_to_force_p99_us": t.pose_to_force_p99_us,
         })).collect::<Vec<_>>(),

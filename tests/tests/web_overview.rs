@@ -4,7 +4,9 @@
 //! token, and a daemon that does not exist. Debian's headless Chromium opens `/overview`: one
 //! card per session with its scene and a rendered picture of its surface, the station without a
 //! token refused (the relay's own token is never sent to another daemon), the missing daemon
-//! marked unreachable while the others are shown, and bad picture requests answered 400.
+//! marked unreachable while the others are shown, and bad picture requests answered 400. Then
+//! one `haptic-bridge` drives two simulated tools on the LV session: its card lists both tools
+//! ("2 of 2"), each with its device and force.
 //!
 //! Chromium comes from `tests/install-chromium.sh` as for `web_viewer.rs` (the same skip rule).
 
@@ -14,8 +16,8 @@ use anyhow::{Context, Result, bail, ensure};
 use haptic_e2e::browser::{Browser, Rgb, find_or_install_chromium};
 use haptic_e2e::install;
 use haptic_e2e::{
-    CTL, Daemon, STEP_TIMEOUT, run_bin_env, serial, spawn_web_viewer, start_session,
-    unique_temp_dir,
+    BRIDGE, CTL, Daemon, STEP_TIMEOUT, run_bin_env, serial, spawn_bin, spawn_web_viewer,
+    start_session, unique_temp_dir,
 };
 
 const WIDTH: u32 = 1000;
@@ -158,6 +160,65 @@ async fn the_overview_shows_the_sessions_of_every_station() -> Result<()> {
             "picture at {b} shows no surface: {blue} blue pixels"
         );
     }
+
+    // Two tools of one simulated arm press the LV session on opposite sides: its card lists
+    // both, each with its device and a force, "2 of 2" connected.
+    let _bridge = spawn_bin(
+        BRIDGE,
+        &[
+            "--server",
+            &first.url(),
+            "--session",
+            &lv,
+            "--tool",
+            "left",
+            "--tool",
+            "right",
+            "--hold-s",
+            "30",
+            "--rearm",
+            "auto",
+        ],
+    )?;
+    let tools_ready = "(() => { const c = document.querySelector('.card[data-station=\"0\"]'); \
+                       const rows = c ? Array.from(c.querySelectorAll('table.tools tr[data-tool]')) : []; \
+                       return rows.length === 2 && rows.every(r => r.classList.contains('contact')); })()";
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    while browser.eval(&page, tools_ready).await? != serde_json::json!(true) {
+        if tokio::time::Instant::now() >= deadline {
+            let html = browser
+                .eval(&page, "document.getElementById('stations').innerText")
+                .await?;
+            bail!("the LV card did not show two tools in contact: {html}");
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let rows = browser
+        .eval(
+            &page,
+            "Array.from(document.querySelectorAll('.card[data-station=\"0\"] table.tools tr[data-tool]')) \
+             .map(r => Array.from(r.cells).map(c => c.textContent))",
+        )
+        .await?;
+    eprintln!("the LV card's tools: {rows}");
+    let row = |i: usize, j: usize| rows[i][j].as_str().unwrap_or("").to_string();
+    ensure!(
+        (row(0, 0), row(1, 0), row(0, 1), row(1, 1))
+            == ("left".into(), "right".into(), "sim".into(), "sim".into()),
+        "tools {rows}"
+    );
+    for i in 0..2 {
+        let force: f64 = row(i, 2).trim_end_matches(" mN").parse()?;
+        ensure!(force > 1.0, "tool {i} force {force} mN: {rows}");
+    }
+    let count = browser
+        .eval(
+            &page,
+            "Array.from(document.querySelectorAll('.card[data-station=\"0\"] dt')) \
+             .filter(d => d.textContent === 'tools').map(d => d.nextSibling.textContent)",
+        )
+        .await?;
+    ensure!(count == serde_json::json!(["2 of 2"]), "tools row {count}");
     let _ = std::fs::remove_dir_all(&dir);
     Ok(())
 }
