@@ -310,8 +310,8 @@ pub const DEFAULT_MAX_ELEMENTS: usize = 120_000;
 pub const DEFAULT_MAX_NODES: usize = 100_000;
 
 /// Default [`ServerConfig::max_particles`]: 500 000. The estimate is the mesh's volume over
-/// the cube of `hybrid.spacing_m` (an upper bound: the layer is part of the wall; 176 000 for
-/// the shipped `lv-hybrid`, which samples 130 423). Measured on the 2-core machine: a million
+/// the cube of `hybrid.spacing_m` (an upper bound: the layer is part of the wall; about 72 000
+/// for the shipped `lv-hybrid`, which samples 53 268). Measured on the 2-core machine: a million
 /// particles take 4.1 s to preprocess and 107 MiB (`hybrid_bench --spacing-m 0.00013`), so the
 /// limit bounds a client's hybrid set-up at about 2 s and 55 MiB.
 pub const DEFAULT_MAX_PARTICLES: usize = 500_000;

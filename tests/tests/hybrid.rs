@@ -1,5 +1,5 @@
 //! The seeds' hybrid model end to end (issue 13): the real `hapticd` runs `lv-hybrid` (an LV
-//! core with about 130 000 meshfree particles), the real `haptic-bridge` presses its outer
+//! core with about 53 000 meshfree particles), the real `haptic-bridge` presses its outer
 //! surface while the real `haptic-viewer` writes pictures; the surface stream shows the dent,
 //! `GetStats` shows particles activated under the probe and released after it leaves.
 

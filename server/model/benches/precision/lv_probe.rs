@@ -180,10 +180,10 @@ pub fn contact_rows(quick: bool, rows: &mut Vec<Row>) {
     }
 }
 
-/// The seeds' hybrid model `lv-hybrid` (a coarse LV core and about 130 000 meshfree particles
+/// The seeds' hybrid model `lv-hybrid` (a coarse LV core and about 53 000 meshfree particles
 /// up to the epicardium, activated under the probe) pressed like the FEM
 /// ([`probe_dynamic_body`]): both meshfree variants as the scene steps them (deviation mass
-/// `mass_scale = 10000`, the implicit core at its real inertia) and stepped explicitly at the
+/// `mass_scale` of the scene, the implicit core at its real inertia) and stepped explicitly at the
 /// scene's former scales (`mass_scale = 1000`, `core_mass_scale = "auto"`); the corrected
 /// one explicitly with the core as heavy as the particles (`"uniform"`) at 1000 and at 100,
 /// and both explicitly with the body's real inertia (`core_mass_scale = 1`, particles at

@@ -351,7 +351,7 @@ const BUILTINS: [(&str, &str, &str); 6] = [
     (
         "lv-hybrid",
         LV_HYBRID_TOML,
-        "the seeds' hybrid model on the LV (stable neo-Hookean): quadratic FEM of the wall + ~130k meshfree particles simulated only under the probe",
+        "the seeds' hybrid model on the LV (stable neo-Hookean): quadratic FEM of the wall + ~53k meshfree particles simulated only under the probe",
     ),
     (
         "ellipsoids-hybrid",
