@@ -1601,7 +1601,7 @@ fn a_cached_tile_steps_bit_identically_to_a_fresh_region() {
         .expect("node");
     let mut x = fem.rest().to_vec();
     let mut v = vec![DVec3::ZERO; x.len()];
-    follower.before_tick(&mut solver, Some((p, DVec3::ZERO)), &[], &mut x, &mut v);
+    follower.before_tick(&mut solver, &[Some((p, DVec3::ZERO))], &[], &mut x, &mut v);
     let stats = follower.stats();
     assert_eq!(
         (stats.swaps, stats.tile_hits, stats.tile_misses),

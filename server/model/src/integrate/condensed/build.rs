@@ -256,13 +256,56 @@ impl CondensedSolver {
         dt_s: f64,
         progress: &mut dyn FnMut(&str, f64),
     ) -> Result<Self, ModelError> {
+        let balls = RegionBalls::one(region.centre_m);
+        Self::with_balls(body, mesh, region, balls, dt_s, progress)
+    }
+
+    /// [`CondensedSolver::new`] on the union of balls of `region`'s radius at `balls`
+    /// ([`RegionBalls`]; issue 50: a following region around several tools). The region's
+    /// centre becomes the first ball's; one ball is [`CondensedSolver::new`].
+    ///
+    /// # Errors
+    /// As [`CondensedSolver::new`]; a non-finite centre or no ball is
+    /// [`ModelError::SceneField`] (`active_region`).
+    pub fn new_union(
+        body: &FemModel,
+        mesh: &TetMesh,
+        region: ActiveRegion,
+        balls: RegionBalls,
+        dt_s: f64,
+    ) -> Result<Self, ModelError> {
+        let Some(&first) = balls.centres().first() else {
+            return Err(ModelError::field("active_region", "a union of no ball"));
+        };
+        let region = ActiveRegion {
+            centre_m: first,
+            ..region
+        };
+        Self::with_balls(body, mesh, region, balls, dt_s, &mut |_, _| {})
+    }
+
+    fn with_balls(
+        body: &FemModel,
+        mesh: &TetMesh,
+        region: ActiveRegion,
+        balls: RegionBalls,
+        dt_s: f64,
+        progress: &mut dyn FnMut(&str, f64),
+    ) -> Result<Self, ModelError> {
         check_region(body, &region)?;
-        let system = CondensedSystem::build(body, mesh, &region, dt_s, progress)?;
+        if !balls.centres().iter().all(|c| c.is_finite()) {
+            return Err(ModelError::field("active_region", "needs finite centres"));
+        }
+        let system = CondensedSystem::build(body, mesh, &region, &balls, dt_s, progress)?;
         let (m, g) = (system.eq_dof.len(), system.gamma_dof.len());
         let stack = Workspace::new(system.symbolic.solve_in_place_scratch::<f32>(2, Par::Seq));
         progress("condensation: done", 1.0);
         Ok(Self {
-            params: CondensedParams { h: dt_s, region },
+            params: CondensedParams {
+                h: dt_s,
+                region,
+                balls,
+            },
             system,
             contact: ContactColumns {
                 col: vec![u32::MAX; body.node_count()],
@@ -290,6 +333,7 @@ impl CondensedSystem {
         body: &FemModel,
         mesh: &TetMesh,
         region: &ActiveRegion,
+        balls: &RegionBalls,
         h: f64,
         progress: &mut dyn FnMut(&str, f64),
     ) -> Result<Self, ModelError> {
@@ -299,7 +343,7 @@ impl CondensedSystem {
             far_model,
             node_active,
             node_far,
-        } = select_elements(body, mesh, region)?;
+        } = select_elements(body, mesh, region, balls)?;
         let num = number_equations(body, &node_active, &node_far);
         let Condensation {
             schur,
@@ -404,7 +448,8 @@ struct Selection {
     node_far: Vec<bool>,
 }
 
-/// Every tetrahedron with a corner node within the region is active, the others far.
+/// Every tetrahedron with a corner node within the region (within its radius of one of
+/// `balls`) is active, the others far.
 ///
 /// # Errors
 /// [`ModelError::SceneField`] for a region with no element; the parts' model errors.
@@ -412,13 +457,14 @@ fn select_elements(
     body: &FemModel,
     mesh: &TetMesh,
     region: &ActiveRegion,
+    balls: &RegionBalls,
 ) -> Result<Selection, ModelError> {
     let n = body.node_count();
     let r2 = region.radius_m * region.radius_m;
     let inside: Vec<bool> = body
         .rest()
         .iter()
-        .map(|p| p.distance_squared(region.centre_m) <= r2)
+        .map(|p| balls.centres().iter().any(|c| p.distance_squared(*c) <= r2))
         .collect();
     let keep: Vec<bool> = mesh
         .tets
