@@ -776,7 +776,7 @@ fn write_positions(nodes: &[u32], x: &[DVec3], rest: Option<&[DVec3]>, out: &mut
 /// One probe per tool slot of `scene` over `touchable` of a
 /// body at rest `rest`, each with its tool's parameters ([`Scene::tool_probe`]), the local law
 /// of its radius, and the implicit sphere for a backward Euler sub-step `implicit_dt_s`. Slots
-/// with the same parameters share one set-up (cloned).
+/// with the same parameters share one set-up ([`Probe::clone_for_slot`]).
 fn tool_probes(
     scene: &Scene,
     touchable: &[[u32; 3]],
@@ -788,7 +788,7 @@ fn tool_probes(
     for slot in 0..slots {
         let params = probe_params_of(scene, slot);
         if let Some(same) = probes.iter().find(|p| p.params == params) {
-            probes.push(same.clone());
+            probes.push(same.clone_for_slot());
             continue;
         }
         let mut probe = Probe::new(params, touchable.to_vec(), rest);

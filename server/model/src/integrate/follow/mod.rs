@@ -501,9 +501,7 @@ impl Worker {
         let current = request.current.centres();
         match balls.centres() {
             [] => Prepared::Nothing,
-            [_] if current.len() == 1 && self.cache.is_some() => {
-                self.lookup(point_m, current[0])
-            }
+            [_] if current.len() == 1 && self.cache.is_some() => self.lookup(point_m, current[0]),
             // From a union back to one ball: the nearest tile, whatever the hysteresis.
             [_] if self.cache.is_some() => self.lookup(point_m, DVec3::NAN),
             _ => self.prepare(balls, current),
@@ -514,7 +512,11 @@ impl Worker {
     /// of balls, each that near one of `current`).
     fn prepare(&self, balls: RegionBalls, current: &[DVec3]) -> Prepared {
         let radius = self.region.radius_m;
-        let close = |c: &DVec3| current.iter().any(|k| c.distance(*k) < RECENTRE_RADII * radius);
+        let close = |c: &DVec3| {
+            current
+                .iter()
+                .any(|k| c.distance(*k) < RECENTRE_RADII * radius)
+        };
         if balls.centres().len() == current.len() && balls.centres().iter().all(close) {
             return Prepared::Nothing;
         }
