@@ -38,6 +38,10 @@ struct Args {
     /// Device depth past first contact, mm.
     #[arg(long, default_value_t = 1.0)]
     depth_mm: f64,
+    /// The second tool stays 1 mm off the surface (connected, not in contact): what the
+    /// second tool's region costs without its contact.
+    #[arg(long)]
+    second_hovers: bool,
 }
 
 /// The scene `name`: a file when it ends in `.toml`, else a built-in; a following region's
@@ -83,6 +87,7 @@ fn body_of(scene: &Scene, lines: &[PressLine]) -> Result<Box<dyn SoftBody>, Stri
             ));
         }
         fem.set_blocking_region_preparation(false);
+        report_region(&fem);
         Box::new(fem)
     } else {
         haptic_model::build_body(scene).map_err(|e| e.to_string())?
@@ -95,8 +100,26 @@ fn body_of(scene: &Scene, lines: &[PressLine]) -> Result<Box<dyn SoftBody>, Stri
     Ok(body)
 }
 
+/// Prints the size of a following region after its warm-up and its largest preparation time
+/// (on stderr: the table stays on stdout).
+fn report_region(fem: &FemBody) {
+    let (Some(c), Some(f)) = (fem.condensed(), fem.follow_stats()) else {
+        return;
+    };
+    let z = c.sizes();
+    eprintln!(
+        "region of {} ball(s): {} active tets, {} interface nodes, {} equations, {:.1} MB, prepared in {:.2} s at most",
+        f.balls,
+        z.active_tets,
+        z.interface_nodes,
+        z.equations,
+        c.memory_bytes() as f64 / 1e6,
+        f.max_prepare_s
+    );
+}
+
 /// One run with `tools` tools: tick p50 and p99, s.
-fn run(scene: &Scene, tools: usize, depth_m: f64) -> Result<(f64, f64), String> {
+fn run(scene: &Scene, tools: usize, depth_m: f64, hover: bool) -> Result<(f64, f64), String> {
     let first = PressLine::lv_probe(scene.probe.radius_m);
     // The mirror of the lv-probe line through the ventricle's axis.
     let second = PressLine {
@@ -117,7 +140,8 @@ fn run(scene: &Scene, tools: usize, depth_m: f64) -> Result<(f64, f64), String> 
     for k in 0..ramp + hold {
         let depth = depth_m * (k.min(ramp) as f64 / ramp as f64);
         for (slot, line) in lines.iter().enumerate().take(tools) {
-            inputs[slot].device_position_m = Some(line.device_at(depth));
+            let d = if hover && slot == 1 { -1e-3 } else { depth };
+            inputs[slot].device_position_m = Some(line.device_at(d));
         }
         let t0 = Instant::now();
         body.tick_tools(&inputs[..slots], &mut outputs[..slots])
@@ -151,7 +175,8 @@ fn main() -> Result<(), String> {
     for round in 0..args.rounds {
         let order = if round % 2 == 0 { [1, 2] } else { [2, 1] };
         for tools in order {
-            results[tools - 1].push(run(&scene, tools, args.depth_mm * 1e-3)?);
+            let depth = args.depth_mm * 1e-3;
+            results[tools - 1].push(run(&scene, tools, depth, args.second_hovers)?);
         }
     }
     println!();
