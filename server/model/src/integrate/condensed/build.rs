@@ -125,6 +125,9 @@ pub(super) struct TickMatrixParts<'a> {
     pub(super) gamma_dof: &'a [usize],
     /// `S`, row-major `g x g`.
     pub(super) schur: &'a [f64],
+    /// Per interface component, the ball of a union region it is nearest ([`ball_of`];
+    /// empty: one ball). `S`'s entries between two balls stay out of the matrix.
+    pub(super) ball: &'a [u8],
     /// Lumped mass per equation, kg.
     pub(super) mass: &'a [f64],
     pub(super) h: f64,
@@ -133,7 +136,11 @@ pub(super) struct TickMatrixParts<'a> {
 impl TickMatrixParts<'_> {
     /// The lower triangle of `A` with margin `c`, in single precision: the solve only sets
     /// the step, while the residual (forces) stays in double precision, so equilibria are
-    /// unaffected (module documentation); it halves the memory the solve streams.
+    /// unaffected (module documentation); it halves the memory the solve streams. For the
+    /// same reason the far field's coupling between two balls of a union region (`S`'s
+    /// entries between their interfaces) is left out: it acts through the residual, and the
+    /// balls' parts of the factor stay separate instead of filling a dense block over every
+    /// interface.
     pub(super) fn lower(&self, c: f64) -> Result<SparseColMat<usize, f32>, ModelError> {
         let (h, mat, eq) = (self.h, self.material, self.eq);
         let combined = MaterialParams {
@@ -150,10 +157,11 @@ impl TickMatrixParts<'_> {
         };
         rest_tangent(self.active, &combined, |r, c, v| push(eq[r], eq[c], v));
         let g = self.gamma_dof.len();
+        let apart = |a: usize, b: usize| !self.ball.is_empty() && self.ball[a] != self.ball[b];
         for a in 0..g {
             for b in 0..g {
                 let v = h * h * self.schur[a * g + b];
-                if v != 0.0 {
+                if v != 0.0 && !apart(a, b) {
                     push(eq[self.gamma_dof[a]], eq[self.gamma_dof[b]], v);
                 }
             }
@@ -368,12 +376,14 @@ impl CondensedSystem {
             .iter()
             .map(|d| body.lumped_mass_kg()[d / 3])
             .collect();
+        let ball = ball_of(balls, body.rest(), &gamma_dof);
         let parts = TickMatrixParts {
             active: &active,
             material: *body.material(),
             eq: &eq,
             gamma_dof: &gamma_dof,
             schur: &schur,
+            ball: &ball,
             mass: &mass,
             h,
         };
@@ -416,6 +426,21 @@ impl CondensedSystem {
             entry: None,
         })
     }
+}
+
+/// Per interface component `gamma_dof` (global components of nodes at `rest`, m): the index
+/// of the nearest of `balls` (ties: the first); empty for one ball.
+pub(super) fn ball_of(balls: &RegionBalls, rest: &[DVec3], gamma_dof: &[usize]) -> Vec<u8> {
+    let centres = balls.centres();
+    if centres.len() < 2 {
+        return Vec::new();
+    }
+    let nearest = |p: DVec3| {
+        (0..centres.len())
+            .min_by(|&i, &j| p.distance(centres[i]).total_cmp(&p.distance(centres[j])))
+            .unwrap_or(0) as u8
+    };
+    gamma_dof.iter().map(|&d| nearest(rest[d / 3])).collect()
 }
 
 /// The region's parameters and the mesh's size checked ([`CondensedSolver::new`]'s errors).

@@ -103,7 +103,7 @@ mod far;
 mod half;
 mod step;
 
-use build::{TickMatrixParts, factorize};
+use build::{TickMatrixParts, ball_of, factorize};
 use half::{add_row, axpy3, dot_half, half_of, packed_row_start, sym_row};
 
 /// Largest memory of the contact columns [`CondensedSolver::prepare_contact`] precomputes:
