@@ -23,6 +23,7 @@ mod counting_alloc;
 use glam::DVec3;
 use haptic_model::body::{SoftBody, TickInput, TickOutput};
 use haptic_model::fem::FemBody;
+use haptic_model::integrate::condensed::SEPARATE_BALLS_RADII;
 use haptic_model::press::{LV_PROBE_Z_M, PressLine, lv_epicardium_point};
 use haptic_model::scene::{Scene, load_builtin};
 
@@ -651,6 +652,20 @@ fn run_following(
 /// region shrinks back to one ball. The two-tool ticks, swaps included, allocate nothing.
 #[test]
 fn a_following_region_covers_two_tools_apart_and_lets_one_leave() {
+    check_two_tools_apart(std::f64::consts::PI);
+}
+
+/// [`a_following_region_covers_two_tools_apart_and_lets_one_leave`] with the second tool at
+/// 2.35 rad round (centres 2.55 radii apart, just past `SEPARATE_BALLS_RADII`: the closest
+/// balls whose coupling the tick matrix leaves out).
+#[test]
+fn a_following_region_covers_two_tools_at_the_separation_limit() {
+    check_two_tools_apart(2.35);
+}
+
+/// The checks of [`a_following_region_covers_two_tools_apart_and_lets_one_leave`] with tool 0
+/// at azimuth 0 and tool 1 at `azimuth` (rad).
+fn check_two_tools_apart(azimuth: f64) {
     const FORCE_TOL: f64 = 0.03;
     let scene = lv_h1_following();
     assert_eq!(scene.tools.max_tools, 2);
@@ -660,7 +675,7 @@ fn a_following_region_covers_two_tools_apart_and_lets_one_leave() {
         haptic_model::scene::load_scene_file(&path).expect("lv_h1.toml")
     };
     let r = scene.probe.radius_m;
-    let (a, b) = (line_at(0.0, r), line_at(std::f64::consts::PI, r));
+    let (a, b) = (line_at(0.0, r), line_at(azimuth, r));
     let depth = 1e-3;
     let (n, leave_for) = (ticks(RAMP_S + HOLD_S), ticks(0.3));
     let input = |line: &PressLine, k: usize| ramp_input(line, depth, (k + 1) as f64 * 1e-3);
@@ -676,16 +691,22 @@ fn a_following_region_covers_two_tools_apart_and_lets_one_leave() {
         let refs = [(&scene, false), (&whole, true), (&whole, false)]
             .map(|(sc, second)| s.spawn(move || press(sc, second)));
         let mut body = blocking_body(&scene);
-        let (two, allocations) = run_following(&mut body, n + leave_for, |k| {
-            let second = if k < n {
-                input(&b, k)
-            } else {
-                TickInput::default()
-            };
-            [input(&a, k), second]
+        let (mut two, mut allocations) =
+            run_following(&mut body, n, |k| [input(&a, k), input(&b, k)]);
+        let balls = body.condensed().expect("region").balls();
+        let gap = match balls.centres() {
+            [p, q] => p.distance(*q) / scene.active_region.expect("region").radius_m,
+            other => panic!("{other:?}"),
+        };
+        eprintln!("ball centres {gap:.3} radii apart");
+        assert!(gap >= SEPARATE_BALLS_RADII);
+        let (left, a_left) = run_following(&mut body, leave_for, |k| {
+            [input(&a, n + k), TickInput::default()]
         });
+        two.extend(left);
+        allocations += a_left;
         let stats = body.follow_stats().expect("follows");
-        eprintln!("two tools: {stats:?}");
+        eprintln!("two tools at {azimuth} rad: {stats:?}");
         assert_eq!(stats.failed, 0);
         let refs = refs.map(|h| h.join().expect("reference run"));
         (two, allocations, refs)

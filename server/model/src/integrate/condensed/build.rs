@@ -125,8 +125,9 @@ pub(super) struct TickMatrixParts<'a> {
     pub(super) gamma_dof: &'a [usize],
     /// `S`, row-major `g x g`.
     pub(super) schur: &'a [f64],
-    /// Per interface component, the ball of a union region it is nearest ([`ball_of`];
-    /// empty: one ball). `S`'s entries between two balls stay out of the matrix.
+    /// Per interface component, the group of balls of a union region it is nearest
+    /// ([`ball_of`]; empty: one group). `S`'s entries between two groups stay out of the
+    /// matrix.
     pub(super) ball: &'a [u8],
     /// Lumped mass per equation, kg.
     pub(super) mass: &'a [f64],
@@ -137,8 +138,8 @@ impl TickMatrixParts<'_> {
     /// The lower triangle of `A` with margin `c`, in single precision: the solve only sets
     /// the step, while the residual (forces) stays in double precision, so equilibria are
     /// unaffected (module documentation); it halves the memory the solve streams. For the
-    /// same reason the far field's coupling between two balls of a union region (`S`'s
-    /// entries between their interfaces) is left out: it acts through the residual, and the
+    /// same reason the far field's coupling between two balls of a union region
+    /// [`SEPARATE_BALLS_RADII`] apart (`S`'s entries between their interfaces) is left out: it acts through the residual, and the
     /// balls' parts of the factor stay separate instead of filling a dense block over every
     /// interface.
     pub(super) fn lower(&self, c: f64) -> Result<SparseColMat<usize, f32>, ModelError> {
@@ -376,7 +377,7 @@ impl CondensedSystem {
             .iter()
             .map(|d| body.lumped_mass_kg()[d / 3])
             .collect();
-        let ball = ball_of(balls, body.rest(), &gamma_dof);
+        let ball = ball_of(balls, region.radius_m, body.rest(), &gamma_dof);
         let parts = TickMatrixParts {
             active: &active,
             material: *body.material(),
@@ -428,17 +429,37 @@ impl CondensedSystem {
     }
 }
 
-/// Per interface component `gamma_dof` (global components of nodes at `rest`, m): the index
-/// of the nearest of `balls` (ties: the first); empty for one ball.
-pub(super) fn ball_of(balls: &RegionBalls, rest: &[DVec3], gamma_dof: &[usize]) -> Vec<u8> {
+/// Per interface component `gamma_dof` (global components of nodes at `rest`, m): the group
+/// of the nearest of `balls` (ties: the first), balls whose centres are within
+/// [`SEPARATE_BALLS_RADII`] radii `radius_m` of each other (transitively) forming one group;
+/// empty when there is one group.
+pub(super) fn ball_of(
+    balls: &RegionBalls,
+    radius_m: f64,
+    rest: &[DVec3],
+    gamma_dof: &[usize],
+) -> Vec<u8> {
     let centres = balls.centres();
-    if centres.len() < 2 {
+    let mut group: [u8; MAX_REGION_BALLS] = std::array::from_fn(|k| k as u8);
+    // Merge until stable (at most MAX_REGION_BALLS passes): the smaller label wins.
+    for _ in 0..centres.len() {
+        for i in 0..centres.len() {
+            for j in 0..centres.len() {
+                if centres[i].distance(centres[j]) < SEPARATE_BALLS_RADII * radius_m {
+                    let g = group[i].min(group[j]);
+                    (group[i], group[j]) = (g, g);
+                }
+            }
+        }
+    }
+    if group[..centres.len()].iter().all(|&g| g == group[0]) {
         return Vec::new();
     }
     let nearest = |p: DVec3| {
-        (0..centres.len())
+        let k = (0..centres.len())
             .min_by(|&i, &j| p.distance(centres[i]).total_cmp(&p.distance(centres[j])))
-            .unwrap_or(0) as u8
+            .unwrap_or(0);
+        group[k]
     };
     gamma_dof.iter().map(|&d| nearest(rest[d / 3])).collect()
 }

@@ -30,6 +30,7 @@ impl CondensedSolver {
         }
         let ball = ball_of(
             &self.params.balls,
+            self.params.region.radius_m,
             self.system.active.rest(),
             &self.system.gamma_dof,
         );
