@@ -894,7 +894,7 @@ fn surface_map(boundary: &[[u32; 3]], n: usize) -> (Vec<u32>, Vec<[u32; 3]>) {
 }
 
 /// The following region's coarse companion, built from the scene's `fallback` (only when the
-/// region follows the probe).
+/// region follows the probe) with the scene's tool slots (it ticks every slot).
 fn companion(
     scene: &Scene,
     follows: bool,
@@ -903,7 +903,11 @@ fn companion(
     Ok(match (&scene.fallback, follows) {
         (Some(coarse), true) => {
             progress("coarse companion", 1.0);
-            let sim = FemBody::new(coarse).map_err(|e| {
+            let coarse = Scene {
+                tools: scene.tools.clone(),
+                ..(**coarse).clone()
+            };
+            let sim = FemBody::new(&coarse).map_err(|e| {
                 ModelError::field(
                     "active_region.fallback_target_tets",
                     format!("the coarse companion: {e}"),
