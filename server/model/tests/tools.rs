@@ -23,6 +23,7 @@ mod counting_alloc;
 use glam::DVec3;
 use haptic_model::body::{SoftBody, TickInput, TickOutput};
 use haptic_model::fem::FemBody;
+use haptic_model::integrate::condensed::SEPARATE_BALLS_RADII;
 use haptic_model::press::{LV_PROBE_Z_M, PressLine, lv_epicardium_point};
 use haptic_model::scene::{Scene, load_builtin};
 
@@ -592,4 +593,215 @@ fn named_tools_take_their_slots_with_their_own_radius_and_force_limit() {
     assert!(big.in_contact && small.in_contact && needle.in_contact);
     assert!(big.force_on_device_n.length() > 1.05 * small.force_on_device_n.length());
     assert!((needle.force_on_device_n.length() - 0.005).abs() < 1e-12);
+}
+
+/// `lv_h1_condensed.toml` as shipped (a following region with its coarse companion), its
+/// regions prepared on demand (tiles off: the union of several balls is prepared on demand
+/// anyway, and a blocking request would otherwise also wait for the tile being built).
+fn lv_h1_following() -> Scene {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../deploy/scenes/lv_h1_condensed.toml");
+    let mut scene = haptic_model::scene::load_scene_file(&path).expect("lv_h1_condensed.toml");
+    let region = scene.active_region.as_mut().expect("region");
+    assert!(region.follow && scene.fallback.is_some());
+    region.tiles = haptic_model::integrate::condensed::TileMode::Off;
+    scene
+}
+
+/// A body of `scene` whose ticks wait for each region they request (deterministic swaps).
+fn blocking_body(scene: &Scene) -> FemBody {
+    let mut body = FemBody::new(scene).expect("following body");
+    body.set_blocking_region_preparation(true);
+    body
+}
+
+/// Per tick of a two-slot run: the outputs, the companion's weights of the two slots and the
+/// following region's balls (0 and 0 without).
+type FollowTrace = Vec<([TickOutput; 2], [f64; 2], usize)>;
+
+/// Runs `ticks` two-slot ticks of `body` with `input(tick)`; returns the trace and the
+/// allocations the ticks made on this thread.
+fn run_following(
+    body: &mut FemBody,
+    ticks: usize,
+    mut input: impl FnMut(usize) -> [TickInput; 2],
+) -> (FollowTrace, usize) {
+    let mut trace = Vec::with_capacity(ticks);
+    let mut allocations = 0;
+    for k in 0..ticks {
+        let mut out = [TickOutput::default(); 2];
+        let inputs = input(k);
+        let (ticked, a) = counted(|| body.tick_tools(&inputs, &mut out));
+        ticked.expect("tick");
+        allocations += a;
+        let w = body.fallback_stats().map_or([0.0; 4], |f| f.weights);
+        let balls = body.follow_stats().map_or(0, |f| f.balls);
+        trace.push((out, [w[0], w[1]], balls));
+    }
+    (trace, allocations)
+}
+
+/// The shipped following region (`lv_h1_condensed`) takes two tools (its default): two tools
+/// pressing 1 mm on opposite sides (19 mm apart) get a region of two balls, one at each
+/// (prepared at the first request, before contact), so the region answers both (the companion's
+/// weights stay 0) and each hold is steady. Each force is within `FORCE_TOL` of the whole
+/// body's (`lv_h1.toml`, nothing condensed) with the same two tools; and pressing the other
+/// side changes it as it changes the whole body's (two opposite presses cancel the
+/// ventricle's bending: each force is 15-16 % above one tool's alone, on both models). Tool 1
+/// leaving mid-hold leaves tool 0's force continuous (under the 7 % JND per tick) while the
+/// region shrinks back to one ball. The two-tool ticks, swaps included, allocate nothing.
+#[test]
+fn a_following_region_covers_two_tools_apart_and_lets_one_leave() {
+    check_two_tools_apart(std::f64::consts::PI);
+}
+
+/// [`a_following_region_covers_two_tools_apart_and_lets_one_leave`] with the second tool at
+/// 2.35 rad round (centres 2.55 radii apart, just past `SEPARATE_BALLS_RADII`: the closest
+/// balls whose coupling the tick matrix leaves out).
+#[test]
+fn a_following_region_covers_two_tools_at_the_separation_limit() {
+    check_two_tools_apart(2.35);
+}
+
+/// The checks of [`a_following_region_covers_two_tools_apart_and_lets_one_leave`] with tool 0
+/// at azimuth 0 and tool 1 at `azimuth` (rad).
+fn check_two_tools_apart(azimuth: f64) {
+    const FORCE_TOL: f64 = 0.03;
+    let scene = lv_h1_following();
+    assert_eq!(scene.tools.max_tools, 2);
+    let whole = {
+        let path =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../deploy/scenes/lv_h1.toml");
+        haptic_model::scene::load_scene_file(&path).expect("lv_h1.toml")
+    };
+    let r = scene.probe.radius_m;
+    let (a, b) = (line_at(0.0, r), line_at(azimuth, r));
+    let depth = 1e-3;
+    let (n, leave_for) = (ticks(RAMP_S + HOLD_S), ticks(0.3));
+    let input = |line: &PressLine, k: usize| ramp_input(line, depth, (k + 1) as f64 * 1e-3);
+    let press = |scene: &Scene, second: bool| {
+        let mut body = blocking_body(scene);
+        let none = TickInput::default();
+        run_following(&mut body, n, |k| {
+            [input(&a, k), if second { input(&b, k) } else { none }]
+        })
+        .0
+    };
+    let (two, allocations, refs) = std::thread::scope(|s| {
+        let refs = [(&scene, false), (&whole, true), (&whole, false)]
+            .map(|(sc, second)| s.spawn(move || press(sc, second)));
+        let mut body = blocking_body(&scene);
+        let (mut two, mut allocations) =
+            run_following(&mut body, n, |k| [input(&a, k), input(&b, k)]);
+        let balls = body.condensed().expect("region").balls();
+        let gap = match balls.centres() {
+            [p, q] => p.distance(*q) / scene.active_region.expect("region").radius_m,
+            other => panic!("{other:?}"),
+        };
+        eprintln!("ball centres {gap:.3} radii apart");
+        assert!(gap >= SEPARATE_BALLS_RADII);
+        let (left, a_left) = run_following(&mut body, leave_for, |k| {
+            [input(&a, n + k), TickInput::default()]
+        });
+        two.extend(left);
+        allocations += a_left;
+        let stats = body.follow_stats().expect("follows");
+        eprintln!("two tools at {azimuth} rad: {stats:?}");
+        assert_eq!(stats.failed, 0);
+        let refs = refs.map(|h| h.join().expect("reference run"));
+        (two, allocations, refs)
+    });
+    assert_eq!(allocations, 0, "the two-tool ticks allocated");
+    let hold = ticks(RAMP_S + 0.2)..n;
+    let outs = |t: &FollowTrace| t.iter().map(|e| e.0).collect::<Vec<_>>();
+    let two_out = outs(&two);
+    let [alone, whole_two, whole_alone] = refs.each_ref().map(outs);
+    // The region covers both from before contact to the end of the hold.
+    let first_contact = two_out
+        .iter()
+        .position(|o| o[0].in_contact || o[1].in_contact);
+    let covered = two[first_contact.expect("contact")..n]
+        .iter()
+        .all(|(_, w, balls)| *balls == 2 && *w == [0.0, 0.0]);
+    assert!(covered, "the companion answered or the region lost a ball");
+    let mean = |t: &[[TickOutput; 2]], slot| hold_stats(t, slot, hold.clone()).0;
+    for slot in 0..2 {
+        let (f, change) = hold_stats(&two_out, slot, hold.clone());
+        let f_whole = mean(&whole_two, slot);
+        let rel = (f - f_whole).length() / f_whole.length();
+        eprintln!("tool {slot}: {f} (change {change:.2e} N), whole body {f_whole}, rel. {rel:.4}");
+        assert!(two_out[n - 1][slot].in_contact);
+        assert!(change < JND * f.length(), "tool {slot} not steady");
+        assert!(f.dot(-[a, b][slot].direction) > 0.005, "{f}");
+        assert!(
+            rel < FORCE_TOL,
+            "tool {slot}: {f} vs {f_whole} on the whole body"
+        );
+    }
+    // The second tool's effect on the first, on both models.
+    let gain = |two: &[[TickOutput; 2]], one: &[[TickOutput; 2]]| {
+        mean(two, 0).length() / mean(one, 0).length()
+    };
+    let (g_region, g_whole) = (gain(&two_out, &alone), gain(&whole_two, &whole_alone));
+    eprintln!(
+        "tool 0 with the other side pressed / alone: region {g_region:.4}, whole body {g_whole:.4}"
+    );
+    assert!((g_region - g_whole).abs() < FORCE_TOL * g_whole);
+    // Tool 1 leaves: tool 0 continuous, the region back to one ball.
+    let (held, _) = hold_stats(&two_out, 0, n - 100..n);
+    let (_, change) = hold_stats(&two_out, 0, n - 1..n + leave_for);
+    eprintln!(
+        "tool 1 left: tool 0's largest change {:.2} % per tick",
+        100.0 * change / held.length()
+    );
+    assert!(change < JND * held.length(), "{change} vs {held}");
+    let shrunk = (n..n + leave_for)
+        .find(|&k| two[k].2 == 1)
+        .expect("one ball again");
+    let step = |k: usize| {
+        let f = |k: usize| two_out[k][0].force_on_device_n;
+        100.0 * (f(k) - f(k - 1)).length() / held.length()
+    };
+    eprintln!(
+        "tick by tick after tool 1 left (%): {:?}; one ball from tick {}",
+        (n..n + 30)
+            .map(step)
+            .map(|c| (c * 100.0).round() / 100.0)
+            .collect::<Vec<_>>(),
+        shrunk - n
+    );
+    assert!(!two_out[n][1].in_contact && two_out[n + leave_for - 1][0].in_contact);
+    assert_eq!(two.last().expect("ticks").2, 1);
+}
+
+/// On a following region (`lv_h1_condensed`) too, one tool in slot 0 of two is the one-tool
+/// tick bit for bit (its swaps included): forces and state.
+#[test]
+fn one_tool_in_two_slots_of_a_following_region_is_the_one_tool_tick_bit_for_bit() {
+    let scene = lv_h1_following();
+    let (mut one, mut two) = (blocking_body(&scene), blocking_body(&scene));
+    // Half a radian round from the region's first centre: the region moves to the tool.
+    let a = line_at(0.5, scene.probe.radius_m);
+    for k in 0..ticks(RAMP_S + 0.05) {
+        let input = ramp_input(&a, 1e-3, (k + 1) as f64 * 1e-3);
+        let expected = one.tick(&input).unwrap();
+        let mut out = [TickOutput::default(); 2];
+        two.tick_tools(&[input, TickInput::default()], &mut out)
+            .unwrap();
+        assert_eq!(out[0], expected, "tick {k}");
+        assert!(!out[1].in_contact);
+    }
+    assert!(one.follow_stats().expect("follows").swaps >= 1);
+    assert_eq!(
+        one.follow_stats().unwrap().swaps,
+        two.follow_stats().unwrap().swaps
+    );
+    let bits = |b: &FemBody| -> Vec<[u64; 3]> {
+        b.state()
+            .x
+            .iter()
+            .map(|p| p.to_array().map(f64::to_bits))
+            .collect()
+    };
+    assert!(bits(&one) == bits(&two), "the states differ");
 }

@@ -249,6 +249,22 @@ impl Probe {
         probe
     }
 
+    /// A copy of this probe for another tool slot: the same surface, law and curvature, the
+    /// contact scratch at full capacity (a derived clone keeps only the lengths, so the copy
+    /// would grow its patch and rows in its first contacts: allocations in the servo tick).
+    /// Not for the servo tick.
+    pub fn clone_for_slot(&self) -> Self {
+        Self {
+            patch_nodes: Vec::with_capacity(MAX_PATCH_NODES),
+            patch_weights: Vec::with_capacity(MAX_PATCH_NODES),
+            tris: Vec::with_capacity(MAX_CONTACT_TRIANGLES),
+            load_nodes: Vec::with_capacity(MAX_PATCH_NODES),
+            load_weights: Vec::with_capacity(MAX_PATCH_NODES),
+            rows: implicit::CouplingRows::with_capacity(),
+            ..self.clone()
+        }
+    }
+
     /// Sets the local law of [`ContactModel::PatchLocal`] (by default Hertz's with
     /// [`ProbeParams::hertz_modulus_pa`]). Not for the servo tick (the law is moved in).
     pub fn set_local_law(&mut self, law: LocalLaw) {

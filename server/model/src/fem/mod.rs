@@ -9,11 +9,11 @@
 //! loads, contact update (the probe's explicit reaction), one step of the [`Stepper`] (which
 //! completes the coupling), and a divergence check; then the output.
 //!
-//! **Several tools** (issue 50). The body keeps one [`Probe`] per tool slot (`probe.max_tools`,
-//! one with a following region); [`FemBody::tick_tools`] updates every connected slot's probe
+//! **Several tools** (issue 50). The body keeps one [`Probe`] per tool slot (`probe.max_tools`); [`FemBody::tick_tools`] updates every connected slot's probe
 //! and adds its reaction in each sub-step, and the stepper solves all their couplings in the
 //! same step ([`Stepper::step_tools`]: backward Euler joins their rows in one low-rank term).
-//! [`FemBody::tick`] is slot 0 alone, the other slots released.
+//! [`FemBody::tick`] is slot 0 alone, the other slots released. A following region covers
+//! every connected tool (a union of balls, [`crate::integrate::follow`], "Several tools").
 //!
 //! **The coarse companion.** A following active region (`[active_region] follow`) holds only
 //! the elements near its centre; a new one takes seconds to prepare on a large mesh
@@ -23,8 +23,9 @@
 //! backward Euler on its rest factor) that ticks with the same device input every tick, on a
 //! worker of the session's [`TickPool`] beside the region when it has one (the two share no
 //! state, so the output is the same bit for bit at any thread count).
-//! Where the contact patch reaches a node the region does not simulate, the companion answers:
-//! the output force (and contact stiffness) is `(1 - w) f_region + w f_companion`, with `w`
+//! The companion ticks every tool slot; where a tool's contact patch reaches a node the region
+//! does not simulate, the companion answers for that tool: its output force (and contact
+//! stiffness) is `(1 - w) f_region + w f_companion`, with the tool's own weight `w`
 //! moving towards 1 by at most `1 / FALLBACK_BLEND_TICKS` per tick; it moves back towards 0
 //! only after the region has held the whole patch for `FALLBACK_SETTLE_TICKS` ticks (a region
 //! swapped in under a deep probe starts undeformed and needs that long to settle). Viewers
@@ -46,7 +47,7 @@ use crate::body::{
 use crate::contact::coupling::{MAX_COUPLED_PROBES, MAX_COUPLING_ROWS};
 use crate::contact::{ContactModel, CouplingMerge, LocalLaw, MAX_PATCH_NODES, Probe, ProbeParams};
 use crate::element::{CLAMPED, FemModel, ForceScratch};
-use crate::integrate::condensed::{ActiveRegion, CondensedSolver};
+use crate::integrate::condensed::{ActiveRegion, CondensedSolver, MAX_REGION_BALLS};
 use crate::integrate::follow::{FollowStats, RegionFollower};
 use crate::integrate::implicit::CgStats;
 use crate::integrate::{self, IntegratorKind, IntegratorParams, StepPlan, Stepper};
@@ -64,6 +65,8 @@ use fallback::Fallback;
 
 // The probes' joined implicit term holds every tool slot's rows.
 const _: () = assert!(MAX_TOOLS <= MAX_COUPLED_PROBES);
+// A following region has a ball per tool slot.
+const _: () = assert!(MAX_TOOLS <= MAX_REGION_BALLS);
 
 /// A nodal speed above this (m/s) is treated as divergence.
 pub const DIVERGENCE_SPEED_M_PER_S: f64 = 100.0;
@@ -264,7 +267,7 @@ impl FemBody {
         }
         let (surface_nodes, surface_triangles) = surface_map(&boundary, n);
         let implicit_dt_s = (p.kind == IntegratorKind::BackwardEuler).then_some(plan.sub_dt_s);
-        let probes = tool_probes(scene, &touchable, fem.rest(), implicit_dt_s, follows);
+        let probes = tool_probes(scene, &touchable, fem.rest(), implicit_dt_s);
         let fallback = companion(scene, follows, progress)?;
         Ok(Self {
             stepper,
@@ -340,50 +343,51 @@ impl FemBody {
         if let Some(time_s) = self.status.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
+        let outputs = &mut outputs[..inputs.len()];
         match self.fallback.take() {
             None => self.tick_model(inputs, outputs)?,
             Some(mut fb) => {
-                // A following region takes one tool (`max_tools` 1): `inputs` has one slot.
-                let out = self.tick_with_companion(&inputs[0], &mut fb);
+                let ticked = self.tick_with_companion(inputs, outputs, &mut fb);
                 self.fallback = Some(fb);
-                outputs[0] = out?;
+                ticked?;
             }
         }
         self.status.last_output = outputs[0];
         Ok(())
     }
 
-    /// [`Self::tick`] of a following region with its coarse companion `fb` (taken out of
-    /// `self.fallback` meanwhile): the region on this thread and the companion's tick beside it
-    /// on a pool worker ([`TickPool::join`]; they share nothing but `input`, so the outputs do
-    /// not depend on the thread count), then the blend (module documentation, "The coarse
-    /// companion"). Both tick even when the region fails (its error is returned first; a
-    /// diverged region quarantines the session anyway).
+    /// [`Self::tick_tools`] of a following region with its coarse companion `fb` (taken out
+    /// of `self.fallback` meanwhile): the region on this thread and the companion's tick of
+    /// every slot beside it on a pool worker ([`TickPool::join`]; they share nothing but
+    /// `inputs`, so the outputs do not depend on the thread count), then each slot's blend
+    /// (module documentation, "The coarse companion"). Both tick even when the region fails
+    /// (its error is returned first; a diverged region quarantines the session anyway).
     fn tick_with_companion(
         &mut self,
-        input: &TickInput,
+        inputs: &[TickInput],
+        outputs: &mut [TickOutput],
         fb: &mut Fallback,
-    ) -> Result<TickOutput, ModelError> {
+    ) -> Result<(), ModelError> {
         let swaps_before = self.follow.0.as_ref().map_or(0, RegionFollower::swaps);
         let pool = Arc::clone(&self.pool);
-        let (fine, coarse) = pool.join(
-            || {
-                let mut out = [TickOutput::default()];
-                self.tick_model(std::slice::from_ref(input), &mut out)
-                    .map(|()| out[0])
-            },
-            || fb.tick_companion(input),
+        let n = inputs.len();
+        let mut fine = [TickOutput::default(); MAX_TOOLS];
+        let mut coarse = [TickOutput::default(); MAX_TOOLS];
+        let (ticked, companion) = pool.join(
+            || self.tick_model(inputs, &mut fine[..n]),
+            || fb.tick_companion(inputs, &mut coarse[..n]),
         );
-        let (fine, coarse) = (fine?, coarse?);
+        ticked?;
+        companion?;
         let swapped = self.follow.0.as_ref().map_or(0, RegionFollower::swaps) != swaps_before;
-        let outside = self.stepper.condensed().is_some_and(|c| {
-            self.probes[0]
-                .patch()
-                .0
-                .iter()
-                .any(|&i| !c.is_active_node(i))
-        });
-        Ok(fb.blend(fine, coarse, outside, swapped))
+        let mut outside = [false; MAX_TOOLS];
+        if let Some(c) = self.stepper.condensed() {
+            for (o, probe) in outside.iter_mut().zip(&self.probes) {
+                *o = probe.patch().0.iter().any(|&i| !c.is_active_node(i));
+            }
+        }
+        fb.blend(&fine[..n], &coarse[..n], &outside[..n], swapped, outputs);
+        Ok(())
     }
 
     /// The tick of this body's own model (the region when one follows), without the companion:
@@ -394,14 +398,19 @@ impl FemBody {
         outputs: &mut [TickOutput],
     ) -> Result<(), ModelError> {
         if let (Some(f), Stepper::Condensed(solver)) = (&mut self.follow.0, &mut self.stepper) {
-            let input = &inputs[0];
-            let device = input
-                .device_position_m
-                .map(|p| (p, input.device_velocity_m_per_s));
+            let mut devices = [None; MAX_TOOLS];
+            for (d, input) in devices.iter_mut().zip(inputs) {
+                *d = input
+                    .device_position_m
+                    .map(|p| (p, input.device_velocity_m_per_s));
+            }
+            let patches: [&[u32]; MAX_TOOLS] =
+                std::array::from_fn(|k| self.probes.get(k).map_or(&[][..], |p| p.patch().0));
+            let slots = self.probes.len().min(MAX_TOOLS);
             f.before_tick(
                 solver,
-                device,
-                self.probes[0].patch().0,
+                &devices[..inputs.len().min(MAX_TOOLS)],
+                &patches[..slots],
                 &mut self.state.x,
                 &mut self.state.v,
             );
@@ -764,27 +773,22 @@ fn write_positions(nodes: &[u32], x: &[DVec3], rest: Option<&[DVec3]>, out: &mut
     max_d2.sqrt()
 }
 
-/// One probe per tool slot of `scene` (one with a following region) over `touchable` of a
+/// One probe per tool slot of `scene` over `touchable` of a
 /// body at rest `rest`, each with its tool's parameters ([`Scene::tool_probe`]), the local law
 /// of its radius, and the implicit sphere for a backward Euler sub-step `implicit_dt_s`. Slots
-/// with the same parameters share one set-up (cloned).
+/// with the same parameters share one set-up ([`Probe::clone_for_slot`]).
 fn tool_probes(
     scene: &Scene,
     touchable: &[[u32; 3]],
     rest: &[DVec3],
     implicit_dt_s: Option<f64>,
-    follows: bool,
 ) -> Vec<Probe> {
-    let slots = if follows {
-        1
-    } else {
-        scene.tools.max_tools.max(1)
-    };
+    let slots = scene.tools.max_tools.max(1);
     let mut probes: Vec<Probe> = Vec::with_capacity(slots);
     for slot in 0..slots {
         let params = probe_params_of(scene, slot);
         if let Some(same) = probes.iter().find(|p| p.params == params) {
-            probes.push(same.clone());
+            probes.push(same.clone_for_slot());
             continue;
         }
         let mut probe = Probe::new(params, touchable.to_vec(), rest);
@@ -890,7 +894,7 @@ fn surface_map(boundary: &[[u32; 3]], n: usize) -> (Vec<u32>, Vec<[u32; 3]>) {
 }
 
 /// The following region's coarse companion, built from the scene's `fallback` (only when the
-/// region follows the probe).
+/// region follows the probe) with the scene's tool slots (it ticks every slot).
 fn companion(
     scene: &Scene,
     follows: bool,
@@ -899,7 +903,11 @@ fn companion(
     Ok(match (&scene.fallback, follows) {
         (Some(coarse), true) => {
             progress("coarse companion", 1.0);
-            let sim = FemBody::new(coarse).map_err(|e| {
+            let coarse = Scene {
+                tools: scene.tools.clone(),
+                ..(**coarse).clone()
+            };
+            let sim = FemBody::new(&coarse).map_err(|e| {
                 ModelError::field(
                     "active_region.fallback_target_tets",
                     format!("the coarse companion: {e}"),
@@ -916,7 +924,7 @@ impl SoftBody for FemBody {
         FemBody::tick(self, input)
     }
 
-    /// The scene's `probe.max_tools` (1 with a following active region).
+    /// The scene's `probe.max_tools`.
     fn max_tools(&self) -> usize {
         self.probes.len()
     }

@@ -125,6 +125,10 @@ pub(super) struct TickMatrixParts<'a> {
     pub(super) gamma_dof: &'a [usize],
     /// `S`, row-major `g x g`.
     pub(super) schur: &'a [f64],
+    /// Per interface component, the group of balls of a union region it is nearest
+    /// ([`ball_of`]; empty: one group). `S`'s entries between two groups stay out of the
+    /// matrix.
+    pub(super) ball: &'a [u8],
     /// Lumped mass per equation, kg.
     pub(super) mass: &'a [f64],
     pub(super) h: f64,
@@ -133,7 +137,11 @@ pub(super) struct TickMatrixParts<'a> {
 impl TickMatrixParts<'_> {
     /// The lower triangle of `A` with margin `c`, in single precision: the solve only sets
     /// the step, while the residual (forces) stays in double precision, so equilibria are
-    /// unaffected (module documentation); it halves the memory the solve streams.
+    /// unaffected (module documentation); it halves the memory the solve streams. For the
+    /// same reason the far field's coupling between two balls of a union region
+    /// [`SEPARATE_BALLS_RADII`] apart (`S`'s entries between their interfaces) is left out: it acts through the residual, and the
+    /// balls' parts of the factor stay separate instead of filling a dense block over every
+    /// interface.
     pub(super) fn lower(&self, c: f64) -> Result<SparseColMat<usize, f32>, ModelError> {
         let (h, mat, eq) = (self.h, self.material, self.eq);
         let combined = MaterialParams {
@@ -150,10 +158,11 @@ impl TickMatrixParts<'_> {
         };
         rest_tangent(self.active, &combined, |r, c, v| push(eq[r], eq[c], v));
         let g = self.gamma_dof.len();
+        let apart = |a: usize, b: usize| !self.ball.is_empty() && self.ball[a] != self.ball[b];
         for a in 0..g {
             for b in 0..g {
                 let v = h * h * self.schur[a * g + b];
-                if v != 0.0 {
+                if v != 0.0 && !apart(a, b) {
                     push(eq[self.gamma_dof[a]], eq[self.gamma_dof[b]], v);
                 }
             }
@@ -256,13 +265,56 @@ impl CondensedSolver {
         dt_s: f64,
         progress: &mut dyn FnMut(&str, f64),
     ) -> Result<Self, ModelError> {
+        let balls = RegionBalls::one(region.centre_m);
+        Self::with_balls(body, mesh, region, balls, dt_s, progress)
+    }
+
+    /// [`CondensedSolver::new`] on the union of balls of `region`'s radius at `balls`
+    /// ([`RegionBalls`]; issue 50: a following region around several tools). The region's
+    /// centre becomes the first ball's; one ball is [`CondensedSolver::new`].
+    ///
+    /// # Errors
+    /// As [`CondensedSolver::new`]; a non-finite centre or no ball is
+    /// [`ModelError::SceneField`] (`active_region`).
+    pub fn new_union(
+        body: &FemModel,
+        mesh: &TetMesh,
+        region: ActiveRegion,
+        balls: RegionBalls,
+        dt_s: f64,
+    ) -> Result<Self, ModelError> {
+        let Some(&first) = balls.centres().first() else {
+            return Err(ModelError::field("active_region", "a union of no ball"));
+        };
+        let region = ActiveRegion {
+            centre_m: first,
+            ..region
+        };
+        Self::with_balls(body, mesh, region, balls, dt_s, &mut |_, _| {})
+    }
+
+    fn with_balls(
+        body: &FemModel,
+        mesh: &TetMesh,
+        region: ActiveRegion,
+        balls: RegionBalls,
+        dt_s: f64,
+        progress: &mut dyn FnMut(&str, f64),
+    ) -> Result<Self, ModelError> {
         check_region(body, &region)?;
-        let system = CondensedSystem::build(body, mesh, &region, dt_s, progress)?;
+        if !balls.centres().iter().all(|c| c.is_finite()) {
+            return Err(ModelError::field("active_region", "needs finite centres"));
+        }
+        let system = CondensedSystem::build(body, mesh, &region, &balls, dt_s, progress)?;
         let (m, g) = (system.eq_dof.len(), system.gamma_dof.len());
         let stack = Workspace::new(system.symbolic.solve_in_place_scratch::<f32>(2, Par::Seq));
         progress("condensation: done", 1.0);
         Ok(Self {
-            params: CondensedParams { h: dt_s, region },
+            params: CondensedParams {
+                h: dt_s,
+                region,
+                balls,
+            },
             system,
             contact: ContactColumns {
                 col: vec![u32::MAX; body.node_count()],
@@ -290,6 +342,7 @@ impl CondensedSystem {
         body: &FemModel,
         mesh: &TetMesh,
         region: &ActiveRegion,
+        balls: &RegionBalls,
         h: f64,
         progress: &mut dyn FnMut(&str, f64),
     ) -> Result<Self, ModelError> {
@@ -299,7 +352,7 @@ impl CondensedSystem {
             far_model,
             node_active,
             node_far,
-        } = select_elements(body, mesh, region)?;
+        } = select_elements(body, mesh, region, balls)?;
         let num = number_equations(body, &node_active, &node_far);
         let Condensation {
             schur,
@@ -324,12 +377,14 @@ impl CondensedSystem {
             .iter()
             .map(|d| body.lumped_mass_kg()[d / 3])
             .collect();
+        let ball = ball_of(balls, region.radius_m, body.rest(), &gamma_dof);
         let parts = TickMatrixParts {
             active: &active,
             material: *body.material(),
             eq: &eq,
             gamma_dof: &gamma_dof,
             schur: &schur,
+            ball: &ball,
             mass: &mass,
             h,
         };
@@ -374,6 +429,41 @@ impl CondensedSystem {
     }
 }
 
+/// Per interface component `gamma_dof` (global components of nodes at `rest`, m): the group
+/// of the nearest of `balls` (ties: the first), balls whose centres are within
+/// [`SEPARATE_BALLS_RADII`] radii `radius_m` of each other (transitively) forming one group;
+/// empty when there is one group.
+pub(super) fn ball_of(
+    balls: &RegionBalls,
+    radius_m: f64,
+    rest: &[DVec3],
+    gamma_dof: &[usize],
+) -> Vec<u8> {
+    let centres = balls.centres();
+    let mut group: [u8; MAX_REGION_BALLS] = std::array::from_fn(|k| k as u8);
+    // Merge until stable (at most MAX_REGION_BALLS passes): the smaller label wins.
+    for _ in 0..centres.len() {
+        for i in 0..centres.len() {
+            for j in 0..centres.len() {
+                if centres[i].distance(centres[j]) < SEPARATE_BALLS_RADII * radius_m {
+                    let g = group[i].min(group[j]);
+                    (group[i], group[j]) = (g, g);
+                }
+            }
+        }
+    }
+    if group[..centres.len()].iter().all(|&g| g == group[0]) {
+        return Vec::new();
+    }
+    let nearest = |p: DVec3| {
+        let k = (0..centres.len())
+            .min_by(|&i, &j| p.distance(centres[i]).total_cmp(&p.distance(centres[j])))
+            .unwrap_or(0);
+        group[k]
+    };
+    gamma_dof.iter().map(|&d| nearest(rest[d / 3])).collect()
+}
+
 /// The region's parameters and the mesh's size checked ([`CondensedSolver::new`]'s errors).
 fn check_region(body: &FemModel, region: &ActiveRegion) -> Result<(), ModelError> {
     let field = |m: &str| ModelError::field("active_region", m);
@@ -404,7 +494,8 @@ struct Selection {
     node_far: Vec<bool>,
 }
 
-/// Every tetrahedron with a corner node within the region is active, the others far.
+/// Every tetrahedron with a corner node within the region (within its radius of one of
+/// `balls`) is active, the others far.
 ///
 /// # Errors
 /// [`ModelError::SceneField`] for a region with no element; the parts' model errors.
@@ -412,13 +503,14 @@ fn select_elements(
     body: &FemModel,
     mesh: &TetMesh,
     region: &ActiveRegion,
+    balls: &RegionBalls,
 ) -> Result<Selection, ModelError> {
     let n = body.node_count();
     let r2 = region.radius_m * region.radius_m;
     let inside: Vec<bool> = body
         .rest()
         .iter()
-        .map(|p| p.distance_squared(region.centre_m) <= r2)
+        .map(|p| balls.centres().iter().any(|c| p.distance_squared(*c) <= r2))
         .collect();
     let keep: Vec<bool> = mesh
         .tets

@@ -28,12 +28,19 @@ impl CondensedSolver {
                 schur[b * g + a] = f64::from(v);
             }
         }
+        let ball = ball_of(
+            &self.params.balls,
+            self.params.region.radius_m,
+            self.system.active.rest(),
+            &self.system.gamma_dof,
+        );
         let parts = TickMatrixParts {
             active: &self.system.active,
             material: *self.system.active.material(),
             eq: &self.system.eq,
             gamma_dof: &self.system.gamma_dof,
             schur: &schur,
+            ball: &ball,
             mass: &self.system.mass,
             h: self.params.h,
         };

@@ -27,6 +27,17 @@
 //! (`active_region.fallback_target_tets`) lets the companion answer meanwhile
 //! ([`crate::fem::FemBody`], "The coarse companion").
 //!
+//! **Several tools** (issue 50). A request carries every connected tool's led point. The worker
+//! gives each point farther than [`MERGE_RADII`] radii from the balls so far a ball at the
+//! touchable node nearest it (a point farther than a radius from every touchable node gets
+//! none), so a region is the union of up to [`MAX_REGION_BALLS`] balls of the scene's radius
+//! ([`CondensedSolver::new_union`]). One ball is the one-tool protocol above, unchanged
+//! (tiles included). Several balls are prepared on demand (tiles are single balls), when
+//! their number changes or one of them would move [`RECENTRE_RADII`] radii; meanwhile the
+//! current region (and the companion) answers. The swap rule holds for each tool: the new
+//! region is near every device (one farther than a radius from both regions does not count
+//! when there are several) and holds at least as many nodes of every tool's contact patch.
+//!
 //! **Tiles** ([`TileMode::Background`], issue 48 s2): the worker keeps regions prepared ahead
 //! at centres covering the touchable surface ([`tile_centres`]) and builds them while it has
 //! no request, the tile nearest the last requested point first. A request then takes the tile
@@ -46,7 +57,8 @@ use std::time::{Duration, Instant};
 use glam::DVec3;
 
 use super::condensed::{
-    ActiveRegion, CondensedSolver, FOLLOW_LEAD_RADII, FOLLOW_NEAR_RADII, TileMode,
+    ActiveRegion, CondensedSolver, FOLLOW_LEAD_RADII, FOLLOW_NEAR_RADII, MAX_REGION_BALLS,
+    RegionBalls, TileMode,
 };
 use crate::ModelError;
 use crate::element::FemModel;
@@ -63,19 +75,25 @@ pub const POLL_TICKS: u64 = 20;
 /// The worker re-centres only when the centre would move at least this many radii.
 pub const RECENTRE_RADII: f64 = 0.25;
 
-/// A request from the servo: where the device is heading and where the region is.
+/// A tool's point within this many radii of an earlier tool's ball shares that ball (module
+/// documentation, "Several tools").
+pub const MERGE_RADII: f64 = 0.5;
+
+/// A request from the servo: where the devices are heading and where the region is.
 #[derive(Debug, Clone, Copy)]
 struct Request {
-    point_m: DVec3,
-    centre_m: DVec3,
+    /// Every connected tool's led device point, m (slot order; the list type is reused).
+    points_m: RegionBalls,
+    /// The balls of the region in use.
+    current: RegionBalls,
 }
 
 /// The worker's answer.
 enum Prepared {
-    /// A new region, centred at `centre_m`, prepared in `seconds`.
+    /// A new region, the union of `balls`.
     Region {
         solver: Box<CondensedSolver>,
-        centre_m: DVec3,
+        balls: RegionBalls,
     },
     /// No re-centring needed (or the preparation failed: counted in [`Shared`]).
     Nothing,
@@ -125,8 +143,10 @@ pub struct FollowStats {
     pub last_prepare_s: f64,
     /// Largest preparation time, s.
     pub max_prepare_s: f64,
-    /// Centre of the region in use, m (rest configuration).
+    /// Centre of the region in use, m (rest configuration; of a union, its first ball).
     pub centre_m: DVec3,
+    /// Balls of the region in use (1, or one per tool apart from the others).
+    pub balls: usize,
     /// Bytes held by the region in use ([`CondensedSolver::memory_bytes`]).
     pub region_bytes: usize,
     /// Requests answered by a built tile ([`TileMode::Background`]).
@@ -154,7 +174,7 @@ pub struct RegionFollower {
     worker: Thread,
     shared: Arc<Shared>,
     radius_m: f64,
-    centre_m: DVec3,
+    balls: RegionBalls,
     in_flight: bool,
     ticks: u64,
     next_request_tick: u64,
@@ -237,7 +257,7 @@ impl RegionFollower {
             worker: handle.thread().clone(),
             shared,
             radius_m: region.radius_m,
-            centre_m: region.centre_m,
+            balls: first.balls(),
             in_flight: false,
             ticks: 0,
             next_request_tick: 0,
@@ -270,7 +290,8 @@ impl RegionFollower {
             rejected: self.rejected,
             last_prepare_s: f(&self.shared.last_prepare_s),
             max_prepare_s: f(&self.shared.max_prepare_s),
-            centre_m: self.centre_m,
+            centre_m: self.balls.centres().first().copied().unwrap_or(DVec3::NAN),
+            balls: self.balls.centres().len(),
             region_bytes: self.region_bytes,
             tile_hits: self.shared.tile_hits.load(Ordering::Relaxed),
             tile_misses: self.shared.tile_misses.load(Ordering::Relaxed),
@@ -282,38 +303,44 @@ impl RegionFollower {
     }
 
     /// Called by the body at the start of every tick, before any sub-step: swaps in a prepared
-    /// region (handing over `x`, `v`) and sends the next request. `device` is the device point
-    /// and velocity (m, m/s) when one is present, `patch` the nodes of the current contact
-    /// patch. Allocation-free, lock-free, never waits (unless blocking).
+    /// region (handing over `x`, `v`) and sends the next request. `devices[k]` is tool slot
+    /// `k`'s device point and velocity (m, m/s) when it has one, `patches[k]` the nodes of its
+    /// contact patch (at most [`MAX_REGION_BALLS`] slots are read). Allocation-free,
+    /// lock-free, never waits (unless blocking).
     pub fn before_tick(
         &mut self,
         solver: &mut Box<CondensedSolver>,
-        device: Option<(DVec3, DVec3)>,
-        patch: &[u32],
+        devices: &[Option<(DVec3, DVec3)>],
+        patches: &[&[u32]],
         x: &mut [DVec3],
         v: &mut [DVec3],
     ) {
+        let devices = &devices[..devices.len().min(MAX_REGION_BALLS)];
         self.ticks += 1;
         if let Some(old) = self.pending_return.take() {
             self.give_back(old);
         }
-        self.take_result(solver, device, patch, x, v);
-        let Some((point, velocity)) = device else {
+        self.take_result(solver, devices, patches, x, v);
+        if devices.iter().all(Option::is_none) {
             return;
-        };
+        }
         if self.in_flight || self.ticks < self.next_request_tick {
             return;
         }
-        // Lead the device by its travel over one preparation (none when the tick waits).
+        // Lead each device by its travel over one preparation (none when the tick waits).
         let lead_s = if self.blocking {
             0.0
         } else {
             f64::from_bits(self.shared.last_prepare_s.load(Ordering::Relaxed))
         };
-        let lead = (velocity * lead_s).clamp_length_max(FOLLOW_LEAD_RADII * self.radius_m);
+        let mut points_m = RegionBalls::EMPTY;
+        for &(point, velocity) in devices.iter().flatten() {
+            let lead = (velocity * lead_s).clamp_length_max(FOLLOW_LEAD_RADII * self.radius_m);
+            points_m.push(point + if lead.is_finite() { lead } else { DVec3::ZERO });
+        }
         let request = Request {
-            point_m: point + if lead.is_finite() { lead } else { DVec3::ZERO },
-            centre_m: self.centre_m,
+            points_m,
+            current: self.balls,
         };
         if self.requests.push(request).is_ok() {
             self.in_flight = true;
@@ -323,7 +350,7 @@ impl RegionFollower {
                 while self.results.is_empty() {
                     std::thread::sleep(Duration::from_micros(100));
                 }
-                self.take_result(solver, device, patch, x, v);
+                self.take_result(solver, devices, patches, x, v);
             }
         }
     }
@@ -331,8 +358,8 @@ impl RegionFollower {
     fn take_result(
         &mut self,
         solver: &mut Box<CondensedSolver>,
-        device: Option<(DVec3, DVec3)>,
-        patch: &[u32],
+        devices: &[Option<(DVec3, DVec3)>],
+        patches: &[&[u32]],
         x: &mut [DVec3],
         v: &mut [DVec3],
     ) {
@@ -342,24 +369,31 @@ impl RegionFollower {
         self.in_flight = false;
         let Prepared::Region {
             solver: next,
-            centre_m,
+            balls,
         } = prepared
         else {
             return;
         };
-        // Near enough: closer to the device than the current centre, or (a region prepared
-        // ahead of a sliding probe) within the largest shift of it.
-        let near = device.is_none_or(|(p, _)| {
-            let d = p.distance(centre_m);
-            d < p.distance(self.centre_m) || d <= FOLLOW_NEAR_RADII * self.radius_m
+        let (r, several) = (self.radius_m, devices.iter().flatten().count() > 1);
+        // Near enough for every device: closer to it than the current region, or (a region
+        // prepared ahead of a sliding probe) within the largest shift of it; with several
+        // tools, one farther than a radius from both regions does not count.
+        let near = devices.iter().flatten().all(|&(p, _)| {
+            let (d, d_cur) = (balls.distance(p), self.balls.distance(p));
+            d < d_cur || d <= FOLLOW_NEAR_RADII * r || (several && d.min(d_cur) > r)
         });
-        // The contact patch must be held at least as well as by the current region (a region
-        // outrun by the probe is replaced by one that holds more of its patch).
-        let held = |c: &CondensedSolver| patch.iter().filter(|&&i| c.is_active_node(i)).count();
-        let holds_patch = held(&next) >= held(solver);
+        // Every contact patch must be held at least as well as by the current region (a
+        // region outrun by the probe is replaced by one that holds more of its patch).
+        let held = |c: &CondensedSolver, patch: &[u32]| {
+            patch.iter().filter(|&&i| c.is_active_node(i)).count()
+        };
+        let holds_patch = patches
+            .iter()
+            .take(MAX_REGION_BALLS)
+            .all(|p| held(&next, p) >= held(solver, p));
         if near && holds_patch && solver.hand_over(&next, x, v) {
             let old = std::mem::replace(solver, next);
-            self.centre_m = centre_m;
+            self.balls = balls;
             self.region_bytes = solver.memory_bytes();
             self.swaps += 1;
             self.give_back(old);
@@ -417,11 +451,7 @@ impl Worker {
             }
             match self.requests.pop() {
                 Ok(request) => {
-                    let answer = if self.cache.is_some() {
-                        self.lookup(request)
-                    } else {
-                        self.prepare(request)
-                    };
+                    let answer = self.answer(request);
                     // The servo sends one request at a time and reads the answer before the
                     // next, so the ring has room.
                     let _ = self.results.push(answer);
@@ -445,28 +475,60 @@ impl Worker {
             .fold((p, f64::INFINITY), |a, b| if b.1 < a.1 { b } else { a })
     }
 
-    fn prepare(&self, request: Request) -> Prepared {
+    /// The balls for `points` (module documentation, "Several tools"), and the first point
+    /// that got one (the one-ball request's point).
+    fn balls_for(&self, points: &RegionBalls) -> (RegionBalls, DVec3) {
         let radius = self.region.radius_m;
-        let (centre, d) = self.nearest(request.point_m);
-        if d > radius {
-            return Prepared::Nothing;
+        let mut balls = RegionBalls::EMPTY;
+        let mut lead = DVec3::NAN;
+        for &p in points.centres() {
+            let (centre, d) = self.nearest(p);
+            if d > radius || balls.distance(centre) <= MERGE_RADII * radius {
+                continue;
+            }
+            if balls.centres().is_empty() {
+                lead = p;
+            }
+            balls.push(centre);
         }
-        if centre.distance(request.centre_m) < RECENTRE_RADII * radius {
+        (balls, lead)
+    }
+
+    /// The answer to `request`: one ball as before (a tile, or [`Self::prepare`]), several
+    /// prepared on demand.
+    fn answer(&mut self, request: Request) -> Prepared {
+        let (balls, point_m) = self.balls_for(&request.points_m);
+        let current = request.current.centres();
+        match balls.centres() {
+            [] => Prepared::Nothing,
+            [_] if current.len() == 1 && self.cache.is_some() => self.lookup(point_m, current[0]),
+            // From a union back to one ball: the nearest tile, whatever the hysteresis.
+            [_] if self.cache.is_some() => self.lookup(point_m, DVec3::NAN),
+            _ => self.prepare(balls, current),
+        }
+    }
+
+    /// The region of `balls` unless it is `current` to [`RECENTRE_RADII`] radii (same number
+    /// of balls, each that near one of `current`).
+    fn prepare(&self, balls: RegionBalls, current: &[DVec3]) -> Prepared {
+        let radius = self.region.radius_m;
+        let close = |c: &DVec3| {
+            current
+                .iter()
+                .any(|k| c.distance(*k) < RECENTRE_RADII * radius)
+        };
+        if balls.centres().len() == current.len() && balls.centres().iter().all(close) {
             return Prepared::Nothing;
         }
         let start = Instant::now();
-        let region = ActiveRegion {
-            centre_m: centre,
-            ..self.region
-        };
-        match CondensedSolver::new(&self.body, &self.mesh, region, self.dt_s) {
+        match CondensedSolver::new_union(&self.body, &self.mesh, self.region, balls, self.dt_s) {
             Ok(mut solver) => {
                 solver.prepare_contact(&self.nodes);
                 self.shared.record_prepare_s(start.elapsed().as_secs_f64());
                 self.shared.prepared.fetch_add(1, Ordering::Relaxed);
                 Prepared::Region {
                     solver: Box::new(solver),
-                    centre_m: centre,
+                    balls,
                 }
             }
             Err(_) => {
@@ -530,18 +592,16 @@ impl Worker {
         true
     }
 
-    /// A request with tiles: the tile the cache chooses, copied (built first when missing).
-    fn lookup(&mut self, request: Request) -> Prepared {
-        let (_, d) = self.nearest(request.point_m);
-        if d > self.region.radius_m {
-            return Prepared::Nothing;
-        }
-        self.last_point_m = request.point_m;
+    /// A one-ball request with tiles for `point_m` while the region in use is centred at
+    /// `centre_m` (NaN: a union, which no tile is): the tile the cache chooses, copied (built
+    /// first when missing).
+    fn lookup(&mut self, point_m: DVec3, centre_m: DVec3) -> Prepared {
+        self.last_point_m = point_m;
         let start = Instant::now();
         let Some(cache) = self.cache.as_ref() else {
             return Prepared::Nothing;
         };
-        let Some(k) = cache.choose(request.point_m, request.centre_m) else {
+        let Some(k) = cache.choose(point_m, centre_m) else {
             return Prepared::Nothing;
         };
         let centre_m = cache.centres[k];
@@ -562,6 +622,9 @@ impl Worker {
         let solver = Box::new((*tile).clone());
         self.shared.record_prepare_s(start.elapsed().as_secs_f64());
         self.shared.prepared.fetch_add(1, Ordering::Relaxed);
-        Prepared::Region { solver, centre_m }
+        Prepared::Region {
+            solver,
+            balls: RegionBalls::one(centre_m),
+        }
     }
 }

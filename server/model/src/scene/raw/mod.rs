@@ -299,7 +299,7 @@ pub(super) fn parse_scene(
         material,
         integrator,
         probe,
-        tools: build_tools(&raw_probe, probe, one_tool_reason(family, &active_region))?,
+        tools: build_tools(&raw_probe, probe, one_tool_reason(family))?,
         clamped_nodes,
         touchable,
         length_unit_m,

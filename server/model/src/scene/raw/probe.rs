@@ -50,17 +50,12 @@ pub(super) fn build_probe(p: &RawProbe) -> Result<ProbeParams, ModelError> {
     Ok(params)
 }
 
-/// Why a scene of `family` with `region` takes one tool only (`None`: it takes several).
-pub(super) fn one_tool_reason(
-    family: ModelFamily,
-    region: &Option<ActiveRegion>,
-) -> Option<&'static str> {
+/// Why a scene of `family` takes one tool only (`None`: it takes several; a following active
+/// region covers every tool, [`crate::integrate::follow`]).
+pub(super) fn one_tool_reason(family: ModelFamily) -> Option<&'static str> {
     match family {
         ModelFamily::MassSpring => Some(
             "the mass-spring family takes one tool: its run-time subdivision follows one contact node",
-        ),
-        ModelFamily::Fem if region.is_some_and(|r| r.follow) => Some(
-            "a following active region (active_region.follow) takes one tool: the region follows one contact and would leave a second tool on condensed elements; use a fixed region or none",
         ),
         ModelFamily::Fem | ModelFamily::Hybrid => None,
     }
