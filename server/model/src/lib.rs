@@ -185,6 +185,11 @@ pub fn build_body_with_progress(
                 &scene.integrator,
                 &scene.name,
             )?;
+            let probes: Vec<_> = (0..scene.tools.max_tools.max(1))
+                .map(|slot| scene.tool_probe(slot))
+                .collect();
+            let ids: Vec<String> = scene.tools.named.iter().map(|t| t.id.clone()).collect();
+            let body = body.with_tools(&probes, &ids)?;
             Ok(Box::new(match &ms.organ {
                 Some(o) => body.with_organ_table(o.table()?)?,
                 None => body,

@@ -56,13 +56,10 @@ pub(super) fn one_tool_reason(
     region: &Option<ActiveRegion>,
 ) -> Option<&'static str> {
     match family {
-        ModelFamily::MassSpring => Some(
-            "the mass-spring family takes one tool: its run-time subdivision follows one contact node",
-        ),
         ModelFamily::Fem if region.is_some_and(|r| r.follow) => Some(
             "a following active region (active_region.follow) takes one tool: the region follows one contact and would leave a second tool on condensed elements; use a fixed region or none",
         ),
-        ModelFamily::Fem | ModelFamily::Hybrid => None,
+        ModelFamily::Fem | ModelFamily::Hybrid | ModelFamily::MassSpring => None,
     }
 }
 
