@@ -34,6 +34,18 @@
 //! sub-step is fixed at construction from a Gershgorin bound that covers every configuration
 //! the events can produce (lightest masses `m/4`, stiffest table entry, most springs per node),
 //! so an event never makes the integration unstable.
+//!
+//! **Several tools** (issue 50; [`MassSpringBody::tick_tools`], file `tools`). The body keeps
+//! one [`Probe`] per tool slot (`probe.max_tools`, each with its named tool's radius and force
+//! limit) on the same contact surface. Each sub-step every connected slot's probe updates and
+//! adds its explicit reaction; the couplings of the tools in contact are then completed
+//! together (`finish_couplings`: Woodbury over their rank-one terms, exact
+//! where patches share nodes, so two tools on one spot count the surface once), and each slot
+//! gets its own force. After the steps every tool's contact node becomes a centre, so the
+//! surface is subdivided under each tool. The organ table's contact factor is read per tool,
+//! and each node's springs take the factor of the tool in contact nearest it. A tool that
+//! leaves while another touches is withdrawn over [`WITHDRAW_S`] so the other's force
+//! stays continuous. Slot 0 alone is the one-tool tick bit for bit.
 
 use glam::DVec3;
 
@@ -58,6 +70,8 @@ mod contact;
 mod event;
 mod setup;
 mod tools;
+
+pub use tools::WITHDRAW_S;
 
 use tools::ToolContact;
 
@@ -470,7 +484,7 @@ impl MassSpringBody {
     /// [`Self::tick`] with every tool slot's input (issue 50; [`SoftBody::tick_tools`]):
     /// `inputs[k]` drives slot `k`'s probe and `outputs[k]` receives its force; slots past
     /// `inputs.len()` are released. All the probes' reactions act in the same sub-steps, their
-    /// couplings are completed together ([`Self::finish_couplings`]) and every tool's contact
+    /// couplings are completed together (Woodbury over their rank-one terms) and every tool's contact
     /// node becomes a centre. Slot 0 alone is the one-tool tick of before, bit for bit.
     ///
     /// # Errors
@@ -489,8 +503,12 @@ impl MassSpringBody {
         if let Some(time_s) = self.state.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
+        // A tool that leaves while another touches is withdrawn over `WITHDRAW_S`.
+        let mut acting = [TickInput::default(); MAX_TOOLS];
+        self.acting_inputs(inputs, &mut acting);
+        let acting = &acting[..self.state.tools.len()];
         for _ in 0..self.setup.plan.substeps {
-            self.substep(inputs)?;
+            self.substep(acting)?;
         }
         self.state.time_s += self.setup.tick_s;
         self.state.loads.advance(self.setup.tick_s);
@@ -504,19 +522,25 @@ impl MassSpringBody {
         self.update_factor_tools();
         // 4. Subdivision around each tool's contact node, coarsening of areas left.
         self.update_centres();
-        // 5. Output.
+        // 5. Output (a slot without a device: no contact, also while it is withdrawn).
         for ((tool, input), out) in self.state.tools.iter().zip(inputs).zip(outputs.iter_mut()) {
             let contact = tool.probe.state;
-            *out = TickOutput {
-                force_on_device_n: contact.force_on_device_n,
-                in_contact: contact.in_contact,
-                proxy_position_m: if contact.in_contact {
-                    contact.proxy_m
-                } else {
-                    input.device_position_m.unwrap_or(DVec3::ZERO)
+            *out = match input.device_position_m {
+                Some(device_m) => TickOutput {
+                    force_on_device_n: contact.force_on_device_n,
+                    in_contact: contact.in_contact,
+                    proxy_position_m: if contact.in_contact {
+                        contact.proxy_m
+                    } else {
+                        device_m
+                    },
+                    contact_stiffness_n_per_m: tool.probe.contact_stiffness(),
+                    sim_time_s: self.state.time_s,
                 },
-                contact_stiffness_n_per_m: tool.probe.contact_stiffness(),
-                sim_time_s: self.state.time_s,
+                None => TickOutput {
+                    sim_time_s: self.state.time_s,
+                    ..TickOutput::default()
+                },
             };
         }
         Ok(())
