@@ -360,10 +360,11 @@ fn patch_max_v2(probe: &Probe, v: &[DVec3]) -> f64 {
 /// by Gaussian elimination without pivoting.
 fn solve_small(s: &mut [[f64; MAX_TOOLS]; MAX_TOOLS], r: &mut [f64; MAX_TOOLS], m: usize) {
     for c in 0..m {
+        let pivot = s[c];
         for row in c + 1..m {
-            let f = s[row][c] / s[c][c];
-            for col in c..m {
-                s[row][col] -= f * s[c][col];
+            let f = s[row][c] / pivot[c];
+            for (x, p) in s[row][c..m].iter_mut().zip(&pivot[c..m]) {
+                *x -= f * p;
             }
             r[row] -= f * r[c];
         }
