@@ -308,21 +308,40 @@ impl MassSpringBody {
 
     #[inline]
     fn home_constant(&self, s: u32) -> f64 {
-        self.factor_of(s)
-            * match self.state.owner[s as usize] {
-                NO_OWNER => self.setup.params.home_spring_n_per_m,
-                o => self.state.kh_area[o as usize],
-            }
+        self.home_constant_at(self.factor_of(s), s)
+    }
+
+    /// The factor all slots take while one tool keeps every slot (`factor_all`), read once
+    /// for a sub-step's force loops instead of per slot.
+    #[inline]
+    fn uniform_factor(&self) -> Option<f64> {
+        self.state
+            .factor_all
+            .map(|k| self.state.tools[k as usize].contact_factor)
+    }
+
+    /// The home-spring constant of slot `s` with the contact factor `beta`, N/m.
+    #[inline]
+    fn home_constant_at(&self, beta: f64, s: u32) -> f64 {
+        beta * match self.state.owner[s as usize] {
+            NO_OWNER => self.setup.params.home_spring_n_per_m,
+            o => self.state.kh_area[o as usize],
+        }
     }
 
     /// The constant of a mesh spring from slot `i` owned by `owner`, N/m.
     #[inline]
     fn spring_constant(&self, i: u32, owner: u8) -> f64 {
-        self.factor_of(i)
-            * match owner {
-                NO_OWNER => self.setup.params.mesh_spring_n_per_m,
-                o => self.state.km_area[o as usize],
-            }
+        self.spring_constant_at(self.factor_of(i), owner)
+    }
+
+    /// The constant of a mesh spring owned by `owner` with the contact factor `beta`, N/m.
+    #[inline]
+    fn spring_constant_at(&self, beta: f64, owner: u8) -> f64 {
+        beta * match owner {
+            NO_OWNER => self.setup.params.mesh_spring_n_per_m,
+            o => self.state.km_area[o as usize],
+        }
     }
 
     /// Total energy, J: kinetic `sum m v^2 / 2` plus elastic (home and mesh springs, eq. 2)
@@ -553,16 +572,20 @@ impl MassSpringBody {
     fn substep(&mut self, inputs: &[TickInput]) -> Result<(), ModelError> {
         let dt = self.setup.plan.sub_dt_s;
         self.update_area_constants();
+        let uniform = self.uniform_factor();
         // 1. Forces of eq. 2: home springs, mesh springs, point loads.
         for &s in self.state.mesh.active() {
             let i = s as usize;
-            self.scratch.f[i] = (self.state.rest[i] - self.state.x[i]) * self.home_constant(s);
+            let beta = uniform.unwrap_or_else(|| self.factor_of(s));
+            self.scratch.f[i] =
+                (self.state.rest[i] - self.state.x[i]) * self.home_constant_at(beta, s);
         }
         for sp in self.state.mesh.springs() {
             let d = self.state.x[sp.j as usize] - self.state.x[sp.i as usize];
             let len = d.length();
             if len > 0.0 {
-                let k = self.spring_constant(sp.i, sp.owner);
+                let beta = uniform.unwrap_or_else(|| self.factor_of(sp.i));
+                let k = self.spring_constant_at(beta, sp.owner);
                 let fs = d * (k * (len - sp.rest_length_m) / len);
                 self.scratch.f[sp.i as usize] += fs;
                 self.scratch.f[sp.j as usize] -= fs;
