@@ -145,6 +145,45 @@ pub fn build_hybrid_body(
     Ok(body)
 }
 
+/// The mass-spring body of a `family = "mass-spring"` scene: [`mass_spring::MassSpringBody::new`]
+/// with the scene's surface, parameters, calibration table and probe, one tool slot per
+/// `probe.max_tools` ([`mass_spring::MassSpringBody::with_tools`], the named tools' probes in
+/// their slots) and the organ table when the scene has one (what [`build_body`] boxes, for
+/// callers that read the mass-spring body's own accessors).
+///
+/// # Errors
+/// [`ModelError::SceneField`] naming `mass_spring` when the scene has no `[mass_spring]`
+/// section; [`scene::MassSpringScene::table`]'s (a missing or stale calibration table); those of
+/// [`mass_spring::MassSpringBody::new`], [`mass_spring::MassSpringBody::with_tools`] and
+/// [`mass_spring::MassSpringBody::with_organ_table`].
+pub fn build_mass_spring_body(
+    scene: &scene::Scene,
+) -> Result<mass_spring::MassSpringBody, ModelError> {
+    let ms = scene.mass_spring.as_ref().ok_or_else(|| {
+        ModelError::field(
+            "mass_spring",
+            "is required for model.family = \"mass-spring\"",
+        )
+    })?;
+    let body = mass_spring::MassSpringBody::new(
+        ms.surface.clone(),
+        &ms.params,
+        ms.table()?,
+        scene.probe,
+        &scene.integrator,
+        &scene.name,
+    )?;
+    let probes: Vec<_> = (0..scene.tools.max_tools.max(1))
+        .map(|slot| scene.tool_probe(slot))
+        .collect();
+    let ids: Vec<String> = scene.tools.named.iter().map(|t| t.id.clone()).collect();
+    let body = body.with_tools(&probes, &ids)?;
+    match &ms.organ {
+        Some(o) => body.with_organ_table(o.table()?),
+        None => Ok(body),
+    }
+}
+
 /// [`build_body`] reporting the preprocessing's progress (`stage`, fraction in `[0, 1]`) for
 /// families that preprocess (the hybrid model, [`fn@hybrid::prepare`]; the FEM with a
 /// contact-local active region, [`fem::FemBody::new_with_progress`]).
@@ -170,25 +209,6 @@ pub fn build_body_with_progress(
     match scene.family {
         scene::ModelFamily::Hybrid => Ok(Box::new(build_hybrid_body(scene, progress)?)),
         scene::ModelFamily::Fem => Ok(Box::new(fem::FemBody::new_with_progress(scene, progress)?)),
-        scene::ModelFamily::MassSpring => {
-            let ms = scene.mass_spring.as_ref().ok_or_else(|| {
-                ModelError::field(
-                    "mass_spring",
-                    "is required for model.family = \"mass-spring\"",
-                )
-            })?;
-            let body = mass_spring::MassSpringBody::new(
-                ms.surface.clone(),
-                &ms.params,
-                ms.table()?,
-                scene.probe,
-                &scene.integrator,
-                &scene.name,
-            )?;
-            Ok(Box::new(match &ms.organ {
-                Some(o) => body.with_organ_table(o.table()?)?,
-                None => body,
-            }))
-        }
+        scene::ModelFamily::MassSpring => Ok(Box::new(build_mass_spring_body(scene)?)),
     }
 }

@@ -693,24 +693,25 @@ fn tools_default_to_two_on_fem_and_named_tools_and_bad_counts_are_checked() {
     assert_eq!(s.tools.named[0].id.chars().count(), 64);
 }
 
-/// The families and regions that take one tool default to one and refuse more, saying why;
-/// the hybrid family takes two by default.
+/// The mass-spring and hybrid families take two tools by default (the mass-spring surface
+/// subdivides under each tool), up to [`MAX_TOOLS`]; a following region takes one tool and
+/// refuses more, saying why.
 #[test]
 fn one_tool_bodies_default_to_one_tool_and_refuse_more_with_the_reason() {
+    use haptic_model::body::MAX_TOOLS;
     let springs = builtin_scene_toml("lv-surface-springs").unwrap();
     let hybrid = parse_scene_toml(builtin_scene_toml("lv-hybrid").unwrap(), &deploy_dir());
     assert_eq!(hybrid.unwrap().tools.max_tools, 2);
     let s = parse_scene_toml(springs, &deploy_dir()).unwrap();
-    assert_eq!(s.tools.max_tools, 1);
-    let more = format!("{springs}\nmax_tools = 2\n");
-    assert!(more.contains("[probe]"));
-    let msg = parse_scene_toml(&more, &deploy_dir())
-        .unwrap_err()
-        .to_string();
-    assert!(
-        msg.contains("probe.max_tools") && msg.contains("mass-spring"),
-        "{msg}"
-    );
+    assert_eq!(s.tools.max_tools, 2);
+    let with = |n: usize| {
+        let more = format!("{springs}\nmax_tools = {n}\n");
+        assert!(more.contains("[probe]"));
+        parse_scene_toml(&more, &deploy_dir())
+    };
+    assert_eq!(with(3).unwrap().tools.max_tools, 3);
+    let msg = with(MAX_TOOLS + 1).unwrap_err().to_string();
+    assert!(msg.contains("probe.max_tools"), "{msg}");
     let region = "[integrator]\nkind = \"backward-euler\"\n[active_region]\ncentre_m = [0.0, 0.0, 0.0]\nradius_m = 0.007\n";
     let fixed = parse(&format!("{BASE}{region}")).unwrap();
     assert_eq!(fixed.tools.max_tools, 2);

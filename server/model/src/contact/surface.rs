@@ -187,6 +187,20 @@ impl ContactSurface {
         &self.node_tris[lo..hi]
     }
 
+    /// Makes this surface a copy of `other` (triangles and adjacency) in place, for a body
+    /// that keeps several probes on one changing surface (the mass-spring surface's tools).
+    /// O(triangles + nodes); allocation-free when this surface's capacities hold `other`'s
+    /// lengths (both built alike, e.g. by the same [`ContactSurface::with_node_room`]).
+    pub fn copy_from(&mut self, other: &ContactSurface) {
+        self.triangles.clear();
+        self.triangles.extend_from_slice(&other.triangles);
+        self.node_lists.clear();
+        self.node_lists.extend_from_slice(&other.node_lists);
+        self.node_tris.clear();
+        self.node_tris.extend_from_slice(&other.node_tris);
+        self.has_room = other.has_room;
+    }
+
     /// Replaces the triangles (node indices below the node count given at construction) and
     /// rebuilds the vertex-to-triangle adjacency in place: O(triangles + nodes), and
     /// allocation-free when `triangles.len()` is within the capacity of

@@ -48,21 +48,17 @@ impl MassSpringBody {
         }
     }
 
-    /// The coarse node nearest the probe's contact point among the coarse vertices of the
+    /// The coarse node nearest tool slot `k`'s contact point among the coarse vertices of the
     /// triangle it touches (the contact node C of the paper), if it is free.
-    fn contact_node(&self) -> Option<u32> {
-        let st = self.state.probe.state;
+    fn contact_node(&self, k: usize) -> Option<u32> {
+        let probe = &self.state.tools[k].probe;
+        let st = probe.state;
         if !st.in_contact {
             return None;
         }
-        let point = st.proxy_m - st.normal * self.state.probe.params.radius_m;
+        let point = st.proxy_m - st.normal * probe.params.radius_m;
         let nc = self.model.surface.node_count() as u32;
-        let tri = *self
-            .state
-            .probe
-            .surface
-            .triangles
-            .get(st.triangle as usize)?;
+        let tri = *probe.surface.triangles.get(st.triangle as usize)?;
         let mut best: Option<(f64, u32)> = None;
         for s in tri {
             let parents = if s < nc {
@@ -83,43 +79,18 @@ impl MassSpringBody {
         best.map(|b| b.1)
     }
 
-    /// Updates the centres from the contact (touched now: refreshed or added; untouched for
-    /// longer than the delay: removed) and runs an event when they changed.
+    /// Updates the centres from the tools' contacts (each tool's contact node touched now:
+    /// refreshed or added; untouched for longer than the delay: removed) and runs an event
+    /// when they changed.
     pub(super) fn update_centres(&mut self) {
         if self.setup.params.subdivision.rings == 0 {
             return;
         }
         let now = self.state.time_s;
         let mut added = false;
-        if let Some(c) = self.contact_node() {
-            match self.state.centres[..self.state.centre_count]
-                .iter_mut()
-                .find(|k| k.node == c)
-            {
-                Some(k) => k.last_contact_s = k.last_contact_s.max(now),
-                None => {
-                    if self.state.centre_count == MAX_CENTRES {
-                        // Replace the one touched longest ago.
-                        let oldest = (0..MAX_CENTRES)
-                            .min_by(|&a, &b| {
-                                self.state.centres[a]
-                                    .last_contact_s
-                                    .total_cmp(&self.state.centres[b].last_contact_s)
-                            })
-                            .unwrap_or(0);
-                        self.state.centres[oldest] = Centre {
-                            node: c,
-                            last_contact_s: now,
-                        };
-                    } else {
-                        self.state.centres[self.state.centre_count] = Centre {
-                            node: c,
-                            last_contact_s: now,
-                        };
-                        self.state.centre_count += 1;
-                    }
-                    added = true;
-                }
+        for k in 0..self.state.tools.len() {
+            if let Some(c) = self.contact_node(k) {
+                added |= self.touch_centre(c, now);
             }
         }
         let delay = self.setup.params.subdivision.coarsen_delay_s;
@@ -137,6 +108,35 @@ impl MassSpringBody {
         if added || removed {
             self.event(added, removed);
         }
+    }
+
+    /// Marks coarse node `c` touched at `now` (s): refreshes its centre, or adds one (replacing
+    /// the one touched longest ago when all [`MAX_CENTRES`] are in use, never one touched at
+    /// `now`: there are more centres than tools). Returns whether it added one.
+    fn touch_centre(&mut self, c: u32, now: f64) -> bool {
+        let count = self.state.centre_count;
+        if let Some(k) = self.state.centres[..count].iter_mut().find(|k| k.node == c) {
+            k.last_contact_s = k.last_contact_s.max(now);
+            return false;
+        }
+        let centre = Centre {
+            node: c,
+            last_contact_s: now,
+        };
+        if count == MAX_CENTRES {
+            let oldest = (0..MAX_CENTRES)
+                .min_by(|&a, &b| {
+                    self.state.centres[a]
+                        .last_contact_s
+                        .total_cmp(&self.state.centres[b].last_contact_s)
+                })
+                .unwrap_or(0);
+            self.state.centres[oldest] = centre;
+        } else {
+            self.state.centres[count] = centre;
+            self.state.centre_count += 1;
+        }
+        true
     }
 
     /// Whether every node of centre `k`'s area (its rings' coarse nodes and their type-2

@@ -1,4 +1,4 @@
-//! The organ table at the probe's contact: the sphere depth, the probe's foot on the coarse
+//! The organ table at each tool's contact: the sphere depth, the probe's foot on the coarse
 //! rest surface and the contact factor ([`crate::mass_spring::organ`]).
 
 use super::MassSpringBody;
@@ -9,7 +9,7 @@ use crate::mass_spring::refine::NO_OWNER;
 use glam::DVec3;
 
 impl MassSpringBody {
-    /// The probe's sphere depth ([`MassSpringBody::contact_depth_m`]: below the flat rest
+    /// Tool slot `k`'s sphere depth ([`MassSpringBody::contact_depth_m`]: below the flat rest
     /// triangle at the foot in a subdivided area, the kernel plane's travel elsewhere) and the
     /// contact factor at its current contact: the organ table at that depth, interpolated on the
     /// coarse surface at the foot of the kernel patch's centroid
@@ -21,24 +21,24 @@ impl MassSpringBody {
     /// the rest surface (no foot), at the contact point of the deformed surface (the probe's
     /// triangle). Unchanged out of contact; the factor
     /// unchanged without a table. Allocation-free.
-    pub(super) fn update_contact_factor(&mut self) {
-        let st = self.state.probe.state;
+    pub(super) fn update_contact_factor(&mut self, k: usize) {
+        let st = self.state.tools[k].probe.state;
         if !st.in_contact {
             return;
         }
-        self.update_foot();
+        self.update_foot(k);
         // In a subdivided area the depth below the flat rest triangle at the foot (the
         // subdivided patch's kernel plane sits lower at rest than the coarse one's); elsewhere
         // the kernel plane's travel (which follows the organ's surface between nodes).
-        let foot_in_area = self.state.foot.filter(|f| {
+        let foot_in_area = self.state.tools[k].foot.filter(|f| {
             self.model.surface.triangles()[f.triangle as usize]
                 .iter()
                 .any(|&s| self.state.owner[s as usize] != NO_OWNER)
         });
         let depth = match &foot_in_area {
-            Some(foot) => foot_depth_m(foot, self.state.probe.params.radius_m),
+            Some(foot) => foot_depth_m(foot, self.state.tools[k].probe.params.radius_m),
             None => {
-                let (nodes, weights) = self.state.probe.patch();
+                let (nodes, weights) = self.state.tools[k].probe.patch();
                 nodes
                     .iter()
                     .zip(weights)
@@ -48,22 +48,27 @@ impl MassSpringBody {
                     .sum()
             }
         };
-        self.state.contact_depth_m = depth;
+        self.state.tools[k].contact_depth_m = depth;
         let Some(table) = &self.model.organ else {
             return;
         };
         // On the coarse surface at the patch's centroid ([`MassSpringBody::patch_foot`]); in a
         // subdivided area at the proxy's foot.
         let at = match foot_in_area {
-            Some(_) => self.state.foot,
-            None => self.patch_foot().or(self.state.foot),
+            Some(_) => self.state.tools[k].foot,
+            None => self.patch_foot(k).or(self.state.tools[k].foot),
         };
         let (tri, b) = match at {
             Some(foot) => (
                 self.model.surface.triangles()[foot.triangle as usize],
                 foot.bary,
             ),
-            None => match self.state.probe.surface.triangles.get(st.triangle as usize) {
+            None => match self.state.tools[k]
+                .probe
+                .surface
+                .triangles
+                .get(st.triangle as usize)
+            {
                 Some(&tri) => (tri, st.bary),
                 None => return,
             },
@@ -99,11 +104,11 @@ impl MassSpringBody {
             tri.iter().zip(&b).map(|(&s, &w)| w * site(s)).sum()
         };
         if beta.is_finite() && beta > 0.0 {
-            self.state.contact_factor = beta;
+            self.state.tools[k].contact_factor = beta;
         }
     }
 
-    /// Where the organ table is read ([`crate::mass_spring::organ::foot`], session 6): the foot on the coarse
+    /// Where the organ table is read for tool slot `k` ([`crate::mass_spring::organ::foot`], session 6): the foot on the coarse
     /// rest surface of the probe's patch centroid at rest, `sum w_j rest_j` over the patch's
     /// slots, along the contact normal. The patch carries the force: on `hemisphere-springs`
     /// (8 mm edges under a 4 mm sphere) a press between nodes bears on the nearest node almost
@@ -113,9 +118,10 @@ impl MassSpringBody {
     /// symmetric patch it is the proxy's foot, as the calibration pressed. Continuous as the
     /// weights are. `None` without a foot (then the proxy's foot or the contact triangle).
     /// Allocation-free.
-    fn patch_foot(&self) -> Option<RestFoot> {
-        let hint = self.state.foot?.triangle;
-        let (nodes, weights) = self.state.probe.patch();
+    fn patch_foot(&self, k: usize) -> Option<RestFoot> {
+        let tool = &self.state.tools[k];
+        let hint = tool.foot?.triangle;
+        let (nodes, weights) = tool.probe.patch();
         if nodes.is_empty() {
             return None;
         }
@@ -124,34 +130,35 @@ impl MassSpringBody {
             .zip(weights)
             .map(|(&i, &w)| self.state.rest[i as usize] * w)
             .sum();
-        let m = self.state.probe.state.normal;
-        let r = self.state.probe.params.radius_m;
+        let m = tool.probe.state.normal;
+        let r = tool.probe.params.radius_m;
         rest_foot(&self.model.surface, centre + m * r, m, r, r, Some(hint))
             .filter(|h| h.miss_m <= r)
             .map(|h| h.foot)
     }
 
-    /// The probe's foot on the coarse rest surface ([`crate::mass_spring::organ::foot`]) from its state now:
+    /// Tool slot `k`'s foot on the coarse rest surface ([`crate::mass_spring::organ::foot`]) from its state now:
     /// searched around the last foot's triangles, over the whole surface at a first contact (at
     /// most once a tick while none is found); `None` when the line through the proxy along the
     /// normal meets no rest triangle within a probe radius of where the centre should be.
     /// Allocation-free.
-    fn update_foot(&mut self) {
-        let hint = self.state.foot.map(|f| f.triangle);
+    fn update_foot(&mut self, k: usize) {
+        let tool = &mut self.state.tools[k];
+        let hint = tool.foot.map(|f| f.triangle);
         if hint.is_none() {
-            if self.state.foot_searched {
+            if tool.foot_searched {
                 return;
             }
-            self.state.foot_searched = true;
+            tool.foot_searched = true;
         }
-        let st = self.state.probe.state;
-        let r = self.state.probe.params.radius_m;
+        let st = tool.probe.state;
+        let r = tool.probe.params.radius_m;
         let expected = if hint.is_some() {
-            r - self.state.contact_depth_m
+            r - tool.contact_depth_m
         } else {
             r
         };
-        self.state.foot = rest_foot(
+        tool.foot = rest_foot(
             &self.model.surface,
             st.proxy_m,
             st.normal,

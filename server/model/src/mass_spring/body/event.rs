@@ -2,6 +2,7 @@
 //! over without adding energy (module documentation of [`super`]).
 
 use super::MassSpringBody;
+use crate::body::MAX_TOOLS;
 use crate::mass_spring::VertexRule;
 use crate::mass_spring::refine::NO_OWNER;
 use glam::DVec3;
@@ -16,11 +17,14 @@ impl MassSpringBody {
         // 2. Where the event can change the energy, and the energy there before.
         self.collect_region();
         let energy_before = self.region_energy_j();
-        let contact_triangle = self.state.probe.state.in_contact.then(|| {
-            self.state
-                .mesh
-                .coarse_triangle_of(self.state.probe.state.triangle)
-        });
+        let mut contact_triangles = [None; MAX_TOOLS];
+        for (t, tool) in contact_triangles.iter_mut().zip(&self.state.tools) {
+            *t = tool.probe.state.in_contact.then(|| {
+                self.state
+                    .mesh
+                    .coarse_triangle_of(tool.probe.state.triangle)
+            });
+        }
         // 3. The nodes of the areas before and after: masses, rest positions, velocities.
         self.carry_state();
         // 4. The mesh.
@@ -30,18 +34,19 @@ impl MassSpringBody {
         // 5. No energy from the event.
         let excess = self.region_energy_j() - energy_before;
         self.drain_excess(excess);
-        // 6. The probe's contact triangle index refers to the old triangles: walk from a piece
+        // 6. Each probe's contact triangle index refers to the old triangles: walk from a piece
         // of the coarse triangle it was in (over the new slots' contact positions).
         self.update_contact_positions();
-        if let Some(t) = contact_triangle {
-            let st = self.state.probe.state;
-            let point = st.proxy_m - st.normal * self.state.probe.params.radius_m;
-            let sp = self
-                .state
-                .probe
-                .surface
-                .closest_local(&self.scratch.cx, point, t, 16);
-            self.state.probe.state.triangle = sp.triangle;
+        for (tool, t) in self.state.tools.iter_mut().zip(contact_triangles) {
+            if let Some(t) = t {
+                let st = tool.probe.state;
+                let point = st.proxy_m - st.normal * tool.probe.params.radius_m;
+                let sp = tool
+                    .probe
+                    .surface
+                    .closest_local(&self.scratch.cx, point, t, 16);
+                tool.probe.state.triangle = sp.triangle;
+            }
         }
         self.stats.events += 1;
         self.stats.subdivisions += u64::from(added);
@@ -86,9 +91,12 @@ impl MassSpringBody {
             .rev()
             .chain(state.refinement.region())
         {
-            state
-                .mesh
-                .update_triangle(surface, &state.refinement, &mut state.probe.surface, t);
+            state.mesh.update_triangle(
+                surface,
+                &state.refinement,
+                &mut state.tools[0].probe.surface,
+                t,
+            );
         }
         for &e in state.refinement.active_edges() {
             state.mesh.update_edge(surface, &state.refinement, e);
@@ -101,7 +109,13 @@ impl MassSpringBody {
         for &e in &event.region_edges {
             state.mesh.refresh_edge(e, &state.rest, &state.owner);
         }
-        state.mesh.finish(surface, &state.probe.surface);
+        state.mesh.finish(surface, &state.tools[0].probe.surface);
+        // The other tools' probes see the same surface.
+        if let Some((first, others)) = state.tools.split_first_mut() {
+            for tool in others {
+                tool.probe.surface.copy_from(&first.probe.surface);
+            }
+        }
     }
 
     /// No energy from an event: drains the touched nodes' kinetic energy by the `excess` (J)

@@ -34,6 +34,18 @@
 //! sub-step is fixed at construction from a Gershgorin bound that covers every configuration
 //! the events can produce (lightest masses `m/4`, stiffest table entry, most springs per node),
 //! so an event never makes the integration unstable.
+//!
+//! **Several tools** (issue 50; [`MassSpringBody::tick_tools`], file `tools`). The body keeps
+//! one [`Probe`] per tool slot (`probe.max_tools`, each with its named tool's radius and force
+//! limit) on the same contact surface. Each sub-step every connected slot's probe updates and
+//! adds its explicit reaction; the couplings of the tools in contact are then completed
+//! together (`finish_couplings`: Woodbury over their rank-one terms, exact
+//! where patches share nodes, so two tools on one spot count the surface once), and each slot
+//! gets its own force. After the steps every tool's contact node becomes a centre, so the
+//! surface is subdivided under each tool. The organ table's contact factor is read per tool,
+//! and each node's springs take the factor of the tool in contact nearest it. A tool that
+//! leaves while another touches is withdrawn over [`WITHDRAW_S`] so the other's force
+//! stays continuous. Slot 0 alone is the one-tool tick bit for bit.
 
 use glam::DVec3;
 
@@ -42,12 +54,12 @@ use super::calibration::CalibrationTable;
 use super::mixed::MixedMesh;
 use super::network::{Spring, critical_time_step_s, gershgorin_bound_per_s2};
 use super::organ::OrganTable;
-use super::organ::foot::RestFoot;
 use super::refine::{NO_OWNER, Refinement};
 use super::surface::SpringSurface;
 use crate::ModelError;
 use crate::body::{
-    BodyInfo, BodyStats, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput, TickOutput,
+    BodyInfo, BodyStats, MAX_TOOLS, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput,
+    TickOutput, check_tool_slots,
 };
 use crate::contact::Probe;
 use crate::integrate::{IntegratorParams, StepPlan, plan_steps};
@@ -57,10 +69,19 @@ mod centres;
 mod contact;
 mod event;
 mod setup;
+mod tools;
 
-/// Most centres (subdivided areas) at a time: the contact node and former contact nodes still
-/// within their coarsening delay. A new centre beyond it replaces the oldest.
-pub const MAX_CENTRES: usize = 8;
+pub use tools::WITHDRAW_S;
+
+use tools::ToolContact;
+
+/// Most centres (subdivided areas) at a time: every tool's contact node (at most
+/// [`MAX_TOOLS`]) and former contact nodes still within their coarsening delay. A new centre
+/// beyond it replaces the one touched longest ago; being above `MAX_TOOLS`, that one is never
+/// a centre a tool touches in the same tick (each tool keeps its area), and with every slot in
+/// use `MAX_CENTRES - MAX_TOOLS` = 8 former contact nodes stay subdivided, as many as the one
+/// tool had before several (7 delayed plus its own). Owners are `u8` (below `NO_OWNER`).
+pub const MAX_CENTRES: usize = MAX_TOOLS + 8;
 
 /// An area is coarsened only once every node of it is back within this fraction of the
 /// element size L of its rest position: coarsening restores the coarse constants, stiffer than
@@ -128,6 +149,8 @@ struct MassSpringModel {
     /// Per slot: clamped (never moves).
     fixed: Vec<bool>,
     scene_name: String,
+    /// The scene's named tools by slot ([`SoftBody::tool_slot`]).
+    tool_ids: Vec<String>,
 }
 
 /// The parameters: the scene's and what the build derived from them.
@@ -167,19 +190,16 @@ struct MassSpringState {
     /// Per centre: `K'_h` and `K'_m` now, N/m.
     kh_area: [f64; MAX_CENTRES],
     km_area: [f64; MAX_CENTRES],
-    probe: Probe,
-    /// The contact factor `beta` every spring constant is multiplied by now (1 without an
-    /// organ table; kept when the probe leaves).
-    contact_factor: f64,
-    /// The probe's sphere depth at the last sub-step in contact, m (see
-    /// [`MassSpringBody::contact_depth_m`]).
-    contact_depth_m: f64,
-    /// The probe's foot on the coarse rest surface ([`super::organ::foot`]), where the organ
-    /// table is read; `None` out of contact, without a table or off the surface.
-    foot: Option<RestFoot>,
-    /// Whether a sub-step of this tick already searched the foot (at most one search per
-    /// tick besides the end-of-tick update).
-    foot_searched: bool,
+    /// One per tool slot (issue 50), slot 0 first: its probe and where the organ table reads
+    /// it. Slot 0's probe surface is the one events edit; the others copy it.
+    tools: Vec<ToolContact>,
+    /// Per slot: the tool whose contact factor its springs take (a mesh spring its first
+    /// node's): the nearest tool in contact at the end of the last tick with one, by rest
+    /// position ([`MassSpringBody::update_factor_tools`]).
+    factor_tool: Vec<u8>,
+    /// `Some(k)` while every slot's `factor_tool` is `k` (no relabelling while one tool
+    /// touches).
+    factor_all: Option<u8>,
     loads: BodyLoads,
     time_s: f64,
     diverged_at_s: Option<f64>,
@@ -192,6 +212,9 @@ struct MassSpringScratch {
     f: Vec<DVec3>,
     /// `x + contact_rest - rest` over the active slots (what the probe sees).
     cx: Vec<DVec3>,
+    /// Per slot, zero between uses: one tool's patch weights over `m + dt K_d`, to join the
+    /// couplings of several tools ([`MassSpringBody::finish_couplings`]).
+    tool_weight: Vec<f64>,
 }
 
 /// One subdivision event's work arrays, sized at build: the labels before the event, the
@@ -265,31 +288,60 @@ impl MassSpringBody {
     /// triangle along the line through the proxy along the contact normal; elsewhere the travel
     /// of the probe's kernel plane from its rest position, `sum w_i (rest_i - x_i) . n` over
     /// its patch.
+    /// Slot 0's ([`MassSpringBody::tool_contact_depth_m`]).
     pub fn contact_depth_m(&self) -> f64 {
-        self.state.contact_depth_m
+        self.state.tools[0].contact_depth_m
     }
 
-    /// The contact factor every spring constant is multiplied by now ([`super::organ`]).
+    /// The contact factor of slot 0's tool ([`super::organ`]), which every spring constant is
+    /// multiplied by while one tool touches; with several, each slot takes its nearest
+    /// tool's ([`MassSpringBody::tool_contact_factor`]).
     pub fn contact_factor(&self) -> f64 {
-        self.state.contact_factor
+        self.state.tools[0].contact_factor
+    }
+
+    /// The contact factor of slot `s`'s springs now.
+    #[inline]
+    fn factor_of(&self, s: u32) -> f64 {
+        self.state.tools[self.state.factor_tool[s as usize] as usize].contact_factor
     }
 
     #[inline]
     fn home_constant(&self, s: u32) -> f64 {
-        self.state.contact_factor
-            * match self.state.owner[s as usize] {
-                NO_OWNER => self.setup.params.home_spring_n_per_m,
-                o => self.state.kh_area[o as usize],
-            }
+        self.home_constant_at(self.factor_of(s), s)
     }
 
+    /// The factor all slots take while one tool keeps every slot (`factor_all`), read once
+    /// for a sub-step's force loops instead of per slot.
     #[inline]
-    fn spring_constant(&self, owner: u8) -> f64 {
-        self.state.contact_factor
-            * match owner {
-                NO_OWNER => self.setup.params.mesh_spring_n_per_m,
-                o => self.state.km_area[o as usize],
-            }
+    fn uniform_factor(&self) -> Option<f64> {
+        self.state
+            .factor_all
+            .map(|k| self.state.tools[k as usize].contact_factor)
+    }
+
+    /// The home-spring constant of slot `s` with the contact factor `beta`, N/m.
+    #[inline]
+    fn home_constant_at(&self, beta: f64, s: u32) -> f64 {
+        beta * match self.state.owner[s as usize] {
+            NO_OWNER => self.setup.params.home_spring_n_per_m,
+            o => self.state.kh_area[o as usize],
+        }
+    }
+
+    /// The constant of a mesh spring from slot `i` owned by `owner`, N/m.
+    #[inline]
+    fn spring_constant(&self, i: u32, owner: u8) -> f64 {
+        self.spring_constant_at(self.factor_of(i), owner)
+    }
+
+    /// The constant of a mesh spring owned by `owner` with the contact factor `beta`, N/m.
+    #[inline]
+    fn spring_constant_at(&self, beta: f64, owner: u8) -> f64 {
+        beta * match owner {
+            NO_OWNER => self.setup.params.mesh_spring_n_per_m,
+            o => self.state.km_area[o as usize],
+        }
     }
 
     /// Total energy, J: kinetic `sum m v^2 / 2` plus elastic (home and mesh springs, eq. 2)
@@ -319,7 +371,7 @@ impl MassSpringBody {
         let sp = &self.state.mesh.springs()[k];
         let stretch =
             (self.state.x[sp.j as usize] - self.state.x[sp.i as usize]).length() - sp.rest_length_m;
-        0.5 * self.spring_constant(sp.owner) * stretch * stretch
+        0.5 * self.spring_constant(sp.i, sp.owner) * stretch * stretch
     }
 
     /// Kinetic energy over the active nodes, J.
@@ -368,7 +420,7 @@ impl MassSpringBody {
     /// surface (the pieces of a coarse triangle are not consecutive; as a set they are
     /// [`Refinement::mesh`]'s).
     pub fn triangles(&self) -> &[[u32; 3]] {
-        &self.state.probe.surface.triangles
+        &self.state.tools[0].probe.surface.triangles
     }
 
     /// Mesh springs of the current mesh with their rest lengths and current constants (as a
@@ -378,7 +430,7 @@ impl MassSpringBody {
             i: sp.i,
             j: sp.j,
             rest_length_m: sp.rest_length_m,
-            stiffness_n_per_m: self.spring_constant(sp.owner),
+            stiffness_n_per_m: self.spring_constant(sp.i, sp.owner),
         })
     }
 
@@ -430,115 +482,140 @@ impl MassSpringBody {
         (0..self.state.centre_count).map(|k| (self.state.centres[k].node, self.state.kh_area[k]))
     }
 
-    /// The probe.
+    /// Slot 0's probe ([`MassSpringBody::tool_probe`]).
     pub fn probe(&self) -> &Probe {
-        &self.state.probe
+        &self.state.tools[0].probe
     }
 
-    /// Advances one servo tick (module documentation).
+    /// Advances one servo tick (module documentation) with slot 0's device alone; the other
+    /// slots are released ([`MassSpringBody::tick_tools`]).
     ///
     /// # Errors
     /// [`ModelError::InvalidDevice`] for a non-finite or absurd device input (state
     /// untouched); [`ModelError::Diverged`] when the state diverged (then every later tick
     /// too). Allocation-free, also when the tick runs a subdivision event.
     pub fn tick(&mut self, input: &TickInput) -> Result<TickOutput, ModelError> {
-        input.validate()?;
+        let mut out = [TickOutput::default()];
+        self.tick_tools(std::slice::from_ref(input), &mut out)?;
+        Ok(out[0])
+    }
+
+    /// [`Self::tick`] with every tool slot's input (issue 50; [`SoftBody::tick_tools`]):
+    /// `inputs[k]` drives slot `k`'s probe and `outputs[k]` receives its force; slots past
+    /// `inputs.len()` are released. All the probes' reactions act in the same sub-steps, their
+    /// couplings are completed together (Woodbury over their rank-one terms) and every tool's contact
+    /// node becomes a centre. Slot 0 alone is the one-tool tick of before, bit for bit.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] for slot counts [`check_tool_slots`] refuses; otherwise as
+    /// [`Self::tick`] (any slot's invalid input refuses the tick, state untouched).
+    /// Allocation-free.
+    pub fn tick_tools(
+        &mut self,
+        inputs: &[TickInput],
+        outputs: &mut [TickOutput],
+    ) -> Result<(), ModelError> {
+        check_tool_slots(inputs.len(), outputs.len(), self.state.tools.len())?;
+        for input in inputs {
+            input.validate()?;
+        }
         if let Some(time_s) = self.state.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
-        let dt = self.setup.plan.sub_dt_s;
+        // A tool that leaves while another touches is withdrawn over `WITHDRAW_S`.
+        let mut acting = [TickInput::default(); MAX_TOOLS];
+        self.acting_inputs(inputs, &mut acting);
+        let acting = &acting[..self.state.tools.len()];
         for _ in 0..self.setup.plan.substeps {
-            self.update_area_constants();
-            // 1. Forces of eq. 2: home springs, mesh springs, point loads.
-            for &s in self.state.mesh.active() {
-                let i = s as usize;
-                self.scratch.f[i] = (self.state.rest[i] - self.state.x[i]) * self.home_constant(s);
-            }
-            for sp in self.state.mesh.springs() {
-                let d = self.state.x[sp.j as usize] - self.state.x[sp.i as usize];
-                let len = d.length();
-                if len > 0.0 {
-                    let k = self.spring_constant(sp.owner);
-                    let fs = d * (k * (len - sp.rest_length_m) / len);
-                    self.scratch.f[sp.i as usize] += fs;
-                    self.scratch.f[sp.j as usize] -= fs;
-                }
-            }
-            self.state.loads.add_to(&self.state.x, &mut self.scratch.f);
-            // 2. Contact: proxy and the explicit part of the coupling's reaction, on the
-            // contact positions.
-            match input.device_position_m {
-                Some(p) => {
-                    self.update_contact_positions();
-                    self.state
-                        .probe
-                        .update(&self.scratch.cx, p, input.device_velocity_m_per_s);
-                    self.state.probe.add_reaction(&mut self.scratch.f);
-                    self.update_contact_factor();
-                }
-                None => self.state.probe.release(),
-            }
-            // 3. Symplectic Euler with implicit damping, then the implicit coupling.
-            let mut max_v2: f64 = 0.0;
-            for &s in self.state.mesh.active() {
-                let i = s as usize;
-                if self.model.fixed[i] {
-                    continue;
-                }
-                let denom = self.state.mass[i] + dt * self.state.damping[i];
-                self.state.v[i] =
-                    (self.state.v[i] * self.state.mass[i] + self.scratch.f[i] * dt) / denom;
-                self.state.x[i] += self.state.v[i] * dt;
-                max_v2 = max_v2.max(self.state.v[i].length_squared());
-            }
-            if self.state.probe.state.in_contact {
-                let (mass, damping, fixed) =
-                    (&self.state.mass, &self.state.damping, &self.model.fixed);
-                self.state.probe.finish_implicit(
-                    dt,
-                    &mut self.state.x,
-                    &mut self.state.v,
-                    |i, w| {
-                        if fixed[i] {
-                            DVec3::ZERO
-                        } else {
-                            w / (mass[i] + dt * damping[i])
-                        }
-                    },
-                );
-                for &i in self.state.probe.patch().0 {
-                    max_v2 = max_v2.max(self.state.v[i as usize].length_squared());
-                }
-            }
-            if !(max_v2 <= DIVERGENCE_SPEED_M_PER_S * DIVERGENCE_SPEED_M_PER_S) {
-                self.state.diverged_at_s = Some(self.state.time_s);
-                return Err(ModelError::Diverged {
-                    time_s: self.state.time_s,
-                });
-            }
+            self.substep(acting)?;
         }
         self.state.time_s += self.setup.tick_s;
         self.state.loads.advance(self.setup.tick_s);
         self.update_contact_positions();
-        if !self.state.probe.state.in_contact {
-            self.state.foot = None;
+        for tool in &mut self.state.tools {
+            if !tool.probe.state.in_contact {
+                tool.foot = None;
+            }
+            tool.foot_searched = false;
         }
-        self.state.foot_searched = false;
-        // 4. Subdivision around the contact node, coarsening of areas left.
+        self.update_factor_tools();
+        // 4. Subdivision around each tool's contact node, coarsening of areas left.
         self.update_centres();
-        // 5. Output.
-        let contact = self.state.probe.state;
-        Ok(TickOutput {
-            force_on_device_n: contact.force_on_device_n,
-            in_contact: contact.in_contact,
-            proxy_position_m: if contact.in_contact {
-                contact.proxy_m
-            } else {
-                input.device_position_m.unwrap_or(DVec3::ZERO)
-            },
-            contact_stiffness_n_per_m: self.state.probe.contact_stiffness(),
-            sim_time_s: self.state.time_s,
-        })
+        // 5. Output (a slot without a device: no contact, also while it is withdrawn).
+        for ((tool, input), out) in self.state.tools.iter().zip(inputs).zip(outputs.iter_mut()) {
+            let contact = tool.probe.state;
+            *out = match input.device_position_m {
+                Some(device_m) => TickOutput {
+                    force_on_device_n: contact.force_on_device_n,
+                    in_contact: contact.in_contact,
+                    proxy_position_m: if contact.in_contact {
+                        contact.proxy_m
+                    } else {
+                        device_m
+                    },
+                    contact_stiffness_n_per_m: tool.probe.contact_stiffness(),
+                    sim_time_s: self.state.time_s,
+                },
+                None => TickOutput {
+                    sim_time_s: self.state.time_s,
+                    ..TickOutput::default()
+                },
+            };
+        }
+        Ok(())
+    }
+
+    /// One sub-step of [`Self::tick_tools`].
+    ///
+    /// # Errors
+    /// [`ModelError::Diverged`] (and the body remembers it).
+    fn substep(&mut self, inputs: &[TickInput]) -> Result<(), ModelError> {
+        let dt = self.setup.plan.sub_dt_s;
+        self.update_area_constants();
+        let uniform = self.uniform_factor();
+        // 1. Forces of eq. 2: home springs, mesh springs, point loads.
+        for &s in self.state.mesh.active() {
+            let i = s as usize;
+            let beta = uniform.unwrap_or_else(|| self.factor_of(s));
+            self.scratch.f[i] =
+                (self.state.rest[i] - self.state.x[i]) * self.home_constant_at(beta, s);
+        }
+        for sp in self.state.mesh.springs() {
+            let d = self.state.x[sp.j as usize] - self.state.x[sp.i as usize];
+            let len = d.length();
+            if len > 0.0 {
+                let beta = uniform.unwrap_or_else(|| self.factor_of(sp.i));
+                let k = self.spring_constant_at(beta, sp.owner);
+                let fs = d * (k * (len - sp.rest_length_m) / len);
+                self.scratch.f[sp.i as usize] += fs;
+                self.scratch.f[sp.j as usize] -= fs;
+            }
+        }
+        self.state.loads.add_to(&self.state.x, &mut self.scratch.f);
+        // 2. Contact: every tool's proxy and the explicit part of its coupling's reaction, on
+        // the contact positions.
+        self.update_probes(inputs);
+        // 3. Symplectic Euler with implicit damping, then the implicit couplings.
+        let mut max_v2: f64 = 0.0;
+        for &s in self.state.mesh.active() {
+            let i = s as usize;
+            if self.model.fixed[i] {
+                continue;
+            }
+            let denom = self.state.mass[i] + dt * self.state.damping[i];
+            self.state.v[i] =
+                (self.state.v[i] * self.state.mass[i] + self.scratch.f[i] * dt) / denom;
+            self.state.x[i] += self.state.v[i] * dt;
+            max_v2 = max_v2.max(self.state.v[i].length_squared());
+        }
+        max_v2 = max_v2.max(self.finish_couplings(dt));
+        if !(max_v2 <= DIVERGENCE_SPEED_M_PER_S * DIVERGENCE_SPEED_M_PER_S) {
+            self.state.diverged_at_s = Some(self.state.time_s);
+            return Err(ModelError::Diverged {
+                time_s: self.state.time_s,
+            });
+        }
+        Ok(())
     }
 
     /// The probe's view of the active slots: `cx = x + contact_rest - rest`. O(active),
@@ -591,7 +668,7 @@ impl MassSpringBody {
                 .mesh
                 .springs()
                 .iter()
-                .map(|sp| (sp.i, sp.j, self.spring_constant(sp.owner))),
+                .map(|sp| (sp.i, sp.j, self.spring_constant(sp.i, sp.owner))),
             &mut diag,
             &mut off,
         );
@@ -607,6 +684,24 @@ impl SoftBody for MassSpringBody {
         MassSpringBody::tick(self, input)
     }
 
+    /// The scene's `probe.max_tools`.
+    fn max_tools(&self) -> usize {
+        self.state.tools.len()
+    }
+
+    /// The index of `tool_id` among the scene's `[[probe.tool]]`.
+    fn tool_slot(&self, tool_id: &str) -> Option<usize> {
+        self.model.tool_ids.iter().position(|id| id == tool_id)
+    }
+
+    fn tick_tools(
+        &mut self,
+        inputs: &[TickInput],
+        outputs: &mut [TickOutput],
+    ) -> Result<(), ModelError> {
+        MassSpringBody::tick_tools(self, inputs, outputs)
+    }
+
     /// Point loads act on the coarse nodes around the point (they survive every event).
     fn add_point_load(
         &mut self,
@@ -616,7 +711,7 @@ impl SoftBody for MassSpringBody {
     ) -> Result<(), ModelError> {
         self.state.loads.add_point_load(
             &self.state.x,
-            self.state.probe.params.radius_m,
+            self.state.tools[0].probe.params.radius_m,
             point_m,
             force_n,
             duration_s,
@@ -694,7 +789,7 @@ impl SoftBody for MassSpringBody {
             tick_s: self.setup.tick_s,
             substeps: self.setup.plan.substeps,
             critical_dt_s: self.setup.plan.critical_dt_s,
-            probe_radius_m: self.state.probe.params.radius_m,
+            probe_radius_m: self.state.tools[0].probe.params.radius_m,
             point_loads: crate::body::PointLoadZone::Anywhere,
         }
     }

@@ -5,7 +5,7 @@ use glam::DVec3;
 
 use super::{
     Centre, EventScratch, EventStats, MAX_CENTRES, MassSpringBody, MassSpringModel,
-    MassSpringScratch, MassSpringSetup, MassSpringState,
+    MassSpringScratch, MassSpringSetup, MassSpringState, ToolContact,
 };
 use crate::ModelError;
 use crate::contact::{ContactModel, Probe, ProbeParams};
@@ -81,6 +81,7 @@ impl MassSpringBody {
             scratch: MassSpringScratch {
                 f: vec![DVec3::ZERO; ns],
                 cx: contact_rest.clone(),
+                tool_weight: prefaulted(0.0, ns),
             },
             model: MassSpringModel {
                 surface,
@@ -90,6 +91,7 @@ impl MassSpringBody {
                 contact_rest,
                 fixed,
                 scene_name: scene_name.to_string(),
+                tool_ids: Vec::new(),
             },
             setup,
             state,
@@ -246,11 +248,9 @@ impl MassSpringState {
             centre_count: 0,
             kh_area: [params.home_spring_n_per_m; MAX_CENTRES],
             km_area: [params.mesh_spring_n_per_m; MAX_CENTRES],
-            probe,
-            contact_factor: 1.0,
-            contact_depth_m: 0.0,
-            foot: None,
-            foot_searched: false,
+            tools: vec![ToolContact::new(probe)],
+            factor_tool: prefaulted(0, ns),
+            factor_all: Some(0),
             loads,
             time_s: 0.0,
             diverged_at_s: None,

@@ -50,14 +50,12 @@ pub(super) fn build_probe(p: &RawProbe) -> Result<ProbeParams, ModelError> {
     Ok(params)
 }
 
-/// Why a scene of `family` takes one tool only (`None`: it takes several; a following active
-/// region covers every tool, [`crate::integrate::follow`]).
+/// Why a scene of `family` takes one tool only (`None`: it takes several). Every family takes
+/// several since issue 50: a following active region covers every tool
+/// ([`crate::integrate::follow`]), the mass-spring surface subdivides under each.
 pub(super) fn one_tool_reason(family: ModelFamily) -> Option<&'static str> {
     match family {
-        ModelFamily::MassSpring => Some(
-            "the mass-spring family takes one tool: its run-time subdivision follows one contact node",
-        ),
-        ModelFamily::Fem | ModelFamily::Hybrid => None,
+        ModelFamily::Fem | ModelFamily::Hybrid | ModelFamily::MassSpring => None,
     }
 }
 
