@@ -198,17 +198,17 @@ fn oversized_client_scenes_are_refused_before_they_are_built() {
     );
     assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
     assert!(e.message().contains("24000 elements"), "{e:?}");
-    // A hybrid scene at half the shipped spacing (about 1.4 million particles, 4 s and 150 MB
-    // to preprocess): refused from its estimate before any particle is sampled; the shipped
-    // spacing passes the same check.
+    // A hybrid scene at 0.13 mm instead of the shipped 0.35 mm (about 1.4 million particles
+    // estimated, 4 s and 150 MB to preprocess): refused from its estimate before any particle
+    // is sampled; the shipped spacing passes the same check.
     let shipped = include_str!("../../deploy/scenes/lv-hybrid.toml");
-    assert!(shipped.contains("spacing_m = 0.00026 "));
+    assert!(shipped.contains("spacing_m = 0.00035 "));
     let m = SessionManager::new(ServerConfig::default());
     let t0 = std::time::Instant::now();
     let e = status(
         m.load_scene(
             "",
-            &shipped.replace("spacing_m = 0.00026 ", "spacing_m = 0.00013 "),
+            &shipped.replace("spacing_m = 0.00035 ", "spacing_m = 0.00013 "),
         )
         .unwrap_err(),
     );

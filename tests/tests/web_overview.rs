@@ -201,15 +201,23 @@ async fn the_overview_shows_the_sessions_of_every_station() -> Result<()> {
         )
         .await?;
     eprintln!("the LV card's tools: {rows}");
-    let row = |i: usize, j: usize| rows[i][j].as_str().unwrap_or("").to_string();
-    ensure!(
-        (row(0, 0), row(1, 0), row(0, 1), row(1, 1))
-            == ("left".into(), "right".into(), "sim".into(), "sim".into()),
-        "tools {rows}"
-    );
-    for i in 0..2 {
-        let force: f64 = row(i, 2).trim_end_matches(" mN").parse()?;
-        ensure!(force > 1.0, "tool {i} force {force} mN: {rows}");
+    // Rows in slot order; the two tools of one process connect at once, so either may hold
+    // slot 0.
+    let mut cells: Vec<[String; 3]> = rows
+        .as_array()
+        .context("tool rows")?
+        .iter()
+        .map(|r| [0, 1, 2].map(|j| r[j].as_str().unwrap_or("").to_string()))
+        .collect();
+    cells.sort();
+    let names: Vec<(&str, &str)> = cells
+        .iter()
+        .map(|c| (c[0].as_str(), c[1].as_str()))
+        .collect();
+    ensure!(names == [("left", "sim"), ("right", "sim")], "tools {rows}");
+    for c in &cells {
+        let force: f64 = c[2].trim_end_matches(" mN").parse()?;
+        ensure!(force > 1.0, "tool {} force {force} mN: {rows}", c[0]);
     }
     let count = browser
         .eval(
