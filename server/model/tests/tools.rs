@@ -19,6 +19,8 @@
 
 #[path = "common/counting_alloc.rs"]
 mod counting_alloc;
+#[path = "common/tool_press.rs"]
+mod tool_press;
 
 use glam::DVec3;
 use haptic_model::body::{SoftBody, TickInput, TickOutput};
@@ -28,12 +30,12 @@ use haptic_model::press::{LV_PROBE_Z_M, PressLine, lv_epicardium_point};
 use haptic_model::scene::{Scene, load_builtin};
 
 use counting_alloc::counted;
+use tool_press::{RAMP_S, ramp_input, run};
 
 /// The force JND: the largest tick-to-tick change of a held force, as a fraction of it.
 const JND: f64 = 0.07;
 
 /// Ramp to the depth (a C1 smoothstep), then hold, s.
-const RAMP_S: f64 = 0.2;
 const HOLD_S: f64 = 0.6;
 
 /// The press line of a tool on the analytic epicardium at the probe's height and `azimuth`
@@ -41,38 +43,6 @@ const HOLD_S: f64 = 0.6;
 fn line_at(azimuth: f64, radius_m: f64) -> PressLine {
     let (p, n) = lv_epicardium_point(LV_PROBE_Z_M, azimuth);
     PressLine::at_surface_point(p, n, radius_m)
-}
-
-/// The device input on `line` at time `t` (s) of a ramp to `depth_m` then a hold.
-fn ramp_input(line: &PressLine, depth_m: f64, t: f64) -> TickInput {
-    let u = (t / RAMP_S).clamp(0.0, 1.0);
-    let s = u * u * (3.0 - 2.0 * u);
-    let ds = if t < RAMP_S {
-        6.0 * u * (1.0 - u) / RAMP_S
-    } else {
-        0.0
-    };
-    // Start the ramp a little before first contact, so contact begins gently.
-    let d0 = -0.2e-3;
-    TickInput {
-        device_position_m: Some(line.device_at(d0 + (depth_m - d0) * s)),
-        device_velocity_m_per_s: line.direction * (depth_m - d0) * ds,
-    }
-}
-
-/// Runs `ticks` two-slot ticks with `input(tick)`, returning every tick's outputs.
-fn run(
-    body: &mut FemBody,
-    ticks: usize,
-    mut input: impl FnMut(usize) -> [TickInput; 2],
-) -> Vec<[TickOutput; 2]> {
-    let mut trace = Vec::with_capacity(ticks);
-    for k in 0..ticks {
-        let mut out = [TickOutput::default(); 2];
-        body.tick_tools(&input(k), &mut out).expect("tick");
-        trace.push(out);
-    }
-    trace
 }
 
 /// Mean force (N) over `range` of tool `slot`, and the largest tick-to-tick change (N).

@@ -14,6 +14,8 @@
 
 #[path = "common/counting_alloc.rs"]
 mod counting_alloc;
+#[path = "common/tool_press.rs"]
+mod tool_press;
 
 use glam::DVec3;
 use haptic_model::body::{SoftBody, TickInput, TickOutput};
@@ -23,12 +25,12 @@ use haptic_model::press::{LV_PROBE_Z_M, PressLine, lv_epicardium_point};
 use haptic_model::scene::{Scene, builtin_scene_toml, load_builtin, parse_scene_toml};
 
 use counting_alloc::counted;
+use tool_press::{RAMP_S, ramp_input, run};
 
 /// The force JND: the largest tick-to-tick change of a held force, as a fraction of it.
 const JND: f64 = 0.07;
 
 /// Ramp to the depth (a C1 smoothstep), then hold, s.
-const RAMP_S: f64 = 0.2;
 const HOLD_S: f64 = 0.6;
 
 /// Device depth past first contact, m.
@@ -62,38 +64,6 @@ fn line_at(name: &str, body: &dyn SoftBody, r: f64, u: f64) -> PressLine {
 /// The press lines at both ends of [`line_at`]'s path.
 fn distant_lines(name: &str, body: &dyn SoftBody, r: f64) -> [PressLine; 2] {
     [line_at(name, body, r, 0.0), line_at(name, body, r, 1.0)]
-}
-
-/// The device input on `line` at time `t` (s) of a ramp to `depth_m` then a hold.
-fn ramp_input(line: &PressLine, depth_m: f64, t: f64) -> TickInput {
-    let u = (t / RAMP_S).clamp(0.0, 1.0);
-    let s = u * u * (3.0 - 2.0 * u);
-    let ds = if t < RAMP_S {
-        6.0 * u * (1.0 - u) / RAMP_S
-    } else {
-        0.0
-    };
-    // Start the ramp a little before first contact, so contact begins gently.
-    let d0 = -0.2e-3;
-    TickInput {
-        device_position_m: Some(line.device_at(d0 + (depth_m - d0) * s)),
-        device_velocity_m_per_s: line.direction * (depth_m - d0) * ds,
-    }
-}
-
-/// Runs `ticks` two-slot ticks with `input(tick)`, returning every tick's outputs.
-fn run(
-    body: &mut MassSpringBody,
-    ticks: usize,
-    mut input: impl FnMut(usize) -> [TickInput; 2],
-) -> Vec<[TickOutput; 2]> {
-    let mut trace = Vec::with_capacity(ticks);
-    for k in 0..ticks {
-        let mut out = [TickOutput::default(); 2];
-        body.tick_tools(&input(k), &mut out).expect("tick");
-        trace.push(out);
-    }
-    trace
 }
 
 /// The input of slot `slot` at tick `k` of a ramp to [`DEPTH_M`] on `line`.
