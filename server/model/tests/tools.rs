@@ -30,7 +30,7 @@ use haptic_model::press::{LV_PROBE_Z_M, PressLine, lv_epicardium_point};
 use haptic_model::scene::{Scene, load_builtin};
 
 use counting_alloc::counted;
-use tool_press::{RAMP_S, ramp_input, run};
+use tool_press::{RAMP_S, hold_stats, ramp_input, run};
 
 /// The force JND: the largest tick-to-tick change of a held force, as a fraction of it.
 const JND: f64 = 0.07;
@@ -43,24 +43,6 @@ const HOLD_S: f64 = 0.6;
 fn line_at(azimuth: f64, radius_m: f64) -> PressLine {
     let (p, n) = lv_epicardium_point(LV_PROBE_Z_M, azimuth);
     PressLine::at_surface_point(p, n, radius_m)
-}
-
-/// Mean force (N) over `range` of tool `slot`, and the largest tick-to-tick change (N).
-fn hold_stats(
-    trace: &[[TickOutput; 2]],
-    slot: usize,
-    range: std::ops::Range<usize>,
-) -> (DVec3, f64) {
-    let forces: Vec<DVec3> = trace[range]
-        .iter()
-        .map(|o| o[slot].force_on_device_n)
-        .collect();
-    let mean = forces.iter().copied().sum::<DVec3>() / forces.len() as f64;
-    let change = forces
-        .windows(2)
-        .map(|w| (w[1] - w[0]).length())
-        .fold(0.0, f64::max);
-    (mean, change)
 }
 
 /// The clamp's support force on the body, N: minus the internal (elastic and viscous) forces

@@ -25,7 +25,7 @@ use haptic_model::press::{LV_PROBE_Z_M, PressLine, lv_epicardium_point};
 use haptic_model::scene::{Scene, builtin_scene_toml, load_builtin, parse_scene_toml};
 
 use counting_alloc::counted;
-use tool_press::{RAMP_S, ramp_input, run};
+use tool_press::{RAMP_S, hold_stats, ramp_input, run};
 
 /// The force JND: the largest tick-to-tick change of a held force, as a fraction of it.
 const JND: f64 = 0.07;
@@ -69,24 +69,6 @@ fn distant_lines(name: &str, body: &dyn SoftBody, r: f64) -> [PressLine; 2] {
 /// The input of slot `slot` at tick `k` of a ramp to [`DEPTH_M`] on `line`.
 fn ramp_at(line: &PressLine, k: usize) -> TickInput {
     ramp_input(line, DEPTH_M, (k + 1) as f64 * 1e-3)
-}
-
-/// Mean force (N) over `range` of tool `slot`, and the largest tick-to-tick change (N).
-fn hold_stats(
-    trace: &[[TickOutput; 2]],
-    slot: usize,
-    range: std::ops::Range<usize>,
-) -> (DVec3, f64) {
-    let forces: Vec<DVec3> = trace[range]
-        .iter()
-        .map(|o| o[slot].force_on_device_n)
-        .collect();
-    let mean = forces.iter().copied().sum::<DVec3>() / forces.len() as f64;
-    let change = forces
-        .windows(2)
-        .map(|w| (w[1] - w[0]).length())
-        .fold(0.0, f64::max);
-    (mean, change)
 }
 
 fn body_of(scene: &Scene) -> MassSpringBody {

@@ -1,8 +1,9 @@
 //! Shared helpers of the several-tools tests (`tools.rs`, `tools_mass_spring.rs`): a smooth
-//! ramp to a depth then a hold, and two-slot runs. Each file declares
+//! ramp to a depth then a hold, two-slot runs and their holds' statistics. Each file declares
 //! `#[path = "common/tool_press.rs"] mod tool_press;`.
 #![allow(dead_code)]
 
+use glam::DVec3;
 use haptic_model::body::{SoftBody, TickInput, TickOutput};
 use haptic_model::press::PressLine;
 
@@ -40,4 +41,22 @@ pub fn run(
         trace.push(out);
     }
     trace
+}
+
+/// Mean force (N) over `range` of tool `slot`, and the largest tick-to-tick change (N).
+pub fn hold_stats(
+    trace: &[[TickOutput; 2]],
+    slot: usize,
+    range: std::ops::Range<usize>,
+) -> (DVec3, f64) {
+    let forces: Vec<DVec3> = trace[range]
+        .iter()
+        .map(|o| o[slot].force_on_device_n)
+        .collect();
+    let mean = forces.iter().copied().sum::<DVec3>() / forces.len() as f64;
+    let change = forces
+        .windows(2)
+        .map(|w| (w[1] - w[0]).length())
+        .fold(0.0, f64::max);
+    (mean, change)
 }
