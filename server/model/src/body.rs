@@ -313,6 +313,20 @@ pub fn check_tool_slots(inputs: usize, outputs: usize, max_tools: usize) -> Resu
     Ok(())
 }
 
+/// [`check_tool_slots`] and then every input's [`TickInput::validate`]: what each family's
+/// [`SoftBody::tick_tools`] checks before it changes anything.
+///
+/// # Errors
+/// [`ModelError::InvalidInput`] for the slot counts or the first invalid input.
+pub fn check_tool_inputs(
+    inputs: &[TickInput],
+    outputs: usize,
+    max_tools: usize,
+) -> Result<(), ModelError> {
+    check_tool_slots(inputs.len(), outputs, max_tools)?;
+    inputs.iter().try_for_each(TickInput::validate)
+}
+
 #[cfg(test)]
 mod tool_slot_tests {
     use super::{MAX_TOOLS, check_tool_slots};

@@ -42,7 +42,7 @@ use glam::DVec3;
 use crate::ModelError;
 use crate::body::{
     BodyInfo, BodyStats, MAX_TOOLS, PointLoadZone, SoftBody, SurfaceCapacity, SurfaceTopology,
-    check_tool_slots,
+    check_tool_inputs,
 };
 use crate::contact::coupling::{MAX_COUPLED_PROBES, MAX_COUPLING_ROWS};
 use crate::contact::{ContactModel, CouplingMerge, LocalLaw, MAX_PATCH_NODES, Probe, ProbeParams};
@@ -328,7 +328,7 @@ impl FemBody {
     /// [`Self::tick`] bit for bit.
     ///
     /// # Errors
-    /// [`ModelError::InvalidInput`] for slot counts [`check_tool_slots`] refuses; otherwise as
+    /// [`ModelError::InvalidInput`] for slot counts [`crate::body::check_tool_slots`] refuses; otherwise as
     /// [`Self::tick`] (any slot's invalid input refuses the tick, state untouched). Neither
     /// allocates.
     pub fn tick_tools(
@@ -336,10 +336,7 @@ impl FemBody {
         inputs: &[TickInput],
         outputs: &mut [TickOutput],
     ) -> Result<(), ModelError> {
-        check_tool_slots(inputs.len(), outputs.len(), self.probes.len())?;
-        for input in inputs {
-            input.validate()?;
-        }
+        check_tool_inputs(inputs, outputs.len(), self.probes.len())?;
         if let Some(time_s) = self.status.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }

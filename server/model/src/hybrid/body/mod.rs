@@ -68,7 +68,7 @@ use super::proxy::{ParticleProxy, ProxyContact};
 use crate::ModelError;
 use crate::body::{
     BodyInfo, BodyStats, MAX_TOOLS, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput,
-    TickOutput, check_tool_slots, validate_point_load,
+    TickOutput, check_tool_inputs, validate_point_load,
 };
 use crate::contact::probe::ProbeParams;
 use crate::element::FemModel;
@@ -498,10 +498,7 @@ impl SoftBody for HybridBody {
         inputs: &[TickInput],
         outputs: &mut [TickOutput],
     ) -> Result<(), ModelError> {
-        check_tool_slots(inputs.len(), outputs.len(), self.max_tools())?;
-        for input in inputs {
-            input.validate()?;
-        }
+        check_tool_inputs(inputs, outputs.len(), self.max_tools())?;
         if let Some(time_s) = self.state.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }

@@ -59,7 +59,7 @@ use super::surface::SpringSurface;
 use crate::ModelError;
 use crate::body::{
     BodyInfo, BodyStats, MAX_TOOLS, SoftBody, SurfaceCapacity, SurfaceTopology, TickInput,
-    TickOutput, check_tool_slots,
+    TickOutput, check_tool_inputs,
 };
 use crate::contact::Probe;
 use crate::integrate::{IntegratorParams, StepPlan, plan_steps};
@@ -507,7 +507,7 @@ impl MassSpringBody {
     /// node becomes a centre. Slot 0 alone is the one-tool tick of before, bit for bit.
     ///
     /// # Errors
-    /// [`ModelError::InvalidInput`] for slot counts [`check_tool_slots`] refuses; otherwise as
+    /// [`ModelError::InvalidInput`] for slot counts [`crate::body::check_tool_slots`] refuses; otherwise as
     /// [`Self::tick`] (any slot's invalid input refuses the tick, state untouched).
     /// Allocation-free.
     pub fn tick_tools(
@@ -515,10 +515,7 @@ impl MassSpringBody {
         inputs: &[TickInput],
         outputs: &mut [TickOutput],
     ) -> Result<(), ModelError> {
-        check_tool_slots(inputs.len(), outputs.len(), self.state.tools.len())?;
-        for input in inputs {
-            input.validate()?;
-        }
+        check_tool_inputs(inputs, outputs.len(), self.state.tools.len())?;
         if let Some(time_s) = self.state.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
