@@ -40,9 +40,9 @@ fn device(line: &PressLine, k: usize) -> TickInput {
 
 #[test]
 fn two_threads_give_the_serial_force_to_round_off_and_allocate_nothing() {
-    // One test, the bodies built one after the other: two `lv-hybrid` bodies built at the
-    // same time on two test threads were seen to differ by about 1e-7 of the force from
-    // their first tick (not understood yet; built one after the other they agree bit for bit).
+    // Two `lv-hybrid` bodies built at the same time on two test threads once differed by
+    // about 1e-7 of the force from their first tick: METIS ordered both core factors from one
+    // C random stream (now serialised, `tests/ordering_threads.rs`).
     let mut serial = lv_hybrid();
     let mut threaded = lv_hybrid();
     let mut one_part = lv_hybrid();

@@ -11,7 +11,7 @@
 //!
 //! Owns: the ordering. May use: nothing of the crate but its error type.
 
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::perm::PermRef;
@@ -23,6 +23,14 @@ use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::{Conj, MatMut, Par, Side};
 
 use crate::ModelError;
+
+/// Serialises the calls into METIS. METIS draws its random numbers from the C library's
+/// `rand` after seeding it with `srand` at each call (GKlib `random.c`, libmetis `InitRandom`):
+/// one stream for the whole process, so two orderings made at once on two threads interleave
+/// it and each gets another ordering than it would alone (another factor, forces that differ
+/// in the last digits). Held only for `METIS_NodeND` (set-up and region preparation, never the
+/// servo tick); `tests/ordering_threads.rs`.
+static METIS_LOCK: Mutex<()> = Mutex::new(());
 
 /// Graphs with fewer vertices than this are ordered by AMD (METIS gains nothing there).
 pub const MIN_VERTICES: usize = 64;
@@ -252,6 +260,9 @@ fn metis_node_nd(mut graph: Graph, members: &Members, n: usize) -> Result<Vec<i3
     let mut perm = vec![0i32; ng];
     let mut iperm = vec![0i32; ng];
     let mut options = [-1i32; metis_sys::METIS_NOPTIONS as usize];
+    let _one_at_a_time = METIS_LOCK
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
     // SAFETY: every array has the length METIS_NodeND reads or writes: `xadj` nvtxs + 1,
     // `adjncy` xadj[nvtxs] (a symmetric graph without self loops, built by `group_graph`),
     // `vwgt`, `perm` and `iperm` nvtxs, `options` METIS_NOPTIONS (set to defaults by -1,
