@@ -179,6 +179,11 @@ struct HybridState {
     vp: Vec<DVec3>,
     /// Deviations of the active particles from the core's interpolation, m (deviation mode).
     xd: Vec<DVec3>,
+    /// Deviation mode: the active particles' `xp` are `interpolate(xc) + xd` of the current
+    /// `xc` and `xd` (set by the particle step, which writes them; cleared by anything else
+    /// that writes `xc`, `xd` or `xp`), so the next force evaluation need not interpolate
+    /// them again (issue 48 section 3: they were interpolated twice per sub-step).
+    xp_fresh: bool,
     /// The probe: the proxy sphere on the active particles and the virtual coupling (tool
     /// slot 0).
     proxy: ParticleProxy,
@@ -368,6 +373,7 @@ impl HybridBody {
 
     /// Core positions and velocities (m, m/s), for tests and studies.
     pub fn core_state_mut(&mut self) -> (&mut [DVec3], &mut [DVec3]) {
+        self.state.xp_fresh = false;
         (&mut self.state.xc, &mut self.state.vc)
     }
 
@@ -376,6 +382,7 @@ impl HybridBody {
     /// With `scaled_motion = "deviation"` the velocities are the deviations' rates and the
     /// positions are recomputed from the core and the deviations at every sub-step.
     pub fn particle_state_mut(&mut self) -> (&mut [DVec3], &mut [DVec3]) {
+        self.state.xp_fresh = false;
         (&mut self.state.xp, &mut self.state.vp)
     }
 

@@ -93,6 +93,7 @@ impl HybridBody {
                 xp: model.cloud.rest_m().to_vec(),
                 vp: vec![DVec3::ZERO; n],
                 xd: vec![DVec3::ZERO; n],
+                xp_fresh: false,
                 proxy: ParticleProxy::new(
                     &probe,
                     params.meshfree.spacing_m,
