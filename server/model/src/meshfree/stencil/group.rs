@@ -7,7 +7,7 @@ use std::ops::Range;
 
 use glam::{DMat3, DVec3};
 
-use super::layout::{GroupRest, LaneRest, StencilLayout};
+use super::layout::{GroupRest, StencilLayout};
 use super::offsets::Stencil;
 use super::{CUBE, CUBE_CLASS, MAX_PAIRS};
 use crate::material::stvk::{green_strain, stvk_stress};
@@ -157,8 +157,8 @@ pub(super) fn group_loop<V: Lanes4>(
         .skip(groups.start)
     {
         let b = base as usize;
-        let lanes = &lay.lanes[4 * g..4 * g + 4];
-        let own = V::from_array(isa, lay.group_rest[g].own);
+        let gq = &lay.group_rest[g];
+        let own = V::from_array(isa, gq.own);
         let ui = [
             V::load(isa, pos[0], b),
             V::load(isa, pos[1], b),
@@ -166,9 +166,9 @@ pub(super) fn group_loop<V: Lanes4>(
         ];
         let sums = pass_one(isa, st, lay, pos, b);
         let out = if st.seed || stvk {
-            stress_stvk(isa, st, &lay.group_rest[g], &sums, ui, own, mat)
+            stress_stvk(isa, st, gq, &sums, ui, own, mat)
         } else {
-            stress_per_lane(isa, st, lanes, &sums, ui, mat)
+            stress_per_lane(isa, st, gq, &sums, ui, mat)
         };
         pass_two_group(isa, st, lay, (pos, &mut *fc), b, own, ui, &out, &mut ah);
     }
@@ -451,7 +451,7 @@ fn corrected_forces<V: Lanes4>(
 fn stress_per_lane<V: Lanes4>(
     isa: V::Isa,
     st: &Stencil,
-    lanes: &[LaneRest],
+    gq: &GroupRest,
     sums: &PassOne<V>,
     ui: [V; 3],
     mat: &MaterialParams,
@@ -469,10 +469,11 @@ fn stress_per_lane<V: Lanes4>(
     let mut nl = [[0.0; 4]; 9];
     let mut fl = [[0.0; 4]; 9];
     let mut ol = [[0.0; 4]; 3];
-    for (l, lr) in lanes.iter().enumerate() {
-        if lr.own == 0.0 {
+    for l in 0..4 {
+        if gq.own[l] == 0.0 {
             continue;
         }
+        let lr = gq.lane(l);
         let u_i = DVec3::new(uis[0][l], uis[1][l], uis[2][l]);
         let g_us = DMat3::from_cols_array(&gas[l]) - outer(u_i, lr.s);
         let (n, f, owner) = if seed {
@@ -482,12 +483,12 @@ fn stress_per_lane<V: Lanes4>(
             (n, DMat3::ZERO, n * lr.s)
         } else {
             // F - I = (F~ - A) A^-1.
-            let fmi = g_us * lr.a_inv;
+            let fmi = g_us * lr.a;
             let f = fmi + DMat3::IDENTITY;
             // D = sum_k c_k d_ik (x) X_k = Gb - u_i (x) U + Q; H = F Q - D.
             let h = fmi * lr.q - DMat3::from_cols_array(&gbs[l]) + outer(u_i, lr.u);
             let m = first_piola(mat, &f) * v + h;
-            let n = m * lr.a_inv.transpose();
+            let n = m * lr.a.transpose();
             // sum_k c_k d_ik = sum_k c_k u_(i+k) - C u_i + U.
             let sdl = DVec3::new(cus[0][l], cus[1][l], cus[2][l]) - u_i * lr.c + lr.u;
             (n, fmi, n * lr.s - f * lr.u + sdl)
