@@ -406,25 +406,16 @@ impl TieScatter<'_> {
         }
         self.fcoup.iter_mut().for_each(|f| *f = DVec3::ZERO);
         for (&q, t) in self.tied.iter().zip(self.tied_ties) {
-            let f = self.fp[q as usize];
-            for k in 0..t.len {
-                self.fcoup[t.nodes[k] as usize] += f * t.w[k];
-            }
+            t.scatter(self.fp[q as usize], self.fcoup);
         }
         if self.deviation {
             // `d x_p / d x_k = w_pk`: the active particles' forces drive the core too.
             for (&p, t) in self.active.iter().zip(self.active_ties) {
-                let f = self.fp[p as usize];
-                for k in 0..t.len {
-                    self.fcoup[t.nodes[k] as usize] += f * t.w[k];
-                }
+                t.scatter(self.fp[p as usize], self.fcoup);
             }
         }
         for l in self.loads {
-            let t = self.model.tie_nodes(&l.tie);
-            for k in 0..t.len {
-                self.fcoup[t.nodes[k] as usize] += l.force_n * t.w[k];
-            }
+            self.model.tie_nodes(&l.tie).scatter(l.force_n, self.fcoup);
         }
     }
 }
