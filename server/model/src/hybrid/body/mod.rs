@@ -238,6 +238,10 @@ struct HybridPipeline {
     /// The core nodes and tie weights of each particle of `active_list`, copied when the terms
     /// are refilled (deviation mode).
     active_ties: Vec<TieNodes>,
+    /// The positions `k` in `active_list` (and `active_ties`) by ascending particle index
+    /// (deviation mode): the particle step walks the particle arrays forwards (issue 48; the
+    /// list itself keeps its order, which the proxy's and the ties' sums follow).
+    active_order: Vec<u32>,
     /// The session's tick pool ([`SoftBody::set_tick_pool`]): the terms' stencil loop runs in
     /// its parts (issue 48). `None`: one part, the one-core tick.
     pool: Option<Arc<TickPool>>,

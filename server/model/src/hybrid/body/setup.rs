@@ -130,6 +130,7 @@ impl HybridBody {
                 implicit: None,
                 tied_ties: Vec::with_capacity(3 * capacity),
                 active_ties: Vec::with_capacity(most_active),
+                active_order: Vec::with_capacity(most_active),
                 pool: None,
             },
             scratch: HybridScratch {

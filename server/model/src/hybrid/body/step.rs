@@ -37,12 +37,18 @@ impl HybridBody {
         let m = &self.model;
         self.state.xp_fresh = false;
         self.pipeline.active_ties.clear();
+        self.pipeline.active_order.clear();
         if self.setup.deviation {
             for &p in &self.regions.active_list {
                 self.pipeline
                     .active_ties
                     .push(m.tie_nodes(&m.particle_tie[p as usize]));
             }
+            let list = &self.regions.active_list;
+            self.pipeline.active_order.extend(0..list.len() as u32);
+            self.pipeline
+                .active_order
+                .sort_unstable_by_key(|&k| list[k as usize]);
         }
         self.regions.changed = false;
     }
@@ -327,13 +333,12 @@ impl HybridBody {
         let inv_m = dt / self.setup.particle_mass_kg;
         if self.setup.deviation {
             let xc = &self.state.xc;
-            for (&p, t) in self
-                .regions
-                .active_list
-                .iter()
-                .zip(&self.pipeline.active_ties)
-            {
-                let p = p as usize;
+            // In memory order (each particle's step is its own: the order changes no bit).
+            for &k in &self.pipeline.active_order {
+                let (p, t) = (
+                    self.regions.active_list[k as usize] as usize,
+                    &self.pipeline.active_ties[k as usize],
+                );
                 let v = (self.state.vp[p] + self.scratch.fp[p] * inv_m) * damp;
                 self.state.vp[p] = v;
                 self.state.xd[p] += v * dt;
