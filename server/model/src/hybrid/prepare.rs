@@ -58,14 +58,35 @@ pub struct TieNodes {
 }
 
 impl TieNodes {
-    /// `sum_k w_k x_k`.
+    /// `sum_k w_k x_k` (in order from `k = 0`; the ten-node tie of a quadratic core unrolled,
+    /// the same sum).
     #[inline]
     pub fn interpolate(&self, x: &[DVec3]) -> DVec3 {
         let mut p = DVec3::ZERO;
+        if self.len == MAX_TIE_NODES {
+            for k in 0..MAX_TIE_NODES {
+                p += x[self.nodes[k] as usize] * self.w[k];
+            }
+            return p;
+        }
         for k in 0..self.len {
             p += x[self.nodes[k] as usize] * self.w[k];
         }
         p
+    }
+
+    /// `f[k] += w_k force` for every node `k` of the tie (N; the ten-node tie unrolled).
+    #[inline]
+    pub fn scatter(&self, force: DVec3, f: &mut [DVec3]) {
+        if self.len == MAX_TIE_NODES {
+            for k in 0..MAX_TIE_NODES {
+                f[self.nodes[k] as usize] += force * self.w[k];
+            }
+            return;
+        }
+        for k in 0..self.len {
+            f[self.nodes[k] as usize] += force * self.w[k];
+        }
     }
 }
 

@@ -113,6 +113,7 @@ impl HybridBody {
                     self.state.xp[p] = x0p[p] + up[p] * (eps * inv_sqrt_mp);
                 }
             }
+            self.state.xp_fresh = false;
             self.particle_forces(None);
             self.core_forces();
             // w = M^-1/2 K M^-1/2 u, with K u ~ -(f(x0 + eps M^-1/2 u) - f(x0)) / eps.
@@ -149,6 +150,7 @@ impl HybridBody {
         self.state.xc.copy_from_slice(&x0c);
         self.state.xp.copy_from_slice(&x0p);
         self.state.xd.copy_from_slice(&x0d);
+        self.state.xp_fresh = false;
         self.state.vc = v0c;
         self.particle_forces(None);
         result.ok_or_else(|| unsettled(&history, tolerance))

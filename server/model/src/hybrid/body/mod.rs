@@ -179,6 +179,11 @@ struct HybridState {
     vp: Vec<DVec3>,
     /// Deviations of the active particles from the core's interpolation, m (deviation mode).
     xd: Vec<DVec3>,
+    /// Deviation mode: the active particles' `xp` are `interpolate(xc) + xd` of the current
+    /// `xc` and `xd` (set by the particle step, which writes them; cleared by anything else
+    /// that writes `xc`, `xd` or `xp`), so the next force evaluation need not interpolate
+    /// them again (issue 48 section 3: they were interpolated twice per sub-step).
+    xp_fresh: bool,
     /// The probe: the proxy sphere on the active particles and the virtual coupling (tool
     /// slot 0).
     proxy: ParticleProxy,
@@ -233,6 +238,10 @@ struct HybridPipeline {
     /// The core nodes and tie weights of each particle of `active_list`, copied when the terms
     /// are refilled (deviation mode).
     active_ties: Vec<TieNodes>,
+    /// The positions `k` in `active_list` (and `active_ties`) by ascending particle index
+    /// (deviation mode): the particle step walks the particle arrays forwards (issue 48; the
+    /// list itself keeps its order, which the proxy's and the ties' sums follow).
+    active_order: Vec<u32>,
     /// The session's tick pool ([`SoftBody::set_tick_pool`]): the terms' stencil loop runs in
     /// its parts (issue 48). `None`: one part, the one-core tick.
     pool: Option<Arc<TickPool>>,
@@ -368,6 +377,7 @@ impl HybridBody {
 
     /// Core positions and velocities (m, m/s), for tests and studies.
     pub fn core_state_mut(&mut self) -> (&mut [DVec3], &mut [DVec3]) {
+        self.state.xp_fresh = false;
         (&mut self.state.xc, &mut self.state.vc)
     }
 
@@ -376,6 +386,7 @@ impl HybridBody {
     /// With `scaled_motion = "deviation"` the velocities are the deviations' rates and the
     /// positions are recomputed from the core and the deviations at every sub-step.
     pub fn particle_state_mut(&mut self) -> (&mut [DVec3], &mut [DVec3]) {
+        self.state.xp_fresh = false;
         (&mut self.state.xp, &mut self.state.vp)
     }
 

@@ -93,6 +93,7 @@ impl HybridBody {
                 xp: model.cloud.rest_m().to_vec(),
                 vp: vec![DVec3::ZERO; n],
                 xd: vec![DVec3::ZERO; n],
+                xp_fresh: false,
                 proxy: ParticleProxy::new(
                     &probe,
                     params.meshfree.spacing_m,
@@ -129,6 +130,7 @@ impl HybridBody {
                 implicit: None,
                 tied_ties: Vec::with_capacity(3 * capacity),
                 active_ties: Vec::with_capacity(most_active),
+                active_order: Vec::with_capacity(most_active),
                 pool: None,
             },
             scratch: HybridScratch {

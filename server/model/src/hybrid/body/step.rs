@@ -35,13 +35,20 @@ impl HybridBody {
         }
         self.refresh_implicit_matrix();
         let m = &self.model;
+        self.state.xp_fresh = false;
         self.pipeline.active_ties.clear();
+        self.pipeline.active_order.clear();
         if self.setup.deviation {
             for &p in &self.regions.active_list {
                 self.pipeline
                     .active_ties
                     .push(m.tie_nodes(&m.particle_tie[p as usize]));
             }
+            let list = &self.regions.active_list;
+            self.pipeline.active_order.extend(0..list.len() as u32);
+            self.pipeline
+                .active_order
+                .sort_unstable_by_key(|&k| list[k as usize]);
         }
         self.regions.changed = false;
     }
@@ -184,7 +191,9 @@ impl HybridBody {
         for (&q, t) in self.regions.tied_list.iter().zip(&self.pipeline.tied_ties) {
             self.state.xp[q as usize] = t.interpolate(xc);
         }
-        if self.setup.deviation {
+        // The particle step leaves the active particles where this would put them (bit for
+        // bit: the same sum of the same values).
+        if self.setup.deviation && !std::mem::replace(&mut self.state.xp_fresh, true) {
             for (&p, t) in self
                 .regions
                 .active_list
@@ -324,13 +333,12 @@ impl HybridBody {
         let inv_m = dt / self.setup.particle_mass_kg;
         if self.setup.deviation {
             let xc = &self.state.xc;
-            for (&p, t) in self
-                .regions
-                .active_list
-                .iter()
-                .zip(&self.pipeline.active_ties)
-            {
-                let p = p as usize;
+            // In memory order (each particle's step is its own: the order changes no bit).
+            for &k in &self.pipeline.active_order {
+                let (p, t) = (
+                    self.regions.active_list[k as usize] as usize,
+                    &self.pipeline.active_ties[k as usize],
+                );
                 let v = (self.state.vp[p] + self.scratch.fp[p] * inv_m) * damp;
                 self.state.vp[p] = v;
                 self.state.xd[p] += v * dt;
@@ -340,6 +348,7 @@ impl HybridBody {
                 non_finite |= !s.is_finite();
                 max_v2 = max_v2.max(s);
             }
+            self.state.xp_fresh = true;
         } else {
             for &p in &self.regions.active_list {
                 let p = p as usize;
@@ -402,25 +411,16 @@ impl TieScatter<'_> {
         }
         self.fcoup.iter_mut().for_each(|f| *f = DVec3::ZERO);
         for (&q, t) in self.tied.iter().zip(self.tied_ties) {
-            let f = self.fp[q as usize];
-            for k in 0..t.len {
-                self.fcoup[t.nodes[k] as usize] += f * t.w[k];
-            }
+            t.scatter(self.fp[q as usize], self.fcoup);
         }
         if self.deviation {
             // `d x_p / d x_k = w_pk`: the active particles' forces drive the core too.
             for (&p, t) in self.active.iter().zip(self.active_ties) {
-                let f = self.fp[p as usize];
-                for k in 0..t.len {
-                    self.fcoup[t.nodes[k] as usize] += f * t.w[k];
-                }
+                t.scatter(self.fp[p as usize], self.fcoup);
             }
         }
         for l in self.loads {
-            let t = self.model.tie_nodes(&l.tie);
-            for k in 0..t.len {
-                self.fcoup[t.nodes[k] as usize] += l.force_n * t.w[k];
-            }
+            self.model.tie_nodes(&l.tie).scatter(l.force_n, self.fcoup);
         }
     }
 }

@@ -7,7 +7,7 @@ use std::ops::Range;
 
 use glam::{DMat3, DVec3};
 
-use super::layout::{GroupRest, LaneRest, StencilLayout};
+use super::layout::{GroupRest, StencilLayout};
 use super::offsets::Stencil;
 use super::{CUBE, CUBE_CLASS, MAX_PAIRS};
 use crate::material::stvk::{green_strain, stvk_stress};
@@ -143,6 +143,7 @@ pub(super) fn group_loop<V: Lanes4>(
 ) {
     let GroupPart { pos, fc, groups } = part;
     let stvk = mat.model == MaterialModel::StVenantKirchhoff;
+    let neo_hookean = mat.model == MaterialModel::StableNeoHookean && !st.seed;
     let nk = lay.off.len();
     assert!(nk <= MAX_STENCIL && st.w.len() == nk && st.c.len() == nk && st.u.len() == nk);
     let zero = V::zero(isa);
@@ -157,8 +158,8 @@ pub(super) fn group_loop<V: Lanes4>(
         .skip(groups.start)
     {
         let b = base as usize;
-        let lanes = &lay.lanes[4 * g..4 * g + 4];
-        let own = V::from_array(isa, lay.group_rest[g].own);
+        let gq = &lay.group_rest[g];
+        let own = V::from_array(isa, gq.own);
         let ui = [
             V::load(isa, pos[0], b),
             V::load(isa, pos[1], b),
@@ -166,9 +167,11 @@ pub(super) fn group_loop<V: Lanes4>(
         ];
         let sums = pass_one(isa, st, lay, pos, b);
         let out = if st.seed || stvk {
-            stress_stvk(isa, st, &lay.group_rest[g], &sums, ui, own, mat)
+            stress_stvk(isa, st, gq, &sums, ui, own, mat)
+        } else if neo_hookean {
+            stress_neo_hookean(isa, st, gq, &sums, ui, mat)
         } else {
-            stress_per_lane(isa, st, lanes, &sums, ui, mat)
+            stress_per_lane(isa, st, gq, &sums, ui, mat)
         };
         pass_two_group(isa, st, lay, (pos, &mut *fc), b, own, ui, &out, &mut ah);
     }
@@ -444,6 +447,121 @@ fn corrected_forces<V: Lanes4>(
     (n, fmi, ov)
 }
 
+/// `a b` lane-wise (column-major) as `DMat3 * DMat3` rounds it, without fused operations:
+/// entry `(r, c)` is `(a_r0 b_0c + a_r1 b_1c) + a_r2 b_2c`.
+#[inline(always)]
+fn mat_mul_exact<V: Lanes4>(a: &[V; 9], b: &[V; 9]) -> [V; 9] {
+    let mut out = *a;
+    for c in 0..3 {
+        for r in 0..3 {
+            let ab = a[r].mul(b[3 * c]).add(a[3 + r].mul(b[3 * c + 1]));
+            out[3 * c + r] = ab.add(a[6 + r].mul(b[3 * c + 2]));
+        }
+    }
+    out
+}
+
+/// `a v` lane-wise (column-major `a`) as `DMat3 * DVec3` rounds it (no fused operations).
+#[inline(always)]
+fn mat_vec_exact<V: Lanes4>(a: &[V; 9], v: &[V; 3]) -> [V; 3] {
+    let mut out = *v;
+    for (r, o) in out.iter_mut().enumerate() {
+        *o = a[r]
+            .mul(v[0])
+            .add(a[3 + r].mul(v[1]))
+            .add(a[6 + r].mul(v[2]));
+    }
+    out
+}
+
+/// Lanes `l` with `own[l] == 0` set to zero (padding lanes, as [`stress_per_lane`] leaves them).
+#[inline(always)]
+fn zero_padding<V: Lanes4>(isa: V::Isa, own: &[f64; 4], v: &mut [V]) {
+    for x in v {
+        let mut a = x.to_array();
+        for (a, &o) in a.iter_mut().zip(own) {
+            if o == 0.0 {
+                *a = 0.0;
+            }
+        }
+        *x = V::from_array(isa, a);
+    }
+}
+
+/// The stable Neo-Hookean stress of a group lane-wise (corrected variant): the operations of
+/// [`stress_per_lane`] with `first_piola` (`P = mu F + lambda_s (J - alpha) cof F`), entry by
+/// entry in the same order without fused operations, so each lane is the per-lane loop's result
+/// bit for bit (issue 48: the per-lane loop was about a third of the group loop).
+#[inline(always)]
+#[allow(clippy::needless_range_loop)] // one index into several 3x3 lane matrices
+fn stress_neo_hookean<V: Lanes4>(
+    isa: V::Isa,
+    st: &Stencil,
+    gq: &GroupRest,
+    sums: &PassOne<V>,
+    ui: [V; 3],
+    mat: &MaterialParams,
+) -> StressOut<V> {
+    let (ga, gb, cu) = sums;
+    let ld = |a: &[f64; 4]| V::from_array(isa, *a);
+    let (s3, u3) = (
+        [ld(&gq.s[0]), ld(&gq.s[1]), ld(&gq.s[2])],
+        [ld(&gq.u[0]), ld(&gq.u[1]), ld(&gq.u[2])],
+    );
+    let a_inv = lane_mat::<V>(isa, &gq.a);
+    let (mut gus, mut a_t) = (*ga, a_inv);
+    for c in 0..3 {
+        for r in 0..3 {
+            // G - u_i (x) S; A^-T.
+            gus[3 * c + r] = ga[3 * c + r].sub(ui[r].mul(s3[c]));
+            a_t[3 * c + r] = a_inv[3 * r + c];
+        }
+    }
+    let fmi = mat_mul_exact(&gus, &a_inv);
+    let mut f = fmi;
+    for (i, f) in f.iter_mut().enumerate() {
+        *f = f.add(V::splat(isa, if i % 4 == 0 { 1.0 } else { 0.0 }));
+    }
+    let fq = mat_mul_exact(&fmi, &lane_mat(isa, &gq.q));
+    // cof F: columns y x z, z x x, x x y; J = x . (y x z).
+    let mut cof = f;
+    for (j, [a, b]) in [[1, 2], [2, 0], [0, 1]].into_iter().enumerate() {
+        for (r, [p, q]) in [[1, 2], [2, 0], [0, 1]].into_iter().enumerate() {
+            let (ap, bq, bp, aq) = (f[3 * a + p], f[3 * b + q], f[3 * b + p], f[3 * a + q]);
+            cof[3 * j + r] = ap.mul(bq).sub(bp.mul(aq));
+        }
+    }
+    let det = f[0].mul(cof[0]).add(f[1].mul(cof[1])).add(f[2].mul(cof[2]));
+    let ls = mat.lambda_pa + mat.mu_pa;
+    let alpha = 1.0 + mat.mu_pa / ls;
+    let sj = V::splat(isa, ls).mul(det.sub(V::splat(isa, alpha)));
+    let (mu, v) = (V::splat(isa, mat.mu_pa), V::splat(isa, st.volume_m3));
+    let mut m = f;
+    for c in 0..3 {
+        for r in 0..3 {
+            let i = 3 * c + r;
+            let p = f[i].mul(mu).add(cof[i].mul(sj));
+            let h = fq[i].sub(gb[i]).add(ui[r].mul(u3[c]));
+            m[i] = p.mul(v).add(h);
+        }
+    }
+    let mut n = mat_mul_exact(&m, &a_t);
+    let (ns, fu) = (mat_vec_exact(&n, &s3), mat_vec_exact(&f, &u3));
+    let cv = ld(&gq.c);
+    let mut ov = ns;
+    for r in 0..3 {
+        let sdl = cu[r].sub(ui[r].mul(cv)).add(u3[r]);
+        ov[r] = ns[r].sub(fu[r]).add(sdl);
+    }
+    let mut fmi = fmi;
+    if gq.own != [1.0; 4] {
+        zero_padding(isa, &gq.own, &mut n);
+        zero_padding(isa, &gq.own, &mut fmi);
+        zero_padding(isa, &gq.own, &mut ov);
+    }
+    (n, fmi, ov)
+}
+
 /// The stress of a group per lane (laws other than St. Venant-Kirchhoff, corrected variant;
 /// the seed branch serves the tests of every law): `F~ = A + G - u_i (x) S`; stress, `N`,
 /// `F` (corrected: `F - I`) and the owner's force of each owner lane, zero on padding lanes.
@@ -451,7 +569,7 @@ fn corrected_forces<V: Lanes4>(
 fn stress_per_lane<V: Lanes4>(
     isa: V::Isa,
     st: &Stencil,
-    lanes: &[LaneRest],
+    gq: &GroupRest,
     sums: &PassOne<V>,
     ui: [V; 3],
     mat: &MaterialParams,
@@ -469,10 +587,11 @@ fn stress_per_lane<V: Lanes4>(
     let mut nl = [[0.0; 4]; 9];
     let mut fl = [[0.0; 4]; 9];
     let mut ol = [[0.0; 4]; 3];
-    for (l, lr) in lanes.iter().enumerate() {
-        if lr.own == 0.0 {
+    for l in 0..4 {
+        if gq.own[l] == 0.0 {
             continue;
         }
+        let lr = gq.lane(l);
         let u_i = DVec3::new(uis[0][l], uis[1][l], uis[2][l]);
         let g_us = DMat3::from_cols_array(&gas[l]) - outer(u_i, lr.s);
         let (n, f, owner) = if seed {
@@ -482,12 +601,12 @@ fn stress_per_lane<V: Lanes4>(
             (n, DMat3::ZERO, n * lr.s)
         } else {
             // F - I = (F~ - A) A^-1.
-            let fmi = g_us * lr.a_inv;
+            let fmi = g_us * lr.a;
             let f = fmi + DMat3::IDENTITY;
             // D = sum_k c_k d_ik (x) X_k = Gb - u_i (x) U + Q; H = F Q - D.
             let h = fmi * lr.q - DMat3::from_cols_array(&gbs[l]) + outer(u_i, lr.u);
             let m = first_piola(mat, &f) * v + h;
-            let n = m * lr.a_inv.transpose();
+            let n = m * lr.a.transpose();
             // sum_k c_k d_ik = sum_k c_k u_(i+k) - C u_i + U.
             let sdl = DVec3::new(cus[0][l], cus[1][l], cus[2][l]) - u_i * lr.c + lr.u;
             (n, fmi, n * lr.s - f * lr.u + sdl)

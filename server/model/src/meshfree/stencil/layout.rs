@@ -44,6 +44,34 @@ pub(super) struct GroupRest {
     pub(super) c: [f64; 4],
 }
 
+/// One lane of a [`GroupRest`], read back for the per-lane stress (which streams the packed
+/// group instead of the four [`LaneRest`]s: 832 B a group instead of 1 120 B).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Lane {
+    /// `A` (seed) or `A^-1` (corrected), as [`GroupRest::a`].
+    pub(super) a: DMat3,
+    pub(super) q: DMat3,
+    pub(super) s: DVec3,
+    pub(super) u: DVec3,
+    pub(super) c: f64,
+}
+
+impl GroupRest {
+    /// Lane `l`'s rest data (the same values as its [`LaneRest`], `a` as in [`Self::a`]).
+    #[inline(always)]
+    pub(super) fn lane(&self, l: usize) -> Lane {
+        let col = |m: &[[f64; 4]; 9]| DMat3::from_cols_array(&std::array::from_fn(|e| m[e][l]));
+        let vec = |v: &[[f64; 4]; 3]| DVec3::new(v[0][l], v[1][l], v[2][l]);
+        Lane {
+            a: col(&self.a),
+            q: col(&self.q),
+            s: vec(&self.s),
+            u: vec(&self.u),
+            c: self.c[l],
+        }
+    }
+}
+
 const PADDING: LaneRest = LaneRest {
     own: 0.0,
     a: DMat3::IDENTITY,
