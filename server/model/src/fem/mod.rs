@@ -287,11 +287,7 @@ impl FemBody {
             },
             scratch: FemScratch {
                 force: vec![DVec3::ZERO; n],
-                kernel: if fem.single_precision() {
-                    ForceScratch::new(n)
-                } else {
-                    ForceScratch::default()
-                },
+                kernel: ForceScratch::new(n),
             },
             merge: CouplingMerge::with_capacity(
                 probes.len(),
@@ -1010,14 +1006,11 @@ impl SoftBody for FemBody {
     }
 
     /// Keeps `pool` for the companion's tick ([`FemBody::tick`]) and the element forces in
-    /// parts (the single-precision kernel's per-part arrays are sized here); the companion
-    /// itself gets none.
+    /// parts (the kernels' per-part arrays are sized here); the companion itself gets none.
     fn set_tick_pool(&mut self, pool: Arc<TickPool>) {
-        if self.fem.single_precision() {
-            self.scratch
-                .kernel
-                .ensure(self.fem.node_count(), pool.threads());
-        }
+        self.scratch
+            .kernel
+            .ensure(self.fem.node_count(), pool.threads());
         self.pool = pool;
     }
 }

@@ -65,8 +65,7 @@ impl ElementBatch {
 /// quantity held in
 /// lane type `V` (one lane per element): gathers of the edge vectors, `F = Ds Dm^-1` (seed 000
 /// eq. 21), the stress by [`first_piola_lane`] and `H = -V P Dm^-T` (eq. 22) without leaving
-/// registers, then [`scatter_linear`]. Only the lanes `lanes` of each batch (all of them, or
-/// a half of [`V::WIDTH`](LaneVec::WIDTH) lanes for the forces in parts).
+/// registers, then [`scatter_linear`].
 ///
 /// # Safety
 /// Every node index of `batches` must be below `x.len()` and `v.len()` (see
@@ -74,7 +73,7 @@ impl ElementBatch {
 #[inline(always)]
 pub(super) unsafe fn forces_linear<const FMA: bool, const MODEL: u8, V: LaneVec>(
     isa: V::Isa,
-    (batches, lanes): (&[ElementBatch], Range<usize>),
+    batches: &[ElementBatch],
     mat: &MaterialParams,
     x: &[DVec3],
     v: Option<&[DVec3]>,
@@ -85,7 +84,7 @@ pub(super) unsafe fn forces_linear<const FMA: bool, const MODEL: u8, V: LaneVec>
         // h[3 k + i][l]: component i of the force on node k+1 of lane l.
         let mut h = [[0.0; LANES]; 9];
         // The batch in parts of V::WIDTH lanes (one part for eight-lane vectors).
-        for off in lanes.clone().step_by(V::WIDTH) {
+        for off in (0..LANES).step_by(V::WIDTH) {
             let mut bm = [zero; 9];
             for (b, row) in bm.iter_mut().zip(&batch.dm_inv) {
                 *b = V::load(isa, &row[off..]);
@@ -119,27 +118,15 @@ pub(super) unsafe fn forces_linear<const FMA: bool, const MODEL: u8, V: LaneVec>
                 }
             }
         }
-        scatter_linear(batch, &h, lanes.clone(), f);
+        scatter_linear(batch, &h, f);
     }
 }
 
 /// Adds the nodal forces of a batch to `f`: `h[3 k + i][l]` is component i of the force on
-/// node k+1 of lane l (lanes `lanes`); node 0 gets minus their sum. Scalar, since lanes may
-/// share nodes.
+/// node k+1 of lane l; node 0 gets minus their sum. Scalar, since lanes may share nodes.
 #[inline(always)]
-fn scatter_linear(
-    batch: &ElementBatch,
-    h: &[[f64; LANES]; 9],
-    lanes: Range<usize>,
-    f: &mut [DVec3],
-) {
-    for (l, t) in batch
-        .nodes
-        .iter()
-        .enumerate()
-        .take(lanes.end)
-        .skip(lanes.start)
-    {
+fn scatter_linear(batch: &ElementBatch, h: &[[f64; LANES]; 9], f: &mut [DVec3]) {
+    for (l, t) in batch.nodes.iter().enumerate() {
         let [a, b, c, d] = t.map(|i| i as usize);
         let hk = |k: usize| DVec3::new(h[3 * k][l], h[3 * k + 1][l], h[3 * k + 2][l]);
         let (h1, h2, h3) = (hk(0), hk(1), hk(2));

@@ -81,15 +81,24 @@ pub(crate) struct Kernels {
     two: Option<TwoParts>,
 }
 
-/// The double-precision evaluation in two parts (issue 48 s3, [`parts`]): tetrahedra by lane
-/// halves of every batch, smoothing domains by halves of the Morton curve batched apart.
+/// The double-precision evaluation in two parts (issue 48 s3, [`parts`]): the elements or
+/// smoothing domains cut into the two halves of the Morton curve of their centroids, each half
+/// batched apart as the one-part layout is (so each part runs the widest registers and touches
+/// a compact half of the body).
 /// Invariant (construction): the cut's nodes and the batches' node indices are below the
 /// kernels' `node_count`.
 #[derive(Debug, Clone)]
 struct TwoParts {
     cut: Cut,
-    /// Smoothing domains: the two halves' batches (part p runs `cut.parts[p].batches`).
-    domains: Option<DomainBatches>,
+    /// The two halves' batches: part p runs `cut.parts[p].batches` of them.
+    batches: Batches,
+}
+
+/// The batches of [`TwoParts`].
+#[derive(Debug, Clone)]
+enum Batches {
+    Tets(Vec<ElementBatch>),
+    Domains(DomainBatches),
 }
 
 impl Kernels {
@@ -106,12 +115,24 @@ impl Kernels {
     ) -> Self {
         let order = locality_order(nodes, tets, LANES);
         let batches = ElementBatch::build(&order, tets, dm_inv, volume_m3);
-        let b = batches.len();
-        let halves = vec![(0..b, 0..LANES / 2), (0..b, LANES / 2..LANES)];
-        let cut = parts::cut(nodes.len(), halves, &|b, lanes| {
-            batches[b].lane_nodes(lanes)
-        });
-        let two = TwoParts { cut, domains: None };
+        // Two parts: the halves of the Morton curve, each batched as `locality_order` does.
+        let centroids: Vec<DVec3> = tets.iter().map(|t| tet_centroid(nodes, t)).collect();
+        let curve = morton_order(&centroids);
+        let (first, second) = curve.split_at(curve.len() / 2);
+        let mut halves = ElementBatch::build(&interleave(first, LANES), tets, dm_inv, volume_m3);
+        let at = halves.len();
+        halves.extend(ElementBatch::build(
+            &interleave(second, LANES),
+            tets,
+            dm_inv,
+            volume_m3,
+        ));
+        let ranges = vec![(0..at, 0..LANES), (at..halves.len(), 0..LANES)];
+        let cut = parts::cut(nodes.len(), ranges, &|b, lanes| halves[b].lane_nodes(lanes));
+        let two = TwoParts {
+            cut,
+            batches: Batches::Tets(halves),
+        };
         let mut k = Self::checked(nodes.len(), tets.iter().flatten(), Layout::Linear(batches));
         k.two = Some(two);
         k
@@ -269,11 +290,11 @@ impl Kernels {
             // until `run` returns, and the two parts own disjoint nodes.
             unsafe {
                 match model {
-                    LANE_STVK => self.part::<LANE_STVK>(avx2, two, p, mat, (x, v), sum),
+                    LANE_STVK => Self::part::<LANE_STVK>(avx2, two, p, mat, (x, v), sum),
                     LANE_STABLE_NEO_HOOKEAN => {
-                        self.part::<LANE_STABLE_NEO_HOOKEAN>(avx2, two, p, mat, (x, v), sum);
+                        Self::part::<LANE_STABLE_NEO_HOOKEAN>(avx2, two, p, mat, (x, v), sum);
                     }
-                    _ => self.part::<LANE_COROTATIONAL>(avx2, two, p, mat, (x, v), sum),
+                    _ => Self::part::<LANE_COROTATIONAL>(avx2, two, p, mat, (x, v), sum),
                 }
                 for r in two.cut.parts[p].own.iter().cloned() {
                     debug_assert!(r.end <= out.len);
@@ -299,7 +320,6 @@ impl Kernels {
     /// `x`, `v` and `sum` hold at least `node_count` nodes; `two` is this model's.
     #[cfg(target_arch = "x86_64")]
     unsafe fn part<const MODEL: u8>(
-        &self,
         avx2: Avx2Fma,
         two: &TwoParts,
         p: usize,
@@ -308,21 +328,15 @@ impl Kernels {
         sum: &mut [DVec3],
     ) {
         let plan = &two.cut.parts[p];
-        // SAFETY (all): the caller's contract; the tokens prove their instruction sets.
+        let job = match &two.batches {
+            Batches::Tets(b) => PartJob::Tets(&b[plan.batches.clone()]),
+            Batches::Domains(d) => PartJob::Domains(d, plan.batches.clone()),
+        };
+        // SAFETY (both): the caller's contract; the tokens prove their instruction sets.
         unsafe {
-            match (&self.layout, &two.domains) {
-                (Layout::Linear(b), _) => {
-                    let job = PartJob::Tets(b, plan.lanes.clone());
-                    part_avx2::<MODEL>(avx2, job, mat, x, v, sum);
-                }
-                (_, Some(d)) => {
-                    let job = PartJob::Domains(d, plan.batches.clone());
-                    match Avx512::detect() {
-                        Some(isa) => part_avx512::<MODEL>(isa, job, mat, x, v, sum),
-                        None => part_avx2::<MODEL>(avx2, job, mat, x, v, sum),
-                    }
-                }
-                _ => {}
+            match Avx512::detect() {
+                Some(isa) => part_avx512::<MODEL>(isa, job, mat, x, v, sum),
+                None => part_avx2::<MODEL>(avx2, job, mat, x, v, sum),
             }
         }
     }
@@ -392,10 +406,19 @@ impl Kernels {
 /// nodes, with `lanes` runs of the curve interleaved (lane l of a batch from run l). Ties keep
 /// the mesh order.
 pub(crate) fn locality_order(nodes: &[DVec3], tets: &[[u32; 4]], lanes: usize) -> Vec<u32> {
-    let centroid = |t: &[u32; 4]| t.iter().map(|&i| nodes[i as usize]).sum::<DVec3>() * 0.25;
-    let keyed = morton_order(&tets.iter().map(centroid).collect::<Vec<_>>());
-    // Interleave `lanes` runs of the curve, so that the lanes of a batch lie far apart and
-    // rarely share a node (a shared node serialises the scatter of the forces).
+    let centroids: Vec<DVec3> = tets.iter().map(|t| tet_centroid(nodes, t)).collect();
+    interleave(&morton_order(&centroids), lanes)
+}
+
+/// The centroid of tetrahedron `t` over `nodes` (m).
+fn tet_centroid(nodes: &[DVec3], t: &[u32; 4]) -> DVec3 {
+    t.iter().map(|&i| nodes[i as usize]).sum::<DVec3>() * 0.25
+}
+
+/// `keyed` (elements along the Morton curve) with `lanes` runs of it interleaved, so that the
+/// lanes of a batch lie far apart and rarely share a node (a shared node serialises the
+/// scatter of the forces).
+fn interleave(keyed: &[u32], lanes: usize) -> Vec<u32> {
     let n = keyed.len();
     let run = n.div_ceil(lanes);
     (0..run)
@@ -468,7 +491,7 @@ fn domain_halves(nodes: &[DVec3], points: &IntegrationPoints) -> TwoParts {
     let cut = parts::cut(nodes.len(), halves, &|b, _| d.batch_nodes(b));
     TwoParts {
         cut,
-        domains: Some(d),
+        batches: Batches::Domains(d),
     }
 }
 
@@ -495,7 +518,7 @@ unsafe fn forces_with<const FMA: bool, const MODEL: u8, V: LaneVec>(
                 forces_domains::<FMA, MODEL, V>(isa, (d, 0..d.len()), mat, x, v, f);
             }
             Layout::Linear(batches) => {
-                forces_linear::<FMA, MODEL, V>(isa, (batches, 0..LANES), mat, x, v, f);
+                forces_linear::<FMA, MODEL, V>(isa, batches, mat, x, v, f);
             }
         }
     }
@@ -554,8 +577,8 @@ unsafe fn forces_plain<const MODEL: u8>(
 
 /// What one part of [`Kernels::add_forces_parts`] runs.
 enum PartJob<'a> {
-    /// These lanes of every batch of tetrahedra.
-    Tets(&'a [ElementBatch], Range<usize>),
+    /// These batches of tetrahedra.
+    Tets(&'a [ElementBatch]),
     /// These batches of smoothing domains.
     Domains(&'a DomainBatches, Range<usize>),
 }
@@ -576,9 +599,7 @@ unsafe fn part_with<const MODEL: u8, V: LaneVec>(
     // SAFETY: the caller's contract.
     unsafe {
         match job {
-            PartJob::Tets(b, lanes) => {
-                forces_linear::<true, MODEL, V>(isa, (b, lanes), mat, x, v, f)
-            }
+            PartJob::Tets(b) => forces_linear::<true, MODEL, V>(isa, b, mat, x, v, f),
             PartJob::Domains(d, r) => forces_domains::<true, MODEL, V>(isa, (d, r), mat, x, v, f),
         }
     }
