@@ -1006,11 +1006,16 @@ impl SoftBody for FemBody {
     }
 
     /// Keeps `pool` for the companion's tick ([`FemBody::tick`]) and the element forces in
-    /// parts (the kernels' per-part arrays are sized here); the companion itself gets none.
+    /// parts (the kernels' per-part arrays are sized here: in single precision, and in double
+    /// precision without a companion, whose tick keeps the worker busy, so that the parts
+    /// would run one after the other for nothing and change the sums); the companion itself
+    /// gets none.
     fn set_tick_pool(&mut self, pool: Arc<TickPool>) {
-        self.scratch
-            .kernel
-            .ensure(self.fem.node_count(), pool.threads());
+        if self.fem.single_precision() || self.fallback.is_none() {
+            self.scratch
+                .kernel
+                .ensure(self.fem.node_count(), pool.threads());
+        }
         self.pool = pool;
     }
 }
