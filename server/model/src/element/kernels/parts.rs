@@ -1,17 +1,21 @@
 //! How the force kernels cut one force evaluation into parts (issue 48 sections 1 and 3).
-//! Tetrahedra: the lanes of every batch in halves ([`Split::Lanes`]): lane l of a batch comes
-//! from run l of the Morton curve (`super::locality_order` interleaves sixteen runs for single
-//! precision, eight for double), so the first half of the lanes is the first half of the curve
-//! and the halves are spatially compact (contiguous
-//! batch ranges are not: each batch spans the whole body). Smoothing domains (batched by node
-//! count, not by place): in single precision contiguous batch ranges of about equal node slots
-//! ([`Split::Batches`]); in double precision two halves of the Morton curve batched apart
-//! (`super::domains`), cut with [`cut`]. Per part: the nodes it touches, as runs of consecutive node indices
-//! (packed and unpacked with the vectorised code of the parent module). A node touched by one part only is *owned* by it: that part adds its sum to the
-//! double-precision forces. The few nodes touched by several parts (the cut) are *shared*:
-//! one thread adds their sums in part order after every part is done. So the arithmetic
-//! depends only on the number of parts, never on which thread ran which part; one part is the
-//! one-core path (every touched node owned, one batch range).
+//!
+//! Single precision, tetrahedra: the lanes of every batch in halves ([`Split::Lanes`]): lane l
+//! of a batch comes from run l of the Morton curve (`super::locality_order` interleaves sixteen
+//! runs), so lanes 0-7 are the first half of the curve and the halves are spatially compact
+//! (contiguous batch ranges are not: each batch spans the whole body). Single precision,
+//! smoothing domains (batched by node count, not by place): contiguous batch ranges of about
+//! equal node slots ([`Split::Batches`]). Double precision, both layouts: the two halves of the
+//! Morton curve batched apart (`super::Kernels::add_forces_parts`), cut with [`cut`] (lane
+//! halves would run four-lane registers in double precision).
+//!
+//! Per part: the nodes it touches, as runs of consecutive node indices (single precision packs
+//! them with the vectorised code of `super::single`). A node touched by one part only is
+//! *owned* by it: that part adds its sum to the double-precision forces. The few nodes touched
+//! by several parts (the cut) are *shared*: one thread adds their sums in part order after
+//! every part is done. So the arithmetic depends only on the number of parts, never on which
+//! thread ran which part; one part is the one-core path (every touched node owned, one batch
+//! range).
 
 use std::ops::Range;
 
