@@ -239,9 +239,9 @@ impl Kernels {
         unsafe { forces_plain::<MODEL>(self, mat, x, v, f) };
     }
 
-    /// [`Kernels::add_forces`] in two parts that `run` runs (issue 48 s3, [`parts`]): tetrahedra
-    /// by lane halves of every batch (four-lane AVX2 registers), smoothing domains by halves
-    /// of the Morton curve (the widest registers); each part sums into its own array
+    /// [`Kernels::add_forces`] in two parts that `run` runs (issue 48 s3, [`parts`]): the
+    /// tetrahedra or smoothing domains of each half of the Morton curve ([`TwoParts`]) in the
+    /// widest registers of this CPU (AVX-512, else AVX2); each part sums into its own array
     /// (`ForcePart::sum`) and adds the nodes only it touches to `f`, the nodes both touch are
     /// added afterwards on the caller, part 0 first. So the arithmetic does not depend on
     /// which thread ran which part. Returns `false` (and does nothing) when
