@@ -1,4 +1,4 @@
-//! Element forces in parts on two threads (issue 48 section 1): a scene's force model (the
+//! Element forces in parts on two threads (issue 48 sections 1 and 3): a scene's force model (the
 //! body's, or the active region's of a condensed scene) pressed `--depth-mm` at the equator,
 //! then blocks of `--block` elastic force evaluations (`FemModel::add_internal_forces_in`)
 //! alternating between the variants, and p50 / p99 per variant with their ratio to one thread:
@@ -11,7 +11,11 @@
 //!   with the serial skeleton that is one thread);
 //! - `spawn only`: an empty scoped thread spawned and joined (the stand-in's overhead).
 //!
+//! `--double` runs the scene's model in double precision (the double-precision kernel's cut:
+//! lane halves of the tetrahedra, halves of the Morton curve of the smoothing domains).
+//!
 //! `cargo run --release -p haptic-model --example threads_bench -- --blocks 3 --plain`
+//! `cargo run --release -p haptic-model --example threads_bench -- --blocks 3 --double --threads-impl pool`
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -50,6 +54,9 @@ struct Args {
     /// tetrahedra's cut (lane halves) instead of the smoothing domains' (batch ranges).
     #[arg(long)]
     plain: bool,
+    /// Double-precision forces (`force_precision = "double"`) instead of the scene's.
+    #[arg(long)]
+    double: bool,
     /// Pin the one-part runs to the AVX2 build (two parts run it always): separates the cut's
     /// cost from the instruction set's on an AVX-512 CPU.
     #[arg(long)]
@@ -109,6 +116,9 @@ fn pressed(args: &Args) -> anyhow::Result<FemBody> {
     let mut scene = load_scene_file(std::path::Path::new(&args.scene_file))?;
     if args.plain {
         scene.strain_smoothing = haptic_model::element::StrainSmoothing::None;
+    }
+    if args.double {
+        scene.integrator.single_precision_forces = false;
     }
     let mut sim = FemBody::new(&scene)?;
     sim.set_blocking_region_preparation(true);

@@ -4,7 +4,10 @@
 //! with one part within the kernel's own bound (2e-6 of the largest nodal force,
 //! `docs/decisions.md`, "Single-precision forces"), whole body (edge-smoothed and plain) and an
 //! r = 7 mm region's model (every body node, a tenth of them touched); two parts on two threads
-//! equal the two parts run one after the other bit for bit; no allocation.
+//! equal the two parts run one after the other bit for bit; no allocation. The double-precision
+//! kernel in two parts (issue 48 section 3: lane halves of the tetrahedra, halves of the
+//! Morton curve of the smoothing domains) likewise, within 1e-13 of the largest nodal force of
+//! one part (the kernel's own unit tests hold one and two parts to 1e-12 of the scalar loop).
 
 #[path = "common/counting_alloc.rs"]
 #[allow(dead_code)] // `counted` is not used here
@@ -44,6 +47,18 @@ fn model(
     keep: &dyn Fn(&[u32; 4]) -> bool,
     smoothing: StrainSmoothing,
 ) -> FemModel {
+    let mut m = model_double(mesh, mat, keep, smoothing);
+    m.set_single_precision(true).expect("single precision");
+    m
+}
+
+/// [`model`] in double precision.
+fn model_double(
+    mesh: &TetMesh,
+    mat: haptic_model::material::MaterialParams,
+    keep: &dyn Fn(&[u32; 4]) -> bool,
+    smoothing: StrainSmoothing,
+) -> FemModel {
     let part = TetMesh {
         nodes: mesh.nodes.clone(),
         tets: mesh.tets.iter().copied().filter(|t| keep(t)).collect(),
@@ -51,9 +66,7 @@ fn model(
         surfaces: Vec::new(),
         node_groups: Vec::new(),
     };
-    let mut m = FemModel::with_smoothing(&part, mat, smoothing).expect("the lv_h1 model");
-    m.set_single_precision(true).expect("single precision");
-    m
+    FemModel::with_smoothing(&part, mat, smoothing).expect("the lv_h1 model")
 }
 
 /// A 3 mm dent along `-n` around [`CENTRE_M`] (Gaussian, 3 mm wide) and a velocity of ten
@@ -219,4 +232,127 @@ fn force_parts_allocate_nothing() {
     });
     assert_eq!(allocations, 0);
     assert!(f.iter().any(|f| f.length() > 0.0));
+}
+
+/// The models of [`models`] in double precision, and the whole body plain in St
+/// Venant-Kirchhoff (the peer comparison's law).
+fn models_double() -> Vec<(&'static str, FemModel)> {
+    let (mesh, mat) = lv_h1();
+    let near = |t: &[u32; 4]| {
+        t.iter()
+            .any(|&i| (mesh.nodes[i as usize] - CENTRE_M).length() < 0.007)
+    };
+    let mut stvk = mat;
+    stvk.model = haptic_model::material::MaterialModel::StVenantKirchhoff;
+    vec![
+        (
+            "double, whole, edge-smoothed",
+            model_double(&mesh, mat, &|_| true, StrainSmoothing::Edge),
+        ),
+        (
+            "double, whole, plain",
+            model_double(&mesh, mat, &|_| true, StrainSmoothing::None),
+        ),
+        (
+            "double, whole, plain, StVK",
+            model_double(&mesh, stvk, &|_| true, StrainSmoothing::None),
+        ),
+        (
+            "double, r = 7 mm region",
+            model_double(&mesh, mat, &near, StrainSmoothing::Edge),
+        ),
+    ]
+}
+
+/// Whether the double-precision parts run here (AVX2 and FMA; elsewhere they decline and the
+/// one-part kernel runs).
+fn double_parts_run() -> bool {
+    haptic_model::element::SingleIsa::detect().is_some()
+}
+
+#[test]
+fn double_precision_in_two_parts_agrees_with_one_part() {
+    for (name, m) in models_double() {
+        let n = m.node_count();
+        let mut scratch = ForceScratch::with_parts(n, 2);
+        let one = forces(&m, &Serial(1), &mut scratch);
+        // One part is add_internal_forces, bit for bit.
+        let (x, v) = dented(m.rest());
+        let mut plain = start(n);
+        m.add_internal_forces(&x, Some(&v), &mut plain);
+        assert_eq!(one, plain, "{name}");
+        let two = forces(&m, &Serial(2), &mut scratch);
+        let base = start(n);
+        let scale = one
+            .iter()
+            .zip(&base)
+            .map(|(f, s)| (*f - *s).length())
+            .fold(0.0, f64::max);
+        assert!(
+            scale > 1e-3,
+            "{name}: the dent loads the body ({scale:e} N)"
+        );
+        let err = one
+            .iter()
+            .zip(&two)
+            .map(|(a, b)| (*a - *b).length())
+            .fold(0.0, f64::max);
+        let (touched_nodes, shared) = m.force_part_nodes(2).expect("a cut");
+        eprintln!(
+            "{name}: 2 parts vs 1: {:.2e} of {scale:.3e} N; {touched_nodes} of {n} nodes \
+             touched, {shared} shared",
+            err / scale
+        );
+        // Both halves are compact: the cut is thin.
+        assert!(shared > 0 && shared < touched_nodes / 4, "{name}");
+        if double_parts_run() {
+            assert!(
+                err < 1e-13 * scale && err > 0.0,
+                "{name}: {err:e} of {scale:e} N"
+            );
+        } else {
+            assert_eq!(one, two, "{name}");
+        }
+        // Nodes no element of the model touches keep their forces exactly (the region).
+        let touched: std::collections::HashSet<usize> =
+            m.tets().iter().flatten().map(|&i| i as usize).collect();
+        // (The double-precision domain batches' padding lanes name node 0, adding zero.)
+        let padding = usize::from(!touched.contains(&0));
+        assert_eq!(touched.len() + padding, touched_nodes, "{name}");
+        for i in (0..n).filter(|i| !touched.contains(i)) {
+            assert_eq!(two[i].to_array(), base[i].to_array(), "{name}: node {i}");
+        }
+        // The scratch is clean after a call: the same call again gives the same forces; two
+        // threads give the two parts' forces bit for bit.
+        assert_eq!(forces(&m, &Serial(2), &mut scratch), two, "{name}");
+        for _ in 0..3 {
+            assert_eq!(forces(&m, &Scoped, &mut scratch), two, "{name}");
+        }
+        // A scratch of one part runs one part whatever the pool.
+        let mut single_part = ForceScratch::new(n);
+        assert_eq!(forces(&m, &Scoped, &mut single_part), one, "{name}");
+    }
+}
+
+#[test]
+fn double_precision_parts_allocate_nothing() {
+    let (mesh, mat) = lv_h1();
+    let hook: StartHook = Arc::new(|_| counting_alloc::count_this_thread());
+    let pool = TickPool::new(1, hook).expect("a pool of one worker");
+    for smoothing in [StrainSmoothing::Edge, StrainSmoothing::None] {
+        let m = model_double(&mesh, mat, &|_| true, smoothing);
+        let n = m.node_count();
+        let (x, v) = dented(m.rest());
+        let mut f = vec![DVec3::ZERO; n];
+        let mut scratch = ForceScratch::with_parts(n, 2);
+        let ((), allocations) = counting_alloc::counted_registered(|| {
+            for _ in 0..3 {
+                m.add_internal_forces_in(&Serial(2), &x, Some(&v), &mut f, &mut scratch);
+                m.add_internal_forces_in(&*pool, &x, Some(&v), &mut f, &mut scratch);
+                m.add_internal_forces_in(&*pool, &x, None, &mut f, &mut scratch);
+            }
+        });
+        assert_eq!(allocations, 0, "{smoothing:?}");
+        assert!(f.iter().any(|f| f.length() > 0.0));
+    }
 }

@@ -208,7 +208,7 @@ impl FemModel {
         let kernels = if mesh.is_quadratic() {
             Kernels::quadratic(&mesh.nodes, &mesh.tets, &points)
         } else if smoothing != StrainSmoothing::None {
-            Kernels::domains(n, &points)
+            Kernels::domains(&mesh.nodes, &points)
         } else {
             Kernels::linear(&mesh.nodes, &mesh.tets, &dm_inv, &volume_m3)
         };
@@ -503,12 +503,17 @@ impl FemModel {
         self.add_internal_forces(x, v, f);
     }
 
-    /// [`Self::add_internal_forces_with`] cut into parts that `pool` runs on its threads: with
-    /// single precision enabled and `scratch` for this model's node count, the kernel's batches
-    /// in `k = min(pool.threads(), scratch.parts(), MAX_FORCE_PARTS)` contiguous ranges, each
-    /// part summing into its own arrays over the nodes it touches, the nodes several parts touch
-    /// summed on the caller in part order (`docs/decisions.md`, "Element forces in parts"). The
-    /// arithmetic depends only on `k`; `k = 1` is [`Self::add_internal_forces_with`] bit for bit.
+    /// [`Self::add_internal_forces_with`] cut into parts that `pool` runs on its threads, in
+    /// `k = min(pool.threads(), scratch.parts(), MAX_FORCE_PARTS)` parts, each part summing
+    /// into its own arrays over the nodes it touches, the nodes several parts touch summed on
+    /// the caller in part order (`docs/decisions.md`, "Element forces in parts"). With single
+    /// precision enabled and `scratch` for this model's node count: the single-precision
+    /// kernel's batches in `k` ranges or lane halves; `k = 1` is
+    /// [`Self::add_internal_forces_with`] bit for bit. In double precision with `k = 2`, linear
+    /// tetrahedra (lane halves) or smoothing domains (halves of the Morton curve) of a material
+    /// with a vectorised kernel on a CPU with AVX2 and FMA: the double-precision kernel in two
+    /// parts, within rounding of [`Self::add_internal_forces`] (the sums at the cut in another
+    /// order). The arithmetic depends only on `k`, not on which thread ran which part.
     /// Otherwise exactly [`Self::add_internal_forces_with`] on the caller. Allocation-free.
     ///
     /// # Panics
@@ -523,26 +528,38 @@ impl FemModel {
     ) {
         let run: RunParts<'_> = &|parts, g| pool.run_parts(parts, g);
         let mat = &self.material;
+        let viscous = v.filter(|_| mat.phi_pa_s > 0.0 || mat.psi_pa_s > 0.0);
         if let Some(single) = &self.single
             && scratch.node_count() >= self.node_count()
             && let Some(elastic) = SingleElastic::of(mat)
         {
-            let viscous = v.filter(|_| mat.phi_pa_s > 0.0 || mat.psi_pa_s > 0.0);
             let law = (mat.phi_pa_s, mat.psi_pa_s);
             let parts = (pool.threads(), run);
             if single.add_forces_parts(elastic, law, (x, viscous), f, scratch, parts) {
                 return;
             }
         }
+        let n = self.node_count();
+        assert!(x.len() >= n && f.len() >= n && viscous.is_none_or(|v| v.len() >= n));
+        if self.single.is_none()
+            && self
+                .kernels
+                .add_forces_parts(mat, (x, viscous), f, scratch, (pool.threads(), run))
+        {
+            return;
+        }
         self.add_internal_forces(x, v, f);
     }
 
-    /// With single precision enabled, for an evaluation in `parts` parts
-    /// ([`Self::add_internal_forces_in`], 1 to [`MAX_FORCE_PARTS`]): the nodes its elements
-    /// touch and, of them, the nodes more than one part touches (summed after the parts).
-    /// `None` otherwise.
+    /// For an evaluation in `parts` parts ([`Self::add_internal_forces_in`], 1 to
+    /// [`MAX_FORCE_PARTS`]): the nodes its elements touch and, of them, the nodes more than one
+    /// part touches (summed after the parts). `None` where the evaluation is not cut
+    /// (quadratic elements in double precision).
     pub fn force_part_nodes(&self, parts: usize) -> Option<(usize, usize)> {
-        self.single.as_ref()?.cut_nodes(parts)
+        match &self.single {
+            Some(single) => single.cut_nodes(parts),
+            None => self.kernels.cut_nodes(parts),
+        }
     }
 
     /// [`Self::add_internal_forces`] element by element (integration point by integration point

@@ -287,11 +287,7 @@ impl FemBody {
             },
             scratch: FemScratch {
                 force: vec![DVec3::ZERO; n],
-                kernel: if fem.single_precision() {
-                    ForceScratch::new(n)
-                } else {
-                    ForceScratch::default()
-                },
+                kernel: ForceScratch::new(n),
             },
             merge: CouplingMerge::with_capacity(
                 probes.len(),
@@ -1010,10 +1006,12 @@ impl SoftBody for FemBody {
     }
 
     /// Keeps `pool` for the companion's tick ([`FemBody::tick`]) and the element forces in
-    /// parts (the single-precision kernel's per-part arrays are sized here); the companion
-    /// itself gets none.
+    /// parts (the kernels' per-part arrays are sized here: in single precision, and in double
+    /// precision without a companion, whose tick keeps the worker busy, so that the parts
+    /// would run one after the other for nothing and change the sums); the companion itself
+    /// gets none.
     fn set_tick_pool(&mut self, pool: Arc<TickPool>) {
-        if self.fem.single_precision() {
+        if self.fem.single_precision() || self.fallback.is_none() {
             self.scratch
                 .kernel
                 .ensure(self.fem.node_count(), pool.threads());

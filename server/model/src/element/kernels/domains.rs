@@ -1,6 +1,8 @@
 //! Single-point cells with a variable node count (the ES-FEM smoothing domains of
 //! [`crate::element::smoothing`]) in batches of [`LANES`].
 
+use std::ops::Range;
+
 use glam::DVec3;
 
 use super::LANES;
@@ -41,49 +43,88 @@ impl DomainBatches {
         })
     }
 
+    /// The cells of `points` sorted by node count (ties in cell order), in batches.
     pub(super) fn build(points: &IntegrationPoints) -> Self {
         let cells = points.node_start.len() - 1;
-        debug_assert_eq!(points.weight_m3.len(), cells, "one point per cell");
+        Self::build_groups(points, &[(0..cells).collect()]).0
+    }
+
+    /// The cells of each group of `groups` in turn, each group sorted by node count (ties in
+    /// the group's order) and batched apart (no batch mixes groups), and the end batch of each
+    /// group.
+    pub(super) fn build_groups(
+        points: &IntegrationPoints,
+        groups: &[Vec<usize>],
+    ) -> (Self, Vec<usize>) {
+        debug_assert_eq!(
+            points.weight_m3.len(),
+            points.node_start.len() - 1,
+            "one point per cell"
+        );
         let count = |c: usize| points.node_start[c + 1] - points.node_start[c];
-        let mut order: Vec<usize> = (0..cells).collect();
-        order.sort_by_key(|&c| count(c));
         let mut out = Self {
             start: vec![0],
             ..Self::default()
         };
-        for chunk in order.chunks(LANES) {
-            let slots = chunk.iter().map(|&c| count(c)).max().unwrap_or(0);
-            let first = out.nodes.len();
-            out.nodes.resize(first + slots, [0; LANES]);
-            out.node3.resize(first + slots, [0; LANES]);
-            out.grad.resize(first + slots, [[0.0; LANES]; 3]);
-            let mut w = [0.0; LANES];
-            for (l, &c) in chunk.iter().enumerate() {
-                let nodes = &points.nodes[points.node_start[c]..points.node_start[c + 1]];
-                let grads = &points.grad[points.grad_start[c]..points.grad_start[c + 1]];
-                w[l] = points.weight_m3[c];
-                // Padding slots: the lane's first node with a zero gradient.
-                let padded = nodes
-                    .iter()
-                    .copied()
-                    .zip(grads.iter().copied())
-                    .chain(std::iter::repeat((nodes[0], DVec3::ZERO)));
-                for (s, (node, g)) in padded.take(slots).enumerate() {
-                    out.nodes[first + s][l] = node;
-                    out.node3[first + s][l] = 3 * node as i32;
-                    for c in 0..3 {
-                        out.grad[first + s][c][l] = g[c];
-                    }
+        let mut ends = Vec::with_capacity(groups.len());
+        for group in groups {
+            let mut order = group.clone();
+            order.sort_by_key(|&c| count(c));
+            for chunk in order.chunks(LANES) {
+                out.push_batch(points, chunk);
+            }
+            ends.push(out.weight_m3.len());
+        }
+        (out, ends)
+    }
+
+    /// Appends the cells `chunk` (at most [`LANES`]) as one batch.
+    fn push_batch(&mut self, points: &IntegrationPoints, chunk: &[usize]) {
+        let count = |c: usize| points.node_start[c + 1] - points.node_start[c];
+        let slots = chunk.iter().map(|&c| count(c)).max().unwrap_or(0);
+        let first = self.nodes.len();
+        self.nodes.resize(first + slots, [0; LANES]);
+        self.node3.resize(first + slots, [0; LANES]);
+        self.grad.resize(first + slots, [[0.0; LANES]; 3]);
+        let mut w = [0.0; LANES];
+        for (l, &c) in chunk.iter().enumerate() {
+            let nodes = &points.nodes[points.node_start[c]..points.node_start[c + 1]];
+            let grads = &points.grad[points.grad_start[c]..points.grad_start[c + 1]];
+            w[l] = points.weight_m3[c];
+            // Padding slots: the lane's first node with a zero gradient.
+            let padded = nodes
+                .iter()
+                .copied()
+                .zip(grads.iter().copied())
+                .chain(std::iter::repeat((nodes[0], DVec3::ZERO)));
+            for (s, (node, g)) in padded.take(slots).enumerate() {
+                self.nodes[first + s][l] = node;
+                self.node3[first + s][l] = 3 * node as i32;
+                for c in 0..3 {
+                    self.grad[first + s][c][l] = g[c];
                 }
             }
-            out.weight_m3.push(w);
-            out.start.push(out.nodes.len());
         }
-        out
+        self.weight_m3.push(w);
+        self.start.push(self.nodes.len());
+    }
+
+    /// The number of batches.
+    pub(super) fn len(&self) -> usize {
+        self.weight_m3.len()
+    }
+
+    /// The nodes of batch `b` (every lane and slot, padding included).
+    pub(super) fn batch_nodes(&self, b: usize) -> impl Iterator<Item = usize> + '_ {
+        self.nodes[self.start[b]..self.start[b + 1]]
+            .iter()
+            .flatten()
+            .map(|&i| i as usize)
     }
 }
 
-/// Internal forces of single-point cells with variable node counts ([`DomainBatches`]):
+/// Internal forces of the batches `range` of single-point cells with variable node counts
+/// ([`DomainBatches`]):
 /// `F = sum_s (y_s - y_0) G_s^T` (positions, and velocities for the viscous stress) streamed
 /// slot by slot, the stress of material `MODEL`, then `f_s -= w P G_s` scattered per lane.
 ///
@@ -92,14 +133,20 @@ impl DomainBatches {
 #[inline(always)]
 pub(super) unsafe fn forces_domains<const FMA: bool, const MODEL: u8, V: LaneVec>(
     isa: V::Isa,
-    d: &DomainBatches,
+    (d, range): (&DomainBatches, Range<usize>),
     mat: &MaterialParams,
     x: &[DVec3],
     v: Option<&[DVec3]>,
     f: &mut [DVec3],
 ) {
     let zero = V::splat(isa, 0.0);
-    for (b, w) in d.weight_m3.iter().enumerate() {
+    for (b, w) in d
+        .weight_m3
+        .iter()
+        .enumerate()
+        .take(range.end)
+        .skip(range.start)
+    {
         let (node3, grad) = (
             &d.node3[d.start[b]..d.start[b + 1]],
             &d.grad[d.start[b]..d.start[b + 1]],

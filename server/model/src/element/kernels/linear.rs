@@ -2,6 +2,8 @@
 //! (seed 000 eq. 21), the stress and `H = -V P Dm^-T` (eq. 22) in registers, then a scalar
 //! scatter.
 
+use std::ops::Range;
+
 use glam::{DMat3, DVec3};
 
 use super::LANES;
@@ -132,6 +134,13 @@ fn scatter_linear(batch: &ElementBatch, h: &[[f64; LANES]; 9], f: &mut [DVec3]) 
         f[c] += h2;
         f[d] += h3;
         f[a] -= h1 + h2 + h3;
+    }
+}
+
+impl ElementBatch {
+    /// The nodes of lanes `lanes` (padding included).
+    pub(super) fn lane_nodes(&self, lanes: Range<usize>) -> impl Iterator<Item = usize> + '_ {
+        self.nodes[lanes].iter().flatten().map(|&i| i as usize)
     }
 }
 

@@ -52,11 +52,10 @@ use crate::simd::{Avx2Fma, Avx512};
 #[cfg(target_arch = "x86_64")]
 use crate::simd::{F32Lanes, Y8, Z16};
 
-mod parts;
 #[cfg(target_arch = "x86_64")]
 mod stress;
-pub use parts::MAX_FORCE_PARTS;
-use parts::{Cut, PartPlan, Split};
+pub use super::parts::MAX_FORCE_PARTS;
+use super::parts::{self, Cut, OwnedForces, PartPlan, Split};
 #[cfg(target_arch = "x86_64")]
 use stress::{LaneCoefficients, scaled_piola};
 
@@ -96,17 +95,19 @@ pub(crate) struct NodeForce([f32; 4]);
 /// serve every model of at most `n` nodes (a condensed region's model and its whole body).
 #[derive(Debug, Clone, Default)]
 pub struct ForceScratch {
-    parts: Vec<ForcePart>,
+    pub(super) parts: Vec<ForcePart>,
 }
 
-/// The work arrays of one part of a force evaluation, one row per node (48 bytes a node): the
+/// The work arrays of one part of a force evaluation, one row per node (72 bytes a node): the
 /// packed displacements and velocities of the nodes the part touches and its single-precision
-/// force sums (zero between calls). The items a tick pool's job runs over
-/// ([`crate::element::PartRunner`]).
+/// force sums, and the double-precision kernel's force sums (all zero between calls). The
+/// items a tick pool's job runs over ([`crate::element::PartRunner`]).
 #[derive(Debug, Clone, Default)]
 pub struct ForcePart {
     packed: Vec<PackedNode>,
     force: Vec<NodeForce>,
+    /// The double-precision kernel's sums (N), `super::Kernels::add_forces_parts`.
+    pub(super) sum: Vec<DVec3>,
 }
 
 impl ForceScratch {
@@ -134,6 +135,7 @@ impl ForceScratch {
         for p in &mut self.parts {
             p.packed.resize(node_count, PackedNode::default());
             p.force.resize(node_count, NodeForce::default());
+            p.sum.resize(node_count, DVec3::ZERO);
         }
     }
 
@@ -153,17 +155,6 @@ impl ForceScratch {
 /// tick ([`crate::pool::TickPool::for_each_mut`]).
 pub(crate) type RunParts<'a> =
     &'a dyn Fn(&mut [ForcePart], &(dyn Fn(usize, &mut ForcePart) + Sync));
-
-/// The double-precision forces the parts write to, each only at the nodes it owns
-/// ([`PartPlan::own`], disjoint between the parts of a cut).
-struct OwnedForces {
-    ptr: *mut DVec3,
-    len: usize,
-}
-
-// SAFETY: the parts write through the pointer only at the nodes they own, which are disjoint
-// ([`parts::cut`]), and only while the `&mut` slice it was made from is not otherwise used.
-unsafe impl Sync for OwnedForces {}
 
 /// One node slot of a batch of sixteen smoothing domains: per lane, four times the node and
 /// its smoothed gradient (1/m, component c at `grad[c]`). Padding slots repeat the lane's

@@ -1,15 +1,21 @@
-//! How the single-precision kernel cuts one force evaluation into parts (issue 48 section 1).
-//! Tetrahedra: the lanes of every batch in halves ([`Split::Lanes`]): lane l of a batch comes
-//! from run l of the Morton curve (`super::super::locality_order` interleaves sixteen runs), so
-//! lanes 0-7 are the first half of the curve and the halves are spatially compact (contiguous
-//! batch ranges are not: each batch spans the whole body). Smoothing domains (batched by node
-//! count, not by place): contiguous batch ranges of about equal node slots
-//! ([`Split::Batches`]). Per part: the nodes it touches, as runs of consecutive node indices
-//! (packed and unpacked with the vectorised code of the parent module). A node touched by one part only is *owned* by it: that part adds its sum to the
-//! double-precision forces. The few nodes touched by several parts (the cut) are *shared*:
-//! one thread adds their sums in part order after every part is done. So the arithmetic
-//! depends only on the number of parts, never on which thread ran which part; one part is the
-//! one-core path (every touched node owned, one batch range).
+//! How the force kernels cut one force evaluation into parts (issue 48 sections 1 and 3).
+//!
+//! Single precision, tetrahedra: the lanes of every batch in halves ([`Split::Lanes`]): lane l
+//! of a batch comes from run l of the Morton curve (`super::locality_order` interleaves sixteen
+//! runs), so lanes 0-7 are the first half of the curve and the halves are spatially compact
+//! (contiguous batch ranges are not: each batch spans the whole body). Single precision,
+//! smoothing domains (batched by node count, not by place): contiguous batch ranges of about
+//! equal node slots ([`Split::Batches`]). Double precision, both layouts: the two halves of the
+//! Morton curve batched apart (`super::Kernels::add_forces_parts`), cut with [`cut`] (lane
+//! halves would run four-lane registers in double precision).
+//!
+//! Per part: the nodes it touches, as runs of consecutive node indices (single precision packs
+//! them with the vectorised code of `super::single`). A node touched by one part only is
+//! *owned* by it: that part adds its sum to the double-precision forces. The few nodes touched
+//! by several parts (the cut) are *shared*: one thread adds their sums in part order after
+//! every part is done. So the arithmetic depends only on the number of parts, never on which
+//! thread ran which part; one part is the one-core path (every touched node owned, one batch
+//! range).
 
 use std::ops::Range;
 
@@ -76,13 +82,24 @@ pub(super) fn cuts<I: Iterator<Item = usize>>(
         .collect()
 }
 
+/// The double-precision forces the parts write to, each only at the nodes it owns
+/// ([`PartPlan::own`], disjoint between the parts of a cut).
+pub(super) struct OwnedForces {
+    pub(super) ptr: *mut glam::DVec3,
+    pub(super) len: usize,
+}
+
+// SAFETY: the parts write through the pointer only at the nodes they own, which are disjoint
+// ([`cut`]), and only while the `&mut` slice it was made from is not otherwise used.
+unsafe impl Sync for OwnedForces {}
+
 /// No part touches the node yet.
 const NONE: u32 = u32::MAX;
 /// More than one part touches the node.
 const SHARED: u32 = u32::MAX - 1;
 
 /// The cut into the parts `parts` (batches, lanes) (see [`cuts`]).
-fn cut<I: Iterator<Item = usize>>(
+pub(super) fn cut<I: Iterator<Item = usize>>(
     node_count: usize,
     parts: Vec<(Range<usize>, Range<usize>)>,
     nodes: &impl Fn(usize, Range<usize>) -> I,
