@@ -131,7 +131,7 @@ max_force_n = 10.0
 /// Built-in scene `lv-surface-springs`: the LV epicardium as a mass-spring surface.
 const LV_SURFACE_SPRINGS_TOML: &str = r#"# Built-in scene "lv-surface-springs" (a copy of the constant in server/model/src/scene/builtin.rs).
 name = "lv-surface-springs"
-description = "The epicardium of the idealized left ventricle (built-in lv geometry, the linear mesh of about 2000 tets: 350 surface nodes, edges of about 2.2 mm) as a mass-spring surface with home springs (Zhang, Payandeh & Dill eq. 1-2), base rim clamped, run-time one-ring Loop subdivision with calibrated springs. K_h = K_m = 2.013 N/m, every spring times the contact factor of the organ table, calibrated to the stable neo-Hookean reference at six epicardial points (reference_file: lv-probe, p1-p5; per node and edge midpoint; within 10 % at the six points never subdivided, not yet subdivided: docs/accuracy.md); node mass: the myocardium (3.43 g) over the epicardial nodes; damping about critical per node."
+description = "The epicardium of the idealized left ventricle (built-in lv geometry, the linear mesh of about 2000 tets: 350 surface nodes, edges of about 2.2 mm) as a mass-spring surface with home springs (Zhang, Payandeh & Dill eq. 1-2), base rim clamped, run-time two-ring Loop subdivision with calibrated springs (the area the press made kept while the probe stays in it). K_h = K_m = 2.013 N/m, every spring times the contact factor of the organ table, calibrated to the stable neo-Hookean reference at six epicardial points (reference_file: lv-probe, p1-p5; per node and edge midpoint; within 10 % at the six points from 0.25 to 4 mm, subdivided and not: docs/accuracy.md); node mass: the myocardium (3.43 g) over the epicardial nodes; damping about critical per node."
 
 [model]
 family = "mass-spring"
@@ -150,7 +150,7 @@ mesh_spring_n_per_m = 2.013     # K_m = K_h (the paper's ratio)
 home_spring_n_per_m = 2.013     # the organ table's contact factor (0.03..1.6) scales it to the reference
 damping_n_s_per_m = 0.01        # about critical for a node on its home spring
 node_mass_kg = 0.00001          # the myocardium's 3.43 g over the 350 epicardial nodes
-rings = 1
+rings = 2                       # two rings: the dent of the 2 mm probe stays inside the area to 4 mm (docs/accuracy.md, session 12)
 springs = "calibrated"
 vertex_rule = "keep"
 coarsen_delay_s = 0.2

@@ -146,6 +146,9 @@ struct MassSpringModel {
     /// Where the probe meets each slot at rest ([`super::contact_rest`]); at run time the probe
     /// sees `cx = x + contact_rest - rest`.
     contact_rest: Vec<DVec3>,
+    /// Per coarse edge, the height of the organ's surface over the chord's midpoint, m: the
+    /// circular arc of [`super::contact_rest::arc_midpoint`] (positive on a convex surface).
+    edge_arc_m: Vec<f64>,
     /// Per slot: clamped (never moves).
     fixed: Vec<bool>,
     scene_name: String,
@@ -285,7 +288,9 @@ impl MassSpringBody {
     /// The probe's sphere depth, m, at the last sub-step in contact (the key of the organ
     /// table, [`super::organ`]): when the probe's foot ([`super::organ::foot`]) lies on a
     /// rest triangle with a corner in a subdivided area, the sphere's depth below that flat
-    /// triangle along the line through the proxy along the contact normal; elsewhere the travel
+    /// triangle along the line through the proxy along the contact normal, plus the organ's
+    /// height over the flat triangle there (the arcs over its edges, quadratic over the
+    /// triangle: the depth below the surface the reference is pressed on); elsewhere the travel
     /// of the probe's kernel plane from its rest position, `sum w_i (rest_i - x_i) . n` over
     /// its patch.
     /// Slot 0's ([`MassSpringBody::tool_contact_depth_m`]).

@@ -12,7 +12,7 @@ use crate::contact::{ContactModel, Probe, ProbeParams};
 use crate::integrate::{IntegratorKind, IntegratorParams, plan_steps};
 use crate::loads::{BodyLoads, SceneLoads};
 use crate::mass_spring::calibration::CalibrationTable;
-use crate::mass_spring::contact_rest::contact_rest_positions;
+use crate::mass_spring::contact_rest::{arc_midpoint, contact_rest_positions};
 use crate::mass_spring::loop_rules::loop_rest_positions;
 use crate::mass_spring::mixed::MixedMesh;
 use crate::mass_spring::network::{critical_time_step_s, gershgorin_bound_per_s2};
@@ -51,6 +51,15 @@ impl MassSpringBody {
         let mut rest = surface.rest().to_vec();
         rest.extend_from_slice(&edge_rest);
         let contact_rest = contact_rest_positions(&surface, probe).positions;
+        let edge_arc_m = surface
+            .edges()
+            .iter()
+            .map(|&[a, b]| {
+                let (ra, rb) = (surface.rest()[a as usize], surface.rest()[b as usize]);
+                let (arc, n) = arc_midpoint(ra, rb, surface.rest_normal(a), surface.rest_normal(b));
+                (arc - 0.5 * (ra + rb)).dot(n)
+            })
+            .collect();
         let mut fixed: Vec<bool> = (0..nc as u32).map(|i| surface.is_fixed(i)).collect();
         fixed.extend(
             surface
@@ -89,6 +98,7 @@ impl MassSpringBody {
                 organ: None,
                 loop_vertex_rest,
                 contact_rest,
+                edge_arc_m,
                 fixed,
                 scene_name: scene_name.to_string(),
                 tool_ids: Vec::new(),
