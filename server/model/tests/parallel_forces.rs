@@ -96,14 +96,17 @@ fn forces(model: &FemModel, runner: &dyn PartRunner, scratch: &mut ForceScratch)
     f
 }
 
+/// A tetrahedron with a corner within 7 mm of [`CENTRE_M`] (the region of [`models`]).
+fn near_centre(mesh: &TetMesh, t: &[u32; 4]) -> bool {
+    t.iter()
+        .any(|&i| (mesh.nodes[i as usize] - CENTRE_M).length() < 0.007)
+}
+
 /// The three models: whole body edge-smoothed (as shipped) and plain, and the r = 7 mm region
 /// (tetrahedra with a corner within 7 mm of the centre) edge-smoothed.
 fn models() -> Vec<(&'static str, FemModel)> {
     let (mesh, mat) = lv_h1();
-    let near = |t: &[u32; 4]| {
-        t.iter()
-            .any(|&i| (mesh.nodes[i as usize] - CENTRE_M).length() < 0.007)
-    };
+    let near = |t: &[u32; 4]| near_centre(&mesh, t);
     vec![
         (
             "whole, edge-smoothed",
@@ -238,10 +241,7 @@ fn force_parts_allocate_nothing() {
 /// Venant-Kirchhoff (the peer comparison's law).
 fn models_double() -> Vec<(&'static str, FemModel)> {
     let (mesh, mat) = lv_h1();
-    let near = |t: &[u32; 4]| {
-        t.iter()
-            .any(|&i| (mesh.nodes[i as usize] - CENTRE_M).length() < 0.007)
-    };
+    let near = |t: &[u32; 4]| near_centre(&mesh, t);
     let mut stvk = mat;
     stvk.model = haptic_model::material::MaterialModel::StVenantKirchhoff;
     vec![
