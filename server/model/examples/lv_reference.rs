@@ -88,8 +88,15 @@ enum Step {
     /// Combine four or more levels into the reference CSV.
     Combine {
         /// Level CSVs written by `solve` (any order; rows are grouped by their h).
-        #[arg(long, value_delimiter = ',', required = true)]
+        #[arg(long, value_delimiter = ',', required_unless_present = "levels_from")]
         csv: Vec<PathBuf>,
+        /// A reference CSV written by an earlier `combine` (its `f_h<h>_n` columns, 7
+        /// significant digits) whose levels join those of `--csv`: a level solved again in
+        /// `--csv` replaces the column's value, and a column's h (written to 4 decimals) takes
+        /// the `--csv` level's h it rounds from. So one new level can join the stored
+        /// reference without the older levels' files.
+        #[arg(long)]
+        levels_from: Option<PathBuf>,
         /// The reference CSV to write.
         #[arg(long)]
         out: PathBuf,
@@ -111,7 +118,12 @@ fn main() -> anyhow::Result<()> {
             out,
             checkpoint,
         } => solve_level(&msh, h, &material, &depths, &out, checkpoint.as_deref()),
-        Step::Combine { csv, out, markdown } => combine(&csv, &out, markdown),
+        Step::Combine {
+            csv,
+            levels_from,
+            out,
+            markdown,
+        } => combine(&csv, levels_from.as_deref(), &out, markdown),
     }
 }
 
@@ -458,6 +470,76 @@ fn read_levels(paths: &[PathBuf]) -> anyhow::Result<Vec<LevelRow>> {
     Ok(rows)
 }
 
+/// The level rows held in a reference CSV written by [`combine`] (`text`): one row per
+/// non-empty `f_h<h>_n` cell, `nodes` 0 (not stored there).
+fn reference_levels(text: &str) -> anyhow::Result<Vec<LevelRow>> {
+    let mut lines = text
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty());
+    let header: Vec<&str> = lines
+        .next()
+        .ok_or_else(|| anyhow::anyhow!("no header"))?
+        .split(',')
+        .collect();
+    let col = |name: &str| {
+        header
+            .iter()
+            .position(|h| *h == name)
+            .ok_or_else(|| anyhow::anyhow!("no column {name}"))
+    };
+    let (cm, cc, cd) = (col("material")?, col("depth_convention")?, col("depth_mm")?);
+    let levels: Vec<(usize, f64)> = header
+        .iter()
+        .enumerate()
+        .filter_map(|(i, h)| {
+            let size = h.strip_prefix("f_h")?.strip_suffix("_n")?;
+            Some(size.parse::<f64>().map(|s| (i, s)))
+        })
+        .collect::<Result<_, _>>()?;
+    anyhow::ensure!(!levels.is_empty(), "no f_h<h>_n column");
+    let mut rows = Vec::new();
+    for (n, l) in lines.enumerate() {
+        let v: Vec<&str> = l.split(',').collect();
+        anyhow::ensure!(v.len() == header.len(), "row {}: {} fields", n + 1, v.len());
+        for &(i, h_mm) in &levels {
+            if v[i].is_empty() {
+                continue;
+            }
+            rows.push(LevelRow {
+                material: v[cm].into(),
+                convention: v[cc].into(),
+                depth_mm: v[cd].parse()?,
+                h_mm,
+                nodes: 0,
+                force_n: v[i].parse()?,
+            });
+        }
+    }
+    Ok(rows)
+}
+
+/// `solved` (the levels' own rows) joined by `stored` (from a reference CSV): a stored h
+/// within the 4-decimal rounding (5e-5 mm) of a solved level's takes that level's h, and a
+/// stored row whose (material, convention, depth, h) was solved is dropped.
+fn merge_levels(mut solved: Vec<LevelRow>, stored: Vec<LevelRow>) -> Vec<LevelRow> {
+    let hs: Vec<f64> = solved.iter().map(|r| r.h_mm).collect();
+    for mut r in stored {
+        if let Some(h) = hs.iter().find(|h| (**h - r.h_mm).abs() <= 5e-5) {
+            r.h_mm = *h;
+        }
+        let same = |s: &LevelRow| {
+            s.material == r.material
+                && s.convention == r.convention
+                && s.depth_mm == r.depth_mm
+                && s.h_mm == r.h_mm
+        };
+        if !solved.iter().any(same) {
+            solved.push(r);
+        }
+    }
+    solved
+}
+
 /// Richardson's extrapolation through three levels (sizes `h` coarse to fine, values `f`):
 /// the observed order `p` from `(f3 - f2) / (f2 - f1) = (h3^p - h2^p) / (h2^p - h1^p)`
 /// (bisection on [0.2, 10]), the extrapolated value and Roache's grid convergence index
@@ -589,8 +671,20 @@ fn eca_hoekstra(levels: &[(f64, f64)]) -> Option<(f64, f64, f64)> {
     Some((fixed.f0, u, p))
 }
 
-fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> {
-    let rows = read_levels(paths)?;
+fn combine(
+    paths: &[PathBuf],
+    levels_from: Option<&Path>,
+    out: &Path,
+    markdown: bool,
+) -> anyhow::Result<()> {
+    let mut rows = read_levels(paths)?;
+    if let Some(reference) = levels_from {
+        let text = std::fs::read_to_string(reference)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", reference.display()))?;
+        let stored =
+            reference_levels(&text).map_err(|e| anyhow::anyhow!("{}: {e}", reference.display()))?;
+        rows = merge_levels(rows, stored);
+    }
     let mut hs: Vec<f64> = rows.iter().map(|r| r.h_mm).collect();
     hs.sort_by(|a, b| b.total_cmp(a));
     hs.dedup();
@@ -631,8 +725,11 @@ fn combine(paths: &[PathBuf], out: &Path, markdown: bool) -> anyhow::Result<()> 
         .iter()
         .map(|&h| {
             rows.iter()
-                .find(|r| r.h_mm == h)
-                .map_or("?".into(), |r| format!("{h} mm: {} nodes", r.nodes))
+                .filter(|r| r.h_mm == h)
+                .map(|r| r.nodes)
+                .max()
+                .filter(|n| *n > 0)
+                .map_or(format!("{h} mm"), |n| format!("{h} mm: {n} nodes"))
         })
         .collect();
     println!("levels: {}", nodes.join(", "));
@@ -857,6 +954,63 @@ mod tests {
         assert!(
             ls_fit(&levels[..3], &[1.0, 2.0]).is_none(),
             "no degree of freedom"
+        );
+    }
+
+    #[test]
+    fn a_stored_reference_gives_back_its_levels_and_a_solved_level_replaces_them() {
+        let text = "# comment\n\
+            material,depth_convention,depth_mm,force_n,uncertainty_n,f_h0.6000_n,f_h0.1061_n\n\
+            stvk,device,0.5,4.1e-3,5e-5,4.3055e-3,4.2225e-3\n\
+            stable-neo-hookean,device,0.5,4.6e-3,3e-5,4.7366e-3,\n";
+        let stored = reference_levels(text).expect("parses");
+        let got: Vec<(&str, f64, f64)> = stored
+            .iter()
+            .map(|r| (r.material.as_str(), r.h_mm, r.force_n))
+            .collect();
+        assert_eq!(
+            got,
+            [
+                ("stvk", 0.6, 4.3055e-3),
+                ("stvk", 0.1061, 4.2225e-3),
+                ("stable-neo-hookean", 0.6, 4.7366e-3)
+            ]
+        );
+        // A sixth level solved for the neo-Hookean material at h = 0.10607 mm: the stored
+        // StVK column (0.1061) joins it as the same level, the solved row stays.
+        let solved = vec![LevelRow {
+            material: "stable-neo-hookean".into(),
+            convention: "device".into(),
+            depth_mm: 0.5,
+            h_mm: 0.10607,
+            nodes: 219_211,
+            force_n: 4.61e-3,
+        }];
+        let merged = merge_levels(solved, stored);
+        let mut hs: Vec<f64> = merged.iter().map(|r| r.h_mm).collect();
+        hs.sort_by(f64::total_cmp);
+        hs.dedup();
+        assert_eq!(hs, [0.10607, 0.6]);
+        assert_eq!(merged.len(), 4);
+        // The same cell solved again replaces the stored value.
+        let again = vec![LevelRow {
+            material: "stvk".into(),
+            convention: "device".into(),
+            depth_mm: 0.5,
+            h_mm: 0.6,
+            nodes: 4_711,
+            force_n: 4.3e-3,
+        }];
+        let merged = merge_levels(again, reference_levels(text).expect("parses"));
+        let at = merged
+            .iter()
+            .filter(|r| r.material == "stvk" && r.h_mm == 0.6)
+            .map(|r| r.force_n)
+            .collect::<Vec<_>>();
+        assert_eq!(at, [4.3e-3]);
+        assert!(reference_levels("material,depth_convention,depth_mm\nstvk,device,0.5\n").is_err());
+        assert!(
+            reference_levels("material,depth_convention,depth_mm,f_h0.6_n\nstvk,device\n").is_err()
         );
     }
 }
