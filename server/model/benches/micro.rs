@@ -110,23 +110,6 @@ fn add_elastic_forces(bencher: divan::Bencher, size: &str) {
     bench_forces(bencher, size, false);
 }
 
-/// The elastic force of `lv_h1` in double precision (`lv_h1d`) with the scratch fitted to the
-/// model (`FemModel::fit_force_scratch`): the smoothing domains through their elements (issue
-/// 48 s3), beside `add_elastic_forces` `lv_h1d` (the domain kernel).
-#[divan::bench(sample_count = 30)]
-fn add_elastic_forces_through_elements(bencher: divan::Bencher) {
-    let sim = pressed("lv_h1d").0;
-    let fem = sim.fem();
-    let mut f = vec![DVec3::ZERO; fem.node_count()];
-    let mut scratch = haptic_model::element::ForceScratch::new(fem.node_count());
-    fem.fit_force_scratch(&mut scratch);
-    bencher.counter(fem.tets().len()).bench_local(|| {
-        f.iter_mut().for_each(|v| *v = DVec3::ZERO);
-        fem.add_internal_forces_with(&sim.state().x, None, &mut f, &mut scratch);
-        divan::black_box(&f);
-    });
-}
-
 /// The single-precision force evaluation of `lv_h1` (pressed as in [`pressed`]) in each
 /// instruction set the kernel is built for, `isa kind` (`avx2` or `avx512`; `viscous` or
 /// `elastic`): the two builds compared in one run. An instruction set this CPU lacks is

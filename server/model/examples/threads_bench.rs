@@ -70,10 +70,8 @@ struct Args {
 mod part_runners;
 use part_runners::{Scoped, Serial};
 
-/// A variant: its name, what runs its parts (`None`: an empty scoped spawn) and whether its
-/// scratch is fitted to the model (`FemModel::fit_force_scratch`: in double precision, the
-/// smoothing domains through their elements).
-type Variant = (&'static str, Option<Box<dyn PartRunner>>, bool);
+/// A variant: its name and what runs its parts (`None`: an empty scoped spawn).
+type Variant = (&'static str, Option<Box<dyn PartRunner>>);
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
@@ -103,11 +101,10 @@ fn main() -> anyhow::Result<()> {
         ThreadsImpl::Pool => "2 threads (TickPool::new(1))",
     };
     let variants: Vec<Variant> = vec![
-        ("1 thread", Some(Box::new(Serial(1))), false),
-        ("1 thread, fitted scratch", Some(Box::new(Serial(1))), true),
-        ("2 parts, 1 thread", Some(Box::new(Serial(2))), false),
-        (two, Some(pool), false),
-        ("spawn only", None, false),
+        ("1 thread", Some(Box::new(Serial(1)))),
+        ("2 parts, 1 thread", Some(Box::new(Serial(2)))),
+        (two, Some(pool)),
+        ("spawn only", None),
     ];
     let samples = measure(&args, &sim, &variants);
     report(&variants, &samples);
@@ -148,17 +145,16 @@ fn measure(args: &Args, sim: &FemBody, variants: &[Variant]) -> Vec<Vec<f64>> {
     let n = model.node_count();
     let mut f = vec![DVec3::ZERO; n];
     let mut scratch = ForceScratch::with_parts(n, 2);
-    let mut fitted = ForceScratch::with_parts(n, 2);
-    model.fit_force_scratch(&mut fitted);
     let mut samples = vec![Vec::with_capacity(args.blocks * args.block); variants.len()];
     for _ in 0..args.blocks {
-        for ((_, runner, fit), out) in variants.iter().zip(&mut samples) {
-            let scratch = if *fit { &mut fitted } else { &mut scratch };
+        for ((_, runner), out) in variants.iter().zip(&mut samples) {
             for _ in 0..args.block {
                 f.iter_mut().for_each(|v| *v = DVec3::ZERO);
                 let t = Instant::now();
                 match runner {
-                    Some(r) => model.add_internal_forces_in(r.as_ref(), x, None, &mut f, scratch),
+                    Some(r) => {
+                        model.add_internal_forces_in(r.as_ref(), x, None, &mut f, &mut scratch)
+                    }
                     None => std::thread::scope(|s| s.spawn(|| ()).join().expect("empty")),
                 }
                 out.push(t.elapsed().as_secs_f64() * 1e6);
@@ -179,7 +175,7 @@ fn report(variants: &[Variant], samples: &[Vec<f64>]) {
     let base = pct(&samples[0], 0.5);
     println!("| variant | evaluations | p50 (us) | p99 (us) | one thread's p50 / p50 |");
     println!("|---|---|---|---|---|");
-    for ((name, _, _), s) in variants.iter().zip(samples) {
+    for ((name, _), s) in variants.iter().zip(samples) {
         let (p50, p99) = (pct(s, 0.5), pct(s, 0.99));
         println!(
             "| {name} | {} | {p50:.1} | {p99:.1} | {:.2} |",

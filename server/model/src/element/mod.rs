@@ -208,7 +208,7 @@ impl FemModel {
         let kernels = if mesh.is_quadratic() {
             Kernels::quadratic(&mesh.nodes, &mesh.tets, &points)
         } else if smoothing != StrainSmoothing::None {
-            Kernels::domains(&mesh.nodes, &points, (&mesh.tets, &dm_inv, &volume_m3))
+            Kernels::domains(&mesh.nodes, &points)
         } else {
             Kernels::linear(&mesh.nodes, &mesh.tets, &dm_inv, &volume_m3)
         };
@@ -500,38 +500,7 @@ impl FemModel {
                 return;
             }
         }
-        if self.single.is_none() && self.add_forces_averaged(x, v, f, scratch) {
-            return;
-        }
         self.add_internal_forces(x, v, f);
-    }
-
-    /// The double-precision forces of edge-smoothed tetrahedra through the elements
-    /// (`docs/decisions.md`, "Edge-smoothed forces through the elements"), when `scratch` was
-    /// fitted to this model ([`Self::fit_force_scratch`]) and the material has a vectorised
-    /// kernel on this CPU (AVX2 and FMA); returns whether it ran.
-    fn add_forces_averaged(
-        &self,
-        x: &[DVec3],
-        v: Option<&[DVec3]>,
-        f: &mut [DVec3],
-        scratch: &mut ForceScratch,
-    ) -> bool {
-        let mat = &self.material;
-        let viscous = v.filter(|_| mat.phi_pa_s > 0.0 || mat.psi_pa_s > 0.0);
-        self.kernels
-            .add_forces_averaged(mat, (x, viscous), f, &mut scratch.rows)
-    }
-
-    /// Grows `scratch` to serve this model: its node count and, for edge-smoothed tetrahedra,
-    /// the rows of the double-precision path through the elements (one 72-byte row per
-    /// element and per smoothing domain, twice per element for the viscous stress). Set-up:
-    /// allocates when the arrays grow. A scratch not fitted still serves (the domain kernel
-    /// runs instead).
-    pub fn fit_force_scratch(&self, scratch: &mut ForceScratch) {
-        let parts = scratch.parts().max(1);
-        scratch.ensure(self.node_count(), parts);
-        self.kernels.fit_rows(&mut scratch.rows);
     }
 
     /// [`Self::add_internal_forces_with`] cut into parts that `pool` runs on its threads, in
@@ -577,9 +546,6 @@ impl FemModel {
                 .kernels
                 .add_forces_parts(mat, (x, viscous), f, scratch, (pool.threads(), run))
         {
-            return;
-        }
-        if self.single.is_none() && self.add_forces_averaged(x, v, f, scratch) {
             return;
         }
         self.add_internal_forces(x, v, f);

@@ -108,37 +108,24 @@ pub(super) unsafe fn forces_linear<const FMA: bool, const MODEL: u8, V: LaneVec>
             };
             let p = first_piola_lane::<FMA, MODEL, V>(isa, &fm, fd.as_ref(), mat);
             let w = zero - V::load(isa, &batch.volume_m3[off..]);
-            nodal_forces::<FMA, V>(&p, &bm, w, off, &mut h);
+            for k in 0..3 {
+                for i in 0..3 {
+                    let hk = w * dot3::<FMA, V>(
+                        [p[3 * i], p[3 * i + 1], p[3 * i + 2]],
+                        [bm[3 * k], bm[3 * k + 1], bm[3 * k + 2]],
+                    );
+                    hk.store(&mut h[3 * k + i][off..]);
+                }
+            }
         }
         scatter_linear(batch, &h, f);
-    }
-}
-
-/// `H = w P Dm^-T` of lanes `off..off + V::WIDTH` into `h` (`h[3 k + i][l]`: component i of
-/// the force on node k+1 of lane l; `w` is minus the lane's volume, m^3, times any factor).
-#[inline(always)]
-pub(super) fn nodal_forces<const FMA: bool, V: LaneVec>(
-    p: &[V; 9],
-    bm: &[V; 9],
-    w: V,
-    off: usize,
-    h: &mut [[f64; LANES]; 9],
-) {
-    for k in 0..3 {
-        for i in 0..3 {
-            let hk = w * dot3::<FMA, V>(
-                [p[3 * i], p[3 * i + 1], p[3 * i + 2]],
-                [bm[3 * k], bm[3 * k + 1], bm[3 * k + 2]],
-            );
-            hk.store(&mut h[3 * k + i][off..]);
-        }
     }
 }
 
 /// Adds the nodal forces of a batch to `f`: `h[3 k + i][l]` is component i of the force on
 /// node k+1 of lane l; node 0 gets minus their sum. Scalar, since lanes may share nodes.
 #[inline(always)]
-pub(super) fn scatter_linear(batch: &ElementBatch, h: &[[f64; LANES]; 9], f: &mut [DVec3]) {
+fn scatter_linear(batch: &ElementBatch, h: &[[f64; LANES]; 9], f: &mut [DVec3]) {
     for (l, t) in batch.nodes.iter().enumerate() {
         let [a, b, c, d] = t.map(|i| i as usize);
         let hk = |k: usize| DVec3::new(h[3 * k][l], h[3 * k + 1][l], h[3 * k + 2][l]);
@@ -155,37 +142,12 @@ impl ElementBatch {
     pub(super) fn lane_nodes(&self, lanes: Range<usize>) -> impl Iterator<Item = usize> + '_ {
         self.nodes[lanes].iter().flatten().map(|&i| i as usize)
     }
-
-    /// `3 *` the node indices, `[k][l]` for node k of lane l (for the gathers).
-    pub(super) fn node3(&self) -> &[[i32; LANES]; 4] {
-        &self.node3
-    }
-
-    /// `Dm^-1` (`[3 r + c]` entry (r, c), 1/m) of lanes `off..off + V::WIDTH`.
-    #[inline(always)]
-    pub(super) fn dm_inv_lanes<V: LaneVec>(&self, isa: V::Isa, off: usize) -> [V; 9] {
-        let mut bm = [V::splat(isa, 0.0); 9];
-        for (b, row) in bm.iter_mut().zip(&self.dm_inv) {
-            *b = V::load(isa, &row[off..]);
-        }
-        bm
-    }
-
-    /// The volumes (m^3) of lanes `off..off + V::WIDTH`.
-    #[inline(always)]
-    pub(super) fn volume_lanes<V: LaneVec>(&self, isa: V::Isa, off: usize) -> V {
-        V::load(isa, &self.volume_m3[off..])
-    }
 }
 
 /// `F = Ds Dm^-1`: `d` from [`gather_differences`], `bm[3 r + c]` entry (r, c) of `Dm^-1`;
 /// `F_ij = sum_k d[3 k + i] bm[3 k + j]`, row-major (seed 000 eq. 21).
 #[inline(always)]
-pub(super) fn edge_gradient<const FMA: bool, V: LaneVec>(
-    isa: V::Isa,
-    d: &[V; 9],
-    bm: &[V; 9],
-) -> [V; 9] {
+fn edge_gradient<const FMA: bool, V: LaneVec>(isa: V::Isa, d: &[V; 9], bm: &[V; 9]) -> [V; 9] {
     let mut out = [V::splat(isa, 0.0); 9];
     for i in 0..3 {
         for j in 0..3 {

@@ -18,7 +18,6 @@
 
 use glam::{DMat3, DVec3};
 
-mod averaged;
 mod domains;
 
 mod linear;
@@ -30,8 +29,6 @@ mod stress;
 #[cfg(target_arch = "x86_64")]
 use crate::simd::{Avx2Fma, Avx512, Ymm, Zmm};
 use crate::simd::{LaneVec, Plain8};
-pub(crate) use averaged::AverageRows;
-use averaged::{Averaged, forces_averaged};
 use domains::{DomainBatches, forces_domains};
 use linear::{ElementBatch, forces_linear};
 use parts::{Cut, OwnedForces};
@@ -82,8 +79,6 @@ pub(crate) struct Kernels {
     /// The evaluation in two parts ([`Kernels::add_forces_parts`]); `None` for quadratic
     /// elements.
     two: Option<TwoParts>,
-    /// Smoothing domains through their elements ([`Kernels::add_forces_averaged`]).
-    averaged: Option<Averaged>,
 }
 
 /// The double-precision evaluation in two parts (issue 48 s3, [`parts`]): the elements or
@@ -161,100 +156,18 @@ impl Kernels {
         )
     }
 
-    /// Single-point cells of `points` (the edge smoothing domains of the linear tetrahedra
-    /// `tets`, with their `Dm^-1` and volumes) over the rest positions `nodes` (m).
+    /// Single-point cells of `points` (smoothing domains) over the rest positions `nodes` (m).
     ///
     /// # Panics
     /// As [`Kernels::linear`].
-    pub(crate) fn domains(
-        nodes: &[DVec3],
-        points: &IntegrationPoints,
-        (tets, dm_inv, volume_m3): (&[[u32; 4]], &[DMat3], &[f64]),
-    ) -> Self {
+    pub(crate) fn domains(nodes: &[DVec3], points: &IntegrationPoints) -> Self {
         let mut k = Self::checked(
             nodes.len(),
             points.nodes.iter(),
             Layout::Domains(DomainBatches::build(points)),
         );
         k.two = Some(domain_halves(nodes, points));
-        let order = locality_order(nodes, tets, LANES);
-        let averaged = Averaged::build(&order, tets, dm_inv, volume_m3);
-        assert!(
-            averaged.nodes().all(|i| i < nodes.len()),
-            "element node index out of range"
-        );
-        k.averaged = Some(averaged);
         k
-    }
-
-    /// Grows `rows` to serve [`Kernels::add_forces_averaged`] (set-up; nothing for other
-    /// layouts).
-    pub(crate) fn fit_rows(&self, rows: &mut AverageRows) {
-        if let Some(a) = &self.averaged {
-            rows.ensure(a.rows());
-        }
-    }
-
-    /// [`Kernels::add_forces`] of smoothing domains through their elements (issue 48 s3,
-    /// [`averaged`]): the elements' gradients, their volume-weighted averages per domain, the
-    /// domains' stresses folded back to the elements, the elements' scatter; the same forces
-    /// up to round-off. Returns `false` (and does nothing) for another layout, rows too few
-    /// ([`Kernels::fit_rows`]), a material without a lane kernel, or a CPU without AVX2 and
-    /// FMA. Allocation-free.
-    ///
-    /// # Panics
-    /// As [`Kernels::add_forces`].
-    pub(crate) fn add_forces_averaged(
-        &self,
-        mat: &MaterialParams,
-        (x, v): (&[DVec3], Option<&[DVec3]>),
-        f: &mut [DVec3],
-        rows: &mut AverageRows,
-    ) -> bool {
-        let n = self.node_count;
-        assert!(x.len() >= n && f.len() >= n && v.is_none_or(|v| v.len() >= n));
-        let Some(a) = &self.averaged else {
-            return false;
-        };
-        if !rows.serves(a.rows()) {
-            return false;
-        }
-        let Some(model) = lane_model(mat.model) else {
-            return false;
-        };
-        #[cfg(target_arch = "x86_64")]
-        {
-            let job = (a, rows);
-            // SAFETY (all): node indices below n (construction), the slices hold n nodes
-            // (asserted above), the rows serve the layout (checked above); the tokens prove
-            // their instruction sets.
-            unsafe {
-                if let Some(isa) = Avx512::detect() {
-                    match model {
-                        LANE_STVK => averaged_avx512::<LANE_STVK>(isa, job, mat, (x, v), f),
-                        LANE_STABLE_NEO_HOOKEAN => {
-                            averaged_avx512::<LANE_STABLE_NEO_HOOKEAN>(isa, job, mat, (x, v), f)
-                        }
-                        _ => averaged_avx512::<LANE_COROTATIONAL>(isa, job, mat, (x, v), f),
-                    }
-                    return true;
-                }
-                if let Some(isa) = Avx2Fma::detect() {
-                    match model {
-                        LANE_STVK => averaged_avx2::<LANE_STVK>(isa, job, mat, (x, v), f),
-                        LANE_STABLE_NEO_HOOKEAN => {
-                            averaged_avx2::<LANE_STABLE_NEO_HOOKEAN>(isa, job, mat, (x, v), f)
-                        }
-                        _ => averaged_avx2::<LANE_COROTATIONAL>(isa, job, mat, (x, v), f),
-                    }
-                    return true;
-                }
-            }
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        let _ = (model, rows);
-        #[allow(unreachable_code)]
-        false
     }
 
     /// The invariant of the gathers: every node index (padding lanes repeat real nodes) is
@@ -272,7 +185,6 @@ impl Kernels {
             node_count,
             layout,
             two: None,
-            averaged: None,
         }
     }
 
@@ -663,40 +575,6 @@ unsafe fn forces_plain<const MODEL: u8>(
     unsafe { forces_with::<false, MODEL, Plain8>((), k, mat, x, v, f) }
 }
 
-/// [`forces_averaged`] in AVX-512 registers.
-///
-/// # Safety
-/// As [`forces_averaged`] (the token proves the instruction set).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
-unsafe fn averaged_avx512<const MODEL: u8>(
-    isa: Avx512,
-    job: (&Averaged, &mut AverageRows),
-    mat: &MaterialParams,
-    xv: (&[DVec3], Option<&[DVec3]>),
-    f: &mut [DVec3],
-) {
-    // SAFETY: the caller's contract.
-    unsafe { forces_averaged::<MODEL, Zmm>(isa, job, mat, xv, f) }
-}
-
-/// [`forces_averaged`] in AVX2 registers (four lanes).
-///
-/// # Safety
-/// As [`forces_averaged`] (the token proves the instruction set).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn averaged_avx2<const MODEL: u8>(
-    isa: Avx2Fma,
-    job: (&Averaged, &mut AverageRows),
-    mat: &MaterialParams,
-    xv: (&[DVec3], Option<&[DVec3]>),
-    f: &mut [DVec3],
-) {
-    // SAFETY: the caller's contract.
-    unsafe { forces_averaged::<MODEL, Ymm>(isa, job, mat, xv, f) }
-}
-
 /// What one part of [`Kernels::add_forces_parts`] runs.
 enum PartJob<'a> {
     /// These batches of tetrahedra.
@@ -981,139 +859,6 @@ mod tests {
         }
         // At least the plain variant of each of the 12 combinations.
         assert!(checked >= 12);
-    }
-
-    /// The element-average path of smoothing domains ([`Kernels::add_forces_averaged`]) in
-    /// each instruction set this CPU runs, and the public path, against the scalar loop over
-    /// the domains (`generic_forces`) and the domain kernel: within 1e-12 of the largest nodal
-    /// force (the same forces up to round-off), the three lane materials, with and without the
-    /// viscous stress, half-inverted or not, adding to nonzero forces; 216 domains (padding
-    /// lanes and ring slots). It declines with rows not fitted, for another layout, or without
-    /// AVX2 and FMA.
-    #[test]
-    fn the_element_average_path_matches_the_scalar_loop_and_the_domain_kernel() {
-        let mesh = box_mesh(DVec3::splat(0.01), [3, 2, 3]);
-        let mut checked = 0;
-        for model in [
-            MaterialModel::StVenantKirchhoff,
-            MaterialModel::StableNeoHookean,
-            MaterialModel::Corotational,
-        ] {
-            let mut mat = MaterialParams::from_youngs(1e4, 0.45, 1000.0);
-            mat.model = model;
-            mat.phi_pa_s = 0.3;
-            mat.psi_pa_s = 0.2;
-            let fem = FemModel::with_smoothing(&mesh, mat, StrainSmoothing::Edge).unwrap();
-            let n = fem.node_count();
-            assert!(fem.cell_count() % LANES != 0, "want padding lanes");
-            let mut scratch = ForceScratch::new(n);
-            let (x, v) = deformed_state(&fem);
-            let mut f = vec![DVec3::ZERO; n];
-            assert!(
-                !fem.kernels
-                    .add_forces_averaged(&mat, (&x, None), &mut f, &mut scratch.rows)
-            );
-            fem.fit_force_scratch(&mut scratch);
-            let x_inv = half_inverted(&x);
-            for (x, vel) in [(&x, None), (&x, Some(v.as_slice())), (&x_inv, Some(&v[..]))] {
-                let mut expected = vec![DVec3::ZERO; n];
-                fem.generic_forces(x, vel, &mut expected);
-                let mut domains = vec![DVec3::ZERO; n];
-                assert!(fem.kernels.add_forces(&mat, x, vel, &mut domains));
-                let scale = expected.iter().map(|a| a.length()).fold(0.0, f64::max);
-                let offset: Vec<DVec3> = (0..n).map(|i| DVec3::splat(i as f64)).collect();
-                let mut runs: Vec<(&str, Vec<DVec3>)> = Vec::new();
-                for isa in average_isas() {
-                    let mut f = offset.clone();
-                    let job = (fem.kernels.averaged.as_ref().unwrap(), &mut scratch.rows);
-                    // SAFETY: indices checked at construction, slices n long, rows fitted;
-                    // the token proves the instruction set.
-                    unsafe {
-                        match isa {
-                            #[cfg(target_arch = "x86_64")]
-                            AverageIsa::Avx512(t) => averaged_avx512::<LANE_STABLE_NEO_HOOKEAN>(
-                                t,
-                                job,
-                                &mat,
-                                (x, vel),
-                                &mut f,
-                            ),
-                            #[cfg(target_arch = "x86_64")]
-                            AverageIsa::Avx2(t) => averaged_avx2::<LANE_STABLE_NEO_HOOKEAN>(
-                                t,
-                                job,
-                                &mat,
-                                (x, vel),
-                                &mut f,
-                            ),
-                        }
-                    }
-                    if model == MaterialModel::StableNeoHookean {
-                        runs.push(("isa", f));
-                    }
-                }
-                let mut f = offset.clone();
-                let ran =
-                    fem.kernels
-                        .add_forces_averaged(&mat, (x, vel), &mut f, &mut scratch.rows);
-                assert_eq!(ran, Avx2Fma::detect().is_some());
-                if !ran {
-                    continue;
-                }
-                runs.push(("public", f));
-                let mut f = offset.clone();
-                fem.add_internal_forces_with(x, vel, &mut f, &mut scratch);
-                runs.push(("add_internal_forces_with", f));
-                for (name, f) in &runs {
-                    for (reference, want) in [("scalar loop", &expected), ("domains", &domains)] {
-                        let err = f
-                            .iter()
-                            .zip(want)
-                            .zip(&offset)
-                            .map(|((a, b), o)| (*a - *o - *b).length())
-                            .fold(0.0, f64::max);
-                        assert!(
-                            err < 1e-12 * scale,
-                            "{model:?} {name} vs {reference}, viscous={}: {err:e} of {scale:e}",
-                            vel.is_some()
-                        );
-                    }
-                    checked += 1;
-                }
-            }
-        }
-        assert!(checked == 0 || checked >= 18, "{checked}");
-        let plain = FemModel::new(&mesh, MaterialParams::from_youngs(1e4, 0.45, 1000.0)).unwrap();
-        let mut scratch = ForceScratch::new(plain.node_count());
-        plain.fit_force_scratch(&mut scratch);
-        let mut f = vec![DVec3::ZERO; plain.node_count()];
-        let args = (plain.rest(), None);
-        let mat = *plain.material();
-        assert!(
-            !plain
-                .kernels
-                .add_forces_averaged(&mat, args, &mut f, &mut scratch.rows)
-        );
-    }
-
-    /// An instruction set of the element-average path.
-    enum AverageIsa {
-        #[cfg(target_arch = "x86_64")]
-        Avx512(Avx512),
-        #[cfg(target_arch = "x86_64")]
-        Avx2(Avx2Fma),
-    }
-
-    /// The instruction sets of the element-average path this CPU runs.
-    fn average_isas() -> Vec<AverageIsa> {
-        #[allow(unused_mut)]
-        let mut out = Vec::new();
-        #[cfg(target_arch = "x86_64")]
-        {
-            out.extend(Avx512::detect().map(AverageIsa::Avx512));
-            out.extend(Avx2Fma::detect().map(AverageIsa::Avx2));
-        }
-        out
     }
 
     /// The double-precision kernel in two parts ([`Kernels::add_forces_parts`]) against the

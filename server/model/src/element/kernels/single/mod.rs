@@ -96,9 +96,6 @@ pub(crate) struct NodeForce([f32; 4]);
 #[derive(Debug, Clone, Default)]
 pub struct ForceScratch {
     pub(super) parts: Vec<ForcePart>,
-    /// The rows of the double-precision element-average path of smoothing domains
-    /// (`super::Kernels::add_forces_averaged`; empty until a model fits them).
-    pub(in crate::element) rows: super::AverageRows,
 }
 
 /// The work arrays of one part of a force evaluation, one row per node (72 bytes a node): the
