@@ -7,6 +7,7 @@
 //! Prints one CSV row per active count: scene, variant, particles, active, substeps, ticks,
 //! median_us, p99_us. The machine is shared: quote medians.
 
+use std::sync::Arc;
 use std::time::Instant;
 
 #[path = "common/hybrid_overrides.rs"]
@@ -16,6 +17,7 @@ use clap::Parser;
 use haptic_model::body::{SoftBody, TickInput};
 use haptic_model::hybrid::{HybridBody, HybridModel};
 use haptic_model::meshfree::MeshfreeVariant;
+use haptic_model::pool::TickPool;
 use haptic_model::scene::{Scene, load_builtin};
 use hybrid_overrides::HybridOverrides;
 
@@ -43,6 +45,11 @@ struct Args {
     /// Run the term block's general force loop instead of the stencil loop.
     #[arg(long)]
     general_loop: bool,
+    /// Threads of the tick, the caller's included: `N - 1` tick-pool workers (unpinned, the
+    /// caller's scheduling class: run under `chrt` to give both the real-time priority) handed
+    /// to each body, as `feel --threads` does. 1: no pool (the one-core path).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=16))]
+    threads: u16,
 }
 
 fn rss_kib() -> u64 {
@@ -90,9 +97,18 @@ fn main() -> anyhow::Result<()> {
         .variant;
     let (model, prep_s) = prepare(&args.scene, &scene)?;
     let clamped = model.clamped_core_nodes();
-    println!("scene,variant,particles,active,substeps,core_substeps,ticks,median_us,p99_us,prep_s");
+    let pool = if args.threads > 1 {
+        let workers = usize::from(args.threads) - 1;
+        Some(TickPool::new(workers, Arc::new(|_| {}))?)
+    } else {
+        None
+    };
+    println!(
+        "scene,variant,particles,active,threads,substeps,core_substeps,ticks,median_us,p99_us,prep_s"
+    );
     for &target in &args.active {
-        press_target(&args, &scene, &model, &clamped, target, (variant, prep_s))?;
+        let run = (variant, prep_s, pool.as_ref());
+        press_target(&args, &scene, &model, &clamped, target, run)?;
     }
     Ok(())
 }
@@ -134,7 +150,7 @@ fn press_target(
     model: &HybridModel,
     clamped: &[u32],
     target: usize,
-    (variant, prep_s): (MeshfreeVariant, f64),
+    (variant, prep_s, pool): (MeshfreeVariant, f64, Option<&Arc<TickPool>>),
 ) -> anyhow::Result<()> {
     let mut p = model.params;
     p.max_active_particles = target;
@@ -147,6 +163,9 @@ fn press_target(
         scene.integrator.tick_s,
         &scene.name,
     )?;
+    if let Some(pool) = pool {
+        body.set_tick_pool(Arc::clone(pool));
+    }
     // Touch point: the outer vertex at the largest x (the free wall), pressed 1 mm in.
     let m = body.model();
     let v = (0..m.outer_rest_m.len())
@@ -202,11 +221,12 @@ fn press_target(
     let med = times[times.len() / 2];
     let p99 = times[(times.len() * 99) / 100];
     println!(
-        "{},{},{},{},{},{},{},{:.1},{:.1},{:.3}",
+        "{},{},{},{},{},{},{},{},{:.1},{:.1},{:.3}",
         args.scene,
         variant.name(),
         model.layer_count,
         active,
+        args.threads,
         body.substeps().0,
         body.substeps().2,
         args.ticks,
