@@ -50,6 +50,10 @@ struct Args {
     /// to each body, as `feel --threads` does. 1: no pool (the one-core path).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=16))]
     threads: u16,
+    /// Pace the timed ticks at 1 kHz as the servo does (sleep until each tick's deadline), so
+    /// the pool's workers park between ticks; without it the ticks run back to back.
+    #[arg(long)]
+    paced: bool,
 }
 
 fn rss_kib() -> u64 {
@@ -205,7 +209,15 @@ fn press_target(
         print_estimate(&mut body, "pressed 1 mm")?;
     }
     let mut times = Vec::with_capacity(args.ticks);
+    let period = std::time::Duration::from_secs_f64(scene.integrator.tick_s);
+    let mut deadline = Instant::now();
     for _ in 0..args.ticks {
+        if args.paced {
+            deadline += period;
+            if let Some(wait) = deadline.checked_duration_since(Instant::now()) {
+                std::thread::sleep(wait);
+            }
+        }
         let t = Instant::now();
         body.tick(&input)?;
         times.push(t.elapsed().as_secs_f64() * 1e6);

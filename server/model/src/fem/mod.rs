@@ -336,6 +336,9 @@ impl FemBody {
         if let Some(time_s) = self.status.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
+        // The workers stay awake through the tick (no wake-up on the tick's jobs).
+        let pool = Arc::clone(&self.pool);
+        let _hot = pool.hot();
         let outputs = &mut outputs[..inputs.len()];
         match self.fallback.take() {
             None => self.tick_model(inputs, outputs)?,

@@ -24,6 +24,11 @@
 //! caller that finds a slot busy (a cloned body on another thread) runs its job serially on
 //! itself. Workers spin [`SPIN_US`] after their last work, then `park()`; the caller `unpark`s
 //! the parked ones when it publishes (a `SeqCst` flag on both sides, so no wake-up is lost).
+//! While a body holds [`TickPool::hot`] (its whole tick) the workers do not park at all: they
+//! are woken at the tick's start, while the caller runs its serial prologue, and spin between
+//! the tick's jobs, so no job waits for a parked worker's wake-up (a syscall on the caller and
+//! tens of microseconds of scheduling in a VM: issue 48 s1, docs/benchmarks.md "Workers kept
+//! awake through a tick"). Between ticks they park as before.
 //! Jobs erase their closure's type into a data pointer and a monomorphic call function valid
 //! until the job is done: this module's `unsafe`.
 //!
@@ -127,6 +132,8 @@ struct Shared {
     task_busy: AtomicBool,
     /// Worker `k` is parked or about to park (the caller unparks it when it publishes).
     sleeping: [AtomicBool; MAX_WORKERS],
+    /// Live [`Hot`] guards: while above zero the workers spin instead of parking.
+    hot: AtomicU32,
     /// The pool is being dropped: workers return.
     stop: AtomicBool,
     jobs: AtomicU64,
@@ -155,6 +162,7 @@ impl Shared {
             task_job: UnsafeCell::new(Erased::NONE),
             task_busy: AtomicBool::new(false),
             sleeping: std::array::from_fn(|_| AtomicBool::new(false)),
+            hot: AtomicU32::new(0),
             stop: AtomicBool::new(false),
             jobs: AtomicU64::new(0),
             parts_on_caller: AtomicU64::new(0),
@@ -238,6 +246,16 @@ impl Drop for Busy<'_> {
     }
 }
 
+/// The workers kept awake while this lives ([`TickPool::hot`]).
+#[must_use = "the workers stay awake only while the guard lives"]
+pub struct Hot<'a>(&'a AtomicU32);
+
+impl Drop for Hot<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Release);
+    }
+}
+
 /// The erased data of a parts job: the items and the closure.
 struct PartsJob<'a, T> {
     items: *mut T,
@@ -291,7 +309,8 @@ impl std::fmt::Debug for TickPool {
     }
 }
 
-/// A worker's life: the start hook, then claim work, spin [`SPIN_US`], park, until `stop`.
+/// A worker's life: the start hook, then claim work, spin (while the pool is [`TickPool::hot`]
+/// or for [`SPIN_US`] after its last work), park, until `stop`.
 fn worker(shared: Arc<Shared>, k: usize, on_start: StartHook) {
     on_start(k);
     let spin = Duration::from_micros(SPIN_US);
@@ -299,11 +318,13 @@ fn worker(shared: Arc<Shared>, k: usize, on_start: StartHook) {
     while !shared.stop.load(Acquire) {
         if shared.run_task() | shared.run_parts() {
             idle_since = Instant::now();
-        } else if idle_since.elapsed() < spin {
+        } else if shared.hot.load(Relaxed) > 0 || idle_since.elapsed() < spin {
             std::hint::spin_loop();
         } else {
             shared.sleeping[k].store(true, SeqCst);
-            if !shared.has_work() && !shared.stop.load(SeqCst) {
+            // `hot` read after `sleeping` is set (both `SeqCst`, as in `TickPool::hot`): a
+            // guard taken now either sees this worker sleeping and unparks it, or is seen here.
+            if !shared.has_work() && !shared.stop.load(SeqCst) && shared.hot.load(SeqCst) == 0 {
                 std::thread::park();
             }
             shared.sleeping[k].store(false, SeqCst);
@@ -361,6 +382,16 @@ impl TickPool {
     /// cuts a job into, so its arithmetic does not depend on scheduling.
     pub fn threads(&self) -> usize {
         self.workers + 1
+    }
+
+    /// Keeps the workers awake until the guard drops: wakes the parked ones now, and while any
+    /// guard lives they spin between jobs instead of parking. A body takes it for its whole
+    /// tick, so the tick's jobs find the workers spinning. Allocation-free and lock-free; guards
+    /// nest (a companion's tick inside its region's).
+    pub fn hot(&self) -> Hot<'_> {
+        self.shared.hot.fetch_add(1, SeqCst);
+        self.wake();
+        Hot(&self.shared.hot)
     }
 
     /// Unparks the workers that are parked or about to park (after a publish).
@@ -553,6 +584,48 @@ impl Drop for TickPool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Waits up to 5 s for `cond`; whether it held.
+    fn eventually(cond: impl Fn() -> bool) -> bool {
+        let t0 = Instant::now();
+        while t0.elapsed() < Duration::from_secs(5) {
+            if cond() {
+                return true;
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        false
+    }
+
+    #[test]
+    fn a_hot_pool_wakes_its_parked_workers_and_keeps_them_awake_until_the_last_guard_drops() {
+        let pool = TickPool::new(1, Arc::new(|_| {})).unwrap();
+        let sleeping = || pool.shared.sleeping[0].load(SeqCst);
+        // Idle, the worker parks after its spin.
+        assert!(eventually(sleeping), "the idle worker never parked");
+        let outer = pool.hot();
+        assert!(
+            eventually(|| !sleeping()),
+            "a hot pool did not wake its worker"
+        );
+        let inner = pool.hot();
+        drop(outer);
+        // Still hot (the inner guard): the worker stays awake well past its spin.
+        std::thread::sleep(Duration::from_micros(20 * SPIN_US));
+        assert!(!sleeping(), "the worker parked while a guard lived");
+        let mut items = [0_u32; 4];
+        pool.for_each_mut(&mut items, &|p, v| *v = p as u32 + 1);
+        assert_eq!(items, [1, 2, 3, 4]);
+        drop(inner);
+        assert!(
+            eventually(sleeping),
+            "the worker stayed awake after the last guard"
+        );
+        // The serial pool takes guards too (no workers to wake).
+        let serial = TickPool::serial();
+        let _g = serial.hot();
+        assert_eq!(serial.shared.hot.load(SeqCst), 1);
+    }
 
     #[test]
     fn the_serial_pool_runs_every_part_once_in_order_on_the_caller() {

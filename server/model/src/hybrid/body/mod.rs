@@ -513,6 +513,9 @@ impl SoftBody for HybridBody {
         if let Some(time_s) = self.state.diverged_at_s {
             return Err(ModelError::Diverged { time_s });
         }
+        // The workers stay awake through the tick (no wake-up on the tick's jobs).
+        let pool = self.pipeline.pool.clone();
+        let _hot = pool.as_deref().map(TickPool::hot);
         let mut devices = [None; MAX_TOOLS];
         for (d, input) in devices.iter_mut().zip(inputs) {
             *d = input.device_position_m;
