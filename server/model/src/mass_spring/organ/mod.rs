@@ -70,7 +70,10 @@ pub use calibrate::{
 /// area (the `factor_subdivided` column) the depth is the sphere's depth below the flat rest
 /// triangle at the probe's foot ([`foot`]), at calibration and at run time alike (was the
 /// kernel plane's travel, which the coarse column keeps).
-pub const ORGAN_VERSION: u32 = 3;
+/// 4 (session 13): on the coarse surface too (wherever the probe has a foot), the depth is the
+/// sphere's depth below the organ at the foot: the flat triangle's plus the organ's height
+/// over it (the arcs over its edges), as in a subdivided area since session 12.
+pub const ORGAN_VERSION: u32 = 4;
 
 /// The column header of a reference file (further columns may follow, e.g. each mesh level's
 /// force; they are not read).
