@@ -9,8 +9,8 @@ use crate::mass_spring::refine::NO_OWNER;
 use glam::DVec3;
 
 impl MassSpringBody {
-    /// Tool slot `k`'s sphere depth ([`MassSpringBody::contact_depth_m`]: below the flat rest
-    /// triangle at the foot in a subdivided area, the kernel plane's travel elsewhere) and the
+    /// Tool slot `k`'s sphere depth ([`MassSpringBody::contact_depth_m`]: below the organ at
+    /// the foot, the kernel plane's travel without a foot) and the
     /// contact factor at its current contact: the organ table at that depth, interpolated on the
     /// coarse surface at the foot of the kernel patch's centroid
     /// ([`MassSpringBody::patch_foot`]), in a subdivided area at the probe's foot on the coarse
