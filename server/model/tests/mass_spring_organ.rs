@@ -4,7 +4,7 @@
 //! (`scene/calibrations/lv-surface-springs.reference.csv`: the lv-probe point's deep
 //! stable neo-Hookean reference and our two-level solves at p1-p5, corrected to it), with its
 //! run-time subdivision and without: the force of the never-subdivided surface within 10 % of
-//! the reference at the measured sphere depth from 0.5 to 4 mm (11 % at 0.25 mm) at every
+//! the reference at the measured sphere depth from 0.25 to 4 mm at every
 //! point and on a node, an edge's midpoint and a triangle's centroid near the lv-probe point
 //! (subdivided too since session 12), each
 //! hold steady (the largest tick-to-tick change at most 7 % of the held force), a stroke
@@ -26,19 +26,19 @@ const DEPTHS_M: [f64; 6] = [0.25e-3, 0.5e-3, 1e-3, 2e-3, 3e-3, 4e-3];
 /// Device depths pressed at p3-p5, m (four: the test's cost).
 const P345_DEPTHS_M: [f64; 4] = [0.25e-3, 1e-3, 2e-3, 4e-3];
 /// The acceptance tolerance against the reference (issue 46 section 4), met by the coarse
-/// surface at every reference point from 0.5 mm (measured 2026-11-26, session 5: -7.5 to
-/// +3.1 %); at 0.25 mm lv-probe reads +10.2 % (+9.5 % before session 5: the table is now read
-/// at the probe's foot on the rest surface), held to 11 %. Subdivided, the issue's 10 % since
+/// surface at every reference point and depth since session 13 (the table read at the sphere's
+/// depth below the organ on the coarse surface too: -1.7 to +6.7 %, lv-probe +6.7 % at
+/// 0.25 mm; until then the kernel plane's travel, which ran 0.02 mm ahead of the sphere there:
+/// +10.2 %, held to 11 %). Subdivided, the issue's 10 % since
 /// session 12 (two-ring areas kept while the probe stays in them, the depth read below the
 /// organ's arcs: -1.9 to +9.7 % at the six points; session 5: -13.3 to +14.4 %, p5 -45.2 % at
-/// 0.25 mm; docs/accuracy.md, "The spring surfaces, session 12").
+/// 0.25 mm; docs/accuracy.md, "The spring surfaces, session 12" and "session 13").
 const TOLERANCE: f64 = 0.10;
-const SHALLOW_TOLERANCE: f64 = 0.11;
 const SUBDIVIDED_TOLERANCE: f64 = 0.10;
 /// Device depths of the node / edge / centroid presses, m.
 const SITE_DEPTHS_M: [f64; 4] = [0.5e-3, 1e-3, 2e-3, 4e-3];
-/// Their tolerance, never subdivided (the issue's; measured 2026-11-26, session 5: -6.6 to
-/// +1.4 %) and subdivided (the issue's since session 12: measured -0.6 to +2.7 %; session 5
+/// Their tolerance, never subdivided (the issue's; measured in session 13: -3.0 to +4.7 %;
+/// session 5: -6.6 to +1.4 %) and subdivided (the issue's since session 12: measured -0.6 to +2.7 %; session 5
 /// -7.7 to +14.1 %).
 const SITE_TOLERANCE: f64 = 0.10;
 const SITE_SUBDIVIDED_TOLERANCE: f64 = 0.10;
@@ -101,10 +101,12 @@ fn lv_surface_springs_follows_its_reference_subdivided_and_not() {
     let mut failures = Vec::new();
     for subdivided in [true, false] {
         for p in reference.points() {
-            let tolerance = |device_depth_m: f64| match (subdivided, device_depth_m < 0.4e-3) {
-                (true, _) => SUBDIVIDED_TOLERANCE,
-                (false, true) => SHALLOW_TOLERANCE,
-                (false, false) => TOLERANCE,
+            let tolerance = |_device_depth_m: f64| {
+                if subdivided {
+                    SUBDIVIDED_TOLERANCE
+                } else {
+                    TOLERANCE
+                }
             };
             let depths: &[f64] = if ["p3", "p4", "p5"].contains(&p.name.as_str()) {
                 &P345_DEPTHS_M

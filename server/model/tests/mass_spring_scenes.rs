@@ -306,10 +306,12 @@ fn client_point_loads_push_the_surface() {
     let mut rest = vec![0f32; 3 * n];
     let moved = body.write_surface_positions(&mut x);
     body.write_surface_rest_positions(&mut rest);
-    // The apex (vertex 0) moved down, by about F / K_h for one home spring (3.3 mm) or less
-    // when the mesh springs share the load.
+    // The apex (vertex 0) moved down, by less than F / K_h for one home spring (3.3 mm): the
+    // load is spread over the probe's patch, about 19 nodes on the 4 mm mesh since session 13
+    // (the apex's weight about 0.19: measured 0.93 mm; on the 8 mm mesh one to three nodes
+    // and more than 1 mm, the bound until then).
     let dz = f64::from(x[2] - rest[2]);
-    assert!(dz < -1e-3 && dz > -4e-3, "apex moved {dz} m");
+    assert!(dz < -0.5e-3 && dz > -4e-3, "apex moved {dz} m");
     assert!((moved - dz.abs()).abs() < 1e-3);
     assert!(
         body.add_point_load(apex, haptic_model::DVec3::new(f64::NAN, 0.0, 0.0), 1.0)

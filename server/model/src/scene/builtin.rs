@@ -84,7 +84,7 @@ max_force_n = 10.0
 /// surface with one-ring subdivision.
 const HEMISPHERE_SPRINGS_TOML: &str = r#"# Built-in scene "hemisphere-springs" (a copy of the constant in server/model/src/scene/builtin.rs).
 name = "hemisphere-springs"
-description = "A triangulated hemisphere (Zhang, Payandeh & Dill, Haptic Subdivision, Figure 12) as a mass-spring surface with home springs (eq. 1-2) and run-time one-ring Loop subdivision around the contact node, spring constants from the calibrated table (section 3.2.4). K_h = K_m = 0.06 N/mm as in the paper's experiment (section 3.2.2); radius 50 mm and edges of about 8 mm, node mass 1 g and damping 0.2 N s/m are ours (the paper gives none); rim clamped. Every spring times the contact factor of the organ table (per node and edge midpoint and sphere depth), calibrated to the FEM of the solid half ball it bounds (stable neo-Hookean, E = 14.5 kPa, nu = 0.45, base clamped, the exact 4 mm sphere) at six points from the pole towards the rim (reference_file; docs/accuracy.md)."
+description = "A triangulated hemisphere (Zhang, Payandeh & Dill, Haptic Subdivision, Figure 12) as a mass-spring surface with home springs (eq. 1-2) and run-time one-ring Loop subdivision around the contact node, spring constants from the calibrated table (section 3.2.4). K_h = K_m = 0.06 N/mm as in the paper's experiment (section 3.2.2); radius 50 mm and edges of about 4 mm (the paper's 8 mm until session 13: under the 4 mm probe a press between nodes then bore on one node), node mass 1 g and damping 0.2 N s/m are ours (the paper gives none); rim clamped. Every spring times the contact factor of the organ table (per node and edge midpoint and sphere depth), calibrated to the FEM of the solid half ball it bounds (stable neo-Hookean, E = 14.5 kPa, nu = 0.45, base clamped, the exact 4 mm sphere) at six points from the pole towards the rim (reference_file; docs/accuracy.md)."
 
 [model]
 family = "mass-spring"
@@ -93,7 +93,7 @@ family = "mass-spring"
 builtin = "hemisphere"
 length_unit = "mm"
 outer_radius = 50.0             # mm
-edge_length = 8.0               # mm, about (the paper's element size L)
+edge_length = 4.0               # mm, about (the paper's L is 8 mm: half, so that several nodes carry a press)
 
 [boundary]
 clamped = ["RIM"]
@@ -122,7 +122,7 @@ max_substeps = 64
 safety_factor = 0.5
 
 [probe]
-radius_m = 0.004                # touches a node of the 8 mm mesh alone (a third to half of L)
+radius_m = 0.004                # the patch (8 mm) holds a node and its ring on the 4 mm mesh
 coupling_stiffness_n_per_m = 300.0
 coupling_damping_n_s_per_m = 0.05
 max_force_n = 10.0

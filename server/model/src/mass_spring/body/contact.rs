@@ -9,8 +9,8 @@ use crate::mass_spring::refine::NO_OWNER;
 use glam::DVec3;
 
 impl MassSpringBody {
-    /// Tool slot `k`'s sphere depth ([`MassSpringBody::contact_depth_m`]: below the flat rest
-    /// triangle at the foot in a subdivided area, the kernel plane's travel elsewhere) and the
+    /// Tool slot `k`'s sphere depth ([`MassSpringBody::contact_depth_m`]: below the organ at
+    /// the foot, the kernel plane's travel without a foot) and the
     /// contact factor at its current contact: the organ table at that depth, interpolated on the
     /// coarse surface at the foot of the kernel patch's centroid
     /// ([`MassSpringBody::patch_foot`]), in a subdivided area at the probe's foot on the coarse
@@ -27,17 +27,19 @@ impl MassSpringBody {
             return;
         }
         self.update_foot(k);
-        // In a subdivided area the depth below the flat rest triangle at the foot (the
-        // subdivided patch's kernel plane sits lower at rest than the coarse one's) plus the
-        // organ's height over it there (session 12: without it a press between nodes near the
-        // LV's apex, 0.09 mm of sag, read the table 0.09 mm shallow, -45 % at 0.25 mm);
-        // elsewhere the kernel plane's travel (which follows the organ's surface between nodes).
+        // Wherever the probe has a foot, the sphere's depth below the organ there: below the
+        // flat rest triangle plus the organ's height over it (the arcs over its edges; session
+        // 12 in subdivided areas: without it a press between nodes near the LV's apex, 0.09 mm
+        // of sag, read the table 0.09 mm shallow, -45 % at 0.25 mm; session 13 on the coarse
+        // surface too: the kernel plane's travel ran 0.02 mm ahead of the sphere's depth at
+        // the lv-probe point, between nodes, +10 % at 0.25 mm). Without a foot, the kernel
+        // plane's travel.
         let foot_in_area = self.state.tools[k].foot.filter(|f| {
             self.model.surface.triangles()[f.triangle as usize]
                 .iter()
                 .any(|&s| self.state.owner[s as usize] != NO_OWNER)
         });
-        let depth = match &foot_in_area {
+        let depth = match &self.state.tools[k].foot {
             Some(foot) => {
                 foot_depth_m(foot, self.state.tools[k].probe.params.radius_m)
                     + self.organ_height_m(foot)

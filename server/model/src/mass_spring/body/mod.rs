@@ -286,11 +286,11 @@ impl MassSpringBody {
     }
 
     /// The probe's sphere depth, m, at the last sub-step in contact (the key of the organ
-    /// table, [`super::organ`]): when the probe's foot ([`super::organ::foot`]) lies on a
-    /// rest triangle with a corner in a subdivided area, the sphere's depth below that flat
+    /// table, [`super::organ`]): when the probe has a foot ([`super::organ::foot`]) on a
+    /// coarse rest triangle (since session 13 on the coarse surface too), the sphere's depth below that flat
     /// triangle along the line through the proxy along the contact normal, plus the organ's
     /// height over the flat triangle there (the arcs over its edges, quadratic over the
-    /// triangle: the depth below the surface the reference is pressed on); elsewhere the travel
+    /// triangle: the depth below the surface the reference is pressed on); without a foot the travel
     /// of the probe's kernel plane from its rest position, `sum w_i (rest_i - x_i) . n` over
     /// its patch.
     /// Slot 0's ([`MassSpringBody::tool_contact_depth_m`]).

@@ -13,18 +13,22 @@
 //! probe slides, and the factor over the coarse triangles is continuous, so a stroke stays
 //! smooth.
 //!
-//! In a subdivided area the organ table's depth is read there too ([`foot_depth_m`]): the
-//! sphere's depth below the flat rest triangle along the line. The kernel plane's travel (the
-//! depth everywhere until session 5, and still on the coarse surface) depends on which nodes
-//! the probe's patch holds: a subdivided patch's plane sits lower at rest than the coarse one's
-//! (0.1 mm at the pole of `hemisphere-springs`), so the same press read another row depth
-//! subdivided than coarse. On the coarse surface the plane's travel stays: between nodes the
-//! flat triangle lies inside a curved organ (by the chord's sag, about `c^2 / 8R` at an edge's
-//! midpoint: 0.16 mm on `hemisphere-springs`, 0.06 mm on `lv-surface-springs`) while the
-//! plane's rest position follows the organ's surface ([`crate::mass_spring::contact_rest`]),
-//! and keyed by the flat depth there the never-subdivided `lv-surface-springs` read -22 to
-//! -46 % at 0.25 mm (tried in session 5; keyed by the depth below the arcs over the edges
-//! instead, the factors grew to 495 at 0.1 mm, which the sub-step plan cannot follow).
+//! The organ table's depth is read there too ([`foot_depth_m`]): the sphere's depth below the
+//! flat rest triangle along the line, to which the body adds the organ's height over the
+//! triangle (the arcs over its edges; in subdivided areas since session 12, on the coarse
+//! surface since session 13, organ table version 4: the kernel plane's travel, the coarse key
+//! until then, ran 0.02 mm ahead of the sphere's depth between nodes at the LV's lv-probe
+//! point, +10 % at 0.25 mm).
+//!
+//! History: the kernel plane's travel (the depth everywhere until session 5) depends on which
+//! nodes the probe's patch holds: a subdivided patch's plane sits lower at rest than the
+//! coarse one's (0.1 mm at the pole of the 8 mm `hemisphere-springs`), so the same press read
+//! another row subdivided than coarse. Keyed by the flat depth alone (session 5, without the
+//! organ's height) the never-subdivided `lv-surface-springs` read -22 to -46 % at 0.25 mm (the
+//! flat triangle lies inside a curved organ by the chord's sag between nodes); keyed by the
+//! depth below the arcs on the 8 mm hemisphere, where the coarse spring surface is touched
+//! 0.16 mm late between nodes, the factors grow to 495 at 0.1 mm (measured again in session
+//! 13, and the reason that scene's mesh is 4 mm since).
 //!
 //! Neighbours: [`crate::mass_spring::MassSpringBody`] (calls [`rest_foot`] every sub-step in
 //! contact, around the last foot), [`super::OrganTable`].

@@ -9,9 +9,10 @@
 //! the mesh springs at a hundredth of the home springs still from 7 to 17 N/m), where the organ's
 //! wall responds almost linearly (10-11 N/m). No constant spring can follow that, so every
 //! spring constant of the body (home and mesh, coarse and subdivided) is multiplied by a
-//! *contact factor* `beta`: per node `i` and probe sphere depth `s` (the kernel plane's travel
-//! below its rest position; in a subdivided area, since version 3, the sphere's depth below
-//! the flat rest surface along the contact normal, [`foot`]) the table holds
+//! *contact factor* `beta`: per node `i` and probe sphere depth `s` (since version 4 the
+//! sphere's depth below the organ at the probe's foot, [`foot`]: below the flat rest triangle
+//! along the contact normal plus the organ's height over it; the kernel plane's travel below
+//! its rest position without a foot) the table holds
 //!
 //! `beta_i(s) = F_ref(i, s) / F_1(i, s)`,
 //!
@@ -70,7 +71,10 @@ pub use calibrate::{
 /// area (the `factor_subdivided` column) the depth is the sphere's depth below the flat rest
 /// triangle at the probe's foot ([`foot`]), at calibration and at run time alike (was the
 /// kernel plane's travel, which the coarse column keeps).
-pub const ORGAN_VERSION: u32 = 3;
+/// 4 (session 13): on the coarse surface too (wherever the probe has a foot), the depth is the
+/// sphere's depth below the organ at the foot: the flat triangle's plus the organ's height
+/// over it (the arcs over its edges), as in a subdivided area since session 12.
+pub const ORGAN_VERSION: u32 = 4;
 
 /// The column header of a reference file (further columns may follow, e.g. each mesh level's
 /// force; they are not read).
