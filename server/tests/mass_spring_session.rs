@@ -37,10 +37,9 @@ fn apex() -> (DVec3, DVec3, f64) {
     )
 }
 
-/// The device path: 10 mm above the apex for 0.2 s, then 4 mm into it over 0.2 s, held to
-/// 0.6 s, then 20 mm away.
-fn device_at(t_s: f64) -> DVec3 {
-    let (p, n, r) = apex();
+/// The device path over the apex `(p, n, r)` ([`apex`]): 10 mm above it for 0.2 s, then 4 mm
+/// into it over 0.2 s, held to 0.6 s, then 20 mm away.
+fn device_at((p, n, r): (DVec3, DVec3, f64), t_s: f64) -> DVec3 {
     if t_s < 0.2 {
         p + n * (r + 0.01)
     } else if t_s < 0.6 {
@@ -76,10 +75,11 @@ fn the_servo_follows_subdivision_and_coarsening_without_allocating() {
     let clock = ManualClock(Cell::new(0));
     let mut allocations = 0;
     let mut seen: Vec<(u64, usize)> = Vec::new();
+    let apex = apex();
     for k in 0..2500 {
         pose_in.write(Pose {
             seq: k,
-            position_m: device_at(k as f64 * 1e-3),
+            position_m: device_at(apex, k as f64 * 1e-3),
             connected: true,
             ..Pose::default()
         });
@@ -131,6 +131,7 @@ async fn a_viewer_gets_keyframes_when_the_probe_subdivides_the_surface() {
     // The device: attach and drive the pose slot as the DeviceLink stream task does.
     let (tx, _rx) = tokio::sync::mpsc::channel(16);
     let mut pose = session.attach_device(tx).expect("device");
+    let apex = apex();
     let start = tokio::time::Instant::now();
     let driver = tokio::spawn(async move {
         let mut seq = 0;
@@ -138,7 +139,7 @@ async fn a_viewer_gets_keyframes_when_the_probe_subdivides_the_surface() {
             seq += 1;
             pose.write(Pose {
                 seq,
-                position_m: device_at(start.elapsed().as_secs_f64()),
+                position_m: device_at(apex, start.elapsed().as_secs_f64()),
                 connected: true,
                 ..Pose::default()
             });
