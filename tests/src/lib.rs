@@ -224,8 +224,8 @@ pub fn profile_args_for(exe: &Path, host: &str) -> Option<Vec<String>> {
 /// kept for the error message.
 ///
 /// Why the whole workspace with its tests: that resolves dependency features as
-/// `cargo test --workspace` (the README's test command) does, dev-dependencies included, so
-/// after it the build is a no-op. A build of only the binaries' packages resolved some
+/// `cargo test --workspace --tests` (the README's test command) does, dev-dependencies
+/// included, so after it the build is a no-op. A build of only the binaries' packages resolved some
 /// features differently (bytemuck's `extern_crate_alloc` from a dev-dependency's `image`,
 /// clap's `wrap_help`, ...) and so compiled bytemuck, glam, faer, the model and the servers a
 /// second time: about 2 minutes of every CI run (2026-11-25).

@@ -41,7 +41,7 @@ use haptic_e2e::{Daemon, HAPTICD, binary, install, serial, unique_temp_dir, wait
 /// Blocks that are not run: (file, a line of the block, why).
 const NOT_RUN: &[(&str, &str, &str)] = &[(
     "README.md",
-    "cargo test --workspace",
+    "cargo test --workspace --tests",
     "it runs the suite this test belongs to",
 )];
 
