@@ -208,6 +208,7 @@ fn press_target(
     if args.estimate_critical_step {
         print_estimate(&mut body, "pressed 1 mm")?;
     }
+    let before = pool.map(|p| p.stats());
     let mut times = Vec::with_capacity(args.ticks);
     let period = std::time::Duration::from_secs_f64(scene.integrator.tick_s);
     let mut deadline = Instant::now();
@@ -230,6 +231,16 @@ fn press_target(
         body.core_mass_scale(),
         body.implicit_core_memory_bytes() as f64 / (1024.0 * 1024.0)
     );
+    if let (Some(pool), Some(b)) = (pool, before) {
+        let a = pool.stats();
+        eprintln!(
+            "  pool over the timed ticks: {} jobs, parts on the caller {} / on workers {}, longest wait {} us",
+            a.jobs - b.jobs,
+            a.parts_on_caller - b.parts_on_caller,
+            a.parts_on_workers - b.parts_on_workers,
+            a.longest_wait_us
+        );
+    }
     let med = times[times.len() / 2];
     let p99 = times[(times.len() * 99) / 100];
     println!(
