@@ -71,6 +71,13 @@ def main():
         "relative_difference_after_scaling": rel,
         "max_nodal_difference_after_scaling_rel_to_max_force": worst,
     }
+    threads = os.path.join(case, "threads", "ours.json")
+    if os.path.exists(threads):
+        # ours in parts on a tick pool (run_peer.sh: export_peer_case --threads 2, unpinned)
+        t = json.load(open(threads))
+        out["ours_threads"] = t["threads"]
+        out["ours_force_median_us_threads"] = t["force_median_us_threads"]
+        out["time_ratio_peer_over_ours_threads"] = med / t["force_median_us_threads"]
     json.dump(out, open(os.path.join(case, "peer.json"), "w"), indent=2)
     print(json.dumps(out, indent=2))
 
