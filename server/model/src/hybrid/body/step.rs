@@ -8,7 +8,9 @@ use crate::hybrid::prepare::{HybridModel, TieNodes};
 use crate::hybrid::proxy::{ParticleProxy, ProxyContact};
 use crate::integrate::IntegratorKind;
 use crate::integrate::explicit::integrate_nodes;
+use crate::pool::TickPool;
 use glam::DVec3;
+use std::ops::Range;
 
 /// A slot without a device: no contact.
 pub(super) const NO_CONTACT: ProxyContact = ProxyContact {
@@ -188,9 +190,12 @@ impl HybridBody {
         }
         let m = &self.model;
         let xc = &self.state.xc;
-        for (&q, t) in self.regions.tied_list.iter().zip(&self.pipeline.tied_ties) {
-            self.state.xp[q as usize] = t.interpolate(xc);
-        }
+        interpolate_sorted(
+            self.pipeline.pool.as_deref(),
+            (&self.regions.tied_list, &self.pipeline.tied_ties),
+            xc,
+            &mut self.state.xp,
+        );
         // The particle step leaves the active particles where this would put them (bit for
         // bit: the same sum of the same values).
         if self.setup.deviation && !std::mem::replace(&mut self.state.xp_fresh, true) {
@@ -332,22 +337,22 @@ impl HybridBody {
         let damp = 1.0 / (1.0 + self.fem.material().mass_damping_per_s * dt);
         let inv_m = dt / self.setup.particle_mass_kg;
         if self.setup.deviation {
-            let xc = &self.state.xc;
-            // In memory order (each particle's step is its own: the order changes no bit).
-            for &k in &self.pipeline.active_order {
-                let (p, t) = (
-                    self.regions.active_list[k as usize] as usize,
-                    &self.pipeline.active_ties[k as usize],
-                );
-                let v = (self.state.vp[p] + self.scratch.fp[p] * inv_m) * damp;
-                self.state.vp[p] = v;
-                self.state.xd[p] += v * dt;
-                // The absolute position, for the surface and the release test between ticks.
-                self.state.xp[p] = t.interpolate(xc) + self.state.xd[p];
-                let s = v.length_squared();
-                non_finite |= !s.is_finite();
-                max_v2 = max_v2.max(s);
-            }
+            let step = ActiveStep {
+                order: &self.pipeline.active_order,
+                list: &self.regions.active_list,
+                ties: &self.pipeline.active_ties,
+                xc: &self.state.xc,
+                fp: &self.scratch.fp,
+                inv_m,
+                damp,
+                dt,
+            };
+            let (v2, bad) = step.run_in(
+                self.pipeline.pool.as_deref(),
+                (&mut self.state.vp, &mut self.state.xd, &mut self.state.xp),
+            );
+            non_finite |= bad;
+            max_v2 = max_v2.max(v2);
             self.state.xp_fresh = true;
         } else {
             for &p in &self.regions.active_list {
@@ -422,5 +427,117 @@ impl TieScatter<'_> {
         for l in self.loads {
             self.model.tie_nodes(&l.tie).scatter(l.force_n, self.fcoup);
         }
+    }
+}
+
+/// `xp[q] = ties[i].interpolate(xc)` for every `q = list[i]` (`list` ascending, no repeats):
+/// on a pool with a worker the list is cut at its middle and each half writes its own side of
+/// `xp` (split at the middle's particle), else serially; the same values either way (each
+/// particle's interpolation is its own). Allocation-free.
+fn interpolate_sorted(
+    pool: Option<&TickPool>,
+    (list, ties): (&[u32], &[TieNodes]),
+    xc: &[DVec3],
+    xp: &mut [DVec3],
+) {
+    let run = |xs: &mut [DVec3], range: Range<usize>, offset: usize| {
+        for (&q, t) in list[range.clone()].iter().zip(&ties[range]) {
+            xs[q as usize - offset] = t.interpolate(xc);
+        }
+    };
+    let h = list.len() / 2;
+    match pool.filter(|p| p.threads() > 1 && h > 0 && list[h - 1] < list[h]) {
+        Some(pool) => {
+            let mid = list[h] as usize;
+            let (lo, hi) = xp.split_at_mut(mid);
+            let mut halves = [(lo, 0..h, 0), (hi, h..list.len(), mid)];
+            pool.for_each_mut(&mut halves, &|_, (xs, range, offset)| {
+                run(xs, range.clone(), *offset);
+            });
+        }
+        None => run(xp, 0..list.len(), 0),
+    }
+}
+
+/// The active particles' step in deviation mode ([`HybridBody::update`]): what every
+/// particle's step reads.
+struct ActiveStep<'a> {
+    /// Indices into `list` in memory order (ascending particle).
+    order: &'a [u32],
+    list: &'a [u32],
+    ties: &'a [TieNodes],
+    xc: &'a [DVec3],
+    fp: &'a [DVec3],
+    inv_m: f64,
+    damp: f64,
+    dt: f64,
+}
+
+/// The particle arrays (velocity, deviation, position) from particle `offset` on, the part of
+/// `order` whose particles they hold, and the part's largest squared speed.
+struct ActiveSide<'a> {
+    vp: &'a mut [DVec3],
+    xd: &'a mut [DVec3],
+    xp: &'a mut [DVec3],
+    offset: usize,
+    order: Range<usize>,
+    max_v2: f64,
+    non_finite: bool,
+}
+
+impl ActiveStep<'_> {
+    /// The step of the particles of `side`: velocity, deviation, and the absolute position
+    /// (for the surface and the release test between ticks).
+    fn run(&self, side: &mut ActiveSide<'_>) {
+        for &k in &self.order[side.order.clone()] {
+            let k = k as usize;
+            let p = self.list[k] as usize;
+            let i = p - side.offset;
+            let v = (side.vp[i] + self.fp[p] * self.inv_m) * self.damp;
+            side.vp[i] = v;
+            side.xd[i] += v * self.dt;
+            side.xp[i] = self.ties[k].interpolate(self.xc) + side.xd[i];
+            let s = v.length_squared();
+            side.non_finite |= !s.is_finite();
+            side.max_v2 = side.max_v2.max(s);
+        }
+    }
+
+    /// Every active particle's step, cut at the middle of `order` on a pool with a worker
+    /// (each half on its side of the arrays), else serially; the same values either way.
+    /// Returns the largest squared speed and whether any was not finite. Allocation-free.
+    fn run_in(
+        &self,
+        pool: Option<&TickPool>,
+        (vp, xd, xp): (&mut [DVec3], &mut [DVec3], &mut [DVec3]),
+    ) -> (f64, bool) {
+        let n = self.order.len();
+        let h = n / 2;
+        let side = |(vp, xd, xp), offset, order| ActiveSide {
+            vp,
+            xd,
+            xp,
+            offset,
+            order,
+            max_v2: 0.0,
+            non_finite: false,
+        };
+        let Some(pool) = pool.filter(|p| p.threads() > 1 && h > 0) else {
+            let mut all = side((vp, xd, xp), 0, 0..n);
+            self.run(&mut all);
+            return (all.max_v2, all.non_finite);
+        };
+        // `order` is ascending in particle, without repeats: the halves own disjoint sides.
+        let mid = self.list[self.order[h] as usize] as usize;
+        let (vp0, vp1) = vp.split_at_mut(mid);
+        let (xd0, xd1) = xd.split_at_mut(mid);
+        let (xp0, xp1) = xp.split_at_mut(mid);
+        let mut halves = [
+            side((vp0, xd0, xp0), 0, 0..h),
+            side((vp1, xd1, xp1), mid, h..n),
+        ];
+        pool.for_each_mut(&mut halves, &|_, s| self.run(s));
+        let [a, b] = &halves;
+        (a.max_v2.max(b.max_v2), a.non_finite | b.non_finite)
     }
 }
