@@ -492,6 +492,14 @@ impl MassSpringBody {
         &self.state.tools[0].probe
     }
 
+    /// Sets slot 0's virtual coupling stiffness, N/m (positive): the organ calibration presses
+    /// with its coupling scaled by the inverse of the contact factor, so that its stretch, and
+    /// the device's position the kernel patch is taken from, are the run time's
+    /// ([`super::organ`]). Not for the servo tick.
+    pub fn set_coupling_stiffness(&mut self, k_n_per_m: f64) {
+        self.state.tools[0].probe.params.coupling_stiffness_n_per_m = k_n_per_m;
+    }
+
     /// Advances one servo tick (module documentation) with slot 0's device alone; the other
     /// slots are released ([`MassSpringBody::tick_tools`]).
     ///

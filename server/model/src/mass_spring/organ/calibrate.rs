@@ -73,10 +73,23 @@ pub struct OrganSetup<'a> {
     pub subdivision_table: Option<&'a CalibrationTable>,
 }
 
+/// The coupling's stiffness in a calibration press follows the contact factor it measures,
+/// `k / beta` (`beta` = target over force, [`press_sphere_depths`]), to within this fraction;
+/// else the hold is repeated with the new stiffness.
+pub const COUPLING_TOLERANCE: f64 = 1e-2;
+
 /// Presses `body` with the probe at `point_m` along `direction` (unit, inward) to the sphere
 /// depths `depths_m` in turn (device depth corrected until the body's sphere depth,
 /// [`MassSpringBody::contact_depth_m`], is within [`DEPTH_TOLERANCE`]), each held until the
 /// force settles: the force at each depth, N.
+///
+/// With `targets_n` (the force wanted at each depth, N) the coupling's stiffness is set at
+/// each depth to `k F / F_target` (`k` the scene's; within [`COUPLING_TOLERANCE`], iterated
+/// with the depth): the body pressed with constant springs `1 / beta` times the run time's
+/// then stretches its coupling by `F_target / k`, as the run time's does, so the device, from
+/// which the kernel patch is gathered and weighted, sits where the run time's sits (session
+/// 14: with the scene's `k` the 4 mm hemisphere's coupling stretched 4.3 mm against 0.9 mm at
+/// run time, and the table read +20-25 % at 4 mm). The scene's `k` is restored at the end.
 ///
 /// # Errors
 /// [`ModelError::NoConvergence`] when a hold does not settle in [`MAX_HOLD_TICKS`] or the
@@ -86,67 +99,117 @@ pub fn press_sphere_depths(
     point_m: DVec3,
     direction: DVec3,
     depths_m: &[f64],
+    targets_n: Option<&[f64]>,
 ) -> Result<Vec<f64>, ModelError> {
     let r = body.probe().params.radius_m;
-    let k = body.probe().params.coupling_stiffness_n_per_m;
+    let k0 = body.probe().params.coupling_stiffness_n_per_m;
     // Device at depth `d` below first contact: the sphere's centre `r - d` before the point.
     let device = |d: f64| point_m - direction * (r - d);
-    let mut at = -0.2 * r.min(1e-3);
-    let mut measured: Vec<(f64, f64)> = vec![(0.0, 0.0)];
+    let mut press = DepthPress {
+        at: -0.2 * r.min(1e-3),
+        measured: vec![(0.0, 0.0)],
+        k0,
+        k: k0,
+    };
     let mut out = Vec::with_capacity(depths_m.len());
-    for &s in depths_m {
-        // Local slope dF/ds from the last two measurements.
-        let slope = |m: &[(f64, f64)]| {
-            let n = m.len();
-            if n >= 2 && m[n - 1].0 > m[n - 2].0 {
-                (m[n - 1].1 - m[n - 2].1) / (m[n - 1].0 - m[n - 2].0)
-            } else {
-                0.0
-            }
-        };
-        let (s_last, f_last) = *measured.last().expect("starts with the origin");
-        let mut target = s + (f_last + slope(&measured) * (s - s_last)) / k;
+    for (j, &s) in depths_m.iter().enumerate() {
+        let target = targets_n.and_then(|t| t.get(j).copied());
+        let f = press.depth(body, &device, s, target);
+        if f.is_err() {
+            body.set_coupling_stiffness(k0);
+        }
+        out.push(f?);
+    }
+    body.set_coupling_stiffness(k0);
+    Ok(out)
+}
+
+/// The state of [`press_sphere_depths`] between its depths.
+struct DepthPress {
+    /// The device's depth now, m.
+    at: f64,
+    /// The holds so far, `(sphere depth m, force N)`, the origin first.
+    measured: Vec<(f64, f64)>,
+    /// The scene's coupling stiffness and the press's now, N/m.
+    k0: f64,
+    k: f64,
+}
+
+impl DepthPress {
+    /// Local slope dF/ds from the last two holds.
+    fn slope(&self) -> f64 {
+        let m = &self.measured;
+        let n = m.len();
+        if n >= 2 && m[n - 1].0 > m[n - 2].0 {
+            (m[n - 1].1 - m[n - 2].1) / (m[n - 1].0 - m[n - 2].0)
+        } else {
+            0.0
+        }
+    }
+
+    /// The force at sphere depth `s` (m), N ([`press_sphere_depths`]), with the coupling
+    /// following `target_n` when given.
+    fn depth(
+        &mut self,
+        body: &mut MassSpringBody,
+        device: &dyn Fn(f64) -> DVec3,
+        s: f64,
+        target_n: Option<f64>,
+    ) -> Result<f64, ModelError> {
+        let (s_last, f_last) = *self.measured.last().expect("starts with the origin");
+        let mut target = s + (f_last + self.slope() * (s - s_last)) / self.k;
         let mut result = None;
         // The closest hold so far: (|depth - s|, depth, force).
         let mut closest = (f64::INFINITY, 0.0, 0.0);
         for attempt in 0..DEPTH_ATTEMPTS {
-            let (depth, force) = ramp_and_hold(body, &device, at, target)?;
-            at = target;
-            measured.push((depth, force));
-            let sl = slope(&measured).max(0.0);
+            let (depth, force) = ramp_and_hold(body, device, self.at, target)?;
+            self.at = target;
+            self.measured.push((depth, force));
+            let sl = self.slope().max(0.0);
             if (depth - s).abs() < closest.0 {
                 closest = ((depth - s).abs(), depth, force);
             }
-            if (depth - s).abs() <= DEPTH_TOLERANCE * s {
-                result = Some(force + sl * (s - depth));
+            let f_s = force + sl * (s - depth);
+            // The coupling the run time's stretch asks for (the scene's without a target).
+            let k_want = match target_n {
+                Some(t) if t > 0.0 && f_s > 0.0 => self.k0 * f_s / t,
+                _ => self.k,
+            };
+            let k_settled = (k_want / self.k - 1.0).abs() <= COUPLING_TOLERANCE;
+            if (depth - s).abs() <= DEPTH_TOLERANCE * s && k_settled {
+                result = Some(f_s);
                 break;
             }
             // The device moves by the sphere's shortfall plus the coupling's extra stretch
             // (halved after the first corrections: nodes entering the probe's patch can make
-            // the full step overshoot back and forth).
+            // the full step overshoot back and forth), and by the change of the coupling's
+            // stretch under the same force.
             let gain = if attempt < 3 { 1.0 } else { 0.5 };
-            target += gain * (s - depth) * (1.0 + sl / k);
+            target +=
+                gain * (s - depth) * (1.0 + sl / k_want) + force * (1.0 / k_want - 1.0 / self.k);
+            if !k_settled {
+                self.k = k_want;
+                body.set_coupling_stiffness(k_want);
+            }
         }
         if result.is_none() && closest.0 <= DEPTH_FALLBACK_TOLERANCE * s {
             // Close enough to correct along the local slope of the last holds.
-            result = Some(closest.2 + slope(&measured).max(0.0) * (s - closest.1));
+            result = Some(closest.2 + self.slope().max(0.0) * (s - closest.1));
         }
         if result.is_none() {
             // The depth jumps past `s` (a subdivision event, nodes entering the patch): linear
             // between the closest holds on either side of it (the origin among them).
-            result = bracketed(&measured, s);
+            result = bracketed(&self.measured, s);
         }
-        let Some(f) = result else {
-            return Err(ModelError::NoConvergence(format!(
+        result.ok_or_else(|| {
+            ModelError::NoConvergence(format!(
                 "the probe's sphere depth did not reach {:.3} mm within {:.1} % in {DEPTH_ATTEMPTS} holds, none beyond it (closest {:.4} mm)",
                 s * 1e3,
                 100.0 * DEPTH_FALLBACK_TOLERANCE,
                 closest.1 * 1e3
-            )));
-        };
-        out.push(f);
+            ))
+        })
     }
-    Ok(out)
 }
 
 /// The force at sphere depth `s` linear between the measured `(depth, force)` holds closest to
@@ -259,13 +322,16 @@ pub fn calibrate_organ_node(
             .collect()
     };
     let mut body = coarse;
-    let f_coarse = press_sphere_depths(&mut body, point, inward, depths)?;
+    let f_coarse = press_sphere_depths(&mut body, point, inward, depths, Some(&target))?;
     let beta = factor(&f_coarse, "coarse")?;
     // A subdivided press that fails (near the left ventricle's apex the subdivided surface
     // lets the sphere through past 2-3 mm) keeps the coarse factor, its force row 0; the
     // subdivided factor stays within SUBDIVIDED_FACTOR_SPREAD of the coarse one.
     let subdivided_row = subdivided.and_then(|mut body| {
-        let f = press_sphere_depths(&mut body, point, inward, depths).ok()?;
+        if let Some(end) = edge_area_end(surface, site) {
+            body.subdivide_around(&[end]);
+        }
+        let f = press_sphere_depths(&mut body, point, inward, depths, Some(&target)).ok()?;
         let b = factor(&f, "subdivided").ok()?;
         let spread = SUBDIVIDED_FACTOR_SPREAD;
         let b = b
@@ -283,6 +349,38 @@ pub fn calibrate_organ_node(
         spring_force_n: f_coarse,
         subdivided_force_n: f_sub,
     })
+}
+
+/// The node whose one-ring area the subdivided press at edge site `site` is made in, when the
+/// run-time rule (the coarse node nearest the contact point among the touched triangle's,
+/// `MassSpringBody::contact_node`) would not give one of the edge's ends: a long edge, whose
+/// midpoint lies nearer a triangle's third node than its ends. There the press at the midpoint
+/// makes two areas, about the third nodes on either side (the contact flickers between the
+/// two triangles), which a press beside the midpoint never does: on the 4 mm hemisphere,
+/// edge 28-51 next to the point h1 (its midpoint 2.58 mm from node 29, 3.05 from its ends)
+/// was calibrated 25-35 % stiffer than a press in node 28's area, so h1 subdivided read -25 to
+/// -30 % (session 14). So the press is made in the area of its nearer free end (the first on a
+/// tie), as a user's press on either side of the midpoint makes it. `None` for a node's site
+/// and an ordinary edge (the run time's rule then picks an end itself).
+pub fn edge_area_end(surface: &SpringSurface, site: u32) -> Option<u32> {
+    let nc = surface.node_count() as u32;
+    let [a, b] = *surface.edges().get(site.checked_sub(nc)? as usize)?;
+    let rest = surface.rest();
+    let mid = 0.5 * (rest[a as usize] + rest[b as usize]);
+    let dist = |i: u32| (rest[i as usize] - mid).length();
+    let ends = dist(a).min(dist(b));
+    let third_nearer = surface
+        .neighbours(a)
+        .iter()
+        .filter(|&&o| o != b && surface.neighbours(b).contains(&o))
+        .any(|&o| !surface.is_fixed(o) && dist(o) < ends);
+    if !third_nearer {
+        return None;
+    }
+    [a, b]
+        .into_iter()
+        .filter(|&i| !surface.is_fixed(i))
+        .min_by(|&i, &j| dist(i).total_cmp(&dist(j)))
 }
 
 /// The organ table of `surface` for the scene `setup`, the reference and its axis, computed on
