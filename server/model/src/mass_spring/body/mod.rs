@@ -492,12 +492,20 @@ impl MassSpringBody {
         &self.state.tools[0].probe
     }
 
-    /// Sets slot 0's virtual coupling stiffness, N/m (positive): the organ calibration presses
-    /// with its coupling scaled by the inverse of the contact factor, so that its stretch, and
-    /// the device's position the kernel patch is taken from, are the run time's
-    /// ([`super::organ`]). Not for the servo tick.
-    pub fn set_coupling_stiffness(&mut self, k_n_per_m: f64) {
-        self.state.tools[0].probe.params.coupling_stiffness_n_per_m = k_n_per_m;
+    /// Sets slot 0's contact factor to `beta` (positive), which every spring then takes, and
+    /// the sub-step plan for it (for `beta` above 1): the organ calibration presses a body
+    /// without an organ table at the run time's factor ([`super::organ`]), whose factor stays
+    /// as set. Not for the servo tick.
+    ///
+    /// # Errors
+    /// [`ModelError::Unstable`] when `beta` needs more than `integrator.max_substeps`.
+    pub fn set_contact_factor(&mut self, beta: f64) -> Result<(), ModelError> {
+        self.setup.plan = plan_steps(
+            &self.setup.integrator,
+            critical_time_step_s(self.setup.worst_lambda_per_s2 * beta.max(1.0)),
+        )?;
+        self.state.tools[0].contact_factor = beta;
+        Ok(())
     }
 
     /// Advances one servo tick (module documentation) with slot 0's device alone; the other

@@ -73,27 +73,30 @@ pub struct OrganSetup<'a> {
     pub subdivision_table: Option<&'a CalibrationTable>,
 }
 
-/// The coupling's stiffness in a calibration press follows the contact factor it measures,
-/// `k / beta` (`beta` = target over force, [`press_sphere_depths`]), to within this fraction;
-/// else the hold is repeated with the new stiffness.
-pub const COUPLING_TOLERANCE: f64 = 1e-2;
+/// The contact factor of a calibration press follows the one it measures, `F_target / F_1`
+/// ([`press_sphere_depths`]), to within this fraction; else the hold is repeated with the new
+/// factor.
+pub const FACTOR_TOLERANCE: f64 = 1e-2;
 
 /// Presses `body` with the probe at `point_m` along `direction` (unit, inward) to the sphere
 /// depths `depths_m` in turn (device depth corrected until the body's sphere depth,
 /// [`MassSpringBody::contact_depth_m`], is within [`DEPTH_TOLERANCE`]), each held until the
-/// force settles: the force at each depth, N.
+/// force settles: the force of the body's constant springs at each depth, `F_1`, N.
 ///
-/// With `targets_n` (the force wanted at each depth, N) the coupling's stiffness is set at
-/// each depth to `k F / F_target` (`k` the scene's; within [`COUPLING_TOLERANCE`], iterated
-/// with the depth): the body pressed with constant springs `1 / beta` times the run time's
-/// then stretches its coupling by `F_target / k`, as the run time's does, so the device, from
-/// which the kernel patch is gathered and weighted, sits where the run time's sits (session
-/// 14: with the scene's `k` the 4 mm hemisphere's coupling stretched 4.3 mm against 0.9 mm at
-/// run time, and the table read +20-25 % at 4 mm). The scene's `k` is restored at the end.
+/// With `targets_n` (the force wanted at each depth, N) the body is pressed at the run time's
+/// state: its springs scaled by the factor `beta = F_target / F_1` that the press measures
+/// ([`MassSpringBody::set_contact_factor`], iterated with the depth to within
+/// [`FACTOR_TOLERANCE`]), so that the coupling stretches by `F_target / k` as at run time and
+/// the device, around which the kernel patch is gathered and weighted, sits where the run
+/// time's sits; `F_1` is the force over `beta` (session 14: with the constant springs the 4 mm
+/// hemisphere's coupling stretched 4.3 mm against 0.9 mm at run time, and the table read
+/// +20-25 % at 4 mm; a coupling stiffened by `1 / beta` instead did not settle near the rim).
+/// The body's factor is left at the last depth's.
 ///
 /// # Errors
 /// [`ModelError::NoConvergence`] when a hold does not settle in [`MAX_HOLD_TICKS`] or the
-/// depth cannot be reached; the body's tick errors.
+/// depth cannot be reached; the body's tick errors; [`ModelError::Unstable`] for a factor
+/// the sub-steps cannot carry.
 pub fn press_sphere_depths(
     body: &mut MassSpringBody,
     point_m: DVec3,
@@ -102,25 +105,19 @@ pub fn press_sphere_depths(
     targets_n: Option<&[f64]>,
 ) -> Result<Vec<f64>, ModelError> {
     let r = body.probe().params.radius_m;
-    let k0 = body.probe().params.coupling_stiffness_n_per_m;
     // Device at depth `d` below first contact: the sphere's centre `r - d` before the point.
     let device = |d: f64| point_m - direction * (r - d);
     let mut press = DepthPress {
         at: -0.2 * r.min(1e-3),
         measured: vec![(0.0, 0.0)],
-        k0,
-        k: k0,
+        k: body.probe().params.coupling_stiffness_n_per_m,
+        beta: body.contact_factor(),
     };
     let mut out = Vec::with_capacity(depths_m.len());
     for (j, &s) in depths_m.iter().enumerate() {
         let target = targets_n.and_then(|t| t.get(j).copied());
-        let f = press.depth(body, &device, s, target);
-        if f.is_err() {
-            body.set_coupling_stiffness(k0);
-        }
-        out.push(f?);
+        out.push(press.depth(body, &device, s, target)?);
     }
-    body.set_coupling_stiffness(k0);
     Ok(out)
 }
 
@@ -128,15 +125,15 @@ pub fn press_sphere_depths(
 struct DepthPress {
     /// The device's depth now, m.
     at: f64,
-    /// The holds so far, `(sphere depth m, force N)`, the origin first.
+    /// The holds so far, `(sphere depth m, force of the constant springs N)`, the origin first.
     measured: Vec<(f64, f64)>,
-    /// The scene's coupling stiffness and the press's now, N/m.
-    k0: f64,
+    /// The coupling's stiffness, N/m, and the body's contact factor now.
     k: f64,
+    beta: f64,
 }
 
 impl DepthPress {
-    /// Local slope dF/ds from the last two holds.
+    /// Local slope dF_1/ds from the last two holds.
     fn slope(&self) -> f64 {
         let m = &self.measured;
         let n = m.len();
@@ -147,8 +144,8 @@ impl DepthPress {
         }
     }
 
-    /// The force at sphere depth `s` (m), N ([`press_sphere_depths`]), with the coupling
-    /// following `target_n` when given.
+    /// `F_1` at sphere depth `s` (m), N ([`press_sphere_depths`]), the factor following
+    /// `target_n` when given.
     fn depth(
         &mut self,
         body: &mut MassSpringBody,
@@ -157,39 +154,40 @@ impl DepthPress {
         target_n: Option<f64>,
     ) -> Result<f64, ModelError> {
         let (s_last, f_last) = *self.measured.last().expect("starts with the origin");
-        let mut target = s + (f_last + self.slope() * (s - s_last)) / self.k;
+        let mut target = s + self.beta * (f_last + self.slope() * (s - s_last)) / self.k;
         let mut result = None;
-        // The closest hold so far: (|depth - s|, depth, force).
+        // The closest hold so far: (|depth - s|, depth, F_1).
         let mut closest = (f64::INFINITY, 0.0, 0.0);
         for attempt in 0..DEPTH_ATTEMPTS {
             let (depth, force) = ramp_and_hold(body, device, self.at, target)?;
+            let f1 = force / self.beta;
             self.at = target;
-            self.measured.push((depth, force));
+            self.measured.push((depth, f1));
             let sl = self.slope().max(0.0);
             if (depth - s).abs() < closest.0 {
-                closest = ((depth - s).abs(), depth, force);
+                closest = ((depth - s).abs(), depth, f1);
             }
-            let f_s = force + sl * (s - depth);
-            // The coupling the run time's stretch asks for (the scene's without a target).
-            let k_want = match target_n {
-                Some(t) if t > 0.0 && f_s > 0.0 => self.k0 * f_s / t,
-                _ => self.k,
+            let f_s = f1 + sl * (s - depth);
+            // The run time's factor at this depth (the body's without a target).
+            let beta = match target_n {
+                Some(t) if t > 0.0 && f_s > 0.0 => t / f_s,
+                _ => self.beta,
             };
-            let k_settled = (k_want / self.k - 1.0).abs() <= COUPLING_TOLERANCE;
-            if (depth - s).abs() <= DEPTH_TOLERANCE * s && k_settled {
+            let settled = (beta / self.beta - 1.0).abs() <= FACTOR_TOLERANCE;
+            if (depth - s).abs() <= DEPTH_TOLERANCE * s && settled {
                 result = Some(f_s);
                 break;
             }
             // The device moves by the sphere's shortfall plus the coupling's extra stretch
             // (halved after the first corrections: nodes entering the probe's patch can make
-            // the full step overshoot back and forth), and by the change of the coupling's
-            // stretch under the same force.
+            // the full step overshoot back and forth), and by the coupling's change of stretch
+            // with the factor.
             let gain = if attempt < 3 { 1.0 } else { 0.5 };
             target +=
-                gain * (s - depth) * (1.0 + sl / k_want) + force * (1.0 / k_want - 1.0 / self.k);
-            if !k_settled {
-                self.k = k_want;
-                body.set_coupling_stiffness(k_want);
+                gain * (s - depth) * (1.0 + beta * sl / self.k) + f1 * (beta - self.beta) / self.k;
+            if !settled {
+                self.beta = beta;
+                body.set_contact_factor(beta)?;
             }
         }
         if result.is_none() && closest.0 <= DEPTH_FALLBACK_TOLERANCE * s {

@@ -22,9 +22,9 @@
 //! scales the static force at a given shape by that factor, so the body pressed at node `i` to
 //! depth `s` gives `F_ref` exactly, provided the probe's patch is the run time's: the patch is
 //! gathered and weighted around the device, which sits the coupling's stretch below the
-//! sphere, so the calibration's coupling is scaled by `1 / beta` too (`k F_1 / F_ref`, found
-//! with the depth in the same holds; session 14: with the scene's coupling the 4 mm
-//! hemisphere's table read +20-25 % at 4 mm, [`press_sphere_depths`]).
+//! sphere, so the calibration presses with the springs already scaled by the `beta` it
+//! measures (found with the depth in the same holds; session 14: with the constant springs
+//! the 4 mm hemisphere's table read +20-25 % at 4 mm, [`press_sphere_depths`]).
 //!
 //! A spring surface pressed *between* nodes answers otherwise than on a node (on the left
 //! ventricle's surface, with the node's factor, up to +13 % at an edge's midpoint never
@@ -67,7 +67,7 @@ mod calibrate;
 pub mod foot;
 
 pub use calibrate::{
-    COUPLING_TOLERANCE, DEPTH_ATTEMPTS, DEPTH_FALLBACK_TOLERANCE, DEPTH_TOLERANCE, MAX_HOLD_TICKS,
+    DEPTH_ATTEMPTS, DEPTH_FALLBACK_TOLERANCE, DEPTH_TOLERANCE, FACTOR_TOLERANCE, MAX_HOLD_TICKS,
     OrganSetup, RAMP_TICKS, SETTLE_TOLERANCE, SETTLE_WINDOW_TICKS, SUBDIVIDED_FACTOR_SPREAD,
     calibrate_organ, calibrate_organ_node, edge_area_end, press_sphere_depths, site_press,
 };
