@@ -492,6 +492,22 @@ impl MassSpringBody {
         &self.state.tools[0].probe
     }
 
+    /// Sets slot 0's contact factor to `beta` (positive), which every spring then takes, and
+    /// the sub-step plan for it (for `beta` above 1): the organ calibration presses a body
+    /// without an organ table at the run time's factor ([`super::organ`]), whose factor stays
+    /// as set. Not for the servo tick.
+    ///
+    /// # Errors
+    /// [`ModelError::Unstable`] when `beta` needs more than `integrator.max_substeps`.
+    pub fn set_contact_factor(&mut self, beta: f64) -> Result<(), ModelError> {
+        self.setup.plan = plan_steps(
+            &self.setup.integrator,
+            critical_time_step_s(self.setup.worst_lambda_per_s2 * beta.max(1.0)),
+        )?;
+        self.state.tools[0].contact_factor = beta;
+        Ok(())
+    }
+
     /// Advances one servo tick (module documentation) with slot 0's device alone; the other
     /// slots are released ([`MassSpringBody::tick_tools`]).
     ///

@@ -73,80 +73,141 @@ pub struct OrganSetup<'a> {
     pub subdivision_table: Option<&'a CalibrationTable>,
 }
 
+/// The contact factor of a calibration press follows the one it measures, `F_target / F_1`
+/// ([`press_sphere_depths`]), to within this fraction; else the hold is repeated with the new
+/// factor.
+pub const FACTOR_TOLERANCE: f64 = 1e-2;
+
 /// Presses `body` with the probe at `point_m` along `direction` (unit, inward) to the sphere
 /// depths `depths_m` in turn (device depth corrected until the body's sphere depth,
 /// [`MassSpringBody::contact_depth_m`], is within [`DEPTH_TOLERANCE`]), each held until the
-/// force settles: the force at each depth, N.
+/// force settles: the force of the body's constant springs at each depth, `F_1`, N.
+///
+/// With `targets_n` (the force wanted at each depth, N) the body is pressed at the run time's
+/// state: its springs scaled by the factor `beta = F_target / F_1` that the press measures
+/// ([`MassSpringBody::set_contact_factor`], iterated with the depth to within
+/// [`FACTOR_TOLERANCE`]), so that the coupling stretches by `F_target / k` as at run time and
+/// the device, around which the kernel patch is gathered and weighted, sits where the run
+/// time's sits; `F_1` is the force over `beta` (session 14: with the constant springs the 4 mm
+/// hemisphere's coupling stretched 4.3 mm against 0.9 mm at run time, and the table read
+/// +20-25 % at 4 mm; a coupling stiffened by `1 / beta` instead did not settle near the rim).
+/// The body's factor is left at the last depth's.
 ///
 /// # Errors
 /// [`ModelError::NoConvergence`] when a hold does not settle in [`MAX_HOLD_TICKS`] or the
-/// depth cannot be reached; the body's tick errors.
+/// depth cannot be reached; the body's tick errors; [`ModelError::Unstable`] for a factor
+/// the sub-steps cannot carry.
 pub fn press_sphere_depths(
     body: &mut MassSpringBody,
     point_m: DVec3,
     direction: DVec3,
     depths_m: &[f64],
+    targets_n: Option<&[f64]>,
 ) -> Result<Vec<f64>, ModelError> {
     let r = body.probe().params.radius_m;
-    let k = body.probe().params.coupling_stiffness_n_per_m;
     // Device at depth `d` below first contact: the sphere's centre `r - d` before the point.
     let device = |d: f64| point_m - direction * (r - d);
-    let mut at = -0.2 * r.min(1e-3);
-    let mut measured: Vec<(f64, f64)> = vec![(0.0, 0.0)];
+    let mut press = DepthPress {
+        at: -0.2 * r.min(1e-3),
+        measured: vec![(0.0, 0.0)],
+        k: body.probe().params.coupling_stiffness_n_per_m,
+        beta: body.contact_factor(),
+    };
     let mut out = Vec::with_capacity(depths_m.len());
-    for &s in depths_m {
-        // Local slope dF/ds from the last two measurements.
-        let slope = |m: &[(f64, f64)]| {
-            let n = m.len();
-            if n >= 2 && m[n - 1].0 > m[n - 2].0 {
-                (m[n - 1].1 - m[n - 2].1) / (m[n - 1].0 - m[n - 2].0)
-            } else {
-                0.0
-            }
-        };
-        let (s_last, f_last) = *measured.last().expect("starts with the origin");
-        let mut target = s + (f_last + slope(&measured) * (s - s_last)) / k;
+    for (j, &s) in depths_m.iter().enumerate() {
+        let target = targets_n.and_then(|t| t.get(j).copied());
+        out.push(press.depth(body, &device, s, target)?);
+    }
+    Ok(out)
+}
+
+/// The state of [`press_sphere_depths`] between its depths.
+struct DepthPress {
+    /// The device's depth now, m.
+    at: f64,
+    /// The holds so far, `(sphere depth m, force of the constant springs N)`, the origin first.
+    measured: Vec<(f64, f64)>,
+    /// The coupling's stiffness, N/m, and the body's contact factor now.
+    k: f64,
+    beta: f64,
+}
+
+impl DepthPress {
+    /// Local slope dF_1/ds from the last two holds.
+    fn slope(&self) -> f64 {
+        let m = &self.measured;
+        let n = m.len();
+        if n >= 2 && m[n - 1].0 > m[n - 2].0 {
+            (m[n - 1].1 - m[n - 2].1) / (m[n - 1].0 - m[n - 2].0)
+        } else {
+            0.0
+        }
+    }
+
+    /// `F_1` at sphere depth `s` (m), N ([`press_sphere_depths`]), the factor following
+    /// `target_n` when given.
+    fn depth(
+        &mut self,
+        body: &mut MassSpringBody,
+        device: &dyn Fn(f64) -> DVec3,
+        s: f64,
+        target_n: Option<f64>,
+    ) -> Result<f64, ModelError> {
+        let (s_last, f_last) = *self.measured.last().expect("starts with the origin");
+        let mut target = s + self.beta * (f_last + self.slope() * (s - s_last)) / self.k;
         let mut result = None;
-        // The closest hold so far: (|depth - s|, depth, force).
+        // The closest hold so far: (|depth - s|, depth, F_1).
         let mut closest = (f64::INFINITY, 0.0, 0.0);
         for attempt in 0..DEPTH_ATTEMPTS {
-            let (depth, force) = ramp_and_hold(body, &device, at, target)?;
-            at = target;
-            measured.push((depth, force));
-            let sl = slope(&measured).max(0.0);
+            let (depth, force) = ramp_and_hold(body, device, self.at, target)?;
+            let f1 = force / self.beta;
+            self.at = target;
+            self.measured.push((depth, f1));
+            let sl = self.slope().max(0.0);
             if (depth - s).abs() < closest.0 {
-                closest = ((depth - s).abs(), depth, force);
+                closest = ((depth - s).abs(), depth, f1);
             }
-            if (depth - s).abs() <= DEPTH_TOLERANCE * s {
-                result = Some(force + sl * (s - depth));
+            let f_s = f1 + sl * (s - depth);
+            // The run time's factor at this depth (the body's without a target).
+            let beta = match target_n {
+                Some(t) if t > 0.0 && f_s > 0.0 => t / f_s,
+                _ => self.beta,
+            };
+            let settled = (beta / self.beta - 1.0).abs() <= FACTOR_TOLERANCE;
+            if (depth - s).abs() <= DEPTH_TOLERANCE * s && settled {
+                result = Some(f_s);
                 break;
             }
             // The device moves by the sphere's shortfall plus the coupling's extra stretch
             // (halved after the first corrections: nodes entering the probe's patch can make
-            // the full step overshoot back and forth).
+            // the full step overshoot back and forth), and by the coupling's change of stretch
+            // with the factor.
             let gain = if attempt < 3 { 1.0 } else { 0.5 };
-            target += gain * (s - depth) * (1.0 + sl / k);
+            target +=
+                gain * (s - depth) * (1.0 + beta * sl / self.k) + f1 * (beta - self.beta) / self.k;
+            if !settled {
+                self.beta = beta;
+                body.set_contact_factor(beta)?;
+            }
         }
         if result.is_none() && closest.0 <= DEPTH_FALLBACK_TOLERANCE * s {
             // Close enough to correct along the local slope of the last holds.
-            result = Some(closest.2 + slope(&measured).max(0.0) * (s - closest.1));
+            result = Some(closest.2 + self.slope().max(0.0) * (s - closest.1));
         }
         if result.is_none() {
             // The depth jumps past `s` (a subdivision event, nodes entering the patch): linear
             // between the closest holds on either side of it (the origin among them).
-            result = bracketed(&measured, s);
+            result = bracketed(&self.measured, s);
         }
-        let Some(f) = result else {
-            return Err(ModelError::NoConvergence(format!(
+        result.ok_or_else(|| {
+            ModelError::NoConvergence(format!(
                 "the probe's sphere depth did not reach {:.3} mm within {:.1} % in {DEPTH_ATTEMPTS} holds, none beyond it (closest {:.4} mm)",
                 s * 1e3,
                 100.0 * DEPTH_FALLBACK_TOLERANCE,
                 closest.1 * 1e3
-            )));
-        };
-        out.push(f);
+            ))
+        })
     }
-    Ok(out)
 }
 
 /// The force at sphere depth `s` linear between the measured `(depth, force)` holds closest to
@@ -258,14 +319,26 @@ pub fn calibrate_organ_node(
             })
             .collect()
     };
-    let mut body = coarse;
-    let f_coarse = press_sphere_depths(&mut body, point, inward, depths)?;
+    let mut body = coarse.clone();
+    let f_coarse = match press_sphere_depths(&mut body, point, inward, depths, Some(&target)) {
+        Ok(f) => f,
+        // By the clamped rim a hold at the run time's factor can oscillate without settling
+        // (node 945 of the 4 mm hemisphere at 3.5 mm): the constant springs' press there.
+        Err(ModelError::NoConvergence(_)) => {
+            let mut body = coarse;
+            press_sphere_depths(&mut body, point, inward, depths, None)?
+        }
+        Err(e) => return Err(e),
+    };
     let beta = factor(&f_coarse, "coarse")?;
     // A subdivided press that fails (near the left ventricle's apex the subdivided surface
     // lets the sphere through past 2-3 mm) keeps the coarse factor, its force row 0; the
     // subdivided factor stays within SUBDIVIDED_FACTOR_SPREAD of the coarse one.
     let subdivided_row = subdivided.and_then(|mut body| {
-        let f = press_sphere_depths(&mut body, point, inward, depths).ok()?;
+        if let Some(end) = edge_area_end(surface, site) {
+            body.subdivide_around(&[end]);
+        }
+        let f = press_sphere_depths(&mut body, point, inward, depths, Some(&target)).ok()?;
         let b = factor(&f, "subdivided").ok()?;
         let spread = SUBDIVIDED_FACTOR_SPREAD;
         let b = b
@@ -283,6 +356,38 @@ pub fn calibrate_organ_node(
         spring_force_n: f_coarse,
         subdivided_force_n: f_sub,
     })
+}
+
+/// The node whose one-ring area the subdivided press at edge site `site` is made in, when the
+/// run-time rule (the coarse node nearest the contact point among the touched triangle's,
+/// `MassSpringBody::contact_node`) would not give one of the edge's ends: a long edge, whose
+/// midpoint lies nearer a triangle's third node than its ends. There the press at the midpoint
+/// makes two areas, about the third nodes on either side (the contact flickers between the
+/// two triangles), which a press beside the midpoint never does: on the 4 mm hemisphere,
+/// edge 28-51 next to the point h1 (its midpoint 2.58 mm from node 29, 3.05 from its ends)
+/// was calibrated 25-35 % stiffer than a press in node 28's area, so h1 subdivided read -25 to
+/// -30 % (session 14). So the press is made in the area of its nearer free end (the first on a
+/// tie), as a user's press on either side of the midpoint makes it. `None` for a node's site
+/// and an ordinary edge (the run time's rule then picks an end itself).
+pub fn edge_area_end(surface: &SpringSurface, site: u32) -> Option<u32> {
+    let nc = surface.node_count() as u32;
+    let [a, b] = *surface.edges().get(site.checked_sub(nc)? as usize)?;
+    let rest = surface.rest();
+    let mid = 0.5 * (rest[a as usize] + rest[b as usize]);
+    let dist = |i: u32| (rest[i as usize] - mid).length();
+    let ends = dist(a).min(dist(b));
+    let third_nearer = surface
+        .neighbours(a)
+        .iter()
+        .filter(|&&o| o != b && surface.neighbours(b).contains(&o))
+        .any(|&o| !surface.is_fixed(o) && dist(o) < ends);
+    if !third_nearer {
+        return None;
+    }
+    [a, b]
+        .into_iter()
+        .filter(|&i| !surface.is_fixed(i))
+        .min_by(|&i, &j| dist(i).total_cmp(&dist(j)))
 }
 
 /// The organ table of `surface` for the scene `setup`, the reference and its axis, computed on

@@ -20,7 +20,11 @@
 //! along its rest normal to sphere depth `s` (through the body's own tick, held until it
 //! settles), `F_ref` the organ's reference at that node. Scaling every spring by the same factor
 //! scales the static force at a given shape by that factor, so the body pressed at node `i` to
-//! depth `s` gives `F_ref` exactly (one press per node and depth, no iteration).
+//! depth `s` gives `F_ref` exactly, provided the probe's patch is the run time's: the patch is
+//! gathered and weighted around the device, which sits the coupling's stretch below the
+//! sphere, so the calibration presses with the springs already scaled by the `beta` it
+//! measures (found with the depth in the same holds; session 14: with the constant springs
+//! the 4 mm hemisphere's table read +20-25 % at 4 mm, [`press_sphere_depths`]).
 //!
 //! A spring surface pressed *between* nodes answers otherwise than on a node (on the left
 //! ventricle's surface, with the node's factor, up to +13 % at an edge's midpoint never
@@ -28,7 +32,8 @@
 //! coarse node and every coarse edge's midpoint, each pressed there (along the mean of its
 //! ends' normals for an edge), never subdivided (`factor`) and with the run-time subdivision
 //! the scene configures around the contact (`factor_subdivided`: the eq. 4 table keeps the
-//! force at a node, not between nodes). At run time `beta` is interpolated in `s` and at the
+//! force at a node, not between nodes; a long edge's press in its nearer end's area,
+//! [`edge_area_end`]). At run time `beta` is interpolated in `s` and at the
 //! probe's *foot* on the coarse rest surface ([`foot`]: where the line through the sphere's
 //! centre along the contact normal meets the rest triangles, which for a press along a site's
 //! normal is the site itself, so a user's press there reads what the calibration measured)
@@ -62,9 +67,9 @@ mod calibrate;
 pub mod foot;
 
 pub use calibrate::{
-    DEPTH_ATTEMPTS, DEPTH_FALLBACK_TOLERANCE, DEPTH_TOLERANCE, MAX_HOLD_TICKS, OrganSetup,
-    RAMP_TICKS, SETTLE_TOLERANCE, SETTLE_WINDOW_TICKS, SUBDIVIDED_FACTOR_SPREAD, calibrate_organ,
-    calibrate_organ_node, press_sphere_depths, site_press,
+    DEPTH_ATTEMPTS, DEPTH_FALLBACK_TOLERANCE, DEPTH_TOLERANCE, FACTOR_TOLERANCE, MAX_HOLD_TICKS,
+    OrganSetup, RAMP_TICKS, SETTLE_TOLERANCE, SETTLE_WINDOW_TICKS, SUBDIVIDED_FACTOR_SPREAD,
+    calibrate_organ, calibrate_organ_node, edge_area_end, press_sphere_depths, site_press,
 };
 
 /// Version of the organ table's definition; part of its key. 3 (session 5): in a subdivided
