@@ -17,8 +17,7 @@
 //! - the hybrid body (`lv-hybrid`) activates under each tool, holds steady, keeps the other's
 //!   force continuous when one leaves, and counts two tools on one spot once.
 
-#[path = "common/counting_alloc.rs"]
-mod counting_alloc;
+use crate::counting_alloc;
 #[path = "common/tool_press.rs"]
 mod tool_press;
 

@@ -12,8 +12,7 @@
 //! - one tool in two slots is the one-tool tick bit for bit;
 //! - named tools take their own force limit; hostile slot counts and inputs are refused.
 
-#[path = "common/counting_alloc.rs"]
-mod counting_alloc;
+use crate::counting_alloc;
 #[path = "common/tool_press.rs"]
 mod tool_press;
 
