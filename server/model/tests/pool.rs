@@ -5,8 +5,8 @@
 
 use crate::counting_alloc;
 
-use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 
 use haptic_model::pool::{StartHook, TickPool};
 
