@@ -8,6 +8,8 @@
 mod common;
 #[path = "common/counting_alloc.rs"]
 mod counting_alloc;
+#[path = "common/tool_press.rs"]
+mod tool_press;
 
 mod companion_threads;
 mod condensed;

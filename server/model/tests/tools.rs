@@ -18,8 +18,7 @@
 //!   force continuous when one leaves, and counts two tools on one spot once.
 
 use crate::counting_alloc;
-#[path = "common/tool_press.rs"]
-mod tool_press;
+use crate::tool_press;
 
 use glam::DVec3;
 use haptic_model::body::{SoftBody, TickInput, TickOutput};

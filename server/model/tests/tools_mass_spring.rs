@@ -13,8 +13,7 @@
 //! - named tools take their own force limit; hostile slot counts and inputs are refused.
 
 use crate::counting_alloc;
-#[path = "common/tool_press.rs"]
-mod tool_press;
+use crate::tool_press;
 
 use glam::DVec3;
 use haptic_model::body::{SoftBody, TickInput, TickOutput};
