@@ -1,6 +1,6 @@
 //! The model's integration tests, one module per file of this folder, in one test binary
-//! (`docs/decisions.md`, "The integration tests in a few binaries": each binary links the whole
-//! dependency graph, about 4 s each). Run one file's tests with
+//! (`docs/decisions.md`, "The integration tests in a few binaries": each binary compiles at
+//! opt-level 3 and links the whole dependency graph on its own). Run one file's tests with
 //! `cargo test -p haptic-model --test model <file>::`. The tests that count allocations are in
 //! `model_alloc.rs` (their counting allocator is that binary's global allocator).
 
