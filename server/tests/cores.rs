@@ -2,7 +2,7 @@
 //! body asks for while cores of the `cpus` list are free, fewer (never less than one, never
 //! waiting) when they are not, and gives them back when it stops or is quarantined.
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

@@ -22,8 +22,7 @@ use haptics_proto::v1::surface_stream_server::SurfaceStream;
 use haptics_proto::v1::{GetStatsRequest, ListScenesRequest, WatchRequest};
 use tokio_stream::StreamExt;
 
-#[path = "../model/tests/common/counting_alloc.rs"]
-mod counting_alloc;
+use crate::counting_alloc;
 use counting_alloc::counted;
 
 /// The hemisphere's apex (rest position and outward normal), the probe radius.

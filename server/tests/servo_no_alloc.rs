@@ -15,8 +15,7 @@ use haptic_model::DVec3;
 use haptic_model::scene::load_builtin;
 use haptic_server::servo::{self, Clock, Command, Pose, ServoCore, ServoHandles, SessionShared};
 
-#[path = "../model/tests/common/counting_alloc.rs"]
-mod counting_alloc;
+use crate::counting_alloc;
 use counting_alloc::{count_this_thread, counted, counted_registered};
 use haptic_model::pool::{StartHook, TickPool};
 use haptic_server::servo::StatsSnapshot;
@@ -40,6 +39,8 @@ fn servo_tick_never_allocates() {
 
 #[test]
 fn servo_tick_with_a_two_thread_pool_never_allocates_on_any_of_its_threads() {
+    // Registers pool workers: one such test at a time in this binary (`counting_alloc`).
+    let _one = counting_alloc::one_at_a_time();
     let mut body = haptic_model::build_body(&load_builtin("lv").unwrap()).unwrap();
     let workers = Arc::new(servo::WorkerThreads::default());
     let daemon_hook = servo::worker_start_hook(

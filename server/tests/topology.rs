@@ -20,8 +20,7 @@ use haptics_proto::v1::WatchRequest;
 use haptics_proto::v1::surface_stream_server::SurfaceStream;
 use tokio_stream::StreamExt;
 
-#[path = "../model/tests/common/counting_alloc.rs"]
-mod counting_alloc;
+use crate::counting_alloc;
 use counting_alloc::counted;
 
 /// A unit square of two triangles that, every `period` ticks, is split at its centre into four

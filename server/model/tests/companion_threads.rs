@@ -5,9 +5,7 @@
 //! with a 2-thread pool as without one, through a press where the companion answers and then
 //! hands the probe back; and neither the servo thread nor the worker allocates in the ticks.
 
-#[allow(dead_code)] // `counted` (this thread only) is not used here
-#[path = "common/counting_alloc.rs"]
-mod counting_alloc;
+use crate::counting_alloc;
 
 use std::sync::Arc;
 
@@ -98,6 +96,8 @@ fn bits(o: &TickOutput, fb: &FallbackStats) -> [u64; 24] {
 
 #[test]
 fn the_companion_beside_the_region_on_two_threads_changes_no_bit_and_allocates_nothing() {
+    // Registers pool workers: one such test at a time in this binary (`counting_alloc`).
+    let _one = counting_alloc::one_at_a_time();
     let scene = scene();
     let mut serial = body(&scene);
     let mut threaded = body(&scene);

@@ -33,8 +33,7 @@ use haptic_model::mesh::generate;
 use haptic_model::scene::{load_builtin, parse_scene_toml};
 use haptic_model::statics::{StaticParams, solve_static};
 
-#[path = "common/counting_alloc.rs"]
-mod counting_alloc;
+use crate::counting_alloc;
 use counting_alloc::counted;
 
 /// The built-in `lv` scene (material, probe, base clamped, epicardium touchable) on about

@@ -2,7 +2,7 @@
 //! invariance, force = -grad(energy) by finite differences, tangent by finite differences of the
 //! force, lumped masses, viscous stress of a rigid rotation, critical-step sharpness.
 
-mod common;
+use crate::common;
 use common::Rng;
 
 use glam::{DMat3, DQuat};

@@ -4,7 +4,7 @@
 //! message of bounded size that does not echo more than a line of the input.
 //!
 //! Cases per property: 64 in `cargo test` (about a second each); a longer run:
-//! `PROPTEST_CASES=20000 cargo test -p haptic-model --test fuzz_inputs --release`.
+//! `PROPTEST_CASES=20000 cargo test -p haptic-model --release --test model fuzz_inputs::`.
 
 use std::path::Path;
 

@@ -2,7 +2,7 @@
 //! against finite differences of the energy, per material point and assembled (with the fibre
 //! field and the element-mean dilatation), and its isotropic limit.
 
-mod common;
+use crate::common;
 use common::Rng;
 
 use glam::{DMat3, DQuat};

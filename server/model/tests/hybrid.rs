@@ -3,7 +3,7 @@
 //! spurious force, press/hold/slide/release gives no force jump above 7 % at activation and
 //! release and injects no energy, and the tick does not allocate.
 
-mod common;
+use crate::common;
 
 use common::Rng;
 use glam::{DMat3, DVec3};
@@ -455,8 +455,7 @@ fn press_hold_slide_release_has_no_force_jump_and_injects_no_energy() {
     }
 }
 
-#[path = "common/counting_alloc.rs"]
-mod counting_alloc;
+use crate::counting_alloc;
 
 #[test]
 fn tick_does_not_allocate_through_activation_and_release() {

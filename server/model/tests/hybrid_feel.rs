@@ -13,7 +13,7 @@
 //! device's travel past the sphere touching the analytic epicardium, the depth the press
 //! commands.
 
-mod common;
+use crate::common;
 
 use glam::DVec3;
 use haptic_model::body::SoftBody;

@@ -11,9 +11,8 @@
 //! held active (up to the scene's 2 000 particles), then released; the body must not diverge
 //! and must come to rest.
 
-mod common;
-#[path = "common/counting_alloc.rs"]
-mod counting_alloc;
+use crate::common;
+use crate::counting_alloc;
 
 use glam::DVec3;
 use haptic_model::body::{SoftBody, TickInput};

@@ -8,9 +8,7 @@
 //! nor the worker allocates. A one-part pool (a starved or one-core session) is the serial
 //! tick bit for bit (the same test: see its first comment).
 
-#[allow(dead_code)] // `counted` (this thread only) is not used here
-#[path = "common/counting_alloc.rs"]
-mod counting_alloc;
+use crate::counting_alloc;
 
 use std::sync::Arc;
 
@@ -40,6 +38,8 @@ fn device(line: &PressLine, k: usize) -> TickInput {
 
 #[test]
 fn two_threads_give_the_serial_force_to_round_off_and_allocate_nothing() {
+    // Registers pool workers: one such test at a time in this binary (`counting_alloc`).
+    let _one = counting_alloc::one_at_a_time();
     // Two `lv-hybrid` bodies built at the same time on two test threads once differed by
     // about 1e-7 of the force from their first tick: METIS ordered both core factors from one
     // C random stream (now serialised, `tests/ordering_threads.rs`).

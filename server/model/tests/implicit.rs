@@ -11,8 +11,7 @@ use haptic_model::fem::{FemBody, TickInput};
 use haptic_model::integrate::{IntegratorKind, LinearSolver};
 use haptic_model::scene::{load_builtin, parse_scene_toml};
 
-#[path = "common/counting_alloc.rs"]
-mod counting_alloc;
+use crate::counting_alloc;
 use counting_alloc::counted;
 
 /// Probe path of `sim_lv.rs`: from 14 mm off the axis at z = -5 mm, along -x by `depth` over

@@ -11,7 +11,7 @@
 //! the pressure is applied on the flat faces (consistent nodal loads), and the solution is
 //! compared at the node positions.
 
-mod common;
+use crate::common;
 use common::lame_u_r;
 
 use haptic_model::DVec3;

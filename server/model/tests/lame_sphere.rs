@@ -3,7 +3,7 @@
 //! 5k tetrahedra; the inner radial displacement must be within 10 % of the analytic
 //! `u_r(a) = p a^3 / (E (b^3 - a^3)) [(1 - 2 nu) a + (1 + nu) b^3 / (2 a^2)] = 8.387e-2 mm`.
 
-mod common;
+use crate::common;
 use common::lame_u_r;
 
 use haptic_model::DVec3;

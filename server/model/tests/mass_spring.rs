@@ -4,9 +4,8 @@
 //! eigenvalue computation, the calibration cache, and a tick that never allocates, events
 //! included. The force-versus-subdivision tests (eq. 4) are in `mass_spring_force.rs`.
 
-mod common;
-#[path = "common/counting_alloc.rs"]
-mod counting_alloc;
+use crate::common;
+use crate::counting_alloc;
 
 use std::collections::HashMap;
 

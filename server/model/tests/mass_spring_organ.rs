@@ -10,8 +10,7 @@
 //! hold steady (the largest tick-to-tick change at most 7 % of the held force), a stroke
 //! continuous, and the tick with the organ table allocation-free.
 
-#[path = "common/counting_alloc.rs"]
-mod counting_alloc;
+use crate::counting_alloc;
 
 use counting_alloc::counted;
 use haptic_model::DVec3;

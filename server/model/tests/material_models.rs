@@ -5,7 +5,7 @@
 //! an inverted element; the polar decomposition; the common linearisation at rest; the scene
 //! field `material.model`.
 
-mod common;
+use crate::common;
 use common::Rng;
 
 use std::path::Path;

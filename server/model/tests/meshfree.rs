@@ -3,7 +3,7 @@
 //! both variants, forces are minus the energy gradient (central differences), and a
 //! checkerboard (hourglass) perturbation does not grow over 100 of its periods.
 
-mod common;
+use crate::common;
 
 use common::Rng;
 use glam::{DMat3, DQuat, DVec3};

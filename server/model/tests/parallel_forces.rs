@@ -9,9 +9,7 @@
 //! Morton curve of the smoothing domains) likewise, within 1e-13 of the largest nodal force of
 //! one part (the kernel's own unit tests hold one and two parts to 1e-12 of the scalar loop).
 
-#[path = "common/counting_alloc.rs"]
-#[allow(dead_code)] // `counted` is not used here
-mod counting_alloc;
+use crate::counting_alloc;
 
 use std::path::Path;
 use std::sync::Arc;
@@ -217,6 +215,8 @@ fn two_parts_on_two_threads_equal_two_parts_on_one() {
 
 #[test]
 fn force_parts_allocate_nothing() {
+    // Registers pool workers: one such test at a time in this binary (`counting_alloc`).
+    let _one = counting_alloc::one_at_a_time();
     let (mesh, mat) = lv_h1();
     let m = model(&mesh, mat, &|_| true, StrainSmoothing::Edge);
     let n = m.node_count();
@@ -336,6 +336,8 @@ fn double_precision_in_two_parts_agrees_with_one_part() {
 
 #[test]
 fn double_precision_parts_allocate_nothing() {
+    // Registers pool workers: one such test at a time in this binary (`counting_alloc`).
+    let _one = counting_alloc::one_at_a_time();
     let (mesh, mat) = lv_h1();
     let hook: StartHook = Arc::new(|_| counting_alloc::count_this_thread());
     let pool = TickPool::new(1, hook).expect("a pool of one worker");

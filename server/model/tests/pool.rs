@@ -3,12 +3,10 @@
 //! worker that never starts leaves every job to the caller, panics do not wedge the pool, and
 //! neither the caller nor the workers allocate. Each test well under a second (debug profile).
 
-#[allow(dead_code)] // `counted` (this thread only) is not used here
-#[path = "common/counting_alloc.rs"]
-mod counting_alloc;
+use crate::counting_alloc;
 
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
-use std::sync::{Arc, Mutex};
 
 use haptic_model::pool::{StartHook, TickPool};
 
@@ -17,11 +15,9 @@ fn no_hook() -> StartHook {
 }
 
 /// `counted_registered` runs must not overlap, and the other tests' workers must not allocate
-/// inside one: every test takes this lock.
-static SERIAL: Mutex<()> = Mutex::new(());
-
+/// inside one: every test takes this lock (the one of every such test of the binary).
 fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
-    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
+    counting_alloc::one_at_a_time()
 }
 
 #[test]

@@ -2,7 +2,7 @@
 //! differences), the linear and quadratic patch tests against the exact solutions, and the HRZ
 //! lumped masses.
 
-mod common;
+use crate::common;
 
 use common::Rng;
 use haptic_model::DVec3;

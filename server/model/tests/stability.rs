@@ -5,7 +5,7 @@
 //! element inversion and a scrambled (flattened) start; a free body spinning at 2 pi rad/s;
 //! a 10-fold force impulse at the probe; a sliver mesh under the automatic time-step rule; and
 //! NaN / Inf / absurd inputs through every entry point. Measured values are printed
-//! (`cargo test -p haptic-model --test stability -- --nocapture`).
+//! (`cargo test -p haptic-model --test model stability:: -- --nocapture`).
 
 use std::path::Path;
 

@@ -17,10 +17,8 @@
 //! - the hybrid body (`lv-hybrid`) activates under each tool, holds steady, keeps the other's
 //!   force continuous when one leaves, and counts two tools on one spot once.
 
-#[path = "common/counting_alloc.rs"]
-mod counting_alloc;
-#[path = "common/tool_press.rs"]
-mod tool_press;
+use crate::counting_alloc;
+use crate::tool_press;
 
 use glam::DVec3;
 use haptic_model::body::{SoftBody, TickInput, TickOutput};

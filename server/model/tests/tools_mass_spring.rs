@@ -12,10 +12,8 @@
 //! - one tool in two slots is the one-tool tick bit for bit;
 //! - named tools take their own force limit; hostile slot counts and inputs are refused.
 
-#[path = "common/counting_alloc.rs"]
-mod counting_alloc;
-#[path = "common/tool_press.rs"]
-mod tool_press;
+use crate::counting_alloc;
+use crate::tool_press;
 
 use glam::DVec3;
 use haptic_model::body::{SoftBody, TickInput, TickOutput};

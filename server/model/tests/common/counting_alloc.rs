@@ -14,6 +14,7 @@
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Mutex, MutexGuard};
 
 struct Counting;
 thread_local! {
@@ -73,8 +74,9 @@ pub fn count_this_thread() {
 }
 
 /// Runs `f` on this thread (registered by the call) and returns its result with the number of
-/// allocations every registered thread made meanwhile. Runs of it must not overlap (one test at
-/// a time in a binary that uses it: keep such tests in their own file or serialise them).
+/// allocations every registered thread made meanwhile. Runs of it must not overlap, and no other
+/// test's registered thread may allocate during one: every test that registers threads (or
+/// calls this) holds [`one_at_a_time`] for its whole body.
 #[allow(dead_code)]
 pub fn counted_registered<T>(f: impl FnOnce() -> T) -> (T, usize) {
     count_this_thread();
@@ -83,4 +85,14 @@ pub fn counted_registered<T>(f: impl FnOnce() -> T) -> (T, usize) {
     let out = f();
     REGISTERED_ON.store(false, Ordering::SeqCst);
     (out, REGISTERED_ALLOCATIONS.load(Ordering::SeqCst) - before)
+}
+
+/// The tests that register threads (a pool whose start hook calls [`count_this_thread`]) or call
+/// [`counted_registered`] run one at a time: each holds this guard for its whole body, so no
+/// other test's registered thread allocates inside its count (the binary's other tests run
+/// beside it: [`counted`] counts only its own thread).
+#[allow(dead_code)]
+pub fn one_at_a_time() -> MutexGuard<'static, ()> {
+    static REGISTERED_TESTS: Mutex<()> = Mutex::new(());
+    REGISTERED_TESTS.lock().unwrap_or_else(|e| e.into_inner())
 }
