@@ -17,7 +17,7 @@ use clap::Parser;
 use haptic_model::body::{SoftBody, TickInput};
 use haptic_model::hybrid::{HybridBody, HybridModel};
 use haptic_model::meshfree::MeshfreeVariant;
-use haptic_model::pool::TickPool;
+use haptic_model::pool::{PoolStats, TickPool};
 use haptic_model::scene::{Scene, load_builtin};
 use hybrid_overrides::HybridOverrides;
 
@@ -209,21 +209,7 @@ fn press_target(
         print_estimate(&mut body, "pressed 1 mm")?;
     }
     let before = pool.map(|p| p.stats());
-    let mut times = Vec::with_capacity(args.ticks);
-    let period = std::time::Duration::from_secs_f64(scene.integrator.tick_s);
-    let mut deadline = Instant::now();
-    for _ in 0..args.ticks {
-        if args.paced {
-            deadline += period;
-            if let Some(wait) = deadline.checked_duration_since(Instant::now()) {
-                std::thread::sleep(wait);
-            }
-        }
-        let t = Instant::now();
-        body.tick(&input)?;
-        times.push(t.elapsed().as_secs_f64() * 1e6);
-    }
-    times.sort_by(f64::total_cmp);
+    let times = timed_ticks(args, &mut body, &input, scene.integrator.tick_s)?;
     eprintln!(
         "  terms and tied particles: {:?}; first tick (terms refilled) {first_us:.0} us; stencil layout (grid cells, groups): {:?}; core_mass_scale {:.1}; implicit core {:.1} MiB",
         body.work_counts(),
@@ -231,15 +217,8 @@ fn press_target(
         body.core_mass_scale(),
         body.implicit_core_memory_bytes() as f64 / (1024.0 * 1024.0)
     );
-    if let (Some(pool), Some(b)) = (pool, before) {
-        let a = pool.stats();
-        eprintln!(
-            "  pool over the timed ticks: {} jobs, parts on the caller {} / on workers {}, longest wait {} us",
-            a.jobs - b.jobs,
-            a.parts_on_caller - b.parts_on_caller,
-            a.parts_on_workers - b.parts_on_workers,
-            a.longest_wait_us
-        );
+    if let (Some(pool), Some(before)) = (pool, before) {
+        print_pool_split(pool, before);
     }
     let med = times[times.len() / 2];
     let p99 = times[(times.len() * 99) / 100];
@@ -258,4 +237,42 @@ fn press_target(
         prep_s
     );
     Ok(())
+}
+
+/// `args.ticks` ticks of `body` under `input` (paced at `tick_s` with `--paced`), each one's
+/// time in us, sorted.
+fn timed_ticks(
+    args: &Args,
+    body: &mut HybridBody,
+    input: &TickInput,
+    tick_s: f64,
+) -> anyhow::Result<Vec<f64>> {
+    let mut times = Vec::with_capacity(args.ticks);
+    let period = std::time::Duration::from_secs_f64(tick_s);
+    let mut deadline = Instant::now();
+    for _ in 0..args.ticks {
+        if args.paced {
+            deadline += period;
+            if let Some(wait) = deadline.checked_duration_since(Instant::now()) {
+                std::thread::sleep(wait);
+            }
+        }
+        let t = Instant::now();
+        body.tick(input)?;
+        times.push(t.elapsed().as_secs_f64() * 1e6);
+    }
+    times.sort_by(f64::total_cmp);
+    Ok(times)
+}
+
+/// The pool's jobs and parts since `before` (who ran the timed ticks' parts).
+fn print_pool_split(pool: &TickPool, before: PoolStats) {
+    let a = pool.stats();
+    eprintln!(
+        "  pool over the timed ticks: {} jobs, parts on the caller {} / on workers {}, longest wait {} us",
+        a.jobs - before.jobs,
+        a.parts_on_caller - before.parts_on_caller,
+        a.parts_on_workers - before.parts_on_workers,
+        a.longest_wait_us
+    );
 }
