@@ -20,24 +20,3 @@ mod servo_loop;
 mod solve;
 mod streams;
 mod tools;
-
-/// Every file of this folder is a module of one of the binaries or a binary's root: with
-/// `autotests = false` an undeclared file would never run.
-#[test]
-fn every_test_file_is_declared() {
-    const ROOTS: [&str; 3] = ["server.rs", "server_alloc.rs", "overrun.rs"];
-    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests");
-    let roots = ROOTS.map(|r| std::fs::read_to_string(dir.join(r)).expect("a root file"));
-    for entry in std::fs::read_dir(&dir).expect("the tests folder") {
-        let name = entry.expect("an entry").file_name();
-        let name = name.to_str().expect("a UTF-8 name");
-        let Some(module) = name.strip_suffix(".rs") else {
-            continue;
-        };
-        let declaration = format!("\nmod {module};\n");
-        assert!(
-            ROOTS.contains(&name) || roots.iter().any(|r| r.contains(&declaration)),
-            "tests/{name} is declared in none of {ROOTS:?} (overrun.rs is its own [[test]])"
-        );
-    }
-}

@@ -239,3 +239,36 @@ fn no_function_outside_the_tests_is_longer_than_the_limit() {
         long.join("\n")
     );
 }
+
+/// The test folders whose crates set `autotests = false`, with their binaries' root files:
+/// every file there must be a root or declared (`mod FILE;`) in one, or it would never run.
+const TEST_ROOTS: &[(&str, &[&str])] = &[
+    ("server/model/tests", &["model.rs", "model_alloc.rs"]),
+    (
+        "server/tests",
+        &["server.rs", "server_alloc.rs", "overrun.rs"],
+    ),
+];
+
+#[test]
+fn every_integration_test_file_is_declared_in_a_binary() {
+    for (folder, roots) in TEST_ROOTS {
+        let dir = root().join(folder);
+        let texts: Vec<String> = roots
+            .iter()
+            .map(|r| std::fs::read_to_string(dir.join(r)).expect("a root file"))
+            .collect();
+        for entry in std::fs::read_dir(&dir).expect("the tests folder") {
+            let name = entry.expect("an entry").file_name();
+            let name = name.to_str().expect("a UTF-8 name").to_string();
+            let Some(module) = name.strip_suffix(".rs") else {
+                continue;
+            };
+            let declaration = format!("\nmod {module};\n");
+            assert!(
+                roots.contains(&name.as_str()) || texts.iter().any(|t| t.contains(&declaration)),
+                "{folder}/{name} is declared in none of {roots:?}"
+            );
+        }
+    }
+}
