@@ -445,18 +445,26 @@ fn interpolate_sorted(
             xs[q as usize - offset] = t.interpolate(xc);
         }
     };
-    let h = list.len() / 2;
-    match pool.filter(|p| p.threads() > 1 && h > 0 && list[h - 1] < list[h]) {
-        Some(pool) => {
-            let mid = list[h] as usize;
+    let cut = cut_at_middle(list.len(), |i| list[i]);
+    match (pool.filter(|p| p.threads() > 1), cut) {
+        (Some(pool), Some((h, mid))) => {
             let (lo, hi) = xp.split_at_mut(mid);
             let mut halves = [(lo, 0..h, 0), (hi, h..list.len(), mid)];
             pool.for_each_mut(&mut halves, &|_, (xs, range, offset)| {
                 run(xs, range.clone(), *offset);
             });
         }
-        None => run(xp, 0..list.len(), 0),
+        _ => run(xp, 0..list.len(), 0),
     }
+}
+
+/// Where two threads cut a list whose `i`-th entry is particle `particle(i)` (ascending): the
+/// middle index `h` and its particle, when the entries before `h` all lie below that particle
+/// (so the halves own disjoint sides of the particle arrays); `None` for fewer than two
+/// entries or a repeat at the cut.
+fn cut_at_middle(n: usize, particle: impl Fn(usize) -> u32) -> Option<(usize, usize)> {
+    let h = n / 2;
+    (h > 0 && particle(h - 1) < particle(h)).then(|| (h, particle(h) as usize))
 }
 
 /// The active particles' step in deviation mode ([`HybridBody::update`]): what every
@@ -512,7 +520,6 @@ impl ActiveStep<'_> {
         (vp, xd, xp): (&mut [DVec3], &mut [DVec3], &mut [DVec3]),
     ) -> (f64, bool) {
         let n = self.order.len();
-        let h = n / 2;
         let side = |(vp, xd, xp), offset, order| ActiveSide {
             vp,
             xd,
@@ -522,13 +529,12 @@ impl ActiveStep<'_> {
             max_v2: 0.0,
             non_finite: false,
         };
-        let Some(pool) = pool.filter(|p| p.threads() > 1 && h > 0) else {
+        let cut = cut_at_middle(n, |i| self.list[self.order[i] as usize]);
+        let (Some(pool), Some((h, mid))) = (pool.filter(|p| p.threads() > 1), cut) else {
             let mut all = side((vp, xd, xp), 0, 0..n);
             self.run(&mut all);
             return (all.max_v2, all.non_finite);
         };
-        // `order` is ascending in particle, without repeats: the halves own disjoint sides.
-        let mid = self.list[self.order[h] as usize] as usize;
         let (vp0, vp1) = vp.split_at_mut(mid);
         let (xd0, xd1) = xd.split_at_mut(mid);
         let (xp0, xp1) = xp.split_at_mut(mid);
