@@ -48,6 +48,8 @@ impl MassSpringBody {
                 tool.probe.state.triangle = sp.triangle;
             }
         }
+        // 7. The device forces blend from this tick's to the simulated ones.
+        self.state.blend.pending = true;
         self.stats.events += 1;
         self.stats.subdivisions += u64::from(added);
         self.stats.coarsenings += u64::from(removed);

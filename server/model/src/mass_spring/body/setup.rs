@@ -4,7 +4,7 @@
 use glam::DVec3;
 
 use super::{
-    Centre, EventScratch, EventStats, MAX_CENTRES, MassSpringBody, MassSpringModel,
+    Centre, EventScratch, EventStats, ForceBlend, MAX_CENTRES, MassSpringBody, MassSpringModel,
     MassSpringScratch, MassSpringSetup, MassSpringState, ToolContact,
 };
 use crate::ModelError;
@@ -265,6 +265,7 @@ impl MassSpringState {
             time_s: 0.0,
             diverged_at_s: None,
             version: 0,
+            blend: ForceBlend::default(),
         }
     }
 }
