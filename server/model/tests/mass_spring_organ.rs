@@ -286,10 +286,12 @@ fn a_tick_with_the_organ_table_does_not_allocate() {
     body.tick(&TickInput::default()).expect("tick");
     let mut allocations = 0;
     for t in 0..1500 {
-        // Press to 3 mm, slide 4 mm sideways (subdivision events), lift off.
+        // Press to 3 mm, slide 8 mm sideways (subdivision events: since session 15 an area
+        // is kept while the probe's rest foot stays in it, which a 4 mm slide on the LV's
+        // two-ring area did), lift off.
         let p = match t {
             0..=499 => line.device_at(3e-3 * t as f64 / 500.0),
-            500..=999 => line.device_at(3e-3) + across * (4e-3 * (t - 500) as f64 / 500.0),
+            500..=999 => line.device_at(3e-3) + across * (8e-3 * (t - 500) as f64 / 500.0),
             _ => line.device_at(-2e-3),
         };
         let input = TickInput {

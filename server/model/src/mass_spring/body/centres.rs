@@ -49,11 +49,15 @@ impl MassSpringBody {
         }
     }
 
-    /// The contact node C of the paper for tool slot `k`: while the probe touches a triangle of
-    /// a subdivided area, that area's centre (the area the press made stays its area: session
+    /// The contact node C of the paper for tool slot `k`: while the probe's foot on the coarse
+    /// rest surface ([`crate::mass_spring::organ::foot`]) or the triangle it touches lies in a
+    /// subdivided area, that area's centre (the area the press made stays its area: session
     /// 12, a second one-ring area joining as the dent deepened made the LV 14 % stiffer at
-    /// 4 mm); elsewhere the coarse node nearest its contact point among the coarse vertices of
-    /// the triangle it touches, if it is free.
+    /// 4 mm; session 15, the foot too: past 3 mm on the 4 mm hemisphere the touched triangle of
+    /// the dent left the area while the foot stayed in it, and the second area made h2 +20 %
+    /// stiffer at 4 mm and the calibration's edge presses 10-20 % stiffer past 2-3 mm);
+    /// elsewhere the coarse node nearest its contact point among the coarse vertices of the
+    /// triangle it touches, if it is free.
     fn contact_node(&self, k: usize) -> Option<u32> {
         let probe = &self.state.tools[k].probe;
         let st = probe.state;
@@ -61,16 +65,19 @@ impl MassSpringBody {
             return None;
         }
         let tri = *probe.surface.triangles.get(st.triangle as usize)?;
-        let coarse = self.state.mesh.coarse_triangle_of(st.triangle);
-        if self
-            .state
-            .refinement
-            .triangle_state(&self.model.surface, coarse)
-            == TriangleState::Split
-        {
-            let owner = self.state.refinement.triangle_owner(coarse) as usize;
-            if owner < self.state.centre_count {
-                return Some(self.state.centres[owner].node);
+        let touched = self.state.mesh.coarse_triangle_of(st.triangle);
+        let foot = self.state.tools[k].foot.map(|f| f.triangle);
+        for coarse in foot.into_iter().chain([touched]) {
+            if self
+                .state
+                .refinement
+                .triangle_state(&self.model.surface, coarse)
+                == TriangleState::Split
+            {
+                let owner = self.state.refinement.triangle_owner(coarse) as usize;
+                if owner < self.state.centre_count {
+                    return Some(self.state.centres[owner].node);
+                }
             }
         }
         let point = st.proxy_m - st.normal * probe.params.radius_m;

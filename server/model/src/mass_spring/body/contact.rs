@@ -11,11 +11,10 @@ use glam::DVec3;
 impl MassSpringBody {
     /// Tool slot `k`'s sphere depth ([`MassSpringBody::contact_depth_m`]: below the organ at
     /// the foot, the kernel plane's travel without a foot) and the
-    /// contact factor at its current contact: the organ table at that depth, interpolated on the
-    /// coarse surface at the foot of the kernel patch's centroid
-    /// ([`MassSpringBody::patch_foot`]), in a subdivided area at the probe's foot on the coarse
-    /// rest surface ([`crate::mass_spring::organ::foot`]: where the calibration pressed, so a press along a
-    /// site's normal reads that site's row at any depth), over its coarse
+    /// contact factor at its current contact: the organ table at that depth, interpolated at
+    /// the foot of the kernel patch's centroid ([`MassSpringBody::patch_foot`]; in a
+    /// subdivided area too since session 15, where it was the probe's foot,
+    /// [`crate::mass_spring::organ::foot`]), over its coarse
     /// triangle's four Loop children (corners: nodes and edge midpoints, the table's sites);
     /// each site's coarse factor, or its subdivided one when it lies in a subdivided area. Off
     /// the rest surface (no foot), at the contact point of the deformed surface (the probe's
@@ -34,11 +33,6 @@ impl MassSpringBody {
         // surface too: the kernel plane's travel ran 0.02 mm ahead of the sphere's depth at
         // the lv-probe point, between nodes, +10 % at 0.25 mm). Without a foot, the kernel
         // plane's travel.
-        let foot_in_area = self.state.tools[k].foot.filter(|f| {
-            self.model.surface.triangles()[f.triangle as usize]
-                .iter()
-                .any(|&s| self.state.owner[s as usize] != NO_OWNER)
-        });
         let depth = match &self.state.tools[k].foot {
             Some(foot) => {
                 foot_depth_m(foot, self.state.tools[k].probe.params.radius_m)
@@ -61,10 +55,12 @@ impl MassSpringBody {
         };
         // On the coarse surface at the patch's centroid ([`MassSpringBody::patch_foot`]); in a
         // subdivided area at the proxy's foot.
-        let at = match foot_in_area {
-            Some(_) => self.state.tools[k].foot,
-            None => self.patch_foot(k).or(self.state.tools[k].foot),
-        };
+        // At the patch's centroid, in a subdivided area too (session 15: on the 4 mm
+        // hemisphere the proxy's foot at h4, in node 408's Loop child, read the two edge
+        // midpoints' subdivided rows for 77 %, whose presses bear on one type-2 node and are
+        // 12-20 % softer at 0.25 mm than a press at h4 itself: +15.7 % there, +10.2 % read at
+        // the patch's centroid; the LV's broad patch moved by at most 0.7 points).
+        let at = self.patch_foot(k).or(self.state.tools[k].foot);
         let (tri, b) = match at {
             Some(foot) => (
                 self.model.surface.triangles()[foot.triangle as usize],
