@@ -236,9 +236,11 @@ struct ForceBlend {
 }
 
 impl ForceBlend {
-    /// The force to render for tool `k` whose simulated force is `sim_n` (N).
+    /// The force to render for tool `k` whose simulated force is `sim_n` (N): the simulated
+    /// one out of contact, and for a tool that rendered no force at the event (it was not in
+    /// contact: a touch soon after the event is not ramped in).
     fn render(&self, k: usize, sim_n: DVec3, in_contact: bool) -> DVec3 {
-        if self.ticks_left == 0 || !in_contact {
+        if self.ticks_left == 0 || !in_contact || self.from_n[k] == DVec3::ZERO {
             return sim_n;
         }
         let w = f64::from(self.ticks_left) / f64::from(EVENT_BLEND_TICKS);
