@@ -879,3 +879,34 @@ impl SoftBody for MassSpringBody {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The blend of an event in contact: the event's tick renders the simulated force, the
+    /// next one the force at the event, then a linear approach; out of contact, after the
+    /// blend, and for a tool that rendered nothing at the event: the simulated force.
+    #[test]
+    fn an_event_blends_the_rendered_force_linearly_in_contact_only() {
+        let (event, sim) = (DVec3::new(0.0, 0.0, 0.02), DVec3::new(0.0, 0.0, 0.05));
+        let mut blend = ForceBlend {
+            pending: true,
+            ..ForceBlend::default()
+        };
+        assert_eq!(blend.render(0, event, true), event);
+        blend.advance([event, DVec3::ZERO].into_iter());
+        assert_eq!(blend.render(0, sim, true), event);
+        assert_eq!(blend.render(0, sim, false), sim);
+        assert_eq!(blend.render(1, sim, true), sim, "no force at the event");
+        for _ in 0..EVENT_BLEND_TICKS / 2 {
+            blend.advance(std::iter::empty());
+        }
+        let half = blend.render(0, sim, true);
+        assert!((half - 0.5 * (event + sim)).length() < 1e-15, "{half}");
+        for _ in 0..EVENT_BLEND_TICKS / 2 {
+            blend.advance(std::iter::empty());
+        }
+        assert_eq!(blend.render(0, sim, true), sim);
+    }
+}
