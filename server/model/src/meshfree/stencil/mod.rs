@@ -40,6 +40,8 @@
 //! Neighbours: built and driven by [`super::block::TermBlock`]; rest data from
 //! [`super::cloud::ParticleCloud`].
 
+use std::ops::Range;
+
 use glam::{DMat3, DVec3};
 
 use super::cloud::ParticleCloud;
@@ -94,17 +96,21 @@ struct GridBuffers {
     /// evaluation (issue 48: the groups cut into the tick pool's parts, each adding into its
     /// own set; the force on a cell is the sum over the sets); one set: the one-core loop.
     fc: Vec<[Vec<f64>; 3]>,
+    /// The force on each touched particle (by entry of the layout's `by_particle`), summed
+    /// over the parts before it is written to the caller's array.
+    red: Vec<DVec3>,
 }
 
 impl GridBuffers {
     /// Zeroed buffers of `capacity_cells` cells.
-    fn new(capacity_cells: usize) -> Self {
+    fn new(capacity_cells: usize, touched: usize) -> Self {
         Self {
             px: vec![0.0; capacity_cells],
             py: vec![0.0; capacity_cells],
             pz: vec![0.0; capacity_cells],
             occ: vec![0.0; capacity_cells],
             fc: vec![Self::force_set(capacity_cells)],
+            red: vec![DVec3::ZERO; touched],
         }
     }
 
@@ -146,7 +152,7 @@ impl StencilGrid {
             isa: Avx2Fma::detect(),
             stencil,
             layout,
-            buffers: GridBuffers::new(capacity_cells),
+            buffers: GridBuffers::new(capacity_cells, touched),
         }
     }
 
@@ -229,12 +235,10 @@ impl StencilGrid {
             buffers: buf,
             ..
         } = self;
-        for (&(p, i), r) in layout.by_particle.iter().zip(&layout.rest_of) {
-            let (i, xp) = (i as usize, x[p as usize] - *r);
-            buf.px[i] = xp.x;
-            buf.py[i] = xp.y;
-            buf.pz[i] = xp.z;
-        }
+        let halves = pool
+            .filter(|p| p.threads() > 1)
+            .and_then(|pool| Some((pool, cut_by_cell(&layout.by_particle)?)));
+        gather_positions(halves, layout, x, [&mut buf.px, &mut buf.py, &mut buf.pz]);
         let pos = [&buf.px[..], &buf.py[..], &buf.pz[..]];
         let (parts, groups) = (buf.fc.len(), layout.groups.len());
         #[cfg(target_arch = "x86_64")]
@@ -270,22 +274,90 @@ impl StencilGrid {
                 .enumerate()
                 .for_each(|(k, fc)| part(k, fc)),
         }
-        for &(p, i) in &layout.by_particle {
-            let i = i as usize;
-            let mut fi = DVec3::ZERO;
-            for (k, fc) in buf.fc.iter().enumerate() {
-                let fk = DVec3::new(
-                    cube_force_at(&fc[0], i),
-                    cube_force_at(&fc[1], i),
-                    cube_force_at(&fc[2], i),
-                );
-                fi = if k == 0 { fk } else { fi + fk };
+        let n = layout.by_particle.len();
+        let red = &mut buf.red[..n];
+        let (sets, entries) = (&buf.fc[..], &layout.by_particle[..]);
+        match halves {
+            Some((pool, (h, _))) => {
+                let (lo, hi) = red.split_at_mut(h);
+                let mut parts = [(lo, 0), (hi, h)];
+                pool.for_each_mut(&mut parts, &|_, (out, start)| {
+                    sum_parts(sets, &entries[*start..*start + out.len()], out);
+                });
             }
+            None => sum_parts(sets, entries, red),
+        }
+        for (&(p, _), &fi) in entries.iter().zip(&*red) {
             if add {
                 f[p as usize] += fi;
             } else {
                 f[p as usize] = fi;
             }
         }
+    }
+}
+
+/// Where two threads cut the touched particles' entries `(particle, cell)` (ascending cell):
+/// the middle entry `h` and its cell, when every entry before it lies in a lower cell (so the
+/// halves write disjoint cell ranges); `None` for fewer than two entries or a shared cell.
+fn cut_by_cell(by_particle: &[(u32, u32)]) -> Option<(usize, usize)> {
+    let h = by_particle.len() / 2;
+    (h > 0 && by_particle[h - 1].1 < by_particle[h].1).then(|| (h, by_particle[h].1 as usize))
+}
+
+/// The grid positions: the displacement from rest of every touched particle at its cell, in
+/// two halves on `halves`' pool (each writing its side of the cell arrays: [`cut_by_cell`]),
+/// else serially; the same values either way. Allocation-free.
+fn gather_positions(
+    halves: Option<(&TickPool, (usize, usize))>,
+    layout: &StencilLayout,
+    x: &[DVec3],
+    [px, py, pz]: [&mut Vec<f64>; 3],
+) {
+    let run = |entries: Range<usize>, [px, py, pz]: [&mut [f64]; 3], offset: usize| {
+        let (by, rest) = (
+            &layout.by_particle[entries.clone()],
+            &layout.rest_of[entries],
+        );
+        for (&(p, i), r) in by.iter().zip(rest) {
+            let (i, xp) = (i as usize - offset, x[p as usize] - *r);
+            px[i] = xp.x;
+            py[i] = xp.y;
+            pz[i] = xp.z;
+        }
+    };
+    let n = layout.by_particle.len();
+    match halves {
+        Some((pool, (h, cell))) => {
+            let ((px0, px1), (py0, py1), (pz0, pz1)) = (
+                px.split_at_mut(cell),
+                py.split_at_mut(cell),
+                pz.split_at_mut(cell),
+            );
+            let mut parts = [([px0, py0, pz0], 0..h, 0), ([px1, py1, pz1], h..n, cell)];
+            pool.for_each_mut(&mut parts, &|_, (cells, entries, offset)| {
+                let [a, b, c] = cells;
+                run(entries.clone(), [&mut **a, &mut **b, &mut **c], *offset);
+            });
+        }
+        None => run(0..n, [&mut px[..], &mut py[..], &mut pz[..]], 0),
+    }
+}
+
+/// `out[j]`: the force on the cell of `entries[j]` summed over the parts' force sets (the
+/// first set's value, then each later one added, as one part would read it).
+fn sum_parts(sets: &[[Vec<f64>; 3]], entries: &[(u32, u32)], out: &mut [DVec3]) {
+    for (&(_, i), o) in entries.iter().zip(out) {
+        let i = i as usize;
+        let mut fi = DVec3::ZERO;
+        for (k, fc) in sets.iter().enumerate() {
+            let fk = DVec3::new(
+                cube_force_at(&fc[0], i),
+                cube_force_at(&fc[1], i),
+                cube_force_at(&fc[2], i),
+            );
+            fi = if k == 0 { fk } else { fi + fk };
+        }
+        *o = fi;
     }
 }
