@@ -56,6 +56,15 @@ pub type StartHook = Arc<dyn Fn(usize) + Send + Sync>;
 /// Most worker threads a pool takes (a body's tick is cut into at most `MAX_WORKERS + 1` parts).
 pub const MAX_WORKERS: usize = 15;
 
+/// Where two threads cut an ascending list of `n` entries whose `i`-th has key `key(i)` (a
+/// particle, a grid cell): the middle index `h` and its key, when every entry before `h` has a
+/// lower key, so the halves own disjoint sides of the arrays the keys index; `None` for fewer
+/// than two entries or a key repeated across the cut (then one thread does it all).
+pub(crate) fn cut_at_middle(n: usize, key: impl Fn(usize) -> u32) -> Option<(usize, usize)> {
+    let h = n / 2;
+    (h > 0 && key(h - 1) < key(h)).then(|| (h, key(h) as usize))
+}
+
 /// How long a worker spins after its last part or task before it parks, microseconds.
 pub const SPIN_US: u64 = 50;
 

@@ -8,7 +8,7 @@ use crate::hybrid::prepare::{HybridModel, TieNodes};
 use crate::hybrid::proxy::{ParticleProxy, ProxyContact};
 use crate::integrate::IntegratorKind;
 use crate::integrate::explicit::integrate_nodes;
-use crate::pool::TickPool;
+use crate::pool::{TickPool, cut_at_middle};
 use glam::DVec3;
 use std::ops::Range;
 
@@ -456,15 +456,6 @@ fn interpolate_sorted(
         }
         _ => run(xp, 0..list.len(), 0),
     }
-}
-
-/// Where two threads cut a list whose `i`-th entry is particle `particle(i)` (ascending): the
-/// middle index `h` and its particle, when the entries before `h` all lie below that particle
-/// (so the halves own disjoint sides of the particle arrays); `None` for fewer than two
-/// entries or a repeat at the cut.
-fn cut_at_middle(n: usize, particle: impl Fn(usize) -> u32) -> Option<(usize, usize)> {
-    let h = n / 2;
-    (h > 0 && particle(h - 1) < particle(h)).then(|| (h, particle(h) as usize))
 }
 
 /// The active particles' step in deviation mode ([`HybridBody::update`]): what every

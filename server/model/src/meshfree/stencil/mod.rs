@@ -46,7 +46,7 @@ use glam::{DMat3, DVec3};
 
 use super::cloud::ParticleCloud;
 use crate::material::MaterialParams;
-use crate::pool::TickPool;
+use crate::pool::{TickPool, cut_at_middle};
 use crate::simd::{Avx2Fma, Plain4};
 
 mod group;
@@ -235,9 +235,10 @@ impl StencilGrid {
             buffers: buf,
             ..
         } = self;
+        let by = &layout.by_particle;
         let halves = pool
             .filter(|p| p.threads() > 1)
-            .and_then(|pool| Some((pool, cut_by_cell(&layout.by_particle)?)));
+            .and_then(|pool| Some((pool, cut_at_middle(by.len(), |j| by[j].1)?)));
         gather_positions(halves, layout, x, [&mut buf.px, &mut buf.py, &mut buf.pz]);
         let pos = [&buf.px[..], &buf.py[..], &buf.pz[..]];
         let (parts, groups) = (buf.fc.len(), layout.groups.len());
@@ -297,16 +298,8 @@ impl StencilGrid {
     }
 }
 
-/// Where two threads cut the touched particles' entries `(particle, cell)` (ascending cell):
-/// the middle entry `h` and its cell, when every entry before it lies in a lower cell (so the
-/// halves write disjoint cell ranges); `None` for fewer than two entries or a shared cell.
-fn cut_by_cell(by_particle: &[(u32, u32)]) -> Option<(usize, usize)> {
-    let h = by_particle.len() / 2;
-    (h > 0 && by_particle[h - 1].1 < by_particle[h].1).then(|| (h, by_particle[h].1 as usize))
-}
-
 /// The grid positions: the displacement from rest of every touched particle at its cell, in
-/// two halves on `halves`' pool (each writing its side of the cell arrays: [`cut_by_cell`]),
+/// two halves on `halves`' pool (each writing its side of the cell arrays: [`cut_at_middle`] by cell),
 /// else serially; the same values either way. Allocation-free.
 fn gather_positions(
     halves: Option<(&TickPool, (usize, usize))>,
