@@ -568,32 +568,21 @@ fn run_following(
     (trace, allocations)
 }
 
-/// The shipped following region (`lv_h1_condensed`) takes two tools (its default): two tools
-/// pressing 1 mm on opposite sides (19 mm apart) get a region of two balls, one at each
-/// (prepared at the first request, before contact), so the region answers both (the companion's
-/// weights stay 0) and each hold is steady. Each force is within `FORCE_TOL` of the whole
-/// body's (`lv_h1.toml`, nothing condensed) with the same two tools; and pressing the other
-/// side changes it as it changes the whole body's (two opposite presses cancel the
+/// The shipped following region (`lv_h1_condensed`) takes two tools (its default): tool 0 at
+/// azimuth 0 and tool 1 either on the opposite side (19 mm apart) or at 2.35 rad round (centres
+/// 2.55 radii apart, just past `SEPARATE_BALLS_RADII`: the closest balls whose coupling the tick
+/// matrix leaves out), both pressing 1 mm, get a region of two balls, one at each (prepared at
+/// the first request, before contact), so the region answers both (the companion's weights stay
+/// 0) and each hold is steady. Each force is within `FORCE_TOL` of the whole body's
+/// (`lv_h1.toml`, nothing condensed) with the same two tools; and pressing the other side
+/// changes tool 0's force as it changes the whole body's (two opposite presses cancel the
 /// ventricle's bending: each force is 15-16 % above one tool's alone, on both models). Tool 1
 /// leaving mid-hold leaves tool 0's force continuous (under the 7 % JND per tick) while the
-/// region shrinks back to one ball. The two-tool ticks, swaps included, allocate nothing.
+/// region shrinks back to one ball. The two-tool ticks, swaps included, allocate nothing. The
+/// two placements share their one-tool references (tool 0 alone on the region and on the whole
+/// body), so they are one test.
 #[test]
 fn a_following_region_covers_two_tools_apart_and_lets_one_leave() {
-    check_two_tools_apart(std::f64::consts::PI);
-}
-
-/// [`a_following_region_covers_two_tools_apart_and_lets_one_leave`] with the second tool at
-/// 2.35 rad round (centres 2.55 radii apart, just past `SEPARATE_BALLS_RADII`: the closest
-/// balls whose coupling the tick matrix leaves out).
-#[test]
-fn a_following_region_covers_two_tools_at_the_separation_limit() {
-    check_two_tools_apart(2.35);
-}
-
-/// The checks of [`a_following_region_covers_two_tools_apart_and_lets_one_leave`] with tool 0
-/// at azimuth 0 and tool 1 at `azimuth` (rad).
-fn check_two_tools_apart(azimuth: f64) {
-    const FORCE_TOL: f64 = 0.03;
     let scene = lv_h1_following();
     assert_eq!(scene.tools.max_tools, 2);
     let whole = {
@@ -602,47 +591,99 @@ fn check_two_tools_apart(azimuth: f64) {
         haptic_model::scene::load_scene_file(&path).expect("lv_h1.toml")
     };
     let r = scene.probe.radius_m;
-    let (a, b) = (line_at(0.0, r), line_at(azimuth, r));
-    let depth = 1e-3;
+    let a = line_at(0.0, r);
+    let azimuths = [std::f64::consts::PI, 2.35];
     let (n, leave_for) = (ticks(RAMP_S + HOLD_S), ticks(0.3));
-    let input = |line: &PressLine, k: usize| ramp_input(line, depth, (k + 1) as f64 * 1e-3);
-    let press = |scene: &Scene, second: bool| {
+    let press = |scene: &Scene, second: Option<PressLine>| {
         let mut body = blocking_body(scene);
-        let none = TickInput::default();
         run_following(&mut body, n, |k| {
-            [input(&a, k), if second { input(&b, k) } else { none }]
+            let none = TickInput::default();
+            [
+                two_tool_input(&a, k),
+                second.as_ref().map_or(none, |b| two_tool_input(b, k)),
+            ]
         })
         .0
     };
-    let (two, allocations, refs) = std::thread::scope(|s| {
-        let refs = [(&scene, false), (&whole, true), (&whole, false)]
-            .map(|(sc, second)| s.spawn(move || press(sc, second)));
-        let mut body = blocking_body(&scene);
-        let (mut two, mut allocations) =
-            run_following(&mut body, n, |k| [input(&a, k), input(&b, k)]);
-        let balls = body.condensed().expect("region").balls();
-        let gap = match balls.centres() {
-            [p, q] => p.distance(*q) / scene.active_region.expect("region").radius_m,
-            other => panic!("{other:?}"),
+    std::thread::scope(|s| {
+        let (scene, whole, press) = (&scene, &whole, &press);
+        let alone = s.spawn(move || press(scene, None));
+        let whole_alone = s.spawn(move || press(whole, None));
+        let whole_two = azimuths.map(|az| s.spawn(move || press(whole, Some(line_at(az, r)))));
+        let refs = TwoToolRefs {
+            alone: alone.join().expect("region, tool 0 alone"),
+            whole_alone: whole_alone.join().expect("whole body, tool 0 alone"),
         };
-        eprintln!("ball centres {gap:.3} radii apart");
-        assert!(gap >= SEPARATE_BALLS_RADII);
-        let (left, a_left) = run_following(&mut body, leave_for, |k| {
-            [input(&a, n + k), TickInput::default()]
-        });
-        two.extend(left);
-        allocations += a_left;
-        let stats = body.follow_stats().expect("follows");
-        eprintln!("two tools at {azimuth} rad: {stats:?}");
-        assert_eq!(stats.failed, 0);
-        let refs = refs.map(|h| h.join().expect("reference run"));
-        (two, allocations, refs)
+        for (azimuth, whole_two) in azimuths.into_iter().zip(whole_two) {
+            let two = run_two_tools(scene, &a, &line_at(azimuth, r), n, leave_for);
+            let whole_two = whole_two.join().expect("whole body, two tools");
+            let lines = [a, line_at(azimuth, r)];
+            check_two_tools_apart(lines, &two, &whole_two, &refs, n, leave_for);
+        }
     });
+}
+
+/// Tool `line`'s input at tick `k` of the two-tool presses: a 1 mm ramp.
+fn two_tool_input(line: &PressLine, k: usize) -> TickInput {
+    ramp_input(line, 1e-3, (k + 1) as f64 * 1e-3)
+}
+
+/// The one-tool references of [`a_following_region_covers_two_tools_apart_and_lets_one_leave`]:
+/// tool 0 alone on the following region and on the whole body.
+struct TwoToolRefs {
+    alone: FollowTrace,
+    whole_alone: FollowTrace,
+}
+
+/// Tools 0 and 1 on `a` and `b` pressing the following region of `scene` for `n` ticks, then
+/// tool 0 alone for `leave_for` ticks; checks the region's two balls apart and no allocation
+/// on this thread. Returns the trace.
+fn run_two_tools(
+    scene: &Scene,
+    a: &PressLine,
+    b: &PressLine,
+    n: usize,
+    leave_for: usize,
+) -> FollowTrace {
+    let mut body = blocking_body(scene);
+    let (mut two, mut allocations) = run_following(&mut body, n, |k| {
+        [two_tool_input(a, k), two_tool_input(b, k)]
+    });
+    let balls = body.condensed().expect("region").balls();
+    let gap = match balls.centres() {
+        [p, q] => p.distance(*q) / scene.active_region.expect("region").radius_m,
+        other => panic!("{other:?}"),
+    };
+    eprintln!("ball centres {gap:.3} radii apart");
+    assert!(gap >= SEPARATE_BALLS_RADII);
+    let (left, a_left) = run_following(&mut body, leave_for, |k| {
+        [two_tool_input(a, n + k), TickInput::default()]
+    });
+    two.extend(left);
+    allocations += a_left;
+    let stats = body.follow_stats().expect("follows");
+    eprintln!("two tools: {stats:?}");
+    assert_eq!(stats.failed, 0);
     assert_eq!(allocations, 0, "the two-tool ticks allocated");
+    two
+}
+
+/// The checks of [`a_following_region_covers_two_tools_apart_and_lets_one_leave`] with the
+/// tools on `lines`: `two` the region's trace (`n` two-tool ticks, then `leave_for` with tool 0
+/// alone), `whole_two` the whole body's with both tools.
+fn check_two_tools_apart(
+    [a, b]: [PressLine; 2],
+    two: &FollowTrace,
+    whole_two: &FollowTrace,
+    refs: &TwoToolRefs,
+    n: usize,
+    leave_for: usize,
+) {
+    const FORCE_TOL: f64 = 0.03;
     let hold = ticks(RAMP_S + 0.2)..n;
     let outs = |t: &FollowTrace| t.iter().map(|e| e.0).collect::<Vec<_>>();
-    let two_out = outs(&two);
-    let [alone, whole_two, whole_alone] = refs.each_ref().map(outs);
+    let two_out = outs(two);
+    let [alone, whole_two, whole_alone] = [&refs.alone, whole_two, &refs.whole_alone].map(outs);
     // The region covers both from before contact to the end of the hold.
     let first_contact = two_out
         .iter()
