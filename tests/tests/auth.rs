@@ -3,7 +3,7 @@
 //! attempts, and TLS with and without client certificates. The clients use the same
 //! credentials code as the binaries (`haptic_cli::credentials`).
 
-mod common;
+use crate::common;
 
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
@@ -136,6 +136,7 @@ async fn device_link(url: &str, token_file: PathBuf, id: &str) -> Code {
 
 #[tokio::test]
 async fn roles_and_session_ownership() -> Result<()> {
+    let _serial = haptic_e2e::serial().await;
     let dir = temp_dir("roles");
     let server = InProcess::start_with(ServerConfig {
         tokens_file: Some(write_tokens(&dir)),
@@ -284,6 +285,7 @@ async fn roles_and_session_ownership() -> Result<()> {
 
 #[tokio::test]
 async fn tokens_file_is_created_at_first_start_and_guarded() -> Result<()> {
+    let _serial = haptic_e2e::serial().await;
     let dir = temp_dir("first-start");
     let tokens = dir.join("tokens.toml");
     let server = InProcess::start_with(ServerConfig {
@@ -348,6 +350,7 @@ async fn tokens_file_is_created_at_first_start_and_guarded() -> Result<()> {
 
 #[tokio::test]
 async fn failed_attempts_are_limited_per_address_and_never_lock_out_valid_tokens() -> Result<()> {
+    let _serial = haptic_e2e::serial().await;
     let dir = temp_dir("failures");
     let window = Duration::from_millis(1500);
     let server = InProcess::start_with(ServerConfig {
@@ -424,6 +427,7 @@ fn make_certificates(dir: &Path) -> Result<()> {
 
 #[tokio::test]
 async fn tls_with_and_without_client_certificates() -> Result<()> {
+    let _serial = haptic_e2e::serial().await;
     let dir = temp_dir("tls");
     make_certificates(&dir)?;
     let files = |client_ca: bool| haptic_server::config::TlsFiles {

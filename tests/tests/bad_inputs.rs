@@ -15,7 +15,7 @@ use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Code;
 
-mod common;
+use crate::common;
 use common::InProcess;
 
 /// `StartSessionRequest` with `scene_toml` as bytes: the same wire format, any bytes.

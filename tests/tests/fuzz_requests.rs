@@ -22,7 +22,7 @@ use tonic::codec::{Codec, EncodeBuf, Encoder};
 use tonic::codegen::http::uri::PathAndQuery;
 use tonic::{Code, Request, Status};
 
-mod common;
+use crate::common;
 use common::InProcess;
 
 /// Sends request bodies as given bytes; answers are decoded as `()` (every field skipped), with

@@ -7,7 +7,7 @@
 //! are published every 16 ticks, at simulated times that do not depend on the wall clock, so
 //! two runs are compared frame by frame at equal simulated times.
 
-mod common;
+use crate::common;
 
 use std::collections::HashMap;
 use std::os::unix::fs::PermissionsExt;
@@ -339,6 +339,7 @@ async fn hostile_round(url: &str, dir: &Path, id: &str) -> Result<(usize, u64)> 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn hostile_traffic_gets_clear_statuses_and_leaves_a_running_session_unchanged() -> Result<()>
 {
+    let _serial = haptic_e2e::serial().await;
     let dir = std::env::temp_dir().join(format!("haptic-hostile-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir)?;

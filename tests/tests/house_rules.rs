@@ -248,6 +248,7 @@ const TEST_ROOTS: &[(&str, &[&str])] = &[
         "server/tests",
         &["server.rs", "server_alloc.rs", "overrun.rs"],
     ),
+    ("tests/tests", &["e2e.rs"]),
 ];
 
 #[test]
