@@ -299,7 +299,8 @@ impl OrganReference {
     }
 }
 
-/// One site's row of the organ table (a coarse node, or a coarse edge's midpoint).
+/// One site's row of the organ table (a coarse node, a coarse edge's midpoint, or a corner
+/// Loop child's centroid).
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct OrganRow {
     /// The contact factor `beta` of the coarse surface at each of the table's depths.
@@ -389,7 +390,8 @@ impl OrganTable {
         &self.depths_m
     }
 
-    /// Site `i`'s row (a node below [`OrganTable::node_count`], an edge's midpoint from it).
+    /// Site `i`'s row (a node below [`OrganTable::node_count`], then the edges' midpoints, then
+    /// the corner children's centroids, [`OrganTable::child_site`]).
     pub fn row(&self, i: u32) -> Option<&OrganRow> {
         self.rows.get(i as usize)
     }
