@@ -70,7 +70,10 @@ impl MassSpringBody {
             self.patch_foot(k).or(proxy)
         };
         let beta = match at {
-            Some(foot) => self.organ_factor_at(table, &foot, depth),
+            Some(foot) => {
+                let tri = self.model.surface.triangles()[foot.triangle as usize];
+                self.organ_factor_at(table, (tri, foot.bary), Some(foot.triangle), depth)
+            }
             None => {
                 let tri = self.state.tools[k]
                     .probe
@@ -80,13 +83,19 @@ impl MassSpringBody {
                 let Some(&tri) = tri else {
                     return;
                 };
-                // A site of a subdivided area takes the subdivided configuration's factor.
-                tri.iter()
-                    .zip(&st.bary)
-                    .map(|(&s, &w)| {
-                        w * table.factor(s, depth, self.state.owner[s as usize] != NO_OWNER)
-                    })
-                    .sum()
+                let nc = self.model.surface.node_count() as u32;
+                if tri.iter().all(|&s| s < nc) {
+                    // A coarse triangle: over its Loop children, without the child sites.
+                    self.organ_factor_at(table, (tri, st.bary), None, depth)
+                } else {
+                    // A site of a subdivided area takes the subdivided configuration's factor.
+                    tri.iter()
+                        .zip(&st.bary)
+                        .map(|(&s, &w)| {
+                            w * table.factor(s, depth, self.state.owner[s as usize] != NO_OWNER)
+                        })
+                        .sum()
+                }
             }
         };
         if beta.is_finite() && beta > 0.0 {
@@ -94,16 +103,21 @@ impl MassSpringBody {
         }
     }
 
-    /// The organ table's factor at `foot` on a coarse rest triangle and sphere depth `depth`
-    /// (m) ([`crate::mass_spring::organ`]): over the triangle's four Loop children (corner i's
-    /// child where `b_i >= 1/2`, else the middle one), whose corners are nodes and edge
-    /// midpoints: linear over the middle child; in a corner child over the three triangles its
-    /// centroid's site makes with its sides (linear when the table has no child sites). Each
+    /// The organ table's factor at barycentric weights `b` on coarse triangle `tri` (nodes; its
+    /// index `t` when known) and sphere depth `depth` (m) ([`crate::mass_spring::organ`]): over
+    /// the triangle's four Loop children (corner i's child where `b_i >= 1/2`, else the middle
+    /// one), whose corners are nodes and edge midpoints: linear over the middle child; in a
+    /// corner child over the three triangles its centroid's site makes with its sides (linear
+    /// without `t` or when the table has no child sites). Each
     /// site's coarse factor, or its subdivided one when it lies in a subdivided area (a child
     /// site when its corner does). Allocation-free.
-    fn organ_factor_at(&self, table: &OrganTable, foot: &RestFoot, depth: f64) -> f64 {
-        let tri = self.model.surface.triangles()[foot.triangle as usize];
-        let b = foot.bary;
+    fn organ_factor_at(
+        &self,
+        table: &OrganTable,
+        (tri, b): ([u32; 3], [f64; 3]),
+        t: Option<u32>,
+        depth: f64,
+    ) -> f64 {
         let nc = self.model.surface.node_count() as u32;
         let owned = |s: u32| self.state.owner[s as usize] != NO_OWNER;
         let site = |s: u32| table.factor(s, depth, owned(s));
@@ -128,7 +142,7 @@ impl MassSpringBody {
         let w = [2.0 * b[i] - 1.0, 2.0 * b[j], 2.0 * b[k]];
         let v = [site(tri[i]), m[i], m[k]];
         let linear = w[0] * v[0] + w[1] * v[1] + w[2] * v[2];
-        let Some(c) = table.child_site(foot.triangle, i) else {
+        let Some(c) = t.and_then(|t| table.child_site(t, i)) else {
             return linear;
         };
         // The sub-triangle (centroid, two of the child's corners) holding the foot: the
