@@ -154,7 +154,7 @@ fn organ_table(
             kind: TableKind::Organ,
             path,
             computed: false,
-            nodes: t.node_count() + t.edge_count(),
+            nodes: t.site_count(),
             seconds: 0.0,
             factor_range: organ_range(t),
         },
@@ -200,7 +200,7 @@ fn organ_table(
                 kind: TableKind::Organ,
                 path,
                 computed: true,
-                nodes: table.node_count() + table.edge_count(),
+                nodes: table.site_count(),
                 seconds: start.elapsed().as_secs_f64(),
                 factor_range: organ_range(&table),
             }
@@ -326,7 +326,7 @@ fn scale_range(t: &haptic_model::mass_spring::CalibrationTable) -> (f64, f64) {
 }
 
 fn organ_range(t: &haptic_model::mass_spring::OrganTable) -> (f64, f64) {
-    (0..(t.node_count() + t.edge_count()) as u32)
+    (0..t.site_count() as u32)
         .filter_map(|i| t.row(i))
         .flat_map(|r| r.factor.iter().chain(&r.factor_subdivided).copied())
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), a| {

@@ -372,16 +372,8 @@ fn build_organ(
                     "is stale: computed for key {:016x}, this scene needs {key:016x} (the surface, springs, probe, reference or axis changed)",
                     t.key()
                 ))
-            } else if (t.node_count(), t.edge_count())
-                != (surface.node_count(), surface.edge_count())
-            {
-                Err(format!(
-                    "covers {} nodes and {} edges, the surface has {} and {}",
-                    t.node_count(),
-                    t.edge_count(),
-                    surface.node_count(),
-                    surface.edge_count()
-                ))
+            } else if let Some(why) = t.mismatch(surface) {
+                Err(why)
             } else {
                 Ok(t)
             }

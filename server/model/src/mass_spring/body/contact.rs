@@ -2,6 +2,7 @@
 //! rest surface and the contact factor ([`crate::mass_spring::organ`]).
 
 use super::MassSpringBody;
+use crate::mass_spring::organ::OrganTable;
 use crate::mass_spring::organ::foot::RestFoot;
 use crate::mass_spring::organ::foot::foot_depth_m;
 use crate::mass_spring::organ::foot::rest_foot;
@@ -12,14 +13,12 @@ impl MassSpringBody {
     /// Tool slot `k`'s sphere depth ([`MassSpringBody::contact_depth_m`]: below the organ at
     /// the foot, the kernel plane's travel without a foot) and the
     /// contact factor at its current contact: the organ table at that depth, interpolated at
-    /// the foot of the kernel patch's centroid ([`MassSpringBody::patch_foot`]; in a
-    /// subdivided area too since session 15, where it was the probe's foot,
-    /// [`crate::mass_spring::organ::foot`]), over its coarse
-    /// triangle's four Loop children (corners: nodes and edge midpoints, the table's sites);
-    /// each site's coarse factor, or its subdivided one when it lies in a subdivided area. Off
-    /// the rest surface (no foot), at the contact point of the deformed surface (the probe's
-    /// triangle). Unchanged out of contact; the factor
-    /// unchanged without a table. Allocation-free.
+    /// the foot of the kernel patch's centroid ([`MassSpringBody::patch_foot`]) on the coarse
+    /// surface, at the probe's foot ([`crate::mass_spring::organ::foot`]) when its triangle
+    /// touches a subdivided area (session 16; session 15 the patch's centroid there too), over
+    /// its coarse triangle's Loop children ([`MassSpringBody::organ_factor_at`]). Off the rest
+    /// surface (no foot), at the contact point of the deformed surface (the probe's triangle).
+    /// Unchanged out of contact; the factor unchanged without a table. Allocation-free.
     pub(super) fn update_contact_factor(&mut self, k: usize) {
         let st = self.state.tools[k].probe.state;
         if !st.in_contact {
@@ -53,62 +52,104 @@ impl MassSpringBody {
         let Some(table) = &self.model.organ else {
             return;
         };
-        // On the coarse surface at the patch's centroid ([`MassSpringBody::patch_foot`]); in a
-        // subdivided area at the proxy's foot.
-        // At the patch's centroid, in a subdivided area too (session 15: on the 4 mm
-        // hemisphere the proxy's foot at h4, in node 408's Loop child, read the two edge
-        // midpoints' subdivided rows for 77 %, whose presses bear on one type-2 node and are
-        // 12-20 % softer at 0.25 mm than a press at h4 itself: +15.7 % there, +10.2 % read at
-        // the patch's centroid; the LV's broad patch moved by at most 0.7 points).
-        let at = self.patch_foot(k).or(self.state.tools[k].foot);
-        let (tri, b) = match at {
-            Some(foot) => (
-                self.model.surface.triangles()[foot.triangle as usize],
-                foot.bary,
-            ),
-            None => match self.state.tools[k]
-                .probe
-                .surface
-                .triangles
-                .get(st.triangle as usize)
-            {
-                Some(&tri) => (tri, st.bary),
-                None => return,
-            },
+        // On the coarse surface at the patch's centroid ([`MassSpringBody::patch_foot`], session
+        // 6); in a subdivided area at the proxy's foot (session 16, with the corner children's
+        // sites: a press along a child site's normal has its foot there, where the patch's
+        // centroid lies nearer the node; session 15 read the patch's centroid there too, with
+        // no child sites: on the 4 mm hemisphere the proxy's foot at h4 read the two edge
+        // midpoints' subdivided rows for 77 %, whose presses bear on one type-2 node).
+        let proxy = self.state.tools[k].foot;
+        let subdivided = |f: &RestFoot| {
+            let tri = self.model.surface.triangles()[f.triangle as usize];
+            tri.iter()
+                .any(|&s| self.state.owner[s as usize] != NO_OWNER)
         };
-        let nc = self.model.surface.node_count() as u32;
-        // A site of a subdivided area takes the subdivided configuration's factor.
-        let site = |s: u32| table.factor(s, depth, self.state.owner[s as usize] != NO_OWNER);
-        let beta = if tri.iter().all(|&s| s < nc) {
-            // A coarse triangle: linear over its four Loop children (corner i's child where
-            // b_i >= 1/2, else the middle one), whose corners are nodes and edge midpoints.
-            let edge = |i: usize| {
-                self.model
+        let at = if proxy.as_ref().is_some_and(subdivided) {
+            proxy
+        } else {
+            self.patch_foot(k).or(proxy)
+        };
+        let beta = match at {
+            Some(foot) => {
+                let tri = self.model.surface.triangles()[foot.triangle as usize];
+                self.organ_factor_at(table, (tri, foot.bary), Some(foot.triangle), depth)
+            }
+            None => {
+                let tri = self.state.tools[k]
+                    .probe
                     .surface
-                    .edge_between(tri[i], tri[(i + 1) % 3])
-                    .map_or(0.5 * (site(tri[i]) + site(tri[(i + 1) % 3])), |e| {
-                        site(nc + e)
-                    })
-            };
-            // m[i]: the factor at the midpoint of side (i, i + 1).
-            let m = [edge(0), edge(1), edge(2)];
-            match (0..3).find(|&i| b[i] >= 0.5) {
-                Some(i) => {
-                    let (j, k) = ((i + 1) % 3, (i + 2) % 3);
-                    (2.0 * b[i] - 1.0) * site(tri[i]) + 2.0 * b[j] * m[i] + 2.0 * b[k] * m[k]
-                }
-                None => {
-                    (1.0 - 2.0 * b[2]) * m[0]
-                        + (1.0 - 2.0 * b[0]) * m[1]
-                        + (1.0 - 2.0 * b[1]) * m[2]
+                    .triangles
+                    .get(st.triangle as usize);
+                let Some(&tri) = tri else {
+                    return;
+                };
+                let nc = self.model.surface.node_count() as u32;
+                if tri.iter().all(|&s| s < nc) {
+                    // A coarse triangle: over its Loop children, without the child sites.
+                    self.organ_factor_at(table, (tri, st.bary), None, depth)
+                } else {
+                    // A site of a subdivided area takes the subdivided configuration's factor.
+                    tri.iter()
+                        .zip(&st.bary)
+                        .map(|(&s, &w)| {
+                            w * table.factor(s, depth, self.state.owner[s as usize] != NO_OWNER)
+                        })
+                        .sum()
                 }
             }
-        } else {
-            tri.iter().zip(&b).map(|(&s, &w)| w * site(s)).sum()
         };
         if beta.is_finite() && beta > 0.0 {
             self.state.tools[k].contact_factor = beta;
         }
+    }
+
+    /// The organ table's factor at barycentric weights `b` on coarse triangle `tri` (nodes; its
+    /// index `t` when known) and sphere depth `depth` (m) ([`crate::mass_spring::organ`]): over
+    /// the triangle's four Loop children (corner i's child where `b_i >= 1/2`, else the middle
+    /// one), whose corners are nodes and edge midpoints: linear over the middle child; in a
+    /// corner child over the three triangles its centroid's site makes with its sides (linear
+    /// without `t` or when the table has no child sites). Each
+    /// site's coarse factor, or its subdivided one when it lies in a subdivided area (a child
+    /// site when its corner does). Allocation-free.
+    fn organ_factor_at(
+        &self,
+        table: &OrganTable,
+        (tri, b): ([u32; 3], [f64; 3]),
+        t: Option<u32>,
+        depth: f64,
+    ) -> f64 {
+        let nc = self.model.surface.node_count() as u32;
+        let owned = |s: u32| self.state.owner[s as usize] != NO_OWNER;
+        let site = |s: u32| table.factor(s, depth, owned(s));
+        let edge = |i: usize| {
+            self.model
+                .surface
+                .edge_between(tri[i], tri[(i + 1) % 3])
+                .map_or(0.5 * (site(tri[i]) + site(tri[(i + 1) % 3])), |e| {
+                    site(nc + e)
+                })
+        };
+        // m[i]: the factor at the midpoint of side (i, i + 1).
+        let m = [edge(0), edge(1), edge(2)];
+        let Some(i) = (0..3).find(|&i| b[i] >= 0.5) else {
+            return (1.0 - 2.0 * b[2]) * m[0]
+                + (1.0 - 2.0 * b[0]) * m[1]
+                + (1.0 - 2.0 * b[1]) * m[2];
+        };
+        let (j, k) = ((i + 1) % 3, (i + 2) % 3);
+        // The child's own weights on its corners: the node, side (i, j)'s and side (k, i)'s
+        // midpoints.
+        let w = [2.0 * b[i] - 1.0, 2.0 * b[j], 2.0 * b[k]];
+        let v = [site(tri[i]), m[i], m[k]];
+        let linear = w[0] * v[0] + w[1] * v[1] + w[2] * v[2];
+        let Some(c) = t.and_then(|t| table.child_site(t, i)) else {
+            return linear;
+        };
+        // The sub-triangle (centroid, two of the child's corners) holding the foot: the
+        // centroid's weight three times the smallest child weight.
+        let low = w[0].min(w[1]).min(w[2]);
+        let centre = table.factor(c, depth, owned(tri[i]));
+        3.0 * low * centre + linear - low * (v[0] + v[1] + v[2])
     }
 
     /// Where the organ table is read for tool slot `k` ([`crate::mass_spring::organ::foot`], session 6): the foot on the coarse

@@ -303,25 +303,15 @@ impl MassSpringBody {
     /// point. The sub-step plan is recomputed with the table's largest factor.
     ///
     /// # Errors
-    /// [`ModelError::SceneField`] (`mass_spring.organ_file`) for a table of another node count;
+    /// [`ModelError::SceneField`] (`mass_spring.organ_file`) for a table of another node, edge
+    /// or triangle count;
     /// [`ModelError::Unstable`] when the stiffest factor needs more than
     /// `integrator.max_substeps`.
     pub fn with_organ_table(mut self, table: OrganTable) -> Result<Self, ModelError> {
-        if (table.node_count(), table.edge_count())
-            != (
-                self.model.surface.node_count(),
-                self.model.surface.edge_count(),
-            )
-        {
+        if let Some(why) = table.mismatch(&self.model.surface) {
             return Err(ModelError::field(
                 "mass_spring.organ_file",
-                format!(
-                    "the organ table covers {} nodes and {} edges, the surface has {} and {}",
-                    table.node_count(),
-                    table.edge_count(),
-                    self.model.surface.node_count(),
-                    self.model.surface.edge_count()
-                ),
+                format!("the organ table {why}"),
             ));
         }
         let beta_max = table.max_factor().max(1.0);

@@ -265,16 +265,70 @@ fn ramp_and_hold(
 /// Where and along which direction (unit, inward) the calibration presses site `site` of
 /// `surface` (module documentation of [`super`]): a coarse node at its rest position along its
 /// inward rest normal; an edge's site (`node_count + e`) at the midpoint of the edge's ends
-/// along the inward mean of their normals.
+/// along the inward mean of their normals; a corner child's site ([`child_of_site`]) at its
+/// centroid on the flat rest triangle (weights 2/3 on the corner, 1/6 on the others) along the
+/// inward normals' mean with the same weights.
 pub fn site_press(surface: &SpringSurface, site: u32) -> (DVec3, DVec3) {
     let nc = surface.node_count() as u32;
+    let rest = surface.rest();
+    if let Some((t, i)) = child_of_site(surface, site) {
+        let tri = surface.triangles()[t as usize];
+        let w = |k: usize| if k == i { 2.0 / 3.0 } else { 1.0 / 6.0 };
+        let point = (0..3).map(|k| rest[tri[k] as usize] * w(k)).sum();
+        let normal: DVec3 = (0..3).map(|k| surface.rest_normal(tri[k]) * w(k)).sum();
+        return (point, -normal.normalize_or_zero());
+    }
     if site < nc {
-        return (surface.rest()[site as usize], -surface.rest_normal(site));
+        return (rest[site as usize], -surface.rest_normal(site));
     }
     let [a, b] = surface.edges()[(site - nc) as usize];
-    let rest = surface.rest();
     let normal = (surface.rest_normal(a) + surface.rest_normal(b)).normalize_or_zero();
     (0.5 * (rest[a as usize] + rest[b as usize]), -normal)
+}
+
+/// The coarse triangle and corner (0..3) of corner-child site `site` (`N + E + 3 t + i`,
+/// [`OrganTable::child_site`]); `None` for a node's or an edge's site or beyond.
+pub fn child_of_site(surface: &SpringSurface, site: u32) -> Option<(u32, usize)> {
+    let k = (site as usize).checked_sub(surface.node_count() + surface.edge_count())?;
+    (k < 3 * surface.triangle_count()).then_some(((k / 3) as u32, k % 3))
+}
+
+/// The subdivided row of corner-child site `site` ([`child_of_site`]): the body `subdivided`
+/// (the scene's run-time subdivision) pressed at the site ([`site_press`]) in its corner's area
+/// at the run time's factor ([`press_sphere_depths`]); its coarse `factor` left empty (the
+/// corners' mean, [`calibrate_organ`]) and its subdivided factor not yet clamped. `None` when
+/// the press fails or a factor falls outside [`FACTOR_RANGE`] (the site then takes its
+/// corners' mean).
+pub fn calibrate_child_site(
+    surface: &SpringSurface,
+    mut subdivided: MassSpringBody,
+    reference: &OrganReference,
+    axis: DVec3,
+    site: u32,
+) -> Option<OrganRow> {
+    let (t, i) = child_of_site(surface, site)?;
+    let corner = surface.triangles()[t as usize][i];
+    if !surface.is_fixed(corner) {
+        subdivided.subdivide_around(&[corner]);
+    }
+    let (point, inward) = site_press(surface, site);
+    let target = reference.target_at(axis, point);
+    let depths = reference.depths_m();
+    let f = press_sphere_depths(&mut subdivided, point, inward, depths, Some(&target)).ok()?;
+    let beta: Vec<f64> = target.iter().zip(&f).map(|(t, f)| t / f).collect();
+    if !beta
+        .iter()
+        .all(|b| (FACTOR_RANGE.0..=FACTOR_RANGE.1).contains(b))
+    {
+        return None;
+    }
+    Some(OrganRow {
+        factor: Vec::new(),
+        factor_subdivided: beta,
+        target_force_n: target,
+        spring_force_n: vec![0.0; depths.len()],
+        subdivided_force_n: f,
+    })
 }
 
 /// The organ row of site `site` (a free node, or an edge with a free end; module documentation
@@ -392,9 +446,10 @@ pub fn edge_area_end(surface: &SpringSurface, site: u32) -> Option<u32> {
 
 /// The organ table of `surface` for the scene `setup`, the reference and its axis, computed on
 /// `threads` threads with `progress(done, total)` after each site (module documentation of
-/// [`super`]): every free node and every edge with a free end is pressed; a fixed node takes
-/// the mean factors of its free neighbours, an edge between two fixed nodes (or one whose
-/// press fails) the mean of its ends.
+/// [`super`]): every free node, every edge with a free end and (subdividing) every corner
+/// child's site with a free corner is pressed; a fixed node takes the mean factors of its free
+/// neighbours, an edge between two fixed nodes (or one whose press fails) the mean of its ends,
+/// a child's site not pressed its corners' ([`calibrate_child_site`]).
 ///
 /// # Errors
 /// The errors of building the bodies ([`MassSpringBody::new`]); the first error of
@@ -410,19 +465,11 @@ pub fn calibrate_organ(
     let (coarse, subdivided) = organ_bodies(surface, &setup)?;
     let nc = surface.node_count();
     let ns = nc + surface.edge_count();
-    let free: Vec<u32> = (0..ns as u32)
-        .filter(|&s| {
-            if (s as usize) < nc {
-                !surface.is_fixed(s)
-            } else {
-                let [a, b] = surface.edges()[s as usize - nc];
-                !(surface.is_fixed(a) && surface.is_fixed(b))
-            }
-        })
-        .collect();
+    let free = pressed_sites(surface, subdivided.is_some());
     let next = AtomicUsize::new(0);
     let done = AtomicUsize::new(0);
-    let rows: Mutex<Vec<Option<OrganRow>>> = Mutex::new(vec![None; ns]);
+    let rows: Mutex<Vec<Option<OrganRow>>> =
+        Mutex::new(vec![None; ns + 3 * surface.triangle_count()]);
     let failure: Mutex<Option<ModelError>> = Mutex::new(None);
     std::thread::scope(|scope| {
         for _ in 0..threads.max(1) {
@@ -434,8 +481,18 @@ pub fn calibrate_organ(
                     }
                     let site = free[k];
                     let bodies = (coarse.clone(), subdivided.clone());
-                    match calibrate_organ_node(surface, bodies, reference, axis, site) {
-                        // An edge's site the probe cannot press takes its ends' mean.
+                    let result = match (site as usize >= ns, bodies.1) {
+                        (true, Some(body)) => {
+                            calibrate_child_site(surface, body, reference, axis, site)
+                                .ok_or_else(|| ModelError::NoConvergence(String::new()))
+                        }
+                        (_, sub) => {
+                            calibrate_organ_node(surface, (bodies.0, sub), reference, axis, site)
+                        }
+                    };
+                    match result {
+                        // An edge's or child's site the probe cannot press takes its ends' or
+                        // corners' mean.
                         Err(_) if site as usize >= nc => {
                             progress(done.fetch_add(1, Ordering::Relaxed) + 1, free.len());
                         }
@@ -473,8 +530,33 @@ pub fn calibrate_organ(
         key: organ_key(surface, params, &setup.probe, reference, axis),
         depths_m: reference.depths_m().to_vec(),
         nodes: nc,
+        children: 3 * surface.triangle_count(),
         rows: rows.into_iter().map(Option::unwrap_or_default).collect(),
     })
+}
+
+/// The sites [`calibrate_organ`] presses: every free node, every edge with a free end and, on
+/// a subdividing scene (`subdivides`), every corner child's site with a free corner.
+fn pressed_sites(surface: &SpringSurface, subdivides: bool) -> Vec<u32> {
+    let nc = surface.node_count();
+    let ns = nc + surface.edge_count();
+    let children = if subdivides {
+        3 * surface.triangle_count()
+    } else {
+        0
+    };
+    (0..(ns + children) as u32)
+        .filter(|&s| {
+            if let Some((t, i)) = child_of_site(surface, s) {
+                !surface.is_fixed(surface.triangles()[t as usize][i])
+            } else if (s as usize) < nc {
+                !surface.is_fixed(s)
+            } else {
+                let [a, b] = surface.edges()[s as usize - nc];
+                !(surface.is_fixed(a) && surface.is_fixed(b))
+            }
+        })
+        .collect()
 }
 
 /// The bodies a site is pressed on: the coarse surface (no subdivision) and, when the scene
@@ -513,10 +595,14 @@ fn organ_bodies(
 }
 
 /// Gives every site without a row (a fixed node, an edge whose press failed or whose ends are
-/// fixed) the mean row of its neighbours (a node) or its ends (an edge site), `m` samples.
+/// fixed) the mean row of its neighbours (a node) or its ends (an edge site), `m` samples;
+/// then every corner child's site ([`child_of_site`]) its corners' (the node and its two
+/// edges' sites) mean coarse factor and, unless pressed ([`calibrate_child_site`]), their
+/// mean subdivided factor and target; a pressed one clamped to [`SUBDIVIDED_FACTOR_SPREAD`]
+/// of its coarse factor.
 fn fill_fixed_sites(rows: &mut [Option<OrganRow>], surface: &SpringSurface, m: usize) {
     let nc = surface.node_count();
-    let ns = rows.len();
+    let ns = nc + surface.edge_count();
     let fixed: Vec<(usize, OrganRow)> = (0..nc)
         .filter(|&i| rows[i].is_none())
         .map(|i| (i, mean_row(rows, surface.neighbours(i as u32), m)))
@@ -529,6 +615,35 @@ fn fill_fixed_sites(rows: &mut [Option<OrganRow>], surface: &SpringSurface, m: u
             let ends = surface.edges()[s - nc];
             rows[s] = Some(mean_row(rows, &ends, m));
         }
+    }
+    for s in ns..rows.len() {
+        let Some((t, i)) = child_of_site(surface, s as u32) else {
+            continue;
+        };
+        let tri = surface.triangles()[t as usize];
+        // The child's corners: the node and the sites of its two sides.
+        let side = |j: usize| surface.edge_between(tri[j], tri[(j + 1) % 3]);
+        let corners: Vec<u32> = std::iter::once(tri[i])
+            .chain(
+                [side(i), side((i + 2) % 3)]
+                    .into_iter()
+                    .flatten()
+                    .map(|e| nc as u32 + e),
+            )
+            .collect();
+        let mean = mean_row(rows, &corners, m);
+        rows[s] = Some(match rows[s].take() {
+            Some(pressed) => {
+                let spread = SUBDIVIDED_FACTOR_SPREAD;
+                let sub = pressed.factor_subdivided.iter().zip(&mean.factor);
+                OrganRow {
+                    factor_subdivided: sub.map(|(s, c)| s.clamp(c / spread, c * spread)).collect(),
+                    factor: mean.factor,
+                    ..pressed
+                }
+            }
+            None => mean,
+        });
     }
 }
 

@@ -11,10 +11,12 @@
 //! as the dent deepened, whose factors are about half a node's on `hemisphere-springs`
 //! (docs/accuracy.md, "The spring surfaces, session 5"). The foot moves continuously as the
 //! probe slides, and the factor over the coarse triangles is continuous, so a stroke stays
-//! smooth. The factor itself is read at the same kind of foot of the kernel patch's centroid
-//! (`MassSpringBody::patch_foot`: on the coarse surface since session 6, in subdivided areas
-//! since session 15), which on a node, an edge's midpoint and a symmetric patch is this one;
-//! the depth and the subdivided area the press keeps are this foot's.
+//! smooth. On the coarse surface the factor itself is read at the same kind of foot of the
+//! kernel patch's centroid (`MassSpringBody::patch_foot`, since session 6; in subdivided areas
+//! too in session 15), which on a node, an edge's midpoint and a symmetric patch is this one;
+//! in a subdivided area at this foot (session 16: the table's sites at the corner Loop
+//! children's centroids, pressed along their own normals, have their foot there); the depth
+//! and the subdivided area the press keeps are this foot's.
 //!
 //! The organ table's depth is read there too ([`foot_depth_m`]): the sphere's depth below the
 //! flat rest triangle along the line, to which the body adds the organ's height over the

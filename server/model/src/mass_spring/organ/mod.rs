@@ -33,12 +33,20 @@
 //! ends' normals for an edge), never subdivided (`factor`) and with the run-time subdivision
 //! the scene configures around the contact (`factor_subdivided`: the eq. 4 table keeps the
 //! force at a node, not between nodes; a long edge's press in its nearer end's area,
-//! [`edge_area_end`]). At run time `beta` is interpolated in `s` and at the
-//! probe's *foot* on the coarse rest surface ([`foot`]: where the line through the sphere's
-//! centre along the contact normal meets the rest triangles, which for a press along a site's
-//! normal is the site itself, so a user's press there reads what the calibration measured)
-//! linearly over its coarse triangle's four Loop children (corners: coarse nodes and edge
-//! midpoints, exactly the sites). So it is continuous while the probe slides and constant during a
+//! [`edge_area_end`]). Since version 5 the subdivided column also has a row at the centroid of
+//! each coarse triangle's three corner Loop children (pressed in the corner's area): between a
+//! node and its edges' midpoints a subdivided surface's needed factor stays near the node's
+//! and rises only close to the midpoints (a press there bears on one type-2 node), which a
+//! linear interpolation over the child cannot follow (session 16: +10 % at the point h4 of
+//! `hemisphere-springs` at 0.25 mm; docs/accuracy.md). At run time `beta` is interpolated in
+//! `s` and at the probe's *foot* on the coarse rest surface ([`foot`]: where the line through
+//! the sphere's centre along the contact normal meets the rest triangles, which for a press
+//! along a site's normal is the site itself, so a user's press there reads what the
+//! calibration measured) over its coarse triangle's four Loop children (corners: coarse nodes
+//! and edge midpoints, exactly the sites): linearly over the middle child, over the three
+//! triangles a corner child's centroid makes with its sides in a corner child (with the
+//! coarse column, whose centroid rows are their corners' mean, that is the same linear
+//! interpolation). So it is continuous while the probe slides and constant during a
 //! hold; the centroid of a triangle takes the mean of its edges' factors (measured:
 //! docs/accuracy.md).
 //!
@@ -69,7 +77,8 @@ pub mod foot;
 pub use calibrate::{
     DEPTH_ATTEMPTS, DEPTH_FALLBACK_TOLERANCE, DEPTH_TOLERANCE, FACTOR_TOLERANCE, MAX_HOLD_TICKS,
     OrganSetup, RAMP_TICKS, SETTLE_TOLERANCE, SETTLE_WINDOW_TICKS, SUBDIVIDED_FACTOR_SPREAD,
-    calibrate_organ, calibrate_organ_node, edge_area_end, press_sphere_depths, site_press,
+    calibrate_child_site, calibrate_organ, calibrate_organ_node, child_of_site, edge_area_end,
+    press_sphere_depths, site_press,
 };
 
 /// Version of the organ table's definition; part of its key. 3 (session 5): in a subdivided
@@ -79,7 +88,8 @@ pub use calibrate::{
 /// 4 (session 13): on the coarse surface too (wherever the probe has a foot), the depth is the
 /// sphere's depth below the organ at the foot: the flat triangle's plus the organ's height
 /// over it (the arcs over its edges), as in a subdivided area since session 12.
-pub const ORGAN_VERSION: u32 = 4;
+/// 5 (session 16): the sites at the corner Loop children's centroids ([`OrganTable::child_site`]).
+pub const ORGAN_VERSION: u32 = 5;
 
 /// The column header of a reference file (further columns may follow, e.g. each mesh level's
 /// force; they are not read).
@@ -289,7 +299,8 @@ impl OrganReference {
     }
 }
 
-/// One site's row of the organ table (a coarse node, or a coarse edge's midpoint).
+/// One site's row of the organ table (a coarse node, a coarse edge's midpoint, or a corner
+/// Loop child's centroid).
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct OrganRow {
     /// The contact factor `beta` of the coarse surface at each of the table's depths.
@@ -310,12 +321,16 @@ pub struct OrganRow {
 
 /// The organ table of a surface (module documentation): per *site* the contact factor over
 /// sphere depth. The sites are the coarse nodes `0..N`, then one per coarse edge `e` (its
-/// midpoint, site `N + e`: the number Loop subdivision gives the edge's new node).
+/// midpoint, site `N + e`: the number Loop subdivision gives the edge's new node), then three
+/// per coarse triangle `t` (the centroids of its corner Loop children, site `N + E + 3 t + i`
+/// for corner `i`: [`OrganTable::child_site`]; version 5).
 #[derive(Debug, Clone, PartialEq)]
 pub struct OrganTable {
     key: u64,
     depths_m: Vec<f64>,
     nodes: usize,
+    /// Sites at the corner children's centroids (three per coarse triangle), the last rows.
+    children: usize,
     rows: Vec<OrganRow>,
 }
 
@@ -332,7 +347,42 @@ impl OrganTable {
 
     /// Number of coarse edges (sites after the nodes).
     pub fn edge_count(&self) -> usize {
-        self.rows.len() - self.nodes
+        self.rows.len() - self.nodes - self.children
+    }
+
+    /// Number of corner children's sites (three per coarse triangle, after the edges).
+    pub fn child_count(&self) -> usize {
+        self.children
+    }
+
+    /// Number of sites (nodes, edges and corner children).
+    pub fn site_count(&self) -> usize {
+        self.rows.len()
+    }
+
+    /// The site of the centroid of coarse triangle `t`'s Loop child at its corner `i` (0..3),
+    /// `None` when the table has no such site.
+    pub fn child_site(&self, t: u32, i: usize) -> Option<u32> {
+        let k = 3 * t as usize + i;
+        (i < 3 && k < self.children).then(|| (self.rows.len() - self.children + k) as u32)
+    }
+
+    /// Why the table does not fit `surface` (another node, edge or triangle count), or `None`.
+    pub fn mismatch(&self, surface: &SpringSurface) -> Option<String> {
+        let (n, e, t) = (
+            surface.node_count(),
+            surface.edge_count(),
+            surface.triangle_count(),
+        );
+        ((self.nodes, self.edge_count(), self.children) != (n, e, 3 * t)).then(|| {
+            format!(
+                "covers {} nodes, {} edges and {} child sites, the surface has {n}, {e} and {}",
+                self.nodes,
+                self.edge_count(),
+                self.children,
+                3 * t
+            )
+        })
     }
 
     /// The sphere depths of the samples, m.
@@ -340,7 +390,8 @@ impl OrganTable {
         &self.depths_m
     }
 
-    /// Site `i`'s row (a node below [`OrganTable::node_count`], an edge's midpoint from it).
+    /// Site `i`'s row (a node below [`OrganTable::node_count`], then the edges' midpoints, then
+    /// the corner children's centroids, [`OrganTable::child_site`]).
     pub fn row(&self, i: u32) -> Option<&OrganRow> {
         self.rows.get(i as usize)
     }
@@ -388,6 +439,7 @@ impl OrganTable {
         );
         let _ = writeln!(s, "# nodes {}", self.nodes);
         let _ = writeln!(s, "# edges {}", self.edge_count());
+        let _ = writeln!(s, "# children {}", self.children);
         let _ = writeln!(s, "# samples {}", self.depths_m.len());
         let _ = writeln!(s, "{TABLE_COLUMNS}");
         for (i, r) in self.rows.iter().enumerate() {
@@ -442,7 +494,8 @@ impl OrganTable {
                     "a row before the `# nodes`, `# edges` and `# samples` lines".into(),
                 ));
             };
-            reader.read(line, nn + ne, m, &|message| err(ln, message))?;
+            let n = nn + ne + counts.children.unwrap_or(0);
+            reader.read(line, n, m, &|message| err(ln, message))?;
         }
         let key = counts.key.ok_or_else(|| err(0, "no `# key` line".into()))?;
         let nn = counts
@@ -451,7 +504,7 @@ impl OrganTable {
         let ne = counts
             .edges
             .ok_or_else(|| err(0, "no `# edges` line".into()))?;
-        let n = nn + ne;
+        let n = nn + ne + counts.children.unwrap_or(0);
         let RowReader { depths, rows, next } = reader;
         if rows.len() != n || next.1 != 0 {
             return Err(err(
@@ -463,6 +516,7 @@ impl OrganTable {
             key,
             depths_m: depths,
             nodes: nn,
+            children: counts.children.unwrap_or(0),
             rows,
         })
     }
@@ -558,12 +612,14 @@ impl RowReader {
     }
 }
 
-/// The `# key`, `# nodes`, `# edges` and `# samples` lines of a table file.
+/// The `# key`, `# nodes`, `# edges`, `# children` (none before version 5) and `# samples`
+/// lines of a table file.
 #[derive(Default)]
 struct Counts {
     key: Option<u64>,
     nodes: Option<usize>,
     edges: Option<usize>,
+    children: Option<usize>,
     samples: Option<usize>,
 }
 
@@ -595,6 +651,13 @@ impl Counts {
             self.nodes = Some(count(v, "nodes")?);
         } else if let Some(v) = c.strip_prefix("edges ") {
             self.edges = Some(count(v, "edges")?);
+        } else if let Some(v) = c.strip_prefix("children ") {
+            // Zero allowed: a table without the corner children's sites.
+            self.children = Some(if v.trim() == "0" {
+                0
+            } else {
+                count(v, "children")?
+            });
         } else if let Some(v) = c.strip_prefix("samples ") {
             let n = count(v, "samples")?;
             if n > 1000 {
@@ -704,6 +767,7 @@ mod tests {
             key: 0xabc,
             depths_m: vec![1e-4, 1e-3],
             nodes: 1,
+            children: 0,
             rows: vec![
                 OrganRow {
                     factor: vec![2.0, 1.0],
@@ -724,6 +788,29 @@ mod tests {
         let back = OrganTable::parse(&t.to_text("x\ny"), "t").expect("parses");
         assert_eq!(back, t);
         assert_eq!((back.node_count(), back.edge_count()), (1, 1));
+        assert_eq!((back.child_count(), back.child_site(0, 0)), (0, None));
+        // With the corner children's sites (version 5): the last rows, three per triangle.
+        let mut with_children = t.clone();
+        let child = with_children.rows[1].clone();
+        with_children
+            .rows
+            .extend([child.clone(), child.clone(), child]);
+        with_children.children = 3;
+        let text = with_children.to_text("");
+        let back = OrganTable::parse(&text, "t").expect("parses");
+        assert_eq!(back, with_children);
+        assert_eq!(
+            (back.edge_count(), back.child_count(), back.site_count()),
+            (1, 3, 5)
+        );
+        assert_eq!(
+            (back.child_site(0, 0), back.child_site(0, 2)),
+            (Some(2), Some(4))
+        );
+        assert_eq!((back.child_site(1, 0), back.child_site(0, 3)), (None, None));
+        let short = text.replace("# children 3", "# children 4");
+        let e = OrganTable::parse(&short, "t").expect_err("a site short");
+        assert!(e.to_string().contains("5 complete sites of the 6"), "{e}");
         assert_eq!(t.factor(0, 0.0, false), 2.0);
         assert!((t.factor(0, 5.5e-4, false) - 1.5).abs() < 1e-12);
         assert!((t.factor(0, 5.5e-4, true) - 2.25).abs() < 1e-12);
