@@ -84,7 +84,7 @@ max_force_n = 10.0
 /// surface with one-ring subdivision.
 const HEMISPHERE_SPRINGS_TOML: &str = r#"# Built-in scene "hemisphere-springs" (a copy of the constant in server/model/src/scene/builtin.rs).
 name = "hemisphere-springs"
-description = "A triangulated hemisphere (Zhang, Payandeh & Dill, Haptic Subdivision, Figure 12) as a mass-spring surface with home springs (eq. 1-2) and run-time one-ring Loop subdivision around the contact node, spring constants from the calibrated table (section 3.2.4). K_h = K_m = 0.06 N/mm as in the paper's experiment (section 3.2.2); radius 50 mm and edges of about 4 mm (the paper's 8 mm until session 13: under the 4 mm probe a press between nodes then bore on one node), node mass 1 g and damping 0.2 N s/m are ours (the paper gives none); rim clamped. Every spring times the contact factor of the organ table (per node and edge midpoint and sphere depth), calibrated to the FEM of the solid half ball it bounds (stable neo-Hookean, E = 14.5 kPa, nu = 0.45, base clamped, the exact 4 mm sphere) at six points from the pole towards the rim (reference_file; docs/accuracy.md)."
+description = "A triangulated hemisphere (Zhang, Payandeh & Dill, Haptic Subdivision, Figure 12) as a mass-spring surface with home springs (eq. 1-2) and run-time one-ring Loop subdivision around the contact node, spring constants from the calibrated table (section 3.2.4). K_h = K_m = 0.06 N/mm as in the paper's experiment (section 3.2.2); radius 50 mm and edges of about 4 mm (the paper's 8 mm until session 13: under the 4 mm probe a press between nodes then bore on one node), node mass 1 g and damping 0.2 N s/m are ours (the paper gives none); rim clamped. Every spring times the contact factor of the organ table (per node, edge midpoint and corner Loop child of a triangle, and sphere depth), calibrated to the FEM of the solid half ball it bounds (stable neo-Hookean, E = 14.5 kPa, nu = 0.45, base clamped, the exact 4 mm sphere) at six points from the pole towards the rim (reference_file; docs/accuracy.md)."
 
 [model]
 family = "mass-spring"
@@ -112,7 +112,7 @@ coarsen_delay_s = 0.2           # an area is coarsened 0.2 s after the probe lef
 calibration_file = "hemisphere-springs.calibration.csv"
 reference_file = "hemisphere-springs.reference.csv"  # the solid half ball's FEM reference at six points (springs_reference/)
 reference_axis = [0, 0, 1]      # a body of revolution about z: the target depends on the height (the polar angle)
-organ_file = "hemisphere-springs.organ.csv"  # the contact factor per node and edge midpoint and sphere depth (haptic-calibrate)
+organ_file = "hemisphere-springs.organ.csv"  # the contact factor per node, edge midpoint and corner Loop child of a triangle, and sphere depth (haptic-calibrate)
 
 [integrator]
 kind = "symplectic-euler"
@@ -131,7 +131,7 @@ max_force_n = 10.0
 /// Built-in scene `lv-surface-springs`: the LV epicardium as a mass-spring surface.
 const LV_SURFACE_SPRINGS_TOML: &str = r#"# Built-in scene "lv-surface-springs" (a copy of the constant in server/model/src/scene/builtin.rs).
 name = "lv-surface-springs"
-description = "The epicardium of the idealized left ventricle (built-in lv geometry, the linear mesh of about 2000 tets: 350 surface nodes, edges of about 2.2 mm) as a mass-spring surface with home springs (Zhang, Payandeh & Dill eq. 1-2), base rim clamped, run-time two-ring Loop subdivision with calibrated springs (the area the press made kept while the probe stays in it). K_h = K_m = 2.013 N/m, every spring times the contact factor of the organ table, calibrated to the stable neo-Hookean reference at six epicardial points (reference_file: lv-probe, p1-p5; per node and edge midpoint; within 10 % at the six points from 0.25 to 4 mm, subdivided and not: docs/accuracy.md); node mass: the myocardium (3.43 g) over the epicardial nodes; damping about critical per node."
+description = "The epicardium of the idealized left ventricle (built-in lv geometry, the linear mesh of about 2000 tets: 350 surface nodes, edges of about 2.2 mm) as a mass-spring surface with home springs (Zhang, Payandeh & Dill eq. 1-2), base rim clamped, run-time two-ring Loop subdivision with calibrated springs (the area the press made kept while the probe stays in it). K_h = K_m = 2.013 N/m, every spring times the contact factor of the organ table, calibrated to the stable neo-Hookean reference at six epicardial points (reference_file: lv-probe, p1-p5; per node, edge midpoint and corner Loop child of a triangle; within 10 % at the six points from 0.25 to 4 mm, subdivided and not: docs/accuracy.md); node mass: the myocardium (3.43 g) over the epicardial nodes; damping about critical per node."
 
 [model]
 family = "mass-spring"
@@ -157,7 +157,7 @@ coarsen_delay_s = 0.2
 calibration_file = "lv-surface-springs.calibration.csv"
 reference_file = "lv-surface-springs.reference.csv"  # the organ's FEM reference at six points (springs_reference/)
 reference_axis = [0, 0, 1]      # the LV is a body of revolution about z: the target depends on the height
-organ_file = "lv-surface-springs.organ.csv"  # the contact factor per node and edge midpoint and sphere depth (haptic-calibrate)
+organ_file = "lv-surface-springs.organ.csv"  # the contact factor per node, edge midpoint and corner Loop child of a triangle, and sphere depth (haptic-calibrate)
 
 [integrator]
 kind = "symplectic-euler"
