@@ -523,7 +523,14 @@ fn bad_active_regions_are_rejected_with_the_field_named() {
 /// The built-in LV (linear tets, base clamped), a load of `force_n` spread over the
 /// epicardial nodes within 2 mm of the equator point, and the region around it.
 fn setup(smoothing: StrainSmoothing) -> (FemModel, haptic_model::mesh::TetMesh, Vec<DVec3>, DVec3) {
-    let mesh = generate::lv_shell(2000);
+    setup_on(generate::lv_shell(2000), smoothing)
+}
+
+/// [`setup`] on `mesh` (a generated LV shell).
+fn setup_on(
+    mesh: haptic_model::mesh::TetMesh,
+    smoothing: StrainSmoothing,
+) -> (FemModel, haptic_model::mesh::TetMesh, Vec<DVec3>, DVec3) {
     let scene = load_builtin("lv").expect("lv");
     let mut fem = FemModel::with_smoothing(&mesh, scene.material, smoothing).expect("fem");
     let base = mesh
@@ -1748,4 +1755,101 @@ fn a_union_region_holds_its_balls_elements_and_refuses_bad_centres() {
         assert!(full.push(a));
     }
     assert!(!full.push(b) && full.centres().len() == MAX_REGION_BALLS);
+}
+
+/// The far products cut in two for a 2-thread tick pool (issue 48 s1,
+/// `CondensedSolver::set_parts`): on a 20 000-tet LV with a 6 mm region (the interface's `S`
+/// above the cut's threshold), a cut copy stepped on the pool follows the
+/// uncut solver to double-precision round-off (1e-9 of the largest displacement) under a
+/// push, the far surface rows included, with other work run beside its solve once a tick
+/// (`step_in`'s `beside`); the worker ran parts; neither thread allocates; one part
+/// (`set_parts(1)`) restores the uncut step bit for bit.
+#[test]
+fn the_far_products_cut_in_two_follow_the_uncut_step_without_allocating() {
+    use haptic_model::integrate::condensed::CUT_FAR_MIN_ENTRIES;
+    use haptic_model::pool::{StartHook, TickPool};
+    use std::sync::Arc;
+    // Registers pool workers: one such test at a time in this binary (`counting_alloc`).
+    let _one = counting_alloc::one_at_a_time();
+    let (fem, mesh, f, centre) = setup_on(generate::lv_shell(20_000), StrainSmoothing::None);
+    let region = ActiveRegion {
+        centre_m: centre,
+        radius_m: 0.006,
+        ..ACTIVE
+    };
+    let mut whole = CondensedSolver::new(&fem, &mesh, region, 1e-3).expect("condensed");
+    let g = whole.sizes().interface_nodes * 3;
+    assert!(
+        g * (g + 1) / 2 >= CUT_FAR_MIN_ENTRIES,
+        "{g} interface components: S below the cut's threshold"
+    );
+    assert!(
+        whole.surface_refresh_ticks() > 1,
+        "no far surface rows to refresh"
+    );
+    let mut cut = whole.clone();
+    assert!(!cut.set_parts(1), "one part cut");
+    assert!(cut.set_parts(2), "two parts did not cut");
+    let hook: StartHook = Arc::new(|_| counting_alloc::count_this_thread());
+    let pool = TickPool::new(1, hook).expect("pool");
+    let mut xa = fem.rest().to_vec();
+    let mut va = vec![DVec3::ZERO; xa.len()];
+    let (mut xb, mut vb) = (xa.clone(), va.clone());
+    let ticks = 3 * whole.surface_refresh_ticks();
+    // Other work of the tick beside the solve (a companion's tick in a body), once a tick.
+    let mut beside_runs = 0_usize;
+    let ((), allocations) = counting_alloc::counted_registered(|| {
+        let _hot = pool.hot();
+        let mut beside = || beside_runs += 1;
+        for _ in 0..ticks {
+            whole.step(&f, None, &mut xa, &mut va);
+            cut.step_in(Some(&pool), Some(&mut beside), &f, None, &mut xb, &mut vb);
+        }
+    });
+    assert_eq!(allocations, 0, "the servo thread or the worker allocated");
+    assert_eq!(
+        beside_runs, ticks,
+        "the work beside the solve did not run once a tick"
+    );
+    let largest = xa
+        .iter()
+        .zip(fem.rest())
+        .map(|(x, r)| x.distance(*r))
+        .fold(0.0, f64::max);
+    assert!(largest > 1e-6, "the push moved nothing: {largest:.3e} m");
+    let worst = xa
+        .iter()
+        .zip(&xb)
+        .map(|(a, b)| a.distance(*b))
+        .fold(0.0, f64::max);
+    assert!(
+        worst <= 1e-9 * largest,
+        "cut step off by {worst:.3e} m of {largest:.3e} m"
+    );
+    let stats = pool.stats();
+    assert_eq!(
+        stats.jobs,
+        2 * ticks as u64,
+        "a parts job and a join a tick: {stats:?}"
+    );
+    assert!(
+        stats.parts_on_workers > 0,
+        "the worker ran no part: {stats:?}"
+    );
+    // One part again: the uncut step, bit for bit, from equal states.
+    cut.set_parts(1);
+    let (mut xc, mut vc) = (xa.clone(), va.clone());
+    for _ in 0..10 {
+        whole.step(&f, None, &mut xa, &mut va);
+        cut.step_in(Some(&pool), None, &f, None, &mut xc, &mut vc);
+    }
+    assert!(xa == xc && va == vc, "one part is not the uncut step");
+    assert_eq!(
+        pool.stats().jobs,
+        2 * ticks as u64,
+        "one part still ran parts jobs"
+    );
+    eprintln!(
+        "g = {g}, {ticks} ticks, largest displacement {largest:.3e} m, cut off by {worst:.3e} m; pool {stats:?}"
+    );
 }

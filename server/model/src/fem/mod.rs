@@ -341,7 +341,7 @@ impl FemBody {
         let _hot = pool.hot();
         let outputs = &mut outputs[..inputs.len()];
         match self.fallback.take() {
-            None => self.tick_model(inputs, outputs)?,
+            None => self.tick_model(inputs, outputs, None)?,
             Some(mut fb) => {
                 let ticked = self.tick_with_companion(inputs, outputs, &mut fb);
                 self.fallback = Some(fb);
@@ -353,11 +353,13 @@ impl FemBody {
     }
 
     /// [`Self::tick_tools`] of a following region with its coarse companion `fb` (taken out
-    /// of `self.fallback` meanwhile): the region on this thread and the companion's tick of
-    /// every slot beside it on a pool worker ([`TickPool::join`]; they share nothing but
-    /// `inputs`, so the outputs do not depend on the thread count), then each slot's blend
-    /// (module documentation, "The coarse companion"). Both tick even when the region fails
-    /// (its error is returned first; a diverged region quarantines the session anyway).
+    /// of `self.fallback` meanwhile): the region on this thread, the companion's tick of every
+    /// slot on a pool worker beside the region's solve (its longest serial piece:
+    /// [`Stepper::step_tools`]'s `beside`; the forces before it and the far products get the
+    /// worker too), then each slot's blend (module documentation, "The coarse companion").
+    /// The two share nothing but `inputs`, so the companion's outputs do not depend on the
+    /// thread count. Both tick even when the region fails (its error is returned first; a
+    /// diverged region quarantines the session anyway).
     fn tick_with_companion(
         &mut self,
         inputs: &[TickInput],
@@ -365,14 +367,16 @@ impl FemBody {
         fb: &mut Fallback,
     ) -> Result<(), ModelError> {
         let swaps_before = self.follow.0.as_ref().map_or(0, RegionFollower::swaps);
-        let pool = Arc::clone(&self.pool);
         let n = inputs.len();
         let mut fine = [TickOutput::default(); MAX_TOOLS];
         let mut coarse = [TickOutput::default(); MAX_TOOLS];
-        let (ticked, companion) = pool.join(
-            || self.tick_model(inputs, &mut fine[..n]),
-            || fb.tick_companion(inputs, &mut coarse[..n]),
-        );
+        let mut companion = None;
+        let ticked = {
+            let mut beside = || companion = Some(fb.tick_companion(inputs, &mut coarse[..n]));
+            self.tick_model(inputs, &mut fine[..n], Some(&mut beside))
+        };
+        // A region that failed before its step did not run the companion.
+        let companion = companion.unwrap_or_else(|| fb.tick_companion(inputs, &mut coarse[..n]));
         ticked?;
         companion?;
         let swapped = self.follow.0.as_ref().map_or(0, RegionFollower::swaps) != swaps_before;
@@ -387,11 +391,13 @@ impl FemBody {
     }
 
     /// The tick of this body's own model (the region when one follows), without the companion:
-    /// [`Self::tick_tools`] after its checks.
+    /// [`Self::tick_tools`] after its checks; `beside` runs once, beside the first sub-step's
+    /// solve ([`Stepper::step_tools`]), unless the tick fails before it.
     fn tick_model(
         &mut self,
         inputs: &[TickInput],
         outputs: &mut [TickOutput],
+        mut beside: Option<&mut (dyn FnMut() + Send)>,
     ) -> Result<(), ModelError> {
         if let (Some(f), Stepper::Condensed(solver)) = (&mut self.follow.0, &mut self.stepper) {
             let mut devices = [None; MAX_TOOLS];
@@ -412,22 +418,33 @@ impl FemBody {
             );
         }
         for _ in 0..self.setup.plan.substeps {
-            // 1. Forces: internal and external.
+            // 1. Forces, internal and external, and every probe's contact (its proxy and
+            // patch) beside them on a pool worker (serially without one: the one-core path);
+            // the forces cut into the pool's parts, which the worker joins when the contact
+            // is done (one part without a pool, bit for bit).
             self.scratch.force.iter_mut().for_each(|f| *f = DVec3::ZERO);
-            // Cut into the pool's parts (one part without a pool: the one-core path, bit for
-            // bit; with a companion its worker is usually busy, so the parts run here).
-            self.stepper.add_internal_forces_in(
-                &*self.pool,
-                &self.fem,
-                (&self.state.x, &self.state.v),
-                &mut self.scratch.force,
-                &mut self.scratch.kernel,
+            let pool = Arc::clone(&self.pool);
+            let (stepper, fem, state) = (&self.stepper, &self.fem, &self.state);
+            let (scratch, probes) = (&mut self.scratch, &mut self.probes);
+            pool.join(
+                || {
+                    stepper.add_internal_forces_in(
+                        &*pool,
+                        fem,
+                        (&state.x, &state.v),
+                        &mut scratch.force,
+                        &mut scratch.kernel,
+                    );
+                },
+                || update_probes(probes, inputs, &state.x),
             );
             self.loads.add_to(&self.state.x, &mut self.scratch.force);
-            // 2. Contact: every probe's proxy and the explicit part of its reaction.
-            self.update_probes(inputs);
+            // 2. The explicit part of every probe's reaction.
+            self.add_probe_reactions(inputs);
             // 3. Step, completing the couplings.
             let report = self.stepper.step_tools(
+                Some(&*self.pool),
+                beside.take(),
                 &self.fem,
                 &self.scratch.force,
                 &mut self.probes,
@@ -464,19 +481,16 @@ impl FemBody {
 
     /// Contact of one sub-step: each slot's probe at its device (released without one, and
     /// past `inputs`), its explicit reaction into the force; the probe load acts at slot 0.
-    fn update_probes(&mut self, inputs: &[TickInput]) {
+    /// Adds the explicit part of the reaction of every probe with a device (updated by
+    /// [`update_probes`]) to the forces, and the probe load's share on the first one's patch.
+    fn add_probe_reactions(&mut self, inputs: &[TickInput]) {
         for (k, probe) in self.probes.iter_mut().enumerate() {
-            let input = inputs.get(k).copied().unwrap_or_default();
-            match input.device_position_m {
-                Some(p) => {
-                    probe.update(&self.state.x, p, input.device_velocity_m_per_s);
-                    probe.add_reaction(&mut self.scratch.force);
-                    if k == 0 && self.loads.probe_load_remaining_s() > 0.0 {
-                        let patch = probe.load_patch(&self.state.x);
-                        self.loads.add_probe_load_to(patch, &mut self.scratch.force);
-                    }
+            if inputs.get(k).is_some_and(|i| i.device_position_m.is_some()) {
+                probe.add_reaction(&mut self.scratch.force);
+                if k == 0 && self.loads.probe_load_remaining_s() > 0.0 {
+                    let patch = probe.load_patch(&self.state.x);
+                    self.loads.add_probe_load_to(patch, &mut self.scratch.force);
                 }
-                None => probe.release(),
             }
         }
     }
@@ -1008,17 +1022,37 @@ impl SoftBody for FemBody {
         if self.fallback.is_some() { 2 } else { 1 }
     }
 
-    /// Keeps `pool` for the companion's tick ([`FemBody::tick`]) and the element forces in
-    /// parts (the kernels' per-part arrays are sized here: in single precision, and in double
-    /// precision without a companion, whose tick keeps the worker busy, so that the parts
-    /// would run one after the other for nothing and change the sums); the companion itself
-    /// gets none.
+    /// Keeps `pool` for the element forces in parts (the kernels' per-part arrays are sized
+    /// here), a condensed region's far products in two parts
+    /// ([`CondensedSolver::set_parts`], now and on every region prepared later) and the
+    /// coarse companion's tick beside the region's solve ([`FemBody::tick`]): the worker is
+    /// free for the forces' and the far products' parts first. The companion itself gets
+    /// none.
     fn set_tick_pool(&mut self, pool: Arc<TickPool>) {
-        if self.fem.single_precision() || self.fallback.is_none() {
-            self.scratch
-                .kernel
-                .ensure(self.fem.node_count(), pool.threads());
+        self.scratch
+            .kernel
+            .ensure(self.fem.node_count(), pool.threads());
+        if let Some(solver) = self.stepper.condensed_mut() {
+            solver.set_parts(pool.threads());
+        }
+        if let Some(f) = &self.follow.0 {
+            f.set_parts(pool.threads());
         }
         self.pool = pool;
+    }
+}
+
+/// Every probe's contact at positions `x`: slot `k` follows `inputs[k]`'s device, or is
+/// released without one (or past `inputs`). Reads nothing else of the body, so it runs beside
+/// the force evaluation ([`FemBody::tick_tools`]).
+fn update_probes(probes: &mut [Probe], inputs: &[TickInput], x: &[DVec3]) {
+    for (k, probe) in probes.iter_mut().enumerate() {
+        let input = inputs.get(k).copied().unwrap_or_default();
+        match input.device_position_m {
+            Some(p) => {
+                probe.update(x, p, input.device_velocity_m_per_s);
+            }
+            None => probe.release(),
+        }
     }
 }

@@ -45,6 +45,7 @@ pub mod follow;
 pub mod implicit;
 pub(crate) mod region_section;
 
+use crate::pool::TickPool;
 use condensed::{ActiveRegion, CondensedSolver};
 use implicit::{CgStats, ImplicitSolver};
 
@@ -483,7 +484,15 @@ impl Stepper {
     ) -> StepReport {
         // One probe never joins terms: an empty merge allocates nothing.
         let mut merge = CouplingMerge::default();
-        self.step_tools(body, f, std::slice::from_mut(probe), &mut merge, state)
+        self.step_tools(
+            None,
+            None,
+            body,
+            f,
+            std::slice::from_mut(probe),
+            &mut merge,
+            state,
+        )
     }
 
     /// [`Self::step`] with several probes (tools, issue 50) acting on the body in the same
@@ -492,12 +501,18 @@ impl Stepper {
     /// `probes`, [`CouplingMerge::with_capacity`]) with the block-diagonal compliance, exact
     /// in the same Woodbury solve; with at most one, that probe's term as [`Self::step`]
     /// (bit for bit). The explicit schemes complete the probes' couplings one after another
-    /// (Sherman-Morrison each, on the velocities the previous one left). Allocation-free.
+    /// (Sherman-Morrison each, on the velocities the previous one left). A condensed region
+    /// runs the pieces [`CondensedSolver::set_parts`] cut on `pool` and `beside` (other work
+    /// of the tick) on a worker beside its solve ([`CondensedSolver::step_in`]); the other
+    /// steppers run `beside` first. Allocation-free (`beside` aside).
     ///
     /// # Panics
     /// As [`Self::step`]; when `merge` is too small for the probes in contact.
+    #[allow(clippy::too_many_arguments)]
     pub fn step_tools(
         &mut self,
+        pool: Option<&TickPool>,
+        beside: Option<&mut (dyn FnMut() + Send)>,
         body: &FemModel,
         f: &[DVec3],
         probes: &mut [Probe],
@@ -505,10 +520,18 @@ impl Stepper {
         state: &mut FemState,
     ) -> StepReport {
         let (x, v) = (&mut state.x, &mut state.v);
+        let beside = match (self.condensed(), beside) {
+            (None, Some(b)) => {
+                b();
+                None
+            }
+            (_, b) => b,
+        };
         let max_v2 = match self {
             Self::Condensed(solver) => {
                 let h = solver.dt_s();
-                let max_v2 = solver.step(f, joined_coupling(probes, merge, h), x, v);
+                let coupling = joined_coupling(probes, merge, h);
+                let max_v2 = solver.step_in(pool, beside, f, coupling, x, v);
                 probes.iter_mut().for_each(|p| p.finish_solved(h, v));
                 max_v2
             }
@@ -560,6 +583,14 @@ impl Stepper {
 
     /// The condensed solver, when the body has an active region.
     pub fn condensed(&self) -> Option<&CondensedSolver> {
+        match self {
+            Self::Condensed(c) => Some(c),
+            _ => None,
+        }
+    }
+
+    /// The condensed solver, mutably (set-up: [`CondensedSolver::set_parts`]).
+    pub fn condensed_mut(&mut self) -> Option<&mut CondensedSolver> {
         match self {
             Self::Condensed(c) => Some(c),
             _ => None,

@@ -95,6 +95,7 @@ use crate::element::FemModel;
 use crate::element::tangent::cell_tangent_blocks_of;
 use crate::material::{MaterialModel, MaterialParams};
 use crate::mesh::TetMesh;
+use crate::pool::TickPool;
 use crate::simd::{Avx2Fma, Avx2FmaF16c};
 
 mod build;
@@ -475,6 +476,21 @@ struct CondensedScratch {
     u_gamma: Vec<f64>,
     /// `u_gamma` in single precision, for the map's rows.
     u_gamma32: Vec<f32>,
+    /// The far products cut in two for a tick pool ([`CondensedSolver::set_parts`]).
+    far_cut: Option<FarCut>,
+}
+
+/// The tick's far products (`S u_G` and the far surface rows) cut into two parts of a tick
+/// pool's parts job ([`CondensedSolver::set_parts`]).
+#[derive(Debug, Clone)]
+struct FarCut {
+    /// First packed row of `S` of the second part (the rows before it hold about half of
+    /// the entries).
+    row: usize,
+    /// The second part's sums of `S u_G` (`g`; it writes entries `row..` only).
+    su: Vec<f64>,
+    /// One tick's far surface rows' displacements ([`CondensedSolver::surface_rows_per_tick`]).
+    surface_u: Vec<f64>,
 }
 
 impl CondensedScratch {
@@ -491,6 +507,7 @@ impl CondensedScratch {
             capacitance: vec![0.0; MAX_MERGED_ROWS * MAX_MERGED_ROWS],
             u_gamma: vec![0.0; g],
             u_gamma32: vec![0.0; g],
+            far_cut: None,
         }
     }
 }
@@ -510,6 +527,11 @@ struct CondensedStats {
 /// columns were 17 % faster per tick, at 0.32 (`lv_h1_condensed`, 55) the same, at 0.40
 /// (`lv_100k_condensed`, 100) the paired sweep 16-22 % faster.
 pub const PAIRED_SWEEP_MIN_RATIO: f64 = 0.3;
+
+/// A far part whose `S` (packed upper triangle) holds fewer entries than this keeps its far
+/// products whole whatever the thread count ([`CondensedSolver::set_parts`]): a part's
+/// products are then too short for the hand-over between the threads to pay.
+pub const CUT_FAR_MIN_ENTRIES: usize = 100_000;
 
 /// Probe-row nodes remembered between ticks to tell a node entering the contact.
 const ENTRY_TRACKED_NODES: usize = 3 * MAX_MERGED_ROWS;
@@ -533,6 +555,31 @@ impl CondensedSolver {
             .len()
             .div_ceil(SURFACE_REFRESH_TICKS)
             .min((SURFACE_REFRESH_MAX_MACS / g).max(1))
+    }
+
+    /// Cuts the tick's far products (`S u_G` by packed rows, the far surface rows of the
+    /// tick by halves) into two parts for a tick pool of `parts` threads (issue 48 s1), when
+    /// `parts >= 2` and `S` holds at least [`CUT_FAR_MIN_ENTRIES`] entries; with `parts` 1
+    /// the cut is removed. [`Self::step_in`] then runs them as a parts job of its pool: a
+    /// following region's worker takes the second part once the coarse companion's tick is
+    /// done. `S u_G` then sums the two parts' rows separately (double-precision round-off),
+    /// whoever runs them. The sweeps stay whole: the interface's dense `S` makes the tick
+    /// factor top-heavy (docs/decisions.md, "The condensed tick on two threads"). Returns
+    /// whether it cut. Set-up, not a tick: allocates (call it on a prepared region before
+    /// it is swapped in).
+    pub fn set_parts(&mut self, parts: usize) -> bool {
+        let g = self.system.gamma_dof.len();
+        self.scratch.far_cut = (parts >= 2 && g * (g + 1) / 2 >= CUT_FAR_MIN_ENTRIES).then(|| {
+            // Row `a` of the packed triangle holds `g - a` entries: the first `row` rows hold
+            // half of them when `(g - row)^2 = g^2 / 2`.
+            let row = ((g as f64) * (1.0 - std::f64::consts::FRAC_1_SQRT_2)).round() as usize;
+            FarCut {
+                row: row.min(g),
+                su: vec![0.0; g],
+                surface_u: vec![0.0; self.surface_rows_per_tick()],
+            }
+        });
+        self.scratch.far_cut.is_some()
     }
 
     /// Ticks a full refresh of the far surface takes (at most the viewers' lag behind the

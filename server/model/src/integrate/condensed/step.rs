@@ -18,9 +18,30 @@ impl CondensedSolver {
         x: &mut [DVec3],
         v: &mut [DVec3],
     ) -> f64 {
+        self.step_in(None, None, f, coupling, x, v)
+    }
+
+    /// [`Self::step`] with the pieces [`Self::set_parts`] cut run as parts jobs of `pool`
+    /// (on the caller and a free worker; both on the caller when none is free, with the same
+    /// sums), and `beside` (other work of the tick, run once: a following region's coarse
+    /// companion) on a worker of `pool` beside the solve, the tick's longest serial piece
+    /// ([`TickPool::join`]; after the solve without a pool). Without a cut it is
+    /// [`Self::step`] bit for bit. Allocation-free (`beside` aside).
+    ///
+    /// # Panics
+    /// As [`Self::step`]; with `beside`'s panic.
+    pub fn step_in(
+        &mut self,
+        pool: Option<&TickPool>,
+        beside: Option<&mut (dyn FnMut() + Send)>,
+        f: &[DVec3],
+        coupling: Option<ContactCoupling<'_>>,
+        x: &mut [DVec3],
+        v: &mut [DVec3],
+    ) -> f64 {
         // Without an entry factor there is nothing to tell apart.
         if self.system.entry.is_none() {
-            return self.step_solved(f, coupling, x, v);
+            return self.step_solved(pool, beside, f, coupling, x, v);
         }
         // A node entering the probe's rows: the step with the unscaled rest stiffness.
         let entering = coupling.is_some_and(|c| {
@@ -38,11 +59,11 @@ impl CondensedSolver {
             None
         };
         let Some(mut entry) = entry else {
-            return self.step_solved(f, coupling, x, v);
+            return self.step_solved(pool, beside, f, coupling, x, v);
         };
         // The entry factor and its columns stand in for this tick (swapped, not copied).
         self.swap_entry(&mut entry);
-        let r = self.step_solved(f, coupling, x, v);
+        let r = self.step_solved(pool, beside, f, coupling, x, v);
         self.swap_entry(&mut entry);
         self.system.entry = Some(entry);
         r
@@ -56,9 +77,11 @@ impl CondensedSolver {
         std::mem::swap(&mut self.contact.z, &mut entry.contact_z);
     }
 
-    /// [`Self::step`] with the factor in `factor` (and its columns in `contact_z`).
+    /// [`Self::step_in`] with the factor in `factor` (and its columns in `contact_z`).
     fn step_solved(
         &mut self,
+        pool: Option<&TickPool>,
+        beside: Option<&mut (dyn FnMut() + Send)>,
         f: &[DVec3],
         coupling: Option<ContactCoupling<'_>>,
         x: &mut [DVec3],
@@ -69,9 +92,27 @@ impl CondensedSolver {
         let v: &mut [f64] = bytemuck::cast_slice_mut(v);
         let f: &[f64] = bytemuck::cast_slice(f);
         self.gather_interface(x);
-        self.refresh_surface_rows(x);
-        self.right_hand_side(f, v);
-        self.solve_with_probe(coupling);
+        let far_cut = match pool {
+            Some(pool) if self.scratch.far_cut.is_some() => {
+                self.far_products_in(pool, x);
+                true
+            }
+            _ => {
+                self.refresh_surface_rows(x);
+                false
+            }
+        };
+        self.right_hand_side(f, v, far_cut);
+        match (pool, beside) {
+            (Some(pool), Some(beside)) => {
+                pool.join(|| self.solve_with_probe(coupling), beside);
+            }
+            (None, Some(beside)) => {
+                self.solve_with_probe(coupling);
+                beside();
+            }
+            (_, None) => self.solve_with_probe(coupling),
+        }
         let alpha = self.relax(v);
         self.scatter(alpha, x, v)
     }
@@ -114,11 +155,90 @@ impl CondensedSolver {
         }
     }
 
+    /// The far products of a tick cut in two ([`Self::set_parts`]) as a parts job of
+    /// `pool`: `S u_G` into `su` (the first part's packed rows `0..row` there, the second's
+    /// rows `row..` into the cut's own sums, added after) and this tick's slice of far
+    /// surface rows (each part half of it, written to `x` after).
+    fn far_products_in(&mut self, pool: &TickPool, x: &mut [f64]) {
+        /// One part: packed rows of `S` and its sums, surface rows and their values.
+        struct Part<'a> {
+            rows: std::ops::Range<usize>,
+            su: &'a mut [f64],
+            surface: &'a [u32],
+            surface_u: &'a mut [f64],
+        }
+        let g = self.system.gamma_dof.len();
+        let rows = self.system.surface_rows.len();
+        let start = self.state.surface_cursor;
+        let end = if rows > 0 {
+            (start + self.surface_rows_per_tick()).min(rows)
+        } else {
+            start
+        };
+        let Some(cut) = self.scratch.far_cut.as_mut() else {
+            return;
+        };
+        let slice = &self.system.surface_rows[start..end];
+        let half_rows = slice.len() / 2;
+        let (u_first, u_second) = cut.surface_u[..slice.len()].split_at_mut(half_rows);
+        let mut parts = [
+            Part {
+                rows: 0..cut.row,
+                su: &mut self.scratch.su,
+                surface: &slice[..half_rows],
+                surface_u: u_first,
+            },
+            Part {
+                rows: cut.row..g,
+                su: &mut cut.su,
+                surface: &slice[half_rows..],
+                surface_u: u_second,
+            },
+        ];
+        let (sys, u, u32s) = (
+            &self.system,
+            &self.scratch.u_gamma[..],
+            &self.scratch.u_gamma32[..],
+        );
+        pool.for_each_mut(&mut parts, &|_, p: &mut Part<'_>| {
+            p.su.iter_mut().for_each(|s| *s = 0.0);
+            for a in p.rows.clone() {
+                let start = packed_row_start(a, g);
+                let row = &sys.schur[start..start + g - a];
+                let (head, tail) = p.su.split_at_mut(a + 1);
+                let s = sym_row(sys.avx2, &row[1..], &u[a + 1..], tail, u[a]);
+                head[a] += f64::from(row[0]) * u[a] + s;
+            }
+            for (value, &r) in p.surface_u.iter_mut().zip(p.surface) {
+                let r = r as usize;
+                *value = dot_half(sys.f16c, &sys.map[r * g..(r + 1) * g], u32s);
+            }
+        });
+        for (s, &t) in self.scratch.su[cut.row..]
+            .iter_mut()
+            .zip(&cut.su[cut.row..])
+        {
+            *s += t;
+        }
+        let rest: &[f64] = bytemuck::cast_slice(self.system.active.rest());
+        for (&r, &u) in slice.iter().zip(&cut.surface_u) {
+            let d = self.system.map_dofs[r as usize];
+            x[d] = rest[d] + u;
+        }
+        if rows > 0 {
+            self.state.surface_cursor = if end == rows { 0 } else { end };
+        }
+    }
+
     /// `b = M v + h (f - S u_G)`, into the first right-hand-side column (the second is
-    /// filled where it is used).
-    fn right_hand_side(&mut self, f: &[f64], v: &[f64]) {
+    /// filled where it is used); `S u_G` is in `su` already when `su_ready`
+    /// ([`Self::far_products_in`]).
+    fn right_hand_side(&mut self, f: &[f64], v: &[f64], su_ready: bool) {
         let h = self.params.h;
         let g = self.system.gamma_dof.len();
+        if g > 0 && !su_ready {
+            self.schur_product();
+        }
         let rhs0 = self.scratch.rhs.col_as_slice_mut(0);
         if g == 0 {
             for ((r, &d), &m) in rhs0
@@ -138,29 +258,33 @@ impl CondensedSolver {
             {
                 *b = m * v[d] + h * f[d];
             }
-            // S u_G from the packed upper triangle: row `a` adds its dot product to entry
-            // `a` and its entries times `u_a` to the entries after it.
-            self.scratch.su.iter_mut().for_each(|s| *s = 0.0);
-            for a in 0..g {
-                let start = packed_row_start(a, g);
-                let row = &self.system.schur[start..start + g - a];
-                let ua = self.scratch.u_gamma[a];
-                let (head, tail) = self.scratch.su.split_at_mut(a + 1);
-                let s = sym_row(
-                    self.system.avx2,
-                    &row[1..],
-                    &self.scratch.u_gamma[a + 1..],
-                    tail,
-                    ua,
-                );
-                head[a] += f64::from(row[0]) * ua + s;
-            }
             for (&da, &su) in self.system.gamma_dof.iter().zip(&self.scratch.su) {
                 self.scratch.b[self.system.eq[da]] -= h * su;
             }
             for (r, b) in rhs0.iter_mut().zip(&self.scratch.b) {
                 *r = *b as f32;
             }
+        }
+    }
+
+    /// `su = S u_G` on the caller (the uncut tick) from the packed upper triangle: row `a`
+    /// adds its dot product to entry `a` and its entries times `u_a` to the entries after it.
+    fn schur_product(&mut self) {
+        let g = self.system.gamma_dof.len();
+        self.scratch.su.iter_mut().for_each(|s| *s = 0.0);
+        for a in 0..g {
+            let start = packed_row_start(a, g);
+            let row = &self.system.schur[start..start + g - a];
+            let ua = self.scratch.u_gamma[a];
+            let (head, tail) = self.scratch.su.split_at_mut(a + 1);
+            let s = sym_row(
+                self.system.avx2,
+                &row[1..],
+                &self.scratch.u_gamma[a + 1..],
+                tail,
+                ua,
+            );
+            head[a] += f64::from(row[0]) * ua + s;
         }
     }
 

@@ -114,6 +114,9 @@ struct Shared {
     tiles: AtomicU64,
     tile_cache_bytes: AtomicU64,
     tile_build_s: AtomicU64,
+    /// The tick pool's thread count the regions are cut for
+    /// ([`CondensedSolver::set_parts`]; 0 or 1: uncut).
+    parts: AtomicU64,
 }
 
 impl Shared {
@@ -266,6 +269,12 @@ impl RegionFollower {
             rejected: 0,
             region_bytes: first.memory_bytes(),
         })
+    }
+
+    /// Cuts every region the worker sends from now on for a tick pool of `parts` threads
+    /// ([`CondensedSolver::set_parts`], on the worker: the servo thread never allocates).
+    pub fn set_parts(&self, parts: usize) {
+        self.shared.parts.store(parts as u64, Ordering::Relaxed);
     }
 
     /// In blocking mode a tick that sends a request waits for the answer (and swaps at once):
@@ -451,7 +460,11 @@ impl Worker {
             }
             match self.requests.pop() {
                 Ok(request) => {
-                    let answer = self.answer(request);
+                    let mut answer = self.answer(request);
+                    if let Prepared::Region { solver, .. } = &mut answer {
+                        let parts = self.shared.parts.load(Ordering::Relaxed);
+                        solver.set_parts(usize::try_from(parts).unwrap_or(1));
+                    }
                     // The servo sends one request at a time and reads the answer before the
                     // next, so the ring has room.
                     let _ = self.results.push(answer);
