@@ -21,8 +21,9 @@
 //! condensed far surface, which does not yield. With `fallback_target_tets` the scene carries
 //! a coarse whole-body companion ([`Scene::fallback`]: the same built-in geometry, quadratic,
 //! backward Euler on its rest factor) that ticks with the same device input every tick, on a
-//! worker of the session's [`TickPool`] beside the region when it has one (the two share no
-//! state, so the output is the same bit for bit at any thread count).
+//! worker of the session's [`TickPool`] beside the region's solve when it has one (the two
+//! share no state; the region's forces and far products are cut into the pool's parts
+//! before it, so two threads differ from one by round-off and two 2-thread runs not at all).
 //! The companion ticks every tool slot; where a tool's contact patch reaches a node the region
 //! does not simulate, the companion answers for that tool: its output force (and contact
 //! stiffness) is `(1 - w) f_region + w f_companion`, with the tool's own weight `w`
@@ -126,7 +127,8 @@ pub struct FemBody {
     /// The coarse companion of a following region (`active_region.fallback_target_tets`).
     fallback: Option<Box<Fallback>>,
     /// The session's worker pool ([`SoftBody::set_tick_pool`]; serial until one is given): the
-    /// companion ticks on a worker beside the region.
+    /// forces and every probe's contact beside each other, the far products in parts, the
+    /// companion beside the region's solve.
     pool: Arc<TickPool>,
 }
 
