@@ -560,9 +560,8 @@ impl CondensedSolver {
     /// Cuts the tick's far products (`S u_G` by packed rows, the far surface rows of the
     /// tick by halves) into two parts for a tick pool of `parts` threads (issue 48 s1), when
     /// `parts >= 2` and `S` holds at least [`CUT_FAR_MIN_ENTRIES`] entries; with `parts` 1
-    /// the cut is removed. [`Self::step_in`] then runs them as a parts job of its pool: a
-    /// following region's worker takes the second part once the coarse companion's tick is
-    /// done. `S u_G` then sums the two parts' rows separately (double-precision round-off),
+    /// the cut is removed. [`Self::step_in`] then runs them as a parts job of its pool (a
+    /// following region's coarse companion ticks later, beside the solve). `S u_G` then sums the two parts' rows separately (double-precision round-off),
     /// whoever runs them. The sweeps stay whole: the interface's dense `S` makes the tick
     /// factor top-heavy (docs/decisions.md, "The condensed tick on two threads"). Returns
     /// whether it cut. Set-up, not a tick: allocates (call it on a prepared region before

@@ -201,14 +201,7 @@ impl CondensedSolver {
             &self.scratch.u_gamma32[..],
         );
         pool.for_each_mut(&mut parts, &|_, p: &mut Part<'_>| {
-            p.su.iter_mut().for_each(|s| *s = 0.0);
-            for a in p.rows.clone() {
-                let start = packed_row_start(a, g);
-                let row = &sys.schur[start..start + g - a];
-                let (head, tail) = p.su.split_at_mut(a + 1);
-                let s = sym_row(sys.avx2, &row[1..], &u[a + 1..], tail, u[a]);
-                head[a] += f64::from(row[0]) * u[a] + s;
-            }
+            schur_rows(sys, p.rows.clone(), u, p.su);
             for (value, &r) in p.surface_u.iter_mut().zip(p.surface) {
                 let r = r as usize;
                 *value = dot_half(sys.f16c, &sys.map[r * g..(r + 1) * g], u32s);
@@ -271,21 +264,12 @@ impl CondensedSolver {
     /// adds its dot product to entry `a` and its entries times `u_a` to the entries after it.
     fn schur_product(&mut self) {
         let g = self.system.gamma_dof.len();
-        self.scratch.su.iter_mut().for_each(|s| *s = 0.0);
-        for a in 0..g {
-            let start = packed_row_start(a, g);
-            let row = &self.system.schur[start..start + g - a];
-            let ua = self.scratch.u_gamma[a];
-            let (head, tail) = self.scratch.su.split_at_mut(a + 1);
-            let s = sym_row(
-                self.system.avx2,
-                &row[1..],
-                &self.scratch.u_gamma[a + 1..],
-                tail,
-                ua,
-            );
-            head[a] += f64::from(row[0]) * ua + s;
-        }
+        schur_rows(
+            &self.system,
+            0..g,
+            &self.scratch.u_gamma,
+            &mut self.scratch.su,
+        );
     }
 
     /// The solve of the tick: `z0 = A^-1 b` into the first right-hand-side column, with the
@@ -571,5 +555,20 @@ impl CondensedSolver {
                 Par::Seq,
                 MemStack::new(&mut self.scratch.stack.buffer),
             );
+    }
+}
+
+/// `su = ` the sums of the packed rows `rows` of `S` times `u` (`u_G`; length `g`): row `a`
+/// adds its dot product with `u[a..]` to entry `a` and its entries times `u[a]` to the entries
+/// after it, so all rows give `S u`; entries no row of `rows` reaches stay zero.
+fn schur_rows(sys: &CondensedSystem, rows: std::ops::Range<usize>, u: &[f64], su: &mut [f64]) {
+    let g = u.len();
+    su.iter_mut().for_each(|s| *s = 0.0);
+    for a in rows {
+        let start = packed_row_start(a, g);
+        let row = &sys.schur[start..start + g - a];
+        let (head, tail) = su.split_at_mut(a + 1);
+        let s = sym_row(sys.avx2, &row[1..], &u[a + 1..], tail, u[a]);
+        head[a] += f64::from(row[0]) * u[a] + s;
     }
 }
