@@ -137,22 +137,30 @@ impl CondensedSolver {
     fn refresh_surface_rows(&mut self, x: &mut [f64]) {
         let rest: &[f64] = bytemuck::cast_slice(self.system.active.rest());
         let g = self.system.gamma_dof.len();
-        let rows = self.system.surface_rows.len();
-        if rows > 0 {
-            let per_tick = self.surface_rows_per_tick();
-            let end = (self.state.surface_cursor + per_tick).min(rows);
-            for &r in &self.system.surface_rows[self.state.surface_cursor..end] {
-                let r = r as usize;
-                let d = self.system.map_dofs[r];
-                let u = dot_half(
-                    self.system.f16c,
-                    &self.system.map[r * g..(r + 1) * g],
-                    &self.scratch.u_gamma32,
-                );
-                x[d] = rest[d] + u;
-            }
-            self.state.surface_cursor = if end == rows { 0 } else { end };
+        let rows = self.surface_rows_now();
+        for &r in &self.system.surface_rows[rows.clone()] {
+            let r = r as usize;
+            let d = self.system.map_dofs[r];
+            let u = dot_half(
+                self.system.f16c,
+                &self.system.map[r * g..(r + 1) * g],
+                &self.scratch.u_gamma32,
+            );
+            x[d] = rest[d] + u;
         }
+        self.advance_surface_cursor(rows.end);
+    }
+
+    /// This tick's slice of `surface_rows` (empty without far surface).
+    fn surface_rows_now(&self) -> std::ops::Range<usize> {
+        let (start, rows) = (self.state.surface_cursor, self.system.surface_rows.len());
+        start..(start + self.surface_rows_per_tick()).min(rows).max(start)
+    }
+
+    /// The next tick refreshes the rows from `end` (from the first after the last).
+    fn advance_surface_cursor(&mut self, end: usize) {
+        let rows = self.system.surface_rows.len();
+        self.state.surface_cursor = if end >= rows { 0 } else { end };
     }
 
     /// The far products of a tick cut in two ([`Self::set_parts`]) as a parts job of
@@ -168,17 +176,11 @@ impl CondensedSolver {
             surface_u: &'a mut [f64],
         }
         let g = self.system.gamma_dof.len();
-        let rows = self.system.surface_rows.len();
-        let start = self.state.surface_cursor;
-        let end = if rows > 0 {
-            (start + self.surface_rows_per_tick()).min(rows)
-        } else {
-            start
-        };
+        let now = self.surface_rows_now();
         let Some(cut) = self.scratch.far_cut.as_mut() else {
             return;
         };
-        let slice = &self.system.surface_rows[start..end];
+        let slice = &self.system.surface_rows[now.clone()];
         let half_rows = slice.len() / 2;
         let (u_first, u_second) = cut.surface_u[..slice.len()].split_at_mut(half_rows);
         let mut parts = [
@@ -218,9 +220,7 @@ impl CondensedSolver {
             let d = self.system.map_dofs[r as usize];
             x[d] = rest[d] + u;
         }
-        if rows > 0 {
-            self.state.surface_cursor = if end == rows { 0 } else { end };
-        }
+        self.advance_surface_cursor(now.end);
     }
 
     /// `b = M v + h (f - S u_G)`, into the first right-hand-side column (the second is
