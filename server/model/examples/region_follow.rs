@@ -16,13 +16,15 @@
 //!
 //! `cargo run --release -p haptic-model --example region_follow -- --speed-mm-s 20 --paced --hold-end-s 3 --wait-tiles`
 
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use clap::Parser;
 use haptic_model::DVec3;
-use haptic_model::body::TickInput;
+use haptic_model::body::{SoftBody, TickInput};
 use haptic_model::fem::FemBody;
 use haptic_model::integrate::condensed::TileMode;
+use haptic_model::pool::TickPool;
 use haptic_model::scene::load_scene_file;
 
 #[derive(Parser)]
@@ -61,6 +63,16 @@ struct Args {
     /// Write one row per tick (`t_s,force_mN,companion_weight,swaps`) to this CSV file.
     #[arg(long)]
     csv: Option<std::path::PathBuf>,
+    /// Threads of the tick: the caller plus `threads - 1` tick-pool workers, as the daemon's
+    /// `[servo] threads` gives a session (the region's worker thread comes on top).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=16))]
+    threads: u32,
+    /// Give the ticking thread and the tick-pool workers `SCHED_FIFO` at this priority after
+    /// set-up, as the daemon gives its servo thread and workers (`[servo] realtime`); the
+    /// region's worker thread, started during set-up, keeps normal scheduling as in the
+    /// daemon (where the body is built off the servo thread). Needs the privilege to do so.
+    #[arg(long, value_parser = clap::value_parser!(i32).range(1..=99))]
+    fifo: Option<i32>,
 }
 
 /// Epicardium radius at z = -5 mm of the LV (10 x 10 x 20 mm ellipsoid), m.
@@ -70,6 +82,27 @@ const Z_M: f64 = -0.005;
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let (mut sim, probe_r) = set_up(&args)?;
+    let fifo = args.fifo;
+    if let Some(priority) = fifo {
+        set_fifo(priority)?;
+    }
+    let pool = (args.threads > 1)
+        .then(|| {
+            TickPool::new(
+                args.threads as usize - 1,
+                Arc::new(move |_| {
+                    if let Some(priority) = fifo {
+                        // A worker that cannot follow runs with normal scheduling; the
+                        // servo thread's own call above already proved the privilege.
+                        let _ = set_fifo(priority);
+                    }
+                }),
+            )
+        })
+        .transpose()?;
+    if let Some(pool) = &pool {
+        sim.set_tick_pool(Arc::clone(pool));
+    }
     let path = Path::new(&args, probe_r);
     let trace = run(&args, &mut sim, &path)?;
     report(&args, &sim, &path, &trace);
@@ -246,7 +279,14 @@ fn run(args: &Args, sim: &mut FemBody, path: &Path) -> anyhow::Result<Trace> {
         let t_s = k as f64 * 1e-3;
         let (p, vel) = path.at(t_s);
         if args.paced {
+            // Sleep, then spin the last 150 us, as the daemon's servo does (a thread that
+            // spun through every idle microsecond under SCHED_FIFO would run into the
+            // kernel's real-time throttling: 50 ms stalls).
             let due = start + Duration::from_micros(1000 * k as u64);
+            let left = due.saturating_duration_since(Instant::now());
+            if left > Duration::from_micros(300) {
+                std::thread::sleep(left - Duration::from_micros(150));
+            }
             while Instant::now() < due {
                 std::hint::spin_loop();
             }
@@ -321,12 +361,17 @@ fn report(args: &Args, sim: &FemBody, path: &Path, tr: &Trace) {
         stats.region_bytes as f64 / 1e6,
         (stats.centre_m * 1e3).to_array()
     );
+    let stroke_us: Vec<f64> = ticks_us[stroke.clone()].to_vec();
     println!(
-        "tick p50 {:.0} us, p99 {:.0} us, max {:.0} us; swap ticks max {:.0} us",
+        "tick p50 {:.0} us, p99 {:.0} us, max {:.0} us ({} thread(s)); swap ticks max {:.0} us; stroke and hold: p50 {:.0} us, {} of {} ticks over 1 ms",
         pct(0.5),
         pct(0.99),
         pct(1.0),
-        swap_us.iter().copied().fold(0.0, f64::max)
+        args.threads,
+        swap_us.iter().copied().fold(0.0, f64::max),
+        quantile(&stroke_us, 0.5),
+        stroke_us.iter().filter(|&&t| t > 1e3).count(),
+        stroke_us.len()
     );
     println!(
         "stroke: contact lost on {lost_contact} ticks; |F| {:.2}..{:.2} mN; largest tick-to-tick change {:.2} % at swaps, {:.2} % elsewhere",
@@ -381,6 +426,31 @@ fn write_csv(path: &std::path::Path, tr: &Trace) -> anyhow::Result<()> {
     }
     std::fs::write(path, text)?;
     Ok(())
+}
+
+/// Gives the calling thread `SCHED_FIFO` at `priority`.
+fn set_fifo(priority: i32) -> anyhow::Result<()> {
+    let param = libc::sched_param {
+        sched_priority: priority,
+    };
+    // SAFETY: changes the calling thread's own policy; `param` outlives the call.
+    if unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) } != 0 {
+        anyhow::bail!(
+            "SCHED_FIFO priority {priority} refused: {}",
+            std::io::Error::last_os_error()
+        );
+    }
+    Ok(())
+}
+
+/// The `q` quantile of `values` (nearest rank below; 0 for none).
+fn quantile(values: &[f64], q: f64) -> f64 {
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    sorted
+        .get(((sorted.len().max(1) - 1) as f64 * q) as usize)
+        .copied()
+        .unwrap_or(0.0)
 }
 
 /// Peak resident memory of this process (VmHWM), MB; 0 where /proc is not readable.
