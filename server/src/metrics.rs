@@ -222,6 +222,18 @@ const SESSION_METRICS: &[(&str, &str, MetricType, Extract)] = {
             |r| Value::Counter(r.stats.body.region_swaps),
         ),
         (
+            "hapticd_region_tiles",
+            "Regions of a following region's cache (0 without one)",
+            Gauge,
+            |r| Value::Gauge(r.stats.body.region_tiles as f64),
+        ),
+        (
+            "hapticd_region_tiles_ready",
+            "Regions of a following region's cache prepared so far",
+            Gauge,
+            |r| Value::Gauge(r.stats.body.region_tiles_ready as f64),
+        ),
+        (
             "hapticd_contact_ticks",
             "Servo ticks with the probe in contact",
             Counter,

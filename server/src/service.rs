@@ -243,6 +243,8 @@ impl SessionControl for Services {
             active_elements: st.body.active_elements as u32,
             region_swaps: st.body.region_swaps,
             region_preparation_s: st.body.region_preparation_s,
+            region_tiles: st.body.region_tiles,
+            region_tiles_ready: st.body.region_tiles_ready,
             contact_ticks: st.contact_ticks,
             companion_ticks: st.body.companion_ticks,
             total_particles: st.body.particles as u32,

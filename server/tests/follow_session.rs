@@ -4,7 +4,9 @@
 //! the servo), and `GetStats` reports the swaps, the last preparation time and the contact
 //! ticks (none answered by a companion: this scene has none); `ApplyForce`
 //! is refused with a clear error (one contact per following region). The session runs with
-//! `[servo] threads = 2` (issue 48): a tick pool with one worker beside the servo.
+//! `[servo] threads = 2` (issue 48): a tick pool with one worker beside the servo. With a
+//! region cache (`active_region.tiles = "background"`), `GetStats` and the metrics say how
+//! many of its regions are prepared, so a client can wait for the cache before fast strokes.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -136,4 +138,75 @@ async fn a_following_region_swaps_as_the_device_slides() {
     );
     assert_eq!(stats.companion_ticks, 0, "{stats:?}");
     assert_eq!(stats.threads, 2, "{stats:?}");
+    // No region cache in this scene.
+    assert_eq!((stats.region_tiles, stats.region_tiles_ready), (0, 0));
+}
+
+/// The same scene with a region cache: `GetStats` reports its regions and counts them ready as
+/// the worker builds them, up to all of them, with the daemon's metrics agreeing.
+#[tokio::test]
+async fn get_stats_reports_the_region_cache_filling() {
+    let manager = Arc::new(SessionManager::new(ServerConfig::default()));
+    let services = Services::new(manager.clone());
+    // A 5 mm cover instead of the default 2.5 mm: about 20 regions, so the cache fills in
+    // seconds.
+    let tiled = format!("{SCENE}tiles = \"background\"\ntile_cover_m = 0.005\n");
+    let scene = manager.load_scene("", &tiled).expect("scene");
+    let session = manager.start(&scene).expect("session");
+    let stats = || async {
+        services
+            .get_stats(tonic::Request::new(GetStatsRequest {
+                session_id: session.id.clone(),
+            }))
+            .await
+            .expect("stats")
+            .into_inner()
+    };
+    // The servo publishes the body's statistics once it ticks.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    let first = loop {
+        let s = stats().await;
+        if s.steps > 0 || tokio::time::Instant::now() > deadline {
+            break s;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    assert!(first.region_tiles >= 5, "{first:?}");
+    assert!(first.region_tiles_ready <= first.region_tiles, "{first:?}");
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(300);
+    let mut seen = vec![first.region_tiles_ready];
+    let last = loop {
+        let s = stats().await;
+        assert!(s.fault.is_empty(), "fault: {}", s.fault);
+        assert_eq!(s.region_tiles, first.region_tiles, "{s:?}");
+        assert!(
+            s.region_tiles_ready >= *seen.last().unwrap(),
+            "ready went down: {seen:?} then {s:?}"
+        );
+        seen.push(s.region_tiles_ready);
+        if s.region_tiles_ready == s.region_tiles {
+            break s;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the cache did not fill in 300 s: {seen:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    let registry = haptic_server::metrics::registry(manager.clone());
+    let text = haptic_server::metrics::render(&registry).expect("metrics");
+    let gauge = |name: &str| {
+        text.lines()
+            .find(|l| l.starts_with(name) && l.contains(&session.id))
+            .and_then(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+    };
+    assert_eq!(
+        gauge("hapticd_region_tiles{"),
+        Some(last.region_tiles as f64)
+    );
+    assert_eq!(
+        gauge("hapticd_region_tiles_ready{"),
+        Some(last.region_tiles as f64)
+    );
+    manager.stop(&session.id).expect("stop");
 }

@@ -112,6 +112,12 @@ async fn sessions_are_scraped_with_consistent_counters_and_histograms() {
         Some(0.0)
     );
     assert!(!text.contains("_total_total"), "{text}");
+    // Nor a region cache.
+    assert_eq!(sample(&text, "hapticd_region_tiles", &labels), Some(0.0));
+    assert_eq!(
+        sample(&text, "hapticd_region_tiles_ready", &labels),
+        Some(0.0)
+    );
 
     // Over HTTP.
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();

@@ -242,6 +242,8 @@ pub fn canned_stats(id: &str) -> SessionStats {
         watcher_queue_limit_bytes: 65_536,
         region_swaps: 12,
         region_preparation_s: 1.234,
+        region_tiles: 69,
+        region_tiles_ready: 12,
         contact_ticks: 5_000,
         companion_ticks: 40,
         device: Some(touch()),

@@ -184,6 +184,13 @@ pub struct BodyStats {
     pub region_swaps: u64,
     /// Preparation time of the last region a following active region prepared, s (0 if none).
     pub region_preparation_s: f64,
+    /// Regions of a following region's cache (`active_region.tiles = "background"`): how many
+    /// centres it covers the touchable surface with (0 without a cache), and how many of them
+    /// are prepared (built, or failed and not tried again). A stroke faster than a region's
+    /// preparation meets its own regions only once the two are equal.
+    pub region_tiles: u64,
+    /// See [`BodyStats::region_tiles`].
+    pub region_tiles_ready: u64,
     /// Ticks in contact in which a following region's coarse companion contributed to the
     /// force (its blend weight was positive), so far; 0 without a companion. Against the
     /// servo's count of contact ticks it says how much of a press the coarse organ answered.

@@ -1001,6 +1001,10 @@ impl SoftBody for FemBody {
             max_displacement_m: self.max_displacement_m(),
             region_swaps: self.follow_stats().map_or(0, |f| f.swaps),
             region_preparation_s: self.follow_stats().map_or(0.0, |f| f.last_prepare_s),
+            region_tiles: self.follow_stats().map_or(0, |f| f.tiles),
+            region_tiles_ready: self
+                .follow_stats()
+                .map_or(0, |f| (f.tiles_built + f.tiles_failed).min(f.tiles)),
             companion_ticks: self
                 .fallback_stats()
                 .map_or(0, |s| s.contact_ticks_answered),

@@ -111,6 +111,7 @@ struct Shared {
     tile_hits: AtomicU64,
     tile_misses: AtomicU64,
     tiles_built: AtomicU64,
+    tiles_failed: AtomicU64,
     tiles: AtomicU64,
     tile_cache_bytes: AtomicU64,
     tile_build_s: AtomicU64,
@@ -158,6 +159,8 @@ pub struct FollowStats {
     pub tile_misses: u64,
     /// Tiles built (on demand or in the background).
     pub tiles_built: u64,
+    /// Tiles whose preparation failed (not tried again; also counted in `failed`).
+    pub tiles_failed: u64,
     /// Tile centres (0 without tiles).
     pub tiles: u64,
     /// Bytes held by the built tiles ([`CondensedSolver::memory_bytes`] after
@@ -305,6 +308,7 @@ impl RegionFollower {
             tile_hits: self.shared.tile_hits.load(Ordering::Relaxed),
             tile_misses: self.shared.tile_misses.load(Ordering::Relaxed),
             tiles_built: self.shared.tiles_built.load(Ordering::Relaxed),
+            tiles_failed: self.shared.tiles_failed.load(Ordering::Relaxed),
             tiles: self.shared.tiles.load(Ordering::Relaxed),
             tile_cache_bytes: self.shared.tile_cache_bytes.load(Ordering::Relaxed),
             tile_build_s: f(&self.shared.tile_build_s),
@@ -585,6 +589,7 @@ impl Worker {
             }
             None => {
                 self.shared.failed.fetch_add(1, Ordering::Relaxed);
+                self.shared.tiles_failed.fetch_add(1, Ordering::Relaxed);
                 cache.tiles[k] = Tile::Failed;
             }
         }
