@@ -1853,3 +1853,91 @@ fn the_far_products_cut_in_two_follow_the_uncut_step_without_allocating() {
         "g = {g}, {ticks} ticks, largest displacement {largest:.3e} m, cut off by {worst:.3e} m; pool {stats:?}"
     );
 }
+
+/// The interface column solves on several threads (`CondensedSolver::new_in_threads`) build
+/// the same solver bit for bit as on one: the same steps under a push (which read `S` and the
+/// far surface rows) and the same hand-over to another region (which reads the far map of
+/// every far component). Two threads on three or more blocks of 64 columns, so the blocks
+/// are shared out unevenly.
+#[test]
+fn column_solves_on_several_threads_build_the_same_region_bit_for_bit() {
+    use haptic_model::integrate::condensed::RegionBalls;
+    let (fem, mesh, f, centre) = setup(StrainSmoothing::None);
+    let region = ActiveRegion {
+        centre_m: centre,
+        radius_m: 0.006,
+        follow: true,
+        ..ACTIVE
+    };
+    let no_progress = &mut |_: &str, _: f64| {};
+    let one = CondensedSolver::new(&fem, &mesh, region, 1e-3).expect("one thread");
+    let g = one.sizes().interface_nodes * 3;
+    assert!(
+        g > 2 * 64,
+        "{g} interface components: fewer than three blocks"
+    );
+    let many = CondensedSolver::new_in_threads(
+        &fem,
+        &mesh,
+        region,
+        RegionBalls::one(centre),
+        1e-3,
+        2,
+        no_progress,
+    )
+    .expect("two threads");
+    assert_eq!(one.memory_bytes(), many.memory_bytes());
+    let (mut a, mut b) = (one, many);
+    let mut xa = fem.rest().to_vec();
+    let mut va = vec![DVec3::ZERO; xa.len()];
+    let (mut xb, mut vb) = (xa.clone(), va.clone());
+    for _ in 0..2 * a.surface_refresh_ticks().max(10) {
+        a.step(&f, None, &mut xa, &mut va);
+        b.step(&f, None, &mut xb, &mut vb);
+    }
+    let moved = xa
+        .iter()
+        .zip(fem.rest())
+        .map(|(x, r)| x.distance(*r))
+        .fold(0.0, f64::max);
+    assert!(moved > 1e-6, "the push moved nothing: {moved:.3e} m");
+    assert!(
+        xa.iter()
+            .zip(&xb)
+            .all(|(p, q)| p.to_array() == q.to_array()),
+        "the steps differ"
+    );
+    // Hand over to a region 4 mm away round the ventricle: the nodes it takes over are placed
+    // by each solver's far map.
+    let other = DVec3::new(centre.x * 0.9, centre.x * 0.42, centre.z);
+    let next = CondensedSolver::new(
+        &fem,
+        &mesh,
+        ActiveRegion {
+            centre_m: other,
+            ..region
+        },
+        1e-3,
+    )
+    .expect("next");
+    assert!(a.hand_over(&next, &mut xa, &mut va), "no hand-over");
+    assert!(b.hand_over(&next, &mut xb, &mut vb), "no hand-over");
+    assert!(
+        xa.iter()
+            .zip(&xb)
+            .all(|(p, q)| p.to_array() == q.to_array()),
+        "the hand-overs differ"
+    );
+    // Zero threads count as one.
+    let zero = CondensedSolver::new_in_threads(
+        &fem,
+        &mesh,
+        region,
+        RegionBalls::one(centre),
+        1e-3,
+        0,
+        no_progress,
+    )
+    .expect("zero threads");
+    assert_eq!(zero.sizes().interface_nodes * 3, g);
+}

@@ -380,9 +380,17 @@ impl Stepper {
     ) -> Result<Self, ModelError> {
         let h = plan.sub_dt_s;
         Ok(match (params.kind, region) {
-            (IntegratorKind::BackwardEuler, Some(r)) => Self::Condensed(Box::new(
-                CondensedSolver::new_with_progress(fem, mesh, r, h, progress)?,
-            )),
+            (IntegratorKind::BackwardEuler, Some(r)) => {
+                Self::Condensed(Box::new(CondensedSolver::new_in_threads(
+                    fem,
+                    mesh,
+                    r,
+                    condensed::RegionBalls::one(r.centre_m),
+                    h,
+                    condensed::setup_threads(),
+                    progress,
+                )?))
+            }
             (_, Some(_)) => {
                 return Err(ModelError::field(
                     "active_region",

@@ -1,5 +1,8 @@
 use super::*;
 
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
 /// One assembly entry: row, column (32-bit: the triplets of an edge-smoothed far part run to
 /// tens of millions, and a third less memory matters there) and value.
 #[derive(Clone, Copy)]
@@ -266,7 +269,36 @@ impl CondensedSolver {
         progress: &mut dyn FnMut(&str, f64),
     ) -> Result<Self, ModelError> {
         let balls = RegionBalls::one(region.centre_m);
-        Self::with_balls(body, mesh, region, balls, dt_s, progress)
+        Self::with_balls(body, mesh, region, balls, dt_s, 1, progress)
+    }
+
+    /// [`CondensedSolver::new_union`] (one ball: [`CondensedSolver::new`]) with the
+    /// interface column solves, most of a preparation, on `threads` threads (the calling one
+    /// and `threads - 1` scoped ones; 0 counts as 1), each taking the next block of 64
+    /// columns. The solver is the same bit for bit whatever `threads` is: each column's solve
+    /// and each entry's sums are the one-thread ones. `progress` is called on the calling
+    /// thread only.
+    ///
+    /// # Errors
+    /// As [`CondensedSolver::new_union`]; a thread that cannot be started is
+    /// [`ModelError::InvalidInput`].
+    pub fn new_in_threads(
+        body: &FemModel,
+        mesh: &TetMesh,
+        region: ActiveRegion,
+        balls: RegionBalls,
+        dt_s: f64,
+        threads: usize,
+        progress: &mut dyn FnMut(&str, f64),
+    ) -> Result<Self, ModelError> {
+        let Some(&first) = balls.centres().first() else {
+            return Err(ModelError::field("active_region", "a union of no ball"));
+        };
+        let region = ActiveRegion {
+            centre_m: first,
+            ..region
+        };
+        Self::with_balls(body, mesh, region, balls, dt_s, threads.max(1), progress)
     }
 
     /// [`CondensedSolver::new`] on the union of balls of `region`'s radius at `balls`
@@ -283,14 +315,7 @@ impl CondensedSolver {
         balls: RegionBalls,
         dt_s: f64,
     ) -> Result<Self, ModelError> {
-        let Some(&first) = balls.centres().first() else {
-            return Err(ModelError::field("active_region", "a union of no ball"));
-        };
-        let region = ActiveRegion {
-            centre_m: first,
-            ..region
-        };
-        Self::with_balls(body, mesh, region, balls, dt_s, &mut |_, _| {})
+        Self::new_in_threads(body, mesh, region, balls, dt_s, 1, &mut |_, _| {})
     }
 
     fn with_balls(
@@ -299,13 +324,14 @@ impl CondensedSolver {
         region: ActiveRegion,
         balls: RegionBalls,
         dt_s: f64,
+        threads: usize,
         progress: &mut dyn FnMut(&str, f64),
     ) -> Result<Self, ModelError> {
         check_region(body, &region)?;
         if !balls.centres().iter().all(|c| c.is_finite()) {
             return Err(ModelError::field("active_region", "needs finite centres"));
         }
-        let system = CondensedSystem::build(body, mesh, &region, &balls, dt_s, progress)?;
+        let system = CondensedSystem::build(body, mesh, &region, &balls, dt_s, threads, progress)?;
         let (m, g) = (system.eq_dof.len(), system.gamma_dof.len());
         let stack = Workspace::new(system.symbolic.solve_in_place_scratch::<f32>(2, Par::Seq));
         progress("condensation: done", 1.0);
@@ -334,7 +360,7 @@ impl CondensedSolver {
 impl CondensedSystem {
     /// Splits `body` (mesh `mesh`) by `region`, condenses the far part and factorises the
     /// tick matrix for the step `h` (s); `progress` as [`CondensedSolver::new_with_progress`]
-    /// (all but the last stage).
+    /// (all but the last stage), the column solves on `threads` threads.
     ///
     /// # Errors
     /// As [`CondensedSolver::new`], the region's parameters already checked.
@@ -344,6 +370,7 @@ impl CondensedSystem {
         region: &ActiveRegion,
         balls: &RegionBalls,
         h: f64,
+        threads: usize,
         progress: &mut dyn FnMut(&str, f64),
     ) -> Result<Self, ModelError> {
         let Selection {
@@ -362,7 +389,7 @@ impl CondensedSystem {
             map_row,
             llt,
             kfg,
-        } = condense_far(mesh, region, far_model.as_ref(), &num, progress)?;
+        } = condense_far(mesh, region, far_model.as_ref(), &num, threads, progress)?;
         let Numbering {
             eq,
             eq_dof,
@@ -621,7 +648,8 @@ struct Condensation {
 }
 
 /// The Schur complement `S = K_GG - K_GF K_FF^-1 K_FG` of the far part `far_model` on the
-/// interface, the far map's rows and the far factor (module documentation).
+/// interface, the far map's rows and the far factor (module documentation); the column
+/// solves on `threads` threads.
 ///
 /// # Errors
 /// [`ModelError::InvalidMesh`] when the far part is not held.
@@ -630,6 +658,7 @@ fn condense_far(
     region: &ActiveRegion,
     far_model: Option<&FemModel>,
     num: &Numbering,
+    threads: usize,
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Condensation, ModelError> {
     let n = num.eq.len() / 3;
@@ -682,7 +711,7 @@ fn condense_far(
             map_far: &map_far,
             kfg: &kfg,
         };
-        let llt = far.solve(kff, &mut schur, &mut map, progress)?;
+        let llt = far.solve(kff, &mut schur, &mut map, threads, progress)?;
         // A following region recovers its far field from its maps only (the factor is
         // most of its memory: 42 of 80 MB on `lv_h1` at r = 7 mm).
         (!region.follow).then_some(llt)
@@ -719,15 +748,19 @@ struct FarSolve<'a> {
 
 impl FarSolve<'_> {
     /// Factorises `K_FF` (lower triplets `kff`), then `X = K_FF^-1 K_FG` in blocks of
-    /// columns: the map's rows `-X` into `map`, `S -= K_GF X` into `schur`.
+    /// columns on `threads` threads (each takes the next block; [`FarSolve::block`]): the
+    /// map's rows `-X` into `map`, `S -= K_GF X` into `schur`. A block writes only its own
+    /// columns of both, so the result does not depend on the thread count.
     ///
     /// # Errors
-    /// [`ModelError::InvalidMesh`] when the far part is not held.
+    /// [`ModelError::InvalidMesh`] when the far part is not held;
+    /// [`ModelError::InvalidInput`] when a thread cannot be started.
     fn solve(
         &self,
         kff: Vec<Entry<f64>>,
         schur: &mut [f64],
         map: &mut [u16],
+        threads: usize,
         progress: &mut dyn FnMut(&str, f64),
     ) -> Result<SparseCholesky, ModelError> {
         let (g, f, kfg) = (self.g, self.far_dofs.len(), self.kfg);
@@ -743,52 +776,144 @@ impl FarSolve<'_> {
                 ))
             })?;
         drop(kff_csc);
-        // X = K_FF^-1 K_FG, in blocks of columns; S -= K_GF X.
         let mut by_col: Vec<Vec<(usize, f64)>> = vec![Vec::new(); g];
         for &(fr, gc, v) in kfg {
             by_col[gc].push((fr, v));
         }
-        const BLOCK: usize = 64;
-        for j0 in (0..g).step_by(BLOCK) {
-            progress(
-                "condensation: interface column solves",
-                0.25 + 0.6 * j0 as f64 / g as f64,
-            );
-            let w = BLOCK.min(g - j0);
-            let mut x = Mat::<f64>::zeros(f, w);
-            for j in 0..w {
-                for &(fr, v) in &by_col[j0 + j] {
-                    x[(fr, j)] += v;
+        let blocks = g.div_ceil(FAR_SOLVE_BLOCK);
+        let next = AtomicUsize::new(0);
+        let done = AtomicUsize::new(0);
+        let failed = AtomicBool::new(false);
+        let out = Mutex::new((schur, map));
+        // Takes blocks until none is left (or one failed); the first error.
+        let work = || -> Result<(), ModelError> {
+            loop {
+                let b = next.fetch_add(1, Ordering::Relaxed);
+                if b >= blocks || failed.load(Ordering::Relaxed) {
+                    return Ok(());
+                }
+                let result = self.block(&llt, &by_col, b * FAR_SOLVE_BLOCK, &out);
+                done.fetch_add(1, Ordering::Relaxed);
+                if result.is_err() {
+                    failed.store(true, Ordering::Relaxed);
+                    return result;
                 }
             }
-            llt.solve_in_place(x.as_mut());
-            for (r, &k) in self.map_far.iter().enumerate() {
-                for j in 0..w {
-                    let q = ::half::f16::from_f64(-x[(k, j)]);
-                    // Entries are displacements per interface displacement, of order
-                    // one; beyond half precision's range the far part is barely held.
-                    if !q.is_finite() {
-                        return Err(ModelError::InvalidMesh(format!(
-                            "the far part is barely held: a far displacement is {:.3e} times \
-                             an interface displacement (add clamps or enlarge the active \
-                             region)",
-                            x[(k, j)].abs()
-                        )));
+        };
+        std::thread::scope(|scope| -> Result<(), ModelError> {
+            let mut helpers = Vec::with_capacity(threads.saturating_sub(1));
+            for _ in 1..threads.min(blocks) {
+                let helper = std::thread::Builder::new()
+                    .name("region-prep-solve".into())
+                    .spawn_scoped(scope, work)
+                    .map_err(|e| {
+                        failed.store(true, Ordering::Relaxed);
+                        ModelError::InvalidInput(format!("cannot start a column-solve thread: {e}"))
+                    });
+                match helper {
+                    Ok(h) => helpers.push(h),
+                    Err(e) => {
+                        for h in helpers {
+                            let _ = h.join();
+                        }
+                        return Err(e);
                     }
-                    map[r * g + j0 + j] = q.to_bits();
                 }
             }
-            // S[gi, j0 + j] -= sum_fr K_FG[fr, gi] X[fr, j]
-            for &(fr, gi, v) in kfg {
-                let row = &mut schur[gi * g + j0..gi * g + j0 + w];
-                for (j, s) in row.iter_mut().enumerate() {
-                    *s -= v * x[(fr, j)];
+            // The calling thread works too, reporting progress between its blocks.
+            let mut mine = Ok(());
+            loop {
+                progress(
+                    "condensation: interface column solves",
+                    0.25 + 0.6 * done.load(Ordering::Relaxed) as f64 / blocks.max(1) as f64,
+                );
+                let b = next.fetch_add(1, Ordering::Relaxed);
+                if b >= blocks || failed.load(Ordering::Relaxed) {
+                    break;
+                }
+                mine = self.block(&llt, &by_col, b * FAR_SOLVE_BLOCK, &out);
+                done.fetch_add(1, Ordering::Relaxed);
+                if mine.is_err() {
+                    failed.store(true, Ordering::Relaxed);
+                    break;
                 }
             }
-        }
+            let mut first = mine;
+            for h in helpers {
+                let r = h.join().unwrap_or_else(|_| {
+                    Err(ModelError::InvalidInput(
+                        "a column-solve thread panicked".into(),
+                    ))
+                });
+                if first.is_ok() {
+                    first = r;
+                }
+            }
+            first
+        })?;
         Ok(llt)
     }
+
+    /// The block of columns from `j0` (at most [`FAR_SOLVE_BLOCK`]): `X = K_FF^-1 K_FG` there,
+    /// then, under `out`'s lock, its columns of the map (`-X`, half precision) and of `S`
+    /// (`-= K_GF X`).
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidMesh`] when a far displacement leaves half precision's range.
+    fn block(
+        &self,
+        llt: &SparseCholesky,
+        by_col: &[Vec<(usize, f64)>],
+        j0: usize,
+        out: &Mutex<(&mut [f64], &mut [u16])>,
+    ) -> Result<(), ModelError> {
+        let (g, f, kfg) = (self.g, self.far_dofs.len(), self.kfg);
+        let w = FAR_SOLVE_BLOCK.min(g - j0);
+        let mut x = Mat::<f64>::zeros(f, w);
+        for j in 0..w {
+            for &(fr, v) in &by_col[j0 + j] {
+                x[(fr, j)] += v;
+            }
+        }
+        llt.solve_in_place(x.as_mut());
+        let mut rows = Vec::with_capacity(self.map_far.len() * w);
+        for &k in self.map_far {
+            for j in 0..w {
+                let q = ::half::f16::from_f64(-x[(k, j)]);
+                // Entries are displacements per interface displacement, of order one;
+                // beyond half precision's range the far part is barely held.
+                if !q.is_finite() {
+                    return Err(ModelError::InvalidMesh(format!(
+                        "the far part is barely held: a far displacement is {:.3e} times \
+                         an interface displacement (add clamps or enlarge the active \
+                         region)",
+                        x[(k, j)].abs()
+                    )));
+                }
+                rows.push(q.to_bits());
+            }
+        }
+        let mut guard = out
+            .lock()
+            .map_err(|_| ModelError::InvalidInput("a column-solve thread panicked".into()))?;
+        let (schur, map) = &mut *guard;
+        for (r, row) in rows.chunks_exact(w).enumerate() {
+            map[r * g + j0..r * g + j0 + w].copy_from_slice(row);
+        }
+        // S[gi, j0 + j] -= sum_fr K_FG[fr, gi] X[fr, j]
+        for &(fr, gi, v) in kfg {
+            let row = &mut schur[gi * g + j0..gi * g + j0 + w];
+            for (j, s) in row.iter_mut().enumerate() {
+                *s -= v * x[(fr, j)];
+            }
+        }
+        Ok(())
+    }
 }
+
+/// Columns of `K_FG` per far solve ([`FarSolve::solve`]; 256 gave nothing more,
+/// docs/benchmarks.md).
+const FAR_SOLVE_BLOCK: usize = 64;
 
 /// The tick matrix's factor: its analysis, the single-precision factor and, when the
 /// rounding allows ([`half_of`]), the half-precision sweep.

@@ -154,6 +154,20 @@ pub enum TileMode {
     },
 }
 
+/// Threads of a set-up's column solves ([`CondensedSolver::new_in_threads`]): the machine's
+/// ([`std::thread::available_parallelism`]; 1 when unknown), at most
+/// [`MAX_PREPARATION_THREADS`]. A set-up runs before its session ticks; a following region's
+/// later preparations use the session's tick threads instead
+/// ([`crate::integrate::follow`]).
+pub fn setup_threads() -> usize {
+    std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .clamp(1, MAX_PREPARATION_THREADS)
+}
+
+/// Most threads a region's preparation uses.
+pub const MAX_PREPARATION_THREADS: usize = 8;
+
 /// Smallest [`TileMode::Background`] covering radius a scene may set, m (0.5 mm: below it the
 /// tiles of a touchable surface number in the thousands).
 pub const MIN_TILE_COVER_M: f64 = 5e-4;

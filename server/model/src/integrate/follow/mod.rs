@@ -57,8 +57,8 @@ use std::time::{Duration, Instant};
 use glam::DVec3;
 
 use super::condensed::{
-    ActiveRegion, CondensedSolver, FOLLOW_LEAD_RADII, FOLLOW_NEAR_RADII, MAX_REGION_BALLS,
-    RegionBalls, TileMode,
+    ActiveRegion, CondensedSolver, FOLLOW_LEAD_RADII, FOLLOW_NEAR_RADII, MAX_PREPARATION_THREADS,
+    MAX_REGION_BALLS, RegionBalls, TileMode,
 };
 use crate::ModelError;
 use crate::element::FemModel;
@@ -275,7 +275,8 @@ impl RegionFollower {
     }
 
     /// Cuts every region the worker sends from now on for a tick pool of `parts` threads
-    /// ([`CondensedSolver::set_parts`], on the worker: the servo thread never allocates).
+    /// ([`CondensedSolver::set_parts`], on the worker: the servo thread never allocates), and
+    /// prepares them with as many threads ([`CondensedSolver::new_in_threads`]).
     pub fn set_parts(&self, parts: usize) {
         self.shared.parts.store(parts as u64, Ordering::Relaxed);
     }
@@ -482,6 +483,17 @@ impl Worker {
         }
     }
 
+    /// Threads of a preparation's column solves: the session's tick threads
+    /// ([`RegionFollower::set_parts`]; at least 1, at most [`MAX_PREPARATION_THREADS`]), so
+    /// a session prepares regions with the cores it was given. At normal priority they take
+    /// what the real-time servo and its workers leave.
+    fn threads(&self) -> usize {
+        let parts = self.shared.parts.load(Ordering::Relaxed);
+        usize::try_from(parts)
+            .unwrap_or(1)
+            .clamp(1, MAX_PREPARATION_THREADS)
+    }
+
     /// The touchable node nearest `p`, and its distance, m.
     fn nearest(&self, p: DVec3) -> (DVec3, f64) {
         let rest = self.body.rest();
@@ -538,7 +550,15 @@ impl Worker {
             return Prepared::Nothing;
         }
         let start = Instant::now();
-        match CondensedSolver::new_union(&self.body, &self.mesh, self.region, balls, self.dt_s) {
+        match CondensedSolver::new_in_threads(
+            &self.body,
+            &self.mesh,
+            self.region,
+            balls,
+            self.dt_s,
+            self.threads(),
+            &mut |_, _| {},
+        ) {
             Ok(mut solver) => {
                 solver.prepare_contact(&self.nodes);
                 self.shared.record_prepare_s(start.elapsed().as_secs_f64());
@@ -562,7 +582,16 @@ impl Worker {
             centre_m,
             ..self.region
         };
-        let mut solver = CondensedSolver::new(&self.body, &self.mesh, region, self.dt_s).ok()?;
+        let mut solver = CondensedSolver::new_in_threads(
+            &self.body,
+            &self.mesh,
+            region,
+            RegionBalls::one(centre_m),
+            self.dt_s,
+            self.threads(),
+            &mut |_, _| {},
+        )
+        .ok()?;
         solver.prepare_contact(&self.nodes);
         solver.trim_for_tiles();
         Some(Arc::new(solver))
