@@ -428,19 +428,22 @@ fn write_csv(path: &std::path::Path, tr: &Trace) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Gives the calling thread `SCHED_FIFO` at `priority`.
+/// Gives the calling thread `SCHED_FIFO` at `priority` (1-99).
 fn set_fifo(priority: i32) -> anyhow::Result<()> {
-    let param = libc::sched_param {
-        sched_priority: priority,
+    use thread_priority::{
+        RealtimeThreadSchedulePolicy, ThreadPriority, ThreadPriorityValue, ThreadSchedulePolicy,
+        set_thread_priority_and_policy, thread_native_id,
     };
-    // SAFETY: changes the calling thread's own policy; `param` outlives the call.
-    if unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) } != 0 {
-        anyhow::bail!(
-            "SCHED_FIFO priority {priority} refused: {}",
-            std::io::Error::last_os_error()
-        );
-    }
-    Ok(())
+    let value = u8::try_from(priority)
+        .ok()
+        .and_then(|p| ThreadPriorityValue::try_from(p).ok())
+        .ok_or_else(|| anyhow::anyhow!("SCHED_FIFO priority {priority} out of range"))?;
+    set_thread_priority_and_policy(
+        thread_native_id(),
+        ThreadPriority::Crossplatform(value),
+        ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo),
+    )
+    .map_err(|e| anyhow::anyhow!("SCHED_FIFO priority {priority} refused: {e:?}"))
 }
 
 /// The `q` quantile of `values` (nearest rank below; 0 for none).
