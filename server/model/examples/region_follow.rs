@@ -320,9 +320,7 @@ fn report(args: &Args, sim: &FemBody, path: &Path, tr: &Trace) {
     let (ticks_us, forces, swap_ticks) = (&tr.ticks_us, &tr.forces, &tr.swap_ticks);
     let lost_contact = tr.lost_contact;
     let stats = sim.follow_stats().unwrap_or_default();
-    let mut sorted = ticks_us.clone();
-    sorted.sort_by(f64::total_cmp);
-    let pct = |q: f64| sorted[((sorted.len() - 1) as f64 * q) as usize];
+    let pct = |q: f64| quantile(ticks_us, q);
     let jump = |k: usize| {
         let (a, b) = (forces[k - 1], forces[k]);
         (b - a).length() / a.length().max(1e-9)

@@ -785,9 +785,11 @@ impl FarSolve<'_> {
         let done = AtomicUsize::new(0);
         let failed = AtomicBool::new(false);
         let out = Mutex::new((schur, map));
-        // Takes blocks until none is left (or one failed); the first error.
-        let work = || -> Result<(), ModelError> {
+        // Takes blocks until none is left (or one failed), calling `before` with the blocks
+        // done before each; the first error.
+        let work = |before: &mut dyn FnMut(usize)| -> Result<(), ModelError> {
             loop {
+                before(done.load(Ordering::Relaxed));
                 let b = next.fetch_add(1, Ordering::Relaxed);
                 if b >= blocks || failed.load(Ordering::Relaxed) {
                     return Ok(());
@@ -805,7 +807,7 @@ impl FarSolve<'_> {
             for _ in 1..threads.min(blocks) {
                 let helper = std::thread::Builder::new()
                     .name("region-prep-solve".into())
-                    .spawn_scoped(scope, work)
+                    .spawn_scoped(scope, move || work(&mut |_| {}))
                     .map_err(|e| {
                         failed.store(true, Ordering::Relaxed);
                         ModelError::InvalidInput(format!("cannot start a column-solve thread: {e}"))
@@ -821,23 +823,12 @@ impl FarSolve<'_> {
                 }
             }
             // The calling thread works too, reporting progress between its blocks.
-            let mut mine = Ok(());
-            loop {
+            let mine = work(&mut |d| {
                 progress(
                     "condensation: interface column solves",
-                    0.25 + 0.6 * done.load(Ordering::Relaxed) as f64 / blocks.max(1) as f64,
+                    0.25 + 0.6 * d as f64 / blocks.max(1) as f64,
                 );
-                let b = next.fetch_add(1, Ordering::Relaxed);
-                if b >= blocks || failed.load(Ordering::Relaxed) {
-                    break;
-                }
-                mine = self.block(&llt, &by_col, b * FAR_SOLVE_BLOCK, &out);
-                done.fetch_add(1, Ordering::Relaxed);
-                if mine.is_err() {
-                    failed.store(true, Ordering::Relaxed);
-                    break;
-                }
-            }
+            });
             let mut first = mine;
             for h in helpers {
                 let r = h.join().unwrap_or_else(|_| {
