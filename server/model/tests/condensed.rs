@@ -1934,3 +1934,134 @@ fn column_solves_on_several_threads_build_the_same_region_bit_for_bit() {
     // Zero threads count as one.
     assert_eq!(in_threads(0).sizes().interface_nodes * 3, g);
 }
+
+/// A tile written as an image (`CondensedSolver::to_image`, the on-disk region cache) and
+/// rebuilt (`CondensedSolver::from_image`) steps bit for bit like the tile, through the
+/// half-precision sweep (one coupling row) and through the prepared contact columns (two
+/// rows); an image of another key, format or centre, or a damaged or truncated one, is
+/// refused with an error that says so, and a region that is not a tile has no image.
+#[test]
+fn a_region_image_rebuilds_a_tile_that_steps_bit_for_bit() {
+    use haptic_model::contact::ContactCoupling;
+    let (fem, mesh, f_ext, centre) = setup(StrainSmoothing::None);
+    let nodes = epi_nodes(&mesh);
+    let (region, dt) = (tiled_region(centre), 1e-3);
+    let mut tile = CondensedSolver::new(&fem, &mesh, region, dt).expect("tile");
+    assert!(tile.prepare_contact(&nodes));
+    tile.trim_for_tiles();
+    let key = [7u8; 32];
+    let bytes = tile.to_image(&key).expect("image");
+    assert!(
+        bytes.len() > tile.memory_bytes() / 2 && bytes.len() < 2 * tile.memory_bytes() + 4096,
+        "image {} bytes, region {} bytes",
+        bytes.len(),
+        tile.memory_bytes()
+    );
+    let start = Instant::now();
+    let mut back =
+        CondensedSolver::from_image(&fem, &mesh, region, dt, &key, &bytes).expect("rebuilt");
+    println!(
+        "image of {:.1} MB rebuilt in {:.1} ms ({:?})",
+        bytes.len() as f64 / 1e6,
+        start.elapsed().as_secs_f64() * 1e3,
+        back.sizes()
+    );
+    assert_eq!(back.sizes(), tile.sizes());
+    assert_eq!(back.memory_bytes(), tile.memory_bytes());
+    // The five epicardial nodes nearest the centre: one row along -x, or two coupled rows.
+    let mut near = nodes.clone();
+    near.sort_by(|&a, &b| {
+        mesh.nodes[a as usize]
+            .distance(centre)
+            .total_cmp(&mesh.nodes[b as usize].distance(centre))
+    });
+    near.truncate(5);
+    let one_row = [DVec3::new(-0.2, 0.0, 0.0); 5];
+    let (c1, f1) = ([1.0 / 300.0], [(1.0f64 / 300.0).sqrt()]);
+    let two_rows = [
+        DVec3::new(-0.3, 0.0, 0.0),
+        DVec3::new(-0.3, 0.0, 0.0),
+        DVec3::new(-0.4, 0.0, 0.0),
+        DVec3::new(-0.3, 0.1, 0.0),
+        DVec3::new(-0.3, 0.1, 0.0),
+        DVec3::new(-0.4, 0.1, 0.0),
+    ];
+    let two_nodes = [near[0], near[1], near[2], near[2], near[3], near[4]];
+    let c2: [f64; 4] = [1.0 / 300.0, 0.5 / 300.0, 0.5 / 300.0, 1.0 / 300.0];
+    let l00 = c2[0].sqrt();
+    let l10 = c2[2] / l00;
+    let f2 = [l00, 0.0, l10, (c2[3] - l10 * l10).sqrt()];
+    let couplings = [
+        ContactCoupling {
+            row_ptr: &[0, 5],
+            nodes: &near,
+            vectors: &one_row,
+            compliance: &c1,
+            compliance_factor: &f1,
+        },
+        ContactCoupling {
+            row_ptr: &[0, 3, 6],
+            nodes: &two_nodes,
+            vectors: &two_rows,
+            compliance: &c2,
+            compliance_factor: &f2,
+        },
+    ];
+    let n = fem.node_count();
+    let run = |solver: &mut CondensedSolver| {
+        let mut x = fem.rest().to_vec();
+        let mut v = vec![DVec3::ZERO; n];
+        let mut f = vec![DVec3::ZERO; n];
+        for k in 0..40 {
+            f.copy_from_slice(&f_ext);
+            for &i in &near {
+                f[i as usize] += DVec3::new(-2e-3, 0.0, 0.0);
+            }
+            solver.active_model().add_internal_forces(&x, None, &mut f);
+            let coupling = couplings[k / 20];
+            assert!(solver.step(&f, Some(coupling), &mut x, &mut v).is_finite());
+        }
+        let bits = |a: &[DVec3]| -> Vec<[u64; 3]> {
+            a.iter().map(|p| p.to_array().map(f64::to_bits)).collect()
+        };
+        (bits(&x), bits(&v))
+    };
+    let (a, b) = (run(&mut tile), run(&mut back));
+    assert!(
+        a.0.iter()
+            .zip(fem.rest())
+            .any(|(p, r)| *p != r.to_array().map(f64::to_bits)),
+        "the probe moved nothing"
+    );
+    assert!(a == b, "the rebuilt tile steps differently");
+    let refused = |bytes: &[u8], key: &[u8; 32], region: ActiveRegion| {
+        CondensedSolver::from_image(&fem, &mesh, region, dt, key, bytes)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default()
+    };
+    let mut damaged = bytes.clone();
+    damaged[bytes.len() / 2] ^= 1;
+    let mut other_format = bytes.clone();
+    other_format[8] ^= 0xff;
+    let moved = ActiveRegion {
+        centre_m: centre + DVec3::new(0.0, 1e-3, 0.0),
+        ..region
+    };
+    for (what, error) in [
+        ("key", refused(&bytes, &[8u8; 32], region)),
+        ("damaged", refused(&damaged, &key, region)),
+        (
+            "damaged",
+            refused(&bytes[..bytes.len() - 100], &key, region),
+        ),
+        ("truncated", refused(&bytes[..20], &key, region)),
+        ("format", refused(&other_format, &key, region)),
+        ("centre", refused(&bytes, &key, moved)),
+    ] {
+        assert!(error.contains(what), "expected `{what}` in: {error:?}");
+    }
+    let whole = CondensedSolver::new(&fem, &mesh, ActiveRegion::whole_body(fem.rest(), 2.0), dt)
+        .expect("whole body");
+    assert!(whole.to_image(&key).is_err());
+}

@@ -85,7 +85,11 @@ fn sparse<T: Copy + Default + std::ops::AddAssign + faer::traits::ComplexField>(
 
 /// The model of the tetrahedra `keep` of `body` (mesh `mesh`): every node kept, so numbering
 /// is shared; the body's material, strain smoothing and constraints.
-fn part_model(body: &FemModel, mesh: &TetMesh, keep: &[bool]) -> Result<FemModel, ModelError> {
+pub(super) fn part_model(
+    body: &FemModel,
+    mesh: &TetMesh,
+    keep: &[bool],
+) -> Result<FemModel, ModelError> {
     let mut m = FemModel::with_smoothing(
         &sub_mesh(mesh, keep),
         *body.material(),
@@ -332,10 +336,28 @@ impl CondensedSolver {
             return Err(ModelError::field("active_region", "needs finite centres"));
         }
         let system = CondensedSystem::build(body, mesh, &region, &balls, dt_s, threads, progress)?;
+        progress("condensation: done", 1.0);
+        Ok(Self::assemble(
+            system,
+            region,
+            balls,
+            dt_s,
+            body.node_count(),
+        ))
+    }
+
+    /// The solver of a built `system` for `region` (`balls`) and step `dt_s` over a body of
+    /// `nodes` nodes: no contact column prepared, the state at rest, zeroed work arrays.
+    pub(super) fn assemble(
+        system: CondensedSystem,
+        region: ActiveRegion,
+        balls: RegionBalls,
+        dt_s: f64,
+        nodes: usize,
+    ) -> Self {
         let (m, g) = (system.eq_dof.len(), system.gamma_dof.len());
         let stack = Workspace::new(system.symbolic.solve_in_place_scratch::<f32>(2, Par::Seq));
-        progress("condensation: done", 1.0);
-        Ok(Self {
+        Self {
             params: CondensedParams {
                 h: dt_s,
                 region,
@@ -343,7 +365,7 @@ impl CondensedSolver {
             },
             system,
             contact: ContactColumns {
-                col: vec![u32::MAX; body.node_count()],
+                col: vec![u32::MAX; nodes],
                 z: Vec::new(),
             },
             state: CondensedState {
@@ -353,7 +375,7 @@ impl CondensedSolver {
             },
             scratch: CondensedScratch::new(m, g, stack),
             stats: CondensedStats::default(),
-        })
+        }
     }
 }
 
@@ -379,7 +401,7 @@ impl CondensedSystem {
             far_model,
             node_active,
             node_far,
-        } = select_elements(body, mesh, region, balls)?;
+        } = select_elements(body, mesh, region, balls, true)?;
         let num = number_equations(body, &node_active, &node_far);
         let Condensation {
             schur,
@@ -492,7 +514,7 @@ pub(super) fn ball_of(
 }
 
 /// The region's parameters and the mesh's size checked ([`CondensedSolver::new`]'s errors).
-fn check_region(body: &FemModel, region: &ActiveRegion) -> Result<(), ModelError> {
+pub(super) fn check_region(body: &FemModel, region: &ActiveRegion) -> Result<(), ModelError> {
     let field = |m: &str| ModelError::field("active_region", m);
     if !(region.radius_m > 0.0) || !region.radius_m.is_finite() || !region.centre_m.is_finite() {
         return Err(field("needs a finite centre and a positive radius"));
@@ -509,28 +531,29 @@ fn check_region(body: &FemModel, region: &ActiveRegion) -> Result<(), ModelError
 }
 
 /// The active and far elements of a region ([`select_elements`]).
-struct Selection {
-    active_tets: usize,
-    active: FemModel,
+pub(super) struct Selection {
+    pub(super) active_tets: usize,
+    pub(super) active: FemModel,
     /// `None` when the region holds every element: then this is backward Euler with a
     /// prefactored rest matrix on the whole body.
-    far_model: Option<FemModel>,
+    pub(super) far_model: Option<FemModel>,
     /// Nodes of an active element.
-    node_active: Vec<bool>,
+    pub(super) node_active: Vec<bool>,
     /// Nodes of a far element.
-    node_far: Vec<bool>,
+    pub(super) node_far: Vec<bool>,
 }
 
 /// Every tetrahedron with a corner node within the region (within its radius of one of
-/// `balls`) is active, the others far.
+/// `balls`) is active, the others far; the far part's model is built only `with_far`.
 ///
 /// # Errors
 /// [`ModelError::SceneField`] for a region with no element; the parts' model errors.
-fn select_elements(
+pub(super) fn select_elements(
     body: &FemModel,
     mesh: &TetMesh,
     region: &ActiveRegion,
     balls: &RegionBalls,
+    with_far: bool,
 ) -> Result<Selection, ModelError> {
     let n = body.node_count();
     let r2 = region.radius_m * region.radius_m;
@@ -550,7 +573,7 @@ fn select_elements(
     }
     let active = part_model(body, mesh, &keep)?;
     let far_keep: Vec<bool> = keep.iter().map(|k| !k).collect();
-    let far_model = if far_keep.contains(&true) {
+    let far_model = if with_far && far_keep.contains(&true) {
         Some(part_model(body, mesh, &far_keep)?)
     } else {
         None
@@ -579,18 +602,22 @@ fn select_elements(
 /// The components of a split: equations (free components of active nodes), interface
 /// components (free, of nodes both active and far) and far-only components; each index
 /// array maps a global component `3 i + c` to its number, or `usize::MAX`.
-struct Numbering {
-    eq: Vec<usize>,
-    eq_dof: Vec<usize>,
-    gamma_index: Vec<usize>,
-    gamma_dof: Vec<usize>,
-    far_index: Vec<usize>,
-    far_dofs: Vec<usize>,
-    interface_nodes: usize,
+pub(super) struct Numbering {
+    pub(super) eq: Vec<usize>,
+    pub(super) eq_dof: Vec<usize>,
+    pub(super) gamma_index: Vec<usize>,
+    pub(super) gamma_dof: Vec<usize>,
+    pub(super) far_index: Vec<usize>,
+    pub(super) far_dofs: Vec<usize>,
+    pub(super) interface_nodes: usize,
 }
 
 /// Numbers the components of the split `node_active` / `node_far` of `body`.
-fn number_equations(body: &FemModel, node_active: &[bool], node_far: &[bool]) -> Numbering {
+pub(super) fn number_equations(
+    body: &FemModel,
+    node_active: &[bool],
+    node_far: &[bool],
+) -> Numbering {
     let n = body.node_count();
     let free = |i: usize, c: usize| body.constraints()[i] & (1 << c) == 0;
     // Equations: free components of active nodes.
@@ -661,7 +688,6 @@ fn condense_far(
     threads: usize,
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Condensation, ModelError> {
-    let n = num.eq.len() / 3;
     let (g, f) = (num.gamma_dof.len(), num.far_dofs.len());
     let (gamma_index, far_index, far_dofs) = (&num.gamma_index, &num.far_index, &num.far_dofs);
     progress("condensation: far stiffness", 0.0);
@@ -680,29 +706,12 @@ fn condense_far(
         }
     });
     let mut schur = kgg;
-    // Rows of `-X` kept: the far boundary components (the surface viewers see, refreshed a
-    // slice per tick), or for a following region every far component (a successor may
-    // activate any far node: `hand_over`).
-    let mut on_boundary = vec![false; n];
-    for t in mesh.boundary_triangles() {
-        for i in t {
-            on_boundary[i as usize] = true;
-        }
-    }
-    let map_far: Vec<usize> = (0..f)
-        .filter(|&k| region.follow || on_boundary[far_dofs[k] / 3])
-        .collect();
-    let surface_rows: Vec<u32> = (0..map_far.len())
-        .filter(|&r| on_boundary[far_dofs[map_far[r]] / 3])
-        .map(|r| r as u32)
-        .collect();
+    let MapRows {
+        map_far,
+        surface_rows,
+        map_row,
+    } = map_rows(mesh, region, num);
     let mut map = vec![0u16; map_far.len() * g];
-    let mut map_row = vec![u32::MAX; if region.follow { 3 * n } else { 0 }];
-    if region.follow {
-        for (r, &k) in map_far.iter().enumerate() {
-            map_row[far_dofs[k]] = r as u32;
-        }
-    }
     let llt = if f > 0 {
         progress("condensation: far factorisation", 0.15);
         let far = FarSolve {
@@ -735,6 +744,48 @@ fn condense_far(
         llt,
         kfg,
     })
+}
+
+/// Which far components the far map keeps ([`map_rows`]).
+pub(super) struct MapRows {
+    /// The far component (index into the numbering's far components) of each row.
+    pub(super) map_far: Vec<usize>,
+    /// Rows on the far boundary.
+    pub(super) surface_rows: Vec<u32>,
+    /// Following regions: per global component its row or `u32::MAX`; empty otherwise.
+    pub(super) map_row: Vec<u32>,
+}
+
+/// The rows of `-X` kept: the far boundary components (the surface viewers see, refreshed a
+/// slice per tick), or for a following region every far component (a successor may activate
+/// any far node: `hand_over`).
+pub(super) fn map_rows(mesh: &TetMesh, region: &ActiveRegion, num: &Numbering) -> MapRows {
+    let n = num.eq.len() / 3;
+    let far_dofs = &num.far_dofs;
+    let mut on_boundary = vec![false; n];
+    for t in mesh.boundary_triangles() {
+        for i in t {
+            on_boundary[i as usize] = true;
+        }
+    }
+    let map_far: Vec<usize> = (0..far_dofs.len())
+        .filter(|&k| region.follow || on_boundary[far_dofs[k] / 3])
+        .collect();
+    let surface_rows: Vec<u32> = (0..map_far.len())
+        .filter(|&r| on_boundary[far_dofs[map_far[r]] / 3])
+        .map(|r| r as u32)
+        .collect();
+    let mut map_row = vec![u32::MAX; if region.follow { 3 * n } else { 0 }];
+    if region.follow {
+        for (r, &k) in map_far.iter().enumerate() {
+            map_row[far_dofs[k]] = r as u32;
+        }
+    }
+    MapRows {
+        map_far,
+        surface_rows,
+        map_row,
+    }
 }
 
 /// What the far solves of [`condense_far`] read.
@@ -908,7 +959,7 @@ const FAR_SOLVE_BLOCK: usize = 64;
 
 /// The tick matrix's factor: its analysis, the single-precision factor and, when the
 /// rounding allows ([`half_of`]), the half-precision sweep.
-type TickFactor = (
+pub(super) type TickFactor = (
     SymbolicCholesky<usize>,
     Vec<f32>,
     Option<SupernodalSolve>,
@@ -919,7 +970,7 @@ type TickFactor = (
 ///
 /// # Errors
 /// [`ModelError::InvalidMesh`] when the matrix is not positive definite.
-fn factor_tick_matrix(
+pub(super) fn factor_tick_matrix(
     parts: &TickMatrixParts<'_>,
     eq_dof: &[usize],
     c: f64,

@@ -95,7 +95,23 @@ pub struct HalfFactor {
     values: Vec<u16>,
 }
 
+/// The arrays of a [`HalfFactor`] (scale, inverted diagonal, supernode starts, panel
+/// triangles, half-precision bits), for the region cache's files
+/// ([`HalfFactor::to_parts`], [`SupernodalSolve::half_factor_from_parts`]).
+pub type HalfFactorParts = (Vec<f32>, Vec<f32>, Vec<[u32; 2]>, Vec<f32>, Vec<u16>);
+
 impl HalfFactor {
+    /// Its arrays, as [`SupernodalSolve::half_factor_from_parts`] takes them back.
+    pub fn to_parts(&self) -> HalfFactorParts {
+        (
+            self.scale.clone(),
+            self.inv_diag.clone(),
+            self.node_start.clone(),
+            self.triangles.clone(),
+            self.values.clone(),
+        )
+    }
+
     /// Bytes of the factor's arrays.
     pub fn memory_bytes(&self) -> usize {
         2 * self.values.len()
@@ -325,6 +341,41 @@ impl SupernodalSolve {
             triangles,
             values: half,
         })
+    }
+
+    /// The half-precision factor with the arrays `parts` ([`HalfFactor::to_parts`] of a
+    /// factor of this structure), or `None` when their lengths or supernode starts are not
+    /// the ones [`Self::half_factor`] makes on this structure: a factor read back from a file
+    /// cannot make a sweep read out of bounds.
+    pub fn half_factor_from_parts(&self, parts: HalfFactorParts) -> Option<HalfFactor> {
+        let (scale, inv_diag, node_start, triangles, values) = parts;
+        let n = self.x.len();
+        if scale.len() != n || inv_diag.len() != n || node_start.len() != self.nodes.len() + 1 {
+            return None;
+        }
+        let (mut half, mut tri) = (0usize, 0usize);
+        for (&node, start) in self.nodes.iter().zip(&node_start) {
+            if start[0] as usize != half || start[1] as usize != tri {
+                return None;
+            }
+            let (_, nc, _, pattern) = supernode(node, &self.rows);
+            for p in panels(nc, nc + pattern.len()) {
+                half += p.values_len;
+                tri += p.triangle_len;
+            }
+        }
+        let last = node_start[self.nodes.len()];
+        (last[0] as usize == half
+            && last[1] as usize == tri
+            && values.len() == half
+            && triangles.len() == tri)
+            .then_some(HalfFactor {
+                scale,
+                inv_diag,
+                node_start,
+                triangles,
+                values,
+            })
     }
 
     /// Solves `A x = b` in place through the half-precision factor `factor` (from

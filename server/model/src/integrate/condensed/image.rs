@@ -1,0 +1,402 @@
+//! A prepared following region as bytes, and back (issue 48 s2: the region cache stored on
+//! disk, [`crate::integrate::follow`]).
+//!
+//! The image holds what a preparation computes and a reconstruction cannot get cheaply: the
+//! condensed far stiffness `S`, the far map, the tick matrix's factor (single and half
+//! precision) and the prepared contact columns. Everything else (the split, its numbering,
+//! the active elements' model, the factor's symbolic analysis) is rebuilt from the body and
+//! the region in tens of milliseconds, and checked against a digest of the tick matrix's
+//! pattern stored in the image. A reconstructed region steps bit for bit like the one written.
+//!
+//! Layout (native byte order, which the format number's bytes also tell): the magic
+//! `HAPTTILE`, the format number [`TILE_IMAGE_FORMAT`] (u32), the caller's 32-byte key, the
+//! centre (3 f64) and the step (f64), the tick matrix's pattern digest (32 bytes), then the
+//! arrays, each as its element count (u64) and its elements, and last the BLAKE3 hash of
+//! everything before it.
+//!
+//! Owns: the image's layout and its checks. May use: [`super`].
+
+use super::build::{
+    MapRows, Numbering, Selection, check_region, map_rows, number_equations, select_elements,
+};
+use super::*;
+
+/// Version of the image layout and of the preparation it stores. Raise it whenever either
+/// changes (a field, an array, the condensation's or the factor's arithmetic): an image of
+/// another number is refused, so a cache never serves a region the code would not build.
+pub const TILE_IMAGE_FORMAT: u32 = 1;
+
+const MAGIC: &[u8; 8] = b"HAPTTILE";
+const HASH_BYTES: usize = 32;
+
+/// Appends arrays to an image.
+struct Writer(Vec<u8>);
+
+impl Writer {
+    fn raw(&mut self, bytes: &[u8]) {
+        self.0.extend_from_slice(bytes);
+    }
+
+    fn array<T: bytemuck::Pod>(&mut self, values: &[T]) {
+        self.raw(&(values.len() as u64).to_ne_bytes());
+        self.raw(bytemuck::cast_slice(values));
+    }
+}
+
+/// Reads an image's fields in order; every read is bounds-checked.
+struct Reader<'a> {
+    bytes: &'a [u8],
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8], ModelError> {
+        if n > self.bytes.len() {
+            return Err(bad("is truncated"));
+        }
+        let (head, rest) = self.bytes.split_at(n);
+        self.bytes = rest;
+        Ok(head)
+    }
+
+    fn u64(&mut self) -> Result<u64, ModelError> {
+        let b = self.take(8)?;
+        Ok(u64::from_ne_bytes(
+            b.try_into().map_err(|_| bad("is truncated"))?,
+        ))
+    }
+
+    fn f64(&mut self) -> Result<f64, ModelError> {
+        self.u64().map(f64::from_bits)
+    }
+
+    fn array<T: bytemuck::Pod>(&mut self) -> Result<Vec<T>, ModelError> {
+        let len = usize::try_from(self.u64()?).map_err(|_| bad("holds an absurd length"))?;
+        let bytes = len
+            .checked_mul(std::mem::size_of::<T>())
+            .ok_or_else(|| bad("holds an absurd length"))?;
+        let src = self.take(bytes)?;
+        let mut values = vec![T::zeroed(); len];
+        bytemuck::cast_slice_mut::<T, u8>(&mut values).copy_from_slice(src);
+        Ok(values)
+    }
+}
+
+fn bad(what: &str) -> ModelError {
+    ModelError::InvalidInput(format!("region image {what}"))
+}
+
+/// BLAKE3 of the tick matrix's pattern (column pointers and row indices): the symbolic
+/// analysis a reconstruction rebuilds is the written one exactly when this agrees.
+fn pattern_digest(a_lower: &SparseColMat<usize, f32>) -> [u8; HASH_BYTES] {
+    let mut h = blake3::Hasher::new();
+    let s = a_lower.symbolic();
+    for &p in s.col_ptr() {
+        h.update(&(p as u64).to_le_bytes());
+    }
+    for &r in s.row_idx() {
+        h.update(&(r as u64).to_le_bytes());
+    }
+    *h.finalize().as_bytes()
+}
+
+impl CondensedSolver {
+    /// This region as bytes, tagged with `key` (the caller's digest of the body, the region's
+    /// parameters and the touchable nodes: [`Self::from_image`] refuses an image of another
+    /// key). Only a one-ball following region without a far factor or an entry factor has an
+    /// image (a tile: [`ActiveRegion::follow`], [`Self::trim_for_tiles`]); about its
+    /// [`Self::memory_bytes`].
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] for a region that is not such a tile.
+    pub fn to_image(&self, key: &[u8; 32]) -> Result<Vec<u8>, ModelError> {
+        let sys = &self.system;
+        if !self.params.region.follow
+            || sys.far.llt.is_some()
+            || sys.entry.is_some()
+            || self.params.balls.centres().len() != 1
+        {
+            return Err(ModelError::InvalidInput(
+                "only a one-ball following region without a far or entry factor has an image"
+                    .into(),
+            ));
+        }
+        let parts = self.tick_matrix_parts_owned();
+        let a_lower = parts.lower(self.params.region.stiffness_margin)?;
+        // The reconstruction orders the pattern of `S` as stored (single precision); it must
+        // give this region's analysis (it does unless an entry of `S` is below f32's range).
+        let eq_nodes: Vec<usize> = sys.eq_dof.iter().map(|&d| d / 3).collect();
+        let again = symbolic_cholesky(a_lower.symbolic(), Side::Lower, &eq_nodes)?;
+        let perm = |s: &SymbolicCholesky<usize>| s.perm().map(|p| p.arrays().0.to_vec());
+        if again.len_val() != sys.symbolic.len_val() || perm(&again) != perm(&sys.symbolic) {
+            return Err(ModelError::InvalidInput(
+                "the region's tick matrix pattern cannot be rebuilt from its stored S".into(),
+            ));
+        }
+        let mut w = Writer(Vec::with_capacity(self.memory_bytes() + 4096));
+        w.raw(MAGIC);
+        w.raw(&TILE_IMAGE_FORMAT.to_ne_bytes());
+        w.raw(key);
+        let c = self.params.region.centre_m;
+        for v in [c.x, c.y, c.z, self.params.h] {
+            w.raw(&v.to_bits().to_ne_bytes());
+        }
+        w.raw(&pattern_digest(&a_lower));
+        w.array(&sys.schur);
+        w.array(&sys.factor);
+        match &sys.half {
+            Some(h) => {
+                let (scale, inv_diag, node_start, triangles, values) = h.to_parts();
+                w.array(&[1u8]);
+                w.array(&scale);
+                w.array(&inv_diag);
+                w.array(&node_start);
+                w.array(&triangles);
+                w.array(&values);
+            }
+            None => w.array::<u8>(&[]),
+        }
+        w.array(&sys.map);
+        w.array(&self.contact.col);
+        w.array(&self.contact.z);
+        let hash = blake3::hash(&w.0);
+        w.raw(hash.as_bytes());
+        Ok(w.0)
+    }
+
+    /// The region [`Self::to_image`] wrote into `bytes`, rebuilt over `body` and `mesh` (the
+    /// ones it was prepared on) as the following `region` (its centre the image's) with
+    /// step `dt_s` (s): the split and the symbolic analysis recomputed, the numeric arrays
+    /// read. Steps bit for bit as the region written. Costs the active elements' model, the
+    /// tick matrix's assembly and ordering, and a pass over the bytes.
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] naming what is wrong when `bytes` is not such an image
+    /// (damaged: its hash; truncated), was written with another `key`, another format
+    /// ([`TILE_IMAGE_FORMAT`]), centre or step, or does not fit the split the body gives;
+    /// the region's own errors as [`Self::new`].
+    pub fn from_image(
+        body: &FemModel,
+        mesh: &TetMesh,
+        region: ActiveRegion,
+        dt_s: f64,
+        key: &[u8; 32],
+        bytes: &[u8],
+    ) -> Result<Self, ModelError> {
+        if bytes.len() < MAGIC.len() + 4 + HASH_BYTES {
+            return Err(bad("is truncated"));
+        }
+        let (body_bytes, hash) = bytes.split_at(bytes.len() - HASH_BYTES);
+        let mut r = Reader { bytes: body_bytes };
+        if r.take(MAGIC.len())? != MAGIC {
+            return Err(bad("is not a region image (no HAPTTILE magic)"));
+        }
+        let format = u32::from_ne_bytes(r.take(4)?.try_into().map_err(|_| bad("is truncated"))?);
+        if format != TILE_IMAGE_FORMAT {
+            return Err(ModelError::InvalidInput(format!(
+                "region image has format {format}, this build reads {TILE_IMAGE_FORMAT} (written \
+                 by another version)"
+            )));
+        }
+        if blake3::hash(body_bytes).as_bytes() != hash {
+            return Err(bad("is damaged (its BLAKE3 hash does not match)"));
+        }
+        if r.take(HASH_BYTES)? != key {
+            return Err(bad(
+                "was written for another body, region or step (its key differs)",
+            ));
+        }
+        let centre = DVec3::new(r.f64()?, r.f64()?, r.f64()?);
+        let h = r.f64()?;
+        if centre.to_array().map(f64::to_bits) != region.centre_m.to_array().map(f64::to_bits)
+            || h.to_bits() != dt_s.to_bits()
+        {
+            return Err(bad("has another centre or step than asked"));
+        }
+        let digest: [u8; HASH_BYTES] = r
+            .take(HASH_BYTES)?
+            .try_into()
+            .map_err(|_| bad("is truncated"))?;
+        let region = ActiveRegion {
+            follow: true,
+            ..region
+        };
+        check_region(body, &region)?;
+        let balls = RegionBalls::one(region.centre_m);
+        let Selection {
+            active_tets,
+            active,
+            node_active,
+            node_far,
+            ..
+        } = select_elements(body, mesh, &region, &balls, false)?;
+        let num = number_equations(body, &node_active, &node_far);
+        let g = num.gamma_dof.len();
+        let m = num.eq_dof.len();
+        let schur: Vec<f32> = r.array()?;
+        if schur.len() != g * (g + 1) / 2 {
+            return Err(bad("does not fit the body's split (interface size)"));
+        }
+        let schur_full = unpack_symmetric(&schur, g);
+        let mass: Vec<f64> = num
+            .eq_dof
+            .iter()
+            .map(|d| body.lumped_mass_kg()[d / 3])
+            .collect();
+        let ball = ball_of(&balls, region.radius_m, body.rest(), &num.gamma_dof);
+        let a_lower = TickMatrixParts {
+            active: &active,
+            material: *body.material(),
+            eq: &num.eq,
+            gamma_dof: &num.gamma_dof,
+            schur: &schur_full,
+            ball: &ball,
+            mass: &mass,
+            h,
+        }
+        .lower(region.stiffness_margin)?;
+        if pattern_digest(&a_lower) != digest {
+            return Err(bad("does not fit the body's split (tick matrix pattern)"));
+        }
+        let eq_nodes: Vec<usize> = num.eq_dof.iter().map(|&d| d / 3).collect();
+        let symbolic = symbolic_cholesky(a_lower.symbolic(), Side::Lower, &eq_nodes)?;
+        let sweep = SupernodalSolve::new(&symbolic);
+        let factor: Vec<f32> = r.array()?;
+        let half = match r.array::<u8>()?.as_slice() {
+            [] => None,
+            [1] => {
+                let parts = (r.array()?, r.array()?, r.array()?, r.array()?, r.array()?);
+                let half = sweep
+                    .as_ref()
+                    .and_then(|s| s.half_factor_from_parts(parts))
+                    .ok_or_else(|| bad("does not fit the body's split (half factor)"))?;
+                Some(half)
+            }
+            _ => return Err(bad("has an unknown factor flag")),
+        };
+        let trimmed = factor.is_empty() && sweep.is_some() && half.is_some();
+        if factor.len() != symbolic.len_val() && !trimmed {
+            return Err(bad("does not fit the body's split (factor length)"));
+        }
+        let MapRows {
+            map_far,
+            surface_rows,
+            map_row,
+        } = map_rows(mesh, &region, &num);
+        let map: Vec<u16> = r.array()?;
+        if map.len() != map_far.len() * g {
+            return Err(bad("does not fit the body's split (far map)"));
+        }
+        let col: Vec<u32> = r.array()?;
+        let z: Vec<f32> = r.array()?;
+        let prepared = col.iter().filter(|&&c| c != u32::MAX).count();
+        if col.len() != body.node_count()
+            || col.iter().any(|&c| c != u32::MAX && c as usize >= prepared)
+            || z.len() != 3 * m * prepared
+        {
+            return Err(bad("does not fit the body's split (contact columns)"));
+        }
+        if !r.bytes.is_empty() {
+            return Err(bad("has trailing bytes"));
+        }
+        let Numbering {
+            eq,
+            eq_dof,
+            gamma_dof,
+            far_dofs,
+            interface_nodes,
+            ..
+        } = num;
+        let sizes = CondensedSizes {
+            active_tets,
+            active_nodes: node_active.iter().filter(|a| **a).count(),
+            interface_nodes,
+            equations: m,
+            factor_entries: symbolic.len_val(),
+        };
+        let system = CondensedSystem {
+            active,
+            eq,
+            eq_dof,
+            mass,
+            gamma_dof,
+            schur,
+            avx2: Avx2Fma::detect(),
+            f16c: Avx2FmaF16c::detect(),
+            symbolic: Arc::new(symbolic),
+            factor,
+            sweep,
+            half,
+            map_dofs: map_far.iter().map(|&k| far_dofs[k]).collect(),
+            map,
+            surface_rows,
+            map_row,
+            far: FarField {
+                dofs: far_dofs,
+                llt: None,
+                kfg: Vec::new(),
+            },
+            sizes,
+            node_active,
+            entry: None,
+        };
+        let mut solver = Self::assemble(system, region, balls, dt_s, body.node_count());
+        solver.contact = ContactColumns { col, z };
+        Ok(solver)
+    }
+
+    /// The tick matrix's parts of this region, `S` unpacked (for [`Self::to_image`]'s
+    /// pattern digest).
+    fn tick_matrix_parts_owned(&self) -> OwnedTickMatrixParts<'_> {
+        let sys = &self.system;
+        let g = sys.gamma_dof.len();
+        OwnedTickMatrixParts {
+            solver: self,
+            schur: unpack_symmetric(&sys.schur, g),
+            ball: ball_of(
+                &self.params.balls,
+                self.params.region.radius_m,
+                sys.active.rest(),
+                &sys.gamma_dof,
+            ),
+        }
+    }
+}
+
+/// [`TickMatrixParts`] with the arrays a solver does not keep.
+struct OwnedTickMatrixParts<'a> {
+    solver: &'a CondensedSolver,
+    schur: Vec<f64>,
+    ball: Vec<u8>,
+}
+
+impl OwnedTickMatrixParts<'_> {
+    fn lower(&self, c: f64) -> Result<SparseColMat<usize, f32>, ModelError> {
+        let sys = &self.solver.system;
+        TickMatrixParts {
+            active: &sys.active,
+            material: *sys.active.material(),
+            eq: &sys.eq,
+            gamma_dof: &sys.gamma_dof,
+            schur: &self.schur,
+            ball: &self.ball,
+            mass: &sys.mass,
+            h: self.solver.params.h,
+        }
+        .lower(c)
+    }
+}
+
+/// The row-major `g x g` symmetric matrix of the packed upper triangle `packed`
+/// ([`packed_row_start`]), in double precision.
+fn unpack_symmetric(packed: &[f32], g: usize) -> Vec<f64> {
+    let mut full = vec![0.0; g * g];
+    for a in 0..g {
+        let row = &packed[packed_row_start(a, g)..packed_row_start(a + 1, g)];
+        for (k, &v) in row.iter().enumerate() {
+            let b = a + k;
+            full[a * g + b] = f64::from(v);
+            full[b * g + a] = f64::from(v);
+        }
+    }
+    full
+}
