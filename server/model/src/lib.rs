@@ -184,6 +184,15 @@ pub fn build_mass_spring_body(
     }
 }
 
+/// What the host (the daemon) gives a body beside its scene: settings of the machine, which a
+/// scene (a client's file) cannot set.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct BodyOptions {
+    /// Where a following region with tiles keeps them between sessions
+    /// ([`integrate::follow::RegionCacheDir`]); `None`: in the session's memory only.
+    pub region_cache: Option<integrate::follow::RegionCacheDir>,
+}
+
 /// [`build_body`] reporting the preprocessing's progress (`stage`, fraction in `[0, 1]`) for
 /// families that preprocess (the hybrid model, [`fn@hybrid::prepare`]; the FEM with a
 /// contact-local active region, [`fem::FemBody::new_with_progress`]).
@@ -194,6 +203,18 @@ pub fn build_mass_spring_body(
 /// that declares itself a static benchmark (`[model] realtime = false`).
 pub fn build_body_with_progress(
     scene: &scene::Scene,
+    progress: &mut dyn FnMut(&str, f64),
+) -> Result<Box<dyn body::SoftBody>, ModelError> {
+    build_body_with_options(scene, &BodyOptions::default(), progress)
+}
+
+/// [`build_body_with_progress`] with the host's `options` ([`BodyOptions`]).
+///
+/// # Errors
+/// As [`build_body_with_progress`].
+pub fn build_body_with_options(
+    scene: &scene::Scene,
+    options: &BodyOptions,
     progress: &mut dyn FnMut(&str, f64),
 ) -> Result<Box<dyn body::SoftBody>, ModelError> {
     if !scene.realtime {
@@ -208,7 +229,9 @@ pub fn build_body_with_progress(
     }
     match scene.family {
         scene::ModelFamily::Hybrid => Ok(Box::new(build_hybrid_body(scene, progress)?)),
-        scene::ModelFamily::Fem => Ok(Box::new(fem::FemBody::new_with_progress(scene, progress)?)),
+        scene::ModelFamily::Fem => Ok(Box::new(fem::FemBody::new_with_options(
+            scene, options, progress,
+        )?)),
         scene::ModelFamily::MassSpring => Ok(Box::new(build_mass_spring_body(scene)?)),
     }
 }

@@ -2065,3 +2065,130 @@ fn a_region_image_rebuilds_a_tile_that_steps_bit_for_bit() {
         .expect("whole body");
     assert!(whole.to_image(&key).is_err());
 }
+
+/// Waits (at most 120 s) until every tile of `follower` is built, read or failed.
+fn wait_for_tiles(follower: &RegionFollower) -> haptic_model::integrate::follow::FollowStats {
+    let waited = Instant::now();
+    loop {
+        let s = follower.stats();
+        if s.tiles_built + s.tiles_failed >= s.tiles {
+            return s;
+        }
+        assert!(waited.elapsed().as_secs() < 120, "{s:?}");
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+}
+
+/// The region cache on disk (`RegionFollower::spawn_with_cache`): the first session writes
+/// every tile, the next reads them all instead of building; a damaged file and a foreign one
+/// (another tile's file under this tile's name) are refused with the reason, rebuilt and
+/// replaced; another material finds no file of its own; a size limit keeps tiles in memory.
+#[test]
+fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() {
+    use haptic_model::integrate::follow::RegionCacheDir;
+    let (fem, mesh, _, centre) = setup(StrainSmoothing::None);
+    let nodes = epi_nodes(&mesh);
+    let region = ActiveRegion {
+        tiles: TileMode::Background { cover_m: 0.005 },
+        ..tiled_region(centre)
+    };
+    let dir = std::env::temp_dir().join(format!("haptic-region-cache-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let cache = RegionCacheDir {
+        dir: dir.join("tiles"),
+        max_bytes: 1 << 30,
+    };
+    let mut first = CondensedSolver::new(&fem, &mesh, region, 1e-3).expect("first");
+    first.prepare_contact(&nodes);
+    let session = |fem: &FemModel, cache: &RegionCacheDir| {
+        let f = RegionFollower::spawn_with_cache(fem, &mesh, &nodes, &first, Some(cache))
+            .expect("spawn");
+        let s = wait_for_tiles(&f);
+        (s, f.cache_error())
+    };
+    let files = || -> Vec<std::path::PathBuf> {
+        let mut v: Vec<_> = std::fs::read_dir(&cache.dir)
+            .map(|d| d.map(|e| e.expect("entry").path()).collect())
+            .unwrap_or_default();
+        v.sort();
+        v
+    };
+    let (written, error) = session(&fem, &cache);
+    let n = written.tiles;
+    assert!(n >= 5, "{written:?}");
+    assert_eq!(
+        (
+            written.tiles_stored,
+            written.tiles_loaded,
+            written.tiles_refused
+        ),
+        (n, 0, 0),
+        "{written:?} {error:?}"
+    );
+    let tiles = files();
+    assert_eq!(tiles.len() as u64, n, "{tiles:?}");
+    assert!(
+        tiles
+            .iter()
+            .all(|p| p.extension().is_some_and(|e| e == "tile"))
+    );
+    let (read, error) = session(&fem, &cache);
+    println!(
+        "{n} tiles: built and written in {:.2} s, read in {:.2} s",
+        written.tile_build_s, read.tile_build_s
+    );
+    assert_eq!(
+        (
+            read.tiles_stored,
+            read.tiles_loaded,
+            read.tiles_refused,
+            read.tiles_failed
+        ),
+        (0, n, 0, 0),
+        "{read:?} {error:?}"
+    );
+    assert_eq!(read.tile_cache_bytes, written.tile_cache_bytes);
+    // A damaged file, and tile 0's file copied over tile 1's.
+    let mut bytes = std::fs::read(&tiles[2]).expect("read");
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 0x10;
+    std::fs::write(&tiles[2], &bytes).expect("write");
+    for (k, what) in [(2, "damaged"), (1, "another centre")] {
+        if k == 1 {
+            std::fs::copy(&tiles[0], &tiles[1]).expect("copy");
+        }
+        let (again, error) = session(&fem, &cache);
+        let error = error.unwrap_or_default();
+        assert_eq!(
+            (again.tiles_refused, again.tiles_stored, again.tiles_loaded),
+            (1, 1, n - 1),
+            "{what}: {again:?}"
+        );
+        assert!(
+            error.contains(what) && error.contains(&*tiles[k].to_string_lossy()),
+            "{what}: {error}"
+        );
+    }
+    // Another material: another key, its own files.
+    let mut material = *fem.material();
+    material.mu_pa *= 1.1;
+    let mut stiffer =
+        FemModel::with_smoothing(&mesh, material, StrainSmoothing::None).expect("stiffer");
+    stiffer.copy_constraints_from(&fem);
+    let (other, _) = session(&stiffer, &cache);
+    assert_eq!(
+        (other.tiles_loaded, other.tiles_stored),
+        (0, n),
+        "{other:?}"
+    );
+    assert_eq!(files().len() as u64, 2 * n);
+    // A limit below one tile: nothing written, the reason kept.
+    let small = RegionCacheDir {
+        dir: dir.join("small"),
+        max_bytes: 1000,
+    };
+    let (kept, error) = session(&fem, &small);
+    assert_eq!((kept.tiles_stored, kept.tiles_built), (0, n), "{kept:?}");
+    assert!(error.unwrap_or_default().contains("full"));
+    std::fs::remove_dir_all(&dir).expect("clean up");
+}

@@ -40,7 +40,6 @@ use std::sync::Arc;
 
 use glam::DVec3;
 
-use crate::ModelError;
 use crate::body::{
     BodyInfo, BodyStats, MAX_TOOLS, PointLoadZone, SoftBody, SurfaceCapacity, SurfaceTopology,
     check_tool_inputs,
@@ -55,6 +54,7 @@ use crate::integrate::{self, IntegratorKind, IntegratorParams, StepPlan, Stepper
 use crate::loads::BodyLoads;
 use crate::pool::TickPool;
 use crate::scene::Scene;
+use crate::{BodyOptions, ModelError};
 
 pub use crate::body::{TickInput, TickOutput};
 pub use crate::integrate::FemState;
@@ -198,9 +198,24 @@ impl FemBody {
         scene: &Scene,
         progress: &mut dyn FnMut(&str, f64),
     ) -> Result<Self, ModelError> {
+        Self::new_with_options(scene, &BodyOptions::default(), progress)
+    }
+
+    /// [`FemBody::new_with_progress`] with the host's `options` ([`BodyOptions`]: where a
+    /// following region keeps its tiles between sessions).
+    ///
+    /// # Errors
+    /// As [`FemBody::new`].
+    pub fn new_with_options(
+        scene: &Scene,
+        options: &BodyOptions,
+        progress: &mut dyn FnMut(&str, f64),
+    ) -> Result<Self, ModelError> {
         progress("FEM data", 0.0);
         let fem = scene.fem_model()?;
-        Self::from_fem_with_progress(fem, scene, &mut |stage, f| progress(stage, 0.1 + 0.9 * f))
+        Self::from_fem_with_progress(fem, scene, options, &mut |stage, f| {
+            progress(stage, 0.1 + 0.9 * f)
+        })
     }
 
     /// Like [`FemBody::new`] but with a prepared [`FemModel`] (e.g. with roller constraints).
@@ -208,12 +223,13 @@ impl FemBody {
     /// # Errors
     /// As [`FemBody::new`].
     pub fn from_fem(fem: FemModel, scene: &Scene) -> Result<Self, ModelError> {
-        Self::from_fem_with_progress(fem, scene, &mut |_, _| {})
+        Self::from_fem_with_progress(fem, scene, &BodyOptions::default(), &mut |_, _| {})
     }
 
     fn from_fem_with_progress(
         fem: FemModel,
         scene: &Scene,
+        options: &BodyOptions,
         progress: &mut dyn FnMut(&str, f64),
     ) -> Result<Self, ModelError> {
         let p = scene.integrator;
@@ -264,7 +280,13 @@ impl FemBody {
             let contact_nodes: Vec<u32> = touchable.iter().flatten().copied().collect();
             c.prepare_contact(&contact_nodes);
             if follows {
-                follow.0 = Some(RegionFollower::spawn(&fem, &scene.mesh, &contact_nodes, c)?);
+                follow.0 = Some(RegionFollower::spawn_with_cache(
+                    &fem,
+                    &scene.mesh,
+                    &contact_nodes,
+                    c,
+                    options.region_cache.as_ref(),
+                )?);
             }
         }
         let (surface_nodes, surface_triangles) = surface_map(&boundary, n);
@@ -697,6 +719,12 @@ impl FemBody {
     /// Counters of a following active region (`active_region.follow`), `None` otherwise.
     pub fn follow_stats(&self) -> Option<FollowStats> {
         self.follow.0.as_ref().map(RegionFollower::stats)
+    }
+
+    /// The region cache's last error ([`RegionFollower::cache_error`]), for the host's log;
+    /// not for the tick (it takes the worker's lock).
+    pub fn region_cache_error(&self) -> Option<String> {
+        self.follow.0.as_ref().and_then(RegionFollower::cache_error)
     }
 
     /// Makes a following region's ticks wait for each region they request (deterministic

@@ -64,8 +64,11 @@ use crate::ModelError;
 use crate::element::FemModel;
 use crate::mesh::TetMesh;
 
+mod store;
 mod tiles;
 
+use store::TileStore;
+pub use store::{DEFAULT_REGION_CACHE_MAX_BYTES, RegionCacheDir, cache_key};
 pub use tiles::{TILE_HYSTERESIS_M, tile_centres};
 use tiles::{Tile, TileCache};
 
@@ -99,7 +102,8 @@ enum Prepared {
     Nothing,
 }
 
-/// What the worker and the servo share: atomics only.
+/// What the worker and the servo share: atomics, and the region cache's last error behind a
+/// lock the servo never takes ([`RegionFollower::cache_error`]).
 #[derive(Debug, Default)]
 struct Shared {
     stop: AtomicBool,
@@ -115,6 +119,10 @@ struct Shared {
     tiles: AtomicU64,
     tile_cache_bytes: AtomicU64,
     tile_build_s: AtomicU64,
+    tiles_loaded: AtomicU64,
+    tiles_refused: AtomicU64,
+    tiles_stored: AtomicU64,
+    cache_error: std::sync::Mutex<Option<String>>,
     /// The tick pool's thread count the regions are cut for
     /// ([`CondensedSolver::set_parts`]; 0 or 1: uncut).
     parts: AtomicU64,
@@ -157,7 +165,7 @@ pub struct FollowStats {
     pub tile_hits: u64,
     /// Requests whose tile was not built yet (prepared on demand, then kept).
     pub tile_misses: u64,
-    /// Tiles built (on demand or in the background).
+    /// Tiles built (on demand or in the background) or read from the region cache on disk.
     pub tiles_built: u64,
     /// Tiles whose preparation failed (not tried again; also counted in `failed`).
     pub tiles_failed: u64,
@@ -166,8 +174,15 @@ pub struct FollowStats {
     /// Bytes held by the built tiles ([`CondensedSolver::memory_bytes`] after
     /// [`CondensedSolver::trim_for_tiles`]).
     pub tile_cache_bytes: u64,
-    /// Seconds the worker spent building tiles.
+    /// Seconds the worker spent building tiles (and reading them from disk).
     pub tile_build_s: f64,
+    /// Tiles read from the region cache on disk ([`RegionCacheDir`]; also in `tiles_built`).
+    pub tiles_loaded: u64,
+    /// Tile files refused (damaged, of another format, key or centre: built again and
+    /// replaced; [`RegionFollower::cache_error`] says why).
+    pub tiles_refused: u64,
+    /// Tiles written to the region cache on disk.
+    pub tiles_stored: u64,
 }
 
 /// The servo's side of a following region (module documentation).
@@ -211,6 +226,22 @@ impl RegionFollower {
         touchable_nodes: &[u32],
         first: &CondensedSolver,
     ) -> Result<Self, ModelError> {
+        Self::spawn_with_cache(body, mesh, touchable_nodes, first, None)
+    }
+
+    /// [`Self::spawn`] with the tiles ([`TileMode::Background`]) read from and written to
+    /// `cache` ([`RegionCacheDir`], module `store`): a tile whose file holds it is read
+    /// instead of built, and a tile built is written for the next session.
+    ///
+    /// # Errors
+    /// As [`Self::spawn`].
+    pub fn spawn_with_cache(
+        body: &FemModel,
+        mesh: &TetMesh,
+        touchable_nodes: &[u32],
+        first: &CondensedSolver,
+        cache: Option<&RegionCacheDir>,
+    ) -> Result<Self, ModelError> {
         let mut nodes = touchable_nodes.to_vec();
         nodes.sort_unstable();
         nodes.dedup();
@@ -225,6 +256,13 @@ impl RegionFollower {
         let (worker_results, results) = rtrb::RingBuffer::new(1);
         let (returns, worker_returns) = rtrb::RingBuffer::new(4);
         let shared = Arc::new(Shared::default());
+        let store = match (region.tiles, cache) {
+            (TileMode::Background { .. }, Some(dir)) if region.follow => Some(TileStore::new(
+                dir,
+                cache_key(body, mesh, &region, first.dt_s(), &nodes),
+            )),
+            _ => None,
+        };
         let cache = match region.tiles {
             TileMode::Background { cover_m } if region.follow => {
                 let centres = tile_centres(body.rest(), &nodes, region.centre_m, cover_m);
@@ -235,6 +273,7 @@ impl RegionFollower {
         };
         let job = Worker {
             cache,
+            store,
             last_point_m: region.centre_m,
             body: body.clone(),
             mesh: mesh.clone(),
@@ -313,7 +352,16 @@ impl RegionFollower {
             tiles: self.shared.tiles.load(Ordering::Relaxed),
             tile_cache_bytes: self.shared.tile_cache_bytes.load(Ordering::Relaxed),
             tile_build_s: f(&self.shared.tile_build_s),
+            tiles_loaded: self.shared.tiles_loaded.load(Ordering::Relaxed),
+            tiles_refused: self.shared.tiles_refused.load(Ordering::Relaxed),
+            tiles_stored: self.shared.tiles_stored.load(Ordering::Relaxed),
         }
+    }
+
+    /// The region cache's last error (a tile file refused, or one that could not be
+    /// written), for the host's log. Takes a lock the worker takes: not for the tick.
+    pub fn cache_error(&self) -> Option<String> {
+        self.shared.cache_error.lock().ok().and_then(|e| e.clone())
     }
 
     /// Called by the body at the start of every tick, before any sub-step: swaps in a prepared
@@ -441,6 +489,8 @@ impl Drop for RegionFollower {
 struct Worker {
     /// The tiles ([`TileMode::Background`]), or `None`.
     cache: Option<TileCache>,
+    /// Their files on disk ([`RegionFollower::spawn_with_cache`]), or `None`.
+    store: Option<TileStore>,
     /// The last requested point, m: background builds start nearest it.
     last_point_m: DVec3,
     body: FemModel,
@@ -597,11 +647,59 @@ impl Worker {
         Some(Arc::new(solver))
     }
 
-    /// Builds tile `k` and stores it; counts it (or the failure).
+    /// Tile `k` from its file on disk, or `None` (no store, no file, or a file refused:
+    /// counted, the reason kept).
+    fn load_tile(&self, k: usize, centre_m: DVec3) -> Option<Arc<CondensedSolver>> {
+        let store = self.store.as_ref()?;
+        match store.load(k, &self.body, &self.mesh, self.region, centre_m, self.dt_s) {
+            Ok(Some(t)) => {
+                self.shared.tiles_loaded.fetch_add(1, Ordering::Relaxed);
+                Some(Arc::new(t))
+            }
+            Ok(None) => None,
+            Err(e) => {
+                self.shared.tiles_refused.fetch_add(1, Ordering::Relaxed);
+                self.cache_error(e);
+                None
+            }
+        }
+    }
+
+    /// Writes the built tile `k` to its file on disk when there is a store.
+    fn store_tile(&self, k: usize, tile: &CondensedSolver) {
+        let Some(store) = self.store.as_ref() else {
+            return;
+        };
+        match store.save(k, tile) {
+            Ok(true) => {
+                self.shared.tiles_stored.fetch_add(1, Ordering::Relaxed);
+            }
+            Ok(false) => self.cache_error(format!(
+                "{}: the region cache is full (its size limit); tile {k} kept in memory only",
+                store.path(k).display()
+            )),
+            Err(e) => self.cache_error(e),
+        }
+    }
+
+    fn cache_error(&self, e: String) {
+        if let Ok(mut last) = self.shared.cache_error.lock() {
+            *last = Some(e);
+        }
+    }
+
+    /// Builds tile `k` (or reads it from disk) and keeps it; counts it (or the failure).
     fn build_and_keep(&mut self, k: usize) -> Option<Arc<CondensedSolver>> {
         let cache = self.cache.as_ref()?;
+        let centre_m = cache.centres[k];
         let start = Instant::now();
-        let tile = self.build_tile(cache.centres[k]);
+        let tile = self.load_tile(k, centre_m).or_else(|| {
+            let built = self.build_tile(centre_m);
+            if let Some(t) = &built {
+                self.store_tile(k, t);
+            }
+            built
+        });
         let s = start.elapsed().as_secs_f64();
         let built = f64::from_bits(self.shared.tile_build_s.load(Ordering::Relaxed));
         self.shared

@@ -1,0 +1,180 @@
+//! The region cache on disk (issue 48 s2): a following region's tiles written to a directory
+//! the host names ([`RegionCacheDir`]) as they are built, and read back by the next session
+//! of the same body instead of being prepared again.
+//!
+//! A tile is one file, `<key>-<index>.tile`: the key (BLAKE3, [`cache_key`]) covers everything
+//! a tile depends on (the body's mesh, masses, constraints, material and fibres; the
+//! region's radius, margin and cover; the step; the touchable nodes; the image format and
+//! the crate version), so a changed scene looks for other files. A file at the right name
+//! that does not hold the tile asked for (another key inside, another format, a damaged or
+//! truncated file, another centre) is refused with the reason
+//! ([`CondensedSolver::from_image`]), counted, and replaced by a fresh build. Files are
+//! written to a temporary name and renamed, so a reader never sees half a file; the
+//! directory's `.tile` files are kept under [`RegionCacheDir::max_bytes`] (beyond it a tile
+//! stays in memory only).
+//!
+//! Owns: the key, the file names, reading and writing. May use:
+//! [`super::super::condensed`].
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+
+use super::super::condensed::{ActiveRegion, CondensedSolver, TILE_IMAGE_FORMAT};
+use crate::element::FemModel;
+use crate::mesh::TetMesh;
+
+/// Where following regions keep their tiles between sessions: a directory the host (the
+/// daemon's operator) chooses, never a scene (a client's file must not name host paths).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RegionCacheDir {
+    /// The directory; created on the first write.
+    pub dir: PathBuf,
+    /// Largest total size of the directory's `.tile` files, bytes; a tile that would exceed it
+    /// is not written (it stays in the session's memory).
+    pub max_bytes: u64,
+}
+
+/// Default [`RegionCacheDir::max_bytes`]: 8 GiB (`lv_h1_condensed.toml`'s 69 tiles take
+/// about 1.1 GB).
+pub const DEFAULT_REGION_CACHE_MAX_BYTES: u64 = 8 << 30;
+
+/// The key of a following region's tiles over `body` (mesh `mesh`): the region's radius,
+/// margin and tile cover (`region`, its centre excluded: each file holds its own), the step
+/// `dt_s`, the touchable `nodes`, [`TILE_IMAGE_FORMAT`] and this crate's version (BLAKE3).
+pub fn cache_key(
+    body: &FemModel,
+    mesh: &TetMesh,
+    region: &ActiveRegion,
+    dt_s: f64,
+    nodes: &[u32],
+) -> [u8; 32] {
+    let mut h = blake3::Hasher::new();
+    let mut text = |s: &str| {
+        h.update(&(s.len() as u64).to_le_bytes());
+        h.update(s.as_bytes());
+    };
+    text("haptic-model region tile");
+    text(env!("CARGO_PKG_VERSION"));
+    text(&TILE_IMAGE_FORMAT.to_string());
+    text(&format!("{:?}", body.material()));
+    text(&format!("{:?}", body.strain_smoothing()));
+    text(&format!("{:?}", body.fibres()));
+    text(&format!(
+        "single {} radius {:?} margin {:?} tiles {:?} dt {:?}",
+        body.single_precision(),
+        region.radius_m.to_bits(),
+        region.stiffness_margin.to_bits(),
+        region.tiles,
+        dt_s.to_bits()
+    ));
+    let mut words = |values: &mut dyn Iterator<Item = u64>| {
+        let mut count = 0u64;
+        for v in values {
+            h.update(&v.to_le_bytes());
+            count += 1;
+        }
+        h.update(&count.to_le_bytes());
+    };
+    words(
+        &mut body
+            .rest()
+            .iter()
+            .flat_map(|p| p.to_array().map(f64::to_bits)),
+    );
+    words(&mut mesh.tets.iter().flatten().map(|&i| u64::from(i)));
+    words(&mut mesh.tet_edge_nodes.iter().flatten().map(|&i| u64::from(i)));
+    words(&mut body.lumped_mass_kg().iter().map(|m| m.to_bits()));
+    words(&mut body.constraints().iter().map(|&c| u64::from(c)));
+    words(&mut nodes.iter().map(|&i| u64::from(i)));
+    *h.finalize().as_bytes()
+}
+
+/// The tiles of one body and region in a [`RegionCacheDir`].
+pub(super) struct TileStore {
+    dir: PathBuf,
+    max_bytes: u64,
+    key: [u8; 32],
+    /// The key's first 16 bytes in hexadecimal: the files' prefix.
+    prefix: String,
+}
+
+impl TileStore {
+    pub(super) fn new(cache: &RegionCacheDir, key: [u8; 32]) -> Self {
+        let prefix = key[..16].iter().map(|b| format!("{b:02x}")).collect();
+        Self {
+            dir: cache.dir.clone(),
+            max_bytes: cache.max_bytes,
+            key,
+            prefix,
+        }
+    }
+
+    /// The file of tile `k`.
+    pub(super) fn path(&self, k: usize) -> PathBuf {
+        self.dir.join(format!("{}-{k:05}.tile", self.prefix))
+    }
+
+    /// Tile `k` centred at `centre_m` from its file: `Ok(None)` when there is no file,
+    /// `Err` with the reason when the file cannot be read or is refused
+    /// ([`CondensedSolver::from_image`]).
+    pub(super) fn load(
+        &self,
+        k: usize,
+        body: &FemModel,
+        mesh: &TetMesh,
+        region: ActiveRegion,
+        centre_m: DVec3,
+        dt_s: f64,
+    ) -> Result<Option<CondensedSolver>, String> {
+        let path = self.path(k);
+        let bytes = match std::fs::read(&path) {
+            Ok(b) => b,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(format!("{}: {e}", path.display())),
+        };
+        let region = ActiveRegion { centre_m, ..region };
+        CondensedSolver::from_image(body, mesh, region, dt_s, &self.key, &bytes)
+            .map(Some)
+            .map_err(|e| format!("{}: {e}", path.display()))
+    }
+
+    /// Writes tile `k` (`solver`, a trimmed tile): `Ok(false)` when the directory's tiles
+    /// would exceed the size limit, `Err` with the reason when it cannot be written.
+    pub(super) fn save(&self, k: usize, solver: &CondensedSolver) -> Result<bool, String> {
+        let bytes = solver.to_image(&self.key).map_err(|e| e.to_string())?;
+        let path = self.path(k);
+        let in_dir = |e: std::io::Error| format!("{}: {e}", self.dir.display());
+        std::fs::create_dir_all(&self.dir).map_err(in_dir)?;
+        let used = tile_bytes_in(&self.dir, &path).map_err(in_dir)?;
+        if used.saturating_add(bytes.len() as u64) > self.max_bytes {
+            return Ok(false);
+        }
+        let tmp = path.with_extension(format!("tmp{}", std::process::id()));
+        let write = || -> std::io::Result<()> {
+            let mut f = std::fs::File::create(&tmp)?;
+            f.write_all(&bytes)?;
+            f.sync_all()?;
+            std::fs::rename(&tmp, &path)
+        };
+        write().map_err(|e| {
+            let _ = std::fs::remove_file(&tmp);
+            format!("{}: {e}", path.display())
+        })?;
+        Ok(true)
+    }
+}
+
+/// Total size of the `.tile` files in `dir`, `skip` (a file about to be replaced) excluded.
+fn tile_bytes_in(dir: &Path, skip: &Path) -> std::io::Result<u64> {
+    let mut total = 0u64;
+    for entry in std::fs::read_dir(dir)? {
+        let entry = entry?;
+        let path = entry.path();
+        if path.extension().is_some_and(|e| e == "tile") && path != skip {
+            total = total.saturating_add(entry.metadata()?.len());
+        }
+    }
+    Ok(total)
+}
