@@ -322,6 +322,7 @@ pub fn stats_rows(s: &SessionStats) -> Vec<StatRow> {
         row("region_preparation_s", f(s.region_preparation_s, 3), "s"),
         row("region_tiles", U64(s.region_tiles), "count"),
         row("region_tiles_ready", U64(s.region_tiles_ready), "count"),
+        row("region_tiles_loaded", U64(s.region_tiles_loaded), "count"),
         row("contact_ticks", U64(s.contact_ticks), "count"),
         row("companion_ticks", U64(s.companion_ticks), "count"),
         row(

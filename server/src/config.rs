@@ -184,6 +184,11 @@ pub struct ConfigFile {
     pub state_dir: Option<PathBuf>,
     /// Prometheus metrics address (`GET /metrics`), e.g. `127.0.0.1:9464`; unset: no endpoint.
     pub metrics_listen: Option<String>,
+    /// Directory where following regions keep their prepared tiles between sessions
+    /// (`active_region.tiles = "background"`); unset: tiles live in a session's memory only.
+    pub region_cache_dir: Option<PathBuf>,
+    /// Largest total size of the region cache's files, bytes (default 8 GiB).
+    pub region_cache_max_bytes: Option<u64>,
     /// Directories besides `scene_dir` that client-sent scenes may read mesh and table files
     /// from (e.g. the shared LV meshes).
     pub data_dirs: Vec<PathBuf>,
@@ -265,6 +270,9 @@ pub struct ServerConfig {
     pub state_dir: Option<PathBuf>,
     /// Prometheus metrics endpoint address (`None`: not served).
     pub metrics_listen: Option<SocketAddr>,
+    /// Where following regions keep their tiles between sessions (`None`: not kept); an
+    /// operator's setting, never a scene's ([`haptic_model::BodyOptions`]).
+    pub region_cache: Option<haptic_model::integrate::follow::RegionCacheDir>,
     /// Data directories client-sent scenes may read from (besides `scene_dir`).
     pub data_dirs: Vec<PathBuf>,
     /// Largest file a client-sent scene may make the daemon read, bytes.
@@ -330,6 +338,7 @@ impl Default for ServerConfig {
             servo: ServoConfig::default(),
             state_dir: None,
             metrics_listen: None,
+            region_cache: None,
             data_dirs: Vec::new(),
             max_file_bytes: DEFAULT_MAX_FILE_BYTES,
             max_elements: DEFAULT_MAX_ELEMENTS,
@@ -439,6 +448,7 @@ impl ConfigFile {
         self.scene_dir.iter_mut().for_each(fix);
         self.data_dirs.iter_mut().for_each(fix);
         self.state_dir.iter_mut().for_each(fix);
+        self.region_cache_dir.iter_mut().for_each(fix);
         self.auth.tokens_file.iter_mut().for_each(fix);
         if let Some(t) = &mut self.tls {
             fix(&mut t.cert_file);
@@ -482,6 +492,19 @@ impl ConfigFile {
         c.servo = self.servo;
         c.state_dir = self.state_dir;
         c.data_dirs = self.data_dirs;
+        if self.region_cache_max_bytes == Some(0) {
+            return Err(ServerError::Config(
+                "region_cache_max_bytes must be at least 1".into(),
+            ));
+        }
+        c.region_cache =
+            self.region_cache_dir
+                .map(|dir| haptic_model::integrate::follow::RegionCacheDir {
+                    dir,
+                    max_bytes: self
+                        .region_cache_max_bytes
+                        .unwrap_or(haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MAX_BYTES),
+                });
         if let Some(n) = self.max_elements {
             c.max_elements = n.max(1);
         }

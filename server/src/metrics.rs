@@ -234,6 +234,12 @@ const SESSION_METRICS: &[(&str, &str, MetricType, Extract)] = {
             |r| Value::Gauge(r.stats.body.region_tiles_ready as f64),
         ),
         (
+            "hapticd_region_tiles_loaded",
+            "Regions of a following region's cache read from the region cache on disk",
+            Gauge,
+            |r| Value::Gauge(r.stats.body.region_tiles_loaded as f64),
+        ),
+        (
             "hapticd_contact_ticks",
             "Servo ticks with the probe in contact",
             Counter,

@@ -245,6 +245,7 @@ impl SessionControl for Services {
             region_preparation_s: st.body.region_preparation_s,
             region_tiles: st.body.region_tiles,
             region_tiles_ready: st.body.region_tiles_ready,
+            region_tiles_loaded: st.body.region_tiles_loaded,
             contact_ticks: st.contact_ticks,
             companion_ticks: st.body.companion_ticks,
             total_particles: st.body.particles as u32,

@@ -575,7 +575,12 @@ impl SessionManager {
                         .load_scene(&rec.scene, &rec.scene_toml)
                         .map_err(|e| e.to_string())?;
                     let slot = self.reserve_slot().map_err(|e| e.to_string())?;
-                    let body = haptic_model::build_body(&scene).map_err(|e| e.to_string())?;
+                    let body = haptic_model::build_body_with_options(
+                        &scene,
+                        &self.body_options(),
+                        &mut |_, _| {},
+                    )
+                    .map_err(|e| e.to_string())?;
                     let names = crate::tool::scene_tools(&scene);
                     let limits = Some(LinkLimits::of_scene(&scene));
                     self.start_in_slot(slot, &rec.id, body, limits, &names)
@@ -605,6 +610,13 @@ impl SessionManager {
     /// The daemon configuration.
     pub fn config(&self) -> &ServerConfig {
         &self.config
+    }
+
+    /// What this daemon gives every body beside its scene: the region cache's directory.
+    fn body_options(&self) -> haptic_model::BodyOptions {
+        haptic_model::BodyOptions {
+            region_cache: self.config.region_cache.clone(),
+        }
     }
 
     /// Looks a session up.
@@ -713,8 +725,9 @@ impl SessionManager {
         // Families that preprocess (the hybrid model) report their stages; logged here, off
         // the servo thread.
         let name = scene.name.clone();
-        let body = haptic_model::build_body_with_progress(
+        let body = haptic_model::build_body_with_options(
             scene,
+            &self.body_options(),
             &mut |stage, fraction| tracing::info!(scene = %name, "preprocessing {:3.0} %: {stage}", 100.0 * fraction),
         )?;
         self.start_in_slot(

@@ -31,7 +31,7 @@ fn relative_paths_in_the_file_resolve_against_its_directory() {
     std::fs::write(
         &path,
         "scene_dir = \"scenes\"\ndata_dirs = [\"../meshes\", \"/abs/meshes\"]\n\
-         state_dir = \"state\"\n[auth]\ntokens_file = \"state/tokens.toml\"\n\
+         state_dir = \"state\"\nregion_cache_dir = \"cache\"\n[auth]\ntokens_file = \"state/tokens.toml\"\n\
          [tls]\ncert_file = \"tls/s.pem\"\nkey_file = \"tls/s.key\"\n",
     )
     .unwrap();
@@ -43,6 +43,22 @@ fn relative_paths_in_the_file_resolve_against_its_directory() {
         [dir.join("../meshes"), PathBuf::from("/abs/meshes")]
     );
     assert_eq!(cfg.state_dir, Some(dir.join("state")));
+    assert_eq!(
+        cfg.region_cache,
+        Some(haptic_model::integrate::follow::RegionCacheDir {
+            dir: dir.join("cache"),
+            max_bytes: haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MAX_BYTES,
+        })
+    );
+    // A cache of no bytes is a mistake, not a way to turn it off (leave the directory unset).
+    let zero = ConfigFile::parse("region_cache_dir = \"c\"\nregion_cache_max_bytes = 0")
+        .unwrap()
+        .into_config()
+        .unwrap_err();
+    assert!(
+        zero.to_string().contains("region_cache_max_bytes"),
+        "{zero}"
+    );
     assert_eq!(cfg.tokens_file, Some(dir.join("state/tokens.toml")));
     let tls = cfg.tls.unwrap();
     assert_eq!(

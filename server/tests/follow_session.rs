@@ -143,70 +143,97 @@ async fn a_following_region_swaps_as_the_device_slides() {
 }
 
 /// The same scene with a region cache: `GetStats` reports its regions and counts them ready as
-/// the worker builds them, up to all of them, with the daemon's metrics agreeing.
+/// the worker builds them, up to all of them, with the daemon's metrics agreeing. With the
+/// daemon's `region_cache_dir`, the next session of the scene reads every region the first
+/// one wrote instead of preparing it (`region_tiles_loaded`).
 #[tokio::test]
 async fn get_stats_reports_the_region_cache_filling() {
-    let manager = Arc::new(SessionManager::new(ServerConfig::default()));
+    let dir = std::env::temp_dir().join(format!("hapticd-region-cache-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let config = ServerConfig {
+        region_cache: Some(haptic_model::integrate::follow::RegionCacheDir {
+            dir: dir.clone(),
+            max_bytes: 1 << 30,
+        }),
+        ..ServerConfig::default()
+    };
+    let manager = Arc::new(SessionManager::new(config));
     let services = Services::new(manager.clone());
     // A 5 mm cover instead of the default 2.5 mm: about 20 regions, so the cache fills in
     // seconds.
     let tiled = format!("{SCENE}tiles = \"background\"\ntile_cover_m = 0.005\n");
     let scene = manager.load_scene("", &tiled).expect("scene");
-    let session = manager.start(&scene).expect("session");
-    let stats = || async {
-        services
-            .get_stats(tonic::Request::new(GetStatsRequest {
-                session_id: session.id.clone(),
-            }))
-            .await
-            .expect("stats")
-            .into_inner()
-    };
-    // The servo publishes the body's statistics once it ticks.
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
-    let first = loop {
-        let s = stats().await;
-        if s.steps > 0 || tokio::time::Instant::now() > deadline {
-            break s;
+    let mut written = None;
+    for run in ["writes", "reads"] {
+        let session = manager.start(&scene).expect("session");
+        let stats = || async {
+            services
+                .get_stats(tonic::Request::new(GetStatsRequest {
+                    session_id: session.id.clone(),
+                }))
+                .await
+                .expect("stats")
+                .into_inner()
+        };
+        // The servo publishes the body's statistics once it ticks.
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+        let first = loop {
+            let s = stats().await;
+            if s.steps > 0 || tokio::time::Instant::now() > deadline {
+                break s;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        };
+        assert!(first.region_tiles >= 5, "{first:?}");
+        assert!(first.region_tiles_ready <= first.region_tiles, "{first:?}");
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(300);
+        let mut seen = vec![first.region_tiles_ready];
+        let last = loop {
+            let s = stats().await;
+            assert!(s.fault.is_empty(), "fault: {}", s.fault);
+            assert_eq!(s.region_tiles, first.region_tiles, "{s:?}");
+            assert!(
+                s.region_tiles_ready >= *seen.last().unwrap(),
+                "ready went down: {seen:?} then {s:?}"
+            );
+            seen.push(s.region_tiles_ready);
+            if s.region_tiles_ready == s.region_tiles {
+                break s;
+            }
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "the cache did not fill in 300 s: {seen:?}"
+            );
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        };
+        let registry = haptic_server::metrics::registry(manager.clone());
+        let text = haptic_server::metrics::render(&registry).expect("metrics");
+        let gauge = |name: &str| {
+            text.lines()
+                .find(|l| l.starts_with(name) && l.contains(&session.id))
+                .and_then(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        };
+        let loaded = if run == "writes" {
+            0
+        } else {
+            last.region_tiles
+        };
+        assert_eq!(last.region_tiles_loaded, loaded, "{run}: {last:?}");
+        for (name, value) in [
+            ("hapticd_region_tiles{", last.region_tiles),
+            ("hapticd_region_tiles_ready{", last.region_tiles),
+            ("hapticd_region_tiles_loaded{", loaded),
+        ] {
+            assert_eq!(gauge(name), Some(value as f64), "{run}: {name}");
         }
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    };
-    assert!(first.region_tiles >= 5, "{first:?}");
-    assert!(first.region_tiles_ready <= first.region_tiles, "{first:?}");
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(300);
-    let mut seen = vec![first.region_tiles_ready];
-    let last = loop {
-        let s = stats().await;
-        assert!(s.fault.is_empty(), "fault: {}", s.fault);
-        assert_eq!(s.region_tiles, first.region_tiles, "{s:?}");
-        assert!(
-            s.region_tiles_ready >= *seen.last().unwrap(),
-            "ready went down: {seen:?} then {s:?}"
-        );
-        seen.push(s.region_tiles_ready);
-        if s.region_tiles_ready == s.region_tiles {
-            break s;
+        if run == "writes" {
+            written = Some(last.region_tiles);
         }
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "the cache did not fill in 300 s: {seen:?}"
-        );
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    };
-    let registry = haptic_server::metrics::registry(manager.clone());
-    let text = haptic_server::metrics::render(&registry).expect("metrics");
-    let gauge = |name: &str| {
-        text.lines()
-            .find(|l| l.starts_with(name) && l.contains(&session.id))
-            .and_then(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
-    };
-    assert_eq!(
-        gauge("hapticd_region_tiles{"),
-        Some(last.region_tiles as f64)
-    );
-    assert_eq!(
-        gauge("hapticd_region_tiles_ready{"),
-        Some(last.region_tiles as f64)
-    );
-    manager.stop(&session.id).expect("stop");
+        manager.stop(&session.id).expect("stop");
+    }
+    let files = std::fs::read_dir(&dir)
+        .expect("the cache directory")
+        .count();
+    assert_eq!(Some(files as u64), written, "one file per region");
+    std::fs::remove_dir_all(&dir).expect("clean up");
 }

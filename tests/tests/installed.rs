@@ -75,6 +75,10 @@ fn install(root: &Path) -> Result<String> {
     for dir in unit_value(&unit, "StateDirectory")?.split_whitespace() {
         std::fs::create_dir_all(root.join("var/lib").join(dir))?;
     }
+    // CacheDirectory= is relative to /var/cache.
+    for dir in unit_value(&unit, "CacheDirectory")?.split_whitespace() {
+        std::fs::create_dir_all(root.join("var/cache").join(dir))?;
+    }
     ensure!(unit_value(&unit, "WorkingDirectory")? == "/");
     Ok(unit)
 }

@@ -244,6 +244,7 @@ pub fn canned_stats(id: &str) -> SessionStats {
         region_preparation_s: 1.234,
         region_tiles: 69,
         region_tiles_ready: 12,
+        region_tiles_loaded: 10,
         contact_ticks: 5_000,
         companion_ticks: 40,
         device: Some(touch()),

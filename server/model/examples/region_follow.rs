@@ -73,6 +73,10 @@ struct Args {
     /// daemon (where the body is built off the servo thread). Needs the privilege to do so.
     #[arg(long, value_parser = clap::value_parser!(i32).range(1..=99))]
     fifo: Option<i32>,
+    /// Read the region cache's tiles from this directory and write the ones built to it
+    /// (the daemon's `region_cache_dir`): a second run reads what the first wrote.
+    #[arg(long)]
+    region_cache: Option<std::path::PathBuf>,
 }
 
 /// Epicardium radius at z = -5 mm of the LV (10 x 10 x 20 mm ellipsoid), m.
@@ -136,7 +140,15 @@ fn set_up(args: &Args) -> anyhow::Result<(FemBody, f64)> {
         scene.fallback = None;
     }
     let t = Instant::now();
-    let mut sim = FemBody::new_with_progress(&scene, &mut |stage, fraction| {
+    let options = haptic_model::BodyOptions {
+        region_cache: args.region_cache.clone().map(|dir| {
+            haptic_model::integrate::follow::RegionCacheDir {
+                dir,
+                max_bytes: haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MAX_BYTES,
+            }
+        }),
+    };
+    let mut sim = FemBody::new_with_options(&scene, &options, &mut |stage, fraction| {
         eprintln!(
             "  {:6.2} s {:3.0} % {stage} (peak memory {:.0} MB)",
             t.elapsed().as_secs_f64(),
@@ -166,14 +178,20 @@ fn wait_for_tiles(sim: &FemBody) {
         let s = sim.follow_stats().unwrap_or_default();
         if s.tiles_built + s.failed >= s.tiles {
             eprintln!(
-                "tile cache complete after {:.1} s more: {} tiles built ({} failed), {:.0} MB, {:.1} s of builds; peak memory {:.0} MB",
+                "tile cache complete after {:.1} s more: {} tiles built ({} read from disk, {} written, {} refused; {} failed), {:.0} MB, {:.1} s of builds; peak memory {:.0} MB",
                 t.elapsed().as_secs_f64(),
                 s.tiles_built,
+                s.tiles_loaded,
+                s.tiles_stored,
+                s.tiles_refused,
                 s.failed,
                 s.tile_cache_bytes as f64 / 1e6,
                 s.tile_build_s,
                 peak_memory_mb()
             );
+            if let Some(e) = sim.region_cache_error() {
+                eprintln!("region cache: {e}");
+            }
             return;
         }
         if s.tiles_built != last && s.tiles_built.is_multiple_of(10) {

@@ -191,6 +191,9 @@ pub struct BodyStats {
     pub region_tiles: u64,
     /// See [`BodyStats::region_tiles`].
     pub region_tiles_ready: u64,
+    /// Of `region_tiles_ready`, the regions read from the host's region cache on disk
+    /// ([`crate::BodyOptions::region_cache`]) instead of prepared.
+    pub region_tiles_loaded: u64,
     /// Ticks in contact in which a following region's coarse companion contributed to the
     /// force (its blend weight was positive), so far; 0 without a companion. Against the
     /// servo's count of contact ticks it says how much of a press the coarse organ answered.

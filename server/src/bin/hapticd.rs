@@ -45,6 +45,11 @@ struct Args {
     /// bridges re-attach.
     #[arg(long)]
     state_dir: Option<PathBuf>,
+    /// Keep the tiles following regions prepare (`active_region.tiles = "background"`) in
+    /// this directory, so the next session of the same scene reads them instead of
+    /// preparing them again.
+    #[arg(long)]
+    region_cache_dir: Option<PathBuf>,
     /// A directory client-sent scenes may read mesh files from besides --scene-dir (repeat the
     /// flag for several; e.g. the shared LV meshes).
     #[arg(long = "data-dir")]
@@ -83,6 +88,7 @@ async fn main() -> anyhow::Result<()> {
     file.log_format = args.log_format.or(file.log_format);
     file.scene_dir = args.scene_dir.or(file.scene_dir);
     file.state_dir = args.state_dir.or(file.state_dir);
+    file.region_cache_dir = args.region_cache_dir.or(file.region_cache_dir);
     file.metrics_listen = args.metrics_listen.or(file.metrics_listen);
     file.data_dirs.extend(args.data_dirs);
     file.auth.tokens_file = args.tokens_file.or(file.auth.tokens_file);

@@ -280,13 +280,15 @@ impl FemBody {
             let contact_nodes: Vec<u32> = touchable.iter().flatten().copied().collect();
             c.prepare_contact(&contact_nodes);
             if follows {
-                follow.0 = Some(RegionFollower::spawn_with_cache(
+                let mut f = RegionFollower::spawn_with_cache(
                     &fem,
                     &scene.mesh,
                     &contact_nodes,
                     c,
                     options.region_cache.as_ref(),
-                )?);
+                )?;
+                f.set_tick_s(p.tick_s);
+                follow.0 = Some(f);
             }
         }
         let (surface_nodes, surface_triangles) = surface_map(&boundary, n);
@@ -1033,6 +1035,7 @@ impl SoftBody for FemBody {
             region_tiles_ready: self
                 .follow_stats()
                 .map_or(0, |f| (f.tiles_built + f.tiles_failed).min(f.tiles)),
+            region_tiles_loaded: self.follow_stats().map_or(0, |f| f.tiles_loaded),
             companion_ticks: self
                 .fallback_stats()
                 .map_or(0, |s| s.contact_ticks_answered),

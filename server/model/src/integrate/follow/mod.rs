@@ -3,7 +3,7 @@
 //! the current one, and the servo swaps it in at a tick boundary.
 //!
 //! **Protocol.** Every [`POLL_TICKS`] ticks without a request in flight, the servo sends the
-//! device point (led by its velocity over the last preparation time, at most
+//! device point (led by its velocity over the last preparation time plus the poll interval, at most
 //! [`FOLLOW_LEAD_RADII`] radii) and the current centre through a wait-free ring and unparks
 //! the worker. The worker picks the touchable node nearest that point (rest configuration) as
 //! the new centre, and answers "nothing to do" when the device is farther than a radius from
@@ -203,6 +203,8 @@ pub struct RegionFollower {
     swaps: u64,
     rejected: u64,
     region_bytes: usize,
+    /// The servo's tick, s ([`Self::set_tick_s`]; the region's step until set).
+    tick_s: f64,
 }
 
 impl std::fmt::Debug for RegionFollower {
@@ -310,6 +312,7 @@ impl RegionFollower {
             swaps: 0,
             rejected: 0,
             region_bytes: first.memory_bytes(),
+            tick_s: first.dt_s(),
         })
     }
 
@@ -318,6 +321,15 @@ impl RegionFollower {
     /// prepares them with as many threads ([`CondensedSolver::new_in_threads`]).
     pub fn set_parts(&self, parts: usize) {
         self.shared.parts.store(parts as u64, Ordering::Relaxed);
+    }
+
+    /// The servo's tick, s (a region's step may be a sub-step of it): requests lead the
+    /// device by one poll interval, [`POLL_TICKS`] ticks, besides one preparation. Ignored
+    /// unless positive and finite.
+    pub fn set_tick_s(&mut self, tick_s: f64) {
+        if tick_s > 0.0 && tick_s.is_finite() {
+            self.tick_s = tick_s;
+        }
     }
 
     /// In blocking mode a tick that sends a request waits for the answer (and swaps at once):
@@ -389,11 +401,15 @@ impl RegionFollower {
         if self.in_flight || self.ticks < self.next_request_tick {
             return;
         }
-        // Lead each device by its travel over one preparation (none when the tick waits).
+        // Lead each device by its travel until the region asked for now can be swapped in
+        // and until the next request's can: one preparation and one poll interval (none when
+        // the tick waits). Leading by the preparation alone let a tile (prepared in 5-15 ms)
+        // arrive when the device had already slid up to a poll interval past its cover.
         let lead_s = if self.blocking {
             0.0
         } else {
             f64::from_bits(self.shared.last_prepare_s.load(Ordering::Relaxed))
+                + POLL_TICKS as f64 * self.tick_s
         };
         let mut points_m = RegionBalls::EMPTY;
         for &(point, velocity) in devices.iter().flatten() {
