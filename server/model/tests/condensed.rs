@@ -2182,6 +2182,34 @@ fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() 
         "{other:?}"
     );
     assert_eq!(files().len() as u64, 2 * n);
+    // A limit of one and a half scenes' tiles: the other material's session removes the least
+    // recently used files of the first key to make room for all of its own.
+    let evict = dir.join("evict");
+    let first_bytes: u64 = files()
+        .iter()
+        .filter(|p| p.starts_with(&cache.dir))
+        .map(|p| std::fs::metadata(p).expect("size").len())
+        .sum::<u64>()
+        / 2;
+    let limited = RegionCacheDir {
+        dir: evict.clone(),
+        max_bytes: first_bytes * 3 / 2,
+    };
+    let (a, _) = session(&fem, &limited);
+    assert_eq!(a.tiles_stored, n, "{a:?}");
+    let (b, error) = session(&stiffer, &limited);
+    assert_eq!(b.tiles_stored, n, "{b:?} {error:?}");
+    let left: Vec<u64> = std::fs::read_dir(&evict)
+        .expect("evict")
+        .map(|e| e.expect("entry").metadata().expect("size").len())
+        .collect();
+    assert!(
+        left.iter().sum::<u64>() <= limited.max_bytes && (left.len() as u64) < 2 * n,
+        "{} files, {} bytes of at most {}",
+        left.len(),
+        left.iter().sum::<u64>(),
+        limited.max_bytes
+    );
     // A limit below one tile: nothing written, the reason kept.
     let small = RegionCacheDir {
         dir: dir.join("small"),

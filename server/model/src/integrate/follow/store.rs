@@ -9,9 +9,11 @@
 //! that does not hold the tile asked for (another key inside, another format, a damaged or
 //! truncated file, another centre) is refused with the reason
 //! ([`CondensedSolver::from_image`]), counted, and replaced by a fresh build. Files are
-//! written to a temporary name and renamed, so a reader never sees half a file; the
-//! directory's `.tile` files are kept under [`RegionCacheDir::max_bytes`] (beyond it a tile
-//! stays in memory only).
+//! written to a temporary name and renamed, so a reader never sees half a file. The
+//! directory's `.tile` files are kept under [`RegionCacheDir::max_bytes`]: a write that would
+//! exceed it first removes the least recently used files of other keys (a changed scene's, a
+//! former version's; reading a file marks it used), and when that is not enough the tile stays
+//! in memory only.
 //!
 //! Owns: the key, the file names, reading and writing. May use:
 //! [`super::super::condensed`].
@@ -134,6 +136,10 @@ impl TileStore {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
             Err(e) => return Err(format!("{}: {e}", path.display())),
         };
+        // Used now: the last to be removed to make room (best effort).
+        if let Ok(f) = std::fs::File::options().append(true).open(&path) {
+            let _ = f.set_modified(std::time::SystemTime::now());
+        }
         let region = ActiveRegion { centre_m, ..region };
         CondensedSolver::from_image(body, mesh, region, dt_s, &self.key, &bytes)
             .map(Some)
@@ -147,8 +153,7 @@ impl TileStore {
         let path = self.path(k);
         let in_dir = |e: std::io::Error| format!("{}: {e}", self.dir.display());
         std::fs::create_dir_all(&self.dir).map_err(in_dir)?;
-        let used = tile_bytes_in(&self.dir, &path).map_err(in_dir)?;
-        if used.saturating_add(bytes.len() as u64) > self.max_bytes {
+        if !self.make_room(&path, bytes.len() as u64).map_err(in_dir)? {
             return Ok(false);
         }
         let tmp = path.with_extension(format!("tmp{}", std::process::id()));
@@ -166,15 +171,36 @@ impl TileStore {
     }
 }
 
-/// Total size of the `.tile` files in `dir`, `skip` (a file about to be replaced) excluded.
-fn tile_bytes_in(dir: &Path, skip: &Path) -> std::io::Result<u64> {
-    let mut total = 0u64;
-    for entry in std::fs::read_dir(dir)? {
-        let entry = entry?;
-        let path = entry.path();
-        if path.extension().is_some_and(|e| e == "tile") && path != skip {
-            total = total.saturating_add(entry.metadata()?.len());
+impl TileStore {
+    /// Whether `bytes` more fit under the limit beside the directory's other `.tile` files
+    /// (`replaced`, about to be overwritten, not counted), after removing the least recently
+    /// used files of other keys as needed.
+    fn make_room(&self, replaced: &Path, bytes: u64) -> std::io::Result<bool> {
+        let mut files = Vec::new();
+        for entry in std::fs::read_dir(&self.dir)? {
+            let entry = entry?;
+            let path = entry.path();
+            if path.extension().is_some_and(|e| e == "tile") && path != replaced {
+                let meta = entry.metadata()?;
+                let modified = meta.modified().unwrap_or(std::time::UNIX_EPOCH);
+                files.push((modified, meta.len(), path));
+            }
         }
+        let mut used: u64 = files.iter().map(|f| f.1).sum();
+        files.sort();
+        let ours = |p: &Path| {
+            p.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.starts_with(&self.prefix))
+        };
+        for (_, len, path) in files.iter().filter(|f| !ours(&f.2)) {
+            if used.saturating_add(bytes) <= self.max_bytes {
+                break;
+            }
+            if std::fs::remove_file(path).is_ok() {
+                used = used.saturating_sub(*len);
+            }
+        }
+        Ok(used.saturating_add(bytes) <= self.max_bytes)
     }
-    Ok(total)
 }
