@@ -407,6 +407,27 @@ fn canonical_even_if_missing(path: &Path) -> Option<PathBuf> {
     Some(dir.join(path.file_name()?))
 }
 
+/// The region cache of `region_cache_dir` and `region_cache_max_bytes` (default
+/// [`haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MAX_BYTES`]).
+///
+/// # Errors
+/// [`ServerError::Config`] for a limit of 0 bytes.
+fn region_cache(
+    dir: Option<PathBuf>,
+    max_bytes: Option<u64>,
+) -> Result<Option<haptic_model::integrate::follow::RegionCacheDir>, ServerError> {
+    use haptic_model::integrate::follow::{DEFAULT_REGION_CACHE_MAX_BYTES, RegionCacheDir};
+    if max_bytes == Some(0) {
+        return Err(ServerError::Config(
+            "region_cache_max_bytes must be at least 1".into(),
+        ));
+    }
+    Ok(dir.map(|dir| RegionCacheDir {
+        dir,
+        max_bytes: max_bytes.unwrap_or(DEFAULT_REGION_CACHE_MAX_BYTES),
+    }))
+}
+
 impl ConfigFile {
     /// Parses configuration text.
     ///
@@ -492,19 +513,7 @@ impl ConfigFile {
         c.servo = self.servo;
         c.state_dir = self.state_dir;
         c.data_dirs = self.data_dirs;
-        if self.region_cache_max_bytes == Some(0) {
-            return Err(ServerError::Config(
-                "region_cache_max_bytes must be at least 1".into(),
-            ));
-        }
-        c.region_cache =
-            self.region_cache_dir
-                .map(|dir| haptic_model::integrate::follow::RegionCacheDir {
-                    dir,
-                    max_bytes: self
-                        .region_cache_max_bytes
-                        .unwrap_or(haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MAX_BYTES),
-                });
+        c.region_cache = region_cache(self.region_cache_dir, self.region_cache_max_bytes)?;
         if let Some(n) = self.max_elements {
             c.max_elements = n.max(1);
         }

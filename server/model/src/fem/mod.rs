@@ -280,15 +280,7 @@ impl FemBody {
             let contact_nodes: Vec<u32> = touchable.iter().flatten().copied().collect();
             c.prepare_contact(&contact_nodes);
             if follows {
-                let mut f = RegionFollower::spawn_with_cache(
-                    &fem,
-                    &scene.mesh,
-                    &contact_nodes,
-                    c,
-                    options.region_cache.as_ref(),
-                )?;
-                f.set_tick_s(p.tick_s);
-                follow.0 = Some(f);
+                follow.0 = Some(follower(&fem, scene, &contact_nodes, c, options)?);
             }
         }
         let (surface_nodes, surface_triangles) = surface_map(&boundary, n);
@@ -884,6 +876,26 @@ fn stepper_of(
         c.add_entry_factor()?;
     }
     Ok(stepper)
+}
+
+/// The worker of a following region `c` over `fem`, its tiles in the host's region cache
+/// (`options`), requests led for the scene's tick.
+fn follower(
+    fem: &FemModel,
+    scene: &Scene,
+    contact_nodes: &[u32],
+    c: &CondensedSolver,
+    options: &BodyOptions,
+) -> Result<RegionFollower, ModelError> {
+    let mut f = RegionFollower::spawn_with_cache(
+        fem,
+        &scene.mesh,
+        contact_nodes,
+        c,
+        options.region_cache.as_ref(),
+    )?;
+    f.set_tick_s(scene.integrator.tick_s);
+    Ok(f)
 }
 
 /// A condensed model (not following) sees loads and contact on its active nodes only: the

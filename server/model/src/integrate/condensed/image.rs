@@ -17,7 +17,8 @@
 //! Owns: the image's layout and its checks. May use: [`super`].
 
 use super::build::{
-    MapRows, Numbering, Selection, check_region, map_rows, number_equations, select_elements,
+    MapRows, Numbering, Selection, TickFactor, check_region, map_rows, number_equations,
+    select_elements,
 };
 use super::*;
 
@@ -182,40 +183,7 @@ impl CondensedSolver {
         key: &[u8; 32],
         bytes: &[u8],
     ) -> Result<Self, ModelError> {
-        if bytes.len() < MAGIC.len() + 4 + HASH_BYTES {
-            return Err(bad("is truncated"));
-        }
-        let (body_bytes, hash) = bytes.split_at(bytes.len() - HASH_BYTES);
-        let mut r = Reader { bytes: body_bytes };
-        if r.take(MAGIC.len())? != MAGIC {
-            return Err(bad("is not a region image (no HAPTTILE magic)"));
-        }
-        let format = u32::from_ne_bytes(r.take(4)?.try_into().map_err(|_| bad("is truncated"))?);
-        if format != TILE_IMAGE_FORMAT {
-            return Err(ModelError::InvalidInput(format!(
-                "region image has format {format}, this build reads {TILE_IMAGE_FORMAT} (written \
-                 by another version)"
-            )));
-        }
-        if blake3::hash(body_bytes).as_bytes() != hash {
-            return Err(bad("is damaged (its BLAKE3 hash does not match)"));
-        }
-        if r.take(HASH_BYTES)? != key {
-            return Err(bad(
-                "was written for another body, region or step (its key differs)",
-            ));
-        }
-        let centre = DVec3::new(r.f64()?, r.f64()?, r.f64()?);
-        let h = r.f64()?;
-        if centre.to_array().map(f64::to_bits) != region.centre_m.to_array().map(f64::to_bits)
-            || h.to_bits() != dt_s.to_bits()
-        {
-            return Err(bad("has another centre or step than asked"));
-        }
-        let digest: [u8; HASH_BYTES] = r
-            .take(HASH_BYTES)?
-            .try_into()
-            .map_err(|_| bad("is truncated"))?;
+        let (mut r, digest) = open_image(bytes, key, region.centre_m, dt_s)?;
         let region = ActiveRegion {
             follow: true,
             ..region
@@ -230,74 +198,30 @@ impl CondensedSolver {
             ..
         } = select_elements(body, mesh, &region, &balls, false)?;
         let num = number_equations(body, &node_active, &node_far);
-        let g = num.gamma_dof.len();
-        let m = num.eq_dof.len();
+        let (g, m) = (num.gamma_dof.len(), num.eq_dof.len());
         let schur: Vec<f32> = r.array()?;
         if schur.len() != g * (g + 1) / 2 {
             return Err(bad("does not fit the body's split (interface size)"));
         }
-        let schur_full = unpack_symmetric(&schur, g);
         let mass: Vec<f64> = num
             .eq_dof
             .iter()
             .map(|d| body.lumped_mass_kg()[d / 3])
             .collect();
-        let ball = ball_of(&balls, region.radius_m, body.rest(), &num.gamma_dof);
-        let a_lower = TickMatrixParts {
+        let parts = TickMatrixParts {
             active: &active,
             material: *body.material(),
             eq: &num.eq,
             gamma_dof: &num.gamma_dof,
-            schur: &schur_full,
-            ball: &ball,
+            schur: &unpack_symmetric(&schur, g),
+            ball: &ball_of(&balls, region.radius_m, body.rest(), &num.gamma_dof),
             mass: &mass,
-            h,
-        }
-        .lower(region.stiffness_margin)?;
-        if pattern_digest(&a_lower) != digest {
-            return Err(bad("does not fit the body's split (tick matrix pattern)"));
-        }
-        let eq_nodes: Vec<usize> = num.eq_dof.iter().map(|&d| d / 3).collect();
-        let symbolic = symbolic_cholesky(a_lower.symbolic(), Side::Lower, &eq_nodes)?;
-        let sweep = SupernodalSolve::new(&symbolic);
-        let factor: Vec<f32> = r.array()?;
-        let half = match r.array::<u8>()?.as_slice() {
-            [] => None,
-            [1] => {
-                let parts = (r.array()?, r.array()?, r.array()?, r.array()?, r.array()?);
-                let half = sweep
-                    .as_ref()
-                    .and_then(|s| s.half_factor_from_parts(parts))
-                    .ok_or_else(|| bad("does not fit the body's split (half factor)"))?;
-                Some(half)
-            }
-            _ => return Err(bad("has an unknown factor flag")),
+            h: dt_s,
         };
-        let trimmed = factor.is_empty() && sweep.is_some() && half.is_some();
-        if factor.len() != symbolic.len_val() && !trimmed {
-            return Err(bad("does not fit the body's split (factor length)"));
-        }
-        let MapRows {
-            map_far,
-            surface_rows,
-            map_row,
-        } = map_rows(mesh, &region, &num);
-        let map: Vec<u16> = r.array()?;
-        if map.len() != map_far.len() * g {
-            return Err(bad("does not fit the body's split (far map)"));
-        }
-        let col: Vec<u32> = r.array()?;
-        let z: Vec<f32> = r.array()?;
-        let prepared = col.iter().filter(|&&c| c != u32::MAX).count();
-        if col.len() != body.node_count()
-            || col.iter().any(|&c| c != u32::MAX && c as usize >= prepared)
-            || z.len() != 3 * m * prepared
-        {
-            return Err(bad("does not fit the body's split (contact columns)"));
-        }
-        if !r.bytes.is_empty() {
-            return Err(bad("has trailing bytes"));
-        }
+        let (symbolic, factor, sweep, half) =
+            read_factors(&mut r, &parts, &num.eq_dof, &region, &digest)?;
+        let rows = map_rows(mesh, &region, &num);
+        let (map, contact) = read_map_and_contact(&mut r, &rows, g, m, body.node_count())?;
         let Numbering {
             eq,
             eq_dof,
@@ -326,10 +250,10 @@ impl CondensedSolver {
             factor,
             sweep,
             half,
-            map_dofs: map_far.iter().map(|&k| far_dofs[k]).collect(),
+            map_dofs: rows.map_far.iter().map(|&k| far_dofs[k]).collect(),
             map,
-            surface_rows,
-            map_row,
+            surface_rows: rows.surface_rows,
+            map_row: rows.map_row,
             far: FarField {
                 dofs: far_dofs,
                 llt: None,
@@ -340,7 +264,7 @@ impl CondensedSolver {
             entry: None,
         };
         let mut solver = Self::assemble(system, region, balls, dt_s, body.node_count());
-        solver.contact = ContactColumns { col, z };
+        solver.contact = contact;
         Ok(solver)
     }
 
@@ -384,6 +308,116 @@ impl OwnedTickMatrixParts<'_> {
         }
         .lower(c)
     }
+}
+
+/// Checks an image's frame (length, magic, format, hash, `key`, centre `centre_m` and step
+/// `dt_s`); the reader after it and the tick matrix's pattern digest.
+fn open_image<'a>(
+    bytes: &'a [u8],
+    key: &[u8; 32],
+    centre_m: DVec3,
+    dt_s: f64,
+) -> Result<(Reader<'a>, [u8; HASH_BYTES]), ModelError> {
+    if bytes.len() < MAGIC.len() + 4 + HASH_BYTES {
+        return Err(bad("is truncated"));
+    }
+    let (body_bytes, hash) = bytes.split_at(bytes.len() - HASH_BYTES);
+    let mut r = Reader { bytes: body_bytes };
+    if r.take(MAGIC.len())? != MAGIC {
+        return Err(bad("is not a region image (no HAPTTILE magic)"));
+    }
+    let format = u32::from_ne_bytes(r.take(4)?.try_into().map_err(|_| bad("is truncated"))?);
+    if format != TILE_IMAGE_FORMAT {
+        return Err(ModelError::InvalidInput(format!(
+            "region image has format {format}, this build reads {TILE_IMAGE_FORMAT} (written \
+             by another version)"
+        )));
+    }
+    if blake3::hash(body_bytes).as_bytes() != hash {
+        return Err(bad("is damaged (its BLAKE3 hash does not match)"));
+    }
+    if r.take(HASH_BYTES)? != key {
+        return Err(bad(
+            "was written for another body, region or step (its key differs)",
+        ));
+    }
+    let centre = DVec3::new(r.f64()?, r.f64()?, r.f64()?);
+    let h = r.f64()?;
+    if centre.to_array().map(f64::to_bits) != centre_m.to_array().map(f64::to_bits)
+        || h.to_bits() != dt_s.to_bits()
+    {
+        return Err(bad("has another centre or step than asked"));
+    }
+    let digest = r
+        .take(HASH_BYTES)?
+        .try_into()
+        .map_err(|_| bad("is truncated"))?;
+    Ok((r, digest))
+}
+
+/// The tick factor of `parts` (equations `eq_dof`, margin `region.stiffness_margin`): the
+/// symbolic analysis of its pattern (checked against `digest`) and its sweep rebuilt, the
+/// factor's values read.
+fn read_factors(
+    r: &mut Reader<'_>,
+    parts: &TickMatrixParts<'_>,
+    eq_dof: &[usize],
+    region: &ActiveRegion,
+    digest: &[u8; HASH_BYTES],
+) -> Result<TickFactor, ModelError> {
+    let a_lower = parts.lower(region.stiffness_margin)?;
+    if pattern_digest(&a_lower) != *digest {
+        return Err(bad("does not fit the body's split (tick matrix pattern)"));
+    }
+    let eq_nodes: Vec<usize> = eq_dof.iter().map(|&d| d / 3).collect();
+    let symbolic = symbolic_cholesky(a_lower.symbolic(), Side::Lower, &eq_nodes)?;
+    let sweep = SupernodalSolve::new(&symbolic);
+    let factor: Vec<f32> = r.array()?;
+    let half = match r.array::<u8>()?.as_slice() {
+        [] => None,
+        [1] => {
+            let arrays = (r.array()?, r.array()?, r.array()?, r.array()?, r.array()?);
+            let half = sweep
+                .as_ref()
+                .and_then(|s| s.half_factor_from_parts(arrays))
+                .ok_or_else(|| bad("does not fit the body's split (half factor)"))?;
+            Some(half)
+        }
+        _ => return Err(bad("has an unknown factor flag")),
+    };
+    let trimmed = factor.is_empty() && sweep.is_some() && half.is_some();
+    if factor.len() != symbolic.len_val() && !trimmed {
+        return Err(bad("does not fit the body's split (factor length)"));
+    }
+    Ok((symbolic, factor, sweep, half))
+}
+
+/// The far map (rows `rows`, `g` interface components) and the contact columns (`m`
+/// equations, a body of `nodes` nodes), checked against the split; the image must end there.
+fn read_map_and_contact(
+    r: &mut Reader<'_>,
+    rows: &MapRows,
+    g: usize,
+    m: usize,
+    nodes: usize,
+) -> Result<(Vec<u16>, ContactColumns), ModelError> {
+    let map: Vec<u16> = r.array()?;
+    if map.len() != rows.map_far.len() * g {
+        return Err(bad("does not fit the body's split (far map)"));
+    }
+    let col: Vec<u32> = r.array()?;
+    let z: Vec<f32> = r.array()?;
+    let prepared = col.iter().filter(|&&c| c != u32::MAX).count();
+    if col.len() != nodes
+        || col.iter().any(|&c| c != u32::MAX && c as usize >= prepared)
+        || z.len() != 3 * m * prepared
+    {
+        return Err(bad("does not fit the body's split (contact columns)"));
+    }
+    if !r.bytes.is_empty() {
+        return Err(bad("has trailing bytes"));
+    }
+    Ok((map, ContactColumns { col, z }))
 }
 
 /// The row-major `g x g` symmetric matrix of the packed upper triangle `packed`
