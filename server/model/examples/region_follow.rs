@@ -379,10 +379,15 @@ fn report(args: &Args, sim: &FemBody, path: &Path, tr: &Trace) {
     );
     let stroke_us: Vec<f64> = ticks_us[stroke.clone()].to_vec();
     println!(
-        "tick p50 {:.0} us, p99 {:.0} us, max {:.0} us ({} thread(s)); swap ticks max {:.0} us; stroke and hold: p50 {:.0} us, {} of {} ticks over 1 ms",
+        "tick p50 {:.0} us, p99 {:.0} us, max {:.0} us at tick {} ({} thread(s)); swap ticks max {:.0} us; stroke and hold: p50 {:.0} us, {} of {} ticks over 1 ms",
         pct(0.5),
         pct(0.99),
         pct(1.0),
+        ticks_us
+            .iter()
+            .enumerate()
+            .fold((0, 0.0), |a, (k, &t)| if t > a.1 { (k, t) } else { a })
+            .0,
         args.threads,
         swap_us.iter().copied().fold(0.0, f64::max),
         quantile(&stroke_us, 0.5),

@@ -366,7 +366,7 @@ impl CondensedSolver {
             system,
             contact: ContactColumns {
                 col: vec![u32::MAX; nodes],
-                z: Vec::new(),
+                z: Vec::new().into(),
             },
             state: CondensedState {
                 relaxation: 1.0,
@@ -455,15 +455,15 @@ impl CondensedSystem {
             eq_dof,
             mass,
             gamma_dof,
-            schur,
+            schur: schur.into(),
             avx2: Avx2Fma::detect(),
             f16c: Avx2FmaF16c::detect(),
             symbolic: Arc::new(symbolic),
             factor,
             sweep,
-            half,
+            half: half.map(Arc::new),
             map_dofs: map_far.iter().map(|&k| far_dofs[k]).collect(),
-            map,
+            map: map.into(),
             surface_rows,
             map_row,
             far: FarField {

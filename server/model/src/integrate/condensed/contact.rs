@@ -65,8 +65,8 @@ impl CondensedSolver {
         };
         self.system.entry = Some(EntryFactor {
             factor,
-            half,
-            contact_z,
+            half: half.map(Arc::new),
+            contact_z: contact_z.into(),
         });
         Ok(())
     }
@@ -109,20 +109,20 @@ impl CondensedSolver {
             > max_bytes
             || self.system.factor.is_empty()
         {
-            self.contact.z = Vec::new();
+            self.contact.z = Vec::new().into();
             if let Some(e) = self.system.entry.as_mut() {
-                e.contact_z = Vec::new();
+                e.contact_z = Vec::new().into();
             }
             return false;
         }
         for (c, &i) in list.iter().enumerate() {
             self.contact.col[i as usize] = c as u32;
         }
-        self.contact.z = self.contact_columns(&self.system.factor, &list);
+        self.contact.z = self.contact_columns(&self.system.factor, &list).into();
         if let Some(e) = &self.system.entry {
             let z = self.contact_columns(&e.factor, &list);
             if let Some(e) = self.system.entry.as_mut() {
-                e.contact_z = z;
+                e.contact_z = z.into();
             }
         }
         true

@@ -243,15 +243,15 @@ impl CondensedSolver {
             eq_dof,
             mass,
             gamma_dof,
-            schur,
+            schur: schur.into(),
             avx2: Avx2Fma::detect(),
             f16c: Avx2FmaF16c::detect(),
             symbolic: Arc::new(symbolic),
             factor,
             sweep,
-            half,
+            half: half.map(Arc::new),
             map_dofs: rows.map_far.iter().map(|&k| far_dofs[k]).collect(),
-            map,
+            map: map.into(),
             surface_rows: rows.surface_rows,
             map_row: rows.map_row,
             far: FarField {
@@ -417,7 +417,7 @@ fn read_map_and_contact(
     if !r.bytes.is_empty() {
         return Err(bad("has trailing bytes"));
     }
-    Ok((map, ContactColumns { col, z }))
+    Ok((map, ContactColumns { col, z: z.into() }))
 }
 
 /// The row-major `g x g` symmetric matrix of the packed upper triangle `packed`

@@ -780,7 +780,10 @@ impl Worker {
                 }
             }
         };
+        // A copy shares the tile's arrays (the tick never writes them); they are read here
+        // once so that the servo's first tick with the region does not wait for them.
         let solver = Box::new((*tile).clone());
+        std::hint::black_box(solver.touch());
         self.shared.record_prepare_s(start.elapsed().as_secs_f64());
         self.shared.prepared.fetch_add(1, Ordering::Relaxed);
         Prepared::Region {

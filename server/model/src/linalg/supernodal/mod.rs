@@ -112,6 +112,16 @@ impl HalfFactor {
         )
     }
 
+    /// Reads every array once (a sum of their bits, for [`std::hint::black_box`]): brings a
+    /// factor that has not been read for a while back into the caches, and its pages into
+    /// memory, on the thread that calls it rather than on the first tick that sweeps it.
+    pub fn touch(&self) -> u64 {
+        touch_words(&self.values)
+            .wrapping_add(touch_words(&self.scale))
+            .wrapping_add(touch_words(&self.inv_diag))
+            .wrapping_add(touch_words(&self.triangles))
+    }
+
     /// Bytes of the factor's arrays.
     pub fn memory_bytes(&self) -> usize {
         2 * self.values.len()
@@ -120,6 +130,14 @@ impl HalfFactor {
                 + 2 * self.node_start.len()
                 + self.triangles.len())
     }
+}
+
+/// A sum of `values`' bits, read a cache line (64 bytes) at a time.
+pub fn touch_words<T: bytemuck::Pod>(values: &[T]) -> u64 {
+    bytemuck::cast_slice::<T, u8>(values)
+        .iter()
+        .step_by(64)
+        .fold(0u64, |a, &b| a.wrapping_add(u64::from(b)))
 }
 
 /// One panel of a supernode: columns `p0..p0 + w` of its block, `blocks` blocks of
