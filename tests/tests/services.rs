@@ -226,3 +226,68 @@ async fn hapticctl_roundtrip() -> Result<()> {
     );
     Ok(())
 }
+
+/// `hapticd --prepare-regions SCENE --region-cache-dir DIR` fills the region cache of a scene
+/// file and exits: the first run writes every region, the second reads them all; a scene
+/// without a region cache, and a missing cache directory, are refused with what to do.
+#[test]
+fn prepare_regions_fills_the_region_cache_and_exits() -> Result<()> {
+    let dir = haptic_e2e::unique_temp_dir("hapticd-prepare-regions")?;
+    let scene = "name = \"lv-tiles\"\n[mesh]\nbuiltin = \"lv\"\ntarget_tets = 2000\norder = 1\n\
+        [material]\nyoungs_modulus_pa = 14500.0\npoisson_ratio = 0.45\n\
+        density_kg_per_m3 = 1060.0\n[boundary]\nclamped = [\"BASE\"]\ntouchable = [\"EPI\"]\n\
+        [integrator]\nkind = \"backward-euler\"\nsubsteps = 1\n[active_region]\n\
+        centre_m = [0.00968, 0.0, -0.005]\nradius_m = 0.006\nfollow = true\n";
+    let tiled = dir.join("tiled.toml");
+    std::fs::write(
+        &tiled,
+        format!("{scene}tiles = \"background\"\ntile_cover_m = 0.005\n"),
+    )?;
+    let plain = dir.join("plain.toml");
+    std::fs::write(&plain, scene)?;
+    let cache = dir.join("cache");
+    let hapticd = haptic_e2e::binary(haptic_e2e::HAPTICD)?;
+    let run = |args: &[&std::ffi::OsStr]| -> Result<(bool, String, String)> {
+        let out = std::process::Command::new(&hapticd).args(args).output()?;
+        Ok((
+            out.status.success(),
+            String::from_utf8_lossy(&out.stdout).into_owned(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        ))
+    };
+    let prepare = [
+        "--prepare-regions".as_ref(),
+        tiled.as_os_str(),
+        "--region-cache-dir".as_ref(),
+        cache.as_os_str(),
+    ];
+    let (ok, first, err) = run(&prepare)?;
+    ensure!(ok, "first run failed: {err}");
+    let files = std::fs::read_dir(&cache)?.count();
+    ensure!(
+        files >= 5 && first.contains(&format!("prepared {files} regions of lv-tiles")),
+        "{files} files; {first}"
+    );
+    ensure!(
+        first.contains(&format!("(0 read, {files} written)")),
+        "{first}"
+    );
+    let (ok, second, err) = run(&prepare)?;
+    ensure!(ok, "second run failed: {err}");
+    ensure!(
+        second.contains(&format!("({files} read, 0 written)")),
+        "{second}"
+    );
+    ensure!(err.contains("ready"), "no progress on stderr: {err}");
+    let (ok, _, err) = run(&[
+        "--prepare-regions".as_ref(),
+        plain.as_os_str(),
+        "--region-cache-dir".as_ref(),
+        cache.as_os_str(),
+    ])?;
+    ensure!(!ok && err.contains("no region cache"), "{err}");
+    let (ok, _, err) = run(&["--prepare-regions".as_ref(), tiled.as_os_str()])?;
+    ensure!(!ok && err.contains("--region-cache-dir"), "{err}");
+    std::fs::remove_dir_all(&dir)?;
+    Ok(())
+}

@@ -1,5 +1,6 @@
 //! `hapticd`: the haptic server daemon. Parses flags over the config file, starts logging,
 //! binds, and calls [`haptic_server::run`] (which prints `listening on <addr>`) until SIGINT/SIGTERM.
+//! With `--prepare-regions SCENE` it instead fills the region cache for a scene file and exits.
 
 use std::path::PathBuf;
 
@@ -50,6 +51,11 @@ struct Args {
     /// preparing them again.
     #[arg(long)]
     region_cache_dir: Option<PathBuf>,
+    /// Do not serve: prepare every region of this scene file's region cache
+    /// (`active_region.tiles = "background"`) into the region cache directory, reporting
+    /// progress, and exit; the daemon's sessions of the scene then start with them ready.
+    #[arg(long, value_name = "SCENE_FILE")]
+    prepare_regions: Option<PathBuf>,
     /// A directory client-sent scenes may read mesh files from besides --scene-dir (repeat the
     /// flag for several; e.g. the shared LV meshes).
     #[arg(long = "data-dir")]
@@ -111,6 +117,9 @@ async fn main() -> anyhow::Result<()> {
         file.servo.threads = t;
     }
     let config = file.into_config()?;
+    if let Some(scene) = &args.prepare_regions {
+        return prepare_regions(scene, config.region_cache.as_ref());
+    }
     let filter =
         tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
     // Colour only on a terminal: the journal and log files get plain text (issue 47).
@@ -127,6 +136,75 @@ async fn main() -> anyhow::Result<()> {
         .with_context(|| format!("binding {}", config.listen))?;
     // `run` prints `listening on ADDR` once tokens and TLS are set up.
     haptic_server::run(listener, config, shutdown_signal()).await?;
+    Ok(())
+}
+
+/// `--prepare-regions`: builds the scene file's body with the region cache `cache` and waits
+/// until every region of its cache is ready (read, built and written, or failed), printing
+/// progress on stderr; fails when the scene has no region cache or a region failed.
+fn prepare_regions(
+    path: &std::path::Path,
+    cache: Option<&haptic_model::integrate::follow::RegionCacheDir>,
+) -> anyhow::Result<()> {
+    use haptic_model::integrate::condensed::TileMode;
+    let cache = cache.context(
+        "--prepare-regions needs a region cache: --region-cache-dir DIR or region_cache_dir",
+    )?;
+    let scene = haptic_model::scene::load_scene_file(path)
+        .with_context(|| format!("loading {}", path.display()))?;
+    let tiled = scene
+        .active_region
+        .is_some_and(|r| r.follow && matches!(r.tiles, TileMode::Background { .. }));
+    anyhow::ensure!(
+        tiled,
+        "{}: no region cache to prepare (it needs [active_region] follow = true and tiles = \"background\")",
+        path.display()
+    );
+    let options = haptic_model::BodyOptions {
+        region_cache: Some(cache.clone()),
+    };
+    let start = std::time::Instant::now();
+    let body = haptic_model::fem::FemBody::new_with_options(&scene, &options, &mut |stage, f| {
+        eprintln!("set-up {:3.0} %: {stage}", 100.0 * f);
+    })?;
+    let mut last = u64::MAX;
+    let s = loop {
+        let s = body.follow_stats().unwrap_or_default();
+        let ready = s.tiles_built + s.tiles_failed;
+        if ready != last {
+            eprintln!(
+                "regions of {}: {ready}/{} ready ({} read, {} written, {} refused) after {:.1} s",
+                scene.name,
+                s.tiles,
+                s.tiles_loaded,
+                s.tiles_stored,
+                s.tiles_refused,
+                start.elapsed().as_secs_f64()
+            );
+            last = ready;
+        }
+        if ready >= s.tiles {
+            break s;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(200));
+    };
+    if let Some(e) = body.region_cache_error() {
+        eprintln!("region cache: {e}");
+    }
+    anyhow::ensure!(
+        s.tiles_failed == 0,
+        "{} of {} regions failed",
+        s.tiles_failed,
+        s.tiles
+    );
+    println!(
+        "prepared {} regions of {} in {} ({} read, {} written)",
+        s.tiles,
+        scene.name,
+        cache.dir.display(),
+        s.tiles_loaded,
+        s.tiles_stored
+    );
     Ok(())
 }
 
