@@ -1368,23 +1368,10 @@ fn prepared_contact_columns_give_the_unprepared_step_and_keep_their_memory_limit
     });
     let by_distance = near.clone();
     near.truncate(5);
-    let one_row = vec![DVec3::new(-0.2, 0.0, 0.0); 5];
-    // Two rows: the first three nodes along -x, the last three (one shared) along -x tilted
-    // in y, with a coupled 2 x 2 compliance (m/N) and its Cholesky factor.
-    let two_rows = [
-        DVec3::new(-0.3, 0.0, 0.0),
-        DVec3::new(-0.3, 0.0, 0.0),
-        DVec3::new(-0.4, 0.0, 0.0),
-        DVec3::new(-0.3, 0.1, 0.0),
-        DVec3::new(-0.3, 0.1, 0.0),
-        DVec3::new(-0.4, 0.1, 0.0),
-    ];
-    let two_nodes = [near[0], near[1], near[2], near[2], near[3], near[4]];
-    let c2: [f64; 4] = [1.0 / 300.0, 0.5 / 300.0, 0.5 / 300.0, 1.0 / 300.0];
-    let l00 = c2[0].sqrt();
-    let l10 = c2[2] / l00;
-    let f2 = [l00, 0.0, l10, (c2[3] - l10 * l10).sqrt()];
-    let (c1, f1) = ([1.0 / 300.0], [(1.0f64 / 300.0).sqrt()]);
+    let rows = FiveNodeRows::new(&near);
+    let FiveNodeRows {
+        one_row, c1, f1, ..
+    } = rows;
     // A row over enough nodes that it takes the paired sweep (`PAIRED_SWEEP_MIN_RATIO`),
     // where the five-node row takes the prepared columns.
     let ratio = |nodes: usize| (3 * nodes * m) as f64 / prepared.sizes().factor_entries as f64;
@@ -1415,22 +1402,7 @@ fn prepared_contact_columns_give_the_unprepared_step_and_keep_their_memory_limit
     let slack_row_ptr = |k: usize| [0, k as u32, k as u32 + 1];
     let (ptr_small, ptr_wide) = (slack_row_ptr(5), slack_row_ptr(wide_count));
     let wide_ptr = [0, wide_count as u32];
-    let couplings = [
-        ContactCoupling {
-            row_ptr: &[0, 5],
-            nodes: &near,
-            vectors: &one_row,
-            compliance: &c1,
-            compliance_factor: &f1,
-        },
-        ContactCoupling {
-            row_ptr: &[0, 3, 6],
-            nodes: &two_nodes,
-            vectors: &two_rows,
-            compliance: &c2,
-            compliance_factor: &f2,
-        },
-    ];
+    let couplings = rows.couplings();
     let one_and_slack = [
         (
             couplings[0],
@@ -1505,6 +1477,67 @@ fn prepared_contact_columns_give_the_unprepared_step_and_keep_their_memory_limit
             diff <= 1e-4 * scale,
             "{rows} row(s): prepared and unprepared steps differ by {diff:.3e} of {scale:.3e} m/s"
         );
+    }
+}
+
+/// Probe couplings over five nodes `near` (weights summing to one, compliance 300 N/m): one
+/// row along -x over all five, or two rows (the first three nodes along -x, the last three,
+/// one shared, along -x tilted in y) with a coupled 2 x 2 compliance (m/N) and its Cholesky
+/// factor.
+struct FiveNodeRows {
+    near: [u32; 5],
+    one_row: [DVec3; 5],
+    c1: [f64; 1],
+    f1: [f64; 1],
+    two_nodes: [u32; 6],
+    two_rows: [DVec3; 6],
+    c2: [f64; 4],
+    f2: [f64; 4],
+}
+
+impl FiveNodeRows {
+    fn new(near: &[u32]) -> Self {
+        let c2: [f64; 4] = [1.0 / 300.0, 0.5 / 300.0, 0.5 / 300.0, 1.0 / 300.0];
+        let l00 = c2[0].sqrt();
+        let l10 = c2[2] / l00;
+        Self {
+            near: [near[0], near[1], near[2], near[3], near[4]],
+            one_row: [DVec3::new(-0.2, 0.0, 0.0); 5],
+            c1: [1.0 / 300.0],
+            f1: [(1.0f64 / 300.0).sqrt()],
+            two_nodes: [near[0], near[1], near[2], near[2], near[3], near[4]],
+            two_rows: [
+                DVec3::new(-0.3, 0.0, 0.0),
+                DVec3::new(-0.3, 0.0, 0.0),
+                DVec3::new(-0.4, 0.0, 0.0),
+                DVec3::new(-0.3, 0.1, 0.0),
+                DVec3::new(-0.3, 0.1, 0.0),
+                DVec3::new(-0.4, 0.1, 0.0),
+            ],
+            c2,
+            f2: [l00, 0.0, l10, (c2[3] - l10 * l10).sqrt()],
+        }
+    }
+
+    /// The one-row and the two-row coupling.
+    fn couplings(&self) -> [haptic_model::contact::ContactCoupling<'_>; 2] {
+        use haptic_model::contact::ContactCoupling;
+        [
+            ContactCoupling {
+                row_ptr: &[0, 5],
+                nodes: &self.near,
+                vectors: &self.one_row,
+                compliance: &self.c1,
+                compliance_factor: &self.f1,
+            },
+            ContactCoupling {
+                row_ptr: &[0, 3, 6],
+                nodes: &self.two_nodes,
+                vectors: &self.two_rows,
+                compliance: &self.c2,
+                compliance_factor: &self.f2,
+            },
+        ]
     }
 }
 
@@ -1942,7 +1975,6 @@ fn column_solves_on_several_threads_build_the_same_region_bit_for_bit() {
 /// refused with an error that says so, and a region that is not a tile has no image.
 #[test]
 fn a_region_image_rebuilds_a_tile_that_steps_bit_for_bit() {
-    use haptic_model::contact::ContactCoupling;
     let (fem, mesh, f_ext, centre) = setup(StrainSmoothing::None);
     let nodes = epi_nodes(&mesh);
     let (region, dt) = (tiled_region(centre), 1e-3);
@@ -1976,37 +2008,8 @@ fn a_region_image_rebuilds_a_tile_that_steps_bit_for_bit() {
             .total_cmp(&mesh.nodes[b as usize].distance(centre))
     });
     near.truncate(5);
-    let one_row = [DVec3::new(-0.2, 0.0, 0.0); 5];
-    let (c1, f1) = ([1.0 / 300.0], [(1.0f64 / 300.0).sqrt()]);
-    let two_rows = [
-        DVec3::new(-0.3, 0.0, 0.0),
-        DVec3::new(-0.3, 0.0, 0.0),
-        DVec3::new(-0.4, 0.0, 0.0),
-        DVec3::new(-0.3, 0.1, 0.0),
-        DVec3::new(-0.3, 0.1, 0.0),
-        DVec3::new(-0.4, 0.1, 0.0),
-    ];
-    let two_nodes = [near[0], near[1], near[2], near[2], near[3], near[4]];
-    let c2: [f64; 4] = [1.0 / 300.0, 0.5 / 300.0, 0.5 / 300.0, 1.0 / 300.0];
-    let l00 = c2[0].sqrt();
-    let l10 = c2[2] / l00;
-    let f2 = [l00, 0.0, l10, (c2[3] - l10 * l10).sqrt()];
-    let couplings = [
-        ContactCoupling {
-            row_ptr: &[0, 5],
-            nodes: &near,
-            vectors: &one_row,
-            compliance: &c1,
-            compliance_factor: &f1,
-        },
-        ContactCoupling {
-            row_ptr: &[0, 3, 6],
-            nodes: &two_nodes,
-            vectors: &two_rows,
-            compliance: &c2,
-            compliance_factor: &f2,
-        },
-    ];
+    let rows = FiveNodeRows::new(&near);
+    let couplings = rows.couplings();
     let n = fem.node_count();
     let run = |solver: &mut CondensedSolver| {
         let mut x = fem.rest().to_vec();

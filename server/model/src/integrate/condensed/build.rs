@@ -135,7 +135,7 @@ pub(super) struct TickMatrixParts<'a> {
     /// Per interface component, the group of balls of a union region it is nearest
     /// ([`ball_of`]; empty: one group). `S`'s entries between two groups stay out of the
     /// matrix.
-    pub(super) ball: &'a [u8],
+    pub(super) ball: Vec<u8>,
     /// Lumped mass per equation, kg.
     pub(super) mass: &'a [f64],
     pub(super) h: f64,
@@ -412,6 +412,91 @@ impl CondensedSystem {
             llt,
             kfg,
         } = condense_far(mesh, region, far_model.as_ref(), &num, threads, progress)?;
+        let g = num.gamma_dof.len();
+        progress("condensation: tick matrix factorisation", 0.85);
+        let split = Split::new(body, active_tets, active, node_active, num);
+        let parts = split.tick_matrix_parts(body, region, balls, &schur, h);
+        let tick = factor_tick_matrix(&parts, &split.num.eq_dof, region.stiffness_margin)?;
+        let schur: Vec<f32> = (0..g)
+            .flat_map(|a| schur[a * g + a..(a + 1) * g].iter().map(|&v| v as f32))
+            .collect();
+        let rows = MapRows {
+            map_far,
+            surface_rows,
+            map_row,
+        };
+        Ok(split.into_system(schur, tick, rows, map, llt, kfg))
+    }
+}
+
+/// A region's split and what it gives without the far solves: the active elements, the
+/// numbering and the lumped mass per equation ([`CondensedSystem::build`], and a region read
+/// back from its image).
+pub(super) struct Split {
+    pub(super) active_tets: usize,
+    pub(super) active: FemModel,
+    pub(super) node_active: Vec<bool>,
+    pub(super) num: Numbering,
+    /// Lumped mass per equation, kg.
+    pub(super) mass: Vec<f64>,
+}
+
+impl Split {
+    /// The split of `body` into `active` (`active_tets` elements on `node_active`) and the
+    /// numbering `num`.
+    pub(super) fn new(
+        body: &FemModel,
+        active_tets: usize,
+        active: FemModel,
+        node_active: Vec<bool>,
+        num: Numbering,
+    ) -> Self {
+        let mass = num
+            .eq_dof
+            .iter()
+            .map(|d| body.lumped_mass_kg()[d / 3])
+            .collect();
+        Self {
+            active_tets,
+            active,
+            node_active,
+            num,
+            mass,
+        }
+    }
+
+    /// The tick matrix's parts with `S` row-major (`schur`) and step `h`, s.
+    pub(super) fn tick_matrix_parts<'a>(
+        &'a self,
+        body: &FemModel,
+        region: &ActiveRegion,
+        balls: &RegionBalls,
+        schur: &'a [f64],
+        h: f64,
+    ) -> TickMatrixParts<'a> {
+        TickMatrixParts {
+            active: &self.active,
+            material: *body.material(),
+            eq: &self.num.eq,
+            gamma_dof: &self.num.gamma_dof,
+            schur,
+            ball: ball_of(balls, region.radius_m, body.rest(), &self.num.gamma_dof),
+            mass: &self.mass,
+            h,
+        }
+    }
+
+    /// The system of this split with `S` packed in single precision, the tick factor, the far
+    /// map's rows and values, and (a region that keeps it) the far factor and `K_FG`.
+    pub(super) fn into_system(
+        self,
+        schur: Vec<f32>,
+        (symbolic, factor, sweep, half): TickFactor,
+        rows: MapRows,
+        map: Vec<u16>,
+        llt: Option<SparseCholesky>,
+        kfg: Vec<(usize, usize, f64)>,
+    ) -> CondensedSystem {
         let Numbering {
             eq,
             eq_dof,
@@ -419,41 +504,19 @@ impl CondensedSystem {
             far_dofs,
             interface_nodes,
             ..
-        } = num;
-        let g = gamma_dof.len();
-        progress("condensation: tick matrix factorisation", 0.85);
-        let mass: Vec<f64> = eq_dof
-            .iter()
-            .map(|d| body.lumped_mass_kg()[d / 3])
-            .collect();
-        let ball = ball_of(balls, region.radius_m, body.rest(), &gamma_dof);
-        let parts = TickMatrixParts {
-            active: &active,
-            material: *body.material(),
-            eq: &eq,
-            gamma_dof: &gamma_dof,
-            schur: &schur,
-            ball: &ball,
-            mass: &mass,
-            h,
-        };
-        let (symbolic, factor, sweep, half) =
-            factor_tick_matrix(&parts, &eq_dof, region.stiffness_margin)?;
-        let schur: Vec<f32> = (0..g)
-            .flat_map(|a| schur[a * g + a..(a + 1) * g].iter().map(|&v| v as f32))
-            .collect();
+        } = self.num;
         let sizes = CondensedSizes {
-            active_tets,
-            active_nodes: node_active.iter().filter(|a| **a).count(),
+            active_tets: self.active_tets,
+            active_nodes: self.node_active.iter().filter(|a| **a).count(),
             interface_nodes,
             equations: eq_dof.len(),
-            factor_entries: factor.len(),
+            factor_entries: symbolic.len_val(),
         };
-        Ok(Self {
-            active,
+        CondensedSystem {
+            active: self.active,
             eq,
             eq_dof,
-            mass,
+            mass: self.mass,
             gamma_dof,
             schur: schur.into(),
             avx2: Avx2Fma::detect(),
@@ -462,19 +525,19 @@ impl CondensedSystem {
             factor,
             sweep,
             half: half.map(Arc::new),
-            map_dofs: map_far.iter().map(|&k| far_dofs[k]).collect(),
+            map_dofs: rows.map_far.iter().map(|&k| far_dofs[k]).collect(),
             map: map.into(),
-            surface_rows,
-            map_row,
+            surface_rows: rows.surface_rows,
+            map_row: rows.map_row,
             far: FarField {
                 dofs: far_dofs,
                 llt,
                 kfg,
             },
             sizes,
-            node_active,
+            node_active: self.node_active,
             entry: None,
-        })
+        }
     }
 }
 

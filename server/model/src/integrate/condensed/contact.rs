@@ -19,31 +19,8 @@ impl CondensedSolver {
         if self.params.region.stiffness_margin <= 1.0 {
             return Ok(());
         }
-        let g = self.system.gamma_dof.len();
-        let mut schur = vec![0.0f64; g * g];
-        for a in 0..g {
-            let start = packed_row_start(a, g);
-            for (b, &v) in (a..g).zip(&self.system.schur[start..start + g - a]) {
-                schur[a * g + b] = f64::from(v);
-                schur[b * g + a] = f64::from(v);
-            }
-        }
-        let ball = ball_of(
-            &self.params.balls,
-            self.params.region.radius_m,
-            self.system.active.rest(),
-            &self.system.gamma_dof,
-        );
-        let parts = TickMatrixParts {
-            active: &self.system.active,
-            material: *self.system.active.material(),
-            eq: &self.system.eq,
-            gamma_dof: &self.system.gamma_dof,
-            schur: &schur,
-            ball: &ball,
-            mass: &self.system.mass,
-            h: self.params.h,
-        };
+        let schur = unpack_symmetric(&self.system.schur, self.system.gamma_dof.len());
+        let parts = self.tick_matrix_parts(&schur);
         let a_lower = parts.lower(1.0)?;
         let mut factor = factorize(&self.system.symbolic, &a_lower)?;
         let half = half_of(self.system.sweep.as_mut(), &mut factor, &a_lower);

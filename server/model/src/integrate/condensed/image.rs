@@ -17,7 +17,7 @@
 //! Owns: the image's layout and its checks. May use: [`super`].
 
 use super::build::{
-    MapRows, Numbering, Selection, TickFactor, check_region, map_rows, number_equations,
+    MapRows, Selection, Split, TickFactor, check_region, map_rows, number_equations,
     select_elements,
 };
 use super::*;
@@ -121,8 +121,10 @@ impl CondensedSolver {
                     .into(),
             ));
         }
-        let parts = self.tick_matrix_parts_owned();
-        let a_lower = parts.lower(self.params.region.stiffness_margin)?;
+        let schur = unpack_symmetric(&sys.schur, sys.gamma_dof.len());
+        let a_lower = self
+            .tick_matrix_parts(&schur)
+            .lower(self.params.region.stiffness_margin)?;
         // The reconstruction orders the pattern of `S` as stored (single precision); it must
         // give this region's analysis (it does unless an entry of `S` is below f32's range).
         let eq_nodes: Vec<usize> = sys.eq_dof.iter().map(|&d| d / 3).collect();
@@ -203,110 +205,37 @@ impl CondensedSolver {
         if schur.len() != g * (g + 1) / 2 {
             return Err(bad("does not fit the body's split (interface size)"));
         }
-        let mass: Vec<f64> = num
-            .eq_dof
-            .iter()
-            .map(|d| body.lumped_mass_kg()[d / 3])
-            .collect();
-        let parts = TickMatrixParts {
-            active: &active,
-            material: *body.material(),
-            eq: &num.eq,
-            gamma_dof: &num.gamma_dof,
-            schur: &unpack_symmetric(&schur, g),
-            ball: &ball_of(&balls, region.radius_m, body.rest(), &num.gamma_dof),
-            mass: &mass,
-            h: dt_s,
-        };
-        let (symbolic, factor, sweep, half) =
-            read_factors(&mut r, &parts, &num.eq_dof, &region, &digest)?;
-        let rows = map_rows(mesh, &region, &num);
+        let split = Split::new(body, active_tets, active, node_active, num);
+        let schur_full = unpack_symmetric(&schur, g);
+        let parts = split.tick_matrix_parts(body, &region, &balls, &schur_full, dt_s);
+        let tick = read_factors(&mut r, &parts, &split.num.eq_dof, &region, &digest)?;
+        let rows = map_rows(mesh, &region, &split.num);
         let (map, contact) = read_map_and_contact(&mut r, &rows, g, m, body.node_count())?;
-        let Numbering {
-            eq,
-            eq_dof,
-            gamma_dof,
-            far_dofs,
-            interface_nodes,
-            ..
-        } = num;
-        let sizes = CondensedSizes {
-            active_tets,
-            active_nodes: node_active.iter().filter(|a| **a).count(),
-            interface_nodes,
-            equations: m,
-            factor_entries: symbolic.len_val(),
-        };
-        let system = CondensedSystem {
-            active,
-            eq,
-            eq_dof,
-            mass,
-            gamma_dof,
-            schur: schur.into(),
-            avx2: Avx2Fma::detect(),
-            f16c: Avx2FmaF16c::detect(),
-            symbolic: Arc::new(symbolic),
-            factor,
-            sweep,
-            half: half.map(Arc::new),
-            map_dofs: rows.map_far.iter().map(|&k| far_dofs[k]).collect(),
-            map: map.into(),
-            surface_rows: rows.surface_rows,
-            map_row: rows.map_row,
-            far: FarField {
-                dofs: far_dofs,
-                llt: None,
-                kfg: Vec::new(),
-            },
-            sizes,
-            node_active,
-            entry: None,
-        };
+        let system = split.into_system(schur, tick, rows, map, None, Vec::new());
         let mut solver = Self::assemble(system, region, balls, dt_s, body.node_count());
         solver.contact = contact;
         Ok(solver)
     }
 
-    /// The tick matrix's parts of this region, `S` unpacked (for [`Self::to_image`]'s
-    /// pattern digest).
-    fn tick_matrix_parts_owned(&self) -> OwnedTickMatrixParts<'_> {
+    /// The tick matrix's parts of this region with `schur` (its `S` row-major,
+    /// [`unpack_symmetric`]).
+    pub(super) fn tick_matrix_parts<'a>(&'a self, schur: &'a [f64]) -> TickMatrixParts<'a> {
         let sys = &self.system;
-        let g = sys.gamma_dof.len();
-        OwnedTickMatrixParts {
-            solver: self,
-            schur: unpack_symmetric(&sys.schur, g),
+        TickMatrixParts {
+            active: &sys.active,
+            material: *sys.active.material(),
+            eq: &sys.eq,
+            gamma_dof: &sys.gamma_dof,
+            schur,
             ball: ball_of(
                 &self.params.balls,
                 self.params.region.radius_m,
                 sys.active.rest(),
                 &sys.gamma_dof,
             ),
-        }
-    }
-}
-
-/// [`TickMatrixParts`] with the arrays a solver does not keep.
-struct OwnedTickMatrixParts<'a> {
-    solver: &'a CondensedSolver,
-    schur: Vec<f64>,
-    ball: Vec<u8>,
-}
-
-impl OwnedTickMatrixParts<'_> {
-    fn lower(&self, c: f64) -> Result<SparseColMat<usize, f32>, ModelError> {
-        let sys = &self.solver.system;
-        TickMatrixParts {
-            active: &sys.active,
-            material: *sys.active.material(),
-            eq: &sys.eq,
-            gamma_dof: &sys.gamma_dof,
-            schur: &self.schur,
-            ball: &self.ball,
             mass: &sys.mass,
-            h: self.solver.params.h,
+            h: self.params.h,
         }
-        .lower(c)
     }
 }
 
@@ -422,7 +351,7 @@ fn read_map_and_contact(
 
 /// The row-major `g x g` symmetric matrix of the packed upper triangle `packed`
 /// ([`packed_row_start`]), in double precision.
-fn unpack_symmetric(packed: &[f32], g: usize) -> Vec<f64> {
+pub(super) fn unpack_symmetric(packed: &[f32], g: usize) -> Vec<f64> {
     let mut full = vec![0.0; g * g];
     for a in 0..g {
         let row = &packed[packed_row_start(a, g)..packed_row_start(a + 1, g)];
