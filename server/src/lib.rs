@@ -18,6 +18,7 @@ pub mod confine;
 pub mod cores;
 pub mod device;
 pub mod error;
+pub mod forwarder;
 pub mod frame;
 pub mod metrics;
 pub mod service;
