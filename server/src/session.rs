@@ -2,14 +2,14 @@
 //! handoff. [`SessionManager`] owns all sessions of the daemon.
 //!
 //! Threads per session: the servo thread ([`crate::servo::run_loop`]), a forwarder thread that
-//! drains the force ring into the attached DeviceLink stream ([`crate::forwarder`]; woken by
-//! the servo with `Thread::unpark`, which is wait-free), and a tokio task that turns servo snapshots into
+//! drains the force ring into the attached DeviceLink stream (through [`crate::deadband`];
+//! woken by the servo with `Thread::unpark`, which is wait-free), and a tokio task that turns servo snapshots into
 //! viewer frames while someone watches.
 
 use std::collections::HashMap;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use haptic_model::scene::{self, Scene};
 use haptics_proto::v1::ForceCommand;
@@ -24,8 +24,8 @@ use crate::servo::{
 };
 use crate::tool::NamedTool;
 
-use crate::forwarder::spawn_forwarder;
-pub use crate::forwarder::{
+use crate::deadband::force_command;
+pub use crate::deadband::{
     DEADBAND_FLOOR_N, DEADBAND_HEARTBEAT_US, DeadbandShared, force_deadband_passes,
 };
 
@@ -154,7 +154,7 @@ impl ToolSlot {
     }
 
     /// The force stream attached to this slot, if any.
-    pub(crate) fn sender(&self) -> Option<ForceSender> {
+    fn sender(&self) -> Option<ForceSender> {
         self.link.lock().ok().and_then(|l| l.clone())
     }
 }
@@ -1049,4 +1049,59 @@ fn named_tool_slots(
                 .map(|k| (n.clone(), k))
         })
         .collect()
+}
+
+/// Spawns the forwarder thread of session `id`: drains each tool slot's force ring (`rings[k]`
+/// for `tools[k]`) into that slot's DeviceLink stream through its deadband and its device's
+/// limits, until the servo has finished and the rings are empty.
+fn spawn_forwarder(
+    id: &str,
+    mut rings: Vec<rtrb::Consumer<ForceOut>>,
+    fwd_shared: Arc<SessionShared>,
+    tools: Vec<Arc<ToolSlot>>,
+) -> Result<std::thread::JoinHandle<()>, ServerError> {
+    std::thread::Builder::new()
+        .name(format!("fwd-{id}"))
+        .spawn(move || {
+            let mut last: Vec<Option<(ForceOut, Instant)>> = vec![None; tools.len()];
+            loop {
+                std::thread::park_timeout(Duration::from_millis(5));
+                for ((ring, tool), last) in rings.iter_mut().zip(&tools).zip(&mut last) {
+                    forward_tool(ring, tool, last, &fwd_shared);
+                }
+                if fwd_shared.finished.load(Ordering::Acquire) && rings.iter().all(|r| r.is_empty())
+                {
+                    break;
+                }
+            }
+        })
+        .map_err(|e| ServerError::Internal(format!("spawning the forwarder: {e}")))
+}
+
+/// Drains one tool's force ring into its stream (the forwarder's work for one slot): `last` is
+/// the last command sent and when, for the deadband.
+fn forward_tool(
+    ring: &mut rtrb::Consumer<ForceOut>,
+    tool: &ToolSlot,
+    last: &mut Option<(ForceOut, Instant)>,
+    shared: &SessionShared,
+) {
+    while let Ok(f) = ring.pop() {
+        let k = f64::from_bits(tool.deadband.fraction_bits.load(Ordering::Relaxed));
+        let finishing = shared.stop.load(Ordering::Acquire);
+        let since = last.map_or(u64::MAX, |(_, t)| t.elapsed().as_micros() as u64);
+        if !finishing && !force_deadband_passes(k, last.as_ref().map(|(l, _)| l), since, &f) {
+            tool.deadband.suppressed.fetch_add(1, Ordering::Relaxed);
+            continue;
+        }
+        if let Some(tx) = tool.sender() {
+            let limits = tool.device.limits();
+            if tx.try_send(Ok(force_command(&f, limits))).is_ok() {
+                tool.deadband.sent.fetch_add(1, Ordering::Relaxed);
+            }
+            *last = Some((f, Instant::now()));
+        } else {
+            *last = None;
+        }
+    }
 }

@@ -1,17 +1,11 @@
-//! The forwarder of a session (one thread, [`crate::session`]): drains each tool slot's force
-//! ring into that slot's DeviceLink stream, through the perceptual force deadband and the
-//! attached device's limits. Woken by the servo with `Thread::unpark` (wait-free).
-
-use std::sync::Arc;
-use std::sync::atomic::Ordering;
-use std::time::{Duration, Instant};
+//! What the forwarder of a session ([`crate::session`]) sends to a DeviceLink stream: the
+//! perceptual force deadband (which commands pass) and the command itself, clamped to the
+//! attached device's limits.
 
 use haptics_proto::v1::{ForceCommand, Vec3};
 
-use crate::error::ServerError;
 use crate::frame::unix_time_us;
-use crate::servo::{ForceOut, SessionShared};
-use crate::session::ToolSlot;
+use crate::servo::ForceOut;
 
 /// Longest gap between two force commands under the force deadband, µs (keeps the bridge's
 /// command ages well under its 10 ms watchdog threshold).
@@ -59,64 +53,12 @@ pub struct DeadbandShared {
     pub sent: std::sync::atomic::AtomicU64,
 }
 
-/// Spawns the forwarder thread of session `id`: drains each tool slot's force ring (`rings[k]`
-/// for `tools[k]`) into that slot's DeviceLink stream through its deadband and its device's
-/// limits, until the servo has finished and the rings are empty.
-pub(crate) fn spawn_forwarder(
-    id: &str,
-    mut rings: Vec<rtrb::Consumer<ForceOut>>,
-    fwd_shared: Arc<SessionShared>,
-    tools: Vec<Arc<ToolSlot>>,
-) -> Result<std::thread::JoinHandle<()>, ServerError> {
-    std::thread::Builder::new()
-        .name(format!("fwd-{id}"))
-        .spawn(move || {
-            let mut last: Vec<Option<(ForceOut, Instant)>> = vec![None; tools.len()];
-            loop {
-                std::thread::park_timeout(Duration::from_millis(5));
-                for ((ring, tool), last) in rings.iter_mut().zip(&tools).zip(&mut last) {
-                    forward_tool(ring, tool, last, &fwd_shared);
-                }
-                if fwd_shared.finished.load(Ordering::Acquire) && rings.iter().all(|r| r.is_empty())
-                {
-                    break;
-                }
-            }
-        })
-        .map_err(|e| ServerError::Internal(format!("spawning the forwarder: {e}")))
-}
-
-/// Drains one tool's force ring into its stream (the forwarder's work for one slot): `last` is
-/// the last command sent and when, for the deadband.
-fn forward_tool(
-    ring: &mut rtrb::Consumer<ForceOut>,
-    tool: &ToolSlot,
-    last: &mut Option<(ForceOut, Instant)>,
-    shared: &SessionShared,
-) {
-    while let Ok(f) = ring.pop() {
-        let k = f64::from_bits(tool.deadband.fraction_bits.load(Ordering::Relaxed));
-        let finishing = shared.stop.load(Ordering::Acquire);
-        let since = last.map_or(u64::MAX, |(_, t)| t.elapsed().as_micros() as u64);
-        if !finishing && !force_deadband_passes(k, last.as_ref().map(|(l, _)| l), since, &f) {
-            tool.deadband.suppressed.fetch_add(1, Ordering::Relaxed);
-            continue;
-        }
-        if let Some(tx) = tool.sender() {
-            let limits = tool.device.limits();
-            if tx.try_send(Ok(force_command(&f, limits))).is_ok() {
-                tool.deadband.sent.fetch_add(1, Ordering::Relaxed);
-            }
-            *last = Some((f, Instant::now()));
-        } else {
-            *last = None;
-        }
-    }
-}
-
 /// The command for `f`, its force and contact stiffness clamped to the attached device's
 /// `(force N, stiffness N/m)` limits ([`crate::device::DeviceShared::limits`]).
-fn force_command(f: &ForceOut, (max_force_n, max_stiffness_n_per_m): (f64, f64)) -> ForceCommand {
+pub(crate) fn force_command(
+    f: &ForceOut,
+    (max_force_n, max_stiffness_n_per_m): (f64, f64),
+) -> ForceCommand {
     let force = crate::device::clamp_force(f.force_n, max_force_n);
     let stiffness = crate::device::clamp_stiffness(f.stiffness_n_per_m, max_stiffness_n_per_m);
     ForceCommand {
