@@ -156,7 +156,11 @@ impl TileStore {
         if !self.make_room(&path, bytes.len() as u64).map_err(in_dir)? {
             return Ok(false);
         }
-        let tmp = path.with_extension(format!("tmp{}", std::process::id()));
+        // A name no other writer uses, in this process (two sessions of one scene build the
+        // same tiles) or another.
+        static WRITES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let n = WRITES.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let tmp = path.with_extension(format!("tmp{}-{n}", std::process::id()));
         let write = || -> std::io::Result<()> {
             let mut f = std::fs::File::create(&tmp)?;
             f.write_all(&bytes)?;
