@@ -323,6 +323,8 @@ pub fn stats_rows(s: &SessionStats) -> Vec<StatRow> {
         row("region_tiles", U64(s.region_tiles), "count"),
         row("region_tiles_ready", U64(s.region_tiles_ready), "count"),
         row("region_tiles_loaded", U64(s.region_tiles_loaded), "count"),
+        row("region_tiles_refused", U64(s.region_tiles_refused), "count"),
+        row("region_cache_error", Str(s.region_cache_error.clone()), ""),
         row("contact_ticks", U64(s.contact_ticks), "count"),
         row("companion_ticks", U64(s.companion_ticks), "count"),
         row(

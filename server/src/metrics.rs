@@ -240,6 +240,12 @@ const SESSION_METRICS: &[(&str, &str, MetricType, Extract)] = {
             |r| Value::Gauge(r.stats.body.region_tiles_loaded as f64),
         ),
         (
+            "hapticd_region_tiles_refused",
+            "Files of the region cache on disk refused (damaged, foreign: prepared again)",
+            Gauge,
+            |r| Value::Gauge(r.stats.body.region_tiles_refused as f64),
+        ),
+        (
             "hapticd_contact_ticks",
             "Servo ticks with the probe in contact",
             Counter,

@@ -246,6 +246,8 @@ impl SessionControl for Services {
             region_tiles: st.body.region_tiles,
             region_tiles_ready: st.body.region_tiles_ready,
             region_tiles_loaded: st.body.region_tiles_loaded,
+            region_tiles_refused: st.body.region_tiles_refused,
+            region_cache_error: s.region_cache_log.last().unwrap_or_default(),
             contact_ticks: st.contact_ticks,
             companion_ticks: st.body.companion_ticks,
             total_particles: st.body.particles as u32,

@@ -182,6 +182,37 @@ impl Drop for SlotReservation<'_> {
     }
 }
 
+/// What a session's region cache on disk complained about: each complaint (a file refused, a
+/// write that failed or did not fit) is logged as a warning naming the session when it
+/// happens, on the region worker's thread, and the last one is kept for `GetStats`
+/// (`region_cache_error`).
+#[derive(Debug, Default)]
+pub struct RegionCacheLog {
+    last: Mutex<Option<String>>,
+}
+
+impl RegionCacheLog {
+    /// The sink a body of session `id` reports to ([`haptic_model::BodyOptions`]).
+    fn report_for(
+        self: &Arc<Self>,
+        id: &str,
+    ) -> haptic_model::integrate::follow::RegionCacheReport {
+        let log = Arc::clone(self);
+        let id = id.to_owned();
+        haptic_model::integrate::follow::RegionCacheReport(Arc::new(move |e: &str| {
+            tracing::warn!(session = %id, "region cache: {e}");
+            if let Ok(mut last) = log.last.lock() {
+                *last = Some(e.to_owned());
+            }
+        }))
+    }
+
+    /// The last complaint, or `None`.
+    pub fn last(&self) -> Option<String> {
+        self.last.lock().ok().and_then(|l| l.clone())
+    }
+}
+
 /// One running session.
 pub struct Session {
     /// Session id.
@@ -211,6 +242,8 @@ pub struct Session {
     pub epoch: Instant,
     /// The scene's limits for the device bridge (`None` for a body started without a scene).
     pub limits: Option<LinkLimits>,
+    /// The region cache's last complaint about this session's files (`GetStats`).
+    pub region_cache_log: Arc<RegionCacheLog>,
     /// The servo thread, unparked when a device sample arrives (device pacing).
     servo_thread: std::thread::Thread,
     /// Threads the session's tick uses: its servo thread plus tick-pool workers
@@ -535,15 +568,16 @@ impl SessionManager {
                         .load_scene(&rec.scene, &rec.scene_toml)
                         .map_err(|e| e.to_string())?;
                     let slot = self.reserve_slot().map_err(|e| e.to_string())?;
+                    let log = Arc::new(RegionCacheLog::default());
                     let body = haptic_model::build_body_with_options(
                         &scene,
-                        &self.body_options(),
+                        &self.body_options(&rec.id, &log),
                         &mut |_, _| {},
                     )
                     .map_err(|e| e.to_string())?;
                     let names = crate::tool::scene_tools(&scene);
                     let limits = Some(LinkLimits::of_scene(&scene));
-                    self.start_in_slot(slot, &rec.id, body, limits, &names)
+                    self.start_in_slot(slot, &rec.id, body, limits, &names, log)
                         .map_err(|e| e.to_string())?;
                     Ok(rec)
                 });
@@ -572,10 +606,16 @@ impl SessionManager {
         &self.config
     }
 
-    /// What this daemon gives every body beside its scene: the region cache's directory.
-    fn body_options(&self) -> haptic_model::BodyOptions {
+    /// What this daemon gives every body beside its scene: the region cache's directory, and
+    /// where its complaints go for the session `id` (`log`).
+    fn body_options(&self, id: &str, log: &Arc<RegionCacheLog>) -> haptic_model::BodyOptions {
         haptic_model::BodyOptions {
             region_cache: self.config.region_cache.clone(),
+            region_cache_report: self
+                .config
+                .region_cache
+                .as_ref()
+                .map(|_| log.report_for(id)),
         }
     }
 
@@ -685,9 +725,10 @@ impl SessionManager {
         // Families that preprocess (the hybrid model) report their stages; logged here, off
         // the servo thread.
         let name = scene.name.clone();
+        let log = Arc::new(RegionCacheLog::default());
         let body = haptic_model::build_body_with_options(
             scene,
-            &self.body_options(),
+            &self.body_options(&id, &log),
             &mut |stage, fraction| tracing::info!(scene = %name, "preprocessing {:3.0} %: {stage}", 100.0 * fraction),
         )?;
         self.start_in_slot(
@@ -696,6 +737,7 @@ impl SessionManager {
             body,
             Some(LinkLimits::of_scene(scene)),
             tool_names,
+            log,
         )
     }
 
@@ -750,7 +792,7 @@ impl SessionManager {
         limits: Option<LinkLimits>,
     ) -> Result<Arc<Session>, ServerError> {
         let slot = self.reserve_slot()?;
-        self.start_in_slot(slot, id, body, limits, &[])
+        self.start_in_slot(slot, id, body, limits, &[], Arc::default())
     }
 
     /// [`SessionManager::start_body`] for a body whose tools `tool_names` are named (each
@@ -765,7 +807,7 @@ impl SessionManager {
     ) -> Result<Arc<Session>, ServerError> {
         let id = uuid::Uuid::new_v4().simple().to_string()[..12].to_string();
         let slot = self.reserve_slot()?;
-        self.start_in_slot(slot, &id, body, None, tool_names)
+        self.start_in_slot(slot, &id, body, None, tool_names, Arc::default())
     }
 
     /// [`SessionManager::start_body_as`] in a reserved slot, with the tool names of its scene.
@@ -776,6 +818,7 @@ impl SessionManager {
         mut body: Box<dyn haptic_model::body::SoftBody>,
         limits: Option<LinkLimits>,
         tool_names: &[NamedTool],
+        region_cache_log: Arc<RegionCacheLog>,
     ) -> Result<Arc<Session>, ServerError> {
         if self.get(id).is_ok() {
             return Err(ServerError::FailedPrecondition(format!(
@@ -851,6 +894,7 @@ impl SessionManager {
             watcher_stats,
             epoch,
             limits,
+            region_cache_log,
             tick_threads: threads as u32,
             servo_thread: servo.thread().clone(),
             deadband: tools[0].deadband.clone(),

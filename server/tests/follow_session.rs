@@ -145,7 +145,8 @@ async fn a_following_region_swaps_as_the_device_slides() {
 /// The same scene with a region cache: `GetStats` reports its regions and counts them ready as
 /// the worker builds them, up to all of them, with the daemon's metrics agreeing. With the
 /// daemon's `region_cache_dir`, the next session of the scene reads every region the first
-/// one wrote instead of preparing it (`region_tiles_loaded`).
+/// one wrote instead of preparing it (`region_tiles_loaded`); a file damaged before a third
+/// session is refused, counted and explained (`region_tiles_refused`, `region_cache_error`).
 #[tokio::test]
 async fn get_stats_reports_the_region_cache_filling() {
     let dir = std::env::temp_dir().join(format!("hapticd-region-cache-{}", std::process::id()));
@@ -164,7 +165,22 @@ async fn get_stats_reports_the_region_cache_filling() {
     let tiled = format!("{SCENE}tiles = \"background\"\ntile_cover_m = 0.005\n");
     let scene = manager.load_scene("", &tiled).expect("scene");
     let mut written = None;
-    for run in ["writes", "reads"] {
+    let mut damaged = String::new();
+    for run in ["writes", "reads", "refuses"] {
+        if run == "refuses" {
+            // One file damaged between sessions: refused (counted, logged, its reason in
+            // GetStats), prepared again and replaced; the others are read.
+            let mut files: Vec<_> = std::fs::read_dir(&dir)
+                .expect("the cache directory")
+                .map(|e| e.expect("entry").path())
+                .collect();
+            files.sort();
+            let mut bytes = std::fs::read(&files[1]).expect("read");
+            let mid = bytes.len() / 2;
+            bytes[mid] ^= 0x10;
+            std::fs::write(&files[1], &bytes).expect("damage");
+            damaged = files[1].to_string_lossy().into_owned();
+        }
         let session = manager.start(&scene).expect("session");
         let stats = || async {
             services
@@ -213,16 +229,28 @@ async fn get_stats_reports_the_region_cache_filling() {
                 .find(|l| l.starts_with(name) && l.contains(&session.id))
                 .and_then(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
         };
-        let loaded = if run == "writes" {
-            0
-        } else {
-            last.region_tiles
+        let (loaded, refused) = match run {
+            "writes" => (0, 0),
+            "reads" => (last.region_tiles, 0),
+            _ => (last.region_tiles - 1, 1),
         };
         assert_eq!(last.region_tiles_loaded, loaded, "{run}: {last:?}");
+        assert_eq!(last.region_tiles_refused, refused, "{run}: {last:?}");
+        if refused == 0 {
+            assert_eq!(last.region_cache_error, "", "{run}");
+        } else {
+            assert!(
+                last.region_cache_error.contains(&damaged)
+                    && last.region_cache_error.contains("damaged"),
+                "{run}: {}",
+                last.region_cache_error
+            );
+        }
         for (name, value) in [
             ("hapticd_region_tiles{", last.region_tiles),
             ("hapticd_region_tiles_ready{", last.region_tiles),
             ("hapticd_region_tiles_loaded{", loaded),
+            ("hapticd_region_tiles_refused{", refused),
         ] {
             assert_eq!(gauge(name), Some(value as f64), "{run}: {name}");
         }

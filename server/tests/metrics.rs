@@ -122,6 +122,10 @@ async fn sessions_are_scraped_with_consistent_counters_and_histograms() {
         sample(&text, "hapticd_region_tiles_loaded", &labels),
         Some(0.0)
     );
+    assert_eq!(
+        sample(&text, "hapticd_region_tiles_refused", &labels),
+        Some(0.0)
+    );
 
     // Over HTTP.
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();

@@ -245,6 +245,8 @@ pub fn canned_stats(id: &str) -> SessionStats {
         region_tiles: 69,
         region_tiles_ready: 12,
         region_tiles_loaded: 10,
+        region_tiles_refused: 1,
+        region_cache_error: "/var/cache/hapticd/regions/0a1b-00003.tile: damaged".into(),
         contact_ticks: 5_000,
         companion_ticks: 40,
         device: Some(touch()),

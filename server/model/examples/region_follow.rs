@@ -147,6 +147,9 @@ fn set_up(args: &Args) -> anyhow::Result<(FemBody, f64)> {
                 max_bytes: haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MAX_BYTES,
             }
         }),
+        region_cache_report: Some(haptic_model::integrate::follow::RegionCacheReport(
+            std::sync::Arc::new(|e: &str| eprintln!("region cache: {e}")),
+        )),
     };
     let mut sim = FemBody::new_with_options(&scene, &options, &mut |stage, fraction| {
         eprintln!(
@@ -189,9 +192,6 @@ fn wait_for_tiles(sim: &FemBody) {
                 s.tile_build_s,
                 peak_memory_mb()
             );
-            if let Some(e) = sim.region_cache_error() {
-                eprintln!("region cache: {e}");
-            }
             return;
         }
         if s.tiles_built != last && s.tiles_built.is_multiple_of(10) {

@@ -194,6 +194,10 @@ pub struct BodyStats {
     /// Of `region_tiles_ready`, the regions read from the host's region cache on disk
     /// ([`crate::BodyOptions::region_cache`]) instead of prepared.
     pub region_tiles_loaded: u64,
+    /// Files of the region cache on disk refused (damaged, truncated, of another format, key or
+    /// centre: prepared again and replaced), so far; the host's
+    /// [`crate::BodyOptions::region_cache_report`] receives each reason.
+    pub region_tiles_refused: u64,
     /// Ticks in contact in which a following region's coarse companion contributed to the
     /// force (its blend weight was positive), so far; 0 without a companion. Against the
     /// servo's count of contact ticks it says how much of a press the coarse organ answered.

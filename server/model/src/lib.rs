@@ -191,6 +191,9 @@ pub struct BodyOptions {
     /// Where a following region with tiles keeps them between sessions
     /// ([`integrate::follow::RegionCacheDir`]); `None`: in the session's memory only.
     pub region_cache: Option<integrate::follow::RegionCacheDir>,
+    /// Where the region cache's complaints go as they happen (a file refused, a write failed;
+    /// [`integrate::follow::RegionCacheReport`]); `None`: only counted in the body's stats.
+    pub region_cache_report: Option<integrate::follow::RegionCacheReport>,
 }
 
 /// [`build_body`] reporting the preprocessing's progress (`stage`, fraction in `[0, 1]`) for

@@ -2088,7 +2088,7 @@ fn wait_for_tiles(follower: &RegionFollower) -> haptic_model::integrate::follow:
 /// replaced; another material finds no file of its own; a size limit keeps tiles in memory.
 #[test]
 fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() {
-    use haptic_model::integrate::follow::RegionCacheDir;
+    use haptic_model::integrate::follow::{RegionCacheDir, RegionCacheReport};
     let (fem, mesh, _, centre) = setup(StrainSmoothing::None);
     let nodes = epi_nodes(&mesh);
     let region = ActiveRegion {
@@ -2104,10 +2104,21 @@ fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() 
     let mut first = CondensedSolver::new(&fem, &mesh, region, 1e-3).expect("first");
     first.prepare_contact(&nodes);
     let session = |fem: &FemModel, cache: &RegionCacheDir| {
-        let f = RegionFollower::spawn_with_cache(fem, &mesh, &nodes, &first, Some(cache))
-            .expect("spawn");
+        let lines = std::sync::Arc::new(std::sync::Mutex::new(Vec::<String>::new()));
+        let sink = std::sync::Arc::clone(&lines);
+        let report = RegionCacheReport(std::sync::Arc::new(move |e: &str| {
+            sink.lock().expect("lines").push(e.to_owned());
+        }));
+        let f =
+            RegionFollower::spawn_with_cache(fem, &mesh, &nodes, &first, Some(cache), Some(report))
+                .expect("spawn");
         let s = wait_for_tiles(&f);
-        (s, f.cache_error())
+        let error = f.cache_error();
+        // Every complaint reached the host's report as it happened; the last one is kept.
+        let lines = lines.lock().expect("lines").clone();
+        assert_eq!(lines.last(), error.as_ref(), "{lines:?}");
+        assert!(lines.len() as u64 >= s.tiles_refused, "{lines:?} {s:?}");
+        (s, error)
     };
     let files = || -> Vec<std::path::PathBuf> {
         let mut v: Vec<_> = std::fs::read_dir(&cache.dir)

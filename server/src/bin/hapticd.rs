@@ -162,6 +162,9 @@ fn prepare_regions(
     );
     let options = haptic_model::BodyOptions {
         region_cache: Some(cache.clone()),
+        region_cache_report: Some(haptic_model::integrate::follow::RegionCacheReport(
+            std::sync::Arc::new(|e: &str| eprintln!("region cache: {e}")),
+        )),
     };
     let start = std::time::Instant::now();
     let body = haptic_model::fem::FemBody::new_with_options(&scene, &options, &mut |stage, f| {
@@ -188,9 +191,6 @@ fn prepare_regions(
         }
         std::thread::sleep(std::time::Duration::from_millis(200));
     };
-    if let Some(e) = body.region_cache_error() {
-        eprintln!("region cache: {e}");
-    }
     anyhow::ensure!(
         s.tiles_failed == 0,
         "{} of {} regions failed",

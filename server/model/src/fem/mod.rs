@@ -893,6 +893,7 @@ fn follower(
         contact_nodes,
         c,
         options.region_cache.as_ref(),
+        options.region_cache_report.clone(),
     )?;
     f.set_tick_s(scene.integrator.tick_s);
     Ok(f)
@@ -1048,6 +1049,7 @@ impl SoftBody for FemBody {
                 .follow_stats()
                 .map_or(0, |f| (f.tiles_built + f.tiles_failed).min(f.tiles)),
             region_tiles_loaded: self.follow_stats().map_or(0, |f| f.tiles_loaded),
+            region_tiles_refused: self.follow_stats().map_or(0, |f| f.tiles_refused),
             companion_ticks: self
                 .fallback_stats()
                 .map_or(0, |s| s.contact_ticks_answered),

@@ -68,7 +68,7 @@ mod store;
 mod tiles;
 
 use store::TileStore;
-pub use store::{DEFAULT_REGION_CACHE_MAX_BYTES, RegionCacheDir, cache_key};
+pub use store::{DEFAULT_REGION_CACHE_MAX_BYTES, RegionCacheDir, RegionCacheReport, cache_key};
 pub use tiles::{TILE_HYSTERESIS_M, tile_centres};
 use tiles::{Tile, TileCache};
 
@@ -228,12 +228,14 @@ impl RegionFollower {
         touchable_nodes: &[u32],
         first: &CondensedSolver,
     ) -> Result<Self, ModelError> {
-        Self::spawn_with_cache(body, mesh, touchable_nodes, first, None)
+        Self::spawn_with_cache(body, mesh, touchable_nodes, first, None, None)
     }
 
     /// [`Self::spawn`] with the tiles ([`TileMode::Background`]) read from and written to
     /// `cache` ([`RegionCacheDir`], module `store`): a tile whose file holds it is read
-    /// instead of built, and a tile built is written for the next session.
+    /// instead of built, and a tile built is written for the next session. Each file refused
+    /// and each write that failed or did not fit goes to `report` as it happens (besides
+    /// [`Self::cache_error`] and the counts of [`FollowStats`]).
     ///
     /// # Errors
     /// As [`Self::spawn`].
@@ -243,6 +245,7 @@ impl RegionFollower {
         touchable_nodes: &[u32],
         first: &CondensedSolver,
         cache: Option<&RegionCacheDir>,
+        report: Option<RegionCacheReport>,
     ) -> Result<Self, ModelError> {
         let mut nodes = touchable_nodes.to_vec();
         nodes.sort_unstable();
@@ -276,6 +279,7 @@ impl RegionFollower {
         let job = Worker {
             cache,
             store,
+            report,
             last_point_m: region.centre_m,
             body: body.clone(),
             mesh: mesh.clone(),
@@ -507,6 +511,8 @@ struct Worker {
     cache: Option<TileCache>,
     /// Their files on disk ([`RegionFollower::spawn_with_cache`]), or `None`.
     store: Option<TileStore>,
+    /// Where the store's complaints go as they happen, or `None`.
+    report: Option<RegionCacheReport>,
     /// The last requested point, m: background builds start nearest it.
     last_point_m: DVec3,
     body: FemModel,
@@ -699,6 +705,9 @@ impl Worker {
     }
 
     fn cache_error(&self, e: String) {
+        if let Some(r) = &self.report {
+            r.report(&e);
+        }
         if let Ok(mut last) = self.shared.cache_error.lock() {
             *last = Some(e);
         }

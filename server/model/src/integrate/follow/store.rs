@@ -38,6 +38,35 @@ pub struct RegionCacheDir {
     pub max_bytes: u64,
 }
 
+/// Where a following region reports its region cache's complaints as they happen: a file
+/// refused (damaged, truncated, of another format, key or centre), a write that failed or
+/// did not fit under [`RegionCacheDir::max_bytes`]. Called on the region worker's thread,
+/// never the servo's, with one line that names the file and the reason; the host logs it (the
+/// daemon: a warning naming the session). Two reports are equal when they share the sink.
+#[derive(Clone)]
+pub struct RegionCacheReport(pub std::sync::Arc<dyn Fn(&str) + Send + Sync>);
+
+impl RegionCacheReport {
+    /// Reports `line`.
+    pub fn report(&self, line: &str) {
+        (self.0)(line);
+    }
+}
+
+impl std::fmt::Debug for RegionCacheReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("RegionCacheReport(..)")
+    }
+}
+
+impl PartialEq for RegionCacheReport {
+    fn eq(&self, other: &Self) -> bool {
+        std::sync::Arc::ptr_eq(&self.0, &other.0)
+    }
+}
+
+impl Eq for RegionCacheReport {}
+
 /// Default [`RegionCacheDir::max_bytes`]: 8 GiB (`lv_h1_condensed.toml`'s 69 tiles take
 /// about 1.1 GB).
 pub const DEFAULT_REGION_CACHE_MAX_BYTES: u64 = 8 << 30;
