@@ -10,10 +10,22 @@
 set -euo pipefail
 package="$1"
 program="${2:-$1}"
-if command -v "$program" >/dev/null 2>&1; then
-    echo "$program present: $("$program" --version 2>/dev/null | head -n 1 || echo unknown version)"
-    exit 0
+present() {
+    if command -v "$program" >/dev/null 2>&1; then
+        echo "$program present: $("$program" --version 2>/dev/null | head -n 1 || echo unknown version)"
+        exit 0
+    fi
+}
+present
+# Tests run in parallel: two of them may want the same package at once. One install at a time
+# (flock on a file of ours), and the program looked for again once the lock is held; apt-get
+# also waits for dpkg's own lock (another apt on the machine) instead of failing at once.
+if command -v flock >/dev/null 2>&1; then
+    exec 9>"${TMPDIR:-/tmp}/haptic-install-debian-package.lock"
+    flock 9
+    present
 fi
+apt_wait=(-o DPkg::Lock::Timeout=600)
 if [ "$(id -u)" -eq 0 ]; then
     as_root=()
 elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
@@ -27,8 +39,8 @@ if ! command -v apt-get >/dev/null 2>&1; then
     exit 2
 fi
 export DEBIAN_FRONTEND=noninteractive
-"${as_root[@]}" apt-get update -qq >&2 \
+"${as_root[@]}" apt-get "${apt_wait[@]}" update -qq >&2 \
     || { echo "cannot install $package: apt-get update failed (no network or registry)" >&2; exit 2; }
-"${as_root[@]}" apt-get install -y -qq --no-install-recommends "$package" >&2 \
+"${as_root[@]}" apt-get "${apt_wait[@]}" install -y -qq --no-install-recommends "$package" >&2 \
     || { echo "apt-get install $package failed" >&2; exit 1; }
 echo "$program installed: $("$program" --version 2>/dev/null | head -n 1 || echo unknown version)"
