@@ -273,6 +273,8 @@ struct Trace {
     ticks_us: Vec<f64>,
     forces: Vec<DVec3>,
     swap_ticks: Vec<usize>,
+    /// The hand-over's time at each swap tick, us (`FollowStats::last_hand_over_s`).
+    hand_over_us: Vec<f64>,
     lost_contact: usize,
     /// Ticks of the stroke in contact, and those of them the companion answered (weight > 0).
     contact_ticks: usize,
@@ -287,6 +289,7 @@ fn run(args: &Args, sim: &mut FemBody, path: &Path) -> anyhow::Result<Trace> {
         ticks_us: Vec::with_capacity(total),
         forces: Vec::with_capacity(total),
         swap_ticks: Vec::new(),
+        hand_over_us: Vec::new(),
         lost_contact: 0,
         contact_ticks: 0,
         companion_ticks: 0,
@@ -323,10 +326,11 @@ fn run(args: &Args, sim: &mut FemBody, path: &Path) -> anyhow::Result<Trace> {
             tr.contact_ticks += usize::from(out.in_contact);
             tr.companion_ticks += usize::from(out.in_contact && weight > 0.0);
         }
-        let swaps = sim.follow_stats().map_or(0, |s| s.swaps);
-        if swaps != last_swaps {
+        let stats = sim.follow_stats().unwrap_or_default();
+        if stats.swaps != last_swaps {
             tr.swap_ticks.push(k);
-            last_swaps = swaps;
+            tr.hand_over_us.push(stats.last_hand_over_s * 1e6);
+            last_swaps = stats.swaps;
         }
     }
     Ok(tr)
@@ -394,6 +398,17 @@ fn report(args: &Args, sim: &FemBody, path: &Path, tr: &Trace) {
         stroke_us.iter().filter(|&&t| t > 1e3).count(),
         stroke_us.len()
     );
+    let at_swaps: Vec<String> = swap_ticks
+        .iter()
+        .zip(&tr.hand_over_us)
+        .map(|(&k, h)| {
+            let next = ticks_us.get(k + 1).copied().unwrap_or(f64::NAN);
+            format!("{:.0} ({h:.0} hand-over; next {next:.0})", ticks_us[k])
+        })
+        .collect();
+    if !at_swaps.is_empty() {
+        println!("swap ticks, us: {}", at_swaps.join(", "));
+    }
     println!(
         "stroke: contact lost on {lost_contact} ticks; |F| {:.2}..{:.2} mN; largest tick-to-tick change {:.2} % at swaps, {:.2} % elsewhere",
         fmag.iter().copied().fold(f64::INFINITY, f64::min) * 1e3,

@@ -988,6 +988,11 @@ fn check_stroke(scene: &haptic_model::scene::Scene, depth: f64, min_swaps: u64) 
     assert_eq!(stats.failed, 0);
     // 30 mm of arc with a region re-centred every quarter radius or more.
     assert!(stats.swaps >= min_swaps, "{stats:?}");
+    // Every swap's hand-over was timed (on the servo thread, allocation-free: checked above).
+    assert!(
+        stats.last_hand_over_s > 0.0 && stats.max_hand_over_s >= stats.last_hand_over_s,
+        "{stats:?}"
+    );
     assert!(
         stats.centre_m.x < -0.008,
         "the region ended at {:?}",

@@ -161,6 +161,11 @@ pub struct FollowStats {
     pub balls: usize,
     /// Bytes held by the region in use ([`CondensedSolver::memory_bytes`]).
     pub region_bytes: usize,
+    /// Time the last swap spent handing the state over, s ([`CondensedSolver::hand_over`], on
+    /// the servo's thread; 0 before the first swap).
+    pub last_hand_over_s: f64,
+    /// Largest of those, s.
+    pub max_hand_over_s: f64,
     /// Requests answered by a built tile ([`TileMode::Background`]).
     pub tile_hits: u64,
     /// Requests whose tile was not built yet (prepared on demand, then kept).
@@ -203,6 +208,8 @@ pub struct RegionFollower {
     swaps: u64,
     rejected: u64,
     region_bytes: usize,
+    last_hand_over_s: f64,
+    max_hand_over_s: f64,
     /// The servo's tick, s ([`Self::set_tick_s`]; the region's step until set).
     tick_s: f64,
 }
@@ -316,6 +323,8 @@ impl RegionFollower {
             swaps: 0,
             rejected: 0,
             region_bytes: first.memory_bytes(),
+            last_hand_over_s: 0.0,
+            max_hand_over_s: 0.0,
             tick_s: first.dt_s(),
         })
     }
@@ -361,6 +370,8 @@ impl RegionFollower {
             centre_m: self.balls.centres().first().copied().unwrap_or(DVec3::NAN),
             balls: self.balls.centres().len(),
             region_bytes: self.region_bytes,
+            last_hand_over_s: self.last_hand_over_s,
+            max_hand_over_s: self.max_hand_over_s,
             tile_hits: self.shared.tile_hits.load(Ordering::Relaxed),
             tile_misses: self.shared.tile_misses.load(Ordering::Relaxed),
             tiles_built: self.shared.tiles_built.load(Ordering::Relaxed),
@@ -473,7 +484,10 @@ impl RegionFollower {
             .iter()
             .take(MAX_REGION_BALLS)
             .all(|p| held(&next, p) >= held(solver, p));
+        let start = Instant::now();
         if near && holds_patch && solver.hand_over(&next, x, v) {
+            self.last_hand_over_s = start.elapsed().as_secs_f64();
+            self.max_hand_over_s = self.max_hand_over_s.max(self.last_hand_over_s);
             let old = std::mem::replace(solver, next);
             self.balls = balls;
             self.region_bytes = solver.memory_bytes();
