@@ -398,17 +398,7 @@ fn report(args: &Args, sim: &FemBody, path: &Path, tr: &Trace) {
         stroke_us.iter().filter(|&&t| t > 1e3).count(),
         stroke_us.len()
     );
-    let at_swaps: Vec<String> = swap_ticks
-        .iter()
-        .zip(&tr.hand_over_us)
-        .map(|(&k, h)| {
-            let next = ticks_us.get(k + 1).copied().unwrap_or(f64::NAN);
-            format!("{:.0} ({h:.0} hand-over; next {next:.0})", ticks_us[k])
-        })
-        .collect();
-    if !at_swaps.is_empty() {
-        println!("swap ticks, us: {}", at_swaps.join(", "));
-    }
+    print_swap_ticks(tr);
     println!(
         "stroke: contact lost on {lost_contact} ticks; |F| {:.2}..{:.2} mN; largest tick-to-tick change {:.2} % at swaps, {:.2} % elsewhere",
         fmag.iter().copied().fold(f64::INFINITY, f64::min) * 1e3,
@@ -443,6 +433,22 @@ fn report(args: &Args, sim: &FemBody, path: &Path, tr: &Trace) {
             fb.weight,
             forces.last().map_or(0.0, |f| f.length() * 1e3)
         );
+    }
+}
+
+/// Each swap tick's time, its hand-over's and the next tick's, us (nothing without swaps).
+fn print_swap_ticks(tr: &Trace) {
+    let at_swaps: Vec<String> = tr
+        .swap_ticks
+        .iter()
+        .zip(&tr.hand_over_us)
+        .map(|(&k, h)| {
+            let next = tr.ticks_us.get(k + 1).copied().unwrap_or(f64::NAN);
+            format!("{:.0} ({h:.0} hand-over; next {next:.0})", tr.ticks_us[k])
+        })
+        .collect();
+    if !at_swaps.is_empty() {
+        println!("swap ticks, us: {}", at_swaps.join(", "));
     }
 }
 
