@@ -20,8 +20,10 @@ present
 # Tests run in parallel: two of them may want the same package at once. One install at a time
 # (flock on a file of ours), and the program looked for again once the lock is held; apt-get
 # also waits for dpkg's own lock (another apt on the machine) instead of failing at once.
-if command -v flock >/dev/null 2>&1; then
-    exec 9>"${TMPDIR:-/tmp}/haptic-install-debian-package.lock"
+lock="${TMPDIR:-/tmp}/haptic-install-debian-package.lock"
+(umask 000; touch "$lock") 2>/dev/null || true   # any user's install may take it later
+if command -v flock >/dev/null 2>&1 && [ -w "$lock" ]; then
+    exec 9>"$lock"
     flock 9
     present
 fi
