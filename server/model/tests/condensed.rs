@@ -1646,7 +1646,14 @@ fn a_cached_tile_steps_bit_identically_to_a_fresh_region() {
         .expect("node");
     let mut x = fem.rest().to_vec();
     let mut v = vec![DVec3::ZERO; x.len()];
-    follower.before_tick(&mut solver, &[Some((p, DVec3::ZERO))], &[], &mut x, &mut v);
+    follower.before_tick(
+        &mut solver,
+        None,
+        &[Some((p, DVec3::ZERO))],
+        &[],
+        &mut x,
+        &mut v,
+    );
     let stats = follower.stats();
     assert_eq!(
         (stats.swaps, stats.tile_hits, stats.tile_misses),
@@ -1896,10 +1903,13 @@ fn the_far_products_cut_in_two_follow_the_uncut_step_without_allocating() {
 /// the same solver bit for bit as on one: the same steps under a push (which read `S` and the
 /// far surface rows) and the same hand-over to another region (which reads the far map of
 /// every far component). Two threads on three or more blocks of 64 columns, so the blocks
-/// are shared out unevenly.
+/// are shared out unevenly. The hand-over cut in two on a tick pool
+/// (`CondensedSolver::hand_over_in`) places the same nodes bit for bit, without allocating.
 #[test]
 fn column_solves_on_several_threads_build_the_same_region_bit_for_bit() {
     use haptic_model::integrate::condensed::RegionBalls;
+    use haptic_model::pool::{StartHook, TickPool};
+    use std::sync::Arc;
     let (fem, mesh, f, centre) = setup(StrainSmoothing::None);
     let region = ActiveRegion {
         centre_m: centre,
@@ -1951,7 +1961,7 @@ fn column_solves_on_several_threads_build_the_same_region_bit_for_bit() {
     // Hand over to a region 4 mm away round the ventricle: the nodes it takes over are placed
     // by each solver's far map.
     let other = DVec3::new(centre.x * 0.9, centre.x * 0.42, centre.z);
-    let next = CondensedSolver::new(
+    let mut next = CondensedSolver::new(
         &fem,
         &mesh,
         ActiveRegion {
@@ -1961,14 +1971,46 @@ fn column_solves_on_several_threads_build_the_same_region_bit_for_bit() {
         1e-3,
     )
     .expect("next");
+    // The same hand-over cut in two on a tick pool (`hand_over_in`, the servo's swap), and on
+    // a pool without workers (serial), from copies of the state before it.
+    let pooled: Vec<_> = [1, 0]
+        .into_iter()
+        .map(|workers| {
+            let hook: StartHook = Arc::new(|_| counting_alloc::count_this_thread());
+            let pool = TickPool::new(workers, hook).expect("pool");
+            let (mut solver, mut x, mut v) = (a.clone(), xa.clone(), va.clone());
+            let (handed, allocations) = counting_alloc::counted_registered(|| {
+                solver.hand_over_in(&pool, &mut next, &mut x, &mut v)
+            });
+            assert!(handed, "no hand-over on {workers} worker(s)");
+            assert_eq!(
+                allocations, 0,
+                "the hand-over on {workers} worker(s) allocated"
+            );
+            (
+                x,
+                v,
+                pool.stats().parts_on_workers + pool.stats().parts_on_caller,
+            )
+        })
+        .collect();
     assert!(a.hand_over(&next, &mut xa, &mut va), "no hand-over");
     assert!(b.hand_over(&next, &mut xb, &mut vb), "no hand-over");
-    assert!(
-        xa.iter()
-            .zip(&xb)
-            .all(|(p, q)| p.to_array() == q.to_array()),
-        "the hand-overs differ"
-    );
+    let same =
+        |x: &[DVec3], y: &[DVec3]| x.iter().zip(y).all(|(p, q)| p.to_array() == q.to_array());
+    assert!(same(&xa, &xb), "the hand-overs differ");
+    let taken = xa.iter().zip(fem.rest()).filter(|(x, r)| x != r).count();
+    assert!(taken > 0, "the hand-over placed no node");
+    for (k, (x, v, parts)) in pooled.iter().enumerate() {
+        assert!(
+            same(&xa, x) && same(&va, v),
+            "hand_over_in ({k}) differs from hand_over"
+        );
+        assert!(
+            *parts >= 2 || k == 1,
+            "the two-thread hand-over ran no join: {parts}"
+        );
+    }
     // Zero threads count as one.
     assert_eq!(in_threads(0).sizes().interface_nodes * 3, g);
 }

@@ -429,6 +429,7 @@ impl FemBody {
             let slots = self.probes.len().min(MAX_TOOLS);
             f.before_tick(
                 solver,
+                Some(&*self.pool),
                 &devices[..inputs.len().min(MAX_TOOLS)],
                 &patches[..slots],
                 &mut self.state.x,

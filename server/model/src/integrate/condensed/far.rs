@@ -16,14 +16,88 @@ impl CondensedSolver {
     /// # Panics
     /// If `x`, `v` are shorter than the body's node count or `next` is of another body.
     pub fn hand_over(&mut self, next: &CondensedSolver, x: &mut [DVec3], v: &mut [DVec3]) -> bool {
+        if !self.start_hand_over(next, x) {
+            return false;
+        }
+        let sys = &self.system;
+        for &d in &next.system.eq_dof {
+            if !sys.node_active[d / 3] {
+                let u = self.far_displacement(d);
+                x[d / 3][d % 3] = sys.active.rest()[d / 3][d % 3] + u;
+                v[d / 3][d % 3] = 0.0;
+            }
+        }
+        self.finish_hand_over(next, v);
+        true
+    }
+
+    /// [`Self::hand_over`] with the map's rows cut into two parts of `pool`'s join (the
+    /// servo's swap tick is its longest): each part writes its displacements into `next`'s
+    /// right-hand side (free until `next`'s first step), then they are copied into `x`. The
+    /// same values bit for bit, whatever the thread count; serial as [`Self::hand_over`]
+    /// without a worker. Allocation-free.
+    ///
+    /// # Panics
+    /// As [`Self::hand_over`].
+    pub fn hand_over_in(
+        &mut self,
+        pool: &TickPool,
+        next: &mut CondensedSolver,
+        x: &mut [DVec3],
+        v: &mut [DVec3],
+    ) -> bool {
+        let eq = &next.system.eq_dof;
+        if pool.threads() < 2 || next.scratch.b.len() < eq.len() {
+            return self.hand_over(next, x, v);
+        }
+        if !self.start_hand_over(next, x) {
+            return false;
+        }
+        let this = &*self;
+        let taken = |d: usize| !this.system.node_active[d / 3];
+        // Cut where half of the taken components lie before.
+        let total = eq.iter().filter(|&&d| taken(d)).count();
+        let mut seen = 0;
+        let mid = eq
+            .iter()
+            .position(|&d| {
+                seen += usize::from(taken(d));
+                2 * seen > total
+            })
+            .unwrap_or(eq.len());
+        let values = &mut next.scratch.b[..eq.len()];
+        let (eq_a, eq_b) = eq.split_at(mid);
+        let (out_a, out_b) = values.split_at_mut(mid);
+        let part = |eqs: &[usize], out: &mut [f64]| {
+            for (o, &d) in out.iter_mut().zip(eqs) {
+                if taken(d) {
+                    *o = this.far_displacement(d);
+                }
+            }
+        };
+        pool.join(|| part(eq_a, out_a), || part(eq_b, out_b));
+        let rest = this.system.active.rest();
+        for (&d, &u) in eq.iter().zip(&next.scratch.b[..eq.len()]) {
+            if taken(d) {
+                x[d / 3][d % 3] = rest[d / 3][d % 3] + u;
+                v[d / 3][d % 3] = 0.0;
+            }
+        }
+        self.finish_hand_over(next, v);
+        true
+    }
+
+    /// The hand-over's check and set-up: `false` when some component `next` simulates has no
+    /// row in this region's far map; else `u_G` from `x` into the scratch (double and single
+    /// precision).
+    fn start_hand_over(&mut self, next: &CondensedSolver, x: &[DVec3]) -> bool {
         let (sys, scratch) = (&self.system, &mut self.scratch);
         let node_active = &sys.node_active;
-        let taken = |d: usize| !node_active[d / 3];
         let missing = next
             .system
             .eq_dof
             .iter()
-            .any(|&d| taken(d) && sys.map_row.get(d).is_none_or(|&r| r == u32::MAX));
+            .any(|&d| !node_active[d / 3] && sys.map_row.get(d).is_none_or(|&r| r == u32::MAX));
         if missing {
             return false;
         }
@@ -37,23 +111,30 @@ impl CondensedSolver {
             *u = x[d / 3][d % 3] - rest[d / 3][d % 3];
             *u32 = *u as f32;
         }
+        true
+    }
+
+    /// The far field's displacement of condensed component `d` for the interface
+    /// displacement in the scratch ([`Self::start_hand_over`]): its map row times `u_G`.
+    fn far_displacement(&self, d: usize) -> f64 {
+        let sys = &self.system;
         let g = sys.gamma_dof.len();
-        for &d in &next.system.eq_dof {
-            if taken(d) {
-                let r = sys.map_row[d] as usize;
-                let u = dot_half(sys.f16c, &sys.map[r * g..(r + 1) * g], &scratch.u_gamma32);
-                x[d / 3][d % 3] = rest[d / 3][d % 3] + u;
-                v[d / 3][d % 3] = 0.0;
-            }
-        }
-        // Nodes `next` condenses become quasi-static: their kinetic energy is dropped (never
-        // injected), and the probe's coupling sees them at rest.
-        for &d in &sys.eq_dof {
+        let r = sys.map_row[d] as usize;
+        dot_half(
+            sys.f16c,
+            &sys.map[r * g..(r + 1) * g],
+            &self.scratch.u_gamma32,
+        )
+    }
+
+    /// Nodes `next` condenses become quasi-static: their kinetic energy is dropped (never
+    /// injected), and the probe's coupling sees them at rest.
+    fn finish_hand_over(&self, next: &CondensedSolver, v: &mut [DVec3]) {
+        for &d in &self.system.eq_dof {
             if !next.system.node_active[d / 3] {
                 v[d / 3][d % 3] = 0.0;
             }
         }
-        true
     }
 
     /// Elastic energy of the condensed far part for the interface displacement in `x`,

@@ -63,6 +63,7 @@ use super::condensed::{
 use crate::ModelError;
 use crate::element::FemModel;
 use crate::mesh::TetMesh;
+use crate::pool::TickPool;
 
 mod store;
 mod tiles;
@@ -394,11 +395,13 @@ impl RegionFollower {
     /// Called by the body at the start of every tick, before any sub-step: swaps in a prepared
     /// region (handing over `x`, `v`) and sends the next request. `devices[k]` is tool slot
     /// `k`'s device point and velocity (m, m/s) when it has one, `patches[k]` the nodes of its
-    /// contact patch (at most [`MAX_REGION_BALLS`] slots are read). Allocation-free,
+    /// contact patch (at most [`MAX_REGION_BALLS`] slots are read). A swap hands the state
+    /// over on `pool` when there is one ([`CondensedSolver::hand_over_in`]). Allocation-free,
     /// lock-free, never waits (unless blocking).
     pub fn before_tick(
         &mut self,
         solver: &mut Box<CondensedSolver>,
+        pool: Option<&TickPool>,
         devices: &[Option<(DVec3, DVec3)>],
         patches: &[&[u32]],
         x: &mut [DVec3],
@@ -409,7 +412,7 @@ impl RegionFollower {
         if let Some(old) = self.pending_return.take() {
             self.give_back(old);
         }
-        self.take_result(solver, devices, patches, x, v);
+        self.take_result(solver, pool, devices, patches, x, v);
         if devices.iter().all(Option::is_none) {
             return;
         }
@@ -443,7 +446,7 @@ impl RegionFollower {
                 while self.results.is_empty() {
                     std::thread::sleep(Duration::from_micros(100));
                 }
-                self.take_result(solver, devices, patches, x, v);
+                self.take_result(solver, pool, devices, patches, x, v);
             }
         }
     }
@@ -451,6 +454,7 @@ impl RegionFollower {
     fn take_result(
         &mut self,
         solver: &mut Box<CondensedSolver>,
+        pool: Option<&TickPool>,
         devices: &[Option<(DVec3, DVec3)>],
         patches: &[&[u32]],
         x: &mut [DVec3],
@@ -461,7 +465,7 @@ impl RegionFollower {
         };
         self.in_flight = false;
         let Prepared::Region {
-            solver: next,
+            solver: mut next,
             balls,
         } = prepared
         else {
@@ -485,7 +489,15 @@ impl RegionFollower {
             .take(MAX_REGION_BALLS)
             .all(|p| held(&next, p) >= held(solver, p));
         let start = Instant::now();
-        if near && holds_patch && solver.hand_over(&next, x, v) {
+        // The hand-over's rows cut in two on the tick pool when the session has one (the swap
+        // tick is the servo's longest).
+        let handed = near
+            && holds_patch
+            && match pool {
+                Some(pool) => solver.hand_over_in(pool, &mut next, x, v),
+                None => solver.hand_over(&next, x, v),
+            };
+        if handed {
             self.last_hand_over_s = start.elapsed().as_secs_f64();
             self.max_hand_over_s = self.max_hand_over_s.max(self.last_hand_over_s);
             let old = std::mem::replace(solver, next);
