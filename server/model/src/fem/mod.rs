@@ -716,12 +716,6 @@ impl FemBody {
         self.follow.0.as_ref().map(RegionFollower::stats)
     }
 
-    /// The region cache's last error ([`RegionFollower::cache_error`]), for the host's log;
-    /// not for the tick (it takes the worker's lock).
-    pub fn region_cache_error(&self) -> Option<String> {
-        self.follow.0.as_ref().and_then(RegionFollower::cache_error)
-    }
-
     /// Makes a following region's ticks wait for each region they request (deterministic
     /// swaps, for tests and studies; a servo must not). No effect without one.
     pub fn set_blocking_region_preparation(&mut self, on: bool) {
