@@ -21,6 +21,17 @@ pub enum Pacing {
     Clock,
 }
 
+/// Scheduling of the region cache's background fill (`prepare_regions_priority`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum FillPriority {
+    /// `SCHED_IDLE`: only the CPU time nothing else wants (nice 19 when refused).
+    #[default]
+    Idle,
+    /// The daemon's own normal priority: done sooner, beside the sessions' own preparations.
+    Normal,
+}
+
 /// Servo-thread settings.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -189,6 +200,13 @@ pub struct ConfigFile {
     pub region_cache_dir: Option<PathBuf>,
     /// Largest total size of the region cache's files, bytes (default 8 GiB).
     pub region_cache_max_bytes: Option<u64>,
+    /// Scene files (with `active_region.tiles = "background"`) whose regions the daemon
+    /// writes to the region cache in the background from its start, at the lowest priority,
+    /// so that their first sessions find them ready ([`crate::regions`]); needs
+    /// `region_cache_dir`.
+    pub prepare_regions: Vec<PathBuf>,
+    /// Scheduling of that fill (default `idle`).
+    pub prepare_regions_priority: FillPriority,
     /// Directories besides `scene_dir` that client-sent scenes may read mesh and table files
     /// from (e.g. the shared LV meshes).
     pub data_dirs: Vec<PathBuf>,
@@ -273,6 +291,11 @@ pub struct ServerConfig {
     /// Where following regions keep their tiles between sessions (`None`: not kept); an
     /// operator's setting, never a scene's ([`haptic_model::BodyOptions`]).
     pub region_cache: Option<haptic_model::integrate::follow::RegionCacheDir>,
+    /// Scene files whose region caches [`crate::run`] fills in the background
+    /// ([`crate::regions::spawn_background_fill`]); never empty without `region_cache`.
+    pub prepare_regions: Vec<PathBuf>,
+    /// Scheduling of that fill.
+    pub prepare_regions_priority: FillPriority,
     /// Data directories client-sent scenes may read from (besides `scene_dir`).
     pub data_dirs: Vec<PathBuf>,
     /// Largest file a client-sent scene may make the daemon read, bytes.
@@ -339,6 +362,8 @@ impl Default for ServerConfig {
             state_dir: None,
             metrics_listen: None,
             region_cache: None,
+            prepare_regions: Vec::new(),
+            prepare_regions_priority: FillPriority::Idle,
             data_dirs: Vec::new(),
             max_file_bytes: DEFAULT_MAX_FILE_BYTES,
             max_elements: DEFAULT_MAX_ELEMENTS,
@@ -443,8 +468,8 @@ impl ConfigFile {
     ///
     /// # Errors
     /// [`ServerError::Config`] when the file cannot be read or parsed.
-    /// Relative paths in the file (`scene_dir`, `data_dirs`, `state_dir`, `[auth] tokens_file`,
-    /// the `[tls]` files) resolve against the file's directory, never the working directory:
+    /// Relative paths in the file (`scene_dir`, `data_dirs`, `state_dir`, `region_cache_dir`,
+    /// `prepare_regions`, `[auth] tokens_file`, the `[tls]` files) resolve against the file's directory, never the working directory:
     /// the daemon as installed runs in `/`.
     pub fn load(path: &Path) -> Result<Self, ServerError> {
         let text = std::fs::read_to_string(path)
@@ -470,6 +495,7 @@ impl ConfigFile {
         self.data_dirs.iter_mut().for_each(fix);
         self.state_dir.iter_mut().for_each(fix);
         self.region_cache_dir.iter_mut().for_each(fix);
+        self.prepare_regions.iter_mut().for_each(fix);
         self.auth.tokens_file.iter_mut().for_each(fix);
         if let Some(t) = &mut self.tls {
             fix(&mut t.cert_file);
@@ -514,6 +540,14 @@ impl ConfigFile {
         c.state_dir = self.state_dir;
         c.data_dirs = self.data_dirs;
         c.region_cache = region_cache(self.region_cache_dir, self.region_cache_max_bytes)?;
+        if !self.prepare_regions.is_empty() && c.region_cache.is_none() {
+            return Err(ServerError::Config(
+                "prepare_regions needs a region cache: region_cache_dir (or --region-cache-dir)"
+                    .into(),
+            ));
+        }
+        c.prepare_regions = self.prepare_regions;
+        c.prepare_regions_priority = self.prepare_regions_priority;
         if let Some(n) = self.max_elements {
             c.max_elements = n.max(1);
         }

@@ -21,6 +21,7 @@ pub mod device;
 pub mod error;
 pub mod frame;
 pub mod metrics;
+pub mod regions;
 pub mod service;
 pub mod servo;
 pub mod session;
@@ -55,6 +56,16 @@ pub async fn run(
     let mut config = config;
     // What clients may read is checked before anything listens (issue 47).
     config.check_directories()?;
+    // Region caches to fill ahead of sessions: their scene files are checked here (a bad
+    // one stops the start), the fill runs beside the daemon and stops with it.
+    let _fill = match &config.region_cache {
+        Some(cache) => regions::spawn_background_fill(
+            &config.prepare_regions,
+            cache,
+            config.prepare_regions_priority,
+        )?,
+        None => None,
+    };
     let manager = Arc::new(session::SessionManager::new(config));
     // Sessions recorded by an earlier process come back (same ids) before anyone can connect.
     for line in manager.restore() {

@@ -616,6 +616,7 @@ impl SessionManager {
                 .region_cache
                 .as_ref()
                 .map(|_| log.report_for(id)),
+            region_cache_fill_only: false,
         }
     }
 

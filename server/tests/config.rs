@@ -31,7 +31,8 @@ fn relative_paths_in_the_file_resolve_against_its_directory() {
     std::fs::write(
         &path,
         "scene_dir = \"scenes\"\ndata_dirs = [\"../meshes\", \"/abs/meshes\"]\n\
-         state_dir = \"state\"\nregion_cache_dir = \"cache\"\n[auth]\ntokens_file = \"state/tokens.toml\"\n\
+         state_dir = \"state\"\nregion_cache_dir = \"cache\"\n\
+         prepare_regions = [\"scenes/tiled.toml\"]\nprepare_regions_priority = \"normal\"\n[auth]\ntokens_file = \"state/tokens.toml\"\n\
          [tls]\ncert_file = \"tls/s.pem\"\nkey_file = \"tls/s.key\"\n",
     )
     .unwrap();
@@ -50,6 +51,24 @@ fn relative_paths_in_the_file_resolve_against_its_directory() {
             max_bytes: haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MAX_BYTES,
         })
     );
+    assert_eq!(cfg.prepare_regions, [dir.join("scenes/tiled.toml")]);
+    assert_eq!(
+        cfg.prepare_regions_priority,
+        haptic_server::config::FillPriority::Normal
+    );
+    // Regions to prepare need a cache to prepare them into; a priority is idle or normal.
+    for (text, field) in [
+        ("prepare_regions = [\"a.toml\"]", "region_cache_dir"),
+        (
+            "region_cache_dir = \"c\"\nprepare_regions_priority = \"high\"",
+            "expected `idle` or `normal`",
+        ),
+    ] {
+        let e = ConfigFile::parse(text)
+            .and_then(ConfigFile::into_config)
+            .unwrap_err();
+        assert!(e.to_string().contains(field), "{text}: {e}");
+    }
     // A cache of no bytes is a mistake, not a way to turn it off (leave the directory unset).
     let zero = ConfigFile::parse("region_cache_dir = \"c\"\nregion_cache_max_bytes = 0")
         .unwrap()

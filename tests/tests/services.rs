@@ -228,8 +228,10 @@ async fn hapticctl_roundtrip() -> Result<()> {
 }
 
 /// `hapticd --prepare-regions SCENE --region-cache-dir DIR` fills the region cache of a scene
-/// file and exits: the first run writes every region, the second reads them all; a scene
-/// without a region cache, and a missing cache directory, are refused with what to do.
+/// file and exits: the first run writes every region, the second finds them all there; a
+/// scene without a region cache, and a missing cache directory, are refused with what to do.
+/// The configuration's `prepare_regions` fills it in the background of a serving daemon
+/// (here a missing region), and a scene it cannot prepare stops the daemon's start.
 #[test]
 fn prepare_regions_fills_the_region_cache_and_exits() -> Result<()> {
     let dir = haptic_e2e::unique_temp_dir("hapticd-prepare-regions")?;
@@ -265,17 +267,16 @@ fn prepare_regions_fills_the_region_cache_and_exits() -> Result<()> {
     ensure!(ok, "first run failed: {err}");
     let files = std::fs::read_dir(&cache)?.count();
     ensure!(
-        files >= 5 && first.contains(&format!("prepared {files} regions of lv-tiles")),
+        files >= 5
+            && first.contains(&format!(
+                "prepared {files} regions of lv-tiles ready (0 already there, {files} written"
+            )),
         "{files} files; {first}"
-    );
-    ensure!(
-        first.contains(&format!("(0 read, {files} written)")),
-        "{first}"
     );
     let (ok, second, err) = run(&prepare)?;
     ensure!(ok, "second run failed: {err}");
     ensure!(
-        second.contains(&format!("({files} read, 0 written)")),
+        second.contains(&format!("({files} already there, 0 written")),
         "{second}"
     );
     ensure!(err.contains("ready"), "no progress on stderr: {err}");
@@ -288,6 +289,46 @@ fn prepare_regions_fills_the_region_cache_and_exits() -> Result<()> {
     ensure!(!ok && err.contains("no region cache"), "{err}");
     let (ok, _, err) = run(&["--prepare-regions".as_ref(), tiled.as_os_str()])?;
     ensure!(!ok && err.contains("--region-cache-dir"), "{err}");
+
+    // The daemon's background fill: one region missing, written while it serves.
+    let mut names: Vec<_> = std::fs::read_dir(&cache)?
+        .map(|e| e.map(|e| e.path()))
+        .collect::<Result<_, _>>()?;
+    names.sort();
+    std::fs::remove_file(&names[1])?;
+    let config = dir.join("hapticd.toml");
+    std::fs::write(
+        &config,
+        "region_cache_dir = \"cache\"\nprepare_regions = [\"tiled.toml\"]\n\
+         prepare_regions_priority = \"normal\"\n",
+    )?;
+    let mut daemon = Daemon::spawn(&["--config", &config.to_string_lossy()])?;
+    let done = format!(
+        "{files} regions of lv-tiles ready ({} already there, 1 written",
+        files - 1
+    );
+    let waited = std::time::Instant::now();
+    while !daemon.log_tail().contains(&done) {
+        ensure!(
+            waited.elapsed() < Duration::from_secs(120),
+            "no `{done}` in the daemon's log:\n{}",
+            daemon.log_tail()
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    ensure!(names[1].exists(), "{} not written", names[1].display());
+    daemon.terminate(Duration::from_secs(10))?;
+    std::fs::write(
+        &config,
+        "region_cache_dir = \"cache\"\nprepare_regions = [\"plain.toml\"]\n",
+    )?;
+    let (ok, _, err) = run(&[
+        "--config".as_ref(),
+        config.as_os_str(),
+        "--listen".as_ref(),
+        "127.0.0.1:0".as_ref(),
+    ])?;
+    ensure!(!ok && err.contains("no region cache to prepare"), "{err}");
     std::fs::remove_dir_all(&dir)?;
     Ok(())
 }

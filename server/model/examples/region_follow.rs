@@ -150,6 +150,7 @@ fn set_up(args: &Args) -> anyhow::Result<(FemBody, f64)> {
         region_cache_report: Some(haptic_model::integrate::follow::RegionCacheReport(
             std::sync::Arc::new(|e: &str| eprintln!("region cache: {e}")),
         )),
+        region_cache_fill_only: false,
     };
     let mut sim = FemBody::new_with_options(&scene, &options, &mut |stage, fraction| {
         eprintln!(

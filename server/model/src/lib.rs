@@ -194,6 +194,12 @@ pub struct BodyOptions {
     /// Where the region cache's complaints go as they happen (a file refused, a write failed;
     /// [`integrate::follow::RegionCacheReport`]); `None`: only counted in the body's stats.
     pub region_cache_report: Option<integrate::follow::RegionCacheReport>,
+    /// Fill the region cache only: a following region's worker writes the tiles missing
+    /// from `region_cache`, leaves the files there unread and keeps no tile in memory
+    /// ([`integrate::follow::RegionFollower::spawn_with_cache`]); for a host preparing the
+    /// cache ahead of sessions (`hapticd --prepare-regions`, `prepare_regions`), not for a
+    /// session.
+    pub region_cache_fill_only: bool,
 }
 
 /// [`build_body`] reporting the preprocessing's progress (`stage`, fraction in `[0, 1]`) for

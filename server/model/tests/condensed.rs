@@ -2121,7 +2121,7 @@ fn wait_for_tiles(follower: &RegionFollower) -> haptic_model::integrate::follow:
     let waited = Instant::now();
     loop {
         let s = follower.stats();
-        if s.tiles_built + s.tiles_failed >= s.tiles {
+        if s.tiles_ready() >= s.tiles {
             return s;
         }
         assert!(waited.elapsed().as_secs() < 120, "{s:?}");
@@ -2132,7 +2132,8 @@ fn wait_for_tiles(follower: &RegionFollower) -> haptic_model::integrate::follow:
 /// The region cache on disk (`RegionFollower::spawn_with_cache`): the first session writes
 /// every tile, the next reads them all instead of building; a damaged file and a foreign one
 /// (another tile's file under this tile's name) are refused with the reason, rebuilt and
-/// replaced; another material finds no file of its own; a size limit keeps tiles in memory.
+/// replaced; a fill-only worker leaves good files unread and writes the missing ones; another
+/// material finds no file of its own; a size limit keeps tiles in memory.
 #[test]
 fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() {
     use haptic_model::integrate::follow::{RegionCacheDir, RegionCacheReport};
@@ -2150,15 +2151,22 @@ fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() 
     };
     let mut first = CondensedSolver::new(&fem, &mesh, region, 1e-3).expect("first");
     first.prepare_contact(&nodes);
-    let session = |fem: &FemModel, cache: &RegionCacheDir| {
+    let run = |fem: &FemModel, cache: &RegionCacheDir, fill_only: bool| {
         let lines = std::sync::Arc::new(std::sync::Mutex::new(Vec::<String>::new()));
         let sink = std::sync::Arc::clone(&lines);
         let report = RegionCacheReport(std::sync::Arc::new(move |e: &str| {
             sink.lock().expect("lines").push(e.to_owned());
         }));
-        let f =
-            RegionFollower::spawn_with_cache(fem, &mesh, &nodes, &first, Some(cache), Some(report))
-                .expect("spawn");
+        let f = RegionFollower::spawn_with_cache(
+            fem,
+            &mesh,
+            &nodes,
+            &first,
+            Some(cache),
+            Some(report),
+            fill_only,
+        )
+        .expect("spawn");
         let s = wait_for_tiles(&f);
         let error = f.cache_error();
         // Every complaint reached the host's report as it happened; the last one is kept.
@@ -2167,6 +2175,7 @@ fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() 
         assert!(lines.len() as u64 >= s.tiles_refused, "{lines:?} {s:?}");
         (s, error)
     };
+    let session = |fem: &FemModel, cache: &RegionCacheDir| run(fem, cache, false);
     let files = || -> Vec<std::path::PathBuf> {
         let mut v: Vec<_> = std::fs::read_dir(&cache.dir)
             .map(|d| d.map(|e| e.expect("entry").path()).collect())
@@ -2243,6 +2252,46 @@ fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() 
         "{other:?}"
     );
     assert_eq!(files().len() as u64, 2 * n);
+    // A fill-only worker (the host's preparation ahead of sessions) leaves the files with
+    // the right header unread and keeps nothing in memory; a missing file, and one whose
+    // header names another centre, are built and written again.
+    let (present, _) = run(&fem, &cache, true);
+    assert_eq!(
+        (
+            present.tiles_present,
+            present.tiles_built,
+            present.tiles_loaded
+        ),
+        (n, 0, 0),
+        "{present:?}"
+    );
+    assert_eq!(present.tile_cache_bytes, 0, "{present:?}");
+    std::fs::remove_file(&tiles[3]).expect("remove");
+    std::fs::copy(&tiles[0], &tiles[4]).expect("copy");
+    let (filled, error) = run(&fem, &cache, true);
+    let error = error.unwrap_or_default();
+    assert_eq!(
+        (
+            filled.tiles_present,
+            filled.tiles_built,
+            filled.tiles_stored,
+            filled.tiles_refused,
+            filled.tiles_loaded
+        ),
+        (n - 2, 2, 2, 1, 0),
+        "{filled:?}"
+    );
+    assert_eq!(filled.tile_cache_bytes, 0, "{filled:?}");
+    assert!(
+        error.contains("another centre") && error.contains(&*tiles[4].to_string_lossy()),
+        "{error}"
+    );
+    let (again, error) = session(&fem, &cache);
+    assert_eq!(
+        (again.tiles_loaded, again.tiles_refused),
+        (n, 0),
+        "{again:?} {error:?}"
+    );
     // A limit of one and a half scenes' tiles: the other material's session removes the least
     // recently used files of the first key to make room for all of its own.
     let evict = dir.join("evict");

@@ -139,58 +139,37 @@ async fn main() -> anyhow::Result<()> {
     Ok(())
 }
 
-/// `--prepare-regions`: builds the scene file's body with the region cache `cache` and waits
-/// until every region of its cache is ready (read, built and written, or failed), printing
-/// progress on stderr; fails when the scene has no region cache or a region failed.
+/// `--prepare-regions`: fills the region cache `cache` with every region of the scene file
+/// (`haptic_server::regions`: regions already there are left unread, missing ones built and
+/// written), printing progress on stderr; fails when the scene has no region cache or a
+/// region failed.
 fn prepare_regions(
     path: &std::path::Path,
     cache: Option<&haptic_model::integrate::follow::RegionCacheDir>,
 ) -> anyhow::Result<()> {
-    use haptic_model::integrate::condensed::TileMode;
+    use haptic_server::regions;
     let cache = cache.context(
         "--prepare-regions needs a region cache: --region-cache-dir DIR or region_cache_dir",
     )?;
-    let scene = haptic_model::scene::load_scene_file(path)
-        .with_context(|| format!("loading {}", path.display()))?;
-    let tiled = scene
-        .active_region
-        .is_some_and(|r| r.follow && matches!(r.tiles, TileMode::Background { .. }));
-    anyhow::ensure!(
-        tiled,
-        "{}: no region cache to prepare (it needs [active_region] follow = true and tiles = \"background\")",
-        path.display()
-    );
-    let options = haptic_model::BodyOptions {
-        region_cache: Some(cache.clone()),
-        region_cache_report: Some(haptic_model::integrate::follow::RegionCacheReport(
-            std::sync::Arc::new(|e: &str| eprintln!("region cache: {e}")),
-        )),
+    let scene = regions::tiled_scene(path)?;
+    let report =
+        haptic_model::integrate::follow::RegionCacheReport(std::sync::Arc::new(|e: &str| {
+            eprintln!("region cache: {e}")
+        }));
+    let mut progress = |s: &haptic_model::integrate::follow::FollowStats, t: f64| {
+        eprintln!(
+            "regions of {}: {}/{} ready ({} already there, {} written, {} refused) after {t:.1} s",
+            scene.name,
+            s.tiles_ready(),
+            s.tiles,
+            s.tiles_present,
+            s.tiles_stored,
+            s.tiles_refused
+        );
     };
-    let start = std::time::Instant::now();
-    let body = haptic_model::fem::FemBody::new_with_options(&scene, &options, &mut |stage, f| {
-        eprintln!("set-up {:3.0} %: {stage}", 100.0 * f);
-    })?;
-    let mut last = u64::MAX;
-    let s = loop {
-        let s = body.follow_stats().unwrap_or_default();
-        let ready = s.tiles_built + s.tiles_failed;
-        if ready != last {
-            eprintln!(
-                "regions of {}: {ready}/{} ready ({} read, {} written, {} refused) after {:.1} s",
-                scene.name,
-                s.tiles,
-                s.tiles_loaded,
-                s.tiles_stored,
-                s.tiles_refused,
-                start.elapsed().as_secs_f64()
-            );
-            last = ready;
-        }
-        if ready >= s.tiles {
-            break s;
-        }
-        std::thread::sleep(std::time::Duration::from_millis(200));
-    };
+    let stop = std::sync::atomic::AtomicBool::new(false);
+    let s = regions::fill_region_cache(&scene, cache, report, &mut progress, &stop)?
+        .context("the fill stopped")?;
     anyhow::ensure!(
         s.tiles_failed == 0,
         "{} of {} regions failed",
@@ -198,12 +177,9 @@ fn prepare_regions(
         s.tiles
     );
     println!(
-        "prepared {} regions of {} in {} ({} read, {} written)",
-        s.tiles,
-        scene.name,
-        cache.dir.display(),
-        s.tiles_loaded,
-        s.tiles_stored
+        "prepared {} in {}",
+        regions::summary(&scene.name, &s),
+        cache.dir.display()
     );
     Ok(())
 }

@@ -254,6 +254,21 @@ impl Yielding {
     }
 }
 
+/// Puts the calling thread (and the threads it starts from now on) at the lowest scheduling
+/// priority: `SCHED_IDLE`, or nice 19 when that is refused. For background work that must
+/// never take CPU time a session wants (the region cache's fill, [`crate::regions`]).
+pub fn lowest_priority() {
+    let param = libc::sched_param { sched_priority: 0 };
+    // SAFETY: `param` is a valid, initialised sched_param; pid 0 is the calling thread.
+    let idle = unsafe { libc::sched_setscheduler(0, libc::SCHED_IDLE, &param) } == 0;
+    if !idle {
+        // SAFETY: plain system calls on the calling thread (its own tid), no pointers.
+        let tid = unsafe { libc::gettid() };
+        // SAFETY: as above.
+        let _ = unsafe { libc::setpriority(libc::PRIO_PROCESS, tid as libc::id_t, 19) };
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -889,6 +889,7 @@ fn follower(
         c,
         options.region_cache.as_ref(),
         options.region_cache_report.clone(),
+        options.region_cache_fill_only,
     )?;
     f.set_tick_s(scene.integrator.tick_s);
     Ok(f)
@@ -1042,7 +1043,7 @@ impl SoftBody for FemBody {
             region_tiles: self.follow_stats().map_or(0, |f| f.tiles),
             region_tiles_ready: self
                 .follow_stats()
-                .map_or(0, |f| (f.tiles_built + f.tiles_failed).min(f.tiles)),
+                .map_or(0, |f| f.tiles_ready().min(f.tiles)),
             region_tiles_loaded: self.follow_stats().map_or(0, |f| f.tiles_loaded),
             region_tiles_refused: self.follow_stats().map_or(0, |f| f.tiles_refused),
             companion_ticks: self

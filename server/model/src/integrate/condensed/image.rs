@@ -252,6 +252,45 @@ fn open_image<'a>(
     }
     let (body_bytes, hash) = bytes.split_at(bytes.len() - HASH_BYTES);
     let mut r = Reader { bytes: body_bytes };
+    read_format(&mut r)?;
+    if blake3::hash(body_bytes).as_bytes() != hash {
+        return Err(bad("is damaged (its BLAKE3 hash does not match)"));
+    }
+    read_identity(&mut r, key, centre_m, dt_s)?;
+    let digest = r
+        .take(HASH_BYTES)?
+        .try_into()
+        .map_err(|_| bad("is truncated"))?;
+    Ok((r, digest))
+}
+
+/// Bytes of an image's header: the magic, the format number, the key, the centre and the
+/// step ([`CondensedSolver::check_image_header`]).
+pub const TILE_IMAGE_HEADER_BYTES: usize = 8 + 4 + HASH_BYTES + 4 * 8;
+
+impl CondensedSolver {
+    /// Whether `head`, the first [`TILE_IMAGE_HEADER_BYTES`] bytes of an image (or more),
+    /// begins an image of this format written with `key` for the centre `centre_m` and step
+    /// `dt_s`: [`Self::from_image`]'s frame checks without the arrays and the hash, for a
+    /// fill of the region cache that leaves the files it finds unread (a session reading
+    /// one still checks all of it).
+    ///
+    /// # Errors
+    /// [`ModelError::InvalidInput`] naming what differs, as [`Self::from_image`].
+    pub fn check_image_header(
+        head: &[u8],
+        key: &[u8; 32],
+        centre_m: DVec3,
+        dt_s: f64,
+    ) -> Result<(), ModelError> {
+        let mut r = Reader { bytes: head };
+        read_format(&mut r)?;
+        read_identity(&mut r, key, centre_m, dt_s)
+    }
+}
+
+/// Reads and checks the magic and the format number.
+fn read_format(r: &mut Reader<'_>) -> Result<(), ModelError> {
     if r.take(MAGIC.len())? != MAGIC {
         return Err(bad("is not a region image (no HAPTTILE magic)"));
     }
@@ -262,9 +301,16 @@ fn open_image<'a>(
              by another version)"
         )));
     }
-    if blake3::hash(body_bytes).as_bytes() != hash {
-        return Err(bad("is damaged (its BLAKE3 hash does not match)"));
-    }
+    Ok(())
+}
+
+/// Reads and checks the key, the centre and the step.
+fn read_identity(
+    r: &mut Reader<'_>,
+    key: &[u8; 32],
+    centre_m: DVec3,
+    dt_s: f64,
+) -> Result<(), ModelError> {
     if r.take(HASH_BYTES)? != key {
         return Err(bad(
             "was written for another body, region or step (its key differs)",
@@ -277,11 +323,7 @@ fn open_image<'a>(
     {
         return Err(bad("has another centre or step than asked"));
     }
-    let digest = r
-        .take(HASH_BYTES)?
-        .try_into()
-        .map_err(|_| bad("is truncated"))?;
-    Ok((r, digest))
+    Ok(())
 }
 
 /// The tick factor of `parts` (equations `eq_dof`, margin `region.stiffness_margin`): the

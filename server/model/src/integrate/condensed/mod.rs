@@ -107,8 +107,8 @@ mod step;
 
 use build::{TickMatrixParts, ball_of, factorize};
 use half::{add_row, axpy3, dot_half, half_of, packed_row_start, sym_row};
-pub use image::TILE_IMAGE_FORMAT;
 use image::unpack_symmetric;
+pub use image::{TILE_IMAGE_FORMAT, TILE_IMAGE_HEADER_BYTES};
 
 /// Largest memory of the contact columns [`CondensedSolver::prepare_contact`] precomputes:
 /// 512 MiB (`lv_h1.msh` whole-body: 268 MB; a 50 000-element scene's touchable surface would

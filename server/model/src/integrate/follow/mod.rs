@@ -123,6 +123,7 @@ struct Shared {
     tiles_loaded: AtomicU64,
     tiles_refused: AtomicU64,
     tiles_stored: AtomicU64,
+    tiles_present: AtomicU64,
     cache_error: std::sync::Mutex<Option<String>>,
     /// The tick pool's thread count the regions are cut for
     /// ([`CondensedSolver::set_parts`]; 0 or 1: uncut).
@@ -189,6 +190,17 @@ pub struct FollowStats {
     pub tiles_refused: u64,
     /// Tiles written to the region cache on disk.
     pub tiles_stored: u64,
+    /// Tiles a fill-only worker found in the region cache and left unread (not in
+    /// `tiles_built`; [`RegionFollower::spawn_with_cache`]).
+    pub tiles_present: u64,
+}
+
+impl FollowStats {
+    /// Tiles done: built or read, failed, or (a fill-only worker's) found on disk. Every
+    /// tile is done once this reaches [`Self::tiles`].
+    pub fn tiles_ready(&self) -> u64 {
+        self.tiles_built + self.tiles_failed + self.tiles_present
+    }
 }
 
 /// The servo's side of a following region (module documentation).
@@ -236,7 +248,7 @@ impl RegionFollower {
         touchable_nodes: &[u32],
         first: &CondensedSolver,
     ) -> Result<Self, ModelError> {
-        Self::spawn_with_cache(body, mesh, touchable_nodes, first, None, None)
+        Self::spawn_with_cache(body, mesh, touchable_nodes, first, None, None, false)
     }
 
     /// [`Self::spawn`] with the tiles ([`TileMode::Background`]) read from and written to
@@ -244,6 +256,13 @@ impl RegionFollower {
     /// instead of built, and a tile built is written for the next session. Each file refused
     /// and each write that failed or did not fit goes to `report` as it happens (besides
     /// [`Self::cache_error`] and the counts of [`FollowStats`]).
+    ///
+    /// `fill_only` (with a cache): the worker only fills the cache, for a host that prepares
+    /// it ahead of sessions. A tile whose file is there with the right header
+    /// ([`CondensedSolver::check_image_header`]) is counted in
+    /// [`FollowStats::tiles_present`] and left unread; a missing one (or one whose header is
+    /// refused) is built, written and dropped (kept in memory only when it cannot be
+    /// written). A request still gets its tile, read from disk then.
     ///
     /// # Errors
     /// As [`Self::spawn`].
@@ -254,6 +273,7 @@ impl RegionFollower {
         first: &CondensedSolver,
         cache: Option<&RegionCacheDir>,
         report: Option<RegionCacheReport>,
+        fill_only: bool,
     ) -> Result<Self, ModelError> {
         let mut nodes = touchable_nodes.to_vec();
         nodes.sort_unstable();
@@ -285,6 +305,7 @@ impl RegionFollower {
             _ => None,
         };
         let job = Worker {
+            fill_only: fill_only && store.is_some(),
             cache,
             store,
             report,
@@ -383,6 +404,7 @@ impl RegionFollower {
             tiles_loaded: self.shared.tiles_loaded.load(Ordering::Relaxed),
             tiles_refused: self.shared.tiles_refused.load(Ordering::Relaxed),
             tiles_stored: self.shared.tiles_stored.load(Ordering::Relaxed),
+            tiles_present: self.shared.tiles_present.load(Ordering::Relaxed),
         }
     }
 
@@ -539,6 +561,8 @@ struct Worker {
     store: Option<TileStore>,
     /// Where the store's complaints go as they happen, or `None`.
     report: Option<RegionCacheReport>,
+    /// Fill the store only ([`RegionFollower::spawn_with_cache`]).
+    fill_only: bool,
     /// The last requested point, m: background builds start nearest it.
     last_point_m: DVec3,
     body: FemModel,
@@ -739,12 +763,18 @@ impl Worker {
         }
     }
 
-    /// Builds tile `k` (or reads it from disk) and keeps it; counts it (or the failure).
-    fn build_and_keep(&mut self, k: usize) -> Option<Arc<CondensedSolver>> {
+    /// Builds tile `k` (or, when `read`, reads it from disk) and keeps it; counts it (or the
+    /// failure).
+    fn build_and_keep(&mut self, k: usize, read: bool) -> Option<Arc<CondensedSolver>> {
         let cache = self.cache.as_ref()?;
         let centre_m = cache.centres[k];
         let start = Instant::now();
-        let tile = self.load_tile(k, centre_m).or_else(|| {
+        let loaded = if read {
+            self.load_tile(k, centre_m)
+        } else {
+            None
+        };
+        let tile = loaded.or_else(|| {
             let built = self.build_tile(centre_m);
             if let Some(t) = &built {
                 self.store_tile(k, t);
@@ -784,8 +814,45 @@ impl Worker {
         else {
             return false;
         };
-        self.build_and_keep(k);
+        if self.fill_only {
+            self.fill(k);
+        } else {
+            self.build_and_keep(k, true);
+        }
         true
+    }
+
+    /// Fill-only idle work on the missing tile `k`: [`Tile::OnDisk`] when its file is there
+    /// (header checked, not read), else built and written (and dropped once written).
+    fn fill(&mut self, k: usize) {
+        let (Some(cache), Some(store)) = (self.cache.as_ref(), self.store.as_ref()) else {
+            return;
+        };
+        let centre_m = cache.centres[k];
+        match store.present(k, centre_m, self.dt_s) {
+            Ok(true) => {
+                self.shared.tiles_present.fetch_add(1, Ordering::Relaxed);
+                if let Some(cache) = self.cache.as_mut() {
+                    cache.tiles[k] = Tile::OnDisk;
+                }
+                return;
+            }
+            Ok(false) => {}
+            Err(e) => {
+                self.shared.tiles_refused.fetch_add(1, Ordering::Relaxed);
+                self.cache_error(e);
+            }
+        }
+        let stored = self.shared.tiles_stored.load(Ordering::Relaxed);
+        // Never read: the file is missing or its header was refused.
+        let tile = self.build_and_keep(k, false);
+        let written = self.shared.tiles_stored.load(Ordering::Relaxed) > stored;
+        if let (Some(t), true, Some(cache)) = (tile, written, self.cache.as_mut()) {
+            self.shared
+                .tile_cache_bytes
+                .fetch_sub(t.memory_bytes() as u64, Ordering::Relaxed);
+            cache.tiles[k] = Tile::OnDisk;
+        }
     }
 
     /// A one-ball request with tiles for `point_m` while the region in use is centred at
@@ -807,9 +874,9 @@ impl Worker {
                 Arc::clone(t)
             }
             Tile::Failed => return Prepared::Nothing,
-            Tile::Missing => {
+            Tile::Missing | Tile::OnDisk => {
                 self.shared.tile_misses.fetch_add(1, Ordering::Relaxed);
-                match self.build_and_keep(k) {
+                match self.build_and_keep(k, true) {
                     Some(t) => t,
                     None => return Prepared::Nothing,
                 }

@@ -23,7 +23,9 @@ use std::path::{Path, PathBuf};
 
 use glam::DVec3;
 
-use super::super::condensed::{ActiveRegion, CondensedSolver, TILE_IMAGE_FORMAT};
+use super::super::condensed::{
+    ActiveRegion, CondensedSolver, TILE_IMAGE_FORMAT, TILE_IMAGE_HEADER_BYTES,
+};
 use crate::element::FemModel;
 use crate::mesh::TetMesh;
 
@@ -173,6 +175,32 @@ impl TileStore {
         CondensedSolver::from_image(body, mesh, region, dt_s, &self.key, &bytes)
             .map(Some)
             .map_err(|e| format!("{}: {e}", path.display()))
+    }
+
+    /// Whether tile `k`'s file is there and begins with the header of an image of tile `k`
+    /// (centre `centre_m`, step `dt_s`; [`CondensedSolver::check_image_header`]), without
+    /// reading the rest: `Ok(false)` when there is no file, `Err` with the reason when it
+    /// cannot be read or its header is refused. A file found is marked used.
+    pub(super) fn present(&self, k: usize, centre_m: DVec3, dt_s: f64) -> Result<bool, String> {
+        use std::io::Read;
+        let path = self.path(k);
+        let in_file = |e: String| format!("{}: {e}", path.display());
+        let mut file = match std::fs::File::open(&path) {
+            Ok(f) => f,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(false),
+            Err(e) => return Err(in_file(e.to_string())),
+        };
+        let mut head = [0u8; TILE_IMAGE_HEADER_BYTES];
+        file.read_exact(&mut head).map_err(|e| match e.kind() {
+            std::io::ErrorKind::UnexpectedEof => in_file("region image is truncated".into()),
+            _ => in_file(e.to_string()),
+        })?;
+        CondensedSolver::check_image_header(&head, &self.key, centre_m, dt_s)
+            .map_err(|e| in_file(e.to_string()))?;
+        if let Ok(f) = std::fs::File::options().append(true).open(&path) {
+            let _ = f.set_modified(std::time::SystemTime::now());
+        }
+        Ok(true)
     }
 
     /// Writes tile `k` (`solver`, a trimmed tile): `Ok(false)` when the directory's tiles

@@ -57,6 +57,9 @@ pub(super) enum Tile {
     Built(Arc<CondensedSolver>),
     /// Its preparation failed (not tried again).
     Failed,
+    /// Its file in the region cache holds it; not in memory (a fill-only worker's,
+    /// [`super::RegionFollower::spawn_with_cache`]). A request reads it.
+    OnDisk,
 }
 
 /// The worker's cache: the centres and their tiles.
