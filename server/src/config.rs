@@ -25,10 +25,12 @@ pub enum Pacing {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum FillPriority {
-    /// `SCHED_IDLE`: only the CPU time nothing else wants (nice 19 when refused).
+    /// Only while no session runs, and then at `SCHED_IDLE` (nice 19 when refused): a
+    /// running session never shares the machine with the fill.
     #[default]
     Idle,
-    /// The daemon's own normal priority: done sooner, beside the sessions' own preparations.
+    /// Always, at the daemon's own normal priority: done sooner, beside the sessions (for a
+    /// machine with cores to spare).
     Normal,
 }
 
@@ -433,15 +435,22 @@ fn canonical_even_if_missing(path: &Path) -> Option<PathBuf> {
 }
 
 /// The region cache of `region_cache_dir` and `region_cache_max_bytes` (default
-/// [`haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MAX_BYTES`]).
+/// [`haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MAX_BYTES`]); `prepared`: the
+/// file lists regions to prepare (`prepare_regions`), which need a cache.
 ///
 /// # Errors
-/// [`ServerError::Config`] for a limit of 0 bytes.
+/// [`ServerError::Config`] for a limit of 0 bytes, or regions to prepare without a cache.
 fn region_cache(
     dir: Option<PathBuf>,
     max_bytes: Option<u64>,
+    prepared: bool,
 ) -> Result<Option<haptic_model::integrate::follow::RegionCacheDir>, ServerError> {
     use haptic_model::integrate::follow::{DEFAULT_REGION_CACHE_MAX_BYTES, RegionCacheDir};
+    if prepared && dir.is_none() {
+        return Err(ServerError::Config(
+            "prepare_regions needs a region cache: region_cache_dir (or --region-cache-dir)".into(),
+        ));
+    }
     if max_bytes == Some(0) {
         return Err(ServerError::Config(
             "region_cache_max_bytes must be at least 1".into(),
@@ -539,13 +548,11 @@ impl ConfigFile {
         c.servo = self.servo;
         c.state_dir = self.state_dir;
         c.data_dirs = self.data_dirs;
-        c.region_cache = region_cache(self.region_cache_dir, self.region_cache_max_bytes)?;
-        if !self.prepare_regions.is_empty() && c.region_cache.is_none() {
-            return Err(ServerError::Config(
-                "prepare_regions needs a region cache: region_cache_dir (or --region-cache-dir)"
-                    .into(),
-            ));
-        }
+        c.region_cache = region_cache(
+            self.region_cache_dir,
+            self.region_cache_max_bytes,
+            !self.prepare_regions.is_empty(),
+        )?;
         c.prepare_regions = self.prepare_regions;
         c.prepare_regions_priority = self.prepare_regions_priority;
         if let Some(n) = self.max_elements {
@@ -592,18 +599,8 @@ impl ConfigFile {
         if let Some(t) = self.build_timeout_s {
             c.build_timeout = duration_s("build_timeout_s", t, 3600.0)?;
         }
+        c.auth_limits = failure_limits(&self.auth, c.auth_limits)?;
         c.tokens_file = self.auth.tokens_file;
-        if let Some(n) = self.auth.max_failures {
-            if n == 0 {
-                return Err(ServerError::Config(
-                    "auth.max_failures must be at least 1".into(),
-                ));
-            }
-            c.auth_limits.max_failures = n;
-        }
-        if let Some(t) = self.auth.failure_window_s {
-            c.auth_limits.window = duration_s("auth.failure_window_s", t, 86_400.0)?;
-        }
         c.tls = self.tls;
         c.allow_insecure_remote = self.allow_insecure_remote;
         check_remote(&c)?;
@@ -615,6 +612,26 @@ impl ConfigFile {
         }
         Ok(c)
     }
+}
+
+/// The `[auth]` table's failure limits over `limits`: `max_failures` at least 1, the
+/// window a duration of at most a day.
+fn failure_limits(
+    auth: &AuthFile,
+    mut limits: crate::auth::FailureLimits,
+) -> Result<crate::auth::FailureLimits, ServerError> {
+    if let Some(n) = auth.max_failures {
+        if n == 0 {
+            return Err(ServerError::Config(
+                "auth.max_failures must be at least 1".into(),
+            ));
+        }
+        limits.max_failures = n;
+    }
+    if let Some(t) = auth.failure_window_s {
+        limits.window = duration_s("auth.failure_window_s", t, 86_400.0)?;
+    }
+    Ok(limits)
 }
 
 /// The `[servo]` table's ranges: priority 1..=99, snapshot and statistics periods and the

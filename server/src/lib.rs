@@ -56,17 +56,18 @@ pub async fn run(
     let mut config = config;
     // What clients may read is checked before anything listens (issue 47).
     config.check_directories()?;
+    let manager = Arc::new(session::SessionManager::new(config));
     // Region caches to fill ahead of sessions: their scene files are checked here (a bad
     // one stops the start), the fill runs beside the daemon and stops with it.
-    let _fill = match &config.region_cache {
+    let _fill = match &manager.config().region_cache {
         Some(cache) => regions::spawn_background_fill(
-            &config.prepare_regions,
+            &manager.config().prepare_regions,
             cache,
-            config.prepare_regions_priority,
+            manager.config().prepare_regions_priority,
+            manager.running_sessions(),
         )?,
         None => None,
     };
-    let manager = Arc::new(session::SessionManager::new(config));
     // Sessions recorded by an earlier process come back (same ids) before anyone can connect.
     for line in manager.restore() {
         tracing::info!("{line}");

@@ -1,6 +1,8 @@
 //! Region caches filled ahead of sessions (issue 48 s2): `hapticd --prepare-regions SCENE`
 //! (in the foreground, then exits) and the `prepare_regions` configuration key (in the
-//! background at start, at the lowest scheduling priority). Both build the scene file's body
+//! background from the daemon's start; by default only while no session runs, at the lowest
+//! scheduling priority, since a fill beside a running session adds to its overruns:
+//! `docs/deploy.md`, "The region cache"). Both build the scene file's body
 //! with a fill-only region worker ([`haptic_model::BodyOptions::region_cache_fill_only`]):
 //! regions whose files are there are left unread, missing ones are built and written, none is
 //! kept in memory. A session of the scene that starts meanwhile reads what is written and
@@ -10,7 +12,7 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 use haptic_model::fem::FemBody;
@@ -44,9 +46,10 @@ pub fn tiled_scene(path: &Path) -> Result<Scene, ServerError> {
 /// Fills `cache` with every region of `scene` (a [`tiled_scene`]) and waits until each is
 /// there (found, written, or failed), calling `progress` with the worker's counters and the
 /// seconds since the start whenever a region is done, and `report` with each complaint of the
-/// cache (a file refused, a write that failed). Returns the last counters, or `None` when
-/// `stop` was raised first (the body is dropped: its worker stops after the region it is
-/// building).
+/// cache (a file refused, a write that failed). `paused` is asked every 200 ms: while it says
+/// so, no region is started (the one in progress finishes). Returns the last counters, or
+/// `None` when `stop` was raised first (the body is dropped: its worker stops after the
+/// region it is building).
 ///
 /// # Errors
 /// [`ServerError::Model`] when the body cannot be built.
@@ -55,6 +58,7 @@ pub fn fill_region_cache(
     cache: &RegionCacheDir,
     report: RegionCacheReport,
     progress: &mut dyn FnMut(&FollowStats, f64),
+    paused: &mut dyn FnMut() -> bool,
     stop: &AtomicBool,
 ) -> Result<Option<FollowStats>, ServerError> {
     let options = haptic_model::BodyOptions {
@@ -69,6 +73,7 @@ pub fn fill_region_cache(
         if stop.load(Ordering::Relaxed) {
             return Ok(None);
         }
+        body.set_region_preparation_paused(paused());
         let s = body.follow_stats().unwrap_or_default();
         if s.tiles_ready() != last {
             progress(&s, start.elapsed().as_secs_f64());
@@ -106,11 +111,11 @@ impl Drop for BackgroundFill {
 }
 
 /// Checks every scene file of `scenes` ([`tiled_scene`]) and starts one thread that fills
-/// `cache` with their regions in turn, at the lowest scheduling priority with
-/// [`FillPriority::Idle`] (`SCHED_IDLE`, else nice 19: sessions' servo and region threads
-/// come first) or the daemon's own with [`FillPriority::Normal`], logging the start,
-/// each quarter and the end of every scene, and each complaint as a warning. `None` when
-/// `scenes` is empty.
+/// `cache` with their regions in turn: with [`FillPriority::Idle`] only while `running`
+/// (the daemon's session count) is zero and at the lowest scheduling priority (`SCHED_IDLE`,
+/// else nice 19), with [`FillPriority::Normal`] always, at the daemon's own. Logs the start,
+/// each quarter, each pause and the end of every scene, and each complaint as a warning.
+/// `None` when `scenes` is empty.
 ///
 /// # Errors
 /// [`ServerError::Config`] when a scene file cannot be loaded or has no region cache, or
@@ -119,6 +124,7 @@ pub fn spawn_background_fill(
     scenes: &[PathBuf],
     cache: &RegionCacheDir,
     priority: FillPriority,
+    running: Arc<AtomicUsize>,
 ) -> Result<Option<BackgroundFill>, ServerError> {
     if scenes.is_empty() {
         return Ok(None);
@@ -135,8 +141,9 @@ pub fn spawn_background_fill(
             if priority == FillPriority::Idle {
                 crate::servo::lowest_priority();
             }
+            let busy = || priority == FillPriority::Idle && running.load(Ordering::Relaxed) > 0;
             for scene in &loaded {
-                fill_in_background(scene, &cache, &flag);
+                fill_in_background(scene, &cache, &busy, &flag);
             }
         })
         .map_err(|e| ServerError::Config(format!("prepare_regions: cannot start: {e}")))?;
@@ -144,7 +151,12 @@ pub fn spawn_background_fill(
 }
 
 /// One scene of [`spawn_background_fill`], logged.
-fn fill_in_background(scene: &Scene, cache: &RegionCacheDir, stop: &AtomicBool) {
+fn fill_in_background(
+    scene: &Scene,
+    cache: &RegionCacheDir,
+    busy: &dyn Fn() -> bool,
+    stop: &AtomicBool,
+) {
     let name = scene.name.clone();
     tracing::info!(scene = %name, dir = %cache.dir.display(), "filling the region cache");
     let report = {
@@ -161,8 +173,22 @@ fn fill_in_background(scene: &Scene, cache: &RegionCacheDir, stop: &AtomicBool) 
             tracing::info!(scene = %name, "region cache: {}/{} after {t:.0} s", s.tiles_ready(), s.tiles);
         }
     };
+    let mut was_paused = false;
+    let mut paused = || {
+        let now = busy();
+        if now != was_paused {
+            was_paused = now;
+            let what = if now {
+                "paused while sessions run"
+            } else {
+                "resumed"
+            };
+            tracing::info!(scene = %name, "region cache: fill {what}");
+        }
+        now
+    };
     let start = Instant::now();
-    match fill_region_cache(scene, cache, report, &mut progress, stop) {
+    match fill_region_cache(scene, cache, report, &mut progress, &mut paused, stop) {
         Ok(Some(s)) => tracing::info!(
             "region cache: {} in {:.1} s",
             summary(&name, &s),

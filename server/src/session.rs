@@ -453,6 +453,12 @@ impl SessionManager {
         }
     }
 
+    /// The number of sessions in the table, kept up to date as they start and stop (the
+    /// region cache's background fill pauses while it is not zero, [`crate::regions`]).
+    pub fn running_sessions(&self) -> Arc<std::sync::atomic::AtomicUsize> {
+        Arc::clone(&self.running)
+    }
+
     /// Cores the running sessions' ticks hold now (servo threads and tick-pool workers), and the
     /// cores there are to share ([`crate::cores::CoreBudget`]).
     pub fn reserved_cores(&self) -> (usize, usize) {

@@ -2132,7 +2132,8 @@ fn wait_for_tiles(follower: &RegionFollower) -> haptic_model::integrate::follow:
 /// The region cache on disk (`RegionFollower::spawn_with_cache`): the first session writes
 /// every tile, the next reads them all instead of building; a damaged file and a foreign one
 /// (another tile's file under this tile's name) are refused with the reason, rebuilt and
-/// replaced; a fill-only worker leaves good files unread and writes the missing ones; another
+/// replaced; a fill-only worker leaves good files unread and writes the missing ones, and
+/// pauses when asked; another
 /// material finds no file of its own; a size limit keeps tiles in memory.
 #[test]
 fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() {
@@ -2292,6 +2293,20 @@ fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() 
         (n, 0),
         "{again:?} {error:?}"
     );
+    // Paused at once, a worker finishes at most the tile it started; resumed, it fills all.
+    let fresh = RegionCacheDir {
+        dir: dir.join("paused"),
+        max_bytes: 1 << 30,
+    };
+    let f = RegionFollower::spawn_with_cache(&fem, &mesh, &nodes, &first, Some(&fresh), None, true)
+        .expect("spawn");
+    f.set_paused(true);
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    let during = f.stats();
+    assert!(during.tiles_ready() <= 1, "{during:?}");
+    f.set_paused(false);
+    let done = wait_for_tiles(&f);
+    assert_eq!((done.tiles_stored, done.tiles_present), (n, 0), "{done:?}");
     // A limit of one and a half scenes' tiles: the other material's session removes the least
     // recently used files of the first key to make room for all of its own.
     let evict = dir.join("evict");

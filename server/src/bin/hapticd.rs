@@ -168,7 +168,7 @@ fn prepare_regions(
         );
     };
     let stop = std::sync::atomic::AtomicBool::new(false);
-    let s = regions::fill_region_cache(&scene, cache, report, &mut progress, &stop)?
+    let s = regions::fill_region_cache(&scene, cache, report, &mut progress, &mut || false, &stop)?
         .context("the fill stopped")?;
     anyhow::ensure!(
         s.tiles_failed == 0,

@@ -716,6 +716,14 @@ impl FemBody {
         self.follow.0.as_ref().map(RegionFollower::stats)
     }
 
+    /// Pauses (or resumes) a following region's background builds of tiles
+    /// ([`RegionFollower::set_paused`]). No effect without one.
+    pub fn set_region_preparation_paused(&self, on: bool) {
+        if let Some(f) = &self.follow.0 {
+            f.set_paused(on);
+        }
+    }
+
     /// Makes a following region's ticks wait for each region they request (deterministic
     /// swaps, for tests and studies; a servo must not). No effect without one.
     pub fn set_blocking_region_preparation(&mut self, on: bool) {

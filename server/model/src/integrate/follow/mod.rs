@@ -124,6 +124,8 @@ struct Shared {
     tiles_refused: AtomicU64,
     tiles_stored: AtomicU64,
     tiles_present: AtomicU64,
+    /// The worker builds no tile in the background ([`RegionFollower::set_paused`]).
+    paused: AtomicBool,
     cache_error: std::sync::Mutex<Option<String>>,
     /// The tick pool's thread count the regions are cut for
     /// ([`CondensedSolver::set_parts`]; 0 or 1: uncut).
@@ -373,6 +375,15 @@ impl RegionFollower {
         self.blocking = on;
     }
 
+    /// Pauses (or resumes) the worker's background builds of tiles, after the one in
+    /// progress; requests are still answered (a missing tile built on demand). For a host
+    /// that fills the region cache only while nothing else wants the machine.
+    pub fn set_paused(&self, on: bool) {
+        if self.shared.paused.swap(on, Ordering::Relaxed) && !on {
+            self.worker.unpark();
+        }
+    }
+
     /// Regions swapped in so far (as in [`Self::stats`], without reading the worker's
     /// counters).
     pub fn swaps(&self) -> u64 {
@@ -597,7 +608,7 @@ impl Worker {
                     let _ = self.results.push(answer);
                 }
                 Err(_) => {
-                    if !self.build_next_tile() {
+                    if self.shared.paused.load(Ordering::Relaxed) || !self.build_next_tile() {
                         std::thread::park_timeout(Duration::from_millis(50));
                     }
                 }
