@@ -46,7 +46,8 @@ pub fn tiled_scene(path: &Path) -> Result<Scene, ServerError> {
 /// Fills `cache` with every region of `scene` (a [`tiled_scene`]) and waits until each is
 /// there (found, written, or failed), calling `progress` with the worker's counters and the
 /// seconds since the start whenever a region is done, and `report` with each complaint of the
-/// cache (a file refused, a write that failed). `paused` is asked every 200 ms: while it says
+/// cache (a file refused, a write that failed), preparing each region with `threads` threads
+/// (bit for bit the same regions at any count). `paused` is asked every 200 ms: while it says
 /// so, no region is started (the one in progress finishes). Returns the last counters, or
 /// `None` when `stop` was raised first (the body is dropped: its worker stops after the
 /// region it is building).
@@ -59,6 +60,7 @@ pub fn fill_region_cache(
     report: RegionCacheReport,
     progress: &mut dyn FnMut(&FollowStats, f64),
     paused: &mut dyn FnMut() -> bool,
+    threads: usize,
     stop: &AtomicBool,
 ) -> Result<Option<FollowStats>, ServerError> {
     let options = haptic_model::BodyOptions {
@@ -68,6 +70,7 @@ pub fn fill_region_cache(
     };
     let start = Instant::now();
     let body = FemBody::new_with_options(scene, &options, &mut |_, _| {})?;
+    body.set_region_preparation_threads(threads);
     let mut last = u64::MAX;
     loop {
         if stop.load(Ordering::Relaxed) {
@@ -84,6 +87,12 @@ pub fn fill_region_cache(
         }
         std::thread::sleep(Duration::from_millis(200));
     }
+}
+
+/// Threads for a fill that has the machine to itself: its cores (at most
+/// [`haptic_model::integrate::condensed::MAX_PREPARATION_THREADS`]).
+pub fn preparation_threads() -> usize {
+    std::thread::available_parallelism().map_or(1, usize::from)
 }
 
 /// The one-line summary of a fill's counters `s` for the scene `name`.
@@ -112,8 +121,9 @@ impl Drop for BackgroundFill {
 
 /// Checks every scene file of `scenes` ([`tiled_scene`]) and starts one thread that fills
 /// `cache` with their regions in turn: with [`FillPriority::Idle`] only while `running`
-/// (the daemon's session count) is zero and at the lowest scheduling priority (`SCHED_IDLE`,
-/// else nice 19), with [`FillPriority::Normal`] always, at the daemon's own. Logs the start,
+/// (the daemon's session count) is zero, at the lowest scheduling priority (`SCHED_IDLE`,
+/// else nice 19) and on every core ([`preparation_threads`]), with [`FillPriority::Normal`]
+/// always, at the daemon's own, on one core. Logs the start,
 /// each quarter, each pause and the end of every scene, and each complaint as a warning.
 /// `None` when `scenes` is empty.
 ///
@@ -142,8 +152,12 @@ pub fn spawn_background_fill(
                 crate::servo::lowest_priority();
             }
             let busy = || priority == FillPriority::Idle && running.load(Ordering::Relaxed) > 0;
+            let threads = match priority {
+                FillPriority::Idle => preparation_threads(),
+                FillPriority::Normal => 1,
+            };
             for scene in &loaded {
-                fill_in_background(scene, &cache, &busy, &flag);
+                fill_in_background(scene, &cache, (&busy, threads), &flag);
             }
         })
         .map_err(|e| ServerError::Config(format!("prepare_regions: cannot start: {e}")))?;
@@ -154,7 +168,7 @@ pub fn spawn_background_fill(
 fn fill_in_background(
     scene: &Scene,
     cache: &RegionCacheDir,
-    busy: &dyn Fn() -> bool,
+    (busy, threads): (&dyn Fn() -> bool, usize),
     stop: &AtomicBool,
 ) {
     let name = scene.name.clone();
@@ -188,7 +202,15 @@ fn fill_in_background(
         now
     };
     let start = Instant::now();
-    match fill_region_cache(scene, cache, report, &mut progress, &mut paused, stop) {
+    match fill_region_cache(
+        scene,
+        cache,
+        report,
+        &mut progress,
+        &mut paused,
+        threads,
+        stop,
+    ) {
         Ok(Some(s)) => tracing::info!(
             "region cache: {} in {:.1} s",
             summary(&name, &s),

@@ -168,8 +168,17 @@ fn prepare_regions(
         );
     };
     let stop = std::sync::atomic::AtomicBool::new(false);
-    let s = regions::fill_region_cache(&scene, cache, report, &mut progress, &mut || false, &stop)?
-        .context("the fill stopped")?;
+    let threads = regions::preparation_threads();
+    let s = regions::fill_region_cache(
+        &scene,
+        cache,
+        report,
+        &mut progress,
+        &mut || false,
+        threads,
+        &stop,
+    )?
+    .context("the fill stopped")?;
     anyhow::ensure!(
         s.tiles_failed == 0,
         "{} of {} regions failed",

@@ -716,6 +716,16 @@ impl FemBody {
         self.follow.0.as_ref().map(RegionFollower::stats)
     }
 
+    /// The threads a following region's worker prepares regions with from now on (at most
+    /// [`crate::integrate::condensed::MAX_PREPARATION_THREADS`]; the regions it sends are cut
+    /// for as many parts, [`RegionFollower::set_parts`]), for a host that fills the region
+    /// cache without a tick pool. No effect without one.
+    pub fn set_region_preparation_threads(&self, threads: usize) {
+        if let Some(f) = &self.follow.0 {
+            f.set_parts(threads);
+        }
+    }
+
     /// Pauses (or resumes) a following region's background builds of tiles
     /// ([`RegionFollower::set_paused`]). No effect without one.
     pub fn set_region_preparation_paused(&self, on: bool) {
