@@ -749,13 +749,15 @@ impl Worker {
     }
 
     /// Writes the built tile `k` to its file on disk when there is a store.
-    fn store_tile(&self, k: usize, tile: &CondensedSolver) {
+    /// Whether it was written.
+    fn store_tile(&self, k: usize, tile: &CondensedSolver) -> bool {
         let Some(store) = self.store.as_ref() else {
-            return;
+            return false;
         };
         match store.save(k, tile) {
             Ok(true) => {
                 self.shared.tiles_stored.fetch_add(1, Ordering::Relaxed);
+                return true;
             }
             Ok(false) => self.cache_error(format!(
                 "{}: the region cache is full (its size limit); tile {k} kept in memory only",
@@ -763,6 +765,7 @@ impl Worker {
             )),
             Err(e) => self.cache_error(e),
         }
+        false
     }
 
     fn cache_error(&self, e: String) {
@@ -774,10 +777,19 @@ impl Worker {
         }
     }
 
-    /// Builds tile `k` (or, when `read`, reads it from disk) and keeps it; counts it (or the
-    /// failure).
-    fn build_and_keep(&mut self, k: usize, read: bool) -> Option<Arc<CondensedSolver>> {
-        let cache = self.cache.as_ref()?;
+    /// Builds tile `k` (or reads it from disk) and keeps it; counts it (or the failure).
+    fn build_and_keep(&mut self, k: usize) -> Option<Arc<CondensedSolver>> {
+        let (tile, _) = self.obtain(k, true);
+        self.keep(k, tile.as_ref());
+        tile
+    }
+
+    /// Tile `k` read from disk (when `read`) or built and written, and whether it was
+    /// written; counts it (or the failure) and its time.
+    fn obtain(&mut self, k: usize, read: bool) -> (Option<Arc<CondensedSolver>>, bool) {
+        let Some(cache) = self.cache.as_ref() else {
+            return (None, false);
+        };
         let centre_m = cache.centres[k];
         let start = Instant::now();
         let loaded = if read {
@@ -785,34 +797,44 @@ impl Worker {
         } else {
             None
         };
+        let mut written = false;
         let tile = loaded.or_else(|| {
             let built = self.build_tile(centre_m);
             if let Some(t) = &built {
-                self.store_tile(k, t);
+                written = self.store_tile(k, t);
             }
             built
         });
         let s = start.elapsed().as_secs_f64();
-        let built = f64::from_bits(self.shared.tile_build_s.load(Ordering::Relaxed));
+        let total = f64::from_bits(self.shared.tile_build_s.load(Ordering::Relaxed));
         self.shared
             .tile_build_s
-            .store((built + s).to_bits(), Ordering::Relaxed);
-        let cache = self.cache.as_mut()?;
-        match &tile {
+            .store((total + s).to_bits(), Ordering::Relaxed);
+        let counter = match tile {
+            Some(_) => &self.shared.tiles_built,
+            None => {
+                self.shared.failed.fetch_add(1, Ordering::Relaxed);
+                &self.shared.tiles_failed
+            }
+        };
+        counter.fetch_add(1, Ordering::Relaxed);
+        (tile, written)
+    }
+
+    /// Keeps tile `k` in memory ([`Tile::Built`]), or marks it [`Tile::Failed`].
+    fn keep(&mut self, k: usize, tile: Option<&Arc<CondensedSolver>>) {
+        let Some(cache) = self.cache.as_mut() else {
+            return;
+        };
+        cache.tiles[k] = match tile {
             Some(t) => {
-                self.shared.tiles_built.fetch_add(1, Ordering::Relaxed);
                 self.shared
                     .tile_cache_bytes
                     .fetch_add(t.memory_bytes() as u64, Ordering::Relaxed);
-                cache.tiles[k] = Tile::Built(Arc::clone(t));
+                Tile::Built(Arc::clone(t))
             }
-            None => {
-                self.shared.failed.fetch_add(1, Ordering::Relaxed);
-                self.shared.tiles_failed.fetch_add(1, Ordering::Relaxed);
-                cache.tiles[k] = Tile::Failed;
-            }
-        }
-        tile
+            None => Tile::Failed,
+        };
     }
 
     /// Builds the missing tile nearest the last requested point (idle work); `false` when
@@ -828,7 +850,7 @@ impl Worker {
         if self.fill_only {
             self.fill(k);
         } else {
-            self.build_and_keep(k, true);
+            self.build_and_keep(k);
         }
         true
     }
@@ -854,15 +876,14 @@ impl Worker {
                 self.cache_error(e);
             }
         }
-        let stored = self.shared.tiles_stored.load(Ordering::Relaxed);
         // Never read: the file is missing or its header was refused.
-        let tile = self.build_and_keep(k, false);
-        let written = self.shared.tiles_stored.load(Ordering::Relaxed) > stored;
-        if let (Some(t), true, Some(cache)) = (tile, written, self.cache.as_mut()) {
-            self.shared
-                .tile_cache_bytes
-                .fetch_sub(t.memory_bytes() as u64, Ordering::Relaxed);
-            cache.tiles[k] = Tile::OnDisk;
+        match self.obtain(k, false) {
+            (Some(_), true) => {
+                if let Some(cache) = self.cache.as_mut() {
+                    cache.tiles[k] = Tile::OnDisk;
+                }
+            }
+            (tile, _) => self.keep(k, tile.as_ref()),
         }
     }
 
@@ -887,7 +908,7 @@ impl Worker {
             Tile::Failed => return Prepared::Nothing,
             Tile::Missing | Tile::OnDisk => {
                 self.shared.tile_misses.fetch_add(1, Ordering::Relaxed);
-                match self.build_and_keep(k, true) {
+                match self.build_and_keep(k) {
                     Some(t) => t,
                     None => return Prepared::Nothing,
                 }
