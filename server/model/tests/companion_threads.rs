@@ -166,6 +166,10 @@ fn the_companion_beside_the_region_on_two_threads_keeps_the_outputs_and_allocate
         stats.jobs >= 2 * TICKS as u64,
         "a parts job (the forces) and a join (the companion) a tick: {stats:?}"
     );
+    let last = device(TICKS - 1);
+    let stats = crate::common::until_a_worker_ran(&pool, || {
+        threaded.tick(&last).expect("tick with two threads");
+    });
     assert!(
         stats.parts_on_workers > 0,
         "the worker ticked no companion: {stats:?}"

@@ -72,7 +72,10 @@ fn two_threads_give_the_serial_force_to_round_off_and_allocate_nothing() {
         }
     });
     let active = serial.stats().active_particles;
-    let stats = pool.stats();
+    let held = device(&line, TICKS - 1);
+    let stats = crate::common::until_a_worker_ran(&pool, || {
+        threaded.tick(&held).expect("tick with two threads");
+    });
     eprintln!(
         "peak {:.4} mN, largest difference {worst:.3e} N, {active} active particles, pool {stats:?}",
         peak * 1e3

@@ -124,3 +124,22 @@ pub fn assert_active_set_changes_without_jump(
         100.0 * worst_jump
     );
 }
+
+/// Runs `more` (one more tick or job of the work just checked) until a worker of `pool` has
+/// run a part, for at most 60 s, and returns the pool's statistics.
+///
+/// The pool's contract is that the caller takes every part no worker claims, so on a loaded
+/// machine (the suite's other binaries on both cores) a worker may miss all the parts of a
+/// short run without anything being wrong. A test that wants to see a worker's part keeps
+/// going instead of failing then; it still fails if no worker ever runs one.
+pub fn until_a_worker_ran(
+    pool: &haptic_model::pool::TickPool,
+    mut more: impl FnMut(),
+) -> haptic_model::pool::PoolStats {
+    let start = std::time::Instant::now();
+    while pool.stats().parts_on_workers == 0 && start.elapsed() < std::time::Duration::from_secs(60)
+    {
+        more();
+    }
+    pool.stats()
+}
