@@ -11,6 +11,7 @@ use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use haptic_model::ModelError;
 use haptic_model::scene::{self, Scene};
 use haptics_proto::v1::ForceCommand;
 use tokio::sync::{mpsc, watch};
@@ -439,6 +440,21 @@ pub struct SessionManager {
     fifo_permitted: std::sync::OnceLock<bool>,
 }
 
+/// Refuses an offline reference (`[model] offline`: its tick is slower than the 1 kHz loop)
+/// for a session, naming the key and quoting the scene's reason.
+fn refuse_offline(scene: &Scene) -> Result<(), ModelError> {
+    match &scene.offline {
+        Some(reason) => Err(ModelError::field(
+            "model.offline",
+            format!(
+                "scene `{}` is an offline reference, not run in the haptic loop: {reason}",
+                scene.name
+            ),
+        )),
+        None => Ok(()),
+    }
+}
+
 impl SessionManager {
     /// An empty manager.
     pub fn new(config: ServerConfig) -> Self {
@@ -573,6 +589,7 @@ impl SessionManager {
                     let scene = self
                         .load_scene(&rec.scene, &rec.scene_toml)
                         .map_err(|e| e.to_string())?;
+                    refuse_offline(&scene).map_err(|e| e.to_string())?;
                     let slot = self.reserve_slot().map_err(|e| e.to_string())?;
                     let log = Arc::new(RegionCacheLog::default());
                     let body = haptic_model::build_body_with_options(
@@ -710,7 +727,9 @@ impl SessionManager {
     ///
     /// # Errors
     /// [`ServerError::Exhausted`] at the session limit; [`ServerError::Model`] when the
-    /// simulation cannot be built (e.g. an unstable explicit configuration).
+    /// simulation cannot be built (e.g. an unstable explicit configuration), or naming
+    /// `model.offline` with the scene's reason for an offline reference (its tick is slower
+    /// than the 1 kHz loop).
     pub fn start(&self, scene: &Scene) -> Result<Arc<Session>, ServerError> {
         self.start_with_tools(scene, &[])
     }
@@ -725,6 +744,7 @@ impl SessionManager {
         scene: &Scene,
         tool_names: &[NamedTool],
     ) -> Result<Arc<Session>, ServerError> {
+        refuse_offline(scene)?;
         // The slot is taken before the (possibly long) build, so concurrent starts cannot all
         // pass a check and then exceed the limit.
         let slot = self.reserve_slot()?;

@@ -297,3 +297,33 @@ fn every_shipped_scene_passes_the_default_limits() {
         }
     }
 }
+
+/// The shipped scenes too slow for the 1 kHz loop (`[model] offline`: the whole-body `lv_h1`
+/// references) load, but a session of them is refused, naming the key and quoting the scene's
+/// reason (which points at the real-time scene of the same mesh); no session is left behind.
+#[test]
+fn an_offline_reference_is_refused_a_session_with_its_reason() {
+    let scenes = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/scenes");
+    let m = manager(&scenes, ServerConfig::default().max_file_bytes);
+    for file in ["lv_h1.toml", "lv_h1_es.toml"] {
+        let text = std::fs::read_to_string(scenes.join(file)).unwrap();
+        let scene = m.load_scene("", &text).unwrap();
+        let reason = scene.offline.clone().expect("an offline reason");
+        let refused = status(
+            m.start(&scene)
+                .err()
+                .expect("a session of an offline scene"),
+        );
+        assert_eq!(refused.code(), tonic::Code::InvalidArgument, "{file}");
+        let message = refused.message();
+        assert!(
+            message.contains("model.offline") && message.contains(&reason),
+            "{file}: {message}"
+        );
+        assert!(
+            message.contains("lv_h1_condensed.toml"),
+            "{file}: {message}"
+        );
+    }
+    assert!(m.ids().is_empty(), "a session was left: {:?}", m.ids());
+}

@@ -170,6 +170,13 @@ fn every_deploy_scene_loads_with_the_right_mesh() {
             StrainSmoothing::None
         };
         assert_eq!(s.strain_smoothing, smoothing, "{f}");
+        // The whole-body lv_h1 references are the shipped scenes too slow for the 1 kHz loop;
+        // their reason points at the real-time scene of the same mesh.
+        let offline = ["lv_h1.toml", "lv_h1_es.toml"].contains(&f.as_str());
+        assert_eq!(s.offline.is_some(), offline, "{f}: offline {:?}", s.offline);
+        if let Some(reason) = &s.offline {
+            assert!(reason.contains("lv_h1_condensed.toml"), "{f}: {reason}");
+        }
     }
     for (f, _) in expected {
         assert!(files.iter().any(|x| x == f), "deploy/scenes/{f} missing");
@@ -190,6 +197,20 @@ fn minimal_scene_gets_defaults() {
     // Default touchable: every boundary face except those entirely on the clamped ZMIN.
     let zmin = s.mesh.surface("ZMIN").unwrap().triangles.len();
     assert_eq!(s.touchable.len(), s.mesh.boundary_triangles().len() - zmin);
+}
+
+#[test]
+fn an_offline_reason_is_kept_trimmed_and_an_empty_or_long_one_is_refused() {
+    assert_eq!(parse(BASE).unwrap().offline, None);
+    let with = |reason: &str| parse(&format!("[model]\noffline = {reason:?}\n{BASE}"));
+    let s = with("  too slow for 1 kHz; use lv.toml \n").unwrap();
+    assert_eq!(
+        s.offline.as_deref(),
+        Some("too slow for 1 kHz; use lv.toml")
+    );
+    assert_eq!(field_of(with(" \t ")), "model.offline");
+    assert!(with(&"x".repeat(500)).is_ok());
+    assert_eq!(field_of(with(&"x".repeat(501))), "model.offline");
 }
 
 #[test]

@@ -219,6 +219,11 @@ pub struct Scene {
     /// false for static benchmarks that only `haptic-solve` solves ([`crate::build_body`]
     /// refuses them).
     pub realtime: bool,
+    /// Why the scene is an offline reference (`[model] offline`, a sentence for the operator:
+    /// its tick takes longer than the 1 kHz loop allows, and what to run instead), or `None`.
+    /// The model builds and ticks such a scene for its tools (`feel`, `scene_table`, the
+    /// benchmarks); the daemon refuses a session of it with this reason.
+    pub offline: Option<String>,
     /// The mesh in metres.
     pub mesh: TetMesh,
     /// Strain smoothing of linear elements (`[mesh] strain_smoothing`).

@@ -73,6 +73,7 @@ struct RawScene {
 struct RawModel {
     family: Option<String>,
     realtime: Option<bool>,
+    offline: Option<String>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -294,6 +295,7 @@ pub(super) fn parse_scene(
         description: raw.description.unwrap_or_default(),
         family,
         realtime: model.realtime.unwrap_or(true),
+        offline: offline_reason(model.offline)?,
         mesh,
         strain_smoothing,
         material,
@@ -307,4 +309,30 @@ pub(super) fn parse_scene(
         active_region,
         fallback,
     })
+}
+
+/// The longest `[model] offline` reason, bytes: a sentence or two for an operator, not a file.
+const MAX_OFFLINE_REASON_BYTES: usize = 500;
+
+/// `[model] offline`: why the scene is not for the haptic loop, trimmed; refused empty or
+/// longer than [`MAX_OFFLINE_REASON_BYTES`].
+fn offline_reason(raw: Option<String>) -> Result<Option<String>, ModelError> {
+    let Some(reason) = raw else { return Ok(None) };
+    let reason = reason.trim();
+    if reason.is_empty() {
+        return Err(ModelError::field(
+            "model.offline",
+            "is empty: say why the scene cannot run in the 1 kHz loop and what to use instead",
+        ));
+    }
+    if reason.len() > MAX_OFFLINE_REASON_BYTES {
+        return Err(ModelError::field(
+            "model.offline",
+            format!(
+                "is {} bytes; at most {MAX_OFFLINE_REASON_BYTES}",
+                reason.len()
+            ),
+        ));
+    }
+    Ok(Some(reason.to_string()))
 }
