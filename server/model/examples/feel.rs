@@ -124,8 +124,13 @@ fn run(args: Args) -> Result<(), String> {
     };
     let tick = info.tick_s;
     let trace = run_protocol(protocol, body.as_mut(), &line, r, tick)?;
+    let (slowest, _) = trace
+        .tick_wall_s
+        .iter()
+        .enumerate()
+        .fold((0, 0.0), |m, (k, &t)| if t > m.1 { (k, t) } else { m });
     println!(
-        "ticks: {} in all, p50 {:.1} us, p99 {:.1} us, max {:.1} us",
+        "ticks: {} in all, p50 {:.1} us, p99 {:.1} us, max {:.1} us (tick {slowest})",
         trace.tick_wall_s.len(),
         trace.tick_quantile_s(0.5) * 1e6,
         trace.tick_quantile_s(0.99) * 1e6,
