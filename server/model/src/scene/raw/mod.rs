@@ -220,11 +220,11 @@ pub(super) fn parse_scene(
     let family = model_family(model.family.as_deref())?;
     let springs = family == ModelFamily::MassSpring;
     let mesh_raw = required("mesh", raw.mesh)?;
-    let (mesh, length_unit_m) = build_mesh(&mesh_raw, base_dir)?;
+    let (mut mesh, length_unit_m) = build_mesh(&mesh_raw, base_dir)?;
     let strain_smoothing = mesh_rules(&mesh_raw, &mesh, springs)?;
     let (material, fibres) = material_section(raw.material, &mesh, springs)?;
     let boundary = raw.boundary.unwrap_or_default();
-    let (clamped_nodes, touchable) = build_boundary(&boundary, &mesh)?;
+    let (mut clamped_nodes, mut touchable) = build_boundary(&boundary, &mesh)?;
     let raw_integrator = raw.integrator.unwrap_or_default();
     let mut integrator = build_integrator(&raw_integrator)?;
     let present = Present {
@@ -267,7 +267,6 @@ pub(super) fn parse_scene(
         }
         _ => None,
     };
-    let (mut mesh, mut touchable, mut clamped_nodes) = (mesh, touchable, clamped_nodes);
     let mass_spring = if springs {
         let section = required("mass_spring", raw.mass_spring)?;
         let source = origin.table_source(base_dir);
