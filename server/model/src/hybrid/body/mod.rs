@@ -255,10 +255,14 @@ struct HybridScratch {
     /// Forces of the tied particles and point loads on the core nodes, held over a particle
     /// step, N.
     fcoup: Vec<DVec3>,
-    /// The FEM's elastic forces (less the layer's replaced shares) at the core's positions,
-    /// computed on a pool worker beside the proxy and the ties (two threads, implicit core);
-    /// `ffem_ready` until [`HybridBody::update`] has used them.
+    /// The FEM's elastic forces at the core's positions, computed on a pool worker beside the
+    /// proxy and the ties (two threads, implicit core); `ffem_ready` until
+    /// [`HybridBody::update`] has used them.
     ffem: Vec<DVec3>,
+    /// The layer's replaced shares taken out of zero (`inactive_layer = "elements"`), computed
+    /// on the caller after the proxy and the ties while the worker computes `ffem`; zero
+    /// without a layer.
+    flayer: Vec<DVec3>,
     ffem_ready: bool,
     /// The regions whose condensed stiffness the implicit core's matrix holds: the active ones
     /// and their neighbours (`region_mark` flags them).

@@ -138,6 +138,7 @@ impl HybridBody {
                 fp: vec![DVec3::ZERO; n],
                 fcoup: vec![DVec3::ZERO; nc],
                 ffem: vec![DVec3::ZERO; nc],
+                flayer: vec![DVec3::ZERO; nc],
                 ffem_ready: false,
                 matrix_regions: Vec::with_capacity(nv),
                 region_mark: vec![false; nv],

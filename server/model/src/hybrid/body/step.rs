@@ -238,17 +238,21 @@ impl HybridBody {
             return scatter.run(devices, contacts);
         };
         // Two threads: the FEM's forces for the implicit step (they read the core's positions
-        // only) on the worker, beside the proxies and the ties.
+        // only) on the worker, beside the proxies and the ties and then the layer's replaced
+        // shares (about 50 + 20 us against the FEM's 70 us on lv-hybrid).
         let (fem, layer, xc) = (&self.fem, &self.pipeline.layer, &self.state.xc);
-        let ffem = &mut self.scratch.ffem;
+        let (ffem, flayer) = (&mut self.scratch.ffem, &mut self.scratch.flayer);
         pool.join(
-            || scatter.run(devices, contacts),
+            || {
+                scatter.run(devices, contacts);
+                if let Some(layer) = layer {
+                    flayer.iter_mut().for_each(|f| *f = DVec3::ZERO);
+                    layer.subtract_forces(fem, xc, None, flayer);
+                }
+            },
             || {
                 ffem.iter_mut().for_each(|f| *f = DVec3::ZERO);
                 fem.add_internal_forces(xc, None, ffem);
-                if let Some(layer) = layer {
-                    layer.subtract_forces(fem, xc, None, ffem);
-                }
             },
         );
         self.scratch.ffem_ready = true;
@@ -294,8 +298,11 @@ impl HybridBody {
             // Elastic and coupling forces; the viscous operator is in the frozen matrix.
             if std::mem::take(&mut self.scratch.ffem_ready) {
                 let sc = &mut self.scratch;
-                for ((fc, &coupling), &elastic) in sc.fc.iter_mut().zip(&sc.fcoup).zip(&sc.ffem) {
-                    *fc = coupling + elastic;
+                let fem = sc.ffem.iter().zip(&sc.flayer);
+                for ((fc, &coupling), (&elastic, &layer)) in
+                    sc.fc.iter_mut().zip(&sc.fcoup).zip(fem)
+                {
+                    *fc = coupling + (elastic + layer);
                 }
             } else {
                 self.scratch.fc.copy_from_slice(&self.scratch.fcoup);
