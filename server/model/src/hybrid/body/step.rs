@@ -238,8 +238,9 @@ impl HybridBody {
             return scatter.run(devices, contacts);
         };
         // Two threads: the FEM's forces for the implicit step (they read the core's positions
-        // only) on the worker, beside the proxies and the ties and then the layer's replaced
-        // shares (about 50 + 20 us against the FEM's 70 us on lv-hybrid).
+        // only) on the worker; beside them the proxies and the ties, the shorter side, and then
+        // the layer's replaced shares into their own array (docs/benchmarks.md, "the hybrid's
+        // join, rebalanced").
         let (fem, layer, xc) = (&self.fem, &self.pipeline.layer, &self.state.xc);
         let (ffem, flayer) = (&mut self.scratch.ffem, &mut self.scratch.flayer);
         pool.join(
