@@ -338,6 +338,51 @@ fn released_particles_are_tied_again_next_to_a_later_active_set() {
 /// Probe centre on a path in the equatorial plane (the equator is a circle of radius 10 mm):
 /// approach from 5 mm outside, press 1 mm in, hold, slide 0.4 rad (4 mm of arc), hold,
 /// retract to 8 mm outside. Returns (time s, centre m) per 1 ms tick.
+#[test]
+fn activation_after_a_large_core_motion_takes_exactly_the_regions_within_the_radius() {
+    // The activation scan skips the vertices whose rest tie is farther than the radius plus
+    // a bound on their motion (the tie's weights times the core's largest displacement). After
+    // the core moved rigidly by 4 mm and turned by 0.3 rad, with a wave on top, the regions
+    // activated must be exactly those of the vertices within the radius at their current
+    // positions, found here by interpolating every vertex.
+    let mut b = body(MeshfreeVariant::Corrected, false, false);
+    b.hold_regions(true);
+    let rest = b.model().core_mesh.nodes.clone();
+    let turn = DMat3::from_rotation_z(0.3);
+    let shift = DVec3::new(4.0, -2.0, 1.0) * MM;
+    let (xc, _) = b.core_state_mut();
+    for (x, r) in xc.iter_mut().zip(&rest) {
+        *x = turn * *r + shift + DVec3::new(0.0, 0.0, 0.4 * MM * (r.x / (3.0 * MM)).sin());
+    }
+    let xc = b.core_state_mut().0.to_vec();
+    let m = b.model();
+    let current: Vec<DVec3> = m.vertex_tie.iter().map(|t| m.interpolate(t, &xc)).collect();
+    let point = current[current.len() / 3];
+    let radius = 2.5 * MM;
+    let mut expected: Vec<u32> = Vec::new();
+    for (v, x) in current.iter().enumerate() {
+        if (*x - point).length_squared() < radius * radius {
+            let range = m.region_start[v] as usize..m.region_start[v + 1] as usize;
+            let region = &m.region_particles[range];
+            expected.extend(region.iter().filter(|&&p| !m.degenerate[p as usize]));
+        }
+    }
+    expected.sort_unstable();
+    // Enough regions to mean something, all under the cap (no eviction), and the rest
+    // positions alone would miss them (the motion is larger than the radius).
+    assert!(expected.len() > 30, "{} particles expected", expected.len());
+    assert!(expected.len() < m.params.max_active_particles);
+    let rest_near = (m.vertex_tie.iter())
+        .map(|t| m.interpolate(t, &rest))
+        .filter(|x| (*x - point).length_squared() < radius * radius)
+        .count();
+    assert_eq!(rest_near, 0, "the rest positions would find the regions");
+    b.activate_near(point, radius);
+    let mut active = b.active_particles().to_vec();
+    active.sort_unstable();
+    assert_eq!(active, expected);
+}
+
 fn press_hold_slide_path() -> Vec<DVec3> {
     let r_probe = 2.0 * MM;
     let surface = 10.0 * MM;

@@ -15,10 +15,23 @@ impl HybridBody {
     /// [`Self::evaluate_forces`].
     pub fn activate_near(&mut self, point_m: DVec3, radius_m: f64) {
         let r2 = radius_m * radius_m;
+        // A vertex moved at most `vertex_reach` times the core's largest displacement from its
+        // rest tie (`x_v - X_v = sum_k w_k (x_k - X_k)`), so one whose rest tie is farther
+        // than `radius_m` plus that (and 1 nm for round-off) is not a candidate: most of the
+        // surface is skipped without its interpolation, and the list is the same.
+        let moved_m = (self.state.xc.iter().zip(self.fem.rest()))
+            .map(|(x, x0)| (*x - *x0).length_squared())
+            .fold(0.0, f64::max)
+            .sqrt();
+        let reach_m = radius_m + self.regions.vertex_reach * moved_m + 1e-9;
+        let reach2 = reach_m * reach_m;
         // Nearest first: when the cap binds, the regions under the probe get in.
         self.scratch.candidates.clear();
         for v in 0..self.model.outer_rest_m.len() {
-            if self.regions.region_active[v] {
+            // (`f64::max` skips NaN displacements; a NaN position is never a candidate,
+            // with or without the bound.)
+            let far = (self.regions.vertex_rest_m[v] - point_m).length_squared() > reach2;
+            if self.regions.region_active[v] || far {
                 continue;
             }
             let x = self
