@@ -84,6 +84,12 @@ enum Step {
         /// depth list.
         #[arg(long)]
         checkpoint: Option<PathBuf>,
+        /// Contact points inside the touchable triangles longer than this fraction of the
+        /// sphere radius (`IndentParams::point_spacing`; default 0.25, which none of the
+        /// refined levels' triangles under the probe exceed, so their nodes alone carry the
+        /// contact).
+        #[arg(long, default_value_t = 0.25)]
+        point_spacing: f64,
     },
     /// Combine four or more levels into the reference CSV.
     Combine {
@@ -117,7 +123,15 @@ fn main() -> anyhow::Result<()> {
             depths,
             out,
             checkpoint,
-        } => solve_level(&msh, h, &material, &depths, &out, checkpoint.as_deref()),
+            point_spacing,
+        } => solve_level(
+            &msh,
+            (h, point_spacing),
+            &material,
+            &depths,
+            &out,
+            checkpoint.as_deref(),
+        ),
         Step::Combine {
             csv,
             levels_from,
@@ -188,7 +202,7 @@ fn solve_at(run: &mut Indentation<'_>, travel_m: f64) -> anyhow::Result<Solved> 
 
 fn solve_level(
     msh: &Path,
-    h: f64,
+    (h, point_spacing): (f64, f64),
     material: &str,
     depths: &[f64],
     out: &Path,
@@ -212,11 +226,17 @@ fn solve_level(
     };
     let params = IndentParams {
         zero_distance_m: Some((from_x - SURFACE_X_MM - RADIUS_MM) * mm),
+        point_spacing,
         ..IndentParams::default()
     };
     let mut run = Indentation::new(&fem, &touchable, &indenter, &params)?;
+    // The default spacing keeps the key of the checkpoints written before the option existed.
+    let points = match point_spacing == IndentParams::default().point_spacing {
+        true => String::new(),
+        false => format!(" point spacing {point_spacing}"),
+    };
     let key = format!(
-        "{} h {h} {material} nodes {} depths {depths:?}",
+        "{} h {h} {material} nodes {} depths {depths:?}{points}",
         msh.file_name().unwrap_or_default().to_string_lossy(),
         fem.node_count()
     );

@@ -12,6 +12,11 @@
 #
 #   server/model/examples/lv_reference.sh [OUT_DIR] [LEVELS]
 #
+# Environment (defaults: the stored reference's family): GEO_ARGS, more Gmsh arguments (the
+# second mesh family of docs/accuracy.md, "The shallow rows on a second mesh family":
+# "-setnumber r0 0.75 -setnumber phimax 30"); DEPTHS, one depth list for both materials;
+# REFERENCE, the combined CSV to write (default the stored reference below).
+#
 # LEVELS: the size parameters, coarse to fine (default "0.6 0.42 0.3 0.2121 0.15 0.10607:stvk");
 # a level written S:MATERIAL is solved for that material only (the sixth level, 219 211 nodes,
 # for StVK: about 1.7 h and 7.4 GB here; the stable neo-Hookean material to 4 mm there would
@@ -26,6 +31,8 @@ root=$(cd "$(dirname "$0")/../../.." && pwd)
 cd "$root"
 out=${1:-target/lv-reference}
 levels=${2:-"0.6 0.42 0.3 0.2121 0.15 0.10607:stvk"}
+reference=${REFERENCE:-server/model/benches/precision/lv_sphere_reference.csv}
+read -r -a geo_args <<< "${GEO_ARGS:-}"
 command -v gmsh >/dev/null || { echo "gmsh not found: run tests/install-gmsh.sh" >&2; exit 1; }
 mkdir -p "$out"
 cargo build --release -p haptic-model --example lv_reference
@@ -36,9 +43,10 @@ for level in $levels; do
   [[ $level == *:* ]] && materials=${level#*:}
   msh="$out/half_$s.msh"
   [[ -f $msh ]] || gmsh server/model/examples/lv_probe_half.geo -3 -format msh22 \
-    -setnumber s "$s" -o "$msh" > "$out/gmsh_$s.log"
+    -setnumber s "$s" "${geo_args[@]}" -o "$msh" > "$out/gmsh_$s.log"
   for material in $materials; do
     if [[ $material == stvk ]]; then depths=0.25,0.5,1; else depths=0.25,0.5,1,1.5,2,3,4; fi
+    depths=${DEPTHS:-$depths}
     csv="$out/level_${s}_$material.csv"
     csvs+=("$csv")
     [[ -f $csv.done ]] && continue
@@ -57,4 +65,4 @@ join() { local IFS=,; echo "$*"; }
 existing=()
 for c in "${csvs[@]}"; do [[ -f $c ]] && existing+=("$c"); done
 target/release/examples/lv_reference combine --csv "$(join "${existing[@]}")" \
-  --out server/model/benches/precision/lv_sphere_reference.csv --markdown
+  --out "$reference" --markdown

@@ -9,6 +9,10 @@
 //! (a difference it cannot resolve is not an error), and steady (no tick-to-tick change above
 //! 7 % of the held force).
 //!
+//! A second test holds the reference against the same solves on a second, differently graded
+//! mesh family (`benches/precision/lv_sphere_reference_local.csv`): every shared row within
+//! the two bands.
+//!
 //! Only the CSV's first five columns are read (material, depth convention, depth in mm, force
 //! and uncertainty in N), so a newer reference with the same columns replaces it unchanged.
 //! Cost: about 22 s of simulated time on 474 quadratic tets, a few seconds of run time.
@@ -33,29 +37,43 @@ struct RefPoint {
 
 /// The device-convention rows of `material` (scene name) from `min_mm` to `max_mm`, by depth.
 fn reference(material: &str, min_mm: f64, max_mm: f64) -> Vec<RefPoint> {
-    let path =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/precision/lv_sphere_reference.csv");
-    let text = std::fs::read_to_string(&path).expect("the stored lv-probe reference");
-    let mut rows: Vec<RefPoint> = text
-        .lines()
-        .map(str::trim)
-        .filter(|l| !l.is_empty() && !l.starts_with('#') && !l.starts_with("material"))
-        .filter_map(|l| {
-            let f: Vec<&str> = l.split(',').map(str::trim).collect();
-            if f.len() < 5 || f[0] != material || f[1] != "device" {
-                return None;
-            }
-            let num = |s: &str| s.parse::<f64>().unwrap_or_else(|e| panic!("{l}: {e}"));
-            let depth_mm = num(f[2]);
-            (depth_mm >= min_mm - 1e-9 && depth_mm <= max_mm + 1e-9).then(|| RefPoint {
-                depth_m: depth_mm * 1e-3,
-                force_n: num(f[3]),
-                uncertainty_n: num(f[4]),
-            })
-        })
+    let mut rows: Vec<RefPoint> = rows_of(REFERENCE_CSV)
+        .into_iter()
+        .filter(|(m, c, _)| m == material && c == "device")
+        .map(|(_, _, r)| r)
+        .filter(|r| r.depth_m >= min_mm * 1e-3 - 1e-12 && r.depth_m <= max_mm * 1e-3 + 1e-12)
         .collect();
     rows.sort_by(|a, b| a.depth_m.total_cmp(&b.depth_m));
     rows
+}
+
+/// The stored reference.
+const REFERENCE_CSV: &str = "benches/precision/lv_sphere_reference.csv";
+
+/// The same solves on the second mesh family (docs/accuracy.md, "Refining further under the
+/// probe: a second mesh family").
+const SECOND_FAMILY_CSV: &str = "benches/precision/lv_sphere_reference_local.csv";
+
+/// Every row of a reference CSV (under the model crate): material, depth convention, and the
+/// depth, force and uncertainty.
+fn rows_of(file: &str) -> Vec<(String, String, RefPoint)> {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(file);
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{file}: {e}"));
+    text.lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty() && !l.starts_with('#') && !l.starts_with("material"))
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').map(str::trim).collect();
+            assert!(f.len() >= 5, "{file}: {l}");
+            let num = |s: &str| s.parse::<f64>().unwrap_or_else(|e| panic!("{l}: {e}"));
+            let point = RefPoint {
+                depth_m: num(f[2]) * 1e-3,
+                force_n: num(f[3]),
+                uncertainty_n: num(f[4]),
+            };
+            (f[0].to_string(), f[1].to_string(), point)
+        })
+        .collect()
 }
 
 /// Presses the built-in `lv` with `model` through the reference's depths and checks each hold.
@@ -119,4 +137,41 @@ fn default_lv_stvk_is_within_the_jnd_of_the_reference_to_1_5_mm() {
 #[test]
 fn default_lv_stable_neo_hookean_is_within_the_jnd_of_the_reference_to_4_mm() {
     check(MaterialModel::StableNeoHookean, 0.25, 4.0, 5);
+}
+
+#[test]
+fn the_second_mesh_family_agrees_with_the_reference_within_their_bands() {
+    // Two self-convergence studies of our solver on differently graded meshes (the second
+    // refined to 0.053 mm within 0.75 mm of the probe): every row they share must agree
+    // within the sum of their uncertainties, or one of the bands is too narrow.
+    let main = rows_of(REFERENCE_CSV);
+    let mut compared = 0;
+    for (material, convention, second) in rows_of(SECOND_FAMILY_CSV) {
+        let Some((_, _, first)) = main.iter().find(|(m, c, r)| {
+            *m == material && *c == convention && (r.depth_m - second.depth_m).abs() < 1e-12
+        }) else {
+            continue;
+        };
+        let gap = (second.force_n - first.force_n).abs();
+        let band = first.uncertainty_n + second.uncertainty_n;
+        eprintln!(
+            "{material} {convention} {:.2} mm: {:.4} +- {:.4} against {:.4} +- {:.4} mN",
+            second.depth_m * 1e3,
+            second.force_n * 1e3,
+            second.uncertainty_n * 1e3,
+            first.force_n * 1e3,
+            first.uncertainty_n * 1e3
+        );
+        assert!(
+            gap <= band,
+            "{material} {convention} at {:.2} mm: the families differ by {:.4} mN, more than \
+             their bands' {:.4} mN",
+            second.depth_m * 1e3,
+            gap * 1e3,
+            band * 1e3
+        );
+        compared += 1;
+    }
+    // Both materials, both conventions, 0.25 / 0.5 / 1 mm.
+    assert_eq!(compared, 12, "rows shared by the two references");
 }
