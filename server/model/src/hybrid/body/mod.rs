@@ -221,12 +221,8 @@ struct RegionSet {
     changed: bool,
     /// [`HybridBody::hold_regions`]: no release.
     hold: bool,
-    /// Each outer vertex's tie at the core's rest positions, m: the origin of the
-    /// activation scan's bound ([`HybridBody::activate_near`]).
-    vertex_rest_m: Vec<DVec3>,
-    /// The largest `sum_k |w_k|` of an outer vertex's tie: a vertex is at most this times the
-    /// core's largest nodal displacement from `vertex_rest_m`.
-    vertex_reach: f64,
+    /// The activation scan's bound ([`HybridBody::activate_near`]).
+    vertex_bounds: regions::VertexBounds,
 }
 
 /// Caches rebuilt when the active set changes.

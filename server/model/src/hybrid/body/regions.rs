@@ -2,7 +2,31 @@
 //! documentation of [`super`], a tick's step 1).
 
 use super::HybridBody;
+use crate::hybrid::HybridModel;
 use glam::DVec3;
+
+/// The activation scan's bound ([`HybridBody::activate_near`]).
+#[derive(Debug)]
+pub(super) struct VertexBounds {
+    /// Each outer vertex's tie at the core's rest positions, m.
+    rest_m: Vec<DVec3>,
+    /// The largest `sum_k |w_k|` of an outer vertex's tie: a vertex is at most this times the
+    /// core's largest nodal displacement from `rest_m`.
+    reach: f64,
+}
+
+impl VertexBounds {
+    /// The bounds of `model`'s outer vertices over the core's rest positions `core_rest_m` (m).
+    pub(super) fn new(model: &HybridModel, core_rest_m: &[DVec3]) -> Self {
+        let rest_m = (model.vertex_tie.iter())
+            .map(|t| model.interpolate(t, core_rest_m))
+            .collect();
+        let reach = (model.vertex_tie.iter())
+            .map(|t| model.tie_nodes(t).w.iter().map(|w| w.abs()).sum::<f64>())
+            .fold(0.0, f64::max);
+        Self { rest_m, reach }
+    }
+}
 
 impl HybridBody {
     /// Activates the regions of the outer vertices within `radius_m` of `point_m` (m, at
@@ -15,7 +39,7 @@ impl HybridBody {
     /// [`Self::evaluate_forces`].
     pub fn activate_near(&mut self, point_m: DVec3, radius_m: f64) {
         let r2 = radius_m * radius_m;
-        // A vertex moved at most `vertex_reach` times the core's largest displacement from its
+        // A vertex moved at most `reach` times the core's largest displacement from its
         // rest tie (`x_v - X_v = sum_k w_k (x_k - X_k)`), so one whose rest tie is farther
         // than `radius_m` plus that (and 1 nm for round-off) is not a candidate: most of the
         // surface is skipped without its interpolation, and the list is the same.
@@ -23,14 +47,14 @@ impl HybridBody {
             .map(|(x, x0)| (*x - *x0).length_squared())
             .fold(0.0, f64::max)
             .sqrt();
-        let reach_m = radius_m + self.regions.vertex_reach * moved_m + 1e-9;
+        let reach_m = radius_m + self.regions.vertex_bounds.reach * moved_m + 1e-9;
         let reach2 = reach_m * reach_m;
         // Nearest first: when the cap binds, the regions under the probe get in.
         self.scratch.candidates.clear();
         for v in 0..self.model.outer_rest_m.len() {
             // (`f64::max` skips NaN displacements; a NaN position is never a candidate,
             // with or without the bound.)
-            let far = (self.regions.vertex_rest_m[v] - point_m).length_squared() > reach2;
+            let far = (self.regions.vertex_bounds.rest_m[v] - point_m).length_squared() > reach2;
             if self.regions.region_active[v] || far {
                 continue;
             }

@@ -122,12 +122,7 @@ impl HybridBody {
                 vertex_adj: Vec::new(),
                 changed: false,
                 hold: false,
-                vertex_rest_m: (model.vertex_tie.iter())
-                    .map(|t| model.interpolate(t, fem.rest()))
-                    .collect(),
-                vertex_reach: (model.vertex_tie.iter())
-                    .map(|t| model.tie_nodes(t).w.iter().map(|w| w.abs()).sum::<f64>())
-                    .fold(0.0, f64::max),
+                vertex_bounds: super::regions::VertexBounds::new(&model, fem.rest()),
             },
             pipeline: HybridPipeline {
                 block: TermBlock::new(&model.cloud, capacity),
