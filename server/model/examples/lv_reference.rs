@@ -109,6 +109,13 @@ enum Step {
         /// Also print the Markdown tables of docs/accuracy.md.
         #[arg(long)]
         markdown: bool,
+        /// Mesh ensembles: sizes within this fraction of each other (for example 0.04) are
+        /// samples of one level, meshed at slightly different size parameters. The level's
+        /// force is their mean (at their mean size); the finest level's single-mesh noise (its
+        /// samples' deviation about a line in h) is written, and the three finest levels' order
+        /// is also given over their means moved by one standard error either way.
+        #[arg(long)]
+        ensemble: Option<f64>,
     },
 }
 
@@ -137,7 +144,8 @@ fn main() -> anyhow::Result<()> {
             levels_from,
             out,
             markdown,
-        } => combine(&csv, levels_from.as_deref(), &out, markdown),
+            ensemble,
+        } => combine(&csv, levels_from.as_deref(), &out, (markdown, ensemble)),
     }
 }
 
@@ -695,7 +703,7 @@ fn combine(
     paths: &[PathBuf],
     levels_from: Option<&Path>,
     out: &Path,
-    markdown: bool,
+    (markdown, ensemble): (bool, Option<f64>),
 ) -> anyhow::Result<()> {
     let mut rows = read_levels(paths)?;
     if let Some(reference) = levels_from {
@@ -705,12 +713,17 @@ fn combine(
             reference_levels(&text).map_err(|e| anyhow::anyhow!("{}: {e}", reference.display()))?;
         rows = merge_levels(rows, stored);
     }
-    let mut hs: Vec<f64> = rows.iter().map(|r| r.h_mm).collect();
-    hs.sort_by(|a, b| b.total_cmp(a));
-    hs.dedup();
-    if hs.len() < 3 {
-        anyhow::bail!("{} level(s): Richardson needs three or more", hs.len());
+    let mut sizes: Vec<f64> = rows.iter().map(|r| r.h_mm).collect();
+    sizes.sort_by(|a, b| b.total_cmp(a));
+    sizes.dedup();
+    let groups = size_groups(&sizes, ensemble);
+    if groups.len() < 3 {
+        anyhow::bail!("{} level(s): Richardson needs three or more", groups.len());
     }
+    let hs: Vec<f64> = groups
+        .iter()
+        .map(|g| g.iter().sum::<f64>() / g.len() as f64)
+        .collect();
     let mut keys: Vec<(String, String, f64)> = rows
         .iter()
         .map(|r| (r.material.clone(), r.convention.clone(), r.depth_mm))
@@ -721,47 +734,138 @@ fn combine(
     let mut md = String::new();
     for key in &keys {
         let (material, conv, depth) = key;
-        let at = |h: f64| {
-            rows.iter().find(|r| {
-                &r.material == material
-                    && &r.convention == conv
-                    && r.depth_mm == *depth
-                    && r.h_mm == h
-            })
-        };
-        let levels: Vec<(f64, f64)> = hs
+        let stats: Vec<Option<LevelStat>> = groups
             .iter()
-            .filter_map(|&h| at(h).map(|r| (h, r.force_n)))
+            .map(|g| {
+                LevelStat::of(rows.iter().filter(|r| {
+                    &r.material == material
+                        && &r.convention == conv
+                        && r.depth_mm == *depth
+                        && g.contains(&r.h_mm)
+                }))
+            })
             .collect();
-        if levels.len() < 3 {
+        let present: Vec<(f64, LevelStat)> = hs
+            .iter()
+            .zip(&stats)
+            .filter_map(|(&h, s)| s.map(|s| (h, s)))
+            .collect();
+        if present.len() < 3 {
             continue;
         }
-        let e = Estimate::of(&levels);
-        csv_row(&mut csv, key, &e, hs.iter().map(|h| at(*h)))?;
-        md_row(&mut md, key, &e, &levels)?;
+        let levels: Vec<(f64, f64)> = present.iter().map(|(h, s)| (*h, s.force_n)).collect();
+        let sd = level_sd(present.iter().map(|p| p.1));
+        let se: Vec<f64> = present
+            .iter()
+            .zip(&sd)
+            .map(|((_, s), sd)| sd.map_or(0.0, |sd| sd / (s.samples as f64).sqrt()))
+            .collect();
+        let e = Estimate::of(&levels, &se, *sd.last().unwrap_or(&None));
+        csv_row(
+            &mut csv,
+            key,
+            &e,
+            stats.iter().map(|s| s.map(|s| s.force_n)),
+        )?;
+        md_row(&mut md, key, &e, &present)?;
     }
     std::fs::write(out, csv)?;
-    let nodes: Vec<String> = hs
+    let described: Vec<String> = groups
         .iter()
-        .map(|&h| {
-            rows.iter()
-                .filter(|r| r.h_mm == h)
+        .zip(&hs)
+        .map(|(g, &h)| {
+            let nodes = rows
+                .iter()
+                .filter(|r| g.contains(&r.h_mm))
                 .map(|r| r.nodes)
                 .max()
                 .filter(|n| *n > 0)
-                .map_or(format!("{h} mm"), |n| format!("{h} mm: {n} nodes"))
+                .map_or(String::new(), |n| format!(": {n} nodes"));
+            if g.len() > 1 {
+                let list: Vec<String> = g.iter().map(|s| s.to_string()).collect();
+                format!("{h:.5} mm{nodes} (samples {})", list.join(" / "))
+            } else {
+                format!("{h} mm{nodes}")
+            }
         })
         .collect();
-    println!("levels: {}", nodes.join(", "));
+    println!("levels: {}", described.join(", "));
     println!("wrote {}", out.display());
     if markdown {
         println!(
-            "| material | convention | depth, mm | levels, mN (coarse to fine) | reference, mN | order (3 finest) | order (3 before) | order (least squares) | Richardson (3 finest), GCI |"
+            "| material | convention | depth, mm | levels, mN (coarse to fine; samples) | reference, mN | order (3 finest) | order (3 before) | order (least squares) | Richardson (3 finest), GCI | single-mesh noise, mN | order (3 finest), +- 1 standard error |"
         );
-        println!("|---|---|---|---|---|---|---|---|---|");
+        println!("|---|---|---|---|---|---|---|---|---|---|---|");
         print!("{md}");
     }
     Ok(())
+}
+
+/// The sizes `hs` (mm, coarse to fine) in groups, coarse to fine: with `rel`, a size joins
+/// the group before it when within `rel` (relative) of that group's first (largest) size;
+/// without, one size per group.
+fn size_groups(hs: &[f64], rel: Option<f64>) -> Vec<Vec<f64>> {
+    let mut groups: Vec<Vec<f64>> = Vec::new();
+    for &h in hs {
+        match groups.last_mut() {
+            Some(g) if rel.is_some_and(|r| g[0] - h <= r * g[0]) => g.push(h),
+            _ => groups.push(vec![h]),
+        }
+    }
+    groups
+}
+
+/// The samples of one level (one material, convention and depth): the mean force (N), their
+/// count and the variance of their residuals about a straight line in h (N^2; 0 below three
+/// samples), so the level's own trend over its sizes is not counted as noise.
+#[derive(Debug, Clone, Copy)]
+struct LevelStat {
+    force_n: f64,
+    samples: usize,
+    variance: f64,
+}
+
+impl LevelStat {
+    fn of<'a>(rows: impl Iterator<Item = &'a LevelRow>) -> Option<Self> {
+        let hf: Vec<(f64, f64)> = rows.map(|r| (r.h_mm, r.force_n)).collect();
+        let n = hf.len();
+        if n == 0 {
+            return None;
+        }
+        let mean = |v: &dyn Fn(&(f64, f64)) -> f64| hf.iter().map(v).sum::<f64>() / n as f64;
+        let (hm, fm) = (mean(&|x| x.0), mean(&|x| x.1));
+        let shh: f64 = hf.iter().map(|x| (x.0 - hm).powi(2)).sum();
+        let shf: f64 = hf.iter().map(|x| (x.0 - hm) * (x.1 - fm)).sum();
+        let slope = if shh > 0.0 { shf / shh } else { 0.0 };
+        let variance = if n > 2 {
+            hf.iter()
+                .map(|x| (x.1 - fm - slope * (x.0 - hm)).powi(2))
+                .sum::<f64>()
+                / (n - 2) as f64
+        } else {
+            0.0
+        };
+        Some(Self {
+            force_n: fm,
+            samples: n,
+            variance,
+        })
+    }
+}
+
+/// Each level's single-mesh noise (N), coarse to fine: the deviation of its own samples
+/// ([`LevelStat`], three or more), else the nearest coarser level's (the noise shrinks with
+/// the size), else `None`.
+fn level_sd(stats: impl Iterator<Item = LevelStat>) -> Vec<Option<f64>> {
+    let mut last = None;
+    stats
+        .map(|s| {
+            if s.samples > 2 {
+                last = Some(s.variance.sqrt());
+            }
+            last
+        })
+        .collect()
 }
 
 /// The reference file's comment lines and column names for the levels `hs` (mm).
@@ -778,12 +882,16 @@ fn csv_header(hs: &[f64]) -> anyhow::Result<String> {
          # Richardson order of the three finest levels (empty: changes not monotone and\n\
          # shrinking, or an order outside 0.2-10) and of the three before, the least-squares\n\
          # fit's order, Richardson's value through the three finest levels and its GCI (N; no\n\
-         # order: the finest level and the spread of the three finest), then each level's force\n\
-         # (N) in columns f_h<size under the probe, mm>_n, coarse to fine (empty: not solved).\n",
+         # order: the finest level and the spread of the three finest); with mesh ensembles\n\
+         # (`combine --ensemble`: each level the mean of meshes at slightly different sizes) the\n\
+         # finest level's single-mesh noise (standard deviation, N) and the three finest levels' order\n\
+         # range over their means moved by one standard error (empty: none, or some moves not\n\
+         # monotone); then each level's force (N; the samples' mean) in columns\n\
+         # f_h<size under the probe, mm>_n, coarse to fine (empty: not solved).\n",
     );
     write!(
         csv,
-        "material,depth_convention,depth_mm,force_n,uncertainty_n,observed_order,previous_order,ls_order,richardson_force_n,gci_n"
+        "material,depth_convention,depth_mm,force_n,uncertainty_n,observed_order,previous_order,ls_order,richardson_force_n,gci_n,noise_sd_n,order_min,order_max"
     )?;
     for h in hs {
         write!(csv, ",f_h{h:.4}_n")?;
@@ -802,10 +910,17 @@ struct Estimate {
     order: Option<f64>,
     previous: Option<f64>,
     ls: Option<(f64, f64, f64)>,
+    /// The finest level's single-mesh noise (N), with ensembles.
+    noise: Option<f64>,
+    /// The three finest levels' order over their values moved by `se` either way (all eight
+    /// moves monotone and shrinking), with ensembles.
+    order_range: Option<(f64, f64)>,
 }
 
 impl Estimate {
-    fn of(levels: &[(f64, f64)]) -> Self {
+    /// `se[i]`: the standard error of level i's force (N; 0 without ensembles); `noise`: the
+    /// single mesh's noise, when known.
+    fn of(levels: &[(f64, f64)], se: &[f64], noise: Option<f64>) -> Self {
         let k = levels.len();
         let tri = |i: usize| {
             richardson(
@@ -833,6 +948,24 @@ impl Estimate {
         } else {
             None
         };
+        let order_range = noise.and_then(|_| {
+            let (h, f) = (
+                [levels[k - 3].0, levels[k - 2].0, levels[k - 1].0],
+                [levels[k - 3].1, levels[k - 2].1, levels[k - 1].1],
+            );
+            let moved = (0..8).map(|signs: usize| {
+                let g: [f64; 3] = std::array::from_fn(|i| {
+                    let sign = if signs >> i & 1 == 1 { 1.0 } else { -1.0 };
+                    f[i] + sign * se[k - 3 + i]
+                });
+                richardson(h, g).map(|t| t.2)
+            });
+            moved.collect::<Option<Vec<f64>>>().map(|p| {
+                p.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), &x| {
+                    (lo.min(x), hi.max(x))
+                })
+            })
+        });
         Self {
             value,
             unc,
@@ -841,16 +974,18 @@ impl Estimate {
             order,
             previous,
             ls,
+            noise,
+            order_range,
         }
     }
 }
 
 /// One line of the reference file: the estimate, then each level's force.
-fn csv_row<'a>(
+fn csv_row(
     csv: &mut String,
     (material, conv, depth): &(String, String, f64),
     e: &Estimate,
-    at_levels: impl Iterator<Item = Option<&'a LevelRow>>,
+    at_levels: impl Iterator<Item = Option<f64>>,
 ) -> anyhow::Result<()> {
     let Estimate {
         value,
@@ -867,9 +1002,16 @@ fn csv_row<'a>(
         fmt_order(e.previous),
         fmt_order(e.ls.map(|l| l.2)),
     )?;
-    for r in at_levels {
-        match r {
-            Some(r) => write!(csv, ",{:.6e}", r.force_n)?,
+    let noise = e.noise.map_or(String::new(), |n| format!("{n:.3e}"));
+    write!(
+        csv,
+        ",{noise},{},{}",
+        fmt_order(e.order_range.map(|r| r.0)),
+        fmt_order(e.order_range.map(|r| r.1))
+    )?;
+    for f in at_levels {
+        match f {
+            Some(f) => write!(csv, ",{f:.6e}")?,
             None => csv.push(','),
         }
     }
@@ -882,14 +1024,18 @@ fn md_row(
     md: &mut String,
     (material, conv, depth): &(String, String, f64),
     e: &Estimate,
-    levels: &[(f64, f64)],
+    levels: &[(f64, LevelStat)],
 ) -> anyhow::Result<()> {
     writeln!(
         md,
-        "| {material} | {conv} | {depth} | {} | **{:.4} +- {:.4} ({:.1} %)** | {} | {} | {} | {:.4} +- {:.4} ({:.1} %) |",
+        "| {material} | {conv} | {depth} | {} | **{:.4} +- {:.4} ({:.1} %)** | {} | {} | {} | {:.4} +- {:.4} ({:.1} %) | {} | {} |",
         levels
             .iter()
-            .map(|l| format!("{:.4}", l.1 * 1e3))
+            .map(|(_, s)| if s.samples > 1 {
+                format!("{:.4} ({})", s.force_n * 1e3, s.samples)
+            } else {
+                format!("{:.4}", s.force_n * 1e3)
+            })
             .collect::<Vec<_>>()
             .join(" / "),
         e.value * 1e3,
@@ -900,7 +1046,10 @@ fn md_row(
         e.ls.map_or("-".into(), |l| format!("{:.2}", l.2)),
         e.richardson_value * 1e3,
         e.gci * 1e3,
-        100.0 * e.gci / e.richardson_value
+        100.0 * e.gci / e.richardson_value,
+        e.noise.map_or("-".into(), |n| format!("{:.4}", n * 1e3)),
+        e.order_range
+            .map_or("-".into(), |(lo, hi)| format!("{lo:.2} to {hi:.2}")),
     )?;
     Ok(())
 }
@@ -958,6 +1107,61 @@ mod tests {
         );
         // Four levels are needed.
         assert!(eca_hoekstra(&levels[..3]).is_none());
+    }
+
+    #[test]
+    fn ensembles_group_by_size_average_out_their_noise_and_bracket_the_true_order() {
+        // f = 4 + 0.5 h^1.5 on five levels, three meshes each at 1.02 / 1 / 0.98 times the
+        // level's size, with a mesh noise of +d / -d / 0 (d = 2 % of the finest level's
+        // distance from the limit): the groups are the five levels, each level's deviation is
+        // the noise, and the three finest means' order range holds the true 1.5.
+        let law = |h: f64| 4.0 + 0.5 * h.powf(1.5);
+        let levels = [0.2121, 0.15, 0.10607, 0.075, 0.053];
+        let d = 0.02 * 0.5 * 0.053f64.powf(1.5);
+        let mut rows = Vec::new();
+        for &h in &levels {
+            for (scale, noise) in [(1.02, d), (1.0, -d), (0.98, 0.0)] {
+                rows.push(LevelRow {
+                    material: "stvk".into(),
+                    convention: "sphere".into(),
+                    depth_mm: 0.5,
+                    h_mm: h * scale,
+                    nodes: 0,
+                    force_n: law(h * scale) + noise,
+                });
+            }
+        }
+        let mut sizes: Vec<f64> = rows.iter().map(|r| r.h_mm).collect();
+        sizes.sort_by(|a, b| b.total_cmp(a));
+        let groups = size_groups(&sizes, Some(0.05));
+        assert_eq!(groups.len(), 5, "{groups:?}");
+        assert!(groups.iter().all(|g| g.len() == 3));
+        assert_eq!(size_groups(&sizes, None).len(), 15);
+        let stats: Vec<LevelStat> = groups
+            .iter()
+            .map(|g| LevelStat::of(rows.iter().filter(|r| g.contains(&r.h_mm))).expect("rows"))
+            .collect();
+        let sds = level_sd(stats.iter().copied());
+        let sd = sds[4].expect("ensembles");
+        // About a line in h, the noise (+d, -d, 0) at sizes (1.02, 1, 0.98) h leaves the
+        // residuals (d / 2, -d, d / 2): a deviation of sqrt(1.5) d over one degree of freedom
+        // per level (the law's curvature over +-2 % adds a little).
+        let expected = 1.5f64.sqrt() * d;
+        assert!((sd / expected - 1.0).abs() < 0.1, "{sd} against {expected}");
+        let hs: Vec<f64> = groups.iter().map(|g| g.iter().sum::<f64>() / 3.0).collect();
+        let means: Vec<(f64, f64)> = hs
+            .iter()
+            .zip(&stats)
+            .map(|(h, s)| (*h, s.force_n))
+            .collect();
+        assert!(sds.iter().all(Option::is_some));
+        let se = vec![sd / 3f64.sqrt(); 5];
+        let e = Estimate::of(&means, &se, Some(sd));
+        let (lo, hi) = e.order_range.expect("monotone within one standard error");
+        assert!(lo < 1.5 && 1.5 < hi && hi - lo < 0.5, "{lo} to {hi}");
+        assert!((e.value - 4.0).abs() < e.unc, "{} +- {}", e.value, e.unc);
+        // Without ensembles no range is claimed.
+        assert!(Estimate::of(&means, &[0.0; 5], None).order_range.is_none());
     }
 
     #[test]

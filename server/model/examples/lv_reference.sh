@@ -15,7 +15,10 @@
 # Environment (defaults: the stored reference's family): GEO_ARGS, more Gmsh arguments (the
 # second mesh family of docs/accuracy.md, "The shallow rows on a second mesh family":
 # "-setnumber r0 0.75 -setnumber phimax 30"); DEPTHS, one depth list for both materials;
-# REFERENCE, the combined CSV to write (default the stored reference below).
+# REFERENCE, the combined CSV to write (default the stored reference below); ENSEMBLE, a
+# fraction passed as `combine --ensemble` (sizes within it of each other are meshes of one
+# level, averaged: docs/accuracy.md, "Mesh ensembles"); LEVELS_FROM, a reference CSV whose
+# levels join the solved ones (`combine --levels-from`).
 #
 # LEVELS: the size parameters, coarse to fine (default "0.6 0.42 0.3 0.2121 0.15 0.10607:stvk");
 # a level written S:MATERIAL is solved for that material only (the sixth level, 219 211 nodes,
@@ -64,5 +67,8 @@ done
 join() { local IFS=,; echo "$*"; }
 existing=()
 for c in "${csvs[@]}"; do [[ -f $c ]] && existing+=("$c"); done
+extra=()
+[[ -n ${ENSEMBLE:-} ]] && extra+=(--ensemble "$ENSEMBLE")
+[[ -n ${LEVELS_FROM:-} ]] && extra+=(--levels-from "$LEVELS_FROM")
 target/release/examples/lv_reference combine --csv "$(join "${existing[@]}")" \
-  --out "$reference" --markdown
+  --out "$reference" --markdown "${extra[@]}"
