@@ -93,6 +93,29 @@ pub(crate) trait LaneVec: Lane {
         }
     }
 
+    /// Adds lane l's `(v[0], v[1], v[2])` to the three `f64` at `base.offset(offsets[l])`
+    /// (`base` the first `f64` of a `[DVec3]`, `offsets[l]` three times a point index), lane
+    /// after lane, so lanes may name the same point. Scalar unless a lane type has a faster way.
+    ///
+    /// # Safety
+    /// `offsets` holds at least [`LaneVec::WIDTH`] entries, the three `f64` from every
+    /// `base.offset(offsets[l])` for l below it are writable, and nothing else accesses them
+    /// meanwhile.
+    #[inline(always)]
+    unsafe fn scatter_add3(v: [Self; 3], base: *mut f64, offsets: &[i32]) {
+        let offsets = &offsets[..Self::WIDTH];
+        let mut a = [[0.0; 8]; 3];
+        for (c, vc) in v.iter().enumerate() {
+            vc.store(&mut a[c]);
+        }
+        for (l, &o) in offsets.iter().enumerate() {
+            for (c, ac) in a.iter().enumerate() {
+                // SAFETY: the caller's contract.
+                unsafe { *base.offset(o as isize + c as isize) += ac[l] };
+            }
+        }
+    }
+
     /// The largest lane (a NaN lane makes it NaN; callers compare with `<`, so a NaN never
     /// passes a check).
     #[inline(always)]
@@ -235,12 +258,16 @@ mod x86 {
     use super::{Lane, LaneVec};
     use crate::simd::isa::{Avx2Fma, Avx512};
     use std::arch::x86_64::{
-        __m128i, __m256d, __m256i, __m512d, _mm_loadu_si128, _mm256_add_pd, _mm256_div_pd,
-        _mm256_fmadd_pd, _mm256_fmsub_pd, _mm256_i32gather_pd, _mm256_loadu_pd, _mm256_loadu_si256,
-        _mm256_maskload_pd, _mm256_mul_pd, _mm256_permute2f128_pd, _mm256_set_epi64x,
-        _mm256_set1_pd, _mm256_storeu_pd, _mm256_sub_pd, _mm256_unpackhi_pd, _mm256_unpacklo_pd,
-        _mm512_add_pd, _mm512_div_pd, _mm512_fmadd_pd, _mm512_fmsub_pd, _mm512_i32gather_pd,
-        _mm512_loadu_pd, _mm512_mul_pd, _mm512_set1_pd, _mm512_storeu_pd, _mm512_sub_pd,
+        __m128i, __m256d, __m256i, __m512d, _mm_add_pd, _mm_add_sd, _mm_load_sd, _mm_loadu_pd,
+        _mm_loadu_si128, _mm_store_sd, _mm_storeu_pd, _mm256_add_pd, _mm256_castpd256_pd128,
+        _mm256_div_pd, _mm256_extractf128_pd, _mm256_fmadd_pd, _mm256_fmsub_pd,
+        _mm256_i32gather_pd, _mm256_loadu_pd, _mm256_loadu_si256, _mm256_maskload_pd,
+        _mm256_maskz_loadu_pd, _mm256_mul_pd, _mm256_permute2f128_pd, _mm256_set_epi64x,
+        _mm256_set1_pd, _mm256_setzero_pd, _mm256_storeu_pd, _mm256_sub_pd, _mm256_unpackhi_pd,
+        _mm256_unpacklo_pd, _mm512_add_pd, _mm512_castpd256_pd512, _mm512_castpd512_pd256,
+        _mm512_div_pd, _mm512_extractf64x4_pd, _mm512_fmadd_pd, _mm512_fmsub_pd,
+        _mm512_i32gather_pd, _mm512_insertf64x4, _mm512_loadu_pd, _mm512_mul_pd, _mm512_set1_pd,
+        _mm512_storeu_pd, _mm512_sub_pd,
     };
     use std::ops::{Add, Div, Mul, Sub};
 
@@ -280,6 +307,131 @@ mod x86 {
                 let idx = _mm256_loadu_si256(offsets.as_ptr().cast::<__m256i>());
                 Zmm(_mm512_i32gather_pd::<8>(idx, base))
             }
+        }
+
+        /// Eight masked loads of `x, y, z` (the fourth `f64` masked off: never read) and two
+        /// 4x4 transposes joined, as [`Ymm`]'s: three hardware gathers of eight cost more
+        /// (docs/benchmarks.md, "Point rows instead of gathers").
+        #[inline(always)]
+        unsafe fn gather3(_: Avx512, base: *const f64, offsets: &[i32]) -> [Zmm; 3] {
+            let offsets = &offsets[..8];
+            // SAFETY: AVX-512F and AVX-512VL per the token; each masked load reads the three
+            // f64 at base + offsets[l], readable by the caller's contract, and never touches
+            // the masked-off fourth (masked-off elements neither read nor fault).
+            unsafe {
+                let lo = rows4(base, [offsets[0], offsets[1], offsets[2], offsets[3]]);
+                let hi = rows4(base, [offsets[4], offsets[5], offsets[6], offsets[7]]);
+                // No closure: closures are not inlined into `target_feature` functions.
+                [
+                    Zmm(_mm512_insertf64x4::<1>(
+                        _mm512_castpd256_pd512(lo[0]),
+                        hi[0],
+                    )),
+                    Zmm(_mm512_insertf64x4::<1>(
+                        _mm512_castpd256_pd512(lo[1]),
+                        hi[1],
+                    )),
+                    Zmm(_mm512_insertf64x4::<1>(
+                        _mm512_castpd256_pd512(lo[2]),
+                        hi[2],
+                    )),
+                ]
+            }
+        }
+
+        /// Two 4x4 transposes into point rows `x, y, z, 0`, each added to its point by
+        /// [`add_row`].
+        #[inline(always)]
+        unsafe fn scatter_add3(v: [Zmm; 3], base: *mut f64, offsets: &[i32]) {
+            let offsets = &offsets[..8];
+            // SAFETY: AVX-512F and AVX-512VL exist (the values do); the masked loads and
+            // stores touch only the three f64 at base + offsets[l], writable by the caller's
+            // contract, one lane after the other.
+            unsafe {
+                for half in 0..2 {
+                    let (x, y, z) = if half == 0 {
+                        (
+                            _mm512_castpd512_pd256(v[0].0),
+                            _mm512_castpd512_pd256(v[1].0),
+                            _mm512_castpd512_pd256(v[2].0),
+                        )
+                    } else {
+                        (
+                            _mm512_extractf64x4_pd::<1>(v[0].0),
+                            _mm512_extractf64x4_pd::<1>(v[1].0),
+                            _mm512_extractf64x4_pd::<1>(v[2].0),
+                        )
+                    };
+                    let rows = point_rows4(x, y, z);
+                    for (r, &o) in rows.iter().zip(&offsets[4 * half..4 * half + 4]) {
+                        add_row(base.offset(o as isize), *r);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Adds the first three `f64` of `r` to the three at `p`, as a pair `x, y` and a single
+    /// `z`: plain loads and stores, which the next read of the same point takes from the store
+    /// buffer (a masked store there stalls the read: 5 times slower in the linear kernel).
+    ///
+    /// # Safety
+    /// AVX2; the three `f64` at `p` are writable.
+    #[inline(always)]
+    unsafe fn add_row(p: *mut f64, r: __m256d) {
+        // SAFETY: the caller's contract.
+        unsafe {
+            let xy = _mm_add_pd(_mm_loadu_pd(p), _mm256_castpd256_pd128(r));
+            _mm_storeu_pd(p, xy);
+            let z = _mm_add_sd(_mm_load_sd(p.add(2)), _mm256_extractf128_pd::<1>(r));
+            _mm_store_sd(p.add(2), z);
+        }
+    }
+
+    /// Four point rows `[x_l, y_l, z_l, 0]` from the lanes of `x, y, z` (a 4x4 transpose).
+    ///
+    /// # Safety
+    /// AVX2.
+    #[inline(always)]
+    unsafe fn point_rows4(x: __m256d, y: __m256d, z: __m256d) -> [__m256d; 4] {
+        // SAFETY: the caller's contract.
+        unsafe {
+            let zero = _mm256_setzero_pd();
+            let t0 = _mm256_unpacklo_pd(x, y); // x0 y0 x2 y2
+            let t1 = _mm256_unpackhi_pd(x, y); // x1 y1 x3 y3
+            let t2 = _mm256_unpacklo_pd(z, zero); // z0 0 z2 0
+            let t3 = _mm256_unpackhi_pd(z, zero); // z1 0 z3 0
+            [
+                _mm256_permute2f128_pd::<0x20>(t0, t2),
+                _mm256_permute2f128_pd::<0x20>(t1, t3),
+                _mm256_permute2f128_pd::<0x31>(t0, t2),
+                _mm256_permute2f128_pd::<0x31>(t1, t3),
+            ]
+        }
+    }
+
+    /// The components of four points, one lane each: `[c][l]` is component c of the point at
+    /// `base + offsets[l]` (three f64), by four masked row loads and a 4x4 transpose.
+    ///
+    /// # Safety
+    /// AVX-512F and AVX-512VL; the three f64 at every `base + offsets[l]` are readable.
+    #[inline(always)]
+    unsafe fn rows4(base: *const f64, offsets: [i32; 4]) -> [__m256d; 3] {
+        // SAFETY: the caller's contract (masked-off elements neither read nor fault).
+        unsafe {
+            let r0 = _mm256_maskz_loadu_pd(0b0111, base.offset(offsets[0] as isize));
+            let r1 = _mm256_maskz_loadu_pd(0b0111, base.offset(offsets[1] as isize));
+            let r2 = _mm256_maskz_loadu_pd(0b0111, base.offset(offsets[2] as isize));
+            let r3 = _mm256_maskz_loadu_pd(0b0111, base.offset(offsets[3] as isize));
+            let t0 = _mm256_unpacklo_pd(r0, r1); // x0 x1 z0 z1
+            let t1 = _mm256_unpackhi_pd(r0, r1); // y0 y1 0 0
+            let t2 = _mm256_unpacklo_pd(r2, r3); // x2 x3 z2 z3
+            let t3 = _mm256_unpackhi_pd(r2, r3); // y2 y3 0 0
+            [
+                _mm256_permute2f128_pd::<0x20>(t0, t2),
+                _mm256_permute2f128_pd::<0x20>(t1, t3),
+                _mm256_permute2f128_pd::<0x31>(t0, t2),
+            ]
         }
     }
 
@@ -464,6 +616,20 @@ mod x86 {
                 ]
             }
         }
+
+        /// A 4x4 transpose into point rows, each added to its point by [`add_row`].
+        #[inline(always)]
+        unsafe fn scatter_add3(v: [Ymm; 3], base: *mut f64, offsets: &[i32]) {
+            let offsets = &offsets[..4];
+            // SAFETY: AVX2 exists (the values do); the loads and stores touch only the three
+            // f64 at base + offsets[l], writable by the caller's contract, lane after lane.
+            unsafe {
+                let rows = point_rows4(v[0].0, v[1].0, v[2].0);
+                for (r, &o) in rows.iter().zip(offsets) {
+                    add_row(base.offset(o as isize), *r);
+                }
+            }
+        }
     }
 
     /// [`crate::simd::Lanes4`] on [`Ymm`]: the meshfree stencil's AVX2 + FMA lanes (a child
@@ -583,6 +749,60 @@ mod x86 {
                     )
                 }
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `gather3` and `scatter_add3` of a lane type against plain indexing, on points of which
+    /// lanes 1, 4 and 6 name the same one (the scatter must add them all) and the last is the
+    /// slice's end (the masked loads must not read past it).
+    fn check<V: LaneVec>(isa: V::Isa) {
+        let points: Vec<[f64; 3]> = (0..9)
+            .map(|i| [1.0 + i as f64, -2.5 * i as f64, 0.125 + (i * i) as f64])
+            .collect();
+        let idx = [8usize, 2, 5, 0, 2, 7, 2, 3];
+        let offsets: [i32; 8] = idx.map(|i| 3 * i as i32);
+        let flat: Vec<f64> = points.iter().flatten().copied().collect();
+        for part in (0..8).step_by(V::WIDTH) {
+            // SAFETY: every offset names a whole point of `flat`.
+            let g = unsafe { V::gather3(isa, flat.as_ptr(), &offsets[part..]) };
+            for (c, gc) in g.iter().enumerate() {
+                let mut a = [0.0; 8];
+                gc.store(&mut a);
+                for l in 0..V::WIDTH {
+                    assert_eq!(a[l], points[idx[part + l]][c], "lane {l} component {c}");
+                }
+            }
+            let lanes: [[f64; 8]; 3] =
+                std::array::from_fn(|c| std::array::from_fn(|l| (10 * l + c) as f64 + 0.5));
+            let v = lanes.map(|a| V::load(isa, &a));
+            let mut out = flat.clone();
+            // SAFETY: as above; `out` is borrowed here alone.
+            unsafe { V::scatter_add3(v, out.as_mut_ptr(), &offsets[part..]) };
+            let mut want = flat.clone();
+            for l in 0..V::WIDTH {
+                for c in 0..3 {
+                    want[3 * idx[part + l] + c] += lanes[c][l];
+                }
+            }
+            assert_eq!(out, want);
+        }
+    }
+
+    #[test]
+    fn every_lane_type_gathers_and_adds_points_as_plain_indexing_does() {
+        check::<Plain8>(());
+        #[cfg(target_arch = "x86_64")]
+        if let Some(isa) = crate::simd::isa::Avx2Fma::detect() {
+            check::<Ymm>(isa);
+        }
+        #[cfg(target_arch = "x86_64")]
+        if let Some(isa) = crate::simd::isa::Avx512::detect() {
+            check::<Zmm>(isa);
         }
     }
 }

@@ -126,10 +126,10 @@ impl DomainBatches {
 /// Internal forces of the batches `range` of single-point cells with variable node counts
 /// ([`DomainBatches`]):
 /// `F = sum_s (y_s - y_0) G_s^T` (positions, and velocities for the viscous stress) streamed
-/// slot by slot, the stress of material `MODEL`, then `f_s -= w P G_s` scattered per lane.
+/// slot by slot, the stress of material `MODEL`, then `f_s -= w P G_s` added lane after lane ([`LaneVec::scatter_add3`]).
 ///
 /// # Safety
-/// Node indices below `x.len()` and `v.len()` (see [`super::Kernels`]).
+/// Node indices below `x.len()`, `v.len()` and `f.len()` (see [`super::Kernels`]).
 #[inline(always)]
 pub(super) unsafe fn forces_domains<const FMA: bool, const MODEL: u8, V: LaneVec>(
     isa: V::Isa,
@@ -140,6 +140,7 @@ pub(super) unsafe fn forces_domains<const FMA: bool, const MODEL: u8, V: LaneVec
     f: &mut [DVec3],
 ) {
     let zero = V::splat(isa, 0.0);
+    let fbase = f.as_mut_ptr().cast::<f64>();
     for (b, w) in d
         .weight_m3
         .iter()
@@ -166,21 +167,22 @@ pub(super) unsafe fn forces_domains<const FMA: bool, const MODEL: u8, V: LaneVec
             for (mk, pk) in m.iter_mut().zip(p) {
                 *mk = wn * pk;
             }
-            for (s, g) in grad.iter().enumerate() {
+            for (n3, g) in node3.iter().zip(grad) {
                 let g = [
                     V::load(isa, &g[0][off..]),
                     V::load(isa, &g[1][off..]),
                     V::load(isa, &g[2][off..]),
                 ];
-                let mut h = [[0.0; LANES]; 3];
+                // No closure (`from_fn`): closures are not inlined into `target_feature`
+                // functions.
+                let mut h = [zero; 3];
                 for (i, hi) in h.iter_mut().enumerate() {
                     let acc = V::madd::<FMA>(m[3 * i + 1], g[1], m[3 * i] * g[0]);
-                    V::madd::<FMA>(m[3 * i + 2], g[2], acc).store(hi);
+                    *hi = V::madd::<FMA>(m[3 * i + 2], g[2], acc);
                 }
-                let nodes = &d.nodes[d.start[b] + s][off..off + V::WIDTH];
-                for (l, &node) in nodes.iter().enumerate() {
-                    f[node as usize] += DVec3::new(h[0][l], h[1][l], h[2][l]);
-                }
+                // SAFETY: node indices are below f.len() (caller's contract), and `f` is
+                // borrowed mutably here alone.
+                unsafe { V::scatter_add3(h, fbase, &n3[off..]) };
             }
         }
     }

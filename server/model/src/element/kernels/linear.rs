@@ -1,6 +1,6 @@
 //! Linear tetrahedra in batches of [`LANES`]: gathers of the edge vectors, `F = Ds Dm^-1`
-//! (seed 000 eq. 21), the stress and `H = -V P Dm^-T` (eq. 22) in registers, then a scalar
-//! scatter.
+//! (seed 000 eq. 21), the stress and `H = -V P Dm^-T` (eq. 22) in registers, then the nodal
+//! forces added lane after lane.
 
 use std::ops::Range;
 
@@ -65,10 +65,10 @@ impl ElementBatch {
 /// quantity held in
 /// lane type `V` (one lane per element): gathers of the edge vectors, `F = Ds Dm^-1` (seed 000
 /// eq. 21), the stress by [`first_piola_lane`] and `H = -V P Dm^-T` (eq. 22) without leaving
-/// registers, then [`scatter_linear`].
+/// registers, then [`LaneVec::scatter_add3`] (lane after lane, since lanes may share nodes).
 ///
 /// # Safety
-/// Every node index of `batches` must be below `x.len()` and `v.len()` (see
+/// Every node index of `batches` must be below `x.len()`, `v.len()` and `f.len()` (see
 /// [`super::Kernels`]).
 #[inline(always)]
 pub(super) unsafe fn forces_linear<const FMA: bool, const MODEL: u8, V: LaneVec>(
@@ -80,9 +80,8 @@ pub(super) unsafe fn forces_linear<const FMA: bool, const MODEL: u8, V: LaneVec>
     f: &mut [DVec3],
 ) {
     let zero = V::splat(isa, 0.0);
+    let fbase = f.as_mut_ptr().cast::<f64>();
     for batch in batches {
-        // h[3 k + i][l]: component i of the force on node k+1 of lane l.
-        let mut h = [[0.0; LANES]; 9];
         // The batch in parts of V::WIDTH lanes (one part for eight-lane vectors).
         for off in (0..LANES).step_by(V::WIDTH) {
             let mut bm = [zero; 9];
@@ -108,32 +107,28 @@ pub(super) unsafe fn forces_linear<const FMA: bool, const MODEL: u8, V: LaneVec>
             };
             let p = first_piola_lane::<FMA, MODEL, V>(isa, &fm, fd.as_ref(), mat);
             let w = zero - V::load(isa, &batch.volume_m3[off..]);
+            // Node k + 1 gets column k of H = -V P Dm^-T, node 0 minus their sum.
+            let mut h0 = [zero; 3];
             for k in 0..3 {
-                for i in 0..3 {
-                    let hk = w * dot3::<FMA, V>(
+                // No closure (`from_fn`): closures are not inlined into `target_feature`
+                // functions.
+                let mut hk = [zero; 3];
+                for (i, h) in hk.iter_mut().enumerate() {
+                    *h = w * dot3::<FMA, V>(
                         [p[3 * i], p[3 * i + 1], p[3 * i + 2]],
                         [bm[3 * k], bm[3 * k + 1], bm[3 * k + 2]],
                     );
-                    hk.store(&mut h[3 * k + i][off..]);
                 }
+                for (a, b) in h0.iter_mut().zip(hk) {
+                    *a = *a - b;
+                }
+                // SAFETY: node indices are below f.len() (caller's contract), and `f` is
+                // borrowed mutably here alone.
+                unsafe { V::scatter_add3(hk, fbase, &batch.node3[k + 1][off..]) };
             }
+            // SAFETY: as above.
+            unsafe { V::scatter_add3(h0, fbase, &batch.node3[0][off..]) };
         }
-        scatter_linear(batch, &h, f);
-    }
-}
-
-/// Adds the nodal forces of a batch to `f`: `h[3 k + i][l]` is component i of the force on
-/// node k+1 of lane l; node 0 gets minus their sum. Scalar, since lanes may share nodes.
-#[inline(always)]
-fn scatter_linear(batch: &ElementBatch, h: &[[f64; LANES]; 9], f: &mut [DVec3]) {
-    for (l, t) in batch.nodes.iter().enumerate() {
-        let [a, b, c, d] = t.map(|i| i as usize);
-        let hk = |k: usize| DVec3::new(h[3 * k][l], h[3 * k + 1][l], h[3 * k + 2][l]);
-        let (h1, h2, h3) = (hk(0), hk(1), hk(2));
-        f[b] += h1;
-        f[c] += h2;
-        f[d] += h3;
-        f[a] -= h1 + h2 + h3;
     }
 }
 

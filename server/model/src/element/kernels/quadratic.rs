@@ -65,7 +65,7 @@ impl QuadraticBatch {
 /// `h_a -= w P grad N_a`, then [`scatter_quadratic`] (`f_0 -= sum_a h_a`).
 ///
 /// # Safety
-/// Node indices below `x.len()` and `v.len()` (see [`super::Kernels`]).
+/// Node indices below `x.len()`, `v.len()` and `f.len()` (see [`super::Kernels`]).
 #[inline(always)]
 pub(super) unsafe fn forces_quadratic<const FMA: bool, const MODEL: u8, V: LaneVec>(
     isa: V::Isa,
@@ -76,8 +76,8 @@ pub(super) unsafe fn forces_quadratic<const FMA: bool, const MODEL: u8, V: LaneV
     f: &mut [DVec3],
 ) {
     let zero = V::splat(isa, 0.0);
+    let fbase = f.as_mut_ptr().cast::<f64>();
     for batch in batches {
-        let mut hs = [[0.0; LANES]; 27];
         // The batch in parts of V::WIDTH lanes (one part for eight-lane vectors).
         for off in (0..LANES).step_by(V::WIDTH) {
             // SAFETY: node indices are below x.len() and v.len() (caller's contract).
@@ -106,11 +106,10 @@ pub(super) unsafe fn forces_quadratic<const FMA: bool, const MODEL: u8, V: LaneV
                 }
                 add_divergence::<FMA, V>(isa, &m, g, off, &mut h);
             }
-            for (row, hk) in hs.iter_mut().zip(&h) {
-                hk.store(&mut row[off..]);
-            }
+            // SAFETY: node indices are below f.len() (caller's contract), and `f` is borrowed
+            // mutably here alone.
+            unsafe { scatter_quadratic::<V>(isa, &h, &batch.node3, off, fbase) };
         }
-        scatter_quadratic(batch, &hs, f);
     }
 }
 
@@ -139,24 +138,33 @@ fn add_divergence<const FMA: bool, V: LaneVec>(
     }
 }
 
-/// Adds the per-node vectors `h` of a quadratic batch (`h[3 (a - 1) + c][l]`: component c for lane l) to
-/// `out`: `out[n_a] += h_a` for a = 1..9 and `out[n_0] -= sum_a h_a`. Padding lanes carry
-/// zeros (zero gradients and weights), so adding them changes nothing.
+/// Adds the per-node vectors `h` of lanes `off..off + V::WIDTH` of a quadratic batch
+/// (`h[3 (a - 1) + c]`: component c) to the nodes at `base + node3[a][l]`: `h_a` to node a for
+/// a = 1..9 and `-sum_a h_a` to node 0, lane after lane ([`LaneVec::scatter_add3`]). Padding
+/// lanes carry zeros (zero gradients and weights), so adding them changes nothing.
+///
+/// # Safety
+/// `base` is the first `f64` of a `[DVec3]` holding every node of `node3`, borrowed mutably
+/// by the caller alone.
 #[inline(always)]
-fn scatter_quadratic(batch: &QuadraticBatch, h: &[[f64; LANES]; 27], out: &mut [DVec3]) {
-    for (l, t) in batch.nodes.iter().enumerate() {
-        let mut sum = DVec3::ZERO;
-        for a in 1..10 {
-            let ha = DVec3::new(
-                h[3 * (a - 1)][l],
-                h[3 * (a - 1) + 1][l],
-                h[3 * (a - 1) + 2][l],
-            );
-            out[t[a] as usize] += ha;
-            sum += ha;
+unsafe fn scatter_quadratic<V: LaneVec>(
+    isa: V::Isa,
+    h: &[V; 27],
+    node3: &[[i32; LANES]; 10],
+    off: usize,
+    base: *mut f64,
+) {
+    let mut h0 = [V::splat(isa, 0.0); 3];
+    for a in 0..9 {
+        let ha = [h[3 * a], h[3 * a + 1], h[3 * a + 2]];
+        for (s, x) in h0.iter_mut().zip(ha) {
+            *s = *s - x;
         }
-        out[t[0] as usize] -= sum;
+        // SAFETY: the caller's contract.
+        unsafe { V::scatter_add3(ha, base, &node3[a + 1][off..]) };
     }
+    // SAFETY: as above.
+    unsafe { V::scatter_add3(h0, base, &node3[0][off..]) };
 }
 
 /// `F = sum_a d_a (grad N_a)^T`, row-major: `d` from [`gather_differences`], `g` a batch's
@@ -190,7 +198,7 @@ fn quadratic_gradient<const FMA: bool, V: LaneVec>(
 /// `w (h2 dF S + F S_stvk(sym(F^T dF); lam, mu)) grad N_a` with the cached `F` and `S`.
 ///
 /// # Safety
-/// Node indices below `p.len()` (see [`super::Kernels`]).
+/// Node indices below `p.len()` and `out.len()` (see [`super::Kernels`]).
 #[inline(always)]
 #[allow(
     clippy::too_many_arguments,
@@ -213,9 +221,9 @@ pub(super) unsafe fn stvk_operator_quadratic<const FMA: bool, V: LaneVec>(
         V::splat(isa, 2.0 * mu),
         V::splat(isa, 0.5),
     );
+    let obase = out.as_mut_ptr().cast::<f64>();
     for (b, batch) in batches.iter().enumerate() {
         let elements = &order[b * LANES..((b + 1) * LANES).min(order.len())];
-        let mut hs = [[0.0; LANES]; 27];
         // The batch in parts of V::WIDTH lanes (one part for eight-lane vectors).
         for off in (0..LANES).step_by(V::WIDTH) {
             // SAFETY: node indices are below p.len() (caller's contract).
@@ -282,10 +290,9 @@ pub(super) unsafe fn stvk_operator_quadratic<const FMA: bool, V: LaneVec>(
                 }
                 add_divergence::<FMA, V>(isa, &pk, g, off, &mut h);
             }
-            for (row, hk) in hs.iter_mut().zip(&h) {
-                hk.store(&mut row[off..]);
-            }
+            // SAFETY: node indices are below out.len() (caller's contract), and `out` is
+            // borrowed mutably here alone.
+            unsafe { scatter_quadratic::<V>(isa, &h, &batch.node3, off, obase) };
         }
-        scatter_quadratic(batch, &hs, out);
     }
 }
