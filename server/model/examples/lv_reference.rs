@@ -770,9 +770,24 @@ fn combine(
         md_row(&mut md, key, &e, &present)?;
     }
     std::fs::write(out, csv)?;
+    println!("levels: {}", describe_levels(&groups, &hs, &rows));
+    println!("wrote {}", out.display());
+    if markdown {
+        println!(
+            "| material | convention | depth, mm | levels, mN (coarse to fine; samples) | reference, mN | order (3 finest) | order (3 before) | order (least squares) | Richardson (3 finest), GCI | single-mesh noise, mN | order (3 finest), +- 1 standard error |"
+        );
+        println!("|---|---|---|---|---|---|---|---|---|---|---|");
+        print!("{md}");
+    }
+    Ok(())
+}
+
+/// The levels of `combine` for its log: each size (mm), its largest node count and, for an
+/// ensemble, its samples' sizes.
+fn describe_levels(groups: &[Vec<f64>], hs: &[f64], rows: &[LevelRow]) -> String {
     let described: Vec<String> = groups
         .iter()
-        .zip(&hs)
+        .zip(hs)
         .map(|(g, &h)| {
             let nodes = rows
                 .iter()
@@ -789,16 +804,7 @@ fn combine(
             }
         })
         .collect();
-    println!("levels: {}", described.join(", "));
-    println!("wrote {}", out.display());
-    if markdown {
-        println!(
-            "| material | convention | depth, mm | levels, mN (coarse to fine; samples) | reference, mN | order (3 finest) | order (3 before) | order (least squares) | Richardson (3 finest), GCI | single-mesh noise, mN | order (3 finest), +- 1 standard error |"
-        );
-        println!("|---|---|---|---|---|---|---|---|---|---|---|");
-        print!("{md}");
-    }
-    Ok(())
+    described.join(", ")
 }
 
 /// The sizes `hs` (mm, coarse to fine) in groups, coarse to fine: with `rel`, a size joins
