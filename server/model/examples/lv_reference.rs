@@ -112,8 +112,9 @@ enum Step {
         /// Mesh ensembles: sizes within this fraction of each other (for example 0.04) are
         /// samples of one level, meshed at slightly different size parameters. The level's
         /// force is their mean (at their mean size); the finest level's single-mesh noise (its
-        /// samples' deviation about a line in h) is written, and the three finest levels' order
-        /// is also given over their means moved by one standard error either way.
+        /// samples' deviation about a line in h, or with fewer than four samples the nearest
+        /// coarser level's) is written, and the three finest levels' order is also given over
+        /// their means moved by one standard error either way.
         #[arg(long)]
         ensemble: Option<f64>,
     },
@@ -860,13 +861,14 @@ impl LevelStat {
 }
 
 /// Each level's single-mesh noise (N), coarse to fine: the deviation of its own samples
-/// ([`LevelStat`], three or more), else the nearest coarser level's (the noise shrinks with
-/// the size), else `None`.
+/// ([`LevelStat`]) when they leave two or more degrees of freedom (four or more samples), else
+/// the nearest coarser level's (the noise shrinks with the size, so that errs wide), else
+/// `None`.
 fn level_sd(stats: impl Iterator<Item = LevelStat>) -> Vec<Option<f64>> {
     let mut last = None;
     stats
         .map(|s| {
-            if s.samples > 2 {
+            if s.samples > 3 {
                 last = Some(s.variance.sqrt());
             }
             last
@@ -1117,16 +1119,17 @@ mod tests {
 
     #[test]
     fn ensembles_group_by_size_average_out_their_noise_and_bracket_the_true_order() {
-        // f = 4 + 0.5 h^1.5 on five levels, three meshes each at 1.02 / 1 / 0.98 times the
-        // level's size, with a mesh noise of +d / -d / 0 (d = 2 % of the finest level's
-        // distance from the limit): the groups are the five levels, each level's deviation is
-        // the noise, and the three finest means' order range holds the true 1.5.
+        // f = 4 + 0.5 h^1.5 on five levels, four meshes each at 1.02 / 1.0067 / 0.9933 / 0.98
+        // times the level's size, with a mesh noise of +d / -d / +d / -d (d = 2 % of the finest
+        // level's distance from the limit): the groups are the five levels, each level's
+        // deviation is the noise, and the three finest means' order range holds the true 1.5.
         let law = |h: f64| 4.0 + 0.5 * h.powf(1.5);
         let levels = [0.2121, 0.15, 0.10607, 0.075, 0.053];
         let d = 0.02 * 0.5 * 0.053f64.powf(1.5);
         let mut rows = Vec::new();
         for &h in &levels {
-            for (scale, noise) in [(1.02, d), (1.0, -d), (0.98, 0.0)] {
+            let third = 0.02 / 3.0;
+            for (scale, noise) in [(1.02, d), (1.0 + third, -d), (1.0 - third, d), (0.98, -d)] {
                 rows.push(LevelRow {
                     material: "stvk".into(),
                     convention: "sphere".into(),
@@ -1141,27 +1144,32 @@ mod tests {
         sizes.sort_by(|a, b| b.total_cmp(a));
         let groups = size_groups(&sizes, Some(0.05));
         assert_eq!(groups.len(), 5, "{groups:?}");
-        assert!(groups.iter().all(|g| g.len() == 3));
-        assert_eq!(size_groups(&sizes, None).len(), 15);
+        assert!(groups.iter().all(|g| g.len() == 4));
+        assert_eq!(size_groups(&sizes, None).len(), 20);
         let stats: Vec<LevelStat> = groups
             .iter()
             .map(|g| LevelStat::of(rows.iter().filter(|r| g.contains(&r.h_mm))).expect("rows"))
             .collect();
         let sds = level_sd(stats.iter().copied());
         let sd = sds[4].expect("ensembles");
-        // About a line in h, the noise (+d, -d, 0) at sizes (1.02, 1, 0.98) h leaves the
-        // residuals (d / 2, -d, d / 2): a deviation of sqrt(1.5) d over one degree of freedom
-        // per level (the law's curvature over +-2 % adds a little).
-        let expected = 1.5f64.sqrt() * d;
+        // About a line in h, the noise (+d, -d, +d, -d) at evenly spaced sizes leaves the
+        // residuals (0.4, -1.2, 1.2, -0.4) d: a deviation of sqrt(1.6) d over two degrees of
+        // freedom per level (the law's curvature over +-2 % adds a little).
+        let expected = 1.6f64.sqrt() * d;
         assert!((sd / expected - 1.0).abs() < 0.1, "{sd} against {expected}");
-        let hs: Vec<f64> = groups.iter().map(|g| g.iter().sum::<f64>() / 3.0).collect();
+        let hs: Vec<f64> = groups.iter().map(|g| g.iter().sum::<f64>() / 4.0).collect();
         let means: Vec<(f64, f64)> = hs
             .iter()
             .zip(&stats)
             .map(|(h, s)| (*h, s.force_n))
             .collect();
         assert!(sds.iter().all(Option::is_some));
-        let se = vec![sd / 3f64.sqrt(); 5];
+        // Three meshes leave one degree of freedom: such a level takes the coarser one's.
+        let mut three = stats.clone();
+        three[4].samples = 3;
+        three[4].variance = 0.0;
+        assert_eq!(level_sd(three.into_iter())[4], sds[3]);
+        let se = vec![sd / 2.0; 5];
         let e = Estimate::of(&means, &se, Some(sd));
         let (lo, hi) = e.order_range.expect("monotone within one standard error");
         assert!(lo < 1.5 && 1.5 < hi && hi - lo < 0.5, "{lo} to {hi}");
