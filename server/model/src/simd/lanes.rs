@@ -423,6 +423,19 @@ mod x86 {
             let r1 = _mm256_maskz_loadu_pd(0b0111, base.offset(offsets[1] as isize));
             let r2 = _mm256_maskz_loadu_pd(0b0111, base.offset(offsets[2] as isize));
             let r3 = _mm256_maskz_loadu_pd(0b0111, base.offset(offsets[3] as isize));
+            lanes_of_rows4([r0, r1, r2, r3])
+        }
+    }
+
+    /// The 4x4 transpose of four point rows `r_l = [x_l, y_l, z_l, 0]`: `[x, y, z]`, one lane
+    /// per point (the inverse of [`point_rows4`]).
+    ///
+    /// # Safety
+    /// AVX2.
+    #[inline(always)]
+    unsafe fn lanes_of_rows4([r0, r1, r2, r3]: [__m256d; 4]) -> [__m256d; 3] {
+        // SAFETY: the caller's contract.
+        unsafe {
             let t0 = _mm256_unpacklo_pd(r0, r1); // x0 x1 z0 z1
             let t1 = _mm256_unpackhi_pd(r0, r1); // y0 y1 0 0
             let t2 = _mm256_unpacklo_pd(r2, r3); // x2 x3 z2 z3
@@ -604,16 +617,8 @@ mod x86 {
                 let r1 = _mm256_maskload_pd(base.offset(offsets[1] as isize), mask);
                 let r2 = _mm256_maskload_pd(base.offset(offsets[2] as isize), mask);
                 let r3 = _mm256_maskload_pd(base.offset(offsets[3] as isize), mask);
-                // r_l = [x_l, y_l, z_l, 0].
-                let t0 = _mm256_unpacklo_pd(r0, r1); // x0 x1 z0 z1
-                let t1 = _mm256_unpackhi_pd(r0, r1); // y0 y1 0 0
-                let t2 = _mm256_unpacklo_pd(r2, r3); // x2 x3 z2 z3
-                let t3 = _mm256_unpackhi_pd(r2, r3); // y2 y3 0 0
-                [
-                    Ymm(_mm256_permute2f128_pd::<0x20>(t0, t2)),
-                    Ymm(_mm256_permute2f128_pd::<0x20>(t1, t3)),
-                    Ymm(_mm256_permute2f128_pd::<0x31>(t0, t2)),
-                ]
+                let [x, y, z] = lanes_of_rows4([r0, r1, r2, r3]);
+                [Ymm(x), Ymm(y), Ymm(z)]
             }
         }
 
