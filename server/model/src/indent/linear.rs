@@ -83,6 +83,8 @@ pub(super) struct System {
     factor: Option<Factor32>,
     /// A direct double-precision solver, made when the tangent is not positive definite.
     direct: Option<SparseCholesky>,
+    /// Threads of the factorisations ([`System::set_threads`]).
+    threads: usize,
     /// Statistics and the cost model of the refactoring policy.
     pub stats: LinearStats,
 }
@@ -194,8 +196,26 @@ impl System {
             cholesky: None,
             factor: None,
             direct: None,
+            threads: 1,
             stats: LinearStats::default(),
         })
+    }
+
+    /// The factorisations (the single-precision preconditioner's and the direct `L D L^T`) on
+    /// up to `threads` threads: faer's parallel dense kernels inside the large supernodes
+    /// ([`SparseCholesky::with_threads`]). Default 1.
+    pub fn set_threads(&mut self, threads: usize) {
+        self.threads = threads.max(1);
+        self.factor = None;
+    }
+
+    /// faer's parallelism for the factorisations.
+    fn par(&self) -> Par {
+        if self.threads > 1 {
+            Par::rayon(self.threads)
+        } else {
+            Par::Seq
+        }
     }
 
     /// Sets every block to the cells' tangent at `x` (N/m).
@@ -332,13 +352,14 @@ impl System {
     fn refactor(&mut self) -> Result<bool, ModelError> {
         let symbolic = self.analysis()?;
         let t = Instant::now();
+        let par = self.par();
         let (mut values, mut mem, rhs) = match self.factor.take() {
             Some(f) => (f.values, f.mem, f.rhs),
             None => (
                 vec![0.0f32; symbolic.len_val()],
                 MemBuffer::new(
                     symbolic
-                        .factorize_numeric_llt_scratch::<f32>(Par::Seq, Default::default())
+                        .factorize_numeric_llt_scratch::<f32>(par, Default::default())
                         .or(symbolic.solve_in_place_scratch::<f32>(1, Par::Seq)),
                 ),
                 Mat::<f32>::zeros(self.nfree, 1),
@@ -352,7 +373,7 @@ impl System {
                 a32,
                 Side::Lower,
                 Default::default(),
-                Par::Seq,
+                par,
                 MemStack::new(&mut mem),
                 Default::default(),
             )
@@ -508,11 +529,10 @@ impl System {
         let n = self.nfree;
         let rhs = Mat::<f64>::from_fn(n, 1, |i, _| b[i]);
         if self.direct.is_none() {
-            self.direct = Some(SparseCholesky::analyse(
-                self.symbolic.as_ref(),
-                Side::Lower,
-                &self.group,
-            )?);
+            self.direct = Some(
+                SparseCholesky::analyse(self.symbolic.as_ref(), Side::Lower, &self.group)?
+                    .with_threads(self.threads),
+            );
         }
         let direct = self.direct.as_mut().expect("made above");
         let a = SparseColMatRef::new(self.symbolic.as_ref(), &self.vals);

@@ -342,6 +342,7 @@ impl<'a> Indentation<'a> {
             curvature_stiffness: params.curvature_stiffness,
         };
         let mut newton = newton::Newton::new(fem, triangles, points)?;
+        newton.sys.set_threads(params.newton.threads);
         newton.centre = indenter.from_m + dir * zero;
         Ok(Self {
             fem,

@@ -47,6 +47,10 @@ pub struct StaticParams {
     pub abs_tol_n: f64,
     /// Largest Newton iteration count.
     pub max_iterations: usize,
+    /// Threads of each Newton system's factorisation (1: the calling thread;
+    /// [`crate::linalg::ordering::SparseCholesky::with_threads`]: more give the same
+    /// Cholesky factor and an `L D L^T` equal to round-off).
+    pub threads: usize,
 }
 
 impl Default for StaticParams {
@@ -55,6 +59,7 @@ impl Default for StaticParams {
             rel_tol: 1e-10,
             abs_tol_n: 1e-14,
             max_iterations: 50,
+            threads: 1,
         }
     }
 }
@@ -98,6 +103,8 @@ struct Tangent {
     padded: Vec<f64>,
     /// The node of each free equation: the supervariables of the ordering.
     group: Vec<usize>,
+    /// Threads of the factorisations ([`StaticParams::threads`]).
+    threads: usize,
     /// Which factorisation solved the last system.
     last: Factorisation,
 }
@@ -199,7 +206,8 @@ impl Tangent {
                     SymbolicSparseColMat::try_new_from_indices(nfree, nfree, &all)
                         .map_err(|e| assembly(&e))?;
                 let llt = SparseCholesky::analyse(symbolic.as_ref(), Side::Lower, &self.group)
-                    .map_err(|e| assembly(&e))?;
+                    .map_err(|e| assembly(&e))?
+                    .with_threads(self.threads);
                 self.pattern = Some(Pattern {
                     symbolic,
                     argsort,
@@ -550,6 +558,7 @@ pub fn solve_static_with(
     let (mut rnorm, mut tol) = residual.eval(x, &mut r);
     let mut tangent = Tangent {
         group: free_dof_nodes(&dof, nfree),
+        threads: params.threads,
         ..Tangent::default()
     };
     let npe = (0..fem.cell_count())

@@ -861,10 +861,12 @@ struct FarSolve<'a> {
 }
 
 impl FarSolve<'_> {
-    /// Factorises `K_FF` (lower triplets `kff`), then `X = K_FF^-1 K_FG` in blocks of
-    /// columns on `threads` threads (each takes the next block; [`FarSolve::block`]): the
-    /// map's rows `-X` into `map`, `S -= K_GF X` into `schur`. A block writes only its own
-    /// columns of both, so the result does not depend on the thread count.
+    /// Factorises `K_FF` (lower triplets `kff`) on `threads` threads (faer's parallel dense
+    /// kernels, [`SparseCholesky::with_threads`]: the same factor bit for bit), then
+    /// `X = K_FF^-1 K_FG` in blocks of columns on as many (each takes the next block;
+    /// [`FarSolve::block`]): the map's rows `-X` into `map`, `S -= K_GF X` into `schur`. A
+    /// block writes only its own columns of both, so the result does not depend on the thread
+    /// count.
     ///
     /// # Errors
     /// [`ModelError::InvalidMesh`] when the far part is not held;
@@ -883,8 +885,8 @@ impl FarSolve<'_> {
         // 0.4 GB, as much as the factor).
         let kff_csc = sparse(f, &kff)?;
         drop(kff);
-        let llt =
-            SparseCholesky::factor(kff_csc.as_ref(), Side::Lower, &far_nodes).map_err(|e| {
+        let llt = SparseCholesky::factor(kff_csc.as_ref(), Side::Lower, &far_nodes, threads)
+            .map_err(|e| {
                 ModelError::InvalidMesh(format!(
                     "the far part is not held (add clamps or enlarge the active region): {e}"
                 ))
