@@ -629,41 +629,6 @@ mod tests {
         );
     }
 
-    /// An elasticity-like matrix on a 3-D grid of `m^3` nodes, three components each: every
-    /// node coupled to its six neighbours by a dense 3x3 block, diagonally dominant (so
-    /// positive definite). Its lower triangle and the node of each equation.
-    fn grid3(m: usize) -> (faer::sparse::SparseColMat<usize, f64>, Vec<usize>) {
-        let id = |i: usize, j: usize, k: usize| (i * m + j) * m + k;
-        let mut t = Vec::new();
-        for i in 0..m {
-            for j in 0..m {
-                for k in 0..m {
-                    let a = id(i, j, k);
-                    for c in 0..3 {
-                        for d in 0..=c {
-                            let v = if c == d { 8.0 } else { 0.2 };
-                            t.push(faer::sparse::Triplet::new(3 * a + c, 3 * a + d, v));
-                        }
-                    }
-                    for (p, q, r) in [(i + 1, j, k), (i, j + 1, k), (i, j, k + 1)] {
-                        if p < m && q < m && r < m {
-                            let b = id(p, q, r);
-                            for c in 0..3 {
-                                for d in 0..3 {
-                                    let v = if c == d { -1.0 } else { -0.1 };
-                                    t.push(faer::sparse::Triplet::new(3 * b + c, 3 * a + d, v));
-                                }
-                            }
-                        }
-                    }
-                }
-            }
-        }
-        let n = 3 * m * m * m;
-        let a = faer::sparse::SparseColMat::try_new_from_triplets(n, n, &t).expect("valid");
-        (a, (0..n).map(|q| q / 3).collect())
-    }
-
     /// `L L^T` on two and three threads gives the same factor bit for bit as on one, and its
     /// solve solves the system; `L D L^T` on two threads agrees with one to round-off. The grid
     /// is large enough for faer's parallel dense kernels to run in its top supernodes (its
@@ -671,8 +636,9 @@ mod tests {
     /// thread and 0.43 s on two when this test was written).
     #[test]
     fn parallel_factorisations_match_the_sequential_one() {
-        let (a, group) = grid3(24);
+        let a = crate::linalg::grid_matrix(24);
         let n = a.nrows();
+        let group: Vec<usize> = (0..n).map(|q| q / 3).collect();
         let b: Vec<f64> = (0..n)
             .map(|i| ((i * 7919) % 1000) as f64 / 500.0 - 1.0)
             .collect();

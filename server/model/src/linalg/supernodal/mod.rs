@@ -909,38 +909,11 @@ mod tests {
     use faer::sparse::linalg::cholesky::{LltRef, SymmetricOrdering, factorize_symbolic_cholesky};
     use faer::{Conj, Mat, Par, Side};
 
-    /// A 3-D Laplacian-like SPD matrix on an `n^3` grid with 3 components per node (block
-    /// coupling), large enough for faer to choose a supernodal factor.
+    /// [`crate::linalg::grid_matrix`] in single precision (its entries are exact in both).
     fn grid_matrix(n: usize) -> SparseColMat<usize, f32> {
-        let id = |i: usize, j: usize, k: usize| (i * n + j) * n + k;
-        let mut t = Vec::new();
-        for i in 0..n {
-            for j in 0..n {
-                for k in 0..n {
-                    let a = id(i, j, k);
-                    for c in 0..3 {
-                        t.push(faer::sparse::Triplet::new(
-                            3 * a + c,
-                            3 * a + c,
-                            7.0 + c as f32,
-                        ));
-                        if c > 0 {
-                            t.push(faer::sparse::Triplet::new(3 * a + c, 3 * a, 0.5));
-                        }
-                    }
-                    for (di, dj, dk) in [(1, 0, 0), (0, 1, 0), (0, 0, 1)] {
-                        let (p, q, r) = (i + di, j + dj, k + dk);
-                        if p < n && q < n && r < n {
-                            let b = id(p, q, r);
-                            for c in 0..3 {
-                                t.push(faer::sparse::Triplet::new(3 * b + c, 3 * a + c, -1.0));
-                            }
-                        }
-                    }
-                }
-            }
-        }
-        SparseColMat::try_new_from_triplets(3 * n * n * n, 3 * n * n * n, &t).unwrap()
+        let a = crate::linalg::grid_matrix(n);
+        let values = a.val().iter().map(|&v| v as f32).collect();
+        SparseColMat::new(a.symbolic().to_owned().expect("a pattern"), values)
     }
 
     /// The supernodal symbolic factor of `a` (lower triangle) in `ordering` and its
