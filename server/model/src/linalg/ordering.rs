@@ -632,8 +632,8 @@ mod tests {
     /// `L L^T` on two and three threads gives the same factor bit for bit as on one, and its
     /// solve solves the system; `L D L^T` on two threads agrees with one to round-off. The grid
     /// is large enough for faer's parallel dense kernels to run in its top supernodes (its
-    /// root separator is 1 728 equations; the factor's 18 million entries took 0.57 s on one
-    /// thread and 0.43 s on two when this test was written).
+    /// root separator is 1 728 equations; the factor's 18 million entries took about 0.6 s on
+    /// one thread and 0.4 s on two on an idle machine when this test was written).
     #[test]
     fn parallel_factorisations_match_the_sequential_one() {
         let a = crate::linalg::grid_matrix(24);
