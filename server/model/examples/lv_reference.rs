@@ -216,23 +216,10 @@ fn solve_at(run: &mut Indentation<'_>, travel_m: f64) -> anyhow::Result<Solved> 
     })
 }
 
-fn solve_level(
-    msh: &Path,
-    (h, point_spacing, threads): (f64, f64, usize),
-    material: &str,
-    depths: &[f64],
-    out: &Path,
-    checkpoint: Option<&Path>,
-) -> anyhow::Result<()> {
-    let model = MaterialModel::from_scene_name(material)
-        .ok_or_else(|| anyhow::anyhow!("unknown material {material:?}"))?;
-    let (fem, touchable, tets) = half_lv(msh, model)?;
-    eprintln!(
-        "{} (h {h} mm): {} nodes, {tets} tets, {} touchable triangles, material {material}",
-        msh.display(),
-        fem.node_count(),
-        touchable.len()
-    );
+/// The rigid sphere (2 mm, from x = 15 mm along -x at the probe's z) and the indentation's
+/// parameters: contact points at `point_spacing`, the Newton systems factorised on `threads`
+/// threads (0: every core).
+fn sphere_press(point_spacing: f64, threads: usize) -> (Indenter, IndentParams) {
     let mm = 1e-3;
     let from_x = 15.0;
     let indenter = Indenter {
@@ -254,6 +241,28 @@ fn solve_level(
         },
         ..defaults
     };
+    (indenter, params)
+}
+
+fn solve_level(
+    msh: &Path,
+    (h, point_spacing, threads): (f64, f64, usize),
+    material: &str,
+    depths: &[f64],
+    out: &Path,
+    checkpoint: Option<&Path>,
+) -> anyhow::Result<()> {
+    let model = MaterialModel::from_scene_name(material)
+        .ok_or_else(|| anyhow::anyhow!("unknown material {material:?}"))?;
+    let (fem, touchable, tets) = half_lv(msh, model)?;
+    eprintln!(
+        "{} (h {h} mm): {} nodes, {tets} tets, {} touchable triangles, material {material}",
+        msh.display(),
+        fem.node_count(),
+        touchable.len()
+    );
+    let mm = 1e-3;
+    let (indenter, params) = sphere_press(point_spacing, threads);
     let mut run = Indentation::new(&fem, &touchable, &indenter, &params)?;
     // The default spacing keeps the key of the checkpoints written before the option existed.
     let points = match point_spacing == IndentParams::default().point_spacing {
