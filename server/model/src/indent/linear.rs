@@ -35,7 +35,7 @@ use glam::{DMat3, DVec3};
 use crate::ModelError;
 use crate::element::FemModel;
 use crate::element::tangent::cell_tangent_blocks;
-use crate::linalg::ordering::{SparseCholesky, symbolic_cholesky};
+use crate::linalg::ordering::{SparseCholesky, parallelism, symbolic_cholesky};
 
 /// Largest relative residual `|A x - b| / |b|` of a direct `L D L^T` solve that is accepted
 /// (else sparse LU solves it).
@@ -209,15 +209,6 @@ impl System {
         self.factor = None;
     }
 
-    /// faer's parallelism for the factorisations.
-    fn par(&self) -> Par {
-        if self.threads > 1 {
-            Par::rayon(self.threads)
-        } else {
-            Par::Seq
-        }
-    }
-
     /// Sets every block to the cells' tangent at `x` (N/m).
     pub fn assemble_cells(&mut self, fem: &FemModel, x: &[DVec3]) {
         self.blocks.iter_mut().for_each(|b| *b = DMat3::ZERO);
@@ -352,7 +343,7 @@ impl System {
     fn refactor(&mut self) -> Result<bool, ModelError> {
         let symbolic = self.analysis()?;
         let t = Instant::now();
-        let par = self.par();
+        let par = parallelism(self.threads);
         let (mut values, mut mem, rhs) = match self.factor.take() {
             Some(f) => (f.values, f.mem, f.rhs),
             None => (

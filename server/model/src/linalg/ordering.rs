@@ -311,6 +311,16 @@ pub fn symbolic_cholesky(
     }
 }
 
+/// faer's parallelism for a factorisation on `threads` threads: sequential for one, else its
+/// rayon mode (dense kernels of the large supernodes on rayon's global pool).
+pub(crate) fn parallelism(threads: usize) -> Par {
+    if threads > 1 {
+        Par::rayon(threads)
+    } else {
+        Par::Seq
+    }
+}
+
 /// A sparse symmetric factorisation under the [`symbolic_cholesky`] ordering (double
 /// precision): the analysis is made once for a pattern, then refactored for any values on it,
 /// as `L L^T` ([`SparseCholesky::factor_llt`], positive definite) or as the unpivoted
@@ -361,11 +371,7 @@ impl SparseCholesky {
 
     /// faer's parallelism for the allocating factorisations.
     fn par(&self) -> Par {
-        if self.threads > 1 {
-            Par::rayon(self.threads)
-        } else {
-            Par::Seq
-        }
+        parallelism(self.threads)
     }
 
     /// Analyses and factors `a` as `L L^T` in one call, on up to `threads` threads
