@@ -369,11 +369,6 @@ impl SparseCholesky {
         self
     }
 
-    /// faer's parallelism for the allocating factorisations.
-    fn par(&self) -> Par {
-        parallelism(self.threads)
-    }
-
     /// Analyses and factors `a` as `L L^T` in one call, on up to `threads` threads
     /// ([`SparseCholesky::with_threads`]).
     ///
@@ -401,7 +396,7 @@ impl SparseCholesky {
         a: SparseColMatRef<'_, usize, f64>,
         side: Side,
     ) -> Result<(), ModelError> {
-        let par = self.par();
+        let par = parallelism(self.threads);
         let mut mem = MemBuffer::new(
             self.symbolic
                 .factorize_numeric_llt_scratch::<f64>(par, Default::default()),
@@ -469,7 +464,7 @@ impl SparseCholesky {
         a: SparseColMatRef<'_, usize, f64>,
         side: Side,
     ) -> Result<(), ModelError> {
-        let par = self.par();
+        let par = parallelism(self.threads);
         let mut mem = MemBuffer::new(
             self.symbolic
                 .factorize_numeric_ldlt_scratch::<f64>(par, Default::default()),
