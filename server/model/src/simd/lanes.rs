@@ -641,7 +641,8 @@ mod x86 {
     /// module, so that its methods do not meet [`Lane`]'s of the same names; where the
     /// operations are the same they call `Ymm`'s own). Every intrinsic
     /// call is sound because a `Ymm` value exists only after [`Avx2Fma::detect`] returned a
-    /// token, and loads and stores check their slice bounds first.
+    /// token, and loads and stores check their slice bounds first (the unchecked ones leave it
+    /// to their callers' contract).
     mod four {
         use std::arch::x86_64::*;
 
@@ -682,6 +683,22 @@ mod x86 {
                 let s = &mut a[i..i + 4];
                 // SAFETY: `s` holds four f64 (checked above); `self` exists only with the token.
                 unsafe { _mm256_storeu_pd(s.as_mut_ptr(), self.0) }
+            }
+
+            #[inline(always)]
+            unsafe fn load_unchecked(_: Avx2Fma, a: &[f64], i: usize) -> Ymm {
+                debug_assert!(i + 4 <= a.len());
+                // SAFETY: `a[i..i + 4]` is readable (the caller's contract); the token proves
+                // AVX.
+                Ymm(unsafe { _mm256_loadu_pd(a.as_ptr().add(i)) })
+            }
+
+            #[inline(always)]
+            unsafe fn store_unchecked(self, a: &mut [f64], i: usize) {
+                debug_assert!(i + 4 <= a.len());
+                // SAFETY: `a[i..i + 4]` is writable (the caller's contract); `self` exists
+                // only with the token.
+                unsafe { _mm256_storeu_pd(a.as_mut_ptr().add(i), self.0) }
             }
 
             #[inline(always)]

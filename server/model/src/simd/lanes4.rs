@@ -22,6 +22,17 @@ pub(crate) trait Lanes4: Copy {
     /// # Panics
     /// If `a` is shorter than `i + 4`.
     fn store(self, a: &mut [f64], i: usize);
+    /// [`Lanes4::load`] without the bounds check (the meshfree group loop checks a group's
+    /// whole window once instead of each of its 240 or so loads and stores).
+    ///
+    /// # Safety
+    /// `i + 4 <= a.len()`.
+    unsafe fn load_unchecked(isa: Self::Isa, a: &[f64], i: usize) -> Self;
+    /// [`Lanes4::store`] without the bounds check.
+    ///
+    /// # Safety
+    /// `i + 4 <= a.len()`.
+    unsafe fn store_unchecked(self, a: &mut [f64], i: usize);
     fn to_array(self) -> [f64; 4];
     fn add(self, o: Self) -> Self;
     fn sub(self, o: Self) -> Self;
@@ -73,6 +84,27 @@ impl Lanes4 for Plain4 {
     #[inline(always)]
     fn store(self, a: &mut [f64], i: usize) {
         a[i..i + 4].copy_from_slice(&self.0);
+    }
+
+    #[inline(always)]
+    unsafe fn load_unchecked(_: (), a: &[f64], i: usize) -> Plain4 {
+        debug_assert!(i + 4 <= a.len());
+        // SAFETY: `i + 4 <= a.len()` (the caller's contract).
+        unsafe {
+            Plain4([
+                *a.get_unchecked(i),
+                *a.get_unchecked(i + 1),
+                *a.get_unchecked(i + 2),
+                *a.get_unchecked(i + 3),
+            ])
+        }
+    }
+
+    #[inline(always)]
+    unsafe fn store_unchecked(self, a: &mut [f64], i: usize) {
+        debug_assert!(i + 4 <= a.len());
+        // SAFETY: `i + 4 <= a.len()` (the caller's contract).
+        unsafe { a.get_unchecked_mut(i..i + 4) }.copy_from_slice(&self.0);
     }
 
     #[inline(always)]

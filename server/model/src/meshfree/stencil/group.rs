@@ -818,14 +818,31 @@ fn pass_two_cube<V: Lanes4>(
     seed: bool,
     ol: [V; 3],
 ) {
+    // The group's window, checked once for the 80 or so loads and stores below: every row
+    // `o = b + rows[_]` has its cells `o - 1 .. o + 5` in the positions and its chunk's
+    // forces `3 o .. 3 o + 12` in `f`.
+    let (mut rmin, mut rmax) = (0, 0);
+    for &ro in rows {
+        (rmin, rmax) = (rmin.min(ro), rmax.max(ro));
+    }
+    let (lo, hi) = (b as isize + rmin, b as isize + rmax);
+    let cells = p[0].len().min(p[1].len()).min(p[2].len()) as isize;
+    let forces = f[0].len().min(f[1].len()).min(f[2].len()) as isize;
+    assert!(
+        lo >= 1 && hi + 5 <= cells && 3 * hi + 12 <= forces,
+        "a stencil group's rows outside the grid"
+    );
     // `grad` subtracted (`neg`: added) at chunk `o` of the forces of offset `dx`, component
     // `r` (interleaved: at `3 o + 4 (dx + 1)`; a macro, not a closure: closures do not
     // inherit the caller's target features).
     macro_rules! put {
         ($dx:expr, $o:expr, $r:expr, $grad:expr, $neg:expr) => {{
             let (a, i) = (&mut *f[$r], 3 * $o + 4 * ($dx + 1) as usize);
-            let old = V::load(isa, a, i);
-            if $neg { old.add($grad) } else { old.sub($grad) }.store(a, i);
+            // SAFETY: `o` is a row of the window checked above, so `i + 4 <= 3 o + 12`.
+            let old = unsafe { V::load_unchecked(isa, a, i) };
+            let new = if $neg { old.add($grad) } else { old.sub($grad) };
+            // SAFETY: as the load.
+            unsafe { new.store_unchecked(a, i) };
         }};
     }
     // The entry `(dx, a, b)` of row one and its negative in row two (owners' chunks `o1` and
@@ -844,8 +861,13 @@ fn pass_two_cube<V: Lanes4>(
                 // `-g`, its negative the other.
                 let (ck, cu) = (cko[CUBE_CLASS[j]], cui[CUBE_CLASS[j]][$r]);
                 let (gm, gp) = (g.sub(cu), g.add(cu));
-                let u1 = V::load(isa, p[$r], ($o1 as isize + $dx) as usize);
-                let u2 = V::load(isa, p[$r], ($o2 as isize - $dx) as usize);
+                // SAFETY: `o1`, `o2` are rows of the window checked above and `|dx| <= 1`.
+                let (u1, u2) = unsafe {
+                    (
+                        V::load_unchecked(isa, p[$r], ($o1 as isize + $dx) as usize),
+                        V::load_unchecked(isa, p[$r], ($o2 as isize - $dx) as usize),
+                    )
+                };
                 let (d1, d2) = if neg {
                     (V::msub(u1, ck, gp), V::madd(u2, ck, gm))
                 } else {
@@ -906,12 +928,30 @@ fn pass_one_cube<V: Lanes4>(
     let zero = V::zero(isa);
     let mut g = [[zero; 9]; 3];
     let mut s = [[zero; 3]; 3];
+    // The group's window, checked once for the 78 loads below: every pair's cells lie within
+    // `reach` of `b`.
+    let mut reach = 0;
+    for &o in off {
+        reach = reach.max(o.unsigned_abs());
+    }
+    let cells = px.len().min(py.len()).min(pz.len());
+    assert!(
+        b >= reach && b + reach + 4 <= cells,
+        "a stencil group's pairs outside the grid"
+    );
+    // A macro, not a closure: closures do not inherit the caller's target features.
+    macro_rules! ld {
+        // SAFETY: `b - reach <= i <= b + reach`, so `i + 4 <= cells` (checked above).
+        ($a:expr, $i:expr) => {
+            unsafe { V::load_unchecked(isa, $a, $i) }
+        };
+    }
     macro_rules! pair {
         ($($j:literal),*) => {$(
             let (c, e, o) = (CUBE_CLASS[$j], CUBE[$j], off[$j]);
             let (hi, lo) = ((b as isize + o) as usize, (b as isize - o) as usize);
-            let a = [V::load(isa, px, hi), V::load(isa, py, hi), V::load(isa, pz, hi)];
-            let m = [V::load(isa, px, lo), V::load(isa, py, lo), V::load(isa, pz, lo)];
+            let a = [ld!(px, hi), ld!(py, hi), ld!(pz, hi)];
+            let m = [ld!(px, lo), ld!(py, lo), ld!(pz, lo)];
             for r in 0..3 {
                 let d = a[r].sub(m[r]);
                 for (ax, &ea) in e.iter().enumerate() {
