@@ -2,6 +2,9 @@
 //! the corrected variant reproduces affine fields (patch test), rigid motions are force-free in
 //! both variants, forces are minus the energy gradient (central differences), and a
 //! checkerboard (hourglass) perturbation does not grow over 100 of its periods.
+//!
+//! The force contracts hold to double-precision round-off in the block's general loop and to
+//! single-precision round-off in its stencil loop ([`stencil_tolerance`]), both checked.
 
 use crate::common;
 
@@ -34,6 +37,22 @@ fn cube(n: usize, variant: MeshfreeVariant, model: MaterialModel) -> (ParticleCl
         assert!(block.push(&cloud, p).expect("term"));
     }
     (cloud, block)
+}
+
+/// The block's two force loops: the general one (double precision) and the stencil one
+/// (single precision; the default).
+const LOOPS: [bool; 2] = [false, true];
+
+/// What a force contract allows the stencil loop beyond the general loop's round-off: its
+/// grid holds displacements from rest `x - X` in single precision, so each is rounded by
+/// about `eps32 |u|`, a strain error of `eps32 |u| / h` at spacing `h`; `scale` is the force
+/// of a 1 % strain. Sixteen times that covers the sums over the 26 neighbours and the stress.
+fn stencil_tolerance(cloud: &ParticleCloud, x: &[DVec3], scale: f64) -> f64 {
+    let u_max = x
+        .iter()
+        .zip(cloud.rest_m())
+        .fold(0.0f64, |a, (x, r)| a.max((*x - *r).length()));
+    16.0 * f64::from(f32::EPSILON) * (u_max / SPACING_M) * scale / 0.01
 }
 
 fn forces(cloud: &ParticleCloud, block: &mut TermBlock, x: &[DVec3]) -> Vec<DVec3> {
@@ -85,12 +104,24 @@ fn corrected_variant_reproduces_affine_fields() {
     let e = block.energy(&cloud, &x);
     assert!((e - expect).abs() < 1e-10 * expect, "{e} vs {expect}");
     // Interior particles (full stencils on all sides) feel no force under constant stress.
-    let f = forces(&cloud, &mut block, &x);
-    let scale = typical_force(&cloud, &mut block);
-    for (p, r) in cloud.rest_m().iter().enumerate() {
-        let inner = r.min_element() > 1.5e-3 && r.max_element() < 3.5e-3;
-        if inner {
-            assert!(f[p].length() < 1e-10 * scale, "particle {p}: {}", f[p]);
+    for stencil in LOOPS {
+        block.set_stencil_loop(stencil);
+        let f = forces(&cloud, &mut block, &x);
+        let scale = typical_force(&cloud, &mut block);
+        let tol = if stencil {
+            stencil_tolerance(&cloud, &x, scale)
+        } else {
+            1e-10 * scale
+        };
+        for (p, r) in cloud.rest_m().iter().enumerate() {
+            let inner = r.min_element() > 1.5e-3 && r.max_element() < 3.5e-3;
+            if inner {
+                assert!(
+                    f[p].length() < tol,
+                    "stencil {stencil}, particle {p}: {}",
+                    f[p]
+                );
+            }
         }
     }
 }
@@ -117,19 +148,28 @@ fn rigid_motion_gives_zero_elastic_force() {
                 continue;
             }
             let (cloud, mut block) = cube(5, variant, model);
-            let scale = typical_force(&cloud, &mut block);
             let r = DQuat::from_axis_angle(DVec3::new(1.0, 2.0, -0.5).normalize(), 0.9);
             let x: Vec<DVec3> = cloud
                 .rest_m()
                 .iter()
                 .map(|&p| r * p + DVec3::new(0.01, -0.02, 0.005))
                 .collect();
-            let f = forces(&cloud, &mut block, &x);
-            let worst = max_norm(&f);
-            assert!(
-                worst < 1e-10 * scale,
-                "{variant:?} {model:?}: {worst:e} vs typical {scale:e}"
-            );
+            for stencil in LOOPS {
+                block.set_stencil_loop(stencil);
+                let scale = typical_force(&cloud, &mut block);
+                let f = forces(&cloud, &mut block, &x);
+                let worst = max_norm(&f);
+                let tol = if stencil {
+                    stencil_tolerance(&cloud, &x, scale)
+                } else {
+                    1e-10 * scale
+                };
+                assert!(
+                    worst < tol,
+                    "{variant:?} {model:?}, stencil {stencil}: {worst:e} vs typical {scale:e}"
+                );
+            }
+            let scale = typical_force(&cloud, &mut block);
             assert!(block.energy(&cloud, &x).abs() < 1e-12 * scale * SPACING_M);
         }
     }
@@ -149,31 +189,56 @@ fn force_is_minus_energy_gradient() {
             .iter()
             .map(|&p| p + rng.vec() * 0.1 * SPACING_M)
             .collect();
-        let f = forces(&cloud, &mut block, &x);
-        let total: DVec3 = f.iter().sum();
-        let scale = max_norm(&f);
-        assert!(
-            total.length() < 1e-12 * scale * f.len() as f64,
-            "momentum: {total}"
-        );
-        let eps = 1e-8 * SPACING_M;
-        let mut worst = 0.0f64;
-        for p in [0usize, 5, 21, 42, 63] {
-            for a in 0..3 {
-                let mut xp = x.clone();
-                xp[p][a] += eps;
-                let ep = block.energy(&cloud, &xp);
-                xp[p][a] -= 2.0 * eps;
-                let em = block.energy(&cloud, &xp);
-                let fd = -(ep - em) / (2.0 * eps);
-                worst = worst.max((fd - f[p][a]).abs());
-            }
+        let fd = energy_gradient(&cloud, &block, &x, &[0, 5, 21, 42, 63]);
+        for stencil in LOOPS {
+            block.set_stencil_loop(stencil);
+            let f = forces(&cloud, &mut block, &x);
+            let total: DVec3 = f.iter().sum();
+            let scale = max_norm(&f);
+            // The stencil loop's owner and neighbour shares are rounded apart, so the total
+            // is zero to single-precision round-off only.
+            let (momentum_tol, fd_tol) = if stencil {
+                let t = stencil_tolerance(&cloud, &x, typical_force(&cloud, &mut block));
+                (t * f.len() as f64, 1e-6 * scale + t)
+            } else {
+                (1e-12 * scale * f.len() as f64, 1e-6 * scale)
+            };
+            assert!(
+                total.length() < momentum_tol,
+                "stencil {stencil}, momentum: {total}"
+            );
+            let worst = fd
+                .iter()
+                .fold(0.0f64, |w, &(p, a, g)| w.max((g - f[p][a]).abs()));
+            assert!(
+                worst < fd_tol,
+                "{variant:?} {model:?}, stencil {stencil}: {worst:e} of {scale:e}"
+            );
         }
-        assert!(
-            worst < 1e-6 * scale,
-            "{variant:?} {model:?}: {worst:e} of {scale:e}"
-        );
     }
+}
+
+/// Minus the energy's central-difference gradient at `x` along each axis of the particles
+/// `particles`: `(particle, axis, -dE/dx)`.
+fn energy_gradient(
+    cloud: &ParticleCloud,
+    block: &TermBlock,
+    x: &[DVec3],
+    particles: &[usize],
+) -> Vec<(usize, usize, f64)> {
+    let eps = 1e-8 * SPACING_M;
+    let mut out = Vec::new();
+    for &p in particles {
+        for a in 0..3 {
+            let mut xp = x.to_vec();
+            xp[p][a] += eps;
+            let ep = block.energy(cloud, &xp);
+            xp[p][a] -= 2.0 * eps;
+            let em = block.energy(cloud, &xp);
+            out.push((p, a, -(ep - em) / (2.0 * eps)));
+        }
+    }
+    out
 }
 
 /// The checkerboard pattern `(-1)^(i+j+k)` of the interior, and the projection of `u` on it.

@@ -173,7 +173,7 @@ impl TermBlock {
 
     /// Chooses the force loop: `true` (the default) runs the stencil loop whenever the touched
     /// particles' bounding box fits its grid, `false` always the general loop (for tests and
-    /// benchmarks of the two; their forces agree to round-off).
+    /// benchmarks of the two; their forces agree to single-precision round-off).
     pub fn set_stencil_loop(&mut self, on: bool) {
         self.use_stencil = on;
     }
@@ -747,9 +747,10 @@ mod tests {
 
     /// The stencil loop (AVX2 where the CPU has it, and the plain lanes; the 26-cell cube's
     /// specialised loops and the general stencil's pair loops) gives the general loop's
-    /// forces to round-off: both variants, three laws, a ragged particle set (a ball with
-    /// holes, so owners miss neighbours and groups have padding lanes), a partial set of
-    /// terms, a large smooth deformation plus noise.
+    /// forces to single-precision round-off (1e-5 of the largest force; 1.8e-6 measured):
+    /// both variants, three laws, a ragged particle set (a ball with holes, so owners miss
+    /// neighbours and groups have padding lanes), a partial set of terms, a large smooth
+    /// deformation (displacements of a few millimetres at a 1 mm spacing) plus noise.
     #[test]
     fn stencil_loop_matches_the_general_loop() {
         let n = 11;
@@ -835,7 +836,7 @@ mod tests {
                         .zip(&forces[0])
                         .fold(0.0f64, |a, (u, v)| a.max((*u - *v).length()));
                     assert!(
-                        err <= 1e-12 * scale,
+                        err <= 1e-5 * scale,
                         "{variant:?} {model:?} mode {mode}: {err:e} of {scale:e}"
                     );
                 }

@@ -1,6 +1,6 @@
 //! The SIMD layer: what the CPU can run (the instruction-set tokens of [`isa`]), the lane
-//! types the element kernels are written over ([`lanes`]) and the four-lane type of the
-//! meshfree stencil ([`lanes4`]) and the `f32` lanes of the single-precision kernel
+//! types the element kernels are written over ([`lanes`]) and the eight-lane `f32` type of
+//! the meshfree stencil ([`lanes8`]) and the `f32` lanes of the single-precision kernel
 //! ([`lanes_f32`], x86-64).
 //!
 //! **The rule** for every vectorised path of the crate: a vector value or a token exists only
@@ -13,7 +13,7 @@
 
 pub(crate) mod isa;
 pub(crate) mod lanes;
-pub(crate) mod lanes4;
+pub(crate) mod lanes8;
 #[cfg(target_arch = "x86_64")]
 pub(crate) mod lanes_f32;
 
@@ -21,4 +21,6 @@ pub(crate) use isa::{Avx2Fma, Avx2FmaF16c, Avx512};
 pub(crate) use lanes::{Lane, LaneVec, Plain8, Ymm, Zmm};
 #[cfg(target_arch = "x86_64")]
 pub(crate) use lanes_f32::{F32Lanes, Y8, Z16};
-pub(crate) use lanes4::{Lanes4, Plain4};
+#[cfg(target_arch = "x86_64")]
+pub(crate) use lanes8::Ymm8;
+pub(crate) use lanes8::{Lanes8, Plain8f};

@@ -1,7 +1,7 @@
 //! The group loop of [`super::StencilGrid`] (module documentation of [`super`] for the formulas):
-//! every group of four cells along x through pass 1 (positions to `F`, hourglass sums), the
+//! every group of eight cells along x through pass 1 (positions to `F`, hourglass sums), the
 //! stress and pass 2 (forces onto the grid), with its lane helpers, written once over
-//! [`Lanes4`] and compiled plain and for AVX2 + FMA.
+//! [`Lanes8`] (single precision) and compiled plain and for AVX2 + FMA.
 
 use std::ops::Range;
 
@@ -9,16 +9,16 @@ use glam::{DMat3, DVec3};
 
 use super::layout::{GroupRest, StencilLayout};
 use super::offsets::Stencil;
-use super::{CUBE, CUBE_CLASS, MAX_PAIRS};
+use super::{CUBE, CUBE_CLASS, LANES, MAX_PAIRS};
 use crate::material::stvk::{green_strain, stvk_stress};
 use crate::material::{MaterialModel, MaterialParams, first_piola};
 use crate::meshfree::cloud::{MAX_STENCIL, outer};
-use crate::simd::Lanes4;
+use crate::simd::Lanes8;
 #[cfg(target_arch = "x86_64")]
-use crate::simd::{Avx2Fma, Ymm};
+use crate::simd::{Avx2Fma, Ymm8};
 /// Nine lane vectors of a column-major 3x3 matrix per lane.
 #[inline(always)]
-fn lane_mat<V: Lanes4>(isa: V::Isa, a: &[[f64; 4]; 9]) -> [V; 9] {
+fn lane_mat<V: Lanes8>(isa: V::Isa, a: &[[f32; LANES]; 9]) -> [V; 9] {
     // A loop, not `array::from_fn`: closures do not inherit the caller's target features.
     let mut m = [V::zero(isa); 9];
     for (m, a) in m.iter_mut().zip(a) {
@@ -31,7 +31,7 @@ fn lane_mat<V: Lanes4>(isa: V::Isa, a: &[[f64; 4]; 9]) -> [V; 9] {
 /// three; `N` when `seed`): with `c_k X_k = beta_c w_k`, the part `N w_k - F c_k X_k + c_k X_k`
 /// of `grad_ik` (module documentation) is `(N - beta_c (F - I)) w_k`.
 #[inline(always)]
-fn class_matrices<V: Lanes4>(
+fn class_matrices<V: Lanes8>(
     n: &[V; 9],
     f: &[V; 9],
     classes: &[(f64, f64, std::ops::Range<usize>)],
@@ -52,7 +52,7 @@ fn class_matrices<V: Lanes4>(
 
 /// `a b` lane-wise (column-major).
 #[inline(always)]
-fn mat_mul<V: Lanes4>(a: &[V; 9], b: &[V; 9]) -> [V; 9] {
+fn mat_mul<V: Lanes8>(a: &[V; 9], b: &[V; 9]) -> [V; 9] {
     let mut out = *a;
     for c in 0..3 {
         for r in 0..3 {
@@ -67,7 +67,7 @@ fn mat_mul<V: Lanes4>(a: &[V; 9], b: &[V; 9]) -> [V; 9] {
 
 /// `a v` lane-wise (column-major `a`).
 #[inline(always)]
-fn mat_vec<V: Lanes4>(a: &[V; 9], v: &[V; 3]) -> [V; 3] {
+fn mat_vec<V: Lanes8>(a: &[V; 9], v: &[V; 3]) -> [V; 3] {
     let mut out = *v;
     for (r, o) in out.iter_mut().enumerate() {
         let mut acc = a[r].mul(v[0]);
@@ -80,8 +80,8 @@ fn mat_vec<V: Lanes4>(a: &[V; 9], v: &[V; 3]) -> [V; 3] {
 
 /// The column-major 3x3 matrix of each lane of nine lane vectors.
 #[inline(always)]
-fn lane_matrices<V: Lanes4>(a: &[V; 9]) -> [[f64; 9]; 4] {
-    let c: [[f64; 4]; 9] = [
+fn lane_matrices<V: Lanes8>(a: &[V; 9]) -> [[f64; 9]; LANES] {
+    let c: [[f32; LANES]; 9] = [
         a[0].to_array(),
         a[1].to_array(),
         a[2].to_array(),
@@ -92,10 +92,10 @@ fn lane_matrices<V: Lanes4>(a: &[V; 9]) -> [[f64; 9]; 4] {
         a[7].to_array(),
         a[8].to_array(),
     ];
-    let mut out = [[0.0; 9]; 4];
+    let mut out = [[0.0; 9]; LANES];
     for (l, m) in out.iter_mut().enumerate() {
         for (e, v) in m.iter_mut().enumerate() {
-            *v = c[e][l];
+            *v = c[e][l].into();
         }
     }
     out
@@ -111,14 +111,14 @@ pub(super) fn group_loop_avx2(
     part: GroupPart<'_>,
     mat: &MaterialParams,
 ) {
-    group_loop::<Ymm>(isa, st, lay, part, mat);
+    group_loop::<Ymm8>(isa, st, lay, part, mat);
 }
 
 /// One part of a group loop: the grid positions (x, y, z displacement per cell, shared by
 /// every part), the part's own force buffers (`GridBuffers`' layout) and its groups.
 pub(super) struct GroupPart<'a> {
-    pub(super) pos: [&'a [f64]; 3],
-    pub(super) fc: &'a mut [Vec<f64>; 3],
+    pub(super) pos: [&'a [f32]; 3],
+    pub(super) fc: &'a mut [Vec<f32>; 3],
     pub(super) groups: Range<usize>,
 }
 
@@ -134,7 +134,7 @@ type StressOut<V> = ([V; 9], [V; 9], [V; 3]);
 /// of [`super`] for the formulas): pass 1, the stress (St. Venant-Kirchhoff lane-wise, other
 /// laws per lane), pass 2.
 #[inline(always)]
-pub(super) fn group_loop<V: Lanes4>(
+pub(super) fn group_loop<V: Lanes8>(
     isa: V::Isa,
     st: &Stencil,
     lay: &StencilLayout,
@@ -183,11 +183,11 @@ pub(super) fn group_loop<V: Lanes4>(
 /// on `|k|` only).
 #[inline(always)]
 #[allow(clippy::needless_range_loop)] // one index into several 3x3 lane matrices
-fn pass_one<V: Lanes4>(
+fn pass_one<V: Lanes8>(
     isa: V::Isa,
     st: &Stencil,
     lay: &StencilLayout,
-    pos: [&[f64]; 3],
+    pos: [&[f32]; 3],
     b: usize,
 ) -> PassOne<V> {
     let (seed, zero) = (st.seed, V::zero(isa));
@@ -276,7 +276,7 @@ fn pass_one<V: Lanes4>(
 /// lanes, whose `A^-1` is stored as zero), `E = ((F - I) + (F - I)^T + (F - I)^T (F - I)) / 2`,
 /// `M = V F S(E) + (F - I) Q - Gb + u_i (x) U`, `N = M A^-T` (zero on padding lanes).
 #[inline(always)]
-fn stress_stvk<V: Lanes4>(
+fn stress_stvk<V: Lanes8>(
     isa: V::Isa,
     st: &Stencil,
     gq: &GroupRest,
@@ -291,7 +291,7 @@ fn stress_stvk<V: Lanes4>(
     let e = lane_strain(isa, seed, gq, &f, &fmi);
     let sv = lane_stvk(isa, mat, st.volume_m3, &e);
     let mut m = mat_mul(&f, &sv);
-    let ld = |a: &[f64; 4]| V::from_array(isa, *a);
+    let ld = |a: &[f32; LANES]| V::from_array(isa, *a);
     let s3 = [ld(&gq.s[0]), ld(&gq.s[1]), ld(&gq.s[2])];
     if seed {
         for x in &mut m {
@@ -305,14 +305,14 @@ fn stress_stvk<V: Lanes4>(
 
 /// `F` and (corrected) `F - I` of a group lane-wise ([`stress_stvk`]); seed: `F` twice.
 #[inline(always)]
-fn lane_deformation<V: Lanes4>(
+fn lane_deformation<V: Lanes8>(
     isa: V::Isa,
     seed: bool,
     gq: &GroupRest,
     ga: &[V; 9],
     ui: [V; 3],
 ) -> ([V; 9], [V; 9]) {
-    let ld = |a: &[f64; 4]| V::from_array(isa, *a);
+    let ld = |a: &[f32; LANES]| V::from_array(isa, *a);
     let mut ft = [V::zero(isa); 9];
     for c in 0..3 {
         let sc = ld(&gq.s[c]);
@@ -346,14 +346,14 @@ fn lane_deformation<V: Lanes4>(
 /// The Green strain lane-wise (column-major, symmetric): seed `(F^T F - I) / 2 - E0` (`E0`
 /// in `gq.q`), corrected `((F - I) + (F - I)^T + (F - I)^T (F - I)) / 2` from `fmi`.
 #[inline(always)]
-fn lane_strain<V: Lanes4>(
+fn lane_strain<V: Lanes8>(
     isa: V::Isa,
     seed: bool,
     gq: &GroupRest,
     f: &[V; 9],
     fmi: &[V; 9],
 ) -> [V; 9] {
-    let ld = |a: &[f64; 4]| V::from_array(isa, *a);
+    let ld = |a: &[f32; LANES]| V::from_array(isa, *a);
     let half = V::splat(isa, 0.5);
     let mut e = [V::zero(isa); 9];
     for c in 0..3 {
@@ -383,7 +383,7 @@ fn lane_strain<V: Lanes4>(
 /// `V S(E) = V (lambda tr(E) I + 2 mu E)` lane-wise (`v`: the particle volume, m^3).
 #[inline(always)]
 #[allow(clippy::needless_range_loop)] // one index into two 3x3 lane matrices
-fn lane_stvk<V: Lanes4>(isa: V::Isa, mat: &MaterialParams, v: f64, e: &[V; 9]) -> [V; 9] {
+fn lane_stvk<V: Lanes8>(isa: V::Isa, mat: &MaterialParams, v: f64, e: &[V; 9]) -> [V; 9] {
     let lv = V::splat(isa, mat.lambda_pa * v);
     let mv = V::splat(isa, 2.0 * mat.mu_pa * v);
     let tr = lv.mul(e[0].add(e[4]).add(e[8]));
@@ -403,7 +403,7 @@ fn lane_stvk<V: Lanes4>(isa: V::Isa, mat: &MaterialParams, v: f64, e: &[V; 9]) -
 #[inline(always)]
 #[allow(clippy::too_many_arguments)] // the stress's state, split out of one function
 #[allow(clippy::needless_range_loop)] // one index into several 3x3 lane matrices
-fn corrected_forces<V: Lanes4>(
+fn corrected_forces<V: Lanes8>(
     isa: V::Isa,
     gq: &GroupRest,
     mut m: [V; 9],
@@ -416,7 +416,7 @@ fn corrected_forces<V: Lanes4>(
     s3: [V; 3],
 ) -> StressOut<V> {
     let zero = V::zero(isa);
-    let ld = |a: &[f64; 4]| V::from_array(isa, *a);
+    let ld = |a: &[f32; LANES]| V::from_array(isa, *a);
     let h = mat_mul(&fmi, &lane_mat(isa, &gq.q));
     let u3 = [ld(&gq.u[0]), ld(&gq.u[1]), ld(&gq.u[2])];
     for c in 0..3 {
@@ -447,36 +447,9 @@ fn corrected_forces<V: Lanes4>(
     (n, fmi, ov)
 }
 
-/// `a b` lane-wise (column-major) as `DMat3 * DMat3` rounds it, without fused operations:
-/// entry `(r, c)` is `(a_r0 b_0c + a_r1 b_1c) + a_r2 b_2c`.
-#[inline(always)]
-fn mat_mul_exact<V: Lanes4>(a: &[V; 9], b: &[V; 9]) -> [V; 9] {
-    let mut out = *a;
-    for c in 0..3 {
-        for r in 0..3 {
-            let ab = a[r].mul(b[3 * c]).add(a[3 + r].mul(b[3 * c + 1]));
-            out[3 * c + r] = ab.add(a[6 + r].mul(b[3 * c + 2]));
-        }
-    }
-    out
-}
-
-/// `a v` lane-wise (column-major `a`) as `DMat3 * DVec3` rounds it (no fused operations).
-#[inline(always)]
-fn mat_vec_exact<V: Lanes4>(a: &[V; 9], v: &[V; 3]) -> [V; 3] {
-    let mut out = *v;
-    for (r, o) in out.iter_mut().enumerate() {
-        *o = a[r]
-            .mul(v[0])
-            .add(a[3 + r].mul(v[1]))
-            .add(a[6 + r].mul(v[2]));
-    }
-    out
-}
-
 /// Lanes `l` with `own[l] == 0` set to zero (padding lanes, as [`stress_per_lane`] leaves them).
 #[inline(always)]
-fn zero_padding<V: Lanes4>(isa: V::Isa, own: &[f64; 4], v: &mut [V]) {
+fn zero_padding<V: Lanes8>(isa: V::Isa, own: &[f32; LANES], v: &mut [V]) {
     for x in v {
         let mut a = x.to_array();
         for (a, &o) in a.iter_mut().zip(own) {
@@ -489,12 +462,12 @@ fn zero_padding<V: Lanes4>(isa: V::Isa, own: &[f64; 4], v: &mut [V]) {
 }
 
 /// The stable Neo-Hookean stress of a group lane-wise (corrected variant): the operations of
-/// [`stress_per_lane`] with `first_piola` (`P = mu F + lambda_s (J - alpha) cof F`), entry by
-/// entry in the same order without fused operations, so each lane is the per-lane loop's result
-/// bit for bit (issue 48: the per-lane loop was about a third of the group loop).
+/// [`stress_per_lane`] with `first_piola` (`P = mu F + lambda_s (J - alpha) cof F`) in single
+/// precision with fused multiply-adds (issue 48: the per-lane loop was about a third of the
+/// group loop).
 #[inline(always)]
 #[allow(clippy::needless_range_loop)] // one index into several 3x3 lane matrices
-fn stress_neo_hookean<V: Lanes4>(
+fn stress_neo_hookean<V: Lanes8>(
     isa: V::Isa,
     st: &Stencil,
     gq: &GroupRest,
@@ -503,7 +476,7 @@ fn stress_neo_hookean<V: Lanes4>(
     mat: &MaterialParams,
 ) -> StressOut<V> {
     let (ga, gb, cu) = sums;
-    let ld = |a: &[f64; 4]| V::from_array(isa, *a);
+    let ld = |a: &[f32; LANES]| V::from_array(isa, *a);
     let (s3, u3) = (
         [ld(&gq.s[0]), ld(&gq.s[1]), ld(&gq.s[2])],
         [ld(&gq.u[0]), ld(&gq.u[1]), ld(&gq.u[2])],
@@ -517,21 +490,21 @@ fn stress_neo_hookean<V: Lanes4>(
             a_t[3 * c + r] = a_inv[3 * r + c];
         }
     }
-    let fmi = mat_mul_exact(&gus, &a_inv);
+    let fmi = mat_mul(&gus, &a_inv);
     let mut f = fmi;
     for (i, f) in f.iter_mut().enumerate() {
         *f = f.add(V::splat(isa, if i % 4 == 0 { 1.0 } else { 0.0 }));
     }
-    let fq = mat_mul_exact(&fmi, &lane_mat(isa, &gq.q));
+    let fq = mat_mul(&fmi, &lane_mat(isa, &gq.q));
     // cof F: columns y x z, z x x, x x y; J = x . (y x z).
     let mut cof = f;
     for (j, [a, b]) in [[1, 2], [2, 0], [0, 1]].into_iter().enumerate() {
         for (r, [p, q]) in [[1, 2], [2, 0], [0, 1]].into_iter().enumerate() {
             let (ap, bq, bp, aq) = (f[3 * a + p], f[3 * b + q], f[3 * b + p], f[3 * a + q]);
-            cof[3 * j + r] = ap.mul(bq).sub(bp.mul(aq));
+            cof[3 * j + r] = V::msub(ap, bq, bp.mul(aq));
         }
     }
-    let det = f[0].mul(cof[0]).add(f[1].mul(cof[1])).add(f[2].mul(cof[2]));
+    let det = V::madd(f[2], cof[2], V::madd(f[1], cof[1], f[0].mul(cof[0])));
     let ls = mat.lambda_pa + mat.mu_pa;
     let alpha = 1.0 + mat.mu_pa / ls;
     let sj = V::splat(isa, ls).mul(det.sub(V::splat(isa, alpha)));
@@ -540,21 +513,21 @@ fn stress_neo_hookean<V: Lanes4>(
     for c in 0..3 {
         for r in 0..3 {
             let i = 3 * c + r;
-            let p = f[i].mul(mu).add(cof[i].mul(sj));
-            let h = fq[i].sub(gb[i]).add(ui[r].mul(u3[c]));
-            m[i] = p.mul(v).add(h);
+            let p = V::madd(cof[i], sj, f[i].mul(mu));
+            let h = V::madd(ui[r], u3[c], fq[i].sub(gb[i]));
+            m[i] = V::madd(p, v, h);
         }
     }
-    let mut n = mat_mul_exact(&m, &a_t);
-    let (ns, fu) = (mat_vec_exact(&n, &s3), mat_vec_exact(&f, &u3));
+    let mut n = mat_mul(&m, &a_t);
+    let (ns, fu) = (mat_vec(&n, &s3), mat_vec(&f, &u3));
     let cv = ld(&gq.c);
     let mut ov = ns;
     for r in 0..3 {
-        let sdl = cu[r].sub(ui[r].mul(cv)).add(u3[r]);
+        let sdl = V::nmadd(ui[r], cv, cu[r]).add(u3[r]);
         ov[r] = ns[r].sub(fu[r]).add(sdl);
     }
     let mut fmi = fmi;
-    if gq.own != [1.0; 4] {
+    if gq.own != [1.0; LANES] {
         zero_padding(isa, &gq.own, &mut n);
         zero_padding(isa, &gq.own, &mut fmi);
         zero_padding(isa, &gq.own, &mut ov);
@@ -566,7 +539,7 @@ fn stress_neo_hookean<V: Lanes4>(
 /// the seed branch serves the tests of every law): `F~ = A + G - u_i (x) S`; stress, `N`,
 /// `F` (corrected: `F - I`) and the owner's force of each owner lane, zero on padding lanes.
 #[inline(always)]
-fn stress_per_lane<V: Lanes4>(
+fn stress_per_lane<V: Lanes8>(
     isa: V::Isa,
     st: &Stencil,
     gq: &GroupRest,
@@ -578,21 +551,21 @@ fn stress_per_lane<V: Lanes4>(
     let (ga, gb, cu) = sums;
     let gas = lane_matrices(ga);
     let gbs = if seed {
-        [[0.0; 9]; 4]
+        [[0.0; 9]; LANES]
     } else {
         lane_matrices(gb)
     };
     let uis = [ui[0].to_array(), ui[1].to_array(), ui[2].to_array()];
     let cus = [cu[0].to_array(), cu[1].to_array(), cu[2].to_array()];
-    let mut nl = [[0.0; 4]; 9];
-    let mut fl = [[0.0; 4]; 9];
-    let mut ol = [[0.0; 4]; 3];
-    for l in 0..4 {
+    let mut nl = [[0.0f32; LANES]; 9];
+    let mut fl = [[0.0f32; LANES]; 9];
+    let mut ol = [[0.0f32; LANES]; 3];
+    for l in 0..LANES {
         if gq.own[l] == 0.0 {
             continue;
         }
         let lr = gq.lane(l);
-        let u_i = DVec3::new(uis[0][l], uis[1][l], uis[2][l]);
+        let u_i = DVec3::new(uis[0][l].into(), uis[1][l].into(), uis[2][l].into());
         let g_us = DMat3::from_cols_array(&gas[l]) - outer(u_i, lr.s);
         let (n, f, owner) = if seed {
             let ft = lr.a + g_us;
@@ -608,16 +581,17 @@ fn stress_per_lane<V: Lanes4>(
             let m = first_piola(mat, &f) * v + h;
             let n = m * lr.a.transpose();
             // sum_k c_k d_ik = sum_k c_k u_(i+k) - C u_i + U.
-            let sdl = DVec3::new(cus[0][l], cus[1][l], cus[2][l]) - u_i * lr.c + lr.u;
+            let sdl = DVec3::new(cus[0][l].into(), cus[1][l].into(), cus[2][l].into()) - u_i * lr.c
+                + lr.u;
             (n, fmi, n * lr.s - f * lr.u + sdl)
         };
         let (na, fa_) = (n.to_cols_array(), f.to_cols_array());
         for e in 0..9 {
-            nl[e][l] = na[e];
-            fl[e][l] = fa_[e];
+            nl[e][l] = na[e] as f32;
+            fl[e][l] = fa_[e] as f32;
         }
         for r in 0..3 {
-            ol[r][l] = owner[r];
+            ol[r][l] = owner[r] as f32;
         }
     }
     let nm = lane_mat::<V>(isa, &nl);
@@ -635,11 +609,11 @@ fn stress_per_lane<V: Lanes4>(
 /// scratch).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)] // the loop's state, split out of one function
-fn pass_two_group<V: Lanes4>(
+fn pass_two_group<V: Lanes8>(
     isa: V::Isa,
     st: &Stencil,
     lay: &StencilLayout,
-    (pos, fc): ([&[f64]; 3], &mut [Vec<f64>; 3]),
+    (pos, fc): ([&[f32]; 3], &mut [Vec<f32>; 3]),
     b: usize,
     own: V,
     ui: [V; 3],
@@ -700,7 +674,7 @@ fn pass_two_group<V: Lanes4>(
 /// matrix `ncl` per class of length, [`class_matrices`]; odd in `k`: `w_-k = -w_k`, same
 /// class) into `ah`, in `pairs` order.
 #[inline(always)]
-fn pair_grads<V: Lanes4>(
+fn pair_grads<V: Lanes8>(
     isa: V::Isa,
     ncl: &[[V; 9]; 3],
     ws: &[[f64; 3]],
@@ -726,7 +700,7 @@ fn pair_grads<V: Lanes4>(
 /// column `perm[a]` (26-cell cube: `w_k = scale_c e_k` with `e_k` in grid axes, so
 /// `(N - beta_c F) w_k` is a signed sum of these columns).
 #[inline(always)]
-fn cube_columns<V: Lanes4>(
+fn cube_columns<V: Lanes8>(
     isa: V::Isa,
     ncl: &[[V; 9]; 3],
     scale: &[f64; 3],
@@ -746,7 +720,7 @@ fn cube_columns<V: Lanes4>(
 
 /// `c_k` of each class (faces, edges, corners) on the owner lanes, zero on padding lanes.
 #[inline(always)]
-fn cube_hourglass<V: Lanes4>(
+fn cube_hourglass<V: Lanes8>(
     isa: V::Isa,
     classes: &[(f64, f64, std::ops::Range<usize>)],
     own: V,
@@ -781,7 +755,7 @@ const fn cube_pair_of(e: [i32; 3]) -> (usize, bool) {
 /// Row `r` of `sum_a e[a] m[:, a]` for a constant `e` of entries -1, 0, 1 whose first
 /// nonzero is 1 (the additions only, once inlined).
 #[inline(always)]
-fn cube_column_sum<V: Lanes4>(m: &[V; 9], e: [i32; 3], r: usize) -> V {
+fn cube_column_sum<V: Lanes8>(m: &[V; 9], e: [i32; 3], r: usize) -> V {
     let mut acc: Option<V> = None;
     for (a, &ea) in e.iter().enumerate() {
         let col = m[3 * a + r];
@@ -801,26 +775,26 @@ fn cube_column_sum<V: Lanes4>(m: &[V; 9], e: [i32; 3], r: usize) -> V {
 /// ([`cube_columns`]) and serves both its entries (`w_-k = -w_k`); every offset, sign and
 /// zero of the stencil is known at compile time. `cko`: `c_k` per class on owner lanes
 /// ([`cube_hourglass`]); `cui`: `c_k u_i` per class and component (corrected). Each entry
-/// of offset `dx` along the vector axis is subtracted at its row's chunk of four cells in the
+/// of offset `dx` along the vector axis is subtracted at its row's chunk of eight cells in the
 /// forces of that offset (interleaved in `f`, [`super::GridBuffers`]' `fc`): aligned whole-chunk
 /// read-modify-writes, no shift across lanes.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)] // the loop's state, split out of one function
-fn pass_two_cube<V: Lanes4>(
+fn pass_two_cube<V: Lanes8>(
     isa: V::Isa,
     b: usize,
     rows: &[isize; 9],
     m: &[[V; 9]; 3],
     cui: &[[V; 3]; 3],
     cko: &[V; 3],
-    p: [&[f64]; 3],
-    f: [&mut [f64]; 3],
+    p: [&[f32]; 3],
+    f: [&mut [f32]; 3],
     seed: bool,
     ol: [V; 3],
 ) {
     // The group's window, checked once for the 80 or so loads and stores below: every row
-    // `o = b + rows[_]` has its cells `o - 1 .. o + 5` in the positions and its chunk's
-    // forces `3 o .. 3 o + 12` in `f`.
+    // `o = b + rows[_]` has its cells `o - 1 .. o + 1 + LANES` in the positions and its
+    // chunk's forces `3 o .. 3 o + 3 LANES` in `f`.
     let (mut rmin, mut rmax) = (0, 0);
     for &ro in rows {
         (rmin, rmax) = (rmin.min(ro), rmax.max(ro));
@@ -828,17 +802,18 @@ fn pass_two_cube<V: Lanes4>(
     let (lo, hi) = (b as isize + rmin, b as isize + rmax);
     let cells = p[0].len().min(p[1].len()).min(p[2].len()) as isize;
     let forces = f[0].len().min(f[1].len()).min(f[2].len()) as isize;
+    let w = LANES as isize;
     assert!(
-        lo >= 1 && hi + 5 <= cells && 3 * hi + 12 <= forces,
+        lo >= 1 && hi + 1 + w <= cells && 3 * hi + 3 * w <= forces,
         "a stencil group's rows outside the grid"
     );
     // `grad` subtracted (`neg`: added) at chunk `o` of the forces of offset `dx`, component
-    // `r` (interleaved: at `3 o + 4 (dx + 1)`; a macro, not a closure: closures do not
+    // `r` (interleaved: at `3 o + LANES (dx + 1)`; a macro, not a closure: closures do not
     // inherit the caller's target features).
     macro_rules! put {
         ($dx:expr, $o:expr, $r:expr, $grad:expr, $neg:expr) => {{
-            let (a, i) = (&mut *f[$r], 3 * $o + 4 * ($dx + 1) as usize);
-            // SAFETY: `o` is a row of the window checked above, so `i + 4 <= 3 o + 12`.
+            let (a, i) = (&mut *f[$r], 3 * $o + LANES * ($dx + 1) as usize);
+            // SAFETY: `o` is a row of the window checked above, so `i + LANES <= 3 o + 3 LANES`.
             let old = unsafe { V::load_unchecked(isa, a, i) };
             let new = if $neg { old.add($grad) } else { old.sub($grad) };
             // SAFETY: as the load.
@@ -903,11 +878,12 @@ fn pass_two_cube<V: Lanes4>(
 }
 
 /// The force on cell `i` from the cube loop's interleaved forces `fc` (one component):
-/// `f0[i] + fm[i + 1] + fp[i - 1]`, chunk `c` holding `fm`, `f0`, `fp` at `12 c`, `12 c + 4`,
-/// `12 c + 8`.
+/// `f0[i] + fm[i + 1] + fp[i - 1]` (summed in double precision), the chunk from cell `c`
+/// holding `fm`, `f0`, `fp` at `3 c`, `3 c + LANES`, `3 c + 2 LANES`.
 #[inline]
-pub(super) fn cube_force_at(fc: &[f64], i: usize) -> f64 {
-    let at = |j: usize, d: usize| fc[3 * (j & !3) + 4 * d + (j & 3)];
+pub(super) fn cube_force_at(fc: &[f32], i: usize) -> f64 {
+    let at =
+        |j: usize, d: usize| f64::from(fc[3 * (j & !(LANES - 1)) + LANES * d + (j & (LANES - 1))]);
     at(i, 1) + at(i + 1, 0) + at(i - 1, 2)
 }
 
@@ -916,13 +892,13 @@ pub(super) fn cube_force_at(fc: &[f64], i: usize) -> f64 {
 /// `sum_k (u_(i+k) + u_(i-k))`, over [`CUBE`]'s pairs at grid offsets `off`.
 #[inline(always)]
 #[allow(clippy::type_complexity)] // two small per-class arrays
-fn pass_one_cube<V: Lanes4>(
+fn pass_one_cube<V: Lanes8>(
     isa: V::Isa,
     b: usize,
     off: &[isize; MAX_PAIRS],
-    px: &[f64],
-    py: &[f64],
-    pz: &[f64],
+    px: &[f32],
+    py: &[f32],
+    pz: &[f32],
     seed: bool,
 ) -> ([[V; 9]; 3], [[V; 3]; 3]) {
     let zero = V::zero(isa);
@@ -936,12 +912,12 @@ fn pass_one_cube<V: Lanes4>(
     }
     let cells = px.len().min(py.len()).min(pz.len());
     assert!(
-        b >= reach && b + reach + 4 <= cells,
+        b >= reach && b + reach + LANES <= cells,
         "a stencil group's pairs outside the grid"
     );
     // A macro, not a closure: closures do not inherit the caller's target features.
     macro_rules! ld {
-        // SAFETY: `b - reach <= i <= b + reach`, so `i + 4 <= cells` (checked above).
+        // SAFETY: `b - reach <= i <= b + reach`, so `i + LANES <= cells` (checked above).
         ($a:expr, $i:expr) => {
             unsafe { V::load_unchecked(isa, $a, $i) }
         };
@@ -975,21 +951,21 @@ fn pass_one_cube<V: Lanes4>(
 /// Pass 2 of a group (module documentation): `grad_k = N w_k (- F u_k + c_k d_k)`, from
 /// `ah` ([`pair_grads`], which holds `c_k X_k`) plus `c_k (u_(i+k) - u_i)` (corrected),
 /// subtracted at the neighbour, the owner's force `ol` added at the owner; the three offsets
-/// of a row along the vector axis are combined into whole aligned chunks of four cells first
+/// of a row along the vector axis are combined into whole aligned chunks of eight cells first
 /// (a store that a later load overlaps only partly stalls the core), written into the forces
 /// of offset 0 in `f` (interleaved, [`super::GridBuffers`]' `fc`).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)] // the loop's state, split out of one function
-fn pass_two<V: Lanes4>(
+fn pass_two<V: Lanes8>(
     isa: V::Isa,
     b: usize,
     rows: &[(isize, [usize; 3])],
     cs: &[f64],
     off: &[isize],
-    px: &[f64],
-    py: &[f64],
-    pz: &[f64],
-    mut f: [&mut [f64]; 3],
+    px: &[f32],
+    py: &[f32],
+    pz: &[f32],
+    mut f: [&mut [f32]; 3],
     seed: bool,
     own: V,
     ui: [V; 3],
@@ -1043,19 +1019,20 @@ fn pass_two<V: Lanes4>(
                 }
             }
         }
-        // Chunk `q` (a multiple of four) of the forces of offset 0 is at `3 q + 4` in `f`.
+        // The chunk from cell `q` (a multiple of LANES) of the forces of offset 0 is at
+        // `3 q + LANES` in `f`.
         for (a, (c, (lo, hi))) in f
             .iter_mut()
             .map(|a| &mut **a)
             .zip(centre.iter().zip(before.iter().zip(&after)))
         {
-            let i = 3 * o + 4;
+            let (i, chunk) = (3 * o + LANES, 3 * LANES);
             if entries[0] != usize::MAX {
-                V::load(isa, a, i - 12).add(*lo).store(a, i - 12);
+                V::load(isa, a, i - chunk).add(*lo).store(a, i - chunk);
             }
             V::load(isa, a, i).add(*c).store(a, i);
             if entries[2] != usize::MAX {
-                V::load(isa, a, i + 12).add(*hi).store(a, i + 12);
+                V::load(isa, a, i + chunk).add(*hi).store(a, i + chunk);
             }
         }
     }

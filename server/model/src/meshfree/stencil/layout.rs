@@ -1,12 +1,12 @@
 //! [`StencilLayout`]: where a block's touched particles and terms sit on the dense grid of
 //! [`super::StencilGrid`], rebuilt by [`StencilLayout::build`] when the touched set changes:
 //! the bounding box, the vector axis, the cell of each particle, the stencil's grid offsets,
-//! the groups of four owners with their lanes' rest data, and the chunks the loop writes.
+//! the groups of eight owners with their lanes' rest data, and the chunks the loop writes.
 
 use glam::{DMat3, DVec3};
 
 use super::offsets::Stencil;
-use super::{CUBE, GridBuffers, MAX_PAIRS};
+use super::{CUBE, GridBuffers, LANES, MAX_PAIRS};
 use crate::meshfree::cloud::{ParticleCloud, outer};
 
 /// Rest data of one lane of a group (module documentation); all zero for a padding lane.
@@ -28,24 +28,24 @@ pub(super) struct LaneRest {
     pub(super) u: DVec3,
 }
 
-/// The rest data of a group, lane-wise (structure of arrays, the fields of [`LaneRest`]), for
-/// the vectorised St. Venant-Kirchhoff stress; in the order the loop reads them (one group
+/// The rest data of a group, lane-wise (structure of arrays, the fields of [`LaneRest`] in
+/// single precision), for the vectorised stress; in the order the loop reads them (one group
 /// is 832 B, streamed from memory once per evaluation).
 #[derive(Debug, Clone, Copy, Default)]
 pub(super) struct GroupRest {
-    pub(super) own: [f64; 4],
-    pub(super) s: [[f64; 4]; 3],
+    pub(super) own: [f32; LANES],
+    pub(super) s: [[f32; LANES]; 3],
     /// `A` (seed) or `A^-1` (corrected; zero on padding lanes, so that their `F - I` and `N`
     /// vanish): the one the variant reads.
-    pub(super) a: [[f64; 4]; 9],
+    pub(super) a: [[f32; LANES]; 9],
     /// `Q` (corrected) or the rest strain (seed).
-    pub(super) q: [[f64; 4]; 9],
-    pub(super) u: [[f64; 4]; 3],
-    pub(super) c: [f64; 4],
+    pub(super) q: [[f32; LANES]; 9],
+    pub(super) u: [[f32; LANES]; 3],
+    pub(super) c: [f32; LANES],
 }
 
 /// One lane of a [`GroupRest`], read back for the per-lane stress (which streams the packed
-/// group instead of the four [`LaneRest`]s: 832 B a group instead of 1 120 B).
+/// group instead of the eight [`LaneRest`]s).
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Lane {
     /// `A` (seed) or `A^-1` (corrected), as [`GroupRest::a`].
@@ -60,14 +60,17 @@ impl GroupRest {
     /// Lane `l`'s rest data (the same values as its [`LaneRest`], `a` as in [`Self::a`]).
     #[inline(always)]
     pub(super) fn lane(&self, l: usize) -> Lane {
-        let col = |m: &[[f64; 4]; 9]| DMat3::from_cols_array(&std::array::from_fn(|e| m[e][l]));
-        let vec = |v: &[[f64; 4]; 3]| DVec3::new(v[0][l], v[1][l], v[2][l]);
+        let col = |m: &[[f32; LANES]; 9]| {
+            DMat3::from_cols_array(&std::array::from_fn(|e| f64::from(m[e][l])))
+        };
+        let vec =
+            |v: &[[f32; LANES]; 3]| DVec3::new(v[0][l].into(), v[1][l].into(), v[2][l].into());
         Lane {
             a: col(&self.a),
             q: col(&self.q),
             s: vec(&self.s),
             u: vec(&self.u),
-            c: self.c[l],
+            c: self.c[l].into(),
         }
     }
 }
@@ -83,10 +86,10 @@ const PADDING: LaneRest = LaneRest {
 };
 
 /// A dense grid over a box of lattice cells with the axes permuted so that `perm[0]` is the
-/// fastest (the vector axis): four cells of margin along it and a row length that is a
-/// multiple of four, so that every group of four owners and every chunk a group writes is
-/// aligned to four cells (chunks of different groups never partially overlap), and `reach`
-/// cells of margin along the others.
+/// fastest (the vector axis): [`LANES`] cells of margin along it and a row length that is a
+/// multiple of [`LANES`], so that every group of [`LANES`] owners and every chunk a group
+/// writes is aligned to [`LANES`] cells (chunks of different groups never partially
+/// overlap), and `reach` cells of margin along the others.
 #[derive(Debug, Clone, Copy, Default)]
 pub(super) struct GridLayout {
     pub(super) perm: [usize; 3],
@@ -107,11 +110,11 @@ impl GridLayout {
         let mut origin = [0i64; 3];
         let mut dims = [0usize; 3];
         for (a, &ax) in perm.iter().enumerate() {
-            let margin = if a == 0 { 4 } else { reach };
+            let margin = if a == 0 { LANES as i64 } else { reach };
             origin[a] = lo[ax] - margin;
             let span = hi[ax] - origin[a] + 1 + margin;
             dims[a] = if a == 0 {
-                ((span + 3) / 4 * 4) as usize
+                (span as usize).div_ceil(LANES) * LANES
             } else {
                 span as usize
             };
@@ -161,7 +164,7 @@ pub(super) struct StencilLayout {
     /// Grid-index offset of the centre of each row along the vector axis, at
     /// `(a + 1) + 3 (b + 1)` for offsets `a`, `b` along the other two grid axes (cube only).
     pub(super) cube_rows: [isize; 9],
-    /// First cell of every chunk of four cells the group loop writes forces into, ascending
+    /// First cell of every chunk of [`LANES`] cells the group loop writes forces into, ascending
     /// (zeroed before each evaluation; the other chunks stay zero from the build), and a
     /// mark per chunk for building the list.
     pub(super) write_chunks: Vec<u32>,
@@ -173,7 +176,7 @@ pub(super) struct StencilLayout {
     pub(super) by_particle: Vec<(u32, u32)>,
     /// Rest position of each entry of `by_particle`, m (read in order by the gather).
     pub(super) rest_of: Vec<DVec3>,
-    /// First grid cell of each group of four owners along x, and the lanes' rest data.
+    /// First grid cell of each group of [`LANES`] owners along x, and the lanes' rest data.
     pub(super) groups: Vec<u32>,
     pub(super) lanes: Vec<LaneRest>,
     /// The lanes' rest data by group, lane-wise.
@@ -203,13 +206,13 @@ impl StencilLayout {
             rows: Vec::with_capacity(9),
             cube_off: [0; MAX_PAIRS],
             cube_rows: [0; 9],
-            write_chunks: Vec::with_capacity(capacity_cells / 4 + 1),
-            chunk_mark: vec![false; capacity_cells / 4 + 1],
+            write_chunks: Vec::with_capacity(capacity_cells / LANES + 1),
+            chunk_mark: vec![false; capacity_cells / LANES + 1],
             cell_of_local: vec![0; touched],
             by_particle: Vec::with_capacity(touched),
             rest_of: Vec::with_capacity(touched),
             groups: Vec::with_capacity(terms),
-            lanes: Vec::with_capacity(4 * terms),
+            lanes: Vec::with_capacity(LANES * terms),
             group_rest: Vec::with_capacity(terms),
             order: Vec::with_capacity(terms),
             #[cfg(test)]
@@ -258,7 +261,7 @@ impl StencilLayout {
     }
 
     /// The permutation of the grid axes whose vector axis (first) makes the fewest groups of
-    /// four owners, among those that fit the capacity (`None`: none fits).
+    /// [`LANES`] owners, among those that fit the capacity (`None`: none fits).
     fn vector_axis(
         &mut self,
         st: &Stencil,
@@ -281,7 +284,7 @@ impl StencilLayout {
             self.order.clear();
             for &own in owner_local {
                 let i = layout.index(cloud.cell_of(particles[own as usize]));
-                self.order.push(((i & !3) as u32, 0));
+                self.order.push(((i & !(LANES - 1)) as u32, 0));
             }
             self.order.sort_unstable();
             let mut groups = 0;
@@ -380,12 +383,12 @@ impl StencilLayout {
         }
     }
 
-    /// The terms by grid cell, their groups of four lanes and each owner lane's rest data
+    /// The terms by grid cell, their groups of [`LANES`] lanes and each owner lane's rest data
     /// (`occ`: the occupancy of the grid cells).
     fn lane_rests(
         &mut self,
         st: &Stencil,
-        occ: &[f64],
+        occ: &[f32],
         owner_local: &[u32],
         rest_strain: &[DMat3],
     ) {
@@ -396,13 +399,13 @@ impl StencilLayout {
         self.order.sort_unstable();
         for &(i, t) in &self.order {
             let i = i as usize;
-            let lane = i & 3;
+            let lane = i & (LANES - 1);
             let base = (i - lane) as u32;
             if self.groups.last() != Some(&base) {
                 self.groups.push(base);
-                self.lanes.extend_from_slice(&[PADDING; 4]);
+                self.lanes.extend_from_slice(&[PADDING; LANES]);
             }
-            let slot = self.lanes.len() - 4 + lane;
+            let slot = self.lanes.len() - LANES + lane;
             self.lanes[slot] = lane_rest(st, occ, &self.off, i, rest_strain, t as usize);
         }
     }
@@ -410,27 +413,28 @@ impl StencilLayout {
     /// The chunks written: each group's rows (the cube loop at the row's chunk only, in all
     /// three offsets; the pair loops also the chunks before and after, offset 0).
     fn mark_chunks(&mut self, st: &Stencil) {
-        let reach: &[isize] = if st.cube { &[0] } else { &[-4, 0, 4] };
+        let w = LANES as isize;
+        let reach: &[isize] = if st.cube { &[0] } else { &[-w, 0, w] };
         for &g in &self.groups {
             for &(ro, _) in &self.rows {
                 for &d in reach {
-                    let c = (g as isize + ro + d) as usize / 4;
+                    let c = (g as isize + ro + d) as usize / LANES;
                     if !self.chunk_mark[c] {
                         self.chunk_mark[c] = true;
-                        self.write_chunks.push(4 * c as u32);
+                        self.write_chunks.push((LANES * c) as u32);
                     }
                 }
             }
         }
         for &c in &self.write_chunks {
-            self.chunk_mark[c as usize / 4] = false;
+            self.chunk_mark[c as usize / LANES] = false;
         }
         self.write_chunks.sort_unstable();
     }
 
     /// The lanes' rest data by group, lane-wise ([`GroupRest`]).
     fn pack_group_rest(&mut self, seed: bool) {
-        for lanes in self.lanes.chunks_exact(4) {
+        for lanes in self.lanes.chunks_exact(LANES) {
             let mut gr = GroupRest::default();
             for (l, lr) in lanes.iter().enumerate() {
                 // Corrected: a zero A^-1 makes a padding lane's F - I and N zero.
@@ -443,15 +447,15 @@ impl StencilLayout {
                 };
                 let (a, q) = (a.to_cols_array(), lr.q.to_cols_array());
                 for e in 0..9 {
-                    gr.a[e][l] = a[e];
-                    gr.q[e][l] = q[e];
+                    gr.a[e][l] = a[e] as f32;
+                    gr.q[e][l] = q[e] as f32;
                 }
                 for r in 0..3 {
-                    gr.s[r][l] = lr.s[r];
-                    gr.u[r][l] = lr.u[r];
+                    gr.s[r][l] = lr.s[r] as f32;
+                    gr.u[r][l] = lr.u[r] as f32;
                 }
-                gr.c[l] = lr.c;
-                gr.own[l] = lr.own;
+                gr.c[l] = lr.c as f32;
+                gr.own[l] = lr.own as f32;
             }
             self.group_rest.push(gr);
         }
@@ -476,7 +480,7 @@ fn bounding_box(cloud: &ParticleCloud, particles: &[u32]) -> ([i64; 3], [i64; 3]
 /// neighbours (`occ` nonzero at `i + off_k`) and, seed, its rest strain `rest_strain[t]`.
 fn lane_rest(
     st: &Stencil,
-    occ: &[f64],
+    occ: &[f32],
     off: &[isize],
     i: usize,
     rest_strain: &[DMat3],

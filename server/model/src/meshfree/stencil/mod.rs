@@ -1,8 +1,14 @@
 //! [`StencilGrid`]: the stencil layout of a [`super::TermBlock`]'s force loop. The particles a
 //! block touches are copied onto a dense local grid (the bounding box of their lattice cells,
 //! structure of arrays), so that neighbour `k` of the particle in grid cell `i` is the cell
-//! `i + off_k` for a constant `off_k`, and four owners adjacent along x are one vector: their
-//! four neighbours `k` are four consecutive cells, loaded and stored without any index.
+//! `i + off_k` for a constant `off_k`, and [`LANES`] owners adjacent along x are one vector:
+//! their neighbours `k` are consecutive cells, loaded and stored without any index.
+//!
+//! **Single precision.** The grid holds displacements from rest and forces in `f32`, eight
+//! lanes to a vector ([`crate::simd::Lanes8`]); the rest data are rounded to `f32` once per
+//! layout. The forces agree with the double-precision general loop to a few parts in a
+//! million of the largest (unit test in `block.rs`): a displacement of a few millimetres keeps
+//! about 1e-10 m, far below the neighbour differences the terms are made of.
 //!
 //! **Why it is exact.** On the lattice every per-pair rest quantity depends on the stencil
 //! offset only: the uncorrected weight `w_k` ([`ParticleCloud::pair_weight`]), the rest
@@ -19,7 +25,7 @@
 //!   `U_i = sum_k u_k` over present neighbours.
 //!
 //! These are the formulas of [`super::block`] regrouped, so the forces agree with the general
-//! loop to round-off (unit test in `block.rs`). Per term only a few 3x3 matrices are stored
+//! loop to single-precision round-off (unit test in `block.rs`). Per term only a few 3x3 matrices are stored
 //! (no per-pair data at all); a missing neighbour is a zero in the occupancy array, which masks
 //! `d_ik` in the first pass; in the second pass its `grad_ik` is written into the empty cell,
 //! whose force nobody reads. Lanes of a group that own no term (tied particles, empty cells)
@@ -47,7 +53,7 @@ use glam::{DMat3, DVec3};
 use super::cloud::ParticleCloud;
 use crate::material::MaterialParams;
 use crate::pool::{TickPool, cut_at_middle};
-use crate::simd::{Avx2Fma, Plain4};
+use crate::simd::{Avx2Fma, Plain8f};
 
 mod group;
 mod layout;
@@ -55,6 +61,9 @@ mod offsets;
 use group::{GroupPart, cube_force_at, group_loop};
 use layout::StencilLayout;
 use offsets::Stencil;
+
+/// Lanes of a group: owners adjacent along the vector axis in one vector (eight `f32`).
+pub(super) const LANES: usize = 8;
 
 /// Most pairs `(k, -k)` of a stencil of reach one (the 26-cell cube).
 const MAX_PAIRS: usize = 13;
@@ -83,19 +92,20 @@ const CUBE_CLASS: [usize; MAX_PAIRS] = [0, 0, 0, 1, 1, 1, 1, 1, 1, 2, 2, 2, 2];
 /// The scratch of one evaluation, per grid cell (sized once, to the grid's capacity).
 #[derive(Debug, Clone)]
 struct GridBuffers {
-    /// Positions and occupancy (1 where a touched particle sits) per grid cell.
-    px: Vec<f64>,
-    py: Vec<f64>,
-    pz: Vec<f64>,
-    occ: Vec<f64>,
+    /// Displacements from rest (single precision) and occupancy (1 where a touched particle
+    /// sits) per grid cell.
+    px: Vec<f32>,
+    py: Vec<f32>,
+    pz: Vec<f32>,
+    occ: Vec<f32>,
     /// Forces (x, y, z components) by offset `dx` along the vector axis, stored at their
     /// owner's cell (the cube loop: no shift across lanes; the pair loops write offset 0
-    /// only, shifted) and interleaved by chunk of four cells: chunk `c` holds `fm`, `f0`, `fp`
-    /// of its four cells at `12 c + 4 (dx + 1)`; the force on cell `i` is
+    /// only, shifted) and interleaved by chunk of [`LANES`] cells: the chunk from cell `c`
+    /// holds `fm`, `f0`, `fp` of its cells at `3 c + LANES (dx + 1)`; the force on cell `i` is
     /// `f0[i] + fm[i + 1] + fp[i - 1]` ([`cube_force_at`]). One set per part of the
     /// evaluation (issue 48: the groups cut into the tick pool's parts, each adding into its
     /// own set; the force on a cell is the sum over the sets); one set: the one-core loop.
-    fc: Vec<[Vec<f64>; 3]>,
+    fc: Vec<[Vec<f32>; 3]>,
     /// The force on each touched particle (by entry of the layout's `by_particle`), summed
     /// over the parts before it is written to the caller's array.
     red: Vec<DVec3>,
@@ -115,7 +125,7 @@ impl GridBuffers {
     }
 
     /// One zeroed set of force buffers for `capacity_cells` cells.
-    fn force_set(capacity_cells: usize) -> [Vec<f64>; 3] {
+    fn force_set(capacity_cells: usize) -> [Vec<f32>; 3] {
         [
             vec![0.0; 3 * capacity_cells],
             vec![0.0; 3 * capacity_cells],
@@ -189,7 +199,7 @@ impl StencilGrid {
             .resize_with(parts.max(1), || GridBuffers::force_set(capacity));
     }
 
-    /// Grid cells in use and groups of four lanes (for studies of the lane occupancy).
+    /// Grid cells in use and groups of [`LANES`] lanes (for studies of the lane occupancy).
     pub(crate) fn size(&self) -> (usize, usize) {
         (self.layout.cells, self.layout.groups.len())
     }
@@ -245,11 +255,11 @@ impl StencilGrid {
         #[cfg(target_arch = "x86_64")]
         let isa = self.isa;
         let (st, lay) = (&*stencil, &*layout);
-        let part = |k: usize, fc: &mut [Vec<f64>; 3]| {
+        let part = |k: usize, fc: &mut [Vec<f32>; 3]| {
             for &c in &lay.write_chunks {
                 let c = 3 * c as usize;
                 for a in fc.iter_mut() {
-                    a[c..c + 12].fill(0.0);
+                    a[c..c + 3 * LANES].fill(0.0);
                 }
             }
             let part = GroupPart {
@@ -262,10 +272,10 @@ impl StencilGrid {
                 // SAFETY: the token.
                 unsafe { group::group_loop_avx2(isa, st, lay, part, mat) };
             } else {
-                group_loop::<Plain4>((), st, lay, part, mat);
+                group_loop::<Plain8f>((), st, lay, part, mat);
             }
             #[cfg(not(target_arch = "x86_64"))]
-            group_loop::<Plain4>((), st, lay, part, mat);
+            group_loop::<Plain8f>((), st, lay, part, mat);
         };
         match pool {
             Some(pool) if parts > 1 => pool.for_each_mut(&mut buf.fc, &part),
@@ -298,25 +308,25 @@ impl StencilGrid {
     }
 }
 
-/// The grid positions: the displacement from rest of every touched particle at its cell, in
-/// two halves on `halves`' pool (each writing its side of the cell arrays: [`cut_at_middle`] by cell),
+/// The grid positions: the displacement from rest of every touched particle at its cell (in
+/// single precision), in two halves on `halves`' pool (each writing its side of the cell arrays: [`cut_at_middle`] by cell),
 /// else serially; the same values either way. Allocation-free.
 fn gather_positions(
     halves: Option<(&TickPool, (usize, usize))>,
     layout: &StencilLayout,
     x: &[DVec3],
-    [px, py, pz]: [&mut Vec<f64>; 3],
+    [px, py, pz]: [&mut Vec<f32>; 3],
 ) {
-    let run = |entries: Range<usize>, [px, py, pz]: [&mut [f64]; 3], offset: usize| {
+    let run = |entries: Range<usize>, [px, py, pz]: [&mut [f32]; 3], offset: usize| {
         let (by, rest) = (
             &layout.by_particle[entries.clone()],
             &layout.rest_of[entries],
         );
         for (&(p, i), r) in by.iter().zip(rest) {
             let (i, xp) = (i as usize - offset, x[p as usize] - *r);
-            px[i] = xp.x;
-            py[i] = xp.y;
-            pz[i] = xp.z;
+            px[i] = xp.x as f32;
+            py[i] = xp.y as f32;
+            pz[i] = xp.z as f32;
         }
     };
     let n = layout.by_particle.len();
@@ -339,7 +349,7 @@ fn gather_positions(
 
 /// `out[j]`: the force on the cell of `entries[j]` summed over the parts' force sets (the
 /// first set's value, then each later one added, as one part would read it).
-fn sum_parts(sets: &[[Vec<f64>; 3]], entries: &[(u32, u32)], out: &mut [DVec3]) {
+fn sum_parts(sets: &[[Vec<f32>; 3]], entries: &[(u32, u32)], out: &mut [DVec3]) {
     for (&(_, i), o) in entries.iter().zip(out) {
         let i = i as usize;
         let mut fi = DVec3::ZERO;
