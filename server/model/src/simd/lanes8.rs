@@ -198,6 +198,23 @@ mod avx2 {
     use super::{Lanes8, Ymm8 as Y8};
     use crate::simd::isa::Avx2Fma;
 
+    /// `v`'s lanes permuted by `from` (lane `l` takes lane `from[l]`), in two parts: the
+    /// lanes of mask `ZERO_A` cleared in the first, those of `ZERO_B` in the second (blends
+    /// with zero).
+    #[inline(always)]
+    fn rotated_parts<const ZERO_A: i32, const ZERO_B: i32>(v: Y8, from: [i32; 8]) -> (Y8, Y8) {
+        // SAFETY: `v` exists, so the CPU runs AVX2.
+        unsafe {
+            let idx = _mm256_loadu_si256(from.as_ptr().cast());
+            let r = _mm256_permutevar8x32_ps(v.0, idx);
+            let z = _mm256_setzero_ps();
+            (
+                Y8(_mm256_blend_ps::<ZERO_A>(r, z)),
+                Y8(_mm256_blend_ps::<ZERO_B>(r, z)),
+            )
+        }
+    }
+
     impl Lanes8 for Y8 {
         type Isa = Avx2Fma;
 
@@ -288,28 +305,14 @@ mod avx2 {
 
         #[inline(always)]
         fn shift_down(self) -> (Y8, Y8) {
-            // Rotated one lane down ([v1, .., v7, v0]), then split by a blend with zero.
-            unsafe {
-                let r = _mm256_permutevar8x32_ps(self.0, _mm256_setr_epi32(1, 2, 3, 4, 5, 6, 7, 0));
-                let z = _mm256_setzero_ps();
-                (
-                    Y8(_mm256_blend_ps::<0b1000_0000>(r, z)),
-                    Y8(_mm256_blend_ps::<0b0111_1111>(r, z)),
-                )
-            }
+            // Rotated one lane down ([v1, .., v7, v0]): lane 7 is the chunk before's.
+            rotated_parts::<0b1000_0000, 0b0111_1111>(self, [1, 2, 3, 4, 5, 6, 7, 0])
         }
 
         #[inline(always)]
         fn shift_up(self) -> (Y8, Y8) {
-            // Rotated one lane up ([v7, v0, .., v6]), then split by a blend with zero.
-            unsafe {
-                let r = _mm256_permutevar8x32_ps(self.0, _mm256_setr_epi32(7, 0, 1, 2, 3, 4, 5, 6));
-                let z = _mm256_setzero_ps();
-                (
-                    Y8(_mm256_blend_ps::<0b0000_0001>(r, z)),
-                    Y8(_mm256_blend_ps::<0b1111_1110>(r, z)),
-                )
-            }
+            // Rotated one lane up ([v7, v0, .., v6]): lane 0 is the chunk after's.
+            rotated_parts::<0b0000_0001, 0b1111_1110>(self, [7, 0, 1, 2, 3, 4, 5, 6])
         }
     }
 }
