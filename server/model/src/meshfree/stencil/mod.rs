@@ -25,10 +25,10 @@
 //!   `U_i = sum_k u_k` over present neighbours.
 //!
 //! These are the formulas of [`super::block`] regrouped, so the forces agree with the general
-//! loop to single-precision round-off (unit test in `block.rs`). Per term only a few 3x3 matrices are stored
-//! (no per-pair data at all); a missing neighbour is a zero in the occupancy array, which masks
-//! `d_ik` in the first pass; in the second pass its `grad_ik` is written into the empty cell,
-//! whose force nobody reads. Lanes of a group that own no term (tied particles, empty cells)
+//! loop to single-precision round-off (unit test in `block.rs`). Per term only a few 3x3
+//! matrices are stored (no per-pair data at all); a missing neighbour is a zero in the
+//! occupancy array, which masks `d_ik` in the first pass; in the second pass its `grad_ik` is
+//! written into the empty cell, whose force nobody reads. Lanes of a group that own no term (tied particles, empty cells)
 //! have `N = F = 0` and masked `d`, so they add nothing.
 //!
 //! **The 26-cell cube.** Both passes run over pairs `(k, -k)` (`w_-k = -w_k`, same class),
@@ -309,8 +309,9 @@ impl StencilGrid {
 }
 
 /// The grid positions: the displacement from rest of every touched particle at its cell (in
-/// single precision), in two halves on `halves`' pool (each writing its side of the cell arrays: [`cut_at_middle`] by cell),
-/// else serially; the same values either way. Allocation-free.
+/// single precision), in two halves on `halves`' pool (each writing its side of the cell
+/// arrays: [`cut_at_middle`] by cell), else serially; the same values either way.
+/// Allocation-free.
 fn gather_positions(
     halves: Option<(&TickPool, (usize, usize))>,
     layout: &StencilLayout,
