@@ -10,6 +10,9 @@
 //! `f64` lanes it replaced (docs/benchmarks.md, "The stencil loop in eight single-precision
 //! lanes").
 
+/// Lanes of a [`Lanes8`] vector (the meshfree stencil's group width follows it).
+pub(crate) const WIDTH: usize = 8;
+
 /// Eight f32 lanes: the plain build ([`Plain8f`]) and the AVX2 + FMA one ([`Ymm8`], made only
 /// with an [`crate::simd::Avx2Fma`] token), behind one trait so that the meshfree stencil's
 /// group loop is written once.
@@ -24,7 +27,7 @@ pub(crate) trait Lanes8: Copy {
     /// # Panics
     /// If `a` is shorter than `i + 8`.
     fn load(isa: Self::Isa, a: &[f32], i: usize) -> Self;
-    fn from_array(isa: Self::Isa, v: [f32; 8]) -> Self;
+    fn from_array(isa: Self::Isa, v: [f32; WIDTH]) -> Self;
     /// Into `a[i..i + 8]`.
     ///
     /// # Panics
@@ -41,7 +44,7 @@ pub(crate) trait Lanes8: Copy {
     /// # Safety
     /// `i + 8 <= a.len()`.
     unsafe fn store_unchecked(self, a: &mut [f32], i: usize);
-    fn to_array(self) -> [f32; 8];
+    fn to_array(self) -> [f32; WIDTH];
     fn add(self, o: Self) -> Self;
     fn sub(self, o: Self) -> Self;
     fn mul(self, o: Self) -> Self;
@@ -63,7 +66,7 @@ pub(crate) trait Lanes8: Copy {
 
 /// Eight plain f32 lanes.
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct Plain8f([f32; 8]);
+pub(crate) struct Plain8f([f32; WIDTH]);
 
 impl Plain8f {
     /// Lane-wise `op`.
@@ -88,12 +91,12 @@ impl Lanes8 for Plain8f {
 
     #[inline(always)]
     fn zero(_: ()) -> Plain8f {
-        Plain8f([0.0; 8])
+        Plain8f([0.0; WIDTH])
     }
 
     #[inline(always)]
     fn splat(_: (), v: f64) -> Plain8f {
-        Plain8f([v as f32; 8])
+        Plain8f([v as f32; WIDTH])
     }
 
     #[inline(always)]
@@ -102,7 +105,7 @@ impl Lanes8 for Plain8f {
     }
 
     #[inline(always)]
-    fn from_array(_: (), v: [f32; 8]) -> Plain8f {
+    fn from_array(_: (), v: [f32; WIDTH]) -> Plain8f {
         Plain8f(v)
     }
 
@@ -115,18 +118,18 @@ impl Lanes8 for Plain8f {
     unsafe fn load_unchecked(_: (), a: &[f32], i: usize) -> Plain8f {
         debug_assert!(i + 8 <= a.len());
         // SAFETY: `i + 8 <= a.len()` (the caller's contract).
-        Plain8f(unsafe { *a.as_ptr().add(i).cast::<[f32; 8]>() })
+        Plain8f(unsafe { *a.as_ptr().add(i).cast::<[f32; WIDTH]>() })
     }
 
     #[inline(always)]
     unsafe fn store_unchecked(self, a: &mut [f32], i: usize) {
         debug_assert!(i + 8 <= a.len());
         // SAFETY: `i + 8 <= a.len()` (the caller's contract).
-        unsafe { *a.as_mut_ptr().add(i).cast::<[f32; 8]>() = self.0 };
+        unsafe { *a.as_mut_ptr().add(i).cast::<[f32; WIDTH]>() = self.0 };
     }
 
     #[inline(always)]
-    fn to_array(self) -> [f32; 8] {
+    fn to_array(self) -> [f32; WIDTH] {
         self.0
     }
 
@@ -167,7 +170,7 @@ impl Lanes8 for Plain8f {
 
     #[inline(always)]
     fn shift_down(self) -> (Plain8f, Plain8f) {
-        let (mut c, mut lo) = ([0.0; 8], [0.0; 8]);
+        let (mut c, mut lo) = ([0.0; WIDTH], [0.0; WIDTH]);
         c[..7].copy_from_slice(&self.0[1..]);
         lo[7] = self.0[0];
         (Plain8f(c), Plain8f(lo))
@@ -175,7 +178,7 @@ impl Lanes8 for Plain8f {
 
     #[inline(always)]
     fn shift_up(self) -> (Plain8f, Plain8f) {
-        let (mut c, mut hi) = ([0.0; 8], [0.0; 8]);
+        let (mut c, mut hi) = ([0.0; WIDTH], [0.0; WIDTH]);
         c[1..].copy_from_slice(&self.0[..7]);
         hi[0] = self.0[7];
         (Plain8f(c), Plain8f(hi))
@@ -195,14 +198,14 @@ pub(crate) struct Ymm8(std::arch::x86_64::__m256);
 mod avx2 {
     use std::arch::x86_64::*;
 
-    use super::{Lanes8, Ymm8 as Y8};
+    use super::{Lanes8, WIDTH, Ymm8 as Y8};
     use crate::simd::isa::Avx2Fma;
 
     /// `v`'s lanes permuted by `from` (lane `l` takes lane `from[l]`), in two parts: the
     /// lanes of mask `ZERO_A` cleared in the first, those of `ZERO_B` in the second (blends
     /// with zero).
     #[inline(always)]
-    fn rotated_parts<const ZERO_A: i32, const ZERO_B: i32>(v: Y8, from: [i32; 8]) -> (Y8, Y8) {
+    fn rotated_parts<const ZERO_A: i32, const ZERO_B: i32>(v: Y8, from: [i32; WIDTH]) -> (Y8, Y8) {
         // SAFETY: `v` exists, so the CPU runs AVX2.
         unsafe {
             let idx = _mm256_loadu_si256(from.as_ptr().cast());
@@ -237,7 +240,7 @@ mod avx2 {
         }
 
         #[inline(always)]
-        fn from_array(_: Avx2Fma, v: [f32; 8]) -> Y8 {
+        fn from_array(_: Avx2Fma, v: [f32; WIDTH]) -> Y8 {
             Y8(unsafe { _mm256_loadu_ps(v.as_ptr()) })
         }
 
@@ -262,8 +265,8 @@ mod avx2 {
         }
 
         #[inline(always)]
-        fn to_array(self) -> [f32; 8] {
-            let mut v = [0.0; 8];
+        fn to_array(self) -> [f32; WIDTH] {
+            let mut v = [0.0; WIDTH];
             unsafe { _mm256_storeu_ps(v.as_mut_ptr(), self.0) };
             v
         }

@@ -23,4 +23,4 @@ pub(crate) use lanes::{Lane, LaneVec, Plain8, Ymm, Zmm};
 pub(crate) use lanes_f32::{F32Lanes, Y8, Z16};
 #[cfg(target_arch = "x86_64")]
 pub(crate) use lanes8::Ymm8;
-pub(crate) use lanes8::{Lanes8, Plain8f};
+pub(crate) use lanes8::{Lanes8, Plain8f, WIDTH as LANES8};

@@ -62,8 +62,9 @@ use group::{GroupPart, cube_force_at, group_loop};
 use layout::StencilLayout;
 use offsets::Stencil;
 
-/// Lanes of a group: owners adjacent along the vector axis in one vector (eight `f32`).
-pub(super) const LANES: usize = 8;
+/// Lanes of a group: owners adjacent along the vector axis in one [`crate::simd::Lanes8`]
+/// vector.
+pub(super) const LANES: usize = crate::simd::LANES8;
 
 /// Most pairs `(k, -k)` of a stencil of reach one (the 26-cell cube).
 const MAX_PAIRS: usize = 13;
