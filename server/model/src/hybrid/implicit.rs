@@ -581,41 +581,69 @@ impl ImplicitCore {
         v: &mut [DVec3],
     ) -> f64 {
         let h = self.h_s;
-        for (i, ((m, f), v)) in mass_kg.iter().zip(f).zip(v.iter()).enumerate() {
-            let r = *v * *m + *f * h;
-            for c in 0..3 {
-                let q = 3 * i + c;
-                self.rhs[q] = if self.fixed[q] { 0.0 } else { r[c] };
-            }
-        }
-        let n = self.rhs.len();
+        let momenta = mass_kg
+            .iter()
+            .zip(f)
+            .zip(v.iter())
+            .map(|((m, f), v)| *v * *m + *f * h);
         if let Some(frozen) = &mut self.frozen {
-            for (s, r) in frozen.rhs.iter_mut().zip(&self.rhs) {
-                *s = *r as f32;
+            // The right-hand side straight into the sweep's single precision, and the velocities
+            // straight out of it (no double-precision copy on the way).
+            let rows = frozen
+                .rhs
+                .chunks_exact_mut(3)
+                .zip(self.fixed.chunks_exact(3));
+            for ((s, fixed), r) in rows.zip(momenta) {
+                for c in 0..3 {
+                    s[c] = if fixed[c] { 0.0 } else { r[c] as f32 };
+                }
             }
             frozen
                 .sweep
                 .solve_in_place_in(pool, &frozen.half, &mut frozen.rhs);
-            for (r, s) in self.rhs.iter_mut().zip(&frozen.rhs) {
-                *r = f64::from(*s);
+            let velocities = frozen
+                .rhs
+                .chunks_exact(3)
+                .map(|s| DVec3::new(f64::from(s[0]), f64::from(s[1]), f64::from(s[2])));
+            return advance(h, velocities, x, v);
+        }
+        let rows = self.rhs.chunks_exact_mut(3).zip(self.fixed.chunks_exact(3));
+        for ((s, fixed), r) in rows.zip(momenta) {
+            for c in 0..3 {
+                s[c] = if fixed[c] { 0.0 } else { r[c] };
             }
-        } else {
-            self.factor.solve_in_place_with(
-                MatMut::from_column_major_slice_mut(&mut self.rhs, n, 1),
-                &mut self.mem,
-            );
         }
-        let mut max_v2: f64 = 0.0;
-        let mut finite = true;
-        for (i, (x, v)) in x.iter_mut().zip(v.iter_mut()).enumerate() {
-            *v = DVec3::new(self.rhs[3 * i], self.rhs[3 * i + 1], self.rhs[3 * i + 2]);
-            *x += *v * h;
-            let s = v.length_squared();
-            finite &= s.is_finite();
-            max_v2 = max_v2.max(s);
-        }
-        if finite { max_v2 } else { f64::NAN }
+        let n = self.rhs.len();
+        self.factor.solve_in_place_with(
+            MatMut::from_column_major_slice_mut(&mut self.rhs, n, 1),
+            &mut self.mem,
+        );
+        let velocities = self
+            .rhs
+            .chunks_exact(3)
+            .map(|s| DVec3::new(s[0], s[1], s[2]));
+        advance(h, velocities, x, v)
     }
+}
+
+/// `v = velocities`, `x += h v` node by node; returns the largest squared speed (NaN when one
+/// is not finite).
+fn advance(
+    h: f64,
+    velocities: impl Iterator<Item = DVec3>,
+    x: &mut [DVec3],
+    v: &mut [DVec3],
+) -> f64 {
+    let mut max_v2: f64 = 0.0;
+    let mut finite = true;
+    for ((x, v), new) in x.iter_mut().zip(v.iter_mut()).zip(velocities) {
+        *v = new;
+        *x += new * h;
+        let s = new.length_squared();
+        finite &= s.is_finite();
+        max_v2 = max_v2.max(s);
+    }
+    if finite { max_v2 } else { f64::NAN }
 }
 
 /// The lower-triangle scalar entries `(row, column, value)` of block `blk` at block row `k`,

@@ -804,8 +804,9 @@ mod tests {
                     })
                     .collect();
                 let mut forces = Vec::new();
-                // Modes: general loop; stencil AVX2 and plain, cube loops along each axis;
-                // stencil AVX2 and plain, pair loops.
+                // Modes: general loop; stencil AVX2 and plain, cube loops along each axis
+                // (groups shifted by 3, 6, 1, 4, 7 and 2 cells along it); stencil AVX2 and
+                // plain, pair loops.
                 for mode in 0..9 {
                     let mut block = TermBlock::new(&cloud, cloud.len());
                     for p in (0..cloud.len() as u32).filter(|p| p % 5 != 3) {
@@ -817,7 +818,9 @@ mod tests {
                         block.stencil.plain_lanes_only();
                     }
                     if (1..7).contains(&mode) {
-                        block.stencil.force_vector_axis((mode - 1) / 2);
+                        block
+                            .stencil
+                            .force_vector_axis((mode - 1) / 2, 3 * mode % 8);
                     } else if mode >= 7 {
                         block.stencil.pair_loops_only();
                     }

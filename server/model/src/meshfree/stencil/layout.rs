@@ -86,7 +86,8 @@ const PADDING: LaneRest = LaneRest {
 };
 
 /// A dense grid over a box of lattice cells with the axes permuted so that `perm[0]` is the
-/// fastest (the vector axis): [`LANES`] cells of margin along it and a row length that is a
+/// fastest (the vector axis): [`LANES`] cells of margin along it (and `shift` more, which
+/// moves where the groups of [`LANES`] cells start) and a row length that is a
 /// multiple of [`LANES`], so that every group of [`LANES`] owners and every chunk a group
 /// writes is aligned to [`LANES`] cells (chunks of different groups never partially
 /// overlap), and `reach` cells of margin along the others.
@@ -99,9 +100,12 @@ pub(super) struct GridLayout {
 }
 
 impl GridLayout {
-    /// The layout over cells `lo..=hi` (lattice coordinates), `None` beyond `capacity` cells.
+    /// The layout over cells `lo..=hi` (lattice coordinates) with `shift` (less than
+    /// [`LANES`]) more cells of margin before `lo` along the vector axis, `None` beyond
+    /// `capacity` cells.
     fn new(
         perm: [usize; 3],
+        shift: usize,
         lo: [i64; 3],
         hi: [i64; 3],
         reach: i64,
@@ -111,7 +115,12 @@ impl GridLayout {
         let mut dims = [0usize; 3];
         for (a, &ax) in perm.iter().enumerate() {
             let margin = if a == 0 { LANES as i64 } else { reach };
-            origin[a] = lo[ax] - margin;
+            let before = if a == 0 {
+                margin + shift as i64
+            } else {
+                margin
+            };
+            origin[a] = lo[ax] - before;
             let span = hi[ax] - origin[a] + 1 + margin;
             dims[a] = if a == 0 {
                 (span as usize).div_ceil(LANES) * LANES
@@ -183,9 +192,10 @@ pub(super) struct StencilLayout {
     pub(super) group_rest: Vec<GroupRest>,
     /// (grid cell, term) of every term, sorted when the grid is built.
     order: Vec<(u32, u32)>,
-    /// The vector axis forced by a test (every permutation of the cube's loops tested).
+    /// The vector axis and the groups' shift along it forced by a test (every permutation of
+    /// the cube's loops tested, and several shifts).
     #[cfg(test)]
-    pub(super) fast_axis: Option<usize>,
+    pub(super) fast_axis: Option<(usize, usize)>,
 }
 
 impl StencilLayout {
@@ -247,10 +257,11 @@ impl StencilLayout {
             return false;
         }
         let (lo, hi) = bounding_box(cloud, particles);
-        let Some(perm) = self.vector_axis(st, cloud, particles, owner_local, lo, hi) else {
+        let Some((perm, shift)) = self.vector_axis(st, cloud, particles, owner_local, lo, hi)
+        else {
             return false;
         };
-        let grid = GridLayout::new(perm, lo, hi, st.reach, self.capacity_cells)
+        let grid = GridLayout::new(perm, shift, lo, hi, st.reach, self.capacity_cells)
             .expect("the layout fitted above");
         self.place(buf, cloud, particles, grid);
         self.set_offsets(st, perm);
@@ -260,8 +271,10 @@ impl StencilLayout {
         true
     }
 
-    /// The permutation of the grid axes whose vector axis (first) makes the fewest groups of
-    /// [`LANES`] owners, among those that fit the capacity (`None`: none fits).
+    /// The permutation of the grid axes and the shift of the groups along the vector axis
+    /// (first) that make the fewest groups of [`LANES`] owners, among those that fit the
+    /// capacity (`None`: none fits). Per axis the owners are sorted once by grid index (row,
+    /// then position along the row); each shift then counts its groups in one pass.
     fn vector_axis(
         &mut self,
         st: &Stencil,
@@ -270,37 +283,50 @@ impl StencilLayout {
         owner_local: &[u32],
         lo: [i64; 3],
         hi: [i64; 3],
-    ) -> Option<[usize; 3]> {
-        let mut best: Option<(usize, [usize; 3])> = None;
+    ) -> Option<([usize; 3], usize)> {
+        let mut best: Option<(usize, [usize; 3], usize)> = None;
         for fast in 0..3 {
             #[cfg(test)]
-            if self.fast_axis.is_some_and(|f| f != fast) {
+            if self.fast_axis.is_some_and(|(f, _)| f != fast) {
                 continue;
             }
             let perm = [fast, (fast + 1) % 3, (fast + 2) % 3];
-            let Some(layout) = GridLayout::new(perm, lo, hi, st.reach, self.capacity_cells) else {
+            let Some(layout) = GridLayout::new(perm, 0, lo, hi, st.reach, self.capacity_cells)
+            else {
                 continue;
             };
             self.order.clear();
             for &own in owner_local {
                 let i = layout.index(cloud.cell_of(particles[own as usize]));
-                self.order.push(((i & !(LANES - 1)) as u32, 0));
+                self.order.push((i as u32, 0));
             }
             self.order.sort_unstable();
-            let mut groups = 0;
-            let mut last = None;
-            for &(b, _) in &self.order {
-                if last != Some(b) {
-                    groups += 1;
-                    last = Some(b);
+            let row = layout.dims[0];
+            for shift in 0..LANES {
+                #[cfg(test)]
+                if self.fast_axis.is_some_and(|(_, s)| s != shift) {
+                    continue;
                 }
-            }
-            if best.is_none_or(|(g, _)| groups < g) {
-                best = Some((groups, perm));
+                if GridLayout::new(perm, shift, lo, hi, st.reach, self.capacity_cells).is_none() {
+                    continue;
+                }
+                let mut groups = 0;
+                let mut last = None;
+                for &(i, _) in &self.order {
+                    let i = i as usize;
+                    let group = (i / row, (i % row + shift) / LANES);
+                    if last != Some(group) {
+                        groups += 1;
+                        last = Some(group);
+                    }
+                }
+                if best.is_none_or(|(g, ..)| groups < g) {
+                    best = Some((groups, perm, shift));
+                }
             }
         }
         self.order.clear();
-        best.map(|(_, perm)| perm)
+        best.map(|(_, perm, shift)| (perm, shift))
     }
 
     /// Takes `grid`, clears `buf`'s cells in use and puts every particle into its cell

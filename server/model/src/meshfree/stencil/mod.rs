@@ -183,11 +183,12 @@ impl StencilGrid {
         self.stencil.cube = false;
     }
 
-    /// Vectorises along lattice axis `axis` from the next layout on (tests of every axis
-    /// permutation).
+    /// Vectorises along lattice axis `axis`, with the groups shifted by `shift` cells
+    /// (less than [`LANES`]) along it, from the next layout on (tests of every axis
+    /// permutation and of several shifts).
     #[cfg(test)]
-    pub(crate) fn force_vector_axis(&mut self, axis: usize) {
-        self.layout.fast_axis = Some(axis);
+    pub(crate) fn force_vector_axis(&mut self, axis: usize, shift: usize) {
+        self.layout.fast_axis = Some((axis, shift));
     }
 
     /// Cuts every later evaluation's groups into `parts` parts (at least 1), each with its own
