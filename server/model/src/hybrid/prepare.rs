@@ -58,16 +58,20 @@ pub struct TieNodes {
 }
 
 impl TieNodes {
-    /// `sum_k w_k x_k` (in order from `k = 0`; the ten-node tie of a quadratic core unrolled,
-    /// the same sum).
+    /// `sum_k w_k x_k`. The ten-node tie of a quadratic core is unrolled and summed in two
+    /// halves, `(sum_(k < 5) w_k x_k) + (sum_(k >= 5) w_k x_k)`, each in order from its
+    /// first node: two chains of five dependent additions instead of one of ten (the sum's
+    /// latency bounded the interpolation). Other ties: in order from `k = 0`.
     #[inline]
     pub fn interpolate(&self, x: &[DVec3]) -> DVec3 {
         let mut p = DVec3::ZERO;
         if self.len == MAX_TIE_NODES {
-            for k in 0..MAX_TIE_NODES {
+            let mut q = DVec3::ZERO;
+            for k in 0..MAX_TIE_NODES / 2 {
                 p += x[self.nodes[k] as usize] * self.w[k];
+                q += x[self.nodes[k + 5] as usize] * self.w[k + 5];
             }
-            return p;
+            return p + q;
         }
         for k in 0..self.len {
             p += x[self.nodes[k] as usize] * self.w[k];
