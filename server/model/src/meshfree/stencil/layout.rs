@@ -1,7 +1,8 @@
 //! [`StencilLayout`]: where a block's touched particles and terms sit on the dense grid of
 //! [`super::StencilGrid`], rebuilt by [`StencilLayout::build`] when the touched set changes:
-//! the bounding box, the vector axis, the cell of each particle, the stencil's grid offsets,
-//! the groups of eight owners with their lanes' rest data, and the chunks the loop writes.
+//! the bounding box, the vector axis and where its groups start along it (the fewest
+//! groups), the cell of each particle, the stencil's grid offsets, the groups of eight owners
+//! with their lanes' rest data, and the chunks the loop writes.
 
 use glam::{DMat3, DVec3};
 
