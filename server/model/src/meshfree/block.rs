@@ -752,6 +752,55 @@ mod tests {
     /// neighbours and groups have padding lanes), a partial set of terms, a large smooth
     /// deformation (displacements of a few millimetres at a 1 mm spacing) plus noise.
     #[test]
+    fn the_stencil_layout_takes_the_axis_and_shift_with_the_fewest_groups() {
+        // A cube of 8 cells a side at cells 3..=10 and a small one at 0..=1 that sets the
+        // bounding box: along every axis the cube's rows start three cells past the box, so
+        // groups of eight cells aligned to the box split every row in two and only a shift of
+        // five fits each row in one group.
+        let (n, s) = (11, 1e-3);
+        let params = MeshfreeParams {
+            variant: MeshfreeVariant::Corrected,
+            kernel: KernelKind::default_for(MeshfreeVariant::Corrected),
+            spacing_m: s,
+            smoothing_ratio: 1.0,
+            hourglass_coefficient: 0.5,
+        };
+        let lattice = Lattice::new(DVec3::ZERO, s, [n, n, n], params.support_m());
+        let cells: Vec<u32> = (0..(n * n * n) as u32)
+            .filter(|&i| {
+                let c = [i as usize % n, i as usize / n % n, i as usize / (n * n)];
+                c.iter().all(|&v| v >= 3) || c.iter().all(|&v| v <= 1)
+            })
+            .collect();
+        let material = MaterialParams::from_youngs(14.5e3, 0.45, 1060.0);
+        let cloud = ParticleCloud::new(lattice, cells, params, material).expect("cloud");
+        let groups = |forced: Option<(usize, usize)>| {
+            let mut block = TermBlock::new(&cloud, cloud.len());
+            for p in (0..cloud.len() as u32).filter(|p| p % 5 != 3) {
+                let _ = block.push(&cloud, p);
+            }
+            block.set_stencil_loop(true);
+            if let Some((axis, shift)) = forced {
+                block.stencil.force_vector_axis(axis, shift);
+            }
+            let mut f = vec![DVec3::ZERO; cloud.len()];
+            block.add_forces(&cloud, cloud.rest_m(), &mut f);
+            block.stencil_layout().expect("a stencil layout").1
+        };
+        let forced: Vec<usize> = (0..3)
+            .flat_map(|axis| (0..crate::simd::LANES8).map(move |shift| (axis, shift)))
+            .map(|c| groups(Some(c)))
+            .collect();
+        let fewest = *forced.iter().min().expect("24 layouts");
+        let most = *forced.iter().max().expect("24 layouts");
+        assert!(
+            fewest < most,
+            "every layout has {fewest} groups: the test shows nothing"
+        );
+        assert_eq!(groups(None), fewest, "groups by (axis, shift): {forced:?}");
+    }
+
+    #[test]
     fn stencil_loop_matches_the_general_loop() {
         let n = 11;
         let s = 1e-3;
