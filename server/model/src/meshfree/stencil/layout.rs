@@ -153,6 +153,30 @@ impl GridLayout {
     }
 }
 
+/// The number of groups of [`LANES`] cells the owners at grid indices `sorted` (ascending;
+/// a repeat adds nothing) fill when the groups start `s` cells earlier along the vector
+/// axis, for every shift `s < LANES`. Shifted by `s`, the owner at index `i` falls in group
+/// `(i + s) / LANES`: rows are whole groups long and owners keep [`LANES`] cells of margin
+/// at both ends of a row, so no group spans two rows. Two owners adjacent in grid order, `d`
+/// cells apart, start a new group for every shift when `d >= LANES`, else for the `d` shifts
+/// that carry the first past a multiple of [`LANES`].
+fn groups_by_shift(sorted: impl Iterator<Item = usize>) -> [usize; LANES] {
+    let mut groups = [0usize; LANES];
+    let mut last = None;
+    for i in sorted {
+        match last.map(|p: usize| (i - p, p % LANES)) {
+            Some((d, r)) if d < LANES => {
+                for t in LANES - d..LANES {
+                    groups[(t + LANES - r) % LANES] += 1;
+                }
+            }
+            _ => groups.iter_mut().for_each(|g| *g += 1),
+        }
+        last = Some(i);
+    }
+    groups
+}
+
 /// The layout of a block's terms on the grid (module documentation), sized once.
 #[derive(Debug, Clone)]
 pub(super) struct StencilLayout {
@@ -275,7 +299,7 @@ impl StencilLayout {
     /// The permutation of the grid axes and the shift of the groups along the vector axis
     /// (first) that make the fewest groups of [`LANES`] owners, among those that fit the
     /// capacity (`None`: none fits). Per axis the owners are sorted once by grid index (row,
-    /// then position along the row); each shift then counts its groups in one pass.
+    /// then position along the row) and one pass counts the groups of every shift.
     fn vector_axis(
         &mut self,
         st: &Stencil,
@@ -302,24 +326,14 @@ impl StencilLayout {
                 self.order.push((i as u32, 0));
             }
             self.order.sort_unstable();
-            let row = layout.dims[0];
-            for shift in 0..LANES {
+            let groups = groups_by_shift(self.order.iter().map(|&(i, _)| i as usize));
+            for (shift, &groups) in groups.iter().enumerate() {
                 #[cfg(test)]
                 if self.fast_axis.is_some_and(|(_, s)| s != shift) {
                     continue;
                 }
                 if GridLayout::new(perm, shift, lo, hi, st.reach, self.capacity_cells).is_none() {
                     continue;
-                }
-                let mut groups = 0;
-                let mut last = None;
-                for &(i, _) in &self.order {
-                    let i = i as usize;
-                    let group = (i / row, (i % row + shift) / LANES);
-                    if last != Some(group) {
-                        groups += 1;
-                        last = Some(group);
-                    }
                 }
                 if best.is_none_or(|(g, ..)| groups < g) {
                     best = Some((groups, perm, shift));
@@ -549,6 +563,43 @@ fn lane_rest(
             q,
             s,
             u,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn groups_by_shift_counts_what_grouping_each_shift_makes() {
+        // Pseudo-random ascending owner indices in rows of 48 cells, owners 8..40 of each (the
+        // margins), gaps of 1 to 12: every shift's count against the groups themselves.
+        let mut state = 0x2545_f491_4f6c_dd1d_u64;
+        let mut next = |m: u64| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state % m) as usize
+        };
+        for _ in 0..200 {
+            let mut cells = Vec::new();
+            for row in 0..6 {
+                let mut g = LANES + next(6);
+                while g < 48 - LANES {
+                    cells.push(48 * row + g);
+                    g += 1 + next(12);
+                }
+            }
+            let counts = groups_by_shift(cells.iter().copied());
+            for (s, &count) in counts.iter().enumerate() {
+                let mut distinct: Vec<(usize, usize)> = cells
+                    .iter()
+                    .map(|&i| (i / 48, (i % 48 + s) / LANES))
+                    .collect();
+                distinct.dedup();
+                assert_eq!(count, distinct.len(), "shift {s}, owners {cells:?}");
+            }
         }
     }
 }
