@@ -33,9 +33,14 @@ use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw};
 use crate::pool::TickPool;
 use crate::simd::Avx2FmaF16c;
 
+mod panel;
 mod parts;
+mod single;
 mod split;
+use panel::{PanelKernel, Portable};
 pub use parts::{HalfFactorParts, touch_words};
+#[cfg(target_arch = "x86_64")]
+use single::Fused;
 use split::{TreeSplit, tree_split};
 
 /// The supernodal structure of a factor in the form the sweep reads, with its workspace.
@@ -60,6 +65,9 @@ pub struct SupernodalSolve {
     y2: Vec<f32>,
     /// The AVX2 + FMA + F16C token when the CPU has them (the sweep runs that build then).
     f16c: Option<Avx2FmaF16c>,
+    /// Whether that build takes supernodes of a single panel through [`single`] (the same
+    /// bits; off only in tests, to compare, and for more than `i32::MAX` equations).
+    fused: bool,
     /// The elimination tree cut in two for [`Self::solve_in_place_in`] ([`Self::set_parts`]).
     split: Option<TreeSplit>,
 }
@@ -118,6 +126,15 @@ struct Panel {
     blocks: usize,
     values_len: usize,
     triangle_len: usize,
+}
+
+/// The one panel of a supernode of `nc` columns and block height `h` when it has one and rows
+/// below it ([`single`]).
+#[inline(always)]
+fn single_panel(nc: usize, h: usize) -> Option<Panel> {
+    (nc <= PANEL && h > nc)
+        .then(|| panels(nc, h).next())
+        .flatten()
 }
 
 /// The panels of a supernode of `nc` columns and block height `h`, in column order.
@@ -193,6 +210,7 @@ impl SupernodalSolve {
             x2: vec![0.0; n],
             y2: vec![0.0; widest + HALF_PAD],
             f16c: Avx2FmaF16c::detect(),
+            fused: i32::try_from(n).is_ok(),
             split: None,
         })
     }
@@ -219,6 +237,14 @@ impl SupernodalSolve {
             None
         };
         self.split.is_some()
+    }
+
+    /// The sweeps' build ([`Build`]).
+    fn build(&self) -> Build {
+        Build {
+            isa: self.f16c,
+            fused: self.fused,
+        }
     }
 
     /// Number of stored factor values (faer's supernodal layout).
@@ -368,9 +394,14 @@ impl SupernodalSolve {
             y,
             split,
             f16c,
+            fused,
             ..
         } = self;
-        let (isa, nodes, rows) = (*f16c, &nodes[..], &rows[..]);
+        let isa = Build {
+            isa: *f16c,
+            fused: *fused,
+        };
+        let (nodes, rows) = (&nodes[..], &rows[..]);
         let (Some(pool), Some(sp)) = (pool, split.as_mut()) else {
             forward_sweep(isa, nodes, 0, rows, factor, [x], [y]);
             return self.backward_into(factor, b);
@@ -416,7 +447,8 @@ impl SupernodalSolve {
     /// numbering.
     fn backward_into(&mut self, factor: &HalfFactor, out: &mut [f32]) {
         let (nodes, rows) = (&self.nodes, &self.rows);
-        backward_sweep(self.f16c, nodes, 0, rows, factor, &mut self.x, &mut self.y);
+        let build = self.build();
+        backward_sweep(build, nodes, 0, rows, factor, &mut self.x, &mut self.y);
         for ((&xk, &f), &s) in self.x.iter().zip(&self.forward).zip(&factor.scale) {
             out[f as usize] = xk * s;
         }
@@ -447,7 +479,7 @@ impl SupernodalSolve {
             *x2k = a[f as usize] * s;
         }
         forward_sweep(
-            self.f16c,
+            self.build(),
             &self.nodes,
             0,
             &self.rows,
@@ -479,6 +511,14 @@ impl SupernodalSolve {
     }
 }
 
+/// The sweeps' build: the AVX2 + FMA + F16C token when the CPU has them, and whether that
+/// build fuses the single-panel supernodes ([`SupernodalSolve`]'s `fused`).
+#[derive(Clone, Copy)]
+struct Build {
+    isa: Option<Avx2FmaF16c>,
+    fused: bool,
+}
+
 /// A supernode's first column, column count, start of its values (in faer's layout) and
 /// pattern rows.
 #[inline(always)]
@@ -490,7 +530,7 @@ fn supernode(node: [u32; 5], rows: &[u32]) -> (usize, usize, usize, &[u32]) {
 /// [`forward`] of `K` right-hand sides with the CPU's build: AVX2 + FMA + F16C with the token.
 #[inline(always)]
 fn forward_sweep<const K: usize>(
-    isa: Option<Avx2FmaF16c>,
+    build: Build,
     nodes: &[[u32; 5]],
     first: usize,
     rows: &[u32],
@@ -500,12 +540,11 @@ fn forward_sweep<const K: usize>(
 ) {
     let starts = &factor.node_start[first..first + nodes.len()];
     #[cfg(target_arch = "x86_64")]
-    if let Some(isa) = isa {
+    if let Some(isa) = build.isa {
         // SAFETY: the token proves AVX2, FMA and F16C on this CPU.
-        unsafe { forward_avx2::<K>(isa, nodes, starts, rows, factor, x, y) };
+        unsafe { forward_avx2::<K>(isa, build.fused, nodes, starts, rows, factor, x, y) };
         return;
     }
-    let _ = isa;
     forward::<Portable, K>(Portable, nodes, starts, rows, factor, x, y);
 }
 
@@ -513,7 +552,7 @@ fn forward_sweep<const K: usize>(
 /// CPU's build: AVX2 + FMA + F16C with the token.
 #[inline(always)]
 fn backward_sweep(
-    isa: Option<Avx2FmaF16c>,
+    build: Build,
     nodes: &[[u32; 5]],
     first: usize,
     rows: &[u32],
@@ -523,20 +562,21 @@ fn backward_sweep(
 ) {
     let starts = &factor.node_start[first..=first + nodes.len()];
     #[cfg(target_arch = "x86_64")]
-    if let Some(isa) = isa {
+    if let Some(isa) = build.isa {
         // SAFETY: the token proves AVX2, FMA and F16C on this CPU.
-        unsafe { backward_avx2(isa, nodes, starts, rows, factor, x, y) };
+        unsafe { backward_avx2(isa, build.fused, nodes, starts, rows, factor, x, y) };
         return;
     }
-    let _ = isa;
     backward(Portable, nodes, starts, rows, factor, x, y);
 }
 
 /// [`forward`] compiled for AVX2 + FMA + F16C (the token).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,f16c")]
+#[allow(clippy::too_many_arguments)]
 fn forward_avx2<const K: usize>(
     isa: Avx2FmaF16c,
+    fused: bool,
     nodes: &[[u32; 5]],
     starts: &[[u32; 2]],
     rows: &[u32],
@@ -544,14 +584,17 @@ fn forward_avx2<const K: usize>(
     x: [&mut [f32]; K],
     y: [&mut [f32]; K],
 ) {
-    forward::<Avx2FmaF16c, K>(isa, nodes, starts, rows, factor, x, y);
+    // One build for both (two would not inline the panel kernels).
+    forward::<Fused, K>(Fused { isa, fused }, nodes, starts, rows, factor, x, y);
 }
 
 /// [`backward`] compiled for AVX2 + FMA + F16C (the token).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,f16c")]
+#[allow(clippy::too_many_arguments)]
 fn backward_avx2(
     isa: Avx2FmaF16c,
+    fused: bool,
     nodes: &[[u32; 5]],
     starts: &[[u32; 2]],
     rows: &[u32],
@@ -559,7 +602,7 @@ fn backward_avx2(
     x: &mut [f32],
     y: &mut [f32],
 ) {
-    backward(isa, nodes, starts, rows, factor, x, y);
+    backward(Fused { isa, fused }, nodes, starts, rows, factor, x, y);
 }
 
 /// The forward sweep `L y = b` over the supernodes of a [`HalfFactor`] (module docs) for `K`
@@ -572,18 +615,35 @@ fn forward<P: PanelKernel, const K: usize>(
     starts: &[[u32; 2]],
     rows: &[u32],
     factor: &HalfFactor,
-    x: [&mut [f32]; K],
+    mut x: [&mut [f32]; K],
     mut y: [&mut [f32]; K],
 ) {
     for (&node, &[v_start, t_start]) in nodes.iter().zip(starts) {
         let (c0, nc, _, pattern) = supernode(node, rows);
         let h = nc + pattern.len();
+        let (v, e) = (v_start as usize, t_start as usize);
+        if let Some(Panel {
+            values_len,
+            triangle_len,
+            ..
+        }) = single_panel(nc, h)
+        {
+            let (vals, tri) = (
+                &factor.values[v..][..values_len],
+                &factor.triangles[e..][..triangle_len],
+            );
+            let inv = &factor.inv_diag[c0..c0 + nc];
+            let x = x.each_mut().map(|x| &mut **x);
+            if kernel.forward_single(c0, pattern, vals, tri, inv, x) {
+                continue;
+            }
+        }
         for k in 0..K {
             let y = &mut y[k][..h + HALF_PAD];
             y[..nc].copy_from_slice(&x[k][c0..c0 + nc]);
             y[nc..].fill(0.0);
         }
-        let (mut v, mut e) = (v_start as usize, t_start as usize);
+        let (mut v, mut e) = (v, e);
         for panel in panels(nc, h) {
             let Panel { p0, w, blocks, .. } = panel;
             let tri = &factor.triangles[e..e + panel.triangle_len];
@@ -641,6 +701,22 @@ fn backward<P: PanelKernel>(
     for (ni, &node) in nodes.iter().enumerate().rev() {
         let (c0, nc, _, pattern) = supernode(node, rows);
         let h = nc + pattern.len();
+        if let Some(Panel {
+            values_len,
+            triangle_len,
+            ..
+        }) = single_panel(nc, h)
+        {
+            let [v, e] = starts[ni].map(|o| o as usize);
+            let (vals, tri) = (
+                &factor.values[v..][..values_len],
+                &factor.triangles[e..][..triangle_len],
+            );
+            let inv = &factor.inv_diag[c0..c0 + nc];
+            if kernel.backward_single(c0, pattern, vals, tri, inv, x) {
+                continue;
+            }
+        }
         let y = &mut y[..h + HALF_PAD];
         y[..nc].copy_from_slice(&x[c0..c0 + nc]);
         for (yr, &r) in y[nc..h].iter_mut().zip(pattern) {
@@ -673,234 +749,6 @@ fn backward<P: PanelKernel>(
     }
 }
 
-/// The two panel kernels of the sweeps, [`panel_update`] and [`panel_dots`]: the portable
-/// build ([`Portable`]) or the AVX2 + FMA + F16C one (the token [`Avx2FmaF16c`]), with the
-/// same fused operations in the same order per entry.
-trait PanelKernel: Copy {
-    /// [`panel_update`].
-    fn update<const K: usize>(
-        self,
-        vals: &[u16],
-        w: usize,
-        a: &[[f32; PANEL]; K],
-        y: [&mut [f32]; K],
-    );
-    /// [`panel_dots`].
-    fn dots(self, vals: &[u16], w: usize, y: &[f32]) -> [f32; PANEL];
-}
-
-/// The portable panel kernels.
-#[derive(Clone, Copy)]
-struct Portable;
-
-impl PanelKernel for Portable {
-    #[inline(always)]
-    fn update<const K: usize>(
-        self,
-        vals: &[u16],
-        w: usize,
-        a: &[[f32; PANEL]; K],
-        y: [&mut [f32]; K],
-    ) {
-        panel_update(vals, w, a, y);
-    }
-
-    #[inline(always)]
-    fn dots(self, vals: &[u16], w: usize, y: &[f32]) -> [f32; PANEL] {
-        panel_dots(vals, w, y)
-    }
-}
-
-#[cfg(target_arch = "x86_64")]
-impl PanelKernel for Avx2FmaF16c {
-    #[inline(always)]
-    fn update<const K: usize>(
-        self,
-        vals: &[u16],
-        w: usize,
-        a: &[[f32; PANEL]; K],
-        y: [&mut [f32]; K],
-    ) {
-        // SAFETY: the token proves AVX2, FMA and F16C on this CPU.
-        unsafe { panel_update_avx2(self, vals, w, a, y) };
-    }
-
-    #[inline(always)]
-    fn dots(self, vals: &[u16], w: usize, y: &[f32]) -> [f32; PANEL] {
-        // SAFETY: the token proves AVX2, FMA and F16C on this CPU.
-        unsafe { panel_dots_avx2(self, vals, w, y) }
-    }
-}
-
-/// `y_k[8 b + l] -= sum_t vals[(b w + t) 8 + l] a_k[t]` for a panel of `w` columns whose row
-/// blocks are `vals` and the `K` right-hand sides' rows below it `y` (portable).
-fn panel_update<const K: usize>(
-    vals: &[u16],
-    w: usize,
-    a: &[[f32; PANEL]; K],
-    mut y: [&mut [f32]; K],
-) {
-    for (b, block) in vals.chunks_exact(w * HALF_PAD).enumerate() {
-        for (t, col) in block.chunks_exact(HALF_PAD).enumerate() {
-            for (y, a) in y.iter_mut().zip(a) {
-                for (yl, &l) in y[HALF_PAD * b..HALF_PAD * (b + 1)].iter_mut().zip(col) {
-                    *yl = half::f16::from_bits(l).to_f32().mul_add(-a[t], *yl);
-                }
-            }
-        }
-    }
-}
-
-/// [`panel_update`] with AVX2 + FMA + F16C: the rows of four blocks of every right-hand side
-/// held in registers across the panel's columns, each column's coefficient broadcast once for
-/// the four (the same fused operations in the same order per entry).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,f16c")]
-fn panel_update_avx2<const K: usize>(
-    _: Avx2FmaF16c,
-    vals: &[u16],
-    w: usize,
-    a: &[[f32; PANEL]; K],
-    mut y: [&mut [f32]; K],
-) {
-    use std::arch::x86_64::*;
-    const U: usize = 4;
-    let blocks = vals.len() / (w * HALF_PAD).max(1);
-    assert!(w <= PANEL && vals.len() == blocks * w * HALF_PAD);
-    assert!(y.iter().all(|y| y.len() == blocks * HALF_PAD));
-    let mut b = 0;
-    while b < blocks {
-        let u = U.min(blocks - b);
-        // SAFETY: blocks `b..b + u` of `vals` hold `w * 8` entries each and of each `y` eight,
-        // by the asserts; `t < w <= PANEL` indexes `a`.
-        unsafe {
-            let mut acc = [[_mm256_setzero_ps(); K]; U];
-            for (j, acc) in acc.iter_mut().enumerate().take(u) {
-                for (a, y) in acc.iter_mut().zip(&y) {
-                    *a = _mm256_loadu_ps(y.as_ptr().add(HALF_PAD * (b + j)));
-                }
-            }
-            let block = vals.as_ptr().add(b * w * HALF_PAD);
-            for t in 0..w {
-                let mut coef = [_mm256_setzero_ps(); K];
-                for (c, a) in coef.iter_mut().zip(a) {
-                    *c = _mm256_set1_ps(*a.get_unchecked(t));
-                }
-                // Four blocks unrolled (the usual case), or the last few.
-                macro_rules! update {
-                    ($n:expr) => {
-                        for (j, acc) in acc.iter_mut().enumerate().take($n) {
-                            let c = _mm256_cvtph_ps(_mm_loadu_si128(
-                                block.add(HALF_PAD * (j * w + t)).cast(),
-                            ));
-                            for (a, cf) in acc.iter_mut().zip(&coef) {
-                                *a = _mm256_fnmadd_ps(c, *cf, *a);
-                            }
-                        }
-                    };
-                }
-                if u == U {
-                    update!(U);
-                } else {
-                    update!(u);
-                }
-            }
-            for (j, acc) in acc.iter().enumerate().take(u) {
-                for (a, y) in acc.iter().zip(y.iter_mut()) {
-                    _mm256_storeu_ps(y.as_mut_ptr().add(HALF_PAD * (b + j)), *a);
-                }
-            }
-        }
-        b += u;
-    }
-}
-
-/// `d[t] = sum_(b, l) vals[(b w + t) 8 + l] y[8 b + l]` for a panel of `w` columns (portable).
-fn panel_dots(vals: &[u16], w: usize, y: &[f32]) -> [f32; PANEL] {
-    let mut d = [0.0f32; PANEL];
-    for (block, yb) in vals
-        .chunks_exact(w * HALF_PAD)
-        .zip(y.chunks_exact(HALF_PAD))
-    {
-        for (d, col) in d.iter_mut().zip(block.chunks_exact(HALF_PAD)) {
-            for (&l, &v) in col.iter().zip(yb) {
-                *d = half::f16::from_bits(l).to_f32().mul_add(v, *d);
-            }
-        }
-    }
-    d
-}
-
-/// [`panel_dots`] with AVX2 + FMA + F16C, for the panel width `w` (1 to [`PANEL`]).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,f16c")]
-fn panel_dots_avx2(isa: Avx2FmaF16c, vals: &[u16], w: usize, y: &[f32]) -> [f32; PANEL] {
-    match w {
-        8 => panel_dots_w::<8>(isa, vals, y),
-        7 => panel_dots_w::<7>(isa, vals, y),
-        6 => panel_dots_w::<6>(isa, vals, y),
-        5 => panel_dots_w::<5>(isa, vals, y),
-        4 => panel_dots_w::<4>(isa, vals, y),
-        3 => panel_dots_w::<3>(isa, vals, y),
-        2 => panel_dots_w::<2>(isa, vals, y),
-        _ => panel_dots_w::<1>(isa, vals, y),
-    }
-}
-
-/// [`panel_dots_avx2`] for `W` columns: one accumulator per column, two per column for
-/// `W <= 4` (alternate blocks), so that the fused multiply-add's latency does not bound it.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,f16c")]
-fn panel_dots_w<const W: usize>(_: Avx2FmaF16c, vals: &[u16], y: &[f32]) -> [f32; PANEL] {
-    use std::arch::x86_64::*;
-    let blocks = y.len() / HALF_PAD;
-    assert!(W <= PANEL && y.len() == blocks * HALF_PAD && vals.len() == blocks * W * HALF_PAD);
-    let mut acc = [_mm256_setzero_ps(); W];
-    let mut acc2 = [_mm256_setzero_ps(); W];
-    let mut b = 0;
-    // SAFETY: block `b < blocks` of `vals` holds `W * 8` entries and of `y` eight. (A macro,
-    // not a closure: closures do not inherit `target_feature`.)
-    unsafe {
-        macro_rules! term {
-            ($b:expr, $t:expr) => {
-                (
-                    _mm256_cvtph_ps(_mm_loadu_si128(
-                        vals.as_ptr().add(($b * W + $t) * HALF_PAD).cast(),
-                    )),
-                    _mm256_loadu_ps(y.as_ptr().add($b * HALF_PAD)),
-                )
-            };
-        }
-        if W <= 4 {
-            while b + 2 <= blocks {
-                for (t, (a, a2)) in acc.iter_mut().zip(&mut acc2).enumerate() {
-                    let (c, v) = term!(b, t);
-                    *a = _mm256_fmadd_ps(c, v, *a);
-                    let (c, v) = term!(b + 1, t);
-                    *a2 = _mm256_fmadd_ps(c, v, *a2);
-                }
-                b += 2;
-            }
-        }
-        while b < blocks {
-            for (t, a) in acc.iter_mut().enumerate() {
-                let (c, v) = term!(b, t);
-                *a = _mm256_fmadd_ps(c, v, *a);
-            }
-            b += 1;
-        }
-    }
-    let mut d = [0.0f32; PANEL];
-    for ((d, a), a2) in d.iter_mut().zip(&acc).zip(&acc2) {
-        let v = _mm256_add_ps(*a, *a2);
-        let q = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
-        let q = _mm_add_ps(q, _mm_movehl_ps(q, q));
-        let q = _mm_add_ss(q, _mm_movehdup_ps(q));
-        *d = _mm_cvtss_f32(q);
-    }
-    d
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -910,7 +758,7 @@ mod tests {
     use faer::{Conj, Mat, Par, Side};
 
     /// [`crate::linalg::grid_matrix`] in single precision (its entries are exact in both).
-    fn grid_matrix(n: usize) -> SparseColMat<usize, f32> {
+    pub(super) fn grid_matrix(n: usize) -> SparseColMat<usize, f32> {
         let a = crate::linalg::grid_matrix(n);
         let values = a.val().iter().map(|&v| v as f32).collect();
         SparseColMat::new(a.symbolic().to_owned().expect("a pattern"), values)
@@ -918,7 +766,7 @@ mod tests {
 
     /// The supernodal symbolic factor of `a` (lower triangle) in `ordering` and its
     /// single-precision numeric factor.
-    fn supernodal_factor(
+    pub(super) fn supernodal_factor(
         a: &SparseColMat<usize, f32>,
         ordering: SymmetricOrdering<'_, usize>,
     ) -> (SymbolicCholesky<usize>, Vec<f32>) {
@@ -952,7 +800,7 @@ mod tests {
     }
 
     /// `D A D` for the diagonal `d` (lower triangle of `a`).
-    fn scaled(a: &SparseColMat<usize, f32>, d: &[f32]) -> SparseColMat<usize, f32> {
+    pub(super) fn scaled(a: &SparseColMat<usize, f32>, d: &[f32]) -> SparseColMat<usize, f32> {
         let mut t = Vec::new();
         for j in 0..a.ncols() {
             for (i, v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
