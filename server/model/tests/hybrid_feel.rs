@@ -237,10 +237,10 @@ fn refining_the_lattice_or_the_core_moves_lv_hybrid_towards_the_reference() {
             .collect()
     };
     let scene = press(
-        "lv-hybrid (0.35 mm, 948 tets)",
-        lv_hybrid_refined(0.35e-3, 1000),
+        "lv-hybrid (0.35 mm, 702 tets)",
+        lv_hybrid_refined(0.35e-3, 700),
     );
-    let finer_lattice = press("finer lattice (0.3 mm)", lv_hybrid_refined(0.3e-3, 1000));
+    let finer_lattice = press("finer lattice (0.3 mm)", lv_hybrid_refined(0.3e-3, 700));
     let finer_core = press(
         "finer core (about 2 000 tets)",
         lv_hybrid_refined(0.35e-3, 2000),
