@@ -81,7 +81,8 @@ pub const MAX_SERVO_THREADS: usize = 16;
 #[serde(try_from = "RawThreads")]
 pub enum ServoThreads {
     /// The body's wish (`SoftBody::wants_threads`) limited by the cores no other session has
-    /// reserved; one where `SCHED_FIFO` was asked for and refused.
+    /// reserved, less the threads the body keeps busy beside its tick
+    /// (`SoftBody::background_threads`); one where `SCHED_FIFO` was asked for and refused.
     #[default]
     Auto,
     /// This many threads, 1..=[`MAX_SERVO_THREADS`], whatever the other sessions use.

@@ -3,7 +3,9 @@
 //!
 //! `[servo] threads = "auto"` gives a session the threads its body asks for
 //! (`SoftBody::wants_threads`), limited by the cores no running session has reserved: the
-//! machine's (`std::thread::available_parallelism`) or the `[servo] cpus` list's. A session that
+//! machine's (`std::thread::available_parallelism`) or the `[servo] cpus` list's, less the
+//! threads the body keeps busy beside its tick (`SoftBody::background_threads`: a region
+//! cache being built; two busy threads and a worker on two cores starve the worker). A session that
 //! cannot get its threads gets fewer (at least its servo thread) and never waits; where
 //! `SCHED_FIFO` was asked for and refused it gets one (an unprotected worker preempted while it
 //! holds a part would stall the servo). `threads = N` gives every session N. Either way the
@@ -58,13 +60,21 @@ impl Drop for CoreReservation {
     }
 }
 
-/// Threads of a session whose body wants `wants` under `mode`, with `free` cores unreserved;
-/// `fifo_refused`: `SCHED_FIFO` was asked for and refused. Always 1..=[`MAX_SERVO_THREADS`].
-pub fn decide_threads(mode: ServoThreads, wants: usize, free: usize, fifo_refused: bool) -> usize {
+/// Threads of a session whose body wants `wants` and keeps `background` busy beside its
+/// tick, under `mode`, with `free` cores unreserved; `fifo_refused`: `SCHED_FIFO` was asked
+/// for and refused. Always 1..=[`MAX_SERVO_THREADS`].
+pub fn decide_threads(
+    mode: ServoThreads,
+    (wants, background): (usize, usize),
+    free: usize,
+    fifo_refused: bool,
+) -> usize {
     match mode {
         ServoThreads::Fixed(n) => n.clamp(1, MAX_SERVO_THREADS),
         ServoThreads::Auto if fifo_refused => 1,
-        ServoThreads::Auto => wants.clamp(1, MAX_SERVO_THREADS).min(free.max(1)),
+        ServoThreads::Auto => wants
+            .clamp(1, MAX_SERVO_THREADS)
+            .min(free.saturating_sub(background).max(1)),
     }
 }
 
@@ -100,8 +110,14 @@ impl CoreBudget {
     }
 
     /// Decides a new session's threads ([`decide_threads`] with the cores free now) and reserves
-    /// them, atomically against concurrent starts. Never waits.
-    pub fn reserve(&self, mode: ServoThreads, wants: usize, fifo_refused: bool) -> CoreReservation {
+    /// them, atomically against concurrent starts. Never waits. (The background threads are
+    /// not reserved: they idle once their work is done.)
+    pub fn reserve(
+        &self,
+        mode: ServoThreads,
+        wants: (usize, usize),
+        fifo_refused: bool,
+    ) -> CoreReservation {
         let mut now = self.reserved.load(Ordering::Acquire);
         loop {
             let free = self.capacity.saturating_sub(now);
@@ -132,29 +148,34 @@ mod tests {
     #[test]
     fn auto_takes_what_is_free_and_never_less_than_one() {
         let auto = ServoThreads::Auto;
-        assert_eq!(decide_threads(auto, 2, 2, false), 2);
-        assert_eq!(decide_threads(auto, 4, 2, false), 2);
-        assert_eq!(decide_threads(auto, 2, 1, false), 1);
-        assert_eq!(decide_threads(auto, 2, 0, false), 1);
-        assert_eq!(decide_threads(auto, 0, 8, false), 1);
-        assert_eq!(decide_threads(auto, 2, 2, true), 1, "FIFO refused");
-        assert_eq!(decide_threads(ServoThreads::Fixed(3), 1, 0, true), 3);
+        assert_eq!(decide_threads(auto, (2, 0), 2, false), 2);
+        assert_eq!(decide_threads(auto, (4, 0), 2, false), 2);
+        assert_eq!(decide_threads(auto, (2, 0), 1, false), 1);
+        assert_eq!(decide_threads(auto, (2, 0), 0, false), 1);
+        assert_eq!(decide_threads(auto, (0, 0), 8, false), 1);
+        assert_eq!(decide_threads(auto, (2, 0), 2, true), 1, "FIFO refused");
+        assert_eq!(decide_threads(ServoThreads::Fixed(3), (1, 0), 0, true), 3);
+        // A body building its region cache: its worker keeps a core busy.
+        assert_eq!(decide_threads(auto, (2, 1), 2, false), 1);
+        assert_eq!(decide_threads(auto, (2, 1), 3, false), 2);
+        assert_eq!(decide_threads(auto, (2, 1), 1, false), 1);
+        assert_eq!(decide_threads(ServoThreads::Fixed(2), (2, 1), 2, false), 2);
     }
 
     #[test]
     fn reservations_add_up_and_are_given_back_on_drop() {
         let budget = CoreBudget::new(2);
-        let a = budget.reserve(ServoThreads::Auto, 2, false);
+        let a = budget.reserve(ServoThreads::Auto, (2, 0), false);
         assert_eq!((a.cores(), a.first(), budget.reserved()), (2, 0, 2));
-        let b = budget.reserve(ServoThreads::Auto, 2, false);
+        let b = budget.reserve(ServoThreads::Auto, (2, 0), false);
         assert_eq!((b.cores(), b.first(), budget.reserved()), (1, 2, 3));
         drop(a);
         assert_eq!(budget.reserved(), 1);
-        let c = budget.reserve(ServoThreads::Auto, 2, false);
+        let c = budget.reserve(ServoThreads::Auto, (2, 0), false);
         assert_eq!(c.cores(), 1, "one core is free");
         drop((b, c));
         assert_eq!(budget.reserved(), 0);
-        assert_eq!(budget.reserve(ServoThreads::Auto, 2, false).cores(), 2);
+        assert_eq!(budget.reserve(ServoThreads::Auto, (2, 0), false).cores(), 2);
         assert_eq!(budget.reserved(), 0, "the unnamed reservation was dropped");
     }
 }

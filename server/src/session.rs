@@ -499,9 +499,10 @@ impl SessionManager {
         body: &mut dyn haptic_model::body::SoftBody,
     ) -> (TickThreads, Option<Arc<haptic_model::pool::TickPool>>) {
         let servo_cfg = &self.config.servo;
-        let mut reservation =
-            self.cores
-                .reserve(servo_cfg.threads, body.wants_threads(), self.fifo_refused());
+        let wants = (body.wants_threads(), body.background_threads());
+        let mut reservation = self
+            .cores
+            .reserve(servo_cfg.threads, wants, self.fifo_refused());
         let cpus = servo_cfg.pinned_cpus();
         let cpu_at = |i: usize| (!cpus.is_empty()).then(|| cpus[i % cpus.len()]);
         let first = reservation.first();

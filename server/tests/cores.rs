@@ -64,6 +64,30 @@ async fn auto_threads_share_the_listed_cpus_and_come_back_when_a_session_stops()
     assert_eq!(manager.reserved_cores(), (0, 2));
 }
 
+/// A body that keeps a thread busy beside its tick (a region cache being built) gets one core
+/// less in `auto`: on two CPUs it ticks alone, on three with the worker it asks for; it
+/// reserves its tick's cores only.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn auto_threads_leave_a_core_to_the_bodys_background_thread() {
+    let busy = || {
+        let mut body = common::Burdened::wanting(common::builtin_body("ellipsoids"), 2, None);
+        body.background = 1;
+        Box::new(body)
+    };
+    for (cpus, expected) in [("[0, 1]", 1), ("[0, 1, 2]", 2)] {
+        let manager = SessionManager::new(config(&format!("threads = \"auto\"\ncpus = {cpus}")));
+        let a = manager.start_body(busy()).unwrap();
+        assert_eq!(a.tick_threads, expected, "cpus {cpus}");
+        // The background thread is not reserved (it idles once the cache is full).
+        assert_eq!(
+            manager.reserved_cores().0,
+            a.tick_threads as usize,
+            "cpus {cpus}"
+        );
+        manager.stop_all();
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_fixed_thread_count_is_given_whatever_is_free() {
     let manager = SessionManager::new(config("threads = 2\ncpus = [0]"));

@@ -262,6 +262,13 @@ pub trait SoftBody: Send {
         1
     }
 
+    /// Threads the body keeps busy beside its tick from its start (issue 48): a region worker
+    /// building a region cache. The session's automatic thread count leaves them a core
+    /// ([`Self::wants_threads`] is cut to the cores free less these). Provided: 0.
+    fn background_threads(&self) -> usize {
+        0
+    }
+
     /// Hands the body the worker pool of its session, before the first tick (the session's
     /// set-up, not a tick: may allocate). A body cuts its jobs into `pool.threads()` parts, so
     /// its results depend on the thread count only. Provided: the pool is not used.

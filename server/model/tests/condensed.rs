@@ -879,6 +879,51 @@ fn stroke(k: usize, depth: f64) -> (TickInput, bool) {
     (input, t >= 0.3)
 }
 
+/// A body building its region cache keeps a worker busy beside its tick from its start
+/// (`SoftBody::background_threads`, to which the daemon's automatic thread count leaves a
+/// core): 1 while tiles are missing, 0 once every tile is built, and 0 for a following region
+/// without tiles (its worker prepares on request only).
+#[test]
+fn a_region_cache_being_built_counts_as_a_background_thread() {
+    let region = ActiveRegion {
+        radius_m: 0.006,
+        follow: true,
+        tiles: TileMode::Background { cover_m: 0.004 },
+        ..ACTIVE
+    };
+    let scene = lv_scene(
+        StrainSmoothing::None,
+        IntegratorKind::BackwardEuler,
+        Some(region),
+    );
+    let body = FemBody::new(&scene).expect("a tiled body");
+    let busy = body.background_threads();
+    let stats = body.follow_stats().expect("a following region");
+    // Each tile is a region's factorisation: none is done in the moments since `new`.
+    assert!(
+        stats.tiles > 1 && stats.tiles_ready() < stats.tiles,
+        "{stats:?}"
+    );
+    assert_eq!(busy, 1, "a cache being built is a busy thread");
+    let start = Instant::now();
+    while body.follow_stats().expect("stats").tiles_ready() < stats.tiles {
+        assert!(start.elapsed().as_secs() < 600, "the cache did not fill");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    assert_eq!(body.background_threads(), 0, "the cache is full");
+    let untiled = ActiveRegion {
+        tiles: TileMode::Off,
+        ..region
+    };
+    let scene = lv_scene(
+        StrainSmoothing::None,
+        IntegratorKind::BackwardEuler,
+        Some(untiled),
+    );
+    let body = FemBody::new(&scene).expect("an untiled body");
+    assert_eq!(body.background_threads(), 0);
+}
+
 /// Ticks of [`stroke`]: 0.5 s press and hold, 1.52 s slide, 0.4 s hold.
 const STROKE_TICKS: usize = 2420;
 

@@ -24,6 +24,8 @@ pub struct Burdened {
     pub spin: bool,
     /// What [`SoftBody::wants_threads`] answers.
     pub threads: usize,
+    /// What [`SoftBody::background_threads`] answers.
+    pub background: usize,
     /// The tick (counted from 1) from which every tick fails.
     pub fail_at: Option<u64>,
     /// Ticks so far.
@@ -38,6 +40,7 @@ impl Burdened {
             extra,
             spin: false,
             threads: 1,
+            background: 0,
             fail_at: None,
             ticks: 0,
         }
@@ -93,6 +96,10 @@ impl SoftBody for Burdened {
     }
     fn wants_threads(&self) -> usize {
         self.threads
+    }
+
+    fn background_threads(&self) -> usize {
+        self.background
     }
 }
 

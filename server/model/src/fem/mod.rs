@@ -1087,6 +1087,15 @@ impl SoftBody for FemBody {
         if self.fallback.is_some() { 2 } else { 1 }
     }
 
+    /// 1 while a following region builds its tiles
+    /// ([`crate::integrate::condensed::TileMode::Background`]: a worker busy
+    /// from the session's start until every tile is built or read), else 0 (a region worker
+    /// that prepares on request only idles between requests).
+    fn background_threads(&self) -> usize {
+        self.follow_stats()
+            .map_or(0, |f| usize::from(f.tiles_ready() < f.tiles))
+    }
+
     /// Keeps `pool` for the element forces in parts (the kernels' per-part arrays are sized
     /// here), a condensed region's far products in two parts
     /// ([`CondensedSolver::set_parts`], now and on every region prepared later) and the
