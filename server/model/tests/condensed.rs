@@ -885,18 +885,17 @@ fn stroke(k: usize, depth: f64) -> (TickInput, bool) {
 /// without tiles (its worker prepares on request only).
 #[test]
 fn a_region_cache_being_built_counts_as_a_background_thread() {
-    let region = ActiveRegion {
-        radius_m: 0.006,
-        follow: true,
-        tiles: TileMode::Background { cover_m: 0.004 },
-        ..ACTIVE
+    let body_with = |tiles| {
+        let region = ActiveRegion {
+            radius_m: 0.006,
+            follow: true,
+            tiles,
+            ..ACTIVE
+        };
+        let kind = IntegratorKind::BackwardEuler;
+        FemBody::new(&lv_scene(StrainSmoothing::None, kind, Some(region))).expect("a body")
     };
-    let scene = lv_scene(
-        StrainSmoothing::None,
-        IntegratorKind::BackwardEuler,
-        Some(region),
-    );
-    let body = FemBody::new(&scene).expect("a tiled body");
+    let body = body_with(TileMode::Background { cover_m: 0.004 });
     let busy = body.background_threads();
     let stats = body.follow_stats().expect("a following region");
     // Each tile is a region's factorisation: none is done in the moments since `new`.
@@ -911,16 +910,7 @@ fn a_region_cache_being_built_counts_as_a_background_thread() {
         std::thread::sleep(std::time::Duration::from_millis(50));
     }
     assert_eq!(body.background_threads(), 0, "the cache is full");
-    let untiled = ActiveRegion {
-        tiles: TileMode::Off,
-        ..region
-    };
-    let scene = lv_scene(
-        StrainSmoothing::None,
-        IntegratorKind::BackwardEuler,
-        Some(untiled),
-    );
-    let body = FemBody::new(&scene).expect("an untiled body");
+    let body = body_with(TileMode::Off);
     assert_eq!(body.background_threads(), 0);
 }
 

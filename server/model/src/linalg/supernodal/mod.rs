@@ -42,6 +42,7 @@ use panel::{PanelKernel, Portable};
 pub use parts::{HalfFactorParts, touch_words};
 #[cfg(target_arch = "x86_64")]
 use single::Fused;
+use single::Narrow;
 use split::{Phases, TreeSplit, phases, tree_split};
 
 /// The supernodal structure of a factor in the form the sweep reads, with its workspace.
@@ -521,12 +522,8 @@ fn cut_sweeps(
                 }
             }
         }
-        let (xb, yb) = (&mut sp.xb[..], &mut sp.yb[..]);
-        let (xa, ya) = (&mut x[..], &mut y[..]);
-        pool.join(
-            || sweep_forward(&phase[0], xa, ya),
-            || sweep_forward(&phase[1], xb, yb),
-        );
+        let worker = (&mut sp.xb[..], &mut sp.yb[..]);
+        join_phase(pool, phase, &sweep_forward, (x, y), worker);
     }
     for c in &ph.second_cols {
         x[c.clone()].copy_from_slice(&sp.xb[c.clone()]);
@@ -555,12 +552,8 @@ fn cut_sweeps(
         if phase.iter().all(Vec::is_empty) {
             continue;
         }
-        let (xb, yb) = (&mut sp.xb[..], &mut sp.yb[..]);
-        let (xa, ya) = (&mut x[..], &mut y[..]);
-        pool.join(
-            || sweep_backward(&phase[0], xa, ya),
-            || sweep_backward(&phase[1], xb, yb),
-        );
+        let worker = (&mut sp.xb[..], &mut sp.yb[..]);
+        join_phase(pool, phase, &sweep_backward, (x, y), worker);
         // The waiting supernodes' solution, for the stolen ones below them.
         for c in &ph.waiting_cols {
             x[c.clone()].copy_from_slice(&sp.xb[c.clone()]);
@@ -569,6 +562,21 @@ fn cut_sweeps(
     for c in &ph.second_cols {
         x[c.clone()].copy_from_slice(&sp.xb[c.clone()]);
     }
+}
+
+/// A sweep of a list of supernode ranges on a right-hand side and column block.
+type SweepList<'a> = dyn Fn(&[Range<usize>], &mut [f32], &mut [f32]) + Sync + 'a;
+
+/// The sweeps of a phase's two lists ([`Phases`]): the first on the caller's `(x, y)` beside
+/// the second on a worker's `(xb, yb)`.
+fn join_phase(
+    pool: &TickPool,
+    phase: &[Vec<Range<usize>>; 2],
+    sweep: &SweepList<'_>,
+    (x, y): (&mut [f32], &mut [f32]),
+    (xb, yb): (&mut [f32], &mut [f32]),
+) {
+    pool.join(|| sweep(&phase[0], x, y), || sweep(&phase[1], xb, yb));
 }
 
 /// The sweeps' build: the AVX2 + FMA + F16C token when the CPU has them, and whether that
@@ -682,21 +690,10 @@ fn forward<P: PanelKernel, const K: usize>(
         let (c0, nc, _, pattern) = supernode(node, rows);
         let h = nc + pattern.len();
         let (v, e) = (v_start as usize, t_start as usize);
-        if let Some(Panel {
-            values_len,
-            triangle_len,
-            ..
-        }) = single_panel(nc, h)
+        if let Some(node) = Narrow::of(factor, (c0, nc, pattern), [v, e])
+            && kernel.forward_single(node, x.each_mut().map(|x| &mut **x))
         {
-            let (vals, tri) = (
-                &factor.values[v..][..values_len],
-                &factor.triangles[e..][..triangle_len],
-            );
-            let inv = &factor.inv_diag[c0..c0 + nc];
-            let x = x.each_mut().map(|x| &mut **x);
-            if kernel.forward_single(c0, pattern, vals, tri, inv, x) {
-                continue;
-            }
+            continue;
         }
         for k in 0..K {
             let y = &mut y[k][..h + HALF_PAD];
@@ -761,21 +758,11 @@ fn backward<P: PanelKernel>(
     for (ni, &node) in nodes.iter().enumerate().rev() {
         let (c0, nc, _, pattern) = supernode(node, rows);
         let h = nc + pattern.len();
-        if let Some(Panel {
-            values_len,
-            triangle_len,
-            ..
-        }) = single_panel(nc, h)
+        let start = starts[ni].map(|o| o as usize);
+        if let Some(node) = Narrow::of(factor, (c0, nc, pattern), start)
+            && kernel.backward_single(node, x)
         {
-            let [v, e] = starts[ni].map(|o| o as usize);
-            let (vals, tri) = (
-                &factor.values[v..][..values_len],
-                &factor.triangles[e..][..triangle_len],
-            );
-            let inv = &factor.inv_diag[c0..c0 + nc];
-            if kernel.backward_single(c0, pattern, vals, tri, inv, x) {
-                continue;
-            }
+            continue;
         }
         let y = &mut y[..h + HALF_PAD];
         y[..nc].copy_from_slice(&x[c0..c0 + nc]);
@@ -816,6 +803,7 @@ mod tests {
     use faer::sparse::SparseColMat;
     use faer::sparse::linalg::cholesky::{LltRef, SymmetricOrdering, factorize_symbolic_cholesky};
     use faer::{Conj, Mat, Par, Side};
+    use std::sync::Arc;
 
     /// [`crate::linalg::grid_matrix`] in single precision (its entries are exact in both).
     pub(super) fn grid_matrix(n: usize) -> SparseColMat<usize, f32> {
@@ -857,6 +845,22 @@ mod tests {
             )
             .unwrap();
         (symbolic, values)
+    }
+
+    /// The equations of the grid nodes in the order `nodes` (each node's three together) and
+    /// the inverse order, for `faer::perm::PermRef::new_checked`.
+    pub(super) fn node_order(nodes: impl Iterator<Item = usize>) -> (Vec<usize>, Vec<usize>) {
+        let forward: Vec<usize> = nodes.flat_map(|v| [3 * v, 3 * v + 1, 3 * v + 2]).collect();
+        let mut inverse = vec![0; forward.len()];
+        for (k, &i) in forward.iter().enumerate() {
+            inverse[i] = k;
+        }
+        (forward, inverse)
+    }
+
+    /// The nodes of plane `i` of the `n`-grid.
+    pub(super) fn plane(n: usize, i: usize) -> std::ops::Range<usize> {
+        i * n * n..(i + 1) * n * n
     }
 
     /// `D A D` for the diagonal `d` (lower triangle of `a`).
@@ -996,6 +1000,38 @@ mod tests {
         }
     }
 
+    /// Without a pool `cut` solves as `whole` bit for bit; on a 2-thread pool (returned, for its
+    /// statistics) to single-precision round-off (1e-5 of the largest entry), 50 times.
+    fn assert_cut_agrees(
+        whole: &mut SupernodalSolve,
+        cut: &mut SupernodalSolve,
+        half: &HalfFactor,
+    ) -> Arc<TickPool> {
+        let b: Vec<f32> = (0..whole.len())
+            .map(|i| ((i * 37 % 101) as f32 - 50.0) / 17.0)
+            .collect();
+        let mut x_whole = b.clone();
+        whole.solve_in_place(half, &mut x_whole);
+        let mut x_serial = b.clone();
+        cut.solve_in_place_in(None, half, &mut x_serial);
+        assert_eq!(
+            x_serial, x_whole,
+            "without a pool the cut sweep is not the whole one"
+        );
+        let pool = TickPool::new(1, Arc::new(|_| {})).expect("pool");
+        let largest = x_whole.iter().fold(0.0f32, |s, v| s.max(v.abs()));
+        for _ in 0..50 {
+            let mut x_cut = b.clone();
+            cut.solve_in_place_in(Some(&pool), half, &mut x_cut);
+            let worst = x_whole
+                .iter()
+                .zip(&x_cut)
+                .fold(0.0f32, |s, (p, q)| s.max((p - q).abs()));
+            assert!(worst <= 1e-5 * largest, "{worst} against {largest}");
+        }
+        pool
+    }
+
     /// The sweep cut in two at a fork of the elimination tree (issue 48): on the grid matrix
     /// ordered by one level of nested dissection by hand (the halves `i < 4` and `i > 4`, then
     /// the plane `i = 4`), [`SupernodalSolve::set_parts`] finds the fork; the cut solve on a
@@ -1011,14 +1047,7 @@ mod tests {
             .filter(|&i| i < 4)
             .chain((0..n).filter(|&i| i > 4))
             .chain([4]);
-        let forward: Vec<usize> = planes
-            .flat_map(|i| (0..n * n).map(move |jk| i * n * n + jk))
-            .flat_map(|v| [3 * v, 3 * v + 1, 3 * v + 2])
-            .collect();
-        let mut inverse = vec![0; m];
-        for (k, &i) in forward.iter().enumerate() {
-            inverse[i] = k;
-        }
+        let (forward, inverse) = node_order(planes.flat_map(|i| plane(n, i)));
         let perm = faer::perm::PermRef::new_checked(&forward, &inverse, m);
         let (symbolic, mut values) = supernodal_factor(&a, SymmetricOrdering::Custom(perm));
         let mut whole = SupernodalSolve::new(&symbolic).expect("a supernodal factor");
@@ -1034,28 +1063,7 @@ mod tests {
             sp.col_top,
             sp.phases
         );
-        let b: Vec<f32> = (0..m)
-            .map(|i| ((i * 37 % 101) as f32 - 50.0) / 17.0)
-            .collect();
-        let mut x_whole = b.clone();
-        whole.solve_in_place(&half, &mut x_whole);
-        let mut x_serial = b.clone();
-        cut.solve_in_place_in(None, &half, &mut x_serial);
-        assert_eq!(
-            x_serial, x_whole,
-            "without a pool the cut sweep is not the whole one"
-        );
-        let pool = TickPool::new(1, std::sync::Arc::new(|_| {})).expect("pool");
-        for _ in 0..50 {
-            let mut x_cut = b.clone();
-            cut.solve_in_place_in(Some(&pool), &half, &mut x_cut);
-            let largest = x_whole.iter().fold(0.0f32, |s, v| s.max(v.abs()));
-            let worst = x_whole
-                .iter()
-                .zip(&x_cut)
-                .fold(0.0f32, |s, (p, q)| s.max((p - q).abs()));
-            assert!(worst <= 1e-5 * largest, "{worst} against {largest}");
-        }
+        let pool = assert_cut_agrees(&mut whole, &mut cut, &half);
         // Which thread ran the second half is the scheduler's business (both orders agree).
         eprintln!("pool {:?}", pool.stats());
     }
@@ -1072,15 +1080,7 @@ mod tests {
         let a = grid_matrix(n);
         let m = a.nrows();
         let planes = [0, 1, 2, 3, 5, 6, 8, 9, 10, 7, 4];
-        let forward: Vec<usize> = planes
-            .into_iter()
-            .flat_map(|i| (0..n * n).map(move |jk| i * n * n + jk))
-            .flat_map(|v| [3 * v, 3 * v + 1, 3 * v + 2])
-            .collect();
-        let mut inverse = vec![0; m];
-        for (k, &i) in forward.iter().enumerate() {
-            inverse[i] = k;
-        }
+        let (forward, inverse) = node_order(planes.into_iter().flat_map(|i| plane(n, i)));
         let perm = faer::perm::PermRef::new_checked(&forward, &inverse, m);
         let (symbolic, mut values) = supernodal_factor(&a, SymmetricOrdering::Custom(perm));
         let mut whole = SupernodalSolve::new(&symbolic).expect("a supernodal factor");
@@ -1093,24 +1093,6 @@ mod tests {
             !ph.two[0].is_empty() && !ph.two[1].is_empty() && ph.one[0].len() > 1,
             "no second phase: {ph:?}"
         );
-        let b: Vec<f32> = (0..m)
-            .map(|i| ((i * 37 % 101) as f32 - 50.0) / 17.0)
-            .collect();
-        let mut x_whole = b.clone();
-        whole.solve_in_place(&half, &mut x_whole);
-        let mut x_serial = b.clone();
-        cut.solve_in_place_in(None, &half, &mut x_serial);
-        assert_eq!(x_serial, x_whole);
-        let pool = TickPool::new(1, std::sync::Arc::new(|_| {})).expect("pool");
-        let largest = x_whole.iter().fold(0.0f32, |s, v| s.max(v.abs()));
-        for _ in 0..50 {
-            let mut x_cut = b.clone();
-            cut.solve_in_place_in(Some(&pool), &half, &mut x_cut);
-            let worst = x_whole
-                .iter()
-                .zip(&x_cut)
-                .fold(0.0f32, |s, (p, q)| s.max((p - q).abs()));
-            assert!(worst <= 1e-5 * largest, "{worst} against {largest}");
-        }
+        assert_cut_agrees(&mut whole, &mut cut, &half);
     }
 }

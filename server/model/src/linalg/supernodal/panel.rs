@@ -1,6 +1,7 @@
 //! The two panel kernels of the sweeps ([`PanelKernel`]): a panel's update of the rows below it
 //! (forward) and its dot products with them (backward), portable or with AVX2 + FMA + F16C.
 
+use super::single::Narrow;
 use super::{HALF_PAD, PANEL};
 use crate::simd::Avx2FmaF16c;
 
@@ -18,32 +19,15 @@ pub(super) trait PanelKernel: Copy {
     );
     /// [`panel_dots`].
     fn dots(self, vals: &[u16], w: usize, y: &[f32]) -> [f32; PANEL];
-    /// [`super::single::forward_single`] for a supernode of one panel (`inv.len()` columns
-    /// from `c0`) with rows below it, when this build fuses; returns whether it did (else the
-    /// panel path).
+    /// [`super::single::forward_single`] for a supernode of one panel with rows below it,
+    /// when this build fuses; returns whether it did (else the panel path).
     #[inline(always)]
-    fn forward_single<const K: usize>(
-        self,
-        _c0: usize,
-        _pattern: &[u32],
-        _vals: &[u16],
-        _tri: &[f32],
-        _inv: &[f32],
-        _x: [&mut [f32]; K],
-    ) -> bool {
+    fn forward_single<const K: usize>(self, _node: Narrow<'_>, _x: [&mut [f32]; K]) -> bool {
         false
     }
     /// [`super::single::backward_single`], as [`Self::forward_single`].
     #[inline(always)]
-    fn backward_single(
-        self,
-        _c0: usize,
-        _pattern: &[u32],
-        _vals: &[u16],
-        _tri: &[f32],
-        _inv: &[f32],
-        _x: &mut [f32],
-    ) -> bool {
+    fn backward_single(self, _node: Narrow<'_>, _x: &mut [f32]) -> bool {
         false
     }
 }

@@ -12,8 +12,55 @@
 
 #[cfg(target_arch = "x86_64")]
 use super::{HALF_PAD, PANEL, PanelKernel};
+use super::{HalfFactor, single_panel};
 #[cfg(target_arch = "x86_64")]
 use crate::simd::Avx2FmaF16c;
+
+/// A supernode of a single panel with rows below it, as the fused sweeps read it: its first
+/// column `c0`, its pattern rows, the panel's blocks of [`super::HALF_PAD`] rows below it
+/// (`inv.len()` columns of eight each, zero-padded past the pattern), its strictly lower
+/// triangle (row by row) and its reciprocal diagonal.
+#[derive(Clone, Copy)]
+pub(super) struct Narrow<'a> {
+    c0: usize,
+    pattern: &'a [u32],
+    vals: &'a [u16],
+    tri: &'a [f32],
+    inv: &'a [f32],
+}
+
+impl<'a> Narrow<'a> {
+    /// The supernode of columns `c0..c0 + nc` with rows `pattern`, whose values and triangle
+    /// start at `[v, e]` in `factor`, when it is a single panel with rows below it.
+    #[inline(always)]
+    pub(super) fn of(
+        factor: &'a HalfFactor,
+        (c0, nc, pattern): (usize, usize, &'a [u32]),
+        [v, e]: [usize; 2],
+    ) -> Option<Self> {
+        let panel = single_panel(nc, nc + pattern.len())?;
+        Some(Self {
+            c0,
+            pattern,
+            vals: &factor.values[v..][..panel.values_len],
+            tri: &factor.triangles[e..][..panel.triangle_len],
+            inv: &factor.inv_diag[c0..c0 + nc],
+        })
+    }
+
+    /// Its row blocks, checking that the entries are those of a supernode of `w` columns.
+    ///
+    /// # Panics
+    /// When they are not.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    fn blocks(&self, w: usize) -> usize {
+        let blocks = self.pattern.len().div_ceil(HALF_PAD);
+        assert!(w <= PANEL && self.vals.len() == blocks * w * HALF_PAD);
+        assert!(self.tri.len() == w * (w - 1) / 2 && self.inv.len() == w);
+        blocks
+    }
+}
 
 /// One supernode of `W` columns `c0..c0 + W` for the forward sweep: its own triangle
 /// (`tri`, strictly lower, row by row; `inv` the reciprocal diagonal), then
@@ -27,17 +74,12 @@ use crate::simd::Avx2FmaF16c;
 #[target_feature(enable = "avx2,fma,f16c")]
 pub(super) unsafe fn forward_single<const W: usize, const K: usize>(
     _: Avx2FmaF16c,
-    c0: usize,
-    pattern: &[u32],
-    vals: &[u16],
-    tri: &[f32],
-    inv: &[f32],
+    node: Narrow<'_>,
     mut x: [&mut [f32]; K],
 ) {
     use std::arch::x86_64::*;
-    let blocks = pattern.len().div_ceil(HALF_PAD);
-    assert!(W <= PANEL && vals.len() == blocks * W * HALF_PAD);
-    assert!(tri.len() == W * (W - 1) / 2 && inv.len() == W);
+    let (c0, pattern, vals, tri, inv) = (node.c0, node.pattern, node.vals, node.tri, node.inv);
+    let blocks = node.blocks(W);
     let mut coef = [[_mm256_setzero_ps(); W]; K];
     for (x, coef) in x.iter_mut().zip(&mut coef) {
         let y = &mut x[c0..c0 + W];
@@ -98,17 +140,12 @@ pub(super) unsafe fn forward_single<const W: usize, const K: usize>(
 #[target_feature(enable = "avx2,fma,f16c")]
 pub(super) unsafe fn backward_single<const W: usize>(
     _: Avx2FmaF16c,
-    c0: usize,
-    pattern: &[u32],
-    vals: &[u16],
-    tri: &[f32],
-    inv: &[f32],
+    node: Narrow<'_>,
     x: &mut [f32],
 ) {
     use std::arch::x86_64::*;
-    let blocks = pattern.len().div_ceil(HALF_PAD);
-    assert!(W <= PANEL && vals.len() == blocks * W * HALF_PAD);
-    assert!(tri.len() == W * (W - 1) / 2 && inv.len() == W);
+    let (c0, pattern, vals, tri, inv) = (node.c0, node.pattern, node.vals, node.tri, node.inv);
+    let blocks = node.blocks(W);
     let mut acc = [_mm256_setzero_ps(); W];
     let mut acc2 = [_mm256_setzero_ps(); W];
     let mut b = 0;
@@ -226,61 +263,30 @@ impl PanelKernel for Fused {
     }
 
     #[inline(always)]
-    fn forward_single<const K: usize>(
-        self,
-        c0: usize,
-        pattern: &[u32],
-        vals: &[u16],
-        tri: &[f32],
-        inv: &[f32],
-        x: [&mut [f32]; K],
-    ) -> bool {
+    fn forward_single<const K: usize>(self, node: Narrow<'_>, x: [&mut [f32]; K]) -> bool {
         if !self.fused {
             return false;
         }
         // SAFETY: the token proves AVX2, FMA and F16C; the rows and columns index `x`
         // (checked by `SupernodalSolve::new`, the only maker of the structure).
-        unsafe {
-            by_width!(inv.len(), forward_single, [, K], self.isa, c0, pattern, vals, tri, inv, x)
-        };
+        unsafe { by_width!(node.inv.len(), forward_single, [, K], self.isa, node, x) };
         true
     }
 
     #[inline(always)]
-    fn backward_single(
-        self,
-        c0: usize,
-        pattern: &[u32],
-        vals: &[u16],
-        tri: &[f32],
-        inv: &[f32],
-        x: &mut [f32],
-    ) -> bool {
+    fn backward_single(self, node: Narrow<'_>, x: &mut [f32]) -> bool {
         if !self.fused {
             return false;
         }
         // SAFETY: as in the forward sweep; `fused` is set only when every row fits an `i32`.
-        unsafe {
-            by_width!(
-                inv.len(),
-                backward_single,
-                [],
-                self.isa,
-                c0,
-                pattern,
-                vals,
-                tri,
-                inv,
-                x
-            )
-        };
+        unsafe { by_width!(node.inv.len(), backward_single, [], self.isa, node, x) };
         true
     }
 }
 
 #[cfg(test)]
 mod tests {
-    use super::super::tests::{grid_matrix, scaled, supernodal_factor};
+    use super::super::tests::{grid_matrix, node_order, plane, scaled, supernodal_factor};
     use super::super::{HALF_PAD, SupernodalSolve, single_panel, supernode};
     use crate::pool::TickPool;
     use faer::sparse::linalg::cholesky::SymmetricOrdering;
@@ -303,14 +309,7 @@ mod tests {
         let sides = (0..half_nodes)
             .map(scramble)
             .chain((0..half_nodes).map(|v| half_nodes + n * n + scramble(v)));
-        let forward: Vec<usize> = sides
-            .chain((0..n * n).map(|jk| half_nodes + jk))
-            .flat_map(|v| [3 * v, 3 * v + 1, 3 * v + 2])
-            .collect();
-        let mut inverse = vec![0; m];
-        for (k, &i) in forward.iter().enumerate() {
-            inverse[i] = k;
-        }
+        let (forward, inverse) = node_order(sides.chain(plane(n, 4)));
         let nested = faer::perm::PermRef::new_checked(&forward, &inverse, m);
         let pool = TickPool::new(1, std::sync::Arc::new(|_| {})).expect("pool");
         let b: Vec<f32> = (0..m)
