@@ -548,14 +548,14 @@ fn cut_sweeps(
             backward_sweep(isa, &nodes[r.clone()], r.start, rows, factor, x, y);
         }
     };
-    for phase in [&ph.two, &ph.one] {
+    for (phase, second) in [(&ph.two, true), (&ph.one, false)] {
         if phase.iter().all(Vec::is_empty) {
             continue;
         }
         let worker = (&mut sp.xb[..], &mut sp.yb[..]);
         join_phase(pool, phase, &sweep_backward, (x, y), worker);
-        // The waiting supernodes' solution, for the stolen ones below them.
-        for c in &ph.waiting_cols {
+        // After phase two: the waiting supernodes' solution, for the stolen ones below them.
+        for c in ph.waiting_cols.iter().filter(|_| second) {
             x[c.clone()].copy_from_slice(&sp.xb[c.clone()]);
         }
     }
