@@ -203,6 +203,9 @@ pub struct ConfigFile {
     pub region_cache_dir: Option<PathBuf>,
     /// Largest total size of the region cache's files, bytes (default 8 GiB).
     pub region_cache_max_bytes: Option<u64>,
+    /// Largest total size of the tiles one session keeps in memory, bytes (default 2 GiB);
+    /// beyond it those farthest from the probe wait in their files.
+    pub region_cache_memory_bytes: Option<u64>,
     /// Scene files (with `active_region.tiles = "background"`) whose regions the daemon
     /// writes to the region cache in the background from its start, at the lowest priority,
     /// so that their first sessions find them ready ([`crate::regions`]); needs
@@ -435,31 +438,39 @@ fn canonical_even_if_missing(path: &Path) -> Option<PathBuf> {
     Some(dir.join(path.file_name()?))
 }
 
-/// The region cache of `region_cache_dir` and `region_cache_max_bytes` (default
-/// [`haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MAX_BYTES`]); `prepared`: the
+/// The region cache of `region_cache_dir`, `region_cache_max_bytes` (default
+/// [`haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MAX_BYTES`]) and
+/// `region_cache_memory_bytes` (default
+/// [`haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MEMORY_BYTES`]); `prepared`: the
 /// file lists regions to prepare (`prepare_regions`), which need a cache.
 ///
 /// # Errors
 /// [`ServerError::Config`] for a limit of 0 bytes, or regions to prepare without a cache.
 fn region_cache(
     dir: Option<PathBuf>,
-    max_bytes: Option<u64>,
+    (max_bytes, memory_bytes): (Option<u64>, Option<u64>),
     prepared: bool,
 ) -> Result<Option<haptic_model::integrate::follow::RegionCacheDir>, ServerError> {
-    use haptic_model::integrate::follow::{DEFAULT_REGION_CACHE_MAX_BYTES, RegionCacheDir};
+    use haptic_model::integrate::follow::{
+        DEFAULT_REGION_CACHE_MAX_BYTES, DEFAULT_REGION_CACHE_MEMORY_BYTES, RegionCacheDir,
+    };
     if prepared && dir.is_none() {
         return Err(ServerError::Config(
             "prepare_regions needs a region cache: region_cache_dir (or --region-cache-dir)".into(),
         ));
     }
-    if max_bytes == Some(0) {
-        return Err(ServerError::Config(
-            "region_cache_max_bytes must be at least 1".into(),
-        ));
+    for (name, limit) in [
+        ("region_cache_max_bytes", max_bytes),
+        ("region_cache_memory_bytes", memory_bytes),
+    ] {
+        if limit == Some(0) {
+            return Err(ServerError::Config(format!("{name} must be at least 1")));
+        }
     }
     Ok(dir.map(|dir| RegionCacheDir {
         dir,
         max_bytes: max_bytes.unwrap_or(DEFAULT_REGION_CACHE_MAX_BYTES),
+        memory_bytes: memory_bytes.unwrap_or(DEFAULT_REGION_CACHE_MEMORY_BYTES),
     }))
 }
 
@@ -551,7 +562,7 @@ impl ConfigFile {
         c.data_dirs = self.data_dirs;
         c.region_cache = region_cache(
             self.region_cache_dir,
-            self.region_cache_max_bytes,
+            (self.region_cache_max_bytes, self.region_cache_memory_bytes),
             !self.prepare_regions.is_empty(),
         )?;
         c.prepare_regions = self.prepare_regions;

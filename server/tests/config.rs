@@ -49,6 +49,7 @@ fn relative_paths_in_the_file_resolve_against_its_directory() {
         Some(haptic_model::integrate::follow::RegionCacheDir {
             dir: dir.join("cache"),
             max_bytes: haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MAX_BYTES,
+            memory_bytes: haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MEMORY_BYTES,
         })
     );
     assert_eq!(cfg.prepare_regions, [dir.join("scenes/tiled.toml")]);
@@ -70,14 +71,22 @@ fn relative_paths_in_the_file_resolve_against_its_directory() {
         assert!(e.to_string().contains(field), "{text}: {e}");
     }
     // A cache of no bytes is a mistake, not a way to turn it off (leave the directory unset).
-    let zero = ConfigFile::parse("region_cache_dir = \"c\"\nregion_cache_max_bytes = 0")
-        .unwrap()
-        .into_config()
-        .unwrap_err();
-    assert!(
-        zero.to_string().contains("region_cache_max_bytes"),
-        "{zero}"
-    );
+    for key in ["region_cache_max_bytes", "region_cache_memory_bytes"] {
+        let zero = ConfigFile::parse(&format!("region_cache_dir = \"c\"\n{key} = 0"))
+            .unwrap()
+            .into_config()
+            .unwrap_err();
+        assert!(zero.to_string().contains(key), "{zero}");
+    }
+    let limits = ConfigFile::parse(
+        "region_cache_dir = \"c\"\nregion_cache_max_bytes = 3000\nregion_cache_memory_bytes = 2000",
+    )
+    .unwrap()
+    .into_config()
+    .unwrap()
+    .region_cache
+    .unwrap();
+    assert_eq!((limits.max_bytes, limits.memory_bytes), (3000, 2000));
     assert_eq!(cfg.tokens_file, Some(dir.join("state/tokens.toml")));
     let tls = cfg.tls.unwrap();
     assert_eq!(

@@ -155,6 +155,7 @@ async fn get_stats_reports_the_region_cache_filling() {
         region_cache: Some(haptic_model::integrate::follow::RegionCacheDir {
             dir: dir.clone(),
             max_bytes: 1 << 30,
+            memory_bytes: 1 << 30,
         }),
         ..ServerConfig::default()
     };

@@ -77,6 +77,10 @@ struct Args {
     /// (the daemon's `region_cache_dir`): a second run reads what the first wrote.
     #[arg(long)]
     region_cache: Option<std::path::PathBuf>,
+    /// Tiles kept in memory at most, MiB (the daemon's `region_cache_memory_bytes`; default
+    /// 2 048): beyond it those farthest from the probe wait on disk.
+    #[arg(long)]
+    tile_memory_mb: Option<u64>,
 }
 
 /// Epicardium radius at z = -5 mm of the LV (10 x 10 x 20 mm ellipsoid), m.
@@ -145,6 +149,10 @@ fn set_up(args: &Args) -> anyhow::Result<(FemBody, f64)> {
             haptic_model::integrate::follow::RegionCacheDir {
                 dir,
                 max_bytes: haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MAX_BYTES,
+                memory_bytes: args.tile_memory_mb.map_or(
+                    haptic_model::integrate::follow::DEFAULT_REGION_CACHE_MEMORY_BYTES,
+                    |mb| mb << 20,
+                ),
             }
         }),
         region_cache_report: Some(haptic_model::integrate::follow::RegionCacheReport(
@@ -416,13 +424,16 @@ fn report(args: &Args, sim: &FemBody, path: &Path, tr: &Trace) {
     );
     if stats.tiles > 0 {
         println!(
-            "tiles: {} centres, {} built ({:.0} MB, {:.1} s of builds), {} hits, {} misses; peak memory {:.0} MB",
+            "tiles: {} centres, {} built ({:.0} MB in memory, {:.1} s of builds), {} hits, {} misses; {} dropped from memory, {} read back; {} swaps beyond a ring; peak memory {:.0} MB",
             stats.tiles,
             stats.tiles_built,
             stats.tile_cache_bytes as f64 / 1e6,
             stats.tile_build_s,
             stats.tile_hits,
             stats.tile_misses,
+            stats.tiles_dropped,
+            stats.tiles_reloaded,
+            stats.unmapped_swaps,
             peak_memory_mb()
         );
     }

@@ -2187,6 +2187,7 @@ fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() 
     let cache = RegionCacheDir {
         dir: dir.join("tiles"),
         max_bytes: 1 << 30,
+        memory_bytes: 1 << 30,
     };
     let mut first = CondensedSolver::new(&fem, &mesh, region, 1e-3).expect("first");
     first.prepare_contact(&nodes);
@@ -2336,6 +2337,7 @@ fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() 
     let fresh = RegionCacheDir {
         dir: dir.join("paused"),
         max_bytes: 1 << 30,
+        memory_bytes: 1 << 30,
     };
     let f = RegionFollower::spawn_with_cache(&fem, &mesh, &nodes, &first, Some(&fresh), None, true)
         .expect("spawn");
@@ -2363,6 +2365,7 @@ fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() 
     let limited = RegionCacheDir {
         dir: evict.clone(),
         max_bytes: first_bytes * 3 / 2,
+        memory_bytes: 1 << 30,
     };
     let (a, _) = session(&fem, &limited);
     assert_eq!(a.tiles_stored, n, "{a:?}");
@@ -2383,9 +2386,250 @@ fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() 
     let small = RegionCacheDir {
         dir: dir.join("small"),
         max_bytes: 1000,
+        memory_bytes: 1 << 30,
     };
     let (kept, error) = session(&fem, &small);
     assert_eq!((kept.tiles_stored, kept.tiles_built), (0, n), "{kept:?}");
     assert!(error.unwrap_or_default().contains("full"));
     std::fs::remove_dir_all(&dir).expect("clean up");
+}
+
+/// A tile (`TileMode::Background`) keeps the far-map rows of its ring only
+/// (`radius + 2 cover + TILE_RING_SLACK_M + the longest edge`): it is smaller than the same
+/// region with every row, steps the same, and hands over to a neighbouring tile bit for bit as
+/// the full map does, with no component started at rest. A successor beyond the ring (the
+/// probe put down on the other side) is still handed over: the components without a row start
+/// at rest and are counted, the others as the full map places them. After a swap, every far
+/// node the new tile neither simulates nor maps is at rest.
+#[test]
+fn a_tile_maps_its_ring_and_hands_over_like_the_full_map() {
+    use haptic_model::integrate::condensed::TILE_RING_SLACK_M;
+    let (fem, mesh, f, centre) = setup(StrainSmoothing::None);
+    let cover_m = 0.0015;
+    let ring_region = ActiveRegion {
+        centre_m: centre,
+        radius_m: 0.006,
+        follow: true,
+        tiles: TileMode::Background { cover_m },
+        ..ACTIVE
+    };
+    let full_region = ActiveRegion {
+        tiles: TileMode::Off,
+        ..ring_region
+    };
+    let epi_node = |p: DVec3| {
+        let epi = mesh.surface("EPI").expect("EPI");
+        epi.triangles
+            .iter()
+            .flatten()
+            .map(|&i| mesh.nodes[i as usize])
+            .min_by(|a, b| a.distance(p).total_cmp(&b.distance(p)))
+            .expect("node")
+    };
+    let tile = |c: DVec3| {
+        CondensedSolver::new(
+            &fem,
+            &mesh,
+            ActiveRegion {
+                centre_m: c,
+                ..ring_region
+            },
+            1e-3,
+        )
+        .expect("tile")
+    };
+    let mut a = tile(centre);
+    let mut full = CondensedSolver::new(&fem, &mesh, full_region, 1e-3).expect("full");
+    assert!(
+        a.memory_bytes() < full.memory_bytes(),
+        "the tile keeps as many rows as the full map: {} against {} bytes",
+        a.memory_bytes(),
+        full.memory_bytes()
+    );
+    let mut xa = fem.rest().to_vec();
+    let mut va = vec![DVec3::ZERO; xa.len()];
+    let (mut xf, mut vf) = (xa.clone(), va.clone());
+    for _ in 0..2 * a.surface_refresh_ticks().max(10) {
+        a.step(&f, None, &mut xa, &mut va);
+        full.step(&f, None, &mut xf, &mut vf);
+    }
+    let bits = |p: DVec3| p.to_array().map(f64::to_bits);
+    let n = xa.len() as u32;
+    assert!(
+        (0..n)
+            .filter(|&i| a.is_active_node(i))
+            .all(|i| bits(xa[i as usize]) == bits(xf[i as usize])),
+        "the tile steps differently from the full region"
+    );
+    let longest_edge_m = mesh
+        .tets
+        .iter()
+        .flat_map(|t| {
+            haptic_model::mesh::TET_EDGES
+                .iter()
+                .map(|&[p, q]| mesh.nodes[t[p] as usize].distance(mesh.nodes[t[q] as usize]))
+        })
+        .fold(0.0, f64::max);
+    let ring_m = 0.006 + 2.0 * cover_m + TILE_RING_SLACK_M + longest_edge_m;
+    // A neighbour 1.5 mm round the ventricle (within two covers), and the other side.
+    let near = epi_node(centre + DVec3::new(0.0, 0.0015, 0.0));
+    let across = epi_node(DVec3::new(-centre.x, 0.0, centre.z));
+    assert!(near.distance(centre) <= 2.0 * cover_m && across.distance(centre) > ring_m);
+    for (next_centre, beyond) in [(near, false), (across, true)] {
+        let next = tile(next_centre);
+        let (mut a2, mut x2, mut v2) = (a.clone(), xa.clone(), va.clone());
+        let (mut f2, mut xf2, mut vf2) = (full.clone(), xf.clone(), vf.clone());
+        assert!(
+            a2.hand_over(&next, &mut x2, &mut v2),
+            "no hand-over from the tile"
+        );
+        assert!(
+            f2.hand_over(&next, &mut xf2, &mut vf2),
+            "no hand-over from the full map"
+        );
+        assert_eq!(f2.unmapped_hand_over(), 0);
+        let taken: Vec<u32> = (0..n)
+            .filter(|&i| next.is_active_node(i) && !a.is_active_node(i))
+            .collect();
+        assert!(!taken.is_empty(), "the successor takes over no node");
+        let outside = |i: u32| mesh.nodes[i as usize].distance(centre) > ring_m;
+        for &i in &taken {
+            let (p, q, rest) = (x2[i as usize], xf2[i as usize], fem.rest()[i as usize]);
+            if outside(i) {
+                assert_eq!(
+                    bits(p),
+                    bits(rest),
+                    "node {i} beyond the ring is not at rest"
+                );
+            } else {
+                assert_eq!(bits(p), bits(q), "node {i} handed over differently");
+            }
+        }
+        let unmapped = a2.unmapped_hand_over();
+        assert_eq!(
+            unmapped > 0,
+            beyond,
+            "{unmapped} components started at rest (successor beyond the ring: {beyond})"
+        );
+        assert_eq!(taken.iter().any(|&i| outside(i)), beyond);
+        // Far nodes the successor neither simulates nor maps (beyond its own ring) are at
+        // rest, among them some the tile had moved.
+        let next_ring = |i: u32| mesh.nodes[i as usize].distance(next_centre) <= ring_m;
+        let mut reset = 0;
+        for i in (0..n).filter(|&i| !next.is_active_node(i) && !next_ring(i)) {
+            assert_eq!(
+                bits(x2[i as usize]),
+                bits(fem.rest()[i as usize]),
+                "node {i}"
+            );
+            reset += usize::from(bits(xa[i as usize]) != bits(fem.rest()[i as usize]));
+        }
+        assert!(beyond || reset > 0, "no moved node was put at rest");
+    }
+}
+
+/// A memory limit on the tiles (`RegionCacheDir::memory_bytes`): a session over a full cache
+/// on disk keeps at most that many bytes of tiles in memory, the ones nearest the probe,
+/// and drops the rest (their files stay). A request for a dropped tile reads it back and
+/// swaps it in; while idle the worker then reads back the dropped tiles near the new point,
+/// so that a request next to it is a hit, and stays under the limit throughout.
+#[test]
+fn a_memory_limit_keeps_the_tiles_near_the_probe_in_memory() {
+    use haptic_model::integrate::follow::RegionCacheDir;
+    let (fem, mesh, _, centre) = setup(StrainSmoothing::None);
+    let nodes = epi_nodes(&mesh);
+    let region = ActiveRegion {
+        tiles: TileMode::Background { cover_m: 0.005 },
+        ..tiled_region(centre)
+    };
+    let dir = std::env::temp_dir().join(format!("haptic-tile-memory-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let mut cache = RegionCacheDir {
+        dir: dir.clone(),
+        max_bytes: 1 << 30,
+        memory_bytes: 1 << 30,
+    };
+    let mut first = CondensedSolver::new(&fem, &mesh, region, 1e-3).expect("first");
+    first.prepare_contact(&nodes);
+    let spawn = |cache: &RegionCacheDir| {
+        RegionFollower::spawn_with_cache(&fem, &mesh, &nodes, &first, Some(cache), None, false)
+            .expect("spawn")
+    };
+    let whole = wait_for_tiles(&spawn(&cache));
+    let n = whole.tiles;
+    assert!(n >= 5 && whole.tiles_stored == n, "{whole:?}");
+    // Room for four tiles of the mean size.
+    cache.memory_bytes = whole.tile_cache_bytes * 4 / n;
+    let mut follower = spawn(&cache);
+    let read = wait_for_tiles(&follower);
+    assert!(
+        read.tiles_built == n && read.tiles_stored == 0 && read.tiles_loaded >= n,
+        "{read:?}"
+    );
+    assert!(
+        read.tile_cache_bytes <= cache.memory_bytes && read.tiles_dropped >= n - 4,
+        "{read:?} limit {}",
+        cache.memory_bytes
+    );
+    // The device at the epicardial node opposite the first centre: its tile was dropped.
+    follower.set_blocking(true);
+    let on_epi = |target: DVec3| {
+        nodes
+            .iter()
+            .map(|&i| mesh.nodes[i as usize])
+            .min_by(|a, b| a.distance(target).total_cmp(&b.distance(target)))
+            .expect("node")
+    };
+    let p = on_epi(DVec3::new(-centre.x, -centre.y, centre.z));
+    let mut solver = Box::new(first.clone());
+    let mut x = fem.rest().to_vec();
+    let mut v = vec![DVec3::ZERO; x.len()];
+    let mut request = |follower: &mut RegionFollower, p: DVec3| {
+        follower.before_tick(
+            &mut solver,
+            None,
+            &[Some((p, DVec3::ZERO))],
+            &[],
+            &mut x,
+            &mut v,
+        );
+        follower.stats()
+    };
+    let s = request(&mut follower, p);
+    // A miss: every tile was read, so this one had been dropped; it was read back.
+    assert_eq!((s.swaps, s.tile_misses), (1, 1), "{s:?}");
+    assert!(s.tiles_reloaded >= 1, "{s:?}");
+    assert!(s.centre_m.distance(p) < 0.006, "{s:?}");
+    // Idle: the tiles near p come back, the far ones go.
+    let waited = Instant::now();
+    let at_request = s.tiles_reloaded;
+    let mut last = at_request;
+    loop {
+        std::thread::sleep(std::time::Duration::from_millis(300));
+        let s = follower.stats();
+        assert!(s.tile_cache_bytes <= cache.memory_bytes, "{s:?}");
+        if s.tiles_reloaded == last {
+            break;
+        }
+        last = s.tiles_reloaded;
+        assert!(waited.elapsed().as_secs() < 60, "{s:?}");
+    }
+    assert!(
+        last > at_request,
+        "no tile near the probe was read back: {:?}",
+        follower.stats()
+    );
+    // A neighbouring tile's point (a tile centre other than the one in use, nearest p) is a hit.
+    let in_use = follower.stats().centre_m;
+    let TileMode::Background { cover_m } = region.tiles else {
+        unreachable!()
+    };
+    let next = tile_centres(&mesh.nodes, &nodes, centre, cover_m)
+        .into_iter()
+        .filter(|c| *c != in_use)
+        .min_by(|a, b| a.distance(p).total_cmp(&b.distance(p)))
+        .expect("a neighbour");
+    let s = request(&mut follower, next);
+    assert_eq!((s.swaps, s.tile_hits, s.tile_misses), (2, 1, 1), "{s:?}");
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -411,7 +411,15 @@ impl CondensedSystem {
             map_row,
             llt,
             kfg,
-        } = condense_far(mesh, region, far_model.as_ref(), &num, threads, progress)?;
+        } = condense_far(
+            mesh,
+            region,
+            balls,
+            far_model.as_ref(),
+            &num,
+            threads,
+            progress,
+        )?;
         let g = num.gamma_dof.len();
         progress("condensation: tick matrix factorisation", 0.85);
         let split = Split::new(body, active_tets, active, node_active, num);
@@ -746,6 +754,7 @@ struct Condensation {
 fn condense_far(
     mesh: &TetMesh,
     region: &ActiveRegion,
+    balls: &RegionBalls,
     far_model: Option<&FemModel>,
     num: &Numbering,
     threads: usize,
@@ -773,7 +782,7 @@ fn condense_far(
         map_far,
         surface_rows,
         map_row,
-    } = map_rows(mesh, region, num);
+    } = map_rows(mesh, region, balls, num);
     let mut map = vec![0u16; map_far.len() * g];
     let llt = if f > 0 {
         progress("condensation: far factorisation", 0.15);
@@ -821,8 +830,14 @@ pub(super) struct MapRows {
 
 /// The rows of `-X` kept: the far boundary components (the surface viewers see, refreshed a
 /// slice per tick), or for a following region every far component (a successor may activate
-/// any far node: `hand_over`).
-pub(super) fn map_rows(mesh: &TetMesh, region: &ActiveRegion, num: &Numbering) -> MapRows {
+/// any far node: `hand_over`), or for a tile ([`tile_ring`]) the far components within its
+/// ring.
+pub(super) fn map_rows(
+    mesh: &TetMesh,
+    region: &ActiveRegion,
+    balls: &RegionBalls,
+    num: &Numbering,
+) -> MapRows {
     let n = num.eq.len() / 3;
     let far_dofs = &num.far_dofs;
     let mut on_boundary = vec![false; n];
@@ -831,8 +846,17 @@ pub(super) fn map_rows(mesh: &TetMesh, region: &ActiveRegion, num: &Numbering) -
             on_boundary[i as usize] = true;
         }
     }
+    let ring = tile_ring(mesh, region, balls);
+    let in_ring = |d: usize| ring.is_none_or(|(c, r)| mesh.nodes[d / 3].distance(c) <= r);
     let map_far: Vec<usize> = (0..far_dofs.len())
-        .filter(|&k| region.follow || on_boundary[far_dofs[k] / 3])
+        .filter(|&k| {
+            let d = far_dofs[k];
+            if region.follow {
+                in_ring(d)
+            } else {
+                on_boundary[d / 3]
+            }
+        })
         .collect();
     let surface_rows: Vec<u32> = (0..map_far.len())
         .filter(|&r| on_boundary[far_dofs[map_far[r]] / 3])
@@ -850,6 +874,47 @@ pub(super) fn map_rows(mesh: &TetMesh, region: &ActiveRegion, num: &Numbering) -
         map_row,
     }
 }
+
+/// The ball whose far components a tile's map keeps (centre, radius m), or `None` to keep
+/// every far component: a following region with tiles ([`TileMode::Background`]) and one
+/// ball keeps only what a neighbouring tile can take over, the nodes within
+/// `radius + 2 cover` of its centre (a request moves to another tile when the device leaves
+/// the cover, and that tile's centre lies within the cover of the device) plus
+/// [`TILE_RING_SLACK_M`] and the mesh's longest edge (a successor activates every node of an
+/// element that reaches into its ball). A successor beyond the ring (the probe lifted and
+/// put down elsewhere) gets the far field's rest state for the components this region does
+/// not map ([`CondensedSolver::hand_over`]). On the 100 000-tet LV at r = 4.5 mm and a
+/// 2.5 mm cover this keeps a fifth of the far map (docs/benchmarks.md, "Tiles for the
+/// 100 000-tet LV").
+pub(super) fn tile_ring(
+    mesh: &TetMesh,
+    region: &ActiveRegion,
+    balls: &RegionBalls,
+) -> Option<(DVec3, f64)> {
+    let TileMode::Background { cover_m } = region.tiles else {
+        return None;
+    };
+    let [centre] = balls.centres() else {
+        return None;
+    };
+    let longest_edge_m = mesh
+        .tets
+        .iter()
+        .flat_map(|t| {
+            crate::mesh::TET_EDGES
+                .iter()
+                .map(|&[a, b]| mesh.nodes[t[a] as usize].distance(mesh.nodes[t[b] as usize]))
+        })
+        .fold(0.0, f64::max);
+    region.follow.then_some((
+        *centre,
+        region.radius_m + 2.0 * cover_m + TILE_RING_SLACK_M + longest_edge_m,
+    ))
+}
+
+/// What a tile's ring ([`tile_ring`]) adds for a request that moved a little past the cover
+/// before the next tile arrived, m: the tile choice's hysteresis (0.5 mm) and as much again.
+pub const TILE_RING_SLACK_M: f64 = 1e-3;
 
 /// What the far solves of [`condense_far`] read.
 struct FarSolve<'a> {

@@ -9,6 +9,12 @@ impl CondensedSolver {
     /// velocity (the far field is quasi-static); nodes both simulate keep their state, and
     /// nodes only `self` simulates keep their positions (`next` refreshes its far surface
     /// from its own map) with zero velocity.
+    ///
+    /// A tile maps only the far components of its ring (`build::tile_ring`): a component
+    /// `next` simulates outside it starts at rest (counted in
+    /// [`Self::unmapped_hand_over`]; a neighbouring tile never has one), and a
+    /// component `self` maps or simulates that `next` neither maps nor simulates is put at
+    /// rest, so that a far node is either refreshed by the region in use or at rest.
     /// Returns `false`, touching nothing, when `self` has no such map (not built to follow).
     /// Costs `3 g` multiply-adds per such node (`g` interface
     /// components of `self`); allocation-free.
@@ -22,12 +28,12 @@ impl CondensedSolver {
         let sys = &self.system;
         for &d in &next.system.eq_dof {
             if !sys.node_active[d / 3] {
-                let u = self.far_displacement(d);
+                let u = self.far_displacement_or_rest(d);
                 x[d / 3][d % 3] = sys.active.rest()[d / 3][d % 3] + u;
                 v[d / 3][d % 3] = 0.0;
             }
         }
-        self.finish_hand_over(next, v);
+        self.finish_hand_over(next, x, v);
         true
     }
 
@@ -71,7 +77,7 @@ impl CondensedSolver {
         let part = |eqs: &[usize], out: &mut [f64]| {
             for (o, &d) in out.iter_mut().zip(eqs) {
                 if taken(d) {
-                    *o = this.far_displacement(d);
+                    *o = this.far_displacement_or_rest(d);
                 }
             }
         };
@@ -83,24 +89,25 @@ impl CondensedSolver {
                 v[d / 3][d % 3] = 0.0;
             }
         }
-        self.finish_hand_over(next, v);
+        self.finish_hand_over(next, x, v);
         true
     }
 
-    /// The hand-over's check and set-up: `false` when some component `next` simulates has no
-    /// row in this region's far map; else `u_G` from `x` into the scratch (double and single
-    /// precision).
+    /// The hand-over's check and set-up: `false` when this region keeps no map for a
+    /// successor (not built to follow); else `u_G` from `x` into the scratch (double and
+    /// single precision) and the count of components `next` takes over without a row.
     fn start_hand_over(&mut self, next: &CondensedSolver, x: &[DVec3]) -> bool {
         let (sys, scratch) = (&self.system, &mut self.scratch);
+        if sys.map_row.is_empty() {
+            return false;
+        }
         let node_active = &sys.node_active;
-        let missing = next
+        self.stats.unmapped_hand_over = next
             .system
             .eq_dof
             .iter()
-            .any(|&d| !node_active[d / 3] && sys.map_row.get(d).is_none_or(|&r| r == u32::MAX));
-        if missing {
-            return false;
-        }
+            .filter(|&&d| !node_active[d / 3] && sys.map_row[d] == u32::MAX)
+            .count();
         let rest = sys.active.rest();
         for ((u, u32), &d) in scratch
             .u_gamma
@@ -115,11 +122,16 @@ impl CondensedSolver {
     }
 
     /// The far field's displacement of condensed component `d` for the interface
-    /// displacement in the scratch ([`Self::start_hand_over`]): its map row times `u_G`.
-    fn far_displacement(&self, d: usize) -> f64 {
+    /// displacement in the scratch ([`Self::start_hand_over`]): its map row times `u_G`, or
+    /// zero (rest) without a row.
+    fn far_displacement_or_rest(&self, d: usize) -> f64 {
         let sys = &self.system;
         let g = sys.gamma_dof.len();
-        let r = sys.map_row[d] as usize;
+        let r = sys.map_row[d];
+        if r == u32::MAX {
+            return 0.0;
+        }
+        let r = r as usize;
         dot_half(
             sys.f16c,
             &sys.map[r * g..(r + 1) * g],
@@ -128,13 +140,31 @@ impl CondensedSolver {
     }
 
     /// Nodes `next` condenses become quasi-static: their kinetic energy is dropped (never
-    /// injected), and the probe's coupling sees them at rest.
-    fn finish_hand_over(&self, next: &CondensedSolver, v: &mut [DVec3]) {
-        for &d in &self.system.eq_dof {
-            if !next.system.node_active[d / 3] {
+    /// injected), and the probe's coupling sees them at rest. Components `next` neither
+    /// simulates nor maps (beyond a tile's ring) go to rest.
+    fn finish_hand_over(&self, next: &CondensedSolver, x: &mut [DVec3], v: &mut [DVec3]) {
+        let (sys, to) = (&self.system, &next.system);
+        let rest = sys.active.rest();
+        let unmapped = |d: usize| to.map_row.get(d).is_some_and(|&r| r == u32::MAX);
+        for &d in &sys.eq_dof {
+            if !to.node_active[d / 3] {
                 v[d / 3][d % 3] = 0.0;
+                if unmapped(d) {
+                    x[d / 3][d % 3] = rest[d / 3][d % 3];
+                }
             }
         }
+        for &d in &sys.map_dofs {
+            if !to.node_active[d / 3] && unmapped(d) {
+                x[d / 3][d % 3] = rest[d / 3][d % 3];
+            }
+        }
+    }
+
+    /// Components the last hand-over from this region ([`Self::hand_over`]) started at rest
+    /// because its map has no row for them (outside a tile's ring); 0 before any.
+    pub fn unmapped_hand_over(&self) -> usize {
+        self.stats.unmapped_hand_over
     }
 
     /// Elastic energy of the condensed far part for the interface displacement in `x`,

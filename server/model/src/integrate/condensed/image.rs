@@ -25,7 +25,7 @@ use super::*;
 /// Version of the image layout and of the preparation it stores. Raise it whenever either
 /// changes (a field, an array, the condensation's or the factor's arithmetic): an image of
 /// another number is refused, so a cache never serves a region the code would not build.
-pub const TILE_IMAGE_FORMAT: u32 = 1;
+pub const TILE_IMAGE_FORMAT: u32 = 2;
 
 const MAGIC: &[u8; 8] = b"HAPTTILE";
 const HASH_BYTES: usize = 32;
@@ -209,7 +209,7 @@ impl CondensedSolver {
         let schur_full = unpack_symmetric(&schur, g);
         let parts = split.tick_matrix_parts(body, &region, &balls, &schur_full, dt_s);
         let tick = read_factors(&mut r, &parts, &split.num.eq_dof, &region, &digest)?;
-        let rows = map_rows(mesh, &region, &split.num);
+        let rows = map_rows(mesh, &region, &balls, &split.num);
         let (map, contact) = read_map_and_contact(&mut r, &rows, g, m, body.node_count())?;
         let system = split.into_system(schur, tick, rows, map, None, Vec::new());
         let mut solver = Self::assemble(system, region, balls, dt_s, body.node_count());

@@ -105,6 +105,7 @@ mod half;
 mod image;
 mod step;
 
+pub use build::TILE_RING_SLACK_M;
 use build::{TickMatrixParts, ball_of, factorize};
 use half::{add_row, axpy3, dot_half, half_of, packed_row_start, sym_row};
 use image::unpack_symmetric;
@@ -427,7 +428,8 @@ struct CondensedSystem {
     /// `factor`).
     half: Option<Arc<HalfFactor>>,
     /// Global component of each row of `map`: the far boundary's free components, or every
-    /// far free component for a following region.
+    /// far free component for a following region (those of its ring for a tile,
+    /// `build::tile_ring`).
     map_dofs: Vec<usize>,
     /// Their displacement per interface displacement, `-(K_FF^-1 K_FG)` rows, row-major
     /// `|map_dofs| x g`, IEEE half precision (bits): it only places far nodes (viewers, the
@@ -534,6 +536,9 @@ impl CondensedScratch {
 struct CondensedStats {
     /// Ticks whose velocity reversed (each halved the relaxation).
     relaxed_ticks: u64,
+    /// Components the last hand-over from this region started at rest for lack of a row
+    /// ([`CondensedSolver::unmapped_hand_over`]).
+    unmapped_hand_over: usize,
 }
 
 /// A one-row probe coupling over `N` nodes is solved by the paired sweep

@@ -69,7 +69,10 @@ mod store;
 mod tiles;
 
 use store::TileStore;
-pub use store::{DEFAULT_REGION_CACHE_MAX_BYTES, RegionCacheDir, RegionCacheReport, cache_key};
+pub use store::{
+    DEFAULT_REGION_CACHE_MAX_BYTES, DEFAULT_REGION_CACHE_MEMORY_BYTES, RegionCacheDir,
+    RegionCacheReport, cache_key,
+};
 pub use tiles::{TILE_HYSTERESIS_M, tile_centres};
 use tiles::{Tile, TileCache};
 
@@ -124,6 +127,8 @@ struct Shared {
     tiles_refused: AtomicU64,
     tiles_stored: AtomicU64,
     tiles_present: AtomicU64,
+    tiles_dropped: AtomicU64,
+    tiles_reloaded: AtomicU64,
     /// The worker builds no tile in the background ([`RegionFollower::set_paused`]).
     paused: AtomicBool,
     cache_error: std::sync::Mutex<Option<String>>,
@@ -170,6 +175,10 @@ pub struct FollowStats {
     pub last_hand_over_s: f64,
     /// Largest of those, s.
     pub max_hand_over_s: f64,
+    /// Swaps that started some taken-over component at rest because the region in use had
+    /// no far-map row for it (a tile's successor beyond its ring:
+    /// [`CondensedSolver::hand_over`]); 0 while every swap goes to a neighbouring tile.
+    pub unmapped_swaps: u64,
     /// Requests answered by a built tile ([`TileMode::Background`]).
     pub tile_hits: u64,
     /// Requests whose tile was not built yet (prepared on demand, then kept).
@@ -195,6 +204,12 @@ pub struct FollowStats {
     /// Tiles a fill-only worker found in the region cache and left unread (not in
     /// `tiles_built`; [`RegionFollower::spawn_with_cache`]).
     pub tiles_present: u64,
+    /// Tiles dropped from memory to keep the cache under
+    /// [`RegionCacheDir::memory_bytes`] (their files stay).
+    pub tiles_dropped: u64,
+    /// Dropped tiles read back from their files (on request, or while idle as the probe
+    /// came near them; in `tiles_loaded`, not in `tiles_built`).
+    pub tiles_reloaded: u64,
 }
 
 impl FollowStats {
@@ -225,6 +240,7 @@ pub struct RegionFollower {
     region_bytes: usize,
     last_hand_over_s: f64,
     max_hand_over_s: f64,
+    unmapped_swaps: u64,
     /// The servo's tick, s ([`Self::set_tick_s`]; the region's step until set).
     tick_s: f64,
 }
@@ -291,6 +307,7 @@ impl RegionFollower {
         let (worker_results, results) = rtrb::RingBuffer::new(1);
         let (returns, worker_returns) = rtrb::RingBuffer::new(4);
         let shared = Arc::new(Shared::default());
+        let memory_limit = cache.map_or(u64::MAX, |d| d.memory_bytes);
         let store = match (region.tiles, cache) {
             (TileMode::Background { .. }, Some(dir)) if region.follow => Some(TileStore::new(
                 dir,
@@ -308,6 +325,7 @@ impl RegionFollower {
         };
         let job = Worker {
             fill_only: fill_only && store.is_some(),
+            memory_limit,
             cache,
             store,
             report,
@@ -349,6 +367,7 @@ impl RegionFollower {
             region_bytes: first.memory_bytes(),
             last_hand_over_s: 0.0,
             max_hand_over_s: 0.0,
+            unmapped_swaps: 0,
             tick_s: first.dt_s(),
         })
     }
@@ -405,6 +424,7 @@ impl RegionFollower {
             region_bytes: self.region_bytes,
             last_hand_over_s: self.last_hand_over_s,
             max_hand_over_s: self.max_hand_over_s,
+            unmapped_swaps: self.unmapped_swaps,
             tile_hits: self.shared.tile_hits.load(Ordering::Relaxed),
             tile_misses: self.shared.tile_misses.load(Ordering::Relaxed),
             tiles_built: self.shared.tiles_built.load(Ordering::Relaxed),
@@ -416,6 +436,8 @@ impl RegionFollower {
             tiles_refused: self.shared.tiles_refused.load(Ordering::Relaxed),
             tiles_stored: self.shared.tiles_stored.load(Ordering::Relaxed),
             tiles_present: self.shared.tiles_present.load(Ordering::Relaxed),
+            tiles_dropped: self.shared.tiles_dropped.load(Ordering::Relaxed),
+            tiles_reloaded: self.shared.tiles_reloaded.load(Ordering::Relaxed),
         }
     }
 
@@ -533,6 +555,7 @@ impl RegionFollower {
         if handed {
             self.last_hand_over_s = start.elapsed().as_secs_f64();
             self.max_hand_over_s = self.max_hand_over_s.max(self.last_hand_over_s);
+            self.unmapped_swaps += u64::from(solver.unmapped_hand_over() > 0);
             let old = std::mem::replace(solver, next);
             self.balls = balls;
             self.region_bytes = solver.memory_bytes();
@@ -574,6 +597,9 @@ struct Worker {
     report: Option<RegionCacheReport>,
     /// Fill the store only ([`RegionFollower::spawn_with_cache`]).
     fill_only: bool,
+    /// Bytes of tiles kept in memory at most ([`RegionCacheDir::memory_bytes`]; unbounded
+    /// without a store).
+    memory_limit: u64,
     /// The last requested point, m: background builds start nearest it.
     last_point_m: DVec3,
     body: FemModel,
@@ -779,25 +805,27 @@ impl Worker {
 
     /// Builds tile `k` (or reads it from disk) and keeps it; counts it (or the failure).
     fn build_and_keep(&mut self, k: usize) -> Option<Arc<CondensedSolver>> {
-        let (tile, _) = self.obtain(k, true);
-        self.keep(k, tile.as_ref());
+        let (tile, stored) = self.obtain(k, true);
+        self.keep(k, tile.as_ref(), stored);
         tile
     }
 
-    /// Tile `k` read from disk (when `read`) or built and written, and whether it was
-    /// written; counts it (or the failure) and its time.
+    /// Tile `k` read from disk (when `read`) or built and written, and whether its file
+    /// holds it (read or written); counts it (or the failure; a dropped tile read back as
+    /// reloaded) and its time.
     fn obtain(&mut self, k: usize, read: bool) -> (Option<Arc<CondensedSolver>>, bool) {
         let Some(cache) = self.cache.as_ref() else {
             return (None, false);
         };
         let centre_m = cache.centres[k];
+        let reload = matches!(cache.tiles[k], Tile::Dropped);
         let start = Instant::now();
         let loaded = if read {
             self.load_tile(k, centre_m)
         } else {
             None
         };
-        let mut written = false;
+        let mut written = loaded.is_some();
         let tile = loaded.or_else(|| {
             let built = self.build_tile(centre_m);
             if let Some(t) = &built {
@@ -811,6 +839,7 @@ impl Worker {
             .tile_build_s
             .store((total + s).to_bits(), Ordering::Relaxed);
         let counter = match tile {
+            Some(_) if reload => &self.shared.tiles_reloaded,
             Some(_) => &self.shared.tiles_built,
             None => {
                 self.shared.failed.fetch_add(1, Ordering::Relaxed);
@@ -821,11 +850,14 @@ impl Worker {
         (tile, written)
     }
 
-    /// Keeps tile `k` in memory ([`Tile::Built`]), or marks it [`Tile::Failed`].
-    fn keep(&mut self, k: usize, tile: Option<&Arc<CondensedSolver>>) {
+    /// Keeps tile `k` in memory ([`Tile::Built`]; `stored`: its file holds it), or marks it
+    /// [`Tile::Failed`]; then drops the tiles farthest from the last requested point while
+    /// the cache is over its memory limit.
+    fn keep(&mut self, k: usize, tile: Option<&Arc<CondensedSolver>>, stored: bool) {
         let Some(cache) = self.cache.as_mut() else {
             return;
         };
+        cache.stored[k] |= stored;
         cache.tiles[k] = match tile {
             Some(t) => {
                 self.shared
@@ -835,23 +867,61 @@ impl Worker {
             }
             None => Tile::Failed,
         };
+        while self.shared.tile_cache_bytes.load(Ordering::Relaxed) > self.memory_limit {
+            let Some((j, _)) = cache.farthest_droppable(self.last_point_m, k) else {
+                return;
+            };
+            if let Tile::Built(t) = std::mem::replace(&mut cache.tiles[j], Tile::Dropped) {
+                self.shared
+                    .tile_cache_bytes
+                    .fetch_sub(t.memory_bytes() as u64, Ordering::Relaxed);
+                self.shared.tiles_dropped.fetch_add(1, Ordering::Relaxed);
+            }
+        }
     }
 
-    /// Builds the missing tile nearest the last requested point (idle work); `false` when
-    /// there is none (or no cache).
+    /// Builds the missing tile nearest the last requested point (idle work), or else reads
+    /// back a dropped one ([`Self::reload_nearer`]); `false` when there is nothing to do (or
+    /// no cache).
     fn build_next_tile(&mut self) -> bool {
         let Some(k) = self
             .cache
             .as_ref()
             .and_then(|c| c.next_missing(self.last_point_m))
         else {
-            return false;
+            return !self.fill_only && self.reload_nearer();
         };
         if self.fill_only {
             self.fill(k);
         } else {
             self.build_and_keep(k);
         }
+        true
+    }
+
+    /// Reads back the dropped tile nearest the last requested point when it fits under the
+    /// memory limit or lies [`TILE_HYSTERESIS_M`] nearer that point than a tile in memory
+    /// (which [`Self::keep`] then drops): the tiles in memory follow the probe. `false` when
+    /// there is none to read.
+    fn reload_nearer(&mut self) -> bool {
+        let Some(cache) = self.cache.as_ref() else {
+            return false;
+        };
+        let p = self.last_point_m;
+        let Some((k, d_k)) = cache.nearest_dropped(p) else {
+            return false;
+        };
+        let bytes = self.shared.tile_cache_bytes.load(Ordering::Relaxed);
+        let fits = cache
+            .mean_built_bytes()
+            .is_none_or(|b| bytes.saturating_add(b) <= self.memory_limit);
+        let nearer = cache
+            .farthest_droppable(p, k)
+            .is_some_and(|(_, d_j)| d_k + TILE_HYSTERESIS_M < d_j);
+        if !(fits || nearer) {
+            return false;
+        }
+        self.build_and_keep(k);
         true
     }
 
@@ -883,7 +953,7 @@ impl Worker {
                     cache.tiles[k] = Tile::OnDisk;
                 }
             }
-            (tile, _) => self.keep(k, tile.as_ref()),
+            (tile, stored) => self.keep(k, tile.as_ref(), stored),
         }
     }
 
@@ -906,7 +976,7 @@ impl Worker {
                 Arc::clone(t)
             }
             Tile::Failed => return Prepared::Nothing,
-            Tile::Missing | Tile::OnDisk => {
+            Tile::Missing | Tile::OnDisk | Tile::Dropped => {
                 self.shared.tile_misses.fetch_add(1, Ordering::Relaxed);
                 match self.build_and_keep(k) {
                     Some(t) => t,

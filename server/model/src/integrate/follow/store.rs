@@ -38,6 +38,11 @@ pub struct RegionCacheDir {
     /// Largest total size of the directory's `.tile` files, bytes; a tile that would exceed it
     /// is not written (it stays in the session's memory).
     pub max_bytes: u64,
+    /// Largest total size of the tiles one session keeps in memory, bytes
+    /// ([`CondensedSolver::memory_bytes`]; default [`DEFAULT_REGION_CACHE_MEMORY_BYTES`]):
+    /// beyond it the tiles farthest from the probe are dropped from memory (their files
+    /// stay) and read back as it comes near them. A tile without a file is never dropped.
+    pub memory_bytes: u64,
 }
 
 /// Where a following region reports its region cache's complaints as they happen: a file
@@ -72,6 +77,11 @@ impl Eq for RegionCacheReport {}
 /// Default [`RegionCacheDir::max_bytes`]: 8 GiB (`lv_h1_condensed.toml`'s 69 tiles take
 /// about 1.1 GB).
 pub const DEFAULT_REGION_CACHE_MAX_BYTES: u64 = 8 << 30;
+
+/// Default [`RegionCacheDir::memory_bytes`]: 2 GiB (`lv_h1_condensed.toml`'s 69 tiles,
+/// about 1.1 GB, stay whole; of the 100 000-tet LV's 143 tiles of about 45 MB, the 45 or so
+/// nearest the probe).
+pub const DEFAULT_REGION_CACHE_MEMORY_BYTES: u64 = 2 << 30;
 
 /// The key of a following region's tiles over `body` (mesh `mesh`): the region's radius,
 /// margin and tile cover (`region`, its centre excluded: each file holds its own), the step

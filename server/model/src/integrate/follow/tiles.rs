@@ -60,23 +60,72 @@ pub(super) enum Tile {
     /// Its file in the region cache holds it; not in memory (a fill-only worker's,
     /// [`super::RegionFollower::spawn_with_cache`]). A request reads it.
     OnDisk,
+    /// Built or read, then dropped from memory to keep the cache under its memory limit
+    /// ([`super::RegionCacheDir::memory_bytes`]); its file holds it. Read back when a request
+    /// asks for it, or while idle once it is nearer the probe than a tile in memory.
+    Dropped,
 }
 
 /// The worker's cache: the centres and their tiles.
 pub(super) struct TileCache {
     pub(super) centres: Vec<DVec3>,
     pub(super) tiles: Vec<Tile>,
+    /// Per tile: its file in the region cache holds it (read from it or written to it), so
+    /// it may be dropped from memory.
+    pub(super) stored: Vec<bool>,
     cover_m: f64,
 }
 
 impl TileCache {
     pub(super) fn new(centres: Vec<DVec3>, cover_m: f64) -> Self {
         let tiles = centres.iter().map(|_| Tile::Missing).collect();
+        let stored = vec![false; centres.len()];
         Self {
             centres,
             tiles,
+            stored,
             cover_m,
         }
+    }
+
+    /// The tile in memory with a file farthest from `p` other than `except`, and its
+    /// distance, m (ties: the lowest index).
+    pub(super) fn farthest_droppable(&self, p: DVec3, except: usize) -> Option<(usize, f64)> {
+        self.tiles
+            .iter()
+            .enumerate()
+            .filter(|&(k, t)| k != except && self.stored[k] && matches!(t, Tile::Built(_)))
+            .map(|(k, _)| (k, self.centres[k].distance(p)))
+            .fold(None, |a: Option<(usize, f64)>, b| match a {
+                Some(a) if a.1 >= b.1 => Some(a),
+                _ => Some(b),
+            })
+    }
+
+    /// The dropped tile nearest `p` and its distance, m (ties: the lowest index).
+    pub(super) fn nearest_dropped(&self, p: DVec3) -> Option<(usize, f64)> {
+        self.tiles
+            .iter()
+            .enumerate()
+            .filter(|(_, t)| matches!(t, Tile::Dropped))
+            .map(|(k, _)| (k, self.centres[k].distance(p)))
+            .fold(None, |a: Option<(usize, f64)>, b| match a {
+                Some(a) if a.1 <= b.1 => Some(a),
+                _ => Some(b),
+            })
+    }
+
+    /// Mean bytes of the tiles in memory ([`CondensedSolver::memory_bytes`]), or `None`.
+    pub(super) fn mean_built_bytes(&self) -> Option<u64> {
+        let (n, sum) = self
+            .tiles
+            .iter()
+            .filter_map(|t| match t {
+                Tile::Built(s) => Some(s.memory_bytes() as u64),
+                _ => None,
+            })
+            .fold((0u64, 0u64), |(n, sum), b| (n + 1, sum + b));
+        (n > 0).then(|| sum / n)
     }
 
     /// The centre nearest `p` and its distance, m (ties: the lowest index).
