@@ -3,8 +3,8 @@
 //! the current one, and the servo swaps it in at a tick boundary.
 //!
 //! **Protocol.** Every [`POLL_TICKS`] ticks without a request in flight, the servo sends the
-//! device point (led by its velocity over the last preparation time plus the poll interval, at most
-//! [`FOLLOW_LEAD_RADII`] radii) and the current centre through a wait-free ring and unparks
+//! device point (led by its velocity over the last preparation time, with tiles the last
+//! hit's, plus the poll interval, at most [`FOLLOW_LEAD_RADII`] radii) and the current centre through a wait-free ring and unparks
 //! the worker. The worker picks the touchable node nearest that point (rest configuration) as
 //! the new centre, and answers "nothing to do" when the device is farther than a radius from
 //! every touchable node or the centre would move less than [`RECENTRE_RADII`] radii; otherwise
@@ -116,6 +116,10 @@ struct Shared {
     /// Last and largest preparation time, s, as `f64` bits.
     last_prepare_s: AtomicU64,
     max_prepare_s: AtomicU64,
+    /// The preparation time requests lead the device by, s, as `f64` bits: the last
+    /// preparation on demand, or the last tile hit (a tile read from disk or built on a miss
+    /// does not count: the next request is most likely a hit again).
+    lead_prepare_s: AtomicU64,
     tile_hits: AtomicU64,
     tile_misses: AtomicU64,
     tiles_built: AtomicU64,
@@ -138,9 +142,12 @@ struct Shared {
 }
 
 impl Shared {
-    /// Records one preparation (or tile lookup) of `s` seconds.
-    fn record_prepare_s(&self, s: f64) {
+    /// Records one preparation (or tile lookup) of `s` seconds; `lead`: requests lead by it.
+    fn record_prepare_s(&self, s: f64, lead: bool) {
         self.last_prepare_s.store(s.to_bits(), Ordering::Relaxed);
+        if lead {
+            self.lead_prepare_s.store(s.to_bits(), Ordering::Relaxed);
+        }
         let max = f64::from_bits(self.max_prepare_s.load(Ordering::Relaxed));
         self.max_prepare_s
             .store(max.max(s).to_bits(), Ordering::Relaxed);
@@ -477,11 +484,13 @@ impl RegionFollower {
         // Lead each device by its travel until the region asked for now can be swapped in
         // and until the next request's can: one preparation and one poll interval (none when
         // the tick waits). Leading by the preparation alone let a tile (prepared in 5-15 ms)
-        // arrive when the device had already slid up to a poll interval past its cover.
+        // arrive when the device had already slid up to a poll interval past its cover. With
+        // tiles the preparation is a hit's: one tile read from disk (0.2-0.4 s on the
+        // 100 000-tet LV) put every later region a radius ahead of the device.
         let lead_s = if self.blocking {
             0.0
         } else {
-            f64::from_bits(self.shared.last_prepare_s.load(Ordering::Relaxed))
+            f64::from_bits(self.shared.lead_prepare_s.load(Ordering::Relaxed))
                 + POLL_TICKS as f64 * self.tick_s
         };
         let mut points_m = RegionBalls::EMPTY;
@@ -720,7 +729,8 @@ impl Worker {
         ) {
             Ok(mut solver) => {
                 solver.prepare_contact(&self.nodes);
-                self.shared.record_prepare_s(start.elapsed().as_secs_f64());
+                self.shared
+                    .record_prepare_s(start.elapsed().as_secs_f64(), true);
                 self.shared.prepared.fetch_add(1, Ordering::Relaxed);
                 Prepared::Region {
                     solver: Box::new(solver),
@@ -970,6 +980,7 @@ impl Worker {
             return Prepared::Nothing;
         };
         let centre_m = cache.centres[k];
+        let hit = matches!(cache.tiles[k], Tile::Built(_));
         let tile = match &cache.tiles[k] {
             Tile::Built(t) => {
                 self.shared.tile_hits.fetch_add(1, Ordering::Relaxed);
@@ -988,7 +999,8 @@ impl Worker {
         // once so that the servo's first tick with the region does not wait for them.
         let solver = Box::new((*tile).clone());
         std::hint::black_box(solver.touch());
-        self.shared.record_prepare_s(start.elapsed().as_secs_f64());
+        self.shared
+            .record_prepare_s(start.elapsed().as_secs_f64(), hit);
         self.shared.prepared.fetch_add(1, Ordering::Relaxed);
         Prepared::Region {
             solver,
