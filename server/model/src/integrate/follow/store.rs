@@ -75,12 +75,12 @@ impl PartialEq for RegionCacheReport {
 impl Eq for RegionCacheReport {}
 
 /// Default [`RegionCacheDir::max_bytes`]: 8 GiB (`lv_h1_condensed.toml`'s 69 tiles take
-/// about 1.1 GB).
+/// about 0.85 GB).
 pub const DEFAULT_REGION_CACHE_MAX_BYTES: u64 = 8 << 30;
 
 /// Default [`RegionCacheDir::memory_bytes`]: 2 GiB (`lv_h1_condensed.toml`'s 69 tiles,
-/// about 1.1 GB, stay whole; of the 100 000-tet LV's 143 tiles of about 45 MB, the 45 or so
-/// nearest the probe).
+/// about 0.9 GB, stay whole; of the 100 000-tet LV's 678 tiles of about 29 MB at its
+/// default cover, the 70 or so nearest the probe).
 pub const DEFAULT_REGION_CACHE_MEMORY_BYTES: u64 = 2 << 30;
 
 /// The key of a following region's tiles over `body` (mesh `mesh`): the region's radius,
