@@ -912,7 +912,7 @@ pub(super) fn tile_ring(
     ))
 }
 
-/// What a tile's ring ([`tile_ring`]) adds for a request that moved a little past the cover
+/// What a tile's ring (`build::tile_ring`) adds for a request that moved a little past the cover
 /// before the next tile arrived, m: the tile choice's hysteresis (0.5 mm) and as much again.
 pub const TILE_RING_SLACK_M: f64 = 1e-3;
 
