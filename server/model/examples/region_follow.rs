@@ -422,21 +422,7 @@ fn report(args: &Args, sim: &FemBody, path: &Path, tr: &Trace) {
         tr.contact_ticks,
         100.0 * max_swap_jump.max(max_jump_other)
     );
-    if stats.tiles > 0 {
-        println!(
-            "tiles: {} centres, {} built ({:.0} MB in memory, {:.1} s of builds), {} hits, {} misses; {} dropped from memory, {} read back; {} swaps beyond a ring; peak memory {:.0} MB",
-            stats.tiles,
-            stats.tiles_built,
-            stats.tile_cache_bytes as f64 / 1e6,
-            stats.tile_build_s,
-            stats.tile_hits,
-            stats.tile_misses,
-            stats.tiles_dropped,
-            stats.tiles_reloaded,
-            stats.unmapped_swaps,
-            peak_memory_mb()
-        );
-    }
+    report_tiles(&stats);
     if let Some(fb) = sim.fallback_stats() {
         println!(
             "coarse companion ({} tets): answered {} ticks, final weight {:.2}; force at the end {:.2} mN",
@@ -520,4 +506,23 @@ fn peak_memory_mb() -> f64 {
                 .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
         })
         .map_or(0.0, |kb| kb / 1e3)
+}
+
+/// The region cache's line of [`report`] (scenes with tiles).
+fn report_tiles(stats: &haptic_model::integrate::follow::FollowStats) {
+    if stats.tiles > 0 {
+        println!(
+            "tiles: {} centres, {} built ({:.0} MB in memory, {:.1} s of builds), {} hits, {} misses; {} dropped from memory, {} read back; {} swaps beyond a ring; peak memory {:.0} MB",
+            stats.tiles,
+            stats.tiles_built,
+            stats.tile_cache_bytes as f64 / 1e6,
+            stats.tile_build_s,
+            stats.tile_hits,
+            stats.tile_misses,
+            stats.tiles_dropped,
+            stats.tiles_reloaded,
+            stats.unmapped_swaps,
+            peak_memory_mb()
+        );
+    }
 }
