@@ -2167,6 +2167,32 @@ fn wait_for_tiles(follower: &RegionFollower) -> haptic_model::integrate::follow:
     }
 }
 
+/// What the region cache tests share: the coarse LV's body and mesh, its epicardial nodes, its
+/// tiled region at a 5 mm cover (about 30 tiles), an empty directory named after `name` and
+/// this process, and the first region with its contact columns.
+fn cache_setup(
+    name: &str,
+) -> (
+    FemModel,
+    haptic_model::mesh::TetMesh,
+    Vec<u32>,
+    ActiveRegion,
+    std::path::PathBuf,
+    CondensedSolver,
+) {
+    let (fem, mesh, _, centre) = setup(StrainSmoothing::None);
+    let nodes = epi_nodes(&mesh);
+    let region = ActiveRegion {
+        tiles: TileMode::Background { cover_m: 0.005 },
+        ..tiled_region(centre)
+    };
+    let dir = std::env::temp_dir().join(format!("{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let mut first = CondensedSolver::new(&fem, &mesh, region, 1e-3).expect("first");
+    first.prepare_contact(&nodes);
+    (fem, mesh, nodes, region, dir, first)
+}
+
 /// The region cache on disk (`RegionFollower::spawn_with_cache`): the first session writes
 /// every tile, the next reads them all instead of building; a damaged file and a foreign one
 /// (another tile's file under this tile's name) are refused with the reason, rebuilt and
@@ -2176,21 +2202,12 @@ fn wait_for_tiles(follower: &RegionFollower) -> haptic_model::integrate::follow:
 #[test]
 fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() {
     use haptic_model::integrate::follow::{RegionCacheDir, RegionCacheReport};
-    let (fem, mesh, _, centre) = setup(StrainSmoothing::None);
-    let nodes = epi_nodes(&mesh);
-    let region = ActiveRegion {
-        tiles: TileMode::Background { cover_m: 0.005 },
-        ..tiled_region(centre)
-    };
-    let dir = std::env::temp_dir().join(format!("haptic-region-cache-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let (fem, mesh, nodes, _, dir, first) = cache_setup("haptic-region-cache");
     let cache = RegionCacheDir {
         dir: dir.join("tiles"),
         max_bytes: 1 << 30,
         memory_bytes: 1 << 30,
     };
-    let mut first = CondensedSolver::new(&fem, &mesh, region, 1e-3).expect("first");
-    first.prepare_contact(&nodes);
     let run = |fem: &FemModel, cache: &RegionCacheDir, fill_only: bool| {
         let lines = std::sync::Arc::new(std::sync::Mutex::new(Vec::<String>::new()));
         let sink = std::sync::Arc::clone(&lines);
@@ -2461,16 +2478,7 @@ fn a_tile_maps_its_ring_and_hands_over_like_the_full_map() {
             .all(|i| bits(xa[i as usize]) == bits(xf[i as usize])),
         "the tile steps differently from the full region"
     );
-    let longest_edge_m = mesh
-        .tets
-        .iter()
-        .flat_map(|t| {
-            haptic_model::mesh::TET_EDGES
-                .iter()
-                .map(|&[p, q]| mesh.nodes[t[p] as usize].distance(mesh.nodes[t[q] as usize]))
-        })
-        .fold(0.0, f64::max);
-    let ring_m = 0.006 + 2.0 * cover_m + TILE_RING_SLACK_M + longest_edge_m;
+    let ring_m = 0.006 + 2.0 * cover_m + TILE_RING_SLACK_M + mesh.longest_edge_m();
     // A neighbour 1.5 mm round the ventricle (within two covers), and the other side.
     let near = epi_node(centre + DVec3::new(0.0, 0.0015, 0.0));
     let across = epi_node(DVec3::new(-centre.x, 0.0, centre.z));
@@ -2536,21 +2544,13 @@ fn a_tile_maps_its_ring_and_hands_over_like_the_full_map() {
 #[test]
 fn a_memory_limit_keeps_the_tiles_near_the_probe_in_memory() {
     use haptic_model::integrate::follow::RegionCacheDir;
-    let (fem, mesh, _, centre) = setup(StrainSmoothing::None);
-    let nodes = epi_nodes(&mesh);
-    let region = ActiveRegion {
-        tiles: TileMode::Background { cover_m: 0.005 },
-        ..tiled_region(centre)
-    };
-    let dir = std::env::temp_dir().join(format!("haptic-tile-memory-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let (fem, mesh, nodes, region, dir, first) = cache_setup("haptic-tile-memory");
+    let centre = region.centre_m;
     let mut cache = RegionCacheDir {
         dir: dir.clone(),
         max_bytes: 1 << 30,
         memory_bytes: 1 << 30,
     };
-    let mut first = CondensedSolver::new(&fem, &mesh, region, 1e-3).expect("first");
-    first.prepare_contact(&nodes);
     let spawn = |cache: &RegionCacheDir| {
         RegionFollower::spawn_with_cache(&fem, &mesh, &nodes, &first, Some(cache), None, false)
             .expect("spawn")

@@ -199,6 +199,18 @@ impl TetMesh {
         )
     }
 
+    /// The longest corner-to-corner edge of any tetrahedron, m (0 without tetrahedra).
+    pub fn longest_edge_m(&self) -> f64 {
+        self.tets
+            .iter()
+            .flat_map(|t| {
+                TET_EDGES
+                    .iter()
+                    .map(|&[a, b]| self.nodes[t[a] as usize].distance(self.nodes[t[b] as usize]))
+            })
+            .fold(0.0, f64::max)
+    }
+
     /// All boundary faces of the tetrahedral mesh (faces used by exactly one tetrahedron),
     /// oriented with outward normals. Requires positively oriented tetrahedra. For a quadratic
     /// mesh each face is split into four triangles at its mid-edge nodes.

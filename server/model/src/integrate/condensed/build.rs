@@ -897,18 +897,9 @@ pub(super) fn tile_ring(
     let [centre] = balls.centres() else {
         return None;
     };
-    let longest_edge_m = mesh
-        .tets
-        .iter()
-        .flat_map(|t| {
-            crate::mesh::TET_EDGES
-                .iter()
-                .map(|&[a, b]| mesh.nodes[t[a] as usize].distance(mesh.nodes[t[b] as usize]))
-        })
-        .fold(0.0, f64::max);
     region.follow.then_some((
         *centre,
-        region.radius_m + 2.0 * cover_m + TILE_RING_SLACK_M + longest_edge_m,
+        region.radius_m + 2.0 * cover_m + TILE_RING_SLACK_M + mesh.longest_edge_m(),
     ))
 }
 
