@@ -44,7 +44,10 @@
 //! nearest the point ([`TILE_HYSTERESIS_M`] replaces [`RECENTRE_RADII`]) and sends a copy
 //! (the tile itself is never stepped), or prepares the tile on demand when it is not built
 //! yet and keeps it. A request waits at most for the one tile being built. The servo's side
-//! is unchanged.
+//! is unchanged. With a region cache on disk the tiles in memory are bounded
+//! ([`RegionCacheDir::memory_bytes`]): the farthest from the last requested point are dropped
+//! and read back from their files as the probe nears them. A tile maps only the far
+//! components its neighbours can take over (its ring), and the far field beyond is at rest.
 //!
 //! Owns: the worker thread, the hand-off rings, the re-centring rule and the tile cache
 //! (`tiles`). May use: [`super::condensed`], [`crate::element`], [`crate::mesh`].
