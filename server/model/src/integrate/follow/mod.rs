@@ -4,10 +4,11 @@
 //!
 //! **Protocol.** Every [`POLL_TICKS`] ticks without a request in flight, the servo sends the
 //! device point (led by its velocity over the last preparation time, with tiles the last
-//! hit's, plus the poll interval, at most [`FOLLOW_LEAD_RADII`] radii) and the current centre through a wait-free ring and unparks
-//! the worker. The worker picks the touchable node nearest that point (rest configuration) as
-//! the new centre, and answers "nothing to do" when the device is farther than a radius from
-//! every touchable node or the centre would move less than [`RECENTRE_RADII`] radii; otherwise
+//! hit's, plus the poll interval, at most [`FOLLOW_LEAD_RADII`] radii) and the current centre
+//! through a wait-free ring and unparks the worker. The worker picks the touchable node
+//! nearest that point (rest configuration) as the new centre, and answers "nothing to do" when
+//! the device is farther than a radius from every touchable node or the centre would move less
+//! than [`RECENTRE_RADII`] radii; otherwise
 //! it condenses and factorises the new region ([`CondensedSolver::new`], then
 //! [`CondensedSolver::prepare_contact`]) and sends it back. At the next tick boundary the servo
 //! swaps it in when it is closer to the device than the current one (or within
@@ -838,11 +839,11 @@ impl Worker {
         } else {
             None
         };
-        let mut written = loaded.is_some();
+        let mut stored = loaded.is_some();
         let tile = loaded.or_else(|| {
             let built = self.build_tile(centre_m);
             if let Some(t) = &built {
-                written = self.store_tile(k, t);
+                stored = self.store_tile(k, t);
             }
             built
         });
@@ -860,7 +861,7 @@ impl Worker {
             }
         };
         counter.fetch_add(1, Ordering::Relaxed);
-        (tile, written)
+        (tile, stored)
     }
 
     /// Keeps tile `k` in memory ([`Tile::Built`]; `stored`: its file holds it), or marks it
