@@ -2408,6 +2408,27 @@ fn the_region_cache_on_disk_serves_the_next_session_and_refuses_foreign_files() 
     let (kept, error) = session(&fem, &small);
     assert_eq!((kept.tiles_stored, kept.tiles_built), (0, n), "{kept:?}");
     assert!(error.unwrap_or_default().contains("full"));
+    // A fill-only worker (no session) stops at the first tile it cannot write instead of
+    // keeping it and every later one in memory: the rest count as failed, the reason kept.
+    let small_fill = RegionCacheDir {
+        dir: dir.join("small-fill"),
+        ..small
+    };
+    let (stopped, error) = run(&fem, &small_fill, true);
+    assert_eq!(
+        (
+            stopped.tiles_stored,
+            stopped.tiles_built,
+            stopped.tiles_failed,
+            stopped.tile_cache_bytes
+        ),
+        (0, 1, n - 1, 0),
+        "{stopped:?}"
+    );
+    assert!(
+        error.unwrap_or_default().contains("the fill stops"),
+        "{stopped:?}"
+    );
     std::fs::remove_dir_all(&dir).expect("clean up");
 }
 

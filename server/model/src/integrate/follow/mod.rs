@@ -290,8 +290,9 @@ impl RegionFollower {
     /// it ahead of sessions. A tile whose file is there with the right header
     /// ([`CondensedSolver::check_image_header`]) is counted in
     /// [`FollowStats::tiles_present`] and left unread; a missing one (or one whose header is
-    /// refused) is built, written and dropped (kept in memory only when it cannot be
-    /// written). A request still gets its tile, read from disk then.
+    /// refused) is built, written and dropped. The first tile that cannot be written (the
+    /// cache full) stops the fill: it and every missing tile count as failed, and
+    /// [`Self::cache_error`] says why. A request still gets its tile, read from disk then.
     ///
     /// # Errors
     /// As [`Self::spawn`].
@@ -967,8 +968,35 @@ impl Worker {
                     cache.tiles[k] = Tile::OnDisk;
                 }
             }
-            (tile, stored) => self.keep(k, tile.as_ref(), stored),
+            (Some(_), false) => self.stop_fill(k),
+            (None, _) => self.keep(k, None, false),
         }
+    }
+
+    /// A fill-only worker that could not write tile `k` (the cache full, or a write error,
+    /// reported) stops: it serves no session, so a tile it cannot write would only grow its
+    /// memory, and once the cache is full the others would not fit either. Tile `k` and every
+    /// missing one are marked failed (the missing ones counted), and the reason is kept.
+    fn stop_fill(&mut self, k: usize) {
+        let Some(cache) = self.cache.as_mut() else {
+            return;
+        };
+        cache.tiles[k] = Tile::Failed;
+        let mut left = 0;
+        for t in cache
+            .tiles
+            .iter_mut()
+            .filter(|t| matches!(t, Tile::Missing))
+        {
+            *t = Tile::Failed;
+            left += 1;
+        }
+        self.shared.tiles_failed.fetch_add(left, Ordering::Relaxed);
+        self.shared.failed.fetch_add(left, Ordering::Relaxed);
+        self.cache_error(format!(
+            "the region cache could not take tile {k}: the fill stops with {left} tiles not \
+             prepared (raise region_cache_max_bytes, or free the disk)"
+        ));
     }
 
     /// A one-ball request with tiles for `point_m` while the region in use is centred at
