@@ -57,6 +57,14 @@ struct Args {
     /// the press.
     #[arg(long)]
     wait_tiles: bool,
+    /// Wait this long after set-up before the press, s (the worker reads the region cache's
+    /// tiles meanwhile, nearest the press first, without waiting for the whole cache).
+    #[arg(long, default_value_t = 0.0)]
+    wait_s: f64,
+    /// After the waits, pause the worker's background tile work (builds and reads back;
+    /// requests are still answered), so that a stroke's requests never wait for a build.
+    #[arg(long)]
+    pause_tiles: bool,
     /// Turn the scene's region cache off (`active_region.tiles = "off"`).
     #[arg(long)]
     no_tiles: bool,
@@ -177,6 +185,20 @@ fn set_up(args: &Args) -> anyhow::Result<(FemBody, f64)> {
     );
     if args.wait_tiles {
         wait_for_tiles(&sim);
+    }
+    if args.wait_s > 0.0 {
+        std::thread::sleep(Duration::from_secs_f64(args.wait_s));
+        let s = sim.follow_stats().unwrap_or_default();
+        eprintln!(
+            "after {} s more: {} of {} tiles built or read, {:.0} MB in memory",
+            args.wait_s,
+            s.tiles_built,
+            s.tiles,
+            s.tile_cache_bytes as f64 / 1e6
+        );
+    }
+    if args.pause_tiles {
+        sim.set_region_preparation_paused(true);
     }
     sim.set_blocking_region_preparation(args.blocking);
     Ok((sim, scene.probe.radius_m))
