@@ -884,8 +884,8 @@ pub(super) fn map_rows(
 /// element that reaches into its ball). A successor beyond the ring (the probe lifted and
 /// put down elsewhere) gets the far field's rest state for the components this region does
 /// not map ([`CondensedSolver::hand_over`]). On the 100 000-tet LV at r = 4.5 mm and a
-/// 2.5 mm cover this keeps a fifth of the far map (docs/benchmarks.md, "Tiles for the
-/// 100 000-tet LV").
+/// 2.5 mm cover this keeps about a third of the far map: 42-45 MB tile files instead of
+/// 115 MB (docs/benchmarks.md, "Tiles for the 100 000-tet LV").
 pub(super) fn tile_ring(
     mesh: &TetMesh,
     region: &ActiveRegion,
@@ -897,10 +897,12 @@ pub(super) fn tile_ring(
     let [centre] = balls.centres() else {
         return None;
     };
-    region.follow.then_some((
-        *centre,
-        region.radius_m + 2.0 * cover_m + TILE_RING_SLACK_M + mesh.longest_edge_m(),
-    ))
+    region.follow.then(|| {
+        (
+            *centre,
+            region.radius_m + 2.0 * cover_m + TILE_RING_SLACK_M + mesh.longest_edge_m(),
+        )
+    })
 }
 
 /// What a tile's ring (`build::tile_ring`) adds for a request that moved a little past the cover
