@@ -61,6 +61,11 @@ struct Args {
     /// tiles meanwhile, nearest the press first, without waiting for the whole cache).
     #[arg(long, default_value_t = 0.0)]
     wait_s: f64,
+    /// Centre the worker's tile work on the stroke's point this many degrees round (for
+    /// example half the arc) from set-up on, instead of the press: with a memory limit the
+    /// tiles kept then cover both ends of the stroke.
+    #[arg(long)]
+    focus_arc_deg: Option<f64>,
     /// After the waits, pause the worker's background tile work (builds and reads back;
     /// requests are still answered), so that a stroke's requests never wait for a build.
     #[arg(long)]
@@ -183,6 +188,10 @@ fn set_up(args: &Args) -> anyhow::Result<(FemBody, f64)> {
         sim.follow_stats()
             .map_or(0.0, |s| s.region_bytes as f64 / 1e6)
     );
+    if let Some(deg) = args.focus_arc_deg {
+        let a = deg.to_radians();
+        sim.focus_region_tiles(DVec3::new(EPI_R_M * a.cos(), EPI_R_M * a.sin(), Z_M));
+    }
     if args.wait_tiles {
         wait_for_tiles(&sim);
     }

@@ -2053,6 +2053,36 @@ fn column_solves_on_several_threads_build_the_same_region_bit_for_bit() {
     assert_eq!(in_threads(0).sizes().interface_nodes * 3, g);
 }
 
+/// `CondensedSolver::heap_bytes`, what a region cache counts against its memory limit, is the
+/// heap a tile holds: within 5 % of the bytes its rebuild from an image allocates and keeps
+/// (counted by the test binary's allocator), standard and edge-smoothed; `memory_bytes`, the
+/// numeric arrays alone, is less.
+#[test]
+fn a_tiles_heap_bytes_are_what_it_holds() {
+    for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
+        let (fem, mesh, _, centre) = setup(smoothing);
+        let nodes = epi_nodes(&mesh);
+        let (region, dt) = (tiled_region(centre), 1e-3);
+        let mut tile = CondensedSolver::new(&fem, &mesh, region, dt).expect("tile");
+        assert!(tile.prepare_contact(&nodes));
+        tile.trim_for_tiles();
+        let key = [7u8; 32];
+        let bytes = tile.to_image(&key).expect("image");
+        let (back, held) = counting_alloc::net_bytes(|| {
+            CondensedSolver::from_image(&fem, &mesh, region, dt, &key, &bytes).expect("rebuilt")
+        });
+        let (heap, numeric) = (back.heap_bytes() as f64, back.memory_bytes() as f64);
+        let held = held as f64;
+        println!("{smoothing:?}: held {held} B, heap_bytes {heap}, memory_bytes {numeric}");
+        assert!(
+            (heap - held).abs() <= 0.05 * held,
+            "{smoothing:?}: held {held}, counted {heap}"
+        );
+        assert!(numeric < heap, "{smoothing:?}");
+        assert_eq!(back.heap_bytes(), tile.heap_bytes(), "{smoothing:?}");
+    }
+}
+
 /// A tile written as an image (`CondensedSolver::to_image`, the on-disk region cache) and
 /// rebuilt (`CondensedSolver::from_image`) steps bit for bit like the tile, through the
 /// half-precision sweep (one coupling row) and through the prepared contact columns (two
@@ -2164,6 +2194,23 @@ fn wait_for_tiles(follower: &RegionFollower) -> haptic_model::integrate::follow:
         }
         assert!(waited.elapsed().as_secs() < 120, "{s:?}");
         std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+}
+
+/// Waits until `follower`'s worker has read back no tile for 300 ms, checking that the tiles
+/// in memory stay under `limit` bytes meanwhile; its count of tiles read back.
+fn wait_for_reloads(follower: &RegionFollower, limit: u64) -> u64 {
+    let waited = Instant::now();
+    let mut last = follower.stats().tiles_reloaded;
+    loop {
+        std::thread::sleep(std::time::Duration::from_millis(300));
+        let s = follower.stats();
+        assert!(s.tile_cache_bytes <= limit, "{s:?}");
+        if s.tiles_reloaded == last {
+            return last;
+        }
+        last = s.tiles_reloaded;
+        assert!(waited.elapsed().as_secs() < 60, "{s:?}");
     }
 }
 
@@ -2622,19 +2669,8 @@ fn a_memory_limit_keeps_the_tiles_near_the_probe_in_memory() {
     assert!(s.tiles_reloaded >= 1, "{s:?}");
     assert!(s.centre_m.distance(p) < 0.006, "{s:?}");
     // Idle: the tiles near p come back, the far ones go.
-    let waited = Instant::now();
     let at_request = s.tiles_reloaded;
-    let mut last = at_request;
-    loop {
-        std::thread::sleep(std::time::Duration::from_millis(300));
-        let s = follower.stats();
-        assert!(s.tile_cache_bytes <= cache.memory_bytes, "{s:?}");
-        if s.tiles_reloaded == last {
-            break;
-        }
-        last = s.tiles_reloaded;
-        assert!(waited.elapsed().as_secs() < 60, "{s:?}");
-    }
+    let last = wait_for_reloads(&follower, cache.memory_bytes);
     assert!(
         last > at_request,
         "no tile near the probe was read back: {:?}",
@@ -2652,5 +2688,63 @@ fn a_memory_limit_keeps_the_tiles_near_the_probe_in_memory() {
         .expect("a neighbour");
     let s = request(&mut follower, next);
     assert_eq!((s.swaps, s.tile_hits, s.tile_misses), (2, 1, 1), "{s:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `RegionFollower::focus_tiles`: with room for four tiles, the worker reads back the tiles
+/// around the focus (the point opposite the first centre) before any request comes there,
+/// so that the first request there is a hit; without the focus that tile stays dropped (the
+/// previous test's miss).
+#[test]
+fn a_focus_brings_the_tiles_there_into_memory_before_the_probe() {
+    use haptic_model::integrate::follow::RegionCacheDir;
+    let (fem, mesh, nodes, region, dir, first) = cache_setup("haptic-tile-focus");
+    let centre = region.centre_m;
+    let mut cache = RegionCacheDir {
+        dir: dir.clone(),
+        max_bytes: 1 << 30,
+        memory_bytes: 1 << 30,
+    };
+    let spawn = |cache: &RegionCacheDir| {
+        RegionFollower::spawn_with_cache(&fem, &mesh, &nodes, &first, Some(cache), None, false)
+            .expect("spawn")
+    };
+    let whole = wait_for_tiles(&spawn(&cache));
+    let n = whole.tiles;
+    cache.memory_bytes = whole.tile_cache_bytes * 4 / n;
+    let mut follower = spawn(&cache);
+    let read = wait_for_tiles(&follower);
+    let TileMode::Background { cover_m } = region.tiles else {
+        unreachable!()
+    };
+    let centres = tile_centres(&mesh.nodes, &nodes, centre, cover_m);
+    let opposite = DVec3::new(-centre.x, -centre.y, centre.z);
+    let p = centres
+        .iter()
+        .copied()
+        .min_by(|a, b| a.distance(opposite).total_cmp(&b.distance(opposite)))
+        .expect("a centre");
+    // The tiles kept are the four nearest the first centre: p's was dropped.
+    assert!(read.tiles_dropped >= n - 4, "{read:?}");
+    let before = wait_for_reloads(&follower, cache.memory_bytes);
+    follower.focus_tiles(DVec3::NAN);
+    follower.focus_tiles(p);
+    let reloaded = wait_for_reloads(&follower, cache.memory_bytes);
+    assert!(reloaded > before, "{:?}", follower.stats());
+    follower.set_blocking(true);
+    let mut solver = Box::new(first.clone());
+    let mut x = fem.rest().to_vec();
+    let mut v = vec![DVec3::ZERO; x.len()];
+    follower.before_tick(
+        &mut solver,
+        None,
+        &[Some((p, DVec3::ZERO))],
+        &[],
+        &mut x,
+        &mut v,
+    );
+    let s = follower.stats();
+    assert_eq!((s.swaps, s.tile_hits, s.tile_misses), (1, 1, 0), "{s:?}");
+    assert_eq!(s.centre_m, p, "{s:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -286,6 +286,25 @@ impl FemModel {
         self.frames.get(q).copied().unwrap_or(DMat3::IDENTITY)
     }
 
+    /// Bytes of the model's arrays: element data, lumped masses, constraints, integration
+    /// points, the force kernels' batches and cuts (both precisions), material frames and
+    /// pressures (capacities; the struct itself not counted).
+    pub fn heap_bytes(&self) -> usize {
+        use crate::vec_bytes as b;
+        b(&self.rest)
+            + b(&self.tets)
+            + b(&self.dm_inv)
+            + b(&self.volume_m3)
+            + b(&self.lumped_mass_kg)
+            + b(&self.constraint)
+            + self.points.heap_bytes()
+            + self.kernels.heap_bytes()
+            + self.single.as_ref().map_or(0, SingleLinear::heap_bytes)
+            + b(&self.frames)
+            + self.fibres.as_ref().map_or(0, |f| b(&f.transmural))
+            + b(&self.cell_pressure_pa)
+    }
+
     /// Number of nodes N.
     pub fn node_count(&self) -> usize {
         self.rest.len()

@@ -29,6 +29,18 @@ pub(in crate::element) struct IntegrationPoints {
 }
 
 impl IntegrationPoints {
+    /// Bytes of the arrays.
+    pub(super) fn heap_bytes(&self) -> usize {
+        use crate::vec_bytes as b;
+        b(&self.node_start)
+            + b(&self.nodes)
+            + b(&self.point_start)
+            + b(&self.cell)
+            + b(&self.grad_start)
+            + b(&self.grad)
+            + b(&self.weight_m3)
+    }
+
     pub(super) fn new() -> Self {
         Self {
             node_start: vec![0],

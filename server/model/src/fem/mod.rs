@@ -734,6 +734,14 @@ impl FemBody {
         }
     }
 
+    /// Centres a following region's background tile work on `point_m`, m
+    /// ([`RegionFollower::focus_tiles`]). No effect without one.
+    pub fn focus_region_tiles(&self, point_m: DVec3) {
+        if let Some(f) = &self.follow.0 {
+            f.focus_tiles(point_m);
+        }
+    }
+
     /// Makes a following region's ticks wait for each region they request (deterministic
     /// swaps, for tests and studies; a servo must not). No effect without one.
     pub fn set_blocking_region_preparation(&mut self, on: bool) {

@@ -285,6 +285,19 @@ fn metis_node_nd(mut graph: Graph, members: &Members, n: usize) -> Result<Vec<i3
     Ok(perm)
 }
 
+/// Bytes of `symbolic`'s arrays, about (faer keeps them private): the permutation, and per
+/// supernode its bounds and row pattern (with faer's row-major copy of the pattern), or the
+/// simplicial pattern.
+pub fn symbolic_heap_bytes(symbolic: &SymbolicCholesky<usize>) -> usize {
+    use faer::sparse::linalg::cholesky::SymbolicCholeskyRaw;
+    let words = match symbolic.raw() {
+        SymbolicCholeskyRaw::Supernodal(s) => 4 * (s.n_supernodes() + 1) + 2 * s.row_idx().len(),
+        SymbolicCholeskyRaw::Simplicial(s) => s.col_ptr().len() + s.row_idx().len(),
+    };
+    let perm = symbolic.perm().map_or(0, |p| 2 * p.len());
+    std::mem::size_of::<usize>() * (words + perm + symbolic.nrows())
+}
+
 /// The symbolic Cholesky factorisation of a symmetric pattern (`side` the triangle given, or
 /// both) under the [`nested_dissection`] ordering of its supervariables `group` (length
 /// `pattern.nrows()`), or AMD for a graph too small for it.

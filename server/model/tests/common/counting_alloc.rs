@@ -1,11 +1,12 @@
 //! A global allocator that counts allocations (and reallocations): the "no allocation in the
-//! tick" tests of the model and of the server. Two modes:
+//! tick" tests of the model and of the server, and the bytes they hold. Three modes:
 //!
 //! - [`counted`]: what the calling thread allocates while `f` runs;
 //! - [`counted_registered`]: what every *registered* thread allocates while `f` runs: the calling
 //!   thread, and every thread that called [`count_this_thread`] (a tick pool's workers call it from
 //!   their start hook), so work moved to pool threads cannot escape the count while the test
-//!   harness's other threads are never counted.
+//!   harness's other threads are never counted;
+//! - [`net_bytes`]: the bytes the calling thread allocates and keeps while `f` runs.
 //!
 //! A test file includes it with `#[path = "common/counting_alloc.rs"] mod counting_alloc;` (from
 //! `server/tests`: `"../model/tests/common/counting_alloc.rs"`); it installs the allocator of
@@ -21,6 +22,8 @@ thread_local! {
     static COUNTING: Cell<bool> = const { Cell::new(false) };
     static ALLOCATIONS: Cell<usize> = const { Cell::new(0) };
     static REGISTERED: Cell<bool> = const { Cell::new(false) };
+    static COUNTING_BYTES: Cell<bool> = const { Cell::new(false) };
+    static NET_BYTES: Cell<isize> = const { Cell::new(0) };
 }
 /// Counting of the registered threads is on.
 static REGISTERED_ON: AtomicBool = AtomicBool::new(false);
@@ -38,18 +41,28 @@ fn note_allocation() {
     }
 }
 
+/// Adds `bytes` to this thread's net bytes while [`net_bytes`] counts them.
+fn note_bytes(bytes: isize) {
+    if COUNTING_BYTES.try_with(|c| c.get()).unwrap_or(false) {
+        let _ = NET_BYTES.try_with(|n| n.set(n.get() + bytes));
+    }
+}
+
 unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
         note_allocation();
+        note_bytes(layout.size() as isize);
         // SAFETY: forwarded unchanged to the system allocator.
         unsafe { System.alloc(layout) }
     }
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        note_bytes(-(layout.size() as isize));
         // SAFETY: forwarded unchanged to the system allocator.
         unsafe { System.dealloc(ptr, layout) }
     }
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
         note_allocation();
+        note_bytes(new_size as isize - layout.size() as isize);
         // SAFETY: forwarded unchanged to the system allocator.
         unsafe { System.realloc(ptr, layout, new_size) }
     }
@@ -65,6 +78,17 @@ pub fn counted<T>(f: impl FnOnce() -> T) -> (T, usize) {
     let out = f();
     COUNTING.with(|c| c.set(false));
     (out, ALLOCATIONS.with(|a| a.get()) - before)
+}
+
+/// Runs `f` and returns its result with the bytes this thread allocated during it less those
+/// it freed: what `f`'s result holds on the heap when `f` allocates on this thread only.
+#[allow(dead_code)]
+pub fn net_bytes<T>(f: impl FnOnce() -> T) -> (T, isize) {
+    let before = NET_BYTES.with(|n| n.get());
+    COUNTING_BYTES.with(|c| c.set(true));
+    let out = f();
+    COUNTING_BYTES.with(|c| c.set(false));
+    (out, NET_BYTES.with(|n| n.get()) - before)
 }
 
 /// Registers the calling thread for [`counted_registered`] (for the rest of its life).

@@ -35,6 +35,12 @@ pub(super) type DomainBatch<'a> = (
 );
 
 impl DomainBatches {
+    /// Bytes of the arrays.
+    pub(super) fn heap_bytes(&self) -> usize {
+        use crate::vec_bytes as b;
+        b(&self.start) + b(&self.nodes) + b(&self.node3) + b(&self.grad) + b(&self.weight_m3)
+    }
+
     /// The batches, in order.
     pub(super) fn batches(&self) -> impl Iterator<Item = DomainBatch<'_>> {
         self.weight_m3.iter().enumerate().map(|(b, w)| {

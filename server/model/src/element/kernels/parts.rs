@@ -57,6 +57,20 @@ pub(super) struct Cut {
     pub(super) shared: Vec<u32>,
 }
 
+impl Cut {
+    /// Bytes of the arrays.
+    pub(super) fn heap_bytes(&self) -> usize {
+        use crate::vec_bytes as b;
+        b(&self.parts)
+            + b(&self.shared)
+            + self
+                .parts
+                .iter()
+                .map(|p| b(&p.touched) + b(&p.own))
+                .sum::<usize>()
+    }
+}
+
 /// The cuts into `1..=MAX_FORCE_PARTS` parts (`cuts[k - 1]` has `k` parts) of `work.len()`
 /// batches of `lanes` lanes over `node_count` nodes: batch `b` costs `work[b]` (any unit) and
 /// its lanes `l` touch the nodes `nodes(b, l)` yields (each below `node_count`, repeats

@@ -698,6 +698,45 @@ impl CondensedSolver {
             .wrapping_add(sys.half.as_ref().map_or(0, |h| h.touch()))
     }
 
+    /// Bytes of everything the region holds on the heap, about: [`Self::memory_bytes`] plus
+    /// the active elements' model ([`FemModel::heap_bytes`]), the tick factor's symbolic
+    /// analysis and sweep, the index arrays and the tick's work arrays. What a region cache
+    /// counts against its memory limit ([`crate::integrate::follow::RegionCacheDir`]).
+    pub fn heap_bytes(&self) -> usize {
+        use crate::vec_bytes as b;
+        let sys = &self.system;
+        let sc = &self.scratch;
+        let indices = b(&sys.eq)
+            + b(&sys.eq_dof)
+            + b(&sys.mass)
+            + b(&sys.gamma_dof)
+            + b(&sys.map_dofs)
+            + b(&sys.surface_rows)
+            + b(&sys.map_row)
+            + b(&sys.node_active)
+            + b(&sys.far.dofs)
+            + b(&self.contact.col)
+            + b(&self.state.last_contact);
+        let work = b(&sc.su)
+            + b(&sc.a_row)
+            + sc.stack.req.size_bytes()
+            + 4 * sc.rhs.nrows() * sc.rhs.ncols()
+            + b(&sc.b)
+            + b(&sc.z1)
+            + b(&sc.capacitance)
+            + b(&sc.u_gamma)
+            + b(&sc.u_gamma32)
+            + sc.far_cut
+                .as_ref()
+                .map_or(0, |c| b(&c.su) + b(&c.surface_u));
+        self.memory_bytes()
+            + sys.active.heap_bytes()
+            + crate::linalg::ordering::symbolic_heap_bytes(&sys.symbolic)
+            + sys.sweep.as_ref().map_or(0, SupernodalSolve::heap_bytes)
+            + indices
+            + work
+    }
+
     /// Bytes held by the region's numeric arrays (tick factor, maps, coupling columns, far
     /// factor), for reports; index arrays and the active elements' model are not counted.
     pub fn memory_bytes(&self) -> usize {

@@ -140,6 +140,9 @@ struct Shared {
     /// The worker builds no tile in the background ([`RegionFollower::set_paused`]).
     paused: AtomicBool,
     cache_error: std::sync::Mutex<Option<String>>,
+    /// Where the background tile work moves to ([`RegionFollower::focus_tiles`]), until the
+    /// worker takes it.
+    focus_m: std::sync::Mutex<Option<DVec3>>,
     /// The tick pool's thread count the regions are cut for
     /// ([`CondensedSolver::set_parts`]; 0 or 1: uncut).
     parts: AtomicU64,
@@ -200,7 +203,7 @@ pub struct FollowStats {
     pub tiles_failed: u64,
     /// Tile centres (0 without tiles).
     pub tiles: u64,
-    /// Bytes held by the built tiles ([`CondensedSolver::memory_bytes`] after
+    /// Bytes held by the built tiles ([`CondensedSolver::heap_bytes`] after
     /// [`CondensedSolver::trim_for_tiles`]).
     pub tile_cache_bytes: u64,
     /// Seconds the worker spent building tiles (and reading them from disk).
@@ -413,6 +416,22 @@ impl RegionFollower {
         if self.shared.paused.swap(on, Ordering::Relaxed) && !on {
             self.worker.unpark();
         }
+    }
+
+    /// Centres the worker's background tile work on `point_m` (m, the body's rest frame)
+    /// until the next request moves it: the missing tiles nearest it are built first, the
+    /// dropped ones nearest it read back, and those farthest from it dropped for the memory
+    /// limit ([`RegionCacheDir::memory_bytes`]). For a host that knows where the probe is
+    /// going (a planned stroke, the device above the surface before contact). Ignored
+    /// unless `point_m` is finite; no effect without tiles.
+    pub fn focus_tiles(&self, point_m: DVec3) {
+        if !point_m.is_finite() {
+            return;
+        }
+        if let Ok(mut focus) = self.shared.focus_m.lock() {
+            *focus = Some(point_m);
+        }
+        self.worker.unpark();
     }
 
     /// Regions swapped in so far (as in [`Self::stats`], without reading the worker's
@@ -648,6 +667,9 @@ impl Worker {
                     let _ = self.results.push(answer);
                 }
                 Err(_) => {
+                    if let Some(p) = self.shared.focus_m.lock().ok().and_then(|mut f| f.take()) {
+                        self.last_point_m = p;
+                    }
                     if self.shared.paused.load(Ordering::Relaxed) || !self.build_next_tile() {
                         std::thread::park_timeout(Duration::from_millis(50));
                     }
@@ -877,7 +899,7 @@ impl Worker {
             Some(t) => {
                 self.shared
                     .tile_cache_bytes
-                    .fetch_add(t.memory_bytes() as u64, Ordering::Relaxed);
+                    .fetch_add(t.heap_bytes() as u64, Ordering::Relaxed);
                 Tile::Built(Arc::clone(t))
             }
             None => Tile::Failed,
@@ -889,7 +911,7 @@ impl Worker {
             if let Tile::Built(t) = std::mem::replace(&mut cache.tiles[j], Tile::Dropped) {
                 self.shared
                     .tile_cache_bytes
-                    .fetch_sub(t.memory_bytes() as u64, Ordering::Relaxed);
+                    .fetch_sub(t.heap_bytes() as u64, Ordering::Relaxed);
                 self.shared.tiles_dropped.fetch_add(1, Ordering::Relaxed);
             }
         }

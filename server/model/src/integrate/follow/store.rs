@@ -39,7 +39,7 @@ pub struct RegionCacheDir {
     /// is not written (it stays in the session's memory).
     pub max_bytes: u64,
     /// Largest total size of the tiles one session keeps in memory, bytes
-    /// ([`CondensedSolver::memory_bytes`]; default [`DEFAULT_REGION_CACHE_MEMORY_BYTES`]):
+    /// ([`CondensedSolver::heap_bytes`]; default [`DEFAULT_REGION_CACHE_MEMORY_BYTES`]):
     /// beyond it the tiles farthest from the probe are dropped from memory (their files
     /// stay) and read back as it comes near them. A tile without a file is never dropped.
     pub memory_bytes: u64,

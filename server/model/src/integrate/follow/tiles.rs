@@ -121,7 +121,7 @@ impl TileCache {
             .tiles
             .iter()
             .filter_map(|t| match t {
-                Tile::Built(s) => Some(s.memory_bytes() as u64),
+                Tile::Built(s) => Some(s.heap_bytes() as u64),
                 _ => None,
             })
             .fold((0u64, 0u64), |(n, sum), b| (n + 1, sum + b));

@@ -157,6 +157,30 @@ fn panels(nc: usize, h: usize) -> impl DoubleEndedIterator<Item = Panel> {
 }
 
 impl SupernodalSolve {
+    /// Bytes of the sweep's arrays (pattern, permutation, right-hand side blocks, cut).
+    pub fn heap_bytes(&self) -> usize {
+        use crate::vec_bytes as b;
+        let split = self.split.as_ref().map_or(0, |s| {
+            let p = &s.phases;
+            b(&s.xb)
+                + b(&s.yb)
+                + b(&p.one[0])
+                + b(&p.one[1])
+                + b(&p.two[0])
+                + b(&p.two[1])
+                + b(&p.waiting_cols)
+                + b(&p.second_cols)
+        });
+        b(&self.nodes)
+            + b(&self.rows)
+            + b(&self.forward)
+            + b(&self.x)
+            + b(&self.y)
+            + b(&self.x2)
+            + b(&self.y2)
+            + split
+    }
+
     /// The sweep for the factors of `symbolic`, or `None` when faer chose a simplicial factor
     /// (small or very sparse matrices: solve those with faer) or the sizes exceed 32 bits.
     pub fn new(symbolic: &SymbolicCholesky<usize>) -> Option<Self> {

@@ -272,6 +272,23 @@ pub(crate) struct SingleLinear {
 }
 
 impl SingleLinear {
+    /// Bytes of the batches, the rest positions and the cuts.
+    pub(crate) fn heap_bytes(&self) -> usize {
+        use crate::vec_bytes as b;
+        let layout = match &self.layout {
+            SingleLayout::Tets(batches) => b(batches),
+            SingleLayout::Domains {
+                start,
+                slots,
+                volume_m3,
+            } => b(start) + b(slots) + b(volume_m3),
+        };
+        layout
+            + b(&self.rest)
+            + b(&self.cuts)
+            + self.cuts.iter().map(Cut::heap_bytes).sum::<usize>()
+    }
+
     /// The elements of a batch: [`Self::build`]'s order should interleave this many runs
     /// ([`super::locality_order`]).
     pub(crate) const LANES: usize = SINGLE_LANES;
