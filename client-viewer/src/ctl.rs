@@ -324,6 +324,23 @@ pub fn stats_rows(s: &SessionStats) -> Vec<StatRow> {
         row("region_tiles_ready", U64(s.region_tiles_ready), "count"),
         row("region_tiles_loaded", U64(s.region_tiles_loaded), "count"),
         row("region_tiles_refused", U64(s.region_tiles_refused), "count"),
+        row(
+            "region_tile_memory_bytes",
+            U64(s.region_tile_memory_bytes),
+            "bytes",
+        ),
+        row("region_tiles_dropped", U64(s.region_tiles_dropped), "count"),
+        row(
+            "region_tiles_reloaded",
+            U64(s.region_tiles_reloaded),
+            "count",
+        ),
+        row("region_tile_misses", U64(s.region_tile_misses), "count"),
+        row(
+            "region_unmapped_swaps",
+            U64(s.region_unmapped_swaps),
+            "count",
+        ),
         row("region_cache_error", Str(s.region_cache_error.clone()), ""),
         row("contact_ticks", U64(s.contact_ticks), "count"),
         row("companion_ticks", U64(s.companion_ticks), "count"),

@@ -246,6 +246,36 @@ const SESSION_METRICS: &[(&str, &str, MetricType, Extract)] = {
             |r| Value::Gauge(r.stats.body.region_tiles_refused as f64),
         ),
         (
+            "hapticd_region_tile_memory_bytes",
+            "Bytes the regions of a following region's cache hold in memory",
+            Gauge,
+            |r| Value::Gauge(r.stats.body.region_tile_memory_bytes as f64),
+        ),
+        (
+            "hapticd_region_tiles_dropped",
+            "Regions dropped from memory for region_cache_memory_bytes (their files stay)",
+            Gauge,
+            |r| Value::Gauge(r.stats.body.region_tiles_dropped as f64),
+        ),
+        (
+            "hapticd_region_tiles_reloaded",
+            "Dropped regions read back from the region cache on disk",
+            Gauge,
+            |r| Value::Gauge(r.stats.body.region_tiles_reloaded as f64),
+        ),
+        (
+            "hapticd_region_tile_misses",
+            "Region requests whose region was not in memory (read or prepared meanwhile)",
+            Gauge,
+            |r| Value::Gauge(r.stats.body.region_tile_misses as f64),
+        ),
+        (
+            "hapticd_region_unmapped_swaps",
+            "Region swaps beyond the far nodes the previous region mapped",
+            Gauge,
+            |r| Value::Gauge(r.stats.body.region_unmapped_swaps as f64),
+        ),
+        (
             "hapticd_contact_ticks",
             "Servo ticks with the probe in contact",
             Counter,

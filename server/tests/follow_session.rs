@@ -237,6 +237,9 @@ async fn get_stats_reports_the_region_cache_filling() {
         };
         assert_eq!(last.region_tiles_loaded, loaded, "{run}: {last:?}");
         assert_eq!(last.region_tiles_refused, refused, "{run}: {last:?}");
+        // Under the 1 GiB memory limit every region stays in memory.
+        assert_eq!(last.region_tiles_dropped, 0, "{run}: {last:?}");
+        assert!(last.region_tile_memory_bytes > 0, "{run}: {last:?}");
         if refused == 0 {
             assert_eq!(last.region_cache_error, "", "{run}");
         } else {
@@ -252,6 +255,7 @@ async fn get_stats_reports_the_region_cache_filling() {
             ("hapticd_region_tiles_ready{", last.region_tiles),
             ("hapticd_region_tiles_loaded{", loaded),
             ("hapticd_region_tiles_refused{", refused),
+            ("hapticd_region_tiles_dropped{", 0),
         ] {
             assert_eq!(gauge(name), Some(value as f64), "{run}: {name}");
         }
@@ -264,5 +268,58 @@ async fn get_stats_reports_the_region_cache_filling() {
         .expect("the cache directory")
         .count();
     assert_eq!(Some(files as u64), written, "one file per region");
+    memory_limited_session(&dir, &tiled).await;
     std::fs::remove_dir_all(&dir).expect("clean up");
+}
+
+/// A session over the full region cache in `dir` (scene `scene`) with room in memory for one
+/// region: GetStats and the metrics show every region read, all but one dropped from memory,
+/// and the bytes of the one kept.
+async fn memory_limited_session(dir: &std::path::Path, scene: &str) {
+    let config = ServerConfig {
+        region_cache: Some(haptic_model::integrate::follow::RegionCacheDir {
+            dir: dir.to_path_buf(),
+            max_bytes: 1 << 30,
+            memory_bytes: 1,
+        }),
+        ..ServerConfig::default()
+    };
+    let manager = Arc::new(SessionManager::new(config));
+    let services = Services::new(manager.clone());
+    let scene = manager.load_scene("", scene).expect("scene");
+    let session = manager.start(&scene).expect("session");
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(300);
+    let last = loop {
+        let s = services
+            .get_stats(tonic::Request::new(GetStatsRequest {
+                session_id: session.id.clone(),
+            }))
+            .await
+            .expect("stats")
+            .into_inner();
+        if s.region_tiles > 0 && s.region_tiles_ready == s.region_tiles {
+            break s;
+        }
+        assert!(tokio::time::Instant::now() < deadline, "{s:?}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert!(last.region_tiles_loaded >= last.region_tiles, "{last:?}");
+    assert!(
+        last.region_tiles_dropped >= last.region_tiles - 1,
+        "{last:?}"
+    );
+    assert!(last.region_tile_memory_bytes > 0, "{last:?}");
+    let registry = haptic_server::metrics::registry(manager.clone());
+    let text = haptic_server::metrics::render(&registry).expect("metrics");
+    let line = text
+        .lines()
+        .find(|l| l.starts_with("hapticd_region_tiles_dropped{") && l.contains(&session.id))
+        .expect("the gauge");
+    let dropped: f64 = line
+        .rsplit(' ')
+        .next()
+        .and_then(|v| v.parse().ok())
+        .expect("value");
+    assert!(dropped >= (last.region_tiles - 1) as f64, "{line}");
+    manager.stop(&session.id).expect("stop");
 }

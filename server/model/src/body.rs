@@ -198,6 +198,18 @@ pub struct BodyStats {
     /// centre: prepared again and replaced), so far; the host's
     /// [`crate::BodyOptions::region_cache_report`] receives each reason.
     pub region_tiles_refused: u64,
+    /// Bytes the region cache's regions hold in memory now
+    /// ([`crate::integrate::follow::FollowStats::tile_cache_bytes`]).
+    pub region_tile_memory_bytes: u64,
+    /// Regions dropped from memory to stay under the host's memory limit for them (their
+    /// files stay), and regions read back from those files, so far.
+    pub region_tiles_dropped: u64,
+    /// See [`BodyStats::region_tiles_dropped`].
+    pub region_tiles_reloaded: u64,
+    /// Requests whose region was not in memory (read or prepared meanwhile), so far.
+    pub region_tile_misses: u64,
+    /// Swaps to a region beyond the far nodes the previous one mapped (those start at rest).
+    pub region_unmapped_swaps: u64,
     /// Ticks in contact in which a following region's coarse companion contributed to the
     /// force (its blend weight was positive), so far; 0 without a companion. Against the
     /// servo's count of contact ticks it says how much of a press the coarse organ answered.

@@ -1072,6 +1072,11 @@ impl SoftBody for FemBody {
                 .map_or(0, |f| f.tiles_ready().min(f.tiles)),
             region_tiles_loaded: self.follow_stats().map_or(0, |f| f.tiles_loaded),
             region_tiles_refused: self.follow_stats().map_or(0, |f| f.tiles_refused),
+            region_tile_memory_bytes: self.follow_stats().map_or(0, |f| f.tile_cache_bytes),
+            region_tiles_dropped: self.follow_stats().map_or(0, |f| f.tiles_dropped),
+            region_tiles_reloaded: self.follow_stats().map_or(0, |f| f.tiles_reloaded),
+            region_tile_misses: self.follow_stats().map_or(0, |f| f.tile_misses),
+            region_unmapped_swaps: self.follow_stats().map_or(0, |f| f.unmapped_swaps),
             companion_ticks: self
                 .fallback_stats()
                 .map_or(0, |s| s.contact_ticks_answered),

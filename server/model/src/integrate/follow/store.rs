@@ -79,8 +79,8 @@ impl Eq for RegionCacheReport {}
 pub const DEFAULT_REGION_CACHE_MAX_BYTES: u64 = 8 << 30;
 
 /// Default [`RegionCacheDir::memory_bytes`]: 2 GiB (`lv_h1_condensed.toml`'s 69 tiles,
-/// about 0.9 GB, stay whole; of the 100 000-tet LV's 678 tiles of about 29 MB at its
-/// default cover, the 70 or so nearest the probe).
+/// about 1.25 GB, stay whole; of the 100 000-tet LV's 678 tiles of about 40 MB at its
+/// default cover, the 50 or so nearest the probe).
 pub const DEFAULT_REGION_CACHE_MEMORY_BYTES: u64 = 2 << 30;
 
 /// The key of a following region's tiles over `body` (mesh `mesh`): the region's radius,
