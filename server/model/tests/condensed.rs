@@ -2748,3 +2748,100 @@ fn a_focus_brings_the_tiles_there_into_memory_before_the_probe() {
     assert_eq!(s.centre_m, p, "{s:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Waits until `follower`'s worker has built, read or dropped no tile for 600 ms.
+fn wait_until_quiet(follower: &RegionFollower) -> haptic_model::integrate::follow::FollowStats {
+    let waited = Instant::now();
+    let work = |s: &haptic_model::integrate::follow::FollowStats| {
+        (s.tiles_built, s.tiles_loaded, s.tiles_dropped)
+    };
+    let mut last = follower.stats();
+    loop {
+        std::thread::sleep(std::time::Duration::from_millis(600));
+        let s = follower.stats();
+        if work(&s) == work(&last) {
+            return s;
+        }
+        last = s;
+        assert!(waited.elapsed().as_secs() < 120, "{last:?}");
+    }
+}
+
+/// A session whose region cache directory cannot take a tile (its size limit below one) keeps
+/// at most its memory limit of tiles: background builds stop there instead of holding every
+/// tile, a request far away is prepared on demand and the farthest tiles are dropped (to be
+/// prepared again), and the idle worker then builds the tiles around the new point, so that a
+/// neighbour's request is a hit.
+#[test]
+fn a_full_cache_directory_stops_background_builds_at_the_memory_limit() {
+    use haptic_model::integrate::follow::RegionCacheDir;
+    let (fem, mesh, nodes, region, dir, first) = cache_setup("haptic-tile-full");
+    let centre = region.centre_m;
+    let spawn = |cache: &RegionCacheDir| {
+        RegionFollower::spawn_with_cache(&fem, &mesh, &nodes, &first, Some(cache), None, false)
+            .expect("spawn")
+    };
+    let roomy = RegionCacheDir {
+        dir: dir.clone(),
+        max_bytes: 1 << 30,
+        memory_bytes: 1 << 30,
+    };
+    let whole = wait_for_tiles(&spawn(&roomy));
+    let n = whole.tiles;
+    let full = RegionCacheDir {
+        dir: dir.join("full"),
+        max_bytes: 1000,
+        memory_bytes: whole.tile_cache_bytes * 4 / n,
+    };
+    let mut follower = spawn(&full);
+    let quiet = wait_until_quiet(&follower);
+    assert!(
+        quiet.tiles_built < n / 2 && quiet.tiles_stored == 0,
+        "{quiet:?}"
+    );
+    assert!(quiet.tile_cache_bytes <= full.memory_bytes, "{quiet:?}");
+    let complaint = follower.cache_error().expect("the directory's refusal");
+    assert!(complaint.contains("full"), "{complaint}");
+    // The device opposite the first centre: prepared on demand, the farthest dropped.
+    let TileMode::Background { cover_m } = region.tiles else {
+        unreachable!()
+    };
+    let centres = tile_centres(&mesh.nodes, &nodes, centre, cover_m);
+    let opposite = DVec3::new(-centre.x, -centre.y, centre.z);
+    let nearest = |q: DVec3, except: Option<DVec3>| {
+        centres
+            .iter()
+            .copied()
+            .filter(|c| Some(*c) != except)
+            .min_by(|a, b| a.distance(q).total_cmp(&b.distance(q)))
+            .expect("a centre")
+    };
+    let p = nearest(opposite, None);
+    follower.set_blocking(true);
+    let mut solver = Box::new(first.clone());
+    let mut x = fem.rest().to_vec();
+    let mut v = vec![DVec3::ZERO; x.len()];
+    let mut request = |follower: &mut RegionFollower, q: DVec3| {
+        follower.before_tick(
+            &mut solver,
+            None,
+            &[Some((q, DVec3::ZERO))],
+            &[],
+            &mut x,
+            &mut v,
+        );
+        follower.stats()
+    };
+    let s = request(&mut follower, p);
+    assert_eq!((s.swaps, s.tile_misses), (1, 1), "{s:?}");
+    assert!(
+        s.tiles_dropped >= 1 && s.tile_cache_bytes <= full.memory_bytes,
+        "{s:?}"
+    );
+    // Idle: the tiles around p are built, the old ones dropped; a neighbour of p is a hit.
+    let quiet = wait_until_quiet(&follower);
+    assert!(quiet.tile_cache_bytes <= full.memory_bytes, "{quiet:?}");
+    let s = request(&mut follower, nearest(p, Some(p)));
+    assert_eq!((s.swaps, s.tile_hits, s.tile_misses), (2, 1, 1), "{s:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

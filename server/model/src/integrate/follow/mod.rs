@@ -45,10 +45,13 @@
 //! nearest the point ([`TILE_HYSTERESIS_M`] replaces [`RECENTRE_RADII`]) and sends a copy
 //! (the tile itself is never stepped), or prepares the tile on demand when it is not built
 //! yet and keeps it. A request waits at most for the one tile being built. The servo's side
-//! is unchanged. With a region cache on disk the tiles in memory are bounded
-//! ([`RegionCacheDir::memory_bytes`]): the farthest from the last requested point are dropped
-//! and read back from their files as the probe nears them. A tile maps only the far
-//! components its neighbours can take over (its ring), and the far field beyond is at rest.
+//! is unchanged. The tiles in memory are bounded ([`RegionCacheDir::memory_bytes`], or
+//! [`DEFAULT_REGION_CACHE_MEMORY_BYTES`] without a region cache on disk): the farthest from
+//! the last requested point are dropped, read back from their files (or prepared again
+//! without one) as the probe nears them; without files to write, background builds stop at
+//! the limit. [`RegionFollower::focus_tiles`] moves that point ahead of the probe. A tile
+//! maps only the far components its neighbours can take over (its ring), and the far field
+//! beyond is at rest.
 //!
 //! Owns: the worker thread, the hand-off rings, the re-centring rule and the tile cache
 //! (`tiles`). May use: [`super::condensed`], [`crate::element`], [`crate::mesh`].
@@ -322,7 +325,7 @@ impl RegionFollower {
         let (worker_results, results) = rtrb::RingBuffer::new(1);
         let (returns, worker_returns) = rtrb::RingBuffer::new(4);
         let shared = Arc::new(Shared::default());
-        let memory_limit = cache.map_or(u64::MAX, |d| d.memory_bytes);
+        let memory_limit = cache.map_or(DEFAULT_REGION_CACHE_MEMORY_BYTES, |d| d.memory_bytes);
         let store = match (region.tiles, cache) {
             (TileMode::Background { .. }, Some(dir)) if region.follow => Some(TileStore::new(
                 dir,
@@ -341,6 +344,7 @@ impl RegionFollower {
         let job = Worker {
             fill_only: fill_only && store.is_some(),
             memory_limit,
+            store_full: std::cell::Cell::new(false),
             cache,
             store,
             report,
@@ -630,9 +634,12 @@ struct Worker {
     report: Option<RegionCacheReport>,
     /// Fill the store only ([`RegionFollower::spawn_with_cache`]).
     fill_only: bool,
-    /// Bytes of tiles kept in memory at most ([`RegionCacheDir::memory_bytes`]; unbounded
-    /// without a store).
+    /// Bytes of tiles kept in memory at most ([`RegionCacheDir::memory_bytes`]; without a
+    /// store [`DEFAULT_REGION_CACHE_MEMORY_BYTES`]).
     memory_limit: u64,
+    /// The store refused a tile (full, or a write failed): later tiles are not written
+    /// either, so background builds stop at the memory limit ([`Self::build_next_tile`]).
+    store_full: std::cell::Cell<bool>,
     /// The last requested point, m: background builds start nearest it.
     last_point_m: DVec3,
     body: FemModel,
@@ -828,6 +835,7 @@ impl Worker {
             )),
             Err(e) => self.cache_error(e),
         }
+        self.store_full.set(true);
         false
     }
 
@@ -904,11 +912,22 @@ impl Worker {
             }
             None => Tile::Failed,
         };
+        let p = self.last_point_m;
         while self.shared.tile_cache_bytes.load(Ordering::Relaxed) > self.memory_limit {
-            let Some((j, _)) = cache.farthest_droppable(self.last_point_m, k) else {
+            // Those with a file first (read back in a fraction of a second), then the others
+            // (prepared again if the probe comes back).
+            let Some((j, _)) = cache
+                .farthest_in_memory(p, k, true)
+                .or_else(|| cache.farthest_in_memory(p, k, false))
+            else {
                 return;
             };
-            if let Tile::Built(t) = std::mem::replace(&mut cache.tiles[j], Tile::Dropped) {
+            let to = if cache.stored[j] {
+                Tile::Dropped
+            } else {
+                Tile::Missing
+            };
+            if let Tile::Built(t) = std::mem::replace(&mut cache.tiles[j], to) {
                 self.shared
                     .tile_cache_bytes
                     .fetch_sub(t.heap_bytes() as u64, Ordering::Relaxed);
@@ -919,7 +938,9 @@ impl Worker {
 
     /// Builds the missing tile nearest the last requested point (idle work), or else reads
     /// back a dropped one ([`Self::reload_nearer`]); `false` when there is nothing to do (or
-    /// no cache).
+    /// no cache). Without a file to write it to (no store, or a store that refused one), a
+    /// missing tile is built only when it belongs in memory ([`Self::belongs_in_memory`]):
+    /// the background work then stops at the memory limit instead of holding every tile.
     fn build_next_tile(&mut self) -> bool {
         let Some(k) = self
             .cache
@@ -930,32 +951,46 @@ impl Worker {
         };
         if self.fill_only {
             self.fill(k);
-        } else {
+        } else if (self.store.is_some() && !self.store_full.get()) || self.belongs_in_memory(k) {
             self.build_and_keep(k);
+        } else {
+            return self.reload_nearer();
         }
         true
     }
 
-    /// Reads back the dropped tile nearest the last requested point when it fits under the
-    /// memory limit or lies [`TILE_HYSTERESIS_M`] nearer that point than a tile in memory
-    /// (which [`Self::keep`] then drops): the tiles in memory follow the probe. `false` when
-    /// there is none to read.
-    fn reload_nearer(&mut self) -> bool {
+    /// Whether tile `k`, not in memory, belongs there: it fits under the memory limit, or it
+    /// lies [`TILE_HYSTERESIS_M`] nearer the last requested point than a tile in memory
+    /// (which [`Self::keep`] then drops), so that the tiles in memory follow the probe.
+    fn belongs_in_memory(&self, k: usize) -> bool {
         let Some(cache) = self.cache.as_ref() else {
             return false;
         };
         let p = self.last_point_m;
-        let Some((k, d_k)) = cache.nearest_dropped(p) else {
-            return false;
-        };
+        let d_k = cache.centres[k].distance(p);
         let bytes = self.shared.tile_cache_bytes.load(Ordering::Relaxed);
         let fits = cache
             .mean_built_bytes()
             .is_none_or(|b| bytes.saturating_add(b) <= self.memory_limit);
-        let nearer = cache
-            .farthest_droppable(p, k)
-            .is_some_and(|(_, d_j)| d_k + TILE_HYSTERESIS_M < d_j);
-        if !(fits || nearer) {
+        let nearer = [true, false].into_iter().any(|with_file| {
+            cache
+                .farthest_in_memory(p, k, with_file)
+                .is_some_and(|(_, d_j)| d_k + TILE_HYSTERESIS_M < d_j)
+        });
+        fits || nearer
+    }
+
+    /// Reads back the dropped tile nearest the last requested point when it belongs in
+    /// memory ([`Self::belongs_in_memory`]). `false` when there is none to read.
+    fn reload_nearer(&mut self) -> bool {
+        let Some((k, _)) = self
+            .cache
+            .as_ref()
+            .and_then(|c| c.nearest_dropped(self.last_point_m))
+        else {
+            return false;
+        };
+        if !self.belongs_in_memory(k) {
             return false;
         }
         self.build_and_keep(k);

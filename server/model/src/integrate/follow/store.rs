@@ -41,7 +41,10 @@ pub struct RegionCacheDir {
     /// Largest total size of the tiles one session keeps in memory, bytes
     /// ([`CondensedSolver::heap_bytes`]; default [`DEFAULT_REGION_CACHE_MEMORY_BYTES`]):
     /// beyond it the tiles farthest from the probe are dropped from memory (their files
-    /// stay) and read back as it comes near them. A tile without a file is never dropped.
+    /// stay) and read back as it comes near them. Tiles without a file (the directory full)
+    /// go last, and are prepared again when needed; once the directory refuses a tile,
+    /// background builds stop at this limit. A session without a directory keeps
+    /// [`DEFAULT_REGION_CACHE_MEMORY_BYTES`] of tiles at most.
     pub memory_bytes: u64,
 }
 

@@ -88,13 +88,20 @@ impl TileCache {
         }
     }
 
-    /// The tile in memory with a file farthest from `p` other than `except`, and its
-    /// distance, m (ties: the lowest index).
-    pub(super) fn farthest_droppable(&self, p: DVec3, except: usize) -> Option<(usize, f64)> {
+    /// The tile in memory farthest from `p` other than `except`, among those with a file
+    /// (`with_file`) or those without, and its distance, m (ties: the lowest index).
+    pub(super) fn farthest_in_memory(
+        &self,
+        p: DVec3,
+        except: usize,
+        with_file: bool,
+    ) -> Option<(usize, f64)> {
         self.tiles
             .iter()
             .enumerate()
-            .filter(|&(k, t)| k != except && self.stored[k] && matches!(t, Tile::Built(_)))
+            .filter(|&(k, t)| {
+                k != except && self.stored[k] == with_file && matches!(t, Tile::Built(_))
+            })
             .map(|(k, _)| (k, self.centres[k].distance(p)))
             .fold(None, |a: Option<(usize, f64)>, b| match a {
                 Some(a) if a.1 >= b.1 => Some(a),
@@ -115,7 +122,7 @@ impl TileCache {
             })
     }
 
-    /// Mean bytes of the tiles in memory ([`CondensedSolver::memory_bytes`]), or `None`.
+    /// Mean bytes of the tiles in memory ([`CondensedSolver::heap_bytes`]), or `None`.
     pub(super) fn mean_built_bytes(&self) -> Option<u64> {
         let (n, sum) = self
             .tiles
