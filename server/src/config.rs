@@ -445,7 +445,8 @@ fn canonical_even_if_missing(path: &Path) -> Option<PathBuf> {
 /// file lists regions to prepare (`prepare_regions`), which need a cache.
 ///
 /// # Errors
-/// [`ServerError::Config`] for a limit of 0 bytes, or regions to prepare without a cache.
+/// [`ServerError::Config`] for a limit of 0 bytes, or regions to prepare or limits without a
+/// cache (a session without one keeps at most the default memory limit of regions).
 fn region_cache(
     dir: Option<PathBuf>,
     (max_bytes, memory_bytes): (Option<u64>, Option<u64>),
@@ -465,6 +466,13 @@ fn region_cache(
     ] {
         if limit == Some(0) {
             return Err(ServerError::Config(format!("{name} must be at least 1")));
+        }
+        if limit.is_some() && dir.is_none() {
+            return Err(ServerError::Config(format!(
+                "{name} bounds the region cache: set region_cache_dir (or --region-cache-dir) \
+                 too; without one a session keeps at most {} MiB of regions in memory",
+                DEFAULT_REGION_CACHE_MEMORY_BYTES >> 20
+            )));
         }
     }
     Ok(dir.map(|dir| RegionCacheDir {

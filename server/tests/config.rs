@@ -77,6 +77,15 @@ fn relative_paths_in_the_file_resolve_against_its_directory() {
             .into_config()
             .unwrap_err();
         assert!(zero.to_string().contains(key), "{zero}");
+        // A limit without the cache it bounds is refused, not ignored.
+        let alone = ConfigFile::parse(&format!("{key} = 4096"))
+            .unwrap()
+            .into_config()
+            .unwrap_err();
+        assert!(
+            alone.to_string().contains(key) && alone.to_string().contains("region_cache_dir"),
+            "{alone}"
+        );
     }
     let limits = ConfigFile::parse(
         "region_cache_dir = \"c\"\nregion_cache_max_bytes = 3000\nregion_cache_memory_bytes = 2000",
