@@ -3,10 +3,11 @@
 //! the current one, and the servo swaps it in at a tick boundary.
 //!
 //! **Protocol.** Every [`POLL_TICKS`] ticks without a request in flight, the servo sends the
-//! device point (led by its velocity over the last preparation time, with tiles the last
-//! hit's, plus the poll interval, at most [`FOLLOW_LEAD_RADII`] radii) and the current centre
-//! through a wait-free ring and unparks the worker. The worker picks the touchable node
-//! nearest that point (rest configuration) as the new centre, and answers "nothing to do" when
+//! device point (led by its velocity over the shortest of the last three preparation times,
+//! with tiles of the hits, plus the poll interval, at most [`FOLLOW_LEAD_RADII`] radii) and the
+//! current centre through a wait-free ring and unparks the worker. The worker picks the
+//! touchable node nearest that point (rest configuration) as the new centre, and answers
+//! "nothing to do" when
 //! the device is farther than a radius from every touchable node or the centre would move less
 //! than [`RECENTRE_RADII`] radii; otherwise
 //! it condenses and factorises the new region ([`CondensedSolver::new`], then
@@ -86,6 +87,9 @@ use tiles::{Tile, TileCache};
 /// Servo ticks between two requests when none is in flight.
 pub const POLL_TICKS: u64 = 20;
 
+/// Preparations the lead is the shortest of (`Shared::lead_prepare_s`).
+const LEAD_SAMPLES: usize = 3;
+
 /// The worker re-centres only when the centre would move at least this many radii.
 pub const RECENTRE_RADII: f64 = 0.25;
 
@@ -123,10 +127,15 @@ struct Shared {
     /// Last and largest preparation time, s, as `f64` bits.
     last_prepare_s: AtomicU64,
     max_prepare_s: AtomicU64,
-    /// The preparation time requests lead the device by, s, as `f64` bits: the last
-    /// preparation on demand, or the last tile hit (a tile read from disk or built on a miss
-    /// does not count: the next request is most likely a hit again).
+    /// The preparation time requests lead the device by, s, as `f64` bits: the shortest of
+    /// the last [`LEAD_SAMPLES`] preparations on demand or tile hits (a tile read from disk
+    /// or built on a miss does not count: the next request is most likely a hit again; one
+    /// slow hit, the host busy for a moment, does not put the next regions ahead either).
     lead_prepare_s: AtomicU64,
+    /// Those preparation times, s, as `f64` bits (written by the worker only), and how many
+    /// were recorded.
+    lead_samples: [AtomicU64; LEAD_SAMPLES],
+    lead_recorded: AtomicU64,
     tile_hits: AtomicU64,
     tile_misses: AtomicU64,
     tiles_built: AtomicU64,
@@ -156,7 +165,15 @@ impl Shared {
     fn record_prepare_s(&self, s: f64, lead: bool) {
         self.last_prepare_s.store(s.to_bits(), Ordering::Relaxed);
         if lead {
-            self.lead_prepare_s.store(s.to_bits(), Ordering::Relaxed);
+            let n = self.lead_recorded.fetch_add(1, Ordering::Relaxed) + 1;
+            self.lead_samples[(n - 1) as usize % LEAD_SAMPLES]
+                .store(s.to_bits(), Ordering::Relaxed);
+            let shortest = self.lead_samples[..(n as usize).min(LEAD_SAMPLES)]
+                .iter()
+                .map(|a| f64::from_bits(a.load(Ordering::Relaxed)))
+                .fold(f64::INFINITY, f64::min);
+            self.lead_prepare_s
+                .store(shortest.to_bits(), Ordering::Relaxed);
         }
         let max = f64::from_bits(self.max_prepare_s.load(Ordering::Relaxed));
         self.max_prepare_s
@@ -1095,5 +1112,35 @@ impl Worker {
             solver,
             balls: RegionBalls::one(centre_m),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The lead is the shortest of the last three leading preparations: one slow tile hit
+    /// does not move it, three do, and a miss (not leading) never does.
+    #[test]
+    fn the_lead_is_the_shortest_of_the_last_three_preparations() {
+        let shared = Shared::default();
+        let lead = |s: &Shared| f64::from_bits(s.lead_prepare_s.load(Ordering::Relaxed));
+        assert_eq!(lead(&shared), 0.0);
+        shared.record_prepare_s(0.005, true);
+        assert_eq!(lead(&shared), 0.005);
+        shared.record_prepare_s(0.107, true);
+        assert_eq!(lead(&shared), 0.005);
+        shared.record_prepare_s(0.37, false);
+        assert_eq!(lead(&shared), 0.005);
+        shared.record_prepare_s(0.006, true);
+        shared.record_prepare_s(0.2, true);
+        assert_eq!(lead(&shared), 0.006);
+        shared.record_prepare_s(0.3, true);
+        shared.record_prepare_s(0.25, true);
+        assert_eq!(lead(&shared), 0.2);
+        assert_eq!(
+            f64::from_bits(shared.max_prepare_s.load(Ordering::Relaxed)),
+            0.37
+        );
     }
 }
