@@ -54,12 +54,6 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod body;
-
-/// Bytes of `v`'s heap buffer (its capacity), for the memory counts
-/// ([`element::FemModel::heap_bytes`], [`integrate::condensed::CondensedSolver::heap_bytes`]).
-pub(crate) fn vec_bytes<T>(v: &Vec<T>) -> usize {
-    v.capacity() * std::mem::size_of::<T>()
-}
 pub(crate) mod check;
 pub mod contact;
 pub mod element;

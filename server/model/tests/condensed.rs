@@ -2197,6 +2197,58 @@ fn wait_for_tiles(follower: &RegionFollower) -> haptic_model::integrate::follow:
     }
 }
 
+/// [`cache_setup`]'s parts with every tile written to its directory: a [`RegionCacheDir`]
+/// over that directory with room in memory for four tiles of the mean size (`max_bytes` as
+/// given), the tile count, and the whole cache's statistics.
+fn four_tile_cache(
+    name: &str,
+    max_bytes: u64,
+) -> (
+    CacheParts,
+    haptic_model::integrate::follow::RegionCacheDir,
+    u64,
+    haptic_model::integrate::follow::FollowStats,
+) {
+    use haptic_model::integrate::follow::RegionCacheDir;
+    let parts = cache_setup(name);
+    let (fem, mesh, nodes, _, dir, first) = &parts;
+    let roomy = RegionCacheDir {
+        dir: dir.clone(),
+        max_bytes: 1 << 30,
+        memory_bytes: 1 << 30,
+    };
+    let whole = wait_for_tiles(&spawn_follower(fem, mesh, nodes, first, &roomy));
+    let n = whole.tiles;
+    let limited = RegionCacheDir {
+        dir: dir.clone(),
+        max_bytes,
+        memory_bytes: whole.tile_cache_bytes * 4 / n,
+    };
+    (parts, limited, n, whole)
+}
+
+/// What [`cache_setup`] returns.
+type CacheParts = (
+    FemModel,
+    haptic_model::mesh::TetMesh,
+    Vec<u32>,
+    ActiveRegion,
+    std::path::PathBuf,
+    CondensedSolver,
+);
+
+/// A follower of `first` over `cache`.
+fn spawn_follower(
+    fem: &FemModel,
+    mesh: &haptic_model::mesh::TetMesh,
+    nodes: &[u32],
+    first: &CondensedSolver,
+    cache: &haptic_model::integrate::follow::RegionCacheDir,
+) -> RegionFollower {
+    RegionFollower::spawn_with_cache(fem, mesh, nodes, first, Some(cache), None, false)
+        .expect("spawn")
+}
+
 /// Waits until `follower`'s worker has read back no tile for 300 ms, checking that the tiles
 /// in memory stay under `limit` bytes meanwhile; its count of tiles read back.
 fn wait_for_reloads(follower: &RegionFollower, limit: u64) -> u64 {
@@ -2217,16 +2269,7 @@ fn wait_for_reloads(follower: &RegionFollower, limit: u64) -> u64 {
 /// What the region cache tests share: the coarse LV's body and mesh, its epicardial nodes, its
 /// tiled region at a 5 mm cover (about 30 tiles), an empty directory named after `name` and
 /// this process, and the first region with its contact columns.
-fn cache_setup(
-    name: &str,
-) -> (
-    FemModel,
-    haptic_model::mesh::TetMesh,
-    Vec<u32>,
-    ActiveRegion,
-    std::path::PathBuf,
-    CondensedSolver,
-) {
+fn cache_setup(name: &str) -> CacheParts {
     let (fem, mesh, _, centre) = setup(StrainSmoothing::None);
     let nodes = epi_nodes(&mesh);
     let region = ActiveRegion {
@@ -2611,24 +2654,11 @@ fn a_tile_maps_its_ring_and_hands_over_like_the_full_map() {
 /// so that a request next to it is a hit, and stays under the limit throughout.
 #[test]
 fn a_memory_limit_keeps_the_tiles_near_the_probe_in_memory() {
-    use haptic_model::integrate::follow::RegionCacheDir;
-    let (fem, mesh, nodes, region, dir, first) = cache_setup("haptic-tile-memory");
+    let ((fem, mesh, nodes, region, dir, first), cache, n, whole) =
+        four_tile_cache("haptic-tile-memory", 1 << 30);
     let centre = region.centre_m;
-    let mut cache = RegionCacheDir {
-        dir: dir.clone(),
-        max_bytes: 1 << 30,
-        memory_bytes: 1 << 30,
-    };
-    let spawn = |cache: &RegionCacheDir| {
-        RegionFollower::spawn_with_cache(&fem, &mesh, &nodes, &first, Some(cache), None, false)
-            .expect("spawn")
-    };
-    let whole = wait_for_tiles(&spawn(&cache));
-    let n = whole.tiles;
     assert!(n >= 5 && whole.tiles_stored == n, "{whole:?}");
-    // Room for four tiles of the mean size.
-    cache.memory_bytes = whole.tile_cache_bytes * 4 / n;
-    let mut follower = spawn(&cache);
+    let mut follower = spawn_follower(&fem, &mesh, &nodes, &first, &cache);
     let read = wait_for_tiles(&follower);
     assert!(
         read.tiles_built == n && read.tiles_stored == 0 && read.tiles_loaded >= n,
@@ -2697,22 +2727,10 @@ fn a_memory_limit_keeps_the_tiles_near_the_probe_in_memory() {
 /// previous test's miss).
 #[test]
 fn a_focus_brings_the_tiles_there_into_memory_before_the_probe() {
-    use haptic_model::integrate::follow::RegionCacheDir;
-    let (fem, mesh, nodes, region, dir, first) = cache_setup("haptic-tile-focus");
+    let ((fem, mesh, nodes, region, dir, first), cache, n, _) =
+        four_tile_cache("haptic-tile-focus", 1 << 30);
     let centre = region.centre_m;
-    let mut cache = RegionCacheDir {
-        dir: dir.clone(),
-        max_bytes: 1 << 30,
-        memory_bytes: 1 << 30,
-    };
-    let spawn = |cache: &RegionCacheDir| {
-        RegionFollower::spawn_with_cache(&fem, &mesh, &nodes, &first, Some(cache), None, false)
-            .expect("spawn")
-    };
-    let whole = wait_for_tiles(&spawn(&cache));
-    let n = whole.tiles;
-    cache.memory_bytes = whole.tile_cache_bytes * 4 / n;
-    let mut follower = spawn(&cache);
+    let mut follower = spawn_follower(&fem, &mesh, &nodes, &first, &cache);
     let read = wait_for_tiles(&follower);
     let TileMode::Background { cover_m } = region.tiles else {
         unreachable!()
@@ -2774,26 +2792,12 @@ fn wait_until_quiet(follower: &RegionFollower) -> haptic_model::integrate::follo
 /// neighbour's request is a hit.
 #[test]
 fn a_full_cache_directory_stops_background_builds_at_the_memory_limit() {
-    use haptic_model::integrate::follow::RegionCacheDir;
-    let (fem, mesh, nodes, region, dir, first) = cache_setup("haptic-tile-full");
+    let ((fem, mesh, nodes, region, dir, first), mut full, n, _) =
+        four_tile_cache("haptic-tile-full", 1000);
     let centre = region.centre_m;
-    let spawn = |cache: &RegionCacheDir| {
-        RegionFollower::spawn_with_cache(&fem, &mesh, &nodes, &first, Some(cache), None, false)
-            .expect("spawn")
-    };
-    let roomy = RegionCacheDir {
-        dir: dir.clone(),
-        max_bytes: 1 << 30,
-        memory_bytes: 1 << 30,
-    };
-    let whole = wait_for_tiles(&spawn(&roomy));
-    let n = whole.tiles;
-    let full = RegionCacheDir {
-        dir: dir.join("full"),
-        max_bytes: 1000,
-        memory_bytes: whole.tile_cache_bytes * 4 / n,
-    };
-    let mut follower = spawn(&full);
+    // An empty directory that cannot take one tile.
+    full.dir = dir.join("full");
+    let mut follower = spawn_follower(&fem, &mesh, &nodes, &first, &full);
     let quiet = wait_until_quiet(&follower);
     assert!(
         quiet.tiles_built < n / 2 && quiet.tiles_stored == 0,

@@ -290,7 +290,7 @@ impl FemModel {
     /// points, the force kernels' batches and cuts (both precisions), material frames and
     /// pressures (capacities; the struct itself not counted).
     pub fn heap_bytes(&self) -> usize {
-        use crate::vec_bytes as b;
+        use crate::linalg::vec_bytes as b;
         b(&self.rest)
             + b(&self.tets)
             + b(&self.dm_inv)

@@ -31,7 +31,7 @@ pub(in crate::element) struct IntegrationPoints {
 impl IntegrationPoints {
     /// Bytes of the arrays.
     pub(super) fn heap_bytes(&self) -> usize {
-        use crate::vec_bytes as b;
+        use crate::linalg::vec_bytes as b;
         b(&self.node_start)
             + b(&self.nodes)
             + b(&self.point_start)

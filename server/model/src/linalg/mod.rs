@@ -4,6 +4,13 @@
 pub mod ordering;
 pub mod supernodal;
 
+/// Bytes of `v`'s heap buffer (its capacity), for the memory counts
+/// ([`crate::element::FemModel::heap_bytes`],
+/// [`crate::integrate::condensed::CondensedSolver::heap_bytes`]).
+pub(crate) fn vec_bytes<T>(v: &Vec<T>) -> usize {
+    v.capacity() * std::mem::size_of::<T>()
+}
+
 /// A 3-D Laplacian-like positive definite matrix on an `n^3` grid with three components per
 /// node (each node's components coupled, each component to its six neighbours'): the lower
 /// triangle, large enough from `n = 9` for faer to choose a supernodal factor. For tests.

@@ -37,7 +37,7 @@ pub(super) type DomainBatch<'a> = (
 impl DomainBatches {
     /// Bytes of the arrays.
     pub(super) fn heap_bytes(&self) -> usize {
-        use crate::vec_bytes as b;
+        use crate::linalg::vec_bytes as b;
         b(&self.start) + b(&self.nodes) + b(&self.node3) + b(&self.grad) + b(&self.weight_m3)
     }
 

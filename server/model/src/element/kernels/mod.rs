@@ -104,7 +104,7 @@ enum Batches {
 impl Kernels {
     /// Bytes of the batches and of the two-part evaluation's.
     pub(crate) fn heap_bytes(&self) -> usize {
-        use crate::vec_bytes as b;
+        use crate::linalg::vec_bytes as b;
         let layout = match &self.layout {
             Layout::Linear(batches) => b(batches),
             Layout::Quadratic { batches, order } => b(batches) + b(order),

@@ -60,7 +60,7 @@ pub(super) struct Cut {
 impl Cut {
     /// Bytes of the arrays.
     pub(super) fn heap_bytes(&self) -> usize {
-        use crate::vec_bytes as b;
+        use crate::linalg::vec_bytes as b;
         b(&self.parts)
             + b(&self.shared)
             + self

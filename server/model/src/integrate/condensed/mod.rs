@@ -703,7 +703,7 @@ impl CondensedSolver {
     /// analysis and sweep, the index arrays and the tick's work arrays. What a region cache
     /// counts against its memory limit ([`crate::integrate::follow::RegionCacheDir`]).
     pub fn heap_bytes(&self) -> usize {
-        use crate::vec_bytes as b;
+        use crate::linalg::vec_bytes as b;
         let sys = &self.system;
         let sc = &self.scratch;
         let indices = b(&sys.eq)

@@ -159,7 +159,7 @@ fn panels(nc: usize, h: usize) -> impl DoubleEndedIterator<Item = Panel> {
 impl SupernodalSolve {
     /// Bytes of the sweep's arrays (pattern, permutation, right-hand side blocks, cut).
     pub fn heap_bytes(&self) -> usize {
-        use crate::vec_bytes as b;
+        use crate::linalg::vec_bytes as b;
         let split = self.split.as_ref().map_or(0, |s| {
             let p = &s.phases;
             b(&s.xb)

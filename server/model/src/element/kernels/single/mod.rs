@@ -274,7 +274,7 @@ pub(crate) struct SingleLinear {
 impl SingleLinear {
     /// Bytes of the batches, the rest positions and the cuts.
     pub(crate) fn heap_bytes(&self) -> usize {
-        use crate::vec_bytes as b;
+        use crate::linalg::vec_bytes as b;
         let layout = match &self.layout {
             SingleLayout::Tets(batches) => b(batches),
             SingleLayout::Domains {
