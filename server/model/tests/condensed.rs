@@ -2227,6 +2227,35 @@ fn four_tile_cache(
     (parts, limited, n, whole)
 }
 
+/// The servo's side in the region cache tests: the region in use and the body's state.
+struct Requester {
+    solver: Box<CondensedSolver>,
+    x: Vec<DVec3>,
+    v: Vec<DVec3>,
+}
+
+impl Requester {
+    fn new(fem: &FemModel, first: &CondensedSolver) -> Self {
+        Self {
+            solver: Box::new(first.clone()),
+            x: fem.rest().to_vec(),
+            v: vec![DVec3::ZERO; fem.node_count()],
+        }
+    }
+
+    /// One tick of `follower` with the device resting at `p` (a request, answered and
+    /// swapped in at once when the follower blocks); its statistics after it.
+    fn request(
+        &mut self,
+        follower: &mut RegionFollower,
+        p: DVec3,
+    ) -> haptic_model::integrate::follow::FollowStats {
+        let (x, v) = (&mut self.x, &mut self.v);
+        follower.before_tick(&mut self.solver, None, &[Some((p, DVec3::ZERO))], &[], x, v);
+        follower.stats()
+    }
+}
+
 /// What [`cache_setup`] returns.
 type CacheParts = (
     FemModel,
@@ -2679,20 +2708,8 @@ fn a_memory_limit_keeps_the_tiles_near_the_probe_in_memory() {
             .expect("node")
     };
     let p = on_epi(DVec3::new(-centre.x, -centre.y, centre.z));
-    let mut solver = Box::new(first.clone());
-    let mut x = fem.rest().to_vec();
-    let mut v = vec![DVec3::ZERO; x.len()];
-    let mut request = |follower: &mut RegionFollower, p: DVec3| {
-        follower.before_tick(
-            &mut solver,
-            None,
-            &[Some((p, DVec3::ZERO))],
-            &[],
-            &mut x,
-            &mut v,
-        );
-        follower.stats()
-    };
+    let mut servo = Requester::new(&fem, &first);
+    let mut request = |follower: &mut RegionFollower, p: DVec3| servo.request(follower, p);
     let s = request(&mut follower, p);
     // A miss: every tile was read, so this one had been dropped; it was read back.
     assert_eq!((s.swaps, s.tile_misses), (1, 1), "{s:?}");
@@ -2750,18 +2767,7 @@ fn a_focus_brings_the_tiles_there_into_memory_before_the_probe() {
     let reloaded = wait_for_reloads(&follower, cache.memory_bytes);
     assert!(reloaded > before, "{:?}", follower.stats());
     follower.set_blocking(true);
-    let mut solver = Box::new(first.clone());
-    let mut x = fem.rest().to_vec();
-    let mut v = vec![DVec3::ZERO; x.len()];
-    follower.before_tick(
-        &mut solver,
-        None,
-        &[Some((p, DVec3::ZERO))],
-        &[],
-        &mut x,
-        &mut v,
-    );
-    let s = follower.stats();
+    let s = Requester::new(&fem, &first).request(&mut follower, p);
     assert_eq!((s.swaps, s.tile_hits, s.tile_misses), (1, 1, 0), "{s:?}");
     assert_eq!(s.centre_m, p, "{s:?}");
     let _ = std::fs::remove_dir_all(&dir);
@@ -2822,20 +2828,8 @@ fn a_full_cache_directory_stops_background_builds_at_the_memory_limit() {
     };
     let p = nearest(opposite, None);
     follower.set_blocking(true);
-    let mut solver = Box::new(first.clone());
-    let mut x = fem.rest().to_vec();
-    let mut v = vec![DVec3::ZERO; x.len()];
-    let mut request = |follower: &mut RegionFollower, q: DVec3| {
-        follower.before_tick(
-            &mut solver,
-            None,
-            &[Some((q, DVec3::ZERO))],
-            &[],
-            &mut x,
-            &mut v,
-        );
-        follower.stats()
-    };
+    let mut servo = Requester::new(&fem, &first);
+    let mut request = |follower: &mut RegionFollower, q: DVec3| servo.request(follower, q);
     let s = request(&mut follower, p);
     assert_eq!((s.swaps, s.tile_misses), (1, 1), "{s:?}");
     assert!(
