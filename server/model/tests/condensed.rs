@@ -2053,6 +2053,21 @@ fn column_solves_on_several_threads_build_the_same_region_bit_for_bit() {
     assert_eq!(in_threads(0).sizes().interface_nodes * 3, g);
 }
 
+/// A tile of `fem` at `centre` (the tiled region, 1 ms step) with its contact columns,
+/// trimmed, its region, and its image under the key `[7; 32]`.
+fn imaged_tile(
+    fem: &FemModel,
+    mesh: &haptic_model::mesh::TetMesh,
+    centre: DVec3,
+) -> (CondensedSolver, ActiveRegion, Vec<u8>) {
+    let region = tiled_region(centre);
+    let mut tile = CondensedSolver::new(fem, mesh, region, 1e-3).expect("tile");
+    assert!(tile.prepare_contact(&epi_nodes(mesh)));
+    tile.trim_for_tiles();
+    let bytes = tile.to_image(&[7u8; 32]).expect("image");
+    (tile, region, bytes)
+}
+
 /// `CondensedSolver::heap_bytes`, what a region cache counts against its memory limit, is the
 /// heap a tile holds: within 5 % of the bytes its rebuild from an image allocates and keeps
 /// (counted by the test binary's allocator), standard and edge-smoothed; `memory_bytes`, the
@@ -2061,13 +2076,8 @@ fn column_solves_on_several_threads_build_the_same_region_bit_for_bit() {
 fn a_tiles_heap_bytes_are_what_it_holds() {
     for smoothing in [StrainSmoothing::None, StrainSmoothing::Edge] {
         let (fem, mesh, _, centre) = setup(smoothing);
-        let nodes = epi_nodes(&mesh);
-        let (region, dt) = (tiled_region(centre), 1e-3);
-        let mut tile = CondensedSolver::new(&fem, &mesh, region, dt).expect("tile");
-        assert!(tile.prepare_contact(&nodes));
-        tile.trim_for_tiles();
-        let key = [7u8; 32];
-        let bytes = tile.to_image(&key).expect("image");
+        let (tile, region, bytes) = imaged_tile(&fem, &mesh, centre);
+        let (dt, key) = (1e-3, [7u8; 32]);
         let (back, held) = counting_alloc::net_bytes(|| {
             CondensedSolver::from_image(&fem, &mesh, region, dt, &key, &bytes).expect("rebuilt")
         });
@@ -2092,12 +2102,8 @@ fn a_tiles_heap_bytes_are_what_it_holds() {
 fn a_region_image_rebuilds_a_tile_that_steps_bit_for_bit() {
     let (fem, mesh, f_ext, centre) = setup(StrainSmoothing::None);
     let nodes = epi_nodes(&mesh);
-    let (region, dt) = (tiled_region(centre), 1e-3);
-    let mut tile = CondensedSolver::new(&fem, &mesh, region, dt).expect("tile");
-    assert!(tile.prepare_contact(&nodes));
-    tile.trim_for_tiles();
-    let key = [7u8; 32];
-    let bytes = tile.to_image(&key).expect("image");
+    let (mut tile, region, bytes) = imaged_tile(&fem, &mesh, centre);
+    let (dt, key) = (1e-3, [7u8; 32]);
     assert!(
         bytes.len() > tile.memory_bytes() / 2 && bytes.len() < 2 * tile.memory_bytes() + 4096,
         "image {} bytes, region {} bytes",
