@@ -7,10 +7,9 @@
 //! with tiles of the hits, plus the poll interval, at most [`FOLLOW_LEAD_RADII`] radii) and the
 //! current centre through a wait-free ring and unparks the worker. The worker picks the
 //! touchable node nearest that point (rest configuration) as the new centre, and answers
-//! "nothing to do" when
-//! the device is farther than a radius from every touchable node or the centre would move less
-//! than [`RECENTRE_RADII`] radii; otherwise
-//! it condenses and factorises the new region ([`CondensedSolver::new`], then
+//! "nothing to do" when the device is farther than a radius from every touchable node or the
+//! centre would move less than [`RECENTRE_RADII`] radii; otherwise it condenses and
+//! factorises the new region ([`CondensedSolver::new`], then
 //! [`CondensedSolver::prepare_contact`]) and sends it back. At the next tick boundary the servo
 //! swaps it in when it is closer to the device than the current one (or within
 //! [`FOLLOW_NEAR_RADII`] radii of it) and holds at least as many nodes of the contact patch,
