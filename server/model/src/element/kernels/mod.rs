@@ -102,24 +102,6 @@ enum Batches {
 }
 
 impl Kernels {
-    /// Bytes of the batches and of the two-part evaluation's.
-    pub(crate) fn heap_bytes(&self) -> usize {
-        use crate::linalg::vec_bytes as b;
-        let layout = match &self.layout {
-            Layout::Linear(batches) => b(batches),
-            Layout::Quadratic { batches, order } => b(batches) + b(order),
-            Layout::Domains(d) => d.heap_bytes(),
-        };
-        let two = self.two.as_ref().map_or(0, |t| {
-            t.cut.heap_bytes()
-                + match &t.batches {
-                    Batches::Tets(batches) => b(batches),
-                    Batches::Domains(d) => d.heap_bytes(),
-                }
-        });
-        layout + two
-    }
-
     /// Linear tetrahedra `tets` (with their `Dm^-1` and volumes) over `nodes` rest positions
     /// (m), batched in a cache-friendly order.
     ///

@@ -57,6 +57,27 @@ pub(super) struct Cut {
     pub(super) shared: Vec<u32>,
 }
 
+impl super::Kernels {
+    /// Bytes of the batches and of the two-part evaluation's.
+    pub(crate) fn heap_bytes(&self) -> usize {
+        use super::{Batches, Layout};
+        use crate::linalg::vec_bytes as b;
+        let layout = match &self.layout {
+            Layout::Linear(batches) => b(batches),
+            Layout::Quadratic { batches, order } => b(batches) + b(order),
+            Layout::Domains(d) => d.heap_bytes(),
+        };
+        let two = self.two.as_ref().map_or(0, |t| {
+            t.cut.heap_bytes()
+                + match &t.batches {
+                    Batches::Tets(batches) => b(batches),
+                    Batches::Domains(d) => d.heap_bytes(),
+                }
+        });
+        layout + two
+    }
+}
+
 impl Cut {
     /// Bytes of the arrays.
     pub(super) fn heap_bytes(&self) -> usize {
