@@ -2849,3 +2849,40 @@ fn a_full_cache_directory_stops_background_builds_at_the_memory_limit() {
     assert_eq!((s.swaps, s.tile_hits, s.tile_misses), (2, 1, 1), "{s:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A device hovering above the surface, farther than a region's radius from it, gets no region,
+/// but the worker's background work follows the surface point under it: with room for four
+/// tiles, the tiles there are read back before the device comes down, and its first request
+/// there is a hit.
+#[test]
+fn a_device_above_the_surface_brings_the_tiles_under_it_into_memory() {
+    let ((fem, mesh, nodes, region, dir, first), cache, _, _) =
+        four_tile_cache("haptic-tile-hover", 1 << 30);
+    let centre = region.centre_m;
+    let mut follower = spawn_follower(&fem, &mesh, &nodes, &first, &cache);
+    let TileMode::Background { cover_m } = region.tiles else {
+        unreachable!()
+    };
+    let opposite = DVec3::new(-centre.x, -centre.y, centre.z);
+    let p = tile_centres(&mesh.nodes, &nodes, centre, cover_m)
+        .into_iter()
+        .min_by(|a, b| a.distance(opposite).total_cmp(&b.distance(opposite)))
+        .expect("a centre");
+    // Out along the surface's radial direction, a radius and 5 mm above it.
+    let above = p + DVec3::new(p.x, p.y, 0.0).normalize() * (region.radius_m + 0.005);
+    let before = wait_for_reloads(&follower, cache.memory_bytes);
+    follower.set_blocking(true);
+    let mut servo = Requester::new(&fem, &first);
+    let s = servo.request(&mut follower, above);
+    assert_eq!((s.swaps, s.tile_hits, s.tile_misses), (0, 0, 0), "{s:?}");
+    let reloaded = wait_for_reloads(&follower, cache.memory_bytes);
+    assert!(reloaded > before, "{:?}", follower.stats());
+    // Twenty ticks later (the poll interval) the device is down at p.
+    for _ in 0..haptic_model::integrate::follow::POLL_TICKS {
+        servo.request(&mut follower, p);
+    }
+    let s = follower.stats();
+    assert_eq!((s.swaps, s.tile_hits, s.tile_misses), (1, 1, 0), "{s:?}");
+    assert_eq!(s.centre_m, p, "{s:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -49,9 +49,9 @@
 //! [`DEFAULT_REGION_CACHE_MEMORY_BYTES`] without a region cache on disk): the farthest from
 //! the last requested point are dropped, read back from their files (or prepared again
 //! without one) as the probe nears them; without files to write, background builds stop at
-//! the limit. [`RegionFollower::focus_tiles`] moves that point ahead of the probe. A tile
-//! maps only the far components its neighbours can take over (its ring), and the far field
-//! beyond is at rest.
+//! the limit. A device above the surface moves that point to the surface under it, and
+//! [`RegionFollower::focus_tiles`] anywhere the host says. A tile maps only the far
+//! components its neighbours can take over (its ring), and the far field beyond is at rest.
 //!
 //! Owns: the worker thread, the hand-off rings, the re-centring rule and the tile cache
 //! (`tiles`). May use: [`super::condensed`], [`crate::element`], [`crate::mesh`].
@@ -747,7 +747,14 @@ impl Worker {
         let (balls, point_m) = self.balls_for(&request.points_m);
         let current = request.current.centres();
         match balls.centres() {
-            [] => Prepared::Nothing,
+            [] => {
+                // The device above the surface, farther than a radius: the tiles follow the
+                // surface point under it, ready when it comes down.
+                if let (Some(_), Some(&p)) = (&self.cache, request.points_m.centres().first()) {
+                    self.last_point_m = self.nearest(p).0;
+                }
+                Prepared::Nothing
+            }
             [_] if current.len() == 1 && self.cache.is_some() => self.lookup(point_m, current[0]),
             // From a union back to one ball: the nearest tile, whatever the hysteresis.
             [_] if self.cache.is_some() => self.lookup(point_m, DVec3::NAN),
