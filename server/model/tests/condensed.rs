@@ -2262,6 +2262,25 @@ impl Requester {
     }
 }
 
+/// The centre of `region`'s tiles (over the touchable `nodes` of `mesh`) nearest `target`,
+/// other than `except`.
+fn nearest_tile(
+    mesh: &haptic_model::mesh::TetMesh,
+    nodes: &[u32],
+    region: &ActiveRegion,
+    target: DVec3,
+    except: Option<DVec3>,
+) -> DVec3 {
+    let TileMode::Background { cover_m } = region.tiles else {
+        panic!("a region with tiles")
+    };
+    tile_centres(&mesh.nodes, nodes, region.centre_m, cover_m)
+        .into_iter()
+        .filter(|c| Some(*c) != except)
+        .min_by(|a, b| a.distance(target).total_cmp(&b.distance(target)))
+        .expect("a centre")
+}
+
 /// What [`cache_setup`] returns.
 type CacheParts = (
     FemModel,
@@ -2731,14 +2750,7 @@ fn a_memory_limit_keeps_the_tiles_near_the_probe_in_memory() {
     );
     // A neighbouring tile's point (a tile centre other than the one in use, nearest p) is a hit.
     let in_use = follower.stats().centre_m;
-    let TileMode::Background { cover_m } = region.tiles else {
-        unreachable!()
-    };
-    let next = tile_centres(&mesh.nodes, &nodes, centre, cover_m)
-        .into_iter()
-        .filter(|c| *c != in_use)
-        .min_by(|a, b| a.distance(p).total_cmp(&b.distance(p)))
-        .expect("a neighbour");
+    let next = nearest_tile(&mesh, &nodes, &region, p, Some(in_use));
     let s = request(&mut follower, next);
     assert_eq!((s.swaps, s.tile_hits, s.tile_misses), (2, 1, 1), "{s:?}");
     let _ = std::fs::remove_dir_all(&dir);
@@ -2755,16 +2767,8 @@ fn a_focus_brings_the_tiles_there_into_memory_before_the_probe() {
     let centre = region.centre_m;
     let mut follower = spawn_follower(&fem, &mesh, &nodes, &first, &cache);
     let read = wait_for_tiles(&follower);
-    let TileMode::Background { cover_m } = region.tiles else {
-        unreachable!()
-    };
-    let centres = tile_centres(&mesh.nodes, &nodes, centre, cover_m);
     let opposite = DVec3::new(-centre.x, -centre.y, centre.z);
-    let p = centres
-        .iter()
-        .copied()
-        .min_by(|a, b| a.distance(opposite).total_cmp(&b.distance(opposite)))
-        .expect("a centre");
+    let p = nearest_tile(&mesh, &nodes, &region, opposite, None);
     // The tiles kept are the four nearest the first centre: p's was dropped.
     assert!(read.tiles_dropped >= n - 4, "{read:?}");
     let before = wait_for_reloads(&follower, cache.memory_bytes);
@@ -2819,20 +2823,8 @@ fn a_full_cache_directory_stops_background_builds_at_the_memory_limit() {
     let complaint = follower.cache_error().expect("the directory's refusal");
     assert!(complaint.contains("full"), "{complaint}");
     // The device opposite the first centre: prepared on demand, the farthest dropped.
-    let TileMode::Background { cover_m } = region.tiles else {
-        unreachable!()
-    };
-    let centres = tile_centres(&mesh.nodes, &nodes, centre, cover_m);
     let opposite = DVec3::new(-centre.x, -centre.y, centre.z);
-    let nearest = |q: DVec3, except: Option<DVec3>| {
-        centres
-            .iter()
-            .copied()
-            .filter(|c| Some(*c) != except)
-            .min_by(|a, b| a.distance(q).total_cmp(&b.distance(q)))
-            .expect("a centre")
-    };
-    let p = nearest(opposite, None);
+    let p = nearest_tile(&mesh, &nodes, &region, opposite, None);
     follower.set_blocking(true);
     let mut servo = Requester::new(&fem, &first);
     let mut request = |follower: &mut RegionFollower, q: DVec3| servo.request(follower, q);
@@ -2845,7 +2837,10 @@ fn a_full_cache_directory_stops_background_builds_at_the_memory_limit() {
     // Idle: the tiles around p are built, the old ones dropped; a neighbour of p is a hit.
     let quiet = wait_until_quiet(&follower);
     assert!(quiet.tile_cache_bytes <= full.memory_bytes, "{quiet:?}");
-    let s = request(&mut follower, nearest(p, Some(p)));
+    let s = request(
+        &mut follower,
+        nearest_tile(&mesh, &nodes, &region, p, Some(p)),
+    );
     assert_eq!((s.swaps, s.tile_hits, s.tile_misses), (2, 1, 1), "{s:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -2860,14 +2855,8 @@ fn a_device_above_the_surface_brings_the_tiles_under_it_into_memory() {
         four_tile_cache("haptic-tile-hover", 1 << 30);
     let centre = region.centre_m;
     let mut follower = spawn_follower(&fem, &mesh, &nodes, &first, &cache);
-    let TileMode::Background { cover_m } = region.tiles else {
-        unreachable!()
-    };
     let opposite = DVec3::new(-centre.x, -centre.y, centre.z);
-    let p = tile_centres(&mesh.nodes, &nodes, centre, cover_m)
-        .into_iter()
-        .min_by(|a, b| a.distance(opposite).total_cmp(&b.distance(opposite)))
-        .expect("a centre");
+    let p = nearest_tile(&mesh, &nodes, &region, opposite, None);
     // Out along the surface's radial direction, a radius and 5 mm above it.
     let above = p + DVec3::new(p.x, p.y, 0.0).normalize() * (region.radius_m + 0.005);
     let before = wait_for_reloads(&follower, cache.memory_bytes);
