@@ -2303,20 +2303,26 @@ fn spawn_follower(
         .expect("spawn")
 }
 
-/// Waits until `follower`'s worker has read back no tile for 300 ms, checking that the tiles
-/// in memory stay under `limit` bytes meanwhile; its count of tiles read back.
-fn wait_for_reloads(follower: &RegionFollower, limit: u64) -> u64 {
+/// Waits until `follower`'s worker has built, read or dropped no tile for 300 ms, checking
+/// that the tiles in memory stay under `limit` bytes meanwhile; its statistics then.
+fn wait_until_quiet(
+    follower: &RegionFollower,
+    limit: u64,
+) -> haptic_model::integrate::follow::FollowStats {
     let waited = Instant::now();
-    let mut last = follower.stats().tiles_reloaded;
+    let work = |s: &haptic_model::integrate::follow::FollowStats| {
+        (s.tiles_built, s.tiles_loaded, s.tiles_dropped)
+    };
+    let mut last = follower.stats();
     loop {
         std::thread::sleep(std::time::Duration::from_millis(300));
         let s = follower.stats();
         assert!(s.tile_cache_bytes <= limit, "{s:?}");
-        if s.tiles_reloaded == last {
-            return last;
+        if work(&s) == work(&last) {
+            return s;
         }
-        last = s.tiles_reloaded;
-        assert!(waited.elapsed().as_secs() < 60, "{s:?}");
+        last = s;
+        assert!(waited.elapsed().as_secs() < 120, "{last:?}");
     }
 }
 
@@ -2742,7 +2748,7 @@ fn a_memory_limit_keeps_the_tiles_near_the_probe_in_memory() {
     assert!(s.centre_m.distance(p) < 0.006, "{s:?}");
     // Idle: the tiles near p come back, the far ones go.
     let at_request = s.tiles_reloaded;
-    let last = wait_for_reloads(&follower, cache.memory_bytes);
+    let last = wait_until_quiet(&follower, cache.memory_bytes).tiles_reloaded;
     assert!(
         last > at_request,
         "no tile near the probe was read back: {:?}",
@@ -2771,34 +2777,16 @@ fn a_focus_brings_the_tiles_there_into_memory_before_the_probe() {
     let p = nearest_tile(&mesh, &nodes, &region, opposite, None);
     // The tiles kept are the four nearest the first centre: p's was dropped.
     assert!(read.tiles_dropped >= n - 4, "{read:?}");
-    let before = wait_for_reloads(&follower, cache.memory_bytes);
+    let before = wait_until_quiet(&follower, cache.memory_bytes).tiles_reloaded;
     follower.focus_tiles(DVec3::NAN);
     follower.focus_tiles(p);
-    let reloaded = wait_for_reloads(&follower, cache.memory_bytes);
+    let reloaded = wait_until_quiet(&follower, cache.memory_bytes).tiles_reloaded;
     assert!(reloaded > before, "{:?}", follower.stats());
     follower.set_blocking(true);
     let s = Requester::new(&fem, &first).request(&mut follower, p);
     assert_eq!((s.swaps, s.tile_hits, s.tile_misses), (1, 1, 0), "{s:?}");
     assert_eq!(s.centre_m, p, "{s:?}");
     let _ = std::fs::remove_dir_all(&dir);
-}
-
-/// Waits until `follower`'s worker has built, read or dropped no tile for 600 ms.
-fn wait_until_quiet(follower: &RegionFollower) -> haptic_model::integrate::follow::FollowStats {
-    let waited = Instant::now();
-    let work = |s: &haptic_model::integrate::follow::FollowStats| {
-        (s.tiles_built, s.tiles_loaded, s.tiles_dropped)
-    };
-    let mut last = follower.stats();
-    loop {
-        std::thread::sleep(std::time::Duration::from_millis(600));
-        let s = follower.stats();
-        if work(&s) == work(&last) {
-            return s;
-        }
-        last = s;
-        assert!(waited.elapsed().as_secs() < 120, "{last:?}");
-    }
 }
 
 /// A session whose region cache directory cannot take a tile (its size limit below one) keeps
@@ -2814,7 +2802,7 @@ fn a_full_cache_directory_stops_background_builds_at_the_memory_limit() {
     // An empty directory that cannot take one tile.
     full.dir = dir.join("full");
     let mut follower = spawn_follower(&fem, &mesh, &nodes, &first, &full);
-    let quiet = wait_until_quiet(&follower);
+    let quiet = wait_until_quiet(&follower, u64::MAX);
     assert!(
         quiet.tiles_built < n / 2 && quiet.tiles_stored == 0,
         "{quiet:?}"
@@ -2835,7 +2823,7 @@ fn a_full_cache_directory_stops_background_builds_at_the_memory_limit() {
         "{s:?}"
     );
     // Idle: the tiles around p are built, the old ones dropped; a neighbour of p is a hit.
-    let quiet = wait_until_quiet(&follower);
+    let quiet = wait_until_quiet(&follower, u64::MAX);
     assert!(quiet.tile_cache_bytes <= full.memory_bytes, "{quiet:?}");
     let s = request(
         &mut follower,
@@ -2859,12 +2847,12 @@ fn a_device_above_the_surface_brings_the_tiles_under_it_into_memory() {
     let p = nearest_tile(&mesh, &nodes, &region, opposite, None);
     // Out along the surface's radial direction, a radius and 5 mm above it.
     let above = p + DVec3::new(p.x, p.y, 0.0).normalize() * (region.radius_m + 0.005);
-    let before = wait_for_reloads(&follower, cache.memory_bytes);
+    let before = wait_until_quiet(&follower, cache.memory_bytes).tiles_reloaded;
     follower.set_blocking(true);
     let mut servo = Requester::new(&fem, &first);
     let s = servo.request(&mut follower, above);
     assert_eq!((s.swaps, s.tile_hits, s.tile_misses), (0, 0, 0), "{s:?}");
-    let reloaded = wait_for_reloads(&follower, cache.memory_bytes);
+    let reloaded = wait_until_quiet(&follower, cache.memory_bytes).tiles_reloaded;
     assert!(reloaded > before, "{:?}", follower.stats());
     // Twenty ticks later (the poll interval) the device is down at p.
     for _ in 0..haptic_model::integrate::follow::POLL_TICKS {
