@@ -2190,6 +2190,67 @@ fn a_region_image_rebuilds_a_tile_that_steps_bit_for_bit() {
     assert!(whole.to_image(&key).is_err());
 }
 
+/// An image whose hash was recomputed over forged contents (a hostile cache directory: the
+/// hash only detects damage) is refused with an error, never a panic, when its stored tick
+/// matrix pattern or ordering is not one: a row out of range, column pointers that decrease,
+/// an ordering that repeats an equation, or a pattern of another size.
+#[test]
+fn a_forged_region_image_is_refused_without_a_panic() {
+    let (fem, mesh, _, centre) = setup(StrainSmoothing::None);
+    let (_, region, bytes) = imaged_tile(&fem, &mesh, centre);
+    let (dt, key) = (1e-3, [7u8; 32]);
+    // Layout after the 76-byte header: the column pointers (u64 count, u32 each), the rows
+    // (u64 count, u16 each below 2^16 equations), the ordering (u64 count, u32 each).
+    let count = |at: usize| u64::from_ne_bytes(bytes[at..at + 8].try_into().unwrap()) as usize;
+    let ptr_at = 76;
+    let m = count(ptr_at) - 1;
+    let rows_at = ptr_at + 8 + 4 * (m + 1);
+    let order_at = rows_at + 8 + 2 * count(rows_at);
+    assert_eq!(count(order_at), m, "the layout this test forges has moved");
+    let forge = |edit: &dyn Fn(&mut Vec<u8>)| {
+        let mut forged = bytes.clone();
+        edit(&mut forged);
+        let body = forged.len() - 32;
+        let hash = *blake3::hash(&forged[..body]).as_bytes();
+        forged[body..].copy_from_slice(&hash);
+        forged
+    };
+    let cases: [(&str, Vec<u8>); 4] = [
+        (
+            "row out of range",
+            forge(&|b| b[rows_at + 8..rows_at + 10].copy_from_slice(&u16::MAX.to_ne_bytes())),
+        ),
+        (
+            "decreasing pointers",
+            forge(&|b| b[ptr_at + 12..ptr_at + 16].copy_from_slice(&u32::MAX.to_ne_bytes())),
+        ),
+        (
+            "repeated equation",
+            forge(&|b| {
+                let first: [u8; 4] = b[order_at + 8..order_at + 12].try_into().unwrap();
+                b[order_at + 12..order_at + 16].copy_from_slice(&first);
+            }),
+        ),
+        (
+            "another size",
+            forge(&|b| b[ptr_at..ptr_at + 8].copy_from_slice(&(m as u64).to_ne_bytes())),
+        ),
+    ];
+    for (what, forged) in cases {
+        let refused = std::panic::catch_unwind(|| {
+            CondensedSolver::from_image(&fem, &mesh, region, dt, &key, &forged).err()
+        });
+        let error = refused.unwrap_or_else(|_| panic!("{what}: from_image panicked"));
+        let error = error.unwrap_or_else(|| panic!("{what}: the forged image was accepted"));
+        assert!(
+            error.to_string().contains("does not fit") || error.to_string().contains("truncated"),
+            "{what}: {error}"
+        );
+    }
+    let honest = forge(&|_| {});
+    assert!(CondensedSolver::from_image(&fem, &mesh, region, dt, &key, &honest).is_ok());
+}
+
 /// Waits (at most 120 s) until every tile of `follower` is built, read or failed.
 fn wait_for_tiles(follower: &RegionFollower) -> haptic_model::integrate::follow::FollowStats {
     let waited = Instant::now();

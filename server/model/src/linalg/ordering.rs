@@ -324,6 +324,44 @@ pub fn symbolic_cholesky(
     }
 }
 
+/// The symbolic Cholesky factorisation of a symmetric pattern (`side` the triangle given, or
+/// both) under the fill-reducing permutation `forward` (`forward[k]` the original index of
+/// the equation placed `k`-th), without ordering it again: the analysis
+/// [`symbolic_cholesky`] made when `forward` is its permutation (read back from a region
+/// image, where METIS would take a quarter of the read).
+///
+/// # Errors
+/// [`ModelError::InvalidInput`] when `forward` is not a permutation of the pattern's
+/// `nrows()` equations, or when faer's analysis fails.
+pub fn symbolic_cholesky_in_order(
+    pattern: SymbolicSparseColMatRef<'_, usize>,
+    side: Side,
+    forward: &[usize],
+) -> Result<SymbolicCholesky<usize>, ModelError> {
+    let n = pattern.nrows();
+    let mut inverse = vec![usize::MAX; n];
+    for (k, &o) in forward.iter().enumerate() {
+        match inverse.get_mut(o) {
+            Some(slot) if *slot == usize::MAX => *slot = k,
+            _ => {
+                return Err(bad(format!(
+                    "{} entries are no ordering of {n} equations",
+                    forward.len()
+                )));
+            }
+        }
+    }
+    if forward.len() != n {
+        return Err(bad(format!(
+            "{} entries are no ordering of {n} equations",
+            forward.len()
+        )));
+    }
+    let ordering = SymmetricOrdering::Custom(PermRef::new_checked(forward, &inverse, n));
+    factorize_symbolic_cholesky(pattern, side, ordering, CholeskySymbolicParams::default())
+        .map_err(|e| ModelError::InvalidInput(format!("symbolic Cholesky factorisation: {e:?}")))
+}
+
 /// faer's parallelism for a factorisation on `threads` threads: sequential for one, else its
 /// rayon mode (dense kernels of the large supernodes on rayon's global pool).
 pub(crate) fn parallelism(threads: usize) -> Par {

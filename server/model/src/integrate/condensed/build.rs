@@ -862,16 +862,59 @@ pub(super) fn map_rows(
         .filter(|&r| on_boundary[far_dofs[map_far[r]] / 3])
         .map(|r| r as u32)
         .collect();
-    let mut map_row = vec![u32::MAX; if region.follow { 3 * n } else { 0 }];
-    if region.follow {
-        for (r, &k) in map_far.iter().enumerate() {
-            map_row[far_dofs[k]] = r as u32;
+    MapRows::of(num, region.follow, map_far, surface_rows)
+}
+
+impl MapRows {
+    /// The rows `map_far` (far components of `num`, increasing) with the boundary rows
+    /// `surface_rows`, and for a following region (`follow`) the row of every global
+    /// component.
+    fn of(num: &Numbering, follow: bool, map_far: Vec<usize>, surface_rows: Vec<u32>) -> Self {
+        // Held as long as the region: no spare capacity (a tile read back holds the same heap
+        // as the one built, CondensedSolver::heap_bytes).
+        let (mut map_far, mut surface_rows) = (map_far, surface_rows);
+        map_far.shrink_to_fit();
+        surface_rows.shrink_to_fit();
+        let mut map_row = vec![u32::MAX; if follow { num.eq.len() } else { 0 }];
+        if follow {
+            for (r, &k) in map_far.iter().enumerate() {
+                map_row[num.far_dofs[k]] = r as u32;
+            }
+        }
+        MapRows {
+            map_far,
+            surface_rows,
+            map_row,
         }
     }
-    MapRows {
-        map_far,
-        surface_rows,
-        map_row,
+
+    /// A following region's rows as an image stores them ([`CondensedSolver::to_image`]):
+    /// the global components of the rows `map_dofs` (far components of `num`, increasing) and
+    /// the boundary rows `surface_rows` (increasing, below the row count), or `None` when they
+    /// are not such rows.
+    pub(super) fn read_back(
+        num: &Numbering,
+        map_dofs: &[u32],
+        surface_rows: Vec<u32>,
+    ) -> Option<Self> {
+        let increasing = |v: &[u32]| v.windows(2).all(|w| w[0] < w[1]);
+        let rows = map_dofs.len();
+        if !increasing(map_dofs)
+            || !increasing(&surface_rows)
+            || surface_rows.last().is_some_and(|&r| r as usize >= rows)
+        {
+            return None;
+        }
+        let map_far = map_dofs
+            .iter()
+            .map(|&d| {
+                num.far_index
+                    .get(d as usize)
+                    .copied()
+                    .filter(|&k| k != usize::MAX)
+            })
+            .collect::<Option<Vec<usize>>>()?;
+        Some(Self::of(num, true, map_far, surface_rows))
     }
 }
 

@@ -2,30 +2,36 @@
 //! disk, [`crate::integrate::follow`]).
 //!
 //! The image holds what a preparation computes and a reconstruction cannot get cheaply: the
-//! condensed far stiffness `S`, the far map, the tick matrix's factor (single and half
-//! precision) and the prepared contact columns. Everything else (the split, its numbering,
-//! the active elements' model, the factor's symbolic analysis) is rebuilt from the body and
-//! the region in tens of milliseconds, and checked against a digest of the tick matrix's
-//! pattern stored in the image. A reconstructed region steps bit for bit like the one written.
+//! condensed far stiffness `S`, the far map and its rows, the tick matrix's pattern, its
+//! fill-reducing ordering and its factor (single and half precision), and the prepared contact
+//! columns. Everything else (the split, its numbering, the active elements' model, the
+//! factor's symbolic analysis under the stored ordering) is rebuilt from the body and the
+//! region. A reconstructed region steps bit for bit like the one written.
+//!
+//! Format 3 (2026-11-29) stores the pattern, the ordering and the map's rows, which format 2
+//! derived again on every read (assembling the tick matrix, METIS, the mesh's boundary): a
+//! 29 MB tile of the 100 000-tet LV read back in about 200 ms with format 2
+//! (docs/benchmarks.md, "Tiles read back").
 //!
 //! Layout (native byte order, which the format number's bytes also tell): the magic
 //! `HAPTTILE`, the format number [`TILE_IMAGE_FORMAT`] (u32), the caller's 32-byte key, the
-//! centre (3 f64) and the step (f64), the tick matrix's pattern digest (32 bytes), then the
-//! arrays, each as its element count (u64) and its elements, and last the BLAKE3 hash of
-//! everything before it.
+//! centre (3 f64) and the step (f64), then the arrays, each as its element count (u64) and its
+//! elements, and last the BLAKE3 hash of everything before it.
 //!
 //! Owns: the image's layout and its checks. May use: [`super`].
 
+use faer::sparse::{SymbolicSparseColMat, SymbolicSparseColMatRef};
+
 use super::build::{
-    MapRows, Selection, Split, TickFactor, check_region, map_rows, number_equations,
-    select_elements,
+    MapRows, Selection, Split, TickFactor, check_region, number_equations, select_elements,
 };
 use super::*;
+use crate::linalg::ordering::symbolic_cholesky_in_order;
 
 /// Version of the image layout and of the preparation it stores. Raise it whenever either
 /// changes (a field, an array, the condensation's or the factor's arithmetic): an image of
 /// another number is refused, so a cache never serves a region the code would not build.
-pub const TILE_IMAGE_FORMAT: u32 = 2;
+pub const TILE_IMAGE_FORMAT: u32 = 3;
 
 const MAGIC: &[u8; 8] = b"HAPTTILE";
 const HASH_BYTES: usize = 32;
@@ -86,18 +92,66 @@ fn bad(what: &str) -> ModelError {
     ModelError::InvalidInput(format!("region image {what}"))
 }
 
-/// BLAKE3 of the tick matrix's pattern (column pointers and row indices): the symbolic
-/// analysis a reconstruction rebuilds is the written one exactly when this agrees.
-fn pattern_digest(a_lower: &SparseColMat<usize, f32>) -> [u8; HASH_BYTES] {
-    let mut h = blake3::Hasher::new();
-    let s = a_lower.symbolic();
-    for &p in s.col_ptr() {
-        h.update(&(p as u64).to_le_bytes());
+/// `values` as u32 (indices below 2^32: every region's equation and row counts).
+fn narrow(values: &[usize]) -> Vec<u32> {
+    values.iter().map(|&v| v as u32).collect()
+}
+
+/// Rows of `m` equations take 16 bits in an image when they fit (every tile of the shipped
+/// scenes: 3 500 equations on the 100 000-tet LV), else 32.
+fn short_rows(m: usize) -> bool {
+    m <= 1 << 16
+}
+
+/// Appends the lower-triangle pattern `pattern` (`m x m`): its column pointers (u32) and its
+/// row indices ([`short_rows`]).
+fn write_pattern(w: &mut Writer, pattern: SymbolicSparseColMatRef<'_, usize>) {
+    w.array(&narrow(pattern.col_ptr()));
+    let rows = pattern.row_idx();
+    if short_rows(pattern.nrows()) {
+        w.array(&rows.iter().map(|&r| r as u16).collect::<Vec<_>>());
+    } else {
+        w.array(&narrow(rows));
     }
-    for &r in s.row_idx() {
-        h.update(&(r as u64).to_le_bytes());
+}
+
+/// The lower-triangle pattern of an `m x m` matrix that [`write_pattern`] appended,
+/// checked (pointers increasing from 0 to the index count, rows strictly increasing within a
+/// column from its diagonal on, below `m`), so that faer's analysis gets a valid pattern
+/// from any bytes.
+fn read_pattern(m: usize, r: &mut Reader<'_>) -> Result<SymbolicSparseColMat<usize>, ModelError> {
+    let col_ptr: Vec<u32> = r.array()?;
+    let row_idx: Vec<u32> = if short_rows(m) {
+        r.array::<u16>()?.into_iter().map(u32::from).collect()
+    } else {
+        r.array()?
+    };
+    let wrong = || bad("does not fit the body's split (tick matrix pattern)");
+    if col_ptr.len() != m + 1
+        || col_ptr[0] != 0
+        || col_ptr[m] as usize != row_idx.len()
+        || col_ptr.windows(2).any(|w| w[0] > w[1])
+    {
+        return Err(wrong());
     }
-    *h.finalize().as_bytes()
+    for (j, w) in col_ptr.windows(2).enumerate() {
+        let rows = &row_idx[w[0] as usize..w[1] as usize];
+        let ordered = rows.windows(2).all(|p| p[0] < p[1]);
+        if !ordered
+            || rows.first().is_some_and(|&r| (r as usize) < j)
+            || rows.last().is_some_and(|&r| r as usize >= m)
+        {
+            return Err(wrong());
+        }
+    }
+    let widen = |v: Vec<u32>| v.into_iter().map(|x| x as usize).collect::<Vec<_>>();
+    Ok(SymbolicSparseColMat::new_checked(
+        m,
+        m,
+        widen(col_ptr),
+        None,
+        widen(row_idx),
+    ))
 }
 
 impl CondensedSolver {
@@ -125,14 +179,17 @@ impl CondensedSolver {
         let a_lower = self
             .tick_matrix_parts(&schur)
             .lower(self.params.region.stiffness_margin)?;
-        // The reconstruction orders the pattern of `S` as stored (single precision); it must
-        // give this region's analysis (it does unless an entry of `S` is below f32's range).
-        let eq_nodes: Vec<usize> = sys.eq_dof.iter().map(|&d| d / 3).collect();
-        let again = symbolic_cholesky(a_lower.symbolic(), Side::Lower, &eq_nodes)?;
-        let perm = |s: &SymbolicCholesky<usize>| s.perm().map(|p| p.arrays().0.to_vec());
-        if again.len_val() != sys.symbolic.len_val() || perm(&again) != perm(&sys.symbolic) {
+        let pattern = a_lower.symbolic();
+        let forward: Vec<usize> = match sys.symbolic.perm() {
+            Some(p) => p.arrays().0.to_vec(),
+            None => (0..sys.eq_dof.len()).collect(),
+        };
+        // The reconstruction analyses the stored pattern (of `S` in single precision) under the
+        // stored ordering; it must give this region's analysis.
+        let again = symbolic_cholesky_in_order(pattern, Side::Lower, &forward)?;
+        if again.len_val() != sys.symbolic.len_val() {
             return Err(ModelError::InvalidInput(
-                "the region's tick matrix pattern cannot be rebuilt from its stored S".into(),
+                "the region's tick factor cannot be rebuilt from its stored pattern".into(),
             ));
         }
         let mut w = Writer(Vec::with_capacity(self.memory_bytes() + 4096));
@@ -143,7 +200,8 @@ impl CondensedSolver {
         for v in [c.x, c.y, c.z, self.params.h] {
             w.raw(&v.to_bits().to_ne_bytes());
         }
-        w.raw(&pattern_digest(&a_lower));
+        write_pattern(&mut w, pattern);
+        w.array(&narrow(&forward));
         w.array(&sys.schur);
         w.array(&sys.factor);
         match &sys.half {
@@ -158,6 +216,8 @@ impl CondensedSolver {
             }
             None => w.array::<u8>(&[]),
         }
+        w.array(&narrow(&sys.map_dofs));
+        w.array(&sys.surface_rows);
         w.array(&sys.map);
         w.array(&self.contact.col);
         w.array(&self.contact.z);
@@ -168,9 +228,11 @@ impl CondensedSolver {
 
     /// The region [`Self::to_image`] wrote into `bytes`, rebuilt over `body` and `mesh` (the
     /// ones it was prepared on) as the following `region` (its centre the image's) with
-    /// step `dt_s` (s): the split and the symbolic analysis recomputed, the numeric arrays
-    /// read. Steps bit for bit as the region written. Costs the active elements' model, the
-    /// tick matrix's assembly and ordering, and a pass over the bytes.
+    /// step `dt_s` (s): the split and the symbolic analysis (of the stored pattern, in the
+    /// stored order) recomputed, the numeric arrays read. Steps bit for bit as the region
+    /// written. Costs the active elements' model, the factor's symbolic analysis and a pass
+    /// over the bytes (about 50 ms for a 29 MB tile of the 100 000-tet LV, docs/benchmarks.md,
+    /// "Tiles read back").
     ///
     /// # Errors
     /// [`ModelError::InvalidInput`] naming what is wrong when `bytes` is not such an image
@@ -185,7 +247,7 @@ impl CondensedSolver {
         key: &[u8; 32],
         bytes: &[u8],
     ) -> Result<Self, ModelError> {
-        let (mut r, digest) = open_image(bytes, key, region.centre_m, dt_s)?;
+        let mut r = open_image(bytes, key, region.centre_m, dt_s)?;
         let region = ActiveRegion {
             follow: true,
             ..region
@@ -201,15 +263,20 @@ impl CondensedSolver {
         } = select_elements(body, mesh, &region, &balls, false)?;
         let num = number_equations(body, &node_active, &node_far);
         let (g, m) = (num.gamma_dof.len(), num.eq_dof.len());
+        let pattern = read_pattern(m, &mut r)?;
+        let forward: Vec<u32> = r.array()?;
+        let forward: Vec<usize> = forward.into_iter().map(|k| k as usize).collect();
+        let symbolic = symbolic_cholesky_in_order(pattern.as_ref(), Side::Lower, &forward)
+            .map_err(|_| bad("does not fit the body's split (ordering)"))?;
         let schur: Vec<f32> = r.array()?;
         if schur.len() != g * (g + 1) / 2 {
             return Err(bad("does not fit the body's split (interface size)"));
         }
+        let tick = read_factors(&mut r, symbolic)?;
+        let map_dofs: Vec<u32> = r.array()?;
+        let rows = MapRows::read_back(&num, &map_dofs, r.array()?)
+            .ok_or_else(|| bad("does not fit the body's split (far map rows)"))?;
         let split = Split::new(body, active_tets, active, node_active, num);
-        let schur_full = unpack_symmetric(&schur, g);
-        let parts = split.tick_matrix_parts(body, &region, &balls, &schur_full, dt_s);
-        let tick = read_factors(&mut r, &parts, &split.num.eq_dof, &region, &digest)?;
-        let rows = map_rows(mesh, &region, &balls, &split.num);
         let (map, contact) = read_map_and_contact(&mut r, &rows, g, m, body.node_count())?;
         let system = split.into_system(schur, tick, rows, map, None, Vec::new());
         let mut solver = Self::assemble(system, region, balls, dt_s, body.node_count());
@@ -240,13 +307,13 @@ impl CondensedSolver {
 }
 
 /// Checks an image's frame (length, magic, format, hash, `key`, centre `centre_m` and step
-/// `dt_s`); the reader after it and the tick matrix's pattern digest.
+/// `dt_s`); the reader after it.
 fn open_image<'a>(
     bytes: &'a [u8],
     key: &[u8; 32],
     centre_m: DVec3,
     dt_s: f64,
-) -> Result<(Reader<'a>, [u8; HASH_BYTES]), ModelError> {
+) -> Result<Reader<'a>, ModelError> {
     if bytes.len() < MAGIC.len() + 4 + HASH_BYTES {
         return Err(bad("is truncated"));
     }
@@ -257,11 +324,7 @@ fn open_image<'a>(
         return Err(bad("is damaged (its BLAKE3 hash does not match)"));
     }
     read_identity(&mut r, key, centre_m, dt_s)?;
-    let digest = r
-        .take(HASH_BYTES)?
-        .try_into()
-        .map_err(|_| bad("is truncated"))?;
-    Ok((r, digest))
+    Ok(r)
 }
 
 /// Bytes of an image's header: the magic, the format number, the key, the centre and the
@@ -326,22 +389,12 @@ fn read_identity(
     Ok(())
 }
 
-/// The tick factor of `parts` (equations `eq_dof`, margin `region.stiffness_margin`): the
-/// symbolic analysis of its pattern (checked against `digest`) and its sweep rebuilt, the
-/// factor's values read.
+/// The tick factor on its rebuilt analysis `symbolic`: the sweep rebuilt, the factor's
+/// values read.
 fn read_factors(
     r: &mut Reader<'_>,
-    parts: &TickMatrixParts<'_>,
-    eq_dof: &[usize],
-    region: &ActiveRegion,
-    digest: &[u8; HASH_BYTES],
+    symbolic: SymbolicCholesky<usize>,
 ) -> Result<TickFactor, ModelError> {
-    let a_lower = parts.lower(region.stiffness_margin)?;
-    if pattern_digest(&a_lower) != *digest {
-        return Err(bad("does not fit the body's split (tick matrix pattern)"));
-    }
-    let eq_nodes: Vec<usize> = eq_dof.iter().map(|&d| d / 3).collect();
-    let symbolic = symbolic_cholesky(a_lower.symbolic(), Side::Lower, &eq_nodes)?;
     let sweep = SupernodalSolve::new(&symbolic);
     let factor: Vec<f32> = r.array()?;
     let half = match r.array::<u8>()?.as_slice() {
