@@ -217,6 +217,7 @@ fn set_up(args: &Args) -> anyhow::Result<(FemBody, f64)> {
 fn wait_for_tiles(sim: &FemBody) {
     let t = Instant::now();
     let mut last = u64::MAX;
+    let (mut seen, mut changed) = (u64::MAX, Instant::now());
     loop {
         let s = sim.follow_stats().unwrap_or_default();
         if s.tiles_built + s.failed >= s.tiles {
@@ -231,6 +232,23 @@ fn wait_for_tiles(sim: &FemBody) {
                 s.tile_cache_bytes as f64 / 1e6,
                 s.tile_build_s,
                 peak_memory_mb()
+            );
+            return;
+        }
+        // Background builds stop at the memory limit when the directory is full or there is
+        // none (tiles without a file are not built ahead): no tile for a minute (a build
+        // takes 8-24 s on the 100 000-tet LV) means nothing more will come.
+        if s.tiles_built != seen {
+            (seen, changed) = (s.tiles_built, Instant::now());
+        }
+        if changed.elapsed() > Duration::from_secs(60) {
+            eprintln!(
+                "tile cache stopped at {} of {} tiles after {:.1} s, none for a minute ({:.0} MB \
+                 in memory: the memory limit, with no room in the directory)",
+                s.tiles_built,
+                s.tiles,
+                t.elapsed().as_secs_f64(),
+                s.tile_cache_bytes as f64 / 1e6
             );
             return;
         }

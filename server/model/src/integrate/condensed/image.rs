@@ -92,9 +92,15 @@ fn bad(what: &str) -> ModelError {
     ModelError::InvalidInput(format!("region image {what}"))
 }
 
-/// `values` as u32 (indices below 2^32: every region's equation and row counts).
-fn narrow(values: &[usize]) -> Vec<u32> {
-    values.iter().map(|&v| v as u32).collect()
+/// `values` as u32, or an error for a region too large for the image's 32-bit indices.
+fn narrow(values: &[usize]) -> Result<Vec<u32>, ModelError> {
+    values
+        .iter()
+        .map(|&v| u32::try_from(v))
+        .collect::<Result<_, _>>()
+        .map_err(|_| {
+            ModelError::InvalidInput("the region is too large for an image's 32-bit indices".into())
+        })
 }
 
 /// Rows of `m` equations take 16 bits in an image when they fit (every tile of the shipped
@@ -105,14 +111,18 @@ fn short_rows(m: usize) -> bool {
 
 /// Appends the lower-triangle pattern `pattern` (`m x m`): its column pointers (u32) and its
 /// row indices ([`short_rows`]).
-fn write_pattern(w: &mut Writer, pattern: SymbolicSparseColMatRef<'_, usize>) {
-    w.array(&narrow(pattern.col_ptr()));
+fn write_pattern(
+    w: &mut Writer,
+    pattern: SymbolicSparseColMatRef<'_, usize>,
+) -> Result<(), ModelError> {
+    w.array(&narrow(pattern.col_ptr())?);
     let rows = pattern.row_idx();
     if short_rows(pattern.nrows()) {
         w.array(&rows.iter().map(|&r| r as u16).collect::<Vec<_>>());
     } else {
-        w.array(&narrow(rows));
+        w.array(&narrow(rows)?);
     }
+    Ok(())
 }
 
 /// The lower-triangle pattern of an `m x m` matrix that [`write_pattern`] appended,
@@ -162,7 +172,8 @@ impl CondensedSolver {
     /// [`Self::memory_bytes`].
     ///
     /// # Errors
-    /// [`ModelError::InvalidInput`] for a region that is not such a tile.
+    /// [`ModelError::InvalidInput`] for a region that is not such a tile, or one too large for
+    /// the image's 32-bit indices.
     pub fn to_image(&self, key: &[u8; 32]) -> Result<Vec<u8>, ModelError> {
         let sys = &self.system;
         if !self.params.region.follow
@@ -200,8 +211,8 @@ impl CondensedSolver {
         for v in [c.x, c.y, c.z, self.params.h] {
             w.raw(&v.to_bits().to_ne_bytes());
         }
-        write_pattern(&mut w, pattern);
-        w.array(&narrow(&forward));
+        write_pattern(&mut w, pattern)?;
+        w.array(&narrow(&forward)?);
         w.array(&sys.schur);
         w.array(&sys.factor);
         match &sys.half {
@@ -216,7 +227,7 @@ impl CondensedSolver {
             }
             None => w.array::<u8>(&[]),
         }
-        w.array(&narrow(&sys.map_dofs));
+        w.array(&narrow(&sys.map_dofs)?);
         w.array(&sys.surface_rows);
         w.array(&sys.map);
         w.array(&self.contact.col);

@@ -530,7 +530,8 @@ impl RegionFollower {
         // the tick waits). Leading by the preparation alone let a tile (prepared in 5-15 ms)
         // arrive when the device had already slid up to a poll interval past its cover. With
         // tiles the preparation is a hit's: one tile read from disk (0.2-0.4 s on the
-        // 100 000-tet LV) put every later region a radius ahead of the device.
+        // 100 000-tet LV before image format 3) put every later region a radius ahead of the
+        // device.
         let lead_s = if self.blocking {
             0.0
         } else {
