@@ -38,7 +38,10 @@ fn main() -> anyhow::Result<()> {
         .ok_or_else(|| anyhow::anyhow!("{} has no [active_region]", args.scene.display()))?;
     region.follow = true;
     let TileMode::Background { cover_m } = region.tiles else {
-        anyhow::bail!("{} has no tiles (active_region.tiles)", args.scene.display());
+        anyhow::bail!(
+            "{} has no tiles (active_region.tiles)",
+            args.scene.display()
+        );
     };
     // The regions' step, as the body plans it.
     let p = scene.integrator;
