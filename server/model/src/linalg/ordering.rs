@@ -311,17 +311,24 @@ pub fn symbolic_cholesky(
 ) -> Result<SymbolicCholesky<usize>, ModelError> {
     let n = pattern.nrows();
     let ordering = nested_dissection(n, pattern.col_ptr(), pattern.row_idx(), group)?;
-    let analysis = |ord| {
-        factorize_symbolic_cholesky(pattern, side, ord, CholeskySymbolicParams::default()).map_err(
-            |e| ModelError::InvalidInput(format!("symbolic Cholesky factorisation: {e:?}")),
-        )
-    };
     match &ordering {
-        Some(o) => analysis(SymmetricOrdering::Custom(PermRef::new_checked(
-            &o.forward, &o.inverse, n,
-        ))),
-        None => analysis(SymmetricOrdering::Amd),
+        Some(o) => analyse(
+            pattern,
+            side,
+            SymmetricOrdering::Custom(PermRef::new_checked(&o.forward, &o.inverse, n)),
+        ),
+        None => analyse(pattern, side, SymmetricOrdering::Amd),
     }
+}
+
+/// faer's symbolic analysis of `pattern` under `ordering`.
+fn analyse(
+    pattern: SymbolicSparseColMatRef<'_, usize>,
+    side: Side,
+    ordering: SymmetricOrdering<'_, usize>,
+) -> Result<SymbolicCholesky<usize>, ModelError> {
+    factorize_symbolic_cholesky(pattern, side, ordering, CholeskySymbolicParams::default())
+        .map_err(|e| ModelError::InvalidInput(format!("symbolic Cholesky factorisation: {e:?}")))
 }
 
 /// The symbolic Cholesky factorisation of a symmetric pattern (`side` the triangle given, or
@@ -339,27 +346,24 @@ pub fn symbolic_cholesky_in_order(
     forward: &[usize],
 ) -> Result<SymbolicCholesky<usize>, ModelError> {
     let n = pattern.nrows();
+    let no_ordering = || {
+        bad(format!(
+            "{} entries are no ordering of {n} equations",
+            forward.len()
+        ))
+    };
+    if forward.len() != n {
+        return Err(no_ordering());
+    }
     let mut inverse = vec![usize::MAX; n];
     for (k, &o) in forward.iter().enumerate() {
         match inverse.get_mut(o) {
             Some(slot) if *slot == usize::MAX => *slot = k,
-            _ => {
-                return Err(bad(format!(
-                    "{} entries are no ordering of {n} equations",
-                    forward.len()
-                )));
-            }
+            _ => return Err(no_ordering()),
         }
     }
-    if forward.len() != n {
-        return Err(bad(format!(
-            "{} entries are no ordering of {n} equations",
-            forward.len()
-        )));
-    }
     let ordering = SymmetricOrdering::Custom(PermRef::new_checked(forward, &inverse, n));
-    factorize_symbolic_cholesky(pattern, side, ordering, CholeskySymbolicParams::default())
-        .map_err(|e| ModelError::InvalidInput(format!("symbolic Cholesky factorisation: {e:?}")))
+    analyse(pattern, side, ordering)
 }
 
 /// faer's parallelism for a factorisation on `threads` threads: sequential for one, else its
