@@ -869,10 +869,14 @@ impl MapRows {
     /// The rows `map_far` (far components of `num`, increasing) with the boundary rows
     /// `surface_rows`, and for a following region (`follow`) the row of every global
     /// component.
-    fn of(num: &Numbering, follow: bool, map_far: Vec<usize>, surface_rows: Vec<u32>) -> Self {
+    fn of(
+        num: &Numbering,
+        follow: bool,
+        mut map_far: Vec<usize>,
+        mut surface_rows: Vec<u32>,
+    ) -> Self {
         // Held as long as the region: no spare capacity (a tile read back holds the same heap
         // as the one built, CondensedSolver::heap_bytes).
-        let (mut map_far, mut surface_rows) = (map_far, surface_rows);
         map_far.shrink_to_fit();
         surface_rows.shrink_to_fit();
         let mut map_row = vec![u32::MAX; if follow { num.eq.len() } else { 0 }];
