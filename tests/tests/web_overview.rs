@@ -162,7 +162,9 @@ async fn the_overview_shows_the_sessions_of_every_station() -> Result<()> {
     }
 
     // Two tools of one simulated arm press the LV session on opposite sides: its card lists
-    // both, each with its device and a force, "2 of 2" connected.
+    // both, each with its device and a force, "2 of 2" connected. The card is read once both
+    // rows show contact and a force above 1 mN (the first contact ticks, on a slow machine,
+    // can show 1.0 mN while the arm still presses in).
     let _bridge = spawn_bin(
         BRIDGE,
         &[
@@ -182,14 +184,15 @@ async fn the_overview_shows_the_sessions_of_every_station() -> Result<()> {
     )?;
     let tools_ready = "(() => { const c = document.querySelector('.card[data-station=\"0\"]'); \
                        const rows = c ? Array.from(c.querySelectorAll('table.tools tr[data-tool]')) : []; \
-                       return rows.length === 2 && rows.every(r => r.classList.contains('contact')); })()";
+                       return rows.length === 2 && rows.every(r => r.classList.contains('contact') \
+                       && parseFloat(r.cells[2].textContent) > 1.0); })()";
     let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
     while browser.eval(&page, tools_ready).await? != serde_json::json!(true) {
         if tokio::time::Instant::now() >= deadline {
             let html = browser
                 .eval(&page, "document.getElementById('stations').innerText")
                 .await?;
-            bail!("the LV card did not show two tools in contact: {html}");
+            bail!("the LV card did not show two tools in contact above 1 mN: {html}");
         }
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
