@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use clap::Parser;
 use haptic_model::integrate::condensed::{ActiveRegion, CondensedSolver, TileMode};
-use haptic_model::integrate::follow::{cache_key, tile_centres};
+use haptic_model::integrate::follow::{cache_key, tile_centres, tile_file_name};
 use haptic_model::integrate::{critical_time_step, plan_steps};
 use haptic_model::scene::load_scene_file;
 
@@ -47,11 +47,10 @@ fn main() -> anyhow::Result<()> {
     let p = scene.integrator;
     let dt_s = plan_steps(&p, critical_time_step(&fem, p.kind))?.sub_dt_s;
     let key = cache_key(&fem, &scene.mesh, &region, dt_s, &nodes);
-    let prefix: String = key[..16].iter().map(|b| format!("{b:02x}")).collect();
     let centres = tile_centres(fem.rest(), &nodes, region.centre_m, cover_m);
     let (mut read_ms, mut rebuild_ms, mut bytes) = (Vec::new(), Vec::new(), 0usize);
     for (k, &centre_m) in centres.iter().enumerate().take(args.max_tiles) {
-        let path = args.region_cache.join(format!("{prefix}-{k:05}.tile"));
+        let path = args.region_cache.join(tile_file_name(&key, k));
         let t = Instant::now();
         let Ok(image) = std::fs::read(&path) else {
             continue;
@@ -67,9 +66,10 @@ fn main() -> anyhow::Result<()> {
     }
     if read_ms.is_empty() {
         anyhow::bail!(
-            "no tile of this scene in {} ({} centres, files {prefix}-*.tile)",
+            "no tile of this scene in {} ({} centres, first file {})",
             args.region_cache.display(),
-            centres.len()
+            centres.len(),
+            tile_file_name(&key, 0)
         );
     }
     let stats = |v: &mut Vec<f64>| {

@@ -78,7 +78,7 @@ mod tiles;
 use store::TileStore;
 pub use store::{
     DEFAULT_REGION_CACHE_MAX_BYTES, DEFAULT_REGION_CACHE_MEMORY_BYTES, RegionCacheDir,
-    RegionCacheReport, cache_key,
+    RegionCacheReport, cache_key, tile_file_name,
 };
 pub use tiles::{TILE_HYSTERESIS_M, tile_centres};
 use tiles::{Tile, TileCache};

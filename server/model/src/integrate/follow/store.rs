@@ -86,6 +86,21 @@ pub const DEFAULT_REGION_CACHE_MAX_BYTES: u64 = 8 << 30;
 /// default cover, the 50 or so nearest the probe).
 pub const DEFAULT_REGION_CACHE_MEMORY_BYTES: u64 = 2 << 30;
 
+/// The key's first 16 bytes in hexadecimal: the prefix of its tiles' files.
+fn file_prefix(key: &[u8; 32]) -> String {
+    key[..16].iter().map(|b| format!("{b:02x}")).collect()
+}
+
+fn name_of(prefix: &str, k: usize) -> String {
+    format!("{prefix}-{k:05}.tile")
+}
+
+/// The name of tile `k`'s file in a region cache directory for the key `key` ([`cache_key`]),
+/// as a session writes and reads it.
+pub fn tile_file_name(key: &[u8; 32], k: usize) -> String {
+    name_of(&file_prefix(key), k)
+}
+
 /// The key of a following region's tiles over `body` (mesh `mesh`): the region's radius,
 /// margin and tile cover (`region`, its centre excluded: each file holds its own), the step
 /// `dt_s`, the touchable `nodes`, [`TILE_IMAGE_FORMAT`] and this crate's version (BLAKE3).
@@ -148,7 +163,7 @@ pub(super) struct TileStore {
 
 impl TileStore {
     pub(super) fn new(cache: &RegionCacheDir, key: [u8; 32]) -> Self {
-        let prefix = key[..16].iter().map(|b| format!("{b:02x}")).collect();
+        let prefix = file_prefix(&key);
         Self {
             dir: cache.dir.clone(),
             max_bytes: cache.max_bytes,
@@ -159,7 +174,7 @@ impl TileStore {
 
     /// The file of tile `k`.
     pub(super) fn path(&self, k: usize) -> PathBuf {
-        self.dir.join(format!("{}-{k:05}.tile", self.prefix))
+        self.dir.join(name_of(&self.prefix, k))
     }
 
     /// Tile `k` centred at `centre_m` from its file: `Ok(None)` when there is no file,
