@@ -1,0 +1,500 @@
+//! The region worker's side of [`super::RegionFollower`]: it answers the servo's requests
+//! (a tile, a region prepared on demand, or nothing to do) and, while it has none, builds,
+//! reads back and drops tiles (module documentation of [`super`], "Tiles").
+
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+use glam::DVec3;
+
+use super::store::TileStore;
+use super::tiles::{Tile, TileCache};
+use super::{
+    MERGE_RADII, Prepared, RECENTRE_RADII, RegionCacheReport, Request, Shared, TILE_HYSTERESIS_M,
+};
+use crate::element::FemModel;
+use crate::integrate::condensed::{
+    ActiveRegion, CondensedSolver, MAX_PREPARATION_THREADS, RegionBalls,
+};
+use crate::mesh::TetMesh;
+/// The worker thread's state.
+pub(super) struct Worker {
+    /// The tiles ([`crate::integrate::condensed::TileMode::Background`]), or `None`.
+    pub(super) cache: Option<TileCache>,
+    /// Their files on disk ([`super::RegionFollower::spawn_with_cache`]), or `None`.
+    pub(super) store: Option<TileStore>,
+    /// Where the store's complaints go as they happen, or `None`.
+    pub(super) report: Option<RegionCacheReport>,
+    /// Fill the store only ([`super::RegionFollower::spawn_with_cache`]).
+    pub(super) fill_only: bool,
+    /// Bytes of tiles kept in memory at most ([`super::RegionCacheDir::memory_bytes`]; without a
+    /// store [`super::DEFAULT_REGION_CACHE_MEMORY_BYTES`]).
+    pub(super) memory_limit: u64,
+    /// The store refused a tile (full, or a write failed): later tiles are not written
+    /// either, so background builds stop at the memory limit ([`Self::build_next_tile`]).
+    pub(super) store_full: std::cell::Cell<bool>,
+    /// The last requested point, m: background builds start nearest it.
+    pub(super) last_point_m: DVec3,
+    pub(super) body: FemModel,
+    pub(super) mesh: TetMesh,
+    pub(super) nodes: Vec<u32>,
+    pub(super) region: ActiveRegion,
+    pub(super) dt_s: f64,
+    pub(super) requests: rtrb::Consumer<Request>,
+    pub(super) results: rtrb::Producer<Prepared>,
+    pub(super) returns: rtrb::Consumer<Box<CondensedSolver>>,
+    pub(super) shared: Arc<Shared>,
+}
+
+impl Worker {
+    pub(super) fn run(mut self) {
+        loop {
+            while let Ok(old) = self.returns.pop() {
+                drop(old);
+            }
+            if self.shared.stop.load(Ordering::Acquire) {
+                return;
+            }
+            match self.requests.pop() {
+                Ok(request) => {
+                    let mut answer = self.answer(request);
+                    if let Prepared::Region { solver, .. } = &mut answer {
+                        let parts = self.shared.parts.load(Ordering::Relaxed);
+                        solver.set_parts(usize::try_from(parts).unwrap_or(1));
+                    }
+                    // The servo sends one request at a time and reads the answer before the
+                    // next, so the ring has room.
+                    let _ = self.results.push(answer);
+                }
+                Err(_) => {
+                    if let Some(p) = self.shared.focus_m.lock().ok().and_then(|mut f| f.take()) {
+                        self.last_point_m = p;
+                    }
+                    if self.shared.paused.load(Ordering::Relaxed) || !self.build_next_tile() {
+                        std::thread::park_timeout(Duration::from_millis(50));
+                    }
+                }
+            }
+        }
+    }
+
+    /// Threads of a preparation's column solves: the session's tick threads
+    /// ([`super::RegionFollower::set_parts`]; at least 1, at most [`MAX_PREPARATION_THREADS`]), so
+    /// a session prepares regions with the cores it was given. At normal priority they take
+    /// what the real-time servo and its workers leave.
+    fn threads(&self) -> usize {
+        let parts = self.shared.parts.load(Ordering::Relaxed);
+        usize::try_from(parts)
+            .unwrap_or(1)
+            .clamp(1, MAX_PREPARATION_THREADS)
+    }
+
+    /// The touchable node nearest `p`, and its distance, m.
+    fn nearest(&self, p: DVec3) -> (DVec3, f64) {
+        let rest = self.body.rest();
+        self.nodes
+            .iter()
+            .map(|&i| rest[i as usize])
+            .map(|q| (q, q.distance(p)))
+            .fold((p, f64::INFINITY), |a, b| if b.1 < a.1 { b } else { a })
+    }
+
+    /// The balls for `points` (module documentation, "Several tools"), and the first point
+    /// that got one (the one-ball request's point).
+    fn balls_for(&self, points: &RegionBalls) -> (RegionBalls, DVec3) {
+        let radius = self.region.radius_m;
+        let mut balls = RegionBalls::EMPTY;
+        let mut lead = DVec3::NAN;
+        for &p in points.centres() {
+            let (centre, d) = self.nearest(p);
+            if d > radius || balls.distance(centre) <= MERGE_RADII * radius {
+                continue;
+            }
+            if balls.centres().is_empty() {
+                lead = p;
+            }
+            balls.push(centre);
+        }
+        (balls, lead)
+    }
+
+    /// The answer to `request`: one ball as before (a tile, or [`Self::prepare`]), several
+    /// prepared on demand.
+    fn answer(&mut self, request: Request) -> Prepared {
+        let (balls, point_m) = self.balls_for(&request.points_m);
+        let current = request.current.centres();
+        match balls.centres() {
+            [] => {
+                // The device above the surface, farther than a radius: the tiles follow the
+                // surface point under it, ready when it comes down.
+                if let (Some(_), Some(&p)) = (&self.cache, request.points_m.centres().first()) {
+                    self.last_point_m = self.nearest(p).0;
+                }
+                Prepared::Nothing
+            }
+            [_] if current.len() == 1 && self.cache.is_some() => self.lookup(point_m, current[0]),
+            // From a union back to one ball: the nearest tile, whatever the hysteresis.
+            [_] if self.cache.is_some() => self.lookup(point_m, DVec3::NAN),
+            _ => self.prepare(balls, current),
+        }
+    }
+
+    /// The region of `balls` unless it is `current` to [`RECENTRE_RADII`] radii (same number
+    /// of balls, each that near one of `current`).
+    fn prepare(&self, balls: RegionBalls, current: &[DVec3]) -> Prepared {
+        let radius = self.region.radius_m;
+        let close = |c: &DVec3| {
+            current
+                .iter()
+                .any(|k| c.distance(*k) < RECENTRE_RADII * radius)
+        };
+        if balls.centres().len() == current.len() && balls.centres().iter().all(close) {
+            return Prepared::Nothing;
+        }
+        let start = Instant::now();
+        match CondensedSolver::new_in_threads(
+            &self.body,
+            &self.mesh,
+            self.region,
+            balls,
+            self.dt_s,
+            self.threads(),
+            &mut |_, _| {},
+        ) {
+            Ok(mut solver) => {
+                solver.prepare_contact(&self.nodes);
+                self.shared
+                    .record_prepare_s(start.elapsed().as_secs_f64(), true);
+                self.shared.prepared.fetch_add(1, Ordering::Relaxed);
+                Prepared::Region {
+                    solver: Box::new(solver),
+                    balls,
+                }
+            }
+            Err(_) => {
+                self.shared.failed.fetch_add(1, Ordering::Relaxed);
+                Prepared::Nothing
+            }
+        }
+    }
+
+    /// A region centred at `centre_m`, prepared as [`Self::prepare`] does and trimmed for the
+    /// cache ([`CondensedSolver::trim_for_tiles`]); `None` when the preparation failed.
+    fn build_tile(&self, centre_m: DVec3) -> Option<Arc<CondensedSolver>> {
+        let region = ActiveRegion {
+            centre_m,
+            ..self.region
+        };
+        let mut solver = CondensedSolver::new_in_threads(
+            &self.body,
+            &self.mesh,
+            region,
+            RegionBalls::one(centre_m),
+            self.dt_s,
+            self.threads(),
+            &mut |_, _| {},
+        )
+        .ok()?;
+        solver.prepare_contact(&self.nodes);
+        solver.trim_for_tiles();
+        Some(Arc::new(solver))
+    }
+
+    /// Tile `k` from its file on disk, or `None` (no store, no file, or a file refused:
+    /// counted, the reason kept).
+    fn load_tile(&self, k: usize, centre_m: DVec3) -> Option<Arc<CondensedSolver>> {
+        let store = self.store.as_ref()?;
+        match store.load(k, &self.body, &self.mesh, self.region, centre_m, self.dt_s) {
+            Ok(Some(t)) => {
+                self.shared.tiles_loaded.fetch_add(1, Ordering::Relaxed);
+                Some(Arc::new(t))
+            }
+            Ok(None) => None,
+            Err(e) => {
+                self.shared.tiles_refused.fetch_add(1, Ordering::Relaxed);
+                self.cache_error(e);
+                None
+            }
+        }
+    }
+
+    /// Writes the built tile `k` to its file on disk when there is a store.
+    /// Whether it was written.
+    fn store_tile(&self, k: usize, tile: &CondensedSolver) -> bool {
+        let Some(store) = self.store.as_ref() else {
+            return false;
+        };
+        match store.save(k, tile) {
+            Ok(true) => {
+                self.shared.tiles_stored.fetch_add(1, Ordering::Relaxed);
+                return true;
+            }
+            Ok(false) => self.cache_error(format!(
+                "{}: the region cache is full (its size limit); tile {k} kept in memory only",
+                store.path(k).display()
+            )),
+            Err(e) => self.cache_error(e),
+        }
+        self.store_full.set(true);
+        false
+    }
+
+    fn cache_error(&self, e: String) {
+        if let Some(r) = &self.report {
+            r.report(&e);
+        }
+        if let Ok(mut last) = self.shared.cache_error.lock() {
+            *last = Some(e);
+        }
+    }
+
+    /// Builds tile `k` (or reads it from disk) and keeps it; counts it (or the failure).
+    fn build_and_keep(&mut self, k: usize) -> Option<Arc<CondensedSolver>> {
+        let (tile, stored) = self.obtain(k, true);
+        self.keep(k, tile.as_ref(), stored);
+        tile
+    }
+
+    /// Tile `k` read from disk (when `read`) or built and written, and whether its file
+    /// holds it (read or written); counts it (or the failure; a dropped tile read back as
+    /// reloaded) and its time.
+    fn obtain(&mut self, k: usize, read: bool) -> (Option<Arc<CondensedSolver>>, bool) {
+        let Some(cache) = self.cache.as_ref() else {
+            return (None, false);
+        };
+        let centre_m = cache.centres[k];
+        let reload = matches!(cache.tiles[k], Tile::Dropped);
+        let start = Instant::now();
+        let loaded = if read {
+            self.load_tile(k, centre_m)
+        } else {
+            None
+        };
+        let mut stored = loaded.is_some();
+        let tile = loaded.or_else(|| {
+            let built = self.build_tile(centre_m);
+            if let Some(t) = &built {
+                stored = self.store_tile(k, t);
+            }
+            built
+        });
+        let s = start.elapsed().as_secs_f64();
+        let total = f64::from_bits(self.shared.tile_build_s.load(Ordering::Relaxed));
+        self.shared
+            .tile_build_s
+            .store((total + s).to_bits(), Ordering::Relaxed);
+        let counter = match tile {
+            Some(_) if reload => &self.shared.tiles_reloaded,
+            Some(_) => &self.shared.tiles_built,
+            None => {
+                self.shared.failed.fetch_add(1, Ordering::Relaxed);
+                &self.shared.tiles_failed
+            }
+        };
+        counter.fetch_add(1, Ordering::Relaxed);
+        (tile, stored)
+    }
+
+    /// Keeps tile `k` in memory ([`Tile::Built`]; `stored`: its file holds it), or marks it
+    /// [`Tile::Failed`]; then drops the tiles farthest from the last requested point while
+    /// the cache is over its memory limit.
+    fn keep(&mut self, k: usize, tile: Option<&Arc<CondensedSolver>>, stored: bool) {
+        let Some(cache) = self.cache.as_mut() else {
+            return;
+        };
+        cache.stored[k] |= stored;
+        cache.tiles[k] = match tile {
+            Some(t) => {
+                self.shared
+                    .tile_cache_bytes
+                    .fetch_add(t.heap_bytes() as u64, Ordering::Relaxed);
+                Tile::Built(Arc::clone(t))
+            }
+            None => Tile::Failed,
+        };
+        let p = self.last_point_m;
+        while self.shared.tile_cache_bytes.load(Ordering::Relaxed) > self.memory_limit {
+            // Those with a file first (read back in a fraction of a second), then the others
+            // (prepared again if the probe comes back).
+            let Some((j, _)) = cache
+                .farthest_in_memory(p, k, true)
+                .or_else(|| cache.farthest_in_memory(p, k, false))
+            else {
+                return;
+            };
+            let to = if cache.stored[j] {
+                Tile::Dropped
+            } else {
+                Tile::Missing
+            };
+            if let Tile::Built(t) = std::mem::replace(&mut cache.tiles[j], to) {
+                self.shared
+                    .tile_cache_bytes
+                    .fetch_sub(t.heap_bytes() as u64, Ordering::Relaxed);
+                self.shared.tiles_dropped.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+    }
+
+    /// Builds the missing tile nearest the last requested point (idle work), or else reads
+    /// back a dropped one ([`Self::reload_nearer`]); `false` when there is nothing to do (or
+    /// no cache). Without a file to write it to (no store, or a store that refused one), a
+    /// missing tile is built only when it belongs in memory ([`Self::belongs_in_memory`]):
+    /// the background work then stops at the memory limit instead of holding every tile.
+    fn build_next_tile(&mut self) -> bool {
+        let Some(k) = self
+            .cache
+            .as_ref()
+            .and_then(|c| c.next_missing(self.last_point_m))
+        else {
+            return !self.fill_only && self.reload_nearer();
+        };
+        if self.fill_only {
+            self.fill(k);
+        } else if (self.store.is_some() && !self.store_full.get()) || self.belongs_in_memory(k) {
+            self.build_and_keep(k);
+        } else {
+            return self.reload_nearer();
+        }
+        true
+    }
+
+    /// Whether tile `k`, not in memory, belongs there: it fits under the memory limit, or it
+    /// lies [`TILE_HYSTERESIS_M`] nearer the last requested point than a tile in memory
+    /// (which [`Self::keep`] then drops), so that the tiles in memory follow the probe.
+    fn belongs_in_memory(&self, k: usize) -> bool {
+        let Some(cache) = self.cache.as_ref() else {
+            return false;
+        };
+        let p = self.last_point_m;
+        let d_k = cache.centres[k].distance(p);
+        let bytes = self.shared.tile_cache_bytes.load(Ordering::Relaxed);
+        let fits = cache
+            .mean_built_bytes()
+            .is_none_or(|b| bytes.saturating_add(b) <= self.memory_limit);
+        let nearer = [true, false].into_iter().any(|with_file| {
+            cache
+                .farthest_in_memory(p, k, with_file)
+                .is_some_and(|(_, d_j)| d_k + TILE_HYSTERESIS_M < d_j)
+        });
+        fits || nearer
+    }
+
+    /// Reads back the dropped tile nearest the last requested point when it belongs in
+    /// memory ([`Self::belongs_in_memory`]). `false` when there is none to read.
+    fn reload_nearer(&mut self) -> bool {
+        let Some((k, _)) = self
+            .cache
+            .as_ref()
+            .and_then(|c| c.nearest_dropped(self.last_point_m))
+        else {
+            return false;
+        };
+        if !self.belongs_in_memory(k) {
+            return false;
+        }
+        self.build_and_keep(k);
+        true
+    }
+
+    /// Fill-only idle work on the missing tile `k`: [`Tile::OnDisk`] when its file is there
+    /// (header checked, not read), else built and written (and dropped once written).
+    fn fill(&mut self, k: usize) {
+        let (Some(cache), Some(store)) = (self.cache.as_ref(), self.store.as_ref()) else {
+            return;
+        };
+        let centre_m = cache.centres[k];
+        match store.present(k, centre_m, self.dt_s) {
+            Ok(true) => {
+                self.shared.tiles_present.fetch_add(1, Ordering::Relaxed);
+                if let Some(cache) = self.cache.as_mut() {
+                    cache.tiles[k] = Tile::OnDisk;
+                }
+                return;
+            }
+            Ok(false) => {}
+            Err(e) => {
+                self.shared.tiles_refused.fetch_add(1, Ordering::Relaxed);
+                self.cache_error(e);
+            }
+        }
+        // Never read: the file is missing or its header was refused.
+        match self.obtain(k, false) {
+            (Some(_), true) => {
+                if let Some(cache) = self.cache.as_mut() {
+                    cache.tiles[k] = Tile::OnDisk;
+                }
+            }
+            (Some(_), false) => self.stop_fill(k),
+            (None, _) => self.keep(k, None, false),
+        }
+    }
+
+    /// A fill-only worker that could not write tile `k` (the cache full, or a write error,
+    /// reported) stops: it serves no session, so a tile it cannot write would only grow its
+    /// memory, and once the cache is full the others would not fit either. Tile `k` and every
+    /// missing one are marked failed (the missing ones counted), and the reason is kept.
+    fn stop_fill(&mut self, k: usize) {
+        let Some(cache) = self.cache.as_mut() else {
+            return;
+        };
+        cache.tiles[k] = Tile::Failed;
+        let mut left = 0;
+        for t in cache
+            .tiles
+            .iter_mut()
+            .filter(|t| matches!(t, Tile::Missing))
+        {
+            *t = Tile::Failed;
+            left += 1;
+        }
+        self.shared.tiles_failed.fetch_add(left, Ordering::Relaxed);
+        self.shared.failed.fetch_add(left, Ordering::Relaxed);
+        self.cache_error(format!(
+            "the region cache could not take tile {k}: the fill stops with {left} tiles not \
+             prepared (raise region_cache_max_bytes, or free the disk)"
+        ));
+    }
+
+    /// A one-ball request with tiles for `point_m` while the region in use is centred at
+    /// `centre_m` (NaN: a union, which no tile is): the tile the cache chooses, copied (built
+    /// first when missing).
+    fn lookup(&mut self, point_m: DVec3, centre_m: DVec3) -> Prepared {
+        self.last_point_m = point_m;
+        let start = Instant::now();
+        let Some(cache) = self.cache.as_ref() else {
+            return Prepared::Nothing;
+        };
+        let Some(k) = cache.choose(point_m, centre_m) else {
+            return Prepared::Nothing;
+        };
+        let centre_m = cache.centres[k];
+        let hit = matches!(cache.tiles[k], Tile::Built(_));
+        let tile = match &cache.tiles[k] {
+            Tile::Built(t) => {
+                self.shared.tile_hits.fetch_add(1, Ordering::Relaxed);
+                Arc::clone(t)
+            }
+            Tile::Failed => return Prepared::Nothing,
+            Tile::Missing | Tile::OnDisk | Tile::Dropped => {
+                self.shared.tile_misses.fetch_add(1, Ordering::Relaxed);
+                match self.build_and_keep(k) {
+                    Some(t) => t,
+                    None => return Prepared::Nothing,
+                }
+            }
+        };
+        // A copy shares the tile's arrays (the tick never writes them); they are read here
+        // once so that the servo's first tick with the region does not wait for them.
+        let solver = Box::new((*tile).clone());
+        std::hint::black_box(solver.touch());
+        self.shared
+            .record_prepare_s(start.elapsed().as_secs_f64(), hit);
+        self.shared.prepared.fetch_add(1, Ordering::Relaxed);
+        Prepared::Region {
+            solver,
+            balls: RegionBalls::one(centre_m),
+        }
+    }
+}
