@@ -2924,3 +2924,48 @@ fn a_device_above_the_surface_brings_the_tiles_under_it_into_memory() {
     assert_eq!(s.centre_m, p, "{s:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A request whose tile is in memory is answered while another tile is being built, not after
+/// the build: the worker builds each tile on a thread of its own and keeps answering. While
+/// the background fill runs (the coarse LV's tiles, none on disk), the device goes back and
+/// forth between the two tiles nearest the first centre (built first); every request is a
+/// hit, and one of them at least lands during a build (the gap between two builds is a few
+/// microseconds of a build's tens of milliseconds). With the build on the worker's own thread
+/// `answered_while_building` stays 0.
+#[test]
+fn a_tile_in_memory_answers_while_another_tile_is_being_built() {
+    let (fem, mesh, nodes, region, dir, first) = cache_setup("haptic-tile-while-building");
+    let mut follower = RegionFollower::spawn(&fem, &mesh, &nodes, &first).expect("spawn");
+    let TileMode::Background { cover_m } = region.tiles else {
+        panic!("a region with tiles")
+    };
+    let mut centres = tile_centres(&mesh.nodes, &nodes, region.centre_m, cover_m);
+    centres.sort_by(|a, b| {
+        a.distance(region.centre_m)
+            .total_cmp(&b.distance(region.centre_m))
+    });
+    let waited = Instant::now();
+    while follower.stats().tiles_built < 2 {
+        assert!(waited.elapsed().as_secs() < 60, "{:?}", follower.stats());
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    let mut servo = Requester::new(&fem, &first);
+    let mut s = follower.stats();
+    for round in 0..6u64 {
+        let p = centres[usize::from(round % 2 == 0)];
+        let swaps = s.swaps;
+        while s.swaps == swaps {
+            assert!(waited.elapsed().as_secs() < 60, "{s:?}");
+            s = servo.request(&mut follower, p);
+            std::thread::sleep(std::time::Duration::from_micros(200));
+        }
+        assert_eq!(s.centre_m, p, "{s:?}");
+        assert_eq!((s.tile_hits, s.tile_misses), (round + 1, 0), "{s:?}");
+        if s.answered_while_building > 0 {
+            break;
+        }
+    }
+    assert!(s.answered_while_building > 0, "{s:?}");
+    assert!(s.tiles_ready() < s.tiles, "the fill ended first: {s:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

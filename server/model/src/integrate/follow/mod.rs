@@ -44,7 +44,9 @@
 //! no request, the tile nearest the last requested point first. A request then takes the tile
 //! nearest the point ([`TILE_HYSTERESIS_M`] replaces [`RECENTRE_RADII`]) and sends a copy
 //! (the tile itself is never stepped), or prepares the tile on demand when it is not built
-//! yet and keeps it. A request waits at most for the one tile being built. The servo's side
+//! yet and keeps it. A request that needs no preparation (a tile in memory, or nothing to
+//! do) is answered while a tile is being built (on a thread of its own); one whose tile is
+//! not in memory waits for that build (at most one) before its own. The servo's side
 //! is unchanged. The tiles in memory are bounded ([`RegionCacheDir::memory_bytes`], or
 //! [`DEFAULT_REGION_CACHE_MEMORY_BYTES`] without a region cache on disk): the farthest from
 //! the last requested point are dropped, read back from their files (or prepared again
@@ -149,6 +151,7 @@ struct Shared {
     tiles_present: AtomicU64,
     tiles_dropped: AtomicU64,
     tiles_reloaded: AtomicU64,
+    answered_while_building: AtomicU64,
     /// The worker builds no tile in the background ([`RegionFollower::set_paused`]).
     paused: AtomicBool,
     cache_error: std::sync::Mutex<Option<String>>,
@@ -244,6 +247,10 @@ pub struct FollowStats {
     /// Dropped tiles read back from their files (on request, or while idle as the probe
     /// came near them; in `tiles_loaded`, not in `tiles_built`).
     pub tiles_reloaded: u64,
+    /// Requests answered while a tile was being built (nothing to do, or a copy of a tile in
+    /// memory) instead of after the build (module documentation,
+    /// "Tiles").
+    pub answered_while_building: u64,
 }
 
 impl FollowStats {
@@ -365,15 +372,15 @@ impl RegionFollower {
             cache,
             store,
             report,
-            last_point_m: region.centre_m,
+            last_point_m: std::cell::Cell::new(region.centre_m),
             body: body.clone(),
             mesh: mesh.clone(),
             nodes,
             region,
             dt_s: first.dt_s(),
-            requests: worker_requests,
-            results: worker_results,
-            returns: worker_returns,
+            requests: std::cell::RefCell::new(worker_requests),
+            results: std::cell::RefCell::new(worker_results),
+            returns: std::cell::RefCell::new(worker_returns),
             shared: Arc::clone(&shared),
         };
         let handle = std::thread::Builder::new()
@@ -490,6 +497,7 @@ impl RegionFollower {
             tiles_present: self.shared.tiles_present.load(Ordering::Relaxed),
             tiles_dropped: self.shared.tiles_dropped.load(Ordering::Relaxed),
             tiles_reloaded: self.shared.tiles_reloaded.load(Ordering::Relaxed),
+            answered_while_building: self.shared.answered_while_building.load(Ordering::Relaxed),
         }
     }
 

@@ -2,6 +2,7 @@
 //! (a tile, a region prepared on demand, or nothing to do) and, while it has none, builds,
 //! reads back and drops tiles (module documentation of [`super`], "Tiles").
 
+use std::cell::{Cell, RefCell};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
@@ -35,47 +36,87 @@ pub(super) struct Worker {
     /// either, so background builds stop at the memory limit ([`Self::build_next_tile`]).
     pub(super) store_full: std::cell::Cell<bool>,
     /// The last requested point, m: background builds start nearest it.
-    pub(super) last_point_m: DVec3,
+    pub(super) last_point_m: Cell<DVec3>,
     pub(super) body: FemModel,
     pub(super) mesh: TetMesh,
     pub(super) nodes: Vec<u32>,
     pub(super) region: ActiveRegion,
     pub(super) dt_s: f64,
-    pub(super) requests: rtrb::Consumer<Request>,
-    pub(super) results: rtrb::Producer<Prepared>,
-    pub(super) returns: rtrb::Consumer<Box<CondensedSolver>>,
+    /// The rings from and to the servo, behind cells: a request is also answered while a
+    /// tile is being built ([`Self::answer_waiting`]).
+    pub(super) requests: RefCell<rtrb::Consumer<Request>>,
+    pub(super) results: RefCell<rtrb::Producer<Prepared>>,
+    pub(super) returns: RefCell<rtrb::Consumer<Box<CondensedSolver>>>,
     pub(super) shared: Arc<Shared>,
 }
 
 impl Worker {
     pub(super) fn run(mut self) {
         loop {
-            while let Ok(old) = self.returns.pop() {
-                drop(old);
-            }
+            self.drop_returned();
             if self.shared.stop.load(Ordering::Acquire) {
                 return;
             }
-            match self.requests.pop() {
+            let request = self.requests.get_mut().pop();
+            match request {
                 Ok(request) => {
-                    let mut answer = self.answer(request);
-                    if let Prepared::Region { solver, .. } = &mut answer {
-                        let parts = self.shared.parts.load(Ordering::Relaxed);
-                        solver.set_parts(usize::try_from(parts).unwrap_or(1));
-                    }
-                    // The servo sends one request at a time and reads the answer before the
-                    // next, so the ring has room.
-                    let _ = self.results.push(answer);
+                    let answer = self.answer(request);
+                    self.send(answer);
                 }
                 Err(_) => {
                     if let Some(p) = self.shared.focus_m.lock().ok().and_then(|mut f| f.take()) {
-                        self.last_point_m = p;
+                        self.last_point_m.set(p);
                     }
                     if self.shared.paused.load(Ordering::Relaxed) || !self.build_next_tile() {
                         std::thread::park_timeout(Duration::from_millis(50));
                     }
                 }
             }
+        }
+    }
+
+    /// Frees the regions the servo gave back.
+    fn drop_returned(&self) {
+        if let Ok(mut returns) = self.returns.try_borrow_mut() {
+            while let Ok(old) = returns.pop() {
+                drop(old);
+            }
+        }
+    }
+
+    /// Sends `answer` to the servo, a region cut for its tick pool first.
+    fn send(&self, mut answer: Prepared) {
+        if let Prepared::Region { solver, .. } = &mut answer {
+            let parts = self.shared.parts.load(Ordering::Relaxed);
+            solver.set_parts(usize::try_from(parts).unwrap_or(1));
+        }
+        // The servo sends one request at a time and reads the answer before the next, so the
+        // ring has room.
+        if let Ok(mut results) = self.results.try_borrow_mut() {
+            let _ = results.push(answer);
+        }
+    }
+
+    /// Called while a tile is being built ([`Self::build_tile`]): answers the servo's waiting
+    /// request when that needs no preparation ([`Self::ready_answer`]: nothing to do, or a
+    /// copy of a tile in memory), so that the probe sliding onto a built tile does not wait
+    /// for another tile's build (10-15 s on the 100 000-tet LV); else the request waits in
+    /// its ring for the build to end. Frees the regions given back meanwhile.
+    fn answer_waiting(&self) {
+        self.drop_returned();
+        let Ok(mut requests) = self.requests.try_borrow_mut() else {
+            return;
+        };
+        let Ok(&request) = requests.peek() else {
+            return;
+        };
+        if let Ok(answer) = self.ready_answer(&request) {
+            let _ = requests.pop();
+            drop(requests);
+            self.shared
+                .answered_while_building
+                .fetch_add(1, Ordering::Relaxed);
+            self.send(answer);
         }
     }
 
@@ -122,6 +163,16 @@ impl Worker {
     /// The answer to `request`: one ball as before (a tile, or [`Self::prepare`]), several
     /// prepared on demand.
     fn answer(&mut self, request: Request) -> Prepared {
+        match self.ready_answer(&request) {
+            Ok(answer) => answer,
+            Err(Pending::Tile(k)) => self.miss(k),
+            Err(Pending::Union(balls)) => self.prepare(balls),
+        }
+    }
+
+    /// The answer to `request` when it needs no preparation: nothing to do, or a copy of the
+    /// tile in memory it chooses ([`Self::tile_ready`]); else what it needs.
+    fn ready_answer(&self, request: &Request) -> Result<Prepared, Pending> {
         let (balls, point_m) = self.balls_for(&request.points_m);
         let current = request.current.centres();
         match balls.centres() {
@@ -129,29 +180,35 @@ impl Worker {
                 // The device above the surface, farther than a radius: the tiles follow the
                 // surface point under it, ready when it comes down.
                 if let (Some(_), Some(&p)) = (&self.cache, request.points_m.centres().first()) {
-                    self.last_point_m = self.nearest(p).0;
+                    self.last_point_m.set(self.nearest(p).0);
                 }
-                Prepared::Nothing
+                Ok(Prepared::Nothing)
             }
-            [_] if current.len() == 1 && self.cache.is_some() => self.lookup(point_m, current[0]),
+            [_] if current.len() == 1 && self.cache.is_some() => {
+                self.tile_ready(point_m, current[0])
+            }
             // From a union back to one ball: the nearest tile, whatever the hysteresis.
-            [_] if self.cache.is_some() => self.lookup(point_m, DVec3::NAN),
-            _ => self.prepare(balls, current),
+            [_] if self.cache.is_some() => self.tile_ready(point_m, DVec3::NAN),
+            _ => {
+                // The region of `balls` unless it is `current` to [`RECENTRE_RADII`] radii
+                // (same number of balls, each that near one of `current`).
+                let radius = self.region.radius_m;
+                let close = |c: &DVec3| {
+                    current
+                        .iter()
+                        .any(|k| c.distance(*k) < RECENTRE_RADII * radius)
+                };
+                if balls.centres().len() == current.len() && balls.centres().iter().all(close) {
+                    Ok(Prepared::Nothing)
+                } else {
+                    Err(Pending::Union(balls))
+                }
+            }
         }
     }
 
-    /// The region of `balls` unless it is `current` to [`RECENTRE_RADII`] radii (same number
-    /// of balls, each that near one of `current`).
-    fn prepare(&self, balls: RegionBalls, current: &[DVec3]) -> Prepared {
-        let radius = self.region.radius_m;
-        let close = |c: &DVec3| {
-            current
-                .iter()
-                .any(|k| c.distance(*k) < RECENTRE_RADII * radius)
-        };
-        if balls.centres().len() == current.len() && balls.centres().iter().all(close) {
-            return Prepared::Nothing;
-        }
+    /// The region of `balls`, prepared on demand.
+    fn prepare(&self, balls: RegionBalls) -> Prepared {
         let start = Instant::now();
         match CondensedSolver::new_in_threads(
             &self.body,
@@ -181,24 +238,51 @@ impl Worker {
 
     /// A region centred at `centre_m`, prepared as [`Self::prepare`] does and trimmed for the
     /// cache ([`CondensedSolver::trim_for_tiles`]); `None` when the preparation failed.
+    ///
+    /// The build runs on a thread of its own (`region-tile`; on this one if it cannot be
+    /// started) while this one answers the servo's requests that need no preparation
+    /// ([`Self::answer_waiting`]), so that a build of 10-15 s (the 100 000-tet LV) does not
+    /// hold them up.
     fn build_tile(&self, centre_m: DVec3) -> Option<Arc<CondensedSolver>> {
         let region = ActiveRegion {
             centre_m,
             ..self.region
         };
-        let mut solver = CondensedSolver::new_in_threads(
-            &self.body,
-            &self.mesh,
-            region,
-            RegionBalls::one(centre_m),
-            self.dt_s,
-            self.threads(),
-            &mut |_, _| {},
-        )
-        .ok()?;
-        solver.prepare_contact(&self.nodes);
-        solver.trim_for_tiles();
-        Some(Arc::new(solver))
+        let (body, mesh, nodes) = (&self.body, &self.mesh, self.nodes.as_slice());
+        let (dt_s, threads) = (self.dt_s, self.threads());
+        let build = move || {
+            let mut solver = CondensedSolver::new_in_threads(
+                body,
+                mesh,
+                region,
+                RegionBalls::one(centre_m),
+                dt_s,
+                threads,
+                &mut |_, _| {},
+            )
+            .ok()?;
+            solver.prepare_contact(nodes);
+            solver.trim_for_tiles();
+            Some(Arc::new(solver))
+        };
+        let me = std::thread::current();
+        std::thread::scope(|scope| {
+            let builder = std::thread::Builder::new()
+                .name("region-tile".into())
+                .spawn_scoped(scope, move || {
+                    let built = build();
+                    me.unpark();
+                    built
+                });
+            let Ok(builder) = builder else {
+                return build();
+            };
+            while !builder.is_finished() {
+                self.answer_waiting();
+                std::thread::park_timeout(Duration::from_millis(50));
+            }
+            builder.join().ok().flatten()
+        })
     }
 
     /// Tile `k` from its file on disk, or `None` (no store, no file, or a file refused:
@@ -313,7 +397,7 @@ impl Worker {
             }
             None => Tile::Failed,
         };
-        let p = self.last_point_m;
+        let p = self.last_point_m.get();
         while self.shared.tile_cache_bytes.load(Ordering::Relaxed) > self.memory_limit {
             // Those with a file first (read back in a fraction of a second), then the others
             // (prepared again if the probe comes back).
@@ -346,7 +430,7 @@ impl Worker {
         let Some(k) = self
             .cache
             .as_ref()
-            .and_then(|c| c.next_missing(self.last_point_m))
+            .and_then(|c| c.next_missing(self.last_point_m.get()))
         else {
             return !self.fill_only && self.reload_nearer();
         };
@@ -367,7 +451,7 @@ impl Worker {
         let Some(cache) = self.cache.as_ref() else {
             return false;
         };
-        let p = self.last_point_m;
+        let p = self.last_point_m.get();
         let d_k = cache.centres[k].distance(p);
         let bytes = self.shared.tile_cache_bytes.load(Ordering::Relaxed);
         let fits = cache
@@ -387,7 +471,7 @@ impl Worker {
         let Some((k, _)) = self
             .cache
             .as_ref()
-            .and_then(|c| c.nearest_dropped(self.last_point_m))
+            .and_then(|c| c.nearest_dropped(self.last_point_m.get()))
         else {
             return false;
         };
@@ -458,36 +542,53 @@ impl Worker {
     }
 
     /// A one-ball request with tiles for `point_m` while the region in use is centred at
-    /// `centre_m` (NaN: a union, which no tile is): the tile the cache chooses, copied (built
-    /// first when missing).
-    fn lookup(&mut self, point_m: DVec3, centre_m: DVec3) -> Prepared {
-        self.last_point_m = point_m;
+    /// `centre_m` (NaN: a union, which no tile is): nothing to do, or a copy of the tile the
+    /// cache chooses when it is in memory (a hit); else that tile's index (a miss,
+    /// [`Self::miss`]).
+    fn tile_ready(&self, point_m: DVec3, centre_m: DVec3) -> Result<Prepared, Pending> {
+        self.last_point_m.set(point_m);
         let start = Instant::now();
         let Some(cache) = self.cache.as_ref() else {
-            return Prepared::Nothing;
+            return Ok(Prepared::Nothing);
         };
         let Some(k) = cache.choose(point_m, centre_m) else {
-            return Prepared::Nothing;
+            return Ok(Prepared::Nothing);
         };
-        let centre_m = cache.centres[k];
-        let hit = matches!(cache.tiles[k], Tile::Built(_));
-        let tile = match &cache.tiles[k] {
+        match &cache.tiles[k] {
             Tile::Built(t) => {
                 self.shared.tile_hits.fetch_add(1, Ordering::Relaxed);
-                Arc::clone(t)
+                Ok(self.copy_of(t, cache.centres[k], start, true))
             }
-            Tile::Failed => return Prepared::Nothing,
-            Tile::Missing | Tile::OnDisk | Tile::Dropped => {
-                self.shared.tile_misses.fetch_add(1, Ordering::Relaxed);
-                match self.build_and_keep(k) {
-                    Some(t) => t,
-                    None => return Prepared::Nothing,
-                }
-            }
+            Tile::Failed => Ok(Prepared::Nothing),
+            Tile::Missing | Tile::OnDisk | Tile::Dropped => Err(Pending::Tile(k)),
+        }
+    }
+
+    /// A request's tile `k`, not in memory: read back or built, kept, and copied.
+    fn miss(&mut self, k: usize) -> Prepared {
+        let start = Instant::now();
+        self.shared.tile_misses.fetch_add(1, Ordering::Relaxed);
+        let Some(centre_m) = self.cache.as_ref().map(|c| c.centres[k]) else {
+            return Prepared::Nothing;
         };
+        match self.build_and_keep(k) {
+            Some(t) => self.copy_of(&t, centre_m, start, false),
+            None => Prepared::Nothing,
+        }
+    }
+
+    /// The answer with a copy of `tile` (centred at `centre_m`), looked up since `start`
+    /// (`hit`: found in memory; requests lead by those times).
+    fn copy_of(
+        &self,
+        tile: &CondensedSolver,
+        centre_m: DVec3,
+        start: Instant,
+        hit: bool,
+    ) -> Prepared {
         // A copy shares the tile's arrays (the tick never writes them); they are read here
         // once so that the servo's first tick with the region does not wait for them.
-        let solver = Box::new((*tile).clone());
+        let solver = Box::new(tile.clone());
         std::hint::black_box(solver.touch());
         self.shared
             .record_prepare_s(start.elapsed().as_secs_f64(), hit);
@@ -497,4 +598,12 @@ impl Worker {
             balls: RegionBalls::one(centre_m),
         }
     }
+}
+
+/// What a request needs besides an answer ready now ([`Worker::ready_answer`]).
+enum Pending {
+    /// Tile `k`, not in memory.
+    Tile(usize),
+    /// The region of these balls, prepared on demand.
+    Union(RegionBalls),
 }
