@@ -1,7 +1,8 @@
 //! Times reading a region cache back (issue 48 s2): every tile file of `--scene`'s cache in
-//! `--region-cache` (written by `hapticd --prepare-regions` or a session) is read and rebuilt
-//! with `CondensedSolver::from_image`, as a session's region worker does for a tile it
-//! dropped, and the file read and the rebuild are reported (p50, min, max).
+//! `--region-cache` (written by `hapticd --prepare-regions` or a session) is read into one
+//! buffer (`read_tile_file`) and rebuilt with `CondensedSolver::from_image`, as a session's
+//! region worker does for a tile it dropped, and the file read and the rebuild are reported
+//! (p50, min, max).
 //!
 //! `cargo run --release -p haptic-model --example tile_read -- --scene deploy/scenes/lv_h1_condensed.toml --region-cache DIR`
 
@@ -9,7 +10,7 @@ use std::time::Instant;
 
 use clap::Parser;
 use haptic_model::integrate::condensed::{ActiveRegion, CondensedSolver, TileMode};
-use haptic_model::integrate::follow::{cache_key, tile_centres, tile_file_name};
+use haptic_model::integrate::follow::{cache_key, read_tile_file, tile_centres, tile_file_name};
 use haptic_model::integrate::{critical_time_step, plan_steps};
 use haptic_model::scene::load_scene_file;
 
@@ -49,12 +50,14 @@ fn main() -> anyhow::Result<()> {
     let key = cache_key(&fem, &scene.mesh, &region, dt_s, &nodes);
     let centres = tile_centres(fem.rest(), &nodes, region.centre_m, cover_m);
     let (mut read_ms, mut rebuild_ms, mut bytes) = (Vec::new(), Vec::new(), 0usize);
+    // One buffer for every file, as the session's worker reads them.
+    let mut image = Vec::new();
     for (k, &centre_m) in centres.iter().enumerate().take(args.max_tiles) {
         let path = args.region_cache.join(tile_file_name(&key, k));
         let t = Instant::now();
-        let Ok(image) = std::fs::read(&path) else {
+        if read_tile_file(&path, &mut image, u64::MAX).is_err() {
             continue;
-        };
+        }
         read_ms.push(t.elapsed().as_secs_f64() * 1e3);
         let t = Instant::now();
         let tile = ActiveRegion { centre_m, ..region };

@@ -80,7 +80,7 @@ mod worker;
 use store::TileStore;
 pub use store::{
     DEFAULT_REGION_CACHE_MAX_BYTES, DEFAULT_REGION_CACHE_MEMORY_BYTES, RegionCacheDir,
-    RegionCacheReport, cache_key, tile_file_name,
+    RegionCacheReport, cache_key, read_tile_file, tile_file_name,
 };
 use tiles::TileCache;
 pub use tiles::{TILE_HYSTERESIS_M, tile_centres};
