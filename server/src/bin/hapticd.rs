@@ -131,6 +131,12 @@ async fn main() -> anyhow::Result<()> {
         LogFormat::Json => builder.json().init(),
         LogFormat::Text => builder.init(),
     }
+    if haptic_server::servo::keep_freed_memory() {
+        tracing::info!(
+            "allocator: up to {} MiB freed at a heap's top kept for reuse (region tiles read back without fresh pages)",
+            haptic_server::servo::KEPT_FREED_BYTES >> 20
+        );
+    }
     let listener = tokio::net::TcpListener::bind(config.listen)
         .await
         .with_context(|| format!("binding {}", config.listen))?;

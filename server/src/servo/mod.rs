@@ -30,7 +30,7 @@ pub use handoff::{
 };
 pub use pacer::{Clock, DevicePacer, Flow, MonotonicClock, Pacer, Wake};
 pub use realtime::{
-    WorkerThreads, Yielding, fifo_permitted, lowest_priority, setup_realtime, setup_realtime_on,
-    worker_start_hook,
+    KEPT_FREED_BYTES, WorkerThreads, Yielding, fifo_permitted, keep_freed_memory, lowest_priority,
+    setup_realtime, setup_realtime_on, worker_start_hook,
 };
 pub use run::{run_loop, run_loop_device_paced};
