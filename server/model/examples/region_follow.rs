@@ -561,14 +561,15 @@ fn peak_memory_mb() -> f64 {
 fn report_tiles(stats: &haptic_model::integrate::follow::FollowStats) {
     if stats.tiles > 0 {
         println!(
-            "tiles: {} centres, {} built ({:.0} MB in memory, {:.1} s of builds), {} hits ({} answered during a build), {} misses; {} dropped from memory, {} read back; {} swaps beyond a ring; peak memory {:.0} MB",
+            "tiles: {} centres, {} built ({:.0} MB in memory, {:.1} s of builds), {} hits, {} misses ({} answered during a build, {} of them read from disk); {} dropped from memory, {} read back; {} swaps beyond a ring; peak memory {:.0} MB",
             stats.tiles,
             stats.tiles_built,
             stats.tile_cache_bytes as f64 / 1e6,
             stats.tile_build_s,
             stats.tile_hits,
-            stats.answered_while_building,
             stats.tile_misses,
+            stats.answered_while_building,
+            stats.read_while_building,
             stats.tiles_dropped,
             stats.tiles_reloaded,
             stats.unmapped_swaps,

@@ -2969,3 +2969,62 @@ fn a_tile_in_memory_answers_while_another_tile_is_being_built() {
     assert!(s.tiles_ready() < s.tiles, "the fill ended first: {s:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A request whose tile was dropped from memory is answered with the tile read back from its
+/// file while another tile is being built, not after the build. The coarse LV's tiles are all
+/// on disk but the farther half's files are removed, and memory holds four tiles: the worker
+/// reads the near half (dropping all but four of them), then builds the far half. Meanwhile
+/// the device goes to dropped tiles of the near half, one after another; one of these misses
+/// at least is read and answered during a build (the gap between two builds is
+/// microseconds). Without the reads during builds `read_while_building` stays 0.
+#[test]
+fn a_dropped_tile_is_read_back_while_another_tile_is_being_built() {
+    let ((fem, mesh, nodes, region, dir, first), cache, n, _) =
+        four_tile_cache("haptic-tile-read-while-building", 1 << 30);
+    let TileMode::Background { cover_m } = region.tiles else {
+        panic!("a region with tiles")
+    };
+    let centres = tile_centres(&mesh.nodes, &nodes, region.centre_m, cover_m);
+    let mut by_distance: Vec<usize> = (0..centres.len()).collect();
+    by_distance.sort_by(|&a, &b| {
+        let d = |k: usize| centres[k].distance(region.centre_m);
+        d(a).total_cmp(&d(b))
+    });
+    let (near, far) = by_distance.split_at(centres.len() / 2);
+    let index = |p: &Path| -> Option<usize> {
+        let name = p.file_stem()?.to_str()?;
+        name.rsplit('-').next()?.parse().ok()
+    };
+    for entry in std::fs::read_dir(&cache.dir).expect("cache dir") {
+        let path = entry.expect("entry").path();
+        if index(&path).is_some_and(|k| far.contains(&k)) {
+            std::fs::remove_file(&path).expect("remove");
+        }
+    }
+    let mut follower = spawn_follower(&fem, &mesh, &nodes, &first, &cache);
+    let waited = Instant::now();
+    while follower.stats().tiles_loaded < near.len() as u64 {
+        assert!(waited.elapsed().as_secs() < 60, "{:?}", follower.stats());
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    let mut servo = Requester::new(&fem, &first);
+    let mut s = follower.stats();
+    assert!(s.tiles_dropped >= 1, "{s:?}");
+    // The near half's tiles from the farthest (the last read one is kept, the others were
+    // dropped).
+    for &k in near.iter().rev().take(8) {
+        let swaps = s.swaps;
+        while s.swaps == swaps {
+            assert!(waited.elapsed().as_secs() < 60, "{s:?}");
+            s = servo.request(&mut follower, centres[k]);
+            std::thread::sleep(std::time::Duration::from_micros(200));
+        }
+        assert_eq!(s.centre_m, centres[k], "{s:?}");
+        if s.read_while_building > 0 {
+            break;
+        }
+    }
+    assert!(s.read_while_building > 0, "{s:?}");
+    assert!(s.tiles_reloaded >= 1 && s.tiles_ready() < n, "{s:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

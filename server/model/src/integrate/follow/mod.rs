@@ -45,8 +45,9 @@
 //! nearest the point ([`TILE_HYSTERESIS_M`] replaces [`RECENTRE_RADII`]) and sends a copy
 //! (the tile itself is never stepped), or prepares the tile on demand when it is not built
 //! yet and keeps it. A request that needs no preparation (a tile in memory, or nothing to
-//! do) is answered while a tile is being built (on a thread of its own); one whose tile is
-//! not in memory waits for that build (at most one) before its own. The servo's side
+//! do) or only a read (its tile's file) is answered while a tile is being built (on a
+//! thread of its own); one whose tile must be built waits for that build (at most one)
+//! before its own. The servo's side
 //! is unchanged. The tiles in memory are bounded ([`RegionCacheDir::memory_bytes`], or
 //! [`DEFAULT_REGION_CACHE_MEMORY_BYTES`] without a region cache on disk): the farthest from
 //! the last requested point are dropped, read back from their files (or prepared again
@@ -152,6 +153,7 @@ struct Shared {
     tiles_dropped: AtomicU64,
     tiles_reloaded: AtomicU64,
     answered_while_building: AtomicU64,
+    read_while_building: AtomicU64,
     /// The worker builds no tile in the background ([`RegionFollower::set_paused`]).
     paused: AtomicBool,
     cache_error: std::sync::Mutex<Option<String>>,
@@ -247,10 +249,12 @@ pub struct FollowStats {
     /// Dropped tiles read back from their files (on request, or while idle as the probe
     /// came near them; in `tiles_loaded`, not in `tiles_built`).
     pub tiles_reloaded: u64,
-    /// Requests answered while a tile was being built (nothing to do, or a copy of a tile in
-    /// memory) instead of after the build (module documentation,
-    /// "Tiles").
+    /// Requests answered while a tile was being built (nothing to do, a copy of a tile in
+    /// memory, or a tile read from its file) instead of after the build (module
+    /// documentation, "Tiles").
     pub answered_while_building: u64,
+    /// Of those, the requests whose tile was read from its file (also in `tile_misses`).
+    pub read_while_building: u64,
 }
 
 impl FollowStats {
@@ -381,6 +385,8 @@ impl RegionFollower {
             requests: std::cell::RefCell::new(worker_requests),
             results: std::cell::RefCell::new(worker_results),
             returns: std::cell::RefCell::new(worker_returns),
+            read_meanwhile: std::cell::RefCell::new(Vec::new()),
+            tried_meanwhile: std::cell::Cell::new(usize::MAX),
             shared: Arc::clone(&shared),
         };
         let handle = std::thread::Builder::new()
@@ -498,6 +504,7 @@ impl RegionFollower {
             tiles_dropped: self.shared.tiles_dropped.load(Ordering::Relaxed),
             tiles_reloaded: self.shared.tiles_reloaded.load(Ordering::Relaxed),
             answered_while_building: self.shared.answered_while_building.load(Ordering::Relaxed),
+            read_while_building: self.shared.read_while_building.load(Ordering::Relaxed),
         }
     }
 

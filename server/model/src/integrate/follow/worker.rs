@@ -47,6 +47,11 @@ pub(super) struct Worker {
     pub(super) requests: RefCell<rtrb::Consumer<Request>>,
     pub(super) results: RefCell<rtrb::Producer<Prepared>>,
     pub(super) returns: RefCell<rtrb::Consumer<Box<CondensedSolver>>>,
+    /// Tiles read from disk for requests while a tile was being built
+    /// ([`Self::read_while_building`]), kept ([`Self::keep`]) once the worker is free, and
+    /// the tile whose read was tried during the build in progress (`usize::MAX`: none).
+    pub(super) read_meanwhile: RefCell<Vec<(usize, Arc<CondensedSolver>)>>,
+    pub(super) tried_meanwhile: Cell<usize>,
     pub(super) shared: Arc<Shared>,
 }
 
@@ -54,6 +59,9 @@ impl Worker {
     pub(super) fn run(mut self) {
         loop {
             self.drop_returned();
+            for (k, tile) in std::mem::take(self.read_meanwhile.get_mut()) {
+                self.keep(k, Some(&tile), true);
+            }
             if self.shared.stop.load(Ordering::Acquire) {
                 return;
             }
@@ -99,9 +107,11 @@ impl Worker {
 
     /// Called while a tile is being built ([`Self::build_tile`]): answers the servo's waiting
     /// request when that needs no preparation ([`Self::ready_answer`]: nothing to do, or a
-    /// copy of a tile in memory), so that the probe sliding onto a built tile does not wait
-    /// for another tile's build (10-15 s on the 100 000-tet LV); else the request waits in
-    /// its ring for the build to end. Frees the regions given back meanwhile.
+    /// copy of a tile in memory) or only a read ([`Self::read_while_building`]: its tile's
+    /// file), so that the probe sliding onto a built tile does not wait for another tile's
+    /// build (10-15 s on the 100 000-tet LV); else (its tile to be built, or a union) the
+    /// request waits in its ring for the build to end. Frees the regions given back
+    /// meanwhile.
     fn answer_waiting(&self) {
         self.drop_returned();
         let Ok(mut requests) = self.requests.try_borrow_mut() else {
@@ -110,7 +120,12 @@ impl Worker {
         let Ok(&request) = requests.peek() else {
             return;
         };
-        if let Ok(answer) = self.ready_answer(&request) {
+        let answer = match self.ready_answer(&request) {
+            Ok(answer) => Some(answer),
+            Err(Pending::Tile(k)) => self.read_while_building(k),
+            Err(Pending::Union(_)) => None,
+        };
+        if let Some(answer) = answer {
             let _ = requests.pop();
             drop(requests);
             self.shared
@@ -118,6 +133,26 @@ impl Worker {
                 .fetch_add(1, Ordering::Relaxed);
             self.send(answer);
         }
+    }
+
+    /// A request's tile `k`, not in memory, read from its file while another tile is being
+    /// built (tried once per build: a missing file or a refused one waits for the build, then
+    /// [`Self::miss`]); counted as [`Self::obtain`] counts a read, and kept later.
+    fn read_while_building(&self, k: usize) -> Option<Prepared> {
+        let cache = self.cache.as_ref()?;
+        if self.tried_meanwhile.replace(k) == k {
+            return None;
+        }
+        let start = Instant::now();
+        let tile = self.load_tile(k, cache.centres[k])?;
+        self.shared.tile_misses.fetch_add(1, Ordering::Relaxed);
+        self.shared
+            .read_while_building
+            .fetch_add(1, Ordering::Relaxed);
+        self.count_obtained(matches!(cache.tiles[k], Tile::Dropped), true, start);
+        let answer = self.copy_of(&tile, cache.centres[k], start, false);
+        self.read_meanwhile.borrow_mut().push((k, tile));
+        Some(answer)
     }
 
     /// Threads of a preparation's column solves: the session's tick threads
@@ -266,6 +301,7 @@ impl Worker {
             Some(Arc::new(solver))
         };
         let me = std::thread::current();
+        self.tried_meanwhile.set(usize::MAX);
         std::thread::scope(|scope| {
             let builder = std::thread::Builder::new()
                 .name("region-tile".into())
@@ -363,21 +399,27 @@ impl Worker {
             }
             built
         });
+        self.count_obtained(reload, tile.is_some(), start);
+        (tile, stored)
+    }
+
+    /// Counts a tile obtained since `start` (`got`: read or built; `reload`: a dropped one
+    /// read back) or its failure, and its time.
+    fn count_obtained(&self, reload: bool, got: bool, start: Instant) {
         let s = start.elapsed().as_secs_f64();
         let total = f64::from_bits(self.shared.tile_build_s.load(Ordering::Relaxed));
         self.shared
             .tile_build_s
             .store((total + s).to_bits(), Ordering::Relaxed);
-        let counter = match tile {
-            Some(_) if reload => &self.shared.tiles_reloaded,
-            Some(_) => &self.shared.tiles_built,
-            None => {
+        let counter = match (got, reload) {
+            (true, true) => &self.shared.tiles_reloaded,
+            (true, false) => &self.shared.tiles_built,
+            (false, _) => {
                 self.shared.failed.fetch_add(1, Ordering::Relaxed);
                 &self.shared.tiles_failed
             }
         };
         counter.fetch_add(1, Ordering::Relaxed);
-        (tile, stored)
     }
 
     /// Keeps tile `k` in memory ([`Tile::Built`]; `stored`: its file holds it), or marks it
@@ -554,13 +596,15 @@ impl Worker {
         let Some(k) = cache.choose(point_m, centre_m) else {
             return Ok(Prepared::Nothing);
         };
-        match &cache.tiles[k] {
-            Tile::Built(t) => {
+        let meanwhile = self.read_meanwhile.borrow();
+        let read = meanwhile.iter().find(|(j, _)| *j == k).map(|(_, t)| t);
+        match (&cache.tiles[k], read) {
+            (Tile::Built(t), _) | (_, Some(t)) => {
                 self.shared.tile_hits.fetch_add(1, Ordering::Relaxed);
                 Ok(self.copy_of(t, cache.centres[k], start, true))
             }
-            Tile::Failed => Ok(Prepared::Nothing),
-            Tile::Missing | Tile::OnDisk | Tile::Dropped => Err(Pending::Tile(k)),
+            (Tile::Failed, None) => Ok(Prepared::Nothing),
+            (Tile::Missing | Tile::OnDisk | Tile::Dropped, None) => Err(Pending::Tile(k)),
         }
     }
 
