@@ -34,7 +34,7 @@ pub(super) struct Worker {
     pub(super) memory_limit: u64,
     /// The store refused a tile (full, or a write failed): later tiles are not written
     /// either, so background builds stop at the memory limit ([`Self::build_next_tile`]).
-    pub(super) store_full: std::cell::Cell<bool>,
+    pub(super) store_full: Cell<bool>,
     /// The last requested point, m: background builds start nearest it.
     pub(super) last_point_m: Cell<DVec3>,
     pub(super) body: FemModel,
