@@ -10,7 +10,8 @@
 # resolve against deploy/scenes). N: sessions (default 2). HOLD_S: hold at depth (default 5).
 # Binaries: $HAPTIC_BIN (default target/release). The press point and direction can be moved
 # with START_M, DIRECTION, DEPTH_M (m, as haptic-bridge takes them). THREADS (auto or 1..16,
-# default: the daemon's default, auto) is passed as `hapticd --servo-threads`. One row per
+# default: the daemon's default, auto) is passed as `hapticd --servo-threads`, REGION_CACHE_DIR
+# (a directory of region-cache tiles, `hapticd --prepare-regions`) as `--region-cache-dir`. One row per
 # session: threads of its tick (servo thread plus tick-pool workers), loop rate over the last
 # statistics window, step time p50 / p99 / max, overruns (late ticks), pose-to-force p50 / p99
 # (device sample received to force sent, server side), peak force; then the machine (CPU
@@ -43,6 +44,7 @@ trap cleanup EXIT
 
 daemon_args=(--listen 127.0.0.1:0 --scene-dir "$root/deploy/scenes" --data-dir "$root/../shared/data")
 [[ -n $threads ]] && daemon_args+=(--servo-threads "$threads")
+[[ -n ${REGION_CACHE_DIR:-} ]] && daemon_args+=(--region-cache-dir "$REGION_CACHE_DIR")
 "$bin/hapticd" "${daemon_args[@]}" > "$work/hapticd.log" 2>&1 &
 daemon=$!
 addr=

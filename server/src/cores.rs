@@ -3,14 +3,18 @@
 //!
 //! `[servo] threads = "auto"` gives a session the threads its body asks for
 //! (`SoftBody::wants_threads`), limited by the cores no running session has reserved: the
-//! machine's (`std::thread::available_parallelism`) or the `[servo] cpus` list's, less the
-//! threads the body keeps busy beside its tick (`SoftBody::background_threads`: a region
-//! cache being built; two busy threads and a worker on two cores starve the worker). A session that
+//! machine's (`std::thread::available_parallelism`) or the `[servo] cpus` list's. A session that
 //! cannot get its threads gets fewer (at least its servo thread) and never waits; where
 //! `SCHED_FIFO` was asked for and refused it gets one (an unprotected worker preempted while it
 //! holds a part would stall the servo). `threads = N` gives every session N. Either way the
 //! session reserves what it got ([`CoreReservation`]) until its servo loop ends or it is
 //! quarantined.
+//!
+//! While the body keeps threads busy beside its tick (`SoftBody::background_threads`: a
+//! region cache being built), an `"auto"` session lends out the tick-pool workers the cores
+//! free at its start cannot hold beside them ([`ThreadShare::working`]): they stay parked, and
+//! work again once the background work is done (two busy `SCHED_FIFO` threads and a region
+//! worker on two cores starve the worker).
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -31,6 +35,41 @@ pub struct CoreReservation {
     reserved: Arc<AtomicUsize>,
     cores: usize,
     first: usize,
+    /// Cores no session held when this one was made; `None` under `threads = N`.
+    free: Option<usize>,
+}
+
+/// How many of a session's tick threads work while its body keeps threads busy beside the tick
+/// ([`CoreReservation::share`]; module documentation).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ThreadShare {
+    threads: usize,
+    free: Option<usize>,
+}
+
+impl ThreadShare {
+    /// All `threads` always work (one thread, a fixed count).
+    pub fn fixed(threads: usize) -> Self {
+        Self {
+            threads: threads.max(1),
+            free: None,
+        }
+    }
+
+    /// The session's tick threads (servo thread and pool workers).
+    pub fn threads(&self) -> usize {
+        self.threads
+    }
+
+    /// Threads of the tick that work while the body keeps `background` threads busy: under
+    /// `"auto"` those the cores free at the session's start hold beside them (at least the
+    /// servo thread), under `threads = N` all. Always `1..=threads`.
+    pub fn working(&self, background: usize) -> usize {
+        match self.free {
+            Some(free) => self.threads.min(free.saturating_sub(background).max(1)),
+            None => self.threads,
+        }
+    }
 }
 
 impl CoreReservation {
@@ -47,6 +86,14 @@ impl CoreReservation {
         self.cores = keep;
     }
 
+    /// How many of these cores' threads work beside the body's background threads.
+    pub fn share(&self) -> ThreadShare {
+        ThreadShare {
+            threads: self.cores,
+            free: self.free,
+        }
+    }
+
     /// Cores other sessions held when this one was made: the session's servo takes the CPU at
     /// this position of the `cpus` list (modulo its length) and its workers the next ones.
     pub fn first(&self) -> usize {
@@ -60,21 +107,13 @@ impl Drop for CoreReservation {
     }
 }
 
-/// Threads of a session whose body wants `wants` and keeps `background` busy beside its
-/// tick, under `mode`, with `free` cores unreserved; `fifo_refused`: `SCHED_FIFO` was asked
-/// for and refused. Always 1..=[`MAX_SERVO_THREADS`].
-pub fn decide_threads(
-    mode: ServoThreads,
-    (wants, background): (usize, usize),
-    free: usize,
-    fifo_refused: bool,
-) -> usize {
+/// Threads of a session whose body wants `wants`, under `mode`, with `free` cores unreserved;
+/// `fifo_refused`: `SCHED_FIFO` was asked for and refused. Always 1..=[`MAX_SERVO_THREADS`].
+pub fn decide_threads(mode: ServoThreads, wants: usize, free: usize, fifo_refused: bool) -> usize {
     match mode {
         ServoThreads::Fixed(n) => n.clamp(1, MAX_SERVO_THREADS),
         ServoThreads::Auto if fifo_refused => 1,
-        ServoThreads::Auto => wants
-            .clamp(1, MAX_SERVO_THREADS)
-            .min(free.saturating_sub(background).max(1)),
+        ServoThreads::Auto => wants.clamp(1, MAX_SERVO_THREADS).min(free.max(1)),
     }
 }
 
@@ -110,14 +149,9 @@ impl CoreBudget {
     }
 
     /// Decides a new session's threads ([`decide_threads`] with the cores free now) and reserves
-    /// them, atomically against concurrent starts. Never waits. (The background threads are
-    /// not reserved: they idle once their work is done.)
-    pub fn reserve(
-        &self,
-        mode: ServoThreads,
-        wants: (usize, usize),
-        fifo_refused: bool,
-    ) -> CoreReservation {
+    /// them, atomically against concurrent starts. Never waits. (A body's background threads
+    /// are not reserved: the session lends them its workers, [`ThreadShare`].)
+    pub fn reserve(&self, mode: ServoThreads, wants: usize, fifo_refused: bool) -> CoreReservation {
         let mut now = self.reserved.load(Ordering::Acquire);
         loop {
             let free = self.capacity.saturating_sub(now);
@@ -133,6 +167,7 @@ impl CoreBudget {
                         reserved: self.reserved.clone(),
                         cores,
                         first: now,
+                        free: matches!(mode, ServoThreads::Auto).then_some(free),
                     };
                 }
                 Err(actual) => now = actual,
@@ -148,34 +183,57 @@ mod tests {
     #[test]
     fn auto_takes_what_is_free_and_never_less_than_one() {
         let auto = ServoThreads::Auto;
-        assert_eq!(decide_threads(auto, (2, 0), 2, false), 2);
-        assert_eq!(decide_threads(auto, (4, 0), 2, false), 2);
-        assert_eq!(decide_threads(auto, (2, 0), 1, false), 1);
-        assert_eq!(decide_threads(auto, (2, 0), 0, false), 1);
-        assert_eq!(decide_threads(auto, (0, 0), 8, false), 1);
-        assert_eq!(decide_threads(auto, (2, 0), 2, true), 1, "FIFO refused");
-        assert_eq!(decide_threads(ServoThreads::Fixed(3), (1, 0), 0, true), 3);
-        // A body building its region cache: its worker keeps a core busy.
-        assert_eq!(decide_threads(auto, (2, 1), 2, false), 1);
-        assert_eq!(decide_threads(auto, (2, 1), 3, false), 2);
-        assert_eq!(decide_threads(auto, (2, 1), 1, false), 1);
-        assert_eq!(decide_threads(ServoThreads::Fixed(2), (2, 1), 2, false), 2);
+        assert_eq!(decide_threads(auto, 2, 2, false), 2);
+        assert_eq!(decide_threads(auto, 4, 2, false), 2);
+        assert_eq!(decide_threads(auto, 2, 1, false), 1);
+        assert_eq!(decide_threads(auto, 2, 0, false), 1);
+        assert_eq!(decide_threads(auto, 0, 8, false), 1);
+        assert_eq!(decide_threads(auto, 2, 2, true), 1, "FIFO refused");
+        assert_eq!(decide_threads(ServoThreads::Fixed(3), 1, 0, true), 3);
+    }
+
+    #[test]
+    fn auto_lends_the_workers_the_free_cores_cannot_hold_beside_background_threads() {
+        let working = |cpus: usize, wants: usize, background: usize| {
+            let r = CoreBudget::new(cpus).reserve(ServoThreads::Auto, wants, false);
+            (r.cores(), r.share().working(background))
+        };
+        // A body building its region cache keeps a core busy: on two cores its second thread
+        // is lent out until the cache is done, on three both work.
+        assert_eq!(working(2, 2, 1), (2, 1));
+        assert_eq!(working(2, 2, 0), (2, 2));
+        assert_eq!(working(3, 2, 1), (2, 2));
+        assert_eq!(working(4, 4, 2), (4, 2));
+        assert_eq!(working(1, 2, 1), (1, 1));
+        assert_eq!(working(2, 2, 5), (2, 1), "never less than the servo thread");
+        // After another session took a core: what was free at the start counts.
+        let budget = CoreBudget::new(3);
+        let _a = budget.reserve(ServoThreads::Auto, 1, false);
+        let b = budget.reserve(ServoThreads::Auto, 2, false);
+        assert_eq!((b.cores(), b.share().working(1)), (2, 1));
+        // A fixed count always works whole.
+        let fixed = CoreBudget::new(2).reserve(ServoThreads::Fixed(2), 2, false);
+        assert_eq!(fixed.share().working(1), 2);
+        assert_eq!(ThreadShare::fixed(3).working(2), 3);
+        let mut shrunk = CoreBudget::new(2).reserve(ServoThreads::Auto, 2, false);
+        shrunk.shrink_to(1);
+        assert_eq!(shrunk.share().working(0), 1);
     }
 
     #[test]
     fn reservations_add_up_and_are_given_back_on_drop() {
         let budget = CoreBudget::new(2);
-        let a = budget.reserve(ServoThreads::Auto, (2, 0), false);
+        let a = budget.reserve(ServoThreads::Auto, 2, false);
         assert_eq!((a.cores(), a.first(), budget.reserved()), (2, 0, 2));
-        let b = budget.reserve(ServoThreads::Auto, (2, 0), false);
+        let b = budget.reserve(ServoThreads::Auto, 2, false);
         assert_eq!((b.cores(), b.first(), budget.reserved()), (1, 2, 3));
         drop(a);
         assert_eq!(budget.reserved(), 1);
-        let c = budget.reserve(ServoThreads::Auto, (2, 0), false);
+        let c = budget.reserve(ServoThreads::Auto, 2, false);
         assert_eq!(c.cores(), 1, "one core is free");
         drop((b, c));
         assert_eq!(budget.reserved(), 0);
-        assert_eq!(budget.reserve(ServoThreads::Auto, (2, 0), false).cores(), 2);
+        assert_eq!(budget.reserve(ServoThreads::Auto, 2, false).cores(), 2);
         assert_eq!(budget.reserved(), 0, "the unnamed reservation was dropped");
     }
 }

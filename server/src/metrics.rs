@@ -289,9 +289,17 @@ const SESSION_METRICS: &[(&str, &str, MetricType, Extract)] = {
         ),
         (
             "hapticd_session_threads",
-            "Threads the session's tick uses (servo thread plus tick-pool workers)",
+            "Threads the session's tick uses (servo thread plus working tick-pool workers)",
             Gauge,
-            |r| Value::Gauge(r.session.tick_threads as f64),
+            |r| {
+                let published = r.stats.threads;
+                let threads = if published > 0 {
+                    published
+                } else {
+                    r.session.tick_threads
+                };
+                Value::Gauge(f64::from(threads))
+            },
         ),
         (
             "hapticd_pool_wait_max_seconds",

@@ -267,7 +267,12 @@ impl SessionControl for Services {
             device_silences: st.device_silences,
             overrunning: st.overrunning,
             demoted: st.demoted,
-            threads: st.threads.max(s.tick_threads),
+            // Those working, once the servo has published; until then the session's.
+            threads: if st.threads > 0 {
+                st.threads
+            } else {
+                s.tick_threads
+            },
             pool_wait_us_max: st.pool_wait_us_max,
             device: first_device(&s),
             max_tools: s.tools.len() as u32,

@@ -247,8 +247,9 @@ pub struct Session {
     pub region_cache_log: Arc<RegionCacheLog>,
     /// The servo thread, unparked when a device sample arrives (device pacing).
     servo_thread: std::thread::Thread,
-    /// Threads the session's tick uses: its servo thread plus tick-pool workers
-    /// ([`crate::cores`]).
+    /// Threads the session's tick has: its servo thread plus tick-pool workers, those lent
+    /// out beside the body's background threads included ([`crate::cores`]; `GetStats`
+    /// says how many work now).
     pub tick_threads: u32,
     /// The force-stream deadband of tool slot 0 and its counters (`tools[0].deadband`).
     pub deadband: Arc<DeadbandShared>,
@@ -499,7 +500,7 @@ impl SessionManager {
         body: &mut dyn haptic_model::body::SoftBody,
     ) -> (TickThreads, Option<Arc<haptic_model::pool::TickPool>>) {
         let servo_cfg = &self.config.servo;
-        let wants = (body.wants_threads(), body.background_threads());
+        let wants = body.wants_threads();
         let mut reservation = self
             .cores
             .reserve(servo_cfg.threads, wants, self.fifo_refused());
@@ -881,7 +882,7 @@ impl SessionManager {
         let (plan, pool) = self.tick_threads(&id, body.as_mut());
         let threads = plan.reservation.cores();
         let core = servo_core(&servo_cfg, body, ends, shared.clone(), period_us)
-            .with_tick_pool(pool, threads);
+            .with_tick_pool(pool, plan.reservation.share());
         let servo = spawn_servo(
             &id,
             servo_cfg,

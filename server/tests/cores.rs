@@ -4,6 +4,7 @@
 
 use crate::common;
 
+use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use haptic_model::body::SoftBody;
@@ -64,27 +65,49 @@ async fn auto_threads_share_the_listed_cpus_and_come_back_when_a_session_stops()
     assert_eq!(manager.reserved_cores(), (0, 2));
 }
 
-/// A body that keeps a thread busy beside its tick (a region cache being built) gets one core
-/// less in `auto`: on two CPUs it ticks alone, on three with the worker it asks for; it
-/// reserves its tick's cores only.
+/// A body that keeps a thread busy beside its tick (a region cache being built): on two CPUs
+/// its session reserves both but lends its worker out (parked, no part of a tick) until the
+/// background work is done, then ticks on both; on three both work from the start.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn auto_threads_leave_a_core_to_the_bodys_background_thread() {
-    let busy = || {
+async fn auto_threads_lend_a_worker_to_the_bodys_background_thread_until_it_is_done() {
+    for (cpus, working) in [("[0, 1]", 1), ("[0, 1, 2]", 2)] {
         let mut body = common::Burdened::wanting(common::builtin_body("ellipsoids"), 2, None);
-        body.background = 1;
-        Box::new(body)
-    };
-    for (cpus, expected) in [("[0, 1]", 1), ("[0, 1, 2]", 2)] {
+        body.background.store(1, Ordering::Relaxed);
+        body.part_us = 100;
+        let (background, pool) = (body.background.clone(), body.pool.clone());
         let manager = SessionManager::new(config(&format!("threads = \"auto\"\ncpus = {cpus}")));
-        let a = manager.start_body(busy()).unwrap();
-        assert_eq!(a.tick_threads, expected, "cpus {cpus}");
-        // The background thread is not reserved (it idles once the cache is full).
+        let a = manager.start_body(Box::new(body)).unwrap();
         assert_eq!(
-            manager.reserved_cores().0,
-            a.tick_threads as usize,
-            "cpus {cpus}"
+            a.tick_threads, 2,
+            "cpus {cpus}: the tick's cores are reserved"
         );
+        assert_eq!(manager.reserved_cores().0, 2, "cpus {cpus}");
+        let pool = pool.get().expect("a tick pool").clone();
+        assert_eq!(pool.active_workers(), working - 1, "cpus {cpus}");
+        // GetStats says how many work, once the servo has published (every 100 ticks).
+        let ticked = || a.stats().steps > 1000 && a.stats().threads != 0;
+        assert!(common::wait_for(ticked, Duration::from_secs(10)).await);
+        assert_eq!(a.stats().threads, working as u32, "cpus {cpus}");
+        let on_workers = pool.stats().parts_on_workers;
+        assert_eq!(
+            on_workers == 0,
+            working == 1,
+            "cpus {cpus}: {:?}",
+            pool.stats()
+        );
+        // The background work is done: the worker comes back within a statistics window.
+        background.store(0, Ordering::Relaxed);
+        let both = || a.stats().threads == 2 && pool.stats().parts_on_workers > on_workers;
+        let back = common::wait_for(both, Duration::from_secs(10)).await;
+        assert!(
+            back,
+            "cpus {cpus}: {:?} {:?}",
+            a.stats().threads,
+            pool.stats()
+        );
+        assert_eq!(pool.active_workers(), 1);
         manager.stop_all();
+        assert_eq!(manager.reserved_cores().0, 0);
     }
 }
 

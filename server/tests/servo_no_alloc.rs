@@ -156,7 +156,8 @@ fn press_and_count(
         snapshot: mut snap_out,
         stats: mut stats_out,
     } = handles;
-    let mut core = ServoCore::new(body, ends, shared.clone(), 4, 50).with_tick_pool(pool, threads);
+    let mut core = ServoCore::new(body, ends, shared.clone(), 4, 50)
+        .with_tick_pool(pool, haptic_server::cores::ThreadShare::fixed(threads));
     shared.watchers.store(1, Ordering::Relaxed);
     let clock = ManualClock(Cell::new(0));
     let mut worst = 0;

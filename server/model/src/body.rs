@@ -274,9 +274,11 @@ pub trait SoftBody: Send {
         1
     }
 
-    /// Threads the body keeps busy beside its tick from its start (issue 48): a region worker
-    /// building a region cache. The session's automatic thread count leaves them a core
-    /// ([`Self::wants_threads`] is cut to the cores free less these). Provided: 0.
+    /// Threads the body keeps busy beside its tick now (issue 48): a region worker building a
+    /// region cache. While they are busy a session with an automatic thread count lends them the
+    /// tick-pool workers the cores free at its start cannot hold beside them (the pool's
+    /// `set_active_workers`); it asks again every statistics window, between ticks, so this
+    /// must not allocate, lock or block. Provided: 0.
     fn background_threads(&self) -> usize {
         0
     }

@@ -26,8 +26,10 @@ pub struct ServoCore {
     state: ServoState,
     applied: AppliedLoads,
     stats: ServoStats,
-    /// The body's tick pool (for its statistics) and the threads the session's tick uses.
+    /// The body's tick pool (for its statistics), how many of the session's tick threads
+    /// work beside the body's background threads, and how many work now.
     pool: Option<Arc<haptic_model::pool::TickPool>>,
+    share: crate::cores::ThreadShare,
     threads: u32,
 }
 
@@ -202,21 +204,42 @@ impl ServoCore {
             applied: AppliedLoads::new(),
             stats: ServoStats::new(),
             pool: None,
+            share: crate::cores::ThreadShare::fixed(1),
             threads: 1,
         }
     }
 
     /// Records the session's tick pool, already handed to the body
-    /// (`SoftBody::set_tick_pool`), and the threads its tick uses (the servo's plus the pool's
-    /// workers, as the session decided): published as `threads` and `pool_wait_us_max`.
+    /// (`SoftBody::set_tick_pool`), and the threads its tick has (the servo's plus the pool's
+    /// workers, as the session decided): published as `threads` (those working) and
+    /// `pool_wait_us_max`. Lends out the workers the body's background threads need now
+    /// ([`crate::cores::ThreadShare::working`]); every statistics window checks again.
     pub fn with_tick_pool(
         mut self,
         pool: Option<Arc<haptic_model::pool::TickPool>>,
-        threads: usize,
+        share: crate::cores::ThreadShare,
     ) -> Self {
         self.pool = pool;
-        self.threads = threads.max(1) as u32;
+        self.share = share;
+        self.lend_workers();
         self
+    }
+
+    /// Activates the pool workers the body's background threads leave room for and lends out
+    /// the others (`TickPool::set_active_workers`, only when the count changes: it unparks).
+    /// Allocation-free and lock-free.
+    fn lend_workers(&mut self) {
+        let working = self.share.working(self.body.background_threads());
+        self.threads = match &self.pool {
+            Some(pool) => {
+                let workers = (working - 1).min(pool.threads() - 1);
+                if pool.active_workers() != workers {
+                    pool.set_active_workers(workers);
+                }
+                workers + 1
+            }
+            None => 1,
+        } as u32;
     }
 
     /// The body (for tests and set-up).
@@ -515,6 +538,7 @@ impl ServoCore {
     /// Closes the statistics window ending at `t1` µs: judges the overrun and publishes the
     /// statistics.
     fn publish_stats(&mut self, t1: u64, forces: &[ForceOut; MAX_TOOLS]) {
+        self.lend_workers();
         let body = self.body.stats();
         self.stats.max_displacement_m = self.stats.max_displacement_m.max(body.max_displacement_m);
         let elapsed_us = t1.saturating_sub(self.stats.window.start_us).max(1);

@@ -3,6 +3,8 @@
 
 #![allow(dead_code)] // each includer uses its part
 
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 use haptic_model::body::{
@@ -24,8 +26,13 @@ pub struct Burdened {
     pub spin: bool,
     /// What [`SoftBody::wants_threads`] answers.
     pub threads: usize,
-    /// What [`SoftBody::background_threads`] answers.
-    pub background: usize,
+    /// What [`SoftBody::background_threads`] answers (the test may change it meanwhile).
+    pub background: Arc<AtomicUsize>,
+    /// The tick pool the session handed the body ([`SoftBody::set_tick_pool`]).
+    pub pool: Arc<OnceLock<Arc<haptic_model::pool::TickPool>>>,
+    /// With a pool, each tick also runs one part of this many microseconds per pool thread
+    /// on it (the pool kept hot through the tick, as the models do).
+    pub part_us: u64,
     /// The tick (counted from 1) from which every tick fails.
     pub fail_at: Option<u64>,
     /// Ticks so far.
@@ -40,7 +47,9 @@ impl Burdened {
             extra,
             spin: false,
             threads: 1,
-            background: 0,
+            background: Arc::new(AtomicUsize::new(0)),
+            pool: Arc::new(OnceLock::new()),
+            part_us: 0,
             fail_at: None,
             ticks: 0,
         }
@@ -71,6 +80,17 @@ impl SoftBody for Burdened {
         } else if !self.extra.is_zero() {
             std::thread::sleep(self.extra);
         }
+        if let Some(pool) = self.pool.get().filter(|_| self.part_us > 0) {
+            let _hot = pool.hot();
+            let mut parts = [0_u8; haptic_model::pool::MAX_WORKERS + 1];
+            let part = Duration::from_micros(self.part_us);
+            pool.for_each_mut(&mut parts[..pool.threads()], &|_, _| {
+                let t0 = Instant::now();
+                while t0.elapsed() < part {
+                    std::hint::spin_loop();
+                }
+            });
+        }
         self.body.tick(input)
     }
     fn add_point_load(&mut self, p: DVec3, f: DVec3, d: f64) -> Result<(), ModelError> {
@@ -99,7 +119,11 @@ impl SoftBody for Burdened {
     }
 
     fn background_threads(&self) -> usize {
-        self.background
+        self.background.load(Ordering::Relaxed)
+    }
+
+    fn set_tick_pool(&mut self, pool: Arc<haptic_model::pool::TickPool>) {
+        let _ = self.pool.set(pool);
     }
 }
 

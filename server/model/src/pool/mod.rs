@@ -11,6 +11,9 @@
 //!   the caller, so the arithmetic is fixed by the thread count, not by scheduling; one thread is
 //!   the one-core code path, bit for bit.
 //! - **A starved worker degrades to one core**: parts no worker has claimed run on the caller.
+//! - **Workers can be lent out** ([`TickPool::set_active_workers`]): the inactive ones stay
+//!   parked and claim nothing, so the cores they would take are free for other work (a region
+//!   cache being built beside the tick); the job's parts, and so its arithmetic, stay the same.
 //!
 //! **How it works.** [`TickPool::new`] starts `workers` std threads. A parts job
 //! ([`TickPool::for_each_mut`]) is published as one word `(epoch << 36) | (parts << 20) | next`:
@@ -43,7 +46,7 @@ use std::cell::UnsafeCell;
 use std::panic::{AssertUnwindSafe, catch_unwind, resume_unwind};
 use std::sync::Arc;
 use std::sync::atomic::Ordering::{AcqRel, Acquire, Relaxed, Release, SeqCst};
-use std::sync::atomic::{AtomicBool, AtomicU8, AtomicU32, AtomicU64};
+use std::sync::atomic::{AtomicBool, AtomicU8, AtomicU32, AtomicU64, AtomicUsize};
 use std::thread::{JoinHandle, Thread};
 use std::time::{Duration, Instant};
 
@@ -143,6 +146,8 @@ struct Shared {
     sleeping: [AtomicBool; MAX_WORKERS],
     /// Live [`Hot`] guards: while above zero the workers spin instead of parking.
     hot: AtomicU32,
+    /// Workers `0..active` claim work; the others stay parked ([`TickPool::set_active_workers`]).
+    active: AtomicUsize,
     /// The pool is being dropped: workers return.
     stop: AtomicBool,
     jobs: AtomicU64,
@@ -160,7 +165,7 @@ unsafe impl Send for Shared {}
 unsafe impl Sync for Shared {}
 
 impl Shared {
-    fn new() -> Self {
+    fn new(workers: usize) -> Self {
         Self {
             parts_word: AtomicU64::new(0),
             parts_job: UnsafeCell::new(Erased::NONE),
@@ -172,6 +177,7 @@ impl Shared {
             task_busy: AtomicBool::new(false),
             sleeping: std::array::from_fn(|_| AtomicBool::new(false)),
             hot: AtomicU32::new(0),
+            active: AtomicUsize::new(workers),
             stop: AtomicBool::new(false),
             jobs: AtomicU64::new(0),
             parts_on_caller: AtomicU64::new(0),
@@ -319,21 +325,26 @@ impl std::fmt::Debug for TickPool {
 }
 
 /// A worker's life: the start hook, then claim work, spin (while the pool is [`TickPool::hot`]
-/// or for [`SPIN_US`] after its last work), park, until `stop`.
+/// or for [`SPIN_US`] after its last work), park, until `stop`. An inactive worker
+/// ([`TickPool::set_active_workers`]) claims nothing and parks at once.
 fn worker(shared: Arc<Shared>, k: usize, on_start: StartHook) {
     on_start(k);
     let spin = Duration::from_micros(SPIN_US);
     let mut idle_since = Instant::now();
     while !shared.stop.load(Acquire) {
-        if shared.run_task() | shared.run_parts() {
+        let active = k < shared.active.load(Relaxed);
+        if active && (shared.run_task() | shared.run_parts()) {
             idle_since = Instant::now();
-        } else if shared.hot.load(Relaxed) > 0 || idle_since.elapsed() < spin {
+        } else if active && (shared.hot.load(Relaxed) > 0 || idle_since.elapsed() < spin) {
             std::hint::spin_loop();
         } else {
             shared.sleeping[k].store(true, SeqCst);
-            // `hot` read after `sleeping` is set (both `SeqCst`, as in `TickPool::hot`): a
-            // guard taken now either sees this worker sleeping and unparks it, or is seen here.
-            if !shared.has_work() && !shared.stop.load(SeqCst) && shared.hot.load(SeqCst) == 0 {
+            // `hot` and `active` read after `sleeping` is set (all `SeqCst`, as in
+            // `TickPool::hot` and `set_active_workers`): a guard taken or an activation made
+            // now either sees this worker sleeping and unparks it, or is seen here.
+            let active = k < shared.active.load(SeqCst);
+            let wanted = active && (shared.has_work() || shared.hot.load(SeqCst) > 0);
+            if !wanted && !shared.stop.load(SeqCst) {
                 std::thread::park();
             }
             shared.sleeping[k].store(false, SeqCst);
@@ -347,7 +358,7 @@ impl TickPool {
     pub fn serial() -> Arc<Self> {
         Arc::new(Self {
             workers: 0,
-            shared: Arc::new(Shared::new()),
+            shared: Arc::new(Shared::new(0)),
             threads: Vec::new(),
             handles: Vec::new(),
         })
@@ -367,7 +378,7 @@ impl TickPool {
         }
         let mut pool = Self {
             workers: 0,
-            shared: Arc::new(Shared::new()),
+            shared: Arc::new(Shared::new(workers)),
             threads: Vec::with_capacity(workers),
             handles: Vec::with_capacity(workers),
         };
@@ -403,9 +414,27 @@ impl TickPool {
         Hot(&self.shared.hot)
     }
 
-    /// Unparks the workers that are parked or about to park (after a publish).
+    /// Workers that claim work (module documentation): `0..=workers`, all of them unless
+    /// [`Self::set_active_workers`] lent some out.
+    pub fn active_workers(&self) -> usize {
+        self.shared.active.load(Relaxed).min(self.workers)
+    }
+
+    /// Lets only the first `n` workers (at most all) claim work from now on: the others park
+    /// and stay parked, leaving their cores to other threads, until a later call activates them
+    /// again. Jobs are still cut into [`Self::threads`] parts, so results do not change; parts
+    /// no active worker takes run on the caller (with none active, every job is serial there).
+    /// Allocation-free and lock-free; call it between jobs (a worker that already claimed a
+    /// part finishes it).
+    pub fn set_active_workers(&self, n: usize) {
+        self.shared.active.store(n.min(self.workers), SeqCst);
+        self.wake();
+    }
+
+    /// Unparks the active workers that are parked or about to park (after a publish).
     fn wake(&self) {
-        for (k, t) in self.threads.iter().enumerate() {
+        let active = self.active_workers();
+        for (k, t) in self.threads.iter().enumerate().take(active) {
             if self.shared.sleeping[k].load(SeqCst) {
                 t.unpark();
             }
@@ -413,7 +442,7 @@ impl TickPool {
     }
 
     /// Runs `f(p, &mut items[p])` once for every `p`, each on one thread, and returns when all
-    /// are done. Allocation-free and lock-free. Serial on the caller without workers, for
+    /// are done. Allocation-free and lock-free. Serial on the caller without active workers, for
     /// fewer than two or more than [`MAX_THREADED_PARTS`] items, and when another caller's
     /// parts job is in flight.
     ///
@@ -424,7 +453,7 @@ impl TickPool {
         let sh = &*self.shared;
         sh.jobs.fetch_add(1, Relaxed);
         let n = items.len();
-        let slot = if self.workers > 0 && (2..=MAX_THREADED_PARTS).contains(&n) {
+        let slot = if self.active_workers() > 0 && (2..=MAX_THREADED_PARTS).contains(&n) {
             Busy::try_take(&sh.parts_busy)
         } else {
             None
@@ -486,7 +515,7 @@ impl TickPool {
     }
 
     /// Runs `a` on the caller and `b` on a worker if one claims it (else on the caller after
-    /// `a`); returns both results. Allocation-free and lock-free; serial without workers or
+    /// `a`); returns both results. Allocation-free and lock-free; serial without active workers or
     /// when another caller's task is in flight.
     ///
     /// # Panics
@@ -499,7 +528,7 @@ impl TickPool {
     ) -> (RA, RB) {
         let sh = &*self.shared;
         sh.jobs.fetch_add(1, Relaxed);
-        let slot = if self.workers > 0 {
+        let slot = if self.active_workers() > 0 {
             Busy::try_take(&sh.task_busy)
         } else {
             None
@@ -649,6 +678,73 @@ mod tests {
             || std::thread::current().id(),
         );
         assert_eq!((a, b), (caller, caller));
+    }
+
+    /// Parts that take long enough for an awake worker to claim one while the caller runs
+    /// another; what ran them.
+    fn slow_parts(pool: &TickPool) -> [Option<std::thread::ThreadId>; 4] {
+        let mut by = [None; 4];
+        pool.for_each_mut(&mut by, &|_, who| {
+            let t0 = Instant::now();
+            while t0.elapsed() < Duration::from_micros(300) {
+                std::hint::spin_loop();
+            }
+            *who = Some(std::thread::current().id());
+        });
+        by
+    }
+
+    #[test]
+    fn inactive_workers_park_claim_nothing_and_work_again_once_activated() {
+        let pool = TickPool::new(2, Arc::new(|_| {})).unwrap();
+        let caller = Some(std::thread::current().id());
+        let sleeping = |k: usize| pool.shared.sleeping[k].load(SeqCst);
+        // Lent out while a hot pool keeps them spinning: they park all the same.
+        let _hot = pool.hot();
+        assert!(
+            eventually(|| !sleeping(0) && !sleeping(1)),
+            "a hot pool's workers parked"
+        );
+        pool.set_active_workers(0);
+        assert_eq!((pool.active_workers(), pool.threads()), (0, 3));
+        assert!(
+            eventually(|| sleeping(0) && sleeping(1)),
+            "inactive workers never parked"
+        );
+        for _ in 0..20 {
+            assert_eq!(
+                slow_parts(&pool),
+                [caller; 4],
+                "an inactive worker ran a part"
+            );
+            let (a, b) = pool.join(
+                || std::thread::current().id(),
+                || {
+                    std::thread::sleep(Duration::from_micros(300));
+                    std::thread::current().id()
+                },
+            );
+            assert_eq!((Some(a), Some(b)), (caller, caller));
+        }
+        assert!(
+            sleeping(0) && sleeping(1),
+            "a hot pool woke an inactive worker"
+        );
+        assert_eq!(pool.stats().parts_on_workers, 0);
+        // One active: it wakes and takes parts, the other stays parked.
+        pool.set_active_workers(1);
+        let mut helpers = std::collections::HashSet::new();
+        for _ in 0..40 {
+            helpers.extend(slow_parts(&pool).into_iter().filter(|&w| w != caller));
+        }
+        assert_eq!(helpers.len(), 1, "{helpers:?}: one active worker");
+        assert!(sleeping(1) && !sleeping(0));
+        pool.set_active_workers(5);
+        assert_eq!(pool.active_workers(), 2, "at most the pool's workers");
+        assert!(
+            eventually(|| !sleeping(1)),
+            "the hot pool's second worker stayed parked"
+        );
     }
 
     #[test]
