@@ -880,12 +880,14 @@ fn stroke(k: usize, depth: f64) -> (TickInput, bool) {
 }
 
 /// A body building its region cache keeps a worker busy beside its tick from its start
-/// (`SoftBody::background_threads`, to which the daemon's automatic thread count leaves a
-/// core): 1 while tiles are missing, 0 once every tile is built, and 0 for a following region
-/// without tiles (its worker prepares on request only).
+/// (`SoftBody::background_threads`, to which the daemon's automatic thread count lends a
+/// tick-pool worker): 1 while tiles are missing, 0 once every tile is built, 1 for good once
+/// a tile was dropped to keep a cache directory under its memory limit (the worker reads
+/// tiles back as the probe moves), and 0 for a following region without tiles (its worker
+/// prepares on request only).
 #[test]
 fn a_region_cache_being_built_counts_as_a_background_thread() {
-    let body_with = |tiles| {
+    let body_in = |tiles, cache: Option<haptic_model::integrate::follow::RegionCacheDir>| {
         let region = ActiveRegion {
             radius_m: 0.006,
             follow: true,
@@ -893,9 +895,16 @@ fn a_region_cache_being_built_counts_as_a_background_thread() {
             ..ACTIVE
         };
         let kind = IntegratorKind::BackwardEuler;
-        FemBody::new(&lv_scene(StrainSmoothing::None, kind, Some(region))).expect("a body")
+        let scene = lv_scene(StrainSmoothing::None, kind, Some(region));
+        let options = haptic_model::BodyOptions {
+            region_cache: cache,
+            ..Default::default()
+        };
+        FemBody::new_with_options(&scene, &options, &mut |_, _| {}).expect("a body")
     };
-    let body = body_with(TileMode::Background { cover_m: 0.004 });
+    let body_with = |tiles| body_in(tiles, None);
+    let cover = TileMode::Background { cover_m: 0.004 };
+    let body = body_with(cover);
     let busy = body.background_threads();
     let stats = body.follow_stats().expect("a following region");
     // Each tile is a region's factorisation: none is done in the moments since `new`.
@@ -910,6 +919,27 @@ fn a_region_cache_being_built_counts_as_a_background_thread() {
         std::thread::sleep(std::time::Duration::from_millis(50));
     }
     assert_eq!(body.background_threads(), 0, "the cache is full");
+    // The same cache in a directory, with memory for about a quarter of it: built whole
+    // (written, the farthest tiles dropped), the worker still has tiles to read back.
+    let whole = body.follow_stats().expect("stats");
+    let dir = std::env::temp_dir().join(format!("background-limit-{}", std::process::id()));
+    let cache = haptic_model::integrate::follow::RegionCacheDir {
+        dir: dir.clone(),
+        max_bytes: 1 << 30,
+        memory_bytes: whole.tile_cache_bytes / 4,
+    };
+    let limited = body_in(cover, Some(cache));
+    let start = Instant::now();
+    let done = |s: &haptic_model::integrate::follow::FollowStats| s.tiles_ready() == s.tiles;
+    while !done(&limited.follow_stats().expect("stats")) {
+        assert!(start.elapsed().as_secs() < 600, "the cache did not fill");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let s = limited.follow_stats().expect("stats");
+    assert!(s.tiles_dropped > 0, "{s:?}");
+    assert_eq!(limited.background_threads(), 1, "tiles to read back: {s:?}");
+    drop(limited);
+    let _ = std::fs::remove_dir_all(&dir);
     let body = body_with(TileMode::Off);
     assert_eq!(body.background_threads(), 0);
 }

@@ -1102,11 +1102,14 @@ impl SoftBody for FemBody {
 
     /// 1 while a following region builds its tiles
     /// ([`crate::integrate::condensed::TileMode::Background`]: a worker busy
-    /// from the session's start until every tile is built or read), else 0 (a region worker
-    /// that prepares on request only idles between requests).
+    /// from the session's start until every tile is built or read), and from the first tile
+    /// dropped to keep the cache under its memory limit on (the worker then reads tiles back
+    /// as the probe moves), else 0 (a region worker that prepares on request only idles
+    /// between requests).
     fn background_threads(&self) -> usize {
-        self.follow_stats()
-            .map_or(0, |f| usize::from(f.tiles_ready() < f.tiles))
+        self.follow_stats().map_or(0, |f| {
+            usize::from(f.tiles_ready() < f.tiles || f.tiles_dropped > 0)
+        })
     }
 
     /// Keeps `pool` for the element forces in parts (the kernels' per-part arrays are sized
