@@ -77,7 +77,9 @@ struct Args {
     #[arg(long)]
     csv: Option<std::path::PathBuf>,
     /// Threads of the tick: the caller plus `threads - 1` tick-pool workers, as the daemon's
-    /// `[servo] threads` gives a session (the region's worker thread comes on top).
+    /// `[servo] threads` gives a session (the region's worker thread comes on top). As the
+    /// daemon's automatic count does, the workers the machine's cores cannot hold beside the
+    /// body's background threads (a region cache filling) are lent out (parked) meanwhile.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=16))]
     threads: u32,
     /// Give the ticking thread and the tick-pool workers `SCHED_FIFO` at this priority after
@@ -125,7 +127,7 @@ fn main() -> anyhow::Result<()> {
         sim.set_tick_pool(Arc::clone(pool));
     }
     let path = Path::new(&args, probe_r);
-    let trace = run(&args, &mut sim, &path)?;
+    let trace = run(&args, &mut sim, pool.as_deref(), &path)?;
     report(&args, &sim, &path, &trace);
     if let Some(csv) = &args.csv {
         write_csv(csv, &trace)?;
@@ -334,13 +336,31 @@ struct Trace {
     /// The hand-over's time at each swap tick, us (`FollowStats::last_hand_over_s`).
     hand_over_us: Vec<f64>,
     lost_contact: usize,
+    /// Ticks run with tick-pool workers lent out ([`lend_workers`]).
+    lent_ticks: usize,
     /// Ticks of the stroke in contact, and those of them the companion answered (weight > 0).
     contact_ticks: usize,
     companion_ticks: usize,
 }
 
-/// Runs the path's ticks (paced on request).
-fn run(args: &Args, sim: &mut FemBody, path: &Path) -> anyhow::Result<Trace> {
+/// Lends out the workers of `pool` that `cores` cannot hold beside the body's `background`
+/// threads, as the daemon's automatic thread count does (docs/deploy.md, "Cores per
+/// session"); whether some are lent out.
+fn lend_workers(pool: &TickPool, cores: usize, background: usize) -> bool {
+    let working = pool.threads().min(cores.saturating_sub(background).max(1));
+    if pool.active_workers() != working - 1 {
+        pool.set_active_workers(working - 1);
+    }
+    working < pool.threads()
+}
+
+/// Runs the path's ticks (paced on request) on `pool`'s threads.
+fn run(
+    args: &Args,
+    sim: &mut FemBody,
+    pool: Option<&TickPool>,
+    path: &Path,
+) -> anyhow::Result<Trace> {
     let total = path.total;
     let mut tr = Trace {
         weights: Vec::with_capacity(total),
@@ -349,9 +369,12 @@ fn run(args: &Args, sim: &mut FemBody, path: &Path) -> anyhow::Result<Trace> {
         swap_ticks: Vec::new(),
         hand_over_us: Vec::new(),
         lost_contact: 0,
+        lent_ticks: 0,
         contact_ticks: 0,
         companion_ticks: 0,
     };
+    let cores = std::thread::available_parallelism().map_or(1, usize::from);
+    let mut lent = false;
     let mut last_swaps = 0;
     let start = Instant::now();
     for k in 0..total {
@@ -370,6 +393,11 @@ fn run(args: &Args, sim: &mut FemBody, path: &Path) -> anyhow::Result<Trace> {
                 std::hint::spin_loop();
             }
         }
+        // Asked every 100 ticks, as the daemon's servo does at each statistics window.
+        if let Some(pool) = pool.filter(|_| k % 100 == 0) {
+            lent = lend_workers(pool, cores, sim.background_threads());
+        }
+        tr.lent_ticks += usize::from(lent);
         let t0 = Instant::now();
         let out = sim.tick(&TickInput {
             device_position_m: Some(p),
@@ -456,6 +484,14 @@ fn report(args: &Args, sim: &FemBody, path: &Path, tr: &Trace) {
         stroke_us.iter().filter(|&&t| t > 1e3).count(),
         stroke_us.len()
     );
+    if tr.lent_ticks > 0 {
+        println!(
+            "tick-pool workers lent to the region cache's fill for {} of {} ticks ({} cores)",
+            tr.lent_ticks,
+            total,
+            std::thread::available_parallelism().map_or(1, usize::from)
+        );
+    }
     print_swap_ticks(tr);
     println!(
         "stroke: contact lost on {lost_contact} ticks; |F| {:.2}..{:.2} mN; largest tick-to-tick change {:.2} % at swaps, {:.2} % elsewhere",
