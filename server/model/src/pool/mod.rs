@@ -733,10 +733,22 @@ mod tests {
         assert_eq!(pool.stats().parts_on_workers, 0);
         // One active: it wakes and takes parts, the other stays parked.
         pool.set_active_workers(1);
-        let mut helpers = std::collections::HashSet::new();
-        for _ in 0..40 {
-            helpers.extend(slow_parts(&pool).into_iter().filter(|&w| w != caller));
-        }
+        let helpers = std::cell::RefCell::new(std::collections::HashSet::new());
+        let jobs = |n: usize| {
+            for _ in 0..n {
+                let by = slow_parts(&pool);
+                helpers
+                    .borrow_mut()
+                    .extend(by.into_iter().filter(|&w| w != caller));
+            }
+            !helpers.borrow().is_empty()
+        };
+        assert!(
+            eventually(|| jobs(1)),
+            "the active worker never took a part"
+        );
+        jobs(40);
+        let helpers = helpers.into_inner();
         assert_eq!(helpers.len(), 1, "{helpers:?}: one active worker");
         assert!(sleeping(1) && !sleeping(0));
         pool.set_active_workers(5);
