@@ -10,11 +10,12 @@
 //! session reserves what it got ([`CoreReservation`]) until its servo loop ends or it is
 //! quarantined.
 //!
-//! While the body keeps threads busy beside its tick (`SoftBody::background_threads`: a
-//! region cache being built), an `"auto"` session lends out the tick-pool workers the cores
-//! free at its start cannot hold beside them ([`ThreadShare::working`]): they stay parked, and
-//! work again once the background work is done (two busy `SCHED_FIFO` threads and a region
-//! worker on two cores starve the worker).
+//! An `"auto"` session lends out the tick-pool workers that the cores no other session holds
+//! cannot hold beside the threads its body keeps busy beside its tick
+//! (`SoftBody::background_threads`: a region cache being built) ([`ThreadShare::working`]):
+//! they stay parked, and work again once the background work is done or the other sessions
+//! gave their cores back (two busy `SCHED_FIFO` threads and a region worker or another
+//! session's servo on two cores starve one of them).
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -35,16 +36,17 @@ pub struct CoreReservation {
     reserved: Arc<AtomicUsize>,
     cores: usize,
     first: usize,
-    /// Cores no session held when this one was made; `None` under `threads = N`.
-    free: Option<usize>,
+    /// The budget's capacity under `threads = "auto"`; `None` under `threads = N`.
+    capacity: Option<usize>,
 }
 
-/// How many of a session's tick threads work while its body keeps threads busy beside the tick
-/// ([`CoreReservation::share`]; module documentation).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// How many of a session's tick threads work beside its body's background threads and the
+/// other sessions' reservations ([`CoreReservation::share`]; module documentation).
+#[derive(Debug, Clone)]
 pub struct ThreadShare {
     threads: usize,
-    free: Option<usize>,
+    /// The budget's capacity and every session's reservations (`"auto"` only).
+    budget: Option<(usize, Arc<AtomicUsize>)>,
 }
 
 impl ThreadShare {
@@ -52,7 +54,7 @@ impl ThreadShare {
     pub fn fixed(threads: usize) -> Self {
         Self {
             threads: threads.max(1),
-            free: None,
+            budget: None,
         }
     }
 
@@ -62,11 +64,18 @@ impl ThreadShare {
     }
 
     /// Threads of the tick that work while the body keeps `background` threads busy: under
-    /// `"auto"` those the cores free at the session's start hold beside them (at least the
-    /// servo thread), under `threads = N` all. Always `1..=threads`.
+    /// `"auto"` those the budget's cores not reserved by other sessions now hold beside them
+    /// (at least the servo thread), under `threads = N` all. Always `1..=threads`; one atomic
+    /// read (lock-free).
     pub fn working(&self, background: usize) -> usize {
-        match self.free {
-            Some(free) => self.threads.min(free.saturating_sub(background).max(1)),
+        match &self.budget {
+            Some((capacity, reserved)) => {
+                let others = reserved
+                    .load(Ordering::Acquire)
+                    .saturating_sub(self.threads);
+                let free = capacity.saturating_sub(others);
+                self.threads.min(free.saturating_sub(background).max(1))
+            }
             None => self.threads,
         }
     }
@@ -86,11 +95,12 @@ impl CoreReservation {
         self.cores = keep;
     }
 
-    /// How many of these cores' threads work beside the body's background threads.
+    /// How many of these cores' threads work beside the body's background threads and the
+    /// other sessions.
     pub fn share(&self) -> ThreadShare {
         ThreadShare {
             threads: self.cores,
-            free: self.free,
+            budget: self.capacity.map(|c| (c, self.reserved.clone())),
         }
     }
 
@@ -167,7 +177,7 @@ impl CoreBudget {
                         reserved: self.reserved.clone(),
                         cores,
                         first: now,
-                        free: matches!(mode, ServoThreads::Auto).then_some(free),
+                        capacity: matches!(mode, ServoThreads::Auto).then_some(self.capacity),
                     };
                 }
                 Err(actual) => now = actual,
@@ -193,7 +203,7 @@ mod tests {
     }
 
     #[test]
-    fn auto_lends_the_workers_the_free_cores_cannot_hold_beside_background_threads() {
+    fn auto_lends_the_workers_that_other_sessions_and_background_threads_leave_no_core() {
         let working = |cpus: usize, wants: usize, background: usize| {
             let r = CoreBudget::new(cpus).reserve(ServoThreads::Auto, wants, false);
             (r.cores(), r.share().working(background))
@@ -206,11 +216,25 @@ mod tests {
         assert_eq!(working(4, 4, 2), (4, 2));
         assert_eq!(working(1, 2, 1), (1, 1));
         assert_eq!(working(2, 2, 5), (2, 1), "never less than the servo thread");
-        // After another session took a core: what was free at the start counts.
+        // Beside another session's core: what the others hold counts, as it changes.
         let budget = CoreBudget::new(3);
-        let _a = budget.reserve(ServoThreads::Auto, 1, false);
+        let a = budget.reserve(ServoThreads::Auto, 1, false);
         let b = budget.reserve(ServoThreads::Auto, 2, false);
         assert_eq!((b.cores(), b.share().working(1)), (2, 1));
+        drop(a);
+        assert_eq!(b.share().working(1), 2, "a gave its core back");
+        // Sessions started on a full budget: the one with workers lends them out meanwhile.
+        let budget = CoreBudget::new(2);
+        let a = budget.reserve(ServoThreads::Auto, 2, false);
+        let share = a.share();
+        assert_eq!(share.working(0), 2);
+        let b = budget.reserve(ServoThreads::Auto, 2, false);
+        assert_eq!((b.cores(), b.share().working(0)), (1, 1));
+        assert_eq!(share.working(0), 1, "b's servo thread needs a core");
+        drop(b);
+        assert_eq!(share.working(0), 2);
+        drop(a);
+        assert_eq!(share.working(0), 2, "the budget's whole capacity");
         // A fixed count always works whole.
         let fixed = CoreBudget::new(2).reserve(ServoThreads::Fixed(2), 2, false);
         assert_eq!(fixed.share().working(1), 2);
