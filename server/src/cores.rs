@@ -12,9 +12,9 @@
 //!
 //! An `"auto"` session lends out the tick-pool workers that the cores no other session holds
 //! cannot hold beside the threads its body keeps busy beside its tick
-//! (`SoftBody::background_threads`: a region cache being built) ([`ThreadShare::working`]):
-//! they stay parked, and work again once the background work is done or the other sessions
-//! gave their cores back (two busy `SCHED_FIFO` threads and a region worker or another
+//! (`SoftBody::background_threads`: a region cache being built; [`ThreadShare::working`]).
+//! They stay parked, and work again once the background work is done or the other sessions
+//! have given their cores back (two busy `SCHED_FIFO` threads and a region worker or another
 //! session's servo on two cores starve one of them).
 
 use std::sync::Arc;
@@ -56,11 +56,6 @@ impl ThreadShare {
             threads: threads.max(1),
             budget: None,
         }
-    }
-
-    /// The session's tick threads (servo thread and pool workers).
-    pub fn threads(&self) -> usize {
-        self.threads
     }
 
     /// Threads of the tick that work while the body keeps `background` threads busy: under

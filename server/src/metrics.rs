@@ -291,15 +291,7 @@ const SESSION_METRICS: &[(&str, &str, MetricType, Extract)] = {
             "hapticd_session_threads",
             "Threads the session's tick uses (servo thread plus working tick-pool workers)",
             Gauge,
-            |r| {
-                let published = r.stats.threads;
-                let threads = if published > 0 {
-                    published
-                } else {
-                    r.session.tick_threads
-                };
-                Value::Gauge(f64::from(threads))
-            },
+            |r| Value::Gauge(f64::from(r.session.threads_now(&r.stats))),
         ),
         (
             "hapticd_pool_wait_max_seconds",

@@ -267,12 +267,7 @@ impl SessionControl for Services {
             device_silences: st.device_silences,
             overrunning: st.overrunning,
             demoted: st.demoted,
-            // Those working, once the servo has published; until then the session's.
-            threads: if st.threads > 0 {
-                st.threads
-            } else {
-                s.tick_threads
-            },
+            threads: s.threads_now(&st),
             pool_wait_us_max: st.pool_wait_us_max,
             device: first_device(&s),
             max_tools: s.tools.len() as u32,

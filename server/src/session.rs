@@ -248,8 +248,7 @@ pub struct Session {
     /// The servo thread, unparked when a device sample arrives (device pacing).
     servo_thread: std::thread::Thread,
     /// Threads the session's tick has: its servo thread plus tick-pool workers, those lent
-    /// out beside the body's background threads included ([`crate::cores`]; `GetStats`
-    /// says how many work now).
+    /// out included ([`crate::cores`]; [`Self::threads_now`] says how many work).
     pub tick_threads: u32,
     /// The force-stream deadband of tool slot 0 and its counters (`tools[0].deadband`).
     pub deadband: Arc<DeadbandShared>,
@@ -287,6 +286,16 @@ impl Session {
         match self.stats.lock() {
             Ok(mut o) => *o.read(),
             Err(_) => StatsSnapshot::default(),
+        }
+    }
+
+    /// Threads the tick uses now: as `stats` (the servo's last publication) says, or until
+    /// the servo has published, the session's [`Self::tick_threads`].
+    pub fn threads_now(&self, stats: &StatsSnapshot) -> u32 {
+        if stats.threads > 0 {
+            stats.threads
+        } else {
+            self.tick_threads
         }
     }
 

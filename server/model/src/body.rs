@@ -276,9 +276,9 @@ pub trait SoftBody: Send {
 
     /// Threads the body keeps busy beside its tick now (issue 48): a region worker building a
     /// region cache. While they are busy a session with an automatic thread count lends them the
-    /// tick-pool workers the cores free at its start cannot hold beside them (the pool's
-    /// `set_active_workers`); it asks again every statistics window, between ticks, so this
-    /// must not allocate, lock or block. Provided: 0.
+    /// tick-pool workers that the cores no other session holds cannot hold beside them (the
+    /// pool's `set_active_workers`); it asks again every statistics window, between ticks, so
+    /// this must not allocate, lock or block. Provided: 0.
     fn background_threads(&self) -> usize {
         0
     }

@@ -27,7 +27,8 @@ pub struct ServoCore {
     applied: AppliedLoads,
     stats: ServoStats,
     /// The body's tick pool (for its statistics), how many of the session's tick threads
-    /// work beside the body's background threads, and how many work now.
+    /// work beside the body's background threads and the other sessions, and how many work
+    /// now.
     pool: Option<Arc<haptic_model::pool::TickPool>>,
     share: crate::cores::ThreadShare,
     threads: u32,
@@ -212,7 +213,7 @@ impl ServoCore {
     /// Records the session's tick pool, already handed to the body
     /// (`SoftBody::set_tick_pool`), and the threads its tick has (the servo's plus the pool's
     /// workers, as the session decided): published as `threads` (those working) and
-    /// `pool_wait_us_max`. Lends out the workers the body's background threads need now
+    /// `pool_wait_us_max`. Lends out the workers that have no core now
     /// ([`crate::cores::ThreadShare::working`]); every statistics window checks again.
     pub fn with_tick_pool(
         mut self,
@@ -225,8 +226,9 @@ impl ServoCore {
         self
     }
 
-    /// Activates the pool workers the body's background threads leave room for and lends out
-    /// the others (`TickPool::set_active_workers`, only when the count changes: it unparks).
+    /// Activates the pool workers the body's background threads and the other sessions leave
+    /// a core and lends out the others (`TickPool::set_active_workers`, only when the count
+    /// changes: it unparks).
     /// Allocation-free and lock-free.
     fn lend_workers(&mut self) {
         let working = self.share.working(self.body.background_threads());
