@@ -347,11 +347,8 @@ struct Trace {
 /// threads, as the daemon's automatic thread count does (docs/deploy.md, "Cores per
 /// session"); whether some are lent out.
 fn lend_workers(pool: &TickPool, cores: usize, background: usize) -> bool {
-    let working = pool.threads().min(cores.saturating_sub(background).max(1));
-    if pool.active_workers() != working - 1 {
-        pool.set_active_workers(working - 1);
-    }
-    working < pool.threads()
+    let working = cores.saturating_sub(background).max(1);
+    pool.set_active_workers(working - 1) + 1 < pool.threads()
 }
 
 /// Runs the path's ticks (paced on request) on `pool`'s threads.

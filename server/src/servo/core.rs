@@ -227,21 +227,15 @@ impl ServoCore {
     }
 
     /// Activates the pool workers the body's background threads and the other sessions leave
-    /// a core and lends out the others (`TickPool::set_active_workers`, only when the count
-    /// changes: it unparks).
-    /// Allocation-free and lock-free.
+    /// a core and lends out the others (`TickPool::set_active_workers`). Allocation-free and
+    /// lock-free.
     fn lend_workers(&mut self) {
         let working = self.share.working(self.body.background_threads());
-        self.threads = match &self.pool {
-            Some(pool) => {
-                let workers = (working - 1).min(pool.threads() - 1);
-                if pool.active_workers() != workers {
-                    pool.set_active_workers(workers);
-                }
-                workers + 1
-            }
-            None => 1,
-        } as u32;
+        let workers = self
+            .pool
+            .as_ref()
+            .map_or(0, |pool| pool.set_active_workers(working - 1));
+        self.threads = workers as u32 + 1;
     }
 
     /// The body (for tests and set-up).

@@ -425,10 +425,14 @@ impl TickPool {
     /// again. Jobs are still cut into [`Self::threads`] parts, so results do not change; parts
     /// no active worker takes run on the caller (with none active, every job is serial there).
     /// Allocation-free and lock-free; call it between jobs (a worker that already claimed a
-    /// part finishes it).
-    pub fn set_active_workers(&self, n: usize) {
-        self.shared.active.store(n.min(self.workers), SeqCst);
-        self.wake();
+    /// part finishes it). Unparks only on a change, so it may be called every window.
+    /// Returns the workers active now.
+    pub fn set_active_workers(&self, n: usize) -> usize {
+        let n = n.min(self.workers);
+        if self.shared.active.swap(n, SeqCst) != n {
+            self.wake();
+        }
+        n
     }
 
     /// Unparks the active workers that are parked or about to park (after a publish).
