@@ -2,20 +2,22 @@
 //! daemon's reservation of cores for its running sessions.
 //!
 //! `[servo] threads = "auto"` gives a session the threads its body asks for
-//! (`SoftBody::wants_threads`), limited by the cores no running session has reserved: the
-//! machine's (`std::thread::available_parallelism`) or the `[servo] cpus` list's. A session that
-//! cannot get its threads gets fewer (at least its servo thread) and never waits; where
-//! `SCHED_FIFO` was asked for and refused it gets one (an unprotected worker preempted while it
-//! holds a part would stall the servo). `threads = N` gives every session N. Either way the
-//! session reserves what it got ([`CoreReservation`]) until its servo loop ends or it is
-//! quarantined.
+//! (`SoftBody::wants_threads`, at most the budget's cores): the machine's
+//! (`std::thread::available_parallelism`) or the `[servo] cpus` list's. It reserves ("holds")
+//! those of them that cores no running session holds can take, at least its servo thread, and
+//! never waits; where `SCHED_FIFO` was asked for and refused it gets one thread (an unprotected
+//! worker preempted while it holds a part would stall the servo). `threads = N` gives every
+//! session N and holds them. Either way the session holds its cores ([`CoreReservation`])
+//! until its servo loop ends or it is quarantined.
 //!
-//! An `"auto"` session lends out the tick-pool workers that the cores no other session holds
-//! cannot hold beside the threads its body keeps busy beside its tick
-//! (`SoftBody::background_threads`: a region cache being built; [`ThreadShare::working`]).
-//! They stay parked, and work again once the background work is done or the other sessions
-//! have given their cores back (two busy `SCHED_FIFO` threads and a region worker or another
-//! session's servo on two cores starve one of them).
+//! An `"auto"` session takes the cores it wants but does not hold as other sessions give them
+//! back (at a statistics window, first come first served), and lends out the tick-pool workers
+//! that the cores no other session holds cannot hold beside the threads its body keeps busy
+//! beside its tick (`SoftBody::background_threads`: a region cache being built;
+//! [`ThreadShare::working`]). Those workers stay parked, and work again once the background
+//! work is done or the other sessions have given their cores back (two busy `SCHED_FIFO`
+//! threads and a region worker or another session's servo on two cores starve one of them).
+//! Workers keep the CPUs of the `cpus` list chosen at the session's start.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -29,24 +31,32 @@ pub struct CoreBudget {
     reserved: Arc<AtomicUsize>,
 }
 
-/// The cores one session holds; given back when dropped. Lock-free: dropping it is one atomic
-/// subtraction (the servo loop may drop it after a tick).
+/// The cores one session holds; given back when dropped. Lock-free: dropping it is two atomic
+/// operations (the servo loop may drop it after a tick).
 #[derive(Debug)]
 pub struct CoreReservation {
     reserved: Arc<AtomicUsize>,
-    cores: usize,
+    /// Threads of the session's tick (its servo thread and pool workers).
+    threads: usize,
+    /// Cores held now, `1..=threads` (grows under `"auto"`, [`ThreadShare::working`]);
+    /// [`RELEASED`] once given back.
+    held: Arc<AtomicUsize>,
     first: usize,
     /// The budget's capacity under `threads = "auto"`; `None` under `threads = N`.
     capacity: Option<usize>,
 }
+
+/// `CoreReservation::held` once the reservation is dropped: nothing more may be taken.
+const RELEASED: usize = usize::MAX;
 
 /// How many of a session's tick threads work beside its body's background threads and the
 /// other sessions' reservations ([`CoreReservation::share`]; module documentation).
 #[derive(Debug, Clone)]
 pub struct ThreadShare {
     threads: usize,
-    /// The budget's capacity and every session's reservations (`"auto"` only).
-    budget: Option<(usize, Arc<AtomicUsize>)>,
+    /// `"auto"` only: the budget's capacity, every session's reservations and the cores this
+    /// session holds.
+    budget: Option<(usize, Arc<AtomicUsize>, Arc<AtomicUsize>)>,
 }
 
 impl ThreadShare {
@@ -59,43 +69,90 @@ impl ThreadShare {
     }
 
     /// Threads of the tick that work while the body keeps `background` threads busy: under
-    /// `"auto"` those the budget's cores not reserved by other sessions now hold beside them
-    /// (at least the servo thread), under `threads = N` all. Always `1..=threads`; one atomic
-    /// read (lock-free).
+    /// `"auto"` the session first holds as many of the cores it does not hold yet as are free,
+    /// then works with those the budget's cores not held by other sessions now hold beside
+    /// `background` (at least the servo thread); under `threads = N` all. Always
+    /// `1..=threads`; lock-free (atomic reads, and compare-exchanges when cores are free).
     pub fn working(&self, background: usize) -> usize {
-        match &self.budget {
-            Some((capacity, reserved)) => {
-                let others = reserved
-                    .load(Ordering::Acquire)
-                    .saturating_sub(self.threads);
-                let free = capacity.saturating_sub(others);
-                self.threads.min(free.saturating_sub(background).max(1))
-            }
-            None => self.threads,
+        let Some((capacity, reserved, held)) = &self.budget else {
+            return self.threads;
+        };
+        let mine = take_free_cores(*capacity, reserved, held, self.threads);
+        let others = reserved.load(Ordering::Acquire).saturating_sub(mine);
+        let free = capacity.saturating_sub(others);
+        mine.min(free.saturating_sub(background).max(1))
+    }
+}
+
+/// Holds up to `threads` cores in all for a session holding `held`, taking them from those of
+/// `capacity` that no session holds; returns the cores held after (1 once released).
+fn take_free_cores(
+    capacity: usize,
+    reserved: &AtomicUsize,
+    held: &AtomicUsize,
+    threads: usize,
+) -> usize {
+    let mine = held.load(Ordering::Acquire);
+    if mine == RELEASED {
+        return 1;
+    }
+    if mine >= threads {
+        return mine;
+    }
+    let mut now = reserved.load(Ordering::Acquire);
+    let take = loop {
+        let take = (threads - mine).min(capacity.saturating_sub(now));
+        if take == 0 {
+            return mine;
         }
+        match reserved.compare_exchange_weak(now, now + take, Ordering::AcqRel, Ordering::Acquire) {
+            Ok(_) => break take,
+            Err(actual) => now = actual,
+        }
+    };
+    if held
+        .compare_exchange(mine, mine + take, Ordering::AcqRel, Ordering::Acquire)
+        .is_ok()
+    {
+        return mine + take;
+    }
+    // Released meanwhile (or changed by a clone): give the cores back.
+    reserved.fetch_sub(take, Ordering::AcqRel);
+    match held.load(Ordering::Acquire) {
+        RELEASED => 1,
+        h => h.clamp(1, threads),
     }
 }
 
 impl CoreReservation {
-    /// Threads (cores) this reservation holds.
+    /// Threads of the session's tick: its servo thread and its pool's workers, those whose
+    /// cores it does not hold yet included.
+    pub fn threads(&self) -> usize {
+        self.threads
+    }
+
+    /// Cores this reservation holds now (`1..=threads`).
     pub fn cores(&self) -> usize {
-        self.cores
+        self.held.load(Ordering::Acquire).min(self.threads)
     }
 
-    /// Holds `cores` (at least 1) instead, giving the rest back (a tick pool that could not be
-    /// created leaves its session on one thread).
-    pub fn shrink_to(&mut self, cores: usize) {
-        let keep = cores.clamp(1, self.cores);
-        self.reserved.fetch_sub(self.cores - keep, Ordering::AcqRel);
-        self.cores = keep;
+    /// One thread instead (a tick pool that could not be created), giving the other cores
+    /// held back.
+    pub fn shrink_to_one(&mut self) {
+        let held = self.held.swap(1, Ordering::AcqRel);
+        self.reserved
+            .fetch_sub(held.saturating_sub(1), Ordering::AcqRel);
+        self.threads = 1;
     }
 
-    /// How many of these cores' threads work beside the body's background threads and the
-    /// other sessions.
+    /// How many of these threads work beside the body's background threads and the other
+    /// sessions ([`ThreadShare::working`], which also takes the cores wanted as they come free).
     pub fn share(&self) -> ThreadShare {
         ThreadShare {
-            threads: self.cores,
-            budget: self.capacity.map(|c| (c, self.reserved.clone())),
+            threads: self.threads,
+            budget: self
+                .capacity
+                .map(|c| (c, self.reserved.clone(), self.held.clone())),
         }
     }
 
@@ -108,12 +165,14 @@ impl CoreReservation {
 
 impl Drop for CoreReservation {
     fn drop(&mut self) {
-        self.reserved.fetch_sub(self.cores, Ordering::AcqRel);
+        let held = self.held.swap(RELEASED, Ordering::AcqRel);
+        self.reserved.fetch_sub(held, Ordering::AcqRel);
     }
 }
 
-/// Threads of a session whose body wants `wants`, under `mode`, with `free` cores unreserved;
-/// `fifo_refused`: `SCHED_FIFO` was asked for and refused. Always 1..=[`MAX_SERVO_THREADS`].
+/// Cores a session whose body wants `wants` threads holds under `mode` with `free` cores
+/// unreserved (with `free` the budget's capacity: its threads); `fifo_refused`: `SCHED_FIFO` was
+/// asked for and refused. Always 1..=[`MAX_SERVO_THREADS`].
 pub fn decide_threads(mode: ServoThreads, wants: usize, free: usize, fifo_refused: bool) -> usize {
     match mode {
         ServoThreads::Fixed(n) => n.clamp(1, MAX_SERVO_THREADS),
@@ -153,14 +212,16 @@ impl CoreBudget {
         self.reserved.load(Ordering::Acquire)
     }
 
-    /// Decides a new session's threads ([`decide_threads`] with the cores free now) and reserves
-    /// them, atomically against concurrent starts. Never waits. (A body's background threads
-    /// are not reserved: the session lends them its workers, [`ThreadShare`].)
+    /// Decides a new session's threads ([`decide_threads`] with the budget's capacity) and the
+    /// cores it holds ([`decide_threads`] with the cores free now), and reserves those,
+    /// atomically against concurrent starts. Never waits. (A body's background threads are not
+    /// reserved: the session lends them its workers, [`ThreadShare`].)
     pub fn reserve(&self, mode: ServoThreads, wants: usize, fifo_refused: bool) -> CoreReservation {
+        let threads = decide_threads(mode, wants, self.capacity, fifo_refused);
         let mut now = self.reserved.load(Ordering::Acquire);
         loop {
             let free = self.capacity.saturating_sub(now);
-            let cores = decide_threads(mode, wants, free, fifo_refused);
+            let cores = decide_threads(mode, wants, free, fifo_refused).min(threads);
             match self.reserved.compare_exchange_weak(
                 now,
                 now + cores,
@@ -170,7 +231,8 @@ impl CoreBudget {
                 Ok(_) => {
                     return CoreReservation {
                         reserved: self.reserved.clone(),
-                        cores,
+                        threads,
+                        held: Arc::new(AtomicUsize::new(cores)),
                         first: now,
                         capacity: matches!(mode, ServoThreads::Auto).then_some(self.capacity),
                     };
@@ -229,14 +291,58 @@ mod tests {
         drop(b);
         assert_eq!(share.working(0), 2);
         drop(a);
-        assert_eq!(share.working(0), 2, "the budget's whole capacity");
+        assert_eq!(share.working(0), 1, "released: the servo thread only");
         // A fixed count always works whole.
         let fixed = CoreBudget::new(2).reserve(ServoThreads::Fixed(2), 2, false);
         assert_eq!(fixed.share().working(1), 2);
         assert_eq!(ThreadShare::fixed(3).working(2), 3);
-        let mut shrunk = CoreBudget::new(2).reserve(ServoThreads::Auto, 2, false);
-        shrunk.shrink_to(1);
-        assert_eq!(shrunk.share().working(0), 1);
+        let budget = CoreBudget::new(2);
+        let mut shrunk = budget.reserve(ServoThreads::Auto, 2, false);
+        shrunk.shrink_to_one();
+        assert_eq!((shrunk.threads(), shrunk.share().working(0)), (1, 1));
+        assert_eq!(budget.reserved(), 1);
+    }
+
+    /// A session started while other sessions hold the cores it wants holds them once they
+    /// are given back, first come first served, and a dropped reservation takes nothing more.
+    #[test]
+    fn auto_takes_the_cores_it_wants_as_other_sessions_give_them_back() {
+        let auto = ServoThreads::Auto;
+        let budget = CoreBudget::new(2);
+        let a = budget.reserve(auto, 2, false);
+        let b = budget.reserve(auto, 2, false);
+        assert_eq!((b.threads(), b.cores(), budget.reserved()), (2, 1, 3));
+        let share = b.share();
+        assert_eq!((share.working(0), budget.reserved()), (1, 3), "none free");
+        drop(a);
+        assert_eq!(budget.reserved(), 1);
+        assert_eq!(share.working(0), 2, "a's cores came back");
+        assert_eq!((b.cores(), budget.reserved()), (2, 2));
+        // A session started now holds its servo thread's core: b lends its worker meanwhile
+        // and keeps both cores, so it has them again when c stops.
+        let c = budget.reserve(auto, 2, false);
+        let c_share = c.share();
+        assert_eq!((c.cores(), c_share.working(0), share.working(0)), (1, 1, 1));
+        assert_eq!(budget.reserved(), 3);
+        drop(c);
+        assert_eq!((share.working(0), b.cores(), budget.reserved()), (2, 2, 2));
+        assert_eq!(c_share.working(0), 1, "a dropped reservation's share");
+        assert_eq!(budget.reserved(), 2, "and it took nothing");
+        drop(b);
+        assert_eq!((share.working(0), budget.reserved()), (1, 0));
+        // Never more than the body wants or the budget has.
+        let d = budget.reserve(auto, 1, false);
+        assert_eq!(
+            (d.threads(), d.share().working(0), budget.reserved()),
+            (1, 1, 1)
+        );
+        let e = CoreBudget::new(2).reserve(auto, 4, false);
+        assert_eq!((e.threads(), e.cores()), (2, 2));
+        let fifo_refused = CoreBudget::new(2).reserve(auto, 2, true);
+        assert_eq!(
+            (fifo_refused.threads(), fifo_refused.share().working(0)),
+            (1, 1)
+        );
     }
 
     #[test]

@@ -518,20 +518,20 @@ impl SessionManager {
         let first = reservation.first();
         let workers = Arc::new(servo::WorkerThreads::default());
         let mut pool = None;
-        if reservation.cores() > 1 {
-            let worker_cpus = (1..reservation.cores())
+        if reservation.threads() > 1 {
+            let worker_cpus = (1..reservation.threads())
                 .filter_map(|k| cpu_at(first + k))
                 .collect();
             let hook =
                 servo::worker_start_hook(servo_cfg, worker_cpus, workers.clone(), id.to_owned());
-            match haptic_model::pool::TickPool::new(reservation.cores() - 1, hook) {
+            match haptic_model::pool::TickPool::new(reservation.threads() - 1, hook) {
                 Ok(p) => {
                     body.set_tick_pool(p.clone());
                     pool = Some(p);
                 }
                 Err(e) => {
                     tracing::warn!(session = %id, "no tick pool ({e}); one thread");
-                    reservation.shrink_to(1);
+                    reservation.shrink_to_one();
                 }
             }
         }
@@ -889,7 +889,7 @@ impl SessionManager {
         let forwarder = spawn_forwarder(&id, rings, shared.clone(), tools.clone())?;
         let servo_cfg = self.config.servo.clone();
         let (plan, pool) = self.tick_threads(&id, body.as_mut());
-        let threads = plan.reservation.cores();
+        let threads = plan.reservation.threads();
         let core = servo_core(&servo_cfg, body, ends, shared.clone(), period_us)
             .with_tick_pool(pool, plan.reservation.share());
         let servo = spawn_servo(
