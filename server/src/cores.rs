@@ -11,11 +11,13 @@
 //! until its servo loop ends or it is quarantined.
 //!
 //! An `"auto"` session takes the cores it wants but does not hold as other sessions give them
-//! back (at a statistics window, first come first served), and lends out the tick-pool workers
-//! that the cores no other session holds cannot hold beside the threads its body keeps busy
-//! beside its tick (`SoftBody::background_threads`: a region cache being built;
-//! [`ThreadShare::working`]). Those workers stay parked, and work again once the background
-//! work is done or the other sessions have given their cores back (two busy `SCHED_FIFO`
+//! back (at a statistics window, first come first served), and lends out tick-pool workers
+//! ([`ThreadShare::working`]): while the sessions hold more cores than the budget has (every
+//! session holds its servo thread's), as many workers as that excess, shared among the
+//! sessions with workers; and those that the cores left by the other sessions' working threads
+//! cannot hold beside the threads its body keeps busy beside its tick
+//! (`SoftBody::background_threads`: a region cache being built). Lent workers stay parked,
+//! and work again once the excess or the background work is gone (two busy `SCHED_FIFO`
 //! threads and a region worker or another session's servo on two cores starve one of them).
 //! Workers keep the CPUs of the `cpus` list chosen at the session's start.
 
@@ -29,6 +31,9 @@ use crate::config::{MAX_SERVO_THREADS, ServoThreads};
 pub struct CoreBudget {
     capacity: usize,
     reserved: Arc<AtomicUsize>,
+    /// Workers the `"auto"` sessions lend out because the sessions hold more cores than there
+    /// are (at most that excess; [`ThreadShare::working`]).
+    lent: Arc<AtomicUsize>,
 }
 
 /// The cores one session holds; given back when dropped. Lock-free: dropping it is two atomic
@@ -36,6 +41,9 @@ pub struct CoreBudget {
 #[derive(Debug)]
 pub struct CoreReservation {
     reserved: Arc<AtomicUsize>,
+    lent: Arc<AtomicUsize>,
+    /// This session's part of `lent`; [`RELEASED`] once given back.
+    my_lent: Arc<AtomicUsize>,
     /// Threads of the session's tick (its servo thread and pool workers).
     threads: usize,
     /// Cores held now, `1..=threads` (grows under `"auto"`, [`ThreadShare::working`]);
@@ -46,7 +54,8 @@ pub struct CoreReservation {
     capacity: Option<usize>,
 }
 
-/// `CoreReservation::held` once the reservation is dropped: nothing more may be taken.
+/// `CoreReservation::held` and `my_lent` once the reservation is dropped: nothing more may be
+/// taken or lent.
 const RELEASED: usize = usize::MAX;
 
 /// How many of a session's tick threads work beside its body's background threads and the
@@ -54,9 +63,19 @@ const RELEASED: usize = usize::MAX;
 #[derive(Debug, Clone)]
 pub struct ThreadShare {
     threads: usize,
-    /// `"auto"` only: the budget's capacity, every session's reservations and the cores this
-    /// session holds.
-    budget: Option<(usize, Arc<AtomicUsize>, Arc<AtomicUsize>)>,
+    /// `"auto"` only.
+    budget: Option<AutoShare>,
+}
+
+/// What an `"auto"` session's [`ThreadShare`] reads: the budget's capacity and counts, and
+/// its own.
+#[derive(Debug, Clone)]
+struct AutoShare {
+    capacity: usize,
+    reserved: Arc<AtomicUsize>,
+    lent: Arc<AtomicUsize>,
+    held: Arc<AtomicUsize>,
+    my_lent: Arc<AtomicUsize>,
 }
 
 impl ThreadShare {
@@ -68,19 +87,68 @@ impl ThreadShare {
         }
     }
 
-    /// Threads of the tick that work while the body keeps `background` threads busy: under
-    /// `"auto"` the session first holds as many of the cores it does not hold yet as are free,
-    /// then works with those the budget's cores not held by other sessions now hold beside
-    /// `background` (at least the servo thread); under `threads = N` all. Always
-    /// `1..=threads`; lock-free (atomic reads, and compare-exchanges when cores are free).
+    /// Threads of the tick that work while the body keeps `background` threads busy. Under
+    /// `"auto"` the session first holds as many of the cores it does not hold yet as are free;
+    /// while the sessions hold more cores than the budget has, it lends out workers until as
+    /// many are lent as that excess (not a worker from every session, only enough);
+    /// of the rest, those work that the cores other sessions' working threads leave hold
+    /// beside `background` (at least the servo thread). Under `threads = N` all work. Always
+    /// `1..=threads`; lock-free (atomic reads, and compare-exchanges when counts change).
     pub fn working(&self, background: usize) -> usize {
-        let Some((capacity, reserved, held)) = &self.budget else {
+        let Some(a) = &self.budget else {
             return self.threads;
         };
-        let mine = take_free_cores(*capacity, reserved, held, self.threads);
-        let others = reserved.load(Ordering::Acquire).saturating_sub(mine);
-        let free = capacity.saturating_sub(others);
-        mine.min(free.saturating_sub(background).max(1))
+        let mine = take_free_cores(a.capacity, &a.reserved, &a.held, self.threads);
+        let my_lent = lend_for_the_excess(a, mine);
+        if a.held.load(Ordering::Acquire) == RELEASED {
+            return 1;
+        }
+        let others_held = a.reserved.load(Ordering::Acquire).saturating_sub(mine);
+        let others_lent = a.lent.load(Ordering::Acquire).saturating_sub(my_lent);
+        let free = a
+            .capacity
+            .saturating_sub(others_held.saturating_sub(others_lent));
+        (mine - my_lent).min(free.saturating_sub(background).max(1))
+    }
+}
+
+/// Moves the budget's lent workers towards the excess of cores held over its capacity, one
+/// of this session's workers at a time (it holds `mine` cores and always keeps its servo
+/// thread): lends while fewer are lent, takes back while more are. Returns its workers lent.
+fn lend_for_the_excess(a: &AutoShare, mine: usize) -> usize {
+    loop {
+        let my = a.my_lent.load(Ordering::Acquire);
+        if my == RELEASED {
+            return 0;
+        }
+        let excess = a
+            .reserved
+            .load(Ordering::Acquire)
+            .saturating_sub(a.capacity);
+        let lent = a.lent.load(Ordering::Acquire);
+        if lent > excess && my > 0 {
+            let back = a
+                .my_lent
+                .compare_exchange(my, my - 1, Ordering::AcqRel, Ordering::Acquire);
+            if back.is_ok() {
+                a.lent.fetch_sub(1, Ordering::AcqRel);
+            }
+        } else if lent < excess && my + 1 < mine {
+            let claimed =
+                a.lent
+                    .compare_exchange(lent, lent + 1, Ordering::AcqRel, Ordering::Acquire);
+            if claimed.is_ok()
+                && a.my_lent
+                    .compare_exchange(my, my + 1, Ordering::AcqRel, Ordering::Acquire)
+                    .is_err()
+            {
+                // Released meanwhile: the claim is not this session's to keep.
+                a.lent.fetch_sub(1, Ordering::AcqRel);
+                return 0;
+            }
+        } else {
+            return my;
+        }
     }
 }
 
@@ -150,9 +218,13 @@ impl CoreReservation {
     pub fn share(&self) -> ThreadShare {
         ThreadShare {
             threads: self.threads,
-            budget: self
-                .capacity
-                .map(|c| (c, self.reserved.clone(), self.held.clone())),
+            budget: self.capacity.map(|capacity| AutoShare {
+                capacity,
+                reserved: self.reserved.clone(),
+                lent: self.lent.clone(),
+                held: self.held.clone(),
+                my_lent: self.my_lent.clone(),
+            }),
         }
     }
 
@@ -167,6 +239,8 @@ impl Drop for CoreReservation {
     fn drop(&mut self) {
         let held = self.held.swap(RELEASED, Ordering::AcqRel);
         self.reserved.fetch_sub(held, Ordering::AcqRel);
+        let lent = self.my_lent.swap(RELEASED, Ordering::AcqRel);
+        self.lent.fetch_sub(lent, Ordering::AcqRel);
     }
 }
 
@@ -187,6 +261,7 @@ impl CoreBudget {
         Self {
             capacity: capacity.max(1),
             reserved: Arc::new(AtomicUsize::new(0)),
+            lent: Arc::new(AtomicUsize::new(0)),
         }
     }
 
@@ -231,6 +306,8 @@ impl CoreBudget {
                 Ok(_) => {
                     return CoreReservation {
                         reserved: self.reserved.clone(),
+                        lent: self.lent.clone(),
+                        my_lent: Arc::new(AtomicUsize::new(0)),
                         threads,
                         held: Arc::new(AtomicUsize::new(cores)),
                         first: now,
@@ -342,6 +419,58 @@ mod tests {
         assert_eq!(
             (fifo_refused.threads(), fifo_refused.share().working(0)),
             (1, 1)
+        );
+    }
+
+    /// Sessions holding more cores than the budget has lend out only as many workers as that
+    /// excess, not one each, and take them back as the excess goes.
+    #[test]
+    fn only_as_many_workers_as_the_excess_are_lent_out() {
+        let auto = ServoThreads::Auto;
+        let budget = CoreBudget::new(16);
+        let mut sessions: Vec<_> = (0..9).map(|_| budget.reserve(auto, 2, false)).collect();
+        let mut shares: Vec<_> = sessions.iter().map(CoreReservation::share).collect();
+        assert_eq!(
+            budget.reserved(),
+            17,
+            "the ninth holds its servo thread's core"
+        );
+        let working = |shares: &[ThreadShare]| {
+            // Two statistics windows each: the counts settle in the first.
+            shares.iter().for_each(|s| {
+                s.working(0);
+            });
+            shares.iter().map(|s| s.working(0)).collect::<Vec<_>>()
+        };
+        let w = working(&shares);
+        assert_eq!(w.iter().sum::<usize>(), 16, "{w:?}");
+        assert_eq!(w.iter().filter(|&&n| n == 1).count(), 2, "{w:?}");
+        assert_eq!(w[8], 1, "the ninth waits for a core");
+        // A session that was not lending stops: the ninth takes its core, nobody lends.
+        let lender = w[..8].iter().position(|&n| n == 1).expect("one lends");
+        let stopped = (lender + 1) % 8;
+        sessions.remove(stopped);
+        shares.remove(stopped);
+        let w = working(&shares);
+        assert_eq!(w, vec![2; 8], "{w:?}");
+        assert_eq!(budget.reserved(), 16);
+        // Two more on a full budget: two workers lent; a lender stops and the count holds.
+        sessions.extend((0..2).map(|_| budget.reserve(auto, 2, false)));
+        shares.extend(sessions[8..].iter().map(CoreReservation::share));
+        let w = working(&shares);
+        assert_eq!(w.iter().sum::<usize>(), 16, "{w:?}");
+        let lenders: Vec<_> = (0..8).filter(|&i| w[i] == 1).collect();
+        assert_eq!(lenders.len(), 2, "{w:?}");
+        sessions.remove(lenders[0]);
+        shares.remove(lenders[0]);
+        let w = working(&shares);
+        assert_eq!(w.iter().sum::<usize>(), 16, "{w:?}");
+        drop(sessions);
+        assert_eq!(budget.reserved(), 0);
+        assert_eq!(
+            budget.lent.load(Ordering::Acquire),
+            0,
+            "lent workers given back"
         );
     }
 
