@@ -36,7 +36,7 @@ pub struct CoreBudget {
     lent: Arc<AtomicUsize>,
 }
 
-/// The cores one session holds; given back when dropped. Lock-free: dropping it is two atomic
+/// The cores one session holds; given back when dropped. Lock-free: dropping it is four atomic
 /// operations (the servo loop may drop it after a tick).
 #[derive(Debug)]
 pub struct CoreReservation {
@@ -98,7 +98,7 @@ impl ThreadShare {
         let Some(a) = &self.budget else {
             return self.threads;
         };
-        let mine = take_free_cores(a.capacity, &a.reserved, &a.held, self.threads);
+        let mine = take_free_cores(a, self.threads);
         let my_lent = lend_for_the_excess(a, mine);
         if a.held.load(Ordering::Acquire) == RELEASED {
             return 1;
@@ -152,14 +152,16 @@ fn lend_for_the_excess(a: &AutoShare, mine: usize) -> usize {
     }
 }
 
-/// Holds up to `threads` cores in all for a session holding `held`, taking them from those of
-/// `capacity` that no session holds; returns the cores held after (1 once released).
-fn take_free_cores(
-    capacity: usize,
-    reserved: &AtomicUsize,
-    held: &AtomicUsize,
-    threads: usize,
-) -> usize {
+/// Holds up to `threads` cores in all for the session of `a`, taking them from those of the
+/// budget that no session holds; returns the cores held after (1 once released).
+fn take_free_cores(a: &AutoShare, threads: usize) -> usize {
+    let AutoShare {
+        capacity,
+        reserved,
+        held,
+        ..
+    } = a;
+    let capacity = *capacity;
     let mine = held.load(Ordering::Acquire);
     if mine == RELEASED {
         return 1;
