@@ -125,11 +125,22 @@ async fn probe_press_force_profile() -> Result<()> {
         let r = &rows[i];
         moving_out(i) && r.f_n[0] < 0.0 && r.norm() <= 0.02 + 1e-9
     };
+    // A late command (the watchdog's ramp after a stall of the command stream: `ramp`, not
+    // `fresh`) carries the force of a pose some milliseconds earlier, so on the way out it may
+    // outlast the contact by the stall; bounded like the drag. (A 20-30 ms stall on a loaded
+    // 2-core machine held a 0.3 mN force from the last contact ticks 0.03-0.1 mm past 11.8 mm.)
+    let late = |i: usize| {
+        let r = &rows[i];
+        moving_out(i) && !r.fresh_command && r.norm() <= 0.02 + 1e-9
+    };
     // Free space: the probe (radius 2 mm) is clear of the epicardium (9.68 mm from the axis at
-    // z = -5 mm) while x > 11.8 mm, so no force there on the way in, and at most that drag on
-    // the way out.
+    // z = -5 mm) while x > 11.8 mm, so no force there on the way in, and at most that drag (or
+    // a late command) on the way out.
     for (i, r) in rows.iter().enumerate().filter(|(_, r)| r.x_m > 0.0118) {
-        assert!(r.norm() < 1e-9 || drag(i), "force in free space: {r:?}");
+        assert!(
+            r.norm() < 1e-9 || drag(i) || late(i),
+            "force in free space: {r:?}"
+        );
     }
 
     // The force pushes the probe back out (+x) whenever it is noticeable; on the way out the
