@@ -801,12 +801,23 @@ pub fn vertex(xyz: &[f32], i: usize) -> [f64; 3] {
     ]
 }
 
+/// The lock of [`serial`] and [`serial_blocking`].
+static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
 /// Serializes the end-to-end tests of one test binary: each runs a daemon with a 1 kHz servo
 /// thread, and several at once on a shared 2-core machine only measure the machine. An async
 /// lock, since the guard is held across the whole test.
 pub async fn serial() -> tokio::sync::MutexGuard<'static, ()> {
-    static LOCK: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
-    LOCK.lock().await
+    SERIAL.lock().await
+}
+
+/// [`serial`] for blocking code (a `spawn_blocking` task or a plain thread), for a test that
+/// holds the lock only while its daemons run sessions and lets others run while it installs.
+///
+/// # Panics
+/// Called from an async context (tokio's `blocking_lock`).
+pub fn serial_blocking() -> tokio::sync::MutexGuard<'static, ()> {
+    SERIAL.blocking_lock()
 }
 
 /// Starts the built-in scene `scene` over gRPC and returns the session id.

@@ -29,14 +29,18 @@
 //! only where Gmsh cannot be installed, as `surface_mesh.rs` does.
 //!
 //! Cost: about 2-4 minutes on the 2-core machine, most of it the Python block (`pip install`,
-//! from the cache after the first run) and the demo; the rest is seconds per block.
+//! from the cache after the first run) and the demo; the rest is seconds per block. The blocks
+//! hold the binary's serial lock ([`haptic_e2e::serial`]) except while they install (the venv
+//! and `pip install` lines), so the other end-to-end tests run meanwhile.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use anyhow::{Context, Result, bail, ensure};
-use haptic_e2e::{Daemon, HAPTICD, binary, install, serial, unique_temp_dir, wait_timeout};
+use haptic_e2e::{
+    Daemon, HAPTICD, binary, install, serial_blocking, unique_temp_dir, wait_timeout,
+};
 
 /// Blocks that are not run: (file, a line of the block, why).
 const NOT_RUN: &[(&str, &str, &str)] = &[(
@@ -106,6 +110,13 @@ fn logical_lines(text: &str) -> Vec<String> {
         cont = line.trim_end().ends_with('\\');
     }
     out
+}
+
+/// Whether `line` only installs (makes the Python environment or runs `pip install`): the
+/// documents run no session meanwhile (their daemons are idle), so it needs no serial lock.
+fn is_install(line: &str) -> bool {
+    let code = line.split('#').next().unwrap_or_default().trim();
+    code.starts_with("python3 -m venv ") || code.starts_with("pip install ")
 }
 
 /// The daemon's arguments if `line` starts it.
@@ -241,25 +252,39 @@ impl Runner {
     }
 
     /// Runs one block: segments between daemon lines, as scripts.
+    /// Runs block `b` of `file`: its lines in segments, a segment ending at a daemon line or
+    /// where lines change between installing ([`is_install`]) and the rest. Only installing
+    /// runs without the [`serial_blocking`] lock, so the other end-to-end tests go on meanwhile.
     fn run_block(&mut self, file: &str, b: &Block) -> Result<()> {
         let what = format!("{file}:{}", b.line);
         let mut segment = String::new();
+        let mut installing = false;
         for line in logical_lines(&b.text) {
-            if let Some(args) = daemon_args(&line) {
-                if !segment.trim().is_empty() {
-                    run_script(&self.dir, &self.state, &segment, &what)?;
-                }
+            let daemon = daemon_args(&line);
+            if daemon.is_some() || is_install(&line) != installing {
+                self.run_segment(&segment, installing, &what)?;
                 segment.clear();
+                installing = is_install(&line);
+            }
+            if let Some(args) = daemon {
+                let _serial = serial_blocking();
                 self.start_daemon(&args, &what)?;
             } else {
                 segment.push_str(&self.substitute(&line));
                 segment.push('\n');
             }
         }
-        if !segment.trim().is_empty() {
-            run_script(&self.dir, &self.state, &segment, &what)?;
+        self.run_segment(&segment, installing, &what)
+    }
+
+    /// Runs `segment` of block `what` (nothing when blank), holding the serial lock unless it
+    /// is `installing`.
+    fn run_segment(&self, segment: &str, installing: bool, what: &str) -> Result<()> {
+        if segment.trim().is_empty() {
+            return Ok(());
         }
-        Ok(())
+        let _serial = (!installing).then(serial_blocking);
+        run_script(&self.dir, &self.state, segment, what)
     }
 }
 
@@ -318,7 +343,8 @@ fn run_file(dir: &Path, file: &str, before: Option<&str>) -> Result<Vec<String>>
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_command_block_of_the_readme_and_tools_md_runs_as_written() -> Result<()> {
-    let _serial = serial().await;
+    // The blocks take the serial lock themselves, all but the installing lines
+    // (`Runner::run_block`).
     let bin_dir = binary(HAPTICD)?
         .parent()
         .context("binary directory")?
