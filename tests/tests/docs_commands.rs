@@ -300,6 +300,7 @@ fn run_file(dir: &Path, file: &str, before: Option<&str>) -> Result<Vec<String>>
     };
     if let Some(line) = before {
         let args = daemon_args(line).context("not a daemon line")?;
+        let _serial = serial_blocking();
         runner.start_daemon(&args, &format!("{file} (the README's daemon)"))?;
     }
     let mut report = Vec::new();
