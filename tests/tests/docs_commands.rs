@@ -260,11 +260,11 @@ impl Runner {
         let mut segment = String::new();
         let mut installing = false;
         for line in logical_lines(&b.text) {
-            let daemon = daemon_args(&line);
-            if daemon.is_some() || is_install(&line) != installing {
+            let (daemon, install) = (daemon_args(&line), is_install(&line));
+            if daemon.is_some() || install != installing {
                 self.run_segment(&segment, installing, &what)?;
                 segment.clear();
-                installing = is_install(&line);
+                installing = install;
             }
             if let Some(args) = daemon {
                 let _serial = serial_blocking();
